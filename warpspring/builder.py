@@ -1,0 +1,630 @@
+"""ModelBuilder: assemble particles, springs, triangles and colliders in bulk, then finalize to a Model.
+
+Everything is vectorised over NumPy arrays: a cloth is a handful of array operations, never one Python
+call per particle (a 1024 × 1024 cloth with its 6.3 M springs builds in seconds).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .errors import ConfigError
+from .kernels.contacts import SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
+from .kernels.precision import scalar_type, transform_type, vec3_type
+from .model import MeshGroup, Model, ShapeInfo
+from .transforms import quat_between, quat_to_matrix
+
+_AXES = {"Y": 1, "Z": 2}  # USD knows only Y-up and Z-up stages
+_GRID_PINS = ("top-left", "top-right", "bottom-left", "bottom-right", "top", "bottom", "left", "right")
+
+
+@dataclass(frozen=True)
+class SpringMaterial:
+    """Stiffness and damping of a family of springs.
+
+    Attributes:
+        ke: stiffness [N/m], ≥ 0.
+        kd: axial damping [N·s/m], ≥ 0.
+    """
+
+    ke: float
+    kd: float = 0.0
+
+
+#: Default cloth spring families (structural, shear, bend) of ``add_cloth_grid``/``add_cloth_mesh``.
+DEFAULT_STRUCTURAL = SpringMaterial(ke=1.0e3, kd=1.0)
+DEFAULT_SHEAR = SpringMaterial(ke=1.0e3, kd=1.0)
+DEFAULT_BEND = SpringMaterial(ke=1.0e2, kd=0.1)
+
+
+class ModelBuilder:
+    """Collects a scene on the host and finalizes it into a :class:`Model` on a device.
+
+    Args:
+        up_axis: world up axis, "Y" or "Z" (also written to USD).
+        gravity: gravitational acceleration [m/s²]: a 3-vector, or ``None`` for 9.81 m/s² down the up axis.
+        drag: global viscous drag coefficient [N·s/m], f = -drag · v on every particle.
+
+    Example:
+        >>> builder = ModelBuilder()
+        >>> builder.add_cloth_grid(nx=32, ny=32, spacing=0.05, mass=0.5, pin=["top-left", "top-right"])
+        >>> model = builder.finalize("cpu")
+    """
+
+    def __init__(self, *, up_axis: str = "Z", gravity=None, drag: float = 0.0):
+        axis = str(up_axis).upper()
+        if axis not in _AXES:
+            raise ConfigError(f"up_axis must be 'Y' or 'Z' (the two axes USD supports), got {up_axis!r}")
+        self.up_axis = axis
+        up = np.zeros(3)
+        up[_AXES[axis]] = 1.0
+        self.up_vector = up
+        self.gravity = _vector("gravity", -9.81 * up if gravity is None else gravity)
+        self.drag = _non_negative("drag", drag)
+
+        self._q: list[np.ndarray] = []
+        self._qd: list[np.ndarray] = []
+        self._mass: list[np.ndarray] = []
+        self._radius: list[np.ndarray] = []
+        self._pinned: list[np.ndarray] = []
+        self._extra_pins: list[np.ndarray] = []
+        self._particle_count = 0
+
+        self._springs: list[np.ndarray] = []
+        self._spring_rest: list[np.ndarray] = []
+        self._spring_ke: list[np.ndarray] = []
+        self._spring_kd: list[np.ndarray] = []
+        self._spring_count = 0
+
+        self._meshes: list[MeshGroup] = []
+        self._shapes: list[tuple] = []  # (type, position, quat xyzw, size, friction, name)
+
+    # -- counts ---------------------------------------------------------------------------------------
+
+    @property
+    def particle_count(self) -> int:
+        """Number of particles added so far."""
+        return self._particle_count
+
+    @property
+    def spring_count(self) -> int:
+        """Number of springs added so far."""
+        return self._spring_count
+
+    # -- primitives -----------------------------------------------------------------------------------
+
+    def add_particles(self, positions, *, velocities=None, mass=1.0, radius=0.01, pinned=None) -> np.ndarray:
+        """Add particles in bulk.
+
+        Args:
+            positions: positions [m], shape [n, 3].
+            velocities: initial velocities [m/s], shape [n, 3] or [3]; default zero.
+            mass: mass per particle [kg], > 0: a scalar or shape [n].
+            radius: contact radius [m], ≥ 0: a scalar or shape [n].
+            pinned: boolean mask of shape [n] (or indices into the new particles) of pinned particles.
+                Pinned particles have zero inverse mass: no force moves them.
+
+        Returns:
+            The global indices of the new particles, shape [n].
+        """
+        q = _points("particle positions", positions)
+        n = len(q)
+        qd = np.zeros((n, 3)) if velocities is None else _points("particle velocities", velocities, count=n)
+        m = _per_item("particle mass", mass, n, positive=True)
+        r = _per_item("particle radius", radius, n)
+        pin_mask = np.zeros(n, dtype=bool)
+        if pinned is not None:
+            pinned = np.asarray(pinned)
+            if pinned.dtype == bool:
+                if pinned.shape != (n,):
+                    raise ConfigError(f"pinned mask must have shape ({n},), got {pinned.shape}")
+                pin_mask = pinned.copy()
+            else:
+                pin_mask[_indices("pinned", pinned, n)] = True
+        start = self._particle_count
+        self._q.append(q)
+        self._qd.append(qd)
+        self._mass.append(m)
+        self._radius.append(r)
+        self._pinned.append(pin_mask)
+        self._particle_count += n
+        return np.arange(start, start + n)
+
+    def pin_particles(self, indices) -> None:
+        """Pin particles (zero inverse mass) by global index."""
+        self._extra_pins.append(_indices("pinned particle", indices, self._particle_count))
+
+    def add_springs(self, pairs, *, stiffness, damping=0.0, rest_length=None) -> np.ndarray:
+        """Add springs in bulk.
+
+        Args:
+            pairs: global particle indices of each spring, shape [s, 2]; the two must differ.
+            stiffness: ke [N/m], ≥ 0: a scalar or shape [s].
+            damping: kd [N·s/m], ≥ 0: a scalar or shape [s].
+            rest_length: [m], ≥ 0, scalar or shape [s]; default: the current distance of the pair.
+
+        Returns:
+            The indices of the new springs, shape [s].
+        """
+        pairs = np.asarray(pairs)
+        if pairs.ndim != 2 or pairs.shape[1] != 2:
+            raise ConfigError(f"spring pairs must have shape [s, 2], got {pairs.shape}")
+        if len(pairs) and not np.issubdtype(pairs.dtype, np.integer):
+            raise ConfigError("spring pairs must be integer particle indices")
+        pairs = pairs.astype(np.int64)
+        s = len(pairs)
+        if s and (pairs.min() < 0 or pairs.max() >= self._particle_count):
+            bad = int(np.flatnonzero((pairs < 0).any(1) | (pairs >= self._particle_count).any(1))[0])
+            raise ConfigError(
+                f"spring {bad} joins particles {tuple(pairs[bad])}, but only {self._particle_count} particles "
+                "exist: add the particles first"
+            )
+        same = np.flatnonzero(pairs[:, 0] == pairs[:, 1])
+        if len(same):
+            raise ConfigError(f"spring {int(same[0])} joins particle {int(pairs[same[0], 0])} to itself")
+        ke = _per_item("spring stiffness", stiffness, s)
+        kd = _per_item("spring damping", damping, s)
+        if rest_length is None:
+            q = np.concatenate(self._q) if self._q else np.zeros((0, 3))
+            rest = np.linalg.norm(q[pairs[:, 1]] - q[pairs[:, 0]], axis=1)
+        else:
+            rest = _per_item("spring rest length", rest_length, s)
+        start = self._spring_count
+        self._springs.append(pairs)
+        self._spring_ke.append(ke)
+        self._spring_kd.append(kd)
+        self._spring_rest.append(rest)
+        self._spring_count += s
+        return np.arange(start, start + s)
+
+    def add_triangles(self, faces, *, name: str = "mesh", uvs=None) -> MeshGroup:
+        """Add a triangle mesh over existing particles (exported as one USD mesh; later used by
+        aerodynamics and collisions).
+
+        Args:
+            faces: global particle indices, shape [t, 3].
+            name: mesh name; made unique and a valid USD identifier.
+            uvs: texture coordinates per referenced particle in ascending index order, shape [v, 2].
+        """
+        faces = np.asarray(faces)
+        if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+            raise ConfigError(f"triangles must have shape [t, 3] with t > 0, got {faces.shape}")
+        faces = _indices("triangle vertex", faces, self._particle_count).reshape(-1, 3)
+        particles, local = np.unique(faces, return_inverse=True)
+        if uvs is not None:
+            uvs = np.asarray(uvs, dtype=np.float64)
+            if uvs.shape != (len(particles), 2):
+                raise ConfigError(f"uvs must have shape ({len(particles)}, 2), got {uvs.shape}")
+        group = MeshGroup(
+            name=self._unique_name(name, [m.name for m in self._meshes]),
+            particles=particles,
+            faces=local.reshape(-1, 3).astype(np.int32),
+            uvs=uvs,
+        )
+        self._meshes.append(group)
+        return group
+
+    # -- cloth ----------------------------------------------------------------------------------------
+
+    def add_cloth_grid(
+        self,
+        *,
+        nx: int,
+        ny: int,
+        spacing: float,
+        origin=(0.0, 0.0, 0.0),
+        rotation=(0.0, 0.0, 0.0, 1.0),
+        mass: float | None = None,
+        particle_mass: float | None = None,
+        velocity=(0.0, 0.0, 0.0),
+        radius: float | None = None,
+        structural: SpringMaterial | None = DEFAULT_STRUCTURAL,
+        shear: SpringMaterial | None = DEFAULT_SHEAR,
+        bend: SpringMaterial | None = DEFAULT_BEND,
+        pin=(),
+        name: str = "cloth",
+    ) -> np.ndarray:
+        """Add a rectangular cloth of nx × ny particles.
+
+        The grid lies in its local xy plane: column c at x = c·spacing, row r at y = r·spacing, local
+        +z its front normal; ``rotation`` then ``origin`` place it in the world. Row ny-1 is the "top"
+        edge, column 0 the "left" one.
+
+        Args:
+            nx, ny: particles per row and per column (≥ 2).
+            spacing: distance between neighbouring particles [m].
+            origin: world position of particle (row 0, column 0) [m].
+            rotation: orientation as a quaternion (x, y, z, w).
+            mass: total mass [kg], shared equally; or give ``particle_mass`` [kg] instead.
+            velocity: initial velocity of every particle [m/s].
+            radius: contact radius [m]; default a quarter of the spacing.
+            structural: springs to the 4-neighbours, or ``None`` for none.
+            shear: springs along both diagonals of each quad, or ``None``.
+            bend: springs skipping one particle along rows and columns, or ``None``.
+            pin: corners/edges by name ("top-left", "top-right", "bottom-left", "bottom-right", "top",
+                "bottom", "left", "right") and/or local particle indices r·nx + c.
+            name: mesh name for export.
+
+        Returns:
+            Global particle indices, shape [ny, nx].
+        """
+        nx, ny = _count("nx", nx, minimum=2), _count("ny", ny, minimum=2)
+        spacing = _positive("spacing", spacing)
+        n = nx * ny
+        m = _mass_per_particle(mass, particle_mass, n)
+        rows, cols = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
+        local = np.stack([cols * spacing, rows * spacing, np.zeros_like(rows, dtype=float)], axis=-1).reshape(-1, 3)
+        q = self._place(local, origin, rotation)
+        ids = self.add_particles(
+            q,
+            velocities=np.broadcast_to(_vector("velocity", velocity), (n, 3)),
+            mass=m,
+            radius=0.25 * spacing if radius is None else radius,
+            pinned=self._grid_pins(pin, nx, ny),
+        )
+        grid = ids.reshape(ny, nx)
+
+        def pairs(a, b):
+            return np.stack([a.ravel(), b.ravel()], axis=1)
+
+        families = [
+            (structural, [pairs(grid[:, :-1], grid[:, 1:]), pairs(grid[:-1, :], grid[1:, :])]),
+            (shear, [pairs(grid[:-1, :-1], grid[1:, 1:]), pairs(grid[:-1, 1:], grid[1:, :-1])]),
+            (bend, [pairs(grid[:, :-2], grid[:, 2:]), pairs(grid[:-2, :], grid[2:, :])]),
+        ]
+        for material, blocks in families:
+            if material is not None:
+                self.add_springs(np.concatenate(blocks), stiffness=material.ke, damping=material.kd)
+
+        a, b = grid[:-1, :-1].ravel(), grid[:-1, 1:].ravel()
+        c, d = grid[1:, 1:].ravel(), grid[1:, :-1].ravel()
+        faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+        uv = np.stack([cols / (nx - 1), rows / (ny - 1)], axis=-1).reshape(-1, 2)
+        self.add_triangles(faces, name=name, uvs=uv)
+        return grid
+
+    def add_cloth_mesh(
+        self,
+        mesh,
+        faces=None,
+        *,
+        origin=(0.0, 0.0, 0.0),
+        rotation=(0.0, 0.0, 0.0, 1.0),
+        scale: float = 1.0,
+        mass: float | None = None,
+        density: float | None = None,
+        velocity=(0.0, 0.0, 0.0),
+        radius: float | None = None,
+        structural: SpringMaterial | None = DEFAULT_STRUCTURAL,
+        bend: SpringMaterial | None = DEFAULT_BEND,
+        pin=(),
+        name: str = "cloth",
+    ) -> np.ndarray:
+        """Add a cloth from any triangle mesh.
+
+        Every mesh edge becomes a structural spring; for every interior edge, the two vertices opposite
+        it are joined by a bend spring. Mass is lumped to the vertices by triangle area.
+
+        Args:
+            mesh: a ``trimesh.Trimesh``, a file path trimesh can load (OBJ, STL, PLY, GLB, ...), or a
+                vertex array [m], shape [v, 3] (then ``faces`` is required).
+            faces: vertex indices of each triangle, shape [t, 3], when ``mesh`` is an array.
+            origin, rotation, scale: placement; world = origin + rotation · (scale · vertex).
+            mass: total mass [kg]; or ``density``: areal density [kg/m²].
+            velocity: initial velocity [m/s].
+            radius: contact radius [m]; default a quarter of the mean edge length.
+            structural, bend: spring families, or ``None``.
+            pin: vertex indices of pinned particles.
+            name: mesh name for export.
+
+        Returns:
+            Global particle indices of the mesh vertices, shape [v].
+        """
+        import trimesh
+
+        uv = None
+        if isinstance(mesh, (str, os.PathLike)):
+            path = os.fspath(mesh)
+            if not os.path.isfile(path):
+                raise ConfigError(f"mesh file not found: {path}")
+            try:
+                mesh = trimesh.load(path, force="mesh", process=False)
+            except Exception as exc:  # trimesh raises many types for unreadable files
+                raise ConfigError(f"cannot read mesh file {path}: {exc}") from None
+        if isinstance(mesh, trimesh.Trimesh):
+            vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+            visual_uv = getattr(getattr(mesh, "visual", None), "uv", None)
+            if visual_uv is not None and len(visual_uv) == len(vertices):
+                uv = np.asarray(visual_uv, dtype=np.float64)
+        else:
+            if faces is None:
+                raise ConfigError("add_cloth_mesh needs faces= when the mesh is given as a vertex array")
+            vertices = np.asarray(mesh, dtype=np.float64)
+        vertices = _points("mesh vertices", vertices)
+        faces = np.asarray(faces)
+        if len(vertices) == 0 or faces.size == 0:
+            raise ConfigError("the cloth mesh is empty: it needs at least one triangle")
+        if faces.ndim != 2 or faces.shape[1] != 3:
+            raise ConfigError(f"mesh faces must be triangles, shape [t, 3], got {faces.shape}")
+        faces = _indices("mesh face vertex", faces, len(vertices)).reshape(-1, 3)
+        scale = _positive("scale", scale)
+
+        tri = trimesh.Trimesh(vertices * scale, faces, process=False, validate=False)
+        area = tri.area_faces
+        if not (area > 0.0).any():
+            raise ConfigError("every triangle of the cloth mesh has zero area")
+        lumped = np.bincount(faces.ravel(), weights=np.repeat(area / 3.0, 3), minlength=len(vertices))
+        lonely = np.flatnonzero(lumped <= 0.0)
+        if len(lonely):
+            raise ConfigError(
+                f"mesh vertex {int(lonely[0])} belongs to no triangle of nonzero area "
+                f"({len(lonely)} such vertices): remove unreferenced vertices and degenerate faces"
+            )
+        if (mass is None) == (density is None):
+            raise ConfigError("give exactly one of mass= (total, kg) or density= (kg/m²) for a cloth mesh")
+        areal = _positive("mass", mass) / area.sum() if density is None else _positive("density", density)
+
+        edges = tri.edges_unique
+        ids = self.add_particles(
+            self._place(vertices * scale, origin, rotation),
+            velocities=np.broadcast_to(_vector("velocity", velocity), (len(vertices), 3)),
+            mass=lumped * areal,
+            radius=0.25 * float(tri.edges_unique_length.mean()) if radius is None else radius,
+            pinned=np.atleast_1d(np.asarray(pin, dtype=np.int64)) if np.size(pin) else None,
+        )
+        if structural is not None and len(edges):
+            self.add_springs(ids[edges], stiffness=structural.ke, damping=structural.kd)
+        if bend is not None:
+            opposite = tri.face_adjacency_unshared
+            if len(opposite):
+                self.add_springs(ids[opposite], stiffness=bend.ke, damping=bend.kd)
+        self.add_triangles(ids[faces], name=name, uvs=uv)
+        return ids
+
+    # -- colliders ------------------------------------------------------------------------------------
+
+    def add_collider_plane(self, *, point=(0.0, 0.0, 0.0), normal=None, friction: float = 0.5, name="ground"):
+        """Add an infinite static plane; particles stay on the side its normal points to.
+
+        Args:
+            point: a point on the plane [m].
+            normal: plane normal (normalised here); default the up axis.
+            friction: Coulomb coefficient μ [-], ≥ 0.
+            name: prim name for export.
+        """
+        n = self.up_vector if normal is None else _vector("plane normal", normal)
+        length = np.linalg.norm(n)
+        if length == 0.0:
+            raise ConfigError("plane normal must be a nonzero vector")
+        rotation = quat_between(np.array([0.0, 0.0, 1.0]), n / length)
+        self._add_shape(SHAPE_PLANE, _vector("plane point", point), rotation, (0.0, 0.0, 0.0), friction, name)
+
+    def add_ground_plane(self, *, height: float = 0.0, friction: float = 0.5):
+        """Add the ground: a plane through ``height`` [m] along the up axis, normal up."""
+        self.add_collider_plane(point=self.up_vector * float(height), friction=friction, name="ground")
+
+    def add_collider_sphere(self, *, center, radius: float, friction: float = 0.5, name="sphere"):
+        """Add a static sphere of ``radius`` [m] at ``center`` [m] with Coulomb coefficient ``friction``."""
+        size = (_positive("sphere radius", radius), 0.0, 0.0)
+        self._add_shape(SHAPE_SPHERE, _vector("sphere center", center), (0.0, 0.0, 0.0, 1.0), size, friction, name)
+
+    # -- finalize -------------------------------------------------------------------------------------
+
+    def finalize(self, device=None, *, precision: str = "float32") -> Model:
+        """Copy the scene to ``device`` as a :class:`Model`.
+
+        Args:
+            device: Warp device ("cpu", "cuda:0", ...); default Warp's default device.
+            precision: "float32" (default) or "float64" for every floating-point array and kernel.
+        """
+        if self._particle_count == 0:
+            raise ConfigError("the scene has no particles: add a cloth, a mesh or particles first")
+        scalar = scalar_type(precision)
+        device = wp.get_device(device)
+        vec3 = vec3_type(scalar)
+        float_np = np.float64 if scalar is wp.float64 else np.float32
+        model = Model(device, precision, scalar)
+        model.up_axis = self.up_axis
+        model.gravity = tuple(float(g) for g in self.gravity)
+        model.drag = float(self.drag)
+
+        n = self._particle_count
+        mass = np.concatenate(self._mass)
+        pinned = np.concatenate(self._pinned)
+        for extra in self._extra_pins:
+            pinned[extra] = True
+        inv_mass = np.where(pinned, 0.0, 1.0 / mass)
+
+        def farray(values, dtype=None):
+            return wp.array(np.asarray(values, dtype=float_np), dtype=dtype or scalar, device=device)
+
+        def iarray(values, dtype=wp.int32):
+            return wp.array(np.ascontiguousarray(values, dtype=np.int32), dtype=dtype, device=device)
+
+        model.particle_count = n
+        model.particle_q = farray(np.concatenate(self._q), vec3)
+        model.particle_qd = farray(np.concatenate(self._qd), vec3)
+        model.particle_mass = farray(mass)
+        model.particle_inv_mass = farray(inv_mass)
+        model.particle_radius = farray(np.concatenate(self._radius))
+
+        springs = np.concatenate(self._springs) if self._springs else np.zeros((0, 2), dtype=np.int64)
+        s = len(springs)
+        model.spring_count = s
+        model.spring_indices = iarray(springs, wp.vec2i)
+        model.spring_rest_length = farray(np.concatenate(self._spring_rest) if s else [])
+        model.spring_stiffness = farray(np.concatenate(self._spring_ke) if s else [])
+        model.spring_damping = farray(np.concatenate(self._spring_kd) if s else [])
+        offset, neighbor, spring_id = _incidence(springs, n)
+        model.particle_spring_offset = iarray(offset)
+        model.particle_spring_neighbor = iarray(neighbor)
+        model.particle_spring_id = iarray(spring_id)
+
+        tris = [g.particles[g.faces] for g in self._meshes]
+        tri_indices = np.concatenate(tris) if tris else np.zeros((0, 3), dtype=np.int64)
+        model.tri_count = len(tri_indices)
+        model.tri_indices = wp.array(tri_indices.astype(np.int32), dtype=wp.int32, device=device)
+        model.meshes = list(self._meshes)
+
+        transform = transform_type(scalar)
+        model.shape_count = len(self._shapes)
+        model.shape_type = iarray([t for t, *_ in self._shapes])
+        model.shape_transform = wp.array(
+            [transform(vec3(*p), wp.types.quaternion(dtype=scalar)(*r)) for _, p, r, *_ in self._shapes],
+            dtype=transform,
+            device=device,
+        )
+        model.shape_size = farray(np.array([size for *_, size, _, _ in self._shapes]).reshape(-1, 3), vec3)
+        model.shape_friction = farray([f for *_, f, _ in self._shapes])
+        model.shape_types = tuple(sorted({t for t, *_ in self._shapes}))
+        model.shapes = [
+            ShapeInfo(
+                kind=SHAPE_NAMES[t], name=name, position=tuple(p), rotation=tuple(r), size=tuple(size), friction=mu
+            )
+            for t, p, r, size, mu, name in self._shapes
+        ]
+        return model
+
+    # -- helpers --------------------------------------------------------------------------------------
+
+    def _add_shape(self, kind, position, rotation, size, friction, name):
+        friction = _non_negative("friction", friction)
+        name = self._unique_name(name, [s[-1] for s in self._shapes])
+        self._shapes.append((kind, tuple(float(x) for x in position), tuple(rotation), tuple(size), friction, name))
+
+    @staticmethod
+    def _place(local: np.ndarray, origin, rotation) -> np.ndarray:
+        R = quat_to_matrix(_quaternion(rotation))
+        return local @ R.T + _vector("origin", origin)
+
+    @staticmethod
+    def _grid_pins(pin, nx: int, ny: int) -> np.ndarray:
+        if isinstance(pin, (str, int, np.integer)):
+            pin = [pin]
+        mask = np.zeros((ny, nx), dtype=bool)
+        for p in pin:
+            if isinstance(p, str):
+                key = p.strip().lower()
+                if key not in _GRID_PINS:
+                    raise ConfigError(f"unknown pin {p!r}: use one of {', '.join(_GRID_PINS)} or particle indices")
+                top, right = "top" in key, "right" in key
+                if "-" in key:
+                    mask[ny - 1 if top else 0, nx - 1 if right else 0] = True
+                elif key in ("top", "bottom"):
+                    mask[ny - 1 if top else 0, :] = True
+                else:
+                    mask[:, nx - 1 if right else 0] = True
+            else:
+                mask.flat[_indices("pin", [p], nx * ny)] = True
+        return mask.ravel()
+
+    @staticmethod
+    def _unique_name(name: str, taken: list[str]) -> str:
+        base = re.sub(r"[^A-Za-z0-9_]", "_", str(name)) or "mesh"
+        if base[0].isdigit():
+            base = "_" + base
+        candidate, k = base, 1
+        while candidate in taken:
+            candidate, k = f"{base}_{k}", k + 1
+        return candidate
+
+
+# -- validation helpers (each raises ConfigError naming the quantity) -------------------------------------
+
+
+def _vector(name: str, value) -> np.ndarray:
+    v = np.asarray(value, dtype=np.float64)
+    if v.shape != (3,):
+        raise ConfigError(f"{name} must be 3 numbers [x, y, z], got {value!r}")
+    if not np.isfinite(v).all():
+        raise ConfigError(f"{name} must be finite, got {value!r}")
+    return v
+
+
+def _quaternion(value) -> np.ndarray:
+    q = np.asarray(value, dtype=np.float64)
+    if q.shape != (4,) or not np.isfinite(q).all() or np.linalg.norm(q) == 0.0:
+        raise ConfigError(f"rotation must be a nonzero quaternion (x, y, z, w), got {value!r}")
+    return q / np.linalg.norm(q)
+
+
+def _points(name: str, value, count: int | None = None) -> np.ndarray:
+    p = np.asarray(value, dtype=np.float64)
+    if count is not None and p.shape == (3,):
+        p = np.broadcast_to(p, (count, 3))
+    if p.ndim != 2 or p.shape[1] != 3 or (count is not None and len(p) != count):
+        want = f"[{count}, 3]" if count is not None else "[n, 3]"
+        raise ConfigError(f"{name} must have shape {want}, got {p.shape}")
+    bad = np.flatnonzero(~np.isfinite(p).all(axis=1))
+    if len(bad):
+        raise ConfigError(f"{name}: entry {int(bad[0])} is not finite ({p[bad[0]].tolist()}); fix the input data")
+    return np.array(p)
+
+
+def _per_item(name: str, value, n: int, *, positive: bool = False) -> np.ndarray:
+    v = np.asarray(value, dtype=np.float64)
+    if v.ndim == 0:
+        v = np.full(n, float(v))
+    if v.shape != (n,):
+        raise ConfigError(f"{name} must be a number or an array of shape ({n},), got shape {v.shape}")
+    bad = np.flatnonzero(~np.isfinite(v) | ((v <= 0.0) if positive else (v < 0.0)))
+    if len(bad):
+        need = "> 0" if positive else ">= 0"
+        raise ConfigError(f"{name} must be finite and {need}, got {v[bad[0]]} (entry {int(bad[0])})")
+    return v
+
+
+def _indices(name: str, value, bound: int) -> np.ndarray:
+    idx = np.asarray(value)
+    if idx.size and not np.issubdtype(idx.dtype, np.integer):
+        raise ConfigError(f"{name} indices must be integers, got {idx.dtype}")
+    idx = idx.astype(np.int64).ravel()
+    bad = idx[(idx < 0) | (idx >= bound)]
+    if len(bad):
+        raise ConfigError(f"{name} index {int(bad[0])} is out of range: valid indices are 0..{bound - 1}")
+    return idx
+
+
+def _number(name: str, value, *, minimum: float, inclusive: bool) -> float:
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+    v = float(value) if ok else float("nan")
+    if not np.isfinite(v) or v < minimum or (v == minimum and not inclusive):
+        raise ConfigError(f"{name} must be a finite number {'>=' if inclusive else '>'} {minimum:g}, got {value!r}")
+    return v
+
+
+def _positive(name: str, value) -> float:
+    return _number(name, value, minimum=0.0, inclusive=False)
+
+
+def _non_negative(name: str, value) -> float:
+    return _number(name, value, minimum=0.0, inclusive=True)
+
+
+def _count(name: str, value, *, minimum: int) -> int:
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < minimum:
+        raise ConfigError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def _mass_per_particle(mass, particle_mass, n: int) -> float:
+    if (mass is None) == (particle_mass is None):
+        raise ConfigError("give exactly one of mass= (total, kg) or particle_mass= (kg per particle)")
+    return _positive("mass", mass) / n if particle_mass is None else _positive("particle_mass", particle_mass)
+
+
+def _incidence(springs: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """CSR list of the springs incident to each particle: (offset [n+1], neighbor [2s], spring id [2s])."""
+    s = len(springs)
+    owner = np.concatenate([springs[:, 0], springs[:, 1]])
+    neighbor = np.concatenate([springs[:, 1], springs[:, 0]])
+    spring_id = np.concatenate([np.arange(s), np.arange(s)])
+    order = np.argsort(owner, kind="stable")
+    offset = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(owner, minlength=n), out=offset[1:])
+    return offset, neighbor[order], spring_id[order]

@@ -1,0 +1,113 @@
+"""The ``warpspring`` command line.
+
+Errors a user can fix (a missing file, a malformed scene, a bad option, an unstable run) end with one
+line on stderr and a non-zero exit status, never a traceback: 2 for bad input, 3 for a simulation
+that went numerically bad.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from .errors import ConfigError, SimulationError
+
+EXIT_CONFIG = 2
+EXIT_SIMULATION = 3
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # argparse's own errors: one line, exit 2
+        self.exit(EXIT_CONFIG, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="warpspring", description="Mass-spring cloth on NVIDIA Warp, exported to USD.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    run = sub.add_parser("run", help="simulate a TOML scene and write the animation to USD")
+    run.add_argument("scene", help="scene file (.toml); see examples/")
+    run.add_argument("-o", "--output", help="output USD file (.usdc, or .usda for text); default: the scene's")
+    run.add_argument("--device", help="Warp device: cpu, cuda:0, ... (default: the scene's, else Warp's default)")
+    run.add_argument("--frames", type=_positive_int, help="frames to simulate")
+    run.add_argument("--fps", type=_positive_float, help="frames per second [1/s]")
+    run.add_argument("--substeps", type=_positive_int, help="integrator steps per frame")
+    run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    run.set_defaults(handler=_cmd_run)
+
+    render = sub.add_parser("render", help="render a frame of a USD animation to PNG (needs matplotlib)")
+    render.add_argument("usd", help="USD file written by 'warpspring run'")
+    render.add_argument("-o", "--output", required=True, help="PNG file")
+    render.add_argument("--frame", type=int, default=-1, help="frame to render; negative counts from the end")
+    render.add_argument("--size", type=_positive_int, default=900, help="image width in pixels")
+    render.set_defaults(handler=_cmd_render)
+    return parser
+
+
+def _cmd_run(args) -> int:
+    import warp as wp
+
+    from .runner import run_scene
+    from .scene import load_scene
+
+    wp.config.log_level = wp.LOG_WARNING  # no init banner or module-load lines in CLI output
+    scene = load_scene(args.scene)
+    summary = run_scene(
+        scene,
+        output=args.output,
+        device=args.device,
+        frames=args.frames,
+        fps=args.fps,
+        substeps=args.substeps,
+        progress=not args.quiet,
+    )
+    print(summary.line())
+    return 0
+
+
+def _cmd_render(args) -> int:
+    from .render import render_usd
+
+    path = render_usd(args.usd, args.output, frame=args.frame, width=args.size)
+    print(f"wrote {path}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``warpspring`` command; returns the exit status."""
+    args = build_parser().parse_args(argv)
+    try:
+        return args.handler(args)
+    except ConfigError as exc:
+        print(f"warpspring: error: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
+    except SimulationError as exc:
+        print(f"warpspring: simulation failed: {exc}", file=sys.stderr)
+        return EXIT_SIMULATION
+    except KeyboardInterrupt:
+        print("warpspring: interrupted; the output holds every frame written so far", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,64 @@
+"""Launch functions of the force terms and the contact pass. Each returns at once when the model lacks
+what it would evaluate: nothing is launched for a feature the scene does not use."""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .kernels.contacts import project_contacts_kernel
+from .kernels.forces import eval_forces_kernel
+from .model import Control, Model, State
+
+
+def eval_forces(model: Model, state: State, control: Control | None, particle_f: wp.array | None = None) -> None:
+    """Write the total force [N] on every particle (gravity, drag, external, springs) to ``particle_f``.
+
+    Args:
+        model: the model.
+        state: positions and velocities to evaluate at.
+        control: external inputs, or ``None``.
+        particle_f: output, shape [particle_count]; default ``state.particle_f``.
+    """
+    if model.particle_count == 0:
+        return
+    features = model.force_features(control)
+    wp.launch(
+        eval_forces_kernel(model.scalar, features),
+        dim=model.particle_count,
+        inputs=[
+            model.particle_mass,
+            model.particle_spring_offset,
+            model.particle_spring_neighbor,
+            model.particle_spring_id,
+            model.spring_rest_length,
+            model.spring_stiffness,
+            model.spring_damping,
+            model.vec3(*model.gravity),
+            model.scalar(model.drag),
+            control.particle_force if features.external else None,
+            state.particle_q,
+            state.particle_qd,
+        ],
+        outputs=[state.particle_f if particle_f is None else particle_f],
+        device=model.device,
+    )
+
+
+def apply_contacts(model: Model, state: State) -> None:
+    """Project the free particles of ``state`` out of the colliders, with friction, in place."""
+    if model.shape_count == 0:
+        return
+    wp.launch(
+        project_contacts_kernel(model.scalar, model.shape_types),
+        dim=model.particle_count,
+        inputs=[
+            model.particle_inv_mass,
+            model.particle_radius,
+            model.shape_type,
+            model.shape_transform,
+            model.shape_size,
+            model.shape_friction,
+        ],
+        outputs=[state.particle_q, state.particle_qd],
+        device=model.device,
+    )

@@ -1,0 +1,29 @@
+"""The one contract every integrator implements."""
+
+from __future__ import annotations
+
+import abc
+
+from ..model import Control, Model, State
+
+
+class Integrator(abc.ABC):
+    """Advances a :class:`State` of a :class:`Model` by one step.
+
+    Subclasses set :attr:`name` (the scene-file / CLI name) and :attr:`order` (the method's
+    convergence order), allocate any scratch states once in ``__init__``, and implement :meth:`step`.
+    """
+
+    name: str = ""
+    order: int = 0
+
+    def __init__(self, model: Model):
+        self.model = model
+
+    @abc.abstractmethod
+    def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
+        """Advance ``state_in`` by ``dt`` [s] under ``control`` and write the result to ``state_out``.
+
+        ``state_in`` is not modified; the caller swaps the two states afterwards. No host
+        synchronisation happens inside, so steps can be captured in a CUDA graph.
+        """

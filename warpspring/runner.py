@@ -1,0 +1,138 @@
+"""Run a scene to a USD file: build, simulate frame by frame, stream frames out, report."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import warp as wp
+
+from .errors import ConfigError, SimulationError
+from .integrators import make_integrator
+from .scene import Scene, check_run_settings
+from .simulation import Simulator
+from .usd import UsdWriter
+
+
+@dataclass
+class RunSummary:
+    """What a run did.
+
+    Attributes:
+        output: the USD file written.
+        frames: frames simulated (the file holds frames + 1 samples: the initial state is frame 0).
+        simulated_time: simulated seconds [s].
+        wall_time: wall time [s] of frames 2..frames (simulation and USD writing).
+        setup_time: wall time [s] to build the model, compile the kernels and run the first frame.
+        substeps: integrator steps per frame; dt = 1 / (fps · substeps).
+        device: the Warp device used.
+        model: one-line model description.
+        integrator: integrator name.
+    """
+
+    output: str
+    frames: int
+    simulated_time: float
+    wall_time: float
+    setup_time: float
+    substeps: int
+    dt: float
+    device: str
+    model: str
+    integrator: str
+
+    def line(self) -> str:
+        """The closing summary line of the CLI."""
+        timed = self.frames - 1
+        rate = timed / self.wall_time if timed > 0 and self.wall_time > 0 else float("nan")
+        return (
+            f"wrote {self.frames + 1} frames ({self.simulated_time:.3g} s simulated) to {self.output} in "
+            f"{self.wall_time:.2f} s + {self.setup_time:.2f} s setup: {rate:.1f} frames/s, "
+            f"{rate * self.substeps:.0f} substeps/s; {self.integrator}, dt = {self.dt * 1e3:.4g} ms; "
+            f"{self.model}"
+        )
+
+
+def resolve_device(name: str | None):
+    """The Warp device called ``name`` (None: Warp's default), or a ConfigError listing those present."""
+    if name is None:
+        return wp.get_device()
+    try:
+        device = wp.get_device(name)
+    except (RuntimeError, ValueError):
+        device = None
+    if device is None:
+        found = ", ".join(d.alias for d in wp.get_devices())
+        raise ConfigError(f"device {name!r} is not available; this machine has: {found}")
+    return device
+
+
+def run_scene(
+    scene: Scene,
+    *,
+    output: str | None = None,
+    device: str | None = None,
+    frames: int | None = None,
+    fps: float | None = None,
+    substeps: int | None = None,
+    progress: bool = True,
+) -> RunSummary:
+    """Simulate ``scene`` and write it to USD. Arguments other than ``scene`` override the file's values.
+
+    Raises:
+        ConfigError: bad scene or options (nothing is written).
+        SimulationError: the state became non-finite; the file holds every frame before that one.
+    """
+    frames = scene.frames if frames is None else frames
+    fps = scene.fps if fps is None else fps
+    substeps = scene.substeps if substeps is None else substeps
+    check_run_settings(fps=fps, frames=frames, substeps=substeps)
+    output = output or scene.output
+    if not output:
+        raise ConfigError("no output file: pass -o out.usdc or set [output] path in the scene")
+
+    t0 = time.perf_counter()
+    dev = resolve_device(device or scene.device)
+    model = scene.builder().finalize(dev, precision=scene.precision)
+    integrator = make_integrator(scene.integrator, model, **scene.integrator_options)
+    sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps)
+
+    with UsdWriter(output, model, fps=fps, particles=scene.export_particles, springs=scene.export_springs) as usd:
+        usd.write_frame(sim.state)
+        bar = _progress(frames, enabled=progress)
+        t1 = None
+        try:
+            for _ in range(frames):
+                sim.step_frame()
+                usd.write_frame(sim.state)
+                bar.update(1)
+                if t1 is None:  # the first frame compiled the kernels and captured the graph: setup time
+                    t1 = time.perf_counter()
+        except SimulationError as exc:
+            raise SimulationError(
+                f"{exc} at frame {sim.frame} (t = {sim.time:.4g} s, dt = {sim.dt:.3g} s): the run is unstable. "
+                f"Use more substeps (now {substeps}) or a more stable integrator; "
+                f"{output} holds frames 0..{sim.frame - 1}",
+                frame=sim.frame,
+            ) from None
+        finally:
+            bar.close()
+        wall = time.perf_counter() - t1
+    return RunSummary(
+        output=output,
+        frames=frames,
+        simulated_time=frames / fps,
+        wall_time=wall,
+        setup_time=t1 - t0,
+        substeps=substeps,
+        dt=sim.dt,
+        device=str(dev),
+        model=model.describe(),
+        integrator=integrator.name,
+    )
+
+
+def _progress(total: int, *, enabled: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="frame", disable=not enabled, dynamic_ncols=True, leave=False)
