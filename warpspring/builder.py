@@ -424,7 +424,10 @@ class ModelBuilder:
         """
         if self._particle_count == 0:
             raise ConfigError("the scene has no particles: add a cloth, a mesh or particles first")
-        scalar = scalar_type(precision)
+        try:
+            scalar = scalar_type(precision)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         device = wp.get_device(device)
         vec3 = vec3_type(scalar)
         float_np = np.float64 if scalar is wp.float64 else np.float32

@@ -1,0 +1,140 @@
+"""Kernel-level maths (@wp.func helpers) against NumPy float64 references."""
+
+import functools
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warpspring.kernels.contacts import contact_funcs
+from warpspring.kernels.forces import spring_funcs
+from warpspring.kernels.precision import scalar_type, vec3_type
+
+# float32 rounding of O(1) inputs through a handful of operations; float64 is exact to ~1e-15.
+TOLERANCE = {"float32": dict(rtol=2e-5, atol=2e-5), "float64": dict(rtol=1e-12, atol=1e-12)}
+
+
+@functools.cache
+def spring_kernel(scalar):
+    vec3 = vec3_type(scalar)
+    spring_force, spring_energy, _ = spring_funcs(scalar)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def kernel(
+        xi: wp.array[vec3],
+        xj: wp.array[vec3],
+        vi: wp.array[vec3],
+        vj: wp.array[vec3],
+        rest: wp.array[scalar],
+        ke: wp.array[scalar],
+        kd: wp.array[scalar],
+        force: wp.array[vec3],
+        energy: wp.array[scalar],
+    ):
+        t = wp.tid()
+        force[t] = spring_force(xi[t], xj[t], vi[t], vj[t], rest[t], ke[t], kd[t])
+        energy[t] = spring_energy(xi[t], xj[t], rest[t], ke[t])
+
+    return kernel
+
+
+def run_spring(device, precision, xi, xj, vi, vj, rest, ke, kd):
+    scalar = scalar_type(precision)
+    vec3 = vec3_type(scalar)
+    n = len(xi)
+    arrays = [wp.array(a, dtype=vec3, device=device) for a in (xi, xj, vi, vj)]
+    arrays += [wp.array(a, dtype=scalar, device=device) for a in (rest, ke, kd)]
+    force = wp.empty(n, dtype=vec3, device=device)
+    energy = wp.empty(n, dtype=scalar, device=device)
+    wp.launch(spring_kernel(scalar), dim=n, inputs=arrays, outputs=[force, energy], device=device)
+    return force.numpy().astype(np.float64), energy.numpy().astype(np.float64)
+
+
+def test_spring_force_matches_float64_reference(device, precision):
+    """f_i = (ke(|d| - L) + kd (vj - vi)·d̂) d̂ and E = ½ ke (|d| - L)² on random springs."""
+    rng = np.random.default_rng(7)
+    n = 512
+    xi, xj = rng.uniform(-1, 1, (n, 3)), rng.uniform(-1, 1, (n, 3))
+    vi, vj = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+    rest, ke, kd = rng.uniform(0, 1.5, n), rng.uniform(1, 10, n), rng.uniform(0, 2, n)
+    force, energy = run_spring(device, precision, xi, xj, vi, vj, rest, ke, kd)
+
+    d = xj - xi
+    length = np.linalg.norm(d, axis=1, keepdims=True)
+    dhat = d / length
+    ref = dhat * (ke[:, None] * (length - rest[:, None]) + kd[:, None] * np.sum((vj - vi) * dhat, 1, keepdims=True))
+    np.testing.assert_allclose(force, ref, **TOLERANCE[precision])
+    np.testing.assert_allclose(energy, 0.5 * ke * (length[:, 0] - rest) ** 2, **TOLERANCE[precision])
+
+
+def test_spring_force_is_antisymmetric_and_zero_for_coincident_particles(device, precision):
+    """Swapping the ends negates the force exactly; coincident particles give 0, never NaN."""
+    rng = np.random.default_rng(3)
+    xi, xj = rng.uniform(-1, 1, (64, 3)), rng.uniform(-1, 1, (64, 3))
+    vi, vj = rng.normal(size=(64, 3)), rng.normal(size=(64, 3))
+    xj[:8] = xi[:8]  # coincident pairs, with and without rest length
+    rest, ke, kd = np.r_[np.zeros(4), np.ones(60)], np.full(64, 5.0), np.full(64, 0.5)
+    f_ij, _ = run_spring(device, precision, xi, xj, vi, vj, rest, ke, kd)
+    f_ji, _ = run_spring(device, precision, xj, xi, vj, vi, rest, ke, kd)
+    np.testing.assert_array_equal(f_ij, -f_ji)
+    np.testing.assert_array_equal(f_ij[:8], 0.0)
+    assert np.isfinite(f_ij).all()
+
+
+@functools.cache
+def contact_kernel(scalar):
+    vec3 = vec3_type(scalar)
+    _, sphere_distance, contact_response = contact_funcs(scalar)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def kernel(
+        x: wp.array[vec3],
+        v: wp.array[vec3],
+        radius: scalar,
+        sphere_radius: scalar,
+        friction: scalar,
+        x_out: wp.array[vec3],
+        v_out: wp.array[vec3],
+    ):
+        t = wp.tid()
+        distance, normal = sphere_distance(x[t], sphere_radius)
+        xo, vo = contact_response(x[t], v[t], radius, distance, normal, friction)
+        x_out[t] = xo
+        v_out[t] = vo
+
+    return kernel
+
+
+def test_sphere_contact_response_matches_reference(device, precision):
+    """Penetrating particles are projected to |x| = R + r; approaching normal velocity is removed and
+    the tangential speed drops by μ·|v_n| (to zero when smaller: sticking); others are untouched."""
+    scalar = scalar_type(precision)
+    vec3 = vec3_type(scalar)
+    rng = np.random.default_rng(11)
+    n, R, r, mu = 400, 0.5, 0.02, 0.4
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    x = direction * rng.uniform(0.3, 0.6, (n, 1))
+    v = rng.normal(size=(n, 3))
+    x_out, v_out = wp.empty(n, dtype=vec3, device=device), wp.empty(n, dtype=vec3, device=device)
+    wp.launch(
+        contact_kernel(scalar),
+        dim=n,
+        inputs=[wp.array(x, dtype=vec3, device=device), wp.array(v, dtype=vec3, device=device), r, R, mu],
+        outputs=[x_out, v_out],
+        device=device,
+    )
+    x_out, v_out = x_out.numpy().astype(np.float64), v_out.numpy().astype(np.float64)
+
+    dist = np.linalg.norm(x, axis=1)
+    inside = dist < R + r
+    x_ref = np.where(inside[:, None], direction * (R + r), x)
+    vn = np.sum(v * direction, axis=1)
+    vt = v - vn[:, None] * direction
+    vt_len = np.linalg.norm(vt, axis=1)
+    scale = np.clip(vt_len + mu * np.minimum(vn, 0.0), 0.0, None) / vt_len
+    v_ref = np.where((inside & (vn < 0))[:, None], vt * scale[:, None], v)
+    np.testing.assert_allclose(x_out, x_ref, **TOLERANCE[precision])
+    np.testing.assert_allclose(v_out, v_ref, **TOLERANCE[precision])
+    assert inside.sum() > 50 and (~inside).sum() > 50  # both branches exercised
+    assert ((vt_len < mu * -vn) & inside).sum() > 5  # sticking exercised
