@@ -1,8 +1,15 @@
 """Particle forces: springs with axial dampers, gravity, viscous drag and external forces.
 
-Spring forces are gathered per particle through a CSR incidence list (each particle reads the springs
-that touch it), so a force evaluation writes every particle's force exactly once: no atomics, the same
-summation order on every device, and the force can be fused into an integrator's update kernel.
+Springs are evaluated in one of two ways, both deterministic:
+
+* gather (default on CUDA): each particle sums the springs of its incidence table, so every force is
+  written exactly once, without atomics, and the force can be fused into an integrator's update kernel;
+  each spring is evaluated twice (once per end), which a GPU hides behind memory traffic. The table is
+  ELL-shaped, [slots, particle_count]: slot k of consecutive particles is contiguous (coalesced loads);
+  unused slots point a particle at itself (a coincident pair: exactly zero force), so the slot loop has
+  a compile-time length, unrolls without branches, and the loads of all slots are in flight at once;
+* scatter (default on the CPU, where Warp runs a kernel's threads in sequence): each spring is evaluated
+  once and added to both ends, after a per-particle pass wrote gravity, drag and external forces.
 """
 
 import functools
@@ -19,9 +26,9 @@ COINCIDENT_DISTANCE = 1.0e-12
 
 
 class ForceFeatures(NamedTuple):
-    """Which force terms a scene uses; each ``False`` term is compiled out."""
+    """Which force terms a kernel evaluates; each absent term is compiled out."""
 
-    springs: bool
+    spring_slots: int  # slots of the gathered incidence table (max springs per particle); 0: no gathered springs
     gravity: bool
     drag: bool
     external: bool
@@ -29,7 +36,7 @@ class ForceFeatures(NamedTuple):
 
 @functools.cache
 def spring_funcs(scalar: type):
-    """The spring force and energy functions of one precision."""
+    """The spring force and energy of one precision."""
     vec3 = vec3_type(scalar)
 
     @wp.func
@@ -42,9 +49,8 @@ def spring_funcs(scalar: type):
         """
         d = xj - xi
         length = wp.length(d)
-        if length <= scalar(COINCIDENT_DISTANCE):
-            return vec3(scalar(0.0))
-        n = d / length
+        # Branch-free guard (the gather's unrolled slots stay free of branches): n = 0 when coincident.
+        n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
         return n * (ke * (length - rest) + kd * wp.dot(vj - vi, n))
 
     @wp.func
@@ -53,15 +59,23 @@ def spring_funcs(scalar: type):
         stretch = wp.length(xj - xi) - rest
         return scalar(0.5) * ke * stretch * stretch
 
+    return spring_force, spring_energy
+
+
+@functools.cache
+def gather_springs_func(scalar: type, slots: int):
+    """Sum of the spring forces on one particle from an ELL incidence table with ``slots`` slots."""
+    vec3 = vec3_type(scalar)
+    spring_force, _ = spring_funcs(scalar)
+
     @wp.func
     def gather_spring_forces(
         i: int,
         xi: vec3,
         vi: vec3,
         # Model:
-        particle_spring_offset: wp.array[wp.int32],
-        particle_spring_neighbor: wp.array[wp.int32],
-        particle_spring_id: wp.array[wp.int32],
+        particle_spring_neighbor: wp.array2d[wp.int32],
+        particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
         spring_stiffness: wp.array[scalar],
         spring_damping: wp.array[scalar],
@@ -71,22 +85,22 @@ def spring_funcs(scalar: type):
     ) -> vec3:
         """Sum of the forces [N] of all springs incident to particle i."""
         f = vec3(scalar(0.0))
-        for e in range(particle_spring_offset[i], particle_spring_offset[i + 1]):
-            j = particle_spring_neighbor[e]
-            s = particle_spring_id[e]
+        for k in range(wp.static(slots)):
+            j = particle_spring_neighbor[k, i]
+            s = particle_spring_id[k, i]
             f += spring_force(
                 xi, particle_q[j], vi, particle_qd[j], spring_rest_length[s], spring_stiffness[s], spring_damping[s]
             )
         return f
 
-    return spring_force, spring_energy, gather_spring_forces
+    return gather_spring_forces
 
 
 @functools.cache
 def particle_force_func(scalar: type, features: ForceFeatures):
-    """The total force on one particle, specialized for the scene's force terms."""
+    """The force on one particle, specialized for the scene's force terms (springs only when gathered)."""
     vec3 = vec3_type(scalar)
-    _, _, gather_spring_forces = spring_funcs(scalar)
+    gather_spring_forces = gather_springs_func(scalar, features.spring_slots)
 
     @wp.func
     def particle_force(
@@ -95,9 +109,8 @@ def particle_force_func(scalar: type, features: ForceFeatures):
         vi: vec3,
         # Model:
         particle_mass: wp.array[scalar],
-        particle_spring_offset: wp.array[wp.int32],
-        particle_spring_neighbor: wp.array[wp.int32],
-        particle_spring_id: wp.array[wp.int32],
+        particle_spring_neighbor: wp.array2d[wp.int32],
+        particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
         spring_stiffness: wp.array[scalar],
         spring_damping: wp.array[scalar],
@@ -109,7 +122,7 @@ def particle_force_func(scalar: type, features: ForceFeatures):
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
     ) -> vec3:
-        """Force [N] on particle i: m g - drag v + f_ext + springs."""
+        """Force [N] on particle i: m g - drag v + f_ext (+ gathered springs)."""
         f = vec3(scalar(0.0))
         if wp.static(features.gravity):
             f += particle_mass[i] * gravity
@@ -117,12 +130,11 @@ def particle_force_func(scalar: type, features: ForceFeatures):
             f -= drag * vi
         if wp.static(features.external):
             f += particle_force_ext[i]
-        if wp.static(features.springs):
+        if wp.static(features.spring_slots > 0):
             f += gather_spring_forces(
                 i,
                 xi,
                 vi,
-                particle_spring_offset,
                 particle_spring_neighbor,
                 particle_spring_id,
                 spring_rest_length,
@@ -146,9 +158,8 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures):
     def eval_forces(
         # Model:
         particle_mass: wp.array[scalar],
-        particle_spring_offset: wp.array[wp.int32],
-        particle_spring_neighbor: wp.array[wp.int32],
-        particle_spring_id: wp.array[wp.int32],
+        particle_spring_neighbor: wp.array2d[wp.int32],
+        particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
         spring_stiffness: wp.array[scalar],
         spring_damping: wp.array[scalar],
@@ -168,7 +179,6 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures):
             particle_q[i],
             particle_qd[i],
             particle_mass,
-            particle_spring_offset,
             particle_spring_neighbor,
             particle_spring_id,
             spring_rest_length,
@@ -182,3 +192,36 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures):
         )
 
     return eval_forces
+
+
+@functools.cache
+def spring_scatter_kernel(scalar: type):
+    """Kernel adding every spring's force to its two particles (one thread per spring)."""
+    vec3 = vec3_type(scalar)
+    spring_force, _ = spring_funcs(scalar)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def scatter_springs(
+        # Model:
+        spring_indices: wp.array[wp.vec2i],
+        spring_rest_length: wp.array[scalar],
+        spring_stiffness: wp.array[scalar],
+        spring_damping: wp.array[scalar],
+        # State in:
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+        # In/out:
+        particle_f_in_out: wp.array[vec3],
+    ):
+        s = wp.tid()
+        ends = spring_indices[s]
+        i = ends[0]
+        j = ends[1]
+        f = spring_force(
+            particle_q[i], particle_q[j], particle_qd[i], particle_qd[j],
+            spring_rest_length[s], spring_stiffness[s], spring_damping[s],
+        )
+        wp.atomic_add(particle_f_in_out, i, f)
+        wp.atomic_sub(particle_f_in_out, j, f)
+
+    return scatter_springs

@@ -67,17 +67,22 @@ def test_grid_triangles_face_local_plus_z():
     assert (n[:, 2] > 0).all()
 
 
-def test_incidence_lists_hold_every_spring_twice():
-    """The CSR incidence list of each particle names exactly the springs touching it, with the other end."""
-    model, _ = grid_model()
-    offset = model.particle_spring_offset.numpy()
+def test_incidence_table_holds_every_spring_twice():
+    """The gather's ELL table lists, for each particle, exactly the springs touching it with the other
+    end, then padding slots naming the particle itself (zero force); its width is the largest degree."""
+    builder = ws.ModelBuilder()
+    builder.add_cloth_grid(nx=5, ny=4, spacing=0.1, mass=2.0)
+    model = builder.finalize("cpu", spring_evaluation="gather")
     neighbor, sid = model.particle_spring_neighbor.numpy(), model.particle_spring_id.numpy()
     pairs = model.spring_indices.numpy()
-    assert offset[-1] == 2 * model.spring_count
+    degree = np.bincount(pairs.ravel(), minlength=model.particle_count)
+    assert neighbor.shape == (degree.max(), model.particle_count) == (11, 20)  # 4 + 4 + 3 (one bend misses)
+    used = neighbor != np.arange(model.particle_count)
     for i in range(model.particle_count):
-        for e in range(offset[i], offset[i + 1]):
-            assert set(pairs[sid[e]]) == {i, neighbor[e]}
-    np.testing.assert_array_equal(np.bincount(sid), 2)
+        assert used[:, i].sum() == degree[i] and used[: degree[i], i].all()  # padding only at the end
+        for j, s in zip(neighbor[used[:, i], i], sid[used[:, i], i]):
+            assert set(pairs[s]) == {i, j}
+    np.testing.assert_array_equal(np.bincount(sid[used]), 2)
 
 
 def test_cloth_mesh_springs_bends_and_area_lumped_mass():

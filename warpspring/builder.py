@@ -20,6 +20,8 @@ from .model import MeshGroup, Model, ShapeInfo
 from .transforms import quat_between, quat_to_matrix
 
 _AXES = {"Y": 1, "Z": 2}  # USD knows only Y-up and Z-up stages
+#: Most springs per particle for which the GPU default is the gathered (ELL) evaluation.
+MAX_GATHER_SLOTS = 32
 _GRID_PINS = ("top-left", "top-right", "bottom-left", "bottom-right", "top", "bottom", "left", "right")
 
 
@@ -195,7 +197,12 @@ class ModelBuilder:
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
             raise ConfigError(f"triangles must have shape [t, 3] with t > 0, got {faces.shape}")
         faces = _indices("triangle vertex", faces, self._particle_count).reshape(-1, 3)
-        particles, local = np.unique(faces, return_inverse=True)
+        used = np.zeros(self._particle_count, dtype=bool)
+        used[faces] = True
+        particles = np.flatnonzero(used)  # ascending, like np.unique, in O(n) instead of a sort
+        remap = np.empty(self._particle_count, dtype=np.int64)
+        remap[particles] = np.arange(len(particles))
+        local = remap[faces]
         if uvs is not None:
             uvs = np.asarray(uvs, dtype=np.float64)
             if uvs.shape != (len(particles), 2):
@@ -375,7 +382,7 @@ class ModelBuilder:
             velocities=np.broadcast_to(_vector("velocity", velocity), (len(vertices), 3)),
             mass=lumped * areal,
             radius=0.25 * float(tri.edges_unique_length.mean()) if radius is None else radius,
-            pinned=np.atleast_1d(np.asarray(pin, dtype=np.int64)) if np.size(pin) else None,
+            pinned=_indices("pinned vertex", np.atleast_1d(pin), len(vertices)) if np.size(pin) else None,
         )
         if structural is not None and len(edges):
             self.add_springs(ids[edges], stiffness=structural.ke, damping=structural.kd)
@@ -404,9 +411,10 @@ class ModelBuilder:
         rotation = quat_between(np.array([0.0, 0.0, 1.0]), n / length)
         self._add_shape(SHAPE_PLANE, _vector("plane point", point), rotation, (0.0, 0.0, 0.0), friction, name)
 
-    def add_ground_plane(self, *, height: float = 0.0, friction: float = 0.5):
+    def add_ground_plane(self, *, height: float = 0.0, friction: float = 0.5, name: str = "ground"):
         """Add the ground: a plane through ``height`` [m] along the up axis, normal up."""
-        self.add_collider_plane(point=self.up_vector * float(height), friction=friction, name="ground")
+        height = _number("ground height", height, minimum=-np.inf, inclusive=True)
+        self.add_collider_plane(point=self.up_vector * height, friction=friction, name=name)
 
     def add_collider_sphere(self, *, center, radius: float, friction: float = 0.5, name="sphere"):
         """Add a static sphere of ``radius`` [m] at ``center`` [m] with Coulomb coefficient ``friction``."""
@@ -415,13 +423,18 @@ class ModelBuilder:
 
     # -- finalize -------------------------------------------------------------------------------------
 
-    def finalize(self, device=None, *, precision: str = "float32") -> Model:
+    def finalize(self, device=None, *, precision: str = "float32", spring_evaluation: str = "auto") -> Model:
         """Copy the scene to ``device`` as a :class:`Model`.
 
         Args:
             device: Warp device ("cpu", "cuda:0", ...); default Warp's default device.
             precision: "float32" (default) or "float64" for every floating-point array and kernel.
+            spring_evaluation: "gather" (per particle, no atomics, fusable), "scatter" (per spring, each
+                evaluated once) or "auto": gather on CUDA while no particle has more than
+                ``MAX_GATHER_SLOTS`` springs, scatter otherwise and on the CPU (the faster choice on each).
         """
+        if spring_evaluation not in ("auto", "gather", "scatter"):
+            raise ConfigError(f"spring_evaluation must be 'auto', 'gather' or 'scatter', got {spring_evaluation!r}")
         if self._particle_count == 0:
             raise ConfigError("the scene has no particles: add a cloth, a mesh or particles first")
         try:
@@ -463,10 +476,15 @@ class ModelBuilder:
         model.spring_rest_length = farray(np.concatenate(self._spring_rest) if s else [])
         model.spring_stiffness = farray(np.concatenate(self._spring_ke) if s else [])
         model.spring_damping = farray(np.concatenate(self._spring_kd) if s else [])
-        offset, neighbor, spring_id = _incidence(springs, n)
-        model.particle_spring_offset = iarray(offset)
-        model.particle_spring_neighbor = iarray(neighbor)
-        model.particle_spring_id = iarray(spring_id)
+        degree = np.bincount(springs.ravel(), minlength=n) if s else np.zeros(n, dtype=np.int64)
+        model.spring_max_degree = int(degree.max())
+        if spring_evaluation == "auto":
+            # The gather pays off on GPUs while the padded table stays small.
+            spring_evaluation = "gather" if device.is_cuda and model.spring_max_degree <= MAX_GATHER_SLOTS else "scatter"
+        model.spring_gather = spring_evaluation == "gather"
+        neighbor, spring_id = _incidence_table(springs, n, model.spring_max_degree if model.spring_gather else 0)
+        model.particle_spring_neighbor = wp.array(neighbor, dtype=wp.int32, device=device)
+        model.particle_spring_id = wp.array(spring_id, dtype=wp.int32, device=device)
 
         tris = [g.particles[g.faces] for g in self._meshes]
         tri_indices = np.concatenate(tris) if tris else np.zeros((0, 3), dtype=np.int64)
@@ -621,13 +639,20 @@ def _mass_per_particle(mass, particle_mass, n: int) -> float:
     return _positive("mass", mass) / n if particle_mass is None else _positive("particle_mass", particle_mass)
 
 
-def _incidence(springs: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """CSR list of the springs incident to each particle: (offset [n+1], neighbor [2s], spring id [2s])."""
+def _incidence_table(springs: np.ndarray, n: int, slots: int) -> tuple[np.ndarray, np.ndarray]:
+    """ELL table of the springs at each particle: (neighbor, spring id), each int32 of shape [slots, n].
+    Slots past a particle's last spring hold (the particle itself, spring 0): a coincident pair, whose
+    force is exactly zero. Slot order follows the spring order."""
+    neighbor = np.broadcast_to(np.arange(n, dtype=np.int32), (slots, n)).copy()
+    spring_id = np.zeros((slots, n), dtype=np.int32)
+    if slots == 0 or len(springs) == 0:
+        return neighbor, spring_id
     s = len(springs)
     owner = np.concatenate([springs[:, 0], springs[:, 1]])
-    neighbor = np.concatenate([springs[:, 1], springs[:, 0]])
-    spring_id = np.concatenate([np.arange(s), np.arange(s)])
     order = np.argsort(owner, kind="stable")
-    offset = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(np.bincount(owner, minlength=n), out=offset[1:])
-    return offset, neighbor[order], spring_id[order]
+    owner = owner[order]
+    start = np.searchsorted(owner, np.arange(n))  # first incidence of each particle in sorted order
+    slot = np.arange(2 * s) - start[owner]
+    neighbor[slot, owner] = np.concatenate([springs[:, 1], springs[:, 0]])[order]
+    spring_id[slot, owner] = np.concatenate([np.arange(s), np.arange(s)])[order]
+    return neighbor, spring_id

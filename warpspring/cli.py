@@ -17,8 +17,8 @@ EXIT_SIMULATION = 3
 
 
 class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # argparse's own errors: one line, exit 2
-        self.exit(EXIT_CONFIG, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+    def error(self, message):  # argparse's own errors: the same one-line form as every other error, exit 2
+        self.exit(EXIT_CONFIG, f"warpspring: error: {message} (see {self.prog} --help)\n")
 
 
 def _positive_int(text: str) -> int:
@@ -79,7 +79,7 @@ def _cmd_run(args) -> int:
         frames=args.frames,
         fps=args.fps,
         substeps=args.substeps,
-        progress=not args.quiet,
+        progress=not args.quiet and sys.stderr.isatty(),  # a redirected stderr gets no progress bar
     )
     print(summary.line())
     return 0
@@ -94,8 +94,11 @@ def _cmd_render(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``warpspring`` command; returns the exit status."""
-    args = build_parser().parse_args(argv)
+    """Entry point of the ``warpspring`` command; returns the exit status (also for bad arguments and --help)."""
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # argparse has printed its message (or the help)
+        return exc.code if isinstance(exc.code, int) else EXIT_CONFIG if exc.code else 0
     try:
         return args.handler(args)
     except ConfigError as exc:

@@ -6,12 +6,14 @@ from __future__ import annotations
 import warp as wp
 
 from .kernels.contacts import project_contacts_kernel
-from .kernels.forces import eval_forces_kernel
+from .kernels.forces import eval_forces_kernel, spring_scatter_kernel
 from .model import Control, Model, State
 
 
 def eval_forces(model: Model, state: State, control: Control | None, particle_f: wp.array | None = None) -> None:
     """Write the total force [N] on every particle (gravity, drag, external, springs) to ``particle_f``.
+
+    Springs are gathered per particle or scattered per spring as ``model.spring_gather`` says.
 
     Args:
         model: the model.
@@ -22,13 +24,13 @@ def eval_forces(model: Model, state: State, control: Control | None, particle_f:
     if model.particle_count == 0:
         return
     features = model.force_features(control)
+    out = state.particle_f if particle_f is None else particle_f
     wp.launch(
         eval_forces_kernel(model.scalar, features),
         dim=model.particle_count,
         inputs=[
             model.particle_mass,
-            model.particle_spring_offset,
-            model.particle_spring_neighbor,
+                        model.particle_spring_neighbor,
             model.particle_spring_id,
             model.spring_rest_length,
             model.spring_stiffness,
@@ -39,9 +41,24 @@ def eval_forces(model: Model, state: State, control: Control | None, particle_f:
             state.particle_q,
             state.particle_qd,
         ],
-        outputs=[state.particle_f if particle_f is None else particle_f],
+        outputs=[out],
         device=model.device,
     )
+    if model.spring_count and not model.spring_gather:
+        wp.launch(
+            spring_scatter_kernel(model.scalar),
+            dim=model.spring_count,
+            inputs=[
+                model.spring_indices,
+                model.spring_rest_length,
+                model.spring_stiffness,
+                model.spring_damping,
+                state.particle_q,
+                state.particle_qd,
+            ],
+            outputs=[out],
+            device=model.device,
+        )
 
 
 def apply_contacts(model: Model, state: State) -> None:

@@ -79,9 +79,11 @@ class Model:
     spring_rest_length: wp.array  # [m], shape [spring_count]
     spring_stiffness: wp.array  # ke [N/m], shape [spring_count]
     spring_damping: wp.array  # kd [N·s/m], shape [spring_count], axial damper
-    particle_spring_offset: wp.array  # int32, shape [particle_count + 1], CSR offsets of incident springs
-    particle_spring_neighbor: wp.array  # int32, shape [2 spring_count], the other particle of each incidence
-    particle_spring_id: wp.array  # int32, shape [2 spring_count], the spring of each incidence
+    spring_gather: bool  # evaluate springs per particle (gather, CUDA default) or per spring (scatter, CPU)
+    spring_max_degree: int  # most springs at one particle: the slots of the incidence table
+    particle_spring_neighbor: wp.array2d  # int32, shape [spring_max_degree, particle_count]: the other particle
+    #   of the particle's k-th spring; the particle itself past its last spring (ELL layout; gather only)
+    particle_spring_id: wp.array2d  # int32, same shape: the index of that spring
 
     tri_count: int
     tri_indices: wp.array  # int32, shape [tri_count, 3], global particle indices
@@ -109,7 +111,7 @@ class Model:
     def force_features(self, control: Control | None) -> ForceFeatures:
         """The force terms a step of this model under ``control`` evaluates."""
         return ForceFeatures(
-            springs=self.spring_count > 0,
+            spring_slots=self.spring_max_degree if self.spring_count and self.spring_gather else 0,
             gravity=any(g != 0.0 for g in self.gravity),
             drag=self.drag != 0.0,
             external=control is not None and control.particle_force is not None,
@@ -145,8 +147,8 @@ class State:
     Attributes:
         particle_q: positions [m], shape [particle_count].
         particle_qd: velocities [m/s], shape [particle_count].
-        particle_f: forces [N], shape [particle_count]; written by ``eval_forces`` (integrators that
-            fuse force evaluation into their update leave it untouched).
+        particle_f: forces [N], shape [particle_count]; ``eval_forces`` writes it, and integrators write
+            the forces at ``state_in`` into ``state_in.particle_f`` (fused gather kernels skip it).
     """
 
     particle_q: wp.array

@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import math
+import os
 import time
 from dataclasses import dataclass
 
+import numpy as np
 import warp as wp
 
 from .errors import ConfigError, SimulationError
 from .integrators import make_integrator
 from .scene import Scene, check_run_settings
 from .simulation import Simulator
-from .usd import UsdWriter
+from .usd import UsdWriter, check_output_path
 
 
 @dataclass
@@ -44,12 +47,15 @@ class RunSummary:
     def line(self) -> str:
         """The closing summary line of the CLI."""
         timed = self.frames - 1
-        rate = timed / self.wall_time if timed > 0 and self.wall_time > 0 else float("nan")
+        if timed > 0 and self.wall_time > 0:
+            rate = timed / self.wall_time
+            speed = f"{rate:.1f} frames/s, {rate * self.substeps:.0f} substeps/s"
+        else:  # one frame: all of it is setup, there is no rate to report
+            speed = "no timed frames"
         return (
             f"wrote {self.frames + 1} frames ({self.simulated_time:.3g} s simulated) to {self.output} in "
-            f"{self.wall_time:.2f} s + {self.setup_time:.2f} s setup: {rate:.1f} frames/s, "
-            f"{rate * self.substeps:.0f} substeps/s; {self.integrator}, dt = {self.dt * 1e3:.4g} ms; "
-            f"{self.model}"
+            f"{self.wall_time:.2f} s + {self.setup_time:.2f} s setup: {speed}; {self.integrator}, "
+            f"dt = {self.dt * 1e3:.4g} ms; {self.model}"
         )
 
 
@@ -90,11 +96,15 @@ def run_scene(
     output = output or scene.output
     if not output:
         raise ConfigError("no output file: pass -o out.usdc or set [output] path in the scene")
+    output = check_output_path(output)  # fail before the model is built and the kernels compiled
 
     t0 = time.perf_counter()
     dev = resolve_device(device or scene.device)
     model = scene.builder().finalize(dev, precision=scene.precision)
-    integrator = make_integrator(scene.integrator, model, **scene.integrator_options)
+    try:
+        integrator = make_integrator(scene.integrator, model, **scene.integrator_options)
+    except ConfigError as exc:
+        raise ConfigError(f"{os.path.basename(scene.path)}: [simulation] {exc}") from None
     sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps)
 
     with UsdWriter(output, model, fps=fps, particles=scene.export_particles, springs=scene.export_springs) as usd:
@@ -110,9 +120,8 @@ def run_scene(
                     t1 = time.perf_counter()
         except SimulationError as exc:
             raise SimulationError(
-                f"{exc} at frame {sim.frame} (t = {sim.time:.4g} s, dt = {sim.dt:.3g} s): the run is unstable. "
-                f"Use more substeps (now {substeps}) or a more stable integrator; "
-                f"{output} holds frames 0..{sim.frame - 1}",
+                f"frame {sim.frame} (t = {sim.time:.4g} s, dt = {sim.dt * 1e3:.4g} ms): {exc}. The run is unstable: "
+                f"{_remedy(model, integrator, fps, substeps)}; {output} holds frames 0..{sim.frame - 1}",
                 frame=sim.frame,
             ) from None
         finally:
@@ -130,6 +139,41 @@ def run_scene(
         model=model.describe(),
         integrator=integrator.name,
     )
+
+
+def stable_substeps(model, fps: float) -> int | None:
+    """Substeps per frame that keep symplectic Euler's step under the springs' stability limit; None without springs.
+
+    Symplectic Euler keeps a damped spring stable while ω²h² + 2 (c/m) h < 4 (ω² = k/m, damping c). For a network,
+    ω² and c/m are bounded per free particle by Gershgorin: 2 Σ k / m and 2 Σ kd / m over its springs. The
+    bounds are upper bounds, so the count is enough for the springs (contacts and drag aside), not tight.
+    """
+    if model.spring_count == 0:
+        return None
+    ends = model.spring_indices.numpy().reshape(-1, 2).ravel()  # [a0, b0, a1, b1, ...]
+    n = model.particle_count
+    k_sum = np.bincount(ends, weights=np.repeat(model.spring_stiffness.numpy().astype(np.float64), 2), minlength=n)
+    c_sum = np.bincount(ends, weights=np.repeat(model.spring_damping.numpy().astype(np.float64), 2), minlength=n)
+    free = model.particle_inv_mass.numpy() > 0.0
+    mass = model.particle_mass.numpy().astype(np.float64)[free]
+    a, c = 2.0 * k_sum[free] / mass, 2.0 * c_sum[free] / mass
+    moving = a > 0.0
+    if not moving.any():
+        return None
+    a, c = a[moving], c[moving]
+    h = float(((np.sqrt(c * c + 4.0 * a) - c) / a).min())  # root of a h² + 2 c h − 4 = 0, per particle
+    return max(1, math.ceil(1.0 / (fps * h)))
+
+
+def _remedy(model, integrator, fps: float, substeps: int) -> str:
+    """What to change after a run went non-finite, with a substep count where the estimate applies."""
+    needed = stable_substeps(model, fps) if integrator.name == "symplectic_euler" else None
+    if needed is not None and needed > substeps:
+        return (
+            f"use more substeps (now {substeps}; the springs' stability bound for {integrator.name} asks for "
+            f"{needed}, e.g. --substeps {needed}), lower stiffness, or a more stable integrator"
+        )
+    return f"use more substeps (now {substeps}), lower stiffness, or a more stable integrator"
 
 
 def _progress(total: int, *, enabled: bool):

@@ -19,6 +19,8 @@ most once per second of wall time and on :meth:`UsdWriter.close`.
 
 from __future__ import annotations
 
+import math
+import numbers
 import os
 import time
 
@@ -60,15 +62,10 @@ class UsdWriter:
         from pxr import Sdf, Usd, UsdGeom, Vt
 
         self._Usd, self._UsdGeom, self._Vt = Usd, UsdGeom, Vt
-        path = os.fspath(path)
+        path = check_output_path(path)
         ext = os.path.splitext(path)[1].lower()
-        if ext not in _EXTENSIONS:
-            raise ConfigError(f"USD output must end in .usdc, .usda or .usd, got {path!r}")
-        if not fps > 0:
-            raise ConfigError(f"fps must be > 0, got {fps!r}")
-        folder = os.path.dirname(os.path.abspath(path))
-        if not os.path.isdir(folder):
-            raise ConfigError(f"output folder does not exist: {folder}")
+        if isinstance(fps, bool) or not isinstance(fps, numbers.Real) or not (math.isfinite(fps) and fps > 0):
+            raise ConfigError(f"fps must be a finite number > 0, got {fps!r}")
         if os.path.exists(path):
             os.remove(path)
         layer = Sdf.Layer.FindOrOpen(path)
@@ -152,14 +149,14 @@ class UsdWriter:
             raise RuntimeError("UsdWriter is closed")
         Vt, UsdGeom = self._Vt, self._UsdGeom
         t = self._Usd.TimeCode(float(self.frame_count))
-        q = state.particle_q.numpy()
+        with np.errstate(over="ignore", invalid="ignore"):
+            q = state.particle_q.numpy().astype(np.float32)  # USD points are float32: check what is written
         bad = np.flatnonzero(~np.isfinite(q).all(axis=1))
         if len(bad):
             raise SimulationError(
-                f"particle {int(bad[0])} has a non-finite position ({len(bad)} of {len(q)} particles); "
-                "the frame was not written"
+                f"particle {int(bad[0])} has a non-finite position or one beyond float32 range "
+                f"({len(bad)} of {len(q)} particles); the frame was not written"
             )
-        q = q.astype(np.float32)
         if self._meshes:
             normals = self._vertex_normals(state)
             for group, points_attr, extent_attr, normals_attr in self._meshes:
@@ -243,6 +240,23 @@ class UsdWriter:
             prim.AddTranslateOp().Set(Gf.Vec3d(*shape.position))
             x, y, z, w = shape.rotation
             prim.AddOrientOp().Set(Gf.Quatf(float(w), float(x), float(y), float(z)))
+
+
+def check_output_path(path: str | os.PathLike) -> str:
+    """``path`` as a string if it can name a USD output file, else a ConfigError saying what is wrong.
+
+    The extension picks the format (``.usdc`` or ``.usd``: binary crate; ``.usda``: text) and the folder
+    must exist. Checked before a run builds its model, so a bad ``-o`` fails at once.
+    """
+    path = os.fspath(path)
+    if os.path.splitext(path)[1].lower() not in _EXTENSIONS:
+        raise ConfigError(f"USD output must end in .usdc (binary), .usda (text) or .usd (binary), got {path!r}")
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise ConfigError(f"output folder does not exist: {folder}")
+    if os.path.isdir(path):
+        raise ConfigError(f"USD output {path!r} is a folder, not a file")
+    return path
 
 
 def _plane_half_size(shape, particle_q: np.ndarray) -> float:

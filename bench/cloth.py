@@ -1,0 +1,220 @@
+"""Hanging-cloth throughput: warpspring and NVIDIA Newton side by side, in one process, on one device.
+
+The reference scene of ANCHORS.md: N × N particles 0.1 m apart, 0.1 kg each, structural + shear + bend
+springs (ke = 1e3 N/m, kd = 10 N·s/m), the two top corners pinned, gravity, no contacts, symplectic
+Euler, 16 substeps per 1/60 s frame, each frame captured as one graph (CUDA graph on GPUs, Warp's CPU
+graph on the CPU). Newton gets the very same particles and springs (copied from warpspring's model),
+no particle self-contact, and its documented loop (clear_forces + SolverSemiImplicit.step).
+
+Reported per engine and size: first frame (kernel compile + graph capture) apart from the steady rate,
+substeps/s and particle-substeps/s (median of timed batches, device synchronised before every timer
+read), the speed ratio, and the largest position difference between the engines after 1 s simulated
+from the same start (both integrate the same equations, so it measures float32 summation-order drift).
+
+    python bench/cloth.py --device cuda:0                       # 64² … 512², with Newton if installed
+    python bench/cloth.py --device cpu --sizes 32 64 --seconds 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import statistics
+import time
+
+import numpy as np
+import warp as wp
+
+import warpspring as ws
+
+FPS, SUBSTEPS = 60, 16
+KE, KD, MASS, SPACING = 1.0e3, 10.0, 0.1, 0.1
+DEFAULT_SIZES = {"cuda": [64, 128, 256, 512], "cpu": [32, 64]}
+
+
+def warpspring_model(n: int, device, spring_evaluation: str = "auto") -> ws.Model:
+    builder = ws.ModelBuilder()
+    spring = ws.SpringMaterial(ke=KE, kd=KD)
+    builder.add_cloth_grid(
+        nx=n,
+        ny=n,
+        spacing=SPACING,
+        origin=(0.0, 0.0, 0.5 * n * SPACING),
+        rotation=ws.quat_from_axis_angle((1.0, 0.0, 0.0), np.pi / 2),  # vertical, top edge up
+        particle_mass=MASS,
+        structural=spring,
+        shear=spring,
+        bend=spring,
+        pin=["top-left", "top-right"],
+    )
+    return builder.finalize(device, spring_evaluation=spring_evaluation)
+
+
+class WarpspringRunner:
+    name = "warpspring"
+
+    def __init__(self, model: ws.Model):
+        self.model = model
+        self.name = f"warpspring ({'gather' if model.spring_gather else 'scatter'})"
+        self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, use_graph=True)
+
+    def frame(self):
+        self.sim.step_frame()
+
+    def positions(self) -> np.ndarray:
+        return self.sim.state.particle_q.numpy()
+
+
+class NewtonRunner:
+    name = "newton"
+
+    def __init__(self, model: ws.Model):
+        import newton
+
+        q = model.particle_q.numpy()
+        inv_mass = model.particle_inv_mass.numpy()
+        springs = model.spring_indices.numpy()
+        builder = newton.ModelBuilder(gravity=-9.81)
+        builder.add_particles(
+            pos=[tuple(p) for p in q],
+            vel=[(0.0, 0.0, 0.0)] * len(q),
+            mass=[0.0 if w == 0.0 else MASS for w in inv_mass],  # Newton: zero mass = kinematic
+        )
+        # Bulk-extend the spring lists (Newton's add_spring is one Python call per spring).
+        builder.spring_indices.extend(springs.ravel().tolist())
+        builder.spring_rest_length.extend(model.spring_rest_length.numpy().tolist())
+        builder.spring_stiffness.extend([KE] * len(springs))
+        builder.spring_damping.extend([KD] * len(springs))
+        builder.spring_control.extend([0.0] * len(springs))
+        self.model = builder.finalize(device=model.device)
+        self.model.particle_grid = None  # no particle self-contact, as in warpspring
+        self.solver = newton.solvers.SolverSemiImplicit(self.model)
+        self.state_0, self.state_1 = self.model.state(), self.model.state()
+        self.control = self.model.control()
+        self.dt = 1.0 / (FPS * SUBSTEPS)
+        self.graph = None
+
+    def simulate(self):
+        for _ in range(SUBSTEPS):
+            self.state_0.clear_forces()
+            self.solver.step(self.state_0, self.state_1, self.control, None, self.dt)
+            self.state_0, self.state_1 = self.state_1, self.state_0
+
+    def frame(self):
+        if self.graph is None:
+            with wp.ScopedCapture(device=self.model.device) as capture:
+                self.simulate()
+            self.graph = capture.graph
+        wp.capture_launch(self.graph)
+
+    def positions(self) -> np.ndarray:
+        return self.state_0.particle_q.numpy()
+
+
+def measure(runner, device, seconds: float) -> dict:
+    """First-frame time (compile + capture) and the median steady frame time of timed batches."""
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    runner.frame()
+    wp.synchronize_device(device)
+    first = time.perf_counter() - t0
+
+    batch = 1
+    while True:  # size a batch to ~seconds / 5
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        for _ in range(batch):
+            runner.frame()
+        wp.synchronize_device(device)
+        elapsed = time.perf_counter() - t0
+        if elapsed > seconds / 5 or batch > 1 << 16:
+            break
+        batch *= 2
+    times = []
+    for _ in range(5):
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        for _ in range(batch):
+            runner.frame()
+        wp.synchronize_device(device)
+        times.append((time.perf_counter() - t0) / batch)
+    frame_time = statistics.median(times)
+    return {"first_frame_s": first, "frame_s": frame_time, "spread": (max(times) - min(times)) / frame_time}
+
+
+def agreement(model: ws.Model, frames: int = FPS) -> float:
+    """Largest position difference [m] between warpspring and Newton after ``frames`` frames from the same start."""
+    finals = []
+    for engine in (WarpspringRunner, NewtonRunner):
+        runner = engine(model)
+        for _ in range(frames):
+            runner.frame()
+        finals.append(runner.positions())
+    return float(np.abs(finals[0] - finals[1]).max())
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default=None, help="Warp device (default: Warp's default)")
+    parser.add_argument("--sizes", type=int, nargs="+", help="cloth sizes N (N × N particles)")
+    parser.add_argument("--seconds", type=float, default=1.0, help="timed seconds per engine and size")
+    parser.add_argument("--no-newton", action="store_true", help="time warpspring alone")
+    parser.add_argument(
+        "--evaluation", nargs="+", default=["auto"], choices=["auto", "gather", "scatter"],
+        help="warpspring spring-evaluation modes to time (one row each)",
+    )
+    parser.add_argument("--out", help="also write the Markdown table to this file")
+    args = parser.parse_args()
+
+    wp.config.log_level = wp.LOG_WARNING
+    device = wp.get_device(args.device)
+    sizes = args.sizes or DEFAULT_SIZES["cuda" if device.is_cuda else "cpu"]
+    newton_version = None
+    if not args.no_newton:
+        try:
+            import newton
+
+            newton_version = newton.__version__
+        except ImportError:
+            print("newton is not installed: timing warpspring alone")
+
+    lines = [
+        f"Hanging cloth, {SUBSTEPS} substeps per 1/{FPS} s frame, one graph per frame. "
+        f"Device: {device.name} ({device.alias}); Warp {wp.__version__}"
+        + (f"; Newton {newton_version}" if newton_version else "")
+        + f"; {datetime.date.today().isoformat()}.",
+        "",
+        "| N | particles | springs | engine | first frame [s] | substeps/s | particle-substeps/s | spread | vs Newton | max Δx vs Newton [m] |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for n in sizes:
+        results, drift = {}, {}
+        for mode in args.evaluation:
+            model = warpspring_model(n, device, mode)
+            runner = WarpspringRunner(model)
+            results[runner.name] = measure(runner, device, args.seconds)
+            if newton_version:
+                drift[runner.name] = agreement(model)
+        if newton_version:
+            results["newton"] = measure(NewtonRunner(model), device, args.seconds)
+        for name, r in results.items():
+            rate = SUBSTEPS / r["frame_s"]
+            ratio = diff = ""
+            if name in drift:
+                ratio = f"{results['newton']['frame_s'] / r['frame_s']:.2f}×"
+                diff = f"{drift[name]:.1e}"
+            lines.append(
+                f"| {n} | {model.particle_count:,} | {model.spring_count:,} | {name} | {r['first_frame_s']:.2f} | "
+                f"{rate:,.0f} | {rate * model.particle_count / 1e9:.3f} G | {r['spread']:.1%} | {ratio} | {diff} |"
+            )
+        print("\n".join(lines[-len(results):]), flush=True)
+    table = "\n".join(lines)
+    print()
+    print(table)
+    if args.out:
+        with open(args.out, "w") as f:
+            f.write(table + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,226 @@
+"""The ``warpspring`` command: example scenes, option overrides, one-line errors with exit status 2 for bad input,
+and exit status 3 with a readable partial file for an unstable run.
+
+Commands run in-process through ``warpspring.cli.main`` (fast: kernels stay loaded); one test runs the real
+``python -m warpspring`` entry point. Every scene here has the hanging-cloth example's feature set (springs,
+gravity, drag, a ground plane, float32), so they all share its compiled kernel.
+"""
+
+import pathlib
+import re
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from pxr import Usd
+
+from warpspring.cli import EXIT_CONFIG, EXIT_SIMULATION, main
+
+EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"
+
+SCENE = """\
+[simulation]
+fps = 60
+frames = 5
+substeps = 4
+
+[world]
+drag = 0.002
+
+[cloth]
+grid = { nx = 5, ny = 5, spacing = 0.1 }
+origin = [0.0, 0.0, 1.0]
+mass = 0.25
+pin = ["top-left", "top-right"]
+structural = { ke = 40.0, kd = 0.01 }
+shear = { ke = 10.0, kd = 0.01 }
+bend = { ke = 1.0, kd = 0.001 }
+
+[[collider]]
+type = "ground"
+"""
+
+# Tiny masses on stiff springs, one substep per frame: ω·dt ≈ 100 ≫ 2, so symplectic Euler diverges within frames.
+UNSTABLE = {
+    "mass = 0.25": "particle_mass = 1.0e-3",
+    "structural = { ke = 40.0, kd = 0.01 }": "structural = { ke = 1.0e4, kd = 0.0 }",
+    "substeps = 4": "substeps = 1",
+    "frames = 5": "frames = 40",
+}
+
+
+def write_scene(tmp_path, replace: dict | None = None, extra: str = "", name: str = "scene.toml") -> pathlib.Path:
+    """SCENE with each ``old: new`` of ``replace`` applied (each ``old`` must occur) and ``extra`` appended."""
+    text = SCENE
+    for old, new in (replace or {}).items():
+        assert old in text, old
+        text = text.replace(old, new)
+    path = tmp_path / name
+    path.write_text(text + extra)
+    return path
+
+
+def run_cli(capsys, *args) -> tuple[int, str, list[str]]:
+    """Exit status, stdout and the lines of stderr of ``warpspring run ARGS --device cpu``."""
+    status = main(["run", *map(str, args), "--device", "cpu"])
+    out, err = capsys.readouterr()
+    return status, out, err.splitlines()
+
+
+def points_samples(path) -> tuple[list[np.ndarray], list[float], float]:
+    """The cloth's point samples in ``path`` in time order, their time codes, and the stage's time codes per second."""
+    stage = Usd.Stage.Open(str(path))
+    attr = stage.GetPrimAtPath("/World/cloth").GetAttribute("points")
+    return [np.array(attr.Get(t)) for t in attr.GetTimeSamples()], attr.GetTimeSamples(), stage.GetTimeCodesPerSecond()
+
+
+# -- runs that succeed ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("example, frames", [("hanging_cloth.toml", 2), ("cloth_on_sphere.toml", 3)])
+def test_example_scene_runs(tmp_path, capsys, example, frames):
+    """An example runs for a few frames: exit 0, the summary line, and frames + 1 samples at the scene's 60 fps."""
+    out = tmp_path / "example.usdc"
+    status, stdout, stderr = run_cli(capsys, EXAMPLES / example, "-o", out, "--frames", frames)
+    assert status == 0, stderr
+    assert stderr == []
+    assert stdout.startswith(f"wrote {frames + 1} frames ") and str(out) in stdout and stdout.count("\n") == 1
+    points, times, fps = points_samples(out)
+    assert times == [float(k) for k in range(frames + 1)] and fps == 60.0
+    assert not np.array_equal(points[0], points[-1])  # gravity moved the cloth
+
+
+def test_options_override_the_scene(tmp_path, capsys):
+    """--fps, --substeps and --frames replace the file's values: the stage's rate, the sample count and dt change."""
+    out = tmp_path / "override.usdc"
+    scene = write_scene(tmp_path, extra=f"\n[output]\npath = '{out}'\n")
+    status, stdout, stderr = run_cli(capsys, scene, "--fps", 30, "--substeps", 3, "--frames", 2)
+    assert status == 0, stderr
+    assert "dt = 11.11 ms" in stdout  # 1 / (30 fps · 3 substeps)
+    _, times, fps = points_samples(out)  # written to the scene's [output] path
+    assert fps == 30.0 and times == [0.0, 1.0, 2.0]
+
+    status, stdout, _ = run_cli(capsys, scene, "-o", tmp_path / "plain.usda")
+    assert status == 0 and "dt = 4.167 ms" in stdout  # the file's 60 fps · 4 substeps
+    _, times, fps = points_samples(tmp_path / "plain.usda")
+    assert fps == 60.0 and times == [float(k) for k in range(6)]
+
+
+# -- bad input: exit 2, one line -------------------------------------------------------------------------
+
+NAN_OBJ = "v 0 0 0\nv 1 0 0\nv nan 1 0\nv 0 1 0\nf 1 2 3\nf 1 3 4\n"
+MESH_CLOTH = {
+    'grid = { nx = 5, ny = 5, spacing = 0.1 }': 'mesh = "patch.obj"',
+    'pin = ["top-left", "top-right"]': "pin = [0]",
+    "shear = { ke = 10.0, kd = 0.01 }\n": "",
+}
+
+BAD_INPUT = [
+    # id, scene edits (or None: no scene file), extra file {name: text}, extra arguments, words the error must hold
+    ("missing-scene", None, {}, [], ["scene file not found", "absent.toml"]),
+    ("malformed-toml", {"mass = 0.25": "mass = "}, {}, [], ["scene.toml", "not valid TOML"]),
+    ("unknown-key", {"structural = { ke": "structural = { stifness"}, {}, [], ["'stifness'", "[cloth.structural]"]),
+    ("negative-stiffness", {"ke = 40.0": "ke = -40.0"}, {}, [], ["cloth.structural.ke", ">= 0", "-40.0"]),
+    ("negative-mass", {"mass = 0.25": "mass = -0.25"}, {}, [], ["cloth.mass", "> 0", "-0.25"]),
+    ("zero-substeps-in-file", {"substeps = 4": "substeps = 0"}, {}, [], ["simulation.substeps", ">= 1"]),
+    ("negative-substeps-in-file", {"substeps = 4": "substeps = -2"}, {}, [], ["simulation.substeps", ">= 1"]),
+    ("zero-fps-in-file", {"fps = 60": "fps = 0"}, {}, [], ["simulation.fps", "> 0"]),
+    ("negative-fps-in-file", {"fps = 60": "fps = -60.0"}, {}, [], ["simulation.fps", "> 0"]),
+    ("zero-substeps-option", {}, {}, ["--substeps", "0"], ["--substeps", ">= 1"]),
+    ("negative-substeps-option", {}, {}, ["--substeps", "-3"], ["--substeps", ">= 1"]),
+    ("zero-fps-option", {}, {}, ["--fps", "0"], ["--fps", "> 0"]),
+    ("negative-fps-option", {}, {}, ["--fps", "-24"], ["--fps", "> 0"]),
+    ("zero-frames-option", {}, {}, ["--frames", "0"], ["--frames", ">= 1"]),
+    ("nan-vertex-in-mesh", MESH_CLOTH, {"patch.obj": NAN_OBJ}, [], ["patch.obj", "not finite"]),
+    ("empty-mesh-file", MESH_CLOTH, {"patch.obj": ""}, [], ["patch.obj", "empty"]),
+    ("missing-mesh-file", MESH_CLOTH, {}, [], ["patch.obj", "not found"]),
+    ("unknown-integrator", {"substeps = 4": 'substeps = 4\nintegrator = "rk9"'}, {}, [], ["'rk9'", "symplectic_euler"]),
+    (
+        "unknown-integrator-option",
+        {"substeps = 4": "substeps = 4\n\n[simulation.integrator_options]\ntolerance = 1e-6"},
+        {},
+        [],
+        ["'tolerance'", "symplectic_euler"],
+    ),
+    ("unknown-pin", {'"top-right"': '"top-middle"'}, {}, [], ["'top-middle'", "top-right"]),
+    ("unavailable-device", {}, {}, ["--device", "cuda:7"], ["'cuda:7'", "not available"]),
+    ("bad-output-extension", {}, {}, ["-o", "cloth.abc"], ["cloth.abc", ".usdc"]),
+]
+
+
+@pytest.mark.parametrize("edits, files, args, words", [c[1:] for c in BAD_INPUT], ids=[c[0] for c in BAD_INPUT])
+def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch, edits, files, args, words):
+    """Bad input exits 2 with one 'warpspring: error:' line naming the problem, no traceback and no output file."""
+    monkeypatch.chdir(tmp_path)  # relative names in the cases (cloth.abc) land in tmp_path
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    scene = tmp_path / "absent.toml" if edits is None else write_scene(tmp_path, edits)
+    out = tmp_path / "out.usdc"
+    status = main(["run", str(scene), "-o", str(out), "--device", "cpu", *args])
+    stdout, stderr = capsys.readouterr()
+    lines = stderr.splitlines()
+    assert status == EXIT_CONFIG, stderr
+    assert len(lines) == 1, stderr
+    assert lines[0].startswith("warpspring: error: ")
+    assert "Traceback" not in stderr and stdout == ""
+    for word in words:
+        assert word in lines[0]
+    assert not out.exists() and not (tmp_path / "cloth.abc").exists()
+
+
+# -- an unstable run: exit 3 -------------------------------------------------------------------------------
+
+
+def test_unstable_run_exits_3_and_leaves_finite_frames(tmp_path, capsys):
+    """A diverging run exits 3 with one line naming frame k and a remedy; the file holds the finite frames 0..k-1."""
+    out = tmp_path / "unstable.usdc"
+    status, stdout, stderr = run_cli(capsys, write_scene(tmp_path, UNSTABLE), "-o", out)
+    assert status == EXIT_SIMULATION, stderr
+    assert len(stderr) == 1 and stderr[0].startswith("warpspring: simulation failed: ") and stdout == ""
+    match = re.search(r"\bframe (\d+) \(t = ", stderr[0])
+    assert match, stderr[0]
+    k = int(match.group(1))
+    assert 1 <= k < 40
+    assert "--substeps" in stderr[0] and f"frames 0..{k - 1}" in stderr[0]
+
+    points, times, _ = points_samples(out)
+    assert times == [float(i) for i in range(k)]
+    assert all(np.isfinite(p).all() for p in points)
+    assert np.abs(points[-1]).max() > 10.0  # it was diverging: the cloth spans 0.4 m at rest
+
+
+def test_suggested_substeps_make_the_unstable_run_stable(tmp_path, capsys):
+    """The substep count the failure message suggests runs the same scene to the end; half of it still diverges."""
+    scene = write_scene(tmp_path, UNSTABLE)
+    status, _, stderr = run_cli(capsys, scene, "-o", tmp_path / "a.usdc")
+    assert status == EXIT_SIMULATION
+    suggested = int(re.search(r"--substeps (\d+)", stderr[0]).group(1))
+
+    status, stdout, stderr = run_cli(capsys, scene, "-o", tmp_path / "b.usdc", "--substeps", suggested)
+    assert status == 0, stderr
+    points, times, _ = points_samples(tmp_path / "b.usdc")
+    assert len(times) == 41 and np.abs(points[-1]).max() < 2.0  # 40 frames; the cloth hangs near its pins
+
+    # the estimate is a Gershgorin bound, conservative by about √2 in ω: not more than twice the real need
+    status, _, _ = run_cli(capsys, scene, "-o", tmp_path / "c.usdc", "--substeps", suggested // 2)
+    assert status == EXIT_SIMULATION
+
+
+# -- the real entry point ----------------------------------------------------------------------------------
+
+
+def test_python_dash_m_entry_point(tmp_path):
+    """`python -m warpspring run` prints the summary and exits 0, and exits 2 with the one-line error for bad input."""
+    scene, out = write_scene(tmp_path), tmp_path / "entry.usdc"
+    command = [sys.executable, "-m", "warpspring", "run", str(scene), "-o", str(out), "--device", "cpu"]
+    command += ["--frames", "2"]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("wrote 3 frames ")
+    assert "Traceback" not in done.stderr
+    assert points_samples(out)[1] == [0.0, 1.0, 2.0]
+
+    done = subprocess.run(command[:-1] + ["0"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == EXIT_CONFIG
+    assert done.stderr.startswith("warpspring: error: argument --frames") and done.stderr.count("\n") == 1
