@@ -6,10 +6,11 @@ Euler, 16 substeps per 1/60 s frame, each frame captured as one graph (CUDA grap
 graph on the CPU). Newton gets the very same particles and springs (copied from warpspring's model),
 no particle self-contact, and its documented loop (clear_forces + SolverSemiImplicit.step).
 
-Reported per engine and size: first frame (kernel compile + graph capture) apart from the steady rate,
-substeps/s and particle-substeps/s (median of timed batches, device synchronised before every timer
-read), the speed ratio, and the largest position difference between the engines after 1 s simulated
-from the same start (both integrate the same equations, so it measures float32 summation-order drift).
+Reported per engine and size: setup (solver creation, kernel compilation from an empty cache, graph
+capture and the first frame) apart from the steady rate; substeps/s and particle-substeps/s (median of
+timed batches, device synchronised before every timer read); the speed ratio; and the largest position
+difference between the engines after 1 s simulated from the same start (both integrate the same
+equations, so it measures float32 summation-order drift).
 
     python bench/cloth.py --device cuda:0                       # 64² … 512², with Newton if installed
     python bench/cloth.py --device cpu --sizes 32 64 --seconds 2
@@ -20,6 +21,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import statistics
+import tempfile
 import time
 
 import numpy as np
@@ -111,10 +113,12 @@ class NewtonRunner:
         return self.state_0.particle_q.numpy()
 
 
-def measure(runner, device, seconds: float) -> dict:
-    """First-frame time (compile + capture) and the median steady frame time of timed batches."""
+def measure(make_runner, device, seconds: float) -> dict:
+    """Setup time (engine model + solver creation, kernel compilation, graph capture and the first frame)
+    and the median steady frame time of timed batches."""
     wp.synchronize_device(device)
     t0 = time.perf_counter()
+    runner = make_runner()
     runner.frame()
     wp.synchronize_device(device)
     first = time.perf_counter() - t0
@@ -167,6 +171,8 @@ def main():
     args = parser.parse_args()
 
     wp.config.log_level = wp.LOG_WARNING
+    # A fresh kernel cache, so that "setup" includes each engine's kernel compilation.
+    wp.config.kernel_cache_dir = tempfile.mkdtemp(prefix="warpspring-bench-")
     device = wp.get_device(args.device)
     sizes = args.sizes or DEFAULT_SIZES["cuda" if device.is_cuda else "cpu"]
     newton_version = None
@@ -184,19 +190,19 @@ def main():
         + (f"; Newton {newton_version}" if newton_version else "")
         + f"; {datetime.date.today().isoformat()}.",
         "",
-        "| N | particles | springs | engine | first frame [s] | substeps/s | particle-substeps/s | spread | vs Newton | max Δx vs Newton [m] |",
+        "| N | particles | springs | engine | setup [s] | substeps/s | particle-substeps/s | spread | vs Newton | max Δx vs Newton [m] |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for n in sizes:
-        results, drift = {}, {}
+        results, drift, models = {}, {}, {}
         for mode in args.evaluation:
             model = warpspring_model(n, device, mode)
-            runner = WarpspringRunner(model)
-            results[runner.name] = measure(runner, device, args.seconds)
-            if newton_version:
-                drift[runner.name] = agreement(model)
+            name = WarpspringRunner(model).name
+            models[name] = model
+            results[name] = measure(lambda: WarpspringRunner(model), device, args.seconds)
         if newton_version:
-            results["newton"] = measure(NewtonRunner(model), device, args.seconds)
+            results["newton"] = measure(lambda: NewtonRunner(model), device, args.seconds)
+            drift = {name: agreement(model) for name, model in models.items()}
         for name, r in results.items():
             rate = SUBSTEPS / r["frame_s"]
             ratio = diff = ""

@@ -17,7 +17,7 @@ from typing import NamedTuple
 
 import warp as wp
 
-from .precision import vec3_type
+from .precision import mat33_type, vec3_type
 
 wp.set_module_options({"enable_backward": False})
 
@@ -36,8 +36,9 @@ class ForceFeatures(NamedTuple):
 
 @functools.cache
 def spring_funcs(scalar: type):
-    """The spring force and energy of one precision."""
+    """The spring force, energy and stiffness matrix of one precision."""
     vec3 = vec3_type(scalar)
+    mat33 = mat33_type(scalar)
 
     @wp.func
     def spring_force(
@@ -54,19 +55,35 @@ def spring_funcs(scalar: type):
         return n * (ke * (length - rest) + kd * wp.dot(vj - vi, n))
 
     @wp.func
+    def spring_stiffness_matrix(xi: vec3, xj: vec3, rest: scalar, ke: scalar, clamp: bool) -> mat33:
+        """∂f_i/∂x_j [N/m] of the spring (i, j): ke (d̂d̂ᵀ + (1 - L/|d|)(I - d̂d̂ᵀ)); ∂f_i/∂x_i is its negative.
+
+        With ``clamp`` the transverse term of a compressed spring (|d| < L, negative) is dropped, so the
+        matrix stays positive semi-definite, as implicit integration needs. Coincident particles give 0.
+        """
+        d = xj - xi
+        length = wp.length(d)
+        n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
+        nn = wp.outer(n, n)
+        transverse = wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) - rest / length, scalar(0.0))
+        if clamp:
+            transverse = wp.max(transverse, scalar(0.0))
+        return ke * (nn + transverse * (wp.identity(n=3, dtype=scalar) - nn))
+
+    @wp.func
     def spring_energy(xi: vec3, xj: vec3, rest: scalar, ke: scalar) -> scalar:
         """Elastic energy [J] of the spring (i, j): ½ ke (|xj - xi| - L)²."""
         stretch = wp.length(xj - xi) - rest
         return scalar(0.5) * ke * stretch * stretch
 
-    return spring_force, spring_energy
+    return spring_force, spring_energy, spring_stiffness_matrix
 
 
 @functools.cache
 def gather_springs_func(scalar: type, slots: int):
     """Sum of the spring forces on one particle from an ELL incidence table with ``slots`` slots."""
     vec3 = vec3_type(scalar)
-    spring_force, _ = spring_funcs(scalar)
+    spring_force, _, _ = spring_funcs(scalar)
 
     @wp.func
     def gather_spring_forces(
@@ -198,7 +215,7 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures):
 def spring_scatter_kernel(scalar: type):
     """Kernel adding every spring's force to its two particles (one thread per spring)."""
     vec3 = vec3_type(scalar)
-    spring_force, _ = spring_funcs(scalar)
+    spring_force, _, _ = spring_funcs(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
     def scatter_springs(

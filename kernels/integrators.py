@@ -3,8 +3,11 @@
 Symplectic Euler with gathered springs is one fused kernel per substep: each thread gathers its
 particle's forces, updates velocity then position, and resolves the particle's contacts, reading
 ``state_in`` and writing ``state_out`` (so no thread sees another's update). With scattered springs the
-forces come precomputed and only the update runs here. Particles with zero inverse mass are kinematic:
-they move with their velocity and feel no force.
+forces come precomputed and only the update runs here.
+
+Explicit Runge-Kutta methods share one combination kernel, y = y₀ + Σⱼ wⱼ kⱼ over stage derivatives
+kⱼ = (vⱼ, M⁻¹ fⱼ); velocity Verlet has its drift and kick kernels. Particles with zero inverse mass
+are kinematic everywhere: they move with their velocity and feel no force.
 """
 
 import functools
@@ -142,3 +145,134 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
         particle_qd_out[i] = v
 
     return symplectic_euler
+
+
+@functools.cache
+def rk_combine_kernel(scalar: type, with_first: bool, terms: int):
+    """Runge-Kutta combination y = y₀ + w₀ k₀ + Σⱼ wⱼ kⱼ for one particle per thread.
+
+    Stage 0's derivative is (v₀, M⁻¹ f₀): its velocity is the input velocity itself, its force a separate
+    array; ``with_first`` says whether it contributes. ``terms`` later stages follow as rows of 2-D
+    arrays of stage velocities and forces, weighted by a vector of ``terms`` weights (h·aᵢⱼ or h·bⱼ).
+    """
+    vec3 = vec3_type(scalar)
+    weights_type = wp.types.vector(length=max(terms, 1), dtype=scalar)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def rk_combine(
+        # Model:
+        particle_inv_mass: wp.array[scalar],
+        # State in:
+        particle_q_in: wp.array[vec3],
+        particle_qd_in: wp.array[vec3],
+        first_f: wp.array[vec3],
+        stage_qd: wp.array2d[vec3],
+        stage_f: wp.array2d[vec3],
+        first_weight: scalar,
+        weights: weights_type,
+        # Out:
+        particle_q_out: wp.array[vec3],
+        particle_qd_out: wp.array[vec3],
+    ):
+        i = wp.tid()
+        inv_mass = particle_inv_mass[i]
+        v0 = particle_qd_in[i]
+        x = particle_q_in[i]
+        v = v0
+        if wp.static(with_first):
+            x += first_weight * v0
+            v += (first_weight * inv_mass) * first_f[i]
+        for j in range(wp.static(terms)):
+            x += weights[j] * stage_qd[j, i]
+            v += (weights[j] * inv_mass) * stage_f[j, i]
+        particle_q_out[i] = x
+        particle_qd_out[i] = v
+
+    return rk_combine
+
+
+@functools.cache
+def rk_error_kernel(scalar: type, stages: int):
+    """Scaled local error of an embedded Runge-Kutta pair, max-reduced over particles.
+
+    The error estimate is e = Σⱼ eⱼ kⱼ (eⱼ = h (bⱼ - b*ⱼ)), for positions and velocities alike; each
+    component is divided by atol + rtol·|y_new| and the largest ratio is atomically max-ed into
+    ``error_out[0]`` (float64, cleared by the caller).
+    """
+    vec3 = vec3_type(scalar)
+    weights_type = wp.types.vector(length=stages, dtype=scalar)
+
+    @wp.func
+    def scaled(e: vec3, y: vec3, atol: scalar, rtol: scalar) -> scalar:
+        worst = scalar(0.0)
+        for c in range(3):
+            worst = wp.max(worst, wp.abs(e[c]) / (atol + rtol * wp.abs(y[c])))
+        return worst
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def rk_error(
+        # Model:
+        particle_inv_mass: wp.array[scalar],
+        # State in:
+        particle_qd_in: wp.array[vec3],
+        stage_qd: wp.array2d[vec3],
+        stage_f: wp.array2d[vec3],
+        error_weights: weights_type,
+        particle_q_new: wp.array[vec3],
+        particle_qd_new: wp.array[vec3],
+        atol: scalar,
+        rtol: scalar,
+        # Out:
+        error_out: wp.array[wp.float64],
+    ):
+        i = wp.tid()
+        inv_mass = particle_inv_mass[i]
+        ex = error_weights[0] * particle_qd_in[i]
+        ev = (error_weights[0] * inv_mass) * stage_f[0, i]
+        for j in range(1, wp.static(stages)):
+            ex += error_weights[j] * stage_qd[j, i]
+            ev += (error_weights[j] * inv_mass) * stage_f[j, i]
+        worst = wp.max(scaled(ex, particle_q_new[i], atol, rtol), scaled(ev, particle_qd_new[i], atol, rtol))
+        wp.atomic_max(error_out, 0, wp.float64(worst))
+
+    return rk_error
+
+
+@functools.cache
+def verlet_kernels(scalar: type):
+    """Velocity Verlet's drift (x' = x + h v + ½h² a, v½ = v + ½h a) and kick (v' = v½ + ½h a') kernels."""
+    vec3 = vec3_type(scalar)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def verlet_drift(
+        # Model:
+        particle_inv_mass: wp.array[scalar],
+        # State in:
+        particle_q_in: wp.array[vec3],
+        particle_qd_in: wp.array[vec3],
+        particle_f_in: wp.array[vec3],
+        dt: scalar,
+        # Out:
+        particle_q_out: wp.array[vec3],
+        particle_qd_half_out: wp.array[vec3],
+    ):
+        i = wp.tid()
+        v_half = particle_qd_in[i] + (scalar(0.5) * dt * particle_inv_mass[i]) * particle_f_in[i]
+        particle_q_out[i] = particle_q_in[i] + dt * v_half
+        particle_qd_half_out[i] = v_half
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def verlet_kick(
+        # Model:
+        particle_inv_mass: wp.array[scalar],
+        # State in:
+        particle_qd_half: wp.array[vec3],
+        particle_f: wp.array[vec3],
+        dt: scalar,
+        # Out:
+        particle_qd_out: wp.array[vec3],
+    ):
+        i = wp.tid()
+        particle_qd_out[i] = particle_qd_half[i] + (scalar(0.5) * dt * particle_inv_mass[i]) * particle_f[i]
+
+    return verlet_drift, verlet_kick

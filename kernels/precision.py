@@ -11,6 +11,7 @@ SCALAR_TYPES = {"float32": wp.float32, "float64": wp.float64}
 _VEC3 = {wp.float32: wp.vec3f, wp.float64: wp.vec3d}
 _TRANSFORM = {wp.float32: wp.transformf, wp.float64: wp.transformd}
 _QUAT = {wp.float32: wp.quatf, wp.float64: wp.quatd}
+_MAT33 = {wp.float32: wp.mat33f, wp.float64: wp.mat33d}
 
 
 def scalar_type(precision: str) -> type:
@@ -34,3 +35,8 @@ def transform_type(scalar: type) -> type:
 def quat_type(scalar: type) -> type:
     """The quaternion type of a scalar type."""
     return _QUAT[scalar]
+
+
+def mat33_type(scalar: type) -> type:
+    """The 3 × 3 matrix type of a scalar type."""
+    return _MAT33[scalar]

@@ -17,7 +17,7 @@ TOLERANCE = {"float32": dict(rtol=2e-5, atol=2e-5), "float64": dict(rtol=1e-12, 
 @functools.cache
 def spring_kernel(scalar):
     vec3 = vec3_type(scalar)
-    spring_force, spring_energy = spring_funcs(scalar)
+    spring_force, spring_energy, _ = spring_funcs(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
     def kernel(
@@ -138,3 +138,50 @@ def test_sphere_contact_response_matches_reference(device, precision):
     np.testing.assert_allclose(v_out, v_ref, **TOLERANCE[precision])
     assert inside.sum() > 50 and (~inside).sum() > 50  # both branches exercised
     assert ((vt_len < mu * -vn) & inside).sum() > 5  # sticking exercised
+
+
+@functools.cache
+def stiffness_kernel(scalar):
+    vec3 = vec3_type(scalar)
+    mat33 = wp.types.matrix((3, 3), scalar)
+    _, _, spring_stiffness_matrix = spring_funcs(scalar)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def kernel(xi: wp.array[vec3], xj: wp.array[vec3], rest: scalar, ke: scalar, clamp: bool, out: wp.array[mat33]):
+        t = wp.tid()
+        out[t] = spring_stiffness_matrix(xi[t], xj[t], rest, ke, clamp)
+
+    return kernel
+
+
+def test_spring_stiffness_matrix_is_the_force_jacobian(device):
+    """∂f_i/∂x_j matches central finite differences of the spring force (float64); the clamped matrix
+    drops the negative transverse term of compressed springs and is positive semi-definite."""
+    scalar = wp.float64
+    rng = np.random.default_rng(2)
+    n, rest, ke = 64, 1.0, 7.0
+    xi = rng.uniform(-1, 1, (n, 3))
+    xj = xi + rng.normal(size=(n, 3)) * rng.uniform(0.3, 1.7, (n, 1))  # stretched and compressed
+    out = wp.empty(n, dtype=wp.mat33d, device=device)
+    kernel = stiffness_kernel(scalar)
+    wp.launch(kernel, dim=n, inputs=[wp.array(xi, dtype=wp.vec3d, device=device), wp.array(xj, dtype=wp.vec3d, device=device), rest, ke, False], outputs=[out], device=device)
+    K = out.numpy()
+
+    def force(a, b):
+        d = b - a
+        length = np.linalg.norm(d, axis=1, keepdims=True)
+        return ke * (length - rest) * d / length
+
+    eps = 1e-6
+    for c in range(3):
+        step = np.zeros(3)
+        step[c] = eps
+        column = (force(xi, xj + step) - force(xi, xj - step)) / (2 * eps)
+        np.testing.assert_allclose(K[:, :, c], column, rtol=1e-6, atol=1e-6)
+
+    wp.launch(kernel, dim=n, inputs=[wp.array(xi, dtype=wp.vec3d, device=device), wp.array(xj, dtype=wp.vec3d, device=device), rest, ke, True], outputs=[out], device=device)
+    eigenvalues = np.linalg.eigvalsh(out.numpy())
+    compressed = np.linalg.norm(xj - xi, axis=1) < rest
+    assert compressed.sum() > 5 and (~compressed).sum() > 5
+    assert eigenvalues.min() > -1e-12
+    np.testing.assert_allclose(out.numpy()[~compressed], K[~compressed], rtol=1e-12)

@@ -15,7 +15,18 @@ Typical use::
 from .builder import ModelBuilder, SpringMaterial
 from .errors import ConfigError, SimulationError, WarpspringError
 from .forces import apply_contacts, eval_forces
-from .integrators import INTEGRATORS, Integrator, SymplecticEuler, make_integrator
+from .integrators import (
+    INTEGRATORS,
+    RK4,
+    DormandPrince,
+    ExplicitEuler,
+    ImplicitEuler,
+    Integrator,
+    Midpoint,
+    SymplecticEuler,
+    VelocityVerlet,
+    make_integrator,
+)
 from .model import Control, MeshGroup, Model, ShapeInfo, State
 from .simulation import Simulator
 from .transforms import quat_from_axis_angle
@@ -24,6 +35,12 @@ __version__ = "0.1.0"
 
 __all__ = [
     "INTEGRATORS",
+    "RK4",
+    "DormandPrince",
+    "ExplicitEuler",
+    "ImplicitEuler",
+    "Midpoint",
+    "VelocityVerlet",
     "ConfigError",
     "Control",
     "Integrator",

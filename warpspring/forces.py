@@ -28,6 +28,7 @@ def eval_forces(model: Model, state: State, control: Control | None, particle_f:
     wp.launch(
         eval_forces_kernel(model.scalar, features),
         dim=model.particle_count,
+        block_dim=model.block_dim,
         inputs=[
             model.particle_mass,
                         model.particle_spring_neighbor,
@@ -68,6 +69,7 @@ def apply_contacts(model: Model, state: State) -> None:
     wp.launch(
         project_contacts_kernel(model.scalar, model.shape_types),
         dim=model.particle_count,
+        block_dim=model.block_dim,
         inputs=[
             model.particle_inv_mass,
             model.particle_radius,

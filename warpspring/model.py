@@ -66,6 +66,7 @@ class Model:
     up_axis: str  # "Y" or "Z"
     gravity: tuple  # [m/s²], gravitational acceleration (3 floats)
     drag: float  # [N·s/m], global viscous drag coefficient: f = -drag · v
+    block_dim: int  # CUDA threads per block of the per-particle kernels (see ModelBuilder.finalize)
 
     particle_count: int
     particle_q: wp.array  # [m], shape [particle_count], initial positions
@@ -82,7 +83,7 @@ class Model:
     spring_gather: bool  # evaluate springs per particle (gather, CUDA default) or per spring (scatter, CPU)
     spring_max_degree: int  # most springs at one particle: the slots of the incidence table
     particle_spring_neighbor: wp.array2d  # int32, shape [spring_max_degree, particle_count]: the other particle
-    #   of the particle's k-th spring; the particle itself past its last spring (ELL layout; gather only)
+    #   of the particle's k-th spring; the particle itself past its last spring (ELL layout)
     particle_spring_id: wp.array2d  # int32, same shape: the index of that spring
 
     tri_count: int

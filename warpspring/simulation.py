@@ -14,8 +14,8 @@ from .model import Control, Model, State
 class Simulator:
     """Advances a model by frames of 1/fps seconds, each made of ``substeps`` integrator steps.
 
-    On CUDA the substeps of a frame are captured once into a CUDA graph and replayed with a single
-    launch per frame, with no host synchronisation between substeps. The current state is always
+    The substeps of a frame are captured once into a graph (a CUDA graph on GPUs, Warp's CPU graph on
+    the CPU) and replayed with a single launch per frame, with no host synchronisation between substeps. The current state is always
     :attr:`state` (two buffers alternate inside a frame; an odd substep count ends with a copy back).
 
     Args:
@@ -24,7 +24,8 @@ class Simulator:
         fps: output frames per second [1/s].
         substeps: integrator steps per frame; the step is dt = 1 / (fps · substeps) [s].
         control: time-varying inputs; default ``model.control()``.
-        use_graph: capture each frame as a graph; default on for CUDA devices.
+        use_graph: capture each frame as a graph (CUDA graph, or Warp's CPU graph); default on for
+            integrators that allow it.
     """
 
     def __init__(
@@ -48,7 +49,9 @@ class Simulator:
         self.frame_dt = 1.0 / self.fps
         self.dt = self.frame_dt / substeps
         self.control = control if control is not None else model.control()
-        self.use_graph = model.device.is_cuda if use_graph is None else bool(use_graph)
+        if use_graph and not self.integrator.capturable:
+            raise ConfigError(f"the {self.integrator.name} integrator reads results on the host: it cannot run as a graph")
+        self.use_graph = self.integrator.capturable if use_graph is None else bool(use_graph)
         self.state = model.state()
         self._scratch = model.state()
         self.frame = 0

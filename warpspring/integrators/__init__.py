@@ -6,10 +6,17 @@ import inspect
 
 from ..errors import ConfigError
 from .base import Integrator
+from .dopri5 import DormandPrince
+from .implicit_euler import ImplicitEuler
+from .runge_kutta import RK4, ExplicitEuler, ExplicitRungeKutta, Midpoint
 from .symplectic_euler import SymplecticEuler
+from .verlet import VelocityVerlet
 
 #: Integrator classes by their scene-file / command-line name.
-INTEGRATORS: dict[str, type[Integrator]] = {cls.name: cls for cls in (SymplecticEuler,)}
+INTEGRATORS: dict[str, type[Integrator]] = {
+    cls.name: cls
+    for cls in (ExplicitEuler, SymplecticEuler, VelocityVerlet, Midpoint, RK4, ImplicitEuler, DormandPrince)
+}
 
 
 def make_integrator(name: str, model, **options) -> Integrator:
@@ -32,4 +39,16 @@ def make_integrator(name: str, model, **options) -> Integrator:
     return cls(model, **options)
 
 
-__all__ = ["INTEGRATORS", "Integrator", "SymplecticEuler", "make_integrator"]
+__all__ = [
+    "INTEGRATORS",
+    "RK4",
+    "DormandPrince",
+    "ExplicitEuler",
+    "ExplicitRungeKutta",
+    "ImplicitEuler",
+    "Integrator",
+    "Midpoint",
+    "SymplecticEuler",
+    "VelocityVerlet",
+    "make_integrator",
+]

@@ -12,10 +12,13 @@ class Integrator(abc.ABC):
 
     Subclasses set :attr:`name` (the scene-file / CLI name) and :attr:`order` (the method's
     convergence order), allocate any scratch states once in ``__init__``, and implement :meth:`step`.
+    Options of a subclass are keyword-only arguments of its ``__init__``.
     """
 
     name: str = ""
     order: int = 0
+    #: Whether a step issues only device work (no host reads), so frames can be captured as graphs.
+    capturable: bool = True
 
     def __init__(self, model: Model):
         self.model = model

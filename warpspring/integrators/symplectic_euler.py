@@ -25,6 +25,7 @@ class SymplecticEuler(Integrator):
             wp.launch(
                 symplectic_euler_update_kernel(model.scalar, model.shape_types),
                 dim=model.particle_count,
+            block_dim=model.block_dim,
                 inputs=[
                     model.particle_inv_mass,
                     model.particle_radius,
@@ -45,6 +46,7 @@ class SymplecticEuler(Integrator):
         wp.launch(
             symplectic_euler_kernel(model.scalar, features, model.shape_types),
             dim=model.particle_count,
+            block_dim=model.block_dim,
             inputs=[
                 model.particle_mass,
                 model.particle_inv_mass,

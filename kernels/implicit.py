@@ -1,0 +1,155 @@
+"""Kernels of linearised implicit (backward) Euler in the Baraff-Witkin form.
+
+One step solves  A Δv = b,  A = M - h ∂f/∂v - h² ∂f/∂x,  b = h (f + h ∂f/∂x v),  then v' = v + Δv,
+x' = x + h v'. Per spring (i, j) with stiffness block Kₛ = ∂fᵢ/∂xⱼ (compressive transverse part
+clamped, so Kₛ ⪰ 0) and damper block Dₛ = kd d̂d̂ᵀ, the matrix is never assembled: a product gathers
+
+    (A p)ᵢ = (mᵢ + h c) pᵢ + Σₛ (h Dₛ + h² Kₛ)(pᵢ - pⱼ)        (c: global drag)
+
+over the particle's incidence table, and also accumulates p·Ap for the conjugate-gradient iteration of
+``linalg.py``. Pinned particles are filtered out (Baraff-Witkin's S): their rows are the identity,
+their columns are dropped and their right-hand side is zero, so A stays symmetric positive definite
+and their Δv is exactly zero.
+"""
+
+import functools
+
+import warp as wp
+
+from .forces import spring_funcs
+from .linalg import CG_PAP, reduction_funcs
+from .precision import mat33_type, vec3_type
+
+wp.set_module_options({"enable_backward": False})
+
+
+@functools.cache
+def implicit_funcs(scalar: type):
+    """The per-spring system block h Dₛ + h² Kₛ."""
+    vec3 = vec3_type(scalar)
+    mat33 = mat33_type(scalar)
+    _, _, spring_stiffness_matrix = spring_funcs(scalar)
+
+    @wp.func
+    def system_block(xi: vec3, xj: vec3, rest: scalar, ke: scalar, kd: scalar, dt: scalar) -> mat33:
+        """h kd d̂d̂ᵀ + h² Kₛ [kg/s]: the coupling of particles i and j in A."""
+        d = xj - xi
+        length = wp.length(d)
+        n = d * wp.where(length > scalar(0.0), scalar(1.0) / length, scalar(0.0))
+        return (dt * kd) * wp.outer(n, n) + (dt * dt) * spring_stiffness_matrix(xi, xj, rest, ke, True)
+
+    return system_block
+
+
+@functools.cache
+def implicit_kernels(scalar: type, slots: int, tiled: bool):
+    """(prepare, matvec, update) kernels of one precision and incidence-table width; ``tiled``: the
+    matvec's p·Ap reduction uses block tiles (CUDA), else per-thread atomics (CPU)."""
+    vec3 = vec3_type(scalar)
+    mat33 = mat33_type(scalar)
+    system_block = implicit_funcs(scalar)
+    accumulate = reduction_funcs(tiled)
+    _, _, spring_stiffness_matrix = spring_funcs(scalar)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def prepare(
+        # Model:
+        particle_mass: wp.array[scalar],
+        particle_inv_mass: wp.array[scalar],
+        particle_spring_neighbor: wp.array2d[wp.int32],
+        particle_spring_id: wp.array2d[wp.int32],
+        spring_rest_length: wp.array[scalar],
+        spring_stiffness: wp.array[scalar],
+        spring_damping: wp.array[scalar],
+        drag: scalar,
+        # State in:
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+        particle_f: wp.array[vec3],
+        dt: scalar,
+        # Out:
+        rhs: wp.array[vec3],
+        diagonal_inverse: wp.array[mat33],
+    ):
+        """b = h f + h² ∂f/∂x v and the inverse 3 × 3 diagonal blocks of A (block-Jacobi preconditioner)."""
+        i = wp.tid()
+        if particle_inv_mass[i] == scalar(0.0):
+            rhs[i] = vec3(scalar(0.0))
+            diagonal_inverse[i] = wp.identity(n=3, dtype=scalar)
+            return
+        xi = particle_q[i]
+        vi = particle_qd[i]
+        b = dt * particle_f[i]
+        diagonal = (particle_mass[i] + dt * drag) * wp.identity(n=3, dtype=scalar)
+        for k in range(wp.static(slots)):
+            j = particle_spring_neighbor[k, i]
+            s = particle_spring_id[k, i]
+            xj = particle_q[j]
+            rest = spring_rest_length[s]
+            ke = spring_stiffness[s]
+            b += (dt * dt) * (spring_stiffness_matrix(xi, xj, rest, ke, True) * (particle_qd[j] - vi))
+            diagonal += system_block(xi, xj, rest, ke, spring_damping[s], dt)
+        rhs[i] = b
+        diagonal_inverse[i] = wp.inverse(diagonal)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def matvec(
+        count: int,
+        # Model:
+        particle_mass: wp.array[scalar],
+        particle_inv_mass: wp.array[scalar],
+        particle_spring_neighbor: wp.array2d[wp.int32],
+        particle_spring_id: wp.array2d[wp.int32],
+        spring_rest_length: wp.array[scalar],
+        spring_stiffness: wp.array[scalar],
+        spring_damping: wp.array[scalar],
+        drag: scalar,
+        # State in:
+        particle_q: wp.array[vec3],
+        dt: scalar,
+        # Operand:
+        p: wp.array[vec3],
+        # Out:
+        a_p: wp.array[vec3],
+        scalars: wp.array[wp.float64],
+    ):
+        """Ap (pinned rows: the identity), and p·Ap accumulated into the CG scalars."""
+        block, lane = wp.tid()
+        i = block * wp.block_dim() + lane
+        p_ap = wp.float64(0.0)
+        if i < count:
+            pi = p[i]
+            api = pi
+            if particle_inv_mass[i] != scalar(0.0):
+                xi = particle_q[i]
+                api = (particle_mass[i] + dt * drag) * pi
+                for k in range(wp.static(slots)):
+                    j = particle_spring_neighbor[k, i]
+                    s = particle_spring_id[k, i]
+                    pj = wp.where(particle_inv_mass[j] == scalar(0.0), vec3(scalar(0.0)), p[j])
+                    block_ij = system_block(
+                        xi, particle_q[j], spring_rest_length[s], spring_stiffness[s], spring_damping[s], dt
+                    )
+                    api += block_ij * (pi - pj)
+            a_p[i] = api
+            p_ap = wp.float64(wp.dot(pi, api))
+        accumulate(scalars, CG_PAP, p_ap, lane)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def update(
+        # State in:
+        particle_q_in: wp.array[vec3],
+        particle_qd_in: wp.array[vec3],
+        delta_qd: wp.array[vec3],
+        dt: scalar,
+        # State out:
+        particle_q_out: wp.array[vec3],
+        particle_qd_out: wp.array[vec3],
+    ):
+        """v' = v + Δv, x' = x + h v'."""
+        i = wp.tid()
+        v = particle_qd_in[i] + delta_qd[i]
+        particle_q_out[i] = particle_q_in[i] + dt * v
+        particle_qd_out[i] = v
+
+    return prepare, matvec, update

@@ -1,0 +1,107 @@
+"""Explicit Runge-Kutta integrators from Butcher tableaux: explicit Euler, midpoint (RK2), classic RK4.
+
+The state y = (x, v) obeys y' = (v, M⁻¹ f(x, v)). Stage k evaluates the forces at
+yₖ = y₀ + h Σⱼ aₖⱼ kⱼ; the step is y₁ = y₀ + h Σⱼ bⱼ kⱼ. Stage velocities and forces live in
+preallocated [stages, particle_count] arrays owned by the integrator; stage 0 is the input state, so
+its velocity is read in place. Contacts are resolved once, on the result of the step.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from ..forces import apply_contacts, eval_forces
+from ..kernels.integrators import rk_combine_kernel
+from ..model import Control, Model, State
+from .base import Integrator
+
+
+class ExplicitRungeKutta(Integrator):
+    """An explicit Runge-Kutta method given by its Butcher tableau (class attributes ``a`` and ``b``).
+
+    Attributes:
+        a: lower-triangular stage coefficients, one row per stage (row k has k entries).
+        b: weights of the stage derivatives in the step, one per stage.
+    """
+
+    a: tuple = ()
+    b: tuple = ()
+
+    def __init__(self, model: Model):
+        super().__init__(model)
+        stages, n, vec3 = len(self.b), model.particle_count, model.vec3
+        self._stage_qd = wp.zeros((stages, n), dtype=vec3, device=model.device)
+        self._stage_f = wp.zeros((stages, n), dtype=vec3, device=model.device)
+        self._stage_q = wp.zeros(n, dtype=vec3, device=model.device)
+        # Stage k > 0 evaluates forces at (stage_q, stage_qd[k]); stage 0 at the input state.
+        self._stages = [
+            State(particle_q=self._stage_q, particle_qd=self._stage_qd[k], particle_f=self._stage_f[k])
+            for k in range(stages)
+        ]
+
+    def combine(self, state_in: State, coefficients, dt: float, q_out: wp.array, qd_out: wp.array, upto: int):
+        """Write y₀ + h Σⱼ cⱼ kⱼ over stages j < ``upto`` to (q_out, qd_out), skipping leading zero cⱼ."""
+        model = self.model
+        c = np.asarray(coefficients[:upto], dtype=np.float64)
+        first = 1 + int(np.argmax(c[1:] != 0.0)) if np.any(c[1:] != 0.0) else upto
+        terms = upto - first
+        weights = wp.types.vector(length=max(terms, 1), dtype=model.scalar)(*(dt * c[first:upto] if terms else [0.0]))
+        wp.launch(
+            rk_combine_kernel(model.scalar, bool(c[0] != 0.0), terms),
+            dim=model.particle_count,
+            block_dim=model.block_dim,
+            inputs=[
+                model.particle_inv_mass,
+                state_in.particle_q,
+                state_in.particle_qd,
+                self._stage_f[0],
+                self._stage_qd[first:upto] if terms else self._stage_qd[0:1],
+                self._stage_f[first:upto] if terms else self._stage_f[0:1],
+                model.scalar(dt * c[0]),
+                weights,
+            ],
+            outputs=[q_out, qd_out],
+            device=model.device,
+        )
+
+    def eval_stages(self, state_in: State, control: Control | None, dt: float) -> None:
+        """Evaluate the forces of every stage of a step of ``dt`` from ``state_in``."""
+        eval_forces(self.model, state_in, control, self._stage_f[0])
+        for k in range(1, len(self.b)):
+            self.combine(state_in, self.a[k], dt, self._stage_q, self._stage_qd[k], upto=k)
+            eval_forces(self.model, self._stages[k], control)
+
+    def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
+        self.eval_stages(state_in, control, dt)
+        self.combine(state_in, self.b, dt, state_out.particle_q, state_out.particle_qd, upto=len(self.b))
+        apply_contacts(self.model, state_out)
+
+
+class ExplicitEuler(ExplicitRungeKutta):
+    """Forward Euler: x' = x + h v, v' = v + h M⁻¹ f(x, v). First order; unstable for undamped springs
+    at every step size (its amplification factor is √(1 + ω²h²) per step)."""
+
+    name = "explicit_euler"
+    order = 1
+    a = ((),)
+    b = (1.0,)
+
+
+class Midpoint(ExplicitRungeKutta):
+    """Explicit midpoint rule (RK2): forces at y₀ + ½h k₀. Second order; mildly unstable for undamped
+    springs (|R(iωh)|² = 1 + (ωh)⁴/4)."""
+
+    name = "midpoint"
+    order = 2
+    a = ((), (0.5,))
+    b = (0.0, 1.0)
+
+
+class RK4(ExplicitRungeKutta):
+    """Classic fourth-order Runge-Kutta. Stable for undamped springs while ω h ≤ 2√2."""
+
+    name = "rk4"
+    order = 4
+    a = ((), (0.5,), (0.0, 0.5), (0.0, 0.0, 1.0))
+    b = (1.0 / 6.0, 1.0 / 3.0, 1.0 / 3.0, 1.0 / 6.0)
