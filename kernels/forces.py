@@ -25,6 +25,24 @@ wp.set_module_options({"enable_backward": False})
 COINCIDENT_DISTANCE = 1.0e-12
 
 
+class SpringLaw(NamedTuple):
+    """The spring force law beyond Hooke's spring with an axial damper; ``None`` parts are compiled out.
+
+    Attributes:
+        biphasic_strain: strain (|d| - L)/L beyond which the spring stiffens, or ``None``.
+        biphasic_ratio: stiffness beyond that strain over stiffness below it [-].
+        max_force: largest magnitude of a spring's force, elastic plus damping [N], or ``None``.
+    """
+
+    biphasic_strain: float | None = None
+    biphasic_ratio: float = 1.0
+    max_force: float | None = None
+
+
+#: The plain law: f = (ke (|d| - L) + kd (vj - vi)·d̂) d̂.
+HOOKE = SpringLaw()
+
+
 class ForceFeatures(NamedTuple):
     """Which force terms a kernel evaluates; each absent term is compiled out."""
 
@@ -32,19 +50,47 @@ class ForceFeatures(NamedTuple):
     gravity: bool
     drag: bool
     external: bool
+    spring_law: SpringLaw = HOOKE
+    max_particle_force: float | None = None  # [N] clamp of the total force on a particle
 
 
 @functools.cache
-def spring_funcs(scalar: type):
-    """The spring force, energy and stiffness matrix of one precision."""
+def spring_funcs(scalar: type, law: SpringLaw = HOOKE):
+    """(spring_force, spring_energy, spring_stiffness_matrix) of one precision and force law."""
     vec3 = vec3_type(scalar)
     mat33 = mat33_type(scalar)
+    biphasic = law.biphasic_strain is not None
+    knee_strain = scalar(law.biphasic_strain if biphasic else 0.0)
+    extra_stiffness = scalar(law.biphasic_ratio - 1.0)
+    clamp_force = law.max_force is not None
+    max_force = scalar(law.max_force if clamp_force else 0.0)
+
+    @wp.func
+    def excess(length: scalar, rest: scalar) -> scalar:
+        """Stretch beyond the biphasic knee [m] (0 below it)."""
+        return wp.max(length - rest * (scalar(1.0) + knee_strain), scalar(0.0))
+
+    @wp.func
+    def tension(length: scalar, rest: scalar, ke: scalar) -> scalar:
+        """Elastic tension T(|d|) [N], positive when stretched."""
+        t = ke * (length - rest)
+        if wp.static(biphasic):
+            t += extra_stiffness * ke * excess(length, rest)
+        return t
+
+    @wp.func
+    def tension_slope(length: scalar, rest: scalar, ke: scalar) -> scalar:
+        """dT/d|d| [N/m]."""
+        if wp.static(biphasic):
+            return wp.where(excess(length, rest) > scalar(0.0), ke * (scalar(1.0) + extra_stiffness), ke)
+        return ke
 
     @wp.func
     def spring_force(
         xi: vec3, xj: vec3, vi: vec3, vj: vec3, rest: scalar, ke: scalar, kd: scalar
     ) -> vec3:
-        """Force [N] on particle i of the spring (i, j): (ke (|d| - L) + kd (vj - vi)·d̂) d̂, d = xj - xi.
+        """Force [N] on particle i of the spring (i, j): (T(|d|) + kd (vj - vi)·d̂) d̂, d = xj - xi, with
+        T = ke (|d| - L) for Hooke's law (see ``SpringLaw``); its magnitude clamped if the law says so.
 
         Coincident particles (|d| below ``COINCIDENT_DISTANCE``) give a zero force, never NaN.
         """
@@ -52,38 +98,50 @@ def spring_funcs(scalar: type):
         length = wp.length(d)
         # Branch-free guard (the gather's unrolled slots stay free of branches): n = 0 when coincident.
         n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
-        return n * (ke * (length - rest) + kd * wp.dot(vj - vi, n))
+        magnitude = tension(length, rest, ke) + kd * wp.dot(vj - vi, n)
+        if wp.static(clamp_force):
+            magnitude = wp.clamp(magnitude, -max_force, max_force)
+        return n * magnitude
 
     @wp.func
     def spring_stiffness_matrix(xi: vec3, xj: vec3, rest: scalar, ke: scalar, clamp: bool) -> mat33:
-        """∂f_i/∂x_j [N/m] of the spring (i, j): ke (d̂d̂ᵀ + (1 - L/|d|)(I - d̂d̂ᵀ)); ∂f_i/∂x_i is its negative.
+        """∂f_i/∂x_j [N/m] of the spring (i, j): T'(|d|) d̂d̂ᵀ + (T/|d|)(I - d̂d̂ᵀ), for Hooke's law
+        ke (d̂d̂ᵀ + (1 - L/|d|)(I - d̂d̂ᵀ)); ∂f_i/∂x_i is its negative. (The force clamp is not
+        differentiated: implicit integration linearises the unclamped law.)
 
         With ``clamp`` the transverse term of a compressed spring (|d| < L, negative) is dropped, so the
         matrix stays positive semi-definite, as implicit integration needs. Coincident particles give 0.
         """
         d = xj - xi
         length = wp.length(d)
-        n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
+        inv_length = wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
+        n = d * inv_length
         nn = wp.outer(n, n)
-        transverse = wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) - rest / length, scalar(0.0))
+        transverse = tension(length, rest, ke) * inv_length
         if clamp:
             transverse = wp.max(transverse, scalar(0.0))
-        return ke * (nn + transverse * (wp.identity(n=3, dtype=scalar) - nn))
+        axial = wp.where(length > scalar(COINCIDENT_DISTANCE), tension_slope(length, rest, ke), scalar(0.0))
+        return axial * nn + transverse * (wp.identity(n=3, dtype=scalar) - nn)
 
     @wp.func
     def spring_energy(xi: vec3, xj: vec3, rest: scalar, ke: scalar) -> scalar:
-        """Elastic energy [J] of the spring (i, j): ½ ke (|xj - xi| - L)²."""
-        stretch = wp.length(xj - xi) - rest
-        return scalar(0.5) * ke * stretch * stretch
+        """Elastic energy [J] of the spring (i, j): ∫ T = ½ ke (|d| - L)² (+ the biphasic excess term)."""
+        length = wp.length(xj - xi)
+        stretch = length - rest
+        energy = scalar(0.5) * ke * stretch * stretch
+        if wp.static(biphasic):
+            e = excess(length, rest)
+            energy += scalar(0.5) * extra_stiffness * ke * e * e
+        return energy
 
     return spring_force, spring_energy, spring_stiffness_matrix
 
 
 @functools.cache
-def gather_springs_func(scalar: type, slots: int):
+def gather_springs_func(scalar: type, slots: int, law: SpringLaw):
     """Sum of the spring forces on one particle from an ELL incidence table with ``slots`` slots."""
     vec3 = vec3_type(scalar)
-    spring_force, _, _ = spring_funcs(scalar)
+    spring_force, _, _ = spring_funcs(scalar, law)
 
     @wp.func
     def gather_spring_forces(
@@ -117,7 +175,9 @@ def gather_springs_func(scalar: type, slots: int):
 def particle_force_func(scalar: type, features: ForceFeatures):
     """The force on one particle, specialized for the scene's force terms (springs only when gathered)."""
     vec3 = vec3_type(scalar)
-    gather_spring_forces = gather_springs_func(scalar, features.spring_slots)
+    gather_spring_forces = gather_springs_func(scalar, features.spring_slots, features.spring_law)
+    clamp_force = features.max_particle_force is not None
+    max_force = scalar(features.max_particle_force if clamp_force else 0.0)
 
     @wp.func
     def particle_force(
@@ -139,7 +199,8 @@ def particle_force_func(scalar: type, features: ForceFeatures):
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
     ) -> vec3:
-        """Force [N] on particle i: m g - drag v + f_ext (+ gathered springs)."""
+        """Force [N] on particle i: m g - drag v + f_ext (+ gathered springs), magnitude clamped if the
+        features say so (with scattered springs the clamp is a separate pass: ``clamp_forces_kernel``)."""
         f = vec3(scalar(0.0))
         if wp.static(features.gravity):
             f += particle_mass[i] * gravity
@@ -160,6 +221,10 @@ def particle_force_func(scalar: type, features: ForceFeatures):
                 particle_q,
                 particle_qd,
             )
+        if wp.static(clamp_force):
+            magnitude = wp.length(f)
+            if magnitude > max_force:
+                f = f * (max_force / magnitude)
         return f
 
     return particle_force
@@ -212,10 +277,10 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures):
 
 
 @functools.cache
-def spring_scatter_kernel(scalar: type):
+def spring_scatter_kernel(scalar: type, law: SpringLaw):
     """Kernel adding every spring's force to its two particles (one thread per spring)."""
     vec3 = vec3_type(scalar)
-    spring_force, _, _ = spring_funcs(scalar)
+    spring_force, _, _ = spring_funcs(scalar, law)
 
     @wp.kernel(module="unique", enable_backward=False)
     def scatter_springs(
@@ -242,3 +307,20 @@ def spring_scatter_kernel(scalar: type):
         wp.atomic_sub(particle_f_in_out, j, f)
 
     return scatter_springs
+
+
+@functools.cache
+def clamp_forces_kernel(scalar: type, max_force: float):
+    """Kernel clamping the magnitude of every particle's total force to ``max_force`` [N]."""
+    vec3 = vec3_type(scalar)
+    limit = scalar(max_force)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def clamp_forces(particle_f_in_out: wp.array[vec3]):
+        i = wp.tid()
+        f = particle_f_in_out[i]
+        magnitude = wp.length(f)
+        if magnitude > limit:
+            particle_f_in_out[i] = f * (limit / magnitude)
+
+    return clamp_forces

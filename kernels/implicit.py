@@ -16,7 +16,7 @@ import functools
 
 import warp as wp
 
-from .forces import spring_funcs
+from .forces import SpringLaw, spring_funcs
 from .linalg import CG_PAP, reduction_funcs
 from .precision import mat33_type, vec3_type
 
@@ -24,11 +24,11 @@ wp.set_module_options({"enable_backward": False})
 
 
 @functools.cache
-def implicit_funcs(scalar: type):
+def implicit_funcs(scalar: type, law: SpringLaw):
     """The per-spring system block h Dₛ + h² Kₛ."""
     vec3 = vec3_type(scalar)
     mat33 = mat33_type(scalar)
-    _, _, spring_stiffness_matrix = spring_funcs(scalar)
+    _, _, spring_stiffness_matrix = spring_funcs(scalar, law)
 
     @wp.func
     def system_block(xi: vec3, xj: vec3, rest: scalar, ke: scalar, kd: scalar, dt: scalar) -> mat33:
@@ -42,14 +42,14 @@ def implicit_funcs(scalar: type):
 
 
 @functools.cache
-def implicit_kernels(scalar: type, slots: int, tiled: bool):
-    """(prepare, matvec, update) kernels of one precision and incidence-table width; ``tiled``: the
-    matvec's p·Ap reduction uses block tiles (CUDA), else per-thread atomics (CPU)."""
+def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw):
+    """(prepare, matvec, update) kernels of one precision, incidence-table width and spring law;
+    ``tiled``: the matvec's p·Ap reduction uses block tiles (CUDA), else per-thread atomics (CPU)."""
     vec3 = vec3_type(scalar)
     mat33 = mat33_type(scalar)
-    system_block = implicit_funcs(scalar)
+    system_block = implicit_funcs(scalar, law)
     accumulate = reduction_funcs(tiled)
-    _, _, spring_stiffness_matrix = spring_funcs(scalar)
+    _, _, spring_stiffness_matrix = spring_funcs(scalar, law)
 
     @wp.kernel(module="unique", enable_backward=False)
     def prepare(

@@ -27,7 +27,8 @@ from .integrators import (
     VelocityVerlet,
     make_integrator,
 )
-from .model import Control, MeshGroup, Model, ShapeInfo, State
+from .guards import GuardLimits
+from .model import Control, MeshGroup, Model, ShapeInfo, Stabilizers, State
 from .simulation import Simulator
 from .transforms import quat_from_axis_angle
 
@@ -50,6 +51,8 @@ __all__ = [
     "ShapeInfo",
     "SimulationError",
     "Simulator",
+    "Stabilizers",
+    "GuardLimits",
     "SpringMaterial",
     "State",
     "SymplecticEuler",

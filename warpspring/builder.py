@@ -16,7 +16,7 @@ import warp as wp
 from .errors import ConfigError
 from .kernels.contacts import SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
 from .kernels.precision import scalar_type, transform_type, vec3_type
-from .model import MeshGroup, Model, ShapeInfo
+from .model import MeshGroup, Model, ShapeInfo, Stabilizers
 from .transforms import quat_between, quat_to_matrix
 
 _AXES = {"Y": 1, "Z": 2}  # USD knows only Y-up and Z-up stages
@@ -51,6 +51,7 @@ class ModelBuilder:
         up_axis: world up axis, "Y" or "Z" (also written to USD).
         gravity: gravitational acceleration [m/s²]: a 3-vector, or ``None`` for 9.81 m/s² down the up axis.
         drag: global viscous drag coefficient [N·s/m], f = -drag · v on every particle.
+        stabilizers: optional clamps, strain limiting and biphasic springs (:class:`Stabilizers`).
 
     Example:
         >>> builder = ModelBuilder()
@@ -58,7 +59,7 @@ class ModelBuilder:
         >>> model = builder.finalize("cpu")
     """
 
-    def __init__(self, *, up_axis: str = "Z", gravity=None, drag: float = 0.0):
+    def __init__(self, *, up_axis: str = "Z", gravity=None, drag: float = 0.0, stabilizers: Stabilizers | None = None):
         axis = str(up_axis).upper()
         if axis not in _AXES:
             raise ConfigError(f"up_axis must be 'Y' or 'Z' (the two axes USD supports), got {up_axis!r}")
@@ -68,6 +69,9 @@ class ModelBuilder:
         self.up_vector = up
         self.gravity = _vector("gravity", -9.81 * up if gravity is None else gravity)
         self.drag = _non_negative("drag", drag)
+        if stabilizers is not None and not isinstance(stabilizers, Stabilizers):
+            raise ConfigError(f"stabilizers must be a warpspring.Stabilizers, got {type(stabilizers).__name__}")
+        self.stabilizers = stabilizers or Stabilizers()
 
         self._q: list[np.ndarray] = []
         self._qd: list[np.ndarray] = []
@@ -448,6 +452,7 @@ class ModelBuilder:
         model.up_axis = self.up_axis
         model.gravity = tuple(float(g) for g in self.gravity)
         model.drag = float(self.drag)
+        model.stabilizers = self.stabilizers
 
         n = self._particle_count
         mass = np.concatenate(self._mass)

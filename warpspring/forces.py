@@ -6,7 +6,7 @@ from __future__ import annotations
 import warp as wp
 
 from .kernels.contacts import project_contacts_kernel
-from .kernels.forces import eval_forces_kernel, spring_scatter_kernel
+from .kernels.forces import clamp_forces_kernel, eval_forces_kernel, spring_scatter_kernel
 from .model import Control, Model, State
 
 
@@ -24,14 +24,16 @@ def eval_forces(model: Model, state: State, control: Control | None, particle_f:
     if model.particle_count == 0:
         return
     features = model.force_features(control)
+    scatter = model.spring_count > 0 and not model.spring_gather
     out = state.particle_f if particle_f is None else particle_f
     wp.launch(
-        eval_forces_kernel(model.scalar, features),
+        # With scattered springs the force clamp must wait for the springs: a pass of its own below.
+        eval_forces_kernel(model.scalar, features._replace(max_particle_force=None) if scatter else features),
         dim=model.particle_count,
         block_dim=model.block_dim,
         inputs=[
             model.particle_mass,
-                        model.particle_spring_neighbor,
+            model.particle_spring_neighbor,
             model.particle_spring_id,
             model.spring_rest_length,
             model.spring_stiffness,
@@ -45,9 +47,9 @@ def eval_forces(model: Model, state: State, control: Control | None, particle_f:
         outputs=[out],
         device=model.device,
     )
-    if model.spring_count and not model.spring_gather:
+    if scatter:
         wp.launch(
-            spring_scatter_kernel(model.scalar),
+            spring_scatter_kernel(model.scalar, model.spring_law),
             dim=model.spring_count,
             inputs=[
                 model.spring_indices,
@@ -60,6 +62,9 @@ def eval_forces(model: Model, state: State, control: Control | None, particle_f:
             outputs=[out],
             device=model.device,
         )
+        if features.max_particle_force is not None:
+            wp.launch(clamp_forces_kernel(model.scalar, features.max_particle_force), dim=model.particle_count,
+                      block_dim=model.block_dim, inputs=[out], device=model.device)
 
 
 def apply_contacts(model: Model, state: State) -> None:

@@ -4,12 +4,63 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import math
+
 import numpy as np
 import warp as wp
 
 from .errors import ConfigError
-from .kernels.forces import ForceFeatures
+from .kernels.forces import ForceFeatures, SpringLaw
 from .kernels.precision import vec3_type
+
+
+@dataclass(frozen=True)
+class Stabilizers:
+    """Optional numerical stabilisers (all off by default; each one off compiles to nothing).
+
+    They trade fidelity for robustness: clamps bound what an unstable step can inject; strain limiting
+    and biphasic springs bound stretching (Provot's super-elasticity). The stability advisor accounts
+    for biphasic springs with their stiffer branch.
+
+    Attributes:
+        max_spring_force: clamp of each spring's force magnitude, elastic plus damping [N].
+        max_particle_force: clamp of the magnitude of the total force on each particle [N].
+        max_speed: clamp of each particle's speed after every step [m/s].
+        max_strain: strain limiting (Provot 1995): after every step no spring is left longer than
+            (1 + max_strain)·L [-]; positions are corrected, velocities by the same displacement / dt.
+        strain_iterations: Jacobi passes of the strain limiting per step.
+        biphasic_strain: strain beyond which springs stiffen [-].
+        biphasic_ratio: stiffness beyond ``biphasic_strain`` over stiffness below it [-], ≥ 1.
+    """
+
+    max_spring_force: float | None = None
+    max_particle_force: float | None = None
+    max_speed: float | None = None
+    max_strain: float | None = None
+    strain_iterations: int = 4
+    biphasic_strain: float | None = None
+    biphasic_ratio: float = 10.0
+
+    def __post_init__(self):
+        for name in ("max_spring_force", "max_particle_force", "max_speed", "max_strain", "biphasic_strain"):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, (int, float)) and not isinstance(value, bool)
+                                          and math.isfinite(value) and value > 0.0):
+                raise ConfigError(f"stabilizer {name} must be a finite number > 0 or None, got {value!r}")
+        if not isinstance(self.strain_iterations, int) or self.strain_iterations < 1:
+            raise ConfigError(f"stabilizer strain_iterations must be an integer >= 1, got {self.strain_iterations!r}")
+        if not (isinstance(self.biphasic_ratio, (int, float)) and math.isfinite(self.biphasic_ratio)
+                and self.biphasic_ratio >= 1.0):
+            raise ConfigError(f"stabilizer biphasic_ratio must be a number >= 1, got {self.biphasic_ratio!r}")
+
+    @property
+    def spring_law(self) -> SpringLaw:
+        """The spring force law these settings ask for."""
+        return SpringLaw(
+            biphasic_strain=self.biphasic_strain,
+            biphasic_ratio=float(self.biphasic_ratio) if self.biphasic_strain is not None else 1.0,
+            max_force=self.max_spring_force,
+        )
 
 
 @dataclass(frozen=True)
@@ -67,6 +118,7 @@ class Model:
     gravity: tuple  # [m/s²], gravitational acceleration (3 floats)
     drag: float  # [N·s/m], global viscous drag coefficient: f = -drag · v
     block_dim: int  # CUDA threads per block of the per-particle kernels (see ModelBuilder.finalize)
+    stabilizers: Stabilizers  # optional clamps, strain limiting and biphasic springs
 
     particle_count: int
     particle_q: wp.array  # [m], shape [particle_count], initial positions
@@ -109,6 +161,11 @@ class Model:
 
     # -- derived feature sets (what the kernels are specialized for) -------------------------------
 
+    @property
+    def spring_law(self) -> SpringLaw:
+        """The spring force law (Hooke's, or biphasic and/or force-clamped by the stabilizers)."""
+        return self.stabilizers.spring_law
+
     def force_features(self, control: Control | None) -> ForceFeatures:
         """The force terms a step of this model under ``control`` evaluates."""
         return ForceFeatures(
@@ -116,6 +173,8 @@ class Model:
             gravity=any(g != 0.0 for g in self.gravity),
             drag=self.drag != 0.0,
             external=control is not None and control.particle_force is not None,
+            spring_law=self.spring_law,
+            max_particle_force=self.stabilizers.max_particle_force,
         )
 
     # -- factories ----------------------------------------------------------------------------------

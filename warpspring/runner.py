@@ -119,10 +119,14 @@ def run_scene(
                 if t1 is None:  # the first frame compiled the kernels and captured the graph: setup time
                     t1 = time.perf_counter()
         except SimulationError as exc:
+            # A guard names its frame and substep; the writer's last-line check knows only the frame.
+            frame = exc.frame if exc.frame is not None else sim.frame
+            where = "" if exc.frame is not None else f"frame {frame} (t = {frame * sim.frame_dt:.4g} s): "
             raise SimulationError(
-                f"frame {sim.frame} (t = {sim.time:.4g} s, dt = {sim.dt * 1e3:.4g} ms): {exc}. The run is unstable: "
-                f"{_remedy(model, integrator, fps, substeps)}; {output} holds frames 0..{sim.frame - 1}",
-                frame=sim.frame,
+                f"{where}{exc} (dt = {sim.dt * 1e3:.4g} ms). The run is unstable: "
+                f"{_remedy(model, integrator, fps, substeps)}; {output} holds frames 0..{frame - 1}",
+                frame=frame,
+                substep=exc.substep,
             ) from None
         finally:
             bar.close()

@@ -6,7 +6,8 @@ import math
 
 import warp as wp
 
-from .errors import ConfigError
+from .errors import ConfigError, SimulationError
+from .guards import Guard, GuardLimits
 from .integrators import Integrator, SymplecticEuler
 from .model import Control, Model, State
 
@@ -26,6 +27,9 @@ class Simulator:
         control: time-varying inputs; default ``model.control()``.
         use_graph: capture each frame as a graph (CUDA graph, or Warp's CPU graph); default on for
             integrators that allow it.
+        guard: run-time checks (non-finite state, torn springs, runaway energy) made on the device
+            every ``guard.every`` substeps; a failure raises :class:`SimulationError` at the end of
+            the frame. ``None`` disables them (and the per-frame read of their record).
     """
 
     def __init__(
@@ -37,6 +41,7 @@ class Simulator:
         substeps: int = 16,
         control: Control | None = None,
         use_graph: bool | None = None,
+        guard: GuardLimits | None = GuardLimits(),
     ):
         if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
             raise ConfigError(f"fps must be a positive number, got {fps!r}")
@@ -54,6 +59,7 @@ class Simulator:
         self.use_graph = self.integrator.capturable if use_graph is None else bool(use_graph)
         self.state = model.state()
         self._scratch = model.state()
+        self.guard = Guard(model, guard, substeps) if guard is not None else None
         self.frame = 0
         self._graph = None
         self._graph_key = None
@@ -64,16 +70,26 @@ class Simulator:
         return self.frame * self.frame_dt
 
     def _simulate(self) -> None:
-        """Run one frame's substeps, leaving the result in ``self.state``."""
+        """Run one frame's substeps (and guard checks), leaving the result in ``self.state``."""
+        guard = self.guard
+        if guard is not None:
+            guard.reset()
         a, b = self.state, self._scratch
-        for _ in range(self.substeps):
+        for substep in range(self.substeps):
             self.integrator.step(a, b, self.control, self.dt)
             a, b = b, a
+            if guard is not None and ((substep + 1) % guard.every == 0 or substep + 1 == self.substeps):
+                guard.check(a, substep)
         if a is not self.state:
             self.state.assign(a)
 
     def step_frame(self) -> None:
-        """Advance :attr:`state` by one frame."""
+        """Advance :attr:`state` by one frame.
+
+        Raises:
+            SimulationError: a guard check failed during the frame; :attr:`state` is then unusable and
+                :attr:`frame` still counts the frames completed before it.
+        """
         if self.use_graph:
             key = self.model.force_features(self.control)
             if self._graph is None or key != self._graph_key:
@@ -82,6 +98,15 @@ class Simulator:
             wp.capture_launch(self._graph)
         else:
             self._simulate()
+        if self.guard is not None:
+            report = self.guard.report()
+            if report is not None:
+                raise SimulationError(
+                    f"frame {self.frame + 1}, substep {report.substep + 1} of {self.substeps} "
+                    f"(t ≤ {self.time + (report.substep + 1) * self.dt:.4g} s): {report.describe(self.model)}",
+                    frame=self.frame + 1,
+                    substep=report.substep + 1,
+                )
         self.frame += 1
 
     def _capture(self) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import abc
 
+from ..constraints import StepFinisher
 from ..model import Control, Model, State
 
 
@@ -22,6 +23,7 @@ class Integrator(abc.ABC):
 
     def __init__(self, model: Model):
         self.model = model
+        self.finish_step = StepFinisher(model)  # strain limiting, speed clamp, contacts: call on the result
 
     @abc.abstractmethod
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:

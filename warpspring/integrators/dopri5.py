@@ -14,7 +14,7 @@ import numpy as np
 import warp as wp
 
 from ..errors import ConfigError, SimulationError
-from ..forces import apply_contacts, eval_forces
+from ..forces import eval_forces
 from ..kernels.integrators import rk_error_kernel
 from ..model import Control, Model, State
 from .runge_kutta import ExplicitRungeKutta
@@ -105,7 +105,7 @@ class DormandPrince(ExplicitRungeKutta):
         self.step_size = proposed
         self._work = [y, y_new]
         state_out.assign(y)
-        apply_contacts(self.model, state_out)
+        self.finish_step(state_out, dt)
 
     def _scaled_error(self, y: State, y_new: State, h: float) -> float:
         model = self.model

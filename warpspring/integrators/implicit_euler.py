@@ -18,7 +18,7 @@ from __future__ import annotations
 import warp as wp
 
 from ..errors import ConfigError
-from ..forces import apply_contacts, eval_forces
+from ..forces import eval_forces
 from ..kernels.implicit import implicit_kernels
 from ..kernels.linalg import CG_RR_LAST, CG_SCALARS, cg_kernels, reduce_launch_dim
 from ..kernels.precision import mat33_type
@@ -62,7 +62,7 @@ class ImplicitEuler(Integrator):
 
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         model = self.model
-        prepare, _, update = implicit_kernels(model.scalar, model.spring_max_degree, self._tiled)
+        prepare, _, update = implicit_kernels(model.scalar, model.spring_max_degree, self._tiled, model.spring_law)
         per_particle = dict(dim=model.particle_count, block_dim=model.block_dim, device=model.device)
         h = model.scalar(dt)
         eval_forces(model, state_in, control)
@@ -79,7 +79,7 @@ class ImplicitEuler(Integrator):
             outputs=[state_out.particle_q, state_out.particle_qd],
             **per_particle,
         )
-        apply_contacts(model, state_out)
+        self.finish_step(state_out, dt)
 
     def solve_report(self) -> tuple[int, float, float]:
         """(iterations, ‖b - A Δv‖, ‖b‖) of the last solve, read from the device (synchronises)."""
@@ -105,7 +105,7 @@ class ImplicitEuler(Integrator):
         model = self.model
         n = model.particle_count
         start, update_solution, update_direction, condition = cg_kernels(model.scalar, self._tiled)
-        _, matvec, _ = implicit_kernels(model.scalar, model.spring_max_degree, self._tiled)
+        _, matvec, _ = implicit_kernels(model.scalar, model.spring_max_degree, self._tiled, model.spring_law)
         reducing = dict(dim=reduce_launch_dim(n, self._block), block_dim=self._block, device=model.device)
         check = dict(
             dim=1,

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..forces import apply_contacts, eval_forces
+from ..forces import eval_forces
 from ..kernels.integrators import rk_combine_kernel
 from ..model import Control, Model, State
 from .base import Integrator
@@ -75,7 +75,7 @@ class ExplicitRungeKutta(Integrator):
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         self.eval_stages(state_in, control, dt)
         self.combine(state_in, self.b, dt, state_out.particle_q, state_out.particle_qd, upto=len(self.b))
-        apply_contacts(self.model, state_out)
+        self.finish_step(state_out, dt)
 
 
 class ExplicitEuler(ExplicitRungeKutta):

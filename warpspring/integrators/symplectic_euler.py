@@ -20,53 +20,49 @@ class SymplecticEuler(Integrator):
 
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         model = self.model
-        if not model.spring_gather and model.spring_count:
+        # Contacts fuse into the update unless other post-step passes must run before them.
+        fused_shapes = model.shape_types if self.finish_step.only_contacts else ()
+        shapes = [model.shape_type, model.shape_transform, model.shape_size, model.shape_friction]
+        common = dict(dim=model.particle_count, block_dim=model.block_dim, device=model.device)
+        if model.spring_gather or model.spring_count == 0:
+            features = model.force_features(control)
+            wp.launch(
+                symplectic_euler_kernel(model.scalar, features, fused_shapes),
+                inputs=[
+                    model.particle_mass,
+                    model.particle_inv_mass,
+                    model.particle_radius,
+                    model.particle_spring_neighbor,
+                    model.particle_spring_id,
+                    model.spring_rest_length,
+                    model.spring_stiffness,
+                    model.spring_damping,
+                    *shapes,
+                    model.vec3(*model.gravity),
+                    model.scalar(model.drag),
+                    control.particle_force if features.external else None,
+                    state_in.particle_q,
+                    state_in.particle_qd,
+                    model.scalar(dt),
+                ],
+                outputs=[state_out.particle_q, state_out.particle_qd],
+                **common,
+            )
+        else:
             eval_forces(model, state_in, control)
             wp.launch(
-                symplectic_euler_update_kernel(model.scalar, model.shape_types),
-                dim=model.particle_count,
-            block_dim=model.block_dim,
+                symplectic_euler_update_kernel(model.scalar, fused_shapes),
                 inputs=[
                     model.particle_inv_mass,
                     model.particle_radius,
-                    model.shape_type,
-                    model.shape_transform,
-                    model.shape_size,
-                    model.shape_friction,
+                    *shapes,
                     state_in.particle_q,
                     state_in.particle_qd,
                     state_in.particle_f,
                     model.scalar(dt),
                 ],
                 outputs=[state_out.particle_q, state_out.particle_qd],
-                device=model.device,
+                **common,
             )
-            return
-        features = model.force_features(control)
-        wp.launch(
-            symplectic_euler_kernel(model.scalar, features, model.shape_types),
-            dim=model.particle_count,
-            block_dim=model.block_dim,
-            inputs=[
-                model.particle_mass,
-                model.particle_inv_mass,
-                model.particle_radius,
-                                model.particle_spring_neighbor,
-                model.particle_spring_id,
-                model.spring_rest_length,
-                model.spring_stiffness,
-                model.spring_damping,
-                model.shape_type,
-                model.shape_transform,
-                model.shape_size,
-                model.shape_friction,
-                model.vec3(*model.gravity),
-                model.scalar(model.drag),
-                control.particle_force if features.external else None,
-                state_in.particle_q,
-                state_in.particle_qd,
-                model.scalar(dt),
-            ],
-            outputs=[state_out.particle_q, state_out.particle_qd],
-            device=model.device,
-        )
+        if not self.finish_step.only_contacts:
+            self.finish_step(state_out, dt)

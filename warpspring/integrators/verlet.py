@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from ..forces import apply_contacts, eval_forces
+from ..forces import eval_forces
 from ..kernels.integrators import verlet_kernels
 from ..model import Control, Model, State
 from .base import Integrator
@@ -59,4 +59,4 @@ class VelocityVerlet(Integrator):
             eval_forces(model, state_out, control)  # f(x', v*)
             wp.launch(kick, inputs=[model.particle_inv_mass, half.particle_qd, state_out.particle_f, h],
                       outputs=[state_out.particle_qd], **common)
-        apply_contacts(model, state_out)
+        self.finish_step(state_out, dt)

@@ -1,0 +1,106 @@
+"""Post-step passes: Provot strain limiting, speed clamping and contact projection.
+
+Strain limiting (Provot 1995) shortens every spring longer than (1 + ε)·L back to that length by moving
+its two ends along the spring, each by its share of the inverse mass (a pinned end does not move).
+It runs as Jacobi passes over the incidence table: each particle moves by the average of the
+corrections its over-stretched springs ask for, reading one position buffer and writing another (so
+the result does not depend on thread order). The finishing pass then turns the total displacement
+into a velocity change (Δv = Δx / h), clamps the speed, and resolves contacts.
+"""
+
+import functools
+
+import warp as wp
+
+from .contacts import project_contacts_func
+from .precision import transform_type, vec3_type
+
+wp.set_module_options({"enable_backward": False})
+
+
+@functools.cache
+def strain_limit_kernel(scalar: type, slots: int, max_strain: float):
+    """One Jacobi pass of strain limiting at strain ``max_strain`` over an incidence table of ``slots`` slots."""
+    vec3 = vec3_type(scalar)
+    stretch_limit = scalar(1.0 + max_strain)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def strain_limit(
+        # Model:
+        particle_inv_mass: wp.array[scalar],
+        particle_spring_neighbor: wp.array2d[wp.int32],
+        particle_spring_id: wp.array2d[wp.int32],
+        spring_rest_length: wp.array[scalar],
+        # In:
+        particle_q_in: wp.array[vec3],
+        # Out:
+        particle_q_out: wp.array[vec3],
+    ):
+        i = wp.tid()
+        xi = particle_q_in[i]
+        wi = particle_inv_mass[i]
+        correction = vec3(scalar(0.0))
+        violated = scalar(0.0)
+        if wi > scalar(0.0):
+            for k in range(wp.static(slots)):
+                j = particle_spring_neighbor[k, i]
+                d = particle_q_in[j] - xi
+                length = wp.length(d)
+                allowed = stretch_limit * spring_rest_length[particle_spring_id[k, i]]
+                if j != i and length > allowed:
+                    share = wi / (wi + particle_inv_mass[j])
+                    correction += d * (share * (length - allowed) / length)
+                    violated += scalar(1.0)
+        if violated > scalar(0.0):
+            xi = xi + correction / violated
+        particle_q_out[i] = xi
+
+    return strain_limit
+
+
+@functools.cache
+def finish_step_kernel(scalar: type, shape_types: tuple, max_speed, from_displacement: bool):
+    """The finishing pass: Δv = (x - x_before)/h after position corrections (``from_displacement``),
+    speed clamp to ``max_speed`` [m/s] (``None``: off), contact projection against ``shape_types``."""
+    vec3 = vec3_type(scalar)
+    transform = transform_type(scalar)
+    project_contacts = project_contacts_func(scalar, shape_types)
+    clamp_speed = max_speed is not None
+    speed_limit = scalar(max_speed if clamp_speed else 0.0)
+    has_contacts = len(shape_types) > 0
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def finish_step(
+        # Model:
+        particle_inv_mass: wp.array[scalar],
+        particle_radius: wp.array[scalar],
+        shape_type: wp.array[wp.int32],
+        shape_transform: wp.array[transform],
+        shape_size: wp.array[vec3],
+        shape_friction: wp.array[scalar],
+        # In:
+        particle_q_corrected: wp.array[vec3],
+        particle_q_before: wp.array[vec3],
+        dt: scalar,
+        # State in/out:
+        particle_q_in_out: wp.array[vec3],
+        particle_qd_in_out: wp.array[vec3],
+    ):
+        i = wp.tid()
+        if particle_inv_mass[i] == scalar(0.0):
+            return
+        x = particle_q_in_out[i]
+        v = particle_qd_in_out[i]
+        if wp.static(from_displacement):
+            x = particle_q_corrected[i]
+            v = v + (x - particle_q_before[i]) / dt
+        if wp.static(clamp_speed):
+            speed = wp.length(v)
+            if speed > speed_limit:
+                v = v * (speed_limit / speed)
+        if wp.static(has_contacts):
+            x, v = project_contacts(x, v, particle_radius[i], shape_type, shape_transform, shape_size, shape_friction)
+        particle_q_in_out[i] = x
+        particle_qd_in_out[i] = v
+
+    return finish_step

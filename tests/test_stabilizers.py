@@ -1,0 +1,180 @@
+"""Stabilizers: biphasic springs, force and speed clamps, Provot strain limiting."""
+
+import functools
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warpspring as ws
+from helpers import ZERO_GRAVITY, run_frames
+from warpspring.kernels.forces import SpringLaw, spring_funcs
+
+BIPHASIC = SpringLaw(biphasic_strain=0.2, biphasic_ratio=4.0)
+
+
+@functools.cache
+def law_kernel(law):
+    spring_force, spring_energy, spring_stiffness_matrix = spring_funcs(wp.float64, law)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def kernel(
+        xi: wp.array[wp.vec3d],
+        xj: wp.array[wp.vec3d],
+        vj: wp.array[wp.vec3d],
+        rest: float,
+        ke: float,
+        kd: float,
+        force: wp.array[wp.vec3d],
+        energy: wp.array[wp.float64],
+        stiffness: wp.array[wp.mat33d],
+    ):
+        t = wp.tid()
+        force[t] = spring_force(xi[t], xj[t], wp.vec3d(), vj[t], wp.float64(rest), wp.float64(ke), wp.float64(kd))
+        energy[t] = spring_energy(xi[t], xj[t], wp.float64(rest), wp.float64(ke))
+        stiffness[t] = spring_stiffness_matrix(xi[t], xj[t], wp.float64(rest), wp.float64(ke), False)
+
+    return kernel
+
+
+def evaluate_law(device, law, xi, xj, vj, rest=1.0, ke=10.0, kd=0.0):
+    n = len(xi)
+    out = [wp.empty(n, dtype=wp.vec3d, device=device), wp.empty(n, dtype=wp.float64, device=device),
+           wp.empty(n, dtype=wp.mat33d, device=device)]
+    arrays = [wp.array(a, dtype=wp.vec3d, device=device) for a in (xi, xj, vj)]
+    wp.launch(law_kernel(law), dim=n, inputs=[*arrays, rest, ke, kd], outputs=out, device=device)
+    return [a.numpy() for a in out]
+
+
+def test_biphasic_law_force_energy_and_jacobian(device):
+    """Beyond the knee (1 + ε)L the tension grows with stiffness r·ke: T = ke s + (r-1) ke max(s - εL, 0);
+    the force is -∂E/∂x_i of the energy and the stiffness matrix is its Jacobian (central differences)."""
+    rng = np.random.default_rng(8)
+    n = 40
+    xi = rng.uniform(-1, 1, (n, 3))
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    length = rng.uniform(0.7, 1.6, n)  # compressed, below and beyond the knee at 1.2
+    xj = xi + direction * length[:, None]
+    force, energy, stiffness = evaluate_law(device, BIPHASIC, xi, xj, np.zeros((n, 3)))
+    stretch = length - 1.0
+    tension = 10.0 * stretch + 3.0 * 10.0 * np.maximum(stretch - 0.2, 0.0)
+    np.testing.assert_allclose(force, direction * tension[:, None], rtol=1e-12, atol=1e-12)
+    assert (length > 1.2).sum() > 5 and (length < 1.0).sum() > 5
+
+    eps = 1e-6
+    for c in range(3):
+        step = np.zeros(3)
+        step[c] = eps
+        e_plus = evaluate_law(device, BIPHASIC, xi, xj + step, np.zeros((n, 3)))[1]
+        e_minus = evaluate_law(device, BIPHASIC, xi, xj - step, np.zeros((n, 3)))[1]
+        f_plus = evaluate_law(device, BIPHASIC, xi, xj + step, np.zeros((n, 3)))[0]
+        f_minus = evaluate_law(device, BIPHASIC, xi, xj - step, np.zeros((n, 3)))[0]
+        np.testing.assert_allclose(force[:, c], (e_plus - e_minus) / (2 * eps), rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(stiffness[:, :, c], (f_plus - f_minus) / (2 * eps), rtol=1e-5, atol=1e-5)
+
+
+def test_spring_force_clamp_bounds_elastic_plus_damping(device):
+    """With max_force F every spring's force has magnitude ≤ F along d̂, whatever its stretch or speed."""
+    law = SpringLaw(max_force=2.5)
+    rng = np.random.default_rng(9)
+    n = 64
+    xi, xj = rng.uniform(-1, 1, (n, 3)), rng.uniform(-1, 1, (n, 3))
+    vj = rng.normal(scale=5.0, size=(n, 3))
+    force = evaluate_law(device, law, xi, xj, vj, kd=3.0)[0]
+    plain = evaluate_law(device, SpringLaw(), xi, xj, vj, kd=3.0)[0]
+    magnitude = np.linalg.norm(force, axis=1)
+    assert magnitude.max() <= 2.5 * (1 + 1e-12) and (np.linalg.norm(plain, axis=1) > 2.5).sum() > 10
+    clamped = np.linalg.norm(plain, axis=1) > 2.5
+    np.testing.assert_allclose(force[clamped], plain[clamped] * (2.5 / np.linalg.norm(plain[clamped], axis=1))[:, None])
+    np.testing.assert_allclose(force[~clamped], plain[~clamped])
+
+
+@pytest.mark.parametrize("evaluation", ["gather", "scatter"])
+def test_particle_force_clamp(device, evaluation):
+    """With max_particle_force F every total force above F is scaled down to magnitude F, direction kept,
+    and the others are untouched, by either spring evaluation."""
+    def forces(stabilizers):
+        builder = ws.ModelBuilder(stabilizers=stabilizers)
+        builder.add_cloth_grid(nx=6, ny=5, spacing=0.1, mass=1.0, structural=ws.SpringMaterial(200.0, 1.0))
+        model = builder.finalize(device, spring_evaluation=evaluation)
+        state = model.state()
+        rng = np.random.default_rng(1)
+        state.particle_q.assign(model.particle_q.numpy() + rng.normal(scale=0.03, size=(model.particle_count, 3)))
+        ws.eval_forces(model, state, None)
+        return state.particle_f.numpy().astype(np.float64)
+
+    plain = forces(ws.Stabilizers())
+    limit = float(np.median(np.linalg.norm(plain, axis=1)))  # half the particles get clamped
+    clamped = forces(ws.Stabilizers(max_particle_force=limit))
+    big = np.linalg.norm(plain, axis=1) > limit
+    assert big.sum() >= 10 and (~big).sum() >= 10
+    np.testing.assert_allclose(clamped[big], plain[big] * (limit / np.linalg.norm(plain[big], axis=1))[:, None], rtol=1e-5)
+    np.testing.assert_allclose(clamped[~big], plain[~big], rtol=1e-6)
+
+
+def test_speed_clamp(device):
+    """A particle falling under gravity with max_speed 2 m/s reaches 2 m/s after 2/g s and then falls at
+    exactly that speed."""
+    builder = ws.ModelBuilder(stabilizers=ws.Stabilizers(max_speed=2.0))
+    builder.add_particles([[0.0, 0.0, 10.0]], mass=1.0)
+    model = builder.finalize(device)
+    sim = ws.Simulator(model, fps=60, substeps=16)
+    x = run_frames(sim, 60)[0]
+    np.testing.assert_allclose(sim.state.particle_qd.numpy()[0], [0.0, 0.0, -2.0], rtol=1e-6)
+    t_reach = 2.0 / 9.81
+    expected_drop = 0.5 * 9.81 * t_reach**2 + 2.0 * (1.0 - t_reach)
+    assert abs((10.0 - x[2]) - expected_drop) < 9.81 * sim.dt  # first-order error of the kink
+
+
+def soft_cloth(device, stabilizers, n=12):
+    """A soft cloth pinned at two corners: plain springs stretch it far past 10 % (super-elasticity)."""
+    builder = ws.ModelBuilder(stabilizers=stabilizers)
+    soft = ws.SpringMaterial(50.0, 0.5)
+    builder.add_cloth_grid(nx=n, ny=n, spacing=0.1, origin=(0, 0, 2), particle_mass=0.05, structural=soft,
+                           shear=soft, bend=ws.SpringMaterial(5.0, 0.05), pin=["top-left", "top-right"])
+    return builder.finalize(device)
+
+
+def peak_strain(model, frames, substeps=16):
+    """Largest spring strain over ``frames`` frames, sampled every frame."""
+    sim = ws.Simulator(model, fps=60, substeps=substeps)
+    pairs, rest = model.spring_indices.numpy(), model.spring_rest_length.numpy()
+    peak = 0.0
+    for _ in range(frames):
+        x = run_frames(sim, 1)
+        peak = max(peak, float((np.linalg.norm(x[pairs[:, 1]] - x[pairs[:, 0]], axis=1) / rest - 1).max()))
+    return peak
+
+
+def test_strain_limiting_caps_strain_where_plain_springs_overstretch(device):
+    """Provot strain limiting at 10 % with 16 Jacobi passes keeps every spring within 10.5 % of its rest
+    length at every frame, where the same cloth without it stretches by more than 100 %."""
+    assert peak_strain(soft_cloth(device, ws.Stabilizers()), 60) > 1.0
+    limited = peak_strain(soft_cloth(device, ws.Stabilizers(max_strain=0.1, strain_iterations=16)), 60)
+    assert limited <= 0.105
+
+
+def test_biphasic_springs_reduce_peak_strain(device):
+    """Springs 10× stiffer beyond 10 % strain cut the cloth's peak strain at least fourfold (stable at this
+    step: the advisor's ω uses the stiff branch)."""
+    plain = peak_strain(soft_cloth(device, ws.Stabilizers()), 60)
+    biphasic = peak_strain(soft_cloth(device, ws.Stabilizers(biphasic_strain=0.1, biphasic_ratio=10.0)), 60)
+    assert biphasic < plain / 4
+
+
+def test_strain_limiting_respects_pins_and_gravity_equilibrium(device):
+    """A hanging chain whose springs would stretch by 49-245 % hangs with every spring at the 5 % cap
+    when limited there: the pinned top stays fixed, the corrections fall on the free ends."""
+    n, spacing = 6, 0.1
+    builder = ws.ModelBuilder(drag=0.5, stabilizers=ws.Stabilizers(max_strain=0.05, strain_iterations=32))
+    q = np.zeros((n, 3))
+    q[:, 2] = 1.0 - spacing * np.arange(n)
+    builder.add_particles(q, mass=0.1, pinned=[0])
+    builder.add_springs(np.stack([np.arange(n - 1), np.arange(1, n)], 1), stiffness=20.0)
+    model = builder.finalize(device)
+    x = run_frames(ws.Simulator(model, fps=60, substeps=16), 120)
+    strain = -np.diff(x[:, 2]) / spacing - 1
+    np.testing.assert_allclose(x[0], q[0])
+    assert strain.max() <= 0.05 + 1e-4
+    assert strain[0] >= 0.05 - 1e-3  # the top spring is held at the cap, not below it

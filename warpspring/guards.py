@@ -1,0 +1,161 @@
+"""Run-time guards of a simulation: stop with a clear error, naming frame, substep, particle or spring
+and a remedy, when the state turns non-finite, a spring tears far past its rest length, or the kinetic
+energy runs away. The checks run on the device inside the captured frame (``kernels/guards.py``); the
+host reads one small status record per frame."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .errors import ConfigError
+from .kernels.guards import (
+    GUARD_ENERGY,
+    GUARD_FLOATS,
+    GUARD_INTS,
+    GUARD_KINETIC_ENERGY,
+    GUARD_MAX_STRAIN,
+    GUARD_NONFINITE,
+    GUARD_NONFINITE_PARTICLE,
+    GUARD_STRAIN,
+    GUARD_STRAIN_PARTICLE,
+    GUARD_STRAIN_SPRING,
+    GUARD_SUBSTEP,
+    GUARD_TRIPPED,
+    NO_PARTICLE,
+    guard_kernels,
+)
+from .kernels.linalg import reduce_launch_dim
+from .model import Model, State
+
+#: Default limit of the kinetic energy, as a multiple of the scene's energy scale (see GuardLimits).
+ENERGY_FACTOR = 1.0e6
+
+
+@dataclass(frozen=True)
+class GuardLimits:
+    """What the run-time guard checks, and how often.
+
+    Attributes:
+        every: substeps between checks; ``None`` checks once per frame, after its last substep.
+        max_strain: largest allowed spring strain |d|/L - 1 [-] (10: eleven times the rest length).
+        max_kinetic_energy: largest allowed total kinetic energy [J]; ``None``: 10⁶ times the scene's
+            energy scale (initial kinetic + elastic energy + total weight × (extent + 1 m)).
+    """
+
+    every: int | None = None
+    max_strain: float = 10.0
+    max_kinetic_energy: float | None = None
+
+
+@dataclass(frozen=True)
+class GuardReport:
+    """The first failure a guard saw within a frame.
+
+    Attributes:
+        reason: "non-finite state", "strain" or "kinetic energy".
+        substep: substep of the frame at whose check it was seen (the failure happened at or before it).
+        particle: index of the offending particle (first non-finite one, or one holding the worst spring).
+        spring: index of the most strained spring, or ``None``.
+        strain: largest spring strain at that check [-].
+        kinetic_energy: total kinetic energy at that check [J].
+    """
+
+    reason: str
+    substep: int
+    particle: int | None
+    spring: int | None
+    strain: float
+    kinetic_energy: float
+
+    def describe(self, model: Model) -> str:
+        """One clause naming what went wrong and where."""
+        if self.reason == "non-finite state":
+            return f"particle {self.particle} has a non-finite position or velocity"
+        if self.reason == "strain":
+            a, b = model.spring_indices.numpy()[self.spring]
+            return (f"spring {self.spring} (particles {a}-{b}) stretched to {self.strain + 1:.3g}× its rest "
+                    "length (guard limit exceeded)")
+        return f"the kinetic energy ran away to {self.kinetic_energy:.3g} J (guard limit exceeded)"
+
+
+class Guard:
+    """Device-side checks of one simulator's states; see :class:`GuardLimits`."""
+
+    def __init__(self, model: Model, limits: GuardLimits, substeps: int):
+        if limits.every is not None and (not isinstance(limits.every, int) or limits.every < 1):
+            raise ConfigError(f"guard 'every' must be an integer >= 1 or None, got {limits.every!r}")
+        if not limits.max_strain > 0.0:
+            raise ConfigError(f"guard max_strain must be > 0, got {limits.max_strain!r}")
+        self.model = model
+        self.limits = limits
+        self.every = min(limits.every or substeps, substeps)
+        self.max_kinetic_energy = (
+            limits.max_kinetic_energy if limits.max_kinetic_energy is not None else ENERGY_FACTOR * energy_scale(model)
+        )
+        self._tiled = model.device.is_cuda
+        device = model.device
+        self._status_clear = wp.array([0, -1, NO_PARTICLE, NO_PARTICLE, NO_PARTICLE], dtype=wp.int32, device=device)
+        self._values_clear = wp.array([-1.0, 0.0], dtype=wp.float64, device=device)
+        assert len(self._status_clear) == GUARD_INTS and len(self._values_clear) == GUARD_FLOATS
+        self._status = wp.clone(self._status_clear)
+        self._values = wp.clone(self._values_clear)
+
+    def reset(self) -> None:
+        """Clear the record (device copies: capturable, done at the start of every frame)."""
+        wp.copy(self._status, self._status_clear)
+        wp.copy(self._values, self._values_clear)
+
+    def check(self, state: State, substep: int) -> None:
+        """Launch the checks of ``state`` after ``substep`` (device only; capturable)."""
+        model = self.model
+        measure, locate, decide = guard_kernels(model.scalar, model.spring_max_degree, self._tiled)
+        block = model.block_dim if self._tiled else 1
+        table = [model.particle_spring_neighbor, model.particle_spring_id, model.spring_rest_length]
+        out = [self._status, self._values]
+        wp.launch(measure, dim=reduce_launch_dim(model.particle_count, block), block_dim=block,
+                  inputs=[model.particle_count, model.particle_mass, *table, state.particle_q, state.particle_qd],
+                  outputs=out, device=model.device)
+        wp.launch(locate, dim=model.particle_count, block_dim=model.block_dim,
+                  inputs=[*table, state.particle_q], outputs=out, device=model.device)
+        wp.launch(decide, dim=1, inputs=[substep, wp.float64(self.limits.max_strain),
+                                          wp.float64(self.max_kinetic_energy)], outputs=out, device=model.device)
+
+    def report(self) -> GuardReport | None:
+        """The first failure since the last reset, or ``None`` (reads the device: synchronises)."""
+        status = self._status.numpy()
+        if status[GUARD_TRIPPED] == 0:
+            return None
+        values = self._values.numpy()
+        reason = {GUARD_NONFINITE: "non-finite state", GUARD_STRAIN: "strain", GUARD_ENERGY: "kinetic energy"}[
+            int(status[GUARD_TRIPPED])
+        ]
+        particle = status[GUARD_NONFINITE_PARTICLE] if reason == "non-finite state" else status[GUARD_STRAIN_PARTICLE]
+        spring = status[GUARD_STRAIN_SPRING]
+        return GuardReport(
+            reason=reason,
+            substep=int(status[GUARD_SUBSTEP]),
+            particle=None if particle == NO_PARTICLE else int(particle),
+            spring=None if spring == NO_PARTICLE else int(spring),
+            strain=float(values[GUARD_MAX_STRAIN]),
+            kinetic_energy=float(values[GUARD_KINETIC_ENERGY]),
+        )
+
+
+def energy_scale(model: Model) -> float:
+    """A scene's energy scale [J]: initial kinetic + elastic energy + total weight × (extent + 1 m), ≥ 1 µJ."""
+    q = model.particle_q.numpy().astype(np.float64)
+    qd = model.particle_qd.numpy().astype(np.float64)
+    mass = model.particle_mass.numpy().astype(np.float64)
+    kinetic = 0.5 * float(np.sum(mass * np.sum(qd * qd, axis=1)))
+    elastic = 0.0
+    if model.spring_count:
+        pairs = model.spring_indices.numpy()
+        stretch = np.linalg.norm(q[pairs[:, 1]] - q[pairs[:, 0]], axis=1) - model.spring_rest_length.numpy()
+        elastic = 0.5 * float(np.sum(model.spring_stiffness.numpy() * stretch * stretch))
+    extent = float(np.ptp(q, axis=0).max()) if len(q) else 0.0
+    weight = float(mass.sum()) * math.hypot(*model.gravity)
+    return max(kinetic + elastic + weight * (extent + 1.0), 1.0e-6)
