@@ -22,7 +22,8 @@ GUARD_SUBSTEP = 1  # substep (within the frame) of the check that tripped
 GUARD_NONFINITE_PARTICLE = 2  # smallest index of a particle with a non-finite position or velocity
 GUARD_STRAIN_PARTICLE = 3  # smallest index of a particle holding the largest strain
 GUARD_STRAIN_SPRING = 4  # smallest index of a spring with the largest strain
-GUARD_INTS = 5
+GUARD_NONFINITE_COUNT = 5  # particles with a non-finite position or velocity
+GUARD_INTS = 6
 # float64 slots
 GUARD_MAX_STRAIN = 0  # largest spring strain (|d|/L - 1) of the check
 GUARD_KINETIC_ENERGY = 1  # Σ ½ m v² of the check [J]
@@ -86,6 +87,7 @@ def guard_kernels(scalar: type, slots: int, tiled: bool):
                 wp.atomic_max(values, GUARD_MAX_STRAIN, worst)
             else:
                 wp.atomic_min(status, GUARD_NONFINITE_PARTICLE, i)
+                wp.atomic_add(status, GUARD_NONFINITE_COUNT, 1)
         accumulate(values, GUARD_KINETIC_ENERGY, energy, lane)
 
     @wp.kernel(module="unique", enable_backward=False)

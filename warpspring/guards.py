@@ -19,6 +19,7 @@ from .kernels.guards import (
     GUARD_KINETIC_ENERGY,
     GUARD_MAX_STRAIN,
     GUARD_NONFINITE,
+    GUARD_NONFINITE_COUNT,
     GUARD_NONFINITE_PARTICLE,
     GUARD_STRAIN,
     GUARD_STRAIN_PARTICLE,
@@ -58,8 +59,10 @@ class GuardReport:
     Attributes:
         reason: "non-finite state", "strain" or "kinetic energy".
         substep: substep of the frame at whose check it was seen (the failure happened at or before it).
-        particle: index of the offending particle (first non-finite one, or one holding the worst spring).
+        particle: index of the offending particle (lowest-index non-finite one, or one holding the worst
+            spring).
         spring: index of the most strained spring, or ``None``.
+        nonfinite_count: particles with a non-finite position or velocity at that check.
         strain: largest spring strain at that check [-].
         kinetic_energy: total kinetic energy at that check [J].
     """
@@ -70,11 +73,15 @@ class GuardReport:
     spring: int | None
     strain: float
     kinetic_energy: float
+    nonfinite_count: int = 0
 
     def describe(self, model: Model) -> str:
         """One clause naming what went wrong and where."""
         if self.reason == "non-finite state":
-            return f"particle {self.particle} has a non-finite position or velocity"
+            if self.nonfinite_count == 1:
+                return f"particle {self.particle} has a non-finite position or velocity"
+            return (f"{self.nonfinite_count} of {model.particle_count} particles have non-finite positions or "
+                    f"velocities (lowest index {self.particle})")
         if self.reason == "strain":
             a, b = model.spring_indices.numpy()[self.spring]
             return (f"spring {self.spring} (particles {a}-{b}) stretched to {self.strain + 1:.3g}× its rest "
@@ -98,7 +105,7 @@ class Guard:
         )
         self._tiled = model.device.is_cuda
         device = model.device
-        self._status_clear = wp.array([0, -1, NO_PARTICLE, NO_PARTICLE, NO_PARTICLE], dtype=wp.int32, device=device)
+        self._status_clear = wp.array([0, -1, NO_PARTICLE, NO_PARTICLE, NO_PARTICLE, 0], dtype=wp.int32, device=device)
         self._values_clear = wp.array([-1.0, 0.0], dtype=wp.float64, device=device)
         assert len(self._status_clear) == GUARD_INTS and len(self._values_clear) == GUARD_FLOATS
         self._status = wp.clone(self._status_clear)
@@ -142,6 +149,7 @@ class Guard:
             spring=None if spring == NO_PARTICLE else int(spring),
             strain=float(values[GUARD_MAX_STRAIN]),
             kinetic_energy=float(values[GUARD_KINETIC_ENERGY]),
+            nonfinite_count=int(status[GUARD_NONFINITE_COUNT]),
         )
 
 
