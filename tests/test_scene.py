@@ -301,3 +301,20 @@ def test_load_scene_reports_missing_and_malformed_files(tmp_path):
     with pytest.raises(ws.ConfigError) as info:
         load_scene(bad)
     assert "bad.toml: not valid TOML" in str(info.value) and "\n" not in str(info.value)
+
+
+def test_stabilizers_and_guard_tables_reach_the_model_and_simulation():
+    """[stabilizers] configures the model's stabilizers (biphasic law included) and [guard] the run-time
+    checks; their values are range-checked like every other key."""
+    data = changed(lambda d: d.update(
+        stabilizers={"max_strain": 0.1, "strain_iterations": 8, "biphasic_strain": 0.2, "biphasic_ratio": 5.0},
+        guard={"every": 4, "max_strain": 3.0},
+    ))
+    scene = parse_scene(data)
+    model = scene.builder().finalize("cpu")
+    assert model.stabilizers == ws.Stabilizers(max_strain=0.1, strain_iterations=8, biphasic_strain=0.2,
+                                               biphasic_ratio=5.0)
+    assert model.spring_law.biphasic_ratio == 5.0 and scene.guard == ws.GuardLimits(every=4, max_strain=3.0)
+    assert "stabilizers.max_strain must be a number > 0" in parse_error(changed(
+        lambda d: d.update(stabilizers={"max_strain": -0.1})))
+    assert "unknown key 'often' in [guard]" in parse_error(changed(lambda d: d.update(guard={"often": 2})))

@@ -105,7 +105,7 @@ def run_scene(
         integrator = make_integrator(scene.integrator, model, **scene.integrator_options)
     except ConfigError as exc:
         raise ConfigError(f"{os.path.basename(scene.path)}: [simulation] {exc}") from None
-    sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps)
+    sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps, guard=scene.guard)
 
     with UsdWriter(output, model, fps=fps, particles=scene.export_particles, springs=scene.export_springs) as usd:
         usd.write_frame(sim.state)

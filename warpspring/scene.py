@@ -13,7 +13,9 @@ from dataclasses import dataclass, field
 
 from .builder import DEFAULT_BEND, DEFAULT_SHEAR, DEFAULT_STRUCTURAL, ModelBuilder, SpringMaterial
 from .errors import ConfigError
+from .guards import GuardLimits
 from .integrators import INTEGRATORS
+from .model import Stabilizers
 from .transforms import quat_from_axis_angle
 
 if sys.version_info >= (3, 11):
@@ -43,6 +45,8 @@ class Scene:
         world: the ``[world]`` table (up_axis, gravity, drag).
         cloths: the ``[cloth]`` tables, checked.
         colliders: the ``[[collider]]`` tables, checked.
+        stabilizers: the ``[stabilizers]`` table (clamps, strain limiting, biphasic springs).
+        guard: the ``[guard]`` table (run-time checks).
     """
 
     path: str
@@ -59,6 +63,8 @@ class Scene:
     world: dict = field(default_factory=dict)
     cloths: list = field(default_factory=list)
     colliders: list = field(default_factory=list)
+    stabilizers: Stabilizers = field(default_factory=Stabilizers)
+    guard: GuardLimits = field(default_factory=GuardLimits)
 
     def builder(self) -> ModelBuilder:
         """A ModelBuilder holding the scene's cloth and colliders.
@@ -71,7 +77,10 @@ class Scene:
         world = self.world
         with _context(where, "world"):
             builder = ModelBuilder(
-                up_axis=world.get("up_axis", "Z"), gravity=world.get("gravity"), drag=world.get("drag", 0.0)
+                up_axis=world.get("up_axis", "Z"),
+                gravity=world.get("gravity"),
+                drag=world.get("drag", 0.0),
+                stabilizers=self.stabilizers,
             )
         for i, cloth in enumerate(self.cloths):
             with _context(where, _label("cloth", i, len(self.cloths))):
@@ -158,6 +167,16 @@ _SCHEMA = {
         "friction": NON_NEGATIVE,
     },
     "output": {"path": str, "particles": bool, "springs": bool},
+    "stabilizers": {
+        "max_spring_force": POSITIVE,
+        "max_particle_force": POSITIVE,
+        "max_speed": POSITIVE,
+        "max_strain": POSITIVE,
+        "strain_iterations": _Number(1, integer=True),
+        "biphasic_strain": POSITIVE,
+        "biphasic_ratio": _Number(1.0),
+    },
+    "guard": {"every": _Number(1, integer=True), "max_strain": POSITIVE, "max_kinetic_energy": POSITIVE},
 }
 
 # Keys that apply to one kind of cloth or collider only (anything else would be silently ignored).
@@ -199,7 +218,7 @@ def parse_scene(data: dict, *, path: str = "<scene>") -> Scene:
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: a scene must be a table of tables, got {type(data).__name__}")
     _check_table(data, {k: (dict, list) if k in ("cloth", "collider") else dict for k in _SCHEMA}, where, "")
-    for name in ("simulation", "world", "output"):
+    for name in ("simulation", "world", "output", "stabilizers", "guard"):
         _check_table(data.get(name, {}), _SCHEMA[name], where, name)
     cloths = _table_list(data.get("cloth", []), where, "cloth")
     colliders = _table_list(data.get("collider", []), where, "collider")
@@ -232,6 +251,8 @@ def parse_scene(data: dict, *, path: str = "<scene>") -> Scene:
     scene.output = out.get("path")
     scene.export_particles = out.get("particles", False)
     scene.export_springs = out.get("springs", False)
+    scene.stabilizers = Stabilizers(**data.get("stabilizers", {}))
+    scene.guard = GuardLimits(**data.get("guard", {}))
     check_run_settings(fps=scene.fps, frames=scene.frames, substeps=scene.substeps, where=where)
     return scene
 
