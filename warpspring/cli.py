@@ -61,6 +61,24 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--frame", type=int, default=-1, help="frame to render; negative counts from the end")
     render.add_argument("--size", type=_positive_int, default=900, help="image width in pixels")
     render.set_defaults(handler=_cmd_render)
+
+    trade = sub.add_parser(
+        "trade",
+        help="measure each integrator's error against its cost: tables, CSV, plots (x(t), v(t) of the seed spring too)",
+    )
+    trade.add_argument("--device", help="Warp device: cpu, cuda:0, ... (default: Warp's default)")
+    trade.add_argument("--out", default="trade", help="output directory (default: trade)")
+    trade.add_argument("--quick", action="store_true", help="a CI-sized study (about a minute on a CPU)")
+    trade.add_argument("--integrators", nargs="+", metavar="NAME", help="measure only these integrators")
+    trade.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    trade.set_defaults(handler=_cmd_trade)
+
+    choose = sub.add_parser("choose", help="pick the cheapest integrator and step that meet an error target")
+    choose.add_argument("--error", type=_positive_float, required=True, help="largest acceptable position error [m]")
+    choose.add_argument("--budget", type=_positive_float, help="most wall seconds per simulated second")
+    choose.add_argument("--study", default="trade/trade.csv", help="CSV of 'warpspring trade' (default: %(default)s)")
+    choose.add_argument("--problem", default="cloth", help="the study's problem: cloth, spring, ... (default: cloth)")
+    choose.set_defaults(handler=_cmd_choose)
     return parser
 
 
@@ -90,6 +108,42 @@ def _cmd_render(args) -> int:
 
     path = render_usd(args.usd, args.output, frame=args.frame, width=args.size)
     print(f"wrote {path}")
+    return 0
+
+
+def _cmd_trade(args) -> int:
+    import warp as wp
+
+    from .runner import resolve_device
+    from .trade import FULL, QUICK, convergence_orders, run_study, write_report
+
+    wp.config.log_level = wp.LOG_WARNING
+    device = resolve_device(args.device)
+    study = run_study(
+        device,
+        plan=QUICK if args.quick else FULL,
+        integrators=args.integrators,
+        progress=not args.quiet and sys.stderr.isatty(),
+    )
+    paths = write_report(study, args.out)
+    for problem in study.plan.problems:
+        orders = convergence_orders(study, problem.name)
+        fitted = ", ".join(f"{name} {'n/a' if p is None else f'{p:.2f}'}" for name, (p, _) in orders.items())
+        print(f"{problem.name}: fitted orders {fitted}")
+    unstable = sum(r.status in ("non-finite", "blown up") for r in study.rows)
+    skipped = sum(r.status == "skipped" for r in study.rows)
+    print(
+        f"measured {len(study.rows)} configurations ({unstable} unstable, {skipped} skipped as too slow) on "
+        f"{study.device} in {study.elapsed:.0f} s; wrote {', '.join(paths)}"
+    )
+    return 0
+
+
+def _cmd_choose(args) -> int:
+    from .trade import choose, read_csv
+
+    choice = choose(read_csv(args.study), args.error, args.budget, problem=args.problem)
+    print(choice.explanation)
     return 0
 
 

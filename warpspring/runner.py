@@ -14,7 +14,6 @@ from .errors import ConfigError, SimulationError
 from .integrators import make_integrator
 from .scene import Scene, check_run_settings
 from .simulation import Simulator
-from .usd import UsdWriter, check_output_path
 
 
 @dataclass
@@ -96,6 +95,8 @@ def run_scene(
     output = output or scene.output
     if not output:
         raise ConfigError("no output file: pass -o out.usdc or set [output] path in the scene")
+    from .usd import UsdWriter, check_output_path  # pxr loads only for runs that write USD
+
     output = check_output_path(output)  # fail before the model is built and the kernels compiled
 
     t0 = time.perf_counter()
