@@ -9,5 +9,10 @@ Modules:
     forces: spring, gravity, drag and external forces (per-particle gather, no atomics).
     contacts: particle-collider contact projection with Coulomb friction.
     integrators: the per-particle update kernels of the integrators.
+    implicit: the matrix-free system of linearised implicit Euler.
+    linalg: device reductions and the preconditioned conjugate-gradient iteration.
+    constraints: post-step passes (strain limiting, speed clamp, contacts).
+    guards: run-time checks of non-finite state, torn springs and runaway energy.
+    stability: power iteration for the highest spring frequency of a model.
     geometry: export helpers (vertex normals).
 """

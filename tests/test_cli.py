@@ -172,38 +172,52 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch, edits, 
 # -- an unstable run: exit 3 -------------------------------------------------------------------------------
 
 
-def test_unstable_run_exits_3_and_leaves_finite_frames(tmp_path, capsys):
-    """A diverging run exits 3 with one line naming frame k, the substep, the torn spring and a remedy; the
-    file holds the finite frames 0..k-1 and not the blown-up one."""
+def test_unstable_run_warns_exits_3_and_leaves_finite_frames(tmp_path, capsys):
+    """A run outside the stability limit is warned about up front; it diverges and exits 3 with one line
+    naming frame k, the substep, the torn spring and the advisor's remedy; the file holds the finite
+    frames 0..k-1 and not the blown-up one."""
     out = tmp_path / "unstable.usdc"
     status, stdout, stderr = run_cli(capsys, write_scene(tmp_path, UNSTABLE), "-o", out)
     assert status == EXIT_SIMULATION, stderr
-    assert len(stderr) == 1 and stderr[0].startswith("warpspring: simulation failed: ") and stdout == ""
-    match = re.search(r"\bframe (\d+), substep (\d+) of 1 \(t ≤ ", stderr[0])
-    assert match, stderr[0]
+    assert stdout == "" and len(stderr) == 2
+    assert stderr[0].startswith("warpspring: warning: symplectic_euler is unstable at dt = ")
+    failure = stderr[1]
+    assert failure.startswith("warpspring: simulation failed: ")
+    match = re.search(r"\bframe (\d+), substep (\d+) of 1 \(t ≤ ", failure)
+    assert match, failure
     k = int(match.group(1))
     assert 1 <= k < 40
-    assert "--substeps" in stderr[0] and f"frames 0..{k - 1}" in stderr[0]
+    assert "--substeps" in failure and f"frames 0..{k - 1}" in failure
+    assert "stretched to" in failure  # the guard caught torn springs before the state turned non-finite
 
     points, times, _ = points_samples(out)
     assert times == [float(i) for i in range(k)]
     assert all(np.isfinite(p).all() for p in points)
-    assert "stretched to" in stderr[0]  # the guard caught torn springs before the state turned non-finite
+
+
+def test_strict_refuses_an_unstable_step_before_writing(tmp_path, capsys):
+    """--strict turns the advisor's warning into a one-line error (exit 2) and no output file."""
+    out = tmp_path / "never.usdc"
+    status, stdout, stderr = run_cli(capsys, write_scene(tmp_path, UNSTABLE), "-o", out, "--strict")
+    assert status == EXIT_CONFIG and stdout == "" and len(stderr) == 1
+    assert stderr[0].startswith("warpspring: error: symplectic_euler is unstable at dt = ")
+    assert "substeps per 1/60 s frame" in stderr[0]
+    assert not out.exists()
 
 
 def test_suggested_substeps_make_the_unstable_run_stable(tmp_path, capsys):
-    """The substep count the failure message suggests runs the same scene to the end; half of it still diverges."""
+    """The substep count the advisor suggests runs the same scene to the end without a warning; half of it
+    still diverges (the power-iteration limit is tight, not a loose bound)."""
     scene = write_scene(tmp_path, UNSTABLE)
     status, _, stderr = run_cli(capsys, scene, "-o", tmp_path / "a.usdc")
     assert status == EXIT_SIMULATION
-    suggested = int(re.search(r"--substeps (\d+)", stderr[0]).group(1))
+    suggested = int(re.search(r"--substeps (\d+)", stderr[-1]).group(1))
 
-    status, stdout, stderr = run_cli(capsys, scene, "-o", tmp_path / "b.usdc", "--substeps", suggested)
-    assert status == 0, stderr
+    status, stdout, stderr = run_cli(capsys, scene, "-o", tmp_path / "b.usdc", "--substeps", suggested, "--strict")
+    assert status == 0 and stderr == [], stderr
     points, times, _ = points_samples(tmp_path / "b.usdc")
     assert len(times) == 41 and np.abs(points[-1]).max() < 2.0  # 40 frames; the cloth hangs near its pins
 
-    # the estimate is a Gershgorin bound, conservative by about √2 in ω: not more than twice the real need
     status, _, _ = run_cli(capsys, scene, "-o", tmp_path / "c.usdc", "--substeps", suggested // 2)
     assert status == EXIT_SIMULATION
 

@@ -10,13 +10,11 @@ import math
 import numpy as np
 import pytest
 
-from warpspring import ModelBuilder
 from warpspring.cli import EXIT_CONFIG, main
 from warpspring.errors import ConfigError
 from warpspring.trade import (
     SEED,
     Measurement,
-    SpringNetwork,
     SpringProblem,
     StudyPlan,
     asymptotic_range,
@@ -75,18 +73,6 @@ def test_asymptotic_range_keeps_the_clean_float64_points():
     assert [r.error_max for r in kept] == [0.02, 0.05, 1e-3]
     kept = asymptotic_range(rows, frequency=omega, length_scale=scale, duration=duration)
     assert [r.error_max for r in kept] == [0.02, 0.05, 1e-3, 5e-9]
-
-
-def test_fastest_frequency_of_a_chain():
-    """Two masses m hanging in a chain of springs k from a pin: M⁻¹K = (k/m) [[2, −1], [−1, 1]], whose largest
-    eigenvalue is (k/m)(3 + √5)/2. Power iteration converges as (λ₂/λ₁)^(2n) = 0.146^600 in the Rayleigh quotient."""
-    k, m = 400.0, 0.5
-    builder = ModelBuilder(gravity=(0.0, 0.0, 0.0))
-    builder.add_particles([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 0.0, -1.5]], mass=m, pinned=[0])
-    builder.add_springs([[0, 1], [1, 2]], stiffness=k)
-    network = SpringNetwork.of(builder.finalize("cpu", precision="float64"))
-    # Straight springs at rest are stiff only along their axis (z here): the transverse modes are zero.
-    assert network.fastest_frequency() == pytest.approx(math.sqrt(k / m * (3 + math.sqrt(5)) / 2), rel=1e-9)
 
 
 def test_pareto_front():

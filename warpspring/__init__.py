@@ -30,12 +30,15 @@ from .integrators import (
 from .guards import GuardLimits
 from .model import Control, MeshGroup, Model, ShapeInfo, Stabilizers, State
 from .simulation import Simulator
+from .stability import Advice, advise
 from .transforms import quat_from_axis_angle
 
 __version__ = "0.1.0"
 
 __all__ = [
     "INTEGRATORS",
+    "Advice",
+    "advise",
     "RK4",
     "DormandPrince",
     "ExplicitEuler",

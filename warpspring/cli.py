@@ -53,6 +53,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--fps", type=_positive_float, help="frames per second [1/s]")
     run.add_argument("--substeps", type=_positive_int, help="integrator steps per frame")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    run.add_argument(
+        "--strict", action="store_true",
+        help="refuse to run when the stability advisor finds the step unstable (default: warn and run)",
+    )
     run.set_defaults(handler=_cmd_run)
 
     render = sub.add_parser("render", help="render a frame of a USD animation to PNG (needs matplotlib)")
@@ -79,6 +83,16 @@ def build_parser() -> argparse.ArgumentParser:
     choose.add_argument("--study", default="trade/trade.csv", help="CSV of 'warpspring trade' (default: %(default)s)")
     choose.add_argument("--problem", default="cloth", help="the study's problem: cloth, spring, ... (default: cloth)")
     choose.set_defaults(handler=_cmd_choose)
+
+    stability = sub.add_parser(
+        "stability",
+        help="measure each integrator's largest stable step (one spring, the cloth, the seed case) beside theory",
+    )
+    stability.add_argument("--device", help="Warp device: cpu, cuda:0, ... (default: Warp's default)")
+    stability.add_argument("--out", default="stability", help="output directory (default: stability)")
+    stability.add_argument("--quick", action="store_true", help="a CI-sized map (well under a minute on a CPU)")
+    stability.add_argument("--integrators", nargs="+", metavar="NAME", help="map only these integrators")
+    stability.set_defaults(handler=_cmd_stability)
     return parser
 
 
@@ -98,6 +112,8 @@ def _cmd_run(args) -> int:
         fps=args.fps,
         substeps=args.substeps,
         progress=not args.quiet and sys.stderr.isatty(),  # a redirected stderr gets no progress bar
+        strict=args.strict,
+        warn=lambda message: print(f"warpspring: warning: {message}", file=sys.stderr),
     )
     print(summary.line())
     return 0
@@ -144,6 +160,23 @@ def _cmd_choose(args) -> int:
 
     choice = choose(read_csv(args.study), args.error, args.budget, problem=args.problem)
     print(choice.explanation)
+    return 0
+
+
+def _cmd_stability(args) -> int:
+    import time
+
+    import warp as wp
+
+    from .runner import resolve_device
+    from .stability_map import FULL, QUICK, run_map, to_markdown, write_report
+
+    wp.config.log_level = wp.LOG_WARNING
+    started = time.perf_counter()
+    result = run_map(QUICK if args.quick else FULL, resolve_device(args.device), integrators=args.integrators)
+    paths = write_report(result, args.out)
+    print(to_markdown(result))
+    print(f"wrote {', '.join(paths)} in {time.perf_counter() - started:.1f} s")
     return 0
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import os
 import time
 from dataclasses import dataclass
@@ -30,6 +29,7 @@ class RunSummary:
         device: the Warp device used.
         model: one-line model description.
         integrator: integrator name.
+        advice: the stability advisor's verdict before the run.
     """
 
     output: str
@@ -42,6 +42,7 @@ class RunSummary:
     device: str
     model: str
     integrator: str
+    advice: str
 
     def line(self) -> str:
         """The closing summary line of the CLI."""
@@ -81,11 +82,16 @@ def run_scene(
     fps: float | None = None,
     substeps: int | None = None,
     progress: bool = True,
+    strict: bool = False,
+    warn=None,
 ) -> RunSummary:
     """Simulate ``scene`` and write it to USD. Arguments other than ``scene`` override the file's values.
 
+    Before the run the stability advisor checks the step (:func:`preflight`): with ``strict`` an unstable
+    step is refused, otherwise its message goes to ``warn`` (a callable taking one string), if given.
+
     Raises:
-        ConfigError: bad scene or options (nothing is written).
+        ConfigError: bad scene or options, or (``strict``) an unstable step; nothing is written.
         SimulationError: the state became non-finite; the file holds every frame before that one.
     """
     frames = scene.frames if frames is None else frames
@@ -107,6 +113,9 @@ def run_scene(
     except ConfigError as exc:
         raise ConfigError(f"{os.path.basename(scene.path)}: [simulation] {exc}") from None
     sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps, guard=scene.guard)
+    advice = preflight(model, integrator.name, sim.dt, fps=fps, strict=strict)
+    if not advice.stable and warn is not None:
+        warn(advice.message)
 
     with UsdWriter(output, model, fps=fps, particles=scene.export_particles, springs=scene.export_springs) as usd:
         usd.write_frame(sim.state)
@@ -124,8 +133,8 @@ def run_scene(
             frame = exc.frame if exc.frame is not None else sim.frame
             where = "" if exc.frame is not None else f"frame {frame} (t = {frame * sim.frame_dt:.4g} s): "
             raise SimulationError(
-                f"{where}{exc} (dt = {sim.dt * 1e3:.4g} ms). The run is unstable: "
-                f"{_remedy(model, integrator, fps, substeps)}; {output} holds frames 0..{frame - 1}",
+                f"{where}{exc} (dt = {sim.dt * 1e3:.4g} ms). {_remedy(advice, substeps)}; "
+                f"{output} holds frames 0..{frame - 1}",
                 frame=frame,
                 substep=exc.substep,
             ) from None
@@ -143,42 +152,43 @@ def run_scene(
         device=str(dev),
         model=model.describe(),
         integrator=integrator.name,
+        advice=advice.message,
     )
 
 
-def stable_substeps(model, fps: float) -> int | None:
-    """Substeps per frame that keep symplectic Euler's step under the springs' stability limit; None without springs.
+def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = False):
+    """The stability advisor's verdict on a run (:func:`warpspring.stability.advise`).
 
-    Symplectic Euler keeps a damped spring stable while ω²h² + 2 (c/m) h < 4 (ω² = k/m, damping c). For a network,
-    ω² and c/m are bounded per free particle by Gershgorin: 2 Σ k / m and 2 Σ kd / m over its springs. The
-    bounds are upper bounds, so the count is enough for the springs (contacts and drag aside), not tight.
+    Biphasic springs are judged by their stiffer branch. ω_max comes from power iteration on GPUs and
+    on CPUs for models up to ``POWER_ITERATION_CPU_LIMIT`` particles, else from the (conservative)
+    Gershgorin bound, so the check stays a fraction of a second.
+
+    Raises:
+        ConfigError: with ``strict``, when ``dt`` is outside the integrator's stability limit.
     """
-    if model.spring_count == 0:
-        return None
-    ends = model.spring_indices.numpy().reshape(-1, 2).ravel()  # [a0, b0, a1, b1, ...]
-    n = model.particle_count
-    k_sum = np.bincount(ends, weights=np.repeat(model.spring_stiffness.numpy().astype(np.float64), 2), minlength=n)
-    c_sum = np.bincount(ends, weights=np.repeat(model.spring_damping.numpy().astype(np.float64), 2), minlength=n)
-    free = model.particle_inv_mass.numpy() > 0.0
-    mass = model.particle_mass.numpy().astype(np.float64)[free]
-    a, c = 2.0 * k_sum[free] / mass, 2.0 * c_sum[free] / mass
-    moving = a > 0.0
-    if not moving.any():
-        return None
-    a, c = a[moving], c[moving]
-    h = float(((np.sqrt(c * c + 4.0 * a) - c) / a).min())  # root of a h² + 2 c h − 4 = 0, per particle
-    return max(1, math.ceil(1.0 / (fps * h)))
+    from .stability import advise
+
+    law = model.spring_law
+    stiffness = None
+    if law.biphasic_strain is not None and model.spring_count:
+        stiffness = model.spring_stiffness.numpy().astype(np.float64) * law.biphasic_ratio
+    cheap = not model.device.is_cuda and model.particle_count > POWER_ITERATION_CPU_LIMIT
+    return advise(model, integrator, dt, fps=fps, strict=strict, stiffness=stiffness,
+                  omega_estimate="gershgorin" if cheap else "power_iteration")
 
 
-def _remedy(model, integrator, fps: float, substeps: int) -> str:
-    """What to change after a run went non-finite, with a substep count where the estimate applies."""
-    needed = stable_substeps(model, fps) if integrator.name == "symplectic_euler" else None
-    if needed is not None and needed > substeps:
-        return (
-            f"use more substeps (now {substeps}; the springs' stability bound for {integrator.name} asks for "
-            f"{needed}, e.g. --substeps {needed}), lower stiffness, or a more stable integrator"
-        )
-    return f"use more substeps (now {substeps}), lower stiffness, or a more stable integrator"
+#: Largest model (particles) whose pre-run ω_max is found by power iteration on a CPU.
+POWER_ITERATION_CPU_LIMIT = 20_000
+
+
+def _remedy(advice, substeps: int) -> str:
+    """What to change after a run went bad: the advisor's verdict, or the generic advice when it saw no
+    spring instability (contacts, external forces or stabilizers can also drive a run unstable)."""
+    if advice.stable:
+        return (f"the advisor found the step stable for the springs ({advice.message}), so look at contacts, "
+                f"external forces or extreme parameters; more substeps (now {substeps}) or implicit_euler may help")
+    hint = f" (e.g. --substeps {advice.substeps})" if advice.substeps else ""
+    return f"{advice.message}{hint}"
 
 
 def _progress(total: int, *, enabled: bool):

@@ -39,7 +39,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import datetime
-import inspect
 import math
 import os
 import platform
@@ -55,6 +54,7 @@ from .analytic import DampedOscillator
 from .builder import ModelBuilder, SpringMaterial
 from .errors import ConfigError, SimulationError
 from .integrators import INTEGRATORS, Integrator, make_integrator
+from .stability import estimate_omega_max
 from .model import Control, Model
 
 #: A run whose position error exceeds this many times the problem's length scale has blown up.
@@ -297,33 +297,6 @@ class SpringNetwork:
         """Largest (|d| − L) / L over the springs [-]."""
         return float(np.max(self.lengths(q) / self.rest_length - 1.0))
 
-    def fastest_frequency(self, *, iterations: int = 300) -> float:
-        """ω_max = √λ_max(M⁻¹K) [rad/s] at the initial positions, pinned particles held, by power iteration.
-
-        K is the stiffness matrix of the springs at rest and straight (each contributes ke d̂d̂ᵀ), applied
-        matrix-free to M^(−½) K M^(−½); the Rayleigh quotient approaches λ_max from below.
-        """
-        i, j = self.springs[:, 0], self.springs[:, 1]
-        d = self.initial_q[j] - self.initial_q[i]
-        direction = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
-        weight = np.where(self.free, 1.0 / np.sqrt(self.mass), 0.0)[:, None]
-        u = np.random.default_rng(0).normal(size=self.initial_q.shape) * weight
-        rayleigh = 0.0
-        for _ in range(iterations):
-            z = u * weight
-            # Spring s = (i, j) adds ke d̂d̂ᵀ (z_i − z_j) to row i and its negative to row j.
-            t = (self.stiffness * np.sum(direction * (z[j] - z[i]), axis=1))[:, None] * direction
-            ku = np.zeros_like(u)
-            np.add.at(ku, i, -t)
-            np.add.at(ku, j, t)
-            y = ku * weight  # M^(−½) K M^(−½) u
-            norm = np.linalg.norm(y)
-            if norm == 0.0:
-                return 0.0
-            rayleigh = float(np.sum(u * y)) / float(np.sum(u * u))
-            u = y / norm
-        return math.sqrt(max(rayleigh, 0.0))
-
 
 @dataclass(frozen=True)
 class ClothReference:
@@ -337,7 +310,7 @@ class ClothReference:
         released: gravitational energy released by the end [J]: the scale of the energy drift.
         max_strain: largest spring strain at the end [-].
         self_difference: max |q(dt) − q(2 dt)| [m]: the reference against itself at twice the step.
-        fastest_frequency: ω_max of the cloth at rest [rad/s] (see :meth:`SpringNetwork.fastest_frequency`).
+        fastest_frequency: ω_max of the cloth at rest [rad/s] (power iteration: ``estimate_omega_max``).
         wall: wall time of the two reference runs [s].
         geometry: the network's host arrays.
     """
@@ -517,17 +490,11 @@ class Study:
         raise ConfigError(f"the study has no problem {name!r}: it has {', '.join(p.name for p in self.plan.problems)}")
 
 
-def is_adaptive(cls: type[Integrator]) -> bool:
-    """Whether the integrator class chooses its own steps: it takes a keyword-only ``tolerance`` option."""
-    parameter = inspect.signature(cls).parameters.get("tolerance")
-    return parameter is not None and parameter.kind is parameter.KEYWORD_ONLY
-
-
 def reference_integrator() -> str:
     """The cloth reference: "rk4" when registered, else the highest-order capturable fixed-step integrator."""
     if "rk4" in INTEGRATORS:
         return "rk4"
-    fixed = [c for c in INTEGRATORS.values() if not is_adaptive(c) and c.capturable]
+    fixed = [c for c in INTEGRATORS.values() if not c.adaptive and c.capturable]
     if not fixed:
         raise ConfigError("no capturable fixed-step integrator is registered to compute the cloth reference")
     return max(fixed, key=lambda c: (c.order, c.name)).name
@@ -666,7 +633,7 @@ def _measure(problem, model, control, name, options, dt, steps, plan, reference)
         return Measurement(**row, status="failed"), None
     if not capturable:
         row["wall_per_second"] = wall / problem.duration
-    if is_adaptive(cls):
+    if cls.adaptive:
         accepted = getattr(integrator, "accepted_steps", None)
         rejected = getattr(integrator, "rejected_steps", 0)
         if accepted:
@@ -707,7 +674,7 @@ def _cloth_reference(problem: ClothProblem, device) -> ClothReference:
         released=released,
         max_strain=geometry.max_strain(q),
         self_difference=float(np.linalg.norm(q - q_coarse, axis=1).max()),
-        fastest_frequency=geometry.fastest_frequency(),
+        fastest_frequency=estimate_omega_max(model).omega_max,
         wall=wall,
         geometry=geometry,
     )
@@ -715,7 +682,7 @@ def _cloth_reference(problem: ClothProblem, device) -> ClothReference:
 
 def _configurations(problem, cls, plan: StudyPlan) -> list[tuple[dict, float, int]]:
     """(options, dt, steps) of each run of integrator class ``cls`` on ``problem``, cheapest first."""
-    if is_adaptive(cls):
+    if cls.adaptive:
         return [({"tolerance": tol}, problem.duration / problem.outputs, problem.outputs) for tol in plan.tolerances]
     return [({}, problem.duration / n, n) for n in sorted(problem.steps)]
 
@@ -790,7 +757,7 @@ def _device_name(device) -> str:
 
 def _configuration(problem, model, cls, options, dt, steps) -> dict:
     """The :class:`Measurement` fields that name a configuration, before it is measured."""
-    adaptive = is_adaptive(cls)
+    adaptive = cls.adaptive
     return dict(
         problem=problem.name,
         integrator=cls.name,
@@ -1001,7 +968,7 @@ def choose(study_rows, target_error: float, time_budget: float | None = None, *,
             + (f", over the budget of {_rate(time_budget)}." if over else ".")
         )
         return Choice(pick.integrator, {"tolerance": pick.tolerance}, pick.dt, pick.precision, pick, closest, text)
-    names = [r.integrator for r in adaptive] or [n for n, c in INTEGRATORS.items() if is_adaptive(c)] or ["dopri5"]
+    names = [r.integrator for r in adaptive] or [n for n, c in INTEGRATORS.items() if c.adaptive] or ["dopri5"]
     if adaptive:
         best = min(adaptive, key=lambda r: r.error_max)
         tolerance = _round_down(best.tolerance * target_error / best.error_max)

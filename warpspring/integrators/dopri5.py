@@ -39,6 +39,7 @@ class DormandPrince(ExplicitRungeKutta):
     name = "dopri5"
     order = 5
     capturable = False
+    adaptive = True
     a = (
         (),
         (1 / 5,),

@@ -1,0 +1,320 @@
+"""Stability theory, ω_max estimation, the advisor and the stability map.
+
+The theory is checked against the closed forms of ANCHORS.md and against one real step of each
+integrator; ω_max against dense NumPy eigenvalues of M⁻¹K; the advisor and the growth test against
+simulation runs just inside and just outside the predicted limits.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+import warpspring as ws
+from helpers import ZERO_GRAVITY, hanging_cloth
+from warpspring import stability as st
+from warpspring import stability_map as sm
+
+FIXED_STEP = [name for name in ws.INTEGRATORS if name != "dopri5"]
+
+# -- theory -------------------------------------------------------------------------------------------------
+
+
+def symplectic_euler_limit(zeta):
+    return 2.0 * (math.sqrt(zeta * zeta + 1.0) - zeta)
+
+
+# (integrator, ζ, ωh limit): the closed forms of ANCHORS.md ("Stability of one damped spring").
+CLOSED_FORMS = [
+    ("symplectic_euler", 0.0, 2.0),
+    ("symplectic_euler", 0.1, symplectic_euler_limit(0.1)),
+    ("symplectic_euler", 1.0, symplectic_euler_limit(1.0)),
+    ("explicit_euler", 0.0, 0.0),
+    ("explicit_euler", 0.01, 0.02),
+    ("explicit_euler", 0.5, 1.0),
+    ("velocity_verlet", 0.0, 2.0),
+    ("rk4", 0.0, 2.0 * math.sqrt(2.0)),
+    ("midpoint", 0.0, 0.0),
+    ("implicit_euler", 0.0, math.inf),
+    ("implicit_euler", 1.0, math.inf),
+]
+
+
+@pytest.mark.parametrize("name, zeta, limit", CLOSED_FORMS)
+def test_stable_omega_h_matches_the_closed_forms(name, zeta, limit):
+    """The exact stable interval of each integrator's amplification matrix reproduces the closed forms
+    (to the bisection's ~1e-12), and ρ crosses 1 there: ≤ 1 just inside, > 1 just outside."""
+    omega_h = st.stable_omega_h(name, zeta)
+    if limit in (0.0, math.inf):
+        assert omega_h == limit
+    else:
+        assert omega_h == pytest.approx(limit, rel=1e-10)
+        assert st.spectral_radius(name, 0.999 * omega_h, zeta) <= 1.0 + 1e-12
+        assert st.spectral_radius(name, 1.001 * omega_h, zeta) > 1.0
+
+
+def test_anchor_rounded_values():
+    """The rounded values ANCHORS.md quotes: symplectic Euler 2.0, 1.81, 0.83 at ζ = 0, 0.1, 1; midpoint
+    ~1.05 at ζ = 0.1; RK4 2.83."""
+    assert [round(st.stable_omega_h("symplectic_euler", z), 2) for z in (0.0, 0.1, 1.0)] == [2.0, 1.81, 0.83]
+    assert round(st.stable_omega_h("midpoint", 0.1), 2) == 1.05
+    assert round(st.stable_omega_h("rk4", 0.0), 2) == 2.83
+
+
+def test_unstable_for_every_step_is_exact():
+    """Explicit Euler and midpoint grow at every ωh on an undamped spring, however small (|R|² = 1 + ω²h²
+    and 1 + (ωh)⁴/4): the limit is exactly 0, not a tolerance artefact, while a trace of damping gives a
+    positive limit."""
+    for omega_h in (1e-6, 1e-3, 0.1):
+        assert st.spectral_radius("explicit_euler", omega_h, 0.0) == pytest.approx(math.sqrt(1 + omega_h**2))
+    assert st.stable_omega_h("midpoint", 0.0) == 0.0
+    assert st.stable_omega_h("explicit_euler", 1e-9) == pytest.approx(2e-9, rel=1e-6)
+    assert st.stable_omega_h("midpoint", 1e-9) > 0.0
+
+
+def test_implicit_euler_contracts_by_its_amplification_factor():
+    """Backward Euler's map has ρ = 1/√(1 + ω²h²) on an undamped spring and ρ < 1 for every ωh > 0, ζ ≥ 0."""
+    for omega_h in np.geomspace(1e-3, 1e4, 15):
+        assert st.spectral_radius("implicit_euler", omega_h, 0.0) == pytest.approx(1 / math.sqrt(1 + omega_h**2))
+        for zeta in (0.01, 1.0, 30.0):
+            assert st.spectral_radius("implicit_euler", omega_h, zeta) < 1.0
+
+
+@pytest.mark.parametrize("name", FIXED_STEP)
+def test_amplification_matrix_is_one_step_of_the_integrator(name):
+    """R maps (ωx₀, v₀) to (ωx₁, v₁) exactly as one step of the integrator class on a damped spring (float64;
+    the columns are steps from unit displacement and unit velocity)."""
+    omega, zeta, omega_h, amplitude = 3.0, 0.3, 0.7, 1e-3
+    columns = []
+    for u0 in ((amplitude, 0.0), (0.0, amplitude)):
+        builder = ws.ModelBuilder(gravity=ZERO_GRAVITY)
+        builder.add_particles([[0.0, 0.0, 0.0], [1.0 + u0[0] / omega, 0.0, 0.0]],
+                              velocities=[[0.0, 0.0, 0.0], [u0[1], 0.0, 0.0]], mass=2.0, pinned=[0])
+        builder.add_springs([[0, 1]], stiffness=2.0 * omega**2, damping=2.0 * zeta * omega * 2.0, rest_length=1.0)
+        model = builder.finalize("cpu", precision="float64")
+        cls = ws.INTEGRATORS[name]
+        integrator = cls(model, cg_tolerance=1e-14) if name == "implicit_euler" else cls(model)
+        a, b = model.state(), model.state()
+        integrator.step(a, b, None, omega_h / omega)
+        columns.append([omega * (b.particle_q.numpy()[1, 0] - 1.0), b.particle_qd.numpy()[1, 0]])
+    measured = np.array(columns).T / amplitude
+    # Positions near 1 m hold the 1e-3 m displacement to ~1e-13 relative in float64.
+    np.testing.assert_allclose(measured, st.amplification_matrix(name, omega_h, zeta), rtol=0, atol=1e-11)
+
+
+def test_stable_step_scales_with_omega():
+    assert st.stable_step("rk4", 50.0, 0.1) == pytest.approx(st.stable_omega_h("rk4", 0.1) / 50.0)
+    assert st.stable_step("implicit_euler", 50.0, 0.0) == math.inf
+
+
+def test_network_limit_with_rayleigh_damping_matches_the_anchor_formula():
+    """Axial dampers act as Rayleigh damping, ζ(ω) = (kd/k) ω/2: symplectic Euler's limit over all modes is
+    set by ω_max, ω²(h² + 2(kd/k) h) = 4 (ANCHORS: ω_max = 317 rad/s, kd/k = 0.01 s → h ≈ 1.8 ms)."""
+    omega, ratio = 317.0, 0.01
+    h = st.network_stable_step("symplectic_euler", omega, rayleigh=ratio)
+    assert h == pytest.approx(-ratio + math.sqrt(ratio**2 + 4.0 / omega**2), rel=1e-6)
+    assert round(h * 1e3, 1) == 1.8
+    # Explicit Euler with Rayleigh damping: every underdamped mode needs h < kd/k, whatever its ω.
+    assert st.network_stable_step("explicit_euler", 10.0, rayleigh=ratio) == pytest.approx(ratio, rel=1e-9)
+
+
+def test_network_limit_includes_drag_and_mixed_damping():
+    """Drag alone (ω → 0) limits symplectic Euler to h ≤ 2m/c; with springs of different kd/k the most
+    restrictive ratio decides (midpoint needs damping: the undamped springs make it unstable)."""
+    assert st.network_stable_step("symplectic_euler", 0.0, drag_rate=4.0) == pytest.approx(0.5, rel=1e-9)
+    assert st.network_stable_step("symplectic_euler", 100.0, drag_rate=[1e-3, 1e3]) <= 2.0 / 1e3
+    assert st.network_stable_step("midpoint", 100.0, rayleigh=[0.0, 0.01]) == 0.0
+    assert st.network_stable_step("midpoint", 100.0, rayleigh=0.01) > 0.0
+
+
+# -- ω_max ------------------------------------------------------------------------------------------------
+
+
+def chain(device, precision, n=40, k=50.0, m=0.2):
+    """n particles in a line, 0.1 m apart, the first pinned, springs between neighbours."""
+    builder = ws.ModelBuilder(gravity=ZERO_GRAVITY)
+    builder.add_particles(np.stack([0.1 * np.arange(n), np.zeros(n), np.zeros(n)], 1), mass=m, pinned=[0])
+    builder.add_springs(np.stack([np.arange(n - 1), np.arange(1, n)], 1), stiffness=k)
+    return builder.finalize(device, precision=precision)
+
+
+def dense_omega_max(model, positions=None):
+    """√λ_max(M⁻¹K) from the dense float64 matrix (clamped spring blocks, pinned rows and columns removed)."""
+    n = model.particle_count
+    q = (model.particle_q.numpy() if positions is None else positions).astype(np.float64)
+    K = np.zeros((3 * n, 3 * n))
+    for (i, j), rest, ke in zip(model.spring_indices.numpy(), model.spring_rest_length.numpy(),
+                                model.spring_stiffness.numpy()):
+        d = q[j] - q[i]
+        length = np.linalg.norm(d)
+        nn = np.outer(d, d) / length**2
+        block = ke * (nn + max(0.0, 1.0 - rest / length) * (np.eye(3) - nn))
+        for a, b, sign in ((i, i, 1), (j, j, 1), (i, j, -1), (j, i, -1)):
+            K[3 * a:3 * a + 3, 3 * b:3 * b + 3] += sign * block
+    free = np.repeat(model.particle_inv_mass.numpy() > 0, 3)
+    m = np.repeat(model.particle_mass.numpy().astype(np.float64), 3)[free]
+    return math.sqrt(np.linalg.eigvalsh(K[np.ix_(free, free)] / np.sqrt(np.outer(m, m)))[-1])
+
+
+def test_power_iteration_on_a_chain(device, precision):
+    """A pinned-free chain: power iteration matches the dense eigenvalue (the residual tolerance 1e-3 leaves
+    ω within ~1e-4), which approaches 2√(k/m) for long chains; Gershgorin bounds it from above."""
+    model = chain(device, precision)
+    estimate = st.estimate_omega_max(model)
+    exact = dense_omega_max(model)
+    assert estimate.converged and estimate.residual <= 1e-3
+    assert estimate.omega_max == pytest.approx(exact, rel=5e-4)
+    assert estimate.omega_max <= exact * (1 + 1e-6)  # a Rayleigh quotient never exceeds λ_max
+    assert exact == pytest.approx(2.0 * math.sqrt(50.0 / 0.2), rel=2e-3)
+    assert exact <= estimate.gershgorin == pytest.approx(2.0 * math.sqrt(50.0 / 0.2))
+
+
+def test_power_iteration_on_a_cloth(device, precision):
+    """A 16² ANCHORS cloth, flat at rest and stretched by 10 % (transverse stiffness on): power iteration
+    against dense eigenvalues of M⁻¹K; Gershgorin ≥ both; a stiffness override scales ω_max by √2."""
+    model, _ = hanging_cloth(device, n=16, precision=precision)
+    estimate = st.estimate_omega_max(model)
+    exact = dense_omega_max(model)
+    assert estimate.converged
+    assert estimate.omega_max == pytest.approx(exact, rel=5e-4)
+    assert exact <= estimate.gershgorin == pytest.approx(st.gershgorin_omega_max(model))
+
+    stretched = model.state()
+    q0 = model.particle_q.numpy().astype(np.float64)
+    q = q0.mean(0) + 1.1 * (q0 - q0.mean(0))
+    stretched.particle_q.assign(q)
+    estimate = st.estimate_omega_max(model, state=stretched)
+    exact_stretched = dense_omega_max(model, q)
+    assert exact_stretched > exact * 1.01  # the transverse terms add stiffness
+    assert estimate.omega_max == pytest.approx(exact_stretched, rel=5e-4)
+    assert exact_stretched <= estimate.gershgorin
+
+    doubled = 2.0 * model.spring_stiffness.numpy()
+    assert st.estimate_omega_max(model, stiffness=doubled).omega_max == pytest.approx(math.sqrt(2) * exact, rel=5e-4)
+
+
+# -- the advisor ------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def cloth8():
+    model, _ = hanging_cloth("cpu", n=8)
+    return model
+
+
+def test_advisor_messages(cloth8):
+    """Stable and unstable verdicts with their suggestions, for fixed-step, implicit and adaptive methods."""
+    ok = st.advise(cloth8, "symplectic_euler", 1.0 / 960.0)
+    assert ok.stable and ok.omega_source == "power iteration" and ok.dt_stable > ok.dt
+    assert "is stable at dt = 1.042 ms" in ok.message and f"at least {ok.substeps} substeps" in ok.message
+    assert ok.substeps == math.ceil(1.0 / (60.0 * ok.dt_stable))
+
+    bad = st.advise(cloth8, "symplectic_euler", 1.0 / 60.0)
+    assert not bad.stable
+    assert "unstable at dt = 16.67 ms" in bad.message
+    assert f"at least {bad.substeps} substeps per 1/60 s frame" in bad.message and "implicit_euler" in bad.message
+    with pytest.raises(ws.ConfigError, match="unstable at dt = 16.67 ms"):
+        st.advise(cloth8, "symplectic_euler", 1.0 / 60.0, strict=True)
+
+    implicit = st.advise(cloth8, "implicit_euler", 1.0, strict=True)
+    assert implicit.stable and implicit.dt_stable == math.inf and "unconditionally stable" in implicit.message
+    adaptive = st.advise(cloth8, "dopri5", 1.0 / 60.0, strict=True)
+    assert adaptive.adaptive and adaptive.stable and "adapts its internal step" in adaptive.message
+
+
+def test_advisor_unstable_at_every_step():
+    """Explicit Euler on undamped springs: no step is stable; the message names the alternatives."""
+    builder = ws.ModelBuilder(gravity=ZERO_GRAVITY)
+    builder.add_cloth_grid(nx=4, ny=4, spacing=0.1, particle_mass=0.1, structural=ws.SpringMaterial(1e3, 0.0),
+                           shear=None, bend=None, pin=["top-left"])
+    model = builder.finalize("cpu")
+    advice = st.advise(model, "explicit_euler", 1e-5)
+    assert not advice.stable and advice.dt_stable == 0.0 and advice.substeps is None
+    assert "unstable at every dt" in advice.message and "symplectic_euler (dt ≤" in advice.message
+
+
+def test_advisor_stiffness_override_and_fallback(cloth8):
+    """A stiffer override (as for biphasic springs) lowers the limit; a power iteration that does not
+    converge falls back to the Gershgorin bound, whose limit is smaller (conservative)."""
+    base = st.advise(cloth8, "rk4", 1e-3)
+    stiffer = st.advise(cloth8, "rk4", 1e-3, stiffness=100.0 * cloth8.spring_stiffness.numpy())
+    assert stiffer.omega_max == pytest.approx(10.0 * base.omega_max, rel=1e-3)
+    assert stiffer.dt_stable < base.dt_stable
+    fallback = st.advise(cloth8, "rk4", 1e-3, max_iterations=2)
+    assert fallback.omega_source == "Gershgorin bound" and fallback.omega_max > base.omega_max
+    assert fallback.dt_stable < base.dt_stable
+    gershgorin = st.advise(cloth8, "rk4", 1e-3, omega_estimate="gershgorin")
+    assert gershgorin.omega_max == pytest.approx(fallback.omega_max)
+    with pytest.raises(ws.ConfigError, match="unknown integrator"):
+        st.advise(cloth8, "leapfrog", 1e-3)
+    with pytest.raises(ws.ConfigError, match="stiffness must have shape"):
+        st.advise(cloth8, "rk4", 1e-3, stiffness=[1.0])
+
+
+# -- measurement --------------------------------------------------------------------------------------------
+
+
+def test_growth_test_tells_bounded_from_growing():
+    """A bounded oscillation whose energy swings 100× within each period (a symplectic method near its
+    limit) and whose rotation per step is near 2π/3 (so the sampled phases drift slowly) is not growth;
+    1.001× per step is; decay to round-off noise is not."""
+    n = np.arange(8192)
+    phase = n * (2 * np.pi / 3 + 1e-4)
+    bounded = 1.0 + 99.0 * np.sin(phase) ** 2
+    growing = 1.001**n * (1.0 + 0.5 * np.sin(0.7 * n) ** 2)
+    noise = np.where(n < 100, 0.5**n, 1e-30 * (1 + np.random.default_rng(0).random(len(n))))
+    unstable, undecided = sm.growth_verdict(np.stack([bounded, growing, noise], axis=1))
+    assert unstable.tolist() == [False, True, False]
+    assert not undecided[1:].any()
+
+
+@pytest.mark.parametrize("name", ["symplectic_euler", "velocity_verlet", "midpoint", "rk4"])
+def test_measured_single_spring_limits_match_theory(name):
+    """Bisection on simulation runs of the integrator class finds the theoretical ωh limit within 5 % at
+    ζ = 0.1 and 1 (and for the symplectic methods at ζ = 0, where orbits are bounded but eccentric)."""
+    plan = sm.MapPlan(name="test", zetas=(0.0, 0.1, 1.0), spring_points=8, spring_rounds=3, spring_steps=1024)
+    for limit in sm.measure_spring_limits(name, plan, "cpu"):
+        if limit.theory > 0.0:
+            assert limit.measured.two_sided
+            assert limit.ratio == pytest.approx(1.0, abs=0.05), limit
+
+
+def test_cloth_limit_matches_the_advisor(device):
+    """The 10² ANCHORS cloth (ke = 10³ N/m, kd = 10 N·s/m): symplectic Euler is stable at 0.97× the advised
+    step and unstable at 1.03×."""
+    model = sm.cloth_model(1.0e3, size=10, device=device)
+    advice = st.advise(model, "symplectic_euler", 1e-3)
+    start = sm.perturbed_state(model, sm.CLOTH_PERTURBATION * sm.CLOTH_SPACING)
+    integrator = ws.SymplecticEuler(model)
+    verdicts = [sm._Recorder(model, integrator, f * advice.dt_stable, [0]).unstable(start, 1024, 2)[0]
+                for f in (0.97, 1.03)]
+    assert verdicts == [False, True]
+
+
+def test_advisor_damps_the_top_mode_by_its_own_springs(device):
+    """Undamped stiff structural springs with heavily damped soft shear springs (kd/k = 0.1 s): the top mode
+    strains mostly the structural springs, so its damping is small and symplectic Euler's limit stays within
+    10 % of 2/ω_max (the largest kd/k would put it 5× lower); simulation confirms it: stable at 0.97× the
+    advised step, unstable at 1.03×."""
+    builder = ws.ModelBuilder(gravity=ZERO_GRAVITY)
+    builder.add_cloth_grid(nx=8, ny=8, spacing=0.1, origin=(0.0, 0.0, 1.0), particle_mass=0.1,
+                           structural=ws.SpringMaterial(1.0e3, 0.0), shear=ws.SpringMaterial(10.0, 1.0), bend=None,
+                           pin=["top-left", "top-right"])
+    model = builder.finalize(device, precision="float64")
+    advice = st.advise(model, "symplectic_euler", 1e-3)
+    assert 0.9 < advice.dt_stable * advice.omega_max / 2.0 < 1.0
+    assert advice.dt_stable > 5.0 * st.network_stable_step("symplectic_euler", advice.omega_max, rayleigh=0.1)
+    start = sm.perturbed_state(model, 1e-9)
+    integrator = ws.SymplecticEuler(model)
+    verdicts = [sm._Recorder(model, integrator, f * advice.dt_stable, [0]).unstable(start, 1024, 2)[0]
+                for f in (0.97, 1.03)]
+    assert verdicts == [False, True]
+
+
+def test_seed_observation_reproduced(device):
+    """On the assumed seed layout, at the step where the advisor puts RK4's threshold at k = 22 N/m, RK4 is
+    stable at k = 0.95 · 22 and unstable at 1.05 · 22 (runs of 1024 steps)."""
+    dt, omega = sm.seed_step(device=device)
+    assert 0.05 < dt < 0.5 and omega > 0.0
+    assert sm.seed_is_stable(0.95 * sm.SEED_THRESHOLD, dt, steps=1024, device=device)
+    assert not sm.seed_is_stable(1.05 * sm.SEED_THRESHOLD, dt, steps=1024, device=device)
