@@ -153,7 +153,9 @@ def rk_combine_kernel(scalar: type, with_first: bool, terms: int):
 
     Stage 0's derivative is (v₀, M⁻¹ f₀): its velocity is the input velocity itself, its force a separate
     array; ``with_first`` says whether it contributes. ``terms`` later stages follow as rows of 2-D
-    arrays of stage velocities and forces, weighted by a vector of ``terms`` weights (h·aᵢⱼ or h·bⱼ).
+    arrays of stage velocities and forces, weighted by a vector of ``terms`` weights. Every weight is
+    multiplied by ``step[0]``: fixed-step methods pass h·aᵢⱼ with a step of 1, adaptive ones pass aᵢⱼ
+    and their current step, which lives on the device.
     """
     vec3 = vec3_type(scalar)
     weights_type = wp.types.vector(length=max(terms, 1), dtype=scalar)
@@ -170,21 +172,24 @@ def rk_combine_kernel(scalar: type, with_first: bool, terms: int):
         stage_f: wp.array2d[vec3],
         first_weight: scalar,
         weights: weights_type,
+        step: wp.array[wp.float64],
         # Out:
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
     ):
         i = wp.tid()
+        h = scalar(step[0])
         inv_mass = particle_inv_mass[i]
         v0 = particle_qd_in[i]
         x = particle_q_in[i]
         v = v0
         if wp.static(with_first):
-            x += first_weight * v0
-            v += (first_weight * inv_mass) * first_f[i]
+            x += (h * first_weight) * v0
+            v += (h * first_weight * inv_mass) * first_f[i]
         for j in range(wp.static(terms)):
-            x += weights[j] * stage_qd[j, i]
-            v += (weights[j] * inv_mass) * stage_f[j, i]
+            w = h * weights[j]
+            x += w * stage_qd[j, i]
+            v += (w * inv_mass) * stage_f[j, i]
         particle_q_out[i] = x
         particle_qd_out[i] = v
 
@@ -195,9 +200,9 @@ def rk_combine_kernel(scalar: type, with_first: bool, terms: int):
 def rk_error_kernel(scalar: type, stages: int):
     """Scaled local error of an embedded Runge-Kutta pair, max-reduced over particles.
 
-    The error estimate is e = Σⱼ eⱼ kⱼ (eⱼ = h (bⱼ - b*ⱼ)), for positions and velocities alike; each
-    component is divided by atol + rtol·|y_new| and the largest ratio is atomically max-ed into
-    ``error_out[0]`` (float64, cleared by the caller).
+    The error estimate is e = h Σⱼ eⱼ kⱼ (eⱼ = bⱼ - b*ⱼ, h = ``step[0]``), for positions and velocities
+    alike; each component is divided by atol + rtol·|y_new| and the largest ratio is atomically max-ed
+    into ``error_out[0]`` (float64, cleared by the caller).
     """
     vec3 = vec3_type(scalar)
     weights_type = wp.types.vector(length=stages, dtype=scalar)
@@ -218,6 +223,7 @@ def rk_error_kernel(scalar: type, stages: int):
         stage_qd: wp.array2d[vec3],
         stage_f: wp.array2d[vec3],
         error_weights: weights_type,
+        step: wp.array[wp.float64],
         particle_q_new: wp.array[vec3],
         particle_qd_new: wp.array[vec3],
         atol: scalar,
@@ -226,12 +232,14 @@ def rk_error_kernel(scalar: type, stages: int):
         error_out: wp.array[wp.float64],
     ):
         i = wp.tid()
+        h = scalar(step[0])
         inv_mass = particle_inv_mass[i]
-        ex = error_weights[0] * particle_qd_in[i]
-        ev = (error_weights[0] * inv_mass) * stage_f[0, i]
+        ex = (h * error_weights[0]) * particle_qd_in[i]
+        ev = (h * error_weights[0] * inv_mass) * stage_f[0, i]
         for j in range(1, wp.static(stages)):
-            ex += error_weights[j] * stage_qd[j, i]
-            ev += (error_weights[j] * inv_mass) * stage_f[j, i]
+            w = h * error_weights[j]
+            ex += w * stage_qd[j, i]
+            ev += (w * inv_mass) * stage_f[j, i]
         worst = wp.max(scaled(ex, particle_q_new[i], atol, rtol), scaled(ev, particle_qd_new[i], atol, rtol))
         wp.atomic_max(error_out, 0, wp.float64(worst))
 
@@ -276,3 +284,92 @@ def verlet_kernels(scalar: type):
         particle_qd_out[i] = particle_qd_half[i] + (scalar(0.5) * dt * particle_inv_mass[i]) * particle_f[i]
 
     return verlet_drift, verlet_kick
+
+
+# Slots of the step-control arrays (float64 control, int32 counters) and the controller's constants.
+STEP_INTERVAL, STEP_TIME, STEP_SIZE, STEP_PROPOSED, STEP_GROWTH, STEP_ERROR = range(6)
+STEP_ACCEPTED, STEP_REJECTED, STEP_ATTEMPTS_NOW, STEP_LAST_ACCEPTED, STEP_FAILED = range(5)
+STEP_SAFETY, STEP_MAX_GROWTH, STEP_MIN_GROWTH = 0.9, 5.0, 0.2
+
+
+@functools.cache
+def step_control_kernels(scalar: type):
+    """Device-side step-size control of an embedded Runge-Kutta pair (one thread each).
+
+    The control array holds, by the ``STEP_*`` slots: the target interval, the time reached, the step in
+    use, the proposed step, the growth cap and the scaled error of the last attempt; the counters hold
+    accepted, rejected and attempted steps, and whether the last attempt was accepted.
+    """
+    vec3 = vec3_type(scalar)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def begin(interval: wp.float64, control: wp.array[wp.float64], counters: wp.array[wp.int32],
+              keep_going: wp.array[wp.int32]):
+        """Start an interval: t = 0, h = min(proposed, interval)."""
+        control[STEP_INTERVAL] = interval
+        control[STEP_TIME] = wp.float64(0.0)
+        proposed = control[STEP_PROPOSED]
+        proposed = wp.where(proposed > wp.float64(0.0), proposed, interval)
+        control[STEP_PROPOSED] = proposed
+        control[STEP_SIZE] = wp.min(proposed, interval)
+        control[STEP_GROWTH] = wp.float64(STEP_MAX_GROWTH)
+        control[STEP_ERROR] = wp.float64(0.0)
+        counters[STEP_ATTEMPTS_NOW] = 0
+        keep_going[0] = 1
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def decide(max_attempts: int, control: wp.array[wp.float64], counters: wp.array[wp.int32],
+               keep_going: wp.array[wp.int32]):
+        """Accept or reject the attempt, choose the next step, and whether to continue."""
+        error = control[STEP_ERROR]
+        h = control[STEP_SIZE]
+        proposed = control[STEP_PROPOSED]
+        accept = error <= wp.float64(1.0)
+        factor = wp.float64(STEP_MIN_GROWTH)
+        if wp.isfinite(error) and error > wp.float64(0.0):
+            factor = wp.max(factor, wp.float64(STEP_SAFETY) * wp.pow(error, wp.float64(-0.2)))
+        elif error == wp.float64(0.0):
+            factor = control[STEP_GROWTH]
+        counters[STEP_ATTEMPTS_NOW] = counters[STEP_ATTEMPTS_NOW] + 1
+        if accept:
+            control[STEP_TIME] = control[STEP_TIME] + h
+            counters[STEP_ACCEPTED] = counters[STEP_ACCEPTED] + 1
+            next_h = h * wp.min(control[STEP_GROWTH], factor)
+            # A step cut short to land on the interval's end says nothing against the step in use before.
+            proposed = wp.where(h < proposed, wp.max(proposed, next_h), next_h)
+            control[STEP_GROWTH] = wp.float64(STEP_MAX_GROWTH)
+            counters[STEP_LAST_ACCEPTED] = 1
+        else:
+            counters[STEP_REJECTED] = counters[STEP_REJECTED] + 1
+            proposed = h * wp.min(wp.float64(1.0), factor)
+            control[STEP_GROWTH] = wp.float64(1.0)
+            counters[STEP_LAST_ACCEPTED] = 0
+        control[STEP_PROPOSED] = proposed
+        remaining = control[STEP_INTERVAL] - control[STEP_TIME]
+        control[STEP_SIZE] = wp.min(proposed, remaining)
+        control[STEP_ERROR] = wp.float64(0.0)
+        unfinished = remaining > wp.float64(1.0e-12) * control[STEP_INTERVAL]
+        exhausted = counters[STEP_ATTEMPTS_NOW] >= max_attempts
+        if unfinished and exhausted:
+            counters[STEP_FAILED] = 1
+        keep_going[0] = wp.where(unfinished and not exhausted, 1, 0)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def commit(
+        counters: wp.array[wp.int32],
+        stage_q: wp.array[vec3],
+        stage_qd: wp.array[vec3],
+        stage_f_last: wp.array[vec3],
+        # In/out:
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+        stage_f_first: wp.array[vec3],
+    ):
+        """On acceptance: y ← the last stage's state, and its force becomes stage 0's (FSAL)."""
+        i = wp.tid()
+        if counters[STEP_LAST_ACCEPTED] == 1:
+            particle_q[i] = stage_q[i]
+            particle_qd[i] = stage_qd[i]
+            stage_f_first[i] = stage_f_last[i]
+
+    return begin, decide, commit

@@ -272,3 +272,21 @@ def test_frame_graph_reproduces_the_plain_loop(device, name):
         runs.append(run_frames(sim, 20))
     np.testing.assert_array_equal(runs[0], runs[1])
     assert np.isfinite(runs[0]).all()
+
+
+def test_dopri5_runs_captured_and_reports_an_exhausted_step_budget(device):
+    """The adaptive controller runs on the device: a frame of dopri5 steps captures into a graph that
+    replays like the uncaptured loop; when a step needs more internal steps than ``max_steps`` allows,
+    the frame stops with a SimulationError that names the budget and the tolerance."""
+    runs = []
+    for use_graph in (True, False):
+        model, _ = hanging_cloth(device, n=6)
+        integrator = ws.DormandPrince(model, tolerance=1e-5)
+        runs.append(run_frames(ws.Simulator(model, integrator=integrator, fps=60, substeps=2, use_graph=use_graph), 5))
+        assert integrator.accepted_steps > 10  # it subdivided the 8.3 ms steps
+    np.testing.assert_array_equal(runs[0], runs[1])
+
+    model, _ = hanging_cloth(device, n=6)
+    sim = ws.Simulator(model, integrator=ws.DormandPrince(model, tolerance=1e-9, max_steps=3), fps=60, substeps=1)
+    with pytest.raises(ws.SimulationError, match=r"frame 1: dopri5 needed more than 3 internal steps .*tolerance \(1e-09\)"):
+        sim.step_frame()

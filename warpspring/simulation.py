@@ -98,6 +98,10 @@ class Simulator:
             wp.capture_launch(self._graph)
         else:
             self._simulate()
+        if self.integrator.adaptive:
+            failure = self.integrator.failure()
+            if failure is not None:
+                raise SimulationError(f"frame {self.frame + 1}: {failure}", frame=self.frame + 1)
         if self.guard is not None:
             report = self.guard.report()
             if report is not None:
@@ -111,8 +115,10 @@ class Simulator:
 
     def _capture(self) -> None:
         # One uncaptured step into the scratch state compiles and loads every kernel the frame launches
-        # (capturing a module load is not allowed); it leaves self.state untouched.
+        # (capturing a module load is not allowed); it leaves self.state untouched, and the reset drops
+        # what it taught the integrator (e.g. an adaptive step size) so replays match the plain loop.
         self.integrator.step(self.state, self._scratch, self.control, self.dt)
+        self.integrator.reset()
         with wp.ScopedCapture(device=self.model.device, force_module_load=False) as capture:
             self._simulate()
         self._graph = capture.graph

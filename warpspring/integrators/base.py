@@ -27,6 +27,15 @@ class Integrator(abc.ABC):
         self.model = model
         self.finish_step = StepFinisher(model)  # strain limiting, speed clamp, contacts: call on the result
 
+    def reset(self) -> None:
+        """Forget what earlier steps left behind (step-size control, solver warm starts), so the next step
+        behaves as the first. Stateless integrators have nothing to forget."""
+
+    def failure(self) -> str | None:
+        """Why the last steps could not complete, for integrators that can stop short (adaptive ones
+        with a step budget), else ``None``. May read the device."""
+        return None
+
     @abc.abstractmethod
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         """Advance ``state_in`` by ``dt`` [s] under ``control`` and write the result to ``state_out``.

@@ -1,11 +1,14 @@
-"""Adaptive Dormand-Prince 5(4): an embedded Runge-Kutta pair that chooses its own step.
+"""Adaptive Dormand-Prince 5(4): an embedded Runge-Kutta pair that chooses its own step, on the device.
 
 ``step(state_in, state_out, control, dt)`` advances by ``dt`` in as many internal steps as the error
-tolerance needs. Each internal step computes the 5th-order solution and the 4th-order embedded one;
+tolerance needs. Each internal step computes the 5th-order solution and the embedded 4th-order one;
 their difference estimates the local error, scaled per component by atol + rtol·|y| (both equal to
 ``tolerance``) and max-reduced over particles. A step with scaled error ≤ 1 is accepted; the next step
-size is h·min(5, max(0.2, 0.9·err^(-1/5))) (no growth right after a rejection). The error reduction is
-read on the host after every internal step, so this integrator is not graph-capturable.
+is h·min(5, max(0.2, 0.9·err^(-1/5))) (no growth right after a rejection), cut short to land on ``dt``.
+
+The controller lives on the device (``kernels/integrators.step_control_kernels``) and the internal
+steps run inside ``wp.capture_while``: no host synchronisation, so frames of adaptive steps capture
+into graphs like every other integrator.
 """
 
 from __future__ import annotations
@@ -13,13 +16,20 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..errors import ConfigError, SimulationError
+from ..errors import ConfigError
 from ..forces import eval_forces
-from ..kernels.integrators import rk_error_kernel
+from ..kernels.integrators import (
+    STEP_ACCEPTED,
+    STEP_ERROR,
+    STEP_FAILED,
+    STEP_PROPOSED,
+    STEP_REJECTED,
+    STEP_SIZE,
+    rk_error_kernel,
+    step_control_kernels,
+)
 from ..model import Control, Model, State
 from .runge_kutta import ExplicitRungeKutta
-
-_SAFETY, _GROW, _SHRINK = 0.9, 5.0, 0.2
 
 
 class DormandPrince(ExplicitRungeKutta):
@@ -29,16 +39,12 @@ class DormandPrince(ExplicitRungeKutta):
         model: the model.
         tolerance: local error tolerance per internal step, absolute and relative, on positions [m] and
             velocities [m/s].
-        max_steps: most internal steps per call of ``step`` before it stops with a SimulationError.
-
-    Attributes:
-        accepted_steps, rejected_steps: internal steps taken since construction.
-        step_size: the current internal step [s].
+        max_steps: most internal steps (accepted or rejected) per call of ``step``; beyond it the step
+            stops short and :meth:`failure` says so (the Simulator then raises a SimulationError).
     """
 
     name = "dopri5"
     order = 5
-    capturable = False
     adaptive = True
     a = (
         (),
@@ -54,64 +60,75 @@ class DormandPrince(ExplicitRungeKutta):
 
     def __init__(self, model: Model, *, tolerance: float = 1.0e-6, max_steps: int = 100_000):
         super().__init__(model)
-        if not isinstance(tolerance, (int, float)) or not tolerance > 0.0:
+        if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not tolerance > 0.0:
             raise ConfigError(f"tolerance must be a number > 0, got {tolerance!r}")
+        if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
+            raise ConfigError(f"max_steps must be an integer >= 1, got {max_steps!r}")
         self.tolerance = float(tolerance)
-        self.max_steps = int(max_steps)
-        self.accepted_steps = 0
-        self.rejected_steps = 0
-        self.step_size = None
-        self._error = wp.zeros(1, dtype=wp.float64, device=model.device)
-        self._work = [model.state(), model.state()]
-        self._error_weights = np.subtract(self.b, self.b_embedded)
+        self.max_steps = max_steps
+        device = model.device
+        self._y = model.state()  # the solution during a step, advanced in place by each accepted step
+        self._control = wp.zeros(6, dtype=wp.float64, device=device)
+        self._counters = wp.zeros(5, dtype=wp.int32, device=device)
+        self._keep_going = wp.zeros(1, dtype=wp.int32, device=device)
+        self._error_weights = wp.types.vector(length=7, dtype=model.scalar)(*np.subtract(self.b, self.b_embedded))
+        self._step_size = self._control[STEP_SIZE : STEP_SIZE + 1]  # element 0: the step in use [s]
+
+    @property
+    def accepted_steps(self) -> int:
+        """Internal steps accepted since construction (reads the device)."""
+        return int(self._counters.numpy()[STEP_ACCEPTED])
+
+    @property
+    def rejected_steps(self) -> int:
+        """Internal steps rejected since construction (reads the device)."""
+        return int(self._counters.numpy()[STEP_REJECTED])
+
+    @property
+    def step_size(self) -> float:
+        """The internal step [s] the controller will try next (reads the device)."""
+        return float(self._control.numpy()[STEP_PROPOSED])
+
+    def reset(self) -> None:
+        """Forget the step-size history and zero the step counters."""
+        self._control.zero_()
+        self._counters.zero_()
+
+    def failure(self) -> str | None:
+        """Why the last steps stopped short, or ``None`` (reads the device)."""
+        if self._counters.numpy()[STEP_FAILED] == 0:
+            return None
+        return (
+            f"dopri5 needed more than {self.max_steps} internal steps for one step (step size now "
+            f"{self.step_size:.3g} s): the state is diverging or the tolerance ({self.tolerance:g}) is too tight; "
+            "use an implicit integrator or loosen the tolerance"
+        )
 
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
-        y, y_new = self._work
+        model = self.model
+        begin, decide, commit = step_control_kernels(model.scalar)
+        y = self._y
         y.assign(state_in)
-        proposed = dt if self.step_size is None else self.step_size
-        t, grow, taken, f0_valid = 0.0, _GROW, 0, False
-        while t < dt * (1.0 - 1e-12):
-            h = min(proposed, dt - t)  # the last step may be cut short to land on dt
-            if not f0_valid:
-                eval_forces(self.model, y, control, self._stage_f[0])
-            for k in range(1, 7):
-                self.combine(y, self.a[k], h, self._stage_q, self._stage_qd[k], upto=k)
-                eval_forces(self.model, self._stages[k], control)
-            # The 5th-order solution is stage 6's state (a₆ = b), and f(y_new) its force (FSAL).
-            wp.copy(y_new.particle_q, self._stage_q)
-            wp.copy(y_new.particle_qd, self._stage_qd[6])
-            error = self._scaled_error(y, y_new, h)
-            taken += 1
-            if error <= 1.0:
-                y, y_new = y_new, y
-                wp.copy(self._stage_f[0], self._stage_f[6])
-                t += h
-                self.accepted_steps += 1
-                factor = min(grow, _SAFETY * error**-0.2) if error > 0.0 else grow
-                grow = _GROW
-            else:  # stage 0 (the force at y) stays valid for the retry
-                self.rejected_steps += 1
-                factor = _SAFETY * error**-0.2 if np.isfinite(error) else _SHRINK
-                grow = 1.0
-            f0_valid = True
-            next_h = h * max(_SHRINK, factor)
-            # A step cut short to land on dt says nothing against the step size in use before it.
-            proposed = max(proposed, next_h) if error <= 1.0 and h < proposed else next_h
-            if taken >= self.max_steps and t < dt * (1.0 - 1e-12):
-                raise SimulationError(
-                    f"dopri5 took {taken} internal steps without finishing a step of {dt:g} s (step size now "
-                    f"{proposed:.3g} s, scaled error {error:.3g}): the state is diverging or the tolerance "
-                    f"({self.tolerance:g}) is too tight; use an implicit integrator or loosen the tolerance"
-                )
-        self.step_size = proposed
-        self._work = [y, y_new]
+        wp.launch(begin, dim=1, inputs=[wp.float64(dt)], outputs=[self._control, self._counters, self._keep_going],
+                  device=model.device)
+        eval_forces(model, y, control, self._stage_f[0])
+
+        def attempt():
+            self.eval_stages(y, control, self._step_size, first=False)
+            self._measure_error(y)
+            wp.launch(decide, dim=1, inputs=[self.max_steps],
+                      outputs=[self._control, self._counters, self._keep_going], device=model.device)
+            # The 5th-order solution is stage 6's state (a₆ = b), its force f(y_new) stage 0's next (FSAL).
+            wp.launch(commit, dim=model.particle_count, block_dim=model.block_dim,
+                      inputs=[self._counters, self._stage_q, self._stage_qd[6], self._stage_f[6]],
+                      outputs=[y.particle_q, y.particle_qd, self._stage_f[0]], device=model.device)
+
+        wp.capture_while(self._keep_going, attempt)
         state_out.assign(y)
         self.finish_step(state_out, dt)
 
-    def _scaled_error(self, y: State, y_new: State, h: float) -> float:
+    def _measure_error(self, y: State) -> None:
         model = self.model
-        self._error.zero_()
-        weights = wp.types.vector(length=7, dtype=model.scalar)(*(h * self._error_weights))
         wp.launch(
             rk_error_kernel(model.scalar, 7),
             dim=model.particle_count,
@@ -121,13 +138,13 @@ class DormandPrince(ExplicitRungeKutta):
                 y.particle_qd,
                 self._stage_qd,
                 self._stage_f,
-                weights,
-                y_new.particle_q,
-                y_new.particle_qd,
+                self._error_weights,
+                self._step_size,
+                self._stage_q,
+                self._stage_qd[6],
                 model.scalar(self.tolerance),
                 model.scalar(self.tolerance),
             ],
-            outputs=[self._error],
+            outputs=[self._control[STEP_ERROR : STEP_ERROR + 1]],
             device=model.device,
         )
-        return float(self._error.numpy()[0])

@@ -81,6 +81,10 @@ class ImplicitEuler(Integrator):
         )
         self.finish_step(state_out, dt)
 
+    def reset(self) -> None:
+        """Forget the warm start: the next solve starts from Δv = 0."""
+        self._delta_qd.zero_()
+
     def solve_report(self) -> tuple[int, float, float]:
         """(iterations, ‖b - A Δv‖, ‖b‖) of the last solve, read from the device (synchronises)."""
         scalars = self._scalars.numpy()

@@ -34,19 +34,25 @@ class ExplicitRungeKutta(Integrator):
         self._stage_qd = wp.zeros((stages, n), dtype=vec3, device=model.device)
         self._stage_f = wp.zeros((stages, n), dtype=vec3, device=model.device)
         self._stage_q = wp.zeros(n, dtype=vec3, device=model.device)
+        self._unit_step = wp.ones(1, dtype=wp.float64, device=model.device)  # weights come scaled by h
         # Stage k > 0 evaluates forces at (stage_q, stage_qd[k]); stage 0 at the input state.
         self._stages = [
             State(particle_q=self._stage_q, particle_qd=self._stage_qd[k], particle_f=self._stage_f[k])
             for k in range(stages)
         ]
 
-    def combine(self, state_in: State, coefficients, dt: float, q_out: wp.array, qd_out: wp.array, upto: int):
-        """Write y₀ + h Σⱼ cⱼ kⱼ over stages j < ``upto`` to (q_out, qd_out), skipping leading zero cⱼ."""
+    def combine(self, state_in: State, coefficients, dt, q_out: wp.array, qd_out: wp.array, upto: int):
+        """Write y₀ + h Σⱼ cⱼ kⱼ over stages j < ``upto`` to (q_out, qd_out), skipping leading zero cⱼ.
+
+        ``dt`` is the step h [s], or a device array whose element 0 holds it (adaptive steps).
+        """
         model = self.model
+        on_device = isinstance(dt, wp.array)
+        scale, step = (1.0, dt) if on_device else (dt, self._unit_step)
         c = np.asarray(coefficients[:upto], dtype=np.float64)
         first = 1 + int(np.argmax(c[1:] != 0.0)) if np.any(c[1:] != 0.0) else upto
         terms = upto - first
-        weights = wp.types.vector(length=max(terms, 1), dtype=model.scalar)(*(dt * c[first:upto] if terms else [0.0]))
+        weights = wp.types.vector(length=max(terms, 1), dtype=model.scalar)(*(scale * c[first:upto] if terms else [0.0]))
         wp.launch(
             rk_combine_kernel(model.scalar, bool(c[0] != 0.0), terms),
             dim=model.particle_count,
@@ -58,16 +64,19 @@ class ExplicitRungeKutta(Integrator):
                 self._stage_f[0],
                 self._stage_qd[first:upto] if terms else self._stage_qd[0:1],
                 self._stage_f[first:upto] if terms else self._stage_f[0:1],
-                model.scalar(dt * c[0]),
+                model.scalar(scale * c[0]),
                 weights,
+                step,
             ],
             outputs=[q_out, qd_out],
             device=model.device,
         )
 
-    def eval_stages(self, state_in: State, control: Control | None, dt: float) -> None:
-        """Evaluate the forces of every stage of a step of ``dt`` from ``state_in``."""
-        eval_forces(self.model, state_in, control, self._stage_f[0])
+    def eval_stages(self, state_in: State, control: Control | None, dt, *, first: bool = True) -> None:
+        """Evaluate the forces of every stage of a step of ``dt`` (seconds, or a device array holding
+        them) from ``state_in``; with ``first=False`` stage 0's forces are already in place."""
+        if first:
+            eval_forces(self.model, state_in, control, self._stage_f[0])
         for k in range(1, len(self.b)):
             self.combine(state_in, self.a[k], dt, self._stage_q, self._stage_qd[k], upto=k)
             eval_forces(self.model, self._stages[k], control)
