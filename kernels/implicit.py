@@ -16,7 +16,7 @@ import functools
 
 import warp as wp
 
-from .forces import SpringLaw, spring_funcs
+from .forces import SPRING_KERNEL_OPTIONS, SpringLaw, spring_funcs
 from .linalg import CG_PAP, reduction_funcs
 from .precision import mat33_type, vec3_type
 
@@ -51,7 +51,7 @@ def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw):
     accumulate = reduction_funcs(tiled)
     _, _, spring_stiffness_matrix = spring_funcs(scalar, law)
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", enable_backward=False, module_options=SPRING_KERNEL_OPTIONS)
     def prepare(
         # Model:
         particle_mass: wp.array[scalar],
@@ -92,7 +92,7 @@ def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw):
         rhs[i] = b
         diagonal_inverse[i] = wp.inverse(diagonal)
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", enable_backward=False, module_options=SPRING_KERNEL_OPTIONS)
     def matvec(
         count: int,
         # Model:

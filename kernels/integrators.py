@@ -15,7 +15,7 @@ import functools
 import warp as wp
 
 from .contacts import project_contacts_func
-from .forces import ForceFeatures, particle_force_func
+from .forces import SPRING_KERNEL_OPTIONS, ForceFeatures, particle_force_func
 from .precision import transform_type, vec3_type
 
 wp.set_module_options({"enable_backward": False})
@@ -85,7 +85,7 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
     project_contacts = project_contacts_func(scalar, shape_types)
     has_contacts = len(shape_types) > 0
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @wp.kernel(module="unique", enable_backward=False, module_options=SPRING_KERNEL_OPTIONS)
     def symplectic_euler(
         # Model:
         particle_mass: wp.array[scalar],
