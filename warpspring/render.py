@@ -30,6 +30,7 @@ _LIGHT = np.array([-0.12, -0.7, 0.7]) / np.linalg.norm([-0.12, -0.7, 0.7])  # to
 _KEY, _SKY, _BOUNCE = 0.62, 0.5, 0.16  # key light, ambient from above and from below
 _SHADOW_SIZE, _SHADOW_FOV = 1024, 8.0  # shadow map size [texels] and field of view [deg]
 _SHADOW_TAPS = (-2, 0, 2)  # texel offsets of the percentage-closer filter, along each axis
+_CHUNK = 1 << 18  # samples shaded at once
 _BACKGROUND = np.array([1.0, 1.0, 1.0])
 _COLORS = {"cloth": (0.85, 0.33, 0.22), "collider": (0.55, 0.62, 0.72), "ground": (0.9, 0.89, 0.86)}
 
@@ -82,6 +83,19 @@ class _Camera:
         return np.tensordot(self.linear, points, 1) + self.offset.reshape(3, *[1] * (points.ndim - 1))
 
 
+@dataclass(frozen=True)
+class _Raster:
+    """What a camera sees of a scene: per sample the nearest triangle, and how to interpolate over it."""
+
+    camera: _Camera
+    inverse_depth: np.ndarray  # (height, width) per sample, 1 / depth; 0 where empty
+    nearest: np.ndarray  # (height, width) per sample, the nearest triangle; -1 where empty
+    # (m, 3, 3) per triangle, the inverse of the matrix whose columns are its projected corners
+    # (x·w, y·w, w): applied to a sample's (x, y, 1) it gives the barycentric weights divided by the
+    # depth, so they sum to the inverse depth and are all ≥ 0 exactly inside the triangle.
+    to_barycentric: np.ndarray
+
+
 def render_usd(usd_path: str, png_path: str, *, frame: int = -1, width: int = 900) -> str:
     """Render ``frame`` (negative: from the end) of ``usd_path`` to ``png_path``; returns the PNG path."""
     try:
@@ -91,17 +105,21 @@ def render_usd(usd_path: str, png_path: str, *, frame: int = -1, width: int = 90
         import matplotlib.pyplot as plt
     except ImportError:
         raise ConfigError("rendering needs matplotlib: pip install 'warpspring[plot]'") from None
-    from pxr import Usd
+    from pxr import Tf, Usd
 
     if not os.path.isfile(usd_path):
         raise ConfigError(f"USD file not found: {usd_path}")
     folder = os.path.dirname(os.path.abspath(png_path))
     if not os.path.isdir(folder):
         raise ConfigError(f"output folder does not exist: {folder}")
-    stage = Usd.Stage.Open(usd_path)
+    try:
+        stage = Usd.Stage.Open(usd_path)
+    except Tf.ErrorException:
+        stage = None
     if stage is None:
-        raise ConfigError(f"cannot open {usd_path} as USD")
-    frames = _sampled_frames(stage) or list(range(int(stage.GetStartTimeCode()), int(stage.GetEndTimeCode()) + 1))
+        raise ConfigError(f"cannot open {usd_path} as USD: expected a .usd, .usda or .usdc file")
+    start, end = int(stage.GetStartTimeCode()), int(stage.GetEndTimeCode())
+    frames = _sampled_frames(stage) or list(range(start, end + 1))
     if not -len(frames) <= frame < len(frames):
         raise ConfigError(f"frame {frame} is out of range: the file has {len(frames)} frames")
     scene = _read_scene(stage, Usd.TimeCode(frames[frame]))
@@ -128,45 +146,57 @@ def _sampled_frames(stage) -> list[int]:
 
 
 def _read_scene(stage, time) -> _Scene | None:
-    """Triangulate every mesh and sphere of ``stage`` at ``time`` into world space; None when there are none."""
+    """Every mesh and sphere of ``stage`` at ``time`` as triangles in z-up view space; None when there are none."""
     from pxr import UsdGeom
 
     z_up = UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z
     cache = UsdGeom.XformCache(time)
-    parts, focus = [], []
+    parts = []
     for prim in stage.Traverse():
-        if prim.IsA(UsdGeom.Mesh):
-            mesh = UsdGeom.Mesh(prim)
-            points = np.asarray(mesh.GetPointsAttr().Get(time), dtype=np.float64).reshape(-1, 3)
-            counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(time), dtype=np.int64)
-            indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(time), dtype=np.int64)
-            tris = _triangulate(counts, indices)
-            kind = "ground" if "colliders" in str(prim.GetPath()) else "cloth"
-        elif prim.IsA(UsdGeom.Sphere):
-            points, tris = _icosphere(UsdGeom.Sphere(prim).GetRadiusAttr().Get(time))
-            kind = "collider"
-        else:
+        shape = _triangles(prim, time)
+        if shape is None:
             continue
-        if not len(tris):
-            continue
+        points, tris, kind = shape
         world = np.array(cache.GetLocalToWorldTransform(prim)).T  # USD matrices act on row vectors
         points = points @ world[:3, :3].T + world[:3, 3]
         if not z_up:
             points = points[:, [0, 2, 1]] * np.array([1.0, -1.0, 1.0])  # y-up → z-up view
         if kind == "ground":
             points, tris = _subdivide_quad(points)
-        parts.append((points, tris, _vertex_colors(points, kind)))
-        if kind != "ground":
-            focus.append(points)
-    if not parts:
+        parts.append((points, tris, kind))
+    return _assemble(parts) if parts else None
+
+
+def _triangles(prim, time):
+    """A mesh or sphere prim as (local points, triangles, kind); None for other prims and empty meshes."""
+    from pxr import UsdGeom
+
+    if prim.IsA(UsdGeom.Sphere):
+        return (*_icosphere(UsdGeom.Sphere(prim).GetRadiusAttr().Get(time)), "collider")
+    if not prim.IsA(UsdGeom.Mesh):
         return None
-    offsets = np.cumsum([0] + [len(p) for p, _, _ in parts[:-1]])
+    mesh = UsdGeom.Mesh(prim)
+    points = np.asarray(mesh.GetPointsAttr().Get(time) or [], dtype=np.float64).reshape(-1, 3)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(time) or [], dtype=np.int64)
+    indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(time) or [], dtype=np.int64)
+    tris = _triangulate(counts, indices)
+    if not len(tris):
+        return None
+    if "colliders" not in str(prim.GetPath()):
+        return points, tris, "cloth"
+    return points, tris, "ground" if len(points) == 4 else "collider"  # warpspring writes a plane as a quad
+
+
+def _assemble(parts: list) -> _Scene:
+    """One scene of (points, triangles, kind) parts, with their vertex normals and colours."""
+    offsets = np.cumsum([0] + [len(points) for points, _, _ in parts[:-1]])
+    focus = [points for points, _, kind in parts if kind != "ground"]
     return _Scene(
-        points=np.concatenate([p for p, _, _ in parts]),
-        normals=np.concatenate([_vertex_normals(p, t) for p, t, _ in parts]),
-        rgba=np.concatenate([c for _, _, c in parts]),
-        tris=np.concatenate([t + o for (_, t, _), o in zip(parts, offsets)]),
-        focus=np.concatenate(focus or [p for p, _, _ in parts]),
+        points=np.concatenate([points for points, _, _ in parts]),
+        normals=np.concatenate([_vertex_normals(points, tris) for points, tris, _ in parts]),
+        rgba=np.concatenate([_vertex_colors(points, kind) for points, _, kind in parts]),
+        tris=np.concatenate([tris + offset for (_, tris, _), offset in zip(parts, offsets)]),
+        focus=np.concatenate(focus or [points for points, _, _ in parts]),
     )
 
 
@@ -218,7 +248,11 @@ def _vertex_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
 
 
 def _vertex_colors(points: np.ndarray, kind: str) -> np.ndarray:
-    """Base colour and opacity per vertex; the ground fades to transparent over the outer part of its quad."""
+    """Base colour and opacity per vertex.
+
+    The ground fades out between 45 % and 70 % of the distance from its centre to its corners, so
+    the edges of its square (at ≥ 71 %) never show.
+    """
     rgba = np.empty((len(points), 4))
     rgba[:, :3] = _COLORS[kind]
     rgba[:, 3] = 1.0
@@ -235,27 +269,31 @@ def _smoothstep(lo: float, hi: float, x: np.ndarray) -> np.ndarray:
 
 
 def _render(scene: _Scene, width: int, height: int) -> np.ndarray:
-    """The scene as an (height, width, 3) RGB image in [0, 1], supersampled and averaged down."""
-    s = _SUPERSAMPLE
-    view = np.array([np.cos(np.radians(_ELEVATION)) * np.cos(np.radians(_AZIMUTH)),
-                     np.cos(np.radians(_ELEVATION)) * np.sin(np.radians(_AZIMUTH)),
-                     np.sin(np.radians(_ELEVATION))])
-    camera = _Camera.framing(scene.focus, view, s * width, s * height, _FOV)
-    light = _Camera.framing(scene.focus, _LIGHT, _SHADOW_SIZE, _SHADOW_SIZE, _SHADOW_FOV)
-    shadow_map = _rasterize(light, scene.points, scene.tris)[0]
-    _, nearest, inverse = _rasterize(camera, scene.points, scene.tris)
-    samples = _shade(scene, camera, nearest, inverse, light, shadow_map)
-    return samples.reshape(3, height, s, width, s).mean(axis=(2, 4)).transpose(1, 2, 0)
+    """The scene as an (height, width, 3) RGB image in [0, 1]: the mean of each pixel's s × s samples.
 
-
-def _rasterize(camera: _Camera, points: np.ndarray, tris: np.ndarray):
-    """Visibility buffer: per sample the inverse depth (0: empty) and nearest triangle (-1: empty).
-
-    Also returns, per triangle, the inverse of the matrix whose columns are its projected corners
-    (x·w, y·w, w): applied to a sample's (x, y, 1) it gives the barycentric weights divided by the
-    depth, so the weights sum to the inverse depth and are all ≥ 0 exactly inside the triangle.
+    Samples are shaded in chunks, so memory stays bounded whatever the image size.
     """
-    corners = camera.project(points.T[:, tris]).transpose(1, 0, 2)  # (m, coordinate, corner)
+    s = _SUPERSAMPLE
+    elevation, azimuth = np.radians(_ELEVATION), np.radians(_AZIMUTH)
+    towards_eye = np.cos(elevation) * np.array([np.cos(azimuth), np.sin(azimuth), np.tan(elevation)])
+    view = _rasterize(_Camera.framing(scene.focus, towards_eye, s * width, s * height, _FOV), scene)
+    shadow = _rasterize(_Camera.framing(scene.focus, _LIGHT, _SHADOW_SIZE, _SHADOW_SIZE, _SHADOW_FOV), scene)
+    facing = _facing(scene, view.camera.eye)
+    samples = np.flatnonzero(view.nearest >= 0)
+    pixels = samples // view.camera.width // s * width + samples % view.camera.width // s
+    total = np.zeros((3, width * height))  # per pixel, the sum of its covered samples' colours
+    for start in range(0, len(samples), _CHUNK):
+        part = slice(start, start + _CHUNK)
+        for channel, colors in zip(total, _shade(scene, view, samples[part], facing, shadow)):
+            channel += np.bincount(pixels[part], colors, minlength=width * height)
+    empty = s * s - np.bincount(pixels, minlength=width * height)
+    image = (total + empty * _BACKGROUND[:, None]) / (s * s)
+    return image.reshape(3, height, width).transpose(1, 2, 0)
+
+
+def _rasterize(camera: _Camera, scene: _Scene) -> _Raster:
+    """The nearest triangle of ``scene`` at every sample of ``camera``, by a depth test per sample."""
+    corners = camera.project(scene.points.T[:, scene.tris]).transpose(1, 0, 2)  # (m, coordinate, corner)
     det = np.linalg.det(corners)
     valid = np.abs(det) > 1e-12 * np.prod(np.linalg.norm(corners, axis=1), axis=1)  # not seen edge-on
     inverse = np.zeros_like(corners)
@@ -264,7 +302,7 @@ def _rasterize(camera: _Camera, points: np.ndarray, tris: np.ndarray):
     valid &= (boxes[:, 1] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 2])
 
     inverse_depth = np.zeros((camera.height, camera.width))
-    nearest = np.full((camera.height, camera.width), -1, dtype=np.int64)
+    nearest = np.full((camera.height, camera.width), -1, dtype=np.int32)
     xs, ys = np.arange(camera.width) + 0.5, np.arange(camera.height)[:, None] + 0.5
     for t in np.flatnonzero(valid):
         x0, x1, y0, y1 = boxes[t]
@@ -275,7 +313,7 @@ def _rasterize(camera: _Camera, points: np.ndarray, tris: np.ndarray):
         hit = (weights.min(axis=0) >= 0.0) & (depth > window)
         window[hit] = depth[hit]
         nearest[y0:y1, x0:x1][hit] = t
-    return inverse_depth, nearest, inverse
+    return _Raster(camera, inverse_depth, nearest, inverse)
 
 
 def _sample_boxes(corners: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -295,16 +333,21 @@ def _sample_boxes(corners: np.ndarray, width: int, height: int) -> np.ndarray:
     return boxes
 
 
-def _shade(scene, camera, nearest, inverse, light, shadow_map) -> np.ndarray:
-    """Colour every sample, (3, height, width): the background, or its nearest triangle, lit.
+def _facing(scene: _Scene, eye: np.ndarray) -> np.ndarray:
+    """Per triangle, +1 when its winding's front faces ``eye`` and -1 when its back does (double-sided)."""
+    a, b, c = (scene.points[scene.tris[:, k]] for k in range(3))
+    return np.where(np.einsum("ij,ij->i", np.cross(b - a, c - a), eye - a) >= 0.0, 1.0, -1.0)
 
-    Per-sample arrays are kept component-major, (3, n), and gathered with 1-D ``take``: several times
-    faster than fancy-indexing rows of (n, 3) arrays.
+
+def _shade(scene: _Scene, view: _Raster, samples: np.ndarray, facing: np.ndarray, shadow: _Raster) -> np.ndarray:
+    """Colours (3, n) of covered ``samples`` (flat indices into ``view``): their nearest triangle, lit.
+
+    Per-sample arrays are component-major, (3, n), and gathered with 1-D ``take``: several times faster
+    than fancy-indexing rows of (n, 3) arrays.
     """
-    samples = np.flatnonzero(nearest >= 0)
-    t = nearest.ravel().take(samples)
-    x, y = samples % camera.width + 0.5, samples // camera.width + 0.5
-    m = inverse.reshape(-1, 9).T
+    t = view.nearest.ravel().take(samples)
+    x, y = samples % view.camera.width + 0.5, samples // view.camera.width + 0.5
+    m = view.to_barycentric.reshape(-1, 9).T
     weights = [m[3 * k].take(t) * x + m[3 * k + 1].take(t) * y + m[3 * k + 2].take(t) for k in range(3)]
     inverse_depth = sum(weights)
     weights = [w / inverse_depth for w in weights]  # perspective-correct barycentric coordinates
@@ -314,44 +357,36 @@ def _shade(scene, camera, nearest, inverse, light, shadow_map) -> np.ndarray:
         return np.array([sum(w * a.take(v) for w, v in zip(weights, corners)) for a in attribute.T])
 
     normals = interpolate(scene.normals)
-    normals *= _facing(scene, camera.eye).take(t) / np.linalg.norm(normals, axis=0)
-    rgba = interpolate(scene.rgba)
+    normals *= facing.take(t) / np.linalg.norm(normals, axis=0)
     diffuse = np.maximum(_LIGHT @ normals, 0.0)
     lit = np.flatnonzero(diffuse)  # only these can be in a shadow
-    diffuse[lit] *= _lit_fraction(light, shadow_map, interpolate(scene.points)[:, lit], normals[:, lit])
+    diffuse[lit] *= _lit_fraction(shadow, interpolate(scene.points)[:, lit], normals[:, lit])
     up = 0.5 + 0.5 * normals[2]
     shade = _KEY * diffuse + _SKY * up + _BOUNCE * (1.0 - up)
+    rgba = interpolate(scene.rgba)
     color = np.clip(rgba[:3] * shade, 0.0, 1.0)
-    image = np.repeat(_BACKGROUND[:, None], nearest.size, axis=1)
-    for channel, value, background in zip(image, color, _BACKGROUND):
-        channel.put(samples, rgba[3] * value + (1.0 - rgba[3]) * background)
-    return image.reshape(3, camera.height, camera.width)
+    return rgba[3] * color + (1.0 - rgba[3]) * _BACKGROUND[:, None]
 
 
-def _facing(scene: _Scene, eye: np.ndarray) -> np.ndarray:
-    """Per triangle, +1 when its winding's front faces ``eye`` and -1 when its back does (double-sided)."""
-    a, b, c = (scene.points[scene.tris[:, k]] for k in range(3))
-    return np.where(np.einsum("ij,ij->i", np.cross(b - a, c - a), eye - a) >= 0.0, 1.0, -1.0)
-
-
-def _lit_fraction(light: _Camera, shadow_map: np.ndarray, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+def _lit_fraction(shadow: _Raster, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """Fraction of the shadow map taps around each point (3, n) that see it: percentage-closer soft shadows.
 
-    Against shadow acne, the points are lifted along their ``normals`` (which face the light) off their
-    surface by more than the farthest tap's offset: then no tap sees a flat surface in front of them.
+    ``shadow`` is the scene seen from the light. Against shadow acne, the points are lifted along their
+    ``normals`` (which face the light) off their surface by more than the farthest tap's offset: then no
+    tap sees a flat surface in front of them.
     """
-    reach = max(map(abs, _SHADOW_TAPS))
+    light, reach = shadow.camera, max(map(abs, _SHADOW_TAPS))
     texel = np.linalg.norm(light.eye - points.mean(axis=1)) / light.focal  # its size [m] near the points
     x, y, w = light.project(points + (np.sqrt(2.0) * reach + 1.0) * texel * normals)
     pad = 2 * reach + 1  # an empty border, so wide that the taps of any point clamped into it stay in it
-    padded = np.pad(shadow_map, pad).ravel()
-    size = shadow_map.shape[0] + 2 * pad
-    col = np.clip(np.floor(x / w).astype(np.int64) + pad, reach, size - 1 - reach)
-    row = np.clip(np.floor(y / w).astype(np.int64) + pad, reach, size - 1 - reach)
-    center, depth = row * size + col, (1.0 + 1e-4) / w  # inverse depth, nudged towards the light
+    padded = np.pad(shadow.inverse_depth, pad).ravel()
+    rows, cols = light.height + 2 * pad, light.width + 2 * pad
+    col = np.clip(np.floor(x / w).astype(np.int64) + pad, reach, cols - 1 - reach)
+    row = np.clip(np.floor(y / w).astype(np.int64) + pad, reach, rows - 1 - reach)
+    center, depth = row * cols + col, (1.0 + 1e-4) / w  # inverse depth, nudged towards the light
     lit = np.zeros(len(w))
     for dy, dx in itertools.product(_SHADOW_TAPS, repeat=2):
-        lit += depth >= padded.take(center + (dy * size + dx))
+        lit += depth >= padded.take(center + (dy * cols + dx))
     return lit / len(_SHADOW_TAPS) ** 2
 
 
