@@ -88,18 +88,19 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
     @wp.kernel(module="unique", enable_backward=False, module_options=SPRING_KERNEL_OPTIONS)
     def symplectic_euler(
         # Model:
-        particle_mass: wp.array[scalar],
         particle_inv_mass: wp.array[scalar],
         particle_radius: wp.array[scalar],
+        shape_type: wp.array[wp.int32],
+        shape_transform: wp.array[transform],
+        shape_size: wp.array[vec3],
+        shape_friction: wp.array[scalar],
+        # Model, the forces (``particle_force``'s parameters, in its order):
+        particle_mass: wp.array[scalar],
         particle_spring_neighbor: wp.array2d[wp.int32],
         particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
         spring_stiffness: wp.array[scalar],
         spring_damping: wp.array[scalar],
-        shape_type: wp.array[wp.int32],
-        shape_transform: wp.array[transform],
-        shape_size: wp.array[vec3],
-        shape_friction: wp.array[scalar],
         gravity: vec3,
         drag: scalar,
         # Control:

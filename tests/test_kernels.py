@@ -3,7 +3,6 @@
 import functools
 
 import numpy as np
-import pytest
 import warp as wp
 
 from warpspring.kernels.contacts import contact_funcs

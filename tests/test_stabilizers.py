@@ -7,7 +7,7 @@ import pytest
 import warp as wp
 
 import warpspring as ws
-from helpers import ZERO_GRAVITY, run_frames
+from helpers import run_frames
 from warpspring.kernels.forces import SpringLaw, spring_funcs
 
 BIPHASIC = SpringLaw(biphasic_strain=0.2, biphasic_ratio=4.0)

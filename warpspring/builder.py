@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from . import checks
 from .errors import ConfigError
 from .kernels.contacts import SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
 from .kernels.precision import scalar_type, transform_type, vec3_type
@@ -68,7 +69,7 @@ class ModelBuilder:
         up[_AXES[axis]] = 1.0
         self.up_vector = up
         self.gravity = _vector("gravity", -9.81 * up if gravity is None else gravity)
-        self.drag = _non_negative("drag", drag)
+        self.drag = checks.non_negative("drag", drag)
         if stabilizers is not None and not isinstance(stabilizers, Stabilizers):
             raise ConfigError(f"stabilizers must be a warpspring.Stabilizers, got {type(stabilizers).__name__}")
         self.stabilizers = stabilizers or Stabilizers()
@@ -264,8 +265,8 @@ class ModelBuilder:
         Returns:
             Global particle indices, shape [ny, nx].
         """
-        nx, ny = _count("nx", nx, minimum=2), _count("ny", ny, minimum=2)
-        spacing = _positive("spacing", spacing)
+        nx, ny = checks.count("nx", nx, minimum=2), checks.count("ny", ny, minimum=2)
+        spacing = checks.positive("spacing", spacing)
         n = nx * ny
         m = _mass_per_particle(mass, particle_mass, n)
         rows, cols = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
@@ -363,7 +364,7 @@ class ModelBuilder:
         if faces.ndim != 2 or faces.shape[1] != 3:
             raise ConfigError(f"mesh faces must be triangles, shape [t, 3], got {faces.shape}")
         faces = _indices("mesh face vertex", faces, len(vertices)).reshape(-1, 3)
-        scale = _positive("scale", scale)
+        scale = checks.positive("scale", scale)
 
         tri = trimesh.Trimesh(vertices * scale, faces, process=False, validate=False)
         area = tri.area_faces
@@ -378,7 +379,7 @@ class ModelBuilder:
             )
         if (mass is None) == (density is None):
             raise ConfigError("give exactly one of mass= (total, kg) or density= (kg/m²) for a cloth mesh")
-        areal = _positive("mass", mass) / area.sum() if density is None else _positive("density", density)
+        areal = checks.positive("mass", mass) / area.sum() if density is None else checks.positive("density", density)
 
         edges = tri.edges_unique
         ids = self.add_particles(
@@ -417,12 +418,12 @@ class ModelBuilder:
 
     def add_ground_plane(self, *, height: float = 0.0, friction: float = 0.5, name: str = "ground"):
         """Add the ground: a plane through ``height`` [m] along the up axis, normal up."""
-        height = _number("ground height", height, minimum=-np.inf, inclusive=True)
+        height = checks.number("ground height", height, minimum=-np.inf, inclusive=True)
         self.add_collider_plane(point=self.up_vector * height, friction=friction, name=name)
 
     def add_collider_sphere(self, *, center, radius: float, friction: float = 0.5, name="sphere"):
         """Add a static sphere of ``radius`` [m] at ``center`` [m] with Coulomb coefficient ``friction``."""
-        size = (_positive("sphere radius", radius), 0.0, 0.0)
+        size = (checks.positive("sphere radius", radius), 0.0, 0.0)
         self._add_shape(SHAPE_SPHERE, _vector("sphere center", center), (0.0, 0.0, 0.0, 1.0), size, friction, name)
 
     # -- finalize -------------------------------------------------------------------------------------
@@ -521,7 +522,7 @@ class ModelBuilder:
     # -- helpers --------------------------------------------------------------------------------------
 
     def _add_shape(self, kind, position, rotation, size, friction, name):
-        friction = _non_negative("friction", friction)
+        friction = checks.non_negative("friction", friction)
         name = self._unique_name(name, [s[-1] for s in self._shapes])
         self._shapes.append((kind, tuple(float(x) for x in position), tuple(rotation), tuple(size), friction, name))
 
@@ -618,32 +619,10 @@ def _indices(name: str, value, bound: int) -> np.ndarray:
     return idx
 
 
-def _number(name: str, value, *, minimum: float, inclusive: bool) -> float:
-    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
-    v = float(value) if ok else float("nan")
-    if not np.isfinite(v) or v < minimum or (v == minimum and not inclusive):
-        raise ConfigError(f"{name} must be a finite number {'>=' if inclusive else '>'} {minimum:g}, got {value!r}")
-    return v
-
-
-def _positive(name: str, value) -> float:
-    return _number(name, value, minimum=0.0, inclusive=False)
-
-
-def _non_negative(name: str, value) -> float:
-    return _number(name, value, minimum=0.0, inclusive=True)
-
-
-def _count(name: str, value, *, minimum: int) -> int:
-    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < minimum:
-        raise ConfigError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    return int(value)
-
-
 def _mass_per_particle(mass, particle_mass, n: int) -> float:
     if (mass is None) == (particle_mass is None):
         raise ConfigError("give exactly one of mass= (total, kg) or particle_mass= (kg per particle)")
-    return _positive("mass", mass) / n if particle_mass is None else _positive("particle_mass", particle_mass)
+    return checks.positive("mass", mass) / n if particle_mass is None else checks.positive("particle_mass", particle_mass)
 
 
 def _block_dim(device, n: int) -> int:

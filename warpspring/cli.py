@@ -41,6 +41,14 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _add_study_options(parser: argparse.ArgumentParser, name: str) -> None:
+    """The options shared by the measurement commands (trade, stability)."""
+    parser.add_argument("--device", help="Warp device: cpu, cuda:0, ... (default: Warp's default)")
+    parser.add_argument("--out", default=name, help=f"output directory (default: {name})")
+    parser.add_argument("--quick", action="store_true", help="a CI-sized run (about a minute on a CPU)")
+    parser.add_argument("--integrators", nargs="+", metavar="NAME", help="measure only these integrators")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="warpspring", description="Mass-spring cloth on NVIDIA Warp, exported to USD.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -70,10 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
         "trade",
         help="measure each integrator's error against its cost: tables, CSV, plots (x(t), v(t) of the seed spring too)",
     )
-    trade.add_argument("--device", help="Warp device: cpu, cuda:0, ... (default: Warp's default)")
-    trade.add_argument("--out", default="trade", help="output directory (default: trade)")
-    trade.add_argument("--quick", action="store_true", help="a CI-sized study (about a minute on a CPU)")
-    trade.add_argument("--integrators", nargs="+", metavar="NAME", help="measure only these integrators")
+    _add_study_options(trade, "trade")
     trade.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     trade.set_defaults(handler=_cmd_trade)
 
@@ -88,10 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
         "stability",
         help="measure each integrator's largest stable step (one spring, the cloth, the seed case) beside theory",
     )
-    stability.add_argument("--device", help="Warp device: cpu, cuda:0, ... (default: Warp's default)")
-    stability.add_argument("--out", default="stability", help="output directory (default: stability)")
-    stability.add_argument("--quick", action="store_true", help="a CI-sized map (well under a minute on a CPU)")
-    stability.add_argument("--integrators", nargs="+", metavar="NAME", help="map only these integrators")
+    _add_study_options(stability, "stability")
     stability.set_defaults(handler=_cmd_stability)
     return parser
 

@@ -10,6 +10,22 @@ from .kernels.forces import clamp_forces_kernel, eval_forces_kernel, spring_scat
 from .model import Control, Model, State
 
 
+def force_inputs(model: Model, control: Control | None, features) -> list:
+    """The model and control arguments of every force-evaluating kernel, in ``particle_force``'s order:
+    masses, incidence table, spring rest lengths, stiffness and damping, gravity, drag, external force."""
+    return [
+        model.particle_mass,
+        model.particle_spring_neighbor,
+        model.particle_spring_id,
+        model.spring_rest_length,
+        model.spring_stiffness,
+        model.spring_damping,
+        model.vec3(*model.gravity),
+        model.scalar(model.drag),
+        control.particle_force if features.external else None,
+    ]
+
+
 def eval_forces(model: Model, state: State, control: Control | None, particle_f: wp.array | None = None) -> None:
     """Write the total force [N] on every particle (gravity, drag, external, springs) to ``particle_f``.
 
@@ -31,19 +47,7 @@ def eval_forces(model: Model, state: State, control: Control | None, particle_f:
         eval_forces_kernel(model.scalar, features._replace(max_particle_force=None) if scatter else features),
         dim=model.particle_count,
         block_dim=model.block_dim,
-        inputs=[
-            model.particle_mass,
-            model.particle_spring_neighbor,
-            model.particle_spring_id,
-            model.spring_rest_length,
-            model.spring_stiffness,
-            model.spring_damping,
-            model.vec3(*model.gravity),
-            model.scalar(model.drag),
-            control.particle_force if features.external else None,
-            state.particle_q,
-            state.particle_qd,
-        ],
+        inputs=[*force_inputs(model, control, features), state.particle_q, state.particle_qd],
         outputs=[out],
         device=model.device,
     )

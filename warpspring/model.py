@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import math
 
 import numpy as np
 import warp as wp
 
+from . import checks
 from .errors import ConfigError
 from .kernels.forces import ForceFeatures, SpringLaw
 from .kernels.precision import vec3_type
@@ -43,15 +43,10 @@ class Stabilizers:
 
     def __post_init__(self):
         for name in ("max_spring_force", "max_particle_force", "max_speed", "max_strain", "biphasic_strain"):
-            value = getattr(self, name)
-            if value is not None and not (isinstance(value, (int, float)) and not isinstance(value, bool)
-                                          and math.isfinite(value) and value > 0.0):
-                raise ConfigError(f"stabilizer {name} must be a finite number > 0 or None, got {value!r}")
-        if not isinstance(self.strain_iterations, int) or self.strain_iterations < 1:
-            raise ConfigError(f"stabilizer strain_iterations must be an integer >= 1, got {self.strain_iterations!r}")
-        if not (isinstance(self.biphasic_ratio, (int, float)) and math.isfinite(self.biphasic_ratio)
-                and self.biphasic_ratio >= 1.0):
-            raise ConfigError(f"stabilizer biphasic_ratio must be a number >= 1, got {self.biphasic_ratio!r}")
+            if getattr(self, name) is not None:
+                checks.positive(f"stabilizer {name}", getattr(self, name))
+        checks.count("stabilizer strain_iterations", self.strain_iterations, minimum=1)
+        checks.number("stabilizer biphasic_ratio", self.biphasic_ratio, minimum=1.0)
 
     @property
     def spring_law(self) -> SpringLaw:

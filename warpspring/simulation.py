@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import math
 
 import warp as wp
 
+from . import checks
 from .errors import ConfigError, SimulationError
 from .guards import Guard, GuardLimits
 from .integrators import Integrator, SymplecticEuler
@@ -43,14 +43,10 @@ class Simulator:
         use_graph: bool | None = None,
         guard: GuardLimits | None = GuardLimits(),
     ):
-        if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
-            raise ConfigError(f"fps must be a positive number, got {fps!r}")
-        if not isinstance(substeps, int) or isinstance(substeps, bool) or substeps < 1:
-            raise ConfigError(f"substeps must be an integer >= 1, got {substeps!r}")
         self.model = model
         self.integrator = integrator if integrator is not None else SymplecticEuler(model)
-        self.fps = float(fps)
-        self.substeps = substeps
+        self.fps = checks.positive("fps", fps)
+        self.substeps = checks.count("substeps", substeps, minimum=1)
         self.frame_dt = 1.0 / self.fps
         self.dt = self.frame_dt / substeps
         self.control = control if control is not None else model.control()

@@ -60,6 +60,8 @@ from fractions import Fraction
 import numpy as np
 import warp as wp
 
+from . import checks
+from .checks import format_duration
 from .errors import ConfigError
 from .integrators import INTEGRATORS, ExplicitRungeKutta, ImplicitEuler, SymplecticEuler, VelocityVerlet
 from .kernels.linalg import reduce_launch_dim
@@ -343,14 +345,14 @@ def stable_omega_h(integrator: str, zeta: float) -> float:
     0 when the integrator is unstable for every h > 0 (explicit Euler and midpoint at ζ = 0), ∞ when it
     is stable for every h (implicit Euler). Exact up to the final bisection (~1e-12 relative).
     """
-    zeta = _non_negative("zeta", zeta)
+    zeta = checks.non_negative("zeta", zeta)
     return _stable_scale(integrator, 1.0, 2.0 * zeta)
 
 
 def stable_step(integrator: str, omega: float, zeta: float) -> float:
     """The largest stable step [s] of ``integrator`` on a spring of angular frequency ``omega`` [rad/s] > 0
     and damping ratio ``zeta`` ≥ 0: :func:`stable_omega_h` / ω (0: unstable for every h; ∞: never unstable)."""
-    omega = _positive("omega", omega)
+    omega = checks.positive("omega", omega)
     return stable_omega_h(integrator, zeta) / omega
 
 
@@ -371,7 +373,7 @@ def network_stable_step(integrator: str, omega_max: float, *, rayleigh=0.0, drag
     Returns:
         The step [s]; 0 when some mode is unstable for every step, ∞ when none limits it.
     """
-    omega_max = _non_negative("omega_max", omega_max)
+    omega_max = checks.non_negative("omega_max", omega_max)
     ratios, rates = _extremes("rayleigh", rayleigh), _extremes("drag_rate", drag_rate)
     count = SWEEP_DECADES * SWEEP_PER_DECADE + 1
 
@@ -483,9 +485,8 @@ def estimate_omega_max(
         tolerance: relative residual at which to stop, in (0, 1).
         seed: seed of the random start vector.
     """
-    if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) or max_iterations < 1:
-        raise ConfigError(f"max_iterations must be an integer >= 1, got {max_iterations!r}")
-    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not 0.0 < tolerance < 1.0:
+    checks.count("max_iterations", max_iterations, minimum=1)
+    if checks.positive("tolerance", tolerance) >= 1.0:
         raise ConfigError(f"tolerance must be a number in (0, 1), got {tolerance!r}")
     bound = gershgorin_omega_max(model, stiffness=stiffness)
     if bound == 0.0:
@@ -647,7 +648,7 @@ def advise(
     Raises:
         ConfigError: bad arguments, or (with ``strict``) an unstable step.
     """
-    dt, fps = _positive("dt", dt), _positive("fps", fps)
+    dt, fps = checks.positive("dt", dt), checks.positive("fps", fps)
     cls = _integrator_class(integrator)
     if omega_estimate not in OMEGA_ESTIMATES:
         raise ConfigError(f"omega_estimate must be one of {', '.join(OMEGA_ESTIMATES)}, got {omega_estimate!r}")
@@ -673,15 +674,15 @@ def advise(
         if internal is None:
             cap = f"the springs do not cap that step ({springs})"
         elif internal > 1:
-            cap = (f"stability caps that step near {_duration(limit)} ({springs}): at least {internal} internal "
-                   f"steps per dt = {_duration(dt)}")
+            cap = (f"stability caps that step near {format_duration(limit)} ({springs}): at least {internal} internal "
+                   f"steps per dt = {format_duration(dt)}")
         else:
-            cap = f"stability caps that step near {_duration(limit)} ({springs}), above dt = {_duration(dt)}"
+            cap = f"stability caps that step near {format_duration(limit)} ({springs}), above dt = {format_duration(dt)}"
         message = f"{integrator} adapts its internal step to its tolerance; {cap}"
     elif limit == math.inf:
         stable, substeps = True, 1
         message = (
-            f"{integrator} is unconditionally stable ({springs}): dt = {_duration(dt)} is limited by accuracy only"
+            f"{integrator} is unconditionally stable ({springs}): dt = {format_duration(dt)} is limited by accuracy only"
             if issubclass(cls, ImplicitEuler) else
             f"{integrator} is stable at any dt for these springs ({springs})"
         )
@@ -690,20 +691,20 @@ def advise(
         fallback = network_stable_step("symplectic_euler", omega, rayleigh=ratios, drag_rate=rates)
         message = (
             f"{integrator} is unstable at every dt for these springs (their weakly damped modes grow at any step; "
-            f"{springs}): use symplectic_euler (dt ≤ {_duration(fallback)}) or implicit_euler (unconditionally stable)"
+            f"{springs}): use symplectic_euler (dt ≤ {format_duration(fallback)}) or implicit_euler (unconditionally stable)"
         )
     else:
         substeps = max(1, math.ceil(1.0 / (fps * limit)))
         stable = dt <= limit
         if stable:
             message = (
-                f"{integrator} is stable at dt = {_duration(dt)}: the springs ({springs}) allow up to "
-                f"{_duration(limit)}, i.e. at least {substeps} substeps per {frame}"
+                f"{integrator} is stable at dt = {format_duration(dt)}: the springs ({springs}) allow up to "
+                f"{format_duration(limit)}, i.e. at least {substeps} substeps per {frame}"
             )
         else:
             message = (
-                f"{integrator} is unstable at dt = {_duration(dt)}: the springs ({springs}) allow at most "
-                f"{_duration(limit)}; use a smaller dt, at least {substeps} substeps per {frame}, or implicit_euler "
+                f"{integrator} is unstable at dt = {format_duration(dt)}: the springs ({springs}) allow at most "
+                f"{format_duration(limit)}; use a smaller dt, at least {substeps} substeps per {frame}, or implicit_euler "
                 f"(unconditionally stable)"
             )
     advice = Advice(
@@ -724,35 +725,6 @@ def advise(
 
 
 # -- helpers ------------------------------------------------------------------------------------------------
-
-
-def _duration(seconds: float) -> str:
-    """A step in readable units: "1.81 ms", "0.152 s", "3.2 µs"."""
-    if seconds >= 1.0:
-        return f"{seconds:.4g} s"
-    if seconds >= 1e-3:
-        return f"{seconds * 1e3:.4g} ms"
-    return f"{seconds * 1e6:.4g} µs"
-
-
-def _number(name: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ConfigError(f"{name} must be a number, got {value!r}")
-    return float(value)
-
-
-def _positive(name: str, value) -> float:
-    v = _number(name, value)
-    if not (math.isfinite(v) and v > 0.0):
-        raise ConfigError(f"{name} must be a finite number > 0, got {value!r}")
-    return v
-
-
-def _non_negative(name: str, value) -> float:
-    v = _number(name, value)
-    if not (math.isfinite(v) and v >= 0.0):
-        raise ConfigError(f"{name} must be a finite number >= 0, got {value!r}")
-    return v
 
 
 def _extremes(name: str, values) -> tuple[float, ...]:

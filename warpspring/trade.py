@@ -52,6 +52,7 @@ import warp as wp
 
 from .analytic import DampedOscillator
 from .builder import ModelBuilder, SpringMaterial
+from .checks import format_duration
 from .errors import ConfigError, SimulationError
 from .integrators import INTEGRATORS, Integrator, make_integrator
 from .stability import estimate_omega_max
@@ -1316,11 +1317,7 @@ def _ms(seconds: float) -> str:
 
 def _rate(wall_per_second: float) -> str:
     """A cost in wall time per simulated second, in readable units."""
-    if wall_per_second >= 1.0:
-        return f"{wall_per_second:.3g} s per simulated second"
-    if wall_per_second >= 1e-3:
-        return f"{wall_per_second * 1e3:.3g} ms per simulated second"
-    return f"{wall_per_second * 1e6:.3g} µs per simulated second"
+    return f"{format_duration(wall_per_second)} per simulated second"
 
 
 def _num(value, spec: str) -> str:

@@ -19,14 +19,13 @@ most once per second of wall time and on :meth:`UsdWriter.close`.
 
 from __future__ import annotations
 
-import math
-import numbers
 import os
 import time
 
 import numpy as np
 import warp as wp
 
+from . import checks
 from .errors import ConfigError, SimulationError
 from .kernels.geometry import vertex_normal_kernels
 from .model import Model, State
@@ -64,8 +63,7 @@ class UsdWriter:
         self._Usd, self._UsdGeom, self._Vt = Usd, UsdGeom, Vt
         path = check_output_path(path)
         ext = os.path.splitext(path)[1].lower()
-        if isinstance(fps, bool) or not isinstance(fps, numbers.Real) or not (math.isfinite(fps) and fps > 0):
-            raise ConfigError(f"fps must be a finite number > 0, got {fps!r}")
+        fps = checks.positive("fps", fps)
         if os.path.exists(path):
             os.remove(path)
         layer = Sdf.Layer.FindOrOpen(path)

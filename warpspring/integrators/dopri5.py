@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..errors import ConfigError
+from .. import checks
 from ..forces import eval_forces
 from ..kernels.integrators import (
     STEP_ACCEPTED,
@@ -60,12 +60,8 @@ class DormandPrince(ExplicitRungeKutta):
 
     def __init__(self, model: Model, *, tolerance: float = 1.0e-6, max_steps: int = 100_000):
         super().__init__(model)
-        if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not tolerance > 0.0:
-            raise ConfigError(f"tolerance must be a number > 0, got {tolerance!r}")
-        if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
-            raise ConfigError(f"max_steps must be an integer >= 1, got {max_steps!r}")
-        self.tolerance = float(tolerance)
-        self.max_steps = max_steps
+        self.tolerance = checks.positive("tolerance", tolerance)
+        self.max_steps = checks.count("max_steps", max_steps, minimum=1)
         device = model.device
         self._y = model.state()  # the solution during a step, advanced in place by each accepted step
         self._control = wp.zeros(6, dtype=wp.float64, device=device)

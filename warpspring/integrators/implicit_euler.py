@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from .. import checks
 from ..errors import ConfigError
 from ..forces import eval_forces
 from ..kernels.implicit import implicit_kernels
@@ -43,12 +44,10 @@ class ImplicitEuler(Integrator):
 
     def __init__(self, model: Model, *, cg_iterations: int = 100, cg_tolerance: float = 1.0e-5):
         super().__init__(model)
-        if isinstance(cg_iterations, bool) or not isinstance(cg_iterations, int) or cg_iterations < 1:
-            raise ConfigError(f"cg_iterations must be an integer >= 1, got {cg_iterations!r}")
-        if isinstance(cg_tolerance, bool) or not isinstance(cg_tolerance, (int, float)) or not 0.0 < cg_tolerance < 1.0:
-            raise ConfigError(f"cg_tolerance must be a number in (0, 1), got {cg_tolerance!r}")
-        self.cg_iterations = cg_iterations
-        self.cg_tolerance = float(cg_tolerance)
+        self.cg_iterations = checks.count("cg_iterations", cg_iterations, minimum=1)
+        self.cg_tolerance = checks.positive("cg_tolerance", cg_tolerance)
+        if self.cg_tolerance >= 1.0:
+            raise ConfigError(f"cg_tolerance must be < 1 (a relative residual), got {cg_tolerance!r}")
         n, vec3, device = model.particle_count, model.vec3, model.device
         self._tiled = device.is_cuda
         self._block = model.block_dim if self._tiled else 1

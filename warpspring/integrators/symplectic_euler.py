@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from ..forces import eval_forces
+from ..forces import eval_forces, force_inputs
 from ..kernels.integrators import symplectic_euler_kernel, symplectic_euler_update_kernel
 from ..model import Control, State
 from .base import Integrator
@@ -29,18 +29,10 @@ class SymplecticEuler(Integrator):
             wp.launch(
                 symplectic_euler_kernel(model.scalar, features, fused_shapes),
                 inputs=[
-                    model.particle_mass,
                     model.particle_inv_mass,
                     model.particle_radius,
-                    model.particle_spring_neighbor,
-                    model.particle_spring_id,
-                    model.spring_rest_length,
-                    model.spring_stiffness,
-                    model.spring_damping,
                     *shapes,
-                    model.vec3(*model.gravity),
-                    model.scalar(model.drag),
-                    control.particle_force if features.external else None,
+                    *force_inputs(model, control, features),
                     state_in.particle_q,
                     state_in.particle_qd,
                     model.scalar(dt),

@@ -1,0 +1,48 @@
+"""Argument checks shared by the public API: each raises a ConfigError that names the quantity and
+says what it must be; and the readable formatting of durations used in messages."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .errors import ConfigError
+
+_REAL = (int, float, np.integer, np.floating)
+
+
+def number(name: str, value, *, minimum: float = -math.inf, inclusive: bool = True) -> float:
+    """``value`` as a float if it is a finite real number (not a bool) ≥ (or >) ``minimum``."""
+    ok = isinstance(value, _REAL) and not isinstance(value, bool)
+    v = float(value) if ok else float("nan")
+    if not math.isfinite(v) or v < minimum or (v == minimum and not inclusive):
+        bound = "" if minimum == -math.inf else f" {'>=' if inclusive else '>'} {minimum:g}"
+        raise ConfigError(f"{name} must be a finite number{bound}, got {value!r}")
+    return v
+
+
+def positive(name: str, value) -> float:
+    """``value`` as a float if it is a finite number > 0."""
+    return number(name, value, minimum=0.0, inclusive=False)
+
+
+def non_negative(name: str, value) -> float:
+    """``value`` as a float if it is a finite number ≥ 0."""
+    return number(name, value, minimum=0.0, inclusive=True)
+
+
+def count(name: str, value, *, minimum: int) -> int:
+    """``value`` if it is an integer (not a bool) ≥ ``minimum``."""
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < minimum:
+        raise ConfigError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def format_duration(seconds: float) -> str:
+    """A duration in readable units: "1.81 ms", "0.152 s", "3.2 µs"."""
+    if seconds >= 1.0:
+        return f"{seconds:.4g} s"
+    if seconds >= 1e-3:
+        return f"{seconds * 1e3:.4g} ms"
+    return f"{seconds * 1e6:.4g} µs"
