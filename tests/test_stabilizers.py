@@ -105,12 +105,17 @@ def test_particle_force_clamp(device, evaluation):
         return state.particle_f.numpy().astype(np.float64)
 
     plain = forces(ws.Stabilizers())
-    limit = float(np.median(np.linalg.norm(plain, axis=1)))  # half the particles get clamped
+    magnitude = np.linalg.norm(plain, axis=1)
+    ordered = np.sort(magnitude)
+    half = len(ordered) // 2
+    limit = float(0.5 * (ordered[half - 1] + ordered[half]))  # half the particles get clamped, none is at the limit
     clamped = forces(ws.Stabilizers(max_particle_force=limit))
-    big = np.linalg.norm(plain, axis=1) > limit
+    big = magnitude > limit
     assert big.sum() >= 10 and (~big).sum() >= 10
-    np.testing.assert_allclose(clamped[big], plain[big] * (limit / np.linalg.norm(plain[big], axis=1))[:, None], rtol=1e-5)
-    np.testing.assert_allclose(clamped[~big], plain[~big], rtol=1e-6)
+    # Float32 sums of ~12 springs; on CUDA the scatter's atomics add them in a varying order.
+    tolerance = dict(rtol=0, atol=1e-5 * magnitude.max())
+    np.testing.assert_allclose(clamped[big], plain[big] * (limit / magnitude[big])[:, None], **tolerance)
+    np.testing.assert_allclose(clamped[~big], plain[~big], **tolerance)
 
 
 def test_speed_clamp(device):
