@@ -10,7 +10,6 @@ SCALAR_TYPES = {"float32": wp.float32, "float64": wp.float64}
 
 _VEC3 = {wp.float32: wp.vec3f, wp.float64: wp.vec3d}
 _TRANSFORM = {wp.float32: wp.transformf, wp.float64: wp.transformd}
-_QUAT = {wp.float32: wp.quatf, wp.float64: wp.quatd}
 _MAT33 = {wp.float32: wp.mat33f, wp.float64: wp.mat33d}
 
 
@@ -30,11 +29,6 @@ def vec3_type(scalar: type) -> type:
 def transform_type(scalar: type) -> type:
     """The rigid-transform type of a scalar type."""
     return _TRANSFORM[scalar]
-
-
-def quat_type(scalar: type) -> type:
-    """The quaternion type of a scalar type."""
-    return _QUAT[scalar]
 
 
 def mat33_type(scalar: type) -> type:

@@ -159,9 +159,9 @@ def test_choose_picks_the_cheapest_qualifying_row():
 
 
 def test_choose_honours_the_budget():
-    assert choose(ROWS, 1e-3, 3.5e-3).row is ROWS[2]
-    assert choose(ROWS, 1e-5, 5e-3).row is ROWS[3]
-    over = choose(ROWS, 1e-5, 1e-3)  # rk4 meets the error at 4× the budget: say so, name it
+    assert choose(ROWS, 1e-3, time_budget=3.5e-3).row is ROWS[2]
+    assert choose(ROWS, 1e-5, time_budget=5e-3).row is ROWS[3]
+    over = choose(ROWS, 1e-5, time_budget=1e-3)  # rk4 meets the error at 4× the budget: say so, name it
     assert over.row is ROWS[3] and "4× the budget" in over.explanation
 
 
@@ -180,7 +180,7 @@ def test_choose_rejects_bad_requests():
     with pytest.raises(ConfigError, match="target error"):
         choose(ROWS, 0.0)
     with pytest.raises(ConfigError, match="time budget"):
-        choose(ROWS, 1e-3, -1.0)
+        choose(ROWS, 1e-3, time_budget=-1.0)
     with pytest.raises(ConfigError, match="several problems"):
         choose(ROWS + [row(problem="spring")], 1e-3)
     with pytest.raises(ConfigError, match="no problem 'spring'"):

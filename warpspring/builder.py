@@ -21,6 +21,9 @@ from .model import MeshGroup, Model, ShapeInfo, Stabilizers
 from .transforms import quat_between, quat_to_matrix
 
 _AXES = {"Y": 1, "Z": 2}  # USD knows only Y-up and Z-up stages
+#: Prim names under /World that the USD writer uses itself: a mesh named so gets a suffix.
+RESERVED_PRIM_NAMES = ("particles", "springs", "colliders")
+
 #: Most springs per particle for which the GPU default is the gathered (ELL) evaluation.
 MAX_GATHER_SLOTS = 32
 _GRID_PINS = ("top-left", "top-right", "bottom-left", "bottom-right", "top", "bottom", "left", "right")
@@ -213,7 +216,7 @@ class ModelBuilder:
             if uvs.shape != (len(particles), 2):
                 raise ConfigError(f"uvs must have shape ({len(particles)}, 2), got {uvs.shape}")
         group = MeshGroup(
-            name=self._unique_name(name, [m.name for m in self._meshes]),
+            name=self._unique_name(name, [m.name for m in self._meshes] + list(RESERVED_PRIM_NAMES)),
             particles=particles,
             faces=local.reshape(-1, 3).astype(np.int32),
             uvs=uvs,

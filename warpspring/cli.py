@@ -160,7 +160,7 @@ def _cmd_trade(args) -> int:
 def _cmd_choose(args) -> int:
     from .trade import choose, read_csv
 
-    choice = choose(read_csv(args.study), args.error, args.budget, problem=args.problem)
+    choice = choose(read_csv(args.study), args.error, time_budget=args.budget, problem=args.problem)
     print(choice.explanation)
     return 0
 

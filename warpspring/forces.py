@@ -26,7 +26,7 @@ def force_inputs(model: Model, control: Control | None, features) -> list:
     ]
 
 
-def eval_forces(model: Model, state: State, control: Control | None, particle_f: wp.array | None = None) -> None:
+def eval_forces(model: Model, state: State, control: Control | None, *, particle_f: wp.array | None = None) -> None:
     """Write the total force [N] on every particle (gravity, drag, external, springs) to ``particle_f``.
 
     Springs are gathered per particle or scattered per spring as ``model.spring_gather`` says.

@@ -105,7 +105,7 @@ class Model:
     because kernels are specialized for the terms present at finalize time.
     """
 
-    device: wp.context.Device
+    device: wp.Device
     precision: str  # "float32" or "float64"
     scalar: type  # wp.float32 or wp.float64
     vec3: type  # wp.vec3f or wp.vec3d
@@ -146,7 +146,7 @@ class Model:
     meshes: list  # list[MeshGroup], host-side, for export
     shapes: list  # list[ShapeInfo], host-side, for export
 
-    def __init__(self, device: wp.context.Device, precision: str, scalar: type):
+    def __init__(self, device: wp.Device, precision: str, scalar: type):
         self.device = device
         self.precision = precision
         self.scalar = scalar

@@ -25,8 +25,8 @@ class Simulator:
         fps: output frames per second [1/s].
         substeps: integrator steps per frame; the step is dt = 1 / (fps · substeps) [s].
         control: time-varying inputs; default ``model.control()``.
-        use_graph: capture each frame as a graph (CUDA graph, or Warp's CPU graph); default on for
-            integrators that allow it.
+        use_graph: capture each frame as a graph (a CUDA graph, or Warp's CPU graph); off runs the same
+            launches from Python every frame (for debugging).
         guard: run-time checks (non-finite state, torn springs, runaway energy) made on the device
             every ``guard.every`` substeps; a failure raises :class:`SimulationError` at the end of
             the frame. ``None`` disables them (and the per-frame read of their record).
@@ -40,19 +40,21 @@ class Simulator:
         fps: float = 60.0,
         substeps: int = 16,
         control: Control | None = None,
-        use_graph: bool | None = None,
+        use_graph: bool = True,
         guard: GuardLimits | None = GuardLimits(),
     ):
         self.model = model
         self.integrator = integrator if integrator is not None else SymplecticEuler(model)
+        if self.integrator.model is not model:
+            raise ConfigError("the integrator was built for another model: build it with this Simulator's model")
+        if control is not None and control.model is not model:
+            raise ConfigError("the control was made by another model: use model.control() of this Simulator's model")
         self.fps = checks.positive("fps", fps)
         self.substeps = checks.count("substeps", substeps, minimum=1)
         self.frame_dt = 1.0 / self.fps
         self.dt = self.frame_dt / substeps
         self.control = control if control is not None else model.control()
-        if use_graph and not self.integrator.capturable:
-            raise ConfigError(f"the {self.integrator.name} integrator reads results on the host: it cannot run as a graph")
-        self.use_graph = self.integrator.capturable if use_graph is None else bool(use_graph)
+        self.use_graph = bool(use_graph)
         self.state = model.state()
         self._scratch = model.state()
         self.guard = Guard(model, guard, substeps) if guard is not None else None
@@ -110,16 +112,22 @@ class Simulator:
         self.frame += 1
 
     def _capture(self) -> None:
-        # One uncaptured step into the scratch state compiles and loads every kernel the frame launches
-        # (capturing a module load is not allowed); it leaves self.state untouched, and the reset drops
-        # what it taught the integrator (e.g. an adaptive step size) so replays match the plain loop.
+        # One uncaptured step and guard check on the scratch state compile and load every kernel the
+        # frame launches (a capture must not load modules); they leave self.state untouched, and the
+        # resets drop what they taught the integrator (e.g. an adaptive step size) and the guard, so
+        # replays match the plain loop.
         self.integrator.step(self.state, self._scratch, self.control, self.dt)
         self.integrator.reset()
+        if self.guard is not None:
+            self.guard.check(self._scratch, 0)
+            self.guard.reset()
         with wp.ScopedCapture(device=self.model.device, force_module_load=False) as capture:
             self._simulate()
         self._graph = capture.graph
 
     def reset(self, state: State | None = None) -> None:
-        """Restart at frame 0 from ``state`` (default: the model's initial state)."""
+        """Restart at frame 0 from ``state`` (default: the model's initial state), forgetting the
+        integrator's history (step-size control, warm starts), so the run repeats exactly."""
         self.state.assign(state if state is not None else self.model.state())
+        self.integrator.reset()
         self.frame = 0

@@ -19,9 +19,9 @@ a float64 RK4 run (the highest-order fixed-step integrator when RK4 is not regis
 Cost: each configuration first runs two uncaptured steps (compilation and module loading stay out of
 the timing), then is timed as the median of ``repeats`` batches of graph replays (CUDA graphs on GPUs,
 Warp's CPU graphs on the CPU), each batch at least ``min_batch`` seconds of wall time, the device
-synchronised before every timer read. Integrators that cannot be captured (``capturable = False``, e.g.
-adaptive ones that read their error estimate on the host) are timed over their whole run instead, since
-their cost depends on the trajectory. A configuration whose run would take longer than the plan's
+synchronised before every timer read. Adaptive integrators are timed over the very run whose error is
+reported (also as graph replays), since their cost depends on the trajectory. A configuration whose run
+would take longer than the plan's
 ``run_limit`` is reported as skipped, with its measured cost, and so are the finer steps of that
 integrator. Adaptive integrators (those taking a ``tolerance`` option) are swept over tolerances at a
 fixed output interval instead of over steps.
@@ -492,12 +492,12 @@ class Study:
 
 
 def reference_integrator() -> str:
-    """The cloth reference: "rk4" when registered, else the highest-order capturable fixed-step integrator."""
+    """The cloth reference: "rk4" when registered, else the highest-order fixed-step integrator."""
     if "rk4" in INTEGRATORS:
         return "rk4"
-    fixed = [c for c in INTEGRATORS.values() if not c.adaptive and c.capturable]
+    fixed = [c for c in INTEGRATORS.values() if not c.adaptive]
     if not fixed:
-        raise ConfigError("no capturable fixed-step integrator is registered to compute the cloth reference")
+        raise ConfigError("no fixed-step integrator is registered to compute the cloth reference")
     return max(fixed, key=lambda c: (c.order, c.name)).name
 
 
@@ -505,9 +505,9 @@ def reference_integrator() -> str:
 
 
 class _Stepper:
-    """Advances a run by ``chunk`` steps per call: one graph launch when the integrator is capturable, a
-    Python loop otherwise. With ``record`` it copies positions and velocities after every step into device
-    buffers of shape [chunk · particle_count] (plain copies: no kernel to compile, capturable)."""
+    """Advances a run by ``chunk`` steps per call, one graph launch each. With ``record`` it copies positions
+    and velocities after every step into device buffers of shape [chunk · particle_count] (plain copies:
+    no kernel to compile, capturable)."""
 
     def __init__(self, model: Model, integrator: Integrator, control: Control, dt: float, chunk: int, *, record: bool):
         self.model, self.integrator, self.control, self.dt, self.chunk = model, integrator, control, dt, chunk
@@ -530,13 +530,10 @@ class _Stepper:
             self.state.assign(a)
 
     def advance(self) -> None:
-        """Run ``chunk`` steps (capturing them on the first call when the integrator allows it).
+        """Run ``chunk`` steps (capturing them on the first call).
 
         The integrator's kernels must be loaded already (see :func:`_warm_up`): a capture cannot load modules.
         """
-        if not self.integrator.capturable:
-            self._steps()
-            return
         if self._graph is None:
             with wp.ScopedCapture(device=self.model.device, force_module_load=False) as capture:
                 self._steps()
@@ -616,25 +613,23 @@ def _measure(problem, model, control, name, options, dt, steps, plan, reference)
     """Measure one configuration. Returns (Measurement, (t, q, qd) of the run or None when not run)."""
     cls = INTEGRATORS[name]
     row = _configuration(problem, model, cls, options, dt, steps)
-    capturable = cls.capturable
     try:
         warm = make_integrator(name, model, **options)
         step_cost = _warm_up(model, warm, control, dt)
         chunk = _chunk(steps, max(1, min(MAX_CHUNK, int(plan.min_batch / max(step_cost, 1e-9)))))
-        if capturable:
+        if cls.adaptive:  # its cost depends on the trajectory: timed below, on the run itself
+            projected = step_cost * steps
+        else:
             row["wall_per_second"] = _time_replays(_Stepper(model, warm, control, dt, chunk, record=False), plan)
             projected = row["wall_per_second"] * problem.duration
-        else:
-            projected = step_cost * steps
         if projected > plan.run_limit:
             return Measurement(**row, status="skipped"), None
         integrator = make_integrator(name, model, **options)  # fresh: no state carried over from the timing
         wall, t, q, qd = _run(model, integrator, control, dt, steps, chunk, record=problem.records_trajectory)
     except SimulationError:
         return Measurement(**row, status="failed"), None
-    if not capturable:
-        row["wall_per_second"] = wall / problem.duration
     if cls.adaptive:
+        row["wall_per_second"] = wall / problem.duration
         accepted = getattr(integrator, "accepted_steps", None)
         rejected = getattr(integrator, "rejected_steps", 0)
         if accepted:
@@ -888,7 +883,7 @@ class Choice:
     explanation: str
 
 
-def choose(study_rows, target_error: float, time_budget: float | None = None, *, problem: str | None = None) -> Choice:
+def choose(study_rows, target_error: float, *, time_budget: float | None = None, problem: str | None = None) -> Choice:
     """The fastest measured fixed-step configuration whose max error meets ``target_error``, within
     ``time_budget`` if given; when none does, an adaptive integrator with a tolerance.
 
@@ -927,8 +922,9 @@ def choose(study_rows, target_error: float, time_budget: float | None = None, *,
     adaptive_accurate = [r for r in adaptive if r.error_max <= target_error]
     target = f"a max error of at most {target_error:.3g} m"
     if affordable:
-        pick = affordable[0]
-        runner_up = _runner_up(affordable, pick)
+        pick = affordable[0]  # fixed steps first: their cost does not depend on how the motion goes
+        adaptive_affordable = [r for r in adaptive_accurate if time_budget is None or r.wall_per_second <= time_budget]
+        runner_up = _runner_up(sorted(affordable + adaptive_affordable, key=lambda r: r.wall_per_second), pick)
         within = f" within {_rate(time_budget)}" if time_budget is not None else ""
         text = (
             f"{pick.label} is the fastest measured configuration with {target}{within}: error "

@@ -18,8 +18,6 @@ class Integrator(abc.ABC):
 
     name: str = ""
     order: int = 0
-    #: Whether a step issues only device work (no host reads), so frames can be captured as graphs.
-    capturable: bool = True
     #: Whether the integrator chooses its own internal steps (it then takes a ``tolerance`` option).
     adaptive: bool = False
 

@@ -107,7 +107,7 @@ class DormandPrince(ExplicitRungeKutta):
         y.assign(state_in)
         wp.launch(begin, dim=1, inputs=[wp.float64(dt)], outputs=[self._control, self._counters, self._keep_going],
                   device=model.device)
-        eval_forces(model, y, control, self._stage_f[0])
+        eval_forces(model, y, control, particle_f=self._stage_f[0])
 
         def attempt():
             self.eval_stages(y, control, self._step_size, first=False)

@@ -21,7 +21,7 @@ from .. import checks
 from ..errors import ConfigError
 from ..forces import eval_forces
 from ..kernels.implicit import implicit_kernels
-from ..kernels.linalg import CG_RR_LAST, CG_SCALARS, cg_kernels, reduce_launch_dim
+from ..kernels.linalg import CG_BB, CG_RR_LAST, CG_SCALARS, cg_kernels, reduce_launch_dim
 from ..kernels.precision import mat33_type
 from ..model import Control, Model, State
 from .base import Integrator
@@ -87,7 +87,7 @@ class ImplicitEuler(Integrator):
     def solve_report(self) -> tuple[int, float, float]:
         """(iterations, ‖b - A Δv‖, ‖b‖) of the last solve, read from the device (synchronises)."""
         scalars = self._scalars.numpy()
-        return int(self._iteration.numpy()[0]), float(scalars[CG_RR_LAST]) ** 0.5, float(scalars[4]) ** 0.5
+        return int(self._iteration.numpy()[0]), float(scalars[CG_RR_LAST]) ** 0.5, float(scalars[CG_BB]) ** 0.5
 
     # -- the CG solve of A Δv = b ------------------------------------------------------------------------
 
