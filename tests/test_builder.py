@@ -168,3 +168,56 @@ def test_empty_scene_and_bad_precision_are_rejected():
     builder.add_particles([[0, 0, 0]])
     with pytest.raises(ws.ConfigError, match="precision must be one of"):
         builder.finalize("cpu", precision="float16")
+
+
+@pytest.mark.parametrize(
+    "positions, mass, message",
+    [
+        ([[0.0, 0.0, 1e39]], 1.0, "a particle position [m] overflows float32"),
+        ([[0.0, 0.0, 0.0]], 1e-40, "an inverse particle mass [1/kg] overflows float32"),
+    ],
+)
+def test_values_beyond_float32_are_rejected_at_finalize(positions, mass, message):
+    """Finite float64 input that float32 cannot hold is refused by name, not turned into inf; float64 holds it."""
+    builder = ws.ModelBuilder()
+    builder.add_particles(positions, mass=mass)
+    with pytest.raises(ws.ConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        builder.finalize("cpu")
+    model = builder.finalize("cpu", precision="float64")
+    assert np.isfinite(model.particle_q.numpy()).all() and np.isfinite(model.particle_inv_mass.numpy()).all()
+
+
+SEAM_OBJ = """v 0 0 0
+v 1 0 0
+v 1 1 0
+v 0 1 0
+v 2 0 0
+vt 0 0
+vt 1 0
+vt 1 1
+vt 0 1
+vt 0.5 0.5
+vt 0.2 0.2
+f 1/1 2/2 3/3
+f 1/1 3/3 4/4
+f 2/5 5/6 3/3
+"""
+
+
+def test_obj_uv_seam_is_welded_not_torn(tmp_path):
+    """An OBJ whose vertex 2 carries two UVs (a seam) gives one particle there, in the file's v order,
+    joined by springs to both sides of the seam; the UVs move to the triangle corners."""
+    path = tmp_path / "seam.obj"
+    path.write_text(SEAM_OBJ)
+    builder = ws.ModelBuilder()
+    ids = builder.add_cloth_mesh(str(path), mass=1.0, pin=[4], bend=None)
+    model = builder.finalize("cpu")
+    np.testing.assert_array_equal(ids, np.arange(5))
+    np.testing.assert_allclose(model.particle_q.numpy(), [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0]])
+    assert spring_set(model) == {(0, 1), (1, 2), (0, 2), (2, 3), (0, 3), (1, 4), (2, 4)}
+    assert model.particle_inv_mass.numpy()[4] == 0.0  # pins name the file's vertices
+    np.testing.assert_allclose(model.particle_mass.numpy().sum(), 1.0, rtol=1e-6)
+    group = model.meshes[0]
+    np.testing.assert_array_equal(group.faces, [[0, 1, 2], [0, 2, 3], [1, 4, 2]])
+    np.testing.assert_allclose(group.uvs, [[[0, 0], [1, 0], [1, 1]], [[0, 0], [1, 1], [0, 1]],
+                                           [[0.5, 0.5], [0.2, 0.2], [1, 1]]])

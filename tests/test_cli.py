@@ -146,6 +146,8 @@ BAD_INPUT = [
     ("unknown-pin", {'"top-right"': '"top-middle"'}, {}, [], ["'top-middle'", "top-right"]),
     ("unavailable-device", {}, {}, ["--device", "cuda:7"], ["'cuda:7'", "not available"]),
     ("bad-output-extension", {}, {}, ["-o", "cloth.abc"], ["cloth.abc", ".usdc"]),
+    ("output-is-a-folder", {}, {"taken.usdc/keep": ""}, ["-o", "taken.usdc"], ["taken.usdc", "is a folder"]),
+    ("output-folder-missing", {}, {}, ["-o", "nowhere/cloth.usdc"], ["nowhere", "does not exist"]),
 ]
 
 
@@ -154,6 +156,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch, edits, 
     """Bad input exits 2 with one 'warpspring: error:' line naming the problem, no traceback and no output file."""
     monkeypatch.chdir(tmp_path)  # relative names in the cases (cloth.abc) land in tmp_path
     for name, text in files.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / name).write_text(text)
     scene = tmp_path / "absent.toml" if edits is None else write_scene(tmp_path, edits)
     out = tmp_path / "out.usdc"
@@ -239,3 +242,28 @@ def test_python_dash_m_entry_point(tmp_path):
     done = subprocess.run(command[:-1] + ["0"], capture_output=True, text=True, timeout=120)
     assert done.returncode == EXIT_CONFIG
     assert done.stderr.startswith("warpspring: error: argument --frames") and done.stderr.count("\n") == 1
+
+
+@pytest.mark.parametrize("command", ["trade", "stability"])
+def test_study_output_that_is_a_file_fails_before_the_study_runs(tmp_path, capsys, command):
+    """A study's --out naming a file is refused at once (exit 2), not after the hour the study takes."""
+    taken = tmp_path / "results"
+    taken.write_text("")
+    assert main([command, "--quick", "--device", "cpu", "--out", str(taken)]) == EXIT_CONFIG
+    stderr = capsys.readouterr().err
+    assert "output directory" in stderr and "is a file" in stderr
+
+
+def test_usd_save_failure_exits_4_with_one_line(tmp_path, capsys, monkeypatch):
+    """A USD file that cannot be saved mid-run (full disk) ends with exit 4 and one line naming the file."""
+    from warpspring.usd import UsdWriter
+
+    def failing_save(self, force=False):
+        if self.frame_count >= 2:
+            raise OSError(f"cannot save the USD file {self.path!r} (disk full or file removed?)")
+
+    monkeypatch.setattr(UsdWriter, "_save", failing_save)
+    out = tmp_path / "out.usdc"
+    assert main(["run", str(write_scene(tmp_path, {})), "-o", str(out), "--device", "cpu", "--frames", "4"]) == 4
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("warpspring: output failed: ") and "out.usdc" in lines[0]

@@ -80,3 +80,15 @@ def test_default_energy_limit_tolerates_fast_initial_motion(device):
     model = builder.finalize(device)
     sim = ws.Simulator(model, fps=60, substeps=8)
     assert np.isfinite(run_frames(sim, 10)).all()
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"every": 0}, "guard every must be an integer >= 1"),
+    ({"every": 2.5}, "guard every must be an integer >= 1"),
+    ({"max_strain": 0.0}, "guard max_strain must be a finite number > 0"),
+    ({"max_strain": float("nan")}, "guard max_strain must be a finite number > 0"),
+    ({"max_kinetic_energy": -1.0}, "guard max_kinetic_energy must be a finite number > 0"),
+])
+def test_guard_limits_reject_bad_values_when_made(kwargs, message):
+    with pytest.raises(ws.ConfigError, match=message):
+        ws.GuardLimits(**kwargs)

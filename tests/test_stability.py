@@ -251,6 +251,23 @@ def test_advisor_stiffness_override_and_fallback(cloth8):
         st.advise(cloth8, "rk4", 1e-3, stiffness=[1.0])
 
 
+def test_advisor_judges_biphasic_springs_by_their_stiffer_branch():
+    """Biphasic springs stiffen by r beyond their knee: by default the advisor analyses k·r, so ω_max
+    grows by √r and (undamped springs) the stable step shrinks by √r."""
+
+    def cloth(stabilizers):
+        builder = ws.ModelBuilder(stabilizers=stabilizers)
+        builder.add_cloth_grid(nx=8, ny=8, spacing=0.1, particle_mass=0.1, structural=ws.SpringMaterial(1e3, 0.0),
+                               shear=ws.SpringMaterial(1e3, 0.0), bend=None, pin=["top-left", "top-right"])
+        return builder.finalize("cpu")
+
+    plain = st.advise(cloth(None), "symplectic_euler", 1e-3)
+    biphasic = st.advise(cloth(ws.Stabilizers(biphasic_strain=0.1, biphasic_ratio=9.0)), "symplectic_euler", 1e-3)
+    assert biphasic.omega_max == pytest.approx(3.0 * plain.omega_max, rel=2e-3)
+    assert biphasic.dt_stable == pytest.approx(plain.dt_stable / 3.0, rel=2e-3)
+    assert biphasic.substeps >= 3 * plain.substeps - 2
+
+
 # -- measurement --------------------------------------------------------------------------------------------
 
 

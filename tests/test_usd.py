@@ -328,3 +328,20 @@ def test_rewriting_a_path_replaces_the_old_animation(tmp_path):
     assert read_in_fresh_process(path) == {"times": [0.0, 1.0], "end": 1.0}
     stage = Usd.Stage.Open(str(path))
     assert samples(stage.GetPrimAtPath("/World/cloth").GetAttribute("points")) == [0.0, 1.0]
+
+
+def test_uv_seams_are_written_face_varying(tmp_path):
+    """A mesh with a UV seam exports its st primvar per face corner, in face-vertex order."""
+    from test_builder import SEAM_OBJ
+
+    (tmp_path / "seam.obj").write_text(SEAM_OBJ)
+    builder = ws.ModelBuilder()
+    builder.add_cloth_mesh(str(tmp_path / "seam.obj"), mass=1.0, name="patch")
+    model = builder.finalize("cpu")
+    write(tmp_path / "seam.usda", model, [model.particle_q.numpy()])
+    stage = Usd.Stage.Open(str(tmp_path / "seam.usda"))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/patch"))
+    st = UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st")
+    assert st.GetInterpolation() == UsdGeom.Tokens.faceVarying
+    np.testing.assert_allclose(np.array(st.Get()), model.meshes[0].uvs.reshape(-1, 2))
+    assert list(mesh.GetFaceVertexIndicesAttr().Get()) == [0, 1, 2, 0, 2, 3, 1, 4, 2]

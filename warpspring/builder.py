@@ -199,7 +199,8 @@ class ModelBuilder:
         Args:
             faces: global particle indices, shape [t, 3].
             name: mesh name; made unique and a valid USD identifier.
-            uvs: texture coordinates per referenced particle in ascending index order, shape [v, 2].
+            uvs: texture coordinates per referenced particle in ascending index order, shape [v, 2];
+                or per triangle corner, shape [t, 3, 2] (a mesh with UV seams: one particle, two UVs).
         """
         faces = np.asarray(faces)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
@@ -213,8 +214,11 @@ class ModelBuilder:
         local = remap[faces]
         if uvs is not None:
             uvs = np.asarray(uvs, dtype=np.float64)
-            if uvs.shape != (len(particles), 2):
-                raise ConfigError(f"uvs must have shape ({len(particles)}, 2), got {uvs.shape}")
+            if uvs.shape not in ((len(particles), 2), (len(faces), 3, 2)):
+                raise ConfigError(f"uvs must have shape ({len(particles)}, 2) per vertex or ({len(faces)}, 3, 2) "
+                                  f"per triangle corner, got {uvs.shape}")
+            if not np.isfinite(uvs).all():
+                raise ConfigError("uvs are not finite")
         group = MeshGroup(
             name=self._unique_name(name, [m.name for m in self._meshes] + list(RESERVED_PRIM_NAMES)),
             particles=particles,
@@ -323,7 +327,10 @@ class ModelBuilder:
         """Add a cloth from any triangle mesh.
 
         Every mesh edge becomes a structural spring; for every interior edge, the two vertices opposite
-        it are joined by a bend spring. Mass is lumped to the vertices by triangle area.
+        it are joined by a bend spring. Mass is lumped to the vertices by triangle area. A file or
+        ``trimesh.Trimesh`` is welded first: vertices at the same position (which loaders split along UV
+        seams) become one particle, in order of first appearance (an OBJ file's ``v`` order), and the UVs
+        are kept per triangle corner where a seam needs two.
 
         Args:
             mesh: a ``trimesh.Trimesh``, a file path trimesh can load (OBJ, STL, PLY, GLB, ...), or a
@@ -356,6 +363,8 @@ class ModelBuilder:
             visual_uv = getattr(getattr(mesh, "visual", None), "uv", None)
             if visual_uv is not None and len(visual_uv) == len(vertices):
                 uv = np.asarray(visual_uv, dtype=np.float64)
+            # Loaders split a vertex wherever its UVs differ (a texture seam); the cloth must not tear there.
+            vertices, faces, uv = _weld_seams(_points("mesh vertices", vertices), faces, uv)
         else:
             if faces is None:
                 raise ConfigError("add_cloth_mesh needs faces= when the mesh is given as a vertex array")
@@ -459,33 +468,46 @@ class ModelBuilder:
         model.stabilizers = self.stabilizers
 
         n = self._particle_count
+        spring_total = sum(len(k) for k in self._springs)
+        if max(n, 2 * spring_total) >= 2**31:
+            raise ConfigError(
+                f"{n} particles and {spring_total} springs exceed the 32-bit indices of the kernels "
+                "(at most 2^31 - 1 particles and 2^30 springs): split the scene"
+            )
         mass = np.concatenate(self._mass)
         pinned = np.concatenate(self._pinned)
         for extra in self._extra_pins:
             pinned[extra] = True
         inv_mass = np.where(pinned, 0.0, 1.0 / mass)
 
-        def farray(values, dtype=None):
-            return wp.array(np.asarray(values, dtype=float_np), dtype=dtype or scalar, device=device)
+        def farray(values, dtype=None, *, name="a shape parameter"):
+            with np.errstate(over="ignore"):
+                cast = np.asarray(values, dtype=float_np)
+            if not np.isfinite(cast).all():
+                raise ConfigError(
+                    f"{name} overflows {precision} (largest magnitude {np.max(np.abs(values)):.3g}): "
+                    "rescale the scene to SI units of sensible size or finalize with precision='float64'"
+                )
+            return wp.array(cast, dtype=dtype or scalar, device=device)
 
         def iarray(values, dtype=wp.int32):
             return wp.array(np.ascontiguousarray(values, dtype=np.int32), dtype=dtype, device=device)
 
         model.particle_count = n
         model.block_dim = _block_dim(device, n)
-        model.particle_q = farray(np.concatenate(self._q), vec3)
-        model.particle_qd = farray(np.concatenate(self._qd), vec3)
-        model.particle_mass = farray(mass)
-        model.particle_inv_mass = farray(inv_mass)
-        model.particle_radius = farray(np.concatenate(self._radius))
+        model.particle_q = farray(np.concatenate(self._q), vec3, name="a particle position [m]")
+        model.particle_qd = farray(np.concatenate(self._qd), vec3, name="a particle velocity [m/s]")
+        model.particle_mass = farray(mass, name="a particle mass [kg]")
+        model.particle_inv_mass = farray(inv_mass, name="an inverse particle mass [1/kg]")
+        model.particle_radius = farray(np.concatenate(self._radius), name="a particle radius [m]")
 
         springs = np.concatenate(self._springs) if self._springs else np.zeros((0, 2), dtype=np.int64)
         s = len(springs)
         model.spring_count = s
         model.spring_indices = iarray(springs, wp.vec2i)
-        model.spring_rest_length = farray(np.concatenate(self._spring_rest) if s else [])
-        model.spring_stiffness = farray(np.concatenate(self._spring_ke) if s else [])
-        model.spring_damping = farray(np.concatenate(self._spring_kd) if s else [])
+        model.spring_rest_length = farray(np.concatenate(self._spring_rest) if s else [], name="a spring rest length [m]")
+        model.spring_stiffness = farray(np.concatenate(self._spring_ke) if s else [], name="a spring stiffness [N/m]")
+        model.spring_damping = farray(np.concatenate(self._spring_kd) if s else [], name="a spring damping [N·s/m]")
         degree = np.bincount(springs.ravel(), minlength=n) if s else np.zeros(n, dtype=np.int64)
         model.spring_max_degree = int(degree.max())
         if spring_evaluation == "auto":
@@ -583,6 +605,20 @@ def _quaternion(value) -> np.ndarray:
     if q.shape != (4,) or not np.isfinite(q).all() or np.linalg.norm(q) == 0.0:
         raise ConfigError(f"rotation must be a nonzero quaternion (x, y, z, w), got {value!r}")
     return q / np.linalg.norm(q)
+
+
+def _weld_seams(vertices: np.ndarray, faces, uv: np.ndarray | None):
+    """Merge vertices at identical positions, keeping the order of their first appearance; with a
+    merge, UVs move to the triangle corners, shape [t, 3, 2]."""
+    faces = np.asarray(faces)
+    _, first, inverse = np.unique(vertices, axis=0, return_index=True, return_inverse=True)
+    if len(first) == len(vertices) or faces.size == 0 or faces.min() < 0 or faces.max() >= len(vertices):
+        return vertices, faces, uv  # nothing to weld (bad indices are reported by the caller)
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    corner_uv = None if uv is None else uv[faces]
+    return vertices[first[order]], rank[inverse.reshape(-1)][faces], corner_uv
 
 
 def _points(name: str, value, count: int | None = None) -> np.ndarray:

@@ -4,6 +4,7 @@ says what it must be; and the readable formatting of durations used in messages.
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 
@@ -37,6 +38,19 @@ def count(name: str, value, *, minimum: int) -> int:
     if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < minimum:
         raise ConfigError(f"{name} must be an integer >= {minimum}, got {value!r}")
     return int(value)
+
+
+def output_dir(path: str | os.PathLike) -> str:
+    """``path`` as a string if it names a folder that exists and is writable, or can be created."""
+    path = os.fspath(path)
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise ConfigError(f"output directory {path!r} is a file: name a folder")
+    existing = os.path.abspath(path)
+    while not os.path.exists(existing):
+        existing = os.path.dirname(existing)
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ConfigError(f"output directory {path!r} cannot be written: {existing} is not writable")
+    return path
 
 
 def format_duration(seconds: float) -> str:

@@ -10,10 +10,13 @@ from __future__ import annotations
 import argparse
 import sys
 
+from . import checks
 from .errors import ConfigError, SimulationError
+from .plotting import pyplot
 
 EXIT_CONFIG = 2
 EXIT_SIMULATION = 3
+EXIT_IO = 4
 
 
 class _Parser(argparse.ArgumentParser):
@@ -135,6 +138,8 @@ def _cmd_trade(args) -> int:
     from .runner import resolve_device
     from .trade import FULL, QUICK, convergence_orders, run_study, write_report
 
+    checks.output_dir(args.out)  # fail before the study runs, not after
+    pyplot("the trade plots")
     wp.config.log_level = wp.LOG_WARNING
     device = resolve_device(args.device)
     study = run_study(
@@ -173,6 +178,8 @@ def _cmd_stability(args) -> int:
     from .runner import resolve_device
     from .stability_map import FULL, QUICK, run_map, to_markdown, write_report
 
+    checks.output_dir(args.out)  # fail before the map runs, not after
+    pyplot("the stability plots")
     wp.config.log_level = wp.LOG_WARNING
     started = time.perf_counter()
     result = run_map(QUICK if args.quick else FULL, resolve_device(args.device), integrators=args.integrators)
@@ -196,6 +203,9 @@ def main(argv: list[str] | None = None) -> int:
     except SimulationError as exc:
         print(f"warpspring: simulation failed: {exc}", file=sys.stderr)
         return EXIT_SIMULATION
+    except OSError as exc:  # a disk that fills up or a file that vanishes while writing
+        print(f"warpspring: output failed: {exc}", file=sys.stderr)
+        return EXIT_IO
     except KeyboardInterrupt:
         print("warpspring: interrupted; the output holds every frame written so far", file=sys.stderr)
         return 130

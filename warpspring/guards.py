@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from .errors import ConfigError
+from . import checks
 from .kernels.guards import (
     GUARD_ENERGY,
     GUARD_FLOATS,
@@ -50,6 +50,13 @@ class GuardLimits:
     every: int | None = None
     max_strain: float = 10.0
     max_kinetic_energy: float | None = None
+
+    def __post_init__(self):
+        if self.every is not None:
+            checks.count("guard every", self.every, minimum=1)
+        checks.positive("guard max_strain", self.max_strain)
+        if self.max_kinetic_energy is not None:
+            checks.positive("guard max_kinetic_energy", self.max_kinetic_energy)
 
 
 @dataclass(frozen=True)
@@ -93,10 +100,6 @@ class Guard:
     """Device-side checks of one simulator's states; see :class:`GuardLimits`."""
 
     def __init__(self, model: Model, limits: GuardLimits, substeps: int):
-        if limits.every is not None and (not isinstance(limits.every, int) or limits.every < 1):
-            raise ConfigError(f"guard 'every' must be an integer >= 1 or None, got {limits.every!r}")
-        if not limits.max_strain > 0.0:
-            raise ConfigError(f"guard max_strain must be > 0, got {limits.max_strain!r}")
         self.model = model
         self.limits = limits
         self.every = min(limits.every or substeps, substeps)

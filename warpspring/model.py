@@ -26,8 +26,10 @@ class Stabilizers:
         max_spring_force: clamp of each spring's force magnitude, elastic plus damping [N].
         max_particle_force: clamp of the magnitude of the total force on each particle [N].
         max_speed: clamp of each particle's speed after every step [m/s].
-        max_strain: strain limiting (Provot 1995): after every step no spring is left longer than
-            (1 + max_strain)·L [-]; positions are corrected, velocities by the same displacement / dt.
+        max_strain: strain limiting (Provot 1995) towards (1 + max_strain)·L [-]: after every step,
+            ``strain_iterations`` Jacobi passes shorten the springs longer than that, moving both ends
+            in proportion to their inverse masses; velocities change by the same displacement / dt.
+            A soft limit: a few passes leave a residual overshoot on long chains of stretched springs.
         strain_iterations: Jacobi passes of the strain limiting per step.
         biphasic_strain: strain beyond which springs stiffen [-].
         biphasic_ratio: stiffness beyond ``biphasic_strain`` over stiffness below it [-], ≥ 1.
@@ -66,7 +68,8 @@ class MeshGroup:
         name: prim name of the mesh (a valid USD identifier).
         particles: global indices of the mesh's vertices, shape [vertex_count], int64.
         faces: triangles as indices into ``particles``, shape [face_count, 3], int32.
-        uvs: texture coordinates per vertex, shape [vertex_count, 2], or ``None``.
+        uvs: texture coordinates per vertex, shape [vertex_count, 2]; per triangle corner, shape
+            [face_count, 3, 2] (meshes with UV seams); or ``None``.
     """
 
     name: str

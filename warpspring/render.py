@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import ConfigError
+from .plotting import pyplot
 
 _ELEVATION, _AZIMUTH = 18.0, -62.0  # direction from the scene to the camera [deg] (matplotlib's view_init)
 _FOV = 30.0  # vertical field of view [deg]
@@ -98,13 +99,7 @@ class _Raster:
 
 def render_usd(usd_path: str, png_path: str, *, frame: int = -1, width: int = 900) -> str:
     """Render ``frame`` (negative: from the end) of ``usd_path`` to ``png_path``; returns the PNG path."""
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        raise ConfigError("rendering needs matplotlib: pip install 'warpspring[plot]'") from None
+    plt = pyplot("rendering and its pictures")
     from pxr import Tf, Usd
 
     if not os.path.isfile(usd_path):

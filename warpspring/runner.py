@@ -6,7 +6,6 @@ import os
 import time
 from dataclasses import dataclass
 
-import numpy as np
 import warp as wp
 
 from .errors import ConfigError, SimulationError
@@ -168,12 +167,8 @@ def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = F
     """
     from .stability import advise
 
-    law = model.spring_law
-    stiffness = None
-    if law.biphasic_strain is not None and model.spring_count:
-        stiffness = model.spring_stiffness.numpy().astype(np.float64) * law.biphasic_ratio
     cheap = not model.device.is_cuda and model.particle_count > POWER_ITERATION_CPU_LIMIT
-    return advise(model, integrator, dt, fps=fps, strict=strict, stiffness=stiffness,
+    return advise(model, integrator, dt, fps=fps, strict=strict,
                   omega_estimate="gershgorin" if cheap else "power_iteration")
 
 

@@ -423,9 +423,14 @@ class OmegaMaxEstimate:
 
 
 def _stiffness_array(model: Model, stiffness) -> wp.array:
-    """The spring stiffness [N/m] on the model's device: the model's own, or an override of shape [spring_count]."""
+    """The spring stiffness [N/m] on the model's device: an override of shape [spring_count], or the
+    model's own — for biphasic springs their stiffer branch, ratio × ke, which bounds the step once a
+    spring stretches past its knee."""
     if stiffness is None:
-        return model.spring_stiffness
+        ratio = model.spring_law.biphasic_ratio if model.spring_law.biphasic_strain is not None else 1.0
+        if ratio == 1.0 or model.spring_count == 0:
+            return model.spring_stiffness
+        stiffness = model.spring_stiffness.numpy().astype(np.float64) * ratio
     values = stiffness.numpy() if isinstance(stiffness, wp.array) else np.asarray(stiffness)
     values = np.asarray(values, dtype=np.float64)
     if values.shape != (model.spring_count,):
@@ -479,8 +484,8 @@ def estimate_omega_max(
     Args:
         model: the model.
         state: positions to linearise about; default the model's initial positions.
-        stiffness: spring stiffness [N/m] instead of ``model.spring_stiffness``, shape [spring_count]
-            (e.g. the stiffer branch of biphasic springs).
+        stiffness: spring stiffness [N/m], shape [spring_count]; default the model's, with biphasic
+            springs at their stiffer branch (ratio × ke).
         max_iterations: iteration budget (≥ 1).
         tolerance: relative residual at which to stop, in (0, 1).
         seed: seed of the random start vector.
@@ -639,8 +644,8 @@ def advise(
         dt: the step [s] to check, > 0.
         fps: frame rate [1/s] for the substep count.
         strict: raise a ConfigError carrying the message when ``dt`` is unstable.
-        stiffness: spring stiffness [N/m] instead of ``model.spring_stiffness``, shape [spring_count]
-            (e.g. the stiffer branch of biphasic springs); also used for the springs' kd/k.
+        stiffness: spring stiffness [N/m], shape [spring_count], also used for the springs' kd/k; default
+            the model's, with biphasic springs at their stiffer branch (ratio × ke).
         state: positions to linearise about; default the model's initial positions.
         omega_estimate: "power_iteration" or "gershgorin".
         max_iterations, tolerance: of the power iteration.

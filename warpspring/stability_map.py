@@ -55,12 +55,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from . import checks
 from .builder import ModelBuilder, SpringMaterial
 from .errors import ConfigError
 from .forces import eval_forces
 from .integrators import INTEGRATORS, ImplicitEuler, Integrator
 from .kernels.stability import spring_motion_kernel
 from .model import Model, State
+from .plotting import pyplot
 from .stability import advise, network_stable_step, stable_omega_h
 
 #: Growth threshold of a run: unstable when its late mean E exceeds its early one by (1 + GROWTH)².
@@ -772,18 +774,9 @@ def write_csv(result: StabilityMap, out_dir: str) -> list[str]:
     return paths
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def plot_springs(result: StabilityMap, path: str) -> str:
     """ωh_max against ζ: theory lines, measured brackets as markers with error bars."""
-    plt = _pyplot()
+    plt = pyplot("the stability plots")
     fig, ax = plt.subplots(figsize=(8, 5.5))
     # Dense, with the measured ζ and the cusp at critical damping (ζ = 1) on the grid.
     zetas = np.union1d(np.concatenate([np.linspace(0.0, 1e-3, 11), [1.0], np.geomspace(1e-3, 3.0, 120)]),
@@ -824,7 +817,7 @@ def plot_springs(result: StabilityMap, path: str) -> str:
 
 def plot_cloth(result: StabilityMap, path: str) -> str:
     """Largest stable dt against ke (log-log): the advisor's prediction (lines), simulation (markers)."""
-    plt = _pyplot()
+    plt = pyplot("the stability plots")
     fig, ax = plt.subplots(figsize=(8, 5.5))
     names = list(dict.fromkeys(r.integrator for r in result.cloth))
     notes = []
@@ -863,7 +856,7 @@ def plot_cloth(result: StabilityMap, path: str) -> str:
 
 def write_report(result: StabilityMap, out_dir: str) -> list[str]:
     """stability.md, the CSV files and spring.png, cloth.png in ``out_dir`` (created); returns the paths."""
-    os.makedirs(out_dir, exist_ok=True)
+    os.makedirs(checks.output_dir(out_dir), exist_ok=True)
     md = os.path.join(out_dir, "stability.md")
     with open(md, "w") as f:
         f.write(to_markdown(result))

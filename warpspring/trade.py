@@ -52,11 +52,13 @@ import warp as wp
 
 from .analytic import DampedOscillator
 from .builder import ModelBuilder, SpringMaterial
+from . import checks
 from .checks import format_duration
 from .errors import ConfigError, SimulationError
 from .integrators import INTEGRATORS, Integrator, make_integrator
 from .stability import estimate_omega_max
 from .model import Control, Model
+from .plotting import pyplot
 
 #: A run whose position error exceeds this many times the problem's length scale has blown up.
 BLOWUP_FACTOR = 10.0
@@ -1131,9 +1133,7 @@ def to_markdown(study: Study) -> str:
 def write_report(study: Study, out_dir: str) -> list[str]:
     """Write ``trade.csv``, ``trade.md``, ``pareto.png``, ``convergence.png`` and (when the plan has a seed
     plot) ``seed.png`` to ``out_dir`` (created if missing); returns their paths."""
-    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
-        raise ConfigError(f"output directory {out_dir} is a file")
-    os.makedirs(out_dir, exist_ok=True)
+    os.makedirs(checks.output_dir(out_dir), exist_ok=True)
     paths = [write_csv(study.rows, os.path.join(out_dir, "trade.csv"))]
     with open(os.path.join(out_dir, "trade.md"), "w") as f:
         f.write(to_markdown(study))
@@ -1148,17 +1148,6 @@ def write_report(study: Study, out_dir: str) -> list[str]:
 # -- plots --------------------------------------------------------------------------------------------------
 
 _MARKERS = "osD^vP*Xph"
-
-
-def _pyplot():
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        raise ConfigError("the trade plots need matplotlib: pip install 'warpspring[plot]'") from None
-    return plt
 
 
 def _style(name: str) -> dict:
@@ -1191,7 +1180,7 @@ def _legend_handles(names) -> list:
 def plot_pareto(study: Study, path: str) -> str:
     """Max error against wall time per simulated second (log-log), one panel per problem, one marker series
     per integrator, float64 filled and float32 hollow, the Pareto front as a grey staircase."""
-    plt = _pyplot()
+    plt = pyplot("the trade plots")
     problems = study.plan.problems
     fig, axes = plt.subplots(1, len(problems), figsize=(5.5 * len(problems), 4.8), squeeze=False)
     for ax, problem in zip(axes[0], problems):
@@ -1230,7 +1219,7 @@ def plot_pareto(study: Study, path: str) -> str:
 def plot_convergence(study: Study, path: str) -> str:
     """Max error against step (log-log), one panel per problem; float64 filled and joined, float32 hollow;
     the fitted order of each integrator in the legend and its fit as a dashed line."""
-    plt = _pyplot()
+    plt = pyplot("the trade plots")
     problems = study.plan.problems
     fig, axes = plt.subplots(1, len(problems), figsize=(5.5 * len(problems), 5.2), squeeze=False)
     for ax, problem in zip(axes[0], problems):
@@ -1270,7 +1259,7 @@ def plot_convergence(study: Study, path: str) -> str:
 
 def plot_seed(study: Study, path: str) -> str:
     """x(t) and v(t) of the seed spring under each integrator (float64, one moderate step) over the exact solution."""
-    plt = _pyplot()
+    plt = pyplot("the trade plots")
     problem = next(p for p in study.plan.problems if isinstance(p, SpringProblem) and p.plot_steps)
     osc = problem.oscillator
     t = np.linspace(0.0, problem.duration, 2001)

@@ -58,20 +58,23 @@ class UsdWriter:
         springs: bool = False,
         text_save_interval: float = 1.0,
     ):
-        from pxr import Sdf, Usd, UsdGeom, Vt
+        from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
         self._Usd, self._UsdGeom, self._Vt = Usd, UsdGeom, Vt
         path = check_output_path(path)
         ext = os.path.splitext(path)[1].lower()
         fps = checks.positive("fps", fps)
-        if os.path.exists(path):
-            os.remove(path)
-        layer = Sdf.Layer.FindOrOpen(path)
-        if layer is not None:  # a stale layer of the same name in this process's registry
-            layer.Clear()
-            self.stage = Usd.Stage.Open(layer)
-        else:
-            self.stage = Usd.Stage.CreateNew(path)
+        try:
+            if os.path.exists(path):
+                os.remove(path)
+            layer = Sdf.Layer.FindOrOpen(path)
+            if layer is not None:  # a stale layer of the same name in this process's registry
+                layer.Clear()
+                self.stage = Usd.Stage.Open(layer)
+            else:
+                self.stage = Usd.Stage.CreateNew(path)
+        except (OSError, Tf.ErrorException) as exc:
+            raise ConfigError(f"cannot create the USD file {path!r}: {exc}") from None
         self.path = path
         self.model = model
         self.fps = float(fps)
@@ -103,11 +106,13 @@ class UsdWriter:
             mesh.CreateDoubleSidedAttr(True)
             mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
             mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
-            if group.uvs is not None:
+            if group.uvs is not None:  # per vertex, or per corner where seams give a particle two UVs
+                corners = group.uvs.ndim == 3
                 st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
-                    "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex
+                    "st", Sdf.ValueTypeNames.TexCoord2fArray,
+                    UsdGeom.Tokens.faceVarying if corners else UsdGeom.Tokens.vertex,
                 )
-                st.Set(Vt.Vec2fArray.FromNumpy(group.uvs.astype(np.float32)))
+                st.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(group.uvs.reshape(-1, 2), dtype=np.float32)))
             self._meshes.append((group, mesh.GetPointsAttr(), mesh.GetExtentAttr(), mesh.GetNormalsAttr()))
 
         self._points = None
@@ -195,7 +200,16 @@ class UsdWriter:
         now = time.monotonic()
         if self._text and not force and now - self._last_save < self._save_interval:
             return
-        self.stage.GetRootLayer().Save()
+        from pxr import Tf
+
+        try:
+            saved = self.stage.GetRootLayer().Save()
+        except Tf.ErrorException as exc:
+            saved, why = False, f": {exc}"
+        else:
+            why = ""
+        if not saved:
+            raise OSError(f"cannot save the USD file {self.path!r}{why} (disk full or file removed?)")
         self._last_save = now
 
     def _vertex_normals(self, state: State) -> np.ndarray:
@@ -254,6 +268,8 @@ def check_output_path(path: str | os.PathLike) -> str:
         raise ConfigError(f"output folder does not exist: {folder}")
     if os.path.isdir(path):
         raise ConfigError(f"USD output {path!r} is a folder, not a file")
+    if not os.access(folder, os.W_OK | os.X_OK) or (os.path.exists(path) and not os.access(path, os.W_OK)):
+        raise ConfigError(f"USD output {path!r} cannot be written: check the permissions of {folder}")
     return path
 
 
