@@ -10,9 +10,10 @@ import warpspring as ws
 ZERO_GRAVITY = (0.0, 0.0, 0.0)
 
 
-def hanging_cloth(device, *, n=12, precision="float32", sphere=False, ground=False, **grid):
-    """A horizontal n × n cloth at z = 1 pinned at its two top corners (the ANCHORS cloth layout)."""
-    builder = ws.ModelBuilder()
+def hanging_cloth(device, *, n=12, precision="float32", sphere=False, ground=False, drag=0.0, **grid):
+    """A horizontal n × n cloth at z = 1 pinned at its two top corners (the ANCHORS cloth layout), with
+    air drag ``drag`` [N·s/m]."""
+    builder = ws.ModelBuilder(drag=drag)
     options = dict(
         nx=n,
         ny=n,

@@ -208,10 +208,12 @@ def dense_implicit_system(model, state, h):
     return A[np.ix_(keep, keep)], b[keep], keep
 
 
-def test_implicit_euler_solves_the_baraff_witkin_system(device):
+@pytest.mark.parametrize("drag", [0.0, 0.3])
+def test_implicit_euler_solves_the_baraff_witkin_system(device, drag):
     """On a perturbed, moving cloth the step's Δv solves the densely assembled system A Δv = b (float64
-    NumPy reference, pinned particles filtered) to the CG tolerance, within the iteration limit."""
-    model, _ = hanging_cloth(device, n=8, precision="float64")
+    NumPy reference with the drag in both A and b, pinned particles filtered) to the CG tolerance,
+    within the iteration limit."""
+    model, _ = hanging_cloth(device, n=8, precision="float64", drag=drag)
     rng = np.random.default_rng(4)
     state, out = model.state(), model.state()
     state.particle_q.assign(model.particle_q.numpy() + rng.normal(scale=0.02, size=(model.particle_count, 3)))

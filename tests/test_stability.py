@@ -287,13 +287,16 @@ def test_growth_test_tells_bounded_from_growing():
 
 @pytest.mark.parametrize("name", ["symplectic_euler", "velocity_verlet", "midpoint", "rk4"])
 def test_measured_single_spring_limits_match_theory(name):
-    """Bisection on simulation runs of the integrator class finds the theoretical ωh limit within 5 % at
-    ζ = 0.1 and 1 (and for the symplectic methods at ζ = 0, where orbits are bounded but eccentric)."""
+    """Bisection on simulation runs of the integrator class brackets the theoretical ωh limit at ζ = 0.1
+    and 1 (and for the symplectic methods at ζ = 0, where orbits are bounded but eccentric): the measured
+    bracket, 3.3 % wide after 3 rounds of 8 points, holds the theory to within 0.5 % (the growth test
+    over 1024 steps cannot see growth slower than ~0.5 % per run at the very edge)."""
     plan = sm.MapPlan(name="test", zetas=(0.0, 0.1, 1.0), spring_points=8, spring_rounds=3, spring_steps=1024)
     for limit in sm.measure_spring_limits(name, plan, "cpu"):
         if limit.theory > 0.0:
-            assert limit.measured.two_sided
-            assert limit.ratio == pytest.approx(1.0, abs=0.05), limit
+            low, high = limit.measured.low, limit.measured.high
+            assert limit.measured.two_sided and high / low < 1.035, limit
+            assert low <= 1.005 * limit.theory and limit.theory <= 1.005 * high, limit
 
 
 def test_cloth_limit_matches_the_advisor(device):

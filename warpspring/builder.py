@@ -54,7 +54,8 @@ class ModelBuilder:
     Args:
         up_axis: world up axis, "Y" or "Z" (also written to USD).
         gravity: gravitational acceleration [m/s²]: a 3-vector, or ``None`` for 9.81 m/s² down the up axis.
-        drag: global viscous drag coefficient [N·s/m], f = -drag · v on every particle.
+        drag: viscous drag coefficient [N·s/m], f = -drag · v on every particle (per particle: at a
+            finer resolution the same cloth feels more drag in total; scale it with 1 / particle count).
         stabilizers: optional clamps, strain limiting and biphasic springs (:class:`Stabilizers`).
 
     Example:

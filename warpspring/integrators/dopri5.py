@@ -38,7 +38,8 @@ class DormandPrince(ExplicitRungeKutta):
     Args:
         model: the model.
         tolerance: local error tolerance per internal step, absolute and relative, on positions [m] and
-            velocities [m/s].
+            velocities [m/s]. In float32 a position of about 1 m resolves only ~6e-8 m, so tolerances
+            much below 1e-6 chase round-off (steps shrink, cost grows): use ``precision="float64"``.
         max_steps: most internal steps (accepted or rejected) per call of ``step``; beyond it the step
             stops short and :meth:`failure` says so (the Simulator then raises a SimulationError).
     """

@@ -20,7 +20,10 @@ from .base import Integrator
 
 class VelocityVerlet(Integrator):
     """Velocity Verlet; stable for undamped springs while ω h < 2. Two force evaluations per step, three
-    when forces depend on velocity."""
+    when forces depend on velocity (drag or spring damping: a corrector keeps second order).
+
+    Whether forces depend on velocity is read from the model once, at construction: after changing
+    ``model.drag`` or ``model.spring_damping`` from zero to nonzero, make a new integrator."""
 
     name = "velocity_verlet"
     order = 2
