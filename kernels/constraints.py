@@ -99,7 +99,9 @@ def finish_step_kernel(scalar: type, shape_types: tuple, max_speed, from_displac
             if speed > speed_limit:
                 v = v * (speed_limit / speed)
         if wp.static(has_contacts):
-            x, v = project_contacts(x, v, particle_radius[i], shape_type, shape_transform, shape_size, shape_friction)
+            x, v = project_contacts(
+                x, v, particle_radius[i], dt, shape_type, shape_transform, shape_size, shape_friction
+            )
         particle_q_in_out[i] = x
         particle_qd_in_out[i] = v
 

@@ -1,9 +1,12 @@
 """Particle-collider contact: position projection with inelastic normal response and Coulomb friction.
 
 A particle of radius r touches a collider when the signed distance of its centre to the collider's
-surface is below r. The contact pass projects it back onto the surface (no interpenetration, also at
-rest), removes the approaching normal velocity and reduces the tangential velocity by at most
-μ·|Δv_n| (Coulomb friction as an impulse; it sticks when the tangential speed is smaller).
+surface is below r. The contact pass, run after a step of length h, projects it back onto the surface
+(no interpenetration, also at rest), removes the approaching normal velocity and reduces the tangential
+velocity by at most μ·|Δv_n| (Coulomb friction as an impulse; it sticks when the tangential speed is
+smaller). The position takes the same tangential change, h·Δv_t, so that it stays x_prev + h·v for the
+velocity friction leaves: a particle that sticks does not move, and one that slides travels exactly
+h·Σv (for symplectic Euler).
 
 Colliders are static rigid shapes stored as a table (type, transform, size, friction). A kernel is
 specialized for the set of shape types the scene holds; new types add a signed-distance function here
@@ -44,13 +47,15 @@ def contact_funcs(scalar: type):
         return -radius, vec3(scalar(0.0), scalar(0.0), scalar(1.0))
 
     @wp.func
-    def contact_response(x: vec3, v: vec3, radius: scalar, distance: scalar, normal: vec3, friction: scalar):
+    def contact_response(
+        x: vec3, v: vec3, radius: scalar, distance: scalar, normal: vec3, friction: scalar, dt: scalar
+    ):
         """Project a particle out of a collider and apply inelastic, Coulomb-frictional velocity response.
 
         Args:
             x: particle position [m]; v: particle velocity [m/s]; radius: particle radius [m];
             distance: signed distance of x to the surface [m]; normal: outward unit normal;
-            friction: Coulomb coefficient μ [-].
+            friction: Coulomb coefficient μ [-]; dt: the step that produced x and v [s].
         """
         penetration = radius - distance
         if penetration <= scalar(0.0):
@@ -62,9 +67,10 @@ def contact_funcs(scalar: type):
         vt = v - normal * vn
         vt_len = wp.length(vt)
         slip = vt_len + friction * vn  # tangential speed left after the friction impulse μ|vn|
-        if slip <= scalar(0.0):
-            return x_out, vec3(scalar(0.0))
-        return x_out, vt * (slip / vt_len)
+        v_out = vec3(scalar(0.0))
+        if slip > scalar(0.0):
+            v_out = vt * (slip / vt_len)
+        return x_out + dt * (v_out - vt), v_out
 
     return plane_distance, sphere_distance, contact_response
 
@@ -83,13 +89,15 @@ def project_contacts_func(scalar: type, shape_types: tuple):
         x: vec3,
         v: vec3,
         radius: scalar,
+        dt: scalar,
         # Model:
         shape_type: wp.array[wp.int32],
         shape_transform: wp.array[transform],
         shape_size: wp.array[vec3],
         shape_friction: wp.array[scalar],
     ):
-        """Resolve the contacts of one particle (position x [m], velocity v [m/s], radius [m])."""
+        """Resolve the contacts of one particle (position x [m], velocity v [m/s], radius [m]) after a
+        step of ``dt`` [s]."""
         for s in range(shape_type.shape[0]):
             X = shape_transform[s]
             p = wp.transform_point(wp.transform_inverse(X), x)
@@ -102,7 +110,7 @@ def project_contacts_func(scalar: type, shape_types: tuple):
             if wp.static(has_sphere):
                 if kind == SHAPE_SPHERE:
                     distance, normal = sphere_distance(p, shape_size[s][0])
-            x, v = contact_response(x, v, radius, distance, wp.transform_vector(X, normal), shape_friction[s])
+            x, v = contact_response(x, v, radius, distance, wp.transform_vector(X, normal), shape_friction[s], dt)
         return x, v
 
     return project_contacts
@@ -124,6 +132,7 @@ def project_contacts_kernel(scalar: type, shape_types: tuple):
         shape_transform: wp.array[transform],
         shape_size: wp.array[vec3],
         shape_friction: wp.array[scalar],
+        dt: scalar,
         # State in/out:
         particle_q_in_out: wp.array[vec3],
         particle_qd_in_out: wp.array[vec3],
@@ -135,6 +144,7 @@ def project_contacts_kernel(scalar: type, shape_types: tuple):
             particle_q_in_out[i],
             particle_qd_in_out[i],
             particle_radius[i],
+            dt,
             shape_type,
             shape_transform,
             shape_size,

@@ -67,7 +67,7 @@ def symplectic_euler_update_kernel(scalar: type, shape_types: tuple):
         if wp.static(has_contacts):
             if particle_inv_mass[i] != scalar(0.0):
                 x, v = project_contacts(
-                    x, v, particle_radius[i], shape_type, shape_transform, shape_size, shape_friction
+                    x, v, particle_radius[i], dt, shape_type, shape_transform, shape_size, shape_friction
                 )
         particle_q_out[i] = x
         particle_qd_out[i] = v
@@ -140,7 +140,7 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
         x, v = update(x, v, f, inv_mass, dt)
         if wp.static(has_contacts):
             x, v = project_contacts(
-                x, v, particle_radius[i], shape_type, shape_transform, shape_size, shape_friction
+                x, v, particle_radius[i], dt, shape_type, shape_transform, shape_size, shape_friction
             )
         particle_q_out[i] = x
         particle_qd_out[i] = v

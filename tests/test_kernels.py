@@ -92,12 +92,13 @@ def contact_kernel(scalar):
         radius: scalar,
         sphere_radius: scalar,
         friction: scalar,
+        dt: scalar,
         x_out: wp.array[vec3],
         v_out: wp.array[vec3],
     ):
         t = wp.tid()
         distance, normal = sphere_distance(x[t], sphere_radius)
-        xo, vo = contact_response(x[t], v[t], radius, distance, normal, friction)
+        xo, vo = contact_response(x[t], v[t], radius, distance, normal, friction, dt)
         x_out[t] = xo
         v_out[t] = vo
 
@@ -106,11 +107,12 @@ def contact_kernel(scalar):
 
 def test_sphere_contact_response_matches_reference(device, precision):
     """Penetrating particles are projected to |x| = R + r; approaching normal velocity is removed and
-    the tangential speed drops by μ·|v_n| (to zero when smaller: sticking); others are untouched."""
+    the tangential speed drops by μ·|v_n| (to zero when smaller: sticking), the position moving by h
+    times that tangential change; others are untouched."""
     scalar = scalar_type(precision)
     vec3 = vec3_type(scalar)
     rng = np.random.default_rng(11)
-    n, R, r, mu = 400, 0.5, 0.02, 0.4
+    n, R, r, mu, h = 400, 0.5, 0.02, 0.4, 0.01
     direction = rng.normal(size=(n, 3))
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
     x = direction * rng.uniform(0.3, 0.6, (n, 1))
@@ -119,7 +121,7 @@ def test_sphere_contact_response_matches_reference(device, precision):
     wp.launch(
         contact_kernel(scalar),
         dim=n,
-        inputs=[wp.array(x, dtype=vec3, device=device), wp.array(v, dtype=vec3, device=device), r, R, mu],
+        inputs=[wp.array(x, dtype=vec3, device=device), wp.array(v, dtype=vec3, device=device), r, R, mu, h],
         outputs=[x_out, v_out],
         device=device,
     )
@@ -127,12 +129,13 @@ def test_sphere_contact_response_matches_reference(device, precision):
 
     dist = np.linalg.norm(x, axis=1)
     inside = dist < R + r
-    x_ref = np.where(inside[:, None], direction * (R + r), x)
     vn = np.sum(v * direction, axis=1)
     vt = v - vn[:, None] * direction
     vt_len = np.linalg.norm(vt, axis=1)
     scale = np.clip(vt_len + mu * np.minimum(vn, 0.0), 0.0, None) / vt_len
-    v_ref = np.where((inside & (vn < 0))[:, None], vt * scale[:, None], v)
+    approaching = (inside & (vn < 0))[:, None]
+    v_ref = np.where(approaching, vt * scale[:, None], v)
+    x_ref = np.where(inside[:, None], direction * (R + r), x) + np.where(approaching, h * (v_ref - vt), 0.0)
     np.testing.assert_allclose(x_out, x_ref, **TOLERANCE[precision])
     np.testing.assert_allclose(v_out, v_ref, **TOLERANCE[precision])
     assert inside.sum() > 50 and (~inside).sum() > 50  # both branches exercised

@@ -21,10 +21,9 @@ from warpspring.trade import (
     choose,
     fit_order,
     pareto_front,
-    read_csv,
     run_study,
-    write_csv,
 )
+from warpspring.trade_report import read_csv, write_csv
 
 
 def row(integrator="rk4", wall=1e-3, error=1e-4, *, dt=1e-3, tolerance=None, problem="cloth", status="ok",

@@ -345,3 +345,50 @@ def test_uv_seams_are_written_face_varying(tmp_path):
     assert st.GetInterpolation() == UsdGeom.Tokens.faceVarying
     np.testing.assert_allclose(np.array(st.Get()), model.meshes[0].uvs.reshape(-1, 2))
     assert list(mesh.GetFaceVertexIndicesAttr().Get()) == [0, 1, 2, 0, 2, 3, 1, 4, 2]
+
+
+def test_two_cloths_are_separate_meshes_with_local_indices_and_unique_names(tmp_path, device):
+    """Cloths "sail", "flag" and a second "sail" in one model: three meshes under /World named sail, flag
+    and sail_1 (a repeated name gets a suffix), each with its own particle slice as points every frame
+    and face indices local to it (0-based, below its vertex count), and topology matching its grid."""
+    builder = ws.ModelBuilder()
+    shapes = {"sail": (3, 4), "flag": (5, 2), "sail_1": (2, 3)}  # (nx, ny): all different, so slices cannot mix
+    grids = {}
+    for (label, (nx, ny)), origin in zip(shapes.items(), ([0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 2.0])):
+        grids[label] = builder.add_cloth_grid(
+            nx=nx, ny=ny, spacing=SPACING, mass=0.1, origin=origin, structural=SOFT, shear=SOFT, bend=SOFT,
+            name="sail" if label.startswith("sail") else label,
+        )
+    model = builder.finalize(device)
+    assert [m.name for m in model.meshes] == ["sail", "flag", "sail_1"]
+
+    rng = np.random.default_rng(3)
+    q0 = model.particle_q.numpy().astype(np.float64)
+    frames = [q0 + rng.normal(scale=0.01, size=q0.shape) for _ in range(3)]  # every particle distinct per frame
+    path = tmp_path / "two.usdc"
+    write(path, model, frames)
+
+    stage = Usd.Stage.Open(str(path))
+    meshes = [p.GetName() for p in stage.GetPrimAtPath("/World").GetChildren() if p.IsA(UsdGeom.Mesh)]
+    assert sorted(meshes) == sorted(shapes)
+    start = face_start = 0
+    for group in model.meshes:
+        nx, ny = shapes[group.name]
+        ids = grids[group.name].ravel()
+        np.testing.assert_array_equal(ids, np.arange(start, start + nx * ny))  # consecutive global slice
+        np.testing.assert_array_equal(group.particles, ids)
+        start += nx * ny
+
+        mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/{group.name}"))
+        assert mesh, f"no UsdGeom.Mesh at /World/{group.name}"
+        assert samples(mesh.GetPointsAttr()) == [0.0, 1.0, 2.0]
+        for k, q in enumerate(frames):
+            np.testing.assert_allclose(np.array(mesh.GetPointsAttr().Get(k)), q[ids], rtol=0, atol=1e-6)
+        indices = np.array(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+        assert len(indices) == 2 * (nx - 1) * (ny - 1)
+        assert indices.min() == 0 and indices.max() == nx * ny - 1  # local: 0-based within this mesh
+        np.testing.assert_array_equal(indices, group.faces)
+        np.testing.assert_array_equal(ids[indices], model.tri_indices.numpy()[face_start : face_start + len(indices)])
+        face_start += len(indices)  # the model's global triangles are the meshes' local ones, in mesh order
+        assert len(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st").Get()) == nx * ny
+    assert start == model.particle_count and face_start == model.tri_count

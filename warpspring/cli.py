@@ -136,7 +136,8 @@ def _cmd_trade(args) -> int:
     import warp as wp
 
     from .runner import resolve_device
-    from .trade import FULL, QUICK, convergence_orders, run_study, write_report
+    from .trade import FULL, QUICK, convergence_orders, run_study
+    from .trade_report import write_report
 
     checks.output_dir(args.out)  # fail before the study runs, not after
     pyplot("the trade plots")
@@ -163,7 +164,8 @@ def _cmd_trade(args) -> int:
 
 
 def _cmd_choose(args) -> int:
-    from .trade import choose, read_csv
+    from .trade import choose
+    from .trade_report import read_csv
 
     choice = choose(read_csv(args.study), args.error, time_budget=args.budget, problem=args.problem)
     print(choice.explanation)

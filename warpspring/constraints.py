@@ -34,7 +34,7 @@ class StepFinisher:
     def __call__(self, state: State, dt: float) -> None:
         model = self.model
         if self.only_contacts:
-            apply_contacts(model, state)
+            apply_contacts(model, state, dt)
             return
         common = dict(dim=model.particle_count, block_dim=model.block_dim, device=model.device)
         corrected = state.particle_q

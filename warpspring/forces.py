@@ -71,8 +71,9 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
                       block_dim=model.block_dim, inputs=[out], device=model.device)
 
 
-def apply_contacts(model: Model, state: State) -> None:
-    """Project the free particles of ``state`` out of the colliders, with friction, in place."""
+def apply_contacts(model: Model, state: State, dt: float) -> None:
+    """Project the free particles of ``state`` out of the colliders, with friction, in place; ``dt`` [s]
+    is the step that produced ``state`` (friction's change of velocity moves the position by dt·Δv)."""
     if model.shape_count == 0:
         return
     wp.launch(
@@ -86,6 +87,7 @@ def apply_contacts(model: Model, state: State) -> None:
             model.shape_transform,
             model.shape_size,
             model.shape_friction,
+            model.scalar(dt),
         ],
         outputs=[state.particle_q, state.particle_qd],
         device=model.device,
