@@ -359,13 +359,12 @@ class ModelBuilder:
                 mesh = trimesh.load(path, force="mesh", process=False)
             except Exception as exc:  # trimesh raises many types for unreadable files
                 raise ConfigError(f"cannot read mesh file {path}: {exc}") from None
-        if isinstance(mesh, trimesh.Trimesh):
+        loaded = isinstance(mesh, trimesh.Trimesh)
+        if loaded:
             vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
             visual_uv = getattr(getattr(mesh, "visual", None), "uv", None)
             if visual_uv is not None and len(visual_uv) == len(vertices):
                 uv = np.asarray(visual_uv, dtype=np.float64)
-            # Loaders split a vertex wherever its UVs differ (a texture seam); the cloth must not tear there.
-            vertices, faces, uv = _weld_seams(_points("mesh vertices", vertices), faces, uv)
         else:
             if faces is None:
                 raise ConfigError("add_cloth_mesh needs faces= when the mesh is given as a vertex array")
@@ -377,6 +376,8 @@ class ModelBuilder:
         if faces.ndim != 2 or faces.shape[1] != 3:
             raise ConfigError(f"mesh faces must be triangles, shape [t, 3], got {faces.shape}")
         faces = _indices("mesh face vertex", faces, len(vertices)).reshape(-1, 3)
+        if loaded:  # loaders split a vertex wherever its UVs differ (a texture seam): the cloth must not tear
+            vertices, faces, uv = _weld_seams(vertices, faces, uv)
         scale = checks.positive("scale", scale)
 
         tri = trimesh.Trimesh(vertices * scale, faces, process=False, validate=False)
@@ -608,13 +609,12 @@ def _quaternion(value) -> np.ndarray:
     return q / np.linalg.norm(q)
 
 
-def _weld_seams(vertices: np.ndarray, faces, uv: np.ndarray | None):
+def _weld_seams(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray | None):
     """Merge vertices at identical positions, keeping the order of their first appearance; with a
     merge, UVs move to the triangle corners, shape [t, 3, 2]."""
-    faces = np.asarray(faces)
     _, first, inverse = np.unique(vertices, axis=0, return_index=True, return_inverse=True)
-    if len(first) == len(vertices) or faces.size == 0 or faces.min() < 0 or faces.max() >= len(vertices):
-        return vertices, faces, uv  # nothing to weld (bad indices are reported by the caller)
+    if len(first) == len(vertices):
+        return vertices, faces, uv
     order = np.argsort(first)
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))

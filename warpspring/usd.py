@@ -60,7 +60,7 @@ class UsdWriter:
     ):
         from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
-        self._Usd, self._UsdGeom, self._Vt = Usd, UsdGeom, Vt
+        self._Usd, self._UsdGeom, self._Vt, self._Tf = Usd, UsdGeom, Vt, Tf
         path = check_output_path(path)
         ext = os.path.splitext(path)[1].lower()
         fps = checks.positive("fps", fps)
@@ -200,11 +200,9 @@ class UsdWriter:
         now = time.monotonic()
         if self._text and not force and now - self._last_save < self._save_interval:
             return
-        from pxr import Tf
-
         try:
             saved = self.stage.GetRootLayer().Save()
-        except Tf.ErrorException as exc:
+        except self._Tf.ErrorException as exc:
             saved, why = False, f": {exc}"
         else:
             why = ""
