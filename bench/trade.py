@@ -1,4 +1,4 @@
-"""Integrators: error against cost, measured. The same as ``warpspring trade`` (see ``warpspring.trade``).
+"""Integrators: error against cost, measured. The same as ``warpspring trade`` (see ``warpspring.analysis.trade``).
 
 Every registered integrator × step × precision on the seed spring (45 kg, 75 N), a stiff lightly
 damped spring and the ANCHORS hanging cloth: wall time per simulated second (graph replays, device

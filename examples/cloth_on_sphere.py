@@ -13,7 +13,7 @@ import trimesh
 import warp as wp
 
 import warpspring as ws
-from warpspring.usd import UsdWriter
+from warpspring.io.usd import UsdWriter
 
 
 def disc_mesh(radius: float, cells: int) -> trimesh.Trimesh:

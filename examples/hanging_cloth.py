@@ -13,7 +13,7 @@ import numpy as np
 import warp as wp
 
 import warpspring as ws
-from warpspring.usd import UsdWriter
+from warpspring.io.usd import UsdWriter
 
 
 class Example:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.integrate import quad, solve_ivp
 
-from warpspring.analytic import DampedOscillator
+from warpspring.analysis.analytic import DampedOscillator
 from warpspring.errors import ConfigError
 
 CASES = {

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import warpspring as ws
-from warpspring.transforms import quat_to_matrix
+from warpspring.core.transforms import quat_to_matrix
 
 
 def grid_model(nx=5, ny=4, **options):

@@ -256,7 +256,7 @@ def test_study_output_that_is_a_file_fails_before_the_study_runs(tmp_path, capsy
 
 def test_usd_save_failure_exits_4_with_one_line(tmp_path, capsys, monkeypatch):
     """A USD file that cannot be saved mid-run (full disk) ends with exit 4 and one line naming the file."""
-    from warpspring.usd import UsdWriter
+    from warpspring.io.usd import UsdWriter
 
     def failing_save(self, force=False):
         if self.frame_count >= 2:

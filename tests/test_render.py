@@ -8,7 +8,7 @@ import matplotlib.pyplot as plt
 from pxr import Usd, UsdGeom
 
 from warpspring.errors import ConfigError
-from warpspring.render import _BACKGROUND, render_usd
+from warpspring.io.render import _BACKGROUND, render_usd
 
 WIDTH = 160
 BALL = ((0.0, 0.0, 0.0), 0.5)  # center, radius

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import warpspring as ws
-from warpspring.scene import load_scene, parse_scene
+from warpspring.io.scene import load_scene, parse_scene
 
 EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"
 

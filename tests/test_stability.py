@@ -12,8 +12,8 @@ import pytest
 
 import warpspring as ws
 from helpers import ZERO_GRAVITY, hanging_cloth
-from warpspring import stability as st
-from warpspring import stability_map as sm
+from warpspring.analysis import stability as st
+from warpspring.analysis import stability_map as sm
 
 FIXED_STEP = [name for name in ws.INTEGRATORS if name != "dopri5"]
 

@@ -1,4 +1,4 @@
-"""The speed/accuracy study machinery (warpspring.trade): order fits, the spring-mass set-up against its closed
+"""The speed/accuracy study machinery (warpspring.analysis.trade): order fits, the spring-mass set-up against its closed
 form, the tolerance knob, and the report files. The convergence orders of the integrators themselves are
 tested with the integrators.
 
@@ -12,7 +12,7 @@ import pytest
 
 from warpspring.cli import EXIT_CONFIG, main
 from warpspring.errors import ConfigError
-from warpspring.trade import (
+from warpspring.analysis.trade import (
     SEED,
     Measurement,
     SpringProblem,
@@ -23,7 +23,7 @@ from warpspring.trade import (
     pareto_front,
     run_study,
 )
-from warpspring.trade_report import read_csv, write_csv
+from warpspring.analysis.trade_report import read_csv, write_csv
 
 
 def row(integrator="rk4", wall=1e-3, error=1e-4, *, dt=1e-3, tolerance=None, problem="cloth", status="ok",

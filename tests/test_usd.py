@@ -10,7 +10,7 @@ import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdValidation
 
 import warpspring as ws
-from warpspring.usd import UsdWriter
+from warpspring.io.usd import UsdWriter
 
 NX, NY, SPACING = 4, 5, 0.1  # nx ≠ ny, so a transposed grid or uv layout cannot pass
 SOFT = ws.SpringMaterial(ke=10.0, kd=0.01)

@@ -104,8 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
 def _cmd_run(args) -> int:
     import warp as wp
 
-    from .runner import run_scene
-    from .scene import load_scene
+    from .io.runner import run_scene
+    from .io.scene import load_scene
 
     wp.config.log_level = wp.LOG_WARNING  # no init banner or module-load lines in CLI output
     scene = load_scene(args.scene)
@@ -125,7 +125,7 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_render(args) -> int:
-    from .render import render_usd
+    from .io.render import render_usd
 
     path = render_usd(args.usd, args.output, frame=args.frame, width=args.size)
     print(f"wrote {path}")
@@ -135,9 +135,9 @@ def _cmd_render(args) -> int:
 def _cmd_trade(args) -> int:
     import warp as wp
 
-    from .runner import resolve_device
-    from .trade import FULL, QUICK, convergence_orders, run_study
-    from .trade_report import write_report
+    from .io.runner import resolve_device
+    from .analysis.trade import FULL, QUICK, convergence_orders, run_study
+    from .analysis.trade_report import write_report
 
     checks.output_dir(args.out)  # fail before the study runs, not after
     pyplot("the trade plots")
@@ -164,8 +164,8 @@ def _cmd_trade(args) -> int:
 
 
 def _cmd_choose(args) -> int:
-    from .trade import choose
-    from .trade_report import read_csv
+    from .analysis.trade import choose
+    from .analysis.trade_report import read_csv
 
     choice = choose(read_csv(args.study), args.error, time_budget=args.budget, problem=args.problem)
     print(choice.explanation)
@@ -177,8 +177,9 @@ def _cmd_stability(args) -> int:
 
     import warp as wp
 
-    from .runner import resolve_device
-    from .stability_map import FULL, QUICK, run_map, to_markdown, write_report
+    from .io.runner import resolve_device
+    from .analysis.stability_map import FULL, QUICK, run_map
+    from .analysis.stability_map_report import to_markdown, write_report
 
     checks.output_dir(args.out)  # fail before the map runs, not after
     pyplot("the stability plots")

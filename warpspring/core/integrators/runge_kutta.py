@@ -12,7 +12,7 @@ import numpy as np
 import warp as wp
 
 from ..forces import eval_forces
-from ..kernels.integrators import rk_combine_kernel
+from ...kernels.integrators import rk_combine_kernel
 from ..model import Control, Model, State
 from .base import Integrator
 

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import ConfigError
-from .plotting import pyplot
+from ..errors import ConfigError
+from ..plotting import pyplot
 
 _ELEVATION, _AZIMUTH = 18.0, -62.0  # direction from the scene to the camera [deg] (matplotlib's view_init)
 _FOV = 30.0  # vertical field of view [deg]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import inspect
 
-from ..errors import ConfigError
+from ...errors import ConfigError
 from .base import Integrator
 from .dopri5 import DormandPrince
 from .implicit_euler import ImplicitEuler

@@ -25,11 +25,11 @@ import time
 import numpy as np
 import warp as wp
 
-from . import checks
-from .errors import ConfigError, SimulationError
-from .kernels.geometry import vertex_normal_kernels
-from .model import Model, State
-from .transforms import quat_to_matrix
+from .. import checks
+from ..errors import ConfigError, SimulationError
+from ..kernels.geometry import vertex_normal_kernels
+from ..core.model import Model, State
+from ..core.transforms import quat_to_matrix
 
 _EXTENSIONS = (".usdc", ".usda", ".usd")
 
@@ -93,7 +93,7 @@ class UsdWriter:
         stage.SetFramesPerSecond(self.fps)
         stage.SetStartTimeCode(0.0)
         stage.SetEndTimeCode(1.0)
-        from . import __version__
+        from .. import __version__
 
         stage.GetRootLayer().customLayerData = {"generator": f"warpspring {__version__} (warp {wp.__version__})"}
 

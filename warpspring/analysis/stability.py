@@ -60,13 +60,13 @@ from fractions import Fraction
 import numpy as np
 import warp as wp
 
-from . import checks
-from .checks import format_duration
-from .errors import ConfigError
-from .integrators import INTEGRATORS, ExplicitRungeKutta, ImplicitEuler, SymplecticEuler, VelocityVerlet
-from .kernels.linalg import reduce_launch_dim
-from .kernels.stability import PI_LAMBDA, PI_RESIDUAL, PI_SCALARS, power_iteration_kernels
-from .model import Model, State
+from .. import checks
+from ..checks import format_duration
+from ..errors import ConfigError
+from ..core.integrators import INTEGRATORS, ExplicitRungeKutta, ImplicitEuler, SymplecticEuler, VelocityVerlet
+from ..kernels.linalg import reduce_launch_dim
+from ..kernels.stability import PI_LAMBDA, PI_RESIDUAL, PI_SCALARS, power_iteration_kernels
+from ..core.model import Model, State
 
 #: Estimates of ω_max (see :func:`advise`).
 OMEGA_ESTIMATES = ("power_iteration", "gershgorin")

@@ -11,12 +11,12 @@ import os
 import sys
 from dataclasses import dataclass, field
 
-from .builder import DEFAULT_BEND, DEFAULT_SHEAR, DEFAULT_STRUCTURAL, ModelBuilder, SpringMaterial
-from .errors import ConfigError
-from .guards import GuardLimits
-from .integrators import INTEGRATORS
-from .model import Stabilizers
-from .transforms import quat_from_axis_angle
+from ..core.builder import DEFAULT_BEND, DEFAULT_SHEAR, DEFAULT_STRUCTURAL, ModelBuilder, SpringMaterial
+from ..errors import ConfigError
+from ..core.guards import GuardLimits
+from ..core.integrators import INTEGRATORS
+from ..core.model import Stabilizers
+from ..core.transforms import quat_from_axis_angle
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -12,7 +12,7 @@ time per simulated second and the error against a reference, on three problems:
   for 1 s.
 
 The springs are one particle tied by a spring to a pinned anchor, moving along x without gravity: the
-closed form of :class:`~warpspring.analytic.DampedOscillator` is the reference. The cloth's reference is
+closed form of :class:`~warpspring.analysis.analytic.DampedOscillator` is the reference. The cloth's reference is
 a float64 RK4 run (the highest-order fixed-step integrator when RK4 is not registered) at a step
 ``REFERENCE_REFINEMENT`` times smaller than the finest one tested.
 
@@ -27,7 +27,7 @@ fixed output interval instead of over steps.
 
 Only the integrator steps are timed: no Simulator run-time guards, no export.
 
-Outputs (:func:`warpspring.trade_report.write_report`): ``trade.csv`` (every measurement), ``trade.md`` (tables with the fitted
+Outputs (:func:`warpspring.analysis.trade_report.write_report`): ``trade.csv`` (every measurement), ``trade.md`` (tables with the fitted
 convergence orders), ``pareto.png`` (error against cost), ``convergence.png`` (error against step, with
 fitted orders) and ``seed.png`` (x(t) and v(t) of the seed block under each integrator against the
 exact solution). :func:`choose` picks the cheapest measured configuration that meets an error target.
@@ -48,12 +48,12 @@ import numpy as np
 import warp as wp
 
 from .analytic import DampedOscillator
-from .builder import ModelBuilder, SpringMaterial
-from .checks import format_duration
-from .errors import ConfigError, SimulationError
-from .integrators import INTEGRATORS, Integrator, make_integrator
+from ..core.builder import ModelBuilder, SpringMaterial
+from ..checks import format_duration
+from ..errors import ConfigError, SimulationError
+from ..core.integrators import INTEGRATORS, Integrator, make_integrator
 from .stability import estimate_omega_max
-from .model import Control, Model
+from ..core.model import Control, Model
 
 #: A run whose position error exceeds this many times the problem's length scale has blown up.
 BLOWUP_FACTOR = 10.0
@@ -885,7 +885,7 @@ def choose(study_rows, target_error: float, *, time_budget: float | None = None,
     ``time_budget`` if given; when none does, an adaptive integrator with a tolerance.
 
     Args:
-        study_rows: :class:`Measurement` rows (from :func:`run_study` or :func:`warpspring.trade_report.read_csv`).
+        study_rows: :class:`Measurement` rows (from :func:`run_study` or :func:`warpspring.analysis.trade_report.read_csv`).
         target_error: the largest acceptable max position error [m].
         time_budget: the most wall time per simulated second [s/s], or ``None`` for no limit.
         problem: use only the rows of this problem; needed when the rows hold several.

@@ -8,10 +8,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from . import checks
-from .errors import ConfigError
-from .kernels.forces import ForceFeatures, SpringLaw
-from .kernels.precision import vec3_type
+from .. import checks
+from ..errors import ConfigError
+from ..kernels.forces import ForceFeatures, SpringLaw
+from ..kernels.precision import vec3_type
 
 
 @dataclass(frozen=True)

@@ -16,9 +16,9 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .. import checks
+from ... import checks
 from ..forces import eval_forces
-from ..kernels.integrators import (
+from ...kernels.integrators import (
     STEP_ACCEPTED,
     STEP_ERROR,
     STEP_FAILED,

@@ -8,10 +8,10 @@ from dataclasses import dataclass
 
 import warp as wp
 
-from .errors import ConfigError, SimulationError
-from .integrators import make_integrator
+from ..errors import ConfigError, SimulationError
+from ..core.integrators import make_integrator
 from .scene import Scene, check_run_settings
-from .simulation import Simulator
+from ..core.simulator import Simulator
 
 
 @dataclass
@@ -156,7 +156,7 @@ def run_scene(
 
 
 def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = False):
-    """The stability advisor's verdict on a run (:func:`warpspring.stability.advise`).
+    """The stability advisor's verdict on a run (:func:`warpspring.analysis.stability.advise`).
 
     Biphasic springs are judged by their stiffer branch. ω_max comes from power iteration on GPUs and
     on CPUs for models up to ``POWER_ITERATION_CPU_LIMIT`` particles, else from the (conservative)
@@ -165,7 +165,7 @@ def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = F
     Raises:
         ConfigError: with ``strict``, when ``dt`` is outside the integrator's stability limit.
     """
-    from .stability import advise
+    from ..analysis.stability import advise
 
     cheap = not model.device.is_cuda and model.particle_count > POWER_ITERATION_CPU_LIMIT
     return advise(model, integrator, dt, fps=fps, strict=strict,

@@ -7,7 +7,7 @@ from __future__ import annotations
 import warp as wp
 
 from ..forces import eval_forces, force_inputs
-from ..kernels.integrators import symplectic_euler_kernel, symplectic_euler_update_kernel
+from ...kernels.integrators import symplectic_euler_kernel, symplectic_euler_update_kernel
 from ..model import Control, State
 from .base import Integrator
 

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from . import checks
-from .kernels.guards import (
+from .. import checks
+from ..kernels.guards import (
     GUARD_ENERGY,
     GUARD_FLOATS,
     GUARD_INTS,
@@ -29,7 +29,7 @@ from .kernels.guards import (
     NO_PARTICLE,
     guard_kernels,
 )
-from .kernels.linalg import reduce_launch_dim
+from ..kernels.linalg import reduce_launch_dim
 from .model import Model, State
 
 #: Default limit of the kinetic energy, as a multiple of the scene's energy scale (see GuardLimits).

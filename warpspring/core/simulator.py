@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import warp as wp
 
-from . import checks
-from .errors import ConfigError, SimulationError
+from .. import checks
+from ..errors import ConfigError, SimulationError
 from .guards import Guard, GuardLimits
 from .integrators import Integrator, SymplecticEuler
 from .model import Control, Model, State

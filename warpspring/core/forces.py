@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import warp as wp
 
-from .kernels.contacts import project_contacts_kernel
-from .kernels.forces import clamp_forces_kernel, eval_forces_kernel, spring_scatter_kernel
+from ..kernels.contacts import project_contacts_kernel
+from ..kernels.forces import clamp_forces_kernel, eval_forces_kernel, spring_scatter_kernel
 from .model import Control, Model, State
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import warp as wp
 
 from ..forces import eval_forces
-from ..kernels.integrators import verlet_kernels
+from ...kernels.integrators import verlet_kernels
 from ..model import Control, Model, State
 from .base import Integrator
 

@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import warp as wp
 
-from .. import checks
-from ..errors import ConfigError
+from ... import checks
+from ...errors import ConfigError
 from ..forces import eval_forces
-from ..kernels.implicit import implicit_kernels
-from ..kernels.linalg import CG_BB, CG_RR_LAST, CG_SCALARS, cg_kernels, reduce_launch_dim
-from ..kernels.precision import mat33_type
+from ...kernels.implicit import implicit_kernels
+from ...kernels.linalg import CG_BB, CG_RR_LAST, CG_SCALARS, cg_kernels, reduce_launch_dim
+from ...kernels.precision import mat33_type
 from ..model import Control, Model, State
 from .base import Integrator
 

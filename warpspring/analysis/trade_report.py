@@ -1,5 +1,5 @@
 """The speed/accuracy study's files: its measurements as CSV (read back by ``warpspring choose``), a
-Markdown report, and the Pareto, convergence and seed plots (:mod:`warpspring.trade` measures)."""
+Markdown report, and the Pareto, convergence and seed plots (:mod:`warpspring.analysis.trade` measures)."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import os
 
 import numpy as np
 
-from . import checks
-from .errors import ConfigError
-from .integrators import INTEGRATORS
-from .plotting import pyplot
+from .. import checks
+from ..errors import ConfigError
+from ..core.integrators import INTEGRATORS
+from ..plotting import pyplot
 from .trade import (
     ASYMPTOTIC_CEILING,
     ASYMPTOTIC_OMEGA_H,
@@ -108,7 +108,7 @@ def to_markdown(study: Study) -> str:
         if isinstance(problem, SpringProblem):
             lines += [
                 "",
-                "Reference: the closed form (warpspring.analytic.DampedOscillator). Errors are |x − x_exact| over "
+                "Reference: the closed form (warpspring.analysis.analytic.DampedOscillator). Errors are |x − x_exact| over "
                 "every step (max, RMS) and at the end; energy drift is (E − E_exact) at the end over the "
                 "oscillation energy E(0) − E(rest).",
             ]

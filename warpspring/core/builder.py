@@ -13,10 +13,10 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from . import checks
-from .errors import ConfigError
-from .kernels.contacts import SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
-from .kernels.precision import scalar_type, transform_type, vec3_type
+from .. import checks
+from ..errors import ConfigError
+from ..kernels.contacts import SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
+from ..kernels.precision import scalar_type, transform_type, vec3_type
 from .model import MeshGroup, Model, ShapeInfo, Stabilizers
 from .transforms import quat_between, quat_to_matrix
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import warp as wp
 
 from .forces import apply_contacts
-from .kernels.constraints import finish_step_kernel, strain_limit_kernel
+from ..kernels.constraints import finish_step_kernel, strain_limit_kernel
 from .model import Model, State
 
 
