@@ -1,7 +1,8 @@
 """Post-step passes: Provot strain limiting, speed clamping and contact projection.
 
 Strain limiting (Provot 1995) shortens every spring longer than (1 + ε)·L back to that length by moving
-its two ends along the spring, each by its share of the inverse mass (a pinned end does not move).
+its two ends along the spring, each by its share of the inverse mass (a kinematic end does not move).
+The limit ε and the speed limit are live inputs (``inputs.py``): changing them compiles nothing.
 It runs as Jacobi passes over the incidence table: each particle moves by the average of the
 corrections its over-stretched springs ask for, reading one position buffer and writing another (so
 the result does not depend on thread order). The finishing pass then turns the total displacement
@@ -13,24 +14,29 @@ import functools
 import warp as wp
 
 from .contacts import project_contacts_func
+from .inputs import INPUT_MAX_SPEED, INPUT_MAX_STRAIN
+from .kinematics import is_kinematic, particle_funcs
 from .precision import transform_type, vec3_type
 
 wp.set_module_options({"enable_backward": False})
 
 
 @functools.cache
-def strain_limit_kernel(scalar: type, slots: int, max_strain: float):
-    """One Jacobi pass of strain limiting at strain ``max_strain`` over an incidence table of ``slots`` slots."""
+def strain_limit_kernel(scalar: type, slots: int):
+    """One Jacobi pass of strain limiting at the strain ``INPUT_MAX_STRAIN`` over an incidence table of
+    ``slots`` slots."""
     vec3 = vec3_type(scalar)
-    stretch_limit = scalar(1.0 + max_strain)
+    effective_inv_mass = particle_funcs(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
     def strain_limit(
         # Model:
+        particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array[scalar],
         particle_spring_neighbor: wp.array2d[wp.int32],
         particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
+        inputs: wp.array2d[scalar],
         # In:
         particle_q_in: wp.array[vec3],
         # Out:
@@ -38,7 +44,8 @@ def strain_limit_kernel(scalar: type, slots: int, max_strain: float):
     ):
         i = wp.tid()
         xi = particle_q_in[i]
-        wi = particle_inv_mass[i]
+        wi = effective_inv_mass(particle_flags[i], particle_inv_mass[i])
+        stretch_limit = scalar(1.0) + inputs[0, INPUT_MAX_STRAIN]
         correction = vec3(scalar(0.0))
         violated = scalar(0.0)
         if wi > scalar(0.0):
@@ -48,7 +55,7 @@ def strain_limit_kernel(scalar: type, slots: int, max_strain: float):
                 length = wp.length(d)
                 allowed = stretch_limit * spring_rest_length[particle_spring_id[k, i]]
                 if j != i and length > allowed:
-                    share = wi / (wi + particle_inv_mass[j])
+                    share = wi / (wi + effective_inv_mass(particle_flags[j], particle_inv_mass[j]))
                     correction += d * (share * (length - allowed) / length)
                     violated += scalar(1.0)
         if violated > scalar(0.0):
@@ -59,25 +66,25 @@ def strain_limit_kernel(scalar: type, slots: int, max_strain: float):
 
 
 @functools.cache
-def finish_step_kernel(scalar: type, shape_types: tuple, max_speed, from_displacement: bool):
+def finish_step_kernel(scalar: type, shape_types: tuple, clamp_speed: bool, from_displacement: bool):
     """The finishing pass: Δv = (x - x_before)/h after position corrections (``from_displacement``),
-    speed clamp to ``max_speed`` [m/s] (``None``: off), contact projection against ``shape_types``."""
+    speed clamp to the input ``INPUT_MAX_SPEED`` [m/s] (``clamp_speed``), contact projection against
+    ``shape_types``."""
     vec3 = vec3_type(scalar)
     transform = transform_type(scalar)
     project_contacts = project_contacts_func(scalar, shape_types)
-    clamp_speed = max_speed is not None
-    speed_limit = scalar(max_speed if clamp_speed else 0.0)
     has_contacts = len(shape_types) > 0
 
     @wp.kernel(module="unique", enable_backward=False)
     def finish_step(
         # Model:
-        particle_inv_mass: wp.array[scalar],
+        particle_flags: wp.array[wp.int32],
         particle_radius: wp.array[scalar],
         shape_type: wp.array[wp.int32],
         shape_transform: wp.array[transform],
         shape_size: wp.array[vec3],
         shape_friction: wp.array[scalar],
+        inputs: wp.array2d[scalar],
         # In:
         particle_q_corrected: wp.array[vec3],
         particle_q_before: wp.array[vec3],
@@ -87,7 +94,7 @@ def finish_step_kernel(scalar: type, shape_types: tuple, max_speed, from_displac
         particle_qd_in_out: wp.array[vec3],
     ):
         i = wp.tid()
-        if particle_inv_mass[i] == scalar(0.0):
+        if is_kinematic(particle_flags[i]):
             return
         x = particle_q_in_out[i]
         v = particle_qd_in_out[i]
@@ -95,6 +102,7 @@ def finish_step_kernel(scalar: type, shape_types: tuple, max_speed, from_displac
             x = particle_q_corrected[i]
             v = v + (x - particle_q_before[i]) / dt
         if wp.static(clamp_speed):
+            speed_limit = inputs[0, INPUT_MAX_SPEED]
             speed = wp.length(v)
             if speed > speed_limit:
                 v = v * (speed_limit / speed)

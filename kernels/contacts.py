@@ -17,6 +17,7 @@ import functools
 
 import warp as wp
 
+from .kinematics import is_kinematic
 from .precision import transform_type, vec3_type
 
 wp.set_module_options({"enable_backward": False})
@@ -118,7 +119,7 @@ def project_contacts_func(scalar: type, shape_types: tuple):
 
 @functools.cache
 def project_contacts_kernel(scalar: type, shape_types: tuple):
-    """Kernel applying the contact projection to every free particle of a state, in place."""
+    """Kernel applying the contact projection to every dynamic (not kinematic) particle of a state, in place."""
     vec3 = vec3_type(scalar)
     transform = transform_type(scalar)
     project_contacts = project_contacts_func(scalar, shape_types)
@@ -126,7 +127,7 @@ def project_contacts_kernel(scalar: type, shape_types: tuple):
     @wp.kernel(module="unique", enable_backward=False)
     def project(
         # Model:
-        particle_inv_mass: wp.array[scalar],
+        particle_flags: wp.array[wp.int32],
         particle_radius: wp.array[scalar],
         shape_type: wp.array[wp.int32],
         shape_transform: wp.array[transform],
@@ -138,7 +139,7 @@ def project_contacts_kernel(scalar: type, shape_types: tuple):
         particle_qd_in_out: wp.array[vec3],
     ):
         i = wp.tid()
-        if particle_inv_mass[i] == scalar(0.0):
+        if is_kinematic(particle_flags[i]):
             return
         x, v = project_contacts(
             particle_q_in_out[i],

@@ -17,6 +17,15 @@ from typing import NamedTuple
 
 import warp as wp
 
+from .inputs import (
+    INPUT_BIPHASIC_RATIO,
+    INPUT_BIPHASIC_STRAIN,
+    INPUT_DRAG,
+    INPUT_GRAVITY,
+    INPUT_MAX_PARTICLE_FORCE,
+    INPUT_MAX_SPRING_FORCE,
+    input_funcs,
+)
 from .precision import mat33_type, vec3_type
 
 wp.set_module_options({"enable_backward": False})
@@ -31,17 +40,18 @@ SPRING_KERNEL_OPTIONS = {"fast_math": True}
 
 
 class SpringLaw(NamedTuple):
-    """The spring force law beyond Hooke's spring with an axial damper; ``None`` parts are compiled out.
+    """Which parts of the spring force law beyond Hooke's spring with an axial damper a kernel compiles.
+
+    Only the switches live here; the values (knee strain, stiffness ratio, force limit) are live inputs
+    read from the input table (``inputs.py``), so changing them compiles nothing.
 
     Attributes:
-        biphasic_strain: strain (|d| - L)/L beyond which the spring stiffens, or ``None``.
-        biphasic_ratio: stiffness beyond that strain over stiffness below it [-].
-        max_force: largest magnitude of a spring's force, elastic plus damping [N], or ``None``.
+        biphasic: springs stiffen by ``INPUT_BIPHASIC_RATIO`` beyond the strain ``INPUT_BIPHASIC_STRAIN``.
+        clamp_force: a spring's force magnitude, elastic plus damping, is clamped to ``INPUT_MAX_SPRING_FORCE``.
     """
 
-    biphasic_strain: float | None = None
-    biphasic_ratio: float = 1.0
-    max_force: float | None = None
+    biphasic: bool = False
+    clamp_force: bool = False
 
 
 #: The plain law: f = (ke (|d| - L) + kd (vj - vi)·d̂) d̂.
@@ -49,50 +59,75 @@ HOOKE = SpringLaw()
 
 
 class ForceFeatures(NamedTuple):
-    """Which force terms a kernel evaluates; each absent term is compiled out."""
+    """Which force terms a kernel evaluates; each absent term is compiled out (values come from the inputs)."""
 
     spring_slots: int  # slots of the gathered incidence table (max springs per particle); 0: no gathered springs
     gravity: bool
     drag: bool
     external: bool
     spring_law: SpringLaw = HOOKE
-    max_particle_force: float | None = None  # [N] clamp of the total force on a particle
+    clamp_particle_force: bool = False  # clamp the total force on a particle to INPUT_MAX_PARTICLE_FORCE
+
+
+@functools.cache
+def spring_law_type(scalar: type):
+    """The struct of a spring law's values, read once per thread from the input table."""
+
+    @wp.struct
+    class SpringLawValues:
+        knee_strain: scalar  # strain beyond which a biphasic spring stiffens [-]
+        extra_stiffness: scalar  # stiffness ratio beyond the knee, minus one [-]
+        max_force: scalar  # largest magnitude of a spring's force [N]
+
+    return SpringLawValues
 
 
 @functools.cache
 def spring_funcs(scalar: type, law: SpringLaw = HOOKE):
-    """(spring_force, spring_energy, spring_stiffness_matrix) of one precision and force law."""
+    """(spring_law_values, spring_force, spring_energy, spring_stiffness_matrix) of one precision and law.
+
+    ``spring_law_values(inputs)`` loads the law's values from the input table (only those the law uses);
+    the other three take them as their last argument.
+    """
     vec3 = vec3_type(scalar)
     mat33 = mat33_type(scalar)
-    biphasic = law.biphasic_strain is not None
-    knee_strain = scalar(law.biphasic_strain if biphasic else 0.0)
-    extra_stiffness = scalar(law.biphasic_ratio - 1.0)
-    clamp_force = law.max_force is not None
-    max_force = scalar(law.max_force if clamp_force else 0.0)
+    SpringLawValues = spring_law_type(scalar)
 
     @wp.func
-    def excess(length: scalar, rest: scalar) -> scalar:
+    def spring_law_values(inputs: wp.array2d[scalar]) -> SpringLawValues:
+        """The law's values from row 0 of the input table."""
+        values = SpringLawValues()
+        if wp.static(law.biphasic):
+            values.knee_strain = inputs[0, INPUT_BIPHASIC_STRAIN]
+            values.extra_stiffness = inputs[0, INPUT_BIPHASIC_RATIO] - scalar(1.0)
+        if wp.static(law.clamp_force):
+            values.max_force = inputs[0, INPUT_MAX_SPRING_FORCE]
+        return values
+
+    @wp.func
+    def excess(length: scalar, rest: scalar, values: SpringLawValues) -> scalar:
         """Stretch beyond the biphasic knee [m] (0 below it)."""
-        return wp.max(length - rest * (scalar(1.0) + knee_strain), scalar(0.0))
+        return wp.max(length - rest * (scalar(1.0) + values.knee_strain), scalar(0.0))
 
     @wp.func
-    def tension(length: scalar, rest: scalar, ke: scalar) -> scalar:
+    def tension(length: scalar, rest: scalar, ke: scalar, values: SpringLawValues) -> scalar:
         """Elastic tension T(|d|) [N], positive when stretched."""
         t = ke * (length - rest)
-        if wp.static(biphasic):
-            t += extra_stiffness * ke * excess(length, rest)
+        if wp.static(law.biphasic):
+            t += values.extra_stiffness * ke * excess(length, rest, values)
         return t
 
     @wp.func
-    def tension_slope(length: scalar, rest: scalar, ke: scalar) -> scalar:
+    def tension_slope(length: scalar, rest: scalar, ke: scalar, values: SpringLawValues) -> scalar:
         """dT/d|d| [N/m]."""
-        if wp.static(biphasic):
-            return wp.where(excess(length, rest) > scalar(0.0), ke * (scalar(1.0) + extra_stiffness), ke)
+        if wp.static(law.biphasic):
+            stiffer = ke * (scalar(1.0) + values.extra_stiffness)
+            return wp.where(excess(length, rest, values) > scalar(0.0), stiffer, ke)
         return ke
 
     @wp.func
     def spring_force(
-        xi: vec3, xj: vec3, vi: vec3, vj: vec3, rest: scalar, ke: scalar, kd: scalar
+        xi: vec3, xj: vec3, vi: vec3, vj: vec3, rest: scalar, ke: scalar, kd: scalar, values: SpringLawValues
     ) -> vec3:
         """Force [N] on particle i of the spring (i, j): (T(|d|) + kd (vj - vi)·d̂) d̂, d = xj - xi, with
         T = ke (|d| - L) for Hooke's law (see ``SpringLaw``); its magnitude clamped if the law says so.
@@ -103,13 +138,15 @@ def spring_funcs(scalar: type, law: SpringLaw = HOOKE):
         length = wp.length(d)
         # Branch-free guard (the gather's unrolled slots stay free of branches): n = 0 when coincident.
         n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
-        magnitude = tension(length, rest, ke) + kd * wp.dot(vj - vi, n)
-        if wp.static(clamp_force):
-            magnitude = wp.clamp(magnitude, -max_force, max_force)
+        magnitude = tension(length, rest, ke, values) + kd * wp.dot(vj - vi, n)
+        if wp.static(law.clamp_force):
+            magnitude = wp.clamp(magnitude, -values.max_force, values.max_force)
         return n * magnitude
 
     @wp.func
-    def spring_stiffness_matrix(xi: vec3, xj: vec3, rest: scalar, ke: scalar, clamp: bool) -> mat33:
+    def spring_stiffness_matrix(
+        xi: vec3, xj: vec3, rest: scalar, ke: scalar, clamp: bool, values: SpringLawValues
+    ) -> mat33:
         """∂f_i/∂x_j [N/m] of the spring (i, j): T'(|d|) d̂d̂ᵀ + (T/|d|)(I - d̂d̂ᵀ), for Hooke's law
         ke (d̂d̂ᵀ + (1 - L/|d|)(I - d̂d̂ᵀ)); ∂f_i/∂x_i is its negative. (The force clamp is not
         differentiated: implicit integration linearises the unclamped law.)
@@ -122,31 +159,34 @@ def spring_funcs(scalar: type, law: SpringLaw = HOOKE):
         inv_length = wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
         n = d * inv_length
         nn = wp.outer(n, n)
-        transverse = tension(length, rest, ke) * inv_length
+        transverse = tension(length, rest, ke, values) * inv_length
         if clamp:
             transverse = wp.max(transverse, scalar(0.0))
-        axial = wp.where(length > scalar(COINCIDENT_DISTANCE), tension_slope(length, rest, ke), scalar(0.0))
+        axial = wp.where(
+            length > scalar(COINCIDENT_DISTANCE), tension_slope(length, rest, ke, values), scalar(0.0)
+        )
         return axial * nn + transverse * (wp.identity(n=3, dtype=scalar) - nn)
 
     @wp.func
-    def spring_energy(xi: vec3, xj: vec3, rest: scalar, ke: scalar) -> scalar:
+    def spring_energy(xi: vec3, xj: vec3, rest: scalar, ke: scalar, values: SpringLawValues) -> scalar:
         """Elastic energy [J] of the spring (i, j): ∫ T = ½ ke (|d| - L)² (+ the biphasic excess term)."""
         length = wp.length(xj - xi)
         stretch = length - rest
         energy = scalar(0.5) * ke * stretch * stretch
-        if wp.static(biphasic):
-            e = excess(length, rest)
-            energy += scalar(0.5) * extra_stiffness * ke * e * e
+        if wp.static(law.biphasic):
+            e = excess(length, rest, values)
+            energy += scalar(0.5) * values.extra_stiffness * ke * e * e
         return energy
 
-    return spring_force, spring_energy, spring_stiffness_matrix
+    return spring_law_values, spring_force, spring_energy, spring_stiffness_matrix
 
 
 @functools.cache
 def gather_springs_func(scalar: type, slots: int, law: SpringLaw):
     """Sum of the spring forces on one particle from an ELL incidence table with ``slots`` slots."""
     vec3 = vec3_type(scalar)
-    spring_force, _, _ = spring_funcs(scalar, law)
+    _, spring_force, _, _ = spring_funcs(scalar, law)
+    SpringLawValues = spring_law_type(scalar)
 
     @wp.func
     def gather_spring_forces(
@@ -159,6 +199,7 @@ def gather_springs_func(scalar: type, slots: int, law: SpringLaw):
         spring_rest_length: wp.array[scalar],
         spring_stiffness: wp.array[scalar],
         spring_damping: wp.array[scalar],
+        law_values: SpringLawValues,
         # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
@@ -169,7 +210,14 @@ def gather_springs_func(scalar: type, slots: int, law: SpringLaw):
             j = particle_spring_neighbor[k, i]
             s = particle_spring_id[k, i]
             f += spring_force(
-                xi, particle_q[j], vi, particle_qd[j], spring_rest_length[s], spring_stiffness[s], spring_damping[s]
+                xi,
+                particle_q[j],
+                vi,
+                particle_qd[j],
+                spring_rest_length[s],
+                spring_stiffness[s],
+                spring_damping[s],
+                law_values,
             )
         return f
 
@@ -181,8 +229,8 @@ def particle_force_func(scalar: type, features: ForceFeatures):
     """The force on one particle, specialized for the scene's force terms (springs only when gathered)."""
     vec3 = vec3_type(scalar)
     gather_spring_forces = gather_springs_func(scalar, features.spring_slots, features.spring_law)
-    clamp_force = features.max_particle_force is not None
-    max_force = scalar(features.max_particle_force if clamp_force else 0.0)
+    spring_law_values, _, _, _ = spring_funcs(scalar, features.spring_law)
+    input_vec3 = input_funcs(scalar)
 
     @wp.func
     def particle_force(
@@ -196,8 +244,7 @@ def particle_force_func(scalar: type, features: ForceFeatures):
         spring_rest_length: wp.array[scalar],
         spring_stiffness: wp.array[scalar],
         spring_damping: wp.array[scalar],
-        gravity: vec3,
-        drag: scalar,
+        inputs: wp.array2d[scalar],
         # Control:
         particle_force_ext: wp.array[vec3],
         # State in:
@@ -205,12 +252,13 @@ def particle_force_func(scalar: type, features: ForceFeatures):
         particle_qd: wp.array[vec3],
     ) -> vec3:
         """Force [N] on particle i: m g - drag v + f_ext (+ gathered springs), magnitude clamped if the
-        features say so (with scattered springs the clamp is a separate pass: ``clamp_forces_kernel``)."""
+        features say so (with scattered springs the clamp is a separate pass: ``clamp_forces_kernel``);
+        g, drag and the limits from the input table."""
         f = vec3(scalar(0.0))
         if wp.static(features.gravity):
-            f += particle_mass[i] * gravity
+            f += particle_mass[i] * input_vec3(inputs, INPUT_GRAVITY)
         if wp.static(features.drag):
-            f -= drag * vi
+            f -= inputs[0, INPUT_DRAG] * vi
         if wp.static(features.external):
             f += particle_force_ext[i]
         if wp.static(features.spring_slots > 0):
@@ -223,10 +271,12 @@ def particle_force_func(scalar: type, features: ForceFeatures):
                 spring_rest_length,
                 spring_stiffness,
                 spring_damping,
+                spring_law_values(inputs),
                 particle_q,
                 particle_qd,
             )
-        if wp.static(clamp_force):
+        if wp.static(features.clamp_particle_force):
+            max_force = inputs[0, INPUT_MAX_PARTICLE_FORCE]
             magnitude = wp.length(f)
             if magnitude > max_force:
                 f = f * (max_force / magnitude)
@@ -250,8 +300,7 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures):
         spring_rest_length: wp.array[scalar],
         spring_stiffness: wp.array[scalar],
         spring_damping: wp.array[scalar],
-        gravity: vec3,
-        drag: scalar,
+        inputs: wp.array2d[scalar],
         # Control:
         particle_force_ext: wp.array[vec3],
         # State in:
@@ -271,8 +320,7 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures):
             spring_rest_length,
             spring_stiffness,
             spring_damping,
-            gravity,
-            drag,
+            inputs,
             particle_force_ext,
             particle_q,
             particle_qd,
@@ -285,7 +333,7 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures):
 def spring_scatter_kernel(scalar: type, law: SpringLaw):
     """Kernel adding every spring's force to its two particles (one thread per spring)."""
     vec3 = vec3_type(scalar)
-    spring_force, _, _ = spring_funcs(scalar, law)
+    spring_law_values, spring_force, _, _ = spring_funcs(scalar, law)
 
     @wp.kernel(module="unique", enable_backward=False, module_options=SPRING_KERNEL_OPTIONS)
     def scatter_springs(
@@ -294,6 +342,7 @@ def spring_scatter_kernel(scalar: type, law: SpringLaw):
         spring_rest_length: wp.array[scalar],
         spring_stiffness: wp.array[scalar],
         spring_damping: wp.array[scalar],
+        inputs: wp.array2d[scalar],
         # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
@@ -306,7 +355,7 @@ def spring_scatter_kernel(scalar: type, law: SpringLaw):
         j = ends[1]
         f = spring_force(
             particle_q[i], particle_q[j], particle_qd[i], particle_qd[j],
-            spring_rest_length[s], spring_stiffness[s], spring_damping[s],
+            spring_rest_length[s], spring_stiffness[s], spring_damping[s], spring_law_values(inputs),
         )
         wp.atomic_add(particle_f_in_out, i, f)
         wp.atomic_sub(particle_f_in_out, j, f)
@@ -315,14 +364,14 @@ def spring_scatter_kernel(scalar: type, law: SpringLaw):
 
 
 @functools.cache
-def clamp_forces_kernel(scalar: type, max_force: float):
-    """Kernel clamping the magnitude of every particle's total force to ``max_force`` [N]."""
+def clamp_forces_kernel(scalar: type):
+    """Kernel clamping the magnitude of every particle's total force to the input ``INPUT_MAX_PARTICLE_FORCE`` [N]."""
     vec3 = vec3_type(scalar)
-    limit = scalar(max_force)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def clamp_forces(particle_f_in_out: wp.array[vec3]):
+    def clamp_forces(inputs: wp.array2d[scalar], particle_f_in_out: wp.array[vec3]):
         i = wp.tid()
+        limit = inputs[0, INPUT_MAX_PARTICLE_FORCE]
         f = particle_f_in_out[i]
         magnitude = wp.length(f)
         if magnitude > limit:

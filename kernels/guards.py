@@ -28,6 +28,10 @@ GUARD_INTS = 6
 GUARD_MAX_STRAIN = 0  # largest spring strain (|d|/L - 1) of the check
 GUARD_KINETIC_ENERGY = 1  # Σ ½ m v² of the check [J]
 GUARD_FLOATS = 2
+# float64 slots of the limits: live settings, read by ``decide``
+GUARD_LIMIT_STRAIN = 0  # a spring strain beyond this tears the run [-]
+GUARD_LIMIT_KINETIC_ENERGY = 1  # a total kinetic energy beyond this is a runaway [J]
+GUARD_LIMITS = 2
 # reasons
 GUARD_NONFINITE = 1
 GUARD_STRAIN = 2
@@ -117,8 +121,7 @@ def guard_kernels(scalar: type, slots: int, tiled: bool):
     @wp.kernel(module="unique", enable_backward=False)
     def decide(
         substep: int,
-        max_strain: wp.float64,
-        max_kinetic_energy: wp.float64,
+        limits: wp.array[wp.float64],
         # In/out:
         status: wp.array[wp.int32],
         values: wp.array[wp.float64],
@@ -128,9 +131,9 @@ def guard_kernels(scalar: type, slots: int, tiled: bool):
         reason = 0
         if status[GUARD_NONFINITE_PARTICLE] != NO_PARTICLE or not wp.isfinite(values[GUARD_KINETIC_ENERGY]):
             reason = GUARD_NONFINITE
-        elif values[GUARD_MAX_STRAIN] > max_strain:
+        elif values[GUARD_MAX_STRAIN] > limits[GUARD_LIMIT_STRAIN]:
             reason = GUARD_STRAIN
-        elif values[GUARD_KINETIC_ENERGY] > max_kinetic_energy:
+        elif values[GUARD_KINETIC_ENERGY] > limits[GUARD_LIMIT_KINETIC_ENERGY]:
             reason = GUARD_ENERGY
         if reason != 0:
             status[GUARD_TRIPPED] = reason

@@ -7,16 +7,21 @@ clamped, so Kₛ ⪰ 0) and damper block Dₛ = kd d̂d̂ᵀ, the matrix is neve
     (A p)ᵢ = (mᵢ + h c) pᵢ + Σₛ (h Dₛ + h² Kₛ)(pᵢ - pⱼ)        (c: global drag)
 
 over the particle's incidence table, and also accumulates p·Ap for the conjugate-gradient iteration of
-``linalg.py``. Pinned particles are filtered out (Baraff-Witkin's S): their rows are the identity,
+``linalg.py``. Kinematic particles are filtered out (Baraff-Witkin's S): their rows are the identity,
 their columns are dropped and their right-hand side is zero, so A stays symmetric positive definite
-and their Δv is exactly zero.
+and their Δv is exactly zero. A driven pin j has a prescribed Δvⱼ = zⱼ instead: with its position at t + h
+already written (the kinematics pass), zⱼ = (xⱼ(t + h) - xⱼ)/h - vⱼ, so that the linearisation moves it
+by exactly h (vⱼ + zⱼ) = xⱼ(t + h) - xⱼ, and its dropped column moves to the right-hand side of every
+free neighbour i: bᵢ += (h Dₛ + h² Kₛ) zⱼ.
 """
 
 import functools
 
 import warp as wp
 
-from .forces import SPRING_KERNEL_OPTIONS, SpringLaw, spring_funcs
+from .forces import SPRING_KERNEL_OPTIONS, SpringLaw, spring_funcs, spring_law_type
+from .inputs import INPUT_DRAG
+from .kinematics import is_kinematic
 from .linalg import CG_PAP, reduction_funcs
 from .precision import mat33_type, vec3_type
 
@@ -28,67 +33,86 @@ def implicit_funcs(scalar: type, law: SpringLaw):
     """The per-spring system block h Dₛ + h² Kₛ."""
     vec3 = vec3_type(scalar)
     mat33 = mat33_type(scalar)
-    _, _, spring_stiffness_matrix = spring_funcs(scalar, law)
+    _, _, _, spring_stiffness_matrix = spring_funcs(scalar, law)
+    SpringLawValues = spring_law_type(scalar)
 
     @wp.func
-    def system_block(xi: vec3, xj: vec3, rest: scalar, ke: scalar, kd: scalar, dt: scalar) -> mat33:
+    def system_block(
+        xi: vec3, xj: vec3, rest: scalar, ke: scalar, kd: scalar, dt: scalar, law_values: SpringLawValues
+    ) -> mat33:
         """h kd d̂d̂ᵀ + h² Kₛ [kg/s]: the coupling of particles i and j in A."""
         d = xj - xi
         length = wp.length(d)
         n = d * wp.where(length > scalar(0.0), scalar(1.0) / length, scalar(0.0))
-        return (dt * kd) * wp.outer(n, n) + (dt * dt) * spring_stiffness_matrix(xi, xj, rest, ke, True)
+        return (dt * kd) * wp.outer(n, n) + (dt * dt) * spring_stiffness_matrix(xi, xj, rest, ke, True, law_values)
 
     return system_block
 
 
 @functools.cache
-def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw):
+def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw, drag: bool, driven: bool):
     """(prepare, matvec, update) kernels of one precision, incidence-table width and spring law;
-    ``tiled``: the matvec's p·Ap reduction uses block tiles (CUDA), else per-thread atomics (CPU)."""
+    ``tiled``: the matvec's p·Ap reduction uses block tiles (CUDA), else per-thread atomics (CPU);
+    ``drag``: the viscous drag input enters A; ``driven``: driven pins have been put at t + h (their Δv
+    enters the right-hand side, and the update leaves them where the kinematics pass put them)."""
     vec3 = vec3_type(scalar)
     mat33 = mat33_type(scalar)
     system_block = implicit_funcs(scalar, law)
     accumulate = reduction_funcs(tiled)
-    _, _, spring_stiffness_matrix = spring_funcs(scalar, law)
+    spring_law_values, _, _, spring_stiffness_matrix = spring_funcs(scalar, law)
+
+    @wp.func
+    def mass_term(mass: scalar, inputs: wp.array2d[scalar], dt: scalar) -> scalar:
+        """m + h c [kg]: the diagonal of M - h ∂f/∂v from the mass and the viscous drag c."""
+        if wp.static(drag):
+            return mass + dt * inputs[0, INPUT_DRAG]
+        return mass
 
     @wp.kernel(module="unique", enable_backward=False, module_options=SPRING_KERNEL_OPTIONS)
     def prepare(
         # Model:
+        particle_flags: wp.array[wp.int32],
         particle_mass: wp.array[scalar],
-        particle_inv_mass: wp.array[scalar],
         particle_spring_neighbor: wp.array2d[wp.int32],
         particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
         spring_stiffness: wp.array[scalar],
         spring_damping: wp.array[scalar],
-        drag: scalar,
+        inputs: wp.array2d[scalar],
         # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
         particle_f: wp.array[vec3],
         dt: scalar,
+        particle_q_end: wp.array[vec3],
         # Out:
         rhs: wp.array[vec3],
         diagonal_inverse: wp.array[mat33],
     ):
-        """b = h f + h² ∂f/∂x v and the inverse 3 × 3 diagonal blocks of A (block-Jacobi preconditioner)."""
+        """b = h f + h² ∂f/∂x v (+ the driven pins' columns) and the inverse 3 × 3 diagonal blocks of A
+        (block-Jacobi preconditioner). ``particle_q_end``: positions at t + h of the driven pins."""
         i = wp.tid()
-        if particle_inv_mass[i] == scalar(0.0):
+        if is_kinematic(particle_flags[i]):
             rhs[i] = vec3(scalar(0.0))
             diagonal_inverse[i] = wp.identity(n=3, dtype=scalar)
             return
+        law_values = spring_law_values(inputs)
         xi = particle_q[i]
         vi = particle_qd[i]
         b = dt * particle_f[i]
-        diagonal = (particle_mass[i] + dt * drag) * wp.identity(n=3, dtype=scalar)
+        diagonal = mass_term(particle_mass[i], inputs, dt) * wp.identity(n=3, dtype=scalar)
         for k in range(wp.static(slots)):
             j = particle_spring_neighbor[k, i]
             s = particle_spring_id[k, i]
             xj = particle_q[j]
             rest = spring_rest_length[s]
             ke = spring_stiffness[s]
-            b += (dt * dt) * (spring_stiffness_matrix(xi, xj, rest, ke, True) * (particle_qd[j] - vi))
-            diagonal += system_block(xi, xj, rest, ke, spring_damping[s], dt)
+            b += (dt * dt) * (spring_stiffness_matrix(xi, xj, rest, ke, True, law_values) * (particle_qd[j] - vi))
+            block = system_block(xi, xj, rest, ke, spring_damping[s], dt, law_values)
+            diagonal += block
+            if wp.static(driven):
+                if is_kinematic(particle_flags[j]):
+                    b += block * ((particle_q_end[j] - xj) / dt - particle_qd[j])
         rhs[i] = b
         diagonal_inverse[i] = wp.inverse(diagonal)
 
@@ -96,14 +120,14 @@ def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw):
     def matvec(
         count: int,
         # Model:
+        particle_flags: wp.array[wp.int32],
         particle_mass: wp.array[scalar],
-        particle_inv_mass: wp.array[scalar],
         particle_spring_neighbor: wp.array2d[wp.int32],
         particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
         spring_stiffness: wp.array[scalar],
         spring_damping: wp.array[scalar],
-        drag: scalar,
+        inputs: wp.array2d[scalar],
         # State in:
         particle_q: wp.array[vec3],
         dt: scalar,
@@ -113,22 +137,24 @@ def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw):
         a_p: wp.array[vec3],
         scalars: wp.array[wp.float64],
     ):
-        """Ap (pinned rows: the identity), and p·Ap accumulated into the CG scalars."""
+        """Ap (kinematic rows: the identity), and p·Ap accumulated into the CG scalars."""
         block, lane = wp.tid()
         i = block * wp.block_dim() + lane
         p_ap = wp.float64(0.0)
         if i < count:
             pi = p[i]
             api = pi
-            if particle_inv_mass[i] != scalar(0.0):
+            if not is_kinematic(particle_flags[i]):
+                law_values = spring_law_values(inputs)
                 xi = particle_q[i]
-                api = (particle_mass[i] + dt * drag) * pi
+                api = mass_term(particle_mass[i], inputs, dt) * pi
                 for k in range(wp.static(slots)):
                     j = particle_spring_neighbor[k, i]
                     s = particle_spring_id[k, i]
-                    pj = wp.where(particle_inv_mass[j] == scalar(0.0), vec3(scalar(0.0)), p[j])
+                    pj = wp.where(is_kinematic(particle_flags[j]), vec3(scalar(0.0)), p[j])
                     block_ij = system_block(
-                        xi, particle_q[j], spring_rest_length[s], spring_stiffness[s], spring_damping[s], dt
+                        xi, particle_q[j], spring_rest_length[s], spring_stiffness[s], spring_damping[s], dt,
+                        law_values,
                     )
                     api += block_ij * (pi - pj)
             a_p[i] = api
@@ -137,17 +163,26 @@ def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw):
 
     @wp.kernel(module="unique", enable_backward=False)
     def update(
+        # Model:
+        particle_flags: wp.array[wp.int32],
         # State in:
         particle_q_in: wp.array[vec3],
         particle_qd_in: wp.array[vec3],
+        time_in: wp.array[wp.float64],
         delta_qd: wp.array[vec3],
         dt: scalar,
         # State out:
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
+        time_out: wp.array[wp.float64],
     ):
-        """v' = v + Δv, x' = x + h v'."""
+        """v' = v + Δv, x' = x + h v' (driven pins keep what the kinematics pass wrote)."""
         i = wp.tid()
+        if i == 0:
+            time_out[0] = time_in[0] + wp.float64(dt)
+        if wp.static(driven):
+            if is_kinematic(particle_flags[i]):
+                return
         v = particle_qd_in[i] + delta_qd[i]
         particle_q_out[i] = particle_q_in[i] + dt * v
         particle_qd_out[i] = v

@@ -6,8 +6,13 @@ particle's forces, updates velocity then position, and resolves the particle's c
 forces come precomputed and only the update runs here.
 
 Explicit Runge-Kutta methods share one combination kernel, y = y₀ + Σⱼ wⱼ kⱼ over stage derivatives
-kⱼ = (vⱼ, M⁻¹ fⱼ); velocity Verlet has its drift and kick kernels. Particles with zero inverse mass
-are kinematic everywhere: they move with their velocity and feel no force.
+kⱼ = (vⱼ, M⁻¹ fⱼ); velocity Verlet has its drift and kick kernels. Kinematic particles (their flag
+set, ``kinematics.py``) feel no force anywhere: they move on with their velocity, and a driven pin is
+then put on its prescribed motion by the kinematics pass.
+
+Every kernel that writes a step's (or a stage's) state also writes its time, t_out = t_in + h (or the
+stage's t_in + c h), from its first thread: the states carry their time on the device, for keyframe
+tracks and driven pins, at no extra launch.
 """
 
 import functools
@@ -16,6 +21,7 @@ import warp as wp
 
 from .contacts import project_contacts_func
 from .forces import SPRING_KERNEL_OPTIONS, ForceFeatures, particle_force_func
+from .kinematics import is_kinematic, particle_funcs
 from .precision import transform_type, vec3_type
 
 wp.set_module_options({"enable_backward": False})
@@ -41,12 +47,14 @@ def symplectic_euler_update_kernel(scalar: type, shape_types: tuple):
     vec3 = vec3_type(scalar)
     transform = transform_type(scalar)
     update = symplectic_euler_funcs(scalar)
+    effective_inv_mass = particle_funcs(scalar)
     project_contacts = project_contacts_func(scalar, shape_types)
     has_contacts = len(shape_types) > 0
 
     @wp.kernel(module="unique", enable_backward=False)
     def symplectic_euler_from_forces(
         # Model:
+        particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array[scalar],
         particle_radius: wp.array[scalar],
         shape_type: wp.array[wp.int32],
@@ -57,15 +65,22 @@ def symplectic_euler_update_kernel(scalar: type, shape_types: tuple):
         particle_q_in: wp.array[vec3],
         particle_qd_in: wp.array[vec3],
         particle_f_in: wp.array[vec3],
+        time_in: wp.array[wp.float64],
         dt: scalar,
         # State out:
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
+        time_out: wp.array[wp.float64],
     ):
         i = wp.tid()
-        x, v = update(particle_q_in[i], particle_qd_in[i], particle_f_in[i], particle_inv_mass[i], dt)
+        if i == 0:
+            time_out[0] = time_in[0] + wp.float64(dt)
+        flags = particle_flags[i]
+        x, v = update(
+            particle_q_in[i], particle_qd_in[i], particle_f_in[i], effective_inv_mass(flags, particle_inv_mass[i]), dt
+        )
         if wp.static(has_contacts):
-            if particle_inv_mass[i] != scalar(0.0):
+            if not is_kinematic(flags):
                 x, v = project_contacts(
                     x, v, particle_radius[i], dt, shape_type, shape_transform, shape_size, shape_friction
                 )
@@ -88,6 +103,7 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
     @wp.kernel(module="unique", enable_backward=False, module_options=SPRING_KERNEL_OPTIONS)
     def symplectic_euler(
         # Model:
+        particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array[scalar],
         particle_radius: wp.array[scalar],
         shape_type: wp.array[wp.int32],
@@ -101,23 +117,25 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
         spring_rest_length: wp.array[scalar],
         spring_stiffness: wp.array[scalar],
         spring_damping: wp.array[scalar],
-        gravity: vec3,
-        drag: scalar,
+        inputs: wp.array2d[scalar],
         # Control:
         particle_force_ext: wp.array[vec3],
         # State in:
         particle_q_in: wp.array[vec3],
         particle_qd_in: wp.array[vec3],
+        time_in: wp.array[wp.float64],
         dt: scalar,
         # State out:
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
+        time_out: wp.array[wp.float64],
     ):
         i = wp.tid()
+        if i == 0:
+            time_out[0] = time_in[0] + wp.float64(dt)
         x = particle_q_in[i]
         v = particle_qd_in[i]
-        inv_mass = particle_inv_mass[i]
-        if inv_mass == scalar(0.0):
+        if is_kinematic(particle_flags[i]):
             particle_q_out[i] = x + dt * v
             particle_qd_out[i] = v
             return
@@ -131,13 +149,12 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
             spring_rest_length,
             spring_stiffness,
             spring_damping,
-            gravity,
-            drag,
+            inputs,
             particle_force_ext,
             particle_q_in,
             particle_qd_in,
         )
-        x, v = update(x, v, f, inv_mass, dt)
+        x, v = update(x, v, f, particle_inv_mass[i], dt)
         if wp.static(has_contacts):
             x, v = project_contacts(
                 x, v, particle_radius[i], dt, shape_type, shape_transform, shape_size, shape_friction
@@ -156,31 +173,39 @@ def rk_combine_kernel(scalar: type, with_first: bool, terms: int):
     array; ``with_first`` says whether it contributes. ``terms`` later stages follow as rows of 2-D
     arrays of stage velocities and forces, weighted by a vector of ``terms`` weights. Every weight is
     multiplied by ``step[0]``: fixed-step methods pass h·aᵢⱼ with a step of 1, adaptive ones pass aᵢⱼ
-    and their current step, which lives on the device.
+    and their current step, which lives on the device. The result's time is t₀ + ``time_weight``·step[0]
+    (the stage's c h, or h for the step).
     """
     vec3 = vec3_type(scalar)
     weights_type = wp.types.vector(length=max(terms, 1), dtype=scalar)
+    effective_inv_mass = particle_funcs(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
     def rk_combine(
         # Model:
+        particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array[scalar],
         # State in:
         particle_q_in: wp.array[vec3],
         particle_qd_in: wp.array[vec3],
+        time_in: wp.array[wp.float64],
         first_f: wp.array[vec3],
         stage_qd: wp.array2d[vec3],
         stage_f: wp.array2d[vec3],
         first_weight: scalar,
         weights: weights_type,
+        time_weight: wp.float64,
         step: wp.array[wp.float64],
         # Out:
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
+        time_out: wp.array[wp.float64],
     ):
         i = wp.tid()
+        if i == 0:
+            time_out[0] = time_in[0] + time_weight * step[0]
         h = scalar(step[0])
-        inv_mass = particle_inv_mass[i]
+        inv_mass = effective_inv_mass(particle_flags[i], particle_inv_mass[i])
         v0 = particle_qd_in[i]
         x = particle_q_in[i]
         v = v0
@@ -197,16 +222,26 @@ def rk_combine_kernel(scalar: type, with_first: bool, terms: int):
     return rk_combine
 
 
+# Slots of the step-control arrays (float64 control, int32 counters) and the controller's constants. The
+# tolerance and the attempt budget are live settings: the kernels read them from the control array.
+STEP_INTERVAL, STEP_TIME, STEP_SIZE, STEP_PROPOSED, STEP_GROWTH, STEP_ERROR, STEP_TOLERANCE, STEP_MAX_ATTEMPTS = range(8)
+STEP_CONTROL_SLOTS = 8
+STEP_ACCEPTED, STEP_REJECTED, STEP_ATTEMPTS_NOW, STEP_LAST_ACCEPTED, STEP_FAILED = range(5)
+STEP_SAFETY, STEP_MAX_GROWTH, STEP_MIN_GROWTH = 0.9, 5.0, 0.2
+
+
 @functools.cache
 def rk_error_kernel(scalar: type, stages: int):
     """Scaled local error of an embedded Runge-Kutta pair, max-reduced over particles.
 
     The error estimate is e = h Σⱼ eⱼ kⱼ (eⱼ = bⱼ - b*ⱼ, h = ``step[0]``), for positions and velocities
-    alike; each component is divided by atol + rtol·|y_new| and the largest ratio is atomically max-ed
-    into ``error_out[0]`` (float64, cleared by the caller).
+    alike; each component is divided by tol + tol·|y_new| (tol = ``control[STEP_TOLERANCE]``, absolute and
+    relative) and the largest ratio is atomically max-ed into ``control[STEP_ERROR]`` (cleared by
+    ``decide``). A max is exact in any order: the result does not depend on thread scheduling.
     """
     vec3 = vec3_type(scalar)
     weights_type = wp.types.vector(length=stages, dtype=scalar)
+    effective_inv_mass = particle_funcs(scalar)
 
     @wp.func
     def scaled(e: vec3, y: vec3, atol: scalar, rtol: scalar) -> scalar:
@@ -218,31 +253,32 @@ def rk_error_kernel(scalar: type, stages: int):
     @wp.kernel(module="unique", enable_backward=False)
     def rk_error(
         # Model:
+        particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array[scalar],
         # State in:
         particle_qd_in: wp.array[vec3],
         stage_qd: wp.array2d[vec3],
         stage_f: wp.array2d[vec3],
         error_weights: weights_type,
-        step: wp.array[wp.float64],
         particle_q_new: wp.array[vec3],
         particle_qd_new: wp.array[vec3],
-        atol: scalar,
-        rtol: scalar,
-        # Out:
-        error_out: wp.array[wp.float64],
+        # In/out:
+        control: wp.array[wp.float64],
     ):
         i = wp.tid()
-        h = scalar(step[0])
-        inv_mass = particle_inv_mass[i]
+        h = scalar(control[STEP_SIZE])
+        tolerance = scalar(control[STEP_TOLERANCE])
+        inv_mass = effective_inv_mass(particle_flags[i], particle_inv_mass[i])
         ex = (h * error_weights[0]) * particle_qd_in[i]
         ev = (h * error_weights[0] * inv_mass) * stage_f[0, i]
         for j in range(1, wp.static(stages)):
             w = h * error_weights[j]
             ex += w * stage_qd[j, i]
             ev += (w * inv_mass) * stage_f[j, i]
-        worst = wp.max(scaled(ex, particle_q_new[i], atol, rtol), scaled(ev, particle_qd_new[i], atol, rtol))
-        wp.atomic_max(error_out, 0, wp.float64(worst))
+        worst = wp.max(
+            scaled(ex, particle_q_new[i], tolerance, tolerance), scaled(ev, particle_qd_new[i], tolerance, tolerance)
+        )
+        wp.atomic_max(control, STEP_ERROR, wp.float64(worst))
 
     return rk_error
 
@@ -251,28 +287,36 @@ def rk_error_kernel(scalar: type, stages: int):
 def verlet_kernels(scalar: type):
     """Velocity Verlet's drift (x' = x + h v + ½h² a, v½ = v + ½h a) and kick (v' = v½ + ½h a') kernels."""
     vec3 = vec3_type(scalar)
+    effective_inv_mass = particle_funcs(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
     def verlet_drift(
         # Model:
+        particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array[scalar],
         # State in:
         particle_q_in: wp.array[vec3],
         particle_qd_in: wp.array[vec3],
         particle_f_in: wp.array[vec3],
+        time_in: wp.array[wp.float64],
         dt: scalar,
         # Out:
         particle_q_out: wp.array[vec3],
         particle_qd_half_out: wp.array[vec3],
+        time_out: wp.array[wp.float64],
     ):
         i = wp.tid()
-        v_half = particle_qd_in[i] + (scalar(0.5) * dt * particle_inv_mass[i]) * particle_f_in[i]
+        if i == 0:
+            time_out[0] = time_in[0] + wp.float64(dt)
+        inv_mass = effective_inv_mass(particle_flags[i], particle_inv_mass[i])
+        v_half = particle_qd_in[i] + (scalar(0.5) * dt * inv_mass) * particle_f_in[i]
         particle_q_out[i] = particle_q_in[i] + dt * v_half
         particle_qd_half_out[i] = v_half
 
     @wp.kernel(module="unique", enable_backward=False)
     def verlet_kick(
         # Model:
+        particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array[scalar],
         # State in:
         particle_qd_half: wp.array[vec3],
@@ -282,15 +326,10 @@ def verlet_kernels(scalar: type):
         particle_qd_out: wp.array[vec3],
     ):
         i = wp.tid()
-        particle_qd_out[i] = particle_qd_half[i] + (scalar(0.5) * dt * particle_inv_mass[i]) * particle_f[i]
+        inv_mass = effective_inv_mass(particle_flags[i], particle_inv_mass[i])
+        particle_qd_out[i] = particle_qd_half[i] + (scalar(0.5) * dt * inv_mass) * particle_f[i]
 
     return verlet_drift, verlet_kick
-
-
-# Slots of the step-control arrays (float64 control, int32 counters) and the controller's constants.
-STEP_INTERVAL, STEP_TIME, STEP_SIZE, STEP_PROPOSED, STEP_GROWTH, STEP_ERROR = range(6)
-STEP_ACCEPTED, STEP_REJECTED, STEP_ATTEMPTS_NOW, STEP_LAST_ACCEPTED, STEP_FAILED = range(5)
-STEP_SAFETY, STEP_MAX_GROWTH, STEP_MIN_GROWTH = 0.9, 5.0, 0.2
 
 
 @functools.cache
@@ -298,8 +337,9 @@ def step_control_kernels(scalar: type):
     """Device-side step-size control of an embedded Runge-Kutta pair (one thread each).
 
     The control array holds, by the ``STEP_*`` slots: the target interval, the time reached, the step in
-    use, the proposed step, the growth cap and the scaled error of the last attempt; the counters hold
-    accepted, rejected and attempted steps, and whether the last attempt was accepted.
+    use, the proposed step, the growth cap, the scaled error of the last attempt, the error tolerance and
+    the most attempts per interval; the counters hold accepted, rejected and attempted steps, and whether
+    the last attempt was accepted.
     """
     vec3 = vec3_type(scalar)
 
@@ -319,8 +359,7 @@ def step_control_kernels(scalar: type):
         keep_going[0] = 1
 
     @wp.kernel(module="unique", enable_backward=False)
-    def decide(max_attempts: int, control: wp.array[wp.float64], counters: wp.array[wp.int32],
-               keep_going: wp.array[wp.int32]):
+    def decide(control: wp.array[wp.float64], counters: wp.array[wp.int32], keep_going: wp.array[wp.int32]):
         """Accept or reject the attempt, choose the next step, and whether to continue."""
         error = control[STEP_ERROR]
         h = control[STEP_SIZE]
@@ -350,7 +389,7 @@ def step_control_kernels(scalar: type):
         control[STEP_SIZE] = wp.min(proposed, remaining)
         control[STEP_ERROR] = wp.float64(0.0)
         unfinished = remaining > wp.float64(1.0e-12) * control[STEP_INTERVAL]
-        exhausted = counters[STEP_ATTEMPTS_NOW] >= max_attempts
+        exhausted = wp.float64(counters[STEP_ATTEMPTS_NOW]) >= control[STEP_MAX_ATTEMPTS]
         if unfinished and exhausted:
             counters[STEP_FAILED] = 1
         keep_going[0] = wp.where(unfinished and not exhausted, 1, 0)
@@ -360,15 +399,20 @@ def step_control_kernels(scalar: type):
         counters: wp.array[wp.int32],
         stage_q: wp.array[vec3],
         stage_qd: wp.array[vec3],
+        stage_time: wp.array[wp.float64],
         stage_f_last: wp.array[vec3],
         # In/out:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
+        time: wp.array[wp.float64],
         stage_f_first: wp.array[vec3],
     ):
-        """On acceptance: y ← the last stage's state, and its force becomes stage 0's (FSAL)."""
+        """On acceptance: y ← the last stage's state (its time t + h included), and its force becomes
+        stage 0's (FSAL)."""
         i = wp.tid()
         if counters[STEP_LAST_ACCEPTED] == 1:
+            if i == 0:
+                time[0] = stage_time[0]
             particle_q[i] = stage_q[i]
             particle_qd[i] = stage_qd[i]
             stage_f_first[i] = stage_f_last[i]

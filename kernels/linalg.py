@@ -28,6 +28,10 @@ CG_RR = 3  # r·r being accumulated
 CG_BB = 4  # b·b
 CG_RR_LAST = 5  # r·r of the last completed iterate (reported)
 CG_SCALARS = 6
+# Slots of the float64 settings array of a CG solve: live settings, read by ``condition``.
+CG_TOLERANCE = 0  # stop when ‖r‖ ≤ tolerance · ‖b‖
+CG_MAX_ITERATIONS = 1  # most iterations per solve
+CG_SETTINGS = 2
 
 
 def reduce_launch_dim(count: int, block_dim: int) -> tuple[int, int]:
@@ -130,17 +134,18 @@ def cg_kernels(scalar: type, tiled: bool):
 
     @wp.kernel(module="unique", enable_backward=False)
     def condition(
-        tolerance: wp.float64,
-        max_iterations: int,
+        settings: wp.array[wp.float64],
         scalars: wp.array[wp.float64],
         iteration: wp.array[wp.int32],
         keep_going: wp.array[wp.int32],
     ):
         """Count an iteration, keep going while ‖r‖ > tol·‖b‖ and iterations remain; reset accumulators."""
         rr = scalars[CG_RR]
+        tolerance = settings[CG_TOLERANCE]
         iteration[0] = iteration[0] + 1
         converged = rr <= wp.max(tolerance * tolerance * scalars[CG_BB], wp.float64(1.0e-300))
-        keep_going[0] = wp.where(converged or iteration[0] >= max_iterations, 0, 1)
+        exhausted = wp.float64(iteration[0]) >= settings[CG_MAX_ITERATIONS]
+        keep_going[0] = wp.where(converged or exhausted, 0, 1)
         scalars[CG_RR_LAST] = rr
         scalars[CG_RZ] = scalars[CG_RZ_NEW]
         scalars[CG_RZ_NEW] = wp.float64(0.0)

@@ -21,7 +21,8 @@ import functools
 
 import warp as wp
 
-from .forces import COINCIDENT_DISTANCE, spring_funcs
+from .forces import COINCIDENT_DISTANCE, spring_funcs, spring_law_type
+from .kinematics import is_kinematic, particle_funcs
 from .linalg import reduction_funcs
 from .precision import vec3_type
 
@@ -59,14 +60,16 @@ def power_iteration_kernels(scalar: type, slots: int, tiled: bool):
     vec3 = vec3_type(scalar)
     accumulate = reduction_funcs(tiled)
     dot64 = dot64_func(scalar)
-    _, _, spring_stiffness_matrix = spring_funcs(scalar)
+    _, _, _, spring_stiffness_matrix = spring_funcs(scalar)  # Hooke's law: the advisor scales biphasic springs
+    SpringLawValues = spring_law_type(scalar)
+    effective_inv_mass = particle_funcs(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
     def product(
         count: int,
         # Model:
+        particle_flags: wp.array[wp.int32],
         particle_mass: wp.array[scalar],
-        particle_inv_mass: wp.array[scalar],
         particle_spring_neighbor: wp.array2d[wp.int32],
         particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
@@ -79,7 +82,7 @@ def power_iteration_kernels(scalar: type, slots: int, tiled: bool):
         y: wp.array[vec3],
         scalars: wp.array[wp.float64],
     ):
-        """y = K x on free particles (0 on pinned ones); accumulate xᵀKx, xᵀMx and yᵀM⁻¹y."""
+        """y = K x on dynamic particles (0 on kinematic ones); accumulate xᵀKx, xᵀMx and yᵀM⁻¹y."""
         block, lane = wp.tid()
         i = block * wp.block_dim() + lane
         xkx = wp.float64(0.0)
@@ -87,14 +90,17 @@ def power_iteration_kernels(scalar: type, slots: int, tiled: bool):
         ymy = wp.float64(0.0)
         if i < count:
             yi = vec3(scalar(0.0))
-            if particle_inv_mass[i] != scalar(0.0):
+            if not is_kinematic(particle_flags[i]):
+                hooke = SpringLawValues()
                 xi = x[i]
                 qi = particle_q[i]
                 for k in range(wp.static(slots)):
                     j = particle_spring_neighbor[k, i]
                     s = particle_spring_id[k, i]
-                    xj = wp.where(particle_inv_mass[j] == scalar(0.0), vec3(scalar(0.0)), x[j])
-                    ks = spring_stiffness_matrix(qi, particle_q[j], spring_rest_length[s], spring_stiffness[s], True)
+                    xj = wp.where(is_kinematic(particle_flags[j]), vec3(scalar(0.0)), x[j])
+                    ks = spring_stiffness_matrix(
+                        qi, particle_q[j], spring_rest_length[s], spring_stiffness[s], True, hooke
+                    )
                     yi += ks * (xi - xj)
                 mass = wp.float64(particle_mass[i])
                 xkx = dot64(xi, yi)
@@ -108,6 +114,7 @@ def power_iteration_kernels(scalar: type, slots: int, tiled: bool):
     @wp.kernel(module="unique", enable_backward=False)
     def normalize(
         # Model:
+        particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array[scalar],
         # In:
         y: wp.array[vec3],
@@ -115,11 +122,11 @@ def power_iteration_kernels(scalar: type, slots: int, tiled: bool):
         # Out:
         x: wp.array[vec3],
     ):
-        """x = M⁻¹y / ‖M⁻¹y‖_M (x = 0 when y = 0)."""
+        """x = M⁻¹y / ‖M⁻¹y‖_M (x = 0 when y = 0, and on kinematic particles)."""
         i = wp.tid()
         ymy = scalars[PI_YMY]
         scale = wp.where(ymy > wp.float64(0.0), wp.float64(1.0) / wp.sqrt(ymy), wp.float64(0.0))
-        x[i] = (particle_inv_mass[i] * scalar(scale)) * y[i]
+        x[i] = (effective_inv_mass(particle_flags[i], particle_inv_mass[i]) * scalar(scale)) * y[i]
 
     @wp.kernel(module="unique", enable_backward=False)
     def condition(

@@ -183,7 +183,7 @@ def dense_implicit_system(model, state, h):
     q = state.particle_q.numpy().astype(np.float64)
     v = state.particle_qd.numpy().astype(np.float64)
     mass = model.particle_mass.numpy().astype(np.float64)
-    free = model.particle_inv_mass.numpy() > 0
+    free = ~model.kinematic_mask()
     A = np.zeros((3 * n, 3 * n))
     dfdx = np.zeros((3 * n, 3 * n))
     f = np.tile(np.asarray(model.gravity), (n, 1)) * mass[:, None] - model.drag * v

@@ -6,7 +6,7 @@ import numpy as np
 import warp as wp
 
 from warpspring.kernels.contacts import contact_funcs
-from warpspring.kernels.forces import spring_funcs
+from warpspring.kernels.forces import spring_funcs, spring_law_type
 from warpspring.kernels.precision import scalar_type, vec3_type
 
 # float32 rounding of O(1) inputs through a handful of operations; float64 is exact to ~1e-15.
@@ -16,7 +16,8 @@ TOLERANCE = {"float32": dict(rtol=2e-5, atol=2e-5), "float64": dict(rtol=1e-12, 
 @functools.cache
 def spring_kernel(scalar):
     vec3 = vec3_type(scalar)
-    spring_force, spring_energy, _ = spring_funcs(scalar)
+    _, spring_force, spring_energy, _ = spring_funcs(scalar)
+    hooke = spring_law_type(scalar)  # Hooke's law reads no value: an empty set of law values
 
     @wp.kernel(module="unique", enable_backward=False)
     def kernel(
@@ -31,8 +32,8 @@ def spring_kernel(scalar):
         energy: wp.array[scalar],
     ):
         t = wp.tid()
-        force[t] = spring_force(xi[t], xj[t], vi[t], vj[t], rest[t], ke[t], kd[t])
-        energy[t] = spring_energy(xi[t], xj[t], rest[t], ke[t])
+        force[t] = spring_force(xi[t], xj[t], vi[t], vj[t], rest[t], ke[t], kd[t], hooke())
+        energy[t] = spring_energy(xi[t], xj[t], rest[t], ke[t], hooke())
 
     return kernel
 
@@ -146,12 +147,13 @@ def test_sphere_contact_response_matches_reference(device, precision):
 def stiffness_kernel(scalar):
     vec3 = vec3_type(scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
-    _, _, spring_stiffness_matrix = spring_funcs(scalar)
+    _, _, _, spring_stiffness_matrix = spring_funcs(scalar)
+    hooke = spring_law_type(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
     def kernel(xi: wp.array[vec3], xj: wp.array[vec3], rest: scalar, ke: scalar, clamp: bool, out: wp.array[mat33]):
         t = wp.tid()
-        out[t] = spring_stiffness_matrix(xi[t], xj[t], rest, ke, clamp)
+        out[t] = spring_stiffness_matrix(xi[t], xj[t], rest, ke, clamp, hooke())
 
     return kernel
 

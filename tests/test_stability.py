@@ -151,7 +151,7 @@ def dense_omega_max(model, positions=None):
         block = ke * (nn + max(0.0, 1.0 - rest / length) * (np.eye(3) - nn))
         for a, b, sign in ((i, i, 1), (j, j, 1), (i, j, -1), (j, i, -1)):
             K[3 * a:3 * a + 3, 3 * b:3 * b + 3] += sign * block
-    free = np.repeat(model.particle_inv_mass.numpy() > 0, 3)
+    free = np.repeat(~model.kinematic_mask(), 3)
     m = np.repeat(model.particle_mass.numpy().astype(np.float64), 3)[free]
     return math.sqrt(np.linalg.eigvalsh(K[np.ix_(free, free)] / np.sqrt(np.outer(m, m)))[-1])
 

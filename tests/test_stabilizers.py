@@ -9,13 +9,16 @@ import warp as wp
 import warpspring as ws
 from helpers import run_frames
 from warpspring.kernels.forces import SpringLaw, spring_funcs
+from warpspring.kernels.inputs import INPUT_COUNT, INPUTS
 
-BIPHASIC = SpringLaw(biphasic_strain=0.2, biphasic_ratio=4.0)
+# A law is its switches; its values come from the live-input table, as in the simulation's kernels.
+BIPHASIC = (SpringLaw(biphasic=True), {"biphasic_strain": 0.2, "biphasic_ratio": 4.0})
+HOOKE = (SpringLaw(), {})
 
 
 @functools.cache
 def law_kernel(law):
-    spring_force, spring_energy, spring_stiffness_matrix = spring_funcs(wp.float64, law)
+    spring_law_values, spring_force, spring_energy, spring_stiffness_matrix = spring_funcs(wp.float64, law)
 
     @wp.kernel(module="unique", enable_backward=False)
     def kernel(
@@ -25,24 +28,33 @@ def law_kernel(law):
         rest: float,
         ke: float,
         kd: float,
+        inputs: wp.array2d[wp.float64],
         force: wp.array[wp.vec3d],
         energy: wp.array[wp.float64],
         stiffness: wp.array[wp.mat33d],
     ):
         t = wp.tid()
-        force[t] = spring_force(xi[t], xj[t], wp.vec3d(), vj[t], wp.float64(rest), wp.float64(ke), wp.float64(kd))
-        energy[t] = spring_energy(xi[t], xj[t], wp.float64(rest), wp.float64(ke))
-        stiffness[t] = spring_stiffness_matrix(xi[t], xj[t], wp.float64(rest), wp.float64(ke), False)
+        values = spring_law_values(inputs)
+        force[t] = spring_force(
+            xi[t], xj[t], wp.vec3d(), vj[t], wp.float64(rest), wp.float64(ke), wp.float64(kd), values
+        )
+        energy[t] = spring_energy(xi[t], xj[t], wp.float64(rest), wp.float64(ke), values)
+        stiffness[t] = spring_stiffness_matrix(xi[t], xj[t], wp.float64(rest), wp.float64(ke), False, values)
 
     return kernel
 
 
 def evaluate_law(device, law, xi, xj, vj, rest=1.0, ke=10.0, kd=0.0):
+    switches, values = law
+    table = np.zeros((1, INPUT_COUNT))
+    for name, value in values.items():
+        table[0, INPUTS[name][0]] = value
     n = len(xi)
     out = [wp.empty(n, dtype=wp.vec3d, device=device), wp.empty(n, dtype=wp.float64, device=device),
            wp.empty(n, dtype=wp.mat33d, device=device)]
     arrays = [wp.array(a, dtype=wp.vec3d, device=device) for a in (xi, xj, vj)]
-    wp.launch(law_kernel(law), dim=n, inputs=[*arrays, rest, ke, kd], outputs=out, device=device)
+    inputs = wp.array(table, dtype=wp.float64, device=device)
+    wp.launch(law_kernel(switches), dim=n, inputs=[*arrays, rest, ke, kd, inputs], outputs=out, device=device)
     return [a.numpy() for a in out]
 
 
@@ -76,13 +88,13 @@ def test_biphasic_law_force_energy_and_jacobian(device):
 
 def test_spring_force_clamp_bounds_elastic_plus_damping(device):
     """With max_force F every spring's force has magnitude ≤ F along d̂, whatever its stretch or speed."""
-    law = SpringLaw(max_force=2.5)
+    law = (SpringLaw(clamp_force=True), {"max_spring_force": 2.5})
     rng = np.random.default_rng(9)
     n = 64
     xi, xj = rng.uniform(-1, 1, (n, 3)), rng.uniform(-1, 1, (n, 3))
     vj = rng.normal(scale=5.0, size=(n, 3))
     force = evaluate_law(device, law, xi, xj, vj, kd=3.0)[0]
-    plain = evaluate_law(device, SpringLaw(), xi, xj, vj, kd=3.0)[0]
+    plain = evaluate_law(device, HOOKE, xi, xj, vj, kd=3.0)[0]
     magnitude = np.linalg.norm(force, axis=1)
     assert magnitude.max() <= 2.5 * (1 + 1e-12) and (np.linalg.norm(plain, axis=1) > 2.5).sum() > 10
     clamped = np.linalg.norm(plain, axis=1) > 2.5

@@ -59,8 +59,11 @@ from .core.integrators import (
     make_integrator,
 )
 from .core.guards import GuardLimits
+from .core.kinematics import PinGroup
 from .core.model import Control, MeshGroup, Model, ShapeInfo, Stabilizers, State
 from .core.simulator import Simulator
+from .core.stepper import StepHook, Stepper
+from .core.tracks import Track
 from .analysis.stability import Advice, advise
 from .core.transforms import quat_from_axis_angle
 
@@ -82,14 +85,18 @@ __all__ = [
     "MeshGroup",
     "Model",
     "ModelBuilder",
+    "PinGroup",
     "ShapeInfo",
     "SimulationError",
     "Simulator",
     "Stabilizers",
+    "StepHook",
+    "Stepper",
     "GuardLimits",
     "SpringMaterial",
     "State",
     "SymplecticEuler",
+    "Track",
     "WarpspringError",
     "apply_contacts",
     "eval_forces",

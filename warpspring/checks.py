@@ -33,6 +33,19 @@ def non_negative(name: str, value) -> float:
     return number(name, value, minimum=0.0, inclusive=True)
 
 
+def vector(name: str, value) -> np.ndarray:
+    """``value`` as a float64 array of shape [3] if it is 3 finite numbers."""
+    try:
+        v = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        v = None
+    if v is None or v.shape != (3,):
+        raise ConfigError(f"{name} must be 3 numbers [x, y, z], got {value!r}")
+    if not np.isfinite(v).all():
+        raise ConfigError(f"{name} must be finite, got {value!r}")
+    return v
+
+
 def count(name: str, value, *, minimum: int) -> int:
     """``value`` if it is an integer (not a bool) ≥ ``minimum``."""
     if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < minimum:

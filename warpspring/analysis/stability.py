@@ -427,7 +427,10 @@ def _stiffness_array(model: Model, stiffness) -> wp.array:
     model's own — for biphasic springs their stiffer branch, ratio × ke, which bounds the step once a
     spring stretches past its knee."""
     if stiffness is None:
-        ratio = model.spring_law.biphasic_ratio if model.spring_law.biphasic_strain is not None else 1.0
+        ratio = 1.0
+        if model.spring_law.biphasic:  # the stiffest the ratio gets, its track included
+            track = model.track("biphasic_ratio")
+            ratio = max(model.stabilizers.biphasic_ratio, float(track.values.max()) if track is not None else 1.0)
         if ratio == 1.0 or model.spring_count == 0:
             return model.spring_stiffness
         stiffness = model.spring_stiffness.numpy().astype(np.float64) * ratio
@@ -452,7 +455,7 @@ def gershgorin_omega_max(model: Model, *, stiffness=None) -> float:
         model: the model.
         stiffness: spring stiffness [N/m] to use instead of ``model.spring_stiffness``, shape [spring_count].
     """
-    free = model.particle_inv_mass.numpy() > 0.0
+    free = ~model.kinematic_mask()
     if model.spring_count == 0 or not free.any():
         return 0.0
     k = _stiffness_array(model, stiffness).numpy().astype(np.float64)
@@ -504,7 +507,7 @@ def estimate_omega_max(
     block = model.block_dim if tiled else 1
     product, normalize, condition = power_iteration_kernels(model.scalar, model.spring_max_degree, tiled)
 
-    free = model.particle_inv_mass.numpy() > 0.0
+    free = ~model.kinematic_mask()
     start = np.random.default_rng(seed).normal(size=(n, 3)) * free[:, None]
     x = wp.array(start, dtype=vec3, device=device)
     y = wp.zeros(n, dtype=vec3, device=device)
@@ -512,8 +515,8 @@ def estimate_omega_max(
     iteration = wp.zeros(1, dtype=wp.int32, device=device)
     keep_going = wp.ones(1, dtype=wp.int32, device=device)
     model_inputs = [
+        model.particle_flags,
         model.particle_mass,
-        model.particle_inv_mass,
         model.particle_spring_neighbor,
         model.particle_spring_id,
         model.spring_rest_length,
@@ -523,7 +526,7 @@ def estimate_omega_max(
     def iterate():
         wp.launch(product, dim=reduce_launch_dim(n, block), block_dim=block, inputs=[n, *model_inputs, q, x],
                   outputs=[y, scalars], device=device)
-        wp.launch(normalize, dim=n, block_dim=model.block_dim, inputs=[model.particle_inv_mass, y, scalars],
+        wp.launch(normalize, dim=n, block_dim=model.block_dim, inputs=[model.particle_flags, model.particle_inv_mass, y, scalars],
                   outputs=[x], device=device)
         wp.launch(condition, dim=1, inputs=[wp.float64(tolerance), max_iterations, scalars],
                   outputs=[iteration, keep_going], device=device)
@@ -587,7 +590,7 @@ def _damping_ranges(model: Model, stiffness: wp.array, estimate: OmegaMaxEstimat
     springs are the least damped. c/m: its extremes over the free particles (drag limits the slowest
     motions, each particle's velocity decaying at its own c/m).
     """
-    free = model.particle_inv_mass.numpy() > 0.0
+    free = ~model.kinematic_mask()
     k = stiffness.numpy().astype(np.float64)
     kd = model.spring_damping.numpy().astype(np.float64)
     ends = model.spring_indices.numpy().reshape(-1, 2)

@@ -59,6 +59,7 @@ from ..core.forces import eval_forces
 from ..core.integrators import INTEGRATORS, ImplicitEuler, Integrator
 from ..kernels.stability import spring_motion_kernel
 from ..core.model import Model, State
+from ..core.stepper import StepHook, Stepper
 from .stability import advise, network_stable_step, stable_omega_h
 
 #: Growth threshold of a run: unstable when its late mean E exceeds its early one by (1 + GROWTH)².
@@ -67,7 +68,7 @@ GROWTH = 0.01
 ENERGY_CAP = 1.0e8
 #: A run whose early mean E is below this fraction of its first value has decayed to round-off: stable.
 DECAYED = 1.0e-12
-#: Steps per captured graph (even: the two states alternate and a block ends where it started).
+#: Steps per captured graph.
 BLOCK = 16
 #: The single springs: mass [kg], rest length [m] and initial stretch [m]. The particle stays on the
 #: spring's axis, so the spring is exactly linear until the particle reaches the anchor; ENERGY_CAP
@@ -281,40 +282,39 @@ def growth_verdict(energy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return broken | (live & grown), live & ~grown & (ratio > 1.0)
 
 
+class _MotionRecord(StepHook):
+    """Records every spring's stretch and stretch rate after each step of a block, row by row."""
+
+    def __init__(self, model: Model):
+        self.model = model
+        self.motion = wp.zeros((BLOCK, model.spring_count), dtype=wp.vec2d, device=model.device)
+        self._kernel = spring_motion_kernel(model.scalar)
+
+    def after_step(self, state: State, step: int, steps: int) -> None:
+        model = self.model
+        wp.launch(self._kernel, dim=model.spring_count, inputs=[model.spring_indices, model.spring_rest_length,
+                  state.particle_q, state.particle_qd, step], outputs=[self.motion], device=model.device)
+
+
 class _Recorder:
-    """Steps a model at a fixed dt in captured blocks of ``BLOCK`` steps, recording after every step the
-    norm E of each group of springs (groups: consecutive spring ranges starting at ``group_starts``)."""
+    """Steps a model at a fixed dt in captured blocks of ``BLOCK`` steps (a :class:`Stepper`), recording after
+    every step the norm E of each group of springs (groups: consecutive spring ranges starting at
+    ``group_starts``)."""
 
     def __init__(self, model: Model, integrator: Integrator, dt: float, group_starts):
         self.model = model
         self.group_starts = np.asarray(group_starts)
-        self.state, self._scratch = model.state(), model.state()
-        self._motion = wp.zeros((BLOCK, model.spring_count), dtype=wp.vec2d, device=model.device)
         ends = model.spring_indices.numpy().reshape(-1, 2)
-        inv_mass = model.particle_inv_mass.numpy().astype(np.float64)[ends].sum(axis=1)
+        inv_mass = model.dynamic_inv_mass()[ends].sum(axis=1)
         self._reduced_mass = np.where(inv_mass > 0.0, 1.0 / np.where(inv_mass > 0.0, inv_mass, 1.0), 0.0)
-        record = spring_motion_kernel(model.scalar)
-
-        def record_into(state: State, row: int):
-            wp.launch(record, dim=model.spring_count, inputs=[model.spring_indices, model.spring_rest_length,
-                      state.particle_q, state.particle_qd, row], outputs=[self._motion], device=model.device)
-
-        # One uncaptured step loads every module the block launches (a capture may not load modules).
-        integrator.step(self.state, self._scratch, None, dt)
-        record_into(self._scratch, 0)
-        with wp.ScopedCapture(device=model.device, force_module_load=False) as capture:
-            a, b = self.state, self._scratch
-            for row in range(BLOCK):
-                integrator.step(a, b, None, dt)
-                record_into(b, row)
-                a, b = b, a
-        self._graph = capture.graph
+        self._record = _MotionRecord(model)
+        self._stepper = Stepper(model, integrator, dt=dt, steps=BLOCK, hooks=[self._record])
 
     def run(self, start: State | None, steps: int) -> np.ndarray:
         """E after each of ``steps`` steps (rounded up to whole blocks) from ``start`` (``None``: go on
         from where the last run ended), shape [steps, groups]."""
         if start is not None:
-            self.state.assign(start)
+            self._stepper.reset(start)
         k = self.model.spring_stiffness.numpy().astype(np.float64)
         sizes = np.diff(np.append(self.group_starts, len(k)))
         omega2 = np.add.reduceat(k, self.group_starts) / np.add.reduceat(self._reduced_mass, self.group_starts)
@@ -322,8 +322,8 @@ class _Recorder:
         energy = []
         with np.errstate(over="ignore", invalid="ignore"):
             for _ in range(-(-steps // BLOCK)):
-                wp.capture_launch(self._graph)
-                motion = self._motion.numpy()
+                self._stepper.advance()
+                motion = self._record.motion.numpy()
                 per_spring = k * motion[..., 0] ** 2 + rate_weight * motion[..., 1] ** 2
                 energy.append(np.add.reduceat(per_spring, self.group_starts, axis=1))
         return np.concatenate(energy)
@@ -461,7 +461,7 @@ def perturbed_state(model: Model, amplitude: float, *, seed: int = 0, sharpening
     time. Instability starts in the stiff modes; weighting the start towards them keeps the slowly
     decaying soft modes from diluting a slow growth of the stiff ones in E.
     """
-    free = model.particle_inv_mass.numpy() > 0.0
+    free = ~model.kinematic_mask()
     q0 = model.particle_q.numpy().astype(np.float64)
     x = np.random.default_rng(seed).normal(size=(model.particle_count, 3))
     x[:, 2] = 0.0
@@ -470,7 +470,7 @@ def perturbed_state(model: Model, amplitude: float, *, seed: int = 0, sharpening
     for _ in range(sharpening):
         probe.particle_q.assign(q0 + x * (amplitude / np.sqrt((x * x).sum(axis=1).mean())))
         eval_forces(model, probe, None)
-        x = probe.particle_f.numpy() * model.particle_inv_mass.numpy()[:, None]
+        x = probe.particle_f.numpy() * model.dynamic_inv_mass()[:, None]
     state = model.state()
     state.particle_q.assign(q0 + x * (amplitude / np.sqrt((x * x).sum(axis=1).mean())))
     return state

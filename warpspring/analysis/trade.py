@@ -54,6 +54,7 @@ from ..errors import ConfigError, SimulationError
 from ..core.integrators import INTEGRATORS, Integrator, make_integrator
 from .stability import estimate_omega_max
 from ..core.model import Control, Model
+from ..core.stepper import StepHook, Stepper
 
 #: A run whose position error exceeds this many times the problem's length scale has blown up.
 BLOWUP_FACTOR = 10.0
@@ -277,7 +278,7 @@ class SpringNetwork:
             rest_length=model.spring_rest_length.numpy().astype(np.float64),
             stiffness=model.spring_stiffness.numpy().astype(np.float64),
             initial_q=model.particle_q.numpy().astype(np.float64),
-            free=model.particle_inv_mass.numpy() > 0.0,
+            free=~model.kinematic_mask(),
         )
 
     def lengths(self, q: np.ndarray) -> np.ndarray:
@@ -501,56 +502,34 @@ def reference_integrator() -> str:
 # -- running ------------------------------------------------------------------------------------------------
 
 
-class _Stepper:
-    """Advances a run by ``chunk`` steps per call, one graph launch each. With ``record`` it copies positions
-    and velocities after every step into device buffers of shape [chunk · particle_count] (plain copies:
-    no kernel to compile, capturable)."""
+class _Recording(StepHook):
+    """Copies positions and velocities after every step of an advance into device buffers of shape
+    [steps · particle_count] (plain copies: no kernel to compile, capturable)."""
 
-    def __init__(self, model: Model, integrator: Integrator, control: Control, dt: float, chunk: int, *, record: bool):
-        self.model, self.integrator, self.control, self.dt, self.chunk = model, integrator, control, dt, chunk
-        self.state, self._scratch = model.state(), model.state()
-        size = chunk * model.particle_count
-        self._q = wp.empty(size, dtype=model.vec3, device=model.device) if record else None
-        self._qd = wp.empty(size, dtype=model.vec3, device=model.device) if record else None
-        self._graph = None
+    def __init__(self, model: Model, steps: int):
+        self.model, self.steps = model, steps
+        self._q = wp.empty(steps * model.particle_count, dtype=model.vec3, device=model.device)
+        self._qd = wp.empty(steps * model.particle_count, dtype=model.vec3, device=model.device)
 
-    def _steps(self) -> None:
-        a, b = self.state, self._scratch
+    def after_step(self, state, step: int, steps: int) -> None:
         n = self.model.particle_count
-        for k in range(self.chunk):
-            self.integrator.step(a, b, self.control, self.dt)
-            a, b = b, a
-            if self._q is not None:
-                wp.copy(self._q, a.particle_q, dest_offset=k * n, count=n)
-                wp.copy(self._qd, a.particle_qd, dest_offset=k * n, count=n)
-        if a is not self.state:
-            self.state.assign(a)
-
-    def advance(self) -> None:
-        """Run ``chunk`` steps (capturing them on the first call).
-
-        The integrator's kernels must be loaded already (see :func:`_warm_up`): a capture cannot load modules.
-        """
-        if self._graph is None:
-            with wp.ScopedCapture(device=self.model.device, force_module_load=False) as capture:
-                self._steps()
-            self._graph = capture.graph
-        wp.capture_launch(self._graph)
+        wp.copy(self._q, state.particle_q, dest_offset=step * n, count=n)
+        wp.copy(self._qd, state.particle_qd, dest_offset=step * n, count=n)
 
     def recorded(self) -> tuple[np.ndarray, np.ndarray]:
-        """Positions [m] and velocities [m/s] after each step of the last chunk: float64, [chunk, particles, 3]."""
-        shape = (self.chunk, self.model.particle_count, 3)
+        """Positions [m] and velocities [m/s] after each step of the last advance: float64, [steps, particles, 3]."""
+        shape = (self.steps, self.model.particle_count, 3)
         return self._q.numpy().reshape(shape).astype(np.float64), self._qd.numpy().reshape(shape).astype(np.float64)
 
 
 def _warm_up(model: Model, integrator: Integrator, control: Control, dt: float) -> float:
     """Two uncaptured steps from the initial state: the first compiles and loads the kernels, the second's
     wall time [s] (device synchronised) is returned. Uses its own states."""
-    a, b = model.state(), model.state()
-    integrator.step(a, b, control, dt)
+    stepper = Stepper(model, integrator, dt=dt, steps=1, control=control, use_graph=False)
+    stepper.advance()
     wp.synchronize_device(model.device)
     start = time.perf_counter()
-    integrator.step(b, a, control, dt)
+    stepper.advance()
     wp.synchronize_device(model.device)
     return time.perf_counter() - start
 
@@ -560,7 +539,7 @@ def _chunk(steps: int, most: int) -> int:
     return max(d for d in range(1, max(1, min(most, steps)) + 1) if steps % d == 0)
 
 
-def _time_replays(stepper: _Stepper, plan: StudyPlan) -> float:
+def _time_replays(stepper: Stepper, plan: StudyPlan) -> float:
     """Median wall time per simulated second [s/s] of ``plan.repeats`` batches of ``stepper.advance()``."""
     device = stepper.model.device
     stepper.advance()  # capture and first replay
@@ -576,7 +555,7 @@ def _time_replays(stepper: _Stepper, plan: StudyPlan) -> float:
         for _ in range(frames):
             stepper.advance()
         wp.synchronize_device(device)
-        samples.append((time.perf_counter() - start) / (frames * stepper.chunk * stepper.dt))
+        samples.append((time.perf_counter() - start) / (frames * stepper.steps * stepper.dt))
     return statistics.median(samples)
 
 
@@ -584,7 +563,8 @@ def _run(model, integrator, control, dt, steps, chunk, *, record: bool):
     """Run ``steps`` steps of ``dt`` from the initial state. Returns (wall time [s], sample times [s],
     positions, velocities), float64 of shape [samples, particles, 3]: every step when ``record``, else the
     initial and the final state."""
-    stepper = _Stepper(model, integrator, control, dt, chunk, record=record)
+    recording = _Recording(model, chunk) if record else None
+    stepper = Stepper(model, integrator, dt=dt, steps=chunk, control=control, hooks=[recording] if record else [])
     initial_q = stepper.state.particle_q.numpy().astype(np.float64)
     initial_qd = stepper.state.particle_qd.numpy().astype(np.float64)
     qs, qds = [initial_q[None]], [initial_qd[None]]
@@ -593,7 +573,7 @@ def _run(model, integrator, control, dt, steps, chunk, *, record: bool):
     for _ in range(steps // chunk):
         stepper.advance()
         if record:
-            q, qd = stepper.recorded()
+            q, qd = recording.recorded()
             qs.append(q)
             qds.append(qd)
     wp.synchronize_device(model.device)
@@ -617,7 +597,7 @@ def _measure(problem, model, control, name, options, dt, steps, plan, reference)
         if cls.adaptive:  # its cost depends on the trajectory: timed below, on the run itself
             projected = step_cost * steps
         else:
-            row["wall_per_second"] = _time_replays(_Stepper(model, warm, control, dt, chunk, record=False), plan)
+            row["wall_per_second"] = _time_replays(Stepper(model, warm, dt=dt, steps=chunk, control=control), plan)
             projected = row["wall_per_second"] * problem.duration
         if projected > plan.run_limit:
             return Measurement(**row, status="skipped"), None

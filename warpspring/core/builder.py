@@ -16,8 +16,12 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError
 from ..kernels.contacts import SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
+from ..kernels.inputs import INPUTS
+from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import scalar_type, transform_type, vec3_type
+from .kinematics import PinGroup, PinGroupTable
 from .model import MeshGroup, Model, ShapeInfo, Stabilizers
+from .tracks import Track, as_track
 from .transforms import quat_between, quat_to_matrix
 
 _AXES = {"Y": 1, "Z": 2}  # USD knows only Y-up and Z-up stages
@@ -58,6 +62,9 @@ class ModelBuilder:
             finer resolution the same cloth feels more drag in total; scale it with 1 / particle count).
         stabilizers: optional clamps, strain limiting and biphasic springs (:class:`Stabilizers`).
 
+    Gravity, drag and the stabiliser thresholds are live inputs of the model: they can change between
+    frames (``model.gravity = ...``) or follow keyframe tracks (:meth:`set_track`).
+
     Example:
         >>> builder = ModelBuilder()
         >>> builder.add_cloth_grid(nx=32, ny=32, spacing=0.05, mass=0.5, pin=["top-left", "top-right"])
@@ -72,7 +79,7 @@ class ModelBuilder:
         up = np.zeros(3)
         up[_AXES[axis]] = 1.0
         self.up_vector = up
-        self.gravity = _vector("gravity", -9.81 * up if gravity is None else gravity)
+        self.gravity = checks.vector("gravity", -9.81 * up if gravity is None else gravity)
         self.drag = checks.non_negative("drag", drag)
         if stabilizers is not None and not isinstance(stabilizers, Stabilizers):
             raise ConfigError(f"stabilizers must be a warpspring.Stabilizers, got {type(stabilizers).__name__}")
@@ -85,6 +92,8 @@ class ModelBuilder:
         self._pinned: list[np.ndarray] = []
         self._extra_pins: list[np.ndarray] = []
         self._particle_count = 0
+        self._pin_groups: list[PinGroup] = []
+        self._tracks: dict[str, Track] = {}
 
         self._springs: list[np.ndarray] = []
         self._spring_rest: list[np.ndarray] = []
@@ -118,7 +127,8 @@ class ModelBuilder:
             mass: mass per particle [kg], > 0: a scalar or shape [n].
             radius: contact radius [m], ≥ 0: a scalar or shape [n].
             pinned: boolean mask of shape [n] (or indices into the new particles) of pinned particles.
-                Pinned particles have zero inverse mass: no force moves them.
+                Pinned particles are kinematic: no force moves them (they keep their mass); they move on
+                with their velocity, or as a pin group prescribes (:meth:`add_pin_group`).
 
         Returns:
             The global indices of the new particles, shape [n].
@@ -147,8 +157,60 @@ class ModelBuilder:
         return np.arange(start, start + n)
 
     def pin_particles(self, indices) -> None:
-        """Pin particles (zero inverse mass) by global index."""
+        """Pin particles (make them kinematic: no force moves them) by global index."""
         self._extra_pins.append(_indices("pinned particle", indices, self._particle_count))
+
+    def add_pin_group(self, particles, *, translation: Track | None = None, rotation: Track | None = None,
+                      pivot=None, name: str = "pins") -> int:
+        """Pin particles and drive them together: by keyframe tracks of a rigid motion, or through Control.
+
+        With tracks, a particle that starts at x₀ is at p + T(t) + R(φ(t)) (x₀ - p) at time t, with the
+        velocity of that motion, exactly at every substep and every Runge-Kutta stage. Without tracks the
+        group is driven by ``Control.set_pin_targets`` (straight to each frame's targets), and rests where
+        it is until the first target comes.
+
+        Args:
+            particles: global particle indices (a particle belongs to one group at most).
+            translation: :class:`Track` of T(t) [m], 3-vectors added to the rest positions.
+            rotation: :class:`Track` of the rotation vector φ(t) [rad] about ``pivot`` (axis × angle; see
+                :meth:`Track.rotation`).
+            pivot: the rotation's centre [m] (default: the centroid of the group's initial positions).
+            name: the group's name (made unique), to address it in ``Control.set_pin_targets``.
+
+        Returns:
+            The group's index.
+        """
+        idx = np.unique(_indices("pin group particle", particles, self._particle_count))
+        if len(idx) == 0:
+            raise ConfigError("a pin group needs at least one particle")
+        for group in self._pin_groups:
+            shared = np.intersect1d(group.particles, idx)
+            if len(shared):
+                raise ConfigError(f"particle {int(shared[0])} is already in pin group {group.name!r}: "
+                                  "a particle follows one group")
+        translation = None if translation is None else as_track("a pin group's translation", translation, 3)
+        rotation = None if rotation is None else as_track("a pin group's rotation", rotation, 3)
+        rest = np.concatenate(self._q)[idx]
+        centre = rest.mean(axis=0) if pivot is None else checks.vector("pin group pivot", pivot)
+        self._pin_groups.append(PinGroup(
+            name=self._unique_name(name, [g.name for g in self._pin_groups]),
+            particles=idx,
+            translation=translation,
+            rotation=rotation,
+            pivot=centre,
+        ))
+        self._extra_pins.append(idx)
+        return len(self._pin_groups) - 1
+
+    def set_track(self, name: str, track: Track | None) -> None:
+        """Animate a live input of the model by a keyframe :class:`Track` (see :meth:`Model.set_track`:
+        "gravity", "drag" or a threshold of a stabiliser that is on); ``None`` removes it."""
+        if name not in INPUTS:
+            raise ConfigError(f"there is no live input {name!r} to animate; inputs: {', '.join(INPUTS)}")
+        if track is None:
+            self._tracks.pop(name, None)
+        else:
+            self._tracks[name] = as_track(name, track, INPUTS[name][1])
 
     def add_springs(self, pairs, *, stiffness, damping=0.0, rest_length=None) -> np.ndarray:
         """Add springs in bulk.
@@ -282,7 +344,7 @@ class ModelBuilder:
         q = self._place(local, origin, rotation)
         ids = self.add_particles(
             q,
-            velocities=np.broadcast_to(_vector("velocity", velocity), (n, 3)),
+            velocities=np.broadcast_to(checks.vector("velocity", velocity), (n, 3)),
             mass=m,
             radius=0.25 * spacing if radius is None else radius,
             pinned=self._grid_pins(pin, nx, ny),
@@ -398,7 +460,7 @@ class ModelBuilder:
         edges = tri.edges_unique
         ids = self.add_particles(
             self._place(vertices * scale, origin, rotation),
-            velocities=np.broadcast_to(_vector("velocity", velocity), (len(vertices), 3)),
+            velocities=np.broadcast_to(checks.vector("velocity", velocity), (len(vertices), 3)),
             mass=lumped * areal,
             radius=0.25 * float(tri.edges_unique_length.mean()) if radius is None else radius,
             pinned=_indices("pinned vertex", np.atleast_1d(pin), len(vertices)) if np.size(pin) else None,
@@ -423,12 +485,12 @@ class ModelBuilder:
             friction: Coulomb coefficient μ [-], ≥ 0.
             name: prim name for export.
         """
-        n = self.up_vector if normal is None else _vector("plane normal", normal)
+        n = self.up_vector if normal is None else checks.vector("plane normal", normal)
         length = np.linalg.norm(n)
         if length == 0.0:
             raise ConfigError("plane normal must be a nonzero vector")
         rotation = quat_between(np.array([0.0, 0.0, 1.0]), n / length)
-        self._add_shape(SHAPE_PLANE, _vector("plane point", point), rotation, (0.0, 0.0, 0.0), friction, name)
+        self._add_shape(SHAPE_PLANE, checks.vector("plane point", point), rotation, (0.0, 0.0, 0.0), friction, name)
 
     def add_ground_plane(self, *, height: float = 0.0, friction: float = 0.5, name: str = "ground"):
         """Add the ground: a plane through ``height`` [m] along the up axis, normal up."""
@@ -438,7 +500,7 @@ class ModelBuilder:
     def add_collider_sphere(self, *, center, radius: float, friction: float = 0.5, name="sphere"):
         """Add a static sphere of ``radius`` [m] at ``center`` [m] with Coulomb coefficient ``friction``."""
         size = (checks.positive("sphere radius", radius), 0.0, 0.0)
-        self._add_shape(SHAPE_SPHERE, _vector("sphere center", center), (0.0, 0.0, 0.0, 1.0), size, friction, name)
+        self._add_shape(SHAPE_SPHERE, checks.vector("sphere center", center), (0.0, 0.0, 0.0, 1.0), size, friction, name)
 
     # -- finalize -------------------------------------------------------------------------------------
 
@@ -465,7 +527,7 @@ class ModelBuilder:
         float_np = np.float64 if scalar is wp.float64 else np.float32
         model = Model(device, precision, scalar)
         model.up_axis = self.up_axis
-        model.gravity = tuple(float(g) for g in self.gravity)
+        model.gravity = self.gravity
         model.drag = float(self.drag)
         model.stabilizers = self.stabilizers
 
@@ -480,7 +542,6 @@ class ModelBuilder:
         pinned = np.concatenate(self._pinned)
         for extra in self._extra_pins:
             pinned[extra] = True
-        inv_mass = np.where(pinned, 0.0, 1.0 / mass)
 
         def farray(values, dtype=None, *, name="a shape parameter"):
             with np.errstate(over="ignore"):
@@ -500,8 +561,18 @@ class ModelBuilder:
         model.particle_q = farray(np.concatenate(self._q), vec3, name="a particle position [m]")
         model.particle_qd = farray(np.concatenate(self._qd), vec3, name="a particle velocity [m/s]")
         model.particle_mass = farray(mass, name="a particle mass [kg]")
-        model.particle_inv_mass = farray(inv_mass, name="an inverse particle mass [1/kg]")
+        model.particle_inv_mass = farray(1.0 / mass, name="an inverse particle mass [1/kg]")
         model.particle_radius = farray(np.concatenate(self._radius), name="a particle radius [m]")
+        model.particle_flags = iarray(np.where(pinned, PARTICLE_KINEMATIC, 0))
+        # Tracks: the pin groups' first (their indices stay put), then the animated inputs.
+        model._pin_tracks = [t for g in self._pin_groups for t in (g.translation, g.rotation) if t is not None]
+        model._rebuild_tracks()
+        if self._pin_groups:
+            model.pin_groups = PinGroupTable(
+                np.flatnonzero(pinned), self._pin_groups, np.concatenate(self._q), model.track_table.index, device
+            )
+        for name, track in self._tracks.items():
+            model.set_track(name, track)
 
         springs = np.concatenate(self._springs) if self._springs else np.zeros((0, 2), dtype=np.int64)
         s = len(springs)
@@ -544,6 +615,7 @@ class ModelBuilder:
             )
             for t, p, r, size, mu, name in self._shapes
         ]
+        model._finalized = True
         return model
 
     # -- helpers --------------------------------------------------------------------------------------
@@ -556,7 +628,7 @@ class ModelBuilder:
     @staticmethod
     def _place(local: np.ndarray, origin, rotation) -> np.ndarray:
         R = quat_to_matrix(_quaternion(rotation))
-        return local @ R.T + _vector("origin", origin)
+        return local @ R.T + checks.vector("origin", origin)
 
     @staticmethod
     def _grid_pins(pin, nx: int, ny: int) -> np.ndarray:
@@ -591,15 +663,6 @@ class ModelBuilder:
 
 
 # -- validation helpers (each raises ConfigError naming the quantity) -------------------------------------
-
-
-def _vector(name: str, value) -> np.ndarray:
-    v = np.asarray(value, dtype=np.float64)
-    if v.shape != (3,):
-        raise ConfigError(f"{name} must be 3 numbers [x, y, z], got {value!r}")
-    if not np.isfinite(v).all():
-        raise ConfigError(f"{name} must be finite, got {value!r}")
-    return v
 
 
 def _quaternion(value) -> np.ndarray:

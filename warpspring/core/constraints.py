@@ -1,7 +1,7 @@
 """The passes every integrator runs on its result: strain limiting, speed clamping, contacts.
 
 Only what the model asks for is launched: with no stabilizer and no collider nothing runs; with only
-colliders, one contact kernel.
+colliders, one contact kernel. The limits are live inputs, read at the state's time.
 """
 
 from __future__ import annotations
@@ -11,20 +11,32 @@ import warp as wp
 from .forces import apply_contacts
 from ..kernels.constraints import finish_step_kernel, strain_limit_kernel
 from .model import Model, State
+from .tracks import evaluate_input_tracks
 
 
 class StepFinisher:
-    """Applies the post-step passes of ``model`` to a state, in place (device work only: capturable)."""
+    """Applies the post-step passes of ``model`` to a state, in place (device work only: capturable).
+
+    Which passes run follows the model's current stabiliser switches (a switch changed between frames is a
+    structural change of the model, and the next capture picks it up)."""
 
     def __init__(self, model: Model):
         self.model = model
-        stabilizers = model.stabilizers
-        self.strain_limited = stabilizers.max_strain is not None and model.spring_count > 0
-        self.speed_clamped = stabilizers.max_speed is not None
-        if self.strain_limited:
-            n, vec3, device = model.particle_count, model.vec3, model.device
-            self._before = wp.empty(n, dtype=vec3, device=device)
-            self._buffers = (wp.empty(n, dtype=vec3, device=device), wp.empty(n, dtype=vec3, device=device))
+        self._buffers = None  # (positions before, two Jacobi buffers): allocated once strain limiting is on
+
+    def _strain_buffers(self):
+        if self._buffers is None:
+            n, vec3, device = self.model.particle_count, self.model.vec3, self.model.device
+            self._buffers = tuple(wp.empty(n, dtype=vec3, device=device) for _ in range(3))
+        return self._buffers
+
+    @property
+    def strain_limited(self) -> bool:
+        return self.model.stabilizers.max_strain is not None and self.model.spring_count > 0
+
+    @property
+    def speed_clamped(self) -> bool:
+        return self.model.stabilizers.max_speed is not None
 
     @property
     def only_contacts(self) -> bool:
@@ -36,31 +48,35 @@ class StepFinisher:
         if self.only_contacts:
             apply_contacts(model, state, dt)
             return
+        evaluate_input_tracks(model, state)
         common = dict(dim=model.particle_count, block_dim=model.block_dim, device=model.device)
         corrected = state.particle_q
-        if self.strain_limited:
-            stabilizers = model.stabilizers
-            limit = strain_limit_kernel(model.scalar, model.spring_max_degree, stabilizers.max_strain)
-            table = [model.particle_inv_mass, model.particle_spring_neighbor, model.particle_spring_id,
-                     model.spring_rest_length]
-            wp.copy(self._before, state.particle_q)
+        strain_limited = self.strain_limited
+        before = None
+        if strain_limited:
+            limit = strain_limit_kernel(model.scalar, model.spring_max_degree)
+            table = [model.particle_flags, model.particle_inv_mass, model.particle_spring_neighbor,
+                     model.particle_spring_id, model.spring_rest_length, model.inputs]
+            before, *jacobi = self._strain_buffers()
+            wp.copy(before, state.particle_q)
             source = state.particle_q
-            for k in range(stabilizers.strain_iterations):
-                target = self._buffers[k % 2]
+            for k in range(model.stabilizers.strain_iterations):
+                target = jacobi[k % 2]
                 wp.launch(limit, inputs=[*table, source], outputs=[target], **common)
                 source = target
             corrected = source
         wp.launch(
-            finish_step_kernel(model.scalar, model.shape_types, model.stabilizers.max_speed, self.strain_limited),
+            finish_step_kernel(model.scalar, model.shape_types, self.speed_clamped, strain_limited),
             inputs=[
-                model.particle_inv_mass,
+                model.particle_flags,
                 model.particle_radius,
                 model.shape_type,
                 model.shape_transform,
                 model.shape_size,
                 model.shape_friction,
+                model.inputs,
                 corrected,
-                self._before if self.strain_limited else state.particle_q,
+                before if strain_limited else state.particle_q,
                 model.scalar(dt),
             ],
             outputs=[state.particle_q, state.particle_qd],

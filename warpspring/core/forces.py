@@ -1,5 +1,7 @@
 """Launch functions of the force terms and the contact pass. Each returns at once when the model lacks
-what it would evaluate: nothing is launched for a feature the scene does not use."""
+what it would evaluate: nothing is launched for a feature the scene does not use. Forces are evaluated
+at the time of the state they are given: animated inputs (keyframe tracks) are written for that time
+first."""
 
 from __future__ import annotations
 
@@ -8,11 +10,13 @@ import warp as wp
 from ..kernels.contacts import project_contacts_kernel
 from ..kernels.forces import clamp_forces_kernel, eval_forces_kernel, spring_scatter_kernel
 from .model import Control, Model, State
+from .tracks import evaluate_input_tracks
 
 
 def force_inputs(model: Model, control: Control | None, features) -> list:
     """The model and control arguments of every force-evaluating kernel, in ``particle_force``'s order:
-    masses, incidence table, spring rest lengths, stiffness and damping, gravity, drag, external force."""
+    masses, incidence table, spring rest lengths, stiffness and damping, the live-input table (gravity,
+    drag, limits), external force."""
     return [
         model.particle_mass,
         model.particle_spring_neighbor,
@@ -20,8 +24,7 @@ def force_inputs(model: Model, control: Control | None, features) -> list:
         model.spring_rest_length,
         model.spring_stiffness,
         model.spring_damping,
-        model.vec3(*model.gravity),
-        model.scalar(model.drag),
+        model.inputs,
         control.particle_force if features.external else None,
     ]
 
@@ -39,12 +42,13 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
     """
     if model.particle_count == 0:
         return
+    evaluate_input_tracks(model, state)
     features = model.force_features(control)
     scatter = model.spring_count > 0 and not model.spring_gather
     out = state.particle_f if particle_f is None else particle_f
     wp.launch(
         # With scattered springs the force clamp must wait for the springs: a pass of its own below.
-        eval_forces_kernel(model.scalar, features._replace(max_particle_force=None) if scatter else features),
+        eval_forces_kernel(model.scalar, features._replace(clamp_particle_force=False) if scatter else features),
         dim=model.particle_count,
         block_dim=model.block_dim,
         inputs=[*force_inputs(model, control, features), state.particle_q, state.particle_qd],
@@ -60,19 +64,20 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
                 model.spring_rest_length,
                 model.spring_stiffness,
                 model.spring_damping,
+                model.inputs,
                 state.particle_q,
                 state.particle_qd,
             ],
             outputs=[out],
             device=model.device,
         )
-        if features.max_particle_force is not None:
-            wp.launch(clamp_forces_kernel(model.scalar, features.max_particle_force), dim=model.particle_count,
-                      block_dim=model.block_dim, inputs=[out], device=model.device)
+        if features.clamp_particle_force:
+            wp.launch(clamp_forces_kernel(model.scalar), dim=model.particle_count, block_dim=model.block_dim,
+                      inputs=[model.inputs], outputs=[out], device=model.device)
 
 
 def apply_contacts(model: Model, state: State, dt: float) -> None:
-    """Project the free particles of ``state`` out of the colliders, with friction, in place; ``dt`` [s]
+    """Project the dynamic particles of ``state`` out of the colliders, with friction, in place; ``dt`` [s]
     is the step that produced ``state`` (friction's change of velocity moves the position by dt·Δv)."""
     if model.shape_count == 0:
         return
@@ -81,7 +86,7 @@ def apply_contacts(model: Model, state: State, dt: float) -> None:
         dim=model.particle_count,
         block_dim=model.block_dim,
         inputs=[
-            model.particle_inv_mass,
+            model.particle_flags,
             model.particle_radius,
             model.shape_type,
             model.shape_transform,

@@ -17,6 +17,9 @@ from ..kernels.guards import (
     GUARD_FLOATS,
     GUARD_INTS,
     GUARD_KINETIC_ENERGY,
+    GUARD_LIMIT_KINETIC_ENERGY,
+    GUARD_LIMIT_STRAIN,
+    GUARD_LIMITS,
     GUARD_MAX_STRAIN,
     GUARD_NONFINITE,
     GUARD_NONFINITE_COUNT,
@@ -31,6 +34,7 @@ from ..kernels.guards import (
 )
 from ..kernels.linalg import reduce_launch_dim
 from .model import Model, State
+from .stepper import StepHook
 
 #: Default limit of the kinetic energy, as a multiple of the scene's energy scale (see GuardLimits).
 ENERGY_FACTOR = 1.0e6
@@ -96,16 +100,16 @@ class GuardReport:
         return f"the kinetic energy ran away to {self.kinetic_energy:.3g} J (guard limit exceeded)"
 
 
-class Guard:
-    """Device-side checks of one simulator's states; see :class:`GuardLimits`."""
+class Guard(StepHook):
+    """Device-side checks of one simulator's states; see :class:`GuardLimits`. A :class:`StepHook`: it
+    clears its record at the start of every frame and checks after every ``every``-th substep and the last.
+
+    The limits are device values: setting :attr:`limits` between frames changes no captured launch (but
+    a new ``every`` does, and the stepper re-captures)."""
 
     def __init__(self, model: Model, limits: GuardLimits, substeps: int):
         self.model = model
-        self.limits = limits
-        self.every = min(limits.every or substeps, substeps)
-        self.max_kinetic_energy = (
-            limits.max_kinetic_energy if limits.max_kinetic_energy is not None else ENERGY_FACTOR * energy_scale(model)
-        )
+        self.substeps = substeps
         self._tiled = model.device.is_cuda
         device = model.device
         self._status_clear = wp.array([0, -1, NO_PARTICLE, NO_PARTICLE, NO_PARTICLE, 0], dtype=wp.int32, device=device)
@@ -113,6 +117,45 @@ class Guard:
         assert len(self._status_clear) == GUARD_INTS and len(self._values_clear) == GUARD_FLOATS
         self._status = wp.clone(self._status_clear)
         self._values = wp.clone(self._values_clear)
+        self._limits = wp.zeros(GUARD_LIMITS, dtype=wp.float64, device=device)
+        self.revision = 0
+        self._every = None
+        self.limits = limits
+
+    @property
+    def limits(self) -> GuardLimits:
+        """What the guard checks (:class:`GuardLimits`); settable between frames."""
+        return self._limits_host
+
+    @limits.setter
+    def limits(self, limits: GuardLimits) -> None:
+        if not isinstance(limits, GuardLimits):
+            raise TypeError(f"guard limits must be a warpspring.GuardLimits, got {type(limits).__name__}")
+        self._limits_host = limits
+        every = min(limits.every or self.substeps, self.substeps)
+        if every != self._every:
+            self._every = every
+            self.revision += 1
+        self.max_kinetic_energy = (
+            limits.max_kinetic_energy if limits.max_kinetic_energy is not None
+            else ENERGY_FACTOR * energy_scale(self.model)
+        )
+        values = [0.0] * GUARD_LIMITS
+        values[GUARD_LIMIT_STRAIN] = limits.max_strain
+        values[GUARD_LIMIT_KINETIC_ENERGY] = self.max_kinetic_energy
+        wp.copy(self._limits, wp.array(values, dtype=wp.float64, device="cpu"))
+
+    @property
+    def every(self) -> int:
+        """Substeps between checks (the last substep of a frame is always checked)."""
+        return self._every
+
+    def begin(self) -> None:
+        self.reset()
+
+    def after_step(self, state: State, step: int, steps: int) -> None:
+        if (step + 1) % self._every == 0 or step + 1 == steps:
+            self.check(state, step)
 
     def reset(self) -> None:
         """Clear the record (device copies: capturable, done at the start of every frame)."""
@@ -131,8 +174,7 @@ class Guard:
                   outputs=out, device=model.device)
         wp.launch(locate, dim=model.particle_count, block_dim=model.block_dim,
                   inputs=[*table, state.particle_q], outputs=out, device=model.device)
-        wp.launch(decide, dim=1, inputs=[substep, wp.float64(self.limits.max_strain),
-                                          wp.float64(self.max_kinetic_energy)], outputs=out, device=model.device)
+        wp.launch(decide, dim=1, inputs=[substep, self._limits], outputs=out, device=model.device)
 
     def report(self) -> GuardReport | None:
         """The first failure since the last reset, or ``None`` (reads the device: synchronises)."""

@@ -1,23 +1,24 @@
-"""Frame loop: a fixed number of integrator substeps per output frame, captured once as a graph."""
+"""Frame loop: a fixed number of integrator substeps per output frame, replayed as one graph by the Stepper,
+with run-time guards and clear errors."""
 
 from __future__ import annotations
 
-
-import warp as wp
-
 from .. import checks
-from ..errors import ConfigError, SimulationError
+from ..errors import SimulationError
 from .guards import Guard, GuardLimits
 from .integrators import Integrator, SymplecticEuler
 from .model import Control, Model, State
+from .stepper import Stepper
 
 
 class Simulator:
     """Advances a model by frames of 1/fps seconds, each made of ``substeps`` integrator steps.
 
-    The substeps of a frame are captured once into a graph (a CUDA graph on GPUs, Warp's CPU graph on
-    the CPU) and replayed with a single launch per frame, with no host synchronisation between substeps. The current state is always
-    :attr:`state` (two buffers alternate inside a frame; an odd substep count ends with a copy back).
+    A :class:`~warpspring.core.stepper.Stepper` captures the substeps of a frame once into a graph (a CUDA
+    graph on GPUs, Warp's CPU graph on the CPU) and replays it with a single launch per frame, with no host
+    synchronisation between substeps. Live inputs (``model.gravity``, ``model.drag``, stabiliser values,
+    keyframe tracks, ``control`` values, pin targets) can change between frames; the replay sees them.
+    The current state is always :attr:`state`.
 
     Args:
         model: the model to simulate.
@@ -26,7 +27,7 @@ class Simulator:
         substeps: integrator steps per frame; the step is dt = 1 / (fps · substeps) [s].
         control: time-varying inputs; default ``model.control()``.
         use_graph: capture each frame as a graph (a CUDA graph, or Warp's CPU graph); off runs the same
-            launches from Python every frame (for debugging).
+            launches from Python every frame (for debugging). Both give the same result bit for bit.
         guard: run-time checks (non-finite state, torn springs, runaway energy) made on the device
             every ``guard.every`` substeps; a failure raises :class:`SimulationError` at the end of
             the frame. ``None`` disables them (and the per-frame read of their record).
@@ -44,42 +45,43 @@ class Simulator:
         guard: GuardLimits | None = GuardLimits(),
     ):
         self.model = model
-        self.integrator = integrator if integrator is not None else SymplecticEuler(model)
-        if self.integrator.model is not model:
-            raise ConfigError("the integrator was built for another model: build it with this Simulator's model")
-        if control is not None and control.model is not model:
-            raise ConfigError("the control was made by another model: use model.control() of this Simulator's model")
         self.fps = checks.positive("fps", fps)
         self.substeps = checks.count("substeps", substeps, minimum=1)
         self.frame_dt = 1.0 / self.fps
-        self.dt = self.frame_dt / substeps
-        self.control = control if control is not None else model.control()
-        self.use_graph = bool(use_graph)
-        self.state = model.state()
-        self._scratch = model.state()
-        self.guard = Guard(model, guard, substeps) if guard is not None else None
+        self.dt = self.frame_dt / self.substeps
+        self.guard = Guard(model, guard, self.substeps) if guard is not None else None
+        self.stepper = Stepper(
+            model,
+            integrator if integrator is not None else SymplecticEuler(model),
+            dt=self.dt,
+            steps=self.substeps,
+            control=control if control is not None else model.control(),
+            hooks=[self.guard] if self.guard is not None else [],
+            use_graph=use_graph,
+        )
         self.frame = 0
-        self._graph = None
-        self._graph_key = None
+
+    @property
+    def integrator(self) -> Integrator:
+        return self.stepper.integrator
+
+    @property
+    def control(self) -> Control:
+        return self.stepper.control
+
+    @property
+    def state(self) -> State:
+        """The current state (at :attr:`time`)."""
+        return self.stepper.state
+
+    @property
+    def use_graph(self) -> bool:
+        return self.stepper.use_graph
 
     @property
     def time(self) -> float:
         """Simulated time [s] of :attr:`state`."""
         return self.frame * self.frame_dt
-
-    def _simulate(self) -> None:
-        """Run one frame's substeps (and guard checks), leaving the result in ``self.state``."""
-        guard = self.guard
-        if guard is not None:
-            guard.reset()
-        a, b = self.state, self._scratch
-        for substep in range(self.substeps):
-            self.integrator.step(a, b, self.control, self.dt)
-            a, b = b, a
-            if guard is not None and ((substep + 1) % guard.every == 0 or substep + 1 == self.substeps):
-                guard.check(a, substep)
-        if a is not self.state:
-            self.state.assign(a)
 
     def step_frame(self) -> None:
         """Advance :attr:`state` by one frame.
@@ -88,14 +90,7 @@ class Simulator:
             SimulationError: a guard check failed during the frame; :attr:`state` is then unusable and
                 :attr:`frame` still counts the frames completed before it.
         """
-        if self.use_graph:
-            key = self.model.force_features(self.control)
-            if self._graph is None or key != self._graph_key:
-                self._capture()
-                self._graph_key = key
-            wp.capture_launch(self._graph)
-        else:
-            self._simulate()
+        self.stepper.advance()
         if self.integrator.adaptive:
             failure = self.integrator.failure()
             if failure is not None:
@@ -111,23 +106,15 @@ class Simulator:
                 )
         self.frame += 1
 
-    def _capture(self) -> None:
-        # One uncaptured step and guard check on the scratch state compile and load every kernel the
-        # frame launches (a capture must not load modules); they leave self.state untouched, and the
-        # resets drop what they taught the integrator (e.g. an adaptive step size) and the guard, so
-        # replays match the plain loop.
-        self.integrator.step(self.state, self._scratch, self.control, self.dt)
-        self.integrator.reset()
-        if self.guard is not None:
-            self.guard.check(self._scratch, 0)
-            self.guard.reset()
-        with wp.ScopedCapture(device=self.model.device, force_module_load=False) as capture:
-            self._simulate()
-        self._graph = capture.graph
+    def set_pin_targets(self, group, positions) -> None:
+        """Send a control-driven pin group to ``positions`` [m] by the end of the next frame (see
+        ``Control.set_pin_targets``): its particles move there in a straight line, exactly on it at every
+        substep."""
+        self.control.set_pin_targets(group, positions, time=self.time + self.frame_dt)
 
     def reset(self, state: State | None = None) -> None:
-        """Restart at frame 0 from ``state`` (default: the model's initial state), forgetting the
+        """Restart at frame 0 (time 0) from ``state`` (default: the model's initial state), forgetting the
         integrator's history (step-size control, warm starts), so the run repeats exactly."""
-        self.state.assign(state if state is not None else self.model.state())
-        self.integrator.reset()
+        self.stepper.reset(state)
+        self.state.time.zero_()
         self.frame = 0

@@ -20,6 +20,9 @@ class Integrator(abc.ABC):
     order: int = 0
     #: Whether the integrator chooses its own internal steps (it then takes a ``tolerance`` option).
     adaptive: bool = False
+    #: Counts structural changes of the integrator's launches (a Stepper re-captures when it changes).
+    #: Its settings (tolerances, iteration caps) are device values: changing them changes no launch.
+    revision: int = 0
 
     def __init__(self, model: Model):
         self.model = model
@@ -28,6 +31,11 @@ class Integrator(abc.ABC):
     def reset(self) -> None:
         """Forget what earlier steps left behind (step-size control, solver warm starts), so the next step
         behaves as the first. Stateless integrators have nothing to forget."""
+
+    def history(self) -> list:
+        """The device arrays that carry what one step leaves to the next (what :meth:`reset` forgets); a
+        Stepper saves and restores them around its warm-up step. Stateless integrators have none."""
+        return []
 
     def failure(self) -> str | None:
         """Why the last steps could not complete, for integrators that can stop short (adaptive ones
@@ -38,6 +46,8 @@ class Integrator(abc.ABC):
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         """Advance ``state_in`` by ``dt`` [s] under ``control`` and write the result to ``state_out``.
 
-        ``state_in`` is not modified; the caller swaps the two states afterwards. No host
-        synchronisation happens inside, so steps can be captured in a CUDA graph.
+        ``state_out.time`` becomes ``state_in.time`` + dt; kinematic particles follow their prescribed
+        motion; animated inputs are evaluated at the time of every state whose forces are evaluated.
+        ``state_in`` is not modified (but for its forces, ``particle_f``); the caller swaps the two states
+        afterwards. No host synchronisation happens inside, so steps can be captured in a CUDA graph.
         """

@@ -8,7 +8,8 @@ is h·min(5, max(0.2, 0.9·err^(-1/5))) (no growth right after a rejection), cut
 
 The controller lives on the device (``kernels/integrators.step_control_kernels``) and the internal
 steps run inside ``wp.capture_while``: no host synchronisation, so frames of adaptive steps capture
-into graphs like every other integrator.
+into graphs like every other integrator. The tolerance and the step budget live in the controller's
+device array too: changing them between frames changes no captured launch.
 """
 
 from __future__ import annotations
@@ -17,17 +18,19 @@ import numpy as np
 import warp as wp
 
 from ... import checks
-from ..forces import eval_forces
 from ...kernels.integrators import (
     STEP_ACCEPTED,
-    STEP_ERROR,
+    STEP_CONTROL_SLOTS,
     STEP_FAILED,
+    STEP_MAX_ATTEMPTS,
     STEP_PROPOSED,
     STEP_REJECTED,
     STEP_SIZE,
+    STEP_TOLERANCE,
     rk_error_kernel,
     step_control_kernels,
 )
+from ..forces import eval_forces
 from ..model import Control, Model, State
 from .runge_kutta import ExplicitRungeKutta
 
@@ -61,15 +64,38 @@ class DormandPrince(ExplicitRungeKutta):
 
     def __init__(self, model: Model, *, tolerance: float = 1.0e-6, max_steps: int = 100_000):
         super().__init__(model)
-        self.tolerance = checks.positive("tolerance", tolerance)
-        self.max_steps = checks.count("max_steps", max_steps, minimum=1)
         device = model.device
         self._y = model.state()  # the solution during a step, advanced in place by each accepted step
-        self._control = wp.zeros(6, dtype=wp.float64, device=device)
+        self._control = wp.zeros(STEP_CONTROL_SLOTS, dtype=wp.float64, device=device)
         self._counters = wp.zeros(5, dtype=wp.int32, device=device)
         self._keep_going = wp.zeros(1, dtype=wp.int32, device=device)
         self._error_weights = wp.types.vector(length=7, dtype=model.scalar)(*np.subtract(self.b, self.b_embedded))
         self._step_size = self._control[STEP_SIZE : STEP_SIZE + 1]  # element 0: the step in use [s]
+        self.tolerance = tolerance
+        self.max_steps = max_steps
+
+    @property
+    def tolerance(self) -> float:
+        """Local error tolerance per internal step (absolute and relative); settable between frames."""
+        return self._tolerance
+
+    @tolerance.setter
+    def tolerance(self, value: float) -> None:
+        self._tolerance = checks.positive("tolerance", value)
+        self._write(STEP_TOLERANCE, self._tolerance)
+
+    @property
+    def max_steps(self) -> int:
+        """Most internal steps (accepted or rejected) per call of ``step``; settable between frames."""
+        return self._max_steps
+
+    @max_steps.setter
+    def max_steps(self, value: int) -> None:
+        self._max_steps = checks.count("max_steps", value, minimum=1)
+        self._write(STEP_MAX_ATTEMPTS, float(self._max_steps))
+
+    def _write(self, slot: int, value: float) -> None:
+        wp.copy(self._control, wp.array([value], dtype=wp.float64, device="cpu"), dest_offset=slot, count=1)
 
     @property
     def accepted_steps(self) -> int:
@@ -87,9 +113,13 @@ class DormandPrince(ExplicitRungeKutta):
         return float(self._control.numpy()[STEP_PROPOSED])
 
     def reset(self) -> None:
-        """Forget the step-size history and zero the step counters."""
+        """Forget the step-size history and zero the step counters (the settings stay)."""
         self._control.zero_()
         self._counters.zero_()
+        self.tolerance, self.max_steps = self._tolerance, self._max_steps
+
+    def history(self) -> list:
+        return [self._control, self._counters]
 
     def failure(self) -> str | None:
         """Why the last steps stopped short, or ``None`` (reads the device)."""
@@ -113,12 +143,11 @@ class DormandPrince(ExplicitRungeKutta):
         def attempt():
             self.eval_stages(y, control, self._step_size, first=False)
             self._measure_error(y)
-            wp.launch(decide, dim=1, inputs=[self.max_steps],
-                      outputs=[self._control, self._counters, self._keep_going], device=model.device)
+            wp.launch(decide, dim=1, outputs=[self._control, self._counters, self._keep_going], device=model.device)
             # The 5th-order solution is stage 6's state (a₆ = b), its force f(y_new) stage 0's next (FSAL).
             wp.launch(commit, dim=model.particle_count, block_dim=model.block_dim,
-                      inputs=[self._counters, self._stage_q, self._stage_qd[6], self._stage_f[6]],
-                      outputs=[y.particle_q, y.particle_qd, self._stage_f[0]], device=model.device)
+                      inputs=[self._counters, self._stage_q, self._stage_qd[6], self._stage_time, self._stage_f[6]],
+                      outputs=[y.particle_q, y.particle_qd, y.time, self._stage_f[0]], device=model.device)
 
         wp.capture_while(self._keep_going, attempt)
         state_out.assign(y)
@@ -131,17 +160,15 @@ class DormandPrince(ExplicitRungeKutta):
             dim=model.particle_count,
             block_dim=model.block_dim,
             inputs=[
+                model.particle_flags,
                 model.particle_inv_mass,
                 y.particle_qd,
                 self._stage_qd,
                 self._stage_f,
                 self._error_weights,
-                self._step_size,
                 self._stage_q,
                 self._stage_qd[6],
-                model.scalar(self.tolerance),
-                model.scalar(self.tolerance),
             ],
-            outputs=[self._control[STEP_ERROR : STEP_ERROR + 1]],
+            outputs=[self._control],
             device=model.device,
         )

@@ -5,8 +5,8 @@ Each step takes one Newton iteration of backward Euler:
     (M - h ∂f/∂v - h² ∂f/∂x) Δv = h (f + h ∂f/∂x v),    v' = v + Δv,    x' = x + h v'
 
 with the spring stiffness and damping Jacobians applied matrix-free (``kernels/implicit.py``), the
-compressive part of the spring Hessian clamped so the system stays positive definite, and pinned
-particles filtered out. The solve is block-Jacobi preconditioned CG (``kernels/linalg.py``) with every
+compressive part of the spring Hessian clamped so the system stays positive definite, and kinematic
+particles filtered out (driven pins are put at t + h first; their prescribed Δv enters the right-hand side). The solve is block-Jacobi preconditioned CG (``kernels/linalg.py``) with every
 scalar on the device and the loop in ``wp.capture_while``: it stops when ‖r‖ ≤ tol·‖b‖, needs no host
 synchronisation, and a frame of implicit steps stays one graph. (Warp's own ``warp.optim.linear.cg``
 does the same on GPUs, but its tiled dot products cost ~0.5 ms each on the CPU, 30× our whole
@@ -19,10 +19,20 @@ import warp as wp
 
 from ... import checks
 from ...errors import ConfigError
-from ..forces import eval_forces
 from ...kernels.implicit import implicit_kernels
-from ...kernels.linalg import CG_BB, CG_RR_LAST, CG_SCALARS, cg_kernels, reduce_launch_dim
+from ...kernels.linalg import (
+    CG_BB,
+    CG_MAX_ITERATIONS,
+    CG_RR_LAST,
+    CG_SCALARS,
+    CG_SETTINGS,
+    CG_TOLERANCE,
+    cg_kernels,
+    reduce_launch_dim,
+)
 from ...kernels.precision import mat33_type
+from ..forces import eval_forces
+from ..kinematics import apply_kinematics
 from ..model import Control, Model, State
 from .base import Integrator
 
@@ -44,11 +54,10 @@ class ImplicitEuler(Integrator):
 
     def __init__(self, model: Model, *, cg_iterations: int = 100, cg_tolerance: float = 1.0e-5):
         super().__init__(model)
-        self.cg_iterations = checks.count("cg_iterations", cg_iterations, minimum=1)
-        self.cg_tolerance = checks.positive("cg_tolerance", cg_tolerance)
-        if self.cg_tolerance >= 1.0:
-            raise ConfigError(f"cg_tolerance must be < 1 (a relative residual), got {cg_tolerance!r}")
         n, vec3, device = model.particle_count, model.vec3, model.device
+        self._settings = wp.zeros(CG_SETTINGS, dtype=wp.float64, device=device)
+        self.cg_iterations = cg_iterations
+        self.cg_tolerance = cg_tolerance
         self._tiled = device.is_cuda
         self._block = model.block_dim if self._tiled else 1
         self._rhs = wp.zeros(n, dtype=vec3, device=device)
@@ -59,23 +68,58 @@ class ImplicitEuler(Integrator):
         self._iteration = wp.zeros(1, dtype=wp.int32, device=device)
         self._keep_going = wp.zeros(1, dtype=wp.int32, device=device)
 
+    @property
+    def cg_iterations(self) -> int:
+        """Most CG iterations per step; settable between frames (a device value)."""
+        return self._cg_iterations
+
+    @cg_iterations.setter
+    def cg_iterations(self, value: int) -> None:
+        self._cg_iterations = checks.count("cg_iterations", value, minimum=1)
+        self._write(CG_MAX_ITERATIONS, float(self._cg_iterations))
+
+    @property
+    def cg_tolerance(self) -> float:
+        """CG stops when ‖b - A Δv‖ ≤ cg_tolerance · ‖b‖; settable between frames (a device value)."""
+        return self._cg_tolerance
+
+    @cg_tolerance.setter
+    def cg_tolerance(self, value: float) -> None:
+        tolerance = checks.positive("cg_tolerance", value)
+        if tolerance >= 1.0:
+            raise ConfigError(f"cg_tolerance must be < 1 (a relative residual), got {value!r}")
+        self._cg_tolerance = tolerance
+        self._write(CG_TOLERANCE, tolerance)
+
+    def _write(self, slot: int, value: float) -> None:
+        wp.copy(self._settings, wp.array([value], dtype=wp.float64, device="cpu"), dest_offset=slot, count=1)
+
+    def _kernels(self):
+        model = self.model
+        driven = model.pin_groups is not None and model.pin_groups.driven
+        return implicit_kernels(model.scalar, model.spring_max_degree, self._tiled, model.spring_law,
+                                model.drag_enabled, driven)
+
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         model = self.model
-        prepare, _, update = implicit_kernels(model.scalar, model.spring_max_degree, self._tiled, model.spring_law)
+        prepare, _, update = self._kernels()
         per_particle = dict(dim=model.particle_count, block_dim=model.block_dim, device=model.device)
         h = model.scalar(dt)
         eval_forces(model, state_in, control)
+        # Driven pins first: where they are at t + h decides their Δv in the right-hand side.
+        apply_kinematics(model, control, state_in, state_out.particle_q, state_out.particle_qd, dt)
         wp.launch(
             prepare,
-            inputs=[*self._model_inputs(), state_in.particle_q, state_in.particle_qd, state_in.particle_f, h],
+            inputs=[*self._model_inputs(), state_in.particle_q, state_in.particle_qd, state_in.particle_f, h,
+                    state_out.particle_q],
             outputs=[self._rhs, self._diagonal_inverse],
             **per_particle,
         )
         self._solve(state_in, h)
         wp.launch(
             update,
-            inputs=[state_in.particle_q, state_in.particle_qd, self._delta_qd, h],
-            outputs=[state_out.particle_q, state_out.particle_qd],
+            inputs=[model.particle_flags, state_in.particle_q, state_in.particle_qd, state_in.time, self._delta_qd, h],
+            outputs=[state_out.particle_q, state_out.particle_qd, state_out.time],
             **per_particle,
         )
         self.finish_step(state_out, dt)
@@ -83,6 +127,9 @@ class ImplicitEuler(Integrator):
     def reset(self) -> None:
         """Forget the warm start: the next solve starts from Δv = 0."""
         self._delta_qd.zero_()
+
+    def history(self) -> list:
+        return [self._delta_qd]
 
     def solve_report(self) -> tuple[int, float, float]:
         """(iterations, ‖b - A Δv‖, ‖b‖) of the last solve, read from the device (synchronises)."""
@@ -94,25 +141,25 @@ class ImplicitEuler(Integrator):
     def _model_inputs(self) -> list:
         model = self.model
         return [
+            model.particle_flags,
             model.particle_mass,
-            model.particle_inv_mass,
             model.particle_spring_neighbor,
             model.particle_spring_id,
             model.spring_rest_length,
             model.spring_stiffness,
             model.spring_damping,
-            model.scalar(model.drag),
+            model.inputs,
         ]
 
     def _solve(self, state: State, h) -> None:
         model = self.model
         n = model.particle_count
         start, update_solution, update_direction, condition = cg_kernels(model.scalar, self._tiled)
-        _, matvec, _ = implicit_kernels(model.scalar, model.spring_max_degree, self._tiled, model.spring_law)
+        _, matvec, _ = self._kernels()
         reducing = dict(dim=reduce_launch_dim(n, self._block), block_dim=self._block, device=model.device)
         check = dict(
             dim=1,
-            inputs=[wp.float64(self.cg_tolerance), self.cg_iterations, self._scalars],
+            inputs=[self._settings, self._scalars],
             outputs=[self._iteration, self._keep_going],
             device=model.device,
         )

@@ -3,16 +3,21 @@
 The state y = (x, v) obeys y' = (v, M⁻¹ f(x, v)). Stage k evaluates the forces at
 yₖ = y₀ + h Σⱼ aₖⱼ kⱼ; the step is y₁ = y₀ + h Σⱼ bⱼ kⱼ. Stage velocities and forces live in
 preallocated [stages, particle_count] arrays owned by the integrator; stage 0 is the input state, so
-its velocity is read in place. Contacts are resolved once, on the result of the step.
+its velocity is read in place. Stage k is at time t + cₖ h (cₖ = Σⱼ aₖⱼ): animated inputs and driven pins
+are evaluated there, so a prescribed motion enters every stage exactly and the method keeps its order.
+Contacts are resolved once, on the result of the step.
 """
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 import numpy as np
 import warp as wp
 
-from ..forces import eval_forces
 from ...kernels.integrators import rk_combine_kernel
+from ..forces import eval_forces
+from ..kinematics import apply_kinematics
 from ..model import Control, Model, State
 from .base import Integrator
 
@@ -34,43 +39,53 @@ class ExplicitRungeKutta(Integrator):
         self._stage_qd = wp.zeros((stages, n), dtype=vec3, device=model.device)
         self._stage_f = wp.zeros((stages, n), dtype=vec3, device=model.device)
         self._stage_q = wp.zeros(n, dtype=vec3, device=model.device)
-        self._unit_step = wp.ones(1, dtype=wp.float64, device=model.device)  # weights come scaled by h
-        # Stage k > 0 evaluates forces at (stage_q, stage_qd[k]); stage 0 at the input state.
+        self._stage_time = wp.zeros(1, dtype=wp.float64, device=model.device)
+        # Stage k > 0 evaluates forces at (stage_q, stage_qd[k]) at time stage_time; stage 0 at the input state.
         self._stages = [
-            State(particle_q=self._stage_q, particle_qd=self._stage_qd[k], particle_f=self._stage_f[k])
+            State(particle_q=self._stage_q, particle_qd=self._stage_qd[k], particle_f=self._stage_f[k],
+                  time=self._stage_time)
             for k in range(stages)
         ]
 
-    def combine(self, state_in: State, coefficients, dt, q_out: wp.array, qd_out: wp.array, upto: int):
-        """Write y₀ + h Σⱼ cⱼ kⱼ over stages j < ``upto`` to (q_out, qd_out), skipping leading zero cⱼ.
+    def combine(self, state_in: State, control: Control | None, coefficients, dt, state_out: State, upto: int):
+        """Write y₀ + h Σⱼ cⱼ kⱼ over stages j < ``upto`` to ``state_out`` (time t₀ + h Σⱼ cⱼ), skipping leading
+        zero cⱼ, then put the kinematic particles at that time.
 
         ``dt`` is the step h [s], or a device array whose element 0 holds it (adaptive steps).
         """
         model = self.model
         on_device = isinstance(dt, wp.array)
-        scale, step = (1.0, dt) if on_device else (dt, self._unit_step)
+        scale, step = (1.0, dt) if on_device else (dt, model.unit_step)
         c = np.asarray(coefficients[:upto], dtype=np.float64)
         first = 1 + int(np.argmax(c[1:] != 0.0)) if np.any(c[1:] != 0.0) else upto
         terms = upto - first
         weights = wp.types.vector(length=max(terms, 1), dtype=model.scalar)(*(scale * c[first:upto] if terms else [0.0]))
+        # The result's time offset, in units of step[0]: the stage's c = Σⱼ aⱼ (1 for the step itself), summed as
+        # the tableau's rationals, so that a step lands on t + h exactly.
+        fraction = scale * float(sum(Fraction(x).limit_denominator(10**9) for x in c))
         wp.launch(
             rk_combine_kernel(model.scalar, bool(c[0] != 0.0), terms),
             dim=model.particle_count,
             block_dim=model.block_dim,
             inputs=[
+                model.particle_flags,
                 model.particle_inv_mass,
                 state_in.particle_q,
                 state_in.particle_qd,
+                state_in.time,
                 self._stage_f[0],
                 self._stage_qd[first:upto] if terms else self._stage_qd[0:1],
                 self._stage_f[first:upto] if terms else self._stage_f[0:1],
                 model.scalar(scale * c[0]),
                 weights,
+                wp.float64(fraction),
                 step,
             ],
-            outputs=[q_out, qd_out],
+            outputs=[state_out.particle_q, state_out.particle_qd, state_out.time],
             device=model.device,
         )
+        apply_kinematics(model, control, state_in, state_out.particle_q, state_out.particle_qd, fraction,
+                         step if on_device else None)
 
     def eval_stages(self, state_in: State, control: Control | None, dt, *, first: bool = True) -> None:
         """Evaluate the forces of every stage of a step of ``dt`` (seconds, or a device array holding
@@ -78,12 +93,12 @@ class ExplicitRungeKutta(Integrator):
         if first:
             eval_forces(self.model, state_in, control, particle_f=self._stage_f[0])
         for k in range(1, len(self.b)):
-            self.combine(state_in, self.a[k], dt, self._stage_q, self._stage_qd[k], upto=k)
+            self.combine(state_in, control, self.a[k], dt, self._stages[k], upto=k)
             eval_forces(self.model, self._stages[k], control)
 
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         self.eval_stages(state_in, control, dt)
-        self.combine(state_in, self.b, dt, state_out.particle_q, state_out.particle_qd, upto=len(self.b))
+        self.combine(state_in, control, self.b, dt, state_out, upto=len(self.b))
         self.finish_step(state_out, dt)
 
 

@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import warp as wp
 
-from ..forces import eval_forces, force_inputs
 from ...kernels.integrators import symplectic_euler_kernel, symplectic_euler_update_kernel
+from ..forces import eval_forces, force_inputs
+from ..kinematics import apply_kinematics
 from ..model import Control, State
+from ..tracks import evaluate_input_tracks
 from .base import Integrator
 
 
@@ -25,19 +27,22 @@ class SymplecticEuler(Integrator):
         shapes = [model.shape_type, model.shape_transform, model.shape_size, model.shape_friction]
         common = dict(dim=model.particle_count, block_dim=model.block_dim, device=model.device)
         if model.spring_gather or model.spring_count == 0:
+            evaluate_input_tracks(model, state_in)
             features = model.force_features(control)
             wp.launch(
                 symplectic_euler_kernel(model.scalar, features, fused_shapes),
                 inputs=[
+                    model.particle_flags,
                     model.particle_inv_mass,
                     model.particle_radius,
                     *shapes,
                     *force_inputs(model, control, features),
                     state_in.particle_q,
                     state_in.particle_qd,
+                    state_in.time,
                     model.scalar(dt),
                 ],
-                outputs=[state_out.particle_q, state_out.particle_qd],
+                outputs=[state_out.particle_q, state_out.particle_qd, state_out.time],
                 **common,
             )
         else:
@@ -45,16 +50,19 @@ class SymplecticEuler(Integrator):
             wp.launch(
                 symplectic_euler_update_kernel(model.scalar, fused_shapes),
                 inputs=[
+                    model.particle_flags,
                     model.particle_inv_mass,
                     model.particle_radius,
                     *shapes,
                     state_in.particle_q,
                     state_in.particle_qd,
                     state_in.particle_f,
+                    state_in.time,
                     model.scalar(dt),
                 ],
-                outputs=[state_out.particle_q, state_out.particle_qd],
+                outputs=[state_out.particle_q, state_out.particle_qd, state_out.time],
                 **common,
             )
+        apply_kinematics(model, control, state_in, state_out.particle_q, state_out.particle_qd, dt)
         if not self.finish_step.only_contacts:
             self.finish_step(state_out, dt)

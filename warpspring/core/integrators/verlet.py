@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import warp as wp
 
-from ..forces import eval_forces
 from ...kernels.integrators import verlet_kernels
+from ..forces import eval_forces
+from ..kinematics import apply_kinematics
 from ..model import Control, Model, State
 from .base import Integrator
 
@@ -22,8 +23,10 @@ class VelocityVerlet(Integrator):
     """Velocity Verlet; stable for undamped springs while ω h < 2. Two force evaluations per step, three
     when forces depend on velocity (drag or spring damping: a corrector keeps second order).
 
-    Whether forces depend on velocity is read from the model once, at construction: after changing
-    ``model.drag`` or ``model.spring_damping`` from zero to nonzero, make a new integrator."""
+    Forces depend on velocity when the model's drag is on or some spring is damped. Drag is a live input
+    (switching it on is a structural change the next capture sees); spring damping is read from the model
+    at construction: after writing nonzero values into an undamped ``model.spring_damping``, make a new
+    integrator (or the corrector stays off and the step is first order)."""
 
     name = "velocity_verlet"
     order = 2
@@ -31,15 +34,19 @@ class VelocityVerlet(Integrator):
     def __init__(self, model: Model):
         super().__init__(model)
         n, vec3, device = model.particle_count, model.vec3, model.device
-        # The half-step state: positions are state_out's (set per step), velocities v½, forces f(x', v½).
+        # The half-step state: positions and time are state_out's (set per step), velocities v½, forces f(x', v½).
         self._half = State(
             particle_q=None,
             particle_qd=wp.zeros(n, dtype=vec3, device=device),
             particle_f=wp.zeros(n, dtype=vec3, device=device),
+            time=None,
         )
-        self.velocity_dependent = model.drag != 0.0 or bool(
-            model.spring_count and (model.spring_damping.numpy() != 0.0).any()
-        )
+        self._damped_springs = bool(model.spring_count and (model.spring_damping.numpy() != 0.0).any())
+
+    @property
+    def velocity_dependent(self) -> bool:
+        """Whether the forces depend on velocity (then the corrector runs)."""
+        return self.model.drag_enabled or self._damped_springs
 
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         model = self.model
@@ -47,19 +54,21 @@ class VelocityVerlet(Integrator):
         common = dict(dim=model.particle_count, block_dim=model.block_dim, device=model.device)
         h = model.scalar(dt)
         half = self._half
+        mass = [model.particle_flags, model.particle_inv_mass]
         eval_forces(model, state_in, control)
         wp.launch(
             drift,
-            inputs=[model.particle_inv_mass, state_in.particle_q, state_in.particle_qd, state_in.particle_f, h],
-            outputs=[state_out.particle_q, half.particle_qd],
+            inputs=[*mass, state_in.particle_q, state_in.particle_qd, state_in.particle_f, state_in.time, h],
+            outputs=[state_out.particle_q, half.particle_qd, state_out.time],
             **common,
         )
-        half.particle_q = state_out.particle_q
+        half.particle_q, half.time = state_out.particle_q, state_out.time
+        # Driven pins at t + h: their exact velocity there stands in for v½ (the kicks leave it unchanged).
+        apply_kinematics(model, control, state_in, state_out.particle_q, half.particle_qd, dt)
         eval_forces(model, half, control)  # f(x', v½)
-        wp.launch(kick, inputs=[model.particle_inv_mass, half.particle_qd, half.particle_f, h],
-                  outputs=[state_out.particle_qd], **common)
+        wp.launch(kick, inputs=[*mass, half.particle_qd, half.particle_f, h], outputs=[state_out.particle_qd], **common)
         if self.velocity_dependent:
             eval_forces(model, state_out, control)  # f(x', v*)
-            wp.launch(kick, inputs=[model.particle_inv_mass, half.particle_qd, state_out.particle_f, h],
+            wp.launch(kick, inputs=[*mass, half.particle_qd, state_out.particle_f, h],
                       outputs=[state_out.particle_qd], **common)
         self.finish_step(state_out, dt)

@@ -1,0 +1,171 @@
+"""Kinematic particles: particles whose motion is prescribed, not integrated.
+
+A particle is kinematic when its ``particle_flags`` entry has ``PARTICLE_KINEMATIC`` set; its mass stays
+known (``particle_mass``, ``particle_inv_mass``), but no force moves it: every integrator gives it zero
+acceleration (:func:`effective_inv_mass`), so on its own it moves on with its velocity (a fixed pin, or
+one launched with a velocity, x₀ + u t).
+
+A kinematic particle may belong to a *pin group* whose motion is driven:
+
+* by keyframe tracks (``tracks.py``) of a rigid motion about the group's pivot p: a translation T(t) [m]
+  and a rotation given as a rotation vector φ(t) [rad] (axis × angle), so a particle that started at x₀
+  is at  x(t) = p + T(t) + R(φ(t)) (x₀ - p)  with velocity  v(t) = Ṫ + ω × R (x₀ - p),  ω = J(φ) φ̇
+  (J the left Jacobian of the rotation exponential; ω = φ̇ for a rotation about a fixed axis);
+* or by targets set through ``Control``: each particle moves in a straight line from where it is to its
+  target, reaching it at the target's time, with the constant velocity that does so, and rests there
+  until a new target comes.
+
+``kinematics_kernel`` writes the position and velocity of every kinematic particle at time t + s, for a
+state at time t and an offset s: integrators call it for the end of a step and for every stage time,
+so a driven pin is exactly on its prescribed motion wherever forces are evaluated.
+"""
+
+import functools
+
+import warp as wp
+
+from .precision import vec3_type
+from .tracks import Tracks, track_sample
+
+wp.set_module_options({"enable_backward": False})
+
+#: Bit of ``particle_flags``: the particle is kinematic (prescribed motion, zero acceleration).
+PARTICLE_KINEMATIC = 1
+#: ``PinGroups.group`` of a kinematic particle in no driven group: it moves on with its velocity.
+NO_GROUP = -1
+#: ``PinTargets.time`` before any target was set: the group rests where it is.
+NO_TARGET_TIME = -1.0e300
+
+
+@wp.func
+def is_kinematic(flags: wp.int32) -> bool:
+    """Whether particle flags mark a kinematic particle."""
+    return (flags & PARTICLE_KINEMATIC) != 0
+
+
+@functools.cache
+def particle_funcs(scalar: type):
+    """``effective_inv_mass(flags, inv_mass)``: the inverse mass the dynamics sees, 0 for kinematic particles."""
+
+    @wp.func
+    def effective_inv_mass(flags: wp.int32, inv_mass: scalar) -> scalar:
+        return wp.where(is_kinematic(flags), scalar(0.0), inv_mass)
+
+    return effective_inv_mass
+
+
+@wp.struct
+class PinGroups:
+    """The kinematic particles of a model and the driven groups they belong to (float64 geometry)."""
+
+    particle: wp.array[wp.int32]  # shape [kinematic_count], particle index of each kinematic particle
+    group: wp.array[wp.int32]  # shape [kinematic_count], its pin group, or NO_GROUP
+    rest: wp.array[wp.vec3d]  # [m], shape [kinematic_count], its position at t = 0 (x₀)
+    translation_track: wp.array[wp.int32]  # shape [group_count], track of T(t) [m], or -1
+    rotation_track: wp.array[wp.int32]  # shape [group_count], track of φ(t) [rad], or -1
+    pivot: wp.array[wp.vec3d]  # [m], shape [group_count], the pivot p of the group's rotation
+
+
+@wp.struct
+class PinTargets:
+    """Targets of the pin groups driven through ``Control`` (groups without tracks)."""
+
+    position: wp.array[wp.vec3d]  # [m], shape [kinematic_count], target of each kinematic particle
+    time: wp.array[wp.float64]  # [s], shape [group_count], when the group reaches its targets
+
+
+@wp.func
+def rotation_coefficients(theta: wp.float64):
+    """sin θ/θ, (1 - cos θ)/θ² and (θ - sin θ)/θ³, by their series below θ = 10⁻² (no cancellation)."""
+    if theta < wp.float64(1.0e-2):
+        t2 = theta * theta
+        a = wp.float64(1.0) - t2 / wp.float64(6.0) + t2 * t2 / wp.float64(120.0)
+        b = wp.float64(0.5) - t2 / wp.float64(24.0) + t2 * t2 / wp.float64(720.0)
+        c = wp.float64(1.0) / wp.float64(6.0) - t2 / wp.float64(120.0) + t2 * t2 / wp.float64(5040.0)
+        return a, b, c
+    s = wp.sin(theta)
+    t2 = theta * theta
+    return s / theta, (wp.float64(1.0) - wp.cos(theta)) / t2, (theta - s) / (t2 * theta)
+
+
+@wp.func
+def rotate_by_vector(phi: wp.vec3d, r: wp.vec3d) -> wp.vec3d:
+    """R(φ) r for the rotation vector φ [rad] (Rodrigues: r + a φ×r + b φ×(φ×r))."""
+    a, b, c = rotation_coefficients(wp.length(phi))
+    phi_r = wp.cross(phi, r)
+    return r + a * phi_r + b * wp.cross(phi, phi_r)
+
+
+@wp.func
+def angular_velocity(phi: wp.vec3d, phi_rate: wp.vec3d) -> wp.vec3d:
+    """ω [rad/s] of R(φ(t)) in the world frame: J(φ) φ̇ = φ̇ + b φ×φ̇ + c φ×(φ×φ̇)."""
+    a, b, c = rotation_coefficients(wp.length(phi))
+    cross = wp.cross(phi, phi_rate)
+    return phi_rate + b * cross + c * wp.cross(phi, cross)
+
+
+@functools.cache
+def kinematics_kernel(scalar: type, targets: bool):
+    """Kernel writing the position and velocity of every kinematic particle at time t + s, from a state at
+    time t (``time_in[0]``), with s = ``fraction`` · ``step[0]``. ``targets``: whether groups driven through
+    ``Control`` read its targets (otherwise they rest where they are)."""
+    vec3 = vec3_type(scalar)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def kinematics(
+        # Model:
+        groups: PinGroups,
+        tracks: Tracks,
+        # Control:
+        pin_targets: PinTargets,
+        # State in:
+        particle_q_in: wp.array[vec3],
+        particle_qd_in: wp.array[vec3],
+        time_in: wp.array[wp.float64],
+        step: wp.array[wp.float64],
+        fraction: wp.float64,
+        # Out:
+        particle_q_out: wp.array[vec3],
+        particle_qd_out: wp.array[vec3],
+    ):
+        k = wp.tid()
+        i = groups.particle[k]
+        g = groups.group[k]
+        t_in = time_in[0]
+        s = fraction * step[0]
+        q = particle_q_in[i]
+        qd = particle_qd_in[i]
+        if g == NO_GROUP:
+            # On with its velocity, rounded as the integrators' own updates x + h v round.
+            particle_q_out[i] = q + scalar(s) * qd
+            particle_qd_out[i] = qd
+        else:
+            x = wp.vec3d(q)
+            v = wp.vec3d(wp.float64(0.0))
+            translation = groups.translation_track[g]
+            rotation = groups.rotation_track[g]
+            if translation >= 0 or rotation >= 0:
+                pivot = groups.pivot[g]
+                r = groups.rest[k] - pivot
+                if rotation >= 0:
+                    phi, phi_rate = track_sample(tracks, rotation, t_in + s)
+                    r = rotate_by_vector(phi, r)
+                    v = wp.cross(angular_velocity(phi, phi_rate), r)
+                x = pivot + r
+                if translation >= 0:
+                    offset, offset_rate = track_sample(tracks, translation, t_in + s)
+                    x = x + offset
+                    v = v + offset_rate
+            elif wp.static(targets):
+                # Driven through Control: a straight line to the target, reached at the target's time; at
+                # rest where it is before the first target and after the last.
+                t_target = pin_targets.time[g]
+                if t_in < t_target:
+                    remaining = t_target - t_in
+                    target = pin_targets.position[k]
+                    v = (target - x) / remaining
+                    x = wp.where(s >= remaining, target, x + s * v)
+            particle_q_out[i] = vec3(x)
+            particle_qd_out[i] = vec3(v)
+
+    return kinematics

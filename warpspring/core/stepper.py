@@ -1,0 +1,150 @@
+"""The one stepper: warm-up, graph capture, replay and the swap of the two state buffers.
+
+Everything that advances a model by a fixed number of steps at a time (the Simulator's frames, the
+studies' measured runs, the examples) goes through :class:`Stepper`. A graph replays its launches with
+the arguments they were captured with, so the stepper re-captures exactly when one of those could
+differ, which it reads from explicit revision counters rather than guessing:
+
+* ``model.revision``: a term switched on or off, a track added or removed, an array replaced;
+* ``control.revision``: an input allocated for the first time (e.g. the external force);
+* ``integrator.revision`` and each hook's ``revision``: their launches changed;
+* the step ``dt``, the step count, and which integrator and control objects are used.
+
+Values written into existing device arrays (gravity, drag, thresholds, stiffness, pin targets, solver
+tolerances) are not in that list: the captured kernels read them from device memory at every replay.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .. import checks
+from ..errors import ConfigError
+from .integrators import Integrator
+from .model import Control, Model, State
+
+
+class StepHook:
+    """Device work a :class:`Stepper` runs around the integrator's steps (capturable: no host reads).
+
+    Attributes:
+        revision: bump it when the hook's launches change (the stepper then re-captures).
+    """
+
+    revision: int = 0
+
+    def begin(self) -> None:
+        """Called at the start of every :meth:`Stepper.advance`, before the first step."""
+
+    def after_step(self, state: State, step: int, steps: int) -> None:
+        """Called after step ``step`` (0-based) of ``steps``, with the state that step produced."""
+
+
+class Stepper:
+    """Advances :attr:`state` by ``steps`` integrator steps of ``dt`` per :meth:`advance`, replaying one
+    captured graph (a CUDA graph on GPUs, Warp's CPU graph on the CPU).
+
+    Two state buffers alternate within an advance; an odd step count ends with a copy back, so the result
+    is always :attr:`state`. Before a capture, one uncaptured step on the scratch buffer compiles and loads
+    every module the advance launches (a capture must not load modules), and the integrator's history
+    (warm starts, step-size control) is restored afterwards, so a captured run equals an uncaptured one
+    bit for bit.
+
+    Args:
+        model: the model.
+        integrator: the integrator (built for ``model``).
+        dt: the step [s].
+        steps: integrator steps per :meth:`advance`.
+        control: time-varying inputs, or ``None``.
+        hooks: :class:`StepHook` objects run around the steps, in order.
+        use_graph: capture and replay; off runs the same launches from Python every time (debugging).
+        state: the state to advance (default: ``model.state()``).
+    """
+
+    def __init__(
+        self,
+        model: Model,
+        integrator: Integrator,
+        *,
+        dt: float,
+        steps: int,
+        control: Control | None = None,
+        hooks=(),
+        use_graph: bool = True,
+        state: State | None = None,
+    ):
+        if integrator.model is not model:
+            raise ConfigError("the integrator was built for another model: build it with this model")
+        if control is not None and control.model is not model:
+            raise ConfigError("the control was made by another model: use model.control() of this model")
+        self.model = model
+        self.integrator = integrator
+        self.control = control
+        self.dt = checks.positive("dt", dt)
+        self.steps = checks.count("steps", steps, minimum=1)
+        self.hooks = list(hooks)
+        self.use_graph = bool(use_graph)
+        self.state = state if state is not None else model.state()
+        self._scratch = model.state()
+        self._graph = None
+        self._graph_key = None
+        #: Captures made so far (a structural change makes one more at the next advance).
+        self.captures = 0
+
+    def _key(self) -> tuple:
+        control = self.control
+        return (
+            self.model.revision,
+            id(control),
+            control.revision if control is not None else None,
+            id(self.integrator),
+            self.integrator.revision,
+            tuple((id(h), h.revision) for h in self.hooks),
+            self.dt,
+            self.steps,
+        )
+
+    def advance(self) -> None:
+        """Run ``steps`` steps (capturing them first when nothing is captured yet or the structure changed)."""
+        if not self.use_graph:
+            self._run()
+            return
+        key = self._key()
+        if self._graph is None or key != self._graph_key:
+            self._capture()
+            self._graph_key = key
+        wp.capture_launch(self._graph)
+
+    def reset(self, state: State | None = None) -> None:
+        """Continue from ``state`` (default: the model's initial state) and forget the integrator's history
+        (step-size control, warm starts), so that the run repeats exactly."""
+        self.state.assign(state if state is not None else self.model.state())
+        self.integrator.reset()
+
+    def _run(self) -> None:
+        for hook in self.hooks:
+            hook.begin()
+        a, b = self.state, self._scratch
+        for k in range(self.steps):
+            self.integrator.step(a, b, self.control, self.dt)
+            a, b = b, a
+            for hook in self.hooks:
+                hook.after_step(a, k, self.steps)
+        if a is not self.state:
+            self.state.assign(a)
+
+    def _capture(self) -> None:
+        # Warm-up: one uncaptured step (and every hook) on the scratch buffer loads every module; the
+        # integrator's history is put back, so the warm-up leaves no trace in the run.
+        history = [wp.clone(a) for a in self.integrator.history()]
+        for hook in self.hooks:
+            hook.begin()
+        self.integrator.step(self.state, self._scratch, self.control, self.dt)
+        for hook in self.hooks:
+            hook.after_step(self._scratch, self.steps - 1, self.steps)
+        for saved, live in zip(history, self.integrator.history()):
+            wp.copy(live, saved)
+        with wp.ScopedCapture(device=self.model.device, force_module_load=False) as capture:
+            self._run()
+        self._graph = capture.graph
+        self.captures += 1
