@@ -52,3 +52,13 @@ def run_frames(sim: ws.Simulator, frames: int) -> np.ndarray:
         sim.step_frame()
     wp.synchronize_device(sim.model.device)
     return sim.state.particle_q.numpy().astype(np.float64)
+
+
+def loaded_modules() -> int:
+    """Kernel modules loaded so far in this process, over all devices (each (module, device, block size)
+    load counts once): a new compile-time constant would load a new one."""
+    try:
+        from warp._src.context import user_modules
+    except ImportError:  # older Warp layouts
+        from warp.context import user_modules
+    return sum(len(module.execs) for module in list(user_modules.values()))

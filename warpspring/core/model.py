@@ -13,6 +13,7 @@ from ..kernels.forces import ForceFeatures, SpringLaw
 from ..kernels.inputs import INPUT_COUNT, INPUTS
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import vec3_type
+from .kinematics import apply_kinematics
 from .tracks import Track, TrackTable, as_track
 
 #: The stabiliser thresholds that are live inputs (their names in ``kernels.inputs.INPUTS``).
@@ -385,13 +386,17 @@ class Model:
     # -- factories ----------------------------------------------------------------------------------------------
 
     def state(self) -> State:
-        """A new State holding the model's initial positions and velocities, at time 0."""
-        return State(
+        """A new State holding the model's initial positions and velocities, at time 0; driven pins are at
+        their prescribed place and velocity at t = 0 (a pin group's velocity at t = 0 is its tracks' rate,
+        not the velocity the particles were built with: the first step must see the motion it is in)."""
+        state = State(
             particle_q=wp.clone(self.particle_q),
             particle_qd=wp.clone(self.particle_qd),
             particle_f=wp.zeros_like(self.particle_q),
             time=wp.zeros(1, dtype=wp.float64, device=self.device),
         )
+        apply_kinematics(self, None, state, state.particle_q, state.particle_qd, 0.0)
+        return state
 
     def control(self) -> Control:
         """A new Control with no time-varying input set."""
