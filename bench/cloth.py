@@ -76,13 +76,13 @@ class NewtonRunner:
         import newton
 
         q = model.particle_q.numpy()
-        inv_mass = model.particle_inv_mass.numpy()
+        kinematic = model.kinematic_mask()
         springs = model.spring_indices.numpy()
         builder = newton.ModelBuilder(gravity=-9.81)
         builder.add_particles(
             pos=[tuple(p) for p in q],
             vel=[(0.0, 0.0, 0.0)] * len(q),
-            mass=[0.0 if w == 0.0 else MASS for w in inv_mass],  # Newton: zero mass = kinematic
+            mass=[0.0 if pinned else MASS for pinned in kinematic],  # Newton: zero mass = kinematic
         )
         # Bulk-extend the spring lists (Newton's add_spring is one Python call per spring).
         builder.spring_indices.extend(springs.ravel().tolist())

@@ -1,8 +1,8 @@
 """Hanging cloth: a square cloth held by two corners falls, swings and hangs.
 
-Shows the low-level API in the pattern of Warp's examples: build a model, advance two states with an
-integrator's ``step(state_in, state_out, control, dt)``, capture a frame's substeps in a CUDA graph,
-and stream each frame to USD.
+Shows the low-level API in the pattern of Warp's examples: build a model, pick an integrator (whose
+contract is ``step(state_in, state_out, control, dt)``), let a ``Stepper`` run a frame's substeps as one
+captured graph (a CUDA graph on GPUs, Warp's CPU graph on the CPU), and stream each frame to USD.
 
     python examples/hanging_cloth.py --stage-path hanging_cloth.usdc --num-frames 300
 """
@@ -41,42 +41,26 @@ class Example:
         self.model = builder.finalize()
 
         self.integrator = ws.SymplecticEuler(self.model)
-        self.state_0 = self.model.state()
-        self.state_1 = self.model.state()
-        self.control = self.model.control()
+        # The stepper owns the two state buffers, the warm-up that compiles every kernel, the capture of a
+        # frame's substeps into one graph, and its replay; it re-captures only if the model's structure changes.
+        self.stepper = ws.Stepper(self.model, self.integrator, dt=self.sim_dt, steps=self.sim_substeps,
+                                  control=self.model.control())
 
         self.usd = UsdWriter(stage_path, self.model, fps=fps) if stage_path else None
         if self.usd:
-            self.usd.write_frame(self.state_0)
-
-        # An even substep count leaves the result in state_0, so the graph can be replayed frame after
-        # frame. Compile before capturing: module loads cannot be captured.
-        self.use_graph = self.model.device.is_cuda
-        if self.use_graph:
-            self.integrator.step(self.state_0, self.state_1, self.control, self.sim_dt)
-            with wp.ScopedCapture(force_module_load=False) as capture:
-                self.simulate()
-            self.graph = capture.graph
-
-    def simulate(self):
-        for _ in range(self.sim_substeps):
-            self.integrator.step(self.state_0, self.state_1, self.control, self.sim_dt)
-            self.state_0, self.state_1 = self.state_1, self.state_0
+            self.usd.write_frame(self.stepper.state)
 
     def step(self):
-        if self.use_graph:
-            wp.capture_launch(self.graph)
-        else:
-            self.simulate()
+        self.stepper.advance()
         self.sim_time += self.frame_dt
 
     def render(self):
         if self.usd:
-            self.usd.write_frame(self.state_0)
+            self.usd.write_frame(self.stepper.state)
 
     def lowest_point(self) -> float:
         """Height [m] of the lowest particle."""
-        return float(np.min(self.state_0.particle_q.numpy()[:, 2]))
+        return float(np.min(self.stepper.state.particle_q.numpy()[:, 2]))
 
 
 if __name__ == "__main__":

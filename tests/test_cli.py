@@ -10,12 +10,14 @@ import pathlib
 import re
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
 from pxr import Usd
 
 from warpspring.cli import EXIT_CONFIG, EXIT_SIMULATION, main
+from warpspring.io.scene import DeprecatedKeyWarning
 
 EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"
 
@@ -105,6 +107,19 @@ def test_options_override_the_scene(tmp_path, capsys):
     assert status == 0 and "dt = 4.167 ms" in stdout  # the file's 60 fps · 4 substeps
     _, times, fps = points_samples(tmp_path / "plain.usda")
     assert fps == 60.0 and times == [float(k) for k in range(6)]
+
+
+def test_deprecated_key_is_one_warning_line(tmp_path, capsys):
+    """A scene using a renamed key ([guard] max_strain, now tear_strain) runs, with exactly one
+    'warpspring: warning:' line naming the file and both keys, and no Python warning besides."""
+    scene = write_scene(tmp_path, extra="\n[guard]\nmax_strain = 10.0\n")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        status, stdout, stderr = run_cli(capsys, scene, "-o", tmp_path / "old.usdc", "--frames", 1)
+    assert status == 0, stderr
+    assert len(stderr) == 1 and stderr[0].startswith("warpspring: warning: scene.toml: [guard] max_strain ")
+    assert "tear_strain" in stderr[0] and stdout.startswith("wrote 2 frames ")
+    assert not [w for w in caught if issubclass(w.category, DeprecatedKeyWarning)]
 
 
 # -- bad input: exit 2, one line -------------------------------------------------------------------------

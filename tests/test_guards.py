@@ -85,10 +85,25 @@ def test_default_energy_limit_tolerates_fast_initial_motion(device):
 @pytest.mark.parametrize("kwargs, message", [
     ({"every": 0}, "guard every must be an integer >= 1"),
     ({"every": 2.5}, "guard every must be an integer >= 1"),
-    ({"max_strain": 0.0}, "guard max_strain must be a finite number > 0"),
-    ({"max_strain": float("nan")}, "guard max_strain must be a finite number > 0"),
+    ({"tear_strain": 0.0}, "guard tear_strain must be a finite number > 0"),
+    ({"tear_strain": float("nan")}, "guard tear_strain must be a finite number > 0"),
     ({"max_kinetic_energy": -1.0}, "guard max_kinetic_energy must be a finite number > 0"),
 ])
 def test_guard_limits_reject_bad_values_when_made(kwargs, message):
     with pytest.raises(ws.ConfigError, match=message):
         ws.GuardLimits(**kwargs)
+
+
+def test_guard_max_strain_is_a_deprecated_name_of_tear_strain():
+    """GuardLimits.max_strain was renamed tear_strain (not Stabilizers.max_strain, the strain limit): the old
+    keyword and attribute still work, with a DeprecationWarning; both names at once are refused."""
+    with pytest.warns(DeprecationWarning, match="tear_strain"):
+        limits = ws.GuardLimits(every=2, max_strain=3.0)
+    assert limits == ws.GuardLimits(every=2, tear_strain=3.0) and limits.tear_strain == 3.0
+    with pytest.warns(DeprecationWarning, match="tear_strain"):
+        assert limits.max_strain == 3.0
+    with pytest.warns(DeprecationWarning), pytest.raises(ws.ConfigError, match="guard max_strain must be"):
+        ws.GuardLimits(max_strain=-1.0)
+    with pytest.raises(TypeError, match="pass tear_strain only"):
+        ws.GuardLimits(tear_strain=3.0, max_strain=3.0)
+    assert ws.GuardLimits().tear_strain == 10.0

@@ -7,11 +7,20 @@ README = Path(__file__).parent.parent / "README.md"
 
 
 def test_api_tour_runs(tmp_path, monkeypatch):
-    """The tour builds its model, gets the advisor's verdict, steps, and writes a USD file."""
+    """The tour builds its model, gets the advisor's verdict, steps, changes gravity mid-run without a new
+    capture, drives its pinned edge by tracks, and writes a USD file."""
+    import numpy as np
+
     code = re.search(r"## API tour\n\n```python\n(.*?)```", README.read_text(), re.S).group(1)
-    assert '"cuda:0"' in code and "range(120)" in code
-    code = code.replace('"cuda:0"', '"cpu"').replace("range(120)", "range(3)")
+    assert '"cuda:0"' in code and "range(120)" in code and "frame == 60" in code
+    code = code.replace('"cuda:0"', '"cpu"').replace("range(120)", "range(3)").replace("frame == 60", "frame == 1")
     monkeypatch.chdir(tmp_path)
     namespace = {}
     exec(compile(code, str(README), "exec"), namespace)
-    assert namespace["sim"].frame == 3 and (tmp_path / "out.usdc").is_file()
+    sim, model = namespace["sim"], namespace["model"]
+    assert sim.frame == 3 and (tmp_path / "out.usdc").is_file()
+    np.testing.assert_allclose(model.gravity, (0.0, 0.0, -1.62), rtol=1e-6)
+    assert sim.stepper.captures == 1
+    edge = model.pin_groups.groups[0]
+    expected = edge.position(model.particle_q.numpy()[edge.particles], [sim.time])[0][0]
+    np.testing.assert_allclose(sim.state.particle_q.numpy()[edge.particles], expected, atol=1e-6)

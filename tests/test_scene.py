@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import warpspring as ws
-from warpspring.io.scene import load_scene, parse_scene
+from warpspring.io.scene import SCENE_FORMAT_VERSION, DeprecatedKeyWarning, load_scene, parse_scene
 
 EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"
 
@@ -307,14 +307,258 @@ def test_stabilizers_and_guard_tables_reach_the_model_and_simulation():
     """[stabilizers] configures the model's stabilizers (biphasic law included) and [guard] the run-time
     checks; their values are range-checked like every other key."""
     data = changed(lambda d: d.update(
+        version=2,
         stabilizers={"max_strain": 0.1, "strain_iterations": 8, "biphasic_strain": 0.2, "biphasic_ratio": 5.0},
-        guard={"every": 4, "max_strain": 3.0},
+        guard={"every": 4, "tear_strain": 3.0},
     ))
     scene = parse_scene(data)
     model = scene.builder().finalize("cpu")
     assert model.stabilizers == ws.Stabilizers(max_strain=0.1, strain_iterations=8, biphasic_strain=0.2,
                                                biphasic_ratio=5.0)
-    assert model.spring_law.biphasic and scene.guard == ws.GuardLimits(every=4, max_strain=3.0)
+    assert model.spring_law.biphasic and scene.guard == ws.GuardLimits(every=4, tear_strain=3.0)
     assert "stabilizers.max_strain must be a number > 0" in parse_error(changed(
         lambda d: d.update(stabilizers={"max_strain": -0.1})))
     assert "unknown key 'often' in [guard]" in parse_error(changed(lambda d: d.update(guard={"often": 2})))
+
+
+# -- format versions --------------------------------------------------------------------------------------
+
+
+def test_a_file_without_version_is_format_1_and_reads_as_before():
+    """No version: format 1, no deprecation, and the same scene as before versions existed."""
+    scene = parse_scene(minimal(), path="s.toml")
+    assert scene.version == 1 and scene.deprecations == [] and scene.tracks == {}
+    assert load_scene(EXAMPLES / "hanging_cloth.toml").version == 1
+
+
+def test_version_2_is_read():
+    """version = 2 (this warpspring's format) reads the same scene as the same file without it."""
+    assert SCENE_FORMAT_VERSION == 2
+    v2 = parse_scene(changed(lambda d: d.update(version=2)), path="s.toml")
+    v1 = parse_scene(minimal(), path="s.toml")
+    assert v2.version == 2
+    assert (v2.cloths, v2.world, v2.stabilizers, v2.guard) == (v1.cloths, v1.world, v1.stabilizers, v1.guard)
+
+
+def test_a_newer_format_asks_for_a_newer_warpspring():
+    """A file of a format above SCENE_FORMAT_VERSION is refused first, in one line naming its version, the
+    versions this warpspring reads and the fix (even if its tables hold keys unknown here)."""
+    message = parse_error(changed(lambda d: d.update(version=3, hologram={"on": True})))
+    assert "version 3" in message and "newer warpspring" in message and "1 to 2" in message
+    assert "upgrade" in message and "hologram" not in message
+
+
+@pytest.mark.parametrize("version", ["2", 2.0, True, 0, -1], ids=["string", "float", "bool", "zero", "negative"])
+def test_version_must_be_an_integer_of_at_least_1(version):
+    message = parse_error(changed(lambda d: d.update(version=version)))
+    assert "version must be an integer >= 1" in message and repr(version) in message
+
+
+def test_version_inside_a_table_is_pointed_to_the_top():
+    """TOML puts a key written after [simulation] into that table: the error says where version belongs."""
+    message = parse_error(changed(lambda d: d.update(simulation={"version": 2})))
+    assert "unknown key 'version' in [simulation]" in message and "top of the file" in message
+
+
+# -- renamed keys -----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("version", [None, 2], ids=["format-1", "format-2"])
+def test_old_guard_max_strain_is_read_with_a_deprecation(version):
+    """[guard] max_strain, renamed tear_strain in format 2, is still read in every format: a
+    DeprecatedKeyWarning naming the file and both keys, the same message in Scene.deprecations, and its
+    value in GuardLimits.tear_strain. A format-1 file is also told to declare version = 2."""
+    data = changed(lambda d: d.update(guard={"max_strain": 3.0}))
+    if version is not None:
+        data["version"] = version
+    with pytest.warns(DeprecatedKeyWarning, match=r"scene\.toml: \[guard\] max_strain .* tear_strain") as caught:
+        scene = parse_scene(data, path="/a/scene.toml")
+    assert len(caught) == 1 and caught[0].filename == __file__  # the warning points at the caller
+    assert scene.guard.tear_strain == 3.0 and scene.guard == ws.GuardLimits(tear_strain=3.0)
+    assert scene.deprecations == [str(caught[0].message)]
+    assert ("add version = 2" in scene.deprecations[0]) == (version is None)
+    assert data["guard"] == {"max_strain": 3.0}  # the caller's dict is left as it was
+
+
+def test_load_scene_warns_about_deprecated_keys_too(tmp_path):
+    path = tmp_path / "old.toml"
+    path.write_text('[cloth]\ngrid = { nx = 3, ny = 3, spacing = 0.1 }\nmass = 0.1\n\n[guard]\nmax_strain = 4.0\n')
+    with pytest.warns(DeprecatedKeyWarning, match=r"old\.toml: \[guard\] max_strain") as caught:
+        scene = load_scene(path)
+    assert caught[0].filename == __file__ and scene.guard.tear_strain == 4.0
+
+
+def test_old_and_new_name_in_one_table_is_an_error():
+    message = parse_error(changed(lambda d: d.update(version=2, guard={"max_strain": 3.0, "tear_strain": 4.0})))
+    assert "[guard] has both max_strain and tear_strain" in message and "keep tear_strain only" in message
+
+
+def test_a_new_name_needs_the_format_that_introduced_it():
+    """tear_strain in a file without version: declare the format it uses (older readers do not know it)."""
+    message = parse_error(changed(lambda d: d.update(guard={"tear_strain": 4.0})))
+    assert "[guard] tear_strain needs scene format 2" in message and "add version = 2" in message
+
+
+# -- tracks of live inputs --------------------------------------------------------------------------------
+
+
+def tracked() -> dict:
+    """The minimal scene in format 2 with gravity, drag and the strain limit animated."""
+    return changed(lambda d: d.update(
+        version=2,
+        world={
+            "gravity": {"times": [0.0, 1.0, 2.0], "values": [[0, 0, -9.81], [0, 0, -1.62], [0, 0, -9.81]],
+                        "interpolation": "smooth", "extrapolation": "cycle"},
+            "drag": {"times": [0.0, 0.5], "values": [0.0, 0.02], "interpolation": "step"},
+        },
+        stabilizers={"max_strain": {"times": [0.0, 1.0], "values": [0.2, 0.05]}, "max_speed": 5.0},
+    ))
+
+
+def test_tracks_reach_the_model():
+    """A track table on gravity, drag or a stabiliser threshold becomes the model's track of that input,
+    keys and options as written; a threshold's stabiliser is on, starting at the track's first value."""
+    scene = parse_scene(tracked(), path="s.toml")
+    assert sorted(scene.tracks) == ["drag", "gravity", "max_strain"]
+    model = scene.builder().finalize("cpu")
+    gravity, drag, strain = model.track("gravity"), model.track("drag"), model.track("max_strain")
+    np.testing.assert_array_equal(gravity.times, [0.0, 1.0, 2.0])
+    np.testing.assert_array_equal(gravity.values, [[0, 0, -9.81], [0, 0, -1.62], [0, 0, -9.81]])
+    assert (gravity.interpolation, gravity.extrapolation) == ("smooth", "cycle")
+    np.testing.assert_array_equal(drag.values, [[0.0], [0.02]])
+    assert (drag.interpolation, drag.extrapolation) == ("step", "hold")
+    np.testing.assert_array_equal(strain.values, [[0.2], [0.05]])
+    assert model.stabilizers == ws.Stabilizers(max_strain=0.2, max_speed=5.0)
+    assert model.track("max_speed") is None and model.gravity_enabled and model.drag_enabled
+
+
+def test_a_track_needs_format_2():
+    data = tracked()
+    del data["version"]
+    message = parse_error(data)
+    assert "world.gravity as a track table needs scene format 2" in message and "add version = 2" in message
+
+
+def _track_edit(key, **changes):
+    """tracked() with the track table at ``key`` updated by ``changes`` (a value of None removes that key)."""
+    def edit(d):
+        table = d[key.split(".")[0]][key.split(".")[1]]
+        for k, v in changes.items():
+            table.pop(k) if v is None else table.update({k: v})
+    data = tracked()
+    edit(data)
+    return data
+
+
+BAD_TRACKS = [
+    # scene, words the message must hold
+    (_track_edit("world.gravity", times=[0.0, 2.0, 1.0]), ["world.gravity", "increase strictly"]),
+    (_track_edit("world.gravity", values=[[0, 0, -9.81], [0, -1.62], [0, 0, 0]]),
+     ["world.gravity.values[1]", "3 finite numbers"]),
+    (_track_edit("world.gravity", values=[[0, 0, -9.81]]), ["world.gravity", "3 times but 1 values"]),
+    (_track_edit("world.gravity", interpolation="cubic"), ["world.gravity.interpolation", "step, linear, smooth",
+                                                          "'cubic'"]),
+    (_track_edit("world.gravity", extrapolation="mirror"), ["world.gravity.extrapolation", "hold, cycle"]),
+    (_track_edit("world.drag", values=[0.0, -0.1]), ["world.drag.values[1]", ">= 0", "-0.1"]),
+    (_track_edit("world.drag", times=[]), ["world.drag.times", "empty"]),
+    (_track_edit("world.drag", times=[0.0, "1 s"]), ["world.drag.times[1]", "number"]),
+    (_track_edit("world.drag", values=None), ["world.drag", "missing: values"]),
+    (_track_edit("world.drag", value=[0.0, 0.1]), ["unknown key 'value' in [world.drag]", "allowed: times, values"]),
+    (_track_edit("world.drag", times=[0.0], values=[0.1], extrapolation="cycle"), ["world.drag", "two keys"]),
+    (_track_edit("stabilizers.max_strain", values=[0.2, 0.0]), ["stabilizers.max_strain.values[1]", "> 0"]),
+    (changed(lambda d: d.update(version=2, stabilizers={"biphasic_ratio": {"times": [0], "values": [5.0]}})),
+     ["stabilizers.biphasic_ratio", "biphasic springs are off", "biphasic_strain"]),
+]
+
+
+@pytest.mark.parametrize("data, words", BAD_TRACKS, ids=[
+    "decreasing-times", "short-gravity-value", "fewer-values-than-times", "unknown-interpolation",
+    "unknown-extrapolation", "negative-drag-key", "no-times", "text-time", "no-values", "misspelt-key",
+    "cycle-of-one-key", "zero-threshold-key", "biphasic-ratio-without-biphasic-springs",
+])
+def test_bad_track_tables_are_named(data, words):
+    """Each fault of a track table is a one-line error naming the file, the table and the key."""
+    message = parse_error(data)
+    for word in words:
+        assert word in message
+
+
+# -- pin groups -------------------------------------------------------------------------------------------
+
+RAISE = {"times": [0.0, 1.0], "values": [[0.0, 0.0, 0.0], [0.0, 0.0, 0.5]]}
+
+
+def test_grid_pin_group_moves_the_named_particles():
+    """[[cloth.pin_group]] with pin = ["top"] and a translation track: the top row forms the model's first pin
+    group, driven by that track, and is kinematic (beside the cloth's own fixed pin)."""
+    data = changed(lambda d: d.update(version=2))
+    data["cloth"].update(pin=["bottom-left"], pin_group=[{"pin": ["top"], "name": "bar", "translation": RAISE}])
+    model = parse_scene(data, path="s.toml").builder().finalize("cpu")
+    nx, ny = 3, 4
+    top = np.arange((ny - 1) * nx, ny * nx)
+    group = model.pin_groups.groups[0]
+    np.testing.assert_array_equal(group.particles, top)
+    assert group.name == "bar" and group.rotation is None and group.driver == "tracks"
+    np.testing.assert_array_equal(group.translation.values, RAISE["values"])
+    np.testing.assert_array_equal(np.flatnonzero(model.kinematic_mask()), np.concatenate([[0], top]))
+
+
+def test_mesh_pin_group_by_vertex_indices(tmp_path):
+    """A mesh cloth's pin group names vertices; a rotation track turns degrees about an axis into rotation
+    vectors [rad] about the given pivot. Several groups are numbered in errors."""
+    (tmp_path / "quad.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 3\nf 2 4 3\n")
+    (tmp_path / "s.toml").write_text(
+        'version = 2\n[cloth]\nmesh = "quad.obj"\nmass = 0.4\n\n[[cloth.pin_group]]\npin = [2, 3]\n'
+        "pivot = [0.5, 1.0, 0.0]\n"
+        "rotation = { times = [0.0, 1.0], axis = [1.0, 0.0, 0.0], degrees = [0.0, 90.0], interpolation = 'smooth' }\n"
+    )
+    model = load_scene(tmp_path / "s.toml").builder().finalize("cpu")
+    group = model.pin_groups.groups[0]
+    np.testing.assert_array_equal(group.particles, [2, 3])
+    np.testing.assert_allclose(group.rotation.values, [[0.0, 0.0, 0.0], [np.pi / 2, 0.0, 0.0]])
+    assert group.rotation.interpolation == "smooth" and group.translation is None
+    np.testing.assert_array_equal(group.pivot, [0.5, 1.0, 0.0])
+    np.testing.assert_array_equal(np.flatnonzero(model.kinematic_mask()), [2, 3])
+
+    extra = "\n[[cloth.pin_group]]\npin = [7]\ntranslation = { times = [0.0], values = [[0, 0, 1]] }\n"
+    (tmp_path / "s.toml").write_text((tmp_path / "s.toml").read_text() + extra)
+    with pytest.raises(ws.ConfigError) as info:
+        load_scene(tmp_path / "s.toml").builder()
+    assert str(info.value).startswith("s.toml: in [cloth]: pin_group[1]: ") and "vertex index 7" in str(info.value)
+
+
+def pin_group_error(group: dict, *, version=2, grid=True) -> str:
+    data = changed(lambda d: d.update(version=version)) if grid else {
+        "version": version, "cloth": {"mesh": "cloth.obj", "mass": 0.1}}
+    data["cloth"]["pin_group"] = [group, {"pin": [0], "translation": RAISE}] if isinstance(group, dict) else group
+    return parse_error(data)
+
+
+def test_a_pin_group_without_tracks_suggests_pin():
+    """A group that no track moves is an error pointing to [cloth] pin for particles that stay put."""
+    message = pin_group_error({"pin": ["top"], "name": "still"})
+    assert "[cloth.pin_group[0]] moves nothing" in message and "translation" in message and "rotation" in message
+    assert "pin = [...]" in message
+
+
+@pytest.mark.parametrize("group, words, options", [
+    ({"translation": RAISE}, ["cloth.pin_group[0].pin is missing", 'pin = ["top"]'], {}),
+    ({"pin": [], "translation": RAISE}, ["cloth.pin_group[0].pin is empty"], {}),
+    ({"pin": [1.5], "translation": RAISE}, ["cloth.pin_group[0].pin", "1.5"], {}),
+    ({"pin": ["top"], "translation": RAISE}, ["cloth.pin_group[0].pin", "vertex indices", "'top'"], {"grid": False}),
+    ({"pin": [0], "translation": {"times": [0.0], "values": [1.0]}}, ["cloth.pin_group[0].translation.values[0]",
+                                                                       "3 finite numbers"], {}),
+    ({"pin": [0], "rotation": {"times": [0.0, 1.0], "axis": [0, 0, 0], "degrees": [0, 90]}},
+     ["cloth.pin_group[0].rotation", "axis", "not all zero"], {}),
+    ({"pin": [0], "rotation": {"times": [0.0, 1.0], "degrees": [0, 90]}},
+     ["cloth.pin_group[0].rotation", "missing: axis"], {}),
+    ({"pin": [0], "pivot": [0, 0], "translation": RAISE}, ["cloth.pin_group[0].pivot", "3 finite numbers"], {}),
+    ({"pin": [0], "translation": RAISE}, ["cloth.pin_group needs scene format 2", "add version = 2"],
+     {"version": 1}),
+    ("top", ["cloth.pin_group must be a table or an array of tables"], {}),
+], ids=["no-pin", "empty-pin", "float-pin", "named-pin-on-mesh", "scalar-translation", "zero-axis", "no-axis",
+        "short-pivot", "format-1", "not-a-table"])
+def test_bad_pin_groups_are_named(group, words, options):
+    message = pin_group_error(group, **options)
+    for word in words:
+        assert word in message

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 
 from . import checks
 from .errors import ConfigError, SimulationError
@@ -105,10 +106,17 @@ def _cmd_run(args) -> int:
     import warp as wp
 
     from .io.runner import run_scene
-    from .io.scene import load_scene
+    from .io.scene import DeprecatedKeyWarning, load_scene
+
+    def warn(message: str) -> None:
+        print(f"warpspring: warning: {message}", file=sys.stderr)
 
     wp.config.log_level = wp.LOG_WARNING  # no init banner or module-load lines in CLI output
-    scene = load_scene(args.scene)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecatedKeyWarning)  # printed once below, in the CLI's own form
+        scene = load_scene(args.scene)
+    for message in scene.deprecations:
+        warn(message)
     summary = run_scene(
         scene,
         output=args.output,
@@ -118,7 +126,7 @@ def _cmd_run(args) -> int:
         substeps=args.substeps,
         progress=not args.quiet and sys.stderr.isatty(),  # a redirected stderr gets no progress bar
         strict=args.strict,
-        warn=lambda message: print(f"warpspring: warning: {message}", file=sys.stderr),
+        warn=warn,
     )
     print(summary.line())
     return 0

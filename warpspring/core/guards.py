@@ -6,6 +6,7 @@ host reads one small status record per frame."""
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,27 +41,64 @@ from .stepper import StepHook
 ENERGY_FACTOR = 1.0e6
 
 
-@dataclass(frozen=True)
-class GuardLimits:
-    """What the run-time guard checks, and how often.
+#: Default spring strain at which the guard stops a run (eleven times the rest length).
+TEAR_STRAIN = 10.0
 
-    Attributes:
+
+@dataclass(frozen=True, init=False)
+class GuardLimits:
+    """What the run-time guard checks, and how often (each argument is also an attribute).
+
+    Args:
         every: substeps between checks; ``None`` checks once per frame, after its last substep.
-        max_strain: largest allowed spring strain |d|/L - 1 [-] (10: eleven times the rest length).
+        tear_strain: spring strain |d|/L - 1 [-] at which a spring counts as torn and the run stops
+            (default ``TEAR_STRAIN`` = 10: eleven times the rest length). Not the strain limit of
+            ``Stabilizers.max_strain``.
         max_kinetic_energy: largest allowed total kinetic energy [J]; ``None``: 10⁶ times the scene's
             energy scale (initial kinetic + elastic energy + total weight × (extent + 1 m)).
+        max_strain: deprecated name of ``tear_strain`` (a DeprecationWarning; same value; also readable
+            as a deprecated property).
+
+    Raises:
+        ConfigError: a value out of range.
+        TypeError: both ``tear_strain`` and its deprecated name ``max_strain``.
     """
 
     every: int | None = None
-    max_strain: float = 10.0
+    tear_strain: float = TEAR_STRAIN
     max_kinetic_energy: float | None = None
 
-    def __post_init__(self):
-        if self.every is not None:
-            checks.count("guard every", self.every, minimum=1)
-        checks.positive("guard max_strain", self.max_strain)
-        if self.max_kinetic_energy is not None:
-            checks.positive("guard max_kinetic_energy", self.max_kinetic_energy)
+    def __init__(self, *, every: int | None = None, tear_strain: float | None = None,
+                 max_kinetic_energy: float | None = None, max_strain: float | None = None):
+        name = "guard tear_strain"
+        if max_strain is not None:
+            if tear_strain is not None:
+                raise TypeError("GuardLimits got tear_strain and max_strain, its deprecated name: pass tear_strain "
+                                "only")
+            warnings.warn(_MAX_STRAIN_RENAMED, DeprecationWarning, stacklevel=2)
+            tear_strain, name = max_strain, "guard max_strain"
+        elif tear_strain is None:
+            tear_strain = TEAR_STRAIN
+        if every is not None:
+            checks.count("guard every", every, minimum=1)
+        checks.positive(name, tear_strain)
+        if max_kinetic_energy is not None:
+            checks.positive("guard max_kinetic_energy", max_kinetic_energy)
+        object.__setattr__(self, "every", every)
+        object.__setattr__(self, "tear_strain", tear_strain)
+        object.__setattr__(self, "max_kinetic_energy", max_kinetic_energy)
+
+    @property
+    def max_strain(self) -> float:
+        """Deprecated name of :attr:`tear_strain` [-] (a DeprecationWarning)."""
+        warnings.warn(_MAX_STRAIN_RENAMED, DeprecationWarning, stacklevel=2)
+        return self.tear_strain
+
+
+_MAX_STRAIN_RENAMED = (
+    "GuardLimits.max_strain is deprecated: it is now GuardLimits.tear_strain (the strain at which a spring "
+    "counts as torn; Stabilizers.max_strain is the strain limit)"
+)
 
 
 @dataclass(frozen=True)
@@ -141,7 +179,7 @@ class Guard(StepHook):
             else ENERGY_FACTOR * energy_scale(self.model)
         )
         values = [0.0] * GUARD_LIMITS
-        values[GUARD_LIMIT_STRAIN] = limits.max_strain
+        values[GUARD_LIMIT_STRAIN] = limits.tear_strain
         values[GUARD_LIMIT_KINETIC_ENERGY] = self.max_kinetic_energy
         wp.copy(self._limits, wp.array(values, dtype=wp.float64, device="cpu"))
 

@@ -48,12 +48,12 @@ class PinGroup:
         from scipy.spatial.transform import Rotation
 
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
-        r = np.broadcast_to(np.asarray(rest, dtype=np.float64) - self.pivot, (len(t), len(rest), 3))
-        x = self.pivot + r
+        r = np.asarray(rest, dtype=np.float64) - self.pivot
+        x = np.repeat((self.pivot + r)[None], len(t), axis=0)
         v = np.zeros_like(x)
         if self.rotation is not None:
             phi, phi_rate = self.rotation.sample(t)
-            rotated = np.stack([Rotation.from_rotvec(p).apply(r[0]) for p in phi])
+            rotated = np.stack([Rotation.from_rotvec(p).apply(r) for p in phi]).reshape(len(t), -1, 3)
             omega = np.stack([_left_jacobian(p) @ d for p, d in zip(phi, phi_rate)])
             x = self.pivot + rotated
             v = np.cross(omega[:, None, :], rotated)

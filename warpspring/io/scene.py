@@ -2,20 +2,32 @@
 
 Every key is checked: an unknown key, a wrong type or a bad value is a :class:`ConfigError` naming the
 file, the table and the key. See the README's scene-file reference, or ``examples/*.toml``.
+
+Scene files are versioned: a top-level ``version = 2`` declares the format (:data:`SCENE_FORMAT_VERSION`);
+a file without it is format 1, and every format-1 file still reads as before. Format 2 adds keyframe
+tracks wherever a live input takes a value (``[world] gravity = { times = [...], values = [...] }``),
+pin groups moved by tracks (``[[cloth.pin_group]]``), and renames ``[guard] max_strain`` to
+``tear_strain``. A renamed key is still read under its old name, with a :class:`DeprecatedKeyWarning`
+(renames are listed in ``_RENAMED_KEYS``, one line each).
 """
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 import sys
+import warnings
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from ..core.builder import DEFAULT_BEND, DEFAULT_SHEAR, DEFAULT_STRUCTURAL, ModelBuilder, SpringMaterial
 from ..errors import ConfigError
 from ..core.guards import GuardLimits
 from ..core.integrators import INTEGRATORS
-from ..core.model import Stabilizers
+from ..core.model import STABILIZER_INPUTS, Stabilizers
+from ..core.tracks import EXTRAPOLATIONS, INTERPOLATIONS, Track
 from ..core.transforms import quat_from_axis_angle
 
 if sys.version_info >= (3, 11):
@@ -25,6 +37,34 @@ else:  # pragma: no cover - Python 3.10
 
 PRECISIONS = ("float32", "float64")
 COLLIDER_TYPES = ("ground", "plane", "sphere")
+
+#: The scene format this warpspring reads (and every older one): a file's top-level ``version``.
+SCENE_FORMAT_VERSION = 2
+
+
+class DeprecatedKeyWarning(FutureWarning):
+    """A scene file uses a key under a name that a later scene format renamed: it is still read, and the
+    message names the file, the old key and the new one."""
+
+
+@dataclass(frozen=True)
+class PinGroupSpec:
+    """A checked ``[[cloth.pin_group]]`` table: particles of one cloth that keyframe tracks move rigidly.
+
+    Attributes:
+        pin: which particles, as in ``[cloth] pin``: corner/edge names or indices r·nx + c (grid), vertex
+            indices (mesh).
+        name: the group's name (made unique in the model).
+        pivot: the rotation's centre in world coordinates [m], shape [3], or ``None`` (the group's centroid).
+        translation: track of the translation [m] (3-vectors), or ``None``.
+        rotation: track of the rotation vector [rad] about ``pivot``, or ``None``.
+    """
+
+    pin: list
+    name: str = "pins"
+    pivot: list | None = None
+    translation: Track | None = None
+    rotation: Track | None = None
 
 
 @dataclass
@@ -42,11 +82,17 @@ class Scene:
         device: Warp device name, or ``None`` for Warp's default.
         output: output USD path (relative paths are relative to the working directory), or ``None``.
         export_particles, export_springs: also write particles / springs to USD.
-        world: the ``[world]`` table (up_axis, gravity, drag).
-        cloths: the ``[cloth]`` tables, checked.
+        world: the ``[world]`` table (up_axis, gravity, drag) as written (a track as its table).
+        cloths: the ``[cloth]`` tables, checked; a cloth's ``pin_group`` is a list of :class:`PinGroupSpec`.
         colliders: the ``[[collider]]`` tables, checked.
-        stabilizers: the ``[stabilizers]`` table (clamps, strain limiting, biphasic springs).
+        stabilizers: the ``[stabilizers]`` table (clamps, strain limiting, biphasic springs); a threshold
+            given as a track holds the track's first value.
         guard: the ``[guard]`` table (run-time checks).
+        tracks: keyframe tracks of the live inputs the file animates, by input name ("gravity", "drag",
+            "max_strain", ...).
+        version: the file's scene format (1 for a file without ``version``).
+        deprecations: one message per deprecated key the file uses (each also a
+            :class:`DeprecatedKeyWarning` when the file is read).
     """
 
     path: str
@@ -65,6 +111,9 @@ class Scene:
     colliders: list = field(default_factory=list)
     stabilizers: Stabilizers = field(default_factory=Stabilizers)
     guard: GuardLimits = field(default_factory=GuardLimits)
+    tracks: dict = field(default_factory=dict)
+    version: int = SCENE_FORMAT_VERSION
+    deprecations: list = field(default_factory=list)
 
     def builder(self) -> ModelBuilder:
         """A ModelBuilder holding the scene's cloth and colliders.
@@ -75,13 +124,17 @@ class Scene:
         """
         where = os.path.basename(self.path)
         world = self.world
+        tracks = self.tracks
         with _context(where, "world"):
             builder = ModelBuilder(
                 up_axis=world.get("up_axis", "Z"),
-                gravity=world.get("gravity"),
-                drag=world.get("drag", 0.0),
+                gravity=tracks["gravity"].values[0] if "gravity" in tracks else world.get("gravity"),
+                drag=float(tracks["drag"].values[0, 0]) if "drag" in tracks else world.get("drag", 0.0),
                 stabilizers=self.stabilizers,
             )
+        for name, track in tracks.items():
+            with _context(where, "world" if name in ("gravity", "drag") else "stabilizers"):
+                builder.set_track(name, track)
         for i, cloth in enumerate(self.cloths):
             with _context(where, _label("cloth", i, len(self.cloths))):
                 _add_cloth(builder, cloth, os.path.dirname(self.path))
@@ -92,8 +145,10 @@ class Scene:
 
 
 # -- schema: key -> expected type -------------------------------------------------------------------------
-# A value spec is a Python type (str, bool, list, dict), a _Number, VECTOR, a nested schema dict, or a
-# tuple of alternatives (bool or a nested schema: a spring family given as a table or as true/false).
+# A value spec is a Python type (str, bool, list, dict), a _Number, VECTOR, a nested schema dict, a tuple of
+# alternatives (bool or a nested schema: a spring family given as a table or as true/false), a _Live input
+# (a constant, or a track table), a _Track table, _Tables (a table or an array of tables), or _Since (a key
+# that a later scene format introduced).
 
 
 @dataclass(frozen=True)
@@ -120,6 +175,58 @@ class _Number:
         return value >= self.minimum if self.inclusive else value > self.minimum
 
 
+@dataclass(frozen=True)
+class _Track:
+    """A track table: ``{ times, values, interpolation, extrapolation }`` with each value fitting ``value``
+    (a value spec); or, with ``rotation``, ``{ times, axis, degrees, interpolation, extrapolation }``."""
+
+    value: object = None
+    rotation: bool = False
+
+
+@dataclass(frozen=True)
+class _Live:
+    """A live input of the model: a constant fitting ``value``, or (from scene format ``tracks_since`` on) a
+    track table of such values."""
+
+    value: object
+    tracks_since: int = 2
+
+
+@dataclass(frozen=True)
+class _Tables:
+    """A table or an array of tables, each of ``schema``."""
+
+    schema: dict
+
+
+@dataclass(frozen=True)
+class _Since:
+    """A key the scene format ``version`` introduced (a file of an older format must declare it)."""
+
+    version: int
+    spec: object
+
+
+@dataclass(frozen=True)
+class _Rename:
+    """A key that scene format ``version`` renamed from ``old`` to ``new`` in the table(s) at ``table`` (a
+    dotted path; each element of an array of tables). The old name is still read, with a deprecation."""
+
+    table: str
+    old: str
+    new: str
+    version: int
+    note: str = ""
+
+
+#: Renamed keys, oldest first: a rename is one line here (the schema knows the new name only).
+_RENAMED_KEYS = (
+    _Rename("guard", "max_strain", "tear_strain", 2,
+            "the strain at which a spring counts as torn and the run stops; [stabilizers] max_strain is the "
+            "strain limit"),
+)
+
 NUMBER = _Number()
 NON_NEGATIVE = _Number(0.0)
 POSITIVE = _Number(0.0, inclusive=False)
@@ -128,6 +235,15 @@ VECTOR = "vector"  # a list of 3 finite numbers
 _TYPE_NAMES = {str: "a string", bool: "true or false", list: "a list", dict: "a table"}
 
 _SPRING = {"ke": NON_NEGATIVE, "kd": NON_NEGATIVE}
+_TRACK_TABLE = {"times": list, "values": list, "interpolation": str, "extrapolation": str}
+_ROTATION_TRACK_TABLE = {"times": list, "axis": VECTOR, "degrees": list, "interpolation": str, "extrapolation": str}
+_PIN_GROUP = {
+    "pin": list,
+    "name": str,
+    "pivot": VECTOR,
+    "translation": _Track(VECTOR),
+    "rotation": _Track(rotation=True),
+}
 _SCHEMA = {
     "simulation": {
         "fps": POSITIVE,
@@ -138,7 +254,7 @@ _SCHEMA = {
         "device": str,
         "integrator_options": dict,
     },
-    "world": {"up_axis": str, "gravity": VECTOR, "drag": NON_NEGATIVE},
+    "world": {"up_axis": str, "gravity": _Live(VECTOR), "drag": _Live(NON_NEGATIVE)},
     "cloth": {
         "name": str,
         "grid": {"nx": _Number(2, integer=True), "ny": _Number(2, integer=True), "spacing": POSITIVE},
@@ -152,6 +268,7 @@ _SCHEMA = {
         "radius": NON_NEGATIVE,
         "velocity": VECTOR,
         "pin": list,
+        "pin_group": _Since(2, _Tables(_PIN_GROUP)),
         "structural": (bool, _SPRING),
         "shear": (bool, _SPRING),
         "bend": (bool, _SPRING),
@@ -168,16 +285,20 @@ _SCHEMA = {
     },
     "output": {"path": str, "particles": bool, "springs": bool},
     "stabilizers": {
-        "max_spring_force": POSITIVE,
-        "max_particle_force": POSITIVE,
-        "max_speed": POSITIVE,
-        "max_strain": POSITIVE,
+        "max_spring_force": _Live(POSITIVE),
+        "max_particle_force": _Live(POSITIVE),
+        "max_speed": _Live(POSITIVE),
+        "max_strain": _Live(POSITIVE),
         "strain_iterations": _Number(1, integer=True),
-        "biphasic_strain": POSITIVE,
-        "biphasic_ratio": _Number(1.0),
+        "biphasic_strain": _Live(POSITIVE),
+        "biphasic_ratio": _Live(_Number(1.0)),
     },
-    "guard": {"every": _Number(1, integer=True), "max_strain": POSITIVE, "max_kinetic_energy": POSITIVE},
+    "guard": {"every": _Number(1, integer=True), "tear_strain": POSITIVE, "max_kinetic_energy": POSITIVE},
 }
+_TOP_LEVEL = {"version": _Number(1, integer=True), **{k: (dict, list) if k in ("cloth", "collider") else dict
+                                                      for k in _SCHEMA}}
+#: The tables holding live inputs (each may be a track table from format 2 on).
+_LIVE_TABLES = ("world", "stabilizers")
 
 # Keys that apply to one kind of cloth or collider only (anything else would be silently ignored).
 _GRID_ONLY = {"grid", "particle_mass", "shear"}
@@ -192,8 +313,12 @@ _COLLIDER_KEYS = {
 def load_scene(path: str | os.PathLike) -> Scene:
     """Read and check a scene file.
 
+    A deprecated key is read under its new name and reported by a :class:`DeprecatedKeyWarning` (and in
+    ``Scene.deprecations``).
+
     Raises:
-        ConfigError: the file is missing or unreadable, not valid TOML, or breaks the schema.
+        ConfigError: the file is missing or unreadable, not valid TOML, of a newer scene format, or breaks
+            the schema.
     """
     path = os.fspath(path)
     if not os.path.isfile(path):
@@ -205,29 +330,47 @@ def load_scene(path: str | os.PathLike) -> Scene:
         raise ConfigError(f"{path}: not valid TOML: {_one_line(exc)}") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: cannot read: {_one_line(exc)}") from None
-    return parse_scene(data, path=path)
+    scene = _parse(data, path)
+    for message in scene.deprecations:
+        warnings.warn(message, DeprecatedKeyWarning, stacklevel=2)
+    return scene
 
 
 def parse_scene(data: dict, *, path: str = "<scene>") -> Scene:
     """Check a scene given as a dict (the parsed TOML) and return it as a :class:`Scene`.
 
+    ``data`` is not modified. A deprecated key is read under its new name and reported by a
+    :class:`DeprecatedKeyWarning` (and in ``Scene.deprecations``).
+
     Raises:
-        ConfigError: naming the file, the table and the key that is unknown, of the wrong type or out of range.
+        ConfigError: naming the file, the table and the key that is unknown, of the wrong type or out of
+            range; or a scene format newer than :data:`SCENE_FORMAT_VERSION`.
     """
+    scene = _parse(data, path)
+    for message in scene.deprecations:
+        warnings.warn(message, DeprecatedKeyWarning, stacklevel=2)
+    return scene
+
+
+def _parse(data: dict, path: str) -> Scene:
+    """parse_scene without the warnings (the callers warn, so that a warning points at their caller)."""
     where = os.path.basename(path)
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: a scene must be a table of tables, got {type(data).__name__}")
-    _check_table(data, {k: (dict, list) if k in ("cloth", "collider") else dict for k in _SCHEMA}, where, "")
+    version = _format_version(data, where)  # first: a newer file's keys would only confuse the checks below
+    data = copy.deepcopy(data)
+    deprecations = _apply_renames(data, version, where)
+    _check_table(data, _TOP_LEVEL, where, "", version=version)
     for name in ("simulation", "world", "output", "stabilizers", "guard"):
-        _check_table(data.get(name, {}), _SCHEMA[name], where, name)
+        _check_table(data.get(name, {}), _SCHEMA[name], where, name, version=version)
     cloths = _table_list(data.get("cloth", []), where, "cloth")
     colliders = _table_list(data.get("collider", []), where, "collider")
     if not cloths:
         raise ConfigError(f"{where}: the scene has no [cloth] table: add one with grid = {{...}} or mesh = '...'")
     for i, c in enumerate(cloths):
-        _check_cloth(c, where, _label("cloth", i, len(cloths)))
+        _check_cloth(c, where, _label("cloth", i, len(cloths)), version=version)
     for i, c in enumerate(colliders):
-        _check_collider(c, where, _label("collider", i, len(colliders)))
+        _check_collider(c, where, _label("collider", i, len(colliders)), version=version)
 
     sim, out = data.get("simulation", {}), data.get("output", {})
     integrator = sim.get("integrator", Scene.integrator)
@@ -240,7 +383,17 @@ def parse_scene(data: dict, *, path: str = "<scene>") -> Scene:
     if precision not in PRECISIONS:
         raise ConfigError(f"{where}: simulation.precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
 
-    scene = Scene(path=path, world=data.get("world", {}), cloths=cloths, colliders=colliders)
+    tracks = {
+        name: _make_track(value, where, f"{table}.{name}")
+        for table in _LIVE_TABLES
+        for name, value in data.get(table, {}).items()
+        if isinstance(_SCHEMA[table][name], _Live) and isinstance(value, dict)
+    }
+    # A threshold given as a track starts at its first value; the track is set on the builder.
+    stabilizers = {k: float(tracks[k].values[0, 0]) if k in tracks else v
+                   for k, v in data.get("stabilizers", {}).items()}
+    scene = Scene(path=path, world=data.get("world", {}), cloths=cloths, colliders=colliders, tracks=tracks,
+                  version=version, deprecations=deprecations)
     scene.fps = float(sim.get("fps", scene.fps))
     scene.frames = sim.get("frames", scene.frames)
     scene.substeps = sim.get("substeps", scene.substeps)
@@ -251,7 +404,11 @@ def parse_scene(data: dict, *, path: str = "<scene>") -> Scene:
     scene.output = out.get("path")
     scene.export_particles = out.get("particles", False)
     scene.export_springs = out.get("springs", False)
-    scene.stabilizers = Stabilizers(**data.get("stabilizers", {}))
+    scene.stabilizers = Stabilizers(**stabilizers)
+    for name in tracks:
+        if name in STABILIZER_INPUTS and not scene.stabilizers.enabled(name):  # only biphasic_ratio can be
+            raise ConfigError(f"{where}: stabilizers.{name} is a track, but biphasic springs are off: set "
+                              "stabilizers.biphasic_strain too (the strain beyond which springs stiffen)")
     scene.guard = GuardLimits(**data.get("guard", {}))
     check_run_settings(fps=scene.fps, frames=scene.frames, substeps=scene.substeps, where=where)
     return scene
@@ -265,6 +422,68 @@ def check_run_settings(*, fps, frames, substeps, where: str = "options") -> None
         raise ConfigError(f"{where}: frames must be an integer >= 1, got {frames!r}")
     if not _Number(1, integer=True).accepts(substeps):
         raise ConfigError(f"{where}: substeps must be an integer >= 1 (dt = 1 / (fps * substeps)), got {substeps!r}")
+
+
+# -- versions and renames ---------------------------------------------------------------------------------
+
+
+def _format_version(data: dict, where: str) -> int:
+    """The file's scene format: its top-level ``version``, 1 when absent."""
+    version = data.get("version", 1)
+    reads = f"scene formats 1 to {SCENE_FORMAT_VERSION}"
+    if not _Number(1, integer=True).accepts(version):
+        raise ConfigError(f"{where}: version must be an integer >= 1 (the scene format; this warpspring reads "
+                          f"{reads}), got {version!r}")
+    if version > SCENE_FORMAT_VERSION:
+        from .. import __version__
+
+        raise ConfigError(f"{where}: scene format version {version} needs a newer warpspring: warpspring "
+                          f"{__version__} reads {reads}; upgrade it (pip install --upgrade warpspring)")
+    return version
+
+
+def _needs(version: int, where: str, what: str) -> ConfigError:
+    """The error for a feature of scene format ``version`` in a file of an older format."""
+    return ConfigError(f"{where}: {what} needs scene format {version}: add version = {version} at the top of the "
+                       "file, before the first [table]")
+
+
+def _tables_at(data: dict, dotted: str) -> list[tuple[str, dict]]:
+    """(label, table) of every table at the dotted path: each element of an array of tables, labelled
+    "cloth[1]" when there are several. What is not a table is left to the schema checks."""
+    found = [("", data)]
+    for part in dotted.split("."):
+        inner = []
+        for label, table in found:
+            value, name = table.get(part), f"{label}.{part}" if label else part
+            if isinstance(value, dict):
+                inner.append((name, value))
+            elif isinstance(value, list):
+                inner += [(_label(name, i, len(value)), t) for i, t in enumerate(value) if isinstance(t, dict)]
+        found = inner
+    return found
+
+
+def _apply_renames(data: dict, version: int, where: str) -> list[str]:
+    """Move every renamed key of ``data`` (a copy of the file's tables) to its new name and return one
+    deprecation message per old name found. Both names in one table is an error, and so is a new name in
+    a file of a format older than the rename (the file must declare the format it uses)."""
+    messages = []
+    for rename in _RENAMED_KEYS:
+        for label, table in _tables_at(data, rename.table):
+            if rename.old in table and rename.new in table:
+                raise ConfigError(f"{where}: [{label}] has both {rename.old} and {rename.new}, its new name: "
+                                  f"keep {rename.new} only")
+            if rename.new in table and version < rename.version:
+                raise _needs(rename.version, where, f"[{label}] {rename.new}")
+            if rename.old in table:
+                table[rename.new] = table.pop(rename.old)
+                upgrade = "" if version >= rename.version else f" and add version = {rename.version} at the top"
+                messages.append(
+                    f"{where}: [{label}] {rename.old} is deprecated: scene format {rename.version} renamed it "
+                    f"{rename.new} ({rename.note}); rename it{upgrade}"
+                )
+    return messages
 
 
 # -- checking ---------------------------------------------------------------------------------------------
@@ -302,8 +521,19 @@ def _table_list(value, where: str, name: str) -> list:
     return tables
 
 
-def _check_cloth(c: dict, where: str, label: str) -> None:
-    _check_table(c, _SCHEMA["cloth"], where, label)
+def _check_pins(pins: list, grid: bool, where: str, key: str) -> None:
+    for p in pins:
+        ok = isinstance(p, int) and not isinstance(p, bool)
+        if grid:
+            ok = ok or isinstance(p, str)
+        if not ok:
+            kinds = "corner/edge names or particle indices" if grid else "vertex indices (names are for grid cloths)"
+            raise ConfigError(f"{where}: {key} takes {kinds}, got {p!r}")
+
+
+def _check_cloth(c: dict, where: str, label: str, *, version: int) -> None:
+    """Check a [cloth] table, and turn its pin groups into :class:`PinGroupSpec` (``c`` is the scene's copy)."""
+    _check_table(c, _SCHEMA["cloth"], where, label, version=version)
     if ("grid" in c) == ("mesh" in c):
         raise ConfigError(f"{where}: [{label}] needs exactly one of grid = {{nx, ny, spacing}} or mesh = 'file'")
     grid = "grid" in c
@@ -324,17 +554,40 @@ def _check_cloth(c: dict, where: str, label: str) -> None:
     axis = c.get("rotation", {}).get("axis")
     if axis is not None and not any(axis):
         raise ConfigError(f"{where}: {label}.rotation.axis must be a nonzero vector, got {axis!r}")
-    for p in c.get("pin", []):
-        ok = isinstance(p, int) and not isinstance(p, bool)
-        if grid:
-            ok = ok or isinstance(p, str)
-        if not ok:
-            kinds = "corner/edge names or particle indices" if grid else "vertex indices (names are for grid cloths)"
-            raise ConfigError(f"{where}: {label}.pin takes {kinds}, got {p!r}")
+    _check_pins(c.get("pin", []), grid, where, f"{label}.pin")
+    if "pin_group" in c:
+        groups = [c["pin_group"]] if isinstance(c["pin_group"], dict) else c["pin_group"]
+        c["pin_group"] = [
+            _pin_group(g, grid, where, _label(f"{label}.pin_group", i, len(groups))) for i, g in enumerate(groups)
+        ]
 
 
-def _check_collider(c: dict, where: str, label: str) -> None:
-    _check_table(c, _SCHEMA["collider"], where, label)
+def _pin_group(group: dict, grid: bool, where: str, key: str) -> PinGroupSpec:
+    """A checked [[cloth.pin_group]] table (its keys' types are checked already) as a PinGroupSpec."""
+    if not group.get("pin"):
+        example = '["top"]' if grid else "[0, 1]"
+        raise ConfigError(f"{where}: {key}.pin is {'empty' if 'pin' in group else 'missing'}: name the particles "
+                          f"the group moves, e.g. pin = {example}")
+    _check_pins(group["pin"], grid, where, f"{key}.pin")
+    if "translation" not in group and "rotation" not in group:
+        raise ConfigError(
+            f"{where}: [{key}] moves nothing: give translation = {{ times = [...], values = [...] }} and/or "
+            "rotation = { times = [...], axis = [x, y, z], degrees = [...] }; for particles that stay put, "
+            f"list them in pin = [...] of the cloth instead"
+        )
+    return PinGroupSpec(
+        pin=list(group["pin"]),
+        name=group.get("name", "pins"),
+        pivot=group.get("pivot"),
+        translation=_make_track(group["translation"], where, f"{key}.translation")
+        if "translation" in group else None,
+        rotation=_make_track(group["rotation"], where, f"{key}.rotation", rotation=True)
+        if "rotation" in group else None,
+    )
+
+
+def _check_collider(c: dict, where: str, label: str, *, version: int) -> None:
+    _check_table(c, _SCHEMA["collider"], where, label, version=version)
     kind = c.get("type")
     if kind is None:
         raise ConfigError(f"{where}: {label}.type is missing: set type = one of {', '.join(COLLIDER_TYPES)}")
@@ -350,26 +603,49 @@ def _check_collider(c: dict, where: str, label: str) -> None:
         raise ConfigError(f"{where}: a sphere collider ([{label}]) needs center = [x, y, z] and radius")
 
 
-def _check_table(table: dict, schema: dict, where: str, name: str) -> None:
+def _check_table(table: dict, schema: dict, where: str, name: str, *, version: int) -> None:
     if not isinstance(table, dict):
         raise ConfigError(f"{where}: [{name}] must be a table")
     for key, value in table.items():
         if key not in schema:
+            hint = " (version belongs at the top of the file, before the first [table])" if key == "version" else ""
             raise ConfigError(
-                f"{where}: unknown key {key!r} in [{name or 'top level'}]; allowed: {', '.join(schema)}"
+                f"{where}: unknown key {key!r} in [{name or 'top level'}]; allowed: {', '.join(schema)}{hint}"
             )
-        _check_value(value, schema[key], where, f"{name}.{key}" if name else key)
+        _check_value(value, schema[key], where, f"{name}.{key}" if name else key, version=version)
 
 
-def _check_value(value, expected, where: str, key: str) -> None:
+def _check_value(value, expected, where: str, key: str, *, version: int) -> None:
+    if isinstance(expected, _Since):
+        if version < expected.version:
+            raise _needs(expected.version, where, key)
+        _check_value(value, expected.spec, where, key, version=version)
+        return
+    if isinstance(expected, _Live):
+        if not isinstance(value, dict):
+            _check_value(value, expected.value, where, key, version=version)
+            return
+        if version < expected.tracks_since:
+            raise _needs(expected.tracks_since, where, f"{key} as a track table")
+        expected = _Track(expected.value)
+    if isinstance(expected, _Track):
+        _check_track(value, expected, where, key, version=version)
+        return
+    if isinstance(expected, _Tables):
+        tables = [value] if isinstance(value, dict) else value
+        if not isinstance(tables, list) or not all(isinstance(t, dict) for t in tables):
+            raise ConfigError(f"{where}: {key} must be a table or an array of tables [[{key}]], got {value!r}")
+        for i, t in enumerate(tables):
+            _check_table(t, expected.schema, where, _label(key, i, len(tables)), version=version)
+        return
     if isinstance(expected, dict):
         if not isinstance(value, dict):
             raise ConfigError(f"{where}: {key} must be a table {{{', '.join(expected)}}}, got {value!r}")
-        _check_table(value, expected, where, key)
+        _check_table(value, expected, where, key, version=version)
         return
     if isinstance(expected, tuple) and any(isinstance(e, dict) for e in expected):
         if isinstance(value, dict):
-            _check_table(value, next(e for e in expected if isinstance(e, dict)), where, key)
+            _check_table(value, next(e for e in expected if isinstance(e, dict)), where, key, version=version)
         elif not isinstance(value, bool):
             raise ConfigError(f"{where}: {key} must be a table {{ke = ..., kd = ...}}, true or false, got {value!r}")
         return
@@ -387,6 +663,44 @@ def _check_value(value, expected, where: str, key: str) -> None:
     if not ok:
         names = " or ".join(_TYPE_NAMES.get(t, t.__name__) for t in types)
         raise ConfigError(f"{where}: {key} must be {names}, got {value!r}")
+
+
+def _check_track(table, spec: _Track, where: str, key: str, *, version: int) -> None:
+    """Check a track table's keys, key counts and every value (the ordering of its times: _make_track)."""
+    schema, values = (_ROTATION_TRACK_TABLE, "degrees") if spec.rotation else (_TRACK_TABLE, "values")
+    shape = (f"{{ times = [...], axis = [x, y, z], {values} = [...] }}" if spec.rotation
+             else f"{{ times = [...], {values} = [...] }}")
+    if not isinstance(table, dict):
+        raise ConfigError(f"{where}: {key} must be a track table {shape}, got {table!r}")
+    _check_table(table, schema, where, key, version=version)
+    missing = [k for k in schema if k not in table and k not in ("interpolation", "extrapolation")]
+    if missing:
+        raise ConfigError(f"{where}: track {key} needs {shape}; missing: {', '.join(missing)}")
+    times = table["times"]
+    if not times:
+        raise ConfigError(f"{where}: {key}.times is empty: give at least one key time [s]")
+    for i, t in enumerate(times):
+        _check_value(t, NUMBER, where, f"{key}.times[{i}]", version=version)
+    if len(table[values]) != len(times):
+        raise ConfigError(f"{where}: track {key} has {len(times)} times but {len(table[values])} {values}: give "
+                          f"one per time")
+    for i, v in enumerate(table[values]):
+        _check_value(v, NUMBER if spec.rotation else spec.value, where, f"{key}.{values}[{i}]", version=version)
+    for option, names in (("interpolation", INTERPOLATIONS), ("extrapolation", EXTRAPOLATIONS)):
+        if option in table and table[option] not in names:
+            raise ConfigError(f"{where}: {key}.{option} must be one of {', '.join(names)}, got {table[option]!r}")
+
+
+def _make_track(table: dict, where: str, key: str, *, rotation: bool = False) -> Track:
+    """A checked track table as a :class:`Track` (which checks that the times increase); ``rotation``: a
+    rotation track ``{ times, axis, degrees }``."""
+    options = dict(interpolation=table.get("interpolation", "linear"), extrapolation=table.get("extrapolation", "hold"))
+    try:
+        if rotation:
+            return Track.rotation(table["times"], axis=table["axis"], degrees=table["degrees"], **options)
+        return Track(table["times"], table["values"], **options)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {key}: {_one_line(exc)}") from None
 
 
 # -- building ---------------------------------------------------------------------------------------------
@@ -422,7 +736,7 @@ def _add_cloth(builder: ModelBuilder, cloth: dict, base: str) -> None:
     )
     if "grid" in cloth:
         g = cloth["grid"]
-        builder.add_cloth_grid(
+        ids = builder.add_cloth_grid(
             nx=g["nx"],
             ny=g["ny"],
             spacing=g["spacing"],
@@ -434,9 +748,30 @@ def _add_cloth(builder: ModelBuilder, cloth: dict, base: str) -> None:
         mesh = cloth["mesh"]
         path = mesh if os.path.isabs(mesh) else os.path.join(base, mesh)
         try:
-            builder.add_cloth_mesh(path, scale=cloth.get("scale", 1.0), density=cloth.get("density"), **common)
+            ids = builder.add_cloth_mesh(path, scale=cloth.get("scale", 1.0), density=cloth.get("density"), **common)
         except ConfigError as exc:  # name the mesh file in every message about its contents
             raise exc if path in str(exc) else ConfigError(f"mesh {path}: {exc}") from None
+    groups = cloth.get("pin_group", [])
+    for i, group in enumerate(groups):
+        try:
+            builder.add_pin_group(_group_particles(ids, group.pin), translation=group.translation,
+                                  rotation=group.rotation, pivot=group.pivot, name=group.name)
+        except ConfigError as exc:
+            raise ConfigError(f"{_label('pin_group', i, len(groups))}: {exc}") from None
+
+
+def _group_particles(ids: np.ndarray, pin: list) -> np.ndarray:
+    """The global indices of the particles a pin group names: ``ids`` are a grid cloth's, shape [ny, nx]
+    (corner/edge names or indices r·nx + c), or a mesh cloth's, shape [v] (vertex indices)."""
+    if ids.ndim == 2:
+        ny, nx = ids.shape
+        return ids.ravel()[ModelBuilder._grid_pins(pin, nx, ny)]
+    index = np.asarray(pin, dtype=np.int64)
+    bad = index[(index < 0) | (index >= len(ids))]
+    if len(bad):
+        raise ConfigError(f"pin vertex index {int(bad[0])} is out of range: the mesh has {len(ids)} vertices "
+                          f"(0..{len(ids) - 1})")
+    return ids[index]
 
 
 def _add_collider(builder: ModelBuilder, c: dict) -> None:
