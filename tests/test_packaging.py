@@ -37,7 +37,7 @@ def test_kernels_come_from_the_same_checkout(tmp_path):
     import shutil
 
     copy = tmp_path / "other_checkout"
-    shutil.copytree(ROOT / "warpspring", copy / "warpspring", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(ROOT / "warpspring", copy / "warpspring", ignore=shutil.ignore_patterns("__pycache__", "kernels"))
     shutil.copytree(ROOT / "kernels", copy / "kernels", ignore=shutil.ignore_patterns("__pycache__"))
     (copy / "kernels" / "__init__.py").write_text((ROOT / "kernels" / "__init__.py").read_text() + "\nCOPY = True\n")
     probe = (
@@ -58,7 +58,7 @@ def test_missing_kernels_are_a_clear_import_error(tmp_path):
     import shutil
 
     copy = tmp_path / "broken"
-    shutil.copytree(ROOT / "warpspring", copy / "warpspring", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(ROOT / "warpspring", copy / "warpspring", ignore=shutil.ignore_patterns("__pycache__", "kernels"))
     result = subprocess.run([sys.executable, "-c", "import warpspring"], cwd=copy, capture_output=True, text=True,
                             timeout=120)
     assert result.returncode != 0
