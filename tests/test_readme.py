@@ -24,3 +24,16 @@ def test_api_tour_runs(tmp_path, monkeypatch):
     edge = model.pin_groups.groups[0]
     expected = edge.position(model.particle_q.numpy()[edge.particles], [sim.time])[0][0]
     np.testing.assert_allclose(sim.state.particle_q.numpy()[edge.particles], expected, atol=1e-6)
+
+
+def test_scene_reference_parses_and_builds():
+    """The README's scene-file reference is a valid format-2 scene: it parses, and its model has the pin
+    group and the stabiliser it describes."""
+    from warpspring.io.scene import parse_scene, tomllib  # tomllib, or tomli on Python 3.10
+
+    text = re.search(r"## Scene files\n\n```toml\n(.*?)```", README.read_text(), re.S).group(1)
+    scene = parse_scene(tomllib.loads(text), path="README.md")
+    assert scene.version == 2 and scene.guard.tear_strain == 10.0
+    model = scene.builder().finalize("cpu")
+    assert [g.name for g in model.pin_groups.groups] == ["edge"]
+    assert model.stabilizers.max_strain == 0.1
