@@ -16,12 +16,11 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError
 from ..kernels.contacts import SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
-from ..kernels.inputs import INPUTS
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import scalar_type, transform_type, vec3_type
 from .kinematics import PinGroup, PinGroupTable
 from .model import MeshGroup, Model, ShapeInfo, Stabilizers
-from .tracks import Track, as_track
+from .tracks import Track, as_track, input_track
 from .transforms import quat_between, quat_to_matrix
 
 _AXES = {"Y": 1, "Z": 2}  # USD knows only Y-up and Z-up stages
@@ -205,12 +204,11 @@ class ModelBuilder:
     def set_track(self, name: str, track: Track | None) -> None:
         """Animate a live input of the model by a keyframe :class:`Track` (see :meth:`Model.set_track`:
         "gravity", "drag" or a threshold of a stabiliser that is on); ``None`` removes it."""
-        if name not in INPUTS:
-            raise ConfigError(f"there is no live input {name!r} to animate; inputs: {', '.join(INPUTS)}")
+        track = input_track(name, track)
         if track is None:
             self._tracks.pop(name, None)
         else:
-            self._tracks[name] = as_track(name, track, INPUTS[name][1])
+            self._tracks[name] = track
 
     def add_springs(self, pairs, *, stiffness, damping=0.0, rest_length=None) -> np.ndarray:
         """Add springs in bulk.

@@ -14,7 +14,7 @@ from ..kernels.inputs import INPUT_COUNT, INPUTS
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import vec3_type
 from .kinematics import apply_kinematics
-from .tracks import Track, TrackTable, as_track
+from .tracks import Track, TrackTable, input_track
 
 #: The stabiliser thresholds that are live inputs (their names in ``kernels.inputs.INPUTS``).
 STABILIZER_INPUTS = ("max_spring_force", "max_particle_force", "max_speed", "max_strain", "biphasic_strain",
@@ -304,14 +304,12 @@ class Model:
         Raises:
             ConfigError: an unknown input, a track of the wrong width, or a threshold of a stabiliser that is off.
         """
-        if name not in INPUTS:
-            raise ConfigError(f"there is no live input {name!r} to animate; inputs: {', '.join(INPUTS)}")
+        track = input_track(name, track)
         if track is None:
             if self._tracks.pop(name, None) is not None:
                 self._rebuild_tracks()
                 self._structure_changed()
             return
-        track = as_track(name, track, INPUTS[name][1])
         if name in STABILIZER_INPUTS and not self._stabilizers.enabled(name):
             owner = "biphasic_strain" if name == "biphasic_ratio" else name
             raise ConfigError(

@@ -152,6 +152,16 @@ class Track:
         return value, rate
 
 
+def input_track(name: str, track: Track | None) -> Track | None:
+    """``track`` checked as a keyframe track of the live input ``name`` (see ``kernels.inputs.INPUTS``;
+    ``None`` passes once the name is checked), or a ConfigError naming the inputs or the expected width."""
+    from ..kernels.inputs import INPUTS
+
+    if name not in INPUTS:
+        raise ConfigError(f"there is no live input {name!r} to animate; inputs: {', '.join(INPUTS)}")
+    return None if track is None else as_track(name, track, INPUTS[name][1])
+
+
 def as_track(name: str, value, width: int) -> Track:
     """``value`` as a Track of ``width`` components for the input ``name``, or a ConfigError."""
     if not isinstance(value, Track):

@@ -4,8 +4,16 @@ from __future__ import annotations
 
 import abc
 
+import warp as wp
+
 from ..constraints import StepFinisher
 from ..model import Control, Model, State
+
+
+def write_setting(settings: wp.array, slot: int, value: float) -> None:
+    """Write one float64 setting (a tolerance, an iteration cap) into an integrator's device array: the
+    captured kernels read it there, so a new value takes effect at the next replay, with no re-capture."""
+    wp.copy(settings, wp.array([value], dtype=wp.float64, device="cpu"), dest_offset=slot, count=1)
 
 
 class Integrator(abc.ABC):

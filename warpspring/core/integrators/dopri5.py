@@ -32,6 +32,7 @@ from ...kernels.integrators import (
 )
 from ..forces import eval_forces
 from ..model import Control, Model, State
+from .base import write_setting
 from .runge_kutta import ExplicitRungeKutta
 
 
@@ -82,7 +83,7 @@ class DormandPrince(ExplicitRungeKutta):
     @tolerance.setter
     def tolerance(self, value: float) -> None:
         self._tolerance = checks.positive("tolerance", value)
-        self._write(STEP_TOLERANCE, self._tolerance)
+        write_setting(self._control, STEP_TOLERANCE, self._tolerance)
 
     @property
     def max_steps(self) -> int:
@@ -92,10 +93,8 @@ class DormandPrince(ExplicitRungeKutta):
     @max_steps.setter
     def max_steps(self, value: int) -> None:
         self._max_steps = checks.count("max_steps", value, minimum=1)
-        self._write(STEP_MAX_ATTEMPTS, float(self._max_steps))
+        write_setting(self._control, STEP_MAX_ATTEMPTS, float(self._max_steps))
 
-    def _write(self, slot: int, value: float) -> None:
-        wp.copy(self._control, wp.array([value], dtype=wp.float64, device="cpu"), dest_offset=slot, count=1)
 
     @property
     def accepted_steps(self) -> int:

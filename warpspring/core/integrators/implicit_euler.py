@@ -34,7 +34,7 @@ from ...kernels.precision import mat33_type
 from ..forces import eval_forces
 from ..kinematics import apply_kinematics
 from ..model import Control, Model, State
-from .base import Integrator
+from .base import Integrator, write_setting
 
 
 class ImplicitEuler(Integrator):
@@ -76,7 +76,7 @@ class ImplicitEuler(Integrator):
     @cg_iterations.setter
     def cg_iterations(self, value: int) -> None:
         self._cg_iterations = checks.count("cg_iterations", value, minimum=1)
-        self._write(CG_MAX_ITERATIONS, float(self._cg_iterations))
+        write_setting(self._settings, CG_MAX_ITERATIONS, float(self._cg_iterations))
 
     @property
     def cg_tolerance(self) -> float:
@@ -89,10 +89,8 @@ class ImplicitEuler(Integrator):
         if tolerance >= 1.0:
             raise ConfigError(f"cg_tolerance must be < 1 (a relative residual), got {value!r}")
         self._cg_tolerance = tolerance
-        self._write(CG_TOLERANCE, tolerance)
+        write_setting(self._settings, CG_TOLERANCE, tolerance)
 
-    def _write(self, slot: int, value: float) -> None:
-        wp.copy(self._settings, wp.array([value], dtype=wp.float64, device="cpu"), dest_offset=slot, count=1)
 
     def _kernels(self):
         model = self.model
