@@ -12,7 +12,9 @@ then put on its prescribed motion by the kinematics pass.
 
 Every kernel that writes a step's (or a stage's) state also writes its time, t_out = t_in + h (or the
 stage's t_in + c h), from its first thread: the states carry their time on the device, for keyframe
-tracks and driven pins, at no extra launch.
+tracks and driven pins, at no extra launch. Those kernels take the step in float64 (a float32 step would
+put a float32 model's clock off by ~1e-7 s per thousand steps) and round it to the model's precision for
+the physics.
 """
 
 import functools
@@ -66,7 +68,7 @@ def symplectic_euler_update_kernel(scalar: type, shape_types: tuple):
         particle_qd_in: wp.array[vec3],
         particle_f_in: wp.array[vec3],
         time_in: wp.array[wp.float64],
-        dt: scalar,
+        dt: wp.float64,
         # State out:
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
@@ -74,15 +76,16 @@ def symplectic_euler_update_kernel(scalar: type, shape_types: tuple):
     ):
         i = wp.tid()
         if i == 0:
-            time_out[0] = time_in[0] + wp.float64(dt)
+            time_out[0] = time_in[0] + dt
+        h = scalar(dt)
         flags = particle_flags[i]
         x, v = update(
-            particle_q_in[i], particle_qd_in[i], particle_f_in[i], effective_inv_mass(flags, particle_inv_mass[i]), dt
+            particle_q_in[i], particle_qd_in[i], particle_f_in[i], effective_inv_mass(flags, particle_inv_mass[i]), h
         )
         if wp.static(has_contacts):
             if not is_kinematic(flags):
                 x, v = project_contacts(
-                    x, v, particle_radius[i], dt, shape_type, shape_transform, shape_size, shape_friction
+                    x, v, particle_radius[i], h, shape_type, shape_transform, shape_size, shape_friction
                 )
         particle_q_out[i] = x
         particle_qd_out[i] = v
@@ -124,7 +127,7 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
         particle_q_in: wp.array[vec3],
         particle_qd_in: wp.array[vec3],
         time_in: wp.array[wp.float64],
-        dt: scalar,
+        dt: wp.float64,
         # State out:
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
@@ -132,11 +135,12 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
     ):
         i = wp.tid()
         if i == 0:
-            time_out[0] = time_in[0] + wp.float64(dt)
+            time_out[0] = time_in[0] + dt
+        h = scalar(dt)
         x = particle_q_in[i]
         v = particle_qd_in[i]
         if is_kinematic(particle_flags[i]):
-            particle_q_out[i] = x + dt * v
+            particle_q_out[i] = x + h * v
             particle_qd_out[i] = v
             return
         f = particle_force(
@@ -154,10 +158,10 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
             particle_q_in,
             particle_qd_in,
         )
-        x, v = update(x, v, f, particle_inv_mass[i], dt)
+        x, v = update(x, v, f, particle_inv_mass[i], h)
         if wp.static(has_contacts):
             x, v = project_contacts(
-                x, v, particle_radius[i], dt, shape_type, shape_transform, shape_size, shape_friction
+                x, v, particle_radius[i], h, shape_type, shape_transform, shape_size, shape_friction
             )
         particle_q_out[i] = x
         particle_qd_out[i] = v
@@ -299,7 +303,7 @@ def verlet_kernels(scalar: type):
         particle_qd_in: wp.array[vec3],
         particle_f_in: wp.array[vec3],
         time_in: wp.array[wp.float64],
-        dt: scalar,
+        dt: wp.float64,
         # Out:
         particle_q_out: wp.array[vec3],
         particle_qd_half_out: wp.array[vec3],
@@ -307,10 +311,11 @@ def verlet_kernels(scalar: type):
     ):
         i = wp.tid()
         if i == 0:
-            time_out[0] = time_in[0] + wp.float64(dt)
+            time_out[0] = time_in[0] + dt
+        h = scalar(dt)
         inv_mass = effective_inv_mass(particle_flags[i], particle_inv_mass[i])
-        v_half = particle_qd_in[i] + (scalar(0.5) * dt * inv_mass) * particle_f_in[i]
-        particle_q_out[i] = particle_q_in[i] + dt * v_half
+        v_half = particle_qd_in[i] + (scalar(0.5) * h * inv_mass) * particle_f_in[i]
+        particle_q_out[i] = particle_q_in[i] + h * v_half
         particle_qd_half_out[i] = v_half
 
     @wp.kernel(module="unique", enable_backward=False)

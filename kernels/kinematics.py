@@ -35,6 +35,10 @@ PARTICLE_KINEMATIC = 1
 NO_GROUP = -1
 #: ``PinTargets.time`` before any target was set: the group rests where it is.
 NO_TARGET_TIME = -1.0e300
+#: A target closer in time than this [s] counts as reached. A state's clock adds up its steps on the
+#: device while a target's time is usually computed on the host (frame · frame_dt): the two may differ
+#: by a few roundings, and a target 1e-16 s away must not be chased at (distance / 1e-16 s).
+TARGET_TIME_TOLERANCE = 1.0e-9
 
 
 @wp.func
@@ -159,12 +163,11 @@ def kinematics_kernel(scalar: type, targets: bool):
             elif wp.static(targets):
                 # Driven through Control: a straight line to the target, reached at the target's time; at
                 # rest where it is before the first target and after the last.
-                t_target = pin_targets.time[g]
-                if t_in < t_target:
-                    remaining = t_target - t_in
+                remaining = pin_targets.time[g] - t_in
+                if remaining > wp.float64(TARGET_TIME_TOLERANCE):
                     target = pin_targets.position[k]
                     v = (target - x) / remaining
-                    x = wp.where(s >= remaining, target, x + s * v)
+                    x = wp.where(s >= remaining - wp.float64(TARGET_TIME_TOLERANCE), target, x + s * v)
             particle_q_out[i] = vec3(x)
             particle_qd_out[i] = vec3(v)
 

@@ -225,3 +225,43 @@ def test_pin_group_errors():
         builder.add_pin_group([2], translation=ws.Track([0.0, 1.0], [0.0, 1.0]))
     with pytest.raises(ws.ConfigError, match="out of range"):
         builder.add_pin_group([3])
+
+
+def test_state_clock_is_exact_in_float32(device):
+    """A float32 model's clock still adds its steps in float64: after 600 frames of 7 substeps it is within
+    1e-11 s of 600 / 60 s (a float32 step would put it ~4e-7 s off)."""
+    builder = ws.ModelBuilder()
+    builder.add_particles([[0.0, 0.0, 1.0]], mass=0.1)
+    model = builder.finalize(device, precision="float32")
+    for name in ("symplectic_euler", "velocity_verlet", "implicit_euler", "rk4"):
+        sim = ws.Simulator(model, integrator=ws.make_integrator(name, model), fps=60, substeps=7, guard=None)
+        for _ in range(600):
+            sim.step_frame()
+        assert abs(float(sim.state.time.numpy()[0]) - 10.0) < 1e-11, name
+
+
+def test_control_targets_never_chase_a_rounding(device):
+    """Targets set each frame for 300 frames, then none: the float32 pin never moves faster than its
+    fastest straight segment, even at frames whose end the device clock reaches a rounding before or after
+    the host's target time, and it is at rest (velocity exactly 0) once the targets stop."""
+    builder = ws.ModelBuilder()
+    builder.add_particles([[0.0, 0.0, 1.0], [0.0, 0.0, 0.8]], mass=0.1)
+    builder.add_springs([[0, 1]], stiffness=30.0, damping=0.05)
+    builder.add_pin_group([0], name="hand")
+    model = builder.finalize(device, precision="float32")
+    substeps = 7
+    sim = ws.Simulator(model, fps=60, substeps=substeps)
+    record = Recorder(model, substeps)
+    sim.stepper.hooks.append(record)
+    path = [np.array([0.3 * math.sin(k / 20), 0.0, 1.0]) for k in range(301)]
+    fastest = max(np.linalg.norm(b - a) for a, b in zip(path, path[1:])) * 60
+    speeds = []
+    for frame in range(340):
+        if frame < 300:
+            sim.set_pin_targets("hand", path[frame + 1])
+        sim.step_frame()
+        speeds.append(np.linalg.norm(record.read()[1][:, 0], axis=1))
+    speeds = np.array(speeds)
+    assert speeds[:300].max() <= fastest * (1 + 1e-4)
+    assert not speeds[301:].any()
+    np.testing.assert_allclose(sim.state.particle_q.numpy()[0], path[300], atol=1e-6)

@@ -116,7 +116,8 @@ class ImplicitEuler(Integrator):
         self._solve(state_in, h)
         wp.launch(
             update,
-            inputs=[model.particle_flags, state_in.particle_q, state_in.particle_qd, state_in.time, self._delta_qd, h],
+            inputs=[model.particle_flags, state_in.particle_q, state_in.particle_qd, state_in.time, self._delta_qd,
+                    wp.float64(dt)],
             outputs=[state_out.particle_q, state_out.particle_qd, state_out.time],
             **per_particle,
         )

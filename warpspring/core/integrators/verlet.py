@@ -58,7 +58,7 @@ class VelocityVerlet(Integrator):
         eval_forces(model, state_in, control)
         wp.launch(
             drift,
-            inputs=[*mass, state_in.particle_q, state_in.particle_qd, state_in.particle_f, state_in.time, h],
+            inputs=[*mass, state_in.particle_q, state_in.particle_qd, state_in.particle_f, state_in.time, wp.float64(dt)],
             outputs=[state_out.particle_q, half.particle_qd, state_out.time],
             **common,
         )
