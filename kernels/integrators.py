@@ -241,7 +241,8 @@ def rk_error_kernel(scalar: type, stages: int):
     The error estimate is e = h Σⱼ eⱼ kⱼ (eⱼ = bⱼ - b*ⱼ, h = ``step[0]``), for positions and velocities
     alike; each component is divided by tol + tol·|y_new| (tol = ``control[STEP_TOLERANCE]``, absolute and
     relative) and the largest ratio is atomically max-ed into ``control[STEP_ERROR]`` (cleared by
-    ``decide``). A max is exact in any order: the result does not depend on thread scheduling.
+    ``decide``). A max is exact in any order: the result does not depend on thread scheduling. Kinematic
+    particles do not count: their motion is prescribed, exactly, at every stage.
     """
     vec3 = vec3_type(scalar)
     weights_type = wp.types.vector(length=stages, dtype=scalar)
@@ -282,6 +283,8 @@ def rk_error_kernel(scalar: type, stages: int):
         worst = wp.max(
             scaled(ex, particle_q_new[i], tolerance, tolerance), scaled(ev, particle_qd_new[i], tolerance, tolerance)
         )
+        if is_kinematic(particle_flags[i]):
+            worst = scalar(0.0)  # a prescribed motion has no integration error to control
         wp.atomic_max(control, STEP_ERROR, wp.float64(worst))
 
     return rk_error

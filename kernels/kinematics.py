@@ -18,6 +18,9 @@ A kinematic particle may belong to a *pin group* whose motion is driven:
 ``kinematics_kernel`` writes the position and velocity of every kinematic particle at time t + s, for a
 state at time t and an offset s: integrators call it for the end of a step and for every stage time,
 so a driven pin is exactly on its prescribed motion wherever forces are evaluated.
+
+The flag is a live value: clearing it between frames releases a pin (the integrators move it from then
+on, and the kinematics pass skips it); setting it pins a particle, which then moves on with its velocity.
 """
 
 import functools
@@ -118,6 +121,7 @@ def kinematics_kernel(scalar: type, targets: bool):
     @wp.kernel(module="unique", enable_backward=False)
     def kinematics(
         # Model:
+        particle_flags: wp.array[wp.int32],
         groups: PinGroups,
         tracks: Tracks,
         # Control:
@@ -134,6 +138,8 @@ def kinematics_kernel(scalar: type, targets: bool):
     ):
         k = wp.tid()
         i = groups.particle[k]
+        if not is_kinematic(particle_flags[i]):
+            return  # released since finalize: the integrators move it now
         g = groups.group[k]
         t_in = time_in[0]
         s = fraction * step[0]

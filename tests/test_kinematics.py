@@ -265,3 +265,68 @@ def test_control_targets_never_chase_a_rounding(device):
     assert speeds[:300].max() <= fastest * (1 + 1e-4)
     assert not speeds[301:].any()
     np.testing.assert_allclose(sim.state.particle_q.numpy()[0], path[300], atol=1e-6)
+
+
+def test_released_pin_falls_freely(device):
+    """Clearing a pin's flag between frames releases it (a live value: no re-capture): from rest, 8
+    symplectic Euler substeps of h under g give v = -8 g h and a drop of 36 g h² (Σ k for k = 1..8), to
+    rounding; a released member of a driven group stops following its group."""
+    builder = ws.ModelBuilder()
+    builder.add_particles([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0]], mass=0.1)
+    builder.pin_particles([0])
+    builder.add_pin_group([1], translation=ws.Track([0.0, 10.0], [[0, 0, 0], [10.0, 0, 0]]), name="crane")
+    model = builder.finalize(device, precision="float64")
+    sim = ws.Simulator(model, fps=60, substeps=8)
+    for _ in range(3):
+        sim.step_frame()
+    np.testing.assert_allclose(sim.state.particle_q.numpy()[0], [0.0, 0.0, 1.0], atol=0)  # pinned: at rest
+    model.set_kinematic([0, 1], False)
+    start = sim.state.particle_q.numpy().copy()
+    velocity = sim.state.particle_qd.numpy().copy()
+    sim.step_frame()
+    h = 1 / 480
+    q, qd = sim.state.particle_q.numpy(), sim.state.particle_qd.numpy()
+    np.testing.assert_allclose(qd[0], [0.0, 0.0, -8 * 9.81 * h], rtol=1e-12)
+    np.testing.assert_allclose(q[0], start[0] + [0.0, 0.0, -36 * 9.81 * h * h], rtol=0, atol=1e-14)
+    # The crane's particle keeps its velocity (1 m/s along x) and starts falling: no longer on its track.
+    np.testing.assert_allclose(q[1], start[1] + 8 * h * velocity[1] + [0.0, 0.0, -36 * 9.81 * h * h], atol=1e-14)
+    assert sim.stepper.captures == 1
+
+
+def test_dopri5_controls_no_error_of_prescribed_motion(device):
+    """dopri5's error estimate skips kinematic particles: a pin driven along a kinked track costs no extra
+    internal steps (the same accepted and rejected steps as the model without the pin group)."""
+    counts = []
+    for driven in (False, True):
+        builder = ws.ModelBuilder()
+        builder.add_particles([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0]], velocities=[[0.3, 0.0, 2.0], [0.0, 0.0, 0.0]],
+                              mass=0.1)
+        if driven:
+            kinked = ws.Track([0.0, 0.05, 0.1, 0.15], [[0, 0, 0], [0.3, 0, 0], [0.3, 0.2, 0], [0, 0.2, 0]])
+            builder.add_pin_group([1], translation=kinked)
+        else:
+            builder.pin_particles([1])
+        model = builder.finalize(device, precision="float64")
+        integrator = ws.DormandPrince(model, tolerance=1e-8)
+        sim = ws.Simulator(model, integrator=integrator, fps=60, substeps=1)
+        for _ in range(10):
+            sim.step_frame()
+        counts.append((integrator.accepted_steps, integrator.rejected_steps))
+    assert counts[0] == counts[1]
+
+
+def test_reset_forgets_pin_targets(device):
+    """After Simulator.reset the control-driven group rests where it starts: targets set for the run before
+    (at times the new run will reach again) are forgotten."""
+    builder = ws.ModelBuilder()
+    builder.add_particles([[0.0, 0.0, 1.0]], mass=0.1)
+    builder.add_pin_group([0], name="hand")
+    model = builder.finalize(device)
+    sim = ws.Simulator(model, fps=60, substeps=4)
+    for frame in range(3):
+        sim.set_pin_targets("hand", [0.1 * (frame + 1), 0.0, 1.0])
+        sim.step_frame()
+    sim.set_pin_targets("hand", [5.0, 0.0, 1.0])
+    sim.reset()
+    sim.step_frame()
+    np.testing.assert_array_equal(sim.state.particle_q.numpy()[0], [0.0, 0.0, 1.0])

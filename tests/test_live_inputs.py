@@ -8,6 +8,7 @@ change matters (a run without it ends elsewhere), so that the agreement it then 
 
 import numpy as np
 import pytest
+import warp as wp
 
 import warpspring as ws
 from helpers import loaded_modules, run_frames
@@ -128,7 +129,7 @@ def test_recapture_follows_structural_changes_only(device):
              (lambda: setattr(sim.guard, "limits", ws.GuardLimits(every=2, max_kinetic_energy=1e3)), 5),
              (lambda: model.set_track("drag", ws.Track([0.0, 1.0], [0.05, 0.5])), 6),
              (lambda: model.spring_stiffness.assign(model.spring_stiffness.numpy() * 2), 6),  # values in place
-             (lambda: setattr(model, "spring_stiffness", ws.core.model.wp.clone(model.spring_stiffness)), 7)]
+             (lambda: setattr(model, "spring_stiffness", wp.clone(model.spring_stiffness)), 7)]
     for act, captures in steps:
         act()
         sim.step_frame()
@@ -167,3 +168,67 @@ def test_live_input_errors_are_clear():
     plain = cloth("cpu", stabilizers=ws.Stabilizers())
     with pytest.raises(ws.ConfigError, match="its stabiliser is off"):
         plain.set_track("max_speed", ws.Track([0.0, 1.0], [1.0, 2.0]))
+
+
+def test_guard_limit_follows_gravity_switched_on_mid_run(device):
+    """A cloth built without gravity gets a tiny default kinetic-energy limit; switching gravity on between
+    frames re-derives the limit (a value write), so the correct falling run is not stopped."""
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    builder.add_cloth_grid(nx=6, ny=6, spacing=0.1, mass=0.5, pin=["top-left", "top-right"])
+    model = builder.finalize(device)
+    sim = ws.Simulator(model, fps=60, substeps=8)
+    sim.step_frame()
+    before = sim.guard.max_kinetic_energy
+    model.gravity = (0.0, 0.0, -9.81)
+    run_frames(sim, 60)  # raised SimulationError ("kinetic energy ran away") before the limit followed
+    assert sim.guard.max_kinetic_energy > 100 * before and sim.stepper.captures == 2
+
+
+def test_gravity_track_sets_the_guard_scale_and_the_start_value(device):
+    """A gravity track ramping up from zero: the model reports the track's value at t = 0 before any step,
+    and the guard's default limit is scaled by the track's largest gravity, so the run is not stopped."""
+    builder = ws.ModelBuilder()
+    builder.add_cloth_grid(nx=6, ny=6, spacing=0.1, mass=0.5, pin=["top-left", "top-right"])
+    builder.set_track("gravity", ws.Track([0.0, 0.5], [[0, 0, 0], [0, 0, -9.81]]))
+    model = builder.finalize(device)
+    assert model.gravity == (0.0, 0.0, 0.0)
+    run_frames(ws.Simulator(model, fps=60, substeps=8), 60)
+
+
+def test_animated_and_constant_inputs_are_range_checked():
+    """Tracks and constants of an input meet the same bounds as the scene schema; values that overflow the
+    model's precision are refused instead of turning into inf."""
+    model = cloth("cpu")
+    with pytest.raises(ws.ConfigError, match="a key of a track of max_speed must be > 0"):
+        model.set_track("max_speed", ws.Track([0.0, 1.0], [2.0, -1.0]))
+    with pytest.raises(ws.ConfigError, match="biphasic_ratio must be >= 1"):
+        model.set_track("biphasic_ratio", ws.Track([0.0, 1.0], [2.0, 0.5]))
+    with pytest.raises(ws.ConfigError, match="drag must be >= 0"):
+        model.set_track("drag", ws.Track([0.0, 1.0], [0.1, -0.1]))
+    with pytest.raises(ws.ConfigError, match="gravity overflows float32"):
+        model.gravity = (0.0, 0.0, -1e40)
+    assert model.track("max_speed") is None and model.gravity[2] == pytest.approx(-9.81)
+
+
+def test_states_of_another_model_are_refused():
+    """A state of another size or precision is a clear error, not a launch failure or a partial copy."""
+    small = cloth("cpu")
+    builder = ws.ModelBuilder()
+    builder.add_cloth_grid(nx=3, ny=3, spacing=0.1, mass=0.1)
+    other = builder.finalize("cpu", precision="float64")
+    with pytest.raises(ws.ConfigError, match="use a state made by this model's state"):
+        ws.Stepper(small, ws.SymplecticEuler(small), dt=1e-3, steps=1, state=other.state())
+    sim = ws.Simulator(small)
+    with pytest.raises(ws.ConfigError, match="9 particles of vec3d"):
+        sim.reset(other.state())
+
+
+def test_replacing_a_control_input_recaptures(device):
+    """Assigning a new array to a Control field is structural (the graph pointed to the old one)."""
+    model = cloth(device)
+    sim = ws.Simulator(model, fps=60, substeps=2)
+    sim.control.set_particle_force((0.0, 0.0, 1.0))
+    sim.step_frame()
+    sim.control.particle_force = wp.zeros(model.particle_count, dtype=model.vec3, device=model.device)
+    sim.step_frame()
+    assert sim.stepper.captures == 2

@@ -174,6 +174,18 @@ class Guard(StepHook):
         if every != self._every:
             self._every = every
             self.revision += 1
+        self._write_limits()
+
+    def refresh(self) -> None:
+        """Re-derive a default kinetic-energy limit after the model's live inputs changed (gravity switched
+        on mid-run raises the scene's energy scale); a value write, no re-capture. Call between frames (the
+        Simulator does)."""
+        if self._limits_host.max_kinetic_energy is None and self._input_version != self.model.input_version:
+            self._write_limits()
+
+    def _write_limits(self) -> None:
+        limits = self._limits_host
+        self._input_version = self.model.input_version
         self.max_kinetic_energy = (
             limits.max_kinetic_energy if limits.max_kinetic_energy is not None
             else ENERGY_FACTOR * energy_scale(self.model)
@@ -237,7 +249,8 @@ class Guard(StepHook):
 
 
 def energy_scale(model: Model) -> float:
-    """A scene's energy scale [J]: initial kinetic + elastic energy + total weight × (extent + 1 m), ≥ 1 µJ."""
+    """A scene's energy scale [J]: initial kinetic + elastic energy + total weight × (extent + 1 m), ≥ 1 µJ;
+    the weight with the largest gravity the scene has (now, or at any key of a gravity track)."""
     q = model.particle_q.numpy().astype(np.float64)
     qd = model.particle_qd.numpy().astype(np.float64)
     mass = model.particle_mass.numpy().astype(np.float64)
@@ -248,5 +261,9 @@ def energy_scale(model: Model) -> float:
         stretch = np.linalg.norm(q[pairs[:, 1]] - q[pairs[:, 0]], axis=1) - model.spring_rest_length.numpy()
         elastic = 0.5 * float(np.sum(model.spring_stiffness.numpy() * stretch * stretch))
     extent = float(np.ptp(q, axis=0).max()) if len(q) else 0.0
-    weight = float(mass.sum()) * math.hypot(*model.gravity)
+    gravity = math.hypot(*model.gravity)
+    track = model.track("gravity")
+    if track is not None:
+        gravity = max(gravity, float(np.linalg.norm(track.values, axis=1).max()))
+    weight = float(mass.sum()) * gravity
     return max(kinetic + elastic + weight * (extent + 1.0), 1.0e-6)

@@ -159,6 +159,7 @@ def apply_kinematics(model, control, state_in, q_out: wp.array, qd_out: wp.array
         kinematics_kernel(model.scalar, targets),
         dim=pins.count,
         inputs=[
+            model.particle_flags,
             pins.table,
             model.track_table.table,
             control.pin_targets if targets else _NO_TARGETS,

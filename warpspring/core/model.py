@@ -19,6 +19,9 @@ from .tracks import Track, TrackTable, input_track
 #: The stabiliser thresholds that are live inputs (their names in ``kernels.inputs.INPUTS``).
 STABILIZER_INPUTS = ("max_spring_force", "max_particle_force", "max_speed", "max_strain", "biphasic_strain",
                      "biphasic_ratio")
+#: The lower bound of each bounded input, and whether the bound itself is allowed (gravity has none).
+INPUT_BOUNDS = {"drag": (0.0, True), "biphasic_ratio": (1.0, True),
+                **{name: (0.0, False) for name in STABILIZER_INPUTS if name != "biphasic_ratio"}}
 
 
 @dataclass(frozen=True)
@@ -159,6 +162,7 @@ class Model:
     up_axis: str  # "Y" or "Z"
     block_dim: int  # CUDA threads per block of the per-particle kernels (see ModelBuilder.finalize)
     revision: int  # counts structural changes since finalize (see the class docstring)
+    input_version: int  # counts host writes of live-input values (what a default guard limit is derived from)
 
     inputs: wp.array2d  # live inputs, shape [1, INPUT_COUNT] in the model's precision (kernels/inputs.py)
     track_table: TrackTable  # every keyframe track of the model (pin groups' first, then the inputs')
@@ -171,7 +175,8 @@ class Model:
     particle_mass: wp.array  # [kg], shape [particle_count]
     particle_inv_mass: wp.array  # [1/kg], shape [particle_count], 1 / particle_mass (kinematic particles too)
     particle_radius: wp.array  # [m], shape [particle_count], contact radius
-    particle_flags: wp.array  # int32, shape [particle_count]: PARTICLE_KINEMATIC for pinned (prescribed) particles
+    particle_flags: wp.array  # int32, shape [particle_count]: PARTICLE_KINEMATIC for pinned (prescribed)
+    #   particles; a live value (see set_kinematic)
     pin_groups: object  # kinematics.PinGroupTable of the driven pin groups, or None
 
     spring_count: int
@@ -206,6 +211,7 @@ class Model:
         self.meshes = []
         self.shapes = []
         self.revision = 0
+        self.input_version = 0
         self.pin_groups = None
         self.input_tracks = None
         self.inputs = wp.zeros((1, INPUT_COUNT), dtype=scalar, device=device)
@@ -220,7 +226,7 @@ class Model:
     def __setattr__(self, name: str, value) -> None:
         # After finalize, replacing a public attribute (an array, a count) changes what captured graphs
         # and compiled kernels were made for: a structural change. Properties decide for themselves.
-        if getattr(self, "_finalized", False) and not name.startswith("_") and name != "revision":
+        if getattr(self, "_finalized", False) and not name.startswith("_") and name not in ("revision", "input_version"):
             if not isinstance(getattr(type(self), name, None), property):
                 object.__setattr__(self, "revision", self.revision + 1)
         object.__setattr__(self, name, value)
@@ -316,11 +322,12 @@ class Model:
                 f"cannot animate {name}: its stabiliser is off; switch it on first, e.g. "
                 f"model.stabilizers = Stabilizers({owner}=...)"
             )
+        self._check_input(name, track.values, "a key of a track of")
+        # Until a step evaluates it, the input holds the track's value at t = 0.
+        self._set_constant(name, track.sample(0.0)[0][0])
         if name == "gravity":
             self._gravity_on = True
         elif name == "drag":
-            if (track.values < 0.0).any():
-                raise ConfigError("a track of drag must stay >= 0 [N·s/m] at every key")
             self._drag_on = True
         self._tracks[name] = track
         self._rebuild_tracks()
@@ -330,14 +337,30 @@ class Model:
         """The track animating the live input ``name``, or ``None``."""
         return self._tracks.get(name)
 
+    def _check_input(self, name: str, values: np.ndarray, what: str = "") -> None:
+        """Raise a ConfigError unless every value of the input ``name`` is finite, within its bound and
+        representable in the model's precision."""
+        values = np.asarray(values, dtype=np.float64)
+        label = f"{what} {name}".strip()
+        if not np.isfinite(values).all():
+            raise ConfigError(f"{label} must be finite, got {values.ravel().tolist()}")
+        minimum, inclusive = INPUT_BOUNDS.get(name, (-np.inf, True))
+        if (values < minimum).any() or (not inclusive and (values == minimum).any()):
+            raise ConfigError(f"{label} must be {'>=' if inclusive else '>'} {minimum:g}, got {values.min():g}")
+        with np.errstate(over="ignore"):
+            if not np.isfinite(values.astype(np.float32 if self.scalar is wp.float32 else np.float64)).all():
+                raise ConfigError(f"{label} overflows {self.precision} (largest magnitude {np.abs(values).max():.3g})")
+
     def _set_constant(self, name: str, values: np.ndarray) -> None:
         """Write a constant value of an input to the device (and stop animating it)."""
+        slot, width = INPUTS[name]
+        values = np.asarray(values, dtype=np.float64).reshape(1, width)
+        self._check_input(name, values)
         if self._tracks.pop(name, None) is not None:
             self._rebuild_tracks()
             self._structure_changed()
-        slot, width = INPUTS[name]
-        host = wp.array(np.asarray(values, dtype=np.float64).reshape(1, width), dtype=self.scalar, device="cpu")
-        wp.copy(self.inputs, host, dest_offset=slot, count=width)
+        wp.copy(self.inputs, wp.array(values, dtype=self.scalar, device="cpu"), dest_offset=slot, count=width)
+        self.input_version += 1
 
     def _rebuild_tracks(self) -> None:
         # Pin groups' tracks come first, so their indices (held by the pin-group table) never move.
@@ -375,6 +398,20 @@ class Model:
     def kinematic_mask(self) -> np.ndarray:
         """Which particles are kinematic (pinned), bool, shape [particle_count] (reads the device)."""
         return (self.particle_flags.numpy() & PARTICLE_KINEMATIC) != 0
+
+    def set_kinematic(self, particles, kinematic: bool = True) -> None:
+        """Pin (``kinematic=True``) or release particles between frames, by global index: a live value.
+
+        A released particle is integrated from its current position and velocity at the next step (a pin of
+        a group stops following the group); a newly pinned one moves on with its velocity. Nothing compiles
+        or re-captures.
+        """
+        idx = np.unique(np.asarray(particles, dtype=np.int64).ravel())
+        if len(idx) and (idx.min() < 0 or idx.max() >= self.particle_count):
+            raise ConfigError(f"particle index out of range: valid indices are 0..{self.particle_count - 1}")
+        flags = self.particle_flags.numpy()
+        flags[idx] = np.where(kinematic, flags[idx] | PARTICLE_KINEMATIC, flags[idx] & ~PARTICLE_KINEMATIC)
+        self.particle_flags.assign(flags)
 
     def dynamic_inv_mass(self) -> np.ndarray:
         """The inverse masses the dynamics sees [1/kg], float64, shape [particle_count]: 1/m, and 0 for
@@ -431,11 +468,27 @@ class State:
     time: wp.array
 
     def assign(self, other: State) -> None:
-        """Copy positions, velocities, forces and time from ``other`` (same model) into this state."""
+        """Copy positions, velocities, forces and time from ``other`` (a state of the same model) into this one.
+
+        Raises:
+            ConfigError: ``other`` has another particle count, precision or device.
+        """
+        check_compatible(self, other)
         wp.copy(self.particle_q, other.particle_q)
         wp.copy(self.particle_qd, other.particle_qd)
         wp.copy(self.particle_f, other.particle_f)
         wp.copy(self.time, other.time)
+
+
+def check_compatible(state: State, other: State) -> None:
+    """Raise a ConfigError unless ``other`` could stand in for ``state`` (same particle count, precision and
+    device): a state of another model would otherwise fail inside a kernel launch, or copy only a part."""
+    mine, theirs = state.particle_q, other.particle_q
+    if (mine.shape, mine.dtype, str(mine.device)) != (theirs.shape, theirs.dtype, str(theirs.device)):
+        raise ConfigError(
+            f"the state has {theirs.shape[0]} particles of {theirs.dtype.__name__} on {theirs.device}, but this model's "
+            f"have {mine.shape[0]} of {mine.dtype.__name__} on {mine.device}: use a state made by this model's state()"
+        )
 
 
 class Control:
@@ -447,15 +500,28 @@ class Control:
             scene applies none (then no kernel reads it).
         pin_targets: targets of the pin groups driven through Control (a device struct; see
             :meth:`set_pin_targets`), or ``None`` when the model has no such group.
-        revision: counts structural changes (an input set for the first time): a Stepper re-captures.
+        revision: counts structural changes (an input allocated or replaced): a Stepper re-captures.
     """
 
     def __init__(self, model: Model):
+        object.__setattr__(self, "revision", 0)
         self.model = model
         self.particle_force = None
-        self.revision = 0
         pins = model.pin_groups
         self.pin_targets = pins.new_targets(model.device) if pins is not None and pins.control_driven else None
+
+    def __setattr__(self, name: str, value) -> None:
+        # Replacing an input (an array a captured graph points to) is a structural change.
+        if name != "revision":
+            object.__setattr__(self, "revision", self.revision + 1)
+        object.__setattr__(self, name, value)
+
+    def clear_pin_targets(self) -> None:
+        """Forget every pin target: control-driven groups rest where they are until new targets come."""
+        if self.pin_targets is not None:
+            from ..kernels.kinematics import NO_TARGET_TIME
+
+            self.pin_targets.time.fill_(NO_TARGET_TIME)
 
     def set_particle_force(self, force) -> None:
         """Set the external force [N]: one 3-vector for every particle, or an array of shape [particle_count, 3].
@@ -476,7 +542,6 @@ class Control:
         host = wp.array(values, dtype=model.vec3, device="cpu")
         if self.particle_force is None:
             self.particle_force = wp.empty(model.particle_count, dtype=model.vec3, device=model.device)
-            self.revision += 1
         wp.copy(self.particle_force, host)
 
     def set_pin_targets(self, group, positions, *, time: float) -> None:

@@ -90,6 +90,8 @@ class Simulator:
             SimulationError: a guard check failed during the frame; :attr:`state` is then unusable and
                 :attr:`frame` still counts the frames completed before it.
         """
+        if self.guard is not None:
+            self.guard.refresh()
         self.stepper.advance()
         if self.integrator.adaptive:
             failure = self.integrator.failure()
@@ -114,7 +116,9 @@ class Simulator:
 
     def reset(self, state: State | None = None) -> None:
         """Restart at frame 0 (time 0) from ``state`` (default: the model's initial state), forgetting the
-        integrator's history (step-size control, warm starts), so the run repeats exactly."""
+        integrator's history (step-size control, warm starts) and the pin targets set so far, so the run
+        repeats exactly."""
         self.stepper.reset(state)
         self.state.time.zero_()
+        self.control.clear_pin_targets()  # they were set for times of the run before
         self.frame = 0

@@ -21,7 +21,7 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError
 from .integrators import Integrator
-from .model import Control, Model, State
+from .model import Control, Model, State, check_compatible
 
 
 class StepHook:
@@ -84,8 +84,10 @@ class Stepper:
         self.steps = checks.count("steps", steps, minimum=1)
         self.hooks = list(hooks)
         self.use_graph = bool(use_graph)
-        self.state = state if state is not None else model.state()
         self._scratch = model.state()
+        if state is not None:
+            check_compatible(self._scratch, state)
+        self.state = state if state is not None else model.state()
         self._graph = None
         self._graph_key = None
         #: Captures made so far (a structural change makes one more at the next advance).
