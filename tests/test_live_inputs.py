@@ -170,12 +170,17 @@ def test_live_input_errors_are_clear():
         plain.set_track("max_speed", ws.Track([0.0, 1.0], [1.0, 2.0]))
 
 
+#: Springs soft enough for 1/480 s steps of 14 g particles (the defaults are not: ωh ≈ 2.3).
+SOFT = dict(structural=ws.SpringMaterial(100.0, 0.1), shear=ws.SpringMaterial(50.0, 0.05), bend=None)
+
+
 def test_guard_limit_follows_gravity_switched_on_mid_run(device):
     """A cloth built without gravity gets a tiny default kinetic-energy limit; switching gravity on between
     frames re-derives the limit (a value write), so the correct falling run is not stopped."""
     builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
-    builder.add_cloth_grid(nx=6, ny=6, spacing=0.1, mass=0.5, pin=["top-left", "top-right"])
+    builder.add_cloth_grid(nx=6, ny=6, spacing=0.1, mass=0.5, pin=["top-left", "top-right"], **SOFT)
     model = builder.finalize(device)
+    assert ws.advise(model, "symplectic_euler", 1 / 480).stable  # so a stop could only be the guard's limit
     sim = ws.Simulator(model, fps=60, substeps=8)
     sim.step_frame()
     before = sim.guard.max_kinetic_energy
@@ -188,10 +193,11 @@ def test_gravity_track_sets_the_guard_scale_and_the_start_value(device):
     """A gravity track ramping up from zero: the model reports the track's value at t = 0 before any step,
     and the guard's default limit is scaled by the track's largest gravity, so the run is not stopped."""
     builder = ws.ModelBuilder()
-    builder.add_cloth_grid(nx=6, ny=6, spacing=0.1, mass=0.5, pin=["top-left", "top-right"])
+    builder.add_cloth_grid(nx=6, ny=6, spacing=0.1, mass=0.5, pin=["top-left", "top-right"], **SOFT)
     builder.set_track("gravity", ws.Track([0.0, 0.5], [[0, 0, 0], [0, 0, -9.81]]))
     model = builder.finalize(device)
     assert model.gravity == (0.0, 0.0, 0.0)
+    assert ws.advise(model, "symplectic_euler", 1 / 480).stable
     run_frames(ws.Simulator(model, fps=60, substeps=8), 60)
 
 
