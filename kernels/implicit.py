@@ -170,7 +170,8 @@ def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw, drag
         particle_qd_in: wp.array[vec3],
         time_in: wp.array[wp.float64],
         delta_qd: wp.array[vec3],
-        dt: wp.float64,
+        dt: scalar,
+        dt_rest: scalar,
         # State out:
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
@@ -179,12 +180,12 @@ def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw, drag
         """v' = v + Δv, x' = x + h v' (driven pins keep what the kinematics pass wrote)."""
         i = wp.tid()
         if i == 0:
-            time_out[0] = time_in[0] + dt
+            time_out[0] = time_in[0] + (wp.float64(dt) + wp.float64(dt_rest))
         if wp.static(driven):
             if is_kinematic(particle_flags[i]):
                 return
         v = particle_qd_in[i] + delta_qd[i]
-        particle_q_out[i] = particle_q_in[i] + scalar(dt) * v
+        particle_q_out[i] = particle_q_in[i] + dt * v
         particle_qd_out[i] = v
 
     return prepare, matvec, update

@@ -12,9 +12,11 @@ then put on its prescribed motion by the kinematics pass.
 
 Every kernel that writes a step's (or a stage's) state also writes its time, t_out = t_in + h (or the
 stage's t_in + c h), from its first thread: the states carry their time on the device, for keyframe
-tracks and driven pins, at no extra launch. Those kernels take the step in float64 (a float32 step would
-put a float32 model's clock off by ~1e-7 s per thousand steps) and round it to the model's precision for
-the physics.
+tracks and driven pins, at no extra launch. Those kernels take the step as two numbers of the model's
+precision, the rounded step h the physics uses and what the rounding dropped (``step_arguments``), whose
+float64 sum keeps a float32 model's clock exact (the rounded step alone would put it ~1e-7 s off per
+thousand steps). A float64 argument would do the same but slows the fused kernel by 9-27 % on an H100
+(bench/RESULTS.md §7).
 """
 
 import functools
@@ -68,7 +70,8 @@ def symplectic_euler_update_kernel(scalar: type, shape_types: tuple):
         particle_qd_in: wp.array[vec3],
         particle_f_in: wp.array[vec3],
         time_in: wp.array[wp.float64],
-        dt: wp.float64,
+        dt: scalar,
+        dt_rest: scalar,
         # State out:
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
@@ -76,8 +79,8 @@ def symplectic_euler_update_kernel(scalar: type, shape_types: tuple):
     ):
         i = wp.tid()
         if i == 0:
-            time_out[0] = time_in[0] + dt
-        h = scalar(dt)
+            time_out[0] = time_in[0] + (wp.float64(dt) + wp.float64(dt_rest))
+        h = dt
         flags = particle_flags[i]
         x, v = update(
             particle_q_in[i], particle_qd_in[i], particle_f_in[i], effective_inv_mass(flags, particle_inv_mass[i]), h
@@ -127,7 +130,8 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
         particle_q_in: wp.array[vec3],
         particle_qd_in: wp.array[vec3],
         time_in: wp.array[wp.float64],
-        dt: wp.float64,
+        dt: scalar,
+        dt_rest: scalar,
         # State out:
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
@@ -135,8 +139,8 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
     ):
         i = wp.tid()
         if i == 0:
-            time_out[0] = time_in[0] + dt
-        h = scalar(dt)
+            time_out[0] = time_in[0] + (wp.float64(dt) + wp.float64(dt_rest))
+        h = dt
         x = particle_q_in[i]
         v = particle_qd_in[i]
         if is_kinematic(particle_flags[i]):
@@ -306,7 +310,8 @@ def verlet_kernels(scalar: type):
         particle_qd_in: wp.array[vec3],
         particle_f_in: wp.array[vec3],
         time_in: wp.array[wp.float64],
-        dt: wp.float64,
+        dt: scalar,
+        dt_rest: scalar,
         # Out:
         particle_q_out: wp.array[vec3],
         particle_qd_half_out: wp.array[vec3],
@@ -314,8 +319,8 @@ def verlet_kernels(scalar: type):
     ):
         i = wp.tid()
         if i == 0:
-            time_out[0] = time_in[0] + dt
-        h = scalar(dt)
+            time_out[0] = time_in[0] + (wp.float64(dt) + wp.float64(dt_rest))
+        h = dt
         inv_mass = effective_inv_mass(particle_flags[i], particle_inv_mass[i])
         v_half = particle_qd_in[i] + (scalar(0.5) * h * inv_mass) * particle_f_in[i]
         particle_q_out[i] = particle_q_in[i] + h * v_half

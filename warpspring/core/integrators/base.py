@@ -4,10 +4,19 @@ from __future__ import annotations
 
 import abc
 
+import numpy as np
 import warp as wp
 
 from ..constraints import StepFinisher
 from ..model import Control, Model, State
+
+
+def step_arguments(scalar: type, dt: float) -> tuple:
+    """The step ``dt`` [s] as the kernels that advance a state's clock take it: rounded to ``scalar`` (the
+    step the physics uses) and what that rounding dropped, so that their float64 sum is ``dt`` to ~1e-16
+    relative (0 for float64 models)."""
+    rounded = float(np.float32(dt)) if scalar is wp.float32 else float(dt)  # (a wp.float32 keeps the float)
+    return scalar(rounded), scalar(dt - rounded)
 
 
 def write_setting(settings: wp.array, slot: int, value: float) -> None:

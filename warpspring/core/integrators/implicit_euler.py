@@ -34,7 +34,7 @@ from ...kernels.precision import mat33_type
 from ..forces import eval_forces
 from ..kinematics import apply_kinematics
 from ..model import Control, Model, State
-from .base import Integrator, write_setting
+from .base import Integrator, step_arguments, write_setting
 
 
 class ImplicitEuler(Integrator):
@@ -117,7 +117,7 @@ class ImplicitEuler(Integrator):
         wp.launch(
             update,
             inputs=[model.particle_flags, state_in.particle_q, state_in.particle_qd, state_in.time, self._delta_qd,
-                    wp.float64(dt)],
+                    *step_arguments(model.scalar, dt)],
             outputs=[state_out.particle_q, state_out.particle_qd, state_out.time],
             **per_particle,
         )

@@ -11,7 +11,7 @@ from ..forces import eval_forces, force_inputs
 from ..kinematics import apply_kinematics
 from ..model import Control, State
 from ..tracks import evaluate_input_tracks
-from .base import Integrator
+from .base import Integrator, step_arguments
 
 
 class SymplecticEuler(Integrator):
@@ -40,7 +40,7 @@ class SymplecticEuler(Integrator):
                     state_in.particle_q,
                     state_in.particle_qd,
                     state_in.time,
-                    wp.float64(dt),
+                    *step_arguments(model.scalar, dt),
                 ],
                 outputs=[state_out.particle_q, state_out.particle_qd, state_out.time],
                 **common,
@@ -58,7 +58,7 @@ class SymplecticEuler(Integrator):
                     state_in.particle_qd,
                     state_in.particle_f,
                     state_in.time,
-                    wp.float64(dt),
+                    *step_arguments(model.scalar, dt),
                 ],
                 outputs=[state_out.particle_q, state_out.particle_qd, state_out.time],
                 **common,

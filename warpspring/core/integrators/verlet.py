@@ -16,7 +16,7 @@ from ...kernels.integrators import verlet_kernels
 from ..forces import eval_forces
 from ..kinematics import apply_kinematics
 from ..model import Control, Model, State
-from .base import Integrator
+from .base import Integrator, step_arguments
 
 
 class VelocityVerlet(Integrator):
@@ -58,7 +58,8 @@ class VelocityVerlet(Integrator):
         eval_forces(model, state_in, control)
         wp.launch(
             drift,
-            inputs=[*mass, state_in.particle_q, state_in.particle_qd, state_in.particle_f, state_in.time, wp.float64(dt)],
+            inputs=[*mass, state_in.particle_q, state_in.particle_qd, state_in.particle_f, state_in.time,
+                    *step_arguments(model.scalar, dt)],
             outputs=[state_out.particle_q, half.particle_qd, state_out.time],
             **common,
         )
