@@ -194,7 +194,8 @@ class TrackTable:
         table.time = wp.array(np.concatenate([t.times for t in self.tracks]) if self.tracks else np.zeros(0),
                               dtype=wp.float64, device=device)
         table.value = wp.array(keys(lambda t: t.values), dtype=wp.vec3d, device=device)
-        table.tangent = wp.array(keys(Track.tangents), dtype=wp.vec3d, device=device)
+        table.tangent = wp.array(keys(lambda t: t.tangents() if t.interpolation == "smooth" else np.zeros_like(t.values)),
+                                 dtype=wp.vec3d, device=device)
         table.interpolation = wp.array([INTERPOLATIONS[t.interpolation] for t in self.tracks], dtype=wp.int32,
                                        device=device)
         table.extrapolation = wp.array([EXTRAPOLATIONS[t.extrapolation] for t in self.tracks], dtype=wp.int32,
