@@ -13,7 +13,7 @@ from ..kernels.forces import ForceFeatures, SpringLaw
 from ..kernels.inputs import INPUT_COUNT, INPUTS
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import vec3_type
-from .kinematics import apply_kinematics
+from .kinematics import PinGroupTable, apply_kinematics
 from .tracks import Track, TrackTable, input_track
 
 #: The stabiliser thresholds that are live inputs (their names in ``kernels.inputs.INPUTS``).
@@ -177,7 +177,7 @@ class Model:
     particle_radius: wp.array  # [m], shape [particle_count], contact radius
     particle_flags: wp.array  # int32, shape [particle_count]: PARTICLE_KINEMATIC for pinned (prescribed)
     #   particles; a live value (see set_kinematic)
-    pin_groups: object  # kinematics.PinGroupTable of the driven pin groups, or None
+    pin_groups: PinGroupTable | None  # the driven pin groups and every kinematic particle, or None (no group)
 
     spring_count: int
     spring_indices: wp.array  # wp.vec2i, shape [spring_count], the two particles of each spring
@@ -324,7 +324,7 @@ class Model:
             )
         self._check_input(name, track.values, "a key of a track of")
         # Until a step evaluates it, the input holds the track's value at t = 0.
-        self._set_constant(name, track.sample(0.0)[0][0])
+        self._write_input(name, track.sample(0.0)[0][0])
         if name == "gravity":
             self._gravity_on = True
         elif name == "drag":
@@ -352,13 +352,17 @@ class Model:
                 raise ConfigError(f"{label} overflows {self.precision} (largest magnitude {np.abs(values).max():.3g})")
 
     def _set_constant(self, name: str, values: np.ndarray) -> None:
-        """Write a constant value of an input to the device (and stop animating it)."""
-        slot, width = INPUTS[name]
-        values = np.asarray(values, dtype=np.float64).reshape(1, width)
-        self._check_input(name, values)
+        """Write a constant value of an input to the device and stop animating it."""
+        self._write_input(name, values)
         if self._tracks.pop(name, None) is not None:
             self._rebuild_tracks()
             self._structure_changed()
+
+    def _write_input(self, name: str, values: np.ndarray) -> None:
+        """Check and write a value of an input into its columns of the device table."""
+        slot, width = INPUTS[name]
+        values = np.asarray(values, dtype=np.float64).reshape(1, width)
+        self._check_input(name, values)
         wp.copy(self.inputs, wp.array(values, dtype=self.scalar, device="cpu"), dest_offset=slot, count=width)
         self.input_version += 1
 
