@@ -330,3 +330,23 @@ def test_reset_forgets_pin_targets(device):
     sim.reset()
     sim.step_frame()
     np.testing.assert_array_equal(sim.state.particle_q.numpy()[0], [0.0, 0.0, 1.0])
+
+
+def test_pinning_mid_run_is_limited_to_known_pins_in_models_with_groups():
+    """With pin groups, a particle not pinned at build time cannot be pinned mid-run (the kinematics pass
+    keeps the list of pins); a released pin can be pinned again, and without groups any particle can."""
+    builder = ws.ModelBuilder()
+    builder.add_particles([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [2.0, 0.0, 1.0]], mass=0.1)
+    builder.pin_particles([0])
+    builder.add_pin_group([1], translation=ws.Track([0.0, 1.0], [[0, 0, 0], [1, 0, 0]]))
+    model = builder.finalize("cpu")
+    with pytest.raises(ws.ConfigError, match="particle 2 was not pinned when this model"):
+        model.set_kinematic([2])
+    model.set_kinematic([0, 1], False)
+    model.set_kinematic([0, 1])
+    assert model.kinematic_mask().tolist() == [True, True, False]
+    plain = ws.ModelBuilder()
+    plain.add_particles([[0.0, 0.0, 1.0]], mass=0.1)
+    free = plain.finalize("cpu")
+    free.set_kinematic([0])
+    assert free.kinematic_mask().tolist() == [True]

@@ -408,11 +408,22 @@ class Model:
 
         A released particle is integrated from its current position and velocity at the next step (a pin of
         a group stops following the group); a newly pinned one moves on with its velocity. Nothing compiles
-        or re-captures.
+        or re-captures. In a model with pin groups, only particles pinned when it was built can be pinned
+        again (the kinematics pass keeps the list of those).
+
+        Raises:
+            ConfigError: an index out of range, or a particle the pin groups' list does not hold.
         """
         idx = np.unique(np.asarray(particles, dtype=np.int64).ravel())
         if len(idx) and (idx.min() < 0 or idx.max() >= self.particle_count):
             raise ConfigError(f"particle index out of range: valid indices are 0..{self.particle_count - 1}")
+        if kinematic and self.pin_groups is not None:
+            new = np.setdiff1d(idx, self.pin_groups.kinematic)
+            if len(new):
+                raise ConfigError(
+                    f"particle {int(new[0])} was not pinned when this model (which has pin groups) was built, so it "
+                    "cannot be pinned mid-run: pin it in the builder (pin_particles) and release it until needed"
+                )
         flags = self.particle_flags.numpy()
         flags[idx] = np.where(kinematic, flags[idx] | PARTICLE_KINEMATIC, flags[idx] & ~PARTICLE_KINEMATIC)
         self.particle_flags.assign(flags)
