@@ -31,8 +31,9 @@ def strain_limit_kernel(scalar: type, slots: int):
     @wp.kernel(module="unique", enable_backward=False)
     def strain_limit(
         # Model:
+        particle_count: int,
         particle_flags: wp.array[wp.int32],
-        particle_inv_mass: wp.array[scalar],
+        particle_inv_mass: wp.array2d[scalar],
         particle_spring_neighbor: wp.array2d[wp.int32],
         particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
@@ -42,25 +43,29 @@ def strain_limit_kernel(scalar: type, slots: int):
         # Out:
         particle_q_out: wp.array[vec3],
     ):
-        i = wp.tid()
-        xi = particle_q_in[i]
-        wi = effective_inv_mass(particle_flags[i], particle_inv_mass[i])
-        stretch_limit = scalar(1.0) + inputs[0, INPUT_MAX_STRAIN]
+        world, i = wp.tid()
+        base = world * particle_count
+        p = base + i
+        mass_row = world % particle_inv_mass.shape[0]
+        xi = particle_q_in[p]
+        wi = effective_inv_mass(particle_flags[p], particle_inv_mass[mass_row, i])
+        stretch_limit = scalar(1.0) + inputs[world, INPUT_MAX_STRAIN]
         correction = vec3(scalar(0.0))
         violated = scalar(0.0)
         if wi > scalar(0.0):
             for k in range(wp.static(slots)):
-                j = particle_spring_neighbor[k, i]
+                neighbor = particle_spring_neighbor[k, i]
+                j = base + neighbor
                 d = particle_q_in[j] - xi
                 length = wp.length(d)
                 allowed = stretch_limit * spring_rest_length[particle_spring_id[k, i]]
-                if j != i and length > allowed:
-                    share = wi / (wi + effective_inv_mass(particle_flags[j], particle_inv_mass[j]))
+                if neighbor != i and length > allowed:
+                    share = wi / (wi + effective_inv_mass(particle_flags[j], particle_inv_mass[mass_row, neighbor]))
                     correction += d * (share * (length - allowed) / length)
                     violated += scalar(1.0)
         if violated > scalar(0.0):
             xi = xi + correction / violated
-        particle_q_out[i] = xi
+        particle_q_out[p] = xi
 
     return strain_limit
 
@@ -78,6 +83,7 @@ def finish_step_kernel(scalar: type, shape_types: tuple, clamp_speed: bool, from
     @wp.kernel(module="unique", enable_backward=False)
     def finish_step(
         # Model:
+        particle_count: int,
         particle_flags: wp.array[wp.int32],
         particle_radius: wp.array[scalar],
         shape_type: wp.array[wp.int32],
@@ -93,16 +99,17 @@ def finish_step_kernel(scalar: type, shape_types: tuple, clamp_speed: bool, from
         particle_q_in_out: wp.array[vec3],
         particle_qd_in_out: wp.array[vec3],
     ):
-        i = wp.tid()
-        if is_kinematic(particle_flags[i]):
+        world, i = wp.tid()
+        p = world * particle_count + i
+        if is_kinematic(particle_flags[p]):
             return
-        x = particle_q_in_out[i]
-        v = particle_qd_in_out[i]
+        x = particle_q_in_out[p]
+        v = particle_qd_in_out[p]
         if wp.static(from_displacement):
-            x = particle_q_corrected[i]
-            v = v + (x - particle_q_before[i]) / dt
+            x = particle_q_corrected[p]
+            v = v + (x - particle_q_before[p]) / dt
         if wp.static(clamp_speed):
-            speed_limit = inputs[0, INPUT_MAX_SPEED]
+            speed_limit = inputs[world, INPUT_MAX_SPEED]
             speed = wp.length(v)
             if speed > speed_limit:
                 v = v * (speed_limit / speed)
@@ -110,7 +117,7 @@ def finish_step_kernel(scalar: type, shape_types: tuple, clamp_speed: bool, from
             x, v = project_contacts(
                 x, v, particle_radius[i], dt, shape_type, shape_transform, shape_size, shape_friction
             )
-        particle_q_in_out[i] = x
-        particle_qd_in_out[i] = v
+        particle_q_in_out[p] = x
+        particle_qd_in_out[p] = v
 
     return finish_step

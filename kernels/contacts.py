@@ -119,7 +119,8 @@ def project_contacts_func(scalar: type, shape_types: tuple):
 
 @functools.cache
 def project_contacts_kernel(scalar: type, shape_types: tuple):
-    """Kernel applying the contact projection to every dynamic (not kinematic) particle of a state, in place."""
+    """Kernel applying the contact projection to every dynamic (not kinematic) particle of a state, in place
+    (the colliders are shared by every world: each world has the same scene around it)."""
     vec3 = vec3_type(scalar)
     transform = transform_type(scalar)
     project_contacts = project_contacts_func(scalar, shape_types)
@@ -127,6 +128,7 @@ def project_contacts_kernel(scalar: type, shape_types: tuple):
     @wp.kernel(module="unique", enable_backward=False)
     def project(
         # Model:
+        particle_count: int,
         particle_flags: wp.array[wp.int32],
         particle_radius: wp.array[scalar],
         shape_type: wp.array[wp.int32],
@@ -138,12 +140,13 @@ def project_contacts_kernel(scalar: type, shape_types: tuple):
         particle_q_in_out: wp.array[vec3],
         particle_qd_in_out: wp.array[vec3],
     ):
-        i = wp.tid()
-        if is_kinematic(particle_flags[i]):
+        world, i = wp.tid()
+        p = world * particle_count + i
+        if is_kinematic(particle_flags[p]):
             return
         x, v = project_contacts(
-            particle_q_in_out[i],
-            particle_qd_in_out[i],
+            particle_q_in_out[p],
+            particle_qd_in_out[p],
             particle_radius[i],
             dt,
             shape_type,
@@ -151,7 +154,7 @@ def project_contacts_kernel(scalar: type, shape_types: tuple):
             shape_size,
             shape_friction,
         )
-        particle_q_in_out[i] = x
-        particle_qd_in_out[i] = v
+        particle_q_in_out[p] = x
+        particle_qd_in_out[p] = v
 
     return project

@@ -10,6 +10,13 @@ Springs are evaluated in one of two ways, both deterministic:
   a compile-time length, unrolls without branches, and the loads of all slots are in flight at once;
 * scatter (default on the CPU, where Warp runs a kernel's threads in sequence): each spring is evaluated
   once and added to both ends, after a per-particle pass wrote gravity, drag and external forces.
+
+Worlds: a model holds ``world_count`` copies of one topology. Kernels launch over (world, particle) or
+(world, spring); particle i of world w is entry w·n + i of a state's arrays (n particles per world), and
+the incidence table, rest lengths and other topology are shared, in per-world indices. Parameters a user
+may vary per world are 2-D arrays with one row for all worlds or one per world, read at row
+``world % rows``: stiffness and damping [rows, spring_count], masses [rows, n]; the input table has one
+row per world. A world never reads another world's entries, so worlds never couple.
 """
 
 import functools
@@ -86,7 +93,7 @@ def spring_law_type(scalar: type):
 def spring_funcs(scalar: type, law: SpringLaw = HOOKE):
     """(spring_law_values, spring_force, spring_energy, spring_stiffness_matrix) of one precision and law.
 
-    ``spring_law_values(inputs)`` loads the law's values from the input table (only those the law uses);
+    ``spring_law_values(inputs, world)`` loads the law's values from the input table (only those the law uses);
     the other three take them as their last argument.
     """
     vec3 = vec3_type(scalar)
@@ -94,14 +101,14 @@ def spring_funcs(scalar: type, law: SpringLaw = HOOKE):
     SpringLawValues = spring_law_type(scalar)
 
     @wp.func
-    def spring_law_values(inputs: wp.array2d[scalar]) -> SpringLawValues:
-        """The law's values from row 0 of the input table."""
+    def spring_law_values(inputs: wp.array2d[scalar], world: int) -> SpringLawValues:
+        """The law's values from a world's row of the input table."""
         values = SpringLawValues()
         if wp.static(law.biphasic):
-            values.knee_strain = inputs[0, INPUT_BIPHASIC_STRAIN]
-            values.extra_stiffness = inputs[0, INPUT_BIPHASIC_RATIO] - scalar(1.0)
+            values.knee_strain = inputs[world, INPUT_BIPHASIC_STRAIN]
+            values.extra_stiffness = inputs[world, INPUT_BIPHASIC_RATIO] - scalar(1.0)
         if wp.static(law.clamp_force):
-            values.max_force = inputs[0, INPUT_MAX_SPRING_FORCE]
+            values.max_force = inputs[world, INPUT_MAX_SPRING_FORCE]
         return values
 
     @wp.func
@@ -190,24 +197,29 @@ def gather_springs_func(scalar: type, slots: int, law: SpringLaw):
 
     @wp.func
     def gather_spring_forces(
+        world: int,
         i: int,
+        base: int,
         xi: vec3,
         vi: vec3,
         # Model:
         particle_spring_neighbor: wp.array2d[wp.int32],
         particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
-        spring_stiffness: wp.array[scalar],
-        spring_damping: wp.array[scalar],
+        spring_stiffness: wp.array2d[scalar],
+        spring_damping: wp.array2d[scalar],
         law_values: SpringLawValues,
         # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
     ) -> vec3:
-        """Sum of the forces [N] of all springs incident to particle i."""
+        """Sum of the forces [N] of all springs incident to particle i of ``world``, whose particles start
+        at entry ``base`` of the state arrays."""
+        stiffness_row = world % spring_stiffness.shape[0]
+        damping_row = world % spring_damping.shape[0]
         f = vec3(scalar(0.0))
         for k in range(wp.static(slots)):
-            j = particle_spring_neighbor[k, i]
+            j = base + particle_spring_neighbor[k, i]
             s = particle_spring_id[k, i]
             f += spring_force(
                 xi,
@@ -215,8 +227,8 @@ def gather_springs_func(scalar: type, slots: int, law: SpringLaw):
                 vi,
                 particle_qd[j],
                 spring_rest_length[s],
-                spring_stiffness[s],
-                spring_damping[s],
+                spring_stiffness[stiffness_row, s],
+                spring_damping[damping_row, s],
                 law_values,
             )
         return f
@@ -234,16 +246,18 @@ def particle_force_func(scalar: type, features: ForceFeatures):
 
     @wp.func
     def particle_force(
+        world: int,
         i: int,
+        base: int,
         xi: vec3,
         vi: vec3,
         # Model:
-        particle_mass: wp.array[scalar],
+        particle_mass: wp.array2d[scalar],
         particle_spring_neighbor: wp.array2d[wp.int32],
         particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
-        spring_stiffness: wp.array[scalar],
-        spring_damping: wp.array[scalar],
+        spring_stiffness: wp.array2d[scalar],
+        spring_damping: wp.array2d[scalar],
         inputs: wp.array2d[scalar],
         # Control:
         particle_force_ext: wp.array[vec3],
@@ -251,19 +265,21 @@ def particle_force_func(scalar: type, features: ForceFeatures):
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
     ) -> vec3:
-        """Force [N] on particle i: m g - drag v + f_ext (+ gathered springs), magnitude clamped if the
-        features say so (with scattered springs the clamp is a separate pass: ``clamp_forces_kernel``);
-        g, drag and the limits from the input table."""
+        """Force [N] on particle i of ``world`` (entry base + i): m g - drag v + f_ext (+ gathered springs),
+        magnitude clamped if the features say so (with scattered springs the clamp is a separate pass:
+        ``clamp_forces_kernel``); g, drag and the limits from the world's row of the input table."""
         f = vec3(scalar(0.0))
         if wp.static(features.gravity):
-            f += particle_mass[i] * input_vec3(inputs, INPUT_GRAVITY)
+            f += particle_mass[world % particle_mass.shape[0], i] * input_vec3(inputs, world, INPUT_GRAVITY)
         if wp.static(features.drag):
-            f -= inputs[0, INPUT_DRAG] * vi
+            f -= inputs[world, INPUT_DRAG] * vi
         if wp.static(features.external):
-            f += particle_force_ext[i]
+            f += particle_force_ext[base + i]
         if wp.static(features.spring_slots > 0):
             f += gather_spring_forces(
+                world,
                 i,
+                base,
                 xi,
                 vi,
                 particle_spring_neighbor,
@@ -271,12 +287,12 @@ def particle_force_func(scalar: type, features: ForceFeatures):
                 spring_rest_length,
                 spring_stiffness,
                 spring_damping,
-                spring_law_values(inputs),
+                spring_law_values(inputs, world),
                 particle_q,
                 particle_qd,
             )
         if wp.static(features.clamp_particle_force):
-            max_force = inputs[0, INPUT_MAX_PARTICLE_FORCE]
+            max_force = inputs[world, INPUT_MAX_PARTICLE_FORCE]
             magnitude = wp.length(f)
             if magnitude > max_force:
                 f = f * (max_force / magnitude)
@@ -287,19 +303,20 @@ def particle_force_func(scalar: type, features: ForceFeatures):
 
 @functools.cache
 def eval_forces_kernel(scalar: type, features: ForceFeatures):
-    """Kernel writing the total force on every particle (one thread per particle)."""
+    """Kernel writing the total force on every particle (one thread per particle of every world)."""
     vec3 = vec3_type(scalar)
     particle_force = particle_force_func(scalar, features)
 
     @wp.kernel(module="unique", enable_backward=False, module_options=SPRING_KERNEL_OPTIONS)
     def eval_forces(
         # Model:
-        particle_mass: wp.array[scalar],
+        particle_count: int,
+        particle_mass: wp.array2d[scalar],
         particle_spring_neighbor: wp.array2d[wp.int32],
         particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
-        spring_stiffness: wp.array[scalar],
-        spring_damping: wp.array[scalar],
+        spring_stiffness: wp.array2d[scalar],
+        spring_damping: wp.array2d[scalar],
         inputs: wp.array2d[scalar],
         # Control:
         particle_force_ext: wp.array[vec3],
@@ -309,11 +326,15 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures):
         # Out:
         particle_f: wp.array[vec3],
     ):
-        i = wp.tid()
-        particle_f[i] = particle_force(
+        world, i = wp.tid()
+        base = world * particle_count
+        p = base + i
+        particle_f[p] = particle_force(
+            world,
             i,
-            particle_q[i],
-            particle_qd[i],
+            base,
+            particle_q[p],
+            particle_qd[p],
             particle_mass,
             particle_spring_neighbor,
             particle_spring_id,
@@ -331,17 +352,18 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures):
 
 @functools.cache
 def spring_scatter_kernel(scalar: type, law: SpringLaw):
-    """Kernel adding every spring's force to its two particles (one thread per spring)."""
+    """Kernel adding every spring's force to its two particles (one thread per spring of every world)."""
     vec3 = vec3_type(scalar)
     spring_law_values, spring_force, _, _ = spring_funcs(scalar, law)
 
     @wp.kernel(module="unique", enable_backward=False, module_options=SPRING_KERNEL_OPTIONS)
     def scatter_springs(
         # Model:
+        particle_count: int,
         spring_indices: wp.array[wp.vec2i],
         spring_rest_length: wp.array[scalar],
-        spring_stiffness: wp.array[scalar],
-        spring_damping: wp.array[scalar],
+        spring_stiffness: wp.array2d[scalar],
+        spring_damping: wp.array2d[scalar],
         inputs: wp.array2d[scalar],
         # State in:
         particle_q: wp.array[vec3],
@@ -349,13 +371,15 @@ def spring_scatter_kernel(scalar: type, law: SpringLaw):
         # In/out:
         particle_f_in_out: wp.array[vec3],
     ):
-        s = wp.tid()
+        world, s = wp.tid()
+        base = world * particle_count
         ends = spring_indices[s]
-        i = ends[0]
-        j = ends[1]
+        i = base + ends[0]
+        j = base + ends[1]
         f = spring_force(
-            particle_q[i], particle_q[j], particle_qd[i], particle_qd[j],
-            spring_rest_length[s], spring_stiffness[s], spring_damping[s], spring_law_values(inputs),
+            particle_q[i], particle_q[j], particle_qd[i], particle_qd[j], spring_rest_length[s],
+            spring_stiffness[world % spring_stiffness.shape[0], s], spring_damping[world % spring_damping.shape[0], s],
+            spring_law_values(inputs, world),
         )
         wp.atomic_add(particle_f_in_out, i, f)
         wp.atomic_sub(particle_f_in_out, j, f)
@@ -369,12 +393,13 @@ def clamp_forces_kernel(scalar: type):
     vec3 = vec3_type(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def clamp_forces(inputs: wp.array2d[scalar], particle_f_in_out: wp.array[vec3]):
-        i = wp.tid()
-        limit = inputs[0, INPUT_MAX_PARTICLE_FORCE]
-        f = particle_f_in_out[i]
+    def clamp_forces(particle_count: int, inputs: wp.array2d[scalar], particle_f_in_out: wp.array[vec3]):
+        world, i = wp.tid()
+        p = world * particle_count + i
+        limit = inputs[world, INPUT_MAX_PARTICLE_FORCE]
+        f = particle_f_in_out[p]
         magnitude = wp.length(f)
         if magnitude > limit:
-            particle_f_in_out[i] = f * (limit / magnitude)
+            particle_f_in_out[p] = f * (limit / magnitude)
 
     return clamp_forces

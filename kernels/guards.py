@@ -1,10 +1,14 @@
-"""Run-time guards: detect a state going bad on the device, without a host synchronisation per substep.
+"""Run-time guards: detect a state going bad on the device, per world, without a host synchronisation per
+substep.
 
-A check is three launches captured with the substeps: ``measure`` (per particle: non-finite position or
-velocity, the largest strain of its springs, kinetic energy), ``locate`` (the particle and spring holding
-the largest strain), ``decide`` (one thread: compare with the limits, latch the first failure with its
-substep, reset the accumulators). Once latched, later checks leave the record untouched, so the host
-reads the first failure at the end of the frame. The status arrays are laid out by the slots below.
+A check is four launches captured with the substeps: ``measure`` (per particle: non-finite position or
+velocity, the largest strain of its springs, kinetic energy; per-block partials, no float atomics),
+``gather`` (per world: the world's kinetic energy, summed in a fixed order, and its largest strain),
+``locate`` (the particle and spring holding the largest strain), ``decide`` (per world: compare with the
+world's limits, latch the world's first failure with its substep, reset the accumulators, and with
+``stop_world`` set hold the failed world: ``world_enabled`` 0). Once a world's record is latched, later
+checks leave it untouched, so the host reads each world's first failure at the end of the frame. Held
+worlds are not checked. The records are one row per world, laid out by the slots below.
 """
 
 import functools
@@ -31,7 +35,8 @@ GUARD_FLOATS = 2
 # float64 slots of the limits: live settings, read by ``decide``
 GUARD_LIMIT_STRAIN = 0  # a spring strain beyond this tears the run [-]
 GUARD_LIMIT_KINETIC_ENERGY = 1  # a total kinetic energy beyond this is a runaway [J]
-GUARD_LIMITS = 2
+GUARD_STOP_WORLD = 2  # 1: a failed world is held and the others go on; 0: the run stops
+GUARD_LIMITS = 3
 # reasons
 GUARD_NONFINITE = 1
 GUARD_STRAIN = 2
@@ -55,16 +60,17 @@ def guard_funcs(scalar: type):
 
 @functools.cache
 def guard_kernels(scalar: type, slots: int, tiled: bool):
-    """(measure, locate, decide) kernels of one precision and incidence-table width."""
+    """(measure, gather, locate, decide) kernels of one precision and incidence-table width."""
     vec3 = vec3_type(scalar)
-    accumulate = reduction_funcs(tiled)
+    block_sum, block_max = reduction_funcs(tiled)
     spring_strain = guard_funcs(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
     def measure(
-        count: int,
         # Model:
-        particle_mass: wp.array[scalar],
+        particle_count: int,
+        world_enabled: wp.array[wp.int32],
+        particle_mass: wp.array2d[scalar],
         particle_spring_neighbor: wp.array2d[wp.int32],
         particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
@@ -72,76 +78,109 @@ def guard_kernels(scalar: type, slots: int, tiled: bool):
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
         # In/out:
-        status: wp.array[wp.int32],
-        values: wp.array[wp.float64],
+        status: wp.array2d[wp.int32],
+        partials: wp.array3d[wp.float64],
     ):
-        block, lane = wp.tid()
+        world, block, lane = wp.tid()
+        if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
+            return
         i = block * wp.block_dim() + lane
         energy = wp.float64(0.0)
-        if i < count and status[GUARD_TRIPPED] == 0:
-            x = particle_q[i]
-            v = particle_qd[i]
+        worst = wp.float64(-1.0)
+        if i < particle_count:
+            base = world * particle_count
+            x = particle_q[base + i]
+            v = particle_qd[base + i]
             if wp.isfinite(x) and wp.isfinite(v):
-                energy = wp.float64(scalar(0.5) * particle_mass[i] * wp.dot(v, v))
-                worst = wp.float64(-1.0)
+                energy = wp.float64(scalar(0.5) * particle_mass[world % particle_mass.shape[0], i] * wp.dot(v, v))
                 for k in range(wp.static(slots)):
                     j = particle_spring_neighbor[k, i]
                     rest = spring_rest_length[particle_spring_id[k, i]]
-                    worst = wp.max(worst, spring_strain(i, j, x, particle_q[j], rest))
-                wp.atomic_max(values, GUARD_MAX_STRAIN, worst)
+                    worst = wp.max(worst, spring_strain(i, j, x, particle_q[base + j], rest))
             else:
-                wp.atomic_min(status, GUARD_NONFINITE_PARTICLE, i)
-                wp.atomic_add(status, GUARD_NONFINITE_COUNT, 1)
-        accumulate(values, GUARD_KINETIC_ENERGY, energy, lane)
+                wp.atomic_min(status, world, GUARD_NONFINITE_PARTICLE, i)
+                wp.atomic_add(status, world, GUARD_NONFINITE_COUNT, 1)
+        energy = block_sum(energy)
+        worst = block_max(worst)
+        if lane == 0:
+            partials[world, block, GUARD_KINETIC_ENERGY] = energy
+            partials[world, block, GUARD_MAX_STRAIN] = worst
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def gather(
+        world_enabled: wp.array[wp.int32],
+        partials: wp.array3d[wp.float64],
+        status: wp.array2d[wp.int32],
+        # Out:
+        values: wp.array2d[wp.float64],
+    ):
+        """A world's kinetic energy (its blocks' partials summed in order) and largest strain."""
+        world = wp.tid()
+        if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
+            return
+        energy = wp.float64(0.0)
+        worst = wp.float64(-1.0)
+        for b in range(partials.shape[1]):
+            energy += partials[world, b, GUARD_KINETIC_ENERGY]
+            worst = wp.max(worst, partials[world, b, GUARD_MAX_STRAIN])
+        values[world, GUARD_KINETIC_ENERGY] = energy
+        values[world, GUARD_MAX_STRAIN] = worst
 
     @wp.kernel(module="unique", enable_backward=False)
     def locate(
         # Model:
+        particle_count: int,
+        world_enabled: wp.array[wp.int32],
         particle_spring_neighbor: wp.array2d[wp.int32],
         particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
         # State in:
         particle_q: wp.array[vec3],
         # In/out:
-        status: wp.array[wp.int32],
-        values: wp.array[wp.float64],
+        status: wp.array2d[wp.int32],
+        values: wp.array2d[wp.float64],
     ):
-        i = wp.tid()
-        largest = values[GUARD_MAX_STRAIN]
-        if status[GUARD_TRIPPED] != 0 or largest < wp.float64(0.0):
+        world, i = wp.tid()
+        largest = values[world, GUARD_MAX_STRAIN]
+        if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0 or largest < wp.float64(0.0):
             return
-        x = particle_q[i]
+        base = world * particle_count
+        x = particle_q[base + i]
         for k in range(wp.static(slots)):
             j = particle_spring_neighbor[k, i]
             s = particle_spring_id[k, i]
-            if spring_strain(i, j, x, particle_q[j], spring_rest_length[s]) == largest:  # as computed in measure
-                wp.atomic_min(status, GUARD_STRAIN_PARTICLE, i)
-                wp.atomic_min(status, GUARD_STRAIN_SPRING, s)
+            if spring_strain(i, j, x, particle_q[base + j], spring_rest_length[s]) == largest:  # as in measure
+                wp.atomic_min(status, world, GUARD_STRAIN_PARTICLE, i)
+                wp.atomic_min(status, world, GUARD_STRAIN_SPRING, s)
 
     @wp.kernel(module="unique", enable_backward=False)
     def decide(
         substep: int,
-        limits: wp.array[wp.float64],
+        limits: wp.array2d[wp.float64],
         # In/out:
-        status: wp.array[wp.int32],
-        values: wp.array[wp.float64],
+        world_enabled: wp.array[wp.int32],
+        status: wp.array2d[wp.int32],
+        values: wp.array2d[wp.float64],
     ):
-        if status[GUARD_TRIPPED] != 0:
+        world = wp.tid()
+        if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
             return
         reason = 0
-        if status[GUARD_NONFINITE_PARTICLE] != NO_PARTICLE or not wp.isfinite(values[GUARD_KINETIC_ENERGY]):
+        if status[world, GUARD_NONFINITE_PARTICLE] != NO_PARTICLE or not wp.isfinite(values[world, GUARD_KINETIC_ENERGY]):
             reason = GUARD_NONFINITE
-        elif values[GUARD_MAX_STRAIN] > limits[GUARD_LIMIT_STRAIN]:
+        elif values[world, GUARD_MAX_STRAIN] > limits[world, GUARD_LIMIT_STRAIN]:
             reason = GUARD_STRAIN
-        elif values[GUARD_KINETIC_ENERGY] > limits[GUARD_LIMIT_KINETIC_ENERGY]:
+        elif values[world, GUARD_KINETIC_ENERGY] > limits[world, GUARD_LIMIT_KINETIC_ENERGY]:
             reason = GUARD_ENERGY
         if reason != 0:
-            status[GUARD_TRIPPED] = reason
-            status[GUARD_SUBSTEP] = substep
+            status[world, GUARD_TRIPPED] = reason
+            status[world, GUARD_SUBSTEP] = substep
+            if limits[world, GUARD_STOP_WORLD] != wp.float64(0.0):
+                world_enabled[world] = 0
             return
-        values[GUARD_MAX_STRAIN] = wp.float64(-1.0)
-        values[GUARD_KINETIC_ENERGY] = wp.float64(0.0)
-        status[GUARD_STRAIN_PARTICLE] = NO_PARTICLE
-        status[GUARD_STRAIN_SPRING] = NO_PARTICLE
+        values[world, GUARD_MAX_STRAIN] = wp.float64(-1.0)
+        values[world, GUARD_KINETIC_ENERGY] = wp.float64(0.0)
+        status[world, GUARD_STRAIN_PARTICLE] = NO_PARTICLE
+        status[world, GUARD_STRAIN_SPRING] = NO_PARTICLE
 
-    return measure, locate, decide
+    return measure, gather, locate, decide

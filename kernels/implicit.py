@@ -4,10 +4,10 @@ One step solves  A Δv = b,  A = M - h ∂f/∂v - h² ∂f/∂x,  b = h (f + h 
 x' = x + h v'. Per spring (i, j) with stiffness block Kₛ = ∂fᵢ/∂xⱼ (compressive transverse part
 clamped, so Kₛ ⪰ 0) and damper block Dₛ = kd d̂d̂ᵀ, the matrix is never assembled: a product gathers
 
-    (A p)ᵢ = (mᵢ + h c) pᵢ + Σₛ (h Dₛ + h² Kₛ)(pᵢ - pⱼ)        (c: global drag)
+    (A p)ᵢ = (mᵢ + h c) pᵢ + Σₛ (h Dₛ + h² Kₛ)(pᵢ - pⱼ)        (c: the world's drag)
 
-over the particle's incidence table, and also accumulates p·Ap for the conjugate-gradient iteration of
-``linalg.py``. Kinematic particles are filtered out (Baraff-Witkin's S): their rows are the identity,
+over the particle's incidence table, and also writes the per-block partial sums of p·Ap for the
+conjugate-gradient iteration of ``linalg.py`` (one system per world). Kinematic particles are filtered out (Baraff-Witkin's S): their rows are the identity,
 their columns are dropped and their right-hand side is zero, so A stays symmetric positive definite
 and their Δv is exactly zero. A driven pin j has a prescribed Δvⱼ = zⱼ instead: with its position at t + h
 already written (the kinematics pass), zⱼ = (xⱼ(t + h) - xⱼ)/h - vⱼ, so that the linearisation moves it
@@ -52,32 +52,33 @@ def implicit_funcs(scalar: type, law: SpringLaw):
 @functools.cache
 def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw, drag: bool, driven: bool):
     """(prepare, matvec, update) kernels of one precision, incidence-table width and spring law;
-    ``tiled``: the matvec's p·Ap reduction uses block tiles (CUDA), else per-thread atomics (CPU);
+    ``tiled``: the matvec's p·Ap reduction uses block tiles (CUDA), else one-thread blocks (CPU);
     ``drag``: the viscous drag input enters A; ``driven``: driven pins have been put at t + h (their Δv
     enters the right-hand side, and the update leaves them where the kinematics pass put them)."""
     vec3 = vec3_type(scalar)
     mat33 = mat33_type(scalar)
     system_block = implicit_funcs(scalar, law)
-    accumulate = reduction_funcs(tiled)
+    block_sum, _ = reduction_funcs(tiled)
     spring_law_values, _, _, spring_stiffness_matrix = spring_funcs(scalar, law)
 
     @wp.func
-    def mass_term(mass: scalar, inputs: wp.array2d[scalar], dt: scalar) -> scalar:
-        """m + h c [kg]: the diagonal of M - h ∂f/∂v from the mass and the viscous drag c."""
+    def mass_term(mass: scalar, inputs: wp.array2d[scalar], world: int, dt: scalar) -> scalar:
+        """m + h c [kg]: the diagonal of M - h ∂f/∂v from the mass and the world's viscous drag c."""
         if wp.static(drag):
-            return mass + dt * inputs[0, INPUT_DRAG]
+            return mass + dt * inputs[world, INPUT_DRAG]
         return mass
 
     @wp.kernel(module="unique", enable_backward=False, module_options=SPRING_KERNEL_OPTIONS)
     def prepare(
         # Model:
+        particle_count: int,
         particle_flags: wp.array[wp.int32],
-        particle_mass: wp.array[scalar],
+        particle_mass: wp.array2d[scalar],
         particle_spring_neighbor: wp.array2d[wp.int32],
         particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
-        spring_stiffness: wp.array[scalar],
-        spring_damping: wp.array[scalar],
+        spring_stiffness: wp.array2d[scalar],
+        spring_damping: wp.array2d[scalar],
         inputs: wp.array2d[scalar],
         # State in:
         particle_q: wp.array[vec3],
@@ -91,79 +92,96 @@ def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw, drag
     ):
         """b = h f + h² ∂f/∂x v (+ the driven pins' columns) and the inverse 3 × 3 diagonal blocks of A
         (block-Jacobi preconditioner). ``particle_q_end``: positions at t + h of the driven pins."""
-        i = wp.tid()
-        if is_kinematic(particle_flags[i]):
-            rhs[i] = vec3(scalar(0.0))
-            diagonal_inverse[i] = wp.identity(n=3, dtype=scalar)
+        world, i = wp.tid()
+        base = world * particle_count
+        p = base + i
+        if is_kinematic(particle_flags[p]):
+            rhs[p] = vec3(scalar(0.0))
+            diagonal_inverse[p] = wp.identity(n=3, dtype=scalar)
             return
-        law_values = spring_law_values(inputs)
-        xi = particle_q[i]
-        vi = particle_qd[i]
-        b = dt * particle_f[i]
-        diagonal = mass_term(particle_mass[i], inputs, dt) * wp.identity(n=3, dtype=scalar)
+        law_values = spring_law_values(inputs, world)
+        stiffness_row = world % spring_stiffness.shape[0]
+        damping_row = world % spring_damping.shape[0]
+        xi = particle_q[p]
+        vi = particle_qd[p]
+        b = dt * particle_f[p]
+        diagonal = mass_term(particle_mass[world % particle_mass.shape[0], i], inputs, world, dt) * wp.identity(
+            n=3, dtype=scalar
+        )
         for k in range(wp.static(slots)):
-            j = particle_spring_neighbor[k, i]
+            j = base + particle_spring_neighbor[k, i]
             s = particle_spring_id[k, i]
             xj = particle_q[j]
             rest = spring_rest_length[s]
-            ke = spring_stiffness[s]
+            ke = spring_stiffness[stiffness_row, s]
             b += (dt * dt) * (spring_stiffness_matrix(xi, xj, rest, ke, True, law_values) * (particle_qd[j] - vi))
-            block = system_block(xi, xj, rest, ke, spring_damping[s], dt, law_values)
+            block = system_block(xi, xj, rest, ke, spring_damping[damping_row, s], dt, law_values)
             diagonal += block
             if wp.static(driven):
                 if is_kinematic(particle_flags[j]):
                     b += block * ((particle_q_end[j] - xj) / dt - particle_qd[j])
-        rhs[i] = b
-        diagonal_inverse[i] = wp.inverse(diagonal)
+        rhs[p] = b
+        diagonal_inverse[p] = wp.inverse(diagonal)
 
     @wp.kernel(module="unique", enable_backward=False, module_options=SPRING_KERNEL_OPTIONS)
     def matvec(
-        count: int,
         # Model:
+        particle_count: int,
         particle_flags: wp.array[wp.int32],
-        particle_mass: wp.array[scalar],
+        particle_mass: wp.array2d[scalar],
         particle_spring_neighbor: wp.array2d[wp.int32],
         particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
-        spring_stiffness: wp.array[scalar],
-        spring_damping: wp.array[scalar],
+        spring_stiffness: wp.array2d[scalar],
+        spring_damping: wp.array2d[scalar],
         inputs: wp.array2d[scalar],
         # State in:
         particle_q: wp.array[vec3],
         dt: scalar,
         # Operand:
+        active: wp.array[wp.int32],
         p: wp.array[vec3],
         # Out:
         a_p: wp.array[vec3],
-        scalars: wp.array[wp.float64],
+        partials: wp.array3d[wp.float64],
     ):
-        """Ap (kinematic rows: the identity), and p·Ap accumulated into the CG scalars."""
-        block, lane = wp.tid()
+        """Ap (kinematic rows: the identity), and the block partial sums of p·Ap, in the worlds still
+        iterating."""
+        world, block, lane = wp.tid()
+        if active[world] == 0:
+            return
         i = block * wp.block_dim() + lane
         p_ap = wp.float64(0.0)
-        if i < count:
-            pi = p[i]
+        if i < particle_count:
+            base = world * particle_count
+            k = base + i
+            pi = p[k]
             api = pi
-            if not is_kinematic(particle_flags[i]):
-                law_values = spring_law_values(inputs)
-                xi = particle_q[i]
-                api = mass_term(particle_mass[i], inputs, dt) * pi
-                for k in range(wp.static(slots)):
-                    j = particle_spring_neighbor[k, i]
-                    s = particle_spring_id[k, i]
+            if not is_kinematic(particle_flags[k]):
+                law_values = spring_law_values(inputs, world)
+                stiffness_row = world % spring_stiffness.shape[0]
+                damping_row = world % spring_damping.shape[0]
+                xi = particle_q[k]
+                api = mass_term(particle_mass[world % particle_mass.shape[0], i], inputs, world, dt) * pi
+                for slot in range(wp.static(slots)):
+                    j = base + particle_spring_neighbor[slot, i]
+                    s = particle_spring_id[slot, i]
                     pj = wp.where(is_kinematic(particle_flags[j]), vec3(scalar(0.0)), p[j])
                     block_ij = system_block(
-                        xi, particle_q[j], spring_rest_length[s], spring_stiffness[s], spring_damping[s], dt,
-                        law_values,
+                        xi, particle_q[j], spring_rest_length[s], spring_stiffness[stiffness_row, s],
+                        spring_damping[damping_row, s], dt, law_values,
                     )
                     api += block_ij * (pi - pj)
-            a_p[i] = api
+            a_p[k] = api
             p_ap = wp.float64(wp.dot(pi, api))
-        accumulate(scalars, CG_PAP, p_ap, lane)
+        p_ap = block_sum(p_ap)
+        if lane == 0:
+            partials[world, block, CG_PAP] = p_ap
 
     @wp.kernel(module="unique", enable_backward=False)
     def update(
         # Model:
+        particle_count: int,
         particle_flags: wp.array[wp.int32],
         # State in:
         particle_q_in: wp.array[vec3],
@@ -178,14 +196,15 @@ def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw, drag
         time_out: wp.array[wp.float64],
     ):
         """v' = v + Δv, x' = x + h v' (driven pins keep what the kinematics pass wrote)."""
-        i = wp.tid()
+        world, i = wp.tid()
         if i == 0:
-            time_out[0] = time_in[0] + (wp.float64(dt) + wp.float64(dt_rest))
+            time_out[world] = time_in[world] + (wp.float64(dt) + wp.float64(dt_rest))
+        p = world * particle_count + i
         if wp.static(driven):
-            if is_kinematic(particle_flags[i]):
+            if is_kinematic(particle_flags[p]):
                 return
-        v = particle_qd_in[i] + delta_qd[i]
-        particle_q_out[i] = particle_q_in[i] + dt * v
-        particle_qd_out[i] = v
+        v = particle_qd_in[p] + delta_qd[p]
+        particle_q_out[p] = particle_q_in[p] + dt * v
+        particle_qd_out[p] = v
 
     return prepare, matvec, update

@@ -6,8 +6,8 @@ one table, ``inputs`` of shape [rows, INPUT_COUNT] in the model's precision, tha
 a host write to it (or a keyframe track evaluated on the device, ``tracks.py``) is seen by the next
 replay. Only whether a term exists at all (gravity on, a clamp on) specialises a kernel.
 
-Columns are the ``INPUT_*`` slots below (a vector input takes consecutive columns). There is one row
-today; the table is two-dimensional so that worlds can each have their own row.
+Columns are the ``INPUT_*`` slots below (a vector input takes consecutive columns); rows are worlds: world
+w reads row w (a model of one world has one row).
 """
 
 import functools
@@ -43,11 +43,11 @@ INPUTS = {
 
 @functools.cache
 def input_funcs(scalar: type):
-    """``input_vec3(inputs, slot)``: three consecutive columns of row 0 as a vector."""
+    """``input_vec3(inputs, world, slot)``: three consecutive columns of a world's row as a vector."""
     vec3 = vec3_type(scalar)
 
     @wp.func
-    def input_vec3(inputs: wp.array2d[scalar], slot: int) -> vec3:
-        return vec3(inputs[0, slot], inputs[0, slot + 1], inputs[0, slot + 2])
+    def input_vec3(inputs: wp.array2d[scalar], world: int, slot: int) -> vec3:
+        return vec3(inputs[world, slot], inputs[world, slot + 1], inputs[world, slot + 2])
 
     return input_vec3

@@ -26,6 +26,7 @@ import warp as wp
 from .contacts import project_contacts_func
 from .forces import SPRING_KERNEL_OPTIONS, ForceFeatures, particle_force_func
 from .kinematics import is_kinematic, particle_funcs
+from .linalg import reduction_funcs
 from .precision import transform_type, vec3_type
 
 wp.set_module_options({"enable_backward": False})
@@ -58,8 +59,9 @@ def symplectic_euler_update_kernel(scalar: type, shape_types: tuple):
     @wp.kernel(module="unique", enable_backward=False)
     def symplectic_euler_from_forces(
         # Model:
+        particle_count: int,
         particle_flags: wp.array[wp.int32],
-        particle_inv_mass: wp.array[scalar],
+        particle_inv_mass: wp.array2d[scalar],
         particle_radius: wp.array[scalar],
         shape_type: wp.array[wp.int32],
         shape_transform: wp.array[transform],
@@ -77,21 +79,21 @@ def symplectic_euler_update_kernel(scalar: type, shape_types: tuple):
         particle_qd_out: wp.array[vec3],
         time_out: wp.array[wp.float64],
     ):
-        i = wp.tid()
+        world, i = wp.tid()
         if i == 0:
-            time_out[0] = time_in[0] + (wp.float64(dt) + wp.float64(dt_rest))
+            time_out[world] = time_in[world] + (wp.float64(dt) + wp.float64(dt_rest))
+        p = world * particle_count + i
         h = dt
-        flags = particle_flags[i]
-        x, v = update(
-            particle_q_in[i], particle_qd_in[i], particle_f_in[i], effective_inv_mass(flags, particle_inv_mass[i]), h
-        )
+        flags = particle_flags[p]
+        inv_mass = particle_inv_mass[world % particle_inv_mass.shape[0], i]
+        x, v = update(particle_q_in[p], particle_qd_in[p], particle_f_in[p], effective_inv_mass(flags, inv_mass), h)
         if wp.static(has_contacts):
             if not is_kinematic(flags):
                 x, v = project_contacts(
                     x, v, particle_radius[i], h, shape_type, shape_transform, shape_size, shape_friction
                 )
-        particle_q_out[i] = x
-        particle_qd_out[i] = v
+        particle_q_out[p] = x
+        particle_qd_out[p] = v
 
     return symplectic_euler_from_forces
 
@@ -109,20 +111,21 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
     @wp.kernel(module="unique", enable_backward=False, module_options=SPRING_KERNEL_OPTIONS)
     def symplectic_euler(
         # Model:
+        particle_count: int,
         particle_flags: wp.array[wp.int32],
-        particle_inv_mass: wp.array[scalar],
+        particle_inv_mass: wp.array2d[scalar],
         particle_radius: wp.array[scalar],
         shape_type: wp.array[wp.int32],
         shape_transform: wp.array[transform],
         shape_size: wp.array[vec3],
         shape_friction: wp.array[scalar],
         # Model, the forces (``particle_force``'s parameters, in its order):
-        particle_mass: wp.array[scalar],
+        particle_mass: wp.array2d[scalar],
         particle_spring_neighbor: wp.array2d[wp.int32],
         particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
-        spring_stiffness: wp.array[scalar],
-        spring_damping: wp.array[scalar],
+        spring_stiffness: wp.array2d[scalar],
+        spring_damping: wp.array2d[scalar],
         inputs: wp.array2d[scalar],
         # Control:
         particle_force_ext: wp.array[vec3],
@@ -137,18 +140,22 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
         particle_qd_out: wp.array[vec3],
         time_out: wp.array[wp.float64],
     ):
-        i = wp.tid()
+        world, i = wp.tid()
         if i == 0:
-            time_out[0] = time_in[0] + (wp.float64(dt) + wp.float64(dt_rest))
+            time_out[world] = time_in[world] + (wp.float64(dt) + wp.float64(dt_rest))
+        base = world * particle_count
+        p = base + i
         h = dt
-        x = particle_q_in[i]
-        v = particle_qd_in[i]
-        if is_kinematic(particle_flags[i]):
-            particle_q_out[i] = x + h * v
-            particle_qd_out[i] = v
+        x = particle_q_in[p]
+        v = particle_qd_in[p]
+        if is_kinematic(particle_flags[p]):
+            particle_q_out[p] = x + h * v
+            particle_qd_out[p] = v
             return
         f = particle_force(
+            world,
             i,
+            base,
             x,
             v,
             particle_mass,
@@ -162,13 +169,13 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
             particle_q_in,
             particle_qd_in,
         )
-        x, v = update(x, v, f, particle_inv_mass[i], h)
+        x, v = update(x, v, f, particle_inv_mass[world % particle_inv_mass.shape[0], i], h)
         if wp.static(has_contacts):
             x, v = project_contacts(
                 x, v, particle_radius[i], h, shape_type, shape_transform, shape_size, shape_friction
             )
-        particle_q_out[i] = x
-        particle_qd_out[i] = v
+        particle_q_out[p] = x
+        particle_qd_out[p] = v
 
     return symplectic_euler
 
@@ -180,9 +187,9 @@ def rk_combine_kernel(scalar: type, with_first: bool, terms: int):
     Stage 0's derivative is (v₀, M⁻¹ f₀): its velocity is the input velocity itself, its force a separate
     array; ``with_first`` says whether it contributes. ``terms`` later stages follow as rows of 2-D
     arrays of stage velocities and forces, weighted by a vector of ``terms`` weights. Every weight is
-    multiplied by ``step[0]``: fixed-step methods pass h·aᵢⱼ with a step of 1, adaptive ones pass aᵢⱼ
-    and their current step, which lives on the device. The result's time is t₀ + ``time_weight``·step[0]
-    (the stage's c h, or h for the step).
+    multiplied by the world's step, ``step[world % len(step)]``: fixed-step methods pass h·aᵢⱼ with one
+    step of 1 for all worlds, adaptive ones pass aᵢⱼ and each world's current step, which lives on the
+    device. The result's time is t₀ + ``time_weight``·step (the stage's c h, or h for the step).
     """
     vec3 = vec3_type(scalar)
     weights_type = wp.types.vector(length=max(terms, 1), dtype=scalar)
@@ -191,8 +198,9 @@ def rk_combine_kernel(scalar: type, with_first: bool, terms: int):
     @wp.kernel(module="unique", enable_backward=False)
     def rk_combine(
         # Model:
+        particle_count: int,
         particle_flags: wp.array[wp.int32],
-        particle_inv_mass: wp.array[scalar],
+        particle_inv_mass: wp.array2d[scalar],
         # State in:
         particle_q_in: wp.array[vec3],
         particle_qd_in: wp.array[vec3],
@@ -209,23 +217,25 @@ def rk_combine_kernel(scalar: type, with_first: bool, terms: int):
         particle_qd_out: wp.array[vec3],
         time_out: wp.array[wp.float64],
     ):
-        i = wp.tid()
+        world, i = wp.tid()
+        h64 = step[world % step.shape[0]]
         if i == 0:
-            time_out[0] = time_in[0] + time_weight * step[0]
-        h = scalar(step[0])
-        inv_mass = effective_inv_mass(particle_flags[i], particle_inv_mass[i])
-        v0 = particle_qd_in[i]
-        x = particle_q_in[i]
+            time_out[world] = time_in[world] + time_weight * h64
+        p = world * particle_count + i
+        h = scalar(h64)
+        inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[world % particle_inv_mass.shape[0], i])
+        v0 = particle_qd_in[p]
+        x = particle_q_in[p]
         v = v0
         if wp.static(with_first):
             x += (h * first_weight) * v0
-            v += (h * first_weight * inv_mass) * first_f[i]
+            v += (h * first_weight * inv_mass) * first_f[p]
         for j in range(wp.static(terms)):
             w = h * weights[j]
-            x += w * stage_qd[j, i]
-            v += (w * inv_mass) * stage_f[j, i]
-        particle_q_out[i] = x
-        particle_qd_out[i] = v
+            x += w * stage_qd[j, p]
+            v += (w * inv_mass) * stage_f[j, p]
+        particle_q_out[p] = x
+        particle_qd_out[p] = v
 
     return rk_combine
 
@@ -234,23 +244,26 @@ def rk_combine_kernel(scalar: type, with_first: bool, terms: int):
 # tolerance and the attempt budget are live settings: the kernels read them from the control array.
 STEP_INTERVAL, STEP_TIME, STEP_SIZE, STEP_PROPOSED, STEP_GROWTH, STEP_ERROR, STEP_TOLERANCE, STEP_MAX_ATTEMPTS = range(8)
 STEP_CONTROL_SLOTS = 8
-STEP_ACCEPTED, STEP_REJECTED, STEP_ATTEMPTS_NOW, STEP_LAST_ACCEPTED, STEP_FAILED = range(5)
+STEP_ACCEPTED, STEP_REJECTED, STEP_ATTEMPTS_NOW, STEP_LAST_ACCEPTED, STEP_FAILED, STEP_RUNNING = range(6)
+STEP_COUNTERS = 6
 STEP_SAFETY, STEP_MAX_GROWTH, STEP_MIN_GROWTH = 0.9, 5.0, 0.2
 
 
 @functools.cache
-def rk_error_kernel(scalar: type, stages: int):
-    """Scaled local error of an embedded Runge-Kutta pair, max-reduced over particles.
+def rk_error_kernel(scalar: type, stages: int, tiled: bool):
+    """Scaled local error of an embedded Runge-Kutta pair, max-reduced per world.
 
-    The error estimate is e = h Σⱼ eⱼ kⱼ (eⱼ = bⱼ - b*ⱼ, h = ``step[0]``), for positions and velocities
-    alike; each component is divided by tol + tol·|y_new| (tol = ``control[STEP_TOLERANCE]``, absolute and
-    relative) and the largest ratio is atomically max-ed into ``control[STEP_ERROR]`` (cleared by
-    ``decide``). A max is exact in any order: the result does not depend on thread scheduling. Kinematic
-    particles do not count: their motion is prescribed, exactly, at every stage.
+    The error estimate is e = h Σⱼ eⱼ kⱼ (eⱼ = bⱼ - b*ⱼ, h = the world's ``control[w, STEP_SIZE]``), for
+    positions and velocities alike; each component is divided by tol + tol·|y_new| (tol =
+    ``control[w, STEP_TOLERANCE]``, absolute and relative); each block writes its largest ratio to
+    ``partials[w, block]`` and ``decide`` takes the world's largest. Launch over
+    [world, block, lane] (``linalg.reduce_launch_dim``). Kinematic particles do not count: their motion is
+    prescribed, exactly, at every stage. Worlds that are not running skip the work.
     """
     vec3 = vec3_type(scalar)
     weights_type = wp.types.vector(length=stages, dtype=scalar)
     effective_inv_mass = particle_funcs(scalar)
+    _, block_max = reduction_funcs(tiled)
 
     @wp.func
     def scaled(e: vec3, y: vec3, atol: scalar, rtol: scalar) -> scalar:
@@ -262,8 +275,9 @@ def rk_error_kernel(scalar: type, stages: int):
     @wp.kernel(module="unique", enable_backward=False)
     def rk_error(
         # Model:
+        particle_count: int,
         particle_flags: wp.array[wp.int32],
-        particle_inv_mass: wp.array[scalar],
+        particle_inv_mass: wp.array2d[scalar],
         # State in:
         particle_qd_in: wp.array[vec3],
         stage_qd: wp.array2d[vec3],
@@ -271,25 +285,37 @@ def rk_error_kernel(scalar: type, stages: int):
         error_weights: weights_type,
         particle_q_new: wp.array[vec3],
         particle_qd_new: wp.array[vec3],
-        # In/out:
-        control: wp.array[wp.float64],
+        control: wp.array2d[wp.float64],
+        counters: wp.array2d[wp.int32],
+        # Out:
+        partials: wp.array2d[wp.float64],
     ):
-        i = wp.tid()
-        h = scalar(control[STEP_SIZE])
-        tolerance = scalar(control[STEP_TOLERANCE])
-        inv_mass = effective_inv_mass(particle_flags[i], particle_inv_mass[i])
-        ex = (h * error_weights[0]) * particle_qd_in[i]
-        ev = (h * error_weights[0] * inv_mass) * stage_f[0, i]
-        for j in range(1, wp.static(stages)):
-            w = h * error_weights[j]
-            ex += w * stage_qd[j, i]
-            ev += (w * inv_mass) * stage_f[j, i]
-        worst = wp.max(
-            scaled(ex, particle_q_new[i], tolerance, tolerance), scaled(ev, particle_qd_new[i], tolerance, tolerance)
-        )
-        if is_kinematic(particle_flags[i]):
-            worst = scalar(0.0)  # a prescribed motion has no integration error to control
-        wp.atomic_max(control, STEP_ERROR, wp.float64(worst))
+        world, block, lane = wp.tid()
+        if counters[world, STEP_RUNNING] == 0:
+            return
+        i = block * wp.block_dim() + lane
+        worst = wp.float64(0.0)
+        if i < particle_count:
+            p = world * particle_count + i
+            h = scalar(control[world, STEP_SIZE])
+            tolerance = scalar(control[world, STEP_TOLERANCE])
+            inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[world % particle_inv_mass.shape[0], i])
+            ex = (h * error_weights[0]) * particle_qd_in[p]
+            ev = (h * error_weights[0] * inv_mass) * stage_f[0, p]
+            for j in range(1, wp.static(stages)):
+                w = h * error_weights[j]
+                ex += w * stage_qd[j, p]
+                ev += (w * inv_mass) * stage_f[j, p]
+            worst = wp.float64(wp.max(
+                scaled(ex, particle_q_new[p], tolerance, tolerance), scaled(ev, particle_qd_new[p], tolerance, tolerance)
+            ))
+            if is_kinematic(particle_flags[p]):
+                worst = wp.float64(0.0)  # a prescribed motion has no integration error to control
+            if not wp.isfinite(worst):
+                worst = wp.float64(wp.inf)  # a NaN must reject the step, and a max would drop it
+        worst = block_max(worst)
+        if lane == 0:
+            partials[world, block] = worst
 
     return rk_error
 
@@ -303,8 +329,9 @@ def verlet_kernels(scalar: type):
     @wp.kernel(module="unique", enable_backward=False)
     def verlet_drift(
         # Model:
+        particle_count: int,
         particle_flags: wp.array[wp.int32],
-        particle_inv_mass: wp.array[scalar],
+        particle_inv_mass: wp.array2d[scalar],
         # State in:
         particle_q_in: wp.array[vec3],
         particle_qd_in: wp.array[vec3],
@@ -317,20 +344,22 @@ def verlet_kernels(scalar: type):
         particle_qd_half_out: wp.array[vec3],
         time_out: wp.array[wp.float64],
     ):
-        i = wp.tid()
+        world, i = wp.tid()
         if i == 0:
-            time_out[0] = time_in[0] + (wp.float64(dt) + wp.float64(dt_rest))
+            time_out[world] = time_in[world] + (wp.float64(dt) + wp.float64(dt_rest))
+        p = world * particle_count + i
         h = dt
-        inv_mass = effective_inv_mass(particle_flags[i], particle_inv_mass[i])
-        v_half = particle_qd_in[i] + (scalar(0.5) * h * inv_mass) * particle_f_in[i]
-        particle_q_out[i] = particle_q_in[i] + h * v_half
-        particle_qd_half_out[i] = v_half
+        inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[world % particle_inv_mass.shape[0], i])
+        v_half = particle_qd_in[p] + (scalar(0.5) * h * inv_mass) * particle_f_in[p]
+        particle_q_out[p] = particle_q_in[p] + h * v_half
+        particle_qd_half_out[p] = v_half
 
     @wp.kernel(module="unique", enable_backward=False)
     def verlet_kick(
         # Model:
+        particle_count: int,
         particle_flags: wp.array[wp.int32],
-        particle_inv_mass: wp.array[scalar],
+        particle_inv_mass: wp.array2d[scalar],
         # State in:
         particle_qd_half: wp.array[vec3],
         particle_f: wp.array[vec3],
@@ -338,78 +367,115 @@ def verlet_kernels(scalar: type):
         # Out:
         particle_qd_out: wp.array[vec3],
     ):
-        i = wp.tid()
-        inv_mass = effective_inv_mass(particle_flags[i], particle_inv_mass[i])
-        particle_qd_out[i] = particle_qd_half[i] + (scalar(0.5) * dt * inv_mass) * particle_f[i]
+        world, i = wp.tid()
+        p = world * particle_count + i
+        inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[world % particle_inv_mass.shape[0], i])
+        particle_qd_out[p] = particle_qd_half[p] + (scalar(0.5) * dt * inv_mass) * particle_f[p]
 
     return verlet_drift, verlet_kick
 
 
 @functools.cache
 def step_control_kernels(scalar: type):
-    """Device-side step-size control of an embedded Runge-Kutta pair (one thread each).
+    """Device-side step-size control of an embedded Runge-Kutta pair, one controller per world (one thread
+    per world, but ``commit``: one per particle).
 
-    The control array holds, by the ``STEP_*`` slots: the target interval, the time reached, the step in
-    use, the proposed step, the growth cap, the scaled error of the last attempt, the error tolerance and
-    the most attempts per interval; the counters hold accepted, rejected and attempted steps, and whether
-    the last attempt was accepted.
+    Row w of the control array holds, by the ``STEP_*`` slots: the target interval, the time reached, the
+    step in use, the proposed step, the growth cap, the scaled error of the last attempt, the error
+    tolerance and the most attempts per interval; row w of the counters holds accepted, rejected and
+    attempted steps, whether the last attempt was accepted, whether the interval failed, and whether the
+    world is still running; ``step`` holds each world's step in use (what the stage kernels read).
+    ``keep_going`` counts the running worlds: the attempt loop ends at zero.
     """
     vec3 = vec3_type(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def begin(interval: wp.float64, control: wp.array[wp.float64], counters: wp.array[wp.int32],
-              keep_going: wp.array[wp.int32]):
-        """Start an interval: t = 0, h = min(proposed, interval)."""
-        control[STEP_INTERVAL] = interval
-        control[STEP_TIME] = wp.float64(0.0)
-        proposed = control[STEP_PROPOSED]
+    def begin(
+        interval: wp.float64,
+        world_enabled: wp.array[wp.int32],
+        control: wp.array2d[wp.float64],
+        counters: wp.array2d[wp.int32],
+        step: wp.array[wp.float64],
+        keep_going: wp.array[wp.int32],
+    ):
+        """Start an interval in every enabled world (``keep_going`` zeroed beforehand): t = 0,
+        h = min(proposed, interval)."""
+        world = wp.tid()
+        control[world, STEP_INTERVAL] = interval
+        control[world, STEP_TIME] = wp.float64(0.0)
+        proposed = control[world, STEP_PROPOSED]
         proposed = wp.where(proposed > wp.float64(0.0), proposed, interval)
-        control[STEP_PROPOSED] = proposed
-        control[STEP_SIZE] = wp.min(proposed, interval)
-        control[STEP_GROWTH] = wp.float64(STEP_MAX_GROWTH)
-        control[STEP_ERROR] = wp.float64(0.0)
-        counters[STEP_ATTEMPTS_NOW] = 0
-        keep_going[0] = 1
+        control[world, STEP_PROPOSED] = proposed
+        control[world, STEP_GROWTH] = wp.float64(STEP_MAX_GROWTH)
+        control[world, STEP_ERROR] = wp.float64(0.0)
+        counters[world, STEP_ATTEMPTS_NOW] = 0
+        counters[world, STEP_LAST_ACCEPTED] = 0
+        running = world_enabled[world]
+        counters[world, STEP_RUNNING] = running
+        # A world that does not run takes steps of 0: its stages reproduce its state.
+        control[world, STEP_SIZE] = wp.where(running != 0, wp.min(proposed, interval), wp.float64(0.0))
+        step[world] = control[world, STEP_SIZE]
+        if running != 0:
+            wp.atomic_add(keep_going, 0, 1)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def decide(control: wp.array[wp.float64], counters: wp.array[wp.int32], keep_going: wp.array[wp.int32]):
-        """Accept or reject the attempt, choose the next step, and whether to continue."""
-        error = control[STEP_ERROR]
-        h = control[STEP_SIZE]
-        proposed = control[STEP_PROPOSED]
+    def decide(
+        partials: wp.array2d[wp.float64],
+        control: wp.array2d[wp.float64],
+        counters: wp.array2d[wp.int32],
+        step: wp.array[wp.float64],
+        keep_going: wp.array[wp.int32],
+    ):
+        """Accept or reject the attempt (its error: the largest of the world's block partials), choose the
+        next step, and whether the world goes on."""
+        world = wp.tid()
+        if counters[world, STEP_RUNNING] == 0:
+            counters[world, STEP_LAST_ACCEPTED] = 0
+            return
+        error = wp.float64(0.0)
+        for b in range(partials.shape[1]):
+            error = wp.max(error, partials[world, b])
+        h = control[world, STEP_SIZE]
+        proposed = control[world, STEP_PROPOSED]
         accept = error <= wp.float64(1.0)
         factor = wp.float64(STEP_MIN_GROWTH)
         if wp.isfinite(error) and error > wp.float64(0.0):
             factor = wp.max(factor, wp.float64(STEP_SAFETY) * wp.pow(error, wp.float64(-0.2)))
         elif error == wp.float64(0.0):
-            factor = control[STEP_GROWTH]
-        counters[STEP_ATTEMPTS_NOW] = counters[STEP_ATTEMPTS_NOW] + 1
+            factor = control[world, STEP_GROWTH]
+        counters[world, STEP_ATTEMPTS_NOW] = counters[world, STEP_ATTEMPTS_NOW] + 1
+        control[world, STEP_ERROR] = error
         if accept:
-            control[STEP_TIME] = control[STEP_TIME] + h
-            counters[STEP_ACCEPTED] = counters[STEP_ACCEPTED] + 1
-            next_h = h * wp.min(control[STEP_GROWTH], factor)
+            control[world, STEP_TIME] = control[world, STEP_TIME] + h
+            counters[world, STEP_ACCEPTED] = counters[world, STEP_ACCEPTED] + 1
+            next_h = h * wp.min(control[world, STEP_GROWTH], factor)
             # A step cut short to land on the interval's end says nothing against the step in use before.
             proposed = wp.where(h < proposed, wp.max(proposed, next_h), next_h)
-            control[STEP_GROWTH] = wp.float64(STEP_MAX_GROWTH)
-            counters[STEP_LAST_ACCEPTED] = 1
+            control[world, STEP_GROWTH] = wp.float64(STEP_MAX_GROWTH)
+            counters[world, STEP_LAST_ACCEPTED] = 1
         else:
-            counters[STEP_REJECTED] = counters[STEP_REJECTED] + 1
+            counters[world, STEP_REJECTED] = counters[world, STEP_REJECTED] + 1
             proposed = h * wp.min(wp.float64(1.0), factor)
-            control[STEP_GROWTH] = wp.float64(1.0)
-            counters[STEP_LAST_ACCEPTED] = 0
-        control[STEP_PROPOSED] = proposed
-        remaining = control[STEP_INTERVAL] - control[STEP_TIME]
-        control[STEP_SIZE] = wp.min(proposed, remaining)
-        control[STEP_ERROR] = wp.float64(0.0)
-        unfinished = remaining > wp.float64(1.0e-12) * control[STEP_INTERVAL]
-        exhausted = wp.float64(counters[STEP_ATTEMPTS_NOW]) >= control[STEP_MAX_ATTEMPTS]
+            control[world, STEP_GROWTH] = wp.float64(1.0)
+            counters[world, STEP_LAST_ACCEPTED] = 0
+        control[world, STEP_PROPOSED] = proposed
+        remaining = control[world, STEP_INTERVAL] - control[world, STEP_TIME]
+        unfinished = remaining > wp.float64(1.0e-12) * control[world, STEP_INTERVAL]
+        exhausted = wp.float64(counters[world, STEP_ATTEMPTS_NOW]) >= control[world, STEP_MAX_ATTEMPTS]
         if unfinished and exhausted:
-            counters[STEP_FAILED] = 1
-        keep_going[0] = wp.where(unfinished and not exhausted, 1, 0)
+            counters[world, STEP_FAILED] = 1
+        if unfinished and not exhausted:
+            control[world, STEP_SIZE] = wp.min(proposed, remaining)
+        else:
+            control[world, STEP_SIZE] = wp.float64(0.0)
+            counters[world, STEP_RUNNING] = 0
+            wp.atomic_sub(keep_going, 0, 1)
+        step[world] = control[world, STEP_SIZE]
 
     @wp.kernel(module="unique", enable_backward=False)
     def commit(
-        counters: wp.array[wp.int32],
+        particle_count: int,
+        counters: wp.array2d[wp.int32],
         stage_q: wp.array[vec3],
         stage_qd: wp.array[vec3],
         stage_time: wp.array[wp.float64],
@@ -422,12 +488,13 @@ def step_control_kernels(scalar: type):
     ):
         """On acceptance: y ← the last stage's state (its time t + h included), and its force becomes
         stage 0's (FSAL)."""
-        i = wp.tid()
-        if counters[STEP_LAST_ACCEPTED] == 1:
+        world, i = wp.tid()
+        if counters[world, STEP_LAST_ACCEPTED] == 1:
             if i == 0:
-                time[0] = stage_time[0]
-            particle_q[i] = stage_q[i]
-            particle_qd[i] = stage_qd[i]
-            stage_f_first[i] = stage_f_last[i]
+                time[world] = stage_time[world]
+            p = world * particle_count + i
+            particle_q[p] = stage_q[p]
+            particle_qd[p] = stage_qd[p]
+            stage_f_first[p] = stage_f_last[p]
 
     return begin, decide, commit

@@ -65,11 +65,12 @@ def particle_funcs(scalar: type):
 class PinGroups:
     """The kinematic particles of a model and the driven groups they belong to (float64 geometry)."""
 
-    particle: wp.array[wp.int32]  # shape [kinematic_count], particle index of each kinematic particle
+    particle: wp.array[wp.int32]  # shape [kinematic_count], index (within its world) of each kinematic particle
     group: wp.array[wp.int32]  # shape [kinematic_count], its pin group, or NO_GROUP
     rest: wp.array[wp.vec3d]  # [m], shape [kinematic_count], its position at t = 0 (x₀)
-    translation_track: wp.array[wp.int32]  # shape [group_count], track of T(t) [m], or -1
-    rotation_track: wp.array[wp.int32]  # shape [group_count], track of φ(t) [rad], or -1
+    translation_track: wp.array2d[wp.int32]  # shape [rows, group_count], track of T(t) [m], or -1; row
+    #   world % rows (one row for all worlds, or one per world)
+    rotation_track: wp.array2d[wp.int32]  # shape [rows, group_count], track of φ(t) [rad], or -1; same rows
     pivot: wp.array[wp.vec3d]  # [m], shape [group_count], the pivot p of the group's rotation
 
 
@@ -77,8 +78,8 @@ class PinGroups:
 class PinTargets:
     """Targets of the pin groups driven through ``Control`` (groups without tracks)."""
 
-    position: wp.array[wp.vec3d]  # [m], shape [kinematic_count], target of each kinematic particle
-    time: wp.array[wp.float64]  # [s], shape [group_count], when the group reaches its targets
+    position: wp.array2d[wp.vec3d]  # [m], shape [world_count, kinematic_count], target of each kinematic particle
+    time: wp.array2d[wp.float64]  # [s], shape [world_count, group_count], when the group reaches its targets
 
 
 @wp.func
@@ -113,14 +114,16 @@ def angular_velocity(phi: wp.vec3d, phi_rate: wp.vec3d) -> wp.vec3d:
 
 @functools.cache
 def kinematics_kernel(scalar: type, targets: bool):
-    """Kernel writing the position and velocity of every kinematic particle at time t + s, from a state at
-    time t (``time_in[0]``), with s = ``fraction`` · ``step[0]``. ``targets``: whether groups driven through
+    """Kernel writing the position and velocity of every kinematic particle of every world at time t + s,
+    from a state at time t (``time_in[world]``), with s = ``fraction`` · the world's step (``step[world %
+    len(step)]``). Launch over [world_count, kinematic_count]. ``targets``: whether groups driven through
     ``Control`` read its targets (otherwise they rest where they are)."""
     vec3 = vec3_type(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
     def kinematics(
         # Model:
+        particle_count: int,
         particle_flags: wp.array[wp.int32],
         groups: PinGroups,
         tracks: Tracks,
@@ -136,13 +139,13 @@ def kinematics_kernel(scalar: type, targets: bool):
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
     ):
-        k = wp.tid()
-        i = groups.particle[k]
+        world, k = wp.tid()
+        i = world * particle_count + groups.particle[k]
         if not is_kinematic(particle_flags[i]):
             return  # released since finalize: the integrators move it now
         g = groups.group[k]
-        t_in = time_in[0]
-        s = fraction * step[0]
+        t_in = time_in[world]
+        s = fraction * step[world % step.shape[0]]
         q = particle_q_in[i]
         qd = particle_qd_in[i]
         if g == NO_GROUP:
@@ -152,8 +155,8 @@ def kinematics_kernel(scalar: type, targets: bool):
         else:
             x = wp.vec3d(q)
             v = wp.vec3d(wp.float64(0.0))
-            translation = groups.translation_track[g]
-            rotation = groups.rotation_track[g]
+            translation = groups.translation_track[world % groups.translation_track.shape[0], g]
+            rotation = groups.rotation_track[world % groups.rotation_track.shape[0], g]
             if translation >= 0 or rotation >= 0:
                 pivot = groups.pivot[g]
                 r = groups.rest[k] - pivot
@@ -169,9 +172,9 @@ def kinematics_kernel(scalar: type, targets: bool):
             elif wp.static(targets):
                 # Driven through Control: a straight line to the target, reached at the target's time; at
                 # rest where it is before the first target and after the last.
-                remaining = pin_targets.time[g] - t_in
+                remaining = pin_targets.time[world, g] - t_in
                 if remaining > wp.float64(TARGET_TIME_TOLERANCE):
-                    target = pin_targets.position[k]
+                    target = pin_targets.position[world, k]
                     v = (target - x) / remaining
                     x = wp.where(s >= remaining - wp.float64(TARGET_TIME_TOLERANCE), target, x + s * v)
             particle_q_out[i] = vec3(x)

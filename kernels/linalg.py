@@ -1,14 +1,18 @@
-"""Device-side reductions and the preconditioned conjugate-gradient iteration.
+"""Device-side reductions per world, and the preconditioned conjugate-gradient iteration.
 
-Reductions add one float64 value per thread into a slot of a small accumulator array. On CUDA, a
-block first sums its values with ``wp.tile_sum`` and one thread adds the block's sum (one atomic per
-block); on the CPU, where Warp runs threads in sequence, each thread adds its value directly. Kernels
-that reduce are launched on a 2-D grid [blocks, block_dim] (``reduce_launch_dim``): thread (b, l)
-handles item b·block_dim + l, and every thread of a block must reach the reduction.
+Every reduction is per world and deterministic, with no float atomics: a kernel that reduces launches
+on a 3-D grid [world, block, lane] (``reduce_launch_dim``), thread (w, b, l) handling item b·lanes + l
+of world w; on CUDA the lanes of a block sum their values with ``wp.tile_sum`` (a fixed-order tree) and
+lane 0 writes the block's total to ``partials[w, b, slot]``; on the CPU a block is one thread. A second
+pass (``sum_partials_kernel``) adds each world's partials in a fixed order into ``scalars[w, slot]``.
+The same world gives the same bits however many worlds share the launch, and every run gives the same
+bits. Every thread of a block must reach the reduction (a block lies within one world, so a whole block
+may skip it together).
 
-The conjugate-gradient kernels keep every scalar of the iteration on the device (``cg_scalars``
-slots below) and update a loop condition, so an entire solve runs inside ``wp.capture_while``: no
-host synchronisation, capturable in CUDA and CPU graphs, and it stops as soon as it converges.
+The conjugate-gradient kernels keep every scalar of the iteration on the device, one row per world
+(``CG_*`` slots below), and count the worlds still iterating, so an entire solve runs inside
+``wp.capture_while``: no host synchronisation, capturable in CUDA and CPU graphs; each world stops at its
+own tolerance (its solution is left untouched while others go on) and the loop ends when all have.
 The operator product and the block-Jacobi preconditioner are supplied by the caller's kernels.
 """
 
@@ -20,51 +24,116 @@ from .precision import mat33_type, vec3_type
 
 wp.set_module_options({"enable_backward": False})
 
-# Slots of the float64 scalar array of a CG solve.
+# Slots of the float64 scalars of a CG solve, one row per world (and of its per-block partial sums).
 CG_RZ = 0  # r·z of the current iterate
-CG_RZ_NEW = 1  # r·z being accumulated
-CG_PAP = 2  # p·Ap being accumulated
-CG_RR = 3  # r·r being accumulated
-CG_BB = 4  # b·b
+CG_RZ_NEW = 1  # r·z of the new iterate
+CG_RR = 2  # r·r of the new iterate
+CG_BB = 3  # b·b (CG_RZ_NEW, CG_RR and CG_BB are consecutive: one pass sums them)
+CG_PAP = 4  # p·Ap
 CG_RR_LAST = 5  # r·r of the last completed iterate (reported)
-CG_SCALARS = 6
+CG_BETA = 6  # β = (r·z)_new / (r·z)_old of the next direction
+CG_SCALARS = 7
 # Slots of the float64 settings array of a CG solve: live settings, read by ``condition``.
 CG_TOLERANCE = 0  # stop when ‖r‖ ≤ tolerance · ‖b‖
 CG_MAX_ITERATIONS = 1  # most iterations per solve
 CG_SETTINGS = 2
 
 
-def reduce_launch_dim(count: int, block_dim: int) -> tuple[int, int]:
-    """The 2-D launch grid of a reducing kernel over ``count`` items."""
-    return ((count + block_dim - 1) // block_dim, block_dim)
+def reduce_lanes(count: int, block_dim: int, tiled: bool) -> int:
+    """Lanes (threads) per block of a reducing kernel over ``count`` items per world: one on the CPU; on
+    CUDA ``block_dim``, or the smallest power of two ≥ 32 that covers ``count`` when that is fewer."""
+    if not tiled:
+        return 1
+    return int(min(block_dim, max(32, 1 << max(count - 1, 1).bit_length())))
+
+
+def reduce_launch_dim(worlds: int, count: int, lanes: int) -> tuple[int, int, int]:
+    """The 3-D launch grid [world, block, lane] of a reducing kernel over ``count`` items per world."""
+    return (worlds, (count + lanes - 1) // lanes, lanes)
 
 
 @functools.cache
 def reduction_funcs(tiled: bool):
-    """``accumulate(out, slot, value, lane)``: add every thread's value into ``out[slot]``."""
+    """``block_sum(value)``: the sum of a value over the lanes of a block (every lane gets it; the value
+    itself on the CPU, where a block is one thread). Deterministic: a fixed-order tree."""
 
     @wp.func
-    def accumulate(out: wp.array[wp.float64], slot: int, value: wp.float64, lane: int):
+    def block_sum(value: wp.float64) -> wp.float64:
         if wp.static(tiled):
             total = wp.tile_sum(wp.tile(value))
-            if lane == 0:
-                wp.atomic_add(out, slot, total[0])
-        else:
-            wp.atomic_add(out, slot, value)
+            return total[0]
+        return value
 
-    return accumulate
+    @wp.func
+    def block_max(value: wp.float64) -> wp.float64:
+        if wp.static(tiled):
+            total = wp.tile_max(wp.tile(value))
+            return total[0]
+        return value
+
+    return block_sum, block_max
+
+
+@functools.cache
+def sum_partials_kernel(tiled: bool):
+    """Kernel adding the per-block partials of slots [first, first + count) of every world, in a fixed
+    order, into ``scalars[world, slot]``. Launch over [world_count, lanes] with ``block_dim`` = lanes."""
+    block_sum, _ = reduction_funcs(tiled)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def sum_partials(
+        first: int,
+        count: int,
+        partials: wp.array3d[wp.float64],
+        # Out:
+        scalars: wp.array2d[wp.float64],
+    ):
+        world, lane = wp.tid()
+        lanes = wp.block_dim()
+        blocks = partials.shape[1]
+        for c in range(count):
+            total = wp.float64(0.0)
+            b = lane
+            while b < blocks:
+                total += partials[world, b, first + c]
+                b += lanes
+            total = block_sum(total)
+            if lane == 0:
+                scalars[world, first + c] = total
+
+    return sum_partials
 
 
 @functools.cache
 def cg_kernels(scalar: type, tiled: bool):
-    """(start, update_solution, update_direction, condition) kernels of block-Jacobi PCG on vec3 unknowns."""
+    """(begin, start, update_solution, update_direction, condition) kernels of block-Jacobi PCG on vec3
+    unknowns, one system per world (see the module docstring for the grids)."""
     vec3 = vec3_type(scalar)
     mat33 = mat33_type(scalar)
-    accumulate = reduction_funcs(tiled)
+    block_sum, _ = reduction_funcs(tiled)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def begin(
+        world_enabled: wp.array[wp.int32],
+        # Out:
+        scalars: wp.array2d[wp.float64],
+        iteration: wp.array[wp.int32],
+        active: wp.array[wp.int32],
+        keep_going: wp.array[wp.int32],
+    ):
+        """Start a solve in every enabled world (``keep_going`` zeroed beforehand counts them)."""
+        world = wp.tid()
+        for slot in range(CG_SCALARS):
+            scalars[world, slot] = wp.float64(0.0)
+        iteration[world] = -1
+        active[world] = world_enabled[world]
+        if world_enabled[world] != 0:
+            wp.atomic_add(keep_going, 0, 1)
 
     @wp.kernel(module="unique", enable_backward=False)
     def start(
         count: int,
+        active: wp.array[wp.int32],
         rhs: wp.array[vec3],
         a_x: wp.array[vec3],
         diagonal_inverse: wp.array[mat33],
@@ -72,84 +141,109 @@ def cg_kernels(scalar: type, tiled: bool):
         r: wp.array[vec3],
         z: wp.array[vec3],
         p: wp.array[vec3],
-        scalars: wp.array[wp.float64],
+        partials: wp.array3d[wp.float64],
     ):
-        """r = b - A x, z = P r, p = z; accumulate r·z, r·r and b·b."""
-        block, lane = wp.tid()
+        """r = b - A x, z = P r, p = z; partial sums of r·z, r·r and b·b."""
+        world, block, lane = wp.tid()
+        if active[world] == 0:
+            return
         i = block * wp.block_dim() + lane
         rz = wp.float64(0.0)
         rr = wp.float64(0.0)
         bb = wp.float64(0.0)
         if i < count:
-            b = rhs[i]
-            ri = b - a_x[i]
-            zi = diagonal_inverse[i] * ri
-            r[i] = ri
-            z[i] = zi
-            p[i] = zi
+            k = world * count + i
+            b = rhs[k]
+            ri = b - a_x[k]
+            zi = diagonal_inverse[k] * ri
+            r[k] = ri
+            z[k] = zi
+            p[k] = zi
             rz = wp.float64(wp.dot(ri, zi))
             rr = wp.float64(wp.dot(ri, ri))
             bb = wp.float64(wp.dot(b, b))
-        accumulate(scalars, CG_RZ_NEW, rz, lane)
-        accumulate(scalars, CG_RR, rr, lane)
-        accumulate(scalars, CG_BB, bb, lane)
+        rz = block_sum(rz)
+        rr = block_sum(rr)
+        bb = block_sum(bb)
+        if lane == 0:
+            partials[world, block, CG_RZ_NEW] = rz
+            partials[world, block, CG_RR] = rr
+            partials[world, block, CG_BB] = bb
 
     @wp.kernel(module="unique", enable_backward=False)
     def update_solution(
         count: int,
+        active: wp.array[wp.int32],
         p: wp.array[vec3],
         a_p: wp.array[vec3],
         diagonal_inverse: wp.array[mat33],
+        scalars: wp.array2d[wp.float64],
         # In/out:
         x: wp.array[vec3],
         r: wp.array[vec3],
         z: wp.array[vec3],
-        scalars: wp.array[wp.float64],
+        partials: wp.array3d[wp.float64],
     ):
-        """α = r·z / p·Ap; x += α p; r -= α Ap; z = P r; accumulate the new r·z and r·r."""
-        block, lane = wp.tid()
+        """α = r·z / p·Ap; x += α p; r -= α Ap; z = P r; partial sums of the new r·z and r·r."""
+        world, block, lane = wp.tid()
+        if active[world] == 0:
+            return
         i = block * wp.block_dim() + lane
         rz = wp.float64(0.0)
         rr = wp.float64(0.0)
         if i < count:
-            p_ap = scalars[CG_PAP]
-            alpha = scalar(wp.where(p_ap > wp.float64(0.0), scalars[CG_RZ] / p_ap, wp.float64(0.0)))
-            x[i] = x[i] + alpha * p[i]
-            ri = r[i] - alpha * a_p[i]
-            zi = diagonal_inverse[i] * ri
-            r[i] = ri
-            z[i] = zi
+            k = world * count + i
+            p_ap = scalars[world, CG_PAP]
+            alpha = scalar(wp.where(p_ap > wp.float64(0.0), scalars[world, CG_RZ] / p_ap, wp.float64(0.0)))
+            x[k] = x[k] + alpha * p[k]
+            ri = r[k] - alpha * a_p[k]
+            zi = diagonal_inverse[k] * ri
+            r[k] = ri
+            z[k] = zi
             rz = wp.float64(wp.dot(ri, zi))
             rr = wp.float64(wp.dot(ri, ri))
-        accumulate(scalars, CG_RZ_NEW, rz, lane)
-        accumulate(scalars, CG_RR, rr, lane)
+        rz = block_sum(rz)
+        rr = block_sum(rr)
+        if lane == 0:
+            partials[world, block, CG_RZ_NEW] = rz
+            partials[world, block, CG_RR] = rr
 
     @wp.kernel(module="unique", enable_backward=False)
-    def update_direction(z: wp.array[vec3], scalars: wp.array[wp.float64], p: wp.array[vec3]):
-        """β = (r·z)_new / (r·z)_old; p = z + β p."""
-        i = wp.tid()
-        rz = scalars[CG_RZ]
-        beta = scalar(wp.where(rz > wp.float64(0.0), scalars[CG_RZ_NEW] / rz, wp.float64(0.0)))
-        p[i] = z[i] + beta * p[i]
+    def update_direction(
+        count: int, active: wp.array[wp.int32], z: wp.array[vec3], scalars: wp.array2d[wp.float64], p: wp.array[vec3]
+    ):
+        """p = z + β p."""
+        world, i = wp.tid()
+        if active[world] == 0:
+            return
+        k = world * count + i
+        p[k] = z[k] + scalar(scalars[world, CG_BETA]) * p[k]
 
     @wp.kernel(module="unique", enable_backward=False)
     def condition(
         settings: wp.array[wp.float64],
-        scalars: wp.array[wp.float64],
+        scalars: wp.array2d[wp.float64],
         iteration: wp.array[wp.int32],
+        active: wp.array[wp.int32],
         keep_going: wp.array[wp.int32],
     ):
-        """Count an iteration, keep going while ‖r‖ > tol·‖b‖ and iterations remain; reset accumulators."""
-        rr = scalars[CG_RR]
+        """Per world: count an iteration; stop when ‖r‖ ≤ tol·‖b‖, when the iterations are spent, or when the
+        residual is not finite (a diverged world: the guards report it); else take β and go on."""
+        world = wp.tid()
+        if active[world] == 0:
+            return
+        rr = scalars[world, CG_RR]
         tolerance = settings[CG_TOLERANCE]
-        iteration[0] = iteration[0] + 1
-        converged = rr <= wp.max(tolerance * tolerance * scalars[CG_BB], wp.float64(1.0e-300))
-        exhausted = wp.float64(iteration[0]) >= settings[CG_MAX_ITERATIONS]
-        keep_going[0] = wp.where(converged or exhausted, 0, 1)
-        scalars[CG_RR_LAST] = rr
-        scalars[CG_RZ] = scalars[CG_RZ_NEW]
-        scalars[CG_RZ_NEW] = wp.float64(0.0)
-        scalars[CG_PAP] = wp.float64(0.0)
-        scalars[CG_RR] = wp.float64(0.0)
+        iteration[world] = iteration[world] + 1
+        converged = rr <= wp.max(tolerance * tolerance * scalars[world, CG_BB], wp.float64(1.0e-300))
+        exhausted = wp.float64(iteration[world]) >= settings[CG_MAX_ITERATIONS]
+        rz = scalars[world, CG_RZ]
+        rz_new = scalars[world, CG_RZ_NEW]
+        scalars[world, CG_BETA] = wp.where(rz > wp.float64(0.0), rz_new / rz, wp.float64(0.0))
+        scalars[world, CG_RZ] = rz_new
+        scalars[world, CG_RR_LAST] = rr
+        if converged or exhausted or not wp.isfinite(rr):
+            active[world] = 0
+            wp.atomic_sub(keep_going, 0, 1)
 
-    return start, update_solution, update_direction, condition
+    return begin, start, update_solution, update_direction, condition

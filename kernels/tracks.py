@@ -14,7 +14,7 @@ Before the first key a track holds its first value and after the last its last (
 extrapolation repeats itself with the period t_last - t_first.
 
 ``apply_input_tracks_kernel`` writes the animated live inputs (``inputs.py``) at a state's time, one
-thread per animated input; kinematic pins (``kinematics.py``) sample their tracks themselves.
+thread per animated input of each world (a world's row of the input table, at the world's time); kinematic pins (``kinematics.py``) sample their tracks themselves.
 """
 
 import functools
@@ -115,14 +115,15 @@ def sample_tracks(
 @functools.cache
 def apply_input_tracks_kernel(scalar: type):
     """Kernel writing every animated input at the time of a state: thread a evaluates track
-    ``input_track[a]`` and writes its first ``input_width[a]`` components to columns ``input_slot[a]...``
-    of the input table."""
+    ``input_track[a]`` at the time of world ``input_world[a]`` and writes its first ``input_width[a]``
+    components to that world's columns ``input_slot[a]...`` of the input table."""
 
     @wp.kernel(module="unique", enable_backward=False)
     def apply_input_tracks(
         # Model:
         tracks: Tracks,
         input_track: wp.array[wp.int32],
+        input_world: wp.array[wp.int32],
         input_slot: wp.array[wp.int32],
         input_width: wp.array[wp.int32],
         # State in:
@@ -131,9 +132,10 @@ def apply_input_tracks_kernel(scalar: type):
         inputs: wp.array2d[scalar],
     ):
         a = wp.tid()
-        value, rate = track_sample(tracks, input_track[a], time[0])
+        world = input_world[a]
+        value, rate = track_sample(tracks, input_track[a], time[world])
         slot = input_slot[a]
         for c in range(input_width[a]):
-            inputs[0, slot + c] = scalar(value[c])
+            inputs[world, slot + c] = scalar(value[c])
 
     return apply_input_tracks

@@ -35,7 +35,7 @@ def test_grid_spring_families_and_counts():
 def test_grid_families_can_be_switched_off_and_carry_their_materials():
     """Each family is optional and gets its own ke/kd."""
     model, _ = grid_model(structural=ws.SpringMaterial(10.0, 1.0), shear=None, bend=ws.SpringMaterial(3.0, 0.5))
-    ke, kd, rest = (a.numpy() for a in (model.spring_stiffness, model.spring_damping, model.spring_rest_length))
+    ke, kd, rest = model.spring_stiffness.numpy()[0], model.spring_damping.numpy()[0], model.spring_rest_length.numpy()
     assert set(np.round(rest / 0.1, 5)) == {1.0, 2.0}  # no √2 diagonals
     np.testing.assert_array_equal(ke[np.isclose(rest, 0.1)], 10.0)
     np.testing.assert_array_equal(kd[np.isclose(rest, 0.2)], 0.5)
@@ -99,7 +99,7 @@ def test_cloth_mesh_springs_bends_and_area_lumped_mass():
     area = mesh.area * 0.25
     np.testing.assert_allclose(model.particle_mass.numpy().sum(), 2.0 * area, rtol=1e-5)
     lumped = np.bincount(mesh.faces.ravel(), weights=np.repeat(mesh.area_faces * 0.25 / 3, 3))
-    np.testing.assert_allclose(model.particle_mass.numpy()[ids], 2.0 * lumped, rtol=1e-5)
+    np.testing.assert_allclose(model.particle_mass.numpy()[0, ids], 2.0 * lumped, rtol=1e-5)
     assert model.kinematic_mask()[ids[0]]
     bends = {tuple(sorted(p)) for p in mesh.face_adjacency_unshared.tolist()}
     assert bends <= spring_set(model)
@@ -117,7 +117,7 @@ def test_cloth_mesh_from_arrays_and_file(tmp_path):
         model = builder.finalize("cpu")
         assert model.spring_count == 6
         assert {(1, 3)} <= spring_set(model)  # the bend spring across the diagonal 0-2
-        np.testing.assert_allclose(model.particle_mass.numpy(), [1 / 3, 1 / 6, 1 / 3, 1 / 6], rtol=1e-6)
+        np.testing.assert_allclose(model.particle_mass.numpy()[0], [1 / 3, 1 / 6, 1 / 3, 1 / 6], rtol=1e-6)
 
 
 def test_plane_collider_orientation():

@@ -182,13 +182,13 @@ def dense_implicit_system(model, state, h):
     n = model.particle_count
     q = state.particle_q.numpy().astype(np.float64)
     v = state.particle_qd.numpy().astype(np.float64)
-    mass = model.particle_mass.numpy().astype(np.float64)
+    mass = model.particle_mass.numpy()[0].astype(np.float64)
     free = ~model.kinematic_mask()
     A = np.zeros((3 * n, 3 * n))
     dfdx = np.zeros((3 * n, 3 * n))
     f = np.tile(np.asarray(model.gravity), (n, 1)) * mass[:, None] - model.drag * v
     for (i, j), rest, ke, kd in zip(model.spring_indices.numpy(), model.spring_rest_length.numpy(),
-                                    model.spring_stiffness.numpy(), model.spring_damping.numpy()):
+                                    model.spring_stiffness.numpy()[0], model.spring_damping.numpy()[0]):
         d = q[j] - q[i]
         length = np.linalg.norm(d)
         nd = d / length

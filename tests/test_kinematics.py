@@ -104,8 +104,8 @@ def reference():
     q0 = model.particle_q.numpy().astype(np.float64)
     pairs = model.spring_indices.numpy()
     rest = model.spring_rest_length.numpy().astype(np.float64)
-    ke = model.spring_stiffness.numpy().astype(np.float64)
-    kd = model.spring_damping.numpy().astype(np.float64)
+    ke = model.spring_stiffness.numpy()[0].astype(np.float64)
+    kd = model.spring_damping.numpy()[0].astype(np.float64)
     pinned = model.kinematic_mask()
     free = ~pinned
     pivot = q0[pinned].mean(axis=0)

@@ -34,7 +34,7 @@ def law_kernel(law):
         stiffness: wp.array[wp.mat33d],
     ):
         t = wp.tid()
-        values = spring_law_values(inputs)
+        values = spring_law_values(inputs, 0)
         force[t] = spring_force(
             xi[t], xj[t], wp.vec3d(), vj[t], wp.float64(rest), wp.float64(ke), wp.float64(kd), values
         )

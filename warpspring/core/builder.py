@@ -502,11 +502,16 @@ class ModelBuilder:
 
     # -- finalize -------------------------------------------------------------------------------------
 
-    def finalize(self, device=None, *, precision: str = "float32", spring_evaluation: str = "auto") -> Model:
+    def finalize(self, device=None, *, precision: str = "float32", spring_evaluation: str = "auto",
+                 worlds: int = 1) -> Model:
         """Copy the scene to ``device`` as a :class:`Model`.
 
         Args:
             device: Warp device ("cpu", "cuda:0", ...); default Warp's default device.
+            worlds: independent copies of the scene in the model, stepped together in every launch and never
+                coupled (a batch of environments, a parameter sweep). Each starts as this builder's scene;
+                give them their own parameters with :meth:`Model.set_world_values` and
+                :meth:`Model.set_track`.
             precision: "float32" (default) or "float64" for every floating-point array and kernel.
             spring_evaluation: "gather" (per particle, no atomics, fusable), "scatter" (per spring, each
                 evaluated once) or "auto": gather on CUDA while no particle has more than
@@ -521,9 +526,10 @@ class ModelBuilder:
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         device = wp.get_device(device)
+        worlds = checks.count("worlds", worlds, minimum=1)
         vec3 = vec3_type(scalar)
         float_np = np.float64 if scalar is wp.float64 else np.float32
-        model = Model(device, precision, scalar)
+        model = Model(device, precision, scalar, world_count=worlds)
         model.up_axis = self.up_axis
         model.gravity = self.gravity
         model.drag = float(self.drag)
@@ -531,10 +537,10 @@ class ModelBuilder:
 
         n = self._particle_count
         spring_total = sum(len(k) for k in self._springs)
-        if max(n, 2 * spring_total) >= 2**31:
+        if max(n * worlds, 2 * spring_total) >= 2**31:
             raise ConfigError(
-                f"{n} particles and {spring_total} springs exceed the 32-bit indices of the kernels "
-                "(at most 2^31 - 1 particles and 2^30 springs): split the scene"
+                f"{worlds} world(s) of {n} particles and {spring_total} springs exceed the 32-bit indices of the "
+                "kernels (at most 2^31 - 1 particles in all worlds and 2^30 springs): use fewer worlds per model"
             )
         mass = np.concatenate(self._mass)
         pinned = np.concatenate(self._pinned)
@@ -554,14 +560,17 @@ class ModelBuilder:
         def iarray(values, dtype=wp.int32):
             return wp.array(np.ascontiguousarray(values, dtype=np.int32), dtype=dtype, device=device)
 
+        def every_world(values):  # one world's per-particle values, repeated for every world (world-major)
+            return np.tile(values, (worlds,) + (1,) * (np.ndim(values) - 1))
+
         model.particle_count = n
-        model.block_dim = _block_dim(device, n)
-        model.particle_q = farray(np.concatenate(self._q), vec3, name="a particle position [m]")
-        model.particle_qd = farray(np.concatenate(self._qd), vec3, name="a particle velocity [m/s]")
-        model.particle_mass = farray(mass, name="a particle mass [kg]")
-        model.particle_inv_mass = farray(1.0 / mass, name="an inverse particle mass [1/kg]")
+        model.block_dim = _block_dim(device, n * worlds)
+        model.particle_q = farray(every_world(np.concatenate(self._q)), vec3, name="a particle position [m]")
+        model.particle_qd = farray(every_world(np.concatenate(self._qd)), vec3, name="a particle velocity [m/s]")
+        model.particle_mass = farray(mass[None, :], name="a particle mass [kg]")
+        model.particle_inv_mass = farray(1.0 / mass[None, :], name="an inverse particle mass [1/kg]")
         model.particle_radius = farray(np.concatenate(self._radius), name="a particle radius [m]")
-        model.particle_flags = iarray(np.where(pinned, PARTICLE_KINEMATIC, 0))
+        model.particle_flags = iarray(every_world(np.where(pinned, PARTICLE_KINEMATIC, 0)))
         # Tracks: the pin groups' first (their indices stay put), then the animated inputs.
         model._pin_tracks = [t for g in self._pin_groups for t in (g.translation, g.rotation) if t is not None]
         model._rebuild_tracks()
@@ -577,8 +586,10 @@ class ModelBuilder:
         model.spring_count = s
         model.spring_indices = iarray(springs, wp.vec2i)
         model.spring_rest_length = farray(np.concatenate(self._spring_rest) if s else [], name="a spring rest length [m]")
-        model.spring_stiffness = farray(np.concatenate(self._spring_ke) if s else [], name="a spring stiffness [N/m]")
-        model.spring_damping = farray(np.concatenate(self._spring_kd) if s else [], name="a spring damping [N·s/m]")
+        model.spring_stiffness = farray(np.concatenate(self._spring_ke)[None, :] if s else np.zeros((1, 0)),
+                                        name="a spring stiffness [N/m]")
+        model.spring_damping = farray(np.concatenate(self._spring_kd)[None, :] if s else np.zeros((1, 0)),
+                                      name="a spring damping [N·s/m]")
         degree = np.bincount(springs.ravel(), minlength=n) if s else np.zeros(n, dtype=np.int64)
         model.spring_max_degree = int(degree.max())
         if spring_evaluation == "auto":

@@ -26,7 +26,7 @@ class StepFinisher:
 
     def _strain_buffers(self):
         if self._buffers is None:
-            n, vec3, device = self.model.particle_count, self.model.vec3, self.model.device
+            n, vec3, device = self.model.state_size, self.model.vec3, self.model.device
             self._buffers = tuple(wp.empty(n, dtype=vec3, device=device) for _ in range(3))
         return self._buffers
 
@@ -49,13 +49,13 @@ class StepFinisher:
             apply_contacts(model, state, dt)
             return
         evaluate_input_tracks(model, state)
-        common = dict(dim=model.particle_count, block_dim=model.block_dim, device=model.device)
+        common = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
         corrected = state.particle_q
         strain_limited = self.strain_limited
         before = None
         if strain_limited:
             limit = strain_limit_kernel(model.scalar, model.spring_max_degree)
-            table = [model.particle_flags, model.particle_inv_mass, model.particle_spring_neighbor,
+            table = [model.particle_count, model.particle_flags, model.particle_inv_mass, model.particle_spring_neighbor,
                      model.particle_spring_id, model.spring_rest_length, model.inputs]
             before, *jacobi = self._strain_buffers()
             wp.copy(before, state.particle_q)
@@ -68,6 +68,7 @@ class StepFinisher:
         wp.launch(
             finish_step_kernel(model.scalar, model.shape_types, self.speed_clamped, strain_limited),
             inputs=[
+                model.particle_count,
                 model.particle_flags,
                 model.particle_radius,
                 model.shape_type,

@@ -38,7 +38,7 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
         model: the model.
         state: positions and velocities to evaluate at.
         control: external inputs, or ``None``.
-        particle_f: output, shape [particle_count]; default ``state.particle_f``.
+        particle_f: output, shape [world_count · particle_count]; default ``state.particle_f``.
     """
     if model.particle_count == 0:
         return
@@ -49,17 +49,18 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
     wp.launch(
         # With scattered springs the force clamp must wait for the springs: a pass of its own below.
         eval_forces_kernel(model.scalar, features._replace(clamp_particle_force=False) if scatter else features),
-        dim=model.particle_count,
+        dim=model.particle_dim,
         block_dim=model.block_dim,
-        inputs=[*force_inputs(model, control, features), state.particle_q, state.particle_qd],
+        inputs=[model.particle_count, *force_inputs(model, control, features), state.particle_q, state.particle_qd],
         outputs=[out],
         device=model.device,
     )
     if scatter:
         wp.launch(
             spring_scatter_kernel(model.scalar, model.spring_law),
-            dim=model.spring_count,
+            dim=(model.world_count, model.spring_count),
             inputs=[
+                model.particle_count,
                 model.spring_indices,
                 model.spring_rest_length,
                 model.spring_stiffness,
@@ -72,8 +73,8 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
             device=model.device,
         )
         if features.clamp_particle_force:
-            wp.launch(clamp_forces_kernel(model.scalar), dim=model.particle_count, block_dim=model.block_dim,
-                      inputs=[model.inputs], outputs=[out], device=model.device)
+            wp.launch(clamp_forces_kernel(model.scalar), dim=model.particle_dim, block_dim=model.block_dim,
+                      inputs=[model.particle_count, model.inputs], outputs=[out], device=model.device)
 
 
 def apply_contacts(model: Model, state: State, dt: float) -> None:
@@ -83,9 +84,10 @@ def apply_contacts(model: Model, state: State, dt: float) -> None:
         return
     wp.launch(
         project_contacts_kernel(model.scalar, model.shape_types),
-        dim=model.particle_count,
+        dim=model.particle_dim,
         block_dim=model.block_dim,
         inputs=[
+            model.particle_count,
             model.particle_flags,
             model.particle_radius,
             model.shape_type,

@@ -1,7 +1,8 @@
-"""Run-time guards of a simulation: stop with a clear error, naming frame, substep, particle or spring
+"""Run-time guards of a simulation: stop with a clear error, naming frame, substep, world, particle or spring
 and a remedy, when the state turns non-finite, a spring tears far past its rest length, or the kinetic
-energy runs away. The checks run on the device inside the captured frame (``kernels/guards.py``); the
-host reads one small status record per frame."""
+energy runs away. The checks run on the device inside the captured frame, per world
+(``kernels/guards.py``); the host reads one small status record per world and frame. A failure stops the
+run, or (``GuardLimits(stop="world")``) holds only the failed world while the others go on."""
 
 from __future__ import annotations
 
@@ -28,12 +29,14 @@ from ..kernels.guards import (
     GUARD_STRAIN,
     GUARD_STRAIN_PARTICLE,
     GUARD_STRAIN_SPRING,
+    GUARD_STOP_WORLD,
     GUARD_SUBSTEP,
     GUARD_TRIPPED,
     NO_PARTICLE,
     guard_kernels,
 )
-from ..kernels.linalg import reduce_launch_dim
+from ..errors import ConfigError
+from ..kernels.linalg import reduce_lanes, reduce_launch_dim
 from .model import Model, State
 from .stepper import StepHook
 
@@ -54,8 +57,12 @@ class GuardLimits:
         tear_strain: spring strain |d|/L - 1 [-] at which a spring counts as torn and the run stops
             (default ``TEAR_STRAIN`` = 10: eleven times the rest length). Not the strain limit of
             ``Stabilizers.max_strain``.
-        max_kinetic_energy: largest allowed total kinetic energy [J]; ``None``: 10⁶ times the scene's
-            energy scale (initial kinetic + elastic energy + total weight × (extent + 1 m)).
+        max_kinetic_energy: largest allowed total kinetic energy of a world [J]; ``None``: 10⁶ times the
+            world's energy scale (initial kinetic + elastic energy + total weight × (extent + 1 m)).
+        stop: what a failure stops: "run" (the simulator raises a SimulationError at the end of the frame)
+            or "world" (the failed world is held from the failing check on, its failure is recorded in
+            ``Simulator.world_failures``, and the other worlds go on; the run stops only when every world
+            has failed).
         max_strain: deprecated name of ``tear_strain`` (a DeprecationWarning; same value; also readable
             as a deprecated property).
 
@@ -67,9 +74,10 @@ class GuardLimits:
     every: int | None = None
     tear_strain: float = TEAR_STRAIN
     max_kinetic_energy: float | None = None
+    stop: str = "run"
 
     def __init__(self, *, every: int | None = None, tear_strain: float | None = None,
-                 max_kinetic_energy: float | None = None, max_strain: float | None = None):
+                 max_kinetic_energy: float | None = None, stop: str = "run", max_strain: float | None = None):
         name = "guard tear_strain"
         if max_strain is not None:
             if tear_strain is not None:
@@ -84,6 +92,9 @@ class GuardLimits:
         checks.positive(name, tear_strain)
         if max_kinetic_energy is not None:
             checks.positive("guard max_kinetic_energy", max_kinetic_energy)
+        if stop not in ("run", "world"):
+            raise ConfigError(f"guard stop must be 'run' or 'world', got {stop!r}")
+        object.__setattr__(self, "stop", stop)
         object.__setattr__(self, "every", every)
         object.__setattr__(self, "tear_strain", tear_strain)
         object.__setattr__(self, "max_kinetic_energy", max_kinetic_energy)
@@ -106,6 +117,7 @@ class GuardReport:
     """The first failure a guard saw within a frame.
 
     Attributes:
+        world: the world it happened in.
         reason: "non-finite state", "strain" or "kinetic energy".
         substep: substep of the frame at whose check it was seen (the failure happened at or before it).
         particle: index of the offending particle (lowest-index non-finite one, or one holding the worst
@@ -116,6 +128,7 @@ class GuardReport:
         kinetic_energy: total kinetic energy at that check [J].
     """
 
+    world: int
     reason: str
     substep: int
     particle: int | None
@@ -124,23 +137,26 @@ class GuardReport:
     kinetic_energy: float
     nonfinite_count: int = 0
 
-    def describe(self, model: Model) -> str:
-        """One clause naming what went wrong and where."""
+    def describe(self, model: Model, *, name_world: bool = True) -> str:
+        """One clause naming what went wrong and where (the world too, in a model of several, unless
+        ``name_world`` is off)."""
+        where = f"in world {self.world}, " if model.world_count > 1 and name_world else ""
         if self.reason == "non-finite state":
             if self.nonfinite_count == 1:
-                return f"particle {self.particle} has a non-finite position or velocity"
-            return (f"{self.nonfinite_count} of {model.particle_count} particles have non-finite positions or "
+                return f"{where}particle {self.particle} has a non-finite position or velocity"
+            return (f"{where}{self.nonfinite_count} of {model.particle_count} particles have non-finite positions or "
                     f"velocities (lowest index {self.particle})")
         if self.reason == "strain":
             a, b = model.spring_indices.numpy()[self.spring]
-            return (f"spring {self.spring} (particles {a}-{b}) stretched to {self.strain + 1:.3g}× its rest "
+            return (f"{where}spring {self.spring} (particles {a}-{b}) stretched to {self.strain + 1:.3g}× its rest "
                     "length (guard limit exceeded)")
-        return f"the kinetic energy ran away to {self.kinetic_energy:.3g} J (guard limit exceeded)"
+        return f"{where}the kinetic energy ran away to {self.kinetic_energy:.3g} J (guard limit exceeded)"
 
 
 class Guard(StepHook):
-    """Device-side checks of one simulator's states; see :class:`GuardLimits`. A :class:`StepHook`: it
-    clears its record at the start of every frame and checks after every ``every``-th substep and the last.
+    """Device-side checks of one simulator's states, per world; see :class:`GuardLimits`. A :class:`StepHook`:
+    it clears its record at the start of every frame and checks after every ``every``-th substep and the
+    last.
 
     The limits are device values: setting :attr:`limits` between frames changes no captured launch (but
     a new ``every`` does, and the stepper re-captures)."""
@@ -149,13 +165,18 @@ class Guard(StepHook):
         self.model = model
         self.substeps = substeps
         self._tiled = model.device.is_cuda
-        device = model.device
-        self._status_clear = wp.array([0, -1, NO_PARTICLE, NO_PARTICLE, NO_PARTICLE, 0], dtype=wp.int32, device=device)
-        self._values_clear = wp.array([-1.0, 0.0], dtype=wp.float64, device=device)
-        assert len(self._status_clear) == GUARD_INTS and len(self._values_clear) == GUARD_FLOATS
+        self._lanes = reduce_lanes(model.particle_count, model.block_dim, self._tiled)
+        device, worlds = model.device, model.world_count
+        status = np.tile([0, -1, NO_PARTICLE, NO_PARTICLE, NO_PARTICLE, 0], (worlds, 1))
+        values = np.tile([-1.0, 0.0], (worlds, 1))
+        assert status.shape[1] == GUARD_INTS and values.shape[1] == GUARD_FLOATS
+        self._status_clear = wp.array(status, dtype=wp.int32, device=device)
+        self._values_clear = wp.array(values, dtype=wp.float64, device=device)
         self._status = wp.clone(self._status_clear)
         self._values = wp.clone(self._values_clear)
-        self._limits = wp.zeros(GUARD_LIMITS, dtype=wp.float64, device=device)
+        grid = reduce_launch_dim(worlds, model.particle_count, self._lanes)
+        self._partials = wp.zeros((worlds, grid[1], GUARD_FLOATS), dtype=wp.float64, device=device)
+        self._limits = wp.zeros((worlds, GUARD_LIMITS), dtype=wp.float64, device=device)
         self.revision = 0
         self._every = None
         self.limits = limits
@@ -174,6 +195,8 @@ class Guard(StepHook):
         if every != self._every:
             self._every = every
             self.revision += 1
+        if limits.stop == "world":
+            self.model.hold_worlds()  # a failed world is held by the integrators' last pass
         self._write_limits()
 
     def refresh(self) -> None:
@@ -185,15 +208,23 @@ class Guard(StepHook):
 
     def _write_limits(self) -> None:
         limits = self._limits_host
-        self._input_version = self.model.input_version
-        self.max_kinetic_energy = (
-            limits.max_kinetic_energy if limits.max_kinetic_energy is not None
-            else ENERGY_FACTOR * energy_scale(self.model)
-        )
-        values = [0.0] * GUARD_LIMITS
-        values[GUARD_LIMIT_STRAIN] = limits.tear_strain
-        values[GUARD_LIMIT_KINETIC_ENERGY] = self.max_kinetic_energy
-        wp.copy(self._limits, wp.array(values, dtype=wp.float64, device="cpu"))
+        model = self.model
+        self._input_version = model.input_version
+        if limits.max_kinetic_energy is not None:
+            self.world_max_kinetic_energy = np.full(model.world_count, limits.max_kinetic_energy)
+        else:
+            self.world_max_kinetic_energy = np.array([ENERGY_FACTOR * energy_scale(model, world=w)
+                                                      for w in range(model.world_count)])
+        values = np.zeros((model.world_count, GUARD_LIMITS))
+        values[:, GUARD_LIMIT_STRAIN] = limits.tear_strain
+        values[:, GUARD_LIMIT_KINETIC_ENERGY] = self.world_max_kinetic_energy
+        values[:, GUARD_STOP_WORLD] = 1.0 if limits.stop == "world" else 0.0
+        self._limits.assign(values)
+
+    @property
+    def max_kinetic_energy(self) -> float:
+        """The kinetic-energy limit of world 0 [J] (every world's: ``world_max_kinetic_energy``)."""
+        return float(self.world_max_kinetic_energy[0])
 
     @property
     def every(self) -> int:
@@ -215,54 +246,67 @@ class Guard(StepHook):
     def check(self, state: State, substep: int) -> None:
         """Launch the checks of ``state`` after ``substep`` (device only; capturable)."""
         model = self.model
-        measure, locate, decide = guard_kernels(model.scalar, model.spring_max_degree, self._tiled)
-        block = model.block_dim if self._tiled else 1
+        measure, gather, locate, decide = guard_kernels(model.scalar, model.spring_max_degree, self._tiled)
         table = [model.particle_spring_neighbor, model.particle_spring_id, model.spring_rest_length]
-        out = [self._status, self._values]
-        wp.launch(measure, dim=reduce_launch_dim(model.particle_count, block), block_dim=block,
-                  inputs=[model.particle_count, model.particle_mass, *table, state.particle_q, state.particle_qd],
-                  outputs=out, device=model.device)
-        wp.launch(locate, dim=model.particle_count, block_dim=model.block_dim,
-                  inputs=[*table, state.particle_q], outputs=out, device=model.device)
-        wp.launch(decide, dim=1, inputs=[substep, self._limits], outputs=out, device=model.device)
+        worlds, device = model.world_count, model.device
+        wp.launch(measure, dim=reduce_launch_dim(worlds, model.particle_count, self._lanes), block_dim=self._lanes,
+                  inputs=[model.particle_count, model.world_enabled, model.particle_mass, *table, state.particle_q,
+                          state.particle_qd],
+                  outputs=[self._status, self._partials], device=device)
+        wp.launch(gather, dim=worlds, inputs=[model.world_enabled, self._partials, self._status],
+                  outputs=[self._values], device=device)
+        wp.launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
+                  inputs=[model.particle_count, model.world_enabled, *table, state.particle_q],
+                  outputs=[self._status, self._values], device=device)
+        wp.launch(decide, dim=worlds, inputs=[substep, self._limits],
+                  outputs=[model.world_enabled, self._status, self._values], device=device)
+
+    def reports(self) -> list[GuardReport]:
+        """Each world's first failure since the last reset, in world order (reads the device: synchronises)."""
+        status = self._status.numpy()
+        values = self._values.numpy()
+        reasons = {GUARD_NONFINITE: "non-finite state", GUARD_STRAIN: "strain", GUARD_ENERGY: "kinetic energy"}
+        found = []
+        for world in np.flatnonzero(status[:, GUARD_TRIPPED]):
+            row = status[world]
+            reason = reasons[int(row[GUARD_TRIPPED])]
+            particle = row[GUARD_NONFINITE_PARTICLE] if reason == "non-finite state" else row[GUARD_STRAIN_PARTICLE]
+            spring = row[GUARD_STRAIN_SPRING]
+            found.append(GuardReport(
+                world=int(world),
+                reason=reason,
+                substep=int(row[GUARD_SUBSTEP]),
+                particle=None if particle == NO_PARTICLE else int(particle),
+                spring=None if spring == NO_PARTICLE else int(spring),
+                strain=float(values[world, GUARD_MAX_STRAIN]),
+                kinetic_energy=float(values[world, GUARD_KINETIC_ENERGY]),
+                nonfinite_count=int(row[GUARD_NONFINITE_COUNT]),
+            ))
+        return found
 
     def report(self) -> GuardReport | None:
-        """The first failure since the last reset, or ``None`` (reads the device: synchronises)."""
-        status = self._status.numpy()
-        if status[GUARD_TRIPPED] == 0:
-            return None
-        values = self._values.numpy()
-        reason = {GUARD_NONFINITE: "non-finite state", GUARD_STRAIN: "strain", GUARD_ENERGY: "kinetic energy"}[
-            int(status[GUARD_TRIPPED])
-        ]
-        particle = status[GUARD_NONFINITE_PARTICLE] if reason == "non-finite state" else status[GUARD_STRAIN_PARTICLE]
-        spring = status[GUARD_STRAIN_SPRING]
-        return GuardReport(
-            reason=reason,
-            substep=int(status[GUARD_SUBSTEP]),
-            particle=None if particle == NO_PARTICLE else int(particle),
-            spring=None if spring == NO_PARTICLE else int(spring),
-            strain=float(values[GUARD_MAX_STRAIN]),
-            kinetic_energy=float(values[GUARD_KINETIC_ENERGY]),
-            nonfinite_count=int(status[GUARD_NONFINITE_COUNT]),
-        )
+        """The earliest failure since the last reset (the lowest world among equals), or ``None`` (reads the
+        device: synchronises)."""
+        found = self.reports()
+        return min(found, key=lambda r: (r.substep, r.world)) if found else None
 
 
-def energy_scale(model: Model) -> float:
-    """A scene's energy scale [J]: initial kinetic + elastic energy + total weight × (extent + 1 m), ≥ 1 µJ;
-    the weight with the largest gravity the scene has (now, or at any key of a gravity track)."""
-    q = model.particle_q.numpy().astype(np.float64)
-    qd = model.particle_qd.numpy().astype(np.float64)
-    mass = model.particle_mass.numpy().astype(np.float64)
+def energy_scale(model: Model, *, world: int = 0) -> float:
+    """A world's energy scale [J]: initial kinetic + elastic energy + total weight × (extent + 1 m), ≥ 1 µJ;
+    the weight with the largest gravity the world has (now, or at any key of its gravity track)."""
+    n = model.particle_count
+    q = model.particle_q.numpy()[world * n : (world + 1) * n].astype(np.float64)
+    qd = model.particle_qd.numpy()[world * n : (world + 1) * n].astype(np.float64)
+    mass = model.world_values("particle_mass")[world]
     kinetic = 0.5 * float(np.sum(mass * np.sum(qd * qd, axis=1)))
     elastic = 0.0
     if model.spring_count:
         pairs = model.spring_indices.numpy()
         stretch = np.linalg.norm(q[pairs[:, 1]] - q[pairs[:, 0]], axis=1) - model.spring_rest_length.numpy()
-        elastic = 0.5 * float(np.sum(model.spring_stiffness.numpy() * stretch * stretch))
+        elastic = 0.5 * float(np.sum(model.world_values("spring_stiffness")[world] * stretch * stretch))
     extent = float(np.ptp(q, axis=0).max()) if len(q) else 0.0
-    gravity = math.hypot(*model.gravity)
-    track = model.track("gravity")
+    gravity = math.hypot(*model.world_values("gravity")[world])
+    track = model.track("gravity", world=world)
     if track is not None:
         gravity = max(gravity, float(np.linalg.norm(track.values, axis=1).max()))
     weight = float(mass.sum()) * gravity

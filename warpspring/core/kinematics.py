@@ -9,6 +9,7 @@ a given time; the integrators call it for each step and each stage (``kernels/ki
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -85,8 +86,12 @@ class PinGroupTable:
         driven: whether any group is driven (tracks or Control): only then do integrators run the pass.
     """
 
-    def __init__(self, kinematic: np.ndarray, groups: list[PinGroup], rest: np.ndarray, track_index, device):
+    def __init__(self, kinematic: np.ndarray, groups: list[PinGroup], rest: np.ndarray, track_index, device,
+                 world_tracks: list | None = None):
+        """``world_tracks``: ``None`` (every world moves each group by the group's own tracks), or one list
+        per world of (translation, rotation) per group (the rows of a model whose worlds differ)."""
         self.groups = list(groups)
+        self.world_tracks = world_tracks
         member = np.full(len(rest), NO_GROUP, dtype=np.int64)
         for g, group in enumerate(self.groups):
             member[group.particles] = g
@@ -104,11 +109,34 @@ class PinGroupTable:
         table.particle = wp.array(self.kinematic.astype(np.int32), dtype=wp.int32, device=device)
         table.group = wp.array(group_of.astype(np.int32), dtype=wp.int32, device=device)
         table.rest = wp.array(rest[self.kinematic], dtype=wp.vec3d, device=device)
-        table.translation_track = wp.array([track(g.translation) for g in self.groups], dtype=wp.int32, device=device)
-        table.rotation_track = wp.array([track(g.rotation) for g in self.groups], dtype=wp.int32, device=device)
+        rows = world_tracks if world_tracks is not None else [[(g.translation, g.rotation) for g in self.groups]]
+        table.translation_track = wp.array(np.array([[track(t) for t, _ in row] for row in rows], dtype=np.int32)
+                                           .reshape(len(rows), len(self.groups)), dtype=wp.int32, device=device)
+        table.rotation_track = wp.array(np.array([[track(r) for _, r in row] for row in rows], dtype=np.int32)
+                                        .reshape(len(rows), len(self.groups)), dtype=wp.int32, device=device)
         table.pivot = wp.array(np.array([g.pivot for g in self.groups]).reshape(-1, 3), dtype=wp.vec3d, device=device)
         self.table = table
         self.rest = rest[self.kinematic]
+
+    def retrack(self, world_tracks: list, track_index, device) -> PinGroupTable:
+        """A copy whose groups move by ``world_tracks`` (one list per world of (translation, rotation) per
+        group), indexed by ``track_index`` in a new track table."""
+        table = copy.copy(self)
+        table.world_tracks = world_tracks
+        struct = PinGroups()
+        for name in ("particle", "group", "rest", "pivot"):
+            setattr(struct, name, getattr(self.table, name))
+
+        def track(t):
+            return -1 if t is None else track_index(t)
+
+        shape = (len(world_tracks), len(self.groups))
+        struct.translation_track = wp.array(np.array([[track(t) for t, _ in row] for row in world_tracks],
+                                                     dtype=np.int32).reshape(shape), dtype=wp.int32, device=device)
+        struct.rotation_track = wp.array(np.array([[track(r) for _, r in row] for row in world_tracks],
+                                                  dtype=np.int32).reshape(shape), dtype=wp.int32, device=device)
+        table.table = struct
+        return table
 
     @property
     def count(self) -> int:
@@ -132,13 +160,14 @@ class PinGroupTable:
             raise KeyError(f"pin group {group} does not exist; the model has {len(self.groups)}")
         return int(group)
 
-    def new_targets(self, device) -> PinTargets:
-        """Pin targets that ask nothing yet: every control-driven group rests where it is."""
+    def new_targets(self, device, world_count: int = 1) -> PinTargets:
+        """Pin targets that ask nothing yet, in every world: every control-driven group rests where it is."""
         from ..kernels.kinematics import NO_TARGET_TIME
 
         targets = PinTargets()
-        targets.position = wp.array(self.rest, dtype=wp.vec3d, device=device)
-        targets.time = wp.full(len(self.groups), NO_TARGET_TIME, dtype=wp.float64, device=device)
+        targets.position = wp.array(np.broadcast_to(self.rest, (world_count, *self.rest.shape)).copy(),
+                                    dtype=wp.vec3d, device=device)
+        targets.time = wp.full((world_count, len(self.groups)), NO_TARGET_TIME, dtype=wp.float64, device=device)
         return targets
 
 
@@ -147,18 +176,20 @@ _NO_TARGETS = PinTargets()
 
 
 def apply_kinematics(model, control, state_in, q_out: wp.array, qd_out: wp.array, fraction: float, step=None):
-    """Write every kinematic particle's position [m] and velocity [m/s] at t + s into ``q_out``/``qd_out``,
-    where t is ``state_in``'s time and s = ``fraction`` · ``step[0]`` (``step``: a device array holding a
-    step [s], for adaptive integrators; default: s = ``fraction`` seconds). Launches nothing unless the
-    model has driven pin groups; other kinematic particles are moved by the integrators themselves."""
+    """Write every kinematic particle's position [m] and velocity [m/s] at t + s into ``q_out``/``qd_out``, in
+    every world, where t is ``state_in``'s time and s = ``fraction`` · the world's step (``step``: a device
+    array of each world's step [s], for adaptive integrators; default: s = ``fraction`` seconds). Launches
+    nothing unless the model has driven pin groups; other kinematic particles are moved by the integrators
+    themselves."""
     pins = model.pin_groups
     if pins is None or not pins.driven:
         return
     targets = control is not None and control.pin_targets is not None
     wp.launch(
         kinematics_kernel(model.scalar, targets),
-        dim=pins.count,
+        dim=(model.world_count, pins.count),
         inputs=[
+            model.particle_count,
             model.particle_flags,
             pins.table,
             model.track_table.table,

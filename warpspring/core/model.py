@@ -14,7 +14,7 @@ from ..kernels.inputs import INPUT_COUNT, INPUTS
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import vec3_type
 from .kinematics import PinGroupTable, apply_kinematics
-from .tracks import Track, TrackTable, input_track
+from .tracks import Track, TrackTable, as_track, input_track
 
 #: The stabiliser thresholds that are live inputs (their names in ``kernels.inputs.INPUTS``).
 STABILIZER_INPUTS = ("max_spring_force", "max_particle_force", "max_speed", "max_strain", "biphasic_strain",
@@ -120,23 +120,26 @@ class ShapeInfo:
 
 @dataclass(frozen=True)
 class InputTracks:
-    """The animated live inputs of a model, as the device arrays ``evaluate_input_tracks`` launches over.
+    """The animated live inputs of a model, as the device arrays ``evaluate_input_tracks`` launches over:
+    one entry per animated input of each world.
 
     Attributes:
-        names: the animated inputs, in launch order.
-        track: their tracks' indices in the model's track table, int32, shape [count].
+        names: the animated inputs.
+        track: each entry's track index in the model's track table, int32, shape [count].
+        world: the world whose input row it writes (and whose time it samples at), int32, shape [count].
         slot: the first input-table column of each, int32, shape [count].
         width: components of each (1 or 3), int32, shape [count].
     """
 
     names: tuple
     track: wp.array
+    world: wp.array
     slot: wp.array
     width: wp.array
 
     @property
     def count(self) -> int:
-        return len(self.names)
+        return self.track.shape[0]
 
 
 class Model:
@@ -144,11 +147,21 @@ class Model:
     inputs.
 
     Arrays are Warp arrays on :attr:`device` in the model's precision (:attr:`scalar`); the layout is
-    documented per attribute as [unit], shape. Two kinds of change are allowed between steps:
+    documented per attribute as [unit], shape.
 
-    * values: write into the arrays in place (``model.spring_stiffness.assign(...)``), or set a live input
-      (:attr:`gravity`, :attr:`drag`, :attr:`stabilizers`, :meth:`set_track`). Kernels read every value
-      from device memory, so a captured frame graph sees the change and nothing compiles;
+    Worlds: a model holds :attr:`world_count` independent copies (worlds) of one scene, stepped together
+    in one launch and never coupled. Topology (springs, incidence table, pin groups, meshes, colliders)
+    is shared and indexed per world (0 .. :attr:`particle_count` - 1); a state's arrays hold every world,
+    world-major: particle i of world w is entry w · particle_count + i. Per-world parameters are 2-D
+    arrays with one row serving all worlds or one row per world (:meth:`set_world_values`); live inputs
+    have a row per world.
+
+    Two kinds of change are allowed between steps:
+
+    * values: write into the arrays in place (``model.spring_stiffness.assign(...)``), set a live input
+      (:attr:`gravity`, :attr:`drag`, :attr:`stabilizers`, :meth:`set_track`, :meth:`set_world_values`)
+      or switch worlds on and off (:meth:`set_world_enabled`). Kernels read every value from device
+      memory, so a captured frame graph sees the change and nothing compiles;
     * structure: switching a term on or off (gravity or drag from zero to nonzero, a stabiliser on or
       off, a track added or removed) or replacing an array. This bumps :attr:`revision`, and a
       :class:`~warpspring.core.stepper.Stepper` re-captures its graph at its next frame (a newly switched-on
@@ -164,26 +177,28 @@ class Model:
     revision: int  # counts structural changes since finalize (see the class docstring)
     input_version: int  # counts host writes of live-input values (what a default guard limit is derived from)
 
-    inputs: wp.array2d  # live inputs, shape [1, INPUT_COUNT] in the model's precision (kernels/inputs.py)
+    world_count: int  # independent copies of the scene (worlds), stepped together
+    world_enabled: wp.array  # int32, shape [world_count]: 1 = stepped, 0 = held as it is (a live value)
+    inputs: wp.array2d  # live inputs, shape [world_count, INPUT_COUNT] in the model's precision (kernels/inputs.py)
     track_table: TrackTable  # every keyframe track of the model (pin groups' first, then the inputs')
     input_tracks: InputTracks | None  # the animated inputs, or None
     unit_step: wp.array  # float64, shape [1], holding 1.0: the "step" of launches whose offsets are in seconds
 
-    particle_count: int
-    particle_q: wp.array  # [m], shape [particle_count], initial positions
-    particle_qd: wp.array  # [m/s], shape [particle_count], initial velocities
-    particle_mass: wp.array  # [kg], shape [particle_count]
-    particle_inv_mass: wp.array  # [1/kg], shape [particle_count], 1 / particle_mass (kinematic particles too)
-    particle_radius: wp.array  # [m], shape [particle_count], contact radius
-    particle_flags: wp.array  # int32, shape [particle_count]: PARTICLE_KINEMATIC for pinned (prescribed)
-    #   particles; a live value (see set_kinematic)
+    particle_count: int  # particles per world
+    particle_q: wp.array  # [m], shape [world_count · particle_count], initial positions
+    particle_qd: wp.array  # [m/s], shape [world_count · particle_count], initial velocities
+    particle_mass: wp.array2d  # [kg], shape [1 or world_count, particle_count]
+    particle_inv_mass: wp.array2d  # [1/kg], same shape, 1 / particle_mass (kinematic particles too)
+    particle_radius: wp.array  # [m], shape [particle_count], contact radius (every world)
+    particle_flags: wp.array  # int32, shape [world_count · particle_count]: PARTICLE_KINEMATIC for pinned
+    #   (prescribed) particles; a live value (see set_kinematic)
     pin_groups: PinGroupTable | None  # the driven pin groups and every kinematic particle, or None (no group)
 
     spring_count: int
     spring_indices: wp.array  # wp.vec2i, shape [spring_count], the two particles of each spring
-    spring_rest_length: wp.array  # [m], shape [spring_count]
-    spring_stiffness: wp.array  # ke [N/m], shape [spring_count]
-    spring_damping: wp.array  # kd [N·s/m], shape [spring_count], axial damper
+    spring_rest_length: wp.array  # [m], shape [spring_count] (every world)
+    spring_stiffness: wp.array2d  # ke [N/m], shape [1 or world_count, spring_count]
+    spring_damping: wp.array2d  # kd [N·s/m], shape [1 or world_count, spring_count], axial damper
     spring_gather: bool  # evaluate springs per particle (gather, CUDA default) or per spring (scatter, CPU)
     spring_max_degree: int  # most springs at one particle: the slots of the incidence table
     particle_spring_neighbor: wp.array2d  # int32, shape [spring_max_degree, particle_count]: the other particle
@@ -203,8 +218,11 @@ class Model:
     meshes: list  # list[MeshGroup], host-side, for export
     shapes: list  # list[ShapeInfo], host-side, for export
 
-    def __init__(self, device: wp.Device, precision: str, scalar: type):
+    def __init__(self, device: wp.Device, precision: str, scalar: type, world_count: int = 1):
         self.device = device
+        self.world_count = world_count
+        self.world_enabled = wp.ones(world_count, dtype=wp.int32, device=device)
+        self._world_hold = False
         self.precision = precision
         self.scalar = scalar
         self.vec3 = vec3_type(scalar)
@@ -214,12 +232,12 @@ class Model:
         self.input_version = 0
         self.pin_groups = None
         self.input_tracks = None
-        self.inputs = wp.zeros((1, INPUT_COUNT), dtype=scalar, device=device)
+        self.inputs = wp.zeros((world_count, INPUT_COUNT), dtype=scalar, device=device)
         self.unit_step = wp.ones(1, dtype=wp.float64, device=device)
         self._stabilizers = Stabilizers()
         self._gravity_on = False
         self._drag_on = False
-        self._tracks: dict[str, Track] = {}
+        self._tracks: dict[str, list] = {}  # input name -> its track in each world (None: not animated there)
         self._pin_tracks: list[Track] = []
         self.track_table = TrackTable([], device)
 
@@ -234,14 +252,24 @@ class Model:
     def _structure_changed(self) -> None:
         object.__setattr__(self, "revision", self.revision + 1)
 
+    @property
+    def particle_dim(self) -> tuple[int, int]:
+        """The launch grid of per-particle kernels: (world_count, particle_count)."""
+        return (self.world_count, self.particle_count)
+
+    @property
+    def state_size(self) -> int:
+        """Entries of a state's per-particle arrays: world_count · particle_count."""
+        return self.world_count * self.particle_count
+
     # -- live inputs ------------------------------------------------------------------------------------------
 
     @property
     def gravity(self) -> tuple:
-        """Gravitational acceleration [m/s²], 3 floats. Set a 3-vector between frames (a keyframe track:
-        :meth:`set_track`). Reading it reads the device (the value a track wrote last, if animated)."""
-        slot, width = INPUTS["gravity"]
-        return tuple(float(g) for g in self.inputs.numpy()[0, slot : slot + width])
+        """Gravitational acceleration [m/s²], 3 floats (world 0's; every world's: ``world_values("gravity")``).
+        Setting a 3-vector between frames sets it in every world (per world: :meth:`set_world_values`; a
+        keyframe track: :meth:`set_track`). Reading it reads the device (the value a track wrote last)."""
+        return tuple(float(g) for g in self.world_values("gravity")[0])
 
     @gravity.setter
     def gravity(self, value) -> None:
@@ -253,9 +281,10 @@ class Model:
 
     @property
     def drag(self) -> float:
-        """Viscous drag coefficient [N·s/m]: f = -drag · v on every particle. Set a number ≥ 0 between
-        frames (a keyframe track: :meth:`set_track`). Reading it reads the device."""
-        return float(self.inputs.numpy()[0, INPUTS["drag"][0]])
+        """Viscous drag coefficient [N·s/m]: f = -drag · v on every particle (world 0's). Setting a number
+        ≥ 0 between frames sets it in every world (per world: :meth:`set_world_values`; a keyframe track:
+        :meth:`set_track`). Reading it reads the device."""
+        return float(self.world_values("drag")[0, 0])
 
     @drag.setter
     def drag(self, value) -> None:
@@ -291,30 +320,34 @@ class Model:
             if not value.enabled(name):
                 self._tracks.pop(name, None)
                 continue
-            if name not in self._tracks or getattr(value, name) != getattr(self._stabilizers, name):
+            if not self._stabilizers.enabled(name) or getattr(value, name) != getattr(self._stabilizers, name):
                 self._set_constant(name, np.array([getattr(value, name)], dtype=np.float64))
         self._stabilizers = value
         if changed:
             self._rebuild_tracks()
             self._structure_changed()
 
-    def set_track(self, name: str, track: Track | None) -> None:
+    def set_track(self, name: str, track: Track | None, *, world: int | None = None) -> None:
         """Animate the live input ``name`` by a keyframe :class:`Track`, or stop animating it (``None``: it
-        keeps the value the track gave it last).
+        keeps the value the track gave it last), in every world or in one (``world``).
 
         Inputs: "gravity" (3-vectors, [m/s²]), "drag" [N·s/m], and the thresholds of the stabilisers that
         are on: "max_spring_force" [N], "max_particle_force" [N], "max_speed" [m/s], "max_strain" [-],
         "biphasic_strain" [-], "biphasic_ratio" [-]. The track is evaluated on the device at the time of
-        every state the integrators evaluate (stages included). A structural change.
+        every state the integrators evaluate (stages included), in each world at that world's time. A
+        structural change.
 
         Raises:
-            ConfigError: an unknown input, a track of the wrong width, or a threshold of a stabiliser that is off.
+            ConfigError: an unknown input, a track of the wrong width, a threshold of a stabiliser that is
+                off, or a world out of range.
         """
         track = input_track(name, track)
+        worlds = self._world_rows(world)
+        current = self._tracks.get(name, [None] * self.world_count)
         if track is None:
-            if self._tracks.pop(name, None) is not None:
-                self._rebuild_tracks()
-                self._structure_changed()
+            if any(current[w] is not None for w in worlds):
+                current = [None if w in worlds else t for w, t in enumerate(current)]
+                self._store_tracks(name, current)
             return
         if name in STABILIZER_INPUTS and not self._stabilizers.enabled(name):
             owner = "biphasic_strain" if name == "biphasic_ratio" else name
@@ -324,18 +357,185 @@ class Model:
             )
         self._check_input(name, track.values, "a key of a track of")
         # Until a step evaluates it, the input holds the track's value at t = 0.
-        self._write_input(name, track.sample(0.0)[0][0])
+        self._write_input(name, track.sample(0.0)[0][0], worlds)
         if name == "gravity":
             self._gravity_on = True
         elif name == "drag":
             self._drag_on = True
-        self._tracks[name] = track
+        self._store_tracks(name, [track if w in worlds else t for w, t in enumerate(current)])
+
+    def set_pin_group_tracks(self, group, *, translation: Track | None = None, rotation: Track | None = None,
+                             world: int | None = None) -> None:
+        """Move a track-driven pin group by other tracks, in every world or in one (``world``): the translation
+        T(t) [m] and the rotation vector φ(t) [rad] about the group's pivot (see ``ModelBuilder.add_pin_group``;
+        ``None``: that part of the motion is absent). A structural change (the track table is rebuilt).
+
+        Raises:
+            ConfigError: no such group, a group driven through Control, neither track given, or a track of
+                the wrong width.
+        """
+        pins = self.pin_groups
+        try:
+            g = pins.group_index(group) if pins is not None else None
+        except KeyError as exc:
+            raise ConfigError(str(exc.args[0])) from None
+        if g is None:
+            raise ConfigError("the model has no pin groups: add one with ModelBuilder.add_pin_group(particles)")
+        if pins.groups[g].driver != "tracks":
+            raise ConfigError(f"pin group {pins.groups[g].name!r} is driven through Control: it has no tracks to replace")
+        if translation is None and rotation is None:
+            raise ConfigError("give a translation track, a rotation track, or both")
+        pair = (None if translation is None else as_track("a pin group translation", translation, 3),
+                None if rotation is None else as_track("a pin group rotation", rotation, 3))
+        rows = pins.world_tracks or [[(p.translation, p.rotation) for p in pins.groups]] * self.world_count
+        rows = [list(row) for row in rows]
+        for w in self._world_rows(world):
+            rows[w][g] = pair
+        self._pin_tracks = []
+        for t in (t for row in rows for pair in row for t in pair):
+            if t is not None and not any(t is u for u in self._pin_tracks):
+                self._pin_tracks.append(t)
+        self._rebuild_tracks()
+        self.__dict__["pin_groups"] = pins.retrack(rows, self.track_table.index, self.device)
+        self._structure_changed()
+
+    def track(self, name: str, *, world: int = 0) -> Track | None:
+        """The track animating the live input ``name`` in ``world``, or ``None``."""
+        return self._tracks.get(name, [None] * self.world_count)[self._world_rows(world)[0]]
+
+    def _store_tracks(self, name: str, per_world: list) -> None:
+        if any(t is not None for t in per_world):
+            self._tracks[name] = per_world
+        else:
+            self._tracks.pop(name, None)
         self._rebuild_tracks()
         self._structure_changed()
 
-    def track(self, name: str) -> Track | None:
-        """The track animating the live input ``name``, or ``None``."""
-        return self._tracks.get(name)
+    # -- worlds -------------------------------------------------------------------------------------------------
+
+    def _world_rows(self, world: int | None) -> list[int]:
+        """The worlds a call addresses: all (``None``) or one, checked."""
+        if world is None:
+            return list(range(self.world_count))
+        w = checks.count("world", world, minimum=0)
+        if w >= self.world_count:
+            raise ConfigError(f"world {w} does not exist: the model has {self.world_count} world(s), 0..{self.world_count - 1}")
+        return [w]
+
+    def set_world_values(self, name: str, values) -> None:
+        """Give each world its own value of a parameter (or one value for all worlds).
+
+        ``values`` is broadcast (NumPy rules) to the parameter's per-world shape:
+
+        * a live input (``gravity`` [m/s²]: shape [world_count, 3]; ``drag`` [N·s/m] and the stabiliser
+          thresholds: [world_count]): written into each world's row of the input table, stopping any
+          track of it; a value write (nothing compiles or re-captures, unless it switches gravity or drag on);
+        * ``spring_stiffness`` [N/m] or ``spring_damping`` [N·s/m]: shape [world_count, spring_count], or
+          [spring_count] for one value per spring in every world; ``particle_mass`` [kg]: shape
+          [world_count, particle_count] or [particle_count]. One row for all worlds is stored once
+          (the kernels broadcast it); a change between one row and one per world replaces the array (a
+          structural change: the next frame re-captures).
+
+        E.g. a sweep of stiffness over 16 worlds:
+        ``model.set_world_values("spring_stiffness", ke[None, :] * np.geomspace(0.1, 10, 16)[:, None])``.
+
+        Raises:
+            ConfigError: an unknown name, a shape that does not broadcast, or a value out of range.
+        """
+        if name in INPUTS:
+            slot, width = INPUTS[name]
+            try:
+                table = np.broadcast_to(np.asarray(values, dtype=np.float64).reshape(-1, width) if width == 3 else
+                                        np.asarray(values, dtype=np.float64).reshape(-1, 1), (self.world_count, width))
+            except ValueError:
+                raise ConfigError(f"per-world {name} must broadcast to shape ({self.world_count}, {width}) or "
+                                  f"({self.world_count},), got shape {np.shape(values)}") from None
+            if name in STABILIZER_INPUTS and not self._stabilizers.enabled(name):
+                raise ConfigError(f"cannot set {name} per world: its stabiliser is off; switch it on first")
+            self._write_input(name, table, list(range(self.world_count)))
+            if name in self._tracks:
+                self._tracks.pop(name)
+                self._rebuild_tracks()
+                self._structure_changed()
+            if name == "gravity" and table.any() and not self._gravity_on:
+                self._gravity_on = True
+                self._structure_changed()
+            if name == "drag" and table.any() and not self._drag_on:
+                self._drag_on = True
+                self._structure_changed()
+            return
+        columns = {"spring_stiffness": self.spring_count, "spring_damping": self.spring_count,
+                   "particle_mass": self.particle_count}
+        if name not in columns:
+            raise ConfigError(f"there is no per-world parameter {name!r}; parameters: "
+                              f"{', '.join(list(columns) + list(INPUTS))}")
+        count = columns[name]
+        array = np.asarray(values, dtype=np.float64)
+        rows = 1 if array.ndim <= 1 else self.world_count
+        try:
+            table = np.broadcast_to(array, (rows, count))
+        except ValueError:
+            raise ConfigError(f"per-world {name} must broadcast to shape ({self.world_count}, {count}) or ({count},), "
+                              f"got shape {array.shape}") from None
+        if not np.isfinite(table).all():
+            raise ConfigError(f"per-world {name} must be finite")
+        if name == "particle_mass" and not (table > 0.0).all():
+            raise ConfigError("per-world particle_mass must be > 0 (pin a particle to make it immovable)")
+        if name != "particle_mass" and (table < 0.0).any():
+            raise ConfigError(f"per-world {name} must be >= 0, got {table.min():g}")
+        targets = [(name, table)]
+        if name == "particle_mass":
+            targets.append(("particle_inv_mass", 1.0 / table))
+        for attribute, data in targets:
+            with np.errstate(over="ignore"):
+                cast = data.astype(np.float32 if self.scalar is wp.float32 else np.float64)
+            if not np.isfinite(cast).all():
+                raise ConfigError(f"per-world {name} overflows {self.precision}")
+            current = getattr(self, attribute)
+            if current.shape == cast.shape:
+                current.assign(cast)
+            else:
+                setattr(self, attribute, wp.array(np.ascontiguousarray(cast), dtype=self.scalar, device=self.device))
+
+    def world_values(self, name: str) -> np.ndarray:
+        """Every world's value of a per-world parameter (see :meth:`set_world_values`), float64, shape
+        [world_count, width] for a live input and [world_count, count] for the others (reads the device)."""
+        if name in INPUTS:
+            slot, width = INPUTS[name]
+            return self.inputs.numpy()[:, slot : slot + width].astype(np.float64)
+        if name not in ("spring_stiffness", "spring_damping", "particle_mass", "particle_inv_mass"):
+            raise ConfigError(f"there is no per-world parameter {name!r}")
+        values = getattr(self, name).numpy().astype(np.float64)
+        return np.broadcast_to(values, (self.world_count, values.shape[1]))
+
+    def set_world_enabled(self, worlds, enabled: bool = True) -> None:
+        """Step (``enabled=True``) or hold worlds between frames: a held world keeps its state (positions,
+        velocities, time) unchanged by every step until it is enabled again. A live value: nothing compiles
+        or re-captures, but the first call switches on the pass that holds worlds (a structural change).
+
+        Args:
+            worlds: a world index or indices.
+            enabled: whether they are stepped.
+        """
+        idx = np.unique(np.asarray(worlds, dtype=np.int64).ravel())
+        if len(idx) and (idx.min() < 0 or idx.max() >= self.world_count):
+            raise ConfigError(f"world index out of range: valid indices are 0..{self.world_count - 1}")
+        flags = self.world_enabled.numpy()
+        flags[idx] = 1 if enabled else 0
+        self.world_enabled.assign(flags)
+        self.hold_worlds()
+
+    def hold_worlds(self) -> None:
+        """Switch on the pass that keeps held worlds (``world_enabled`` 0) unchanged by a step (a structural
+        change, once; the run-time guard does it when it may stop single worlds)."""
+        if not self._world_hold:
+            self._world_hold = True
+            self._structure_changed()
+
+    @property
+    def holds_worlds(self) -> bool:
+        """Whether steps run the pass that keeps held worlds unchanged."""
+        return self._world_hold
 
     def _check_input(self, name: str, values: np.ndarray, what: str = "") -> None:
         """Raise a ConfigError unless every value of the input ``name`` is finite, within its bound and
@@ -352,33 +552,48 @@ class Model:
                 raise ConfigError(f"{label} overflows {self.precision} (largest magnitude {np.abs(values).max():.3g})")
 
     def _set_constant(self, name: str, values: np.ndarray) -> None:
-        """Write a constant value of an input to the device and stop animating it."""
-        self._write_input(name, values)
+        """Write a constant value of an input to every world and stop animating it."""
+        self._write_input(name, values, list(range(self.world_count)))
         if self._tracks.pop(name, None) is not None:
             self._rebuild_tracks()
             self._structure_changed()
 
-    def _write_input(self, name: str, values: np.ndarray) -> None:
-        """Check and write a value of an input into its columns of the device table."""
+    def _write_input(self, name: str, values: np.ndarray, worlds: list[int]) -> None:
+        """Check and write a value of an input (one for all ``worlds``, or one row each) into its columns of
+        those worlds' rows of the device table."""
         slot, width = INPUTS[name]
-        values = np.asarray(values, dtype=np.float64).reshape(1, width)
+        values = np.broadcast_to(np.asarray(values, dtype=np.float64).reshape(-1, width), (len(worlds), width))
         self._check_input(name, values)
-        wp.copy(self.inputs, wp.array(values, dtype=self.scalar, device="cpu"), dest_offset=slot, count=width)
+        if len(worlds) == self.world_count == 1:
+            wp.copy(self.inputs, wp.array(values, dtype=self.scalar, device="cpu"), dest_offset=slot, count=width)
+        else:
+            table = self.inputs.numpy()
+            table[worlds, slot : slot + width] = values
+            self.inputs.assign(table)
         self.input_version += 1
 
     def _rebuild_tracks(self) -> None:
         # Pin groups' tracks come first, so their indices (held by the pin-group table) never move.
         names = tuple(self._tracks)
-        self.__dict__["track_table"] = TrackTable(self._pin_tracks + [self._tracks[n] for n in names], self.device)
+        tracks = list(self._pin_tracks)
+        for name in names:
+            for t in self._tracks[name]:
+                if t is not None and not any(t is u for u in tracks):
+                    tracks.append(t)
+        table = TrackTable(tracks, self.device)
+        self.__dict__["track_table"] = table
         if not names:
             self.__dict__["input_tracks"] = None
             return
-        first = len(self._pin_tracks)
+        entries = [(table.index(t), w, *INPUTS[name]) for name in names for w, t in enumerate(self._tracks[name])
+                   if t is not None]
+        track, world, slot, width = (np.array(column, dtype=np.int32) for column in zip(*entries))
         self.__dict__["input_tracks"] = InputTracks(
             names=names,
-            track=wp.array(np.arange(first, first + len(names)), dtype=wp.int32, device=self.device),
-            slot=wp.array([INPUTS[n][0] for n in names], dtype=wp.int32, device=self.device),
-            width=wp.array([INPUTS[n][1] for n in names], dtype=wp.int32, device=self.device),
+            track=wp.array(track, dtype=wp.int32, device=self.device),
+            world=wp.array(world, dtype=wp.int32, device=self.device),
+            slot=wp.array(slot, dtype=wp.int32, device=self.device),
+            width=wp.array(width, dtype=wp.int32, device=self.device),
         )
 
     # -- derived feature sets (what the kernels are specialized for) -------------------------------------------
@@ -399,12 +614,15 @@ class Model:
             clamp_particle_force=self._stabilizers.max_particle_force is not None,
         )
 
-    def kinematic_mask(self) -> np.ndarray:
-        """Which particles are kinematic (pinned), bool, shape [particle_count] (reads the device)."""
-        return (self.particle_flags.numpy() & PARTICLE_KINEMATIC) != 0
+    def kinematic_mask(self, *, world: int = 0) -> np.ndarray:
+        """Which particles of ``world`` are kinematic (pinned), bool, shape [particle_count] (reads the device)."""
+        w = self._world_rows(world)[0]
+        flags = self.particle_flags.numpy()[w * self.particle_count : (w + 1) * self.particle_count]
+        return (flags & PARTICLE_KINEMATIC) != 0
 
-    def set_kinematic(self, particles, kinematic: bool = True) -> None:
-        """Pin (``kinematic=True``) or release particles between frames, by global index: a live value.
+    def set_kinematic(self, particles, kinematic: bool = True, *, world: int | None = None) -> None:
+        """Pin (``kinematic=True``) or release particles between frames, by index within a world, in every
+        world or in one (``world``): a live value.
 
         A released particle is integrated from its current position and velocity at the next step (a pin of
         a group stops following the group); a newly pinned one moves on with its velocity. Nothing compiles
@@ -412,7 +630,7 @@ class Model:
         again (the kinematics pass keeps the list of those).
 
         Raises:
-            ConfigError: an index out of range, or a particle the pin groups' list does not hold.
+            ConfigError: an index or world out of range, or a particle the pin groups' list does not hold.
         """
         idx = np.unique(np.asarray(particles, dtype=np.int64).ravel())
         if len(idx) and (idx.min() < 0 or idx.max() >= self.particle_count):
@@ -424,14 +642,16 @@ class Model:
                     f"particle {int(new[0])} was not pinned when this model (which has pin groups) was built, so it "
                     "cannot be pinned mid-run: pin it in the builder (pin_particles) and release it until needed"
                 )
+        entries = (np.array(self._world_rows(world))[:, None] * self.particle_count + idx[None, :]).ravel()
         flags = self.particle_flags.numpy()
-        flags[idx] = np.where(kinematic, flags[idx] | PARTICLE_KINEMATIC, flags[idx] & ~PARTICLE_KINEMATIC)
+        flags[entries] = np.where(kinematic, flags[entries] | PARTICLE_KINEMATIC, flags[entries] & ~PARTICLE_KINEMATIC)
         self.particle_flags.assign(flags)
 
-    def dynamic_inv_mass(self) -> np.ndarray:
-        """The inverse masses the dynamics sees [1/kg], float64, shape [particle_count]: 1/m, and 0 for
-        kinematic particles (reads the device)."""
-        return np.where(self.kinematic_mask(), 0.0, self.particle_inv_mass.numpy().astype(np.float64))
+    def dynamic_inv_mass(self, *, world: int = 0) -> np.ndarray:
+        """The inverse masses the dynamics sees in ``world`` [1/kg], float64, shape [particle_count]: 1/m, and 0
+        for kinematic particles (reads the device)."""
+        w = self._world_rows(world)[0]
+        return np.where(self.kinematic_mask(world=w), 0.0, self.world_values("particle_inv_mass")[w])
 
     # -- factories ----------------------------------------------------------------------------------------------
 
@@ -443,7 +663,7 @@ class Model:
             particle_q=wp.clone(self.particle_q),
             particle_qd=wp.clone(self.particle_qd),
             particle_f=wp.zeros_like(self.particle_q),
-            time=wp.zeros(1, dtype=wp.float64, device=self.device),
+            time=wp.zeros(self.world_count, dtype=wp.float64, device=self.device),
         )
         apply_kinematics(self, None, state, state.particle_q, state.particle_qd, 0.0)
         return state
@@ -458,8 +678,9 @@ class Model:
         pins = ""
         if self.pin_groups is not None:
             pins = f", {len(self.pin_groups.groups)} pin group(s)"
+        worlds = f"{self.world_count} worlds of " if self.world_count > 1 else ""
         return (
-            f"{self.particle_count} particles, {self.spring_count} springs, {self.tri_count} triangles{pins}, "
+            f"{worlds}{self.particle_count} particles, {self.spring_count} springs, {self.tri_count} triangles{pins}, "
             f"colliders: {shapes} ({self.precision} on {self.device})"
         )
 
@@ -468,13 +689,17 @@ class Model:
 class State:
     """Everything a step changes.
 
+    Every array holds all worlds of the model, world-major: particle i of world w is entry
+    w · particle_count + i (``state.particle_q.numpy().reshape(world_count, particle_count, 3)``).
+
     Attributes:
-        particle_q: positions [m], shape [particle_count].
-        particle_qd: velocities [m/s], shape [particle_count].
-        particle_f: forces [N], shape [particle_count]; ``eval_forces`` writes it, and integrators write
-            the forces at ``state_in`` into ``state_in.particle_f`` (fused gather kernels skip it).
-        time: the state's time [s], float64, shape [1], on the device: every step advances it by its dt,
-            and keyframe tracks and driven pins are evaluated at it.
+        particle_q: positions [m], shape [world_count · particle_count].
+        particle_qd: velocities [m/s], shape [world_count · particle_count].
+        particle_f: forces [N], shape [world_count · particle_count]; ``eval_forces`` writes it, and
+            integrators write the forces at ``state_in`` into ``state_in.particle_f`` (fused gather kernels
+            skip it).
+        time: each world's time [s], float64, shape [world_count], on the device: every step advances it by
+            its dt (a held world's stays), and keyframe tracks and driven pins are evaluated at it.
     """
 
     particle_q: wp.array
@@ -511,8 +736,8 @@ class Control:
 
     Attributes:
         model: the model it belongs to.
-        particle_force: external force per particle [N], shape [particle_count], or ``None`` when the
-            scene applies none (then no kernel reads it).
+        particle_force: external force per particle [N], shape [world_count · particle_count], or ``None``
+            when the scene applies none (then no kernel reads it).
         pin_targets: targets of the pin groups driven through Control (a device struct; see
             :meth:`set_pin_targets`), or ``None`` when the model has no such group.
         revision: counts structural changes (an input allocated or replaced): a Stepper re-captures.
@@ -523,7 +748,8 @@ class Control:
         self.model = model
         self.particle_force = None
         pins = model.pin_groups
-        self.pin_targets = pins.new_targets(model.device) if pins is not None and pins.control_driven else None
+        self.pin_targets = (pins.new_targets(model.device, model.world_count) if pins is not None and pins.control_driven
+                            else None)
 
     def __setattr__(self, name: str, value) -> None:
         # Replacing an input (an array a captured graph points to) is a structural change.
@@ -539,27 +765,29 @@ class Control:
             self.pin_targets.time.fill_(NO_TARGET_TIME)
 
     def set_particle_force(self, force) -> None:
-        """Set the external force [N]: one 3-vector for every particle, or an array of shape [particle_count, 3].
+        """Set the external force [N]: one 3-vector for every particle, an array of shape
+        [particle_count, 3] (the same in every world), or [world_count, particle_count, 3].
 
         The array is allocated on first use (a structural change); later calls overwrite it in place, so
         captured graphs see the new values.
         """
         model = self.model
+        n, worlds = model.particle_count, model.world_count
         values = np.asarray(force, dtype=np.float64)
-        if values.shape == (3,):
-            values = np.broadcast_to(values, (model.particle_count, 3))
-        if values.shape != (model.particle_count, 3):
+        try:
+            values = np.broadcast_to(values, (worlds, n, 3)).reshape(worlds * n, 3)
+        except ValueError:
             raise ConfigError(
-                f"particle force must have shape (3,) or ({model.particle_count}, 3), got {values.shape}"
-            )
+                f"particle force must have shape (3,), ({n}, 3) or ({worlds}, {n}, 3), got {values.shape}"
+            ) from None
         if not np.isfinite(values).all():
             raise ConfigError("particle force contains NaN or infinite values")
         host = wp.array(values, dtype=model.vec3, device="cpu")
         if self.particle_force is None:
-            self.particle_force = wp.empty(model.particle_count, dtype=model.vec3, device=model.device)
+            self.particle_force = wp.empty(worlds * n, dtype=model.vec3, device=model.device)
         wp.copy(self.particle_force, host)
 
-    def set_pin_targets(self, group, positions, *, time: float) -> None:
+    def set_pin_targets(self, group, positions, *, time: float, world: int | None = None) -> None:
         """Send the particles of a control-driven pin group to ``positions`` [m], reached at ``time`` [s].
 
         From the state the next step starts at, each particle moves in a straight line at the constant
@@ -569,8 +797,10 @@ class Control:
 
         Args:
             group: the group's index or name (a group added with ``add_pin_group`` without tracks).
-            positions: shape [n, 3] for the group's n particles in ascending index order (or [3] when n = 1).
+            positions: shape [n, 3] for the group's n particles in ascending index order (or [3] when n = 1);
+                with ``world=None``, also [world_count, n, 3] (each world its own targets).
             time: when the targets are reached [s].
+            world: the world whose group is sent, or ``None``: every world.
         """
         pins = self.model.pin_groups
         try:
@@ -583,14 +813,21 @@ class Control:
         if pin_group.driver != "control":
             raise ConfigError(f"pin group {pin_group.name!r} is driven by its tracks, not by Control")
         n = len(pin_group.particles)
+        worlds = self.model._world_rows(world)
         values = np.asarray(positions, dtype=np.float64)
         if values.shape == (3,) and n == 1:
             values = values[None]
-        if values.shape != (n, 3) or not np.isfinite(values).all():
-            raise ConfigError(f"pin group {pin_group.name!r} needs {n} finite target positions, shape ({n}, 3); "
-                              f"got shape {values.shape}")
+        if values.ndim == 2:
+            values = np.broadcast_to(values, (len(worlds), *values.shape))
+        if values.shape != (len(worlds), n, 3) or not np.isfinite(values).all():
+            raise ConfigError(f"pin group {pin_group.name!r} needs {n} finite target positions, shape ({n}, 3) (or "
+                              f"({len(worlds)}, {n}, 3): one set per world); got shape {np.shape(positions)}")
         when = checks.number("pin target time", time)
         part = pins.slices[g]
-        wp.copy(self.pin_targets.position, wp.array(values, dtype=wp.vec3d, device="cpu"), dest_offset=part.start,
-                count=n)
-        wp.copy(self.pin_targets.time, wp.array([when], dtype=wp.float64, device="cpu"), dest_offset=g, count=1)
+        kinematic, groups = pins.count, len(pins.groups)
+        for k, w in enumerate(worlds):
+            wp.copy(self.pin_targets.position, wp.array(values[k], dtype=wp.vec3d, device="cpu"),
+                    dest_offset=w * kinematic + part.start, count=n)
+        time_row = self.pin_targets.time.numpy()
+        time_row[worlds, g] = when
+        self.pin_targets.time.assign(time_row)

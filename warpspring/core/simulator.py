@@ -28,9 +28,15 @@ class Simulator:
         control: time-varying inputs; default ``model.control()``.
         use_graph: capture each frame as a graph (a CUDA graph, or Warp's CPU graph); off runs the same
             launches from Python every frame (for debugging). Both give the same result bit for bit.
-        guard: run-time checks (non-finite state, torn springs, runaway energy) made on the device
-            every ``guard.every`` substeps; a failure raises :class:`SimulationError` at the end of
-            the frame. ``None`` disables them (and the per-frame read of their record).
+        guard: run-time checks (non-finite state, torn springs, runaway energy) made on the device, per
+            world, every ``guard.every`` substeps; a failure raises :class:`SimulationError` at the end of
+            the frame, or with ``GuardLimits(stop="world")`` holds the failed world, records it in
+            :attr:`world_failures` and goes on with the others. ``None`` disables them (and the per-frame
+            read of their record).
+
+    Attributes:
+        world_failures: the worlds stopped by the guard (``stop="world"``) so far: world → (frame, report),
+            the frame being the one during which it failed (its last valid frame is the one before).
     """
 
     def __init__(
@@ -60,6 +66,7 @@ class Simulator:
             use_graph=use_graph,
         )
         self.frame = 0
+        self.world_failures: dict = {}
 
     @property
     def integrator(self) -> Integrator:
@@ -98,8 +105,14 @@ class Simulator:
             if failure is not None:
                 raise SimulationError(f"frame {self.frame + 1}: {failure}", frame=self.frame + 1)
         if self.guard is not None:
-            report = self.guard.report()
-            if report is not None:
+            reports = self.guard.reports()
+            if reports and self.guard.limits.stop == "world":
+                for report in reports:
+                    self.world_failures[report.world] = (self.frame + 1, report)
+                if len(self.world_failures) < self.model.world_count:
+                    reports = []
+            if reports:
+                report = min(reports, key=lambda r: (r.substep, r.world))
                 raise SimulationError(
                     f"frame {self.frame + 1}, substep {report.substep + 1} of {self.substeps} "
                     f"(t ≤ {self.time + (report.substep + 1) * self.dt:.4g} s): {report.describe(self.model)}",
@@ -107,6 +120,12 @@ class Simulator:
                     substep=report.substep + 1,
                 )
         self.frame += 1
+
+    def describe_failure(self, world: int) -> str:
+        """One line on why the guard stopped ``world`` (a key of :attr:`world_failures`)."""
+        frame, report = self.world_failures[world]
+        return (f"world {world} stopped at frame {frame}, substep {report.substep + 1} of {self.substeps}: "
+                f"{report.describe(self.model, name_world=False)}")
 
     def set_pin_targets(self, group, positions) -> None:
         """Send a control-driven pin group to ``positions`` [m] by the end of the next frame (see
@@ -122,3 +141,6 @@ class Simulator:
         self.state.time.zero_()
         self.control.clear_pin_targets()  # they were set for times of the run before
         self.frame = 0
+        if self.world_failures:
+            self.model.set_world_enabled(list(self.world_failures), True)
+            self.world_failures = {}

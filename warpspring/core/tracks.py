@@ -208,15 +208,15 @@ class TrackTable:
 
 
 def evaluate_input_tracks(model, state) -> None:
-    """Write the model's animated inputs at the time of ``state`` into its input table (device work only;
-    nothing is launched when no input is animated)."""
+    """Write the model's animated inputs at the time of ``state`` into its input table, each world's at that
+    world's time (device work only; nothing is launched when no input is animated)."""
     animated = model.input_tracks
     if animated is None:
         return
     wp.launch(
         apply_input_tracks_kernel(model.scalar),
         dim=animated.count,
-        inputs=[model.track_table.table, animated.track, animated.slot, animated.width, state.time],
+        inputs=[model.track_table.table, animated.track, animated.world, animated.slot, animated.width, state.time],
         outputs=[model.inputs],
         device=model.device,
     )

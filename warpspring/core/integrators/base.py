@@ -7,6 +7,7 @@ import abc
 import numpy as np
 import warp as wp
 
+from ...kernels.worlds import hold_worlds_kernel
 from ..constraints import StepFinisher
 from ..model import Control, Model, State
 
@@ -45,6 +46,17 @@ class Integrator(abc.ABC):
         self.model = model
         self.finish_step = StepFinisher(model)  # strain limiting, speed clamp, contacts: call on the result
 
+    def hold_worlds(self, state_in: State, state_out: State) -> None:
+        """Keep the held worlds (``model.world_enabled`` 0) of ``state_in`` unchanged in ``state_out``: the last
+        launch of every step, and only in models that may hold worlds (``Model.holds_worlds``)."""
+        model = self.model
+        if not model.holds_worlds:
+            return
+        wp.launch(hold_worlds_kernel(model.scalar), dim=model.particle_dim, block_dim=model.block_dim,
+                  inputs=[model.particle_count, model.world_enabled, state_in.particle_q, state_in.particle_qd,
+                          state_in.time],
+                  outputs=[state_out.particle_q, state_out.particle_qd, state_out.time], device=model.device)
+
     def reset(self) -> None:
         """Forget what earlier steps left behind (step-size control, solver warm starts), so the next step
         behaves as the first. Stateless integrators have nothing to forget."""
@@ -63,6 +75,7 @@ class Integrator(abc.ABC):
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         """Advance ``state_in`` by ``dt`` [s] under ``control`` and write the result to ``state_out``.
 
+        Every world of the model is stepped (held worlds are left as they are: :meth:`hold_worlds`).
         ``state_out.time`` becomes ``state_in.time`` + dt; kinematic particles follow their prescribed
         motion; animated inputs are evaluated at the time of every state whose forces are evaluated.
         ``state_in`` is not modified (but for its forces, ``particle_f``); the caller swaps the two states

@@ -6,9 +6,11 @@ their difference estimates the local error, scaled per component by atol + rtol�
 ``tolerance``) and max-reduced over particles. A step with scaled error ≤ 1 is accepted; the next step
 is h·min(5, max(0.2, 0.9·err^(-1/5))) (no growth right after a rejection), cut short to land on ``dt``.
 
-The controller lives on the device (``kernels/integrators.step_control_kernels``) and the internal
-steps run inside ``wp.capture_while``: no host synchronisation, so frames of adaptive steps capture
-into graphs like every other integrator. The tolerance and the step budget live in the controller's
+The controller lives on the device (``kernels/integrators.step_control_kernels``), one per world: each
+world chooses its own steps and rejections from its own error (a world that reached the end of the
+interval waits, untouched, while the others finish). The internal steps run inside ``wp.capture_while``
+until every world is done: no host synchronisation, so frames of adaptive steps capture into graphs like
+every other integrator. The tolerance and the step budget live in the controller's
 device array too: changing them between frames changes no captured launch.
 """
 
@@ -21,15 +23,16 @@ from ... import checks
 from ...kernels.integrators import (
     STEP_ACCEPTED,
     STEP_CONTROL_SLOTS,
+    STEP_COUNTERS,
     STEP_FAILED,
     STEP_MAX_ATTEMPTS,
     STEP_PROPOSED,
     STEP_REJECTED,
-    STEP_SIZE,
     STEP_TOLERANCE,
     rk_error_kernel,
     step_control_kernels,
 )
+from ...kernels.linalg import reduce_lanes, reduce_launch_dim
 from ..forces import eval_forces
 from ..model import Control, Model, State
 from .base import write_setting
@@ -67,11 +70,16 @@ class DormandPrince(ExplicitRungeKutta):
         super().__init__(model)
         device = model.device
         self._y = model.state()  # the solution during a step, advanced in place by each accepted step
-        self._control = wp.zeros(STEP_CONTROL_SLOTS, dtype=wp.float64, device=device)
-        self._counters = wp.zeros(5, dtype=wp.int32, device=device)
+        worlds = model.world_count
+        self._control = wp.zeros((worlds, STEP_CONTROL_SLOTS), dtype=wp.float64, device=device)
+        self._counters = wp.zeros((worlds, STEP_COUNTERS), dtype=wp.int32, device=device)
         self._keep_going = wp.zeros(1, dtype=wp.int32, device=device)
+        self._tiled = device.is_cuda
+        self._lanes = reduce_lanes(model.particle_count, model.block_dim, self._tiled)
+        self._error_partials = wp.zeros(reduce_launch_dim(worlds, model.particle_count, self._lanes)[:2],
+                                        dtype=wp.float64, device=device)
         self._error_weights = wp.types.vector(length=7, dtype=model.scalar)(*np.subtract(self.b, self.b_embedded))
-        self._step_size = self._control[STEP_SIZE : STEP_SIZE + 1]  # element 0: the step in use [s]
+        self._step_size = wp.zeros(worlds, dtype=wp.float64, device=device)  # each world's step in use [s]
         self.tolerance = tolerance
         self.max_steps = max_steps
 
@@ -83,7 +91,7 @@ class DormandPrince(ExplicitRungeKutta):
     @tolerance.setter
     def tolerance(self, value: float) -> None:
         self._tolerance = checks.positive("tolerance", value)
-        write_setting(self._control, STEP_TOLERANCE, self._tolerance)
+        self._write_setting(STEP_TOLERANCE, self._tolerance)
 
     @property
     def max_steps(self) -> int:
@@ -93,23 +101,36 @@ class DormandPrince(ExplicitRungeKutta):
     @max_steps.setter
     def max_steps(self, value: int) -> None:
         self._max_steps = checks.count("max_steps", value, minimum=1)
-        write_setting(self._control, STEP_MAX_ATTEMPTS, float(self._max_steps))
+        self._write_setting(STEP_MAX_ATTEMPTS, float(self._max_steps))
+
+    def _write_setting(self, slot: int, value: float) -> None:
+        for world in range(self.model.world_count):
+            write_setting(self._control, world * STEP_CONTROL_SLOTS + slot, value)
 
 
     @property
     def accepted_steps(self) -> int:
-        """Internal steps accepted since construction (reads the device)."""
-        return int(self._counters.numpy()[STEP_ACCEPTED])
+        """Internal steps accepted since construction, in world 0 (reads the device; every world's:
+        :meth:`world_steps`)."""
+        return int(self._counters.numpy()[0, STEP_ACCEPTED])
 
     @property
     def rejected_steps(self) -> int:
-        """Internal steps rejected since construction (reads the device)."""
-        return int(self._counters.numpy()[STEP_REJECTED])
+        """Internal steps rejected since construction, in world 0 (reads the device)."""
+        return int(self._counters.numpy()[0, STEP_REJECTED])
 
     @property
     def step_size(self) -> float:
-        """The internal step [s] the controller will try next (reads the device)."""
-        return float(self._control.numpy()[STEP_PROPOSED])
+        """The internal step [s] the controller of world 0 will try next (reads the device)."""
+        return float(self._control.numpy()[0, STEP_PROPOSED])
+
+    def world_steps(self) -> dict:
+        """Each world's controller since construction (reads the device): "accepted" and "rejected" internal
+        steps (int arrays, shape [world_count]), the "step_size" it will try next [s] and whether its last
+        interval "failed" (ran out of steps)."""
+        counters, control = self._counters.numpy(), self._control.numpy()
+        return {"accepted": counters[:, STEP_ACCEPTED].copy(), "rejected": counters[:, STEP_REJECTED].copy(),
+                "step_size": control[:, STEP_PROPOSED].copy(), "failed": counters[:, STEP_FAILED] != 0}
 
     def reset(self) -> None:
         """Forget the step-size history and zero the step counters (the settings stay)."""
@@ -122,12 +143,17 @@ class DormandPrince(ExplicitRungeKutta):
 
     def failure(self) -> str | None:
         """Why the last steps stopped short, or ``None`` (reads the device)."""
-        if self._counters.numpy()[STEP_FAILED] == 0:
+        steps = self.world_steps()
+        failed = np.flatnonzero(steps["failed"])
+        if len(failed) == 0:
             return None
+        where = f"in world {failed[0]} " if self.model.world_count > 1 else ""
+        if len(failed) > 1:
+            where = f"in {len(failed)} worlds (first: world {failed[0]}) "
         return (
-            f"dopri5 needed more than {self.max_steps} internal steps for one step (step size now "
-            f"{self.step_size:.3g} s): the state is diverging or the tolerance ({self.tolerance:g}) is too tight; "
-            "use an implicit integrator or loosen the tolerance"
+            f"dopri5 needed more than {self.max_steps} internal steps for one step {where}(step size now "
+            f"{steps['step_size'][failed[0]]:.3g} s): the state is diverging or the tolerance ({self.tolerance:g}) is "
+            "too tight; use an implicit integrator or loosen the tolerance"
         )
 
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
@@ -135,30 +161,37 @@ class DormandPrince(ExplicitRungeKutta):
         begin, decide, commit = step_control_kernels(model.scalar)
         y = self._y
         y.assign(state_in)
-        wp.launch(begin, dim=1, inputs=[wp.float64(dt)], outputs=[self._control, self._counters, self._keep_going],
-                  device=model.device)
+        worlds = model.world_count
+        self._keep_going.zero_()
+        wp.launch(begin, dim=worlds, inputs=[wp.float64(dt), model.world_enabled],
+                  outputs=[self._control, self._counters, self._step_size, self._keep_going], device=model.device)
         eval_forces(model, y, control, particle_f=self._stage_f[0])
 
         def attempt():
             self.eval_stages(y, control, self._step_size, first=False)
             self._measure_error(y)
-            wp.launch(decide, dim=1, outputs=[self._control, self._counters, self._keep_going], device=model.device)
+            wp.launch(decide, dim=worlds, inputs=[self._error_partials],
+                      outputs=[self._control, self._counters, self._step_size, self._keep_going], device=model.device)
             # The 5th-order solution is stage 6's state (a₆ = b), its force f(y_new) stage 0's next (FSAL).
-            wp.launch(commit, dim=model.particle_count, block_dim=model.block_dim,
-                      inputs=[self._counters, self._stage_q, self._stage_qd[6], self._stage_time, self._stage_f[6]],
+            wp.launch(commit, dim=model.particle_dim, block_dim=model.block_dim,
+                      inputs=[model.particle_count, self._counters, self._stage_q, self._stage_qd[6], self._stage_time,
+                              self._stage_f[6]],
                       outputs=[y.particle_q, y.particle_qd, y.time, self._stage_f[0]], device=model.device)
 
         wp.capture_while(self._keep_going, attempt)
         state_out.assign(y)
         self.finish_step(state_out, dt)
+        self.hold_worlds(state_in, state_out)
+
 
     def _measure_error(self, y: State) -> None:
         model = self.model
         wp.launch(
-            rk_error_kernel(model.scalar, 7),
-            dim=model.particle_count,
-            block_dim=model.block_dim,
+            rk_error_kernel(model.scalar, 7, self._tiled),
+            dim=reduce_launch_dim(model.world_count, model.particle_count, self._lanes),
+            block_dim=self._lanes,
             inputs=[
+                model.particle_count,
                 model.particle_flags,
                 model.particle_inv_mass,
                 y.particle_qd,
@@ -167,7 +200,9 @@ class DormandPrince(ExplicitRungeKutta):
                 self._error_weights,
                 self._stage_q,
                 self._stage_qd[6],
+                self._control,
+                self._counters,
             ],
-            outputs=[self._control],
+            outputs=[self._error_partials],
             device=model.device,
         )

@@ -7,14 +7,16 @@ Each step takes one Newton iteration of backward Euler:
 with the spring stiffness and damping Jacobians applied matrix-free (``kernels/implicit.py``), the
 compressive part of the spring Hessian clamped so the system stays positive definite, and kinematic
 particles filtered out (driven pins are put at t + h first; their prescribed Δv enters the right-hand side). The solve is block-Jacobi preconditioned CG (``kernels/linalg.py``) with every
-scalar on the device and the loop in ``wp.capture_while``: it stops when ‖r‖ ≤ tol·‖b‖, needs no host
-synchronisation, and a frame of implicit steps stays one graph. (Warp's own ``warp.optim.linear.cg``
+scalar on the device and the loop in ``wp.capture_while``: each world solves its own system, with its
+own scalars and stopping test, and stops when its ‖r‖ ≤ tol·‖b‖; the loop needs no host synchronisation,
+and a frame of implicit steps stays one graph. (Warp's own ``warp.optim.linear.cg``
 does the same on GPUs, but its tiled dot products cost ~0.5 ms each on the CPU, 30× our whole
 iteration there.)
 """
 
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 from ... import checks
@@ -23,12 +25,16 @@ from ...kernels.implicit import implicit_kernels
 from ...kernels.linalg import (
     CG_BB,
     CG_MAX_ITERATIONS,
+    CG_PAP,
     CG_RR_LAST,
+    CG_RZ_NEW,
     CG_SCALARS,
     CG_SETTINGS,
     CG_TOLERANCE,
     cg_kernels,
+    reduce_lanes,
     reduce_launch_dim,
+    sum_partials_kernel,
 )
 from ...kernels.precision import mat33_type
 from ..forces import eval_forces
@@ -54,18 +60,22 @@ class ImplicitEuler(Integrator):
 
     def __init__(self, model: Model, *, cg_iterations: int = 100, cg_tolerance: float = 1.0e-5):
         super().__init__(model)
-        n, vec3, device = model.particle_count, model.vec3, model.device
+        n, vec3, device = model.state_size, model.vec3, model.device
+        worlds = model.world_count
         self._settings = wp.zeros(CG_SETTINGS, dtype=wp.float64, device=device)
         self.cg_iterations = cg_iterations
         self.cg_tolerance = cg_tolerance
         self._tiled = device.is_cuda
-        self._block = model.block_dim if self._tiled else 1
+        self._lanes = reduce_lanes(model.particle_count, model.block_dim, self._tiled)
         self._rhs = wp.zeros(n, dtype=vec3, device=device)
         self._delta_qd = wp.zeros(n, dtype=vec3, device=device)
         self._diagonal_inverse = wp.zeros(n, dtype=mat33_type(model.scalar), device=device)
         self._r, self._z, self._p, self._a_p = (wp.zeros(n, dtype=vec3, device=device) for _ in range(4))
-        self._scalars = wp.zeros(CG_SCALARS, dtype=wp.float64, device=device)
-        self._iteration = wp.zeros(1, dtype=wp.int32, device=device)
+        grid = reduce_launch_dim(worlds, model.particle_count, self._lanes)
+        self._partials = wp.zeros((worlds, grid[1], CG_SCALARS), dtype=wp.float64, device=device)
+        self._scalars = wp.zeros((worlds, CG_SCALARS), dtype=wp.float64, device=device)
+        self._iteration = wp.zeros(worlds, dtype=wp.int32, device=device)
+        self._active = wp.zeros(worlds, dtype=wp.int32, device=device)
         self._keep_going = wp.zeros(1, dtype=wp.int32, device=device)
 
     @property
@@ -101,7 +111,7 @@ class ImplicitEuler(Integrator):
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         model = self.model
         prepare, _, update = self._kernels()
-        per_particle = dict(dim=model.particle_count, block_dim=model.block_dim, device=model.device)
+        per_particle = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
         h = model.scalar(dt)
         eval_forces(model, state_in, control)
         # Driven pins first: where they are at t + h decides their Δv in the right-hand side.
@@ -116,12 +126,13 @@ class ImplicitEuler(Integrator):
         self._solve(state_in, h)
         wp.launch(
             update,
-            inputs=[model.particle_flags, state_in.particle_q, state_in.particle_qd, state_in.time, self._delta_qd,
-                    *step_arguments(model.scalar, dt)],
+            inputs=[model.particle_count, model.particle_flags, state_in.particle_q, state_in.particle_qd, state_in.time,
+                    self._delta_qd, *step_arguments(model.scalar, dt)],
             outputs=[state_out.particle_q, state_out.particle_qd, state_out.time],
             **per_particle,
         )
         self.finish_step(state_out, dt)
+        self.hold_worlds(state_in, state_out)
 
     def reset(self) -> None:
         """Forget the warm start: the next solve starts from Δv = 0."""
@@ -130,16 +141,23 @@ class ImplicitEuler(Integrator):
     def history(self) -> list:
         return [self._delta_qd]
 
-    def solve_report(self) -> tuple[int, float, float]:
-        """(iterations, ‖b - A Δv‖, ‖b‖) of the last solve, read from the device (synchronises)."""
+    def solve_report(self, *, world: int = 0) -> tuple[int, float, float]:
+        """(iterations, ‖b - A Δv‖, ‖b‖) of the last solve of ``world``, read from the device (synchronises)."""
+        iterations, residual, rhs = self.world_solve_report()
+        return int(iterations[world]), float(residual[world]), float(rhs[world])
+
+    def world_solve_report(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every world's last solve: CG iterations (int, shape [world_count]), ‖b - A Δv‖ and ‖b‖ (float64,
+        shape [world_count]); read from the device (synchronises). A held world reports -1 iterations."""
         scalars = self._scalars.numpy()
-        return int(self._iteration.numpy()[0]), float(scalars[CG_RR_LAST]) ** 0.5, float(scalars[CG_BB]) ** 0.5
+        return self._iteration.numpy().copy(), np.sqrt(scalars[:, CG_RR_LAST]), np.sqrt(scalars[:, CG_BB])
 
     # -- the CG solve of A Δv = b ------------------------------------------------------------------------
 
     def _model_inputs(self) -> list:
         model = self.model
         return [
+            model.particle_count,
             model.particle_flags,
             model.particle_mass,
             model.particle_spring_neighbor,
@@ -152,33 +170,44 @@ class ImplicitEuler(Integrator):
 
     def _solve(self, state: State, h) -> None:
         model = self.model
-        n = model.particle_count
-        start, update_solution, update_direction, condition = cg_kernels(model.scalar, self._tiled)
+        worlds = model.world_count
+        begin, start, update_solution, update_direction, condition = cg_kernels(model.scalar, self._tiled)
         _, matvec, _ = self._kernels()
-        reducing = dict(dim=reduce_launch_dim(n, self._block), block_dim=self._block, device=model.device)
-        check = dict(
-            dim=1,
-            inputs=[self._settings, self._scalars],
-            outputs=[self._iteration, self._keep_going],
-            device=model.device,
-        )
+        reducing = dict(dim=reduce_launch_dim(worlds, model.particle_count, self._lanes), block_dim=self._lanes,
+                        device=model.device)
+        per_world = dict(dim=worlds, device=model.device)
+        n = model.particle_count
+        sum_partials = sum_partials_kernel(self._tiled)
 
-        def product(p):  # a_p = A p, scalars[p·Ap] += p·Ap
-            wp.launch(matvec, inputs=[n, *self._model_inputs(), state.particle_q, h, p],
-                      outputs=[self._a_p, self._scalars], **reducing)
+        def total(first: int, count: int):  # scalars[w, first:first+count] = Σ partials over the world's blocks
+            wp.launch(sum_partials, dim=(worlds, self._lanes), block_dim=self._lanes,
+                      inputs=[first, count, self._partials], outputs=[self._scalars], device=model.device)
+
+        def check():
+            wp.launch(condition, inputs=[self._settings, self._scalars],
+                      outputs=[self._iteration, self._active, self._keep_going], **per_world)
+
+        def product(p):  # a_p = A p and the partial sums of p·Ap, in the worlds still iterating
+            wp.launch(matvec, inputs=[*self._model_inputs(), state.particle_q, h, self._active, p],
+                      outputs=[self._a_p, self._partials], **reducing)
+            total(CG_PAP, 1)
 
         def iterate():
             product(self._p)
-            wp.launch(update_solution, inputs=[n, self._p, self._a_p, self._diagonal_inverse],
-                      outputs=[self._delta_qd, self._r, self._z, self._scalars], **reducing)
-            wp.launch(update_direction, dim=n, block_dim=model.block_dim, inputs=[self._z, self._scalars],
-                      outputs=[self._p], device=model.device)
-            wp.launch(condition, **check)
+            wp.launch(update_solution,
+                      inputs=[n, self._active, self._p, self._a_p, self._diagonal_inverse, self._scalars],
+                      outputs=[self._delta_qd, self._r, self._z, self._partials], **reducing)
+            total(CG_RZ_NEW, 2)  # the new r·z and r·r
+            check()
+            wp.launch(update_direction, dim=model.particle_dim, block_dim=model.block_dim,
+                      inputs=[n, self._active, self._z, self._scalars], outputs=[self._p], device=model.device)
 
-        self._scalars.zero_()
-        self._iteration.fill_(-1)
+        self._keep_going.zero_()
+        wp.launch(begin, inputs=[model.world_enabled],
+                  outputs=[self._scalars, self._iteration, self._active, self._keep_going], **per_world)
         product(self._delta_qd)  # the previous Δv is the initial guess
-        wp.launch(start, inputs=[n, self._rhs, self._a_p, self._diagonal_inverse],
-                  outputs=[self._r, self._z, self._p, self._scalars], **reducing)
-        wp.launch(condition, **check)
+        wp.launch(start, inputs=[n, self._active, self._rhs, self._a_p, self._diagonal_inverse],
+                  outputs=[self._r, self._z, self._p, self._partials], **reducing)
+        total(CG_RZ_NEW, 3)  # r·z, r·r and b·b (consecutive slots)
+        check()
         wp.capture_while(self._keep_going, iterate)

@@ -2,7 +2,7 @@
 
 The state y = (x, v) obeys y' = (v, M⁻¹ f(x, v)). Stage k evaluates the forces at
 yₖ = y₀ + h Σⱼ aₖⱼ kⱼ; the step is y₁ = y₀ + h Σⱼ bⱼ kⱼ. Stage velocities and forces live in
-preallocated [stages, particle_count] arrays owned by the integrator; stage 0 is the input state, so
+preallocated [stages, world_count · particle_count] arrays owned by the integrator; stage 0 is the input state, so
 its velocity is read in place. Stage k is at time t + cₖ h (cₖ = Σⱼ aₖⱼ): animated inputs and driven pins
 are evaluated there, so a prescribed motion enters every stage exactly and the method keeps its order.
 Contacts are resolved once, on the result of the step.
@@ -35,11 +35,11 @@ class ExplicitRungeKutta(Integrator):
 
     def __init__(self, model: Model):
         super().__init__(model)
-        stages, n, vec3 = len(self.b), model.particle_count, model.vec3
+        stages, n, vec3 = len(self.b), model.state_size, model.vec3
         self._stage_qd = wp.zeros((stages, n), dtype=vec3, device=model.device)
         self._stage_f = wp.zeros((stages, n), dtype=vec3, device=model.device)
         self._stage_q = wp.zeros(n, dtype=vec3, device=model.device)
-        self._stage_time = wp.zeros(1, dtype=wp.float64, device=model.device)
+        self._stage_time = wp.zeros(model.world_count, dtype=wp.float64, device=model.device)
         # Stage k > 0 evaluates forces at (stage_q, stage_qd[k]) at time stage_time; stage 0 at the input state.
         self._stages = [
             State(particle_q=self._stage_q, particle_qd=self._stage_qd[k], particle_f=self._stage_f[k],
@@ -51,7 +51,7 @@ class ExplicitRungeKutta(Integrator):
         """Write y₀ + h Σⱼ cⱼ kⱼ over stages j < ``upto`` to ``state_out`` (time t₀ + h Σⱼ cⱼ), skipping leading
         zero cⱼ, then put the kinematic particles at that time.
 
-        ``dt`` is the step h [s], or a device array whose element 0 holds it (adaptive steps).
+        ``dt`` is the step h [s], or a device array of each world's step (adaptive steps).
         """
         model = self.model
         on_device = isinstance(dt, wp.array)
@@ -65,9 +65,10 @@ class ExplicitRungeKutta(Integrator):
         fraction = scale * float(sum(Fraction(x).limit_denominator(10**9) for x in c))
         wp.launch(
             rk_combine_kernel(model.scalar, bool(c[0] != 0.0), terms),
-            dim=model.particle_count,
+            dim=model.particle_dim,
             block_dim=model.block_dim,
             inputs=[
+                model.particle_count,
                 model.particle_flags,
                 model.particle_inv_mass,
                 state_in.particle_q,
@@ -100,6 +101,7 @@ class ExplicitRungeKutta(Integrator):
         self.eval_stages(state_in, control, dt)
         self.combine(state_in, control, self.b, dt, state_out, upto=len(self.b))
         self.finish_step(state_out, dt)
+        self.hold_worlds(state_in, state_out)
 
 
 class ExplicitEuler(ExplicitRungeKutta):

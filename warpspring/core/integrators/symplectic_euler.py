@@ -25,13 +25,14 @@ class SymplecticEuler(Integrator):
         # Contacts fuse into the update unless other post-step passes must run before them.
         fused_shapes = model.shape_types if self.finish_step.only_contacts else ()
         shapes = [model.shape_type, model.shape_transform, model.shape_size, model.shape_friction]
-        common = dict(dim=model.particle_count, block_dim=model.block_dim, device=model.device)
+        common = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
         if model.spring_gather or model.spring_count == 0:
             evaluate_input_tracks(model, state_in)
             features = model.force_features(control)
             wp.launch(
                 symplectic_euler_kernel(model.scalar, features, fused_shapes),
                 inputs=[
+                    model.particle_count,
                     model.particle_flags,
                     model.particle_inv_mass,
                     model.particle_radius,
@@ -50,6 +51,7 @@ class SymplecticEuler(Integrator):
             wp.launch(
                 symplectic_euler_update_kernel(model.scalar, fused_shapes),
                 inputs=[
+                    model.particle_count,
                     model.particle_flags,
                     model.particle_inv_mass,
                     model.particle_radius,
@@ -66,3 +68,4 @@ class SymplecticEuler(Integrator):
         apply_kinematics(model, control, state_in, state_out.particle_q, state_out.particle_qd, dt)
         if not self.finish_step.only_contacts:
             self.finish_step(state_out, dt)
+        self.hold_worlds(state_in, state_out)

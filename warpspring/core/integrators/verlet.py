@@ -33,7 +33,7 @@ class VelocityVerlet(Integrator):
 
     def __init__(self, model: Model):
         super().__init__(model)
-        n, vec3, device = model.particle_count, model.vec3, model.device
+        n, vec3, device = model.state_size, model.vec3, model.device
         # The half-step state: positions and time are state_out's (set per step), velocities v½, forces f(x', v½).
         self._half = State(
             particle_q=None,
@@ -41,7 +41,7 @@ class VelocityVerlet(Integrator):
             particle_f=wp.zeros(n, dtype=vec3, device=device),
             time=None,
         )
-        self._damped_springs = bool(model.spring_count and (model.spring_damping.numpy() != 0.0).any())
+        self._damped_springs = bool(model.spring_count and (model.spring_damping.numpy() != 0.0).any())  # any world
 
     @property
     def velocity_dependent(self) -> bool:
@@ -51,10 +51,10 @@ class VelocityVerlet(Integrator):
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         model = self.model
         drift, kick = verlet_kernels(model.scalar)
-        common = dict(dim=model.particle_count, block_dim=model.block_dim, device=model.device)
+        common = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
         h = model.scalar(dt)
         half = self._half
-        mass = [model.particle_flags, model.particle_inv_mass]
+        mass = [model.particle_count, model.particle_flags, model.particle_inv_mass]
         eval_forces(model, state_in, control)
         wp.launch(
             drift,
@@ -73,3 +73,4 @@ class VelocityVerlet(Integrator):
             wp.launch(kick, inputs=[*mass, half.particle_qd, state_out.particle_f, h],
                       outputs=[state_out.particle_qd], **common)
         self.finish_step(state_out, dt)
+        self.hold_worlds(state_in, state_out)

@@ -1,0 +1,46 @@
+"""Worlds that are held: a world whose ``world_enabled`` entry is 0 keeps its state through a step.
+
+Worlds are independent copies of a scene in one model (``forces.py`` describes the layout). Every
+integrator steps all worlds in the same launches; when some may be held (switched off by the user, or
+stopped by the run-time guard), one pass after the step copies the held worlds' input state over their
+output, so a held world's positions, velocities and time stay exactly as they were.
+"""
+
+import functools
+
+import warp as wp
+
+from .precision import vec3_type
+
+wp.set_module_options({"enable_backward": False})
+
+
+@functools.cache
+def hold_worlds_kernel(scalar: type):
+    """Kernel copying the state of every held world from ``*_in`` to ``*_out`` (one thread per particle)."""
+    vec3 = vec3_type(scalar)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def hold_worlds(
+        # Model:
+        particle_count: int,
+        world_enabled: wp.array[wp.int32],
+        # State in:
+        particle_q_in: wp.array[vec3],
+        particle_qd_in: wp.array[vec3],
+        time_in: wp.array[wp.float64],
+        # State out:
+        particle_q_out: wp.array[vec3],
+        particle_qd_out: wp.array[vec3],
+        time_out: wp.array[wp.float64],
+    ):
+        world, i = wp.tid()
+        if world_enabled[world] != 0:
+            return
+        if i == 0:
+            time_out[world] = time_in[world]
+        p = world * particle_count + i
+        particle_q_out[p] = particle_q_in[p]
+        particle_qd_out[p] = particle_qd_in[p]
+
+    return hold_worlds
