@@ -12,9 +12,13 @@ gathers over the particle's ELL incidence table like the implicit-Euler matvec (
 
     (K x)ᵢ = Σₛ Kₛ (xᵢ - xⱼ),    Kₛ = ∂fᵢ/∂xⱼ of spring s = (i, j)
 
-and accumulates xᵀKx, xᵀMx and yᵀM⁻¹y (in float64, slots below) with the reductions of ``linalg.py``.
-A device-side condition updates a loop flag, so the iteration runs in ``wp.capture_while`` like the CG
-solve.
+Worlds: every world of a model runs its own iteration in the same launches (vectors world-major, like a
+state; stiffness and mass rows ``world % rows``). The product launches on the [world, block, lane] grid
+of ``linalg.py`` and writes per-block partial sums of xᵀKx, xᵀMx and yᵀM⁻¹y (float64); its
+``sum_partials_kernel`` adds them per world in a fixed order (no float atomics: a world's result has the
+same bits however many worlds share the launch). Each world keeps its Rayleigh quotient, residual and
+iteration count in its own row, stops at its own tolerance (its iterate is then left untouched), and a
+device-side counter of the worlds still iterating drives ``wp.capture_while``.
 """
 
 import functools
@@ -28,12 +32,14 @@ from .precision import vec3_type
 
 wp.set_module_options({"enable_backward": False})
 
-# Slots of the float64 scalar array of a power iteration.
-PI_XKX = 0  # xᵀKx being accumulated
-PI_XMX = 1  # xᵀMx being accumulated
-PI_YMY = 2  # yᵀM⁻¹y being accumulated (y = Kx)
-PI_LAMBDA = 3  # Rayleigh quotient θ of the last completed iteration [1/s²]
-PI_RESIDUAL = 4  # ‖M⁻¹Kx - θx‖_M / (θ ‖x‖_M) of the last completed iteration
+# Slots of the float64 scalars of a power iteration, one row per world (the first PI_PARTIALS are also the
+# slots of the per-block partial sums).
+PI_XKX = 0  # xᵀKx of the current iterate
+PI_XMX = 1  # xᵀMx of the current iterate
+PI_YMY = 2  # yᵀM⁻¹y of the current iterate (y = Kx)
+PI_PARTIALS = 3  # slots with per-block partial sums (PI_XKX, PI_XMX, PI_YMY: consecutive, one pass sums them)
+PI_LAMBDA = 3  # Rayleigh quotient θ of the world's last completed iteration [1/s²]
+PI_RESIDUAL = 4  # ‖M⁻¹Kx - θx‖_M / (θ ‖x‖_M) of the world's last completed iteration [-]
 PI_SCALARS = 5
 
 
@@ -55,10 +61,12 @@ def dot64_func(scalar: type):
 
 @functools.cache
 def power_iteration_kernels(scalar: type, slots: int, tiled: bool):
-    """(product, normalize, condition) kernels of power iteration on M⁻¹K for one precision and
-    incidence-table width; ``tiled``: reductions use block tiles (CUDA), else per-thread atomics (CPU)."""
+    """(product, normalize, condition) kernels of power iteration on M⁻¹K, one per world, for one precision
+    and incidence-table width; ``tiled``: the product's block sums use tiles (CUDA), else one-thread blocks
+    (CPU). Per iteration: ``product`` (grid [world, block, lane]), ``sum_partials_kernel(tiled)`` over slots
+    [PI_XKX, PI_XKX + PI_PARTIALS), ``normalize`` (grid [world, particle]), ``condition`` (grid [world])."""
     vec3 = vec3_type(scalar)
-    accumulate = reduction_funcs(tiled)
+    block_sum, _ = reduction_funcs(tiled)
     dot64 = dot64_func(scalar)
     _, _, _, spring_stiffness_matrix = spring_funcs(scalar)  # Hooke's law: the advisor scales biphasic springs
     SpringLawValues = spring_law_type(scalar)
@@ -66,106 +74,130 @@ def power_iteration_kernels(scalar: type, slots: int, tiled: bool):
 
     @wp.kernel(module="unique", enable_backward=False)
     def product(
-        count: int,
         # Model:
+        particle_count: int,
         particle_flags: wp.array[wp.int32],
-        particle_mass: wp.array[scalar],
+        particle_mass: wp.array2d[scalar],
         particle_spring_neighbor: wp.array2d[wp.int32],
         particle_spring_id: wp.array2d[wp.int32],
         spring_rest_length: wp.array[scalar],
-        spring_stiffness: wp.array[scalar],
+        spring_stiffness: wp.array2d[scalar],
         # State in:
         particle_q: wp.array[vec3],
         # Operand:
+        active: wp.array[wp.int32],
         x: wp.array[vec3],
         # Out:
         y: wp.array[vec3],
-        scalars: wp.array[wp.float64],
+        partials: wp.array3d[wp.float64],
     ):
-        """y = K x on dynamic particles (0 on kinematic ones); accumulate xᵀKx, xᵀMx and yᵀM⁻¹y."""
-        block, lane = wp.tid()
+        """y = K x on dynamic particles (0 on kinematic ones), and the block partial sums of xᵀKx, xᵀMx and
+        yᵀM⁻¹y, in the worlds still iterating."""
+        world, block, lane = wp.tid()
+        if active[world] == 0:
+            return  # a whole block (it lies within one world) skips the reduction together
         i = block * wp.block_dim() + lane
         xkx = wp.float64(0.0)
         xmx = wp.float64(0.0)
         ymy = wp.float64(0.0)
-        if i < count:
+        if i < particle_count:
+            base = world * particle_count
+            p = base + i
             yi = vec3(scalar(0.0))
-            if not is_kinematic(particle_flags[i]):
+            if not is_kinematic(particle_flags[p]):
                 hooke = SpringLawValues()
-                xi = x[i]
-                qi = particle_q[i]
+                stiffness_row = world % spring_stiffness.shape[0]
+                xi = x[p]
+                qi = particle_q[p]
                 for k in range(wp.static(slots)):
-                    j = particle_spring_neighbor[k, i]
+                    j = base + particle_spring_neighbor[k, i]
                     s = particle_spring_id[k, i]
                     xj = wp.where(is_kinematic(particle_flags[j]), vec3(scalar(0.0)), x[j])
                     ks = spring_stiffness_matrix(
-                        qi, particle_q[j], spring_rest_length[s], spring_stiffness[s], True, hooke
+                        qi, particle_q[j], spring_rest_length[s], spring_stiffness[stiffness_row, s], True, hooke
                     )
                     yi += ks * (xi - xj)
-                mass = wp.float64(particle_mass[i])
+                mass = wp.float64(particle_mass[world % particle_mass.shape[0], i])
                 xkx = dot64(xi, yi)
                 xmx = mass * dot64(xi, xi)
                 ymy = dot64(yi, yi) / mass
-            y[i] = yi
-        accumulate(scalars, PI_XKX, xkx, lane)
-        accumulate(scalars, PI_XMX, xmx, lane)
-        accumulate(scalars, PI_YMY, ymy, lane)
+            y[p] = yi
+        xkx = block_sum(xkx)
+        xmx = block_sum(xmx)
+        ymy = block_sum(ymy)
+        if lane == 0:
+            partials[world, block, PI_XKX] = xkx
+            partials[world, block, PI_XMX] = xmx
+            partials[world, block, PI_YMY] = ymy
 
     @wp.kernel(module="unique", enable_backward=False)
     def normalize(
         # Model:
+        particle_count: int,
         particle_flags: wp.array[wp.int32],
-        particle_inv_mass: wp.array[scalar],
+        particle_inv_mass: wp.array2d[scalar],
         # In:
+        active: wp.array[wp.int32],
         y: wp.array[vec3],
-        scalars: wp.array[wp.float64],
+        scalars: wp.array2d[wp.float64],
         # Out:
         x: wp.array[vec3],
     ):
-        """x = M⁻¹y / ‖M⁻¹y‖_M (x = 0 when y = 0, and on kinematic particles)."""
-        i = wp.tid()
-        ymy = scalars[PI_YMY]
+        """x = M⁻¹y / ‖M⁻¹y‖_M (x = 0 when y = 0, and on kinematic particles), in the worlds still iterating."""
+        world, i = wp.tid()
+        if active[world] == 0:
+            return
+        p = world * particle_count + i
+        ymy = scalars[world, PI_YMY]
         scale = wp.where(ymy > wp.float64(0.0), wp.float64(1.0) / wp.sqrt(ymy), wp.float64(0.0))
-        x[i] = (effective_inv_mass(particle_flags[i], particle_inv_mass[i]) * scalar(scale)) * y[i]
+        inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[world % particle_inv_mass.shape[0], i])
+        x[p] = (inv_mass * scalar(scale)) * y[p]
 
     @wp.kernel(module="unique", enable_backward=False)
     def condition(
         tolerance: wp.float64,
         max_iterations: int,
-        scalars: wp.array[wp.float64],
+        # In/out:
+        scalars: wp.array2d[wp.float64],
         iteration: wp.array[wp.int32],
+        active: wp.array[wp.int32],
         keep_going: wp.array[wp.int32],
     ):
-        """θ and the relative residual of the iteration; keep going while the residual exceeds the
-        tolerance and iterations remain; reset the accumulators."""
-        xkx = scalars[PI_XKX]
-        xmx = scalars[PI_XMX]
+        """Per world still iterating: θ and the relative residual of the iteration; stop when the residual
+        is within the tolerance, when the iterations are spent or when it is not finite."""
+        world = wp.tid()
+        if active[world] == 0:
+            return
+        xkx = scalars[world, PI_XKX]
+        xmx = scalars[world, PI_XMX]
         theta = wp.where(xmx > wp.float64(0.0), xkx / xmx, wp.float64(0.0))
-        residual2 = scalars[PI_YMY] - wp.float64(2.0) * theta * xkx + theta * theta * xmx
+        residual2 = scalars[world, PI_YMY] - wp.float64(2.0) * theta * xkx + theta * theta * xmx
         positive = theta > wp.float64(0.0)
         scale = wp.where(positive, theta * theta * xmx, wp.float64(1.0))
         relative = wp.where(positive, wp.sqrt(wp.max(residual2, wp.float64(0.0)) / scale), wp.float64(0.0))
-        scalars[PI_LAMBDA] = theta
-        scalars[PI_RESIDUAL] = relative
-        iteration[0] = iteration[0] + 1
-        keep_going[0] = wp.where(relative <= tolerance or iteration[0] >= max_iterations, 0, 1)
-        scalars[PI_XKX] = wp.float64(0.0)
-        scalars[PI_XMX] = wp.float64(0.0)
-        scalars[PI_YMY] = wp.float64(0.0)
+        scalars[world, PI_LAMBDA] = theta
+        scalars[world, PI_RESIDUAL] = relative
+        iteration[world] = iteration[world] + 1
+        if relative <= tolerance or iteration[world] >= max_iterations or not wp.isfinite(relative):
+            active[world] = 0
+            wp.atomic_sub(keep_going, 0, 1)
 
     return product, normalize, condition
 
 
 @functools.cache
 def spring_motion_kernel(scalar: type):
-    """Kernel writing every spring's stretch |d| - L [m] and stretch rate (vⱼ - vᵢ)·d̂ [m/s] (float64) into
-    one row of a [rows, spring_count] array: a per-step record of the springs' motion, from which
-    stability measurements compute energy-like norms without reading whole states back every step."""
+    """Kernel writing every spring's stretch |d| - L [m] and stretch rate (vⱼ - vᵢ)·d̂ [m/s] (float64) of
+    every world into one row of a [rows, world_count · spring_count] array (world-major: spring s of world
+    w is column w · spring_count + s); launch over [world_count, spring_count]. A per-step record of the
+    springs' motion, from which stability measurements compute energy-like norms without reading whole
+    states back every step."""
     vec3 = vec3_type(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
     def record_spring_motion(
         # Model:
+        particle_count: int,
         spring_indices: wp.array[wp.vec2i],
         spring_rest_length: wp.array[scalar],
         # State in:
@@ -175,12 +207,17 @@ def spring_motion_kernel(scalar: type):
         # Out:
         motion: wp.array2d[wp.vec2d],
     ):
-        s = wp.tid()
+        world, s = wp.tid()
+        base = world * particle_count
         ends = spring_indices[s]
-        d = particle_q[ends[1]] - particle_q[ends[0]]
+        i = base + ends[0]
+        j = base + ends[1]
+        d = particle_q[j] - particle_q[i]
         length = wp.length(d)
         n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
-        rate = wp.dot(particle_qd[ends[1]] - particle_qd[ends[0]], n)
-        motion[row, s] = wp.vec2d(wp.float64(length - spring_rest_length[s]), wp.float64(rate))
+        rate = wp.dot(particle_qd[j] - particle_qd[i], n)
+        motion[row, world * spring_indices.shape[0] + s] = wp.vec2d(
+            wp.float64(length - spring_rest_length[s]), wp.float64(rate)
+        )
 
     return record_spring_motion

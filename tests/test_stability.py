@@ -139,12 +139,13 @@ def chain(device, precision, n=40, k=50.0, m=0.2):
 
 
 def dense_omega_max(model, positions=None):
-    """√λ_max(M⁻¹K) from the dense float64 matrix (clamped spring blocks, pinned rows and columns removed)."""
+    """√λ_max(M⁻¹K) from the dense float64 matrix (clamped spring blocks, pinned rows and columns removed) of
+    a single-world model."""
     n = model.particle_count
     q = (model.particle_q.numpy() if positions is None else positions).astype(np.float64)
     K = np.zeros((3 * n, 3 * n))
     for (i, j), rest, ke in zip(model.spring_indices.numpy(), model.spring_rest_length.numpy(),
-                                model.spring_stiffness.numpy()):
+                                model.world_values("spring_stiffness")[0]):
         d = q[j] - q[i]
         length = np.linalg.norm(d)
         nn = np.outer(d, d) / length**2
@@ -152,7 +153,7 @@ def dense_omega_max(model, positions=None):
         for a, b, sign in ((i, i, 1), (j, j, 1), (i, j, -1), (j, i, -1)):
             K[3 * a:3 * a + 3, 3 * b:3 * b + 3] += sign * block
     free = np.repeat(~model.kinematic_mask(), 3)
-    m = np.repeat(model.particle_mass.numpy().astype(np.float64), 3)[free]
+    m = np.repeat(model.world_values("particle_mass")[0], 3)[free]
     return math.sqrt(np.linalg.eigvalsh(K[np.ix_(free, free)] / np.sqrt(np.outer(m, m)))[-1])
 
 
@@ -191,6 +192,145 @@ def test_power_iteration_on_a_cloth(device, precision):
 
     doubled = 2.0 * model.spring_stiffness.numpy()
     assert st.estimate_omega_max(model, stiffness=doubled).omega_max == pytest.approx(math.sqrt(2) * exact, rel=5e-4)
+
+
+# -- worlds -----------------------------------------------------------------------------------------------
+
+#: Stiffness factors of the worlds of the multi-world tests: ω_max scales as their square roots, 1 … 4.
+WORLD_FACTORS = np.array([1.0, 4.0, 9.0, 16.0])
+#: Power-iteration tolerance of those tests.
+WORLD_TOLERANCE = 1.0e-4
+#: Relative error bound of a converged ω_max. M⁻¹K is self-adjoint in the M inner product, so (Weinstein)
+#: some eigenvalue lies within residual · θ of the Rayleigh quotient θ; θ ≤ λ_max, and for the top mode
+#: (the dense check confirms it is the one found) λ_max (1 - tol) ≤ θ ≤ λ_max, so
+#: ω_max √(1 - tol) ≤ √θ ≤ ω_max.
+OMEGA_BOUND = 1.0 - math.sqrt(1.0 - WORLD_TOLERANCE)
+
+
+def damped_cloth(device, factor=1.0, *, worlds=1):
+    """The 8² ANCHORS cloth (float64, structural + shear + bend springs ke = 10³·``factor`` N/m, kd = 10 N·s/m,
+    the two top corners pinned) in ``worlds`` worlds."""
+    builder = ws.ModelBuilder(gravity=ZERO_GRAVITY)
+    spring = ws.SpringMaterial(1.0e3 * factor, 10.0)
+    builder.add_cloth_grid(nx=8, ny=8, spacing=0.1, origin=(0.0, 0.0, 1.0), particle_mass=0.1, structural=spring,
+                           shear=spring, bend=spring, pin=["top-left", "top-right"])
+    return builder.finalize(device, precision="float64", worlds=worlds)
+
+
+@pytest.fixture(scope="module")
+def stiffness_worlds():
+    """Per device: a 4-world cloth with the stiffness of world w scaled by WORLD_FACTORS[w]."""
+    models = {}
+
+    def make(device):
+        if device not in models:
+            model = damped_cloth(device, worlds=len(WORLD_FACTORS))
+            ke = model.world_values("spring_stiffness")[0]
+            model.set_world_values("spring_stiffness", WORLD_FACTORS[:, None] * ke[None, :])
+            models[device] = model
+        return models[device]
+
+    return make
+
+
+def test_power_iteration_per_world(device, stiffness_worlds):
+    """Worlds of stiffness 1, 4, 9, 16 × ke in one launch: each world's ω_max is the one a model of that
+    world alone gives, and both are within OMEGA_BOUND of its exact value, so they agree to that bound and
+    scale as √factor to OMEGA_BOUND / (1 - OMEGA_BOUND) (a ratio of two values each in
+    [(1 - OMEGA_BOUND) ω, ω]); each world stops at its own tolerance, in as many iterations as alone."""
+    model = stiffness_worlds(device)
+    estimate = st.estimate_omega_max(model, tolerance=WORLD_TOLERANCE)
+    assert estimate.world_omega_max.shape == (4,) and estimate.world_mode.shape == (4, model.particle_count, 3)
+    assert estimate.world_converged.all() and (estimate.world_residual <= WORLD_TOLERANCE).all()
+    for w, factor in enumerate(WORLD_FACTORS):
+        alone = st.estimate_omega_max(damped_cloth(device, factor), tolerance=WORLD_TOLERANCE)
+        assert estimate.world_omega_max[w] == pytest.approx(alone.omega_max, rel=OMEGA_BOUND)
+        # The same iterates up to rounding (bitwise on the CPU; on CUDA the reduction's lanes follow the model's
+        # block size, which may differ), so the tolerance is crossed at the same iteration, or one apart.
+        assert abs(int(estimate.world_iterations[w]) - alone.iterations) <= 1
+        assert estimate.world_gershgorin[w] == pytest.approx(alone.gershgorin, rel=1e-12)  # host float64 sums
+    exact = dense_omega_max(damped_cloth("cpu"))
+    assert exact * (1.0 - OMEGA_BOUND) <= estimate.world_omega_max[0] <= exact * (1.0 + 1e-12)
+    ratio = estimate.world_omega_max / estimate.world_omega_max[0]
+    np.testing.assert_allclose(ratio, np.sqrt(WORLD_FACTORS), rtol=OMEGA_BOUND / (1.0 - OMEGA_BOUND))
+    # Gershgorin rows are linear in k: exactly √factor, to float64 rounding; the summaries take the stiffest world.
+    np.testing.assert_allclose(st.world_gershgorin_omega_max(model) / estimate.world_gershgorin[0],
+                               np.sqrt(WORLD_FACTORS), rtol=1e-12)
+    assert estimate.world == 3 and estimate.omega_max == estimate.world_omega_max[3]
+    assert estimate.gershgorin == st.gershgorin_omega_max(model) == estimate.world_gershgorin[3]
+    assert (estimate.world_omega_max <= estimate.world_gershgorin).all()
+
+
+def test_power_iteration_stiffness_override_per_world(stiffness_worlds):
+    """An override of shape [world_count, spring_count] replaces each world's row: the reversed factors give
+    the reversed ω_max (to OMEGA_BOUND: each value within it of its exact one, see above)."""
+    model = stiffness_worlds("cpu")
+    forward = st.estimate_omega_max(model, tolerance=WORLD_TOLERANCE)
+    reversed_k = model.world_values("spring_stiffness")[::-1]
+    backward = st.estimate_omega_max(model, stiffness=reversed_k, tolerance=WORLD_TOLERANCE)
+    np.testing.assert_allclose(backward.world_omega_max, forward.world_omega_max[::-1], rtol=OMEGA_BOUND)
+    assert backward.world == 0
+    with pytest.raises(ws.ConfigError, match=r"stiffness must have shape \(\d+,\) or \(4, \d+\)"):
+        st.estimate_omega_max(model, stiffness=reversed_k[:2])
+
+
+def test_power_iteration_per_world_masses(stiffness_worlds):
+    """Per-world masses enter as per-world stiffness does: masses divided by the factors give the operator
+    (M/c)⁻¹K = M⁻¹(cK) of the stiffness worlds, so the same ω_max (each within OMEGA_BOUND of it) and the
+    same Gershgorin bounds (to float64 rounding)."""
+    stiff = stiffness_worlds("cpu")
+    light = damped_cloth("cpu", worlds=len(WORLD_FACTORS))
+    light.set_world_values("particle_mass", light.world_values("particle_mass")[0][None, :] / WORLD_FACTORS[:, None])
+    expected = st.estimate_omega_max(stiff, tolerance=WORLD_TOLERANCE)
+    estimate = st.estimate_omega_max(light, tolerance=WORLD_TOLERANCE)
+    np.testing.assert_allclose(estimate.world_omega_max, expected.world_omega_max, rtol=OMEGA_BOUND)
+    np.testing.assert_allclose(estimate.world_gershgorin, expected.world_gershgorin, rtol=1e-12)
+
+
+def test_advisor_names_the_binding_world(device, stiffness_worlds):
+    """The advisor gives each world its own limit and binds on the stiffest (world 3, 16 × ke), naming it;
+    each world's step is the one the advisor gives that world alone. Symplectic Euler with Rayleigh damping
+    r = kd/k: ω²(h² + 2rh) = 4, so |d ln h / d ln ω| = (h + 2r)/(h + r) ≤ 2 and a ω_max within OMEGA_BOUND
+    moves h by at most 2·OMEGA_BOUND."""
+    model = stiffness_worlds(device)
+    dt = 1.0e-3
+    advice = st.advise(model, "symplectic_euler", dt, tolerance=WORLD_TOLERANCE)
+    assert advice.world == 3 and "in world 3, the binding one of 4 worlds" in advice.message
+    assert advice.dt_stable == advice.world_dt_stable.min() == advice.world_dt_stable[3]
+    assert advice.omega_max == advice.world_omega_max[3]
+    assert (np.diff(advice.world_dt_stable) < 0.0).all()  # stiffer worlds, smaller steps
+    for w, factor in enumerate(WORLD_FACTORS):
+        alone = st.advise(damped_cloth(device, factor), "symplectic_euler", dt, tolerance=WORLD_TOLERANCE)
+        assert advice.world_dt_stable[w] == pytest.approx(alone.dt_stable, rel=2.0 * OMEGA_BOUND)
+        assert "world" not in alone.message and alone.world == 0
+    assert advice.stable == (dt <= advice.world_dt_stable[3])
+    assert advice.substeps == math.ceil(1.0 / (60.0 * advice.world_dt_stable[3]))
+    gershgorin = st.advise(model, "symplectic_euler", dt, omega_estimate="gershgorin")
+    assert gershgorin.world == 3 and gershgorin.omega_source == "Gershgorin bound"
+    np.testing.assert_allclose(gershgorin.world_omega_max, st.world_gershgorin_omega_max(model), rtol=0.0)
+
+
+def test_spring_motion_record_per_world(device):
+    """The motion record holds every world's springs, world-major, against NumPy float64 (the worlds are
+    displaced differently)."""
+    model = damped_cloth(device, worlds=3)
+    state = model.state()
+    rng = np.random.default_rng(1)
+    q = model.particle_q.numpy() + 1e-2 * rng.normal(size=(model.state_size, 3))
+    qd = rng.normal(size=(model.state_size, 3))
+    state.particle_q.assign(q)
+    state.particle_qd.assign(qd)
+    record = sm._MotionRecord(model)
+    record.after_step(state, 1, sm.BLOCK)
+    motion = record.motion.numpy()[1].reshape(3, model.spring_count, 2)
+    n = model.particle_count
+    (i, j), rest = model.spring_indices.numpy().reshape(-1, 2).T, model.spring_rest_length.numpy()
+    for w in range(3):
+        d = q[w * n + j] - q[w * n + i]
+        length = np.linalg.norm(d, axis=1)
+        rate = np.einsum("sk,sk->s", qd[w * n + j] - qd[w * n + i], d) / length
+        np.testing.assert_allclose(motion[w, :, 0], length - rest, rtol=1e-10, atol=1e-15)
+        np.testing.assert_allclose(motion[w, :, 1], rate, rtol=1e-10, atol=1e-15)
 
 
 # -- the advisor ------------------------------------------------------------------------------------------

@@ -45,16 +45,18 @@ K ⪰ 0; clamping only adds stiffness, so the estimate is not lowered by it), pi
 out, matrix-free through a gather over the incidence table (``kernels/stability.py``). Its Rayleigh
 quotient never exceeds λ_max; the Gershgorin bound ω_max² ≤ maxᵢ (Σₛ kₛ + Σ_{s to free j} kₛ) / mᵢ
 (:func:`gershgorin_omega_max`, host NumPy; each clamped spring block has spectral norm kₛ) never falls
-below it, and is the cheap fallback.
+below it, and is the cheap fallback. A model of several worlds gets one ω_max per world (each world's
+stiffness and masses), all worlds iterating in the same launches, each to its own tolerance.
 
-**The advisor** (:func:`advise`) combines both for a model, an integrator and a step.
+**The advisor** (:func:`advise`) combines both for a model, an integrator and a step; with several worlds
+each world gets its own limit and the smallest binds.
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from fractions import Fraction
 
 import numpy as np
@@ -64,8 +66,10 @@ from .. import checks
 from ..checks import format_duration
 from ..errors import ConfigError
 from ..core.integrators import INTEGRATORS, ExplicitRungeKutta, ImplicitEuler, SymplecticEuler, VelocityVerlet
-from ..kernels.linalg import reduce_launch_dim
-from ..kernels.stability import PI_LAMBDA, PI_RESIDUAL, PI_SCALARS, power_iteration_kernels
+from ..kernels.kinematics import PARTICLE_KINEMATIC
+from ..kernels.linalg import reduce_lanes, reduce_launch_dim, sum_partials_kernel
+from ..kernels.stability import (PI_LAMBDA, PI_PARTIALS, PI_RESIDUAL, PI_SCALARS, PI_XKX,
+                                 power_iteration_kernels)
 from ..core.model import Model, State
 
 #: Estimates of ω_max (see :func:`advise`).
@@ -402,69 +406,162 @@ def network_stable_step(integrator: str, omega_max: float, *, rayleigh=0.0, drag
 
 @dataclass(frozen=True)
 class OmegaMaxEstimate:
-    """The highest angular frequency of a model's springs by power iteration on M⁻¹K.
+    """The highest angular frequency of a model's springs by power iteration on M⁻¹K, per world.
 
     Attributes:
-        omega_max: √θ [rad/s], θ the final Rayleigh quotient (θ ≤ λ_max(M⁻¹K)).
-        iterations: power iterations run.
-        residual: ‖M⁻¹Kx - θx‖_M / (θ‖x‖_M) of the final iterate [-].
-        converged: whether the residual reached the tolerance within the iteration budget.
-        gershgorin: the Gershgorin upper bound on ω_max [rad/s] (:func:`gershgorin_omega_max`).
-        mode: the final iterate, an approximate top mode shape [-], shape [particle_count, 3], float64,
-            unit mass-norm, zero on pinned particles (zero everywhere when the model has no stiffness).
+        world_omega_max: √θ [rad/s] of each world, θ its final Rayleigh quotient (θ ≤ λ_max(M⁻¹K)),
+            float64, shape [world_count].
+        world_iterations: power iterations each world ran, int, shape [world_count].
+        world_residual: ‖M⁻¹Kx - θx‖_M / (θ‖x‖_M) of each world's final iterate [-], shape [world_count].
+        world_converged: whether each world's residual reached the tolerance within the iteration budget,
+            bool, shape [world_count].
+        world_gershgorin: the Gershgorin upper bound on each world's ω_max [rad/s], shape [world_count]
+            (:func:`world_gershgorin_omega_max`).
+        world_mode: each world's final iterate, an approximate top mode shape [-], float64, shape
+            [world_count, particle_count, 3], unit mass-norm, zero on pinned particles (zero everywhere in a
+            world without stiffness).
+
+    The scalar properties summarise all worlds: ``omega_max`` and ``mode`` are those of the stiffest world
+    (``world``), ``iterations``, ``residual`` and ``gershgorin`` the largest over the worlds, ``converged``
+    whether every world converged. For a single world they are its values.
     """
 
-    omega_max: float
-    iterations: int
-    residual: float
-    converged: bool
-    gershgorin: float
-    mode: np.ndarray
+    world_omega_max: np.ndarray
+    world_iterations: np.ndarray
+    world_residual: np.ndarray
+    world_converged: np.ndarray
+    world_gershgorin: np.ndarray
+    world_mode: np.ndarray
+
+    @property
+    def world(self) -> int:
+        """The stiffest world (largest ω_max; the first of equals)."""
+        return int(np.argmax(self.world_omega_max))
+
+    @property
+    def omega_max(self) -> float:
+        """The largest ω_max over the worlds [rad/s]."""
+        return float(self.world_omega_max[self.world])
+
+    @property
+    def iterations(self) -> int:
+        """The most power iterations a world ran."""
+        return int(self.world_iterations.max())
+
+    @property
+    def residual(self) -> float:
+        """The largest final relative residual over the worlds [-]."""
+        return float(self.world_residual.max())
+
+    @property
+    def converged(self) -> bool:
+        """Whether every world converged."""
+        return bool(self.world_converged.all())
+
+    @property
+    def gershgorin(self) -> float:
+        """The largest Gershgorin bound over the worlds [rad/s]."""
+        return float(self.world_gershgorin.max())
+
+    @property
+    def mode(self) -> np.ndarray:
+        """The stiffest world's mode shape, shape [particle_count, 3]."""
+        return self.world_mode[self.world]
 
 
-def _stiffness_array(model: Model, stiffness) -> wp.array:
-    """The spring stiffness [N/m] on the model's device: an override of shape [spring_count], or the
-    model's own — for biphasic springs their stiffer branch, ratio × ke, which bounds the step once a
-    spring stretches past its knee."""
+def free_particles(model: Model) -> np.ndarray:
+    """Which particles of each world move (not kinematic), bool, shape [world_count, particle_count] (reads
+    the device once)."""
+    flags = model.particle_flags.numpy().reshape(model.world_count, model.particle_count)
+    return (flags & PARTICLE_KINEMATIC) == 0
+
+
+def world_dynamic_inv_mass(model: Model) -> np.ndarray:
+    """The inverse masses the dynamics sees in each world [1/kg], float64, shape [world_count,
+    particle_count]: 1/m, and 0 for kinematic particles (reads the device)."""
+    return np.where(free_particles(model), model.world_values("particle_inv_mass"), 0.0)
+
+
+def _biphasic_ratio(model: Model) -> np.ndarray:
+    """Each world's largest biphasic stiffness ratio [-], shape [world_count]: its live value and the top of
+    its track; 1 without biphasic springs."""
+    ratio = np.ones(model.world_count)
+    if model.spring_law.biphasic:  # the stiffest the ratio gets, its track included
+        ratio = np.maximum(ratio, model.world_values("biphasic_ratio")[:, 0])
+        for w in range(model.world_count):
+            track = model.track("biphasic_ratio", world=w)
+            if track is not None:
+                ratio[w] = max(ratio[w], float(track.values.max()))
+    return ratio
+
+
+def _stiffness_values(model: Model, stiffness) -> np.ndarray:
+    """The spring stiffness [N/m] the analysis uses, float64, shape [1 or world_count, spring_count]: an
+    override of shape [spring_count] (every world) or [world_count, spring_count], or the model's own — for
+    biphasic springs their stiffer branch, ratio × ke, which bounds the step once a spring stretches past
+    its knee."""
+    worlds, count = model.world_count, model.spring_count
     if stiffness is None:
-        ratio = 1.0
-        if model.spring_law.biphasic:  # the stiffest the ratio gets, its track included
-            track = model.track("biphasic_ratio")
-            ratio = max(model.stabilizers.biphasic_ratio, float(track.values.max()) if track is not None else 1.0)
-        if ratio == 1.0 or model.spring_count == 0:
-            return model.spring_stiffness
-        stiffness = model.spring_stiffness.numpy().astype(np.float64) * ratio
+        values = model.spring_stiffness.numpy().astype(np.float64)
+        ratio = _biphasic_ratio(model)
+        if (ratio != 1.0).any():
+            values = values * (ratio[:, None] if (ratio != ratio[0]).any() else ratio[0])
+        return values
     values = stiffness.numpy() if isinstance(stiffness, wp.array) else np.asarray(stiffness)
     values = np.asarray(values, dtype=np.float64)
-    if values.shape != (model.spring_count,):
-        raise ConfigError(f"stiffness must have shape ({model.spring_count},), got {values.shape}")
+    if values.ndim == 1:
+        values = values[None]
+    if values.shape not in ((1, count), (worlds, count)):
+        shapes = f"({count},)" + (f" or ({worlds}, {count})" if worlds > 1 else "")
+        raise ConfigError(f"stiffness must have shape {shapes}, got {np.shape(stiffness)}")
     if not (np.isfinite(values).all() and (values >= 0.0).all()):
         raise ConfigError("stiffness must be finite and >= 0")
-    return wp.array(values.astype(np.float64 if model.scalar is wp.float64 else np.float32), dtype=model.scalar,
-                    device=model.device)
+    return values
 
 
-def gershgorin_omega_max(model: Model, *, stiffness=None) -> float:
-    """Upper bound [rad/s] on ω_max from Gershgorin's theorem for 3 × 3 blocks (host NumPy).
+def _stiffness_array(model: Model, values: np.ndarray) -> wp.array:
+    """``values`` (from :func:`_stiffness_values`) on the model's device in its precision."""
+    dtype = np.float64 if model.scalar is wp.float64 else np.float32
+    return wp.array(np.ascontiguousarray(values, dtype=dtype), dtype=model.scalar, device=model.device)
+
+
+def _gershgorin(model: Model, stiffness: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """Each world's Gershgorin bound [rad/s], shape [world_count], for stiffness rows ``stiffness`` and free
+    particles ``free`` [world_count, particle_count]."""
+    worlds, n = model.world_count, model.particle_count
+    if model.spring_count == 0:
+        return np.zeros(worlds)
+    k = np.broadcast_to(stiffness, (worlds, model.spring_count))
+    i, j = model.spring_indices.numpy().reshape(-1, 2).T
+    offset = (np.arange(worlds) * n)[:, None]
+    wi, wj = (offset + i).ravel(), (offset + j).ravel()  # world-major entries of each world's spring ends
+    row = np.zeros(worlds * n)
+    for ends, weights in ((wi, k), (wj, k), (wi, k * free[:, j]), (wj, k * free[:, i])):
+        row += np.bincount(ends, weights=weights.ravel(), minlength=worlds * n)
+    ratio = np.where(free, row.reshape(worlds, n) / model.world_values("particle_mass"), 0.0)
+    return np.sqrt(ratio.max(axis=1))
+
+
+def world_gershgorin_omega_max(model: Model, *, stiffness=None) -> np.ndarray:
+    """Upper bound [rad/s] on each world's ω_max from Gershgorin's theorem for 3 × 3 blocks (host NumPy),
+    float64, shape [world_count].
 
     Row i of M⁻¹K holds the diagonal block Σₛ Kₛ / mᵢ and one block Kₛ / mᵢ per spring to a free particle;
     each clamped spring block has spectral norm kₛ, so λ_max ≤ maxᵢ (Σₛ kₛ + Σ_{s to free j} kₛ) / mᵢ over
-    free particles. (2 Σₛ kₛ / mᵢ, the bound usually quoted, is this with every neighbour free.)
+    free particles, with each world's stiffness and masses. (2 Σₛ kₛ / mᵢ, the bound usually quoted, is
+    this with every neighbour free.) 0 in a world without stiffness or free particles.
 
     Args:
         model: the model.
-        stiffness: spring stiffness [N/m] to use instead of ``model.spring_stiffness``, shape [spring_count].
+        stiffness: spring stiffness [N/m] to use instead of the model's, shape [spring_count] or
+            [world_count, spring_count].
     """
-    free = ~model.kinematic_mask()
-    if model.spring_count == 0 or not free.any():
-        return 0.0
-    k = _stiffness_array(model, stiffness).numpy().astype(np.float64)
-    i, j = model.spring_indices.numpy().reshape(-1, 2).T
-    n = model.particle_count
-    row = np.bincount(i, weights=k, minlength=n) + np.bincount(j, weights=k, minlength=n)
-    row += np.bincount(i, weights=k * free[j], minlength=n) + np.bincount(j, weights=k * free[i], minlength=n)
-    mass = model.particle_mass.numpy().astype(np.float64)
-    return float(math.sqrt((row[free] / mass[free]).max()))
+    return _gershgorin(model, _stiffness_values(model, stiffness), free_particles(model))
+
+
+def gershgorin_omega_max(model: Model, *, stiffness=None) -> float:
+    """The largest of :func:`world_gershgorin_omega_max` over the worlds [rad/s] (for one world: its bound)."""
+    return float(world_gershgorin_omega_max(model, stiffness=stiffness).max())
 
 
 def estimate_omega_max(
@@ -476,71 +573,89 @@ def estimate_omega_max(
     tolerance: float = 1.0e-3,
     seed: int = 0,
 ) -> OmegaMaxEstimate:
-    """ω_max = √λ_max(M⁻¹K) of the model's springs by power iteration on its device.
+    """ω_max = √λ_max(M⁻¹K) of each world's springs by power iteration, all worlds in the same launches on
+    the model's device.
 
     K is assembled matrix-free from the clamped spring stiffness matrices at ``state``'s positions (default
-    the model's initial ones); pinned particles are filtered out. The iteration stops when the relative
-    residual ‖M⁻¹Kx - θx‖_M / (θ‖x‖_M) ≤ ``tolerance`` or after ``max_iterations``; the Rayleigh quotient
-    θ then approximates λ_max from below, its relative error typically well under the residual (a
-    residual of 1e-3 leaves ω_max within ~2e-4 on cloths).
+    the model's initial ones), with each world's stiffness and masses; pinned particles are filtered out.
+    Each world stops when its relative residual ‖M⁻¹Kx - θx‖_M / (θ‖x‖_M) ≤ ``tolerance`` or after
+    ``max_iterations``; its Rayleigh quotient θ then approximates λ_max from below, its relative error
+    typically well under the residual (a residual of 1e-3 leaves ω_max within ~2e-4 on cloths). Every world
+    starts from the same random vector (restricted to its free particles), so a world's result does not
+    depend on the others: it is the one a model of that world alone gives.
 
     Args:
         model: the model.
         state: positions to linearise about; default the model's initial positions.
-        stiffness: spring stiffness [N/m], shape [spring_count]; default the model's, with biphasic
-            springs at their stiffer branch (ratio × ke).
-        max_iterations: iteration budget (≥ 1).
-        tolerance: relative residual at which to stop, in (0, 1).
+        stiffness: spring stiffness [N/m], shape [spring_count] (every world) or [world_count,
+            spring_count]; default the model's, with biphasic springs at their stiffer branch (ratio × ke).
+        max_iterations: iteration budget per world (≥ 1).
+        tolerance: relative residual at which a world stops, in (0, 1).
         seed: seed of the random start vector.
     """
+    _check_iteration(max_iterations, tolerance)
+    return _power_iteration(model, _stiffness_values(model, stiffness), state, max_iterations, tolerance, seed)
+
+
+def _check_iteration(max_iterations: int, tolerance: float) -> None:
     checks.count("max_iterations", max_iterations, minimum=1)
     if checks.positive("tolerance", tolerance) >= 1.0:
         raise ConfigError(f"tolerance must be a number in (0, 1), got {tolerance!r}")
-    bound = gershgorin_omega_max(model, stiffness=stiffness)
-    if bound == 0.0:
-        return OmegaMaxEstimate(omega_max=0.0, iterations=0, residual=0.0, converged=True, gershgorin=0.0,
-                                mode=np.zeros((model.particle_count, 3)))
-    n, device, vec3 = model.particle_count, model.device, model.vec3
+
+
+def _power_iteration(model: Model, stiffness: np.ndarray, state: State | None, max_iterations: int,
+                     tolerance: float, seed: int) -> OmegaMaxEstimate:
+    worlds, n, device = model.world_count, model.particle_count, model.device
+    free = free_particles(model)
+    bound = _gershgorin(model, stiffness, free)
+    start = np.random.default_rng(seed).normal(size=(n, 3))[None] * free[..., None]
+    if not bound.any():
+        return OmegaMaxEstimate(
+            world_omega_max=np.zeros(worlds), world_iterations=np.zeros(worlds, dtype=np.int64),
+            world_residual=np.zeros(worlds), world_converged=np.ones(worlds, dtype=bool), world_gershgorin=bound,
+            world_mode=np.zeros((worlds, n, 3)),
+        )
+    tiled = device.is_cuda
+    lanes = reduce_lanes(n, model.block_dim, tiled)
+    grid = reduce_launch_dim(worlds, n, lanes)
+    product, normalize, condition = power_iteration_kernels(model.scalar, model.spring_max_degree, tiled)
+    sum_partials = sum_partials_kernel(tiled)
+
     k = _stiffness_array(model, stiffness)
     q = model.particle_q if state is None else state.particle_q
-    tiled = device.is_cuda
-    block = model.block_dim if tiled else 1
-    product, normalize, condition = power_iteration_kernels(model.scalar, model.spring_max_degree, tiled)
-
-    free = ~model.kinematic_mask()
-    start = np.random.default_rng(seed).normal(size=(n, 3)) * free[:, None]
-    x = wp.array(start, dtype=vec3, device=device)
-    y = wp.zeros(n, dtype=vec3, device=device)
-    scalars = wp.zeros(PI_SCALARS, dtype=wp.float64, device=device)
-    iteration = wp.zeros(1, dtype=wp.int32, device=device)
-    keep_going = wp.ones(1, dtype=wp.int32, device=device)
-    model_inputs = [
-        model.particle_flags,
-        model.particle_mass,
-        model.particle_spring_neighbor,
-        model.particle_spring_id,
-        model.spring_rest_length,
-        k,
-    ]
+    x = wp.array(start.reshape(-1, 3), dtype=model.vec3, device=device)
+    y = wp.zeros(worlds * n, dtype=model.vec3, device=device)
+    partials = wp.zeros((worlds, grid[1], PI_PARTIALS), dtype=wp.float64, device=device)
+    scalars = wp.zeros((worlds, PI_SCALARS), dtype=wp.float64, device=device)
+    iteration = wp.zeros(worlds, dtype=wp.int32, device=device)
+    running = bound > 0.0  # a world without stiffness or free particles has λ_max = 0: nothing to iterate
+    active = wp.array(running.astype(np.int32), dtype=wp.int32, device=device)
+    keep_going = wp.array([int(running.sum())], dtype=wp.int32, device=device)
 
     def iterate():
-        wp.launch(product, dim=reduce_launch_dim(n, block), block_dim=block, inputs=[n, *model_inputs, q, x],
-                  outputs=[y, scalars], device=device)
-        wp.launch(normalize, dim=n, block_dim=model.block_dim, inputs=[model.particle_flags, model.particle_inv_mass, y, scalars],
-                  outputs=[x], device=device)
-        wp.launch(condition, dim=1, inputs=[wp.float64(tolerance), max_iterations, scalars],
-                  outputs=[iteration, keep_going], device=device)
+        wp.launch(
+            product, dim=grid, block_dim=lanes, device=device,
+            inputs=[n, model.particle_flags, model.particle_mass, model.particle_spring_neighbor,
+                    model.particle_spring_id, model.spring_rest_length, k, q, active, x],
+            outputs=[y, partials],
+        )
+        wp.launch(sum_partials, dim=(worlds, lanes), block_dim=lanes, device=device,
+                  inputs=[PI_XKX, PI_PARTIALS, partials], outputs=[scalars])
+        wp.launch(normalize, dim=model.particle_dim, block_dim=model.block_dim, device=device,
+                  inputs=[n, model.particle_flags, model.particle_inv_mass, active, y, scalars], outputs=[x])
+        wp.launch(condition, dim=worlds, device=device, inputs=[wp.float64(tolerance), max_iterations],
+                  outputs=[scalars, iteration, active, keep_going])
 
     wp.capture_while(keep_going, iterate)
     values = scalars.numpy()
-    residual = float(values[PI_RESIDUAL])
+    residual = values[:, PI_RESIDUAL].copy()
     return OmegaMaxEstimate(
-        omega_max=math.sqrt(max(float(values[PI_LAMBDA]), 0.0)),
-        iterations=int(iteration.numpy()[0]),
-        residual=residual,
-        converged=residual <= tolerance,
-        gershgorin=bound,
-        mode=x.numpy().astype(np.float64),
+        world_omega_max=np.sqrt(np.maximum(values[:, PI_LAMBDA], 0.0)),
+        world_iterations=iteration.numpy().astype(np.int64),
+        world_residual=residual,
+        world_converged=residual <= tolerance,
+        world_gershgorin=bound,
+        world_mode=x.numpy().astype(np.float64).reshape(worlds, n, 3),
     )
 
 
@@ -551,20 +666,28 @@ def estimate_omega_max(
 class Advice:
     """Whether a step is stable for a model and an integrator, and what to change if not.
 
+    With several worlds every world is analysed with its own parameters, and the verdict is that of the
+    binding world (the smallest stable step; among equals, the stiffest).
+
     Attributes:
         integrator: the integrator's registry name.
         dt: the step asked about [s].
-        omega_max: the springs' highest angular frequency used [rad/s].
+        omega_max: the binding world's highest angular frequency used [rad/s].
         omega_source: how ``omega_max`` was obtained: "power iteration" or "Gershgorin bound" (an upper
             bound: the step limit is then conservative).
-        dt_stable: the largest stable step [s]; ∞ when unconditionally stable, 0 when unstable at every
-            step. For an adaptive integrator: the stability limit of its internal step.
-        stable: whether ``dt`` is stable (always true for adaptive integrators, which shrink their step).
+        dt_stable: the largest stable step [s] of the binding world; ∞ when unconditionally stable, 0 when
+            unstable at every step. For an adaptive integrator: the stability limit of its internal step.
+        stable: whether ``dt`` is stable in every world (always true for adaptive integrators, which shrink
+            their step).
         adaptive: whether the integrator chooses its own internal step.
         fps: frame rate [1/s] the substep count refers to.
         substeps: the fewest steps per 1/fps frame that keep the step ≤ ``dt_stable`` (for adaptive
             integrators: the fewest internal steps per ``dt``); ``None`` when no step is stable.
-        message: one line for the user, with a suggestion when ``dt`` is unstable.
+        message: one line for the user, with a suggestion when ``dt`` is unstable; names the binding world
+            when the model has several.
+        world: the binding world.
+        world_omega_max: each world's ω_max [rad/s], float64, shape [world_count].
+        world_dt_stable: each world's largest stable step [s], float64, shape [world_count].
     """
 
     integrator: str
@@ -577,46 +700,74 @@ class Advice:
     fps: float
     substeps: int | None
     message: str
+    world: int = 0
+    world_omega_max: np.ndarray = field(default_factory=lambda: np.zeros(1), compare=False)
+    world_dt_stable: np.ndarray = field(default_factory=lambda: np.zeros(1), compare=False)
 
 
-def _damping_ranges(model: Model, stiffness: wp.array, estimate: OmegaMaxEstimate | None, positions: wp.array):
-    """(kd/k values [s], c/m values [1/s]) for :func:`network_stable_step`.
+def _damping_ranges(model: Model, stiffness: np.ndarray, modes: list, positions: wp.array) -> list:
+    """Each world's (kd/k values [s], c/m values [1/s]) for :func:`network_stable_step`.
 
     kd/k: the springs' smallest ratio (the least damped modes, which explicit Euler and midpoint cannot
-    integrate stably without damping) and the top mode's own ratio xᵀDx / xᵀKx on the power-iteration
-    eigenvector x (D = Σₛ kdₛ d̂d̂ᵀ): a mode near ω_max strains the stiff springs, so the damping of soft,
-    heavily damped families does not reach it. Without an eigenvector (Gershgorin) the largest ratio
-    stands in for the top mode's, which is conservative for symplectic Euler but loose when the stiffest
-    springs are the least damped. c/m: its extremes over the free particles (drag limits the slowest
-    motions, each particle's velocity decaying at its own c/m).
+    integrate stably without damping) and the top mode's own ratio xᵀDx / xᵀKx on the world's
+    power-iteration eigenvector x (D = Σₛ kdₛ d̂d̂ᵀ): a mode near ω_max strains the stiff springs, so the
+    damping of soft, heavily damped families does not reach it. Without an eigenvector (``modes[w]`` is
+    ``None``: Gershgorin) the largest ratio stands in for the top mode's, which is conservative for
+    symplectic Euler but loose when the stiffest springs are the least damped. c/m: its extremes over the
+    world's free particles (drag limits the slowest motions, each particle's velocity decaying at its own
+    c/m). Stiffness, damping, masses and drag are each world's own.
     """
-    free = ~model.kinematic_mask()
-    k = stiffness.numpy().astype(np.float64)
-    kd = model.spring_damping.numpy().astype(np.float64)
+    worlds, n = model.world_count, model.particle_count
+    free = free_particles(model)
+    k_all = np.broadcast_to(stiffness, (worlds, model.spring_count))
+    kd_all = model.world_values("spring_damping")
+    mass_all = model.world_values("particle_mass")
+    drag = model.world_values("drag")[:, 0]
     ends = model.spring_indices.numpy().reshape(-1, 2)
-    acting = (k > 0.0) & free[ends].any(axis=1)
-    mass = model.particle_mass.numpy().astype(np.float64)[free]
-    rates = model.drag / mass if len(mass) else np.zeros(1)
-    if not acting.any():
-        return np.zeros(1), rates
-    ratios = kd[acting] / k[acting]
-    if estimate is None:
-        return ratios, rates
-    q = positions.numpy().astype(np.float64)
-    mode = estimate.mode * free[:, None]
-    i, j = ends[acting].T
-    d = q[j] - q[i]
-    length = np.linalg.norm(d, axis=1)
-    coincident = length == 0.0  # no direction: no stiffness, no damping (as in the kernels)
-    safe = np.where(coincident, 1.0, length)
-    delta = mode[i] - mode[j]
-    axial2 = (np.einsum("sk,sk->s", d, delta) / safe) ** 2
-    rest = model.spring_rest_length.numpy().astype(np.float64)[acting]
-    transverse = np.where(coincident, 0.0, np.maximum(1.0 - rest / safe, 0.0))  # clamped, as in K
-    xkx = float((k[acting] * (axial2 + transverse * (np.einsum("sk,sk->s", delta, delta) - axial2))).sum())
-    xdx = float((kd[acting] * axial2).sum())
-    top = xdx / xkx if xkx > 0.0 else float(ratios.max())
-    return np.array([ratios.min(), top]), rates
+    rest_all = model.spring_rest_length.numpy().astype(np.float64)
+    q_all = positions.numpy().astype(np.float64).reshape(worlds, n, 3) if any(m is not None for m in modes) else None
+    ranges = []
+    for w in range(worlds):
+        mass = mass_all[w][free[w]]
+        rates = drag[w] / mass if len(mass) else np.zeros(1)
+        k, kd = k_all[w], kd_all[w]
+        acting = (k > 0.0) & free[w][ends].any(axis=1)
+        if not acting.any():
+            ranges.append((np.zeros(1), rates))
+            continue
+        ratios = kd[acting] / k[acting]
+        if modes[w] is None:
+            ranges.append((ratios, rates))
+            continue
+        q = q_all[w]
+        mode = modes[w] * free[w][:, None]
+        i, j = ends[acting].T
+        d = q[j] - q[i]
+        length = np.linalg.norm(d, axis=1)
+        coincident = length == 0.0  # no direction: no stiffness, no damping (as in the kernels)
+        safe = np.where(coincident, 1.0, length)
+        delta = mode[i] - mode[j]
+        axial2 = (np.einsum("sk,sk->s", d, delta) / safe) ** 2
+        rest = rest_all[acting]
+        transverse = np.where(coincident, 0.0, np.maximum(1.0 - rest / safe, 0.0))  # clamped, as in K
+        xkx = float((k[acting] * (axial2 + transverse * (np.einsum("sk,sk->s", delta, delta) - axial2))).sum())
+        xdx = float((kd[acting] * axial2).sum())
+        top = xdx / xkx if xkx > 0.0 else float(ratios.max())
+        ranges.append((np.array([ratios.min(), top]), rates))
+    return ranges
+
+
+def _world_limits(integrator: str, omegas: np.ndarray, ranges: list) -> np.ndarray:
+    """:func:`network_stable_step` of each world [s], shape [world_count]; worlds with the same ω_max and
+    damping extremes (e.g. identical worlds) are computed once."""
+    cache: dict = {}
+    limits = np.empty(len(omegas))
+    for w, (omega, (ratios, rates)) in enumerate(zip(omegas, ranges)):
+        key = (float(omega), _extremes("rayleigh", ratios), _extremes("drag_rate", rates))
+        if key not in cache:
+            cache[key] = network_stable_step(integrator, key[0], rayleigh=list(key[1]), drag_rate=list(key[2]))
+        limits[w] = cache[key]
+    return limits
 
 
 def advise(
@@ -634,12 +785,15 @@ def advise(
 ) -> Advice:
     """Check ``dt`` against the springs' stability limit for ``integrator`` and say what to do.
 
-    ω_max comes from :func:`estimate_omega_max` (falling back to the Gershgorin bound when the power
-    iteration does not converge within ``max_iterations``) or, with ``omega_estimate="gershgorin"``,
-    from :func:`gershgorin_omega_max` directly (cheaper, conservative). The modes' damping
-    (:func:`network_stable_step`) spans the smallest kd/k of the springs and the top mode's own kd/k,
-    xᵀDx / xᵀKx on the power-iteration eigenvector (with the Gershgorin bound: the largest kd/k), and the
-    drag's c/m. Contacts are not part of the analysis.
+    ω_max of every world comes from :func:`estimate_omega_max` (a world whose power iteration does not
+    converge within ``max_iterations`` falls back to its Gershgorin bound) or, with
+    ``omega_estimate="gershgorin"``, from :func:`world_gershgorin_omega_max` directly (cheaper,
+    conservative). The modes' damping (:func:`network_stable_step`) spans the smallest kd/k of the world's
+    springs and its top mode's own kd/k, xᵀDx / xᵀKx on the power-iteration eigenvector (with the
+    Gershgorin bound: the largest kd/k), and the world's drag c/m. Each world gets its own stable step; the
+    smallest binds, and the message names its world when the model has several. Contacts are not part of
+    the analysis. The theory's exact arithmetic costs ~0.1 s of host time per distinct world (worlds with
+    the same ω_max and damping share one evaluation).
 
     Args:
         model: the model.
@@ -647,8 +801,9 @@ def advise(
         dt: the step [s] to check, > 0.
         fps: frame rate [1/s] for the substep count.
         strict: raise a ConfigError carrying the message when ``dt`` is unstable.
-        stiffness: spring stiffness [N/m], shape [spring_count], also used for the springs' kd/k; default
-            the model's, with biphasic springs at their stiffer branch (ratio × ke).
+        stiffness: spring stiffness [N/m], shape [spring_count] or [world_count, spring_count], also used
+            for the springs' kd/k; default the model's, with biphasic springs at their stiffer branch
+            (ratio × ke).
         state: positions to linearise about; default the model's initial positions.
         omega_estimate: "power_iteration" or "gershgorin".
         max_iterations, tolerance: of the power iteration.
@@ -660,20 +815,28 @@ def advise(
     cls = _integrator_class(integrator)
     if omega_estimate not in OMEGA_ESTIMATES:
         raise ConfigError(f"omega_estimate must be one of {', '.join(OMEGA_ESTIMATES)}, got {omega_estimate!r}")
-    k = _stiffness_array(model, stiffness)
-    estimate = None
+    k = _stiffness_values(model, stiffness)
+    worlds = model.world_count
     if omega_estimate == "power_iteration":
-        estimate = estimate_omega_max(model, state=state, stiffness=k, max_iterations=max_iterations,
-                                      tolerance=tolerance)
-        if not estimate.converged:
-            estimate = None  # fall back to the bound
-    omega, source = (estimate.omega_max, "power iteration") if estimate else (
-        gershgorin_omega_max(model, stiffness=k), "Gershgorin bound")
+        _check_iteration(max_iterations, tolerance)
+        estimate = _power_iteration(model, k, state, max_iterations, tolerance, 0)
+        converged = estimate.world_converged
+        omegas = np.where(converged, estimate.world_omega_max, estimate.world_gershgorin)  # the bound where not
+        modes = [estimate.world_mode[w] if converged[w] else None for w in range(worlds)]
+    else:
+        converged = np.zeros(worlds, dtype=bool)
+        omegas = _gershgorin(model, k, free_particles(model))
+        modes = [None] * worlds
     positions = model.particle_q if state is None else state.particle_q
-    ratios, rates = _damping_ranges(model, k, estimate, positions)
-    limit = network_stable_step(integrator, omega, rayleigh=ratios, drag_rate=rates)
+    ranges = _damping_ranges(model, k, modes, positions)
+    limits = _world_limits(integrator, omegas, ranges)
+    w = int(np.lexsort((-omegas, limits))[0])  # the smallest step; among equals, the stiffest world
+    omega, limit = float(omegas[w]), float(limits[w])
+    source = "power iteration" if converged[w] else "Gershgorin bound"
     adaptive = cls.adaptive
     springs = f"ω_max = {omega:.4g} rad/s by {source}"
+    if worlds > 1:
+        springs += f" in world {w}, the binding one of {worlds} worlds"
     frame = f"1/{fps:g} s frame"
 
     if adaptive:
@@ -696,7 +859,7 @@ def advise(
         )
     elif limit == 0.0:
         stable, substeps = False, None
-        fallback = network_stable_step("symplectic_euler", omega, rayleigh=ratios, drag_rate=rates)
+        fallback = float(_world_limits("symplectic_euler", omegas, ranges).min())
         message = (
             f"{integrator} is unstable at every dt for these springs (their weakly damped modes grow at any step; "
             f"{springs}): use symplectic_euler (dt ≤ {format_duration(fallback)}) or implicit_euler (unconditionally stable)"
@@ -726,6 +889,9 @@ def advise(
         fps=fps,
         substeps=substeps,
         message=message,
+        world=w,
+        world_omega_max=np.asarray(omegas, dtype=np.float64),
+        world_dt_stable=limits,
     )
     if strict and not stable:
         raise ConfigError(message)

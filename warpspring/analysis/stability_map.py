@@ -60,7 +60,7 @@ from ..core.integrators import INTEGRATORS, ImplicitEuler, Integrator
 from ..kernels.stability import spring_motion_kernel
 from ..core.model import Model, State
 from ..core.stepper import StepHook, Stepper
-from .stability import advise, network_stable_step, stable_omega_h
+from .stability import advise, free_particles, network_stable_step, stable_omega_h, world_dynamic_inv_mass
 
 #: Growth threshold of a run: unstable when its late mean E exceeds its early one by (1 + GROWTH)².
 GROWTH = 0.01
@@ -283,29 +283,32 @@ def growth_verdict(energy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _MotionRecord(StepHook):
-    """Records every spring's stretch and stretch rate after each step of a block, row by row."""
+    """Records every spring's stretch and stretch rate in every world after each step of a block, row by
+    row: ``motion`` has shape [BLOCK, world_count · spring_count], world-major."""
 
     def __init__(self, model: Model):
         self.model = model
-        self.motion = wp.zeros((BLOCK, model.spring_count), dtype=wp.vec2d, device=model.device)
+        self.motion = wp.zeros((BLOCK, model.world_count * model.spring_count), dtype=wp.vec2d, device=model.device)
         self._kernel = spring_motion_kernel(model.scalar)
 
     def after_step(self, state: State, step: int, steps: int) -> None:
         model = self.model
-        wp.launch(self._kernel, dim=model.spring_count, inputs=[model.spring_indices, model.spring_rest_length,
-                  state.particle_q, state.particle_qd, step], outputs=[self.motion], device=model.device)
+        wp.launch(self._kernel, dim=(model.world_count, model.spring_count),
+                  inputs=[model.particle_count, model.spring_indices, model.spring_rest_length, state.particle_q,
+                          state.particle_qd, step],
+                  outputs=[self.motion], device=model.device)
 
 
 class _Recorder:
     """Steps a model at a fixed dt in captured blocks of ``BLOCK`` steps (a :class:`Stepper`), recording after
-    every step the norm E of each group of springs (groups: consecutive spring ranges starting at
-    ``group_starts``)."""
+    every step the norm E of each group of springs (groups: consecutive ranges of the world-major springs
+    of all worlds, w · spring_count + s, starting at ``group_starts``)."""
 
     def __init__(self, model: Model, integrator: Integrator, dt: float, group_starts):
         self.model = model
         self.group_starts = np.asarray(group_starts)
         ends = model.spring_indices.numpy().reshape(-1, 2)
-        inv_mass = model.dynamic_inv_mass()[ends].sum(axis=1)
+        inv_mass = world_dynamic_inv_mass(model)[:, ends].sum(axis=2).ravel()
         self._reduced_mass = np.where(inv_mass > 0.0, 1.0 / np.where(inv_mass > 0.0, inv_mass, 1.0), 0.0)
         self._record = _MotionRecord(model)
         self._stepper = Stepper(model, integrator, dt=dt, steps=BLOCK, hooks=[self._record])
@@ -315,7 +318,7 @@ class _Recorder:
         from where the last run ended), shape [steps, groups]."""
         if start is not None:
             self._stepper.reset(start)
-        k = self.model.spring_stiffness.numpy().astype(np.float64)
+        k = self.model.world_values("spring_stiffness").ravel()
         sizes = np.diff(np.append(self.group_starts, len(k)))
         omega2 = np.add.reduceat(k, self.group_starts) / np.add.reduceat(self._reduced_mass, self.group_starts)
         rate_weight = k / np.repeat(omega2, sizes)
@@ -394,8 +397,8 @@ def _oscillators(count: int, device) -> Model:
 
 def _tune(model: Model, omega_h: np.ndarray, zeta: np.ndarray) -> None:
     """Set oscillator j to ω = (ωh)ⱼ rad/s and damping ratio ζⱼ (the runs use h = 1 s)."""
-    model.spring_stiffness.assign(SPRING_MASS * omega_h**2)
-    model.spring_damping.assign(2.0 * zeta * SPRING_MASS * omega_h)
+    model.set_world_values("spring_stiffness", SPRING_MASS * omega_h**2)
+    model.set_world_values("spring_damping", 2.0 * zeta * SPRING_MASS * omega_h)
 
 
 def measure_spring_limits(integrator: str, plan: MapPlan, device=None) -> list[SpringLimit]:
@@ -454,25 +457,31 @@ def cloth_model(stiffness: float, *, size: int, device=None) -> Model:
 
 def perturbed_state(model: Model, amplitude: float, *, seed: int = 0, sharpening: int = 2) -> State:
     """The model's initial state, at rest, with the free particles of a flat model (in a plane z = const)
-    displaced in that plane by RMS ``amplitude`` [m], weighted towards the stiffest modes.
+    displaced in that plane by RMS ``amplitude`` [m] in every world, weighted towards each world's stiffest
+    modes.
 
     A random in-plane displacement x is replaced ``sharpening`` times by M⁻¹ f(q₀ + x), the model's own
     spring forces (-M⁻¹K x for displacements this small), which multiplies each mode's share by ω² each
     time. Instability starts in the stiff modes; weighting the start towards them keeps the slowly
     decaying soft modes from diluting a slow growth of the stiff ones in E.
     """
-    free = ~model.kinematic_mask()
-    q0 = model.particle_q.numpy().astype(np.float64)
-    x = np.random.default_rng(seed).normal(size=(model.particle_count, 3))
-    x[:, 2] = 0.0
-    x[~free] = 0.0
+    shape = (model.world_count, model.particle_count, 3)
+    q0 = model.particle_q.numpy().astype(np.float64).reshape(shape)
+    inv_mass = world_dynamic_inv_mass(model)[..., None]
+    x = np.random.default_rng(seed).normal(size=shape[1:]) * free_particles(model)[..., None]
+    x[..., 2] = 0.0
+
+    def displaced(x):  # positions with each world's displacement scaled to RMS amplitude
+        rms = np.sqrt((x * x).sum(axis=2).mean(axis=1))[:, None, None]
+        return (q0 + x * (amplitude / rms)).reshape(-1, 3)
+
     probe = model.state()
     for _ in range(sharpening):
-        probe.particle_q.assign(q0 + x * (amplitude / np.sqrt((x * x).sum(axis=1).mean())))
+        probe.particle_q.assign(displaced(x))
         eval_forces(model, probe, None)
-        x = probe.particle_f.numpy() * model.dynamic_inv_mass()[:, None]
+        x = probe.particle_f.numpy().astype(np.float64).reshape(shape) * inv_mass
     state = model.state()
-    state.particle_q.assign(q0 + x * (amplitude / np.sqrt((x * x).sum(axis=1).mean())))
+    state.particle_q.assign(displaced(x))
     return state
 
 

@@ -248,7 +248,7 @@ class ClothProblem:
 
 @dataclass(frozen=True)
 class SpringNetwork:
-    """Host copies (float64) of what the energy and strain of a spring network need.
+    """Host copies (float64) of what the energy and strain of a spring network need (one world of a model).
 
     Attributes:
         mass: particle masses [kg], shape [particles].
@@ -269,16 +269,17 @@ class SpringNetwork:
     free: np.ndarray
 
     @classmethod
-    def of(cls, model: Model) -> SpringNetwork:
-        """Read the arrays of ``model``."""
+    def of(cls, model: Model, *, world: int = 0) -> SpringNetwork:
+        """Read the arrays of ``world`` of ``model``."""
+        n = model.particle_count
         return cls(
-            mass=model.particle_mass.numpy().astype(np.float64),
-            gravity=np.array(model.gravity, dtype=np.float64),
+            mass=model.world_values("particle_mass")[world],
+            gravity=model.world_values("gravity")[world],
             springs=model.spring_indices.numpy().reshape(-1, 2).astype(np.int64),
             rest_length=model.spring_rest_length.numpy().astype(np.float64),
-            stiffness=model.spring_stiffness.numpy().astype(np.float64),
-            initial_q=model.particle_q.numpy().astype(np.float64),
-            free=~model.kinematic_mask(),
+            stiffness=model.world_values("spring_stiffness")[world],
+            initial_q=model.particle_q.numpy().astype(np.float64)[world * n : (world + 1) * n],
+            free=~model.kinematic_mask(world=world),
         )
 
     def lengths(self, q: np.ndarray) -> np.ndarray:
