@@ -35,6 +35,26 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def _non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
+    return value
+
+
 def _positive_float(text: str) -> float:
     try:
         value = float(text)
@@ -65,6 +85,12 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--fps", type=_positive_float, help="frames per second [1/s]")
     run.add_argument("--substeps", type=_positive_int, help="integrator steps per frame")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--world", type=_non_negative_int, metavar="K",
+                     help="write only world K of a scene of several worlds (default: the scene's [output] world, "
+                          "else every world, each as its own prim /World/world_NNNN)")
+    run.add_argument("--world-spacing", type=_non_negative_float, metavar="M",
+                     help="distance in metres between the written worlds, laid out on a grid in the ground plane "
+                          "(default: the scene's [output] world_spacing, else twice the cloth's extent, >= 1 m)")
     run.add_argument(
         "--strict", action="store_true",
         help="refuse to run when the stability advisor finds the step unstable (default: warn and run)",
@@ -127,6 +153,8 @@ def _cmd_run(args) -> int:
         progress=not args.quiet and sys.stderr.isatty(),  # a redirected stderr gets no progress bar
         strict=args.strict,
         warn=warn,
+        world=args.world,
+        world_spacing=args.world_spacing,
     )
     print(summary.line())
     return 0

@@ -129,15 +129,15 @@ def render_usd(usd_path: str, png_path: str, *, frame: int = -1, width: int = 90
 
 
 def _sampled_frames(stage) -> list[int]:
-    """Time codes of the first animated mesh's point samples (empty when no mesh is animated)."""
+    """Time codes at which any mesh's points are sampled, sorted (empty when no mesh is animated). Every
+    mesh counts: a world the run-time guard stopped has fewer samples than the others."""
     from pxr import UsdGeom
 
+    times = set()
     for prim in stage.Traverse():
         if prim.IsA(UsdGeom.Mesh):
-            samples = UsdGeom.Mesh(prim).GetPointsAttr().GetTimeSamples()
-            if samples:
-                return [int(round(s)) for s in samples]
-    return []
+            times.update(int(round(s)) for s in UsdGeom.Mesh(prim).GetPointsAttr().GetTimeSamples())
+    return sorted(times)
 
 
 def _read_scene(stage, time) -> _Scene | None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import warp as wp
 
@@ -29,6 +29,10 @@ class RunSummary:
         model: one-line model description.
         integrator: integrator name.
         advice: the stability advisor's verdict before the run.
+        worlds: worlds simulated (``[worlds] count``).
+        exported_world: the one world written, or ``None`` (every world).
+        world_failures: one line per world the guard stopped (``[guard] stop = "world"``), in world order,
+            naming the world, the frame and what failed; the file holds that world's frames before it.
     """
 
     output: str
@@ -42,6 +46,9 @@ class RunSummary:
     model: str
     integrator: str
     advice: str
+    worlds: int = 1
+    exported_world: int | None = None
+    world_failures: list = field(default_factory=list)
 
     def line(self) -> str:
         """The closing summary line of the CLI."""
@@ -51,10 +58,17 @@ class RunSummary:
             speed = f"{rate:.1f} frames/s, {rate * self.substeps:.0f} substeps/s"
         else:  # one frame: all of it is setup, there is no rate to report
             speed = "no timed frames"
+        worlds = ""
+        if self.worlds > 1:  # the model's description counts the worlds
+            written = "every world" if self.exported_world is None else f"world {self.exported_world}"
+            worlds = f"; {written} written"
+            if self.world_failures:
+                stopped = len(self.world_failures)
+                worlds += f"; {stopped} world{'s' if stopped > 1 else ''} stopped by the guard"
         return (
             f"wrote {self.frames + 1} frames ({self.simulated_time:.3g} s simulated) to {self.output} in "
             f"{self.wall_time:.2f} s + {self.setup_time:.2f} s setup: {speed}; {self.integrator}, "
-            f"dt = {self.dt * 1e3:.4g} ms; {self.model}"
+            f"dt = {self.dt * 1e3:.4g} ms; {self.model}{worlds}"
         )
 
 
@@ -83,15 +97,25 @@ def run_scene(
     progress: bool = True,
     strict: bool = False,
     warn=None,
+    world: int | None = None,
+    world_spacing: float | None = None,
+    world_columns: int | None = None,
 ) -> RunSummary:
-    """Simulate ``scene`` and write it to USD. Arguments other than ``scene`` override the file's values.
+    """Simulate ``scene`` and write it to USD. Arguments other than ``scene`` override the file's values
+    (``world``, ``world_spacing`` and ``world_columns`` those of its ``[output]``: see
+    :class:`~warpspring.io.usd.UsdWriter`).
 
     Before the run the stability advisor checks the step (:func:`preflight`): with ``strict`` an unstable
     step is refused, otherwise its message goes to ``warn`` (a callable taking one string), if given.
 
+    With ``[guard] stop = "world"`` a world that fails a guard check is held and the others go on: the
+    world gets no samples from the failing frame on, its failure goes to ``warn`` at once and is listed in
+    :attr:`RunSummary.world_failures`. The run fails only when every world has failed.
+
     Raises:
         ConfigError: bad scene or options, or (``strict``) an unstable step; nothing is written.
-        SimulationError: the state became non-finite; the file holds every frame before that one.
+        SimulationError: the state became non-finite (in every world, with ``stop = "world"``); the file
+            holds every frame before that one.
     """
     frames = scene.frames if frames is None else frames
     fps = scene.fps if fps is None else fps
@@ -103,10 +127,19 @@ def run_scene(
     from .usd import UsdWriter, check_output_path  # pxr loads only for runs that write USD
 
     output = check_output_path(output)  # fail before the model is built and the kernels compiled
+    world = scene.export_world if world is None else world
+    if world is not None and world >= scene.world_count:
+        raise ConfigError(f"cannot write world {world}: the scene has {scene.world_count} world(s), "
+                          f"0..{scene.world_count - 1}")
+    export = dict(
+        world=world,
+        world_spacing=scene.world_spacing if world_spacing is None else world_spacing,
+        world_columns=scene.world_columns if world_columns is None else world_columns,
+    )
 
     t0 = time.perf_counter()
     dev = resolve_device(device or scene.device)
-    model = scene.builder().finalize(dev, precision=scene.precision)
+    model = scene.finalize(dev)
     try:
         integrator = make_integrator(scene.integrator, model, **scene.integrator_options)
     except ConfigError as exc:
@@ -116,13 +149,21 @@ def run_scene(
     if not advice.stable and warn is not None:
         warn(advice.message)
 
-    with UsdWriter(output, model, fps=fps, particles=scene.export_particles, springs=scene.export_springs) as usd:
+    failures = []
+    with UsdWriter(output, model, fps=fps, particles=scene.export_particles, springs=scene.export_springs,
+                   **export) as usd:
         usd.write_frame(sim.state)
         bar = _progress(frames, enabled=progress)
         t1 = None
         try:
             for _ in range(frames):
                 sim.step_frame()
+                for w in sorted(set(sim.world_failures) - set(failures)):  # stopped by the guard this frame
+                    failures.append(w)
+                    usd.stop_worlds(w)  # its last sample stays the frame before the failure
+                    if warn is not None:
+                        with bar.external_write_mode():  # a line of its own, not through the progress bar
+                            warn(sim.describe_failure(w))
                 usd.write_frame(sim.state)
                 bar.update(1)
                 if t1 is None:  # the first frame compiled the kernels and captured the graph: setup time
@@ -152,6 +193,9 @@ def run_scene(
         model=model.describe(),
         integrator=integrator.name,
         advice=advice.message,
+        worlds=model.world_count,
+        exported_world=world,
+        world_failures=[sim.describe_failure(w) for w in sorted(failures)],
     )
 
 

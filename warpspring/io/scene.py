@@ -9,6 +9,19 @@ tracks wherever a live input takes a value (``[world] gravity = { times = [...],
 pin groups moved by tracks (``[[cloth.pin_group]]``), and renames ``[guard] max_strain`` to
 ``tear_strain``. A renamed key is still read under its old name, with a :class:`DeprecatedKeyWarning`
 (renames are listed in ``_RENAMED_KEYS``, one line each).
+
+Worlds (format 2): a ``[worlds]`` table runs ``count`` independent copies of the scene in one model, each
+with its own values of the keys it lists: a list of one entry per world, where an entry of a live input
+is a constant or a track table, as in ``[world]``::
+
+    [worlds]
+    count = 3
+    gravity = [[0, 0, -9.81], [0, 0, -1.62], { times = [0, 1], values = [[0, 0, -9.81], [0, 0, 0]] }]
+    stiffness_scale = [1.0, 2.0, 0.5]
+
+Its entries replace the ``[world]`` / ``[stabilizers]`` value of that input in their world. ``[output]``
+``world`` exports one world only; otherwise every world is written as its own prim, laid out on a grid
+``world_spacing`` metres apart (see :class:`warpspring.io.usd.UsdWriter`).
 """
 
 from __future__ import annotations
@@ -26,7 +39,7 @@ from ..core.builder import DEFAULT_BEND, DEFAULT_SHEAR, DEFAULT_STRUCTURAL, Mode
 from ..errors import ConfigError
 from ..core.guards import GuardLimits
 from ..core.integrators import INTEGRATORS
-from ..core.model import STABILIZER_INPUTS, Stabilizers
+from ..core.model import STABILIZER_INPUTS, Model, Stabilizers
 from ..core.tracks import EXTRAPOLATIONS, INTERPOLATIONS, Track
 from ..core.transforms import quat_from_axis_angle
 
@@ -67,6 +80,10 @@ class PinGroupSpec:
     rotation: Track | None = None
 
 
+#: The per-world keys of ``[worlds]`` that scale a parameter of every spring or particle of their world.
+WORLD_SCALES = {"stiffness_scale": "spring_stiffness", "damping_scale": "spring_damping", "mass_scale": "particle_mass"}
+
+
 @dataclass
 class Scene:
     """A parsed scene file: how to build the model, and how to run and write it.
@@ -90,6 +107,15 @@ class Scene:
         guard: the ``[guard]`` table (run-time checks).
         tracks: keyframe tracks of the live inputs the file animates, by input name ("gravity", "drag",
             "max_strain", ...).
+        world_count: independent copies of the scene in the model (``[worlds] count``; 1 without ``[worlds]``).
+        world_inputs: per-world live inputs of ``[worlds]``, by input name: one entry per world, a constant
+            (a float, or a list of 3 for gravity) or a :class:`Track`.
+        world_scales: per-world factors of ``[worlds]``, by model parameter ("spring_stiffness",
+            "spring_damping", "particle_mass"): one float per world.
+        export_world: ``[output] world``: the one world to write, or ``None`` (every world).
+        world_spacing: ``[output] world_spacing``: distance [m] between the exported worlds, or ``None``
+            (the writer's default).
+        world_columns: ``[output] world_columns``: worlds per row of the export grid, or ``None``.
         version: the file's scene format (1 for a file without ``version``).
         deprecations: one message per deprecated key the file uses (each also a
             :class:`DeprecatedKeyWarning` when the file is read).
@@ -112,6 +138,12 @@ class Scene:
     stabilizers: Stabilizers = field(default_factory=Stabilizers)
     guard: GuardLimits = field(default_factory=GuardLimits)
     tracks: dict = field(default_factory=dict)
+    world_count: int = 1
+    world_inputs: dict = field(default_factory=dict)
+    world_scales: dict = field(default_factory=dict)
+    export_world: int | None = None
+    world_spacing: float | None = None
+    world_columns: int | None = None
     version: int = SCENE_FORMAT_VERSION
     deprecations: list = field(default_factory=list)
 
@@ -142,6 +174,27 @@ class Scene:
             with _context(where, _label("collider", i, len(self.colliders))):
                 _add_collider(builder, collider)
         return builder
+
+    def finalize(self, device=None) -> Model:
+        """The scene's model on ``device``: :meth:`builder` finalized in the scene's precision with
+        :attr:`world_count` worlds, each given its ``[worlds]`` values and tracks.
+
+        Raises:
+            ConfigError: as :meth:`builder`, or a per-world value the model rejects (prefixed with the file
+                and the table).
+        """
+        model = self.builder().finalize(device, precision=self.precision, worlds=self.world_count)
+        with _context(os.path.basename(self.path), "worlds"):
+            for name, entries in self.world_inputs.items():
+                # Constants first (this stops any track of the input), then each world's own track.
+                model.set_world_values(name, [e.values[0] if isinstance(e, Track) else e for e in entries])
+                for w, entry in enumerate(entries):
+                    if isinstance(entry, Track):
+                        model.set_track(name, entry, world=w)
+            for name, scale in self.world_scales.items():
+                base = model.world_values(name)[0]
+                model.set_world_values(name, np.asarray(scale)[:, None] * base[None, :])
+        return model
 
 
 # -- schema: key -> expected type -------------------------------------------------------------------------
@@ -206,6 +259,14 @@ class _Since:
 
     version: int
     spec: object
+
+
+@dataclass(frozen=True)
+class _PerWorld:
+    """A list of one entry per world, each fitting ``value`` (its length is checked against ``[worlds]
+    count`` once the whole table is read)."""
+
+    value: object
 
 
 @dataclass(frozen=True)
@@ -283,7 +344,14 @@ _SCHEMA = {
         "radius": POSITIVE,
         "friction": NON_NEGATIVE,
     },
-    "output": {"path": str, "particles": bool, "springs": bool},
+    "output": {
+        "path": str,
+        "particles": bool,
+        "springs": bool,
+        "world": _Since(2, _Number(0, integer=True)),
+        "world_spacing": _Since(2, NON_NEGATIVE),
+        "world_columns": _Since(2, _Number(1, integer=True)),
+    },
     "stabilizers": {
         "max_spring_force": _Live(POSITIVE),
         "max_particle_force": _Live(POSITIVE),
@@ -293,10 +361,31 @@ _SCHEMA = {
         "biphasic_strain": _Live(POSITIVE),
         "biphasic_ratio": _Live(_Number(1.0)),
     },
-    "guard": {"every": _Number(1, integer=True), "tear_strain": POSITIVE, "max_kinetic_energy": POSITIVE},
+    "guard": {
+        "every": _Number(1, integer=True),
+        "tear_strain": POSITIVE,
+        "max_kinetic_energy": POSITIVE,
+        "stop": _Since(2, str),
+    },
+    "worlds": {
+        "count": _Number(1, integer=True),
+        "gravity": _PerWorld(_Live(VECTOR)),
+        "drag": _PerWorld(_Live(NON_NEGATIVE)),
+        "max_spring_force": _PerWorld(_Live(POSITIVE)),
+        "max_particle_force": _PerWorld(_Live(POSITIVE)),
+        "max_speed": _PerWorld(_Live(POSITIVE)),
+        "max_strain": _PerWorld(_Live(POSITIVE)),
+        "biphasic_strain": _PerWorld(_Live(POSITIVE)),
+        "biphasic_ratio": _PerWorld(_Live(_Number(1.0))),
+        "stiffness_scale": _PerWorld(NON_NEGATIVE),
+        "damping_scale": _PerWorld(NON_NEGATIVE),
+        "mass_scale": _PerWorld(POSITIVE),
+    },
 }
 _TOP_LEVEL = {"version": _Number(1, integer=True), **{k: (dict, list) if k in ("cloth", "collider") else dict
-                                                      for k in _SCHEMA}}
+                                                      for k in _SCHEMA}, "worlds": _Since(2, dict)}
+#: How the run-time guard may stop: the whole run, or only the world that failed ([guard] stop).
+GUARD_STOPS = ("run", "world")
 #: The tables holding live inputs (each may be a track table from format 2 on).
 _LIVE_TABLES = ("world", "stabilizers")
 
@@ -361,7 +450,7 @@ def _parse(data: dict, path: str) -> Scene:
     data = copy.deepcopy(data)
     deprecations = _apply_renames(data, version, where)
     _check_table(data, _TOP_LEVEL, where, "", version=version)
-    for name in ("simulation", "world", "output", "stabilizers", "guard"):
+    for name in ("simulation", "world", "output", "stabilizers", "guard", "worlds"):
         _check_table(data.get(name, {}), _SCHEMA[name], where, name, version=version)
     cloths = _table_list(data.get("cloth", []), where, "cloth")
     colliders = _table_list(data.get("collider", []), where, "collider")
@@ -409,9 +498,50 @@ def _parse(data: dict, path: str) -> Scene:
         if name in STABILIZER_INPUTS and not scene.stabilizers.enabled(name):  # only biphasic_ratio can be
             raise ConfigError(f"{where}: stabilizers.{name} is a track, but biphasic springs are off: set "
                               "stabilizers.biphasic_strain too (the strain beyond which springs stiffen)")
-    scene.guard = GuardLimits(**data.get("guard", {}))
+    guard = data.get("guard", {})
+    if guard.get("stop", "run") not in GUARD_STOPS:
+        raise ConfigError(f"{where}: guard.stop must be one of {', '.join(map(repr, GUARD_STOPS))} (stop the whole "
+                          f"run, or hold only the failing world and go on), got {guard['stop']!r}")
+    scene.guard = GuardLimits(**guard)
+    _parse_worlds(scene, data.get("worlds"), out, where)
     check_run_settings(fps=scene.fps, frames=scene.frames, substeps=scene.substeps, where=where)
     return scene
+
+
+def _parse_worlds(scene: Scene, worlds: dict | None, out: dict, where: str) -> None:
+    """Fill the scene's world fields from its checked ``[worlds]`` and ``[output]`` tables (types are
+    checked already; here: the count, the list lengths, and what the values need)."""
+    if worlds is not None:
+        if "count" not in worlds:
+            raise ConfigError(f"{where}: [worlds] needs count = N, the number of worlds (each key of [worlds] then "
+                              "lists one entry per world)")
+        count = scene.world_count = worlds["count"]
+        for key, entries in worlds.items():
+            if key == "count":
+                continue
+            if len(entries) != count:
+                raise ConfigError(f"{where}: worlds.{key} has {len(entries)} entr{'y' if len(entries) == 1 else 'ies'} "
+                                  f"but count = {count}: give one entry per world")
+            if key in WORLD_SCALES:
+                scene.world_scales[WORLD_SCALES[key]] = [float(e) for e in entries]
+                continue
+            if key in STABILIZER_INPUTS and not scene.stabilizers.enabled(key):
+                owner = "biphasic_strain" if key == "biphasic_ratio" else key
+                raise ConfigError(f"{where}: worlds.{key} sets {key} per world, but its stabiliser is off: set "
+                                  f"[stabilizers] {owner} too (it switches the stabiliser on; [worlds] replaces its "
+                                  "value in each world)")
+            scene.world_inputs[key] = [
+                _make_track(e, where, f"worlds.{key}[{i}]") if isinstance(e, dict)
+                else (float(e) if not isinstance(e, list) else [float(x) for x in e])
+                for i, e in enumerate(entries)
+            ]
+    count = scene.world_count
+    if "world" in out and out["world"] >= count:
+        raise ConfigError(f"{where}: output.world = {out['world']} does not exist: the scene has {count} world(s), "
+                          f"0..{count - 1} (set [worlds] count, or leave output.world out to write every world)")
+    scene.export_world = out.get("world")
+    scene.world_spacing = float(out["world_spacing"]) if "world_spacing" in out else None
+    scene.world_columns = out.get("world_columns")
 
 
 def check_run_settings(*, fps, frames, substeps, where: str = "options") -> None:
@@ -618,8 +748,19 @@ def _check_table(table: dict, schema: dict, where: str, name: str, *, version: i
 def _check_value(value, expected, where: str, key: str, *, version: int) -> None:
     if isinstance(expected, _Since):
         if version < expected.version:
-            raise _needs(expected.version, where, key)
+            raise _needs(expected.version, where, f"[{key}]" if expected.spec is dict else key)
         _check_value(value, expected.spec, where, key, version=version)
+        return
+    if isinstance(expected, _PerWorld):
+        vector = isinstance(expected.value, _Live) and expected.value.value is VECTOR
+        if vector and isinstance(value, list) and value and all(NUMBER.accepts(v) for v in value):
+            raise ConfigError(f"{where}: {key} must list one [x, y, z] per world, e.g. [[0, 0, -9.81], [0, 0, -1.62]], "
+                              f"got {value!r}; for one value in every world, set it in [world]")
+        if not isinstance(value, list):
+            entry = "a value or a track table" if isinstance(expected.value, _Live) else "a number"
+            raise ConfigError(f"{where}: {key} must be a list with one entry per world ({entry} each), got {value!r}")
+        for i, entry in enumerate(value):
+            _check_value(entry, expected.value, where, f"{key}[{i}]", version=version)
         return
     if isinstance(expected, _Live):
         if not isinstance(value, dict):

@@ -10,6 +10,14 @@ What is authored, and why (USD's fallbacks are wrong for simulation caches):
 * colliders as prims with their transforms (a sphere as ``UsdGeom.Sphere``, a plane as a finite quad);
 * optionally the particles (``UsdGeom.Points``) and springs (``UsdGeom.BasisCurves``).
 
+Worlds: a model of one world, or one chosen world of a model of several (``world=k``), is written as
+above, directly under ``/World``. Every world of a model of several is written as its own ``Xform``,
+``/World/world_0003/<cloth>``, ``/World/world_0003/colliders/...``, with its own copy of the colliders
+and a translation that lays the worlds out side by side on a grid in the ground plane
+(:func:`world_offsets`); the points stay the world's simulated positions, the translation places them.
+A world that the run-time guard stopped (:meth:`UsdWriter.stop_worlds`) gets no samples after its last
+good frame: DCC tools hold a prim's last sample, so the file stays a valid animation of every world.
+
 Frames are written as they are produced. A ``.usdc`` layer is saved after every frame: crate files
 append the new samples, and the samples already on disk are not kept in memory, so memory does not
 grow with the frame count and the file on disk is a complete, valid stage after every frame, also when
@@ -19,8 +27,10 @@ most once per second of wall time and on :meth:`UsdWriter.close`.
 
 from __future__ import annotations
 
+import math
 import os
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -46,6 +56,14 @@ class UsdWriter:
         particles: also write the particles as ``UsdGeom.Points`` (widths = 2 × radius).
         springs: also write the springs as linear ``UsdGeom.BasisCurves``.
         text_save_interval: for ``.usda``, the least wall time [s] between two saves.
+        world: export only this world, directly under ``/World`` as a one-world model; ``None``: every
+            world (each under ``/World/world_NNNN`` when the model has several).
+        world_spacing: distance [m] between neighbouring worlds on the export grid, when every world
+            of a model of several is written; ``None``: :func:`default_world_spacing`.
+        world_columns: worlds per row of the export grid; ``None``: ceil(√world_count).
+
+    Raises:
+        ConfigError: a bad path, fps, world, spacing or column count; nothing is written.
     """
 
     def __init__(
@@ -57,13 +75,31 @@ class UsdWriter:
         particles: bool = False,
         springs: bool = False,
         text_save_interval: float = 1.0,
+        world: int | None = None,
+        world_spacing: float | None = None,
+        world_columns: int | None = None,
     ):
-        from pxr import Sdf, Tf, Usd, UsdGeom, Vt
+        from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
         self._Usd, self._UsdGeom, self._Vt, self._Tf = Usd, UsdGeom, Vt, Tf
         path = check_output_path(path)
         ext = os.path.splitext(path)[1].lower()
         fps = checks.positive("fps", fps)
+        if world is not None:
+            world = checks.count("world", world, minimum=0)
+            if world >= model.world_count:
+                raise ConfigError(f"cannot export world {world}: the model has {model.world_count} world(s), "
+                                  f"0..{model.world_count - 1}")
+        self._tile = None  # half the width [m] of a world's cell on the export grid, when worlds are laid out
+        if world is None and model.world_count > 1:
+            if world_spacing is None:
+                world_spacing = default_world_spacing(model)
+            offsets = world_offsets(model, spacing=world_spacing, columns=world_columns)  # checks both first
+            roots = [(w, f"/World/{world_prim_name(w, model.world_count)}") for w in range(model.world_count)]
+            self._tile = 0.5 * world_spacing if world_spacing > 0 else None
+        else:
+            offsets = None
+            roots = [(0 if world is None else world, "/World")]
         try:
             if os.path.exists(path):
                 os.remove(path)
@@ -85,8 +121,8 @@ class UsdWriter:
         self._closed = False
 
         stage = self.stage
-        world = UsdGeom.Xform.Define(stage, "/World")
-        stage.SetDefaultPrim(world.GetPrim())
+        root = UsdGeom.Xform.Define(stage, "/World")
+        stage.SetDefaultPrim(root.GetPrim())
         UsdGeom.SetStageUpAxis(stage, {"Y": UsdGeom.Tokens.y, "Z": UsdGeom.Tokens.z}[model.up_axis])
         UsdGeom.SetStageMetersPerUnit(stage, 1.0)
         stage.SetTimeCodesPerSecond(self.fps)
@@ -97,89 +133,89 @@ class UsdWriter:
 
         stage.GetRootLayer().customLayerData = {"generator": f"warpspring {__version__} (warp {wp.__version__})"}
 
-        self._meshes = []
-        for group in model.meshes:
-            mesh = UsdGeom.Mesh.Define(stage, f"/World/{group.name}")
-            mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(group.faces)))
-            mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(group.faces.reshape(-1).astype(np.int32)))
-            mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-            mesh.CreateDoubleSidedAttr(True)
-            mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
-            mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
-            if group.uvs is not None:  # per vertex, or per corner where seams give a particle two UVs
-                corners = group.uvs.ndim == 3
-                st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
-                    "st", Sdf.ValueTypeNames.TexCoord2fArray,
-                    UsdGeom.Tokens.faceVarying if corners else UsdGeom.Tokens.vertex,
-                )
-                st.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(group.uvs.reshape(-1, 2), dtype=np.float32)))
-            self._meshes.append((group, mesh.GetPointsAttr(), mesh.GetExtentAttr(), mesh.GetNormalsAttr()))
-
-        self._points = None
-        if particles:
-            pts = UsdGeom.Points.Define(stage, "/World/particles")
-            radius = model.particle_radius.numpy().astype(np.float32)
-            self._widths = Vt.FloatArray.FromNumpy(2.0 * radius)
-            pts.CreateWidthsAttr(self._widths)
-            pts.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
-            self._points = pts
-
-        self._curves = None
-        if springs and model.spring_count:
-            curves = UsdGeom.BasisCurves.Define(stage, "/World/springs")
-            curves.CreateTypeAttr(UsdGeom.Tokens.linear)
-            curves.CreateCurveVertexCountsAttr(Vt.IntArray([2] * model.spring_count))
-            width = float(0.5 * model.particle_radius.numpy().mean()) or 1.0e-3
-            curves.CreateWidthsAttr(Vt.FloatArray([width]))
-            curves.SetWidthsInterpolation(UsdGeom.Tokens.constant)
-            self._spring_ends = model.spring_indices.numpy().reshape(-1)
-            self._curves = curves
-
-        self._write_colliders()
-        if model.tri_count:
-            self._normals = wp.empty(model.particle_count, dtype=wp.vec3f, device=model.device)
+        if world is not None and model.world_count > 1:
+            root.GetPrim().SetCustomDataByKey("warpspring:world", world)
+        self.worlds = [w for w, _ in roots]
+        self._stopped: dict[int, int] = {}
+        self._slots = []
+        for w, path_root in roots:
+            if offsets is not None:
+                xform = UsdGeom.Xform.Define(stage, path_root)
+                xform.AddTranslateOp().Set(Gf.Vec3d(*offsets[w]))
+                xform.GetPrim().SetCustomDataByKey("warpspring:world", w)
+            self._slots.append(self._define_world(w, path_root, particles=particles, springs=springs))
+            self._write_colliders(path_root)
+        if model.tri_count and any(slot.meshes for slot in self._slots):
+            # Every exported world's triangles, in state-array indices: one launch computes all their normals.
+            n = model.particle_count
+            tri = model.tri_indices.numpy()
+            tri = np.concatenate([tri + w * n for w in self.worlds]).astype(np.int32)
+            self._export_tris = wp.array(tri, dtype=wp.int32, device=model.device)
+            self._normals = wp.empty(model.state_size, dtype=wp.vec3f, device=model.device)
         self._save(force=True)
 
     # -- frames ---------------------------------------------------------------------------------------
 
     def write_frame(self, state: State) -> None:
-        """Append ``state`` as the next frame (time code :attr:`frame_count`) and save the file.
+        """Append ``state`` as the next frame (time code :attr:`frame_count`) and save the file. Worlds that
+        were stopped (:meth:`stop_worlds`) get no sample.
 
         Raises:
-            SimulationError: a position is NaN or infinite; nothing of the frame is written.
+            SimulationError: a position of an exported world that is not stopped is NaN or infinite;
+                nothing of the frame is written.
         """
         if self._closed:
             raise RuntimeError("UsdWriter is closed")
         Vt, UsdGeom = self._Vt, self._UsdGeom
         t = self._Usd.TimeCode(float(self.frame_count))
-        with np.errstate(over="ignore", invalid="ignore"):
-            q = state.particle_q.numpy().astype(np.float32)  # USD points are float32: check what is written
-        bad = np.flatnonzero(~np.isfinite(q).all(axis=1))
-        if len(bad):
-            raise SimulationError(
-                f"particle {int(bad[0])} has a non-finite position or one beyond float32 range "
-                f"({len(bad)} of {len(q)} particles); the frame was not written"
-            )
-        if self._meshes:
-            normals = self._vertex_normals(state)
-            for group, points_attr, extent_attr, normals_attr in self._meshes:
+        model = self.model
+        live = [slot for slot in self._slots if slot.world not in self._stopped]
+        with np.errstate(over="ignore", invalid="ignore"):  # USD points are float32: check what is written
+            q_all = state.particle_q.numpy().reshape(model.world_count, model.particle_count, 3).astype(np.float32)
+        for slot in live:
+            bad = np.flatnonzero(~np.isfinite(q_all[slot.world]).all(axis=1))
+            if len(bad):
+                where = f"world {slot.world}: " if model.world_count > 1 else ""
+                raise SimulationError(
+                    f"{where}particle {int(bad[0])} has a non-finite position or one beyond float32 range "
+                    f"({len(bad)} of {model.particle_count} particles); the frame was not written"
+                )
+        normals_all = None
+        if any(slot.meshes for slot in live):
+            normals_all = self._vertex_normals(state).reshape(model.world_count, model.particle_count, 3)
+        for slot in live:
+            q = q_all[slot.world]
+            for group, points_attr, extent_attr, normals_attr in slot.meshes:
                 points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q[group.particles]))
                 points_attr.Set(points, t)
                 extent_attr.Set(UsdGeom.PointBased.ComputeExtent(points), t)
-                normals_attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(normals[group.particles])), t)
-        if self._points is not None:
-            points = Vt.Vec3fArray.FromNumpy(q)
-            self._points.GetPointsAttr().Set(points, t)
-            self._points.GetExtentAttr().Set(UsdGeom.Points.ComputeExtent(points, self._widths), t)
-        if self._curves is not None:
-            points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q[self._spring_ends]))
-            self._curves.GetPointsAttr().Set(points, t)
-            self._curves.GetExtentAttr().Set(
-                UsdGeom.Curves.ComputeExtent(points, self._curves.GetWidthsAttr().Get()), t
-            )
+                normals = normals_all[slot.world][group.particles]
+                normals_attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(normals)), t)
+            if slot.points is not None:
+                points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q))
+                slot.points.GetPointsAttr().Set(points, t)
+                slot.points.GetExtentAttr().Set(UsdGeom.Points.ComputeExtent(points, self._widths), t)
+            if slot.curves is not None:
+                points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q[self._spring_ends]))
+                slot.curves.GetPointsAttr().Set(points, t)
+                slot.curves.GetExtentAttr().Set(UsdGeom.Curves.ComputeExtent(points, self._curve_widths), t)
         self.stage.SetEndTimeCode(float(max(self.frame_count, 1)))
         self.frame_count += 1
         self._save()
+
+    def stop_worlds(self, worlds) -> None:
+        """Write no further samples of ``worlds`` (an index or indices; worlds not exported are ignored):
+        they keep the samples written so far, their last one being their final pose in every DCC tool.
+        For worlds the run-time guard stopped: call before writing the frame in which they failed."""
+        for w in np.unique(np.asarray(worlds, dtype=np.int64).ravel()).tolist():
+            if w in self.worlds and w not in self._stopped:
+                self._stopped[w] = self.frame_count
+
+    @property
+    def stopped_worlds(self) -> dict[int, int]:
+        """The exported worlds that were stopped, each with the number of frames written of it (its last
+        sample is at time code that number - 1)."""
+        return dict(self._stopped)
 
     def close(self) -> None:
         """Save the file and release the stage. Safe to call twice."""
@@ -210,26 +246,70 @@ class UsdWriter:
             raise OSError(f"cannot save the USD file {self.path!r}{why} (disk full or file removed?)")
         self._last_save = now
 
+    def _define_world(self, world: int, root: str, *, particles: bool, springs: bool) -> _WorldPrims:
+        """Define the prims of one exported world under ``root``; topology and constant attributes once."""
+        from pxr import Sdf
+
+        stage, UsdGeom, Vt, model = self.stage, self._UsdGeom, self._Vt, self.model
+        meshes = []
+        for group in model.meshes:
+            mesh = UsdGeom.Mesh.Define(stage, f"{root}/{group.name}")
+            mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(group.faces)))
+            mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(group.faces.reshape(-1).astype(np.int32)))
+            mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+            mesh.CreateDoubleSidedAttr(True)
+            mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+            mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+            if group.uvs is not None:  # per vertex, or per corner where seams give a particle two UVs
+                corners = group.uvs.ndim == 3
+                st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
+                    "st", Sdf.ValueTypeNames.TexCoord2fArray,
+                    UsdGeom.Tokens.faceVarying if corners else UsdGeom.Tokens.vertex,
+                )
+                st.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(group.uvs.reshape(-1, 2), dtype=np.float32)))
+            meshes.append((group, mesh.GetPointsAttr(), mesh.GetExtentAttr(), mesh.GetNormalsAttr()))
+
+        points = None
+        if particles:
+            points = UsdGeom.Points.Define(stage, f"{root}/particles")
+            radius = model.particle_radius.numpy().astype(np.float32)
+            self._widths = Vt.FloatArray.FromNumpy(2.0 * radius)
+            points.CreateWidthsAttr(self._widths)
+            points.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+
+        curves = None
+        if springs and model.spring_count:
+            curves = UsdGeom.BasisCurves.Define(stage, f"{root}/springs")
+            curves.CreateTypeAttr(UsdGeom.Tokens.linear)
+            curves.CreateCurveVertexCountsAttr(Vt.IntArray([2] * model.spring_count))
+            width = float(0.5 * model.particle_radius.numpy().mean()) or 1.0e-3
+            self._curve_widths = Vt.FloatArray([width])
+            curves.CreateWidthsAttr(self._curve_widths)
+            curves.SetWidthsInterpolation(UsdGeom.Tokens.constant)
+            self._spring_ends = model.spring_indices.numpy().reshape(-1)
+        return _WorldPrims(world, meshes, points, curves)
+
     def _vertex_normals(self, state: State) -> np.ndarray:
+        """Unit vertex normals of every particle, shape [state_size, 3] (those of exported worlds' meshes set)."""
         model = self.model
         accumulate, normalize = vertex_normal_kernels(model.scalar)
         self._normals.zero_()
-        wp.launch(accumulate, dim=model.tri_count, inputs=[model.tri_indices, state.particle_q],
+        wp.launch(accumulate, dim=self._export_tris.shape[0], inputs=[self._export_tris, state.particle_q],
                   outputs=[self._normals], device=model.device)
-        wp.launch(normalize, dim=model.particle_count, inputs=[self._normals], device=model.device)
+        wp.launch(normalize, dim=model.state_size, inputs=[self._normals], device=model.device)
         return self._normals.numpy()
 
-    def _write_colliders(self) -> None:
+    def _write_colliders(self, root: str) -> None:
         from pxr import Gf, Vt
 
         UsdGeom = self._UsdGeom
         model = self.model
         if not model.shapes:
             return
-        UsdGeom.Scope.Define(self.stage, "/World/colliders")
+        UsdGeom.Scope.Define(self.stage, f"{root}/colliders")
         q0 = model.particle_q.numpy()
         for shape in model.shapes:
-            path = f"/World/colliders/{shape.name}"
+            path = f"{root}/colliders/{shape.name}"
             if shape.kind == "sphere":
                 prim = UsdGeom.Sphere.Define(self.stage, path)
                 r = float(shape.size[0])
@@ -237,7 +317,7 @@ class UsdWriter:
                 prim.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-r, -r, -r), Gf.Vec3f(r, r, r)]))
             elif shape.kind == "plane":
                 prim = UsdGeom.Mesh.Define(self.stage, path)
-                half = _plane_half_size(shape, q0)
+                half = _plane_half_size(shape, q0, self._tile)
                 corners = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]], np.float32)
                 prim.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(corners))
                 prim.CreateFaceVertexCountsAttr(Vt.IntArray([4]))
@@ -250,6 +330,53 @@ class UsdWriter:
             prim.AddTranslateOp().Set(Gf.Vec3d(*shape.position))
             x, y, z, w = shape.rotation
             prim.AddOrientOp().Set(Gf.Quatf(float(w), float(x), float(y), float(z)))
+
+
+@dataclass
+class _WorldPrims:
+    """The animated prims of one exported world."""
+
+    world: int
+    meshes: list  # (MeshGroup, points, extent and normals attributes) per cloth mesh
+    points: object  # UsdGeom.Points of the particles, or None
+    curves: object  # UsdGeom.BasisCurves of the springs, or None
+
+
+def world_prim_name(world: int, world_count: int) -> str:
+    """The prim name of ``world`` when every world is exported: ``world_0003`` (at least 4 digits, as many
+    as the largest index of ``world_count`` worlds needs, so the names sort in world order)."""
+    return f"world_{world:0{max(4, len(str(world_count - 1)))}d}"
+
+
+def world_offsets(model: Model, *, spacing: float | None = None, columns: int | None = None) -> np.ndarray:
+    """Where each world is placed when every world is exported: translations [m], shape [world_count, 3].
+
+    World w sits in column w mod ``columns`` and row w // ``columns`` of a grid in the ground plane:
+    columns along +x, rows along +y (Z-up) or +z (Y-up), ``spacing`` metres apart.
+
+    Args:
+        model: the model (its world count, up axis and, for the default spacing, initial positions).
+        spacing: distance [m] between neighbouring worlds, ≥ 0 (0: all at the origin, overlaid);
+            ``None``: :func:`default_world_spacing`.
+        columns: worlds per row, ≥ 1; ``None``: ceil(√world_count).
+    """
+    spacing = default_world_spacing(model) if spacing is None else checks.non_negative("world spacing", spacing)
+    count = model.world_count
+    columns = math.ceil(math.sqrt(count)) if columns is None else checks.count("world columns", columns, minimum=1)
+    w = np.arange(count)
+    offsets = np.zeros((count, 3))
+    offsets[:, 0] = spacing * (w % columns)
+    offsets[:, 1 if model.up_axis == "Z" else 2] = spacing * (w // columns)
+    return offsets
+
+
+def default_world_spacing(model: Model) -> float:
+    """The default distance [m] between exported worlds: twice the larger horizontal extent of world 0's
+    initial particles, at least 1 m (room for a cloth to swing or spread without touching its neighbours)."""
+    q0 = model.particle_q.numpy()[: model.particle_count].astype(np.float64)
+    horizontal = [0, 1] if model.up_axis == "Z" else [0, 2]
+    extent = float(np.ptp(q0[:, horizontal], axis=0).max()) if len(q0) else 0.0
+    return max(2.0 * extent, 1.0)
 
 
 def check_output_path(path: str | os.PathLike) -> str:
@@ -271,11 +398,14 @@ def check_output_path(path: str | os.PathLike) -> str:
     return path
 
 
-def _plane_half_size(shape, particle_q: np.ndarray) -> float:
-    """Half width [m] of the quad that shows an infinite plane: twice the scene's reach around it, ≥ 1 m."""
+def _plane_half_size(shape, particle_q: np.ndarray, tile: float | None = None) -> float:
+    """Half width [m] of the quad that shows a plane: a finite plane's own; an infinite plane's twice the
+    scene's reach around it, ≥ 1 m, and at most ``tile`` (half a world's cell when worlds are laid out
+    side by side, so that their ground quads tile the ground instead of overlapping)."""
     if shape.size[0] > 0.0:
         return float(shape.size[0])
     R = quat_to_matrix(shape.rotation)
     local = (particle_q - np.asarray(shape.position)) @ R  # rows: particle positions in the plane frame
     reach = float(np.abs(local[:, :2]).max()) if len(local) else 0.0
-    return max(2.0 * reach, 1.0)
+    half = max(2.0 * reach, 1.0)
+    return min(half, tile) if tile is not None else half
