@@ -34,7 +34,7 @@ KE, KD, MASS, SPACING = 1.0e3, 10.0, 0.1, 0.1
 DEFAULT_SIZES = {"cuda": [64, 128, 256, 512], "cpu": [32, 64]}
 
 
-def warpspring_model(n: int, device, spring_evaluation: str = "auto") -> ws.Model:
+def warpspring_model(n: int, device, spring_evaluation: str = "auto", worlds: int = 1) -> ws.Model:
     builder = ws.ModelBuilder()
     spring = ws.SpringMaterial(ke=KE, kd=KD)
     builder.add_cloth_grid(
@@ -49,7 +49,7 @@ def warpspring_model(n: int, device, spring_evaluation: str = "auto") -> ws.Mode
         bend=spring,
         pin=["top-left", "top-right"],
     )
-    return builder.finalize(device, spring_evaluation=spring_evaluation)
+    return builder.finalize(device, spring_evaluation=spring_evaluation, worlds=worlds)
 
 
 class WarpspringRunner:

@@ -1,0 +1,107 @@
+"""Many worlds in one launch: throughput of batches of small cloths, next to one large cloth.
+
+The scene is the hanging cloth of ``cloth.py`` (ANCHORS.md: 0.1 kg particles 0.1 m apart, ke = 1e3 N/m,
+kd = 10 N·s/m, two top corners pinned, gravity, symplectic Euler, 16 substeps per 1/60 s frame, each
+frame one captured graph). A batch holds W worlds of a 32² cloth, each with its own gravity and spring
+stiffness (a stiffness row per world: the memory traffic of a real parameter sweep); the reference is one
+1024² cloth (1,048,576 particles, as many as 1,024 worlds). For small batches the same worlds are also
+run the way one would without worlds: W single-world simulators, one graph each, advanced one after the
+other.
+
+Reported: particle-substeps/s (median of timed batches, device synchronised before every timer read),
+and the batch's speed-up over the loop of single-world simulators.
+
+    python bench/worlds.py --device cuda:0
+    python bench/worlds.py --device cpu --seconds 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import platform
+
+import numpy as np
+import warp as wp
+
+import warpspring as ws
+from cloth import FPS, SUBSTEPS, measure, warpspring_model
+
+SIDE = 32
+WORLDS = [1, 16, 256, 4096]
+LARGE = 1024
+LOOP_WORLDS = {"cuda": [16, 256], "cpu": [16]}
+
+
+def batch(worlds: int, device) -> ws.Model:
+    """W worlds of the 32² cloth, each with its own gravity and stiffness."""
+    model = warpspring_model(SIDE, device, worlds=worlds)
+    rng = np.random.default_rng(0)
+    model.set_world_values("gravity", np.stack([np.zeros(worlds), np.zeros(worlds), -rng.uniform(5, 15, worlds)], 1))
+    ke = model.world_values("spring_stiffness")[0]
+    model.set_world_values("spring_stiffness", ke[None, :] * rng.uniform(0.5, 1.5, worlds)[:, None])
+    return model
+
+
+class Batch:
+    def __init__(self, model: ws.Model):
+        self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=None)
+
+    def frame(self):
+        self.sim.step_frame()
+
+
+class Loop:
+    """The same worlds as single-world simulators, advanced one after the other."""
+
+    def __init__(self, worlds: int, device):
+        rng = np.random.default_rng(0)
+        gravity = -rng.uniform(5, 15, worlds)
+        scale = rng.uniform(0.5, 1.5, worlds)
+        self.sims = []
+        for w in range(worlds):
+            model = warpspring_model(SIDE, device)
+            model.gravity = (0.0, 0.0, gravity[w])
+            model.set_world_values("spring_stiffness", model.world_values("spring_stiffness")[0] * scale[w])
+            self.sims.append(ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=None))
+
+    def frame(self):
+        for sim in self.sims:
+            sim.step_frame()
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default=None)
+    parser.add_argument("--worlds", type=int, nargs="+", default=WORLDS)
+    parser.add_argument("--seconds", type=float, default=3.0, help="wall time per measurement [s]")
+    parser.add_argument("--no-large", action="store_true", help="skip the 1024² cloth")
+    args = parser.parse_args()
+    wp.init()
+    device = wp.get_device(args.device)
+    kind = "cuda" if device.is_cuda else "cpu"
+    name = device.name if device.is_cuda else platform.processor() or "CPU"
+    print(f"# worlds of a {SIDE}² cloth — {name}, Warp {wp.config.version}, {datetime.date.today()}")
+    print(f"`python bench/worlds.py --device {device}`\n")
+    print("| scene | particles | substeps/s | particle-substeps/s | vs loop of single worlds |")
+    print("|---|---|---|---|---|")
+    rows = [(f"{w} × {SIDE}²", w) for w in args.worlds]
+    if not args.no_large:
+        rows.append((f"1 × {LARGE}²", None))
+    for label, worlds in rows:
+        if worlds is None:
+            model = warpspring_model(LARGE, device)
+        else:
+            model = batch(worlds, device)
+        particles = model.state_size
+        result = measure(lambda: Batch(model), device, args.seconds)
+        rate = SUBSTEPS / result["frame_s"]
+        speedup = ""
+        if worlds in LOOP_WORLDS[kind]:
+            loop = measure(lambda: Loop(worlds, device), device, args.seconds)
+            speedup = f"{loop['frame_s'] / result['frame_s']:.1f}×"
+        print(f"| {label} | {particles:,} | {rate:,.0f} | {rate * particles:.3g} | {speedup} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
