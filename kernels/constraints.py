@@ -17,6 +17,7 @@ from .contacts import project_contacts_func
 from .inputs import INPUT_MAX_SPEED, INPUT_MAX_STRAIN
 from .kinematics import is_kinematic, particle_funcs
 from .precision import transform_type, vec3_type
+from .worlds import world_and_index
 
 wp.set_module_options({"enable_backward": False})
 
@@ -43,10 +44,10 @@ def strain_limit_kernel(scalar: type, slots: int):
         # Out:
         particle_q_out: wp.array[vec3],
     ):
-        world, i = wp.tid()
-        base = world * particle_count
-        p = base + i
-        mass_row = world % particle_inv_mass.shape[0]
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
+        base = p - i
+        mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         xi = particle_q_in[p]
         wi = effective_inv_mass(particle_flags[p], particle_inv_mass[mass_row, i])
         stretch_limit = scalar(1.0) + inputs[world, INPUT_MAX_STRAIN]
@@ -99,8 +100,8 @@ def finish_step_kernel(scalar: type, shape_types: tuple, clamp_speed: bool, from
         particle_q_in_out: wp.array[vec3],
         particle_qd_in_out: wp.array[vec3],
     ):
-        world, i = wp.tid()
-        p = world * particle_count + i
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
         if is_kinematic(particle_flags[p]):
             return
         x = particle_q_in_out[p]

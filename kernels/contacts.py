@@ -19,6 +19,7 @@ import warp as wp
 
 from .kinematics import is_kinematic
 from .precision import transform_type, vec3_type
+from .worlds import world_and_index
 
 wp.set_module_options({"enable_backward": False})
 
@@ -140,8 +141,8 @@ def project_contacts_kernel(scalar: type, shape_types: tuple):
         particle_q_in_out: wp.array[vec3],
         particle_qd_in_out: wp.array[vec3],
     ):
-        world, i = wp.tid()
-        p = world * particle_count + i
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
         if is_kinematic(particle_flags[p]):
             return
         x, v = project_contacts(

@@ -11,12 +11,14 @@ Springs are evaluated in one of two ways, both deterministic:
 * scatter (default on the CPU, where Warp runs a kernel's threads in sequence): each spring is evaluated
   once and added to both ends, after a per-particle pass wrote gravity, drag and external forces.
 
-Worlds: a model holds ``world_count`` copies of one topology. Kernels launch over (world, particle) or
-(world, spring); particle i of world w is entry w·n + i of a state's arrays (n particles per world), and
-the incidence table, rest lengths and other topology are shared, in per-world indices. Parameters a user
-may vary per world are 2-D arrays with one row for all worlds or one per world, read at row
-``world % rows``: stiffness and damping [rows, spring_count], masses [rows, n]; the input table has one
-row per world. A world never reads another world's entries, so worlds never couple.
+Worlds: a model holds ``world_count`` copies of one topology. Per-particle kernels launch one thread per
+particle of every world (``worlds.world_and_index`` finds its world), per-spring ones over (world,
+spring); particle i of world w is entry w·n + i of a state's arrays (n particles per world), and the
+incidence table, rest lengths and other topology are shared, in per-world indices. Parameters a user may
+vary per world are 2-D arrays with one row for all worlds or one per world, read at row
+``min(world, rows - 1)`` (the rows are 1 or world_count: a comparison, where ``world % rows`` would cost an
+integer division per array): stiffness and damping [rows, spring_count], masses [rows, n]; the input
+table has one row per world. A world never reads another world's entries, so worlds never couple.
 """
 
 import functools
@@ -34,6 +36,7 @@ from .inputs import (
     input_funcs,
 )
 from .precision import mat33_type, vec3_type
+from .worlds import world_and_index
 
 wp.set_module_options({"enable_backward": False})
 
@@ -215,8 +218,8 @@ def gather_springs_func(scalar: type, slots: int, law: SpringLaw):
     ) -> vec3:
         """Sum of the forces [N] of all springs incident to particle i of ``world``, whose particles start
         at entry ``base`` of the state arrays."""
-        stiffness_row = world % spring_stiffness.shape[0]
-        damping_row = world % spring_damping.shape[0]
+        stiffness_row = wp.min(world, spring_stiffness.shape[0] - 1)
+        damping_row = wp.min(world, spring_damping.shape[0] - 1)
         f = vec3(scalar(0.0))
         for k in range(wp.static(slots)):
             j = base + particle_spring_neighbor[k, i]
@@ -270,7 +273,7 @@ def particle_force_func(scalar: type, features: ForceFeatures):
         ``clamp_forces_kernel``); g, drag and the limits from the world's row of the input table."""
         f = vec3(scalar(0.0))
         if wp.static(features.gravity):
-            f += particle_mass[world % particle_mass.shape[0], i] * input_vec3(inputs, world, INPUT_GRAVITY)
+            f += particle_mass[wp.min(world, particle_mass.shape[0] - 1), i] * input_vec3(inputs, world, INPUT_GRAVITY)
         if wp.static(features.drag):
             f -= inputs[world, INPUT_DRAG] * vi
         if wp.static(features.external):
@@ -326,9 +329,9 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures):
         # Out:
         particle_f: wp.array[vec3],
     ):
-        world, i = wp.tid()
-        base = world * particle_count
-        p = base + i
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
+        base = p - i
         particle_f[p] = particle_force(
             world,
             i,
@@ -378,7 +381,7 @@ def spring_scatter_kernel(scalar: type, law: SpringLaw):
         j = base + ends[1]
         f = spring_force(
             particle_q[i], particle_q[j], particle_qd[i], particle_qd[j], spring_rest_length[s],
-            spring_stiffness[world % spring_stiffness.shape[0], s], spring_damping[world % spring_damping.shape[0], s],
+            spring_stiffness[wp.min(world, spring_stiffness.shape[0] - 1), s], spring_damping[wp.min(world, spring_damping.shape[0] - 1), s],
             spring_law_values(inputs, world),
         )
         wp.atomic_add(particle_f_in_out, i, f)
@@ -394,8 +397,8 @@ def clamp_forces_kernel(scalar: type):
 
     @wp.kernel(module="unique", enable_backward=False)
     def clamp_forces(particle_count: int, inputs: wp.array2d[scalar], particle_f_in_out: wp.array[vec3]):
-        world, i = wp.tid()
-        p = world * particle_count + i
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
         limit = inputs[world, INPUT_MAX_PARTICLE_FORCE]
         f = particle_f_in_out[p]
         magnitude = wp.length(f)

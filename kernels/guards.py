@@ -17,6 +17,7 @@ import warp as wp
 
 from .linalg import reduction_funcs
 from .precision import vec3_type
+from .worlds import world_and_index
 
 wp.set_module_options({"enable_backward": False})
 
@@ -92,7 +93,7 @@ def guard_kernels(scalar: type, slots: int, tiled: bool):
             x = particle_q[base + i]
             v = particle_qd[base + i]
             if wp.isfinite(x) and wp.isfinite(v):
-                energy = wp.float64(scalar(0.5) * particle_mass[world % particle_mass.shape[0], i] * wp.dot(v, v))
+                energy = wp.float64(scalar(0.5) * particle_mass[wp.min(world, particle_mass.shape[0] - 1), i] * wp.dot(v, v))
                 for k in range(wp.static(slots)):
                     j = particle_spring_neighbor[k, i]
                     rest = spring_rest_length[particle_spring_id[k, i]]
@@ -140,11 +141,12 @@ def guard_kernels(scalar: type, slots: int, tiled: bool):
         status: wp.array2d[wp.int32],
         values: wp.array2d[wp.float64],
     ):
-        world, i = wp.tid()
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
         largest = values[world, GUARD_MAX_STRAIN]
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0 or largest < wp.float64(0.0):
             return
-        base = world * particle_count
+        base = p - i
         x = particle_q[base + i]
         for k in range(wp.static(slots)):
             j = particle_spring_neighbor[k, i]

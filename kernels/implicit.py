@@ -24,6 +24,7 @@ from .inputs import INPUT_DRAG
 from .kinematics import is_kinematic
 from .linalg import CG_PAP, reduction_funcs
 from .precision import mat33_type, vec3_type
+from .worlds import world_and_index
 
 wp.set_module_options({"enable_backward": False})
 
@@ -92,20 +93,20 @@ def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw, drag
     ):
         """b = h f + h² ∂f/∂x v (+ the driven pins' columns) and the inverse 3 × 3 diagonal blocks of A
         (block-Jacobi preconditioner). ``particle_q_end``: positions at t + h of the driven pins."""
-        world, i = wp.tid()
-        base = world * particle_count
-        p = base + i
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
+        base = p - i
         if is_kinematic(particle_flags[p]):
             rhs[p] = vec3(scalar(0.0))
             diagonal_inverse[p] = wp.identity(n=3, dtype=scalar)
             return
         law_values = spring_law_values(inputs, world)
-        stiffness_row = world % spring_stiffness.shape[0]
-        damping_row = world % spring_damping.shape[0]
+        stiffness_row = wp.min(world, spring_stiffness.shape[0] - 1)
+        damping_row = wp.min(world, spring_damping.shape[0] - 1)
         xi = particle_q[p]
         vi = particle_qd[p]
         b = dt * particle_f[p]
-        diagonal = mass_term(particle_mass[world % particle_mass.shape[0], i], inputs, world, dt) * wp.identity(
+        diagonal = mass_term(particle_mass[wp.min(world, particle_mass.shape[0] - 1), i], inputs, world, dt) * wp.identity(
             n=3, dtype=scalar
         )
         for k in range(wp.static(slots)):
@@ -159,10 +160,10 @@ def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw, drag
             api = pi
             if not is_kinematic(particle_flags[k]):
                 law_values = spring_law_values(inputs, world)
-                stiffness_row = world % spring_stiffness.shape[0]
-                damping_row = world % spring_damping.shape[0]
+                stiffness_row = wp.min(world, spring_stiffness.shape[0] - 1)
+                damping_row = wp.min(world, spring_damping.shape[0] - 1)
                 xi = particle_q[k]
-                api = mass_term(particle_mass[world % particle_mass.shape[0], i], inputs, world, dt) * pi
+                api = mass_term(particle_mass[wp.min(world, particle_mass.shape[0] - 1), i], inputs, world, dt) * pi
                 for slot in range(wp.static(slots)):
                     j = base + particle_spring_neighbor[slot, i]
                     s = particle_spring_id[slot, i]
@@ -196,10 +197,10 @@ def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw, drag
         time_out: wp.array[wp.float64],
     ):
         """v' = v + Δv, x' = x + h v' (driven pins keep what the kinematics pass wrote)."""
-        world, i = wp.tid()
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
         if i == 0:
             time_out[world] = time_in[world] + (wp.float64(dt) + wp.float64(dt_rest))
-        p = world * particle_count + i
         if wp.static(driven):
             if is_kinematic(particle_flags[p]):
                 return

@@ -28,6 +28,7 @@ from .forces import SPRING_KERNEL_OPTIONS, ForceFeatures, particle_force_func
 from .kinematics import is_kinematic, particle_funcs
 from .linalg import reduction_funcs
 from .precision import transform_type, vec3_type
+from .worlds import world_and_index
 
 wp.set_module_options({"enable_backward": False})
 
@@ -79,13 +80,13 @@ def symplectic_euler_update_kernel(scalar: type, shape_types: tuple):
         particle_qd_out: wp.array[vec3],
         time_out: wp.array[wp.float64],
     ):
-        world, i = wp.tid()
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
         if i == 0:
             time_out[world] = time_in[world] + (wp.float64(dt) + wp.float64(dt_rest))
-        p = world * particle_count + i
         h = dt
         flags = particle_flags[p]
-        inv_mass = particle_inv_mass[world % particle_inv_mass.shape[0], i]
+        inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
         x, v = update(particle_q_in[p], particle_qd_in[p], particle_f_in[p], effective_inv_mass(flags, inv_mass), h)
         if wp.static(has_contacts):
             if not is_kinematic(flags):
@@ -140,11 +141,11 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
         particle_qd_out: wp.array[vec3],
         time_out: wp.array[wp.float64],
     ):
-        world, i = wp.tid()
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
         if i == 0:
             time_out[world] = time_in[world] + (wp.float64(dt) + wp.float64(dt_rest))
-        base = world * particle_count
-        p = base + i
+        base = p - i
         h = dt
         x = particle_q_in[p]
         v = particle_qd_in[p]
@@ -169,7 +170,7 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
             particle_q_in,
             particle_qd_in,
         )
-        x, v = update(x, v, f, particle_inv_mass[world % particle_inv_mass.shape[0], i], h)
+        x, v = update(x, v, f, particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i], h)
         if wp.static(has_contacts):
             x, v = project_contacts(
                 x, v, particle_radius[i], h, shape_type, shape_transform, shape_size, shape_friction
@@ -217,13 +218,13 @@ def rk_combine_kernel(scalar: type, with_first: bool, terms: int):
         particle_qd_out: wp.array[vec3],
         time_out: wp.array[wp.float64],
     ):
-        world, i = wp.tid()
-        h64 = step[world % step.shape[0]]
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
+        h64 = step[wp.min(world, step.shape[0] - 1)]
         if i == 0:
             time_out[world] = time_in[world] + time_weight * h64
-        p = world * particle_count + i
         h = scalar(h64)
-        inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[world % particle_inv_mass.shape[0], i])
+        inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i])
         v0 = particle_qd_in[p]
         x = particle_q_in[p]
         v = v0
@@ -299,7 +300,7 @@ def rk_error_kernel(scalar: type, stages: int, tiled: bool):
             p = world * particle_count + i
             h = scalar(control[world, STEP_SIZE])
             tolerance = scalar(control[world, STEP_TOLERANCE])
-            inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[world % particle_inv_mass.shape[0], i])
+            inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i])
             ex = (h * error_weights[0]) * particle_qd_in[p]
             ev = (h * error_weights[0] * inv_mass) * stage_f[0, p]
             for j in range(1, wp.static(stages)):
@@ -344,12 +345,12 @@ def verlet_kernels(scalar: type):
         particle_qd_half_out: wp.array[vec3],
         time_out: wp.array[wp.float64],
     ):
-        world, i = wp.tid()
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
         if i == 0:
             time_out[world] = time_in[world] + (wp.float64(dt) + wp.float64(dt_rest))
-        p = world * particle_count + i
         h = dt
-        inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[world % particle_inv_mass.shape[0], i])
+        inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i])
         v_half = particle_qd_in[p] + (scalar(0.5) * h * inv_mass) * particle_f_in[p]
         particle_q_out[p] = particle_q_in[p] + h * v_half
         particle_qd_half_out[p] = v_half
@@ -367,9 +368,9 @@ def verlet_kernels(scalar: type):
         # Out:
         particle_qd_out: wp.array[vec3],
     ):
-        world, i = wp.tid()
-        p = world * particle_count + i
-        inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[world % particle_inv_mass.shape[0], i])
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
+        inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i])
         particle_qd_out[p] = particle_qd_half[p] + (scalar(0.5) * dt * inv_mass) * particle_f[p]
 
     return verlet_drift, verlet_kick
@@ -488,11 +489,11 @@ def step_control_kernels(scalar: type):
     ):
         """On acceptance: y ← the last stage's state (its time t + h included), and its force becomes
         stage 0's (FSAL)."""
-        world, i = wp.tid()
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
         if counters[world, STEP_LAST_ACCEPTED] == 1:
             if i == 0:
                 time[world] = stage_time[world]
-            p = world * particle_count + i
             particle_q[p] = stage_q[p]
             particle_qd[p] = stage_qd[p]
             stage_f_first[p] = stage_f_last[p]

@@ -145,7 +145,7 @@ def kinematics_kernel(scalar: type, targets: bool):
             return  # released since finalize: the integrators move it now
         g = groups.group[k]
         t_in = time_in[world]
-        s = fraction * step[world % step.shape[0]]
+        s = fraction * step[wp.min(world, step.shape[0] - 1)]
         q = particle_q_in[i]
         qd = particle_qd_in[i]
         if g == NO_GROUP:
@@ -155,8 +155,8 @@ def kinematics_kernel(scalar: type, targets: bool):
         else:
             x = wp.vec3d(q)
             v = wp.vec3d(wp.float64(0.0))
-            translation = groups.translation_track[world % groups.translation_track.shape[0], g]
-            rotation = groups.rotation_track[world % groups.rotation_track.shape[0], g]
+            translation = groups.translation_track[wp.min(world, groups.translation_track.shape[0] - 1), g]
+            rotation = groups.rotation_track[wp.min(world, groups.rotation_track.shape[0] - 1), g]
             if translation >= 0 or rotation >= 0:
                 pivot = groups.pivot[g]
                 r = groups.rest[k] - pivot

@@ -21,6 +21,7 @@ import functools
 import warp as wp
 
 from .precision import mat33_type, vec3_type
+from .worlds import world_and_index
 
 wp.set_module_options({"enable_backward": False})
 
@@ -213,10 +214,10 @@ def cg_kernels(scalar: type, tiled: bool):
         count: int, active: wp.array[wp.int32], z: wp.array[vec3], scalars: wp.array2d[wp.float64], p: wp.array[vec3]
     ):
         """p = z + β p."""
-        world, i = wp.tid()
+        k = wp.tid()
+        world, i = world_and_index(k, count)
         if active[world] == 0:
             return
-        k = world * count + i
         p[k] = z[k] + scalar(scalars[world, CG_BETA]) * p[k]
 
     @wp.kernel(module="unique", enable_backward=False)

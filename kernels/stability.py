@@ -29,6 +29,7 @@ from .forces import COINCIDENT_DISTANCE, spring_funcs, spring_law_type
 from .kinematics import is_kinematic, particle_funcs
 from .linalg import reduction_funcs
 from .precision import vec3_type
+from .worlds import world_and_index
 
 wp.set_module_options({"enable_backward": False})
 
@@ -106,7 +107,7 @@ def power_iteration_kernels(scalar: type, slots: int, tiled: bool):
             yi = vec3(scalar(0.0))
             if not is_kinematic(particle_flags[p]):
                 hooke = SpringLawValues()
-                stiffness_row = world % spring_stiffness.shape[0]
+                stiffness_row = wp.min(world, spring_stiffness.shape[0] - 1)
                 xi = x[p]
                 qi = particle_q[p]
                 for k in range(wp.static(slots)):
@@ -117,7 +118,7 @@ def power_iteration_kernels(scalar: type, slots: int, tiled: bool):
                         qi, particle_q[j], spring_rest_length[s], spring_stiffness[stiffness_row, s], True, hooke
                     )
                     yi += ks * (xi - xj)
-                mass = wp.float64(particle_mass[world % particle_mass.shape[0], i])
+                mass = wp.float64(particle_mass[wp.min(world, particle_mass.shape[0] - 1), i])
                 xkx = dot64(xi, yi)
                 xmx = mass * dot64(xi, xi)
                 ymy = dot64(yi, yi) / mass
@@ -144,13 +145,13 @@ def power_iteration_kernels(scalar: type, slots: int, tiled: bool):
         x: wp.array[vec3],
     ):
         """x = M⁻¹y / ‖M⁻¹y‖_M (x = 0 when y = 0, and on kinematic particles), in the worlds still iterating."""
-        world, i = wp.tid()
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
         if active[world] == 0:
             return
-        p = world * particle_count + i
         ymy = scalars[world, PI_YMY]
         scale = wp.where(ymy > wp.float64(0.0), wp.float64(1.0) / wp.sqrt(ymy), wp.float64(0.0))
-        inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[world % particle_inv_mass.shape[0], i])
+        inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i])
         x[p] = (inv_mass * scalar(scale)) * y[p]
 
     @wp.kernel(module="unique", enable_backward=False)

@@ -14,6 +14,8 @@ def test_api_tour_runs(tmp_path, monkeypatch):
     code = re.search(r"## API tour\n\n```python\n(.*?)```", README.read_text(), re.S).group(1)
     assert '"cuda:0"' in code and "range(120)" in code and "frame == 60" in code
     code = code.replace('"cuda:0"', '"cpu"').replace("range(120)", "range(3)").replace("frame == 60", "frame == 1")
+    assert code.count("256") == 6 and "for frame in range(60)" in code
+    code = code.replace("256", "4").replace("for frame in range(60)", "for frame in range(1)")  # the batch, small
     monkeypatch.chdir(tmp_path)
     namespace = {}
     exec(compile(code, str(README), "exec"), namespace)
@@ -24,6 +26,11 @@ def test_api_tour_runs(tmp_path, monkeypatch):
     edge = model.pin_groups.groups[0]
     expected = edge.position(model.particle_q.numpy()[edge.particles], [sim.time])[0][0]
     np.testing.assert_allclose(sim.state.particle_q.numpy()[edge.particles], expected, atol=1e-6)
+    # The batch: 4 worlds stepped, each with its own stiffness, so its own CG iteration count.
+    batch, q, iterations = namespace["batch"], namespace["q"], namespace["iterations"]
+    assert q.shape == (4, batch.particle_count, 3) and np.isfinite(q).all()
+    assert namespace["sweep"].frame == 1 and not namespace["sweep"].world_failures
+    assert len(set(iterations.tolist())) > 1
 
 
 def test_scene_reference_parses_and_builds():

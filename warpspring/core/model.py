@@ -253,9 +253,10 @@ class Model:
         object.__setattr__(self, "revision", self.revision + 1)
 
     @property
-    def particle_dim(self) -> tuple[int, int]:
-        """The launch grid of per-particle kernels: (world_count, particle_count)."""
-        return (self.world_count, self.particle_count)
+    def particle_dim(self) -> int:
+        """The launch size of per-particle kernels: one thread per particle of every world,
+        world_count · particle_count (each thread finds its world: ``kernels.worlds.world_and_index``)."""
+        return self.world_count * self.particle_count
 
     @property
     def state_size(self) -> int:
