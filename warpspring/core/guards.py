@@ -6,7 +6,6 @@ run, or (``GuardLimits(stop="world")``) holds only the failed world while the ot
 
 from __future__ import annotations
 
-import math
 import warnings
 from dataclasses import dataclass
 
@@ -213,8 +212,7 @@ class Guard(StepHook):
         if limits.max_kinetic_energy is not None:
             self.world_max_kinetic_energy = np.full(model.world_count, limits.max_kinetic_energy)
         else:
-            self.world_max_kinetic_energy = np.array([ENERGY_FACTOR * energy_scale(model, world=w)
-                                                      for w in range(model.world_count)])
+            self.world_max_kinetic_energy = ENERGY_FACTOR * energy_scales(model)
         values = np.zeros((model.world_count, GUARD_LIMITS))
         values[:, GUARD_LIMIT_STRAIN] = limits.tear_strain
         values[:, GUARD_LIMIT_KINETIC_ENERGY] = self.world_max_kinetic_energy
@@ -291,23 +289,25 @@ class Guard(StepHook):
         return min(found, key=lambda r: (r.substep, r.world)) if found else None
 
 
-def energy_scale(model: Model, *, world: int = 0) -> float:
-    """A world's energy scale [J]: initial kinetic + elastic energy + total weight × (extent + 1 m), ≥ 1 µJ;
-    the weight with the largest gravity the world has (now, or at any key of its gravity track)."""
-    n = model.particle_count
-    q = model.particle_q.numpy()[world * n : (world + 1) * n].astype(np.float64)
-    qd = model.particle_qd.numpy()[world * n : (world + 1) * n].astype(np.float64)
-    mass = model.world_values("particle_mass")[world]
-    kinetic = 0.5 * float(np.sum(mass * np.sum(qd * qd, axis=1)))
-    elastic = 0.0
+def energy_scales(model: Model) -> np.ndarray:
+    """Each world's energy scale [J], float64, shape [world_count]: initial kinetic + elastic energy + total
+    weight × (extent + 1 m), ≥ 1 µJ; the weight with the largest gravity the world has (now, or at any key
+    of its gravity track). Reads each device array once."""
+    worlds, n = model.world_count, model.particle_count
+    q = model.particle_q.numpy().astype(np.float64).reshape(worlds, n, 3)
+    qd = model.particle_qd.numpy().astype(np.float64).reshape(worlds, n, 3)
+    mass = model.world_values("particle_mass")
+    kinetic = 0.5 * np.sum(mass * np.sum(qd * qd, axis=2), axis=1)
+    elastic = np.zeros(worlds)
     if model.spring_count:
         pairs = model.spring_indices.numpy()
-        stretch = np.linalg.norm(q[pairs[:, 1]] - q[pairs[:, 0]], axis=1) - model.spring_rest_length.numpy()
-        elastic = 0.5 * float(np.sum(model.world_values("spring_stiffness")[world] * stretch * stretch))
-    extent = float(np.ptp(q, axis=0).max()) if len(q) else 0.0
-    gravity = math.hypot(*model.world_values("gravity")[world])
-    track = model.track("gravity", world=world)
-    if track is not None:
-        gravity = max(gravity, float(np.linalg.norm(track.values, axis=1).max()))
-    weight = float(mass.sum()) * gravity
-    return max(kinetic + elastic + weight * (extent + 1.0), 1.0e-6)
+        stretch = np.linalg.norm(q[:, pairs[:, 1]] - q[:, pairs[:, 0]], axis=2) - model.spring_rest_length.numpy()
+        elastic = 0.5 * np.sum(model.world_values("spring_stiffness") * stretch * stretch, axis=1)
+    extent = np.ptp(q, axis=1).max(axis=1) if n else np.zeros(worlds)
+    gravity = np.linalg.norm(model.world_values("gravity"), axis=1)
+    for w in range(worlds):
+        track = model.track("gravity", world=w)
+        if track is not None:
+            gravity[w] = max(gravity[w], float(np.linalg.norm(track.values, axis=1).max()))
+    weight = mass.sum(axis=1) * gravity
+    return np.maximum(kinetic + elastic + weight * (extent + 1.0), 1.0e-6)

@@ -102,18 +102,12 @@ class PinGroupTable:
         self.slices = [slice(int(a), int(a + len(g.particles))) for a, g in zip(first, self.groups)]
         self.driven = bool(self.groups)
 
-        def track(t):
-            return -1 if t is None else track_index(t)
-
         table = PinGroups()
         table.particle = wp.array(self.kinematic.astype(np.int32), dtype=wp.int32, device=device)
         table.group = wp.array(group_of.astype(np.int32), dtype=wp.int32, device=device)
         table.rest = wp.array(rest[self.kinematic], dtype=wp.vec3d, device=device)
         rows = world_tracks if world_tracks is not None else [[(g.translation, g.rotation) for g in self.groups]]
-        table.translation_track = wp.array(np.array([[track(t) for t, _ in row] for row in rows], dtype=np.int32)
-                                           .reshape(len(rows), len(self.groups)), dtype=wp.int32, device=device)
-        table.rotation_track = wp.array(np.array([[track(r) for _, r in row] for row in rows], dtype=np.int32)
-                                        .reshape(len(rows), len(self.groups)), dtype=wp.int32, device=device)
+        _set_track_rows(table, rows, track_index, device)
         table.pivot = wp.array(np.array([g.pivot for g in self.groups]).reshape(-1, 3), dtype=wp.vec3d, device=device)
         self.table = table
         self.rest = rest[self.kinematic]
@@ -126,15 +120,7 @@ class PinGroupTable:
         struct = PinGroups()
         for name in ("particle", "group", "rest", "pivot"):
             setattr(struct, name, getattr(self.table, name))
-
-        def track(t):
-            return -1 if t is None else track_index(t)
-
-        shape = (len(world_tracks), len(self.groups))
-        struct.translation_track = wp.array(np.array([[track(t) for t, _ in row] for row in world_tracks],
-                                                     dtype=np.int32).reshape(shape), dtype=wp.int32, device=device)
-        struct.rotation_track = wp.array(np.array([[track(r) for _, r in row] for row in world_tracks],
-                                                  dtype=np.int32).reshape(shape), dtype=wp.int32, device=device)
+        _set_track_rows(struct, world_tracks, track_index, device)
         table.table = struct
         return table
 
@@ -169,6 +155,15 @@ class PinGroupTable:
                                     dtype=wp.vec3d, device=device)
         targets.time = wp.full((world_count, len(self.groups)), NO_TARGET_TIME, dtype=wp.float64, device=device)
         return targets
+
+
+def _set_track_rows(table: PinGroups, rows: list, track_index, device) -> None:
+    """Fill a pin-group struct's [rows, group_count] track tables from (translation, rotation) per group and
+    row (-1 where a track is absent)."""
+    shape = (len(rows), len(rows[0]) if rows else 0)
+    for field, part in (("translation_track", 0), ("rotation_track", 1)):
+        index = [[-1 if pair[part] is None else track_index(pair[part]) for pair in row] for row in rows]
+        setattr(table, field, wp.array(np.array(index, dtype=np.int32).reshape(shape), dtype=wp.int32, device=device))
 
 
 #: Pin targets of no Control (an empty struct: kernels compiled without targets never read it).

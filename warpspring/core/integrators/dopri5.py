@@ -35,7 +35,6 @@ from ...kernels.integrators import (
 from ...kernels.linalg import reduce_lanes, reduce_launch_dim
 from ..forces import eval_forces
 from ..model import Control, Model, State
-from .base import write_setting
 from .runge_kutta import ExplicitRungeKutta
 
 
@@ -104,8 +103,10 @@ class DormandPrince(ExplicitRungeKutta):
         self._write_setting(STEP_MAX_ATTEMPTS, float(self._max_steps))
 
     def _write_setting(self, slot: int, value: float) -> None:
-        for world in range(self.model.world_count):
-            write_setting(self._control, world * STEP_CONTROL_SLOTS + slot, value)
+        """Write a setting into every world's control row (one host copy of the table)."""
+        control = self._control.numpy()
+        control[:, slot] = value
+        self._control.assign(control)
 
 
     @property
