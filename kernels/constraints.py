@@ -3,7 +3,7 @@
 Strain limiting (Provot 1995) shortens every spring longer than (1 + ε)·L back to that length by moving
 its two ends along the spring, each by its share of the inverse mass (a kinematic end does not move).
 The limit ε and the speed limit are live inputs (``inputs.py``): changing them compiles nothing.
-It runs as Jacobi passes over the incidence table: each particle moves by the average of the
+It runs as Jacobi passes over the springs' incidence table: each particle moves by the average of the
 corrections its over-stretched springs ask for, reading one position buffer and writing another (so
 the result does not depend on thread order). The finishing pass then turns the total displacement
 into a velocity change (Δv = Δx / h), clamps the speed, and resolves contacts.
@@ -14,20 +14,40 @@ import functools
 import warp as wp
 
 from .contacts import project_contacts_func
+from .families import IncidenceShape
 from .inputs import INPUT_MAX_SPEED, INPUT_MAX_STRAIN
 from .kinematics import is_kinematic, particle_funcs
 from .precision import transform_type, vec3_type
+from .springs import spring_arrays_type
 from .worlds import world_and_index
 
 wp.set_module_options({"enable_backward": False})
 
 
 @functools.cache
-def strain_limit_kernel(scalar: type, slots: int):
-    """One Jacobi pass of strain limiting at the strain ``INPUT_MAX_STRAIN`` over an incidence table of
-    ``slots`` slots."""
+def strain_limit_kernel(scalar: type, incidence: IncidenceShape):
+    """One Jacobi pass of strain limiting at the strain ``INPUT_MAX_STRAIN`` over the springs' incidence table
+    of shape ``incidence``."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
+    SpringArrays = spring_arrays_type(scalar)
+    head_slots, tail = incidence
+
+    @wp.func
+    def correction_of(
+        i: int, neighbor: int, s: int, base: int, xi: vec3, wi: scalar, stretch_limit: scalar, mass_row: int,
+        springs: SpringArrays, particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
+        particle_q_in: wp.array[vec3],
+    ):
+        """Particle i's share of the correction of spring s to ``neighbor``, and 1 if it is over-stretched."""
+        j = base + neighbor
+        d = particle_q_in[j] - xi
+        length = wp.length(d)
+        allowed = stretch_limit * springs.rest_length[s]
+        if neighbor != i and length > allowed:
+            share = wi / (wi + effective_inv_mass(particle_flags[j], particle_inv_mass[mass_row, neighbor]))
+            return d * (share * (length - allowed) / length), scalar(1.0)
+        return vec3(scalar(0.0)), scalar(0.0)
 
     @wp.kernel(module="unique", enable_backward=False)
     def strain_limit(
@@ -35,9 +55,7 @@ def strain_limit_kernel(scalar: type, slots: int):
         particle_count: int,
         particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array2d[scalar],
-        particle_spring_neighbor: wp.array2d[wp.int32],
-        particle_spring_id: wp.array2d[wp.int32],
-        spring_rest_length: wp.array[scalar],
+        springs: SpringArrays,
         inputs: wp.array2d[scalar],
         # In:
         particle_q_in: wp.array[vec3],
@@ -54,16 +72,20 @@ def strain_limit_kernel(scalar: type, slots: int):
         correction = vec3(scalar(0.0))
         violated = scalar(0.0)
         if wi > scalar(0.0):
-            for k in range(wp.static(slots)):
-                neighbor = particle_spring_neighbor[k, i]
-                j = base + neighbor
-                d = particle_q_in[j] - xi
-                length = wp.length(d)
-                allowed = stretch_limit * spring_rest_length[particle_spring_id[k, i]]
-                if neighbor != i and length > allowed:
-                    share = wi / (wi + effective_inv_mass(particle_flags[j], particle_inv_mass[mass_row, neighbor]))
-                    correction += d * (share * (length - allowed) / length)
-                    violated += scalar(1.0)
+            incidence = springs.incidence
+            for k in range(wp.static(head_slots)):
+                dx, count = correction_of(i, incidence.head_local[k, i], incidence.head_element[k, i], base, xi, wi,
+                                          stretch_limit, mass_row, springs, particle_flags, particle_inv_mass,
+                                          particle_q_in)
+                correction += dx
+                violated += count
+            if wp.static(tail):
+                for t in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
+                    dx, count = correction_of(i, incidence.tail_local[t], incidence.tail_element[t], base, xi, wi,
+                                              stretch_limit, mass_row, springs, particle_flags, particle_inv_mass,
+                                              particle_q_in)
+                    correction += dx
+                    violated += count
         if violated > scalar(0.0):
             xi = xi + correction / violated
         particle_q_out[p] = xi

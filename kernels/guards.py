@@ -2,9 +2,9 @@
 substep.
 
 A check is four launches captured with the substeps: ``measure`` (per particle: non-finite position or
-velocity, the largest strain of its springs, kinetic energy; per-block partials, no float atomics),
-``gather`` (per world: the world's kinetic energy, summed in a fixed order, and its largest strain),
-``locate`` (the particle and spring holding the largest strain), ``decide`` (per world: compare with the
+velocity, the largest strain of its elements (the families' ``strain`` hook), kinetic energy; per-block
+partials, no float atomics), ``gather`` (per world: the world's kinetic energy, summed in a fixed order,
+and its largest strain), ``locate`` (the particle, element and family holding the largest strain), ``decide`` (per world: compare with the
 world's limits, latch the world's first failure with its substep, reset the accumulators, and with
 ``stop_world`` set hold the failed world: ``world_enabled`` 0). Once a world's record is latched, later
 checks leave it untouched, so the host reads each world's first failure at the end of the frame. Held
@@ -15,6 +15,7 @@ import functools
 
 import warp as wp
 
+from .families import elements
 from .linalg import reduction_funcs
 from .precision import vec3_type
 from .worlds import world_and_index
@@ -26,15 +27,16 @@ GUARD_TRIPPED = 0  # 0 = fine, else one of the GUARD_* reasons
 GUARD_SUBSTEP = 1  # substep (within the frame) of the check that tripped
 GUARD_NONFINITE_PARTICLE = 2  # smallest index of a particle with a non-finite position or velocity
 GUARD_STRAIN_PARTICLE = 3  # smallest index of a particle holding the largest strain
-GUARD_STRAIN_SPRING = 4  # smallest index of a spring with the largest strain
+GUARD_STRAIN_ELEMENT = 4  # smallest index of an element with the largest strain
 GUARD_NONFINITE_COUNT = 5  # particles with a non-finite position or velocity
-GUARD_INTS = 6
+GUARD_STRAIN_FAMILY = 6  # smallest index (in the model's families) of a family with the largest strain
+GUARD_INTS = 7
 # float64 slots
-GUARD_MAX_STRAIN = 0  # largest spring strain (|d|/L - 1) of the check
+GUARD_MAX_STRAIN = 0  # largest element strain (springs: |d|/L - 1) of the check
 GUARD_KINETIC_ENERGY = 1  # Σ ½ m v² of the check [J]
 GUARD_FLOATS = 2
 # float64 slots of the limits: live settings, read by ``decide``
-GUARD_LIMIT_STRAIN = 0  # a spring strain beyond this tears the run [-]
+GUARD_LIMIT_STRAIN = 0  # an element strain beyond this tears the run [-]
 GUARD_LIMIT_KINETIC_ENERGY = 1  # a total kinetic energy beyond this is a runaway [J]
 GUARD_STOP_WORLD = 2  # 1: a failed world is held and the others go on; 0: the run stops
 GUARD_LIMITS = 3
@@ -46,25 +48,13 @@ NO_PARTICLE = 2**31 - 1
 
 
 @functools.cache
-def guard_funcs(scalar: type):
-    """The strain |d|/L - 1 of one spring; -1 for a padding slot or a zero-rest-length spring."""
-    vec3 = vec3_type(scalar)
-
-    @wp.func
-    def spring_strain(i: int, j: int, xi: vec3, xj: vec3, rest: scalar) -> wp.float64:
-        if j == i or rest <= scalar(0.0):
-            return wp.float64(-1.0)
-        return wp.float64(wp.length(xj - xi) / rest) - wp.float64(1.0)
-
-    return spring_strain
-
-
-@functools.cache
-def guard_kernels(scalar: type, slots: int, tiled: bool):
-    """(measure, gather, locate, decide) kernels of one precision and incidence-table width."""
+def guard_kernels(scalar: type, families: tuple, tiled: bool):
+    """(measure, gather, locate, decide) kernels of one precision and tuple of family specs."""
     vec3 = vec3_type(scalar)
     block_sum, block_max = reduction_funcs(tiled)
-    spring_strain = guard_funcs(scalar)
+    composed = elements(scalar, families)
+    Elements = composed.arrays
+    element_strain = composed.strain
 
     @wp.kernel(module="unique", enable_backward=False)
     def measure(
@@ -72,9 +62,7 @@ def guard_kernels(scalar: type, slots: int, tiled: bool):
         particle_count: int,
         world_enabled: wp.array[wp.int32],
         particle_mass: wp.array2d[scalar],
-        particle_spring_neighbor: wp.array2d[wp.int32],
-        particle_spring_id: wp.array2d[wp.int32],
-        spring_rest_length: wp.array[scalar],
+        element_arrays: Elements,
         # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
@@ -94,10 +82,7 @@ def guard_kernels(scalar: type, slots: int, tiled: bool):
             v = particle_qd[base + i]
             if wp.isfinite(x) and wp.isfinite(v):
                 energy = wp.float64(scalar(0.5) * particle_mass[wp.min(world, particle_mass.shape[0] - 1), i] * wp.dot(v, v))
-                for k in range(wp.static(slots)):
-                    j = particle_spring_neighbor[k, i]
-                    rest = spring_rest_length[particle_spring_id[k, i]]
-                    worst = wp.max(worst, spring_strain(i, j, x, particle_q[base + j], rest))
+                worst, _, _ = element_strain(world, i, base, x, element_arrays, particle_q)
             else:
                 wp.atomic_min(status, world, GUARD_NONFINITE_PARTICLE, i)
                 wp.atomic_add(status, world, GUARD_NONFINITE_COUNT, 1)
@@ -132,9 +117,7 @@ def guard_kernels(scalar: type, slots: int, tiled: bool):
         # Model:
         particle_count: int,
         world_enabled: wp.array[wp.int32],
-        particle_spring_neighbor: wp.array2d[wp.int32],
-        particle_spring_id: wp.array2d[wp.int32],
-        spring_rest_length: wp.array[scalar],
+        element_arrays: Elements,
         # State in:
         particle_q: wp.array[vec3],
         # In/out:
@@ -146,14 +129,11 @@ def guard_kernels(scalar: type, slots: int, tiled: bool):
         largest = values[world, GUARD_MAX_STRAIN]
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0 or largest < wp.float64(0.0):
             return
-        base = p - i
-        x = particle_q[base + i]
-        for k in range(wp.static(slots)):
-            j = particle_spring_neighbor[k, i]
-            s = particle_spring_id[k, i]
-            if spring_strain(i, j, x, particle_q[base + j], spring_rest_length[s]) == largest:  # as in measure
-                wp.atomic_min(status, world, GUARD_STRAIN_PARTICLE, i)
-                wp.atomic_min(status, world, GUARD_STRAIN_SPRING, s)
+        strain, element, family = element_strain(world, i, p - i, particle_q[p], element_arrays, particle_q)
+        if strain == largest:  # the same evaluation as in measure
+            wp.atomic_min(status, world, GUARD_STRAIN_PARTICLE, i)
+            wp.atomic_min(status, world, GUARD_STRAIN_ELEMENT, element)
+            wp.atomic_min(status, world, GUARD_STRAIN_FAMILY, family)
 
     @wp.kernel(module="unique", enable_backward=False)
     def decide(
@@ -183,6 +163,7 @@ def guard_kernels(scalar: type, slots: int, tiled: bool):
         values[world, GUARD_MAX_STRAIN] = wp.float64(-1.0)
         values[world, GUARD_KINETIC_ENERGY] = wp.float64(0.0)
         status[world, GUARD_STRAIN_PARTICLE] = NO_PARTICLE
-        status[world, GUARD_STRAIN_SPRING] = NO_PARTICLE
+        status[world, GUARD_STRAIN_ELEMENT] = NO_PARTICLE
+        status[world, GUARD_STRAIN_FAMILY] = NO_PARTICLE
 
     return measure, gather, locate, decide

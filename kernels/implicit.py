@@ -1,25 +1,26 @@
 """Kernels of linearised implicit (backward) Euler in the Baraff-Witkin form.
 
 One step solves  A Δv = b,  A = M - h ∂f/∂v - h² ∂f/∂x,  b = h (f + h ∂f/∂x v),  then v' = v + Δv,
-x' = x + h v'. Per spring (i, j) with stiffness block Kₛ = ∂fᵢ/∂xⱼ (compressive transverse part
-clamped, so Kₛ ⪰ 0) and damper block Dₛ = kd d̂d̂ᵀ, the matrix is never assembled: a product gathers
+x' = x + h v'. The element families supply -∂f/∂x ≈ K ⪰ 0 and -∂f/∂v = D ⪰ 0 through their ``product``
+hook (``families.py``; springs: Kₛ with its compressive transverse part clamped, Dₛ = kd d̂d̂ᵀ), so the
+matrix is never assembled: a product gathers
 
-    (A p)ᵢ = (mᵢ + h c) pᵢ + Σₛ (h Dₛ + h² Kₛ)(pᵢ - pⱼ)        (c: the world's drag)
+    (A p)ᵢ = (mᵢ + h c) pᵢ + ((h D + h² K) p)ᵢ        (c: the world's drag)
 
-over the particle's incidence table, and also writes the per-block partial sums of p·Ap for the
-conjugate-gradient iteration of ``linalg.py`` (one system per world). Kinematic particles are filtered out (Baraff-Witkin's S): their rows are the identity,
-their columns are dropped and their right-hand side is zero, so A stays symmetric positive definite
-and their Δv is exactly zero. A driven pin j has a prescribed Δvⱼ = zⱼ instead: with its position at t + h
-already written (the kinematics pass), zⱼ = (xⱼ(t + h) - xⱼ)/h - vⱼ, so that the linearisation moves it
-by exactly h (vⱼ + zⱼ) = xⱼ(t + h) - xⱼ, and its dropped column moves to the right-hand side of every
-free neighbour i: bᵢ += (h Dₛ + h² Kₛ) zⱼ.
+at each particle, and also writes the per-block partial sums of p·Ap for the conjugate-gradient iteration
+of ``linalg.py`` (one system per world). Kinematic particles are filtered out (Baraff-Witkin's S): their
+rows are the identity, their columns are dropped and their right-hand side is zero, so A stays symmetric
+positive definite and their Δv is exactly zero. A driven pin j has a prescribed Δvⱼ = zⱼ instead: with
+its position at t + h already written (the kinematics pass), zⱼ = (xⱼ(t + h) - xⱼ)/h - vⱼ, so that the
+linearisation moves it by exactly h (vⱼ + zⱼ) = xⱼ(t + h) - xⱼ, and its dropped column moves to the
+right-hand side of every free particle: b -= (h D + h² K) z (z is zero at free particles).
 """
 
 import functools
 
 import warp as wp
 
-from .forces import SPRING_KERNEL_OPTIONS, SpringLaw, spring_funcs, spring_law_type
+from .families import FORCE_KERNEL_OPTIONS, elements
 from .inputs import INPUT_DRAG
 from .kinematics import is_kinematic
 from .linalg import CG_PAP, reduction_funcs
@@ -30,37 +31,17 @@ wp.set_module_options({"enable_backward": False})
 
 
 @functools.cache
-def implicit_funcs(scalar: type, law: SpringLaw):
-    """The per-spring system block h Dₛ + h² Kₛ."""
+def implicit_kernels(scalar: type, families: tuple, tiled: bool, drag: bool, driven: bool):
+    """(prescribed, prepare, matvec, update) kernels of one precision and tuple of family specs; ``tiled``:
+    the matvec's p·Ap reduction uses block tiles (CUDA), else one-thread blocks (CPU); ``drag``: the viscous
+    drag input enters A; ``driven``: driven pins have been put at t + h (their Δv enters the right-hand
+    side, and the update leaves them where the kinematics pass put them)."""
     vec3 = vec3_type(scalar)
     mat33 = mat33_type(scalar)
-    _, _, _, spring_stiffness_matrix = spring_funcs(scalar, law)
-    SpringLawValues = spring_law_type(scalar)
-
-    @wp.func
-    def system_block(
-        xi: vec3, xj: vec3, rest: scalar, ke: scalar, kd: scalar, dt: scalar, law_values: SpringLawValues
-    ) -> mat33:
-        """h kd d̂d̂ᵀ + h² Kₛ [kg/s]: the coupling of particles i and j in A."""
-        d = xj - xi
-        length = wp.length(d)
-        n = d * wp.where(length > scalar(0.0), scalar(1.0) / length, scalar(0.0))
-        return (dt * kd) * wp.outer(n, n) + (dt * dt) * spring_stiffness_matrix(xi, xj, rest, ke, True, law_values)
-
-    return system_block
-
-
-@functools.cache
-def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw, drag: bool, driven: bool):
-    """(prepare, matvec, update) kernels of one precision, incidence-table width and spring law;
-    ``tiled``: the matvec's p·Ap reduction uses block tiles (CUDA), else one-thread blocks (CPU);
-    ``drag``: the viscous drag input enters A; ``driven``: driven pins have been put at t + h (their Δv
-    enters the right-hand side, and the update leaves them where the kinematics pass put them)."""
-    vec3 = vec3_type(scalar)
-    mat33 = mat33_type(scalar)
-    system_block = implicit_funcs(scalar, law)
     block_sum, _ = reduction_funcs(tiled)
-    spring_law_values, _, _, spring_stiffness_matrix = spring_funcs(scalar, law)
+    composed = elements(scalar, families)
+    Elements = composed.arrays
+    element_product = composed.product
 
     @wp.func
     def mass_term(mass: scalar, inputs: wp.array2d[scalar], world: int, dt: scalar) -> scalar:
@@ -69,30 +50,45 @@ def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw, drag
             return mass + dt * inputs[world, INPUT_DRAG]
         return mass
 
-    @wp.kernel(module="unique", enable_backward=False, module_options=SPRING_KERNEL_OPTIONS)
+    @wp.kernel(module="unique", enable_backward=False)
+    def prescribed(
+        # Model:
+        particle_flags: wp.array[wp.int32],
+        # State in:
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+        particle_q_end: wp.array[vec3],
+        dt: scalar,
+        # Out:
+        delta_qd: wp.array[vec3],
+    ):
+        """z = the prescribed Δv of driven pins, (x(t + h) - x)/h - v, and 0 at free particles."""
+        p = wp.tid()
+        z = vec3(scalar(0.0))
+        if is_kinematic(particle_flags[p]):
+            z = (particle_q_end[p] - particle_q[p]) / dt - particle_qd[p]
+        delta_qd[p] = z
+
+    @wp.kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
     def prepare(
         # Model:
         particle_count: int,
         particle_flags: wp.array[wp.int32],
         particle_mass: wp.array2d[scalar],
-        particle_spring_neighbor: wp.array2d[wp.int32],
-        particle_spring_id: wp.array2d[wp.int32],
-        spring_rest_length: wp.array[scalar],
-        spring_stiffness: wp.array2d[scalar],
-        spring_damping: wp.array2d[scalar],
+        element_arrays: Elements,
         inputs: wp.array2d[scalar],
         # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
         particle_f: wp.array[vec3],
         dt: scalar,
-        particle_q_end: wp.array[vec3],
+        prescribed_delta_qd: wp.array[vec3],
         # Out:
         rhs: wp.array[vec3],
         diagonal_inverse: wp.array[mat33],
     ):
-        """b = h f + h² ∂f/∂x v (+ the driven pins' columns) and the inverse 3 × 3 diagonal blocks of A
-        (block-Jacobi preconditioner). ``particle_q_end``: positions at t + h of the driven pins."""
+        """b = h f - h² K v (- (h D + h² K) z with driven pins) and the inverse 3 × 3 diagonal blocks of A
+        (block-Jacobi preconditioner)."""
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
         base = p - i
@@ -100,41 +96,29 @@ def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw, drag
             rhs[p] = vec3(scalar(0.0))
             diagonal_inverse[p] = wp.identity(n=3, dtype=scalar)
             return
-        law_values = spring_law_values(inputs, world)
-        stiffness_row = wp.min(world, spring_stiffness.shape[0] - 1)
-        damping_row = wp.min(world, spring_damping.shape[0] - 1)
         xi = particle_q[p]
-        vi = particle_qd[p]
-        b = dt * particle_f[p]
-        diagonal = mass_term(particle_mass[wp.min(world, particle_mass.shape[0] - 1), i], inputs, world, dt) * wp.identity(
-            n=3, dtype=scalar
-        )
-        for k in range(wp.static(slots)):
-            j = base + particle_spring_neighbor[k, i]
-            s = particle_spring_id[k, i]
-            xj = particle_q[j]
-            rest = spring_rest_length[s]
-            ke = spring_stiffness[stiffness_row, s]
-            b += (dt * dt) * (spring_stiffness_matrix(xi, xj, rest, ke, True, law_values) * (particle_qd[j] - vi))
-            block = system_block(xi, xj, rest, ke, spring_damping[damping_row, s], dt, law_values)
-            diagonal += block
-            if wp.static(driven):
-                if is_kinematic(particle_flags[j]):
-                    b += block * ((particle_q_end[j] - xj) / dt - particle_qd[j])
+        h = dt
+        kv, stiffness_diagonal = element_product(world, i, base, xi, element_arrays, inputs, particle_q,
+                                                 particle_flags, particle_qd, False, h * h, scalar(0.0))
+        b = h * particle_f[p] - kv
+        if wp.static(driven):
+            bz, blocks = element_product(world, i, base, xi, element_arrays, inputs, particle_q, particle_flags,
+                                         prescribed_delta_qd, False, h * h, h)
+            b -= bz
+        else:
+            unused, blocks = element_product(world, i, base, xi, element_arrays, inputs, particle_q, particle_flags,
+                                             particle_qd, False, h * h, h)
         rhs[p] = b
-        diagonal_inverse[p] = wp.inverse(diagonal)
+        mass = mass_term(particle_mass[wp.min(world, particle_mass.shape[0] - 1), i], inputs, world, h)
+        diagonal_inverse[p] = wp.inverse(mass * wp.identity(n=3, dtype=scalar) + blocks)
 
-    @wp.kernel(module="unique", enable_backward=False, module_options=SPRING_KERNEL_OPTIONS)
+    @wp.kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
     def matvec(
         # Model:
         particle_count: int,
         particle_flags: wp.array[wp.int32],
         particle_mass: wp.array2d[scalar],
-        particle_spring_neighbor: wp.array2d[wp.int32],
-        particle_spring_id: wp.array2d[wp.int32],
-        spring_rest_length: wp.array[scalar],
-        spring_stiffness: wp.array2d[scalar],
-        spring_damping: wp.array2d[scalar],
+        element_arrays: Elements,
         inputs: wp.array2d[scalar],
         # State in:
         particle_q: wp.array[vec3],
@@ -159,20 +143,10 @@ def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw, drag
             pi = p[k]
             api = pi
             if not is_kinematic(particle_flags[k]):
-                law_values = spring_law_values(inputs, world)
-                stiffness_row = wp.min(world, spring_stiffness.shape[0] - 1)
-                damping_row = wp.min(world, spring_damping.shape[0] - 1)
-                xi = particle_q[k]
+                coupled, _ = element_product(world, i, base, particle_q[k], element_arrays, inputs, particle_q,
+                                             particle_flags, p, True, dt * dt, dt)
                 api = mass_term(particle_mass[wp.min(world, particle_mass.shape[0] - 1), i], inputs, world, dt) * pi
-                for slot in range(wp.static(slots)):
-                    j = base + particle_spring_neighbor[slot, i]
-                    s = particle_spring_id[slot, i]
-                    pj = wp.where(is_kinematic(particle_flags[j]), vec3(scalar(0.0)), p[j])
-                    block_ij = system_block(
-                        xi, particle_q[j], spring_rest_length[s], spring_stiffness[stiffness_row, s],
-                        spring_damping[damping_row, s], dt, law_values,
-                    )
-                    api += block_ij * (pi - pj)
+                api += coupled
             a_p[k] = api
             p_ap = wp.float64(wp.dot(pi, api))
         p_ap = block_sum(p_ap)
@@ -208,4 +182,4 @@ def implicit_kernels(scalar: type, slots: int, tiled: bool, law: SpringLaw, drag
         particle_q_out[p] = particle_q_in[p] + dt * v
         particle_qd_out[p] = v
 
-    return prepare, matvec, update
+    return prescribed, prepare, matvec, update

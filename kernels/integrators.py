@@ -24,7 +24,8 @@ import functools
 import warp as wp
 
 from .contacts import project_contacts_func
-from .forces import SPRING_KERNEL_OPTIONS, ForceFeatures, particle_force_func
+from .families import FORCE_KERNEL_OPTIONS, elements
+from .forces import ForceFeatures, particle_force_func
 from .kinematics import is_kinematic, particle_funcs
 from .linalg import reduction_funcs
 from .precision import transform_type, vec3_type
@@ -105,11 +106,12 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
     vec3 = vec3_type(scalar)
     transform = transform_type(scalar)
     particle_force = particle_force_func(scalar, features)
+    Elements = elements(scalar, features.families).arrays
     update = symplectic_euler_funcs(scalar)
     project_contacts = project_contacts_func(scalar, shape_types)
     has_contacts = len(shape_types) > 0
 
-    @wp.kernel(module="unique", enable_backward=False, module_options=SPRING_KERNEL_OPTIONS)
+    @wp.kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
     def symplectic_euler(
         # Model:
         particle_count: int,
@@ -120,13 +122,9 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
         shape_transform: wp.array[transform],
         shape_size: wp.array[vec3],
         shape_friction: wp.array[scalar],
-        # Model, the forces (``particle_force``'s parameters, in its order):
+        # Model, the forces:
         particle_mass: wp.array2d[scalar],
-        particle_spring_neighbor: wp.array2d[wp.int32],
-        particle_spring_id: wp.array2d[wp.int32],
-        spring_rest_length: wp.array[scalar],
-        spring_stiffness: wp.array2d[scalar],
-        spring_damping: wp.array2d[scalar],
+        element_arrays: Elements,
         inputs: wp.array2d[scalar],
         # Control:
         particle_force_ext: wp.array[vec3],
@@ -153,23 +151,8 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
             particle_q_out[p] = x + h * v
             particle_qd_out[p] = v
             return
-        f = particle_force(
-            world,
-            i,
-            base,
-            x,
-            v,
-            particle_mass,
-            particle_spring_neighbor,
-            particle_spring_id,
-            spring_rest_length,
-            spring_stiffness,
-            spring_damping,
-            inputs,
-            particle_force_ext,
-            particle_q_in,
-            particle_qd_in,
-        )
+        f = particle_force(world, i, base, x, v, particle_mass, element_arrays, inputs, particle_force_ext,
+                           particle_q_in, particle_qd_in)
         x, v = update(x, v, f, particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i], h)
         if wp.static(has_contacts):
             x, v = project_contacts(

@@ -1,14 +1,14 @@
 """Kernels of the stability analysis: power iteration on M⁻¹K, and a per-step record of spring motion.
 
 Power iteration estimates λ_max of M⁻¹K, the square of the network's highest angular frequency, with K
-the stiffness matrix -∂f/∂x of the springs (compressive transverse part clamped, as in implicit Euler, so
-K ⪰ 0) and pinned particles filtered out. M⁻¹K is self-adjoint in the mass inner product ⟨x, y⟩_M = xᵀMy,
+the stiffness matrix -∂f/∂x of the element families (their ``product`` hook with α = 1, β = 0; springs'
+compressive transverse part clamped, as in implicit Euler, so K ⪰ 0) and pinned particles filtered out. M⁻¹K is self-adjoint in the mass inner product ⟨x, y⟩_M = xᵀMy,
 so one iteration is
 
     y = K x,    θ = xᵀy / xᵀMx  (Rayleigh quotient, ≤ λ_max),    x ← M⁻¹y / ‖M⁻¹y‖_M
 
 with the residual ‖M⁻¹y - θx‖_M² = yᵀM⁻¹y - 2θ xᵀy + θ² xᵀMx as the convergence measure. The product
-gathers over the particle's ELL incidence table like the implicit-Euler matvec (``implicit.py``):
+gathers at each particle like the implicit-Euler matvec (``implicit.py``); for springs
 
     (K x)ᵢ = Σₛ Kₛ (xᵢ - xⱼ),    Kₛ = ∂fᵢ/∂xⱼ of spring s = (i, j)
 
@@ -25,7 +25,8 @@ import functools
 
 import warp as wp
 
-from .forces import COINCIDENT_DISTANCE, spring_funcs, spring_law_type
+from .families import elements
+from .springs import COINCIDENT_DISTANCE
 from .kinematics import is_kinematic, particle_funcs
 from .linalg import reduction_funcs
 from .precision import vec3_type
@@ -61,16 +62,17 @@ def dot64_func(scalar: type):
 
 
 @functools.cache
-def power_iteration_kernels(scalar: type, slots: int, tiled: bool):
+def power_iteration_kernels(scalar: type, families: tuple, tiled: bool):
     """(product, normalize, condition) kernels of power iteration on M⁻¹K, one per world, for one precision
-    and incidence-table width; ``tiled``: the product's block sums use tiles (CUDA), else one-thread blocks
+    and tuple of family specs (linearised: ``Model.family_specs(linear=True)``); ``tiled``: the product's block sums use tiles (CUDA), else one-thread blocks
     (CPU). Per iteration: ``product`` (grid [world, block, lane]), ``sum_partials_kernel(tiled)`` over slots
     [PI_XKX, PI_XKX + PI_PARTIALS), ``normalize`` (grid [world, particle]), ``condition`` (grid [world])."""
     vec3 = vec3_type(scalar)
     block_sum, _ = reduction_funcs(tiled)
     dot64 = dot64_func(scalar)
-    _, _, _, spring_stiffness_matrix = spring_funcs(scalar)  # Hooke's law: the advisor scales biphasic springs
-    SpringLawValues = spring_law_type(scalar)
+    composed = elements(scalar, families)
+    Elements = composed.arrays
+    element_product = composed.product
     effective_inv_mass = particle_funcs(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
@@ -79,10 +81,8 @@ def power_iteration_kernels(scalar: type, slots: int, tiled: bool):
         particle_count: int,
         particle_flags: wp.array[wp.int32],
         particle_mass: wp.array2d[scalar],
-        particle_spring_neighbor: wp.array2d[wp.int32],
-        particle_spring_id: wp.array2d[wp.int32],
-        spring_rest_length: wp.array[scalar],
-        spring_stiffness: wp.array2d[scalar],
+        element_arrays: Elements,
+        inputs: wp.array2d[scalar],
         # State in:
         particle_q: wp.array[vec3],
         # Operand:
@@ -106,18 +106,9 @@ def power_iteration_kernels(scalar: type, slots: int, tiled: bool):
             p = base + i
             yi = vec3(scalar(0.0))
             if not is_kinematic(particle_flags[p]):
-                hooke = SpringLawValues()
-                stiffness_row = wp.min(world, spring_stiffness.shape[0] - 1)
                 xi = x[p]
-                qi = particle_q[p]
-                for k in range(wp.static(slots)):
-                    j = base + particle_spring_neighbor[k, i]
-                    s = particle_spring_id[k, i]
-                    xj = wp.where(is_kinematic(particle_flags[j]), vec3(scalar(0.0)), x[j])
-                    ks = spring_stiffness_matrix(
-                        qi, particle_q[j], spring_rest_length[s], spring_stiffness[stiffness_row, s], True, hooke
-                    )
-                    yi += ks * (xi - xj)
+                yi, _ = element_product(world, i, base, particle_q[p], element_arrays, inputs, particle_q,
+                                        particle_flags, x, True, scalar(1.0), scalar(0.0))
                 mass = wp.float64(particle_mass[wp.min(world, particle_mass.shape[0] - 1), i])
                 xkx = dot64(xi, yi)
                 xmx = mass * dot64(xi, xi)

@@ -68,15 +68,17 @@ def test_grid_triangles_face_local_plus_z():
 
 
 def test_incidence_table_holds_every_spring_twice():
-    """The gather's ELL table lists, for each particle, exactly the springs touching it with the other
-    end, then padding slots naming the particle itself (zero force); its width is the largest degree."""
+    """The gather's incidence table lists, for each particle, exactly the springs touching it with the other
+    end, then padding slots naming the particle itself (zero force); a cloth's uniform degree gives a head as
+    wide as the largest degree and no tail."""
     builder = ws.ModelBuilder()
     builder.add_cloth_grid(nx=5, ny=4, spacing=0.1, mass=2.0)
     model = builder.finalize("cpu", spring_evaluation="gather")
-    neighbor, sid = model.particle_spring_neighbor.numpy(), model.particle_spring_id.numpy()
+    table, shape = model.spring_incidence, model.spring_incidence_shape
+    neighbor, sid = table.head_local.numpy(), table.head_element.numpy()
     pairs = model.spring_indices.numpy()
     degree = np.bincount(pairs.ravel(), minlength=model.particle_count)
-    assert neighbor.shape == (degree.max(), model.particle_count) == (11, 20)  # 4 + 4 + 3 (one bend misses)
+    assert shape == (11, False) and neighbor.shape == (degree.max(), model.particle_count) == (11, 20)  # 4 + 4 + 3
     used = neighbor != np.arange(model.particle_count)
     for i in range(model.particle_count):
         assert used[:, i].sum() == degree[i] and used[: degree[i], i].all()  # padding only at the end

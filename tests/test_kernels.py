@@ -6,7 +6,7 @@ import numpy as np
 import warp as wp
 
 from warpspring.kernels.contacts import contact_funcs
-from warpspring.kernels.forces import spring_funcs, spring_law_type
+from warpspring.kernels.springs import spring_funcs, spring_law_type
 from warpspring.kernels.precision import scalar_type, vec3_type
 
 # float32 rounding of O(1) inputs through a handful of operations; float64 is exact to ~1e-15.

@@ -11,7 +11,6 @@ allows a tolerance derived from the solvers' own; exact agreement is the stronge
 
 import numpy as np
 import pytest
-import warp as wp
 
 import warpspring as ws
 from warpspring.core.integrators import make_integrator

@@ -43,7 +43,9 @@ def _bind_kernels() -> None:
 
 _bind_kernels()
 
+from .core.bending import DihedralMaterial
 from .core.builder import ModelBuilder, SpringMaterial
+from .core.families import ElementFamily
 from .errors import ConfigError, SimulationError, WarpspringError
 from .core.forces import apply_contacts, eval_forces
 from .core.integrators import (
@@ -81,6 +83,8 @@ __all__ = [
     "VelocityVerlet",
     "ConfigError",
     "Control",
+    "DihedralMaterial",
+    "ElementFamily",
     "Integrator",
     "MeshGroup",
     "Model",

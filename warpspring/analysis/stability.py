@@ -71,6 +71,7 @@ from ..kernels.linalg import reduce_lanes, reduce_launch_dim, sum_partials_kerne
 from ..kernels.stability import (PI_LAMBDA, PI_PARTIALS, PI_RESIDUAL, PI_SCALARS, PI_XKX,
                                  power_iteration_kernels)
 from ..core.model import Model, State
+from ..core.springs import SpringFamily
 
 #: Estimates of ω_max (see :func:`advise`).
 OMEGA_ESTIMATES = ("power_iteration", "gershgorin")
@@ -526,20 +527,14 @@ def _stiffness_array(model: Model, values: np.ndarray) -> wp.array:
 
 
 def _gershgorin(model: Model, stiffness: np.ndarray, free: np.ndarray) -> np.ndarray:
-    """Each world's Gershgorin bound [rad/s], shape [world_count], for stiffness rows ``stiffness`` and free
-    particles ``free`` [world_count, particle_count]."""
-    worlds, n = model.world_count, model.particle_count
-    if model.spring_count == 0:
-        return np.zeros(worlds)
-    k = np.broadcast_to(stiffness, (worlds, model.spring_count))
-    i, j = model.spring_indices.numpy().reshape(-1, 2).T
-    offset = (np.arange(worlds) * n)[:, None]
-    wi, wj = (offset + i).ravel(), (offset + j).ravel()  # world-major entries of each world's spring ends
-    row = np.zeros(worlds * n)
-    for ends, weights in ((wi, k), (wj, k), (wi, k * free[:, j]), (wj, k * free[:, i])):
-        row += np.bincount(ends, weights=weights.ravel(), minlength=worlds * n)
-    ratio = np.where(free, row.reshape(worlds, n) / model.world_values("particle_mass"), 0.0)
-    return np.sqrt(ratio.max(axis=1))
+    """Each world's Gershgorin bound [rad/s], shape [world_count], for spring stiffness rows ``stiffness`` and
+    free particles ``free`` [world_count, particle_count]: every family's row bounds, summed."""
+    rows = np.zeros((model.world_count, model.particle_count))
+    for family in model.families:
+        rows += (family.gershgorin_rows(model, free, stiffness) if isinstance(family, SpringFamily)
+                 else family.gershgorin_rows(model, free))
+    ratio = np.where(free, rows / model.world_values("particle_mass"), 0.0)
+    return np.sqrt(ratio.max(axis=1)) if model.particle_count else np.zeros(model.world_count)
 
 
 def world_gershgorin_omega_max(model: Model, *, stiffness=None) -> np.ndarray:
@@ -549,7 +544,8 @@ def world_gershgorin_omega_max(model: Model, *, stiffness=None) -> np.ndarray:
     Row i of M⁻¹K holds the diagonal block Σₛ Kₛ / mᵢ and one block Kₛ / mᵢ per spring to a free particle;
     each clamped spring block has spectral norm kₛ, so λ_max ≤ maxᵢ (Σₛ kₛ + Σ_{s to free j} kₛ) / mᵢ over
     free particles, with each world's stiffness and masses. (2 Σₛ kₛ / mᵢ, the bound usually quoted, is
-    this with every neighbour free.) 0 in a world without stiffness or free particles.
+    this with every neighbour free.) Other element families add their own row bounds
+    (``ElementFamily.gershgorin_rows``). 0 in a world without stiffness or free particles.
 
     Args:
         model: the model.
@@ -618,10 +614,10 @@ def _power_iteration(model: Model, stiffness: np.ndarray, state: State | None, m
     tiled = device.is_cuda
     lanes = reduce_lanes(n, model.block_dim, tiled)
     grid = reduce_launch_dim(worlds, n, lanes)
-    product, normalize, condition = power_iteration_kernels(model.scalar, model.spring_max_degree, tiled)
+    product, normalize, condition = power_iteration_kernels(model.scalar, model.family_specs(linear=True), tiled)
     sum_partials = sum_partials_kernel(tiled)
 
-    k = _stiffness_array(model, stiffness)
+    element_arrays = model.element_arrays(linear=True, spring_stiffness=_stiffness_array(model, stiffness))
     q = model.particle_q if state is None else state.particle_q
     x = wp.array(start.reshape(-1, 3), dtype=model.vec3, device=device)
     y = wp.zeros(worlds * n, dtype=model.vec3, device=device)
@@ -635,8 +631,7 @@ def _power_iteration(model: Model, stiffness: np.ndarray, state: State | None, m
     def iterate():
         wp.launch(
             product, dim=grid, block_dim=lanes, device=device,
-            inputs=[n, model.particle_flags, model.particle_mass, model.particle_spring_neighbor,
-                    model.particle_spring_id, model.spring_rest_length, k, q, active, x],
+            inputs=[n, model.particle_flags, model.particle_mass, element_arrays, model.inputs, q, active, x],
             outputs=[y, partials],
         )
         wp.launch(sum_partials, dim=(worlds, lanes), block_dim=lanes, device=device,

@@ -18,6 +18,9 @@ from ..errors import ConfigError
 from ..kernels.contacts import SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import scalar_type, transform_type, vec3_type
+from .bending import DihedralMaterial
+from .families import ElementFamily, build_incidence
+from .hinges import dihedral_angle, mesh_hinges
 from .kinematics import PinGroup, PinGroupTable
 from .model import MeshGroup, Model, ShapeInfo, Stabilizers
 from .tracks import Track, as_track, input_track
@@ -27,8 +30,6 @@ _AXES = {"Y": 1, "Z": 2}  # USD knows only Y-up and Z-up stages
 #: Prim names under /World that the USD writer uses itself: a mesh named so gets a suffix.
 RESERVED_PRIM_NAMES = ("particles", "springs", "colliders")
 
-#: Most springs per particle for which the GPU default is the gathered (ELL) evaluation.
-MAX_GATHER_SLOTS = 32
 _GRID_PINS = ("top-left", "top-right", "bottom-left", "bottom-right", "top", "bottom", "left", "right")
 
 
@@ -99,6 +100,14 @@ class ModelBuilder:
         self._spring_ke: list[np.ndarray] = []
         self._spring_kd: list[np.ndarray] = []
         self._spring_count = 0
+
+        self._hinges: list[np.ndarray] = []
+        self._hinge_rest: list[np.ndarray] = []
+        self._hinge_ke: list[np.ndarray] = []
+        self._hinge_kd: list[np.ndarray] = []
+        self._hinge_count = 0
+
+        self._families: list[ElementFamily] = []  # element families beyond springs, in the order added
 
         self._meshes: list[MeshGroup] = []
         self._shapes: list[tuple] = []  # (type, position, quat xyzw, size, friction, name)
@@ -253,6 +262,64 @@ class ModelBuilder:
         self._spring_count += s
         return np.arange(start, start + s)
 
+    def add_hinges(self, hinges, *, stiffness, damping=0.0, rest_angle=None) -> np.ndarray:
+        """Add dihedral (angular) springs in bulk: hinge (x0, x1, x2, x3) resists folding about the edge
+        x0 → x1 shared by the triangles (x0, x1, x2) and (x1, x0, x3) (``kernels/bending.py``).
+
+        Args:
+            hinges: global particle indices of each hinge, shape [h, 4], four different particles.
+            stiffness: ke [N·m/rad], ≥ 0: a scalar or shape [h]; energy ½ ke (θ - θ0)².
+            damping: kd [N·m·s/rad], ≥ 0: a scalar or shape [h].
+            rest_angle: θ0 [rad] in (-π, π], a scalar or shape [h]; default: the current angle.
+
+        Returns:
+            The indices of the new hinges, shape [h].
+        """
+        hinges = np.asarray(hinges)
+        if hinges.ndim != 2 or hinges.shape[1] != 4:
+            raise ConfigError(f"hinges must have shape [h, 4] (edge x0, x1, wings x2, x3), got {hinges.shape}")
+        if len(hinges) and not np.issubdtype(hinges.dtype, np.integer):
+            raise ConfigError("hinges must be integer particle indices")
+        hinges = hinges.astype(np.int64)
+        h = len(hinges)
+        if h and (hinges.min() < 0 or hinges.max() >= self._particle_count):
+            bad = int(np.flatnonzero((hinges < 0).any(1) | (hinges >= self._particle_count).any(1))[0])
+            raise ConfigError(f"hinge {bad} names particles {tuple(hinges[bad])}, but only {self._particle_count} "
+                              "particles exist: add the particles first")
+        repeated = np.flatnonzero(np.any(np.sort(hinges, axis=1)[:, 1:] == np.sort(hinges, axis=1)[:, :-1], axis=1))
+        if len(repeated):
+            raise ConfigError(f"hinge {int(repeated[0])} names a particle twice: {tuple(hinges[repeated[0]])}")
+        ke = _per_item("hinge stiffness", stiffness, h)
+        kd = _per_item("hinge damping", damping, h)
+        if rest_angle is None:
+            q = np.concatenate(self._q)[hinges] if h else np.zeros((0, 4, 3))
+            rest = dihedral_angle(q[:, 0], q[:, 1], q[:, 2], q[:, 3])
+        else:
+            rest = np.broadcast_to(np.asarray(rest_angle, dtype=np.float64), (h,)).copy()
+            if not (np.isfinite(rest).all() and (np.abs(rest) <= np.pi).all()):
+                raise ConfigError("hinge rest angles must be finite and in [-π, π] radians")
+        start = self._hinge_count
+        self._hinges.append(hinges)
+        self._hinge_ke.append(ke)
+        self._hinge_kd.append(kd)
+        self._hinge_rest.append(rest)
+        self._hinge_count += h
+        return np.arange(start, start + h)
+
+    def add_family(self, family: ElementFamily) -> ElementFamily:
+        """Add an element family (``warpspring.core.families.ElementFamily``) beyond the springs; the kernels sum
+        the families in the order added. Its particle indices refer to this builder's particles.
+
+        Returns:
+            The family.
+        """
+        if not isinstance(family, ElementFamily):
+            raise ConfigError(f"add_family takes a warpspring ElementFamily, got {type(family).__name__}")
+        if any(f is family for f in self._families):
+            raise ConfigError(f"this {family.name} family was added already")
+        self._families.append(family)
+        return family
+
     def add_triangles(self, faces, *, name: str = "mesh", uvs=None) -> MeshGroup:
         """Add a triangle mesh over existing particles (exported as one USD mesh; later used by
         aerodynamics and collisions).
@@ -306,6 +373,7 @@ class ModelBuilder:
         structural: SpringMaterial | None = DEFAULT_STRUCTURAL,
         shear: SpringMaterial | None = DEFAULT_SHEAR,
         bend: SpringMaterial | None = DEFAULT_BEND,
+        dihedral: DihedralMaterial | None = None,
         pin=(),
         name: str = "cloth",
     ) -> np.ndarray:
@@ -326,6 +394,7 @@ class ModelBuilder:
             structural: springs to the 4-neighbours, or ``None`` for none.
             shear: springs along both diagonals of each quad, or ``None``.
             bend: springs skipping one particle along rows and columns, or ``None``.
+            dihedral: dihedral springs on every interior edge of the cloth's triangles, or ``None``.
             pin: corners/edges by name ("top-left", "top-right", "bottom-left", "bottom-right", "top",
                 "bottom", "left", "right") and/or local particle indices r·nx + c.
             name: mesh name for export.
@@ -366,6 +435,8 @@ class ModelBuilder:
         faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
         uv = np.stack([cols / (nx - 1), rows / (ny - 1)], axis=-1).reshape(-1, 2)
         self.add_triangles(faces, name=name, uvs=uv)
+        if dihedral is not None:
+            self._add_mesh_hinges(q, faces - ids[0], ids, dihedral)
         return grid
 
     def add_cloth_mesh(
@@ -382,6 +453,7 @@ class ModelBuilder:
         radius: float | None = None,
         structural: SpringMaterial | None = DEFAULT_STRUCTURAL,
         bend: SpringMaterial | None = DEFAULT_BEND,
+        dihedral: DihedralMaterial | None = None,
         pin=(),
         name: str = "cloth",
     ) -> np.ndarray:
@@ -402,6 +474,7 @@ class ModelBuilder:
             velocity: initial velocity [m/s].
             radius: contact radius [m]; default a quarter of the mean edge length.
             structural, bend: spring families, or ``None``.
+            dihedral: dihedral springs on every interior edge, or ``None``.
             pin: vertex indices of pinned particles.
             name: mesh name for export.
 
@@ -470,6 +543,8 @@ class ModelBuilder:
             if len(opposite):
                 self.add_springs(ids[opposite], stiffness=bend.ke, damping=bend.kd)
         self.add_triangles(ids[faces], name=name, uvs=uv)
+        if dihedral is not None:
+            self._add_mesh_hinges(vertices * scale, faces, ids, dihedral)
         return ids
 
     # -- colliders ------------------------------------------------------------------------------------
@@ -513,9 +588,9 @@ class ModelBuilder:
                 give them their own parameters with :meth:`Model.set_world_values` and
                 :meth:`Model.set_track`.
             precision: "float32" (default) or "float64" for every floating-point array and kernel.
-            spring_evaluation: "gather" (per particle, no atomics, fusable), "scatter" (per spring, each
-                evaluated once) or "auto": gather on CUDA while no particle has more than
-                ``MAX_GATHER_SLOTS`` springs, scatter otherwise and on the CPU (the faster choice on each).
+            spring_evaluation: "gather" (per particle, no atomics, fusable, any number of springs per particle),
+                "scatter" (per spring, each evaluated once, atomic adds: deterministic only on the CPU) or
+                "auto": gather on CUDA, scatter on the CPU (the faster choice on each).
         """
         if spring_evaluation not in ("auto", "gather", "scatter"):
             raise ConfigError(f"spring_evaluation must be 'auto', 'gather' or 'scatter', got {spring_evaluation!r}")
@@ -593,13 +668,24 @@ class ModelBuilder:
         degree = np.bincount(springs.ravel(), minlength=n) if s else np.zeros(n, dtype=np.int64)
         model.spring_max_degree = int(degree.max())
         if spring_evaluation == "auto":
-            # The gather pays off on GPUs while the padded table stays small.
-            spring_evaluation = "gather" if device.is_cuda and model.spring_max_degree <= MAX_GATHER_SLOTS else "scatter"
+            spring_evaluation = "gather" if device.is_cuda else "scatter"  # the faster choice on each
         model.spring_gather = spring_evaluation == "gather"
-        # The table also serves the stiffness products of implicit integration and stability analysis.
-        neighbor, spring_id = _incidence_table(springs, n, model.spring_max_degree)
-        model.particle_spring_neighbor = wp.array(neighbor, dtype=wp.int32, device=device)
-        model.particle_spring_id = wp.array(spring_id, dtype=wp.int32, device=device)
+        # The incidence also serves the stiffness products of implicit integration and stability analysis.
+        model.spring_incidence, model.spring_incidence_shape = build_incidence(
+            springs, n, springs[:, ::-1], lambda particles: particles, device=device
+        )
+
+        hinges = np.concatenate(self._hinges) if self._hinges else np.zeros((0, 4), dtype=np.int64)
+        model.hinge_count = len(hinges)
+        model.hinge_indices = iarray(hinges, wp.vec4i)
+        model.hinge_rest_angle = farray(np.concatenate(self._hinge_rest) if len(hinges) else [])
+        model.hinge_stiffness = farray(np.concatenate(self._hinge_ke)[None, :] if len(hinges) else np.zeros((1, 0)),
+                                       name="a hinge stiffness [N·m/rad]")
+        model.hinge_damping = farray(np.concatenate(self._hinge_kd)[None, :] if len(hinges) else np.zeros((1, 0)),
+                                     name="a hinge damping [N·m·s/rad]")
+        model.hinge_incidence, model.hinge_incidence_shape = build_incidence(
+            hinges, n, np.broadcast_to(np.arange(4), hinges.shape), -1, device=device
+        )
 
         tris = [g.particles[g.faces] for g in self._meshes]
         tri_indices = np.concatenate(tris) if tris else np.zeros((0, 3), dtype=np.int64)
@@ -624,10 +710,27 @@ class ModelBuilder:
             )
             for t, p, r, size, mu, name in self._shapes
         ]
+        for family in self._families:
+            family.finalize(model)
+        model.extra_families = tuple(self._families)
         model._finalized = True
         return model
 
     # -- helpers --------------------------------------------------------------------------------------
+
+    def _add_mesh_hinges(self, vertices: np.ndarray, faces: np.ndarray, ids: np.ndarray, material: DihedralMaterial,
+                         stiffness=None, damping=None) -> None:
+        """Hinges on every interior edge of a mesh (local ``faces`` into ``vertices``, particles ``ids``), rest
+        angles as the material says; ``stiffness``/``damping`` per hinge override the material's."""
+        if not isinstance(material, DihedralMaterial):
+            raise ConfigError(f"dihedral must be a warpspring.DihedralMaterial, got {type(material).__name__}")
+        try:
+            hinges, rest = mesh_hinges(vertices, faces)
+        except ValueError as exc:
+            raise ConfigError(f"cannot add dihedral springs: {exc}") from None
+        self.add_hinges(ids[hinges], stiffness=material.ke if stiffness is None else stiffness,
+                        damping=material.kd if damping is None else damping,
+                        rest_angle=rest if material.rest == "mesh" else 0.0)
 
     def _add_shape(self, kind, position, rotation, size, friction, name):
         friction = checks.non_negative("friction", friction)
@@ -744,22 +847,3 @@ def _block_dim(device, n: int) -> int:
         return 256
     per_sm = n // max(device.sm_count, 1)
     return int(min(256, max(32, 1 << max(per_sm, 1).bit_length() - 1)))
-
-
-def _incidence_table(springs: np.ndarray, n: int, slots: int) -> tuple[np.ndarray, np.ndarray]:
-    """ELL table of the springs at each particle: (neighbor, spring id), each int32 of shape [slots, n].
-    Slots past a particle's last spring hold (the particle itself, spring 0): a coincident pair, whose
-    force is exactly zero. Slot order follows the spring order."""
-    neighbor = np.broadcast_to(np.arange(n, dtype=np.int32), (slots, n)).copy()
-    spring_id = np.zeros((slots, n), dtype=np.int32)
-    if slots == 0 or len(springs) == 0:
-        return neighbor, spring_id
-    s = len(springs)
-    owner = np.concatenate([springs[:, 0], springs[:, 1]])
-    order = np.argsort(owner, kind="stable")
-    owner = owner[order]
-    start = np.searchsorted(owner, np.arange(n))  # first incidence of each particle in sorted order
-    slot = np.arange(2 * s) - start[owner]
-    neighbor[slot, owner] = np.concatenate([springs[:, 1], springs[:, 0]])[order]
-    spring_id[slot, owner] = np.concatenate([np.arange(s), np.arange(s)])[order]
-    return neighbor, spring_id

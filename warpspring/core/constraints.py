@@ -54,9 +54,9 @@ class StepFinisher:
         strain_limited = self.strain_limited
         before = None
         if strain_limited:
-            limit = strain_limit_kernel(model.scalar, model.spring_max_degree)
-            table = [model.particle_count, model.particle_flags, model.particle_inv_mass, model.particle_spring_neighbor,
-                     model.particle_spring_id, model.spring_rest_length, model.inputs]
+            limit = strain_limit_kernel(model.scalar, model.spring_incidence_shape)
+            table = [model.particle_count, model.particle_flags, model.particle_inv_mass, model.spring_arrays(),
+                     model.inputs]
             before, *jacobi = self._strain_buffers()
             wp.copy(before, state.particle_q)
             source = state.particle_q

@@ -8,31 +8,23 @@ from __future__ import annotations
 import warp as wp
 
 from ..kernels.contacts import project_contacts_kernel
-from ..kernels.forces import clamp_forces_kernel, eval_forces_kernel, spring_scatter_kernel
+from ..kernels.forces import clamp_forces_kernel, eval_forces_kernel
+from ..kernels.springs import spring_scatter_kernel
 from .model import Control, Model, State
 from .tracks import evaluate_input_tracks
 
 
 def force_inputs(model: Model, control: Control | None, features) -> list:
-    """The model and control arguments of every force-evaluating kernel, in ``particle_force``'s order:
-    masses, incidence table, spring rest lengths, stiffness and damping, the live-input table (gravity,
-    drag, limits), external force."""
-    return [
-        model.particle_mass,
-        model.particle_spring_neighbor,
-        model.particle_spring_id,
-        model.spring_rest_length,
-        model.spring_stiffness,
-        model.spring_damping,
-        model.inputs,
-        control.particle_force if features.external else None,
-    ]
+    """The model and control arguments of every force-evaluating kernel, as ``particle_force`` takes them:
+    masses, the element families' arrays, the live-input table (gravity, drag, limits), external force."""
+    return [model.particle_mass, model.elements, model.inputs, control.particle_force if features.external else None]
 
 
 def eval_forces(model: Model, state: State, control: Control | None, *, particle_f: wp.array | None = None) -> None:
-    """Write the total force [N] on every particle (gravity, drag, external, springs) to ``particle_f``.
+    """Write the total force [N] on every particle (gravity, drag, external, element families) to ``particle_f``.
 
-    Springs are gathered per particle or scattered per spring as ``model.spring_gather`` says.
+    Springs are gathered per particle or scattered per spring as ``model.spring_gather`` says; every other
+    family is gathered.
 
     Args:
         model: the model.
@@ -59,16 +51,7 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
         wp.launch(
             spring_scatter_kernel(model.scalar, model.spring_law),
             dim=(model.world_count, model.spring_count),
-            inputs=[
-                model.particle_count,
-                model.spring_indices,
-                model.spring_rest_length,
-                model.spring_stiffness,
-                model.spring_damping,
-                model.inputs,
-                state.particle_q,
-                state.particle_qd,
-            ],
+            inputs=[model.particle_count, model.spring_arrays(), model.inputs, state.particle_q, state.particle_qd],
             outputs=[out],
             device=model.device,
         )

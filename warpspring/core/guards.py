@@ -27,7 +27,8 @@ from ..kernels.guards import (
     GUARD_NONFINITE_PARTICLE,
     GUARD_STRAIN,
     GUARD_STRAIN_PARTICLE,
-    GUARD_STRAIN_SPRING,
+    GUARD_STRAIN_ELEMENT,
+    GUARD_STRAIN_FAMILY,
     GUARD_STOP_WORLD,
     GUARD_SUBSTEP,
     GUARD_TRIPPED,
@@ -36,6 +37,7 @@ from ..kernels.guards import (
 )
 from ..errors import ConfigError
 from ..kernels.linalg import reduce_lanes, reduce_launch_dim
+from .families import world_elastic_energy
 from .model import Model, State
 from .stepper import StepHook
 
@@ -120,10 +122,12 @@ class GuardReport:
         reason: "non-finite state", "strain" or "kinetic energy".
         substep: substep of the frame at whose check it was seen (the failure happened at or before it).
         particle: index of the offending particle (lowest-index non-finite one, or one holding the worst
-            spring).
-        spring: index of the most strained spring, or ``None``.
+            element).
+        spring: index of the most strained spring, or ``None`` (also when the worst element is not a spring).
         nonfinite_count: particles with a non-finite position or velocity at that check.
-        strain: largest spring strain at that check [-].
+        strain: largest element strain at that check [-] (springs: |d|/L - 1).
+        family: name of the family of the most strained element ("springs", ...), or ``None``.
+        element: index of the most strained element in its family, or ``None``.
         kinetic_energy: total kinetic energy at that check [J].
     """
 
@@ -135,6 +139,8 @@ class GuardReport:
     strain: float
     kinetic_energy: float
     nonfinite_count: int = 0
+    family: str | None = None
+    element: int | None = None
 
     def describe(self, model: Model, *, name_world: bool = True) -> str:
         """One clause naming what went wrong and where (the world too, in a model of several, unless
@@ -146,9 +152,9 @@ class GuardReport:
             return (f"{where}{self.nonfinite_count} of {model.particle_count} particles have non-finite positions or "
                     f"velocities (lowest index {self.particle})")
         if self.reason == "strain":
-            a, b = model.spring_indices.numpy()[self.spring]
-            return (f"{where}spring {self.spring} (particles {a}-{b}) stretched to {self.strain + 1:.3g}× its rest "
-                    "length (guard limit exceeded)")
+            family = next(f for f in model.families if f.name == self.family)
+            return (f"{where}{family.describe_element(model, self.element)} stretched to {self.strain + 1:.3g}× its "
+                    "rest length (guard limit exceeded)")
         return f"{where}the kinetic energy ran away to {self.kinetic_energy:.3g} J (guard limit exceeded)"
 
 
@@ -166,7 +172,7 @@ class Guard(StepHook):
         self._tiled = model.device.is_cuda
         self._lanes = reduce_lanes(model.particle_count, model.block_dim, self._tiled)
         device, worlds = model.device, model.world_count
-        status = np.tile([0, -1, NO_PARTICLE, NO_PARTICLE, NO_PARTICLE, 0], (worlds, 1))
+        status = np.tile([0, -1, NO_PARTICLE, NO_PARTICLE, NO_PARTICLE, 0, NO_PARTICLE], (worlds, 1))
         values = np.tile([-1.0, 0.0], (worlds, 1))
         assert status.shape[1] == GUARD_INTS and values.shape[1] == GUARD_FLOATS
         self._status_clear = wp.array(status, dtype=wp.int32, device=device)
@@ -244,17 +250,16 @@ class Guard(StepHook):
     def check(self, state: State, substep: int) -> None:
         """Launch the checks of ``state`` after ``substep`` (device only; capturable)."""
         model = self.model
-        measure, gather, locate, decide = guard_kernels(model.scalar, model.spring_max_degree, self._tiled)
-        table = [model.particle_spring_neighbor, model.particle_spring_id, model.spring_rest_length]
+        measure, gather, locate, decide = guard_kernels(model.scalar, model.family_specs(), self._tiled)
         worlds, device = model.world_count, model.device
         wp.launch(measure, dim=reduce_launch_dim(worlds, model.particle_count, self._lanes), block_dim=self._lanes,
-                  inputs=[model.particle_count, model.world_enabled, model.particle_mass, *table, state.particle_q,
-                          state.particle_qd],
+                  inputs=[model.particle_count, model.world_enabled, model.particle_mass, model.elements,
+                          state.particle_q, state.particle_qd],
                   outputs=[self._status, self._partials], device=device)
         wp.launch(gather, dim=worlds, inputs=[model.world_enabled, self._partials, self._status],
                   outputs=[self._values], device=device)
         wp.launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
-                  inputs=[model.particle_count, model.world_enabled, *table, state.particle_q],
+                  inputs=[model.particle_count, model.world_enabled, model.elements, state.particle_q],
                   outputs=[self._status, self._values], device=device)
         wp.launch(decide, dim=worlds, inputs=[substep, self._limits],
                   outputs=[model.world_enabled, self._status, self._values], device=device)
@@ -264,21 +269,26 @@ class Guard(StepHook):
         status = self._status.numpy()
         values = self._values.numpy()
         reasons = {GUARD_NONFINITE: "non-finite state", GUARD_STRAIN: "strain", GUARD_ENERGY: "kinetic energy"}
+        families = self.model.families
         found = []
         for world in np.flatnonzero(status[:, GUARD_TRIPPED]):
             row = status[world]
             reason = reasons[int(row[GUARD_TRIPPED])]
             particle = row[GUARD_NONFINITE_PARTICLE] if reason == "non-finite state" else row[GUARD_STRAIN_PARTICLE]
-            spring = row[GUARD_STRAIN_SPRING]
+            index = row[GUARD_STRAIN_FAMILY]
+            family = None if index == NO_PARTICLE or reason != "strain" else families[index].name
+            element = None if family is None else int(row[GUARD_STRAIN_ELEMENT])
             found.append(GuardReport(
                 world=int(world),
                 reason=reason,
                 substep=int(row[GUARD_SUBSTEP]),
                 particle=None if particle == NO_PARTICLE else int(particle),
-                spring=None if spring == NO_PARTICLE else int(spring),
+                spring=element if family == "springs" else None,
                 strain=float(values[world, GUARD_MAX_STRAIN]),
                 kinetic_energy=float(values[world, GUARD_KINETIC_ENERGY]),
                 nonfinite_count=int(row[GUARD_NONFINITE_COUNT]),
+                family=family,
+                element=element,
             ))
         return found
 
@@ -290,19 +300,15 @@ class Guard(StepHook):
 
 
 def energy_scales(model: Model) -> np.ndarray:
-    """Each world's energy scale [J], float64, shape [world_count]: initial kinetic + elastic energy + total
-    weight × (extent + 1 m), ≥ 1 µJ; the weight with the largest gravity the world has (now, or at any key
-    of its gravity track). Reads each device array once."""
+    """Each world's energy scale [J], float64, shape [world_count]: initial kinetic + elastic energy (every
+    family's) + total weight × (extent + 1 m), ≥ 1 µJ; the weight with the largest gravity the world has
+    (now, or at any key of its gravity track)."""
     worlds, n = model.world_count, model.particle_count
     q = model.particle_q.numpy().astype(np.float64).reshape(worlds, n, 3)
     qd = model.particle_qd.numpy().astype(np.float64).reshape(worlds, n, 3)
     mass = model.world_values("particle_mass")
     kinetic = 0.5 * np.sum(mass * np.sum(qd * qd, axis=2), axis=1)
-    elastic = np.zeros(worlds)
-    if model.spring_count:
-        pairs = model.spring_indices.numpy()
-        stretch = np.linalg.norm(q[:, pairs[:, 1]] - q[:, pairs[:, 0]], axis=2) - model.spring_rest_length.numpy()
-        elastic = 0.5 * np.sum(model.world_values("spring_stiffness") * stretch * stretch, axis=1)
+    elastic = world_elastic_energy(model)
     extent = np.ptp(q, axis=1).max(axis=1) if n else np.zeros(worlds)
     gravity = np.linalg.norm(model.world_values("gravity"), axis=1)
     for w in range(worlds):

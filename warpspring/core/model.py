@@ -9,11 +9,17 @@ import warp as wp
 
 from .. import checks
 from ..errors import ConfigError
-from ..kernels.forces import ForceFeatures, SpringLaw
+from ..kernels.families import elements as composed_elements
+from ..kernels.families import fill_elements
+from ..kernels.forces import ForceFeatures
+from ..kernels.springs import SpringLaw
+from ..kernels.families import Incidence, IncidenceShape
 from ..kernels.inputs import INPUT_COUNT, INPUTS
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import vec3_type
 from .kinematics import PinGroupTable, apply_kinematics
+from .bending import HingeFamily
+from .springs import SpringFamily
 from .tracks import Track, TrackTable, as_track, input_track
 
 #: The stabiliser thresholds that are live inputs (their names in ``kernels.inputs.INPUTS``).
@@ -200,10 +206,20 @@ class Model:
     spring_stiffness: wp.array2d  # ke [N/m], shape [1 or world_count, spring_count]
     spring_damping: wp.array2d  # kd [N·s/m], shape [1 or world_count, spring_count], axial damper
     spring_gather: bool  # evaluate springs per particle (gather, CUDA default) or per spring (scatter, CPU)
-    spring_max_degree: int  # most springs at one particle: the slots of the incidence table
-    particle_spring_neighbor: wp.array2d  # int32, shape [spring_max_degree, particle_count]: the other particle
-    #   of the particle's k-th spring; the particle itself past its last spring (ELL layout)
-    particle_spring_id: wp.array2d  # int32, same shape: the index of that spring
+    spring_max_degree: int  # most springs at one particle
+    spring_incidence: Incidence  # the springs at each particle: entries (spring, other particle), HYB layout
+    #   (kernels/families.py); padding entries (0, the particle itself)
+    spring_incidence_shape: IncidenceShape  # its ELL head width and whether it has a CSR tail
+
+    hinge_count: int
+    hinge_indices: wp.array  # wp.vec4i, shape [hinge_count]: shared edge x0 → x1, wings x2, x3 (kernels/bending.py)
+    hinge_rest_angle: wp.array  # θ0 [rad], shape [hinge_count] (every world)
+    hinge_stiffness: wp.array2d  # ke [N·m/rad], shape [1 or world_count, hinge_count]
+    hinge_damping: wp.array2d  # kd [N·m·s/rad], shape [1 or world_count, hinge_count]
+    hinge_incidence: Incidence  # the hinges at each particle: entries (hinge, role 0..3), HYB layout
+    hinge_incidence_shape: IncidenceShape
+
+    extra_families: tuple  # element families beyond springs and hinges (a user's), in kernel order
 
     tri_count: int
     tri_indices: wp.array  # int32, shape [tri_count, 3], global particle indices
@@ -231,6 +247,8 @@ class Model:
         self.revision = 0
         self.input_version = 0
         self.pin_groups = None
+        self.extra_families = ()
+        self.hinge_count = 0
         self.input_tracks = None
         self.inputs = wp.zeros((world_count, INPUT_COUNT), dtype=scalar, device=device)
         self.unit_step = wp.ones(1, dtype=wp.float64, device=device)
@@ -432,7 +450,8 @@ class Model:
           thresholds: [world_count]): written into each world's row of the input table, stopping any
           track of it; a value write (nothing compiles or re-captures, unless it switches gravity or drag on);
         * ``spring_stiffness`` [N/m] or ``spring_damping`` [N·s/m]: shape [world_count, spring_count], or
-          [spring_count] for one value per spring in every world; ``particle_mass`` [kg]: shape
+          [spring_count] for one value per spring in every world; ``hinge_stiffness`` [N·m/rad] and
+          ``hinge_damping`` [N·m·s/rad] likewise per hinge; ``particle_mass`` [kg]: shape
           [world_count, particle_count] or [particle_count]. One row for all worlds is stored once
           (the kernels broadcast it); a change between one row and one per world replaces the array (a
           structural change: the next frame re-captures).
@@ -466,6 +485,7 @@ class Model:
                 self._structure_changed()
             return
         columns = {"spring_stiffness": self.spring_count, "spring_damping": self.spring_count,
+                   "hinge_stiffness": self.hinge_count, "hinge_damping": self.hinge_count,
                    "particle_mass": self.particle_count}
         if name not in columns:
             raise ConfigError(f"there is no per-world parameter {name!r}; parameters: "
@@ -504,7 +524,8 @@ class Model:
         if name in INPUTS:
             slot, width = INPUTS[name]
             return self.inputs.numpy()[:, slot : slot + width].astype(np.float64)
-        if name not in ("spring_stiffness", "spring_damping", "particle_mass", "particle_inv_mass"):
+        if name not in ("spring_stiffness", "spring_damping", "hinge_stiffness", "hinge_damping", "particle_mass",
+                        "particle_inv_mass"):
             raise ConfigError(f"there is no per-world parameter {name!r}")
         values = getattr(self, name).numpy().astype(np.float64)
         return np.broadcast_to(values, (self.world_count, values.shape[1]))
@@ -604,14 +625,48 @@ class Model:
         """The spring force law (Hooke's, or biphasic and/or force-clamped by the stabilizers)."""
         return self._stabilizers.spring_law
 
+    @property
+    def families(self) -> tuple:
+        """The model's element families (:class:`~warpspring.core.families.ElementFamily`), in the order the
+        kernels sum them: springs, hinges (each when there are any), then :attr:`extra_families`."""
+        springs = (SpringFamily(self),) if self.spring_count else ()
+        hinges = (HingeFamily(self),) if self.hinge_count else ()
+        return springs + hinges + tuple(self.extra_families)
+
+    def family_specs(self, *, linear: bool = False) -> tuple:
+        """The kernel specs of :attr:`families` (what the kernels are compiled for); ``linear``: those of the
+        stability analysis."""
+        return tuple(family.spec(self, linear=linear) for family in self.families)
+
+    @property
+    def elements(self):
+        """The arrays of every element family as the one struct the kernels take (``kernels/families.py``);
+        rebuilt after a structural change."""
+        cached = getattr(self, "_elements_cache", None)
+        if cached is None or cached[0] != self.revision:
+            cached = (self.revision, self.element_arrays())
+            object.__setattr__(self, "_elements_cache", cached)
+        return cached[1]
+
+    def element_arrays(self, *, linear: bool = False, spring_stiffness: wp.array | None = None):
+        """A new struct of every family's arrays for the specs ``family_specs(linear=linear)``, with
+        ``spring_stiffness`` [N/m] replacing the springs' (the stability analysis's override)."""
+        chain = composed_elements(self.scalar, self.family_specs(linear=linear)).arrays()
+        arrays = [family.arrays(self, stiffness=spring_stiffness) if isinstance(family, SpringFamily)
+                  else family.arrays(self) for family in self.families]
+        return fill_elements(chain, arrays)
+
+    def spring_arrays(self):
+        """The spring family's struct (``kernels/springs.py``)."""
+        return SpringFamily(self).arrays(self)
+
     def force_features(self, control: Control | None) -> ForceFeatures:
         """The force terms a step of this model under ``control`` evaluates."""
         return ForceFeatures(
-            spring_slots=self.spring_max_degree if self.spring_count and self.spring_gather else 0,
+            families=self.family_specs(),
             gravity=self._gravity_on,
             drag=self._drag_on,
             external=control is not None and control.particle_force is not None,
-            spring_law=self.spring_law,
             clamp_particle_force=self._stabilizers.max_particle_force is not None,
         )
 
@@ -680,8 +735,11 @@ class Model:
         if self.pin_groups is not None:
             pins = f", {len(self.pin_groups.groups)} pin group(s)"
         worlds = f"{self.world_count} worlds of " if self.world_count > 1 else ""
+        hinges = f", {self.hinge_count} hinges" if self.hinge_count else ""
+        extra = "".join(f", {f.element_count} {f.name}" for f in self.extra_families)
         return (
-            f"{worlds}{self.particle_count} particles, {self.spring_count} springs, {self.tri_count} triangles{pins}, "
+            f"{worlds}{self.particle_count} particles, {self.spring_count} springs{hinges}{extra}, "
+            f"{self.tri_count} triangles{pins}, "
             f"colliders: {shapes} ({self.precision} on {self.device})"
         )
 
@@ -825,7 +883,7 @@ class Control:
                               f"({len(worlds)}, {n}, 3): one set per world); got shape {np.shape(positions)}")
         when = checks.number("pin target time", time)
         part = pins.slices[g]
-        kinematic, groups = pins.count, len(pins.groups)
+        kinematic = pins.count
         for k, w in enumerate(worlds):
             wp.copy(self.pin_targets.position, wp.array(values[k], dtype=wp.vec3d, device="cpu"),
                     dest_offset=w * kinematic + part.start, count=n)

@@ -71,6 +71,7 @@ class ImplicitEuler(Integrator):
         self._delta_qd = wp.zeros(n, dtype=vec3, device=device)
         self._diagonal_inverse = wp.zeros(n, dtype=mat33_type(model.scalar), device=device)
         self._r, self._z, self._p, self._a_p = (wp.zeros(n, dtype=vec3, device=device) for _ in range(4))
+        self._prescribed = wp.zeros(n, dtype=vec3, device=device)  # the driven pins' Δv (0 at free particles)
         grid = reduce_launch_dim(worlds, model.particle_count, self._lanes)
         self._partials = wp.zeros((worlds, grid[1], CG_SCALARS), dtype=wp.float64, device=device)
         self._scalars = wp.zeros((worlds, CG_SCALARS), dtype=wp.float64, device=device)
@@ -105,21 +106,23 @@ class ImplicitEuler(Integrator):
     def _kernels(self):
         model = self.model
         driven = model.pin_groups is not None and model.pin_groups.driven
-        return implicit_kernels(model.scalar, model.spring_max_degree, self._tiled, model.spring_law,
-                                model.drag_enabled, driven)
+        return implicit_kernels(model.scalar, model.family_specs(), self._tiled, model.drag_enabled, driven)
 
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         model = self.model
-        prepare, _, update = self._kernels()
+        prescribed, prepare, _, update = self._kernels()
         per_particle = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
         h = model.scalar(dt)
         eval_forces(model, state_in, control)
         # Driven pins first: where they are at t + h decides their Δv in the right-hand side.
         apply_kinematics(model, control, state_in, state_out.particle_q, state_out.particle_qd, dt)
+        if model.pin_groups is not None and model.pin_groups.driven:
+            wp.launch(prescribed, inputs=[model.particle_flags, state_in.particle_q, state_in.particle_qd,
+                                          state_out.particle_q, h], outputs=[self._prescribed], **per_particle)
         wp.launch(
             prepare,
-            inputs=[*self._model_inputs(), state_in.particle_q, state_in.particle_qd, state_in.particle_f, h,
-                    state_out.particle_q],
+            inputs=[model.particle_count, model.particle_flags, model.particle_mass, model.elements, model.inputs,
+                    state_in.particle_q, state_in.particle_qd, state_in.particle_f, h, self._prescribed],
             outputs=[self._rhs, self._diagonal_inverse],
             **per_particle,
         )
@@ -154,25 +157,11 @@ class ImplicitEuler(Integrator):
 
     # -- the CG solve of A Δv = b ------------------------------------------------------------------------
 
-    def _model_inputs(self) -> list:
-        model = self.model
-        return [
-            model.particle_count,
-            model.particle_flags,
-            model.particle_mass,
-            model.particle_spring_neighbor,
-            model.particle_spring_id,
-            model.spring_rest_length,
-            model.spring_stiffness,
-            model.spring_damping,
-            model.inputs,
-        ]
-
     def _solve(self, state: State, h) -> None:
         model = self.model
         worlds = model.world_count
         begin, start, update_solution, update_direction, condition = cg_kernels(model.scalar, self._tiled)
-        _, matvec, _ = self._kernels()
+        _, _, matvec, _ = self._kernels()
         reducing = dict(dim=reduce_launch_dim(worlds, model.particle_count, self._lanes), block_dim=self._lanes,
                         device=model.device)
         per_world = dict(dim=worlds, device=model.device)
@@ -188,7 +177,8 @@ class ImplicitEuler(Integrator):
                       outputs=[self._iteration, self._active, self._keep_going], **per_world)
 
         def product(p):  # a_p = A p and the partial sums of p·Ap, in the worlds still iterating
-            wp.launch(matvec, inputs=[*self._model_inputs(), state.particle_q, h, self._active, p],
+            wp.launch(matvec, inputs=[model.particle_count, model.particle_flags, model.particle_mass, model.elements,
+                                      model.inputs, state.particle_q, h, self._active, p],
                       outputs=[self._a_p, self._partials], **reducing)
             total(CG_PAP, 1)
 

@@ -1,0 +1,162 @@
+"""The hinge family: dihedral (angular) springs with angular dampers on the interior edges of a triangle
+mesh, plugged into every kernel through the hooks of ``families.py`` (the maths is in ``bending.py``).
+
+Hinge h joins particles (x0, x1, x2, x3) (shared edge x0 → x1, wings x2 and x3) with the energy
+½ ke wrap(θ - θ0)² and the force f_a = -(ke wrap(θ - θ0) + kd θ̇) ∇_a θ. Its stiffness matrix is the
+Gauss-Newton K = ke ∇θ ∇θᵀ (positive semi-definite; the ke (θ - θ0) ∇²θ term is dropped, exact at rest),
+its damping matrix D = kd ∇θ ∇θᵀ (exact). Incidence entries are (hinge, role of the particle: 0..3);
+padding entries have role -1 and contribute nothing. Hinges have no strain for the guards (a fold is not a
+tear). Worlds: stiffness and damping have one row for every world or one per world.
+"""
+
+import functools
+from dataclasses import dataclass
+
+import warp as wp
+
+from .bending import dihedral_funcs
+from .families import FamilyFuncs, Incidence, IncidenceShape
+from .kinematics import is_kinematic
+from .precision import mat33_type, vec3_type
+
+wp.set_module_options({"enable_backward": False})
+
+
+@functools.cache
+def hinge_arrays_type(scalar: type):
+    """The struct of the hinge family's arrays in one precision."""
+
+    @wp.struct
+    class HingeArrays:
+        indices: wp.array[wp.vec4i]  # [hinge_count]: x0, x1 (the shared edge), x2, x3 (the wings), per world
+        rest_angle: wp.array[scalar]  # θ0 [rad], [hinge_count]
+        stiffness: wp.array2d[scalar]  # ke [N·m/rad], [1 or world_count, hinge_count]
+        damping: wp.array2d[scalar]  # kd [N·m·s/rad], [1 or world_count, hinge_count]
+        incidence: Incidence  # entries (hinge, role 0..3); padding (0, -1)
+
+    return HingeArrays
+
+
+@dataclass(frozen=True)
+class HingeSpec:
+    """Compile-time switches of the hinge family: the shape of its incidence table."""
+
+    incidence: IncidenceShape
+
+    def funcs(self, scalar: type) -> FamilyFuncs:
+        return hinge_family_funcs(scalar, self)
+
+
+@functools.cache
+def hinge_family_funcs(scalar: type, spec: HingeSpec) -> FamilyFuncs:
+    """The family hooks of hinges (``families.py``) for one precision and spec."""
+    vec3 = vec3_type(scalar)
+    mat33 = mat33_type(scalar)
+    HingeArrays = hinge_arrays_type(scalar)
+    bending = dihedral_funcs(scalar)
+    angle_gradient = bending.dihedral_angle_gradient
+    gradient_of_role = bending.gradient_of_role
+    hinge_moment = bending.hinge_moment
+    head_slots, tail = spec.incidence
+
+    @wp.func
+    def hinge_force_on(
+        world: int, h: int, role: int, base: int, hinges: HingeArrays, particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+    ) -> vec3:
+        """Force [N] of hinge h on its particle ``role`` (0 for a padding entry, role -1)."""
+        if role < 0:
+            return vec3(scalar(0.0))
+        ids = hinges.indices[h]
+        theta, g0, g1, g2, g3 = angle_gradient(particle_q[base + ids[0]], particle_q[base + ids[1]],
+                                               particle_q[base + ids[2]], particle_q[base + ids[3]])
+        moment = hinge_moment(theta, g0, g1, g2, g3, particle_qd[base + ids[0]], particle_qd[base + ids[1]],
+                              particle_qd[base + ids[2]], particle_qd[base + ids[3]], hinges.rest_angle[h],
+                              hinges.stiffness[wp.min(world, hinges.stiffness.shape[0] - 1), h],
+                              hinges.damping[wp.min(world, hinges.damping.shape[0] - 1), h])
+        return -moment * gradient_of_role(role, g0, g1, g2, g3)
+
+    @wp.func
+    def force(
+        world: int, i: int, base: int, xi: vec3, vi: vec3, hinges: HingeArrays, inputs: wp.array2d[scalar],
+        particle_q: wp.array[vec3], particle_qd: wp.array[vec3],
+    ) -> vec3:
+        """Sum of the forces [N] of the hinges at particle i of ``world``."""
+        incidence = hinges.incidence
+        f = vec3(scalar(0.0))
+        for k in range(wp.static(head_slots)):
+            f += hinge_force_on(world, incidence.head_element[k, i], incidence.head_local[k, i], base, hinges,
+                                particle_q, particle_qd)
+        if wp.static(tail):
+            for t in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
+                f += hinge_force_on(world, incidence.tail_element[t], incidence.tail_local[t], base, hinges,
+                                    particle_q, particle_qd)
+        return f
+
+    @wp.func
+    def operand(b: int, particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool) -> vec3:
+        """x_b, or 0 for a kinematic particle when ``free_only`` (a row exists only for a free particle, so its
+        own entry is never dropped)."""
+        value = x[b]
+        if free_only:
+            value = wp.where(is_kinematic(particle_flags[b]), vec3(scalar(0.0)), value)
+        return value
+
+    @wp.func
+    def product_entry(
+        world: int, h: int, role: int, base: int, hinges: HingeArrays, particle_q: wp.array[vec3],
+        particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool, alpha: scalar, beta: scalar,
+    ):
+        """(α ke + β kd) ∇_role θ Σ_b ∇_b θ · x_b for hinge h, and its diagonal block."""
+        if role < 0:
+            return vec3(scalar(0.0)), mat33(scalar(0.0))
+        ids = hinges.indices[h]
+        theta, g0, g1, g2, g3 = angle_gradient(particle_q[base + ids[0]], particle_q[base + ids[1]],
+                                               particle_q[base + ids[2]], particle_q[base + ids[3]])
+        k = alpha * hinges.stiffness[wp.min(world, hinges.stiffness.shape[0] - 1), h] + beta * hinges.damping[
+            wp.min(world, hinges.damping.shape[0] - 1), h]
+        ga = gradient_of_role(role, g0, g1, g2, g3)
+        rate = wp.dot(g0, operand(base + ids[0], particle_flags, x, free_only))
+        rate += wp.dot(g1, operand(base + ids[1], particle_flags, x, free_only))
+        rate += wp.dot(g2, operand(base + ids[2], particle_flags, x, free_only))
+        rate += wp.dot(g3, operand(base + ids[3], particle_flags, x, free_only))
+        return (k * rate) * ga, k * wp.outer(ga, ga)
+
+    @wp.func
+    def product(
+        world: int, i: int, base: int, xi: vec3, hinges: HingeArrays, inputs: wp.array2d[scalar],
+        particle_q: wp.array[vec3], particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool,
+        alpha: scalar, beta: scalar,
+    ):
+        """Row i of (α K + β D) x over the hinges at particle i, and its diagonal block."""
+        incidence = hinges.incidence
+        y = vec3(scalar(0.0))
+        diagonal = mat33(scalar(0.0))
+        for k in range(wp.static(head_slots)):
+            yk, block = product_entry(world, incidence.head_element[k, i], incidence.head_local[k, i], base, hinges,
+                                      particle_q, particle_flags, x, free_only, alpha, beta)
+            y += yk
+            diagonal += block
+        if wp.static(tail):
+            for t in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
+                yk, block = product_entry(world, incidence.tail_element[t], incidence.tail_local[t], base, hinges,
+                                          particle_q, particle_flags, x, free_only, alpha, beta)
+                y += yk
+                diagonal += block
+        return y, diagonal
+
+    @wp.func
+    def strain(world: int, i: int, base: int, xi: vec3, hinges: HingeArrays, particle_q: wp.array[vec3]):
+        """Hinges have no strain for the guards."""
+        return wp.float64(-1.0), -1
+
+    @wp.func
+    def energy(world: int, h: int, base: int, hinges: HingeArrays, inputs: wp.array2d[scalar],
+               particle_q: wp.array[vec3]) -> scalar:
+        """Elastic energy [J] of hinge h in ``world``."""
+        ids = hinges.indices[h]
+        return bending.hinge_energy(particle_q[base + ids[0]], particle_q[base + ids[1]], particle_q[base + ids[2]],
+                                    particle_q[base + ids[3]], hinges.rest_angle[h],
+                                    hinges.stiffness[wp.min(world, hinges.stiffness.shape[0] - 1), h])
+
+    return FamilyFuncs(HingeArrays, force, product, strain, energy)

@@ -1,0 +1,366 @@
+"""The spring family: Hooke's springs with axial dampers (optionally biphasic or force-clamped) between
+two particles, plugged into every kernel through the hooks of ``families.py``.
+
+Per spring (i, j), d = xj - xi: the force on i is (T(|d|) + kd (vj - vi)·d̂) d̂ with T = ke (|d| - L)
+(``spring_funcs``). Its incidence entries are (spring, other particle); padding entries point a particle at
+itself, a coincident pair whose force, stiffness and strain are exactly zero (or "none"), so the head's
+unrolled slot loop needs no branch. The stiffness matrix block Kₛ = ∂fᵢ/∂xⱼ is clamped positive
+semi-definite (the transverse term of a compressed spring dropped), so K ⪰ 0 as implicit Euler and power
+iteration need.
+
+Worlds: topology and rest lengths are shared; stiffness and damping have one row for every world or one
+row per world, read at row ``min(world, rows - 1)``.
+"""
+
+import functools
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import warp as wp
+
+from .families import FORCE_KERNEL_OPTIONS, FamilyFuncs, Incidence, IncidenceShape
+from .inputs import INPUT_BIPHASIC_RATIO, INPUT_BIPHASIC_STRAIN, INPUT_MAX_SPRING_FORCE
+from .kinematics import is_kinematic
+from .precision import mat33_type, vec3_type
+
+wp.set_module_options({"enable_backward": False})
+
+#: Particles closer than this [m] are coincident: their spring has no direction and exerts no force.
+COINCIDENT_DISTANCE = 1.0e-12
+
+class SpringLaw(NamedTuple):
+    """Which parts of the spring force law beyond Hooke's spring with an axial damper a kernel compiles.
+
+    Only the switches live here; the values (knee strain, stiffness ratio, force limit) are live inputs
+    read from the input table (``inputs.py``), so changing them compiles nothing.
+
+    Attributes:
+        biphasic: springs stiffen by ``INPUT_BIPHASIC_RATIO`` beyond the strain ``INPUT_BIPHASIC_STRAIN``.
+        clamp_force: a spring's force magnitude, elastic plus damping, is clamped to ``INPUT_MAX_SPRING_FORCE``.
+    """
+
+    biphasic: bool = False
+    clamp_force: bool = False
+
+
+#: The plain law: f = (ke (|d| - L) + kd (vj - vi)·d̂) d̂.
+HOOKE = SpringLaw()
+
+
+@functools.cache
+def spring_law_type(scalar: type):
+    """The struct of a spring law's values, read once per thread from the input table."""
+
+    @wp.struct
+    class SpringLawValues:
+        knee_strain: scalar  # strain beyond which a biphasic spring stiffens [-]
+        extra_stiffness: scalar  # stiffness ratio beyond the knee, minus one [-]
+        max_force: scalar  # largest magnitude of a spring's force [N]
+
+    return SpringLawValues
+
+
+@functools.cache
+def spring_funcs(scalar: type, law: SpringLaw = HOOKE):
+    """(spring_law_values, spring_force, spring_energy, spring_stiffness_matrix) of one precision and law.
+
+    ``spring_law_values(inputs, world)`` loads the law's values from the input table (only those the law uses);
+    the other three take them as their last argument.
+    """
+    vec3 = vec3_type(scalar)
+    mat33 = mat33_type(scalar)
+    SpringLawValues = spring_law_type(scalar)
+
+    @wp.func
+    def spring_law_values(inputs: wp.array2d[scalar], world: int) -> SpringLawValues:
+        """The law's values from a world's row of the input table."""
+        values = SpringLawValues()
+        if wp.static(law.biphasic):
+            values.knee_strain = inputs[world, INPUT_BIPHASIC_STRAIN]
+            values.extra_stiffness = inputs[world, INPUT_BIPHASIC_RATIO] - scalar(1.0)
+        if wp.static(law.clamp_force):
+            values.max_force = inputs[world, INPUT_MAX_SPRING_FORCE]
+        return values
+
+    @wp.func
+    def excess(length: scalar, rest: scalar, values: SpringLawValues) -> scalar:
+        """Stretch beyond the biphasic knee [m] (0 below it)."""
+        return wp.max(length - rest * (scalar(1.0) + values.knee_strain), scalar(0.0))
+
+    @wp.func
+    def tension(length: scalar, rest: scalar, ke: scalar, values: SpringLawValues) -> scalar:
+        """Elastic tension T(|d|) [N], positive when stretched."""
+        t = ke * (length - rest)
+        if wp.static(law.biphasic):
+            t += values.extra_stiffness * ke * excess(length, rest, values)
+        return t
+
+    @wp.func
+    def tension_slope(length: scalar, rest: scalar, ke: scalar, values: SpringLawValues) -> scalar:
+        """dT/d|d| [N/m]."""
+        if wp.static(law.biphasic):
+            stiffer = ke * (scalar(1.0) + values.extra_stiffness)
+            return wp.where(excess(length, rest, values) > scalar(0.0), stiffer, ke)
+        return ke
+
+    @wp.func
+    def spring_force(
+        xi: vec3, xj: vec3, vi: vec3, vj: vec3, rest: scalar, ke: scalar, kd: scalar, values: SpringLawValues
+    ) -> vec3:
+        """Force [N] on particle i of the spring (i, j): (T(|d|) + kd (vj - vi)·d̂) d̂, d = xj - xi, with
+        T = ke (|d| - L) for Hooke's law (see ``SpringLaw``); its magnitude clamped if the law says so.
+
+        Coincident particles (|d| below ``COINCIDENT_DISTANCE``) give a zero force, never NaN.
+        """
+        d = xj - xi
+        length = wp.length(d)
+        # Branch-free guard (the gather's unrolled slots stay free of branches): n = 0 when coincident.
+        n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
+        magnitude = tension(length, rest, ke, values) + kd * wp.dot(vj - vi, n)
+        if wp.static(law.clamp_force):
+            magnitude = wp.clamp(magnitude, -values.max_force, values.max_force)
+        return n * magnitude
+
+    @wp.func
+    def spring_stiffness_matrix(
+        xi: vec3, xj: vec3, rest: scalar, ke: scalar, clamp: bool, values: SpringLawValues
+    ) -> mat33:
+        """∂f_i/∂x_j [N/m] of the spring (i, j): T'(|d|) d̂d̂ᵀ + (T/|d|)(I - d̂d̂ᵀ), for Hooke's law
+        ke (d̂d̂ᵀ + (1 - L/|d|)(I - d̂d̂ᵀ)); ∂f_i/∂x_i is its negative. (The force clamp is not
+        differentiated: implicit integration linearises the unclamped law.)
+
+        With ``clamp`` the transverse term of a compressed spring (|d| < L, negative) is dropped, so the
+        matrix stays positive semi-definite, as implicit integration needs. Coincident particles give 0.
+        """
+        d = xj - xi
+        length = wp.length(d)
+        inv_length = wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
+        n = d * inv_length
+        nn = wp.outer(n, n)
+        transverse = tension(length, rest, ke, values) * inv_length
+        if clamp:
+            transverse = wp.max(transverse, scalar(0.0))
+        axial = wp.where(
+            length > scalar(COINCIDENT_DISTANCE), tension_slope(length, rest, ke, values), scalar(0.0)
+        )
+        return axial * nn + transverse * (wp.identity(n=3, dtype=scalar) - nn)
+
+    @wp.func
+    def spring_energy(xi: vec3, xj: vec3, rest: scalar, ke: scalar, values: SpringLawValues) -> scalar:
+        """Elastic energy [J] of the spring (i, j): ∫ T = ½ ke (|d| - L)² (+ the biphasic excess term)."""
+        length = wp.length(xj - xi)
+        stretch = length - rest
+        energy = scalar(0.5) * ke * stretch * stretch
+        if wp.static(law.biphasic):
+            e = excess(length, rest, values)
+            energy += scalar(0.5) * values.extra_stiffness * ke * e * e
+        return energy
+
+    return spring_law_values, spring_force, spring_energy, spring_stiffness_matrix
+
+
+
+
+@functools.cache
+def spring_arrays_type(scalar: type):
+    """The struct of the spring family's arrays in one precision."""
+
+    @wp.struct
+    class SpringArrays:
+        indices: wp.array[wp.vec2i]  # [spring_count]: the two particles of each spring (per-world indices)
+        rest_length: wp.array[scalar]  # [m], [spring_count]
+        stiffness: wp.array2d[scalar]  # ke [N/m], [1 or world_count, spring_count]
+        damping: wp.array2d[scalar]  # kd [N·s/m], [1 or world_count, spring_count]
+        incidence: Incidence  # entries (spring, other particle); padding (0, the particle itself)
+
+    return SpringArrays
+
+
+@dataclass(frozen=True)
+class SpringSpec:
+    """Compile-time switches of the spring family.
+
+    Attributes:
+        incidence: shape of the springs' incidence table.
+        law: the force law's optional parts.
+        gathered: the force hook sums the springs at each particle; False when they are scattered per
+            spring instead (``spring_scatter_kernel``, the CPU default), so the hook adds nothing.
+    """
+
+    incidence: IncidenceShape
+    law: SpringLaw = HOOKE
+    gathered: bool = True
+
+    def funcs(self, scalar: type) -> FamilyFuncs:
+        return spring_family_funcs(scalar, self)
+
+
+@functools.cache
+def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
+    """The family hooks of springs (``families.py``) for one precision and spec."""
+    vec3 = vec3_type(scalar)
+    mat33 = mat33_type(scalar)
+    SpringArrays = spring_arrays_type(scalar)
+    spring_law_values, spring_force, spring_energy, spring_stiffness_matrix = spring_funcs(scalar, spec.law)
+    SpringLawValues = spring_law_type(scalar)
+    head_slots, tail = spec.incidence
+
+    @wp.func
+    def spring_block(
+        xi: vec3, xj: vec3, rest: scalar, ke: scalar, kd: scalar, alpha: scalar, beta: scalar,
+        values: SpringLawValues,
+    ) -> mat33:
+        """α Kₛ + β kd d̂d̂ᵀ [N/m · α]: the coupling block of the spring (i, j) in α K + β D."""
+        d = xj - xi
+        length = wp.length(d)
+        n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
+        return (beta * kd) * wp.outer(n, n) + alpha * spring_stiffness_matrix(xi, xj, rest, ke, True, values)
+
+    @wp.func
+    def force(
+        world: int, i: int, base: int, xi: vec3, vi: vec3, springs: SpringArrays, inputs: wp.array2d[scalar],
+        particle_q: wp.array[vec3], particle_qd: wp.array[vec3],
+    ) -> vec3:
+        """Sum of the forces [N] of the springs at particle i of ``world``."""
+        f = vec3(scalar(0.0))
+        if wp.static(spec.gathered):
+            values = spring_law_values(inputs, world)
+            stiffness_row = wp.min(world, springs.stiffness.shape[0] - 1)
+            damping_row = wp.min(world, springs.damping.shape[0] - 1)
+            incidence = springs.incidence
+            for k in range(wp.static(head_slots)):
+                j = base + incidence.head_local[k, i]
+                s = incidence.head_element[k, i]
+                f += spring_force(xi, particle_q[j], vi, particle_qd[j], springs.rest_length[s],
+                                  springs.stiffness[stiffness_row, s], springs.damping[damping_row, s], values)
+            if wp.static(tail):
+                for t in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
+                    j = base + incidence.tail_local[t]
+                    s = incidence.tail_element[t]
+                    f += spring_force(xi, particle_q[j], vi, particle_qd[j], springs.rest_length[s],
+                                      springs.stiffness[stiffness_row, s], springs.damping[damping_row, s], values)
+        return f
+
+    @wp.func
+    def product_entry(
+        world: int, i: int, base: int, xi: vec3, xi_operand: vec3, j_local: int, s: int, springs: SpringArrays,
+        stiffness_row: int, damping_row: int, values: SpringLawValues, particle_q: wp.array[vec3],
+        particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool, alpha: scalar, beta: scalar,
+    ):
+        j = base + j_local
+        block = spring_block(xi, particle_q[j], springs.rest_length[s], springs.stiffness[stiffness_row, s],
+                             springs.damping[damping_row, s], alpha, beta, values)
+        xj = x[j]
+        if free_only:
+            xj = wp.where(is_kinematic(particle_flags[j]), vec3(scalar(0.0)), xj)
+        return block * (xi_operand - xj), block
+
+    @wp.func
+    def product(
+        world: int, i: int, base: int, xi: vec3, springs: SpringArrays, inputs: wp.array2d[scalar],
+        particle_q: wp.array[vec3], particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool,
+        alpha: scalar, beta: scalar,
+    ):
+        """Row i of (α K + β D) x over the springs at particle i, and its diagonal block."""
+        values = spring_law_values(inputs, world)
+        stiffness_row = wp.min(world, springs.stiffness.shape[0] - 1)
+        damping_row = wp.min(world, springs.damping.shape[0] - 1)
+        incidence = springs.incidence
+        xi_operand = x[base + i]
+        y = vec3(scalar(0.0))
+        diagonal = mat33(scalar(0.0))
+        for k in range(wp.static(head_slots)):
+            yk, block = product_entry(world, i, base, xi, xi_operand, incidence.head_local[k, i],
+                                      incidence.head_element[k, i], springs, stiffness_row, damping_row, values,
+                                      particle_q, particle_flags, x, free_only, alpha, beta)
+            y += yk
+            diagonal += block
+        if wp.static(tail):
+            for t in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
+                yk, block = product_entry(world, i, base, xi, xi_operand, incidence.tail_local[t],
+                                          incidence.tail_element[t], springs, stiffness_row, damping_row, values,
+                                          particle_q, particle_flags, x, free_only, alpha, beta)
+                y += yk
+                diagonal += block
+        return y, diagonal
+
+    @wp.func
+    def spring_strain(i: int, j: int, xi: vec3, xj: vec3, rest: scalar) -> wp.float64:
+        """|d|/L - 1 of the spring (i, j); -1 for a padding entry (j = i) or a zero rest length."""
+        if j == i or rest <= scalar(0.0):
+            return wp.float64(-1.0)
+        return wp.float64(wp.length(xj - xi) / rest) - wp.float64(1.0)
+
+    @wp.func
+    def strain(world: int, i: int, base: int, xi: vec3, springs: SpringArrays, particle_q: wp.array[vec3]):
+        """The largest strain |d|/L - 1 of the springs at particle i and the smallest spring holding it."""
+        incidence = springs.incidence
+        worst = wp.float64(-1.0)
+        element = int(-1)
+        for k in range(wp.static(head_slots)):
+            j = incidence.head_local[k, i]
+            s = incidence.head_element[k, i]
+            e = spring_strain(i, j, xi, particle_q[base + j], springs.rest_length[s])
+            if e > worst or (e == worst and e >= wp.float64(0.0) and s < element):
+                worst = e
+                element = s
+        if wp.static(tail):
+            for t in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
+                j = incidence.tail_local[t]
+                s = incidence.tail_element[t]
+                e = spring_strain(i, j, xi, particle_q[base + j], springs.rest_length[s])
+                if e > worst or (e == worst and e >= wp.float64(0.0) and s < element):
+                    worst = e
+                    element = s
+        return worst, wp.where(worst > wp.float64(-1.0), element, -1)
+
+    @wp.func
+    def energy(world: int, s: int, base: int, springs: SpringArrays, inputs: wp.array2d[scalar],
+               particle_q: wp.array[vec3]) -> scalar:
+        """Elastic energy [J] of spring s in ``world``."""
+        ends = springs.indices[s]
+        return spring_energy(particle_q[base + ends[0]], particle_q[base + ends[1]], springs.rest_length[s],
+                             springs.stiffness[wp.min(world, springs.stiffness.shape[0] - 1), s],
+                             spring_law_values(inputs, world))
+
+    return FamilyFuncs(SpringArrays, force, product, strain, energy)
+
+
+@functools.cache
+def spring_scatter_kernel(scalar: type, law: SpringLaw):
+    """Kernel adding every spring's force to its two particles (one thread per spring of every world).
+
+    Each spring is evaluated once, but its two ends are written with atomic adds: on the CPU, where Warp
+    runs a kernel's threads in order, the sums are deterministic; it is the CPU's default (``finalize``).
+    """
+    vec3 = vec3_type(scalar)
+    SpringArrays = spring_arrays_type(scalar)
+    spring_law_values, spring_force, _, _ = spring_funcs(scalar, law)
+
+    @wp.kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
+    def scatter_springs(
+        # Model:
+        particle_count: int,
+        springs: SpringArrays,
+        inputs: wp.array2d[scalar],
+        # State in:
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+        # In/out:
+        particle_f_in_out: wp.array[vec3],
+    ):
+        world, s = wp.tid()
+        base = world * particle_count
+        ends = springs.indices[s]
+        i = base + ends[0]
+        j = base + ends[1]
+        f = spring_force(
+            particle_q[i], particle_q[j], particle_qd[i], particle_qd[j], springs.rest_length[s],
+            springs.stiffness[wp.min(world, springs.stiffness.shape[0] - 1), s],
+            springs.damping[wp.min(world, springs.damping.shape[0] - 1), s],
+            spring_law_values(inputs, world),
+        )
+        wp.atomic_add(particle_f_in_out, i, f)
+        wp.atomic_sub(particle_f_in_out, j, f)
+
+    return scatter_springs
