@@ -1,0 +1,284 @@
+"""Cloth materials in physical units, mapped to spring and hinge parameters that do not depend on resolution.
+
+A :class:`ClothMaterial` states what a fabric is (membrane stiffness E·t and G·t [N/m], bending stiffness
+D [N·m], areal density [kg/m²]); the functions here turn it into per-spring stiffness ke [N/m] and damping
+kd [N·s/m], per-hinge stiffness k_θ [N·m/rad] and damping [N·m·s/rad], and lumped particle masses [kg],
+so that a cloth of 16² and of 128² particles stores the same energy for the same deformation. All are
+vectorised NumPy functions of the rest geometry (float64 in, float64 out).
+
+Conventions: small-strain energy density W = ½ vᵀ C v [J/m²] with v = (ε_xx, ε_yy, γ_xy = 2ε_xy) and C in
+N/m; an affine strain ε stretches a spring of rest length L along the unit vector n by L·(n·ε·n) to first
+order, storing ½ k L² (n·ε·n)². A hinge stores ½ k_θ (θ - θ₀)², θ its dihedral angle (0 when flat).
+
+Damping is a Kelvin-Voigt viscosity proportional to the stiffness: the membrane's viscous stress is
+τ C ε̇ with the retardation time τ = stretch_damping / stretch, so a spring gets kd = τ·ke (the viscous
+modulus along the warp is then exactly ``stretch_damping``), and a hinge gets kd_θ = (bending_damping /
+bending)·k_θ. A mode of angular frequency ω is then damped by ζ = τω/2 at any resolution.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import NamedTuple
+
+import numpy as np
+
+from .. import checks
+from ..errors import ConfigError
+
+#: Poisson's ratio of a network of edge springs built by :func:`edge_springs` (Van Gelder's rule).
+MESH_POISSON_RATIO = 1.0 / 3.0
+
+_UNITS = {
+    "stretch": "N/m",
+    "shear": "N/m",
+    "bending": "N·m",
+    "density": "kg/m²",
+    "stretch_damping": "N·s/m",
+    "bending_damping": "N·m·s",
+}
+
+
+@dataclass(frozen=True, kw_only=True)
+class ClothMaterial:
+    """A thin sheet's elastic, viscous and inertial properties per unit area, along its warp/weft axes.
+
+    Attributes:
+        stretch: membrane Young's modulus times thickness E·t [N/m], > 0: the force per unit width per unit
+            strain of a strip pulled along the warp (or weft) and free to contract sideways.
+        shear: in-plane shear modulus times thickness G·t [N/m], > 0 (warp-weft shear, "trellising").
+        bending: bending stiffness per unit width D [N·m], > 0 (E t³ / 12(1-ν²) for an elastic plate): a
+            cylinder of curvature κ stores ½ D κ² per unit area.
+        density: areal density [kg/m²], > 0.
+        stretch_damping: membrane viscosity [N·s/m], ≥ 0: the viscous counterpart of ``stretch``.
+        bending_damping: bending viscosity [N·m·s], ≥ 0: the viscous counterpart of ``bending``.
+    """
+
+    stretch: float
+    shear: float
+    bending: float
+    density: float
+    stretch_damping: float = 0.0
+    bending_damping: float = 0.0
+
+    def __post_init__(self):
+        for f in fields(self):
+            check = checks.non_negative if f.name.endswith("_damping") else checks.positive
+            value = check(f"ClothMaterial.{f.name} [{_UNITS[f.name]}]", getattr(self, f.name))
+            object.__setattr__(self, f.name, value)
+
+
+# Presets. KES (Kawabata) units convert as 1 gf·cm²/cm = 9.81e-5 N·m (bending B), 1 gf/(cm·deg) = 56.2 N/m
+# (shear G), and a strain EMT at 500 gf/cm = 490 N/m gives the secant E·t ≈ 490 N/m / EMT. Woven fabrics
+# are non-linear (soft at first, stiffening as the crimp straightens): these are secant values to 500 gf/cm.
+#: Cotton shirting, ~130 g/m²: representative KES values (B ≈ 0.05 gf·cm²/cm, G ≈ 0.9 gf/(cm·deg),
+#: EMT ≈ 10 %).
+COTTON = ClothMaterial(stretch=5.0e3, shear=50.0, bending=5.0e-6, density=0.13)
+#: A light silk-like woven (charmeuse, ~16 momme ≈ 70 g/m²): representative (B ≈ 0.01 gf·cm²/cm,
+#: G ≈ 0.35 gf/(cm·deg)).
+SILK = ClothMaterial(stretch=2.0e3, shear=20.0, bending=1.0e-6, density=0.07)
+#: Denim, 12 oz/yd² ≈ 0.41 kg/m²: KES of six denims in Hindawi J. Textiles 2016 (art. 4614168, table 5):
+#: B = 0.14-0.23 gf·cm²/cm, G = 1.5-3.4 gf/(cm·deg), EMT = 4.7-5.7 %.
+DENIM = ClothMaterial(stretch=1.0e4, shear=120.0, bending=2.0e-5, density=0.41)
+#: Natural-rubber sheet 1 mm thick: E = 1.5 MPa, ν = 0.5, 930 kg/m³ (handbook values): E·t = 1.5e3 N/m,
+#: G·t = E·t / 2(1+ν), D = E t³ / 12(1-ν²). Isotropic: on a grid it keeps E and G but gets ν ≈ 0.30.
+RUBBER_SHEET = ClothMaterial(stretch=1.5e3, shear=5.0e2, bending=1.5e-3 / 9.0, density=0.93)
+#: The presets by name (for scene files and the command line).
+PRESETS = {"cotton": COTTON, "silk": SILK, "denim": DENIM, "rubber_sheet": RUBBER_SHEET}
+
+
+class GridSprings(NamedTuple):
+    """Spring parameters of a regular cloth grid (:func:`grid_springs`)."""
+
+    structural_stiffness: float  # [N/m], springs to the 4-neighbours
+    shear_stiffness: float  # [N/m], springs along both diagonals of each cell
+    structural_damping: float  # [N·s/m]
+    shear_damping: float  # [N·s/m]
+
+
+def grid_springs(material: ClothMaterial) -> GridSprings:
+    """Structural and shear spring parameters of a square grid made of ``material``.
+
+    A square lattice with structural springs k_s (length a) and springs k_d along both cell diagonals
+    (length a√2) stores, per cell of area a² under an affine strain (its exact small-strain response: every
+    node is a centre of symmetry),
+    W = ½(k_s + k_d)(ε_xx² + ε_yy²) + k_d ε_xx ε_yy + ½ k_d γ², i.e. C11 = C22 = k_s + k_d and
+    C12 = C66 = k_d in N/m, whatever the spacing a. Matching G·t = C66 and the uniaxial-stress modulus
+    E·t = C11 - C12²/C11 gives::
+
+        k_d = shear,    k_s = ½ (stretch + √(stretch² + 4 shear²)) - shear
+
+    k_s > 0 for every positive pair, so ``shear`` > ``stretch`` needs no clamp. Central springs obey the
+    Cauchy relation C12 = C66, so Poisson's ratio is not free: ν = k_d / (k_s + k_d) (≈ shear/stretch ≈ 0.01
+    for woven cloth; 1/3 with k_s = 2 k_d, the only isotropic lattice, at shear = 3/8 stretch; → 1 as
+    stretch/shear → 0).
+
+    Boundary: a structural spring on the grid's outer rows and columns spans half a cell; giving it half
+    the returned values makes the total stiffness exact (with full values the sheet's structural
+    stiffness k_s is too high by 1/(n-1): 7 % at 16², 1.6 % at 64²). Diagonals need no correction.
+
+    Bending is not a spring here: use dihedral hinges on the grid's triangles (:func:`hinge_parameters`)
+    and no skip-one bend springs. Masses: :func:`grid_masses`.
+
+    Returns:
+        :class:`GridSprings`; damping kd = (stretch_damping / stretch) · ke (see the module docstring).
+    """
+    k_shear = material.shear
+    k_structural = 0.5 * (material.stretch + math.hypot(material.stretch, 2.0 * material.shear)) - k_shear
+    tau = material.stretch_damping / material.stretch
+    return GridSprings(k_structural, k_shear, tau * k_structural, tau * k_shear)
+
+
+def grid_masses(material: ClothMaterial, nx: int, ny: int, spacing: float) -> np.ndarray:
+    """Particle masses of an nx × ny grid with ``spacing`` [m]: density × the particle's dual cell.
+
+    Interior particles carry a², edge particles a²/2, corners a²/4 (symmetric, unlike the 1/3-of-triangles
+    rule of :func:`lumped_masses` on the grid's triangulation, which weighs two corners twice the others).
+
+    Returns:
+        Masses [kg], shape [ny·nx], index r·nx + c (row r, column c), summing to density·(nx-1)(ny-1)a².
+    """
+    nx, ny = checks.count("nx", nx, minimum=2), checks.count("ny", ny, minimum=2)
+    spacing = checks.positive("spacing", spacing)
+    wx, wy = np.ones(nx), np.ones(ny)
+    wx[[0, -1]] = wy[[0, -1]] = 0.5
+    return (material.density * spacing**2 * np.outer(wy, wx)).ravel()
+
+
+def edge_springs(material: ClothMaterial, vertices, faces, edges) -> tuple[np.ndarray, np.ndarray]:
+    """Edge-spring parameters of a triangle mesh by Van Gelder's rule (Van Gelder 1998, "Approximate
+    simulation of elastic membranes by triangulated spring meshes", J. Graphics Tools 3(2)).
+
+    Each triangle T gives each of its edges e the stiffness E·t·A_T / |e|², summed over the triangles::
+
+        k_e = stretch · Σ_{T ∋ e} A_T / |e|²
+
+    Derivation of the constant: the three springs of an equilateral triangle (side L, area A) store
+    ½ k L² Σ_i (n_i·ε·n_i)² = ½ k L² (3/8)((tr ε)² + 2 ε:ε) (the directions are 120° apart), an isotropic
+    sheet with Lamé moduli λ = μ = 3kL²/8A, hence ν = λ/(λ+2μ) = 1/3 and E·t = 8μ/3 = k L²/A: the
+    constant is exactly 1. A boundary edge (one triangle) gets its triangle's share only.
+
+    An edge network has one modulus: ν = 1/3 and G·t = 3/8 · stretch whatever ``shear`` says (woven cloth,
+    G ≪ E, shears far too stiffly). E·t = stretch is kept because stretch is what a viewer sees. The rule is
+    exact on equilateral triangles; on others the affine energy is exact only on average over
+    orientations, and the network relaxes non-affinely (softer): see tests/test_material.py for measured
+    moduli.
+
+    Args:
+        vertices: rest positions [m], shape [v, 3].
+        faces: vertex indices of the triangles, shape [t, 3].
+        edges: vertex pairs of the springs, shape [e, 2], each an edge of at least one face, no duplicates.
+
+    Returns:
+        ``(ke, kd)``: stiffness [N/m] and damping [N·s/m], each shape [e].
+    """
+    x = _vertices(vertices)
+    f = _indices("faces", faces, 3, len(x))
+    e = _indices("edges", edges, 2, len(x))
+    area = _triangle_areas(x, f)
+    sides = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    side_key, inverse = np.unique(sides[:, 0] * len(x) + sides[:, 1], return_inverse=True)
+    side_area = np.bincount(inverse, weights=np.repeat(area, 3), minlength=len(side_key))
+    side_key = np.append(side_key, np.iinfo(np.int64).max)  # sentinel: every search lands on a key
+    ends = np.sort(e, axis=1)
+    key = ends[:, 0] * len(x) + ends[:, 1]
+    pos = np.searchsorted(side_key, key)
+    stray = np.flatnonzero(side_key[pos] != key)
+    if len(stray):
+        raise ConfigError(f"edge {int(stray[0])} {e[stray[0]].tolist()} is not a side of any face "
+                          f"({len(stray)} such edges): pass the mesh's own edges")
+    if len(np.unique(key)) != len(key):
+        raise ConfigError("edges has duplicates: each mesh edge must appear once (as [i, j] or [j, i], not both)")
+    length2 = np.sum((x[e[:, 1]] - x[e[:, 0]]) ** 2, axis=1)
+    short = np.flatnonzero(length2 == 0.0)
+    if len(short):
+        raise ConfigError(f"edge {int(short[0])} has zero length: weld or remove coincident vertices")
+    ke = material.stretch * side_area[pos] / length2
+    return ke, (material.stretch_damping / material.stretch) * ke
+
+
+def hinge_parameters(material: ClothMaterial, vertices, hinges) -> tuple[np.ndarray, np.ndarray]:
+    """Dihedral-hinge parameters of a triangle mesh (grid included), in the discrete-shells form
+    (Grinspun et al. 2003, "Discrete shells"; Bridson et al. 2003)::
+
+        k_θ = D |e|² / (A1 + A2)
+
+    for the hinge on edge e between the triangles (x0, x1, x2) and (x0, x1, x3) of areas A1, A2.
+
+    Derivation of the constant (1): bend a mesh of equilateral triangles (side a) into a cylinder of
+    curvature κ with its axis along one edge family. The triangles between two neighbouring rows are
+    coplanar, so only that family folds, each edge by θ = κh (h = a√3/2 the row spacing); such edges
+    number 2/(√3 a²) per unit area and have k_θ = c·D·a²/(√3 a²/2), storing ½ c D κ² per unit area: c = 1.
+    The lattice's hexagonal symmetry makes this hold for every bending direction. In discrete shells'
+    notation E = k_B Σ θ² |e|/h̄_e (h̄_e a third of the mean height, |e|/h̄_e = 3|e|²/(A1+A2)), k_B = D/6.
+
+    Every factor scales as the mesh does (θ ∝ a, hinges per area ∝ 1/a², k_θ ∝ a⁰), so the energy is
+    resolution-independent; its direction dependence is the mesh's. On the regular grid (diagonal along
+    (1, 1)) a cylinder whose curvature direction makes the angle φ with the x axis stores
+    ½ D κ² (1 + sin 2φ + sin² 2φ): exact along rows and columns and for folds along the diagonals, 3×
+    across them, 1.5× averaged over φ. On irregular Delaunay meshes the hinge energy overshoots by about
+    1.2-1.6× (mesh-dependent, not resolution-dependent): dihedral-angle curvature is not consistent on
+    irregular meshes (Grinspun et al. 2006, "Computing discrete shape operators on general meshes").
+
+    Args:
+        vertices: rest positions [m], shape [v, 3].
+        hinges: vertex indices, shape [h, 4]: hinges[:, :2] the shared edge, hinges[:, 2] and [:, 3] the
+            wing vertices.
+
+    Returns:
+        ``(k_theta, kd_theta)``: stiffness [N·m/rad] and damping [N·m·s/rad], each shape [h].
+    """
+    x = _vertices(vertices)
+    h = _indices("hinges", hinges, 4, len(x))
+    edge = x[h[:, 1]] - x[h[:, 0]]
+    areas = _triangle_areas(x, h[:, [0, 1, 2]]) + _triangle_areas(x, h[:, [0, 1, 3]])
+    flat = np.flatnonzero(areas == 0.0)
+    if len(flat):
+        raise ConfigError(f"hinge {int(flat[0])} has two triangles of zero area: remove degenerate faces")
+    k_theta = material.bending * np.sum(edge**2, axis=1) / areas
+    return k_theta, (material.bending_damping / material.bending) * k_theta
+
+
+def lumped_masses(material: ClothMaterial, vertices, faces) -> np.ndarray:
+    """Particle masses of a triangle mesh: density × one third of the area of each adjacent triangle.
+
+    Args:
+        vertices: rest positions [m], shape [v, 3].
+        faces: vertex indices of the triangles, shape [t, 3].
+
+    Returns:
+        Masses [kg], shape [v], summing to density × the mesh's area.
+    """
+    x = _vertices(vertices)
+    f = _indices("faces", faces, 3, len(x))
+    share = np.repeat(_triangle_areas(x, f) / 3.0, 3)
+    mass = material.density * np.bincount(f.ravel(), weights=share, minlength=len(x))
+    lonely = np.flatnonzero(mass <= 0.0)
+    if len(lonely):
+        raise ConfigError(f"vertex {int(lonely[0])} belongs to no triangle of nonzero area ({len(lonely)} such "
+                          "vertices): it would have no mass; remove unreferenced vertices and degenerate faces")
+    return mass
+
+
+def _triangle_areas(x: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Areas [m²] of the triangles x[f], shape [t]."""
+    return 0.5 * np.linalg.norm(np.cross(x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]]), axis=1)
+
+
+def _vertices(vertices) -> np.ndarray:
+    x = np.asarray(vertices, dtype=np.float64)
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ConfigError(f"vertices must have shape [v, 3], got {x.shape}")
+    if not np.isfinite(x).all():
+        raise ConfigError("vertices must be finite")
+    return x
+
+
+def _indices(name: str, value, width: int, count: int) -> np.ndarray:
+    a = np.asarray(value)
+    if a.ndim != 2 or a.shape[1] != width or (a.size and not np.issubdtype(a.dtype, np.integer)):
+        raise ConfigError(f"{name} must be integer vertex indices of shape [n, {width}], got {a.dtype} {a.shape}")
+    if a.size and (a.min() < 0 or a.max() >= count):
+        raise ConfigError(f"{name} index out of range: vertices are 0..{count - 1}, got {a.min()}..{a.max()}")
+    return a.astype(np.int64)
