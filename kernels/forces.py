@@ -68,13 +68,14 @@ def particle_force_func(scalar: type, features: ForceFeatures):
         """Force [N] on particle i of ``world`` (entry base + i): m g - drag v + f_ext + the elements' forces,
         magnitude clamped if the features say so (with scattered springs the clamp is a separate pass:
         ``clamp_forces_kernel``); g, drag and the limits from the world's row of the input table."""
-        f = element_force(world, i, base, xi, vi, element_arrays, inputs, particle_q, particle_qd)
+        f = vec3(scalar(0.0))
         if wp.static(features.gravity):
             f += particle_mass[wp.min(world, particle_mass.shape[0] - 1), i] * input_vec3(inputs, world, INPUT_GRAVITY)
         if wp.static(features.drag):
             f -= inputs[world, INPUT_DRAG] * vi
         if wp.static(features.external):
             f += particle_force_ext[base + i]
+        f += element_force(world, i, base, xi, vi, element_arrays, inputs, particle_q, particle_qd)
         if wp.static(features.clamp_particle_force):
             max_force = inputs[world, INPUT_MAX_PARTICLE_FORCE]
             magnitude = wp.length(f)

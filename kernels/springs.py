@@ -225,20 +225,28 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
         f = vec3(scalar(0.0))
         if wp.static(spec.gathered):
             values = spring_law_values(inputs, world)
-            stiffness_row = wp.min(world, springs.stiffness.shape[0] - 1)
-            damping_row = wp.min(world, springs.damping.shape[0] - 1)
-            incidence = springs.incidence
+            # The arrays in locals once: the slot loop then indexes them without reloading the struct.
+            rest_length = springs.rest_length
+            stiffness = springs.stiffness
+            damping = springs.damping
+            head_local = springs.incidence.head_local
+            head_element = springs.incidence.head_element
+            stiffness_row = wp.min(world, stiffness.shape[0] - 1)
+            damping_row = wp.min(world, damping.shape[0] - 1)
             for k in range(wp.static(head_slots)):
-                j = base + incidence.head_local[k, i]
-                s = incidence.head_element[k, i]
-                f += spring_force(xi, particle_q[j], vi, particle_qd[j], springs.rest_length[s],
-                                  springs.stiffness[stiffness_row, s], springs.damping[damping_row, s], values)
+                j = base + head_local[k, i]
+                s = head_element[k, i]
+                f += spring_force(xi, particle_q[j], vi, particle_qd[j], rest_length[s], stiffness[stiffness_row, s],
+                                  damping[damping_row, s], values)
             if wp.static(tail):
-                for t in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
-                    j = base + incidence.tail_local[t]
-                    s = incidence.tail_element[t]
-                    f += spring_force(xi, particle_q[j], vi, particle_qd[j], springs.rest_length[s],
-                                      springs.stiffness[stiffness_row, s], springs.damping[damping_row, s], values)
+                tail_start = springs.incidence.tail_start
+                tail_local = springs.incidence.tail_local
+                tail_element = springs.incidence.tail_element
+                for t in range(tail_start[i], tail_start[i + 1]):
+                    j = base + tail_local[t]
+                    s = tail_element[t]
+                    f += spring_force(xi, particle_q[j], vi, particle_qd[j], rest_length[s],
+                                      stiffness[stiffness_row, s], damping[damping_row, s], values)
         return f
 
     @wp.func

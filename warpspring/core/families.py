@@ -95,13 +95,17 @@ def build_incidence(members: np.ndarray, particle_count: int, local: np.ndarray,
         device: the Warp device.
         slots: the ELL head's width; default :func:`head_slots` of the degrees.
 
-    Entries of a particle are in element order, then member order; the first ``slots`` fill its head.
+    Entries of a particle are in member order (its role in the element), then element order; the first
+    ``slots`` fill its head.
     """
     members = np.asarray(members, dtype=np.int64)
     elements_count, arity = members.shape
-    owner = members.ravel()
-    element = np.repeat(np.arange(elements_count, dtype=np.int64), arity)
-    value = np.asarray(local, dtype=np.int64).ravel()
+    # Role-major: a particle's entries as member 0 of their elements first, then as member 1, ...; within a
+    # role in element order. Consecutive particles then share the layout of their slots (in a cloth, slot k
+    # is the same neighbour direction), so the gather's neighbour loads of a warp fall close together.
+    owner = members.T.ravel()
+    element = np.tile(np.arange(elements_count, dtype=np.int64), arity)
+    value = np.asarray(local, dtype=np.int64).T.ravel()
     order = np.argsort(owner, kind="stable")
     owner, element, value = owner[order], element[order], value[order]
     degree = np.bincount(owner, minlength=particle_count)
