@@ -62,6 +62,7 @@ from .core.integrators import (
 )
 from .core.guards import GuardLimits
 from .core.kinematics import PinGroup
+from .core.material import ClothMaterial
 from .core.model import Control, MeshGroup, Model, ShapeInfo, Stabilizers, State
 from .core.simulator import Simulator
 from .core.stepper import StepHook, Stepper
@@ -81,6 +82,7 @@ __all__ = [
     "ImplicitEuler",
     "Midpoint",
     "VelocityVerlet",
+    "ClothMaterial",
     "ConfigError",
     "Control",
     "DihedralMaterial",

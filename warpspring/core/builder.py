@@ -22,6 +22,7 @@ from .bending import DihedralMaterial
 from .families import ElementFamily, build_incidence
 from .hinges import dihedral_angle, mesh_hinges
 from .kinematics import PinGroup, PinGroupTable
+from .material import ClothMaterial, edge_springs, grid_masses, grid_springs, hinge_parameters, lumped_masses
 from .model import MeshGroup, Model, ShapeInfo, Stabilizers
 from .tracks import Track, as_track, input_track
 from .transforms import quat_between, quat_to_matrix
@@ -374,6 +375,7 @@ class ModelBuilder:
         shear: SpringMaterial | None = DEFAULT_SHEAR,
         bend: SpringMaterial | None = DEFAULT_BEND,
         dihedral: DihedralMaterial | None = None,
+        material: ClothMaterial | None = None,
         pin=(),
         name: str = "cloth",
     ) -> np.ndarray:
@@ -383,18 +385,33 @@ class ModelBuilder:
         +z its front normal; ``rotation`` then ``origin`` place it in the world. Row ny-1 is the "top"
         edge, column 0 the "left" one.
 
+        Without ``material``, the spring families take their constants as given: the cloth's response then
+        depends on the resolution (a finer grid of the same springs is stiffer in bending and softer in
+        stretch). With a :class:`ClothMaterial` the cloth is the same at any resolution: masses from
+        :func:`~warpspring.core.material.grid_masses` (density × each particle's dual cell), structural and
+        shear springs from :func:`~warpspring.core.material.grid_springs` (structural springs along the
+        outer rows and columns at half stiffness and damping: each spans half a cell), no skip-one bend
+        springs, and dihedral hinges on every interior edge of the triangles with
+        :func:`~warpspring.core.material.hinge_parameters` and rest angle 0 (flat).
+
         Args:
             nx, ny: particles per row and per column (≥ 2).
             spacing: distance between neighbouring particles [m].
             origin: world position of particle (row 0, column 0) [m].
             rotation: orientation as a quaternion (x, y, z, w).
-            mass: total mass [kg], shared equally; or give ``particle_mass`` [kg] instead.
+            mass: total mass [kg], shared equally; or give ``particle_mass`` [kg] instead (neither with
+                ``material``).
             velocity: initial velocity of every particle [m/s].
             radius: contact radius [m]; default a quarter of the spacing.
-            structural: springs to the 4-neighbours, or ``None`` for none.
+            structural: springs to the 4-neighbours (ke [N/m], kd [N·s/m]), or ``None`` for none.
             shear: springs along both diagonals of each quad, or ``None``.
             bend: springs skipping one particle along rows and columns, or ``None``.
-            dihedral: dihedral springs on every interior edge of the cloth's triangles, or ``None``.
+            dihedral: dihedral springs on every interior edge of the cloth's triangles (ke [N·m/rad],
+                kd [N·m·s/rad]), or ``None``.
+            material: the cloth in physical units (stretch, shear [N/m], bending [N·m], density [kg/m²]),
+                which then decides masses, springs, hinges and their damping: ``mass``/``particle_mass``
+                must not be given, nor ``structural``, ``shear``, ``bend`` or ``dihedral`` other than
+                their defaults (a :class:`~warpspring.ConfigError` says which).
             pin: corners/edges by name ("top-left", "top-right", "bottom-left", "bottom-right", "top",
                 "bottom", "left", "right") and/or local particle indices r·nx + c.
             name: mesh name for export.
@@ -405,7 +422,13 @@ class ModelBuilder:
         nx, ny = checks.count("nx", nx, minimum=2), checks.count("ny", ny, minimum=2)
         spacing = checks.positive("spacing", spacing)
         n = nx * ny
-        m = _mass_per_particle(mass, particle_mass, n)
+        if material is None:
+            m = _mass_per_particle(mass, particle_mass, n)
+        else:
+            _material_decides(material, "add_cloth_grid", mass=mass is not None,
+                              particle_mass=particle_mass is not None, structural=structural != DEFAULT_STRUCTURAL,
+                              shear=shear != DEFAULT_SHEAR, bend=bend != DEFAULT_BEND, dihedral=dihedral is not None)
+            m = grid_masses(material, nx, ny, spacing)
         rows, cols = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
         local = np.stack([cols * spacing, rows * spacing, np.zeros_like(rows, dtype=float)], axis=-1).reshape(-1, 3)
         q = self._place(local, origin, rotation)
@@ -421,21 +444,35 @@ class ModelBuilder:
         def pairs(a, b):
             return np.stack([a.ravel(), b.ravel()], axis=1)
 
-        families = [
-            (structural, [pairs(grid[:, :-1], grid[:, 1:]), pairs(grid[:-1, :], grid[1:, :])]),
-            (shear, [pairs(grid[:-1, :-1], grid[1:, 1:]), pairs(grid[:-1, 1:], grid[1:, :-1])]),
-            (bend, [pairs(grid[:, :-2], grid[:, 2:]), pairs(grid[:-2, :], grid[2:, :])]),
-        ]
-        for material, blocks in families:
-            if material is not None:
-                self.add_springs(np.concatenate(blocks), stiffness=material.ke, damping=material.kd)
+        along_rows, along_columns = pairs(grid[:, :-1], grid[:, 1:]), pairs(grid[:-1, :], grid[1:, :])
+        diagonals = np.concatenate([pairs(grid[:-1, :-1], grid[1:, 1:]), pairs(grid[:-1, 1:], grid[1:, :-1])])
+        if material is None:
+            families = [
+                (structural, np.concatenate([along_rows, along_columns])),
+                (shear, diagonals),
+                (bend, np.concatenate([pairs(grid[:, :-2], grid[:, 2:]), pairs(grid[:-2, :], grid[2:, :])])),
+            ]
+            for springs, blocks in families:
+                if springs is not None:
+                    self.add_springs(blocks, stiffness=springs.ke, damping=springs.kd)
+        else:
+            k = grid_springs(material)
+            # A structural spring on an outer row or column spans half a cell: half stiffness and damping.
+            row_share, column_share = np.ones((ny, nx - 1)), np.ones((ny - 1, nx))
+            row_share[[0, -1], :] = column_share[:, [0, -1]] = 0.5
+            share = np.concatenate([row_share.ravel(), column_share.ravel()])
+            self.add_springs(np.concatenate([along_rows, along_columns]), stiffness=k.structural_stiffness * share,
+                             damping=k.structural_damping * share)
+            self.add_springs(diagonals, stiffness=k.shear_stiffness, damping=k.shear_damping)
 
         a, b = grid[:-1, :-1].ravel(), grid[:-1, 1:].ravel()
         c, d = grid[1:, 1:].ravel(), grid[1:, :-1].ravel()
         faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
         uv = np.stack([cols / (nx - 1), rows / (ny - 1)], axis=-1).reshape(-1, 2)
         self.add_triangles(faces, name=name, uvs=uv)
-        if dihedral is not None:
+        if material is not None:
+            self._add_mesh_hinges(q, faces - ids[0], ids, material, rest="flat")
+        elif dihedral is not None:
             self._add_mesh_hinges(q, faces - ids[0], ids, dihedral)
         return grid
 
@@ -454,13 +491,19 @@ class ModelBuilder:
         structural: SpringMaterial | None = DEFAULT_STRUCTURAL,
         bend: SpringMaterial | None = DEFAULT_BEND,
         dihedral: DihedralMaterial | None = None,
+        material: ClothMaterial | None = None,
         pin=(),
         name: str = "cloth",
     ) -> np.ndarray:
         """Add a cloth from any triangle mesh.
 
         Every mesh edge becomes a structural spring; for every interior edge, the two vertices opposite
-        it are joined by a bend spring. Mass is lumped to the vertices by triangle area. A file or
+        it are joined by a bend spring. Mass is lumped to the vertices by triangle area. With a
+        :class:`ClothMaterial` the cloth is the same at any resolution: masses from
+        :func:`~warpspring.core.material.lumped_masses`, one spring per edge with
+        :func:`~warpspring.core.material.edge_springs` (Van Gelder's rule), no bend springs, and dihedral
+        hinges on every interior edge with :func:`~warpspring.core.material.hinge_parameters`, rest angles
+        from the mesh as given. A file or
         ``trimesh.Trimesh`` is welded first: vertices at the same position (which loaders split along UV
         seams) become one particle, in order of first appearance (an OBJ file's ``v`` order), and the UVs
         are kept per triangle corner where a seam needs two.
@@ -470,11 +513,15 @@ class ModelBuilder:
                 vertex array [m], shape [v, 3] (then ``faces`` is required).
             faces: vertex indices of each triangle, shape [t, 3], when ``mesh`` is an array.
             origin, rotation, scale: placement; world = origin + rotation · (scale · vertex).
-            mass: total mass [kg]; or ``density``: areal density [kg/m²].
+            mass: total mass [kg]; or ``density``: areal density [kg/m²] (neither with ``material``).
             velocity: initial velocity [m/s].
             radius: contact radius [m]; default a quarter of the mean edge length.
-            structural, bend: spring families, or ``None``.
-            dihedral: dihedral springs on every interior edge, or ``None``.
+            structural, bend: spring families (ke [N/m], kd [N·s/m]), or ``None``.
+            dihedral: dihedral springs on every interior edge (ke [N·m/rad], kd [N·m·s/rad]), or ``None``.
+            material: the cloth in physical units (stretch [N/m], bending [N·m], density [kg/m²]; an edge
+                network's shear modulus is 3/8 stretch whatever ``shear`` says), which then decides masses,
+                springs, hinges and their damping: ``mass``/``density`` must not be given, nor
+                ``structural``, ``bend`` or ``dihedral`` other than their defaults.
             pin: vertex indices of pinned particles.
             name: mesh name for export.
 
@@ -524,26 +571,40 @@ class ModelBuilder:
                 f"mesh vertex {int(lonely[0])} belongs to no triangle of nonzero area "
                 f"({len(lonely)} such vertices): remove unreferenced vertices and degenerate faces"
             )
-        if (mass is None) == (density is None):
-            raise ConfigError("give exactly one of mass= (total, kg) or density= (kg/m²) for a cloth mesh")
-        areal = checks.positive("mass", mass) / area.sum() if density is None else checks.positive("density", density)
+        if material is None:
+            if (mass is None) == (density is None):
+                raise ConfigError("give exactly one of mass= (total, kg) or density= (kg/m²) for a cloth mesh, "
+                                  "or material=")
+            areal = checks.positive("mass", mass) / area.sum() if density is None else checks.positive("density", density)
+            particle_mass = lumped * areal
+        else:
+            _material_decides(material, "add_cloth_mesh", mass=mass is not None, density=density is not None,
+                              structural=structural != DEFAULT_STRUCTURAL, bend=bend != DEFAULT_BEND,
+                              dihedral=dihedral is not None)
+            particle_mass = lumped_masses(material, vertices * scale, faces)
 
         edges = tri.edges_unique
         ids = self.add_particles(
             self._place(vertices * scale, origin, rotation),
             velocities=np.broadcast_to(checks.vector("velocity", velocity), (len(vertices), 3)),
-            mass=lumped * areal,
+            mass=particle_mass,
             radius=0.25 * float(tri.edges_unique_length.mean()) if radius is None else radius,
             pinned=_indices("pinned vertex", np.atleast_1d(pin), len(vertices)) if np.size(pin) else None,
         )
-        if structural is not None and len(edges):
-            self.add_springs(ids[edges], stiffness=structural.ke, damping=structural.kd)
-        if bend is not None:
-            opposite = tri.face_adjacency_unshared
-            if len(opposite):
-                self.add_springs(ids[opposite], stiffness=bend.ke, damping=bend.kd)
+        if material is not None:
+            ke, kd = edge_springs(material, vertices * scale, faces, edges)
+            self.add_springs(ids[edges], stiffness=ke, damping=kd)
+        else:
+            if structural is not None and len(edges):
+                self.add_springs(ids[edges], stiffness=structural.ke, damping=structural.kd)
+            if bend is not None:
+                opposite = tri.face_adjacency_unshared
+                if len(opposite):
+                    self.add_springs(ids[opposite], stiffness=bend.ke, damping=bend.kd)
         self.add_triangles(ids[faces], name=name, uvs=uv)
-        if dihedral is not None:
+        if material is not None:
+            self._add_mesh_hinges(vertices * scale, faces, ids, material, rest="mesh")
+        elif dihedral is not None:
             self._add_mesh_hinges(vertices * scale, faces, ids, dihedral)
         return ids
 
@@ -718,19 +779,27 @@ class ModelBuilder:
 
     # -- helpers --------------------------------------------------------------------------------------
 
-    def _add_mesh_hinges(self, vertices: np.ndarray, faces: np.ndarray, ids: np.ndarray, material: DihedralMaterial,
-                         stiffness=None, damping=None) -> None:
-        """Hinges on every interior edge of a mesh (local ``faces`` into ``vertices``, particles ``ids``), rest
-        angles as the material says; ``stiffness``/``damping`` per hinge override the material's."""
-        if not isinstance(material, DihedralMaterial):
+    def _add_mesh_hinges(self, vertices: np.ndarray, faces: np.ndarray, ids: np.ndarray,
+                         material: DihedralMaterial | ClothMaterial, *, rest: str = "mesh") -> None:
+        """Hinges on every interior edge of a mesh (local ``faces`` into ``vertices`` [m], particles ``ids``).
+
+        A :class:`DihedralMaterial` gives every hinge its ke, kd and rest rule; a :class:`ClothMaterial`
+        gives each hinge its own k_θ [N·m/rad] and kd_θ [N·m·s/rad] from its rest geometry
+        (:func:`~warpspring.core.material.hinge_parameters`), with rest angles by ``rest``: "mesh" (as
+        given) or "flat" (0).
+        """
+        if not isinstance(material, (DihedralMaterial, ClothMaterial)):
             raise ConfigError(f"dihedral must be a warpspring.DihedralMaterial, got {type(material).__name__}")
         try:
-            hinges, rest = mesh_hinges(vertices, faces)
+            hinges, mesh_rest = mesh_hinges(vertices, faces)
         except ValueError as exc:
             raise ConfigError(f"cannot add dihedral springs: {exc}") from None
-        self.add_hinges(ids[hinges], stiffness=material.ke if stiffness is None else stiffness,
-                        damping=material.kd if damping is None else damping,
-                        rest_angle=rest if material.rest == "mesh" else 0.0)
+        if isinstance(material, ClothMaterial):
+            stiffness, damping = hinge_parameters(material, vertices, hinges)
+        else:
+            stiffness, damping, rest = material.ke, material.kd, material.rest
+        self.add_hinges(ids[hinges], stiffness=stiffness, damping=damping,
+                        rest_angle=mesh_rest if rest == "mesh" else 0.0)
 
     def _add_shape(self, kind, position, rotation, size, friction, name):
         friction = checks.non_negative("friction", friction)
@@ -836,8 +905,20 @@ def _indices(name: str, value, bound: int) -> np.ndarray:
 
 def _mass_per_particle(mass, particle_mass, n: int) -> float:
     if (mass is None) == (particle_mass is None):
-        raise ConfigError("give exactly one of mass= (total, kg) or particle_mass= (kg per particle)")
+        raise ConfigError("give exactly one of mass= (total, kg) or particle_mass= (kg per particle), or material=")
     return checks.positive("mass", mass) / n if particle_mass is None else checks.positive("particle_mass", particle_mass)
+
+
+def _material_decides(material, method: str, **given: bool) -> None:
+    """Check ``material`` is a ClothMaterial and that none of the arguments it decides was ``given``."""
+    if not isinstance(material, ClothMaterial):
+        raise ConfigError(f"material must be a warpspring.ClothMaterial, got {type(material).__name__}")
+    clash = [name for name, value in given.items() if value]
+    if clash:
+        raise ConfigError(
+            f"{method}: material= decides the masses, springs and hinges, so {', '.join(clash)} must not be "
+            "given with it (drop them, or drop material= to set them yourself)"
+        )
 
 
 def _block_dim(device, n: int) -> int:
