@@ -30,8 +30,9 @@ import numpy as np
 import warp as wp
 
 import warpspring as ws
-from cloth import FPS, SUBSTEPS, measure
+from cloth import FPS, SUBSTEPS, emit_table, measure
 from warpspring.core.families import build_incidence
+from worlds import Batch
 
 SIZES = {"cuda": [32_768, 262_144], "cpu": [4_096]}
 
@@ -61,14 +62,6 @@ def network_model(points: np.ndarray, springs: np.ndarray, device, evaluation: s
     return model
 
 
-class Runner:
-    def __init__(self, model: ws.Model):
-        self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=None)
-
-    def frame(self):
-        self.sim.step_frame()
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default=None, help="Warp device (default: Warp's default)")
@@ -96,7 +89,7 @@ def main():
             model = network_model(points, springs, device, evaluation, slots=slots)
             shape = model.spring_incidence_shape
             tail = int(np.maximum(degree - shape.head_slots, 0).sum())
-            result = measure(lambda: Runner(model), device, args.seconds)
+            result = measure(lambda: Batch(model), device, args.seconds)
             rates[name] = SUBSTEPS * count / result["frame_s"]
             head, tail = (f"{shape.head_slots}", f"{tail:,}") if evaluation == "gather" else ("–", "–")
             lines.append(
@@ -105,12 +98,7 @@ def main():
                 f"{rates[name] / rates['hybrid']:.2f}× |"
             )
             print(lines[-1], flush=True)
-    table = "\n".join(lines)
-    print()
-    print(table)
-    if args.out:
-        with open(args.out, "w") as f:
-            f.write(table + "\n")
+    emit_table(lines, args.out)
 
 
 if __name__ == "__main__":

@@ -148,6 +148,16 @@ def measure(make_runner, device, seconds: float) -> dict:
     return {"first_frame_s": first, "frame_s": frame_time, "spread": (max(times) - min(times)) / frame_time}
 
 
+def emit_table(lines: list[str], out: str | None) -> None:
+    """Print the Markdown table made of ``lines``, and write it to ``out`` when given."""
+    table = "\n".join(lines)
+    print()
+    print(table)
+    if out:
+        with open(out, "w") as f:
+            f.write(table + "\n")
+
+
 def agreement(model: ws.Model, frames: int = FPS) -> float:
     """Largest position difference [m] between warpspring and Newton after ``frames`` frames from the same start."""
     finals = []
@@ -216,12 +226,7 @@ def main():
                 f"{rate:,.0f} | {rate * model.particle_count / 1e9:.3f} G | {r['spread']:.1%} | {ratio} | {diff} |"
             )
         print("\n".join(lines[-len(results):]), flush=True)
-    table = "\n".join(lines)
-    print()
-    print(table)
-    if args.out:
-        with open(args.out, "w") as f:
-            f.write(table + "\n")
+    emit_table(lines, args.out)
 
 
 if __name__ == "__main__":

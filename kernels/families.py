@@ -95,7 +95,6 @@ class Elements(NamedTuple):
     force: Any
     product: Any
     strain: Any
-    funcs: tuple  # FamilyFuncs of each family, in order
 
 
 @functools.cache
@@ -106,7 +105,6 @@ def elements(scalar: type, specs: tuple) -> Elements:
     """
     vec3 = vec3_type(scalar)
     mat33 = mat33_type(scalar)
-    funcs = tuple(spec.funcs(scalar) for spec in specs)
     if not specs:
         Arrays = _struct("NoElements", {"placeholder": wp.int32})
 
@@ -125,9 +123,9 @@ def elements(scalar: type, specs: tuple) -> Elements:
         def no_strain(world: int, i: int, base: int, xi: vec3, arrays: Arrays, particle_q: wp.array[vec3]):
             return wp.float64(-1.0), -1, -1
 
-        return Elements(Arrays, no_force, no_product, no_strain, ())
+        return Elements(Arrays, no_force, no_product, no_strain)
 
-    head = funcs[0]
+    head = specs[0].funcs(scalar)
     if len(specs) == 1:
         Arrays = _struct(f"Elements_{type(specs[0]).__name__}", {"head": head.arrays})
 
@@ -148,7 +146,7 @@ def elements(scalar: type, specs: tuple) -> Elements:
             strain, element = head.strain(world, i, base, xi, arrays.head, particle_q)
             return strain, element, wp.where(element >= 0, 0, -1)
 
-        return Elements(Arrays, force_1, product_1, strain_1, funcs)
+        return Elements(Arrays, force_1, product_1, strain_1)
 
     rest = elements(scalar, specs[1:])
     Arrays = _struct(f"Elements_{type(specs[0]).__name__}_{len(specs)}", {"head": head.arrays, "tail": rest.arrays})
@@ -178,7 +176,7 @@ def elements(scalar: type, specs: tuple) -> Elements:
             return strain_rest, element_rest, family_rest + 1
         return strain, element, wp.where(element >= 0, 0, -1)
 
-    return Elements(Arrays, force_n, product_n, strain_n, funcs)
+    return Elements(Arrays, force_n, product_n, strain_n)
 
 
 def fill_elements(chain, family_arrays: list):

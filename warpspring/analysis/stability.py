@@ -71,7 +71,6 @@ from ..kernels.linalg import reduce_lanes, reduce_launch_dim, sum_partials_kerne
 from ..kernels.stability import (PI_LAMBDA, PI_PARTIALS, PI_RESIDUAL, PI_SCALARS, PI_XKX,
                                  power_iteration_kernels)
 from ..core.model import Model, State
-from ..core.springs import SpringFamily
 
 #: Estimates of ω_max (see :func:`advise`).
 OMEGA_ESTIMATES = ("power_iteration", "gershgorin")
@@ -530,9 +529,9 @@ def _gershgorin(model: Model, stiffness: np.ndarray, free: np.ndarray) -> np.nda
     """Each world's Gershgorin bound [rad/s], shape [world_count], for spring stiffness rows ``stiffness`` and
     free particles ``free`` [world_count, particle_count]: every family's row bounds, summed."""
     rows = np.zeros((model.world_count, model.particle_count))
+    overrides = {"springs": stiffness}
     for family in model.families:
-        rows += (family.gershgorin_rows(model, free, stiffness) if isinstance(family, SpringFamily)
-                 else family.gershgorin_rows(model, free))
+        rows += family.gershgorin_rows(model, free, overrides.get(family.name))
     ratio = np.where(free, rows / model.world_values("particle_mass"), 0.0)
     return np.sqrt(ratio.max(axis=1)) if model.particle_count else np.zeros(model.world_count)
 
@@ -617,7 +616,7 @@ def _power_iteration(model: Model, stiffness: np.ndarray, state: State | None, m
     product, normalize, condition = power_iteration_kernels(model.scalar, model.family_specs(linear=True), tiled)
     sum_partials = sum_partials_kernel(tiled)
 
-    element_arrays = model.element_arrays(linear=True, spring_stiffness=_stiffness_array(model, stiffness))
+    element_arrays = model.element_arrays(linear=True, stiffness={"springs": _stiffness_array(model, stiffness)})
     q = model.particle_q if state is None else state.particle_q
     x = wp.array(start.reshape(-1, 3), dtype=model.vec3, device=device)
     y = wp.zeros(worlds * n, dtype=model.vec3, device=device)

@@ -11,6 +11,7 @@ from .. import checks
 from ..errors import ConfigError
 from ..kernels.hinges import HingeSpec, hinge_arrays_type
 from .families import ElementFamily
+from .hinges import dihedral_gradient
 
 
 @dataclass(frozen=True)
@@ -32,27 +33,6 @@ class DihedralMaterial:
         checks.non_negative("DihedralMaterial.kd", self.kd)
         if self.rest not in ("mesh", "flat"):
             raise ConfigError(f"DihedralMaterial.rest must be 'mesh' or 'flat', got {self.rest!r}")
-
-
-def dihedral_gradients(x0: np.ndarray, x1: np.ndarray, x2: np.ndarray, x3: np.ndarray) -> np.ndarray:
-    """∇θ of hinges (kernels/bending.py's closed form) in float64 NumPy: positions [m], shape [h, 3] each;
-    returns [h, 4, 3] [1/m] (zero for degenerate hinges)."""
-    e = x1 - x0
-    n1 = np.cross(e, x2 - x0)
-    n2 = np.cross(x3 - x0, e)
-    length2 = np.einsum("ij,ij->i", e, e)
-    a1 = np.einsum("ij,ij->i", n1, n1)
-    a2 = np.einsum("ij,ij->i", n2, n2)
-    ok = (length2 > 0.0) & (a1 > 0.0) & (a2 > 0.0)
-    length = np.sqrt(length2)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        g2 = np.where(ok[:, None], -(length / a1)[:, None] * n1, 0.0)
-        g3 = np.where(ok[:, None], -(length / a2)[:, None] * n2, 0.0)
-        s2 = np.where(ok, np.einsum("ij,ij->i", x2 - x0, e) / length2, 0.0)
-        s3 = np.where(ok, np.einsum("ij,ij->i", x3 - x0, e) / length2, 0.0)
-    g1 = -(s2[:, None] * g2 + s3[:, None] * g3)
-    g0 = -(g1 + g2 + g3)
-    return np.stack([g0, g1, g2, g3], axis=1)
 
 
 class HingeFamily(ElementFamily):
@@ -84,17 +64,16 @@ class HingeFamily(ElementFamily):
         and for every free b ≠ a (at the model's initial positions)."""
         worlds, n = model.world_count, model.particle_count
         ids = model.hinge_indices.numpy().reshape(-1, 4)
-        k = np.broadcast_to(model.hinge_stiffness.numpy().astype(np.float64), (worlds, len(ids)))
-        q = model.particle_q.numpy().astype(np.float64).reshape(worlds, n, 3)
-        rows = np.zeros((worlds, n))
-        for w in range(worlds):
-            x = q[w][ids]  # [h, 4, 3]
-            norms = np.linalg.norm(dihedral_gradients(x[:, 0], x[:, 1], x[:, 2], x[:, 3]), axis=2)  # [h, 4]
-            free_norms = norms * free[w][ids]
-            for a in range(4):
-                others = free_norms.sum(axis=1) - free_norms[:, a] + norms[:, a]
-                rows[w] += np.bincount(ids[:, a], weights=k[w] * norms[:, a] * others, minlength=n)
-        return rows
+        values = model.hinge_stiffness.numpy() if stiffness is None else stiffness
+        k = np.broadcast_to(np.asarray(values, dtype=np.float64), (worlds, len(ids)))
+        x = model.particle_q.numpy().astype(np.float64).reshape(worlds, n, 3)[:, ids]  # [worlds, h, 4, 3]
+        norms = np.linalg.norm(dihedral_gradient(x[..., 0, :], x[..., 1, :], x[..., 2, :], x[..., 3, :]), axis=-1)
+        free_norms = norms * free[:, ids]  # [worlds, h, 4]
+        # Row a: ke |∇_aθ| (|∇_aθ| + Σ_{free b ≠ a} |∇_bθ|).
+        weights = k[..., None] * norms * (free_norms.sum(axis=-1, keepdims=True) - free_norms + norms)
+        entries = (np.arange(worlds) * n)[:, None, None] + ids[None]  # world-major entries of each member
+        rows = np.bincount(entries.ravel(), weights=weights.ravel(), minlength=worlds * n)
+        return rows.reshape(worlds, n)
 
     def describe_element(self, model, element: int) -> str:
         a, b, c, d = model.hinge_indices.numpy()[element]

@@ -232,19 +232,9 @@ class ModelBuilder:
         Returns:
             The indices of the new springs, shape [s].
         """
-        pairs = np.asarray(pairs)
-        if pairs.ndim != 2 or pairs.shape[1] != 2:
-            raise ConfigError(f"spring pairs must have shape [s, 2], got {pairs.shape}")
-        if len(pairs) and not np.issubdtype(pairs.dtype, np.integer):
-            raise ConfigError("spring pairs must be integer particle indices")
-        pairs = pairs.astype(np.int64)
+        pairs = self._element_particles(pairs, 2, what="spring pairs", shape="[s, 2]", noun="spring",
+                                         verb="joins")
         s = len(pairs)
-        if s and (pairs.min() < 0 or pairs.max() >= self._particle_count):
-            bad = int(np.flatnonzero((pairs < 0).any(1) | (pairs >= self._particle_count).any(1))[0])
-            raise ConfigError(
-                f"spring {bad} joins particles {tuple(pairs[bad])}, but only {self._particle_count} particles "
-                "exist: add the particles first"
-            )
         same = np.flatnonzero(pairs[:, 0] == pairs[:, 1])
         if len(same):
             raise ConfigError(f"spring {int(same[0])} joins particle {int(pairs[same[0], 0])} to itself")
@@ -276,18 +266,10 @@ class ModelBuilder:
         Returns:
             The indices of the new hinges, shape [h].
         """
-        hinges = np.asarray(hinges)
-        if hinges.ndim != 2 or hinges.shape[1] != 4:
-            raise ConfigError(f"hinges must have shape [h, 4] (edge x0, x1, wings x2, x3), got {hinges.shape}")
-        if len(hinges) and not np.issubdtype(hinges.dtype, np.integer):
-            raise ConfigError("hinges must be integer particle indices")
-        hinges = hinges.astype(np.int64)
+        hinges = self._element_particles(hinges, 4, what="hinges", shape="[h, 4] (edge x0, x1, wings x2, x3)",
+                                         noun="hinge", verb="names")
         h = len(hinges)
-        if h and (hinges.min() < 0 or hinges.max() >= self._particle_count):
-            bad = int(np.flatnonzero((hinges < 0).any(1) | (hinges >= self._particle_count).any(1))[0])
-            raise ConfigError(f"hinge {bad} names particles {tuple(hinges[bad])}, but only {self._particle_count} "
-                              "particles exist: add the particles first")
-        repeated = np.flatnonzero(np.any(np.sort(hinges, axis=1)[:, 1:] == np.sort(hinges, axis=1)[:, :-1], axis=1))
+        repeated = np.flatnonzero((np.diff(np.sort(hinges, axis=1), axis=1) == 0).any(axis=1))
         if len(repeated):
             raise ConfigError(f"hinge {int(repeated[0])} names a particle twice: {tuple(hinges[repeated[0]])}")
         ke = _per_item("hinge stiffness", stiffness, h)
@@ -778,6 +760,21 @@ class ModelBuilder:
         return model
 
     # -- helpers --------------------------------------------------------------------------------------
+
+    def _element_particles(self, value, arity: int, *, what: str, shape: str, noun: str, verb: str) -> np.ndarray:
+        """The particles of each element, int64 [k, arity], checked to be integers of existing particles;
+        ``what``, ``shape``, ``noun`` and ``verb`` word the errors ("spring 3 joins particles ...")."""
+        members = np.asarray(value)
+        if members.ndim != 2 or members.shape[1] != arity:
+            raise ConfigError(f"{what} must have shape {shape}, got {members.shape}")
+        if len(members) and not np.issubdtype(members.dtype, np.integer):
+            raise ConfigError(f"{what} must be integer particle indices")
+        members = members.astype(np.int64)
+        if len(members) and (members.min() < 0 or members.max() >= self._particle_count):
+            bad = int(np.flatnonzero((members < 0).any(1) | (members >= self._particle_count).any(1))[0])
+            raise ConfigError(f"{noun} {bad} {verb} particles {tuple(members[bad])}, but only "
+                              f"{self._particle_count} particles exist: add the particles first")
+        return members
 
     def _add_mesh_hinges(self, vertices: np.ndarray, faces: np.ndarray, ids: np.ndarray,
                          material: DihedralMaterial | ClothMaterial, *, rest: str = "mesh") -> None:

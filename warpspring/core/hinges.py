@@ -33,6 +33,38 @@ def dihedral_angle(x0: np.ndarray, x1: np.ndarray, x2: np.ndarray, x3: np.ndarra
         θ in (-π, π], shape [...]; 0 for degenerate hinges (edge below ``HINGE_MIN_EDGE``, or a wing
         closer to the edge's line than ``HINGE_MIN_ASPECT`` |e|), as on the device.
     """
+    e, n1, n2, len_e, valid = _hinge_frame(x0, x1, x2, x3)
+    # atan2 is invariant under the common positive factor |n1| |n2| |e| of both arguments.
+    theta = np.arctan2(_dot(np.cross(n1, n2), e), _dot(n1, n2) * len_e)
+    return np.where(valid, theta, 0.0)
+
+
+def dihedral_gradient(x0: np.ndarray, x1: np.ndarray, x2: np.ndarray, x3: np.ndarray) -> np.ndarray:
+    """∇θ [1/m] of hinges with respect to the four positions, the device's closed form
+    (``kernels/bending.py``): ∇₂θ = -|e| n1/|n1|², ∇₃θ = -|e| n2/|n2|², ∇₁θ = -(α₂ ∇₂θ + α₃ ∇₃θ),
+    ∇₀θ = -(∇₁θ + ∇₂θ + ∇₃θ).
+
+    Args:
+        x0, x1, x2, x3: particle positions [m], shape [..., 3] (broadcast together).
+
+    Returns:
+        Shape [..., 4, 3]; zero for degenerate hinges, as on the device.
+    """
+    x0, x1, x2, x3 = (np.asarray(x, dtype=np.float64) for x in (x0, x1, x2, x3))
+    e, n1, n2, len_e, valid = _hinge_frame(x0, x1, x2, x3)
+    safe = np.where(valid, 1.0, 0.0)[..., None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g2 = np.nan_to_num(-(len_e / _dot(n1, n1))[..., None] * n1) * safe
+        g3 = np.nan_to_num(-(len_e / _dot(n2, n2))[..., None] * n2) * safe
+        along = 1.0 / np.where(valid, len_e * len_e, 1.0)
+    g1 = -((_dot(x2 - x0, e) * along)[..., None] * g2 + (_dot(x3 - x0, e) * along)[..., None] * g3)
+    g0 = -(g1 + g2 + g3)
+    return np.stack(np.broadcast_arrays(g0, g1, g2, g3), axis=-2)
+
+
+def _hinge_frame(x0, x1, x2, x3):
+    """(e, n1, n2, |e|, valid) of hinges in float64: the edge, the two wing normals and whether the hinge
+    is non-degenerate (edge above ``HINGE_MIN_EDGE``, both wings above ``HINGE_MIN_ASPECT`` |e| from it)."""
     x0, x1, x2, x3 = (np.asarray(x, dtype=np.float64) for x in (x0, x1, x2, x3))
     e = x1 - x0
     n1 = np.cross(e, x2 - x0)
@@ -40,9 +72,7 @@ def dihedral_angle(x0: np.ndarray, x1: np.ndarray, x2: np.ndarray, x3: np.ndarra
     len_e = np.linalg.norm(e, axis=-1)
     min_n = HINGE_MIN_ASPECT * len_e**2
     valid = (len_e > HINGE_MIN_EDGE) & (np.linalg.norm(n1, axis=-1) > min_n) & (np.linalg.norm(n2, axis=-1) > min_n)
-    # atan2 is invariant under the common positive factor |n1| |n2| |e| of both arguments.
-    theta = np.arctan2(_dot(np.cross(n1, n2), e), _dot(n1, n2) * len_e)
-    return np.where(valid, theta, 0.0)
+    return e, n1, n2, len_e, valid
 
 
 def hinge_energy_np(

@@ -648,17 +648,21 @@ class Model:
             object.__setattr__(self, "_elements_cache", cached)
         return cached[1]
 
-    def element_arrays(self, *, linear: bool = False, spring_stiffness: wp.array | None = None):
-        """A new struct of every family's arrays for the specs ``family_specs(linear=linear)``, with
-        ``spring_stiffness`` [N/m] replacing the springs' (the stability analysis's override)."""
+    def element_arrays(self, *, linear: bool = False, stiffness: dict | None = None):
+        """A new struct of every family's arrays for the specs ``family_specs(linear=linear)``; ``stiffness``
+        maps a family's name to a device array replacing its stiffness (the stability analysis's override,
+        e.g. ``{"springs": ke}``)."""
+        stiffness = stiffness or {}
         chain = composed_elements(self.scalar, self.family_specs(linear=linear)).arrays()
-        arrays = [family.arrays(self, stiffness=spring_stiffness) if isinstance(family, SpringFamily)
-                  else family.arrays(self) for family in self.families]
+        arrays = [family.arrays(self, stiffness=stiffness.get(family.name)) for family in self.families]
         return fill_elements(chain, arrays)
 
     def spring_arrays(self):
-        """The spring family's struct (``kernels/springs.py``)."""
-        return SpringFamily(self).arrays(self)
+        """The spring family's struct (``kernels/springs.py``): the head of :attr:`elements`, where springs
+        come first."""
+        if not self.spring_count:
+            raise ConfigError("the model has no springs")
+        return self.elements.head
 
     def force_features(self, control: Control | None) -> ForceFeatures:
         """The force terms a step of this model under ``control`` evaluates."""
