@@ -42,7 +42,7 @@ def main():
             model.block_dim = block
             cells.append(f"{rate(model, device, args.seconds):,.0f}")
         model.block_dim = default
-        kernel = symplectic_euler_kernel(model.scalar, model.force_features(None), model.shape_types)
+        kernel = symplectic_euler_kernel(model.scalar, model.force_features(None), model.contact_features())
         kernel.module.options["fast_math"] = False  # the default is on (SPRING_KERNEL_OPTIONS)
         exact = rate(model, device, args.seconds)
         kernel.module.options["fast_math"] = True

@@ -13,11 +13,11 @@ import functools
 
 import warp as wp
 
-from .contacts import project_contacts_func
+from .contacts import ContactFeatures, contact_slots_type, project_contacts_func, shapes_type
 from .families import IncidenceShape
 from .inputs import INPUT_MAX_SPEED, INPUT_MAX_STRAIN
 from .kinematics import is_kinematic, particle_funcs
-from .precision import transform_type, vec3_type
+from .precision import vec3_type
 from .springs import spring_arrays_type
 from .worlds import world_and_index
 
@@ -94,14 +94,15 @@ def strain_limit_kernel(scalar: type, incidence: IncidenceShape):
 
 
 @functools.cache
-def finish_step_kernel(scalar: type, shape_types: tuple, clamp_speed: bool, from_displacement: bool):
+def finish_step_kernel(scalar: type, contacts: ContactFeatures, clamp_speed: bool, from_displacement: bool):
     """The finishing pass: Δv = (x - x_before)/h after position corrections (``from_displacement``),
-    speed clamp to the input ``INPUT_MAX_SPEED`` [m/s] (``clamp_speed``), contact projection against
-    ``shape_types``."""
+    speed clamp to the input ``INPUT_MAX_SPEED`` [m/s] (``clamp_speed``), contact response (``contacts``:
+    against every collider, or the contact buffer's slots)."""
     vec3 = vec3_type(scalar)
-    transform = transform_type(scalar)
-    project_contacts = project_contacts_func(scalar, shape_types)
-    has_contacts = len(shape_types) > 0
+    Shapes = shapes_type(scalar)
+    ContactSlots = contact_slots_type(scalar)
+    project_contacts = project_contacts_func(scalar, contacts)
+    has_contacts = bool(contacts)
 
     @wp.kernel(module="unique", enable_backward=False)
     def finish_step(
@@ -109,10 +110,8 @@ def finish_step_kernel(scalar: type, shape_types: tuple, clamp_speed: bool, from
         particle_count: int,
         particle_flags: wp.array[wp.int32],
         particle_radius: wp.array[scalar],
-        shape_type: wp.array[wp.int32],
-        shape_transform: wp.array[transform],
-        shape_size: wp.array[vec3],
-        shape_friction: wp.array[scalar],
+        shapes: Shapes,
+        contact_slots: ContactSlots,
         inputs: wp.array2d[scalar],
         # In:
         particle_q_corrected: wp.array[vec3],
@@ -137,9 +136,7 @@ def finish_step_kernel(scalar: type, shape_types: tuple, clamp_speed: bool, from
             if speed > speed_limit:
                 v = v * (speed_limit / speed)
         if wp.static(has_contacts):
-            x, v = project_contacts(
-                x, v, particle_radius[i], dt, shape_type, shape_transform, shape_size, shape_friction
-            )
+            x, v = project_contacts(world, p, x, v, particle_radius[i], dt, shapes, contact_slots, inputs)
         particle_q_in_out[p] = x
         particle_qd_in_out[p] = v
 

@@ -1,143 +1,359 @@
-"""Particle-collider contact: position projection with inelastic normal response and Coulomb friction.
+"""Particle-collider contact: shapes, their motion, the contact buffer and the response.
 
-A particle of radius r touches a collider when the signed distance of its centre to the collider's
-surface is below r. The contact pass, run after a step of length h, projects it back onto the surface
-(no interpenetration, also at rest), removes the approaching normal velocity and reduces the tangential
-velocity by at most μ·|Δv_n| (Coulomb friction as an impulse; it sticks when the tangential speed is
-smaller). The position takes the same tangential change, h·Δv_t, so that it stays x_prev + h·v for the
-velocity friction leaves: a particle that sticks does not move, and one that slides travels exactly
-h·Σv (for symplectic Euler).
+**Shapes.** Colliders are a struct of arrays (:func:`shapes_type`): kind, size, scale, mesh id,
+friction, restitution, and the shape's frame at the start and at the end of the current step,
+[rows, shape_count] with one row for every world (static shapes) or one per world (animated shapes, each
+world at its own time). A kernel is specialised for the set of kinds the scene holds
+(:class:`ContactFeatures`); a kind adds a signed-distance function here and a branch in
+``shape_distance``.
 
-Colliders are static rigid shapes stored as a table (type, transform, size, friction). A kernel is
-specialized for the set of shape types the scene holds; new types add a signed-distance function here
-and a branch in ``shape_distance``.
+**Motion.** ``shape_motion_kernel`` writes the frames of animated shapes at a step's start and end from
+keyframe tracks: the shape's rest frame translated by T(t) and turned by the rotation vector φ(t) [rad]
+about its own origin, R(φ(t)) R₀ (as pin groups move, ``kinematics.py``).
+
+**The contact buffer.** ``collide_kernel`` finds, for every particle, the shapes whose surface is within
+its radius plus a margin, and records them in per-particle slots (:class:`ContactSlots`): the shape
+index, in shape order, at most ``slots`` of them. A particle touching more shapes than it has slots keeps
+the first ``slots`` and adds the rest to its world's overflow counter (an integer atomic: the count is
+exact, the kept contacts do not depend on thread order). The response pass walks a particle's own slots,
+so it writes every result once, without atomics. Later kinds of contact (meshes, triangles) store their
+feature (face) in ``feature``.
+
+**The response** (position projection, inelastic or restitutive, Coulomb friction), relative to the
+surface's velocity. A particle of radius r touches a shape when the signed distance d of its centre
+from the surface is below r; it is projected to d = r. With the surface velocity v_s, the relative
+velocity's normal part v_n < 0 (approaching) becomes -e v_n when the approach is faster than two steps
+of gravity (2 |g| h: a resting particle does not hop) and 0 otherwise; the tangential part v_t shrinks
+by μ j_n (j_n = (1 + e)|v_n| the normal change; it sticks when |v_t| is smaller). The position takes the
+tangential change too, h Δv_t, so a particle that sticks moves exactly with the surface — on a moving
+platform it keeps its place — and one that slides travels h Σ v.
+
+The surface velocity is the displacement of the surface point over the step: the point at x at the
+step's end was at X₀ X₁⁻¹ x at its start, so v_s = (x - X₀ X₁⁻¹ x) / h.
 """
 
+import dataclasses
 import functools
 
 import warp as wp
 
+from .inputs import INPUT_GRAVITY
 from .kinematics import is_kinematic
 from .precision import transform_type, vec3_type
+from .tracks import Tracks, track_sample
 from .worlds import world_and_index
 
 wp.set_module_options({"enable_backward": False})
 
-#: Collider shape types (values of ``Model.shape_type``).
+#: Collider shape kinds (values of ``Shapes.kind``).
 SHAPE_PLANE = 0
 SHAPE_SPHERE = 1
-SHAPE_NAMES = {SHAPE_PLANE: "plane", SHAPE_SPHERE: "sphere"}
+SHAPE_BOX = 2
+SHAPE_CAPSULE = 3
+SHAPE_NAMES = {SHAPE_PLANE: "plane", SHAPE_SPHERE: "sphere", SHAPE_BOX: "box", SHAPE_CAPSULE: "capsule"}
+
+#: Slot of an empty contact, and of a contact with no feature (analytic shapes).
+NO_SHAPE = -1
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactFeatures:
+    """What a scene's contacts compile: the shape kinds present (sorted), whether any shape moves (the
+    response then reads the surface velocity), and whether the response reads the contact buffer filled by
+    ``collide_kernel`` (the contact stage) or tests every shape itself (the fused path for static analytic
+    shapes). No kinds: no contact code at all."""
+
+    kinds: tuple = ()
+    moving: bool = False
+    buffered: bool = False
+
+    def __bool__(self) -> bool:
+        return len(self.kinds) > 0
+
+
+NO_CONTACTS = ContactFeatures()
+
+
+@functools.cache
+def shapes_type(scalar: type):
+    """The ``wp.struct`` of the colliders' arrays in one precision."""
+    vec3 = vec3_type(scalar)
+    transform = transform_type(scalar)
+
+    @wp.struct
+    class Shapes:
+        kind: wp.array[wp.int32]  # [shape_count], SHAPE_*
+        size: wp.array[vec3]  # [m], [shape_count]: sphere (r, 0, 0), box half extents, capsule (r, half height, 0)
+        scale: wp.array[vec3]  # [-], [shape_count], a mesh's scale (1 for analytic shapes)
+        mesh: wp.array[wp.uint64]  # [shape_count], a Warp mesh id (0 for analytic shapes)
+        friction: wp.array[scalar]  # Coulomb coefficient μ [-], [shape_count]
+        restitution: wp.array[scalar]  # coefficient e [-], [shape_count]
+        transform_start: wp.array2d[transform]  # the shape frame at the step's start, [rows, shape_count]
+        transform_end: wp.array2d[transform]  # the shape frame at the step's end, [rows, shape_count]
+
+    return Shapes
+
+
+@functools.cache
+def contact_slots_type(scalar: type):
+    """The ``wp.struct`` of the particle-shape contact buffer (see the module docstring)."""
+
+    @wp.struct
+    class ContactSlots:
+        shape: wp.array2d[wp.int32]  # [state_size, slots], the shapes a particle touches, in shape order
+        feature: wp.array2d[wp.int32]  # [state_size, slots], the touched feature (face) or NO_SHAPE
+        count: wp.array[wp.int32]  # [state_size], filled slots
+        overflow: wp.array[wp.int32]  # [world_count], contacts found beyond a particle's slots, accumulated
+        margin: wp.array[scalar]  # [m], [1], distance beyond the radius at which a contact is recorded
+
+    return ContactSlots
 
 
 @functools.cache
 def contact_funcs(scalar: type):
-    """Signed distances and the contact response of one precision."""
+    """Signed distances [m] and outward unit normals in a shape's frame, and the contact response."""
     vec3 = vec3_type(scalar)
+    zero = scalar(0.0)
 
     @wp.func
     def plane_distance(p: vec3):
-        """Signed distance [m] of a local point to the plane z = 0, and the plane's normal +z."""
-        return p[2], vec3(scalar(0.0), scalar(0.0), scalar(1.0))
+        """The plane z = 0, normal +z."""
+        return p[2], vec3(zero, zero, scalar(1.0))
 
     @wp.func
     def sphere_distance(p: vec3, radius: scalar):
-        """Signed distance [m] of a local point to a sphere at the origin, and the outward normal."""
+        """A sphere of ``radius`` at the origin."""
         length = wp.length(p)
-        if length > scalar(0.0):
+        if length > zero:
             return length - radius, p / length
-        # At the centre every direction is outward: push along +z.
-        return -radius, vec3(scalar(0.0), scalar(0.0), scalar(1.0))
+        return -radius, vec3(zero, zero, scalar(1.0))  # at the centre every direction is outward: +z
+
+    @wp.func
+    def box_distance(p: vec3, half: vec3):
+        """A box of half extents ``half`` centred at the origin, axis-aligned. Outside, the normal points
+        from the nearest surface point; inside, along the axis of the nearest face."""
+        q = vec3(wp.abs(p[0]) - half[0], wp.abs(p[1]) - half[1], wp.abs(p[2]) - half[2])
+        outside = vec3(wp.max(q[0], zero), wp.max(q[1], zero), wp.max(q[2], zero))
+        out_length = wp.length(outside)
+        if out_length > zero:
+            n = vec3(wp.sign(p[0]) * outside[0], wp.sign(p[1]) * outside[1], wp.sign(p[2]) * outside[2])
+            return out_length, n / out_length
+        # Inside (or on the surface): the face of the largest q is nearest; ties go to the last axis (z).
+        axis = 2
+        if q[0] > q[1] and q[0] > q[2]:
+            axis = 0
+        elif q[1] > q[2]:
+            axis = 1
+        n = vec3(zero)
+        n[axis] = wp.where(p[axis] < zero, scalar(-1.0), scalar(1.0))
+        return q[axis], n
+
+    @wp.func
+    def capsule_distance(p: vec3, radius: scalar, half_height: scalar):
+        """A capsule along z: the points within ``radius`` of the segment z ∈ [-half_height, half_height]."""
+        d = vec3(p[0], p[1], p[2] - wp.clamp(p[2], -half_height, half_height))
+        length = wp.length(d)
+        if length > zero:
+            return length - radius, d / length
+        return -radius, vec3(scalar(1.0), zero, zero)  # on the axis: push along +x
 
     @wp.func
     def contact_response(
-        x: vec3, v: vec3, radius: scalar, distance: scalar, normal: vec3, friction: scalar, dt: scalar
+        x: vec3, v: vec3, radius: scalar, distance: scalar, normal: vec3, surface_velocity: vec3,
+        friction: scalar, restitution: scalar, bounce_speed: scalar, dt: scalar,
     ):
-        """Project a particle out of a collider and apply inelastic, Coulomb-frictional velocity response.
+        """Project a particle out of a shape, with restitution and Coulomb friction relative to the surface.
 
         Args:
             x: particle position [m]; v: particle velocity [m/s]; radius: particle radius [m];
-            distance: signed distance of x to the surface [m]; normal: outward unit normal;
-            friction: Coulomb coefficient μ [-]; dt: the step that produced x and v [s].
+            distance: signed distance of x from the surface [m]; normal: outward unit normal (world);
+            surface_velocity: the surface's velocity at x [m/s]; friction: Coulomb μ [-];
+            restitution: e [-]; bounce_speed: approach speed [m/s] above which e applies;
+            dt: the step that produced x and v [s].
         """
         penetration = radius - distance
-        if penetration <= scalar(0.0):
+        if penetration <= zero:
             return x, v
         x_out = x + normal * penetration
-        vn = wp.dot(v, normal)
-        if vn >= scalar(0.0):
+        relative = v - surface_velocity
+        vn = wp.dot(relative, normal)
+        if vn >= zero:
             return x_out, v
-        vt = v - normal * vn
+        vt = relative - normal * vn
+        bounce = wp.where(-vn > bounce_speed, restitution, zero)
         vt_len = wp.length(vt)
-        slip = vt_len + friction * vn  # tangential speed left after the friction impulse μ|vn|
-        v_out = vec3(scalar(0.0))
-        if slip > scalar(0.0):
-            v_out = vt * (slip / vt_len)
-        return x_out + dt * (v_out - vt), v_out
+        slip = vt_len + friction * (scalar(1.0) + bounce) * vn  # tangential speed left after μ j_n
+        vt_out = vec3(zero)
+        if slip > zero:
+            vt_out = vt * (slip / vt_len)
+        v_out = surface_velocity + vt_out - normal * (bounce * vn)
+        return x_out + dt * (vt_out - vt), v_out
 
-    return plane_distance, sphere_distance, contact_response
+    return plane_distance, sphere_distance, box_distance, capsule_distance, contact_response
 
 
 @functools.cache
-def project_contacts_func(scalar: type, shape_types: tuple):
-    """Contact projection of one particle against every collider, specialized for the scene's shape types."""
+def shape_funcs(scalar: type, features: ContactFeatures):
+    """Distance to one shape and the response against one shape, specialised for the scene's kinds."""
     vec3 = vec3_type(scalar)
-    transform = transform_type(scalar)
-    plane_distance, sphere_distance, contact_response = contact_funcs(scalar)
-    has_plane = SHAPE_PLANE in shape_types
-    has_sphere = SHAPE_SPHERE in shape_types
+    Shapes = shapes_type(scalar)
+    plane_distance, sphere_distance, box_distance, capsule_distance, contact_response = contact_funcs(scalar)
+    kinds = features.kinds
+
+    @wp.func
+    def shape_distance(shapes: Shapes, s: int, row: int, x: vec3):
+        """Signed distance [m] of the world point x from shape s (its frame at the step's end) and the
+        outward normal in world coordinates."""
+        X = shapes.transform_end[row, s]
+        p = wp.transform_point(wp.transform_inverse(X), x)
+        kind = shapes.kind[s]
+        size = shapes.size[s]
+        distance = scalar(1.0e30)
+        normal = vec3(scalar(0.0), scalar(0.0), scalar(1.0))
+        if wp.static(SHAPE_PLANE in kinds):
+            if kind == SHAPE_PLANE:
+                distance, normal = plane_distance(p)
+        if wp.static(SHAPE_SPHERE in kinds):
+            if kind == SHAPE_SPHERE:
+                distance, normal = sphere_distance(p, size[0])
+        if wp.static(SHAPE_BOX in kinds):
+            if kind == SHAPE_BOX:
+                distance, normal = box_distance(p, size)
+        if wp.static(SHAPE_CAPSULE in kinds):
+            if kind == SHAPE_CAPSULE:
+                distance, normal = capsule_distance(p, size[0], size[1])
+        return distance, wp.transform_vector(X, normal)
+
+    @wp.func
+    def shape_contact(
+        shapes: Shapes, s: int, row: int, x: vec3, v: vec3, radius: scalar, bounce_speed: scalar, dt: scalar
+    ):
+        """Resolve the contact of one particle (x [m], v [m/s], radius [m]) with shape s after a step dt [s]."""
+        distance, normal = shape_distance(shapes, s, row, x)
+        surface_velocity = vec3(scalar(0.0))
+        if wp.static(features.moving):
+            X0 = shapes.transform_start[row, s]
+            X1 = shapes.transform_end[row, s]
+            surface_velocity = (x - wp.transform_point(X0, wp.transform_point(wp.transform_inverse(X1), x))) / dt
+        return contact_response(x, v, radius, distance, normal, surface_velocity, shapes.friction[s],
+                                shapes.restitution[s], bounce_speed, dt)
+
+    return shape_distance, shape_contact
+
+
+@functools.cache
+def project_all_func(scalar: type, features: ContactFeatures):
+    """Contact response of one particle against every shape, in shape order (the fused path)."""
+    vec3 = vec3_type(scalar)
+    Shapes = shapes_type(scalar)
+    _, shape_contact = shape_funcs(scalar, features)
+
+    @wp.func
+    def bounce_speed(world: int, inputs: wp.array2d[scalar], dt: scalar) -> scalar:
+        """Approach speed [m/s] above which restitution applies: two steps of the world's gravity."""
+        g = vec3(inputs[world, INPUT_GRAVITY], inputs[world, INPUT_GRAVITY + 1], inputs[world, INPUT_GRAVITY + 2])
+        return scalar(2.0) * wp.length(g) * dt
+
+    @wp.func
+    def project_contacts_all(
+        world: int, x: vec3, v: vec3, radius: scalar, dt: scalar, shapes: Shapes, inputs: wp.array2d[scalar]
+    ):
+        """Resolve the contacts of a particle of ``world`` (position x [m], velocity v [m/s], radius [m])
+        with every shape after a step of ``dt`` [s]."""
+        row = wp.min(world, shapes.transform_end.shape[0] - 1)
+        speed = bounce_speed(world, inputs, dt)
+        for s in range(shapes.kind.shape[0]):
+            x, v = shape_contact(shapes, s, row, x, v, radius, speed, dt)
+        return x, v
+
+    return bounce_speed, project_contacts_all
+
+
+@functools.cache
+def project_contacts_func(scalar: type, features: ContactFeatures):
+    """Contact response of one particle: against every shape (the fused path) or against the shapes in its
+    contact slots (the contact stage), in shape order either way."""
+    vec3 = vec3_type(scalar)
+    Shapes = shapes_type(scalar)
+    ContactSlots = contact_slots_type(scalar)
+    _, shape_contact = shape_funcs(scalar, features)
+    bounce_speed, project_contacts_all = project_all_func(scalar, features)
 
     @wp.func
     def project_contacts(
-        x: vec3,
-        v: vec3,
-        radius: scalar,
-        dt: scalar,
-        # Model:
-        shape_type: wp.array[wp.int32],
-        shape_transform: wp.array[transform],
-        shape_size: wp.array[vec3],
-        shape_friction: wp.array[scalar],
+        world: int, p: int, x: vec3, v: vec3, radius: scalar, dt: scalar, shapes: Shapes, contacts: ContactSlots,
+        inputs: wp.array2d[scalar],
     ):
-        """Resolve the contacts of one particle (position x [m], velocity v [m/s], radius [m]) after a
-        step of ``dt`` [s]."""
-        for s in range(shape_type.shape[0]):
-            X = shape_transform[s]
-            p = wp.transform_point(wp.transform_inverse(X), x)
-            kind = shape_type[s]
-            distance = scalar(1.0e30)
-            normal = vec3(scalar(0.0), scalar(0.0), scalar(1.0))
-            if wp.static(has_plane):
-                if kind == SHAPE_PLANE:
-                    distance, normal = plane_distance(p)
-            if wp.static(has_sphere):
-                if kind == SHAPE_SPHERE:
-                    distance, normal = sphere_distance(p, shape_size[s][0])
-            x, v = contact_response(x, v, radius, distance, wp.transform_vector(X, normal), shape_friction[s], dt)
-        return x, v
+        """Resolve the contacts of state entry p of ``world`` (position x [m], velocity v [m/s], radius [m])
+        after a step of ``dt`` [s]."""
+        if wp.static(features.buffered):
+            row = wp.min(world, shapes.transform_end.shape[0] - 1)
+            speed = bounce_speed(world, inputs, dt)
+            for k in range(contacts.count[p]):
+                x, v = shape_contact(shapes, contacts.shape[p, k], row, x, v, radius, speed, dt)
+            return x, v
+        return project_contacts_all(world, x, v, radius, dt, shapes, inputs)
 
     return project_contacts
 
 
 @functools.cache
-def project_contacts_kernel(scalar: type, shape_types: tuple):
-    """Kernel applying the contact projection to every dynamic (not kinematic) particle of a state, in place
-    (the colliders are shared by every world: each world has the same scene around it)."""
+def collide_kernel(scalar: type, features: ContactFeatures):
+    """Kernel filling the contact slots of every dynamic particle of a state from its positions (the shapes'
+    frames at the step's end). Launch over the state's entries."""
     vec3 = vec3_type(scalar)
-    transform = transform_type(scalar)
-    project_contacts = project_contacts_func(scalar, shape_types)
+    Shapes = shapes_type(scalar)
+    ContactSlots = contact_slots_type(scalar)
+    shape_distance, _ = shape_funcs(scalar, features)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def project(
-        # Model:
+    def collide(
         particle_count: int,
         particle_flags: wp.array[wp.int32],
         particle_radius: wp.array[scalar],
-        shape_type: wp.array[wp.int32],
-        shape_transform: wp.array[transform],
-        shape_size: wp.array[vec3],
-        shape_friction: wp.array[scalar],
+        shapes: Shapes,
+        particle_q: wp.array[vec3],
+        contacts: ContactSlots,
+    ):
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
+        found = int(0)
+        if not is_kinematic(particle_flags[p]):
+            x = particle_q[p]
+            reach = particle_radius[i] + contacts.margin[0]
+            row = wp.min(world, shapes.transform_end.shape[0] - 1)
+            slots = contacts.shape.shape[1]
+            for s in range(shapes.kind.shape[0]):
+                distance, normal = shape_distance(shapes, s, row, x)
+                if distance < reach:
+                    if found < slots:
+                        contacts.shape[p, found] = s
+                        contacts.feature[p, found] = NO_SHAPE
+                        found += 1
+                    else:
+                        wp.atomic_add(contacts.overflow, world, 1)
+        contacts.count[p] = found
+
+    return collide
+
+
+@functools.cache
+def project_contacts_kernel(scalar: type, features: ContactFeatures):
+    """Kernel applying the contact response to every dynamic particle of a state, in place."""
+    vec3 = vec3_type(scalar)
+    Shapes = shapes_type(scalar)
+    ContactSlots = contact_slots_type(scalar)
+    project_contacts = project_contacts_func(scalar, features)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def project(
+        particle_count: int,
+        particle_flags: wp.array[wp.int32],
+        particle_radius: wp.array[scalar],
+        shapes: Shapes,
+        contacts: ContactSlots,
+        inputs: wp.array2d[scalar],
         dt: scalar,
-        # State in/out:
         particle_q_in_out: wp.array[vec3],
         particle_qd_in_out: wp.array[vec3],
     ):
@@ -145,17 +361,69 @@ def project_contacts_kernel(scalar: type, shape_types: tuple):
         world, i = world_and_index(p, particle_count)
         if is_kinematic(particle_flags[p]):
             return
-        x, v = project_contacts(
-            particle_q_in_out[p],
-            particle_qd_in_out[p],
-            particle_radius[i],
-            dt,
-            shape_type,
-            shape_transform,
-            shape_size,
-            shape_friction,
-        )
+        x, v = project_contacts(world, p, particle_q_in_out[p], particle_qd_in_out[p], particle_radius[i], dt,
+                                shapes, contacts, inputs)
         particle_q_in_out[p] = x
         particle_qd_in_out[p] = v
 
     return project
+
+
+@wp.func
+def rotation_vector_quat(phi: wp.vec3d) -> wp.quatd:
+    """The unit quaternion of the rotation vector φ [rad] (axis × angle)."""
+    angle = wp.length(phi)
+    if angle < wp.float64(1.0e-12):
+        return wp.quatd(phi[0] * wp.float64(0.5), phi[1] * wp.float64(0.5), phi[2] * wp.float64(0.5), wp.float64(1.0))
+    return wp.quat_from_axis_angle(phi / angle, angle)
+
+
+@wp.func
+def shape_frame(
+    tracks: Tracks, rest: wp.transformd, translation: int, rotation: int, t: wp.float64
+) -> wp.transformd:
+    """A shape's frame at time t: the rest frame turned by R(φ(t)) about its origin and moved by T(t)."""
+    position = wp.transform_get_translation(rest)
+    orientation = wp.transform_get_rotation(rest)
+    if rotation >= 0:
+        phi, phi_rate = track_sample(tracks, rotation, t)
+        orientation = wp.normalize(rotation_vector_quat(phi) * orientation)
+    if translation >= 0:
+        offset, offset_rate = track_sample(tracks, translation, t)
+        position = position + offset
+    return wp.transformd(position, orientation)
+
+
+@functools.cache
+def shape_motion_kernel(scalar: type):
+    """Kernel writing every shape's frame at the start t₁ - dt and end t₁ = ``time[world]`` + ``ahead`` [s] of
+    a step (each world at its own time). Launch over [world_count, shape_count]; shapes without tracks keep
+    their rest frame."""
+    vec3 = vec3_type(scalar)
+    transform = transform_type(scalar)
+    quat = wp.types.quaternion(dtype=scalar)
+    Shapes = shapes_type(scalar)
+
+    @wp.func
+    def rounded(X: wp.transformd) -> transform:
+        return transform(vec3(wp.transform_get_translation(X)), quat(wp.transform_get_rotation(X)))
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def shape_motion(
+        rest: wp.array[wp.transformd],
+        translation_track: wp.array[wp.int32],
+        rotation_track: wp.array[wp.int32],
+        tracks: Tracks,
+        time: wp.array[wp.float64],
+        dt: wp.float64,
+        ahead: wp.float64,
+        shapes: Shapes,
+    ):
+        world, s = wp.tid()
+        t1 = time[world] + ahead
+        X0 = shape_frame(tracks, rest[s], translation_track[s], rotation_track[s], t1 - dt)
+        X1 = shape_frame(tracks, rest[s], translation_track[s], rotation_track[s], t1)
+        shapes.transform_start[world, s] = rounded(X0)
+        shapes.transform_end[world, s] = rounded(X1)
+
+    return shape_motion

@@ -23,12 +23,12 @@ import functools
 
 import warp as wp
 
-from .contacts import project_contacts_func
+from .contacts import ContactFeatures, project_all_func, shapes_type
 from .families import FORCE_KERNEL_OPTIONS, elements
 from .forces import ForceFeatures, particle_force_func
 from .kinematics import is_kinematic, particle_funcs
 from .linalg import reduction_funcs
-from .precision import transform_type, vec3_type
+from .precision import vec3_type
 from .worlds import world_and_index
 
 wp.set_module_options({"enable_backward": False})
@@ -49,14 +49,15 @@ def symplectic_euler_funcs(scalar: type):
 
 
 @functools.cache
-def symplectic_euler_update_kernel(scalar: type, shape_types: tuple):
-    """Symplectic Euler + contact kernel from precomputed forces (the scatter path)."""
+def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures):
+    """Symplectic Euler + contact kernel from precomputed forces (the scatter path); ``contacts`` fused
+    (static colliders, every one tested)."""
     vec3 = vec3_type(scalar)
-    transform = transform_type(scalar)
+    Shapes = shapes_type(scalar)
     update = symplectic_euler_funcs(scalar)
     effective_inv_mass = particle_funcs(scalar)
-    project_contacts = project_contacts_func(scalar, shape_types)
-    has_contacts = len(shape_types) > 0
+    _, project_contacts = project_all_func(scalar, contacts)
+    has_contacts = bool(contacts)
 
     @wp.kernel(module="unique", enable_backward=False)
     def symplectic_euler_from_forces(
@@ -65,10 +66,8 @@ def symplectic_euler_update_kernel(scalar: type, shape_types: tuple):
         particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array2d[scalar],
         particle_radius: wp.array[scalar],
-        shape_type: wp.array[wp.int32],
-        shape_transform: wp.array[transform],
-        shape_size: wp.array[vec3],
-        shape_friction: wp.array[scalar],
+        shapes: Shapes,
+        inputs: wp.array2d[scalar],
         # State in:
         particle_q_in: wp.array[vec3],
         particle_qd_in: wp.array[vec3],
@@ -91,9 +90,7 @@ def symplectic_euler_update_kernel(scalar: type, shape_types: tuple):
         x, v = update(particle_q_in[p], particle_qd_in[p], particle_f_in[p], effective_inv_mass(flags, inv_mass), h)
         if wp.static(has_contacts):
             if not is_kinematic(flags):
-                x, v = project_contacts(
-                    x, v, particle_radius[i], h, shape_type, shape_transform, shape_size, shape_friction
-                )
+                x, v = project_contacts(world, x, v, particle_radius[i], h, shapes, inputs)
         particle_q_out[p] = x
         particle_qd_out[p] = v
 
@@ -101,15 +98,16 @@ def symplectic_euler_update_kernel(scalar: type, shape_types: tuple):
 
 
 @functools.cache
-def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: tuple):
-    """Fused force + symplectic Euler + contact kernel: v' = v + h M⁻¹ f(x, v); x' = x + h v'."""
+def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures):
+    """Fused force + symplectic Euler + contact kernel: v' = v + h M⁻¹ f(x, v); x' = x + h v'; ``contacts``
+    fused (static colliders, every one tested)."""
     vec3 = vec3_type(scalar)
-    transform = transform_type(scalar)
+    Shapes = shapes_type(scalar)
     particle_force = particle_force_func(scalar, features)
     Elements = elements(scalar, features.families).arrays
     update = symplectic_euler_funcs(scalar)
-    project_contacts = project_contacts_func(scalar, shape_types)
-    has_contacts = len(shape_types) > 0
+    _, project_contacts = project_all_func(scalar, contacts)
+    has_contacts = bool(contacts)
 
     @wp.kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
     def symplectic_euler(
@@ -118,10 +116,7 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
         particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array2d[scalar],
         particle_radius: wp.array[scalar],
-        shape_type: wp.array[wp.int32],
-        shape_transform: wp.array[transform],
-        shape_size: wp.array[vec3],
-        shape_friction: wp.array[scalar],
+        shapes: Shapes,
         # Model, the forces:
         particle_mass: wp.array2d[scalar],
         element_arrays: Elements,
@@ -155,9 +150,7 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, shape_types: 
                            particle_q_in, particle_qd_in)
         x, v = update(x, v, f, particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i], h)
         if wp.static(has_contacts):
-            x, v = project_contacts(
-                x, v, particle_radius[i], h, shape_type, shape_transform, shape_size, shape_friction
-            )
+            x, v = project_contacts(world, x, v, particle_radius[i], h, shapes, inputs)
         particle_q_out[p] = x
         particle_qd_out[p] = v
 

@@ -3,7 +3,7 @@
 Contact model (``kernels/contacts.py``): after each symplectic Euler update x' = x + h v', v' = v + h g, a
 particle closer than its radius r to a collider is moved back along the collider's normal onto the
 surface, its approaching normal velocity is removed, and its tangential velocity is reduced by at most
-μ·|Δv_n|, where μ is the *collider's* friction (``add_collider_plane(friction=μ)``, ``Model.shape_friction``):
+μ·|Δv_n|, where μ is the *collider's* friction (``add_collider_plane(friction=μ)``, ``Model.shape_arrays.friction``):
 particles have no friction coefficient of their own. The position takes the same tangential change
 times h, so it stays x + h·v for the velocity friction leaves.
 
@@ -75,7 +75,7 @@ def test_friction_coefficient_is_the_colliders():
     builder.add_collider_plane(normal=NORMAL, friction=0.3, name="slope")
     model = builder.finalize("cpu")
     assert model.shapes[0].friction == 0.3
-    np.testing.assert_allclose(model.shape_friction.numpy(), [0.3], rtol=1e-7)
+    np.testing.assert_allclose(model.shape_arrays.friction.numpy(), [0.3], rtol=1e-7)
 
 
 def test_particle_slides_down_slope_at_coulomb_acceleration(device, precision):

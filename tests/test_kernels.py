@@ -3,6 +3,7 @@
 import functools
 
 import numpy as np
+import pytest
 import warp as wp
 
 from warpspring.kernels.contacts import contact_funcs
@@ -84,36 +85,43 @@ def test_spring_force_is_antisymmetric_and_zero_for_coincident_particles(device,
 @functools.cache
 def contact_kernel(scalar):
     vec3 = vec3_type(scalar)
-    _, sphere_distance, contact_response = contact_funcs(scalar)
+    _, sphere_distance, _, _, contact_response = contact_funcs(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
     def kernel(
         x: wp.array[vec3],
         v: wp.array[vec3],
+        surface_velocity: vec3,
         radius: scalar,
         sphere_radius: scalar,
         friction: scalar,
+        restitution: scalar,
+        bounce_speed: scalar,
         dt: scalar,
         x_out: wp.array[vec3],
         v_out: wp.array[vec3],
     ):
         t = wp.tid()
         distance, normal = sphere_distance(x[t], sphere_radius)
-        xo, vo = contact_response(x[t], v[t], radius, distance, normal, friction, dt)
+        xo, vo = contact_response(x[t], v[t], radius, distance, normal, surface_velocity, friction, restitution,
+                                  bounce_speed, dt)
         x_out[t] = xo
         v_out[t] = vo
 
     return kernel
 
 
-def test_sphere_contact_response_matches_reference(device, precision):
-    """Penetrating particles are projected to |x| = R + r; approaching normal velocity is removed and
-    the tangential speed drops by μ·|v_n| (to zero when smaller: sticking), the position moving by h
-    times that tangential change; others are untouched."""
+@pytest.mark.parametrize("moving", [False, True], ids=["static", "moving"])
+def test_sphere_contact_response_matches_reference(device, precision, moving):
+    """Penetrating particles are projected to |x| = R + r. Relative to the surface velocity u, an approaching
+    normal velocity v_n is removed, or reversed to -e v_n when faster than the bounce speed; the tangential
+    speed drops by μ (1 + e) |v_n| (to zero when smaller: sticking), the position moving by h times that
+    tangential change; others are untouched."""
     scalar = scalar_type(precision)
     vec3 = vec3_type(scalar)
     rng = np.random.default_rng(11)
-    n, R, r, mu, h = 400, 0.5, 0.02, 0.4, 0.01
+    n, R, r, mu, e, bounce_speed, h = 400, 0.5, 0.02, 0.4, 0.3, 0.5, 0.01
+    u = np.array([0.3, -0.2, 0.5]) if moving else np.zeros(3)
     direction = rng.normal(size=(n, 3))
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
     x = direction * rng.uniform(0.3, 0.6, (n, 1))
@@ -122,7 +130,8 @@ def test_sphere_contact_response_matches_reference(device, precision):
     wp.launch(
         contact_kernel(scalar),
         dim=n,
-        inputs=[wp.array(x, dtype=vec3, device=device), wp.array(v, dtype=vec3, device=device), r, R, mu, h],
+        inputs=[wp.array(x, dtype=vec3, device=device), wp.array(v, dtype=vec3, device=device), vec3(*u), r, R, mu,
+                e, bounce_speed, h],
         outputs=[x_out, v_out],
         device=device,
     )
@@ -130,17 +139,111 @@ def test_sphere_contact_response_matches_reference(device, precision):
 
     dist = np.linalg.norm(x, axis=1)
     inside = dist < R + r
-    vn = np.sum(v * direction, axis=1)
-    vt = v - vn[:, None] * direction
+    relative = v - u
+    vn = np.sum(relative * direction, axis=1)
+    vt = relative - vn[:, None] * direction
     vt_len = np.linalg.norm(vt, axis=1)
-    scale = np.clip(vt_len + mu * np.minimum(vn, 0.0), 0.0, None) / vt_len
+    bounce = np.where(-vn > bounce_speed, e, 0.0)
+    scale = np.clip(vt_len + mu * (1.0 + bounce) * np.minimum(vn, 0.0), 0.0, None) / vt_len
     approaching = (inside & (vn < 0))[:, None]
-    v_ref = np.where(approaching, vt * scale[:, None], v)
-    x_ref = np.where(inside[:, None], direction * (R + r), x) + np.where(approaching, h * (v_ref - vt), 0.0)
+    vt_out = vt * scale[:, None]
+    v_ref = np.where(approaching, u + vt_out - (bounce * vn)[:, None] * direction, v)
+    x_ref = np.where(inside[:, None], direction * (R + r), x) + np.where(approaching, h * (vt_out - vt), 0.0)
     np.testing.assert_allclose(x_out, x_ref, **TOLERANCE[precision])
     np.testing.assert_allclose(v_out, v_ref, **TOLERANCE[precision])
     assert inside.sum() > 50 and (~inside).sum() > 50  # both branches exercised
-    assert ((vt_len < mu * -vn) & inside).sum() > 5  # sticking exercised
+    assert ((vt_len < mu * -vn) & inside & (vn < 0)).sum() > 5  # sticking exercised
+    assert (approaching[:, 0] & (bounce > 0)).sum() > 5 and (approaching[:, 0] & (bounce == 0)).sum() > 5
+
+
+@functools.cache
+def distance_kernel(scalar):
+    vec3 = vec3_type(scalar)
+    _, _, box_distance, capsule_distance, _ = contact_funcs(scalar)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def kernel(p: wp.array[vec3], half: vec3, radius: scalar, half_height: scalar,
+               box: wp.array[vec3], capsule: wp.array[vec3]):
+        t = wp.tid()
+        d, n = box_distance(p[t], half)
+        box[t] = vec3(d, wp.dot(n, n), scalar(0.0))
+        c, m = capsule_distance(p[t], radius, half_height)
+        capsule[t] = vec3(c, wp.dot(m, m), scalar(0.0))
+
+    return kernel
+
+
+def test_box_and_capsule_distances_match_references(device):
+    """Signed distances of random points against float64 references (box: the exterior Euclidean distance
+    outside, minus the distance to the nearest face inside; capsule: distance to the segment minus the
+    radius), and unit normals equal to the distance's gradient (central differences in float64 of the
+    reference, away from the box's medial planes where it is not differentiable)."""
+    rng = np.random.default_rng(5)
+    half, radius, half_height = np.array([0.3, 0.5, 0.2]), 0.25, 0.4
+    p = rng.uniform(-1.0, 1.0, (2000, 3))
+
+    def box_ref(q):
+        d = np.abs(q) - half
+        return np.linalg.norm(np.maximum(d, 0.0), axis=-1) + np.minimum(d.max(axis=-1), 0.0)
+
+    def capsule_ref(q):
+        axis = np.clip(q[..., 2], -half_height, half_height)
+        return np.linalg.norm(q - np.stack([0 * axis, 0 * axis, axis], -1), axis=-1) - radius
+
+    box, capsule = (wp.empty(len(p), dtype=wp.vec3d, device=device) for _ in range(2))
+    wp.launch(distance_kernel(wp.float64), dim=len(p), inputs=[wp.array(p, dtype=wp.vec3d, device=device),
+              wp.vec3d(*half), radius, half_height], outputs=[box, capsule], device=device)
+    box, capsule = box.numpy(), capsule.numpy()
+    np.testing.assert_allclose(box[:, 0], box_ref(p), atol=1e-12)
+    np.testing.assert_allclose(capsule[:, 0], capsule_ref(p), atol=1e-12)
+    np.testing.assert_allclose(box[:, 1], 1.0, atol=1e-12)
+    np.testing.assert_allclose(capsule[:, 1], 1.0, atol=1e-12)
+    assert (box[:, 0] < 0).sum() > 20 and (capsule[:, 0] < 0).sum() > 30  # inside points exercised
+
+
+@functools.cache
+def normal_kernel(scalar):
+    vec3 = vec3_type(scalar)
+    _, _, box_distance, capsule_distance, _ = contact_funcs(scalar)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def kernel(p: wp.array[vec3], half: vec3, radius: scalar, half_height: scalar,
+               box: wp.array[vec3], capsule: wp.array[vec3]):
+        t = wp.tid()
+        d, n = box_distance(p[t], half)
+        box[t] = n
+        c, m = capsule_distance(p[t], radius, half_height)
+        capsule[t] = m
+
+    return kernel
+
+
+def test_box_and_capsule_normals_are_distance_gradients(device):
+    """The outward normal each returns is the gradient of its signed distance (central differences of
+    step 1e-6 in float64), at points off the box's medial planes and the capsule's axis."""
+    rng = np.random.default_rng(6)
+    half, radius, half_height = np.array([0.3, 0.5, 0.2]), 0.25, 0.4
+    p = rng.uniform(-1.0, 1.0, (2000, 3))
+    d = np.abs(p) - half
+    ordered = np.sort(d, axis=1)
+    p = p[(ordered[:, 2] - ordered[:, 1] > 1e-3) | (ordered[:, 2] > 0)]  # a unique nearest face inside
+    p = p[np.hypot(p[:, 0], p[:, 1]) > 1e-3]
+    box, capsule = (wp.empty(len(p), dtype=wp.vec3d, device=device) for _ in range(2))
+    wp.launch(normal_kernel(wp.float64), dim=len(p), inputs=[wp.array(p, dtype=wp.vec3d, device=device),
+              wp.vec3d(*half), radius, half_height], outputs=[box, capsule], device=device)
+
+    def box_ref(q):
+        e = np.abs(q) - half
+        return np.linalg.norm(np.maximum(e, 0.0), axis=-1) + np.minimum(e.max(axis=-1), 0.0)
+
+    def capsule_ref(q):
+        axis = np.clip(q[..., 2], -half_height, half_height)
+        return np.linalg.norm(q - np.stack([0 * axis, 0 * axis, axis], -1), axis=-1) - radius
+
+    step = 1e-6
+    for ref, normals in ((box_ref, box.numpy()), (capsule_ref, capsule.numpy())):
+        gradient = np.stack([(ref(p + step * k) - ref(p - step * k)) / (2 * step) for k in np.eye(3)], axis=1)
+        np.testing.assert_allclose(normals, gradient, atol=1e-6)
 
 
 @functools.cache

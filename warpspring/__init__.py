@@ -47,7 +47,8 @@ from .core.bending import DihedralMaterial
 from .core.builder import ModelBuilder, SpringMaterial
 from .core.families import ElementFamily
 from .errors import ConfigError, SimulationError, WarpspringError
-from .core.forces import apply_contacts, eval_forces
+from .core.contacts import Contacts, apply_contacts, collide
+from .core.forces import eval_forces
 from .core.integrators import (
     INTEGRATORS,
     RK4,
@@ -104,7 +105,9 @@ __all__ = [
     "SymplecticEuler",
     "Track",
     "WarpspringError",
+    "Contacts",
     "apply_contacts",
+    "collide",
     "eval_forces",
     "make_integrator",
     "quat_from_axis_angle",

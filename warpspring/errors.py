@@ -21,3 +21,8 @@ class SimulationError(WarpspringError, RuntimeError):
         super().__init__(message)
         self.frame = frame
         self.substep = substep
+
+
+class ContactOverflowWarning(UserWarning):
+    """Contacts were found beyond a particle's slots in the contact buffer and dropped: those particles were
+    not kept out of those colliders. Raise ``contact_slots`` in ``ModelBuilder.finalize``."""

@@ -15,9 +15,9 @@ import warp as wp
 
 from .. import checks
 from ..errors import ConfigError
-from ..kernels.contacts import SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
+from ..kernels.contacts import SHAPE_BOX, SHAPE_CAPSULE, SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
 from ..kernels.kinematics import PARTICLE_KINEMATIC
-from ..kernels.precision import scalar_type, transform_type, vec3_type
+from ..kernels.precision import scalar_type, vec3_type
 from .bending import DihedralMaterial
 from .families import ElementFamily, build_incidence
 from .hinges import dihedral_angle, mesh_hinges
@@ -111,7 +111,7 @@ class ModelBuilder:
         self._families: list[ElementFamily] = []  # element families beyond springs, in the order added
 
         self._meshes: list[MeshGroup] = []
-        self._shapes: list[tuple] = []  # (type, position, quat xyzw, size, friction, name)
+        self._shapes: list[ShapeInfo] = []
 
     # -- counts ---------------------------------------------------------------------------------------
 
@@ -592,36 +592,88 @@ class ModelBuilder:
 
     # -- colliders ------------------------------------------------------------------------------------
 
-    def add_collider_plane(self, *, point=(0.0, 0.0, 0.0), normal=None, friction: float = 0.5, name="ground"):
-        """Add an infinite static plane; particles stay on the side its normal points to.
+    def add_collider_plane(self, *, point=(0.0, 0.0, 0.0), normal=None, friction: float = 0.5,
+                           restitution: float = 0.0, translation: Track | None = None,
+                           rotation: Track | None = None, name="ground") -> int:
+        """Add an infinite plane; particles stay on the side its normal points to.
 
         Args:
             point: a point on the plane [m].
             normal: plane normal (normalised here); default the up axis.
             friction: Coulomb coefficient μ [-], ≥ 0.
+            restitution: coefficient of restitution e [-] in [0, 1]: the normal speed an impact keeps.
+            translation, rotation: keyframe tracks moving the plane (see :meth:`add_collider_box`).
             name: prim name for export.
+
+        Returns:
+            The collider's index.
         """
         n = self.up_vector if normal is None else checks.vector("plane normal", normal)
         length = np.linalg.norm(n)
         if length == 0.0:
             raise ConfigError("plane normal must be a nonzero vector")
-        rotation = quat_between(np.array([0.0, 0.0, 1.0]), n / length)
-        self._add_shape(SHAPE_PLANE, checks.vector("plane point", point), rotation, (0.0, 0.0, 0.0), friction, name)
+        orientation = quat_between(np.array([0.0, 0.0, 1.0]), n / length)
+        return self._add_shape(SHAPE_PLANE, checks.vector("plane point", point), orientation, (0.0, 0.0, 0.0),
+                               friction, restitution, translation, rotation, name)
 
-    def add_ground_plane(self, *, height: float = 0.0, friction: float = 0.5, name: str = "ground"):
+    def add_ground_plane(self, *, height: float = 0.0, friction: float = 0.5, restitution: float = 0.0,
+                         name: str = "ground") -> int:
         """Add the ground: a plane through ``height`` [m] along the up axis, normal up."""
         height = checks.number("ground height", height, minimum=-np.inf, inclusive=True)
-        self.add_collider_plane(point=self.up_vector * height, friction=friction, name=name)
+        return self.add_collider_plane(point=self.up_vector * height, friction=friction, restitution=restitution,
+                                       name=name)
 
-    def add_collider_sphere(self, *, center, radius: float, friction: float = 0.5, name="sphere"):
-        """Add a static sphere of ``radius`` [m] at ``center`` [m] with Coulomb coefficient ``friction``."""
+    def add_collider_sphere(self, *, center, radius: float, friction: float = 0.5, restitution: float = 0.0,
+                            translation: Track | None = None, rotation: Track | None = None,
+                            name="sphere") -> int:
+        """Add a sphere of ``radius`` [m] at ``center`` [m] (other arguments as :meth:`add_collider_box`)."""
         size = (checks.positive("sphere radius", radius), 0.0, 0.0)
-        self._add_shape(SHAPE_SPHERE, checks.vector("sphere center", center), (0.0, 0.0, 0.0, 1.0), size, friction, name)
+        return self._add_shape(SHAPE_SPHERE, checks.vector("sphere center", center), (0.0, 0.0, 0.0, 1.0), size,
+                               friction, restitution, translation, rotation, name)
+
+    def add_collider_box(self, *, center, half_extents, orientation=(0.0, 0.0, 0.0, 1.0), friction: float = 0.5,
+                         restitution: float = 0.0, translation: Track | None = None,
+                         rotation: Track | None = None, name="box") -> int:
+        """Add a box collider.
+
+        Args:
+            center: the box's centre [m] at rest (time 0 without tracks).
+            half_extents: half the box's size along its own x, y, z axes [m], each > 0.
+            orientation: the box's rest orientation, a quaternion (x, y, z, w).
+            friction: Coulomb coefficient μ [-], ≥ 0, against the moving surface.
+            restitution: coefficient of restitution e [-] in [0, 1] (applies to impacts faster than two steps of
+                gravity, so that a resting particle does not hop).
+            translation: :class:`Track` of T(t) [m], 3-vectors added to ``center``.
+            rotation: :class:`Track` of the rotation vector φ(t) [rad] (axis × angle, see
+                :meth:`Track.rotation`) turning the box about its centre: orientation R(φ(t)) · rest.
+            name: prim name for export.
+
+        Returns:
+            The collider's index. With a track the collider moves; particles touching it take its surface
+            velocity (friction acts relative to it), and it is exported with time-sampled transforms.
+        """
+        half = checks.vector("box half_extents", half_extents)
+        if not (half > 0.0).all():
+            raise ConfigError(f"box half_extents must all be > 0 [m], got {tuple(half)}")
+        return self._add_shape(SHAPE_BOX, checks.vector("box center", center), _quaternion(orientation),
+                               tuple(half), friction, restitution, translation, rotation, name)
+
+    def add_collider_capsule(self, *, center, radius: float, half_height: float,
+                             orientation=(0.0, 0.0, 0.0, 1.0), friction: float = 0.5, restitution: float = 0.0,
+                             translation: Track | None = None, rotation: Track | None = None,
+                             name="capsule") -> int:
+        """Add a capsule: the points within ``radius`` [m] of the segment from -``half_height`` to
+        +``half_height`` [m] along its own z axis (USD's ``Capsule`` with axis "Z" and height 2 ·
+        half_height). Other arguments as :meth:`add_collider_box`."""
+        size = (checks.positive("capsule radius", radius), checks.non_negative("capsule half_height", half_height),
+                0.0)
+        return self._add_shape(SHAPE_CAPSULE, checks.vector("capsule center", center), _quaternion(orientation),
+                               size, friction, restitution, translation, rotation, name)
 
     # -- finalize -------------------------------------------------------------------------------------
 
     def finalize(self, device=None, *, precision: str = "float32", spring_evaluation: str = "auto",
-                 worlds: int = 1) -> Model:
+                 worlds: int = 1, contact_stage: bool | None = None, contact_slots: int | None = None) -> Model:
         """Copy the scene to ``device`` as a :class:`Model`.
 
         Args:
@@ -634,6 +686,12 @@ class ModelBuilder:
             spring_evaluation: "gather" (per particle, no atomics, fusable, any number of springs per particle),
                 "scatter" (per spring, each evaluated once, atomic adds: deterministic only on the CPU) or
                 "auto": gather on CUDA, scatter on the CPU (the faster choice on each).
+            contact_stage: resolve contacts through the contact stage (``collide`` fills a per-particle contact
+                buffer, the response reads it) instead of testing every collider in the update (the fused path).
+                Default: the stage when a collider moves, the fused path for static ones.
+            contact_slots: contacts a particle can hold in the stage's buffer [1, 64]; default min(colliders, 4).
+                More contacts at one particle are dropped, counted and reported (``Contacts.overflow``, the
+                guard, the run summary).
         """
         if spring_evaluation not in ("auto", "gather", "scatter"):
             raise ConfigError(f"spring_evaluation must be 'auto', 'gather' or 'scatter', got {spring_evaluation!r}")
@@ -689,7 +747,9 @@ class ModelBuilder:
         model.particle_inv_mass = farray(1.0 / mass[None, :], name="an inverse particle mass [1/kg]")
         model.particle_radius = farray(np.concatenate(self._radius), name="a particle radius [m]")
         model.particle_flags = iarray(every_world(np.where(pinned, PARTICLE_KINEMATIC, 0)))
-        # Tracks: the pin groups' first (their indices stay put), then the animated inputs.
+        # Tracks: the colliders' and pin groups' first (their indices stay put), then the animated inputs.
+        model._shape_tracks = [t for shape in self._shapes for t in (shape.translation_track, shape.rotation_track)
+                               if t is not None]
         model._pin_tracks = [t for g in self._pin_groups for t in (g.translation, g.rotation) if t is not None]
         model._rebuild_tracks()
         if self._pin_groups:
@@ -736,23 +796,13 @@ class ModelBuilder:
         model.tri_indices = wp.array(tri_indices.astype(np.int32), dtype=wp.int32, device=device)
         model.meshes = list(self._meshes)
 
-        transform = transform_type(scalar)
-        model.shape_count = len(self._shapes)
-        model.shape_type = iarray([t for t, *_ in self._shapes])
-        model.shape_transform = wp.array(
-            [transform(vec3(*p), wp.types.quaternion(dtype=scalar)(*r)) for _, p, r, *_ in self._shapes],
-            dtype=transform,
-            device=device,
+        model.shapes = list(self._shapes)
+        model._finalize_shapes(
+            size=farray(np.array([shape.size for shape in self._shapes]).reshape(-1, 3), vec3,
+                        name="a collider size [m]"),
+            stage=contact_stage,
+            slots=contact_slots,
         )
-        model.shape_size = farray(np.array([size for *_, size, _, _ in self._shapes]).reshape(-1, 3), vec3)
-        model.shape_friction = farray([f for *_, f, _ in self._shapes])
-        model.shape_types = tuple(sorted({t for t, *_ in self._shapes}))
-        model.shapes = [
-            ShapeInfo(
-                kind=SHAPE_NAMES[t], name=name, position=tuple(p), rotation=tuple(r), size=tuple(size), friction=mu
-            )
-            for t, p, r, size, mu, name in self._shapes
-        ]
         for family in self._families:
             family.finalize(model)
         model.extra_families = tuple(self._families)
@@ -798,10 +848,26 @@ class ModelBuilder:
         self.add_hinges(ids[hinges], stiffness=stiffness, damping=damping,
                         rest_angle=mesh_rest if rest == "mesh" else 0.0)
 
-    def _add_shape(self, kind, position, rotation, size, friction, name):
+    def _add_shape(self, kind, position, orientation, size, friction, restitution, translation, rotation, name):
         friction = checks.non_negative("friction", friction)
-        name = self._unique_name(name, [s[-1] for s in self._shapes])
-        self._shapes.append((kind, tuple(float(x) for x in position), tuple(rotation), tuple(size), friction, name))
+        restitution = checks.number("restitution", restitution, minimum=0.0)
+        if restitution > 1.0:
+            raise ConfigError(f"restitution must be in [0, 1] (the share of the normal speed an impact keeps), "
+                              f"got {restitution}")
+        translation = None if translation is None else as_track("a collider's translation", translation, 3)
+        rotation = None if rotation is None else as_track("a collider's rotation", rotation, 3)
+        self._shapes.append(ShapeInfo(
+            kind=SHAPE_NAMES[kind],
+            name=self._unique_name(name, [s.name for s in self._shapes]),
+            position=tuple(float(x) for x in position),
+            rotation=tuple(float(x) for x in orientation),
+            size=tuple(float(x) for x in size),
+            friction=friction,
+            restitution=restitution,
+            translation_track=translation,
+            rotation_track=rotation,
+        ))
+        return len(self._shapes) - 1
 
     @staticmethod
     def _place(local: np.ndarray, origin, rotation) -> np.ndarray:

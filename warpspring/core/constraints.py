@@ -1,14 +1,16 @@
 """The passes every integrator runs on its result: strain limiting, speed clamping, contacts.
 
 Only what the model asks for is launched: with no stabilizer and no collider nothing runs; with only
-colliders, one contact kernel. The limits are live inputs, read at the state's time.
+static colliders, one contact kernel (which symplectic Euler fuses into its update); with the contact
+stage, the colliders' motion, ``collide`` and the response. The limits are live inputs, read at the
+state's time.
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-from .forces import apply_contacts
+from .contacts import Contacts, apply_contacts, collide_positions, empty_contacts, update_shape_frames
 from ..kernels.constraints import finish_step_kernel, strain_limit_kernel
 from .model import Model, State
 from .tracks import evaluate_input_tracks
@@ -23,6 +25,20 @@ class StepFinisher:
     def __init__(self, model: Model):
         self.model = model
         self._buffers = None  # (positions before, two Jacobi buffers): allocated once strain limiting is on
+        self._contacts = None
+
+    @property
+    def contacts(self) -> Contacts | None:
+        """The contact buffer of the contact stage (made on first use), or ``None`` without one."""
+        if not self.model.contact_stage:
+            return None
+        if self._contacts is None:
+            self._contacts = Contacts(self.model)
+        return self._contacts
+
+    def history(self) -> list:
+        """Device arrays one step leaves to the next: the contact buffer's overflow counters."""
+        return self.contacts.history() if self.contacts is not None else []
 
     def _strain_buffers(self):
         if self._buffers is None:
@@ -40,13 +56,17 @@ class StepFinisher:
 
     @property
     def only_contacts(self) -> bool:
-        """True when the pass is just contact projection (which integrators may fuse into their update)."""
-        return not (self.strain_limited or self.speed_clamped)
+        """True when the pass is just the contact response against every collider (no stabiliser, no contact
+        stage), which integrators may fuse into their update."""
+        return not (self.strain_limited or self.speed_clamped or self.model.contact_stage)
 
     def __call__(self, state: State, dt: float) -> None:
         model = self.model
-        if self.only_contacts:
-            apply_contacts(model, state, dt)
+        update_shape_frames(model, state.time, dt)
+        if not (self.strain_limited or self.speed_clamped):
+            if model.contact_stage:
+                collide_positions(model, state.particle_q, self.contacts)
+            apply_contacts(model, state, dt, self.contacts)
             return
         evaluate_input_tracks(model, state)
         common = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
@@ -65,16 +85,16 @@ class StepFinisher:
                 wp.launch(limit, inputs=[*table, source], outputs=[target], **common)
                 source = target
             corrected = source
+        if model.contact_stage:
+            collide_positions(model, corrected, self.contacts)
         wp.launch(
-            finish_step_kernel(model.scalar, model.shape_types, self.speed_clamped, strain_limited),
+            finish_step_kernel(model.scalar, model.contact_features(), self.speed_clamped, strain_limited),
             inputs=[
                 model.particle_count,
                 model.particle_flags,
                 model.particle_radius,
-                model.shape_type,
-                model.shape_transform,
-                model.shape_size,
-                model.shape_friction,
+                model.shape_arrays,
+                (self.contacts or empty_contacts(model)).arrays,
                 model.inputs,
                 corrected,
                 before if strain_limited else state.particle_q,

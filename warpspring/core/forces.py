@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import warp as wp
 
-from ..kernels.contacts import project_contacts_kernel
 from ..kernels.forces import clamp_forces_kernel, eval_forces_kernel
 from ..kernels.springs import spring_scatter_kernel
 from .model import Control, Model, State
@@ -58,27 +57,3 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
         if features.clamp_particle_force:
             wp.launch(clamp_forces_kernel(model.scalar), dim=model.particle_dim, block_dim=model.block_dim,
                       inputs=[model.particle_count, model.inputs], outputs=[out], device=model.device)
-
-
-def apply_contacts(model: Model, state: State, dt: float) -> None:
-    """Project the dynamic particles of ``state`` out of the colliders, with friction, in place; ``dt`` [s]
-    is the step that produced ``state`` (friction's change of velocity moves the position by dt·Δv)."""
-    if model.shape_count == 0:
-        return
-    wp.launch(
-        project_contacts_kernel(model.scalar, model.shape_types),
-        dim=model.particle_dim,
-        block_dim=model.block_dim,
-        inputs=[
-            model.particle_count,
-            model.particle_flags,
-            model.particle_radius,
-            model.shape_type,
-            model.shape_transform,
-            model.shape_size,
-            model.shape_friction,
-            model.scalar(dt),
-        ],
-        outputs=[state.particle_q, state.particle_qd],
-        device=model.device,
-    )

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
+from scipy.spatial.transform import Rotation
 
 from .. import checks
 from ..errors import ConfigError
@@ -14,13 +15,18 @@ from ..kernels.families import fill_elements
 from ..kernels.forces import ForceFeatures
 from ..kernels.springs import SpringLaw
 from ..kernels.families import Incidence, IncidenceShape
+from ..kernels.contacts import NO_CONTACTS, SHAPE_NAMES, ContactFeatures, shapes_type
 from ..kernels.inputs import INPUT_COUNT, INPUTS
 from ..kernels.kinematics import PARTICLE_KINEMATIC
-from ..kernels.precision import vec3_type
+from ..kernels.precision import transform_type, vec3_type
 from .kinematics import PinGroupTable, apply_kinematics
 from .bending import HingeFamily
 from .springs import SpringFamily
 from .tracks import Track, TrackTable, as_track, input_track
+
+SHAPE_KINDS = {name: kind for kind, name in SHAPE_NAMES.items()}
+#: Most contacts one particle can hold in the contact buffer.
+MAX_CONTACT_SLOTS = 64
 
 #: The stabiliser thresholds that are live inputs (their names in ``kernels.inputs.INPUTS``).
 STABILIZER_INPUTS = ("max_spring_force", "max_particle_force", "max_speed", "max_strain", "biphasic_strain",
@@ -105,15 +111,20 @@ class MeshGroup:
 
 @dataclass(frozen=True)
 class ShapeInfo:
-    """Host-side description of one static collider, for export and reporting.
+    """Host-side description of one collider, for export and reporting.
 
     Attributes:
-        kind: shape type name ("plane", "sphere").
+        kind: shape kind name ("plane", "sphere", "box", "capsule").
         name: prim name for export (a valid USD identifier).
-        position: position of the shape frame [m], shape [3].
-        rotation: orientation of the shape frame as a quaternion (x, y, z, w).
-        size: type-specific size [m]: sphere (radius, 0, 0); plane (half width, half length, 0), 0 = infinite.
+        position: position of the shape frame at rest [m], shape [3].
+        rotation: orientation of the shape frame at rest as a unit quaternion (x, y, z, w).
+        size: kind-specific size [m]: sphere (radius, 0, 0); box (half extents along x, y, z); capsule (radius,
+            half height along z, 0); plane (half width, half length, 0) for export only, 0 = fitted to the scene.
         friction: Coulomb friction coefficient [-].
+        restitution: coefficient of restitution [-].
+        translation_track: :class:`Track` of the offset T(t) [m] added to ``position``, or None.
+        rotation_track: :class:`Track` of the rotation vector φ(t) [rad] turning the shape about its origin
+            (orientation R(φ(t)) · ``rotation``), or None.
     """
 
     kind: str
@@ -122,6 +133,25 @@ class ShapeInfo:
     rotation: tuple
     size: tuple
     friction: float
+    restitution: float = 0.0
+    translation_track: Track | None = None
+    rotation_track: Track | None = None
+
+    @property
+    def moving(self) -> bool:
+        return self.translation_track is not None or self.rotation_track is not None
+
+    def frame(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """The shape's position [m] and orientation quaternion (x, y, z, w) at time ``t`` [s] (float64,
+        the host reference of the device's ``shape_frame``)."""
+        position = np.asarray(self.position, dtype=np.float64)
+        orientation = np.asarray(self.rotation, dtype=np.float64)
+        if self.rotation_track is not None:
+            turn = Rotation.from_rotvec(self.rotation_track.sample(t)[0][0])
+            orientation = (turn * Rotation.from_quat(orientation)).as_quat()
+        if self.translation_track is not None:
+            position = position + self.translation_track.sample(t)[0][0]
+        return position, orientation
 
 
 @dataclass(frozen=True)
@@ -225,14 +255,17 @@ class Model:
     tri_indices: wp.array  # int32, shape [tri_count, 3], global particle indices
 
     shape_count: int
-    shape_type: wp.array  # int32, shape [shape_count], kernels.contacts.SHAPE_* values
-    shape_transform: wp.array  # wp.transform, shape [shape_count], shape frame in world
-    shape_size: wp.array  # [m], vec3, shape [shape_count], see ShapeInfo.size
-    shape_friction: wp.array  # [-], shape [shape_count], Coulomb coefficient
-    shape_types: tuple  # sorted collider types present: the contact kernels' specialization key
+    shapes: list  # list[ShapeInfo], host-side: the colliders as built (rest frames, tracks), for export
+    shape_arrays: object  # kernels.contacts.shapes_type(scalar): the colliders on the device (struct of arrays)
+    shape_types: tuple  # sorted collider kinds present (kernels.contacts.SHAPE_*): the kernels' specialization
+    shape_moving: bool  # some collider has a track: its frames are per world, written every step
+    shape_rest: wp.array  # wp.transformd, shape [shape_count], each collider's frame at rest
+    shape_translation_track: wp.array  # int32, shape [shape_count], track table index of T(t), or -1
+    shape_rotation_track: wp.array  # int32, shape [shape_count], track table index of φ(t), or -1
+    contact_stage: bool  # contacts go through collide() and the contact buffer (else: fused, every collider)
+    contact_slots: int  # contacts a particle holds in the buffer
 
     meshes: list  # list[MeshGroup], host-side, for export
-    shapes: list  # list[ShapeInfo], host-side, for export
 
     def __init__(self, device: wp.Device, precision: str, scalar: type, world_count: int = 1):
         self.device = device
@@ -244,6 +277,12 @@ class Model:
         self.vec3 = vec3_type(scalar)
         self.meshes = []
         self.shapes = []
+        self.shape_count = 0
+        self.shape_types = ()
+        self.shape_moving = False
+        self.contact_stage = False
+        self.contact_slots = 1
+        self._shape_tracks: list[Track] = []
         self.revision = 0
         self.input_version = 0
         self.pin_groups = None
@@ -595,9 +634,12 @@ class Model:
         self.input_version += 1
 
     def _rebuild_tracks(self) -> None:
-        # Pin groups' tracks come first, so their indices (held by the pin-group table) never move.
+        # Colliders' and pin groups' tracks come first, so their indices (held by their tables) never move.
         names = tuple(self._tracks)
-        tracks = list(self._pin_tracks)
+        tracks = []
+        for t in (*self._shape_tracks, *self._pin_tracks):
+            if not any(t is u for u in tracks):
+                tracks.append(t)
         for name in names:
             for t in self._tracks[name]:
                 if t is not None and not any(t is u for u in tracks):
@@ -617,6 +659,54 @@ class Model:
             slot=wp.array(slot, dtype=wp.int32, device=self.device),
             width=wp.array(width, dtype=wp.int32, device=self.device),
         )
+
+    def _finalize_shapes(self, *, size: wp.array, stage: bool | None, slots: int | None) -> None:
+        """The colliders' device arrays from ``self.shapes`` (called by ``ModelBuilder.finalize``)."""
+        shapes, device = self.shapes, self.device
+        count = len(shapes)
+        self.shape_count = count
+        self.shape_types = tuple(sorted({SHAPE_KINDS[s.kind] for s in shapes}))
+        self.shape_moving = any(s.moving for s in shapes)
+        self.contact_stage = count > 0 and (self.shape_moving if stage is None else bool(stage))
+        slots = max(1, min(count, 4)) if slots is None else checks.count("contact_slots", slots, minimum=1)
+        if slots > MAX_CONTACT_SLOTS:
+            raise ConfigError(f"contact_slots must be at most {MAX_CONTACT_SLOTS}, got {slots}")
+        self.contact_slots = slots
+
+        def track_index(track):
+            return -1 if track is None else self.track_table.index(track)
+
+        def int_array(values):
+            return wp.array(np.asarray(values, dtype=np.int32).reshape(-1), dtype=wp.int32, device=device)
+
+        self.shape_rest = wp.array([wp.transformd(wp.vec3d(*s.position), wp.quatd(*s.rotation)) for s in shapes],
+                                   dtype=wp.transformd, device=device)
+        self.shape_translation_track = int_array([track_index(s.translation_track) for s in shapes])
+        self.shape_rotation_track = int_array([track_index(s.rotation_track) for s in shapes])
+        scalar_np = np.float64 if self.scalar is wp.float64 else np.float32
+        arrays = shapes_type(self.scalar)()
+        arrays.kind = int_array([SHAPE_KINDS[s.kind] for s in shapes])
+        arrays.size = size
+        arrays.scale = wp.array(np.ones((count, 3), dtype=scalar_np), dtype=self.vec3, device=device)
+        arrays.mesh = wp.zeros(count, dtype=wp.uint64, device=device)
+        arrays.friction = wp.array(np.asarray([s.friction for s in shapes], dtype=scalar_np), dtype=self.scalar,
+                                   device=device)
+        arrays.restitution = wp.array(np.asarray([s.restitution for s in shapes], dtype=scalar_np),
+                                      dtype=self.scalar, device=device)
+        # Frames at t = 0 in every row: one row shared by every world when nothing moves, else one per world.
+        rows = self.world_count if self.shape_moving else 1
+        frames = np.array([np.concatenate(s.frame(0.0)) for s in shapes], dtype=scalar_np).reshape(count, 7)
+        frames = np.ascontiguousarray(np.broadcast_to(frames, (rows, count, 7)))
+        transform = transform_type(self.scalar)
+        arrays.transform_start = wp.array(frames, dtype=transform, device=device)
+        arrays.transform_end = wp.array(frames, dtype=transform, device=device)
+        self.shape_arrays = arrays
+
+    def contact_features(self) -> ContactFeatures:
+        """What the contact kernels compile for this model (no kinds: no contact code)."""
+        if self.shape_count == 0:
+            return NO_CONTACTS
+        return ContactFeatures(kinds=self.shape_types, moving=self.shape_moving, buffered=self.contact_stage)
 
     # -- derived feature sets (what the kernels are specialized for) -------------------------------------------
 

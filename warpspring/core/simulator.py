@@ -3,8 +3,13 @@ with run-time guards and clear errors."""
 
 from __future__ import annotations
 
+import warnings
+
+import numpy as np
+
 from .. import checks
-from ..errors import SimulationError
+from ..errors import ContactOverflowWarning, SimulationError
+from .contacts import Contacts
 from .guards import Guard, GuardLimits
 from .integrators import Integrator, SymplecticEuler
 from .model import Control, Model, State
@@ -37,6 +42,10 @@ class Simulator:
     Attributes:
         world_failures: the worlds stopped by the guard (``stop="world"``) so far: world → (frame, report),
             the frame being the one during which it failed (its last valid frame is the one before).
+
+    With the contact stage (``Model.contact_stage``), the guard also reads the contact buffer's overflow
+    after every frame and warns (:class:`~warpspring.errors.ContactOverflowWarning`) in a frame that dropped
+    contacts; :meth:`contact_overflow` counts them per world.
     """
 
     def __init__(
@@ -67,6 +76,7 @@ class Simulator:
         )
         self.frame = 0
         self.world_failures: dict = {}
+        self._overflow_seen = np.zeros(model.world_count, dtype=np.int64)
 
     @property
     def integrator(self) -> Integrator:
@@ -80,6 +90,17 @@ class Simulator:
     def state(self) -> State:
         """The current state (at :attr:`time`)."""
         return self.stepper.state
+
+    @property
+    def contacts(self) -> Contacts | None:
+        """The contact buffer the steps fill (the contact stage), or ``None``."""
+        return self.integrator.finish_step.contacts
+
+    def contact_overflow(self) -> np.ndarray:
+        """Contacts dropped so far because a particle touched more colliders than it has slots, per world,
+        int64, shape [world_count] (reads the device; zeros without the contact stage)."""
+        contacts = self.contacts
+        return contacts.overflow() if contacts is not None else np.zeros(self.model.world_count, dtype=np.int64)
 
     @property
     def use_graph(self) -> bool:
@@ -119,7 +140,21 @@ class Simulator:
                     frame=self.frame + 1,
                     substep=report.substep + 1,
                 )
+            if self.contacts is not None:
+                self._report_overflow()
         self.frame += 1
+
+    def _report_overflow(self) -> None:
+        overflow = self.contact_overflow()
+        new = overflow - self._overflow_seen
+        if new.any():
+            worlds = ", ".join(f"world {w}: {n}" for w, n in enumerate(new) if n) if len(new) > 1 else f"{new[0]}"
+            slots = self.contacts.slots
+            warnings.warn(ContactOverflowWarning(
+                f"frame {self.frame + 1}: particles touched more colliders than their {slots} contact slot(s); "
+                f"contacts dropped ({worlds}), so those particles were not kept out of every collider: "
+                f"finalize with contact_slots={min(2 * slots, 64)}"), stacklevel=3)
+        self._overflow_seen = overflow
 
     def describe_failure(self, world: int) -> str:
         """One line on why the guard stopped ``world`` (a key of :attr:`world_failures`)."""
@@ -139,6 +174,9 @@ class Simulator:
         repeats exactly."""
         self.stepper.reset(state)
         self.state.time.zero_()
+        if self.contacts is not None:
+            self.contacts.reset()
+            self._overflow_seen[:] = 0
         self.control.clear_pin_targets()  # they were set for times of the run before
         self.frame = 0
         if self.world_failures:

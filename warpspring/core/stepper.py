@@ -138,13 +138,14 @@ class Stepper:
     def _capture(self) -> None:
         # Warm-up: one uncaptured step (and every hook) on the scratch buffer loads every module; the
         # integrator's history is put back, so the warm-up leaves no trace in the run.
-        history = [wp.clone(a) for a in self.integrator.history()]
+        carried = [*self.integrator.history(), *self.integrator.finish_step.history()]
+        history = [wp.clone(a) for a in carried]
         for hook in self.hooks:
             hook.begin()
         self.integrator.step(self.state, self._scratch, self.control, self.dt)
         for hook in self.hooks:
             hook.after_step(self._scratch, self.steps - 1, self.steps)
-        for saved, live in zip(history, self.integrator.history()):
+        for saved, live in zip(history, carried):
             wp.copy(live, saved)
         with wp.ScopedCapture(device=self.model.device, force_module_load=False) as capture:
             self._run()

@@ -33,6 +33,8 @@ class RunSummary:
         exported_world: the one world written, or ``None`` (every world).
         world_failures: one line per world the guard stopped (``[guard] stop = "world"``), in world order,
             naming the world, the frame and what failed; the file holds that world's frames before it.
+        contact_overflow: contacts dropped in the run because a particle touched more colliders than its
+            contact slots, all worlds together (0 without the contact stage).
     """
 
     output: str
@@ -49,6 +51,7 @@ class RunSummary:
     worlds: int = 1
     exported_world: int | None = None
     world_failures: list = field(default_factory=list)
+    contact_overflow: int = 0
 
     def line(self) -> str:
         """The closing summary line of the CLI."""
@@ -65,6 +68,9 @@ class RunSummary:
             if self.world_failures:
                 stopped = len(self.world_failures)
                 worlds += f"; {stopped} world{'s' if stopped > 1 else ''} stopped by the guard"
+        if self.contact_overflow:
+            worlds += (f"; {self.contact_overflow} contacts dropped for want of contact slots (raise "
+                       "[contacts] slots)")
         return (
             f"wrote {self.frames + 1} frames ({self.simulated_time:.3g} s simulated) to {self.output} in "
             f"{self.wall_time:.2f} s + {self.setup_time:.2f} s setup: {speed}; {self.integrator}, "
@@ -196,6 +202,7 @@ def run_scene(
         worlds=model.world_count,
         exported_world=world,
         world_failures=[sim.describe_failure(w) for w in sorted(failures)],
+        contact_overflow=int(sim.contact_overflow().sum()),
     )
 
 

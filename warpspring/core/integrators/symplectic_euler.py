@@ -7,6 +7,8 @@ from __future__ import annotations
 import warp as wp
 
 from ...kernels.integrators import symplectic_euler_kernel, symplectic_euler_update_kernel
+from ...kernels.contacts import NO_CONTACTS
+from ..contacts import update_shape_frames
 from ..forces import eval_forces, force_inputs
 from ..kinematics import apply_kinematics
 from ..model import Control, State
@@ -22,21 +24,23 @@ class SymplecticEuler(Integrator):
 
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         model = self.model
-        # Contacts fuse into the update unless other post-step passes must run before them.
-        fused_shapes = model.shape_types if self.finish_step.only_contacts else ()
-        shapes = [model.shape_type, model.shape_transform, model.shape_size, model.shape_friction]
+        # Contacts fuse into the update unless other post-step passes (or the contact stage) must run first.
+        fused = self.finish_step.only_contacts
+        contacts = model.contact_features() if fused else NO_CONTACTS
+        if fused:
+            update_shape_frames(model, state_in.time, dt, ahead=True)
         common = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
         if model.spring_gather or model.spring_count == 0:
             evaluate_input_tracks(model, state_in)
             features = model.force_features(control)
             wp.launch(
-                symplectic_euler_kernel(model.scalar, features, fused_shapes),
+                symplectic_euler_kernel(model.scalar, features, contacts),
                 inputs=[
                     model.particle_count,
                     model.particle_flags,
                     model.particle_inv_mass,
                     model.particle_radius,
-                    *shapes,
+                    model.shape_arrays,
                     *force_inputs(model, control, features),
                     state_in.particle_q,
                     state_in.particle_qd,
@@ -49,13 +53,14 @@ class SymplecticEuler(Integrator):
         else:
             eval_forces(model, state_in, control)
             wp.launch(
-                symplectic_euler_update_kernel(model.scalar, fused_shapes),
+                symplectic_euler_update_kernel(model.scalar, contacts),
                 inputs=[
                     model.particle_count,
                     model.particle_flags,
                     model.particle_inv_mass,
                     model.particle_radius,
-                    *shapes,
+                    model.shape_arrays,
+                    model.inputs,
                     state_in.particle_q,
                     state_in.particle_qd,
                     state_in.particle_f,
@@ -66,6 +71,6 @@ class SymplecticEuler(Integrator):
                 **common,
             )
         apply_kinematics(model, control, state_in, state_out.particle_q, state_out.particle_qd, dt)
-        if not self.finish_step.only_contacts:
+        if not fused:
             self.finish_step(state_out, dt)
         self.hold_worlds(state_in, state_out)

@@ -1,0 +1,170 @@
+"""The contact stage: collider motion, the contact buffer, ``collide`` and the response.
+
+A step that meets colliders ends with three launches when the model uses the contact stage
+(``Model.contact_stage``: by default when a collider moves):
+
+1. :func:`update_shape_frames` writes every animated collider's frame at the step's start and end (each
+   world at its own time), from which the response takes the surface velocity;
+2. :func:`collide` records, for every particle, the colliders it touches in its slots of a
+   :class:`Contacts` buffer (at most ``Model.contact_slots`` each; more are counted as overflow);
+3. the response (:func:`apply_contacts`, or the integrators' finishing kernel) projects every particle out
+   of the colliders in its slots, with restitution and friction relative to the moving surface.
+
+With static colliders only, the response instead tests every collider itself, fused into the update
+(``kernels/contacts.py`` has the maths). A scene without colliders launches none of this.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from ..kernels.contacts import (
+    NO_SHAPE,
+    collide_kernel,
+    contact_slots_type,
+    project_contacts_kernel,
+    shape_motion_kernel,
+)
+from ..errors import ConfigError
+from .model import Model, State
+
+
+class Contacts:
+    """A fixed-capacity buffer of particle-collider contacts: ``slots`` per particle of every world.
+
+    Args:
+        model: the model whose states it serves.
+        slots: contacts a particle can hold; default ``model.contact_slots``.
+        margin: distance beyond a particle's radius [m] at which a contact is recorded, ≥ 0 (the response
+            acts only on particles within their radius; a margin lets positions change between ``collide``
+            and the response).
+
+    Attributes:
+        arrays: the device struct the kernels read (``kernels.contacts.contact_slots_type``).
+        slots: contacts per particle.
+    """
+
+    def __init__(self, model: Model, *, slots: int | None = None, margin: float = 0.0):
+        from .. import checks
+
+        self.model = model
+        self.slots = model.contact_slots if slots is None else checks.count("contact slots", slots, minimum=1)
+        margin = checks.non_negative("contact margin", margin)
+        device, size = model.device, model.state_size
+        arrays = contact_slots_type(model.scalar)()
+        arrays.shape = wp.full((size, self.slots), NO_SHAPE, dtype=wp.int32, device=device)
+        arrays.feature = wp.full((size, self.slots), NO_SHAPE, dtype=wp.int32, device=device)
+        arrays.count = wp.zeros(size, dtype=wp.int32, device=device)
+        arrays.overflow = wp.zeros(model.world_count, dtype=wp.int32, device=device)
+        arrays.margin = wp.array([margin], dtype=model.scalar, device=device)
+        self.arrays = arrays
+
+    @property
+    def capacity(self) -> int:
+        """Contacts the buffer holds in all: slots × particles × worlds."""
+        return self.slots * self.model.state_size
+
+    def overflow(self) -> np.ndarray:
+        """Contacts found beyond a particle's slots (and so not resolved) since the buffer was made or
+        :meth:`reset`, per world, int64, shape [world_count] (reads the device)."""
+        return self.arrays.overflow.numpy().astype(np.int64)
+
+    def counts(self) -> np.ndarray:
+        """Contacts each particle holds now, int32, shape [world_count, particle_count] (reads the device)."""
+        return self.arrays.count.numpy().reshape(self.model.world_count, self.model.particle_count)
+
+    def shapes(self, world: int = 0) -> list[list[int]]:
+        """The colliders each particle of ``world`` touches now, in collider order (reads the device)."""
+        count = self.counts()[world]
+        shape = self.arrays.shape.numpy().reshape(self.model.world_count, self.model.particle_count, self.slots)[world]
+        return [list(map(int, shape[i, : count[i]])) for i in range(self.model.particle_count)]
+
+    def reset(self) -> None:
+        """Zero the overflow counters."""
+        self.arrays.overflow.zero_()
+
+    def history(self) -> list:
+        """The device arrays a step leaves to the next (the overflow counters): a Stepper restores them
+        around its warm-up step, so it counts nothing twice."""
+        return [self.arrays.overflow]
+
+
+def update_shape_frames(model: Model, time: wp.array, dt: float, *, ahead: bool = False) -> None:
+    """Write every collider's frame at the start and end of a step of ``dt`` [s] (device work; nothing is
+    launched unless a collider moves). ``time`` [s] per world is the step's end, or with ``ahead`` its start."""
+    if not model.shape_moving:
+        return
+    wp.launch(
+        shape_motion_kernel(model.scalar),
+        dim=(model.world_count, model.shape_count),
+        inputs=[model.shape_rest, model.shape_translation_track, model.shape_rotation_track,
+                model.track_table.table, time, wp.float64(dt), wp.float64(dt if ahead else 0.0)],
+        outputs=[model.shape_arrays],
+        device=model.device,
+    )
+
+
+def collide(model: Model, state: State, contacts: Contacts) -> None:
+    """Fill ``contacts`` with the colliders every dynamic particle of ``state`` touches, against the
+    colliders' current frames (those of the last step, or the rest frames before the first). Capturable."""
+    q = state.particle_q
+    if (q.shape[0], q.dtype, str(q.device)) != (model.state_size, model.vec3, str(model.device)):
+        raise ConfigError(f"collide: the state has {q.shape[0]} particles of {q.dtype.__name__} on {q.device}, but "
+                          f"the model's have {model.state_size} of {model.vec3.__name__} on {model.device}: use a "
+                          "state made by this model's state()")
+    collide_positions(model, state.particle_q, contacts)
+
+
+def collide_positions(model: Model, positions: wp.array, contacts: Contacts) -> None:
+    """:func:`collide` for a positions array of a state's size (e.g. after strain limiting)."""
+    if model.shape_count == 0:
+        contacts.arrays.count.zero_()
+        return
+    wp.launch(
+        collide_kernel(model.scalar, model.contact_features()),
+        dim=model.particle_dim,
+        block_dim=model.block_dim,
+        inputs=[model.particle_count, model.particle_flags, model.particle_radius, model.shape_arrays, positions],
+        outputs=[contacts.arrays],
+        device=model.device,
+    )
+
+
+def apply_contacts(model: Model, state: State, dt: float, contacts: Contacts | None = None) -> None:
+    """Project the dynamic particles of ``state`` out of the colliders, with restitution and friction, in
+    place; ``dt`` [s] is the step that produced ``state``. With the contact stage, only the colliders in
+    each particle's slots of ``contacts`` (fill them with :func:`collide` first)."""
+    if model.shape_count == 0:
+        return
+    features = model.contact_features()
+    if features.buffered and contacts is None:
+        raise ConfigError("this model resolves contacts through the contact stage: pass the Contacts that "
+                         "collide() filled")
+    wp.launch(
+        project_contacts_kernel(model.scalar, features),
+        dim=model.particle_dim,
+        block_dim=model.block_dim,
+        inputs=[model.particle_count, model.particle_flags, model.particle_radius, model.shape_arrays,
+                (contacts or empty_contacts(model)).arrays, model.inputs, model.scalar(dt)],
+        outputs=[state.particle_q, state.particle_qd],
+        device=model.device,
+    )
+
+
+def empty_contacts(model: Model) -> Contacts:
+    """A buffer of no slots, for the kernels' contact argument where the response tests every collider
+    itself (one per model, made once)."""
+    empty = model.__dict__.get("_empty_contacts")
+    if empty is None:
+        empty = Contacts.__new__(Contacts)
+        empty.model, empty.slots = model, 0
+        arrays = contact_slots_type(model.scalar)()
+        arrays.shape = wp.zeros((0, 0), dtype=wp.int32, device=model.device)
+        arrays.feature = wp.zeros((0, 0), dtype=wp.int32, device=model.device)
+        arrays.count = wp.zeros(0, dtype=wp.int32, device=model.device)
+        arrays.overflow = wp.zeros(model.world_count, dtype=wp.int32, device=model.device)
+        arrays.margin = wp.zeros(1, dtype=model.scalar, device=model.device)
+        empty.arrays = arrays
+        model.__dict__["_empty_contacts"] = empty
+    return empty
