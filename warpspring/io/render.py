@@ -1,7 +1,10 @@
 """Render one frame of a USD animation to a PNG with a small software rasterizer (NumPy, no GPU needed).
 
 Reads the file back through pxr, so the picture shows what a DCC tool would load: every ``Mesh``
-(cloth and ground) and every ``Sphere``, with their world transforms at the frame's time code.
+(cloth and ground), ``Sphere``, ``Cube`` and ``Capsule``, with their world transforms at the frame's time
+code (so a moving collider is drawn where it is at that frame). Colliders are drawn although warpspring
+writes them with purpose ``guide``: the picture is for checking a run, and the cloth's contacts with
+them are what it must show.
 
 The pipeline: triangles are rasterized with a perspective camera into a supersampled visibility
 buffer (the nearest triangle per sample, so nothing shows through), each visible sample is shaded
@@ -141,7 +144,8 @@ def _sampled_frames(stage) -> list[int]:
 
 
 def _read_scene(stage, time) -> _Scene | None:
-    """Every mesh and sphere of ``stage`` at ``time`` as triangles in z-up view space; None when there are none."""
+    """Every mesh, sphere, cube and capsule of ``stage`` at ``time`` (whatever its purpose) as triangles in
+    z-up view space; None when there are none."""
     from pxr import UsdGeom
 
     z_up = UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z
@@ -163,11 +167,18 @@ def _read_scene(stage, time) -> _Scene | None:
 
 
 def _triangles(prim, time):
-    """A mesh or sphere prim as (local points, triangles, kind); None for other prims and empty meshes."""
+    """A mesh, sphere, cube or capsule prim as (local points, triangles, kind) at ``time``, before the
+    prim's transform (which scales a cube to a box); None for other prims and empty meshes."""
     from pxr import UsdGeom
 
     if prim.IsA(UsdGeom.Sphere):
         return (*_icosphere(UsdGeom.Sphere(prim).GetRadiusAttr().Get(time)), "collider")
+    if prim.IsA(UsdGeom.Cube):
+        return (*_box(0.5 * UsdGeom.Cube(prim).GetSizeAttr().Get(time)), "collider")
+    if prim.IsA(UsdGeom.Capsule):
+        capsule = UsdGeom.Capsule(prim)
+        radius, height = capsule.GetRadiusAttr().Get(time), capsule.GetHeightAttr().Get(time)
+        return (*_capsule(radius, 0.5 * height, capsule.GetAxisAttr().Get(time)), "collider")
     if not prim.IsA(UsdGeom.Mesh):
         return None
     mesh = UsdGeom.Mesh(prim)
@@ -231,6 +242,50 @@ def _icosphere(radius: float, subdivisions: int = 4):
         points = np.concatenate([points, points[unique].mean(axis=1)])
         tris = np.concatenate([np.stack(t, axis=1) for t in ((a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca))])
     return radius * points / np.linalg.norm(points, axis=1, keepdims=True), tris
+
+
+def _box(half: float):
+    """A cube of half width ``half`` at the origin as (points, triangles): four corners of its own per face,
+    so that its vertex normals are the faces' normals and its edges stay sharp."""
+    points, tris = [], []
+    for axis, sign in itertools.product(range(3), (-1.0, 1.0)):
+        u, v = (axis + 1) % 3, (axis + 2) % 3  # (u, v, axis) is right-handed
+        for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1)):  # counter-clockwise seen from +axis
+            corner = np.zeros(3)
+            corner[axis], corner[u], corner[v] = sign, a * sign, b
+            points.append(corner)
+        k = len(points) - 4
+        tris += [(k, k + 1, k + 2), (k, k + 2, k + 3)]  # the face's winding points along sign · axis
+    return half * np.array(points), np.array(tris)
+
+
+def _capsule(radius: float, half_height: float, axis: str = "Z", segments: int = 48, rings: int = 12):
+    """A capsule at the origin as (points, triangles): the points within ``radius`` of the segment from
+    -``half_height`` to +``half_height`` along ``axis`` ("X", "Y" or "Z"), a cylinder between two
+    hemispheres of ``rings`` latitude rows each, every row ``segments`` points round; outward winding."""
+    theta = np.linspace(0.0, 0.5 * np.pi, rings + 1)[1:]  # polar angle of each row of the upper cap
+    polar = np.concatenate([theta, np.pi - theta[::-1]])  # upper cap's rows, then the lower cap's
+    centre = np.where(np.arange(2 * rings) < rings, half_height, -half_height)
+    phi = np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False)
+    rows = np.stack([
+        radius * np.sin(polar)[:, None] * np.cos(phi),
+        radius * np.sin(polar)[:, None] * np.sin(phi),
+        np.broadcast_to((centre + radius * np.cos(polar))[:, None], (2 * rings, segments)),
+    ], axis=-1).reshape(-1, 3)
+    top, bottom = 2 * rings * segments, 2 * rings * segments + 1
+    points = np.concatenate([rows, [(0.0, 0.0, half_height + radius), (0.0, 0.0, -half_height - radius)]])
+    j = np.arange(segments)
+    index = np.arange(2 * rings * segments).reshape(2 * rings, segments)
+    a, b = index[:-1], index[1:]  # each row and the row below it
+    c, d = np.roll(b, -1, axis=1), np.roll(a, -1, axis=1)
+    tris = np.concatenate([
+        np.stack([np.full(segments, top), index[0, j], index[0, (j + 1) % segments]], axis=1),
+        np.stack([a, b, c], axis=-1).reshape(-1, 3),
+        np.stack([a, c, d], axis=-1).reshape(-1, 3),
+        np.stack([index[-1, j], np.full(segments, bottom), index[-1, (j + 1) % segments]], axis=1),
+    ])
+    # Built along z; a cyclic permutation of the coordinates (which keeps the winding) turns it onto x or y.
+    return np.roll(points, {"X": 1, "Y": 2, "Z": 0}[str(axis)], axis=1), tris
 
 
 def _vertex_normals(points: np.ndarray, tris: np.ndarray) -> np.ndarray:

@@ -22,6 +22,34 @@ is a constant or a track table, as in ``[world]``::
 Its entries replace the ``[world]`` / ``[stabilizers]`` value of that input in their world. ``[output]``
 ``world`` exports one world only; otherwise every world is written as its own prim, laid out on a grid
 ``world_spacing`` metres apart (see :class:`warpspring.io.usd.UsdWriter`).
+
+Colliders: each ``[[collider]]`` has a ``type`` and the keys of that type (any other key is an error)::
+
+    type = "ground"   height, friction, restitution
+    type = "plane"    point, normal, friction, restitution, translation, rotation
+    type = "sphere"   center, radius, friction, restitution, translation, rotation
+    type = "box"      center, half_extents, orientation, friction, restitution, translation, rotation
+    type = "capsule"  center, radius, half_height, orientation, friction, restitution, translation, rotation
+
+(and ``name`` for each). ``orientation`` is the rest orientation, a quaternion [x, y, z, w]; a capsule
+spans -half_height..+half_height along its own z axis, plus its radius. ``restitution`` in [0, 1] is the
+share of the normal speed an impact keeps (default 0). Format 2 moves a collider by keyframe tracks, as it
+moves a pin group: ``translation = { times = [...], values = [[x, y, z], ...] }`` is an offset [m] added to
+its rest position, ``rotation = { times = [...], axis = [x, y, z], degrees = [...] }`` turns it about its
+own origin (its centre, or the plane's point), both with optional ``interpolation`` and
+``extrapolation``::
+
+    [[collider]]
+    type = "box"
+    center = [0.0, 0.0, 0.3]
+    half_extents = [0.4, 0.4, 0.3]
+    rotation = { times = [0.0, 2.0, 6.0], axis = [0, 0, 1], degrees = [0.0, 30.0, 270.0], interpolation = "smooth" }
+
+A ``[contacts]`` table (format 2) sets how contacts are resolved: ``stage`` (true: through the contact
+stage and its per-particle buffer; false: every collider tested in the update; default: the stage when a
+collider moves) and ``slots``, the contacts one particle holds in that buffer (1 to 64; default: the
+number of colliders, at most 4; contacts beyond it are dropped and counted in the run summary).
+The new collider types and keys (box, capsule, restitution, orientation, tracks) need format 2.
 """
 
 from __future__ import annotations
@@ -39,7 +67,7 @@ from ..core.builder import DEFAULT_BEND, DEFAULT_SHEAR, DEFAULT_STRUCTURAL, Mode
 from ..errors import ConfigError
 from ..core.guards import GuardLimits
 from ..core.integrators import INTEGRATORS
-from ..core.model import STABILIZER_INPUTS, Model, Stabilizers
+from ..core.model import MAX_CONTACT_SLOTS, STABILIZER_INPUTS, Model, Stabilizers
 from ..core.tracks import EXTRAPOLATIONS, INTERPOLATIONS, Track
 from ..core.transforms import quat_from_axis_angle
 
@@ -49,7 +77,7 @@ else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 PRECISIONS = ("float32", "float64")
-COLLIDER_TYPES = ("ground", "plane", "sphere")
+COLLIDER_TYPES = ("ground", "plane", "sphere", "box", "capsule")
 
 #: The scene format this warpspring reads (and every older one): a file's top-level ``version``.
 SCENE_FORMAT_VERSION = 2
@@ -101,7 +129,8 @@ class Scene:
         export_particles, export_springs: also write particles / springs to USD.
         world: the ``[world]`` table (up_axis, gravity, drag) as written (a track as its table).
         cloths: the ``[cloth]`` tables, checked; a cloth's ``pin_group`` is a list of :class:`PinGroupSpec`.
-        colliders: the ``[[collider]]`` tables, checked.
+        colliders: the ``[[collider]]`` tables, checked; their ``translation`` and ``rotation`` tracks as
+            :class:`Track` objects.
         stabilizers: the ``[stabilizers]`` table (clamps, strain limiting, biphasic springs); a threshold
             given as a track holds the track's first value.
         guard: the ``[guard]`` table (run-time checks).
@@ -116,6 +145,10 @@ class Scene:
         world_spacing: ``[output] world_spacing``: distance [m] between the exported worlds, or ``None``
             (the writer's default).
         world_columns: ``[output] world_columns``: worlds per row of the export grid, or ``None``.
+        contact_stage: ``[contacts] stage``: resolve contacts through the contact stage (True) or the fused
+            update (False); ``None``: the model's default (the stage when a collider moves).
+        contact_slots: ``[contacts] slots``: contacts a particle holds in the stage's buffer, or ``None`` (the
+            model's default).
         version: the file's scene format (1 for a file without ``version``).
         deprecations: one message per deprecated key the file uses (each also a
             :class:`DeprecatedKeyWarning` when the file is read).
@@ -144,6 +177,8 @@ class Scene:
     export_world: int | None = None
     world_spacing: float | None = None
     world_columns: int | None = None
+    contact_stage: bool | None = None
+    contact_slots: int | None = None
     version: int = SCENE_FORMAT_VERSION
     deprecations: list = field(default_factory=list)
 
@@ -177,13 +212,15 @@ class Scene:
 
     def finalize(self, device=None) -> Model:
         """The scene's model on ``device``: :meth:`builder` finalized in the scene's precision with
-        :attr:`world_count` worlds, each given its ``[worlds]`` values and tracks.
+        :attr:`world_count` worlds, each given its ``[worlds]`` values and tracks, and the ``[contacts]``
+        options.
 
         Raises:
             ConfigError: as :meth:`builder`, or a per-world value the model rejects (prefixed with the file
                 and the table).
         """
-        model = self.builder().finalize(device, precision=self.precision, worlds=self.world_count)
+        model = self.builder().finalize(device, precision=self.precision, worlds=self.world_count,
+                                        contact_stage=self.contact_stage, contact_slots=self.contact_slots)
         with _context(os.path.basename(self.path), "worlds"):
             for name, entries in self.world_inputs.items():
                 # Constants first (this stops any track of the input), then each world's own track.
@@ -198,10 +235,10 @@ class Scene:
 
 
 # -- schema: key -> expected type -------------------------------------------------------------------------
-# A value spec is a Python type (str, bool, list, dict), a _Number, VECTOR, a nested schema dict, a tuple of
-# alternatives (bool or a nested schema: a spring family given as a table or as true/false), a _Live input
-# (a constant, or a track table), a _Track table, _Tables (a table or an array of tables), or _Since (a key
-# that a later scene format introduced).
+# A value spec is a Python type (str, bool, list, dict), a _Number, VECTOR, QUATERNION, a nested schema dict, a
+# tuple of alternatives (bool or a nested schema: a spring family given as a table or as true/false), a _Live
+# input (a constant, or a track table), a _Track table, _Tables (a table or an array of tables), or _Since (a
+# key that a later scene format introduced).
 
 
 @dataclass(frozen=True)
@@ -292,6 +329,7 @@ NUMBER = _Number()
 NON_NEGATIVE = _Number(0.0)
 POSITIVE = _Number(0.0, inclusive=False)
 VECTOR = "vector"  # a list of 3 finite numbers
+QUATERNION = "quaternion"  # a list of 4 finite numbers (x, y, z, w), not all zero
 
 _TYPE_NAMES = {str: "a string", bool: "true or false", list: "a list", dict: "a table"}
 
@@ -342,8 +380,15 @@ _SCHEMA = {
         "height": NUMBER,
         "center": VECTOR,
         "radius": POSITIVE,
+        "half_extents": _Since(2, VECTOR),
+        "half_height": _Since(2, NON_NEGATIVE),
+        "orientation": _Since(2, QUATERNION),
         "friction": NON_NEGATIVE,
+        "restitution": _Since(2, NON_NEGATIVE),
+        "translation": _Since(2, _Track(VECTOR)),
+        "rotation": _Since(2, _Track(rotation=True)),
     },
+    "contacts": {"stage": bool, "slots": _Number(1, integer=True)},
     "output": {
         "path": str,
         "particles": bool,
@@ -383,7 +428,8 @@ _SCHEMA = {
     },
 }
 _TOP_LEVEL = {"version": _Number(1, integer=True), **{k: (dict, list) if k in ("cloth", "collider") else dict
-                                                      for k in _SCHEMA}, "worlds": _Since(2, dict)}
+                                                      for k in _SCHEMA}, "worlds": _Since(2, dict),
+              "contacts": _Since(2, dict)}
 #: How the run-time guard may stop: the whole run, or only the world that failed ([guard] stop).
 GUARD_STOPS = ("run", "world")
 #: The tables holding live inputs (each may be a track table from format 2 on).
@@ -392,11 +438,23 @@ _LIVE_TABLES = ("world", "stabilizers")
 # Keys that apply to one kind of cloth or collider only (anything else would be silently ignored).
 _GRID_ONLY = {"grid", "particle_mass", "shear"}
 _MESH_ONLY = {"mesh", "density", "scale"}
+_COLLIDER_COMMON = {"type", "name", "friction", "restitution"}
+_COLLIDER_MOTION = {"translation", "rotation"}
 _COLLIDER_KEYS = {
-    "ground": {"type", "name", "height", "friction"},
-    "plane": {"type", "name", "point", "normal", "friction"},
-    "sphere": {"type", "name", "center", "radius", "friction"},
+    "ground": _COLLIDER_COMMON | {"height"},
+    "plane": _COLLIDER_COMMON | _COLLIDER_MOTION | {"point", "normal"},
+    "sphere": _COLLIDER_COMMON | _COLLIDER_MOTION | {"center", "radius"},
+    "box": _COLLIDER_COMMON | _COLLIDER_MOTION | {"center", "half_extents", "orientation"},
+    "capsule": _COLLIDER_COMMON | _COLLIDER_MOTION | {"center", "radius", "half_height", "orientation"},
 }
+# The keys each collider type needs, and how its error shows them.
+_COLLIDER_NEEDS = {
+    "sphere": ({"center", "radius"}, "center = [x, y, z] and radius"),
+    "box": ({"center", "half_extents"}, "center = [x, y, z] and half_extents = [hx, hy, hz]"),
+    "capsule": ({"center", "radius", "half_height"}, "center = [x, y, z], radius and half_height"),
+}
+#: The collider types a scene of format 1 may use (the others came with format 2).
+_FORMAT_1_COLLIDERS = ("ground", "plane", "sphere")
 
 
 def load_scene(path: str | os.PathLike) -> Scene:
@@ -450,7 +508,7 @@ def _parse(data: dict, path: str) -> Scene:
     data = copy.deepcopy(data)
     deprecations = _apply_renames(data, version, where)
     _check_table(data, _TOP_LEVEL, where, "", version=version)
-    for name in ("simulation", "world", "output", "stabilizers", "guard", "worlds"):
+    for name in ("simulation", "world", "output", "stabilizers", "guard", "worlds", "contacts"):
         _check_table(data.get(name, {}), _SCHEMA[name], where, name, version=version)
     cloths = _table_list(data.get("cloth", []), where, "cloth")
     colliders = _table_list(data.get("collider", []), where, "collider")
@@ -503,6 +561,12 @@ def _parse(data: dict, path: str) -> Scene:
         raise ConfigError(f"{where}: guard.stop must be one of {', '.join(map(repr, GUARD_STOPS))} (stop the whole "
                           f"run, or hold only the failing world and go on), got {guard['stop']!r}")
     scene.guard = GuardLimits(**guard)
+    contacts = data.get("contacts", {})
+    if contacts.get("slots", 1) > MAX_CONTACT_SLOTS:
+        raise ConfigError(f"{where}: contacts.slots must be an integer from 1 to {MAX_CONTACT_SLOTS} (the contacts one "
+                          f"particle holds), got {contacts['slots']!r}")
+    scene.contact_stage = contacts.get("stage")
+    scene.contact_slots = contacts.get("slots")
     _parse_worlds(scene, data.get("worlds"), out, where)
     check_run_settings(fps=scene.fps, frames=scene.frames, substeps=scene.substeps, where=where)
     return scene
@@ -717,20 +781,36 @@ def _pin_group(group: dict, grid: bool, where: str, key: str) -> PinGroupSpec:
 
 
 def _check_collider(c: dict, where: str, label: str, *, version: int) -> None:
+    """Check a [[collider]] table, and turn its tracks into :class:`Track` objects (``c`` is the scene's copy)."""
     _check_table(c, _SCHEMA["collider"], where, label, version=version)
     kind = c.get("type")
     if kind is None:
         raise ConfigError(f"{where}: {label}.type is missing: set type = one of {', '.join(COLLIDER_TYPES)}")
-    if kind not in COLLIDER_TYPES:
-        raise ConfigError(f"{where}: {label}.type must be one of {', '.join(COLLIDER_TYPES)}, got {kind!r}")
+    types = COLLIDER_TYPES if version >= 2 else _FORMAT_1_COLLIDERS
+    if kind not in types:
+        newer = [t for t in COLLIDER_TYPES if t not in _FORMAT_1_COLLIDERS]
+        hint = (f" (in scene format {version}; {' and '.join(newer)} colliders need scene format 2: add version = 2 "
+                "at the top of the file, before the first [table])") if kind in COLLIDER_TYPES else ""
+        raise ConfigError(f"{where}: {label}.type must be one of {', '.join(types)}, got {kind!r}{hint}")
     extra = sorted(set(c) - _COLLIDER_KEYS[kind])
     if extra:
         raise ConfigError(
             f"{where}: {label}.{extra[0]} does not apply to a {kind} collider; "
             f"it takes: {', '.join(sorted(_COLLIDER_KEYS[kind] - {'type'}))}"
         )
-    if kind == "sphere" and not {"center", "radius"} <= set(c):
-        raise ConfigError(f"{where}: a sphere collider ([{label}]) needs center = [x, y, z] and radius")
+    needs, shown = _COLLIDER_NEEDS.get(kind, (set(), ""))
+    missing = sorted(needs - set(c))
+    if missing:
+        raise ConfigError(f"{where}: a {kind} collider ([{label}]) needs {shown}; missing: {', '.join(missing)}")
+    if "half_extents" in c and not all(h > 0 for h in c["half_extents"]):
+        raise ConfigError(f"{where}: {label}.half_extents must be 3 numbers > 0 (half the box's size along its own "
+                          f"x, y, z [m]), got {c['half_extents']!r}")
+    if c.get("restitution", 0.0) > 1.0:
+        raise ConfigError(f"{where}: {label}.restitution must be a number from 0 to 1 (the share of the normal speed "
+                          f"an impact keeps), got {c['restitution']!r}")
+    for key in ("translation", "rotation"):
+        if key in c:
+            c[key] = _make_track(c[key], where, f"{label}.{key}", rotation=key == "rotation")
 
 
 def _check_table(table: dict, schema: dict, where: str, name: str, *, version: int) -> None:
@@ -794,6 +874,12 @@ def _check_value(value, expected, where: str, key: str, *, version: int) -> None
         ok = isinstance(value, list) and len(value) == 3 and all(NUMBER.accepts(v) for v in value)
         if not ok:
             raise ConfigError(f"{where}: {key} must be a list of 3 finite numbers [x, y, z], got {value!r}")
+        return
+    if expected is QUATERNION:
+        ok = isinstance(value, list) and len(value) == 4 and all(NUMBER.accepts(v) for v in value) and any(value)
+        if not ok:
+            raise ConfigError(f"{where}: {key} must be a quaternion [x, y, z, w] of 4 finite numbers, not all zero "
+                              f"(the identity is [0, 0, 0, 1]), got {value!r}")
         return
     if isinstance(expected, _Number):
         if not expected.accepts(value):
@@ -916,17 +1002,19 @@ def _group_particles(ids: np.ndarray, pin: list) -> np.ndarray:
 
 
 def _add_collider(builder: ModelBuilder, c: dict) -> None:
-    friction = c.get("friction", 0.5)
-    if c["type"] == "ground":
-        builder.add_ground_plane(height=c.get("height", 0.0), friction=friction, name=c.get("name", "ground"))
-    elif c["type"] == "plane":
-        builder.add_collider_plane(
-            point=c.get("point", (0.0, 0.0, 0.0)),
-            normal=c.get("normal"),
-            friction=friction,
-            name=c.get("name", "plane"),
-        )
+    kind = c["type"]
+    common = dict(friction=c.get("friction", 0.5), restitution=c.get("restitution", 0.0), name=c.get("name", kind))
+    if kind == "ground":
+        builder.add_ground_plane(height=c.get("height", 0.0), **common)
+        return
+    common.update(translation=c.get("translation"), rotation=c.get("rotation"))
+    if kind == "plane":
+        builder.add_collider_plane(point=c.get("point", (0.0, 0.0, 0.0)), normal=c.get("normal"), **common)
+    elif kind == "sphere":
+        builder.add_collider_sphere(center=c["center"], radius=c["radius"], **common)
+    elif kind == "box":
+        builder.add_collider_box(center=c["center"], half_extents=c["half_extents"],
+                                 orientation=c.get("orientation", (0.0, 0.0, 0.0, 1.0)), **common)
     else:
-        builder.add_collider_sphere(
-            center=c["center"], radius=c["radius"], friction=friction, name=c.get("name", "sphere")
-        )
+        builder.add_collider_capsule(center=c["center"], radius=c["radius"], half_height=c["half_height"],
+                                     orientation=c.get("orientation", (0.0, 0.0, 0.0, 1.0)), **common)

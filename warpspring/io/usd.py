@@ -7,7 +7,11 @@ What is authored, and why (USD's fallbacks are wrong for simulation caches):
 * each cloth mesh: topology once, ``subdivisionScheme = "none"`` (the fallback, Catmull-Clark, makes
   Blender and Houdini subdivide the cloth), ``doubleSided``, ``primvars:st`` when the mesh has UVs, and
   per frame ``points``, ``extent`` and vertex ``normals``;
-* colliders as prims with their transforms (a sphere as ``UsdGeom.Sphere``, a plane as a finite quad);
+* colliders as prims of purpose ``guide`` (shown in viewports, left out of final renders) with their
+  transforms: a sphere as ``UsdGeom.Sphere``, a box as a ``UsdGeom.Cube`` of size 2 scaled by its half
+  extents, a capsule as ``UsdGeom.Capsule`` (axis Z, height 2 · half_height), a plane as a finite quad
+  fitted to the scene. A static collider's translate and orient ops hold one default value; a moving
+  one's (a collider with keyframe tracks) are also sampled at every written frame, at the frame's time;
 * optionally the particles (``UsdGeom.Points``) and springs (``UsdGeom.BasisCurves``).
 
 Worlds: a model of one world, or one chosen world of a model of several (``world=k``), is written as
@@ -30,7 +34,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
@@ -143,8 +147,9 @@ class UsdWriter:
                 xform = UsdGeom.Xform.Define(stage, path_root)
                 xform.AddTranslateOp().Set(Gf.Vec3d(*offsets[w]))
                 xform.GetPrim().SetCustomDataByKey("warpspring:world", w)
-            self._slots.append(self._define_world(w, path_root, particles=particles, springs=springs))
-            self._write_colliders(path_root)
+            slot = self._define_world(w, path_root, particles=particles, springs=springs)
+            slot.colliders = self._write_colliders(path_root)
+            self._slots.append(slot)
         if model.tri_count and any(slot.meshes for slot in self._slots):
             # Every exported world's triangles, in state-array indices: one launch computes all their normals.
             n = model.particle_count
@@ -157,8 +162,9 @@ class UsdWriter:
     # -- frames ---------------------------------------------------------------------------------------
 
     def write_frame(self, state: State) -> None:
-        """Append ``state`` as the next frame (time code :attr:`frame_count`) and save the file. Worlds that
-        were stopped (:meth:`stop_worlds`) get no sample.
+        """Append ``state`` as the next frame (time code :attr:`frame_count`, time :attr:`frame_count` / fps
+        seconds) and save the file. Moving colliders get their pose at that time. Worlds that were stopped
+        (:meth:`stop_worlds`) get no sample.
 
         Raises:
             SimulationError: a position of an exported world that is not stopped is NaN or infinite;
@@ -199,6 +205,8 @@ class UsdWriter:
                 points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q[self._spring_ends]))
                 slot.curves.GetPointsAttr().Set(points, t)
                 slot.curves.GetExtentAttr().Set(UsdGeom.Curves.ComputeExtent(points, self._curve_widths), t)
+            for shape, translate, orient in slot.colliders:  # every world's collider follows the same tracks
+                _set_pose(translate, orient, shape.frame(self.frame_count / self.fps), t)
         self.stage.SetEndTimeCode(float(max(self.frame_count, 1)))
         self.frame_count += 1
         self._save()
@@ -299,22 +307,38 @@ class UsdWriter:
         wp.launch(normalize, dim=model.state_size, inputs=[self._normals], device=model.device)
         return self._normals.numpy()
 
-    def _write_colliders(self, root: str) -> None:
+    def _write_colliders(self, root: str) -> list:
+        """Define the collider prims of one exported world under ``root``, each of purpose guide and posed at
+        rest; returns (ShapeInfo, translate op, orient op) of each moving collider, to sample every frame."""
         from pxr import Gf, Vt
 
         UsdGeom = self._UsdGeom
         model = self.model
         if not model.shapes:
-            return
+            return []
         UsdGeom.Scope.Define(self.stage, f"{root}/colliders")
         q0 = model.particle_q.numpy()
+        moving = []
         for shape in model.shapes:
             path = f"{root}/colliders/{shape.name}"
+            scale = None
             if shape.kind == "sphere":
                 prim = UsdGeom.Sphere.Define(self.stage, path)
                 r = float(shape.size[0])
                 prim.CreateRadiusAttr(r)
                 prim.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-r, -r, -r), Gf.Vec3f(r, r, r)]))
+            elif shape.kind == "box":  # a cube of size 2 spans ±1: scaled by the half extents, it spans the box
+                prim = UsdGeom.Cube.Define(self.stage, path)
+                prim.CreateSizeAttr(2.0)
+                prim.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-1.0, -1.0, -1.0), Gf.Vec3f(1.0, 1.0, 1.0)]))
+                scale = Gf.Vec3d(*shape.size)
+            elif shape.kind == "capsule":
+                prim = UsdGeom.Capsule.Define(self.stage, path)
+                r, half = float(shape.size[0]), float(shape.size[1])
+                prim.CreateRadiusAttr(r)
+                prim.CreateHeightAttr(2.0 * half)  # USD's height is the spine's length, without the caps
+                prim.CreateAxisAttr(UsdGeom.Tokens.z)
+                prim.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-r, -r, -half - r), Gf.Vec3f(r, r, half + r)]))
             elif shape.kind == "plane":
                 prim = UsdGeom.Mesh.Define(self.stage, path)
                 half = _plane_half_size(shape, q0, self._tile)
@@ -327,9 +351,15 @@ class UsdWriter:
                 prim.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-half, -half, 0), Gf.Vec3f(half, half, 0)]))
             else:  # pragma: no cover - every collider kind is exported; a new kind must add a branch
                 raise NotImplementedError(f"USD export of {shape.kind} colliders")
-            prim.AddTranslateOp().Set(Gf.Vec3d(*shape.position))
-            x, y, z, w = shape.rotation
-            prim.AddOrientOp().Set(Gf.Quatf(float(w), float(x), float(y), float(z)))
+            prim.CreatePurposeAttr(UsdGeom.Tokens.guide)
+            translate = prim.AddTranslateOp()  # double precision, as the shape's frame
+            orient = prim.AddOrientOp(UsdGeom.XformOp.PrecisionDouble)
+            if scale is not None:
+                prim.AddScaleOp(UsdGeom.XformOp.PrecisionDouble).Set(scale)
+            _set_pose(translate, orient, shape.frame(0.0))  # default value: the rest pose, or a moving one's at t = 0
+            if shape.moving:
+                moving.append((shape, translate, orient))
+        return moving
 
 
 @dataclass
@@ -340,6 +370,18 @@ class _WorldPrims:
     meshes: list  # (MeshGroup, points, extent and normals attributes) per cloth mesh
     points: object  # UsdGeom.Points of the particles, or None
     curves: object  # UsdGeom.BasisCurves of the springs, or None
+    colliders: list = field(default_factory=list)  # (ShapeInfo, translate op, orient op) per moving collider
+
+
+def _set_pose(translate, orient, frame, time=None) -> None:
+    """Set a collider's translate and orient ops to ``frame`` = (position [m], quaternion (x, y, z, w)): as a
+    time sample at ``time``, or as the default value when ``time`` is None."""
+    from pxr import Gf, Usd
+
+    position, (x, y, z, w) = frame
+    time = Usd.TimeCode.Default() if time is None else time
+    translate.Set(Gf.Vec3d(*(float(p) for p in position)), time)
+    orient.Set(Gf.Quatd(float(w), float(x), float(y), float(z)), time)
 
 
 def world_prim_name(world: int, world_count: int) -> str:
