@@ -262,24 +262,34 @@ def cloth_over_sphere(device, **finalize):
     return builder.finalize(device, **finalize)
 
 
-def test_contact_stage_gives_the_fused_result_bit_for_bit(device):
+def test_contact_stage_gives_the_fused_result(device):
     """On static colliders the stage (collide into the buffer, then respond to the slots) resolves the same
-    contacts in the same order as the fused update, so a cloth falling over a sphere onto the ground ends
-    in the same bits either way (here no projection pushes a particle into a collider it was not in)."""
-    finals = []
-    for stage in (False, True):
-        model = cloth_over_sphere(device, contact_stage=stage)
-        assert model.contact_stage == stage
-        sim = ws.Simulator(model, fps=60, substeps=16)
-        for _ in range(40):
-            sim.step_frame()
-        finals.append(sim.state.particle_q.numpy())
-        if stage:
-            contacts = sim.contacts
-            assert contacts.slots == 2 and contacts.capacity == 2 * model.state_size
-            touching = contacts.counts()[0]
-            assert touching.max() >= 1 and sim.contact_overflow().tolist() == [0]
-    np.testing.assert_array_equal(finals[0], finals[1])
+    contacts in the same order as the fused update. From a cloth lying over a sphere and the ground (40
+    frames in), one step of each gives the same bits on the CPU; on CUDA the fused update is compiled with
+    fast math (approximate sqrt and division, ≤ 2 ulp each) and the stage's response is not, so they agree
+    to a few float32 roundings of |x| ≤ 1 m (2e-6 m); over many steps the cloth's chaos would amplify that."""
+    fused, stage = cloth_over_sphere(device), cloth_over_sphere(device, contact_stage=True)
+    assert (fused.contact_stage, stage.contact_stage) == (False, True)
+    sim = ws.Simulator(fused, fps=60, substeps=16)
+    for _ in range(40):
+        sim.step_frame()
+    results = []
+    for model in (fused, stage):
+        state_in, state_out = model.state(), model.state()
+        state_in.assign(sim.state)
+        integrator = ws.SymplecticEuler(model)
+        integrator.step(state_in, state_out, None, sim.dt)
+        results.append((state_out.particle_q.numpy(), state_out.particle_qd.numpy(), integrator))
+    contacts = results[1][2].finish_step.contacts
+    assert contacts.slots == 2 and contacts.capacity == 2 * stage.state_size
+    touching = contacts.counts()[0]
+    assert (touching >= 1).sum() > 50 and contacts.overflow().tolist() == [0]
+    if device == "cpu":
+        np.testing.assert_array_equal(results[0][0], results[1][0])
+        np.testing.assert_array_equal(results[0][1], results[1][1])
+    else:
+        np.testing.assert_allclose(results[0][0], results[1][0], rtol=0, atol=2e-6)
+        np.testing.assert_allclose(results[0][1], results[1][1], rtol=0, atol=1e-5)  # 2 ulp of ≤ 5 m/s, × 8
 
 
 def test_collide_records_the_touched_colliders_in_order(device):
