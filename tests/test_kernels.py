@@ -162,88 +162,56 @@ def distance_kernel(scalar):
     _, _, box_distance, capsule_distance, _ = contact_funcs(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def kernel(p: wp.array[vec3], half: vec3, radius: scalar, half_height: scalar,
-               box: wp.array[vec3], capsule: wp.array[vec3]):
+    def kernel(p: wp.array[vec3], half: vec3, radius: scalar, half_height: scalar, box: wp.array[scalar],
+               box_normal: wp.array[vec3], capsule: wp.array[scalar], capsule_normal: wp.array[vec3]):
         t = wp.tid()
         d, n = box_distance(p[t], half)
-        box[t] = vec3(d, wp.dot(n, n), scalar(0.0))
+        box[t] = d
+        box_normal[t] = n
         c, m = capsule_distance(p[t], radius, half_height)
-        capsule[t] = vec3(c, wp.dot(m, m), scalar(0.0))
+        capsule[t] = c
+        capsule_normal[t] = m
 
     return kernel
 
 
-def test_box_and_capsule_distances_match_references(device):
-    """Signed distances of random points against float64 references (box: the exterior Euclidean distance
-    outside, minus the distance to the nearest face inside; capsule: distance to the segment minus the
-    radius), and unit normals equal to the distance's gradient (central differences in float64 of the
-    reference, away from the box's medial planes where it is not differentiable)."""
+HALF, CAPSULE_RADIUS, HALF_HEIGHT = np.array([0.3, 0.5, 0.2]), 0.25, 0.4
+
+
+def box_reference(q):
+    """Signed distance from the box of half extents HALF, float64: exterior Euclidean distance outside,
+    minus the distance to the nearest face inside."""
+    e = np.abs(q) - HALF
+    return np.linalg.norm(np.maximum(e, 0.0), axis=-1) + np.minimum(e.max(axis=-1), 0.0)
+
+
+def capsule_reference(q):
+    """Signed distance from the capsule along z: distance to the segment minus the radius, float64."""
+    axis = np.clip(q[..., 2], -HALF_HEIGHT, HALF_HEIGHT)
+    return np.linalg.norm(q - np.stack([0 * axis, 0 * axis, axis], -1), axis=-1) - CAPSULE_RADIUS
+
+
+def test_box_and_capsule_distances_and_normals_match_references(device):
+    """Signed distances of random points equal the float64 references, and each returned outward normal is
+    the reference distance's gradient (central differences of step 1e-6), at points where that gradient
+    exists: off the box's medial planes inside it and off the capsule's axis."""
     rng = np.random.default_rng(5)
-    half, radius, half_height = np.array([0.3, 0.5, 0.2]), 0.25, 0.4
     p = rng.uniform(-1.0, 1.0, (2000, 3))
-
-    def box_ref(q):
-        d = np.abs(q) - half
-        return np.linalg.norm(np.maximum(d, 0.0), axis=-1) + np.minimum(d.max(axis=-1), 0.0)
-
-    def capsule_ref(q):
-        axis = np.clip(q[..., 2], -half_height, half_height)
-        return np.linalg.norm(q - np.stack([0 * axis, 0 * axis, axis], -1), axis=-1) - radius
-
-    box, capsule = (wp.empty(len(p), dtype=wp.vec3d, device=device) for _ in range(2))
+    outputs = [wp.empty(len(p), dtype=dtype, device=device) for dtype in (wp.float64, wp.vec3d) * 2]
     wp.launch(distance_kernel(wp.float64), dim=len(p), inputs=[wp.array(p, dtype=wp.vec3d, device=device),
-              wp.vec3d(*half), radius, half_height], outputs=[box, capsule], device=device)
-    box, capsule = box.numpy(), capsule.numpy()
-    np.testing.assert_allclose(box[:, 0], box_ref(p), atol=1e-12)
-    np.testing.assert_allclose(capsule[:, 0], capsule_ref(p), atol=1e-12)
-    np.testing.assert_allclose(box[:, 1], 1.0, atol=1e-12)
-    np.testing.assert_allclose(capsule[:, 1], 1.0, atol=1e-12)
-    assert (box[:, 0] < 0).sum() > 20 and (capsule[:, 0] < 0).sum() > 30  # inside points exercised
+              wp.vec3d(*HALF), CAPSULE_RADIUS, HALF_HEIGHT], outputs=outputs, device=device)
+    box, box_normal, capsule, capsule_normal = (a.numpy() for a in outputs)
+    np.testing.assert_allclose(box, box_reference(p), atol=1e-12)
+    np.testing.assert_allclose(capsule, capsule_reference(p), atol=1e-12)
+    assert (box < 0).sum() > 20 and (capsule < 0).sum() > 30  # inside points exercised
 
-
-@functools.cache
-def normal_kernel(scalar):
-    vec3 = vec3_type(scalar)
-    _, _, box_distance, capsule_distance, _ = contact_funcs(scalar)
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def kernel(p: wp.array[vec3], half: vec3, radius: scalar, half_height: scalar,
-               box: wp.array[vec3], capsule: wp.array[vec3]):
-        t = wp.tid()
-        d, n = box_distance(p[t], half)
-        box[t] = n
-        c, m = capsule_distance(p[t], radius, half_height)
-        capsule[t] = m
-
-    return kernel
-
-
-def test_box_and_capsule_normals_are_distance_gradients(device):
-    """The outward normal each returns is the gradient of its signed distance (central differences of
-    step 1e-6 in float64), at points off the box's medial planes and the capsule's axis."""
-    rng = np.random.default_rng(6)
-    half, radius, half_height = np.array([0.3, 0.5, 0.2]), 0.25, 0.4
-    p = rng.uniform(-1.0, 1.0, (2000, 3))
-    d = np.abs(p) - half
-    ordered = np.sort(d, axis=1)
-    p = p[(ordered[:, 2] - ordered[:, 1] > 1e-3) | (ordered[:, 2] > 0)]  # a unique nearest face inside
-    p = p[np.hypot(p[:, 0], p[:, 1]) > 1e-3]
-    box, capsule = (wp.empty(len(p), dtype=wp.vec3d, device=device) for _ in range(2))
-    wp.launch(normal_kernel(wp.float64), dim=len(p), inputs=[wp.array(p, dtype=wp.vec3d, device=device),
-              wp.vec3d(*half), radius, half_height], outputs=[box, capsule], device=device)
-
-    def box_ref(q):
-        e = np.abs(q) - half
-        return np.linalg.norm(np.maximum(e, 0.0), axis=-1) + np.minimum(e.max(axis=-1), 0.0)
-
-    def capsule_ref(q):
-        axis = np.clip(q[..., 2], -half_height, half_height)
-        return np.linalg.norm(q - np.stack([0 * axis, 0 * axis, axis], -1), axis=-1) - radius
-
+    ordered = np.sort(np.abs(p) - HALF, axis=1)
+    smooth = ((ordered[:, 2] - ordered[:, 1] > 1e-3) | (ordered[:, 2] > 0)) & (np.hypot(p[:, 0], p[:, 1]) > 1e-3)
     step = 1e-6
-    for ref, normals in ((box_ref, box.numpy()), (capsule_ref, capsule.numpy())):
-        gradient = np.stack([(ref(p + step * k) - ref(p - step * k)) / (2 * step) for k in np.eye(3)], axis=1)
-        np.testing.assert_allclose(normals, gradient, atol=1e-6)
+    for reference, normal in ((box_reference, box_normal), (capsule_reference, capsule_normal)):
+        gradient = np.stack([(reference(p + step * k) - reference(p - step * k)) / (2 * step) for k in np.eye(3)],
+                            axis=1)
+        np.testing.assert_allclose(normal[smooth], gradient[smooth], atol=1e-6)
 
 
 @functools.cache

@@ -44,3 +44,6 @@ def test_scene_reference_parses_and_builds():
     model = scene.builder().finalize("cpu")
     assert [g.name for g in model.pin_groups.groups] == ["edge"]
     assert model.stabilizers.max_strain == 0.1
+    assert [c.kind for c in model.shapes] == ["plane", "box"] and model.shapes[1].moving
+    contacts = scene.finalize("cpu")  # with the [contacts] options
+    assert contacts.contact_slots == 3 and contacts.contact_stage

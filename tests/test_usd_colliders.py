@@ -24,16 +24,21 @@ SPIN = ws.Track.rotation([0.0, 3.0 / FPS], axis=(0.2, 0.3, 1.0), degrees=[0.0, 1
 WIDTH = 160
 
 
-def collider_model(device, *, worlds: int = 1) -> ws.Model:
-    """A small cloth well above a static box, a capsule and a box moved by SLIDE and SPIN, over the ground."""
+def collider_model(device, *, worlds: int = 1, placed=None) -> ws.Model:
+    """A small cloth well above a static box, a capsule and a box moved by SLIDE and SPIN, over the ground;
+    with ``placed`` = (position, quaternion), that box stands still there instead."""
     builder = ws.ModelBuilder()
     builder.add_cloth_grid(nx=4, ny=4, spacing=0.1, mass=0.1, origin=(-0.15, -0.15, 2.0), structural=SOFT,
                            shear=SOFT, bend=SOFT)
     builder.add_collider_box(center=(-0.8, 0.4, 0.3), half_extents=HALF, orientation=TILT, name="crate")
     builder.add_collider_capsule(center=(0.6, 0.7, 0.25), radius=0.15, half_height=0.4, orientation=TILT,
                                  name="log")
-    builder.add_collider_box(center=(0.0, -0.5, 0.4), half_extents=(0.25, 0.25, 0.25), translation=SLIDE,
-                             rotation=SPIN, name="mover")
+    if placed is None:
+        builder.add_collider_box(center=(0.0, -0.5, 0.4), half_extents=(0.25, 0.25, 0.25), translation=SLIDE,
+                                 rotation=SPIN, name="mover")
+    else:
+        builder.add_collider_box(center=placed[0], half_extents=(0.25, 0.25, 0.25), orientation=placed[1],
+                                 name="mover")
     builder.add_ground_plane()
     return builder.finalize(device, worlds=worlds)
 
@@ -185,17 +190,8 @@ def test_renderer_draws_a_moving_box_where_it_is_at_the_frame(tmp_path, device):
     last = render(usd, tmp_path / "moving" / "last.png", frame=-1)
     first = render(usd, tmp_path / "moving" / "first.png", frame=0)
 
-    position, quat = shape(model, "mover").frame((FRAMES - 1) / FPS)
-    builder = ws.ModelBuilder()
-    builder.add_cloth_grid(nx=4, ny=4, spacing=0.1, mass=0.1, origin=(-0.15, -0.15, 2.0), structural=SOFT,
-                           shear=SOFT, bend=SOFT)
-    builder.add_collider_box(center=(-0.8, 0.4, 0.3), half_extents=HALF, orientation=TILT, name="crate")
-    builder.add_collider_capsule(center=(0.6, 0.7, 0.25), radius=0.15, half_height=0.4, orientation=TILT,
-                                 name="log")
-    builder.add_collider_box(center=position, half_extents=(0.25, 0.25, 0.25), orientation=quat, name="mover")
-    builder.add_ground_plane()
-    placed = render(write(tmp_path / "placed" / "scene.usdc", builder.finalize(device)),
-                    tmp_path / "placed" / "last.png", frame=-1)
+    still = collider_model(device, placed=shape(model, "mover").frame((FRAMES - 1) / FPS))
+    placed = render(write(tmp_path / "placed" / "scene.usdc", still), tmp_path / "placed" / "last.png", frame=-1)
 
     differ = np.abs(last - placed).max(axis=2) > 2 / 255
     assert differ.mean() < 0.001  # the same pose, up to rounding: an outline may move by a pixel
