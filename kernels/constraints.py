@@ -20,6 +20,7 @@ from .kinematics import is_kinematic, particle_funcs
 from .precision import vec3_type
 from .springs import spring_arrays_type
 from .worlds import world_and_index
+from .flatten import flat_kernel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -49,7 +50,7 @@ def strain_limit_kernel(scalar: type, incidence: IncidenceShape):
             return d * (share * (length - allowed) / length), scalar(1.0)
         return vec3(scalar(0.0)), scalar(0.0)
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False)
     def strain_limit(
         # Model:
         particle_count: int,
@@ -104,7 +105,7 @@ def finish_step_kernel(scalar: type, contacts: ContactFeatures, clamp_speed: boo
     project_contacts = project_contacts_func(scalar, contacts)
     has_contacts = bool(contacts)
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False)
     def finish_step(
         # Model:
         particle_count: int,

@@ -42,6 +42,7 @@ from .kinematics import is_kinematic
 from .precision import transform_type, vec3_type
 from .tracks import Tracks, track_sample
 from .worlds import world_and_index
+from .flatten import flat_kernel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -306,7 +307,7 @@ def collide_kernel(scalar: type, features: ContactFeatures):
     ContactSlots = contact_slots_type(scalar)
     shape_distance, _ = shape_funcs(scalar, features)
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False)
     def collide(
         particle_count: int,
         particle_flags: wp.array[wp.int32],
@@ -345,7 +346,7 @@ def project_contacts_kernel(scalar: type, features: ContactFeatures):
     ContactSlots = contact_slots_type(scalar)
     project_contacts = project_contacts_func(scalar, features)
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False)
     def project(
         particle_count: int,
         particle_flags: wp.array[wp.int32],
@@ -408,7 +409,7 @@ def shape_motion_kernel(scalar: type):
     def rounded(X: wp.transformd) -> transform:
         return transform(vec3(wp.transform_get_translation(X)), quat(wp.transform_get_rotation(X)))
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False)
     def shape_motion(
         rest: wp.array[wp.transformd],
         translation_track: wp.array[wp.int32],

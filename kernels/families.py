@@ -40,6 +40,7 @@ from typing import Any, NamedTuple
 import warp as wp
 
 from .precision import mat33_type, vec3_type
+from .flatten import flat_kernel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -202,7 +203,7 @@ def element_energy_kernel(scalar: type, spec):
     Arrays = funcs.arrays
     energy_func = funcs.energy
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False)
     def element_energy(
         particle_count: int,
         arrays: Arrays,

@@ -25,6 +25,7 @@ from .families import FORCE_KERNEL_OPTIONS, elements
 from .inputs import INPUT_DRAG, INPUT_GRAVITY, INPUT_MAX_PARTICLE_FORCE, input_funcs
 from .precision import vec3_type
 from .worlds import world_and_index
+from .flatten import flat_kernel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -93,7 +94,7 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures):
     particle_force = particle_force_func(scalar, features)
     Elements = elements(scalar, features.families).arrays
 
-    @wp.kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
+    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
     def eval_forces(
         # Model:
         particle_count: int,

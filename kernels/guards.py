@@ -19,6 +19,7 @@ from .families import elements
 from .linalg import reduction_funcs
 from .precision import vec3_type
 from .worlds import world_and_index
+from .flatten import flat_kernel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -56,7 +57,7 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool):
     Elements = composed.arrays
     element_strain = composed.strain
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False)
     def measure(
         # Model:
         particle_count: int,
@@ -112,7 +113,7 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool):
         values[world, GUARD_KINETIC_ENERGY] = energy
         values[world, GUARD_MAX_STRAIN] = worst
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False)
     def locate(
         # Model:
         particle_count: int,

@@ -26,6 +26,7 @@ from .kinematics import is_kinematic
 from .linalg import CG_PAP, reduction_funcs
 from .precision import mat33_type, vec3_type
 from .worlds import world_and_index
+from .flatten import flat_kernel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -69,7 +70,7 @@ def implicit_kernels(scalar: type, families: tuple, tiled: bool, drag: bool, dri
             z = (particle_q_end[p] - particle_q[p]) / dt - particle_qd[p]
         delta_qd[p] = z
 
-    @wp.kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
+    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
     def prepare(
         # Model:
         particle_count: int,
@@ -112,7 +113,7 @@ def implicit_kernels(scalar: type, families: tuple, tiled: bool, drag: bool, dri
         mass = mass_term(particle_mass[wp.min(world, particle_mass.shape[0] - 1), i], inputs, world, h)
         diagonal_inverse[p] = wp.inverse(mass * wp.identity(n=3, dtype=scalar) + blocks)
 
-    @wp.kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
+    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
     def matvec(
         # Model:
         particle_count: int,

@@ -30,6 +30,7 @@ from .kinematics import is_kinematic, particle_funcs
 from .linalg import reduction_funcs
 from .precision import vec3_type
 from .worlds import world_and_index
+from .flatten import flat_kernel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -59,7 +60,7 @@ def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures):
     _, project_contacts = project_all_func(scalar, contacts)
     has_contacts = bool(contacts)
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False)
     def symplectic_euler_from_forces(
         # Model:
         particle_count: int,
@@ -109,7 +110,7 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
     _, project_contacts = project_all_func(scalar, contacts)
     has_contacts = bool(contacts)
 
-    @wp.kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
+    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
     def symplectic_euler(
         # Model:
         particle_count: int,

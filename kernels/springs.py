@@ -22,6 +22,7 @@ from .families import FORCE_KERNEL_OPTIONS, FamilyFuncs, Incidence, IncidenceSha
 from .inputs import INPUT_BIPHASIC_RATIO, INPUT_BIPHASIC_STRAIN, INPUT_MAX_SPRING_FORCE
 from .kinematics import is_kinematic
 from .precision import mat33_type, vec3_type
+from .flatten import flat_kernel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -345,7 +346,7 @@ def spring_scatter_kernel(scalar: type, law: SpringLaw):
     SpringArrays = spring_arrays_type(scalar)
     spring_law_values, spring_force, _, _ = spring_funcs(scalar, law)
 
-    @wp.kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
+    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
     def scatter_springs(
         # Model:
         particle_count: int,

@@ -31,6 +31,7 @@ from .kinematics import is_kinematic, particle_funcs
 from .linalg import reduction_funcs
 from .precision import vec3_type
 from .worlds import world_and_index
+from .flatten import flat_kernel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -75,7 +76,7 @@ def power_iteration_kernels(scalar: type, families: tuple, tiled: bool):
     element_product = composed.product
     effective_inv_mass = particle_funcs(scalar)
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False)
     def product(
         # Model:
         particle_count: int,

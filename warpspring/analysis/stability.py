@@ -67,6 +67,7 @@ from ..checks import format_duration
 from ..errors import ConfigError
 from ..core.integrators import INTEGRATORS, ExplicitRungeKutta, ImplicitEuler, SymplecticEuler, VelocityVerlet
 from ..kernels.kinematics import PARTICLE_KINEMATIC
+from ..kernels.flatten import flat_launch
 from ..kernels.linalg import reduce_lanes, reduce_launch_dim, sum_partials_kernel
 from ..kernels.stability import (PI_LAMBDA, PI_PARTIALS, PI_RESIDUAL, PI_SCALARS, PI_XKX,
                                  power_iteration_kernels)
@@ -628,7 +629,7 @@ def _power_iteration(model: Model, stiffness: np.ndarray, state: State | None, m
     keep_going = wp.array([int(running.sum())], dtype=wp.int32, device=device)
 
     def iterate():
-        wp.launch(
+        flat_launch(
             product, dim=grid, block_dim=lanes, device=device,
             inputs=[n, model.particle_flags, model.particle_mass, element_arrays, model.inputs, q, active, x],
             outputs=[y, partials],

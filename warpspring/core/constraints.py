@@ -14,6 +14,7 @@ from .contacts import Contacts, apply_contacts, collide_positions, empty_contact
 from ..kernels.constraints import finish_step_kernel, strain_limit_kernel
 from .model import Model, State
 from .tracks import evaluate_input_tracks
+from ..kernels.flatten import flat_launch
 
 
 class StepFinisher:
@@ -82,12 +83,12 @@ class StepFinisher:
             source = state.particle_q
             for k in range(model.stabilizers.strain_iterations):
                 target = jacobi[k % 2]
-                wp.launch(limit, inputs=[*table, source], outputs=[target], **common)
+                flat_launch(limit, inputs=[*table, source], outputs=[target], **common)
                 source = target
             corrected = source
         if model.contact_stage:
             collide_positions(model, corrected, self.contacts)
-        wp.launch(
+        flat_launch(
             finish_step_kernel(model.scalar, model.contact_features(), self.speed_clamped, strain_limited),
             inputs=[
                 model.particle_count,

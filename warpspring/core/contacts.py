@@ -28,6 +28,7 @@ from ..kernels.contacts import (
 )
 from ..errors import ConfigError
 from .model import Model, State
+from ..kernels.flatten import flat_launch
 
 
 class Contacts:
@@ -95,7 +96,7 @@ def update_shape_frames(model: Model, time: wp.array, dt: float, *, ahead: bool 
     launched unless a collider moves). ``time`` [s] per world is the step's end, or with ``ahead`` its start."""
     if not model.shape_moving:
         return
-    wp.launch(
+    flat_launch(
         shape_motion_kernel(model.scalar),
         dim=(model.world_count, model.shape_count),
         inputs=[model.shape_rest, model.shape_translation_track, model.shape_rotation_track,
@@ -121,7 +122,7 @@ def collide_positions(model: Model, positions: wp.array, contacts: Contacts) -> 
     if model.shape_count == 0:
         contacts.arrays.count.zero_()
         return
-    wp.launch(
+    flat_launch(
         collide_kernel(model.scalar, model.contact_features()),
         dim=model.particle_dim,
         block_dim=model.block_dim,
@@ -141,7 +142,7 @@ def apply_contacts(model: Model, state: State, dt: float, contacts: Contacts | N
     if features.buffered and contacts is None:
         raise ConfigError("this model resolves contacts through the contact stage: pass the Contacts that "
                          "collide() filled")
-    wp.launch(
+    flat_launch(
         project_contacts_kernel(model.scalar, features),
         dim=model.particle_dim,
         block_dim=model.block_dim,

@@ -13,6 +13,7 @@ import numpy as np
 import warp as wp
 
 from ..kernels.families import MAX_HEAD_SLOTS, Incidence, IncidenceShape, element_energy_kernel
+from ..kernels.flatten import flat_launch
 
 #: Relative cost of a CSR tail entry against an ELL head slot in the choice of the head's width (an
 #: uncoalesced load and a loop iteration against a coalesced, unrolled load).
@@ -156,7 +157,7 @@ def element_energies(model, family: ElementFamily, particle_q: wp.array | None =
     model's initial positions), float64, shape [world_count, element_count] (one device launch)."""
     energy = wp.zeros((model.world_count, family.element_count), dtype=wp.float64, device=model.device)
     if family.element_count:
-        wp.launch(element_energy_kernel(model.scalar, family.spec(model)),
+        flat_launch(element_energy_kernel(model.scalar, family.spec(model)),
                   dim=(model.world_count, family.element_count),
                   inputs=[model.particle_count, family.arrays(model), model.inputs,
                           model.particle_q if particle_q is None else particle_q],

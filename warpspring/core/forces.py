@@ -11,6 +11,7 @@ from ..kernels.forces import clamp_forces_kernel, eval_forces_kernel
 from ..kernels.springs import spring_scatter_kernel
 from .model import Control, Model, State
 from .tracks import evaluate_input_tracks
+from ..kernels.flatten import flat_launch
 
 
 def force_inputs(model: Model, control: Control | None, features) -> list:
@@ -37,7 +38,7 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
     features = model.force_features(control)
     scatter = model.spring_count > 0 and not model.spring_gather
     out = state.particle_f if particle_f is None else particle_f
-    wp.launch(
+    flat_launch(
         # With scattered springs the force clamp must wait for the springs: a pass of its own below.
         eval_forces_kernel(model.scalar, features._replace(clamp_particle_force=False) if scatter else features),
         dim=model.particle_dim,
@@ -47,7 +48,7 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
         device=model.device,
     )
     if scatter:
-        wp.launch(
+        flat_launch(
             spring_scatter_kernel(model.scalar, model.spring_law),
             dim=(model.world_count, model.spring_count),
             inputs=[model.particle_count, model.spring_arrays(), model.inputs, state.particle_q, state.particle_qd],

@@ -36,6 +36,7 @@ from ..kernels.guards import (
     guard_kernels,
 )
 from ..errors import ConfigError
+from ..kernels.flatten import flat_launch
 from ..kernels.linalg import reduce_lanes, reduce_launch_dim
 from .families import world_elastic_energy
 from .model import Model, State
@@ -252,13 +253,13 @@ class Guard(StepHook):
         model = self.model
         measure, gather, locate, decide = guard_kernels(model.scalar, model.family_specs(), self._tiled)
         worlds, device = model.world_count, model.device
-        wp.launch(measure, dim=reduce_launch_dim(worlds, model.particle_count, self._lanes), block_dim=self._lanes,
+        flat_launch(measure, dim=reduce_launch_dim(worlds, model.particle_count, self._lanes), block_dim=self._lanes,
                   inputs=[model.particle_count, model.world_enabled, model.particle_mass, model.elements,
                           state.particle_q, state.particle_qd],
                   outputs=[self._status, self._partials], device=device)
         wp.launch(gather, dim=worlds, inputs=[model.world_enabled, self._partials, self._status],
                   outputs=[self._values], device=device)
-        wp.launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
+        flat_launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
                   inputs=[model.particle_count, model.world_enabled, model.elements, state.particle_q],
                   outputs=[self._status, self._values], device=device)
         wp.launch(decide, dim=worlds, inputs=[substep, self._limits],

@@ -41,6 +41,7 @@ from ..forces import eval_forces
 from ..kinematics import apply_kinematics
 from ..model import Control, Model, State
 from .base import Integrator, step_arguments, write_setting
+from ...kernels.flatten import flat_launch
 
 
 class ImplicitEuler(Integrator):
@@ -119,7 +120,7 @@ class ImplicitEuler(Integrator):
         if model.pin_groups is not None and model.pin_groups.driven:
             wp.launch(prescribed, inputs=[model.particle_flags, state_in.particle_q, state_in.particle_qd,
                                           state_out.particle_q, h], outputs=[self._prescribed], **per_particle)
-        wp.launch(
+        flat_launch(
             prepare,
             inputs=[model.particle_count, model.particle_flags, model.particle_mass, model.elements, model.inputs,
                     state_in.particle_q, state_in.particle_qd, state_in.particle_f, h, self._prescribed],
@@ -177,7 +178,7 @@ class ImplicitEuler(Integrator):
                       outputs=[self._iteration, self._active, self._keep_going], **per_world)
 
         def product(p):  # a_p = A p and the partial sums of p·Ap, in the worlds still iterating
-            wp.launch(matvec, inputs=[model.particle_count, model.particle_flags, model.particle_mass, model.elements,
+            flat_launch(matvec, inputs=[model.particle_count, model.particle_flags, model.particle_mass, model.elements,
                                       model.inputs, state.particle_q, h, self._active, p],
                       outputs=[self._a_p, self._partials], **reducing)
             total(CG_PAP, 1)

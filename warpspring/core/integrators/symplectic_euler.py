@@ -4,7 +4,6 @@ contacts in one pass); with scattered springs (CPU) it is force evaluation then 
 
 from __future__ import annotations
 
-import warp as wp
 
 from ...kernels.integrators import symplectic_euler_kernel, symplectic_euler_update_kernel
 from ...kernels.contacts import NO_CONTACTS
@@ -14,6 +13,7 @@ from ..kinematics import apply_kinematics
 from ..model import Control, State
 from ..tracks import evaluate_input_tracks
 from .base import Integrator, step_arguments
+from ...kernels.flatten import flat_launch
 
 
 class SymplecticEuler(Integrator):
@@ -33,7 +33,7 @@ class SymplecticEuler(Integrator):
         if model.spring_gather or model.spring_count == 0:
             evaluate_input_tracks(model, state_in)
             features = model.force_features(control)
-            wp.launch(
+            flat_launch(
                 symplectic_euler_kernel(model.scalar, features, contacts),
                 inputs=[
                     model.particle_count,
@@ -52,7 +52,7 @@ class SymplecticEuler(Integrator):
             )
         else:
             eval_forces(model, state_in, control)
-            wp.launch(
+            flat_launch(
                 symplectic_euler_update_kernel(model.scalar, contacts),
                 inputs=[
                     model.particle_count,
