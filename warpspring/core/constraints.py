@@ -56,15 +56,20 @@ class StepFinisher:
         return self.model.stabilizers.max_speed is not None
 
     @property
+    def stabilised(self) -> bool:
+        """True when strain limiting or the speed clamp runs before the contacts."""
+        return self.strain_limited or self.speed_clamped
+
+    @property
     def only_contacts(self) -> bool:
         """True when the pass is just the contact response against every collider (no stabiliser, no contact
         stage), which integrators may fuse into their update."""
-        return not (self.strain_limited or self.speed_clamped or self.model.contact_stage)
+        return not (self.stabilised or self.model.contact_stage)
 
     def __call__(self, state: State, dt: float) -> None:
         model = self.model
         update_shape_frames(model, state.time, dt)
-        if not (self.strain_limited or self.speed_clamped):
+        if not self.stabilised:
             if model.contact_stage:
                 collide_positions(model, state.particle_q, self.contacts)
             apply_contacts(model, state, dt, self.contacts)

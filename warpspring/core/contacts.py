@@ -26,6 +26,7 @@ from ..kernels.contacts import (
     project_contacts_kernel,
     shape_motion_kernel,
 )
+from .. import checks
 from ..errors import ConfigError
 from .model import Model, State
 from ..kernels.flatten import flat_launch
@@ -36,7 +37,8 @@ class Contacts:
 
     Args:
         model: the model whose states it serves.
-        slots: contacts a particle can hold; default ``model.contact_slots``.
+        slots: contacts a particle can hold; default ``model.contact_slots`` (0: a buffer that records none,
+            what kernels that test every collider themselves are handed).
         margin: distance beyond a particle's radius [m] at which a contact is recorded, ≥ 0 (the response
             acts only on particles within their radius; a margin lets positions change between ``collide``
             and the response).
@@ -47,10 +49,8 @@ class Contacts:
     """
 
     def __init__(self, model: Model, *, slots: int | None = None, margin: float = 0.0):
-        from .. import checks
-
         self.model = model
-        self.slots = model.contact_slots if slots is None else checks.count("contact slots", slots, minimum=1)
+        self.slots = model.contact_slots if slots is None else checks.count("contact slots", slots, minimum=0)
         margin = checks.non_negative("contact margin", margin)
         device, size = model.device, model.state_size
         arrays = contact_slots_type(model.scalar)()
@@ -158,14 +158,5 @@ def empty_contacts(model: Model) -> Contacts:
     itself (one per model, made once)."""
     empty = model.__dict__.get("_empty_contacts")
     if empty is None:
-        empty = Contacts.__new__(Contacts)
-        empty.model, empty.slots = model, 0
-        arrays = contact_slots_type(model.scalar)()
-        arrays.shape = wp.zeros((0, 0), dtype=wp.int32, device=model.device)
-        arrays.feature = wp.zeros((0, 0), dtype=wp.int32, device=model.device)
-        arrays.count = wp.zeros(0, dtype=wp.int32, device=model.device)
-        arrays.overflow = wp.zeros(model.world_count, dtype=wp.int32, device=model.device)
-        arrays.margin = wp.zeros(1, dtype=model.scalar, device=model.device)
-        empty.arrays = arrays
-        model.__dict__["_empty_contacts"] = empty
+        empty = model.__dict__["_empty_contacts"] = Contacts(model, slots=0)
     return empty

@@ -433,12 +433,7 @@ class Model:
                 the wrong width.
         """
         pins = self.pin_groups
-        try:
-            g = pins.group_index(group) if pins is not None else None
-        except KeyError as exc:
-            raise ConfigError(str(exc.args[0])) from None
-        if g is None:
-            raise ConfigError("the model has no pin groups: add one with ModelBuilder.add_pin_group(particles)")
+        g = pin_group_index(pins, group)
         if pins.groups[g].driver != "tracks":
             raise ConfigError(f"pin group {pins.groups[g].name!r} is driven through Control: it has no tracks to replace")
         if translation is None and rotation is None:
@@ -873,6 +868,16 @@ class State:
         wp.copy(self.time, other.time)
 
 
+def pin_group_index(pins: PinGroupTable | None, group) -> int:
+    """The index of pin ``group`` (an index or a name) in ``pins``, or a ConfigError saying what exists."""
+    if pins is None:
+        raise ConfigError("the model has no pin groups: add one with ModelBuilder.add_pin_group(particles)")
+    try:
+        return pins.group_index(group)
+    except KeyError as exc:
+        raise ConfigError(str(exc.args[0])) from None
+
+
 def check_compatible(state: State, other: State) -> None:
     """Raise a ConfigError unless ``other`` could stand in for ``state`` (same particle count, precision and
     device): a state of another model would otherwise fail inside a kernel launch, or copy only a part."""
@@ -956,12 +961,7 @@ class Control:
             world: the world whose group is sent, or ``None``: every world.
         """
         pins = self.model.pin_groups
-        try:
-            g = pins.group_index(group) if pins is not None else None
-        except KeyError as exc:
-            raise ConfigError(str(exc.args[0])) from None
-        if g is None:
-            raise ConfigError("the model has no pin groups: add one with ModelBuilder.add_pin_group(particles)")
+        g = pin_group_index(pins, group)
         pin_group = pins.groups[g]
         if pin_group.driver != "control":
             raise ConfigError(f"pin group {pin_group.name!r} is driven by its tracks, not by Control")

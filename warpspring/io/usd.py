@@ -186,6 +186,8 @@ class UsdWriter:
                     f"{where}particle {int(bad[0])} has a non-finite position or one beyond float32 range "
                     f"({len(bad)} of {model.particle_count} particles); the frame was not written"
                 )
+        seconds = self.frame_count / self.fps
+        poses = {shape.name: shape.frame(seconds) for shape in model.shapes if shape.moving}  # same in every world
         normals_all = None
         if any(slot.meshes for slot in live):
             normals_all = self._vertex_normals(state).reshape(model.world_count, model.particle_count, 3)
@@ -205,8 +207,8 @@ class UsdWriter:
                 points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q[self._spring_ends]))
                 slot.curves.GetPointsAttr().Set(points, t)
                 slot.curves.GetExtentAttr().Set(UsdGeom.Curves.ComputeExtent(points, self._curve_widths), t)
-            for shape, translate, orient in slot.colliders:  # every world's collider follows the same tracks
-                _set_pose(translate, orient, shape.frame(self.frame_count / self.fps), t)
+            for shape, translate, orient in slot.colliders:
+                _set_pose(translate, orient, poses[shape.name], t)
         self.stage.SetEndTimeCode(float(max(self.frame_count, 1)))
         self.frame_count += 1
         self._save()
