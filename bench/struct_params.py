@@ -9,7 +9,11 @@ arithmetic, four ways of handing the arrays to the kernel:
 * ``nested``: the element families' layout (``kernels/families.py``): a chain struct holding the
   spring struct holding an incidence struct, with the unused fields (spring indices, CSR tail) too;
 * ``built``: five array parameters packed into the same struct inside the kernel;
-* ``array``: the struct of ``struct`` stored in a one-element device array, read at the kernel's start.
+* ``array``: the struct of ``struct`` stored in a one-element device array, read at the kernel's start;
+* ``flattened``: ``nested`` compiled by ``kernels/flatten.py``'s ``flat_kernel`` (one parameter per leaf,
+  the struct rebuilt in the body), the four leaves it never reads (spring indices, CSR tail) where the
+  struct declares them, between the ones it reads;
+* ``flattened, idle last``: the same with ``flat_kernel(last=...)``, those four leaves the last parameters.
 
 Each variant is 50 launches captured in one CUDA graph; reported is the median time per launch over
 rounds that alternate the variants, and its ratio to ``flat`` (above 1 is faster). On the GPU the
@@ -18,7 +22,6 @@ struct parameter, not the struct, is what costs: see ``bench/RESULTS.md`` §9.
     python bench/struct_params.py --device cuda:0 --sizes 64 256 1024
 """
 
-from __future__ import annotations
 
 import argparse
 import datetime
@@ -28,6 +31,7 @@ import numpy as np
 import warp as wp
 
 from cloth import emit_table
+from warpspring.kernels.flatten import flat_inputs, flat_kernel
 
 SLOTS = 12
 STENCIL = [(1, 0), (-1, 0), (0, 1), (0, -1), (1, 1), (-1, -1), (1, -1), (-1, 1), (2, 0), (-2, 0), (0, 2), (0, -2)]
@@ -112,6 +116,26 @@ def nested(chain: Chain, q: wp.array[wp.vec3], qd: wp.array[wp.vec3], out: wp.ar
                     family.stiffness, family.damping, q, qd)
 
 
+def nested_body(chain: Chain, q: wp.array[wp.vec3], qd: wp.array[wp.vec3], out: wp.array[wp.vec3]):
+    i = wp.tid()
+    family = chain.head
+    out[i] = gather(i, family.incidence.head_local, family.incidence.head_element, family.rest_length,
+                    family.stiffness, family.damping, q, qd)
+
+
+flattened = flat_kernel(nested_body, module="unique", enable_backward=False)
+flattened_idle_last = flat_kernel(nested_body, module="unique", enable_backward=False,
+                                  last=("chain__head__indices", "chain__head__incidence__tail_start",
+                                        "chain__head__incidence__tail_element", "chain__head__incidence__tail_local"))
+
+
+def flat_arguments(kernel, inputs: list) -> list:
+    """``inputs`` expanded as ``flat_launch`` does, in the kernel's parameter order."""
+    values = flat_inputs(inputs)
+    order = getattr(kernel, "flat_order", None)
+    return values if order is None else [values[k] for k in order]
+
+
 @wp.func
 def gather_struct(i: int, springs: Springs, q: wp.array[wp.vec3], qd: wp.array[wp.vec3]) -> wp.vec3:
     return gather(i, springs.neighbour, springs.element, springs.rest, springs.ke, springs.kd, q, qd)
@@ -181,6 +205,8 @@ def variants(n: int, device) -> dict:
         "nested": (nested, [chain, q, qd, out]),
         "built": (built, flat_args),
         "array": (in_array, [wp.array([springs], dtype=Springs, device=device), q, qd, out]),
+        "flattened": (flattened, flat_arguments(flattened, [chain, q, qd, out])),
+        "flattened, idle last": (flattened_idle_last, flat_arguments(flattened_idle_last, [chain, q, qd, out])),
     }, out
 
 

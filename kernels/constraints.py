@@ -50,7 +50,9 @@ def strain_limit_kernel(scalar: type, incidence: IncidenceShape):
             return d * (share * (length - allowed) / length), scalar(1.0)
         return vec3(scalar(0.0)), scalar(0.0)
 
-    @flat_kernel(module="unique", enable_backward=False)
+    idle = ("springs__indices", *(f"springs__{p}" for p in incidence.idle()))  # leaves this pass never reads
+
+    @flat_kernel(module="unique", enable_backward=False, last=idle)
     def strain_limit(
         # Model:
         particle_count: int,
@@ -105,7 +107,7 @@ def finish_step_kernel(scalar: type, contacts: ContactFeatures, clamp_speed: boo
     project_contacts = project_contacts_func(scalar, contacts)
     has_contacts = bool(contacts)
 
-    @flat_kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False, last=contacts.idle("shapes", "contact_slots"))
     def finish_step(
         # Model:
         particle_count: int,

@@ -71,6 +71,14 @@ class ContactFeatures:
     def __bool__(self) -> bool:
         return len(self.kinds) > 0
 
+    def idle(self, shapes: str = "shapes", slots: str | None = None) -> tuple:
+        """``flat_kernel(last=)`` names of the kernel parameters ``shapes`` (a Shapes struct) and ``slots`` (a
+        ContactSlots struct) that the specialised response never reads."""
+        idle = () if self else (shapes,)
+        if slots is not None and not (self and self.buffered):
+            idle += (slots,)
+        return idle
+
 
 NO_CONTACTS = ContactFeatures()
 

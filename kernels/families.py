@@ -70,6 +70,11 @@ class IncidenceShape(NamedTuple):
     head_slots: int
     tail: bool
 
+    def idle(self, field: str = "incidence") -> tuple:
+        """Flat leaf paths (``flatten.py``) of an Incidence struct field that no hook reads: its CSR tail
+        when there is none."""
+        return () if self.tail else tuple(f"{field}__{leaf}" for leaf in ("tail_start", "tail_element", "tail_local"))
+
 
 class FamilyFuncs(NamedTuple):
     """What a family supplies to the kernels (see the module docstring for the hooks' signatures)."""
@@ -79,6 +84,9 @@ class FamilyFuncs(NamedTuple):
     product: Any
     strain: Any
     energy: Any
+    # Flat leaf paths of ``arrays`` that the gathered hooks (force, product, strain) never read in this spec;
+    # kernels taking the family through ``elements`` pass them last (``flat_kernel(last=)``).
+    idle: tuple = ()
 
 
 # -- composition ---------------------------------------------------------------------------------------------
@@ -96,6 +104,11 @@ class Elements(NamedTuple):
     force: Any
     product: Any
     strain: Any
+    idle: tuple = ()  # flat leaf paths of ``arrays`` no hook reads (``flat_kernel(last=)``)
+
+    def last(self, parameter: str) -> tuple:
+        """``flat_kernel(last=)`` names of the idle leaves of a kernel parameter ``parameter`` of this type."""
+        return tuple(f"{parameter}__{path}" for path in self.idle)
 
 
 @functools.cache
@@ -124,7 +137,7 @@ def elements(scalar: type, specs: tuple) -> Elements:
         def no_strain(world: int, i: int, base: int, xi: vec3, arrays: Arrays, particle_q: wp.array[vec3]):
             return wp.float64(-1.0), -1, -1
 
-        return Elements(Arrays, no_force, no_product, no_strain)
+        return Elements(Arrays, no_force, no_product, no_strain, ("placeholder",))
 
     head = specs[0].funcs(scalar)
     if len(specs) == 1:
@@ -147,7 +160,7 @@ def elements(scalar: type, specs: tuple) -> Elements:
             strain, element = head.strain(world, i, base, xi, arrays.head, particle_q)
             return strain, element, wp.where(element >= 0, 0, -1)
 
-        return Elements(Arrays, force_1, product_1, strain_1)
+        return Elements(Arrays, force_1, product_1, strain_1, tuple(f"head__{p}" for p in head.idle))
 
     rest = elements(scalar, specs[1:])
     Arrays = _struct(f"Elements_{type(specs[0]).__name__}_{len(specs)}", {"head": head.arrays, "tail": rest.arrays})
@@ -177,7 +190,8 @@ def elements(scalar: type, specs: tuple) -> Elements:
             return strain_rest, element_rest, family_rest + 1
         return strain, element, wp.where(element >= 0, 0, -1)
 
-    return Elements(Arrays, force_n, product_n, strain_n)
+    idle = tuple(f"head__{p}" for p in head.idle) + tuple(f"tail__{p}" for p in rest.idle)
+    return Elements(Arrays, force_n, product_n, strain_n, idle)
 
 
 def fill_elements(chain, family_arrays: list):
@@ -203,7 +217,8 @@ def element_energy_kernel(scalar: type, spec):
     Arrays = funcs.arrays
     energy_func = funcs.energy
 
-    @flat_kernel(module="unique", enable_backward=False)
+    # An element's energy reads its own entries, never the incidence table.
+    @flat_kernel(module="unique", enable_backward=False, last=("arrays__incidence",))
     def element_energy(
         particle_count: int,
         arrays: Arrays,

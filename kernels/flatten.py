@@ -22,8 +22,16 @@ becomes, for ``Elements = {head: {rest: array, stiffness: array2d}}``,
 
 The generated source is registered with ``linecache`` (Warp reads kernel source through ``inspect``), and
 runs in the original function's globals plus its closure's values. Launch such a kernel with
-:func:`flat_launch` (or expand its arguments with :func:`flat_inputs`), which expands every struct instance
-in the argument lists into its leaf fields in the same order.
+:func:`flat_launch`, which expands every struct instance in the argument lists into its leaf fields and
+puts them in the kernel's parameter order.
+
+Parameters the specialised body never reads cost time where they sit *between* the ones it reads: they
+spread those over more of the constant bank, whose misses a short, latency-bound kernel pays at its start
+(4-11 % for 5-40 idle array parameters interleaved with a 12-slot gather's five, nothing when the same
+parameters come last; H100, ``bench/RESULTS.md`` §9). So ``flat_kernel(last=...)`` takes the leaves a
+factory knows its specialisation compiles out (a family's CSR tail when no particle has one, the colliders
+when the scene has none) and moves them to the end of the parameter list. Naming a leaf that is in fact
+read is harmless: it is still passed, only placed last.
 """
 
 from __future__ import annotations
@@ -52,11 +60,14 @@ def _leaves(struct, path: tuple = ()):
             yield (*path, name), var.type
 
 
-def flat_kernel(func=None, **kernel_options):
+def flat_kernel(func=None, *, last=(), **kernel_options):
     """``wp.kernel(**kernel_options)`` of ``func`` with its struct parameters flattened (module docstring);
-    without ``func``, a decorator: ``@flat_kernel(module="unique", enable_backward=False)``."""
+    without ``func``, a decorator: ``@flat_kernel(module="unique", enable_backward=False)``.
+
+    ``last``: flat leaf names (``"shapes__kind"``) or prefixes of them (``"shapes"``, every leaf of that
+    parameter) that the body never reads; they become the last parameters."""
     if func is None:
-        return lambda f: flat_kernel(f, **kernel_options)
+        return lambda f: flat_kernel(f, last=last, **kernel_options)
     signature = inspect.signature(func)
     closure = inspect.getclosurevars(func)
     namespace = {**func.__globals__, **closure.globals, **closure.nonlocals}
@@ -71,7 +82,8 @@ def flat_kernel(func=None, **kernel_options):
     tree = ast.parse(textwrap.dedent(inspect.getsource(func)))
     definition = tree.body[0]
     definition.decorator_list = []
-    arguments, prologue = [], []
+    last = tuple(last)
+    arguments, idle, prologue = [], [], []  # idle: (natural position, argument) of the leaves in ``last``
     for arg in definition.args.args:
         struct = structs.get(arg.arg)
         if struct is None:  # its annotation, already evaluated, by name (it may name factory locals)
@@ -82,9 +94,17 @@ def flat_kernel(func=None, **kernel_options):
         for path, annotation in _leaves(struct):
             type_name = f"_flat_type_{len(namespace)}"
             namespace[type_name] = annotation
-            arguments.append(ast.arg(arg=_SEPARATOR.join((arg.arg, *path)), annotation=ast.Name(id=type_name)))
+            name = _SEPARATOR.join((arg.arg, *path))
+            flat = ast.arg(arg=name, annotation=ast.Name(id=type_name))
+            if any(name == p or name.startswith(p + _SEPARATOR) for p in last):
+                idle.append((len(arguments) + len(idle), flat))
+            else:
+                arguments.append(flat)
         prologue.extend(_assemble(arg.arg, arg.arg, struct, (), namespace))
-    definition.args.args = arguments
+    # The launch's values come in the natural (declaration) order; ``order`` picks them in parameter order.
+    busy = sorted(set(range(len(arguments) + len(idle))) - {k for k, _ in idle})
+    order = tuple(busy + [k for k, _ in idle])
+    definition.args.args = arguments + [flat for _, flat in idle]
     definition.body = [*prologue, *definition.body]
     source = ast.unparse(ast.fix_missing_locations(tree)) + "\n"
 
@@ -95,7 +115,9 @@ def flat_kernel(func=None, **kernel_options):
     flat = namespace[definition.name]
     flat.__qualname__ = func.__qualname__
     flat.__module__ = func.__module__
-    return wp.kernel(flat, **kernel_options)
+    kernel = wp.kernel(flat, **kernel_options)
+    kernel.flat_order = order if idle else None
+    return kernel
 
 
 def _assemble(root: str, name: str, struct, path: tuple, namespace: dict) -> list:
@@ -120,12 +142,19 @@ def _assemble(root: str, name: str, struct, path: tuple, namespace: dict) -> lis
 
 def flat_launch(kernel, *, inputs=(), outputs=(), **launch_options) -> None:
     """``wp.launch`` of a :func:`flat_kernel` with struct instances among ``inputs`` and ``outputs``."""
-    wp.launch(kernel, inputs=flat_inputs(inputs), outputs=flat_inputs(outputs), **launch_options)
+    order = getattr(kernel, "flat_order", None)
+    if order is None:
+        wp.launch(kernel, inputs=flat_inputs(inputs), outputs=flat_inputs(outputs), **launch_options)
+        return
+    values = flat_inputs(inputs) + flat_inputs(outputs)
+    # Idle leaves of the inputs now follow the outputs: everything goes as positional inputs (these kernels
+    # have no adjoint, for which Warp tells outputs apart).
+    wp.launch(kernel, inputs=[values[k] for k in order], **launch_options)
 
 
 def flat_inputs(inputs) -> list:
-    """A launch's argument list with every struct instance expanded into its leaf fields (the order of
-    :func:`flat_kernel`'s parameters)."""
+    """A launch's argument list with every struct instance expanded into its leaf fields, in declaration
+    order (the order of :func:`flat_kernel`'s parameters when it has no ``last``)."""
     out = []
     for value in inputs:
         if hasattr(value, "_cls") and _is_struct(value._cls):

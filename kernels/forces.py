@@ -92,9 +92,11 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures):
     """Kernel writing the total force on every particle (one thread per particle of every world)."""
     vec3 = vec3_type(scalar)
     particle_force = particle_force_func(scalar, features)
-    Elements = elements(scalar, features.families).arrays
+    composed = elements(scalar, features.families)
+    Elements = composed.arrays
 
-    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
+    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
+                 last=composed.last("element_arrays"))
     def eval_forces(
         # Model:
         particle_count: int,

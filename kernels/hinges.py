@@ -159,4 +159,4 @@ def hinge_family_funcs(scalar: type, spec: HingeSpec) -> FamilyFuncs:
                                     particle_q[base + ids[3]], hinges.rest_angle[h],
                                     hinges.stiffness[wp.min(world, hinges.stiffness.shape[0] - 1), h])
 
-    return FamilyFuncs(HingeArrays, force, product, strain, energy)
+    return FamilyFuncs(HingeArrays, force, product, strain, energy, spec.incidence.idle())

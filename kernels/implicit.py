@@ -70,7 +70,8 @@ def implicit_kernels(scalar: type, families: tuple, tiled: bool, drag: bool, dri
             z = (particle_q_end[p] - particle_q[p]) / dt - particle_qd[p]
         delta_qd[p] = z
 
-    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
+    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
+                 last=composed.last("element_arrays"))
     def prepare(
         # Model:
         particle_count: int,
@@ -113,7 +114,8 @@ def implicit_kernels(scalar: type, families: tuple, tiled: bool, drag: bool, dri
         mass = mass_term(particle_mass[wp.min(world, particle_mass.shape[0] - 1), i], inputs, world, h)
         diagonal_inverse[p] = wp.inverse(mass * wp.identity(n=3, dtype=scalar) + blocks)
 
-    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
+    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
+                 last=composed.last("element_arrays"))
     def matvec(
         # Model:
         particle_count: int,

@@ -60,7 +60,7 @@ def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures):
     _, project_contacts = project_all_func(scalar, contacts)
     has_contacts = bool(contacts)
 
-    @flat_kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False, last=contacts.idle())
     def symplectic_euler_from_forces(
         # Model:
         particle_count: int,
@@ -105,12 +105,14 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
     particle_force = particle_force_func(scalar, features)
-    Elements = elements(scalar, features.families).arrays
+    composed = elements(scalar, features.families)
+    Elements = composed.arrays
     update = symplectic_euler_funcs(scalar)
     _, project_contacts = project_all_func(scalar, contacts)
     has_contacts = bool(contacts)
 
-    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
+    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
+                 last=contacts.idle() + composed.last("element_arrays"))
     def symplectic_euler(
         # Model:
         particle_count: int,

@@ -332,7 +332,8 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
                              springs.stiffness[wp.min(world, springs.stiffness.shape[0] - 1), s],
                              spring_law_values(inputs, world))
 
-    return FamilyFuncs(SpringArrays, force, product, strain, energy)
+    # The gathered hooks find a spring's other end in the incidence entry, never in ``indices``.
+    return FamilyFuncs(SpringArrays, force, product, strain, energy, ("indices", *spec.incidence.idle()))
 
 
 @functools.cache
@@ -346,7 +347,9 @@ def spring_scatter_kernel(scalar: type, law: SpringLaw):
     SpringArrays = spring_arrays_type(scalar)
     spring_law_values, spring_force, _, _ = spring_funcs(scalar, law)
 
-    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS)
+    # The scatter walks the springs, never the incidence table.
+    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
+                 last=("springs__incidence",))
     def scatter_springs(
         # Model:
         particle_count: int,

@@ -76,7 +76,7 @@ def power_iteration_kernels(scalar: type, families: tuple, tiled: bool):
     element_product = composed.product
     effective_inv_mass = particle_funcs(scalar)
 
-    @flat_kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
     def product(
         # Model:
         particle_count: int,

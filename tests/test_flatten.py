@@ -3,6 +3,7 @@
 import functools
 
 import numpy as np
+import pytest
 import warp as wp
 
 from warpspring.kernels.flatten import flat_inputs, flat_kernel, flat_launch
@@ -24,11 +25,11 @@ OFFSET = 1000.0  # a module global the kernel reads
 
 
 @functools.cache
-def tree_kernel(scale: float):
+def tree_kernel(scale: float, last: tuple = ()):
     """A factory kernel reading a nested struct, a factory local (its annotation type too) and a global."""
     dtype = wp.float32
 
-    @flat_kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False, last=last)
     def total(n: int, tree: Tree, extra: wp.array[dtype], out: wp.array[dtype]):
         i = wp.tid()
         out[i] = tree.leaf.values[i] * scale + tree.table[1, i] + float(tree.leaf.count) + extra[i] + float(n) + OFFSET
@@ -36,12 +37,22 @@ def tree_kernel(scale: float):
     return total
 
 
-def test_flat_kernel_rebuilds_nested_structs(device):
-    """The flattened kernel has one parameter per leaf field, in declaration order, and computes what the
-    struct-parameter kernel would: every leaf reaches the body through the rebuilt struct."""
-    kernel = tree_kernel(2.0)
-    assert [a.label for a in kernel.adj.args] == ["n", "tree__leaf__values", "tree__leaf__count", "tree__table",
-                                                  "extra", "out"]
+LABELS = {
+    (): ["n", "tree__leaf__values", "tree__leaf__count", "tree__table", "extra", "out"],
+    # Leaves named in ``last`` (a whole sub-struct by its prefix, or one leaf) follow every other parameter,
+    # outputs included; they are still passed and read.
+    ("tree__leaf", "tree__table"): ["n", "extra", "out", "tree__leaf__values", "tree__leaf__count", "tree__table"],
+    ("tree__leaf__count",): ["n", "tree__leaf__values", "tree__table", "extra", "out", "tree__leaf__count"],
+}
+
+
+@pytest.mark.parametrize("last", list(LABELS), ids=lambda last: "+".join(last) or "declared")
+def test_flat_kernel_rebuilds_nested_structs(device, last):
+    """The flattened kernel has one parameter per leaf field, in declaration order but for the leaves named
+    in ``last``, and computes what the struct-parameter kernel would: every leaf reaches the body through the
+    rebuilt struct, wherever it sits in the parameter list."""
+    kernel = tree_kernel(2.0, last)
+    assert [a.label for a in kernel.adj.args] == LABELS[last]
     leaf = Leaf()
     leaf.values = wp.array(np.arange(4.0), dtype=float, device=device)
     leaf.count = 10
