@@ -82,6 +82,66 @@ def test_default_energy_limit_tolerates_fast_initial_motion(device):
     assert np.isfinite(run_frames(sim, 10)).all()
 
 
+INTEGRATORS = sorted(ws.INTEGRATORS)
+PUSH_MASS, PUSH_FORCE, PUSH_STIFFNESS = 45.0, 75.0, 100.0  # [kg], [N], [N/m]
+
+
+def pushed_block(device):
+    """A 45 kg block on a 100 N/m spring to a pin, no gravity, at rest: its energy scale is ~0, so a limit
+    that ignores the work put in is 1 J, which the 75 N push exceeds within 0.2 s."""
+    builder = ws.ModelBuilder(gravity=ZERO_GRAVITY)
+    builder.add_particles([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], mass=[1.0, PUSH_MASS])
+    builder.pin_particles([0])
+    builder.add_springs([[0, 1]], stiffness=PUSH_STIFFNESS, damping=0.0)
+    return builder.finalize(device)
+
+
+@pytest.mark.parametrize("integrator", INTEGRATORS)
+def test_forced_run_is_not_stopped_and_its_work_is_counted(device, integrator):
+    """The pushed block runs 10 s (≈ 2.4 periods) with the default guard under every integrator, and the
+    work the guard counted after the first half period is the push's 2F²/k (F = 75 N through the block's
+    travel 0 → 2F/k, exact for a constant force up to the integrator's error at the frame's time)."""
+    model = pushed_block(device)
+    sim = ws.Simulator(model, integrator=ws.make_integrator(integrator, model), fps=60, substeps=8)
+    sim.control.set_particle_force([[0.0, 0.0, 0.0], [PUSH_FORCE, 0.0, 0.0]])
+    omega = np.sqrt(PUSH_STIFFNESS / PUSH_MASS)
+    half = round(np.pi / omega * 60)  # frame nearest the first turning point
+    run_frames(sim, half)
+    expected = 2.0 * PUSH_FORCE**2 / PUSH_STIFFNESS * (1.0 - np.cos(omega * half / 60)) / 2.0
+    tolerance = 0.05 if integrator == "implicit_euler" else 0.01  # implicit Euler's damping shortens the swing
+    assert sim.guard.work()[0] == pytest.approx(expected, rel=tolerance)
+    assert np.isfinite(run_frames(sim, 600 - half)).all()
+
+
+def test_driven_run_is_not_stopped(device):
+    """A chain shaken by a pin on a cyclic track (±0.5 m at 1 Hz), no gravity, runs 20 s: the drive's work
+    raises the limit as it puts energy in, where a limit fixed at the start (1 J) stops it at once."""
+    builder = ws.ModelBuilder(gravity=ZERO_GRAVITY)
+    builder.add_particles(np.column_stack([np.arange(6) * 0.5, np.zeros(6), np.zeros(6)]), mass=1.0)
+    builder.add_springs([[i, i + 1] for i in range(5)], stiffness=200.0, damping=1.0)
+    shake = ws.Track([0.0, 0.25, 0.5, 0.75, 1.0], [[0, 0, 0], [0, 0.5, 0], [0, 0, 0], [0, -0.5, 0], [0, 0, 0]],
+                     interpolation="smooth", extrapolation="cycle")
+    builder.add_pin_group([0], translation=shake)
+    model = builder.finalize(device)
+    sim = ws.Simulator(model, fps=60, substeps=8)
+    assert np.isfinite(run_frames(sim, 1200)).all()
+    speeds = np.linalg.norm(sim.state.particle_qd.numpy()[1:], axis=1)
+    assert speeds.max() > 1.0  # really driven: ½ m v² ≫ 1 J was reached at some point
+    assert sim.guard.work()[0] > 1.0
+
+
+def test_work_does_not_hide_a_blow_up(device):
+    """Symplectic Euler at 3× its stable step on a pushed block diverges: the work the push puts in grows
+    with the displacement, the kinetic energy with its square, so the guard still stops it."""
+    model = pushed_block(device)
+    omega = np.sqrt(PUSH_STIFFNESS / PUSH_MASS)
+    fps = omega / 6.0  # one substep of ωh = 6 > 2: unstable
+    sim = ws.Simulator(model, fps=fps, substeps=1)
+    sim.control.set_particle_force([[0.0, 0.0, 0.0], [PUSH_FORCE, 0.0, 0.0]])
+    with pytest.raises(ws.SimulationError, match="kinetic energy ran away|non-finite|stretched"):
+        run_frames(sim, 400)
+
+
 @pytest.mark.parametrize("kwargs, message", [
     ({"every": 0}, "guard every must be an integer >= 1"),
     ({"every": 2.5}, "guard every must be an integer >= 1"),
@@ -107,3 +167,48 @@ def test_guard_max_strain_is_a_deprecated_name_of_tear_strain():
     with pytest.raises(TypeError, match="pass tear_strain only"):
         ws.GuardLimits(tear_strain=3.0, max_strain=3.0)
     assert ws.GuardLimits().tear_strain == 10.0
+
+
+def _stop(sim, frames):
+    """Run until the guard stops the run; the positions of the last frame it passed and the error."""
+    last = sim.model.state()
+    for _ in range(frames):
+        try:
+            sim.step_frame()
+        except ws.SimulationError as error:
+            return last, error
+        last.particle_q.assign(sim.state.particle_q)
+    raise AssertionError(f"the run was not stopped within {frames} frames")
+
+
+def test_a_too_soft_cloth_is_told_to_stiffen_not_to_substep(device):
+    """A 10 N/m cloth carrying 0.1 kg per particle tears under its own weight however small the step: the stop
+    is diagnosed at the last good frame as physical over-stretch, with the material as the remedy; the same
+    cloth with 4× the substeps stops at the same frame, which is what makes more substeps the wrong advice."""
+    from warpspring.analysis.stability import diagnose
+
+    soft = ws.SpringMaterial(ke=10.0, kd=0.1)
+    model, _ = hanging_cloth(device, n=8, structural=soft, shear=soft, bend=soft)
+    stops = []
+    for substeps in (8, 32):
+        sim = ws.Simulator(model, fps=60, substeps=substeps)
+        last, error = _stop(sim, 300)
+        assert error.reason == "strain"
+        stops.append(error.frame)
+        found = diagnose(model, "symplectic_euler", sim.dt, fps=60, reason=error.reason, state=last)
+        assert found.kind == "overstretch" and found.advice.stable
+        assert "too soft for its load" in found.remedy and "max_strain" in found.remedy
+    assert abs(stops[0] - stops[1]) <= 1
+
+
+def test_an_unstable_step_is_told_to_substep(device):
+    """The 1 kN/m cloth with RK4 at one 1/60 s step (ω_max h ≈ 19, far past RK4's 2.8) blows up: the stop
+    is diagnosed as numerical instability, with the substep count the stretched state needs."""
+    from warpspring.analysis.stability import diagnose
+
+    model, _ = hanging_cloth(device, n=8)
+    sim = ws.Simulator(model, integrator=ws.make_integrator("rk4", model), fps=60, substeps=1)
+    last, error = _stop(sim, 300)
+    found = diagnose(model, "rk4", sim.dt, fps=60, reason=error.reason, state=last)
+    assert found.kind == "instability" and not found.advice.stable
+    assert f"--substeps {found.advice.substeps}" in found.remedy and found.advice.substeps > 1

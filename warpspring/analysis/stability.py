@@ -48,6 +48,22 @@ quotient never exceeds λ_max; the Gershgorin bound ω_max² ≤ maxᵢ (Σₛ k
 below it, and is the cheap fallback. A model of several worlds gets one ω_max per world (each world's
 stiffness and masses), all worlds iterating in the same launches, each to its own tolerance.
 
+**Under load** (:func:`loaded_state`). A stretched spring of tension T and length l adds the transverse
+stiffness T/l = k(1 - L/l) to the axial k: a cloth hanging from two pins has stiffer modes than the same
+cloth at rest, up to √2 times the frequency of its in-plane modes when every spring is far stretched
+(a flat cloth at rest has no transverse stiffness at all). Linearised about its initial state, the advisor
+overrated a 20 × 20 RK4 cloth's stable stiffness by 1/0.65 under gravity. So when loads act (gravity, the
+control's external force), the advisor linearises about the state they carry the model to: the static
+equilibrium x_eq (pins held at their t = 0 place), found by quasi-static implicit Euler steps (each one a
+regularised Newton step on the potential, the velocities zeroed after it). Measured on that cloth (20 × 20,
+structural springs, 0.1 kg particles, kd = 0.01 N·s/m, two pins, RK4 at 1/60 s, 10 s runs, 32 stiffnesses
+as worlds of one model, ``bench/advisor_load.py``): runs blow up from ke = 531 N/m; linearised at rest the
+advisor allows 725 N/m (unsafe), at the equilibrium 369 N/m (safe, 31 % below). Between 369 and 531 N/m the stretched corner is
+linearly unstable, yet its oscillation saturates (the strain it feeds changes the stiffness that drives
+it) instead of tearing or turning non-finite, so the guard passes those runs. A swing past the
+equilibrium (x₀ + s (x_eq - x₀), s = ``overshoot`` of :func:`loaded_state`) only lowers the limit further
+(s = 2: 345 N/m on 24 worlds).
+
 **The advisor** (:func:`advise`) combines both for a model, an integrator and a step; with several worlds
 each world gets its own limit and the smallest binds.
 """
@@ -654,6 +670,81 @@ def _power_iteration(model: Model, stiffness: np.ndarray, state: State | None, m
     )
 
 
+# -- under load ---------------------------------------------------------------------------------------------
+
+#: Where between the start (0) and the static equilibrium (1) :func:`loaded_state` linearises by default.
+OVERSHOOT = 1.0
+#: Quasi-static relaxation: the implicit step [s] (a trust region: unsupported directions move g h² per step
+#: at most), the most steps, and the convergence test (largest move per step / the model's extent; the
+#: 20 × 20 cloth's ω_max agrees to 5e-6 with a 10× tighter test).
+RELAX_STEP, RELAX_MAX_STEPS, RELAX_TOLERANCE = 0.2, 200, 1.0e-5
+
+
+def has_loads(model: Model, control=None) -> bool:
+    """Whether gravity acts in some world or the control carries an external force."""
+    gravity = np.linalg.norm(model.world_values("gravity"), axis=1)
+    return bool(gravity.any()) or (control is not None and control.particle_force is not None)
+
+
+@dataclass(frozen=True)
+class Equilibrium:
+    """The static equilibrium :func:`static_equilibrium` found.
+
+    Attributes:
+        positions: particle positions [m], float64, shape [world_count · particle_count, 3].
+        steps: relaxation steps taken.
+        converged: whether the largest move of the last step fell below ``RELAX_TOLERANCE`` × the extent.
+        residual: that move over the extent [-].
+    """
+
+    positions: np.ndarray
+    steps: int
+    converged: bool
+    residual: float
+
+
+def static_equilibrium(model: Model, *, control=None, step: float = RELAX_STEP, max_steps: int = RELAX_MAX_STEPS,
+                       tolerance: float = RELAX_TOLERANCE) -> Equilibrium:
+    """The positions where the loads (gravity, the control's external force) balance the elements, the
+    pins held at their t = 0 place: implicit Euler steps of ``step`` from rest, the velocities zeroed and
+    the clock and pins put back after each, until the largest move per step is below ``tolerance`` × the
+    model's extent (or ``max_steps``). Each step solves (M + h²K) Δx = h² f, a Newton step on the
+    potential regularised by the mass (K the elements' stiffness, made positive semi-definite)."""
+    from ..core.integrators import ImplicitEuler
+
+    checks.positive("step", step)
+    checks.count("max_steps", max_steps, minimum=1)
+    integrator = ImplicitEuler(model)
+    state, scratch = model.state(), model.state()
+    start = state.particle_q.numpy().astype(np.float64)
+    pinned = ~free_particles(model).reshape(-1)
+    extent = max(float(np.ptp(start, axis=0).max()) if len(start) else 0.0, 1.0e-6)
+    previous, residual, steps = start, math.inf, 0
+    while steps < max_steps and residual > tolerance:
+        state.particle_qd.zero_()
+        state.time.zero_()
+        integrator.step(state, scratch, control, step)
+        q = scratch.particle_q.numpy().astype(np.float64)
+        q[pinned] = start[pinned]
+        if not np.isfinite(q).all():
+            break
+        residual = float(np.abs(q - previous).max()) / extent
+        state.particle_q.assign(q.astype(state.particle_q.numpy().dtype))
+        previous, steps = q, steps + 1
+    return Equilibrium(positions=previous, steps=steps, converged=residual <= tolerance, residual=residual)
+
+
+def loaded_state(model: Model, *, control=None, overshoot: float = OVERSHOOT) -> State:
+    """A state at x₀ + ``overshoot`` (x_eq - x₀), x_eq the :func:`static_equilibrium` under the loads, at rest
+    (default: the equilibrium itself), to linearise the advisor about."""
+    start = model.state()
+    equilibrium = static_equilibrium(model, control=control)
+    q0 = start.particle_q.numpy().astype(np.float64)
+    swing = q0 + overshoot * (equilibrium.positions - q0)
+    start.particle_q.assign(swing.astype(start.particle_q.numpy().dtype))
+    return start
+
+
 # -- the advisor --------------------------------------------------------------------------------------------
 
 
@@ -774,6 +865,8 @@ def advise(
     strict: bool = False,
     stiffness=None,
     state: State | None = None,
+    control=None,
+    loaded: bool = True,
     omega_estimate: str = "power_iteration",
     max_iterations: int = 1000,
     tolerance: float = 1.0e-3,
@@ -799,7 +892,12 @@ def advise(
         stiffness: spring stiffness [N/m], shape [spring_count] or [world_count, spring_count], also used
             for the springs' kd/k; default the model's, with biphasic springs at their stiffer branch
             (ratio × ke).
-        state: positions to linearise about; default the model's initial positions.
+        state: positions to linearise about; default the model's initial positions, carried by the loads
+            (below).
+        control: the run's Control, whose external force is a load (default none).
+        loaded: with no ``state`` given and loads acting (gravity or the control's external force),
+            linearise about :func:`loaded_state` rather than the initial positions. The Gershgorin bound
+            needs no state: it bounds every spring block by its full stiffness, stretched or not.
         omega_estimate: "power_iteration" or "gershgorin".
         max_iterations, tolerance: of the power iteration.
 
@@ -814,6 +912,8 @@ def advise(
     worlds = model.world_count
     if omega_estimate == "power_iteration":
         _check_iteration(max_iterations, tolerance)
+        if state is None and loaded and has_loads(model, control):
+            state = loaded_state(model, control=control)
         estimate = _power_iteration(model, k, state, max_iterations, tolerance, 0)
         converged = estimate.world_converged
         omegas = np.where(converged, estimate.world_omega_max, estimate.world_gershgorin)  # the bound where not
@@ -891,6 +991,53 @@ def advise(
     if strict and not stable:
         raise ConfigError(message)
     return advice
+
+
+# -- after a stop -------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """Why a run the guard stopped went bad, judged at its last good frame.
+
+    Attributes:
+        kind: "overstretch" (a stable integration of a material too soft for its load: the springs really
+            stretch that far) or "instability" (the step is beyond the limit at the state reached, or the
+            state turned non-finite or its energy ran away with the step found stable: see ``remedy``).
+        advice: the advisor linearised about the last good frame.
+        remedy: what to change, one sentence.
+    """
+
+    kind: str
+    advice: Advice
+    remedy: str
+
+
+def diagnose(model: Model, integrator: str, dt: float, *, fps: float, reason: str, state: State,
+             control=None) -> Diagnosis:
+    """Tell numerical instability from physical over-stretch after a guard stop whose ``reason`` is
+    "strain", "kinetic energy" or "non-finite state", from ``state``, the last frame the guard passed.
+
+    A spring torn in a step the advisor finds stable *at that frame's stretched state* is over-stretch:
+    more substeps or implicit Euler integrate the same tearing more accurately, so the remedy is the
+    material (stiffer springs, strain limiting, biphasic springs). A step beyond the limit at that state is
+    instability: more substeps (the number that the state needs) or implicit Euler."""
+    cheap = not model.device.is_cuda and model.particle_count > 20_000
+    advice = advise(model, integrator, dt, fps=fps, state=state, control=control,
+                    omega_estimate="gershgorin" if cheap else "power_iteration")
+    if reason == "strain" and advice.stable:
+        return Diagnosis("overstretch", advice, (
+            f"the step was stable at the stretched state ({advice.message}), so the springs really stretch that "
+            "far: the material is too soft for its load, and neither more substeps nor implicit_euler change "
+            "that; use stiffer springs (ke), strain limiting (Stabilizers(max_strain=0.1), [stabilizers] "
+            "max_strain) or biphasic springs (biphasic_strain, biphasic_ratio)"))
+    if not advice.stable:
+        hint = f" (e.g. --substeps {advice.substeps})" if advice.substeps else ""
+        return Diagnosis("instability", advice, (
+            f"numerical instability: at the state the run reached, {advice.message}{hint}"))
+    return Diagnosis("instability", advice, (
+        f"the advisor found the step stable for the elements at the state the run reached ({advice.message}), "
+        "so look at contacts, external forces or extreme parameters; more substeps or implicit_euler may help"))
 
 
 # -- helpers ------------------------------------------------------------------------------------------------

@@ -6,6 +6,7 @@ run, or (``GuardLimits(stop="world")``) holds only the failed world while the ot
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from dataclasses import dataclass
 
@@ -31,6 +32,7 @@ from ..kernels.guards import (
     GUARD_STRAIN_FAMILY,
     GUARD_STOP_WORLD,
     GUARD_SUBSTEP,
+    GUARD_WORK_FACTOR,
     GUARD_TRIPPED,
     NO_PARTICLE,
     guard_kernels,
@@ -59,8 +61,11 @@ class GuardLimits:
         tear_strain: spring strain |d|/L - 1 [-] at which a spring counts as torn and the run stops
             (default ``TEAR_STRAIN`` = 10: eleven times the rest length). Not the strain limit of
             ``Stabilizers.max_strain``.
-        max_kinetic_energy: largest allowed total kinetic energy of a world [J]; ``None``: 10⁶ times the
-            world's energy scale (initial kinetic + elastic energy + total weight × (extent + 1 m)).
+        max_kinetic_energy: largest allowed kinetic energy of a world's free particles [J], fixed; ``None``: 10⁶ times
+            the world's energy scale (initial kinetic + elastic energy + total weight × (extent + 1 m)) plus
+            the work its loads put in so far (weight, the control's external force, the drive of kinematic
+            particles; ``kernels/guards.py``), so a forced or driven run is never stopped for the energy
+            it was given.
         stop: what a failure stops: "run" (the simulator raises a SimulationError at the end of the frame)
             or "world" (the failed world is held from the failing check on, its failure is recorded in
             ``Simulator.world_failures``, and the other worlds go on; the run stops only when every world
@@ -167,14 +172,16 @@ class Guard(StepHook):
     The limits are device values: setting :attr:`limits` between frames changes no captured launch (but
     a new ``every`` does, and the stepper re-captures)."""
 
-    def __init__(self, model: Model, limits: GuardLimits, substeps: int):
+    def __init__(self, model: Model, limits: GuardLimits, substeps: int, *, control=None, state: State | None = None):
         self.model = model
         self.substeps = substeps
+        #: The control whose external force counts as work put in (``None``: no external force).
+        self.control = control
         self._tiled = model.device.is_cuda
         self._lanes = reduce_lanes(model.particle_count, model.block_dim, self._tiled)
         device, worlds = model.device, model.world_count
         status = np.tile([0, -1, NO_PARTICLE, NO_PARTICLE, NO_PARTICLE, 0, NO_PARTICLE], (worlds, 1))
-        values = np.tile([-1.0, 0.0], (worlds, 1))
+        values = np.tile([-1.0, 0.0, 0.0], (worlds, 1))
         assert status.shape[1] == GUARD_INTS and values.shape[1] == GUARD_FLOATS
         self._status_clear = wp.array(status, dtype=wp.int32, device=device)
         self._values_clear = wp.array(values, dtype=wp.float64, device=device)
@@ -183,6 +190,9 @@ class Guard(StepHook):
         grid = reduce_launch_dim(worlds, model.particle_count, self._lanes)
         self._partials = wp.zeros((worlds, grid[1], GUARD_FLOATS), dtype=wp.float64, device=device)
         self._limits = wp.zeros((worlds, GUARD_LIMITS), dtype=wp.float64, device=device)
+        # The work put in since the start [J] per world, and the positions of the last check (its Δx).
+        self._work_total = wp.zeros(worlds, dtype=wp.float64, device=device)
+        self._previous_q = wp.clone((state if state is not None else model).particle_q)
         self.revision = 0
         self._every = None
         self.limits = limits
@@ -224,6 +234,7 @@ class Guard(StepHook):
         values[:, GUARD_LIMIT_STRAIN] = limits.tear_strain
         values[:, GUARD_LIMIT_KINETIC_ENERGY] = self.world_max_kinetic_energy
         values[:, GUARD_STOP_WORLD] = 1.0 if limits.stop == "world" else 0.0
+        values[:, GUARD_WORK_FACTOR] = ENERGY_FACTOR if limits.max_kinetic_energy is None else 0.0
         self._limits.assign(values)
 
     @property
@@ -239,6 +250,20 @@ class Guard(StepHook):
     def begin(self) -> None:
         self.reset()
 
+    def history(self) -> list:
+        """The arrays a check carries to the next (the work put in, the last check's positions)."""
+        return [self._work_total, self._previous_q]
+
+    def restart(self, state: State | None = None) -> None:
+        """Forget the work put in and measure from ``state`` (default the model's initial state) on."""
+        self._work_total.zero_()
+        wp.copy(self._previous_q, (state if state is not None else self.model).particle_q)
+
+    def work(self) -> np.ndarray:
+        """The work the loads put into each world since the start [J], float64, shape [world_count] (the
+        positive parts, check by check; reads the device)."""
+        return self._work_total.numpy().copy()
+
     def after_step(self, state: State, step: int, steps: int) -> None:
         if (step + 1) % self._every == 0 or step + 1 == steps:
             self.check(state, step)
@@ -251,18 +276,23 @@ class Guard(StepHook):
     def check(self, state: State, substep: int) -> None:
         """Launch the checks of ``state`` after ``substep`` (device only; capturable)."""
         model = self.model
-        measure, gather, locate, decide = guard_kernels(model.scalar, model.family_specs(), self._tiled)
+        force = self.control.particle_force if self.control is not None else None
+        # The force on kinematic particles (a drive's work) is gathered even where the integrator scatters it.
+        specs = tuple(dataclasses.replace(s, gathered=True) if getattr(s, "gathered", True) is False else s
+                      for s in model.family_specs())
+        measure, gather, locate, decide = guard_kernels(model.scalar, specs, self._tiled, force is not None)
         worlds, device = model.world_count, model.device
         flat_launch(measure, dim=reduce_launch_dim(worlds, model.particle_count, self._lanes), block_dim=self._lanes,
-                  inputs=[model.particle_count, model.world_enabled, model.particle_mass, model.elements,
-                          state.particle_q, state.particle_qd],
-                  outputs=[self._status, self._partials], device=device)
+                    inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
+                            model.elements, model.inputs, force if force is not None else state.particle_q,
+                            state.particle_q, state.particle_qd],
+                    outputs=[self._previous_q, self._status, self._partials], device=device)
         wp.launch(gather, dim=worlds, inputs=[model.world_enabled, self._partials, self._status],
-                  outputs=[self._values], device=device)
+                  outputs=[self._values, self._work_total], device=device)
         flat_launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
-                  inputs=[model.particle_count, model.world_enabled, model.elements, state.particle_q],
-                  outputs=[self._status, self._values], device=device)
-        wp.launch(decide, dim=worlds, inputs=[substep, self._limits],
+                    inputs=[model.particle_count, model.world_enabled, model.elements, state.particle_q],
+                    outputs=[self._status, self._values], device=device)
+        wp.launch(decide, dim=worlds, inputs=[substep, self._limits, self._work_total],
                   outputs=[model.world_enabled, self._status, self._values], device=device)
 
     def reports(self) -> list[GuardReport]:

@@ -3,12 +3,15 @@ with run-time guards and clear errors."""
 
 from __future__ import annotations
 
+import os
 import warnings
+from pathlib import Path
 
 import numpy as np
 
 from .. import checks
 from ..errors import ContactOverflowWarning, SimulationError
+from .checkpoint import Checkpoint
 from .contacts import Contacts
 from .guards import Guard, GuardLimits
 from .integrators import Integrator, SymplecticEuler
@@ -46,6 +49,9 @@ class Simulator:
     With the contact stage (``Model.contact_stage``), the guard also reads the contact buffer's overflow
     after every frame and warns (:class:`~warpspring.errors.ContactOverflowWarning`) in a frame that dropped
     contacts; :meth:`contact_overflow` counts them per world.
+
+    A run can be saved at any frame and continued later bit for bit: :meth:`save_checkpoint`,
+    :meth:`load_checkpoint`.
     """
 
     def __init__(
@@ -64,13 +70,15 @@ class Simulator:
         self.substeps = checks.count("substeps", substeps, minimum=1)
         self.frame_dt = 1.0 / self.fps
         self.dt = self.frame_dt / self.substeps
-        self.guard = Guard(model, guard, self.substeps) if guard is not None else None
+        control = control if control is not None else model.control()
+        # The guard counts the work of the control's external force (its kinetic-energy limit grows by it).
+        self.guard = Guard(model, guard, self.substeps, control=control) if guard is not None else None
         self.stepper = Stepper(
             model,
             integrator if integrator is not None else SymplecticEuler(model),
             dt=self.dt,
             steps=self.substeps,
-            control=control if control is not None else model.control(),
+            control=control,
             hooks=[self.guard] if self.guard is not None else [],
             use_graph=use_graph,
         )
@@ -134,12 +142,14 @@ class Simulator:
                     reports = []
             if reports:
                 report = min(reports, key=lambda r: (r.substep, r.world))
-                raise SimulationError(
+                error = SimulationError(
                     f"frame {self.frame + 1}, substep {report.substep + 1} of {self.substeps} "
                     f"(t ≤ {self.time + (report.substep + 1) * self.dt:.4g} s): {report.describe(self.model)}",
                     frame=self.frame + 1,
                     substep=report.substep + 1,
                 )
+                error.reason = report.reason  # what tripped: the runner's diagnosis tells its kind apart
+                raise error
             if self.contacts is not None:
                 self._report_overflow()
         self.frame += 1
@@ -174,6 +184,8 @@ class Simulator:
         repeats exactly."""
         self.stepper.reset(state)
         self.state.time.zero_()
+        if self.guard is not None:
+            self.guard.restart(self.state)
         if self.contacts is not None:
             self.contacts.reset()
             self._overflow_seen[:] = 0
@@ -182,3 +194,45 @@ class Simulator:
         if self.world_failures:
             self.model.set_world_enabled(list(self.world_failures), True)
             self.world_failures = {}
+
+    def save_checkpoint(self, path: str | os.PathLike) -> Path:
+        """Save everything this run needs to go on from the current frame to ``path`` (one ``.npz``, used as
+        given), at full precision, so that :meth:`load_checkpoint` continues it bit for bit on the same device.
+
+        Saved: the state (positions [m], velocities [m/s], forces [N], each world's time [s] in float64), the
+        frame counter, the integrator's persistent arrays and settings (dopri5's step-size control, implicit
+        Euler's warm start, tolerances), the model's live values (the input table of gravity, drag and
+        stabiliser thresholds, ``world_enabled``, particle flags, masses, radii, rest lengths, stiffness and
+        damping) and switches, the control's external force and pin targets, the contact overflow counters,
+        the guard's record and :attr:`world_failures`; see :mod:`warpspring.core.checkpoint`. Not saved: the
+        scene (topology, colliders, keyframe tracks), the guard's limits and ``use_graph``. The write is
+        atomic: an interrupted save leaves a checkpoint already at ``path`` intact. Reads the device.
+
+        Returns:
+            The path written.
+
+        Raises:
+            ConfigError: the directory does not exist or cannot be written.
+        """
+        return Checkpoint.capture(self).save(path)
+
+    def load_checkpoint(self, path: str | os.PathLike) -> None:
+        """Continue from the checkpoint at ``path`` (written by :meth:`save_checkpoint` of a simulator of the
+        same scene, integrator, fps and substeps): afterwards :attr:`frame`, :attr:`state` and everything
+        :meth:`save_checkpoint` lists are as they were when it was saved, and the next frames repeat the saved
+        run's bit for bit on the same device.
+
+        The values are written into this simulator's existing device arrays, so a captured frame graph stays
+        valid; a switch the saved run had turned on (gravity, drag, a stabiliser, held worlds, an external
+        force) is turned on here too, and the next frame re-captures.
+
+        Raises:
+            ConfigError: the file is missing, damaged or not a checkpoint, or it was saved from another scene,
+                integrator, fps or substeps (the one-line message names what differs and how to fix it).
+        """
+        Checkpoint.load(path).restore(self)
+        # What this simulator derives from the restored values: the overflow already reported, and a default
+        # kinetic-energy limit (it follows the live inputs).
+        self._overflow_seen = self.contact_overflow()
+        if self.guard is not None:
+            self.guard.limits = self.guard.limits

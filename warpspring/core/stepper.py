@@ -39,6 +39,11 @@ class StepHook:
     def after_step(self, state: State, step: int, steps: int) -> None:
         """Called after step ``step`` (0-based) of ``steps``, with the state that step produced."""
 
+    def history(self) -> list:
+        """Device arrays the hook carries from one advance to the next (restored after a capture's warm-up,
+        like the integrator's history)."""
+        return []
+
 
 class Stepper:
     """Advances :attr:`state` by ``steps`` integrator steps of ``dt`` per :meth:`advance`, replaying one
@@ -138,7 +143,8 @@ class Stepper:
     def _capture(self) -> None:
         # Warm-up: one uncaptured step (and every hook) on the scratch buffer loads every module; the
         # integrator's history is put back, so the warm-up leaves no trace in the run.
-        carried = [*self.integrator.history(), *self.integrator.finish_step.history()]
+        carried = [*self.integrator.history(), *self.integrator.finish_step.history(),
+                   *(a for hook in self.hooks for a in hook.history())]
         history = [wp.clone(a) for a in carried]
         for hook in self.hooks:
             hook.begin()

@@ -12,6 +12,7 @@ from ..errors import ConfigError, SimulationError
 from ..core.integrators import make_integrator
 from .scene import Scene, check_run_settings
 from ..core.simulator import Simulator
+from ..analysis.stability import diagnose
 
 
 @dataclass
@@ -151,7 +152,8 @@ def run_scene(
     except ConfigError as exc:
         raise ConfigError(f"{os.path.basename(scene.path)}: [simulation] {exc}") from None
     sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps, guard=scene.guard)
-    advice = preflight(model, integrator.name, sim.dt, fps=fps, strict=strict)
+    advice = preflight(model, integrator.name, sim.dt, fps=fps, strict=strict, control=sim.control)
+    last_good = model.state()  # the last frame the guard passed: where a stop is diagnosed
     if not advice.stable and warn is not None:
         warn(advice.message)
 
@@ -171,6 +173,8 @@ def run_scene(
                         with bar.external_write_mode():  # a line of its own, not through the progress bar
                             warn(sim.describe_failure(w))
                 usd.write_frame(sim.state)
+                if sim.guard is not None:
+                    wp.copy(last_good.particle_q, sim.state.particle_q)
                 bar.update(1)
                 if t1 is None:  # the first frame compiled the kernels and captured the graph: setup time
                     t1 = time.perf_counter()
@@ -178,8 +182,13 @@ def run_scene(
             # A guard names its frame and substep; the writer's last-line check knows only the frame.
             frame = exc.frame if exc.frame is not None else sim.frame
             where = "" if exc.frame is not None else f"frame {frame} (t = {frame * sim.frame_dt:.4g} s): "
+            remedy = _remedy(advice, substeps)
+            reason = getattr(exc, "reason", None)
+            if reason is not None:
+                remedy = diagnose(model, integrator.name, sim.dt, fps=fps, reason=reason, state=last_good,
+                                  control=sim.control).remedy
             raise SimulationError(
-                f"{where}{exc} (dt = {sim.dt * 1e3:.4g} ms). {_remedy(advice, substeps)}; "
+                f"{where}{exc} (dt = {sim.dt * 1e3:.4g} ms). {remedy[0].upper()}{remedy[1:]}; "
                 f"{output} holds frames 0..{frame - 1}",
                 frame=frame,
                 substep=exc.substep,
@@ -206,12 +215,13 @@ def run_scene(
     )
 
 
-def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = False):
-    """The stability advisor's verdict on a run (:func:`warpspring.analysis.stability.advise`).
+def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = False, control=None):
+    """The stability advisor's verdict on a run (:func:`warpspring.analysis.stability.advise`), linearised
+    about the static equilibrium under the run's loads (gravity, ``control``'s external force) when any act.
 
     Biphasic springs are judged by their stiffer branch. ω_max comes from power iteration on GPUs and
-    on CPUs for models up to ``POWER_ITERATION_CPU_LIMIT`` particles, else from the (conservative)
-    Gershgorin bound, so the check stays a fraction of a second.
+    on CPUs for models up to ``POWER_ITERATION_CPU_LIMIT`` particles, else from the (conservative, also
+    under load) Gershgorin bound, so the check stays within about a second on a CPU.
 
     Raises:
         ConfigError: with ``strict``, when ``dt`` is outside the integrator's stability limit.
@@ -219,7 +229,7 @@ def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = F
     from ..analysis.stability import advise
 
     cheap = not model.device.is_cuda and model.particle_count > POWER_ITERATION_CPU_LIMIT
-    return advise(model, integrator, dt, fps=fps, strict=strict,
+    return advise(model, integrator, dt, fps=fps, strict=strict, control=control,
                   omega_estimate="gershgorin" if cheap else "power_iteration")
 
 

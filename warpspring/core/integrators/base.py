@@ -61,10 +61,16 @@ class Integrator(abc.ABC):
         """Forget what earlier steps left behind (step-size control, solver warm starts), so the next step
         behaves as the first. Stateless integrators have nothing to forget."""
 
+    def persistent_arrays(self) -> dict[str, wp.array]:
+        """The device arrays that carry what one step leaves to the next (what :meth:`reset` forgets), by
+        name: a Stepper saves and restores them around its warm-up step, and a checkpoint
+        (``Simulator.save_checkpoint``) saves them. Override it to list an integrator's own; stateless
+        integrators (every array of theirs rewritten by each step before it is read) have none."""
+        return {}
+
     def history(self) -> list:
-        """The device arrays that carry what one step leaves to the next (what :meth:`reset` forgets); a
-        Stepper saves and restores them around its warm-up step. Stateless integrators have none."""
-        return []
+        """The arrays of :meth:`persistent_arrays`, in their order (what a Stepper restores after its warm-up)."""
+        return list(self.persistent_arrays().values())
 
     def failure(self) -> str | None:
         """Why the last steps could not complete, for integrators that can stop short (adaptive ones

@@ -139,8 +139,12 @@ class DormandPrince(ExplicitRungeKutta):
         self._counters.zero_()
         self.tolerance, self.max_steps = self._tolerance, self._max_steps
 
-    def history(self) -> list:
-        return [self._control, self._counters]
+    def persistent_arrays(self) -> dict[str, wp.array]:
+        """Each world's step-size controller: "step_control" (float64, shape [world_count, STEP_CONTROL_SLOTS]:
+        the proposed next step [s], the growth cap, the last error and the settings), "step_counters" (int32,
+        shape [world_count, STEP_COUNTERS]: accepted, rejected and attempted steps, failure) and "step_size"
+        (the step in use [s], float64, shape [world_count])."""
+        return {"step_control": self._control, "step_counters": self._counters, "step_size": self._step_size}
 
     def failure(self) -> str | None:
         """Why the last steps stopped short, or ``None`` (reads the device)."""

@@ -142,8 +142,10 @@ class ImplicitEuler(Integrator):
         """Forget the warm start: the next solve starts from Δv = 0."""
         self._delta_qd.zero_()
 
-    def history(self) -> list:
-        return [self._delta_qd]
+    def persistent_arrays(self) -> dict[str, wp.array]:
+        """The warm start: "delta_qd", the last solve's Δv [m/s], shape [world_count · particle_count], the next
+        solve's initial guess."""
+        return {"delta_qd": self._delta_qd}
 
     def solve_report(self, *, world: int = 0) -> tuple[int, float, float]:
         """(iterations, ‖b - A Δv‖, ‖b‖) of the last solve of ``world``, read from the device (synchronises)."""

@@ -1,0 +1,381 @@
+"""Checkpoints: everything a :class:`~warpspring.core.simulator.Simulator` needs to go on with a run, saved
+at full precision to one ``.npz`` file, so that a run restored from it continues bit for bit as the
+uninterrupted run would on the same device.
+
+A checkpoint holds NumPy copies of device arrays, in their own dtypes (float32 or float64 bits as they
+are), under names grouped by owner:
+
+* ``state/``: the current :class:`~warpspring.core.model.State`: ``particle_q`` [m], ``particle_qd`` [m/s],
+  ``particle_f`` [N] (each shape [world_count · particle_count, 3]) and ``time`` [s] (float64, shape
+  [world_count]: each world's clock, at which keyframe tracks and driven pins are evaluated);
+* ``integrator/``: the integrator's :meth:`~warpspring.core.integrators.Integrator.persistent_arrays`
+  (dopri5's step-size controllers, implicit Euler's warm start; none for the others);
+* ``model/``: the model's arrays a user may change between frames (:data:`MODEL_ARRAYS`: the live-input
+  table, ``world_enabled``, particle flags, masses and radii, rest lengths, stiffness and damping rows),
+  and the colliders' current frames when a collider moves;
+* ``control/``: the external force and the pin targets of control-driven pin groups, when present;
+* ``contacts/``: the contact buffer's overflow counters (the contact stage);
+* ``hooks/``: the arrays the step hooks (the run-time guard) carry from one frame to the next.
+
+A JSON header (the ``header`` entry) names the format and its version, the package and Warp versions, the
+scene's counts and precision, the integrator's name and settings, fps and substeps, the frame counter,
+the model's on/off switches (gravity, drag, stabilisers, held worlds) and the guard's world failures.
+
+Not saved: the scene itself (topology, colliders, meshes, keyframe tracks and pin-group tracks, extra
+element families' arrays: build the simulator from the same scene, then load), the guard's limits and
+``use_graph`` (the simulator's configuration), and scratch arrays every step rewrites before reading them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import inspect
+import json
+import os
+import uuid
+import zipfile
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import warp as wp
+
+from ..errors import ConfigError
+from ..kernels.inputs import INPUTS
+from .guards import GuardReport
+from .model import Stabilizers
+
+if TYPE_CHECKING:
+    from .simulator import Simulator
+
+#: The format's name, stored in every header.
+FORMAT = "warpspring-checkpoint"
+#: The format's version: a reader refuses newer ones.
+FORMAT_VERSION = 1
+
+#: Model arrays a user may change between frames (live values and in-place edits), saved and restored.
+MODEL_ARRAYS = (
+    "inputs",  # live inputs (gravity, drag, stabiliser thresholds), shape [world_count, INPUT_COUNT]
+    "world_enabled",  # int32, shape [world_count]
+    "particle_flags",  # int32, shape [world_count · particle_count] (pins released or pinned mid-run)
+    "particle_mass",  # [kg], shape [1 or world_count, particle_count]
+    "particle_inv_mass",  # [1/kg], same shape
+    "particle_radius",  # [m], shape [particle_count]
+    "spring_rest_length",  # [m], shape [spring_count]
+    "spring_stiffness",  # [N/m], shape [1 or world_count, spring_count]
+    "spring_damping",  # [N·s/m], shape [1 or world_count, spring_count]
+    "hinge_rest_angle",  # [rad], shape [hinge_count]
+    "hinge_stiffness",  # [N·m/rad], shape [1 or world_count, hinge_count]
+    "hinge_damping",  # [N·m·s/rad], shape [1 or world_count, hinge_count]
+)
+#: Of those, the per-world parameters held as one row for every world or one row per world: a checkpoint
+#: may hold the other layout than the model it is loaded into (the array is then replaced, not assigned).
+PER_WORLD_ROWS = ("particle_mass", "particle_inv_mass", "spring_stiffness", "spring_damping", "hinge_stiffness",
+                  "hinge_damping")
+
+#: What must agree between a checkpoint and the simulator it is loaded into: header key, how to name it, and
+#: how to fix a difference.
+_SCENE_REMEDY = "load it into a simulator built from the scene it was saved from"
+_COMPATIBILITY = (
+    ("precision", "precision", _SCENE_REMEDY),
+    ("worlds", "worlds", _SCENE_REMEDY),
+    ("particles", "particles per world", _SCENE_REMEDY),
+    ("springs", "springs", _SCENE_REMEDY),
+    ("hinges", "hinges", _SCENE_REMEDY),
+    ("families", "element families", _SCENE_REMEDY),
+    ("colliders", "colliders", _SCENE_REMEDY),
+    ("integrator", "integrator", "build the simulator with integrator=make_integrator({saved!r}, model)"),
+    ("fps", "fps", "build the simulator with fps={saved!r}"),
+    ("substeps", "substeps", "build the simulator with substeps={saved!r}"),
+)
+
+
+class Checkpoint:
+    """One simulator's state at the end of a frame, held on the host (see the module docstring for what it
+    holds and what it does not).
+
+    Make one with :meth:`capture` (or ``Simulator.save_checkpoint``), write it with :meth:`save`, read it
+    back with :meth:`load` and put it into a simulator with :meth:`restore` (or ``Simulator.load_checkpoint``).
+
+    Args:
+        header: the JSON-serialisable description (format, versions, scene, integrator, frame, switches).
+        arrays: the saved arrays by name (``"state/particle_q"``, ...), NumPy, in the device arrays' dtypes.
+        source: the file it was read from, named in error messages (``None``: made in memory).
+    """
+
+    def __init__(self, header: dict, arrays: dict[str, np.ndarray], *, source: str | None = None):
+        self.header = header
+        self.arrays = arrays
+        self.source = source
+
+    @property
+    def frame(self) -> int:
+        """Frames the saved simulator had completed."""
+        return int(self.header["frame"])
+
+    def world_failures(self) -> dict:
+        """The saved simulator's ``world_failures``: world → (frame, :class:`~warpspring.core.guards.GuardReport`)."""
+        return {int(item["world"]): (int(item["frame"]), GuardReport(**item["report"]))
+                for item in self.header["world_failures"]}
+
+    # -- capture and restore ----------------------------------------------------------------------------------
+
+    @classmethod
+    def capture(cls, sim: Simulator) -> Checkpoint:
+        """Copy everything ``sim`` needs to go on from its current frame (reads the device: synchronises)."""
+        from .. import __version__
+
+        model = sim.model
+        arrays = {name: array.numpy().copy() for name, array in live_arrays(sim).items()}
+        header = {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "warpspring_version": __version__,
+            "warp_version": wp.config.version,
+            "device": str(model.device),
+            **_configuration(sim),
+            "integrator_settings": integrator_settings(sim.integrator),
+            "frame": sim.frame,
+            "switches": {
+                "gravity": model.gravity_enabled,
+                "drag": model.drag_enabled,
+                "hold_worlds": model.holds_worlds,
+                "stabilizers": dataclasses.asdict(model.stabilizers),
+            },
+            "world_failures": [{"world": int(w), "frame": int(frame), "report": dataclasses.asdict(report)}
+                               for w, (frame, report) in sorted(sim.world_failures.items())],
+            "arrays": sorted(arrays),
+        }
+        return cls(header, arrays)
+
+    def restore(self, sim: Simulator) -> None:
+        """Put this checkpoint into ``sim``: its state, frame counter and world failures, the integrator's
+        persistent arrays and settings, the model's live arrays and switches, the control's inputs, the
+        contact overflow counters and the hooks' records.
+
+        Arrays are written into the simulator's existing device arrays (``array.assign``), so a captured
+        frame graph, which reads them in place, stays valid. Where the checkpoint needs a structure the
+        simulator lacks (gravity or drag switched on, other stabilisers, held worlds, an external force, one
+        row per world of a parameter), it is set up through the public setters, which count as structural
+        changes: the stepper re-captures at the next frame. Everything is checked before anything is
+        written. ``Simulator.load_checkpoint`` calls this and then re-derives the simulator's own caches.
+
+        Raises:
+            ConfigError: the checkpoint was saved from another scene, integrator, fps or substeps (the
+                message names the difference and the fix), or holds an array this simulator has not.
+        """
+        self._check_configuration(sim)
+        plan = self._plan(sim)
+        self._restore_structure(sim)
+        model = sim.model
+        live = live_arrays(sim)
+        for key, values in plan:
+            owner, name = key.split("/", 1)
+            if owner == "model" and name in PER_WORLD_ROWS and live[key].shape != values.shape:
+                # One row for all worlds against one per world: a new array (a structural change).
+                setattr(model, name, wp.array(values, dtype=model.scalar, device=model.device))
+            elif values.size:
+                live[key].assign(values)
+        sim.frame = self.frame
+        sim.world_failures = self.world_failures()
+
+    def _check_configuration(self, sim: Simulator) -> None:
+        mine = _configuration(sim)
+        saved = self.header
+        for key, label, remedy in _COMPATIBILITY:
+            if saved.get(key) != mine[key]:
+                raise ConfigError(f"{self._name()} was saved with {label} {_show(saved.get(key))}, but this "
+                                  f"simulator has {_show(mine[key])}: {remedy.format(saved=saved.get(key))}")
+
+    def _plan(self, sim: Simulator) -> list[tuple[str, np.ndarray]]:
+        """The saved arrays to write, in order, each checked against the simulator's array of that name."""
+        live = live_arrays(sim)
+        # An external force the simulator's control has not allocated yet is allocated by the restore.
+        if "control/particle_force" not in live:
+            live["control/particle_force"] = sim.state.particle_q
+        optional = ("hooks/", "control/particle_force")
+        missing = sorted(key for key in live if key not in self.arrays and not key.startswith(optional))
+        if missing:
+            raise ConfigError(f"{self._name()} lacks {missing[0]}, which this simulator has: {_SCENE_REMEDY}")
+        plan = []
+        for key in sorted(self.arrays):
+            values = self.arrays[key]
+            if key not in live:
+                if key.startswith("hooks/"):
+                    continue  # the simulator runs without that hook (e.g. no guard): nothing to carry
+                raise ConfigError(f"{self._name()} holds {key}, which this simulator has not: "
+                                  f"{_SCENE_REMEDY}")
+            shape, dtype = _layout(live[key])
+            owner, name = key.split("/", 1)
+            rows_differ = owner == "model" and name in PER_WORLD_ROWS and values.shape[1:] == shape[1:] and \
+                values.shape[0] in (1, sim.model.world_count)
+            if values.dtype != dtype or (values.shape != shape and not rows_differ):
+                raise ConfigError(f"{self._name()} holds {key} of shape {values.shape} ({values.dtype}), but this "
+                                  f"simulator's is {shape} ({dtype}): {_SCENE_REMEDY}")
+            plan.append((key, values))
+        return plan
+
+    def _restore_structure(self, sim: Simulator) -> None:
+        """Set up, through the public setters, the switches and inputs the saved run had and ``sim`` lacks."""
+        model, control, switches = sim.model, sim.control, self.header["switches"]
+        if "control/particle_force" in self.arrays and control.particle_force is None:
+            control.set_particle_force(np.zeros(3))  # allocates it; the saved values follow
+        elif "control/particle_force" not in self.arrays and control.particle_force is not None:
+            control.particle_force = None
+        stabilizers = Stabilizers(**switches["stabilizers"])
+        if stabilizers != model.stabilizers:
+            model.stabilizers = stabilizers
+        inputs = self.arrays["model/inputs"]
+        for name, enabled in (("gravity", model.gravity_enabled), ("drag", model.drag_enabled)):
+            slot, width = INPUTS[name]
+            values = inputs[:, slot: slot + width].astype(np.float64)
+            if switches[name] and not enabled and values.any():
+                model.set_world_values(name, values)  # switches the term on; the saved bits follow
+        if switches["hold_worlds"]:
+            model.hold_worlds()
+        for name, value in self.header["integrator_settings"].items():
+            if getattr(sim.integrator, name) != value:
+                setattr(sim.integrator, name, value)
+
+    def _name(self) -> str:
+        return f"checkpoint {self.source}" if self.source is not None else "the checkpoint"
+
+    # -- files ----------------------------------------------------------------------------------------------
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the checkpoint to ``path`` (used as given: add ``.npz`` yourself) as one ``.npz`` file.
+
+        The file is written under a temporary name in the same directory, flushed to disk, and then renamed
+        over ``path`` (``os.replace``), so an interrupted save never leaves a partial file under ``path``: a
+        checkpoint already there stays intact.
+
+        Returns:
+            The path written.
+
+        Raises:
+            ConfigError: the directory does not exist or cannot be written.
+        """
+        path = Path(path)
+        temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+        try:
+            file = open(temporary, "xb")
+        except OSError as exc:
+            raise ConfigError(f"cannot write checkpoint {path}: {exc.strerror} ({path.parent})") from None
+        try:
+            with file:
+                np.savez(file, header=np.array(json.dumps(self.header)), **self.arrays)
+                file.flush()
+                os.fsync(file.fileno())
+            os.replace(temporary, path)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.unlink(temporary)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> Checkpoint:
+        """Read a checkpoint written by :meth:`save` (every array is read and checked here).
+
+        Raises:
+            ConfigError: the file does not exist, is not a warpspring checkpoint, is truncated or damaged, or
+                was written by a newer format version.
+        """
+        path = Path(path)
+        name = f"checkpoint {path}"
+        if not path.is_file():
+            raise ConfigError(f"{name} does not exist (or is not a file)")
+        try:
+            data = np.load(path, allow_pickle=False)
+            if not isinstance(data, np.lib.npyio.NpzFile):
+                raise ValueError("a single array, not an .npz archive")
+            with data:
+                arrays = {key: data[key] for key in data.files}
+        except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
+            raise ConfigError(f"{name} cannot be read ({_reason(exc)}): it is truncated, damaged or not a "
+                              "warpspring checkpoint; save it again") from None
+        try:
+            header = json.loads(str(arrays.pop("header")))
+            if not isinstance(header, dict) or header.get("format") != FORMAT:
+                raise ValueError
+        except (KeyError, ValueError):
+            raise ConfigError(f"{name} is not a warpspring checkpoint (no {FORMAT} header): save one with "
+                              "Simulator.save_checkpoint") from None
+        version = header.get("format_version")
+        if not isinstance(version, int) or version > FORMAT_VERSION:
+            raise ConfigError(f"{name} has format version {version!r}, newer than this warpspring "
+                              f"({header.get('warpspring_version')!r} wrote it; this one reads version "
+                              f"{FORMAT_VERSION}): upgrade warpspring")
+        missing = sorted(set(header.get("arrays", ())) - set(arrays))
+        if missing:
+            raise ConfigError(f"{name} lacks {len(missing)} of its arrays (first: {missing[0]}): it is damaged; "
+                              "save it again")
+        return cls(header, arrays, source=str(path))
+
+
+def live_arrays(sim: Simulator) -> dict[str, wp.array]:
+    """Every device array of ``sim`` a checkpoint holds, by checkpoint name (see the module docstring)."""
+    model, control = sim.model, sim.control
+    state = sim.state
+    arrays = {f"state/{name}": getattr(state, name) for name in ("particle_q", "particle_qd", "particle_f", "time")}
+    arrays.update({f"integrator/{name}": array for name, array in sim.integrator.persistent_arrays().items()})
+    arrays.update({f"model/{name}": getattr(model, name) for name in MODEL_ARRAYS})
+    if model.shape_moving:
+        arrays["model/shape_transform_start"] = model.shape_arrays.transform_start
+        arrays["model/shape_transform_end"] = model.shape_arrays.transform_end
+    if control.particle_force is not None:
+        arrays["control/particle_force"] = control.particle_force
+    if control.pin_targets is not None:
+        arrays["control/pin_target_position"] = control.pin_targets.position
+        arrays["control/pin_target_time"] = control.pin_targets.time
+    if sim.contacts is not None:
+        arrays["contacts/overflow"] = sim.contacts.arrays.overflow
+    for k, hook in enumerate(sim.stepper.hooks):
+        arrays.update({f"hooks/{k}/{j}": array for j, array in enumerate(hook.history())})
+    return arrays
+
+
+def integrator_settings(integrator) -> dict:
+    """The integrator's settings that are live values: the keyword-only options of its class that are
+    settable properties (dopri5's ``tolerance`` and ``max_steps``, implicit Euler's ``cg_iterations`` and
+    ``cg_tolerance``), by name."""
+    cls = type(integrator)
+    names = [p.name for p in inspect.signature(cls).parameters.values() if p.kind is p.KEYWORD_ONLY]
+    return {name: getattr(integrator, name) for name in names
+            if isinstance(getattr(cls, name, None), property) and getattr(cls, name).fset is not None}
+
+
+def _configuration(sim: Simulator) -> dict:
+    """What a checkpoint must agree on with the simulator it is loaded into (see ``_COMPATIBILITY``)."""
+    model = sim.model
+    return {
+        "precision": model.precision,
+        "worlds": model.world_count,
+        "particles": model.particle_count,
+        "springs": model.spring_count,
+        "hinges": model.hinge_count,
+        "families": [family.name for family in model.families],
+        "colliders": model.shape_count,
+        "integrator": sim.integrator.name,
+        "fps": sim.fps,
+        "substeps": sim.substeps,
+    }
+
+
+def _layout(array: wp.array) -> tuple[tuple, np.dtype]:
+    """The shape and dtype of ``array.numpy()``, without reading the device."""
+    dtype = array.dtype
+    scalar = getattr(dtype, "_wp_scalar_type_", dtype)
+    return (*array.shape, *getattr(dtype, "_shape_", ())), np.dtype(wp.dtype_to_numpy(scalar))
+
+
+def _show(value) -> str:
+    if isinstance(value, list):
+        return "[" + ", ".join(map(str, value)) + "]"
+    return str(value)
+
+
+def _reason(exc: Exception) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
