@@ -46,7 +46,7 @@ _bind_kernels()
 from .core.bending import DihedralMaterial
 from .core.builder import ModelBuilder, SpringMaterial
 from .core.families import ElementFamily
-from .errors import ConfigError, SimulationError, WarpspringError
+from .errors import ConfigError, OutputError, SimulationError, WarpspringError
 from .core.contacts import Contacts, apply_contacts, collide
 from .core.forces import eval_forces
 from .core.integrators import (
@@ -64,6 +64,7 @@ from .core.integrators import (
 from .core.guards import GuardLimits
 from .core.kinematics import PinGroup
 from .core.material import ClothMaterial
+from .core.memory import MemoryEstimate, available_memory, estimate_memory
 from .core.model import Control, MeshGroup, Model, ShapeInfo, Stabilizers, State
 from .core.simulator import Simulator
 from .core.stepper import StepHook, Stepper
@@ -88,10 +89,12 @@ __all__ = [
     "Control",
     "DihedralMaterial",
     "ElementFamily",
+    "MemoryEstimate",
     "Integrator",
     "MeshGroup",
     "Model",
     "ModelBuilder",
+    "OutputError",
     "PinGroup",
     "ShapeInfo",
     "SimulationError",
@@ -107,7 +110,9 @@ __all__ = [
     "WarpspringError",
     "Contacts",
     "apply_contacts",
+    "available_memory",
     "collide",
+    "estimate_memory",
     "eval_forces",
     "make_integrator",
     "quat_from_axis_angle",

@@ -1,23 +1,38 @@
 """The ``warpspring`` command line.
 
-Errors a user can fix (a missing file, a malformed scene, a bad option, an unstable run) end with one
-line on stderr and a non-zero exit status, never a traceback: 2 for bad input, 3 for a simulation
-that went numerically bad.
+Errors a user can fix (a missing file, a malformed scene, a bad option, a model too large for the memory,
+an unstable run, a full disk) end with one line on stderr and a non-zero exit status, never a traceback:
+
+* 2 (:data:`EXIT_CONFIG`): bad input, or a model that does not fit in memory;
+* 3 (:data:`EXIT_SIMULATION`): a simulation that went numerically bad (a guard stop);
+* 4 (:data:`EXIT_IO`): an output that cannot be written (a full disk, a file removed mid-run), with the OS's
+  reason; a USD file keeps every frame written before;
+* 5 (:data:`EXIT_NO_CHOICE`): ``warpspring choose`` found no measured configuration that meets the error target
+  within the budget (it still prints the closest one and what to change).
+
+Commands that use Warp initialise it without its CUDA-driver warning ("Could not find or load the NVIDIA CUDA
+driver"), which concerns GPUs only, unless the command asks for a CUDA device.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+import tempfile
 import warnings
 
 from . import checks
-from .errors import ConfigError, SimulationError
+from .errors import ConfigError, OutputError, SimulationError, os_error_reason
 from .plotting import pyplot
 
 EXIT_CONFIG = 2
 EXIT_SIMULATION = 3
 EXIT_IO = 4
+EXIT_NO_CHOICE = 5
+
+#: The line Warp's native library prints at initialisation on a machine without an NVIDIA driver.
+CUDA_DRIVER_WARNING = "Could not find or load the NVIDIA CUDA driver"
 
 
 class _Parser(argparse.ArgumentParser):
@@ -124,6 +139,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="measure each integrator's largest stable step (one spring, the cloth, the seed case) beside theory",
     )
     _add_study_options(stability, "stability")
+    stability.add_argument("--report", metavar="PATH",
+                           help="write the full Markdown report here too (default: OUT/stability.md only); the "
+                                "terminal gets a short summary")
     stability.set_defaults(handler=_cmd_stability)
     return parser
 
@@ -143,6 +161,10 @@ def _cmd_run(args) -> int:
         scene = load_scene(args.scene)
     for message in scene.deprecations:
         warn(message)
+    device = args.device or scene.device
+    if device is not None and str(device).startswith("cuda") and _CUDA_DRIVER_MISSING:
+        raise ConfigError(f"device {device!r} is not available: Warp could not find or load the NVIDIA CUDA driver "
+                          "on this machine; run on the CPU with --device cpu")
     summary = run_scene(
         scene,
         output=args.output,
@@ -205,7 +227,10 @@ def _cmd_choose(args) -> int:
 
     choice = choose(read_csv(args.study), args.error, time_budget=args.budget, problem=args.problem)
     print(choice.explanation)
-    return 0
+    row = choice.row
+    met = (row is not None and row.error_max is not None and row.error_max <= args.error
+           and (args.budget is None or row.wall_per_second <= args.budget))
+    return 0 if met else EXIT_NO_CHOICE
 
 
 def _cmd_stability(args) -> int:
@@ -218,23 +243,131 @@ def _cmd_stability(args) -> int:
     from .analysis.stability_map_report import to_markdown, write_report
 
     checks.output_dir(args.out)  # fail before the map runs, not after
+    if args.report is not None:
+        _check_report_path(args.report)
     pyplot("the stability plots")
     wp.config.log_level = wp.LOG_WARNING
     started = time.perf_counter()
     result = run_map(QUICK if args.quick else FULL, resolve_device(args.device), integrators=args.integrators)
     paths = write_report(result, args.out)
-    print(to_markdown(result))
-    print(f"wrote {', '.join(paths)} in {time.perf_counter() - started:.1f} s")
+    report = paths[0]  # OUT/stability.md
+    if args.report is not None and os.path.abspath(args.report) != os.path.abspath(report):
+        with open(args.report, "w") as f:
+            f.write(to_markdown(result))
+        report = args.report
+    for line in stability_summary(result):
+        print(line)
+    print(f"full report: {report}; also wrote {', '.join(p for p in paths if p != report)} "
+          f"in {time.perf_counter() - started:.1f} s")
     return 0
 
 
+def stability_summary(result) -> list[str]:
+    """A few lines on a stability map (:class:`~warpspring.analysis.stability_map.StabilityMap`): how the
+    measured limits compare with theory and the advisor, and the seed case; the tables go to the report."""
+    lines = [f"stability map on {result.device}:"]
+
+    def spread(pairs) -> str:  # measured / predicted over the two-sided brackets
+        ratios = [m.value / p for m, p in pairs if m is not None and m.two_sided and 0.0 < p < float("inf")]
+        if not ratios:
+            return "no two-sided bracket to compare"
+        return f"measured / predicted {min(ratios):.4f} … {max(ratios):.4f} over {len(ratios)} cases"
+
+    if result.springs:
+        lines.append(f"  one damped spring, largest stable ωh: {spread((r.measured, r.theory) for r in result.springs)} "
+                     "(theory)")
+    if result.cloth:
+        stiffness = [r.stiffness for r in result.cloth]
+        lines.append(f"  cloth, ke {min(stiffness):.0e} … {max(stiffness):.0e} N/m, largest stable dt: "
+                     f"{spread((r.measured, r.predicted) for r in result.cloth)} (advisor)")
+    seed = result.seed
+    if seed is not None:
+        t = seed.threshold
+        lines.append(f"  seed case: RK4 threshold measured at {t.low:.4g} … {t.high:.4g} N/m for dt = {seed.dt:.4g} s")
+    return lines
+
+
+def _check_report_path(path: str) -> None:
+    """Refuse a ``--report`` path that cannot be written, before the study runs."""
+    folder = os.path.dirname(os.path.abspath(path))
+    if os.path.isdir(path):
+        raise ConfigError(f"--report {path!r} is a folder: name a file")
+    if not os.path.isdir(folder):
+        raise ConfigError(f"--report {path!r}: the folder {folder} does not exist")
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"--report {path!r} cannot be written: {os_error_reason(exc)}") from None
+
+
+def init_warp(device: str | None = None) -> None:
+    """Initialise Warp for a command: without its banner, and without its CUDA-driver warning (printed by its
+    native library on a machine without an NVIDIA driver, where it concerns nothing a CPU run does) unless
+    ``device`` names a CUDA device. Every other line Warp prints while it initialises is passed on to stderr.
+    A no-op once Warp is initialised."""
+    global _CUDA_DRIVER_MISSING
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING
+    if _warp_initialized():
+        return
+    if device is not None and str(device).startswith("cuda"):
+        wp.init()  # the driver's absence is news to a CUDA run
+        return
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+        sink.seek(0)
+        printed = sink.read().decode(errors="replace")
+    for line in printed.splitlines(keepends=True):
+        if CUDA_DRIVER_WARNING in line:
+            _CUDA_DRIVER_MISSING = True
+        else:
+            sys.stderr.write(line)
+
+
+#: Whether :func:`init_warp` held back Warp's CUDA-driver warning (no NVIDIA driver on this machine).
+_CUDA_DRIVER_MISSING = False
+
+
+def _warp_initialized() -> bool:
+    """Whether Warp's runtime exists already (then ``wp.init()`` prints nothing)."""
+    try:
+        from warp._src import context
+    except ImportError:  # older Warp layouts
+        from warp import context
+    return getattr(context, "runtime", None) is not None
+
+
+def os_error_line(error: OSError) -> str:
+    """An OS error on one line, never without its reason: an :class:`OutputError`'s own message; else the OS's
+    words with the errno name and the file ("No space left on device [ENOSPC]: out.usdc"), or its text."""
+    if isinstance(error, OutputError):
+        return " ".join(str(error).split()) or os_error_reason(error)
+    if error.strerror:
+        files = [f for f in (error.filename, error.filename2) if f]
+        return os_error_reason(error) + (f": {' -> '.join(map(str, files))}" if files else "")
+    return os_error_reason(error)
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``warpspring`` command; returns the exit status (also for bad arguments and --help)."""
+    """Entry point of the ``warpspring`` command; returns the exit status (also for bad arguments and --help;
+    the codes are listed in this module's docstring)."""
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as exc:  # argparse has printed its message (or the help)
         return exc.code if isinstance(exc.code, int) else EXIT_CONFIG if exc.code else 0
     try:
+        if args.command in ("run", "trade", "stability"):
+            init_warp(args.device)
         return args.handler(args)
     except ConfigError as exc:
         print(f"warpspring: error: {exc}", file=sys.stderr)
@@ -243,8 +376,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"warpspring: simulation failed: {exc}", file=sys.stderr)
         return EXIT_SIMULATION
     except OSError as exc:  # a disk that fills up or a file that vanishes while writing
-        print(f"warpspring: output failed: {exc}", file=sys.stderr)
+        print(f"warpspring: output failed: {os_error_line(exc)}", file=sys.stderr)
         return EXIT_IO
+    except (RuntimeError, MemoryError) as exc:
+        from .core.memory import out_of_memory
+
+        if not out_of_memory(exc):
+            raise
+        print(f"warpspring: error: out of memory: {' '.join(str(exc).split()) or type(exc).__name__}; the "
+              "model and the run's buffers do not fit: use a smaller cloth, precision float32 or fewer worlds "
+              "(warpspring.estimate_memory estimates what a scene needs)", file=sys.stderr)
+        return EXIT_CONFIG
     except KeyboardInterrupt:
         print("warpspring: interrupted; the output holds every frame written so far", file=sys.stderr)
         return 130

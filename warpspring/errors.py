@@ -1,5 +1,10 @@
 """Exceptions that carry a message meant for the user: what is wrong and how to fix it."""
 
+from __future__ import annotations
+
+import errno as _errno
+import os as _os
+
 
 class WarpspringError(Exception):
     """Base class of every error warpspring raises on purpose."""
@@ -21,6 +26,41 @@ class SimulationError(WarpspringError, RuntimeError):
         super().__init__(message)
         self.frame = frame
         self.substep = substep
+
+
+class OutputError(WarpspringError, OSError):
+    """An output file could not be written: a full disk, a file or folder removed or made read-only mid-run.
+    The message is one line naming the file, what could not be written (the frame) and the OS's reason;
+    the command line ends with exit status 4.
+
+    Attributes:
+        path: the file.
+        frame: the frame that could not be written, or ``None`` (not a frame: creating the file, closing it).
+        frames_saved: frames the file holds on disk (frames 0 .. frames_saved - 1), or ``None`` if unknown.
+        errno: the OS error number where one is known (e.g. ``errno.ENOSPC``), else ``None``.
+    """
+
+    def __init__(self, message: str, *, path: str | None = None, frame: int | None = None,
+                 frames_saved: int | None = None, code: int | None = None):
+        super().__init__(message)
+        self.path = path
+        self.frame = frame
+        self.frames_saved = frames_saved
+        self.errno = code
+
+
+def os_error_reason(error: BaseException) -> str:
+    """The reason of an OS error in words, never empty: its text and errno name ("No space left on device
+    [ENOSPC]"), else the exception's own text on one line, else its class name."""
+    code = getattr(error, "errno", None)
+    name = _errno.errorcode.get(code) if isinstance(code, int) else None
+    text = getattr(error, "strerror", None)
+    if not text and isinstance(code, int):
+        text = _os.strerror(code)
+    if text:
+        return f"{text} [{name}]" if name else str(text)
+    words = " ".join(str(error).split())
+    return words or f"{type(error).__name__} (no reason given)"
 
 
 class ContactOverflowWarning(UserWarning):

@@ -6,8 +6,10 @@ call per particle (a 1024 × 1024 cloth with its 6.3 M springs builds in seconds
 
 from __future__ import annotations
 
+import math
 import os
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,7 +21,8 @@ from ..kernels.contacts import SHAPE_BOX, SHAPE_CAPSULE, SHAPE_NAMES, SHAPE_PLAN
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import scalar_type, vec3_type
 from .bending import DihedralMaterial
-from .families import ElementFamily, build_incidence
+from . import memory
+from .families import ElementFamily, build_incidence, head_slots
 from .hinges import dihedral_angle, mesh_hinges
 from .kinematics import PinGroup, PinGroupTable
 from .material import ClothMaterial, edge_springs, grid_masses, grid_springs, hinge_parameters, lumped_masses
@@ -30,6 +33,11 @@ from .transforms import quat_between, quat_to_matrix
 _AXES = {"Y": 1, "Z": 2}  # USD knows only Y-up and Z-up stages
 #: Prim names under /World that the USD writer uses itself: a mesh named so gets a suffix.
 RESERVED_PRIM_NAMES = ("particles", "springs", "colliders")
+
+#: Host bytes of the temporaries of making a cloth grid, per spring and per particle (measured; see
+#: ``ModelBuilder._check_grid_room``).
+GRID_TEMPORARY_PER_SPRING = 72
+GRID_TEMPORARY_PER_PARTICLE = 48
 
 _GRID_PINS = ("top-left", "top-right", "bottom-left", "bottom-right", "top", "bottom", "left", "right")
 
@@ -353,10 +361,10 @@ class ModelBuilder:
         particle_mass: float | None = None,
         velocity=(0.0, 0.0, 0.0),
         radius: float | None = None,
-        structural: SpringMaterial | None = DEFAULT_STRUCTURAL,
-        shear: SpringMaterial | None = DEFAULT_SHEAR,
-        bend: SpringMaterial | None = DEFAULT_BEND,
-        dihedral: DihedralMaterial | None = None,
+        structural: SpringMaterial | dict | bool | None = DEFAULT_STRUCTURAL,
+        shear: SpringMaterial | dict | bool | None = DEFAULT_SHEAR,
+        bend: SpringMaterial | dict | bool | None = DEFAULT_BEND,
+        dihedral: DihedralMaterial | bool | None = None,
         material: ClothMaterial | None = None,
         pin=(),
         name: str = "cloth",
@@ -385,11 +393,13 @@ class ModelBuilder:
                 ``material``).
             velocity: initial velocity of every particle [m/s].
             radius: contact radius [m]; default a quarter of the spacing.
-            structural: springs to the 4-neighbours (ke [N/m], kd [N·s/m]), or ``None`` for none.
-            shear: springs along both diagonals of each quad, or ``None``.
-            bend: springs skipping one particle along rows and columns, or ``None``.
+            structural: springs to the 4-neighbours (ke [N/m], kd [N·s/m]). Each spring family takes what a
+                scene file takes: a :class:`SpringMaterial`, a mapping ``{"ke": ..., "kd": ...}`` (a missing
+                one takes the family's default), ``True`` for the default, or ``False``/``None`` for none.
+            shear: springs along both diagonals of each quad (as ``structural``).
+            bend: springs skipping one particle along rows and columns (as ``structural``).
             dihedral: dihedral springs on every interior edge of the cloth's triangles (ke [N·m/rad],
-                kd [N·m·s/rad]), or ``None``.
+                kd [N·m·s/rad]), or ``None``/``False``.
             material: the cloth in physical units (stretch, shear [N/m], bending [N·m], density [kg/m²]),
                 which then decides masses, springs, hinges and their damping: ``mass``/``particle_mass``
                 must not be given, nor ``structural``, ``shear``, ``bend`` or ``dihedral`` other than
@@ -404,6 +414,12 @@ class ModelBuilder:
         nx, ny = checks.count("nx", nx, minimum=2), checks.count("ny", ny, minimum=2)
         spacing = checks.positive("spacing", spacing)
         n = nx * ny
+        structural = spring_family("structural", structural, DEFAULT_STRUCTURAL)
+        shear = spring_family("shear", shear, DEFAULT_SHEAR)
+        bend = spring_family("bend", bend, DEFAULT_BEND)
+        dihedral = None if dihedral is False else dihedral
+        self._check_grid_room(nx, ny, structural=structural, shear=shear, bend=bend,
+                              hinges=material is not None or dihedral is not None, material=material is not None)
         if material is None:
             m = _mass_per_particle(mass, particle_mass, n)
         else:
@@ -470,9 +486,9 @@ class ModelBuilder:
         density: float | None = None,
         velocity=(0.0, 0.0, 0.0),
         radius: float | None = None,
-        structural: SpringMaterial | None = DEFAULT_STRUCTURAL,
-        bend: SpringMaterial | None = DEFAULT_BEND,
-        dihedral: DihedralMaterial | None = None,
+        structural: SpringMaterial | dict | bool | None = DEFAULT_STRUCTURAL,
+        bend: SpringMaterial | dict | bool | None = DEFAULT_BEND,
+        dihedral: DihedralMaterial | bool | None = None,
         material: ClothMaterial | None = None,
         pin=(),
         name: str = "cloth",
@@ -498,8 +514,11 @@ class ModelBuilder:
             mass: total mass [kg]; or ``density``: areal density [kg/m²] (neither with ``material``).
             velocity: initial velocity [m/s].
             radius: contact radius [m]; default a quarter of the mean edge length.
-            structural, bend: spring families (ke [N/m], kd [N·s/m]), or ``None``.
-            dihedral: dihedral springs on every interior edge (ke [N·m/rad], kd [N·m·s/rad]), or ``None``.
+            structural, bend: spring families (ke [N/m], kd [N·s/m]) as in :meth:`add_cloth_grid`: a
+                :class:`SpringMaterial`, a mapping ``{"ke": ..., "kd": ...}``, ``True`` (the default) or
+                ``False``/``None`` (none).
+            dihedral: dihedral springs on every interior edge (ke [N·m/rad], kd [N·m·s/rad]), or
+                ``None``/``False``.
             material: the cloth in physical units (stretch [N/m], bending [N·m], density [kg/m²]; an edge
                 network's shear modulus is 3/8 stretch whatever ``shear`` says), which then decides masses,
                 springs, hinges and their damping: ``mass``/``density`` must not be given, nor
@@ -512,6 +531,9 @@ class ModelBuilder:
         """
         import trimesh
 
+        structural = spring_family("structural", structural, DEFAULT_STRUCTURAL)
+        bend = spring_family("bend", bend, DEFAULT_BEND)
+        dihedral = None if dihedral is False else dihedral
         uv = None
         if isinstance(mesh, (str, os.PathLike)):
             path = os.fspath(mesh)
@@ -673,8 +695,15 @@ class ModelBuilder:
     # -- finalize -------------------------------------------------------------------------------------
 
     def finalize(self, device=None, *, precision: str = "float32", spring_evaluation: str = "auto",
-                 worlds: int = 1, contact_stage: bool | None = None, contact_slots: int | None = None) -> Model:
+                 worlds: int = 1, contact_stage: bool | None = None, contact_slots: int | None = None,
+                 integrator: str = "symplectic_euler", check_memory: bool = True) -> Model:
         """Copy the scene to ``device`` as a :class:`Model`.
+
+        Before it allocates anything, finalize estimates the memory of the model and of a run of it
+        (:meth:`estimate_memory`) and refuses, with a :class:`~warpspring.ConfigError` naming the estimate, what is
+        free and a remedy, a model that cannot fit: on a CUDA device its arrays against the device's free memory,
+        and the host's peak (on the CPU, the arrays too) against the available host memory. A failed device
+        allocation becomes the same error.
 
         Args:
             device: Warp device ("cpu", "cuda:0", ...); default Warp's default device.
@@ -692,6 +721,13 @@ class ModelBuilder:
             contact_slots: contacts a particle can hold in the stage's buffer [1, 64]; default min(colliders, 4).
                 More contacts at one particle are dropped, counted and reported (``Contacts.overflow``, the
                 guard, the run summary).
+            integrator: the name of the integrator the model will be stepped with; only the memory check uses it
+                (its scratch states count in the estimate). The default, symplectic Euler, needs the least.
+            check_memory: refuse a model whose estimate does not fit (default); ``False`` skips the check.
+
+        Raises:
+            ConfigError: a bad option, a scene beyond the kernels' 32-bit indices, or a model that does not fit in
+                memory.
         """
         if spring_evaluation not in ("auto", "gather", "scatter"):
             raise ConfigError(f"spring_evaluation must be 'auto', 'gather' or 'scatter', got {spring_evaluation!r}")
@@ -703,14 +739,6 @@ class ModelBuilder:
             raise ConfigError(str(exc)) from None
         device = wp.get_device(device)
         worlds = checks.count("worlds", worlds, minimum=1)
-        vec3 = vec3_type(scalar)
-        float_np = np.float64 if scalar is wp.float64 else np.float32
-        model = Model(device, precision, scalar, world_count=worlds)
-        model.up_axis = self.up_axis
-        model.gravity = self.gravity
-        model.drag = float(self.drag)
-        model.stabilizers = self.stabilizers
-
         n = self._particle_count
         spring_total = sum(len(k) for k in self._springs)
         if max(n * worlds, 2 * spring_total) >= 2**31:
@@ -718,6 +746,87 @@ class ModelBuilder:
                 f"{worlds} world(s) of {n} particles and {spring_total} springs exceed the 32-bit indices of the "
                 "kernels (at most 2^31 - 1 particles in all worlds and 2^30 springs): use fewer worlds per model"
             )
+        estimate = self.estimate_memory(device, precision=precision, worlds=worlds, integrator=integrator,
+                                        contact_stage=contact_stage, contact_slots=contact_slots)
+        if check_memory:
+            memory.check_fits(estimate, memory.available_memory(device), precision=precision)
+        try:
+            return self._finalize(device, precision, scalar, worlds, spring_evaluation, contact_stage, contact_slots)
+        except (RuntimeError, MemoryError) as exc:
+            if not memory.out_of_memory(exc):
+                raise
+            raise ConfigError(
+                f"out of memory while finalizing the model on {device} ({exc}); the estimate was "
+                f"{estimate.describe()}. " + memory.remedy(estimate, 1.25, precision=precision)
+            ) from None
+
+    def estimate_memory(self, device=None, *, precision: str = "float32", worlds: int = 1,
+                        integrator: str = "symplectic_euler", contact_stage: bool | None = None,
+                        contact_slots: int | None = None) -> memory.MemoryEstimate:
+        """Estimate the memory :meth:`finalize` and a run of the model will need, before anything is allocated
+        (:func:`warpspring.core.memory.estimate_memory` with this builder's counts and its incidence tables'
+        exact widths).
+
+        Args:
+            device: the Warp device the model will live on (default: Warp's default).
+            precision, worlds, contact_stage, contact_slots: as :meth:`finalize`.
+            integrator: the integrator's name (its scratch states count).
+
+        Returns:
+            The :class:`~warpspring.core.memory.MemoryEstimate`.
+        """
+        device = wp.get_device(device)
+        n = self._particle_count
+        spring_degree = np.zeros(n, dtype=np.int64)
+        for block in self._springs:  # per block: no concatenated copy of every spring
+            spring_degree += np.bincount(block.ravel(), minlength=n)
+        hinge_degree = np.zeros(n, dtype=np.int64)
+        for block in self._hinges:
+            hinge_degree += np.bincount(block.ravel(), minlength=n)
+        spring_slots, hinge_slots = head_slots(spring_degree), head_slots(hinge_degree)
+        moving = any(s.translation_track is not None or s.rotation_track is not None for s in self._shapes)
+        stage = bool(self._shapes) and (moving if contact_stage is None else bool(contact_stage))
+        slots = max(1, min(len(self._shapes), 4)) if contact_slots is None else contact_slots
+        pinned = sum(len(g.particles) for g in self._pin_groups)
+        if pinned:  # the table holds every kinematic particle once there are groups
+            mask = np.concatenate(self._pinned)
+            for extra in self._extra_pins:
+                mask[extra] = True
+            pinned = int(mask.sum())
+        return memory.estimate_memory(
+            particles=n,
+            springs=self._spring_count,
+            hinges=self._hinge_count,
+            triangles=sum(len(g.faces) for g in self._meshes),
+            colliders=len(self._shapes),
+            worlds=worlds,
+            precision=precision,
+            device=str(device),
+            integrator=integrator,
+            spring_slots=spring_slots,
+            spring_tail=int(np.maximum(spring_degree - spring_slots, 0).sum()),
+            hinge_slots=hinge_slots,
+            hinge_tail=int(np.maximum(hinge_degree - hinge_slots, 0).sum()),
+            pinned=pinned,
+            mesh_vertices=sum(len(g.particles) for g in self._meshes),
+            strain_limiting=self.stabilizers.max_strain is not None,
+            contact_slots=slots if stage else 0,
+            moving_colliders=moving,
+            block_dim=_block_dim(device, n * worlds),
+        )
+
+    def _finalize(self, device, precision: str, scalar, worlds: int, spring_evaluation: str,
+                  contact_stage: bool | None, contact_slots: int | None) -> Model:
+        """The model's arrays on ``device`` (the arguments checked by :meth:`finalize`)."""
+        vec3 = vec3_type(scalar)
+        float_np = np.float64 if scalar is wp.float64 else np.float32
+        model = Model(device, precision, scalar, world_count=worlds)
+        model.up_axis = self.up_axis
+        model.gravity = self.gravity
+        model.drag = float(self.drag)
+        model.stabilizers = self.stabilizers
+        n = self._particle_count
+
         mass = np.concatenate(self._mass)
         pinned = np.concatenate(self._pinned)
         for extra in self._extra_pins:
@@ -810,6 +919,37 @@ class ModelBuilder:
         return model
 
     # -- helpers --------------------------------------------------------------------------------------
+
+    def _check_grid_room(self, nx: int, ny: int, *, structural, shear, bend, hinges: bool, material: bool) -> None:
+        """Refuse, before any array is made, a grid whose builder arrays (and the temporaries of making them)
+        exceed the host memory available (``memory.available_memory``): a ConfigError with the estimate and a
+        smaller grid that fits. ``finalize`` checks the whole model later."""
+        n = nx * ny
+        structural_count = ny * (nx - 1) + (ny - 1) * nx
+        shear_count = 2 * (nx - 1) * (ny - 1)
+        bend_count = ny * max(nx - 2, 0) + max(ny - 2, 0) * nx
+        if material:
+            springs = structural_count + shear_count
+        else:
+            springs = sum(c for family, c in ((structural, structural_count), (shear, shear_count), (bend, bend_count))
+                          if family is not None)
+        triangles = 2 * (nx - 1) * (ny - 1)
+        edges = structural_count + (nx - 1) * (ny - 1)
+        interior = edges - 2 * (nx - 1) - 2 * (ny - 1)
+        estimate = memory.estimate_memory(particles=n, springs=springs, hinges=interior if hinges else 0,
+                                          triangles=triangles)
+        # Making the grid holds each family's pairs twice (built, then checked as int64) and its rest-length
+        # differences (float64) beside the arrays it keeps; ~70 bytes per spring, measured.
+        needed = estimate.builder + GRID_TEMPORARY_PER_SPRING * springs + GRID_TEMPORARY_PER_PARTICLE * n
+        available = memory.available_memory(None).host  # the host's (Warp need not be initialised yet)
+        if available is not None and needed > available:
+            share = available / (needed * 1.05)
+            side = max(int(math.sqrt(share * n)), 2)
+            raise ConfigError(
+                f"a {nx} × {ny} cloth grid needs an estimated {memory.format_bytes(needed)} of host memory to build "
+                f"({n:,} particles, {springs:,} springs), but {memory.format_bytes(available)} is available: use a "
+                f"smaller grid (about {side} × {side} fits), and see warpspring.estimate_memory for the run's needs"
+            )
 
     def _element_particles(self, value, arity: int, *, what: str, shape: str, noun: str, verb: str) -> np.ndarray:
         """The particles of each element, int64 [k, arity], checked to be integers of existing particles;
@@ -970,6 +1110,42 @@ def _mass_per_particle(mass, particle_mass, n: int) -> float:
     if (mass is None) == (particle_mass is None):
         raise ConfigError("give exactly one of mass= (total, kg) or particle_mass= (kg per particle), or material=")
     return checks.positive("mass", mass) / n if particle_mass is None else checks.positive("particle_mass", particle_mass)
+
+
+def spring_family(name: str, value, default: SpringMaterial) -> SpringMaterial | None:
+    """A cloth's spring family argument as the builder uses it, accepting what a scene file accepts.
+
+    Args:
+        name: the family's name ("structural", "shear", "bend"), for messages.
+        value: a :class:`SpringMaterial`; a mapping with ``ke`` [N/m] and/or ``kd`` [N·s/m] (each missing one is
+            ``default``'s, as in a scene file's table); ``True`` (``default``); ``False`` or ``None`` (no springs of
+            the family).
+        default: the family's default material.
+
+    Returns:
+        The material, or ``None`` for a family switched off.
+
+    Raises:
+        ConfigError: any other value, an unknown key, or a stiffness or damping that is not a finite number ≥ 0.
+    """
+    if value is None or value is False:
+        return None
+    if value is True:
+        return default
+    if isinstance(value, SpringMaterial):
+        material = value
+    elif isinstance(value, Mapping):
+        unknown = sorted(map(str, set(value) - {"ke", "kd"}))
+        if unknown:
+            raise ConfigError(f"{name} springs: unknown key {unknown[0]!r}: a mapping takes 'ke' [N/m] and 'kd' "
+                              "[N·s/m]")
+        material = SpringMaterial(ke=value.get("ke", default.ke), kd=value.get("kd", default.kd))
+    else:
+        raise ConfigError(f"{name} springs must be a warpspring.SpringMaterial, a mapping {{'ke': ..., 'kd': ...}}, "
+                          f"True (the default) or False (none), got {value!r}")
+    checks.non_negative(f"{name} spring ke", material.ke)
+    checks.non_negative(f"{name} spring kd", material.kd)
+    return material
 
 
 def _material_decides(material, method: str, **given: bool) -> None:

@@ -220,7 +220,8 @@ class Scene:
                 and the table).
         """
         model = self.builder().finalize(device, precision=self.precision, worlds=self.world_count,
-                                        contact_stage=self.contact_stage, contact_slots=self.contact_slots)
+                                        contact_stage=self.contact_stage, contact_slots=self.contact_slots,
+                                        integrator=self.integrator)
         with _context(os.path.basename(self.path), "worlds"):
             for name, entries in self.world_inputs.items():
                 # Constants first (this stops any track of the input), then each world's own track.

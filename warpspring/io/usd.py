@@ -27,12 +27,21 @@ append the new samples, and the samples already on disk are not kept in memory, 
 grow with the frame count and the file on disk is a complete, valid stage after every frame, also when
 a run stops early. A ``.usda`` file (text, for inspection) is rewritten whole on save, so it is saved at
 most once per second of wall time and on :meth:`UsdWriter.close`.
+
+A save that fails (a full disk, the file or its folder removed) raises :class:`~warpspring.errors.OutputError`,
+one line naming the frame and the OS's reason (USD's own errors often carry none: the file system is then
+examined for one). The file keeps every frame saved before it, a valid stage (USD writes a crate's new
+samples before the table of contents that points at them, and a text file through a temporary file), and
+the writer drops the unsaved frame instead of trying to save it again on close.
 """
 
 from __future__ import annotations
 
+import errno
 import math
 import os
+import re
+import tempfile
 import time
 from dataclasses import dataclass, field
 
@@ -40,7 +49,7 @@ import numpy as np
 import warp as wp
 
 from .. import checks
-from ..errors import ConfigError, SimulationError
+from ..errors import ConfigError, OutputError, SimulationError, os_error_reason
 from ..kernels.geometry import vertex_normal_kernels
 from ..core.model import Model, State
 from ..core.transforms import quat_to_matrix
@@ -114,11 +123,13 @@ class UsdWriter:
             else:
                 self.stage = Usd.Stage.CreateNew(path)
         except (OSError, Tf.ErrorException) as exc:
-            raise ConfigError(f"cannot create the USD file {path!r}: {exc}") from None
+            reason = _reason(exc) or _diagnose(path) or "USD gave no reason"
+            raise ConfigError(f"cannot create the USD file {path!r}: {reason}") from None
         self.path = path
         self.model = model
         self.fps = float(fps)
         self.frame_count = 0
+        self.frames_saved = 0  # frames on disk: 0 .. frames_saved - 1
         self._text = ext == ".usda"
         self._save_interval = float(text_save_interval)
         self._last_save = 0.0
@@ -169,6 +180,9 @@ class UsdWriter:
         Raises:
             SimulationError: a position of an exported world that is not stopped is NaN or infinite;
                 nothing of the frame is written.
+            OutputError: the file could not be saved (a full disk, the file or its folder removed): the message
+                names the frame and the OS's reason; the file on disk keeps the frames saved before it (a valid
+                stage), and the writer is closed without saving again.
         """
         if self._closed:
             raise RuntimeError("UsdWriter is closed")
@@ -228,11 +242,17 @@ class UsdWriter:
         return dict(self._stopped)
 
     def close(self) -> None:
-        """Save the file and release the stage. Safe to call twice."""
+        """Save the file and release the stage. Safe to call twice. After a failed save it only releases the
+        stage: the file keeps the frames saved before the failure.
+
+        Raises:
+            OutputError: the last save failed (see :meth:`write_frame`).
+        """
         if not self._closed:
-            self._save(force=True)
-            self._closed = True
-            self.stage = None
+            try:
+                self._save(force=True)
+            finally:
+                self._release()
 
     def __enter__(self) -> UsdWriter:
         return self
@@ -243,18 +263,44 @@ class UsdWriter:
     # -- internals ------------------------------------------------------------------------------------
 
     def _save(self, force: bool = False) -> None:
+        """Save the layer and its :attr:`frame_count` frames (a text layer at most once per ``text_save_interval``
+        unless ``force``). A failure releases the stage unsaved and raises OutputError."""
+        frames = self.frame_count
         now = time.monotonic()
         if self._text and not force and now - self._last_save < self._save_interval:
             return
         try:
-            saved = self.stage.GetRootLayer().Save()
-        except self._Tf.ErrorException as exc:
-            saved, why = False, f": {exc}"
+            saved = self._save_layer()
+        except (OSError, self._Tf.ErrorException) as exc:
+            reason, code = _reason(exc), getattr(exc, "errno", None)
         else:
-            why = ""
-        if not saved:
-            raise OSError(f"cannot save the USD file {self.path!r}{why} (disk full or file removed?)")
-        self._last_save = now
+            if saved is not False:
+                self._last_save = now
+                self.frames_saved = frames
+                return
+            reason, code = "", None  # USD refused without a word
+        if code is None:  # no OS error number: say what the file system shows
+            diagnosis = _diagnose(self.path)
+            reason = f"{reason} ({diagnosis})" if reason and diagnosis else reason or diagnosis
+        reason = reason or "USD gave no reason (a full disk, or the file or its folder removed?)"
+        saved = self.frames_saved
+        lost = frames - saved
+        what = ("the file" if lost <= 0 else f"frame {saved}" if lost == 1 else f"frames {saved}..{frames - 1}")
+        held = f"frames 0..{saved - 1}" if saved > 1 else "frame 0" if saved == 1 else "no frame"
+        self._release()  # the unsaved samples are dropped: the file keeps what was saved
+        raise OutputError(f"cannot write {what} to the USD file {self.path!r}: {reason}; the file holds {held}",
+                          path=self.path, frame=saved if lost > 0 else None, frames_saved=saved, code=code)
+
+    def _save_layer(self) -> bool:
+        """Write the root layer to disk: whether USD saved it (it may also raise OSError or Tf.ErrorException)."""
+        return self.stage.GetRootLayer().Save()
+
+    def _release(self) -> None:
+        """Drop the stage, so that an unsaved layer does not stay in USD's registry (a later open of the path
+        reads the file on disk)."""
+        self._closed = True
+        self.stage = None
+        self._slots = []
 
     def _define_world(self, world: int, root: str, *, particles: bool, springs: bool) -> _WorldPrims:
         """Define the prims of one exported world under ``root``; topology and constant attributes once."""
@@ -437,9 +483,66 @@ def check_output_path(path: str | os.PathLike) -> str:
         raise ConfigError(f"output folder does not exist: {folder}")
     if os.path.isdir(path):
         raise ConfigError(f"USD output {path!r} is a folder, not a file")
-    if not os.access(folder, os.W_OK | os.X_OK) or (os.path.exists(path) and not os.access(path, os.W_OK)):
-        raise ConfigError(f"USD output {path!r} cannot be written: check the permissions of {folder}")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ConfigError(f"USD output {path!r} cannot be written: {os.strerror(errno.EACCES)} [EACCES] to "
+                          f"create files in {folder}; check its permissions")
+    if os.path.exists(path) and not os.access(path, os.W_OK):
+        raise ConfigError(f"USD output {path!r} cannot be written: the file is read-only; check its permissions")
+    problem = _probe_folder(folder)  # permissions do not tell all (a read-only or virtual file system, a quota)
+    if problem:
+        raise ConfigError(f"USD output {path!r} cannot be written: {problem}")
     return path
+
+
+def _probe_folder(folder: str) -> str:
+    """Why no file can be created in ``folder`` (the OS's reason), or "" when a probe file can be."""
+    try:
+        handle, probe = tempfile.mkstemp(prefix=".warpspring-", suffix=".probe", dir=folder)
+    except OSError as exc:
+        return f"cannot create a file in {folder}: {os_error_reason(exc)}"
+    os.close(handle)
+    try:
+        os.remove(probe)
+    except OSError:
+        pass
+    return ""
+
+
+def _reason(error: BaseException) -> str:
+    """The reason an OS or USD (Tf) error gives, on one line; "" when it gives none. A Tf error's text is
+    USD's call stack: only its messages (the quoted last part of each entry) are kept."""
+    if isinstance(error, OSError) and (error.strerror or error.errno):
+        return os_error_reason(error)
+    entries = [str(a) for a in getattr(error, "args", ()) if str(a).strip()] or [str(error)]
+    messages = []
+    for entry in entries:
+        for line in entry.strip().splitlines():
+            found = re.search(r" : '(.*)'\s*$", line.strip())
+            message = " ".join((found.group(1) if found else line).split())
+            if message and message not in messages:
+                messages.append(message)
+    return "; ".join(messages)
+
+
+def _diagnose(path: str) -> str:
+    """What the file system shows about writing ``path`` when a write failed without an OS reason: a full
+    disk, a folder that is gone or refuses new files, a read-only file; "" when nothing is wrong there."""
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        return f"its folder {folder} does not exist"
+    try:
+        fs = os.statvfs(folder)
+    except OSError:
+        fs = None
+    if fs is not None and fs.f_blocks > 0 and fs.f_bavail * fs.f_frsize < _LOW_SPACE:  # (virtual file systems: 0)
+        return f"{os.strerror(errno.ENOSPC)} [ENOSPC]: {fs.f_bavail * fs.f_frsize} bytes free in {folder}"
+    if os.path.exists(path) and not os.access(path, os.W_OK):
+        return "the file is read-only"
+    return _probe_folder(folder)
+
+
+#: Free space [B] below which a failed write is put down to a full disk.
+_LOW_SPACE = 1 << 20
 
 
 def _plane_half_size(shape, particle_q: np.ndarray, tile: float | None = None) -> float:

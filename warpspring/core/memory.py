@@ -1,0 +1,416 @@
+"""Memory a model and a run of it need, estimated from counts before anything is allocated, and the
+memory the machine has free.
+
+The estimate counts every array the code allocates, byte for byte, from the model's sizes: particles,
+springs, hinges, triangles and colliders; worlds; the scalar type; the incidence tables' widths (keyframe
+tracks, tens of bytes per key, are left out). The run's parts follow the code that allocates them: a :class:`~warpspring.core.stepper.Stepper` holds two states
+(the current one and the scratch one it alternates with); each integrator allocates its own scratch
+(:data:`INTEGRATOR_SCRATCH`, read from each ``__init__``); the guard one partial sum per reducing block;
+strain limiting three position buffers; the contact stage its slot buffer; the USD writer a vertex-normal
+buffer on the device and, per frame, the positions and normals it reads back and hands to USD.
+
+Host memory is estimated as well, as what :meth:`ModelBuilder.finalize` holds at its peak beyond the
+builder's own arrays: its concatenated copies and the temporaries of the incidence tables' stable sort
+(:func:`warpspring.core.families.build_incidence`), which dominate on the host (~150 bytes per spring).
+On the CPU the device is host memory, so both add up there.
+
+Measured on the CPU (``tests/test_memory.py``; ``python tests/test_memory.py 256 512 1024`` prints the
+table): the model's arrays, the states, every integrator's scratch, the guard's and the post-step buffers
+agree with the estimate to the byte (but for keyframe tracks); the growth of the process's peak resident
+memory while it builds and finalizes a 256², 512² and 1024² cloth grid is :attr:`MemoryEstimate.finalize_peak`
+within -0.7 %, +1.5 % and +4.1 % (held to :data:`PEAK_TOLERANCE`), and that of a run of a few frames with
+the USD writer after it within -7 % … +11 % (512² with four integrators, 1024²).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+from .. import checks
+from ..errors import ConfigError
+from ..kernels.guards import GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS
+
+#: Bytes per floating-point number of each precision.
+SCALAR_BYTES = {"float32": 4, "float64": 8}
+
+#: Scratch arrays each integrator allocates, from its ``__init__``: (vec3 arrays of one entry per particle of
+#: every world, extra scalars per particle, float64 slots per reducing block of a world, float64 / int32 per world).
+#:
+#: * symplectic Euler: none;
+#: * velocity Verlet: v½ and f(x', v½);
+#: * explicit Runge-Kutta with S stages (Euler 1, midpoint 2, RK4 4): stage velocities and forces [S, n] and
+#:   one stage position array: 2S + 1, and each world's stage time;
+#: * dopri5 (7 stages): 15 as above plus its solution state y (positions, velocities, forces: 3); per world its
+#:   step controller (8 float64), counters (6 int32), step size and two times; one error partial per block;
+#: * implicit Euler: right-hand side, Δv, r, z, p, Ap and the driven pins' Δv (7), a 3 × 3 preconditioner
+#:   block per particle (9 scalars), 7 CG partial sums per block, and per world 7 CG scalars and 2 counters.
+INTEGRATOR_SCRATCH = {
+    "symplectic_euler": (0, 0, 0, 0, 0),
+    "velocity_verlet": (2, 0, 0, 0, 0),
+    "explicit_euler": (3, 0, 0, 1, 0),
+    "midpoint": (5, 0, 0, 1, 0),
+    "rk4": (9, 0, 0, 1, 0),
+    "dopri5": (18, 0, 1, 11, 6),
+    "implicit_euler": (7, 9, 7, 7, 2),
+}
+
+#: Relative tolerances the estimate is held to against measurement (``tests/test_memory.py``): the model's
+#: arrays (exact but for keyframe tracks), and the peak resident memory of building and finalizing a grid
+#: (-1 % … +4 % measured).
+MODEL_TOLERANCE = 0.02
+PEAK_TOLERANCE = 0.10
+
+# Host bytes of the builder's arrays: per particle positions and velocities (float64 [n, 3] each), mass and
+# radius (float64) and the pin flag (bool); per spring its pair (int64 [2]) and ke, kd, rest length (float64);
+# per hinge its four particles (int64) and ke, kd, rest angle; per triangle its corners (int32 [3]); per mesh
+# vertex its particle index (int64) and UV (float64 [2]).
+_BUILDER_PARTICLE = 24 + 24 + 8 + 8 + 1
+_BUILDER_SPRING = 16 + 3 * 8
+_BUILDER_HINGE = 32 + 3 * 8
+_BUILDER_TRIANGLE = 12
+_BUILDER_VERTEX = 8 + 16
+
+# Host bytes per incidence entry (one per element and member: 2 per spring, 4 per hinge) that
+# ``build_incidence`` holds at its peak: the entries' owner, element and local value (int64) before and
+# after the sort's permutation, the permutation, and the slot and head-mask arrays (see its code);
+# measured 64-68 bytes per entry.
+_INCIDENCE_ENTRY = 66
+
+
+@dataclass(frozen=True)
+class MemoryEstimate:
+    """Bytes a model and a run of it need, by part (all in bytes [B]).
+
+    Attributes:
+        device: the Warp device the model lives on ("cpu", "cuda:0").
+        cuda: whether that device is a CUDA GPU (else its arrays are host memory).
+        particles: particles per world.
+        worlds: worlds of the model.
+        model: the model's arrays on the device (particles, springs, hinges, incidence tables, triangles, colliders,
+            live inputs).
+        states: the two states a Stepper (and so a Simulator) advances: positions, velocities, forces and times.
+        integrator: the integrator's scratch states and solver buffers.
+        guard: the run-time guard's record and partial sums.
+        post_step: strain limiting's buffers and the contact stage's slot buffer (0 when they are off).
+        writer: the USD writer's device buffers (vertex normals, the exported triangles).
+        builder: host memory the builder's NumPy arrays hold (allocated already when ``finalize`` runs).
+        finalize_host: host memory ``finalize`` holds at its peak beyond the builder's arrays (concatenated
+            copies, the incidence tables' sort), freed when it returns.
+        frame_host: host memory of writing one frame to USD (positions and normals read back, USD's arrays).
+        run_host: host memory of a run's setup (the guard's energy scale, the advisor's bound), freed after it.
+    """
+
+    device: str
+    cuda: bool
+    particles: int
+    worlds: int
+    model: int
+    states: int
+    integrator: int
+    guard: int
+    post_step: int
+    writer: int
+    builder: int
+    finalize_host: int
+    frame_host: int
+    run_host: int
+
+    @property
+    def device_bytes(self) -> int:
+        """Everything a run keeps on the device [B]: the model and the run's buffers."""
+        return self.model + self.states + self.integrator + self.guard + self.post_step + self.writer
+
+    @property
+    def host_bytes(self) -> int:
+        """Peak host memory [B] beyond the builder's arrays: finalize's or a run's, whichever is larger. On the
+        CPU the device arrays are host memory and are included."""
+        on_host = 0 if self.cuda else 1
+        finalize_peak = self.finalize_host + on_host * self.model
+        run_peak = max(self.frame_host, self.run_host) + on_host * self.device_bytes
+        return max(finalize_peak, run_peak)
+
+    @property
+    def finalize_peak(self) -> int:
+        """Host memory [B] at the peak of building and finalizing: the builder's arrays, finalize's copies and (on
+        the CPU) the model's arrays; what a process's peak resident memory grows by when it finalizes."""
+        return self.builder + self.finalize_host + (0 if self.cuda else self.model)
+
+    def parts(self) -> dict:
+        """The device parts by name [B], largest first, zero parts left out."""
+        named = {"model": self.model, "states": self.states, "integrator": self.integrator, "guard": self.guard,
+                 "stabilizers and contacts": self.post_step, "USD writer": self.writer}
+        return dict(sorted(((k, v) for k, v in named.items() if v), key=lambda kv: -kv[1]))
+
+    def describe(self) -> str:
+        """One line: the device total with its parts, and the host peak."""
+        parts = ", ".join(f"{name} {format_bytes(value)}" for name, value in self.parts().items())
+        where = f"on {self.device}" if self.cuda else "of arrays"
+        return (f"{format_bytes(self.device_bytes)} {where} ({parts}); peak host memory "
+                f"{format_bytes(self.host_bytes)} beyond the builder's {format_bytes(self.builder)}")
+
+
+@dataclass(frozen=True)
+class AvailableMemory:
+    """Memory free for a model, in bytes [B]; ``None`` where it cannot be known.
+
+    Attributes:
+        host: host memory available to this process (``MemAvailable`` of ``/proc/meminfo``, within a cgroup's
+            limit), else free physical pages.
+        device: free memory of the CUDA device (``wp.Device.free_memory``); ``None`` on the CPU.
+        device_total: total memory of the CUDA device; ``None`` on the CPU.
+    """
+
+    host: int | None
+    device: int | None = None
+    device_total: int | None = None
+
+
+def estimate_memory(
+    *,
+    particles: int,
+    springs: int = 0,
+    hinges: int = 0,
+    triangles: int = 0,
+    colliders: int = 0,
+    worlds: int = 1,
+    precision: str = "float32",
+    device: str = "cpu",
+    integrator: str = "symplectic_euler",
+    spring_slots: int | None = None,
+    spring_tail: int = 0,
+    hinge_slots: int | None = None,
+    hinge_tail: int = 0,
+    pinned: int = 0,
+    mesh_vertices: int | None = None,
+    strain_limiting: bool = False,
+    contact_slots: int = 0,
+    moving_colliders: bool = False,
+    exported_worlds: int | None = None,
+    block_dim: int = 256,
+) -> MemoryEstimate:
+    """Estimate the memory of a model and of a run of it, from counts, before anything is allocated.
+
+    Args:
+        particles: particles per world.
+        springs, hinges, triangles, colliders: elements per world (shared by the worlds).
+        worlds: worlds of the model.
+        precision: "float32" or "float64".
+        device: the Warp device name ("cpu", "cuda:0", ...); only whether it is CUDA matters.
+        integrator: the integrator's name (:data:`INTEGRATOR_SCRATCH`).
+        spring_slots, hinge_slots: ELL head widths of the incidence tables; default the mean number of elements
+            per particle, rounded up (exact for a uniform degree, as a cloth grid's:
+            :meth:`ModelBuilder.estimate_memory` computes the exact widths).
+        spring_tail, hinge_tail: entries beyond the head (the CSR tail) of each table.
+        pinned: kinematic particles in pin groups (0 when the model has no pin group).
+        mesh_vertices: particles that belong to triangle meshes (default: every particle when there are triangles).
+        strain_limiting: whether ``Stabilizers.max_strain`` is on (three more position buffers).
+        contact_slots: slots per particle of the contact stage's buffer (0: no contact stage).
+        moving_colliders: whether a collider moves (keyframe tracks): the colliders' frames are then per world.
+        exported_worlds: worlds the USD writer exports (default: every world).
+        block_dim: CUDA threads per reducing block (the partial sums' count); the CPU reduces per particle.
+
+    Returns:
+        The :class:`MemoryEstimate`.
+
+    Raises:
+        ConfigError: a negative count, an unknown precision or integrator.
+    """
+    n = checks.count("particles", particles, minimum=0)
+    s = checks.count("springs", springs, minimum=0)
+    h = checks.count("hinges", hinges, minimum=0)
+    t = checks.count("triangles", triangles, minimum=0)
+    shapes = checks.count("colliders", colliders, minimum=0)
+    w = checks.count("worlds", worlds, minimum=1)
+    pinned = checks.count("pinned", pinned, minimum=0)
+    if precision not in SCALAR_BYTES:
+        raise ConfigError(f"precision must be 'float32' or 'float64', got {precision!r}")
+    if integrator not in INTEGRATOR_SCRATCH:
+        raise ConfigError(f"unknown integrator {integrator!r}: choose one of {', '.join(sorted(INTEGRATOR_SCRATCH))}")
+    f = SCALAR_BYTES[precision]
+    vec3 = 3 * f
+    cuda = str(device).startswith("cuda")
+    size = w * n  # entries of a state's per-particle arrays
+    spring_slots = _mean_degree(2 * s, n) if spring_slots is None else checks.count("spring_slots", spring_slots,
+                                                                                   minimum=0)
+    hinge_slots = _mean_degree(4 * h, n) if hinge_slots is None else checks.count("hinge_slots", hinge_slots, minimum=0)
+    vertices = (n if t else 0) if mesh_vertices is None else checks.count("mesh_vertices", mesh_vertices, minimum=0)
+    exported = w if exported_worlds is None else checks.count("exported_worlds", exported_worlds, minimum=1)
+    blocks = w * (n if not cuda else -(-n // _lanes(n, block_dim)))  # reducing blocks of every world
+
+    def incidence(slots: int, tail: int) -> int:  # head element and local [slots, n], tail start [n + 1], tail
+        return 8 * slots * n + 4 * (n + 1) + 8 * tail
+
+    model = (
+        4 * w + 10 * f * w + 8 + 4  # world_enabled, the live-input table, unit_step, an empty track table
+        + 2 * vec3 * size + 4 * size  # initial positions and velocities, flags: per world
+        + 3 * f * n  # mass, inverse mass (one row for every world), radius
+        + (32 * pinned if pinned else 0)  # pin groups: index, group, rest position (float64) per pinned particle
+        + (8 + 3 * f) * s + incidence(spring_slots, spring_tail)  # pairs, rest length, ke and kd rows
+        + (16 + 3 * f) * h + incidence(hinge_slots, hinge_tail)  # hinges, rest angle, ke and kd rows
+        + 12 * t  # triangles
+        # colliders: kind, size, scale, friction, restitution, mesh, rest frame, track indices; their frames at a
+        # step's start and end in one row, or one row per world when a collider moves
+        + shapes * (4 + 8 * f + 8 + 56 + 8) + 14 * f * shapes * (w if moving_colliders else 1)
+    )
+    states = 2 * (3 * vec3 * size + 8 * w)
+    per_vec3, per_scalar, per_block, per_world_f64, per_world_i32 = INTEGRATOR_SCRATCH[integrator]
+    scratch = per_vec3 * vec3 * size + per_scalar * f * size + 8 * per_block * blocks + 8 * per_world_f64 * w
+    scratch += 4 * per_world_i32 * w + (4 if integrator in ("dopri5", "implicit_euler") else 0)
+    if integrator == "implicit_euler":
+        scratch += 16  # the CG settings
+    # The guard: its records (and their clear copies), partial sums per block, limits, each world's work put in,
+    # and the positions of its last check.
+    guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * GUARD_FLOATS * blocks + 8 * GUARD_LIMITS * w
+             + 8 * w + vec3 * size)
+    post_step = (3 * vec3 * size if strain_limiting and s else 0)
+    if contact_slots:
+        post_step += (8 * contact_slots + 4) * size + 4 * w + f  # colliders and features per slot, counts, overflow
+    writer = (12 * size + 12 * t * exported) if t else 0  # vertex normals (float32) and the exported triangles
+
+    builder = (_BUILDER_PARTICLE * n + _BUILDER_SPRING * s + _BUILDER_HINGE * h + _BUILDER_TRIANGLE * t
+               + _BUILDER_VERTEX * vertices)
+    # finalize: the concatenated pairs (int64) stay for the whole call; each family's incidence sort peaks at
+    # _INCIDENCE_ENTRY per entry plus its head tables (int32); the particles' copies (float64 and cast) come first.
+    springs_peak = 16 * s + _INCIDENCE_ENTRY * 2 * s + 8 * spring_slots * n
+    hinges_peak = 16 * s + 32 * h + _INCIDENCE_ENTRY * 4 * h + 8 * hinge_slots * n
+    particles_peak = 24 * n + (24 + vec3) * size
+    finalize_host = max(springs_peak, hinges_peak, particles_peak)
+    # A frame: positions read back (a copy on CUDA) and cast to float32, normals read back, and per exported mesh
+    # vertex its points and normals gathered, then copied into USD arrays.
+    frame_host = (vec3 * size if cuda else 0) + 12 * size + (12 * size if t else 0) + 48 * vertices * exported
+    # Setup: the guard's energy scale reads positions and velocities as float64 and sums element energies
+    # (float64 per element and world); the advisor's Gershgorin bound bincounts each spring's ends per world.
+    run_host = 48 * size + 8 * w * (s + h) + (40 * w * s + 8 * size if s else 0)
+    return MemoryEstimate(
+        device=str(device), cuda=cuda, particles=n, worlds=w, model=int(model), states=int(states),
+        integrator=int(scratch), guard=int(guard), post_step=int(post_step), writer=int(writer),
+        builder=int(builder), finalize_host=int(finalize_host), frame_host=int(frame_host), run_host=int(run_host),
+    )
+
+
+def _mean_degree(entries: int, n: int) -> int:
+    """Elements per particle, rounded up: the ELL head width of a uniform degree."""
+    return -(-entries // n) if n else 0
+
+
+def _lanes(count: int, block_dim: int) -> int:
+    """Lanes per reducing block on CUDA (``kernels.linalg.reduce_lanes``)."""
+    return int(min(block_dim, max(32, 1 << max(count - 1, 1).bit_length())))
+
+
+# -- what is free --------------------------------------------------------------------------------------------
+
+
+def available_memory(device=None) -> AvailableMemory:
+    """The memory free for a model on ``device`` (a ``wp.Device``; ``None``: the host's only, without touching
+    Warp): the host's, and the CUDA device's.
+
+    Tests replace this function (``monkeypatch.setattr(warpspring.core.memory, "available_memory", ...)``) to
+    stand for a smaller machine; :meth:`ModelBuilder.finalize` looks it up here at every call.
+    """
+    host = host_available_memory()
+    if getattr(device, "is_cuda", False):
+        return AvailableMemory(host=host, device=int(device.free_memory), device_total=int(device.total_memory))
+    return AvailableMemory(host=host)
+
+
+def host_available_memory() -> int | None:
+    """Host memory available to this process [B]: ``MemAvailable`` (Linux), capped by the cgroup's memory
+    limit less its usage where a container sets one; elsewhere the free physical pages; ``None`` if unknown."""
+    available = None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    available = int(line.split()[1]) * 1024
+                    break
+    except (OSError, ValueError, IndexError):
+        available = None
+    if available is None:
+        try:
+            available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (AttributeError, ValueError, OSError):
+            return None
+    for limit_path, usage_path in (("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+                                   ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
+                                    "/sys/fs/cgroup/memory/memory.usage_in_bytes")):
+        try:
+            with open(limit_path) as f:
+                limit = f.read().strip()
+            with open(usage_path) as f:
+                usage = int(f.read().strip())
+        except (OSError, ValueError):
+            continue
+        if limit.isdigit() and int(limit) < 2**60:  # "max" or a huge number: no limit
+            available = min(available, max(int(limit) - usage, 0))
+        break
+    return int(available)
+
+
+# -- the check -----------------------------------------------------------------------------------------------
+
+
+def check_fits(estimate: MemoryEstimate, available: AvailableMemory, *, precision: str = "float32") -> None:
+    """Refuse a model that cannot fit: a ConfigError naming the estimate, what is available and a remedy.
+
+    The device part is compared with the CUDA device's free memory; the host peak (on the CPU, device arrays
+    included) with the host's available memory. Unknown amounts are not checked.
+    """
+    shortfalls = []
+    if estimate.cuda and available.device is not None and estimate.device_bytes > available.device:
+        total = f" of {format_bytes(available.device_total)}" if available.device_total else ""
+        shortfalls.append((estimate.device_bytes / max(available.device, 1),
+                           f"{format_bytes(estimate.device_bytes)} on {estimate.device} "
+                           f"({_parts(estimate)}) but {format_bytes(available.device)}{total} is free"))
+    if available.host is not None and estimate.host_bytes > available.host:
+        shortfalls.append((estimate.host_bytes / max(available.host, 1),
+                           f"{format_bytes(estimate.host_bytes)} of host memory at its peak ("
+                           + ("" if estimate.cuda else f"arrays: {_parts(estimate)}; ")
+                           + f"finalize's copies {format_bytes(estimate.finalize_host)}) but "
+                           f"{format_bytes(available.host)} is available"))
+    if not shortfalls:
+        return
+    ratio = max(r for r, _ in shortfalls)
+    raise ConfigError(f"the model does not fit in memory: it needs an estimated {'; and '.join(m for _, m in shortfalls)}. "
+                      + remedy(estimate, ratio, precision=precision))
+
+
+def remedy(estimate: MemoryEstimate, ratio: float, *, precision: str = "float32") -> str:
+    """What to change so that a model ``ratio`` times too large fits: fewer particles (a smaller grid side),
+    float32, fewer worlds."""
+    share = 1.0 / (ratio * 1.05)  # memory grows with the particle count; 5 % to spare
+    fewer = max(int(estimate.particles * share), 1)
+    side = int(math.isqrt(fewer))
+    advice = [f"a smaller cloth (at most about {fewer:,} particles per world, e.g. a {side} × {side} grid)"]
+    if precision == "float64":
+        advice.append("precision='float32' (half the floating-point arrays)")
+    if estimate.worlds > 1:
+        advice.append(f"fewer worlds (about {max(int(estimate.worlds * share), 1)} fit)")
+    return "Use " + ", or ".join(advice) + "."
+
+
+def _parts(estimate: MemoryEstimate) -> str:
+    return ", ".join(f"{name} {format_bytes(value)}" for name, value in estimate.parts().items())
+
+
+def format_bytes(count: float | None) -> str:
+    """A byte count in binary units: "512 B", "3.2 MiB", "15.1 GiB"."""
+    if count is None:
+        return "an unknown amount"
+    value = float(count)
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if abs(value) < 1024.0 or unit == "GiB":
+            break
+        value /= 1024.0
+    if unit == "GiB" and abs(value) >= 1024.0:
+        return f"{value / 1024.0:.3g} TiB"
+    return f"{value:.0f} {unit}" if unit == "B" else f"{value:.3g} {unit}"
+
+
+def out_of_memory(error: BaseException) -> bool:
+    """Whether ``error`` is Warp's failed allocation (a RuntimeError "Failed to allocate N bytes on device ...")."""
+    return isinstance(error, (RuntimeError, MemoryError)) and (
+        isinstance(error, MemoryError) or "Failed to allocate" in str(error) or "out of memory" in str(error).lower()
+    )
