@@ -729,7 +729,7 @@ def static_equilibrium(model: Model, *, control=None, step: float = RELAX_STEP, 
         if not np.isfinite(q).all():
             break
         residual = float(np.abs(q - previous).max()) / extent
-        state.particle_q.assign(q.astype(state.particle_q.numpy().dtype))
+        state.particle_q.assign(q.astype(wp.dtype_to_numpy(model.scalar)))
         previous, steps = q, steps + 1
     return Equilibrium(positions=previous, steps=steps, converged=residual <= tolerance, residual=residual)
 
@@ -741,7 +741,7 @@ def loaded_state(model: Model, *, control=None, overshoot: float = OVERSHOOT) ->
     equilibrium = static_equilibrium(model, control=control)
     q0 = start.particle_q.numpy().astype(np.float64)
     swing = q0 + overshoot * (equilibrium.positions - q0)
-    start.particle_q.assign(swing.astype(start.particle_q.numpy().dtype))
+    start.particle_q.assign(swing.astype(wp.dtype_to_numpy(model.scalar)))
     return start
 
 
@@ -1014,17 +1014,16 @@ class Diagnosis:
 
 
 def diagnose(model: Model, integrator: str, dt: float, *, fps: float, reason: str, state: State,
-             control=None) -> Diagnosis:
+             control=None, omega_estimate: str = "power_iteration") -> Diagnosis:
     """Tell numerical instability from physical over-stretch after a guard stop whose ``reason`` is
     "strain", "kinetic energy" or "non-finite state", from ``state``, the last frame the guard passed.
 
     A spring torn in a step the advisor finds stable *at that frame's stretched state* is over-stretch:
     more substeps or implicit Euler integrate the same tearing more accurately, so the remedy is the
     material (stiffer springs, strain limiting, biphasic springs). A step beyond the limit at that state is
-    instability: more substeps (the number that the state needs) or implicit Euler."""
-    cheap = not model.device.is_cuda and model.particle_count > 20_000
-    advice = advise(model, integrator, dt, fps=fps, state=state, control=control,
-                    omega_estimate="gershgorin" if cheap else "power_iteration")
+    instability: more substeps (the number that the state needs) or implicit Euler. ``omega_estimate`` as
+    in :func:`advise`."""
+    advice = advise(model, integrator, dt, fps=fps, state=state, control=control, omega_estimate=omega_estimate)
     if reason == "strain" and advice.stable:
         return Diagnosis("overstretch", advice, (
             f"the step was stable at the stretched state ({advice.message}), so the springs really stretch that "

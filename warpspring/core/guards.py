@@ -172,7 +172,7 @@ class Guard(StepHook):
     The limits are device values: setting :attr:`limits` between frames changes no captured launch (but
     a new ``every`` does, and the stepper re-captures)."""
 
-    def __init__(self, model: Model, limits: GuardLimits, substeps: int, *, control=None, state: State | None = None):
+    def __init__(self, model: Model, limits: GuardLimits, substeps: int, *, control=None):
         self.model = model
         self.substeps = substeps
         #: The control whose external force counts as work put in (``None``: no external force).
@@ -190,9 +190,10 @@ class Guard(StepHook):
         grid = reduce_launch_dim(worlds, model.particle_count, self._lanes)
         self._partials = wp.zeros((worlds, grid[1], GUARD_FLOATS), dtype=wp.float64, device=device)
         self._limits = wp.zeros((worlds, GUARD_LIMITS), dtype=wp.float64, device=device)
-        # The work put in since the start [J] per world, and the positions of the last check (its Δx).
+        # The work put in since the start [J] per world, and the positions of the last check (its Δx; the
+        # run's start state: :meth:`restart`).
         self._work_total = wp.zeros(worlds, dtype=wp.float64, device=device)
-        self._previous_q = wp.clone((state if state is not None else model).particle_q)
+        self._previous_q = wp.clone(model.particle_q)
         self.revision = 0
         self._every = None
         self.limits = limits

@@ -82,6 +82,8 @@ class Simulator:
             hooks=[self.guard] if self.guard is not None else [],
             use_graph=use_graph,
         )
+        if self.guard is not None:
+            self.guard.restart(self.state)  # Δx of the first check from the start state (pins at t = 0)
         self.frame = 0
         self.world_failures: dict = {}
         self._overflow_seen = np.zeros(model.world_count, dtype=np.int64)

@@ -186,7 +186,7 @@ def run_scene(
             reason = getattr(exc, "reason", None)
             if reason is not None:
                 remedy = diagnose(model, integrator.name, sim.dt, fps=fps, reason=reason, state=last_good,
-                                  control=sim.control).remedy
+                                  control=sim.control, omega_estimate=_omega_estimate(model)).remedy
             raise SimulationError(
                 f"{where}{exc} (dt = {sim.dt * 1e3:.4g} ms). {remedy[0].upper()}{remedy[1:]}; "
                 f"{output} holds frames 0..{frame - 1}",
@@ -228,9 +228,14 @@ def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = F
     """
     from ..analysis.stability import advise
 
-    cheap = not model.device.is_cuda and model.particle_count > POWER_ITERATION_CPU_LIMIT
     return advise(model, integrator, dt, fps=fps, strict=strict, control=control,
-                  omega_estimate="gershgorin" if cheap else "power_iteration")
+                  omega_estimate=_omega_estimate(model))
+
+
+def _omega_estimate(model) -> str:
+    """How the runner's advisor finds ω_max: power iteration, but Gershgorin for a large model on a CPU."""
+    cheap = not model.device.is_cuda and model.particle_count > POWER_ITERATION_CPU_LIMIT
+    return "gershgorin" if cheap else "power_iteration"
 
 
 #: Largest model (particles) whose pre-run ω_max is found by power iteration on a CPU.
