@@ -1,26 +1,42 @@
 """Run-time guards: detect a state going bad on the device, per world, without a host synchronisation per
 substep.
 
-A check is four launches captured with the substeps: ``measure`` (per particle: non-finite position or
+A check is five launches captured with the substeps: ``measure`` (per particle: non-finite position or
 velocity, the largest strain of its elements (the families' ``strain`` hook), kinetic energy (of the free
-particles: a kinematic one moves as prescribed), and the work
-the loads did on it since the previous check; per-block partials, no float atomics), ``gather`` (per
-world: the world's kinetic energy and work, summed in a fixed order, and its largest strain), ``locate``
-(the particle, element and family holding the largest strain), ``decide`` (per world: add the work put in
-to the world's running total, compare with the world's limits, latch the world's first failure with its
-substep, reset the accumulators, and with ``stop_world`` set hold the failed world: ``world_enabled`` 0).
+particles: a kinematic one moves as prescribed), and the work the loads did on it since the previous
+check; per-block partials, no float atomics), ``element_energy_partials`` (one per family: per-block sums of
+its elements' elastic energy, the families' ``energy`` hook), ``gather`` (per world: the world's kinetic
+and elastic energy and work, summed in a fixed order, its largest strain, and the energy balance below),
+``locate`` (the particle, element and family holding the largest strain), ``decide`` (per world: compare
+with the world's limits, latch the world's first failure with its substep, reset the accumulators, and
+with ``stop_world`` set hold the failed world: ``world_enabled`` 0).
 
-**The work put in.** With dissipative damping and drag, a world's kinetic energy can never exceed its
-energy at the start plus the work its loads did since: KE(t) ≤ E(0) + W(t). The kinetic-energy limit is
-therefore ``limit + factor · W⁺`` rather than a fixed number: W⁺ sums, check by check, the positive part
-of Σᵢ Fᵢ · (xᵢ - xᵢ') over the world's particles, xᵢ' the positions at the previous check, with Fᵢ the
-loads at this check: weight mᵢ g and the control's external force on free particles, and for kinematic
-particles (pins, tracks) the negative of the elements' force on them, i.e. the force the driver applies
-through them. Exact for constant loads and still pins; for varying ones a one-sample rule whose error is
-far inside the factor (10⁶ by default) — what it removes is a limit that a pushed body at rest, whose
-energy scale is ~0, reaches within a fraction of a second. Once a world's record is latched, later
-checks leave it untouched, so the host reads each world's first failure at the end of the frame. Held
-worlds are not checked. The records are one row per world, laid out by the slots below.
+**The work put in.** W sums, check by check, Σᵢ Fᵢ · (xᵢ - xᵢ') over the world's particles, xᵢ' the
+positions at the previous check: weight mᵢ g and the control's external force on free particles, and for
+kinematic particles (pins, tracks) the negative of the elements' force on them, i.e. the force the driver
+applies through them. Weight and the drive's force enter by the trapezoidal rule (their values at both
+checks; exact for constant gravity and still pins, second order for tracks), the control's force by its
+value at the check (it is constant within a frame, set between frames). W⁺ sums the positive parts.
+
+**Two energy criteria.** With dissipative damping and drag, a world's kinetic plus elastic energy can
+never exceed its value at the start plus the work its loads did since: E(t) ≤ E(0) + W(t).
+
+* *Runaway*: the kinetic energy against ``limit + factor · W⁺`` (10⁶ times the scene's energy scale and
+  the work put in by default), so that a pushed body at rest, whose energy scale is ~0, is not stopped
+  for the energy it was given. Catches what has gone far wrong, whatever the model.
+* *Balance*: the energy created, E(t) - (E_ref + W(t)), against ``tolerance`` × the peak of E_ref + W
+  (the most energy the world could physically hold so far) + ``floor``. An explicit integrator beyond its
+  stability limit pumps energy into its unstable modes; where the nonlinearity saturates their growth the
+  state stays finite and untorn but holds several times the energy of the converged solution, and the
+  balance stops it when that excess first reaches ``tolerance`` of the budget. E_ref is taken at the first
+  check after a rebase (the start, or a host write of the model's values, which changes the elastic
+  energy without work), so the energy balance holds from there on. The families' energy is the potential
+  of their force (biphasic knee, force clamp), so the balance is exact up to the integrator's own energy
+  error, which the tolerance covers (symplectic Euler's is O(h): ~1 % of a swinging cloth at 1/120 s).
+
+Once a world's record is latched, later checks leave it untouched, so the host reads each world's first
+failure at the end of the frame. Held worlds are not checked. The records are one row per world, laid out
+by the slots below.
 """
 
 import functools
@@ -50,17 +66,30 @@ GUARD_INTS = 7
 GUARD_MAX_STRAIN = 0  # largest element strain (springs: |d|/L - 1) of the check
 GUARD_KINETIC_ENERGY = 1  # Σ ½ m v² of the check [J]
 GUARD_WORK = 2  # Σ F · Δx of the loads since the previous check [J] (W⁺, the running sum: ``work_total``)
-GUARD_FLOATS = 3
+GUARD_ELASTIC_ENERGY = 3  # Σ of the elements' elastic energy of the check [J]
+GUARD_EXCESS = 4  # kinetic + elastic energy beyond the balance's budget E_ref + W [J]
+GUARD_BUDGET = 5  # the budget's peak so far, max over checks of E_ref + W [J]
+GUARD_FLOATS = 6
+# float64 slots of the energy balance: carried from check to check
+BALANCE_REFERENCE = 0  # E_ref: kinetic + elastic energy less the work counted, at the last rebase [J]
+BALANCE_WORK = 1  # W: the loads' work since the start, signed [J]
+BALANCE_PEAK = 2  # the peak of E_ref + W since the last rebase [J]
+BALANCE_REBASE = 3  # 1: take the next check's energy as the reference (at the start, after a host write)
+BALANCE_ENERGY = 4  # kinetic + elastic energy at the last check [J]
+BALANCE_SLOTS = 5
 # float64 slots of the limits: live settings, read by ``decide``
 GUARD_LIMIT_STRAIN = 0  # an element strain beyond this tears the run [-]
 GUARD_LIMIT_KINETIC_ENERGY = 1  # a total kinetic energy beyond this is a runaway [J]
 GUARD_STOP_WORLD = 2  # 1: a failed world is held and the others go on; 0: the run stops
 GUARD_WORK_FACTOR = 3  # the kinetic-energy limit grows by this factor times the work put in [-]
-GUARD_LIMITS = 4
+GUARD_BALANCE_TOLERANCE = 4  # energy created beyond this fraction of the budget's peak stops the run; 0: off [-]
+GUARD_BALANCE_FLOOR = 5  # ... plus this much [J] (round-off of a world at rest)
+GUARD_LIMITS = 6
 # reasons
 GUARD_NONFINITE = 1
 GUARD_STRAIN = 2
 GUARD_ENERGY = 3
+GUARD_BALANCE = 4
 NO_PARTICLE = 2**31 - 1
 
 
@@ -92,6 +121,7 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool):
         particle_qd: wp.array[vec3],
         # In/out:
         previous_q: wp.array[vec3],
+        previous_load: wp.array[vec3],
         status: wp.array2d[wp.int32],
         partials: wp.array3d[wp.float64],
     ):
@@ -110,14 +140,19 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool):
             if wp.isfinite(x) and wp.isfinite(v):
                 mass = particle_mass[wp.min(world, particle_mass.shape[0] - 1), i]
                 worst, _, _ = element_strain(world, i, base, x, element_arrays, particle_q)
+                held = vec3(scalar(0.0))  # a load constant within a frame: its value at the check
                 if is_kinematic(particle_flags[p]):  # prescribed motion: no runaway of its own, a drive's work
                     load = -element_force(world, i, base, x, v, element_arrays, inputs, particle_q, particle_qd)
                 else:
                     energy = wp.float64(scalar(0.5) * mass * wp.dot(v, v))
                     load = mass * input_vec3(inputs, world, INPUT_GRAVITY)
                     if wp.static(external):
-                        load += particle_force_ext[p]
-                work = wp.float64(wp.dot(load, x - previous_q[p]))
+                        held = particle_force_ext[p]
+                before = previous_load[p]
+                if not wp.isfinite(before):  # the first check: no earlier value
+                    before = load
+                work = wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - previous_q[p]))
+                previous_load[p] = load
             else:
                 wp.atomic_min(status, world, GUARD_NONFINITE_PARTICLE, i)
                 wp.atomic_add(status, world, GUARD_NONFINITE_COUNT, 1)
@@ -134,13 +169,16 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool):
     def gather(
         world_enabled: wp.array[wp.int32],
         partials: wp.array3d[wp.float64],
+        energy_partials: wp.array2d[wp.float64],
         status: wp.array2d[wp.int32],
         # Out:
         values: wp.array2d[wp.float64],
         work_total: wp.array[wp.float64],
+        balance: wp.array2d[wp.float64],
     ):
-        """A world's kinetic energy and the work put in since the last check (its blocks' partials summed in
-        order; the positive part of the work added to the world's running total), and its largest strain."""
+        """A world's kinetic and elastic energy and the work put in since the last check (its blocks'
+        partials summed in order; the work added to the balance, its positive part to the world's running
+        total W⁺), its largest strain, and the energy beyond the balance's budget."""
         world = wp.tid()
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
             return
@@ -151,11 +189,26 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool):
             energy += partials[world, b, GUARD_KINETIC_ENERGY]
             worst = wp.max(worst, partials[world, b, GUARD_MAX_STRAIN])
             work += partials[world, b, GUARD_WORK]
+        elastic = wp.float64(0.0)
+        for b in range(energy_partials.shape[1]):
+            elastic += energy_partials[world, b]
         values[world, GUARD_KINETIC_ENERGY] = energy
+        values[world, GUARD_ELASTIC_ENERGY] = elastic
         values[world, GUARD_MAX_STRAIN] = worst
         values[world, GUARD_WORK] = work
-        if wp.isfinite(work):
-            work_total[world] += wp.max(work, wp.float64(0.0))
+        if not (wp.isfinite(work) and wp.isfinite(energy + elastic)):
+            return  # ``decide`` stops a non-finite world; its balance stays as it was
+        work_total[world] += wp.max(work, wp.float64(0.0))
+        balance[world, BALANCE_WORK] += work
+        if balance[world, BALANCE_REBASE] != wp.float64(0.0):
+            balance[world, BALANCE_REFERENCE] = energy + elastic - balance[world, BALANCE_WORK]
+            balance[world, BALANCE_PEAK] = energy + elastic
+            balance[world, BALANCE_REBASE] = wp.float64(0.0)
+        balance[world, BALANCE_ENERGY] = energy + elastic
+        budget = balance[world, BALANCE_REFERENCE] + balance[world, BALANCE_WORK]
+        balance[world, BALANCE_PEAK] = wp.max(balance[world, BALANCE_PEAK], budget)
+        values[world, GUARD_EXCESS] = energy + elastic - budget
+        values[world, GUARD_BUDGET] = balance[world, BALANCE_PEAK]
 
     @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
     def locate(
@@ -202,6 +255,11 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool):
             limits[world, GUARD_LIMIT_KINETIC_ENERGY] + limits[world, GUARD_WORK_FACTOR] * work_total[world]
         ):
             reason = GUARD_ENERGY
+        elif limits[world, GUARD_BALANCE_TOLERANCE] > wp.float64(0.0) and values[world, GUARD_EXCESS] > (
+            limits[world, GUARD_BALANCE_TOLERANCE] * wp.max(values[world, GUARD_BUDGET], wp.float64(0.0))
+            + limits[world, GUARD_BALANCE_FLOOR]
+        ):
+            reason = GUARD_BALANCE
         if reason != 0:
             status[world, GUARD_TRIPPED] = reason
             status[world, GUARD_SUBSTEP] = substep
@@ -210,8 +268,48 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool):
             return
         values[world, GUARD_MAX_STRAIN] = wp.float64(-1.0)
         values[world, GUARD_KINETIC_ENERGY] = wp.float64(0.0)
+        values[world, GUARD_ELASTIC_ENERGY] = wp.float64(0.0)
+        values[world, GUARD_EXCESS] = wp.float64(0.0)
         status[world, GUARD_STRAIN_PARTICLE] = NO_PARTICLE
         status[world, GUARD_STRAIN_ELEMENT] = NO_PARTICLE
         status[world, GUARD_STRAIN_FAMILY] = NO_PARTICLE
 
     return measure, gather, locate, decide
+
+
+@functools.cache
+def guard_energy_kernel(scalar: type, spec, tiled: bool):
+    """Kernel writing per-block sums of the elastic energy [J] of one family's elements in every world into
+    ``partials[world, offset + block]``; launch over ``reduce_launch_dim(worlds, element_count, lanes)``."""
+    vec3 = vec3_type(scalar)
+    block_sum, _ = reduction_funcs(tiled)
+    funcs = spec.funcs(scalar)
+    Arrays = funcs.arrays
+    energy_func = funcs.energy
+
+    # An element's energy reads its own entries, never the incidence table.
+    @flat_kernel(module="unique", enable_backward=False, last=("arrays__incidence",))
+    def element_energy_partials(
+        particle_count: int,
+        element_count: int,
+        offset: int,
+        world_enabled: wp.array[wp.int32],
+        status: wp.array2d[wp.int32],
+        arrays: Arrays,
+        inputs: wp.array2d[scalar],
+        particle_q: wp.array[vec3],
+        # Out:
+        partials: wp.array2d[wp.float64],
+    ):
+        world, block, lane = wp.tid()
+        if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
+            return
+        element = block * wp.block_dim() + lane
+        energy = wp.float64(0.0)
+        if element < element_count:
+            energy = wp.float64(energy_func(world, element, world * particle_count, arrays, inputs, particle_q))
+        energy = block_sum(energy)
+        if lane == 0:
+            partials[world, offset + block] = energy
+
+    return element_energy_partials

@@ -147,15 +147,39 @@ def spring_funcs(scalar: type, law: SpringLaw = HOOKE):
         return axial * nn + transverse * (wp.identity(n=3, dtype=scalar) - nn)
 
     @wp.func
-    def spring_energy(xi: vec3, xj: vec3, rest: scalar, ke: scalar, values: SpringLawValues) -> scalar:
-        """Elastic energy [J] of the spring (i, j): ∫ T = ½ ke (|d| - L)² (+ the biphasic excess term)."""
-        length = wp.length(xj - xi)
-        stretch = length - rest
+    def stretch_at(magnitude: scalar, rest: scalar, ke: scalar, values: SpringLawValues) -> scalar:
+        """The stretch |d| - L [m] ≥ 0 at which the tension reaches ``magnitude`` ≥ 0 [N] (T is increasing)."""
+        s = magnitude / wp.max(ke, scalar(1.0e-30))
+        if wp.static(law.biphasic):
+            knee = rest * values.knee_strain
+            if s > knee:
+                s = knee + (magnitude - ke * knee) / wp.max(ke * (scalar(1.0) + values.extra_stiffness), scalar(1.0e-30))
+        return s
+
+    @wp.func
+    def law_energy(stretch: scalar, rest: scalar, ke: scalar, values: SpringLawValues) -> scalar:
+        """∫₀^stretch T [J] of the unclamped law."""
         energy = scalar(0.5) * ke * stretch * stretch
         if wp.static(law.biphasic):
-            e = excess(length, rest, values)
+            e = wp.max(stretch - rest * values.knee_strain, scalar(0.0))
             energy += scalar(0.5) * values.extra_stiffness * ke * e * e
         return energy
+
+    @wp.func
+    def spring_energy(xi: vec3, xj: vec3, rest: scalar, ke: scalar, values: SpringLawValues) -> scalar:
+        """Elastic energy [J] of the spring (i, j), the potential of its elastic force: ∫ T = ½ ke (|d| - L)²
+        (+ the biphasic excess term); with the force clamp, T held at ±max_force beyond the stretch where it
+        reaches it (the damper's share of the clamp is not a potential and is left out)."""
+        stretch = wp.length(xj - xi) - rest
+        if wp.static(law.clamp_force):
+            limit = wp.max(values.max_force, scalar(0.0))
+            tension_value = tension(stretch + rest, rest, ke, values)
+            if wp.abs(tension_value) > limit:
+                knee = stretch_at(limit, rest, ke, values)
+                if tension_value < scalar(0.0):
+                    knee = -limit / wp.max(ke, scalar(1.0e-30))  # compression: Hooke's branch only
+                return law_energy(knee, rest, ke, values) + limit * wp.abs(stretch - knee)
+        return law_energy(stretch, rest, ke, values)
 
     return spring_law_values, spring_force, spring_energy, spring_stiffness_matrix
 

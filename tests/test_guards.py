@@ -169,6 +169,91 @@ def test_guard_max_strain_is_a_deprecated_name_of_tear_strain():
     assert ws.GuardLimits().tear_strain == 10.0
 
 
+def test_energy_balance_of_a_conservative_run_is_exact(device):
+    """A 2 kg mass on a 200 N/m spring hanging from a pin, released at rest at the spring's rest length
+    (undamped; velocity Verlet, ωh = 0.02): after 2 s the guard's counted work is the weight's m g Δz, its
+    energy is ½ m v² + ½ k (|d| - L)² of the state, and the energy created is within the integrator's
+    O((ωh)²) energy error of zero."""
+    mass, k, g = 2.0, 200.0, 9.81
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, -g))
+    builder.add_particles([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0]], mass=[1.0, mass])
+    builder.pin_particles([0])
+    builder.add_springs([[0, 1]], stiffness=k, damping=0.0)
+    model = builder.finalize(device)
+    sim = ws.Simulator(model, integrator=ws.make_integrator("velocity_verlet", model), fps=60, substeps=8)
+    run_frames(sim, 120)
+    q = sim.state.particle_q.numpy().astype(np.float64)
+    v = sim.state.particle_qd.numpy().astype(np.float64)
+    balance = sim.guard.energy_balance()
+    assert balance.work[0] == pytest.approx(mass * g * (-1.0 - q[1, 2]), rel=1e-5)
+    expected = 0.5 * mass * v[1] @ v[1] + 0.5 * k * (np.linalg.norm(q[1] - q[0]) - 1.0) ** 2
+    assert balance.energy[0] == pytest.approx(expected, rel=1e-5)
+    # At rest and unstretched at the start: E_ref, taken at the first check, is 0 but for one frame's error.
+    assert balance.reference[0] == pytest.approx(0.0, abs=1e-5 * balance.peak[0])
+    assert abs(balance.created[0]) <= 1e-3 * balance.peak[0]  # (ωh)² = 4e-4
+
+
+def battery_cloth(device, stiffness, **grid):
+    """The advisor battery's cloth (bench/advisor_load.py): 20 × 20 particles of 0.1 kg hanging in the xz
+    plane from its top corners, structural springs only (kd = 0.01 N·s/m), one world per stiffness."""
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    builder.add_cloth_grid(nx=20, ny=20, spacing=0.1, particle_mass=0.1, structural=ws.SpringMaterial(ke=1.0, kd=0.01),
+                           shear=None, bend=None, rotation=ws.quat_from_axis_angle((1.0, 0.0, 0.0), np.pi / 2),
+                           pin=["top-left", "top-right"], **grid)
+    model = builder.finalize(device, worlds=len(stiffness))
+    model.set_world_values("spring_stiffness", np.asarray(stiffness, dtype=np.float64)[:, None]
+                           * np.ones((1, model.spring_count)))
+    return model
+
+
+def test_energy_created_by_an_unstable_step_is_caught(device):
+    """RK4 at one 1/60 s step on the battery cloth: at ke = 300 N/m (stable at the loaded state) the run is
+    untouched; at 480 N/m the stretched corners are linearly unstable but their growth saturates, so the
+    state stays finite and untorn (with the balance off, 60 frames pass) while holding several times the
+    energy of the converged run: the energy balance stops it, diagnosed as instability. With 10 substeps
+    both run and create no energy."""
+    from warpspring.analysis.stability import diagnose
+
+    model = battery_cloth(device, [300.0, 480.0])
+    rk4 = ws.make_integrator("rk4", model)
+    sim = ws.Simulator(model, integrator=rk4, fps=60, substeps=1, guard=ws.GuardLimits(stop="world"))
+    last = model.state()
+    for frame in range(60):
+        if 1 not in sim.world_failures:
+            last.particle_q.assign(sim.state.particle_q)
+        sim.step_frame()
+    assert list(sim.world_failures) == [1]
+    report = sim.world_failures[1][1]
+    assert report.reason == "energy balance" and report.energy_created > 0.1 * report.energy_budget
+    assert "created" in report.describe(model)
+    found = diagnose(model, "rk4", sim.dt, fps=60, reason=report.reason, state=last)
+    assert found.kind == "instability" and f"--substeps {found.advice.substeps}" in found.remedy
+
+    for substeps, balance in ((1, 0.0), (10, ws.GuardLimits().energy_balance)):
+        model = battery_cloth(device, [300.0, 480.0])
+        sim = ws.Simulator(model, integrator=ws.make_integrator("rk4", model), fps=60, substeps=substeps,
+                           guard=ws.GuardLimits(energy_balance=balance, stop="world"))
+        run_frames(sim, 60)
+        assert not sim.world_failures
+        if substeps == 10:
+            created = sim.guard.energy_balance()
+            assert (created.created <= 1e-3 * created.peak).all()
+
+
+def test_energy_balance_rebases_when_values_are_written(device):
+    """Tripling a stretched cloth's stiffness between frames adds elastic energy without work: the balance
+    takes a new reference and the run goes on."""
+    model = battery_cloth(device, [2000.0])
+    sim = ws.Simulator(model, fps=60, substeps=20)
+    run_frames(sim, 30)
+    before = sim.guard.energy_balance()
+    model.set_world_values("spring_stiffness", 6000.0)
+    run_frames(sim, 30)
+    after = sim.guard.energy_balance()
+    assert after.reference[0] != before.reference[0]
+    assert after.created[0] <= 1e-3 * after.peak[0]
+
+
 def _stop(sim, frames):
     """Run until the guard stops the run; the positions of the last frame it passed and the error."""
     last = sim.model.state()

@@ -142,7 +142,7 @@ def test_zero_values_keep_results_bit_identical_to_switched_off_terms(device):
     runs = []
     for touch in (False, True):
         builder = ws.ModelBuilder()
-        builder.add_cloth_grid(nx=5, ny=5, spacing=0.1, mass=0.3, pin=["top-left", "top-right"])
+        builder.add_cloth_grid(nx=5, ny=5, spacing=0.1, mass=0.3, pin=["top-left", "top-right"], **SOFT)
         model = builder.finalize(device)
         if touch:
             model.drag = 0.5

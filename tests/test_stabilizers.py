@@ -102,6 +102,34 @@ def test_spring_force_clamp_bounds_elastic_plus_damping(device):
     np.testing.assert_allclose(force[~clamped], plain[~clamped])
 
 
+@pytest.mark.parametrize("law", [
+    (SpringLaw(clamp_force=True), {"max_spring_force": 2.5}),
+    (SpringLaw(biphasic=True, clamp_force=True), {"biphasic_strain": 0.2, "biphasic_ratio": 4.0, "max_spring_force": 2.5}),
+    (SpringLaw(biphasic=True, clamp_force=True), {"biphasic_strain": 0.2, "biphasic_ratio": 4.0, "max_spring_force": 4.0}),
+], ids=["hooke", "biphasic, clamped below the knee", "biphasic, clamped beyond the knee"])
+def test_clamped_spring_energy_is_the_potential_of_its_force(device, law):
+    """With the force clamp (no damping) the elastic force is -∂E/∂x of the family's energy, compressed,
+    stretched below the clamp and far beyond it (central differences): the guard's energy balance holds
+    for clamped springs."""
+    rng = np.random.default_rng(10)
+    n = 60
+    xi = rng.uniform(-1, 1, (n, 3))
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    length = rng.uniform(0.5, 1.9, n)  # the clamp (2.5 N at ke = 10) binds beyond |s| = 0.25 (and the knee)
+    xj = xi + direction * length[:, None]
+    zero = np.zeros((n, 3))
+    force = evaluate_law(device, law, xi, xj, zero)[0]
+    assert (np.linalg.norm(force, axis=1) >= law[1]["max_spring_force"] * (1 - 1e-12)).sum() > 10
+    eps = 1e-6
+    for c in range(3):
+        step = np.zeros(3)
+        step[c] = eps
+        e_plus = evaluate_law(device, law, xi, xj + step, zero)[1]
+        e_minus = evaluate_law(device, law, xi, xj - step, zero)[1]
+        np.testing.assert_allclose(force[:, c], (e_plus - e_minus) / (2 * eps), rtol=1e-6, atol=1e-6)
+
+
 @pytest.mark.parametrize("evaluation", ["gather", "scatter"])
 def test_particle_force_clamp(device, evaluation):
     """With max_particle_force F every total force above F is scaled down to magnitude F, direction kept,

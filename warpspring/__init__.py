@@ -46,7 +46,7 @@ _bind_kernels()
 from .core.bending import DihedralMaterial
 from .core.builder import ModelBuilder, SpringMaterial
 from .core.families import ElementFamily
-from .errors import ConfigError, OutputError, SimulationError, WarpspringError
+from .errors import ConfigError, OutputError, SimulationError, StabilityWarning, WarpspringError
 from .core.contacts import Contacts, apply_contacts, collide
 from .core.forces import eval_forces
 from .core.integrators import (
@@ -61,7 +61,7 @@ from .core.integrators import (
     VelocityVerlet,
     make_integrator,
 )
-from .core.guards import GuardLimits
+from .core.guards import EnergyBalance, GuardLimits
 from .core.kinematics import PinGroup
 from .core.material import ClothMaterial
 from .core.memory import MemoryEstimate, available_memory, estimate_memory
@@ -70,6 +70,7 @@ from .core.simulator import Simulator
 from .core.stepper import StepHook, Stepper
 from .core.tracks import Track
 from .analysis.stability import Advice, advise
+from .analysis.watch import StabilityWatch
 from .core.transforms import quat_from_axis_angle
 
 __version__ = "0.1.0"
@@ -99,9 +100,12 @@ __all__ = [
     "ShapeInfo",
     "SimulationError",
     "Simulator",
+    "StabilityWarning",
+    "StabilityWatch",
     "Stabilizers",
     "StepHook",
     "Stepper",
+    "EnergyBalance",
     "GuardLimits",
     "SpringMaterial",
     "State",

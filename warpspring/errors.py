@@ -63,6 +63,12 @@ def os_error_reason(error: BaseException) -> str:
     return words or f"{type(error).__name__} (no reason given)"
 
 
+class StabilityWarning(UserWarning):
+    """A run's state drifted toward the stability limit of its step (the run-time re-check of
+    :class:`~warpspring.analysis.watch.StabilityWatch`): it may blow up. The message names the frame, the
+    world and the substeps the state needs."""
+
+
 class ContactOverflowWarning(UserWarning):
     """Contacts were found beyond a particle's slots in the contact buffer and dropped: those particles were
     not kept out of those colliders. Raise ``contact_slots`` in ``ModelBuilder.finalize``."""

@@ -615,9 +615,62 @@ def _check_iteration(max_iterations: int, tolerance: float) -> None:
         raise ConfigError(f"tolerance must be a number in (0, 1), got {tolerance!r}")
 
 
+class PowerIteration:
+    """The device buffers and launches of power iteration on M⁻¹K for every world of a model at once
+    (``kernels/stability.py``): :func:`estimate_omega_max` runs it to convergence in a ``capture_while``
+    loop, the run-time :class:`~warpspring.analysis.watch.StabilityWatch` a few warm-started iterations at a
+    time. ``stiffness`` as in :func:`estimate_omega_max` (values, shape [spring_count] or [world_count,
+    spring_count]); ``start``: the initial iterate, shape [world_count, particle_count, 3]."""
+
+    def __init__(self, model: Model, stiffness: np.ndarray, start: np.ndarray):
+        worlds, n, device = model.world_count, model.particle_count, model.device
+        self.model = model
+        tiled = device.is_cuda
+        self.lanes = reduce_lanes(n, model.block_dim, tiled)
+        self.grid = reduce_launch_dim(worlds, n, self.lanes)
+        self.kernels = power_iteration_kernels(model.scalar, model.family_specs(linear=True), tiled)
+        self.sum_partials = sum_partials_kernel(tiled)
+        self.element_arrays = model.element_arrays(linear=True, stiffness={"springs": _stiffness_array(model, stiffness)})
+        self.x = wp.array(np.asarray(start).reshape(-1, 3), dtype=model.vec3, device=device)
+        self.y = wp.zeros(worlds * n, dtype=model.vec3, device=device)
+        self.partials = wp.zeros((worlds, self.grid[1], PI_PARTIALS), dtype=wp.float64, device=device)
+        self.scalars = wp.zeros((worlds, PI_SCALARS), dtype=wp.float64, device=device)
+        self.iteration = wp.zeros(worlds, dtype=wp.int32, device=device)
+        self.active = wp.zeros(worlds, dtype=wp.int32, device=device)
+        self.keep_going = wp.zeros(1, dtype=wp.int32, device=device)
+        self.tolerance, self.max_iterations = 1.0e-3, 1
+
+    def restart(self, running: np.ndarray, *, max_iterations: int, tolerance: float) -> None:
+        """Iterate the worlds where ``running`` (bool, [world_count]) from the current iterate, each until
+        its residual reaches ``tolerance`` or for ``max_iterations`` more iterations."""
+        self.tolerance, self.max_iterations = float(tolerance), int(max_iterations)
+        self.iteration.zero_()
+        self.active.assign(np.asarray(running, dtype=np.int32))
+        self.keep_going.assign(np.array([int(np.count_nonzero(running))], dtype=np.int32))
+
+    def iterate(self, particle_q: wp.array) -> None:
+        """One iteration about the positions ``particle_q`` on the current stream (device launches only)."""
+        model, device = self.model, self.model.device
+        product, normalize, condition = self.kernels
+        flat_launch(
+            product, dim=self.grid, block_dim=self.lanes, device=device,
+            inputs=[model.particle_count, model.particle_flags, model.particle_mass, self.element_arrays, model.inputs,
+                    particle_q, self.active, self.x],
+            outputs=[self.y, self.partials],
+        )
+        wp.launch(self.sum_partials, dim=(model.world_count, self.lanes), block_dim=self.lanes, device=device,
+                  inputs=[PI_XKX, PI_PARTIALS, self.partials], outputs=[self.scalars])
+        wp.launch(normalize, dim=model.particle_dim, block_dim=model.block_dim, device=device,
+                  inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.active, self.y,
+                          self.scalars], outputs=[self.x])
+        wp.launch(condition, dim=model.world_count, device=device,
+                  inputs=[wp.float64(self.tolerance), self.max_iterations],
+                  outputs=[self.scalars, self.iteration, self.active, self.keep_going])
+
+
 def _power_iteration(model: Model, stiffness: np.ndarray, state: State | None, max_iterations: int,
                      tolerance: float, seed: int) -> OmegaMaxEstimate:
-    worlds, n, device = model.world_count, model.particle_count, model.device
+    worlds, n = model.world_count, model.particle_count
     free = free_particles(model)
     bound = _gershgorin(model, stiffness, free)
     start = np.random.default_rng(seed).normal(size=(n, 3))[None] * free[..., None]
@@ -627,46 +680,20 @@ def _power_iteration(model: Model, stiffness: np.ndarray, state: State | None, m
             world_residual=np.zeros(worlds), world_converged=np.ones(worlds, dtype=bool), world_gershgorin=bound,
             world_mode=np.zeros((worlds, n, 3)),
         )
-    tiled = device.is_cuda
-    lanes = reduce_lanes(n, model.block_dim, tiled)
-    grid = reduce_launch_dim(worlds, n, lanes)
-    product, normalize, condition = power_iteration_kernels(model.scalar, model.family_specs(linear=True), tiled)
-    sum_partials = sum_partials_kernel(tiled)
-
-    element_arrays = model.element_arrays(linear=True, stiffness={"springs": _stiffness_array(model, stiffness)})
+    iteration = PowerIteration(model, stiffness, start)
+    # A world without stiffness or free particles has λ_max = 0: nothing to iterate.
+    iteration.restart(bound > 0.0, max_iterations=max_iterations, tolerance=tolerance)
     q = model.particle_q if state is None else state.particle_q
-    x = wp.array(start.reshape(-1, 3), dtype=model.vec3, device=device)
-    y = wp.zeros(worlds * n, dtype=model.vec3, device=device)
-    partials = wp.zeros((worlds, grid[1], PI_PARTIALS), dtype=wp.float64, device=device)
-    scalars = wp.zeros((worlds, PI_SCALARS), dtype=wp.float64, device=device)
-    iteration = wp.zeros(worlds, dtype=wp.int32, device=device)
-    running = bound > 0.0  # a world without stiffness or free particles has λ_max = 0: nothing to iterate
-    active = wp.array(running.astype(np.int32), dtype=wp.int32, device=device)
-    keep_going = wp.array([int(running.sum())], dtype=wp.int32, device=device)
-
-    def iterate():
-        flat_launch(
-            product, dim=grid, block_dim=lanes, device=device,
-            inputs=[n, model.particle_flags, model.particle_mass, element_arrays, model.inputs, q, active, x],
-            outputs=[y, partials],
-        )
-        wp.launch(sum_partials, dim=(worlds, lanes), block_dim=lanes, device=device,
-                  inputs=[PI_XKX, PI_PARTIALS, partials], outputs=[scalars])
-        wp.launch(normalize, dim=model.particle_dim, block_dim=model.block_dim, device=device,
-                  inputs=[n, model.particle_flags, model.particle_inv_mass, active, y, scalars], outputs=[x])
-        wp.launch(condition, dim=worlds, device=device, inputs=[wp.float64(tolerance), max_iterations],
-                  outputs=[scalars, iteration, active, keep_going])
-
-    wp.capture_while(keep_going, iterate)
-    values = scalars.numpy()
+    wp.capture_while(iteration.keep_going, lambda: iteration.iterate(q))
+    values = iteration.scalars.numpy()
     residual = values[:, PI_RESIDUAL].copy()
     return OmegaMaxEstimate(
         world_omega_max=np.sqrt(np.maximum(values[:, PI_LAMBDA], 0.0)),
-        world_iterations=iteration.numpy().astype(np.int64),
+        world_iterations=iteration.iteration.numpy().astype(np.int64),
         world_residual=residual,
         world_converged=residual <= tolerance,
         world_gershgorin=bound,
-        world_mode=x.numpy().astype(np.float64).reshape(worlds, n, 3),
+        world_mode=iteration.x.numpy().astype(np.float64).reshape(worlds, n, 3),
     )
 
 

@@ -7,6 +7,7 @@ run, or (``GuardLimits(stop="world")``) holds only the failed world while the ot
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from dataclasses import dataclass
 
@@ -15,7 +16,18 @@ import warp as wp
 
 from .. import checks
 from ..kernels.guards import (
+    BALANCE_ENERGY,
+    BALANCE_PEAK,
+    BALANCE_REBASE,
+    BALANCE_REFERENCE,
+    BALANCE_SLOTS,
+    BALANCE_WORK,
+    GUARD_BALANCE,
+    GUARD_BALANCE_FLOOR,
+    GUARD_BALANCE_TOLERANCE,
+    GUARD_BUDGET,
     GUARD_ENERGY,
+    GUARD_EXCESS,
     GUARD_FLOATS,
     GUARD_INTS,
     GUARD_KINETIC_ENERGY,
@@ -35,6 +47,7 @@ from ..kernels.guards import (
     GUARD_WORK_FACTOR,
     GUARD_TRIPPED,
     NO_PARTICLE,
+    guard_energy_kernel,
     guard_kernels,
 )
 from ..errors import ConfigError
@@ -51,6 +64,17 @@ ENERGY_FACTOR = 1.0e6
 #: Default spring strain at which the guard stops a run (eleven times the rest length).
 TEAR_STRAIN = 10.0
 
+#: Default energy-balance tolerance: energy created beyond this fraction of the most energy the loads could
+#: have supplied stops a run (``kernels/guards.py``). Symplectic Euler's own energy error on a swinging
+#: cloth is ~1 % at 1/120 s and grows as O(h); an unstable RK4 cloth creates 30 % within 10 % above its
+#: stability limit (bench/advisor_load.py).
+ENERGY_BALANCE = 0.1
+#: ... plus this fraction of the scene's energy scale (round-off of a world at rest).
+BALANCE_FLOOR = 1.0e-3
+#: Live inputs whose value is part of the springs' potential: animated by a track, the elastic energy
+#: changes without work and the balance is off.
+POTENTIAL_INPUTS = ("biphasic_strain", "biphasic_ratio", "max_spring_force")
+
 
 @dataclass(frozen=True, init=False)
 class GuardLimits:
@@ -66,6 +90,14 @@ class GuardLimits:
             the work its loads put in so far (weight, the control's external force, the drive of kinematic
             particles; ``kernels/guards.py``), so a forced or driven run is never stopped for the energy
             it was given.
+        energy_balance: energy created [-]: a world whose kinetic plus elastic energy exceeds its value at the
+            start plus the work its loads put in since by more than this fraction of the most energy they
+            could have supplied so far (plus ``BALANCE_FLOOR`` × its energy scale) is unstable and stops
+            (default ``ENERGY_BALANCE`` = 0.1; 0 switches it off). The balance re-bases when the model's
+            values are written between frames, and is off where it cannot be kept: colliders that move (their
+            work is not counted), the particle force clamp (not a potential), tracks of the springs' law
+            (biphasic knee and ratio, force clamp), and unconditionally stable integrators (implicit Euler:
+            the energy its one Newton step per step adds at large steps is not an instability).
         stop: what a failure stops: "run" (the simulator raises a SimulationError at the end of the frame)
             or "world" (the failed world is held from the failing check on, its failure is recorded in
             ``Simulator.world_failures``, and the other worlds go on; the run stops only when every world
@@ -81,10 +113,12 @@ class GuardLimits:
     every: int | None = None
     tear_strain: float = TEAR_STRAIN
     max_kinetic_energy: float | None = None
+    energy_balance: float = ENERGY_BALANCE
     stop: str = "run"
 
     def __init__(self, *, every: int | None = None, tear_strain: float | None = None,
-                 max_kinetic_energy: float | None = None, stop: str = "run", max_strain: float | None = None):
+                 max_kinetic_energy: float | None = None, energy_balance: float = ENERGY_BALANCE, stop: str = "run",
+                 max_strain: float | None = None):
         name = "guard tear_strain"
         if max_strain is not None:
             if tear_strain is not None:
@@ -101,6 +135,8 @@ class GuardLimits:
             checks.positive("guard max_kinetic_energy", max_kinetic_energy)
         if stop not in ("run", "world"):
             raise ConfigError(f"guard stop must be 'run' or 'world', got {stop!r}")
+        checks.non_negative("guard energy_balance", energy_balance)
+        object.__setattr__(self, "energy_balance", float(energy_balance))
         object.__setattr__(self, "stop", stop)
         object.__setattr__(self, "every", every)
         object.__setattr__(self, "tear_strain", tear_strain)
@@ -125,7 +161,7 @@ class GuardReport:
 
     Attributes:
         world: the world it happened in.
-        reason: "non-finite state", "strain" or "kinetic energy".
+        reason: "non-finite state", "strain", "kinetic energy" or "energy balance".
         substep: substep of the frame at whose check it was seen (the failure happened at or before it).
         particle: index of the offending particle (lowest-index non-finite one, or one holding the worst
             element).
@@ -135,6 +171,8 @@ class GuardReport:
         family: name of the family of the most strained element ("springs", ...), or ``None``.
         element: index of the most strained element in its family, or ``None``.
         kinetic_energy: total kinetic energy at that check [J].
+        energy_created: kinetic + elastic energy beyond the start's plus the work put in, at that check [J].
+        energy_budget: the most energy the start and the loads could have supplied so far [J].
     """
 
     world: int
@@ -147,6 +185,8 @@ class GuardReport:
     nonfinite_count: int = 0
     family: str | None = None
     element: int | None = None
+    energy_created: float = 0.0
+    energy_budget: float = 0.0
 
     def describe(self, model: Model, *, name_world: bool = True) -> str:
         """One clause naming what went wrong and where (the world too, in a model of several, unless
@@ -161,7 +201,35 @@ class GuardReport:
             family = next(f for f in model.families if f.name == self.family)
             return (f"{where}{family.describe_element(model, self.element)} stretched to {self.strain + 1:.3g}× its "
                     "rest length (guard limit exceeded)")
+        if self.reason == "energy balance":
+            share = self.energy_created / self.energy_budget if self.energy_budget > 0.0 else math.inf
+            return (f"{where}the integration created {self.energy_created:.3g} J of energy ({share:.0%} of the "
+                    f"{self.energy_budget:.3g} J the start and the loads supplied; guard limit exceeded): the step "
+                    "is unstable at the state the run reached")
         return f"{where}the kinetic energy ran away to {self.kinetic_energy:.3g} J (guard limit exceeded)"
+
+
+@dataclass(frozen=True)
+class EnergyBalance:
+    """A guard's energy balance per world at its last check (``kernels/guards.py``), float64 arrays of shape
+    [world_count].
+
+    Attributes:
+        energy: kinetic (free particles) + elastic energy [J].
+        reference: E_ref, the energy at the last rebase less the work counted until then [J].
+        work: the loads' net work since the start, W [J] (signed: weight, the control's force, drives).
+        peak: the most energy the start and the loads could have supplied so far, max of E_ref + W [J].
+    """
+
+    energy: np.ndarray
+    reference: np.ndarray
+    work: np.ndarray
+    peak: np.ndarray
+
+    @property
+    def created(self) -> np.ndarray:
+        """Energy beyond the balance, E - (E_ref + W) [J]: ≤ 0 up to the integrator's energy error."""
+        return self.energy - self.reference - self.work
 
 
 class Guard(StepHook):
@@ -172,16 +240,18 @@ class Guard(StepHook):
     The limits are device values: setting :attr:`limits` between frames changes no captured launch (but
     a new ``every`` does, and the stepper re-captures)."""
 
-    def __init__(self, model: Model, limits: GuardLimits, substeps: int, *, control=None):
+    def __init__(self, model: Model, limits: GuardLimits, substeps: int, *, control=None, integrator=None):
         self.model = model
         self.substeps = substeps
+        #: The integrator whose steps are checked (an unconditionally stable one has no energy balance).
+        self.integrator = integrator
         #: The control whose external force counts as work put in (``None``: no external force).
         self.control = control
         self._tiled = model.device.is_cuda
         self._lanes = reduce_lanes(model.particle_count, model.block_dim, self._tiled)
         device, worlds = model.device, model.world_count
         status = np.tile([0, -1, NO_PARTICLE, NO_PARTICLE, NO_PARTICLE, 0, NO_PARTICLE], (worlds, 1))
-        values = np.tile([-1.0, 0.0, 0.0], (worlds, 1))
+        values = np.tile([-1.0, 0.0, 0.0, 0.0, 0.0, 0.0], (worlds, 1))
         assert status.shape[1] == GUARD_INTS and values.shape[1] == GUARD_FLOATS
         self._status_clear = wp.array(status, dtype=wp.int32, device=device)
         self._values_clear = wp.array(values, dtype=wp.float64, device=device)
@@ -194,6 +264,20 @@ class Guard(StepHook):
         # run's start state: :meth:`restart`).
         self._work_total = wp.zeros(worlds, dtype=wp.float64, device=device)
         self._previous_q = wp.clone(model.particle_q)
+        # The loads at the last check (the trapezoidal rule; non-finite: none yet) and the energy balance.
+        self._previous_load = wp.empty_like(model.particle_q)
+        self._balance = wp.zeros((worlds, BALANCE_SLOTS), dtype=wp.float64, device=device)
+        # Per-block sums of the elements' elastic energy, the blocks of each family in turn.
+        self._energy_layout = []
+        blocks = 0
+        for family in model.families:
+            lanes = reduce_lanes(family.element_count, model.block_dim, self._tiled)
+            grid = reduce_launch_dim(worlds, family.element_count, lanes)
+            if family.element_count:
+                self._energy_layout.append((family, lanes, grid, blocks))
+                blocks += grid[1]
+        self._energy_partials = wp.zeros((worlds, max(blocks, 1)), dtype=wp.float64, device=device)
+        self._restart_balance()
         self.revision = 0
         self._every = None
         self.limits = limits
@@ -217,11 +301,30 @@ class Guard(StepHook):
         self._write_limits()
 
     def refresh(self) -> None:
-        """Re-derive a default kinetic-energy limit after the model's live inputs changed (gravity switched
-        on mid-run raises the scene's energy scale); a value write, no re-capture. Call between frames (the
+        """After the model's values were written (gravity switched on mid-run raises the scene's energy scale;
+        a new stiffness changes the elastic energy without work): re-derive the default limits and re-base
+        the energy balance at the next check; value writes, no re-capture. Call between frames (the
         Simulator does)."""
-        if self._limits_host.max_kinetic_energy is None and self._input_version != self.model.input_version:
+        if self._input_version != self.model.input_version:
             self._write_limits()
+            self.rebase()
+
+    def balance_applies(self) -> bool:
+        """Whether the energy balance can be kept for the model as it is now and applies to the integrator
+        (see ``GuardLimits``; implicit Euler's one Newton step per step can add energy at large steps,
+        which is not an instability)."""
+        model = self.model
+        stabilizers = model.stabilizers
+        return not (model.shape_moving or stabilizers.enabled("max_particle_force")
+                    or any(name in model._tracks for name in POTENTIAL_INPUTS)
+                    or getattr(self.integrator, "unconditionally_stable", False))
+
+    def rebase(self) -> None:
+        """Take the energy balance's reference anew at the next check: call after writing a state's positions
+        or velocities directly between frames (the Simulator does it for writes through the model)."""
+        balance = self._balance.numpy()
+        balance[:, BALANCE_REBASE] = 1.0
+        self._balance.assign(balance)
 
     def _write_limits(self) -> None:
         limits = self._limits_host
@@ -236,6 +339,8 @@ class Guard(StepHook):
         values[:, GUARD_LIMIT_KINETIC_ENERGY] = self.world_max_kinetic_energy
         values[:, GUARD_STOP_WORLD] = 1.0 if limits.stop == "world" else 0.0
         values[:, GUARD_WORK_FACTOR] = ENERGY_FACTOR if limits.max_kinetic_energy is None else 0.0
+        values[:, GUARD_BALANCE_TOLERANCE] = limits.energy_balance if self.balance_applies() else 0.0
+        values[:, GUARD_BALANCE_FLOOR] = BALANCE_FLOOR * energy_scales(model)
         self._limits.assign(values)
 
     @property
@@ -252,18 +357,33 @@ class Guard(StepHook):
         self.reset()
 
     def history(self) -> list:
-        """The arrays a check carries to the next (the work put in, the last check's positions)."""
-        return [self._work_total, self._previous_q]
+        """The arrays a check carries to the next (the work put in, the last check's positions and loads,
+        the energy balance)."""
+        return [self._work_total, self._previous_q, self._previous_load, self._balance]
 
     def restart(self, state: State | None = None) -> None:
-        """Forget the work put in and measure from ``state`` (default the model's initial state) on."""
+        """Forget the work put in and measure from ``state`` (default the model's initial state) on; the
+        energy balance takes its reference at the next check."""
         self._work_total.zero_()
         wp.copy(self._previous_q, (state if state is not None else self.model).particle_q)
+        self._restart_balance()
+
+    def _restart_balance(self) -> None:
+        self._previous_load.fill_(self.model.vec3(math.nan, math.nan, math.nan))
+        balance = np.zeros((self.model.world_count, BALANCE_SLOTS))
+        balance[:, BALANCE_REBASE] = 1.0
+        self._balance.assign(balance)
 
     def work(self) -> np.ndarray:
         """The work the loads put into each world since the start [J], float64, shape [world_count] (the
         positive parts, check by check; reads the device)."""
         return self._work_total.numpy().copy()
+
+    def energy_balance(self) -> EnergyBalance:
+        """Each world's energy balance at its last check (reads the device)."""
+        b = self._balance.numpy().astype(np.float64)
+        return EnergyBalance(energy=b[:, BALANCE_ENERGY].copy(), reference=b[:, BALANCE_REFERENCE].copy(),
+                             work=b[:, BALANCE_WORK].copy(), peak=b[:, BALANCE_PEAK].copy())
 
     def after_step(self, state: State, step: int, steps: int) -> None:
         if (step + 1) % self._every == 0 or step + 1 == steps:
@@ -287,9 +407,14 @@ class Guard(StepHook):
                     inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
                             model.elements, model.inputs, force if force is not None else state.particle_q,
                             state.particle_q, state.particle_qd],
-                    outputs=[self._previous_q, self._status, self._partials], device=device)
-        wp.launch(gather, dim=worlds, inputs=[model.world_enabled, self._partials, self._status],
-                  outputs=[self._values, self._work_total], device=device)
+                    outputs=[self._previous_q, self._previous_load, self._status, self._partials], device=device)
+        for family, lanes, grid, offset in self._energy_layout:
+            flat_launch(guard_energy_kernel(model.scalar, family.spec(model), self._tiled), dim=grid, block_dim=lanes,
+                        inputs=[model.particle_count, family.element_count, offset, model.world_enabled, self._status,
+                                family.arrays(model), model.inputs, state.particle_q],
+                        outputs=[self._energy_partials], device=device)
+        wp.launch(gather, dim=worlds, inputs=[model.world_enabled, self._partials, self._energy_partials, self._status],
+                  outputs=[self._values, self._work_total, self._balance], device=device)
         flat_launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
                     inputs=[model.particle_count, model.world_enabled, model.elements, state.particle_q],
                     outputs=[self._status, self._values], device=device)
@@ -300,7 +425,8 @@ class Guard(StepHook):
         """Each world's first failure since the last reset, in world order (reads the device: synchronises)."""
         status = self._status.numpy()
         values = self._values.numpy()
-        reasons = {GUARD_NONFINITE: "non-finite state", GUARD_STRAIN: "strain", GUARD_ENERGY: "kinetic energy"}
+        reasons = {GUARD_NONFINITE: "non-finite state", GUARD_STRAIN: "strain", GUARD_ENERGY: "kinetic energy",
+                   GUARD_BALANCE: "energy balance"}
         families = self.model.families
         found = []
         for world in np.flatnonzero(status[:, GUARD_TRIPPED]):
@@ -321,6 +447,8 @@ class Guard(StepHook):
                 nonfinite_count=int(row[GUARD_NONFINITE_COUNT]),
                 family=family,
                 element=element,
+                energy_created=float(values[world, GUARD_EXCESS]),
+                energy_budget=float(values[world, GUARD_BUDGET]),
             ))
         return found
 

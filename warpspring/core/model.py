@@ -211,7 +211,7 @@ class Model:
     up_axis: str  # "Y" or "Z"
     block_dim: int  # CUDA threads per block of the per-particle kernels (see ModelBuilder.finalize)
     revision: int  # counts structural changes since finalize (see the class docstring)
-    input_version: int  # counts host writes of live-input values (what a default guard limit is derived from)
+    input_version: int  # counts host writes of live inputs and per-world values (what the guard derives from)
 
     world_count: int  # independent copies of the scene (worlds), stepped together
     world_enabled: wp.array  # int32, shape [world_count]: 1 = stepped, 0 = held as it is (a live value)
@@ -551,6 +551,7 @@ class Model:
                 current.assign(cast)
             else:
                 setattr(self, attribute, wp.array(np.ascontiguousarray(cast), dtype=self.scalar, device=self.device))
+        self.input_version += 1  # the energy scale and the elastic energy changed (the guard re-derives them)
 
     def world_values(self, name: str) -> np.ndarray:
         """Every world's value of a per-world parameter (see :meth:`set_world_values`), float64, shape
@@ -791,6 +792,7 @@ class Model:
         flags = self.particle_flags.numpy()
         flags[entries] = np.where(kinematic, flags[entries] | PARTICLE_KINEMATIC, flags[entries] & ~PARTICLE_KINEMATIC)
         self.particle_flags.assign(flags)
+        self.input_version += 1  # a released particle's energy joins its world's without work
 
     def dynamic_inv_mass(self, *, world: int = 0) -> np.ndarray:
         """The inverse masses the dynamics sees in ``world`` [1/kg], float64, shape [particle_count]: 1/m, and 0

@@ -41,6 +41,10 @@ class Simulator:
             the frame, or with ``GuardLimits(stop="world")`` holds the failed world, records it in
             :attr:`world_failures` and goes on with the others. ``None`` disables them (and the per-frame
             read of their record).
+        watch: re-check the step's stability at the state reached every ``watch`` frames
+            (:class:`~warpspring.analysis.watch.StabilityWatch`: a few power iterations, on a stream of their
+            own on CUDA), warning with a :class:`~warpspring.errors.StabilityWarning` that names the substeps
+            when a world nears its limit; ``None`` (default) does not.
 
     Attributes:
         world_failures: the worlds stopped by the guard (``stop="world"``) so far: world → (frame, report),
@@ -64,6 +68,7 @@ class Simulator:
         control: Control | None = None,
         use_graph: bool = True,
         guard: GuardLimits | None = GuardLimits(),
+        watch: int | None = None,
     ):
         self.model = model
         self.fps = checks.positive("fps", fps)
@@ -72,10 +77,12 @@ class Simulator:
         self.dt = self.frame_dt / self.substeps
         control = control if control is not None else model.control()
         # The guard counts the work of the control's external force (its kinetic-energy limit grows by it).
-        self.guard = Guard(model, guard, self.substeps, control=control) if guard is not None else None
+        integrator = integrator if integrator is not None else SymplecticEuler(model)
+        self.guard = (Guard(model, guard, self.substeps, control=control, integrator=integrator) if guard is not None
+                      else None)
         self.stepper = Stepper(
             model,
-            integrator if integrator is not None else SymplecticEuler(model),
+            integrator,
             dt=self.dt,
             steps=self.substeps,
             control=control,
@@ -84,6 +91,13 @@ class Simulator:
         )
         if self.guard is not None:
             self.guard.restart(self.state)  # Δx of the first check from the start state (pins at t = 0)
+        self.watch_every = None if watch is None else checks.count("watch", watch, minimum=1)
+        self.watch = None
+        if watch is not None:
+            from ..analysis.watch import StabilityWatch
+
+            self.watch = StabilityWatch(model, self.integrator.name, self.dt, fps=self.fps, substeps=self.substeps,
+                                        state=self.state, control=control)
         self.frame = 0
         self.world_failures: dict = {}
         self._overflow_seen = np.zeros(model.world_count, dtype=np.int64)
@@ -155,6 +169,8 @@ class Simulator:
             if self.contacts is not None:
                 self._report_overflow()
         self.frame += 1
+        if self.watch is not None and self.frame % self.watch_every == 0:
+            self.watch.check(self.state, self.frame)
 
     def _report_overflow(self) -> None:
         overflow = self.contact_overflow()

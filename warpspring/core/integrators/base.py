@@ -38,6 +38,9 @@ class Integrator(abc.ABC):
     order: int = 0
     #: Whether the integrator chooses its own internal steps (it then takes a ``tolerance`` option).
     adaptive: bool = False
+    #: Whether its step is stable at any size (its energy error at large steps is not an instability: the
+    #: guard's energy balance does not apply).
+    unconditionally_stable: bool = False
     #: Counts structural changes of the integrator's launches (a Stepper re-captures when it changes).
     #: Its settings (tolerances, iteration caps) are device values: changing them changes no launch.
     revision: int = 0

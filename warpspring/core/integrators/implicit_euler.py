@@ -58,6 +58,7 @@ class ImplicitEuler(Integrator):
 
     name = "implicit_euler"
     order = 1
+    unconditionally_stable = True
 
     def __init__(self, model: Model, *, cg_iterations: int = 100, cg_tolerance: float = 1.0e-5):
         super().__init__(model)

@@ -1,0 +1,142 @@
+"""The stability advisor during a run: a cloth that sags, is pulled or is driven stiffens as its springs
+stretch, and a step that was stable at the start may not be at the state the run reaches.
+
+Every ``every`` frames the :class:`StabilityWatch` copies the state and runs a few warm-started power
+iterations on M⁻¹K about it (``kernels/stability.py``, the advisor's own estimate of ω_max, all worlds in
+the same launches). On CUDA they run on a stream of their own, off the critical path: the frames go on
+while they run, and their result is read at the next re-check, one period later, when it is long done.
+On the CPU they run in line. A world whose ω_max has reached ``margin`` of the highest frequency its step
+keeps stable gets a :class:`~warpspring.errors.StabilityWarning` naming the frame, the world and the
+substeps per frame that bring it back under the margin; a world is warned again only when it needs more.
+
+The highest stable frequency of each world comes from the advisor at the start: ω_lim = ω_max · dt_stable / dt,
+exact for undamped modes (their stable step is c / ω) and close for the light damping of cloth (the
+damping ratio of the start's top mode is kept). The Rayleigh quotient of a few iterations approaches
+λ_max from below; iterations carried from one re-check to the next follow a slowly changing state.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import warp as wp
+
+from .. import checks
+from ..errors import ConfigError, StabilityWarning
+from ..kernels.stability import PI_LAMBDA
+from ..core.model import Model, State
+from .stability import PowerIteration, _stiffness_values, advise, free_particles
+
+#: Default frames between re-checks.
+WATCH_EVERY = 10
+#: Power iterations per re-check (warm-started from the last).
+WATCH_ITERATIONS = 20
+#: Warn when ω_max reaches this fraction of the highest stable frequency.
+WATCH_MARGIN = 0.9
+#: Residual at which a world stops iterating within a re-check.
+WATCH_TOLERANCE = 1.0e-4
+
+
+class StabilityWatch:
+    """Re-checks the stability of a running simulation's step at the state it reached (module docstring).
+
+    Args:
+        model: the model.
+        integrator: the integrator's registry name.
+        dt: the step [s].
+        fps: frame rate [1/s]; substeps: steps per frame (for the advice).
+        state: the state at the start (the advisor's first linearisation).
+        control: the run's Control.
+        iterations: power iterations per re-check, ≥ 1.
+        margin: fraction of the stable limit at which to warn, in (0, 1].
+
+    Attributes:
+        omega_limit: each world's highest stable angular frequency at ``dt`` [rad/s], float64,
+            shape [world_count]; ∞ where the step is stable at any frequency (implicit, adaptive).
+        omega: each world's ω_max at the last re-check read [rad/s], float64, shape [world_count] (NaN
+            before the first).
+        frame: the frame of that re-check (-1 before the first).
+        warned: each world's substeps per frame recommended so far (0: none).
+    """
+
+    def __init__(self, model: Model, integrator: str, dt: float, *, fps: float, substeps: int, state: State,
+                 control=None, iterations: int = WATCH_ITERATIONS, margin: float = WATCH_MARGIN):
+        self.model = model
+        self.integrator = integrator
+        self.dt = checks.positive("dt", dt)
+        self.fps, self.substeps = fps, substeps
+        self.iterations = checks.count("watch iterations", iterations, minimum=1)
+        margin = checks.positive("watch margin", margin)
+        if margin > 1.0:
+            raise ConfigError(f"watch margin must be in (0, 1], got {margin!r}")
+        self.margin = margin
+        worlds = model.world_count
+        self.omega = np.full(worlds, math.nan)
+        self.frame = -1
+        self.warned = np.zeros(worlds, dtype=np.int64)
+        advice = advise(model, integrator, dt, fps=fps, state=state, control=control)
+        limits = advice.world_dt_stable
+        finite = np.isfinite(limits) & (limits > 0.0) & (not advice.adaptive)
+        self.omega_limit = np.where(finite, advice.world_omega_max * np.where(finite, limits, 0.0) / dt, math.inf)
+        # Worlds whose step some frequency can break, and that have free particles to move.
+        free = free_particles(model)
+        watched = np.isfinite(self.omega_limit) & free.any(axis=1)
+        self.active = bool(watched.any())
+        if not self.active:
+            return
+        device = model.device
+        start = np.random.default_rng(0).normal(size=(model.particle_count, 3))[None] * free[..., None]
+        self._iteration = PowerIteration(model, _stiffness_values(model, None), start)
+        self._watched = wp.array(watched.astype(np.int32), dtype=wp.int32, device=device)
+        self._snapshot = wp.empty_like(state.particle_q)
+        self._stream = wp.Stream(device) if device.is_cuda else None
+        self._done = None
+
+    def check(self, state: State, frame: int) -> None:
+        """Read the last re-check (warning where due) and start one about ``state`` after ``frame``."""
+        if not self.active:
+            return
+        self.collect()
+        device = self.model.device
+        wp.copy(self._snapshot, state.particle_q)  # on the frames' stream, after the frame
+        if self._stream is None:
+            self._launch()
+        else:
+            self._stream.wait_event(wp.get_stream(device).record_event())
+            with wp.ScopedStream(self._stream):
+                self._launch()
+                self._done = self._stream.record_event()
+        self._pending = frame
+
+    def _launch(self) -> None:
+        iteration = self._iteration
+        iteration.iteration.zero_()
+        wp.copy(iteration.active, self._watched)
+        iteration.tolerance, iteration.max_iterations = WATCH_TOLERANCE, self.iterations
+        for _ in range(self.iterations):
+            iteration.iterate(self._snapshot)
+
+    def collect(self) -> None:
+        """Read the re-check started last (waiting for it where it still runs) and warn where due."""
+        frame = getattr(self, "_pending", None)
+        if frame is None:
+            return
+        if self._done is not None:
+            wp.synchronize_event(self._done)
+        self._pending = None
+        self.omega = np.sqrt(np.maximum(self._iteration.scalars.numpy()[:, PI_LAMBDA], 0.0))
+        self.frame = frame
+        ratio = self.omega / self.omega_limit
+        for w in np.flatnonzero(ratio >= self.margin):
+            needed = math.ceil(self.substeps * ratio[w] / self.margin - 1.0e-9)
+            if needed <= max(self.warned[w], self.substeps):
+                continue
+            self.warned[w] = needed
+            where = f"world {w}'s" if self.model.world_count > 1 else "the"
+            warnings.warn(StabilityWarning(
+                f"frame {frame}: {where} state has stiffened toward the stability limit of {self.integrator}: "
+                f"ω_max ≈ {self.omega[w]:.4g} rad/s is {ratio[w]:.0%} of the {self.omega_limit[w]:.4g} rad/s that "
+                f"dt = {self.dt:.3g} s keeps stable; the run may blow up: use at least {needed} substeps per "
+                f"1/{self.fps:g} s frame (--substeps {needed}) or implicit_euler"), stacklevel=3)
