@@ -1,0 +1,192 @@
+"""The advisor under load, measured: where a loaded cloth really blows up, against the largest stiffness
+the advisor (``advise``, ``--strict``) passes.
+
+Scenes, each a 20 × 20 cloth of 0.1 kg particles 0.1 m apart hanging in the xz plane from its two top
+corners, structural springs only (kd = 0.01 N·s/m), gravity:
+
+* ``hanging``: as it is (the cloth of the "trustworthy runs" report);
+* ``forced``: plus a steady sideways push of ``PUSH`` on every particle through ``Control`` (half its weight);
+* ``driven``: its two corners carried by a handle on a track, ±``SHAKE`` sideways at 1 Hz.
+
+Protocol. Each stiffness is one world of one model, run for ``seconds`` (10 s) with the default guard
+stopping only the failing world (``GuardLimits(stop="world")``). A world *blows up* when the guard stops
+it (non-finite state, torn spring, runaway kinetic energy, or energy created by the integration beyond the
+balance's tolerance) or its state is non-finite. Worlds that fail below the lowest surviving stiffness
+tear because the cloth is too soft for its weight (physical over-stretch), not because of the step: they
+are listed, not counted. The advisor's verdict per world is ``advise(...)`` as ``--strict`` uses it
+(linearised about the static equilibrium under the loads; pins at their t = 0 place). Bisection on ke, in
+parallel: a first grid of ``worlds`` stiffnesses from the limit the advisor finds at rest down by ``span``
+(loads only lower it) and up by span^¼, then a second over ±10 % around the two transitions found.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import checks
+from ..core.builder import ModelBuilder, SpringMaterial
+from ..core.guards import GuardLimits
+from ..core.integrators import make_integrator
+from ..core.model import Control, Model
+from ..core.simulator import Simulator
+from ..core.tracks import Track
+from ..core.transforms import quat_from_axis_angle
+from ..errors import ConfigError, SimulationError
+from .stability import advise
+
+#: The explicit integrators of the battery.
+EXPLICIT = ("explicit_euler", "symplectic_euler", "velocity_verlet", "midpoint", "rk4")
+#: Two steps per integrator (substeps of a 1/60 s frame), chosen so that the limit lies above the stiffness
+#: at which the cloth tears by its own weight (~300 N/m).
+STEPS = {"explicit_euler": (2000, 8000), "symplectic_euler": (2, 8), "velocity_verlet": (2, 8), "midpoint": (16, 64),
+         "rk4": (1, 4)}
+SCENES = ("hanging", "forced", "driven")
+FPS = 60.0
+PUSH = 0.5  # [N] per particle, sideways (forced)
+SHAKE = 0.1  # [m] amplitude of the handle at 1 Hz (driven)
+
+
+def battery_cloth(scene: str, stiffness, device, *, n: int = 20) -> Model:
+    """The battery's cloth of ``scene``, one world per value of ``stiffness`` [N/m]."""
+    if scene not in SCENES:
+        raise ConfigError(f"unknown battery scene {scene!r}: choose from {', '.join(SCENES)}")
+    stiffness = np.atleast_1d(np.asarray(stiffness, dtype=np.float64))
+    builder = ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    grid = dict(nx=n, ny=n, spacing=0.1, particle_mass=0.1, structural=SpringMaterial(ke=1.0, kd=0.01), shear=None,
+                bend=None, rotation=quat_from_axis_angle((1.0, 0.0, 0.0), np.pi / 2))
+    if scene == "driven":
+        ids = builder.add_cloth_grid(**grid)
+        shake = Track([0.0, 0.25, 0.5, 0.75, 1.0], [[0, 0, 0], [0, SHAKE, 0], [0, 0, 0], [0, -SHAKE, 0], [0, 0, 0]],
+                      interpolation="smooth", extrapolation="cycle")
+        builder.add_pin_group([ids[-1, 0], ids[-1, -1]], translation=shake, name="handle")  # row ny-1: the top
+    else:
+        builder.add_cloth_grid(**grid, pin=["top-left", "top-right"])
+    model = builder.finalize(device, worlds=len(stiffness))
+    model.set_world_values("spring_stiffness", stiffness[:, None] * np.ones((1, model.spring_count)))
+    return model
+
+
+def battery_control(scene: str, model: Model) -> Control:
+    control = model.control()
+    if scene == "forced":
+        control.set_particle_force([0.0, PUSH, 0.0])
+    return control
+
+
+def advisor_passes(scene: str, integrator: str, dt: float, stiffness: np.ndarray, device) -> np.ndarray:
+    """Whether the advisor passes ``dt`` at each stiffness, bool, shape [len(stiffness)]."""
+    model = battery_cloth(scene, stiffness, device)
+    return dt <= advise(model, integrator, dt, fps=FPS, control=battery_control(scene, model)).world_dt_stable
+
+
+def blow_ups(scene: str, integrator: str, substeps: int, stiffness: np.ndarray, device, seconds: float) -> tuple:
+    """(blown up, torn by their weight), bool arrays of shape [len(stiffness)], from one run of ``seconds``."""
+    model = battery_cloth(scene, stiffness, device)
+    sim = Simulator(model, integrator=make_integrator(integrator, model), fps=FPS, substeps=substeps,
+                    control=battery_control(scene, model), guard=GuardLimits(stop="world"))
+    try:
+        for _ in range(int(round(seconds * FPS))):
+            sim.step_frame()
+    except SimulationError:
+        pass  # every world failed
+    q = sim.state.particle_q.numpy().reshape(len(stiffness), -1, 3)
+    failed = np.array([w in sim.world_failures or not np.isfinite(q[w]).all() for w in range(len(stiffness))])
+    alive = np.flatnonzero(~failed)
+    torn = failed & (np.arange(len(stiffness)) < (alive.min() if len(alive) else len(stiffness)))
+    return failed & ~torn, torn
+
+
+def at_rest_limit(integrator: str, dt: float, device, *, iterations: int = 24) -> float:
+    """The largest stiffness [N/m] the advisor passes for the hanging cloth linearised at rest (bisection on
+    log ke over [1e-2, 1e8] N/m; NaN where it passes none)."""
+    def passes(ke):
+        model = battery_cloth("hanging", [ke], device)
+        return dt <= advise(model, integrator, dt, fps=FPS, loaded=False).dt_stable
+
+    low, high = 1.0e-2, 1.0e8
+    if not passes(low):
+        return float("nan")
+    for _ in range(iterations):
+        middle = float(np.sqrt(low * high))
+        low, high = (middle, high) if passes(middle) else (low, middle)
+    return low
+
+
+@dataclass(frozen=True)
+class LoadCase:
+    """One case of the battery.
+
+    Attributes:
+        scene, integrator: what ran; substeps: per 1/60 s frame; dt: the step [s].
+        blow_up: the smallest stiffness [N/m] that blew up (∞: none in the grids).
+        passed: the largest stiffness [N/m] the advisor passes (0: none).
+        unsafe: worlds the advisor passed that blew up (must be 0).
+        torn: the largest stiffness [N/m] torn by the cloth's weight (0: none).
+        runs: the worlds run; seconds: wall time [s].
+    """
+
+    scene: str
+    integrator: str
+    substeps: int
+    dt: float
+    blow_up: float
+    passed: float
+    unsafe: int
+    torn: float
+    runs: int
+    seconds: float
+
+    @property
+    def ratio(self) -> float:
+        """passed / blow_up: 1 exact, < 1 conservative, > 1 unsafe; NaN without a blow-up."""
+        return self.passed / self.blow_up if np.isfinite(self.blow_up) and self.blow_up > 0.0 else float("nan")
+
+
+def run_case(scene: str, integrator: str, substeps: int, device, *, worlds: int = 32, span: float = 4.0,
+             seconds: float = 10.0) -> LoadCase:
+    """Bisect one case in two parallel grids (module docstring)."""
+    checks.count("worlds", worlds, minimum=2)
+    dt = 1.0 / (FPS * substeps)
+    started = time.perf_counter()
+    guess = at_rest_limit(integrator, dt, device)
+    passed, blow_up, unsafe, torn_max, runs = 0.0, np.inf, 0, 0.0, 0
+    if np.isfinite(guess):
+        low, high = guess / span, guess * span**0.25
+        for _ in range(2):
+            ke = np.geomspace(low, high, worlds)
+            passes = advisor_passes(scene, integrator, dt, ke, device)
+            blown, torn = blow_ups(scene, integrator, substeps, ke, device, seconds)
+            runs += worlds
+            unsafe += int((passes & blown).sum())
+            if torn.any():
+                torn_max = max(torn_max, float(ke[torn].max()))
+            if (passes & ~torn).any():
+                passed = max(passed, float(ke[passes & ~torn].max()))
+            if blown.any():
+                blow_up = min(blow_up, float(ke[blown].min()))
+            # The second grid: ±10 % around both transitions, or on past the first where one was not found.
+            found = [v for v in (passed, blow_up) if 0.0 < v < np.inf]
+            if not found:
+                break
+            low = min(found) / 1.1 if passed > 0.0 else low / span
+            high = max(found) * 1.1 if np.isfinite(blow_up) else high * span
+    return LoadCase(scene=scene, integrator=integrator, substeps=substeps, dt=dt, blow_up=blow_up, passed=passed,
+                    unsafe=unsafe, torn=torn_max, runs=runs, seconds=time.perf_counter() - started)
+
+
+def table(cases: list[LoadCase]) -> list[str]:
+    """Markdown rows of ``cases`` and a closing line with the most conservative ratio and the unsafe count."""
+    lines = ["| scene | integrator | dt | blows up from ke | advisor passes up to | ratio | passed but blew up |",
+             "|---|---|---|---|---|---|---|"]
+    for c in cases:
+        blow = f"{c.blow_up:.4g} N/m" if np.isfinite(c.blow_up) else "none in the grids"
+        lines.append(f"| {c.scene} | {c.integrator} | 1/{FPS * c.substeps:g} s | {blow} | {c.passed:.4g} N/m | "
+                     f"{c.ratio:.3f} | {c.unsafe} |")
+    ratios = [c.ratio for c in cases if np.isfinite(c.ratio)]
+    if ratios:
+        lines += ["", f"Most conservative ratio {min(ratios):.3f}, least {max(ratios):.3f}; worlds the advisor passed "
+                      f"that blew up: {sum(c.unsafe for c in cases)}."]
+    return lines
