@@ -192,8 +192,9 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch, edits, 
 
 def test_unstable_run_warns_exits_3_and_leaves_finite_frames(tmp_path, capsys):
     """A run outside the stability limit is warned about up front; it diverges and exits 3 with one line
-    naming frame k, the substep, the torn spring and the advisor's remedy; the file holds the finite
-    frames 0..k-1 and not the blown-up one."""
+    naming frame k, the substep, what the guard saw (the energy the unstable step created, before any
+    spring tears) and the advisor's remedy; the file holds the finite frames 0..k-1 and not the blown-up
+    one."""
     out = tmp_path / "unstable.usdc"
     status, stdout, stderr = run_cli(capsys, write_scene(tmp_path, UNSTABLE), "-o", out)
     assert status == EXIT_SIMULATION, stderr
@@ -206,7 +207,7 @@ def test_unstable_run_warns_exits_3_and_leaves_finite_frames(tmp_path, capsys):
     k = int(match.group(1))
     assert 1 <= k < 40
     assert "--substeps" in failure and f"frames 0..{k - 1}" in failure
-    assert "stretched to" in failure  # the guard caught torn springs before the state turned non-finite
+    assert "the integration created" in failure  # the energy balance caught it before springs tore
 
     points, times, _ = points_samples(out)
     assert times == [float(i) for i in range(k)]
@@ -282,3 +283,45 @@ def test_usd_save_failure_exits_4_with_one_line(tmp_path, capsys, monkeypatch):
     assert main(["run", str(write_scene(tmp_path, {})), "-o", str(out), "--device", "cpu", "--frames", "4"]) == 4
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) == 1 and lines[0].startswith("warpspring: output failed: ") and "out.usdc" in lines[0]
+
+
+# The advisor battery's cloth (warpspring/analysis/load_battery.py) at a stiffness the advisor passes at its
+# static equilibrium but the release transient carries past RK4's limit at 1/240 s.
+TRANSIENT = """\
+[simulation]
+fps = 60
+frames = 40
+substeps = 4
+integrator = "rk4"
+
+[cloth]
+grid = { nx = 20, ny = 20, spacing = 0.1 }
+particle_mass = 0.1
+rotation = { axis = [1.0, 0.0, 0.0], degrees = 90.0 }
+pin = ["top-left", "top-right"]
+structural = { ke = 6600.0, kd = 0.01 }
+shear = false
+bend = false
+"""
+
+
+def test_the_watch_warns_before_a_run_that_passed_strict_blows_up(tmp_path, capsys):
+    """The battery cloth at ke = 6.6 kN/m passes --strict (the advisor linearises at the static equilibrium)
+    but the release swings its springs past that stretch: the run-time watch (every 10 frames) warns first,
+    naming the substeps, then the energy balance stops the run as instability with the same remedy; with
+    those substeps the run completes without a warning."""
+    scene = tmp_path / "transient.toml"
+    scene.write_text(TRANSIENT)
+    status, stdout, stderr = run_cli(capsys, scene, "-o", tmp_path / "a.usdc", "--strict")
+    assert status == EXIT_SIMULATION and len(stderr) == 2, stderr
+    warned = re.match(r"warpspring: warning: frame (\d+): the state has stiffened toward the stability limit of rk4: "
+                      r".* use at least (\d+) substeps", stderr[0])
+    failed = re.search(r"simulation failed: frame (\d+),.*the integration created .*--substeps (\d+)\)", stderr[1])
+    assert warned and failed, stderr
+    assert int(warned.group(1)) < int(failed.group(1))
+    substeps = int(warned.group(2))
+    assert substeps == int(failed.group(2)) > 4
+    status, stdout, stderr = run_cli(capsys, scene, "-o", tmp_path / "b.usdc", "--strict", "--substeps", substeps)
+    assert status == 0 and stderr == [], stderr
+    status, stdout, stderr = run_cli(capsys, scene, "-o", tmp_path / "c.usdc", "--watch-every", 0)
+    assert status == EXIT_SIMULATION and len(stderr) == 1 and "simulation failed" in stderr[0]

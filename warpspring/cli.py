@@ -110,6 +110,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--strict", action="store_true",
         help="refuse to run when the stability advisor finds the step unstable (default: warn and run)",
     )
+    run.add_argument("--watch-every", type=_non_negative_int, metavar="N", default=None,
+                     help="re-check the step's stability at the state reached every N frames (a few power "
+                          "iterations, off the critical path on CUDA) and warn with the substeps it needs; 0: "
+                          "off (default: 10)")
     run.set_defaults(handler=_cmd_run)
 
     render = sub.add_parser("render", help="render a frame of a USD animation to PNG (needs matplotlib)")
@@ -175,6 +179,7 @@ def _cmd_run(args) -> int:
         progress=not args.quiet and sys.stderr.isatty(),  # a redirected stderr gets no progress bar
         strict=args.strict,
         warn=warn,
+        watch=args.watch_every,
         world=args.world,
         world_spacing=args.world_spacing,
     )

@@ -5,12 +5,13 @@ Every ``every`` frames the :class:`StabilityWatch` copies the state and runs a f
 iterations on M⁻¹K about it (``kernels/stability.py``, the advisor's own estimate of ω_max, all worlds in
 the same launches). On CUDA they run on a stream of their own, off the critical path: the frames go on
 while they run, and their result is read at the next re-check, one period later, when it is long done.
-On the CPU they run in line. A world whose ω_max has reached ``margin`` of the highest frequency its step
-keeps stable gets a :class:`~warpspring.errors.StabilityWarning` naming the frame, the world and the
-substeps per frame that bring it back under the margin; a world is warned again only when it needs more.
+On the CPU they run in line and are read at once. A world whose ω_max has reached ``margin`` of the
+highest frequency its step keeps stable gets a :class:`~warpspring.errors.StabilityWarning` naming the
+frame, the world and the substeps per frame that bring it back under the margin; a world is warned again
+only when it needs more.
 
-The highest stable frequency of each world comes from the advisor at the start: ω_lim = ω_max · dt_stable / dt,
-exact for undamped modes (their stable step is c / ω) and close for the light damping of cloth (the
+The highest stable frequency of each world comes from the advisor at the start:
+ω_lim = ω_max · dt_stable / dt, exact for undamped modes (their stable step is c / ω) and close for the light damping of cloth (the
 damping ratio of the start's top mode is kept). The Rayleigh quotient of a few iterations approaches
 λ_max from below; iterations carried from one re-check to the next follow a slowly changing state.
 """
@@ -33,8 +34,10 @@ from .stability import PowerIteration, _stiffness_values, advise, free_particles
 WATCH_EVERY = 10
 #: Power iterations per re-check (warm-started from the last).
 WATCH_ITERATIONS = 20
-#: Warn when ω_max reaches this fraction of the highest stable frequency.
-WATCH_MARGIN = 0.9
+#: Warn when ω_max reaches this fraction of the highest stable frequency (1: when the state reached is
+#: beyond the step's limit; the advisor's own suggestions sit at the limit, so a lower margin would warn on
+#: the runs they make).
+WATCH_MARGIN = 1.0
 #: Residual at which a world stops iterating within a re-check.
 WATCH_TOLERANCE = 1.0e-4
 
@@ -59,6 +62,8 @@ class StabilityWatch:
             before the first).
         frame: the frame of that re-check (-1 before the first).
         warned: each world's substeps per frame recommended so far (0: none).
+        notify: where a warning goes: a callable taking its one-line message, or ``None`` (default) for a
+            :class:`~warpspring.errors.StabilityWarning` through :mod:`warnings`.
     """
 
     def __init__(self, model: Model, integrator: str, dt: float, *, fps: float, substeps: int, state: State,
@@ -76,6 +81,7 @@ class StabilityWatch:
         self.omega = np.full(worlds, math.nan)
         self.frame = -1
         self.warned = np.zeros(worlds, dtype=np.int64)
+        self.notify = None
         advice = advise(model, integrator, dt, fps=fps, state=state, control=control)
         limits = advice.world_dt_stable
         finite = np.isfinite(limits) & (limits > 0.0) & (not advice.adaptive)
@@ -95,14 +101,18 @@ class StabilityWatch:
         self._done = None
 
     def check(self, state: State, frame: int) -> None:
-        """Read the last re-check (warning where due) and start one about ``state`` after ``frame``."""
+        """Read the last re-check (warning where due) and start one about ``state`` after ``frame`` (on the
+        CPU: run and read it)."""
         if not self.active:
             return
         self.collect()
         device = self.model.device
         wp.copy(self._snapshot, state.particle_q)  # on the frames' stream, after the frame
-        if self._stream is None:
+        if self._stream is None:  # in line: the result is there at once
             self._launch()
+            self._pending = frame
+            self.collect()
+            return
         else:
             self._stream.wait_event(wp.get_stream(device).record_event())
             with wp.ScopedStream(self._stream):
@@ -135,8 +145,11 @@ class StabilityWatch:
                 continue
             self.warned[w] = needed
             where = f"world {w}'s" if self.model.world_count > 1 else "the"
-            warnings.warn(StabilityWarning(
-                f"frame {frame}: {where} state has stiffened toward the stability limit of {self.integrator}: "
-                f"ω_max ≈ {self.omega[w]:.4g} rad/s is {ratio[w]:.0%} of the {self.omega_limit[w]:.4g} rad/s that "
-                f"dt = {self.dt:.3g} s keeps stable; the run may blow up: use at least {needed} substeps per "
-                f"1/{self.fps:g} s frame (--substeps {needed}) or implicit_euler"), stacklevel=3)
+            message = (f"frame {frame}: {where} state has stiffened toward the stability limit of {self.integrator}: "
+                       f"ω_max ≈ {self.omega[w]:.4g} rad/s is {ratio[w]:.0%} of the {self.omega_limit[w]:.4g} rad/s "
+                       f"that dt = {self.dt:.3g} s keeps stable; the run may blow up: use at least {needed} substeps "
+                       f"per 1/{self.fps:g} s frame (--substeps {needed}) or implicit_euler")
+            if self.notify is not None:
+                self.notify(message)
+            else:
+                warnings.warn(StabilityWarning(message), stacklevel=3)

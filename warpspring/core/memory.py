@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 from .. import checks
 from ..errors import ConfigError
-from ..kernels.guards import GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS
+from ..kernels.guards import BALANCE_SLOTS, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS
 
 #: Bytes per floating-point number of each precision.
 SCALAR_BYTES = {"float32": 4, "float64": 8}
@@ -260,10 +260,14 @@ def estimate_memory(
     scratch += 4 * per_world_i32 * w + (4 if integrator in ("dopri5", "implicit_euler") else 0)
     if integrator == "implicit_euler":
         scratch += 16  # the CG settings
-    # The guard: its records (and their clear copies), partial sums per block, limits, each world's work put in,
-    # and the positions of its last check.
+    # The guard: its records (and their clear copies), partial sums per block, limits, each world's work put in
+    # and energy balance, the positions and loads of its last check, and the elastic energy's partial sums per
+    # block of each family's elements.
+    def element_blocks(count: int) -> int:
+        return w * (count if not cuda else -(-count // _lanes(count, block_dim))) if count else 0
+
     guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * GUARD_FLOATS * blocks + 8 * GUARD_LIMITS * w
-             + 8 * w + vec3 * size)
+             + 8 * w + 8 * BALANCE_SLOTS * w + 2 * vec3 * size + 8 * max(element_blocks(s) + element_blocks(h), w))
     post_step = (3 * vec3 * size if strain_limiting and s else 0)
     if contact_slots:
         post_step += (8 * contact_slots + 4) * size + 4 * w + f  # colliders and features per slot, counts, overflow

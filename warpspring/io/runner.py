@@ -8,11 +8,13 @@ from dataclasses import dataclass, field
 
 import warp as wp
 
+from .. import checks
 from ..errors import ConfigError, SimulationError
 from ..core.integrators import make_integrator
 from .scene import Scene, check_run_settings
 from ..core.simulator import Simulator
 from ..analysis.stability import diagnose
+from ..analysis.watch import WATCH_EVERY
 
 
 @dataclass
@@ -107,6 +109,7 @@ def run_scene(
     world: int | None = None,
     world_spacing: float | None = None,
     world_columns: int | None = None,
+    watch: int | None = None,
 ) -> RunSummary:
     """Simulate ``scene`` and write it to USD. Arguments other than ``scene`` override the file's values
     (``world``, ``world_spacing`` and ``world_columns`` those of its ``[output]``: see
@@ -114,6 +117,8 @@ def run_scene(
 
     Before the run the stability advisor checks the step (:func:`preflight`): with ``strict`` an unstable
     step is refused, otherwise its message goes to ``warn`` (a callable taking one string), if given.
+    During the run it re-checks the step at the state reached every ``watch`` frames (default
+    ``WATCH_EVERY``; 0 off: :class:`~warpspring.analysis.watch.StabilityWatch`), its warnings to ``warn``.
 
     With ``[guard] stop = "world"`` a world that fails a guard check is held and the others go on: the
     world gets no samples from the failing frame on, its failure goes to ``warn`` at once and is listed in
@@ -151,7 +156,9 @@ def run_scene(
         integrator = make_integrator(scene.integrator, model, **scene.integrator_options)
     except ConfigError as exc:
         raise ConfigError(f"{os.path.basename(scene.path)}: [simulation] {exc}") from None
-    sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps, guard=scene.guard)
+    watch = WATCH_EVERY if watch is None else checks.count("watch", watch, minimum=0)
+    sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps, guard=scene.guard,
+                    watch=watch or None)
     advice = preflight(model, integrator.name, sim.dt, fps=fps, strict=strict, control=sim.control)
     last_good = model.state()  # the last frame the guard passed: where a stop is diagnosed
     if not advice.stable and warn is not None:
@@ -162,6 +169,12 @@ def run_scene(
                    **export) as usd:
         usd.write_frame(sim.state)
         bar = _progress(frames, enabled=progress)
+        if sim.watch is not None and warn is not None:
+            def notify(message: str) -> None:
+                with bar.external_write_mode():  # a line of its own, not through the progress bar
+                    warn(message)
+
+            sim.watch.notify = notify
         t1 = None
         try:
             for _ in range(frames):

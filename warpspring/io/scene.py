@@ -411,6 +411,7 @@ _SCHEMA = {
         "every": _Number(1, integer=True),
         "tear_strain": POSITIVE,
         "max_kinetic_energy": POSITIVE,
+        "energy_balance": NON_NEGATIVE,
         "stop": _Since(2, str),
     },
     "worlds": {
