@@ -18,6 +18,7 @@ damping ratio of the start's top mode is kept). The Rayleigh quotient of a few i
 
 from __future__ import annotations
 
+import contextlib
 import math
 import warnings
 
@@ -93,32 +94,48 @@ class StabilityWatch:
         if not self.active:
             return
         device = model.device
-        start = np.random.default_rng(0).normal(size=(model.particle_count, 3))[None] * free[..., None]
-        self._iteration = PowerIteration(model, _stiffness_values(model, None), start)
+        self._start = np.random.default_rng(0).normal(size=(model.particle_count, 3))[None] * free[..., None]
         self._watched = wp.array(watched.astype(np.int32), dtype=wp.int32, device=device)
         self._snapshot = wp.empty_like(state.particle_q)
         self._stream = wp.Stream(device) if device.is_cuda else None
         self._done = None
+        self._build()
+
+    def _build(self) -> None:
+        """The iteration's buffers for the model's current values (the last iterate carried over), and no
+        graph yet: the next re-check captures one."""
+        previous = getattr(self, "_iteration", None)
+        start = previous.x.numpy() if previous is not None else self._start
+        self._iteration = PowerIteration(self.model, _stiffness_values(self.model, None), start)
+        self._graph = None
+        self._version = self.model.input_version
 
     def check(self, state: State, frame: int) -> None:
         """Read the last re-check (warning where due) and start one about ``state`` after ``frame`` (on the
-        CPU: run and read it)."""
+        CPU: run and read it). The re-check's launches are captured once into a graph (a CUDA graph on the
+        watch's stream, Warp's CPU graph on the CPU) and replayed; new model values rebuild it."""
         if not self.active:
             return
         self.collect()
         device = self.model.device
+        if self._version != self.model.input_version:
+            self._build()
         wp.copy(self._snapshot, state.particle_q)  # on the frames' stream, after the frame
-        if self._stream is None:  # in line: the result is there at once
-            self._launch()
-            self._pending = frame
-            self.collect()
-            return
-        else:
+        if self._stream is not None:
             self._stream.wait_event(wp.get_stream(device).record_event())
-            with wp.ScopedStream(self._stream):
-                self._launch()
+        with wp.ScopedStream(self._stream) if self._stream is not None else contextlib.nullcontext():
+            if self._graph is None:
+                self._launch()  # uncaptured: loads the modules (a capture must not), and is this re-check
+                with wp.ScopedCapture(device=device, stream=self._stream, force_module_load=False) as capture:
+                    self._launch()
+                self._graph = capture.graph
+            else:
+                wp.capture_launch(self._graph, stream=self._stream)
+            if self._stream is not None:
                 self._done = self._stream.record_event()
         self._pending = frame
+        if self._stream is None:  # in line: the result is there at once
+            self.collect()
 
     def _launch(self) -> None:
         iteration = self._iteration

@@ -429,7 +429,10 @@ class Guard(StepHook):
                    GUARD_BALANCE: "energy balance"}
         families = self.model.families
         found = []
-        for world in np.flatnonzero(status[:, GUARD_TRIPPED]):
+        tripped = status[:, GUARD_TRIPPED]
+        if not tripped.any():  # the common case, every frame: allocate nothing that could linger
+            return []
+        for world in np.flatnonzero(tripped):
             row = status[world]
             reason = reasons[int(row[GUARD_TRIPPED])]
             particle = row[GUARD_NONFINITE_PARTICLE] if reason == "non-finite state" else row[GUARD_STRAIN_PARTICLE]
