@@ -32,10 +32,11 @@ from cloth import emit_table
 FPS, SUBSTEPS = 60, 16
 
 
-def driven_cloth(device) -> ws.Model:
+def driven_cloth(device, *, n: int = 32) -> ws.Model:
+    """The soak's n × n cloth (the module docstring); ``tests/test_soak.py`` runs it at 12 × 12."""
     builder = ws.ModelBuilder(drag=0.01)
     spring = ws.SpringMaterial(ke=1.0e3, kd=10.0)
-    ids = builder.add_cloth_grid(nx=32, ny=32, spacing=0.1, particle_mass=0.1, origin=(0.0, 0.0, 4.0),
+    ids = builder.add_cloth_grid(nx=n, ny=n, spacing=0.1, particle_mass=0.1, origin=(0.0, 0.0, 4.0),
                                  structural=spring, shear=spring, bend=spring,
                                  rotation=ws.quat_from_axis_angle((1.0, 0.0, 0.0), np.pi / 2))
     swing = ws.Track([0.0, 0.5, 1.0, 1.5, 2.0], [[0, 0, 0], [0.2, 0, 0], [0, 0, 0], [-0.2, 0, 0], [0, 0, 0]],

@@ -193,17 +193,12 @@ def test_energy_balance_of_a_conservative_run_is_exact(device):
     assert abs(balance.created[0]) <= 1e-3 * balance.peak[0]  # (ωh)² = 4e-4
 
 
-def battery_cloth(device, stiffness, **grid):
-    """The advisor battery's cloth (bench/advisor_load.py): 20 × 20 particles of 0.1 kg hanging in the xz
-    plane from its top corners, structural springs only (kd = 0.01 N·s/m), one world per stiffness."""
-    builder = ws.ModelBuilder(gravity=(0.0, 0.0, -9.81))
-    builder.add_cloth_grid(nx=20, ny=20, spacing=0.1, particle_mass=0.1, structural=ws.SpringMaterial(ke=1.0, kd=0.01),
-                           shear=None, bend=None, rotation=ws.quat_from_axis_angle((1.0, 0.0, 0.0), np.pi / 2),
-                           pin=["top-left", "top-right"], **grid)
-    model = builder.finalize(device, worlds=len(stiffness))
-    model.set_world_values("spring_stiffness", np.asarray(stiffness, dtype=np.float64)[:, None]
-                           * np.ones((1, model.spring_count)))
-    return model
+def battery_cloth(device, stiffness):
+    """The advisor battery's hanging cloth (``warpspring/analysis/load_battery.py``): 20 × 20 particles of
+    0.1 kg hanging from its top corners, structural springs only (kd = 0.01 N·s/m), one world per stiffness."""
+    from warpspring.analysis.load_battery import battery_cloth as hanging
+
+    return hanging("hanging", stiffness, device)
 
 
 def test_energy_created_by_an_unstable_step_is_caught(device):

@@ -1,26 +1,17 @@
 """A long run in short (bench/soak.py runs 100,000 substeps): a driven cloth with the default guard and the
 run-time watch keeps its memory constant frame after frame and neither gains nor drifts in energy."""
 
+import sys
 import tracemalloc
+from pathlib import Path
 
 import numpy as np
 import warp as wp
 
 import warpspring as ws
 
-
-def driven_cloth(device):
-    """bench/soak.py's cloth at 12 × 12: 0.1 kg particles 0.1 m apart, 1 kN/m springs, two top corners swung
-    ±0.2 m at 0.5 Hz by a handle, light drag."""
-    builder = ws.ModelBuilder(drag=0.01)
-    spring = ws.SpringMaterial(ke=1.0e3, kd=10.0)
-    ids = builder.add_cloth_grid(nx=12, ny=12, spacing=0.1, particle_mass=0.1, origin=(0.0, 0.0, 2.0),
-                                 structural=spring, shear=spring, bend=spring,
-                                 rotation=ws.quat_from_axis_angle((1.0, 0.0, 0.0), np.pi / 2))
-    swing = ws.Track([0.0, 0.5, 1.0, 1.5, 2.0], [[0, 0, 0], [0.2, 0, 0], [0, 0, 0], [-0.2, 0, 0], [0, 0, 0]],
-                     interpolation="smooth", extrapolation="cycle")
-    builder.add_pin_group([ids[-1, 0], ids[-1, -1]], translation=swing, name="handle")
-    return builder.finalize(device)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from soak import driven_cloth  # noqa: E402  (the bench's scene, at 12 × 12)
 
 
 def used_device_memory(device) -> int:
@@ -35,7 +26,7 @@ def test_a_long_driven_run_keeps_its_memory_and_its_energy(device):
     energy created beyond 0.5 % of what the start and the handle supplied (symplectic Euler's O(h) energy
     error at h = 1/960 s; a leak of energy into the cloth would grow without bound) while the handle really
     works on the cloth (W changes sign as it pulls and brakes)."""
-    model = driven_cloth(device)
+    model = driven_cloth(device, n=12)
     sim = ws.Simulator(model, fps=60, substeps=16, watch=10)
     for _ in range(100):
         sim.step_frame()
