@@ -114,6 +114,13 @@ def build_parser() -> argparse.ArgumentParser:
                      help="re-check the step's stability at the state reached every N frames (a few power "
                           "iterations, off the critical path on CUDA) and warn with the substeps it needs; 0: "
                           "off (default: 10)")
+    run.add_argument("--checkpoint-every", type=_non_negative_int, metavar="N", default=0,
+                     help="save the whole simulation every N frames to OUT.checkpoint.npz beside the output "
+                          "(atomically replaced; default 0: never), to continue a stopped run with --resume")
+    run.add_argument("--resume", metavar="CHECKPOINT",
+                     help="continue a stopped run from its checkpoint: the output (the same -o) keeps its frames "
+                          "up to the checkpoint's and the run goes on to the end, bit for bit as if uninterrupted "
+                          "on the same device")
     run.set_defaults(handler=_cmd_run)
 
     render = sub.add_parser("render", help="render a frame of a USD animation to PNG (needs matplotlib)")
@@ -180,6 +187,8 @@ def _cmd_run(args) -> int:
         strict=args.strict,
         warn=warn,
         watch=args.watch_every,
+        checkpoint_every=args.checkpoint_every,
+        resume=args.resume,
         world=args.world,
         world_spacing=args.world_spacing,
     )

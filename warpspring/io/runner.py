@@ -38,6 +38,7 @@ class RunSummary:
             naming the world, the frame and what failed; the file holds that world's frames before it.
         contact_overflow: contacts dropped in the run because a particle touched more colliders than its
             contact slots, all worlds together (0 without the contact stage).
+        resumed_from: the checkpoint's frame a resumed run went on from (0: a run from the start).
     """
 
     output: str
@@ -55,10 +56,11 @@ class RunSummary:
     exported_world: int | None = None
     world_failures: list = field(default_factory=list)
     contact_overflow: int = 0
+    resumed_from: int = 0
 
     def line(self) -> str:
         """The closing summary line of the CLI."""
-        timed = self.frames - 1
+        timed = self.frames - self.resumed_from - 1
         if timed > 0 and self.wall_time > 0:
             rate = timed / self.wall_time
             speed = f"{rate:.1f} frames/s, {rate * self.substeps:.0f} substeps/s"
@@ -74,8 +76,9 @@ class RunSummary:
         if self.contact_overflow:
             worlds += (f"; {self.contact_overflow} contacts dropped for want of contact slots (raise "
                        "[contacts] slots)")
+        resumed = f", frames {self.resumed_from + 1}..{self.frames} after resuming" if self.resumed_from else ""
         return (
-            f"wrote {self.frames + 1} frames ({self.simulated_time:.3g} s simulated) to {self.output} in "
+            f"wrote {self.frames + 1} frames{resumed} ({self.simulated_time:.3g} s simulated) to {self.output} in "
             f"{self.wall_time:.2f} s + {self.setup_time:.2f} s setup: {speed}; {self.integrator}, "
             f"dt = {self.dt * 1e3:.4g} ms; {self.model}{worlds}"
         )
@@ -95,6 +98,12 @@ def resolve_device(name: str | None):
     return device
 
 
+def checkpoint_path(output: str) -> str:
+    """Where ``run_scene(checkpoint_every=...)`` saves the checkpoints of a run writing ``output``: beside it,
+    ``out.usdc`` → ``out.checkpoint.npz``."""
+    return os.path.splitext(output)[0] + ".checkpoint.npz"
+
+
 def run_scene(
     scene: Scene,
     *,
@@ -110,6 +119,8 @@ def run_scene(
     world_spacing: float | None = None,
     world_columns: int | None = None,
     watch: int | None = None,
+    checkpoint_every: int = 0,
+    resume: str | None = None,
 ) -> RunSummary:
     """Simulate ``scene`` and write it to USD. Arguments other than ``scene`` override the file's values
     (``world``, ``world_spacing`` and ``world_columns`` those of its ``[output]``: see
@@ -119,6 +130,11 @@ def run_scene(
     step is refused, otherwise its message goes to ``warn`` (a callable taking one string), if given.
     During the run it re-checks the step at the state reached every ``watch`` frames (default
     ``WATCH_EVERY``; 0 off: :class:`~warpspring.analysis.watch.StabilityWatch`), its warnings to ``warn``.
+
+    Every ``checkpoint_every`` frames (0: never) the whole simulation is saved to
+    :func:`checkpoint_path` of the output (atomically replaced); ``resume`` continues a stopped run from such
+    a checkpoint: the output's frames up to the checkpoint's are kept and the run goes on from there to
+    ``frames``, bit for bit as the uninterrupted run on the same device.
 
     With ``[guard] stop = "world"`` a world that fails a guard check is held and the others go on: the
     world gets no samples from the failing frame on, its failure goes to ``warn`` at once and is listed in
@@ -157,18 +173,30 @@ def run_scene(
     except ConfigError as exc:
         raise ConfigError(f"{os.path.basename(scene.path)}: [simulation] {exc}") from None
     watch = WATCH_EVERY if watch is None else checks.count("watch", watch, minimum=0)
+    checkpoint_every = checks.count("checkpoint_every", checkpoint_every, minimum=0)
     sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps, guard=scene.guard,
                     watch=watch or None)
+    start = 0
+    if resume is not None:
+        sim.load_checkpoint(resume)
+        start = sim.frame
+        if start >= frames:
+            raise ConfigError(f"the checkpoint {resume!r} is at frame {start}, at or past the run's end (frame "
+                              f"{frames}): nothing to resume; pass more --frames")
     advice = preflight(model, integrator.name, sim.dt, fps=fps, strict=strict, control=sim.control)
     last_good = model.state()  # the last frame the guard passed: where a stop is diagnosed
     if not advice.stable and warn is not None:
         warn(advice.message)
 
-    failures = []
+    saved_at = os.path.abspath(checkpoint_path(output))
     with UsdWriter(output, model, fps=fps, particles=scene.export_particles, springs=scene.export_springs,
-                   **export) as usd:
-        usd.write_frame(sim.state)
-        bar = _progress(frames, enabled=progress)
+                   keep_frames=start + 1 if resume is not None else 0, **export) as usd:
+        if resume is None:
+            usd.write_frame(sim.state)
+        failures = sorted(sim.world_failures)
+        if failures:
+            usd.stop_worlds(failures)  # worlds the guard held before the checkpoint get no new samples
+        bar = _progress(frames, enabled=progress, initial=start)
         if sim.watch is not None and warn is not None:
             def notify(message: str) -> None:
                 with bar.external_write_mode():  # a line of its own, not through the progress bar
@@ -177,7 +205,7 @@ def run_scene(
             sim.watch.notify = notify
         t1 = None
         try:
-            for _ in range(frames):
+            for _ in range(start, frames):
                 sim.step_frame()
                 for w in sorted(set(sim.world_failures) - set(failures)):  # stopped by the guard this frame
                     failures.append(w)
@@ -186,6 +214,8 @@ def run_scene(
                         with bar.external_write_mode():  # a line of its own, not through the progress bar
                             warn(sim.describe_failure(w))
                 usd.write_frame(sim.state)
+                if checkpoint_every and sim.frame % checkpoint_every == 0:
+                    sim.save_checkpoint(saved_at)
                 if sim.guard is not None:
                     wp.copy(last_good.particle_q, sim.state.particle_q)
                 bar.update(1)
@@ -200,9 +230,12 @@ def run_scene(
             if reason is not None:
                 remedy = diagnose(model, integrator.name, sim.dt, fps=fps, reason=reason, state=last_good,
                                   control=sim.control, omega_estimate=_omega_estimate(model)).remedy
+            resumable = ""
+            if checkpoint_every and os.path.exists(saved_at):
+                resumable = f"; continue from the last checkpoint with --resume {checkpoint_path(output)}"
             raise SimulationError(
                 f"{where}{exc} (dt = {sim.dt * 1e3:.4g} ms). {remedy[0].upper()}{remedy[1:]}; "
-                f"{output} holds frames 0..{frame - 1}",
+                f"{output} holds frames 0..{frame - 1}{resumable}",
                 frame=frame,
                 substep=exc.substep,
             ) from None
@@ -225,6 +258,7 @@ def run_scene(
         exported_world=world,
         world_failures=[sim.describe_failure(w) for w in sorted(failures)],
         contact_overflow=int(sim.contact_overflow().sum()),
+        resumed_from=start,
     )
 
 
@@ -265,7 +299,7 @@ def _remedy(advice, substeps: int) -> str:
     return f"{advice.message}{hint}"
 
 
-def _progress(total: int, *, enabled: bool):
+def _progress(total: int, *, enabled: bool, initial: int = 0):
     from tqdm import tqdm
 
-    return tqdm(total=total, unit="frame", disable=not enabled, dynamic_ncols=True, leave=False)
+    return tqdm(total=total, initial=initial, unit="frame", disable=not enabled, dynamic_ncols=True, leave=False)

@@ -74,9 +74,13 @@ class UsdWriter:
         world_spacing: distance [m] between neighbouring worlds on the export grid, when every world
             of a model of several is written; ``None``: :func:`default_world_spacing`.
         world_columns: worlds per row of the export grid; ``None``: ceil(√world_count).
+        keep_frames: keep the first ``keep_frames`` frames (time codes 0 .. keep_frames - 1) of the file
+            already at ``path``, written by a run of the same scene and export options that stopped, and
+            append after them (``warpspring run --resume``); later samples of that file are dropped.
 
     Raises:
-        ConfigError: a bad path, fps, world, spacing or column count; nothing is written.
+        ConfigError: a bad path, fps, world, spacing or column count, or (``keep_frames``) a file that is
+            missing or holds fewer frames; nothing is written.
     """
 
     def __init__(
@@ -91,6 +95,7 @@ class UsdWriter:
         world: int | None = None,
         world_spacing: float | None = None,
         world_columns: int | None = None,
+        keep_frames: int = 0,
     ):
         from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
@@ -113,6 +118,8 @@ class UsdWriter:
         else:
             offsets = None
             roots = [(0 if world is None else world, "/World")]
+        keep_frames = checks.count("keep_frames", keep_frames, minimum=0)
+        kept = _read_frames(path, keep_frames) if keep_frames else None  # before the file is replaced
         try:
             if os.path.exists(path):
                 os.remove(path)
@@ -168,6 +175,16 @@ class UsdWriter:
             tri = np.concatenate([tri + w * n for w in self.worlds]).astype(np.int32)
             self._export_tris = wp.array(tri, dtype=wp.int32, device=model.device)
             self._normals = wp.empty(model.state_size, dtype=wp.vec3f, device=model.device)
+        if kept is not None:
+            for attribute, samples in kept:
+                target = stage.GetAttributeAtPath(attribute)
+                if not target:
+                    raise ConfigError(f"cannot resume {path!r}: it holds {attribute}, which this scene does not "
+                                      "write (another scene or other export options)")
+                for time_code, value in samples:
+                    target.Set(value, Usd.TimeCode(time_code))
+            self.frame_count = keep_frames
+            stage.SetEndTimeCode(float(max(keep_frames - 1, 1)))
         self._save(force=True)
 
     # -- frames ---------------------------------------------------------------------------------------
@@ -430,6 +447,35 @@ def _set_pose(translate, orient, frame, time=None) -> None:
     time = Usd.TimeCode.Default() if time is None else time
     translate.Set(Gf.Vec3d(*(float(p) for p in position)), time)
     orient.Set(Gf.Quatd(float(w), float(x), float(y), float(z)), time)
+
+
+def _read_frames(path: str, frames: int) -> list:
+    """Every time sample of the first ``frames`` frames of the USD file at ``path``: (attribute path, [(time
+    code, value)]) pairs, read into memory so that the file can be replaced."""
+    from pxr import Sdf, Tf, Usd
+
+    if not os.path.isfile(path):
+        raise ConfigError(f"cannot resume into {path!r}: the file is missing (resume writes into the stopped run's "
+                          "output: pass the same -o)")
+    try:
+        layer = Sdf.Layer.FindOrOpen(path)
+        if layer is not None:
+            layer.Reload()
+        stage = Usd.Stage.Open(layer if layer is not None else path)
+    except Tf.ErrorException as exc:
+        raise ConfigError(f"cannot resume into {path!r}: USD cannot read it ({_reason(exc) or 'no reason'})") from None
+    held = int(stage.GetEndTimeCode()) + 1 if stage.HasAuthoredTimeCodeRange() else 0
+    if held < frames:
+        raise ConfigError(f"cannot resume into {path!r}: it holds frames 0..{held - 1}, the checkpoint continues "
+                          f"after frame {frames - 1}")
+    kept = []
+    for prim in stage.Traverse():
+        for attribute in prim.GetAttributes():
+            times = [t for t in attribute.GetTimeSamples() if t < frames]
+            if times:
+                kept.append((attribute.GetPath(), [(t, attribute.Get(Usd.TimeCode(t))) for t in times]))
+    del stage
+    return kept
 
 
 def world_prim_name(world: int, world_count: int) -> str:
