@@ -10,7 +10,7 @@ highest frequency its step keeps stable gets a :class:`~warpspring.errors.Stabil
 frame, the world and the substeps per frame that bring it back under the margin; a world is warned again
 only when it needs more.
 
-The highest stable frequency of each world comes from the advisor at the start:
+The highest stable frequency of each world comes from the advisor before the run (given, or run here):
 ω_lim = ω_max · dt_stable / dt, exact for undamped modes (their stable step is c / ω) and close for the light damping of cloth (the
 damping ratio of the start's top mode is kept). The Rayleigh quotient of a few iterations approaches
 λ_max from below; iterations carried from one re-check to the next follow a slowly changing state.
@@ -29,7 +29,7 @@ from .. import checks
 from ..errors import ConfigError, StabilityWarning
 from ..kernels.stability import PI_LAMBDA
 from ..core.model import Model, State
-from .stability import PowerIteration, _stiffness_values, advise, free_particles
+from .stability import Advice, PowerIteration, _stiffness_values, advise, free_particles
 
 #: Default frames between re-checks.
 WATCH_EVERY = 10
@@ -53,6 +53,9 @@ class StabilityWatch:
         fps: frame rate [1/s]; substeps: steps per frame (for the advice).
         state: the state at the start (the advisor's first linearisation).
         control: the run's Control.
+        advice: the advisor's verdict on this model, integrator and step, if the caller has one (the CLI's
+            pre-run check): its per-world ω_max and stable step give the limits; default: the advisor is
+            run here, linearised about ``state``.
         iterations: power iterations per re-check, ≥ 1.
         margin: fraction of the stable limit at which to warn, in (0, 1].
 
@@ -68,7 +71,8 @@ class StabilityWatch:
     """
 
     def __init__(self, model: Model, integrator: str, dt: float, *, fps: float, substeps: int, state: State,
-                 control=None, iterations: int = WATCH_ITERATIONS, margin: float = WATCH_MARGIN):
+                 control=None, advice: Advice | None = None, iterations: int = WATCH_ITERATIONS,
+                 margin: float = WATCH_MARGIN):
         self.model = model
         self.integrator = integrator
         self.dt = checks.positive("dt", dt)
@@ -83,7 +87,8 @@ class StabilityWatch:
         self.frame = -1
         self.warned = np.zeros(worlds, dtype=np.int64)
         self.notify = None
-        advice = advise(model, integrator, dt, fps=fps, state=state, control=control)
+        if advice is None:
+            advice = advise(model, integrator, dt, fps=fps, state=state, control=control)
         limits = advice.world_dt_stable
         finite = np.isfinite(limits) & (limits > 0.0) & (not advice.adaptive)
         self.omega_limit = np.where(finite, advice.world_omega_max * np.where(finite, limits, 0.0) / dt, math.inf)

@@ -424,14 +424,14 @@ class Guard(StepHook):
     def reports(self) -> list[GuardReport]:
         """Each world's first failure since the last reset, in world order (reads the device: synchronises)."""
         status = self._status.numpy()
-        values = self._values.numpy()
         reasons = {GUARD_NONFINITE: "non-finite state", GUARD_STRAIN: "strain", GUARD_ENERGY: "kinetic energy",
                    GUARD_BALANCE: "energy balance"}
         families = self.model.families
         found = []
         tripped = status[:, GUARD_TRIPPED]
-        if not tripped.any():  # the common case, every frame: allocate nothing that could linger
+        if not tripped.any():  # the common case, every frame: one read, nothing allocated that could linger
             return []
+        values = self._values.numpy()
         for world in np.flatnonzero(tripped):
             row = status[world]
             reason = reasons[int(row[GUARD_TRIPPED])]

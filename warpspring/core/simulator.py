@@ -91,13 +91,9 @@ class Simulator:
         )
         if self.guard is not None:
             self.guard.restart(self.state)  # Δx of the first check from the start state (pins at t = 0)
-        self.watch_every = None if watch is None else checks.count("watch", watch, minimum=1)
-        self.watch = None
+        self.watch_every, self.watch = None, None
         if watch is not None:
-            from ..analysis.watch import StabilityWatch
-
-            self.watch = StabilityWatch(model, self.integrator.name, self.dt, fps=self.fps, substeps=self.substeps,
-                                        state=self.state, control=control)
+            self.start_watch(watch)
         self.frame = 0
         self.world_failures: dict = {}
         self._overflow_seen = np.zeros(model.world_count, dtype=np.int64)
@@ -134,6 +130,16 @@ class Simulator:
     def time(self) -> float:
         """Simulated time [s] of :attr:`state`."""
         return self.frame * self.frame_dt
+
+    def start_watch(self, every: int, *, advice=None) -> None:
+        """Re-check the step's stability every ``every`` frames from now on (the ``watch`` argument);
+        ``advice``: the advisor's verdict on this run, if the caller already has one (else the watch runs
+        the advisor about the current state)."""
+        from ..analysis.watch import StabilityWatch
+
+        self.watch_every = checks.count("watch", every, minimum=1)
+        self.watch = StabilityWatch(self.model, self.integrator.name, self.dt, fps=self.fps, substeps=self.substeps,
+                                    state=self.state, control=self.control, advice=advice)
 
     def step_frame(self) -> None:
         """Advance :attr:`state` by one frame.

@@ -174,8 +174,7 @@ def run_scene(
         raise ConfigError(f"{os.path.basename(scene.path)}: [simulation] {exc}") from None
     watch = WATCH_EVERY if watch is None else checks.count("watch", watch, minimum=0)
     checkpoint_every = checks.count("checkpoint_every", checkpoint_every, minimum=0)
-    sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps, guard=scene.guard,
-                    watch=watch or None)
+    sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps, guard=scene.guard)
     start = 0
     if resume is not None:
         sim.load_checkpoint(resume)
@@ -184,6 +183,8 @@ def run_scene(
             raise ConfigError(f"the checkpoint {resume!r} is at frame {start}, at or past the run's end (frame "
                               f"{frames}): nothing to resume; pass more --frames")
     advice = preflight(model, integrator.name, sim.dt, fps=fps, strict=strict, control=sim.control)
+    if watch:
+        sim.start_watch(watch, advice=advice)  # its limits from the verdict just made, not a second analysis
     last_good = model.state()  # the last frame the guard passed: where a stop is diagnosed
     if not advice.stable and warn is not None:
         warn(advice.message)
