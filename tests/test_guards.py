@@ -130,6 +130,29 @@ def test_driven_run_is_not_stopped(device):
     assert sim.guard.work()[0] > 1.0
 
 
+def test_a_drive_s_first_work_starts_from_its_load_at_the_start(device):
+    """A pin moving at u = 0.1 m/s along x pushes a 1 kg mass through a 100 N/m spring, unstretched at the
+    start, no gravity, undamped. The drive's load is 0 at the start, so the first check's trapezoid is
+    ½ F₁ Δx, F₁ = k (L - l₁) along the spring and Δx = u / 60 (the load at the check alone would double it);
+    and it is the energy the system holds then, ½ m v² + ½ k (l - L)², up to the trapezoid's error on a
+    force that grows as k u t (1 - (ωt)²/6): (ωt)²/12 ≈ 2e-3 at ω = 10 rad/s, t = 1/60 s."""
+    speed, k, mass = 0.1, 100.0, 1.0
+    builder = ws.ModelBuilder(gravity=ZERO_GRAVITY)
+    builder.add_particles([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], mass=mass)
+    builder.add_springs([[0, 1]], stiffness=k, damping=0.0)
+    builder.add_pin_group([0], translation=ws.Track([0.0, 10.0], [[0.0, 0.0, 0.0], [10.0 * speed, 0.0, 0.0]]))
+    model = builder.finalize(device)
+    sim = ws.Simulator(model, integrator=ws.make_integrator("velocity_verlet", model), fps=60, substeps=16)
+    run_frames(sim, 1)
+    q = sim.state.particle_q.numpy().astype(np.float64)
+    v = sim.state.particle_qd.numpy().astype(np.float64)
+    stretch = np.linalg.norm(q[1] - q[0]) - 1.0
+    assert q[0, 0] == pytest.approx(speed / 60.0, rel=1e-5)
+    assert stretch < 0.0  # the pin moves toward the mass: it pushes, against the compressed spring
+    assert sim.guard.work()[0] == pytest.approx(-0.5 * k * stretch * speed / 60.0, rel=1e-4)
+    assert sim.guard.work()[0] == pytest.approx(0.5 * mass * v[1] @ v[1] + 0.5 * k * stretch**2, rel=3e-3)
+
+
 def test_work_does_not_hide_a_blow_up(device):
     """Symplectic Euler at 3× its stable step on a pushed block diverges: the work the push puts in grows
     with the displacement, the kinetic energy with its square, so the guard still stops it."""

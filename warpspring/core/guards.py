@@ -362,11 +362,17 @@ class Guard(StepHook):
         return [self._work_total, self._previous_q, self._previous_load, self._balance]
 
     def restart(self, state: State | None = None) -> None:
-        """Forget the work put in and measure from ``state`` (default the model's initial state) on; the
-        energy balance takes its reference at the next check."""
+        """Forget the work put in and measure from ``state`` (default the model's initial state) on: the loads
+        there start the first check's trapezoid (a pin's drive carries no load on an unstretched cloth at
+        the start, and its load at the first check alone would double that check's work); the energy balance
+        takes its reference at the next check."""
+        state = state if state is not None else self.model.state()
         self._work_total.zero_()
-        wp.copy(self._previous_q, (state if state is not None else self.model).particle_q)
+        wp.copy(self._previous_q, state.particle_q)
         self._restart_balance()
+        self.reset()
+        self._measure(state)  # Δx = 0: no work, the loads at the start recorded
+        self.reset()
 
     def _restart_balance(self) -> None:
         self._previous_load.fill_(self.model.vec3(math.nan, math.nan, math.nan))
@@ -394,20 +400,29 @@ class Guard(StepHook):
         wp.copy(self._status, self._status_clear)
         wp.copy(self._values, self._values_clear)
 
-    def check(self, state: State, substep: int) -> None:
-        """Launch the checks of ``state`` after ``substep`` (device only; capturable)."""
+    def _measure(self, state: State) -> tuple:
+        """The per-particle pass of a check (kinetic energy, strain, the loads' work since the last check,
+        which becomes this one); returns the check's other kernels."""
         model = self.model
         force = self.control.particle_force if self.control is not None else None
         # The force on kinematic particles (a drive's work) is gathered even where the integrator scatters it.
         specs = tuple(dataclasses.replace(s, gathered=True) if getattr(s, "gathered", True) is False else s
                       for s in model.family_specs())
         measure, gather, locate, decide = guard_kernels(model.scalar, specs, self._tiled, force is not None)
-        worlds, device = model.world_count, model.device
-        flat_launch(measure, dim=reduce_launch_dim(worlds, model.particle_count, self._lanes), block_dim=self._lanes,
+        flat_launch(measure, dim=reduce_launch_dim(model.world_count, model.particle_count, self._lanes),
+                    block_dim=self._lanes,
                     inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
                             model.elements, model.inputs, force if force is not None else state.particle_q,
                             state.particle_q, state.particle_qd],
-                    outputs=[self._previous_q, self._previous_load, self._status, self._partials], device=device)
+                    outputs=[self._previous_q, self._previous_load, self._status, self._partials],
+                    device=model.device)
+        return gather, locate, decide
+
+    def check(self, state: State, substep: int) -> None:
+        """Launch the checks of ``state`` after ``substep`` (device only; capturable)."""
+        model = self.model
+        gather, locate, decide = self._measure(state)
+        worlds, device = model.world_count, model.device
         for family, lanes, grid, offset in self._energy_layout:
             flat_launch(guard_energy_kernel(model.scalar, family.spec(model), self._tiled), dim=grid, block_dim=lanes,
                         inputs=[model.particle_count, family.element_count, offset, model.world_enabled, self._status,
