@@ -285,8 +285,8 @@ def test_usd_save_failure_exits_4_with_one_line(tmp_path, capsys, monkeypatch):
     assert len(lines) == 1 and lines[0].startswith("warpspring: output failed: ") and "out.usdc" in lines[0]
 
 
-# The advisor battery's cloth (warpspring/analysis/load_battery.py) at a stiffness the advisor passes at its
-# static equilibrium but the release transient carries past RK4's limit at 1/240 s.
+# The advisor battery's cloth (warpspring/analysis/load_battery.py) at a stiffness that is stable at its
+# static equilibrium at RK4's 1/240 s, but that the release transient carries past RK4's limit.
 TRANSIENT = """\
 [simulation]
 fps = 60
@@ -305,23 +305,30 @@ bend = false
 """
 
 
-def test_the_watch_warns_before_a_run_that_passed_strict_blows_up(tmp_path, capsys):
-    """The battery cloth at ke = 6.6 kN/m passes --strict (the advisor linearises at the static equilibrium)
-    but the release swings its springs past that stretch: the run-time watch (every 10 frames) warns first,
-    naming the substeps, then the energy balance stops the run as instability with the same remedy; with
-    those substeps the run completes without a warning."""
+def test_strict_refuses_a_step_the_release_transient_breaks_and_the_watch_warns_first(tmp_path, capsys):
+    """The battery cloth at ke = 6.6 kN/m is stable at its static equilibrium at 4 RK4 substeps, but its
+    release swings the springs past that stretch (RESULTS §11: runs blow up from 6.35 kN/m). --strict
+    refuses it, naming the dry run's peak and the substeps it needs. Run anyway, the pre-run warning comes
+    first, the run-time watch (every 10 frames) warns before the energy balance stops the run as instability,
+    each naming the substeps; with the advisor's substeps the run passes --strict and completes without a
+    warning."""
     scene = tmp_path / "transient.toml"
     scene.write_text(TRANSIENT)
     status, stdout, stderr = run_cli(capsys, scene, "-o", tmp_path / "a.usdc", "--strict")
-    assert status == EXIT_SIMULATION and len(stderr) == 2, stderr
+    assert status == EXIT_CONFIG and len(stderr) == 1, stderr
+    refused = re.search(r"rk4 is unstable at dt = .* at its peak, t = .* dry run.* at least (\d+) substeps", stderr[0])
+    assert refused, stderr
+    advised = int(refused.group(1))
+    status, stdout, stderr = run_cli(capsys, scene, "-o", tmp_path / "a.usdc")
+    assert status == EXIT_SIMULATION and len(stderr) == 3, stderr
+    assert stderr[0].startswith("warpspring: warning: rk4 is unstable") and f"at least {advised} substeps" in stderr[0]
     warned = re.match(r"warpspring: warning: frame (\d+): the state has stiffened toward the stability limit of rk4: "
-                      r".* use at least (\d+) substeps", stderr[0])
-    failed = re.search(r"simulation failed: frame (\d+),.*the integration created .*--substeps (\d+)\)", stderr[1])
+                      r".* use at least (\d+) substeps", stderr[1])
+    failed = re.search(r"simulation failed: frame (\d+),.*the integration created .*--substeps (\d+)\)", stderr[2])
     assert warned and failed, stderr
     assert int(warned.group(1)) < int(failed.group(1))
-    substeps = int(warned.group(2))
-    assert substeps == int(failed.group(2)) > 4
-    status, stdout, stderr = run_cli(capsys, scene, "-o", tmp_path / "b.usdc", "--strict", "--substeps", substeps)
+    assert int(warned.group(2)) == int(failed.group(2)) > 4
+    status, stdout, stderr = run_cli(capsys, scene, "-o", tmp_path / "b.usdc", "--strict", "--substeps", advised)
     assert status == 0 and stderr == [], stderr
     status, stdout, stderr = run_cli(capsys, scene, "-o", tmp_path / "c.usdc", "--watch-every", 0)
-    assert status == EXIT_SIMULATION and len(stderr) == 1 and "simulation failed" in stderr[0]
+    assert status == EXIT_SIMULATION and len(stderr) == 2 and "simulation failed" in stderr[1]  # no watch warning

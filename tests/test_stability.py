@@ -393,7 +393,8 @@ def test_advisor_stiffness_override_and_fallback(cloth8):
 
 def test_advisor_judges_biphasic_springs_by_their_stiffer_branch():
     """Biphasic springs stiffen by r beyond their knee: by default the advisor analyses k·r, so ω_max
-    grows by √r and (undamped springs) the stable step shrinks by √r."""
+    grows by √r and (undamped springs) the stable step shrinks by √r, at the same state: the static
+    equilibrium (its strains below the knee, the same for both cloths; their release transients differ)."""
 
     def cloth(stabilizers):
         builder = ws.ModelBuilder(stabilizers=stabilizers)
@@ -401,8 +402,9 @@ def test_advisor_judges_biphasic_springs_by_their_stiffer_branch():
                                shear=ws.SpringMaterial(1e3, 0.0), bend=None, pin=["top-left", "top-right"])
         return builder.finalize("cpu")
 
-    plain = st.advise(cloth(None), "symplectic_euler", 1e-3)
-    biphasic = st.advise(cloth(ws.Stabilizers(biphasic_strain=0.1, biphasic_ratio=9.0)), "symplectic_euler", 1e-3)
+    plain = st.advise(cloth(None), "symplectic_euler", 1e-3, transient=False)
+    biphasic = st.advise(cloth(ws.Stabilizers(biphasic_strain=0.1, biphasic_ratio=9.0)), "symplectic_euler", 1e-3,
+                         transient=False)
     assert biphasic.omega_max == pytest.approx(3.0 * plain.omega_max, rel=2e-3)
     assert biphasic.dt_stable == pytest.approx(plain.dt_stable / 3.0, rel=2e-3)
     assert biphasic.substeps >= 3 * plain.substeps - 2
@@ -478,3 +480,57 @@ def test_seed_observation_reproduced(device):
     assert 0.05 < dt < 0.5 and omega > 0.0
     assert sm.seed_is_stable(0.95 * sm.SEED_THRESHOLD, dt, steps=1024, device=device)
     assert not sm.seed_is_stable(1.05 * sm.SEED_THRESHOLD, dt, steps=1024, device=device)
+
+
+# -- the release transient ------------------------------------------------------------------------------------
+
+
+def released_vee(device, *, a=0.3, depth=1.0, k=400.0, m=0.5, g=9.81):
+    """A 0.5 kg mass hanging 1 m below two pins 0.6 m apart by two 400 N/m springs at their rest length,
+    released under gravity: it falls along z and turns at the depth u* where the springs' energy equals
+    the work of its weight, k (l(u*) - L)² = m g u*, l(u) = √(a² + (depth + u)²). The vertical mode,
+    ω_z² = (2k/m)(1 - L a²/l³), is its highest and stiffens with the stretch: its peak is at u*."""
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, -g))
+    builder.add_particles([[-a, 0.0, 0.0], [a, 0.0, 0.0], [0.0, 0.0, -depth]], mass=m, pinned=[0, 1])
+    builder.add_springs([[0, 2], [1, 2]], stiffness=k, damping=0.0)
+    from scipy.optimize import brentq
+
+    rest = math.hypot(a, depth)
+    length = lambda u: math.hypot(a, depth + u)  # noqa: E731
+    turn = brentq(lambda u: k * (length(u) - rest) ** 2 - m * g * u, 1e-9, 10.0)
+    omega = math.sqrt(2.0 * k / m * (1.0 - rest * a * a / length(turn) ** 3))
+    return builder.finalize(device), turn, omega
+
+
+def test_the_dry_run_finds_the_peak_stiffness_of_a_release(device):
+    """The dry run's peak ω_max is the closed form's at the turning point, and its positions there are
+    the turning point: velocity Verlet's turning points are exact on a linear spring at any stable step
+    and second order on this one (ωh ≈ 0.16: (ωh)²/24 ≈ 1e-3 of the stretch u* ≈ 13 mm, i.e. ~1e-5 m),
+    float32 rounding ~1e-7 relative."""
+    model, turn, omega = released_vee(device)
+    at_rest = st.estimate_omega_max(model, tolerance=1e-6).omega_max
+    peak = st.transient_peak(model)
+    assert peak.finite and peak.world_omega_max[0] > at_rest
+    assert peak.world_omega_max[0] == pytest.approx(omega, rel=1e-5)
+    assert peak.positions[2, 2] == pytest.approx(-1.0 - turn, abs=2e-5)
+    assert peak.positions[2, :2] == pytest.approx([0.0, 0.0], abs=1e-6)
+    # The same peak recurs every period: the dry run ends at PROBE_MIN_TIME, twice its first rise.
+    assert peak.duration == pytest.approx(st.PROBE_MIN_TIME, abs=st.PROBE_CHECK)
+
+
+def test_the_advisor_judges_the_release_transient(device):
+    """The battery's hanging cloth at 13 kN/m: released unstretched, it swings past its static stretch, and
+    ω_max peaks above the equilibrium's (989 against 924 rad/s on the H100, RESULTS §11). The advisor
+    takes the peak, names it, and its stable step is that of the peak; a cloth without loads has no dry run."""
+    from test_guards import battery_cloth
+
+    model = battery_cloth(device, [13000.0])
+    settled = st.advise(model, "symplectic_euler", 1.0 / 480.0, transient=False)
+    advice = st.advise(model, "symplectic_euler", 1.0 / 480.0)
+    assert settled.stable and not advice.stable  # the step RESULTS §11 saw blow up at 13 kN/m
+    assert advice.omega_max == pytest.approx(989.5, rel=2e-3) and settled.omega_max == pytest.approx(923.7, rel=2e-3)
+    assert advice.dt_stable == pytest.approx(2.0 / advice.omega_max, rel=1e-3)  # kd/k = 8e-7 s: near undamped
+    assert 0.4 < advice.peak_time < 0.5 and advice.dry_run >= 2.0 * advice.peak_time
+    assert "dry run" in advice.message
+    model.gravity = (0.0, 0.0, 0.0)
+    assert st.advise(model, "symplectic_euler", 1.0 / 480.0).dry_run == 0.0

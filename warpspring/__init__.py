@@ -69,7 +69,7 @@ from .core.model import Control, MeshGroup, Model, ShapeInfo, Stabilizers, State
 from .core.simulator import Simulator
 from .core.stepper import StepHook, Stepper
 from .core.tracks import Track
-from .analysis.stability import Advice, advise
+from .analysis.stability import Advice, TransientPeak, advise, transient_peak
 from .analysis.watch import StabilityWatch
 from .core.transforms import quat_from_axis_angle
 
@@ -79,6 +79,8 @@ __all__ = [
     "INTEGRATORS",
     "Advice",
     "advise",
+    "TransientPeak",
+    "transient_peak",
     "RK4",
     "DormandPrince",
     "ExplicitEuler",

@@ -14,7 +14,8 @@ it (non-finite state, torn spring, runaway kinetic energy, or energy created by 
 balance's tolerance) or its state is non-finite. Worlds that fail below the lowest surviving stiffness
 tear because the cloth is too soft for its weight (physical over-stretch), not because of the step: they
 are listed, not counted. The advisor's verdict per world is ``advise(...)`` as ``--strict`` uses it
-(linearised about the static equilibrium under the loads; pins at their t = 0 place). Bisection on ke, in
+(ω_max at the peak of a dry run of the scene from its start, at least the static equilibrium's; the run's
+duration as its horizon). Bisection on ke, in
 parallel: a first grid of ``worlds`` stiffnesses from the limit the advisor finds at rest down by ``span``
 (loads only lower it) and up by span^¼, then a second over ±10 % around the two transitions found.
 """
@@ -76,10 +77,13 @@ def battery_control(scene: str, model: Model) -> Control:
     return control
 
 
-def advisor_passes(scene: str, integrator: str, dt: float, stiffness: np.ndarray, device) -> np.ndarray:
-    """Whether the advisor passes ``dt`` at each stiffness, bool, shape [len(stiffness)]."""
+def advisor_passes(scene: str, integrator: str, dt: float, stiffness: np.ndarray, device, *,
+                   seconds: float = 10.0) -> np.ndarray:
+    """Whether the advisor passes ``dt`` at each stiffness for a run of ``seconds`` (its dry run's
+    horizon, as ``warpspring run`` passes the run's duration), bool, shape [len(stiffness)]."""
     model = battery_cloth(scene, stiffness, device)
-    return dt <= advise(model, integrator, dt, fps=FPS, control=battery_control(scene, model)).world_dt_stable
+    advice = advise(model, integrator, dt, fps=FPS, control=battery_control(scene, model), horizon=seconds)
+    return dt <= advice.world_dt_stable
 
 
 def blow_ups(scene: str, integrator: str, substeps: int, stiffness: np.ndarray, device, seconds: float) -> tuple:
@@ -157,7 +161,7 @@ def run_case(scene: str, integrator: str, substeps: int, device, *, worlds: int 
         low, high = guess / span, guess * span**0.25
         for _ in range(2):
             ke = np.geomspace(low, high, worlds)
-            passes = advisor_passes(scene, integrator, dt, ke, device)
+            passes = advisor_passes(scene, integrator, dt, ke, device, seconds=seconds)
             blown, torn = blow_ups(scene, integrator, substeps, ke, device, seconds)
             runs += worlds
             unsafe += int((passes & blown).sum())

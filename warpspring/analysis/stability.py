@@ -48,21 +48,26 @@ quotient never exceeds λ_max; the Gershgorin bound ω_max² ≤ maxᵢ (Σₛ k
 below it, and is the cheap fallback. A model of several worlds gets one ω_max per world (each world's
 stiffness and masses), all worlds iterating in the same launches, each to its own tolerance.
 
-**Under load** (:func:`loaded_state`). A stretched spring of tension T and length l adds the transverse
-stiffness T/l = k(1 - L/l) to the axial k: a cloth hanging from two pins has stiffer modes than the same
-cloth at rest, up to √2 times the frequency of its in-plane modes when every spring is far stretched
-(a flat cloth at rest has no transverse stiffness at all). Linearised about its initial state, the advisor
-overrated a 20 × 20 RK4 cloth's stable stiffness by 1/0.65 under gravity. So when loads act (gravity, the
-control's external force), the advisor linearises about the state they carry the model to: the static
-equilibrium x_eq (pins held at their t = 0 place), found by quasi-static implicit Euler steps (each one a
-regularised Newton step on the potential, the velocities zeroed after it). Measured on that cloth (20 × 20,
-structural springs, 0.1 kg particles, kd = 0.01 N·s/m, two pins, RK4 at 1/60 s, 10 s runs, 32 stiffnesses
-as worlds of one model, ``bench/advisor_load.py``): runs blow up from ke = 531 N/m; linearised at rest the
-advisor allows 725 N/m (unsafe), at the equilibrium 369 N/m (safe, 31 % below). Between 369 and 531 N/m the stretched corner is
-linearly unstable, yet its oscillation saturates (the strain it feeds changes the stiffness that drives
-it) instead of tearing or turning non-finite, so the guard passes those runs. A swing past the
-equilibrium (x₀ + s (x_eq - x₀), s = ``overshoot`` of :func:`loaded_state`) only lowers the limit further
-(s = 2: 345 N/m on 24 worlds).
+**Under load** (:func:`loaded_state`, :func:`transient_peak`). A stretched spring of tension T and length
+l adds the transverse stiffness T/l = k(1 - L/l) to the axial k: a cloth hanging from two pins has stiffer
+modes than the same cloth at rest, up to √2 times the frequency of its in-plane modes when every spring is
+far stretched (a flat cloth at rest has no transverse stiffness at all). Linearised about its initial
+state, the advisor overrated a 20 × 20 RK4 cloth's stable stiffness by 1/0.65 under gravity. So when loads
+act (gravity, the control's external force), the advisor linearises about the state they carry the model
+to: the static equilibrium x_eq (pins held at their t = 0 place), found by quasi-static implicit Euler
+steps (each one a regularised Newton step on the potential, the velocities zeroed after it). That is not
+yet the stiffest state of the run: released unstretched, the cloth swings past its static stretch before
+it settles, and the advisor linearised at x_eq was 2.5–13.5 % optimistic for symplectic Euler, velocity
+Verlet and RK4 at small steps (bench/RESULTS.md §11). A swing along the ray x₀ + s (x_eq - x₀) does not
+model it (the cloth reaches equilibrium through large rotations, which the ray turns into stretch). So
+when the model moves by itself, the advisor also takes each world's peak ω_max over a dry run of the
+scene (:func:`transient_peak`): velocity Verlet at half the step the Gershgorin bound proves stable at
+any state, ω_max re-estimated along the way by warm-started power iterations, until the peaks stop rising
+(or the run's duration). Measured with it on the battery (three scenes, five integrators, two steps
+each): no run it passes blows up; it is within 10 % for symplectic Euler, velocity Verlet and RK4, and
+14–41 % conservative for explicit Euler and midpoint over 10 s runs. Those two rely on damping, and the
+transverse modes have none (see above): they grow slowly at any step, and over 100 s explicit Euler blows
+up inside the advisor's limit.
 
 **The advisor** (:func:`advise`) combines both for a model, an integrator and a step; with several worlds
 each world gets its own limit and the smallest binds.
@@ -70,6 +75,7 @@ each world gets its own limit and the smallest binds.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass, field
@@ -772,6 +778,131 @@ def loaded_state(model: Model, *, control=None, overshoot: float = OVERSHOOT) ->
     return start
 
 
+#: The dry run (:func:`transient_peak`): velocity Verlet at ``PROBE_FRACTION`` of the step the Gershgorin
+#: bound proves stable (no state exceeds that bound, so the dry run is stable wherever it goes; on a linear
+#: spring released from rest Verlet's turning points are exact at any stable step, where symplectic Euler's
+#: overshoot by 1/√(1 - (ωh/2)²)), ω_max
+#: re-estimated every ``PROBE_CHECK`` seconds of simulated time by ``PROBE_ITERATIONS`` power iterations
+#: warm-started from the last (a world stops at ``PROBE_TOLERANCE``; 20 iterations leave the 20 × 20 cloth's
+#: peak 4e-4 below 200 iterations'), captured once into a graph and replayed. It ends once twice the time of the last rise of some
+#: world's peak (by more than ``PROBE_RISE``) has passed, not before ``PROBE_MIN_TIME`` and not after its
+#: horizon (default ``PROBE_HORIZON``; the CLI passes the run's duration).
+PROBE_FRACTION = 0.5
+PROBE_CHECK = 1.0 / 240.0
+PROBE_ITERATIONS, PROBE_TOLERANCE = 20, 1.0e-4
+PROBE_RISE = 1.0e-3
+PROBE_MIN_TIME, PROBE_HORIZON = 0.25, 10.0
+
+
+def in_motion(model: Model, control=None) -> bool:
+    """Whether the model leaves its initial state by itself: loads act (:func:`has_loads`), a keyframe track
+    drives pins or inputs, or a particle starts moving."""
+    return (has_loads(model, control) or bool(model.track_table.tracks)
+            or bool(np.any(model.particle_qd.numpy())))
+
+
+@dataclass(frozen=True)
+class TransientPeak:
+    """The highest ω_max each world reached in the dry run of :func:`transient_peak`.
+
+    Attributes:
+        world_omega_max: each world's peak ω_max [rad/s], float64, shape [world_count] (at least the
+            ``start`` estimate's).
+        world_peak_time: when each world reached it [s], float64, shape [world_count] (0: at the start).
+        world_mode: each world's power-iteration vector at its peak, float64, shape [world_count,
+            particle_count, 3].
+        positions: each world's positions at its peak [m], float64, shape [world_count · particle_count, 3].
+        duration: simulated time of the dry run [s].
+        step: its step [s].
+        finite: False when the dry run's state turned non-finite (it stopped there).
+    """
+
+    world_omega_max: np.ndarray
+    world_peak_time: np.ndarray
+    world_mode: np.ndarray
+    positions: np.ndarray
+    duration: float
+    step: float
+    finite: bool
+
+
+def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float = PROBE_HORIZON,
+                   start: OmegaMaxEstimate | None = None, start_positions: np.ndarray | None = None) -> TransientPeak:
+    """The highest ω_max each world reaches on its way from the initial state: a dry run of the scene as it
+    will run (loads, control, pins and their tracks, colliders), by velocity Verlet at a step that is stable
+    at any state, with ω_max re-estimated along it (constants ``PROBE_*``).
+
+    A cloth released unstretched swings past its static stretch before it settles: measured on the 20 × 20
+    hanging cloth at 13 kN/m, ω_max is 719 rad/s at the start, 924 at the static equilibrium and 989 at
+    t = 0.45 s, and a step that keeps the equilibrium stable (ωh = 1.92 for symplectic Euler) blows up there.
+
+    Args:
+        model: the model.
+        control: the run's Control (its external force acts in the dry run).
+        stiffness: as in :func:`advise` (the power iterations' spring stiffness; the dry run uses the model's).
+        horizon: the longest dry run [s] (> 0).
+        start: an estimate to start from and to beat (e.g. at the static equilibrium), with
+            ``start_positions`` [m], float64, shape [world_count · particle_count, 3], where it was made;
+            default: the initial state's.
+    """
+    from ..core.simulator import Simulator
+    from ..core.integrators import VelocityVerlet
+
+    horizon = checks.positive("horizon", horizon)
+    k = _stiffness_values(model, stiffness)
+    worlds, n = model.world_count, model.particle_count
+    if start is None:
+        start = _power_iteration(model, k, None, 1000, PROBE_TOLERANCE, 0)
+        start_positions = model.particle_q.numpy().astype(np.float64)
+    peak = start.world_omega_max.copy()
+    mode = start.world_mode.copy()
+    positions = np.array(start_positions, dtype=np.float64).reshape(worlds, n, 3)
+    peak_time = np.zeros(worlds)
+    bound = _gershgorin(model, k, free_particles(model))
+    safe = _world_limits("velocity_verlet", bound, _damping_ranges(model, k, [None] * worlds, model.particle_q))
+    safe = float(safe[bound > 0.0].min()) if (bound > 0.0).any() else math.inf
+    if not math.isfinite(safe) or safe <= 0.0:
+        return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), 0.0, 0.0, True)
+    substeps = max(1, math.ceil(PROBE_CHECK / (PROBE_FRACTION * safe)))
+    sim = Simulator(model, integrator=VelocityVerlet(model), fps=1.0 / PROBE_CHECK, substeps=substeps,
+                    control=control, guard=None)
+    iteration = PowerIteration(model, k, mode)
+    iteration.tolerance, iteration.max_iterations = PROBE_TOLERANCE, PROBE_ITERATIONS
+    running = wp.array((bound > 0.0).astype(np.int32), dtype=wp.int32, device=model.device)
+    snapshot = wp.clone(sim.state.particle_q)
+
+    def recheck():
+        iteration.iteration.zero_()
+        wp.copy(iteration.active, running)
+        for _ in range(PROBE_ITERATIONS):
+            iteration.iterate(snapshot)
+
+    recheck()  # uncaptured: loads the modules (a capture must not)
+    with wp.ScopedCapture(device=model.device, force_module_load=False) as capture:
+        recheck()
+    rise, finite, level = 0.0, True, None  # level: the dry run's own running peak (not the start's)
+    while sim.time < horizon and (sim.time < PROBE_MIN_TIME or sim.time < 2.0 * rise):
+        sim.step_frame()
+        wp.copy(snapshot, sim.state.particle_q)
+        wp.capture_launch(capture.graph)
+        omega = np.sqrt(np.maximum(iteration.scalars.numpy()[:, PI_LAMBDA], 0.0))
+        if not np.isfinite(omega).all():
+            finite = False
+            break
+        if level is None or (omega > level * (1.0 + PROBE_RISE)).any():  # still rising somewhere
+            rise = sim.time
+            level = omega if level is None else np.maximum(level, omega)
+        higher = omega > peak
+        if higher.any():
+            q = sim.state.particle_q.numpy().astype(np.float64).reshape(worlds, n, 3)
+            if not np.isfinite(q[higher]).all():
+                finite = False
+                break
+            x = iteration.x.numpy().astype(np.float64).reshape(worlds, n, 3)
+            positions[higher], mode[higher], peak_time[higher], peak[higher] = q[higher], x[higher], sim.time, omega[higher]
+    return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), sim.time, sim.dt, finite)
+
+
 # -- the advisor --------------------------------------------------------------------------------------------
 
 
@@ -801,6 +932,9 @@ class Advice:
         world: the binding world.
         world_omega_max: each world's ω_max [rad/s], float64, shape [world_count].
         world_dt_stable: each world's largest stable step [s], float64, shape [world_count].
+        dry_run: simulated time of the dry run that found the peak ω_max [s] (0: none was run).
+        peak_time: when the binding world's ω_max peaked in the dry run [s] (0: at the state linearised
+            about, not later).
     """
 
     integrator: str
@@ -816,9 +950,11 @@ class Advice:
     world: int = 0
     world_omega_max: np.ndarray = field(default_factory=lambda: np.zeros(1), compare=False)
     world_dt_stable: np.ndarray = field(default_factory=lambda: np.zeros(1), compare=False)
+    dry_run: float = 0.0
+    peak_time: float = 0.0
 
 
-def _damping_ranges(model: Model, stiffness: np.ndarray, modes: list, positions: wp.array) -> list:
+def _damping_ranges(model: Model, stiffness: np.ndarray, modes: list, positions: wp.array | np.ndarray) -> list:
     """Each world's (kd/k values [s], c/m values [1/s]) for :func:`network_stable_step`.
 
     kd/k: the springs' smallest ratio (the least damped modes, which explicit Euler and midpoint cannot
@@ -838,7 +974,9 @@ def _damping_ranges(model: Model, stiffness: np.ndarray, modes: list, positions:
     drag = model.world_values("drag")[:, 0]
     ends = model.spring_indices.numpy().reshape(-1, 2)
     rest_all = model.spring_rest_length.numpy().astype(np.float64)
-    q_all = positions.numpy().astype(np.float64).reshape(worlds, n, 3) if any(m is not None for m in modes) else None
+    if any(m is not None for m in modes):
+        q_all = np.asarray(positions if isinstance(positions, np.ndarray) else positions.numpy(), dtype=np.float64)
+        q_all = q_all.reshape(worlds, n, 3)
     ranges = []
     for w in range(worlds):
         mass = mass_all[w][free[w]]
@@ -894,6 +1032,8 @@ def advise(
     state: State | None = None,
     control=None,
     loaded: bool = True,
+    transient: bool = True,
+    horizon: float = PROBE_HORIZON,
     omega_estimate: str = "power_iteration",
     max_iterations: int = 1000,
     tolerance: float = 1.0e-3,
@@ -922,9 +1062,12 @@ def advise(
         state: positions to linearise about; default the model's initial positions, carried by the loads
             (below).
         control: the run's Control, whose external force is a load (default none).
-        loaded: with no ``state`` given and loads acting (gravity or the control's external force),
-            linearise about :func:`loaded_state` rather than the initial positions. The Gershgorin bound
-            needs no state: it bounds every spring block by its full stiffness, stretched or not.
+        loaded: with no ``state`` given, judge the states the run reaches rather than the initial positions:
+            with loads acting (gravity or the control's external force), linearise about
+            :func:`loaded_state`, and with ``transient``, when the model moves by itself (:func:`in_motion`),
+            take each world's peak ω_max over a dry run to ``horizon`` [s] (:func:`transient_peak`: the
+            release transient of a loaded cloth swings past its static stretch). The Gershgorin bound needs
+            no state: it bounds every spring block by its full stiffness, stretched or not.
         omega_estimate: "power_iteration" or "gershgorin".
         max_iterations, tolerance: of the power iteration.
 
@@ -939,17 +1082,26 @@ def advise(
     worlds = model.world_count
     if omega_estimate == "power_iteration":
         _check_iteration(max_iterations, tolerance)
-        if state is None and loaded and has_loads(model, control):
+        judge_run = state is None and loaded
+        if judge_run and has_loads(model, control):
             state = loaded_state(model, control=control)
         estimate = _power_iteration(model, k, state, max_iterations, tolerance, 0)
+        positions = model.particle_q if state is None else state.particle_q
         converged = estimate.world_converged
-        omegas = np.where(converged, estimate.world_omega_max, estimate.world_gershgorin)  # the bound where not
+        peaks, probe = estimate.world_omega_max, None
+        if judge_run and transient and in_motion(model, control):
+            probe = transient_peak(model, control=control, stiffness=stiffness, horizon=horizon, start=estimate,
+                                   start_positions=positions.numpy().astype(np.float64))
+            peaks, positions = probe.world_omega_max, probe.positions
+            estimate = dataclasses.replace(estimate, world_mode=probe.world_mode)
+        omegas = np.where(converged, peaks, estimate.world_gershgorin)  # the bound where not
         modes = [estimate.world_mode[w] if converged[w] else None for w in range(worlds)]
     else:
         converged = np.zeros(worlds, dtype=bool)
         omegas = _gershgorin(model, k, free_particles(model))
         modes = [None] * worlds
-    positions = model.particle_q if state is None else state.particle_q
+        positions = model.particle_q if state is None else state.particle_q
+        probe = None
     ranges = _damping_ranges(model, k, modes, positions)
     limits = _world_limits(integrator, omegas, ranges)
     w = int(np.lexsort((-omegas, limits))[0])  # the smallest step; among equals, the stiffest world
@@ -957,6 +1109,9 @@ def advise(
     source = "power iteration" if converged[w] else "Gershgorin bound"
     adaptive = cls.adaptive
     springs = f"ω_max = {omega:.4g} rad/s by {source}"
+    peak_time = float(probe.world_peak_time[w]) if probe is not None and converged[w] else 0.0
+    if peak_time > 0.0:
+        springs += f" at its peak, t = {peak_time:.3g} s into a {probe.duration:.3g} s dry run"
     if worlds > 1:
         springs += f" in world {w}, the binding one of {worlds} worlds"
     frame = f"1/{fps:g} s frame"
@@ -1014,6 +1169,8 @@ def advise(
         world=w,
         world_omega_max=np.asarray(omegas, dtype=np.float64),
         world_dt_stable=limits,
+        dry_run=probe.duration if probe is not None else 0.0,
+        peak_time=peak_time,
     )
     if strict and not stable:
         raise ConfigError(message)

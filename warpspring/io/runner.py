@@ -182,7 +182,8 @@ def run_scene(
         if start >= frames:
             raise ConfigError(f"the checkpoint {resume!r} is at frame {start}, at or past the run's end (frame "
                               f"{frames}): nothing to resume; pass more --frames")
-    advice = preflight(model, integrator.name, sim.dt, fps=fps, strict=strict, control=sim.control)
+    advice = preflight(model, integrator.name, sim.dt, fps=fps, strict=strict, control=sim.control,
+                       horizon=frames / fps)
     if watch:
         sim.start_watch(watch, advice=advice)  # its limits from the verdict just made, not a second analysis
     last_good = model.state()  # the last frame the guard passed: where a stop is diagnosed
@@ -263,9 +264,12 @@ def run_scene(
     )
 
 
-def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = False, control=None):
-    """The stability advisor's verdict on a run (:func:`warpspring.analysis.stability.advise`), linearised
-    about the static equilibrium under the run's loads (gravity, ``control``'s external force) when any act.
+def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = False, control=None,
+              horizon: float | None = None):
+    """The stability advisor's verdict on a run (:func:`warpspring.analysis.stability.advise`): ω_max at the
+    static equilibrium under the run's loads (gravity, ``control``'s external force) when any act, and at
+    its peak over a dry run of the scene up to ``horizon`` [s] (the run's duration; default
+    ``PROBE_HORIZON``) when the model moves by itself.
 
     Biphasic springs are judged by their stiffer branch. ω_max comes from power iteration on GPUs and
     on CPUs for models up to ``POWER_ITERATION_CPU_LIMIT`` particles, else from the (conservative, also
@@ -274,10 +278,10 @@ def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = F
     Raises:
         ConfigError: with ``strict``, when ``dt`` is outside the integrator's stability limit.
     """
-    from ..analysis.stability import advise
+    from ..analysis.stability import PROBE_HORIZON, advise
 
     return advise(model, integrator, dt, fps=fps, strict=strict, control=control,
-                  omega_estimate=_omega_estimate(model))
+                  horizon=PROBE_HORIZON if horizon is None else horizon, omega_estimate=_omega_estimate(model))
 
 
 def _omega_estimate(model) -> str:
