@@ -534,3 +534,34 @@ def test_the_advisor_judges_the_release_transient(device):
     assert "dry run" in advice.message
     model.gravity = (0.0, 0.0, 0.0)
     assert st.advise(model, "symplectic_euler", 1.0 / 480.0).dry_run == 0.0
+
+
+def test_explicit_euler_is_told_how_much_it_grows_undamped_transverse_modes(device):
+    """A stretched spring's transverse stiffness k (1 - L/l) has no damper: explicit Euler grows its modes at
+    any step by ρ = √(1 + (ωh)²) per step. transverse_omega_max equals the dense eigenvalue of M⁻¹K_t
+    (assembled here spring by spring), and the advisor's growth over the horizon is ρ^(T/h) at that ω, named
+    in its message; symplectic Euler's is 1 (its undamped modes keep their amplitude)."""
+    from test_guards import battery_cloth
+
+    model = battery_cloth(device, [1192.0])
+    state = st.loaded_state(model)
+    q = state.particle_q.numpy().astype(np.float64)
+    n, free = model.particle_count, st.free_particles(model)[0]
+    dense = np.zeros((3 * n, 3 * n))
+    for (i, j), rest in zip(model.spring_indices.numpy().reshape(-1, 2), model.spring_rest_length.numpy()):
+        d = q[j] - q[i]
+        length = np.linalg.norm(d)
+        if length > rest:
+            block = 1192.0 * (1.0 - rest / length) * (np.eye(3) - np.outer(d, d) / length**2)
+            for a, b, sign in ((i, i, 1), (j, j, 1), (i, j, -1), (j, i, -1)):
+                dense[3 * a:3 * a + 3, 3 * b:3 * b + 3] += sign * block
+    keep = np.repeat(free, 3)
+    reference = np.sqrt(np.linalg.eigvalsh(dense[keep][:, keep] / 0.1).max())
+    omega = st.transverse_omega_max(model, state.particle_q)
+    assert omega == pytest.approx(reference, rel=1e-5)
+    h, horizon = 1.0 / 120000.0, 10.0
+    advice = st.advise(model, "explicit_euler", h, state=state, horizon=horizon)
+    expected = math.exp(0.5 * math.log1p((omega * h) ** 2) * horizon / h)
+    assert advice.stable and advice.transverse_growth == pytest.approx(expected, rel=1e-4) and expected > 2.0
+    assert f"×{expected:.3g} over a 10 s run" in advice.message
+    assert st.advise(model, "symplectic_euler", 1.0 / 480.0, state=state).transverse_growth == 1.0

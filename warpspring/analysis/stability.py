@@ -903,6 +903,47 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
     return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), sim.time, sim.dt, finite)
 
 
+def transverse_omega_max(model: Model, positions, world: int = 0, *, stiffness=None) -> float:
+    """The highest frequency [rad/s] of ``world``'s springs' *transverse* stiffness at ``positions`` [m]
+    (shape [world_count · particle_count, 3]): λ_max of M⁻¹K_t, K_t = Σₛ kₛ (1 - L/l)⁺ (I - d̂d̂ᵀ) across
+    each stretched spring, which its axial damper does not damp; pinned particles held. Sparse Lanczos
+    (``scipy.sparse.linalg.eigsh``) on the host; 0 where no spring is stretched."""
+    import scipy.sparse
+    import scipy.sparse.linalg
+
+    n = model.particle_count
+    free = free_particles(model)[world]
+    q = np.asarray(positions if isinstance(positions, np.ndarray) else positions.numpy(), dtype=np.float64)
+    q = q.reshape(model.world_count, n, 3)[world]
+    i, j = model.spring_indices.numpy().reshape(-1, 2).T
+    k = np.broadcast_to(_stiffness_values(model, stiffness), (model.world_count, model.spring_count))[world]
+    d = q[j] - q[i]
+    length = np.linalg.norm(d, axis=1)
+    stretched = length > model.spring_rest_length.numpy().astype(np.float64)
+    if not stretched.any() or not free.any():
+        return 0.0
+    i, j, d, length = i[stretched], j[stretched], d[stretched], length[stretched]
+    across = k[stretched] * (1.0 - model.spring_rest_length.numpy().astype(np.float64)[stretched] / length)
+    unit = d / length[:, None]
+    blocks = across[:, None, None] * (np.eye(3)[None] - unit[:, :, None] * unit[:, None, :])  # [s, 3, 3]
+    rows, cols, values = [], [], []
+    for a, b, sign in ((i, i, 1.0), (j, j, 1.0), (i, j, -1.0), (j, i, -1.0)):
+        rows.append((3 * a[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2).ravel())
+        cols.append((3 * b[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1).ravel())
+        values.append(sign * blocks.ravel())
+    stiff = scipy.sparse.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))),
+                                    shape=(3 * n, 3 * n))
+    keep = np.repeat(free, 3)
+    scale = 1.0 / np.sqrt(np.repeat(model.world_values("particle_mass")[world], 3)[keep])
+    reduced = stiff[keep][:, keep]
+    reduced = scipy.sparse.diags(scale) @ reduced @ scipy.sparse.diags(scale)
+    if reduced.shape[0] <= 3:
+        top = float(np.linalg.eigvalsh(reduced.toarray()).max())
+    else:
+        top = float(scipy.sparse.linalg.eigsh(reduced, k=1, which="LA", return_eigenvectors=False, tol=1e-6)[0])
+    return math.sqrt(max(top, 0.0))
+
+
 # -- the advisor --------------------------------------------------------------------------------------------
 
 
@@ -933,6 +974,10 @@ class Advice:
         world_omega_max: each world's ω_max [rad/s], float64, shape [world_count].
         world_dt_stable: each world's largest stable step [s], float64, shape [world_count].
         dry_run: simulated time of the dry run that found the peak ω_max [s] (0: none was run).
+        transverse_growth: how much an integrator that needs damping (explicit Euler, midpoint) grows the
+            undamped transverse modes of the binding world's stretched springs over ``horizon`` at ``dt``
+            (amplitude factor, by their highest frequency and the world's least drag); 1
+            where none grows.
         peak_time: when the binding world's ω_max peaked in the dry run [s] (0: at the state linearised
             about, not later).
     """
@@ -952,6 +997,7 @@ class Advice:
     world_dt_stable: np.ndarray = field(default_factory=lambda: np.zeros(1), compare=False)
     dry_run: float = 0.0
     peak_time: float = 0.0
+    transverse_growth: float = 1.0
 
 
 def _damping_ranges(model: Model, stiffness: np.ndarray, modes: list, positions: wp.array | np.ndarray) -> list:
@@ -1006,6 +1052,25 @@ def _damping_ranges(model: Model, stiffness: np.ndarray, modes: list, positions:
         top = xdx / xkx if xkx > 0.0 else float(ratios.max())
         ranges.append((np.array([ratios.min(), top]), rates))
     return ranges
+
+
+#: The transverse growth (:attr:`Advice.transverse_growth`) from which the advisor's message mentions it.
+TRANSVERSE_NOTE = 1.01
+
+
+def _transverse_growth(model: Model, integrator: str, dt: float, stiffness: np.ndarray, positions, rates: np.ndarray,
+                       horizon: float, world: int) -> float:
+    """ρ^(horizon/dt) of the undamped transverse modes of ``world`` (frequencies up to
+    :func:`transverse_omega_max`, damped by the least drag ``rates``), for the integrators whose undamped modes grow (explicit Euler,
+    midpoint); 1 for the others."""
+    if _integrator_class(integrator).adaptive or spectral_radius(integrator, 1.0e-3, 0.0) <= 1.0:
+        return 1.0
+    omega = transverse_omega_max(model, positions, world, stiffness=stiffness)
+    if omega <= 0.0:
+        return 1.0
+    drag = float(np.min(rates))
+    rho = max(spectral_radius(integrator, w * dt, drag / (2.0 * w)) for w in omega * np.geomspace(1e-2, 1.0, 9))
+    return float(np.exp(min(math.log(rho) * horizon / dt, 700.0))) if rho > 1.0 else 1.0
 
 
 def _world_limits(integrator: str, omegas: np.ndarray, ranges: list) -> np.ndarray:
@@ -1172,6 +1237,12 @@ def advise(
         dry_run=probe.duration if probe is not None else 0.0,
         peak_time=peak_time,
     )
+    growth = _transverse_growth(model, integrator, dt, k, positions, ranges[w][1], horizon, w)
+    if growth >= TRANSVERSE_NOTE:
+        message += (f"; its stretched springs' transverse modes carry no damping and {integrator} grows them at any "
+                    f"step: ×{growth:.3g} over a {horizon:g} s run at this dt (symplectic_euler, velocity_verlet and "
+                    f"rk4 do not)")
+    advice = dataclasses.replace(advice, message=message, transverse_growth=growth)
     if strict and not stable:
         raise ConfigError(message)
     return advice
