@@ -786,12 +786,12 @@ def loaded_state(model: Model, *, control=None, overshoot: float = OVERSHOOT) ->
 #: warm-started from the last (a world stops at ``PROBE_TOLERANCE``; 20 iterations leave the 20 × 20 cloth's
 #: peak 4e-4 below 200 iterations'), captured once into a graph and replayed. It ends once twice the time of the last rise of some
 #: world's peak (by more than ``PROBE_RISE``) has passed, not before ``PROBE_MIN_TIME`` and not after its
-#: horizon (default ``PROBE_HORIZON``; the CLI passes the run's duration).
+#: horizon (``PROBE_HORIZON`` by default; ``warpspring run`` passes the run's duration).
 PROBE_FRACTION = 0.5
 PROBE_CHECK = 1.0 / 240.0
 PROBE_ITERATIONS, PROBE_TOLERANCE = 20, 1.0e-4
 PROBE_RISE = 1.0e-3
-PROBE_MIN_TIME, PROBE_HORIZON = 0.25, 10.0
+PROBE_MIN_TIME, PROBE_HORIZON = 0.25, 2.0
 
 
 def in_motion(model: Model, control=None) -> bool:
@@ -1131,7 +1131,8 @@ def advise(
             with loads acting (gravity or the control's external force), linearise about
             :func:`loaded_state`, and with ``transient``, when the model moves by itself (:func:`in_motion`),
             take each world's peak ω_max over a dry run to ``horizon`` [s] (:func:`transient_peak`: the
-            release transient of a loaded cloth swings past its static stretch). The Gershgorin bound needs
+            release transient of a loaded cloth swings past its static stretch; not for implicit and
+            adaptive integrators, whose step ω_max does not limit). The Gershgorin bound needs
             no state: it bounds every spring block by its full stiffness, stretched or not.
         omega_estimate: "power_iteration" or "gershgorin".
         max_iterations, tolerance: of the power iteration.
@@ -1154,7 +1155,8 @@ def advise(
         positions = model.particle_q if state is None else state.particle_q
         converged = estimate.world_converged
         peaks, probe = estimate.world_omega_max, None
-        if judge_run and transient and in_motion(model, control):
+        step_limited = not (cls.adaptive or getattr(cls, "unconditionally_stable", False))
+        if judge_run and transient and step_limited and in_motion(model, control):
             probe = transient_peak(model, control=control, stiffness=stiffness, horizon=horizon, start=estimate,
                                    start_positions=positions.numpy().astype(np.float64))
             peaks, positions = probe.world_omega_max, probe.positions
