@@ -11,6 +11,7 @@ from __future__ import annotations
 import errno
 import os
 import re
+import shutil
 import subprocess
 import sys
 
@@ -89,8 +90,9 @@ def test_a_family_as_a_table_or_true_equals_the_scene_file(tmp_path):
 
 @pytest.mark.skipif(not LINUX, reason="/proc is Linux's")
 def test_an_unwritable_output_names_the_reason(tmp_path, capsys, monkeypatch):
-    """An output under /proc: refused before the model is built, one line with the OS's reason. Where USD itself
-    fails to create the file (its error may carry no text at all), the reason is found on the file system."""
+    """An output under /proc: refused before the model is built, one line with the OS's reason, also where the
+    writer itself fails to create its files. Where USD fails without a word, the message says so, and nothing
+    of the failed writer is left behind."""
     with pytest.raises(ws.ConfigError, match=r"cannot be written: cannot create a file in /proc: \S.* \[E[A-Z]+\]$"):
         check_output_path("/proc/out.usdc")
     assert main(["run", str(write_scene(tmp_path)), "-o", "/proc/out.usdc", "--device", "cpu"]) == EXIT_CONFIG
@@ -99,17 +101,17 @@ def test_an_unwritable_output_names_the_reason(tmp_path, capsys, monkeypatch):
 
     model = api_builder().finalize("cpu")
     monkeypatch.setattr(usd_module, "check_output_path", lambda path: os.fspath(path))
-    with pytest.raises(ws.ConfigError) as real:  # USD's own error: its messages on one line, not its call stack
-        UsdWriter("/proc/out.usdc", model, fps=60)
-    assert "\n" not in str(real.value) and "Unable to" in str(real.value) and "pxrInternal" not in str(real.value)
+    with pytest.raises(ws.ConfigError, match=r"^cannot create the USD file '/proc/out.usdc': \S.* \[E[A-Z]+\]$"):
+        UsdWriter("/proc/out.usdc", model, fps=60)  # the frames folder cannot be made: the OS's reason
 
-    def silent(path):
+    def silent(self, layer, path):
         raise Tf.ErrorException()  # str() is "\n\t": the empty reason of the report
 
-    monkeypatch.setattr(Usd.Stage, "CreateNew", silent)
-    with pytest.raises(ws.ConfigError, match=r"cannot create the USD file '/proc/out.usdc': cannot create a file in "
-                                             r"/proc: \S.* \[E[A-Z]+\]$"):
-        UsdWriter("/proc/out.usdc", model, fps=60)
+    monkeypatch.setattr(UsdWriter, "_export", silent)
+    out = tmp_path / "silent.usdc"
+    with pytest.raises(ws.ConfigError, match=r"^cannot create the USD file '.*silent.usdc': USD gave no reason$"):
+        UsdWriter(out, model, fps=60)
+    assert not out.exists() and not (tmp_path / "silent.usdc.frames").exists()  # nothing of it is left behind
 
 
 def test_os_errors_are_one_line_with_their_reason():
@@ -159,9 +161,8 @@ def test_a_failed_save_without_a_reason_is_diagnosed(tmp_path):
     folder.mkdir()
     writer = UsdWriter(folder / "x.usdc", model, fps=60)
     writer.write_frame(model.state())
-    writer._save_layer = lambda: False  # USD's Save() returning False
-    (folder / "x.usdc").unlink()
-    folder.rmdir()
+    writer._save_layer = lambda: False  # USD's Export() returning False
+    shutil.rmtree(folder)
     with pytest.raises(ws.OutputError, match=r"cannot write frame 1 .*: its folder .*gone does not exist; the file "
                                              r"holds frame 0$") as caught:
         writer.write_frame(model.state())

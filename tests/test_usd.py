@@ -110,8 +110,12 @@ def test_mesh_samples_topology_uvs_and_normals(tmp_path, device):
     counts, indices = mesh.GetFaceVertexCountsAttr(), mesh.GetFaceVertexIndicesAttr()
     for attr in (counts, indices):
         assert attr.HasAuthoredValue() and attr.GetNumTimeSamples() == 0, attr.GetName()
-    assert list(counts.Get()) == [3] * len(group.faces) == [3] * 2 * (NX - 1) * (NY - 1)
-    np.testing.assert_array_equal(np.array(indices.Get()).reshape(-1, 3), group.faces)
+    # the grid's cells as quads, as a modeller makes a grid: cell (r, c) = its corners counter-clockwise
+    assert list(counts.Get()) == [4] * (NX - 1) * (NY - 1)
+    r, c = np.divmod(np.arange((NX - 1) * (NY - 1)), NX - 1)
+    corner = r * NX + c
+    np.testing.assert_array_equal(np.array(indices.Get()).reshape(-1, 4),
+                                  np.stack([corner, corner + 1, corner + NX + 1, corner + NX], 1))
     assert mesh.GetSubdivisionSchemeAttr().HasAuthoredValue()  # the unauthored fallback is catmullClark
     assert mesh.GetSubdivisionSchemeAttr().Get() == UsdGeom.Tokens.none
     assert mesh.GetDoubleSidedAttr().Get() is True
@@ -206,17 +210,41 @@ def test_particles_and_springs_written_only_when_requested(tmp_path):
     np.testing.assert_allclose(np.array(points.GetWidthsAttr().Get()), 2.0 * model.particle_radius.numpy(), rtol=1e-6)
     assert points.GetWidthsInterpolation() == UsdGeom.Tokens.vertex
 
-    curves = UsdGeom.BasisCurves(stage.GetPrimAtPath("/World/springs"))
-    assert curves, "no UsdGeom.BasisCurves at /World/springs"
-    assert curves.GetTypeAttr().Get() == UsdGeom.Tokens.linear
-    assert list(curves.GetCurveVertexCountsAttr().Get()) == [2] * model.spring_count
     ends = model.spring_indices.numpy().reshape(-1, 2)
+    rest = model.spring_rest_length.numpy()
+    assert sorted(model.spring_families) == ["bend", "shear", "structural"]
+    for family, members in model.spring_families.items():
+        curves = UsdGeom.BasisCurves(stage.GetPrimAtPath(f"/World/springs/{family}"))
+        assert curves, f"no UsdGeom.BasisCurves at /World/springs/{family}"
+        assert curves.GetTypeAttr().Get() == UsdGeom.Tokens.linear
+        counts = np.array(curves.GetCurveVertexCountsAttr().Get())
+        api = UsdGeom.PrimvarsAPI(curves)
+        particle = np.array(api.GetPrimvar("warpspring:particle").Get())
+        assert len(particle) == counts.sum() < 1.5 * len(members)  # chains share points (2 per spring: 2.0)
+        # every spring of the family is one segment of one chain, exactly once
+        first = np.cumsum(counts) - counts
+        inner = np.ones(len(particle), bool)
+        inner[first] = False
+        segments = np.sort(np.stack([particle[np.flatnonzero(inner) - 1], particle[inner]], 1), axis=1)
+        np.testing.assert_array_equal(np.unique(segments, axis=0), np.unique(np.sort(ends[members], 1), axis=0))
+        assert len(segments) == len(members)
+        strain = api.GetPrimvar("strain")
+        assert strain.GetInterpolation() == UsdGeom.Tokens.vertex
+        for k, q in enumerate(frames):
+            np.testing.assert_allclose(np.array(curves.GetPointsAttr().Get(k)), q[particle], atol=1e-6)
+            # a curve vertex's strain: the larger of its (one or two) segments' (l - L) / L
+            length = {tuple(sorted(e)): np.linalg.norm(q[e[1]] - q[e[0]]) / rest[i] - 1.0
+                      for i, e in zip(members, ends[members])}
+            seg = [length[tuple(pair)] for pair in segments]
+            expected = np.full(len(particle), -np.inf)
+            where = np.flatnonzero(inner)
+            np.maximum.at(expected, where, seg)
+            np.maximum.at(expected, where - 1, seg)
+            np.testing.assert_allclose(np.array(strain.Get(k)), expected, atol=1e-5)
+        assert samples(curves.GetPointsAttr()) == samples(strain.GetAttr()) == [0.0, 1.0, 2.0]
     for k, q in enumerate(frames):
         np.testing.assert_allclose(np.array(points.GetPointsAttr().Get(k)), q, atol=1e-6)
-        spring_points = np.array(curves.GetPointsAttr().Get(k)).reshape(-1, 2, 3)
-        np.testing.assert_allclose(spring_points[:, 0], q[ends[:, 0]], atol=1e-6)
-        np.testing.assert_allclose(spring_points[:, 1], q[ends[:, 1]], atol=1e-6)
-    assert samples(points.GetPointsAttr()) == samples(curves.GetPointsAttr()) == [0.0, 1.0, 2.0]
+    assert samples(points.GetPointsAttr()) == samples(points.GetVelocitiesAttr()) == [0.0, 1.0, 2.0]
 
 
 def test_usd_validation_reports_nothing(tmp_path):
@@ -384,10 +412,12 @@ def test_two_cloths_are_separate_meshes_with_local_indices_and_unique_names(tmp_
         assert samples(mesh.GetPointsAttr()) == [0.0, 1.0, 2.0]
         for k, q in enumerate(frames):
             np.testing.assert_allclose(np.array(mesh.GetPointsAttr().Get(k)), q[ids], rtol=0, atol=1e-6)
-        indices = np.array(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
-        assert len(indices) == 2 * (nx - 1) * (ny - 1)
-        assert indices.min() == 0 and indices.max() == nx * ny - 1  # local: 0-based within this mesh
-        np.testing.assert_array_equal(indices, group.faces)
+        quads = np.array(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 4)
+        assert len(quads) == (nx - 1) * (ny - 1) and list(mesh.GetFaceVertexCountsAttr().Get()) == [4] * len(quads)
+        assert quads.min() == 0 and quads.max() == nx * ny - 1  # local: 0-based within this mesh
+        np.testing.assert_array_equal(quads, group.polygon_indices.reshape(-1, 4))
+        indices = group.faces  # the triangles simulated: two per quad, global in the model
+        assert len(indices) == 2 * len(quads)
         np.testing.assert_array_equal(ids[indices], model.tri_indices.numpy()[face_start : face_start + len(indices)])
         face_start += len(indices)  # the model's global triangles are the meshes' local ones, in mesh order
         assert len(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("st").Get()) == nx * ny

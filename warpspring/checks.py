@@ -73,3 +73,11 @@ def format_duration(seconds: float) -> str:
     if seconds >= 1e-3:
         return f"{seconds * 1e3:.4g} ms"
     return f"{seconds * 1e6:.4g} µs"
+
+
+def identifier(name: str, value) -> str:
+    """``value`` if it is a valid USD prim name (letters, digits and ``_``, not starting with a digit)."""
+    if not isinstance(value, str) or not value.isascii() or not value.replace("_", "a").isalnum() or value[0].isdigit():
+        raise ConfigError(f"{name} must be a name of letters, digits and _ that does not start with a digit "
+                          f"(it names a USD prim), got {value!r}")
+    return value

@@ -33,6 +33,7 @@ from .transforms import quat_between, quat_to_matrix
 _AXES = {"Y": 1, "Z": 2}  # USD knows only Y-up and Z-up stages
 #: Prim names under /World that the USD writer uses itself: a mesh named so gets a suffix.
 RESERVED_PRIM_NAMES = ("particles", "springs", "colliders")
+USD_EXTENSIONS = (".usd", ".usda", ".usdc")  # mesh files read through USD, not trimesh
 
 #: Host bytes of the temporaries of making a cloth grid, per spring and per particle (measured; see
 #: ``ModelBuilder._check_grid_room``).
@@ -106,6 +107,7 @@ class ModelBuilder:
 
         self._springs: list[np.ndarray] = []
         self._spring_rest: list[np.ndarray] = []
+        self._spring_family: list[str] = []  # the family name of each block of springs
         self._spring_ke: list[np.ndarray] = []
         self._spring_kd: list[np.ndarray] = []
         self._spring_count = 0
@@ -228,7 +230,7 @@ class ModelBuilder:
         else:
             self._tracks[name] = track
 
-    def add_springs(self, pairs, *, stiffness, damping=0.0, rest_length=None) -> np.ndarray:
+    def add_springs(self, pairs, *, stiffness, damping=0.0, rest_length=None, family: str = "springs") -> np.ndarray:
         """Add springs in bulk.
 
         Args:
@@ -236,6 +238,8 @@ class ModelBuilder:
             stiffness: ke [N/m], ≥ 0: a scalar or shape [s].
             damping: kd [N·s/m], ≥ 0: a scalar or shape [s].
             rest_length: [m], ≥ 0, scalar or shape [s]; default: the current distance of the pair.
+            family: the name the springs are grouped under for export (one USD curves prim per family;
+                the cloth builders use ``structural``, ``shear`` and ``bend``); a valid USD identifier.
 
         Returns:
             The indices of the new springs, shape [s].
@@ -258,6 +262,7 @@ class ModelBuilder:
         self._spring_ke.append(ke)
         self._spring_kd.append(kd)
         self._spring_rest.append(rest)
+        self._spring_family.append(checks.identifier("spring family", family))
         self._spring_count += s
         return np.arange(start, start + s)
 
@@ -311,7 +316,8 @@ class ModelBuilder:
         self._families.append(family)
         return family
 
-    def add_triangles(self, faces, *, name: str = "mesh", uvs=None) -> MeshGroup:
+    def add_triangles(self, faces, *, name: str = "mesh", uvs=None, polygon_counts=None, polygon_indices=None,
+                      face_sets=None) -> MeshGroup:
         """Add a triangle mesh over existing particles (exported as one USD mesh; later used by
         aerodynamics and collisions).
 
@@ -320,6 +326,12 @@ class ModelBuilder:
             name: mesh name; made unique and a valid USD identifier.
             uvs: texture coordinates per referenced particle in ascending index order, shape [v, 2];
                 or per triangle corner, shape [t, 3, 2] (a mesh with UV seams: one particle, two UVs).
+            polygon_counts, polygon_indices: the authored faces the triangles come from, written to USD in
+                their place (quads stay quads): vertices per face, shape [p], each ≥ 3, and their global
+                particle indices, shape [polygon_counts.sum()]; they must use the triangles' particles.
+                Not with per-corner ``uvs``.
+            face_sets: named subsets of the authored faces (or of the triangles without polygons), kept on
+                export as USD face sets: a mapping name -> face indices.
         """
         faces = np.asarray(faces)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
@@ -338,11 +350,37 @@ class ModelBuilder:
                                   f"per triangle corner, got {uvs.shape}")
             if not np.isfinite(uvs).all():
                 raise ConfigError("uvs are not finite")
+        counts = indices = None
+        if (polygon_counts is None) != (polygon_indices is None):
+            raise ConfigError("give polygon_counts and polygon_indices together, or neither")
+        if polygon_counts is not None:
+            counts = np.asarray(polygon_counts)
+            if counts.ndim != 1 or len(counts) == 0 or not np.issubdtype(counts.dtype, np.integer) or counts.min() < 3:
+                raise ConfigError("polygon_counts must be a non-empty list of integers >= 3 (vertices per face)")
+            indices = _indices("polygon vertex", np.asarray(polygon_indices).ravel(), self._particle_count)
+            if len(indices) != counts.sum():
+                raise ConfigError(f"polygon_indices holds {len(indices)} entries, polygon_counts needs {counts.sum()}")
+            if not used[indices].all():
+                raise ConfigError("the polygons use a particle that no triangle uses: they must cover the same vertices")
+            if uvs is not None and uvs.ndim == 3:
+                raise ConfigError("per-corner uvs go with triangles, not with polygons: give uvs per vertex")
+            counts, indices = counts.astype(np.int32), remap[indices].astype(np.int32)
+        face_count = len(faces) if counts is None else len(counts)
+        sets = {}
+        for set_name, members in (face_sets or {}).items():
+            members = np.unique(np.asarray(members, dtype=np.int64).ravel())
+            if len(members) and (members[0] < 0 or members[-1] >= face_count):
+                raise ConfigError(f"face set {set_name!r} names face {int(members[-1] if members[-1] >= face_count else members[0])}, "
+                                  f"but the mesh has faces 0..{face_count - 1}")
+            sets[checks.identifier("face set name", set_name)] = members.astype(np.int32)
         group = MeshGroup(
             name=self._unique_name(name, [m.name for m in self._meshes] + list(RESERVED_PRIM_NAMES)),
             particles=particles,
             faces=local.reshape(-1, 3).astype(np.int32),
             uvs=uvs,
+            polygon_counts=counts,
+            polygon_indices=indices,
+            face_sets=sets,
         )
         self._meshes.append(group)
         return group
@@ -446,13 +484,13 @@ class ModelBuilder:
         diagonals = np.concatenate([pairs(grid[:-1, :-1], grid[1:, 1:]), pairs(grid[:-1, 1:], grid[1:, :-1])])
         if material is None:
             families = [
-                (structural, np.concatenate([along_rows, along_columns])),
-                (shear, diagonals),
-                (bend, np.concatenate([pairs(grid[:, :-2], grid[:, 2:]), pairs(grid[:-2, :], grid[2:, :])])),
+                ("structural", structural, np.concatenate([along_rows, along_columns])),
+                ("shear", shear, diagonals),
+                ("bend", bend, np.concatenate([pairs(grid[:, :-2], grid[:, 2:]), pairs(grid[:-2, :], grid[2:, :])])),
             ]
-            for springs, blocks in families:
+            for family, springs, blocks in families:
                 if springs is not None:
-                    self.add_springs(blocks, stiffness=springs.ke, damping=springs.kd)
+                    self.add_springs(blocks, stiffness=springs.ke, damping=springs.kd, family=family)
         else:
             k = grid_springs(material)
             # A structural spring on an outer row or column spans half a cell: half stiffness and damping.
@@ -460,14 +498,15 @@ class ModelBuilder:
             row_share[[0, -1], :] = column_share[:, [0, -1]] = 0.5
             share = np.concatenate([row_share.ravel(), column_share.ravel()])
             self.add_springs(np.concatenate([along_rows, along_columns]), stiffness=k.structural_stiffness * share,
-                             damping=k.structural_damping * share)
-            self.add_springs(diagonals, stiffness=k.shear_stiffness, damping=k.shear_damping)
+                             damping=k.structural_damping * share, family="structural")
+            self.add_springs(diagonals, stiffness=k.shear_stiffness, damping=k.shear_damping, family="shear")
 
         a, b = grid[:-1, :-1].ravel(), grid[:-1, 1:].ravel()
         c, d = grid[1:, 1:].ravel(), grid[1:, :-1].ravel()
         faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
         uv = np.stack([cols / (nx - 1), rows / (ny - 1)], axis=-1).reshape(-1, 2)
-        self.add_triangles(faces, name=name, uvs=uv)
+        quads = np.stack([a, b, c, d], 1)  # written to USD as quads, as a modeller would make the grid
+        self.add_triangles(faces, name=name, uvs=uv, polygon_counts=np.full(len(quads), 4), polygon_indices=quads)
         if material is not None:
             self._add_mesh_hinges(q, faces - ids[0], ids, material, rest="flat")
         elif dihedral is not None:
@@ -492,8 +531,9 @@ class ModelBuilder:
         material: ClothMaterial | None = None,
         pin=(),
         name: str = "cloth",
+        prim: str | None = None,
     ) -> np.ndarray:
-        """Add a cloth from any triangle mesh.
+        """Add a cloth from any triangle or polygon mesh.
 
         Every mesh edge becomes a structural spring; for every interior edge, the two vertices opposite
         it are joined by a bend spring. Mass is lumped to the vertices by triangle area. With a
@@ -507,8 +547,10 @@ class ModelBuilder:
         are kept per triangle corner where a seam needs two.
 
         Args:
-            mesh: a ``trimesh.Trimesh``, a file path trimesh can load (OBJ, STL, PLY, GLB, ...), or a
-                vertex array [m], shape [v, 3] (then ``faces`` is required).
+            mesh: a ``trimesh.Trimesh``, a file path trimesh can load (OBJ, STL, PLY, GLB, ...), a USD file
+                (``.usd``, ``.usda``, ``.usdc``: see :func:`~warpspring.io.usd_mesh.read_usd_mesh` for what is
+                applied; its polygons are written back as authored, its face sets kept), or a vertex array
+                [m], shape [v, 3] (then ``faces`` is required).
             faces: vertex indices of each triangle, shape [t, 3], when ``mesh`` is an array.
             origin, rotation, scale: placement; world = origin + rotation · (scale · vertex).
             mass: total mass [kg]; or ``density``: areal density [kg/m²] (neither with ``material``).
@@ -525,6 +567,8 @@ class ModelBuilder:
                 ``structural``, ``bend`` or ``dihedral`` other than their defaults.
             pin: vertex indices of pinned particles.
             name: mesh name for export.
+            prim: for a USD file, the path of the mesh prim to read (``"/World/cloth"``); ``None``: the
+                file's only mesh.
 
         Returns:
             Global particle indices of the mesh vertices, shape [v].
@@ -534,8 +578,19 @@ class ModelBuilder:
         structural = spring_family("structural", structural, DEFAULT_STRUCTURAL)
         bend = spring_family("bend", bend, DEFAULT_BEND)
         dihedral = None if dihedral is False else dihedral
-        uv = None
-        if isinstance(mesh, (str, os.PathLike)):
+        uv = polygons = None
+        face_sets = {}
+        usd = isinstance(mesh, (str, os.PathLike)) and os.fspath(mesh).lower().endswith(USD_EXTENSIONS)
+        if prim is not None and not usd:
+            raise ConfigError(f"prim= chooses a mesh of a USD file ({', '.join(USD_EXTENSIONS)}), not of {mesh!r}")
+        if usd:
+            from ..io.usd_mesh import read_usd_mesh
+
+            read = read_usd_mesh(mesh, prim=prim, up_axis=self.up_axis)
+            vertices, faces = read.vertices, read.triangles
+            polygons = (read.polygon_counts, read.polygon_indices)
+            face_sets = read.face_sets
+        elif isinstance(mesh, (str, os.PathLike)):
             path = os.fspath(mesh)
             if not os.path.isfile(path):
                 raise ConfigError(f"mesh file not found: {path}")
@@ -543,13 +598,13 @@ class ModelBuilder:
                 mesh = trimesh.load(path, force="mesh", process=False)
             except Exception as exc:  # trimesh raises many types for unreadable files
                 raise ConfigError(f"cannot read mesh file {path}: {exc}") from None
-        loaded = isinstance(mesh, trimesh.Trimesh)
+        loaded = not usd and isinstance(mesh, trimesh.Trimesh)
         if loaded:
             vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
             visual_uv = getattr(getattr(mesh, "visual", None), "uv", None)
             if visual_uv is not None and len(visual_uv) == len(vertices):
                 uv = np.asarray(visual_uv, dtype=np.float64)
-        else:
+        elif not usd:
             if faces is None:
                 raise ConfigError("add_cloth_mesh needs faces= when the mesh is given as a vertex array")
             vertices = np.asarray(mesh, dtype=np.float64)
@@ -597,15 +652,17 @@ class ModelBuilder:
         )
         if material is not None:
             ke, kd = edge_springs(material, vertices * scale, faces, edges)
-            self.add_springs(ids[edges], stiffness=ke, damping=kd)
+            self.add_springs(ids[edges], stiffness=ke, damping=kd, family="structural")
         else:
             if structural is not None and len(edges):
-                self.add_springs(ids[edges], stiffness=structural.ke, damping=structural.kd)
+                self.add_springs(ids[edges], stiffness=structural.ke, damping=structural.kd, family="structural")
             if bend is not None:
                 opposite = tri.face_adjacency_unshared
                 if len(opposite):
-                    self.add_springs(ids[opposite], stiffness=bend.ke, damping=bend.kd)
-        self.add_triangles(ids[faces], name=name, uvs=uv)
+                    self.add_springs(ids[opposite], stiffness=bend.ke, damping=bend.kd, family="bend")
+        self.add_triangles(ids[faces], name=name, uvs=uv, face_sets=face_sets,
+                           polygon_counts=None if polygons is None else polygons[0],
+                           polygon_indices=None if polygons is None else ids[polygons[1]])
         if material is not None:
             self._add_mesh_hinges(vertices * scale, faces, ids, material, rest="mesh")
         elif dihedral is not None:
@@ -872,6 +929,8 @@ class ModelBuilder:
         s = len(springs)
         model.spring_count = s
         model.spring_indices = iarray(springs, wp.vec2i)
+        names = np.repeat(np.array(self._spring_family, dtype=object), [len(b) for b in self._springs])
+        model.spring_families = {name: np.flatnonzero(names == name) for name in dict.fromkeys(self._spring_family)}
         model.spring_rest_length = farray(np.concatenate(self._spring_rest) if s else [], name="a spring rest length [m]")
         model.spring_stiffness = farray(np.concatenate(self._spring_ke)[None, :] if s else np.zeros((1, 0)),
                                         name="a spring stiffness [N/m]")

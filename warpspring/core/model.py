@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
@@ -101,12 +101,21 @@ class MeshGroup:
         faces: triangles as indices into ``particles``, shape [face_count, 3], int32.
         uvs: texture coordinates per vertex, shape [vertex_count, 2]; per triangle corner, shape
             [face_count, 3, 2] (meshes with UV seams); or ``None``.
+        polygon_counts: the authored faces' vertex counts (quads stay quads on export), shape
+            [polygon_count], int32; ``None`` when the triangles are the authored faces.
+        polygon_indices: the authored faces' vertices as indices into ``particles``, in order, shape
+            [polygon_counts.sum()], int32; ``None`` with ``polygon_counts``.
+        face_sets: named subsets of the faces (the polygons where there are, else the triangles), each
+            int32 face indices, ascending; written as USD face sets (``UsdGeom.Subset``).
     """
 
     name: str
     particles: np.ndarray
     faces: np.ndarray
     uvs: np.ndarray | None = None
+    polygon_counts: np.ndarray | None = None
+    polygon_indices: np.ndarray | None = None
+    face_sets: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -233,6 +242,7 @@ class Model:
     spring_count: int
     spring_indices: wp.array  # wp.vec2i, shape [spring_count], the two particles of each spring
     spring_rest_length: wp.array  # [m], shape [spring_count] (every world)
+    spring_families: dict  # host-side: family name -> int64 spring indices (export groups springs by family)
     spring_stiffness: wp.array2d  # ke [N/m], shape [1 or world_count, spring_count]
     spring_damping: wp.array2d  # kd [N·s/m], shape [1 or world_count, spring_count], axial damper
     spring_gather: bool  # evaluate springs per particle (gather, CUDA default) or per spring (scatter, CPU)
@@ -276,6 +286,7 @@ class Model:
         self.scalar = scalar
         self.vec3 = vec3_type(scalar)
         self.meshes = []
+        self.spring_families = {}
         self.shapes = []
         self.shape_count = 0
         self.shape_types = ()

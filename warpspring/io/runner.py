@@ -192,7 +192,7 @@ def run_scene(
 
     saved_at = os.path.abspath(checkpoint_path(output))
     with UsdWriter(output, model, fps=fps, particles=scene.export_particles, springs=scene.export_springs,
-                   keep_frames=start + 1 if resume is not None else 0, **export) as usd:
+                   keep_frames=start + 1 if resume is not None else 0, **scene.export_options, **export) as usd:
         if resume is None:
             usd.write_frame(sim.state)
         failures = sorted(sim.world_failures)

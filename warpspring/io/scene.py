@@ -127,6 +127,8 @@ class Scene:
         device: Warp device name, or ``None`` for Warp's default.
         output: output USD path (relative paths are relative to the working directory), or ``None``.
         export_particles, export_springs: also write particles / springs to USD.
+        export_options: the ``[output]`` table's other options of :class:`~warpspring.io.usd.UsdWriter`
+            (``primvars``, ``start_frame``, ``collider_purpose``), as given.
         world: the ``[world]`` table (up_axis, gravity, drag) as written (a track as its table).
         cloths: the ``[cloth]`` tables, checked; a cloth's ``pin_group`` is a list of :class:`PinGroupSpec`.
         colliders: the ``[[collider]]`` tables, checked; their ``translation`` and ``rotation`` tracks as
@@ -165,6 +167,7 @@ class Scene:
     output: str | None = None
     export_particles: bool = False
     export_springs: bool = False
+    export_options: dict = field(default_factory=dict)
     world: dict = field(default_factory=dict)
     cloths: list = field(default_factory=list)
     colliders: list = field(default_factory=list)
@@ -359,6 +362,7 @@ _SCHEMA = {
         "name": str,
         "grid": {"nx": _Number(2, integer=True), "ny": _Number(2, integer=True), "spacing": POSITIVE},
         "mesh": str,
+        "prim": _Since(2, str),
         "scale": POSITIVE,
         "origin": VECTOR,
         "rotation": {"axis": VECTOR, "degrees": NUMBER},
@@ -397,6 +401,9 @@ _SCHEMA = {
         "world": _Since(2, _Number(0, integer=True)),
         "world_spacing": _Since(2, NON_NEGATIVE),
         "world_columns": _Since(2, _Number(1, integer=True)),
+        "primvars": _Since(2, list),
+        "start_frame": _Since(2, _Number(0, integer=True)),
+        "collider_purpose": _Since(2, str),
     },
     "stabilizers": {
         "max_spring_force": _Live(POSITIVE),
@@ -439,7 +446,7 @@ _LIVE_TABLES = ("world", "stabilizers")
 
 # Keys that apply to one kind of cloth or collider only (anything else would be silently ignored).
 _GRID_ONLY = {"grid", "particle_mass", "shear"}
-_MESH_ONLY = {"mesh", "density", "scale"}
+_MESH_ONLY = {"mesh", "density", "scale", "prim"}
 _COLLIDER_COMMON = {"type", "name", "friction", "restitution"}
 _COLLIDER_MOTION = {"translation", "rotation"}
 _COLLIDER_KEYS = {
@@ -553,6 +560,7 @@ def _parse(data: dict, path: str) -> Scene:
     scene.output = out.get("path")
     scene.export_particles = out.get("particles", False)
     scene.export_springs = out.get("springs", False)
+    scene.export_options = _export_options(out, where)
     scene.stabilizers = Stabilizers(**stabilizers)
     for name in tracks:
         if name in STABILIZER_INPUTS and not scene.stabilizers.enabled(name):  # only biphasic_ratio can be
@@ -827,6 +835,21 @@ def _check_table(table: dict, schema: dict, where: str, name: str, *, version: i
         _check_value(value, schema[key], where, f"{name}.{key}" if name else key, version=version)
 
 
+def _export_options(out: dict, where: str) -> dict:
+    """The ``[output]`` options passed to the USD writer as they are, their names and choices checked."""
+    from .usd import PRIMVARS, PURPOSES  # (no pxr: the writer's module loads it only when it writes)
+
+    options = {key: out[key] for key in ("primvars", "start_frame", "collider_purpose") if key in out}
+    for name in options.get("primvars", []):
+        if name not in PRIMVARS:
+            raise ConfigError(f"{where}: output.primvars lists {name!r}: choose from {', '.join(map(repr, PRIMVARS))}")
+    purpose = options.get("collider_purpose", "guide")
+    if purpose not in PURPOSES:
+        raise ConfigError(f"{where}: output.collider_purpose must be one of {', '.join(map(repr, PURPOSES))}, got "
+                          f"{purpose!r}")
+    return options
+
+
 def _check_value(value, expected, where: str, key: str, *, version: int) -> None:
     if isinstance(expected, _Since):
         if version < expected.version:
@@ -977,7 +1000,8 @@ def _add_cloth(builder: ModelBuilder, cloth: dict, base: str) -> None:
         mesh = cloth["mesh"]
         path = mesh if os.path.isabs(mesh) else os.path.join(base, mesh)
         try:
-            ids = builder.add_cloth_mesh(path, scale=cloth.get("scale", 1.0), density=cloth.get("density"), **common)
+            ids = builder.add_cloth_mesh(path, scale=cloth.get("scale", 1.0), density=cloth.get("density"),
+                                         prim=cloth.get("prim"), **common)
         except ConfigError as exc:  # name the mesh file in every message about its contents
             raise exc if path in str(exc) else ConfigError(f"mesh {path}: {exc}") from None
     groups = cloth.get("pin_group", [])

@@ -3,16 +3,24 @@
 What is authored, and why (USD's fallbacks are wrong for simulation caches):
 
 * stage: ``/World`` as defaultPrim, ``upAxis``, ``metersPerUnit = 1`` (the fallback is centimetres),
-  ``timeCodesPerSecond = framesPerSecond = fps`` (the fallback is 24), start/end time codes;
-* each cloth mesh: topology once, ``subdivisionScheme = "none"`` (the fallback, Catmull-Clark, makes
-  Blender and Houdini subdivide the cloth), ``doubleSided``, ``primvars:st`` when the mesh has UVs, and
-  per frame ``points``, ``extent`` and vertex ``normals``;
-* colliders as prims of purpose ``guide`` (shown in viewports, left out of final renders) with their
-  transforms: a sphere as ``UsdGeom.Sphere``, a box as a ``UsdGeom.Cube`` of size 2 scaled by its half
-  extents, a capsule as ``UsdGeom.Capsule`` (axis Z, height 2 · half_height), a plane as a finite quad
+  ``timeCodesPerSecond = framesPerSecond = fps`` (the fallback is 24), start/end time codes; frame k is
+  time code ``start_frame + k`` (0 by default; 1 or 1001 as pipelines number frames);
+* each cloth mesh: its faces as authored (a grid's cells and a USD mesh's quads stay quads; the simulation
+  uses their triangles), in the input's vertex order, once; ``subdivisionScheme = "none"`` (the fallback,
+  Catmull-Clark, makes Blender and Houdini subdivide the cloth), ``doubleSided``, ``primvars:st`` when the
+  mesh has UVs, its face sets; per frame ``points``, ``extent``, vertex ``normals`` and ``velocities``
+  [m/s] (renderers motion-blur from them); optionally the primvars ``strain`` and ``pinned`` per frame and
+  ``rest`` (Pref) once. Normals are gathered per vertex in a fixed order (no atomics), so a rerun on the
+  same device writes the same bytes;
+* colliders as prims of purpose ``guide`` by default (shown in viewports, left out of final renders) with
+  their transforms: a sphere as ``UsdGeom.Sphere``, a box as a ``UsdGeom.Cube`` of size 2 scaled by its
+  half extents, a capsule as ``UsdGeom.Capsule`` (axis Z, height 2 · half_height), a plane as a finite quad
   fitted to the scene. A static collider's translate and orient ops hold one default value; a moving
   one's (a collider with keyframe tracks) are also sampled at every written frame, at the frame's time;
-* optionally the particles (``UsdGeom.Points``) and springs (``UsdGeom.BasisCurves``).
+* optionally the particles (``UsdGeom.Points`` with widths and velocities) and the springs: one
+  ``UsdGeom.BasisCurves`` per spring family (structural, shear, bend, ...) of linear chains through the
+  particles (a chain's inner points serve two springs; ``primvars:warpspring:particle`` names the particle
+  of each curve vertex) with per-vertex ``strain``, the larger of the two springs beside the vertex.
 
 Worlds: a model of one world, or one chosen world of a model of several (``world=k``), is written as
 above, directly under ``/World``. Every world of a model of several is written as its own ``Xform``,
@@ -22,17 +30,23 @@ and a translation that lays the worlds out side by side on a grid in the ground 
 A world that the run-time guard stopped (:meth:`UsdWriter.stop_worlds`) gets no samples after its last
 good frame: DCC tools hold a prim's last sample, so the file stays a valid animation of every world.
 
-Frames are written as they are produced. A ``.usdc`` layer is saved after every frame: crate files
-append the new samples, and the samples already on disk are not kept in memory, so memory does not
-grow with the frame count and the file on disk is a complete, valid stage after every frame, also when
-a run stops early. A ``.usda`` file (text, for inspection) is rewritten whole on save, so it is saved at
-most once per second of wall time and on :meth:`UsdWriter.close`.
+How frames reach the disk. While a run writes ``out.usdc``, its frames live in a folder beside it,
+``out.usdc.frames/``: the static prims once (``static.usdc``), and each frame as its own small layer
+(``frame.001001.usdc``), written whole through a temporary file and renamed, so a file is either absent
+or complete. ``out.usdc`` itself is a small root layer, rewritten the same way after every frame: the
+stage's metadata, the static layer as a sublayer, and the frames as value clips (a template of the frame
+files up to the last one written). So at every moment the file is a valid stage holding every frame
+written: another process can open it as often as it likes while the run goes on and never sees a torn
+file or the frame count go backwards, and a run that is killed (even by SIGKILL) leaves every frame it
+wrote. Each frame costs the same to write however many came before, for ``.usdc`` and ``.usda`` alike.
+On :meth:`UsdWriter.close` the frames are packed into one self-contained layer, renamed over
+``out.usdc``, and the folder is removed. A small companion process removes USD's temporary files if the
+run dies while one is being written, so a killed run leaves its file, its frames folder and nothing else.
 
 A save that fails (a full disk, the file or its folder removed) raises :class:`~warpspring.errors.OutputError`,
 one line naming the frame and the OS's reason (USD's own errors often carry none: the file system is then
-examined for one). The file keeps every frame saved before it, a valid stage (USD writes a crate's new
-samples before the table of contents that points at them, and a text file through a temporary file), and
-the writer drops the unsaved frame instead of trying to save it again on close.
+examined for one). The file keeps every frame saved before it, a valid stage through its frames folder,
+and the writer drops the unsaved frame instead of trying to save it again on close.
 """
 
 from __future__ import annotations
@@ -41,6 +55,7 @@ import errno
 import math
 import os
 import re
+import shutil
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -50,8 +65,8 @@ import warp as wp
 
 from .. import checks
 from ..errors import ConfigError, OutputError, SimulationError, os_error_reason
-from ..kernels.geometry import vertex_normal_kernels
-from ..core.model import Model, State
+from ..kernels.geometry import vertex_normal_kernel
+from ..core.model import PARTICLE_KINEMATIC, Model, State
 from ..core.transforms import quat_to_matrix
 
 _EXTENSIONS = (".usdc", ".usda", ".usd")
@@ -60,27 +75,34 @@ _EXTENSIONS = (".usdc", ".usda", ".usd")
 class UsdWriter:
     """Writes the frames of a simulation of ``model`` to ``path`` as time samples.
 
-    Use as a context manager, or call :meth:`close`. Time code k is frame k (t = k / fps seconds).
+    Use as a context manager, or call :meth:`close`. Frame k (t = k / fps seconds of simulated time) is
+    time code ``start_frame + k``.
 
     Args:
         path: output file; ``.usdc`` (binary, default choice) or ``.usda`` (text); ``.usd`` is binary.
         model: the simulated model (topology, colliders and up axis are taken from it).
         fps: frames per second of the animation [1/s].
-        particles: also write the particles as ``UsdGeom.Points`` (widths = 2 × radius).
-        springs: also write the springs as linear ``UsdGeom.BasisCurves``.
-        text_save_interval: for ``.usda``, the least wall time [s] between two saves.
+        particles: also write the particles as ``UsdGeom.Points`` (widths = 2 × radius, velocities).
+        springs: also write the springs, one ``UsdGeom.BasisCurves`` of linear chains per spring family.
+        primvars: optional per-vertex primvars of the meshes, any of ``"strain"`` (per frame: the largest
+            strain (l − L)/L of the springs at the vertex [-]), ``"pinned"`` (per frame: 1 where the particle
+            is kinematic, else 0) and ``"rest"`` (once: the positions at the start [m], Pref for procedural
+            textures that must stick to the cloth).
+        start_frame: the time code of frame 0 (0, 1 or 1001 as pipelines use), ≥ 0.
+        collider_purpose: the USD purpose of collider prims: ``"guide"`` (shown in viewports, left out of
+            renders), ``"default"``, ``"render"`` or ``"proxy"``.
         world: export only this world, directly under ``/World`` as a one-world model; ``None``: every
             world (each under ``/World/world_NNNN`` when the model has several).
         world_spacing: distance [m] between neighbouring worlds on the export grid, when every world
             of a model of several is written; ``None``: :func:`default_world_spacing`.
         world_columns: worlds per row of the export grid; ``None``: ceil(√world_count).
-        keep_frames: keep the first ``keep_frames`` frames (time codes 0 .. keep_frames - 1) of the file
-            already at ``path``, written by a run of the same scene and export options that stopped, and
-            append after them (``warpspring run --resume``); later samples of that file are dropped.
+        keep_frames: keep the first ``keep_frames`` frames of the file already at ``path``, written by a run
+            of the same scene and export options that stopped (or was killed), and append after them
+            (``warpspring run --resume``); later samples of that file are dropped.
 
     Raises:
-        ConfigError: a bad path, fps, world, spacing or column count, or (``keep_frames``) a file that is
-            missing or holds fewer frames; nothing is written.
+        ConfigError: a bad path, fps, world, spacing, column count, primvar name, start frame or purpose,
+            or (``keep_frames``) a file that is missing or holds fewer frames; nothing is written.
     """
 
     def __init__(
@@ -91,7 +113,9 @@ class UsdWriter:
         fps: float,
         particles: bool = False,
         springs: bool = False,
-        text_save_interval: float = 1.0,
+        primvars=(),
+        start_frame: int = 0,
+        collider_purpose: str = "guide",
         world: int | None = None,
         world_spacing: float | None = None,
         world_columns: int | None = None,
@@ -99,10 +123,17 @@ class UsdWriter:
     ):
         from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
-        self._Usd, self._UsdGeom, self._Vt, self._Tf = Usd, UsdGeom, Vt, Tf
+        self._Usd, self._UsdGeom, self._Vt, self._Tf, self._Sdf, self._Gf = Usd, UsdGeom, Vt, Tf, Sdf, Gf
         path = check_output_path(path)
         ext = os.path.splitext(path)[1].lower()
         fps = checks.positive("fps", fps)
+        start_frame = checks.count("start_frame", start_frame, minimum=0)
+        primvars = tuple(dict.fromkeys([primvars] if isinstance(primvars, str) else primvars))
+        unknown = [p for p in primvars if p not in PRIMVARS]
+        if unknown:
+            raise ConfigError(f"unknown primvar {unknown[0]!r}: choose from {', '.join(PRIMVARS)}")
+        if collider_purpose not in PURPOSES:
+            raise ConfigError(f"collider_purpose must be one of {', '.join(PURPOSES)}, got {collider_purpose!r}")
         if world is not None:
             world = checks.count("world", world, minimum=0)
             if world >= model.world_count:
@@ -119,42 +150,42 @@ class UsdWriter:
             offsets = None
             roots = [(0 if world is None else world, "/World")]
         keep_frames = checks.count("keep_frames", keep_frames, minimum=0)
-        kept = _read_frames(path, keep_frames) if keep_frames else None  # before the file is replaced
-        try:
-            if os.path.exists(path):
-                os.remove(path)
-            layer = Sdf.Layer.FindOrOpen(path)
-            if layer is not None:  # a stale layer of the same name in this process's registry
-                layer.Clear()
-                self.stage = Usd.Stage.Open(layer)
-            else:
-                self.stage = Usd.Stage.CreateNew(path)
-        except (OSError, Tf.ErrorException) as exc:
-            reason = _reason(exc) or _diagnose(path) or "USD gave no reason"
-            raise ConfigError(f"cannot create the USD file {path!r}: {reason}") from None
+        kept = _read_frames(path, keep_frames, start_frame) if keep_frames else None  # before the file is replaced
+
         self.path = path
+        self.parts = parts_folder(path)
         self.model = model
         self.fps = float(fps)
+        self.start_frame = start_frame
         self.frame_count = 0
         self.frames_saved = 0  # frames on disk: 0 .. frames_saved - 1
-        self._text = ext == ".usda"
-        self._save_interval = float(text_save_interval)
-        self._last_save = 0.0
+        self._primvars = primvars
+        self._purpose = collider_purpose
         self._closed = False
+        self._failed = False
+        self._reaper = None
+        self._format = ".usda" if ext == ".usda" else ".usdc"
+        try:
+            _remove_output(path)
+            os.makedirs(self.parts)
+            self._reaper = _Reaper(path)
+        except OSError as exc:
+            reason = _reason(exc) or _diagnose(path) or "no reason given"
+            raise ConfigError(f"cannot create the USD file {path!r}: {reason}") from None
 
+        # The static layer: every prim, its topology and constant attributes, and an unvalued spec of each
+        # animated attribute (the frames' samples compose onto them through the clips).
+        self.stage = Usd.Stage.CreateInMemory(STATIC_NAME)
         stage = self.stage
         root = UsdGeom.Xform.Define(stage, "/World")
         stage.SetDefaultPrim(root.GetPrim())
-        UsdGeom.SetStageUpAxis(stage, {"Y": UsdGeom.Tokens.y, "Z": UsdGeom.Tokens.z}[model.up_axis])
-        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-        stage.SetTimeCodesPerSecond(self.fps)
-        stage.SetFramesPerSecond(self.fps)
-        stage.SetStartTimeCode(0.0)
-        stage.SetEndTimeCode(1.0)
-        from .. import __version__
-
-        stage.GetRootLayer().customLayerData = {"generator": f"warpspring {__version__} (warp {wp.__version__})"}
-
+        self._animated: list = []  # (attribute path, value type) of every attribute sampled per frame
+        self._strain_ends = None  # the springs' particles, when strain is written
+        self._pending = None  # (time code, layer) of the frame being saved
+        self._clips: list = []  # (first time code, file name) of each clip layer in the frames folder, in order
+        self._loose: list = []  # (time code, layer) of the saved frames not yet gathered into a chunk
+        self._loose_bytes = 0  # their size on disk [B]
+        self._obsolete: list = []  # (when [s, monotonic], paths) of frame files a chunk replaced, to remove
         if world is not None and model.world_count > 1:
             root.GetPrim().SetCustomDataByKey("warpspring:world", world)
         self.worlds = [w for w, _ in roots]
@@ -169,42 +200,37 @@ class UsdWriter:
             slot.colliders = self._write_colliders(path_root)
             self._slots.append(slot)
         if model.tri_count and any(slot.meshes for slot in self._slots):
-            # Every exported world's triangles, in state-array indices: one launch computes all their normals.
-            n = model.particle_count
-            tri = model.tri_indices.numpy()
-            tri = np.concatenate([tri + w * n for w in self.worlds]).astype(np.int32)
-            self._export_tris = wp.array(tri, dtype=wp.int32, device=model.device)
-            self._normals = wp.empty(model.state_size, dtype=wp.vec3f, device=model.device)
-        if kept is not None:
-            for attribute, samples in kept:
-                target = stage.GetAttributeAtPath(attribute)
-                if not target:
-                    raise ConfigError(f"cannot resume {path!r}: it holds {attribute}, which this scene does not "
-                                      "write (another scene or other export options)")
-                for time_code, value in samples:
-                    target.Set(value, Usd.TimeCode(time_code))
-            self.frame_count = keep_frames
-            stage.SetEndTimeCode(float(max(keep_frames - 1, 1)))
-        self._save(force=True)
+            self._normal_topology()
+        if "strain" in primvars or springs:
+            self._strain_topology()
+        try:
+            self._export(stage.GetRootLayer(), os.path.join(self.parts, STATIC_NAME))
+            self._export(self._manifest(), os.path.join(self.parts, MANIFEST_NAME))
+            if kept is not None:
+                self._write_kept(kept, keep_frames)
+            self._write_root()
+        except (OSError, Tf.ErrorException) as exc:
+            self._abandon()
+            reason = _reason(exc) or _diagnose(path) or "USD gave no reason"
+            raise ConfigError(f"cannot create the USD file {path!r}: {reason}") from None
+        self.frames_saved = self.frame_count
 
     # -- frames ---------------------------------------------------------------------------------------
 
     def write_frame(self, state: State) -> None:
-        """Append ``state`` as the next frame (time code :attr:`frame_count`, time :attr:`frame_count` / fps
-        seconds) and save the file. Moving colliders get their pose at that time. Worlds that were stopped
-        (:meth:`stop_worlds`) get no sample.
+        """Append ``state`` as the next frame (time code ``start_frame`` + :attr:`frame_count`, time
+        :attr:`frame_count` / fps seconds) and save it. Moving colliders get their pose at that time. Worlds
+        that were stopped (:meth:`stop_worlds`) get no sample.
 
         Raises:
             SimulationError: a position of an exported world that is not stopped is NaN or infinite;
                 nothing of the frame is written.
-            OutputError: the file could not be saved (a full disk, the file or its folder removed): the message
-                names the frame and the OS's reason; the file on disk keeps the frames saved before it (a valid
-                stage), and the writer is closed without saving again.
+            OutputError: the frame could not be saved (a full disk, the file or its folder removed): the
+                message names the frame and the OS's reason; the file on disk keeps the frames saved before
+                it (a valid stage), and the writer is closed without saving again.
         """
         if self._closed:
             raise RuntimeError("UsdWriter is closed")
-        Vt, UsdGeom = self._Vt, self._UsdGeom
-        t = self._Usd.TimeCode(float(self.frame_count))
         model = self.model
         live = [slot for slot in self._slots if slot.world not in self._stopped]
         with np.errstate(over="ignore", invalid="ignore"):  # USD points are float32: check what is written
@@ -217,30 +243,51 @@ class UsdWriter:
                     f"{where}particle {int(bad[0])} has a non-finite position or one beyond float32 range "
                     f"({len(bad)} of {model.particle_count} particles); the frame was not written"
                 )
-        seconds = self.frame_count / self.fps
-        poses = {shape.name: shape.frame(seconds) for shape in model.shapes if shape.moving}  # same in every world
+        with np.errstate(over="ignore", invalid="ignore"):
+            v_all = state.particle_qd.numpy().reshape(q_all.shape).astype(np.float32)
+        v_all[~np.isfinite(v_all)] = 0.0  # a velocity beyond float32 blurs nothing useful
         normals_all = None
         if any(slot.meshes for slot in live):
-            normals_all = self._vertex_normals(state).reshape(model.world_count, model.particle_count, 3)
+            normals_all = self._vertex_normals(state).reshape(q_all.shape)
+        rest = self._rest_lengths() if self._strain_ends is not None else None
+        kinematic = None
+        if "pinned" in self._primvars:
+            kinematic = (model.particle_flags.numpy().reshape(model.world_count, -1) & PARTICLE_KINEMATIC) != 0
+        seconds = self.frame_count / self.fps
+        poses = {shape.name: shape.frame(seconds) for shape in model.shapes if shape.moving}  # same in every world
+
+        Vt, UsdGeom, Gf = self._Vt, self._UsdGeom, self._Gf
+        samples = []  # (attribute path, value)
         for slot in live:
-            q = q_all[slot.world]
-            for group, points_attr, extent_attr, normals_attr in slot.meshes:
-                points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q[group.particles]))
-                points_attr.Set(points, t)
-                extent_attr.Set(UsdGeom.PointBased.ComputeExtent(points), t)
-                normals = normals_all[slot.world][group.particles]
-                normals_attr.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(normals)), t)
+            q, v = q_all[slot.world], v_all[slot.world]
+            strain = None if rest is None else self._spring_strain(q, rest)
+            vertex_strain = None if strain is None or "strain" not in self._primvars else self._vertex_strain(strain)
+            for mesh in slot.meshes:
+                particles = mesh.group.particles
+                points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q[particles]))
+                samples += [(mesh.points, points), (mesh.extent, UsdGeom.PointBased.ComputeExtent(points)),
+                            (mesh.normals, _vec3(Vt, normals_all[slot.world][particles])),
+                            (mesh.velocities, _vec3(Vt, v[particles]))]
+                if vertex_strain is not None:
+                    samples.append((mesh.strain, Vt.FloatArray.FromNumpy(vertex_strain[particles])))
+                if kinematic is not None:
+                    samples.append((mesh.pinned, Vt.IntArray.FromNumpy(kinematic[slot.world][particles].astype(np.int32))))
             if slot.points is not None:
                 points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q))
-                slot.points.GetPointsAttr().Set(points, t)
-                slot.points.GetExtentAttr().Set(UsdGeom.Points.ComputeExtent(points, self._widths), t)
-            if slot.curves is not None:
-                points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q[self._spring_ends]))
-                slot.curves.GetPointsAttr().Set(points, t)
-                slot.curves.GetExtentAttr().Set(UsdGeom.Curves.ComputeExtent(points, self._curve_widths), t)
+                samples += [(slot.points.points, points), (slot.points.velocities, _vec3(Vt, v)),
+                            (slot.points.extent, UsdGeom.Points.ComputeExtent(points, self._widths))]
+            for curves in slot.curves:
+                points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q[curves.particles]))
+                segment = strain[curves.segments]  # per curve vertex: its two segments (a chain's ends: one)
+                samples += [(curves.points, points), (curves.velocities, _vec3(Vt, v[curves.particles])),
+                            (curves.extent, UsdGeom.Curves.ComputeExtent(points, self._curve_widths)),
+                            (curves.strain, Vt.FloatArray.FromNumpy(segment.max(axis=1).astype(np.float32)))]
             for shape, translate, orient in slot.colliders:
-                _set_pose(translate, orient, poses[shape.name], t)
-        self.stage.SetEndTimeCode(float(max(self.frame_count, 1)))
+                position, (x, y, z, w) = poses[shape.name]
+                samples += [(translate, Gf.Vec3d(*(float(p) for p in position))),
+                            (orient, Gf.Quatd(float(w), float(x), float(y), float(z)))]
+        time_code = self.start_frame + self.frame_count
+        self._pending = (time_code, self._frame_layer(time_code, samples))
         self.frame_count += 1
         self._save()
 
@@ -255,21 +302,24 @@ class UsdWriter:
     @property
     def stopped_worlds(self) -> dict[int, int]:
         """The exported worlds that were stopped, each with the number of frames written of it (its last
-        sample is at time code that number - 1)."""
+        sample is at time code ``start_frame`` + that number - 1)."""
         return dict(self._stopped)
 
     def close(self) -> None:
-        """Save the file and release the stage. Safe to call twice. After a failed save it only releases the
-        stage: the file keeps the frames saved before the failure.
+        """Write the self-contained file (every frame in one layer at ``path``, the frames folder removed) and
+        release the stage. Safe to call twice. After a failed save it only releases the stage: the file keeps
+        the frames saved before the failure, in the frames folder beside it.
 
         Raises:
-            OutputError: the last save failed (see :meth:`write_frame`).
+            OutputError: the file could not be written (the frames stay readable through the frames folder).
         """
-        if not self._closed:
-            try:
-                self._save(force=True)
-            finally:
-                self._release()
+        if self._closed:
+            return
+        try:
+            if not self._failed:
+                self._pack()
+        finally:
+            self._release()
 
     def __enter__(self) -> UsdWriter:
         return self
@@ -277,23 +327,24 @@ class UsdWriter:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    # -- internals ------------------------------------------------------------------------------------
+    # -- saving ---------------------------------------------------------------------------------------
 
-    def _save(self, force: bool = False) -> None:
-        """Save the layer and its :attr:`frame_count` frames (a text layer at most once per ``text_save_interval``
-        unless ``force``). A failure releases the stage unsaved and raises OutputError."""
+    def _save(self) -> None:
+        """Save the pending frame: its layer into the frames folder, then the root layer that makes it part of
+        the stage. A failure releases the writer and raises OutputError; the file keeps the frames before."""
         frames = self.frame_count
-        now = time.monotonic()
-        if self._text and not force and now - self._last_save < self._save_interval:
-            return
         try:
             saved = self._save_layer()
+            if saved is not False:
+                self._add_clip(*self._pending)
+                self._write_root()
         except (OSError, self._Tf.ErrorException) as exc:
             reason, code = _reason(exc), getattr(exc, "errno", None)
         else:
             if saved is not False:
-                self._last_save = now
                 self.frames_saved = frames
+                self._pending = None
+                self._gather()
                 return
             reason, code = "", None  # USD refused without a word
         if code is None:  # no OS error number: say what the file system shows
@@ -302,22 +353,220 @@ class UsdWriter:
         reason = reason or "USD gave no reason (a full disk, or the file or its folder removed?)"
         saved = self.frames_saved
         lost = frames - saved
-        what = ("the file" if lost <= 0 else f"frame {saved}" if lost == 1 else f"frames {saved}..{frames - 1}")
+        what = f"frame {saved}" if lost == 1 else f"frames {saved}..{frames - 1}"
         held = f"frames 0..{saved - 1}" if saved > 1 else "frame 0" if saved == 1 else "no frame"
-        self._release()  # the unsaved samples are dropped: the file keeps what was saved
+        self._failed = True
+        self._release()  # the unsaved frame is dropped: the file keeps what was saved
         raise OutputError(f"cannot write {what} to the USD file {self.path!r}: {reason}; the file holds {held}",
-                          path=self.path, frame=saved if lost > 0 else None, frames_saved=saved, code=code)
+                          path=self.path, frame=saved, frames_saved=saved, code=code)
 
     def _save_layer(self) -> bool:
-        """Write the root layer to disk: whether USD saved it (it may also raise OSError or Tf.ErrorException)."""
-        return self.stage.GetRootLayer().Save()
+        """Write the pending frame's layer into the frames folder: whether USD saved it (it may also raise
+        OSError or Tf.ErrorException)."""
+        time_code, layer = self._pending
+        return self._export(layer, os.path.join(self.parts, frame_name(time_code, self._format)))
+
+    def _export(self, layer, path: str) -> bool:
+        """Write ``layer`` to ``path`` whole (USD writes a temporary file and renames it: a reader sees the
+        old file or the new one, never a part)."""
+        return layer.Export(path)
+
+    def _add_clip(self, time_code: float, layer) -> None:
+        """Count a frame saved in the frames folder as a clip of the stage, and keep its layer for its chunk."""
+        name = frame_name(time_code, self._format)
+        self._clips.append((time_code, name))
+        self._loose.append((time_code, layer))
+        self._loose_bytes += os.path.getsize(os.path.join(self.parts, name))
+
+    def _gather(self) -> None:
+        """Gather the loose frames into one chunk layer once they are many or large (a reader opens a few
+        chunks instead of thousands of frames), and remove frame files a chunk replaced a while ago."""
+        now = time.monotonic()
+        while self._obsolete and self._obsolete[0][0] <= now:  # readers had _GRACE seconds to finish with them
+            for path in self._obsolete.pop(0)[1]:
+                try:
+                    os.remove(path)
+                except OSError:
+                    pass
+        if len(self._loose) < _CHUNK_FRAMES and self._loose_bytes < _CHUNK_BYTES:
+            return
+        loose, self._loose, self._loose_bytes = self._loose, [], 0
+        if len(loose) < 2:
+            return
+        first = loose[0][0]
+        name = chunk_name(first, self._format)
+        chunk = self._Sdf.Layer.CreateAnonymous(self._format)
+        for time_code, layer in loose:
+            self._copy_samples(layer, chunk)
+        clips = self._clips
+        try:
+            self._export(chunk, os.path.join(self.parts, name))
+            self._clips = clips[: len(clips) - len(loose)] + [(first, name)]
+            self._write_root()
+        except (OSError, self._Tf.ErrorException):  # the frames stay clips of their own: the file is as valid
+            self._clips = clips
+            return
+        replaced = [os.path.join(self.parts, frame_name(t, self._format)) for t, _ in loose]
+        self._obsolete.append((now + _GRACE, replaced))
+        self._reaper.obsolete(replaced)
+
+    def _copy_samples(self, source, target) -> None:
+        """Copy every animated attribute's samples of layer ``source`` into layer ``target``."""
+        Sdf = self._Sdf
+        for attribute, value_type in self._animated:
+            if not source.GetAttributeAtPath(attribute):
+                continue
+            if not target.GetAttributeAtPath(attribute):
+                prim = Sdf.CreatePrimInLayer(target, attribute.GetPrimPath())
+                Sdf.AttributeSpec(prim, attribute.name, value_type, Sdf.VariabilityVarying)
+            for time_code in source.ListTimeSamplesForPath(attribute):
+                target.SetTimeSample(attribute, time_code, source.QueryTimeSample(attribute, time_code))
+
+    def _write_root(self) -> None:
+        """Write the root layer at :attr:`path`: the stage's metadata, the static layer as a sublayer and the
+        saved frames as value clips (chunks of frames, then the latest frames one by one)."""
+        Sdf, Vt, Gf = self._Sdf, self._Vt, self._Gf
+        layer = Sdf.Layer.CreateAnonymous(self._format)
+        last = self.start_frame + max(self.frame_count - 1, 0)
+        self._stage_metadata(layer, end=max(last, self.start_frame + 1))
+        folder = os.path.basename(self.parts)
+        layer.subLayerPaths.append(f"./{folder}/{STATIC_NAME}")
+        if self._clips:
+            world = Sdf.CreatePrimInLayer(layer, "/World")
+            world.specifier = Sdf.SpecifierOver
+            start = float(self.start_frame)
+            world.SetInfo("clips", {"default": {
+                "assetPaths": Sdf.AssetPathArray([Sdf.AssetPath(f"./{folder}/{name}") for _, name in self._clips]),
+                "active": Vt.Vec2dArray([Gf.Vec2d(float(t), float(i)) for i, (t, _) in enumerate(self._clips)]),
+                "times": Vt.Vec2dArray([Gf.Vec2d(start, start), Gf.Vec2d(float(last), float(last))]),
+                "primPath": "/World",
+                "manifestAssetPath": Sdf.AssetPath(f"./{folder}/{MANIFEST_NAME}"),
+                "interpolateMissingClipValues": True,  # a stopped world holds its last sample
+            }})
+        self._export(layer, self.path)
+
+    def _stage_metadata(self, layer, *, end: float) -> None:
+        """Author what DCC tools need to play the file (USD's fallbacks are wrong for simulation caches)."""
+        from .. import __version__
+
+        layer.defaultPrim = "World"
+        layer.pseudoRoot.SetInfo("upAxis", self.model.up_axis)
+        layer.pseudoRoot.SetInfo("metersPerUnit", 1.0)
+        layer.timeCodesPerSecond = self.fps
+        layer.framesPerSecond = self.fps
+        layer.startTimeCode = float(self.start_frame)
+        layer.endTimeCode = float(end)
+        layer.customLayerData = {"generator": f"warpspring {__version__} (warp {wp.__version__})"}
+
+    def _manifest(self):
+        """The clips' manifest: every animated attribute, declared with its type and no value."""
+        Sdf = self._Sdf
+        layer = Sdf.Layer.CreateAnonymous(".usda")
+        for attribute, value_type in self._animated:
+            prim = Sdf.CreatePrimInLayer(layer, attribute.GetPrimPath())
+            Sdf.AttributeSpec(prim, attribute.name, value_type, Sdf.VariabilityVarying)
+        return layer
+
+    def _frame_layer(self, time_code: float, samples: list):
+        """A layer holding one frame's samples, each (attribute path, value), at ``time_code``."""
+        Sdf = self._Sdf
+        layer = Sdf.Layer.CreateAnonymous(self._format)
+        types = self._types
+        for attribute, value in samples:
+            prim = Sdf.CreatePrimInLayer(layer, attribute.GetPrimPath())
+            Sdf.AttributeSpec(prim, attribute.name, types[attribute], Sdf.VariabilityVarying)
+            layer.SetTimeSample(attribute, time_code, value)
+        return layer
+
+    def _write_kept(self, kept: list, frames: int) -> None:
+        """Write the frames of a stopped run being resumed, (attribute path, [(time code, value)]) pairs."""
+        by_time: dict[float, list] = {}
+        for attribute, values in kept:
+            if attribute not in self._types:
+                raise ConfigError(f"cannot resume {self.path!r}: it holds {attribute}, which this scene does not "
+                                  "write (another scene or other export options)")
+            for time_code, value in values:
+                by_time.setdefault(time_code, []).append((attribute, value))
+        for time_code in sorted(by_time):
+            self._pending = (time_code, self._frame_layer(time_code, by_time[time_code]))
+            self._save_layer()
+            self._add_clip(*self._pending)
+            self._gather()
+        self._pending = None
+        self.frame_count = frames
+
+    def _pack(self) -> None:
+        """Replace the root layer by one self-contained layer of every saved frame (the static layer with the
+        frames' samples), written beside it and renamed over it, then remove the frames folder."""
+        Sdf = self._Sdf
+        packed = os.path.join(self.parts, PACKED_NAME + self._format)
+        try:
+            static = os.path.join(self.parts, STATIC_NAME)
+            layer = Sdf.Layer.Find(packed)  # a stale one of an earlier writer of this path, in this process
+            if layer is not None:
+                layer.Clear()
+            else:
+                layer = Sdf.Layer.CreateNew(packed)
+            layer.TransferContent(Sdf.Layer.FindOrOpen(static))
+            self._stage_metadata(layer, end=self.start_frame + max(self.frames_saved - 1, 1))
+            pending = 0  # bytes of samples (on disk, as clip files) gathered since the last save
+            for _, name in self._clips:
+                clip_path = os.path.join(self.parts, name)
+                self._copy_samples(Sdf.Layer.OpenAsAnonymous(clip_path), layer)
+                pending += os.path.getsize(clip_path)
+                if not self._text and pending >= _PACK_FLUSH_BYTES:
+                    layer.Save()  # a crate appends: the samples saved leave memory
+                    pending = 0
+            if not layer.Save():
+                raise OSError("USD did not save the packed file")
+            del layer
+            os.replace(packed, self.path)
+        except (OSError, self._Tf.ErrorException) as exc:
+            self._failed = True
+            reason = _reason(exc) or _diagnose(self.path) or "USD gave no reason"
+            raise OutputError(f"cannot pack the USD file {self.path!r} into one file: {reason}; it holds frames "
+                              f"0..{self.frames_saved - 1} through its frames folder {self.parts!r}",
+                              path=self.path, frames_saved=self.frames_saved,
+                              code=getattr(exc, "errno", None)) from None
+        self._reaper.packed()
+        shutil.rmtree(self.parts, ignore_errors=True)
+        layer = Sdf.Layer.Find(self.path)
+        if layer is not None:  # a stale layer of this path in this process's registry: read the new file
+            layer.Reload()
+
+    @property
+    def _text(self) -> bool:
+        return self._format == ".usda"
 
     def _release(self) -> None:
-        """Drop the stage, so that an unsaved layer does not stay in USD's registry (a later open of the path
-        reads the file on disk)."""
+        """Drop the stage, and end the reaper: cleanly after a packed file, else it keeps the frames folder
+        (the file's frames) and removes only temporaries."""
         self._closed = True
         self.stage = None
         self._slots = []
+        self._pending = None
+        if self._reaper is not None:
+            self._reaper.finish()
+            self._reaper = None
+
+    def _abandon(self) -> None:
+        """Undo a writer whose set-up failed: remove what it wrote."""
+        self._release()
+        shutil.rmtree(self.parts, ignore_errors=True)
+        if os.path.isfile(self.path):
+            os.remove(self.path)
+
+    # -- prims ----------------------------------------------------------------------------------------
+
+    def _animate(self, attribute):
+        """Record ``attribute`` (a Usd.Attribute of the static stage) as sampled per frame; its path."""
+        path = attribute.GetPath()
+        self._animated.append((path, attribute.GetTypeName()))
+        return path
+
+    @property
+    def _types(self) -> dict:
+        return dict(self._animated)
 
     def _define_world(self, world: int, root: str, *, particles: bool, springs: bool) -> _WorldPrims:
         """Define the prims of one exported world under ``root``; topology and constant attributes once."""
@@ -327,54 +576,139 @@ class UsdWriter:
         meshes = []
         for group in model.meshes:
             mesh = UsdGeom.Mesh.Define(stage, f"{root}/{group.name}")
-            mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(group.faces)))
-            mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(group.faces.reshape(-1).astype(np.int32)))
+            if group.polygon_counts is not None:  # the faces as authored (quads stay quads)
+                counts, indices = group.polygon_counts, group.polygon_indices
+            else:
+                counts, indices = np.full(len(group.faces), 3, np.int32), group.faces.reshape(-1)
+            mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(counts.astype(np.int32)))
+            mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(indices.astype(np.int32)))
             mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
             mesh.CreateDoubleSidedAttr(True)
             mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
             mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+            primvars = UsdGeom.PrimvarsAPI(mesh)
             if group.uvs is not None:  # per vertex, or per corner where seams give a particle two UVs
                 corners = group.uvs.ndim == 3
-                st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
+                st = primvars.CreatePrimvar(
                     "st", Sdf.ValueTypeNames.TexCoord2fArray,
                     UsdGeom.Tokens.faceVarying if corners else UsdGeom.Tokens.vertex,
                 )
                 st.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(group.uvs.reshape(-1, 2), dtype=np.float32)))
-            meshes.append((group, mesh.GetPointsAttr(), mesh.GetExtentAttr(), mesh.GetNormalsAttr()))
+            for name, faces in group.face_sets.items():
+                UsdGeom.Subset.CreateGeomSubset(mesh, name, UsdGeom.Tokens.face, Vt.IntArray.FromNumpy(faces),
+                                                familyName="warpspring")
+            strain = pinned = None
+            if "strain" in self._primvars:
+                strain = self._animate(primvars.CreatePrimvar(
+                    "strain", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).GetAttr())
+            if "pinned" in self._primvars:
+                pinned = self._animate(primvars.CreatePrimvar(
+                    "pinned", Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.vertex).GetAttr())
+            if "rest" in self._primvars:  # the world's positions at the start
+                q0 = model.particle_q.numpy().reshape(model.world_count, model.particle_count, 3)[world]
+                primvars.CreatePrimvar("rest", Sdf.ValueTypeNames.Point3fArray, UsdGeom.Tokens.vertex).Set(
+                    _vec3(Vt, q0[group.particles]))
+            meshes.append(_MeshPrims(
+                group,
+                points=self._animate(mesh.CreatePointsAttr()),
+                extent=self._animate(mesh.CreateExtentAttr()),
+                normals=self._animate(mesh.CreateNormalsAttr()),
+                velocities=self._animate(mesh.CreateVelocitiesAttr()),
+                strain=strain, pinned=pinned,
+            ))
 
         points = None
         if particles:
-            points = UsdGeom.Points.Define(stage, f"{root}/particles")
+            prim = UsdGeom.Points.Define(stage, f"{root}/particles")
             radius = model.particle_radius.numpy().astype(np.float32)
             self._widths = Vt.FloatArray.FromNumpy(2.0 * radius)
-            points.CreateWidthsAttr(self._widths)
-            points.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+            prim.CreateWidthsAttr(self._widths)
+            prim.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+            points = _PointsPrims(points=self._animate(prim.CreatePointsAttr()),
+                                  extent=self._animate(prim.CreateExtentAttr()),
+                                  velocities=self._animate(prim.CreateVelocitiesAttr()))
 
-        curves = None
+        curves = []
         if springs and model.spring_count:
-            curves = UsdGeom.BasisCurves.Define(stage, f"{root}/springs")
-            curves.CreateTypeAttr(UsdGeom.Tokens.linear)
-            curves.CreateCurveVertexCountsAttr(Vt.IntArray([2] * model.spring_count))
+            UsdGeom.Scope.Define(stage, f"{root}/springs")
             width = float(0.5 * model.particle_radius.numpy().mean()) or 1.0e-3
             self._curve_widths = Vt.FloatArray([width])
-            curves.CreateWidthsAttr(self._curve_widths)
-            curves.SetWidthsInterpolation(UsdGeom.Tokens.constant)
-            self._spring_ends = model.spring_indices.numpy().reshape(-1)
+            ends = model.spring_indices.numpy()
+            for family, members in model.spring_families.items():
+                counts, particles, segments = spring_chains(ends[members])
+                prim = UsdGeom.BasisCurves.Define(stage, f"{root}/springs/{family}")
+                prim.CreateTypeAttr(UsdGeom.Tokens.linear)
+                prim.CreateCurveVertexCountsAttr(Vt.IntArray.FromNumpy(counts))
+                prim.CreateWidthsAttr(self._curve_widths)
+                prim.SetWidthsInterpolation(UsdGeom.Tokens.constant)
+                api = UsdGeom.PrimvarsAPI(prim)
+                api.CreatePrimvar("warpspring:particle", Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.vertex).Set(
+                    Vt.IntArray.FromNumpy(particles))
+                strain = api.CreatePrimvar("strain", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).GetAttr()
+                curves.append(_CurvePrims(
+                    particles=particles, segments=members[segments],
+                    points=self._animate(prim.CreatePointsAttr()), extent=self._animate(prim.CreateExtentAttr()),
+                    velocities=self._animate(prim.CreateVelocitiesAttr()), strain=self._animate(strain),
+                ))
         return _WorldPrims(world, meshes, points, curves)
+
+    def _normal_topology(self) -> None:
+        """The CSR table of vertex → incident triangles (ascending) of every exported world's meshes, in
+        state-array indices: one launch gathers all their normals, in a fixed order."""
+        model = self.model
+        n = model.particle_count
+        tri = model.tri_indices.numpy()
+        tri = np.concatenate([tri + w * n for w in self.worlds]).astype(np.int32)
+        corner_vertex = tri.ravel()
+        order = np.argsort(corner_vertex, kind="stable")  # by vertex, then by triangle
+        start = np.searchsorted(corner_vertex[order], np.arange(model.state_size + 1))
+        device = model.device
+        self._export_tris = wp.array(tri, dtype=wp.int32, device=device)
+        self._vertex_tri_start = wp.array(start.astype(np.int32), dtype=wp.int32, device=device)
+        self._vertex_tris = wp.array((order // 3).astype(np.int32), dtype=wp.int32, device=device)
+        self._normals = wp.empty(model.state_size, dtype=wp.vec3f, device=device)
 
     def _vertex_normals(self, state: State) -> np.ndarray:
         """Unit vertex normals of every particle, shape [state_size, 3] (those of exported worlds' meshes set)."""
         model = self.model
-        accumulate, normalize = vertex_normal_kernels(model.scalar)
-        self._normals.zero_()
-        wp.launch(accumulate, dim=self._export_tris.shape[0], inputs=[self._export_tris, state.particle_q],
+        wp.launch(vertex_normal_kernel(model.scalar), dim=model.state_size,
+                  inputs=[self._export_tris, self._vertex_tri_start, self._vertex_tris, state.particle_q],
                   outputs=[self._normals], device=model.device)
-        wp.launch(normalize, dim=model.state_size, inputs=[self._normals], device=model.device)
         return self._normals.numpy()
 
+    def _strain_topology(self) -> None:
+        """Spring ends sorted by particle, for the per-vertex maximum of the springs' strain."""
+        ends = self.model.spring_indices.numpy().astype(np.int64)
+        self._strain_ends = ends if len(ends) else None
+        if self._strain_ends is None:
+            return
+        corner = ends.ravel()
+        self._corner_order = np.argsort(corner, kind="stable")
+        sorted_vertex = corner[self._corner_order]
+        self._corner_start = np.flatnonzero(np.r_[True, np.diff(sorted_vertex) != 0])
+        self._corner_vertex = sorted_vertex[self._corner_start]
+
+    def _rest_lengths(self) -> np.ndarray:
+        return self.model.spring_rest_length.numpy().astype(np.float64)
+
+    def _spring_strain(self, q: np.ndarray, rest: np.ndarray) -> np.ndarray:
+        """The strain (l − L)/L of every spring [-], shape [spring_count], float32 (0 for L = 0)."""
+        ends = self._strain_ends
+        length = np.linalg.norm(q[ends[:, 1]].astype(np.float64) - q[ends[:, 0]], axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            strain = np.where(rest > 0.0, length / rest - 1.0, 0.0)
+        return strain.astype(np.float32)
+
+    def _vertex_strain(self, strain: np.ndarray) -> np.ndarray:
+        """Per particle, the largest strain of its springs [-], shape [particle_count] (0 with no spring)."""
+        out = np.zeros(self.model.particle_count, dtype=np.float32)
+        per_corner = strain[self._corner_order // 2]
+        out[self._corner_vertex] = np.maximum.reduceat(per_corner, self._corner_start)
+        return out
+
     def _write_colliders(self, root: str) -> list:
-        """Define the collider prims of one exported world under ``root``, each of purpose guide and posed at
-        rest; returns (ShapeInfo, translate op, orient op) of each moving collider, to sample every frame."""
+        """Define the collider prims of one exported world under ``root``, each of the chosen purpose and posed
+        at rest; returns (ShapeInfo, translate path, orient path) of each moving collider, sampled every frame."""
         from pxr import Gf, Vt
 
         UsdGeom = self._UsdGeom
@@ -416,15 +750,216 @@ class UsdWriter:
                 prim.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-half, -half, 0), Gf.Vec3f(half, half, 0)]))
             else:  # pragma: no cover - every collider kind is exported; a new kind must add a branch
                 raise NotImplementedError(f"USD export of {shape.kind} colliders")
-            prim.CreatePurposeAttr(UsdGeom.Tokens.guide)
+            prim.CreatePurposeAttr(self._purpose)
             translate = prim.AddTranslateOp()  # double precision, as the shape's frame
             orient = prim.AddOrientOp(UsdGeom.XformOp.PrecisionDouble)
             if scale is not None:
                 prim.AddScaleOp(UsdGeom.XformOp.PrecisionDouble).Set(scale)
             _set_pose(translate, orient, shape.frame(0.0))  # default value: the rest pose, or a moving one's at t = 0
             if shape.moving:
-                moving.append((shape, translate, orient))
+                moving.append((shape, self._animate(translate.GetAttr()), self._animate(orient.GetAttr())))
         return moving
+
+
+#: The optional per-vertex primvars of :class:`UsdWriter`.
+PRIMVARS = ("strain", "pinned", "rest")
+#: The purposes a collider prim may have.
+PURPOSES = ("guide", "default", "render", "proxy")
+#: Names inside the frames folder.
+STATIC_NAME = "static.usdc"
+MANIFEST_NAME = "manifest.usda"
+PACKED_NAME = "packed"
+#: Bytes of samples a packed crate file gathers between two saves (each save appends them to the file).
+_PACK_FLUSH_BYTES = 256 << 20
+#: Frames, or bytes of frames, gathered into one chunk layer while a run writes.
+_CHUNK_FRAMES = 100
+_CHUNK_BYTES = 64 << 20
+#: Seconds a frame file a chunk replaced stays, for readers that opened the root before the chunk came.
+_GRACE = 10.0
+
+
+def parts_folder(path: str) -> str:
+    """The folder beside ``path`` that holds its frames while a run writes them (``out.usdc.frames``)."""
+    return path + ".frames"
+
+
+def frame_name(time_code: float, fmt: str) -> str:
+    """The file name of one frame's layer in the frames folder."""
+    return f"frame.{int(time_code):06d}{fmt}"
+
+
+def chunk_name(time_code: float, fmt: str) -> str:
+    """The file name of a chunk of frames, from time code ``time_code`` on, in the frames folder."""
+    return f"chunk.{int(time_code):06d}{fmt}"
+
+
+def _remove_output(path: str) -> None:
+    """Remove an earlier output at ``path`` and its frames folder (a killed run's)."""
+    from pxr import Sdf
+
+    if os.path.exists(path):
+        os.remove(path)
+    shutil.rmtree(parts_folder(path), ignore_errors=True)
+    layer = Sdf.Layer.Find(path)
+    if layer is not None:  # a stale layer of the same name in this process's registry
+        layer.Clear()
+
+
+def _vec3(Vt, values: np.ndarray):
+    return Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(values, dtype=np.float32))
+
+
+def spring_chains(ends: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Springs as few linear chains as pairing them at each particle gives (each spring once): a grid's
+    structural springs become its rows and columns, so a chain's inner points are shared by two springs.
+
+    Args:
+        ends: the two particles of each spring, shape [s, 2].
+
+    Returns:
+        counts: vertices per chain, shape [c], int32; particles: the particle of each chain vertex, shape
+        [counts.sum()], int32; segments: for each chain vertex, the springs (indices into ``ends``) on either
+        side of it, shape [counts.sum(), 2], int64 (a chain's end vertex repeats its one spring).
+    """
+    s = len(ends)
+    corner = np.asarray(ends, dtype=np.int64).ravel()  # corner 2i + side is spring i's end at that side
+    order = np.argsort(corner, kind="stable")
+    sorted_vertex = corner[order]
+    group_start = np.flatnonzero(np.r_[True, np.diff(sorted_vertex) != 0])
+    rank = np.arange(2 * s) - np.repeat(group_start, np.diff(np.r_[group_start, 2 * s]))
+    first = np.flatnonzero((rank % 2 == 0)[:-1] & (sorted_vertex[:-1] == sorted_vertex[1:]))
+    mate = np.full(2 * s, -1, dtype=np.int64)  # the corner a chain continues through at the same particle
+    mate[order[first]], mate[order[first + 1]] = order[first + 1], order[first]
+    visited = np.zeros(s, dtype=bool)
+    counts, particles, segments = [], [], []
+    starts = np.r_[np.flatnonzero(mate < 0), np.arange(2 * s)]  # open chains first, then closed loops
+    for begin in starts.tolist():
+        if visited[begin // 2]:
+            continue
+        chain, springs = [int(corner[begin])], []
+        c = begin
+        while True:
+            spring = c // 2
+            visited[spring] = True
+            springs.append(spring)
+            other = c ^ 1
+            chain.append(int(corner[other]))
+            c = int(mate[other])
+            if c < 0 or visited[c // 2]:
+                break
+        counts.append(len(chain))
+        particles.extend(chain)
+        springs = np.asarray(springs)
+        segments.append(np.stack([np.r_[springs[:1], springs], np.r_[springs, springs[-1:]]], axis=1))
+    return (np.asarray(counts, dtype=np.int32), np.asarray(particles, dtype=np.int32),
+            np.concatenate(segments) if segments else np.zeros((0, 2), dtype=np.int64))
+
+
+class _Reaper:
+    """A small process that outlives a killed run: when the writer's process dies without finishing (even by
+    SIGKILL, which no handler sees), it removes the temporary files USD was writing (USD writes a file as
+    its name less the extension + "." + 6 characters, then renames it), so that a killed run leaves its file,
+    its frames folder and nothing else. It notices the writer's death as the end of a pipe."""
+
+    _CODE = r"""
+import os, re, shutil, sys, time
+parts, path = sys.argv[1:3]
+started = time.time() - 1.0
+said = sys.stdin.read().split("\n")
+if "done" not in said:
+    for line in said:
+        if line.startswith("obsolete "):
+            try:
+                os.remove(line[len("obsolete "):])
+            except OSError:
+                pass
+    for name in os.listdir(parts) if os.path.isdir(parts) else []:
+        if name.startswith("packed.") or not name.endswith((".usdc", ".usda")):  # USD's temporaries
+            try:
+                os.remove(os.path.join(parts, name))
+            except OSError:
+                pass
+    folder, stem = os.path.split(os.path.splitext(path)[0])
+    pattern = re.compile(re.escape(stem) + r"\.[A-Za-z0-9]{6}$")
+    for name in os.listdir(folder):
+        full = os.path.join(folder, name)
+        try:
+            if pattern.match(name) and os.path.getmtime(full) >= started:
+                os.remove(full)
+        except OSError:
+            pass
+    if "packed" in said:
+        shutil.rmtree(parts, ignore_errors=True)
+"""
+
+    def __init__(self, path: str):
+        import subprocess
+        import sys
+
+        self._process = subprocess.Popen(
+            [sys.executable, "-c", self._CODE, parts_folder(path), os.path.abspath(path)], stdin=subprocess.PIPE,
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, close_fds=True, start_new_session=True, text=True,
+        )
+
+    def _tell(self, word: str) -> None:
+        try:
+            self._process.stdin.write(word + "\n")
+            self._process.stdin.flush()
+        except (OSError, ValueError):
+            pass
+
+    def obsolete(self, paths: list) -> None:
+        """Frame files that a chunk replaced: removed by the writer after a grace period, or by the reaper."""
+        for path in paths:
+            self._tell(f"obsolete {path}")
+
+    def packed(self) -> None:
+        """The self-contained file replaced the root: the frames folder is no longer needed."""
+        self._tell("packed")
+
+    def finish(self) -> None:
+        """The writer ended on its own: nothing to clean up."""
+        self._tell("done")
+        try:
+            self._process.stdin.close()
+        except OSError:
+            pass
+        self._process.wait()
+
+
+@dataclass
+class _MeshPrims:
+    """The animated attributes (paths) of one exported cloth mesh."""
+
+    group: object  # MeshGroup
+    points: object
+    extent: object
+    normals: object
+    velocities: object
+    strain: object = None
+    pinned: object = None
+
+
+@dataclass
+class _PointsPrims:
+    """The animated attributes (paths) of the particles' points prim."""
+
+    points: object
+    extent: object
+    velocities: object
+
+
+@dataclass
+class _CurvePrims:
+    """One spring family's curves: the particle of each curve vertex, the springs beside it, and the animated
+    attributes (paths)."""
+
+    particles: np.ndarray
+    segments: np.ndarray
+    points: object
+    extent: object
+    velocities: object
+    strain: object
 
 
 @dataclass
@@ -432,10 +967,10 @@ class _WorldPrims:
     """The animated prims of one exported world."""
 
     world: int
-    meshes: list  # (MeshGroup, points, extent and normals attributes) per cloth mesh
-    points: object  # UsdGeom.Points of the particles, or None
-    curves: object  # UsdGeom.BasisCurves of the springs, or None
-    colliders: list = field(default_factory=list)  # (ShapeInfo, translate op, orient op) per moving collider
+    meshes: list  # _MeshPrims per cloth mesh
+    points: object  # _PointsPrims of the particles, or None
+    curves: list  # _CurvePrims per spring family
+    colliders: list = field(default_factory=list)  # (ShapeInfo, translate path, orient path) per moving collider
 
 
 def _set_pose(translate, orient, frame, time=None) -> None:
@@ -449,9 +984,10 @@ def _set_pose(translate, orient, frame, time=None) -> None:
     orient.Set(Gf.Quatd(float(w), float(x), float(y), float(z)), time)
 
 
-def _read_frames(path: str, frames: int) -> list:
-    """Every time sample of the first ``frames`` frames of the USD file at ``path``: (attribute path, [(time
-    code, value)]) pairs, read into memory so that the file can be replaced."""
+def _read_frames(path: str, frames: int, start_frame: int) -> list:
+    """Every time sample of the first ``frames`` frames (time codes ``start_frame`` ..) of the USD file at
+    ``path``, packed or a killed run's (read through its frames folder): (attribute path, [(time code, value)])
+    pairs, read into memory so that the file can be replaced."""
     from pxr import Sdf, Tf, Usd
 
     if not os.path.isfile(path):
@@ -464,17 +1000,20 @@ def _read_frames(path: str, frames: int) -> list:
         stage = Usd.Stage.Open(layer if layer is not None else path)
     except Tf.ErrorException as exc:
         raise ConfigError(f"cannot resume into {path!r}: USD cannot read it ({_reason(exc) or 'no reason'})") from None
-    held = int(stage.GetEndTimeCode()) + 1 if stage.HasAuthoredTimeCodeRange() else 0
-    if held < frames:
-        raise ConfigError(f"cannot resume into {path!r}: it holds frames 0..{held - 1}, the checkpoint continues "
-                          f"after frame {frames - 1}")
-    kept = []
+    kept, last = [], -1.0
+    end = start_frame + frames
     for prim in stage.Traverse():
         for attribute in prim.GetAttributes():
-            times = [t for t in attribute.GetTimeSamples() if t < frames]
+            times = attribute.GetTimeSamples()
+            last = max([last, *times])
+            times = [t for t in times if start_frame <= t < end]
             if times:
                 kept.append((attribute.GetPath(), [(t, attribute.Get(Usd.TimeCode(t))) for t in times]))
     del stage
+    held = int(last) + 1 - start_frame
+    if held < frames:
+        raise ConfigError(f"cannot resume into {path!r}: it holds frames 0..{held - 1}, the checkpoint continues "
+                          f"after frame {frames - 1}")
     return kept
 
 
