@@ -46,7 +46,7 @@ def stream(model: ws.Model, path: str, frames: int, fps: float = 60.0) -> dict:
     phase = q0[:, 0] * 7.0 + q0[:, 1] * 3.0
     state = model.state()
     times = np.empty(frames)
-    resident = 0
+    base = resident = resident_bytes()
     dtype = np.float64 if model.precision == "float64" else np.float32
     writer = UsdWriter(path, model, fps=fps)
     for k in range(frames):
@@ -62,7 +62,7 @@ def stream(model: ws.Model, path: str, frames: int, fps: float = 60.0) -> dict:
             resident = max(resident, resident_bytes())
     start = time.perf_counter()
     writer.close()
-    return {"times": times, "close": time.perf_counter() - start, "resident": max(resident, resident_bytes())}
+    return {"times": times, "close": time.perf_counter() - start, "resident": resident - base}
 
 
 def resident_bytes() -> int:
@@ -117,8 +117,8 @@ def main() -> None:
         os.remove(path)
         print(f"{fmt}: {args.frames} frames of {args.size}²: median write {first * 1e3:.2f} ms (first {w}) / "
               f"{last * 1e3:.2f} ms (last {w}) = {last / first:.2f}×; pack on close {result['close']:.1f} s; "
-              f"{size / 1e6:.1f} MB vs re-export {again / 1e6:.1f} MB = {size / again:.3f}×; resident while "
-              f"writing ≤ {result['resident'] / 1e6:.0f} MB", flush=True)
+              f"{size / 1e6:.1f} MB vs re-export {again / 1e6:.1f} MB = {size / again:.3f}×; resident memory "
+              f"grew ≤ {result['resident'] / 1e6:.0f} MB while writing", flush=True)
     if not args.scratch:
         shutil.rmtree(scratch, ignore_errors=True)
 
@@ -129,7 +129,7 @@ def main() -> None:
         f"particles (points, normals, velocities per frame)",
         "",
         f"| format | frames | median write, first {w} [ms] | last {w} [ms] | last / first | p99 [ms] | "
-        "pack on close [s] | file [MB] | re-export [MB] | file / re-export | resident while writing [MB] |",
+        "pack on close [s] | file [MB] | re-export [MB] | file / re-export | memory growth while writing [MB] |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:

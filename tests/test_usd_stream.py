@@ -155,3 +155,30 @@ def test_a_run_killed_at_any_frame_leaves_every_frame_and_no_temporary_file(tmp_
                                        atol=1e-5)
         held.append(m)
     assert max(held) > 100  # some kills came after the first chunk of frames was gathered
+
+
+def test_a_killed_runs_file_can_be_resumed_into(tmp_path):
+    """A writer that never closes (its process killed) leaves the clip layout; a new writer keeping its first
+    frames (warpspring run --resume) reads them through the frames folder and packs one file with them."""
+    model = grid_model()
+    q0 = model.particle_q.numpy().astype(np.float64)
+    state = model.state()
+    path = tmp_path / "killed.usdc"
+    step = np.array([1e-3, 2e-3, -3e-3])
+    writer = UsdWriter(path, model, fps=60, start_frame=1)
+    for k in range(5):
+        state.particle_q.assign((q0 + k * step).astype(np.float32))
+        writer.write_frame(state)
+    writer._reaper.finish()  # as if the process had died here: no close, no packing
+    assert (tmp_path / "killed.usdc.frames").is_dir()
+    with UsdWriter(path, model, fps=60, start_frame=1, keep_frames=3) as resumed:
+        for k in range(3, 6):
+            state.particle_q.assign((q0 + k * step + 1e-2).astype(np.float32))  # the resumed run's own frames
+            resumed.write_frame(state)
+    assert sorted(os.listdir(tmp_path)) == ["killed.usdc"]
+    stage = Usd.Stage.Open(str(path))
+    points = stage.GetPrimAtPath("/World/cloth").GetAttribute("points")
+    assert list(points.GetTimeSamples()) == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    for k in range(6):
+        expected = q0 + k * step + (1e-2 if k >= 3 else 0.0)
+        np.testing.assert_allclose(np.array(points.Get(1 + k)), expected, atol=1e-6)

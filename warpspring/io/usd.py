@@ -33,7 +33,8 @@ good frame: DCC tools hold a prim's last sample, so the file stays a valid anima
 How frames reach the disk. While a run writes ``out.usdc``, its frames live in a folder beside it,
 ``out.usdc.frames/``: the static prims once (``static.usdc``), and each frame as its own small layer
 (``frame.001001.usdc``), written whole through a temporary file and renamed, so a file is either absent
-or complete. ``out.usdc`` itself is a small root layer, rewritten the same way after every frame: the
+or complete; every 100 frames they are gathered into a chunk layer, and neighbouring chunks merge as they
+grow (up to 64 MB), so the stage has few clips at any frame count. ``out.usdc`` itself is a small root layer, rewritten the same way after every frame: the
 stage's metadata, the static layer as a sublayer, and the frames as value clips (a template of the frame
 files up to the last one written). So at every moment the file is a valid stage holding every frame
 written: another process can open it as often as it likes while the run goes on and never sees a torn
@@ -59,6 +60,7 @@ import shutil
 import tempfile
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import warp as wp
@@ -182,7 +184,7 @@ class UsdWriter:
         self._animated: list = []  # (attribute path, value type) of every attribute sampled per frame
         self._strain_ends = None  # the springs' particles, when strain is written
         self._pending = None  # (time code, layer) of the frame being saved
-        self._clips: list = []  # (first time code, file name) of each clip layer in the frames folder, in order
+        self._clips: list[_Clip] = []  # the clip layers in the frames folder, in time order
         self._loose: list = []  # (time code, layer) of the saved frames not yet gathered into a chunk
         self._loose_bytes = 0  # their size on disk [B]
         self._obsolete: list = []  # (when [s, monotonic], paths) of frame files a chunk replaced, to remove
@@ -374,13 +376,17 @@ class UsdWriter:
     def _add_clip(self, time_code: float, layer) -> None:
         """Count a frame saved in the frames folder as a clip of the stage, and keep its layer for its chunk."""
         name = frame_name(time_code, self._format)
-        self._clips.append((time_code, name))
+        size = os.path.getsize(os.path.join(self.parts, name))
+        self._clips.append(_Clip(time_code, time_code, name, -1, size))
         self._loose.append((time_code, layer))
-        self._loose_bytes += os.path.getsize(os.path.join(self.parts, name))
+        self._loose_bytes += size
 
     def _gather(self) -> None:
-        """Gather the loose frames into one chunk layer once they are many or large (a reader opens a few
-        chunks instead of thousands of frames), and remove frame files a chunk replaced a while ago."""
+        """Keep the clips few, so that rewriting the root and opening the stage cost the same at any frame: the
+        loose frames go into a chunk layer once they are many or large, and two neighbouring chunks of one
+        level merge into one of the next level while together they stay below ``_CHUNK_BYTES`` (a binary
+        counter: about log2 of the frames' chunks, plus one per ``_CHUNK_BYTES`` of frames). Frame and chunk
+        files a merge replaced are removed ``_GRACE`` seconds later."""
         now = time.monotonic()
         while self._obsolete and self._obsolete[0][0] <= now:  # readers had _GRACE seconds to finish with them
             for path in self._obsolete.pop(0)[1]:
@@ -391,24 +397,41 @@ class UsdWriter:
         if len(self._loose) < _CHUNK_FRAMES and self._loose_bytes < _CHUNK_BYTES:
             return
         loose, self._loose, self._loose_bytes = self._loose, [], 0
-        if len(loose) < 2:
-            return
-        first = loose[0][0]
-        name = chunk_name(first, self._format)
-        chunk = self._Sdf.Layer.CreateAnonymous(self._format)
-        for time_code, layer in loose:
-            self._copy_samples(layer, chunk)
+        if len(loose) >= 2:
+            chunk = self._Sdf.Layer.CreateAnonymous(self._format)
+            for _, layer in loose:
+                self._copy_samples(layer, chunk)
+            if not self._replace_clips(len(loose), chunk, level=0):
+                return
+        while len(self._clips) >= 2:
+            a, b = self._clips[-2:]
+            if a.level < 0 or a.level != b.level or a.size + b.size > _CHUNK_BYTES:
+                return
+            merged = self._Sdf.Layer.CreateAnonymous(self._format)
+            for clip in (a, b):
+                self._copy_samples(self._Sdf.Layer.OpenAsAnonymous(os.path.join(self.parts, clip.name)), merged)
+            if not self._replace_clips(2, merged, level=a.level + 1):
+                return
+
+    def _replace_clips(self, count: int, layer, *, level: int) -> bool:
+        """Write ``layer`` as one chunk in place of the last ``count`` clips, then the root that uses it;
+        whether it worked (if not, the clips stay as they were: the file is as valid)."""
+        replaced = self._clips[-count:]
+        first, last = replaced[0].first, replaced[-1].last
+        name = chunk_name(first, last, self._format)
+        path = os.path.join(self.parts, name)
         clips = self._clips
         try:
-            self._export(chunk, os.path.join(self.parts, name))
-            self._clips = clips[: len(clips) - len(loose)] + [(first, name)]
+            self._export(layer, path)
+            self._clips = clips[:-count] + [_Clip(first, last, name, level, os.path.getsize(path))]
             self._write_root()
-        except (OSError, self._Tf.ErrorException):  # the frames stay clips of their own: the file is as valid
+        except (OSError, self._Tf.ErrorException):
             self._clips = clips
-            return
-        replaced = [os.path.join(self.parts, frame_name(t, self._format)) for t, _ in loose]
-        self._obsolete.append((now + _GRACE, replaced))
-        self._reaper.obsolete(replaced)
+            return False
+        old = [os.path.join(self.parts, clip.name) for clip in replaced]
+        self._obsolete.append((time.monotonic() + _GRACE, old))
+        self._reaper.obsolete(old)
+        return True
 
     def _copy_samples(self, source, target) -> None:
         """Copy every animated attribute's samples of layer ``source`` into layer ``target``."""
@@ -436,8 +459,8 @@ class UsdWriter:
             world.specifier = Sdf.SpecifierOver
             start = float(self.start_frame)
             world.SetInfo("clips", {"default": {
-                "assetPaths": Sdf.AssetPathArray([Sdf.AssetPath(f"./{folder}/{name}") for _, name in self._clips]),
-                "active": Vt.Vec2dArray([Gf.Vec2d(float(t), float(i)) for i, (t, _) in enumerate(self._clips)]),
+                "assetPaths": Sdf.AssetPathArray([Sdf.AssetPath(f"./{folder}/{c.name}") for c in self._clips]),
+                "active": Vt.Vec2dArray([Gf.Vec2d(float(c.first), float(i)) for i, c in enumerate(self._clips)]),
                 "times": Vt.Vec2dArray([Gf.Vec2d(start, start), Gf.Vec2d(float(last), float(last))]),
                 "primPath": "/World",
                 "manifestAssetPath": Sdf.AssetPath(f"./{folder}/{MANIFEST_NAME}"),
@@ -510,8 +533,8 @@ class UsdWriter:
             layer.TransferContent(Sdf.Layer.FindOrOpen(static))
             self._stage_metadata(layer, end=self.start_frame + max(self.frames_saved - 1, 1))
             pending = 0  # bytes of samples (on disk, as clip files) gathered since the last save
-            for _, name in self._clips:
-                clip_path = os.path.join(self.parts, name)
+            for clip in self._clips:
+                clip_path = os.path.join(self.parts, clip.name)
                 self._copy_samples(Sdf.Layer.OpenAsAnonymous(clip_path), layer)
                 pending += os.path.getsize(clip_path)
                 if not self._text and pending >= _PACK_FLUSH_BYTES:
@@ -788,9 +811,19 @@ def frame_name(time_code: float, fmt: str) -> str:
     return f"frame.{int(time_code):06d}{fmt}"
 
 
-def chunk_name(time_code: float, fmt: str) -> str:
-    """The file name of a chunk of frames, from time code ``time_code`` on, in the frames folder."""
-    return f"chunk.{int(time_code):06d}{fmt}"
+def chunk_name(first: float, last: float, fmt: str) -> str:
+    """The file name of a chunk of the frames of time codes ``first`` .. ``last`` in the frames folder."""
+    return f"chunk.{int(first):06d}-{int(last):06d}{fmt}"
+
+
+class _Clip(NamedTuple):
+    """One clip layer of the stage while it is written: a frame (level -1) or a chunk of frames."""
+
+    first: float  # time code of its first frame
+    last: float  # time code of its last frame
+    name: str  # file name in the frames folder
+    level: int  # -1: one frame; 0: a chunk of loose frames; k + 1: two chunks of level k merged
+    size: int  # bytes on disk
 
 
 def _remove_output(path: str) -> None:
