@@ -26,7 +26,10 @@ INPUT_MAX_SPEED = 6  # clamp of a particle's speed [m/s]
 INPUT_MAX_STRAIN = 7  # strain limit of Provot's strain limiting [-]
 INPUT_BIPHASIC_STRAIN = 8  # strain beyond which biphasic springs stiffen [-]
 INPUT_BIPHASIC_RATIO = 9  # stiffness beyond that strain over stiffness below it [-]
-INPUT_COUNT = 10
+INPUT_WIND = 10  # the wind's velocity [m/s], three columns (x, y, z): the air moving past cloth triangles
+INPUT_AIR_DENSITY = 13  # the air's density [kg/m³] in the aerodynamic forces
+INPUT_WIND_NOISE = 14  # relative amplitude [-] of the wind's spatial noise: w · (1 + a · noise(x))
+INPUT_COUNT = 15
 
 #: Name, first column and width of every input (the names the API, scene files and tracks use).
 INPUTS = {
@@ -38,6 +41,9 @@ INPUTS = {
     "max_strain": (INPUT_MAX_STRAIN, 1),
     "biphasic_strain": (INPUT_BIPHASIC_STRAIN, 1),
     "biphasic_ratio": (INPUT_BIPHASIC_RATIO, 1),
+    "wind": (INPUT_WIND, 3),
+    "air_density": (INPUT_AIR_DENSITY, 1),
+    "wind_noise": (INPUT_WIND_NOISE, 1),
 }
 
 

@@ -80,7 +80,8 @@ def points_samples(path) -> tuple[list[np.ndarray], list[float], float]:
 # -- runs that succeed ------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("example, frames", [("hanging_cloth.toml", 2), ("cloth_on_sphere.toml", 3)])
+@pytest.mark.parametrize("example, frames", [("hanging_cloth.toml", 2), ("cloth_on_sphere.toml", 3),
+                                             ("flag_in_wind.toml", 2)])
 def test_example_scene_runs(tmp_path, capsys, example, frames):
     """An example runs for a few frames: exit 0, the summary line, and frames + 1 samples at the scene's 60 fps."""
     out = tmp_path / "example.usdc"

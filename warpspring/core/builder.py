@@ -22,6 +22,7 @@ from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import scalar_type, vec3_type
 from .bending import DihedralMaterial
 from . import memory
+from .aero import AIR_DENSITY, DEFAULT_DRAG, DEFAULT_LIFT, AeroFamily
 from .families import ElementFamily, build_incidence, head_slots
 from .hinges import dihedral_angle, mesh_hinges
 from .kinematics import PinGroup, PinGroupTable
@@ -119,6 +120,7 @@ class ModelBuilder:
         self._hinge_count = 0
 
         self._families: list[ElementFamily] = []  # element families beyond springs, in the order added
+        self._air: dict = {}  # the wind's live inputs at the start, once aerodynamics is added
 
         self._meshes: list[MeshGroup] = []
         self._shapes: list[ShapeInfo] = []
@@ -315,6 +317,42 @@ class ModelBuilder:
             raise ConfigError(f"this {family.name} family was added already")
         self._families.append(family)
         return family
+
+    def add_aerodynamics(self, *, meshes=None, drag=DEFAULT_DRAG, lift=DEFAULT_LIFT, wind=(0.0, 0.0, 0.0),
+                         air_density: float = AIR_DENSITY, noise: float = 0.0, noise_scale: float = 1.0,
+                         seed: int = 0) -> AeroFamily:
+        """Let the wind act on cloth triangles: flat-plate drag and lift from each triangle's velocity relative
+        to the air, its area and normal, either side (``kernels/aero.py`` gives the model and its source).
+
+        Args:
+            meshes: names of the meshes whose triangles feel the wind; ``None``: every mesh added so far.
+            drag, lift: C_D and C_L [-], ≥ 0 (defaults: a flat plate's C_D = 1.2, C_L = 1.0).
+            wind: the wind's velocity [m/s] at the start; a live input ("wind": set it between frames, per
+                world, or by a keyframe track of gusts).
+            air_density: ρ [kg/m³], > 0 (a live input, "air_density"); default: air at 20 °C.
+            noise: relative amplitude a [-] of the wind's spatial noise, w · (1 + a · N(x / L)) with N Warp's
+                Perlin noise in [-1, 1] (a live input, "wind_noise").
+            noise_scale: L [m], > 0, the noise's length scale (the size of its gusts in space).
+            seed: the noise's seed, ≥ 0.
+
+        The noise is compiled in when ``noise`` > 0 here; with 0 it is absent (set a value here to animate it
+        later). Returns the family (``model.families`` lists it as "wind triangles").
+        """
+        names = [m.name for m in self._meshes]
+        chosen = names if meshes is None else [meshes] if isinstance(meshes, str) else list(meshes)
+        unknown = [m for m in chosen if m not in names]
+        if unknown:
+            raise ConfigError(f"no mesh named {unknown[0]!r} to put in the wind; meshes: {', '.join(names) or 'none'}")
+        if any(isinstance(f, AeroFamily) for f in self._families):
+            raise ConfigError("aerodynamics was added already: add it once, naming every mesh (meshes=[...])")
+        groups = [m for m in self._meshes if m.name in chosen]
+        triangles = np.concatenate([g.particles[g.faces] for g in groups]) if groups else np.zeros((0, 3), np.int64)
+        noise = checks.non_negative("wind noise", noise)
+        scale = checks.positive("wind noise_scale", noise_scale)
+        family = AeroFamily(triangles, drag=drag, lift=lift, noise_scale=scale if noise > 0.0 else 0.0, seed=seed)
+        self._air = {"wind": checks.vector("wind", wind), "air_density": checks.positive("air_density", air_density),
+                     "wind_noise": noise}
+        return self.add_family(family)
 
     def add_triangles(self, faces, *, name: str = "mesh", uvs=None, polygon_counts=None, polygon_indices=None,
                       face_sets=None) -> MeshGroup:
@@ -881,6 +919,8 @@ class ModelBuilder:
         model.up_axis = self.up_axis
         model.gravity = self.gravity
         model.drag = float(self.drag)
+        for name, value in self._air.items():
+            model.set_world_values(name, value)
         model.stabilizers = self.stabilizers
         n = self._particle_count
 

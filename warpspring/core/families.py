@@ -30,6 +30,9 @@ class ElementFamily:
 
     #: Plural noun naming the elements in messages and reports ("springs", "hinges").
     name: str = "elements"
+    #: Whether the family's forces do work from outside (wind): it has no energy, and the guards' energy
+    #: balance cannot be kept.
+    does_work: bool = False
 
     def finalize(self, model) -> None:
         """Create the device arrays on ``model.device`` in ``model.scalar`` (called once by the builder)."""

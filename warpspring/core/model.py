@@ -32,7 +32,7 @@ MAX_CONTACT_SLOTS = 64
 STABILIZER_INPUTS = ("max_spring_force", "max_particle_force", "max_speed", "max_strain", "biphasic_strain",
                      "biphasic_ratio")
 #: The lower bound of each bounded input, and whether the bound itself is allowed (gravity has none).
-INPUT_BOUNDS = {"drag": (0.0, True), "biphasic_ratio": (1.0, True),
+INPUT_BOUNDS = {"drag": (0.0, True), "biphasic_ratio": (1.0, True), "air_density": (0.0, True), "wind_noise": (0.0, True),
                 **{name: (0.0, False) for name in STABILIZER_INPUTS if name != "biphasic_ratio"}}
 
 
@@ -400,7 +400,8 @@ class Model:
         """Animate the live input ``name`` by a keyframe :class:`Track`, or stop animating it (``None``: it
         keeps the value the track gave it last), in every world or in one (``world``).
 
-        Inputs: "gravity" (3-vectors, [m/s²]), "drag" [N·s/m], and the thresholds of the stabilisers that
+        Inputs: "gravity" (3-vectors, [m/s²]), "drag" [N·s/m], "wind" (3-vectors, [m/s]), "air_density"
+        [kg/m³] and "wind_noise" [-] (with aerodynamics), and the thresholds of the stabilisers that
         are on: "max_spring_force" [N], "max_particle_force" [N], "max_speed" [m/s], "max_strain" [-],
         "biphasic_strain" [-], "biphasic_ratio" [-]. The track is evaluated on the device at the time of
         every state the integrators evaluate (stages included), in each world at that world's time. A

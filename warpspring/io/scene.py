@@ -63,6 +63,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..core.aero import AIR_DENSITY, DEFAULT_DRAG, DEFAULT_LIFT
 from ..core.builder import DEFAULT_BEND, DEFAULT_SHEAR, DEFAULT_STRUCTURAL, ModelBuilder, SpringMaterial
 from ..errors import ConfigError
 from ..core.guards import GuardLimits
@@ -136,6 +137,7 @@ class Scene:
         stabilizers: the ``[stabilizers]`` table (clamps, strain limiting, biphasic springs); a threshold
             given as a track holds the track's first value.
         guard: the ``[guard]`` table (run-time checks).
+        wind: the ``[wind]`` table as written (aerodynamics on cloth triangles), or ``None``.
         tracks: keyframe tracks of the live inputs the file animates, by input name ("gravity", "drag",
             "max_strain", ...).
         world_count: independent copies of the scene in the model (``[worlds] count``; 1 without ``[worlds]``).
@@ -174,6 +176,7 @@ class Scene:
     stabilizers: Stabilizers = field(default_factory=Stabilizers)
     guard: GuardLimits = field(default_factory=GuardLimits)
     tracks: dict = field(default_factory=dict)
+    wind: dict | None = None
     world_count: int = 1
     world_inputs: dict = field(default_factory=dict)
     world_scales: dict = field(default_factory=dict)
@@ -202,12 +205,17 @@ class Scene:
                 drag=float(tracks["drag"].values[0, 0]) if "drag" in tracks else world.get("drag", 0.0),
                 stabilizers=self.stabilizers,
             )
+        wind_inputs = set(_WIND_INPUTS.values())
         for name, track in tracks.items():
-            with _context(where, "world" if name in ("gravity", "drag") else "stabilizers"):
-                builder.set_track(name, track)
+            if name not in wind_inputs:  # (the wind's tracks once the aerodynamics is added, below)
+                with _context(where, "world" if name in ("gravity", "drag") else "stabilizers"):
+                    builder.set_track(name, track)
         for i, cloth in enumerate(self.cloths):
             with _context(where, _label("cloth", i, len(self.cloths))):
                 _add_cloth(builder, cloth, os.path.dirname(self.path))
+        if self.wind is not None:
+            with _context(where, "wind"):
+                _add_wind(builder, self.wind, tracks)
         for i, collider in enumerate(self.colliders):
             with _context(where, _label("collider", i, len(self.colliders))):
                 _add_collider(builder, collider)
@@ -421,9 +429,22 @@ _SCHEMA = {
         "energy_balance": NON_NEGATIVE,
         "stop": _Since(2, str),
     },
+    "wind": {
+        "velocity": _Live(VECTOR),
+        "air_density": _Live(POSITIVE),
+        "noise": _Live(NON_NEGATIVE),
+        "noise_scale": POSITIVE,
+        "seed": _Number(0, integer=True),
+        "drag": NON_NEGATIVE,
+        "lift": NON_NEGATIVE,
+        "meshes": list,
+    },
     "worlds": {
         "count": _Number(1, integer=True),
         "gravity": _PerWorld(_Live(VECTOR)),
+        "wind": _PerWorld(_Live(VECTOR)),
+        "air_density": _PerWorld(_Live(POSITIVE)),
+        "wind_noise": _PerWorld(_Live(NON_NEGATIVE)),
         "drag": _PerWorld(_Live(NON_NEGATIVE)),
         "max_spring_force": _PerWorld(_Live(POSITIVE)),
         "max_particle_force": _PerWorld(_Live(POSITIVE)),
@@ -438,11 +459,14 @@ _SCHEMA = {
 }
 _TOP_LEVEL = {"version": _Number(1, integer=True), **{k: (dict, list) if k in ("cloth", "collider") else dict
                                                       for k in _SCHEMA}, "worlds": _Since(2, dict),
+              "wind": _Since(2, dict),
               "contacts": _Since(2, dict)}
 #: How the run-time guard may stop: the whole run, or only the world that failed ([guard] stop).
 GUARD_STOPS = ("run", "world")
 #: The tables holding live inputs (each may be a track table from format 2 on).
 _LIVE_TABLES = ("world", "stabilizers")
+#: The live inputs of the [wind] table: its key -> the model's input name.
+_WIND_INPUTS = {"velocity": "wind", "air_density": "air_density", "noise": "wind_noise"}
 
 # Keys that apply to one kind of cloth or collider only (anything else would be silently ignored).
 _GRID_ONLY = {"grid", "particle_mass", "shear"}
@@ -517,7 +541,7 @@ def _parse(data: dict, path: str) -> Scene:
     data = copy.deepcopy(data)
     deprecations = _apply_renames(data, version, where)
     _check_table(data, _TOP_LEVEL, where, "", version=version)
-    for name in ("simulation", "world", "output", "stabilizers", "guard", "worlds", "contacts"):
+    for name in ("simulation", "world", "output", "stabilizers", "guard", "worlds", "contacts", "wind"):
         _check_table(data.get(name, {}), _SCHEMA[name], where, name, version=version)
     cloths = _table_list(data.get("cloth", []), where, "cloth")
     colliders = _table_list(data.get("collider", []), where, "collider")
@@ -545,11 +569,15 @@ def _parse(data: dict, path: str) -> Scene:
         for name, value in data.get(table, {}).items()
         if isinstance(_SCHEMA[table][name], _Live) and isinstance(value, dict)
     }
+    wind = data.get("wind")
+    if wind is not None:
+        tracks.update({_WIND_INPUTS[key]: _make_track(value, where, f"wind.{key}") for key, value in wind.items()
+                       if key in _WIND_INPUTS and isinstance(value, dict)})
     # A threshold given as a track starts at its first value; the track is set on the builder.
     stabilizers = {k: float(tracks[k].values[0, 0]) if k in tracks else v
                    for k, v in data.get("stabilizers", {}).items()}
     scene = Scene(path=path, world=data.get("world", {}), cloths=cloths, colliders=colliders, tracks=tracks,
-                  version=version, deprecations=deprecations)
+                  wind=wind, version=version, deprecations=deprecations)
     scene.fps = float(sim.get("fps", scene.fps))
     scene.frames = sim.get("frames", scene.frames)
     scene.substeps = sim.get("substeps", scene.substeps)
@@ -833,6 +861,25 @@ def _check_table(table: dict, schema: dict, where: str, name: str, *, version: i
                 f"{where}: unknown key {key!r} in [{name or 'top level'}]; allowed: {', '.join(schema)}{hint}"
             )
         _check_value(value, schema[key], where, f"{name}.{key}" if name else key, version=version)
+
+
+def _add_wind(builder: ModelBuilder, wind: dict, tracks: dict) -> None:
+    """The ``[wind]`` table: aerodynamics on the named meshes (all by default), its inputs' first values, and
+    their tracks."""
+    start = {}
+    for key, name in _WIND_INPUTS.items():
+        if name in tracks:
+            start[key] = tracks[name].values[0] if name == "wind" else float(tracks[name].values[0, 0])
+        elif key in wind:
+            start[key] = wind[key]
+    builder.add_aerodynamics(
+        meshes=wind.get("meshes"), drag=wind.get("drag", DEFAULT_DRAG), lift=wind.get("lift", DEFAULT_LIFT),
+        wind=start.get("velocity", (0.0, 0.0, 0.0)), air_density=start.get("air_density", AIR_DENSITY),
+        noise=start.get("noise", 0.0), noise_scale=wind.get("noise_scale", 1.0), seed=wind.get("seed", 0),
+    )
+    for name in _WIND_INPUTS.values():
+        if name in tracks:
+            builder.set_track(name, tracks[name])
 
 
 def _export_options(out: dict, where: str) -> dict:

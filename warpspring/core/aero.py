@@ -1,0 +1,97 @@
+"""Wind on cloth triangles, on the host: the aerodynamic family (``kernels/aero.py`` has the model and the
+kernels' hooks) built from a model's cloth meshes by :meth:`ModelBuilder.add_aerodynamics`.
+
+The wind itself is a live input of the model, per world: ``wind`` [m/s] (a constant or a keyframe track,
+gusts as a time series), ``air_density`` [kg/m³] and ``wind_noise`` [-] (the relative amplitude of a
+spatial Perlin noise of length scale ``noise_scale`` [m] and a seed fixed when the model is built).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .. import checks
+from ..errors import ConfigError
+from ..kernels.aero import AeroSpec, aero_arrays_type
+from .families import ElementFamily, build_incidence
+
+#: Default coefficients: C_D of a flat square plate normal to the flow (Hoerner, "Fluid-Dynamic Drag",
+#: 1965: 1.17 at high Reynolds numbers) and a lift coefficient of the same order (a tuning value: cloth
+#: flutters and is porous, so measured values vary widely).
+DEFAULT_DRAG = 1.2
+DEFAULT_LIFT = 1.0
+#: The density of air at sea level and 20 °C [kg/m³].
+AIR_DENSITY = 1.204
+
+
+class AeroFamily(ElementFamily):
+    """Drag and lift of the wind on triangles of three particles (see ``kernels/aero.py``).
+
+    Args:
+        triangles: the particles of each triangle, per-world indices, shape [t, 3].
+        drag, lift: C_D and C_L [-], ≥ 0: numbers, or one per triangle, shape [t].
+        noise_scale: length scale L [m] of the wind's spatial noise; 0: no noise (compiled out).
+        seed: the noise's seed.
+    """
+
+    name = "wind triangles"
+    does_work = True
+
+    def __init__(self, triangles, *, drag=DEFAULT_DRAG, lift=DEFAULT_LIFT, noise_scale: float = 0.0, seed: int = 0):
+        self.triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+        count = len(self.triangles)
+        if count == 0:
+            raise ConfigError("aerodynamics needs triangles: add a cloth (a grid or a mesh) first")
+        self.drag = _coefficient("drag coefficient", drag, count)
+        self.lift = _coefficient("lift coefficient", lift, count)
+        self.noise_scale = checks.non_negative("wind noise_scale", noise_scale)
+        self.seed = checks.count("wind noise seed", seed, minimum=0)
+
+    @property
+    def element_count(self) -> int:
+        return len(self.triangles)
+
+    def finalize(self, model) -> None:
+        device, scalar = model.device, model.scalar
+        corners = np.broadcast_to(np.arange(3), self.triangles.shape)
+        self.incidence, self.shape = build_incidence(self.triangles, model.particle_count, corners, -1,
+                                                     device=device)
+        self._indices = wp.array(self.triangles.astype(np.int32), dtype=wp.vec3i, device=device)
+        self._drag = wp.array(self.drag[None, :], dtype=scalar, device=device)
+        self._lift = wp.array(self.lift[None, :], dtype=scalar, device=device)
+        self._noise_scale = wp.array([self.noise_scale or 1.0], dtype=scalar, device=device)
+        self._seed = wp.array([self.seed], dtype=wp.int32, device=device)
+
+    def spec(self, model, *, linear: bool = False) -> AeroSpec:
+        return AeroSpec(incidence=self.shape, noise=self.noise_scale > 0.0)
+
+    def arrays(self, model, *, stiffness=None):
+        arrays = aero_arrays_type(model.scalar)()
+        arrays.indices = self._indices
+        arrays.drag = self._drag
+        arrays.lift = self._lift
+        arrays.noise_scale = self._noise_scale
+        arrays.noise_seed = self._seed
+        arrays.incidence = self.incidence
+        return arrays
+
+    def gershgorin_rows(self, model, free: np.ndarray, stiffness: np.ndarray | None = None) -> np.ndarray:
+        """The family's stiffness matrix is zero (``kernels/aero.py``): it adds nothing to the bound."""
+        return np.zeros((model.world_count, model.particle_count))
+
+    def describe_element(self, model, element: int) -> str:
+        a, b, c = self.triangles[element]
+        return f"wind triangle {element} (particles {a}, {b}, {c})"
+
+
+def _coefficient(name: str, value, count: int) -> np.ndarray:
+    v = np.asarray(value, dtype=np.float64)
+    if v.ndim == 0:
+        v = np.full(count, float(v))
+    if v.shape != (count,):
+        raise ConfigError(f"the {name} must be a number or one per triangle, shape ({count},), got shape {v.shape}")
+    bad = np.flatnonzero(~np.isfinite(v) | (v < 0.0))
+    if len(bad):
+        raise ConfigError(f"the {name} must be finite and >= 0, got {v[bad[0]]} (triangle {int(bad[0])})")
+    return v
