@@ -70,26 +70,28 @@ def run_cli(capsys, *args) -> tuple[int, str, list[str]]:
     return status, out, err.splitlines()
 
 
-def points_samples(path) -> tuple[list[np.ndarray], list[float], float]:
+def points_samples(path, prim: str = "/World/cloth") -> tuple[list[np.ndarray], list[float], float]:
     """The cloth's point samples in ``path`` in time order, their time codes, and the stage's time codes per second."""
     stage = Usd.Stage.Open(str(path))
-    attr = stage.GetPrimAtPath("/World/cloth").GetAttribute("points")
+    attr = stage.GetPrimAtPath(prim).GetAttribute("points")
     return [np.array(attr.Get(t)) for t in attr.GetTimeSamples()], attr.GetTimeSamples(), stage.GetTimeCodesPerSecond()
 
 
 # -- runs that succeed ------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("example, frames", [("hanging_cloth.toml", 2), ("cloth_on_sphere.toml", 3),
-                                             ("flag_in_wind.toml", 2)])
-def test_example_scene_runs(tmp_path, capsys, example, frames):
+@pytest.mark.parametrize("example, frames, prim", [("hanging_cloth.toml", 2, "/World/cloth"),
+                                                   ("cloth_on_sphere.toml", 3, "/World/cloth"),
+                                                   ("flag_in_wind.toml", 2, "/World/flag"),
+                                                   ("tablecloth_pull.toml", 2, "/World/tablecloth")])
+def test_example_scene_runs(tmp_path, capsys, example, frames, prim):
     """An example runs for a few frames: exit 0, the summary line, and frames + 1 samples at the scene's 60 fps."""
     out = tmp_path / "example.usdc"
     status, stdout, stderr = run_cli(capsys, EXAMPLES / example, "-o", out, "--frames", frames)
     assert status == 0, stderr
     assert stderr == []
     assert stdout.startswith(f"wrote {frames + 1} frames ") and str(out) in stdout and stdout.count("\n") == 1
-    points, times, fps = points_samples(out)
+    points, times, fps = points_samples(out, prim)
     assert times == [float(k) for k in range(frames + 1)] and fps == 60.0
     assert not np.array_equal(points[0], points[-1])  # gravity moved the cloth
 

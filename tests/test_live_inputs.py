@@ -161,8 +161,8 @@ def test_live_input_errors_are_clear():
         model.drag = -1.0
     with pytest.raises(ws.ConfigError, match="stabilizers must be a warpspring.Stabilizers"):
         model.stabilizers = {"max_strain": 0.1}
-    with pytest.raises(ws.ConfigError, match="no live input 'wind'"):
-        model.set_track("wind", ws.Track([0.0], [1.0]))
+    with pytest.raises(ws.ConfigError, match="no live input 'breeze'"):
+        model.set_track("breeze", ws.Track([0.0], [1.0]))
     with pytest.raises(ws.ConfigError, match="3-vectors"):
         model.set_track("gravity", ws.Track([0.0, 1.0], [1.0, 2.0]))
     plain = cloth("cpu", stabilizers=ws.Stabilizers())

@@ -69,7 +69,16 @@ SCENES = {
     "no shear, hinges, colliders": lambda: _with_colliders(grid_builder(shear=False, dihedral=ws.DihedralMaterial(
         ke=1e-3, kd=1e-5))),
     "pin group, moving collider": lambda: _moving(grid_builder()),
+    "wind with noise, handles": lambda: _wind_and_handles(grid_builder()),
 }
+
+
+def _wind_and_handles(builder):
+    builder.add_aerodynamics(wind=(1.0, 0.0, 0.0), noise=0.2)
+    builder.add_handle([0, 1, 2], kp=10.0, kd=0.1, max_force=1.0,
+                       translation=ws.Track([0.0, 1.0], [[0, 0, 0], [0.1, 0, 0]]))
+    builder.add_handle([3, 4], kp=5.0, rotation=ws.Track.rotation([0.0, 1.0], axis=(0, 0, 1), degrees=[0, 45]))
+    return builder
 
 
 def _with_colliders(builder):

@@ -52,6 +52,13 @@ class AeroFamily(ElementFamily):
     def element_count(self) -> int:
         return len(self.triangles)
 
+    def device_bytes(self, particle_count: int, scalar_bytes: int, worlds: int) -> int:
+        """Indices, C_D and C_L per triangle, the noise's scale and seed, and the incidence table."""
+        from .memory import incidence_bytes
+
+        return ((12 + 2 * scalar_bytes) * len(self.triangles) + scalar_bytes + 4
+                + incidence_bytes(self.triangles, particle_count))
+
     def finalize(self, model) -> None:
         device, scalar = model.device, model.scalar
         corners = np.broadcast_to(np.arange(3), self.triangles.shape)

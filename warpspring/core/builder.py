@@ -24,6 +24,7 @@ from .bending import DihedralMaterial
 from . import memory
 from .aero import AIR_DENSITY, DEFAULT_DRAG, DEFAULT_LIFT, AeroFamily
 from .families import ElementFamily, build_incidence, head_slots
+from .handles import HandleFamily, make_handle
 from .hinges import dihedral_angle, mesh_hinges
 from .kinematics import PinGroup, PinGroupTable
 from .material import ClothMaterial, edge_springs, grid_masses, grid_springs, hinge_parameters, lumped_masses
@@ -317,6 +318,38 @@ class ModelBuilder:
             raise ConfigError(f"this {family.name} family was added already")
         self._families.append(family)
         return family
+
+    def add_handle(self, particles, *, kp: float, kd: float = 0.0, max_force: float | None = None,
+                   translation: Track | None = None, rotation: Track | None = None, pivot=None,
+                   name: str = "handle") -> int:
+        """Grab particles with a PD-controlled handle: each is pulled toward its target by u = Kp e + Kd ė,
+        e = x* − x, ė = v* − v, the force's magnitude capped at ``max_force`` (as a user grabs and drags
+        cloth). A particle grabbed at x₀ has the target x*(t) = p + T(t) + R(φ(t)) (x₀ − p), moving at v*(t)
+        (``kernels/handles.py``); without tracks the targets stay at the start positions.
+
+        Args:
+            particles: global particle indices (a particle may be held by several handles; it stays free
+                otherwise: a handle is a force, not a pin).
+            kp: stiffness gain Kp [N/m], > 0.
+            kd: damping gain Kd [N·s/m], ≥ 0.
+            max_force: the largest force [N] on one grabbed particle, > 0; ``None``: no cap.
+            translation: :class:`Track` of T(t) [m], 3-vectors added to the targets.
+            rotation: :class:`Track` of the rotation vector φ(t) [rad] about ``pivot``.
+            pivot: the rotation's centre [m] (default: the centroid of the grabbed particles at the start).
+            name: the handle's name, for messages.
+
+        Returns:
+            The handle's index.
+        """
+        idx = np.unique(_indices("handle particle", particles, self._particle_count))
+        family = next((f for f in self._families if isinstance(f, HandleFamily)), None)
+        if family is None:
+            family = self.add_family(HandleFamily())
+        rest = np.concatenate(self._q)[idx] if len(idx) else np.zeros((0, 3))
+        family.handles.append(make_handle(self._unique_name(name, [h.name for h in family.handles]), idx, rest,
+                                          kp=kp, kd=kd, max_force=max_force, translation=translation,
+                                          rotation=rotation, pivot=pivot))
+        return len(family.handles) - 1
 
     def add_aerodynamics(self, *, meshes=None, drag=DEFAULT_DRAG, lift=DEFAULT_LIFT, wind=(0.0, 0.0, 0.0),
                          air_density: float = AIR_DENSITY, noise: float = 0.0, noise_scale: float = 1.0,
@@ -908,6 +941,7 @@ class ModelBuilder:
             contact_slots=slots if stage else 0,
             moving_colliders=moving,
             block_dim=_block_dim(device, n * worlds),
+            family_bytes=sum(f.device_bytes(n, 8 if precision == "float64" else 4, worlds) for f in self._families),
         )
 
     def _finalize(self, device, precision: str, scalar, worlds: int, spring_evaluation: str,
@@ -957,6 +991,7 @@ class ModelBuilder:
         model._shape_tracks = [t for shape in self._shapes for t in (shape.translation_track, shape.rotation_track)
                                if t is not None]
         model._pin_tracks = [t for g in self._pin_groups for t in (g.translation, g.rotation) if t is not None]
+        model._family_tracks = [t for family in self._families for t in family.tracks()]
         model._rebuild_tracks()
         if self._pin_groups:
             model.pin_groups = PinGroupTable(

@@ -37,6 +37,21 @@ class ElementFamily:
     def finalize(self, model) -> None:
         """Create the device arrays on ``model.device`` in ``model.scalar`` (called once by the builder)."""
 
+    def device_bytes(self, particle_count: int, scalar_bytes: int, worlds: int) -> int:
+        """Bytes of the device arrays :meth:`finalize` will make (for the memory estimate before finalize), with
+        ``particle_count`` particles per world, scalars of ``scalar_bytes`` and ``worlds`` worlds; 0 where the
+        family does not say."""
+        return 0
+
+    def tracks(self) -> tuple:
+        """The keyframe tracks the family reads (they join the model's track table before :meth:`finalize`,
+        with indices that never move)."""
+        return ()
+
+    def at_time(self, model, state) -> None:
+        """Bring the family's time-dependent arrays to the time of ``state`` (device work, launched wherever
+        animated inputs are evaluated, before forces); most families have none."""
+
     @property
     def element_count(self) -> int:
         raise NotImplementedError

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from .. import checks
 from ..errors import ConfigError
 from ..kernels.guards import BALANCE_SLOTS, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS
+from ..kernels.inputs import INPUT_COUNT
 
 #: Bytes per floating-point number of each precision.
 SCALAR_BYTES = {"float32": 4, "float64": 8}
@@ -167,6 +168,20 @@ class AvailableMemory:
     device_total: int | None = None
 
 
+def incidence_bytes(members, particle_count: int) -> int:
+    """Bytes of an incidence table (``families.build_incidence``) of elements with these particles, int, shape
+    [element_count, arity]: an ELL head of element and local per slot and particle, the tail's start per
+    particle, and element and local per tail entry."""
+    from .families import head_slots
+
+    import numpy as np
+
+    degree = np.bincount(np.asarray(members, dtype=np.int64).ravel(), minlength=particle_count)
+    slots = head_slots(degree)
+    tail = int(np.maximum(degree - slots, 0).sum())
+    return 8 * slots * particle_count + 4 * (particle_count + 1) + 8 * tail
+
+
 def estimate_memory(
     *,
     particles: int,
@@ -189,6 +204,7 @@ def estimate_memory(
     moving_colliders: bool = False,
     exported_worlds: int | None = None,
     block_dim: int = 256,
+    family_bytes: int = 0,
 ) -> MemoryEstimate:
     """Estimate the memory of a model and of a run of it, from counts, before anything is allocated.
 
@@ -210,6 +226,8 @@ def estimate_memory(
         moving_colliders: whether a collider moves (keyframe tracks): the colliders' frames are then per world.
         exported_worlds: worlds the USD writer exports (default: every world).
         block_dim: CUDA threads per reducing block (the partial sums' count); the CPU reduces per particle.
+        family_bytes: the device arrays of the element families beyond springs and hinges (wind, handles: each
+            family's ``ElementFamily.device_bytes``) [B].
 
     Returns:
         The :class:`MemoryEstimate`.
@@ -243,7 +261,7 @@ def estimate_memory(
         return 8 * slots * n + 4 * (n + 1) + 8 * tail
 
     model = (
-        4 * w + 10 * f * w + 8 + 4  # world_enabled, the live-input table, unit_step, an empty track table
+        4 * w + INPUT_COUNT * f * w + 8 + 4  # world_enabled, the live-input table, unit_step, an empty track table
         + 2 * vec3 * size + 4 * size  # initial positions and velocities, flags: per world
         + 3 * f * n  # mass, inverse mass (one row for every world), radius
         + (32 * pinned if pinned else 0)  # pin groups: index, group, rest position (float64) per pinned particle
@@ -253,6 +271,7 @@ def estimate_memory(
         # colliders: kind, size, scale, friction, restitution, mesh, rest frame, track indices; their frames at a
         # step's start and end in one row, or one row per world when a collider moves
         + shapes * (4 + 8 * f + 8 + 56 + 8) + 14 * f * shapes * (w if moving_colliders else 1)
+        + checks.count("family_bytes", family_bytes, minimum=0)
     )
     states = 2 * (3 * vec3 * size + 8 * w)
     per_vec3, per_scalar, per_block, per_world_f64, per_world_i32 = INTEGRATOR_SCRATCH[integrator]

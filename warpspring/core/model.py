@@ -307,6 +307,7 @@ class Model:
         self._drag_on = False
         self._tracks: dict[str, list] = {}  # input name -> its track in each world (None: not animated there)
         self._pin_tracks: list[Track] = []
+        self._family_tracks: list[Track] = []  # the element families' (their indices fixed at finalize)
         self.track_table = TrackTable([], device)
 
     def __setattr__(self, name: str, value) -> None:
@@ -642,10 +643,11 @@ class Model:
         self.input_version += 1
 
     def _rebuild_tracks(self) -> None:
-        # Colliders' and pin groups' tracks come first, so their indices (held by their tables) never move.
+        # Colliders', pin groups' and families' tracks come first, so their indices (held by their tables)
+        # never move.
         names = tuple(self._tracks)
         tracks = []
-        for t in (*self._shape_tracks, *self._pin_tracks):
+        for t in (*self._shape_tracks, *self._pin_tracks, *self._family_tracks):
             if not any(t is u for u in tracks):
                 tracks.append(t)
         for name in names:

@@ -210,6 +210,8 @@ class TrackTable:
 def evaluate_input_tracks(model, state) -> None:
     """Write the model's animated inputs at the time of ``state`` into its input table, each world's at that
     world's time (device work only; nothing is launched when no input is animated)."""
+    for family in model.extra_families:
+        family.at_time(model, state)
     animated = model.input_tracks
     if animated is None:
         return

@@ -109,6 +109,27 @@ class PinGroupSpec:
     rotation: Track | None = None
 
 
+@dataclass(frozen=True)
+class HandleSpec:
+    """A checked ``[[cloth.handle]]`` table: a PD-controlled handle dragging particles of one cloth
+    (``ModelBuilder.add_handle``).
+
+    Attributes:
+        particles: which particles, as in ``[cloth] pin``.
+        kp: stiffness gain [N/m]; kd: damping gain [N·s/m]; max_force: force cap [N] or ``None``.
+        name, pivot, translation, rotation: as for a pin group (the targets' motion).
+    """
+
+    particles: list
+    kp: float
+    kd: float = 0.0
+    max_force: float | None = None
+    name: str = "handle"
+    pivot: list | None = None
+    translation: Track | None = None
+    rotation: Track | None = None
+
+
 #: The per-world keys of ``[worlds]`` that scale a parameter of every spring or particle of their world.
 WORLD_SCALES = {"stiffness_scale": "spring_stiffness", "damping_scale": "spring_damping", "mass_scale": "particle_mass"}
 
@@ -355,6 +376,16 @@ _PIN_GROUP = {
     "translation": _Track(VECTOR),
     "rotation": _Track(rotation=True),
 }
+_HANDLE = {
+    "particles": list,
+    "kp": POSITIVE,
+    "kd": NON_NEGATIVE,
+    "max_force": POSITIVE,
+    "name": str,
+    "pivot": VECTOR,
+    "translation": _Track(VECTOR),
+    "rotation": _Track(rotation=True),
+}
 _SCHEMA = {
     "simulation": {
         "fps": POSITIVE,
@@ -381,6 +412,7 @@ _SCHEMA = {
         "velocity": VECTOR,
         "pin": list,
         "pin_group": _Since(2, _Tables(_PIN_GROUP)),
+        "handle": _Since(2, _Tables(_HANDLE)),
         "structural": (bool, _SPRING),
         "shear": (bool, _SPRING),
         "bend": (bool, _SPRING),
@@ -792,6 +824,32 @@ def _check_cloth(c: dict, where: str, label: str, *, version: int) -> None:
         c["pin_group"] = [
             _pin_group(g, grid, where, _label(f"{label}.pin_group", i, len(groups))) for i, g in enumerate(groups)
         ]
+    if "handle" in c:
+        handles = [c["handle"]] if isinstance(c["handle"], dict) else c["handle"]
+        c["handle"] = [_handle(h, grid, where, _label(f"{label}.handle", i, len(handles)))
+                       for i, h in enumerate(handles)]
+
+
+def _handle(handle: dict, grid: bool, where: str, key: str) -> HandleSpec:
+    """A checked [[cloth.handle]] table (its keys' types are checked already) as a HandleSpec."""
+    if not handle.get("particles"):
+        example = '["left"]' if grid else "[0, 1]"
+        raise ConfigError(f"{where}: {key}.particles is {'empty' if 'particles' in handle else 'missing'}: name "
+                          f"the particles the handle grabs, e.g. particles = {example}")
+    if "kp" not in handle:
+        raise ConfigError(f"{where}: [{key}] needs kp = ..., its stiffness gain [N/m] (and kd, its damping [N·s/m])")
+    _check_pins(handle["particles"], grid, where, f"{key}.particles")
+    return HandleSpec(
+        particles=list(handle["particles"]),
+        kp=float(handle["kp"]),
+        kd=float(handle.get("kd", 0.0)),
+        max_force=float(handle["max_force"]) if "max_force" in handle else None,
+        name=handle.get("name", "handle"),
+        pivot=handle.get("pivot"),
+        translation=_make_track(handle["translation"], where, f"{key}.translation") if "translation" in handle
+        else None,
+        rotation=_make_track(handle["rotation"], where, f"{key}.rotation") if "rotation" in handle else None,
+    )
 
 
 def _pin_group(group: dict, grid: bool, where: str, key: str) -> PinGroupSpec:
@@ -1058,6 +1116,14 @@ def _add_cloth(builder: ModelBuilder, cloth: dict, base: str) -> None:
                                   rotation=group.rotation, pivot=group.pivot, name=group.name)
         except ConfigError as exc:
             raise ConfigError(f"{_label('pin_group', i, len(groups))}: {exc}") from None
+    handles = cloth.get("handle", [])
+    for i, handle in enumerate(handles):
+        try:
+            builder.add_handle(_group_particles(ids, handle.particles), kp=handle.kp, kd=handle.kd,
+                               max_force=handle.max_force, translation=handle.translation, rotation=handle.rotation,
+                               pivot=handle.pivot, name=handle.name)
+        except ConfigError as exc:
+            raise ConfigError(f"{_label('handle', i, len(handles))}: {exc}") from None
 
 
 def _group_particles(ids: np.ndarray, pin: list) -> np.ndarray:

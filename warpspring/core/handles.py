@@ -1,0 +1,138 @@
+"""PD-controlled handles on the host: the family of every handle of a model (``kernels/handles.py`` has the
+control law and the hooks), built by :meth:`ModelBuilder.add_handle`, and the pass that writes each
+handle's target frame at a state's time."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .. import checks
+from ..errors import ConfigError
+from ..kernels.handles import HandleSpec, handle_arrays_type, handle_frames_kernel
+from .families import ElementFamily, build_incidence
+from .tracks import Track, as_track
+
+
+@dataclass(frozen=True)
+class Handle:
+    """One handle as built (per-world particle indices; see :meth:`ModelBuilder.add_handle`)."""
+
+    name: str
+    particles: np.ndarray  # int64, [k]
+    rest: np.ndarray  # [m], [k, 3]: the grabbed particles' positions at t = 0
+    pivot: np.ndarray  # [m], [3]
+    kp: float  # [N/m]
+    kd: float  # [N·s/m]
+    max_force: float | None  # [N], or None (no cap)
+    translation: Track | None
+    rotation: Track | None
+
+
+class HandleFamily(ElementFamily):
+    """Every PD handle of a model: one element per grabbed particle of a handle."""
+
+    name = "handle grabs"
+    does_work = True
+
+    def __init__(self):
+        self.handles: list[Handle] = []
+
+    @property
+    def element_count(self) -> int:
+        return sum(len(h.particles) for h in self.handles)
+
+    def device_bytes(self, particle_count: int, scalar_bytes: int, worlds: int) -> int:
+        """Per grab its handle and rest position; per handle the pivot, gains, cap, four frame vectors per
+        world and two track indices; the incidence table."""
+        from .memory import incidence_bytes
+
+        grabs = np.concatenate([h.particles for h in self.handles])
+        count = len(self.handles)
+        return (28 * len(grabs) + count * (24 + 3 * scalar_bytes + 4 * 24 * worlds + 8)
+                + incidence_bytes(grabs[:, None], particle_count))
+
+    def tracks(self) -> tuple:
+        return tuple(t for h in self.handles for t in (h.translation, h.rotation) if t is not None)
+
+    def finalize(self, model) -> None:
+        device, scalar = model.device, model.scalar
+        grabs = np.concatenate([h.particles for h in self.handles])
+        owner = np.concatenate([np.full(len(h.particles), k) for k, h in enumerate(self.handles)])
+        self.incidence, self.shape = build_incidence(grabs[:, None], model.particle_count,
+                                                     np.zeros((len(grabs), 1), np.int64), -1, device=device)
+        count, worlds = len(self.handles), model.world_count
+
+        def per_handle(values):
+            return wp.array(np.asarray(values, dtype=np.float64)[None, :], dtype=scalar, device=device)
+
+        self._handle = wp.array(owner.astype(np.int32), dtype=wp.int32, device=device)
+        self._rest = wp.array(np.concatenate([h.rest for h in self.handles]), dtype=wp.vec3d, device=device)
+        self._pivot = wp.array(np.array([h.pivot for h in self.handles]), dtype=wp.vec3d, device=device)
+        self._kp = per_handle([h.kp for h in self.handles])
+        self._kd = per_handle([h.kd for h in self.handles])
+        self._max_force = per_handle([np.inf if h.max_force is None else h.max_force for h in self.handles])
+        self._frames = [wp.zeros((worlds, count), dtype=wp.vec3d, device=device) for _ in range(4)]
+        index = model.track_table.index
+
+        def track_indices(attribute):
+            return wp.array([-1 if getattr(h, attribute) is None else index(getattr(h, attribute))
+                             for h in self.handles], dtype=wp.int32, device=device)
+
+        self._translation_track = track_indices("translation")
+        self._rotation_track = track_indices("rotation")
+        self._animated = any(h.translation is not None or h.rotation is not None for h in self.handles)
+
+    def at_time(self, model, state) -> None:
+        """Write every handle's target frame at the time of ``state`` (each world's at its own time)."""
+        if not self._animated:
+            return  # the frames stay zero: every target is where its particle started
+        wp.launch(handle_frames_kernel, dim=(model.world_count, len(self.handles)),
+                  inputs=[self._translation_track, self._rotation_track, model.track_table.table, state.time],
+                  outputs=self._frames, device=model.device)
+
+    def spec(self, model, *, linear: bool = False) -> HandleSpec:
+        return HandleSpec(incidence=self.shape, rotation=any(h.rotation is not None for h in self.handles),
+                          cap=any(h.max_force is not None for h in self.handles))
+
+    def arrays(self, model, *, stiffness=None):
+        arrays = handle_arrays_type(model.scalar)()
+        arrays.handle, arrays.rest, arrays.pivot = self._handle, self._rest, self._pivot
+        arrays.kp, arrays.kd, arrays.max_force = self._kp, self._kd, self._max_force
+        arrays.translation, arrays.velocity, arrays.rotation, arrays.angular = self._frames
+        arrays.incidence = self.incidence
+        return arrays
+
+    def gershgorin_rows(self, model, free: np.ndarray, stiffness: np.ndarray | None = None) -> np.ndarray:
+        """K = Kp I on each grabbed particle: its row gains Kp of every handle holding it."""
+        rows = np.zeros(model.particle_count)
+        for h in self.handles:
+            np.add.at(rows, h.particles, h.kp)
+        return np.broadcast_to(rows, (model.world_count, model.particle_count)).copy()
+
+    def describe_element(self, model, element: int) -> str:
+        for h in self.handles:
+            if element < len(h.particles):
+                return f"handle {h.name!r} on particle {int(h.particles[element])}"
+            element -= len(h.particles)
+        return f"handle grab {element}"
+
+
+def make_handle(name: str, particles: np.ndarray, rest: np.ndarray, *, kp, kd, max_force, translation, rotation,
+                pivot) -> Handle:
+    """A checked :class:`Handle` (the builder resolves ``particles`` and ``rest``)."""
+    if len(particles) == 0:
+        raise ConfigError("a handle needs at least one particle")
+    return Handle(
+        name=name,
+        particles=particles,
+        rest=rest,
+        pivot=rest.mean(axis=0) if pivot is None else checks.vector("handle pivot", pivot),
+        kp=checks.positive("handle kp [N/m]", kp),
+        kd=checks.non_negative("handle kd [N·s/m]", kd),
+        max_force=None if max_force is None else checks.positive("handle max_force [N]", max_force),
+        translation=None if translation is None else as_track("a handle's translation", translation, 3),
+        rotation=None if rotation is None else as_track("a handle's rotation", rotation, 3),
+    )
