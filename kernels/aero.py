@@ -32,9 +32,8 @@ from dataclasses import dataclass
 
 import warp as wp
 
-from .families import FamilyFuncs, Incidence, IncidenceShape
+from .families import FamilyFuncs, Incidence, IncidenceShape, gathered_force, gathered_product, masked_operand
 from .inputs import INPUT_AIR_DENSITY, INPUT_WIND, INPUT_WIND_NOISE, input_funcs
-from .kinematics import is_kinematic
 from .precision import mat33_type, vec3_type
 
 wp.set_module_options({"enable_backward": False})
@@ -117,7 +116,7 @@ def aero_family_funcs(scalar: type, spec: AeroSpec) -> FamilyFuncs:
     AeroArrays = aero_arrays_type(scalar)
     triangle_wind_force, triangle_wind_damping = aero_funcs(scalar)
     input_vec3 = input_funcs(scalar)
-    head_slots, tail = spec.incidence
+    operand = masked_operand(scalar)
 
     @wp.func
     def wind_at(world: int, centroid: vec3, aero: AeroArrays, inputs: wp.array2d[scalar]) -> vec3:
@@ -131,8 +130,8 @@ def aero_family_funcs(scalar: type, spec: AeroSpec) -> FamilyFuncs:
 
     @wp.func
     def triangle_force_on(
-        world: int, t: int, corner: int, base: int, aero: AeroArrays, inputs: wp.array2d[scalar],
-        particle_q: wp.array[vec3], particle_qd: wp.array[vec3],
+        world: int, t: int, corner: int, i: int, base: int, xi: vec3, vi: vec3, aero: AeroArrays,
+        inputs: wp.array2d[scalar], particle_q: wp.array[vec3], particle_qd: wp.array[vec3],
     ) -> vec3:
         """A third of triangle t's wind force [N] (0 for a padding entry, corner -1)."""
         if corner < 0:
@@ -140,41 +139,17 @@ def aero_family_funcs(scalar: type, spec: AeroSpec) -> FamilyFuncs:
         ids = aero.indices[t]
         xa, xb, xc = particle_q[base + ids[0]], particle_q[base + ids[1]], particle_q[base + ids[2]]
         wind = wind_at(world, (xa + xb + xc) / scalar(3.0), aero, inputs)
-        row = wp.min(world, aero.drag.shape[0] - 1)
         force = triangle_wind_force(xa, xb, xc, particle_qd[base + ids[0]], particle_qd[base + ids[1]],
                                     particle_qd[base + ids[2]], wind, inputs[world, INPUT_AIR_DENSITY],
-                                    aero.drag[row, t], aero.lift[wp.min(world, aero.lift.shape[0] - 1), t])
+                                    aero.drag[wp.min(world, aero.drag.shape[0] - 1), t],
+                                    aero.lift[wp.min(world, aero.lift.shape[0] - 1), t])
         return force / scalar(3.0)
 
     @wp.func
-    def force(
-        world: int, i: int, base: int, xi: vec3, vi: vec3, aero: AeroArrays, inputs: wp.array2d[scalar],
-        particle_q: wp.array[vec3], particle_qd: wp.array[vec3],
-    ) -> vec3:
-        """Sum of the wind forces [N] of the triangles at particle i of ``world``."""
-        incidence = aero.incidence
-        f = vec3(scalar(0.0))
-        for k in range(wp.static(head_slots)):
-            f += triangle_force_on(world, incidence.head_element[k, i], incidence.head_local[k, i], base, aero,
-                                   inputs, particle_q, particle_qd)
-        if wp.static(tail):
-            for e in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
-                f += triangle_force_on(world, incidence.tail_element[e], incidence.tail_local[e], base, aero,
-                                       inputs, particle_q, particle_qd)
-        return f
-
-    @wp.func
-    def operand(b: int, particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool) -> vec3:
-        value = x[b]
-        if free_only:
-            value = wp.where(is_kinematic(particle_flags[b]), vec3(scalar(0.0)), value)
-        return value
-
-    @wp.func
     def product_entry(
-        world: int, t: int, corner: int, base: int, aero: AeroArrays, inputs: wp.array2d[scalar],
+        world: int, t: int, corner: int, i: int, base: int, aero: AeroArrays, inputs: wp.array2d[scalar],
         particle_q: wp.array[vec3], particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool,
-        beta: scalar,
+        alpha: scalar, beta: scalar,
     ):
         """β D_u / 9 Σ_b x_b over triangle t's corners b, and the diagonal block β D_u / 9 (no stiffness)."""
         if corner < 0:
@@ -193,28 +168,8 @@ def aero_family_funcs(scalar: type, spec: AeroSpec) -> FamilyFuncs:
             c, particle_flags, x, free_only)
         return damping * total, damping
 
-    @wp.func
-    def product(
-        world: int, i: int, base: int, xi: vec3, aero: AeroArrays, inputs: wp.array2d[scalar],
-        particle_q: wp.array[vec3], particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool,
-        alpha: scalar, beta: scalar,
-    ):
-        """Row i of (α K + β D) x over the triangles at particle i (K = 0), and its diagonal block."""
-        incidence = aero.incidence
-        y = vec3(scalar(0.0))
-        diagonal = mat33(scalar(0.0))
-        for k in range(wp.static(head_slots)):
-            yk, block = product_entry(world, incidence.head_element[k, i], incidence.head_local[k, i], base, aero,
-                                      inputs, particle_q, particle_flags, x, free_only, beta)
-            y += yk
-            diagonal += block
-        if wp.static(tail):
-            for e in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
-                yk, block = product_entry(world, incidence.tail_element[e], incidence.tail_local[e], base, aero,
-                                          inputs, particle_q, particle_flags, x, free_only, beta)
-                y += yk
-                diagonal += block
-        return y, diagonal
+    force = gathered_force(scalar, AeroArrays, spec.incidence, triangle_force_on)
+    product = gathered_product(scalar, AeroArrays, spec.incidence, product_entry)
 
     @wp.func
     def strain(world: int, i: int, base: int, xi: vec3, aero: AeroArrays, particle_q: wp.array[vec3]):

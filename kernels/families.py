@@ -41,6 +41,7 @@ import warp as wp
 
 from .precision import mat33_type, vec3_type
 from .flatten import flat_kernel
+from .kinematics import is_kinematic
 
 wp.set_module_options({"enable_backward": False})
 
@@ -87,6 +88,87 @@ class FamilyFuncs(NamedTuple):
     # Flat leaf paths of ``arrays`` that the gathered hooks (force, product, strain) never read in this spec;
     # kernels taking the family through ``elements`` pass them last (``flat_kernel(last=)``).
     idle: tuple = ()
+
+
+# -- gathering over the incidence ----------------------------------------------------------------------------
+
+
+@functools.cache
+def masked_operand(scalar: type):
+    """``operand(b, particle_flags, x, free_only) -> vec3``: x_b, or 0 for a kinematic particle when
+    ``free_only`` (Baraff-Witkin's filter; a row exists only for a free particle, so its own entry is never
+    dropped)."""
+    vec3 = vec3_type(scalar)
+
+    @wp.func
+    def operand(b: int, particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool) -> vec3:
+        value = x[b]
+        if free_only:
+            value = wp.where(is_kinematic(particle_flags[b]), vec3(scalar(0.0)), value)
+        return value
+
+    return operand
+
+
+def gathered_force(scalar: type, Arrays, shape: IncidenceShape, entry):
+    """A family's ``force`` hook summing ``entry`` over particle i's incidence entries (head, then tail).
+
+    ``entry(world, element, local, i, base, xi, vi, arrays, inputs, particle_q, particle_qd) -> vec3`` is the
+    force [N] of one element on particle i (0 for a padding entry: the family's padding ``local``)."""
+    vec3 = vec3_type(scalar)
+    head_slots, tail = shape
+
+    @wp.func
+    def force(
+        world: int, i: int, base: int, xi: vec3, vi: vec3, arrays: Arrays, inputs: wp.array2d[scalar],
+        particle_q: wp.array[vec3], particle_qd: wp.array[vec3],
+    ) -> vec3:
+        incidence = arrays.incidence
+        f = vec3(scalar(0.0))
+        for k in range(wp.static(head_slots)):
+            f += entry(world, incidence.head_element[k, i], incidence.head_local[k, i], i, base, xi, vi, arrays,
+                       inputs, particle_q, particle_qd)
+        if wp.static(tail):
+            for e in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
+                f += entry(world, incidence.tail_element[e], incidence.tail_local[e], i, base, xi, vi, arrays, inputs,
+                           particle_q, particle_qd)
+        return f
+
+    return force
+
+
+def gathered_product(scalar: type, Arrays, shape: IncidenceShape, entry):
+    """A family's ``product`` hook summing ``entry`` over particle i's incidence entries (head, then tail).
+
+    ``entry(world, element, local, i, base, arrays, inputs, particle_q, particle_flags, x, free_only, alpha,
+    beta) -> (vec3, mat33)`` is one element's part of row i of (α K + β D) x and of its diagonal block."""
+    vec3 = vec3_type(scalar)
+    mat33 = mat33_type(scalar)
+    head_slots, tail = shape
+
+    @wp.func
+    def product(
+        world: int, i: int, base: int, xi: vec3, arrays: Arrays, inputs: wp.array2d[scalar],
+        particle_q: wp.array[vec3], particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool,
+        alpha: scalar, beta: scalar,
+    ):
+        incidence = arrays.incidence
+        y = vec3(scalar(0.0))
+        diagonal = mat33(scalar(0.0))
+        for k in range(wp.static(head_slots)):
+            yk, block = entry(world, incidence.head_element[k, i], incidence.head_local[k, i], i, base, arrays,
+                              inputs, particle_q, particle_flags, x, free_only, alpha, beta)
+            y += yk
+            diagonal += block
+        if wp.static(tail):
+            for e in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
+                yk, block = entry(world, incidence.tail_element[e], incidence.tail_local[e], i, base, arrays, inputs,
+                                  particle_q, particle_flags, x, free_only, alpha, beta)
+                y += yk
+                diagonal += block
+        return y, diagonal
+
+    return product
 
 
 # -- composition ---------------------------------------------------------------------------------------------

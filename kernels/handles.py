@@ -22,9 +22,9 @@ from dataclasses import dataclass
 
 import warp as wp
 
-from .families import FamilyFuncs, Incidence, IncidenceShape
+from .families import FamilyFuncs, Incidence, IncidenceShape, gathered_force, gathered_product
 from .kinematics import angular_velocity, rotate_by_vector
-from .precision import vec3_type
+from .precision import mat33_type, vec3_type
 from .tracks import Tracks, track_sample
 
 wp.set_module_options({"enable_backward": False})
@@ -119,13 +119,16 @@ def handle_funcs(scalar: type):
 def handle_family_funcs(scalar: type, spec: HandleSpec) -> FamilyFuncs:
     """The family hooks of PD handles (``families.py``) for one precision and spec."""
     vec3 = vec3_type(scalar)
+    mat33 = mat33_type(scalar)
     HandleArrays = handle_arrays_type(scalar)
     pd_force, capped = handle_funcs(scalar)
-    head_slots, tail = spec.incidence
 
     @wp.func
-    def grab_force(world: int, g: int, local: int, xi: vec3, vi: vec3, handles: HandleArrays) -> vec3:
-        """The force [N] of grab g on its particle at xi moving at vi (0 for a padding entry)."""
+    def grab_force(
+        world: int, g: int, local: int, i: int, base: int, xi: vec3, vi: vec3, handles: HandleArrays,
+        inputs: wp.array2d[scalar], particle_q: wp.array[vec3], particle_qd: wp.array[vec3],
+    ) -> vec3:
+        """The force [N] of grab g on its particle i at xi moving at vi (0 for a padding entry)."""
         if local < 0:
             return vec3(scalar(0.0))
         h = handles.handle[g]
@@ -144,44 +147,21 @@ def handle_family_funcs(scalar: type, spec: HandleSpec) -> FamilyFuncs:
         return u
 
     @wp.func
-    def force(
-        world: int, i: int, base: int, xi: vec3, vi: vec3, handles: HandleArrays, inputs: wp.array2d[scalar],
-        particle_q: wp.array[vec3], particle_qd: wp.array[vec3],
-    ) -> vec3:
-        """Sum of the forces [N] of the handles holding particle i of ``world``."""
-        incidence = handles.incidence
-        f = vec3(scalar(0.0))
-        for k in range(wp.static(head_slots)):
-            f += grab_force(world, incidence.head_element[k, i], incidence.head_local[k, i], xi, vi, handles)
-        if wp.static(tail):
-            for e in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
-                f += grab_force(world, incidence.tail_element[e], incidence.tail_local[e], xi, vi, handles)
-        return f
-
-    @wp.func
-    def gains(world: int, g: int, local: int, handles: HandleArrays, alpha: scalar, beta: scalar) -> scalar:
-        """α Kp + β Kd of grab g (0 for a padding entry)."""
-        if local < 0:
-            return scalar(0.0)
-        h = handles.handle[g]
-        return alpha * handles.kp[wp.min(world, handles.kp.shape[0] - 1), h] + beta * handles.kd[
-            wp.min(world, handles.kd.shape[0] - 1), h]
-
-    @wp.func
-    def product(
-        world: int, i: int, base: int, xi: vec3, handles: HandleArrays, inputs: wp.array2d[scalar],
+    def product_entry(
+        world: int, g: int, local: int, i: int, base: int, handles: HandleArrays, inputs: wp.array2d[scalar],
         particle_q: wp.array[vec3], particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool,
         alpha: scalar, beta: scalar,
     ):
-        """Row i of (α K + β D) x, K = Kp I and D = Kd I on each grabbed particle, and its diagonal block."""
-        incidence = handles.incidence
-        k = scalar(0.0)
-        for slot in range(wp.static(head_slots)):
-            k += gains(world, incidence.head_element[slot, i], incidence.head_local[slot, i], handles, alpha, beta)
-        if wp.static(tail):
-            for e in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
-                k += gains(world, incidence.tail_element[e], incidence.tail_local[e], handles, alpha, beta)
+        """(α Kp + β Kd) x_i and the diagonal block (α Kp + β Kd) I of grab g (0 for a padding entry)."""
+        if local < 0:
+            return vec3(scalar(0.0)), mat33(scalar(0.0))
+        h = handles.handle[g]
+        k = alpha * handles.kp[wp.min(world, handles.kp.shape[0] - 1), h] + beta * handles.kd[
+            wp.min(world, handles.kd.shape[0] - 1), h]
         return k * x[base + i], k * wp.identity(n=3, dtype=scalar)
+
+    force = gathered_force(scalar, HandleArrays, spec.incidence, grab_force)
+    product = gathered_product(scalar, HandleArrays, spec.incidence, product_entry)
 
     @wp.func
     def strain(world: int, i: int, base: int, xi: vec3, handles: HandleArrays, particle_q: wp.array[vec3]):

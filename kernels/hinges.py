@@ -15,8 +15,7 @@ from dataclasses import dataclass
 import warp as wp
 
 from .bending import dihedral_funcs
-from .families import FamilyFuncs, Incidence, IncidenceShape
-from .kinematics import is_kinematic
+from .families import FamilyFuncs, Incidence, IncidenceShape, gathered_force, gathered_product, masked_operand
 from .precision import mat33_type, vec3_type
 
 wp.set_module_options({"enable_backward": False})
@@ -57,12 +56,12 @@ def hinge_family_funcs(scalar: type, spec: HingeSpec) -> FamilyFuncs:
     angle_gradient = bending.dihedral_angle_gradient
     gradient_of_role = bending.gradient_of_role
     hinge_moment = bending.hinge_moment
-    head_slots, tail = spec.incidence
+    operand = masked_operand(scalar)
 
     @wp.func
     def hinge_force_on(
-        world: int, h: int, role: int, base: int, hinges: HingeArrays, particle_q: wp.array[vec3],
-        particle_qd: wp.array[vec3],
+        world: int, h: int, role: int, i: int, base: int, xi: vec3, vi: vec3, hinges: HingeArrays,
+        inputs: wp.array2d[scalar], particle_q: wp.array[vec3], particle_qd: wp.array[vec3],
     ) -> vec3:
         """Force [N] of hinge h on its particle ``role`` (0 for a padding entry, role -1)."""
         if role < 0:
@@ -77,35 +76,10 @@ def hinge_family_funcs(scalar: type, spec: HingeSpec) -> FamilyFuncs:
         return -moment * gradient_of_role(role, g0, g1, g2, g3)
 
     @wp.func
-    def force(
-        world: int, i: int, base: int, xi: vec3, vi: vec3, hinges: HingeArrays, inputs: wp.array2d[scalar],
-        particle_q: wp.array[vec3], particle_qd: wp.array[vec3],
-    ) -> vec3:
-        """Sum of the forces [N] of the hinges at particle i of ``world``."""
-        incidence = hinges.incidence
-        f = vec3(scalar(0.0))
-        for k in range(wp.static(head_slots)):
-            f += hinge_force_on(world, incidence.head_element[k, i], incidence.head_local[k, i], base, hinges,
-                                particle_q, particle_qd)
-        if wp.static(tail):
-            for t in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
-                f += hinge_force_on(world, incidence.tail_element[t], incidence.tail_local[t], base, hinges,
-                                    particle_q, particle_qd)
-        return f
-
-    @wp.func
-    def operand(b: int, particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool) -> vec3:
-        """x_b, or 0 for a kinematic particle when ``free_only`` (a row exists only for a free particle, so its
-        own entry is never dropped)."""
-        value = x[b]
-        if free_only:
-            value = wp.where(is_kinematic(particle_flags[b]), vec3(scalar(0.0)), value)
-        return value
-
-    @wp.func
     def product_entry(
-        world: int, h: int, role: int, base: int, hinges: HingeArrays, particle_q: wp.array[vec3],
-        particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool, alpha: scalar, beta: scalar,
+        world: int, h: int, role: int, i: int, base: int, hinges: HingeArrays, inputs: wp.array2d[scalar],
+        particle_q: wp.array[vec3], particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool,
+        alpha: scalar, beta: scalar,
     ):
         """(α ke + β kd) ∇_role θ Σ_b ∇_b θ · x_b for hinge h, and its diagonal block."""
         if role < 0:
@@ -122,28 +96,8 @@ def hinge_family_funcs(scalar: type, spec: HingeSpec) -> FamilyFuncs:
         rate += wp.dot(g3, operand(base + ids[3], particle_flags, x, free_only))
         return (k * rate) * ga, k * wp.outer(ga, ga)
 
-    @wp.func
-    def product(
-        world: int, i: int, base: int, xi: vec3, hinges: HingeArrays, inputs: wp.array2d[scalar],
-        particle_q: wp.array[vec3], particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool,
-        alpha: scalar, beta: scalar,
-    ):
-        """Row i of (α K + β D) x over the hinges at particle i, and its diagonal block."""
-        incidence = hinges.incidence
-        y = vec3(scalar(0.0))
-        diagonal = mat33(scalar(0.0))
-        for k in range(wp.static(head_slots)):
-            yk, block = product_entry(world, incidence.head_element[k, i], incidence.head_local[k, i], base, hinges,
-                                      particle_q, particle_flags, x, free_only, alpha, beta)
-            y += yk
-            diagonal += block
-        if wp.static(tail):
-            for t in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
-                yk, block = product_entry(world, incidence.tail_element[t], incidence.tail_local[t], base, hinges,
-                                          particle_q, particle_flags, x, free_only, alpha, beta)
-                y += yk
-                diagonal += block
-        return y, diagonal
+    force = gathered_force(scalar, HingeArrays, spec.incidence, hinge_force_on)
+    product = gathered_product(scalar, HingeArrays, spec.incidence, product_entry)
 
     @wp.func
     def strain(world: int, i: int, base: int, xi: vec3, hinges: HingeArrays, particle_q: wp.array[vec3]):
