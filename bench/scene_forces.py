@@ -3,8 +3,9 @@ with a PD handle, side by side in one process.
 
 Variants per size: the reference cloth (springs only); with aerodynamics on every triangle in a steady wind
 (``add_aerodynamics``: the wind family gathered per particle with the springs); with the spatial noise
-compiled in as well; and with a handle grabbing the cloth's top row and dragging it along a track (the
-handle family plus its per-step target pass). Symplectic Euler, 16 substeps per frame, each frame one graph;
+compiled in as well; with a handle grabbing the cloth's top row and dragging it along a track (the
+handle family plus its per-step target pass); and with an emitter keeping 1,000 particles alive (its pool
+joins the particles; births and deaths are two launches after every step). Symplectic Euler, 16 substeps per frame, each frame one graph;
 the steady rate is the median of timed batches (``cloth.measure``). Reported: substeps/s of each and the
 share of a substep the feature takes, 1 − rate(with) / rate(without).
 
@@ -50,6 +51,14 @@ def model_with_handle(n: int, device) -> ws.Model:
     return builder.finalize(device)
 
 
+def model_with_emitter(n: int, device) -> ws.Model:
+    """The reference cloth and an emitter keeping 1,000 particles alive (2,000 per second, 0.5 s each)."""
+    builder, _ = reference_builder(n)
+    builder.add_emitter(center=(0.0, -1.0, 0.5 * n * SPACING), rate=2000.0, life=0.5, velocity=(0.0, -2.0, 2.0),
+                        spread=0.5)
+    return builder.finalize(device)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default=None)
@@ -66,11 +75,13 @@ def main() -> None:
             "+ wind": lambda: WarpspringRunner(model_with_wind(n, device, noise=False)),
             "+ wind + noise": lambda: WarpspringRunner(model_with_wind(n, device, noise=True)),
             "+ handle": lambda: WarpspringRunner(model_with_handle(n, device)),
+            "+ emitter": lambda: WarpspringRunner(model_with_emitter(n, device)),
         }
         rates = {name: SUBSTEPS / measure(make, device, args.seconds)["frame_s"] for name, make in variants.items()}
         base = rates["springs"]
         rows.append(f"| {n}² | {base:,.0f} | " + " | ".join(
-            f"{rates[name]:,.0f} | {1 - rates[name] / base:.0%}" for name in ("+ wind", "+ wind + noise", "+ handle"))
+            f"{rates[name]:,.0f} | {1 - rates[name] / base:.0%}"
+            for name in ("+ wind", "+ wind + noise", "+ handle", "+ emitter"))
             + " |")
         print(rows[-1], flush=True)
     name = device.name if device.is_cuda else "CPU"
@@ -80,8 +91,8 @@ def main() -> None:
         f"1/{FPS} s frame, one graph per frame",
         "",
         "| cloth | springs only [substeps/s] | + wind [substeps/s] | share | + wind + noise [substeps/s] | share | "
-        "+ handle (top row) [substeps/s] | share |",
-        "|---|---|---|---|---|---|---|---|",
+        "+ handle (top row) [substeps/s] | share | + emitter (1,000 live) [substeps/s] | share |",
+        "|---|---|---|---|---|---|---|---|---|---|",
         *rows,
     ]
     emit_table(lines, args.out)

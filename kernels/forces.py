@@ -22,7 +22,7 @@ from typing import NamedTuple
 import warp as wp
 
 from .families import FORCE_KERNEL_OPTIONS, elements
-from .inputs import INPUT_DRAG, INPUT_GRAVITY, INPUT_MAX_PARTICLE_FORCE, input_funcs
+from .inputs import INPUT_DRAG, INPUT_GRAVITY, INPUT_MAX_PARTICLE_FORCE, INPUT_WIND, input_funcs
 from .precision import vec3_type
 from .worlds import world_and_index
 from .flatten import flat_kernel
@@ -38,6 +38,7 @@ class ForceFeatures(NamedTuple):
     drag: bool
     external: bool
     clamp_particle_force: bool = False  # clamp the total force on a particle to INPUT_MAX_PARTICLE_FORCE
+    wind: bool = False  # the model has wind: drag acts on the velocity relative to the air, v - INPUT_WIND
 
 
 @functools.cache
@@ -73,7 +74,10 @@ def particle_force_func(scalar: type, features: ForceFeatures):
         if wp.static(features.gravity):
             f += particle_mass[wp.min(world, particle_mass.shape[0] - 1), i] * input_vec3(inputs, world, INPUT_GRAVITY)
         if wp.static(features.drag):
-            f -= inputs[world, INPUT_DRAG] * vi
+            if wp.static(features.wind):
+                f -= inputs[world, INPUT_DRAG] * (vi - input_vec3(inputs, world, INPUT_WIND))
+            else:
+                f -= inputs[world, INPUT_DRAG] * vi
         if wp.static(features.external):
             f += particle_force_ext[base + i]
         f += element_force(world, i, base, xi, vi, element_arrays, inputs, particle_q, particle_qd)

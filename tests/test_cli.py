@@ -83,7 +83,8 @@ def points_samples(path, prim: str = "/World/cloth") -> tuple[list[np.ndarray], 
 @pytest.mark.parametrize("example, frames, prim", [("hanging_cloth.toml", 2, "/World/cloth"),
                                                    ("cloth_on_sphere.toml", 3, "/World/cloth"),
                                                    ("flag_in_wind.toml", 2, "/World/flag"),
-                                                   ("tablecloth_pull.toml", 2, "/World/tablecloth")])
+                                                   ("tablecloth_pull.toml", 2, "/World/tablecloth"),
+                                                   ("sparks.toml", 2, "/World/sparks")])
 def test_example_scene_runs(tmp_path, capsys, example, frames, prim):
     """An example runs for a few frames: exit 0, the summary line, and frames + 1 samples at the scene's 60 fps."""
     out = tmp_path / "example.usdc"

@@ -69,7 +69,7 @@ SCENES = {
     "no shear, hinges, colliders": lambda: _with_colliders(grid_builder(shear=False, dihedral=ws.DihedralMaterial(
         ke=1e-3, kd=1e-5))),
     "pin group, moving collider": lambda: _moving(grid_builder()),
-    "wind with noise, handles": lambda: _wind_and_handles(grid_builder()),
+    "wind with noise, handles, emitters": lambda: _wind_and_handles(grid_builder()),
 }
 
 
@@ -78,6 +78,8 @@ def _wind_and_handles(builder):
     builder.add_handle([0, 1, 2], kp=10.0, kd=0.1, max_force=1.0,
                        translation=ws.Track([0.0, 1.0], [[0, 0, 0], [0.1, 0, 0]]))
     builder.add_handle([3, 4], kp=5.0, rotation=ws.Track.rotation([0.0, 1.0], axis=(0, 0, 1), degrees=[0, 45]))
+    builder.add_emitter(center=(0.0, 0.0, 1.0), rate=50.0, bursts=[(0.5, 10)], life=0.4)
+    builder.add_emitter(shape="mesh", mesh=(np.eye(3), [[0, 1, 2]]), rate=20.0, life=0.5, name="sheet")
     return builder
 
 

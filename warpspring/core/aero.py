@@ -37,6 +37,7 @@ class AeroFamily(ElementFamily):
 
     name = "wind triangles"
     does_work = True
+    moves_air = True  # the model's air moves: viscous drag acts relative to the wind
 
     def __init__(self, triangles, *, drag=DEFAULT_DRAG, lift=DEFAULT_LIFT, noise_scale: float = 0.0, seed: int = 0):
         self.triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)

@@ -24,6 +24,7 @@ from .bending import DihedralMaterial
 from . import memory
 from .aero import AIR_DENSITY, DEFAULT_DRAG, DEFAULT_LIFT, AeroFamily
 from .families import ElementFamily, build_incidence, head_slots
+from .emitters import Emitter, make_emitter
 from .handles import HandleFamily, make_handle
 from .hinges import dihedral_angle, mesh_hinges
 from .kinematics import PinGroup, PinGroupTable
@@ -122,6 +123,7 @@ class ModelBuilder:
 
         self._families: list[ElementFamily] = []  # element families beyond springs, in the order added
         self._air: dict = {}  # the wind's live inputs at the start, once aerodynamics is added
+        self._emitters: list[Emitter] = []
 
         self._meshes: list[MeshGroup] = []
         self._shapes: list[ShapeInfo] = []
@@ -350,6 +352,47 @@ class ModelBuilder:
                                           kp=kp, kd=kd, max_force=max_force, translation=translation,
                                           rotation=rotation, pivot=pivot))
         return len(family.handles) - 1
+
+    def add_emitter(self, *, shape: str = "point", center=(0.0, 0.0, 0.0), half_extents=(0.1, 0.1, 0.1), mesh=None,
+                    rate: float = 0.0, bursts=(), life: float, velocity=(0.0, 0.0, 0.0), spread: float = 0.0,
+                    capacity: int | None = None, mass: float = 1.0e-3, radius: float = 0.005, seed: int = 0,
+                    name: str = "emitter") -> Emitter:
+        """Add a particle emitter: free particles born on a shape at a rate and in bursts, each living ``life``
+        seconds, from a fixed pool of particles recycled on the device (``kernels/emitters.py``). Its particles
+        feel gravity, drag (relative to the wind where there is wind) and the colliders, and are written to
+        USD as ``UsdGeom.Points`` with stable ``ids``.
+
+        Args:
+            shape: "point" (at ``center``), "box" (``center`` ± ``half_extents``, axis-aligned, uniform) or
+                "mesh" (uniform over the area of ``mesh``: (vertices [m], faces) or a ``trimesh.Trimesh``).
+            center: the point, or the box's centre [m]; half_extents: the box's half sizes [m].
+            rate: births per second [1/s], ≥ 0.
+            bursts: (time [s], count) pairs: ``count`` births at ``time``.
+            life: each particle's life span [s], > 0.
+            velocity: the launch velocity v₀ [m/s]; spread: the standard deviation σ [m/s] of each of its
+                components (an isotropic Gaussian).
+            capacity: the pool's size; default 5 % above rate × life plus the bursts. A smaller pool recycles
+                its oldest particles early (a :class:`~warpspring.core.emitters.PoolTooSmallWarning` now, and
+                the count in the run's summary).
+            mass: each particle's mass [kg]; radius: its contact radius [m].
+            seed: the random stream's seed (the same serial always starts the same).
+            name: the emitter's name (USD prim name, made unique).
+
+        Returns:
+            The :class:`~warpspring.core.emitters.Emitter`.
+        """
+        if mesh is not None and hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
+            mesh = (np.asarray(mesh.vertices), np.asarray(mesh.faces))
+        name = self._unique_name(name, [e.name for e in self._emitters] + [m.name for m in self._meshes]
+                                 + list(RESERVED_PRIM_NAMES))
+        emitter = make_emitter(name, self._particle_count, shape=shape, center=center, half_extents=half_extents,
+                               mesh=mesh, rate=rate, bursts=list(bursts), life=life, velocity=velocity,
+                               spread=spread, seed=seed, capacity=capacity)
+        # The pool: kinematic (dead) and still until born, at the emitter's centre.
+        self.add_particles(np.broadcast_to(emitter.center, (emitter.capacity, 3)), mass=mass, radius=radius,
+                           pinned=np.ones(emitter.capacity, dtype=bool))
+        self._emitters.append(emitter)
+        return emitter
 
     def add_aerodynamics(self, *, meshes=None, drag=DEFAULT_DRAG, lift=DEFAULT_LIFT, wind=(0.0, 0.0, 0.0),
                          air_density: float = AIR_DENSITY, noise: float = 0.0, noise_scale: float = 1.0,
@@ -941,7 +984,8 @@ class ModelBuilder:
             contact_slots=slots if stage else 0,
             moving_colliders=moving,
             block_dim=_block_dim(device, n * worlds),
-            family_bytes=sum(f.device_bytes(n, 8 if precision == "float64" else 4, worlds) for f in self._families),
+            family_bytes=sum(f.device_bytes(n, 8 if precision == "float64" else 4, worlds) for f in self._families)
+            + sum(e.device_bytes(worlds) for e in self._emitters),
         )
 
     def _finalize(self, device, precision: str, scalar, worlds: int, spring_evaluation: str,
@@ -1049,6 +1093,9 @@ class ModelBuilder:
         for family in self._families:
             family.finalize(model)
         model.extra_families = tuple(self._families)
+        for emitter in self._emitters:
+            emitter.finalize(model)
+        model.emitters = list(self._emitters)
         model._finalized = True
         return model
 

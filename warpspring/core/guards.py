@@ -316,7 +316,7 @@ class Guard(StepHook):
         model = self.model
         stabilizers = model.stabilizers
         return not (model.shape_moving or stabilizers.enabled("max_particle_force")
-                    or any(family.does_work for family in model.families)
+                    or any(family.does_work for family in model.families) or bool(model.emitters)
                     or any(name in model._tracks for name in POTENTIAL_INPUTS)
                     or getattr(self.integrator, "unconditionally_stable", False))
 

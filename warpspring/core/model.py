@@ -287,6 +287,7 @@ class Model:
         self.vec3 = vec3_type(scalar)
         self.meshes = []
         self.spring_families = {}
+        self.emitters = []  # list[Emitter] (core/emitters.py), run after every step by the Simulator
         self.shapes = []
         self.shape_count = 0
         self.shape_types = ()
@@ -772,6 +773,7 @@ class Model:
             drag=self._drag_on,
             external=control is not None and control.particle_force is not None,
             clamp_particle_force=self._stabilizers.max_particle_force is not None,
+            wind=any(getattr(family, "moves_air", False) for family in self.extra_families),
         )
 
     def kinematic_mask(self, *, world: int = 0) -> np.ndarray:
@@ -842,6 +844,7 @@ class Model:
         worlds = f"{self.world_count} worlds of " if self.world_count > 1 else ""
         hinges = f", {self.hinge_count} hinges" if self.hinge_count else ""
         extra = "".join(f", {f.element_count} {f.name}" for f in self.extra_families)
+        extra += "".join(f", emitter {e.name!r} (pool {e.capacity})" for e in self.emitters)
         return (
             f"{worlds}{self.particle_count} particles, {self.spring_count} springs{hinges}{extra}, "
             f"{self.tri_count} triangles{pins}, "

@@ -13,6 +13,7 @@ from .. import checks
 from ..errors import ContactOverflowWarning, SimulationError
 from .checkpoint import Checkpoint
 from .contacts import Contacts
+from .emitters import EmitterHook
 from .guards import Guard, GuardLimits
 from .integrators import Integrator, SymplecticEuler
 from .model import Control, Model, State
@@ -86,7 +87,9 @@ class Simulator:
             dt=self.dt,
             steps=self.substeps,
             control=control,
-            hooks=[self.guard] if self.guard is not None else [],
+            # Births and deaths first, so that the guard checks the state the step leaves.
+            hooks=([EmitterHook(model, self.dt)] if model.emitters else []) + ([self.guard] if self.guard is not None
+                                                                              else []),
             use_graph=use_graph,
         )
         if self.guard is not None:

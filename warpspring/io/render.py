@@ -1,7 +1,8 @@
 """Render one frame of a USD animation to a PNG with a small software rasterizer (NumPy, no GPU needed).
 
 Reads the file back through pxr, so the picture shows what a DCC tool would load: every ``Mesh``
-(cloth and ground), ``Sphere``, ``Cube`` and ``Capsule``, with their world transforms at the frame's time
+(cloth and ground), ``Sphere``, ``Cube`` and ``Capsule``, and ``Points`` (emitted particles, each a small
+sphere of its width), with their world transforms at the frame's time
 code (so a moving collider is drawn where it is at that frame). Colliders are drawn although warpspring
 writes them with purpose ``guide``: the picture is for checking a run, and the cloth's contacts with
 them are what it must show.
@@ -36,7 +37,8 @@ _SHADOW_SIZE, _SHADOW_FOV = 1024, 8.0  # shadow map size [texels] and field of v
 _SHADOW_TAPS = (-2, 0, 2)  # texel offsets of the percentage-closer filter, along each axis
 _CHUNK = 1 << 18  # samples shaded at once
 _BACKGROUND = np.array([1.0, 1.0, 1.0])
-_COLORS = {"cloth": (0.85, 0.33, 0.22), "collider": (0.55, 0.62, 0.72), "ground": (0.9, 0.89, 0.86)}
+_COLORS = {"cloth": (0.85, 0.33, 0.22), "collider": (0.55, 0.62, 0.72), "ground": (0.9, 0.89, 0.86),
+           "points": (0.98, 0.72, 0.2)}
 
 
 @dataclass(frozen=True)
@@ -138,8 +140,8 @@ def _sampled_frames(stage) -> list[int]:
 
     times = set()
     for prim in stage.Traverse():
-        if prim.IsA(UsdGeom.Mesh):
-            times.update(int(round(s)) for s in UsdGeom.Mesh(prim).GetPointsAttr().GetTimeSamples())
+        if prim.IsA(UsdGeom.PointBased) and not prim.IsA(UsdGeom.Curves):
+            times.update(int(round(s)) for s in UsdGeom.PointBased(prim).GetPointsAttr().GetTimeSamples())
     return sorted(times)
 
 
@@ -179,6 +181,8 @@ def _triangles(prim, time):
         capsule = UsdGeom.Capsule(prim)
         radius, height = capsule.GetRadiusAttr().Get(time), capsule.GetHeightAttr().Get(time)
         return (*_capsule(radius, 0.5 * height, capsule.GetAxisAttr().Get(time)), "collider")
+    if prim.IsA(UsdGeom.Points):
+        return _point_spheres(UsdGeom.Points(prim), time)
     if not prim.IsA(UsdGeom.Mesh):
         return None
     mesh = UsdGeom.Mesh(prim)
@@ -191,6 +195,20 @@ def _triangles(prim, time):
     if "colliders" not in str(prim.GetPath()):
         return points, tris, "cloth"
     return points, tris, "ground" if len(points) == 4 else "collider"  # warpspring writes a plane as a quad
+
+
+def _point_spheres(points_prim, time):
+    """A points prim's points as small spheres of their widths (a once-subdivided icosahedron each), or None
+    without points."""
+    points = np.asarray(points_prim.GetPointsAttr().Get(time) or [], dtype=np.float64).reshape(-1, 3)
+    if not len(points):
+        return None
+    widths = np.asarray(points_prim.GetWidthsAttr().Get(time) or [0.01], dtype=np.float64)
+    radius = 0.5 * np.broadcast_to(widths if len(widths) == len(points) else widths[:1], (len(points),))
+    unit, tris = _icosphere(1.0, subdivisions=1)
+    spheres = points[:, None, :] + radius[:, None, None] * unit[None, :, :]
+    all_tris = (tris[None, :, :] + (np.arange(len(points)) * len(unit))[:, None, None]).reshape(-1, 3)
+    return spheres.reshape(-1, 3), all_tris, "points"
 
 
 def _assemble(parts: list) -> _Scene:

@@ -39,6 +39,8 @@ class RunSummary:
         contact_overflow: contacts dropped in the run because a particle touched more colliders than its
             contact slots, all worlds together (0 without the contact stage).
         resumed_from: the checkpoint's frame a resumed run went on from (0: a run from the start).
+        recycled: per emitter whose pool was too small, the particles recycled before their life span ended
+            (all worlds together) and the pool's size: {name: (count, capacity)}.
     """
 
     output: str
@@ -57,6 +59,7 @@ class RunSummary:
     world_failures: list = field(default_factory=list)
     contact_overflow: int = 0
     resumed_from: int = 0
+    recycled: dict = field(default_factory=dict)
 
     def line(self) -> str:
         """The closing summary line of the CLI."""
@@ -76,6 +79,9 @@ class RunSummary:
         if self.contact_overflow:
             worlds += (f"; {self.contact_overflow} contacts dropped for want of contact slots (raise "
                        "[contacts] slots)")
+        for name, (count, capacity) in self.recycled.items():
+            worlds += (f"; emitter {name!r}: {count} particles recycled before their life span ended (its pool of "
+                       f"{capacity} is too small: raise capacity)")
         resumed = f", frames {self.resumed_from + 1}..{self.frames} after resuming" if self.resumed_from else ""
         return (
             f"wrote {self.frames + 1} frames{resumed} ({self.simulated_time:.3g} s simulated) to {self.output} in "
@@ -261,6 +267,7 @@ def run_scene(
         world_failures=[sim.describe_failure(w) for w in sorted(failures)],
         contact_overflow=int(sim.contact_overflow().sum()),
         resumed_from=start,
+        recycled={e.name: (int(e.recycled().sum()), e.capacity) for e in model.emitters if e.recycled().any()},
     )
 
 

@@ -159,6 +159,7 @@ class Scene:
             given as a track holds the track's first value.
         guard: the ``[guard]`` table (run-time checks).
         wind: the ``[wind]`` table as written (aerodynamics on cloth triangles), or ``None``.
+        emitters: the ``[[emitter]]`` tables, checked (particle emitters).
         tracks: keyframe tracks of the live inputs the file animates, by input name ("gravity", "drag",
             "max_strain", ...).
         world_count: independent copies of the scene in the model (``[worlds] count``; 1 without ``[worlds]``).
@@ -198,6 +199,7 @@ class Scene:
     guard: GuardLimits = field(default_factory=GuardLimits)
     tracks: dict = field(default_factory=dict)
     wind: dict | None = None
+    emitters: list = field(default_factory=list)
     world_count: int = 1
     world_inputs: dict = field(default_factory=dict)
     world_scales: dict = field(default_factory=dict)
@@ -237,6 +239,9 @@ class Scene:
         if self.wind is not None:
             with _context(where, "wind"):
                 _add_wind(builder, self.wind, tracks)
+        for i, emitter in enumerate(self.emitters):
+            with _context(where, _label("emitter", i, len(self.emitters))):
+                _add_emitter(builder, emitter, os.path.dirname(self.path))
         for i, collider in enumerate(self.colliders):
             with _context(where, _label("collider", i, len(self.colliders))):
                 _add_collider(builder, collider)
@@ -386,6 +391,22 @@ _HANDLE = {
     "translation": _Track(VECTOR),
     "rotation": _Track(rotation=True),
 }
+_EMITTER = {
+    "name": str,
+    "shape": str,
+    "center": VECTOR,
+    "half_extents": VECTOR,
+    "mesh": str,
+    "rate": NON_NEGATIVE,
+    "bursts": list,
+    "life": POSITIVE,
+    "velocity": VECTOR,
+    "spread": NON_NEGATIVE,
+    "capacity": _Number(1, integer=True),
+    "mass": POSITIVE,
+    "radius": NON_NEGATIVE,
+    "seed": _Number(0, integer=True),
+}
 _SCHEMA = {
     "simulation": {
         "fps": POSITIVE,
@@ -491,7 +512,7 @@ _SCHEMA = {
 }
 _TOP_LEVEL = {"version": _Number(1, integer=True), **{k: (dict, list) if k in ("cloth", "collider") else dict
                                                       for k in _SCHEMA}, "worlds": _Since(2, dict),
-              "wind": _Since(2, dict),
+              "wind": _Since(2, dict), "emitter": _Since(2, (dict, list)),
               "contacts": _Since(2, dict)}
 #: How the run-time guard may stop: the whole run, or only the world that failed ([guard] stop).
 GUARD_STOPS = ("run", "world")
@@ -577,8 +598,15 @@ def _parse(data: dict, path: str) -> Scene:
         _check_table(data.get(name, {}), _SCHEMA[name], where, name, version=version)
     cloths = _table_list(data.get("cloth", []), where, "cloth")
     colliders = _table_list(data.get("collider", []), where, "collider")
-    if not cloths:
-        raise ConfigError(f"{where}: the scene has no [cloth] table: add one with grid = {{...}} or mesh = '...'")
+    emitters = _table_list(data.get("emitter", []), where, "emitter")
+    if not cloths and not emitters:
+        raise ConfigError(f"{where}: the scene has no [cloth] table: add one with grid = {{...}} or mesh = '...' "
+                          "(or particles from an [[emitter]])")
+    for i, e in enumerate(emitters):
+        label = _label("emitter", i, len(emitters))
+        _check_table(e, _EMITTER, where, label, version=version)
+        if "life" not in e:
+            raise ConfigError(f"{where}: [{label}] needs life = ..., each particle's life span [s]")
     for i, c in enumerate(cloths):
         _check_cloth(c, where, _label("cloth", i, len(cloths)), version=version)
     for i, c in enumerate(colliders):
@@ -609,7 +637,7 @@ def _parse(data: dict, path: str) -> Scene:
     stabilizers = {k: float(tracks[k].values[0, 0]) if k in tracks else v
                    for k, v in data.get("stabilizers", {}).items()}
     scene = Scene(path=path, world=data.get("world", {}), cloths=cloths, colliders=colliders, tracks=tracks,
-                  wind=wind, version=version, deprecations=deprecations)
+                  wind=wind, emitters=emitters, version=version, deprecations=deprecations)
     scene.fps = float(sim.get("fps", scene.fps))
     scene.frames = sim.get("frames", scene.frames)
     scene.substeps = sim.get("substeps", scene.substeps)
@@ -919,6 +947,32 @@ def _check_table(table: dict, schema: dict, where: str, name: str, *, version: i
                 f"{where}: unknown key {key!r} in [{name or 'top level'}]; allowed: {', '.join(schema)}{hint}"
             )
         _check_value(value, schema[key], where, f"{name}.{key}" if name else key, version=version)
+
+
+def _add_emitter(builder: ModelBuilder, e: dict, base: str) -> None:
+    """An ``[[emitter]]`` table (types checked): its mesh read by trimesh for shape = "mesh"."""
+    mesh = None
+    if "mesh" in e:
+        import trimesh
+
+        path = e["mesh"] if os.path.isabs(e["mesh"]) else os.path.join(base, e["mesh"])
+        if not os.path.isfile(path):
+            raise ConfigError(f"emitter mesh file not found: {path}")
+        try:
+            loaded = trimesh.load(path, force="mesh", process=False)
+        except Exception as exc:  # trimesh raises many types for unreadable files
+            raise ConfigError(f"cannot read emitter mesh file {path}: {exc}") from None
+        mesh = (np.asarray(loaded.vertices), np.asarray(loaded.faces))
+    bursts = e.get("bursts", [])
+    if not all(isinstance(b, list) and len(b) == 2 for b in bursts):
+        raise ConfigError(f"bursts must list [time, count] pairs, e.g. bursts = [[0.5, 100]], got {bursts!r}")
+    builder.add_emitter(
+        shape=e.get("shape", "mesh" if mesh is not None else "point"), center=e.get("center", (0.0, 0.0, 0.0)),
+        half_extents=e.get("half_extents", (0.1, 0.1, 0.1)), mesh=mesh, rate=e.get("rate", 0.0), bursts=bursts,
+        life=e["life"], velocity=e.get("velocity", (0.0, 0.0, 0.0)), spread=e.get("spread", 0.0),
+        capacity=e.get("capacity"), mass=e.get("mass", 1.0e-3), radius=e.get("radius", 0.005), seed=e.get("seed", 0),
+        name=e.get("name", "emitter"),
+    )
 
 
 def _add_wind(builder: ModelBuilder, wind: dict, tracks: dict) -> None:

@@ -183,6 +183,7 @@ class UsdWriter:
         stage.SetDefaultPrim(root.GetPrim())
         self._animated: list = []  # (attribute path, value type) of every attribute sampled per frame
         self._strain_ends = None  # the springs' particles, when strain is written
+        self._radius = model.particle_radius.numpy().astype(np.float64)  # [m], for emitted particles' widths
         self._pending = None  # (time code, layer) of the frame being saved
         self._clips: list[_Clip] = []  # the clip layers in the frames folder, in time order
         self._loose: list = []  # (time code, layer) of the saved frames not yet gathered into a chunk
@@ -278,6 +279,8 @@ class UsdWriter:
                 points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q))
                 samples += [(slot.points.points, points), (slot.points.velocities, _vec3(Vt, v)),
                             (slot.points.extent, UsdGeom.Points.ComputeExtent(points, self._widths))]
+            for prims in slot.emitters:
+                samples += self._emitter_samples(prims, slot.world, q, v)
             for curves in slot.curves:
                 points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q[curves.particles]))
                 segment = strain[curves.segments]  # per curve vertex: its two segments (a chain's ends: one)
@@ -673,7 +676,34 @@ class UsdWriter:
                     points=self._animate(prim.CreatePointsAttr()), extent=self._animate(prim.CreateExtentAttr()),
                     velocities=self._animate(prim.CreateVelocitiesAttr()), strain=self._animate(strain),
                 ))
-        return _WorldPrims(world, meshes, points, curves)
+        emitters = []
+        for emitter in model.emitters:  # the live particles only, with their birth serials as stable ids
+            prim = UsdGeom.Points.Define(stage, f"{root}/{emitter.name}")
+            prim.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+            emitters.append(_EmitterPrims(
+                emitter, points=self._animate(prim.CreatePointsAttr()), ids=self._animate(prim.CreateIdsAttr()),
+                widths=self._animate(prim.CreateWidthsAttr()), velocities=self._animate(prim.CreateVelocitiesAttr()),
+                extent=self._animate(prim.CreateExtentAttr()),
+            ))
+        return _WorldPrims(world, meshes, points, curves, emitters)
+
+    def _emitter_samples(self, prims, world: int, q: np.ndarray, v: np.ndarray) -> list:
+        """One frame's samples of an emitter's live particles in ``world``: points, ids, widths, velocities,
+        extent (a point at the emitter's centre when none lives)."""
+        Vt, Gf = self._Vt, self._Gf
+        emitter = prims.emitter
+        serial = emitter.serials(world)
+        live = np.flatnonzero(serial >= 0)
+        index = emitter.first + live
+        points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q[index]))
+        widths = Vt.FloatArray.FromNumpy((2.0 * self._radius[index]).astype(np.float32))
+        if len(live):
+            extent = self._UsdGeom.Points.ComputeExtent(points, widths)
+        else:
+            c = Gf.Vec3f(*(float(x) for x in emitter.center))
+            extent = Vt.Vec3fArray([c, c])
+        return [(prims.points, points), (prims.ids, Vt.Int64Array.FromNumpy(serial[live].astype(np.int64))),
+                (prims.widths, widths), (prims.velocities, _vec3(Vt, v[index])), (prims.extent, extent)]
 
     def _normal_topology(self) -> None:
         """The CSR table of vertex → incident triangles (ascending) of every exported world's meshes, in
@@ -996,6 +1026,18 @@ class _CurvePrims:
 
 
 @dataclass
+class _EmitterPrims:
+    """An emitter's points prim: its animated attributes (paths)."""
+
+    emitter: object  # core.emitters.Emitter
+    points: object
+    ids: object
+    widths: object
+    velocities: object
+    extent: object
+
+
+@dataclass
 class _WorldPrims:
     """The animated prims of one exported world."""
 
@@ -1003,6 +1045,7 @@ class _WorldPrims:
     meshes: list  # _MeshPrims per cloth mesh
     points: object  # _PointsPrims of the particles, or None
     curves: list  # _CurvePrims per spring family
+    emitters: list = field(default_factory=list)  # _EmitterPrims per emitter
     colliders: list = field(default_factory=list)  # (ShapeInfo, translate path, orient path) per moving collider
 
 
