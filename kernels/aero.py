@@ -23,8 +23,9 @@ matrix (−∂f/∂v, linearised about the cloth at rest in the current wind, u 
 positions, not velocities): per triangle D_u = ½ ρ A (C_D |u·n| I + (C_D + C_L)
 |u| n nᵀ), the drag's isotropic part plus the response of drag and lift to the flow across the plate,
 shared as D_u / 9 between every pair of its corners (u depends on the mean of three velocities; each corner
-takes a third). Its stiffness matrix (−∂f/∂x, from the normal's rotation) is left out: zero. Wind does work
-on the cloth, so the family has no energy (the guards' energy balance is off with wind).
+takes a third); the stability advisor adds its largest eigenvalue over three to each corner's drag
+(``AeroFamily.damping_rates``). Its stiffness matrix (−∂f/∂x, from the normal's rotation) is left out:
+zero. Wind does work on the cloth, so the family has no energy (the guards' energy balance is off with wind).
 """
 
 import functools

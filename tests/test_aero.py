@@ -205,3 +205,25 @@ lift = 0.7
     path.write_text(path.read_text().replace("lift = 0.7", 'lift = 0.7\nmeshes = ["sail"]'))
     with pytest.raises(ws.ConfigError, match=r"flag.toml.*wind.*no mesh named 'sail'"):
         load_scene(path).finalize("cpu")
+
+
+def test_the_advisor_sees_the_wind_damping():
+    """A triangle at rest in a wind normal to it: each corner is damped by a third of D_u's largest eigenvalue,
+    ½ρA(C_D|u·n| + (C_D + C_L)|u|); the advisor's limit for symplectic Euler on a stiff triangle falls when a
+    strong wind blows (the drag-like damping lowers it), and stays put in calm air."""
+    def triangle(wind):
+        builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+        ids = builder.add_particles([[0, 0, 1], [1, 0, 1], [0, 1, 1]], mass=1e-3)
+        builder.add_springs([[ids[0], ids[1]], [ids[1], ids[2]], [ids[2], ids[0]]], stiffness=100.0)
+        builder.add_triangles([ids])
+        builder.add_aerodynamics(wind=wind, drag=1.2, lift=0.8)
+        return builder.finalize("cpu")
+
+    model = triangle((0.0, 0.0, -30.0))
+    family = next(f for f in model.families if f.name == "wind triangles")
+    rates = family.damping_rates(model, model.particle_q.numpy().reshape(1, 3, 3).astype(np.float64))
+    expected = 0.5 * AIR_DENSITY * 0.5 * (1.2 * 30.0 + (1.2 + 0.8) * 30.0) / 3.0
+    np.testing.assert_allclose(rates, expected, rtol=1e-6)  # (the input table holds ρ in float32)
+    calm = ws.advise(triangle((0.0, 0.0, 0.0)), "symplectic_euler", dt=1e-4).dt_stable
+    windy = ws.advise(model, "symplectic_euler", dt=1e-4).dt_stable
+    assert windy < 0.95 * calm

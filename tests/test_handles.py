@@ -145,3 +145,19 @@ translation = { times = [0.0, 2.0], values = [[0, 0, 0], [-1, 0, 0]], interpolat
     path.write_text(path.read_text().replace("kp = 40.0\n", ""))
     with pytest.raises(ws.ConfigError, match=r"pull.toml: \[cloth.handle\] needs kp"):
         load_scene(path)
+
+
+def test_the_advisor_counts_the_handle_damping(device):
+    """Kd damps the grabbed particle's own motion like drag: the advisor's limit for symplectic Euler is the damped
+    oscillator's, stable_step(ω = √(Kp/m), ζ = Kd / (2 m ω)), below the undamped 2/ω."""
+    from warpspring.analysis.stability import stable_step
+
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    builder.add_particles([[0.0, 0.0, 0.0]], mass=MASS)
+    builder.add_handle([0], kp=KP, kd=40.0)
+    model = builder.finalize(device)
+    advice = ws.advise(model, "symplectic_euler", dt=1e-3)
+    omega = np.sqrt(KP / MASS)
+    expected = stable_step("symplectic_euler", omega, 40.0 / (2.0 * MASS * omega))
+    assert expected < 0.9 * 2.0 / omega
+    assert advice.dt_stable == pytest.approx(expected, rel=2e-3)

@@ -1010,7 +1010,9 @@ def _damping_ranges(model: Model, stiffness: np.ndarray, modes: list, positions:
     ``None``: Gershgorin) the largest ratio stands in for the top mode's, which is conservative for
     symplectic Euler but loose when the stiffest springs are the least damped. c/m: its extremes over the
     world's free particles (drag limits the slowest motions, each particle's velocity decaying at its own
-    c/m). Stiffness, damping, masses and drag are each world's own.
+    c/m), the largest with the damping the element families put on a particle's own motion (wind, handles:
+    ``ElementFamily.damping_rates``), the smallest without (the wind damps only smooth motions). Stiffness,
+    damping, masses and drag are each world's own.
     """
     worlds, n = model.world_count, model.particle_count
     free = free_particles(model)
@@ -1020,13 +1022,15 @@ def _damping_ranges(model: Model, stiffness: np.ndarray, modes: list, positions:
     drag = model.world_values("drag")[:, 0]
     ends = model.spring_indices.numpy().reshape(-1, 2)
     rest_all = model.spring_rest_length.numpy().astype(np.float64)
-    if any(m is not None for m in modes):
-        q_all = np.asarray(positions if isinstance(positions, np.ndarray) else positions.numpy(), dtype=np.float64)
-        q_all = q_all.reshape(worlds, n, 3)
+    q_all = np.asarray(positions if isinstance(positions, np.ndarray) else positions.numpy(), dtype=np.float64)
+    q_all = q_all.reshape(worlds, n, 3)
+    extra = sum((family.damping_rates(model, q_all) for family in model.extra_families),
+                np.zeros((worlds, n)))
     ranges = []
     for w in range(worlds):
         mass = mass_all[w][free[w]]
-        rates = drag[w] / mass if len(mass) else np.zeros(1)
+        rates = (np.concatenate([drag[w] / mass, (drag[w] + extra[w][free[w]]) / mass]) if len(mass)
+                 else np.zeros(1))
         k, kd = k_all[w], kd_all[w]
         acting = (k > 0.0) & free[w][ends].any(axis=1)
         if not acting.any():

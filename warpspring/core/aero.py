@@ -71,6 +71,27 @@ class AeroFamily(ElementFamily):
         self._noise_scale = wp.array([self.noise_scale or 1.0], dtype=scalar, device=device)
         self._seed = wp.array([self.seed], dtype=wp.int32, device=device)
 
+    def damping_rates(self, model, positions: np.ndarray) -> np.ndarray:
+        """Per particle, a third of the largest eigenvalue of D_u = ½ρA(C_D|u·n| I + (C_D + C_L)|u| n nᵀ) of
+        each of its triangles, at rest in the current wind (``kernels/aero.py``): the damping of the cloth's
+        smooth motions, where a triangle's corners move together (the wind's noise amplitude raises |u|)."""
+        wind = model.world_values("wind")
+        rho = model.world_values("air_density")[:, 0]
+        gust = 1.0 + model.world_values("wind_noise")[:, 0]
+        tri = self.triangles
+        rates = np.zeros((model.world_count, model.particle_count))
+        for w in range(model.world_count):
+            x = positions[w][tri]
+            cross = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+            area = 0.5 * np.linalg.norm(cross, axis=1)
+            n = cross / np.maximum(2.0 * area, 1e-300)[:, None]
+            u = wind[w] * gust[w]
+            speed = np.linalg.norm(u)
+            top = 0.5 * rho[w] * area * (self.drag * np.abs(n @ u) + (self.drag + self.lift) * speed)
+            for corner in range(3):
+                np.add.at(rates[w], tri[:, corner], top / 3.0)
+        return rates
+
     def spec(self, model, *, linear: bool = False) -> AeroSpec:
         return AeroSpec(incidence=self.shape, noise=self.noise_scale > 0.0)
 

@@ -43,6 +43,13 @@ class ElementFamily:
         family does not say."""
         return 0
 
+    def damping_rates(self, model, positions: np.ndarray) -> np.ndarray:
+        """The viscous damping [N·s/m] the family puts on each particle's own motion, like drag, at
+        ``positions`` (float64, [world_count, particle_count, 3]), shape [world_count, particle_count]: the
+        stability advisor adds it to the drag of the slow modes. Families whose damping couples particles
+        (springs, hinges: kd along elements) report none here; they enter through their kd/k ratios."""
+        return np.zeros((model.world_count, model.particle_count))
+
     def tracks(self) -> tuple:
         """The keyframe tracks the family reads (they join the model's track table before :meth:`finalize`,
         with indices that never move)."""

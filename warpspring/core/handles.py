@@ -93,6 +93,13 @@ class HandleFamily(ElementFamily):
                   inputs=[self._translation_track, self._rotation_track, model.track_table.table, state.time],
                   outputs=self._frames, device=model.device)
 
+    def damping_rates(self, model, positions: np.ndarray) -> np.ndarray:
+        """Kd of every handle holding each particle (D = Kd I on a grabbed particle)."""
+        rates = np.zeros(model.particle_count)
+        for h in self.handles:
+            np.add.at(rates, h.particles, h.kd)
+        return np.broadcast_to(rates, (model.world_count, model.particle_count)).copy()
+
     def spec(self, model, *, linear: bool = False) -> HandleSpec:
         return HandleSpec(incidence=self.shape, rotation=any(h.rotation is not None for h in self.handles),
                           cap=any(h.max_force is not None for h in self.handles))
