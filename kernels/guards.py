@@ -94,18 +94,24 @@ NO_PARTICLE = 2**31 - 1
 
 
 @functools.cache
-def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool):
+def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, working: tuple = ()):
     """(measure, gather, locate, decide) kernels of one precision and tuple of family specs; ``external``:
-    the control has an external force (part of the loads' work)."""
+    the control has an external force (part of the loads' work); ``working``: the specs of the families that
+    do work from outside (wind, handles: ``ElementFamily.does_work``), whose forces on free particles count
+    among the loads."""
     vec3 = vec3_type(scalar)
     block_sum, block_max = reduction_funcs(tiled)
     composed = elements(scalar, families)
     Elements = composed.arrays
     element_strain = composed.strain
     element_force = composed.force
+    work_composed = elements(scalar, working)
+    WorkElements = work_composed.arrays
+    work_force = work_composed.force
     input_vec3 = input_funcs(scalar)
 
-    @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
+    @flat_kernel(module="unique", enable_backward=False,
+                 last=composed.last("element_arrays") + work_composed.last("work_arrays"))
     def measure(
         # Model:
         particle_count: int,
@@ -113,6 +119,7 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool):
         particle_flags: wp.array[wp.int32],
         particle_mass: wp.array2d[scalar],
         element_arrays: Elements,
+        work_arrays: WorkElements,
         inputs: wp.array2d[scalar],
         # Control:
         particle_force_ext: wp.array[vec3],
@@ -146,6 +153,8 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool):
                 else:
                     energy = wp.float64(scalar(0.5) * mass * wp.dot(v, v))
                     load = mass * input_vec3(inputs, world, INPUT_GRAVITY)
+                    if wp.static(len(working) > 0):  # wind, handles: forces from outside the cloth
+                        load += work_force(world, i, base, x, v, work_arrays, inputs, particle_q, particle_qd)
                     if wp.static(external):
                         held = particle_force_ext[p]
                 before = previous_load[p]

@@ -11,9 +11,10 @@ Kd [N·s/m]), its magnitude capped at the handle's ``max_force`` [N] where a cap
 is a grab (one particle of one handle); a particle may be in several handles.
 
 The target frames depend on time, which the family hooks do not see: ``handle_frames_kernel`` writes each
-world's frame of every handle (T, Ṫ, φ, ω) at the state's time before the forces are evaluated (the
-host calls it wherever animated inputs are evaluated, ``core/tracks.evaluate_input_tracks``), and the force
-hook reads them. Stiffness and damping matrices are exact for the uncapped law: K = Kp I and D = Kd I on
+world's frame of every handle with tracks (T, Ṫ, φ, ω) at the state's time before the forces are evaluated
+(the host calls it wherever animated inputs are evaluated, ``core/tracks.evaluate_input_tracks``), and the
+force hook reads them. A handle without a translation track is moved from the host between frames instead
+(``HandleFamily.set_target``: a user dragging cloth interactively), its T and Ṫ live device values. Stiffness and damping matrices are exact for the uncapped law: K = Kp I and D = Kd I on
 the grabbed particle. A handle does work (its target moves), so the family has no energy.
 """
 
@@ -81,18 +82,14 @@ def handle_frames_kernel(
     """Every handle's target frame in every world at that world's time; launch over [world_count, handles]."""
     world, h = wp.tid()
     t = time[world]
-    zero = wp.vec3d(wp.float64(0.0))
-    value, rate = zero, zero
-    if translation_track[h] >= 0:
+    if translation_track[h] >= 0:  # (a part without a track keeps what the host set: HandleFamily.set_target)
         value, rate = track_sample(tracks, translation_track[h], t)
-    translation[world, h] = value
-    velocity[world, h] = rate
-    phi, omega = zero, zero
+        translation[world, h] = value
+        velocity[world, h] = rate
     if rotation_track[h] >= 0:
         phi, phi_rate = track_sample(tracks, rotation_track[h], t)
-        omega = angular_velocity(phi, phi_rate)
-    rotation[world, h] = phi
-    angular[world, h] = omega
+        rotation[world, h] = phi
+        angular[world, h] = angular_velocity(phi, phi_rate)
 
 
 @functools.cache

@@ -161,3 +161,34 @@ def test_the_advisor_counts_the_handle_damping(device):
     expected = stable_step("symplectic_euler", omega, 40.0 / (2.0 * MASS * omega))
     assert expected < 0.9 * 2.0 / omega
     assert advice.dt_stable == pytest.approx(expected, rel=2e-3)
+
+
+def test_a_handle_is_dragged_from_the_host_between_frames(device):
+    """Without a track a handle is moved from the host (set_target, a live value: no re-capture): the particle
+    settles on the new target; set_gains(kp=0, kd=0) lets go, and it coasts on at its velocity."""
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    builder.add_particles([[0.0, 0.0, 0.0]], mass=MASS)
+    builder.add_handle([0], kp=KP, kd=2.0 * np.sqrt(KP * MASS), name="hand")  # critically damped
+    model = builder.finalize(device)
+    sim = ws.Simulator(model, integrator=ws.make_integrator("symplectic_euler", model), fps=60, substeps=16)
+    sim.step_frame()
+    captures = sim.stepper.captures
+    model.handles.set_target("hand", (0.2, -0.1, 0.0))
+    for _ in range(60):
+        sim.step_frame()
+    np.testing.assert_allclose(sim.state.particle_q.numpy()[0], [0.2, -0.1, 0.0], atol=1e-6)
+    model.handles.set_target(0, (0.5, -0.1, 0.0))
+    for _ in range(3):
+        sim.step_frame()
+    model.handles.set_gains("hand", kp=0.0, kd=0.0)
+    v = sim.state.particle_qd.numpy()[0].copy()
+    x = sim.state.particle_q.numpy()[0].copy()
+    for _ in range(6):
+        sim.step_frame()
+    np.testing.assert_allclose(sim.state.particle_q.numpy()[0], x + 0.1 * v, rtol=1e-5, atol=1e-7)
+    assert sim.stepper.captures == captures
+    tracked = ws.ModelBuilder()
+    tracked.add_particles([[0.0, 0.0, 0.0]], mass=MASS)
+    tracked.add_handle([0], kp=KP, translation=ws.Track([0.0, 1.0], [[0, 0, 0], [1, 0, 0]]), name="rail")
+    with pytest.raises(ws.ConfigError, match="'rail' follows a translation track"):
+        tracked.finalize(device).handles.set_target("rail", (1.0, 0.0, 0.0))

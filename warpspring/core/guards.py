@@ -51,6 +51,7 @@ from ..kernels.guards import (
     guard_kernels,
 )
 from ..errors import ConfigError
+from ..kernels.families import elements, fill_elements
 from ..kernels.flatten import flat_launch
 from ..kernels.linalg import reduce_lanes, reduce_launch_dim
 from .families import world_elastic_energy
@@ -401,6 +402,18 @@ class Guard(StepHook):
         wp.copy(self._status, self._status_clear)
         wp.copy(self._values, self._values_clear)
 
+    def _work_arrays(self, working: list):
+        """The struct of the working families' arrays (``guard_kernels``'s ``work_arrays``), rebuilt after a
+        structural change of the model."""
+        model = self.model
+        cached = getattr(self, "_work_cache", None)
+        if cached is None or cached[0] != model.revision:
+            specs = tuple(family.spec(model) for family in working)
+            chain = elements(model.scalar, specs).arrays()
+            cached = (model.revision, fill_elements(chain, [family.arrays(model) for family in working]))
+            self._work_cache = cached
+        return cached[1]
+
     def _measure(self, state: State) -> tuple:
         """The per-particle pass of a check (kinetic energy, strain, the loads' work since the last check,
         which becomes this one); returns the check's other kernels."""
@@ -409,11 +422,14 @@ class Guard(StepHook):
         # The force on kinematic particles (a drive's work) is gathered even where the integrator scatters it.
         specs = tuple(dataclasses.replace(s, gathered=True) if getattr(s, "gathered", True) is False else s
                       for s in model.family_specs())
-        measure, gather, locate, decide = guard_kernels(model.scalar, specs, self._tiled, force is not None)
+        working = [family for family in model.families if family.does_work]
+        measure, gather, locate, decide = guard_kernels(model.scalar, specs, self._tiled, force is not None,
+                                                        tuple(family.spec(model) for family in working))
         flat_launch(measure, dim=reduce_launch_dim(model.world_count, model.particle_count, self._lanes),
                     block_dim=self._lanes,
                     inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
-                            model.elements, model.inputs, force if force is not None else state.particle_q,
+                            model.elements, self._work_arrays(working), model.inputs,
+                            force if force is not None else state.particle_q,
                             state.particle_q, state.particle_qd],
                     outputs=[self._previous_q, self._previous_load, self._status, self._partials],
                     device=model.device)

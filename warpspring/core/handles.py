@@ -85,6 +85,63 @@ class HandleFamily(ElementFamily):
         self._rotation_track = track_indices("rotation")
         self._animated = any(h.translation is not None or h.rotation is not None for h in self.handles)
 
+    def set_target(self, handle: int, translation, *, velocity=(0.0, 0.0, 0.0), world: int | None = None) -> None:
+        """Move a handle without a translation track from the host, between frames (a user dragging cloth):
+        its targets become x₀ + ``translation`` [m] (about the pivot, rotated if it has a rotation track),
+        moving at ``velocity`` [m/s] (the ė of the damping term), in every world or in one. A live value:
+        nothing recompiles or re-captures.
+
+        Raises:
+            ConfigError: an unknown handle or world, a handle whose translation follows a track, or a
+                non-finite value.
+        """
+        h = self._handle_index(handle)
+        if self.handles[h].translation is not None:
+            raise ConfigError(f"handle {self.handles[h].name!r} follows a translation track: remove the track to "
+                              "move it from the host")
+        rows = self._rows(world)
+        for array, value, what in ((self._frames[0], translation, "translation"),
+                                   (self._frames[1], velocity, "velocity")):
+            values = array.numpy()
+            values[rows, h] = checks.vector(f"handle {what}", value)
+            array.assign(values)
+
+    def set_gains(self, handle: int, *, kp: float | None = None, kd: float | None = None,
+                  max_force: float | None = None) -> None:
+        """Change a handle's gains between frames (kp = 0 lets go): live values, in every world. A cap can be
+        changed only where one was compiled in (some handle was built with max_force)."""
+        h = self._handle_index(handle)
+        for array, value, name, check in ((self._kp, kp, "kp", checks.non_negative),
+                                          (self._kd, kd, "kd", checks.non_negative),
+                                          (self._max_force, max_force, "max_force", checks.positive)):
+            if value is None:
+                continue
+            if name == "max_force" and not any(x.max_force is not None for x in self.handles):
+                raise ConfigError("no handle was built with max_force, so no cap is compiled in: build one with it")
+            values = array.numpy()
+            values[:, h] = check(f"handle {name}", value)
+            array.assign(values)
+
+    def _handle_index(self, handle) -> int:
+        names = [h.name for h in self.handles]
+        if isinstance(handle, str):
+            if handle not in names:
+                raise ConfigError(f"no handle named {handle!r}; handles: {', '.join(names)}")
+            return names.index(handle)
+        index = checks.count("handle", handle, minimum=0)
+        if index >= len(self.handles):
+            raise ConfigError(f"handle {index} does not exist: the model has handles 0..{len(self.handles) - 1}")
+        return index
+
+    def _rows(self, world: int | None) -> list:
+        worlds = self._frames[0].shape[0]
+        if world is None:
+            return list(range(worlds))
+        world = checks.count("world", world, minimum=0)
+        if world >= worlds:
+            raise ConfigError(f"world {world} does not exist: the model has worlds 0..{worlds - 1}")
+        return [world]
+
     def at_time(self, model, state) -> None:
         """Write every handle's target frame at the time of ``state`` (each world's at its own time)."""
         if not self._animated:

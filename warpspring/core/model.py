@@ -734,6 +734,12 @@ class Model:
         hinges = (HingeFamily(self),) if self.hinge_count else ()
         return springs + hinges + tuple(self.extra_families)
 
+    @property
+    def handles(self):
+        """The model's PD handles (:class:`~warpspring.core.handles.HandleFamily`: ``set_target``,
+        ``set_gains``), or ``None`` without handles."""
+        return next((f for f in self.extra_families if f.name == "handle grabs"), None)
+
     def family_specs(self, *, linear: bool = False) -> tuple:
         """The kernel specs of :attr:`families` (what the kernels are compiled for); ``linear``: those of the
         stability analysis."""
