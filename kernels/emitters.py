@@ -40,8 +40,8 @@ class EmitterArrays:
     velocity: wp.array[wp.vec3d]  # [m/s], [1]: v₀
     spread: wp.array[wp.float64]  # [m/s], [1]: σ of each velocity component
     seed: int
-    center: wp.vec3d  # [m]: the point, or the box's centre
-    half_extents: wp.vec3d  # [m]: the box's half sizes (axis-aligned)
+    center: wp.array[wp.vec3d]  # [m], [1]: the point, or the box's centre (a live value)
+    half_extents: wp.array[wp.vec3d]  # [m], [1]: the box's half sizes (axis-aligned)
     mesh_points: wp.array[wp.vec3d]  # [m], the mesh's vertices
     mesh_faces: wp.array[wp.vec3i]  # the mesh's triangles
     mesh_cdf: wp.array[wp.float64]  # [t], the triangles' cumulative area, normalised to end at 1
@@ -70,8 +70,8 @@ def sample_shape(emitter: EmitterArrays, kind: int, state: wp.uint32) -> wp.vec3
     """A point of the emitter's shape [m]: the point, uniform in the box, or uniform on the mesh's area."""
     if kind == SHAPE_BOX:
         u = wp.vec3d(wp.float64(wp.randf(state)), wp.float64(wp.randf(state)), wp.float64(wp.randf(state)))
-        h = emitter.half_extents
-        return emitter.center + wp.vec3d((wp.float64(2.0) * u[0] - wp.float64(1.0)) * h[0],
+        h = emitter.half_extents[0]
+        return emitter.center[0] + wp.vec3d((wp.float64(2.0) * u[0] - wp.float64(1.0)) * h[0],
                                          (wp.float64(2.0) * u[1] - wp.float64(1.0)) * h[1],
                                          (wp.float64(2.0) * u[2] - wp.float64(1.0)) * h[2])
     if kind == SHAPE_MESH:
@@ -89,7 +89,7 @@ def sample_shape(emitter: EmitterArrays, kind: int, state: wp.uint32) -> wp.vec3
         r2 = wp.float64(wp.randf(state))
         return ((wp.float64(1.0) - r1) * emitter.mesh_points[face[0]] + (r1 * (wp.float64(1.0) - r2))
                 * emitter.mesh_points[face[1]] + (r1 * r2) * emitter.mesh_points[face[2]])
-    return emitter.center
+    return emitter.center[0]
 
 
 @functools.cache

@@ -196,3 +196,19 @@ seed = 9
     path.write_text(path.read_text().replace("life = 1.0\n", ""))
     with pytest.raises(ws.ConfigError, match=r"sparks.toml: \[emitter\] needs life"):
         load_scene(path)
+
+
+def test_an_emitter_changes_between_frames_without_a_recapture(device):
+    """set(rate=, center=, velocity=) takes effect at the next frame: births follow the new rate from the new
+    place, and nothing is re-captured."""
+    model, emitter, sim = stream(device, rate=60.0, life=10.0, capacity=700)
+    for _ in range(30):
+        sim.step_frame()
+    captures, before = sim.stepper.captures, int(emitter.alive().sum())
+    emitter.set(rate=240.0, center=(5.0, 0.0, 1.0), velocity=(0.0, 0.0, 0.0))
+    sim.step_frame()
+    serial = emitter.serials()
+    newest = np.argsort(serial)[-int(240.0 / 60.0):]
+    np.testing.assert_allclose(sim.state.particle_q.numpy()[emitter.first + newest, 0], 5.0, atol=0.01)
+    assert int(emitter.alive().sum()) - before == pytest.approx(240.0 / 60.0, abs=1)
+    assert sim.stepper.captures == captures

@@ -56,8 +56,8 @@ class Emitter:
         arrays.life = wp.array([self.life], dtype=wp.float64, device=device)
         arrays.velocity = wp.array([self.velocity], dtype=wp.vec3d, device=device)
         arrays.spread = wp.array([self.spread], dtype=wp.float64, device=device)
-        arrays.center = wp.vec3d(*self.center)
-        arrays.half_extents = wp.vec3d(*self.half_extents)
+        arrays.center = wp.array([self.center], dtype=wp.vec3d, device=device)
+        arrays.half_extents = wp.array([self.half_extents], dtype=wp.vec3d, device=device)
         points, faces = self.mesh_points, self.mesh_faces
         if len(faces):
             area = 0.5 * np.linalg.norm(np.cross(points[faces[:, 1]] - points[faces[:, 0]],
@@ -77,6 +77,29 @@ class Emitter:
         arrays.serial = wp.full(worlds * self.capacity, DEAD, dtype=wp.int32, device=device)
         arrays.birth_time = wp.zeros(worlds * self.capacity, dtype=wp.float64, device=device)
         self.arrays = arrays
+
+    def set(self, *, rate: float | None = None, life: float | None = None, velocity=None, spread: float | None = None,
+            center=None, half_extents=None) -> None:
+        """Change the emitter between frames (live values: nothing recompiles or re-captures): its rate [1/s],
+        life span [s] (for births from now on and the living alike), launch velocity [m/s] and spread [m/s],
+        and where it emits (its point or box centre [m], the box's half sizes [m]). The pool stays as built:
+        a higher rate or a longer life than it holds recycles the oldest (counted)."""
+        a = self.arrays
+        for value, array, check, name in ((rate, a.rate, checks.non_negative, "rate"),
+                                          (life, a.life, checks.positive, "life"),
+                                          (spread, a.spread, checks.non_negative, "spread")):
+            if value is not None:
+                value = check(f"emitter {name}", value)
+                array.assign([value])
+                setattr(self, name, value)
+        for value, array, name in ((velocity, a.velocity, "velocity"), (center, a.center, "center"),
+                                   (half_extents, a.half_extents, "half_extents")):
+            if value is not None:
+                value = checks.vector(f"emitter {name}", value)
+                if name == "half_extents" and not (value > 0).all():
+                    raise ConfigError(f"emitter half_extents must be > 0 [m], got {tuple(value)}")
+                array.assign([value])
+                setattr(self, name, value)
 
     def history(self) -> list:
         """The device arrays a run carries from step to step (restored after a capture's warm-up, saved in a
@@ -104,7 +127,7 @@ class Emitter:
         counters, the parameters, the mesh (vertices, faces, cumulative areas) and the bursts."""
         faces = max(len(self.mesh_faces), 1)
         points = len(self.mesh_points) if len(self.mesh_faces) else 1
-        return (12 * self.capacity * worlds + 16 * worlds + 8 + 8 + 24 + 8 + 24 * points + 20 * faces
+        return (12 * self.capacity * worlds + 16 * worlds + 8 + 8 + 24 + 8 + 48 + 24 * points + 20 * faces
                 + 12 * len(self.bursts))
 
     @property
