@@ -6,7 +6,11 @@ corners, structural springs only (kd = 0.01 N·s/m), gravity:
 
 * ``hanging``: as it is (the cloth of the "trustworthy runs" report);
 * ``forced``: plus a steady sideways push of ``PUSH`` on every particle through ``Control`` (half its weight);
-* ``driven``: its two corners carried by a handle on a track, ±``SHAKE`` sideways at 1 Hz.
+* ``driven``: its two corners carried by a pin group on a track, ±``SHAKE`` sideways at 1 Hz;
+* ``windy``: hanging in gusty wind across it (``add_aerodynamics``: 4 to 10 m/s and back every 2 s, C_D = 1.2,
+  C_L = 1.0);
+* ``pulled``: hanging, its bottom row dragged ±``PULL`` sideways at 0.5 Hz by a PD handle (``add_handle``:
+  Kp = 20 N/m, Kd = 0.5 N·s/m per particle, capped at 5 N).
 
 Protocol. Each stiffness is one world of one model, run for ``seconds`` (10 s) with the default guard
 stopping only the failing world (``GuardLimits(stop="world")``). A world *blows up* when the guard stops
@@ -44,10 +48,11 @@ EXPLICIT = ("explicit_euler", "symplectic_euler", "velocity_verlet", "midpoint",
 #: at which the cloth tears by its own weight (~300 N/m).
 STEPS = {"explicit_euler": (2000, 8000), "symplectic_euler": (2, 8), "velocity_verlet": (2, 8), "midpoint": (16, 64),
          "rk4": (1, 4)}
-SCENES = ("hanging", "forced", "driven")
+SCENES = ("hanging", "forced", "driven", "windy", "pulled")
 FPS = 60.0
 PUSH = 0.5  # [N] per particle, sideways (forced)
 SHAKE = 0.1  # [m] amplitude of the handle at 1 Hz (driven)
+PULL = 0.3  # [m] amplitude of the PD handle at 0.5 Hz (pulled)
 
 
 def battery_cloth(scene: str, stiffness, device, *, n: int = 20) -> Model:
@@ -64,7 +69,15 @@ def battery_cloth(scene: str, stiffness, device, *, n: int = 20) -> Model:
                       interpolation="smooth", extrapolation="cycle")
         builder.add_pin_group([ids[-1, 0], ids[-1, -1]], translation=shake, name="handle")  # row ny-1: the top
     else:
-        builder.add_cloth_grid(**grid, pin=["top-left", "top-right"])
+        ids = builder.add_cloth_grid(**grid, pin=["top-left", "top-right"])
+    if scene == "windy":
+        gusts = Track([0.0, 1.0, 2.0], [[0, 4, 0], [0, 10, 0], [0, 4, 0]], interpolation="smooth", extrapolation="cycle")
+        builder.add_aerodynamics(wind=(0.0, 4.0, 0.0), drag=1.2, lift=1.0)
+        builder.set_track("wind", gusts)
+    elif scene == "pulled":
+        sway = Track([0.0, 0.5, 1.0, 1.5, 2.0], [[0, 0, 0], [0, PULL, 0], [0, 0, 0], [0, -PULL, 0], [0, 0, 0]],
+                     interpolation="smooth", extrapolation="cycle")
+        builder.add_handle(ids[0], kp=20.0, kd=0.5, max_force=5.0, translation=sway)  # row 0: the bottom
     model = builder.finalize(device, worlds=len(stiffness))
     model.set_world_values("spring_stiffness", stiffness[:, None] * np.ones((1, model.spring_count)))
     return model
