@@ -62,6 +62,9 @@ from .core.integrators import (
     make_integrator,
 )
 from .core.guards import EnergyBalance, GuardLimits
+from .core.aero import AeroFamily
+from .core.emitters import Emitter, PoolTooSmallWarning
+from .core.handles import HandleFamily
 from .core.kinematics import PinGroup
 from .core.material import ClothMaterial
 from .core.memory import MemoryEstimate, available_memory, estimate_memory
@@ -87,7 +90,11 @@ __all__ = [
     "ImplicitEuler",
     "Midpoint",
     "VelocityVerlet",
+    "AeroFamily",
     "ClothMaterial",
+    "Emitter",
+    "HandleFamily",
+    "PoolTooSmallWarning",
     "ConfigError",
     "Control",
     "DihedralMaterial",
