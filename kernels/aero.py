@@ -30,6 +30,7 @@ zero. Wind does work on the cloth, so the family has no energy (the guards' ener
 
 import functools
 from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import warp as wp
 
@@ -43,6 +44,7 @@ wp.set_module_options({"enable_backward": False})
 @functools.cache
 def aero_arrays_type(scalar: type):
     """The struct of the aerodynamic family's arrays in one precision."""
+    vec3 = vec3_type(scalar)
 
     @wp.struct
     class AeroArrays:
@@ -51,6 +53,8 @@ def aero_arrays_type(scalar: type):
         lift: wp.array2d[scalar]  # C_L [-], [1 or world_count, triangle_count]
         noise_scale: wp.array[scalar]  # [1]: the noise's length scale L [m]
         noise_seed: wp.array[wp.int32]  # [1]: the noise's seed
+        triangle_force: wp.array[vec3]  # [N], [world_count · triangle_count]: each triangle's force at the state
+        #   of the last force evaluation (where precomputed; one entry otherwise)
         incidence: Incidence  # entries (triangle, corner 0..2); padding (0, -1)
 
     return AeroArrays
@@ -58,10 +62,13 @@ def aero_arrays_type(scalar: type):
 
 @dataclass(frozen=True)
 class AeroSpec:
-    """Compile-time switches of the aerodynamic family: its incidence table's shape, and spatial noise."""
+    """Compile-time switches of the aerodynamic family: its incidence table's shape, spatial noise, and
+    whether each triangle's force is computed once per force evaluation by ``triangle_forces_kernel`` (then
+    gathered by the corners) rather than by each of its three corners."""
 
     incidence: IncidenceShape
     noise: bool
+    precomputed: bool = False
 
     def funcs(self, scalar: type) -> FamilyFuncs:
         return aero_family_funcs(scalar, self)
@@ -130,6 +137,18 @@ def aero_family_funcs(scalar: type, spec: AeroSpec) -> FamilyFuncs:
         return wind
 
     @wp.func
+    def whole_triangle_force(world: int, t: int, base: int, aero: AeroArrays, inputs: wp.array2d[scalar],
+                             particle_q: wp.array[vec3], particle_qd: wp.array[vec3]) -> vec3:
+        """Triangle t's wind force [N] in ``world`` (its particles from entry ``base``)."""
+        ids = aero.indices[t]
+        xa, xb, xc = particle_q[base + ids[0]], particle_q[base + ids[1]], particle_q[base + ids[2]]
+        wind = wind_at(world, (xa + xb + xc) / scalar(3.0), aero, inputs)
+        return triangle_wind_force(xa, xb, xc, particle_qd[base + ids[0]], particle_qd[base + ids[1]],
+                                   particle_qd[base + ids[2]], wind, inputs[world, INPUT_AIR_DENSITY],
+                                   aero.drag[wp.min(world, aero.drag.shape[0] - 1), t],
+                                   aero.lift[wp.min(world, aero.lift.shape[0] - 1), t])
+
+    @wp.func
     def triangle_force_on(
         world: int, t: int, corner: int, i: int, base: int, xi: vec3, vi: vec3, aero: AeroArrays,
         inputs: wp.array2d[scalar], particle_q: wp.array[vec3], particle_qd: wp.array[vec3],
@@ -137,14 +156,9 @@ def aero_family_funcs(scalar: type, spec: AeroSpec) -> FamilyFuncs:
         """A third of triangle t's wind force [N] (0 for a padding entry, corner -1)."""
         if corner < 0:
             return vec3(scalar(0.0))
-        ids = aero.indices[t]
-        xa, xb, xc = particle_q[base + ids[0]], particle_q[base + ids[1]], particle_q[base + ids[2]]
-        wind = wind_at(world, (xa + xb + xc) / scalar(3.0), aero, inputs)
-        force = triangle_wind_force(xa, xb, xc, particle_qd[base + ids[0]], particle_qd[base + ids[1]],
-                                    particle_qd[base + ids[2]], wind, inputs[world, INPUT_AIR_DENSITY],
-                                    aero.drag[wp.min(world, aero.drag.shape[0] - 1), t],
-                                    aero.lift[wp.min(world, aero.lift.shape[0] - 1), t])
-        return force / scalar(3.0)
+        if wp.static(spec.precomputed):
+            return aero.triangle_force[world * aero.indices.shape[0] + t] / scalar(3.0)
+        return whole_triangle_force(world, t, base, aero, inputs, particle_q, particle_qd) / scalar(3.0)
 
     @wp.func
     def product_entry(
@@ -183,4 +197,30 @@ def aero_family_funcs(scalar: type, spec: AeroSpec) -> FamilyFuncs:
         """Wind stores no energy (it does work: the guards' balance is off with wind)."""
         return scalar(0.0)
 
-    return FamilyFuncs(AeroArrays, force, product, strain, energy, spec.incidence.idle())
+    @wp.kernel(module="unique", enable_backward=False)
+    def triangle_forces(
+        particle_count: int,
+        aero: AeroArrays,
+        inputs: wp.array2d[scalar],
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+    ):
+        """Each triangle's wind force at a state, once (launch over [world_count, triangle_count])."""
+        world, t = wp.tid()
+        aero.triangle_force[world * aero.indices.shape[0] + t] = whole_triangle_force(
+            world, t, world * particle_count, aero, inputs, particle_q, particle_qd)
+
+    idle = spec.incidence.idle() + (() if spec.precomputed else ("triangle_force",))
+    return AeroFuncs(AeroArrays, force, product, strain, energy, idle, triangle_forces)
+
+
+class AeroFuncs(NamedTuple):
+    """:class:`FamilyFuncs` and the kernel that precomputes the triangles' forces."""
+
+    arrays: type
+    force: Any
+    product: Any
+    strain: Any
+    energy: Any
+    idle: tuple
+    triangle_forces: Any

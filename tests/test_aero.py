@@ -74,12 +74,12 @@ def test_a_plate_normal_to_the_flow_feels_its_drag(device):
     np.testing.assert_allclose(f, drag + lift, rtol=1e-12, atol=1e-12)
 
 
-def plate_model(n: int, device, *, worlds: int = 1, wind=(3.0, -1.0, 8.0)) -> ws.Model:
+def plate_model(n: int, device, *, worlds: int = 1, wind=(3.0, -1.0, 8.0), precompute=False) -> ws.Model:
     """A 1 m square plate of n × n particles tilted 0.3 rad about y, no springs, in the wind."""
     builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
     builder.add_cloth_grid(nx=n, ny=n, spacing=1.0 / (n - 1), particle_mass=0.01, structural=False, shear=False,
                            bend=False, rotation=ws.quat_from_axis_angle((0.0, 1.0, 0.0), 0.3))
-    builder.add_aerodynamics(wind=wind, drag=1.1, lift=0.9)
+    builder.add_aerodynamics(wind=wind, drag=1.1, lift=0.9, precompute=precompute)
     return builder.finalize(device, worlds=worlds)
 
 
@@ -89,21 +89,23 @@ def total_force(model) -> np.ndarray:
     return state.particle_f.numpy().astype(np.float64).reshape(model.world_count, -1, 3).sum(axis=1)
 
 
-def test_a_flat_plate_feels_the_same_force_however_finely_it_is_split(device):
+@pytest.mark.parametrize("precompute", [False, True], ids=["per-corner", "precomputed"])
+def test_a_flat_plate_feels_the_same_force_however_finely_it_is_split(device, precompute):
     """The total wind force on a flat plate at rest is the same for 2, 32 and 512 triangles, and a world with
-    no wind feels none while another is in the wind (the wind is a per-world input)."""
-    totals = [total_force(plate_model(n, device))[0] for n in (2, 5, 17)]
+    no wind feels none while another is in the wind (the wind is a per-world input); the same whether each
+    corner computes its triangles' forces or a pass computes each once."""
+    totals = [total_force(plate_model(n, device, precompute=precompute))[0] for n in (2, 5, 17)]
     assert np.linalg.norm(totals[0]) > 10.0
     for total in totals[1:]:
         np.testing.assert_allclose(total, totals[0], rtol=2e-5)
-    model = plate_model(5, device, worlds=2)
+    model = plate_model(5, device, worlds=2, precompute=precompute)
     model.set_world_values("wind", [[3.0, -1.0, 8.0], [0.0, 0.0, 0.0]])
     both = total_force(model)
     np.testing.assert_allclose(both[0], totals[0], rtol=2e-5)
     assert np.abs(both[1]).max() == 0.0
 
 
-def falling_plate(device, substeps: int, seconds: float = 1.0) -> tuple[np.ndarray, np.ndarray, float]:
+def falling_plate(device, substeps: int, seconds: float = 1.0, precompute: bool = False):
     """A horizontal 0.5 m square of areal density σ = 0.1 kg/m² (masses lumped by area, no springs) falling from
     rest through still air: every particle's drag is proportional to its mass, so it falls flat. Its mean
     vertical velocity [m/s] each frame, their spread, and the closed form's terminal speed."""
@@ -114,7 +116,7 @@ def falling_plate(device, substeps: int, seconds: float = 1.0) -> tuple[np.ndarr
     faces = np.concatenate([np.stack([a, a + 1, a + n + 1], 1), np.stack([a, a + n + 1, a + n], 1)])
     builder = ws.ModelBuilder()
     builder.add_cloth_mesh(vertices, faces, density=0.1, structural=False, bend=False)
-    builder.add_aerodynamics()
+    builder.add_aerodynamics(precompute=precompute)
     model = builder.finalize(device)
     sim = ws.Simulator(model, integrator=ws.make_integrator("symplectic_euler", model), fps=60, substeps=substeps)
     means, spreads = [], []
@@ -126,12 +128,13 @@ def falling_plate(device, substeps: int, seconds: float = 1.0) -> tuple[np.ndarr
     return np.array(means), np.array(spreads), np.sqrt(2.0 * 0.1 * G / (AIR_DENSITY * DEFAULT_DRAG))
 
 
-def test_a_falling_plate_reaches_its_terminal_speed_at_first_order(device):
+@pytest.mark.parametrize("precompute", [False, True], ids=["per-corner", "precomputed"])
+def test_a_falling_plate_reaches_its_terminal_speed_at_first_order(device, precompute):
     """v(t) = -v_t tanh(g t / v_t), v_t = √(2σg / (ρ C_D)): symplectic Euler's largest error over 1 s falls 4×
     when dt does (first order), and is below 0.1 % of v_t at dt = 1/3840 s; the plate stays flat."""
     errors = []
     for substeps in (4, 16, 64):
-        means, spreads, terminal = falling_plate(device, substeps)
+        means, spreads, terminal = falling_plate(device, substeps, precompute=precompute)
         t = np.arange(1, len(means) + 1) / 60.0
         errors.append(np.abs(means + terminal * np.tanh(G * t / terminal)).max())
         assert spreads.max() < 1e-5 * terminal
@@ -227,3 +230,22 @@ def test_the_advisor_sees_the_wind_damping():
     calm = ws.advise(triangle((0.0, 0.0, 0.0)), "symplectic_euler", dt=1e-4).dt_stable
     windy = ws.advise(model, "symplectic_euler", dt=1e-4).dt_stable
     assert windy < 0.95 * calm
+
+
+def test_precomputed_triangle_forces_equal_the_corners_own(device):
+    """On a crumpled, moving cloth in noisy wind, every particle's force is the same whether its triangles'
+    forces were computed once per evaluation or by each corner (to float32 rounding)."""
+    forces = []
+    for precompute in (False, True):
+        builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+        builder.add_cloth_grid(nx=9, ny=7, spacing=0.1, particle_mass=0.01, structural=False, shear=False, bend=False)
+        builder.add_aerodynamics(wind=(2.0, 1.0, 6.0), noise=0.4, noise_scale=0.3, seed=5, precompute=precompute)
+        model = builder.finalize(device)
+        rng = np.random.default_rng(1)
+        state = model.state()
+        state.particle_q.assign(model.particle_q.numpy() + 0.03 * rng.normal(size=(model.particle_count, 3)))
+        state.particle_qd.assign(rng.normal(size=(model.particle_count, 3)))
+        eval_forces(model, state, None)
+        forces.append(state.particle_f.numpy().astype(np.float64))
+    assert np.abs(forces[0]).max() > 0.1
+    np.testing.assert_allclose(forces[1], forces[0], rtol=1e-5, atol=1e-6)

@@ -23,6 +23,9 @@ DEFAULT_DRAG = 1.2
 DEFAULT_LIFT = 1.0
 #: The density of air at sea level and 20 °C [kg/m³].
 AIR_DENSITY = 1.204
+#: Triangles per world from which a noisy wind's forces are precomputed per triangle by default (measured on
+#: an H100: 60 % of a substep instead of 68 % at 1024² (2 M triangles), no gain at 256²).
+PRECOMPUTE_TRIANGLES = 1 << 20
 
 
 class AeroFamily(ElementFamily):
@@ -33,13 +36,18 @@ class AeroFamily(ElementFamily):
         drag, lift: C_D and C_L [-], ≥ 0: numbers, or one per triangle, shape [t].
         noise_scale: length scale L [m] of the wind's spatial noise; 0: no noise (compiled out).
         seed: the noise's seed.
+        precompute: compute each triangle's force once per force evaluation in a pass of its own and gather
+            it (one launch and one array more, a third of the arithmetic); ``None``: only with noise and from
+            ``PRECOMPUTE_TRIANGLES`` triangles, where it pays (bench/RESULTS.md §14: without noise the
+            corners' own evaluation is as fast or faster at every size).
     """
 
     name = "wind triangles"
     does_work = True
     moves_air = True  # the model's air moves: viscous drag acts relative to the wind
 
-    def __init__(self, triangles, *, drag=DEFAULT_DRAG, lift=DEFAULT_LIFT, noise_scale: float = 0.0, seed: int = 0):
+    def __init__(self, triangles, *, drag=DEFAULT_DRAG, lift=DEFAULT_LIFT, noise_scale: float = 0.0, seed: int = 0,
+                 precompute: bool | None = None):
         self.triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
         count = len(self.triangles)
         if count == 0:
@@ -48,6 +56,8 @@ class AeroFamily(ElementFamily):
         self.lift = _coefficient("lift coefficient", lift, count)
         self.noise_scale = checks.non_negative("wind noise_scale", noise_scale)
         self.seed = checks.count("wind noise seed", seed, minimum=0)
+        self.precompute = (count >= PRECOMPUTE_TRIANGLES and self.noise_scale > 0.0 if precompute is None
+                           else bool(precompute))
 
     @property
     def element_count(self) -> int:
@@ -57,7 +67,8 @@ class AeroFamily(ElementFamily):
         """Indices, C_D and C_L per triangle, the noise's scale and seed, and the incidence table."""
         from .memory import incidence_bytes
 
-        return ((12 + 2 * scalar_bytes) * len(self.triangles) + scalar_bytes + 4
+        cache = 3 * scalar_bytes * (worlds * len(self.triangles) if self.precompute else 1)
+        return ((12 + 2 * scalar_bytes) * len(self.triangles) + scalar_bytes + 4 + cache
                 + incidence_bytes(self.triangles, particle_count))
 
     def finalize(self, model) -> None:
@@ -70,6 +81,8 @@ class AeroFamily(ElementFamily):
         self._lift = wp.array(self.lift[None, :], dtype=scalar, device=device)
         self._noise_scale = wp.array([self.noise_scale or 1.0], dtype=scalar, device=device)
         self._seed = wp.array([self.seed], dtype=wp.int32, device=device)
+        self._triangle_force = wp.zeros(model.world_count * len(self.triangles) if self.precompute else 1,
+                                        dtype=model.vec3, device=device)
 
     def damping_rates(self, model, positions: np.ndarray) -> np.ndarray:
         """Per particle, a third of the largest eigenvalue of D_u = ½ρA(C_D|u·n| I + (C_D + C_L)|u| n nᵀ) of
@@ -93,7 +106,16 @@ class AeroFamily(ElementFamily):
         return rates
 
     def spec(self, model, *, linear: bool = False) -> AeroSpec:
-        return AeroSpec(incidence=self.shape, noise=self.noise_scale > 0.0)
+        return AeroSpec(incidence=self.shape, noise=self.noise_scale > 0.0, precomputed=self.precompute)
+
+    def at_time(self, model, state) -> None:
+        """Where precomputed: each triangle's force at ``state``, before the corners gather it."""
+        if not self.precompute:
+            return
+        spec = self.spec(model)
+        wp.launch(spec.funcs(model.scalar).triangle_forces, dim=(model.world_count, len(self.triangles)),
+                  inputs=[model.particle_count, self.arrays(model), model.inputs, state.particle_q, state.particle_qd],
+                  device=model.device)
 
     def arrays(self, model, *, stiffness=None):
         arrays = aero_arrays_type(model.scalar)()
@@ -102,6 +124,7 @@ class AeroFamily(ElementFamily):
         arrays.lift = self._lift
         arrays.noise_scale = self._noise_scale
         arrays.noise_seed = self._seed
+        arrays.triangle_force = self._triangle_force
         arrays.incidence = self.incidence
         return arrays
 

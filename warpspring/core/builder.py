@@ -396,7 +396,7 @@ class ModelBuilder:
 
     def add_aerodynamics(self, *, meshes=None, drag=DEFAULT_DRAG, lift=DEFAULT_LIFT, wind=(0.0, 0.0, 0.0),
                          air_density: float = AIR_DENSITY, noise: float = 0.0, noise_scale: float = 1.0,
-                         seed: int = 0) -> AeroFamily:
+                         seed: int = 0, precompute: bool | None = None) -> AeroFamily:
         """Let the wind act on cloth triangles: flat-plate drag and lift from each triangle's velocity relative
         to the air, its area and normal, either side (``kernels/aero.py`` gives the model and its source).
 
@@ -410,6 +410,8 @@ class ModelBuilder:
                 Perlin noise in [-1, 1] (a live input, "wind_noise").
             noise_scale: L [m], > 0, the noise's length scale (the size of its gusts in space).
             seed: the noise's seed, ≥ 0.
+            precompute: each triangle's force computed once per evaluation and gathered (True), or by each
+                of its corners (False); ``None``: by the triangle count (``AeroFamily``).
 
         The noise is compiled in when ``noise`` > 0 here; with 0 it is absent (set a value here to animate it
         later). Returns the family (``model.families`` lists it as "wind triangles").
@@ -425,7 +427,8 @@ class ModelBuilder:
         triangles = np.concatenate([g.particles[g.faces] for g in groups]) if groups else np.zeros((0, 3), np.int64)
         noise = checks.non_negative("wind noise", noise)
         scale = checks.positive("wind noise_scale", noise_scale)
-        family = AeroFamily(triangles, drag=drag, lift=lift, noise_scale=scale if noise > 0.0 else 0.0, seed=seed)
+        family = AeroFamily(triangles, drag=drag, lift=lift, noise_scale=scale if noise > 0.0 else 0.0, seed=seed,
+                            precompute=precompute)
         self._air = {"wind": checks.vector("wind", wind), "air_density": checks.positive("air_density", air_density),
                      "wind_noise": noise}
         return self.add_family(family)
