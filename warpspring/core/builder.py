@@ -364,7 +364,8 @@ class ModelBuilder:
 
         Args:
             shape: "point" (at ``center``), "box" (``center`` ± ``half_extents``, axis-aligned, uniform) or
-                "mesh" (uniform over the area of ``mesh``: (vertices [m], faces) or a ``trimesh.Trimesh``).
+                "mesh" (uniform over the area of ``mesh``: (vertices [m], faces), a ``trimesh.Trimesh`` or a
+                file trimesh reads).
             center: the point, or the box's centre [m]; half_extents: the box's half sizes [m].
             rate: births per second [1/s], ≥ 0.
             bursts: (time [s], count) pairs: ``count`` births at ``time``.
@@ -381,6 +382,8 @@ class ModelBuilder:
         Returns:
             The :class:`~warpspring.core.emitters.Emitter`.
         """
+        if isinstance(mesh, (str, os.PathLike)):
+            mesh = load_mesh_file(mesh, what="emitter mesh")
         if mesh is not None and hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
             mesh = (np.asarray(mesh.vertices), np.asarray(mesh.faces))
         name = self._unique_name(name, [e.name for e in self._emitters] + [m.name for m in self._meshes]
@@ -708,13 +711,7 @@ class ModelBuilder:
             polygons = (read.polygon_counts, read.polygon_indices)
             face_sets = read.face_sets
         elif isinstance(mesh, (str, os.PathLike)):
-            path = os.fspath(mesh)
-            if not os.path.isfile(path):
-                raise ConfigError(f"mesh file not found: {path}")
-            try:
-                mesh = trimesh.load(path, force="mesh", process=False)
-            except Exception as exc:  # trimesh raises many types for unreadable files
-                raise ConfigError(f"cannot read mesh file {path}: {exc}") from None
+            mesh = load_mesh_file(mesh)
         loaded = not usd and isinstance(mesh, trimesh.Trimesh)
         if loaded:
             vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
@@ -1238,6 +1235,20 @@ def _quaternion(value) -> np.ndarray:
     if q.shape != (4,) or not np.isfinite(q).all() or np.linalg.norm(q) == 0.0:
         raise ConfigError(f"rotation must be a nonzero quaternion (x, y, z, w), got {value!r}")
     return q / np.linalg.norm(q)
+
+
+def load_mesh_file(path, *, what: str = "mesh"):
+    """The ``trimesh.Trimesh`` in the file at ``path`` (any format trimesh reads, unprocessed: vertices in the
+    file's order), or a one-line ConfigError naming the file."""
+    import trimesh
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise ConfigError(f"{what} file not found: {path}")
+    try:
+        return trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise ConfigError(f"cannot read {what} file {path}: {exc}") from None
 
 
 def _weld_seams(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray | None):

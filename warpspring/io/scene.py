@@ -374,23 +374,9 @@ _TYPE_NAMES = {str: "a string", bool: "true or false", list: "a list", dict: "a 
 _SPRING = {"ke": NON_NEGATIVE, "kd": NON_NEGATIVE}
 _TRACK_TABLE = {"times": list, "values": list, "interpolation": str, "extrapolation": str}
 _ROTATION_TRACK_TABLE = {"times": list, "axis": VECTOR, "degrees": list, "interpolation": str, "extrapolation": str}
-_PIN_GROUP = {
-    "pin": list,
-    "name": str,
-    "pivot": VECTOR,
-    "translation": _Track(VECTOR),
-    "rotation": _Track(rotation=True),
-}
-_HANDLE = {
-    "particles": list,
-    "kp": POSITIVE,
-    "kd": NON_NEGATIVE,
-    "max_force": POSITIVE,
-    "name": str,
-    "pivot": VECTOR,
-    "translation": _Track(VECTOR),
-    "rotation": _Track(rotation=True),
-}
+_RIGID_MOTION = {"pivot": VECTOR, "translation": _Track(VECTOR), "rotation": _Track(rotation=True)}
+_PIN_GROUP = {"pin": list, "name": str, **_RIGID_MOTION}
+_HANDLE = {"particles": list, "kp": POSITIVE, "kd": NON_NEGATIVE, "max_force": POSITIVE, "name": str, **_RIGID_MOTION}
 _EMITTER = {
     "name": str,
     "shape": str,
@@ -950,19 +936,10 @@ def _check_table(table: dict, schema: dict, where: str, name: str, *, version: i
 
 
 def _add_emitter(builder: ModelBuilder, e: dict, base: str) -> None:
-    """An ``[[emitter]]`` table (types checked): its mesh read by trimesh for shape = "mesh"."""
+    """An ``[[emitter]]`` table (types checked); a mesh file's path is relative to the scene's folder."""
     mesh = None
     if "mesh" in e:
-        import trimesh
-
-        path = e["mesh"] if os.path.isabs(e["mesh"]) else os.path.join(base, e["mesh"])
-        if not os.path.isfile(path):
-            raise ConfigError(f"emitter mesh file not found: {path}")
-        try:
-            loaded = trimesh.load(path, force="mesh", process=False)
-        except Exception as exc:  # trimesh raises many types for unreadable files
-            raise ConfigError(f"cannot read emitter mesh file {path}: {exc}") from None
-        mesh = (np.asarray(loaded.vertices), np.asarray(loaded.faces))
+        mesh = e["mesh"] if os.path.isabs(e["mesh"]) else os.path.join(base, e["mesh"])
     bursts = e.get("bursts", [])
     if not all(isinstance(b, list) and len(b) == 2 for b in bursts):
         raise ConfigError(f"bursts must list [time, count] pairs, e.g. bursts = [[0.5, 100]], got {bursts!r}")
