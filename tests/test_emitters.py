@@ -212,3 +212,19 @@ def test_an_emitter_changes_between_frames_without_a_recapture(device):
     np.testing.assert_allclose(sim.state.particle_q.numpy()[emitter.first + newest, 0], 5.0, atol=0.01)
     assert int(emitter.alive().sum()) - before == pytest.approx(240.0 / 60.0, abs=1)
     assert sim.stepper.captures == captures
+
+
+def test_a_scene_emitter_reads_its_mesh_file(tmp_path):
+    """[[emitter]] mesh = "file": the shape is the mesh (relative to the scene's folder); a missing file is one
+    line naming it."""
+    from warpspring.io.scene import load_scene
+
+    (tmp_path / "plate.obj").write_text("v 0 0 1\nv 1 0 1\nv 1 1 1\nv 0 1 1\nf 1 2 3\nf 1 3 4\n")
+    path = tmp_path / "spray.toml"
+    path.write_text('version = 2\n[[emitter]]\nmesh = "plate.obj"\nrate = 10.0\nlife = 1.0\n')
+    (emitter,) = load_scene(path).finalize("cpu").emitters
+    assert emitter.shape == "mesh" and len(emitter.mesh_faces) == 2
+    np.testing.assert_allclose(emitter.mesh_points[:, 2], 1.0)
+    path.write_text(path.read_text().replace("plate.obj", "missing.obj"))
+    with pytest.raises(ws.ConfigError, match=r"emitter mesh file not found: .*missing.obj"):
+        load_scene(path).finalize("cpu")
