@@ -259,3 +259,21 @@ def test_choose_exits_non_zero_when_nothing_meets_the_budget(tmp_path, capsys):
     assert main(["choose", "--error", "1e-9", "--study", study]) == EXIT_NO_CHOICE  # beyond every measurement
     assert main(["choose", "--error", "1e-3", "--study", str(tmp_path / "missing.csv")]) == EXIT_CONFIG
 
+
+
+def test_stability_runs_the_advisor_battery_on_request(tmp_path, capsys, monkeypatch):
+    """`warpspring stability --battery hanging --quick --integrators rk4`: a line per case, a summary with the
+    ratio and the unsafe count (0), and the table in OUT/battery.md; an unknown scene is refused at once."""
+    import warpspring.analysis.stability_map as stability_map
+
+    monkeypatch.setattr(stability_map, "run_map", fake_map)
+    out = tmp_path / "stability"
+    assert main(["stability", "--device", "cpu", "--out", str(out), "--quick", "--integrators", "rk4",
+                 "--battery", "hanging"]) == 0
+    printed = capsys.readouterr().out
+    assert "  battery: | hanging | rk4 | 1/60 s |" in printed
+    assert ", 0 passed world(s) blew up" in printed
+    table = (out / "battery.md").read_text()
+    assert table.startswith("# The advisor under load") and "| hanging | rk4 | 1/60 s |" in table
+    assert main(["stability", "--device", "cpu", "--out", str(out), "--battery", "gusty"]) == 2
+    assert "unknown battery scene 'gusty'" in capsys.readouterr().err

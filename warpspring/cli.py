@@ -153,6 +153,11 @@ def build_parser() -> argparse.ArgumentParser:
     stability.add_argument("--report", metavar="PATH",
                            help="write the full Markdown report here too (default: OUT/stability.md only); the "
                                 "terminal gets a short summary")
+    stability.add_argument("--battery", nargs="*", metavar="SCENE",
+                           help="also measure the advisor under load (analysis/load_battery.py): where the battery's "
+                                "cloth really blows up against what --strict passes, for the explicit integrators, "
+                                "in these scenes (hanging, forced, driven, windy, pulled; none named: all), table in "
+                                "OUT/battery.md; --quick: one step per integrator, 6 worlds, 2 s runs")
     stability.set_defaults(handler=_cmd_stability)
     return parser
 
@@ -259,6 +264,12 @@ def _cmd_stability(args) -> int:
     checks.output_dir(args.out)  # fail before the map runs, not after
     if args.report is not None:
         _check_report_path(args.report)
+    if args.battery is not None:
+        from .analysis.load_battery import SCENES
+
+        unknown = [s for s in args.battery if s not in SCENES]
+        if unknown:
+            raise ConfigError(f"unknown battery scene {unknown[0]!r}: choose from {', '.join(SCENES)}")
     pyplot("the stability plots")
     wp.config.log_level = wp.LOG_WARNING
     started = time.perf_counter()
@@ -271,9 +282,43 @@ def _cmd_stability(args) -> int:
         report = args.report
     for line in stability_summary(result):
         print(line)
+    if args.battery is not None:
+        paths.append(_battery(args, resolve_device(args.device)))
     print(f"full report: {report}; also wrote {', '.join(p for p in paths if p != report)} "
           f"in {time.perf_counter() - started:.1f} s")
     return 0
+
+
+def _battery(args, device) -> str:
+    """Run the advisor-under-load battery for ``warpspring stability --battery``: one line per case as it
+    ends, a summary line, and the table in OUT/battery.md (its path is returned)."""
+    import datetime
+
+    import warp as wp
+
+    from .analysis.load_battery import EXPLICIT, SCENES, STEPS, run_case, table
+
+    scenes = args.battery or list(SCENES)
+    names = [n for n in (args.integrators or EXPLICIT) if n in EXPLICIT]
+    worlds, seconds = (6, 2.0) if args.quick else (32, 10.0)
+    cases = []
+    for scene in scenes:
+        for name in names:
+            for substeps in STEPS[name][:1] if args.quick else STEPS[name]:
+                cases.append(run_case(scene, name, substeps, device, worlds=worlds, seconds=seconds))
+                print(f"  battery: {table(cases[-1:])[2]} ({cases[-1].seconds:.0f} s)", flush=True)
+    path = os.path.join(args.out, "battery.md")
+    header = (f"# The advisor under load\n\n`warpspring stability --battery {' '.join(scenes)}"
+              f"{' --quick' if args.quick else ''}` on {device}, Warp {wp.__version__}, {datetime.date.today()}: "
+              f"the 20 × 20 cloth of warpspring/analysis/load_battery.py, {worlds} stiffnesses per grid as worlds, "
+              f"two grids, {seconds:g} s runs.\n\n")
+    with open(path, "w") as f:
+        f.write(header + "\n".join(table(cases)) + "\n")
+    ratios = [c.ratio for c in cases if c.ratio == c.ratio]
+    unsafe = sum(c.unsafe for c in cases)
+    spread = f"advisor / blow-up {min(ratios):.3f} … {max(ratios):.3f}" if ratios else "no blow-up in the grids"
+    print(f"  advisor under load: {len(cases)} cases, {spread}, {unsafe} passed world(s) blew up")
+    return path
 
 
 def stability_summary(result) -> list[str]:
