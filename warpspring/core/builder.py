@@ -30,6 +30,8 @@ from .hinges import dihedral_angle, mesh_hinges
 from .kinematics import PinGroup, PinGroupTable
 from .material import ClothMaterial, edge_springs, grid_masses, grid_springs, hinge_parameters, lumped_masses
 from .model import MeshGroup, Model, ShapeInfo, Stabilizers
+from .springs import SPRING_LAWS, SpringPlasticity, spring_law_code
+from ..kernels.springs import SpringLaw
 from .tracks import Track, as_track, input_track
 from .transforms import quat_between, quat_to_matrix
 
@@ -114,6 +116,7 @@ class ModelBuilder:
         self._spring_ke: list[np.ndarray] = []
         self._spring_kd: list[np.ndarray] = []
         self._spring_count = 0
+        self._spring_law: list[np.ndarray] = []  # per block: law code, compression ratio, plasticity rows
 
         self._hinges: list[np.ndarray] = []
         self._hinge_rest: list[np.ndarray] = []
@@ -235,16 +238,24 @@ class ModelBuilder:
         else:
             self._tracks[name] = track
 
-    def add_springs(self, pairs, *, stiffness, damping=0.0, rest_length=None, family: str = "springs") -> np.ndarray:
+    def add_springs(self, pairs, *, stiffness, damping=0.0, rest_length=None, family: str = "springs",
+                    law: str = "linear", compression_stiffness=None, plasticity: SpringPlasticity | None = None
+                    ) -> np.ndarray:
         """Add springs in bulk.
 
         Args:
             pairs: global particle indices of each spring, shape [s, 2]; the two must differ.
-            stiffness: ke [N/m], ≥ 0: a scalar or shape [s].
+            stiffness: ke [N/m] (square law: [N/m²]), ≥ 0: a scalar or shape [s].
             damping: kd [N·s/m], ≥ 0: a scalar or shape [s].
             rest_length: [m], ≥ 0, scalar or shape [s]; default: the current distance of the pair.
             family: the name the springs are grouped under for export (one USD curves prim per family;
                 the cloth builders use ``structural``, ``shear`` and ``bend``); a valid USD identifier.
+            law: the tension T at the stretch Δ = |d| - L: "linear" (T = ke Δ) or "square" (T = ke Δ|Δ|, the
+                seed's square spring: soft for small stretches, stiff for large ones).
+            compression_stiffness: kc (same unit as ke), ≥ 0, a scalar or shape [s]: the stiffness when
+                compressed (Δ < 0); default ke. Stored as the ratio kc/ke, so per-world stiffness rows
+                (``Model.set_world_values``) scale both branches.
+            plasticity: how the springs yield and break (:class:`SpringPlasticity`); default: elastic.
 
         Returns:
             The indices of the new springs, shape [s].
@@ -262,6 +273,26 @@ class ModelBuilder:
             rest = np.linalg.norm(q[pairs[:, 1]] - q[pairs[:, 0]], axis=1)
         else:
             rest = _per_item("spring rest length", rest_length, s)
+        ratio = np.ones(s)
+        if compression_stiffness is not None:
+            kc = _per_item("spring compression_stiffness", compression_stiffness, s)
+            soft = np.flatnonzero((ke == 0.0) & (kc > 0.0))
+            if len(soft):
+                raise ConfigError(f"spring {int(soft[0])} has compression_stiffness {kc[soft[0]]:g} but stiffness 0: "
+                                  "give it a stiffness > 0 (the compression branch is stored as kc/ke)")
+            ratio = np.divide(kc, ke, out=np.ones(s), where=ke > 0.0)
+        rows = np.full((s, 5), np.inf)
+        if plasticity is not None:
+            if not isinstance(plasticity, SpringPlasticity):
+                raise ConfigError(f"plasticity must be a warpspring.SpringPlasticity, got {type(plasticity).__name__}")
+            if len(rest) and rest.min() <= 0.0:
+                raise ConfigError(f"plastic spring {int(np.argmin(rest))} has rest length 0: plastic strains are "
+                                  "measured against the rest length, so it must be > 0")
+            rows[:] = plasticity.row
+        block = np.empty((s, 8))
+        block[:, 0], block[:, 1], block[:, 2] = spring_law_code(law), ratio, plasticity is not None
+        block[:, 3:] = rows
+        self._spring_law.append(block)
         start = self._spring_count
         self._springs.append(pairs)
         self._spring_ke.append(ke)
@@ -270,6 +301,28 @@ class ModelBuilder:
         self._spring_family.append(checks.identifier("spring family", family))
         self._spring_count += s
         return np.arange(start, start + s)
+
+    def _finalize_spring_laws(self, model: Model, farray, iarray) -> None:
+        """The spring groups' laws and plasticity on the model: only the arrays and switches the groups use."""
+        laws = np.concatenate(self._spring_law) if self._spring_law else np.zeros((0, 8))
+        code, ratio, plastic = laws[:, 0].astype(np.int32), laws[:, 1], laws[:, 2] != 0.0
+        square, asymmetric = bool((code == SPRING_LAWS["square"]).any()), bool((ratio != 1.0).any())
+        model.spring_material_law = SpringLaw(square=square, asymmetric=asymmetric, plastic=bool(plastic.any()))
+        if square or asymmetric:
+            model.spring_law_code = iarray(code)
+            model.spring_compression_ratio = farray(ratio, name="a spring compression ratio [-]")
+        if plastic.any():
+            worlds = model.world_count
+            model.spring_plastic_count = int(plastic.sum())
+            model.spring_plastic_index = iarray(np.flatnonzero(plastic))
+            dtype = np.float64 if model.scalar is wp.float64 else np.float32
+            for column, name in enumerate(("yield_strain", "yield_force", "yield_rate", "hardening", "break_strain")):
+                # inf (no limit, instant flow) is a value here: stored as is, not refused as an overflow.
+                setattr(model, f"spring_{name}", wp.array(laws[:, 3 + column].astype(dtype), dtype=model.scalar,
+                                                          device=model.device))
+            model.spring_plastic_rest_length = farray(np.tile(np.concatenate(self._spring_rest), worlds),
+                                                      name="a spring rest length [m]")
+            model.spring_plastic_strain = farray(np.zeros(worlds * len(laws)))
 
     def add_hinges(self, hinges, *, stiffness, damping=0.0, rest_angle=None) -> np.ndarray:
         """Add dihedral (angular) springs in bulk: hinge (x0, x1, x2, x3) resists folding about the edge
@@ -1064,6 +1117,7 @@ class ModelBuilder:
         model.spring_incidence, model.spring_incidence_shape = build_incidence(
             springs, n, springs[:, ::-1], lambda particles: particles, device=device
         )
+        self._finalize_spring_laws(model, farray, iarray)
 
         hinges = np.concatenate(self._hinges) if self._hinges else np.zeros((0, 4), dtype=np.int64)
         model.hinge_count = len(hinges)
