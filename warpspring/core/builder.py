@@ -50,15 +50,26 @@ _GRID_PINS = ("top-left", "top-right", "bottom-left", "bottom-right", "top", "bo
 
 @dataclass(frozen=True)
 class SpringMaterial:
-    """Stiffness and damping of a family of springs.
+    """Stiffness and damping of a family of springs, and the law it follows.
 
     Attributes:
-        ke: stiffness [N/m], ≥ 0.
+        ke: stiffness [N/m] (square law: [N/m²]), ≥ 0.
         kd: axial damping [N·s/m], ≥ 0.
+        law: "linear" (T = ke Δ) or "square" (T = ke Δ|Δ|) at the stretch Δ (``ModelBuilder.add_springs``).
+        compression_ke: the stiffness in compression (same unit as ke), ≥ 0; ``None``: ke.
+        plasticity: how the springs yield and break (:class:`~warpspring.core.springs.SpringPlasticity`);
+            ``None``: elastic.
     """
 
     ke: float
     kd: float = 0.0
+    law: str = "linear"
+    compression_ke: float | None = None
+    plasticity: SpringPlasticity | None = None
+
+    def spring_options(self) -> dict:
+        """The law's keyword arguments of :meth:`ModelBuilder.add_springs`."""
+        return dict(law=self.law, compression_stiffness=self.compression_ke, plasticity=self.plasticity)
 
 
 #: Default cloth spring families (structural, shear, bend) of ``add_cloth_grid``/``add_cloth_mesh``.
@@ -663,7 +674,8 @@ class ModelBuilder:
             ]
             for family, springs, blocks in families:
                 if springs is not None:
-                    self.add_springs(blocks, stiffness=springs.ke, damping=springs.kd, family=family)
+                    self.add_springs(blocks, stiffness=springs.ke, damping=springs.kd, family=family,
+                                     **springs.spring_options())
         else:
             k = grid_springs(material)
             # A structural spring on an outer row or column spans half a cell: half stiffness and damping.
@@ -822,11 +834,13 @@ class ModelBuilder:
             self.add_springs(ids[edges], stiffness=ke, damping=kd, family="structural")
         else:
             if structural is not None and len(edges):
-                self.add_springs(ids[edges], stiffness=structural.ke, damping=structural.kd, family="structural")
+                self.add_springs(ids[edges], stiffness=structural.ke, damping=structural.kd, family="structural",
+                                 **structural.spring_options())
             if bend is not None:
                 opposite = tri.face_adjacency_unshared
                 if len(opposite):
-                    self.add_springs(ids[opposite], stiffness=bend.ke, damping=bend.kd, family="bend")
+                    self.add_springs(ids[opposite], stiffness=bend.ke, damping=bend.kd, family="bend",
+                                     **bend.spring_options())
         self.add_triangles(ids[faces], name=name, uvs=uv, face_sets=face_sets,
                            polygon_counts=None if polygons is None else polygons[0],
                            polygon_indices=None if polygons is None else ids[polygons[1]])
@@ -1367,8 +1381,8 @@ def spring_family(name: str, value, default: SpringMaterial) -> SpringMaterial |
     Args:
         name: the family's name ("structural", "shear", "bend"), for messages.
         value: a :class:`SpringMaterial`; a mapping with ``ke`` [N/m] and/or ``kd`` [N·s/m] (each missing one is
-            ``default``'s, as in a scene file's table); ``True`` (``default``); ``False`` or ``None`` (no springs of
-            the family).
+            ``default``'s, as in a scene file's table), and optionally the law's keys (:data:`SPRING_TABLE_KEYS`);
+            ``True`` (``default``); ``False`` or ``None`` (no springs of the family).
         default: the family's default material.
 
     Returns:
@@ -1384,17 +1398,44 @@ def spring_family(name: str, value, default: SpringMaterial) -> SpringMaterial |
     if isinstance(value, SpringMaterial):
         material = value
     elif isinstance(value, Mapping):
-        unknown = sorted(map(str, set(value) - {"ke", "kd"}))
+        unknown = sorted(map(str, set(value) - {"ke", "kd", *SPRING_TABLE_KEYS}))
         if unknown:
-            raise ConfigError(f"{name} springs: unknown key {unknown[0]!r}: a mapping takes 'ke' [N/m] and 'kd' "
-                              "[N·s/m]")
-        material = SpringMaterial(ke=value.get("ke", default.ke), kd=value.get("kd", default.kd))
+            raise ConfigError(f"{name} springs: unknown key {unknown[0]!r}: a mapping takes 'ke' [N/m], 'kd' "
+                              f"[N·s/m] and {', '.join(map(repr, SPRING_TABLE_KEYS))}")
+        material = SpringMaterial(ke=value.get("ke", default.ke), kd=value.get("kd", default.kd),
+                                  **spring_law_options(name, value))
     else:
         raise ConfigError(f"{name} springs must be a warpspring.SpringMaterial, a mapping {{'ke': ..., 'kd': ...}}, "
                           f"True (the default) or False (none), got {value!r}")
     checks.non_negative(f"{name} spring ke", material.ke)
     checks.non_negative(f"{name} spring kd", material.kd)
     return material
+
+
+#: The keys of a spring table (a scene's ``[cloth.structural]``, a ``spring_family`` mapping) that choose its law
+#: and plasticity, beyond ``ke`` and ``kd``: ``law`` ("linear" or "square"), ``compression_ke``, and the fields
+#: of :class:`~warpspring.core.springs.SpringPlasticity`.
+SPRING_TABLE_KEYS = ("law", "compression_ke", "yield_strain", "yield_force", "yield_rate", "hardening", "break_strain")
+
+
+def spring_law_options(name: str, table: Mapping) -> dict:
+    """The ``law``, ``compression_ke`` and ``plasticity`` of :class:`SpringMaterial` from a spring table's keys
+    (:data:`SPRING_TABLE_KEYS`; absent ones keep their defaults), checked, with one-line errors naming ``name``."""
+    options = {}
+    if "law" in table:
+        if not isinstance(table["law"], str):
+            raise ConfigError(f"{name} springs: law must be a string, one of {', '.join(map(repr, SPRING_LAWS))}")
+        spring_law_code(table["law"])
+        options["law"] = table["law"]
+    if "compression_ke" in table:
+        options["compression_ke"] = checks.non_negative(f"{name} spring compression_ke", table["compression_ke"])
+    plastic = {key: table[key] for key in SPRING_TABLE_KEYS[2:] if key in table}
+    if plastic:
+        try:
+            options["plasticity"] = SpringPlasticity(**plastic)
+        except ConfigError as exc:
+            raise ConfigError(f"{name} springs: {exc}") from None
+    return options
 
 
 def _material_decides(material, method: str, **given: bool) -> None:

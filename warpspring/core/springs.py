@@ -34,6 +34,14 @@ def spring_law_code(law: str) -> int:
     return SPRING_LAWS[law]
 
 
+def spring_law_codes(model) -> np.ndarray:
+    """Each spring's law code (``SPRING_LAWS``), int, shape [spring_count] (reads the device when some group is
+    not linear)."""
+    if model.spring_law_code is None:
+        return np.full(model.spring_count, SPRING_LINEAR)
+    return model.spring_law_code.numpy()
+
+
 @dataclass(frozen=True)
 class SpringPlasticity:
     """How a group of springs yields and breaks (``ModelBuilder.add_springs(plasticity=...)``).
