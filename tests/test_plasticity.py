@@ -15,6 +15,7 @@ import warp as wp
 import warpspring as ws
 from warpspring.core.families import element_energies
 from warpspring.core.integrators import make_integrator
+from warpspring.io.scene import parse_scene
 from warpspring.kernels.springs import BROKEN_REST_LENGTH, SpringLaw
 
 L0, KE = 1.0, 100.0
@@ -218,3 +219,37 @@ def test_a_plastic_bar_keeps_its_bend_and_an_elastic_one_returns(device):
     assert np.abs(sim.state.particle_qd.numpy()).max() < 1e-5
     moved = np.abs(model.spring_rest_lengths()[0] - model.spring_rest_length.numpy())
     assert moved[: len(pairs)].max() > 1e-4 and moved[len(pairs):].max() == 0.0
+
+
+def cloth_scene(**structural):
+    return {"cloth": {"grid": {"nx": 3, "ny": 3, "spacing": 0.1}, "particle_mass": 0.01, "pin": ["top"],
+                      "structural": {"ke": 200.0, **structural}, "bend": False}}
+
+
+def test_scene_spring_tables_take_the_law_and_plasticity():
+    """A [cloth] spring table's law, compression_ke and plasticity keys reach that group's springs (and only
+    them); a wrong value is a one-line error naming the table."""
+    scene = parse_scene(cloth_scene(law="square", compression_ke=50.0, yield_strain=0.05, hardening=0.5,
+                                    yield_rate=20.0, break_strain=0.5), path="s.toml")
+    model = scene.builder().finalize("cpu", precision="float64")
+    assert model.spring_law == SpringLaw(square=True, asymmetric=True, plastic=True)
+    structural = model.spring_families["structural"]
+    shear = model.spring_families["shear"]
+    np.testing.assert_array_equal(model.spring_law_code.numpy()[structural], 1)
+    np.testing.assert_array_equal(model.spring_law_code.numpy()[shear], 0)
+    np.testing.assert_allclose(model.spring_compression_ratio.numpy()[structural], 0.25)
+    np.testing.assert_array_equal(model.spring_plastic_index.numpy(), structural)
+    for name, value in (("yield_strain", 0.05), ("hardening", 0.5), ("yield_rate", 20.0), ("break_strain", 0.5)):
+        np.testing.assert_allclose(getattr(model, f"spring_{name}").numpy()[structural], value)
+    assert np.isinf(model.spring_yield_force.numpy()).all() and np.isinf(model.spring_yield_strain.numpy()[shear]).all()
+    for bad, message in (({"law": "cubic"}, "s.toml: cloth.structural: unknown spring law 'cubic'"),
+                         ({"hardening": 1.0}, "plasticity needs yield_strain, yield_force or break_strain"),
+                         ({"yield_rate": -1.0}, "yield_rate"),
+                         ({"compression_ke": 10.0, "ke": 0.0}, None)):
+        if message is None:  # caught by the builder: kc without ke
+            with pytest.raises(ws.ConfigError, match="stiffness 0") as error:
+                parse_scene(cloth_scene(**bad), path="s.toml").builder()
+        else:
+            with pytest.raises(ws.ConfigError, match=message) as error:
+                parse_scene(cloth_scene(**bad), path="s.toml")
+        assert "\n" not in str(error.value)
