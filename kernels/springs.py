@@ -5,9 +5,11 @@ Per spring (i, j), d = xj - xi: the force on i is (T(|d|) + kd (vj - vi)·d̂) d
 (``spring_funcs``). Springs may follow other laws per spring (``SpringLaw``): square, T = ke Δ|Δ| with
 Δ = |d| - L, and a compression branch of its own stiffness, ratio × ke for Δ < 0; plastic springs keep
 their rest lengths per world, as state the post-step pass ``spring_plastic_kernel`` moves (a negative rest
-length marks a broken spring, which carries no force). Its incidence entries are (spring, other particle); padding entries point a particle at
-itself, a coincident pair whose force, stiffness and strain are exactly zero (or "none"), so the head's
-unrolled slot loop needs no branch. The stiffness matrix block Kₛ = ∂fᵢ/∂xⱼ is clamped positive
+length marks a broken spring, which carries no force).
+
+Its incidence entries are (spring, other particle); padding entries point a particle at itself, a
+coincident pair whose force, stiffness and strain are exactly zero (or "none"), so the head's unrolled
+slot loop needs no branch. The stiffness matrix block Kₛ = ∂fᵢ/∂xⱼ is clamped positive
 semi-definite (the transverse term of a compressed spring dropped), so K ⪰ 0 as implicit Euler and power
 iteration need.
 
@@ -543,7 +545,8 @@ def spring_scatter_kernel(scalar: type, law: SpringLaw):
 
 @functools.cache
 def plastic_arrays_type(scalar: type):
-    """The struct of the plastic springs' parameters (values, every world) and state (per world)."""
+    """The struct of the plastic springs' parameters (values, every world; their state, the rest lengths and
+    plastic strains per world, is the pass's in/out arrays)."""
 
     @wp.struct
     class PlasticArrays:
@@ -554,7 +557,6 @@ def plastic_arrays_type(scalar: type):
         yield_rate: wp.array[scalar]  # r [1/s], [spring_count]: share of the excess that flows per second (inf: all)
         hardening: wp.array[scalar]  # H [-], [spring_count]: the limit grows by the factor 1 + H α
         break_strain: wp.array[scalar]  # [-], [spring_count]: breaks once |d| > (1 + it) L₀ (inf: never)
-        plastic_strain: wp.array[scalar]  # α [-], [world_count · spring_count]: accumulated plastic strain (state)
 
     return PlasticArrays
 
@@ -565,8 +567,8 @@ def spring_plastic_kernel(scalar: type, law: SpringLaw):
 
     Per spring, with L₀ its built rest length, L its current one and α its accumulated plastic strain, the
     elastic strain is e = (|d| - L)/L₀ and the limit ε_y = ε_y0 (1 + H α), ε_y0 the smaller of the yield
-    strain and the stretch at which the law reaches the yield force (``stretch_at`` on the branch of e's
-    sign, divided by L₀). If |e| > ε_y, the rest length moves toward |d| by Δγ L₀ (``plastic_flow``) and α
+    strain and the stretch at which the base law reaches the yield force on the branch of e's sign
+    (``base_stretch_at`` at the current stiffness, divided by L₀). If |e| > ε_y, the rest length moves toward |d| by Δγ L₀ (``plastic_flow``) and α
     grows by Δγ: under a monotone pull held instantly at its limit, α = (ε - ε_y0)/(1 + ε_y0 H) for a
     total strain ε = |d|/L₀ - 1, whatever the steps. A spring longer than (1 + ε_break) L₀ breaks: its rest
     length becomes ``BROKEN_REST_LENGTH`` and it carries nothing from then on. Held worlds are skipped.
@@ -585,7 +587,9 @@ def spring_plastic_kernel(scalar: type, law: SpringLaw):
         which the share min(1, r h) flows in a step of h (creep; r = inf: all of it)."""
         return wp.min(rate_dt, scalar(1.0)) * excess / (scalar(1.0) + limit_0 * hardening)
 
-    @flat_kernel(module="unique", enable_backward=False, last=("springs__incidence",))
+    # The rest lengths are read and written through ``rest_length_in_out``, never through the struct.
+    @flat_kernel(module="unique", enable_backward=False,
+                 last=("springs__incidence", "springs__rest_length", "springs__damping"))
     def plastic_springs(
         # Model:
         particle_count: int,

@@ -131,7 +131,7 @@ class SpringFamily(ElementFamily):
         return springs
 
     def plastic_arrays(self, model):
-        """The struct of the plastic pass (``kernels.springs.plastic_arrays_type``): parameters and α."""
+        """The struct of the plastic pass's parameters (``kernels.springs.plastic_arrays_type``)."""
         plastic = plastic_arrays_type(model.scalar)()
         plastic.index = model.spring_plastic_index
         plastic.rest_length_0 = model.spring_rest_length
@@ -140,7 +140,6 @@ class SpringFamily(ElementFamily):
         plastic.yield_rate = model.spring_yield_rate
         plastic.hardening = model.spring_hardening
         plastic.break_strain = model.spring_break_strain
-        plastic.plastic_strain = model.spring_plastic_strain
         return plastic
 
     def tangent_factor(self, model, positions=None) -> np.ndarray:
