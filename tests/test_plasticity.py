@@ -165,6 +165,52 @@ def test_a_spring_past_its_breaking_strain_carries_nothing(device):
     np.testing.assert_array_equal(sim.state.particle_q.numpy()[0], q0)
 
 
+def test_each_world_reads_its_own_rest_lengths_gathered_and_scattered(device):
+    """Two worlds of a random plastic network whose rest lengths were moved differently per world (and one
+    spring broken in world 1): the gathered and scattered forces agree to rounding and equal a float64
+    reference from each world's own rest lengths, a broken spring adding nothing. A model without plastic
+    groups keeps the built rest lengths and its plain struct (no plastic arrays, nothing in the finisher's
+    history)."""
+    rng = np.random.default_rng(2)
+    n = 40
+    q = rng.uniform(-1.0, 1.0, (n, 3))
+    builder = ws.ModelBuilder()
+    builder.add_particles(q, mass=1.0)
+    pairs = np.unique(np.sort(rng.integers(0, n, (150, 2)), axis=1), axis=0)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    builder.add_springs(pairs, stiffness=rng.uniform(5.0, 15.0, len(pairs)),
+                        plasticity=ws.SpringPlasticity(yield_strain=0.1))
+    rest = np.linalg.norm(q[pairs[:, 1]] - q[pairs[:, 0]], axis=1)[None, :] * rng.uniform(0.7, 1.3, (2, len(pairs)))
+    rest[1, 3] = BROKEN_REST_LENGTH
+    forces = []
+    for evaluation in ("gather", "scatter"):
+        model = builder.finalize(device, precision="float64", spring_evaluation=evaluation, worlds=2)
+        model.gravity = (0.0, 0.0, 0.0)
+        model.spring_plastic_rest_length.assign(rest.ravel())
+        state = model.state()
+        ws.eval_forces(model, state, None)
+        forces.append(state.particle_f.numpy().reshape(2, n, 3))
+    np.testing.assert_allclose(forces[0], forces[1], rtol=1e-12, atol=1e-12)
+    ke = model.spring_stiffness.numpy()[0]
+    d = q[pairs[:, 1]] - q[pairs[:, 0]]
+    length = np.linalg.norm(d, axis=1)
+    for w in range(2):
+        tension = np.where(rest[w] < 0.0, 0.0, ke * (length - rest[w]))
+        pull = d / length[:, None] * tension[:, None]
+        expected = np.zeros((n, 3))
+        np.add.at(expected, pairs[:, 0], pull)
+        np.add.at(expected, pairs[:, 1], -pull)
+        np.testing.assert_allclose(forces[0][w], expected, rtol=1e-10, atol=1e-12)
+
+    elastic = ws.ModelBuilder()
+    elastic.add_particles(q, mass=1.0)
+    elastic.add_springs(pairs, stiffness=10.0)
+    plain = elastic.finalize(device)
+    assert plain.spring_law == SpringLaw() and plain.spring_plastic_rest_length is None
+    assert make_integrator("symplectic_euler", plain).finish_step.history() == []
+    assert not hasattr(plain.spring_arrays(), "law")
+
+
 def lattice_bar(nx=2, ny=2, nz=10, a=0.1):
     """Nodes [m] of an nx × ny × nz cubic lattice of spacing a along z, and its springs: every edge and both
     diagonals of every face (the issue's voxel lattice without body diagonals)."""
