@@ -18,7 +18,7 @@ from .families import IncidenceShape
 from .inputs import INPUT_MAX_SPEED, INPUT_MAX_STRAIN
 from .kinematics import is_kinematic, particle_funcs
 from .precision import vec3_type
-from .springs import spring_arrays_type
+from .springs import HOOKE, SpringLaw, spring_access_funcs, spring_arrays_type
 from .worlds import world_and_index
 from .flatten import flat_kernel
 
@@ -26,17 +26,20 @@ wp.set_module_options({"enable_backward": False})
 
 
 @functools.cache
-def strain_limit_kernel(scalar: type, incidence: IncidenceShape):
+def strain_limit_kernel(scalar: type, incidence: IncidenceShape, law: SpringLaw = HOOKE):
     """One Jacobi pass of strain limiting at the strain ``INPUT_MAX_STRAIN`` over the springs' incidence table
-    of shape ``incidence``."""
+    of shape ``incidence``, for the springs' struct of ``law`` (plastic springs: each world's rest lengths;
+    a broken spring is never corrected)."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
-    SpringArrays = spring_arrays_type(scalar)
+    SpringArrays = spring_arrays_type(scalar, law.per_spring)
+    rest_at, _ = spring_access_funcs(scalar, law)
     head_slots, tail = incidence
 
     @wp.func
     def correction_of(
-        i: int, neighbor: int, s: int, base: int, xi: vec3, wi: scalar, stretch_limit: scalar, mass_row: int,
+        i: int, neighbor: int, s: int, world: int, base: int, xi: vec3, wi: scalar, stretch_limit: scalar,
+        mass_row: int,
         springs: SpringArrays, particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
         particle_q_in: wp.array[vec3],
     ):
@@ -44,8 +47,9 @@ def strain_limit_kernel(scalar: type, incidence: IncidenceShape):
         j = base + neighbor
         d = particle_q_in[j] - xi
         length = wp.length(d)
-        allowed = stretch_limit * springs.rest_length[s]
-        if neighbor != i and length > allowed:
+        rest = rest_at(springs, world, s)
+        allowed = stretch_limit * rest
+        if neighbor != i and rest >= scalar(0.0) and length > allowed:
             share = wi / (wi + effective_inv_mass(particle_flags[j], particle_inv_mass[mass_row, neighbor]))
             return d * (share * (length - allowed) / length), scalar(1.0)
         return vec3(scalar(0.0)), scalar(0.0)
@@ -77,14 +81,14 @@ def strain_limit_kernel(scalar: type, incidence: IncidenceShape):
         if wi > scalar(0.0):
             incidence = springs.incidence
             for k in range(wp.static(head_slots)):
-                dx, count = correction_of(i, incidence.head_local[k, i], incidence.head_element[k, i], base, xi, wi,
+                dx, count = correction_of(i, incidence.head_local[k, i], incidence.head_element[k, i], world, base, xi, wi,
                                           stretch_limit, mass_row, springs, particle_flags, particle_inv_mass,
                                           particle_q_in)
                 correction += dx
                 violated += count
             if wp.static(tail):
                 for t in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
-                    dx, count = correction_of(i, incidence.tail_local[t], incidence.tail_element[t], base, xi, wi,
+                    dx, count = correction_of(i, incidence.tail_local[t], incidence.tail_element[t], world, base, xi, wi,
                                               stretch_limit, mass_row, springs, particle_flags, particle_inv_mass,
                                               particle_q_in)
                     correction += dx

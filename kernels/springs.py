@@ -2,13 +2,19 @@
 two particles, plugged into every kernel through the hooks of ``families.py``.
 
 Per spring (i, j), d = xj - xi: the force on i is (T(|d|) + kd (vj - vi)·d̂) d̂ with T = ke (|d| - L)
-(``spring_funcs``). Its incidence entries are (spring, other particle); padding entries point a particle at
-itself, a coincident pair whose force, stiffness and strain are exactly zero (or "none"), so the head's
-unrolled slot loop needs no branch. The stiffness matrix block Kₛ = ∂fᵢ/∂xⱼ is clamped positive
+(``spring_funcs``). Springs may follow other laws per spring (``SpringLaw``): square, T = ke Δ|Δ| with
+Δ = |d| - L, and a compression branch of its own stiffness, ratio × ke for Δ < 0; plastic springs keep
+their rest lengths per world, as state the post-step pass ``spring_plastic_kernel`` moves (a negative rest
+length marks a broken spring, which carries no force).
+
+Its incidence entries are (spring, other particle); padding entries point a particle at itself, a
+coincident pair whose force, stiffness and strain are exactly zero (or "none"), so the head's unrolled
+slot loop needs no branch. The stiffness matrix block Kₛ = ∂fᵢ/∂xⱼ is clamped positive
 semi-definite (the transverse term of a compressed spring dropped), so K ⪰ 0 as implicit Euler and power
 iteration need.
 
-Worlds: topology and rest lengths are shared; stiffness and damping have one row for every world or one
+Worlds: topology and rest lengths are shared (plastic springs: one rest length per world and spring,
+world-major in the same ``rest_length`` field); stiffness and damping have one row for every world or one
 row per world, read at row ``min(world, rows - 1)``.
 """
 
@@ -29,19 +35,41 @@ wp.set_module_options({"enable_backward": False})
 #: Particles closer than this [m] are coincident: their spring has no direction and exerts no force.
 COINCIDENT_DISTANCE = 1.0e-12
 
+#: Per-spring law codes (``SpringArrays.law``): T = ke Δ (linear) or T = ke Δ|Δ| (square), Δ = |d| - L.
+SPRING_LINEAR = 0
+SPRING_SQUARE = 1
+#: The rest length [m] of a broken (plastic) spring: it carries no force, stiffness, strain or energy.
+BROKEN_REST_LENGTH = -1.0
+
 class SpringLaw(NamedTuple):
     """Which parts of the spring force law beyond Hooke's spring with an axial damper a kernel compiles.
 
     Only the switches live here; the values (knee strain, stiffness ratio, force limit) are live inputs
     read from the input table (``inputs.py``), so changing them compiles nothing.
 
+    The material switches (``square``, ``asymmetric``, ``plastic``) say that *some* springs use a part: which
+    ones, and with what values, the per-spring arrays of ``SpringArrays`` say (``law``, ``compression_ratio``,
+    a per-world ``rest_length``), so a scene compiles only the laws its spring groups use.
+
     Attributes:
         biphasic: springs stiffen by ``INPUT_BIPHASIC_RATIO`` beyond the strain ``INPUT_BIPHASIC_STRAIN``.
         clamp_force: a spring's force magnitude, elastic plus damping, is clamped to ``INPUT_MAX_SPRING_FORCE``.
+        square: springs whose ``law`` is ``SPRING_SQUARE`` pull with T = ke Δ|Δ| (ke in N/m²).
+        asymmetric: in compression (Δ < 0) a spring's stiffness is ``compression_ratio`` × ke.
+        plastic: rest lengths are state, one per world and spring (``rest_length`` world-major, moved by
+            ``spring_plastic_kernel`` after each step); a negative one marks a broken spring.
     """
 
     biphasic: bool = False
     clamp_force: bool = False
+    square: bool = False
+    asymmetric: bool = False
+    plastic: bool = False
+
+    @property
+    def per_spring(self) -> bool:
+        """Whether the law reads per-spring law arrays (``SpringArrays.law``, ``compression_ratio``)."""
+        return self.square or self.asymmetric
 
 
 #: The plain law: f = (ke (|d| - L) + kd (vj - vi)·d̂) d̂.
@@ -57,8 +85,35 @@ def spring_law_type(scalar: type):
         knee_strain: scalar  # strain beyond which a biphasic spring stiffens [-]
         extra_stiffness: scalar  # stiffness ratio beyond the knee, minus one [-]
         max_force: scalar  # largest magnitude of a spring's force [N]
+        square: wp.int32  # this spring's law is square (SPRING_SQUARE); set per spring by ``law_at``
+        compression_ratio: scalar  # this spring's compression stiffness / ke [-]; set per spring by ``law_at``
 
     return SpringLawValues
+
+
+@functools.cache
+def spring_branch_funcs(scalar: type, law: SpringLaw = HOOKE):
+    """(branch_stiffness, base_stretch_at) of one precision and law: the stiffness of the branch a stretch is
+    on, and the inverse of the base law (before the biphasic excess) on a branch."""
+    SpringLawValues = spring_law_type(scalar)
+
+    @wp.func
+    def branch_stiffness(stretch: scalar, ke: scalar, values: SpringLawValues) -> scalar:
+        """The stiffness of the branch ``stretch`` Δ [m] is on: ke, or in compression ratio × ke (asymmetric)."""
+        if wp.static(law.asymmetric):
+            return wp.where(stretch < scalar(0.0), values.compression_ratio * ke, ke)
+        return ke
+
+    @wp.func
+    def base_stretch_at(magnitude: scalar, k: scalar, values: SpringLawValues) -> scalar:
+        """|Δ| [m] at which the base law of stiffness k reaches the tension magnitude ``magnitude`` ≥ 0 [N]:
+        magnitude / k, or √(magnitude / k) for a square spring."""
+        s = magnitude / wp.max(k, scalar(1.0e-30))
+        if wp.static(law.square):
+            s = wp.where(values.square != 0, wp.sqrt(s), s)
+        return s
+
+    return branch_stiffness, base_stretch_at
 
 
 @functools.cache
@@ -71,6 +126,7 @@ def spring_funcs(scalar: type, law: SpringLaw = HOOKE):
     vec3 = vec3_type(scalar)
     mat33 = mat33_type(scalar)
     SpringLawValues = spring_law_type(scalar)
+    branch_stiffness, base_stretch_at = spring_branch_funcs(scalar, law)
 
     @wp.func
     def spring_law_values(inputs: wp.array2d[scalar], world: int) -> SpringLawValues:
@@ -89,20 +145,38 @@ def spring_funcs(scalar: type, law: SpringLaw = HOOKE):
         return wp.max(length - rest * (scalar(1.0) + values.knee_strain), scalar(0.0))
 
     @wp.func
+    def base_tension(stretch: scalar, ke: scalar, values: SpringLawValues) -> scalar:
+        """The law's tension [N] at the stretch Δ [m] before the biphasic excess: k Δ, or k Δ|Δ| (square)."""
+        t = branch_stiffness(stretch, ke, values) * stretch
+        if wp.static(law.square):
+            t = wp.where(values.square != 0, t * wp.abs(stretch), t)
+        return t
+
+    @wp.func
+    def intact(rest: scalar) -> scalar:
+        """1 for a spring that carries force, 0 for a broken one (plastic law: negative rest length)."""
+        if wp.static(law.plastic):
+            return wp.where(rest < scalar(0.0), scalar(0.0), scalar(1.0))
+        return scalar(1.0)
+
+    @wp.func
     def tension(length: scalar, rest: scalar, ke: scalar, values: SpringLawValues) -> scalar:
         """Elastic tension T(|d|) [N], positive when stretched."""
-        t = ke * (length - rest)
+        t = base_tension(length - rest, ke, values)
         if wp.static(law.biphasic):
             t += values.extra_stiffness * ke * excess(length, rest, values)
         return t
 
     @wp.func
     def tension_slope(length: scalar, rest: scalar, ke: scalar, values: SpringLawValues) -> scalar:
-        """dT/d|d| [N/m]."""
+        """dT/d|d| [N/m]: k, or 2k|Δ| (square), on the stretch's branch; plus the biphasic excess beyond the knee."""
+        stretch = length - rest
+        slope = branch_stiffness(stretch, ke, values)
+        if wp.static(law.square):
+            slope = wp.where(values.square != 0, scalar(2.0) * slope * wp.abs(stretch), slope)
         if wp.static(law.biphasic):
-            stiffer = ke * (scalar(1.0) + values.extra_stiffness)
-            return wp.where(excess(length, rest, values) > scalar(0.0), stiffer, ke)
-        return ke
+            slope += wp.where(excess(length, rest, values) > scalar(0.0), values.extra_stiffness * ke, scalar(0.0))
+        return slope
 
     @wp.func
     def spring_force(
@@ -120,6 +194,8 @@ def spring_funcs(scalar: type, law: SpringLaw = HOOKE):
         magnitude = tension(length, rest, ke, values) + kd * wp.dot(vj - vi, n)
         if wp.static(law.clamp_force):
             magnitude = wp.clamp(magnitude, -values.max_force, values.max_force)
+        if wp.static(law.plastic):
+            magnitude *= intact(rest)
         return n * magnitude
 
     @wp.func
@@ -144,22 +220,33 @@ def spring_funcs(scalar: type, law: SpringLaw = HOOKE):
         axial = wp.where(
             length > scalar(COINCIDENT_DISTANCE), tension_slope(length, rest, ke, values), scalar(0.0)
         )
-        return axial * nn + transverse * (wp.identity(n=3, dtype=scalar) - nn)
+        return intact(rest) * (axial * nn + transverse * (wp.identity(n=3, dtype=scalar) - nn))
 
     @wp.func
     def stretch_at(magnitude: scalar, rest: scalar, ke: scalar, values: SpringLawValues) -> scalar:
         """The stretch |d| - L [m] ≥ 0 at which the tension reaches ``magnitude`` ≥ 0 [N] (T is increasing)."""
-        s = magnitude / wp.max(ke, scalar(1.0e-30))
+        s = base_stretch_at(magnitude, ke, values)
         if wp.static(law.biphasic):
             knee = rest * values.knee_strain
             if s > knee:
-                s = knee + (magnitude - ke * knee) / wp.max(ke * (scalar(1.0) + values.extra_stiffness), scalar(1.0e-30))
+                extra = values.extra_stiffness * ke
+                rest_of_force = magnitude - base_tension(knee, ke, values)
+                s = knee + rest_of_force / wp.max(ke + extra, scalar(1.0e-30))
+                if wp.static(law.square):
+                    if values.square != 0:
+                        # ke s² + extra (s - knee) = magnitude: the positive root.
+                        b = extra / wp.max(ke, scalar(1.0e-30))
+                        c = (magnitude + extra * knee) / wp.max(ke, scalar(1.0e-30))
+                        s = scalar(0.5) * (wp.sqrt(b * b + scalar(4.0) * c) - b)
         return s
 
     @wp.func
     def law_energy(stretch: scalar, rest: scalar, ke: scalar, values: SpringLawValues) -> scalar:
-        """∫₀^stretch T [J] of the unclamped law."""
-        energy = scalar(0.5) * ke * stretch * stretch
+        """∫₀^stretch T [J] of the unclamped law: ½ k Δ², or k |Δ|³/3 (square), on the stretch's branch."""
+        k = branch_stiffness(stretch, ke, values)
+        energy = scalar(0.5) * k * stretch * stretch
+        if wp.static(law.square):
+            energy = wp.where(values.square != 0, k * wp.abs(stretch) * stretch * stretch / scalar(3.0), energy)
         if wp.static(law.biphasic):
             e = wp.max(stretch - rest * values.knee_strain, scalar(0.0))
             energy += scalar(0.5) * values.extra_stiffness * ke * e * e
@@ -170,6 +257,9 @@ def spring_funcs(scalar: type, law: SpringLaw = HOOKE):
         """Elastic energy [J] of the spring (i, j), the potential of its elastic force: ∫ T = ½ ke (|d| - L)²
         (+ the biphasic excess term); with the force clamp, T held at ±max_force beyond the stretch where it
         reaches it (the damper's share of the clamp is not a potential and is left out)."""
+        if wp.static(law.plastic):
+            if rest < scalar(0.0):
+                return scalar(0.0)  # broken
         stretch = wp.length(xj - xi) - rest
         if wp.static(law.clamp_force):
             limit = wp.max(values.max_force, scalar(0.0))
@@ -177,28 +267,73 @@ def spring_funcs(scalar: type, law: SpringLaw = HOOKE):
             if wp.abs(tension_value) > limit:
                 knee = stretch_at(limit, rest, ke, values)
                 if tension_value < scalar(0.0):
-                    knee = -limit / wp.max(ke, scalar(1.0e-30))  # compression: Hooke's branch only
+                    # compression: the base law's compression branch only
+                    knee = -base_stretch_at(limit, branch_stiffness(-scalar(1.0), ke, values), values)
                 return law_energy(knee, rest, ke, values) + limit * wp.abs(stretch - knee)
         return law_energy(stretch, rest, ke, values)
 
     return spring_law_values, spring_force, spring_energy, spring_stiffness_matrix
 
 
+@functools.cache
+def spring_arrays_type(scalar: type, per_spring_law: bool = False):
+    """The struct of the spring family's arrays in one precision; ``per_spring_law`` adds the per-spring law
+    arrays (``SpringLaw.per_spring``), so scenes of linear springs keep the struct, and every kernel's
+    parameters, as they were."""
+
+    if not per_spring_law:
+
+        @wp.struct
+        class SpringArrays:
+            indices: wp.array[wp.vec2i]  # [spring_count]: the two particles of each spring (per-world indices)
+            rest_length: wp.array[scalar]  # [m], [spring_count] (plastic law: [world_count · spring_count])
+            stiffness: wp.array2d[scalar]  # ke [N/m], [1 or world_count, spring_count]
+            damping: wp.array2d[scalar]  # kd [N·s/m], [1 or world_count, spring_count]
+            incidence: Incidence  # entries (spring, other particle); padding (0, the particle itself)
+
+        return SpringArrays
+
+    @wp.struct
+    class SpringLawArrays:
+        indices: wp.array[wp.vec2i]  # [spring_count]: the two particles of each spring (per-world indices)
+        rest_length: wp.array[scalar]  # [m], [spring_count] (plastic law: [world_count · spring_count])
+        stiffness: wp.array2d[scalar]  # ke [N/m] (square springs: [N/m²]), [1 or world_count, spring_count]
+        damping: wp.array2d[scalar]  # kd [N·s/m], [1 or world_count, spring_count]
+        incidence: Incidence  # entries (spring, other particle); padding (0, the particle itself)
+        law: wp.array[wp.int32]  # SPRING_LINEAR or SPRING_SQUARE, [spring_count]
+        compression_ratio: wp.array[scalar]  # compression stiffness / ke [-], [spring_count]
+
+    return SpringLawArrays
 
 
 @functools.cache
-def spring_arrays_type(scalar: type):
-    """The struct of the spring family's arrays in one precision."""
+def spring_access_funcs(scalar: type, law: SpringLaw):
+    """(rest_at, law_at): a spring's current rest length in a world, and the law's values completed with a
+    spring's own (its law code and compression ratio), for the struct of ``spring_arrays_type`` of ``law``."""
+    SpringArrays = spring_arrays_type(scalar, law.per_spring)
+    SpringLawValues = spring_law_type(scalar)
 
-    @wp.struct
-    class SpringArrays:
-        indices: wp.array[wp.vec2i]  # [spring_count]: the two particles of each spring (per-world indices)
-        rest_length: wp.array[scalar]  # [m], [spring_count]
-        stiffness: wp.array2d[scalar]  # ke [N/m], [1 or world_count, spring_count]
-        damping: wp.array2d[scalar]  # kd [N·s/m], [1 or world_count, spring_count]
-        incidence: Incidence  # entries (spring, other particle); padding (0, the particle itself)
+    @wp.func
+    def rest_at(springs: SpringArrays, world: int, s: int) -> scalar:
+        """Rest length [m] of spring s in ``world`` (the plastic law keeps one per world, world-major)."""
+        if wp.static(law.plastic):
+            return springs.rest_length[world * springs.stiffness.shape[1] + s]
+        return springs.rest_length[s]
 
-    return SpringArrays
+    @wp.func
+    def law_at(values: SpringLawValues, springs: SpringArrays, s: int) -> SpringLawValues:
+        """``values`` with spring s's own law code and compression ratio filled in."""
+        if wp.static(law.per_spring):
+            own = SpringLawValues()
+            own.knee_strain = values.knee_strain
+            own.extra_stiffness = values.extra_stiffness
+            own.max_force = values.max_force
+            own.square = springs.law[s]
+            own.compression_ratio = springs.compression_ratio[s]
+            return own
+        return values
+
+    return rest_at, law_at
 
 
 @dataclass(frozen=True)
@@ -225,8 +360,9 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
     """The family hooks of springs (``families.py``) for one precision and spec."""
     vec3 = vec3_type(scalar)
     mat33 = mat33_type(scalar)
-    SpringArrays = spring_arrays_type(scalar)
+    SpringArrays = spring_arrays_type(scalar, spec.law.per_spring)
     spring_law_values, spring_force, spring_energy, spring_stiffness_matrix = spring_funcs(scalar, spec.law)
+    rest_at, law_at = spring_access_funcs(scalar, spec.law)
     SpringLawValues = spring_law_type(scalar)
     head_slots, tail = spec.incidence
 
@@ -258,11 +394,15 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
             head_element = springs.incidence.head_element
             stiffness_row = wp.min(world, stiffness.shape[0] - 1)
             damping_row = wp.min(world, damping.shape[0] - 1)
+            # Plastic rest lengths are world-major: world w's start at rest_base.
+            rest_base = int(0)
+            if wp.static(spec.law.plastic):
+                rest_base = world * stiffness.shape[1]
             for k in range(wp.static(head_slots)):
                 j = base + head_local[k, i]
                 s = head_element[k, i]
-                f += spring_force(xi, particle_q[j], vi, particle_qd[j], rest_length[s], stiffness[stiffness_row, s],
-                                  damping[damping_row, s], values)
+                f += spring_force(xi, particle_q[j], vi, particle_qd[j], rest_length[rest_base + s],
+                                  stiffness[stiffness_row, s], damping[damping_row, s], law_at(values, springs, s))
             if wp.static(tail):
                 tail_start = springs.incidence.tail_start
                 tail_local = springs.incidence.tail_local
@@ -270,8 +410,8 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
                 for t in range(tail_start[i], tail_start[i + 1]):
                     j = base + tail_local[t]
                     s = tail_element[t]
-                    f += spring_force(xi, particle_q[j], vi, particle_qd[j], rest_length[s],
-                                      stiffness[stiffness_row, s], damping[damping_row, s], values)
+                    f += spring_force(xi, particle_q[j], vi, particle_qd[j], rest_length[rest_base + s],
+                                      stiffness[stiffness_row, s], damping[damping_row, s], law_at(values, springs, s))
         return f
 
     @wp.func
@@ -281,8 +421,8 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
         particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool, alpha: scalar, beta: scalar,
     ):
         j = base + j_local
-        block = spring_block(xi, particle_q[j], springs.rest_length[s], springs.stiffness[stiffness_row, s],
-                             springs.damping[damping_row, s], alpha, beta, values)
+        block = spring_block(xi, particle_q[j], rest_at(springs, world, s), springs.stiffness[stiffness_row, s],
+                             springs.damping[damping_row, s], alpha, beta, law_at(values, springs, s))
         xj = x[j]
         if free_only:
             xj = wp.where(is_kinematic(particle_flags[j]), vec3(scalar(0.0)), xj)
@@ -333,7 +473,7 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
         for k in range(wp.static(head_slots)):
             j = incidence.head_local[k, i]
             s = incidence.head_element[k, i]
-            e = spring_strain(i, j, xi, particle_q[base + j], springs.rest_length[s])
+            e = spring_strain(i, j, xi, particle_q[base + j], rest_at(springs, world, s))
             if e > worst or (e == worst and e >= wp.float64(0.0) and s < element):
                 worst = e
                 element = s
@@ -341,7 +481,7 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
             for t in range(incidence.tail_start[i], incidence.tail_start[i + 1]):
                 j = incidence.tail_local[t]
                 s = incidence.tail_element[t]
-                e = spring_strain(i, j, xi, particle_q[base + j], springs.rest_length[s])
+                e = spring_strain(i, j, xi, particle_q[base + j], rest_at(springs, world, s))
                 if e > worst or (e == worst and e >= wp.float64(0.0) and s < element):
                     worst = e
                     element = s
@@ -352,9 +492,9 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
                particle_q: wp.array[vec3]) -> scalar:
         """Elastic energy [J] of spring s in ``world``."""
         ends = springs.indices[s]
-        return spring_energy(particle_q[base + ends[0]], particle_q[base + ends[1]], springs.rest_length[s],
+        return spring_energy(particle_q[base + ends[0]], particle_q[base + ends[1]], rest_at(springs, world, s),
                              springs.stiffness[wp.min(world, springs.stiffness.shape[0] - 1), s],
-                             spring_law_values(inputs, world))
+                             law_at(spring_law_values(inputs, world), springs, s))
 
     # The gathered hooks find a spring's other end in the incidence entry, never in ``indices``.
     return FamilyFuncs(SpringArrays, force, product, strain, energy, ("indices", *spec.incidence.idle()))
@@ -368,8 +508,9 @@ def spring_scatter_kernel(scalar: type, law: SpringLaw):
     runs a kernel's threads in order, the sums are deterministic; it is the CPU's default (``finalize``).
     """
     vec3 = vec3_type(scalar)
-    SpringArrays = spring_arrays_type(scalar)
+    SpringArrays = spring_arrays_type(scalar, law.per_spring)
     spring_law_values, spring_force, _, _ = spring_funcs(scalar, law)
+    rest_at, law_at = spring_access_funcs(scalar, law)
 
     # The scatter walks the springs, never the incidence table.
     @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
@@ -391,12 +532,106 @@ def spring_scatter_kernel(scalar: type, law: SpringLaw):
         i = base + ends[0]
         j = base + ends[1]
         f = spring_force(
-            particle_q[i], particle_q[j], particle_qd[i], particle_qd[j], springs.rest_length[s],
+            particle_q[i], particle_q[j], particle_qd[i], particle_qd[j], rest_at(springs, world, s),
             springs.stiffness[wp.min(world, springs.stiffness.shape[0] - 1), s],
             springs.damping[wp.min(world, springs.damping.shape[0] - 1), s],
-            spring_law_values(inputs, world),
+            law_at(spring_law_values(inputs, world), springs, s),
         )
         wp.atomic_add(particle_f_in_out, i, f)
         wp.atomic_sub(particle_f_in_out, j, f)
 
     return scatter_springs
+
+
+@functools.cache
+def plastic_arrays_type(scalar: type):
+    """The struct of the plastic springs' parameters (values, every world; their state, the rest lengths and
+    plastic strains per world, is the pass's in/out arrays)."""
+
+    @wp.struct
+    class PlasticArrays:
+        index: wp.array[wp.int32]  # [plastic_count]: the springs that may yield or break
+        rest_length_0: wp.array[scalar]  # L₀ [m], [spring_count]: rest lengths as built
+        yield_strain: wp.array[scalar]  # ε_y [-], [spring_count]: elastic limit as a strain (inf: none)
+        yield_force: wp.array[scalar]  # F_y [N], [spring_count]: elastic limit as a tension magnitude (inf: none)
+        yield_rate: wp.array[scalar]  # r [1/s], [spring_count]: share of the excess that flows per second (inf: all)
+        hardening: wp.array[scalar]  # H [-], [spring_count]: the limit grows by the factor 1 + H α
+        break_strain: wp.array[scalar]  # [-], [spring_count]: breaks once |d| > (1 + it) L₀ (inf: never)
+
+    return PlasticArrays
+
+
+@functools.cache
+def spring_plastic_kernel(scalar: type, law: SpringLaw):
+    """The post-step pass of plastic springs, one thread per (world, plastic spring), on an accepted state.
+
+    Per spring, with L₀ its built rest length, L its current one and α its accumulated plastic strain, the
+    elastic strain is e = (|d| - L)/L₀ and the limit ε_y = ε_y0 (1 + H α), ε_y0 the smaller of the yield
+    strain and the stretch at which the base law reaches the yield force on the branch of e's sign
+    (``base_stretch_at`` at the current stiffness, divided by L₀). If |e| > ε_y, the rest length moves toward |d| by Δγ L₀ (``plastic_flow``) and α
+    grows by Δγ: under a monotone pull held instantly at its limit, α = (ε - ε_y0)/(1 + ε_y0 H) for a
+    total strain ε = |d|/L₀ - 1, whatever the steps. A spring longer than (1 + ε_break) L₀ breaks: its rest
+    length becomes ``BROKEN_REST_LENGTH`` and it carries nothing from then on. Held worlds are skipped.
+    """
+    vec3 = vec3_type(scalar)
+    SpringArrays = spring_arrays_type(scalar, law.per_spring)
+    PlasticArrays = plastic_arrays_type(scalar)
+    spring_law_values, _, _, _ = spring_funcs(scalar, law)
+    _, law_at = spring_access_funcs(scalar, law)
+    branch_stiffness, base_stretch_at = spring_branch_funcs(scalar, law)
+
+    @wp.func
+    def plastic_flow(excess: scalar, rate_dt: scalar, limit_0: scalar, hardening: scalar) -> scalar:
+        """The plastic strain increment Δγ [-] of one step for an elastic strain ``excess`` f > 0 beyond the
+        limit: the return map of linear hardening (Simo & Hughes 1998, box 1.4), Δγ = f / (1 + ε_y0 H), of
+        which the share min(1, r h) flows in a step of h (creep; r = inf: all of it)."""
+        return wp.min(rate_dt, scalar(1.0)) * excess / (scalar(1.0) + limit_0 * hardening)
+
+    # The rest lengths are read and written through ``rest_length_in_out``, never through the struct.
+    @flat_kernel(module="unique", enable_backward=False,
+                 last=("springs__incidence", "springs__rest_length", "springs__damping"))
+    def plastic_springs(
+        # Model:
+        particle_count: int,
+        world_enabled: wp.array[wp.int32],
+        springs: SpringArrays,
+        plastic: PlasticArrays,
+        inputs: wp.array2d[scalar],
+        dt: scalar,
+        # State in (the accepted step):
+        particle_q: wp.array[vec3],
+        # In/out (the plastic state):
+        rest_length_in_out: wp.array[scalar],
+        plastic_strain_in_out: wp.array[scalar],
+    ):
+        world, k = wp.tid()
+        if world_enabled[world] == 0:
+            return
+        s = plastic.index[k]
+        r = world * springs.stiffness.shape[1] + s
+        rest = rest_length_in_out[r]
+        if rest < scalar(0.0):
+            return  # broken already
+        ends = springs.indices[s]
+        base = world * particle_count
+        length = wp.length(particle_q[base + ends[1]] - particle_q[base + ends[0]])
+        rest_0 = plastic.rest_length_0[s]
+        if length > (scalar(1.0) + plastic.break_strain[s]) * rest_0:
+            rest_length_in_out[r] = scalar(BROKEN_REST_LENGTH)
+            return
+        elastic = (length - rest) / rest_0
+        values = law_at(spring_law_values(inputs, world), springs, s)
+        ke = springs.stiffness[wp.min(world, springs.stiffness.shape[0] - 1), s]
+        # The elastic limit as a strain: the yield strain, or the yield force's stretch on e's branch.
+        limit_0 = wp.min(plastic.yield_strain[s],
+                         base_stretch_at(plastic.yield_force[s], branch_stiffness(elastic, ke, values), values) / rest_0)
+        alpha = plastic_strain_in_out[r]
+        hardening = plastic.hardening[s]
+        excess = wp.abs(elastic) - limit_0 * (scalar(1.0) + hardening * alpha)
+        if excess > scalar(0.0):
+            flow = plastic_flow(excess, plastic.yield_rate[s] * dt, limit_0, hardening)
+            rest_length_in_out[r] = rest + wp.sign(elastic) * flow * rest_0
+            plastic_strain_in_out[r] = alpha + flow
+
+    return plastic_springs
+

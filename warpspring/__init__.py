@@ -45,6 +45,7 @@ _bind_kernels()
 
 from .core.bending import DihedralMaterial
 from .core.builder import ModelBuilder, SpringMaterial
+from .core.springs import SPRING_LAWS, SpringPlasticity
 from .core.families import ElementFamily
 from .errors import ConfigError, OutputError, SimulationError, StabilityWarning, WarpspringError
 from .core.contacts import Contacts, apply_contacts, collide
@@ -117,6 +118,8 @@ __all__ = [
     "EnergyBalance",
     "GuardLimits",
     "SpringMaterial",
+    "SpringPlasticity",
+    "SPRING_LAWS",
     "State",
     "SymplecticEuler",
     "Track",

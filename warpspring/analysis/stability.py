@@ -94,6 +94,7 @@ from ..kernels.linalg import reduce_lanes, reduce_launch_dim, sum_partials_kerne
 from ..kernels.stability import (PI_LAMBDA, PI_PARTIALS, PI_RESIDUAL, PI_SCALARS, PI_XKX,
                                  power_iteration_kernels)
 from ..core.model import Model, State
+from ..core.springs import SPRING_LAWS, SpringFamily, spring_law_codes
 
 #: Estimates of ω_max (see :func:`advise`).
 OMEGA_ESTIMATES = ("power_iteration", "gershgorin")
@@ -548,12 +549,18 @@ def _stiffness_array(model: Model, values: np.ndarray) -> wp.array:
     return wp.array(np.ascontiguousarray(values, dtype=dtype), dtype=model.scalar, device=model.device)
 
 
-def _gershgorin(model: Model, stiffness: np.ndarray, free: np.ndarray) -> np.ndarray:
+def _gershgorin(model: Model, stiffness: np.ndarray, free: np.ndarray, positions=None) -> np.ndarray:
     """Each world's Gershgorin bound [rad/s], shape [world_count], for spring stiffness rows ``stiffness`` and
-    free particles ``free`` [world_count, particle_count]: every family's row bounds, summed."""
+    free particles ``free`` [world_count, particle_count]: every family's row bounds, summed. The springs'
+    rows take each law's tangent at ``positions`` (default the model's initial ones; ``SpringFamily.
+    tangent_factor``): a square spring counts as 2 ke |Δ| at that stretch, a tension/compression spring with
+    the stiffness of the branch it is on."""
     rows = np.zeros((model.world_count, model.particle_count))
     overrides = {"springs": stiffness}
     for family in model.families:
+        if isinstance(family, SpringFamily):
+            rows += family.gershgorin_rows(model, free, stiffness, positions=positions)
+            continue
         rows += family.gershgorin_rows(model, free, overrides.get(family.name))
     ratio = np.where(free, rows / model.world_values("particle_mass"), 0.0)
     return np.sqrt(ratio.max(axis=1)) if model.particle_count else np.zeros(model.world_count)
@@ -678,7 +685,7 @@ def _power_iteration(model: Model, stiffness: np.ndarray, state: State | None, m
                      tolerance: float, seed: int) -> OmegaMaxEstimate:
     worlds, n = model.world_count, model.particle_count
     free = free_particles(model)
-    bound = _gershgorin(model, stiffness, free)
+    bound = _gershgorin(model, stiffness, free, None if state is None else state.particle_q)
     start = np.random.default_rng(seed).normal(size=(n, 3))[None] * free[..., None]
     if not bound.any():
         return OmegaMaxEstimate(
@@ -919,11 +926,15 @@ def transverse_omega_max(model: Model, positions, world: int = 0, *, stiffness=N
     k = np.broadcast_to(_stiffness_values(model, stiffness), (model.world_count, model.spring_count))[world]
     d = q[j] - q[i]
     length = np.linalg.norm(d, axis=1)
-    stretched = length > model.spring_rest_length.numpy().astype(np.float64)
+    rest = model.spring_rest_lengths()[world]  # plastic springs: where they are now (negative: broken)
+    stretched = (length > rest) & (rest >= 0.0)
     if not stretched.any() or not free.any():
         return 0.0
     i, j, d, length = i[stretched], j[stretched], d[stretched], length[stretched]
-    across = k[stretched] * (1.0 - model.spring_rest_length.numpy().astype(np.float64)[stretched] / length)
+    # T/l: k (1 - L/l) for a linear spring, k Δ²/l = (k |Δ|)(1 - L/l) for a square one.
+    tension_scale = np.where(spring_law_codes(model)[stretched] == SPRING_LAWS["square"],
+                             length - rest[stretched], 1.0)
+    across = k[stretched] * tension_scale * (1.0 - rest[stretched] / length)
     unit = d / length[:, None]
     blocks = across[:, None, None] * (np.eye(3)[None] - unit[:, :, None] * unit[:, None, :])  # [s, 3, 3]
     rows, cols, values = [], [], []
@@ -1016,7 +1027,10 @@ def _damping_ranges(model: Model, stiffness: np.ndarray, modes: list, positions:
     """
     worlds, n = model.world_count, model.particle_count
     free = free_particles(model)
+    springs = next((f for f in model.families if isinstance(f, SpringFamily)), None)
     k_all = np.broadcast_to(stiffness, (worlds, model.spring_count))
+    if springs is not None:  # each law's tangent at the positions: kd/k is a ratio of tangents
+        k_all = k_all * springs.tangent_factor(model, positions)
     kd_all = model.world_values("spring_damping")
     mass_all = model.world_values("particle_mass")
     drag = model.world_values("drag")[:, 0]

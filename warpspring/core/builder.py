@@ -30,6 +30,8 @@ from .hinges import dihedral_angle, mesh_hinges
 from .kinematics import PinGroup, PinGroupTable
 from .material import ClothMaterial, edge_springs, grid_masses, grid_springs, hinge_parameters, lumped_masses
 from .model import MeshGroup, Model, ShapeInfo, Stabilizers
+from .springs import SPRING_LAWS, SpringPlasticity, spring_law_code
+from ..kernels.springs import SpringLaw
 from .tracks import Track, as_track, input_track
 from .transforms import quat_between, quat_to_matrix
 
@@ -48,15 +50,26 @@ _GRID_PINS = ("top-left", "top-right", "bottom-left", "bottom-right", "top", "bo
 
 @dataclass(frozen=True)
 class SpringMaterial:
-    """Stiffness and damping of a family of springs.
+    """Stiffness and damping of a family of springs, and the law it follows.
 
     Attributes:
-        ke: stiffness [N/m], ≥ 0.
+        ke: stiffness [N/m] (square law: [N/m²]), ≥ 0.
         kd: axial damping [N·s/m], ≥ 0.
+        law: "linear" (T = ke Δ) or "square" (T = ke Δ|Δ|) at the stretch Δ (``ModelBuilder.add_springs``).
+        compression_ke: the stiffness in compression (same unit as ke), ≥ 0; ``None``: ke.
+        plasticity: how the springs yield and break (:class:`~warpspring.core.springs.SpringPlasticity`);
+            ``None``: elastic.
     """
 
     ke: float
     kd: float = 0.0
+    law: str = "linear"
+    compression_ke: float | None = None
+    plasticity: SpringPlasticity | None = None
+
+    def spring_options(self) -> dict:
+        """The law's keyword arguments of :meth:`ModelBuilder.add_springs`."""
+        return dict(law=self.law, compression_stiffness=self.compression_ke, plasticity=self.plasticity)
 
 
 #: Default cloth spring families (structural, shear, bend) of ``add_cloth_grid``/``add_cloth_mesh``.
@@ -114,6 +127,7 @@ class ModelBuilder:
         self._spring_ke: list[np.ndarray] = []
         self._spring_kd: list[np.ndarray] = []
         self._spring_count = 0
+        self._spring_law: list[np.ndarray] = []  # per block: law code, compression ratio, plasticity rows
 
         self._hinges: list[np.ndarray] = []
         self._hinge_rest: list[np.ndarray] = []
@@ -235,16 +249,24 @@ class ModelBuilder:
         else:
             self._tracks[name] = track
 
-    def add_springs(self, pairs, *, stiffness, damping=0.0, rest_length=None, family: str = "springs") -> np.ndarray:
+    def add_springs(self, pairs, *, stiffness, damping=0.0, rest_length=None, family: str = "springs",
+                    law: str = "linear", compression_stiffness=None, plasticity: SpringPlasticity | None = None
+                    ) -> np.ndarray:
         """Add springs in bulk.
 
         Args:
             pairs: global particle indices of each spring, shape [s, 2]; the two must differ.
-            stiffness: ke [N/m], ≥ 0: a scalar or shape [s].
+            stiffness: ke [N/m] (square law: [N/m²]), ≥ 0: a scalar or shape [s].
             damping: kd [N·s/m], ≥ 0: a scalar or shape [s].
             rest_length: [m], ≥ 0, scalar or shape [s]; default: the current distance of the pair.
             family: the name the springs are grouped under for export (one USD curves prim per family;
                 the cloth builders use ``structural``, ``shear`` and ``bend``); a valid USD identifier.
+            law: the tension T at the stretch Δ = |d| - L: "linear" (T = ke Δ) or "square" (T = ke Δ|Δ|, the
+                seed's square spring: soft for small stretches, stiff for large ones).
+            compression_stiffness: kc (same unit as ke), ≥ 0, a scalar or shape [s]: the stiffness when
+                compressed (Δ < 0); default ke. Stored as the ratio kc/ke, so per-world stiffness rows
+                (``Model.set_world_values``) scale both branches.
+            plasticity: how the springs yield and break (:class:`SpringPlasticity`); default: elastic.
 
         Returns:
             The indices of the new springs, shape [s].
@@ -262,6 +284,26 @@ class ModelBuilder:
             rest = np.linalg.norm(q[pairs[:, 1]] - q[pairs[:, 0]], axis=1)
         else:
             rest = _per_item("spring rest length", rest_length, s)
+        ratio = np.ones(s)
+        if compression_stiffness is not None:
+            kc = _per_item("spring compression_stiffness", compression_stiffness, s)
+            soft = np.flatnonzero((ke == 0.0) & (kc > 0.0))
+            if len(soft):
+                raise ConfigError(f"spring {int(soft[0])} has compression_stiffness {kc[soft[0]]:g} but stiffness 0: "
+                                  "give it a stiffness > 0 (the compression branch is stored as kc/ke)")
+            ratio = np.divide(kc, ke, out=np.ones(s), where=ke > 0.0)
+        rows = np.full((s, 5), np.inf)
+        if plasticity is not None:
+            if not isinstance(plasticity, SpringPlasticity):
+                raise ConfigError(f"plasticity must be a warpspring.SpringPlasticity, got {type(plasticity).__name__}")
+            if len(rest) and rest.min() <= 0.0:
+                raise ConfigError(f"plastic spring {int(np.argmin(rest))} has rest length 0: plastic strains are "
+                                  "measured against the rest length, so it must be > 0")
+            rows[:] = plasticity.row
+        block = np.empty((s, 8))
+        block[:, 0], block[:, 1], block[:, 2] = spring_law_code(law), ratio, plasticity is not None
+        block[:, 3:] = rows
+        self._spring_law.append(block)
         start = self._spring_count
         self._springs.append(pairs)
         self._spring_ke.append(ke)
@@ -270,6 +312,28 @@ class ModelBuilder:
         self._spring_family.append(checks.identifier("spring family", family))
         self._spring_count += s
         return np.arange(start, start + s)
+
+    def _finalize_spring_laws(self, model: Model, farray, iarray) -> None:
+        """The spring groups' laws and plasticity on the model: only the arrays and switches the groups use."""
+        laws = np.concatenate(self._spring_law) if self._spring_law else np.zeros((0, 8))
+        code, ratio, plastic = laws[:, 0].astype(np.int32), laws[:, 1], laws[:, 2] != 0.0
+        square, asymmetric = bool((code == SPRING_LAWS["square"]).any()), bool((ratio != 1.0).any())
+        model.spring_material_law = SpringLaw(square=square, asymmetric=asymmetric, plastic=bool(plastic.any()))
+        if square or asymmetric:
+            model.spring_law_code = iarray(code)
+            model.spring_compression_ratio = farray(ratio, name="a spring compression ratio [-]")
+        if plastic.any():
+            worlds = model.world_count
+            model.spring_plastic_count = int(plastic.sum())
+            model.spring_plastic_index = iarray(np.flatnonzero(plastic))
+            dtype = np.float64 if model.scalar is wp.float64 else np.float32
+            for column, name in enumerate(("yield_strain", "yield_force", "yield_rate", "hardening", "break_strain")):
+                # inf (no limit, instant flow) is a value here: stored as is, not refused as an overflow.
+                setattr(model, f"spring_{name}", wp.array(laws[:, 3 + column].astype(dtype), dtype=model.scalar,
+                                                          device=model.device))
+            model.spring_plastic_rest_length = farray(np.tile(np.concatenate(self._spring_rest), worlds),
+                                                      name="a spring rest length [m]")
+            model.spring_plastic_strain = farray(np.zeros(worlds * len(laws)))
 
     def add_hinges(self, hinges, *, stiffness, damping=0.0, rest_angle=None) -> np.ndarray:
         """Add dihedral (angular) springs in bulk: hinge (x0, x1, x2, x3) resists folding about the edge
@@ -610,7 +674,8 @@ class ModelBuilder:
             ]
             for family, springs, blocks in families:
                 if springs is not None:
-                    self.add_springs(blocks, stiffness=springs.ke, damping=springs.kd, family=family)
+                    self.add_springs(blocks, stiffness=springs.ke, damping=springs.kd, family=family,
+                                     **springs.spring_options())
         else:
             k = grid_springs(material)
             # A structural spring on an outer row or column spans half a cell: half stiffness and damping.
@@ -769,11 +834,13 @@ class ModelBuilder:
             self.add_springs(ids[edges], stiffness=ke, damping=kd, family="structural")
         else:
             if structural is not None and len(edges):
-                self.add_springs(ids[edges], stiffness=structural.ke, damping=structural.kd, family="structural")
+                self.add_springs(ids[edges], stiffness=structural.ke, damping=structural.kd, family="structural",
+                                 **structural.spring_options())
             if bend is not None:
                 opposite = tri.face_adjacency_unshared
                 if len(opposite):
-                    self.add_springs(ids[opposite], stiffness=bend.ke, damping=bend.kd, family="bend")
+                    self.add_springs(ids[opposite], stiffness=bend.ke, damping=bend.kd, family="bend",
+                                     **bend.spring_options())
         self.add_triangles(ids[faces], name=name, uvs=uv, face_sets=face_sets,
                            polygon_counts=None if polygons is None else polygons[0],
                            polygon_indices=None if polygons is None else ids[polygons[1]])
@@ -1064,6 +1131,7 @@ class ModelBuilder:
         model.spring_incidence, model.spring_incidence_shape = build_incidence(
             springs, n, springs[:, ::-1], lambda particles: particles, device=device
         )
+        self._finalize_spring_laws(model, farray, iarray)
 
         hinges = np.concatenate(self._hinges) if self._hinges else np.zeros((0, 4), dtype=np.int64)
         model.hinge_count = len(hinges)
@@ -1313,8 +1381,8 @@ def spring_family(name: str, value, default: SpringMaterial) -> SpringMaterial |
     Args:
         name: the family's name ("structural", "shear", "bend"), for messages.
         value: a :class:`SpringMaterial`; a mapping with ``ke`` [N/m] and/or ``kd`` [N·s/m] (each missing one is
-            ``default``'s, as in a scene file's table); ``True`` (``default``); ``False`` or ``None`` (no springs of
-            the family).
+            ``default``'s, as in a scene file's table), and optionally the law's keys (:data:`SPRING_TABLE_KEYS`);
+            ``True`` (``default``); ``False`` or ``None`` (no springs of the family).
         default: the family's default material.
 
     Returns:
@@ -1330,17 +1398,44 @@ def spring_family(name: str, value, default: SpringMaterial) -> SpringMaterial |
     if isinstance(value, SpringMaterial):
         material = value
     elif isinstance(value, Mapping):
-        unknown = sorted(map(str, set(value) - {"ke", "kd"}))
+        unknown = sorted(map(str, set(value) - {"ke", "kd", *SPRING_TABLE_KEYS}))
         if unknown:
-            raise ConfigError(f"{name} springs: unknown key {unknown[0]!r}: a mapping takes 'ke' [N/m] and 'kd' "
-                              "[N·s/m]")
-        material = SpringMaterial(ke=value.get("ke", default.ke), kd=value.get("kd", default.kd))
+            raise ConfigError(f"{name} springs: unknown key {unknown[0]!r}: a mapping takes 'ke' [N/m], 'kd' "
+                              f"[N·s/m] and {', '.join(map(repr, SPRING_TABLE_KEYS))}")
+        material = SpringMaterial(ke=value.get("ke", default.ke), kd=value.get("kd", default.kd),
+                                  **spring_law_options(name, value))
     else:
         raise ConfigError(f"{name} springs must be a warpspring.SpringMaterial, a mapping {{'ke': ..., 'kd': ...}}, "
                           f"True (the default) or False (none), got {value!r}")
     checks.non_negative(f"{name} spring ke", material.ke)
     checks.non_negative(f"{name} spring kd", material.kd)
     return material
+
+
+#: The keys of a spring table (a scene's ``[cloth.structural]``, a ``spring_family`` mapping) that choose its law
+#: and plasticity, beyond ``ke`` and ``kd``: ``law`` ("linear" or "square"), ``compression_ke``, and the fields
+#: of :class:`~warpspring.core.springs.SpringPlasticity`.
+SPRING_TABLE_KEYS = ("law", "compression_ke", "yield_strain", "yield_force", "yield_rate", "hardening", "break_strain")
+
+
+def spring_law_options(name: str, table: Mapping) -> dict:
+    """The ``law``, ``compression_ke`` and ``plasticity`` of :class:`SpringMaterial` from a spring table's keys
+    (:data:`SPRING_TABLE_KEYS`; absent ones keep their defaults), checked, with one-line errors naming ``name``."""
+    options = {}
+    if "law" in table:
+        if not isinstance(table["law"], str):
+            raise ConfigError(f"{name} springs: law must be a string, one of {', '.join(map(repr, SPRING_LAWS))}")
+        spring_law_code(table["law"])
+        options["law"] = table["law"]
+    if "compression_ke" in table:
+        options["compression_ke"] = checks.non_negative(f"{name} spring compression_ke", table["compression_ke"])
+    plastic = {key: table[key] for key in SPRING_TABLE_KEYS[2:] if key in table}
+    if plastic:
+        try:
+            options["plasticity"] = SpringPlasticity(**plastic)
+        except ConfigError as exc:
+            raise ConfigError(f"{name} springs: {exc}") from None
+    return options
 
 
 def _material_decides(material, method: str, **given: bool) -> None:

@@ -14,6 +14,8 @@ are), under names grouped by owner:
   table, ``world_enabled``, particle flags, masses and radii, rest lengths, stiffness and damping rows),
   and the colliders' current frames when a collider moves;
 * ``control/``: the external force and the pin targets of control-driven pin groups, when present;
+* ``springs/``: plastic springs' state (each world's rest lengths and plastic strains) and parameters
+  (:data:`PLASTIC_ARRAYS`), when the model has plastic springs;
 * ``contacts/``: the contact buffer's overflow counters (the contact stage);
 * ``hooks/``: the arrays the step hooks (the run-time guard) carry from one frame to the next.
 
@@ -68,6 +70,16 @@ MODEL_ARRAYS = (
     "hinge_rest_angle",  # [rad], shape [hinge_count]
     "hinge_stiffness",  # [N·m/rad], shape [1 or world_count, hinge_count]
     "hinge_damping",  # [N·m·s/rad], shape [1 or world_count, hinge_count]
+)
+#: Plastic springs' arrays (``Model.spring_<name>``), saved and restored when the model has some.
+PLASTIC_ARRAYS = (
+    "plastic_rest_length",  # [m], shape [world_count · spring_count]: the current rest lengths (state)
+    "plastic_strain",  # α [-], shape [world_count · spring_count] (state)
+    "yield_strain",  # [-], shape [spring_count]
+    "yield_force",  # [N], shape [spring_count]
+    "yield_rate",  # [1/s], shape [spring_count]
+    "hardening",  # [-], shape [spring_count]
+    "break_strain",  # [-], shape [spring_count]
 )
 #: Of those, the per-world parameters held as one row for every world or one row per world: a checkpoint
 #: may hold the other layout than the model it is loaded into (the array is then replaced, not assigned).
@@ -321,6 +333,9 @@ def live_arrays(sim: Simulator) -> dict[str, wp.array]:
     arrays = {f"state/{name}": getattr(state, name) for name in ("particle_q", "particle_qd", "particle_f", "time")}
     arrays.update({f"integrator/{name}": array for name, array in sim.integrator.persistent_arrays().items()})
     arrays.update({f"model/{name}": getattr(model, name) for name in MODEL_ARRAYS})
+    if model.spring_plastic_count:
+        # Plastic springs' state (each world's rest lengths, plastic strains) and their live parameters.
+        arrays.update({f"springs/{name}": getattr(model, f"spring_{name}") for name in PLASTIC_ARRAYS})
     if model.shape_moving:
         arrays["model/shape_transform_start"] = model.shape_arrays.transform_start
         arrays["model/shape_transform_end"] = model.shape_arrays.transform_end

@@ -1,4 +1,5 @@
-"""The passes every integrator runs on its result: strain limiting, speed clamping, contacts.
+"""The passes every integrator runs on its result: strain limiting, speed clamping, contacts, and last the
+plastic springs' pass (their rest lengths move toward their lengths in the finished state).
 
 Only what the model asks for is launched: with no stabilizer and no collider nothing runs; with only
 static colliders, one contact kernel (which symplectic Euler fuses into its update); with the contact
@@ -12,6 +13,7 @@ import warp as wp
 
 from .contacts import Contacts, apply_contacts, collide_positions, empty_contacts, update_shape_frames
 from ..kernels.constraints import finish_step_kernel, strain_limit_kernel
+from ..kernels.springs import spring_plastic_kernel
 from .model import Model, State
 from .tracks import evaluate_input_tracks
 from ..kernels.flatten import flat_launch
@@ -38,8 +40,35 @@ class StepFinisher:
         return self._contacts
 
     def history(self) -> list:
-        """Device arrays one step leaves to the next: the contact buffer's overflow counters."""
-        return self.contacts.history() if self.contacts is not None else []
+        """Device arrays one step leaves to the next: the contact buffer's overflow counters, and the plastic
+        springs' rest lengths and plastic strains."""
+        carried = self.contacts.history() if self.contacts is not None else []
+        if self.plastic:
+            carried += [self.model.spring_plastic_rest_length, self.model.spring_plastic_strain]
+        return carried
+
+    @property
+    def plastic(self) -> bool:
+        """Whether some spring may yield or break: the plastic pass then ends every step."""
+        return self.model.spring_plastic_count > 0
+
+    def plastic_pass(self, state: State, dt: float) -> None:
+        """Move the plastic springs' rest lengths (and plastic strains, and break springs) by the finished
+        ``state`` of a step of ``dt`` [s], in every world that is not held (``kernels.springs.spring_plastic_kernel``).
+        Runs once per step, after every other pass: Runge-Kutta stages, CG iterations and dopri5's rejected
+        internal steps never reach it, so they all see the rest lengths of the step's start."""
+        model = self.model
+        if not self.plastic:
+            return
+        family = next(f for f in model.families if f.name == "springs")
+        flat_launch(
+            spring_plastic_kernel(model.scalar, model.spring_law),
+            dim=(model.world_count, model.spring_plastic_count),
+            inputs=[model.particle_count, model.world_enabled, model.spring_arrays(), family.plastic_arrays(model),
+                    model.inputs, model.scalar(dt), state.particle_q],
+            outputs=[model.spring_plastic_rest_length, model.spring_plastic_strain],
+            device=model.device,
+        )
 
     def _strain_buffers(self):
         if self._buffers is None:
@@ -63,8 +92,8 @@ class StepFinisher:
     @property
     def only_contacts(self) -> bool:
         """True when the pass is just the contact response against every collider (no stabiliser, no contact
-        stage), which integrators may fuse into their update."""
-        return not (self.stabilised or self.model.contact_stage)
+        stage, no plastic springs), which integrators may fuse into their update."""
+        return not (self.stabilised or self.model.contact_stage or self.plastic)
 
     def __call__(self, state: State, dt: float) -> None:
         model = self.model
@@ -73,6 +102,7 @@ class StepFinisher:
             if model.contact_stage:
                 collide_positions(model, state.particle_q, self.contacts)
             apply_contacts(model, state, dt, self.contacts)
+            self.plastic_pass(state, dt)
             return
         evaluate_input_tracks(model, state)
         common = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
@@ -80,7 +110,7 @@ class StepFinisher:
         strain_limited = self.strain_limited
         before = None
         if strain_limited:
-            limit = strain_limit_kernel(model.scalar, model.spring_incidence_shape)
+            limit = strain_limit_kernel(model.scalar, model.spring_incidence_shape, model.spring_law)
             table = [model.particle_count, model.particle_flags, model.particle_inv_mass, model.spring_arrays(),
                      model.inputs]
             before, *jacobi = self._strain_buffers()
@@ -109,3 +139,4 @@ class StepFinisher:
             outputs=[state.particle_q, state.particle_qd],
             **common,
         )
+        self.plastic_pass(state, dt)

@@ -250,6 +250,19 @@ class Model:
     spring_incidence: Incidence  # the springs at each particle: entries (spring, other particle), HYB layout
     #   (kernels/families.py); padding entries (0, the particle itself)
     spring_incidence_shape: IncidenceShape  # its ELL head width and whether it has a CSR tail
+    spring_material_law: SpringLaw  # the laws the spring groups use (square, asymmetric, plastic switches)
+    spring_law_code: wp.array | None  # int32, shape [spring_count]: SPRING_LINEAR or SPRING_SQUARE (laws in use)
+    spring_compression_ratio: wp.array | None  # kc / ke [-], shape [spring_count] (laws in use)
+    spring_plastic_count: int  # springs that may yield or break (0: no plastic pass)
+    spring_plastic_index: wp.array | None  # int32, shape [spring_plastic_count]: those springs
+    spring_yield_strain: wp.array | None  # ε_y0 [-], shape [spring_count] (inf: no limit; SpringPlasticity)
+    spring_yield_force: wp.array | None  # F_y [N], shape [spring_count] (inf: no limit)
+    spring_yield_rate: wp.array | None  # r [1/s], shape [spring_count] (inf: instant)
+    spring_hardening: wp.array | None  # H [-], shape [spring_count]
+    spring_break_strain: wp.array | None  # [-], shape [spring_count] (inf: never breaks)
+    spring_plastic_rest_length: wp.array | None  # [m], shape [world_count · spring_count], world-major: each
+    #   world's current rest lengths (state the plastic pass moves; negative: broken)
+    spring_plastic_strain: wp.array | None  # α [-], shape [world_count · spring_count]: accumulated plastic strain
 
     hinge_count: int
     hinge_indices: wp.array  # wp.vec4i, shape [hinge_count]: shared edge x0 → x1, wings x2, x3 (kernels/bending.py)
@@ -287,6 +300,12 @@ class Model:
         self.vec3 = vec3_type(scalar)
         self.meshes = []
         self.spring_families = {}
+        self.spring_material_law = SpringLaw()
+        self.spring_plastic_count = 0
+        for name in ("spring_law_code", "spring_compression_ratio", "spring_plastic_index", "spring_yield_strain",
+                     "spring_yield_force", "spring_yield_rate", "spring_hardening", "spring_break_strain",
+                     "spring_plastic_rest_length", "spring_plastic_strain"):
+            setattr(self, name, None)
         self.emitters = []  # list[Emitter] (core/emitters.py), run after every step by the Simulator
         self.shapes = []
         self.shape_count = 0
@@ -723,8 +742,27 @@ class Model:
 
     @property
     def spring_law(self) -> SpringLaw:
-        """The spring force law (Hooke's, or biphasic and/or force-clamped by the stabilizers)."""
-        return self._stabilizers.spring_law
+        """The spring force law (Hooke's, or biphasic and/or force-clamped by the stabilizers), with the laws
+        of the spring groups (:attr:`spring_material_law`)."""
+        material = self.spring_material_law
+        return self._stabilizers.spring_law._replace(square=material.square, asymmetric=material.asymmetric,
+                                                     plastic=material.plastic)
+
+    def spring_rest_lengths(self) -> np.ndarray:
+        """Each world's current spring rest lengths [m], float64, shape [world_count, spring_count] (reads the
+        device): the built ones, or for plastic springs where they have moved (negative: broken)."""
+        if self.spring_material_law.plastic:
+            return self.spring_plastic_rest_length.numpy().astype(np.float64).reshape(self.world_count, -1)
+        rest = self.spring_rest_length.numpy().astype(np.float64)
+        return np.broadcast_to(rest, (self.world_count, self.spring_count)).copy()
+
+    def reset_plasticity(self) -> None:
+        """Put every plastic spring back as built: rest lengths L₀, no plastic strain, none broken (device
+        copies only; a no-op without plastic springs)."""
+        if not self.spring_material_law.plastic:
+            return
+        self.spring_plastic_rest_length.assign(np.tile(self.spring_rest_length.numpy(), self.world_count))
+        self.spring_plastic_strain.zero_()
 
     @property
     def families(self) -> tuple:

@@ -1,12 +1,97 @@
-"""The spring family on the host: its kernel spec and struct from the model's ``spring_*`` arrays, and its
-part of the advisor's Gershgorin bound."""
+"""The spring family on the host: its kernel spec and struct from the model's ``spring_*`` arrays, its part
+of the advisor's Gershgorin bound, the spring laws a group of springs may follow and its plasticity."""
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
 
-from ..kernels.springs import HOOKE, SpringSpec, spring_arrays_type
+from .. import checks
+from ..errors import ConfigError
+from ..kernels.springs import (
+    BROKEN_REST_LENGTH,
+    HOOKE,
+    SPRING_LINEAR,
+    SPRING_SQUARE,
+    SpringLaw,
+    SpringSpec,
+    plastic_arrays_type,
+    spring_arrays_type,
+)
 from .families import ElementFamily
+
+#: The spring laws a group of springs may follow (``ModelBuilder.add_springs(law=...)``), by name: the
+#: tension T at a stretch Δ = |d| - L is k Δ (linear, k in N/m) or k Δ|Δ| (square, k in N/m²).
+SPRING_LAWS = {"linear": SPRING_LINEAR, "square": SPRING_SQUARE}
+
+
+def spring_law_code(law: str) -> int:
+    """The kernel code of the law named ``law``, or a one-line ConfigError naming the laws there are."""
+    if law not in SPRING_LAWS:
+        raise ConfigError(f"unknown spring law {law!r}: use one of {', '.join(map(repr, SPRING_LAWS))}")
+    return SPRING_LAWS[law]
+
+
+def spring_law_codes(model) -> np.ndarray:
+    """Each spring's law code (``SPRING_LAWS``), int, shape [spring_count] (reads the device when some group is
+    not linear)."""
+    if model.spring_law_code is None:
+        return np.full(model.spring_count, SPRING_LINEAR)
+    return model.spring_law_code.numpy()
+
+
+@dataclass(frozen=True)
+class SpringPlasticity:
+    """How a group of springs yields and breaks (``ModelBuilder.add_springs(plasticity=...)``).
+
+    Past its elastic limit a spring's rest length L moves toward its current length, so the group keeps
+    a deformation. With L₀ the rest length as built and α the accumulated plastic strain, a step whose
+    elastic strain e = (|d| - L)/L₀ exceeds the limit ε_y = ε_y0 (1 + H α) in magnitude moves L by
+    Δγ L₀ toward |d| and adds Δγ to α, where Δγ = min(1, r h) · (|e| - ε_y)/(1 + ε_y0 H): the return map
+    of 1-D plasticity with linear isotropic hardening (Simo & Hughes, *Computational Inelasticity*, 1998,
+    box 1.4), of which the share r h flows in a step of h (creep; r = inf: the rest length lands on the
+    limit at once). Under a monotone pull to a total strain ε = |d|/L₀ - 1 > ε_y0 that gives
+    α = (ε - ε_y0)/(1 + ε_y0 H) and L = (1 + α) L₀, whatever the steps. The update runs once per step, on
+    the step's result (``StepFinisher``): never per Runge-Kutta stage or solver iteration.
+
+    Attributes:
+        yield_strain: ε_y0 [-] > 0, the elastic limit as a strain of L₀; ``None``: none.
+        yield_force: F_y [N] > 0, the elastic limit as a tension magnitude, turned into a strain through the
+            spring's law on the branch (tension or compression) it is on, at its current stiffness; the
+            smaller of the two limits applies. ``None``: none.
+        yield_rate: r [1/s] > 0, the share of the excess that flows per second; ``math.inf`` (default): all
+            of it in the step that exceeds the limit.
+        hardening: H [-] ≥ 0: the limit grows by the factor 1 + H α (0: perfectly plastic).
+        break_strain: [-] > 0: the spring breaks once |d| > (1 + break_strain) L₀ and carries no force from
+            then on (its rest length becomes negative); ``None``: it never breaks.
+    """
+
+    yield_strain: float | None = None
+    yield_force: float | None = None
+    yield_rate: float = math.inf
+    hardening: float = 0.0
+    break_strain: float | None = None
+
+    def __post_init__(self):
+        for name in ("yield_strain", "yield_force", "break_strain"):
+            value = getattr(self, name)
+            if value is not None:
+                checks.positive(f"plasticity {name}", value)
+        if not (isinstance(self.yield_rate, (int, float)) and self.yield_rate > 0.0):
+            raise ConfigError(f"plasticity yield_rate must be a number > 0 [1/s] (inf: instant), got {self.yield_rate!r}")
+        checks.non_negative("plasticity hardening", self.hardening)
+        if self.yield_strain is None and self.yield_force is None and self.break_strain is None:
+            raise ConfigError("plasticity needs yield_strain, yield_force or break_strain: give at least one")
+
+    @property
+    def row(self) -> tuple:
+        """(ε_y0, F_y, r, H, ε_break) with ``inf`` for an absent limit: the arrays' entries for one spring."""
+        inf = math.inf
+        return (inf if self.yield_strain is None else float(self.yield_strain),
+                inf if self.yield_force is None else float(self.yield_force), float(self.yield_rate),
+                float(self.hardening), inf if self.break_strain is None else float(self.break_strain))
 
 
 class SpringFamily(ElementFamily):
@@ -22,29 +107,76 @@ class SpringFamily(ElementFamily):
         return self._model.spring_count
 
     def spec(self, model, *, linear: bool = False) -> SpringSpec:
+        # The stability analysis (``linear``) drops the stabilisers' parts of the law (it is given their
+        # stiffest branch as a stiffness override) but keeps the material's: each spring's own law, whose
+        # tangent at the state it linearises about, and the per-world rest lengths of plastic springs.
+        material = model.spring_material_law
         return SpringSpec(
             incidence=model.spring_incidence_shape,
-            law=HOOKE if linear else model.spring_law,
+            law=material if linear else model.spring_law,
             gathered=model.spring_gather and not linear,
         )
 
     def arrays(self, model, *, stiffness=None):
-        springs = spring_arrays_type(model.scalar)()
+        law = model.spring_material_law
+        springs = spring_arrays_type(model.scalar, law.per_spring)()
         springs.indices = model.spring_indices
-        springs.rest_length = model.spring_rest_length
+        springs.rest_length = model.spring_plastic_rest_length if law.plastic else model.spring_rest_length
         springs.stiffness = model.spring_stiffness if stiffness is None else stiffness
         springs.damping = model.spring_damping
         springs.incidence = model.spring_incidence
+        if law.per_spring:
+            springs.law = model.spring_law_code
+            springs.compression_ratio = model.spring_compression_ratio
         return springs
 
-    def gershgorin_rows(self, model, free: np.ndarray, stiffness: np.ndarray | None = None) -> np.ndarray:
+    def plastic_arrays(self, model):
+        """The struct of the plastic pass's parameters (``kernels.springs.plastic_arrays_type``)."""
+        plastic = plastic_arrays_type(model.scalar)()
+        plastic.index = model.spring_plastic_index
+        plastic.rest_length_0 = model.spring_rest_length
+        plastic.yield_strain = model.spring_yield_strain
+        plastic.yield_force = model.spring_yield_force
+        plastic.yield_rate = model.spring_yield_rate
+        plastic.hardening = model.spring_hardening
+        plastic.break_strain = model.spring_break_strain
+        return plastic
+
+    def tangent_factor(self, model, positions=None) -> np.ndarray:
+        """dT/dΔ / ke [-] of each spring in each world at ``positions`` (default the model's initial ones;
+        an array of shape [world_count · particle_count, 3]), float64, shape [world_count, spring_count]:
+        1 for linear springs, 2|Δ| [m] for square ones (their ke is in N/m²), times the compression ratio on
+        the compression branch; 0 for a broken spring. The advisor's linearisation: a square spring is as
+        stiff as its tangent 2 ke |Δ| at that state's stretch, so at rest (Δ = 0) it adds nothing."""
+        law, worlds, count = model.spring_material_law, model.world_count, model.spring_count
+        factor = np.ones((worlds, count))
+        if not (law.per_spring or law.plastic):
+            return factor
+        q = (model.particle_q if positions is None else positions)
+        q = (q.numpy() if hasattr(q, "numpy") else np.asarray(q)).astype(np.float64).reshape(worlds, -1, 3)
+        i, j = model.spring_indices.numpy().reshape(-1, 2).T
+        length = np.linalg.norm(q[:, j] - q[:, i], axis=2)
+        rest = model.spring_rest_lengths()
+        stretch = length - rest
+        if law.asymmetric:
+            factor = np.where(stretch < 0.0, model.spring_compression_ratio.numpy()[None, :], factor)
+        if law.square:
+            factor = np.where(model.spring_law_code.numpy()[None, :] == SPRING_SQUARE, 2.0 * np.abs(stretch) * factor,
+                              factor)
+        return np.where(rest < 0.0, 0.0, factor)
+
+    def gershgorin_rows(self, model, free: np.ndarray, stiffness: np.ndarray | None = None, *,
+                        positions=None) -> np.ndarray:
         """Each clamped spring block has spectral norm ≤ kₛ (|T|/|d| ≤ kₛ when not compressed), so row i
-        gains kₛ for its diagonal block and kₛ for the block of a free neighbour."""
+        gains kₛ for its diagonal block and kₛ for the block of a free neighbour. kₛ is the law's tangent
+        at ``positions`` (default the model's initial ones; ``tangent_factor``): for a square spring
+        2 ke |Δ|, which also bounds its |T|/|d| = ke Δ²/|d| ≤ ke |Δ| when stretched."""
         worlds, n = model.world_count, model.particle_count
         if model.spring_count == 0:
             return np.zeros((worlds, n))
         values = model.spring_stiffness.numpy() if stiffness is None else stiffness
         k = np.broadcast_to(np.asarray(values, dtype=np.float64), (worlds, model.spring_count))
+        k = k * self.tangent_factor(model, positions)
         i, j = model.spring_indices.numpy().reshape(-1, 2).T
         offset = (np.arange(worlds) * n)[:, None]
         wi, wj = (offset + i).ravel(), (offset + j).ravel()  # world-major entries of each world's spring ends

@@ -124,9 +124,11 @@ class Stepper:
 
     def reset(self, state: State | None = None) -> None:
         """Continue from ``state`` (default: the model's initial state) and forget the integrator's history
-        (step-size control, warm starts), so that the run repeats exactly."""
+        (step-size control, warm starts) and the plastic springs' (rest lengths and plastic strains as
+        built), so that the run repeats exactly."""
         self.state.assign(state if state is not None else self.model.state())
         self.integrator.reset()
+        self.model.reset_plasticity()
 
     def _run(self) -> None:
         for hook in self.hooks:

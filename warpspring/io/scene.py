@@ -65,6 +65,7 @@ import numpy as np
 
 from ..core.aero import AIR_DENSITY, DEFAULT_DRAG, DEFAULT_LIFT
 from ..core.builder import DEFAULT_BEND, DEFAULT_SHEAR, DEFAULT_STRUCTURAL, ModelBuilder, SpringMaterial
+from ..core.builder import spring_law_options
 from ..errors import ConfigError
 from ..core.guards import GuardLimits
 from ..core.integrators import INTEGRATORS
@@ -371,7 +372,10 @@ QUATERNION = "quaternion"  # a list of 4 finite numbers (x, y, z, w), not all ze
 
 _TYPE_NAMES = {str: "a string", bool: "true or false", list: "a list", dict: "a table"}
 
-_SPRING = {"ke": NON_NEGATIVE, "kd": NON_NEGATIVE}
+_SPRING = {"ke": NON_NEGATIVE, "kd": NON_NEGATIVE,
+           # The law and plasticity (warpspring.SpringMaterial, SpringPlasticity):
+           "law": str, "compression_ke": NON_NEGATIVE, "yield_strain": POSITIVE, "yield_force": POSITIVE,
+           "yield_rate": POSITIVE, "hardening": NON_NEGATIVE, "break_strain": POSITIVE}
 _TRACK_TABLE = {"times": list, "values": list, "interpolation": str, "extrapolation": str}
 _ROTATION_TRACK_TABLE = {"times": list, "axis": VECTOR, "degrees": list, "interpolation": str, "extrapolation": str}
 _RIGID_MOTION = {"pivot": VECTOR, "translation": _Track(VECTOR), "rotation": _Track(rotation=True)}
@@ -812,6 +816,12 @@ def _check_pins(pins: list, grid: bool, where: str, key: str) -> None:
 def _check_cloth(c: dict, where: str, label: str, *, version: int) -> None:
     """Check a [cloth] table, and turn its pin groups into :class:`PinGroupSpec` (``c`` is the scene's copy)."""
     _check_table(c, _SCHEMA["cloth"], where, label, version=version)
+    for key in ("structural", "shear", "bend"):
+        if isinstance(c.get(key), dict):  # the law's name and the plasticity's limits, checked together
+            try:
+                spring_law_options(key, c[key])
+            except ConfigError as exc:
+                raise ConfigError(f"{where}: {label}.{key}: {_one_line(exc)}") from None
     if ("grid" in c) == ("mesh" in c):
         raise ConfigError(f"{where}: [{label}] needs exactly one of grid = {{nx, ny, spacing}} or mesh = 'file'")
     grid = "grid" in c
@@ -1100,7 +1110,8 @@ def _springs(cloth: dict, key: str, default: SpringMaterial) -> SpringMaterial |
         return None
     if spec is True:
         return default
-    return SpringMaterial(ke=spec.get("ke", default.ke), kd=spec.get("kd", default.kd))
+    return SpringMaterial(ke=spec.get("ke", default.ke), kd=spec.get("kd", default.kd),
+                          **spring_law_options(key, spec))
 
 
 def _rotation(cloth: dict):

@@ -263,7 +263,7 @@ class UsdWriter:
         samples = []  # (attribute path, value)
         for slot in live:
             q, v = q_all[slot.world], v_all[slot.world]
-            strain = None if rest is None else self._spring_strain(q, rest)
+            strain = None if rest is None else self._spring_strain(q, rest[slot.world])
             vertex_strain = None if strain is None or "strain" not in self._primvars else self._vertex_strain(strain)
             for mesh in slot.meshes:
                 particles = mesh.group.particles
@@ -742,7 +742,9 @@ class UsdWriter:
         self._corner_vertex = sorted_vertex[self._corner_start]
 
     def _rest_lengths(self) -> np.ndarray:
-        return self.model.spring_rest_length.numpy().astype(np.float64)
+        """Each world's current rest lengths [m], shape [world_count, spring_count] (plastic springs: where
+        they have moved; a broken spring's is negative and its strain written as 0)."""
+        return self.model.spring_rest_lengths()
 
     def _spring_strain(self, q: np.ndarray, rest: np.ndarray) -> np.ndarray:
         """The strain (l − L)/L of every spring [-], shape [spring_count], float32 (0 for L = 0)."""
