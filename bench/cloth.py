@@ -75,18 +75,23 @@ class NewtonRunner:
     def __init__(self, model: ws.Model):
         import newton
 
+        # Every world's particles and springs, as one flat set: Newton's semi-implicit particle and spring
+        # kernels do not tell worlds apart, so W cloths in one model are W copies side by side.
+        worlds, n = model.world_count, model.particle_count
         q = model.particle_q.numpy()
-        kinematic = model.kinematic_mask()
-        springs = model.spring_indices.numpy()
-        builder = newton.ModelBuilder(gravity=-9.81)
+        kinematic = np.concatenate([model.kinematic_mask(world=w) for w in range(worlds)])
+        springs = (model.spring_indices.numpy()[None] + n * np.arange(worlds)[:, None, None]).reshape(-1, 2)
+        # Gravity as a 3-vector: Newton 1.8 takes nothing else, 1.5 takes it too (its scalar form, along the up
+        # axis, is deprecated there).
+        builder = newton.ModelBuilder(up_axis=newton.Axis.Z, gravity=(0.0, 0.0, -9.81))
         builder.add_particles(
             pos=[tuple(p) for p in q],
             vel=[(0.0, 0.0, 0.0)] * len(q),
-            mass=[0.0 if pinned else MASS for pinned in kinematic],  # Newton: zero mass = kinematic
+            mass=np.where(kinematic, 0.0, MASS).tolist(),  # Newton: zero mass = kinematic
         )
         # Bulk-extend the spring lists (Newton's add_spring is one Python call per spring).
         builder.spring_indices.extend(springs.ravel().tolist())
-        builder.spring_rest_length.extend(model.spring_rest_length.numpy().tolist())
+        builder.spring_rest_length.extend(np.tile(model.spring_rest_length.numpy(), worlds).tolist())
         builder.spring_stiffness.extend([KE] * len(springs))
         builder.spring_damping.extend([KD] * len(springs))
         builder.spring_control.extend([0.0] * len(springs))
