@@ -12,8 +12,14 @@ timed batches, device synchronised before every timer read); the speed ratio; an
 difference between the engines after 1 s simulated from the same start (both integrate the same
 equations, so it measures float32 summation-order drift).
 
+With ``--bytes``, a second table puts each gather row's rate beside the bytes its kernel moves per
+particle-substep (``traffic.py``: from its data layout), the bandwidth that rate draws, a device copy's
+bandwidth measured in the same run, and, on CUDA where ``ncu`` exists, Nsight Compute's DRAM bytes of one
+launch of the kernel.
+
     python bench/cloth.py --device cuda:0                       # 64² … 512², with Newton if installed
     python bench/cloth.py --device cpu --sizes 32 64 --seconds 2
+    python bench/cloth.py --device cuda:0 --sizes 256 1024 --evaluation gather --bytes
 """
 
 from __future__ import annotations
@@ -120,9 +126,9 @@ class NewtonRunner:
         return self.state_0.particle_q.numpy()
 
 
-def measure(make_runner, device, seconds: float) -> dict:
+def measure(make_runner, device, seconds: float, batches: int = 5) -> dict:
     """Setup time (engine model + solver creation, kernel compilation, graph capture and the first frame)
-    and the median steady frame time of timed batches."""
+    and the median steady frame time of ``batches`` timed batches."""
     wp.synchronize_device(device)
     t0 = time.perf_counter()
     runner = make_runner()
@@ -138,11 +144,11 @@ def measure(make_runner, device, seconds: float) -> dict:
             runner.frame()
         wp.synchronize_device(device)
         elapsed = time.perf_counter() - t0
-        if elapsed > seconds / 5 or batch > 1 << 16:
+        if elapsed > seconds / batches or batch > 1 << 16:
             break
         batch *= 2
     times = []
-    for _ in range(5):
+    for _ in range(batches):
         wp.synchronize_device(device)
         t0 = time.perf_counter()
         for _ in range(batch):
@@ -184,6 +190,8 @@ def main():
         "--evaluation", nargs="+", default=["auto"], choices=["auto", "gather", "scatter"],
         help="warpspring spring-evaluation modes to time (one row each)",
     )
+    parser.add_argument("--batches", type=int, default=5, help="timed batches per engine and size (median)")
+    parser.add_argument("--bytes", action="store_true", help="also the gather rows' bytes and bandwidth")
     parser.add_argument("--out", help="also write the Markdown table to this file")
     args = parser.parse_args()
 
@@ -210,15 +218,16 @@ def main():
         "| N | particles | springs | engine | setup [s] | substeps/s | particle-substeps/s | spread | vs Newton | max Δx vs Newton [m] |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
+    gathered = []  # (N, model, substeps/s) of the gather rows, for --bytes
     for n in sizes:
         results, drift, models = {}, {}, {}
         for mode in args.evaluation:
             model = warpspring_model(n, device, mode)
             name = WarpspringRunner(model).name
             models[name] = model
-            results[name] = measure(lambda: WarpspringRunner(model), device, args.seconds)
+            results[name] = measure(lambda: WarpspringRunner(model), device, args.seconds, args.batches)
         if newton_version:
-            results["newton"] = measure(lambda: NewtonRunner(model), device, args.seconds)
+            results["newton"] = measure(lambda: NewtonRunner(model), device, args.seconds, args.batches)
             drift = {name: agreement(model) for name, model in models.items()}
         for name, r in results.items():
             rate = SUBSTEPS / r["frame_s"]
@@ -231,7 +240,50 @@ def main():
                 f"{rate:,.0f} | {rate * model.particle_count / 1e9:.3f} G | {r['spread']:.1%} | {ratio} | {diff} |"
             )
         print("\n".join(lines[-len(results):]), flush=True)
+        gathered += [(n, models[name], SUBSTEPS / r["frame_s"]) for name, r in results.items()
+                     if name in models and models[name].spring_gather]
+    if args.bytes:
+        lines += ["", *bytes_table(gathered, device)]
     emit_table(lines, args.out)
+
+
+def bytes_table(gathered: list[tuple[int, ws.Model, float]], device) -> list[str]:
+    """Markdown rows of the gather rows' traffic: (N, model, substeps/s) each."""
+    from traffic import copy_bandwidth, gather_traffic, ncu_dram_bytes, per_particle
+
+    copy = copy_bandwidth(device)
+    lines = [
+        f"Bytes per particle-substep of the fused gather step (`bench/traffic.py`: compulsory = every array "
+        f"once, requested = every load without reuse) and the bandwidth the measured rate draws; "
+        f"`wp.copy` of 512 MB on this device in this run: {copy / 1e9:,.0f} GB/s (read + write).",
+        "",
+        "| N | particle-substeps/s | compulsory | requested | compulsory × rate | of copy | "
+        "ncu DRAM read + write | ncu L2 | ncu kernel time | ncu DRAM bandwidth |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for n, model, rate in gathered:
+        b = per_particle(gather_traffic(model), model)
+        throughput = rate * model.particle_count * model.world_count
+        achieved = b["compulsory"] * throughput
+        ncu = ncu_dram_bytes(n, device, kernel_cache=wp.config.kernel_cache_dir) if device.is_cuda else None
+        profiled = ["", "", "", ""]
+        if isinstance(ncu, dict):
+            dram = ncu.get("dram__bytes_read.sum", 0.0) + ncu.get("dram__bytes_write.sum", 0.0)
+            seconds = ncu.get("gpu__time_duration.sum", 0.0)
+            profiled = [
+                f"{dram / model.particle_count:.0f} B",
+                f"{ncu.get('lts__t_bytes.sum', 0.0) / model.particle_count:.0f} B",
+                f"{seconds * 1e6:.1f} µs",
+                f"{dram / seconds / 1e9:,.0f} GB/s" if seconds else "",
+            ]
+        elif ncu is not None:
+            print(ncu)
+        lines.append(
+            f"| {n} | {throughput / 1e9:.3f} G | {b['compulsory']:.0f} B | {b['requested']:.0f} B | "
+            f"{achieved / 1e9:,.1f} GB/s | {achieved / copy:.0%} | " + " | ".join(profiled) + " |"
+        )
+        print(lines[-1], flush=True)
+    return lines
 
 
 if __name__ == "__main__":
