@@ -126,37 +126,66 @@ class NewtonRunner:
         return self.state_0.particle_q.numpy()
 
 
-def measure(make_runner, device, seconds: float, batches: int = 5) -> dict:
-    """Setup time (engine model + solver creation, kernel compilation, graph capture and the first frame)
-    and the median steady frame time of ``batches`` timed batches."""
+def set_up(make_runner, device):
+    """A runner and its setup time [s]: engine model + solver creation, kernel compilation, graph capture and the
+    first frame."""
     wp.synchronize_device(device)
     t0 = time.perf_counter()
     runner = make_runner()
     runner.frame()
     wp.synchronize_device(device)
-    first = time.perf_counter() - t0
+    return runner, time.perf_counter() - t0
 
+
+def timed_batch(runner, device, batch: int) -> float:
+    """Seconds per frame over ``batch`` frames, device synchronised before each timer read."""
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    for _ in range(batch):
+        runner.frame()
+    wp.synchronize_device(device)
+    return (time.perf_counter() - t0) / batch
+
+
+def batch_size(runner, device, seconds: float) -> int:
+    """Frames per batch, doubled until a batch takes ``seconds``."""
     batch = 1
-    while True:  # size a batch to ~seconds / 5
-        wp.synchronize_device(device)
-        t0 = time.perf_counter()
-        for _ in range(batch):
-            runner.frame()
-        wp.synchronize_device(device)
-        elapsed = time.perf_counter() - t0
-        if elapsed > seconds / batches or batch > 1 << 16:
-            break
+    while timed_batch(runner, device, batch) * batch <= seconds and batch <= 1 << 16:
         batch *= 2
-    times = []
-    for _ in range(batches):
-        wp.synchronize_device(device)
-        t0 = time.perf_counter()
-        for _ in range(batch):
-            runner.frame()
-        wp.synchronize_device(device)
-        times.append((time.perf_counter() - t0) / batch)
+    return batch
+
+
+def summary(first: float, times: list[float]) -> dict:
     frame_time = statistics.median(times)
-    return {"first_frame_s": first, "frame_s": frame_time, "spread": (max(times) - min(times)) / frame_time}
+    return {"first_frame_s": first, "frame_s": frame_time, "spread": (max(times) - min(times)) / frame_time,
+            "times": times}
+
+
+def measure(make_runner, device, seconds: float, batches: int = 5) -> dict:
+    """Setup time (``set_up``) and the median steady frame time of ``batches`` timed batches."""
+    runner, first = set_up(make_runner, device)
+    batch = batch_size(runner, device, seconds / batches)
+    return summary(first, [timed_batch(runner, device, batch) for _ in range(batches)])
+
+
+def measure_interleaved(makers: dict, device, seconds: float, batches: int = 5) -> dict:
+    """``measure`` for several engines at once, their timed batches taken in turn (round k times every engine
+    once), so that a load which comes and goes on a shared machine falls on all of them alike: compare
+    them through ``round_ratio``."""
+    runners, firsts, sizes = {}, {}, {}
+    for name, make_runner in makers.items():
+        runners[name], firsts[name] = set_up(make_runner, device)
+        sizes[name] = batch_size(runners[name], device, seconds / batches)
+    times = {name: [] for name in makers}
+    for _ in range(batches):
+        for name, runner in runners.items():
+            times[name].append(timed_batch(runner, device, sizes[name]))
+    return {name: summary(firsts[name], times[name]) for name in makers}
+
+
+def round_ratio(a: dict, b: dict) -> float:
+    """Median over rounds of b's frame time over a's: a's speed relative to b's, from interleaved batches."""
+    return statistics.median(tb / ta for ta, tb in zip(a["times"], b["times"]))
 
 
 def emit_table(lines: list[str], out: str | None) -> None:
@@ -192,6 +221,10 @@ def main():
     )
     parser.add_argument("--batches", type=int, default=5, help="timed batches per engine and size (median)")
     parser.add_argument("--bytes", action="store_true", help="also the gather rows' bytes and bandwidth")
+    parser.add_argument(
+        "--interleave", action="store_true",
+        help="take the engines' timed batches in turn and give the median of the per-round ratios (shared hosts)",
+    )
     parser.add_argument("--out", help="also write the Markdown table to this file")
     args = parser.parse_args()
 
@@ -221,19 +254,27 @@ def main():
     gathered = []  # (N, model, substeps/s) of the gather rows, for --bytes
     for n in sizes:
         results, drift, models = {}, {}, {}
+        makers = {}
         for mode in args.evaluation:
             model = warpspring_model(n, device, mode)
             name = WarpspringRunner(model).name
             models[name] = model
-            results[name] = measure(lambda: WarpspringRunner(model), device, args.seconds, args.batches)
+            makers[name] = lambda model=model: WarpspringRunner(model)
         if newton_version:
-            results["newton"] = measure(lambda: NewtonRunner(model), device, args.seconds, args.batches)
+            makers["newton"] = lambda: NewtonRunner(model)
+        if args.interleave:
+            results = measure_interleaved(makers, device, args.seconds, args.batches)
+        else:
+            results = {name: measure(make, device, args.seconds, args.batches) for name, make in makers.items()}
+        if newton_version:
             drift = {name: agreement(model) for name, model in models.items()}
         for name, r in results.items():
             rate = SUBSTEPS / r["frame_s"]
             ratio = diff = ""
             if name in drift:
-                ratio = f"{results['newton']['frame_s'] / r['frame_s']:.2f}×"
+                newton_r = results["newton"]
+                ratio = round_ratio(r, newton_r) if args.interleave else newton_r["frame_s"] / r["frame_s"]
+                ratio = f"{ratio:.2f}×"
                 diff = f"{drift[name]:.1e}"
             lines.append(
                 f"| {n} | {model.particle_count:,} | {model.spring_count:,} | {name} | {r['first_frame_s']:.2f} | "
