@@ -215,6 +215,7 @@ def main():
     parser.add_argument("--sizes", type=int, nargs="+", help="cloth sizes N (N × N particles)")
     parser.add_argument("--seconds", type=float, default=1.0, help="timed seconds per engine and size")
     parser.add_argument("--no-newton", action="store_true", help="time warpspring alone")
+    parser.add_argument("--newton-max-particles", type=int, help="time Newton only up to this many particles")
     parser.add_argument(
         "--evaluation", nargs="+", default=["auto"], choices=["auto", "gather", "scatter"],
         help="warpspring spring-evaluation modes to time (one row each)",
@@ -260,13 +261,14 @@ def main():
             name = WarpspringRunner(model).name
             models[name] = model
             makers[name] = lambda model=model: WarpspringRunner(model)
-        if newton_version:
+        with_newton = newton_version and model.particle_count <= (args.newton_max_particles or model.particle_count)
+        if with_newton:
             makers["newton"] = lambda: NewtonRunner(model)
         if args.interleave:
             results = measure_interleaved(makers, device, args.seconds, args.batches)
         else:
             results = {name: measure(make, device, args.seconds, args.batches) for name, make in makers.items()}
-        if newton_version:
+        if with_newton:
             drift = {name: agreement(model) for name, model in models.items()}
         for name, r in results.items():
             rate = SUBSTEPS / r["frame_s"]

@@ -9,11 +9,12 @@ frame):
   cloths as one flat set of particles and springs (its semi-implicit particle kernels do not tell worlds
   apart), so both engines step W · 1,024 particles per launch.
 
-Each point is the median of ``--batches`` timed batches (``cloth.measure``: setup apart, device synchronised
-before every timer read). Newton is timed up to ``--newton-max-particles`` (its Python-list builder takes
-seconds per million particles). The rows go to a CSV whose first line names the machine, the Warp and
-Newton versions, the date, a ``wp.copy`` bandwidth measured in the same run and the gather's compulsory bytes
-per particle-substep at the largest N (``traffic.py``); ``scaling_plot.py`` draws it (with ``--plot``, at once).
+Each point is the median of ``--batches`` timed batches, the engines' batches taken in turn
+(``cloth.measure_interleaved``: setup apart, device synchronised before every timer read). Newton is timed
+up to ``--newton-max-particles`` (its Python-list builder takes seconds per million particles). The rows go
+to a CSV whose first line names the machine, the Warp and Newton versions, the date, a ``wp.copy``
+bandwidth measured in the same run and the gather's compulsory bytes per particle-substep at the largest N
+(``traffic.py``); ``scaling_plot.py`` draws it (with ``--plot``, at once).
 
     python bench/scaling.py --device cuda:0 --out bench/results/scaling_h100.csv --plot bench/results/scaling_h100.png
     python bench/scaling.py --device cpu --sizes 16 32 64 --worlds 4 16 --seconds 1
@@ -29,7 +30,7 @@ import tempfile
 
 import warp as wp
 
-from cloth import SUBSTEPS, NewtonRunner, WarpspringRunner, measure, warpspring_model
+from cloth import SUBSTEPS, NewtonRunner, WarpspringRunner, measure_interleaved, warpspring_model
 from traffic import copy_bandwidth, gather_traffic, per_particle
 
 SIDE = 32  # the side of each world's cloth in the many-worlds scenes
@@ -84,9 +85,14 @@ def main():
         except ImportError:
             print("newton is not installed: timing warpspring alone")
     if args.plot:
+        from warpspring.errors import ConfigError
         from warpspring.plotting import pyplot
 
-        pyplot("the scaling plot")  # fail now, not after the measurements, if matplotlib is missing
+        try:
+            pyplot("scaling plots")  # know now, not after the measurements, whether matplotlib is there
+        except ConfigError as error:
+            print(f"{error}: writing the CSV only (draw it elsewhere with bench/scaling_plot.py)")
+            args.plot = None
 
     copy = copy_bandwidth(device)
     largest = warpspring_model(max(args.sizes or defaults["sizes"]), device, "gather")
@@ -106,8 +112,7 @@ def main():
         engines = {WarpspringRunner(model).name: lambda: WarpspringRunner(model)}
         if newton_version and particles <= args.newton_max_particles:
             engines[f"newton {newton_version}"] = lambda: NewtonRunner(model)
-        for engine, make_runner in engines.items():
-            r = measure(make_runner, device, args.seconds, args.batches)
+        for engine, r in measure_interleaved(engines, device, args.seconds, args.batches).items():
             rate = SUBSTEPS / r["frame_s"]
             rows.append({
                 "engine": engine, "scene": scene, "side": side, "worlds": worlds, "particles": particles,

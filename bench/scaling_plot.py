@@ -26,7 +26,7 @@ def plot(csv_path: str, png_path: str) -> None:
     """Draw ``csv_path`` into ``png_path``."""
     from warpspring.plotting import pyplot
 
-    plt = pyplot("the scaling plot")
+    plt = pyplot("scaling plots")
     header, rows = read(csv_path)
     fig, ax = plt.subplots(figsize=(8, 5))
     series = sorted({(r["engine"], r["scene"]) for r in rows})
