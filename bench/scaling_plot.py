@@ -37,15 +37,15 @@ def plot(csv_path: str, png_path: str) -> None:
         label = f"{engine}, {'N² cloth' if scene == 'one world' else 'W × 32² cloths'}"
         ax.plot(x, y, "-o" if scene == "one world" else "--s", label=label,
                 color="C0" if engine.startswith("warpspring") else "C1", markersize=4)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
     copy = re.search(r"wp\.copy ([0-9.]+) GB/s", header)
     gather = re.search(r"gather ([0-9.]+) B/particle-substep", header)
     if copy and gather:
         ceiling = float(copy.group(1)) * 1e9 / float(gather.group(1))
         ax.axhline(ceiling, color="gray", linestyle=":", linewidth=1)
-        ax.annotate(f"copy bandwidth / {float(gather.group(1)):.0f} B", (ax.get_xlim()[0], ceiling), fontsize=8,
-                    color="gray", va="bottom")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
+        ax.annotate(f"copy bandwidth / {float(gather.group(1)):.0f} B (the gather's bytes)", (0.01, ceiling),
+                    xycoords=("axes fraction", "data"), fontsize=8, color="gray", va="bottom")
     ax.set_xlabel("particles in the model (all worlds)")
     ax.set_ylabel("particle-substeps / s")
     ax.set_title(f"Hanging cloth, symplectic Euler, 16 substeps per frame\n{header}", fontsize=9)
