@@ -152,13 +152,14 @@ def copy_bandwidth(device, *, megabytes: int = 512, repeats: int = 10) -> float:
 
 def ncu_dram_bytes(n: int, device, *, kernel_cache: str | None = None, timeout: float = 120.0) -> dict | str:
     """Nsight Compute's counters for one launch of the fused step on the n × n cloth (the 21st, after warm-up
-    and capture; caches flushed before it, as ncu does by default): {metric: value in bytes or seconds}, or
-    a one-line reason when ``ncu`` is missing or fails."""
+    and capture; caches flushed before it, as ncu does by default; clocks left as they run, as in §7 of
+    RESULTS.md): {metric: value in bytes or seconds}, or a one-line reason when ``ncu`` is missing or fails."""
     ncu = shutil.which("ncu")
     if ncu is None:
         return "ncu not found on PATH: no Nsight Compute counters"
     command = [
-        ncu, "--csv", "--print-units", "base", "--metrics", ",".join(NCU_METRICS), "-k", "regex:symplectic_euler",
+        ncu, "--csv", "--print-units", "base", "--clock-control", "none", "--metrics", ",".join(NCU_METRICS),
+        "-k", "regex:symplectic_euler",
         "--launch-skip", "20", "--launch-count", "1",
         sys.executable, os.path.abspath(__file__), "--device", str(device), "--profile", str(n),
     ]
