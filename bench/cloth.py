@@ -19,6 +19,7 @@ launch of the kernel.
 
     python bench/cloth.py --device cuda:0                       # 64² … 512², with Newton if installed
     python bench/cloth.py --device cpu --sizes 32 64 --seconds 2
+    python bench/cloth.py --device cpu --sizes 32 64 --batches 9 --interleave   # a host shared with other jobs
     python bench/cloth.py --device cuda:0 --sizes 256 1024 --evaluation gather --bytes
 """
 
