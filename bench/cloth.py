@@ -316,7 +316,7 @@ def bytes_table(gathered: list[tuple[int, ws.Model, float]], device) -> list[str
             seconds = ncu.get("gpu__time_duration.sum", 0.0)
             profiled = [
                 f"{dram / model.particle_count:.0f} B",
-                f"{ncu.get('lts__t_bytes.sum', 0.0) / model.particle_count:.0f} B",
+                f"{ncu['lts__t_bytes.sum'] / model.particle_count:.0f} B" if "lts__t_bytes.sum" in ncu else "",
                 f"{seconds * 1e6:.1f} µs",
                 f"{dram / seconds / 1e9:,.0f} GB/s" if seconds else "",
             ]
