@@ -168,12 +168,12 @@ def test_the_delaunay_network_holds_its_pinned_base(device):
     np.testing.assert_array_equal(q[pinned], q0[pinned])
 
 
-def test_the_usd_stream_bench_writes_its_frames(tmp_path):
+def test_the_usd_stream_bench_writes_its_frames(device, tmp_path):
     """``usd_stream.stream`` writes two frames of the 6 × 6 cloth to a file that reads back with both samples."""
     import usd_stream
     from pxr import Usd, UsdGeom
 
-    model = usd_stream.cloth(6, "cpu")
+    model = usd_stream.cloth(6, device)
     path = str(tmp_path / "stream.usdc")
     result = usd_stream.stream(model, path, frames=2)
     assert len(result["times"]) == 2
