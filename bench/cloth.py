@@ -12,8 +12,15 @@ timed batches, device synchronised before every timer read); the speed ratio; an
 difference between the engines after 1 s simulated from the same start (both integrate the same
 equations, so it measures float32 summation-order drift).
 
+With ``--bytes``, a second table puts each gather row's rate beside the bytes its kernel moves per
+particle-substep (``traffic.py``: from its data layout), the bandwidth that rate draws, a device copy's
+bandwidth measured in the same run, and, on CUDA where ``ncu`` exists, Nsight Compute's DRAM bytes of one
+launch of the kernel.
+
     python bench/cloth.py --device cuda:0                       # 64² … 512², with Newton if installed
     python bench/cloth.py --device cpu --sizes 32 64 --seconds 2
+    python bench/cloth.py --device cpu --sizes 32 64 --batches 9 --interleave   # a host shared with other jobs
+    python bench/cloth.py --device cuda:0 --sizes 256 1024 --evaluation gather --bytes
 """
 
 from __future__ import annotations
@@ -75,18 +82,23 @@ class NewtonRunner:
     def __init__(self, model: ws.Model):
         import newton
 
+        # Every world's particles and springs, as one flat set: Newton's semi-implicit particle and spring
+        # kernels do not tell worlds apart, so W cloths in one model are W copies side by side.
+        worlds, n = model.world_count, model.particle_count
         q = model.particle_q.numpy()
-        kinematic = model.kinematic_mask()
-        springs = model.spring_indices.numpy()
-        builder = newton.ModelBuilder(gravity=-9.81)
+        kinematic = np.concatenate([model.kinematic_mask(world=w) for w in range(worlds)])
+        springs = (model.spring_indices.numpy()[None] + n * np.arange(worlds)[:, None, None]).reshape(-1, 2)
+        # Gravity as a 3-vector: Newton 1.8 takes nothing else, 1.5 takes it too (its scalar form, along the up
+        # axis, is deprecated there).
+        builder = newton.ModelBuilder(up_axis=newton.Axis.Z, gravity=(0.0, 0.0, -9.81))
         builder.add_particles(
             pos=[tuple(p) for p in q],
             vel=[(0.0, 0.0, 0.0)] * len(q),
-            mass=[0.0 if pinned else MASS for pinned in kinematic],  # Newton: zero mass = kinematic
+            mass=np.where(kinematic, 0.0, MASS).tolist(),  # Newton: zero mass = kinematic
         )
         # Bulk-extend the spring lists (Newton's add_spring is one Python call per spring).
         builder.spring_indices.extend(springs.ravel().tolist())
-        builder.spring_rest_length.extend(model.spring_rest_length.numpy().tolist())
+        builder.spring_rest_length.extend(np.tile(model.spring_rest_length.numpy(), worlds).tolist())
         builder.spring_stiffness.extend([KE] * len(springs))
         builder.spring_damping.extend([KD] * len(springs))
         builder.spring_control.extend([0.0] * len(springs))
@@ -115,37 +127,66 @@ class NewtonRunner:
         return self.state_0.particle_q.numpy()
 
 
-def measure(make_runner, device, seconds: float) -> dict:
-    """Setup time (engine model + solver creation, kernel compilation, graph capture and the first frame)
-    and the median steady frame time of timed batches."""
+def set_up(make_runner, device):
+    """A runner and its setup time [s]: engine model + solver creation, kernel compilation, graph capture and the
+    first frame."""
     wp.synchronize_device(device)
     t0 = time.perf_counter()
     runner = make_runner()
     runner.frame()
     wp.synchronize_device(device)
-    first = time.perf_counter() - t0
+    return runner, time.perf_counter() - t0
 
+
+def timed_batch(runner, device, batch: int) -> float:
+    """Seconds per frame over ``batch`` frames, device synchronised before each timer read."""
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    for _ in range(batch):
+        runner.frame()
+    wp.synchronize_device(device)
+    return (time.perf_counter() - t0) / batch
+
+
+def batch_size(runner, device, seconds: float) -> int:
+    """Frames per batch, doubled until a batch takes ``seconds``."""
     batch = 1
-    while True:  # size a batch to ~seconds / 5
-        wp.synchronize_device(device)
-        t0 = time.perf_counter()
-        for _ in range(batch):
-            runner.frame()
-        wp.synchronize_device(device)
-        elapsed = time.perf_counter() - t0
-        if elapsed > seconds / 5 or batch > 1 << 16:
-            break
+    while timed_batch(runner, device, batch) * batch <= seconds and batch <= 1 << 16:
         batch *= 2
-    times = []
-    for _ in range(5):
-        wp.synchronize_device(device)
-        t0 = time.perf_counter()
-        for _ in range(batch):
-            runner.frame()
-        wp.synchronize_device(device)
-        times.append((time.perf_counter() - t0) / batch)
+    return batch
+
+
+def summary(first: float, times: list[float]) -> dict:
     frame_time = statistics.median(times)
-    return {"first_frame_s": first, "frame_s": frame_time, "spread": (max(times) - min(times)) / frame_time}
+    return {"first_frame_s": first, "frame_s": frame_time, "spread": (max(times) - min(times)) / frame_time,
+            "times": times}
+
+
+def measure(make_runner, device, seconds: float, batches: int = 5) -> dict:
+    """Setup time (``set_up``) and the median steady frame time of ``batches`` timed batches."""
+    runner, first = set_up(make_runner, device)
+    batch = batch_size(runner, device, seconds / batches)
+    return summary(first, [timed_batch(runner, device, batch) for _ in range(batches)])
+
+
+def measure_interleaved(makers: dict, device, seconds: float, batches: int = 5) -> dict:
+    """``measure`` for several engines at once, their timed batches taken in turn (round k times every engine
+    once), so that a load which comes and goes on a shared machine falls on all of them alike: compare
+    them through ``round_ratio``."""
+    runners, firsts, sizes = {}, {}, {}
+    for name, make_runner in makers.items():
+        runners[name], firsts[name] = set_up(make_runner, device)
+        sizes[name] = batch_size(runners[name], device, seconds / batches)
+    times = {name: [] for name in makers}
+    for _ in range(batches):
+        for name, runner in runners.items():
+            times[name].append(timed_batch(runner, device, sizes[name]))
+    return {name: summary(firsts[name], times[name]) for name in makers}
+
+
+def round_ratio(a: dict, b: dict) -> float:
+    """Median over rounds of b's frame time over a's: a's speed relative to b's, from interleaved batches."""
+    return statistics.median(tb / ta for ta, tb in zip(a["times"], b["times"]))
 
 
 def emit_table(lines: list[str], out: str | None) -> None:
@@ -175,9 +216,16 @@ def main():
     parser.add_argument("--sizes", type=int, nargs="+", help="cloth sizes N (N × N particles)")
     parser.add_argument("--seconds", type=float, default=1.0, help="timed seconds per engine and size")
     parser.add_argument("--no-newton", action="store_true", help="time warpspring alone")
+    parser.add_argument("--newton-max-particles", type=int, help="time Newton only up to this many particles")
     parser.add_argument(
         "--evaluation", nargs="+", default=["auto"], choices=["auto", "gather", "scatter"],
         help="warpspring spring-evaluation modes to time (one row each)",
+    )
+    parser.add_argument("--batches", type=int, default=5, help="timed batches per engine and size (median)")
+    parser.add_argument("--bytes", action="store_true", help="also the gather rows' bytes and bandwidth")
+    parser.add_argument(
+        "--interleave", action="store_true",
+        help="take the engines' timed batches in turn and give the median of the per-round ratios (shared hosts)",
     )
     parser.add_argument("--out", help="also write the Markdown table to this file")
     args = parser.parse_args()
@@ -205,28 +253,81 @@ def main():
         "| N | particles | springs | engine | setup [s] | substeps/s | particle-substeps/s | spread | vs Newton | max Δx vs Newton [m] |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
+    gathered = []  # (N, model, substeps/s) of the gather rows, for --bytes
     for n in sizes:
         results, drift, models = {}, {}, {}
+        makers = {}
         for mode in args.evaluation:
             model = warpspring_model(n, device, mode)
             name = WarpspringRunner(model).name
             models[name] = model
-            results[name] = measure(lambda: WarpspringRunner(model), device, args.seconds)
-        if newton_version:
-            results["newton"] = measure(lambda: NewtonRunner(model), device, args.seconds)
+            makers[name] = lambda model=model: WarpspringRunner(model)
+        with_newton = newton_version and model.particle_count <= (args.newton_max_particles or model.particle_count)
+        if with_newton:
+            makers["newton"] = lambda: NewtonRunner(model)
+        if args.interleave:
+            results = measure_interleaved(makers, device, args.seconds, args.batches)
+        else:
+            results = {name: measure(make, device, args.seconds, args.batches) for name, make in makers.items()}
+        if with_newton:
             drift = {name: agreement(model) for name, model in models.items()}
         for name, r in results.items():
             rate = SUBSTEPS / r["frame_s"]
             ratio = diff = ""
             if name in drift:
-                ratio = f"{results['newton']['frame_s'] / r['frame_s']:.2f}×"
+                newton_r = results["newton"]
+                ratio = round_ratio(r, newton_r) if args.interleave else newton_r["frame_s"] / r["frame_s"]
+                ratio = f"{ratio:.2f}×"
                 diff = f"{drift[name]:.1e}"
             lines.append(
                 f"| {n} | {model.particle_count:,} | {model.spring_count:,} | {name} | {r['first_frame_s']:.2f} | "
                 f"{rate:,.0f} | {rate * model.particle_count / 1e9:.3f} G | {r['spread']:.1%} | {ratio} | {diff} |"
             )
         print("\n".join(lines[-len(results):]), flush=True)
+        gathered += [(n, models[name], SUBSTEPS / r["frame_s"]) for name, r in results.items()
+                     if name in models and models[name].spring_gather]
+    if args.bytes:
+        lines += ["", *bytes_table(gathered, device)]
     emit_table(lines, args.out)
+
+
+def bytes_table(gathered: list[tuple[int, ws.Model, float]], device) -> list[str]:
+    """Markdown rows of the gather rows' traffic: (N, model, substeps/s) each."""
+    from traffic import copy_bandwidth, gather_traffic, ncu_dram_bytes, per_particle
+
+    copy = copy_bandwidth(device)
+    lines = [
+        f"Bytes per particle-substep of the fused gather step (`bench/traffic.py`: compulsory = every array "
+        f"once, requested = every load without reuse) and the bandwidth the measured rate draws; "
+        f"`wp.copy` of 512 MB on this device in this run: {copy / 1e9:,.0f} GB/s (read + write).",
+        "",
+        "| N | particle-substeps/s | compulsory | requested | compulsory × rate | of copy | "
+        "ncu DRAM read + write | ncu L2 | ncu kernel time | ncu DRAM bandwidth |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for n, model, rate in gathered:
+        b = per_particle(gather_traffic(model), model)
+        throughput = rate * model.particle_count * model.world_count
+        achieved = b["compulsory"] * throughput
+        ncu = ncu_dram_bytes(n, device, kernel_cache=wp.config.kernel_cache_dir) if device.is_cuda else None
+        profiled = ["", "", "", ""]
+        if isinstance(ncu, dict):
+            dram = ncu.get("dram__bytes_read.sum", 0.0) + ncu.get("dram__bytes_write.sum", 0.0)
+            seconds = ncu.get("gpu__time_duration.sum", 0.0)
+            profiled = [
+                f"{dram / model.particle_count:.0f} B",
+                f"{ncu['lts__t_bytes.sum'] / model.particle_count:.0f} B" if "lts__t_bytes.sum" in ncu else "",
+                f"{seconds * 1e6:.1f} µs",
+                f"{dram / seconds / 1e9:,.0f} GB/s" if seconds else "",
+            ]
+        elif ncu is not None:
+            print(ncu)
+        lines.append(
+            f"| {n} | {throughput / 1e9:.3f} G | {b['compulsory']:.0f} B | {b['requested']:.0f} B | "
+            f"{achieved / 1e9:,.1f} GB/s | {achieved / copy:.0%} | " + " | ".join(profiled) + " |"
+        )
+        print(lines[-1], flush=True)
+    return lines
 
 
 if __name__ == "__main__":

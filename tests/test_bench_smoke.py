@@ -1,0 +1,242 @@
+"""The benchmarks still build and run: every ``bench/*.py`` imports, and each benchmark scene, built by its own
+script's builder at a tiny size, steps a frame or two to a state that obeys something checkable in closed form
+(pins held, free fall where no force has reached yet, pin tracks followed). Speed is not tested here: it
+lives in ``bench/RESULTS.md``."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warpspring as ws
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+sys.path.insert(0, str(BENCH))
+
+import cloth  # noqa: E402  (the bench's scenes and runners)
+
+G = 9.81  # [m/s²], the default gravity of every bench scene but worlds.py's
+H = 1.0 / (cloth.FPS * cloth.SUBSTEPS)  # [s], the bench's substep
+
+
+def free_fall_drop(g: float, steps: int) -> float:
+    """Symplectic Euler's exact drop [m] after ``steps`` steps of H from rest: v_k = g H k, x_k = g H² k(k+1)/2."""
+    return g * H * H * steps * (steps + 1) / 2
+
+
+def positions(state) -> np.ndarray:
+    return state.particle_q.numpy().astype(np.float64)
+
+
+@pytest.mark.parametrize("script", sorted(path.stem for path in BENCH.glob("*.py")))
+def test_every_bench_script_imports(script):
+    assert hasattr(importlib.import_module(script), "main")
+
+
+def test_the_hanging_cloth_holds_its_pins_and_its_bottom_row_falls_freely(device):
+    """The ANCHORS cloth (``cloth.warpspring_model``), 16 × 16, one frame of 16 substeps: the pinned corners
+    stay exactly where they were; the bottom row, 1.5 m below the pins, falls as a free particle does. The
+    pins' pull travels at the longitudinal wave speed, ≈ 0.1 m · √(6 ke / m) ≈ 25 m/s with the bend springs,
+    so ~0.4 m in 1/60 s; what the discrete scheme carries ahead of the front decays fast with distance
+    (measured: 5e-6 m at 0.9 m, 8e-7 m at 1.1 m, 2e-8 m at 1.5 m), and float32 positions near 1 m round to
+    6e-8 m per step: 1e-6 m bounds both at 1.5 m."""
+    model = cloth.warpspring_model(16, device)
+    start = model.state()
+    runner = cloth.WarpspringRunner(model)
+    runner.frame()
+    q0, q = positions(start), runner.positions().astype(np.float64)
+    assert np.isfinite(q).all()
+    pinned = model.kinematic_mask()
+    np.testing.assert_array_equal(q[pinned], q0[pinned])
+    bottom = np.isclose(q0[:, 2], q0[:, 2].min())
+    np.testing.assert_allclose(q0[bottom, 2] - q[bottom, 2], free_fall_drop(G, cloth.SUBSTEPS), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(q[bottom, :2], q0[bottom, :2], atol=1e-6)
+
+
+def test_newton_runs_the_same_cloth_to_the_same_positions(device):
+    """``cloth.NewtonRunner`` (Newton 1.5 or 1.8) on two worlds of the 8 × 8 cloth: both engines integrate the
+    same equations, so two frames (32 substeps) agree to float32 summation order: measured 3e-11 m on the
+    CPU; on a GPU the orders differ more (2e-6 m after a whole second at 64², RESULTS §1), so 1e-6 m."""
+    pytest.importorskip("newton")
+    model = cloth.warpspring_model(8, device, worlds=2)
+    finals = []
+    for engine in (cloth.WarpspringRunner, cloth.NewtonRunner):
+        runner = engine(model)
+        for _ in range(2):
+            runner.frame()
+        finals.append(runner.positions())
+    np.testing.assert_allclose(finals[1], finals[0], rtol=0, atol=1e-6)
+
+
+def test_worlds_fall_under_their_own_gravity(device):
+    """``worlds.batch``: three 32² cloths, each with its own gravity and stiffness, one frame: each world's
+    bottom row (3.1 m below its pins) has fallen freely under its own g (tolerance as above)."""
+    import worlds
+
+    model = worlds.batch(3, device)
+    start = model.state()
+    runner = worlds.Batch(model)
+    runner.frame()
+    n = model.particle_count
+    q0, q = positions(start).reshape(3, n, 3), positions(runner.sim.state).reshape(3, n, 3)
+    g = -model.world_values("gravity")[:, 2]
+    bottom = np.isclose(q0[0, :, 2], q0[0, :, 2].min())
+    for w in range(3):
+        np.testing.assert_allclose(q0[w, bottom, 2] - q[w, bottom, 2], free_fall_drop(g[w], cloth.SUBSTEPS),
+                                   rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("variant", ["fused", "stage"])
+def test_the_contact_scene_falls_as_one_body_before_it_touches(device, variant, monkeypatch):
+    """``contacts.contact_model`` (a free 6 × 6 cloth 0.1 m above a sphere, the ground below), one frame after
+    no settling: nothing touches yet and the springs start at rest, so every particle falls the free-fall
+    drop (float32 rounding of |d| - L leaves spring forces ~1e-5 N against 0.98 N of weight)."""
+    import contacts
+
+    monkeypatch.setattr(contacts, "SETTLE_FRAMES", 0)
+    model = contacts.contact_model(6, device, variant)
+    q0 = positions(model.state())
+    runner = contacts.Runner(model)
+    runner.frame()
+    q = positions(runner.sim.state)
+    np.testing.assert_allclose(q0[:, 2] - q[:, 2], free_fall_drop(G, cloth.SUBSTEPS), rtol=1e-3)
+    np.testing.assert_allclose(q[:, :2], q0[:, :2], atol=1e-6)
+
+
+@pytest.mark.parametrize("scene", ["wind", "handle", "emitter", "strain limit"])
+def test_scene_force_benches_run_and_hold_their_pins(device, scene):
+    """The scenes of ``scene_forces.py`` and ``stabilizers.py`` at 6 × 6, two frames: a finite state whose
+    pinned corners have not moved (the handle grabs the top row but pins outrank it)."""
+    import scene_forces
+    import stabilizers
+
+    if scene == "wind":
+        model = scene_forces.model_with_wind(6, device, noise=False)
+    elif scene == "handle":
+        model = scene_forces.model_with_handle(6, device)
+    elif scene == "emitter":
+        model = scene_forces.model_with_emitter(6, device)
+    else:
+        model = stabilizers.soft_cloth(6, ws.Stabilizers(max_strain=0.1, strain_iterations=4), device)
+    q0 = positions(model.state())[: model.particle_count]
+    sim = ws.Simulator(model, fps=cloth.FPS, substeps=cloth.SUBSTEPS, guard=None)
+    for _ in range(2):
+        sim.step_frame()
+    q = positions(sim.state)
+    assert np.isfinite(q).all()
+    pinned = model.kinematic_mask()
+    np.testing.assert_array_equal(q[: model.particle_count][pinned], q0[pinned])
+
+
+def test_the_soak_scene_follows_its_pin_track(device):
+    """``soak.driven_cloth`` at 6 × 6, one frame: the two driven pins moved along x only, by the smooth track's
+    value at 1/60 s (0 → 0.2 m over 0.5 s; its PCHIP sample on the host), to float32 rounding."""
+    import soak
+
+    model = soak.driven_cloth(device, n=6)
+    q0 = positions(model.state())
+    sim = ws.Simulator(model, fps=cloth.FPS, substeps=cloth.SUBSTEPS, guard=None)
+    sim.step_frame()
+    q = positions(sim.state)
+    swing = ws.Track([0.0, 0.5, 1.0, 1.5, 2.0], [[0, 0, 0], [0.2, 0, 0], [0, 0, 0], [-0.2, 0, 0], [0, 0, 0]],
+                     interpolation="smooth", extrapolation="cycle")
+    offset = swing.sample(1.0 / cloth.FPS)[0][0]
+    assert offset[0] > 1e-4  # the check below is not vacuous
+    pinned = model.kinematic_mask()
+    np.testing.assert_allclose(q[pinned] - q0[pinned], np.broadcast_to(offset, q[pinned].shape), atol=1e-6)
+
+
+def test_the_delaunay_network_holds_its_pinned_base(device):
+    """``adjacency.network_model`` on 200 random points (a hybrid ELL + CSR incidence), one frame: finite, the
+    pinned bottom 5 % unmoved."""
+    import adjacency
+
+    points, springs = adjacency.delaunay_springs(200)
+    model = adjacency.network_model(points, springs, device, "gather")
+    q0 = positions(model.state())
+    sim = ws.Simulator(model, fps=cloth.FPS, substeps=cloth.SUBSTEPS, guard=None)
+    sim.step_frame()
+    q = positions(sim.state)
+    assert np.isfinite(q).all()
+    pinned = model.kinematic_mask()
+    assert pinned.any()
+    np.testing.assert_array_equal(q[pinned], q0[pinned])
+
+
+def test_the_usd_stream_bench_writes_its_frames(device, tmp_path):
+    """``usd_stream.stream`` writes two frames of the 6 × 6 cloth to a file that reads back with both samples."""
+    import usd_stream
+    from pxr import Usd, UsdGeom
+
+    model = usd_stream.cloth(6, device)
+    path = str(tmp_path / "stream.usdc")
+    result = usd_stream.stream(model, path, frames=2)
+    assert len(result["times"]) == 2
+    stage = Usd.Stage.Open(path)
+    meshes = [prim for prim in stage.Traverse() if prim.IsA(UsdGeom.Mesh)]
+    assert meshes and len(UsdGeom.Mesh(meshes[0]).GetPointsAttr().GetTimeSamples()) == 2
+
+
+def test_the_build_bench_counts_the_anchors_springs():
+    """``build.warpspring_build``: an n × n cloth has 2n(n-1) structural, 2(n-1)² shear, 2n(n-2) bend springs."""
+    import build
+
+    _, particles, springs = build.warpspring_build(8)
+    assert (particles, springs) == (64, 2 * 8 * 7 + 2 * 7 * 7 + 2 * 8 * 6)
+
+
+def test_the_traffic_model_counts_the_gathers_arrays():
+    """``traffic.gather_traffic`` on the 8 × 8 cloth, one and four worlds, against counts made by hand from the
+    kernel: 48 B of state (x, v in and out, 12 B each), 12 B per particle of flags and masses, 2 × 12 slots ×
+    4 B of incidence, 12 B per spring (rest length, ke, kd); shared arrays divide among the worlds."""
+    import traffic
+
+    for worlds in (1, 4):
+        model = cloth.warpspring_model(8, "cpu", "gather", worlds=worlds)
+        b = traffic.per_particle(traffic.gather_traffic(model), model)
+        assert b["state"] == 48.0
+        assert b["topology"] == 2 * 12 * 4 / worlds
+        np.testing.assert_allclose(b["spring"], 12 * 306 / (64 * worlds))
+        np.testing.assert_allclose(b["particle"], 4 + 8 / worlds + (model.inputs.shape[1] * 4 + 16) / 64)
+        assert b["requested"] > b["compulsory"]
+    with pytest.raises(ValueError, match="spring_evaluation='gather'"):
+        traffic.gather_traffic(cloth.warpspring_model(8, "cpu", "scatter"))
+
+
+def test_ncu_output_is_read_in_base_units():
+    """``traffic.parse_ncu_csv`` on Nsight Compute's CSV layout: values with thousands separators and unit
+    prefixes come back in bytes and seconds; other lines are ignored."""
+    import traffic
+
+    header = '"ID","Kernel Name","Metric Name","Metric Unit","Metric Value"'
+    text = "\n".join([
+        "==PROF== Connected to process 1",
+        header,
+        '"0","symplectic_euler","dram__bytes_read.sum","byte","244,891,136"',
+        '"0","symplectic_euler","dram__bytes_write.sum","Mbyte","25.5"',
+        '"0","symplectic_euler","gpu__time_duration.sum","usecond","111.9"',
+    ])
+    assert traffic.parse_ncu_csv(text) == {"dram__bytes_read.sum": 244891136.0, "dram__bytes_write.sum": 25.5e6,
+                                           "gpu__time_duration.sum": pytest.approx(111.9e-6)}
+
+
+def test_the_scaling_plot_draws_a_csv(tmp_path):
+    """``scaling_plot.plot`` draws the CSV layout ``scaling.py`` writes into a PNG."""
+    pytest.importorskip("matplotlib")
+    import scaling
+    import scaling_plot
+
+    path = tmp_path / "scaling.csv"
+    rows = [",".join(map(str, [engine, scene, side, worlds, side * side * worlds, 0.1, 1000.0,
+                               1000.0 * side * side * worlds, 0.01]))
+            for engine in ("warpspring (gather)", "newton 1.8.0")
+            for scene, side, worlds in scaling.scenes([16, 32], [4, 16])]
+    path.write_text("# test machine; Warp 1.19.0; 2026-11-25; wp.copy 10.0 GB/s; gather 228 B/particle-substep\n"
+                    + ",".join(scaling.COLUMNS) + "\n" + "\n".join(rows) + "\n")
+    scaling_plot.plot(str(path), str(tmp_path / "scaling.png"))
+    assert (tmp_path / "scaling.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
