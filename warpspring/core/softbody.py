@@ -276,8 +276,8 @@ def grid_topology(mesh, *, spacing: float, youngs_modulus: float, neighbours: in
         raise ConfigError(f"grid ties must be ≥ 1 (nodes each mesh vertex is sprung to), got {ties!r}")
     a = spacing
     lo, hi = mesh.bounds
-    shape = np.floor((hi - lo) / a).astype(np.int64) + 1
-    origin = lo + 0.5 * ((hi - lo) - (shape - 1) * a)  # centred in the bounding box
+    shape = np.maximum(np.floor((hi - lo) / a).astype(np.int64), 1)
+    origin = lo + 0.5 * ((hi - lo) - (shape - 1) * a)  # centred: a box of sides n·a gets nodes a/2 inside
     index = np.indices(shape).reshape(3, -1).T
     inside = mesh.contains(origin + index * a)
     if inside.sum() < 4:
@@ -495,7 +495,7 @@ def delaunay_topology(mesh, *, radius: float, youngs_modulus: float, seed: int =
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     lo, hi = mesh.bounds
     size = float((hi - lo).max())
-    samples = qmc.PoissonDisk(d=3, radius=radius / size, seed=seed).fill_space() * size + lo
+    samples = qmc.PoissonDisk(d=3, radius=radius, l_bounds=lo, u_bounds=hi, ncandidates=10, seed=seed).fill_space()
     samples = samples[mesh.contains(samples)]
     if len(samples):
         samples = samples[mesh.nearest.signed_distance(samples) > 0.5 * radius]
@@ -635,15 +635,6 @@ def _slivers(positions: np.ndarray, tets: np.ndarray, volume_t: np.ndarray, thre
     quality = 6.0 * math.sqrt(2.0) * volume_t / rms**3
     return SliverReport(count=int((quality < threshold).sum()), threshold=float(threshold),
                         min_quality=float(quality.min()) if len(quality) else 1.0, tet_count=len(tets))
-
-
-def _boundary_particles(tets: np.ndarray, n: int) -> np.ndarray:
-    """Mask [n] of the particles on the tet mesh's boundary (faces of one tet only)."""
-    faces = np.sort(tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1)
-    unique, count = np.unique(faces, axis=0, return_counts=True)
-    mask = np.zeros(n, dtype=bool)
-    mask[unique[count == 1].ravel()] = True
-    return mask
 
 
 def _barycentric_embedding(positions: np.ndarray, tets: np.ndarray, points: np.ndarray, candidates: int = 16):
