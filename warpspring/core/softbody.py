@@ -25,7 +25,8 @@ L·(n·ε·n) and stores ½ k L² (n·ε·n)²):
   isotropic solid of Young's modulus E and ν = 1/4; a given mesh deviates with its edges' anisotropy.
 * the network methods (brute force, scaffold, shell) and the Delaunay edges use the same volume rule
   k_e = E·V_e/L_e² with Σ_e V_e = 6V (as Σ over a tet mesh's edges of ΣV_t is): brute force, scaffold and
-  shell share 6V equally among their springs. It is a heuristic for networks that are not a partition of
+  shell share 6V equally among their springs; the uniform grid's ties and skin edges take their layer's
+  volume once (see :func:`grid_topology`). It is a heuristic for networks that are not a partition of
   the volume; how well each honours E is measured (``bench/softbody.py``), not promised.
 """
 
@@ -265,8 +266,10 @@ def grid_topology(mesh, *, spacing: float, youngs_modulus: float, neighbours: in
     particles, each tied to its ``ties`` nearest nodes; springs that would leave the body are dropped.
 
     Lattice springs take the full interior shares of the cubic-lattice rule (18: k = 2aE/5; 26: k₂ = 4aE/15,
-    k₁ = 2k₂, k₃ = 3k₂/8; 6: k = aE, no shear stiffness). Ties and the mesh's edges take the volume rule with
-    the skin layer (area × a/2) as their volume; a node's volume is a³, a vertex's its area share × a/2.
+    k₁ = 2k₂, k₃ = 3k₂/8; 6: k = aE, no shear stiffness). Ties and the mesh's edges take k = E·V/L² with the
+    skin layer's volume (area × a/2) as V, shared among a vertex's ties and by area among the edges, without the
+    factor 6 of the isotropic rule (a tie across the layer of thickness t ≈ L is then the layer's E·A/t; with
+    the factor the grid bodies measured 30-60 % too stiff); a node's volume is a³, a vertex's its area share × a/2.
     """
     from scipy.spatial import cKDTree
 
@@ -333,10 +336,10 @@ def grid_topology(mesh, *, spacing: float, youngs_modulus: float, neighbours: in
                           "nodes from inside the body: use a smaller spacing or more ties")
     tie = tie[keep]
     skin_volume = _area_shares(mesh) * (0.5 * a)
-    tie_volume = 6.0 * skin_volume[tie[:, 0] - n_nodes] / tied[tie[:, 0] - n_nodes]
+    tie_volume = skin_volume[tie[:, 0] - n_nodes] / tied[tie[:, 0] - n_nodes]
     springs["tie"] = (tie, _volume_rule(youngs_modulus, tie_volume, positions, tie))
     edges = np.asarray(mesh.edges_unique, dtype=np.int64)
-    edge_volume = 6.0 * _edge_area(mesh) * (0.5 * a)
+    edge_volume = _edge_area(mesh) * (0.5 * a)
     springs["skin"] = (edges + n_nodes, _volume_rule(youngs_modulus, edge_volume, vertices, edges))
     volume = np.concatenate([np.full(n_nodes, a**3), skin_volume])
     return Topology(positions, springs, volume, *_identity(len(vertices), offset=n_nodes), rule)
