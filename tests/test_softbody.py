@@ -263,6 +263,9 @@ def test_every_method_falls_and_exports(device, tmp_path):
         expected = np.einsum("vj,vjk->vk", body.skin.weights, q[body.skin.indices])
         np.testing.assert_allclose(points, expected, atol=1.0e-6, err_msg=body.method)
         assert list(mesh.GetFaceVertexIndicesAttr().Get()) == ball.faces.ravel().tolist()
+        strain = np.asarray(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("strain").Get(0), dtype=np.float64)
+        # the rest frame: every spring at its rest length, up to float32 positions (6e-8 m near 1 m over 5 cm springs)
+        np.testing.assert_allclose(strain, 0.0, atol=1.0e-5)
         rest = np.asarray(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("rest").Get(), dtype=np.float64)
         np.testing.assert_allclose(rest, ball.vertices + (0.6 * sb.METHODS.index(body.method), 0.0, 1.0), atol=1e-6)
 

@@ -832,7 +832,7 @@ class ModelBuilder:
                 angular frequency ω is damped by ζ = βω/2 whatever the resolution).
             origin, rotation, scale: placement; world = origin + rotation · (scale · vertex).
             velocity: initial velocity [m/s].
-            radius: particles' contact radius [m]; default a quarter of the shortest spring's mean length.
+            radius: particles' contact radius [m]; default a quarter of the mean spring length.
             mass_distribution: ``"volume"`` (each particle's volume share) or ``"uniform"``.
             mass_weights, skin_mass_factor, mass_gradient: relative weights per particle (an array or a function
                 of the rest positions), a factor on the particles the surface follows (a heavier skin), a linear
@@ -885,10 +885,12 @@ class ModelBuilder:
         welded, first, inverse = np.unique(vertices * scale, axis=0, return_index=True, return_inverse=True)
         body = trimesh.Trimesh(welded, inverse.reshape(-1)[faces], process=False, validate=False)
 
-        topology = softbody.build_topology(body, method, youngs_modulus=checks.positive("youngs_modulus", youngs_modulus),
-                                           spacing=spacing, source=source, **dict(options or {}))
         if (mass is None) == (density is None):
             raise ConfigError("give exactly one of density= (kg/m³) or mass= (total, kg) for a soft body")
+        if options is not None and not isinstance(options, Mapping):
+            raise ConfigError(f"a soft body's options must be a mapping of the method's options, got {options!r}")
+        topology = softbody.build_topology(body, method, youngs_modulus=checks.positive("youngs_modulus", youngs_modulus),
+                                           spacing=spacing, source=source, **dict(options or {}))
         if mass is None:
             if not body.is_watertight:
                 raise ConfigError(f"{source}: density= needs the mesh's volume, and an open mesh has none: give mass= "
