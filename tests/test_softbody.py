@@ -313,7 +313,7 @@ EXAMPLES = __import__("pathlib").Path(__file__).resolve().parent.parent / "examp
 
 def test_soft_body_scene_runs(tmp_path):
     """``warpspring run examples/soft_ball.toml`` for 2 frames: the ball's icosphere is written as authored and
-    moved by gravity; the torus example builds a lattice that covers its mesh."""
+    moved by gravity; the torus and jelly-cube examples build."""
     from pxr import Usd, UsdGeom
 
     from warpspring.cli import main
@@ -329,8 +329,9 @@ def test_soft_body_scene_runs(tmp_path):
     np.testing.assert_allclose(first, ball.vertices + (0.0, 0.0, 0.5), atol=1e-6)
     assert (last[:, 2] < first[:, 2]).all()
 
-    builder = load_scene(EXAMPLES / "voxel_torus.toml").builder()
-    assert builder.particle_count > 0 and builder.spring_count > 0
+    for example in ("voxel_torus.toml", "jelly_cube.toml"):
+        builder = load_scene(EXAMPLES / example).builder()
+        assert builder.particle_count > 0 and builder.spring_count > 0
 
 
 @pytest.mark.parametrize("table, message", [

@@ -389,7 +389,7 @@ class ModelBuilder:
         if mesh is not None and hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
             mesh = (np.asarray(mesh.vertices), np.asarray(mesh.faces))
         name = self._unique_name(name, [e.name for e in self._emitters] + [m.name for m in self._meshes]
-                                 + list(RESERVED_PRIM_NAMES))
+                                 + list(RESERVED_PRIM_NAMES) + [k.name for k in self._skins])
         emitter = make_emitter(name, self._particle_count, shape=shape, center=center, half_extents=half_extents,
                                mesh=mesh, rate=rate, bursts=list(bursts), life=life, velocity=velocity,
                                spread=spread, seed=seed, capacity=capacity)
@@ -496,7 +496,8 @@ class ModelBuilder:
                                   f"but the mesh has faces 0..{face_count - 1}")
             sets[checks.identifier("face set name", set_name)] = members.astype(np.int32)
         group = MeshGroup(
-            name=self._unique_name(name, [m.name for m in self._meshes] + list(RESERVED_PRIM_NAMES)),
+            name=self._unique_name(name, [m.name for m in self._meshes] + list(RESERVED_PRIM_NAMES)
+                                   + [k.name for k in self._skins]),
             particles=particles,
             faces=local.reshape(-1, 3).astype(np.int32),
             uvs=uvs,
@@ -909,7 +910,7 @@ class ModelBuilder:
             radius=0.25 * float(lengths.mean()) if radius is None else radius,
         )
         name = self._unique_name(name, [m.name for m in self._meshes] + [k.name for k in self._skins]
-                                 + list(RESERVED_PRIM_NAMES))
+                                 + [e.name for e in self._emitters] + list(RESERVED_PRIM_NAMES))
         springs = {}
         for group, (pairs, ke) in topology.springs.items():
             if len(pairs):
