@@ -245,7 +245,7 @@ def test_every_method_falls_and_exports(device, tmp_path):
     z0 = {body.name: mass[body.particles] @ model.particle_q.numpy()[body.particles, 2] / body.mass for body in bodies}
     dt, steps = 1.0e-4, 20
     path = tmp_path / "soft.usda"
-    with UsdWriter(path, model, fps=1.0 / (dt * steps), primvars=("strain", "rest")) as writer:
+    with UsdWriter(path, model, fps=1.0 / (dt * steps), primvars=("strain", "rest"), springs=True) as writer:
         writer.write_frame(a)
         for _ in range(steps):
             integrator.step(a, b, None, dt)
@@ -268,6 +268,41 @@ def test_every_method_falls_and_exports(device, tmp_path):
         np.testing.assert_allclose(strain, 0.0, atol=1.0e-5)
         rest = np.asarray(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("rest").Get(), dtype=np.float64)
         np.testing.assert_allclose(rest, ball.vertices + (0.6 * sb.METHODS.index(body.method), 0.0, 1.0), atol=1e-6)
+        for group, springs in body.springs.items():  # one curves prim per spring group, a chain through its springs
+            curves = UsdGeom.BasisCurves(stage.GetPrimAtPath(f"/World/springs/{body.name}_{group}"))
+            assert sum(n - 1 for n in curves.GetCurveVertexCountsAttr().Get()) == len(springs)
+
+
+def test_a_usd_mesh_keeps_its_quads(tmp_path):
+    """A soft body from a USD prim of quads: the topology uses its triangles, the export its quads as authored."""
+    from pxr import Usd, UsdGeom
+
+    from warpspring.io.usd import UsdWriter
+
+    source = tmp_path / "cube.usda"
+    stage = Usd.Stage.CreateNew(str(source))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    cube = UsdGeom.Mesh.Define(stage, "/cube")
+    corners = np.array([[x, y, z] for z in (0.0, 0.4) for y in (0.0, 0.4) for x in (0.0, 0.4)])
+    quads = [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]]
+    cube.CreatePointsAttr([tuple(map(float, c)) for c in corners])
+    cube.CreateFaceVertexCountsAttr([4] * 6)
+    cube.CreateFaceVertexIndicesAttr(sum(quads, []))
+    stage.GetRootLayer().Save()
+
+    builder = ws.ModelBuilder()
+    body = builder.add_soft_body(source, prim="/cube", method="voxel", youngs_modulus=E, density=RHO, spacing=0.1)
+    assert body.particle_count == 125  # 4³ voxels
+    path = tmp_path / "out.usda"
+    model = builder.finalize("cpu")
+    with UsdWriter(path, model, fps=30.0) as writer:
+        writer.write_frame(model.state())
+    output = Usd.Stage.Open(str(path))  # held: a prim does not keep its stage alive
+    written = UsdGeom.Mesh(output.GetPrimAtPath("/World/soft_body"))
+    assert list(written.GetFaceVertexCountsAttr().Get()) == [4] * 6
+    assert list(written.GetFaceVertexIndicesAttr().Get()) == sum(quads, [])
+    np.testing.assert_allclose(np.asarray(written.GetPointsAttr().Get(0)), corners, atol=1e-6)
 
 
 # -- elasticity ---------------------------------------------------------------------------------------------------
