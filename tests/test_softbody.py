@@ -190,7 +190,7 @@ def test_bad_options_are_named():
     box = trimesh.creation.box((1.0, 1.0, 1.0))
     with pytest.raises(ConfigError, match="unknown soft-body method 'fem'"):
         sb.build_topology(box, "fem", youngs_modulus=E)
-    with pytest.raises(ConfigError, match="the voxel method takes no option 'ties'"):
+    with pytest.raises(ConfigError, match="the voxel method takes no option 'ties'; its options: body_diagonals"):
         sb.build_topology(box, "voxel", youngs_modulus=E, ties=3)
     with pytest.raises(ConfigError, match="grid neighbours must be one of"):
         sb.build_topology(box, "grid", youngs_modulus=E, neighbours=12)

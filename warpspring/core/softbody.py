@@ -32,8 +32,8 @@ L·(n·ε·n) and stores ½ k L² (n·ε·n)²):
 
 from __future__ import annotations
 
+import inspect
 import math
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -135,23 +135,21 @@ def build_topology(mesh, method: str, *, youngs_modulus: float, spacing: float |
         raise ConfigError(f"soft-body spacing must be a finite length > 0 [m], got {spacing!r}")
     if not (math.isfinite(youngs_modulus) and youngs_modulus > 0.0):
         raise ConfigError(f"youngs_modulus must be a finite number > 0 [Pa], got {youngs_modulus!r}")
-    make = {
-        "brute_force": lambda: brute_force_topology(mesh, youngs_modulus=youngs_modulus, source=source, **options),
-        "voxel": lambda: voxel_topology(mesh, pitch=spacing, youngs_modulus=youngs_modulus, **options),
-        "grid": lambda: grid_topology(mesh, spacing=spacing, youngs_modulus=youngs_modulus, **options),
-        "scaffold": lambda: scaffold_topology(mesh, youngs_modulus=youngs_modulus, **options),
-        "shell": lambda: shell_topology(mesh, youngs_modulus=youngs_modulus, **options),
-        "tetrahedral": lambda: tetrahedral_topology(mesh, edge_length=spacing, youngs_modulus=youngs_modulus,
-                                                    **options),
-        "delaunay": lambda: delaunay_topology(mesh, radius=spacing, youngs_modulus=youngs_modulus, **options),
+    make, fixed = {
+        "brute_force": (brute_force_topology, {"source": source}),
+        "voxel": (voxel_topology, {"pitch": spacing}),
+        "grid": (grid_topology, {"spacing": spacing}),
+        "scaffold": (scaffold_topology, {}),
+        "shell": (shell_topology, {}),
+        "tetrahedral": (tetrahedral_topology, {"edge_length": spacing}),
+        "delaunay": (delaunay_topology, {"radius": spacing}),
     }[method]
-    try:
-        return make()
-    except TypeError as exc:  # an option the method does not take
-        if "unexpected keyword argument" not in str(exc):
-            raise
-        word = str(exc).split("argument")[-1].strip()
-        raise ConfigError(f"the {method} method takes no option {word}") from None
+    taken = set(inspect.signature(make).parameters) - {"mesh", "youngs_modulus"} - set(fixed)
+    unknown = sorted(set(options) - taken)
+    if unknown:
+        raise ConfigError(f"the {method} method takes no option {unknown[0]!r}; its options: "
+                          f"{', '.join(sorted(taken)) or 'none'}")
+    return make(mesh, youngs_modulus=youngs_modulus, **fixed, **options)
 
 
 def require_closed(mesh, method: str, source: str) -> None:
