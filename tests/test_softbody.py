@@ -98,6 +98,7 @@ def test_tetrahedra_fill_the_body(topologies, mesh, method):
     assert np.isin(np.arange(topology.particle_count), tets).all()
     if method == "tetrahedral":
         assert topology.slivers.tet_count == len(tets) and topology.slivers.min_quality > 0.0
+        assert not __import__("os").path.exists("__tracked_surface.stl")  # fTetWild's by-product stays out of the cwd
 
 
 # -- springs inside the body --------------------------------------------------------------------------------------

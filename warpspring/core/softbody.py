@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import inspect
 import math
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -463,10 +464,21 @@ def tetrahedral_topology(mesh, *, edge_length: float, youngs_modulus: float, eps
     except ImportError as exc:
         raise ConfigError("the tetrahedral method needs the optional tetrahedraliser pytetwild (fTetWild, MPL-2.0): "
                           f"pip install 'warpspring[tet]' ({exc})") from None
+    import tempfile
+
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    positions, tets = pytetwild.tetrahedralize(vertices, np.asarray(mesh.faces, dtype=np.int32),
-                                               edge_length_abs=float(edge_length), epsilon=float(epsilon),
-                                               optimize=bool(optimize), coarsen=bool(optimize), num_threads=1, quiet=True)
+    # fTetWild writes "__tracked_surface.stl" into the working directory: let it write into a temporary one
+    # (the working directory is the process's: not for threads that rely on theirs meanwhile)
+    here = os.getcwd()
+    with tempfile.TemporaryDirectory(prefix="warpspring_tet_") as scratch:
+        os.chdir(scratch)
+        try:
+            positions, tets = pytetwild.tetrahedralize(vertices, np.asarray(mesh.faces, dtype=np.int32),
+                                                       edge_length_abs=float(edge_length), epsilon=float(epsilon),
+                                                       optimize=bool(optimize), coarsen=bool(optimize),
+                                                       num_threads=1, quiet=True)
+        finally:
+            os.chdir(here)
     positions = np.asarray(positions, dtype=np.float64)
     tets = np.asarray(tets, dtype=np.int64)
     volume_t = _signed_volumes(positions, tets)
