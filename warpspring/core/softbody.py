@@ -20,9 +20,12 @@ L·(n·ε·n) and stores ½ k L² (n·ε·n)²):
   neighbours) have no shear stiffness (C₄₄ = 0): k = aE gives E along the axes only.
   Mass-spring networks of central springs are fixed at ν = 1/4 (Golec et al. 2020).
 * tetrahedra: k_e = E·Σ_{t ∋ e} V_t / L_e², a heuristic (Van Gelder 1998 derived its 2-D form; Lloyd,
-  Székely & Harders 2007 derive springs from linear FEM and Baudet et al. 2009 show the limits). It is
-  exact on average: for edge directions spread evenly the energy density is E(2 tr ε² + (tr ε)²)/5, the
-  isotropic solid of Young's modulus E and ν = 1/4; a given mesh deviates with its edges' anisotropy.
+  Székely & Harders 2007 derive springs from linear FEM and Baudet et al. 2009 show the limits). Under an
+  affine strain with edge directions spread evenly it stores E(2 tr ε² + (tr ε)²)/5, the isotropic solid of
+  Young's modulus E and ν = 1/4; a real mesh is neither affine (its interior relaxes) nor evenly spread,
+  and the error does not fall with resolution: fTetWild bodies measured −13 … +50 % against the cube and bar
+  checks, a Delaunay lattice of a cube 17-18 % too stiff at any resolution (``bench/RESULTS.md`` §15). Fitting
+  each tet's six springs to the isotropic stiffness by least squares measured worse (+10 … +99 %).
 * the network methods (brute force, scaffold, shell) and the Delaunay edges use the same volume rule
   k_e = E·V_e/L_e² with Σ_e V_e = 6V (as Σ over a tet mesh's edges of ΣV_t is): brute force, scaffold and
   shell share 6V equally among their springs; the uniform grid's ties and skin edges take their layer's
