@@ -197,6 +197,12 @@ def test_bad_options_are_named():
         sb.build_topology(box, "grid", youngs_modulus=E, neighbours=12)
     with pytest.raises(ConfigError, match="youngs_modulus must be"):
         ws.ModelBuilder().add_soft_body(box, youngs_modulus=-1.0, mass=1.0)
+    with pytest.raises(ConfigError, match=r"spacing of 0.001 m .* ~1e\+09 cells, more than 20,000,000"):
+        sb.build_topology(box, "voxel", youngs_modulus=E, spacing=1.0e-3)
+    inside_out = box.copy()
+    inside_out.invert()
+    with pytest.raises(ConfigError, match="encloses no volume.*fix_normals"):
+        sb.build_topology(inside_out, "grid", youngs_modulus=E)
 
 
 # -- masses -------------------------------------------------------------------------------------------------------

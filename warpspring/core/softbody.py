@@ -51,6 +51,9 @@ VOLUME_METHODS = ("voxel", "grid", "shell", "tetrahedral", "delaunay")
 #: Brute force joins every pair of vertices: above this many vertices it refuses (2,000 vertices already
 #: make 1,999,000 springs, a thousand per particle: memory and the stable step both degrade quadratically).
 BRUTE_FORCE_LIMIT = 2000
+#: Cells of the spacing in the bounding box above which the voxel, grid, tetrahedral and Delaunay methods refuse
+#: (a 270³ lattice).
+MAX_CELLS = 20_000_000
 #: A tetrahedron whose quality 6√2·V / L_rms³ (1 for a regular one) is below this is reported as a sliver.
 SLIVER_QUALITY = 0.1
 #: Neighbourhoods of a uniform grid: 6 (edges), 18 (+ face diagonals), 26 (+ body diagonals).
@@ -139,6 +142,10 @@ def build_topology(mesh, method: str, *, youngs_modulus: float, spacing: float |
         raise ConfigError(f"soft-body spacing must be a finite length > 0 [m], got {spacing!r}")
     if not (math.isfinite(youngs_modulus) and youngs_modulus > 0.0):
         raise ConfigError(f"youngs_modulus must be a finite number > 0 [Pa], got {youngs_modulus!r}")
+    cells = float(np.prod(np.ptp(mesh.vertices, axis=0) / spacing + 1.0))
+    if method in ("voxel", "grid", "tetrahedral", "delaunay") and cells > MAX_CELLS:
+        raise ConfigError(f"{source}: a spacing of {spacing:g} m fills its bounding box with ~{cells:.3g} cells, more "
+                          f"than {MAX_CELLS:,} (host memory and build time grow with them): use a larger spacing")
     make, fixed = {
         "brute_force": (brute_force_topology, {"source": source}),
         "voxel": (voxel_topology, {"pitch": spacing}),
@@ -161,6 +168,9 @@ def require_closed(mesh, method: str, source: str) -> None:
     import trimesh
 
     if mesh.is_watertight:
+        if not mesh.volume > 0.0:
+            raise ConfigError(f"{source}: the mesh is closed but encloses no volume (its faces wind inward, or it is "
+                              "flat): fix its winding (trimesh.repair.fix_normals)")
         return
     open_edges = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
     raise ConfigError(
