@@ -136,6 +136,7 @@ def build_topology(mesh, method: str, *, youngs_modulus: float, spacing: float |
         raise ConfigError(f"unknown soft-body method {method!r}: choose from {', '.join(METHODS)}")
     if method in VOLUME_METHODS:
         require_closed(mesh, method, source)
+        _require_ray_tests(method)
     if spacing is None:
         spacing = float(np.ptp(mesh.vertices, axis=0).max()) / 6.0
     if not (math.isfinite(spacing) and spacing > 0.0):
@@ -178,6 +179,15 @@ def require_closed(mesh, method: str, source: str) -> None:
         f"{open_edges} open edge(s) (or edges shared by more than two faces): close it (trimesh.repair.fill_holes) "
         "or use method='brute_force' or 'scaffold'"
     )
+
+
+def _require_ray_tests(method: str) -> None:
+    """The volume methods test points inside the mesh and cast rays: trimesh needs embreex or rtree for that."""
+    import importlib.util
+
+    if importlib.util.find_spec("embreex") is None and importlib.util.find_spec("rtree") is None:
+        raise ConfigError(f"the {method} method casts rays through the mesh, which trimesh does with rtree (or embreex): "
+                          "pip install 'warpspring[soft]'")
 
 
 # -- the seven methods ------------------------------------------------------------------------------------
