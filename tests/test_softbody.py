@@ -154,8 +154,10 @@ def test_embedding_reproduces_the_surface(topologies, mesh, method):
     np.testing.assert_allclose(w.sum(axis=1), 1.0, rtol=0.0, atol=1.0e-12)
     surface = np.einsum("vj,vjk->vk", w, topology.positions[idx])
     np.testing.assert_allclose(surface, m.vertices, rtol=0.0, atol=1.0e-12)
-    if method == "voxel":  # trilinear in a voxel the vertex lies in or overhangs by under half a voxel
-        assert w.shape[1] == 8 and w.min() > -0.5 * 1.5 and w.max() < 1.0 + 1.5
+    if method == "voxel":  # the 8 corners of one voxel: they span one pitch along every axis
+        corners = topology.positions[idx]
+        np.testing.assert_allclose(np.ptp(corners, axis=1), SPACING[mesh], rtol=1e-9)
+        assert all(len(np.unique(np.round(c / SPACING[mesh], 6), axis=0)) == 8 for c in corners[:5])
 
 
 # -- errors -------------------------------------------------------------------------------------------------------
