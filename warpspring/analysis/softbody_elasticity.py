@@ -4,7 +4,8 @@ linear stiffness (``core.softbody.stiffness_matrix``) against the closed forms o
 
 * a cube of side h on frictionless ground under its own weight shortens by ρgh²/(2E) between its bottom and top
   layers (the ground holds the bottom layer's height only; the stress σ_zz = ρg(h − z) is uniaxial for any ν);
-* a bar of length L and section A pulled by F at one end (its other end held axially) stretches by FL/(EA);
+* a bar of length L and section A pulled by F at one end (its other end held axially) stretches by FL/(EA)
+  and contracts sideways by ν times its strain (:func:`bar_poisson_ratio` returns ν itself);
 * a cantilever of length L and square section s (L/s ≥ 10) clamped at one end deflects under its own weight
   q = ρgA by qL⁴/(8EI), I = s⁴/12 (Euler-Bernoulli; shear adds ~(s/L)² relative);
 * a free bar rings in its first longitudinal mode at f = √(E/ρ)/(2L) (lumped masses).
@@ -54,8 +55,25 @@ def cube_shortening(topology, *, youngs_modulus: float, density: float) -> float
 def bar_stretch(topology, *, youngs_modulus: float) -> float:
     """Relative error of a bar's stretch (the box of ``topology``, long along x) pulled by F at x = max, spread
     over that face by area (a Delaunay triangulation of its particles), its x = min face held axially."""
-    x = topology.positions
+    x, u, left, right, pull = _pulled_bar(topology)
     length, side_y, side_z = np.ptp(x, axis=0)
+    return (u[right, 0].mean() - u[left, 0].mean()) / (pull * length / (youngs_modulus * side_y * side_z)) - 1.0
+
+
+def bar_poisson_ratio(topology) -> float:
+    """Poisson's ratio of the pulled bar of :func:`bar_stretch`, −ε_lateral / ε_axial, the strains fitted by least
+    squares to the displacements of the particles in its middle third (away from the ends' constraints)."""
+    x, u, _, _, _ = _pulled_bar(topology)
+    span = x[:, 0].max() - x[:, 0].min()
+    middle = np.abs(x[:, 0] - x[:, 0].mean()) < span / 6.0
+    strain = [np.polyfit(x[middle, k], u[middle, k], 1)[0] for k in range(3)]
+    return -0.5 * (strain[1] + strain[2]) / strain[0]
+
+
+def _pulled_bar(topology):
+    """The bar of :func:`bar_stretch` solved: positions, displacements, the end faces' masks and the pull [N]."""
+    x = topology.positions
+    length = float(np.ptp(x[:, 0]))
     tolerance = 1.0e-6 * length
     left, right = x[:, 0] < x[:, 0].min() + tolerance, x[:, 0] > x[:, 0].max() - tolerance
     fixed = np.zeros(x.shape, dtype=bool)
@@ -64,8 +82,7 @@ def bar_stretch(topology, *, youngs_modulus: float) -> float:
     pull = 10.0  # [N]
     force = np.zeros_like(x)
     force[right, 0] = pull * face_shares(x[right][:, 1:])
-    u = sb.static_displacement(topology, force, fixed)
-    return (u[right, 0].mean() - u[left, 0].mean()) / (pull * length / (youngs_modulus * side_y * side_z)) - 1.0
+    return x, sb.static_displacement(topology, force, fixed), left, right, pull
 
 
 def cantilever_deflection(topology, *, youngs_modulus: float, density: float) -> float:
