@@ -12,6 +12,9 @@ What is authored, and why (USD's fallbacks are wrong for simulation caches):
   [m/s] (renderers motion-blur from them); optionally the primvars ``strain`` and ``pinned`` per frame and
   ``rest`` (Pref) once. Normals are gathered per vertex in a fixed order (no atomics), so a rerun on the
   same device writes the same bytes;
+* each soft body's mesh (``model.skins``) likewise, its faces as authored; per frame its points are the fixed
+  weighted sums of particles that embed it (a host product over the positions read back), with velocities,
+  area-weighted normals, and optionally ``strain`` (its particles' weighted) and ``rest``;
 * colliders as prims of purpose ``guide`` by default (shown in viewports, left out of final renders) with
   their transforms: a sphere as ``UsdGeom.Sphere``, a box as a ``UsdGeom.Cube`` of size 2 scaled by its
   half extents, a capsule as ``UsdGeom.Capsule`` (axis Z, height 2 · half_height), a plane as a finite quad
