@@ -70,6 +70,8 @@ from .core.kinematics import PinGroup
 from .core.material import ClothMaterial
 from .core.memory import MemoryEstimate, available_memory, estimate_memory
 from .core.model import Control, MeshGroup, Model, ShapeInfo, Stabilizers, State
+from .core.model import SkinGroup
+from .core.softbody import SoftBody
 from .core.simulator import Simulator
 from .core.stepper import StepHook, Stepper
 from .core.tracks import Track
@@ -103,6 +105,8 @@ __all__ = [
     "MemoryEstimate",
     "Integrator",
     "MeshGroup",
+    "SkinGroup",
+    "SoftBody",
     "Model",
     "ModelBuilder",
     "OutputError",

@@ -29,7 +29,7 @@ from .handles import HandleFamily, make_handle
 from .hinges import dihedral_angle, mesh_hinges
 from .kinematics import PinGroup, PinGroupTable
 from .material import ClothMaterial, edge_springs, grid_masses, grid_springs, hinge_parameters, lumped_masses
-from .model import MeshGroup, Model, ShapeInfo, Stabilizers
+from .model import MeshGroup, Model, ShapeInfo, SkinGroup, Stabilizers
 from .springs import SPRING_LAWS, SpringPlasticity, spring_law_code
 from ..kernels.springs import SpringLaw
 from .tracks import Track, as_track, input_track
@@ -140,6 +140,7 @@ class ModelBuilder:
         self._emitters: list[Emitter] = []
 
         self._meshes: list[MeshGroup] = []
+        self._skins: list[SkinGroup] = []  # surfaces that follow particles by weights (soft bodies)
         self._shapes: list[ShapeInfo] = []
 
     # -- counts ---------------------------------------------------------------------------------------
@@ -451,7 +452,7 @@ class ModelBuilder:
         if mesh is not None and hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
             mesh = (np.asarray(mesh.vertices), np.asarray(mesh.faces))
         name = self._unique_name(name, [e.name for e in self._emitters] + [m.name for m in self._meshes]
-                                 + list(RESERVED_PRIM_NAMES))
+                                 + list(RESERVED_PRIM_NAMES) + [k.name for k in self._skins])
         emitter = make_emitter(name, self._particle_count, shape=shape, center=center, half_extents=half_extents,
                                mesh=mesh, rate=rate, bursts=list(bursts), life=life, velocity=velocity,
                                spread=spread, seed=seed, capacity=capacity)
@@ -558,7 +559,8 @@ class ModelBuilder:
                                   f"but the mesh has faces 0..{face_count - 1}")
             sets[checks.identifier("face set name", set_name)] = members.astype(np.int32)
         group = MeshGroup(
-            name=self._unique_name(name, [m.name for m in self._meshes] + list(RESERVED_PRIM_NAMES)),
+            name=self._unique_name(name, [m.name for m in self._meshes] + list(RESERVED_PRIM_NAMES)
+                                   + [k.name for k in self._skins]),
             particles=particles,
             faces=local.reshape(-1, 3).astype(np.int32),
             uvs=uvs,
@@ -849,6 +851,152 @@ class ModelBuilder:
         elif dihedral is not None:
             self._add_mesh_hinges(vertices * scale, faces, ids, dihedral)
         return ids
+
+    # -- soft bodies ----------------------------------------------------------------------------------
+
+    def add_soft_body(
+        self,
+        mesh,
+        *,
+        method: str = "voxel",
+        youngs_modulus: float,
+        density: float | None = None,
+        mass: float | None = None,
+        spacing: float | None = None,
+        damping: float = 0.0,
+        origin=(0.0, 0.0, 0.0),
+        rotation=(0.0, 0.0, 0.0, 1.0),
+        scale: float = 1.0,
+        velocity=(0.0, 0.0, 0.0),
+        radius: float | None = None,
+        mass_distribution: str = "volume",
+        mass_weights=None,
+        skin_mass_factor: float = 1.0,
+        mass_gradient=(0.0, 0.0, 0.0),
+        options: Mapping | None = None,
+        name: str = "soft_body",
+        prim: str | None = None,
+    ):
+        """Add a soft body made from a closed mesh by one of the seven mass-spring topologies.
+
+        The topology, its springs' stiffness from E and the particles' volume shares come from
+        :mod:`warpspring.core.softbody` (where each method and each E → k mapping is stated). The mesh as
+        authored (its faces, UVs, face sets) is exported as a USD mesh whose vertices follow the particles
+        through the method's embedding weights (:class:`~warpspring.core.model.SkinGroup`).
+
+        Args:
+            mesh: a ``trimesh.Trimesh``, a file trimesh reads (OBJ, STL, PLY, GLB, ...) or a USD file (``prim``
+                chooses its mesh). Vertices at one position are welded for the topology (a seam does not split
+                the body); the export keeps the authored vertices.
+            method: ``"brute_force"``, ``"voxel"``, ``"grid"``, ``"scaffold"``, ``"shell"``, ``"tetrahedral"``
+                (needs ``pip install warpspring[tet]``) or ``"delaunay"``; all but brute force and scaffold need a
+                closed (watertight) mesh.
+            youngs_modulus: E [Pa], > 0.
+            density: ρ [kg/m³] (the mass is ρ × the mesh's volume: a closed mesh); or ``mass``: total [kg].
+            spacing: the method's resolution [m] (voxel pitch, grid spacing, tet edge length, Poisson-disk
+                radius); default a sixth of the largest extent.
+            damping: stiffness-proportional damping β [s], ≥ 0: each spring's kd = β·ke [N·s/m] (a mode of
+                angular frequency ω is damped by ζ = βω/2 whatever the resolution).
+            origin, rotation, scale: placement; world = origin + rotation · (scale · vertex).
+            velocity: initial velocity [m/s].
+            radius: particles' contact radius [m]; default a quarter of the mean spring length.
+            mass_distribution: ``"volume"`` (each particle's volume share) or ``"uniform"``.
+            mass_weights, skin_mass_factor, mass_gradient: relative weights per particle (an array or a function
+                of the rest positions), a factor on the particles the surface follows (a heavier skin), a linear
+                bias g [1/m] (weights × (1 + g·(x − centroid)): a body heavier on one side rights itself); see
+                :func:`~warpspring.core.softbody.distribute_mass`. Positions are in the mesh's scaled frame.
+            options: the method's own options (``body_diagonals``, ``neighbours``, ``ties``, ``scaffold``,
+                ``thickness``, ``epsilon``, ``optimize``, ``seed``, ``max_vertices``, ...).
+            name: the exported mesh's name; the spring families are ``<name>_<group>``.
+            prim: for a USD file, the path of the mesh prim to read.
+
+        Returns:
+            A :class:`~warpspring.core.softbody.SoftBody`: the particles and springs added, per group counts,
+            the embedding, the E → k rule and, for tets, the sliver report.
+        """
+        import time
+
+        import trimesh
+
+        from . import softbody
+
+        started = time.perf_counter()
+        source = os.fspath(mesh) if isinstance(mesh, (str, os.PathLike)) else name
+        uv = polygons = None
+        face_sets = {}
+        usd = isinstance(mesh, (str, os.PathLike)) and os.fspath(mesh).lower().endswith(USD_EXTENSIONS)
+        if prim is not None and not usd:
+            raise ConfigError(f"prim= chooses a mesh of a USD file ({', '.join(USD_EXTENSIONS)}), not of {mesh!r}")
+        if usd:
+            from ..io.usd_mesh import read_usd_mesh
+
+            read = read_usd_mesh(mesh, prim=prim, up_axis=self.up_axis)
+            vertices, faces = read.vertices, read.triangles
+            polygons, face_sets = (read.polygon_counts, read.polygon_indices), read.face_sets
+        else:
+            if isinstance(mesh, (str, os.PathLike)):
+                mesh = load_mesh_file(mesh, what="soft-body mesh")
+            if not isinstance(mesh, trimesh.Trimesh):
+                raise ConfigError(f"a soft body's mesh must be a trimesh.Trimesh or a mesh file, got {type(mesh).__name__}")
+            vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+            visual_uv = getattr(getattr(mesh, "visual", None), "uv", None)
+            if visual_uv is not None and len(visual_uv) == len(vertices):
+                uv = np.asarray(visual_uv, dtype=np.float64)
+        vertices = _points("soft-body mesh vertices", vertices)
+        faces = np.asarray(faces)
+        if len(vertices) == 0 or faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+            raise ConfigError(f"{source}: a soft body needs a triangle mesh with at least one face, got faces of "
+                              f"shape {faces.shape}")
+        faces = _indices("mesh face vertex", faces, len(vertices)).reshape(-1, 3)
+        scale = checks.positive("scale", scale)
+        welded, first, inverse = np.unique(vertices * scale, axis=0, return_index=True, return_inverse=True)
+        body = trimesh.Trimesh(welded, inverse.reshape(-1)[faces], process=False, validate=False)
+
+        if (mass is None) == (density is None):
+            raise ConfigError("give exactly one of density= (kg/m³) or mass= (total, kg) for a soft body")
+        if options is not None and not isinstance(options, Mapping):
+            raise ConfigError(f"a soft body's options must be a mapping of the method's options, got {options!r}")
+        topology = softbody.build_topology(body, method, youngs_modulus=checks.positive("youngs_modulus", youngs_modulus),
+                                           spacing=spacing, source=source, **dict(options or {}))
+        if mass is None:
+            if not body.is_watertight:
+                raise ConfigError(f"{source}: density= needs the mesh's volume, and an open mesh has none: give mass= "
+                                  "(total, kg)")
+            mass = checks.positive("density", density) * float(body.volume)
+        masses = softbody.distribute_mass(topology, checks.positive("mass", mass), distribution=mass_distribution,
+                                          weights=mass_weights, skin_factor=skin_mass_factor, gradient=mass_gradient)
+        beta = checks.non_negative("damping", damping)
+
+        lengths = np.concatenate([np.linalg.norm(topology.positions[p[:, 1]] - topology.positions[p[:, 0]], axis=1)
+                                  for p, _ in topology.springs.values()] or [np.ones(1)])
+        ids = self.add_particles(
+            self._place(topology.positions, origin, rotation),
+            velocities=np.broadcast_to(checks.vector("velocity", velocity), (topology.particle_count, 3)),
+            mass=masses,
+            radius=0.25 * float(lengths.mean()) if radius is None else radius,
+        )
+        name = self._unique_name(name, [m.name for m in self._meshes] + [k.name for k in self._skins]
+                                 + [e.name for e in self._emitters] + list(RESERVED_PRIM_NAMES))
+        springs = {}
+        for group, (pairs, ke) in topology.springs.items():
+            if len(pairs):
+                springs[group] = self.add_springs(ids[pairs], stiffness=ke, damping=beta * ke, family=f"{name}_{group}")
+        skin = SkinGroup(
+            name=name,
+            indices=ids[topology.skin_indices][inverse.reshape(-1)],
+            weights=topology.skin_weights[inverse.reshape(-1)],
+            faces=faces.astype(np.int32),
+            uvs=uv,
+            polygon_counts=None if polygons is None else np.asarray(polygons[0], dtype=np.int32),
+            polygon_indices=None if polygons is None else np.asarray(polygons[1], dtype=np.int32),
+            face_sets={checks.identifier("face set name", k): np.asarray(v, dtype=np.int32) for k, v in face_sets.items()},
+        )
+        self._skins.append(skin)
+        return softbody.SoftBody(
+            name=name, method=method, particles=ids, springs=springs, skin=skin, stiffness_rule=topology.stiffness_rule,
+            youngs_modulus=float(youngs_modulus), mass=float(masses.sum()), slivers=topology.slivers,
+            topology=topology, build_seconds=time.perf_counter() - started,
+        )
 
     # -- colliders ------------------------------------------------------------------------------------
 
@@ -1150,6 +1298,7 @@ class ModelBuilder:
         model.tri_count = len(tri_indices)
         model.tri_indices = wp.array(tri_indices.astype(np.int32), dtype=wp.int32, device=device)
         model.meshes = list(self._meshes)
+        model.skins = list(self._skins)
 
         model.shapes = list(self._shapes)
         model._finalize_shapes(

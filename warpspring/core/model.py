@@ -118,6 +118,37 @@ class MeshGroup:
     face_sets: dict = field(default_factory=dict)
 
 
+@dataclass
+class SkinGroup:
+    """A surface that follows the particles through fixed weights (a soft body's mesh as authored), exported as
+    one USD mesh: vertex v is at Σⱼ weights[v, j] · x[indices[v, j]].
+
+    Attributes:
+        name: prim name of the mesh (a valid USD identifier).
+        indices: global particle indices each vertex follows, shape [vertex_count, w], int64.
+        weights: their weights [-], shape [vertex_count, w] (rows sum to 1; padding has weight 0).
+        faces: triangles as indices into the skin's vertices, shape [face_count, 3], int32.
+        uvs: texture coordinates per vertex, shape [vertex_count, 2], or ``None``.
+        polygon_counts, polygon_indices: the authored faces (quads stay quads), as in :class:`MeshGroup`, or
+            ``None``.
+        face_sets: named subsets of the faces, as in :class:`MeshGroup`.
+    """
+
+    name: str
+    indices: np.ndarray
+    weights: np.ndarray
+    faces: np.ndarray
+    uvs: np.ndarray | None = None
+    polygon_counts: np.ndarray | None = None
+    polygon_indices: np.ndarray | None = None
+    face_sets: dict = field(default_factory=dict)
+
+    def points(self, q: np.ndarray) -> np.ndarray:
+        """The skin's vertices [m] (or velocities [m/s]) for one world's particle values ``q`` [n, 3]: a fixed-order
+        host product, so the same positions give the same bytes. Shape [vertex_count, 3], float64."""
+        return np.einsum("vj,vjk->vk", self.weights, np.asarray(q, dtype=np.float64)[self.indices])
+
+
 @dataclass(frozen=True)
 class ShapeInfo:
     """Host-side description of one collider, for export and reporting.
@@ -289,6 +320,7 @@ class Model:
     contact_slots: int  # contacts a particle holds in the buffer
 
     meshes: list  # list[MeshGroup], host-side, for export
+    skins: list  # list[SkinGroup], host-side, for export: surfaces embedded in the particles (soft bodies)
 
     def __init__(self, device: wp.Device, precision: str, scalar: type, world_count: int = 1):
         self.device = device
@@ -299,6 +331,7 @@ class Model:
         self.scalar = scalar
         self.vec3 = vec3_type(scalar)
         self.meshes = []
+        self.skins = []
         self.spring_families = {}
         self.spring_material_law = SpringLaw()
         self.spring_plastic_count = 0

@@ -11,11 +11,8 @@ import numpy as np
 from .. import checks
 from ..errors import ConfigError
 from ..kernels.springs import (
-    BROKEN_REST_LENGTH,
-    HOOKE,
     SPRING_LINEAR,
     SPRING_SQUARE,
-    SpringLaw,
     SpringSpec,
     plastic_arrays_type,
     spring_arrays_type,

@@ -161,6 +161,7 @@ class Scene:
         guard: the ``[guard]`` table (run-time checks).
         wind: the ``[wind]`` table as written (aerodynamics on cloth triangles), or ``None``.
         emitters: the ``[[emitter]]`` tables, checked (particle emitters).
+        soft_bodies: the ``[[soft_body]]`` tables, checked (soft bodies from meshes: ModelBuilder.add_soft_body).
         tracks: keyframe tracks of the live inputs the file animates, by input name ("gravity", "drag",
             "max_strain", ...).
         world_count: independent copies of the scene in the model (``[worlds] count``; 1 without ``[worlds]``).
@@ -201,6 +202,7 @@ class Scene:
     tracks: dict = field(default_factory=dict)
     wind: dict | None = None
     emitters: list = field(default_factory=list)
+    soft_bodies: list = field(default_factory=list)
     world_count: int = 1
     world_inputs: dict = field(default_factory=dict)
     world_scales: dict = field(default_factory=dict)
@@ -243,6 +245,9 @@ class Scene:
         for i, emitter in enumerate(self.emitters):
             with _context(where, _label("emitter", i, len(self.emitters))):
                 _add_emitter(builder, emitter, os.path.dirname(self.path))
+        for i, body in enumerate(self.soft_bodies):
+            with _context(where, _label("soft_body", i, len(self.soft_bodies))):
+                _add_soft_body(builder, body, os.path.dirname(self.path))
         for i, collider in enumerate(self.colliders):
             with _context(where, _label("collider", i, len(self.colliders))):
                 _add_collider(builder, collider)
@@ -397,6 +402,28 @@ _EMITTER = {
     "radius": NON_NEGATIVE,
     "seed": _Number(0, integer=True),
 }
+#: A ``[[soft_body]]`` table: ModelBuilder.add_soft_body's arguments (mesh and youngs_modulus required, density
+#: or mass; ``options`` the method's own, checked by the builder).
+_SOFT_BODY = {
+    "name": str,
+    "mesh": str,
+    "prim": str,
+    "method": str,
+    "youngs_modulus": POSITIVE,
+    "density": POSITIVE,
+    "mass": POSITIVE,
+    "spacing": POSITIVE,
+    "damping": NON_NEGATIVE,
+    "scale": POSITIVE,
+    "origin": VECTOR,
+    "rotation": {"axis": VECTOR, "degrees": NUMBER},
+    "velocity": VECTOR,
+    "radius": NON_NEGATIVE,
+    "mass_distribution": str,
+    "skin_mass_factor": POSITIVE,
+    "mass_gradient": VECTOR,
+    "options": dict,
+}
 _SCHEMA = {
     "simulation": {
         "fps": POSITIVE,
@@ -503,6 +530,7 @@ _SCHEMA = {
 _TOP_LEVEL = {"version": _Number(1, integer=True), **{k: (dict, list) if k in ("cloth", "collider") else dict
                                                       for k in _SCHEMA}, "worlds": _Since(2, dict),
               "wind": _Since(2, dict), "emitter": _Since(2, (dict, list)),
+              "soft_body": _Since(2, (dict, list)),
               "contacts": _Since(2, dict)}
 #: How the run-time guard may stop: the whole run, or only the world that failed ([guard] stop).
 GUARD_STOPS = ("run", "world")
@@ -589,7 +617,16 @@ def _parse(data: dict, path: str) -> Scene:
     cloths = _table_list(data.get("cloth", []), where, "cloth")
     colliders = _table_list(data.get("collider", []), where, "collider")
     emitters = _table_list(data.get("emitter", []), where, "emitter")
-    if not cloths and not emitters:
+    soft_bodies = _table_list(data.get("soft_body", []), where, "soft_body")
+    for i, body in enumerate(soft_bodies):
+        label = _label("soft_body", i, len(soft_bodies))
+        _check_table(body, _SOFT_BODY, where, label, version=version)
+        missing = [key for key in ("mesh", "youngs_modulus") if key not in body]
+        if missing:
+            raise ConfigError(f"{where}: [{label}] needs {missing[0]} = ... (the mesh file, and Young's modulus E [Pa])")
+        if ("density" in body) == ("mass" in body):
+            raise ConfigError(f"{where}: [{label}] needs exactly one of density = ... [kg/m³] or mass = ... [kg]")
+    if not cloths and not emitters and not soft_bodies:
         raise ConfigError(f"{where}: the scene has no [cloth] table: add one with grid = {{...}} or mesh = '...' "
                           "(or particles from an [[emitter]])")
     for i, e in enumerate(emitters):
@@ -628,6 +665,7 @@ def _parse(data: dict, path: str) -> Scene:
                    for k, v in data.get("stabilizers", {}).items()}
     scene = Scene(path=path, world=data.get("world", {}), cloths=cloths, colliders=colliders, tracks=tracks,
                   wind=wind, emitters=emitters, version=version, deprecations=deprecations)
+    scene.soft_bodies = soft_bodies
     scene.fps = float(sim.get("fps", scene.fps))
     scene.frames = sim.get("frames", scene.frames)
     scene.substeps = sim.get("substeps", scene.substeps)
@@ -959,6 +997,20 @@ def _add_emitter(builder: ModelBuilder, e: dict, base: str) -> None:
         life=e["life"], velocity=e.get("velocity", (0.0, 0.0, 0.0)), spread=e.get("spread", 0.0),
         capacity=e.get("capacity"), mass=e.get("mass", 1.0e-3), radius=e.get("radius", 0.005), seed=e.get("seed", 0),
         name=e.get("name", "emitter"),
+    )
+
+
+def _add_soft_body(builder: ModelBuilder, body: dict, base: str) -> None:
+    """A ``[[soft_body]]`` table (types checked); the mesh file's path is relative to the scene's folder."""
+    mesh = body["mesh"] if os.path.isabs(body["mesh"]) else os.path.join(base, body["mesh"])
+    builder.add_soft_body(
+        mesh, method=body.get("method", "voxel"), youngs_modulus=body["youngs_modulus"], density=body.get("density"),
+        mass=body.get("mass"), spacing=body.get("spacing"), damping=body.get("damping", 0.0),
+        origin=body.get("origin", (0.0, 0.0, 0.0)), rotation=_rotation(body), scale=body.get("scale", 1.0),
+        velocity=body.get("velocity", (0.0, 0.0, 0.0)), radius=body.get("radius"),
+        mass_distribution=body.get("mass_distribution", "volume"), skin_mass_factor=body.get("skin_mass_factor", 1.0),
+        mass_gradient=body.get("mass_gradient", (0.0, 0.0, 0.0)), options=body.get("options"),
+        name=body.get("name", "soft_body"), prim=body.get("prim"),
     )
 
 

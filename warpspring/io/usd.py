@@ -12,6 +12,9 @@ What is authored, and why (USD's fallbacks are wrong for simulation caches):
   [m/s] (renderers motion-blur from them); optionally the primvars ``strain`` and ``pinned`` per frame and
   ``rest`` (Pref) once. Normals are gathered per vertex in a fixed order (no atomics), so a rerun on the
   same device writes the same bytes;
+* each soft body's mesh (``model.skins``) likewise, its faces as authored; per frame its points are the fixed
+  weighted sums of particles that embed it (a host product over the positions read back), with velocities,
+  area-weighted normals, and optionally ``strain`` (its particles' weighted) and ``rest``;
 * colliders as prims of purpose ``guide`` by default (shown in viewports, left out of final renders) with
   their transforms: a sphere as ``UsdGeom.Sphere``, a box as a ``UsdGeom.Cube`` of size 2 scaled by its
   half extents, a capsule as ``UsdGeom.Capsule`` (axis Z, height 2 · half_height), a plane as a finite quad
@@ -201,6 +204,7 @@ class UsdWriter:
                 xform.GetPrim().SetCustomDataByKey("warpspring:world", w)
             slot = self._define_world(w, path_root, particles=particles, springs=springs)
             slot.colliders = self._write_colliders(path_root)
+            slot.skins = [self._define_skin(skin, w, path_root) for skin in model.skins]
             self._slots.append(slot)
         if model.tri_count and any(slot.meshes for slot in self._slots):
             self._normal_topology()
@@ -275,6 +279,8 @@ class UsdWriter:
                     samples.append((mesh.strain, Vt.FloatArray.FromNumpy(vertex_strain[particles])))
                 if kinematic is not None:
                     samples.append((mesh.pinned, Vt.IntArray.FromNumpy(kinematic[slot.world][particles].astype(np.int32))))
+            for skin in slot.skins:
+                samples += self._skin_samples(skin, q, v, vertex_strain)
             if slot.points is not None:
                 points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q))
                 samples += [(slot.points.points, points), (slot.points.velocities, _vec3(Vt, v)),
@@ -687,6 +693,65 @@ class UsdWriter:
             ))
         return _WorldPrims(world, meshes, points, curves, emitters)
 
+    def _define_skin(self, skin, world: int, root: str) -> _SkinPrims:
+        """Define the USD mesh of a surface embedded in the particles (a soft body's mesh as authored): its faces,
+        UVs and face sets once, like a cloth mesh's; its points, extent, normals and velocities per frame."""
+        from pxr import Sdf
+
+        stage, UsdGeom, Vt, model = self.stage, self._UsdGeom, self._Vt, self.model
+        mesh = UsdGeom.Mesh.Define(stage, f"{root}/{skin.name}")
+        if skin.polygon_counts is not None:
+            counts, indices = skin.polygon_counts, skin.polygon_indices
+        else:
+            counts, indices = np.full(len(skin.faces), 3, np.int32), skin.faces.reshape(-1)
+        mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(counts.astype(np.int32)))
+        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(indices.astype(np.int32)))
+        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        mesh.CreateDoubleSidedAttr(True)
+        mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+        mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+        primvars = UsdGeom.PrimvarsAPI(mesh)
+        if skin.uvs is not None:
+            primvars.CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex).Set(
+                Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(skin.uvs, dtype=np.float32)))
+        for name, faces in skin.face_sets.items():
+            UsdGeom.Subset.CreateGeomSubset(mesh, name, UsdGeom.Tokens.face, Vt.IntArray.FromNumpy(faces),
+                                            familyName="warpspring")
+        strain = None
+        if "strain" in self._primvars:
+            strain = self._animate(primvars.CreatePrimvar(
+                "strain", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).GetAttr())
+        if "rest" in self._primvars:
+            q0 = model.particle_q.numpy().reshape(model.world_count, model.particle_count, 3)[world]
+            primvars.CreatePrimvar("rest", Sdf.ValueTypeNames.Point3fArray, UsdGeom.Tokens.vertex).Set(
+                _vec3(Vt, skin.points(q0)))
+        return _SkinPrims(skin, points=self._animate(mesh.CreatePointsAttr()),
+                          extent=self._animate(mesh.CreateExtentAttr()),
+                          normals=self._animate(mesh.CreateNormalsAttr()),
+                          velocities=self._animate(mesh.CreateVelocitiesAttr()), strain=strain)
+
+    def _skin_samples(self, prims, q: np.ndarray, v: np.ndarray, vertex_strain) -> list:
+        """One frame's samples of an embedded surface: its vertices Σ w x and velocities Σ w v by a host product
+        over the positions already read back (no extra transfer, a fixed order: the same bytes on a rerun),
+        area-weighted vertex normals, and the weighted mean of its particles' strain [-] when asked for."""
+        Vt, UsdGeom = self._Vt, self._UsdGeom
+        skin = prims.skin
+        x = skin.points(q)
+        corner = x[skin.faces]
+        face_normal = np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])  # length 2 × area
+        normal = np.zeros_like(x)
+        for k in range(3):
+            np.add.at(normal, skin.faces[:, k], face_normal)
+        length = np.linalg.norm(normal, axis=1, keepdims=True)
+        normal = np.divide(normal, length, out=np.zeros_like(normal), where=length > 0.0)
+        points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(x, dtype=np.float32))
+        samples = [(prims.points, points), (prims.extent, UsdGeom.PointBased.ComputeExtent(points)),
+                   (prims.normals, _vec3(Vt, normal)), (prims.velocities, _vec3(Vt, skin.points(v)))]
+        if prims.strain is not None and vertex_strain is not None:
+            strain = (skin.weights * vertex_strain[skin.indices]).sum(axis=1)
+            samples.append((prims.strain, Vt.FloatArray.FromNumpy(strain.astype(np.float32))))
+        return samples
+
     def _emitter_samples(self, prims, world: int, q: np.ndarray, v: np.ndarray) -> list:
         """One frame's samples of an emitter's live particles in ``world``: points, ids, widths, velocities,
         extent (a point at the emitter's centre when none lives)."""
@@ -1006,6 +1071,18 @@ class _MeshPrims:
 
 
 @dataclass
+class _SkinPrims:
+    """The animated attributes (paths) of one exported embedded surface (a soft body's mesh)."""
+
+    skin: object  # SkinGroup
+    points: object
+    extent: object
+    normals: object
+    velocities: object
+    strain: object = None
+
+
+@dataclass
 class _PointsPrims:
     """The animated attributes (paths) of the particles' points prim."""
 
@@ -1049,6 +1126,7 @@ class _WorldPrims:
     curves: list  # _CurvePrims per spring family
     emitters: list = field(default_factory=list)  # _EmitterPrims per emitter
     colliders: list = field(default_factory=list)  # (ShapeInfo, translate path, orient path) per moving collider
+    skins: list = field(default_factory=list)  # _SkinPrims per embedded surface (soft bodies)
 
 
 def _set_pose(translate, orient, frame, time=None) -> None:

@@ -1,0 +1,149 @@
+"""How well a soft body's spring network honours Young's modulus: static float64 solves and a modal solve of its
+linear stiffness (``core.softbody.stiffness_matrix``) against the closed forms of linear elasticity (small strain,
+ν-independent where stated). Each function returns the relative error measured / closed form − 1.
+
+* a cube of side h on frictionless ground under its own weight shortens by ρgh²/(2E) between its bottom and top
+  layers (the ground holds the bottom layer's height only; the stress σ_zz = ρg(h − z) is uniaxial for any ν);
+* a bar of length L and section A pulled by F at one end (its other end held axially) stretches by FL/(EA)
+  and contracts sideways by ν times its strain (:func:`bar_poisson_ratio` returns ν itself);
+* a cantilever of length L and square section s (L/s ≥ 10) clamped at one end deflects under its own weight
+  q = ρgA by qL⁴/(8EI), I = s⁴/12 (Euler-Bernoulli; shear adds ~(s/L)² relative);
+* a free bar rings in its first longitudinal mode at f = √(E/ρ)/(2L) (lumped masses).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..core import softbody as sb
+
+G = 9.81  # [m/s²]
+
+
+def box_topology(method: str, size, *, youngs_modulus: float, spacing: float, surface_spacing: float | None = None,
+                 **options):
+    """The topology of an axis-aligned box of ``size`` (x, y, z) [m] centred at the origin by ``method``. For the
+    methods whose particles include the mesh's vertices (all but voxel and tetrahedral) the box's faces are first
+    subdivided to edges of about ``surface_spacing`` [m] (default ``spacing``): a box of 8 vertices would be held
+    or pulled at its corners only."""
+    import trimesh
+
+    box = trimesh.creation.box(size)
+    if method not in ("voxel", "tetrahedral"):
+        edge = surface_spacing or spacing
+        vertices, faces = trimesh.remesh.subdivide_to_size(box.vertices, box.faces, max_edge=edge * 1.5)
+        box = trimesh.Trimesh(vertices, faces, process=True)
+    return sb.build_topology(box, method, youngs_modulus=youngs_modulus, spacing=spacing, **options)
+
+
+def cube_shortening(topology, *, youngs_modulus: float, density: float) -> float:
+    """Relative error of the cube's shortening under its own weight on frictionless ground (the box of
+    ``topology`` must be a cube)."""
+    x = topology.positions
+    side = float(np.ptp(x[:, 2]))
+    tolerance = 1.0e-6 * side
+    bottom, top = x[:, 2] < x[:, 2].min() + tolerance, x[:, 2] > x[:, 2].max() - tolerance
+    fixed = np.zeros(x.shape, dtype=bool)
+    fixed[bottom, 2] = True
+    _hold_rigid_in_plane(fixed, x, np.flatnonzero(bottom), (0, 1))
+    force = np.zeros_like(x)
+    force[:, 2] = -G * sb.distribute_mass(topology, density * side**3)
+    u = sb.static_displacement(topology, force, fixed)
+    return (u[bottom, 2].mean() - u[top, 2].mean()) / (density * G * side**2 / (2.0 * youngs_modulus)) - 1.0
+
+
+def bar_stretch(topology, *, youngs_modulus: float) -> float:
+    """Relative error of a bar's stretch (the box of ``topology``, long along x) pulled by F at x = max, spread
+    over that face by area (a Delaunay triangulation of its particles), its x = min face held axially."""
+    x, u, left, right, pull = _pulled_bar(topology)
+    length, side_y, side_z = np.ptp(x, axis=0)
+    return (u[right, 0].mean() - u[left, 0].mean()) / (pull * length / (youngs_modulus * side_y * side_z)) - 1.0
+
+
+def bar_poisson_ratio(topology) -> float:
+    """Poisson's ratio of the pulled bar of :func:`bar_stretch`, −ε_lateral / ε_axial, the strains fitted by least
+    squares to the displacements of the particles in its middle third (away from the ends' constraints)."""
+    x, u, _, _, _ = _pulled_bar(topology)
+    span = x[:, 0].max() - x[:, 0].min()
+    middle = np.abs(x[:, 0] - x[:, 0].mean()) < span / 6.0
+    strain = [np.polyfit(x[middle, k], u[middle, k], 1)[0] for k in range(3)]
+    return -0.5 * (strain[1] + strain[2]) / strain[0]
+
+
+def _pulled_bar(topology):
+    """The bar of :func:`bar_stretch` solved: positions, displacements, the end faces' masks and the pull [N]."""
+    x = topology.positions
+    length = float(np.ptp(x[:, 0]))
+    tolerance = 1.0e-6 * length
+    left, right = x[:, 0] < x[:, 0].min() + tolerance, x[:, 0] > x[:, 0].max() - tolerance
+    fixed = np.zeros(x.shape, dtype=bool)
+    fixed[left, 0] = True
+    _hold_rigid_in_plane(fixed, x, np.flatnonzero(left), (1, 2))
+    pull = 10.0  # [N]
+    force = np.zeros_like(x)
+    force[right, 0] = pull * face_shares(x[right][:, 1:])
+    return x, sb.static_displacement(topology, force, fixed), left, right, pull
+
+
+def cantilever_deflection(topology, *, youngs_modulus: float, density: float) -> float:
+    """Relative error of a cantilever's tip deflection under its own weight (the box of ``topology``, long along
+    x, square section), clamped (every component held) at x = min, gravity along −z."""
+    x = topology.positions
+    length, side, _ = np.ptp(x, axis=0)
+    tolerance = 1.0e-6 * length
+    root, tip = x[:, 0] < x[:, 0].min() + tolerance, x[:, 0] > x[:, 0].max() - tolerance
+    fixed = np.zeros(x.shape, dtype=bool)
+    fixed[root] = True
+    force = np.zeros_like(x)
+    force[:, 2] = -G * sb.distribute_mass(topology, density * length * side * side)
+    u = sb.static_displacement(topology, force, fixed)
+    q = density * G * side * side
+    return -u[tip, 2].mean() / (q * length**4 / (8.0 * youngs_modulus * side**4 / 12.0)) - 1.0
+
+
+def ring_frequency(topology, *, youngs_modulus: float, density: float, modes: int = 24) -> float:
+    """Relative error of a free bar's first longitudinal frequency (the box of ``topology``, long along x): of its
+    ``modes`` lowest modes (lumped masses, a shift-invert eigensolve), the one closest in shape to cos(πx/L)."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    x = topology.positions
+    length, side_y, side_z = np.ptp(x, axis=0)
+    mass = sb.distribute_mass(topology, density * length * side_y * side_z)
+    pairs = np.concatenate([p for p, _ in topology.springs.values()])
+    ke = np.concatenate([k for _, k in topology.springs.values()])
+    scale = sp.diags(np.repeat(1.0 / np.sqrt(mass), 3))
+    a = scale @ sb.stiffness_matrix(x, pairs, ke) @ scale
+    shift = -1.0e-6 * a.diagonal().mean()
+    omega2, vectors = spla.eigsh(a.tocsc(), k=min(modes, a.shape[0] - 2), sigma=shift, which="LM")
+    shapes = (vectors / np.repeat(np.sqrt(mass), 3)[:, None]).reshape(len(x), 3, -1)
+    ideal = np.cos(np.pi * (x[:, 0] - x[:, 0].min()) / length)
+    weight = mass[:, None] * shapes[:, 0]
+    likeness = np.abs(ideal @ weight) / np.sqrt((mass[:, None, None] * shapes**2).sum(axis=(0, 1)) * (mass @ ideal**2))
+    best = int(np.argmax(likeness))
+    measured = np.sqrt(max(omega2[best], 0.0)) / (2.0 * np.pi)
+    return measured / (np.sqrt(youngs_modulus / density) / (2.0 * length)) - 1.0
+
+
+def face_shares(points_2d: np.ndarray) -> np.ndarray:
+    """Each point's share (summing to 1) of a convex planar face's area, by a Delaunay triangulation: a third of
+    each of its triangles."""
+    from scipy.spatial import Delaunay
+
+    tri = Delaunay(points_2d).simplices
+    corner = points_2d[tri]
+    d1, d2 = corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0]
+    area = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
+    share = np.bincount(tri.ravel(), weights=np.repeat(area / 3.0, 3), minlength=len(points_2d))
+    return share / share.sum()
+
+
+def _hold_rigid_in_plane(fixed: np.ndarray, x: np.ndarray, layer: np.ndarray, axes: tuple) -> None:
+    """Hold the in-plane rigid motions of a layer of particles whose normal component is held: both in-plane
+    components of the particle nearest the layer's centre, and the second of the one farthest along the first."""
+    i, j = axes
+    centre = x[layer][:, list(axes)].mean(axis=0)
+    a = layer[np.argmin(np.linalg.norm(x[layer][:, list(axes)] - centre, axis=1))]
+    b = layer[np.argmax(np.abs(x[layer, i] - x[a, i]) - 10.0 * np.abs(x[layer, j] - x[a, j]))]
+    fixed[a, i] = fixed[a, j] = True
+    fixed[b, j] = True
