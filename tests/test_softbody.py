@@ -397,3 +397,20 @@ def test_soft_body_table_is_checked(tmp_path, table, message):
     scene.write_text(f"version = 2\n\n[[soft_body]]\n{table}\n")
     with pytest.raises(ConfigError, match=message):
         load_scene(scene)
+
+
+def test_shell_layer_is_offset_with_either_ray_engine():
+    """The shell's local feature size comes from rays cast inward from the skin's vertices. trimesh's rtree
+    intersector reports the vertex's own triangles at distance ~0 where Embree does not: either way every inner
+    vertex must sit at min(thickness, 0.4 × feature size) inside — for a sphere of radius r, 0.4 × 2r — never on
+    the skin (a zero offset gives particles of zero mass)."""
+    from trimesh.ray.ray_triangle import RayMeshIntersector
+
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.2)
+    ball.ray = RayMeshIntersector(ball)  # the engine without Embree
+    topology = sb.shell_topology(ball, youngs_modulus=E, thickness=0.5)
+    n = len(ball.vertices)
+    depth = np.linalg.norm(topology.positions[:n] - topology.positions[n:], axis=1)
+    # The chord through the centre is 2r up to the icosphere's facets (its vertices are on the sphere).
+    np.testing.assert_allclose(depth, 0.4 * 2.0 * 0.2, rtol=0.02)
+    assert np.all(topology.volume > 0.0)

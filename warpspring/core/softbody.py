@@ -443,10 +443,15 @@ def shell_topology(mesh, *, youngs_modulus: float, thickness: float | None = Non
     inward = -np.asarray(mesh.vertex_normals, dtype=np.float64)
     n = len(vertices)
     extent = float(np.ptp(vertices, axis=0).max())
-    start = vertices + 1.0e-6 * extent * inward
-    locations, ray, _ = mesh.ray.intersects_location(start, inward, multiple_hits=False)
+    # Every hit along the inward normal, the nearest one beyond a hair of the start: a ray from a vertex can
+    # graze its own triangles (rtree's intersector reports them, Embree's does not), and a zero feature size
+    # would collapse the inner layer onto the skin (zero volume, zero mass).
+    hair = 1.0e-4 * extent
+    locations, ray, _ = mesh.ray.intersects_location(vertices, inward, multiple_hits=True)
+    distance = np.einsum("ij,ij->i", locations - vertices[ray], inward[ray])
+    far = distance > hair
     feature = np.full(n, np.inf)
-    np.minimum.at(feature, ray, np.linalg.norm(locations - start[ray], axis=1))
+    np.minimum.at(feature, ray[far], distance[far])
     offset = np.minimum(thickness, feature_fraction * feature)
     positions = np.concatenate([vertices, vertices + offset[:, None] * inward])
     edges = np.asarray(mesh.edges_unique, dtype=np.int64)
