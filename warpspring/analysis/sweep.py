@@ -298,7 +298,7 @@ def _axis_values(spec, where: str, key: str) -> list:
     if not isinstance(spec, dict):
         raise ConfigError(f"{label} must be a list of values or a table {{ range | log | random = [a, b], ... }}, got "
                           f"{spec!r}")
-    kinds = [k for k in _AXIS_KEYS if k in spec]
+    kinds = [k for k in _AXIS_KEYS if k in spec and not (k == "log" and "random" in spec)]  # (a sample's option)
     if len(kinds) != 1:
         raise ConfigError(f"{label} needs exactly one of range = [start, stop], log = [start, stop] or "
                           "random = [low, high]")
@@ -870,13 +870,16 @@ class LocalEngine:
         pass
 
 
-def map_jobs(engine, fn: Callable, jobs: list, *, shared: tuple = ()) -> list:
+def map_jobs(engine, fn: Callable, jobs: list, *, shared: tuple = (), done: Callable | None = None) -> list:
     """``[fn(job, *shared) for job in jobs]`` through ``engine`` (:class:`LocalEngine` when ``None``), in job
-    order whatever order they finish in."""
+    order whatever order they finish in; ``done(result)`` is called as each arrives. A job that raises
+    raises here."""
     engine = engine or LocalEngine()
     results = [None] * len(jobs)
     for i, value in engine.run(fn, jobs, shared=shared):
         results[i] = value
+        if done is not None:
+            done(value)
     return results
 
 
