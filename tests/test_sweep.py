@@ -322,3 +322,15 @@ def test_on_ray_the_trade_study_gives_the_local_rows(device, ray_engine):
                                                                           if k not in timing}
     assert local.trajectories.keys() == remote.trajectories.keys()
     np.testing.assert_array_equal(local.references["cloth"].q, remote.references["cloth"].q)
+
+
+def test_on_ray_the_stability_map_gives_the_local_limits(device, ray_engine):
+    from warpspring.analysis.stability_map import MapPlan, run_map
+
+    plan = MapPlan(name="tiny", zetas=(0.1,), spring_points=4, spring_rounds=1, spring_steps=256, cloth_size=3,
+                   cloth_stiffness=(1.0e2,), cloth_steps=256, cloth_resolution=0.2, implicit_steps=32, doublings=0)
+    local = run_map(plan, device, integrators=["symplectic_euler"])
+    remote = run_map(plan, device, integrators=["symplectic_euler"], engine=ray_engine)
+    assert local.springs and local.cloth
+    assert remote.springs == local.springs and remote.cloth == local.cloth  # each bracket, bit for bit
+    assert remote.predictions.keys() == local.predictions.keys() and set(remote.timings) == set(local.timings)

@@ -228,6 +228,10 @@ def _cmd_sweep(args) -> int:
         print(f"sweep {args.sweep}: {len(plan.variants)} variants on {engine.describe()}", flush=True)
         result = run_sweep(plan, args.out, engine=engine, resume=args.resume, device=args.device,
                            progress=not args.quiet and sys.stderr.isatty())
+    except KeyboardInterrupt:
+        print(f"warpspring: interrupted; the results so far are in {args.out}: continue with --resume",
+              file=sys.stderr)
+        return 130
     finally:
         engine.close()
     paths = write_report(result, args.out)
@@ -301,7 +305,7 @@ def _cmd_trade(args) -> int:
         plan=QUICK if args.quick else FULL,
         integrators=args.integrators,
         progress=not args.quiet and sys.stderr.isatty(),
-        engine=engine,
+        **({} if engine is None else {"engine": engine}),
     )
     if engine is not None:
         engine.close()
@@ -353,8 +357,8 @@ def _cmd_stability(args) -> int:
     wp.config.log_level = wp.LOG_WARNING
     started = time.perf_counter()
     engine = _study_engine(args)
-    result = run_map(QUICK if args.quick else FULL, resolve_device(args.device), integrators=args.integrators,
-                     engine=engine)
+    on_ray = {} if engine is None else {"engine": engine}
+    result = run_map(QUICK if args.quick else FULL, resolve_device(args.device), integrators=args.integrators, **on_ray)
     if engine is not None:
         engine.close()
     paths = write_report(result, args.out)

@@ -167,8 +167,6 @@ def plan_sweep(data: dict, *, path: str = "<sweep>") -> SweepPlan:
         ConfigError: a malformed sweep table, an axis key that is not a scene key, a value of a type a scene
             file cannot hold, or variants the scene parser refuses.
     """
-    from ..io.scene import load_scene  # noqa: F401  (the scene module: its parser checks every variant)
-
     where = os.path.basename(path)
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: a sweep must be a table")
@@ -213,18 +211,19 @@ def plan_sweep(data: dict, *, path: str = "<sweep>") -> SweepPlan:
     else:
         combos = list(itertools.product(*axes.values()))
     extras = {"reference": reference is not None and _digest(reference), "usd": usd}
-    variants, problems = [], []
+    variants, problems, durations = [], [], []
     for i, combo in enumerate(combos):
         params = dict(zip(axes, combo))
         try:
             scene = base
             for key, value in params.items():
                 scene = apply_override(scene, key, value, where=where)
-            _check_scene(scene, scene_path)
+            parsed = _check_scene(scene, scene_path)
         except ConfigError as exc:
             problems.append(f"variant {i} ({describe_params(params)}): {_one_line(exc)}")
             continue
         variants.append(Variant(index=i, params=params, scene=scene, key=variant_hash(scene, **extras)))
+        durations.append(parsed.frames / parsed.fps)
     reference_key = None
     if reference is not None:
         try:
@@ -233,8 +232,7 @@ def plan_sweep(data: dict, *, path: str = "<sweep>") -> SweepPlan:
             problems.insert(0, f"reference: {_one_line(exc)}")
         else:
             reference_key = variant_hash(reference, reference=False, usd=False)
-            for v in variants:
-                duration = _duration(v.scene, scene_path)
+            for v, duration in zip(variants, durations):
                 if not math.isclose(duration, ref.frames / ref.fps, rel_tol=1e-12):
                     problems.append(f"variant {v.index} ({describe_params(v.params)}): runs {duration:.6g} s but the "
                                     f"reference {ref.frames / ref.fps:.6g} s: the error compares end states at one time")
@@ -435,11 +433,6 @@ def _check_scene(data: dict, scene_path: str):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecatedKeyWarning)
         return parse_scene(data, path=scene_path)
-
-
-def _duration(data: dict, scene_path: str) -> float:
-    scene = _check_scene(data, scene_path)
-    return scene.frames / scene.fps
 
 
 def variant_hash(scene: dict, *, reference=False, usd: bool = False) -> str:
