@@ -2,8 +2,8 @@
 
 Two measurements, each printing a Markdown table:
 
-* ``--ray``: a sweep of ``--variants`` small variants (the 12 × 12 hanging cloth of ANCHORS.md — 0.1 kg
-  particles 0.1 m apart, ke = 1e3 N/m, kd = 10 N·s/m, two top corners pinned — 30 frames of 16 substeps,
+* ``--ray``: a sweep of ``--variants`` small variants (the 16 × 16 hanging cloth of ANCHORS.md — 0.1 kg
+  particles 0.1 m apart, ke = 1e3 N/m, kd = 10 N·s/m, two top corners pinned — 60 frames of 16 substeps,
   structural stiffness log-spaced over 1e2 … 1e4 N/m and drag on or off) through
   ``warpspring.analysis.sweep.run_sweep`` on a local Ray with 1, then 2 workers: variants per minute of
   the sweep (Ray's start-up apart), both with the sweep's batching (variants of one topology as worlds of
@@ -11,10 +11,12 @@ Two measurements, each printing a Markdown table:
 * ``--worlds`` (no Ray: the lent GPU machines cannot carry Ray's wheel): N variants of a 32² cloth (the
   same cloth, 60 frames of 16 substeps, stiffness and gravity varied) run by the sweep's own task
   (``run_batch``) as one model of N worlds, against N single-variant tasks one after the other; the
-  compile happens in a warm-up task first.
+  compile happens in a warm-up task first. The metrics are taken on the host from every frame (or every
+  ``--metrics-every`` frames): a float64 pass over every particle that a GPU's batch can outrun.
 
     python bench/sweep.py --ray --variants 100
     python bench/sweep.py --worlds --device cuda:0 --variants 16 64 256
+    python bench/sweep.py --worlds --device cuda:0 --variants 16 64 256 --metrics-every 60
 """
 
 from __future__ import annotations
@@ -53,7 +55,7 @@ def cloth_scene(side: int, frames: int) -> dict:
 
 def ray_plan(variants: int, batch: int) -> sw.SweepPlan:
     return sw.plan_sweep({
-        "scene": cloth_scene(12, 30),
+        "scene": cloth_scene(16, 60),
         "sweep": {"batch": batch},
         "axes": {"cloth.structural.ke": {"log": [1.0e2, 1.0e4], "count": variants // 2},
                  "world.drag": [0.0, 0.01]},
@@ -99,8 +101,8 @@ def worlds_variants(count: int) -> tuple[list, str]:
     return variants, "bench-sweep"
 
 
-def measure_worlds(counts: list[int], device: str) -> list[str]:
-    settings = sw.RunSettings(device=device)
+def measure_worlds(counts: list[int], device: str, metrics_every: int) -> list[str]:
+    settings = sw.RunSettings(device=device, metrics_every=metrics_every)
     warm, path = worlds_variants(2)
     sw.run_batch(sw.Batch(tuple(warm), path), settings)  # compile (and load) the kernels
     sw.run_batch(sw.Batch(tuple(warm[:1]), path), settings)
@@ -131,6 +133,8 @@ def main() -> None:
     parser.add_argument("--variants", type=int, nargs="+", default=None,
                         help="--ray: the sweep's size (default 100); --worlds: the N to measure (default 16 64 256)")
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="--ray: worker counts (default 1 2)")
+    parser.add_argument("--metrics-every", type=int, default=1,
+                        help="--worlds: frames between the metrics' host samples (default 1: every frame)")
     args = parser.parse_args()
     if not (args.ray or args.worlds):
         parser.error("choose --ray or --worlds")
@@ -144,7 +148,8 @@ def main() -> None:
     if args.ray:
         lines += measure_ray((args.variants or [100])[0], args.workers, args.device)
     if args.worlds:
-        lines += ([""] if args.ray else []) + measure_worlds(args.variants or [16, 64, 256], device.alias)
+        lines += ([""] if args.ray else []) + measure_worlds(args.variants or [16, 64, 256], device.alias,
+                                                             args.metrics_every)
     print("\n" + "\n".join(lines))
 
 

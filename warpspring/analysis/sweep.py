@@ -8,6 +8,7 @@ A sweep file (TOML) names a base scene and axes over its keys::
     reference = { "simulation.substeps" = 64 }   # optional: the run the variants' error is measured against
     usd = false                        # write each variant's animation to OUT/usd/<hash>.usdc
     batch = 16                         # variants of one topology run as worlds of one model, this many at most
+    metrics_every = 1                  # frames between the metrics' samples (the first and last always)
 
     [set]                              # overrides of every variant (and of the reference)
     "simulation.frames" = 30
@@ -84,7 +85,7 @@ _SEGMENT = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)(?:\[([0-9]+)\])?")
 _RESERVED = {"output.path": "the sweep writes each variant's USD to OUT/usd/<hash>.usdc (set [sweep] usd = true)",
              "simulation.device": "the engine chooses each task's device (warpspring sweep --device, --gpus)",
              "version": "set it in the base scene"}
-_SWEEP_KEYS = {"scene", "combine", "reference", "usd", "batch"}
+_SWEEP_KEYS = {"scene", "combine", "reference", "usd", "batch", "metrics_every"}
 _AXIS_KEYS = {"range": ("step", "count"), "log": ("count",), "random": ("count", "seed", "log", "integer")}
 
 
@@ -121,6 +122,8 @@ class SweepPlan:
         reference_key: its hash, or ``None``.
         usd: write each variant's USD.
         batch: most variants run as worlds of one model.
+        metrics_every: frames between the samples the metrics are taken from (the first and the last frame
+            always); the host's float64 pass over every particle then costs that much less.
     """
 
     path: str
@@ -131,6 +134,7 @@ class SweepPlan:
     reference_key: str | None = None
     usd: bool = False
     batch: int = DEFAULT_BATCH
+    metrics_every: int = 1
 
     @property
     def keys(self) -> list[str]:
@@ -190,6 +194,10 @@ def plan_sweep(data: dict, *, path: str = "<sweep>") -> SweepPlan:
     batch = sweep.get("batch", DEFAULT_BATCH)
     if isinstance(batch, bool) or not isinstance(batch, int) or batch < 1:
         raise ConfigError(f"{where}: sweep.batch must be an integer >= 1 (most variants per model), got {batch!r}")
+    every = sweep.get("metrics_every", 1)
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        raise ConfigError(f"{where}: sweep.metrics_every must be an integer >= 1 (frames between the metrics' "
+                          f"samples), got {every!r}")
     fixed = _overrides(data.get("set", {}), where, "set")
     for key, value in fixed.items():
         base = apply_override(base, key, value, where=f"{where}: [set]")
@@ -210,7 +218,7 @@ def plan_sweep(data: dict, *, path: str = "<sweep>") -> SweepPlan:
         combos = list(zip(*axes.values()))
     else:
         combos = list(itertools.product(*axes.values()))
-    extras = {"reference": reference is not None and _digest(reference), "usd": usd}
+    extras = {"reference": reference is not None and _digest(reference), "usd": usd, "metrics_every": every}
     variants, problems, durations = [], [], []
     for i, combo in enumerate(combos):
         params = dict(zip(axes, combo))
@@ -242,7 +250,7 @@ def plan_sweep(data: dict, *, path: str = "<sweep>") -> SweepPlan:
                           f"{' (and the reference)' if problems[0].startswith('reference') else ''}; nothing ran:\n  "
                           + "\n  ".join(problems))
     return SweepPlan(path=path, scene_path=scene_path, axes=axes, variants=variants, reference=reference,
-                     reference_key=reference_key, usd=usd, batch=batch)
+                     reference_key=reference_key, usd=usd, batch=batch, metrics_every=every)
 
 
 def _base_scene(data: dict, sweep: dict, path: str, where: str) -> tuple[dict, str]:
@@ -435,10 +443,12 @@ def _check_scene(data: dict, scene_path: str):
         return parse_scene(data, path=scene_path)
 
 
-def variant_hash(scene: dict, *, reference=False, usd: bool = False) -> str:
+def variant_hash(scene: dict, *, reference=False, usd: bool = False, metrics_every: int = 1) -> str:
     """The key of a variant's result: a SHA-256 (16 hex digits) of its scene's tables (canonical JSON,
-    keys sorted), the sweep format, its reference's digest and whether its USD is written."""
-    return _digest({"format": SWEEP_FORMAT_VERSION, "scene": scene, "reference": reference, "usd": usd})[:16]
+    keys sorted), the sweep format, its reference's digest, whether its USD is written and how often its
+    metrics are sampled."""
+    return _digest({"format": SWEEP_FORMAT_VERSION, "scene": scene, "reference": reference, "usd": usd,
+                    "metrics_every": metrics_every})[:16]
 
 
 def _digest(value) -> str:
@@ -540,12 +550,14 @@ class RunSettings:
         reference_q: the reference run's final positions [m], float64, shape [particles, 3], or ``None``.
         task_hook: called with the batch at the start of every task, in the process that runs it (logging,
             or a test's fault injection), or ``None``.
+        metrics_every: frames between the metrics' samples (the first and the last frame always).
     """
 
     device: str | None = None
     usd_dir: str | None = None
     reference_q: np.ndarray | None = None
     task_hook: Callable | None = None
+    metrics_every: int = 1
 
 
 @dataclass
@@ -664,7 +676,6 @@ def _run_worlds(variants, scene_path: str, settings: RunSettings) -> BatchOutput
     from ..core.integrators import make_integrator
     from ..core.simulator import Simulator
     from ..io.runner import resolve_device
-    from .trade import SpringNetwork
 
     t0 = time.perf_counter()
     device = resolve_device(settings.device)
@@ -679,10 +690,8 @@ def _run_worlds(variants, scene_path: str, settings: RunSettings) -> BatchOutput
     limits = type(guard)(every=guard.every, tear_strain=guard.tear_strain, max_kinetic_energy=guard.max_kinetic_energy,
                          energy_balance=guard.energy_balance, stop="world")
     sim = Simulator(model, integrator=integrator, fps=scene.fps, substeps=scene.substeps, guard=limits)
-    networks = [SpringNetwork.of(model, world=w) for w in range(worlds)]
-    distance = _ContactDistance(model)
     writers = _writers(model, scene, variants, settings)
-    metrics = _Metrics(worlds)
+    metrics = _Metrics(model)
     done = np.zeros(worlds, dtype=np.int64)  # frames each world completed
     stopped: dict[int, str] = {}
     t1, completed = None, 0
@@ -699,18 +708,18 @@ def _run_worlds(variants, scene_path: str, settings: RunSettings) -> BatchOutput
                     break
                 for w in sorted(set(sim.world_failures) - set(stopped)):
                     stopped[w] = _failure(sim, w, scene.substeps)
-            wp.synchronize_device(device)
-            q = sim.state.particle_q.numpy().astype(np.float64).reshape(worlds, n, 3)
-            qd = sim.state.particle_qd.numpy().astype(np.float64).reshape(worlds, n, 3)
-            for w in range(worlds):
-                if w in stopped:
-                    continue
-                metrics.record(w, networks[w], q[w], qd[w], distance(q[w], frame / scene.fps))
-                done[w] = frame
-                if writers:
-                    writers[w][1].write_frame(sim.state)
+            running = np.array([w not in stopped for w in range(worlds)])
+            if frame % settings.metrics_every == 0 or frame == scene.frames:
+                wp.synchronize_device(device)
+                q = sim.state.particle_q.numpy().astype(np.float64).reshape(worlds, n, 3)
+                qd = sim.state.particle_qd.numpy().astype(np.float64).reshape(worlds, n, 3)
+                metrics.record(running, q, qd, frame / scene.fps)
+            done[running] = frame
+            for w in np.flatnonzero(running) if writers else ():
+                writers[w][1].write_frame(sim.state)
             completed = frame
             if frame == 1:
+                wp.synchronize_device(device)
                 t1 = time.perf_counter()
     finally:
         for path, writer in writers:
@@ -744,27 +753,46 @@ def _failure(sim, world: int, substeps: int) -> str:
 
 
 class _Metrics:
-    """Per-world running extremes of the frames a run passes."""
+    """Every world's running extremes over the frames it passes, in float64 on the host, one vectorised pass
+    per frame over all worlds: the largest spring strain (|d| − L) / L, the energy (kinetic + gravitational
+    from the start + spring elastic ½ k (|d| − L)²) at the first and the last frame, and the smallest signed
+    distance from a particle's surface to a collider."""
 
-    def __init__(self, worlds: int):
+    def __init__(self, model):
+        worlds, n = model.world_count, model.particle_count
+        self.springs = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64)
+        self.rest = model.spring_rest_length.numpy().astype(np.float64)
+        self.stiffness = model.world_values("spring_stiffness")  # [worlds, springs]
+        self.mass = model.world_values("particle_mass")  # [worlds, particles]
+        self.gravity = model.world_values("gravity")  # [worlds, 3]
+        self.initial_q = model.particle_q.numpy().astype(np.float64).reshape(worlds, n, 3)
+        self.distance = _ContactDistance(model)
         self.strain = np.full(worlds, -np.inf)
-        self.distance = np.full(worlds, np.inf)
+        self.nearest = np.full(worlds, np.inf)
         self.energy_start = np.full(worlds, np.nan)
         self.energy_end = np.full(worlds, np.nan)
         self.last_q: dict[int, np.ndarray] = {}
-        self.contacts = False
 
-    def record(self, w: int, network, q: np.ndarray, qd: np.ndarray, distance: float | None) -> None:
-        if len(network.springs):
-            self.strain[w] = max(self.strain[w], network.max_strain(q))
-        energy = network.energy(q, qd)
-        if np.isnan(self.energy_start[w]):
-            self.energy_start[w] = energy
+    def record(self, running: np.ndarray, q: np.ndarray, qd: np.ndarray, t: float) -> None:
+        """Take the frame at time ``t`` [s] of the worlds ``running`` (bool, [worlds]); ``q`` [m], ``qd``
+        [m/s]: every world's positions and velocities, [worlds, particles, 3]."""
+        w = np.flatnonzero(running)
+        q, qd = q[w], qd[w]
+        energy = 0.5 * np.sum(self.mass[w] * np.sum(qd * qd, axis=2), axis=1)
+        energy -= np.sum(self.mass[w] * np.einsum("wpk,wk->wp", q - self.initial_q[w], self.gravity[w]), axis=1)
+        if len(self.springs):
+            length = np.linalg.norm(q[:, self.springs[:, 1]] - q[:, self.springs[:, 0]], axis=2)
+            self.strain[w] = np.maximum(self.strain[w], np.max(length / self.rest - 1.0, axis=1))
+            stretch = length - self.rest
+            energy += 0.5 * np.sum(self.stiffness[w] * stretch * stretch, axis=1)
+        first = np.isnan(self.energy_start[w])
+        self.energy_start[w[first]] = energy[first]
         self.energy_end[w] = energy
-        if distance is not None:
-            self.contacts = True
-            self.distance[w] = min(self.distance[w], distance)
-        self.last_q[w] = q
+        nearest = self.distance(q, t)
+        if nearest is not None:
+            self.nearest[w] = np.minimum(self.nearest[w], nearest)
+        for k, world in enumerate(w):
+            self.last_q[world] = q[k]
 
     def row(self, w: int) -> dict:
         def value(x):
@@ -772,41 +800,43 @@ class _Metrics:
 
         return dict(max_strain=value(self.strain[w]), energy_start=value(self.energy_start[w]),
                     energy_end=value(self.energy_end[w]),
-                    min_contact_distance=value(self.distance[w]) if self.contacts else None)
+                    min_contact_distance=value(self.nearest[w]) if self.distance.shapes else None)
 
 
 class _ContactDistance:
-    """Signed distance [m] from the particles' surfaces to the nearest collider (float64, host), the least
-    over a world's particles; the colliders at time t through ``ShapeInfo.frame`` (their tracks)."""
+    """Signed distance [m] from the particles' surfaces (their radii) to the nearest collider, the least over
+    each world's particles (float64, host); the colliders at time t through ``ShapeInfo.frame`` (their
+    tracks)."""
 
     def __init__(self, model):
         self.shapes = list(model.shapes)
         self.radius = model.particle_radius.numpy().astype(np.float64)[: model.particle_count]
 
-    def __call__(self, q: np.ndarray, t: float) -> float | None:
+    def __call__(self, q: np.ndarray, t: float) -> np.ndarray | None:
+        """The least distance of each world's particles ``q`` [m], [worlds, particles, 3]: [worlds]."""
         if not self.shapes:
             return None
         from scipy.spatial.transform import Rotation
 
-        best = np.inf
+        best = np.full(q.shape[0], np.inf)
         for shape in self.shapes:
             position, orientation = shape.frame(t)
-            p = Rotation.from_quat(orientation).inv().apply(q - position)  # in the shape's frame
+            p = Rotation.from_quat(orientation).inv().apply((q - position).reshape(-1, 3)).reshape(q.shape)
             size = np.asarray(shape.size, dtype=np.float64)
             if shape.kind == "plane":
-                d = p[:, 2]
+                d = p[..., 2]
             elif shape.kind == "sphere":
-                d = np.linalg.norm(p, axis=1) - size[0]
+                d = np.linalg.norm(p, axis=-1) - size[0]
             elif shape.kind == "box":
                 e = np.abs(p) - size
-                d = np.linalg.norm(np.maximum(e, 0.0), axis=1) + np.minimum(e.max(axis=1), 0.0)
+                d = np.linalg.norm(np.maximum(e, 0.0), axis=-1) + np.minimum(e.max(axis=-1), 0.0)
             elif shape.kind == "capsule":
-                axis = np.clip(p[:, 2], -size[1], size[1])
-                d = np.linalg.norm(p - np.stack([0 * axis, 0 * axis, axis], axis=1), axis=1) - size[0]
+                axial = np.clip(p[..., 2], -size[1], size[1])
+                d = np.linalg.norm(p - np.stack([0.0 * axial, 0.0 * axial, axial], axis=-1), axis=-1) - size[0]
             else:  # a kind added later: no host distance yet
                 continue
-            best = min(best, float(np.min(d - self.radius)))
-        return best if np.isfinite(best) else None
+            best = np.minimum(best, np.min(d - self.radius, axis=1))
+        return best
 
 
 def _writers(model, scene, variants, settings: RunSettings) -> list:
@@ -934,7 +964,7 @@ def run_sweep(plan: SweepPlan, out_dir: str, *, engine=None, resume: bool = Fals
                           "are skipped), or choose another --out")
     os.makedirs(folder, exist_ok=True)
     usd_dir = os.path.join(out_dir, "usd") if plan.usd else None
-    settings = RunSettings(device=device, usd_dir=usd_dir, task_hook=task_hook)
+    settings = RunSettings(device=device, usd_dir=usd_dir, task_hook=task_hook, metrics_every=plan.metrics_every)
 
     reference = None
     if plan.reference is not None:
@@ -942,7 +972,7 @@ def run_sweep(plan: SweepPlan, out_dir: str, *, engine=None, resume: bool = Fals
         reference, reference_q = _load(folder, ref.key, positions=True)
         if reference is None:
             job = Batch((ref,), plan.scene_path)
-            engine.warm_up(run_batch, [job], shared=(settings,))
+            engine.warm_up(run_batch, _warm_up_jobs([job]), shared=(RunSettings(device=device),))
             [(_, output)] = list(engine.run(run_batch, [job], shared=(settings,), on_error=_failed_batch))
             reference = output.results[0]
             reference_q = output.final_q.get(ref.key)
@@ -989,13 +1019,16 @@ def _failed_batch(batch: Batch, exc: BaseException) -> BatchOutput:
 
 
 def _warm_up_jobs(batches: list) -> list:
-    """One single-variant batch per topology: what a node compiles before the sweep's tasks reach it."""
+    """One batch per topology of its first variant for one frame (the frame count compiles nothing): what a
+    node compiles and loads before the sweep's tasks reach it."""
     seen, jobs = set(), []
     for b in batches:
-        shape = topology(b.variants[0].scene)
+        v = b.variants[0]
+        shape = topology(v.scene)
         if shape not in seen:
             seen.add(shape)
-            jobs.append(Batch(b.variants[:1], b.scene_path))
+            scene = apply_override(v.scene, "simulation.frames", 1, where="warm-up")
+            jobs.append(Batch((dataclasses.replace(v, scene=scene),), b.scene_path))
     return jobs
 
 
