@@ -2,7 +2,7 @@
 
 Two measurements, each printing a Markdown table:
 
-* ``--ray``: a sweep of ``--variants`` small variants (the 16 × 16 hanging cloth of ANCHORS.md — 0.1 kg
+* ``--ray``: a sweep of ``--variants`` small variants (the ``--side``² hanging cloth of ANCHORS.md — 0.1 kg
   particles 0.1 m apart, ke = 1e3 N/m, kd = 10 N·s/m, two top corners pinned — 60 frames of 16 substeps,
   structural stiffness log-spaced over 1e2 … 1e4 N/m and drag on or off) through
   ``warpspring.analysis.sweep.run_sweep`` on a local Ray with 1, then 2 workers: variants per minute of
@@ -53,27 +53,27 @@ def cloth_scene(side: int, frames: int) -> dict:
     }
 
 
-def ray_plan(variants: int, batch: int) -> sw.SweepPlan:
+def ray_plan(variants: int, batch: int, side: int) -> sw.SweepPlan:
     return sw.plan_sweep({
-        "scene": cloth_scene(16, 60),
+        "scene": cloth_scene(side, 60),
         "sweep": {"batch": batch},
         "axes": {"cloth.structural.ke": {"log": [1.0e2, 1.0e4], "count": variants // 2},
                  "world.drag": [0.0, 0.01]},
     }, path="bench-sweep")
 
 
-def measure_ray(variants: int, workers_list: list[int], device: str | None) -> list[str]:
+def measure_ray(variants: int, workers_list: list[int], device: str | None, side: int) -> list[str]:
     from warpspring.analysis.sweep_ray import RayEngine
 
-    rows = ["| workers | batching | variants | Ray start-up [s] | sweep [s] | variants / min |",
-            "|---|---|---|---|---|---|"]
+    rows = ["| cloth | workers | batching | variants | Ray start-up [s] | sweep [s] | variants / min |",
+            "|---|---|---|---|---|---|---|"]
     for workers in workers_list:
         started = time.perf_counter()
         engine = RayEngine(workers=workers)
         startup = time.perf_counter() - started
         try:
             for batch, label in ((sw.DEFAULT_BATCH, f"worlds, {sw.DEFAULT_BATCH} a task"), (1, "one variant a task")):
-                plan = ray_plan(variants, batch)
+                plan = ray_plan(variants, batch, side)
                 out = tempfile.mkdtemp(prefix="bench-sweep-")
                 try:
                     result = sw.run_sweep(plan, out, engine=engine, device=device)
@@ -81,7 +81,7 @@ def measure_ray(variants: int, workers_list: list[int], device: str | None) -> l
                     shutil.rmtree(out, ignore_errors=True)
                 bad = sum(r.status != "ok" for r in result.rows)
                 note = f" ({bad} not ok)" if bad else ""
-                rows.append(f"| {workers} | {label} | {len(plan.variants)}{note} | {startup:.1f} | "
+                rows.append(f"| {side}² | {workers} | {label} | {len(plan.variants)}{note} | {startup:.1f} | "
                             f"{result.elapsed:.1f} | {60.0 * len(plan.variants) / result.elapsed:.0f} |")
                 print(rows[-1], flush=True)
         finally:
@@ -133,6 +133,7 @@ def main() -> None:
     parser.add_argument("--variants", type=int, nargs="+", default=None,
                         help="--ray: the sweep's size (default 100); --worlds: the N to measure (default 16 64 256)")
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="--ray: worker counts (default 1 2)")
+    parser.add_argument("--side", type=int, default=16, help="--ray: particles per side of the cloth (default 16)")
     parser.add_argument("--metrics-every", type=int, default=1,
                         help="--worlds: frames between the metrics' host samples (default 1: every frame)")
     args = parser.parse_args()
@@ -146,7 +147,7 @@ def main() -> None:
               f"{datetime.date.today()}")
     lines = [header, ""]
     if args.ray:
-        lines += measure_ray((args.variants or [100])[0], args.workers, args.device)
+        lines += measure_ray((args.variants or [100])[0], args.workers, args.device, args.side)
     if args.worlds:
         lines += ([""] if args.ray else []) + measure_worlds(args.variants or [16, 64, 256], device.alias,
                                                              args.metrics_every)
