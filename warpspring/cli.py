@@ -137,6 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_study_options(trade, "trade")
     trade.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     trade.set_defaults(handler=_cmd_trade)
+    _add_ray_option(trade)
 
     choose = sub.add_parser("choose", help="pick the cheapest integrator and step that meet an error target")
     choose.add_argument("--error", type=_positive_float, required=True, help="largest acceptable position error [m]")
@@ -159,7 +160,85 @@ def build_parser() -> argparse.ArgumentParser:
                                 "in these scenes (hanging, forced, driven, windy, pulled; none named: all), table in "
                                 "OUT/battery.md; --quick: one step per integrator, 6 worlds, 2 s runs")
     stability.set_defaults(handler=_cmd_stability)
+    _add_ray_option(stability)
+
+    sweep = sub.add_parser(
+        "sweep",
+        help="run many variants of a scene (a sweep file's axes over scene keys) on Ray, locally or on a cluster: "
+             "a table (CSV, Parquet) and a plot of their metrics",
+    )
+    sweep.add_argument("sweep", help="sweep file (.toml); see examples/sweep.toml")
+    sweep.add_argument("--address", metavar="ADDR",
+                       help="run on the Ray cluster at ADDR (ray://host:10001, host:6379 or auto); default: start Ray "
+                            "on this machine, bound to 127.0.0.1")
+    sweep.add_argument("--workers", type=_positive_int, metavar="N",
+                       help="tasks in flight at once (locally also the CPUs Ray uses); default: every CPU")
+    sweep.add_argument("--gpus", type=_non_negative_float, default=0.0, metavar="F",
+                       help="GPUs per task, fractional to share one (0.25: four tasks per GPU); default 0: the CPU")
+    sweep.add_argument("--out", default="sweep", help="output directory (default: %(default)s)")
+    sweep.add_argument("--resume", action="store_true",
+                       help="continue a sweep in --out: variants whose result is there are skipped")
+    sweep.add_argument("--no-ray", action="store_true",
+                       help="run every variant in this process, one batch after the other (no Ray needed)")
+    sweep.add_argument("--device", help="Warp device of every task (default: cuda:0 in a task given a GPU, else the "
+                                        "CPU)")
+    sweep.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    sweep.set_defaults(handler=_cmd_sweep)
     return parser
+
+
+def _add_ray_option(parser: argparse.ArgumentParser) -> None:
+    """``--ray [ADDRESS]`` of the studies: their plans' jobs as Ray tasks (the same tables)."""
+    parser.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
+                        help="run the study's jobs as Ray tasks: on a local Ray (no ADDRESS; bound to 127.0.0.1) or "
+                             "the cluster at ADDRESS; the same tables, but timings are taken concurrently "
+                             "(pip install 'warpspring[cluster]')")
+    parser.add_argument("--workers", type=_positive_int, metavar="N",
+                        help="with --ray: jobs in flight at once (default: every CPU)")
+
+
+def _study_engine(args):
+    """The engine of a study's jobs: a RayEngine for --ray, else None (in this process, in order)."""
+    if args.ray is None:
+        return None
+    from .analysis.sweep_ray import RayEngine
+
+    import warp as wp
+
+    gpus = 1.0 if wp.get_device(args.device).is_cuda else 0.0  # a task runs where the study was asked to
+    return RayEngine(None if args.ray == "local" else args.ray, workers=args.workers, gpus_per_task=gpus)
+
+
+def _cmd_sweep(args) -> int:
+    from .analysis.sweep import LocalEngine, load_sweep, run_sweep
+    from .analysis.sweep_report import summary, write_report
+
+    plan = load_sweep(args.sweep)  # every variant checked before anything starts
+    checks.output_dir(args.out)
+    pyplot("the sweep's plot")
+    if args.no_ray:
+        if args.address is not None:
+            raise ConfigError("--no-ray runs in this process: drop --address (or --no-ray)")
+        engine = LocalEngine()
+    else:
+        from .analysis.sweep_ray import RayEngine
+
+        engine = RayEngine(args.address, workers=args.workers, gpus_per_task=args.gpus)
+    try:
+        print(f"sweep {args.sweep}: {len(plan.variants)} variants on {engine.describe()}", flush=True)
+        result = run_sweep(plan, args.out, engine=engine, resume=args.resume, device=args.device,
+                           progress=not args.quiet and sys.stderr.isatty())
+    except KeyboardInterrupt:
+        print(f"warpspring: interrupted; the results so far are in {args.out}: continue with --resume",
+              file=sys.stderr)
+        return 130
+    finally:
+        engine.close()
+    paths = write_report(result, args.out)
+    for line in summary(result):
+        print(line)
+    print(f"wrote {', '.join(paths)}")
+    return 0
 
 
 def _cmd_run(args) -> int:
@@ -220,12 +299,16 @@ def _cmd_trade(args) -> int:
     pyplot("the trade plots")
     wp.config.log_level = wp.LOG_WARNING
     device = resolve_device(args.device)
+    engine = _study_engine(args)
     study = run_study(
         device,
         plan=QUICK if args.quick else FULL,
         integrators=args.integrators,
         progress=not args.quiet and sys.stderr.isatty(),
+        **({} if engine is None else {"engine": engine}),
     )
+    if engine is not None:
+        engine.close()
     paths = write_report(study, args.out)
     for problem in study.plan.problems:
         orders = convergence_orders(study, problem.name)
@@ -273,7 +356,11 @@ def _cmd_stability(args) -> int:
     pyplot("the stability plots")
     wp.config.log_level = wp.LOG_WARNING
     started = time.perf_counter()
-    result = run_map(QUICK if args.quick else FULL, resolve_device(args.device), integrators=args.integrators)
+    engine = _study_engine(args)
+    on_ray = {} if engine is None else {"engine": engine}
+    result = run_map(QUICK if args.quick else FULL, resolve_device(args.device), integrators=args.integrators, **on_ray)
+    if engine is not None:
+        engine.close()
     paths = write_report(result, args.out)
     report = paths[0]  # OUT/stability.md
     if args.report is not None and os.path.abspath(args.report) != os.path.abspath(report):
@@ -425,7 +512,7 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # argparse has printed its message (or the help)
         return exc.code if isinstance(exc.code, int) else EXIT_CONFIG if exc.code else 0
     try:
-        if args.command in ("run", "trade", "stability"):
+        if args.command in ("run", "trade", "stability", "sweep"):
             init_warp(args.device)
         return args.handler(args)
     except ConfigError as exc:

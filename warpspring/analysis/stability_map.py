@@ -603,8 +603,14 @@ def reproduce_seed(plan: MapPlan, device=None) -> SeedResult:
 # -- the whole map --------------------------------------------------------------------------------------------
 
 
-def run_map(plan: MapPlan = QUICK, device=None, *, integrators=None, log: Callable[[str], None] | None = None):
+def run_map(plan: MapPlan = QUICK, device=None, *, integrators=None, log: Callable[[str], None] | None = None,
+            engine=None):
     """Measure the three studies of ``plan`` for ``integrators`` (default: the whole registry) on ``device``.
+
+    ``engine``: a sweep engine (:class:`~warpspring.analysis.sweep_ray.RayEngine`) to run the measurements
+    on, one job per study × integrator and one for the seed; ``None``: in this process, in order. The
+    measured limits are the same either way (each job is deterministic); a study's time is then the sum
+    of its jobs' times.
 
     Returns:
         A :class:`StabilityMap`.
@@ -615,6 +621,8 @@ def run_map(plan: MapPlan = QUICK, device=None, *, integrators=None, log: Callab
         raise ConfigError(f"unknown integrator {unknown[0]!r}: choose from {', '.join(sorted(INTEGRATORS))}")
     log = log or (lambda line: None)
     result = StabilityMap(plan=plan, device=str(wp.get_device(device)), date=datetime.date.today().isoformat())
+    if engine is not None:
+        return _run_on(engine, result, wp.get_device(device).alias, names, log)
 
     t0 = time.perf_counter()
     for name in names:
@@ -637,3 +645,38 @@ def run_map(plan: MapPlan = QUICK, device=None, *, integrators=None, log: Callab
         result.timings["seed"] = time.perf_counter() - t0
         log("seed: done")
     return result
+
+
+def _run_on(engine, result: StabilityMap, device: str, names: list, log: Callable[[str], None]) -> StabilityMap:
+    """:func:`run_map` through a sweep engine: its jobs gathered in the local loop's order."""
+    from .sweep import map_jobs
+
+    jobs = [("single spring", n) for n in names] + [("cloth", n) for n in names]
+    if "rk4" in names:
+        jobs.append(("seed", "rk4"))
+    outputs = map_jobs(engine, _map_job, jobs, shared=(result.plan, device),
+                       done=lambda out: log(f"{out[0]}: {out[1]} done" if out[0] != "seed" else "seed: done"))
+    for study, name, value, wall in outputs:
+        result.timings[study] = result.timings.get(study, 0.0) + wall
+        if study == "single spring":
+            result.springs += value
+        elif study == "cloth":
+            result.cloth += value
+            if any(0.0 < r.predicted < math.inf for r in value):
+                result.predictions[name] = cloth_predictions(name, result.plan, value[0])
+        else:
+            result.seed = value
+    return result
+
+
+def _map_job(job, plan: MapPlan, device: str):
+    """One job of the map: (study, integrator, its measurement, wall time [s])."""
+    study, name = job
+    start = time.perf_counter()
+    if study == "single spring":
+        value = measure_spring_limits(name, plan, device)
+    elif study == "cloth":
+        value = measure_cloth_limits(name, plan, device)
+    else:
+        value = reproduce_seed(plan, device)
+    return study, name, value, time.perf_counter() - start

@@ -661,7 +661,8 @@ def _configurations(problem, cls, plan: StudyPlan) -> list[tuple[dict, float, in
     return [({}, problem.duration / n, n) for n in sorted(problem.steps)]
 
 
-def run_study(device=None, *, plan: StudyPlan = FULL, integrators=None, progress: bool = False) -> Study:
+def run_study(device=None, *, plan: StudyPlan = FULL, integrators=None, progress: bool = False,
+              engine=None) -> Study:
     """Measure every integrator × step × precision of ``plan`` on ``device``.
 
     Args:
@@ -669,6 +670,10 @@ def run_study(device=None, *, plan: StudyPlan = FULL, integrators=None, progress
         plan: :data:`FULL`, :data:`QUICK` or a :class:`StudyPlan` of your own.
         integrators: names of the integrators to measure; default all of ``INTEGRATORS``.
         progress: show a progress bar (tqdm) on stderr.
+        engine: a sweep engine (:class:`~warpspring.analysis.sweep_ray.RayEngine`) to run the plan's jobs
+            on, one per problem × precision × integrator (the cloth references first); ``None``: in this
+            process. The rows are the same, in the same order; only the timings differ where jobs run side
+            by side on one device.
 
     Raises:
         ConfigError: an unknown integrator name.
@@ -684,6 +689,10 @@ def run_study(device=None, *, plan: StudyPlan = FULL, integrators=None, progress
     device = wp.get_device(device)
     start = time.perf_counter()
     study = Study(plan=plan, rows=[], device=device.alias, device_name=_device_name(device))
+    if engine is not None:
+        _run_on(engine, study, device.alias, names, progress)
+        study.elapsed = time.perf_counter() - start
+        return study
     total = sum(
         len(_configurations(problem, INTEGRATORS[name], plan)) * len(plan.precisions)
         for problem in plan.problems
@@ -698,23 +707,67 @@ def run_study(device=None, *, plan: StudyPlan = FULL, integrators=None, progress
             for precision in plan.precisions:
                 model, control = problem.build(device, precision)
                 for name in names:
-                    cls = INTEGRATORS[name]
                     bar.set_description(f"{problem.name}: {name}, {precision}")
-                    too_slow = False  # once a run is over the limit, the finer (costlier) ones are too
-                    for options, dt, steps in _configurations(problem, cls, plan):
-                        if too_slow:
-                            fields = _configuration(problem, model, cls, options, dt, steps)
-                            row, run = Measurement(**fields, status="skipped"), None
-                        else:
-                            row, run = _measure(problem, model, control, name, options, dt, steps, plan, reference)
-                            too_slow = row.status == "skipped"
-                        study.rows.append(row)
-                        if run is not None and _plotted(problem, row, plan, steps):
-                            t, q, qd = run
-                            study.trajectories[f"{name}, {row.setting}"] = (t, q[:, 1, 0], qd[:, 1, 0])
-                        bar.update(1)
+                    rows, trajectories = _measure_integrator(problem, model, control, name, plan, reference,
+                                                             done=lambda: bar.update(1))
+                    study.rows += rows
+                    study.trajectories.update(trajectories)
     study.elapsed = time.perf_counter() - start
     return study
+
+
+def _measure_integrator(problem, model, control, name, plan, reference, *, done=None) -> tuple[list, dict]:
+    """Every configuration of integrator ``name`` on ``problem``'s ``model``, cheapest first: the rows and
+    the seed plot's trajectories. ``done`` is called after each configuration."""
+    cls = INTEGRATORS[name]
+    rows, trajectories = [], {}
+    too_slow = False  # once a run is over the limit, the finer (costlier) ones are too
+    for options, dt, steps in _configurations(problem, cls, plan):
+        if too_slow:
+            fields = _configuration(problem, model, cls, options, dt, steps)
+            row, run = Measurement(**fields, status="skipped"), None
+        else:
+            row, run = _measure(problem, model, control, name, options, dt, steps, plan, reference)
+            too_slow = row.status == "skipped"
+        rows.append(row)
+        if run is not None and _plotted(problem, row, plan, steps):
+            t, q, qd = run
+            trajectories[f"{name}, {row.setting}"] = (t, q[:, 1, 0], qd[:, 1, 0])
+        if done is not None:
+            done()
+    return rows, trajectories
+
+
+def _run_on(engine, study: Study, device: str, names: list, progress: bool) -> None:
+    """Measure ``study``'s plan through a sweep engine: the cloth references first, then one job per
+    problem × precision × integrator, gathered in the order the local loop measures them."""
+    from tqdm import tqdm
+
+    from .sweep import map_jobs
+
+    plan = study.plan
+    cloth = [i for i, problem in enumerate(plan.problems) if isinstance(problem, ClothProblem)]
+    for i, reference in zip(cloth, map_jobs(engine, _reference_job, [(plan, i, device) for i in cloth])):
+        study.references[plan.problems[i].name] = reference
+    jobs = [(plan, i, precision, name, device, study.references.get(problem.name))
+            for i, problem in enumerate(plan.problems) for precision in plan.precisions for name in names]
+    total = sum(len(_configurations(plan.problems[job[1]], INTEGRATORS[job[3]], plan)) for job in jobs)
+    with tqdm(total=total, unit="run", disable=not progress, dynamic_ncols=True, leave=False) as bar:
+        for rows, trajectories in map_jobs(engine, _integrator_job, jobs, done=lambda r: bar.update(len(r[0]))):
+            study.rows += rows
+            study.trajectories.update(trajectories)
+
+
+def _reference_job(job) -> ClothReference:
+    plan, i, device = job
+    return _cloth_reference(plan.problems[i], wp.get_device(device))
+
+
+def _integrator_job(job) -> tuple[list, dict]:
+    plan, i, precision, name, device, reference = job
+    problem = plan.problems[i]
+    model, control = problem.build(wp.get_device(device), precision)
+    return _measure_integrator(problem, model, control, name, plan, reference)
 
 
 def _device_name(device) -> str:

@@ -1078,6 +1078,17 @@ class ModelBuilder:
         return self._add_shape(SHAPE_CAPSULE, checks.vector("capsule center", center), _quaternion(orientation),
                                size, friction, restitution, translation, rotation, name)
 
+    def world_rows(self) -> dict[str, np.ndarray]:
+        """The per-world parameters this builder gives one world, as ``Model.set_world_values`` takes them
+        (float64, in the order ``finalize`` stores them): ``spring_stiffness`` [N/m] and ``spring_damping``
+        [N·s/m], shape [spring_count]; ``particle_mass`` [kg], shape [particle_count]. A sweep builds each
+        variant's builder on the host and gives its rows to one world of a shared model."""
+        def joined(blocks):
+            return np.concatenate(blocks).astype(np.float64) if blocks else np.zeros(0)
+
+        return {"spring_stiffness": joined(self._spring_ke), "spring_damping": joined(self._spring_kd),
+                "particle_mass": joined(self._mass)}
+
     # -- finalize -------------------------------------------------------------------------------------
 
     def finalize(self, device=None, *, precision: str = "float32", spring_evaluation: str = "auto",
