@@ -71,7 +71,7 @@ class StepFinisher:
         update_shape_frames(model, state.time, dt)
         if not self.stabilised:
             if model.contact_stage:
-                collide_positions(model, state.particle_q, self.contacts)
+                collide_positions(model, state.particle_q, self.contacts, velocities=state.particle_qd, dt=dt)
             apply_contacts(model, state, dt, self.contacts)
             return
         evaluate_input_tracks(model, state)
@@ -92,7 +92,7 @@ class StepFinisher:
                 source = target
             corrected = source
         if model.contact_stage:
-            collide_positions(model, corrected, self.contacts)
+            collide_positions(model, corrected, self.contacts, before=before, velocities=state.particle_qd, dt=dt)
         flat_launch(
             finish_step_kernel(model.scalar, model.contact_features(), self.speed_clamped, strain_limited),
             inputs=[

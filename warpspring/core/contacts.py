@@ -106,27 +106,36 @@ def update_shape_frames(model: Model, time: wp.array, dt: float, *, ahead: bool 
     )
 
 
-def collide(model: Model, state: State, contacts: Contacts) -> None:
+def collide(model: Model, state: State, contacts: Contacts, *, dt: float = 0.0) -> None:
     """Fill ``contacts`` with the colliders every dynamic particle of ``state`` touches, against the
-    colliders' current frames (those of the last step, or the rest frames before the first). Capturable."""
+    colliders' current frames (those of the last step, or the rest frames before the first). With ``dt`` [s]
+    > 0 (the step that produced ``state``), also those its path x - dt v → x entered (spheres, boxes,
+    meshes). Capturable."""
     q = state.particle_q
     if (q.shape[0], q.dtype, str(q.device)) != (model.state_size, model.vec3, str(model.device)):
         raise ConfigError(f"collide: the state has {q.shape[0]} particles of {q.dtype.__name__} on {q.device}, but "
                           f"the model's have {model.state_size} of {model.vec3.__name__} on {model.device}: use a "
                           "state made by this model's state()")
-    collide_positions(model, state.particle_q, contacts)
+    collide_positions(model, state.particle_q, contacts, velocities=state.particle_qd, dt=dt)
 
 
-def collide_positions(model: Model, positions: wp.array, contacts: Contacts) -> None:
-    """:func:`collide` for a positions array of a state's size (e.g. after strain limiting)."""
+def collide_positions(model: Model, positions: wp.array, contacts: Contacts, *, before: wp.array | None = None,
+                      velocities: wp.array | None = None, dt: float = 0.0) -> None:
+    """:func:`collide` for a positions array of a state's size (e.g. after strain limiting). A particle's path
+    over the step starts at ``before`` - dt ``velocities`` (``before``: the positions before the correction,
+    default ``positions``); without velocities or with dt = 0 no path is swept."""
     if model.shape_count == 0:
         contacts.arrays.count.zero_()
         return
+    before = positions if before is None else before
+    if velocities is None:
+        velocities, dt = positions, 0.0
     flat_launch(
         collide_kernel(model.scalar, model.contact_features()),
         dim=model.particle_dim,
         block_dim=model.block_dim,
-        inputs=[model.particle_count, model.particle_flags, model.particle_radius, model.shape_arrays, positions],
+        inputs=[model.particle_count, model.particle_flags, model.particle_radius, model.shape_arrays, positions,
+                before, velocities, model.scalar(dt)],
         outputs=[contacts.arrays],
         device=model.device,
     )
