@@ -398,3 +398,45 @@ def test_mesh_collider_from_files(tmp_path):
     ws.core.mesh_colliders.advance_mesh_colliders(model, 0.25, 0.5)
     np.testing.assert_allclose(floor.points()[:, 2], 0.25)
     np.testing.assert_allclose(floor.mesh.velocities.numpy()[:, 2], 0.5, rtol=1e-6)
+
+
+def test_mesh_colliders_are_exported_beside_the_cloth(tmp_path, device):
+    """A static mesh is a guide Mesh prim of its triangles, posed once; a tracked one's translate is sampled at
+    every frame; a deforming one's points (and extent) are sampled at every frame, as they were set."""
+    from pxr import Usd, UsdGeom
+
+    from warpspring.io.usd import UsdWriter
+
+    vertices, faces = floor_mesh(cells=2)
+    builder = ws.ModelBuilder()
+    builder.add_particles([[0.0, 0.0, 1.0]], radius=R)
+    builder.add_collider_mesh(trimesh.creation.icosphere(subdivisions=1), center=(2.0, 0.0, 0.0), name="rock")
+    builder.add_collider_mesh(vertices, faces=faces, sides="one_sided", translation=PLATFORM, name="lift")
+    builder.add_collider_mesh(vertices, faces=faces, sides="two_sided", deforming=True, name="sheet")
+    model = builder.finalize(device, contact_stage=True)
+    sheet = model.mesh_collider("sheet")
+    with UsdWriter(tmp_path / "meshes.usdc", model, fps=2) as writer:
+        for k in range(4):
+            sheet.set_points(vertices + [0.0, 0.0, 0.1 * k], dt=0.5)
+            writer.write_frame(model.state())
+    stage = Usd.Stage.Open(str(tmp_path / "meshes.usdc"))
+    rock = UsdGeom.Mesh(stage.GetPrimAtPath("/World/colliders/rock"))
+    assert rock.GetPurposeAttr().Get() == "guide"
+    assert len(rock.GetFaceVertexIndicesAttr().Get()) == 3 * 80 and not rock.GetDoubleSidedAttr().Get()
+    assert rock.GetPointsAttr().GetTimeSamples() == []
+    np.testing.assert_allclose(np.array(ops_of(rock)["translate"].Get()), [2.0, 0.0, 0.0])
+    lift = UsdGeom.Mesh(stage.GetPrimAtPath("/World/colliders/lift"))
+    translate = ops_of(lift)["translate"]
+    assert translate.GetTimeSamples() == [0.0, 1.0, 2.0, 3.0]
+    np.testing.assert_allclose(np.array(translate.Get(3.0)), PLATFORM.sample(1.5)[0][0], atol=1e-9)
+    sheet_prim = UsdGeom.Mesh(stage.GetPrimAtPath("/World/colliders/sheet"))
+    assert sheet_prim.GetDoubleSidedAttr().Get()
+    assert sheet_prim.GetPointsAttr().GetTimeSamples() == [0.0, 1.0, 2.0, 3.0]
+    np.testing.assert_allclose(np.array(sheet_prim.GetPointsAttr().Get(2.0))[:, 2], 0.2, atol=1e-7)
+
+
+def ops_of(prim) -> dict:
+    """The prim's xform ops by name ("translate", "orient")."""
+    from pxr import UsdGeom
+
+    return {op.GetOpName().split(":")[1]: op for op in UsdGeom.Xformable(prim).GetOrderedXformOps()}
