@@ -15,6 +15,7 @@ import warp as wp
 
 import warpspring as ws
 from warpspring.errors import ConfigError, ContactOverflowWarning
+from warpspring.io.scene import load_scene
 from warpspring.kernels.contacts import SHAPE_MESH, ContactFeatures, shape_funcs, shapes_type
 
 G = 9.81
@@ -440,3 +441,36 @@ def ops_of(prim) -> dict:
     from pxr import UsdGeom
 
     return {op.GetOpName().split(":")[1]: op for op in UsdGeom.Xformable(prim).GetOrderedXformOps()}
+
+
+def test_scene_mesh_collider(tmp_path):
+    """A [[collider]] of type "mesh" reads its file relative to the scene, with its placement, sides, thickness,
+    static and kinetic friction and tracks; keys of other types are refused."""
+    trimesh.creation.box(extents=(1.0, 1.0, 1.0)).export(tmp_path / "crate.obj")
+    text = """version = 2
+[cloth]
+grid = { nx = 3, ny = 3, spacing = 0.1 }
+origin = [0.0, 0.0, 1.0]
+mass = 0.1
+[[collider]]
+type = "mesh"
+file = "crate.obj"
+name = "crate"
+center = [0.0, 0.0, 0.5]
+scale = 2.0
+sides = "closed"
+thickness = 0.005
+friction = 0.3
+static_friction = 0.6
+translation = { times = [0.0, 1.0], values = [[0, 0, 0], [1, 0, 0]] }
+"""
+    (tmp_path / "scene.toml").write_text(text)
+    builder = load_scene(tmp_path / "scene.toml").builder()
+    shape = builder._shapes[-1]
+    assert (shape.kind, shape.name, shape.thickness, shape.friction, shape.static_friction) == \
+        ("mesh", "crate", 0.005, 0.3, 0.6)
+    np.testing.assert_allclose(np.abs(shape.mesh.vertices), 1.0)  # the unit box scaled by 2
+    assert shape.moving and shape.mesh.sides == "closed"
+    (tmp_path / "bad.toml").write_text(text.replace('sides = "closed"', 'radius = 1.0'))
+    with pytest.raises(ConfigError, match="radius does not apply to a mesh collider"):
+        load_scene(tmp_path / "bad.toml")

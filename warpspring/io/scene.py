@@ -30,8 +30,15 @@ Colliders: each ``[[collider]]`` has a ``type`` and the keys of that type (any o
     type = "sphere"   center, radius, friction, restitution, translation, rotation
     type = "box"      center, half_extents, orientation, friction, restitution, translation, rotation
     type = "capsule"  center, radius, half_height, orientation, friction, restitution, translation, rotation
+    type = "mesh"     file, prim, center, orientation, scale, sides, deforming, friction, restitution, translation,
+                      rotation
 
-(and ``name`` for each). ``orientation`` is the rest orientation, a quaternion [x, y, z, w]; a capsule
+(and ``name`` for each; every type but the ground also takes ``thickness`` [m], a shell around its surface,
+and ``static_friction``, μ_s ≥ ``friction``, the kinetic μ_k). A mesh collider's ``file`` is any mesh file
+trimesh reads, or USD (``prim`` names the mesh; time-sampled points make it deform), relative to the scene;
+its coordinates are the collider's own frame, placed at ``center`` and ``orientation`` and multiplied by
+``scale``; ``sides`` says how it tells inside from outside: "closed" (default: a watertight solid),
+"one_sided" (an open mesh, outside where its normals point) or "two_sided" (an open shell). ``orientation`` is the rest orientation, a quaternion [x, y, z, w]; a capsule
 spans -half_height..+half_height along its own z axis, plus its radius. ``restitution`` in [0, 1] is the
 share of the normal speed an impact keeps (default 0). Format 2 moves a collider by keyframe tracks, as it
 moves a pin group: ``translation = { times = [...], values = [[x, y, z], ...] }`` is an offset [m] added to
@@ -78,7 +85,7 @@ else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 PRECISIONS = ("float32", "float64")
-COLLIDER_TYPES = ("ground", "plane", "sphere", "box", "capsule")
+COLLIDER_TYPES = ("ground", "plane", "sphere", "box", "capsule", "mesh")
 
 #: The scene format this warpspring reads (and every older one): a file's top-level ``version``.
 SCENE_FORMAT_VERSION = 2
@@ -244,7 +251,7 @@ class Scene:
                 _add_emitter(builder, emitter, os.path.dirname(self.path))
         for i, collider in enumerate(self.colliders):
             with _context(where, _label("collider", i, len(self.colliders))):
-                _add_collider(builder, collider)
+                _add_collider(builder, collider, os.path.dirname(self.path))
         return builder
 
     def finalize(self, device=None) -> Model:
@@ -439,6 +446,13 @@ _SCHEMA = {
         "restitution": _Since(2, NON_NEGATIVE),
         "translation": _Since(2, _Track(VECTOR)),
         "rotation": _Since(2, _Track(rotation=True)),
+        "file": _Since(2, str),
+        "prim": _Since(2, str),
+        "scale": _Since(2, POSITIVE),
+        "sides": _Since(2, str),
+        "deforming": _Since(2, bool),
+        "thickness": _Since(2, NON_NEGATIVE),
+        "static_friction": _Since(2, NON_NEGATIVE),
     },
     "contacts": {"stage": bool, "slots": _Number(1, integer=True)},
     "output": {
@@ -525,6 +539,12 @@ _COLLIDER_NEEDS = {
     "box": ({"center", "half_extents"}, "center = [x, y, z] and half_extents = [hx, hy, hz]"),
     "capsule": ({"center", "radius", "half_height"}, "center = [x, y, z], radius and half_height"),
 }
+# Mesh colliders (format 2), and a thickness and static friction on every collider but the ground.
+_COLLIDER_KEYS["mesh"] = _COLLIDER_COMMON | _COLLIDER_MOTION | {"file", "prim", "center", "orientation", "scale", "sides",
+                                                               "deforming"}
+for _kind in ("plane", "sphere", "box", "capsule", "mesh"):
+    _COLLIDER_KEYS[_kind] = _COLLIDER_KEYS[_kind] | {"thickness", "static_friction"}
+_COLLIDER_NEEDS["mesh"] = ({"file"}, 'file = "path" (any mesh file trimesh reads, or USD with prim = "/path")')
 #: The collider types a scene of format 1 may use (the others came with format 2).
 _FORMAT_1_COLLIDERS = ("ground", "plane", "sphere")
 
@@ -1171,13 +1191,20 @@ def _group_particles(ids: np.ndarray, pin: list) -> np.ndarray:
     return ids[index]
 
 
-def _add_collider(builder: ModelBuilder, c: dict) -> None:
+def _add_collider(builder: ModelBuilder, c: dict, base: str = "") -> None:
     kind = c["type"]
     common = dict(friction=c.get("friction", 0.5), restitution=c.get("restitution", 0.0), name=c.get("name", kind))
     if kind == "ground":
         builder.add_ground_plane(height=c.get("height", 0.0), **common)
         return
     common.update(translation=c.get("translation"), rotation=c.get("rotation"))
+    common.update({key: c[key] for key in ("thickness", "static_friction") if key in c})
+    if kind == "mesh":
+        path = c["file"] if os.path.isabs(c["file"]) else os.path.join(base, c["file"])
+        builder.add_collider_mesh(path, prim=c.get("prim"), center=c.get("center", (0.0, 0.0, 0.0)),
+                                  orientation=c.get("orientation", (0.0, 0.0, 0.0, 1.0)), scale=c.get("scale", 1.0),
+                                  sides=c.get("sides", "closed"), deforming=c.get("deforming", False), **common)
+        return
     if kind == "plane":
         builder.add_collider_plane(point=c.get("point", (0.0, 0.0, 0.0)), normal=c.get("normal"), **common)
     elif kind == "sphere":
