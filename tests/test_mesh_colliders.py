@@ -101,8 +101,8 @@ def test_mesh_distance_and_sign_equal_trimesh_in_float64(device, distance_kernel
     builder.add_particles([[0.0, 0.0, 5.0]])
     for mesh, center in zip(closed, centers):
         builder.add_collider_mesh(mesh, center=center, orientation=orientation)
-    builder.add_collider_mesh(field, sides="one_sided")
-    builder.add_collider_mesh(field, sides="two_sided", thickness=0.01)
+    builder.add_collider_mesh(field, sides="one_sided", depth=1.0)
+    builder.add_collider_mesh(field, sides="two_sided", thickness=0.01, depth=1.0)
     model = builder.finalize(device, contact_stage=True)
 
     def device_distance(s, points):

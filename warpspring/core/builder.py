@@ -876,8 +876,8 @@ class ModelBuilder:
     def add_collider_mesh(self, mesh, *, faces=None, prim: str | None = None, center=(0.0, 0.0, 0.0),
                           orientation=(0.0, 0.0, 0.0, 1.0), scale=1.0, sides: str = "closed", thickness: float = 0.0,
                           friction: float = 0.5, static_friction: float | None = None, restitution: float = 0.0,
-                          deforming: bool = False, translation: Track | None = None, rotation: Track | None = None,
-                          name: str = "mesh") -> int:
+                          deforming: bool = False, depth: float | None = None, translation: Track | None = None,
+                          rotation: Track | None = None, name: str = "mesh") -> int:
         """Add a triangle-mesh collider (``core/mesh_colliders.py``).
 
         Args:
@@ -891,6 +891,8 @@ class ModelBuilder:
                 a quaternion (x, y, z, w); scale: a factor [-] (or one per axis) on the vertices.
             sides: "closed" (a watertight solid: inside by winding number), "one_sided" (an open mesh whose
                 outside is where its normals point) or "two_sided" (an open shell, kept apart on both sides).
+            depth: how far from an open mesh it is looked for [m] (one-sided: up to this deep behind it, beyond
+                its border edges too, is inside); default a tenth of its bounding box's diagonal.
             thickness: a shell around the surface [m], ≥ 0: particles stay radius + thickness from it.
             friction: kinetic Coulomb coefficient μ_k [-]; static_friction: μ_s ≥ μ_k [-], default μ_k.
             restitution: coefficient of restitution e [-] in [0, 1] (see :meth:`add_collider_box`).
@@ -928,7 +930,7 @@ class ModelBuilder:
         vertices = np.asarray(vertices, dtype=np.float64)
         times, points = (None, None) if samples is None else samples
         info = mesh_shape(vertices * factor if vertices.ndim == 2 else vertices, faces, sides=sides,
-                          deforming=deforming, sample_times=times,
+                          deforming=deforming, sample_times=times, depth=depth,
                           sample_points=None if points is None else points * factor)
         return self._add_shape(SHAPE_MESH, checks.vector("mesh center", center), _quaternion(orientation),
                                (0.0, 0.0, 0.0), friction, restitution, translation, rotation, name,

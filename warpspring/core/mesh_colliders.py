@@ -7,9 +7,11 @@ mesh tells inside from outside is explicit (``sides``):
 * ``"closed"``: a closed (watertight) mesh; inside is where its winding number exceeds ½ (Warp's fast winding
   number, robust to small holes and flipped slivers).
 * ``"one_sided"``: an open mesh (terrain, a slope, a shell) whose outside is the side its faces' normals point
-  to (counter-clockwise winding); behind it is inside, and a particle there is pushed out to the front.
+  to (counter-clockwise winding); up to ``depth`` behind it (beyond its border edges too) is inside, and a
+  particle there is pushed out to the front; farther away the mesh is out of reach.
 * ``"two_sided"``: an open mesh with no inside: particles stay ``thickness`` plus their radius away on whichever
-  side they come from (the side is kept by sweeping their path, not by the sign of a distance).
+  side they come from (the side is kept by sweeping their path, not by the sign of a distance); it is looked
+  for up to ``depth`` away.
 
 A mesh's frame moves with the collider's translation and rotation tracks like any collider's; its points may
 also change between frames (:meth:`MeshCollider.set_points`: the BVH is refit in place, so captured graphs
@@ -39,6 +41,8 @@ class MeshShape:
         sides: "closed", "one_sided" or "two_sided" (see the module docstring).
         sample_times: times [s] of time-sampled points, shape [k], increasing, or None for fixed points.
         sample_points: the points at those times [m], shape [k, v, 3], or None.
+        depth: how far from an open mesh [m] it is looked for (one-sided: how deep behind it is inside); None:
+            a tenth of its bounding box's diagonal. A closed mesh is looked for within twice the diagonal.
         deforming: whether its points may change between frames (time samples, or
             :meth:`MeshCollider.set_points`): a deforming mesh does work on the particles, so the guard's energy
             balance is off for it.
@@ -50,6 +54,7 @@ class MeshShape:
     sample_times: np.ndarray | None = None
     sample_points: np.ndarray | None = None
     deforming: bool = False
+    depth: float | None = None
 
     @property
     def sampled(self) -> bool:
@@ -57,12 +62,16 @@ class MeshShape:
         return self.sample_times is not None and len(self.sample_times) > 1
 
     def query_range(self, points: np.ndarray | None = None) -> float:
-        """How far from the mesh [m] its distance is computed: twice its bounding box's diagonal (a point
-        inside a closed mesh is always nearer its surface than that); beyond, a particle is out of reach."""
+        """How far from the mesh [m] its distance is computed; beyond, a particle is out of its reach. A closed
+        mesh: twice its bounding box's diagonal (a point inside it is always nearer its surface than that); an
+        open one: ``depth``."""
         p = self.vertices if points is None else points
         if self.sample_points is not None:
             p = self.sample_points.reshape(-1, 3)
-        return 2.0 * float(np.linalg.norm(p.max(axis=0) - p.min(axis=0))) + 1.0e-6
+        diagonal = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
+        if self.sides == "closed":
+            return 2.0 * diagonal + 1.0e-6
+        return 0.1 * diagonal if self.depth is None else self.depth
 
     def points_at(self, t: float) -> np.ndarray:
         """The points at time ``t`` [s] (linear between samples, held outside them), float64, shape [v, 3]."""
@@ -77,7 +86,7 @@ class MeshShape:
 
 
 def mesh_shape(vertices, faces, *, sides: str, deforming: bool = False, sample_times=None,
-               sample_points=None) -> MeshShape:
+               sample_points=None, depth: float | None = None) -> MeshShape:
     """A checked :class:`MeshShape` (one-line errors for bad input)."""
     if sides not in MESH_SIDES:
         raise ConfigError(f"mesh collider sides must be one of {', '.join(map(repr, MESH_SIDES))} (closed: a "
@@ -100,8 +109,11 @@ def mesh_shape(vertices, faces, *, sides: str, deforming: bool = False, sample_t
         if len(sample_times) > 1 and not (np.diff(sample_times) > 0.0).all():
             raise ConfigError("mesh collider time samples: times must increase")
         deforming = deforming or len(sample_times) > 1
+    if depth is not None and not (np.isfinite(depth) and depth > 0.0):
+        raise ConfigError(f"mesh collider depth must be > 0 [m] (how far from an open mesh it is looked for), got "
+                          f"{depth!r}")
     return MeshShape(vertices=v, faces=f.astype(np.int32), sides=sides, sample_times=sample_times,
-                     sample_points=sample_points, deforming=bool(deforming))
+                     sample_points=sample_points, deforming=bool(deforming), depth=depth)
 
 
 class MeshCollider:
@@ -167,7 +179,8 @@ class MeshCollider:
         self.mesh.velocities.assign(np.ascontiguousarray(velocities, dtype=np.float32))
         self.mesh.refit()
         self._points = np.array(points)
-        bound = MeshShape(vertices=points, faces=self.info.faces).query_range()
+        bound = MeshShape(vertices=points, faces=self.info.faces, sides=self.info.sides,
+                          depth=self.info.depth).query_range()
         if bound > self._range:  # the distance query reaches the grown mesh's whole inside
             self._range = bound
             size = self.model.shape_arrays.size
