@@ -1,11 +1,27 @@
 """Particle-collider contact: shapes, their motion, the contact buffer and the response.
 
 **Shapes.** Colliders are a struct of arrays (:func:`shapes_type`): kind, size, scale, mesh id,
-friction, restitution, and the shape's frame at the start and at the end of the current step,
-[rows, shape_count] with one row for every world (static shapes) or one per world (animated shapes, each
-world at its own time). A kernel is specialised for the set of kinds the scene holds
-(:class:`ContactFeatures`); a kind adds a signed-distance function here and a branch in
-``shape_distance``.
+friction (kinetic and static), restitution, thickness, a mesh's sides, and the shape's frame at the start
+and at the end of the current step, [rows, shape_count] with one row for every world (static shapes) or one
+per world (animated shapes, each world at its own time). A kernel is specialised for the set of kinds the
+scene holds (:class:`ContactFeatures`); a kind adds a signed-distance function here and a branch in
+``shape_surface``. A shape's distance is its surface's less its ``thickness``.
+
+**Meshes** (``SHAPE_MESH``, :func:`mesh_funcs`) are ``wp.Mesh`` BVHs in the shape's frame: the closest point
+within the shape's query range (``size[0]``), signed by the winding number (closed meshes), by the closest
+feature's pseudo-normal (one-sided open meshes) or not at all (two-sided open meshes); the surface's
+velocity adds the mesh's per-vertex velocities at the closest point (a deforming mesh). Warp's mesh
+queries are float32: a float64 model rounds the query point.
+
+**Swept paths** (``ContactFeatures.swept``). A particle that moved h v in a step may have passed through a
+thin shape. Its path x0 = x - h v → x (x0 against the shape's frame at the step's start, x against the one
+at its end: the path relative to the shape) is tested for entering a sphere, a box (slab test) or a mesh
+(a ray cast on its BVH; any face of a two-sided mesh, a face's front otherwise); a path that entered is
+resolved against the plane of the entered face, on the side it came from, whatever the closest point says
+(through a thin box the closest face is the far one). For symplectic Euler x0 is exactly the step's start
+(and strain limiting, which turns Δx into Δv = Δx / h, keeps it); for the other integrators it is the
+start of the straight path the final velocity implies. A plane is a half-space: nothing passes it unseen;
+capsules are not swept.
 
 **Motion.** ``shape_motion_kernel`` writes the frames of animated shapes at a step's start and end from
 keyframe tracks: the shape's rest frame translated by T(t) and turned by the rotation vector φ(t) [rad]
@@ -15,16 +31,17 @@ about its own origin, R(φ(t)) R₀ (as pin groups move, ``kinematics.py``).
 its radius plus a margin, and records them in per-particle slots (:class:`ContactSlots`): the shape
 index, in shape order, at most ``slots`` of them. A particle touching more shapes than it has slots keeps
 the first ``slots`` and adds the rest to its world's overflow counter (an integer atomic: the count is
-exact, the kept contacts do not depend on thread order). The response pass walks a particle's own slots,
-so it writes every result once, without atomics. Later kinds of contact (meshes, triangles) store their
-feature (face) in ``feature``.
+exact, the kept contacts do not depend on thread order). With swept paths, a shape the path entered is
+recorded too. The response pass walks a particle's own slots, so it writes every result once, without
+atomics.
 
 **The response** (position projection, inelastic or restitutive, Coulomb friction), relative to the
 surface's velocity. A particle of radius r touches a shape when the signed distance d of its centre
 from the surface is below r; it is projected to d = r. With the surface velocity v_s, the relative
 velocity's normal part v_n < 0 (approaching) becomes -e v_n when the approach is faster than two steps
-of gravity (2 |g| h: a resting particle does not hop) and 0 otherwise; the tangential part v_t shrinks
-by μ j_n (j_n = (1 + e)|v_n| the normal change; it sticks when |v_t| is smaller). The position takes the
+of gravity (2 |g| h: a resting particle does not hop) and 0 otherwise; the tangential part v_t stops when
+|v_t| ≤ μ_s j_n (static friction; j_n = (1 + e)|v_n| the normal change) and otherwise shrinks by μ_k j_n
+(kinetic friction; μ_s = μ_k unless set). The position takes the
 tangential change too, h Δv_t, so a particle that sticks moves exactly with the surface — on a moving
 platform it keeps its place — and one that slides travels h Σ v.
 
