@@ -8,8 +8,10 @@ scene holds (:class:`ContactFeatures`); a kind adds a signed-distance function h
 ``shape_surface``. A shape's distance is its surface's less its ``thickness``.
 
 **Meshes** (``SHAPE_MESH``, :func:`mesh_funcs`) are ``wp.Mesh`` BVHs in the shape's frame: the closest point
-within the shape's query range (``size[0]``), signed by the winding number (closed meshes), by the closest
-feature's pseudo-normal (one-sided open meshes) or not at all (two-sided open meshes); the surface's
+within the mesh's depth (``size[0]``; a query costs with the distance it may search: 15 µs per point on
+the CPU within 3 m of a 5120-triangle sphere, 0.5 µs within 5 cm), signed by the winding number (closed
+meshes; a point deep inside looks farther), by the closest feature's pseudo-normal (one-sided open meshes)
+or not at all (two-sided open meshes); the surface's
 velocity adds the mesh's per-vertex velocities at the closest point (a deforming mesh). Warp's mesh
 queries are float32: a float64 model rounds the query point.
 
@@ -123,7 +125,7 @@ def shapes_type(scalar: type):
     class Shapes:
         kind: wp.array[wp.int32]  # [shape_count], SHAPE_*
         size: wp.array[vec3]  # [m], [shape_count]: sphere (r, 0, 0), box half extents, capsule (r, half height, 0),
-        # mesh (query range: the bounding box's diagonal, 0, 0)
+        # mesh (depth: how far from its surface it is looked for; twice its bounding box's diagonal; 0)
         scale: wp.array[vec3]  # [-], [shape_count], a mesh's scale (1 for analytic shapes)
         mesh: wp.array[wp.uint64]  # [shape_count], a Warp mesh id (0 for analytic shapes)
         friction: wp.array[scalar]  # kinetic Coulomb coefficient μ_k [-], [shape_count]
@@ -133,6 +135,8 @@ def shapes_type(scalar: type):
         thickness: wp.array[scalar]  # [m], [shape_count], a shell around the surface: contact at distance r + thickness
         static_friction: wp.array[scalar]  # Coulomb μ_s [-], [shape_count], ≥ ``friction`` (the kinetic μ_k)
         sides: wp.array[wp.int32]  # [shape_count], a mesh's MESH_* (how it tells inside from outside)
+        lower: wp.array[vec3]  # [m], [shape_count], a mesh's bounding box in its frame (lower corner)
+        upper: wp.array[vec3]  # [m], [shape_count], a mesh's bounding box in its frame (upper corner)
 
     return Shapes
 
@@ -275,13 +279,21 @@ def mesh_funcs(scalar: type):
     one = scalar(1.0)
 
     @wp.func
-    def mesh_distance(mesh: wp.uint64, sides: int, query_range: scalar, p: vec3):
-        """Signed distance [m] of the point p from the mesh (1e30 beyond ``query_range`` [m]), the outward unit
-        normal, and the surface's velocity [m/s] at the closest point (the mesh's per-vertex velocities
-        interpolated), all in the mesh's frame. Closed meshes take the sign from the winding number, one-sided
-        ones from the closest feature's pseudo-normal; two-sided ones are never inside (distance ≥ 0)."""
+    def mesh_distance(mesh: wp.uint64, sides: int, depth: scalar, reach: scalar, lower: vec3, upper: vec3, p: vec3):
+        """Signed distance [m] of the point p from the mesh, the outward unit normal, and the surface's velocity
+        [m/s] at the closest point (the mesh's per-vertex velocities interpolated), all in the mesh's frame; a
+        distance of 1e30 when p is farther than ``depth`` [m] from the surface (and not inside a closed mesh).
+        Closed meshes take the sign from the winding number (and look for the closest point up to ``reach``
+        [m] from a point deep inside, which the parity of skew rays finds), one-sided ones from the closest feature's pseudo-normal; two-sided ones
+        are never inside (distance ≥ 0). A point more than ``depth`` outside the bounding box ``lower`` …
+        ``upper`` is out of reach at once: a closest-point query costs with the distance it may search."""
+        far = scalar(1.0e30)
+        outside = vec3(wp.max(lower[0] - p[0], p[0] - upper[0]), wp.max(lower[1] - p[1], p[1] - upper[1]),
+                       wp.max(lower[2] - p[2], p[2] - upper[2]))
+        if wp.max(outside[0], wp.max(outside[1], outside[2])) > depth:
+            return far, vec3(zero, zero, one), vec3(zero)
         q = wp.vec3f(p)
-        limit = wp.float32(query_range)
+        limit = wp.float32(depth)
         found = bool(False)
         face = int(0)
         u = wp.float32(0.0)
@@ -294,6 +306,20 @@ def mesh_funcs(scalar: type):
             u = wp.float32(closed.u)
             w = wp.float32(closed.v)
             sign = wp.float32(closed.sign)
+            # Nothing within depth: far outside, or deep inside. The parity of three skew rays (a majority: a ray
+            # through an edge or a vertex may count a crossing twice) tells them apart cheaply; a point found
+            # inside looks for its closest point as far as it must (and takes the winding number's sign).
+            if not found:
+                votes = wp.mesh_query_ray_count_intersections(mesh, q, wp.vec3f(0.267261, 0.534522, 0.801784)) % 2
+                votes += wp.mesh_query_ray_count_intersections(mesh, q, wp.vec3f(-0.707107, 0.408248, 0.57735)) % 2
+                votes += wp.mesh_query_ray_count_intersections(mesh, q, wp.vec3f(0.123091, -0.492366, -0.861640)) % 2
+                if votes >= 2:
+                    deep = wp.mesh_query_point_sign_winding_number(mesh, q, wp.float32(reach))
+                    found = bool(deep.result)
+                    face = int(deep.face)
+                    u = wp.float32(deep.u)
+                    w = wp.float32(deep.v)
+                    sign = wp.float32(deep.sign)
         elif sides == MESH_ONE_SIDED:
             open_ = wp.mesh_query_point_sign_normal(mesh, q, limit)
             found = bool(open_.result)
@@ -308,7 +334,7 @@ def mesh_funcs(scalar: type):
             u = wp.float32(shell.u)
             w = wp.float32(shell.v)
         if not found:
-            return scalar(1.0e30), vec3(zero, zero, one), vec3(zero)
+            return far, vec3(zero, zero, one), vec3(zero)
         sign = wp.where(sign < wp.float32(0.0), wp.float32(-1.0), wp.float32(1.0))
         offset = p - vec3(wp.mesh_eval_position(mesh, face, u, w))
         length = wp.length(offset)
@@ -418,7 +444,8 @@ def shape_funcs(scalar: type, features: ContactFeatures):
                 distance, normal = capsule_distance(p, size[0], size[1])
         if wp.static(SHAPE_MESH in kinds):
             if kind == SHAPE_MESH:
-                distance, normal, velocity = mesh_distance(shapes.mesh[s], shapes.sides[s], size[0], p)
+                distance, normal, velocity = mesh_distance(shapes.mesh[s], shapes.sides[s], size[0], size[1],
+                                                           shapes.lower[s], shapes.upper[s], p)
         return distance - shapes.thickness[s], wp.transform_vector(X, normal), wp.transform_vector(X, velocity)
 
     @wp.func

@@ -100,9 +100,10 @@ def test_mesh_distance_and_sign_equal_trimesh_in_float64(device, distance_kernel
     builder = ws.ModelBuilder()
     builder.add_particles([[0.0, 0.0, 5.0]])
     for mesh, center in zip(closed, centers):
-        builder.add_collider_mesh(mesh, center=center, orientation=orientation)
+        builder.add_collider_mesh(mesh, center=center, orientation=orientation, depth=2.0)
     builder.add_collider_mesh(field, sides="one_sided", depth=1.0)
     builder.add_collider_mesh(field, sides="two_sided", thickness=0.01, depth=1.0)
+    builder.add_collider_mesh(closed[0], name="default_depth")  # looked for within 0.17 m, deep inside further
     model = builder.finalize(device, contact_stage=True)
 
     def device_distance(s, points):
@@ -136,6 +137,14 @@ def test_mesh_distance_and_sign_equal_trimesh_in_float64(device, distance_kernel
     np.testing.assert_allclose(d[clear], np.where(below, -distance, distance)[clear], atol=1e-5)
     d, _ = device_distance(4, points)
     np.testing.assert_allclose(d, distance - 0.01, atol=1e-5)
+
+    sphere = closed[0]
+    depth = 0.1 * np.linalg.norm(sphere.bounds[1] - sphere.bounds[0])
+    probes = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.5 + 0.5 * depth, 0.0], [0.0, 0.0, 0.5 + 2 * depth]])
+    reference = -trimesh.proximity.closest_point(sphere, probes[:3])[1] * [1, 1, -1]
+    d, _ = device_distance(5, probes)
+    np.testing.assert_allclose(d[:3], reference, atol=1e-5)  # deep inside, inside, outside within its depth
+    assert d[3] == pytest.approx(1.0e30)  # beyond its depth: out of reach
 
 
 def _grid_faces(n: int) -> np.ndarray:
@@ -366,6 +375,9 @@ def test_mesh_collider_input_is_checked(tmp_path):
         model.mesh_collider("floor").set_points(vertices)
     with pytest.raises(ConfigError, match="no mesh collider 'wall'"):
         model.mesh_collider("wall")
+    builder.add_collider_mesh(vertices, faces=faces, sides="two_sided", depth=0.01, name="thin")
+    with pytest.raises(ConfigError, match="'thin': its depth .* must exceed the particle radius"):
+        builder.finalize("cpu")
 
 
 def test_mesh_collider_from_files(tmp_path):

@@ -891,8 +891,10 @@ class ModelBuilder:
                 a quaternion (x, y, z, w); scale: a factor [-] (or one per axis) on the vertices.
             sides: "closed" (a watertight solid: inside by winding number), "one_sided" (an open mesh whose
                 outside is where its normals point) or "two_sided" (an open shell, kept apart on both sides).
-            depth: how far from an open mesh it is looked for [m] (one-sided: up to this deep behind it, beyond
-                its border edges too, is inside); default a tenth of its bounding box's diagonal.
+            depth: how far from its surface the mesh is looked for [m] (one-sided: up to this deep behind it,
+                beyond its border edges too, is inside; a point deep inside a closed mesh looks as far as it
+                must); default a tenth of its bounding box's diagonal; more than the particles' radius plus the
+                thickness. A closest-point query costs with it.
             thickness: a shell around the surface [m], ≥ 0: particles stay radius + thickness from it.
             friction: kinetic Coulomb coefficient μ_k [-]; static_friction: μ_s ≥ μ_k [-], default μ_k.
             restitution: coefficient of restitution e [-] in [0, 1] (see :meth:`add_collider_box`).

@@ -5,7 +5,8 @@ closest point (``kernels.contacts.mesh_funcs``) and cast each particle's path of
 mesh tells inside from outside is explicit (``sides``):
 
 * ``"closed"``: a closed (watertight) mesh; inside is where its winding number exceeds ½ (Warp's fast winding
-  number, robust to small holes and flipped slivers).
+  number, robust to small holes and flipped slivers). It is looked for up to ``depth`` outside it; a point
+  deep inside looks as far as it must.
 * ``"one_sided"``: an open mesh (terrain, a slope, a shell) whose outside is the side its faces' normals point
   to (counter-clockwise winding); up to ``depth`` behind it (beyond its border edges too) is inside, and a
   particle there is pushed out to the front; farther away the mesh is out of reach.
@@ -41,8 +42,9 @@ class MeshShape:
         sides: "closed", "one_sided" or "two_sided" (see the module docstring).
         sample_times: times [s] of time-sampled points, shape [k], increasing, or None for fixed points.
         sample_points: the points at those times [m], shape [k, v, 3], or None.
-        depth: how far from an open mesh [m] it is looked for (one-sided: how deep behind it is inside); None:
-            a tenth of its bounding box's diagonal. A closed mesh is looked for within twice the diagonal.
+        depth: how far from its surface [m] a mesh is looked for (one-sided: how deep behind it is inside); None:
+            a tenth of its bounding box's diagonal. It must exceed the particles' radius plus the thickness; a
+            closest-point query costs with it.
         deforming: whether its points may change between frames (time samples, or
             :meth:`MeshCollider.set_points`): a deforming mesh does work on the particles, so the guard's energy
             balance is off for it.
@@ -61,17 +63,20 @@ class MeshShape:
         """Whether its points follow time samples (applied at every frame by :func:`advance_mesh_colliders`)."""
         return self.sample_times is not None and len(self.sample_times) > 1
 
-    def query_range(self, points: np.ndarray | None = None) -> float:
-        """How far from the mesh [m] its distance is computed; beyond, a particle is out of its reach. A closed
-        mesh: twice its bounding box's diagonal (a point inside it is always nearer its surface than that); an
-        open one: ``depth``."""
+    def bounds(self, points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Its bounding box in its frame [m] (of every time sample): lower and upper corners, shape [3] each."""
         p = self.vertices if points is None else points
-        if self.sample_points is not None:
+        if points is None and self.sample_points is not None:
             p = self.sample_points.reshape(-1, 3)
-        diagonal = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
-        if self.sides == "closed":
-            return 2.0 * diagonal + 1.0e-6
-        return 0.1 * diagonal if self.depth is None else self.depth
+        return p.min(axis=0), p.max(axis=0)
+
+    def query_range(self, points: np.ndarray | None = None) -> tuple[float, float]:
+        """How far from the mesh [m] its distance is computed (``depth``; default a tenth of its bounding box's
+        diagonal) — beyond, a particle is out of its reach — and how far a point inside a closed mesh looks
+        for its surface (twice the diagonal: always farther than its nearest surface point)."""
+        lower, upper = self.bounds(points)
+        diagonal = float(np.linalg.norm(upper - lower))
+        return (0.1 * diagonal if self.depth is None else self.depth), 2.0 * diagonal + 1.0e-6
 
     def points_at(self, t: float) -> np.ndarray:
         """The points at time ``t`` [s] (linear between samples, held outside them), float64, shape [v, 3]."""
@@ -139,6 +144,7 @@ class MeshCollider:
         )
         self._points = np.array(points)
         self._range = info.query_range()
+        self._bounds = info.bounds()
 
     @property
     def name(self) -> str:
@@ -179,14 +185,15 @@ class MeshCollider:
         self.mesh.velocities.assign(np.ascontiguousarray(velocities, dtype=np.float32))
         self.mesh.refit()
         self._points = np.array(points)
-        bound = MeshShape(vertices=points, faces=self.info.faces, sides=self.info.sides,
-                          depth=self.info.depth).query_range()
-        if bound > self._range:  # the distance query reaches the grown mesh's whole inside
-            self._range = bound
-            size = self.model.shape_arrays.size
-            values = size.numpy()
-            values[self.index, 0] = bound
-            size.assign(values)
+        lower, upper = self.info.bounds(points)
+        if (lower < self._bounds[0]).any() or (upper > self._bounds[1]).any():  # grown: widen its box and reach
+            self._bounds = (np.minimum(lower, self._bounds[0]), np.maximum(upper, self._bounds[1]))
+            depth, reach = MeshShape(vertices=np.array(self._bounds), faces=self.info.faces, sides=self.info.sides,
+                                     depth=self.info.depth).query_range()
+            self._range = (self._range[0], max(reach, self._range[1]))
+            _write_row(self.model.shape_arrays.size, self.index, (*self._range, 0.0))
+            _write_row(self.model.shape_arrays.lower, self.index, self._bounds[0])
+            _write_row(self.model.shape_arrays.upper, self.index, self._bounds[1])
         self.model.input_version += 1
 
 
@@ -194,15 +201,25 @@ def make_mesh_colliders(model) -> list:
     """The :class:`MeshCollider` of every mesh collider of ``model`` (called at finalize), with its mesh id and
     query range written into the model's collider arrays."""
     colliders = [MeshCollider(model, i, s.mesh) for i, s in enumerate(model.shapes) if s.kind == "mesh"]
-    if colliders:
-        ids = model.shape_arrays.mesh.numpy()
-        size = model.shape_arrays.size.numpy()
-        for c in colliders:
-            ids[c.index] = c.mesh.id
-            size[c.index] = (c._range, 0.0, 0.0)
-        model.shape_arrays.mesh.assign(ids)
-        model.shape_arrays.size.assign(size)
+    radius = float(model.particle_radius.numpy().max()) if model.particle_count else 0.0
+    for c in colliders:
+        thickness = model.shapes[c.index].thickness
+        if c._range[0] <= radius + thickness:
+            raise ConfigError(f"mesh collider {c.name!r}: its depth ({c._range[0]:.4g} m) must exceed the particle "
+                              f"radius plus its thickness ({radius + thickness:.4g} m), or contacts would be missed: "
+                              "pass a larger depth")
+        _write_row(model.shape_arrays.mesh, c.index, c.mesh.id)
+        _write_row(model.shape_arrays.size, c.index, (*c._range, 0.0))
+        _write_row(model.shape_arrays.lower, c.index, c._bounds[0])
+        _write_row(model.shape_arrays.upper, c.index, c._bounds[1])
     return colliders
+
+
+def _write_row(array: wp.array, index: int, value) -> None:
+    """Write entry ``index`` of a device array (a host round trip of the whole array: colliders are few)."""
+    values = array.numpy()
+    values[index] = value
+    array.assign(values)
 
 
 def advance_mesh_colliders(model, t0: float, t1: float) -> None:

@@ -731,6 +731,8 @@ class Model:
             np.asarray([s.friction if s.static_friction is None else s.static_friction for s in shapes],
                        dtype=scalar_np), dtype=self.scalar, device=device)
         arrays.sides = int_array([MESH_SIDES[s.mesh.sides] if s.mesh is not None else 0 for s in shapes])
+        arrays.lower = wp.zeros(count, dtype=self.vec3, device=device)  # a mesh's bounding box, written with its mesh
+        arrays.upper = wp.zeros(count, dtype=self.vec3, device=device)
         self.shape_arrays = arrays
         # Mesh colliders: their Warp meshes (ids and query ranges go into the arrays above); a path swept against
         # spheres, boxes and meshes unless switched off (``contact_swept = False``, a structural change).
