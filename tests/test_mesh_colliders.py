@@ -368,7 +368,7 @@ def test_mesh_collider_input_is_checked(tmp_path):
         builder.add_collider_mesh(tmp_path / "missing.obj")
     with pytest.raises(ConfigError, match="static_friction"):
         builder.add_collider_mesh(vertices, faces=faces, friction=0.5, static_friction=0.2)
-    builder.add_particles([[0.0, 0.0, 1.0]])
+    builder.add_particles([[0.0, 0.0, 1.0]], radius=0.02)
     builder.add_collider_mesh(vertices, faces=faces, sides="one_sided", name="floor")
     model = builder.finalize("cpu")
     with pytest.raises(ConfigError, match="deforming=True"):
