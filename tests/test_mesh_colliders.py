@@ -86,7 +86,9 @@ def test_mesh_distance_and_sign_equal_trimesh_in_float64(device, distance_kernel
     """Closed meshes (an icosphere, a box, a capsule, placed and turned): the signed distance of 300 points
     in and around each equals trimesh's float64 closest-point distance with the sign of its containment
     test, to float32 rounding of 2 m coordinates (1e-5 m); the normal is the direction from the closest
-    point (the distance's gradient). An open height field, one-sided: negative below it; two-sided: the
+    point (the distance's gradient: one step of d along -n lands on the surface). Signed by the winding number, the sphere gives the same. A point deep
+    inside a mesh looked for within a smaller depth finds its closest point; one beyond it outside is out
+    of reach. An open height field, one-sided: negative below it; two-sided: the
     unsigned distance less the thickness."""
     rng = np.random.default_rng(7)
     closed = [trimesh.creation.icosphere(subdivisions=2, radius=0.5), trimesh.creation.box(extents=(0.8, 0.4, 0.2)),
@@ -104,6 +106,7 @@ def test_mesh_distance_and_sign_equal_trimesh_in_float64(device, distance_kernel
     builder.add_collider_mesh(field, sides="one_sided", depth=1.0)
     builder.add_collider_mesh(field, sides="two_sided", thickness=0.01, depth=1.0)
     builder.add_collider_mesh(closed[0], name="default_depth")  # looked for within 0.17 m, deep inside further
+    builder.add_collider_mesh(closed[0], center=centers[0], orientation=orientation, depth=2.0, winding_number=True)
     model = builder.finalize(device, contact_stage=True)
 
     def device_distance(s, points):
@@ -115,19 +118,23 @@ def test_mesh_distance_and_sign_equal_trimesh_in_float64(device, distance_kernel
         return out.numpy().astype(np.float64), normals.numpy().astype(np.float64)
 
     rotation = trimesh.transformations.quaternion_matrix([orientation[3], *orientation[:3]])
+    probe_cloud = np.asarray(centers[0]) + rng.uniform(-0.8, 0.8, (300, 3))
     for s, (mesh, center) in enumerate(zip(closed, centers)):
         placed = mesh.copy()
         placed.apply_transform(rotation)
         placed.apply_translation(center)
         points = placed.bounds[0] + rng.random((300, 3)) * (placed.bounds[1] - placed.bounds[0]) * 1.6 \
             - 0.3 * (placed.bounds[1] - placed.bounds[0])
-        closest, distance, _ = trimesh.proximity.closest_point(placed, points)
+        distance = trimesh.proximity.closest_point(placed, points)[1]
         sign = np.where(placed.contains(points), -1.0, 1.0)
         clear = distance > 1e-3  # the sign of a point on the surface is either
         d, n = device_distance(s, points)
         np.testing.assert_allclose(d[clear], (sign * distance)[clear], atol=1e-5)
-        outward = (points - closest) * (sign / np.maximum(distance, 1e-30))[:, None]
-        np.testing.assert_allclose(n[clear], outward[clear], atol=1e-3)
+        # The normal points from a closest point (there may be several at one distance, near the medial axis):
+        # the point d along -n from each probe is on the surface, to the distance's tolerance.
+        np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-6)
+        on_surface = trimesh.proximity.closest_point(placed, points - d[:, None] * n)[1]
+        np.testing.assert_allclose(on_surface, 0.0, atol=2e-5)
 
     points = np.c_[rng.uniform(-0.8, 0.8, (300, 2)), rng.uniform(-0.4, 0.4, 300)]
     closest, distance, _ = trimesh.proximity.closest_point(field, points)
@@ -145,6 +152,11 @@ def test_mesh_distance_and_sign_equal_trimesh_in_float64(device, distance_kernel
     d, _ = device_distance(5, probes)
     np.testing.assert_allclose(d[:3], reference, atol=1e-5)  # deep inside, inside, outside within its depth
     assert d[3] == pytest.approx(1.0e30)  # beyond its depth: out of reach
+
+    # The same sphere signed by its winding number (placed as the first): the same distances.
+    d0, _ = device_distance(0, probe_cloud)
+    d6, _ = device_distance(6, probe_cloud)
+    np.testing.assert_allclose(d6, d0, atol=1e-6)
 
 
 def _grid_faces(n: int) -> np.ndarray:

@@ -4,9 +4,11 @@ A mesh collider is a ``wp.Mesh`` (its BVH) in the collider's own frame; the cont
 closest point (``kernels.contacts.mesh_funcs``) and cast each particle's path of the step against it. How a
 mesh tells inside from outside is explicit (``sides``):
 
-* ``"closed"``: a closed (watertight) mesh; inside is where its winding number exceeds ½ (Warp's fast winding
-  number, robust to small holes and flipped slivers). It is looked for up to ``depth`` outside it; a point
-  deep inside looks as far as it must.
+* ``"closed"``: a closed (watertight) mesh, signed by the closest feature's angle-weighted pseudo-normal (exact
+  for a watertight, consistently wound mesh), or with ``winding_number=True`` inside where its winding number
+  exceeds ½ (Warp's fast winding number: robust to small holes and flipped slivers, about 5× the cost of a
+  query near the surface). It is looked for up to ``depth`` outside it; a point deep inside (found by the
+  parity of three skew rays) looks as far as it must.
 * ``"one_sided"``: an open mesh (terrain, a slope, a shell) whose outside is the side its faces' normals point
   to (counter-clockwise winding); up to ``depth`` behind it (beyond its border edges too) is inside, and a
   particle there is pushed out to the front; farther away the mesh is out of reach.
@@ -42,6 +44,7 @@ class MeshShape:
         sides: "closed", "one_sided" or "two_sided" (see the module docstring).
         sample_times: times [s] of time-sampled points, shape [k], increasing, or None for fixed points.
         sample_points: the points at those times [m], shape [k, v, 3], or None.
+        winding_number: a closed mesh's sign from its winding number rather than its pseudo-normals.
         depth: how far from its surface [m] a mesh is looked for (one-sided: how deep behind it is inside); None:
             a tenth of its bounding box's diagonal. It must exceed the particles' radius plus the thickness; a
             closest-point query costs with it.
@@ -57,6 +60,7 @@ class MeshShape:
     sample_points: np.ndarray | None = None
     deforming: bool = False
     depth: float | None = None
+    winding_number: bool = False
 
     @property
     def sampled(self) -> bool:
@@ -91,7 +95,7 @@ class MeshShape:
 
 
 def mesh_shape(vertices, faces, *, sides: str, deforming: bool = False, sample_times=None,
-               sample_points=None, depth: float | None = None) -> MeshShape:
+               sample_points=None, depth: float | None = None, winding_number: bool = False) -> MeshShape:
     """A checked :class:`MeshShape` (one-line errors for bad input)."""
     if sides not in MESH_SIDES:
         raise ConfigError(f"mesh collider sides must be one of {', '.join(map(repr, MESH_SIDES))} (closed: a "
@@ -117,8 +121,12 @@ def mesh_shape(vertices, faces, *, sides: str, deforming: bool = False, sample_t
     if depth is not None and not (np.isfinite(depth) and depth > 0.0):
         raise ConfigError(f"mesh collider depth must be > 0 [m] (how far from an open mesh it is looked for), got "
                           f"{depth!r}")
+    if winding_number and sides != "closed":
+        raise ConfigError(f"winding_number applies to closed mesh colliders only (an open one has no inside), got "
+                          f"sides={sides!r}")
     return MeshShape(vertices=v, faces=f.astype(np.int32), sides=sides, sample_times=sample_times,
-                     sample_points=sample_points, deforming=bool(deforming), depth=depth)
+                     sample_points=sample_points, deforming=bool(deforming), depth=depth,
+                     winding_number=bool(winding_number))
 
 
 class MeshCollider:
@@ -140,7 +148,7 @@ class MeshCollider:
             points=wp.array(points.astype(np.float32), dtype=wp.vec3, device=device),
             indices=wp.array(info.faces.reshape(-1), dtype=wp.int32, device=device),
             velocities=wp.zeros(len(points), dtype=wp.vec3, device=device),
-            support_winding_number=info.sides == "closed",
+            support_winding_number=info.winding_number,
         )
         self._points = np.array(points)
         self._range = info.query_range()

@@ -16,7 +16,7 @@ from ..kernels.forces import ForceFeatures
 from ..kernels.springs import SpringLaw
 from ..kernels.families import Incidence, IncidenceShape
 from ..kernels.contacts import NO_CONTACTS, SHAPE_NAMES, ContactFeatures, shapes_type
-from ..kernels.contacts import MESH_SIDES, SWEPT_KINDS
+from ..kernels.contacts import MESH_SIDES, MESH_WINDING, SWEPT_KINDS
 from ..kernels.inputs import INPUT_COUNT, INPUTS
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import transform_type, vec3_type
@@ -730,7 +730,8 @@ class Model:
         arrays.static_friction = wp.array(
             np.asarray([s.friction if s.static_friction is None else s.static_friction for s in shapes],
                        dtype=scalar_np), dtype=self.scalar, device=device)
-        arrays.sides = int_array([MESH_SIDES[s.mesh.sides] if s.mesh is not None else 0 for s in shapes])
+        arrays.sides = int_array([(MESH_WINDING if s.mesh.winding_number else MESH_SIDES[s.mesh.sides])
+                                  if s.mesh is not None else 0 for s in shapes])
         arrays.lower = wp.zeros(count, dtype=self.vec3, device=device)  # a mesh's bounding box, written with its mesh
         arrays.upper = wp.zeros(count, dtype=self.vec3, device=device)
         self.shape_arrays = arrays

@@ -30,14 +30,15 @@ Colliders: each ``[[collider]]`` has a ``type`` and the keys of that type (any o
     type = "sphere"   center, radius, friction, restitution, translation, rotation
     type = "box"      center, half_extents, orientation, friction, restitution, translation, rotation
     type = "capsule"  center, radius, half_height, orientation, friction, restitution, translation, rotation
-    type = "mesh"     file, prim, center, orientation, scale, sides, depth, deforming, friction, restitution,
-                      translation, rotation
+    type = "mesh"     file, prim, center, orientation, scale, sides, winding_number, depth, deforming, friction,
+                      restitution, translation, rotation
 
 (and ``name`` for each; every type but the ground also takes ``thickness`` [m], a shell around its surface,
 and ``static_friction``, μ_s ≥ ``friction``, the kinetic μ_k). A mesh collider's ``file`` is any mesh file
 trimesh reads, or USD (``prim`` names the mesh; time-sampled points make it deform), relative to the scene;
 its coordinates are the collider's own frame, placed at ``center`` and ``orientation`` and multiplied by
-``scale``; ``sides`` says how it tells inside from outside: "closed" (default: a watertight solid),
+``scale``; ``sides`` says how it tells inside from outside: "closed" (default: a watertight solid, signed
+by its pseudo-normals, or with ``winding_number = true`` by its winding number, robust to holes),
 "one_sided" (an open mesh, outside where its normals point) or "two_sided" (an open shell); ``depth`` [m]
 is how far from an open mesh it is looked for (one-sided: how deep behind it is inside; default a tenth of
 its bounding box's diagonal). ``orientation`` is the rest orientation, a quaternion [x, y, z, w]; a capsule
@@ -454,6 +455,7 @@ _SCHEMA = {
         "sides": _Since(2, str),
         "deforming": _Since(2, bool),
         "depth": _Since(2, POSITIVE),
+        "winding_number": _Since(2, bool),
         "thickness": _Since(2, NON_NEGATIVE),
         "static_friction": _Since(2, NON_NEGATIVE),
     },
@@ -544,7 +546,7 @@ _COLLIDER_NEEDS = {
 }
 # Mesh colliders (format 2), and a thickness and static friction on every collider but the ground.
 _COLLIDER_KEYS["mesh"] = _COLLIDER_COMMON | _COLLIDER_MOTION | {"file", "prim", "center", "orientation", "scale", "sides",
-                                                               "deforming", "depth"}
+                                                               "deforming", "depth", "winding_number"}
 for _kind in ("plane", "sphere", "box", "capsule", "mesh"):
     _COLLIDER_KEYS[_kind] = _COLLIDER_KEYS[_kind] | {"thickness", "static_friction"}
 _COLLIDER_NEEDS["mesh"] = ({"file"}, 'file = "path" (any mesh file trimesh reads, or USD with prim = "/path")')
@@ -1207,7 +1209,7 @@ def _add_collider(builder: ModelBuilder, c: dict, base: str = "") -> None:
         builder.add_collider_mesh(path, prim=c.get("prim"), center=c.get("center", (0.0, 0.0, 0.0)),
                                   orientation=c.get("orientation", (0.0, 0.0, 0.0, 1.0)), scale=c.get("scale", 1.0),
                                   sides=c.get("sides", "closed"), deforming=c.get("deforming", False),
-                                  depth=c.get("depth"), **common)
+                                  depth=c.get("depth"), winding_number=c.get("winding_number", False), **common)
         return
     if kind == "plane":
         builder.add_collider_plane(point=c.get("point", (0.0, 0.0, 0.0)), normal=c.get("normal"), **common)
