@@ -469,7 +469,8 @@ def ops_of(prim) -> dict:
 
 def test_scene_mesh_collider(tmp_path):
     """A [[collider]] of type "mesh" reads its file relative to the scene, with its placement, sides, thickness,
-    static and kinetic friction and tracks; keys of other types are refused."""
+    static and kinetic friction and tracks; keys of other types are refused. [contacts] switches triangle
+    contacts on and swept paths off."""
     trimesh.creation.box(extents=(1.0, 1.0, 1.0)).export(tmp_path / "crate.obj")
     text = """version = 2
 [cloth]
@@ -487,6 +488,9 @@ thickness = 0.005
 friction = 0.3
 static_friction = 0.6
 translation = { times = [0.0, 1.0], values = [[0, 0, 0], [1, 0, 0]] }
+[contacts]
+triangles = true
+swept = false
 """
     (tmp_path / "scene.toml").write_text(text)
     builder = load_scene(tmp_path / "scene.toml").builder()
@@ -495,6 +499,52 @@ translation = { times = [0.0, 1.0], values = [[0, 0, 0], [1, 0, 0]] }
         ("mesh", "crate", 0.005, 0.3, 0.6)
     np.testing.assert_allclose(np.abs(shape.mesh.vertices), 1.0)  # the unit box scaled by 2
     assert shape.moving and shape.mesh.sides == "closed"
+    model = load_scene(tmp_path / "scene.toml").finalize("cpu")
+    assert model.contact_triangles and not model.contact_swept and model.mesh_collider("crate").info.sides == "closed"
     (tmp_path / "bad.toml").write_text(text.replace('sides = "closed"', 'radius = 1.0'))
     with pytest.raises(ConfigError, match="radius does not apply to a mesh collider"):
         load_scene(tmp_path / "bad.toml")
+
+
+# ------------------------------------------------------------------------------------- cloth triangles
+
+
+def test_cloth_triangles_do_not_slip_over_a_small_sphere_or_a_thin_pole(device):
+    """The seed's case: a soft cloth (k = 1 N/m, strain limited to 10 % as a user would) dropped on a sphere of
+    radius 0.04 m, smaller than its 0.1 m particle spacing, resting on the ground, and another over a pole
+    (a capsule of radius 1.5 cm) lying between two of its particle rows. With particle contacts only, the
+    sphere pokes through the cloth (its centre ends within the radius of the cloth surface) and the second
+    cloth falls through the pole to the ground. With ``contact_triangles``, each triangle's closest point is
+    kept radius + r away: the cloth tents over the sphere and hangs over the pole (the centre and the axis
+    end at least R + r/2 from the cloth, which lies above them)."""
+    R, r, pole, pole_z = 0.04, 0.01, 0.015, 0.2
+    sphere_center = np.array([0.03, 0.02, R])
+    axis = np.c_[np.linspace(2.4, 3.6, 121), np.zeros(121), np.full(121, pole_z)]
+    results = {}
+    for triangles in (False, True):
+        builder = ws.ModelBuilder()
+        soft = ws.SpringMaterial(ke=1.0, kd=0.01)
+        cloths = [builder.add_cloth_grid(nx=10, ny=10, spacing=0.1, origin=(x - 0.45, -0.45, 0.3), particle_mass=0.001,
+                                         radius=r, structural=soft, shear=soft, bend=soft) for x in (0.0, 3.0)]
+        builder.add_collider_sphere(center=sphere_center, radius=R, friction=0.5)
+        builder.add_collider_capsule(center=(3.0, 0.0, pole_z), radius=pole, half_height=0.6,
+                                     orientation=(0.0, math.sqrt(0.5), 0.0, math.sqrt(0.5)), friction=0.5)  # along x
+        builder.add_ground_plane(friction=0.8)
+        model = builder.finalize(device)
+        model.stabilizers = ws.Stabilizers(max_strain=0.1)
+        model.contact_triangles = triangles
+        sim = run(model, fps=60, substeps=20, frames=60)
+        q = particles(sim)[0]
+        faces = model.tri_indices.numpy()
+        tent = trimesh.Trimesh(q, faces[: len(faces) // 2], process=False)
+        drape = trimesh.Trimesh(q, faces[len(faces) // 2:], process=False)
+        results[triangles] = (trimesh.proximity.closest_point(tent, [sphere_center])[1][0],
+                              q[cloths[0].ravel(), 2].max(),
+                              trimesh.proximity.closest_point(drape, axis)[1].min(),
+                              q[cloths[1].ravel(), 2].max())
+    sphere_gap, tent_top, pole_gap, drape_top = results[False]
+    assert sphere_gap < R and tent_top < 2 * R  # points only: the sphere went through the cloth
+    assert drape_top < pole_z  # and the cloth fell through the pole
+    sphere_gap, tent_top, pole_gap, drape_top = results[True]
+    assert sphere_gap >= R + 0.5 * r and tent_top >= 2 * R
+    assert pole_gap >= pole + 0.5 * r and drape_top >= pole_z + pole

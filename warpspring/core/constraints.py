@@ -11,6 +11,7 @@ from __future__ import annotations
 import warp as wp
 
 from .contacts import Contacts, apply_contacts, collide_positions, empty_contacts, update_shape_frames
+from .contacts import apply_triangle_contacts
 from ..kernels.constraints import finish_step_kernel, strain_limit_kernel
 from .model import Model, State
 from .tracks import evaluate_input_tracks
@@ -64,7 +65,7 @@ class StepFinisher:
     def only_contacts(self) -> bool:
         """True when the pass is just the contact response against every collider (no stabiliser, no contact
         stage), which integrators may fuse into their update."""
-        return not (self.stabilised or self.model.contact_stage)
+        return not (self.stabilised or self.model.contact_stage or self.model.contact_triangles)
 
     def __call__(self, state: State, dt: float) -> None:
         model = self.model
@@ -73,6 +74,7 @@ class StepFinisher:
             if model.contact_stage:
                 collide_positions(model, state.particle_q, self.contacts, velocities=state.particle_qd, dt=dt)
             apply_contacts(model, state, dt, self.contacts)
+            apply_triangle_contacts(model, state)
             return
         evaluate_input_tracks(model, state)
         common = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
@@ -109,3 +111,4 @@ class StepFinisher:
             outputs=[state.particle_q, state.particle_qd],
             **common,
         )
+        apply_triangle_contacts(model, state)

@@ -283,6 +283,7 @@ class Model:
     contact_stage: bool  # contacts go through collide() and the contact buffer (else: fused, every collider)
     contact_slots: int  # contacts a particle holds in the buffer
     contact_swept: bool  # particles' paths over a step are swept against spheres, boxes and meshes (anti-tunnelling)
+    contact_triangles: bool  # cloth triangles are pushed out of spheres and capsules too (off by default; structural)
     mesh_colliders: list  # list[MeshCollider]: the Warp meshes of the mesh colliders (points settable between frames)
     shape_deforming: bool  # some mesh collider's points may change between frames
 
@@ -306,6 +307,7 @@ class Model:
         self.contact_stage = False
         self.contact_slots = 1
         self.contact_swept = False
+        self.contact_triangles = False
         self.mesh_colliders = []
         self.shape_deforming = False
         self._shape_tracks: list[Track] = []

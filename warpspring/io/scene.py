@@ -58,7 +58,10 @@ own origin (its centre, or the plane's point), both with optional ``interpolatio
 A ``[contacts]`` table (format 2) sets how contacts are resolved: ``stage`` (true: through the contact
 stage and its per-particle buffer; false: every collider tested in the update; default: the stage when a
 collider moves) and ``slots``, the contacts one particle holds in that buffer (1 to 64; default: the
-number of colliders, at most 4; contacts beyond it are dropped and counted in the run summary).
+number of colliders, at most 4; contacts beyond it are dropped and counted in the run summary),
+``triangles`` (true: cloth triangles are pushed out of spheres and capsules too, so one smaller than the
+particle spacing cannot slip between particles; default false) and ``swept`` (false: particles' paths over
+a step are not swept against spheres, boxes and meshes; default true).
 The new collider types and keys (box, capsule, restitution, orientation, tracks) need format 2.
 """
 
@@ -185,6 +188,9 @@ class Scene:
             update (False); ``None``: the model's default (the stage when a collider moves).
         contact_slots: ``[contacts] slots``: contacts a particle holds in the stage's buffer, or ``None`` (the
             model's default).
+        contact_triangles: ``[contacts] triangles``: push cloth triangles out of spheres and capsules too.
+        contact_swept: ``[contacts] swept``: sweep particles' paths against spheres, boxes and meshes (default
+            true).
         version: the file's scene format (1 for a file without ``version``).
         deprecations: one message per deprecated key the file uses (each also a
             :class:`DeprecatedKeyWarning` when the file is read).
@@ -218,6 +224,8 @@ class Scene:
     world_columns: int | None = None
     contact_stage: bool | None = None
     contact_slots: int | None = None
+    contact_triangles: bool = False
+    contact_swept: bool = True
     version: int = SCENE_FORMAT_VERSION
     deprecations: list = field(default_factory=list)
 
@@ -269,6 +277,10 @@ class Scene:
         model = self.builder().finalize(device, precision=self.precision, worlds=self.world_count,
                                         contact_stage=self.contact_stage, contact_slots=self.contact_slots,
                                         integrator=self.integrator)
+        if self.contact_triangles:
+            model.contact_triangles = True
+        if not self.contact_swept:
+            model.contact_swept = False
         with _context(os.path.basename(self.path), "worlds"):
             for name, entries in self.world_inputs.items():
                 # Constants first (this stops any track of the input), then each world's own track.
@@ -459,7 +471,8 @@ _SCHEMA = {
         "thickness": _Since(2, NON_NEGATIVE),
         "static_friction": _Since(2, NON_NEGATIVE),
     },
-    "contacts": {"stage": bool, "slots": _Number(1, integer=True)},
+    "contacts": {"stage": bool, "slots": _Number(1, integer=True), "triangles": _Since(2, bool),
+                 "swept": _Since(2, bool)},
     "output": {
         "path": str,
         "particles": bool,
@@ -676,6 +689,8 @@ def _parse(data: dict, path: str) -> Scene:
                           f"particle holds), got {contacts['slots']!r}")
     scene.contact_stage = contacts.get("stage")
     scene.contact_slots = contacts.get("slots")
+    scene.contact_triangles = contacts.get("triangles", False)
+    scene.contact_swept = contacts.get("swept", True)
     _parse_worlds(scene, data.get("worlds"), out, where)
     check_run_settings(fps=scene.fps, frames=scene.frames, substeps=scene.substeps, where=where)
     return scene
