@@ -17,7 +17,9 @@ Variants, side by side in one run:
   number sign, a ray cast per swept path), fused; ``mesh-unswept`` without the ray cast; ``mesh-stage``
   through the contact stage; ``mesh-moving`` moved by a translation track (frames per step, surface
   velocity); ``mesh-deforming`` built ``deforming=True`` with its points set (and the BVH refit) every frame;
-  ``mesh-open``: the ground as a one-sided open mesh too (two mesh queries per particle).
+  ``mesh-open``: the ground as a one-sided open mesh too (two mesh queries per particle);
+* ``triangles``: ``fused`` with ``model.contact_triangles``: the cloth's triangles kept out of the sphere too
+  (two more launches per substep: per triangle, then per particle).
 
 ``--shares`` prints, instead of the ratios, each variant's contact work as a share of its substep,
 (t - t_none) / t, where t is the substep's time: what the issue's table asks (one command, one table)::
@@ -48,7 +50,7 @@ SETTLE_FRAMES = 30
 
 
 VARIANTS = ["fused", "stage", "none", "unswept", "mesh", "mesh-unswept", "mesh-stage", "mesh-moving",
-            "mesh-deforming", "mesh-open"]
+            "mesh-deforming", "mesh-open", "triangles"]
 #: A track that barely moves the mesh sphere (1 mm over 10 s): its frames are written every step, as for any
 #: moving collider, while the cloth's contact stays the same as the static sphere's.
 CREEP = ws.Track([0.0, 10.0], [[0.0, 0.0, 0.0], [0.001, 0.0, 0.0]], interpolation="linear")
@@ -82,6 +84,8 @@ def contact_model(n: int, device, variant: str) -> ws.Model:
     model = builder.finalize(device, **stage)
     if variant.endswith("unswept"):
         model.contact_swept = False
+    if variant == "triangles":
+        model.contact_triangles = True
     return model
 
 

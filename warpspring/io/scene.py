@@ -939,7 +939,7 @@ def _check_collider(c: dict, where: str, label: str, *, version: int) -> None:
     types = COLLIDER_TYPES if version >= 2 else _FORMAT_1_COLLIDERS
     if kind not in types:
         newer = [t for t in COLLIDER_TYPES if t not in _FORMAT_1_COLLIDERS]
-        hint = (f" (in scene format {version}; {' and '.join(newer)} colliders need scene format 2: add version = 2 "
+        hint = (f" (in scene format {version}; {', '.join(newer[:-1])} and {newer[-1]} colliders need scene format 2: add version = 2 "
                 "at the top of the file, before the first [table])") if kind in COLLIDER_TYPES else ""
         raise ConfigError(f"{where}: {label}.type must be one of {', '.join(types)}, got {kind!r}{hint}")
     extra = sorted(set(c) - _COLLIDER_KEYS[kind])
