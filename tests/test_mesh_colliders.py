@@ -548,3 +548,15 @@ def test_cloth_triangles_do_not_slip_over_a_small_sphere_or_a_thin_pole(device):
     sphere_gap, tent_top, pole_gap, drape_top = results[True]
     assert sphere_gap >= R + 0.5 * r and tent_top >= 2 * R
     assert pole_gap >= pole + 0.5 * r and drape_top >= pole_z + pole
+
+
+def test_run_summary_gives_the_contact_slots_held():
+    """The run summary's line names the most contact slots held at a frame's end (with the contact stage),
+    before the worlds' notes; without the stage it says nothing of them."""
+    from warpspring.io.runner import RunSummary
+
+    common = dict(output="out.usdc", frames=10, simulated_time=1.0, wall_time=1.0, setup_time=0.5, substeps=16,
+                  dt=1e-3, device="cpu", model="model", integrator="symplectic_euler", advice="")
+    line = RunSummary(**common, peak_contacts=(37, 400), contact_overflow=3).line()
+    assert "; model; at most 37 of 400 contact slots held at a frame's end; 3 contacts dropped" in line
+    assert "contact slots held" not in RunSummary(**common).line()
