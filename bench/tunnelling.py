@@ -3,8 +3,10 @@
 Eight particles (radius 2 cm, gravity off) per collider are shot from 0.5 m above it at up to 0.6° from its
 normal at each speed, 16 substeps per 1/60 s frame for 4 frames, at: a zero-thickness two-sided mesh plane,
 a one-sided mesh plane (from its front), a closed mesh slab 2 mm thick, an analytic box 2 mm thick (each
-8 m × 8 m, frictionless). Counted: particles below the plane z = 0 at the end, with ``model.contact_swept``
-off and on (the scene of ``tests/test_mesh_colliders.py``, where the swept case is asserted).
+8 m × 8 m, frictionless), and a capsule pole of radius 2 mm (μ = 5) at which they are aimed within half of
+r + 2 mm of its axis. Counted: particles below the plane z = 0 (the pole's axis) at the end, with
+``model.contact_swept`` off and on (the scene of ``tests/test_mesh_colliders.py``, where the swept case is
+asserted).
 
     python bench/tunnelling.py --device cpu
 """
@@ -20,7 +22,8 @@ import warp as wp
 import warpspring as ws
 
 RADIUS = 0.02
-COLLIDERS = [(-15.0, "two_sided"), (-5.0, "one_sided"), (5.0, "slab"), (15.0, "box")]
+COLLIDERS = [(-15.0, "two_sided"), (-5.0, "one_sided"), (5.0, "slab"), (15.0, "box"), (25.0, "pole")]
+POLE = 0.002
 
 
 def scene(device, speed: float, *, swept: bool, precision: str) -> ws.Model:
@@ -35,6 +38,13 @@ def scene(device, speed: float, *, swept: bool, precision: str) -> ws.Model:
     builder.gravity = (0.0, 0.0, 0.0)
     rng = np.random.default_rng(3)
     for x_offset, kind in COLLIDERS:
+        if kind == "pole":
+            start = np.c_[x_offset + np.linspace(-0.5, 0.5, 8) * (RADIUS + POLE), rng.uniform(-1.0, 1.0, 8),
+                          np.full(8, 0.5)]
+            builder.add_particles(start, radius=RADIUS, velocities=(0.0, 0.0, -speed))
+            builder.add_collider_capsule(center=(x_offset, 0.0, 0.0), radius=POLE, half_height=4.0, friction=5.0,
+                                         orientation=(-np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)))  # along y
+            continue
         start = np.c_[rng.uniform(-1.0, 1.0, 8) + x_offset, rng.uniform(-1.0, 1.0, 8), np.full(8, 0.5)]
         direction = np.c_[rng.uniform(-0.01, 0.01, (8, 2)), -np.ones(8)]
         direction /= np.linalg.norm(direction, axis=1)[:, None]
@@ -69,7 +79,7 @@ def main():
     wp.init()
     device = wp.get_device(args.device)
     print(f"Particles on the wrong side of a two-sided mesh plane / one-sided mesh plane / 2 mm mesh slab / 2 mm "
-          f"box on {device.name}, Warp {wp.config.version}, {args.precision}, {datetime.date.today()}\n")
+          f"box / 2 mm capsule pole on {device.name}, Warp {wp.config.version}, {args.precision}, {datetime.date.today()}\n")
     print("| speed [m/s] | path per step | unswept | swept |\n|---|---|---|---|")
     for speed in args.speeds:
         counts = [wrong_side(scene(device, speed, swept=swept, precision=args.precision)) for swept in (False, True)]

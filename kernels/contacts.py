@@ -18,13 +18,14 @@ queries are float32: a float64 model rounds the query point.
 
 **Swept paths** (``ContactFeatures.swept``). A particle that moved h v in a step may have passed through a
 thin shape. Its path x0 = x - h v → x (x0 against the shape's frame at the step's start, x against the one
-at its end: the path relative to the shape) is tested for entering a sphere, a box (slab test) or a mesh
-(a ray cast on its BVH; any face of a two-sided mesh, a face's front otherwise); a path that entered is
-resolved against the plane of the entered face, on the side it came from, whatever the closest point says
-(through a thin box the closest face is the far one). For symplectic Euler x0 is exactly the step's start
-(and strain limiting, which turns Δx into Δv = Δx / h, keeps it); for the other integrators it is the
-start of the straight path the final velocity implies. A plane is a half-space: nothing passes it unseen;
-capsules are not swept.
+at its end: the path relative to the shape) is tested for entering a sphere, a box (slab test) or a capsule
+(cylinder and caps), each grown by the particle's radius and the thickness (a path that grazes it within
+the radius is caught too), or a mesh (a ray cast on its BVH against the surface itself; any face of a
+two-sided mesh, a face's front otherwise); a path that entered is resolved against the plane of the
+entered face, on the side it came from, whatever the closest point says (through a thin box the closest
+face is the far one). For symplectic Euler x0 is exactly the step's start (and strain limiting, which
+turns Δx into Δv = Δx / h, keeps it); for the other integrators it is the start of the straight path the
+final velocity implies. A plane is a half-space: nothing passes it unseen.
 
 **Motion.** ``shape_motion_kernel`` writes the frames of animated shapes at a step's start and end from
 keyframe tracks: the shape's rest frame translated by T(t) and turned by the rotation vector φ(t) [rad]
@@ -83,7 +84,7 @@ MESH_WINDING = 3  # a closed mesh, inside where its winding number is above ½ (
 MESH_SIDES = {"closed": MESH_CLOSED, "one_sided": MESH_ONE_SIDED, "two_sided": MESH_TWO_SIDED}
 
 #: The kinds a particle's path is swept against (a plane is a half-space: nothing passes it unseen).
-SWEPT_KINDS = (SHAPE_SPHERE, SHAPE_BOX, SHAPE_MESH)
+SWEPT_KINDS = (SHAPE_SPHERE, SHAPE_BOX, SHAPE_CAPSULE, SHAPE_MESH)
 
 #: Slot of an empty contact, and of a contact with no feature (analytic shapes).
 NO_SHAPE = -1
@@ -100,7 +101,7 @@ class ContactFeatures:
     kinds: tuple = ()
     moving: bool = False
     buffered: bool = False
-    swept: bool = False  # test each particle's path of the step against spheres, boxes and meshes
+    swept: bool = False  # test each particle's path of the step against spheres, boxes, capsules and meshes
 
     def __bool__(self) -> bool:
         return len(self.kinds) > 0
@@ -366,15 +367,16 @@ def mesh_funcs(scalar: type):
 
 @functools.cache
 def sweep_funcs(scalar: type):
-    """Where a particle's path p0 → p1 (in a shape's frame) first enters a sphere or a box that p0 is outside."""
+    """Where a particle's path p0 → p1 (in a shape's frame) first enters a sphere, a box or a capsule that p0 is
+    outside."""
     vec3 = vec3_type(scalar)
     zero = scalar(0.0)
     one = scalar(1.0)
 
     @wp.func
-    def sphere_crossing(p0: vec3, p1: vec3, radius: scalar):
-        """Whether p0 → p1 enters the sphere of ``radius`` [m] at the origin, the entry point and its normal."""
-        d = p1 - p0
+    def sphere_entry(p0: vec3, d: vec3, radius: scalar) -> scalar:
+        """The fraction t ∈ [0, 1] of the path p0 → p0 + d at which it enters the sphere of ``radius`` [m] at the
+        origin from outside, or -1."""
         a = wp.dot(d, d)
         b = wp.dot(p0, d)
         c = wp.dot(p0, p0) - radius * radius
@@ -382,8 +384,44 @@ def sweep_funcs(scalar: type):
         if c > zero and a > zero and disc >= zero:
             t = (-b - wp.sqrt(disc)) / a
             if t >= zero and t <= one:
-                hit = p0 + t * d
-                return True, hit, wp.normalize(hit)
+                return t
+        return -one
+
+    @wp.func
+    def sphere_crossing(p0: vec3, p1: vec3, radius: scalar):
+        """Whether p0 → p1 enters the sphere of ``radius`` [m] at the origin, the entry point and its normal."""
+        t = sphere_entry(p0, p1 - p0, radius)
+        if t >= zero:
+            hit = p0 + t * (p1 - p0)
+            return True, hit, wp.normalize(hit)
+        return False, p1, vec3(zero, zero, one)
+
+    @wp.func
+    def capsule_crossing(p0: vec3, p1: vec3, radius: scalar, half_height: scalar):
+        """Whether p0 → p1 enters the capsule of ``radius`` [m] around the segment z ∈ [-half_height,
+        half_height] from outside: its side (a cylinder) or a cap (a sphere), whichever comes first; the entry
+        point and its outward normal."""
+        d = p1 - p0
+        best = scalar(2.0)
+        normal = vec3(zero, zero, one)
+        a = d[0] * d[0] + d[1] * d[1]
+        b = p0[0] * d[0] + p0[1] * d[1]
+        c = p0[0] * p0[0] + p0[1] * p0[1] - radius * radius
+        disc = b * b - a * c
+        if c > zero and a > zero and disc >= zero:
+            t = (-b - wp.sqrt(disc)) / a
+            z = p0[2] + t * d[2]
+            if t >= zero and t <= one and z >= -half_height and z <= half_height:
+                best = t
+                normal = vec3(p0[0] + t * d[0], p0[1] + t * d[1], zero) / radius
+        for k in range(2):
+            cap = vec3(zero, zero, wp.where(k == 0, half_height, -half_height))
+            t = sphere_entry(p0 - cap, d, radius)
+            if t >= zero and t < best:
+                best = t
+                normal = wp.normalize(p0 + t * d - cap)
+        if best <= one:
+            return True, p0 + best * d, normal
         return False, p1, vec3(zero, zero, one)
 
     @wp.func
@@ -410,7 +448,7 @@ def sweep_funcs(scalar: type):
             return True, p0 + enter * d, n
         return False, p1, vec3(zero, zero, one)
 
-    return sphere_crossing, box_crossing
+    return sphere_crossing, box_crossing, capsule_crossing
 
 
 @functools.cache
@@ -421,7 +459,7 @@ def shape_funcs(scalar: type, features: ContactFeatures):
     plane_distance, sphere_distance, box_distance, capsule_distance, _ = contact_funcs(scalar)
     coulomb_response = coulomb_response_func(scalar)
     mesh_distance, mesh_crossing = mesh_funcs(scalar)
-    sphere_crossing, box_crossing = sweep_funcs(scalar)
+    sphere_crossing, box_crossing, capsule_crossing = sweep_funcs(scalar)
     kinds = features.kinds
     zero = scalar(0.0)
 
@@ -462,27 +500,41 @@ def shape_funcs(scalar: type, features: ContactFeatures):
         return distance, normal
 
     @wp.func
-    def shape_crossing(shapes: Shapes, s: int, row: int, x0: vec3, x: vec3):
+    def shape_crossing(shapes: Shapes, s: int, row: int, x0: vec3, x: vec3, pad: scalar):
         """Whether the path from x0 (at the step's start, against the shape's start frame) to x (its end frame)
-        entered shape s through its surface; if so, x's signed distance [m] from the plane of the entered face,
-        less the thickness, and that face's normal on x0's side (world)."""
+        entered shape s; if so, x's signed distance [m] from the plane of the entered face less the thickness
+        (the response's distance), that face's normal on x0's side (world), and the fraction of the step at
+        which the path entered. Spheres, boxes and capsules
+        are grown by ``pad`` [m] (the particle's radius) and the thickness, so a path that only grazes them
+        within the radius is caught too; a mesh is a ray cast against its surface."""
         X1 = shapes.transform_end[row, s]
         p0 = wp.transform_point(wp.transform_inverse(shapes.transform_start[row, s]), x0)
         p1 = wp.transform_point(wp.transform_inverse(X1), x)
         kind = shapes.kind[s]
+        size = shapes.size[s]
+        grow = pad + shapes.thickness[s]
         crossed = bool(False)
         hit = p1
         normal = vec3(zero, zero, scalar(1.0))
+        offset = -shapes.thickness[s]  # the entered surface's distance from the response's zero
         if wp.static(SHAPE_SPHERE in kinds):
             if kind == SHAPE_SPHERE:
-                crossed, hit, normal = sphere_crossing(p0, p1, shapes.size[s][0])
+                crossed, hit, normal = sphere_crossing(p0, p1, size[0] + grow)
+                offset = pad
         if wp.static(SHAPE_BOX in kinds):
             if kind == SHAPE_BOX:
-                crossed, hit, normal = box_crossing(p0, p1, shapes.size[s])
+                crossed, hit, normal = box_crossing(p0, p1, size + vec3(grow, grow, grow))
+                offset = pad
+        if wp.static(SHAPE_CAPSULE in kinds):
+            if kind == SHAPE_CAPSULE:
+                crossed, hit, normal = capsule_crossing(p0, p1, size[0] + grow, size[1])
+                offset = pad
         if wp.static(SHAPE_MESH in kinds):
             if kind == SHAPE_MESH:
                 crossed, hit, normal = mesh_crossing(shapes.mesh[s], shapes.sides[s], p0, p1)
-        return crossed, wp.dot(p1 - hit, normal) - shapes.thickness[s], wp.transform_vector(X1, normal)
+        d = p1 - p0
+        entry = wp.where(wp.dot(d, d) > zero, wp.clamp(wp.dot(hit - p0, d) / wp.dot(d, d), zero, scalar(1.0)), zero)
+        return crossed, wp.dot(p1 - hit, normal) + offset, wp.transform_vector(X1, normal), entry
 
     @wp.func
     def shape_contact(
@@ -490,20 +542,25 @@ def shape_funcs(scalar: type, features: ContactFeatures):
         dt: scalar,
     ):
         """Resolve the contact of one particle (x [m], v [m/s], radius [m]; at x0 [m] at the step's start) with
-        shape s after a step dt [s]. A path that entered the shape is put back on the side it came from."""
+        shape s after a step dt [s]. A path that entered the shape where its end is out of reach or on the far
+        side (the closest point's normal against the entered face's) is put back on the side it came from; the
+        tangential change then moves it only over the part of the step after it touched (so a particle that
+        sticks stays where it hit). Any other contact is the closest point's, as without sweeping."""
         distance, normal, surface_velocity = shape_surface(shapes, s, row, x)
+        contact_dt = dt
         if wp.static(features.swept):
-            crossed, crossed_distance, crossed_normal = shape_crossing(shapes, s, row, x0, x)
-            if crossed:
+            crossed, crossed_distance, crossed_normal, entry = shape_crossing(shapes, s, row, x0, x, radius)
+            if crossed and (distance >= radius or wp.dot(normal, crossed_normal) < zero):
                 distance = crossed_distance
                 normal = crossed_normal
+                contact_dt = (scalar(1.0) - entry) * dt
         if wp.static(features.moving):
             X0 = shapes.transform_start[row, s]
             X1 = shapes.transform_end[row, s]
             surface_velocity = surface_velocity + (
                 x - wp.transform_point(X0, wp.transform_point(wp.transform_inverse(X1), x))) / dt
         return coulomb_response(x, v, radius, distance, normal, surface_velocity, shapes.static_friction[s],
-                                shapes.friction[s], shapes.restitution[s], bounce_speed, dt)
+                                shapes.friction[s], shapes.restitution[s], bounce_speed, contact_dt)
 
     return shape_distance, shape_contact, shape_crossing
 
@@ -603,7 +660,8 @@ def collide_kernel(scalar: type, features: ContactFeatures):
                 touched = distance < reach
                 if wp.static(features.swept):
                     if not touched:
-                        crossed, crossed_distance, crossed_normal = shape_crossing(shapes, s, row, x0, x)
+                        crossed, crossed_distance, crossed_normal, entry = shape_crossing(
+                            shapes, s, row, x0, x, particle_radius[i])
                         touched = crossed
                 if touched:
                     if found < slots:

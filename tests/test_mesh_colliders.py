@@ -319,7 +319,10 @@ def test_fast_particles_never_end_on_the_wrong_side_of_thin_colliders(device, sp
     slab 2 mm thick and an analytic box 2 mm thick, gravity off, 8 particles each at up to 0.6° from the
     normal: their path over each step is swept, so none ends past the collider; each stops on its own side
     at distance r (inelastic, frictionless: the normal velocity is removed; the crossing point of a float32
-    ray is off by ~1e-7 of the step's 1 m path)."""
+    ray is off by ~1e-7 of the step's 1 m path). Eight more at a capsule pole of radius 2 mm, aimed within
+    half of r + 2 mm of its axis (6 of the 8 paths miss the pole itself; they touch it at most 30° from the
+    top, where μ = 5 stops them: a grazing particle, or a frictionless one, slides around it instead): swept
+    against the pole grown by the radius, each stops on its upper half, its centre r + 2 mm from the axis."""
     vertices, faces = floor_mesh(half=4.0, cells=2)
     builder = ws.ModelBuilder()
     builder.gravity = (0.0, 0.0, 0.0)
@@ -337,13 +340,24 @@ def test_fast_particles_never_end_on_the_wrong_side_of_thin_colliders(device, sp
                                       friction=0.0, name=kind)
         else:
             builder.add_collider_box(center=(x_offset, 0.0, -0.001), half_extents=(4.0, 4.0, 0.001), friction=0.0)
+    pole = 0.002
+    start = np.c_[25.0 + np.linspace(-0.5, 0.5, 8) * (R + pole), rng.uniform(-1.0, 1.0, 8), np.full(8, 0.5)]
+    builder.add_particles(start, radius=R, velocities=(0.0, 0.0, -speed))
+    builder.add_collider_capsule(center=(25.0, 0.0, 0.0), radius=pole, half_height=4.0, friction=5.0,
+                                 orientation=(-math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)))  # along y
     model = builder.finalize(device, contact_stage=True, contact_slots=2)
     assert model.contact_features().swept
     sim = run(model, fps=60, substeps=16, frames=4, guard=False)
     x, v = particles(sim)
+    x, v, pole_x = x[:32], v[:32], x[32:]
     assert x[:, 2].min() > 0.0  # none past the plane z = 0
     np.testing.assert_allclose(x[:, 2], R, atol=1e-5 * max(1.0, speed / 100.0))
     np.testing.assert_allclose(v[:, 2], 0.0, atol=1e-6 * speed)
+    assert pole_x[:, 2].min() > 0.0  # above the pole's axis: none passed it
+    # It sticks where it touched: at R + r from the axis, but for a particle the closest point caught (10 m/s),
+    # whose step along the tangent, at most h v, leaves it up to (h v)² / 2 (R + r) outside the curved surface.
+    gap = np.hypot(pole_x[:, 0] - 25.0, pole_x[:, 2]) - (R + pole)
+    assert gap.min() >= -1e-5 and gap.max() <= (speed / 960) ** 2 / (2 * (R + pole)) + 1e-5
 
 
 # ----------------------------------------------------------------------------------------- overflow, input

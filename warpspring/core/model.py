@@ -282,7 +282,7 @@ class Model:
     shape_rotation_track: wp.array  # int32, shape [shape_count], track table index of φ(t), or -1
     contact_stage: bool  # contacts go through collide() and the contact buffer (else: fused, every collider)
     contact_slots: int  # contacts a particle holds in the buffer
-    contact_swept: bool  # particles' paths over a step are swept against spheres, boxes and meshes (anti-tunnelling)
+    contact_swept: bool  # particles' paths over a step are swept against spheres, boxes, capsules, meshes (anti-tunnelling)
     contact_triangles: bool  # cloth triangles are pushed out of spheres and capsules too (off by default; structural)
     mesh_colliders: list  # list[MeshCollider]: the Warp meshes of the mesh colliders (points settable between frames)
     shape_deforming: bool  # some mesh collider's points may change between frames
@@ -738,7 +738,7 @@ class Model:
         arrays.upper = wp.zeros(count, dtype=self.vec3, device=device)
         self.shape_arrays = arrays
         # Mesh colliders: their Warp meshes (ids and query ranges go into the arrays above); a path swept against
-        # spheres, boxes and meshes unless switched off (``contact_swept = False``, a structural change).
+        # spheres, boxes, capsules and meshes unless switched off (``contact_swept = False``, a structural change).
         self.mesh_colliders = make_mesh_colliders(self)
         self.shape_deforming = any(s.mesh is not None and s.mesh.deforming for s in shapes)
         self.contact_swept = any(kind in SWEPT_KINDS for kind in self.shape_types)

@@ -61,7 +61,7 @@ collider moves) and ``slots``, the contacts one particle holds in that buffer (1
 number of colliders, at most 4; contacts beyond it are dropped and counted in the run summary),
 ``triangles`` (true: cloth triangles are pushed out of spheres and capsules too, so one smaller than the
 particle spacing cannot slip between particles; default false) and ``swept`` (false: particles' paths over
-a step are not swept against spheres, boxes and meshes; default true).
+a step are not swept against spheres, boxes, capsules and meshes; default true).
 The new collider types and keys (box, capsule, restitution, orientation, tracks) need format 2.
 """
 
@@ -189,7 +189,7 @@ class Scene:
         contact_slots: ``[contacts] slots``: contacts a particle holds in the stage's buffer, or ``None`` (the
             model's default).
         contact_triangles: ``[contacts] triangles``: push cloth triangles out of spheres and capsules too.
-        contact_swept: ``[contacts] swept``: sweep particles' paths against spheres, boxes and meshes (default
+        contact_swept: ``[contacts] swept``: sweep particles' paths against spheres, boxes, capsules and meshes (default
             true).
         version: the file's scene format (1 for a file without ``version``).
         deprecations: one message per deprecated key the file uses (each also a
