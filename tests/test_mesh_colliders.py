@@ -574,3 +574,27 @@ def test_run_summary_gives_the_contact_slots_held():
     line = RunSummary(**common, peak_contacts=(37, 400), contact_overflow=3).line()
     assert "; model; at most 37 of 400 contact slots held at a frame's end; 3 contacts dropped" in line
     assert "contact slots held" not in RunSummary(**common).line()
+
+
+def test_thin_colliders_example_runs(tmp_path, device):
+    """examples/thin_colliders.toml (three soft cloths on a small sphere, a thin pole and a mesh rock, with
+    triangle contacts) builds, runs two frames and writes its cloths and colliders to USD."""
+    from pathlib import Path
+
+    from pxr import Usd
+
+    from warpspring.io.usd import UsdWriter
+
+    scene = load_scene(Path(__file__).parent.parent / "examples" / "thin_colliders.toml")
+    model = scene.finalize(device)
+    assert model.contact_triangles and [s.kind for s in model.shapes] == ["sphere", "capsule", "mesh", "plane"]
+    sim = ws.Simulator(model, fps=60, substeps=20)
+    with UsdWriter(tmp_path / "thin.usdc", model, fps=60) as writer:
+        writer.write_frame(sim.state)
+        for _ in range(2):
+            sim.step_frame()
+            writer.write_frame(sim.state)
+    stage = Usd.Stage.Open(str(tmp_path / "thin.usdc"))
+    assert stage.GetPrimAtPath("/World/tent").GetAttribute("points").GetTimeSamples() == [0.0, 1.0, 2.0]
+    assert stage.GetPrimAtPath("/World/colliders/rock").GetTypeName() == "Mesh"
+    assert np.isfinite(sim.state.particle_q.numpy()).all()
