@@ -79,7 +79,8 @@ def main():
     wp.init()
     device = wp.get_device(args.device)
     print(f"Particles on the wrong side of a two-sided mesh plane / one-sided mesh plane / 2 mm mesh slab / 2 mm "
-          f"box / 2 mm capsule pole on {device.name}, Warp {wp.config.version}, {args.precision}, {datetime.date.today()}\n")
+          f"box / 2 mm capsule pole on {device.name}, Warp {wp.config.version}, {args.precision}, "
+          f"{datetime.date.today()}\n")
     print("| speed [m/s] | path per step | unswept | swept |\n|---|---|---|---|")
     for speed in args.speeds:
         counts = [wrong_side(scene(device, speed, swept=swept, precision=args.precision)) for swept in (False, True)]

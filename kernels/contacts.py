@@ -8,10 +8,11 @@ scene holds (:class:`ContactFeatures`); a kind adds a signed-distance function h
 ``shape_surface``. A shape's distance is its surface's less its ``thickness``.
 
 **Meshes** (``SHAPE_MESH``, :func:`mesh_funcs`) are ``wp.Mesh`` BVHs in the shape's frame: the closest point
-within the mesh's depth (``size[0]``; a query costs with the distance it may search: 15 µs per point on
-the CPU within 3 m of a 5120-triangle sphere, 0.5 µs within 5 cm), signed by the closest feature's
-angle-weighted pseudo-normal (closed and one-sided meshes; exact for a watertight mesh) or the winding number
-(closed meshes that ask for it: robust to holes, about 5× the cost near the surface), or not at all
+within the mesh's depth (``size[0]``; a query costs with the distance it may search: for points anywhere
+around a 5120-triangle sphere, 40× more within 3 m than within 5 cm on the CPU, ``bench/mesh_queries.py``),
+signed by the closest feature's angle-weighted pseudo-normal (closed and one-sided meshes; exact for a
+watertight mesh) or the winding number (closed meshes that ask for it: robust to holes, 5.7× the cost near
+the surface), or not at all
 (two-sided open meshes); a point deep inside a closed mesh looks farther; the surface's
 velocity adds the mesh's per-vertex velocities at the closest point (a deforming mesh). Warp's mesh
 queries are float32: a float64 model rounds the query point.

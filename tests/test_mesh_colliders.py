@@ -86,10 +86,10 @@ def test_mesh_distance_and_sign_equal_trimesh_in_float64(device, distance_kernel
     """Closed meshes (an icosphere, a box, a capsule, placed and turned): the signed distance of 300 points
     in and around each equals trimesh's float64 closest-point distance with the sign of its containment
     test, to float32 rounding of 2 m coordinates (1e-5 m); the normal is the direction from the closest
-    point (the distance's gradient: one step of d along -n lands on the surface). Signed by the winding number, the sphere gives the same. A point deep
-    inside a mesh looked for within a smaller depth finds its closest point; one beyond it outside is out
-    of reach. An open height field, one-sided: negative below it; two-sided: the
-    unsigned distance less the thickness."""
+    point (the distance's gradient: one step of d along -n lands on the surface). Signed by the winding
+    number, the sphere gives the same. A point deep inside a mesh looked for within a smaller depth finds its
+    closest point; one beyond it outside is out of reach. An open height field, one-sided: negative below
+    it; two-sided: the unsigned distance less the thickness."""
     rng = np.random.default_rng(7)
     closed = [trimesh.creation.icosphere(subdivisions=2, radius=0.5), trimesh.creation.box(extents=(0.8, 0.4, 0.2)),
               trimesh.creation.capsule(height=0.6, radius=0.2, count=[12, 12])]

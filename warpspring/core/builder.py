@@ -890,8 +890,9 @@ class ModelBuilder:
             center: where the collider's frame origin is at rest [m]; orientation: its rest orientation,
                 a quaternion (x, y, z, w); scale: a factor [-] (or one per axis) on the vertices.
             sides: "closed" (a watertight solid: inside by the pseudo-normals of its closest features, or with
-                ``winding_number=True`` by its winding number: robust to holes, ~5× the cost), "one_sided" (an open mesh whose
-                outside is where its normals point) or "two_sided" (an open shell, kept apart on both sides).
+                ``winding_number=True`` by its winding number: robust to holes, ~5× the cost), "one_sided" (an
+                open mesh whose outside is where its normals point) or "two_sided" (an open shell, kept apart on
+                both sides).
             depth: how far from its surface the mesh is looked for [m] (one-sided: up to this deep behind it,
                 beyond its border edges too, is inside; a point deep inside a closed mesh looks as far as it
                 must); default a tenth of its bounding box's diagonal; more than the particles' radius plus the
@@ -1253,7 +1254,7 @@ class ModelBuilder:
             static_friction = checks.non_negative("static_friction", static_friction)
             if static_friction < friction:
                 raise ConfigError(f"static_friction ({static_friction}) must be at least the kinetic friction "
-                                  f"({friction}): a contact that slides does so above μ_s and then feels μ_k ≤ μ_s")
+                                  f"({friction}): a contact slides above μ_s and then feels μ_k ≤ μ_s")
         restitution = checks.number("restitution", restitution, minimum=0.0)
         if restitution > 1.0:
             raise ConfigError(f"restitution must be in [0, 1] (the share of the normal speed an impact keeps), "

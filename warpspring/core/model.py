@@ -282,7 +282,7 @@ class Model:
     shape_rotation_track: wp.array  # int32, shape [shape_count], track table index of φ(t), or -1
     contact_stage: bool  # contacts go through collide() and the contact buffer (else: fused, every collider)
     contact_slots: int  # contacts a particle holds in the buffer
-    contact_swept: bool  # particles' paths over a step are swept against spheres, boxes, capsules, meshes (anti-tunnelling)
+    contact_swept: bool  # paths over a step swept against spheres, boxes, capsules and meshes (anti-tunnelling)
     contact_triangles: bool  # cloth triangles are pushed out of spheres and capsules too (off by default; structural)
     mesh_colliders: list  # list[MeshCollider]: the Warp meshes of the mesh colliders (points settable between frames)
     shape_deforming: bool  # some mesh collider's points may change between frames

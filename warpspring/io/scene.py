@@ -558,8 +558,8 @@ _COLLIDER_NEEDS = {
     "capsule": ({"center", "radius", "half_height"}, "center = [x, y, z], radius and half_height"),
 }
 # Mesh colliders (format 2), and a thickness and static friction on every collider but the ground.
-_COLLIDER_KEYS["mesh"] = _COLLIDER_COMMON | _COLLIDER_MOTION | {"file", "prim", "center", "orientation", "scale", "sides",
-                                                               "deforming", "depth", "winding_number"}
+_COLLIDER_KEYS["mesh"] = _COLLIDER_COMMON | _COLLIDER_MOTION | {
+    "file", "prim", "center", "orientation", "scale", "sides", "deforming", "depth", "winding_number"}
 for _kind in ("plane", "sphere", "box", "capsule", "mesh"):
     _COLLIDER_KEYS[_kind] = _COLLIDER_KEYS[_kind] | {"thickness", "static_friction"}
 _COLLIDER_NEEDS["mesh"] = ({"file"}, 'file = "path" (any mesh file trimesh reads, or USD with prim = "/path")')
@@ -939,8 +939,8 @@ def _check_collider(c: dict, where: str, label: str, *, version: int) -> None:
     types = COLLIDER_TYPES if version >= 2 else _FORMAT_1_COLLIDERS
     if kind not in types:
         newer = [t for t in COLLIDER_TYPES if t not in _FORMAT_1_COLLIDERS]
-        hint = (f" (in scene format {version}; {', '.join(newer[:-1])} and {newer[-1]} colliders need scene format 2: add version = 2 "
-                "at the top of the file, before the first [table])") if kind in COLLIDER_TYPES else ""
+        hint = (f" (in scene format {version}; {', '.join(newer[:-1])} and {newer[-1]} colliders need scene format 2: "
+                "add version = 2 at the top of the file, before the first [table])") if kind in COLLIDER_TYPES else ""
         raise ConfigError(f"{where}: {label}.type must be one of {', '.join(types)}, got {kind!r}{hint}")
     extra = sorted(set(c) - _COLLIDER_KEYS[kind])
     if extra:

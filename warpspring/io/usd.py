@@ -16,8 +16,9 @@ What is authored, and why (USD's fallbacks are wrong for simulation caches):
   their transforms: a sphere as ``UsdGeom.Sphere``, a box as a ``UsdGeom.Cube`` of size 2 scaled by its
   half extents, a capsule as ``UsdGeom.Capsule`` (axis Z, height 2 · half_height), a plane as a finite quad
   fitted to the scene, a mesh collider as a ``UsdGeom.Mesh`` of its triangles in its own frame (double-sided
-  unless closed; a deforming one's ``points`` and ``extent`` sampled at every frame). A static collider's translate and orient ops hold one default value; a moving
-  one's (a collider with keyframe tracks) are also sampled at every written frame, at the frame's time;
+  unless closed; a deforming one's ``points`` and ``extent`` sampled at every frame). A static collider's
+  translate and orient ops hold one default value; a moving one's (a collider with keyframe tracks) are also
+  sampled at every written frame, at the frame's time;
 * optionally the particles (``UsdGeom.Points`` with widths and velocities) and the springs: one
   ``UsdGeom.BasisCurves`` per spring family (structural, shear, bend, ...) of linear chains through the
   particles (a chain's inner points serve two springs; ``primvars:warpspring:particle`` names the particle
