@@ -10,7 +10,21 @@ Variants, side by side in one run:
 * ``fused``: the default for static colliders: every collider tested inside the update kernel;
 * ``stage``: ``finalize(contact_stage=True)``: ``collide`` fills the contact buffer, the response reads it
   (the path moving colliders take);
-* ``none``: the same cloth without colliders (the floor: what the springs and the update cost).
+* ``none``: the same cloth without colliders (the floor: what the springs and the update cost);
+* ``unswept``: ``fused`` without the swept paths (``model.contact_swept = False``): what anti-tunnelling costs
+  against analytic shapes;
+* ``mesh``: the sphere as a closed mesh collider (an icosphere of 5120 triangles: closest point, winding
+  number sign, a ray cast per swept path), fused; ``mesh-unswept`` without the ray cast; ``mesh-stage``
+  through the contact stage; ``mesh-moving`` moved by a translation track (frames per step, surface
+  velocity); ``mesh-deforming`` built ``deforming=True`` with its points set (and the BVH refit) every frame;
+  ``mesh-open``: the ground as a one-sided open mesh too (two mesh queries per particle);
+* ``triangles``: ``fused`` with ``model.contact_triangles``: the cloth's triangles kept out of the sphere too
+  (two more launches per substep: per triangle, then per particle).
+
+``--shares`` prints, instead of the ratios, each variant's contact work as a share of its substep,
+(t - t_none) / t, where t is the substep's time: what the issue's table asks (one command, one table)::
+
+    python bench/contacts.py --device cuda:0 --sizes 64 256 --shares
 
 Reported: particle-substeps/s (median of timed batches, device synchronised before every timer read) and
 each variant's ratio to ``fused``. ``--variants fused`` runs code without the contact stage too (the
@@ -35,27 +49,56 @@ RADIUS = 0.4 * SPACING
 SETTLE_FRAMES = 30
 
 
+VARIANTS = ["fused", "stage", "none", "unswept", "mesh", "mesh-unswept", "mesh-stage", "mesh-moving",
+            "mesh-deforming", "mesh-open", "triangles"]
+#: A track that barely moves the mesh sphere (1 mm over 10 s): its frames are written every step, as for any
+#: moving collider, while the cloth's contact stays the same as the static sphere's.
+CREEP = ws.Track([0.0, 10.0], [[0.0, 0.0, 0.0], [0.001, 0.0, 0.0]], interpolation="linear")
+
+
 def contact_model(n: int, device, variant: str) -> ws.Model:
+    import trimesh
+
     builder = ws.ModelBuilder()
     width = (n - 1) * SPACING
     sphere = 0.25 * width
     if variant != "none":
-        builder.add_collider_sphere(center=(0.0, 0.0, sphere), radius=sphere, friction=0.4)
-        builder.add_ground_plane(friction=0.6)
+        if variant.startswith("mesh"):
+            ball = trimesh.creation.icosphere(subdivisions=4, radius=sphere)
+            builder.add_collider_mesh(ball, center=(0.0, 0.0, sphere), friction=0.4,
+                                      translation=CREEP if variant == "mesh-moving" else None,
+                                      deforming=variant == "mesh-deforming", name="ball")
+        else:
+            builder.add_collider_sphere(center=(0.0, 0.0, sphere), radius=sphere, friction=0.4)
+        if variant == "mesh-open":
+            t = np.array([-1.0, 1.0]) * width
+            ground = np.array([[t[0], t[0], 0.0], [t[1], t[0], 0.0], [t[1], t[1], 0.0], [t[0], t[1], 0.0]])
+            builder.add_collider_mesh(ground, faces=[[0, 1, 2], [0, 2, 3]], sides="one_sided", depth=width,
+                                      friction=0.6, name="ground")
+        else:
+            builder.add_ground_plane(friction=0.6)
     spring = ws.SpringMaterial(ke=KE, kd=KD)
     builder.add_cloth_grid(nx=n, ny=n, spacing=SPACING, origin=(-0.5 * width, -0.5 * width, 2 * sphere + SPACING),
                            particle_mass=MASS, structural=spring, shear=spring, bend=spring, radius=RADIUS)
-    stage = {"contact_stage": True} if variant == "stage" else {}
-    return builder.finalize(device, **stage)
+    stage = {"contact_stage": True} if variant in ("stage", "mesh-stage") else {}
+    model = builder.finalize(device, **stage)
+    if variant.endswith("unswept"):
+        model.contact_swept = False
+    if variant == "triangles":
+        model.contact_triangles = True
+    return model
 
 
 class Runner:
     def __init__(self, model: ws.Model):
         self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=None)
+        self.deforming = [c for c in model.mesh_colliders if c.info.deforming]
         for _ in range(SETTLE_FRAMES):
-            self.sim.step_frame()
+            self.frame()
 
     def frame(self):
+        for collider in self.deforming:  # the same points, set and refit every frame as a deforming mesh's are
+            collider.set_points(collider.points(), dt=1.0 / FPS)
         self.sim.step_frame()
 
 
@@ -63,20 +106,26 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default=None)
     parser.add_argument("--sizes", type=int, nargs="+", default=[64, 256, 1024])
-    parser.add_argument("--variants", nargs="+", default=["fused", "stage", "none"],
-                        choices=["fused", "stage", "none"])
+    parser.add_argument("--variants", nargs="+", default=None, choices=VARIANTS,
+                        help="default: fused, stage, none; with --shares every variant")
+    parser.add_argument("--shares", action="store_true",
+                        help="each variant's contact work as a share of its substep, (t - t_none) / t")
     parser.add_argument("--seconds", type=float, default=1.0)
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
+    if args.variants is None:
+        args.variants = VARIANTS if args.shares else ["fused", "stage", "none"]
+    if args.shares and "none" not in args.variants:
+        args.variants = ["none", *args.variants]
     wp.init()
     device = wp.get_device(args.device)
     lines = [
         f"Cloth over a sphere and the ground on {device.name}, Warp {wp.config.version}, {datetime.date.today()}, "
         f"symplectic Euler, {SUBSTEPS} substeps per frame",
         "",
-        "| N | variant | particle-substeps/s | vs fused |",
-        "|---|---|---|---|",
     ]
+    lines += (["| N | variant | substep [µs] | contacts' share of the substep |", "|---|---|---|---|"] if args.shares
+              else ["| N | variant | particle-substeps/s | vs fused |", "|---|---|---|---|"])
     for n in args.sizes:
         rates = {}
         for variant in args.variants:
@@ -85,6 +134,11 @@ def main():
             rates[variant] = n * n * SUBSTEPS / frame_s
             print(f"N={n} {variant}: {rates[variant]:.4g} particle-substeps/s", flush=True)
         for variant, rate in rates.items():
+            if args.shares:
+                substep, floor = n * n / rate, n * n / rates["none"]
+                share = "–" if variant == "none" else f"{100 * (substep - floor) / substep:.0f} %"
+                lines.append(f"| {n} | {variant} | {substep * 1e6:.1f} | {share} |")
+                continue
             ratio = f"{rate / rates['fused']:.2f}×" if "fused" in rates else "–"
             lines.append(f"| {n} | {variant} | {rate:.3e} | {ratio} |")
     emit_table(lines, args.out)

@@ -184,7 +184,7 @@ FORMAT_1_CAPSULE = FORMAT_1_CLOTH + "[[collider]]\ntype = 'capsule'\ncenter = [0
 
 @pytest.mark.parametrize("text, what", [
     (FORMAT_1_CAPSULE + "half_height = 0.2\n", "collider.half_height needs scene format 2"),
-    (FORMAT_1_CAPSULE, "box and capsule colliders need scene format 2"),  # the type is checked before its keys
+    (FORMAT_1_CAPSULE, "box, capsule and mesh colliders need scene format 2"),  # the type is checked before its keys
     (FORMAT_1_CLOTH + "[[collider]]\ntype = 'ground'\nrestitution = 0.5\n",
      "collider.restitution needs scene format 2"),
     (FORMAT_1_CLOTH + "[contacts]\nslots = 2\n", "[contacts] needs scene format 2"),

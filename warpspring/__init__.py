@@ -49,6 +49,8 @@ from .core.springs import SPRING_LAWS, SpringPlasticity
 from .core.families import ElementFamily
 from .errors import ConfigError, OutputError, SimulationError, StabilityWarning, WarpspringError
 from .core.contacts import Contacts, apply_contacts, collide
+from .core.contacts import apply_triangle_contacts
+from .core.mesh_colliders import MeshCollider
 from .core.forces import eval_forces
 from .core.integrators import (
     INTEGRATORS,
@@ -129,7 +131,9 @@ __all__ = [
     "Track",
     "WarpspringError",
     "Contacts",
+    "MeshCollider",
     "apply_contacts",
+    "apply_triangle_contacts",
     "available_memory",
     "collide",
     "estimate_memory",

@@ -18,6 +18,7 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError
 from ..kernels.contacts import SHAPE_BOX, SHAPE_CAPSULE, SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
+from ..kernels.contacts import SHAPE_MESH
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import scalar_type, vec3_type
 from .bending import DihedralMaterial
@@ -1002,7 +1003,8 @@ class ModelBuilder:
 
     def add_collider_plane(self, *, point=(0.0, 0.0, 0.0), normal=None, friction: float = 0.5,
                            restitution: float = 0.0, translation: Track | None = None,
-                           rotation: Track | None = None, name="ground") -> int:
+                           rotation: Track | None = None, name="ground", static_friction: float | None = None,
+                           thickness: float = 0.0) -> int:
         """Add an infinite plane; particles stay on the side its normal points to.
 
         Args:
@@ -1022,7 +1024,8 @@ class ModelBuilder:
             raise ConfigError("plane normal must be a nonzero vector")
         orientation = quat_between(np.array([0.0, 0.0, 1.0]), n / length)
         return self._add_shape(SHAPE_PLANE, checks.vector("plane point", point), orientation, (0.0, 0.0, 0.0),
-                               friction, restitution, translation, rotation, name)
+                               friction, restitution, translation, rotation, name, static_friction=static_friction,
+                               thickness=thickness)
 
     def add_ground_plane(self, *, height: float = 0.0, friction: float = 0.5, restitution: float = 0.0,
                          name: str = "ground") -> int:
@@ -1033,15 +1036,17 @@ class ModelBuilder:
 
     def add_collider_sphere(self, *, center, radius: float, friction: float = 0.5, restitution: float = 0.0,
                             translation: Track | None = None, rotation: Track | None = None,
-                            name="sphere") -> int:
+                            name="sphere", static_friction: float | None = None, thickness: float = 0.0) -> int:
         """Add a sphere of ``radius`` [m] at ``center`` [m] (other arguments as :meth:`add_collider_box`)."""
         size = (checks.positive("sphere radius", radius), 0.0, 0.0)
         return self._add_shape(SHAPE_SPHERE, checks.vector("sphere center", center), (0.0, 0.0, 0.0, 1.0), size,
-                               friction, restitution, translation, rotation, name)
+                               friction, restitution, translation, rotation, name, static_friction=static_friction,
+                               thickness=thickness)
 
     def add_collider_box(self, *, center, half_extents, orientation=(0.0, 0.0, 0.0, 1.0), friction: float = 0.5,
                          restitution: float = 0.0, translation: Track | None = None,
-                         rotation: Track | None = None, name="box") -> int:
+                         rotation: Track | None = None, name="box", static_friction: float | None = None,
+                         thickness: float = 0.0) -> int:
         """Add a box collider.
 
         Args:
@@ -1055,6 +1060,9 @@ class ModelBuilder:
             rotation: :class:`Track` of the rotation vector φ(t) [rad] (axis × angle, see
                 :meth:`Track.rotation`) turning the box about its centre: orientation R(φ(t)) · rest.
             name: prim name for export.
+            static_friction: Coulomb μ_s [-] ≥ ``friction`` (then the kinetic μ_k): a contact sticks while its
+                tangential speed change stays within μ_s times the normal one; default μ_k.
+            thickness: a shell around the surface [m], ≥ 0: particles stay radius + thickness from it.
 
         Returns:
             The collider's index. With a track the collider moves; particles touching it take its surface
@@ -1064,19 +1072,88 @@ class ModelBuilder:
         if not (half > 0.0).all():
             raise ConfigError(f"box half_extents must all be > 0 [m], got {tuple(half)}")
         return self._add_shape(SHAPE_BOX, checks.vector("box center", center), _quaternion(orientation),
-                               tuple(half), friction, restitution, translation, rotation, name)
+                               tuple(half), friction, restitution, translation, rotation, name,
+                               static_friction=static_friction, thickness=thickness)
 
     def add_collider_capsule(self, *, center, radius: float, half_height: float,
                              orientation=(0.0, 0.0, 0.0, 1.0), friction: float = 0.5, restitution: float = 0.0,
                              translation: Track | None = None, rotation: Track | None = None,
-                             name="capsule") -> int:
+                             name="capsule", static_friction: float | None = None, thickness: float = 0.0) -> int:
         """Add a capsule: the points within ``radius`` [m] of the segment from -``half_height`` to
         +``half_height`` [m] along its own z axis (USD's ``Capsule`` with axis "Z" and height 2 ·
         half_height). Other arguments as :meth:`add_collider_box`."""
         size = (checks.positive("capsule radius", radius), checks.non_negative("capsule half_height", half_height),
                 0.0)
         return self._add_shape(SHAPE_CAPSULE, checks.vector("capsule center", center), _quaternion(orientation),
-                               size, friction, restitution, translation, rotation, name)
+                               size, friction, restitution, translation, rotation, name,
+                               static_friction=static_friction, thickness=thickness)
+
+    def add_collider_mesh(self, mesh, *, faces=None, prim: str | None = None, center=(0.0, 0.0, 0.0),
+                          orientation=(0.0, 0.0, 0.0, 1.0), scale=1.0, sides: str = "closed", thickness: float = 0.0,
+                          friction: float = 0.5, static_friction: float | None = None, restitution: float = 0.0,
+                          deforming: bool = False, depth: float | None = None, winding_number: bool = False,
+                          translation: Track | None = None, rotation: Track | None = None, name: str = "mesh") -> int:
+        """Add a triangle-mesh collider (``core/mesh_colliders.py``).
+
+        Args:
+            mesh: a file (any format trimesh reads, or ``.usd``/``.usda``/``.usdc``: see
+                :func:`~warpspring.io.usd_mesh.read_usd_mesh`, whose time-sampled points make the collider
+                deform), a ``trimesh.Trimesh``, or vertices [m], shape [v, 3] (then ``faces`` is required).
+                Its coordinates are the collider's own frame.
+            faces: vertex indices of each triangle, shape [t, 3], counter-clockwise seen from outside.
+            prim: the USD mesh prim to read (a file of one mesh needs none).
+            center: where the collider's frame origin is at rest [m]; orientation: its rest orientation,
+                a quaternion (x, y, z, w); scale: a factor [-] (or one per axis) on the vertices.
+            sides: "closed" (a watertight solid: inside by the pseudo-normals of its closest features, or with
+                ``winding_number=True`` by its winding number: robust to holes, ~5× the cost), "one_sided" (an
+                open mesh whose outside is where its normals point) or "two_sided" (an open shell, kept apart on
+                both sides).
+            depth: how far from its surface the mesh is looked for [m] (one-sided: up to this deep behind it,
+                beyond its border edges too, is inside; a point deep inside a closed mesh looks as far as it
+                must); default a tenth of its bounding box's diagonal; more than the particles' radius plus the
+                thickness. A closest-point query costs with it.
+            thickness: a shell around the surface [m], ≥ 0: particles stay radius + thickness from it.
+            friction: kinetic Coulomb coefficient μ_k [-]; static_friction: μ_s ≥ μ_k [-], default μ_k.
+            restitution: coefficient of restitution e [-] in [0, 1] (see :meth:`add_collider_box`).
+            deforming: its points may change between frames (``model.mesh_collider(name).set_points``);
+                implied by time-sampled USD points.
+            translation, rotation: keyframe tracks moving its frame (see :meth:`add_collider_box`).
+            name: prim name for export.
+
+        Returns:
+            The collider's index.
+        """
+        from .mesh_colliders import mesh_shape
+
+        samples = None
+        if isinstance(mesh, (str, os.PathLike)):
+            path = os.fspath(mesh)
+            if path.lower().endswith((".usd", ".usda", ".usdc")):
+                from ..io.usd_mesh import read_usd_mesh, read_usd_mesh_samples
+
+                read = read_usd_mesh(path, prim=prim, up_axis=self.up_axis)
+                vertices, faces = read.vertices, read.triangles
+                samples = read_usd_mesh_samples(path, prim=read.prim, up_axis=self.up_axis)
+            else:
+                loaded = load_mesh_file(path, what="mesh collider")
+                vertices, faces = np.asarray(loaded.vertices), np.asarray(loaded.faces)
+        elif hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
+            vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        else:
+            if faces is None:
+                raise ConfigError("add_collider_mesh: vertices need faces=[t, 3] (or pass a file or a trimesh.Trimesh)")
+            vertices = mesh
+        factor = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,))
+        if not (np.isfinite(factor).all() and (factor > 0.0).all()):
+            raise ConfigError(f"mesh collider scale must be > 0 (a number or one per axis), got {scale!r}")
+        vertices = np.asarray(vertices, dtype=np.float64)
+        times, points = (None, None) if samples is None else samples
+        info = mesh_shape(vertices * factor if vertices.ndim == 2 else vertices, faces, sides=sides,
+                          deforming=deforming, sample_times=times, depth=depth, winding_number=winding_number,
+                          sample_points=None if points is None else points * factor)
+        return self._add_shape(SHAPE_MESH, checks.vector("mesh center", center), _quaternion(orientation),
+                               (0.0, 0.0, 0.0), friction, restitution, translation, rotation, name,
+                               static_friction=static_friction, thickness=thickness, mesh=info)
 
     def world_rows(self) -> dict[str, np.ndarray]:
         """The per-world parameters this builder gives one world, as ``Model.set_world_values`` takes them
@@ -1397,8 +1474,15 @@ class ModelBuilder:
         self.add_hinges(ids[hinges], stiffness=stiffness, damping=damping,
                         rest_angle=mesh_rest if rest == "mesh" else 0.0)
 
-    def _add_shape(self, kind, position, orientation, size, friction, restitution, translation, rotation, name):
+    def _add_shape(self, kind, position, orientation, size, friction, restitution, translation, rotation, name, *,
+                   static_friction=None, thickness=0.0, mesh=None):
         friction = checks.non_negative("friction", friction)
+        thickness = checks.non_negative("collider thickness", thickness)
+        if static_friction is not None:
+            static_friction = checks.non_negative("static_friction", static_friction)
+            if static_friction < friction:
+                raise ConfigError(f"static_friction ({static_friction}) must be at least the kinetic friction "
+                                  f"({friction}): a contact slides above μ_s and then feels μ_k ≤ μ_s")
         restitution = checks.number("restitution", restitution, minimum=0.0)
         if restitution > 1.0:
             raise ConfigError(f"restitution must be in [0, 1] (the share of the normal speed an impact keeps), "
@@ -1415,6 +1499,9 @@ class ModelBuilder:
             restitution=restitution,
             translation_track=translation,
             rotation_track=rotation,
+            thickness=thickness,
+            static_friction=static_friction,
+            mesh=mesh,
         ))
         return len(self._shapes) - 1
 

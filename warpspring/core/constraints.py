@@ -12,6 +12,7 @@ from __future__ import annotations
 import warp as wp
 
 from .contacts import Contacts, apply_contacts, collide_positions, empty_contacts, update_shape_frames
+from .contacts import apply_triangle_contacts
 from ..kernels.constraints import finish_step_kernel, strain_limit_kernel
 from ..kernels.springs import spring_plastic_kernel
 from .model import Model, State
@@ -92,16 +93,17 @@ class StepFinisher:
     @property
     def only_contacts(self) -> bool:
         """True when the pass is just the contact response against every collider (no stabiliser, no contact
-        stage, no plastic springs), which integrators may fuse into their update."""
-        return not (self.stabilised or self.model.contact_stage or self.plastic)
+        stage, no plastic springs, no triangle contacts), which integrators may fuse into their update."""
+        return not (self.stabilised or self.model.contact_stage or self.plastic or self.model.contact_triangles)
 
     def __call__(self, state: State, dt: float) -> None:
         model = self.model
         update_shape_frames(model, state.time, dt)
         if not self.stabilised:
             if model.contact_stage:
-                collide_positions(model, state.particle_q, self.contacts)
+                collide_positions(model, state.particle_q, self.contacts, velocities=state.particle_qd, dt=dt)
             apply_contacts(model, state, dt, self.contacts)
+            apply_triangle_contacts(model, state)
             self.plastic_pass(state, dt)
             return
         evaluate_input_tracks(model, state)
@@ -122,7 +124,7 @@ class StepFinisher:
                 source = target
             corrected = source
         if model.contact_stage:
-            collide_positions(model, corrected, self.contacts)
+            collide_positions(model, corrected, self.contacts, before=before, velocities=state.particle_qd, dt=dt)
         flat_launch(
             finish_step_kernel(model.scalar, model.contact_features(), self.speed_clamped, strain_limited),
             inputs=[
@@ -139,4 +141,5 @@ class StepFinisher:
             outputs=[state.particle_q, state.particle_qd],
             **common,
         )
+        apply_triangle_contacts(model, state)
         self.plastic_pass(state, dt)

@@ -30,6 +30,8 @@ from .. import checks
 from ..errors import ConfigError
 from .model import Model, State
 from ..kernels.flatten import flat_launch
+from ..kernels.triangle_contacts import TRIANGLE_KINDS, triangle_gather_kernel, triangle_push_kernel
+from ..kernels.contacts import ContactFeatures
 
 
 class Contacts:
@@ -106,27 +108,36 @@ def update_shape_frames(model: Model, time: wp.array, dt: float, *, ahead: bool 
     )
 
 
-def collide(model: Model, state: State, contacts: Contacts) -> None:
+def collide(model: Model, state: State, contacts: Contacts, *, dt: float = 0.0) -> None:
     """Fill ``contacts`` with the colliders every dynamic particle of ``state`` touches, against the
-    colliders' current frames (those of the last step, or the rest frames before the first). Capturable."""
+    colliders' current frames (those of the last step, or the rest frames before the first). With ``dt`` [s]
+    > 0 (the step that produced ``state``), also those its path x - dt v → x entered (spheres, boxes,
+    meshes). Capturable."""
     q = state.particle_q
     if (q.shape[0], q.dtype, str(q.device)) != (model.state_size, model.vec3, str(model.device)):
         raise ConfigError(f"collide: the state has {q.shape[0]} particles of {q.dtype.__name__} on {q.device}, but "
                           f"the model's have {model.state_size} of {model.vec3.__name__} on {model.device}: use a "
                           "state made by this model's state()")
-    collide_positions(model, state.particle_q, contacts)
+    collide_positions(model, state.particle_q, contacts, velocities=state.particle_qd, dt=dt)
 
 
-def collide_positions(model: Model, positions: wp.array, contacts: Contacts) -> None:
-    """:func:`collide` for a positions array of a state's size (e.g. after strain limiting)."""
+def collide_positions(model: Model, positions: wp.array, contacts: Contacts, *, before: wp.array | None = None,
+                      velocities: wp.array | None = None, dt: float = 0.0) -> None:
+    """:func:`collide` for a positions array of a state's size (e.g. after strain limiting). A particle's path
+    over the step starts at ``before`` - dt ``velocities`` (``before``: the positions before the correction,
+    default ``positions``); without velocities or with dt = 0 no path is swept."""
     if model.shape_count == 0:
         contacts.arrays.count.zero_()
         return
+    before = positions if before is None else before
+    if velocities is None:
+        velocities, dt = positions, 0.0
     flat_launch(
         collide_kernel(model.scalar, model.contact_features()),
         dim=model.particle_dim,
         block_dim=model.block_dim,
-        inputs=[model.particle_count, model.particle_flags, model.particle_radius, model.shape_arrays, positions],
+        inputs=[model.particle_count, model.particle_flags, model.particle_radius, model.shape_arrays, positions,
+                before, velocities, model.scalar(dt)],
         outputs=[contacts.arrays],
         device=model.device,
     )
@@ -148,6 +159,42 @@ def apply_contacts(model: Model, state: State, dt: float, contacts: Contacts | N
         block_dim=model.block_dim,
         inputs=[model.particle_count, model.particle_flags, model.particle_radius, model.shape_arrays,
                 (contacts or empty_contacts(model)).arrays, model.inputs, model.scalar(dt)],
+        outputs=[state.particle_q, state.particle_qd],
+        device=model.device,
+    )
+
+
+def apply_triangle_contacts(model: Model, state: State) -> None:
+    """Push the cloth's triangles out of the spheres and capsules (``kernels/triangle_contacts.py``), in place:
+    each triangle's corners get the barycentric share of its correction, each particle the mean of its
+    corners' (no float atomics). Nothing runs unless ``model.contact_triangles`` is set and the model has
+    triangles and a sphere or capsule. Capturable."""
+    kinds = tuple(k for k in model.shape_types if k in TRIANGLE_KINDS)
+    if not (model.contact_triangles and model.tri_count and kinds):
+        return
+    buffers = model.__dict__.get("_triangle_contacts")
+    if buffers is None:  # the particles' incident corners (CSR), and a correction per corner of every world
+        corners = model.tri_indices.numpy().reshape(-1)
+        order = np.argsort(corners, kind="stable").astype(np.int32)
+        start = np.zeros(model.particle_count + 1, dtype=np.int32)
+        np.cumsum(np.bincount(corners, minlength=model.particle_count), out=start[1:])
+        device = model.device
+        buffers = model.__dict__["_triangle_contacts"] = (
+            wp.array(start, dtype=wp.int32, device=device), wp.array(order, dtype=wp.int32, device=device),
+            wp.zeros(3 * model.world_count * model.tri_count, dtype=model.vec3, device=device))
+    start, index, push = buffers
+    flat_launch(
+        triangle_push_kernel(model.scalar, ContactFeatures(kinds=kinds)),
+        dim=model.world_count * model.tri_count,
+        inputs=[model.particle_count, model.tri_indices, model.particle_radius, model.shape_arrays, state.particle_q],
+        outputs=[push],
+        device=model.device,
+    )
+    wp.launch(
+        triangle_gather_kernel(model.scalar),
+        dim=model.particle_dim,
+        block_dim=model.block_dim,
+        inputs=[model.particle_count, model.tri_count, model.particle_flags, start, index, push],
         outputs=[state.particle_q, state.particle_qd],
         device=model.device,
     )

@@ -316,7 +316,8 @@ class Guard(StepHook):
         which is not an instability)."""
         model = self.model
         stabilizers = model.stabilizers
-        return not (model.shape_moving or stabilizers.enabled("max_particle_force")
+        return not (model.shape_moving or getattr(model, "shape_deforming", False)
+                    or stabilizers.enabled("max_particle_force")
                     or any(family.does_work for family in model.families) or bool(model.emitters)
                     or any(name in model._tracks for name in POTENTIAL_INPUTS)
                     or getattr(self.integrator, "unconditionally_stable", False))

@@ -16,10 +16,12 @@ from ..kernels.forces import ForceFeatures
 from ..kernels.springs import SpringLaw
 from ..kernels.families import Incidence, IncidenceShape
 from ..kernels.contacts import NO_CONTACTS, SHAPE_NAMES, ContactFeatures, shapes_type
+from ..kernels.contacts import MESH_SIDES, MESH_WINDING, SWEPT_KINDS
 from ..kernels.inputs import INPUT_COUNT, INPUTS
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import transform_type, vec3_type
 from .kinematics import PinGroupTable, apply_kinematics
+from .mesh_colliders import make_mesh_colliders
 from .bending import HingeFamily
 from .springs import SpringFamily
 from .tracks import Track, TrackTable, as_track, input_track
@@ -165,6 +167,9 @@ class ShapeInfo:
         translation_track: :class:`Track` of the offset T(t) [m] added to ``position``, or None.
         rotation_track: :class:`Track` of the rotation vector φ(t) [rad] turning the shape about its origin
             (orientation R(φ(t)) · ``rotation``), or None.
+        thickness: a shell around the surface [m], ≥ 0: a particle of radius r touches at distance r + thickness.
+        static_friction: Coulomb μ_s [-] ≥ ``friction`` (the kinetic μ_k); None: equal to ``friction``.
+        mesh: a mesh collider's points, triangles and sides (``core.mesh_colliders.MeshShape``), or None.
     """
 
     kind: str
@@ -176,6 +181,9 @@ class ShapeInfo:
     restitution: float = 0.0
     translation_track: Track | None = None
     rotation_track: Track | None = None
+    thickness: float = 0.0
+    static_friction: float | None = None
+    mesh: object = None
 
     @property
     def moving(self) -> bool:
@@ -318,6 +326,10 @@ class Model:
     shape_rotation_track: wp.array  # int32, shape [shape_count], track table index of φ(t), or -1
     contact_stage: bool  # contacts go through collide() and the contact buffer (else: fused, every collider)
     contact_slots: int  # contacts a particle holds in the buffer
+    contact_swept: bool  # paths over a step swept against spheres, boxes, capsules and meshes (anti-tunnelling)
+    contact_triangles: bool  # cloth triangles are pushed out of spheres and capsules too (off by default; structural)
+    mesh_colliders: list  # list[MeshCollider]: the Warp meshes of the mesh colliders (points settable between frames)
+    shape_deforming: bool  # some mesh collider's points may change between frames
 
     meshes: list  # list[MeshGroup], host-side, for export
     skins: list  # list[SkinGroup], host-side, for export: surfaces embedded in the particles (soft bodies)
@@ -346,6 +358,10 @@ class Model:
         self.shape_moving = False
         self.contact_stage = False
         self.contact_slots = 1
+        self.contact_swept = False
+        self.contact_triangles = False
+        self.mesh_colliders = []
+        self.shape_deforming = False
         self._shape_tracks: list[Track] = []
         self.revision = 0
         self.input_version = 0
@@ -763,13 +779,37 @@ class Model:
         transform = transform_type(self.scalar)
         arrays.transform_start = wp.array(frames, dtype=transform, device=device)
         arrays.transform_end = wp.array(frames, dtype=transform, device=device)
+        arrays.thickness = wp.array(np.asarray([s.thickness for s in shapes], dtype=scalar_np), dtype=self.scalar,
+                                    device=device)
+        arrays.static_friction = wp.array(
+            np.asarray([s.friction if s.static_friction is None else s.static_friction for s in shapes],
+                       dtype=scalar_np), dtype=self.scalar, device=device)
+        arrays.sides = int_array([(MESH_WINDING if s.mesh.winding_number else MESH_SIDES[s.mesh.sides])
+                                  if s.mesh is not None else 0 for s in shapes])
+        arrays.lower = wp.zeros(count, dtype=self.vec3, device=device)  # a mesh's bounding box, written with its mesh
+        arrays.upper = wp.zeros(count, dtype=self.vec3, device=device)
         self.shape_arrays = arrays
+        # Mesh colliders: their Warp meshes (ids and query ranges go into the arrays above); a path swept against
+        # spheres, boxes, capsules and meshes unless switched off (``contact_swept = False``, a structural change).
+        self.mesh_colliders = make_mesh_colliders(self)
+        self.shape_deforming = any(s.mesh is not None and s.mesh.deforming for s in shapes)
+        self.contact_swept = any(kind in SWEPT_KINDS for kind in self.shape_types)
 
     def contact_features(self) -> ContactFeatures:
         """What the contact kernels compile for this model (no kinds: no contact code)."""
         if self.shape_count == 0:
             return NO_CONTACTS
-        return ContactFeatures(kinds=self.shape_types, moving=self.shape_moving, buffered=self.contact_stage)
+        return ContactFeatures(kinds=self.shape_types, moving=self.shape_moving, buffered=self.contact_stage,
+                               swept=self.contact_swept and any(kind in SWEPT_KINDS for kind in self.shape_types))
+
+    def mesh_collider(self, name_or_index):
+        """The :class:`~warpspring.core.mesh_colliders.MeshCollider` of a mesh collider, by its name or its index
+        among the colliders (e.g. to :meth:`~MeshCollider.set_points` between frames)."""
+        for collider in self.mesh_colliders:
+            if name_or_index in (collider.index, collider.name):
+                return collider
+        names = ", ".join(repr(c.name) for c in self.mesh_colliders) or "none"
+        raise ConfigError(f"no mesh collider {name_or_index!r} in this model (mesh colliders: {names})")
 
     # -- derived feature sets (what the kernels are specialized for) -------------------------------------------
 

@@ -14,6 +14,7 @@ from ..errors import ContactOverflowWarning, SimulationError
 from .checkpoint import Checkpoint
 from .contacts import Contacts
 from .emitters import EmitterHook
+from .mesh_colliders import advance_mesh_colliders
 from .guards import Guard, GuardLimits
 from .integrators import Integrator, SymplecticEuler
 from .model import Control, Model, State
@@ -153,6 +154,8 @@ class Simulator:
         """
         if self.guard is not None:
             self.guard.refresh()
+        if self.model.shape_deforming:
+            advance_mesh_colliders(self.model, self.time, self.time + self.frame_dt)
         self.stepper.advance()
         if self.integrator.adaptive:
             failure = self.integrator.failure()

@@ -38,6 +38,8 @@ class RunSummary:
             naming the world, the frame and what failed; the file holds that world's frames before it.
         contact_overflow: contacts dropped in the run because a particle touched more colliders than its
             contact slots, all worlds together (0 without the contact stage).
+        peak_contacts: the most particle-collider contacts held at the end of a frame, all worlds together, and
+            the buffer's capacity, (count, capacity); None without the contact stage.
         resumed_from: the checkpoint's frame a resumed run went on from (0: a run from the start).
         recycled: per emitter whose pool was too small, the particles recycled before their life span ended
             (all worlds together) and the pool's size: {name: (count, capacity)}.
@@ -60,6 +62,7 @@ class RunSummary:
     contact_overflow: int = 0
     resumed_from: int = 0
     recycled: dict = field(default_factory=dict)
+    peak_contacts: tuple | None = None
 
     def line(self) -> str:
         """The closing summary line of the CLI."""
@@ -83,10 +86,14 @@ class RunSummary:
             worlds += (f"; emitter {name!r}: {count} particles recycled before their life span ended (its pool of "
                        f"{capacity} is too small: raise capacity)")
         resumed = f", frames {self.resumed_from + 1}..{self.frames} after resuming" if self.resumed_from else ""
+        contacts = ""
+        if self.peak_contacts is not None:
+            count, capacity = self.peak_contacts
+            contacts = f"; at most {count} of {capacity} contact slots held at a frame's end"
         return (
             f"wrote {self.frames + 1} frames{resumed} ({self.simulated_time:.3g} s simulated) to {self.output} in "
             f"{self.wall_time:.2f} s + {self.setup_time:.2f} s setup: {speed}; {self.integrator}, "
-            f"dt = {self.dt * 1e3:.4g} ms; {self.model}{worlds}"
+            f"dt = {self.dt * 1e3:.4g} ms; {self.model}{contacts}{worlds}"
         )
 
 
@@ -212,9 +219,12 @@ def run_scene(
 
             sim.watch.notify = notify
         t1 = None
+        peak_contacts = 0
         try:
             for _ in range(start, frames):
                 sim.step_frame()
+                if sim.contacts is not None:  # the contact stage: how full its buffer gets
+                    peak_contacts = max(peak_contacts, int(sim.contacts.counts().sum()))
                 for w in sorted(set(sim.world_failures) - set(failures)):  # stopped by the guard this frame
                     failures.append(w)
                     usd.stop_worlds(w)  # its last sample stays the frame before the failure
@@ -268,6 +278,7 @@ def run_scene(
         contact_overflow=int(sim.contact_overflow().sum()),
         resumed_from=start,
         recycled={e.name: (int(e.recycled().sum()), e.capacity) for e in model.emitters if e.recycled().any()},
+        peak_contacts=None if sim.contacts is None else (peak_contacts, sim.contacts.capacity),
     )
 
 

@@ -30,8 +30,18 @@ Colliders: each ``[[collider]]`` has a ``type`` and the keys of that type (any o
     type = "sphere"   center, radius, friction, restitution, translation, rotation
     type = "box"      center, half_extents, orientation, friction, restitution, translation, rotation
     type = "capsule"  center, radius, half_height, orientation, friction, restitution, translation, rotation
+    type = "mesh"     file, prim, center, orientation, scale, sides, winding_number, depth, deforming, friction,
+                      restitution, translation, rotation
 
-(and ``name`` for each). ``orientation`` is the rest orientation, a quaternion [x, y, z, w]; a capsule
+(and ``name`` for each; every type but the ground also takes ``thickness`` [m], a shell around its surface,
+and ``static_friction``, μ_s ≥ ``friction``, the kinetic μ_k). A mesh collider's ``file`` is any mesh file
+trimesh reads, or USD (``prim`` names the mesh; time-sampled points make it deform), relative to the scene;
+its coordinates are the collider's own frame, placed at ``center`` and ``orientation`` and multiplied by
+``scale``; ``sides`` says how it tells inside from outside: "closed" (default: a watertight solid, signed
+by its pseudo-normals, or with ``winding_number = true`` by its winding number, robust to holes),
+"one_sided" (an open mesh, outside where its normals point) or "two_sided" (an open shell); ``depth`` [m]
+is how far from an open mesh it is looked for (one-sided: how deep behind it is inside; default a tenth of
+its bounding box's diagonal). ``orientation`` is the rest orientation, a quaternion [x, y, z, w]; a capsule
 spans -half_height..+half_height along its own z axis, plus its radius. ``restitution`` in [0, 1] is the
 share of the normal speed an impact keeps (default 0). Format 2 moves a collider by keyframe tracks, as it
 moves a pin group: ``translation = { times = [...], values = [[x, y, z], ...] }`` is an offset [m] added to
@@ -48,7 +58,10 @@ own origin (its centre, or the plane's point), both with optional ``interpolatio
 A ``[contacts]`` table (format 2) sets how contacts are resolved: ``stage`` (true: through the contact
 stage and its per-particle buffer; false: every collider tested in the update; default: the stage when a
 collider moves) and ``slots``, the contacts one particle holds in that buffer (1 to 64; default: the
-number of colliders, at most 4; contacts beyond it are dropped and counted in the run summary).
+number of colliders, at most 4; contacts beyond it are dropped and counted in the run summary),
+``triangles`` (true: cloth triangles are pushed out of spheres and capsules too, so one smaller than the
+particle spacing cannot slip between particles; default false) and ``swept`` (false: particles' paths over
+a step are not swept against spheres, boxes, capsules and meshes; default true).
 The new collider types and keys (box, capsule, restitution, orientation, tracks) need format 2.
 """
 
@@ -79,7 +92,7 @@ else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 PRECISIONS = ("float32", "float64")
-COLLIDER_TYPES = ("ground", "plane", "sphere", "box", "capsule")
+COLLIDER_TYPES = ("ground", "plane", "sphere", "box", "capsule", "mesh")
 
 #: The scene format this warpspring reads (and every older one): a file's top-level ``version``.
 SCENE_FORMAT_VERSION = 2
@@ -177,6 +190,9 @@ class Scene:
             update (False); ``None``: the model's default (the stage when a collider moves).
         contact_slots: ``[contacts] slots``: contacts a particle holds in the stage's buffer, or ``None`` (the
             model's default).
+        contact_triangles: ``[contacts] triangles``: push cloth triangles out of spheres and capsules too.
+        contact_swept: ``[contacts] swept``: sweep particles' paths against spheres, boxes, capsules and meshes (default
+            true).
         version: the file's scene format (1 for a file without ``version``).
         deprecations: one message per deprecated key the file uses (each also a
             :class:`DeprecatedKeyWarning` when the file is read).
@@ -211,6 +227,8 @@ class Scene:
     world_columns: int | None = None
     contact_stage: bool | None = None
     contact_slots: int | None = None
+    contact_triangles: bool = False
+    contact_swept: bool = True
     version: int = SCENE_FORMAT_VERSION
     deprecations: list = field(default_factory=list)
 
@@ -250,7 +268,7 @@ class Scene:
                 _add_soft_body(builder, body, os.path.dirname(self.path))
         for i, collider in enumerate(self.colliders):
             with _context(where, _label("collider", i, len(self.colliders))):
-                _add_collider(builder, collider)
+                _add_collider(builder, collider, os.path.dirname(self.path))
         return builder
 
     def finalize(self, device=None) -> Model:
@@ -265,6 +283,10 @@ class Scene:
         model = self.builder().finalize(device, precision=self.precision, worlds=self.world_count,
                                         contact_stage=self.contact_stage, contact_slots=self.contact_slots,
                                         integrator=self.integrator)
+        if self.contact_triangles:
+            model.contact_triangles = True
+        if not self.contact_swept:
+            model.contact_swept = False
         with _context(os.path.basename(self.path), "worlds"):
             for name, entries in self.world_inputs.items():
                 # Constants first (this stops any track of the input), then each world's own track.
@@ -470,8 +492,18 @@ _SCHEMA = {
         "restitution": _Since(2, NON_NEGATIVE),
         "translation": _Since(2, _Track(VECTOR)),
         "rotation": _Since(2, _Track(rotation=True)),
+        "file": _Since(2, str),
+        "prim": _Since(2, str),
+        "scale": _Since(2, POSITIVE),
+        "sides": _Since(2, str),
+        "deforming": _Since(2, bool),
+        "depth": _Since(2, POSITIVE),
+        "winding_number": _Since(2, bool),
+        "thickness": _Since(2, NON_NEGATIVE),
+        "static_friction": _Since(2, NON_NEGATIVE),
     },
-    "contacts": {"stage": bool, "slots": _Number(1, integer=True)},
+    "contacts": {"stage": bool, "slots": _Number(1, integer=True), "triangles": _Since(2, bool),
+                 "swept": _Since(2, bool)},
     "output": {
         "path": str,
         "particles": bool,
@@ -557,6 +589,12 @@ _COLLIDER_NEEDS = {
     "box": ({"center", "half_extents"}, "center = [x, y, z] and half_extents = [hx, hy, hz]"),
     "capsule": ({"center", "radius", "half_height"}, "center = [x, y, z], radius and half_height"),
 }
+# Mesh colliders (format 2), and a thickness and static friction on every collider but the ground.
+_COLLIDER_KEYS["mesh"] = _COLLIDER_COMMON | _COLLIDER_MOTION | {
+    "file", "prim", "center", "orientation", "scale", "sides", "deforming", "depth", "winding_number"}
+for _kind in ("plane", "sphere", "box", "capsule", "mesh"):
+    _COLLIDER_KEYS[_kind] = _COLLIDER_KEYS[_kind] | {"thickness", "static_friction"}
+_COLLIDER_NEEDS["mesh"] = ({"file"}, 'file = "path" (any mesh file trimesh reads, or USD with prim = "/path")')
 #: The collider types a scene of format 1 may use (the others came with format 2).
 _FORMAT_1_COLLIDERS = ("ground", "plane", "sphere")
 
@@ -693,6 +731,8 @@ def _parse(data: dict, path: str) -> Scene:
                           f"particle holds), got {contacts['slots']!r}")
     scene.contact_stage = contacts.get("stage")
     scene.contact_slots = contacts.get("slots")
+    scene.contact_triangles = contacts.get("triangles", False)
+    scene.contact_swept = contacts.get("swept", True)
     _parse_worlds(scene, data.get("worlds"), out, where)
     check_run_settings(fps=scene.fps, frames=scene.frames, substeps=scene.substeps, where=where)
     return scene
@@ -947,8 +987,8 @@ def _check_collider(c: dict, where: str, label: str, *, version: int) -> None:
     types = COLLIDER_TYPES if version >= 2 else _FORMAT_1_COLLIDERS
     if kind not in types:
         newer = [t for t in COLLIDER_TYPES if t not in _FORMAT_1_COLLIDERS]
-        hint = (f" (in scene format {version}; {' and '.join(newer)} colliders need scene format 2: add version = 2 "
-                "at the top of the file, before the first [table])") if kind in COLLIDER_TYPES else ""
+        hint = (f" (in scene format {version}; {', '.join(newer[:-1])} and {newer[-1]} colliders need scene format 2: "
+                "add version = 2 at the top of the file, before the first [table])") if kind in COLLIDER_TYPES else ""
         raise ConfigError(f"{where}: {label}.type must be one of {', '.join(types)}, got {kind!r}{hint}")
     extra = sorted(set(c) - _COLLIDER_KEYS[kind])
     if extra:
@@ -1234,13 +1274,21 @@ def _group_particles(ids: np.ndarray, pin: list) -> np.ndarray:
     return ids[index]
 
 
-def _add_collider(builder: ModelBuilder, c: dict) -> None:
+def _add_collider(builder: ModelBuilder, c: dict, base: str = "") -> None:
     kind = c["type"]
     common = dict(friction=c.get("friction", 0.5), restitution=c.get("restitution", 0.0), name=c.get("name", kind))
     if kind == "ground":
         builder.add_ground_plane(height=c.get("height", 0.0), **common)
         return
     common.update(translation=c.get("translation"), rotation=c.get("rotation"))
+    common.update({key: c[key] for key in ("thickness", "static_friction") if key in c})
+    if kind == "mesh":
+        path = c["file"] if os.path.isabs(c["file"]) else os.path.join(base, c["file"])
+        builder.add_collider_mesh(path, prim=c.get("prim"), center=c.get("center", (0.0, 0.0, 0.0)),
+                                  orientation=c.get("orientation", (0.0, 0.0, 0.0, 1.0)), scale=c.get("scale", 1.0),
+                                  sides=c.get("sides", "closed"), deforming=c.get("deforming", False),
+                                  depth=c.get("depth"), winding_number=c.get("winding_number", False), **common)
+        return
     if kind == "plane":
         builder.add_collider_plane(point=c.get("point", (0.0, 0.0, 0.0)), normal=c.get("normal"), **common)
     elif kind == "sphere":

@@ -18,8 +18,10 @@ What is authored, and why (USD's fallbacks are wrong for simulation caches):
 * colliders as prims of purpose ``guide`` by default (shown in viewports, left out of final renders) with
   their transforms: a sphere as ``UsdGeom.Sphere``, a box as a ``UsdGeom.Cube`` of size 2 scaled by its
   half extents, a capsule as ``UsdGeom.Capsule`` (axis Z, height 2 · half_height), a plane as a finite quad
-  fitted to the scene. A static collider's translate and orient ops hold one default value; a moving
-  one's (a collider with keyframe tracks) are also sampled at every written frame, at the frame's time;
+  fitted to the scene, a mesh collider as a ``UsdGeom.Mesh`` of its triangles in its own frame (double-sided
+  unless closed; a deforming one's ``points`` and ``extent`` sampled at every frame). A static collider's
+  translate and orient ops hold one default value; a moving one's (a collider with keyframe tracks) are also
+  sampled at every written frame, at the frame's time;
 * optionally the particles (``UsdGeom.Points`` with widths and velocities) and the springs: one
   ``UsdGeom.BasisCurves`` per spring family (structural, shear, bend, ...) of linear chains through the
   particles (a chain's inner points serve two springs; ``primvars:warpspring:particle`` names the particle
@@ -185,6 +187,7 @@ class UsdWriter:
         root = UsdGeom.Xform.Define(stage, "/World")
         stage.SetDefaultPrim(root.GetPrim())
         self._animated: list = []  # (attribute path, value type) of every attribute sampled per frame
+        self._deforming_meshes: dict = {}  # world root → (MeshCollider, points path, extent path) of deforming meshes
         self._strain_ends = None  # the springs' particles, when strain is written
         self._radius = model.particle_radius.numpy().astype(np.float64)  # [m], for emitted particles' widths
         self._pending = None  # (time code, layer) of the frame being saved
@@ -205,6 +208,7 @@ class UsdWriter:
             slot = self._define_world(w, path_root, particles=particles, springs=springs)
             slot.colliders = self._write_colliders(path_root)
             slot.skins = [self._define_skin(skin, w, path_root) for skin in model.skins]
+            slot.mesh_colliders = self._deforming_meshes.pop(path_root, [])
             self._slots.append(slot)
         if model.tri_count and any(slot.meshes for slot in self._slots):
             self._normal_topology()
@@ -297,6 +301,9 @@ class UsdWriter:
                 position, (x, y, z, w) = poses[shape.name]
                 samples += [(translate, Gf.Vec3d(*(float(p) for p in position))),
                             (orient, Gf.Quatd(float(w), float(x), float(y), float(z)))]
+            for collider, points_path, extent_path in slot.mesh_colliders:  # deforming meshes: their points now
+                points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(collider.points(), dtype=np.float32))
+                samples += [(points_path, points), (extent_path, UsdGeom.PointBased.ComputeExtent(points))]
         time_code = self.start_frame + self.frame_count
         self._pending = (time_code, self._frame_layer(time_code, samples))
         self.frame_count += 1
@@ -868,6 +875,19 @@ class UsdWriter:
                 prim.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
                 prim.CreateDoubleSidedAttr(True)
                 prim.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(-half, -half, 0), Gf.Vec3f(half, half, 0)]))
+            elif shape.kind == "mesh":  # its triangles in its own frame; a deforming one's points sampled every frame
+                prim = UsdGeom.Mesh.Define(self.stage, path)
+                collider = model.mesh_collider(model.shapes.index(shape))
+                points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(collider.points(), dtype=np.float32))
+                prim.CreatePointsAttr(points)
+                prim.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(shape.mesh.faces), 3, np.int32)))
+                prim.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(shape.mesh.faces.reshape(-1).astype(np.int32)))
+                prim.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+                prim.CreateDoubleSidedAttr(shape.mesh.sides != "closed")
+                prim.CreateExtentAttr(UsdGeom.PointBased.ComputeExtent(points))
+                if shape.mesh.deforming:
+                    self._deforming_meshes.setdefault(root, []).append(
+                        (collider, self._animate(prim.GetPointsAttr()), self._animate(prim.GetExtentAttr())))
             else:  # pragma: no cover - every collider kind is exported; a new kind must add a branch
                 raise NotImplementedError(f"USD export of {shape.kind} colliders")
             prim.CreatePurposeAttr(self._purpose)
@@ -1127,6 +1147,7 @@ class _WorldPrims:
     emitters: list = field(default_factory=list)  # _EmitterPrims per emitter
     colliders: list = field(default_factory=list)  # (ShapeInfo, translate path, orient path) per moving collider
     skins: list = field(default_factory=list)  # _SkinPrims per embedded surface (soft bodies)
+    mesh_colliders: list = field(default_factory=list)  # (MeshCollider, points path, extent path) per deforming mesh
 
 
 def _set_pose(translate, orient, frame, time=None) -> None:

@@ -173,6 +173,24 @@ def read_usd_mesh(path: str | os.PathLike[str], *, prim: str | None = None, up_a
                    triangles=triangles, triangle_polygon=triangle_polygon, face_sets=face_sets)
 
 
+def read_usd_mesh_samples(path: str | os.PathLike[str], *, prim: str | None = None, up_axis: str = "Z"):
+    """The time samples of a mesh prim's points, as :func:`read_usd_mesh` reads them at each (world space,
+    metres, the requested up axis): (times [s] (time codes over the stage's ``timeCodesPerSecond``), shape
+    [k]; points [m], shape [k, v, 3]), or None when the points have fewer than two samples."""
+    from pxr import UsdGeom
+
+    file = os.fspath(path)
+    stage = _open_stage(file)
+    mesh_prim = _find_mesh(stage, file, prim)
+    codes = UsdGeom.Mesh(mesh_prim).GetPointsAttr().GetTimeSamples()
+    if len(codes) < 2:
+        return None
+    rate = float(stage.GetTimeCodesPerSecond()) or 24.0
+    points = np.stack([read_usd_mesh(file, prim=str(mesh_prim.GetPath()), up_axis=up_axis, time=c).vertices
+                       for c in codes])
+    return np.asarray(codes, dtype=np.float64) / rate, points
+
+
 # ---------------------------------------------------------------------------------------------- stage
 
 

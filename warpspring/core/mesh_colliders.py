@@ -1,0 +1,239 @@
+"""Mesh colliders: a triangle mesh as a collider kind, static, moved by keyframe tracks, or deforming.
+
+A mesh collider is a ``wp.Mesh`` (its BVH) in the collider's own frame; the contact kernels query it for the
+closest point (``kernels.contacts.mesh_funcs``) and cast each particle's path of the step against it. How a
+mesh tells inside from outside is explicit (``sides``):
+
+* ``"closed"``: a closed (watertight) mesh, signed by the closest feature's angle-weighted pseudo-normal (exact
+  for a watertight, consistently wound mesh), or with ``winding_number=True`` inside where its winding number
+  exceeds ½ (Warp's fast winding number: robust to small holes and flipped slivers, about 5× the cost of a
+  query near the surface). It is looked for up to ``depth`` outside it; a point deep inside (found by the
+  parity of three skew rays) looks as far as it must.
+* ``"one_sided"``: an open mesh (terrain, a slope, a shell) whose outside is the side its faces' normals point
+  to (counter-clockwise winding); up to ``depth`` behind it (beyond its border edges too) is inside, and a
+  particle there is pushed out to the front; farther away the mesh is out of reach.
+* ``"two_sided"``: an open mesh with no inside: particles stay ``thickness`` plus their radius away on whichever
+  side they come from (the side is kept by sweeping their path, not by the sign of a distance); it is looked
+  for up to ``depth`` away.
+
+A mesh's frame moves with the collider's translation and rotation tracks like any collider's; its points may
+also change between frames (:meth:`MeshCollider.set_points`: the BVH is refit in place, so captured graphs
+stay valid), with per-vertex velocities that the response takes as the surface's velocity. Points sampled in
+time (a USD prim's time-sampled points) are applied at every frame by :func:`advance_mesh_colliders`: the
+points at the frame's end, the velocity their change over the frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from ..errors import ConfigError
+from ..kernels.contacts import MESH_SIDES
+
+
+@dataclass(eq=False)
+class MeshShape:
+    """The host description of a mesh collider (``ShapeInfo.mesh``).
+
+    Attributes:
+        vertices: the mesh's points in the collider's frame [m], shape [v, 3], float64.
+        faces: vertex indices of each triangle, counter-clockwise seen from outside, shape [t, 3], int32.
+        sides: "closed", "one_sided" or "two_sided" (see the module docstring).
+        sample_times: times [s] of time-sampled points, shape [k], increasing, or None for fixed points.
+        sample_points: the points at those times [m], shape [k, v, 3], or None.
+        winding_number: a closed mesh's sign from its winding number rather than its pseudo-normals.
+        depth: how far from its surface [m] a mesh is looked for (one-sided: how deep behind it is inside); None:
+            a tenth of its bounding box's diagonal. It must exceed the particles' radius plus the thickness; a
+            closest-point query costs with it.
+        deforming: whether its points may change between frames (time samples, or
+            :meth:`MeshCollider.set_points`): a deforming mesh does work on the particles, so the guard's energy
+            balance is off for it.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    sides: str = "closed"
+    sample_times: np.ndarray | None = None
+    sample_points: np.ndarray | None = None
+    deforming: bool = False
+    depth: float | None = None
+    winding_number: bool = False
+
+    @property
+    def sampled(self) -> bool:
+        """Whether its points follow time samples (applied at every frame by :func:`advance_mesh_colliders`)."""
+        return self.sample_times is not None and len(self.sample_times) > 1
+
+    def bounds(self, points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Its bounding box in its frame [m] (of every time sample): lower and upper corners, shape [3] each."""
+        p = self.vertices if points is None else points
+        if points is None and self.sample_points is not None:
+            p = self.sample_points.reshape(-1, 3)
+        return p.min(axis=0), p.max(axis=0)
+
+    def query_range(self, points: np.ndarray | None = None) -> tuple[float, float]:
+        """How far from the mesh [m] its distance is computed (``depth``; default a tenth of its bounding box's
+        diagonal) — beyond, a particle is out of its reach — and how far a point inside a closed mesh looks
+        for its surface (twice the diagonal: always farther than its nearest surface point)."""
+        lower, upper = self.bounds(points)
+        diagonal = float(np.linalg.norm(upper - lower))
+        return (0.1 * diagonal if self.depth is None else self.depth), 2.0 * diagonal + 1.0e-6
+
+    def points_at(self, t: float) -> np.ndarray:
+        """The points at time ``t`` [s] (linear between samples, held outside them), float64, shape [v, 3]."""
+        if self.sample_times is None:
+            return self.vertices
+        times = self.sample_times
+        k = int(np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 1))
+        if k == len(times) - 1 or t <= times[0]:
+            return self.sample_points[k]
+        w = (t - times[k]) / (times[k + 1] - times[k])
+        return (1.0 - w) * self.sample_points[k] + w * self.sample_points[k + 1]
+
+
+def mesh_shape(vertices, faces, *, sides: str, deforming: bool = False, sample_times=None,
+               sample_points=None, depth: float | None = None, winding_number: bool = False) -> MeshShape:
+    """A checked :class:`MeshShape` (one-line errors for bad input)."""
+    if sides not in MESH_SIDES:
+        raise ConfigError(f"mesh collider sides must be one of {', '.join(map(repr, MESH_SIDES))} (closed: a "
+                          f"watertight solid; one_sided: an open mesh, outside where its normals point; two_sided: an "
+                          f"open shell), got {sides!r}")
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) < 3 or not np.isfinite(v).all():
+        raise ConfigError(f"mesh collider vertices must be finite, shape [v, 3] with v ≥ 3, got shape {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or not np.issubdtype(f.dtype, np.integer):
+        raise ConfigError(f"mesh collider faces must be integer triangles, shape [t, 3], got shape {f.shape}")
+    if f.min() < 0 or f.max() >= len(v):
+        raise ConfigError(f"mesh collider faces index vertices 0 … {len(v) - 1}, got indices {f.min()} … {f.max()}")
+    if sample_times is not None:
+        sample_times = np.asarray(sample_times, dtype=np.float64).reshape(-1)
+        sample_points = np.asarray(sample_points, dtype=np.float64)
+        if sample_points.shape != (len(sample_times), *v.shape) or not np.isfinite(sample_points).all():
+            raise ConfigError(f"mesh collider time samples: points must be finite, shape ({len(sample_times)}, "
+                              f"{len(v)}, 3) for {len(sample_times)} times, got shape {sample_points.shape}")
+        if len(sample_times) > 1 and not (np.diff(sample_times) > 0.0).all():
+            raise ConfigError("mesh collider time samples: times must increase")
+        deforming = deforming or len(sample_times) > 1
+    if depth is not None and not (np.isfinite(depth) and depth > 0.0):
+        raise ConfigError(f"mesh collider depth must be > 0 [m] (how far from an open mesh it is looked for), got "
+                          f"{depth!r}")
+    if winding_number and sides != "closed":
+        raise ConfigError(f"winding_number applies to closed mesh colliders only (an open one has no inside), got "
+                          f"sides={sides!r}")
+    return MeshShape(vertices=v, faces=f.astype(np.int32), sides=sides, sample_times=sample_times,
+                     sample_points=sample_points, deforming=bool(deforming), depth=depth,
+                     winding_number=bool(winding_number))
+
+
+class MeshCollider:
+    """A mesh collider of a finalized model: the ``wp.Mesh`` its kernels query (``Model.mesh_colliders``).
+
+    Attributes:
+        index: the collider's index among the model's colliders.
+        mesh: the ``wp.Mesh`` (points and per-vertex velocities in the collider's frame, float32).
+        info: its :class:`MeshShape`.
+    """
+
+    def __init__(self, model, index: int, info: MeshShape):
+        self.model = model
+        self.index = index
+        self.info = info
+        device = model.device
+        points = info.points_at(0.0)
+        self.mesh = wp.Mesh(
+            points=wp.array(points.astype(np.float32), dtype=wp.vec3, device=device),
+            indices=wp.array(info.faces.reshape(-1), dtype=wp.int32, device=device),
+            velocities=wp.zeros(len(points), dtype=wp.vec3, device=device),
+            support_winding_number=info.winding_number,
+        )
+        self._points = np.array(points)
+        self._range = info.query_range()
+        self._bounds = info.bounds()
+
+    @property
+    def name(self) -> str:
+        return self.model.shapes[self.index].name
+
+    def points(self) -> np.ndarray:
+        """The current points in the collider's frame [m], float64, shape [v, 3] (the host's copy)."""
+        return self._points
+
+    def set_points(self, points, *, velocities=None, dt: float | None = None) -> None:
+        """Move the mesh's points (between frames; a captured graph stays valid).
+
+        Args:
+            points: the new points in the collider's frame [m], shape [v, 3] (same vertex count and order).
+            velocities: the surface's velocity at each point [m/s], shape [v, 3] or [3], which the response
+                moves particles with (friction acts relative to it); default (points - previous points) / dt
+                with ``dt``, else zero.
+            dt: the time [s] over which the points moved (e.g. the frame's), to derive the velocities.
+        """
+        if not self.info.deforming:
+            raise ConfigError(f"mesh collider {self.name!r} was built static: add it with deforming=True to move its "
+                              "points between frames")
+        points = np.asarray(points, dtype=np.float64)
+        if points.shape != self._points.shape or not np.isfinite(points).all():
+            raise ConfigError(f"mesh collider {self.name!r}: points must be finite, shape {self._points.shape} (its "
+                              f"vertex count and order), got shape {points.shape}")
+        if velocities is None:
+            if dt is None:
+                velocities = np.zeros_like(points)
+            elif not dt > 0.0:
+                raise ConfigError(f"mesh collider {self.name!r}: dt must be > 0 [s], got {dt}")
+            else:
+                velocities = (points - self._points) / dt
+        velocities = np.broadcast_to(np.asarray(velocities, dtype=np.float64), points.shape)
+        if not np.isfinite(velocities).all():
+            raise ConfigError(f"mesh collider {self.name!r}: velocities must be finite, shape {points.shape} or (3,)")
+        self.mesh.points.assign(points.astype(np.float32))
+        self.mesh.velocities.assign(np.ascontiguousarray(velocities, dtype=np.float32))
+        self.mesh.refit()
+        self._points = np.array(points)
+        lower, upper = self.info.bounds(points)
+        if (lower < self._bounds[0]).any() or (upper > self._bounds[1]).any():  # grown: widen its box and reach
+            self._bounds = (np.minimum(lower, self._bounds[0]), np.maximum(upper, self._bounds[1]))
+            depth, reach = MeshShape(vertices=np.array(self._bounds), faces=self.info.faces, sides=self.info.sides,
+                                     depth=self.info.depth).query_range()
+            self._range = (self._range[0], max(reach, self._range[1]))
+            _write_row(self.model.shape_arrays.size, self.index, (*self._range, 0.0))
+            _write_row(self.model.shape_arrays.lower, self.index, self._bounds[0])
+            _write_row(self.model.shape_arrays.upper, self.index, self._bounds[1])
+        self.model.input_version += 1
+
+
+def make_mesh_colliders(model) -> list:
+    """The :class:`MeshCollider` of every mesh collider of ``model`` (called at finalize), with its mesh id and
+    query range written into the model's collider arrays."""
+    colliders = [MeshCollider(model, i, s.mesh) for i, s in enumerate(model.shapes) if s.kind == "mesh"]
+    radius = float(model.particle_radius.numpy().max()) if model.particle_count else 0.0
+    for c in colliders:
+        thickness = model.shapes[c.index].thickness
+        if c._range[0] <= radius + thickness:
+            raise ConfigError(f"mesh collider {c.name!r}: its depth ({c._range[0]:.4g} m) must exceed the particle "
+                              f"radius plus its thickness ({radius + thickness:.4g} m), or contacts would be missed: "
+                              "pass a larger depth")
+        _write_row(model.shape_arrays.mesh, c.index, c.mesh.id)
+        _write_row(model.shape_arrays.size, c.index, (*c._range, 0.0))
+        _write_row(model.shape_arrays.lower, c.index, c._bounds[0])
+        _write_row(model.shape_arrays.upper, c.index, c._bounds[1])
+    return colliders
+
+
+def _write_row(array: wp.array, index: int, value) -> None:
+    """Write entry ``index`` of a device array (a host round trip of the whole array: colliders are few)."""
+    values = array.numpy()
+    values[index] = value
+    array.assign(values)
+
+
+def advance_mesh_colliders(model, t0: float, t1: float) -> None:
+    """Put every mesh collider with time-sampled points at its points of time ``t1`` [s], moving with the
+    velocity of their change from ``t0`` (a frame's start and end). Nothing happens without such a mesh."""
+    for collider in getattr(model, "mesh_colliders", ()):
+        if collider.info.sampled and t1 > t0:
+            collider.set_points(collider.info.points_at(t1),
+                                velocities=(collider.info.points_at(t1) - collider.info.points_at(t0)) / (t1 - t0))
