@@ -89,7 +89,7 @@ def test_the_reported_mid_run_change(device):
 
 def test_new_threshold_values_load_no_module(device):
     """After the first frame, new values of every threshold, of gravity and of drag load no new kernel
-    module (0.10, 0.11, 0.12, ...); switching a stabiliser off does (the counter sees compiles)."""
+    module (0.10, 0.11, 0.12, ...); switching a stabiliser off is a structural change (a new revision and capture)."""
     model = cloth(device)
     sim = ws.Simulator(model, integrator=ws.RK4(model), fps=60, substeps=4)
     sim.step_frame()
@@ -103,10 +103,13 @@ def test_new_threshold_values_load_no_module(device):
         sim.step_frame()
     assert loaded_modules() == before
     assert sim.stepper.captures == 1
+    revision = model.revision
     model.stabilizers = ws.Stabilizers(max_spring_force=30.0, max_particle_force=3.0, max_strain=0.1,
                                        strain_iterations=2, biphasic_strain=0.2)  # speed clamp off
     sim.step_frame()
-    assert loaded_modules() > before and sim.stepper.captures == 2
+    # A switch is structural: a new revision and a new capture. (Whether it loads a module depends on what
+    # other tests of the same process compiled before, so the count is not asserted here.)
+    assert model.revision > revision and sim.stepper.captures == 2
 
 
 def test_recapture_follows_structural_changes_only(device):
