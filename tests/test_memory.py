@@ -16,6 +16,7 @@ and for a run's own peak after finalize (three frames to USD):
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -30,6 +31,10 @@ from warpspring.core.constraints import StepFinisher
 from warpspring.core.memory import MODEL_TOLERANCE, PEAK_TOLERANCE, AvailableMemory, format_bytes
 
 HERE = Path(__file__).resolve()
+#: The child processes import this checkout's warpspring (run as a script, tests/ would come first on their
+#: path and an installed copy, not this one, would be measured).
+CHILD_ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(HERE.parent.parent),
+                                                                      os.environ.get("PYTHONPATH")]))}
 
 
 def owned_bytes(*roots, seen: dict | None = None) -> int:
@@ -186,7 +191,7 @@ def _status_bytes(key: str) -> int:
 
 def measure(n: int) -> dict:
     """:func:`_measure` in a fresh Python process (a peak is per process)."""
-    done = subprocess.run([sys.executable, str(HERE), "--measure", str(n)], capture_output=True, text=True,
+    done = subprocess.run([sys.executable, str(HERE), "--measure", str(n)], capture_output=True, text=True, env=CHILD_ENV,
                           timeout=300)
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout.splitlines()[-1])
@@ -355,7 +360,7 @@ if __name__ == "__main__":
         for name in sys.argv[3:] or ["symplectic_euler"]:
             with tempfile.TemporaryDirectory() as folder:
                 done = subprocess.run([sys.executable, str(HERE), "--run-one", sys.argv[2], name, folder],
-                                      capture_output=True, text=True, timeout=600)
+                                      capture_output=True, text=True, timeout=600, env=CHILD_ENV)
             assert done.returncode == 0, done.stderr
             r = json.loads(done.stdout.splitlines()[-1])
             print(f"| {r['n']}² | {name} | {format_bytes(r['peak'])} | {format_bytes(r['peak_estimate'])} | "

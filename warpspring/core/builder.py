@@ -128,7 +128,7 @@ class ModelBuilder:
         self._spring_ke: list[np.ndarray] = []
         self._spring_kd: list[np.ndarray] = []
         self._spring_count = 0
-        self._spring_law: list[np.ndarray] = []  # per block: law code, compression ratio, plasticity rows
+        self._spring_law: list[tuple] = []  # per group: count, law code, compression ratio, plastic, plasticity row
 
         self._hinges: list[np.ndarray] = []
         self._hinge_rest: list[np.ndarray] = []
@@ -286,7 +286,7 @@ class ModelBuilder:
             rest = np.linalg.norm(q[pairs[:, 1]] - q[pairs[:, 0]], axis=1)
         else:
             rest = _per_item("spring rest length", rest_length, s)
-        ratio = np.ones(s)
+        ratio = 1.0  # a scalar unless a compression branch is given: a linear group stores no per-spring law
         if compression_stiffness is not None:
             kc = _per_item("spring compression_stiffness", compression_stiffness, s)
             soft = np.flatnonzero((ke == 0.0) & (kc > 0.0))
@@ -294,18 +294,17 @@ class ModelBuilder:
                 raise ConfigError(f"spring {int(soft[0])} has compression_stiffness {kc[soft[0]]:g} but stiffness 0: "
                                   "give it a stiffness > 0 (the compression branch is stored as kc/ke)")
             ratio = np.divide(kc, ke, out=np.ones(s), where=ke > 0.0)
-        rows = np.full((s, 5), np.inf)
+        row = np.full(5, np.inf)
         if plasticity is not None:
             if not isinstance(plasticity, SpringPlasticity):
                 raise ConfigError(f"plasticity must be a warpspring.SpringPlasticity, got {type(plasticity).__name__}")
             if len(rest) and rest.min() <= 0.0:
                 raise ConfigError(f"plastic spring {int(np.argmin(rest))} has rest length 0: plastic strains are "
                                   "measured against the rest length, so it must be > 0")
-            rows[:] = plasticity.row
-        block = np.empty((s, 8))
-        block[:, 0], block[:, 1], block[:, 2] = spring_law_code(law), ratio, plasticity is not None
-        block[:, 3:] = rows
-        self._spring_law.append(block)
+            row[:] = plasticity.row
+        # One entry per group (count, law code, ratio: a scalar or per spring, plastic, plasticity row), expanded to
+        # per-spring arrays at finalize only where some group needs them.
+        self._spring_law.append((s, spring_law_code(law), ratio, plasticity is not None, row))
         start = self._spring_count
         self._springs.append(pairs)
         self._spring_ke.append(ke)
@@ -317,25 +316,32 @@ class ModelBuilder:
 
     def _finalize_spring_laws(self, model: Model, farray, iarray) -> None:
         """The spring groups' laws and plasticity on the model: only the arrays and switches the groups use."""
-        laws = np.concatenate(self._spring_law) if self._spring_law else np.zeros((0, 8))
-        code, ratio, plastic = laws[:, 0].astype(np.int32), laws[:, 1], laws[:, 2] != 0.0
-        square, asymmetric = bool((code == SPRING_LAWS["square"]).any()), bool((ratio != 1.0).any())
-        model.spring_material_law = SpringLaw(square=square, asymmetric=asymmetric, plastic=bool(plastic.any()))
+        groups = [group for group in self._spring_law if group[0]]
+        counts = np.array([group[0] for group in groups], dtype=np.int64)
+        codes = np.array([group[1] for group in groups], dtype=np.int32)
+        plastic_groups = np.array([group[3] for group in groups], dtype=bool)
+        square = bool((codes == SPRING_LAWS["square"]).any())
+        asymmetric = any(np.any(np.asarray(group[2]) != 1.0) for group in groups)
+        model.spring_material_law = SpringLaw(square=square, asymmetric=asymmetric, plastic=bool(plastic_groups.any()))
         if square or asymmetric:
-            model.spring_law_code = iarray(code)
+            model.spring_law_code = iarray(np.repeat(codes, counts))
+            ratio = np.concatenate([np.broadcast_to(np.asarray(group[2], dtype=np.float64), (group[0],))
+                                    for group in groups])
             model.spring_compression_ratio = farray(ratio, name="a spring compression ratio [-]")
-        if plastic.any():
+        if plastic_groups.any():
             worlds = model.world_count
+            plastic = np.repeat(plastic_groups, counts)
+            rows = np.repeat(np.array([group[4] for group in groups]), counts, axis=0)
             model.spring_plastic_count = int(plastic.sum())
             model.spring_plastic_index = iarray(np.flatnonzero(plastic))
             dtype = np.float64 if model.scalar is wp.float64 else np.float32
             for column, name in enumerate(("yield_strain", "yield_force", "yield_rate", "hardening", "break_strain")):
                 # inf (no limit, instant flow) is a value here: stored as is, not refused as an overflow.
-                setattr(model, f"spring_{name}", wp.array(laws[:, 3 + column].astype(dtype), dtype=model.scalar,
+                setattr(model, f"spring_{name}", wp.array(rows[:, column].astype(dtype), dtype=model.scalar,
                                                           device=model.device))
             model.spring_plastic_rest_length = farray(np.tile(np.concatenate(self._spring_rest), worlds),
                                                       name="a spring rest length [m]")
-            model.spring_plastic_strain = farray(np.zeros(worlds * len(laws)))
+            model.spring_plastic_strain = farray(np.zeros(worlds * len(plastic)))
 
     def add_hinges(self, hinges, *, stiffness, damping=0.0, rest_angle=None) -> np.ndarray:
         """Add dihedral (angular) springs in bulk: hinge (x0, x1, x2, x3) resists folding about the edge
