@@ -38,8 +38,10 @@ class StepFinisher:
         return self._contacts
 
     def history(self) -> list:
-        """Device arrays one step leaves to the next: the contact buffer's overflow counters."""
-        return self.contacts.history() if self.contacts is not None else []
+        """Device arrays one step leaves to the next: the contact buffer's overflow counters (and the
+        self-collision counters)."""
+        self_contact = self.model.self_contact.history() if self.model.self_contact is not None else []
+        return (self.contacts.history() if self.contacts is not None else []) + self_contact
 
     def _strain_buffers(self):
         if self._buffers is None:
@@ -64,9 +66,18 @@ class StepFinisher:
     def only_contacts(self) -> bool:
         """True when the pass is just the contact response against every collider (no stabiliser, no contact
         stage), which integrators may fuse into their update."""
+        if self.model.self_contact is not None:  # self-collision reads the step's start: never fused
+            return False
         return not (self.stabilised or self.model.contact_stage)
 
-    def __call__(self, state: State, dt: float) -> None:
+    def __call__(self, state: State, dt: float, state_in: State | None = None) -> None:
+        """Finish ``state``, the result of a step of ``dt`` [s] from ``state_in``: the stabilisers, the
+        contacts, then self-collision (which needs ``state_in``: without it, self-collision is skipped)."""
+        self._finish(state, dt)
+        if state_in is not None and self.model.self_contact is not None:
+            self.model.self_contact(state_in, state, dt)
+
+    def _finish(self, state: State, dt: float) -> None:
         model = self.model
         update_shape_frames(model, state.time, dt)
         if not self.stabilised:

@@ -276,6 +276,7 @@ class Model:
     contact_slots: int  # contacts a particle holds in the buffer
 
     meshes: list  # list[MeshGroup], host-side, for export
+    self_contact: object  # core.selfcontact.SelfContact: self-collision of the triangles (add_self_collision), or None
 
     def __init__(self, device: wp.Device, precision: str, scalar: type, world_count: int = 1):
         self.device = device
@@ -288,6 +289,7 @@ class Model:
         self.meshes = []
         self.spring_families = {}
         self.emitters = []  # list[Emitter] (core/emitters.py), run after every step by the Simulator
+        self.self_contact = None  # SelfContact (core/selfcontact.py) when the scene asks for self-collision
         self.shapes = []
         self.shape_count = 0
         self.shape_types = ()
