@@ -156,7 +156,8 @@ def geometry_funcs(scalar: type):
 def _pass_funcs(scalar: type, repel: bool):
     """The pair walk of one pass: ``visit_pairs`` enumerates every pair vertex i belongs to, in every role,
     and folds each into (correction sum, pairs, nearest distance, pairs counted here): with ``repel`` the
-    repulsion and friction corrections, else the distance only (the cap)."""
+    repulsion and friction corrections and the pairs pushed, else the nearest distance and the pairs closer
+    than the reach (the cap, and ``proximity_kernel``)."""
     vec3 = vec3_type(scalar)
     vec4 = wp.types.vector(4, scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
@@ -230,6 +231,9 @@ def _pass_funcs(scalar: type, repel: bool):
                 bary = triangle_closest(xi, ta, tb, tc)
                 diff = xi - (bary[0] * ta + bary[1] * tb + bary[2] * tc)
                 nearest = wp.min(nearest, wp.length(diff))
+                if wp.static(not repel):
+                    if wp.length(diff) < reach:
+                        count += 1
                 if wp.static(repel):
                     if wp.length(diff) < reach:
                         correction, count, pushed = fold_pair(
@@ -262,6 +266,9 @@ def _pass_funcs(scalar: type, repel: bool):
                         bary = triangle_closest(xj, a, b, c)
                         diff = xj - (bary[0] * a + bary[1] * b + bary[2] * c)
                         nearest = wp.min(nearest, wp.length(diff))
+                        if wp.static(not repel):
+                            if wp.length(diff) < reach:
+                                count += 1
                         if wp.static(repel):
                             if wp.length(diff) < reach:
                                 correction, count, pushed = fold_pair(
@@ -295,6 +302,9 @@ def _pass_funcs(scalar: type, repel: bool):
                         st = edge_closest(p1, q1, p2, q2)
                         diff = (p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2))
                         nearest = wp.min(nearest, wp.length(diff))
+                        if wp.static(not repel):
+                            if wp.length(diff) < reach:
+                                count += 1
                         if wp.static(repel):
                             if wp.length(diff) < reach:
                                 correction, count, pushed = fold_pair(
@@ -432,3 +442,41 @@ def cap_kernel(scalar: type):
             particle_q_out[p] = x
 
     return cap
+
+
+@functools.cache
+def proximity_kernel(scalar: type):
+    """Kernel of the broad phase's audit: per surface vertex, its distance to the nearest pair it belongs to
+    within ``reach`` [m] (``reach`` when none) and the number of those pairs, at ``particle_q_start``
+    (-1 for vertices off the surface). The tests compare both with an all-pairs float64 reference."""
+    vec3 = vec3_type(scalar)
+    visit_pairs = _pass_funcs(scalar, False)
+
+    @flat_kernel(module="unique", enable_backward=False)
+    def proximity(
+        # Model:
+        particle_count: int,
+        particle_flags: wp.array[wp.int32],
+        particle_inv_mass: wp.array2d[scalar],
+        surface: Surface,
+        # State in:
+        particle_q_start: wp.array[vec3],
+        reach: scalar,
+        # Out:
+        nearest_out: wp.array[scalar],
+        count_out: wp.array[wp.int32],
+    ):
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
+        nearest_out[p] = reach
+        count_out[p] = -1
+        if surface.vertex_owner[i] < 0:
+            return
+        mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
+        correction, count, nearest, counted = visit_pairs(
+            i, p - i, mass_row, surface.mesh[world], reach, reach, scalar(0.0), surface, particle_flags,
+            particle_inv_mass, particle_q_start, particle_q_start)
+        nearest_out[p] = nearest
+        count_out[p] = count
+
+    return proximity

@@ -262,3 +262,79 @@ def audit_motion(x0: np.ndarray, x1: np.ndarray, triangles: np.ndarray, *, resol
         touched[active] = True
     rows = np.stack([kinds, first, second], axis=1)[touched]
     return MotionAudit(touches=rows, min_distance=smallest, pairs=len(kinds))
+
+
+@dataclass
+class UsdAudit:
+    """:func:`audit_usd`'s findings: per sampled frame (time code), the intersections and the minimum distance
+    [m] over every animated mesh of the file taken together (so layers of different meshes count too)."""
+
+    frames: list
+    intersections: list
+    min_distance: list
+
+    @property
+    def total_intersections(self) -> int:
+        return int(sum(self.intersections))
+
+    def line(self, thickness: float | None = None) -> str:
+        """One line of findings; with ``thickness`` [m], also the frames closer than half of it."""
+        worst = min(self.min_distance) if self.min_distance else np.inf
+        text = (f"{len(self.frames)} frames: {self.total_intersections} segment-triangle intersections between "
+                f"elements sharing no vertex; minimum vertex-triangle / edge-edge distance {worst:.4g} m")
+        if thickness is not None:
+            close = sum(d < 0.5 * thickness for d in self.min_distance)
+            text += f"; {close} frames closer than half the thickness ({0.5 * thickness:.4g} m)"
+        return text
+
+
+def audit_usd(path: str, *, reach: float | None = None) -> UsdAudit:
+    """Run :func:`audit_frame` on every frame of a USD file: the meshes whose points are time-sampled (the
+    simulated surfaces), in world space, polygons fan-triangulated, all meshes together.
+
+    Raises:
+        ConfigError: the file cannot be opened or holds no animated mesh.
+    """
+    import os
+
+    from pxr import Tf, Usd, UsdGeom
+
+    from ..errors import ConfigError
+
+    if not os.path.isfile(path):
+        raise ConfigError(f"USD file not found: {path}")
+    try:
+        stage = Usd.Stage.Open(str(path))
+    except Tf.ErrorException:
+        stage = None
+    if stage is None:
+        raise ConfigError(f"cannot open {path} as USD: expected a .usd, .usda or .usdc file")
+    meshes = [UsdGeom.Mesh(p) for p in stage.Traverse()
+              if p.IsA(UsdGeom.Mesh) and UsdGeom.Mesh(p).GetPointsAttr().GetNumTimeSamples() > 0]
+    if not meshes:
+        raise ConfigError(f"{path} holds no animated mesh to audit")
+    triangles, offset = [], 0
+    for mesh in meshes:
+        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(), dtype=np.int64)
+        indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), dtype=np.int64)
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        fan = np.repeat(np.arange(len(counts)), counts - 2)  # polygon of each fan triangle
+        k = np.arange(len(fan)) - np.repeat(np.cumsum(counts - 2) - (counts - 2), counts - 2) + 1
+        first = starts[fan]
+        triangles.append(offset + np.stack([indices[first], indices[first + k], indices[first + k + 1]], axis=1))
+        offset += len(mesh.GetPointsAttr().Get(Usd.TimeCode.EarliestTime()))
+    triangles = np.concatenate(triangles)
+    times = sorted({t for m in meshes for t in m.GetPointsAttr().GetTimeSamples()})
+    result = UsdAudit(frames=[], intersections=[], min_distance=[])
+    for t in times:
+        cache = UsdGeom.XformCache(t)
+        points = []
+        for mesh in meshes:
+            x = np.asarray(mesh.GetPointsAttr().Get(t), dtype=np.float64).reshape(-1, 3)
+            m = np.asarray(cache.GetLocalToWorldTransform(mesh.GetPrim()), dtype=np.float64)
+            points.append(x @ m[:3, :3] + m[3, :3])  # USD's row-vector convention
+        found = audit_frame(np.concatenate(points), triangles, reach=reach)
+        result.frames.append(t)
+        result.intersections.append(len(found.intersections))
+        result.min_distance.append(found.min_distance)
+    return result

@@ -25,6 +25,7 @@ from ..kernels.selfcontact import (
     Surface,
     cap_kernel,
     points_kernel,
+    proximity_kernel,
     repel_kernel,
 )
 
@@ -169,14 +170,41 @@ class SelfContact:
         """The device arrays one step leaves to the next: the counters."""
         return [self.counters]
 
+    @property
+    def capturable(self) -> bool:
+        """Whether a step with self-collision can be captured in a graph: on CUDA (the BVH refit is device work),
+        not on the CPU (Warp refits a CPU mesh on the host, outside what its CPU graphs record)."""
+        return self.model.device.is_cuda
+
+    def refit(self, positions: wp.array) -> None:
+        """Bring every world's BVH to ``positions`` (a state's ``particle_q``)."""
+        model = self.model
+        wp.launch(points_kernel(model.scalar), dim=model.particle_dim, block_dim=model.block_dim,
+                  inputs=[positions], outputs=[self.points], device=model.device)
+        for mesh in self.meshes:
+            mesh.refit()
+
+    def proximity(self, state, reach: float) -> tuple[np.ndarray, np.ndarray]:
+        """The device's broad and narrow phase at ``state``, for audits: per particle of every world, the
+        distance [m] to the nearest vertex–triangle or edge–edge pair it belongs to within ``reach`` [m]
+        (``reach`` when none) and how many such pairs there are (-1 off the surface); NumPy arrays
+        [world_count · particle_count]."""
+        model = self.model
+        self.refit(state.particle_q)
+        nearest = wp.empty(model.state_size, dtype=model.scalar, device=model.device)
+        count = wp.empty(model.state_size, dtype=wp.int32, device=model.device)
+        flat_launch(proximity_kernel(model.scalar),
+                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface,
+                            state.particle_q, model.scalar(reach)],
+                    outputs=[nearest, count], dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
+        return nearest.numpy().astype(np.float64), count.numpy()
+
     def __call__(self, state_in, state_out, dt: float) -> None:
         """Make ``state_out`` (the integrator's result from ``state_in``) free of self-intersections: refit the
         BVHs at ``state_in``, repel, cap (device work only: capturable)."""
         model = self.model
         common = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
-        wp.launch(points_kernel(model.scalar), inputs=[state_in.particle_q], outputs=[self.points], **common)
-        for mesh in self.meshes:
-            mesh.refit()
+        self.refit(state_in.particle_q)
         shared = dict(
             particle_count=model.particle_count,
             particle_flags=model.particle_flags,
