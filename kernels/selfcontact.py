@@ -11,8 +11,10 @@ x⁰ (``wp.Mesh``, refit every step; ``wp.mesh_query_aabb``).
    −) and Δₖ = x¹ₖ − x⁰ₖ. A pair predicted closer than τ is pushed apart by c = τ − (d + n·Σ wₖΔₖ) along n,
    shared by inverse mass like an inelastic impulse (Bridson, Fedkiw & Anderson 2002): vertex k moves by
    wₖ mₖ⁻¹ c / Σⱼ wⱼ² mⱼ⁻¹ · n. Coulomb friction removes up to μc of the pair's relative tangential
-   displacement the same way (all of it when μc covers it: static friction). A vertex takes the mean of its
-   pairs' corrections (Jacobi), so several pairs at one vertex do not add up to an overshoot.
+   displacement the same way (all of it when μc covers it: static friction). A vertex takes a weighted mean
+   of its pairs' corrections (Jacobi): their sum over max(1, Σ|wₖ|), its weights in its pairs, so several
+   pairs at one vertex do not add up to an overshoot, and a pair in which it barely takes part (a triangle
+   corner far from the closest point) does not dilute the others.
 2. **The displacement cap** (``cap_kernel``; Chen et al. 2024, "Offset Geometric Contact", as in Newton's
    VBD): vertex i moves from x⁰ᵢ by at most γ·min(rᵢ, dᵢ), where dᵢ is its distance at x⁰ to the nearest
    primitive pair it belongs to in any role (as the vertex or a triangle corner of a VT pair, as an end of
@@ -175,10 +177,11 @@ def _pass_funcs(scalar: type, repel: bool):
         me: int, index: wp.vec4i, weight: vec4, diff: vec3, fallback: vec3, base: int, mass_row: int,
         thickness: scalar, friction: scalar, particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3], particle_q_in: wp.array[vec3],
-        correction: vec3, count: int,
+        correction: vec3, count: scalar,
     ):
         """Add the pair (vertices ``index``, signed weights ``weight``, closest-point difference ``diff`` at
-        the start) to the repulsion of its vertex ``me`` (0..3): returns the correction sum and pair count."""
+        the start) to the repulsion of its vertex ``me`` (0..3): returns the correction sum, the pairs' weight
+        at the vertex (each pair counts by the vertex's |weight| in it) and 1 if the pair is pushed."""
         d = wp.length(diff)
         n = fallback
         if d > scalar(1.0e-12) * thickness:
@@ -203,7 +206,7 @@ def _pass_funcs(scalar: type, repel: bool):
             dx -= (wp.min(friction * push, slip) / slip) * tangential
         j = base + index[me]
         share = weight[me] * effective_inv_mass(particle_flags[j], particle_inv_mass[mass_row, index[me]])
-        return correction + (share / generalized) * dx, count + 1, 1
+        return correction + (share / generalized) * dx, count + wp.abs(weight[me]), 1
 
     @wp.func
     def visit_pairs(
@@ -213,7 +216,7 @@ def _pass_funcs(scalar: type, repel: bool):
     ):
         zero, one = scalar(0.0), scalar(1.0)
         correction = vec3(zero)
-        count = int(0)
+        count = zero  # the pairs' weight at i (repel), or the pairs within reach (else)
         nearest = reach
         counted = int(0)  # pairs this vertex counts (VT as the vertex; EE at the lower edge's first end)
         xi = vec3(particle_q_start[base + i])
@@ -233,7 +236,7 @@ def _pass_funcs(scalar: type, repel: bool):
                 nearest = wp.min(nearest, wp.length(diff))
                 if wp.static(not repel):
                     if wp.length(diff) < reach:
-                        count += 1
+                        count += one
                 if wp.static(repel):
                     if wp.length(diff) < reach:
                         correction, count, pushed = fold_pair(
@@ -268,7 +271,7 @@ def _pass_funcs(scalar: type, repel: bool):
                         nearest = wp.min(nearest, wp.length(diff))
                         if wp.static(not repel):
                             if wp.length(diff) < reach:
-                                count += 1
+                                count += one
                         if wp.static(repel):
                             if wp.length(diff) < reach:
                                 correction, count, pushed = fold_pair(
@@ -304,7 +307,7 @@ def _pass_funcs(scalar: type, repel: bool):
                         nearest = wp.min(nearest, wp.length(diff))
                         if wp.static(not repel):
                             if wp.length(diff) < reach:
-                                count += 1
+                                count += one
                         if wp.static(repel):
                             if wp.length(diff) < reach:
                                 correction, count, pushed = fold_pair(
@@ -372,8 +375,8 @@ def repel_kernel(scalar: type):
         correction, count, nearest, counted = visit_pairs(
             i, base, mass_row, surface.mesh[world], scalar(REPULSION_REACH) * thickness, thickness,
             params[row, PARAM_FRICTION], surface, particle_flags, particle_inv_mass, particle_q_start, particle_q_in)
-        if count > 0:
-            particle_q_out[p] = x + correction / scalar(count)
+        if count > scalar(0.0):  # a weighted mean: a pair counts by the vertex's weight in it, the sum by 1 at least
+            particle_q_out[p] = x + correction / wp.max(count, scalar(1.0))
         if counted > 0:
             wp.atomic_add(counters, world, COUNT_PAIRS, counted)
 
@@ -477,6 +480,6 @@ def proximity_kernel(scalar: type):
             i, p - i, mass_row, surface.mesh[world], reach, reach, scalar(0.0), surface, particle_flags,
             particle_inv_mass, particle_q_start, particle_q_start)
         nearest_out[p] = nearest
-        count_out[p] = count
+        count_out[p] = int(count)
 
     return proximity
