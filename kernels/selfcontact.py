@@ -220,13 +220,28 @@ def _pass_funcs(scalar: type, repel: bool):
         nearest = reach
         counted = int(0)  # pairs this vertex counts (VT as the vertex; EE at the lower edge's first end)
         xi = vec3(particle_q_start[base + i])
+        first_triangle = surface.vertex_triangle_start[i]
+        last_triangle = surface.vertex_triangle_start[i + 1]
+        first_edge = surface.vertex_edge_start[i]
+        last_edge = surface.vertex_edge_start[i + 1]
 
-        # i as the vertex of a VT pair: the triangles near it.
-        lower, upper = box_of(xi, xi, reach)
-        query = wp.mesh_query_aabb(mesh, lower, upper)
-        t = int(0)
-        while wp.mesh_query_aabb_next(query, t):
-            near_tri = surface.triangle[t]
+        # One query: the box of i's triangles grown by the reach holds every element within the reach of i,
+        # of its triangles or of its edges; each element is reported once, through its owner triangle.
+        lower = xi
+        upper = xi
+        for k in range(first_triangle, last_triangle):
+            ring = surface.triangle[surface.vertex_triangle[k]]
+            for m in range(3):
+                corner_x = vec3(particle_q_start[base + ring[m]])
+                lower = wp.min(lower, corner_x)
+                upper = wp.max(upper, corner_x)
+        box_lower, box_upper = box_of(lower, upper, reach)
+        query = wp.mesh_query_aabb(mesh, box_lower, box_upper)
+        other = int(0)
+        while wp.mesh_query_aabb_next(query, other):
+            near_tri = surface.triangle[other]
+
+            # i as the vertex of a VT pair.
             if near_tri[0] != i and near_tri[1] != i and near_tri[2] != i:
                 ta = vec3(particle_q_start[base + near_tri[0]])
                 tb = vec3(particle_q_start[base + near_tri[1]])
@@ -234,90 +249,80 @@ def _pass_funcs(scalar: type, repel: bool):
                 bary = triangle_closest(xi, ta, tb, tc)
                 diff = xi - (bary[0] * ta + bary[1] * tb + bary[2] * tc)
                 nearest = wp.min(nearest, wp.length(diff))
-                if wp.static(not repel):
-                    if wp.length(diff) < reach:
+                if wp.length(diff) < reach:
+                    if wp.static(not repel):
                         count += one
-                if wp.static(repel):
-                    if wp.length(diff) < reach:
+                    if wp.static(repel):
                         correction, count, pushed = fold_pair(
                             0, wp.vec4i(i, near_tri[0], near_tri[1], near_tri[2]), vec4(one, -bary[0], -bary[1], -bary[2]),
                             diff, wp.normalize(wp.cross(tb - ta, tc - ta)), base, mass_row, thickness, friction,
                             particle_flags, particle_inv_mass, particle_q_start, particle_q_in, correction, count)
                         counted += pushed
 
-        # i as a corner of a triangle of a VT pair: the vertices near each of its triangles.
-        for k in range(surface.vertex_triangle_start[i], surface.vertex_triangle_start[i + 1]):
-            own = surface.vertex_triangle[k]
-            tri = surface.triangle[own]
-            a = vec3(particle_q_start[base + tri[0]])
-            b = vec3(particle_q_start[base + tri[1]])
-            c = vec3(particle_q_start[base + tri[2]])
-            corner = int(0)
-            if tri[1] == i:
-                corner = 1
-            elif tri[2] == i:
-                corner = 2
-            lower, upper = box_of(wp.min(wp.min(a, b), c), wp.max(wp.max(a, b), c), reach)
-            query = wp.mesh_query_aabb(mesh, lower, upper)
-            other = int(0)
-            while wp.mesh_query_aabb_next(query, other):
-                near = surface.triangle[other]
-                for m in range(3):
-                    j = near[m]
-                    if surface.vertex_owner[j] == other and j != tri[0] and j != tri[1] and j != tri[2]:
-                        xj = vec3(particle_q_start[base + j])
-                        bary = triangle_closest(xj, a, b, c)
-                        diff = xj - (bary[0] * a + bary[1] * b + bary[2] * c)
-                        nearest = wp.min(nearest, wp.length(diff))
-                        if wp.static(not repel):
+            # i as a corner of the triangle of a VT pair: the vertices this triangle reports.
+            for m in range(3):
+                j = near_tri[m]
+                if surface.vertex_owner[j] == other:
+                    xj = vec3(particle_q_start[base + j])
+                    for k in range(first_triangle, last_triangle):
+                        own = surface.vertex_triangle[k]
+                        tri = surface.triangle[own]
+                        if j != tri[0] and j != tri[1] and j != tri[2]:
+                            a = vec3(particle_q_start[base + tri[0]])
+                            b = vec3(particle_q_start[base + tri[1]])
+                            c = vec3(particle_q_start[base + tri[2]])
+                            bary = triangle_closest(xj, a, b, c)
+                            diff = xj - (bary[0] * a + bary[1] * b + bary[2] * c)
+                            nearest = wp.min(nearest, wp.length(diff))
                             if wp.length(diff) < reach:
-                                count += one
-                        if wp.static(repel):
-                            if wp.length(diff) < reach:
-                                correction, count, pushed = fold_pair(
-                                    corner + 1, wp.vec4i(j, tri[0], tri[1], tri[2]),
-                                    vec4(one, -bary[0], -bary[1], -bary[2]), diff,
-                                    wp.normalize(wp.cross(b - a, c - a)), base, mass_row, thickness, friction,
-                                    particle_flags, particle_inv_mass, particle_q_start, particle_q_in, correction,
-                                    count)
+                                if wp.static(not repel):
+                                    count += one
+                                if wp.static(repel):
+                                    corner = int(0)
+                                    if tri[1] == i:
+                                        corner = 1
+                                    elif tri[2] == i:
+                                        corner = 2
+                                    correction, count, pushed = fold_pair(
+                                        corner + 1, wp.vec4i(j, tri[0], tri[1], tri[2]),
+                                        vec4(one, -bary[0], -bary[1], -bary[2]), diff,
+                                        wp.normalize(wp.cross(b - a, c - a)), base, mass_row, thickness, friction,
+                                        particle_flags, particle_inv_mass, particle_q_start, particle_q_in,
+                                        correction, count)
 
-        # i as an end of an edge of an EE pair: the edges near each of its edges.
-        for k in range(surface.vertex_edge_start[i], surface.vertex_edge_start[i + 1]):
-            e = surface.vertex_edge[k]
-            edge = surface.edge[e]
-            end = int(0)
-            if edge[1] == i:
-                end = 1
-            p1 = vec3(particle_q_start[base + edge[0]])
-            q1 = vec3(particle_q_start[base + edge[1]])
-            lower, upper = box_of(wp.min(p1, q1), wp.max(p1, q1), reach)
-            query = wp.mesh_query_aabb(mesh, lower, upper)
-            other = int(0)
-            while wp.mesh_query_aabb_next(query, other):
-                edges = surface.triangle_edges[other]
-                for m in range(3):
-                    f = edges[m]
+            # i as an end of an edge of an EE pair: the edges this triangle reports.
+            edges = surface.triangle_edges[other]
+            for m in range(3):
+                f = edges[m]
+                if surface.edge_owner[f] == other:
                     near_edge = surface.edge[f]
-                    if (surface.edge_owner[f] == other and near_edge[0] != edge[0] and near_edge[0] != edge[1]
-                            and near_edge[1] != edge[0] and near_edge[1] != edge[1]):
-                        p2 = vec3(particle_q_start[base + near_edge[0]])
-                        q2 = vec3(particle_q_start[base + near_edge[1]])
-                        st = edge_closest(p1, q1, p2, q2)
-                        diff = (p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2))
-                        nearest = wp.min(nearest, wp.length(diff))
-                        if wp.static(not repel):
+                    p2 = vec3(particle_q_start[base + near_edge[0]])
+                    q2 = vec3(particle_q_start[base + near_edge[1]])
+                    for k in range(first_edge, last_edge):
+                        e = surface.vertex_edge[k]
+                        edge = surface.edge[e]
+                        if (near_edge[0] != edge[0] and near_edge[0] != edge[1] and near_edge[1] != edge[0]
+                                and near_edge[1] != edge[1]):
+                            p1 = vec3(particle_q_start[base + edge[0]])
+                            q1 = vec3(particle_q_start[base + edge[1]])
+                            st = edge_closest(p1, q1, p2, q2)
+                            diff = (p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2))
+                            nearest = wp.min(nearest, wp.length(diff))
                             if wp.length(diff) < reach:
-                                count += one
-                        if wp.static(repel):
-                            if wp.length(diff) < reach:
-                                correction, count, pushed = fold_pair(
-                                    end, wp.vec4i(edge[0], edge[1], near_edge[0], near_edge[1]),
-                                    vec4(one - st[0], st[0], st[1] - one, -st[1]), diff,
-                                    wp.normalize(wp.cross(q1 - p1, q2 - p2)), base, mass_row, thickness, friction,
-                                    particle_flags, particle_inv_mass, particle_q_start, particle_q_in, correction,
-                                    count)
-                                if end == 0 and e < f:
-                                    counted += pushed
+                                if wp.static(not repel):
+                                    count += one
+                                if wp.static(repel):
+                                    end = int(0)
+                                    if edge[1] == i:
+                                        end = 1
+                                    correction, count, pushed = fold_pair(
+                                        end, wp.vec4i(edge[0], edge[1], near_edge[0], near_edge[1]),
+                                        vec4(one - st[0], st[0], st[1] - one, -st[1]), diff,
+                                        wp.normalize(wp.cross(q1 - p1, q2 - p2)), base, mass_row, thickness,
+                                        friction, particle_flags, particle_inv_mass, particle_q_start, particle_q_in,
+                                        correction, count)
+                                    if end == 0 and e < f:
+                                        counted += pushed
         return correction, count, nearest, counted
 
     return visit_pairs

@@ -115,8 +115,10 @@ class SelfContact:
         for name, values in topology.items():
             dtype = {"triangle": wp.vec3i, "triangle_edges": wp.vec3i, "edge": wp.vec2i}.get(name, wp.int32)
             setattr(surface, name, wp.array(values, dtype=dtype, device=device))
-        # One BVH per world over single-precision copies of the step's start positions (refit every step).
-        self.points = wp.zeros(model.state_size, dtype=wp.vec3f, device=device)
+        # One BVH per world over single-precision copies of the step's start positions, built at the model's
+        # initial positions (its topology follows them: built on coincident points it would degenerate into a
+        # list) and refit every step.
+        self.points = wp.array(model.particle_q.numpy().astype(np.float32), dtype=wp.vec3f, device=device)
         indices = wp.array(topology["triangle"].ravel(), dtype=wp.int32, device=device)
         self.meshes = [wp.Mesh(points=self.points[w * n:(w + 1) * n], indices=indices) for w in range(worlds)]
         surface.mesh = wp.array(np.array([m.id for m in self.meshes], dtype=np.uint64), dtype=wp.uint64,
