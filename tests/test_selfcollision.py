@@ -325,3 +325,31 @@ def test_captured_frames_equal_uncaptured(device):
             sim.step_frame()
         finals.append(sim.state.particle_q.numpy())
     np.testing.assert_array_equal(finals[0], finals[1])
+
+
+def test_cli_audit_of_a_usd_file(tmp_path, capsys):
+    """``warpspring audit`` reads an animated mesh's frames from USD: a vertex pushed through a triangle in
+    the second frame is found (exit status 6), a file without one passes (0), and --thickness counts the
+    frames whose layers come closer than half of it."""
+    from pxr import Usd, UsdGeom
+
+    from warpspring.cli import EXIT_AUDIT, main
+
+    def write(path, second_z):
+        stage = Usd.Stage.CreateNew(str(path))
+        mesh = UsdGeom.Mesh.Define(stage, "/World/cloth")
+        mesh.CreateFaceVertexCountsAttr([3, 3])
+        mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3, 4, 5])
+        points = mesh.CreatePointsAttr()
+        x = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0.2, 0.2, 0.1), (0.3, 0.2, 0.5), (0.2, 0.3, 0.5)]
+        points.Set(x, 0.0)
+        points.Set(x[:3] + [(0.2, 0.2, second_z)] + x[4:], 1.0)
+        stage.GetRootLayer().Save()
+
+    write(tmp_path / "through.usda", -0.1)
+    write(tmp_path / "above.usda", 0.002)
+    assert main(["audit", str(tmp_path / "through.usda")]) == EXIT_AUDIT
+    assert "2 frames: 2 segment-triangle intersections" in capsys.readouterr().out
+    assert main(["audit", str(tmp_path / "above.usda")]) == 0
+    assert main(["audit", str(tmp_path / "above.usda"), "--thickness", "0.01"]) == EXIT_AUDIT
+    assert "1 frames closer than half the thickness" in capsys.readouterr().out
