@@ -353,3 +353,16 @@ def test_cli_audit_of_a_usd_file(tmp_path, capsys):
     assert main(["audit", str(tmp_path / "above.usda")]) == 0
     assert main(["audit", str(tmp_path / "above.usda"), "--thickness", "0.01"]) == EXIT_AUDIT
     assert "1 frames closer than half the thickness" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("example", ["cloth_fold_on_bar", "twisted_cloth", "stacked_cloths"])
+def test_example_scenes_build(example):
+    """The self-collision examples parse and build with it (their runs are minutes on a CPU: README's table
+    has them audited over their frames)."""
+    from pathlib import Path
+
+    from warpspring.io.scene import load_scene
+
+    scene = load_scene(Path(__file__).parent.parent / "examples" / f"{example}.toml")
+    model = scene.finalize("cpu")
+    assert model.self_contact is not None and model.self_contact.thickness == scene.self_collision["thickness"]
