@@ -365,4 +365,4 @@ def test_example_scenes_build(example):
 
     scene = load_scene(Path(__file__).parent.parent / "examples" / f"{example}.toml")
     model = scene.finalize("cpu")
-    assert model.self_contact is not None and model.self_contact.thickness == scene.self_collision["thickness"]
+    assert model.self_contact is not None and model.self_contact.thickness == pytest.approx(scene.self_collision["thickness"])
