@@ -9,6 +9,8 @@ an unstable run, a full disk) end with one line on stderr and a non-zero exit st
   reason; a USD file keeps every frame written before;
 * 5 (:data:`EXIT_NO_CHOICE`): ``warpspring choose`` found no measured configuration that meets the error target
   within the budget (it still prints the closest one and what to change).
+* 6 (:data:`EXIT_AUDIT`): ``warpspring audit`` found a surface passing through itself (or, with --thickness,
+  layers closer than half the thickness).
 
 Commands that use Warp initialise it without its CUDA-driver warning ("Could not find or load the NVIDIA CUDA
 driver"), which concerns GPUs only, unless the command asks for a CUDA device.
@@ -30,6 +32,7 @@ EXIT_CONFIG = 2
 EXIT_SIMULATION = 3
 EXIT_IO = 4
 EXIT_NO_CHOICE = 5
+EXIT_AUDIT = 6
 
 #: The line Warp's native library prints at initialisation on a machine without an NVIDIA driver.
 CUDA_DRIVER_WARNING = "Could not find or load the NVIDIA CUDA driver"
@@ -184,6 +187,13 @@ def build_parser() -> argparse.ArgumentParser:
                                         "CPU)")
     sweep.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     sweep.set_defaults(handler=_cmd_sweep)
+
+    audit = sub.add_parser("audit", help="check every frame of a USD file for surfaces passing through themselves "
+                                         "(float64 segment-triangle tests, minimum distances)")
+    audit.add_argument("usd", help="a USD file written by warpspring run")
+    audit.add_argument("--thickness", type=_positive_float, metavar="METRES",
+                       help="also count the frames whose layers are closer than half this thickness [m]")
+    audit.set_defaults(handler=_cmd_audit)
     return parser
 
 
@@ -239,6 +249,15 @@ def _cmd_sweep(args) -> int:
         print(line)
     print(f"wrote {', '.join(paths)}")
     return 0
+
+
+def _cmd_audit(args) -> int:
+    from .analysis.audit import audit_usd
+
+    found = audit_usd(args.usd)
+    print(f"{args.usd}: {found.line(args.thickness)}")
+    close = args.thickness is not None and any(d < 0.5 * args.thickness for d in found.min_distance)
+    return EXIT_AUDIT if found.total_intersections or close else 0
 
 
 def _cmd_run(args) -> int:

@@ -31,6 +31,7 @@ from .hinges import dihedral_angle, mesh_hinges
 from .kinematics import PinGroup, PinGroupTable
 from .material import ClothMaterial, edge_springs, grid_masses, grid_springs, hinge_parameters, lumped_masses
 from .model import MeshGroup, Model, ShapeInfo, SkinGroup, Stabilizers
+from .selfcontact import DEFAULT_RELAXATION, check_settings, make_self_contact
 from .springs import SPRING_LAWS, SpringPlasticity, spring_law_code
 from ..kernels.springs import SpringLaw
 from .tracks import Track, as_track, input_track
@@ -143,6 +144,7 @@ class ModelBuilder:
         self._meshes: list[MeshGroup] = []
         self._skins: list[SkinGroup] = []  # surfaces that follow particles by weights (soft bodies)
         self._shapes: list[ShapeInfo] = []
+        self._self_collision: dict | None = None  # add_self_collision's settings
 
     # -- counts ---------------------------------------------------------------------------------------
 
@@ -507,6 +509,31 @@ class ModelBuilder:
         self._air = {"wind": checks.vector("wind", wind), "air_density": checks.positive("air_density", air_density),
                      "wind_noise": noise}
         return self.add_family(family)
+
+    def add_self_collision(self, *, thickness: float, friction: float = 0.0, relaxation: float = DEFAULT_RELAXATION,
+                           meshes=None) -> None:
+        """Keep the cloth and mesh surfaces from passing through themselves and each other: vertex–triangle and
+        edge–edge pairs that share no vertex repel within ``thickness``, with Coulomb friction, and a
+        per-vertex displacement cap makes a crossing within a step impossible (``kernels/selfcontact.py``
+        gives the method and its proof). Runs after every step of every integrator.
+
+        Args:
+            thickness: τ [m], > 0, below 0.7 × the smallest triangle altitude: the separation kept between
+                layers (a live value: ``model.self_contact.set(thickness=...)``, per world).
+            friction: μ [-], ≥ 0: Coulomb friction between layers (live).
+            relaxation: γ [-] in (0, 1/2): a vertex moves at most γ times its distance to the nearest primitive
+                per step (live).
+            meshes: names of the meshes whose triangles collide (with themselves and each other); ``None``:
+                every mesh of the scene at finalize.
+        """
+        check_settings(thickness, friction, relaxation)
+        if meshes is not None:
+            meshes = [meshes] if isinstance(meshes, str) else list(meshes)
+            names = [m.name for m in self._meshes]
+            unknown = [m for m in meshes if m not in names]
+            if unknown:
+                raise ConfigError(f"no mesh named {unknown[0]!r} for self-collision; meshes: {', '.join(names) or 'none'}")
+        self._self_collision = dict(thickness=thickness, friction=friction, relaxation=relaxation, meshes=meshes)
 
     def add_triangles(self, faces, *, name: str = "mesh", uvs=None, polygon_counts=None, polygon_indices=None,
                       face_sets=None) -> MeshGroup:
@@ -1407,6 +1434,11 @@ class ModelBuilder:
         for emitter in self._emitters:
             emitter.finalize(model)
         model.emitters = list(self._emitters)
+        if self._self_collision is not None:
+            chosen = self._self_collision["meshes"]
+            groups = [g for g in self._meshes if chosen is None or g.name in chosen]
+            surface = np.concatenate([g.particles[g.faces] for g in groups]) if groups else np.zeros((0, 3), np.int64)
+            model.self_contact = make_self_contact(model, surface, np.concatenate(self._q), self._self_collision)
         model._finalized = True
         return model
 

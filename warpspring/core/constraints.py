@@ -41,9 +41,11 @@ class StepFinisher:
         return self._contacts
 
     def history(self) -> list:
-        """Device arrays one step leaves to the next: the contact buffer's overflow counters, and the plastic
-        springs' rest lengths and plastic strains."""
+        """Device arrays one step leaves to the next: the contact buffer's overflow counters, the self-collision
+        counters, and the plastic springs' rest lengths and plastic strains."""
         carried = self.contacts.history() if self.contacts is not None else []
+        if self.model.self_contact is not None:
+            carried += self.model.self_contact.history()
         if self.plastic:
             carried += [self.model.spring_plastic_rest_length, self.model.spring_plastic_strain]
         return carried
@@ -93,10 +95,22 @@ class StepFinisher:
     @property
     def only_contacts(self) -> bool:
         """True when the pass is just the contact response against every collider (no stabiliser, no contact
-        stage, no plastic springs, no triangle contacts), which integrators may fuse into their update."""
+        stage, no plastic springs, no triangle contacts, no self-collision), which integrators may fuse into their
+        update."""
+        if self.model.self_contact is not None:  # self-collision reads the step's start: never fused
+            return False
         return not (self.stabilised or self.model.contact_stage or self.plastic or self.model.contact_triangles)
 
-    def __call__(self, state: State, dt: float) -> None:
+    def __call__(self, state: State, dt: float, state_in: State | None = None) -> None:
+        """Finish ``state``, the result of a step of ``dt`` [s] from ``state_in``: the stabilisers, the
+        contacts, then self-collision (which needs ``state_in``: without it, self-collision is skipped), and last
+        the plastic springs' rest lengths, from the finished state."""
+        self._finish(state, dt)
+        if state_in is not None and self.model.self_contact is not None:
+            self.model.self_contact(state_in, state, dt)
+        self.plastic_pass(state, dt)
+
+    def _finish(self, state: State, dt: float) -> None:
         model = self.model
         update_shape_frames(model, state.time, dt)
         if not self.stabilised:
@@ -104,7 +118,6 @@ class StepFinisher:
                 collide_positions(model, state.particle_q, self.contacts, velocities=state.particle_qd, dt=dt)
             apply_contacts(model, state, dt, self.contacts)
             apply_triangle_contacts(model, state)
-            self.plastic_pass(state, dt)
             return
         evaluate_input_tracks(model, state)
         common = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
@@ -142,4 +155,3 @@ class StepFinisher:
             **common,
         )
         apply_triangle_contacts(model, state)
-        self.plastic_pass(state, dt)

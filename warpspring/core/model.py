@@ -333,6 +333,7 @@ class Model:
 
     meshes: list  # list[MeshGroup], host-side, for export
     skins: list  # list[SkinGroup], host-side, for export: surfaces embedded in the particles (soft bodies)
+    self_contact: object  # core.selfcontact.SelfContact: self-collision of the triangles (add_self_collision), or None
 
     def __init__(self, device: wp.Device, precision: str, scalar: type, world_count: int = 1):
         self.device = device
@@ -352,6 +353,7 @@ class Model:
                      "spring_plastic_rest_length", "spring_plastic_strain"):
             setattr(self, name, None)
         self.emitters = []  # list[Emitter] (core/emitters.py), run after every step by the Simulator
+        self.self_contact = None  # SelfContact (core/selfcontact.py) when the scene asks for self-collision
         self.shapes = []
         self.shape_count = 0
         self.shape_types = ()

@@ -116,6 +116,10 @@ class Stepper:
         if not self.use_graph:
             self._run()
             return
+        self_contact = self.model.self_contact
+        if self_contact is not None and not self_contact.capturable:
+            self._run()  # a CPU BVH refit is host work, which Warp's CPU graphs do not record
+            return
         key = self._key()
         if self._graph is None or key != self._graph_key:
             self._capture()

@@ -43,6 +43,8 @@ class RunSummary:
         resumed_from: the checkpoint's frame a resumed run went on from (0: a run from the start).
         recycled: per emitter whose pool was too small, the particles recycled before their life span ended
             (all worlds together) and the pool's size: {name: (count, capacity)}.
+        self_contact: with self-collision, (pairs pushed apart, vertices capped) summed over the run's steps and
+            worlds; ``None`` without it.
     """
 
     output: str
@@ -63,6 +65,7 @@ class RunSummary:
     resumed_from: int = 0
     recycled: dict = field(default_factory=dict)
     peak_contacts: tuple | None = None
+    self_contact: tuple | None = None
 
     def line(self) -> str:
         """The closing summary line of the CLI."""
@@ -85,6 +88,9 @@ class RunSummary:
         for name, (count, capacity) in self.recycled.items():
             worlds += (f"; emitter {name!r}: {count} particles recycled before their life span ended (its pool of "
                        f"{capacity} is too small: raise capacity)")
+        if self.self_contact is not None:
+            worlds += (f"; self-collision: {self.self_contact[0]} pairs pushed apart, {self.self_contact[1]} vertex "
+                       "steps capped")
         resumed = f", frames {self.resumed_from + 1}..{self.frames} after resuming" if self.resumed_from else ""
         contacts = ""
         if self.peak_contacts is not None:
@@ -197,6 +203,8 @@ def run_scene(
                               f"{frames}): nothing to resume; pass more --frames")
     advice = preflight(model, integrator.name, sim.dt, fps=fps, strict=strict, control=sim.control,
                        horizon=frames / fps)
+    if model.self_contact is not None:
+        model.self_contact.reset()  # the advisor's dry run stepped the model: count the run's steps only
     if watch:
         sim.start_watch(watch, advice=advice)  # its limits from the verdict just made, not a second analysis
     last_good = model.state()  # the last frame the guard passed: where a stop is diagnosed
@@ -279,6 +287,8 @@ def run_scene(
         resumed_from=start,
         recycled={e.name: (int(e.recycled().sum()), e.capacity) for e in model.emitters if e.recycled().any()},
         peak_contacts=None if sim.contacts is None else (peak_contacts, sim.contacts.capacity),
+        self_contact=None if model.self_contact is None else tuple(
+            int(v.sum()) for v in model.self_contact.counts().values()),
     )
 
 

@@ -229,6 +229,7 @@ class Scene:
     contact_slots: int | None = None
     contact_triangles: bool = False
     contact_swept: bool = True
+    self_collision: dict | None = None
     version: int = SCENE_FORMAT_VERSION
     deprecations: list = field(default_factory=list)
 
@@ -269,6 +270,9 @@ class Scene:
         for i, collider in enumerate(self.colliders):
             with _context(where, _label("collider", i, len(self.colliders))):
                 _add_collider(builder, collider, os.path.dirname(self.path))
+        if self.self_collision is not None:
+            with _context(where, "self_collision"):
+                builder.add_self_collision(**self.self_collision)
         return builder
 
     def finalize(self, device=None) -> Model:
@@ -564,6 +568,9 @@ _TOP_LEVEL = {"version": _Number(1, integer=True), **{k: (dict, list) if k in ("
               "wind": _Since(2, dict), "emitter": _Since(2, (dict, list)),
               "soft_body": _Since(2, (dict, list)),
               "contacts": _Since(2, dict)}
+#: [self_collision]: the surfaces' layers kept apart (ModelBuilder.add_self_collision), from format 2 on.
+_SCHEMA["self_collision"] = {"thickness": POSITIVE, "friction": NON_NEGATIVE, "relaxation": POSITIVE, "meshes": list}
+_TOP_LEVEL["self_collision"] = _Since(2, dict)
 #: How the run-time guard may stop: the whole run, or only the world that failed ([guard] stop).
 GUARD_STOPS = ("run", "world")
 #: The tables holding live inputs (each may be a track table from format 2 on).
@@ -733,6 +740,13 @@ def _parse(data: dict, path: str) -> Scene:
     scene.contact_slots = contacts.get("slots")
     scene.contact_triangles = contacts.get("triangles", False)
     scene.contact_swept = contacts.get("swept", True)
+    self_collision = data.get("self_collision")
+    if self_collision is not None:
+        _check_table(self_collision, _SCHEMA["self_collision"], where, "self_collision", version=version)
+        if "thickness" not in self_collision:
+            raise ConfigError(f"{where}: [self_collision] needs thickness = ..., the separation [m] kept between "
+                              "layers (below 0.7 × the mesh's smallest triangle altitude)")
+        scene.self_collision = dict(self_collision)
     _parse_worlds(scene, data.get("worlds"), out, where)
     check_run_settings(fps=scene.fps, frames=scene.frames, substeps=scene.substeps, where=where)
     return scene

@@ -185,7 +185,7 @@ class DormandPrince(ExplicitRungeKutta):
 
         wp.capture_while(self._keep_going, attempt)
         state_out.assign(y)
-        self.finish_step(state_out, dt)
+        self.finish_step(state_out, dt, state_in)
         self.hold_worlds(state_in, state_out)
 
 

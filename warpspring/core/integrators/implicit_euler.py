@@ -136,7 +136,7 @@ class ImplicitEuler(Integrator):
             outputs=[state_out.particle_q, state_out.particle_qd, state_out.time],
             **per_particle,
         )
-        self.finish_step(state_out, dt)
+        self.finish_step(state_out, dt, state_in)
         self.hold_worlds(state_in, state_out)
 
     def reset(self) -> None:

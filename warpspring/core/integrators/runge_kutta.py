@@ -100,7 +100,7 @@ class ExplicitRungeKutta(Integrator):
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         self.eval_stages(state_in, control, dt)
         self.combine(state_in, control, self.b, dt, state_out, upto=len(self.b))
-        self.finish_step(state_out, dt)
+        self.finish_step(state_out, dt, state_in)
         self.hold_worlds(state_in, state_out)
 
 

@@ -72,5 +72,5 @@ class SymplecticEuler(Integrator):
             )
         apply_kinematics(model, control, state_in, state_out.particle_q, state_out.particle_qd, dt)
         if not fused:
-            self.finish_step(state_out, dt)
+            self.finish_step(state_out, dt, state_in)
         self.hold_worlds(state_in, state_out)

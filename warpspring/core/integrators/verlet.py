@@ -72,5 +72,5 @@ class VelocityVerlet(Integrator):
             eval_forces(model, state_out, control)  # f(x', v*)
             wp.launch(kick, inputs=[*mass, half.particle_qd, state_out.particle_f, h],
                       outputs=[state_out.particle_qd], **common)
-        self.finish_step(state_out, dt)
+        self.finish_step(state_out, dt, state_in)
         self.hold_worlds(state_in, state_out)

@@ -1,0 +1,141 @@
+"""Self-collision's cost as a share of the substep: a cloth draped over a sphere on the ground, with and without it.
+
+The contact benchmark's scene (``bench/contacts.py``: the hanging-cloth benchmark's cloth, 0.1 m spacing,
+0.1 kg per particle, ke = 1e3 N/m, kd = 10 N·s/m, falling onto a sphere on the ground; symplectic Euler at
+16 substeps per 1/60 s frame, each frame one captured graph on CUDA), timed after 30 frames of settling,
+when the skirt lies folded on the ground. Variants, side by side in one run:
+
+* ``none``: the scene without self-collision (the colliders' response fused into the update);
+* ``self``: ``add_self_collision(thickness=0.02, friction=0.3)`` (τ below 0.7 × the grid's 0.071 m altitude):
+  the BVH refit, the repulsion pass and the cap pass after every substep (the update no longer fuses the
+  colliders: the finishing pass runs them);
+* ``pass``: the self-collision pass alone on the settled state (refit, repel, cap), 16 per frame.
+
+Reported: particle-substeps/s (median of timed batches, device synchronised before every timer read), and
+self-collision's share of the substep, 1 - rate(self) / rate(none), and the pass alone against a ``self``
+substep. The pairs pushed and vertices capped per substep at the end tell how much contact the scene has.
+
+    python bench/selfcontact.py --device cuda:0            # 64² and 256², the table for bench/RESULTS.md
+    python bench/selfcontact.py --device cpu --sizes 16 32
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+
+import numpy as np
+import warp as wp
+
+import warpspring as ws
+from cloth import FPS, SUBSTEPS, emit_table, measure
+from contacts import SETTLE_FRAMES, contact_model
+
+THICKNESS = 0.02  # [m]
+FRICTION = 0.3
+
+
+def scene(n: int, device, self_collision: bool) -> ws.Model:
+    if not self_collision:
+        return contact_model(n, device, "fused")
+    # contact_model's builder, with self-collision added before finalize.
+    original = ws.ModelBuilder.finalize
+
+    def finalize(builder, *args, **kwargs):
+        builder.add_self_collision(thickness=THICKNESS, friction=FRICTION)
+        return original(builder, *args, **kwargs)
+
+    ws.ModelBuilder.finalize = finalize
+    try:
+        return contact_model(n, device, "fused")
+    finally:
+        ws.ModelBuilder.finalize = original
+
+
+class Runner:
+    def __init__(self, model: ws.Model):
+        self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=None)
+        for _ in range(SETTLE_FRAMES):
+            self.sim.step_frame()
+
+    def frame(self):
+        self.sim.step_frame()
+
+
+class PassRunner(Runner):
+    """The self-collision pass alone, SUBSTEPS times per frame, on the settled state (captured on CUDA)."""
+
+    def __init__(self, model: ws.Model):
+        super().__init__(model)
+        self.model = model
+        self.start = model.state()
+        self.start.assign(self.sim.state)
+        self.out = model.state()
+        self.dt = 1.0 / (FPS * SUBSTEPS)
+        self.graph = None
+        if model.self_contact.capturable:
+            self._substeps()  # loads every module before the capture
+            with wp.ScopedCapture(device=model.device) as capture:
+                self._substeps()
+            self.graph = capture.graph
+
+    def _substeps(self):
+        for _ in range(SUBSTEPS):
+            wp.copy(self.out.particle_q, self.start.particle_q)
+            wp.copy(self.out.particle_qd, self.start.particle_qd)
+            self.model.self_contact(self.start, self.out, self.dt)
+
+    def frame(self):
+        if self.graph is not None:
+            wp.capture_launch(self.graph)
+        else:
+            self._substeps()
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default=None)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[64, 256])
+    parser.add_argument("--seconds", type=float, default=1.0)
+    parser.add_argument("--out", default=None, help="also write the table to this file")
+    args = parser.parse_args()
+    wp.init()
+    device = wp.get_device(args.device)
+    lines = [
+        f"Cloth draped over a sphere on the ground on {device.name}, Warp {wp.config.version}, "
+        f"{datetime.date.today()}, symplectic Euler, {SUBSTEPS} substeps per frame, self-collision τ = "
+        f"{THICKNESS} m, μ = {FRICTION}",
+        "",
+        "| N | without (particle-substeps/s) | with | self-collision's share of the substep | the pass alone, "
+        "share of a substep with it | pairs pushed / capped vertices per substep |",
+        "|---|---|---|---|---|---|",
+    ]
+    for n in args.sizes:
+        rates = {}
+        for variant, make in (("none", lambda: Runner(scene(n, device, False))),
+                              ("self", lambda: Runner(scene(n, device, True))),
+                              ("pass", lambda: PassRunner(scene(n, device, True)))):
+            holder = {}
+
+            def runner():
+                holder["runner"] = make()
+                return holder["runner"]
+
+            frame_s = measure(runner, device, args.seconds)["frame_s"]
+            rates[variant] = n * n * SUBSTEPS / frame_s
+            print(f"N={n} {variant}: {rates[variant]:.4g} particle-substeps/s", flush=True)
+            if variant == "self":
+                sc = holder["runner"].sim.model.self_contact
+                sc.reset()
+                holder["runner"].frame()
+                counts = {k: int(v.sum()) / SUBSTEPS for k, v in sc.counts().items()}
+        share = 1.0 - rates["self"] / rates["none"]
+        alone = rates["self"] / rates["pass"]
+        lines.append(f"| {n} | {rates['none']:.3e} | {rates['self']:.3e} | {100 * share:.0f} % | {100 * alone:.0f} % "
+                     f"| {counts['pairs']:.0f} / {counts['capped']:.0f} |")
+    emit_table(lines, args.out)
+
+
+if __name__ == "__main__":
+    np.set_printoptions(precision=4)
+    main()

@@ -1,0 +1,391 @@
+"""Self-collision: nothing passes through itself, proven by float64 audits (``warpspring/analysis/audit.py``).
+
+Every scene is audited at every output frame (zero segment–triangle intersections between elements sharing
+no vertex, minimum vertex–triangle / edge–edge distance ≥ 0.5 × thickness) and over every substep (the
+conservative-advancement crossing audit: no pair touches along the straight path between two states). Each
+scene also checks that contact happened, so that a pass does not come from layers that never met.
+"""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warpspring as ws
+from warpspring.analysis.audit import (
+    audit_frame,
+    audit_motion,
+    brute_pairs,
+    edge_edge_distance,
+    surface_edges,
+    vertex_triangle_distance,
+)
+from warpspring.io.scene import parse_scene
+from warpspring.kernels.flatten import flat_launch
+from warpspring.kernels.selfcontact import repel_kernel
+
+TAU = 0.004  # [m]: every scene's thickness, below 0.7 × the 0.02 m grids' smallest altitude (0.0141 m)
+CLOTH = dict(structural=ws.SpringMaterial(300.0, 0.05), shear=ws.SpringMaterial(300.0, 0.05),
+             bend=ws.SpringMaterial(0.5, 0.0))
+
+
+def run_audited(model, integrator, dt, steps, *, frame_every):
+    """Step ``model`` ``steps`` times, auditing every substep (crossings) and every ``frame_every``-th state
+    (intersections, distances). Returns (touches, intersections, the smallest frame distance, final state)."""
+    triangles = model.tri_indices.numpy()
+    a, b = model.state(), model.state()
+    touches, intersections, nearest = 0, 0, np.inf
+    for k in range(steps):
+        integrator.step(a, b, None, dt)
+        x0, x1 = a.particle_q.numpy(), b.particle_q.numpy()
+        touches += len(audit_motion(x0, x1, triangles).touches)
+        if k % frame_every == frame_every - 1:
+            frame = audit_frame(x1, triangles)
+            intersections += len(frame.intersections)
+            nearest = min(nearest, frame.min_distance)
+        a, b = b, a
+    return touches, intersections, nearest, a
+
+
+# -- the audits themselves ------------------------------------------------------------------------------------
+
+
+def test_audit_distances_match_sampling():
+    """The float64 vertex–triangle and edge–edge distances equal the minimum over a dense sampling of the
+    primitives to the sampling's resolution (random pairs, parallel and touching ones included)."""
+    rng = np.random.default_rng(3)
+    p, a, b, c = (rng.normal(size=(60, 3)) for _ in range(4))
+    q = rng.normal(size=(60, 3))
+    q[:10] = p[:10] + (b[:10] - a[:10])  # parallel segments
+    u, v = np.meshgrid(np.linspace(0, 1, 101), np.linspace(0, 1, 101))
+    keep = u + v <= 1
+    u, v = u[keep], v[keep]
+    tri = a[:, None] + u[None, :, None] * (b - a)[:, None] + v[None, :, None] * (c - a)[:, None]
+    sampled = np.min(np.linalg.norm(tri - p[:, None], axis=2), axis=1)
+    exact = vertex_triangle_distance(p, a, b, c)
+    assert np.all(exact <= sampled + 1e-12)
+    spacing = np.linalg.norm(b - a, axis=1) / 100 + np.linalg.norm(c - a, axis=1) / 100
+    assert np.all(sampled - exact <= spacing)  # the sampling's own resolution
+    s = np.linspace(0, 1, 201)
+    seg1 = p[:, None] + s[None, :, None] * (q - p)[:, None]
+    seg2 = a[:, None] + s[None, :, None] * (b - a)[:, None]
+    sampled = np.min(np.linalg.norm(seg1[:, :, None] - seg2[:, None], axis=3), axis=(1, 2))
+    exact = edge_edge_distance(p, q, a, b)
+    assert np.all(exact <= sampled + 1e-12)
+    assert np.all(sampled - exact <= (np.linalg.norm(q - p, axis=1) + np.linalg.norm(b - a, axis=1)) / 200)
+
+
+def test_audits_find_what_they_look_for():
+    """A vertex moving through a triangle is a touch over the step and its edges pierce the triangle afterwards;
+    a vertex that stops short is neither (so the audits can fail)."""
+    triangles = np.array([[0, 1, 2], [3, 4, 5]])
+    x0 = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.2, 0.2, 0.1], [0.3, 0.2, 0.5], [0.2, 0.3, 0.5]], float)
+    through = x0.copy()
+    through[3, 2] = -0.1
+    short = x0.copy()
+    short[3, 2] = 0.001
+    assert len(audit_motion(x0, through, triangles).touches) > 0
+    assert len(audit_frame(through, triangles).intersections) == 2  # the edges 3-4 and 3-5 pierce triangle 0
+    assert len(audit_motion(x0, short, triangles).touches) == 0
+    assert len(audit_frame(short, triangles).intersections) == 0
+    assert audit_frame(short, triangles).min_vertex_triangle == pytest.approx(0.001, rel=1e-9)
+
+
+# -- the device's broad phase ---------------------------------------------------------------------------------
+
+
+def crumpled_pair(device):
+    """Two 6 × 6 cloths, the upper one randomly crumpled so that it comes close to the lower in places."""
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    builder.add_cloth_grid(nx=6, ny=6, spacing=0.02, origin=(0.0, 0.0, 0.0), mass=0.05, **CLOTH, name="lower")
+    builder.add_cloth_grid(nx=6, ny=6, spacing=0.02, origin=(0.004, 0.007, 0.006), mass=0.05, **CLOTH, name="upper")
+    builder.add_self_collision(thickness=TAU)
+    model = builder.finalize(device)
+    x = model.particle_q.numpy()
+    x[36:] += np.random.default_rng(7).normal(scale=0.003, size=(36, 3))
+    model.particle_q.assign(x)
+    return model
+
+
+def test_broad_phase_equals_brute_force(device):
+    """The BVH walk finds, for every vertex, exactly the vertex–triangle and edge–edge pairs sharing no vertex
+    within the reach that the all-pairs float64 reference finds, and the same nearest distance (float32
+    rounding of the distances: 1e-6 m)."""
+    model = crumpled_pair(device)
+    state = model.state()
+    reach = 0.012
+    nearest, count = model.self_contact.proximity(state, reach)
+    x = state.particle_q.numpy().astype(np.float64)
+    triangles = model.tri_indices.numpy()
+    edges = surface_edges(triangles)
+    vt, dvt, ee, dee = brute_pairs(x, triangles, reach)
+    members = np.concatenate([np.concatenate([vt[:, :1], triangles[vt[:, 1]]], axis=1),
+                              np.concatenate([edges[ee[:, 0]], edges[ee[:, 1]]], axis=1)])
+    distances = np.concatenate([dvt, dee])
+    expected_count = np.bincount(members.ravel(), minlength=len(x))
+    expected_nearest = np.full(len(x), reach)
+    np.minimum.at(expected_nearest, members.ravel(), np.repeat(distances, 4))
+    # A pair within float32 rounding of the reach may fall either side of it: its vertices are left out.
+    vt_all, d_all, ee_all, de_all = brute_pairs(x, triangles, reach + 1e-5)
+    near_reach = np.abs(np.concatenate([d_all, de_all]) - reach) < 1e-5
+    all_members = np.concatenate([np.concatenate([vt_all[:, :1], triangles[vt_all[:, 1]]], axis=1),
+                                  np.concatenate([edges[ee_all[:, 0]], edges[ee_all[:, 1]]], axis=1)])
+    checked = np.ones(len(x), dtype=bool)
+    checked[all_members[near_reach].ravel()] = False
+    assert len(members) > 100 and checked.sum() > 0.8 * len(x)  # many pairs, few vertices left out
+    np.testing.assert_array_equal(count[checked], expected_count[checked])
+    np.testing.assert_allclose(nearest[checked], expected_nearest[checked], atol=1e-6)
+
+
+# -- scenes ---------------------------------------------------------------------------------------------------
+
+
+def folding_cloth(device, nx=8, ny=5):
+    """A cloth lying on the ground whose left edge a pin group lifts, carries over the cloth and lays down
+    three thicknesses above it: the left part folds onto the right."""
+    builder = ws.ModelBuilder()
+    ids = builder.add_cloth_grid(nx=nx, ny=ny, spacing=0.02, origin=(0.0, 0.0, 0.003), mass=0.1, radius=0.003,
+                                 **CLOTH)
+    width = 0.02 * (nx - 1)
+    track = ws.Track([0.0, 0.15, 0.45, 0.65], [[0, 0, 0], [0.02, 0, 0.05], [0.85 * width, 0, 0.05],
+                                             [0.85 * width, 0, 3 * TAU]], interpolation="smooth")
+    builder.add_pin_group(ids.reshape(ny, nx)[:, 0], translation=track)
+    builder.add_ground_plane(friction=0.6)
+    builder.add_self_collision(thickness=TAU, friction=0.3)
+    return builder.finalize(device)
+
+
+@pytest.mark.parametrize("integrator", ["symplectic_euler", "rk4", "implicit_euler"])
+def test_folding_cloth_never_passes_through_itself(device, integrator):
+    """A cloth folded onto itself by a moving pin group, 0.75 s at dt = 1 ms: in every frame (every 16 steps) no
+    edge passes through a triangle and the layers stay at least half the thickness apart, and no pair
+    touches during any step (float64 audits); the layers did meet (pairs were pushed apart, and the closest
+    pair came within two thicknesses)."""
+    model = folding_cloth(device)
+    touches, intersections, nearest, state = run_audited(model, ws.INTEGRATORS[integrator](model), 1e-3, 750,
+                                                         frame_every=16)
+    assert touches == 0
+    assert intersections == 0
+    assert 0.5 * TAU <= nearest < 2.0 * TAU
+    assert model.self_contact.counts()["pairs"][0] > 0
+    x = state.particle_q.numpy()
+    assert x[:, 0].max() - x[:, 0].min() < 0.8 * 0.14  # folded: the cloth spans less than its width
+
+
+def test_stacked_cloths_keep_their_order(device):
+    """Two cloths, one 8 mm above the other, dropped onto a box smaller than they are: they drape over it
+    together, and every particle of the top cloth stays on the top side of the bottom cloth (its offset
+    from the bottom cloth's particle of the same grid place, along that particle's normal, stays positive),
+    with the frame and step audits clean."""
+    builder = ws.ModelBuilder()
+    for name, z in (("bottom", 0.12), ("top", 0.128)):
+        builder.add_cloth_grid(nx=8, ny=8, spacing=0.02, origin=(-0.07, -0.07, z), mass=0.1, radius=0.003, **CLOTH,
+                               name=name)
+    builder.add_collider_box(center=(0.0, 0.0, 0.05), half_extents=(0.04, 0.04, 0.05), friction=0.5)
+    builder.add_self_collision(thickness=TAU, friction=0.4)
+    model = builder.finalize(device)
+    triangles = model.tri_indices.numpy()
+    bottom = triangles[: len(triangles) // 2]
+    integrator = ws.SymplecticEuler(model)
+    a, b = model.state(), model.state()
+    worst = np.inf
+    for k in range(400):  # 0.4 s at dt = 1 ms: the fall, the landing and the drape
+        integrator.step(a, b, None, 1e-3)
+        x0, x1 = a.particle_q.numpy().astype(np.float64), b.particle_q.numpy().astype(np.float64)
+        assert len(audit_motion(x0, x1, triangles).touches) == 0
+        if k % 25 == 24:
+            frame = audit_frame(x1, triangles)
+            assert len(frame.intersections) == 0 and frame.min_distance >= 0.5 * TAU
+            faces = x1[bottom]
+            normals = np.cross(faces[:, 1] - faces[:, 0], faces[:, 2] - faces[:, 0])
+            vertex_normals = np.zeros((64, 3))
+            np.add.at(vertex_normals, bottom.ravel(), np.repeat(normals, 3, axis=0))
+            vertex_normals /= np.linalg.norm(vertex_normals, axis=1, keepdims=True)
+            worst = min(worst, float(np.min(np.einsum("ij,ij->i", x1[64:] - x1[:64], vertex_normals))))
+        a, b = b, a
+    x = a.particle_q.numpy()
+    assert x[:64, 2].min() < 0.06  # the cloths draped down the box's sides
+    assert worst > 0.5 * TAU
+
+
+def test_twisted_strip_does_not_pass_through_itself(device):
+    """A strip whose ends turn half a turn each in opposite directions while they approach (wrung): it coils
+    into contact with itself, and the audits find no crossing, no intersection and no pair closer than
+    half the thickness."""
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    ids = builder.add_cloth_grid(nx=16, ny=4, spacing=0.02, origin=(-0.15, -0.03, 0.5), mass=0.05, **CLOTH).reshape(4, 16)
+    for column, sign in ((0, 1.0), (15, -1.0)):
+        builder.add_pin_group(ids[:, column], rotation=ws.Track.rotation([0.0, 0.6], axis=(1, 0, 0), degrees=[0, 180 * sign],
+                                                                          interpolation="smooth"),
+                              translation=ws.Track([0.0, 0.6], [[0, 0, 0], [0.06 * sign, 0, 0]], interpolation="smooth"))
+    builder.add_self_collision(thickness=TAU, friction=0.2)
+    model = builder.finalize(device)
+    touches, intersections, nearest, _ = run_audited(model, ws.SymplecticEuler(model), 1e-3, 650, frame_every=16)
+    assert touches == 0 and intersections == 0
+    assert 0.5 * TAU <= nearest < 2.0 * TAU
+    assert model.self_contact.counts()["pairs"][0] > 0
+
+
+# -- the cap is load-bearing ----------------------------------------------------------------------------------
+
+
+class RepulsionOnly:
+    """The self-collision pass without its displacement cap (the repulsion and friction alone)."""
+
+    capturable = False
+
+    def __init__(self, full):
+        self.full = full
+
+    def history(self):
+        return []
+
+    def __call__(self, state_in, state_out, dt):
+        sc, model = self.full, self.full.model
+        sc.refit(state_in.particle_q)
+        flat_launch(repel_kernel(model.scalar),
+                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
+                            sc.surface, sc.params, state_in.particle_q, state_out.particle_q],
+                    outputs=[sc.corrected, sc.counters], dim=model.particle_dim, device=model.device)
+        wp.copy(state_out.particle_q, sc.corrected)
+
+
+def thrown_cloth(device, worlds=1):
+    """A cloth thrown at 15 m/s at another 1 cm below it: 12.5 mm per 0.83 ms step, beyond the gap and the
+    repulsion's reach (2 τ = 8 mm at the step's start)."""
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, 0.0), mass=0.05, **CLOTH, name="target")
+    builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.005, 0.005, 0.01), mass=0.05, velocity=(0, 0, -15.0),
+                           **CLOTH, name="thrown")
+    builder.add_self_collision(thickness=TAU)
+    return builder.finalize(device, worlds=worlds)
+
+
+def test_the_cap_is_load_bearing(device):
+    """Repulsion alone lets the thrown cloth pass through the other (the step audit finds touches, and it
+    ends below the target); with the cap nothing crosses, the cap acted, and two runs give the same
+    bits (no float atomics)."""
+    dt = 1.0 / 1200.0
+    model = thrown_cloth(device)
+    object.__setattr__(model, "self_contact", RepulsionOnly(model.self_contact))
+    touches, _, _, state = run_audited(model, ws.SymplecticEuler(model), dt, 12, frame_every=1)
+    z = state.particle_q.numpy()[:, 2]
+    assert touches > 0 and z[25:].max() < z[:25].min()  # it went right through: now wholly below the target
+
+    finals = []
+    for _ in range(2):
+        model = thrown_cloth(device)
+        touches, intersections, nearest, state = run_audited(model, ws.SymplecticEuler(model), dt, 12, frame_every=1)
+        assert touches == 0 and intersections == 0 and nearest > 0.0
+        assert model.self_contact.counts()["capped"][0] > 0
+        finals.append(state.particle_q.numpy())
+    np.testing.assert_array_equal(finals[0], finals[1])
+
+
+# -- configuration --------------------------------------------------------------------------------------------
+
+
+def test_bad_settings_are_one_line_errors():
+    builder = ws.ModelBuilder()
+    builder.add_cloth_grid(nx=4, ny=4, spacing=0.02, mass=0.05)
+    with pytest.raises(ws.ConfigError, match="relaxation must be in"):
+        builder.add_self_collision(thickness=TAU, relaxation=0.5)
+    with pytest.raises(ws.ConfigError, match="thickness must be > 0"):
+        builder.add_self_collision(thickness=-1.0)
+    with pytest.raises(ws.ConfigError, match="no mesh named 'sheet'"):
+        builder.add_self_collision(thickness=TAU, meshes="sheet")
+    builder.add_self_collision(thickness=0.012)
+    with pytest.raises(ws.ConfigError, match="too large for the mesh"):
+        builder.finalize("cpu")
+
+
+def test_scene_table_and_live_values():
+    """``[self_collision]`` in a scene turns it on with its values; without it the model has none (and the
+    contact response stays fusable); set() writes live values per world."""
+    base = {"version": 2, "cloth": {"grid": {"nx": 4, "ny": 4, "spacing": 0.02}, "mass": 0.05}}
+    model = parse_scene(base).finalize("cpu")
+    assert model.self_contact is None and ws.SymplecticEuler(model).finish_step.only_contacts
+    scene = parse_scene({**base, "self_collision": {"thickness": TAU, "friction": 0.3}})
+    model = scene.finalize("cpu")
+    assert model.self_contact.thickness == pytest.approx(TAU)
+    model.self_contact.set(friction=0.6, world=0)
+    np.testing.assert_allclose(model.self_contact.params.numpy()[0], [TAU, 0.6, 0.25], rtol=1e-6)
+    with pytest.raises(ws.ConfigError, match="needs thickness"):
+        parse_scene({**base, "self_collision": {"friction": 0.3}})
+
+
+def test_captured_frames_equal_uncaptured(device):
+    """Frames replayed from a captured graph (CUDA: the BVH refit is device work inside it) equal the same
+    frames launched one by one, bit for bit; on the CPU, where Warp refits meshes on the host, the stepper
+    runs them uncaptured and the two agree likewise."""
+    finals = []
+    for use_graph in (True, False):
+        model = folding_cloth(device)
+        sim = ws.Simulator(model, fps=60, substeps=8, guard=None, use_graph=use_graph)
+        for _ in range(12):
+            sim.step_frame()
+        finals.append(sim.state.particle_q.numpy())
+    np.testing.assert_array_equal(finals[0], finals[1])
+
+
+def test_cli_audit_of_a_usd_file(tmp_path, capsys):
+    """``warpspring audit`` reads an animated mesh's frames from USD: a vertex pushed through a triangle in
+    the second frame is found (exit status 6), a file without one passes (0), and --thickness counts the
+    frames whose layers come closer than half of it."""
+    from pxr import Usd, UsdGeom
+
+    from warpspring.cli import EXIT_AUDIT, main
+
+    def write(path, second_z):
+        stage = Usd.Stage.CreateNew(str(path))
+        mesh = UsdGeom.Mesh.Define(stage, "/World/cloth")
+        mesh.CreateFaceVertexCountsAttr([3, 3])
+        mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3, 4, 5])
+        points = mesh.CreatePointsAttr()
+        x = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0.2, 0.2, 0.1), (0.3, 0.2, 0.5), (0.2, 0.3, 0.5)]
+        points.Set(x, 0.0)
+        points.Set(x[:3] + [(0.2, 0.2, second_z)] + x[4:], 1.0)
+        stage.GetRootLayer().Save()
+
+    write(tmp_path / "through.usda", -0.1)
+    write(tmp_path / "above.usda", 0.002)
+    assert main(["audit", str(tmp_path / "through.usda")]) == EXIT_AUDIT
+    assert "2 frames: 2 segment-triangle intersections" in capsys.readouterr().out
+    assert main(["audit", str(tmp_path / "above.usda")]) == 0
+    assert main(["audit", str(tmp_path / "above.usda"), "--thickness", "0.01"]) == EXIT_AUDIT
+    assert "1 frames closer than half the thickness" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("example", ["cloth_fold_on_bar", "twisted_cloth", "stacked_cloths"])
+def test_example_scenes_build(example):
+    """The self-collision examples parse and build with it (their runs are minutes on a CPU: README's table
+    has them audited over their frames)."""
+    from pathlib import Path
+
+    from warpspring.io.scene import load_scene
+
+    scene = load_scene(Path(__file__).parent.parent / "examples" / f"{example}.toml")
+    model = scene.finalize("cpu")
+    assert model.self_contact is not None and model.self_contact.thickness == pytest.approx(scene.self_collision["thickness"])
+
+
+def test_worlds_do_not_couple(device):
+    """Two worlds of the thrown cloth, the second with its own thickness (a live value per world): each equals
+    the same world run alone, bit for bit."""
+    dt = 1.0 / 1200.0
+
+    def run(model):
+        integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
+        for _ in range(12):
+            integrator.step(a, b, None, dt)
+            a, b = b, a
+        return a.particle_q.numpy().reshape(model.world_count, model.particle_count, 3)
+
+    both = thrown_cloth(device, worlds=2)
+    both.self_contact.set(thickness=0.003, world=1)
+    alone = thrown_cloth(device)
+    thinner = thrown_cloth(device)
+    thinner.self_contact.set(thickness=0.003)
+    q = run(both)
+    np.testing.assert_array_equal(q[0], run(alone)[0])
+    np.testing.assert_array_equal(q[1], run(thinner)[0])
+    assert not np.array_equal(q[0], q[1])
