@@ -21,7 +21,7 @@ from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import transform_type, vec3_type
 from .kinematics import PinGroupTable, apply_kinematics
 from .bending import HingeFamily
-from .springs import SpringFamily
+from .springs import SpringFamily, set_spring_layout, uniform_groups
 from .tracks import Track, TrackTable, as_track, input_track
 
 SHAPE_KINDS = {name: kind for kind, name in SHAPE_NAMES.items()}
@@ -242,6 +242,12 @@ class Model:
       off, a track added or removed) or replacing an array. This bumps :attr:`revision`, and a
       :class:`~warpspring.core.stepper.Stepper` re-captures its graph at its next frame (a newly switched-on
       term compiles once). Replacing an array attribute counts as structure too.
+
+    Spring data per group: where every spring of a group (``spring_families``) has the same rest length, ke
+    and kd, the gather reads them once per group (:attr:`spring_slot_groups`), from the group's spring in
+    :attr:`spring_group_spring`. An in-place write that keeps each group uniform stays a value write; values
+    that differ within a group go through :meth:`set_world_values`, or call :meth:`refresh_spring_layout`
+    after writing them in place: either switches to per-spring values (a structural change).
     """
 
     device: wp.Device
@@ -281,6 +287,10 @@ class Model:
     spring_incidence: Incidence  # the springs at each particle: entries (spring, other particle), HYB layout
     #   (kernels/families.py); padding entries (0, the particle itself)
     spring_incidence_shape: IncidenceShape  # its ELL head width and whether it has a CSR tail
+    spring_slot_groups: tuple  # host-side: the spring group (spring_families' order) of each head slot when the
+    #   gather reads spring data per group (every group uniform; core/springs.set_spring_layout), else ()
+    spring_group_spring: wp.array | None  # int32, shape [group_count]: one spring of each group (its values
+    #   are the group's), or None
     spring_material_law: SpringLaw  # the laws the spring groups use (square, asymmetric, plastic switches)
     spring_law_code: wp.array | None  # int32, shape [spring_count]: SPRING_LINEAR or SPRING_SQUARE (laws in use)
     spring_compression_ratio: wp.array | None  # kc / ke [-], shape [spring_count] (laws in use)
@@ -333,6 +343,8 @@ class Model:
         self.meshes = []
         self.skins = []
         self.spring_families = {}
+        self.spring_slot_groups = ()
+        self.spring_group_spring = None
         self.spring_material_law = SpringLaw()
         self.spring_plastic_count = 0
         for name in ("spring_law_code", "spring_compression_ratio", "spring_plastic_index", "spring_yield_strain",
@@ -617,6 +629,8 @@ class Model:
                 current.assign(cast)
             else:
                 setattr(self, attribute, wp.array(np.ascontiguousarray(cast), dtype=self.scalar, device=self.device))
+        if name in ("spring_stiffness", "spring_damping"):
+            self.refresh_spring_layout()
         self.input_version += 1  # the energy scale and the elastic energy changed (the guard re-derives them)
 
     def world_values(self, name: str) -> np.ndarray:
@@ -833,6 +847,8 @@ class Model:
         stiffness = stiffness or {}
         chain = composed_elements(self.scalar, self.family_specs(linear=linear)).arrays()
         arrays = [family.arrays(self, stiffness=stiffness.get(family.name)) for family in self.families]
+        if linear and self.spring_slot_groups:  # the analysis's spring spec reads values per spring
+            arrays[0] = self.families[0].arrays(self, stiffness=stiffness.get("springs"), grouped=False)
         return fill_elements(chain, arrays)
 
     def spring_arrays(self):
@@ -840,7 +856,16 @@ class Model:
         come first."""
         if not self.spring_count:
             raise ConfigError("the model has no springs")
+        if self.spring_slot_groups:  # the gather's struct also holds the groups: the per-spring one here
+            return SpringFamily(self).arrays(self, grouped=False)
         return self.elements.head
+
+    def refresh_spring_layout(self) -> None:
+        """After in-place writes of spring rest lengths, stiffness or damping: if a group read per group
+        (:attr:`spring_slot_groups`) no longer has one value, switch the springs to per-spring values (a new
+        incidence table: a structural change, the next frame re-captures). Nothing happens otherwise."""
+        if self.spring_slot_groups and not uniform_groups(self):
+            set_spring_layout(self, False)
 
     def force_features(self, control: Control | None) -> ForceFeatures:
         """The force terms a step of this model under ``control`` evaluates."""
