@@ -10,9 +10,10 @@ gather, ``kernels/springs.py``) runs one thread per particle of every world. For
   the other particle j = ``head_local[k, i]``; then x_j, v_j, and the spring's rest length, stiffness and
   damping (padding slots point at the particle itself and spring 0),
 - the CSR tail's entries the same way, if the table has a tail;
-- or, with spring data per group (``Model.spring_slot_groups``: every spring group uniform, the head laid
-  out group by group), each group's spring ``group_spring[g]`` and its rest length, stiffness and damping
-  once, then per slot only the other particle j = ``head_local[k, i]`` and x_j, v_j (no spring index),
+- or, with spring data per group (``Model.spring_slot_groups``: the head laid out group by group), each
+  group's spring ``group_spring[g]`` and its rest length, stiffness and damping once, then in a uniform
+  group's slot only the other particle j = ``head_local[k, i]`` and x_j, v_j (no spring index), in the slot
+  of a group read per spring (-1) the spring index and the spring's three values too,
 
 and writes its new position and velocity. Two counts per array:
 
@@ -98,6 +99,8 @@ def gather_traffic(model: ws.Model) -> list[ArrayTraffic]:
         return array.size * wp.types.type_size_in_bytes(array.dtype)
 
     grouped = bool(model.spring_slot_groups)
+    # Slots whose spring index and values are read per spring: all of them, or a non-uniform group's.
+    per_spring_slots = model.spring_slot_groups.count(-1) if grouped else head_slots
     rows = [
         ArrayTraffic("particle_q_in", "state", threads * vec, round(threads * (1 + entries) * vec)),
         ArrayTraffic("particle_qd_in", "state", threads * vec, round(threads * (1 + entries) * vec)),
@@ -108,9 +111,10 @@ def gather_traffic(model: ws.Model) -> list[ArrayTraffic]:
         ArrayTraffic("particle_inv_mass", "particle", size(model.particle_inv_mass), threads * scalar),
         ArrayTraffic("head_local", "topology", size(incidence.head_local), threads * head_slots * 4),
     ]
-    if not grouped:
-        rows.insert(-1, ArrayTraffic("head_element", "topology", size(incidence.head_element),
-                                     threads * head_slots * 4))
+    if per_spring_slots:
+        rows.insert(-1, ArrayTraffic("head_element", "topology",
+                                     size(incidence.head_element) * per_spring_slots // head_slots,
+                                     threads * per_spring_slots * 4))
     if tail_entries:
         rows += [
             ArrayTraffic("tail_start", "topology", size(incidence.tail_start), threads * 8),
@@ -127,6 +131,13 @@ def gather_traffic(model: ws.Model) -> list[ArrayTraffic]:
             ArrayTraffic("spring_stiffness", "spring", stiffness_rows * groups * scalar, threads * groups * scalar),
             ArrayTraffic("spring_damping", "spring", damping_rows * groups * scalar, threads * groups * scalar),
         ]
+        if per_spring_slots:
+            # The springs of the groups read per spring, each value once; every such slot loads three.
+            uniform = set(model.spring_slot_groups) - {-1}
+            read = sum(len(m) for g, m in enumerate(model.spring_families.values()) if g not in uniform)
+            rows.append(ArrayTraffic("spring data read per spring", "spring",
+                                     read * scalar * (1 + stiffness_rows + damping_rows),
+                                     threads * per_spring_slots * 3 * scalar))
     else:
         rows += [
             ArrayTraffic("spring_rest_length", "spring", springs * scalar, round(threads * entries * scalar)),

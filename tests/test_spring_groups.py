@@ -2,8 +2,8 @@
 once per group and never a slot's spring index (``Model.spring_slot_groups``, ``kernels/springs.py``).
 
 The grouped force sums the same terms in the same slot order as the per-spring force over the same table, so
-the two agree bit for bit; a per-spring value written between frames switches the layout (a structural
-change) and continues bit for bit as a model built per spring with that value.
+the two agree bit for bit; a per-spring value written between frames switches its group's slots to per-spring
+reads (a structural change) and continues bit for bit as a model given that value before its first step.
 """
 
 import numpy as np
@@ -17,6 +17,8 @@ DT = 1.0 / 960.0
 STEPS = 24
 #: The ANCHORS grid's groups, in ``spring_families`` order, and the head they lay out (4 neighbours each).
 GRID_SLOTS = (0,) * 4 + (1,) * 4 + (2,) * 4
+#: The same once the structural group holds two values: its slots read per spring (-1).
+MIXED_SLOTS = (-1,) * 4 + GRID_SLOTS[4:]
 #: The structural spring from the top-left (pinned) corner: the first spring of the top row, 11 · 11.
 CORNER_SPRING = 121
 
@@ -85,9 +87,10 @@ def test_grouped_gather_is_the_per_spring_gather_bit_for_bit(device):
 
 def test_a_per_spring_value_between_frames_switches_to_per_spring_data(device):
     """Doubling every stiffness between frames keeps the groups (no new revision) and continues bit for bit as
-    a cloth built twice as stiff; then stiffening the top-left corner's structural spring 5× replaces the
-    table (revision bumped, groups gone) and continues bit for bit as a model built per spring with those
-    values, away from the run without it (so the agreement is not vacuous)."""
+    a cloth built twice as stiff; then stiffening the top-left corner's structural spring 5× reads the
+    structural slots per spring (revision bumped, the other groups still per group) and continues bit for bit
+    as a model given those values before its first step, and as the per-spring gather, away from the run
+    without it (so the agreement is not vacuous)."""
     model = cloth(device)
     sim = simulator(model)
     sim.step_frame()
@@ -103,24 +106,42 @@ def test_a_per_spring_value_between_frames_switches_to_per_spring_data(device):
     stiffer = 2.0 * ke
     stiffer[CORNER_SPRING] *= 5.0
     model.set_world_values("spring_stiffness", stiffer)
-    assert model.revision > revision and model.spring_slot_groups == ()
-    built = cloth(device, scale=2.0, spring_groups=False)
+    assert model.revision > revision and model.spring_slot_groups == MIXED_SLOTS
+    built = cloth(device, scale=2.0)
     built.spring_stiffness.assign(stiffer[None, :].astype(np.float32))
-    reference = simulator(built, sim.state)
-    for run in (sim, reference, doubled):
+    built.refresh_spring_layout()
+    assert built.spring_slot_groups == MIXED_SLOTS
+    per_spring = cloth(device, scale=2.0)
+    per_spring.spring_stiffness.assign(stiffer[None, :].astype(np.float32))
+    per_spring.spring_slot_groups = ()  # the same table, every value per spring
+    reference, gathered = simulator(built, sim.state), simulator(per_spring, sim.state)
+    for run in (sim, reference, gathered, doubled):
         for _ in range(2):
             run.step_frame()
     np.testing.assert_array_equal(sim.state.particle_q.numpy(), reference.state.particle_q.numpy())
+    np.testing.assert_array_equal(sim.state.particle_q.numpy(), gathered.state.particle_q.numpy())
     assert np.abs(sim.state.particle_q.numpy() - doubled.state.particle_q.numpy()).max() > 1.0e-6
 
 
-def test_an_in_place_per_spring_write_switches_after_refresh(device):
-    """Writing per-spring damping in place, then ``refresh_spring_layout``, switches to per-spring data."""
+def test_in_place_per_spring_writes_switch_after_refresh(device):
+    """Per-spring damping written in place, then ``refresh_spring_layout``: the structural slots read per
+    spring; once every group holds two values, the role-major table of a per-spring model comes back; a
+    refresh that changes nothing bumps no revision."""
     model = cloth(device)
+    revision = model.revision
+    model.refresh_spring_layout()
+    assert model.revision == revision
     kd = model.spring_damping.numpy()
     kd[0, 3] = 0.5
     model.spring_damping.assign(kd)
-    revision = model.revision
     model.refresh_spring_layout()
-    assert model.revision > revision and model.spring_slot_groups == ()
-    assert model.spring_incidence_shape == cloth(device, spring_groups=False).spring_incidence_shape
+    assert model.revision > revision and model.spring_slot_groups == MIXED_SLOTS
+    for members in list(model.spring_families.values())[1:]:
+        kd[0, members[0]] = 0.5
+    model.spring_damping.assign(kd)
+    model.refresh_spring_layout()
+    assert model.spring_slot_groups == ()
+    per_spring = cloth(device, spring_groups=False)
+    assert model.spring_incidence_shape == per_spring.spring_incidence_shape
+    np.testing.assert_array_equal(model.spring_incidence.head_element.numpy(),
+                                  per_spring.spring_incidence.head_element.numpy())

@@ -1284,6 +1284,7 @@ class ModelBuilder:
             springs, n, springs[:, ::-1], lambda particles: particles, device=device
         )
         self._finalize_spring_laws(model, farray, iarray)
+        model._spring_grouping = spring_groups
         set_spring_layout(model, spring_groups)
 
         hinges = np.concatenate(self._hinges) if self._hinges else np.zeros((0, 4), dtype=np.int64)

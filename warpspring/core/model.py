@@ -21,7 +21,7 @@ from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import transform_type, vec3_type
 from .kinematics import PinGroupTable, apply_kinematics
 from .bending import HingeFamily
-from .springs import SpringFamily, set_spring_layout, uniform_groups
+from .springs import SpringFamily, set_spring_layout
 from .tracks import Track, TrackTable, as_track, input_track
 
 SHAPE_KINDS = {name: kind for kind, name in SHAPE_NAMES.items()}
@@ -247,7 +247,7 @@ class Model:
     and kd, the gather reads them once per group (:attr:`spring_slot_groups`), from the group's spring in
     :attr:`spring_group_spring`. An in-place write that keeps each group uniform stays a value write; values
     that differ within a group go through :meth:`set_world_values`, or call :meth:`refresh_spring_layout`
-    after writing them in place: either switches to per-spring values (a structural change).
+    after writing them in place: either reads that group per spring from then on (a structural change).
     """
 
     device: wp.Device
@@ -287,8 +287,9 @@ class Model:
     spring_incidence: Incidence  # the springs at each particle: entries (spring, other particle), HYB layout
     #   (kernels/families.py); padding entries (0, the particle itself)
     spring_incidence_shape: IncidenceShape  # its ELL head width and whether it has a CSR tail
-    spring_slot_groups: tuple  # host-side: the spring group (spring_families' order) of each head slot when the
-    #   gather reads spring data per group (every group uniform; core/springs.set_spring_layout), else ()
+    spring_slot_groups: tuple  # host-side: per head slot, the spring group (spring_families' order) whose values
+    #   the gather reads once per group (a uniform group), or -1 (read per spring); () for the per-spring
+    #   layout (core/springs.spring_layout)
     spring_group_spring: wp.array | None  # int32, shape [group_count]: one spring of each group (its values
     #   are the group's), or None
     spring_material_law: SpringLaw  # the laws the spring groups use (square, asymmetric, plastic switches)
@@ -345,6 +346,7 @@ class Model:
         self.spring_families = {}
         self.spring_slot_groups = ()
         self.spring_group_spring = None
+        self._spring_grouping = False  # finalize(spring_groups=): whether the layout follows the values
         self.spring_material_law = SpringLaw()
         self.spring_plastic_count = 0
         for name in ("spring_law_code", "spring_compression_ratio", "spring_plastic_index", "spring_yield_strain",
@@ -861,11 +863,13 @@ class Model:
         return self.elements.head
 
     def refresh_spring_layout(self) -> None:
-        """After in-place writes of spring rest lengths, stiffness or damping: if a group read per group
-        (:attr:`spring_slot_groups`) no longer has one value, switch the springs to per-spring values (a new
-        incidence table: a structural change, the next frame re-captures). Nothing happens otherwise."""
-        if self.spring_slot_groups and not uniform_groups(self):
-            set_spring_layout(self, False)
+        """After in-place writes of spring rest lengths, stiffness or damping: lay the springs out as their
+        values now call for (a group that no longer has one value is read per spring, one that has again per
+        group; no group left: the per-spring table), as a model built with these values would be. A new
+        layout is a structural change (the next frame re-captures); the same one changes nothing. A model
+        finalized with ``spring_groups=False`` keeps its per-spring layout."""
+        if self._spring_grouping:
+            set_spring_layout(self, True)
 
     def force_features(self, control: Control | None) -> ForceFeatures:
         """The force terms a step of this model under ``control`` evaluates."""

@@ -19,7 +19,7 @@ from ..kernels.springs import (
     plastic_arrays_type,
     spring_arrays_type,
 )
-from .families import ElementFamily, build_incidence
+from .families import ElementFamily, build_incidence, head_slots
 
 #: The spring laws a group of springs may follow (``ModelBuilder.add_springs(law=...)``), by name: the
 #: tension T at a stretch Δ = |d| - L is k Δ (linear, k in N/m) or k Δ|Δ| (square, k in N/m²).
@@ -201,16 +201,14 @@ class SpringFamily(ElementFamily):
 # -- spring data per group -----------------------------------------------------------------------------------
 
 
-def uniform_groups(model) -> bool:
-    """Whether every spring group (``model.spring_families``) has one rest length, and one ke and one kd in
-    each stiffness and damping row (reads the device)."""
+def uniform_groups(model) -> np.ndarray:
+    """Whether each spring group (``model.spring_families``, in order) has one rest length, and one ke and one kd
+    in each stiffness and damping row, bool, shape [group_count] (reads the device)."""
     rest, ke, kd = (model.spring_rest_length.numpy(), model.spring_stiffness.numpy(), model.spring_damping.numpy())
-    for members in model.spring_families.values():
-        if len(members) and not (np.all(rest[members] == rest[members[0]])
-                                 and np.all(ke[:, members] == ke[:, members[:1]])
-                                 and np.all(kd[:, members] == kd[:, members[:1]])):
-            return False
-    return True
+    return np.array([len(members) > 0 and bool(np.all(rest[members] == rest[members[0]])
+                                               and np.all(ke[:, members] == ke[:, members[:1]])
+                                               and np.all(kd[:, members] == kd[:, members[:1]]))
+                     for members in model.spring_families.values()], dtype=bool)
 
 
 def group_incidence(springs: np.ndarray, group: np.ndarray, particle_count: int, *, device):
@@ -261,32 +259,55 @@ def group_incidence(springs: np.ndarray, group: np.ndarray, particle_count: int,
     return table, IncidenceShape(head_slots=head_slots, tail=False), slot_groups
 
 
-def set_spring_layout(model, grouped: bool) -> None:
-    """Lay the springs out per group (``grouped``, where the model allows it: gather, no tail, no per-spring
-    law arrays or plasticity, every group uniform, a head that fits and costs no more bytes) or per spring
-    (role-major incidence, ``build_incidence``), setting ``spring_incidence``, ``spring_incidence_shape``,
-    ``spring_slot_groups`` and ``spring_group_spring``. Changing the layout of a finalized model is a
-    structural change (it replaces those attributes)."""
-    springs = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64)
+def spring_layout(model):
+    """The spring layout the model's values call for: (table, shape, slot_groups) of ``group_incidence`` with
+    the slots of non-uniform groups marked -1, where the springs are gathered without per-spring law arrays
+    or plasticity, some group is uniform, the grouped head fits and moves no more bytes than the per-spring
+    head; else None (per spring, role-major). A function of the topology and the values alone, so a model
+    switched between frames gets what a model built with its values gets."""
     law = model.spring_material_law
-    layout = None
-    if grouped and model.spring_gather and model.spring_count and not (law.per_spring or law.plastic) \
-            and uniform_groups(model):
-        group = np.zeros(model.spring_count, dtype=np.int64)
-        for g, members in enumerate(model.spring_families.values()):
-            group[members] = g
-        layout = group_incidence(springs, group, model.particle_count, device=model.device)
-        if layout is not None:
-            # Per particle and slot, the grouped head moves one int (the other particle); the per-spring
-            # head two ints and a rest length, ke and kd: keep it if it is narrow enough to move less.
-            scalar = wp.types.type_size_in_bytes(model.scalar)
-            current = model.spring_incidence_shape
-            if 4 * layout[1].head_slots > (8 + 3 * scalar) * current.head_slots + 8 * current.tail:
-                layout = None
+    if not (model.spring_gather and model.spring_count) or law.per_spring or law.plastic:
+        return None
+    uniform = uniform_groups(model)
+    if not uniform.any():
+        return None
+    springs = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64)
+    group = np.zeros(model.spring_count, dtype=np.int64)
+    for g, members in enumerate(model.spring_families.values()):
+        group[members] = g
+    # The grouped table depends on the topology alone: built once, kept for later switches (``_spring_groups``).
+    cached = getattr(model, "_spring_groups", None)
+    layout = cached[0] if cached else group_incidence(springs, group, model.particle_count, device=model.device)
+    model._spring_groups = (layout,)
     if layout is None:
-        if model.spring_slot_groups or not hasattr(model, "spring_incidence"):
-            model.spring_incidence, model.spring_incidence_shape = build_incidence(
-                springs, model.particle_count, springs[:, ::-1], lambda particles: particles, device=model.device)
+        return None
+    table, shape, slot_groups = layout
+    slot_groups = tuple(g if uniform[g] else -1 for g in slot_groups)
+    # Per particle: a grouped slot moves one int (the other particle), a slot read per spring two ints and a
+    # rest length, ke and kd; the per-spring head moves the latter in every slot (and its tail's start).
+    scalar = wp.types.type_size_in_bytes(model.scalar)
+    per_spring_slot = 8 + 3 * scalar
+    grouped_bytes = 4 * len(slot_groups) + (per_spring_slot - 4) * slot_groups.count(-1)
+    degree = np.bincount(springs.ravel(), minlength=model.particle_count)
+    width = head_slots(degree)
+    if grouped_bytes > per_spring_slot * width:
+        return None
+    return table, shape, slot_groups
+
+
+def set_spring_layout(model, grouped: bool) -> None:
+    """Lay the springs out as ``spring_layout`` says (``grouped``) or per spring (role-major incidence,
+    ``build_incidence``), setting ``spring_incidence``, ``spring_incidence_shape``, ``spring_slot_groups`` and
+    ``spring_group_spring``. On a finalized model, a layout other than the current one replaces them (a
+    structural change); the same layout changes nothing."""
+    layout = spring_layout(model) if grouped else None
+    current = getattr(model, "spring_slot_groups", None) if hasattr(model, "spring_incidence") else None
+    if (layout[2] if layout else ()) == current:
+        return
+    if layout is None:
+        springs = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64)
+        model.spring_incidence, model.spring_incidence_shape = build_incidence(
+            springs, model.particle_count, springs[:, ::-1], lambda particles: particles, device=model.device)
         model.spring_slot_groups = ()
         model.spring_group_spring = None
         return
