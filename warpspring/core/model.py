@@ -568,7 +568,8 @@ class Model:
           ``hinge_damping`` [N·m·s/rad] likewise per hinge; ``particle_mass`` [kg]: shape
           [world_count, particle_count] or [particle_count]. One row for all worlds is stored once
           (the kernels broadcast it); a change between one row and one per world replaces the array (a
-          structural change: the next frame re-captures).
+          structural change: the next frame re-captures), and so does a spring value that makes a group read
+          per group non-uniform, or one read per spring uniform again (:meth:`refresh_spring_layout`).
 
         E.g. a sweep of stiffness over 16 worlds:
         ``model.set_world_values("spring_stiffness", ke[None, :] * np.geomspace(0.1, 10, 16)[:, None])``.
@@ -859,7 +860,11 @@ class Model:
         if not self.spring_count:
             raise ConfigError("the model has no springs")
         if self.spring_slot_groups:  # the gather's struct also holds the groups: the per-spring one here
-            return SpringFamily(self).arrays(self, grouped=False)
+            cached = getattr(self, "_spring_arrays_cache", None)
+            if cached is None or cached[0] != self.revision:
+                cached = (self.revision, SpringFamily(self).arrays(self, grouped=False))
+                self._spring_arrays_cache = cached
+            return cached[1]
         return self.elements.head
 
     def refresh_spring_layout(self) -> None:
