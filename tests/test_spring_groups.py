@@ -85,6 +85,22 @@ def test_grouped_gather_is_the_per_spring_gather_bit_for_bit(device):
     np.testing.assert_allclose(scattered, path, rtol=0.0, atol=4 * STEPS * np.finfo(np.float32).eps)
 
 
+def test_per_world_rows_keep_the_groups(device):
+    """Three worlds with their own stiffness rows (×1, ×4, ×0.25 in every group) stay grouped, read each world's
+    row, and match the per-spring gather bit for bit; the worlds differ (their rows are read)."""
+    models = [cloth(device, worlds=3), cloth(device, worlds=3)]
+    ke = models[0].world_values("spring_stiffness")[0]
+    for model in models:
+        model.set_world_values("spring_stiffness", ke[None, :] * np.array([[1.0], [4.0], [0.25]]))
+    assert models[0].spring_slot_groups == GRID_SLOTS and models[0].spring_stiffness.shape[0] == 3
+    models[1].spring_slot_groups = ()
+    grouped, per_spring = (positions(model) for model in models)
+    np.testing.assert_array_equal(grouped, per_spring)
+    worlds = grouped[-1].reshape(3, -1, 3)
+    # Near the pins the rows move the worlds apart by far more than float32's rounding of |x| ≈ 1 m (1.2e-7).
+    assert np.abs(worlds[1] - worlds[0]).max() > 1.0e-6 and np.abs(worlds[2] - worlds[0]).max() > 1.0e-6
+
+
 def test_a_per_spring_value_between_frames_switches_to_per_spring_data(device):
     """Doubling every stiffness between frames keeps the groups (no new revision) and continues bit for bit as
     a cloth built twice as stiff; then stiffening the top-left corner's structural spring 5× reads the
