@@ -41,7 +41,8 @@ KE, KD, MASS, SPACING = 1.0e3, 10.0, 0.1, 0.1
 DEFAULT_SIZES = {"cuda": [64, 128, 256, 512], "cpu": [32, 64]}
 
 
-def warpspring_model(n: int, device, spring_evaluation: str = "auto", worlds: int = 1) -> ws.Model:
+def warpspring_model(n: int, device, spring_evaluation: str = "auto", worlds: int = 1, *,
+                     spring_groups: bool = True) -> ws.Model:
     builder = ws.ModelBuilder()
     spring = ws.SpringMaterial(ke=KE, kd=KD)
     builder.add_cloth_grid(
@@ -56,7 +57,7 @@ def warpspring_model(n: int, device, spring_evaluation: str = "auto", worlds: in
         bend=spring,
         pin=["top-left", "top-right"],
     )
-    return builder.finalize(device, spring_evaluation=spring_evaluation, worlds=worlds)
+    return builder.finalize(device, spring_evaluation=spring_evaluation, worlds=worlds, spring_groups=spring_groups)
 
 
 class WarpspringRunner:
@@ -64,7 +65,8 @@ class WarpspringRunner:
 
     def __init__(self, model: ws.Model):
         self.model = model
-        self.name = f"warpspring ({'gather' if model.spring_gather else 'scatter'})"
+        self.name = f"warpspring ({'gather' if model.spring_gather else 'scatter'}"
+        self.name += ", per spring)" if model.spring_gather and not model.spring_slot_groups else ")"
         # No run-time guard: Newton has none, and the heavy ANCHORS cloth (0.1 kg per particle) stretches
         # its corner springs past the guard's default limit at N ≥ 128.
         self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, use_graph=True, guard=None)
@@ -218,8 +220,9 @@ def main():
     parser.add_argument("--no-newton", action="store_true", help="time warpspring alone")
     parser.add_argument("--newton-max-particles", type=int, help="time Newton only up to this many particles")
     parser.add_argument(
-        "--evaluation", nargs="+", default=["auto"], choices=["auto", "gather", "scatter"],
-        help="warpspring spring-evaluation modes to time (one row each)",
+        "--evaluation", nargs="+", default=["auto"], choices=["auto", "gather", "gather-per-spring", "scatter"],
+        help="warpspring spring-evaluation modes to time (one row each; gather-per-spring: spring data read per "
+             "spring, finalize(spring_groups=False), the layout before per-group data)",
     )
     parser.add_argument("--batches", type=int, default=5, help="timed batches per engine and size (median)")
     parser.add_argument("--bytes", action="store_true", help="also the gather rows' bytes and bandwidth")
@@ -258,7 +261,8 @@ def main():
         results, drift, models = {}, {}, {}
         makers = {}
         for mode in args.evaluation:
-            model = warpspring_model(n, device, mode)
+            model = warpspring_model(n, device, mode.removesuffix("-per-spring"),
+                                     spring_groups=not mode.endswith("-per-spring"))
             name = WarpspringRunner(model).name
             models[name] = model
             makers[name] = lambda model=model: WarpspringRunner(model)
@@ -309,7 +313,8 @@ def bytes_table(gathered: list[tuple[int, ws.Model, float]], device) -> list[str
         b = per_particle(gather_traffic(model), model)
         throughput = rate * model.particle_count * model.world_count
         achieved = b["compulsory"] * throughput
-        ncu = ncu_dram_bytes(n, device, kernel_cache=wp.config.kernel_cache_dir) if device.is_cuda else None
+        ncu = ncu_dram_bytes(n, device, kernel_cache=wp.config.kernel_cache_dir,
+                             spring_groups=bool(model.spring_slot_groups)) if device.is_cuda else None
         profiled = ["", "", "", ""]
         if isinstance(ncu, dict):
             dram = ncu.get("dram__bytes_read.sum", 0.0) + ncu.get("dram__bytes_write.sum", 0.0)

@@ -9,7 +9,11 @@ gather, ``kernels/springs.py``) runs one thread per particle of every world. For
 - for each of the ``head_slots`` slots k of the incidence head: the spring s = ``head_element[k, i]`` and
   the other particle j = ``head_local[k, i]``; then x_j, v_j, and the spring's rest length, stiffness and
   damping (padding slots point at the particle itself and spring 0),
-- the CSR tail's entries the same way, if the table has a tail,
+- the CSR tail's entries the same way, if the table has a tail;
+- or, with spring data per group (``Model.spring_slot_groups``: the head laid out group by group), each
+  group's spring ``group_spring[g]`` and its rest length, stiffness and damping once, then in a uniform
+  group's slot only the other particle j = ``head_local[k, i]`` and x_j, v_j (no spring index), in the slot
+  of a group read per spring (-1) the spring index and the spring's three values too,
 
 and writes its new position and velocity. Two counts per array:
 
@@ -25,6 +29,7 @@ draw if caches absorbed exactly the reuse and nothing across substeps. Where the
 (≈ 50 MB on an H100) the substeps re-read it from there and the figure may exceed DRAM's.
 
     python bench/traffic.py --sizes 256 512 1024 2048          # the table of the layout, no device needed
+    python bench/traffic.py --sizes 256 512 1024 2048 --per-spring   # the same, spring data per spring
     python bench/traffic.py --device cuda:0 --profile 1024      # one model, a few frames (for Nsight Compute)
 
 ``bench/cloth.py --bytes`` prints these counts next to the measured rates and a device copy's bandwidth,
@@ -93,6 +98,9 @@ def gather_traffic(model: ws.Model) -> list[ArrayTraffic]:
     def size(array) -> int:
         return array.size * wp.types.type_size_in_bytes(array.dtype)
 
+    grouped = bool(model.spring_slot_groups)
+    # Slots whose spring index and values are read per spring: all of them, or a non-uniform group's.
+    per_spring_slots = model.spring_slot_groups.count(-1) if grouped else head_slots
     rows = [
         ArrayTraffic("particle_q_in", "state", threads * vec, round(threads * (1 + entries) * vec)),
         ArrayTraffic("particle_qd_in", "state", threads * vec, round(threads * (1 + entries) * vec)),
@@ -101,19 +109,43 @@ def gather_traffic(model: ws.Model) -> list[ArrayTraffic]:
         ArrayTraffic("particle_flags", "particle", size(model.particle_flags), threads * 4),
         ArrayTraffic("particle_mass", "particle", size(model.particle_mass), threads * scalar),
         ArrayTraffic("particle_inv_mass", "particle", size(model.particle_inv_mass), threads * scalar),
-        ArrayTraffic("head_element", "topology", size(incidence.head_element), threads * head_slots * 4),
         ArrayTraffic("head_local", "topology", size(incidence.head_local), threads * head_slots * 4),
     ]
+    if per_spring_slots:
+        rows.insert(-1, ArrayTraffic("head_element", "topology",
+                                     size(incidence.head_element) * per_spring_slots // head_slots,
+                                     threads * per_spring_slots * 4))
     if tail_entries:
         rows += [
             ArrayTraffic("tail_start", "topology", size(incidence.tail_start), threads * 8),
             ArrayTraffic("tail_element", "topology", size(incidence.tail_element), worlds * tail_entries * 4),
             ArrayTraffic("tail_local", "topology", size(incidence.tail_local), worlds * tail_entries * 4),
         ]
+    if grouped:
+        # One value per group (and stiffness or damping row): the group's spring, then its three values.
+        groups = model.spring_group_spring.shape[0]
+        stiffness_rows, damping_rows = model.spring_stiffness.shape[0], model.spring_damping.shape[0]
+        rows += [
+            ArrayTraffic("group_spring", "spring", groups * 4, threads * groups * 4),
+            ArrayTraffic("spring_rest_length", "spring", groups * scalar, threads * groups * scalar),
+            ArrayTraffic("spring_stiffness", "spring", stiffness_rows * groups * scalar, threads * groups * scalar),
+            ArrayTraffic("spring_damping", "spring", damping_rows * groups * scalar, threads * groups * scalar),
+        ]
+        if per_spring_slots:
+            # The springs of the groups read per spring, each value once; every such slot loads three.
+            uniform = set(model.spring_slot_groups) - {-1}
+            read = sum(len(m) for g, m in enumerate(model.spring_families.values()) if g not in uniform)
+            rows.append(ArrayTraffic("spring data read per spring", "spring",
+                                     read * scalar * (1 + stiffness_rows + damping_rows),
+                                     threads * per_spring_slots * 3 * scalar))
+    else:
+        rows += [
+            ArrayTraffic("spring_rest_length", "spring", springs * scalar, round(threads * entries * scalar)),
+            ArrayTraffic("spring_stiffness", "spring", size(model.spring_stiffness),
+                         round(threads * entries * scalar)),
+            ArrayTraffic("spring_damping", "spring", size(model.spring_damping), round(threads * entries * scalar)),
+        ]
     rows += [
-        ArrayTraffic("spring_rest_length", "spring", springs * scalar, round(threads * entries * scalar)),
-        ArrayTraffic("spring_stiffness", "spring", size(model.spring_stiffness), round(threads * entries * scalar)),
-        ArrayTraffic("spring_damping", "spring", size(model.spring_damping), round(threads * entries * scalar)),
         # The live-input table (gravity) and the clocks: a row per world, read by every thread of it.
         ArrayTraffic("inputs, time", "particle", size(model.inputs) + 2 * worlds * 8, threads * 3 * scalar),
     ]
@@ -150,7 +182,8 @@ def copy_bandwidth(device, *, megabytes: int = 512, repeats: int = 10) -> float:
     return 2 * count * 4 / statistics.median(times)
 
 
-def ncu_dram_bytes(n: int, device, *, kernel_cache: str | None = None, timeout: float = 120.0) -> dict | str:
+def ncu_dram_bytes(n: int, device, *, kernel_cache: str | None = None, timeout: float = 120.0,
+                   spring_groups: bool = True) -> dict | str:
     """Nsight Compute's counters for one launch of the fused step on the n × n cloth (the 21st, after warm-up
     and capture; caches flushed before it, as ncu does by default; clocks left as they run, as in §7 of
     RESULTS.md): {metric: value in bytes or seconds}, or a one-line reason when ``ncu`` is missing or fails."""
@@ -162,6 +195,7 @@ def ncu_dram_bytes(n: int, device, *, kernel_cache: str | None = None, timeout: 
         "-k", "regex:symplectic_euler",
         "--launch-skip", "20", "--launch-count", "1",
         sys.executable, os.path.abspath(__file__), "--device", str(device), "--profile", str(n),
+        *([] if spring_groups else ["--per-spring"]),
     ]
     env = dict(os.environ, **({"WARP_CACHE_PATH": kernel_cache} if kernel_cache else {}))
     try:
@@ -187,18 +221,19 @@ def parse_ncu_csv(text: str) -> dict[str, float]:
     return values
 
 
-def profile(n: int, device, frames: int = 3) -> None:
+def profile(n: int, device, frames: int = 3, *, spring_groups: bool = True) -> None:
     """The target of ``ncu_dram_bytes``: the n × n ANCHORS cloth, gather, a few graph-replayed frames."""
     from cloth import WarpspringRunner, warpspring_model
 
-    runner = WarpspringRunner(warpspring_model(n, device, "gather"))
+    runner = WarpspringRunner(warpspring_model(n, device, "gather", spring_groups=spring_groups))
     for _ in range(frames):
         runner.frame()
     wp.synchronize_device(device)
 
 
-def layout_table(sizes: list[int], worlds: list[int], device) -> list[str]:
-    """Markdown rows of the traffic model for n × n cloths (one world) and ``worlds`` × 32² cloths."""
+def layout_table(sizes: list[int], worlds: list[int], device, *, spring_groups: bool = True) -> list[str]:
+    """Markdown rows of the traffic model for n × n cloths (one world) and ``worlds`` × 32² cloths, with spring
+    data per group (``spring_groups``, the default layout of these cloths) or per spring."""
     from cloth import warpspring_model
 
     lines = [
@@ -208,7 +243,7 @@ def layout_table(sizes: list[int], worlds: list[int], device) -> list[str]:
     ]
     cases = [(n, 1) for n in sizes] + [(32, w) for w in worlds]
     for n, w in cases:
-        model = warpspring_model(n, device, "gather", worlds=w)
+        model = warpspring_model(n, device, "gather", worlds=w, spring_groups=spring_groups)
         rows = gather_traffic(model)
         b = per_particle(rows, model)
         working_set = sum(r.compulsory for r in rows) / 1e6  # both state buffers and the model's arrays
@@ -227,14 +262,18 @@ def main():
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024, 2048])
     parser.add_argument("--worlds", type=int, nargs="*", default=[4096], help="also W worlds of a 32² cloth")
     parser.add_argument("--profile", type=int, metavar="N", help="run the N × N cloth a few frames and exit")
+    parser.add_argument("--per-spring", action="store_true",
+                        help="spring data per spring (finalize(spring_groups=False)): the layout before groups")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device)
     if args.profile:
-        profile(args.profile, device)
+        profile(args.profile, device, spring_groups=not args.per_spring)
         return
-    print("Bytes per particle-substep of the fused gather step (symplectic Euler, float32), from the data layout:")
-    print("\n".join(layout_table(args.sizes, args.worlds, device)))
+    layout = "per spring" if args.per_spring else "per group"
+    print(f"Bytes per particle-substep of the fused gather step (symplectic Euler, float32, spring data {layout}), "
+          "from the data layout:")
+    print("\n".join(layout_table(args.sizes, args.worlds, device, spring_groups=not args.per_spring)))
 
 
 if __name__ == "__main__":

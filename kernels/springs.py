@@ -9,7 +9,9 @@ length marks a broken spring, which carries no force).
 
 Its incidence entries are (spring, other particle); padding entries point a particle at itself, a
 coincident pair whose force, stiffness and strain are exactly zero (or "none"), so the head's unrolled
-slot loop needs no branch. The stiffness matrix block Kₛ = ∂fᵢ/∂xⱼ is clamped positive
+slot loop needs no branch. Where a group of springs shares one rest length, ke and kd, the head may be laid
+out group by group and the gathered force read the group's values once instead of per slot
+(``SpringSpec.slot_groups``). The stiffness matrix block Kₛ = ∂fᵢ/∂xⱼ is clamped positive
 semi-definite (the transverse term of a compressed spring dropped), so K ⪰ 0 as implicit Euler and power
 iteration need.
 
@@ -275,11 +277,29 @@ def spring_funcs(scalar: type, law: SpringLaw = HOOKE):
     return spring_law_values, spring_force, spring_energy, spring_stiffness_matrix
 
 
-@functools.cache
-def spring_arrays_type(scalar: type, per_spring_law: bool = False):
+def spring_arrays_type(scalar: type, per_spring_law: bool = False, grouped: bool = False):
     """The struct of the spring family's arrays in one precision; ``per_spring_law`` adds the per-spring law
-    arrays (``SpringLaw.per_spring``), so scenes of linear springs keep the struct, and every kernel's
-    parameters, as they were."""
+    arrays (``SpringLaw.per_spring``), ``grouped`` the springs the gather reads each uniform group's values
+    at (``SpringSpec.slot_groups``), so scenes of linear springs read per spring keep the struct, and every
+    kernel's parameters, as they were. One struct type per combination, however the call spells it."""
+    return _spring_arrays_type(scalar, bool(per_spring_law), bool(grouped))
+
+
+@functools.cache
+def _spring_arrays_type(scalar: type, per_spring_law: bool, grouped: bool):
+
+    if grouped:
+
+        @wp.struct
+        class SpringGroupArrays:
+            indices: wp.array[wp.vec2i]  # [spring_count]: the two particles of each spring (per-world indices)
+            rest_length: wp.array[scalar]  # [m], [spring_count]
+            stiffness: wp.array2d[scalar]  # ke [N/m], [1 or world_count, spring_count]
+            damping: wp.array2d[scalar]  # kd [N·s/m], [1 or world_count, spring_count]
+            incidence: Incidence  # entries (spring, other particle), group-major slots; padding (0, the particle)
+            group_spring: wp.array[wp.int32]  # [group_count]: one spring of each group (a uniform group's values)
+
+        return SpringGroupArrays
 
     if not per_spring_law:
 
@@ -306,11 +326,16 @@ def spring_arrays_type(scalar: type, per_spring_law: bool = False):
     return SpringLawArrays
 
 
-@functools.cache
-def spring_access_funcs(scalar: type, law: SpringLaw):
+def spring_access_funcs(scalar: type, law: SpringLaw, grouped: bool = False):
     """(rest_at, law_at): a spring's current rest length in a world, and the law's values completed with a
-    spring's own (its law code and compression ratio), for the struct of ``spring_arrays_type`` of ``law``."""
-    SpringArrays = spring_arrays_type(scalar, law.per_spring)
+    spring's own (its law code and compression ratio), for the struct of ``spring_arrays_type`` of ``law``
+    (and ``grouped``)."""
+    return _spring_access_funcs(scalar, law, bool(grouped))
+
+
+@functools.cache
+def _spring_access_funcs(scalar: type, law: SpringLaw, grouped: bool):
+    SpringArrays = spring_arrays_type(scalar, law.per_spring, grouped)
     SpringLawValues = spring_law_type(scalar)
 
     @wp.func
@@ -345,11 +370,18 @@ class SpringSpec:
         law: the force law's optional parts.
         gathered: the force hook sums the springs at each particle; False when they are scattered per
             spring instead (``spring_scatter_kernel``, the CPU default), so the hook adds nothing.
+        slot_groups: with the head laid out group by group (slot k holds springs of one group only, or
+            padding), the group of each slot whose group is uniform (every spring of it has one rest length,
+            ke and kd per stiffness and damping row), -1 for a slot of a group read per spring: the gathered
+            force reads each uniform group's values once, at ``group_spring[g]``, and in its slots never the
+            spring index. ``()``: values per spring everywhere. Only a gathered spec without tail, per-spring
+            law arrays or plasticity has groups.
     """
 
     incidence: IncidenceShape
     law: SpringLaw = HOOKE
     gathered: bool = True
+    slot_groups: tuple = ()
 
     def funcs(self, scalar: type) -> FamilyFuncs:
         return spring_family_funcs(scalar, self)
@@ -360,11 +392,20 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
     """The family hooks of springs (``families.py``) for one precision and spec."""
     vec3 = vec3_type(scalar)
     mat33 = mat33_type(scalar)
-    SpringArrays = spring_arrays_type(scalar, spec.law.per_spring)
-    spring_law_values, spring_force, spring_energy, spring_stiffness_matrix = spring_funcs(scalar, spec.law)
-    rest_at, law_at = spring_access_funcs(scalar, spec.law)
-    SpringLawValues = spring_law_type(scalar)
     head_slots, tail = spec.incidence
+    grouped = bool(spec.slot_groups) and spec.gathered
+    if grouped and (tail or spec.law.per_spring or spec.law.plastic or len(spec.slot_groups) != head_slots):
+        raise ValueError(f"slot groups need one group per head slot, no tail, no per-spring law arrays and no "
+                         f"plasticity; got {spec}")
+    SpringArrays = spring_arrays_type(scalar, spec.law.per_spring, grouped)
+    spring_law_values, spring_force, spring_energy, spring_stiffness_matrix = spring_funcs(scalar, spec.law)
+    rest_at, law_at = spring_access_funcs(scalar, spec.law, grouped)
+    SpringLawValues = spring_law_type(scalar)
+    group_count = max(spec.slot_groups, default=-1) + 1
+    group_values = wp.types.vector(length=max(group_count, 1), dtype=scalar)
+    # The group of each slot, a constant of the kernel (the unrolled slot loop indexes it at fixed k).
+    slot_group = wp.constant(wp.types.vector(length=max(head_slots, 1), dtype=wp.int32)(
+        *(spec.slot_groups if grouped else (0,) * max(head_slots, 1))))
 
     @wp.func
     def spring_block(
@@ -384,7 +425,32 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
     ) -> vec3:
         """Sum of the forces [N] of the springs at particle i of ``world``."""
         f = vec3(scalar(0.0))
-        if wp.static(spec.gathered):
+        if wp.static(grouped):
+            # Uniform groups: each group's rest length, ke and kd once, then per slot only its other particle
+            # (the slots of a group read per spring also load their spring and its values).
+            values = spring_law_values(inputs, world)
+            stiffness_row = wp.min(world, springs.stiffness.shape[0] - 1)
+            damping_row = wp.min(world, springs.damping.shape[0] - 1)
+            rest = group_values()
+            ke = group_values()
+            kd = group_values()
+            for g in range(wp.static(group_count)):
+                s = springs.group_spring[g]
+                rest[g] = springs.rest_length[s]
+                ke[g] = springs.stiffness[stiffness_row, s]
+                kd[g] = springs.damping[damping_row, s]
+            head_local = springs.incidence.head_local
+            head_element = springs.incidence.head_element
+            for k in range(wp.static(head_slots)):
+                j = base + head_local[k, i]
+                g = slot_group[k]  # a constant once the loop is unrolled: the branch compiles away
+                if g >= 0:
+                    f += spring_force(xi, particle_q[j], vi, particle_qd[j], rest[g], ke[g], kd[g], values)
+                else:
+                    s = head_element[k, i]
+                    f += spring_force(xi, particle_q[j], vi, particle_qd[j], springs.rest_length[s],
+                                      springs.stiffness[stiffness_row, s], springs.damping[damping_row, s], values)
+        elif wp.static(spec.gathered):
             values = spring_law_values(inputs, world)
             # The arrays in locals once: the slot loop then indexes them without reloading the struct.
             rest_length = springs.rest_length

@@ -197,7 +197,7 @@ def test_the_traffic_model_counts_the_gathers_arrays():
     import traffic
 
     for worlds in (1, 4):
-        model = cloth.warpspring_model(8, "cpu", "gather", worlds=worlds)
+        model = cloth.warpspring_model(8, "cpu", "gather", worlds=worlds, spring_groups=False)
         b = traffic.per_particle(traffic.gather_traffic(model), model)
         assert b["state"] == 48.0
         assert b["topology"] == 2 * 12 * 4 / worlds
@@ -206,6 +206,34 @@ def test_the_traffic_model_counts_the_gathers_arrays():
         assert b["requested"] > b["compulsory"]
     with pytest.raises(ValueError, match="spring_evaluation='gather'"):
         traffic.gather_traffic(cloth.warpspring_model(8, "cpu", "scatter"))
+
+
+def test_the_traffic_model_counts_spring_data_per_group():
+    """With spring data per group (the cloth's default: structural, shear and bend each uniform), by hand: the
+    same 48 B of state and 12 B of flags and masses, 12 slots × 4 B of other particles (no spring index), and
+    per group its spring and three values, 3 × (4 + 3 × 4) B for the whole model; a non-uniform group's slots
+    add their spring index and its springs' values."""
+    import traffic
+
+    for worlds in (1, 4):
+        model = cloth.warpspring_model(8, "cpu", "gather", worlds=worlds)
+        assert model.spring_slot_groups == (0,) * 4 + (1,) * 4 + (2,) * 4
+        rows = traffic.gather_traffic(model)
+        assert "head_element" not in [r.name for r in rows]
+        b = traffic.per_particle(rows, model)
+        assert b["state"] == 48.0
+        assert b["topology"] == 12 * 4 / worlds
+        np.testing.assert_allclose(b["spring"], 3 * (4 + 3 * 4) / (64 * worlds))
+        np.testing.assert_allclose(b["particle"], 4 + 8 / worlds + (model.inputs.shape[1] * 4 + 16) / 64)
+    # One structural spring's ke doubled: the structural slots read per spring again, spring index and values
+    # of its 112 springs, each 4 B of index and 12 B of values; shear and bend stay per group.
+    ke = model.world_values("spring_stiffness")[0].copy()
+    ke[0] *= 2.0
+    model.set_world_values("spring_stiffness", ke)
+    assert model.spring_slot_groups == (-1,) * 4 + (1,) * 4 + (2,) * 4
+    b = traffic.per_particle(traffic.gather_traffic(model), model)
+    assert b["topology"] == (12 + 4) * 4 / 4
+    np.testing.assert_allclose(b["spring"], (3 * (4 + 3 * 4) + 112 * 12) / (64 * 4))
 
 
 def test_ncu_output_is_read_in_base_units():

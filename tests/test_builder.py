@@ -70,10 +70,11 @@ def test_grid_triangles_face_local_plus_z():
 def test_incidence_table_holds_every_spring_twice():
     """The gather's incidence table lists, for each particle, exactly the springs touching it with the other
     end, then padding slots naming the particle itself (zero force); a cloth's uniform degree gives a head as
-    wide as the largest degree and no tail."""
+    wide as the largest degree and no tail. (The per-spring layout: the grouped one, whose padding sits in
+    each group's slots, is tested in test_spring_groups.py.)"""
     builder = ws.ModelBuilder()
     builder.add_cloth_grid(nx=5, ny=4, spacing=0.1, mass=2.0)
-    model = builder.finalize("cpu", spring_evaluation="gather")
+    model = builder.finalize("cpu", spring_evaluation="gather", spring_groups=False)
     table, shape = model.spring_incidence, model.spring_incidence_shape
     neighbor, sid = table.head_local.numpy(), table.head_element.numpy()
     pairs = model.spring_indices.numpy()

@@ -32,7 +32,7 @@ from .kinematics import PinGroup, PinGroupTable
 from .material import ClothMaterial, edge_springs, grid_masses, grid_springs, hinge_parameters, lumped_masses
 from .model import MeshGroup, Model, ShapeInfo, SkinGroup, Stabilizers
 from .selfcontact import DEFAULT_RELAXATION, check_settings, make_self_contact
-from .springs import SPRING_LAWS, SpringPlasticity, spring_law_code
+from .springs import SPRING_LAWS, SpringPlasticity, set_spring_layout, spring_law_code
 from ..kernels.springs import SpringLaw
 from .tracks import Track, as_track, input_track
 from .transforms import quat_between, quat_to_matrix
@@ -1203,7 +1203,7 @@ class ModelBuilder:
 
     def finalize(self, device=None, *, precision: str = "float32", spring_evaluation: str = "auto",
                  worlds: int = 1, contact_stage: bool | None = None, contact_slots: int | None = None,
-                 integrator: str = "symplectic_euler", check_memory: bool = True) -> Model:
+                 integrator: str = "symplectic_euler", check_memory: bool = True, spring_groups: bool = True) -> Model:
         """Copy the scene to ``device`` as a :class:`Model`.
 
         Before it allocates anything, finalize estimates the memory of the model and of a run of it
@@ -1231,6 +1231,9 @@ class ModelBuilder:
             integrator: the name of the integrator the model will be stepped with; only the memory check uses it
                 (its scratch states count in the estimate). The default, symplectic Euler, needs the least.
             check_memory: refuse a model whose estimate does not fit (default); ``False`` skips the check.
+            spring_groups: with gathered springs, read each spring group's rest length, ke and kd once per
+                group where every spring of the group has the same ones (``Model.spring_slot_groups``), instead
+                of once per spring; ``False`` reads them per spring.
 
         Raises:
             ConfigError: a bad option, a scene beyond the kernels' 32-bit indices, or a model that does not fit in
@@ -1258,7 +1261,8 @@ class ModelBuilder:
         if check_memory:
             memory.check_fits(estimate, memory.available_memory(device), precision=precision)
         try:
-            return self._finalize(device, precision, scalar, worlds, spring_evaluation, contact_stage, contact_slots)
+            return self._finalize(device, precision, scalar, worlds, spring_evaluation, contact_stage, contact_slots,
+                                  spring_groups=spring_groups)
         except (RuntimeError, MemoryError) as exc:
             if not memory.out_of_memory(exc):
                 raise
@@ -1325,7 +1329,7 @@ class ModelBuilder:
         )
 
     def _finalize(self, device, precision: str, scalar, worlds: int, spring_evaluation: str,
-                  contact_stage: bool | None, contact_slots: int | None) -> Model:
+                  contact_stage: bool | None, contact_slots: int | None, *, spring_groups: bool = True) -> Model:
         """The model's arrays on ``device`` (the arguments checked by :meth:`finalize`)."""
         vec3 = vec3_type(scalar)
         float_np = np.float64 if scalar is wp.float64 else np.float32
@@ -1401,6 +1405,8 @@ class ModelBuilder:
             springs, n, springs[:, ::-1], lambda particles: particles, device=device
         )
         self._finalize_spring_laws(model, farray, iarray)
+        model._spring_grouping = spring_groups
+        set_spring_layout(model, spring_groups)
 
         hinges = np.concatenate(self._hinges) if self._hinges else np.zeros((0, 4), dtype=np.int64)
         model.hinge_count = len(hinges)

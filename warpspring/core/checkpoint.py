@@ -189,6 +189,7 @@ class Checkpoint:
                 setattr(model, name, wp.array(values, dtype=model.scalar, device=model.device))
             elif values.size:
                 live[key].assign(values)
+        model.refresh_spring_layout()  # saved per-spring values within a group read per group: per spring now
         sim.frame = self.frame
         sim.world_failures = self.world_failures()
 

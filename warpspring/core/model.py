@@ -23,7 +23,7 @@ from ..kernels.precision import transform_type, vec3_type
 from .kinematics import PinGroupTable, apply_kinematics
 from .mesh_colliders import make_mesh_colliders
 from .bending import HingeFamily
-from .springs import SpringFamily
+from .springs import SpringFamily, set_spring_layout
 from .tracks import Track, TrackTable, as_track, input_track
 
 SHAPE_KINDS = {name: kind for kind, name in SHAPE_NAMES.items()}
@@ -250,6 +250,12 @@ class Model:
       off, a track added or removed) or replacing an array. This bumps :attr:`revision`, and a
       :class:`~warpspring.core.stepper.Stepper` re-captures its graph at its next frame (a newly switched-on
       term compiles once). Replacing an array attribute counts as structure too.
+
+    Spring data per group: where every spring of a group (``spring_families``) has the same rest length, ke
+    and kd, the gather reads them once per group (:attr:`spring_slot_groups`), from the group's spring in
+    :attr:`spring_group_spring`. An in-place write that keeps each group uniform stays a value write; values
+    that differ within a group go through :meth:`set_world_values`, or call :meth:`refresh_spring_layout`
+    after writing them in place: either reads that group per spring from then on (a structural change).
     """
 
     device: wp.Device
@@ -289,6 +295,11 @@ class Model:
     spring_incidence: Incidence  # the springs at each particle: entries (spring, other particle), HYB layout
     #   (kernels/families.py); padding entries (0, the particle itself)
     spring_incidence_shape: IncidenceShape  # its ELL head width and whether it has a CSR tail
+    spring_slot_groups: tuple  # host-side: per head slot, the spring group (spring_families' order) whose values
+    #   the gather reads once per group (a uniform group), or -1 (read per spring); () for the per-spring
+    #   layout (core/springs.spring_layout)
+    spring_group_spring: wp.array | None  # int32, shape [group_count]: one spring of each group (its values
+    #   are the group's), or None
     spring_material_law: SpringLaw  # the laws the spring groups use (square, asymmetric, plastic switches)
     spring_law_code: wp.array | None  # int32, shape [spring_count]: SPRING_LINEAR or SPRING_SQUARE (laws in use)
     spring_compression_ratio: wp.array | None  # kc / ke [-], shape [spring_count] (laws in use)
@@ -346,6 +357,9 @@ class Model:
         self.meshes = []
         self.skins = []
         self.spring_families = {}
+        self.spring_slot_groups = ()
+        self.spring_group_spring = None
+        self._spring_grouping = False  # finalize(spring_groups=): whether the layout follows the values
         self.spring_material_law = SpringLaw()
         self.spring_plastic_count = 0
         for name in ("spring_law_code", "spring_compression_ratio", "spring_plastic_index", "spring_yield_strain",
@@ -572,7 +586,8 @@ class Model:
           ``hinge_damping`` [N·m·s/rad] likewise per hinge; ``particle_mass`` [kg]: shape
           [world_count, particle_count] or [particle_count]. One row for all worlds is stored once
           (the kernels broadcast it); a change between one row and one per world replaces the array (a
-          structural change: the next frame re-captures).
+          structural change: the next frame re-captures), and so does a spring value that makes a group read
+          per group non-uniform, or one read per spring uniform again (:meth:`refresh_spring_layout`).
 
         E.g. a sweep of stiffness over 16 worlds:
         ``model.set_world_values("spring_stiffness", ke[None, :] * np.geomspace(0.1, 10, 16)[:, None])``.
@@ -635,6 +650,8 @@ class Model:
                 current.assign(cast)
             else:
                 setattr(self, attribute, wp.array(np.ascontiguousarray(cast), dtype=self.scalar, device=self.device))
+        if name in ("spring_stiffness", "spring_damping"):
+            self.refresh_spring_layout()
         self.input_version += 1  # the energy scale and the elastic energy changed (the guard re-derives them)
 
     def world_values(self, name: str) -> np.ndarray:
@@ -875,6 +892,8 @@ class Model:
         stiffness = stiffness or {}
         chain = composed_elements(self.scalar, self.family_specs(linear=linear)).arrays()
         arrays = [family.arrays(self, stiffness=stiffness.get(family.name)) for family in self.families]
+        if linear and self.spring_slot_groups:  # the analysis's spring spec reads values per spring
+            arrays[0] = self.families[0].arrays(self, stiffness=stiffness.get("springs"), grouped=False)
         return fill_elements(chain, arrays)
 
     def spring_arrays(self):
@@ -882,7 +901,22 @@ class Model:
         come first."""
         if not self.spring_count:
             raise ConfigError("the model has no springs")
+        if self.spring_slot_groups:  # the gather's struct also holds the groups: the per-spring one here
+            cached = getattr(self, "_spring_arrays_cache", None)
+            if cached is None or cached[0] != self.revision:
+                cached = (self.revision, SpringFamily(self).arrays(self, grouped=False))
+                self._spring_arrays_cache = cached
+            return cached[1]
         return self.elements.head
+
+    def refresh_spring_layout(self) -> None:
+        """After in-place writes of spring rest lengths, stiffness or damping: lay the springs out as their
+        values now call for (a group that no longer has one value is read per spring, one that has again per
+        group; no group left: the per-spring table), as a model built with these values would be. A new
+        layout is a structural change (the next frame re-captures); the same one changes nothing. A model
+        finalized with ``spring_groups=False`` keeps its per-spring layout."""
+        if self._spring_grouping:
+            set_spring_layout(self, True)
 
     def force_features(self, control: Control | None) -> ForceFeatures:
         """The force terms a step of this model under ``control`` evaluates."""

@@ -7,9 +7,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import warp as wp
 
 from .. import checks
 from ..errors import ConfigError
+from ..kernels.families import MAX_HEAD_SLOTS, Incidence, IncidenceShape
 from ..kernels.springs import (
     SPRING_LINEAR,
     SPRING_SQUARE,
@@ -17,7 +19,7 @@ from ..kernels.springs import (
     plastic_arrays_type,
     spring_arrays_type,
 )
-from .families import ElementFamily
+from .families import ElementFamily, build_incidence, head_slots
 
 #: The spring laws a group of springs may follow (``ModelBuilder.add_springs(law=...)``), by name: the
 #: tension T at a stretch Δ = |d| - L is k Δ (linear, k in N/m) or k Δ|Δ| (square, k in N/m²).
@@ -108,15 +110,23 @@ class SpringFamily(ElementFamily):
         # stiffest branch as a stiffness override) but keeps the material's: each spring's own law, whose
         # tangent at the state it linearises about, and the per-world rest lengths of plastic springs.
         material = model.spring_material_law
+        gathered = model.spring_gather and not linear
         return SpringSpec(
             incidence=model.spring_incidence_shape,
             law=material if linear else model.spring_law,
-            gathered=model.spring_gather and not linear,
+            gathered=gathered,
+            slot_groups=model.spring_slot_groups if gathered else (),
         )
 
-    def arrays(self, model, *, stiffness=None):
+    def arrays(self, model, *, stiffness=None, grouped: bool | None = None):
+        """The struct of the spring arrays for ``spec(model)`` (``grouped``: for a spec with slot groups or
+        without, default the model's gather spec's)."""
         law = model.spring_material_law
-        springs = spring_arrays_type(model.scalar, law.per_spring)()
+        if grouped is None:
+            grouped = bool(model.spring_slot_groups) and model.spring_gather
+        springs = spring_arrays_type(model.scalar, law.per_spring, grouped)()
+        if grouped:
+            springs.group_spring = model.spring_group_spring
         springs.indices = model.spring_indices
         springs.rest_length = model.spring_plastic_rest_length if law.plastic else model.spring_rest_length
         springs.stiffness = model.spring_stiffness if stiffness is None else stiffness
@@ -185,3 +195,122 @@ class SpringFamily(ElementFamily):
     def describe_element(self, model, element: int) -> str:
         a, b = model.spring_indices.numpy()[element]
         return f"spring {element} (particles {a}-{b})"
+
+
+
+# -- spring data per group -----------------------------------------------------------------------------------
+
+
+def uniform_groups(model) -> np.ndarray:
+    """Whether each spring group (``model.spring_families``, in order) has one rest length, and one ke and one kd
+    in each stiffness and damping row, bool, shape [group_count] (reads the device)."""
+    rest, ke, kd = (model.spring_rest_length.numpy(), model.spring_stiffness.numpy(), model.spring_damping.numpy())
+    return np.array([len(members) > 0 and bool(np.all(rest[members] == rest[members[0]])
+                                               and np.all(ke[:, members] == ke[:, members[:1]])
+                                               and np.all(kd[:, members] == kd[:, members[:1]]))
+                     for members in model.spring_families.values()], dtype=bool)
+
+
+def group_incidence(springs: np.ndarray, group: np.ndarray, particle_count: int, *, device):
+    """The springs' incidence (entries (spring, other particle)) laid out group by group: group g owns the
+    head slots [start_g, start_g + width_g), width_g its largest degree at one particle, and a particle's
+    springs of group g fill its slots from start_g (role-major, then in spring order, as ``build_incidence``),
+    the rest padding (0, the particle itself). Every entry is in the head: there is no tail.
+
+    Args:
+        springs: the two particles of each spring (per-world indices), int, shape [spring_count, 2].
+        group: each spring's group, int in [0, group_count), shape [spring_count].
+        particle_count: particles per world.
+        device: the Warp device.
+
+    Returns:
+        (table, shape, slot_groups): the Incidence, its IncidenceShape and the group of each head slot; or
+        None when the head would be wider than ``MAX_HEAD_SLOTS``.
+    """
+    count = len(springs)
+    group_count = int(group.max()) + 1 if count else 0
+    owner = springs.T.ravel()
+    element = np.tile(np.arange(count), 2)
+    other = springs[:, ::-1].T.ravel()
+    entry_group = np.tile(group, 2)
+    order = np.lexsort((element, np.repeat([0, 1], count), entry_group, owner))  # owner, group, role, spring
+    owner, element, other, entry_group = owner[order], element[order], other[order], entry_group[order]
+    key = owner * group_count + entry_group
+    first = np.searchsorted(key, key)  # first entry of the same (particle, group); key is sorted
+    rank = np.arange(len(key)) - first
+    width = np.zeros(group_count, dtype=np.int64)
+    np.maximum.at(width, entry_group, rank + 1)
+    if width.sum() > MAX_HEAD_SLOTS:
+        return None
+    start = np.concatenate([[0], np.cumsum(width)])
+    slot = start[entry_group] + rank
+    head_slots = int(width.sum())
+    head_element = np.zeros((head_slots, particle_count), dtype=np.int32)
+    head_local = np.broadcast_to(np.arange(particle_count, dtype=np.int32), (head_slots, particle_count)).copy()
+    head_element[slot, owner] = element
+    head_local[slot, owner] = other
+    table = Incidence()
+    table.head_element = wp.array(head_element, dtype=wp.int32, device=device)
+    table.head_local = wp.array(head_local, dtype=wp.int32, device=device)
+    table.tail_start = wp.zeros(particle_count + 1, dtype=wp.int32, device=device)
+    table.tail_element = wp.zeros(0, dtype=wp.int32, device=device)
+    table.tail_local = wp.zeros(0, dtype=wp.int32, device=device)
+    slot_groups = tuple(int(g) for g in np.repeat(np.arange(group_count), width))
+    return table, IncidenceShape(head_slots=head_slots, tail=False), slot_groups
+
+
+def spring_layout(model):
+    """The spring layout the model's values call for: (table, shape, slot_groups) of ``group_incidence`` with
+    the slots of non-uniform groups marked -1, where the springs are gathered without per-spring law arrays
+    or plasticity, some group is uniform, the grouped head fits and moves no more bytes than the per-spring
+    head; else None (per spring, role-major). A function of the topology and the values alone, so a model
+    switched between frames gets what a model built with its values gets."""
+    law = model.spring_material_law
+    if not (model.spring_gather and model.spring_count) or law.per_spring or law.plastic:
+        return None
+    uniform = uniform_groups(model)
+    if not uniform.any():
+        return None
+    springs = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64)
+    group = np.zeros(model.spring_count, dtype=np.int64)
+    for g, members in enumerate(model.spring_families.values()):
+        group[members] = g
+    # The grouped table depends on the topology alone: built once, kept for later switches (``_spring_groups``).
+    cached = getattr(model, "_spring_groups", None)
+    layout = cached[0] if cached else group_incidence(springs, group, model.particle_count, device=model.device)
+    model._spring_groups = (layout,)
+    if layout is None:
+        return None
+    table, shape, slot_groups = layout
+    slot_groups = tuple(g if uniform[g] else -1 for g in slot_groups)
+    # Per particle: a grouped slot moves one int (the other particle), a slot read per spring two ints and a
+    # rest length, ke and kd; the per-spring head moves the latter in every slot (and its tail's start).
+    scalar = wp.types.type_size_in_bytes(model.scalar)
+    per_spring_slot = 8 + 3 * scalar
+    grouped_bytes = 4 * len(slot_groups) + (per_spring_slot - 4) * slot_groups.count(-1)
+    degree = np.bincount(springs.ravel(), minlength=model.particle_count)
+    width = head_slots(degree)
+    if grouped_bytes > per_spring_slot * width:
+        return None
+    return table, shape, slot_groups
+
+
+def set_spring_layout(model, grouped: bool) -> None:
+    """Lay the springs out as ``spring_layout`` says (``grouped``) or per spring (role-major incidence,
+    ``build_incidence``), setting ``spring_incidence``, ``spring_incidence_shape``, ``spring_slot_groups`` and
+    ``spring_group_spring``. On a finalized model, a layout other than the current one replaces them (a
+    structural change); the same layout changes nothing."""
+    layout = spring_layout(model) if grouped else None
+    current = getattr(model, "spring_slot_groups", None) if hasattr(model, "spring_incidence") else None
+    if (layout[2] if layout else ()) == current:
+        return
+    if layout is None:
+        springs = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64)
+        model.spring_incidence, model.spring_incidence_shape = build_incidence(
+            springs, model.particle_count, springs[:, ::-1], lambda particles: particles, device=model.device)
+        model.spring_slot_groups = ()
+        model.spring_group_spring = None
+        return
+    firsts = [int(members[0]) if len(members) else 0 for members in model.spring_families.values()]
+    model.spring_incidence, model.spring_incidence_shape, model.spring_slot_groups = layout
+    model.spring_group_spring = wp.array(np.asarray(firsts, dtype=np.int32), dtype=wp.int32, device=model.device)
