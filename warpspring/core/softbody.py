@@ -41,6 +41,7 @@ from __future__ import annotations
 import inspect
 import math
 import os
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -497,10 +498,11 @@ def tetrahedral_topology(mesh, *, edge_length: float, youngs_modulus: float, eps
     import tempfile
 
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    # fTetWild writes "__tracked_surface.stl" into the working directory: let it write into a temporary one
-    # (the working directory is the process's: not for threads that rely on theirs meanwhile)
+    # fTetWild writes "__tracked_surface.stl" into the working directory and pytetwild takes no directory for it:
+    # let it write into a temporary one. The working directory is the process's, so two builds in threads hold
+    # the lock in turn; other threads that open relative paths meanwhile would still see the temporary one.
     here = os.getcwd()
-    with tempfile.TemporaryDirectory(prefix="warpspring_tet_") as scratch:
+    with _TETWILD_LOCK, tempfile.TemporaryDirectory(prefix="warpspring_tet_") as scratch:
         os.chdir(scratch)
         try:
             positions, tets = pytetwild.tetrahedralize(vertices, np.asarray(mesh.faces, dtype=np.int32),
@@ -659,6 +661,8 @@ def _signed_volumes(positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
     p = positions[tets]
     return np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0
 
+
+_TETWILD_LOCK = threading.Lock()  # fTetWild runs in a changed working directory: one build at a time
 
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 
