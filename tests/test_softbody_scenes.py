@@ -64,3 +64,21 @@ def test_advice_leaves_plastic_springs_as_built(device):
     for _ in range(8):  # and the run itself yields within 0.13 s (a quarter of the bending period), as the dry run had
         sim.step_frame()
     assert np.abs(model.spring_plastic_rest_length.numpy() - rest).max() > 1.0e-4
+
+
+def test_skin_pinned_primvar(device, tmp_path):
+    """``primvars = ("pinned",)`` on a soft body's mesh: 1 at the 4 vertices of the bar's pinned left face (each
+    follows one pinned corner particle), 0 at the 4 of its free right face."""
+    from pxr import Usd, UsdGeom
+
+    from warpspring.io.usd import UsdWriter
+
+    model = parse_scene(bar_scene(pin=PIN)).finalize(device)
+    path = tmp_path / "bar.usda"
+    with UsdWriter(path, model, fps=60.0, primvars=("pinned",)) as writer:
+        writer.write_frame(model.state())
+    stage = Usd.Stage.Open(str(path))  # held: a prim does not keep its stage alive
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/soft_body"))
+    points = np.asarray(mesh.GetPointsAttr().Get(0))
+    pinned = np.asarray(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("pinned").Get(0))
+    np.testing.assert_array_equal(pinned, np.isclose(points[:, 0], -0.5).astype(np.int32))
