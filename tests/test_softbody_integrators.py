@@ -77,3 +77,46 @@ def test_deformed_bodies_fall_with_every_integrator(device, bodies, name):
         np.testing.assert_allclose(centre, expected, rtol=0.0, atol=atol, err_msg=body.method)
         relative = (q[body.particles] - centre) - (q0[body.particles] - centre0)
         assert np.abs(relative).max() > 1.0e-4, body.method
+
+
+@pytest.fixture(scope="module")
+def resting_cube():
+    """A 0.2 m voxel cube (5 cm voxels, E = 100 kPa) just above frictionless ground, with drag, and the float64
+    static solve's shortening between its bottom and top layers under its weight (bottom held on the ground)."""
+    from warpspring.analysis.softbody_elasticity import _hold_rigid_in_plane
+    from warpspring.core import softbody as sb
+
+    cube = trimesh.creation.box((0.2, 0.2, 0.2))
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, -G), drag=20.0)  # [N·s/m]: the slowest mode overdamped
+    body = builder.add_soft_body(cube, method="voxel", youngs_modulus=1.0e5, density=RHO, spacing=0.05,
+                                 origin=(0.0, 0.0, 0.1125))  # the bottom layer one particle radius up
+    builder.add_ground_plane(friction=0.0)
+    x = body.topology.positions
+    bottom, top = x[:, 2] < x[:, 2].min() + 1.0e-6, x[:, 2] > x[:, 2].max() - 1.0e-6
+    fixed = np.zeros(x.shape, dtype=bool)
+    fixed[bottom, 2] = True
+    _hold_rigid_in_plane(fixed, x, np.flatnonzero(bottom), (0, 1))
+    force = np.zeros_like(x)
+    force[:, 2] = -G * sb.distribute_mass(body.topology, body.mass)
+    u = sb.static_displacement(body.topology, force, fixed)
+    return builder, body, bottom, top, u[bottom, 2].mean() - u[top, 2].mean()
+
+
+@pytest.mark.parametrize("name", sorted(FALL))
+def test_voxel_cube_settles_to_the_static_solve(device, resting_cube, name):
+    """After 0.3 s on the ground every integrator's cube is shortened as the static solve says (1.94 mm, strain
+    1 %). Measured on the CPU: +1.3 % (explicit, symplectic Euler, midpoint), +1.9 % (RK4, dopri5), +2.5 %
+    (velocity Verlet), +4.2 % (implicit Euler); a fixed point of every scheme is the same equilibrium, so the
+    spread is the linear solve's: geometric nonlinearity (~ the strain, 1 %) and the ground's penalty contact
+    against a held bottom layer, and implicit Euler's extra 3 % is not explained. Asserted: within 6 %."""
+    builder, body, bottom, top, static = resting_cube
+    model = builder.finalize(device)
+    integrator = ws.make_integrator(name, model)
+    a, b = model.state(), model.state()
+    dt = 2.0e-4 if name == "explicit_euler" else 1.0e-3  # [s]: explicit Euler grows the stiffest mode by (ωdt)²/2
+    for _ in range(round(0.3 / dt)):
+        integrator.step(a, b, None, dt)
+        a, b = b, a
+    q = a.particle_q.numpy().astype(np.float64)[body.particles]
+    shortening = 0.2 - (q[top, 2].mean() - q[bottom, 2].mean())
+    assert shortening == pytest.approx(static, rel=0.06)
