@@ -127,10 +127,10 @@ def drop(device, usd_path: str) -> tuple[list[dict], float]:
         surface = trimesh.Trimesh(body.skin.points(q), ball.faces, process=False)
         inverted = None
         if body.topology.tets is not None:
-            tets = body.particles[body.topology.tets]
-            p = q[tets]
-            volume = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
-            inverted = int((volume <= 0.0).sum())
+            # against each tet's own rest orientation (the Delaunay method keeps scipy's, of either sign)
+            rest = sb._signed_volumes(body.topology.positions, body.topology.tets)
+            now = sb._signed_volumes(q, body.particles[body.topology.tets])
+            inverted = int((now * np.sign(rest) <= 0.0).sum())
         rows.append({"method": body.method, "particles": body.particle_count, "springs": body.spring_count,
                      "build": body.build_seconds, "volume": float(surface.volume) / rest_volume - 1.0,
                      "inverted": inverted, "slivers": body.slivers})

@@ -346,14 +346,15 @@ def test_voxel_cube_and_bar_honour_young_modulus(body_diagonals):
 
 
 @needs_tet
-def test_tetrahedral_bar_and_cube_within_the_heuristic():
-    """k_e = E·ΣV_t/L_e² on fTetWild's tets (coarsened toward the spacing, no slivers) is a heuristic, and its
-    error does not fall with resolution: fTetWild's meshes differ from run to run, and so do the errors.
-    Measured over six runs: the bar at 2 cells across −5 … +50 %, at 4 across −6 … +16 %; the cube at 4 per
-    side +7 … +47 %, at 8 per side −13 … +5 % (bench/results/softbody_cpu.md). Asserted: the finest of those,
-    within ±25 %; the issue's "falls with resolution and within 10 %" holds for the voxel lattice only."""
-    errors = [_bar("tetrahedral", 4), _cube("tetrahedral", 8)]
-    assert max(abs(e) for e in errors) < 0.25, errors
+def test_tetrahedral_bar_and_cube_honour_young_modulus():
+    """k_e = E·ΣV_t/L_e² on fTetWild's tets at the target edge length (not coarsened). fTetWild has no seed, so
+    its meshes and the errors differ from run to run; measured over seven runs (bench/RESULTS.md §18): the bar
+    at 2 / 3 / 4 cells across −2.9 … +20 / +6.7 … +8.9 / +1.0 … +3.9 %, the cube at 4 / 6 / 8 per side
+    +6.5 … +13 / −4.8 … +0.2 / −2.8 … +7.4 %. Asserted at the finest, with the spread's margin: the bar
+    within 6 %, the cube within 10 % (the issue's target)."""
+    bar, cube = _bar("tetrahedral", 4), _cube("tetrahedral", 8)
+    assert abs(bar) < 0.06, bar
+    assert abs(cube) < 0.10, cube
 
 
 # -- scene files --------------------------------------------------------------------------------------------------

@@ -833,6 +833,26 @@ class TransientPeak:
     finite: bool
 
 
+def _keeps_plasticity(function):
+    """Run ``function(model, ...)`` and put the model's plastic springs back as they were: its static solves and
+    dry runs step the model, and plastic springs keep their yield in the model (a plastic bar that sagged in
+    the dry run would start the real run collapsed)."""
+
+    @functools.wraps(function)
+    def wrapper(model, *args, **kwargs):
+        if not model.spring_material_law.plastic:
+            return function(model, *args, **kwargs)
+        saved = wp.clone(model.spring_plastic_rest_length), wp.clone(model.spring_plastic_strain)
+        try:
+            return function(model, *args, **kwargs)
+        finally:
+            wp.copy(model.spring_plastic_rest_length, saved[0])
+            wp.copy(model.spring_plastic_strain, saved[1])
+
+    return wrapper
+
+
+@_keeps_plasticity
 def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float = PROBE_HORIZON,
                    start: OmegaMaxEstimate | None = None, start_positions: np.ndarray | None = None) -> TransientPeak:
     """The highest ω_max each world reaches on its way from the initial state: a dry run of the scene as it
@@ -1104,6 +1124,7 @@ def _world_limits(integrator: str, omegas: np.ndarray, ranges: list) -> np.ndarr
     return limits
 
 
+@_keeps_plasticity
 def advise(
     model: Model,
     integrator: str,

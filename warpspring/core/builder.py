@@ -198,6 +198,10 @@ class ModelBuilder:
         self._particle_count += n
         return np.arange(start, start + n)
 
+    def particle_positions(self, indices) -> np.ndarray:
+        """The positions [m], shape [n, 3], of particles added so far, by global index (float64 copies)."""
+        return np.concatenate(self._q)[_indices("particle", indices, self._particle_count)].astype(np.float64)
+
     def pin_particles(self, indices) -> None:
         """Pin particles (make them kinematic: no force moves them) by global index."""
         self._extra_pins.append(_indices("pinned particle", indices, self._particle_count))
@@ -910,6 +914,7 @@ class ModelBuilder:
         options: Mapping | None = None,
         name: str = "soft_body",
         prim: str | None = None,
+        plasticity: SpringPlasticity | None = None,
     ):
         """Add a soft body made from a closed mesh by one of the seven mass-spring topologies.
 
@@ -943,6 +948,8 @@ class ModelBuilder:
                 ``thickness``, ``epsilon``, ``optimize``, ``seed``, ``max_vertices``, ...).
             name: the exported mesh's name; the spring families are ``<name>_<group>``.
             prim: for a USD file, the path of the mesh prim to read.
+            plasticity: how every spring of the body yields and breaks (:class:`SpringPlasticity`, its limits
+                per spring, e.g. ``yield_strain``); default: elastic.
 
         Returns:
             A :class:`~warpspring.core.softbody.SoftBody`: the particles and springs added, per group counts,
@@ -1014,7 +1021,8 @@ class ModelBuilder:
         springs = {}
         for group, (pairs, ke) in topology.springs.items():
             if len(pairs):
-                springs[group] = self.add_springs(ids[pairs], stiffness=ke, damping=beta * ke, family=f"{name}_{group}")
+                springs[group] = self.add_springs(ids[pairs], stiffness=ke, damping=beta * ke, family=f"{name}_{group}",
+                                                  plasticity=plasticity)
         skin = SkinGroup(
             name=name,
             indices=ids[topology.skin_indices][inverse.reshape(-1)],

@@ -23,9 +23,12 @@ L·(n·ε·n) and stores ½ k L² (n·ε·n)²):
   Székely & Harders 2007 derive springs from linear FEM and Baudet et al. 2009 show the limits). Under an
   affine strain with edge directions spread evenly it stores E(2 tr ε² + (tr ε)²)/5, the isotropic solid of
   Young's modulus E and ν = 1/4; a real mesh is neither affine (its interior relaxes) nor evenly spread,
-  and the error does not fall with resolution: fTetWild bodies measured −13 … +50 % against the cube and bar
-  checks, a Delaunay lattice of a cube 17-18 % too stiff at any resolution (``bench/RESULTS.md`` §18). Fitting
-  each tet's six springs to the isotropic stiffness by least squares measured worse (+10 … +99 %).
+  and how well the rule holds depends on the mesh. On fTetWild's tets left at the target edge length the
+  error falls with resolution (bar +15 → +7 → +3.5 %, cube +9 → −1 → ±5 % at 2/3/4 and 4/6/8 cells);
+  fTetWild's coarsening (``coarsen=True``) leaves larger, less even tets and errors of −13 … +50 % that do not
+  fall; a Delaunay lattice of a cube is 17-18 % too stiff at any resolution (``bench/RESULTS.md`` §18).
+  Fitting each tet's six springs to its linear-FEM stiffness (ν = 1/4) by least squares (Lloyd et al. 2007,
+  the 12×12 matrices in the Frobenius norm) measured worse: +5 … +62 %, with or without coarsening.
 * the network methods (brute force, scaffold, shell) and the Delaunay edges use the same volume rule
   k_e = E·V_e/L_e² with Σ_e V_e = 6V (as Σ over a tet mesh's edges of ΣV_t is): brute force, scaffold and
   shell share 6V equally among their springs; the uniform grid's ties and skin edges take their layer's
@@ -38,6 +41,7 @@ from __future__ import annotations
 import inspect
 import math
 import os
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -471,7 +475,8 @@ def shell_topology(mesh, *, youngs_modulus: float, thickness: float | None = Non
 
 
 def tetrahedral_topology(mesh, *, edge_length: float, youngs_modulus: float, epsilon: float = 1.0e-3,
-                         optimize: bool = True, sliver_quality: float = SLIVER_QUALITY) -> Topology:
+                         optimize: bool = True, coarsen: bool = False,
+                         sliver_quality: float = SLIVER_QUALITY) -> Topology:
     """A conforming tetrahedralisation by fTetWild (``pytetwild``, MPL-2.0, the optional extra ``tet``).
 
     fTetWild keeps the boundary within ``epsilon`` × the bounding-box diagonal of the surface, so no tet
@@ -483,8 +488,11 @@ def tetrahedral_topology(mesh, *, edge_length: float, youngs_modulus: float, eps
     Args:
         edge_length: the target edge length [m].
         epsilon: the envelope, relative to the bounding-box diagonal.
-        optimize: let fTetWild improve the tets' quality and coarsen the mesh toward ``edge_length`` (without it
-            fTetWild's output hardly follows ``edge_length`` and keeps slivers of quality ~1e-6).
+        optimize: let fTetWild improve the tets' quality (without it fTetWild's output hardly follows
+            ``edge_length`` and keeps slivers of quality ~1e-6).
+        coarsen: let fTetWild also coarsen the mesh as far as its quality allows: fewer, larger and less even
+            tets than ``edge_length`` asks for, on which the volume rule misses E by −13 … +50 % (module
+            docstring); off by default. fTetWild has no seed: its meshes differ slightly from run to run.
         sliver_quality: the quality below which a tet is reported as a sliver.
     """
     try:
@@ -495,15 +503,16 @@ def tetrahedral_topology(mesh, *, edge_length: float, youngs_modulus: float, eps
     import tempfile
 
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    # fTetWild writes "__tracked_surface.stl" into the working directory: let it write into a temporary one
-    # (the working directory is the process's: not for threads that rely on theirs meanwhile)
+    # fTetWild writes "__tracked_surface.stl" into the working directory and pytetwild takes no directory for it:
+    # let it write into a temporary one. The working directory is the process's, so two builds in threads hold
+    # the lock in turn; other threads that open relative paths meanwhile would still see the temporary one.
     here = os.getcwd()
-    with tempfile.TemporaryDirectory(prefix="warpspring_tet_") as scratch:
+    with _TETWILD_LOCK, tempfile.TemporaryDirectory(prefix="warpspring_tet_") as scratch:
         os.chdir(scratch)
         try:
             positions, tets = pytetwild.tetrahedralize(vertices, np.asarray(mesh.faces, dtype=np.int32),
                                                        edge_length_abs=float(edge_length), epsilon=float(epsilon),
-                                                       optimize=bool(optimize), coarsen=bool(optimize),
+                                                       optimize=bool(optimize), coarsen=bool(optimize and coarsen),
                                                        num_threads=1, quiet=True)
         finally:
             os.chdir(here)
@@ -657,6 +666,8 @@ def _signed_volumes(positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
     p = positions[tets]
     return np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0
 
+
+_TETWILD_LOCK = threading.Lock()  # fTetWild runs in a changed working directory: one build at a time
 
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 

@@ -79,6 +79,7 @@ import numpy as np
 from ..core.aero import AIR_DENSITY, DEFAULT_DRAG, DEFAULT_LIFT
 from ..core.builder import DEFAULT_BEND, DEFAULT_SHEAR, DEFAULT_STRUCTURAL, ModelBuilder, SpringMaterial
 from ..core.builder import spring_law_options
+from ..core.springs import SpringPlasticity
 from ..errors import ConfigError
 from ..core.guards import GuardLimits
 from ..core.integrators import INTEGRATORS
@@ -449,6 +450,9 @@ _SOFT_BODY = {
     "skin_mass_factor": POSITIVE,
     "mass_gradient": VECTOR,
     "options": dict,
+    "pin": {"min": VECTOR, "max": VECTOR},
+    "plasticity": {"yield_strain": POSITIVE, "yield_force": POSITIVE, "yield_rate": POSITIVE,
+                   "hardening": NON_NEGATIVE, "break_strain": POSITIVE},
 }
 _SCHEMA = {
     "simulation": {
@@ -671,6 +675,10 @@ def _parse(data: dict, path: str) -> Scene:
             raise ConfigError(f"{where}: [{label}] needs {missing[0]} = ... (the mesh file, and Young's modulus E [Pa])")
         if ("density" in body) == ("mass" in body):
             raise ConfigError(f"{where}: [{label}] needs exactly one of density = ... [kg/m³] or mass = ... [kg]")
+        _check_soft_body_pin(body.get("pin"), where, label)
+        if "plasticity" in body and not ({"yield_strain", "yield_force"} & set(body["plasticity"])):
+            raise ConfigError(f"{where}: {label}.plasticity needs yield_strain = ... [-] or yield_force = ... [N] "
+                              "(its elastic limit)")
     if not cloths and not emitters and not soft_bodies:
         raise ConfigError(f"{where}: the scene has no [cloth] table: add one with grid = {{...}} or mesh = '...' "
                           "(or particles from an [[emitter]])")
@@ -1057,7 +1065,7 @@ def _add_emitter(builder: ModelBuilder, e: dict, base: str) -> None:
 def _add_soft_body(builder: ModelBuilder, body: dict, base: str) -> None:
     """A ``[[soft_body]]`` table (types checked); the mesh file's path is relative to the scene's folder."""
     mesh = body["mesh"] if os.path.isabs(body["mesh"]) else os.path.join(base, body["mesh"])
-    builder.add_soft_body(
+    soft = builder.add_soft_body(
         mesh, method=body.get("method", "voxel"), youngs_modulus=body["youngs_modulus"], density=body.get("density"),
         mass=body.get("mass"), spacing=body.get("spacing"), damping=body.get("damping", 0.0),
         origin=body.get("origin", (0.0, 0.0, 0.0)), rotation=_rotation(body), scale=body.get("scale", 1.0),
@@ -1065,7 +1073,26 @@ def _add_soft_body(builder: ModelBuilder, body: dict, base: str) -> None:
         mass_distribution=body.get("mass_distribution", "volume"), skin_mass_factor=body.get("skin_mass_factor", 1.0),
         mass_gradient=body.get("mass_gradient", (0.0, 0.0, 0.0)), options=body.get("options"),
         name=body.get("name", "soft_body"), prim=body.get("prim"),
+        plasticity=SpringPlasticity(**body["plasticity"]) if "plasticity" in body else None,
     )
+    if "pin" in body:
+        placed = builder.particle_positions(soft.particles)
+        inside = np.all((placed >= body["pin"]["min"]) & (placed <= body["pin"]["max"]), axis=1)
+        if not inside.any():
+            raise ConfigError(f"soft body {soft.name!r}: its pin box {body['pin']['min']} … {body['pin']['max']} [m] "
+                              "holds none of its particles: widen the box (particles lie on the method's lattice)")
+        builder.pin_particles(soft.particles[inside])
+
+
+def _check_soft_body_pin(pin, where: str, label: str) -> None:
+    """A soft body's ``pin = { min = [x, y, z], max = [x, y, z] }`` (types checked): both corners, min ≤ max."""
+    if pin is None:
+        return
+    if "min" not in pin or "max" not in pin:
+        raise ConfigError(f"{where}: {label}.pin needs min = [x, y, z] and max = [x, y, z], the corners [m] of the box "
+                          "whose particles are pinned")
+    if any(lo > hi for lo, hi in zip(pin["min"], pin["max"])):
+        raise ConfigError(f"{where}: {label}.pin has min {pin['min']} above max {pin['max']} on some axis: swap them")
 
 
 def _add_wind(builder: ModelBuilder, wind: dict, tracks: dict) -> None:

@@ -93,7 +93,8 @@ class UsdWriter:
         springs: also write the springs, one ``UsdGeom.BasisCurves`` of linear chains per spring family.
         primvars: optional per-vertex primvars of the meshes, any of ``"strain"`` (per frame: the largest
             strain (l − L)/L of the springs at the vertex [-]), ``"pinned"`` (per frame: 1 where the particle
-            is kinematic, else 0) and ``"rest"`` (once: the positions at the start [m], Pref for procedural
+            is kinematic, else 0; on a soft body's mesh, 1 where every particle the vertex follows is) and
+            ``"rest"`` (once: the positions at the start [m], Pref for procedural
             textures that must stick to the cloth).
         start_frame: the time code of frame 0 (0, 1 or 1001 as pipelines use), ≥ 0.
         collider_purpose: the USD purpose of collider prims: ``"guide"`` (shown in viewports, left out of
@@ -284,7 +285,8 @@ class UsdWriter:
                 if kinematic is not None:
                     samples.append((mesh.pinned, Vt.IntArray.FromNumpy(kinematic[slot.world][particles].astype(np.int32))))
             for skin in slot.skins:
-                samples += self._skin_samples(skin, q, v, vertex_strain)
+                samples += self._skin_samples(skin, q, v, vertex_strain,
+                                              kinematic=None if kinematic is None else kinematic[slot.world])
             if slot.points is not None:
                 points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q))
                 samples += [(slot.points.points, points), (slot.points.velocities, _vec3(Vt, v)),
@@ -732,12 +734,16 @@ class UsdWriter:
             q0 = model.particle_q.numpy().reshape(model.world_count, model.particle_count, 3)[world]
             primvars.CreatePrimvar("rest", Sdf.ValueTypeNames.Point3fArray, UsdGeom.Tokens.vertex).Set(
                 _vec3(Vt, skin.points(q0)))
+        pinned = None
+        if "pinned" in self._primvars:  # per frame: 1 where every particle the vertex follows is pinned
+            pinned = self._animate(primvars.CreatePrimvar(
+                "pinned", Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.vertex).GetAttr())
         return _SkinPrims(skin, points=self._animate(mesh.CreatePointsAttr()),
                           extent=self._animate(mesh.CreateExtentAttr()),
                           normals=self._animate(mesh.CreateNormalsAttr()),
-                          velocities=self._animate(mesh.CreateVelocitiesAttr()), strain=strain)
+                          velocities=self._animate(mesh.CreateVelocitiesAttr()), strain=strain, pinned=pinned)
 
-    def _skin_samples(self, prims, q: np.ndarray, v: np.ndarray, vertex_strain) -> list:
+    def _skin_samples(self, prims, q: np.ndarray, v: np.ndarray, vertex_strain, *, kinematic=None) -> list:
         """One frame's samples of an embedded surface: its vertices Σ w x and velocities Σ w v by a host product
         over the positions already read back (no extra transfer, a fixed order: the same bytes on a rerun),
         area-weighted vertex normals, and the weighted mean of its particles' strain [-] when asked for."""
@@ -757,6 +763,9 @@ class UsdWriter:
         if prims.strain is not None and vertex_strain is not None:
             strain = (skin.weights * vertex_strain[skin.indices]).sum(axis=1)
             samples.append((prims.strain, Vt.FloatArray.FromNumpy(strain.astype(np.float32))))
+        if prims.pinned is not None and kinematic is not None:  # held: no weight on a free particle
+            held = ~((skin.weights != 0.0) & ~kinematic[skin.indices]).any(axis=1)
+            samples.append((prims.pinned, Vt.IntArray.FromNumpy(held.astype(np.int32))))
         return samples
 
     def _emitter_samples(self, prims, world: int, q: np.ndarray, v: np.ndarray) -> list:
@@ -1100,6 +1109,7 @@ class _SkinPrims:
     normals: object
     velocities: object
     strain: object = None
+    pinned: object = None
 
 
 @dataclass
