@@ -60,6 +60,8 @@ NCU_METRICS = ("dram__bytes_read.sum", "dram__bytes_write.sum", "lts__t_bytes.su
 NCU_UNITS = {
     "byte": 1.0, "kbyte": 1e3, "mbyte": 1e6, "gbyte": 1e9, "tbyte": 1e12,
     "nsecond": 1e-9, "usecond": 1e-6, "msecond": 1e-3, "second": 1.0,
+    # `--print-units base` prints durations as "ns" (Nsight Compute on the H100 machine, 2026-11-25)
+    "ns": 1e-9, "us": 1e-6, "ms": 1e-3, "s": 1.0,
 }
 
 

@@ -251,6 +251,9 @@ def test_ncu_output_is_read_in_base_units():
     ])
     assert traffic.parse_ncu_csv(text) == {"dram__bytes_read.sum": 244891136.0, "dram__bytes_write.sum": 25.5e6,
                                            "gpu__time_duration.sum": pytest.approx(111.9e-6)}
+    # `--print-units base` as the H100 machine's Nsight Compute prints a duration: "ns"
+    base = text.replace('"usecond","111.9"', '"ns","111,900"')
+    assert traffic.parse_ncu_csv(base)["gpu__time_duration.sum"] == pytest.approx(111.9e-6)
 
 
 def test_the_scaling_plot_draws_a_csv(tmp_path):
