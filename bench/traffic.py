@@ -49,7 +49,6 @@ import sys
 import time
 from dataclasses import dataclass
 
-import numpy as np
 import warp as wp
 
 import warpspring as ws

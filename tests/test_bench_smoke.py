@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import warp as wp
 
 import warpspring as ws
 

@@ -6,7 +6,6 @@ the tests share three compiled feature sets: a static mesh, a moving mesh, and a
 """
 
 import math
-import warnings
 
 import numpy as np
 import pytest

@@ -10,7 +10,6 @@ import math
 
 import numpy as np
 import pytest
-import warp as wp
 
 import warpspring as ws
 from warpspring.core.families import element_energies

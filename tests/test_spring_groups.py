@@ -7,11 +7,9 @@ reads (a structural change) and continues bit for bit as a model given that valu
 """
 
 import numpy as np
-import pytest
-import warp as wp
 
 import warpspring as ws
-from helpers import hanging_cloth, trajectory
+from helpers import trajectory
 
 DT = 1.0 / 960.0
 STEPS = 24

@@ -135,7 +135,7 @@ def test_a_sweep_file_holds_data_only(tmp_path):
             sw.plan_sweep({"scene": BASE, "axes": axes})
         assert message in str(caught.value)
     sweep_file = tmp_path / "evil.toml"
-    sweep_file.write_text(f'[sweep]\nscene = "x.toml"\n[axes]\n"{payload}" = [1]\n'.replace("'", "\\'"))
+    sweep_file.write_text('[sweep]\nscene = "x.toml"\n[axes]\n"{payload}" = [1]\n'.replace("'", "\\'"))
     assert main(["sweep", str(sweep_file), "--no-ray", "--out", str(tmp_path / "out")]) == EXIT_CONFIG
     assert not marker.exists()
 
@@ -159,7 +159,7 @@ def test_every_variant_is_a_row_with_its_metrics(device, tmp_path_factory):
         if v.params["cloth.structural.ke"] == UNSTABLE_KE:
             # recorded with the guard's message, the other worlds of its model unharmed
             assert row.status == "stopped" and row.frames == 0
-            assert row.message.startswith(f"frame 1, substep ") and "guard limit exceeded" in row.message
+            assert row.message.startswith("frame 1, substep ") and "guard limit exceeded" in row.message
             assert row.error_max is None
             continue
         assert row.status == "ok" and row.frames == FRAMES and row.message == ""
@@ -222,7 +222,7 @@ def test_cli_sweep_without_ray(device, tmp_path):
     scene = tmp_path / "scene.toml"
     scene.write_text(_toml(BASE))
     sweep_file = tmp_path / "sweep.toml"
-    sweep_file.write_text(f'[sweep]\nscene = "scene.toml"\nusd = true\n[axes]\n"world.drag" = [0.0, 0.05]\n')
+    sweep_file.write_text('[sweep]\nscene = "scene.toml"\nusd = true\n[axes]\n"world.drag" = [0.0, 0.05]\n')
     out = tmp_path / "out"
     assert main(["sweep", str(sweep_file), "--no-ray", "--out", str(out), "--device", device, "-q"]) == 0
     names = sorted(os.listdir(out))
