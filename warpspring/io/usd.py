@@ -609,6 +609,24 @@ class UsdWriter:
     def _types(self) -> dict:
         return dict(self._animated)
 
+    def _define_polygon_mesh(self, path: str, group):
+        """A Mesh prim at ``path`` with ``group``'s faces as authored (its polygons where it has them, quads
+        staying quads; else its triangles) and the attributes every warpspring surface carries: no
+        subdivision, double-sided, right-handed, per-vertex normals. ``group``: a MeshGroup or a SkinGroup."""
+        UsdGeom, Vt = self._UsdGeom, self._Vt
+        mesh = UsdGeom.Mesh.Define(self.stage, path)
+        if group.polygon_counts is not None:
+            counts, indices = group.polygon_counts, group.polygon_indices
+        else:
+            counts, indices = np.full(len(group.faces), 3, np.int32), group.faces.reshape(-1)
+        mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(counts.astype(np.int32)))
+        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(indices.astype(np.int32)))
+        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        mesh.CreateDoubleSidedAttr(True)
+        mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+        mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+        return mesh
+
     def _define_world(self, world: int, root: str, *, particles: bool, springs: bool) -> _WorldPrims:
         """Define the prims of one exported world under ``root``; topology and constant attributes once."""
         from pxr import Sdf
@@ -616,17 +634,7 @@ class UsdWriter:
         stage, UsdGeom, Vt, model = self.stage, self._UsdGeom, self._Vt, self.model
         meshes = []
         for group in model.meshes:
-            mesh = UsdGeom.Mesh.Define(stage, f"{root}/{group.name}")
-            if group.polygon_counts is not None:  # the faces as authored (quads stay quads)
-                counts, indices = group.polygon_counts, group.polygon_indices
-            else:
-                counts, indices = np.full(len(group.faces), 3, np.int32), group.faces.reshape(-1)
-            mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(counts.astype(np.int32)))
-            mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(indices.astype(np.int32)))
-            mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-            mesh.CreateDoubleSidedAttr(True)
-            mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
-            mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+            mesh = self._define_polygon_mesh(f"{root}/{group.name}", group)
             primvars = UsdGeom.PrimvarsAPI(mesh)
             if group.uvs is not None:  # per vertex, or per corner where seams give a particle two UVs
                 corners = group.uvs.ndim == 3
@@ -707,18 +715,8 @@ class UsdWriter:
         UVs and face sets once, like a cloth mesh's; its points, extent, normals and velocities per frame."""
         from pxr import Sdf
 
-        stage, UsdGeom, Vt, model = self.stage, self._UsdGeom, self._Vt, self.model
-        mesh = UsdGeom.Mesh.Define(stage, f"{root}/{skin.name}")
-        if skin.polygon_counts is not None:
-            counts, indices = skin.polygon_counts, skin.polygon_indices
-        else:
-            counts, indices = np.full(len(skin.faces), 3, np.int32), skin.faces.reshape(-1)
-        mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(counts.astype(np.int32)))
-        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(indices.astype(np.int32)))
-        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-        mesh.CreateDoubleSidedAttr(True)
-        mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
-        mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+        UsdGeom, Vt, model = self._UsdGeom, self._Vt, self.model
+        mesh = self._define_polygon_mesh(f"{root}/{skin.name}", skin)
         primvars = UsdGeom.PrimvarsAPI(mesh)
         if skin.uvs is not None:
             primvars.CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex).Set(
