@@ -24,6 +24,7 @@ from .contacts import SHAPE_CAPSULE, SHAPE_SPHERE, ContactFeatures, shapes_type
 from .flatten import flat_kernel
 from .kinematics import is_kinematic
 from .precision import vec3_type
+from .selfcontact import geometry_funcs
 from .worlds import world_and_index
 
 wp.set_module_options({"enable_backward": False})
@@ -39,72 +40,19 @@ def triangle_funcs(scalar: type):
     zero = scalar(0.0)
     one = scalar(1.0)
 
+    triangle_closest, edge_closest = geometry_funcs(scalar)  # the closest points self-collision uses
+
     @wp.func
     def closest_on_triangle(p: vec3, a: vec3, b: vec3, c: vec3):
         """The point of triangle (a, b, c) nearest p, and its barycentric weights (w_a, w_b, w_c)."""
-        ab = b - a
-        ac = c - a
-        ap = p - a
-        d1 = wp.dot(ab, ap)
-        d2 = wp.dot(ac, ap)
-        if d1 <= zero and d2 <= zero:
-            return a, vec3(one, zero, zero)
-        bp = p - b
-        d3 = wp.dot(ab, bp)
-        d4 = wp.dot(ac, bp)
-        if d3 >= zero and d4 <= d3:
-            return b, vec3(zero, one, zero)
-        vc = d1 * d4 - d3 * d2
-        if vc <= zero and d1 >= zero and d3 <= zero:
-            v = d1 / (d1 - d3)
-            return a + v * ab, vec3(one - v, v, zero)
-        cp = p - c
-        d5 = wp.dot(ab, cp)
-        d6 = wp.dot(ac, cp)
-        if d6 >= zero and d5 <= d6:
-            return c, vec3(zero, zero, one)
-        vb = d5 * d2 - d1 * d6
-        if vb <= zero and d2 >= zero and d6 <= zero:
-            w = d2 / (d2 - d6)
-            return a + w * ac, vec3(one - w, zero, w)
-        va = d3 * d6 - d5 * d4
-        if va <= zero and (d4 - d3) >= zero and (d5 - d6) >= zero:
-            w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-            return b + w * (c - b), vec3(zero, one - w, w)
-        denom = one / (va + vb + vc)
-        v = vb * denom
-        w = vc * denom
-        return a + v * ab + w * ac, vec3(one - v - w, v, w)
+        w = triangle_closest(p, a, b, c)
+        return w[0] * a + w[1] * b + w[2] * c, w
 
     @wp.func
     def closest_segments(p1: vec3, q1: vec3, p2: vec3, q2: vec3):
         """The parameters s, t ∈ [0, 1] of the closest points p1 + s (q1 - p1) and p2 + t (q2 - p2)."""
-        d1 = q1 - p1
-        d2 = q2 - p2
-        r = p1 - p2
-        a = wp.dot(d1, d1)
-        e = wp.dot(d2, d2)
-        f = wp.dot(d2, r)
-        s = zero
-        t = zero
-        if a > zero and e > zero:
-            c = wp.dot(d1, r)
-            b = wp.dot(d1, d2)
-            denom = a * e - b * b
-            if denom > zero:
-                s = wp.clamp((b * f - c * e) / denom, zero, one)
-            t = (b * s + f) / e
-            if t < zero:
-                t = zero
-                s = wp.clamp(-c / a, zero, one)
-            elif t > one:
-                t = one
-                s = wp.clamp((b - c) / a, zero, one)
-        elif e > zero:
-            t = wp.clamp(f / e, zero, one)
-        elif a > zero:
-            s = wp.clamp(-wp.dot(d1, r) / a, zero, one)
-        return s, t
+        st = edge_closest(p1, q1, p2, q2)
+        return st[0], st[1]
 
     @wp.func
     def closest_to_segment(p0: vec3, p1: vec3, a: vec3, b: vec3, c: vec3):
