@@ -48,6 +48,10 @@ def plot(csv_path: str, png_path: str) -> None:
                     xycoords=("axes fraction", "data"), fontsize=8, color="gray", va="bottom")
     ax.set_xlabel("particles in the model (all worlds)")
     ax.set_ylabel("particle-substeps / s")
+    # The header is "machine; versions; date; copy; gather": two lines, so a long machine name is not cut off.
+    parts = [part.strip() for part in header.split(";")]
+    middle = (len(parts) + 1) // 2
+    header = "; ".join(parts[:middle]) + "\n" + "; ".join(parts[middle:])
     ax.set_title(f"Hanging cloth, symplectic Euler, 16 substeps per frame\n{header}", fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
