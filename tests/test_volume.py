@@ -6,6 +6,7 @@ gravity (ke and K are values, so the tests share one compiled feature set per in
 """
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -251,3 +252,48 @@ def test_every_integrator_steps_the_volume_term_as_its_linear_theory(device, int
         np.testing.assert_allclose(measured, st.amplification_matrix(integrator, omega_h, zeta), rtol=0, atol=1e-10)
     # nothing moved off the line along ∇₃V
     np.testing.assert_allclose(np.cross(x[:, 3] - REST[3], n), 0.0, atol=1e-15)
+
+
+BAR = os.path.join(os.path.dirname(__file__), "..", "examples", "meshes", "bar.obj")  # 1 × 0.1 × 0.1 m
+
+
+def bar_scene(**keys) -> dict:
+    body = {"mesh": BAR, "method": "delaunay", "spacing": 0.05, "youngs_modulus": 3.0e4, "density": 100.0,
+            "damping": 2.0e-3, **keys}
+    return {"version": 2, "simulation": {"fps": 60, "frames": 1, "substeps": 10}, "soft_body": [body]}
+
+
+def test_soft_body_volume_key_wires_its_tets(device):
+    """``[[soft_body]] volume = true`` gives the model one volume family holding the body's tets (as particles of
+    the model, wound positive), K = 2E/3 and kd = β K per tet; ``bulk_modulus`` sets K. A body without the key
+    adds no family (nothing of it compiles or launches)."""
+    from warpspring.io.scene import parse_scene
+
+    scene = parse_scene(bar_scene(volume=True))
+    model = scene.finalize(device)
+    family = next(f for f in model.families if isinstance(f, VolumeFamily))
+    assert family.element_count > 0 and f"{family.element_count} volume tets" in model.describe()
+    q = model.particle_q.numpy().astype(np.float64)
+    np.testing.assert_allclose(signed_volumes(q, family.tets), family.rest_volume, rtol=1e-5)
+    assert (family.rest_volume > 0.0).all()
+    np.testing.assert_allclose(family.values("bulk_modulus"), 2.0e4, rtol=1e-6)
+    np.testing.assert_allclose(family.values("viscosity"), 2.0e-3 * 2.0e4, rtol=1e-6)
+    assert family.velocity_dependent(model)
+    model = parse_scene(bar_scene(volume=True, bulk_modulus=5.0e5)).finalize(device)
+    np.testing.assert_allclose(model.families[-1].values("bulk_modulus"), 5.0e5, rtol=1e-6)
+    assert not any(isinstance(f, VolumeFamily) for f in parse_scene(bar_scene()).finalize(device).families)
+
+
+@pytest.mark.parametrize("keys, message", [
+    ({"method": "voxel"}, "needs tets, which the voxel method does not make"),
+    ({"bulk_modulus": 1.0e4, "volume": False}, "give volume=True"),
+    ({"volume": "yes"}, "volume"),
+])
+def test_bad_volume_keys_are_named(keys, message):
+    """Each mistake is a one-line ConfigError naming the key and the fix."""
+    from warpspring.io.scene import parse_scene
+
+    keys = {"volume": True, **keys}
+    with pytest.raises(ws.ConfigError, match=message) as info:
+        parse_scene(bar_scene(**keys)).builder()
+    assert "\n" not in str(info.value)
