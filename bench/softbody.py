@@ -10,6 +10,10 @@ surface encloses, and inverted tetrahedra where there are tets. Writes a markdow
 last frame (the software renderer of ``warpspring.io.render``).
 
     python bench/softbody.py --device cpu --out bench/results/softbody_cpu.md --picture docs/images/softbody.png
+
+The drop alone, with and without the tet volume term on the tetrahedral and Delaunay balls (RESULTS §18d):
+
+    python bench/softbody.py --device cpu --drop-only --methods tetrahedral delaunay --volume both --out FILE
 """
 
 from __future__ import annotations
@@ -87,29 +91,46 @@ def gershgorin_step(body) -> float:
     return 0.5 * 2.0 / np.sqrt((2.0 * row / mass).max())
 
 
-def drop(device, usd_path: str) -> tuple[list[dict], float]:
-    """Every method's ball dropped from 0.3 m onto the ground, side by side, for 1 s; per body: particles,
-    springs, build and step time, volume change of the surface, inverted tets; written to USD."""
+def drop(device, usd_path: str | None, *, methods=None, volume: bool = False, bulk_modulus: float | None = None,
+         youngs_modulus: float = BALL_E, height: float = 0.3, dt: float | None = None) -> tuple[list[dict], float, float]:
+    """Every method's ball (or those of ``methods``) dropped from ``height`` [m] onto the ground, side by side, for
+    1 s; per body: particles, springs, build and step time, volume change of the surface, inverted tets; written to
+    USD unless ``usd_path`` is None. ``volume``: the tetrahedral and Delaunay balls get the tet volume term
+    (``add_soft_body(volume=True)``, K = ``bulk_modulus`` or 2E/3), and the step also respects its stiffness (half
+    the model's Gershgorin limit, which counts every family); ``dt`` [s]: a step to take instead (rounded down to
+    whole substeps of a 1/30 s frame)."""
     ball = trimesh.load(BALL, force="mesh", process=False)
     rest_volume = float(ball.volume)
     builder = ws.ModelBuilder()
     bodies = []
     for i, (method, _, _, options) in enumerate(CASES):
-        body = builder.add_soft_body(ball, method=method, youngs_modulus=BALL_E, density=RHO, spacing=BALL_SPACING,
-                                     damping=BALL_DAMPING, origin=(0.55 * i, 0.0, 0.5), name=method, options=options)
+        if methods and method not in methods:
+            continue
+        extra = {"volume": True, "bulk_modulus": bulk_modulus} if volume and method in ("tetrahedral", "delaunay") else {}
+        body = builder.add_soft_body(ball, method=method, youngs_modulus=youngs_modulus, density=RHO,
+                                     spacing=BALL_SPACING, damping=BALL_DAMPING, origin=(0.55 * i, 0.0, 0.2 + height),
+                                     name=method, options=options, **extra)
         bodies.append(body)
     builder.add_ground_plane(friction=0.5)
-    dt = min(gershgorin_step(body) for body in bodies)
     model = builder.finalize(device)
+    if dt is None:
+        dt = min(gershgorin_step(body) for body in bodies)
+        if volume:
+            from warpspring.analysis.stability import gershgorin_omega_max
+
+            dt = min(dt, 0.5 * 2.0 / gershgorin_omega_max(model))
     integrator = ws.make_integrator("symplectic_euler", model)
     a, b = model.state(), model.state()
     fps = 30
     substeps = int(np.ceil(1.0 / fps / dt))
     dt = 1.0 / fps / substeps
+    from contextlib import nullcontext
+
     from warpspring.io.usd import UsdWriter
 
-    with UsdWriter(usd_path, model, fps=fps) as writer:
-        writer.write_frame(a)
+    with (UsdWriter(usd_path, model, fps=fps) if usd_path else nullcontext()) as writer:
+        if writer:
+            writer.write_frame(a)
         integrator.step(a, b, None, dt)  # warm-up (compiles)
         wp.synchronize_device(device)
         a, b = model.state(), model.state()
@@ -119,23 +140,49 @@ def drop(device, usd_path: str) -> tuple[list[dict], float]:
                 integrator.step(a, b, None, dt)
                 a, b = b, a
             wp.synchronize_device(device)
-            writer.write_frame(a)
+            if writer:
+                writer.write_frame(a)
         seconds = time.perf_counter() - started
     q = a.particle_q.numpy().astype(np.float64)
     rows = []
     for body in bodies:
         surface = trimesh.Trimesh(body.skin.points(q), ball.faces, process=False)
-        inverted = None
+        inverted = tets = None
         if body.topology.tets is not None:
             # against each tet's own rest orientation (the Delaunay method keeps scipy's, of either sign)
             rest = sb._signed_volumes(body.topology.positions, body.topology.tets)
             now = sb._signed_volumes(q, body.particles[body.topology.tets])
             inverted = int((now * np.sign(rest) <= 0.0).sum())
+            tets = len(body.topology.tets)
         rows.append({"method": body.method, "particles": body.particle_count, "springs": body.spring_count,
                      "build": body.build_seconds, "volume": float(surface.volume) / rest_volume - 1.0,
-                     "inverted": inverted, "slivers": body.slivers})
+                     "inverted": inverted, "tets": tets, "slivers": body.slivers,
+                     "volume_term": body.volume_tets is not None})
     step = seconds / (fps * substeps)
     return rows, step, dt
+
+
+def volume_table(runs: list, device, *, youngs_modulus: float, height: float, bulk_modulus) -> str:
+    """The drop with and without the volume term: ``runs`` of (volume on, rows, step [s], dt [s])."""
+    k = "2E/3" if bulk_modulus is None else f"{bulk_modulus:g} Pa"
+    lines = [
+        f"Balls dropped with and without the tet volume term, {datetime.date.today()}, Warp {wp.config.version}, "
+        f"device {device}: icosphere r = 0.2 m, E = {youngs_modulus:g} Pa, ρ = {RHO:g} kg/m³, spacing {BALL_SPACING} m, "
+        f"β = {BALL_DAMPING:g} s, from {height:g} m, 1 s of symplectic Euler at half the Gershgorin limit (the same "
+        "step with and without the term when both ran); volume term "
+        f"K = {k} (kd = βK). Volume: the authored surface's at 1 s over its rest volume; inverted: tets with V ≤ 0 "
+        "against their rest orientation.",
+        "",
+        "| method | volume term | particles | springs | tets | dt [ms] | µs per substep (all bodies) | volume at 1 s | "
+        "inverted tets |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for on, rows, step, dt in runs:
+        for r in rows:
+            lines.append(f"| {r['method']} | {'on' if r['volume_term'] else 'off'} | {r['particles']} | {r['springs']} | "
+                         f"{r['tets'] if r['tets'] is not None else '—'} | {1e3 * dt:.3f} | {1e6 * step:.0f} | "
+                         f"{100.0 * r['volume']:+.1f} % | {r['inverted'] if r['inverted'] is not None else '—'} |")
+    return "\n".join(lines) + "\n"
 
 
 def table(drop_rows, elastic: dict, step: float, dt: float, device) -> str:
@@ -184,8 +231,31 @@ def main() -> None:
     parser.add_argument("--out", default="bench/results/softbody_cpu.md")
     parser.add_argument("--picture", default="docs/images/softbody.png")
     parser.add_argument("--usd", default="/tmp/softbody_drop.usdc")
+    parser.add_argument("--drop-only", action="store_true",
+                        help="only the drop (no elasticity table, picture or USD), with the options below")
+    parser.add_argument("--methods", nargs="+", choices=[c[0] for c in CASES], help="the balls to drop (default all)")
+    parser.add_argument("--volume", choices=("off", "on", "both"), default="off",
+                        help="the tet volume term on the tetrahedral and Delaunay balls; both: two drops, one table")
+    parser.add_argument("--bulk-modulus", type=float, default=None, help="the volume term's K [Pa] (default 2E/3)")
+    parser.add_argument("--youngs-modulus", type=float, default=BALL_E, help="E of the dropped balls [Pa]")
+    parser.add_argument("--height", type=float, default=0.3, help="drop height [m]")
     args = parser.parse_args()
     wp.init()
+    if args.drop_only:
+        runs, dt = [], None
+        # with both, the drop with the term first: the one without takes its (smaller) step, so only the term differs
+        for on in {"off": (False,), "on": (True,), "both": (True, False)}[args.volume]:
+            rows, step, dt = drop(args.device, None, methods=args.methods, volume=on, bulk_modulus=args.bulk_modulus,
+                                  youngs_modulus=args.youngs_modulus, height=args.height, dt=dt)
+            runs.insert(0, (on, rows, step, dt))
+        text = volume_table(runs, args.device, youngs_modulus=args.youngs_modulus, height=args.height,
+                            bulk_modulus=args.bulk_modulus)
+        if args.out:
+            os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+            with open(args.out, "w") as f:
+                f.write(text)
+        print(text)
+        return
     elastic = {}
     for method, cube, bar, options in CASES:
         elastic[method] = elasticity(method, cube, bar, options)
