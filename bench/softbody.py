@@ -14,6 +14,10 @@ last frame (the software renderer of ``warpspring.io.render``).
 The drop alone, with and without the tet volume term on the tetrahedral and Delaunay balls (RESULTS §18d):
 
     python bench/softbody.py --device cpu --drop-only --methods tetrahedral delaunay --volume both --out FILE
+
+and the term's cost per substep (one CUDA graph of 200 substeps on a GPU):
+
+    python bench/softbody.py --device cuda:0 --family-cost --out FILE
 """
 
 from __future__ import annotations
@@ -185,6 +189,88 @@ def volume_table(runs: list, device, *, youngs_modulus: float, height: float, bu
     return "\n".join(lines) + "\n"
 
 
+def family_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int = 7, substeps: int = 200,
+                bulk_modulus: float | None = None) -> str:
+    """The substep's cost with and without the tet volume term: the same balls (``methods``) built three times —
+    without the term, with it computed per corner (the default), with it precomputed per tet — resting on the
+    ground, ``substeps`` symplectic Euler steps per timing (one CUDA graph on a GPU), the models alternating for
+    ``rounds`` rounds; median µs per substep and the difference per tet. The tetrahedral ball is built once
+    (fTetWild's meshes differ from build to build) and every model takes its tets."""
+    from warpspring.core.volume import VolumeFamily
+
+    ball = trimesh.load(BALL, force="mesh", process=False)
+    topologies = {}
+
+    def build(variant: str):
+        volume = variant != "off"
+        builder = ws.ModelBuilder()
+        if variant == "precomputed":
+            builder.add_family(VolumeFamily(precompute=True))  # add_soft_body appends its tets to this one
+        tets = 0
+        for i, method in enumerate(methods):
+            options = dict(next(c[3] for c in CASES if c[0] == method))
+            body = builder.add_soft_body(ball, method=method, youngs_modulus=BALL_E, density=RHO, spacing=BALL_SPACING,
+                                         damping=BALL_DAMPING, origin=(0.55 * i, 0.0, 0.2), name=method,
+                                         options=options, volume=volume and method in ("tetrahedral", "delaunay"),
+                                         bulk_modulus=bulk_modulus if volume else None)
+            topologies.setdefault(method, body.topology)
+            tets += 0 if body.volume_tets is None else body.volume_tets.stop - body.volume_tets.start
+        builder.add_ground_plane(friction=0.5)
+        return builder.finalize(device), tets
+
+    # the same tets in both: fTetWild is not repeatable, so the second build reuses the first one's topology
+    real = sb.build_topology
+    variants = ("off", "per corner", "precomputed")
+    models = {}
+    try:
+        models["precomputed"] = build("precomputed")
+        sb.build_topology = lambda mesh, method, **kw: topologies[method]
+        models["off"] = build("off")
+        models["per corner"] = build("per corner")
+    finally:
+        sb.build_topology = real
+    runners = {}
+    for variant, (model, _) in models.items():
+        integrator = ws.make_integrator("symplectic_euler", model)
+        states = [model.state(), model.state()]
+        dt = 1.0e-4
+
+        def loop(integrator=integrator, states=states, dt=dt):
+            for k in range(substeps):
+                integrator.step(states[k % 2], states[(k + 1) % 2], None, dt)
+
+        loop()  # compiles, warms
+        graph = None
+        if wp.get_device(device).is_cuda:
+            with wp.ScopedCapture(device=device) as capture:
+                loop()
+            graph = capture.graph
+        runners[variant] = (lambda loop=loop, graph=graph: wp.capture_launch(graph) if graph is not None else loop())
+    times = {v: [] for v in variants}
+    for _ in range(rounds):
+        for variant in variants:
+            wp.synchronize_device(device)
+            started = time.perf_counter()
+            runners[variant]()
+            wp.synchronize_device(device)
+            times[variant].append((time.perf_counter() - started) / substeps)
+    median = {v: float(np.median(times[v])) for v in variants}
+    off = median["off"]
+    tets = models["precomputed"][1]
+    name = wp.get_device(device).name
+    return "\n".join([
+        f"The tet volume term's cost per substep, {datetime.date.today()}, Warp {wp.config.version}, {device} ({name}): "
+        f"balls {', '.join(methods)} ({models['off'][0].particle_count} particles, {tets} tets with the term) resting "
+        f"on the ground, symplectic Euler, {substeps} substeps per timing"
+        f"{' (one CUDA graph)' if wp.get_device(device).is_cuda else ''}, median of {rounds} alternating rounds.",
+        "",
+        "| volume term | µs per substep | difference | per tet |",
+        "|---|---|---|---|",
+        f"| off | {1e6 * off:.1f} | — | — |",
+    ] + [f"| on, {v} | {1e6 * median[v]:.1f} | {1e6 * (median[v] - off):+.1f} µs ({median[v] / off:.2f}×) | "
+         f"{1e9 * (median[v] - off) / max(tets, 1):.1f} ns |" for v in variants[1:]]) + "\n"
+
+
 def table(drop_rows, elastic: dict, step: float, dt: float, device) -> str:
     def pct(x):
         return "—" if x is None or not np.isfinite(x) else f"{100.0 * x:+.1f} %"
@@ -233,6 +319,8 @@ def main() -> None:
     parser.add_argument("--usd", default="/tmp/softbody_drop.usdc")
     parser.add_argument("--drop-only", action="store_true",
                         help="only the drop (no elasticity table, picture or USD), with the options below")
+    parser.add_argument("--family-cost", action="store_true",
+                        help="only time a substep with and without the tet volume term (--methods: the balls)")
     parser.add_argument("--methods", nargs="+", choices=[c[0] for c in CASES], help="the balls to drop (default all)")
     parser.add_argument("--volume", choices=("off", "on", "both"), default="off",
                         help="the tet volume term on the tetrahedral and Delaunay balls; both: two drops, one table")
@@ -241,6 +329,15 @@ def main() -> None:
     parser.add_argument("--height", type=float, default=0.3, help="drop height [m]")
     args = parser.parse_args()
     wp.init()
+    if args.family_cost:
+        text = family_cost(args.device, methods=tuple(args.methods or ("tetrahedral", "delaunay")),
+                           bulk_modulus=args.bulk_modulus)
+        if args.out:
+            os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+            with open(args.out, "w") as f:
+                f.write(text)
+        print(text)
+        return
     if args.drop_only:
         runs, dt = [], None
         # with both, the drop with the term first: the one without takes its (smaller) step, so only the term differs

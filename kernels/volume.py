@@ -33,7 +33,7 @@ Worlds: K and kd have one row for every world or one per world; V₀ is shared.
 
 import functools
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import warp as wp
 
@@ -48,6 +48,7 @@ class TetVolumeFuncs(NamedTuple):
 
     tet_volume_gradient: wp.Function
     gradient_of_role: wp.Function
+    corner_gradient: wp.Function
     tet_pressure: wp.Function
     tet_energy: wp.Function
     tet_force: wp.Function
@@ -80,6 +81,17 @@ def tet_volume_funcs(scalar: type) -> TetVolumeFuncs:
         return wp.where(role == 0, g0, wp.where(role == 1, g1, wp.where(role == 2, g2, g3)))
 
     @wp.func
+    def corner_gradient(role: int, x0: vec3, x1: vec3, x2: vec3, x3: vec3) -> vec3:
+        """∇_role V [m²] alone, from the face opposite corner ``role`` (0..3): ±(x_c - x_b) × (x_d - x_b)/6 with
+        (b, c, d) the corners after it in cyclic order, + for odd roles and - for even ones (equal to
+        ``tet_volume_gradient``'s, one cross product instead of three)."""
+        b = wp.where(role == 0, x1, wp.where(role == 1, x2, wp.where(role == 2, x3, x0)))
+        c = wp.where(role == 0, x2, wp.where(role == 1, x3, wp.where(role == 2, x0, x1)))
+        d = wp.where(role == 0, x3, wp.where(role == 1, x0, wp.where(role == 2, x1, x2)))
+        sign = wp.where(role % 2 == 1, scalar(1.0), scalar(-1.0))
+        return wp.cross(c - b, d - b) * (sign / scalar(6.0))
+
+    @wp.func
     def tet_pressure(volume: scalar, rate: scalar, rest: scalar, bulk: scalar, viscosity: scalar) -> scalar:
         """The tet's pressure-like factor K (J - 1) + kd J̇ [Pa], J = V/V₀, J̇ = V̇/V₀, from its volume V [m³], volume
         rate V̇ [m³/s], rest volume V₀ [m³] > 0, bulk modulus K [Pa] and viscosity kd [Pa·s]: the force on corner a
@@ -104,7 +116,7 @@ def tet_volume_funcs(scalar: type) -> TetVolumeFuncs:
         rate = wp.dot(g0, v0) + wp.dot(g1, v1) + wp.dot(g2, v2) + wp.dot(g3, v3)
         return -tet_pressure(volume, rate, rest, bulk, viscosity) * gradient_of_role(role, g0, g1, g2, g3)
 
-    return TetVolumeFuncs(tet_volume_gradient, gradient_of_role, tet_pressure, tet_energy, tet_force)
+    return TetVolumeFuncs(tet_volume_gradient, gradient_of_role, corner_gradient, tet_pressure, tet_energy, tet_force)
 
 
 @functools.cache
@@ -117,6 +129,8 @@ def volume_arrays_type(scalar: type):
         rest_volume: wp.array[scalar]  # V₀ [m³], [tet_count], > 0
         bulk_modulus: wp.array2d[scalar]  # K [Pa], [1 or world_count, tet_count]
         viscosity: wp.array2d[scalar]  # kd [Pa·s], [1 or world_count, tet_count]
+        pressure: wp.array[scalar]  # K (J - 1) + kd J̇ [Pa], [world_count · tet_count], each tet's at the state of the
+        #   last force evaluation (where precomputed; one entry otherwise)
         incidence: Incidence  # entries (tet, role 0..3); padding (0, -1)
 
     return VolumeArrays
@@ -124,25 +138,54 @@ def volume_arrays_type(scalar: type):
 
 @dataclass(frozen=True)
 class VolumeSpec:
-    """Compile-time switches of the volume family: the shape of its incidence table."""
+    """Compile-time switches of the volume family: the shape of its incidence table, and whether each tet's
+    factor K (J - 1) + kd J̇ is computed once per force evaluation by ``tet_pressures`` (then the gather reads it
+    and computes only its corner's gradient) or by every corner's entry."""
 
     incidence: IncidenceShape
+    precomputed: bool = False
 
     def funcs(self, scalar: type) -> FamilyFuncs:
         return volume_family_funcs(scalar, self)
 
 
+class VolumeFuncs(NamedTuple):
+    """:class:`FamilyFuncs` and the kernel that precomputes the tets' factors."""
+
+    arrays: type
+    force: Any
+    product: Any
+    strain: Any
+    energy: Any
+    idle: tuple
+    tet_pressures: Any
+
+
 @functools.cache
-def volume_family_funcs(scalar: type, spec: VolumeSpec) -> FamilyFuncs:
+def volume_family_funcs(scalar: type, spec: VolumeSpec) -> VolumeFuncs:
     """The family hooks of tet volumes (``families.py``) for one precision and spec."""
     vec3 = vec3_type(scalar)
     mat33 = mat33_type(scalar)
     VolumeArrays = volume_arrays_type(scalar)
     funcs = tet_volume_funcs(scalar)
     volume_gradient = funcs.tet_volume_gradient
+    corner_gradient = funcs.corner_gradient
     gradient_of_role = funcs.gradient_of_role
     tet_pressure = funcs.tet_pressure
     operand = masked_operand(scalar)
+
+    @wp.func
+    def whole_tet_pressure(world: int, t: int, base: int, tets: VolumeArrays, particle_q: wp.array[vec3],
+                           particle_qd: wp.array[vec3]) -> scalar:
+        """Tet t's factor K (J - 1) + kd J̇ [Pa] in ``world``."""
+        ids = tets.indices[t]
+        volume, g0, g1, g2, g3 = volume_gradient(particle_q[base + ids[0]], particle_q[base + ids[1]],
+                                                 particle_q[base + ids[2]], particle_q[base + ids[3]])
+        rate = wp.dot(g0, particle_qd[base + ids[0]]) + wp.dot(g1, particle_qd[base + ids[1]])
+        rate += wp.dot(g2, particle_qd[base + ids[2]]) + wp.dot(g3, particle_qd[base + ids[3]])
+        return tet_pressure(volume, rate, tets.rest_volume[t],
+                            tets.bulk_modulus[wp.min(world, tets.bulk_modulus.shape[0] - 1), t],
+                            tets.viscosity[wp.min(world, tets.viscosity.shape[0] - 1), t])
 
     @wp.func
     def tet_force_on(
@@ -153,6 +196,10 @@ def volume_family_funcs(scalar: type, spec: VolumeSpec) -> FamilyFuncs:
         if role < 0:
             return vec3(scalar(0.0))
         ids = tets.indices[t]
+        if wp.static(spec.precomputed):
+            g = corner_gradient(role, particle_q[base + ids[0]], particle_q[base + ids[1]], particle_q[base + ids[2]],
+                                particle_q[base + ids[3]])
+            return -tets.pressure[world * tets.indices.shape[0] + t] * g
         volume, g0, g1, g2, g3 = volume_gradient(particle_q[base + ids[0]], particle_q[base + ids[1]],
                                                  particle_q[base + ids[2]], particle_q[base + ids[3]])
         rate = wp.dot(g0, particle_qd[base + ids[0]]) + wp.dot(g1, particle_qd[base + ids[1]])
@@ -200,4 +247,17 @@ def volume_family_funcs(scalar: type, spec: VolumeSpec) -> FamilyFuncs:
                                 particle_q[base + ids[3]], tets.rest_volume[t],
                                 tets.bulk_modulus[wp.min(world, tets.bulk_modulus.shape[0] - 1), t])
 
-    return FamilyFuncs(VolumeArrays, force, product, strain, energy, spec.incidence.idle())
+    @wp.kernel(module="unique", enable_backward=False)
+    def tet_pressures(
+        particle_count: int,
+        tets: VolumeArrays,
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+    ):
+        """Each tet's factor K (J - 1) + kd J̇ at a state, once (launch over [world_count, tet_count])."""
+        world, t = wp.tid()
+        tets.pressure[world * tets.indices.shape[0] + t] = whole_tet_pressure(world, t, world * particle_count, tets,
+                                                                              particle_q, particle_qd)
+
+    idle = spec.incidence.idle() + (() if spec.precomputed else ("pressure",))
+    return VolumeFuncs(VolumeArrays, force, product, strain, energy, idle, tet_pressures)

@@ -37,13 +37,14 @@ REST = np.array([[1.0, 1.0, 1.0], [-1.0, -1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, -1
 REST_VOLUME = EDGE**3 / (6.0 * math.sqrt(2.0))
 
 
-def tet_model(device, *, ke=0.0, kd=0.0, bulk=BULK, viscosity=0.0, pinned=None, worlds=1):
+def tet_model(device, *, ke=0.0, kd=0.0, bulk=BULK, viscosity=0.0, pinned=None, worlds=1, precompute=False):
     """The regular tet at rest (springs of stiffness ``ke`` [N/m], damping ``kd`` [N·s/m], rest lengths a; volume
-    term K = ``bulk`` [Pa], kd = ``viscosity`` [Pa·s]), float64, no gravity."""
+    term K = ``bulk`` [Pa], kd = ``viscosity`` [Pa·s], its factor precomputed per tet or not), float64, no
+    gravity."""
     builder = ws.ModelBuilder(gravity=ZERO_GRAVITY)
     builder.add_particles(REST, mass=MASS, pinned=pinned)
     builder.add_springs(EDGES, stiffness=ke, damping=kd, rest_length=EDGE)
-    family = builder.add_family(VolumeFamily())
+    family = builder.add_family(VolumeFamily(precompute=precompute))
     family.add(TET, REST, bulk_modulus=bulk, viscosity=viscosity)
     return builder.finalize(device, precision="float64", worlds=worlds), family
 
@@ -72,13 +73,15 @@ def test_rest_volume_orientation_and_bulk_modulus():
         VolumeFamily().add(TET, flat, bulk_modulus=1.0)
 
 
-def test_volume_forces_are_minus_the_gradient_of_the_energy(device):
+@pytest.mark.parametrize("precompute", [True, False], ids=["precomputed", "per_corner"])
+def test_volume_forces_are_minus_the_gradient_of_the_energy(device, precompute):
     """At a random deformation and at an inverted one, the gathered forces equal -∂E/∂x by float64 central
     differences of the family's energy hook (step 1e-7 m: truncation ~1e-14 relative, rounding ~1e-9), and
     -(K (J - 1) + kd J̇) ∇V of the NumPy reference with velocities; the energy hook equals ½ (K/V₀)(V - V₀)²;
-    the forces sum to zero and exert no torque."""
+    the forces sum to zero and exert no torque. Both gathers: the factor precomputed per tet (each corner's own
+    gradient from its opposite face) and computed by every corner."""
     viscosity = 3.0
-    model, family = tet_model(device, viscosity=viscosity)
+    model, family = tet_model(device, viscosity=viscosity, precompute=precompute)
     rng = np.random.default_rng(7)
     for q in (REST + rng.normal(scale=0.2 * EDGE, size=(4, 3)), mirrored(REST) + rng.normal(scale=0.01, size=(4, 3))):
         v = rng.normal(size=(4, 3))
@@ -118,8 +121,9 @@ def test_hydrostatic_compression_rings_at_the_bulk_frequency(device):
     (R² = 3a²/8): released from s = 1 - δ, its volume oscillates about V₀ at ω² = 9 K V₀ / (4 m R²) = K a / (√2 m).
     Symplectic Euler at ωh = 0.02 has the discrete frequency cos(ω̃h) = 1 - (ωh)²/2; the amplitude δ = 1e-3 shifts
     the period by O(δ²) and the centre of the oscillation by O(δ²) V₀. The advisor's power iteration on the
-    Gauss-Newton stiffness (rank one here) gives the same ω exactly, and Gershgorin bounds it from above."""
-    model, _ = tet_model(device)
+    Gauss-Newton stiffness (rank one here) gives the same ω exactly, and Gershgorin bounds it from above. (With the
+    factor precomputed per tet: its pass runs before every force evaluation of the step.)"""
+    model, _ = tet_model(device, precompute=True)
     omega = math.sqrt(BULK * EDGE / (math.sqrt(2.0) * MASS))
     estimate = st.estimate_omega_max(model)
     assert estimate.omega_max == pytest.approx(omega, rel=1e-6)

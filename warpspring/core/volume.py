@@ -58,11 +58,19 @@ class VolumeFamily(ElementFamily):
 
     Live values (per world, in device memory, read by the kernels; writing them compiles nothing):
     ``bulk_modulus`` K [Pa] and ``viscosity`` kd [Pa·s] per tet (:meth:`set_values`).
+
+    Args:
+        precompute: compute each tet's factor K (J - 1) + kd J̇ once per force evaluation in a pass of its own
+            (``at_time``) and let each corner's gather read it, computing only its own gradient (one launch and
+            one scalar per tet and world more; a third of the gather's arithmetic); by default every corner
+            computes its tet's volume, rate and gradients (on the CPU both cost the same, ``bench/RESULTS.md``
+            §18d; ``bench/softbody.py --family-cost`` compares them on a GPU).
     """
 
     name = "volume tets"
 
-    def __init__(self):
+    def __init__(self, *, precompute: bool = False):
+        self.precompute = bool(precompute)
         self._tets: list[np.ndarray] = []
         self._rest: list[np.ndarray] = []
         self._bulk: list[np.ndarray] = []
@@ -125,10 +133,12 @@ class VolumeFamily(ElementFamily):
         return np.concatenate(self._rest) if self._rest else np.zeros(0)
 
     def device_bytes(self, particle_count: int, scalar_bytes: int, worlds: int) -> int:
-        """Indices, V₀, K and kd per tet (one row of K and kd), and the incidence table."""
+        """Indices, V₀, K and kd per tet (one row of K and kd), the factor per tet and world where precomputed, and
+        the incidence table."""
         from .memory import incidence_bytes
 
-        return (16 + 3 * scalar_bytes) * self.element_count + incidence_bytes(self.tets, particle_count)
+        factor = scalar_bytes * (worlds * self.element_count if self.precompute else 1)
+        return (16 + 3 * scalar_bytes) * self.element_count + factor + incidence_bytes(self.tets, particle_count)
 
     def finalize(self, model) -> None:
         device, scalar = model.device, model.scalar
@@ -139,6 +149,7 @@ class VolumeFamily(ElementFamily):
         self._rest_volume = wp.array(self.rest_volume, dtype=scalar, device=device)
         self._bulk_modulus = wp.array(np.concatenate(self._bulk)[None, :], dtype=scalar, device=device)
         self._viscosity_array = wp.array(np.concatenate(self._viscosity)[None, :], dtype=scalar, device=device)
+        self._pressure = wp.zeros(model.world_count * len(tets) if self.precompute else 1, dtype=scalar, device=device)
         self._model = model
 
     # -- live values -------------------------------------------------------------------------------------------
@@ -207,7 +218,15 @@ class VolumeFamily(ElementFamily):
         return bool((self.values("viscosity") != 0.0).any())
 
     def spec(self, model, *, linear: bool = False) -> VolumeSpec:
-        return VolumeSpec(incidence=self.shape)
+        return VolumeSpec(incidence=self.shape, precomputed=self.precompute)
+
+    def at_time(self, model, state) -> None:
+        """Where precomputed: each tet's factor at ``state``, before the corners gather it."""
+        if not self.precompute:
+            return
+        wp.launch(self.spec(model).funcs(model.scalar).tet_pressures, dim=(model.world_count, self.element_count),
+                  inputs=[model.particle_count, self.arrays(model), state.particle_q, state.particle_qd],
+                  device=model.device)
 
     def arrays(self, model, *, stiffness=None):
         arrays = volume_arrays_type(model.scalar)()
@@ -215,6 +234,7 @@ class VolumeFamily(ElementFamily):
         arrays.rest_volume = self._rest_volume
         arrays.bulk_modulus = self._bulk_modulus if stiffness is None else stiffness
         arrays.viscosity = self._viscosity_array
+        arrays.pressure = self._pressure
         arrays.incidence = self.incidence
         return arrays
 
