@@ -121,9 +121,8 @@ def test_hydrostatic_compression_rings_at_the_bulk_frequency(device):
     (R² = 3a²/8): released from s = 1 - δ, its volume oscillates about V₀ at ω² = 9 K V₀ / (4 m R²) = K a / (√2 m).
     Symplectic Euler at ωh = 0.02 has the discrete frequency cos(ω̃h) = 1 - (ωh)²/2; the amplitude δ = 1e-3 shifts
     the period by O(δ²) and the centre of the oscillation by O(δ²) V₀. The advisor's power iteration on the
-    Gauss-Newton stiffness (rank one here) gives the same ω exactly, and Gershgorin bounds it from above. (With the
-    factor precomputed per tet: its pass runs before every force evaluation of the step.)"""
-    model, _ = tet_model(device, precompute=True)
+    Gauss-Newton stiffness (rank one here) gives the same ω exactly, and Gershgorin bounds it from above."""
+    model, _ = tet_model(device)
     omega = math.sqrt(BULK * EDGE / (math.sqrt(2.0) * MASS))
     estimate = st.estimate_omega_max(model)
     assert estimate.omega_max == pytest.approx(omega, rel=1e-6)
