@@ -197,17 +197,11 @@ def volume_family_funcs(scalar: type, spec: VolumeSpec) -> VolumeFuncs:
             return vec3(scalar(0.0))
         ids = tets.indices[t]
         if wp.static(spec.precomputed):
-            g = corner_gradient(role, particle_q[base + ids[0]], particle_q[base + ids[1]], particle_q[base + ids[2]],
-                                particle_q[base + ids[3]])
-            return -tets.pressure[world * tets.indices.shape[0] + t] * g
-        volume, g0, g1, g2, g3 = volume_gradient(particle_q[base + ids[0]], particle_q[base + ids[1]],
-                                                 particle_q[base + ids[2]], particle_q[base + ids[3]])
-        rate = wp.dot(g0, particle_qd[base + ids[0]]) + wp.dot(g1, particle_qd[base + ids[1]])
-        rate += wp.dot(g2, particle_qd[base + ids[2]]) + wp.dot(g3, particle_qd[base + ids[3]])
-        factor = tet_pressure(volume, rate, tets.rest_volume[t],
-                              tets.bulk_modulus[wp.min(world, tets.bulk_modulus.shape[0] - 1), t],
-                              tets.viscosity[wp.min(world, tets.viscosity.shape[0] - 1), t])
-        return -factor * gradient_of_role(role, g0, g1, g2, g3)
+            factor = tets.pressure[world * tets.indices.shape[0] + t]
+        else:
+            factor = whole_tet_pressure(world, t, base, tets, particle_q, particle_qd)
+        return -factor * corner_gradient(role, particle_q[base + ids[0]], particle_q[base + ids[1]],
+                                         particle_q[base + ids[2]], particle_q[base + ids[3]])
 
     @wp.func
     def product_entry(

@@ -37,7 +37,7 @@ REST = np.array([[1.0, 1.0, 1.0], [-1.0, -1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, -1
 REST_VOLUME = EDGE**3 / (6.0 * math.sqrt(2.0))
 
 
-def tet_model(device, *, ke=0.0, kd=0.0, bulk=BULK, viscosity=0.0, pinned=None, worlds=1, precompute=False):
+def tet_model(device, *, ke=0.0, kd=0.0, bulk=BULK, viscosity=0.0, pinned=None, worlds=1, precompute=True):
     """The regular tet at rest (springs of stiffness ``ke`` [N/m], damping ``kd`` [N·s/m], rest lengths a; volume
     term K = ``bulk`` [Pa], kd = ``viscosity`` [Pa·s], its factor precomputed per tet or not), float64, no
     gravity."""
@@ -78,8 +78,8 @@ def test_volume_forces_are_minus_the_gradient_of_the_energy(device, precompute):
     """At a random deformation and at an inverted one, the gathered forces equal -∂E/∂x by float64 central
     differences of the family's energy hook (step 1e-7 m: truncation ~1e-14 relative, rounding ~1e-9), and
     -(K (J - 1) + kd J̇) ∇V of the NumPy reference with velocities; the energy hook equals ½ (K/V₀)(V - V₀)²;
-    the forces sum to zero and exert no torque. Both gathers: the factor precomputed per tet (each corner's own
-    gradient from its opposite face) and computed by every corner."""
+    the forces sum to zero and exert no torque. Both gathers: the factor precomputed per tet (the default; every
+    other test steps it) and computed by every corner; each corner's gradient from its opposite face."""
     viscosity = 3.0
     model, family = tet_model(device, viscosity=viscosity, precompute=precompute)
     rng = np.random.default_rng(7)

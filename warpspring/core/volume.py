@@ -61,15 +61,15 @@ class VolumeFamily(ElementFamily):
 
     Args:
         precompute: compute each tet's factor K (J - 1) + kd J̇ once per force evaluation in a pass of its own
-            (``at_time``) and let each corner's gather read it, computing only its own gradient (one launch and
-            one scalar per tet and world more; a third of the gather's arithmetic); by default every corner
-            computes its tet's volume, rate and gradients (on the CPU both cost the same, ``bench/RESULTS.md``
-            §18d; ``bench/softbody.py --family-cost`` compares them on a GPU).
+            (``at_time``) and let each corner's gather read it with its own gradient (one launch and one scalar
+            per tet and world more, a quarter of the gather's loads); ``False``: every corner computes its tet's
+            volume, rate and gradients. On the CPU the term costs 2.00× against 2.10× the substep without it
+            (``bench/RESULTS.md`` §18d; ``bench/softbody.py --family-cost`` compares both on a GPU).
     """
 
     name = "volume tets"
 
-    def __init__(self, *, precompute: bool = False):
+    def __init__(self, *, precompute: bool = True):
         self.precompute = bool(precompute)
         self._tets: list[np.ndarray] = []
         self._rest: list[np.ndarray] = []
