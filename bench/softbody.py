@@ -133,7 +133,7 @@ def drop(device, usd_path: str | None, *, methods=None, volume: bool = False, bu
     from warpspring.io.usd import UsdWriter
 
     with (UsdWriter(usd_path, model, fps=fps) if usd_path else nullcontext()) as writer:
-        if writer:
+        if writer is not None:
             writer.write_frame(a)
         integrator.step(a, b, None, dt)  # warm-up (compiles)
         wp.synchronize_device(device)
@@ -144,7 +144,7 @@ def drop(device, usd_path: str | None, *, methods=None, volume: bool = False, bu
                 integrator.step(a, b, None, dt)
                 a, b = b, a
             wp.synchronize_device(device)
-            if writer:
+            if writer is not None:
                 writer.write_frame(a)
         seconds = time.perf_counter() - started
     q = a.particle_q.numpy().astype(np.float64)
