@@ -15,6 +15,10 @@ The drop alone, with and without the tet volume term on the tetrahedral and Dela
 
     python bench/softbody.py --device cpu --drop-only --methods tetrahedral delaunay --volume both --out FILE
 
+what the term does to E and ν (float64 static solves of the pulled bar):
+
+    python bench/softbody.py --volume-elasticity
+
 and the term's cost per substep (one CUDA graph of 200 substeps on a GPU):
 
     python bench/softbody.py --device cuda:0 --family-cost --out FILE
@@ -189,6 +193,43 @@ def volume_table(runs: list, device, *, youngs_modulus: float, height: float, bu
     return "\n".join(lines) + "\n"
 
 
+def volume_elasticity(methods=("tetrahedral", "delaunay"), cells=(3, 4), bulk_modulus: float | None = None) -> str:
+    """What the volume term does to E and ν: the pulled bar of §18 (1 × 0.2 × 0.2 m, ``cells`` across) by float64
+    static solves of the springs alone and of springs + the term's linear stiffness (K = ``bulk_modulus`` or 2E/3);
+    E_measured = E / (1 + error of FL/(EA)), ν from the middle third's lateral strain. The solves of
+    ``analysis.softbody_elasticity`` take the springs' matrix from ``softbody.stiffness_matrix``: the term's is
+    added to it for the second solve (and the original put back)."""
+    from warpspring.core.volume import network_bulk_modulus, volume_stiffness_matrix
+
+    k = network_bulk_modulus(E) if bulk_modulus is None else bulk_modulus
+    springs_only = sb.stiffness_matrix
+    lines = [
+        f"The tet volume term against elasticity, {datetime.date.today()}: the bar of §18 (1 × 0.2 × 0.2 m, E = {E:g} Pa) "
+        f"pulled by FL/(EA), float64 static solves of its springs without and with the term (K = {k:g} Pa).",
+        "",
+        "| method | cells across | tets | E without | ν without | E with | ν with | E with / E without |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for method in methods:
+        for n in cells:
+            topology = se.box_topology(method, (1.0, 0.2, 0.2), youngs_modulus=E, spacing=0.2 / n)
+            results = []
+            for term in (False, True):
+                if term:
+                    sb.stiffness_matrix = lambda positions, pairs, stiffness, tets=topology.tets: (
+                        springs_only(positions, pairs, stiffness) + volume_stiffness_matrix(positions, tets, k))
+                try:
+                    results.append((E / (1.0 + se.bar_stretch(topology, youngs_modulus=E)),
+                                    se.bar_poisson_ratio(topology)))
+                finally:
+                    sb.stiffness_matrix = springs_only
+            (e0, nu0), (e1, nu1) = results
+            lines.append(f"| {method} | {n} | {len(topology.tets)} | {e0 / E:.3f} E | {nu0:.3f} | {e1 / E:.3f} E | {nu1:.3f} | "
+                         f"{e1 / e0:.3f} |")
+            print(lines[-1], flush=True)
+    return "\n".join(lines) + "\n"
+
+
 def family_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int = 7, substeps: int = 200,
                 bulk_modulus: float | None = None) -> str:
     """The substep's cost with and without the tet volume term: the same balls (``methods``) built three times —
@@ -321,6 +362,8 @@ def main() -> None:
                         help="only the drop (no elasticity table, picture or USD), with the options below")
     parser.add_argument("--family-cost", action="store_true",
                         help="only time a substep with and without the tet volume term (--methods: the balls)")
+    parser.add_argument("--volume-elasticity", action="store_true",
+                        help="only the bar's E and ν without and with the tet volume term (static solves, no device)")
     parser.add_argument("--methods", nargs="+", choices=[c[0] for c in CASES], help="the balls to drop (default all)")
     parser.add_argument("--volume", choices=("off", "on", "both"), default="off",
                         help="the tet volume term on the tetrahedral and Delaunay balls; both: two drops, one table")
@@ -329,6 +372,14 @@ def main() -> None:
     parser.add_argument("--height", type=float, default=0.3, help="drop height [m]")
     args = parser.parse_args()
     wp.init()
+    if args.volume_elasticity:
+        text = volume_elasticity(tuple(args.methods or ("tetrahedral", "delaunay")), bulk_modulus=args.bulk_modulus)
+        if args.out:
+            os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+            with open(args.out, "w") as f:
+                f.write(text)
+        print(text)
+        return
     if args.family_cost:
         text = family_cost(args.device, methods=tuple(args.methods or ("tetrahedral", "delaunay")),
                            bulk_modulus=args.bulk_modulus)

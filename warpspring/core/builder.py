@@ -957,8 +957,8 @@ class ModelBuilder:
                 Use it when the body meets strains beyond ~10 % (a drop, a squash, a soft jelly under its own
                 weight): springs alone do not resist a change of volume, and tets pushed through themselves stay
                 inverted (``bench/RESULTS.md`` §18b, §18d). It raises the body's bulk stiffness, so the
-                stable step shrinks and E in tension grows (computed for an isotropic network at the default K:
-                by 9 %, ν from 1/4 to 0.36).
+                stable step shrinks and E in tension grows (measured on a bar at the default K: by 11–14 %
+                for tetrahedral bodies, ν from ~0.27 to ~0.39; by 19–20 % for Delaunay ones).
             bulk_modulus: the term's K [Pa], > 0; default E / (3(1 − 2ν)) = 2E/3 at the networks' ν = 1/4. Its
                 damper has kd = ``damping`` × K [Pa·s]. Live per world after finalize
                 (``VolumeFamily.set_values``).

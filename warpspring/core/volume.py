@@ -52,6 +52,25 @@ def volume_energy_np(positions: np.ndarray, tets: np.ndarray, rest_volume: np.nd
     return 0.5 * np.asarray(bulk_modulus, dtype=np.float64) * d * d / rest_volume
 
 
+def volume_stiffness_matrix(positions: np.ndarray, tets: np.ndarray, bulk_modulus):
+    """The term's Gauss-Newton stiffness Σ_t (K/V₀) ∇V ∇Vᵀ at ``positions`` (its exact linear stiffness at rest), as a
+    ``scipy.sparse.csr_matrix`` [3n, 3n] (float64), with V₀ the |volume| of each tet at ``positions`` [m], shape
+    [n, 3]; ``bulk_modulus`` K [Pa], a number or one per tet. Beside ``softbody.stiffness_matrix`` (the springs')
+    it gives a body's static response with the term."""
+    import scipy.sparse as sp
+
+    tets = np.asarray(tets, dtype=np.int64)
+    rest = np.abs(signed_volumes(positions, tets))
+    g = volume_gradients(positions, tets).reshape(len(tets), 12)
+    dof = (3 * tets[:, :, None] + np.arange(3)[None, None, :]).reshape(len(tets), 12)
+    blocks = (np.broadcast_to(np.asarray(bulk_modulus, dtype=np.float64), rest.shape) / rest)[:, None, None] \
+        * g[:, :, None] * g[:, None, :]
+    rows = np.repeat(dof[:, :, None], 12, axis=2).ravel()
+    cols = np.repeat(dof[:, None, :], 12, axis=1).ravel()
+    size = 3 * len(positions)
+    return sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(size, size))
+
+
 class VolumeFamily(ElementFamily):
     """The volume term of every tet of a model's soft bodies built with ``volume=True`` (one family per model,
     each body's tets appended by :meth:`add`).
