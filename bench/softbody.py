@@ -10,6 +10,18 @@ surface encloses, and inverted tetrahedra where there are tets. Writes a markdow
 last frame (the software renderer of ``warpspring.io.render``).
 
     python bench/softbody.py --device cpu --out bench/results/softbody_cpu.md --picture docs/images/softbody.png
+
+The drop alone, with and without the tet volume term on the tetrahedral and Delaunay balls (RESULTS §18d):
+
+    python bench/softbody.py --device cpu --drop-only --methods tetrahedral delaunay --volume both --out FILE
+
+what the term does to E and ν (float64 static solves of the pulled bar):
+
+    python bench/softbody.py --volume-elasticity
+
+and the term's cost per substep (one CUDA graph of 200 substeps on a GPU):
+
+    python bench/softbody.py --device cuda:0 --family-cost --out FILE
 """
 
 from __future__ import annotations
@@ -87,29 +99,46 @@ def gershgorin_step(body) -> float:
     return 0.5 * 2.0 / np.sqrt((2.0 * row / mass).max())
 
 
-def drop(device, usd_path: str) -> tuple[list[dict], float]:
-    """Every method's ball dropped from 0.3 m onto the ground, side by side, for 1 s; per body: particles,
-    springs, build and step time, volume change of the surface, inverted tets; written to USD."""
+def drop(device, usd_path: str | None, *, methods=None, volume: bool = False, bulk_modulus: float | None = None,
+         youngs_modulus: float = BALL_E, height: float = 0.3, dt: float | None = None) -> tuple[list[dict], float, float]:
+    """Every method's ball (or those of ``methods``) dropped from ``height`` [m] onto the ground, side by side, for
+    1 s; per body: particles, springs, build and step time, volume change of the surface, inverted tets; written to
+    USD unless ``usd_path`` is None. ``volume``: the tetrahedral and Delaunay balls get the tet volume term
+    (``add_soft_body(volume=True)``, K = ``bulk_modulus`` or 2E/3), and the step also respects its stiffness (half
+    the model's Gershgorin limit, which counts every family); ``dt`` [s]: a step to take instead (rounded down to
+    whole substeps of a 1/30 s frame)."""
     ball = trimesh.load(BALL, force="mesh", process=False)
     rest_volume = float(ball.volume)
     builder = ws.ModelBuilder()
     bodies = []
     for i, (method, _, _, options) in enumerate(CASES):
-        body = builder.add_soft_body(ball, method=method, youngs_modulus=BALL_E, density=RHO, spacing=BALL_SPACING,
-                                     damping=BALL_DAMPING, origin=(0.55 * i, 0.0, 0.5), name=method, options=options)
+        if methods and method not in methods:
+            continue
+        extra = {"volume": True, "bulk_modulus": bulk_modulus} if volume and method in ("tetrahedral", "delaunay") else {}
+        body = builder.add_soft_body(ball, method=method, youngs_modulus=youngs_modulus, density=RHO,
+                                     spacing=BALL_SPACING, damping=BALL_DAMPING, origin=(0.55 * i, 0.0, 0.2 + height),
+                                     name=method, options=options, **extra)
         bodies.append(body)
     builder.add_ground_plane(friction=0.5)
-    dt = min(gershgorin_step(body) for body in bodies)
     model = builder.finalize(device)
+    if dt is None:
+        dt = min(gershgorin_step(body) for body in bodies)
+        if volume:
+            from warpspring.analysis.stability import gershgorin_omega_max
+
+            dt = min(dt, 0.5 * 2.0 / gershgorin_omega_max(model))
     integrator = ws.make_integrator("symplectic_euler", model)
     a, b = model.state(), model.state()
     fps = 30
     substeps = int(np.ceil(1.0 / fps / dt))
     dt = 1.0 / fps / substeps
+    from contextlib import nullcontext
+
     from warpspring.io.usd import UsdWriter
 
-    with UsdWriter(usd_path, model, fps=fps) as writer:
-        writer.write_frame(a)
+    with (UsdWriter(usd_path, model, fps=fps) if usd_path else nullcontext()) as writer:
+        if writer is not None:
+            writer.write_frame(a)
         integrator.step(a, b, None, dt)  # warm-up (compiles)
         wp.synchronize_device(device)
         a, b = model.state(), model.state()
@@ -119,23 +148,168 @@ def drop(device, usd_path: str) -> tuple[list[dict], float]:
                 integrator.step(a, b, None, dt)
                 a, b = b, a
             wp.synchronize_device(device)
-            writer.write_frame(a)
+            if writer is not None:
+                writer.write_frame(a)
         seconds = time.perf_counter() - started
     q = a.particle_q.numpy().astype(np.float64)
     rows = []
     for body in bodies:
         surface = trimesh.Trimesh(body.skin.points(q), ball.faces, process=False)
-        inverted = None
+        inverted = tets = None
         if body.topology.tets is not None:
             # against each tet's own rest orientation (the Delaunay method keeps scipy's, of either sign)
             rest = sb._signed_volumes(body.topology.positions, body.topology.tets)
             now = sb._signed_volumes(q, body.particles[body.topology.tets])
             inverted = int((now * np.sign(rest) <= 0.0).sum())
+            tets = len(body.topology.tets)
         rows.append({"method": body.method, "particles": body.particle_count, "springs": body.spring_count,
                      "build": body.build_seconds, "volume": float(surface.volume) / rest_volume - 1.0,
-                     "inverted": inverted, "slivers": body.slivers})
+                     "inverted": inverted, "tets": tets, "slivers": body.slivers,
+                     "volume_term": body.volume_tets is not None})
     step = seconds / (fps * substeps)
     return rows, step, dt
+
+
+def volume_table(runs: list, device, *, youngs_modulus: float, height: float, bulk_modulus) -> str:
+    """The drop with and without the volume term: ``runs`` of (volume on, rows, step [s], dt [s])."""
+    k = "2E/3" if bulk_modulus is None else f"{bulk_modulus:g} Pa"
+    lines = [
+        f"Balls dropped with and without the tet volume term, {datetime.date.today()}, Warp {wp.config.version}, "
+        f"device {device}: icosphere r = 0.2 m, E = {youngs_modulus:g} Pa, ρ = {RHO:g} kg/m³, spacing {BALL_SPACING} m, "
+        f"β = {BALL_DAMPING:g} s, from {height:g} m, 1 s of symplectic Euler at half the Gershgorin limit (the same "
+        "step with and without the term when both ran); volume term "
+        f"K = {k} (kd = βK). Volume: the authored surface's at 1 s over its rest volume; inverted: tets with V ≤ 0 "
+        "against their rest orientation.",
+        "",
+        "| method | volume term | particles | springs | tets | dt [ms] | µs per substep (all bodies) | volume at 1 s | "
+        "inverted tets |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for on, rows, step, dt in runs:
+        for r in rows:
+            lines.append(f"| {r['method']} | {'on' if r['volume_term'] else 'off'} | {r['particles']} | {r['springs']} | "
+                         f"{r['tets'] if r['tets'] is not None else '—'} | {1e3 * dt:.3f} | {1e6 * step:.0f} | "
+                         f"{100.0 * r['volume']:+.1f} % | {r['inverted'] if r['inverted'] is not None else '—'} |")
+    return "\n".join(lines) + "\n"
+
+
+def volume_elasticity(methods=("tetrahedral", "delaunay"), cells=(3, 4), bulk_modulus: float | None = None) -> str:
+    """What the volume term does to E and ν: the pulled bar of §18 (1 × 0.2 × 0.2 m, ``cells`` across) by float64
+    static solves of the springs alone and of springs + the term's linear stiffness (K = ``bulk_modulus`` or 2E/3);
+    E_measured = E / (1 + error of FL/(EA)), ν from the middle third's lateral strain. The solves of
+    ``analysis.softbody_elasticity`` take the springs' matrix from ``softbody.stiffness_matrix``: the term's is
+    added to it for the second solve (and the original put back)."""
+    from warpspring.core.volume import network_bulk_modulus, volume_stiffness_matrix
+
+    k = network_bulk_modulus(E) if bulk_modulus is None else bulk_modulus
+    springs_only = sb.stiffness_matrix
+    lines = [
+        f"The tet volume term against elasticity, {datetime.date.today()}: the bar of §18 (1 × 0.2 × 0.2 m, E = {E:g} Pa) "
+        f"pulled by FL/(EA), float64 static solves of its springs without and with the term (K = {k:g} Pa).",
+        "",
+        "| method | cells across | tets | E without | ν without | E with | ν with | E with / E without |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for method in methods:
+        for n in cells:
+            topology = se.box_topology(method, (1.0, 0.2, 0.2), youngs_modulus=E, spacing=0.2 / n)
+            results = []
+            for term in (False, True):
+                if term:
+                    sb.stiffness_matrix = lambda positions, pairs, stiffness, tets=topology.tets: (
+                        springs_only(positions, pairs, stiffness) + volume_stiffness_matrix(positions, tets, k))
+                try:
+                    results.append((E / (1.0 + se.bar_stretch(topology, youngs_modulus=E)),
+                                    se.bar_poisson_ratio(topology)))
+                finally:
+                    sb.stiffness_matrix = springs_only
+            (e0, nu0), (e1, nu1) = results
+            lines.append(f"| {method} | {n} | {len(topology.tets)} | {e0 / E:.3f} E | {nu0:.3f} | {e1 / E:.3f} E | {nu1:.3f} | "
+                         f"{e1 / e0:.3f} |")
+            print(lines[-1], flush=True)
+    return "\n".join(lines) + "\n"
+
+
+def family_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int = 7, substeps: int = 200,
+                bulk_modulus: float | None = None) -> str:
+    """The substep's cost with and without the tet volume term: the same balls (``methods``) built three times —
+    without the term, with it computed per corner, with it precomputed per tet (the default) — resting on the
+    ground, ``substeps`` symplectic Euler steps per timing (one CUDA graph on a GPU), the models alternating for
+    ``rounds`` rounds; median µs per substep and the difference per tet. The tetrahedral ball is built once
+    (fTetWild's meshes differ from build to build) and every model takes its tets."""
+    from warpspring.core.volume import VolumeFamily
+
+    ball = trimesh.load(BALL, force="mesh", process=False)
+    topologies = {}
+
+    def build(variant: str):
+        volume = variant != "off"
+        builder = ws.ModelBuilder()
+        if variant == "per corner":
+            builder.add_family(VolumeFamily(precompute=False))  # add_soft_body appends its tets to this one
+        tets = 0
+        for i, method in enumerate(methods):
+            options = dict(next(c[3] for c in CASES if c[0] == method))
+            body = builder.add_soft_body(ball, method=method, youngs_modulus=BALL_E, density=RHO, spacing=BALL_SPACING,
+                                         damping=BALL_DAMPING, origin=(0.55 * i, 0.0, 0.2), name=method,
+                                         options=options, volume=volume and method in ("tetrahedral", "delaunay"),
+                                         bulk_modulus=bulk_modulus if volume else None)
+            topologies.setdefault(method, body.topology)
+            tets += 0 if body.volume_tets is None else body.volume_tets.stop - body.volume_tets.start
+        builder.add_ground_plane(friction=0.5)
+        return builder.finalize(device), tets
+
+    # the same tets in both: fTetWild is not repeatable, so the second build reuses the first one's topology
+    real = sb.build_topology
+    variants = ("off", "per corner", "precomputed")
+    models = {}
+    try:
+        models["precomputed"] = build("precomputed")
+        sb.build_topology = lambda mesh, method, **kw: topologies[method]
+        models["off"] = build("off")
+        models["per corner"] = build("per corner")
+    finally:
+        sb.build_topology = real
+    runners = {}
+    for variant, (model, _) in models.items():
+        integrator = ws.make_integrator("symplectic_euler", model)
+        states = [model.state(), model.state()]
+        dt = 1.0e-4
+
+        def loop(integrator=integrator, states=states, dt=dt):
+            for k in range(substeps):
+                integrator.step(states[k % 2], states[(k + 1) % 2], None, dt)
+
+        loop()  # compiles, warms
+        graph = None
+        if wp.get_device(device).is_cuda:
+            with wp.ScopedCapture(device=device) as capture:
+                loop()
+            graph = capture.graph
+        runners[variant] = (lambda loop=loop, graph=graph: wp.capture_launch(graph) if graph is not None else loop())
+    times = {v: [] for v in variants}
+    for _ in range(rounds):
+        for variant in variants:
+            wp.synchronize_device(device)
+            started = time.perf_counter()
+            runners[variant]()
+            wp.synchronize_device(device)
+            times[variant].append((time.perf_counter() - started) / substeps)
+    median = {v: float(np.median(times[v])) for v in variants}
+    off = median["off"]
+    tets = models["precomputed"][1]
+    name = wp.get_device(device).name
+    return "\n".join([
+        f"The tet volume term's cost per substep, {datetime.date.today()}, Warp {wp.config.version}, {device} ({name}): "
+        f"balls {', '.join(methods)} ({models['off'][0].particle_count} particles, {tets} tets with the term) resting "
+        f"on the ground, symplectic Euler, {substeps} substeps per timing"
+        f"{' (one CUDA graph)' if wp.get_device(device).is_cuda else ''}, median of {rounds} alternating rounds.",
+        "",
+        "| volume term | µs per substep | difference | per tet |",
+        "|---|---|---|---|",
+        f"| off | {1e6 * off:.1f} | — | — |",
+    ] + [f"| on, {v} | {1e6 * median[v]:.1f} | {1e6 * (median[v] - off):+.1f} µs ({median[v] / off:.2f}×) | "
+         f"{1e9 * (median[v] - off) / max(tets, 1):.1f} ns |" for v in variants[1:]]) + "\n"
 
 
 def table(drop_rows, elastic: dict, step: float, dt: float, device) -> str:
@@ -184,8 +358,52 @@ def main() -> None:
     parser.add_argument("--out", default="bench/results/softbody_cpu.md")
     parser.add_argument("--picture", default="docs/images/softbody.png")
     parser.add_argument("--usd", default="/tmp/softbody_drop.usdc")
+    parser.add_argument("--drop-only", action="store_true",
+                        help="only the drop (no elasticity table, picture or USD), with the options below")
+    parser.add_argument("--family-cost", action="store_true",
+                        help="only time a substep with and without the tet volume term (--methods: the balls)")
+    parser.add_argument("--volume-elasticity", action="store_true",
+                        help="only the bar's E and ν without and with the tet volume term (static solves, no device)")
+    parser.add_argument("--methods", nargs="+", choices=[c[0] for c in CASES], help="the balls to drop (default all)")
+    parser.add_argument("--volume", choices=("off", "on", "both"), default="off",
+                        help="the tet volume term on the tetrahedral and Delaunay balls; both: two drops, one table")
+    parser.add_argument("--bulk-modulus", type=float, default=None, help="the volume term's K [Pa] (default 2E/3)")
+    parser.add_argument("--youngs-modulus", type=float, default=BALL_E, help="E of the dropped balls [Pa]")
+    parser.add_argument("--height", type=float, default=0.3, help="drop height [m]")
     args = parser.parse_args()
     wp.init()
+    if args.volume_elasticity:
+        text = volume_elasticity(tuple(args.methods or ("tetrahedral", "delaunay")), bulk_modulus=args.bulk_modulus)
+        if args.out:
+            os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+            with open(args.out, "w") as f:
+                f.write(text)
+        print(text)
+        return
+    if args.family_cost:
+        text = family_cost(args.device, methods=tuple(args.methods or ("tetrahedral", "delaunay")),
+                           bulk_modulus=args.bulk_modulus)
+        if args.out:
+            os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+            with open(args.out, "w") as f:
+                f.write(text)
+        print(text)
+        return
+    if args.drop_only:
+        runs, dt = [], None
+        # with both, the drop with the term first: the one without takes its (smaller) step, so only the term differs
+        for on in {"off": (False,), "on": (True,), "both": (True, False)}[args.volume]:
+            rows, step, dt = drop(args.device, None, methods=args.methods, volume=on, bulk_modulus=args.bulk_modulus,
+                                  youngs_modulus=args.youngs_modulus, height=args.height, dt=dt)
+            runs.insert(0, (on, rows, step, dt))
+        text = volume_table(runs, args.device, youngs_modulus=args.youngs_modulus, height=args.height,
+                            bulk_modulus=args.bulk_modulus)
+        if args.out:
+            os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+            with open(args.out, "w") as f:
+                f.write(text)
+        print(text)
+        return
     elastic = {}
     for method, cube, bar, options in CASES:
         elastic[method] = elasticity(method, cube, bar, options)

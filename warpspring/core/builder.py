@@ -915,6 +915,8 @@ class ModelBuilder:
         name: str = "soft_body",
         prim: str | None = None,
         plasticity: SpringPlasticity | None = None,
+        volume: bool = False,
+        bulk_modulus: float | None = None,
     ):
         """Add a soft body made from a closed mesh by one of the seven mass-spring topologies.
 
@@ -950,10 +952,20 @@ class ModelBuilder:
             prim: for a USD file, the path of the mesh prim to read.
             plasticity: how every spring of the body yields and breaks (:class:`SpringPlasticity`, its limits
                 per spring, e.g. ``yield_strain``); default: elastic.
+            volume: add a bulk energy ½ K V₀ (J − 1)² per tet on the signed volume (the tet volume family,
+                :mod:`warpspring.core.volume`), for the ``"tetrahedral"`` and ``"delaunay"`` methods (their tets).
+                Use it when the body meets strains beyond ~10 % (a drop, a squash, a soft jelly under its own
+                weight): springs alone do not resist a change of volume, and tets pushed through themselves stay
+                inverted (``bench/RESULTS.md`` §18b, §18d). It raises the body's bulk stiffness, so the
+                stable step shrinks and E in tension grows (measured on a bar at the default K: by 11–14 %
+                for tetrahedral bodies, ν from ~0.27 to ~0.39; by 19–20 % for Delaunay ones).
+            bulk_modulus: the term's K [Pa], > 0; default E / (3(1 − 2ν)) = 2E/3 at the networks' ν = 1/4. Its
+                damper has kd = ``damping`` × K [Pa·s]. Live per world after finalize
+                (``VolumeFamily.set_values``).
 
         Returns:
             A :class:`~warpspring.core.softbody.SoftBody`: the particles and springs added, per group counts,
-            the embedding, the E → k rule and, for tets, the sliver report.
+            the embedding, the E → k rule, for tets the sliver report, and with ``volume`` the family's tets.
         """
         import time
 
@@ -1034,10 +1046,16 @@ class ModelBuilder:
             face_sets={checks.identifier("face set name", k): np.asarray(v, dtype=np.int32) for k, v in face_sets.items()},
         )
         self._skins.append(skin)
+        volume_tets = None
+        if volume or bulk_modulus is not None:
+            from .volume import add_volume_term
+
+            volume_tets = add_volume_term(self, topology, ids, volume=volume, method=method, youngs_modulus=youngs_modulus,
+                                          bulk_modulus=bulk_modulus, damping=beta, source=name)
         return softbody.SoftBody(
             name=name, method=method, particles=ids, springs=springs, skin=skin, stiffness_rule=topology.stiffness_rule,
             youngs_modulus=float(youngs_modulus), mass=float(masses.sum()), slivers=topology.slivers,
-            topology=topology, build_seconds=time.perf_counter() - started,
+            topology=topology, build_seconds=time.perf_counter() - started, volume_tets=volume_tets,
         )
 
     # -- colliders ------------------------------------------------------------------------------------

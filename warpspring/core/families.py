@@ -50,6 +50,11 @@ class ElementFamily:
         (springs, hinges: kd along elements) report none here; they enter through their kd/k ratios."""
         return np.zeros((model.world_count, model.particle_count))
 
+    def velocity_dependent(self, model) -> bool:
+        """Whether the family's forces depend on velocity (a damper with a nonzero value in some world): velocity
+        Verlet then runs its corrector. Read when an integrator is made."""
+        return False
+
     def tracks(self) -> tuple:
         """The keyframe tracks the family reads (they join the model's track table before :meth:`finalize`,
         with indices that never move)."""

@@ -722,6 +722,8 @@ class SoftBody:
         slivers: the sliver report of a tetrahedral body, else ``None``.
         topology: the method's output in the mesh's (scaled) frame, local indices.
         build_seconds: wall time of the build [s].
+        volume_tets: with ``volume=True``, the slice of the tet volume family's elements holding its tets (the
+            ``tets`` argument of ``VolumeFamily.set_values``); else ``None``.
     """
 
     name: str
@@ -735,6 +737,7 @@ class SoftBody:
     slivers: SliverReport | None
     topology: Topology = field(repr=False)
     build_seconds: float = 0.0
+    volume_tets: slice | None = None
 
     @property
     def particle_count(self) -> int:

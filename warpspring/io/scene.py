@@ -453,6 +453,8 @@ _SOFT_BODY = {
     "pin": {"min": VECTOR, "max": VECTOR},
     "plasticity": {"yield_strain": POSITIVE, "yield_force": POSITIVE, "yield_rate": POSITIVE,
                    "hardening": NON_NEGATIVE, "break_strain": POSITIVE},
+    "volume": bool,  # the tet volume term (tetrahedral and delaunay methods)
+    "bulk_modulus": POSITIVE,  # its K [Pa]; default 2E/3
 }
 _SCHEMA = {
     "simulation": {
@@ -1074,6 +1076,7 @@ def _add_soft_body(builder: ModelBuilder, body: dict, base: str) -> None:
         mass_gradient=body.get("mass_gradient", (0.0, 0.0, 0.0)), options=body.get("options"),
         name=body.get("name", "soft_body"), prim=body.get("prim"),
         plasticity=SpringPlasticity(**body["plasticity"]) if "plasticity" in body else None,
+        volume=body.get("volume", False), bulk_modulus=body.get("bulk_modulus"),
     )
     if "pin" in body:
         placed = builder.particle_positions(soft.particles)

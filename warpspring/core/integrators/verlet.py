@@ -23,7 +23,8 @@ class VelocityVerlet(Integrator):
     """Velocity Verlet; stable for undamped springs while ω h < 2. Two force evaluations per step, three
     when forces depend on velocity (drag or spring damping: a corrector keeps second order).
 
-    Forces depend on velocity when the model's drag is on or some spring is damped. Drag is a live input
+    Forces depend on velocity when the model's drag is on, some spring is damped, or an added element family says
+    it has a damper (``ElementFamily.velocity_dependent``). Drag is a live input
     (switching it on is a structural change the next capture sees); spring damping is read from the model
     at construction: after writing nonzero values into an undamped ``model.spring_damping``, make a new
     integrator (or the corrector stays off and the step is first order)."""
@@ -42,6 +43,7 @@ class VelocityVerlet(Integrator):
             time=None,
         )
         self._damped_springs = bool(model.spring_count and (model.spring_damping.numpy() != 0.0).any())  # any world
+        self._damped_springs |= any(family.velocity_dependent(model) for family in model.extra_families)
 
     @property
     def velocity_dependent(self) -> bool:
