@@ -232,7 +232,11 @@ def group_incidence(springs: np.ndarray, group: np.ndarray, particle_count: int,
         (table, shape, slot_groups): the Incidence, its IncidenceShape and the group of each head slot; or
         None when the head would be wider than ``MAX_HEAD_SLOTS``.
     """
-    head = group_head(springs, group, particle_count)
+    return head_incidence(group_head(springs, group, particle_count), particle_count, device=device)
+
+
+def head_incidence(head, particle_count: int, *, device):
+    """``group_incidence``'s result on ``device`` from ``group_head``'s (None stays None)."""
     if head is None:
         return None
     head_element, head_local, slot_groups = head
@@ -339,7 +343,7 @@ def spring_layout(model):
         directions = ()
         if head is not None and model._spring_grid and model.spring_grid_shape is not None:
             directions = grid_slots(head[1], head[2], model.spring_grid_shape)
-        cached = (group_incidence(springs, group, model.particle_count, device=model.device), directions)
+        cached = (head_incidence(head, model.particle_count, device=model.device), directions)
     model._spring_groups = cached
     layout, directions = cached
     if layout is None:
