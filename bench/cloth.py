@@ -42,7 +42,7 @@ DEFAULT_SIZES = {"cuda": [64, 128, 256, 512], "cpu": [32, 64]}
 
 
 def warpspring_model(n: int, device, spring_evaluation: str = "auto", worlds: int = 1, *,
-                     spring_groups: bool = True) -> ws.Model:
+                     spring_groups: bool = True, spring_grid: bool = True) -> ws.Model:
     builder = ws.ModelBuilder()
     spring = ws.SpringMaterial(ke=KE, kd=KD)
     builder.add_cloth_grid(
@@ -57,7 +57,14 @@ def warpspring_model(n: int, device, spring_evaluation: str = "auto", worlds: in
         bend=spring,
         pin=["top-left", "top-right"],
     )
-    return builder.finalize(device, spring_evaluation=spring_evaluation, worlds=worlds, spring_groups=spring_groups)
+    return builder.finalize(device, spring_evaluation=spring_evaluation, worlds=worlds, spring_groups=spring_groups,
+                            spring_grid=spring_grid)
+
+
+#: ``--evaluation`` names of the gather's spring layouts (``Model.spring_layout``) beyond the default ("gather":
+#: neighbours from the grid's rows and columns, each group's values once): (spring_evaluation, finalize options).
+EVALUATIONS = {"gather-table": ("gather", {"spring_grid": False}),
+               "gather-per-spring": ("gather", {"spring_groups": False})}
 
 
 class WarpspringRunner:
@@ -66,7 +73,7 @@ class WarpspringRunner:
     def __init__(self, model: ws.Model):
         self.model = model
         self.name = f"warpspring ({'gather' if model.spring_gather else 'scatter'}"
-        self.name += ", per spring)" if model.spring_gather and not model.spring_slot_groups else ")"
+        self.name += {"springs": ", per spring)", "groups": ", table)"}.get(model.spring_layout, ")")
         # No run-time guard: Newton has none, and the heavy ANCHORS cloth (0.1 kg per particle) stretches
         # its corner springs past the guard's default limit at N ≥ 128.
         self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, use_graph=True, guard=None)
@@ -220,9 +227,11 @@ def main():
     parser.add_argument("--no-newton", action="store_true", help="time warpspring alone")
     parser.add_argument("--newton-max-particles", type=int, help="time Newton only up to this many particles")
     parser.add_argument(
-        "--evaluation", nargs="+", default=["auto"], choices=["auto", "gather", "gather-per-spring", "scatter"],
-        help="warpspring spring-evaluation modes to time (one row each; gather-per-spring: spring data read per "
-             "spring, finalize(spring_groups=False), the layout before per-group data)",
+        "--evaluation", nargs="+", default=["auto"], choices=["auto", "gather", *EVALUATIONS, "scatter"],
+        help="warpspring spring-evaluation modes to time (one row each; gather: the grid's neighbours from rows and "
+             "columns, each group's values once; gather-table: neighbours from the incidence table, "
+             "finalize(spring_grid=False); gather-per-spring: spring data read per spring, "
+             "finalize(spring_groups=False), the layout before per-group data)",
     )
     parser.add_argument("--batches", type=int, default=5, help="timed batches per engine and size (median)")
     parser.add_argument("--bytes", action="store_true", help="also the gather rows' bytes and bandwidth")
@@ -261,8 +270,8 @@ def main():
         results, drift, models = {}, {}, {}
         makers = {}
         for mode in args.evaluation:
-            model = warpspring_model(n, device, mode.removesuffix("-per-spring"),
-                                     spring_groups=not mode.endswith("-per-spring"))
+            evaluation, options = EVALUATIONS.get(mode, (mode, {}))
+            model = warpspring_model(n, device, evaluation, **options)
             name = WarpspringRunner(model).name
             models[name] = model
             makers[name] = lambda model=model: WarpspringRunner(model)
@@ -314,7 +323,7 @@ def bytes_table(gathered: list[tuple[int, ws.Model, float]], device) -> list[str
         throughput = rate * model.particle_count * model.world_count
         achieved = b["compulsory"] * throughput
         ncu = ncu_dram_bytes(n, device, kernel_cache=wp.config.kernel_cache_dir,
-                             spring_groups=bool(model.spring_slot_groups)) if device.is_cuda else None
+                             layout=model.spring_layout) if device.is_cuda else None
         profiled = ["", "", "", ""]
         if isinstance(ncu, dict):
             dram = ncu.get("dram__bytes_read.sum", 0.0) + ncu.get("dram__bytes_write.sum", 0.0)
@@ -328,7 +337,8 @@ def bytes_table(gathered: list[tuple[int, ws.Model, float]], device) -> list[str
         elif ncu is not None:
             print(ncu)
         lines.append(
-            f"| {n} | {throughput / 1e9:.3f} G | {b['compulsory']:.0f} B | {b['requested']:.0f} B | "
+            f"| {n} ({model.spring_layout}) | {throughput / 1e9:.3f} G | {b['compulsory']:.0f} B | "
+            f"{b['requested']:.0f} B | "
             f"{achieved / 1e9:,.1f} GB/s | {achieved / copy:.0%} | " + " | ".join(profiled) + " |"
         )
         print(lines[-1], flush=True)

@@ -14,6 +14,9 @@ gather, ``kernels/springs.py``) runs one thread per particle of every world. For
   group's spring ``group_spring[g]`` and its rest length, stiffness and damping once, then in a uniform
   group's slot only the other particle j = ``head_local[k, i]`` and x_j, v_j (no spring index), in the slot
   of a group read per spring (-1) the spring index and the spring's three values too,
+- or, with the grid layout too (``Model.spring_layout`` "grid": one cloth grid in grid order), the grid's
+  size (nx, ny) once, and in a uniform group's slot no topology at all: j = i + dy·nx + dx from the slot's
+  compile-time direction (slots of a group read per spring load head_element and head_local as above),
 
 and writes its new position and velocity. Two counts per array:
 
@@ -29,7 +32,8 @@ draw if caches absorbed exactly the reuse and nothing across substeps. Where the
 (≈ 50 MB on an H100) the substeps re-read it from there and the figure may exceed DRAM's.
 
     python bench/traffic.py --sizes 256 512 1024 2048          # the table of the layout, no device needed
-    python bench/traffic.py --sizes 256 512 1024 2048 --per-spring   # the same, spring data per spring
+    python bench/traffic.py --sizes 256 512 1024 2048 --layout groups    # the grouped incidence table
+    python bench/traffic.py --sizes 256 512 1024 2048 --layout springs   # spring data per spring
     python bench/traffic.py --device cuda:0 --profile 1024      # one model, a few frames (for Nsight Compute)
 
 ``bench/cloth.py --bytes`` prints these counts next to the measured rates and a device copy's bandwidth,
@@ -100,8 +104,11 @@ def gather_traffic(model: ws.Model) -> list[ArrayTraffic]:
         return array.size * wp.types.type_size_in_bytes(array.dtype)
 
     grouped = bool(model.spring_slot_groups)
+    grid = model.spring_layout == "grid"
     # Slots whose spring index and values are read per spring: all of them, or a non-uniform group's.
     per_spring_slots = model.spring_slot_groups.count(-1) if grouped else head_slots
+    # Slots that load their other particle from the table: all of them, or on the grid a non-uniform group's.
+    table_slots = per_spring_slots if grid else head_slots
     rows = [
         ArrayTraffic("particle_q_in", "state", threads * vec, round(threads * (1 + entries) * vec)),
         ArrayTraffic("particle_qd_in", "state", threads * vec, round(threads * (1 + entries) * vec)),
@@ -110,12 +117,16 @@ def gather_traffic(model: ws.Model) -> list[ArrayTraffic]:
         ArrayTraffic("particle_flags", "particle", size(model.particle_flags), threads * 4),
         ArrayTraffic("particle_mass", "particle", size(model.particle_mass), threads * scalar),
         ArrayTraffic("particle_inv_mass", "particle", size(model.particle_inv_mass), threads * scalar),
-        ArrayTraffic("head_local", "topology", size(incidence.head_local), threads * head_slots * 4),
     ]
+    if table_slots:
+        rows.append(ArrayTraffic("head_local", "topology", size(incidence.head_local) * table_slots // head_slots,
+                                 threads * table_slots * 4))
     if per_spring_slots:
         rows.insert(-1, ArrayTraffic("head_element", "topology",
                                      size(incidence.head_element) * per_spring_slots // head_slots,
                                      threads * per_spring_slots * 4))
+    if grid:
+        rows.append(ArrayTraffic("grid_size", "topology", size(model.spring_grid_size), threads * 8))
     if tail_entries:
         rows += [
             ArrayTraffic("tail_start", "topology", size(incidence.tail_start), threads * 8),
@@ -183,8 +194,12 @@ def copy_bandwidth(device, *, megabytes: int = 512, repeats: int = 10) -> float:
     return 2 * count * 4 / statistics.median(times)
 
 
+#: finalize's options of each spring layout of the gather (``Model.spring_layout``) on a cloth grid.
+LAYOUTS = {"grid": {}, "groups": {"spring_grid": False}, "springs": {"spring_groups": False}}
+
+
 def ncu_dram_bytes(n: int, device, *, kernel_cache: str | None = None, timeout: float = 120.0,
-                   spring_groups: bool = True) -> dict | str:
+                   layout: str = "grid") -> dict | str:
     """Nsight Compute's counters for one launch of the fused step on the n × n cloth (the 21st, after warm-up
     and capture; caches flushed before it, as ncu does by default; clocks left as they run, as in §7 of
     RESULTS.md): {metric: value in bytes or seconds}, or a one-line reason when ``ncu`` is missing or fails."""
@@ -196,7 +211,7 @@ def ncu_dram_bytes(n: int, device, *, kernel_cache: str | None = None, timeout: 
         "-k", "regex:symplectic_euler",
         "--launch-skip", "20", "--launch-count", "1",
         sys.executable, os.path.abspath(__file__), "--device", str(device), "--profile", str(n),
-        *([] if spring_groups else ["--per-spring"]),
+        "--layout", layout,
     ]
     env = dict(os.environ, **({"WARP_CACHE_PATH": kernel_cache} if kernel_cache else {}))
     try:
@@ -222,19 +237,20 @@ def parse_ncu_csv(text: str) -> dict[str, float]:
     return values
 
 
-def profile(n: int, device, frames: int = 3, *, spring_groups: bool = True) -> None:
-    """The target of ``ncu_dram_bytes``: the n × n ANCHORS cloth, gather, a few graph-replayed frames."""
+def profile(n: int, device, frames: int = 3, *, layout: str = "grid") -> None:
+    """The target of ``ncu_dram_bytes``: the n × n ANCHORS cloth, gather in ``layout``, a few graph-replayed
+    frames."""
     from cloth import WarpspringRunner, warpspring_model
 
-    runner = WarpspringRunner(warpspring_model(n, device, "gather", spring_groups=spring_groups))
+    runner = WarpspringRunner(warpspring_model(n, device, "gather", **LAYOUTS[layout]))
     for _ in range(frames):
         runner.frame()
     wp.synchronize_device(device)
 
 
-def layout_table(sizes: list[int], worlds: list[int], device, *, spring_groups: bool = True) -> list[str]:
-    """Markdown rows of the traffic model for n × n cloths (one world) and ``worlds`` × 32² cloths, with spring
-    data per group (``spring_groups``, the default layout of these cloths) or per spring."""
+def layout_table(sizes: list[int], worlds: list[int], device, *, layout: str = "grid") -> list[str]:
+    """Markdown rows of the traffic model for n × n cloths (one world) and ``worlds`` × 32² cloths in the spring
+    ``layout`` (``LAYOUTS``; "grid", these cloths' default)."""
     from cloth import warpspring_model
 
     lines = [
@@ -244,7 +260,8 @@ def layout_table(sizes: list[int], worlds: list[int], device, *, spring_groups: 
     ]
     cases = [(n, 1) for n in sizes] + [(32, w) for w in worlds]
     for n, w in cases:
-        model = warpspring_model(n, device, "gather", worlds=w, spring_groups=spring_groups)
+        model = warpspring_model(n, device, "gather", worlds=w, **LAYOUTS[layout])
+        assert model.spring_layout == layout, (model.spring_layout, layout)
         rows = gather_traffic(model)
         b = per_particle(rows, model)
         working_set = sum(r.compulsory for r in rows) / 1e6  # both state buffers and the model's arrays
@@ -263,18 +280,21 @@ def main():
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024, 2048])
     parser.add_argument("--worlds", type=int, nargs="*", default=[4096], help="also W worlds of a 32² cloth")
     parser.add_argument("--profile", type=int, metavar="N", help="run the N × N cloth a few frames and exit")
-    parser.add_argument("--per-spring", action="store_true",
-                        help="spring data per spring (finalize(spring_groups=False)): the layout before groups")
+    parser.add_argument("--layout", choices=list(LAYOUTS), default="grid",
+                        help="the gather's spring layout: grid (neighbours from row and column, the default), groups "
+                             "(finalize(spring_grid=False): the incidence table, values per group) or springs "
+                             "(finalize(spring_groups=False): values per spring)")
+    parser.add_argument("--per-spring", action="store_true", help="the same as --layout springs")
     args = parser.parse_args()
+    layout = "springs" if args.per_spring else args.layout
     wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device)
     if args.profile:
-        profile(args.profile, device, spring_groups=not args.per_spring)
+        profile(args.profile, device, layout=layout)
         return
-    layout = "per spring" if args.per_spring else "per group"
-    print(f"Bytes per particle-substep of the fused gather step (symplectic Euler, float32, spring data {layout}), "
+    print(f"Bytes per particle-substep of the fused gather step (symplectic Euler, float32, spring layout {layout!r}), "
           "from the data layout:")
-    print("\n".join(layout_table(args.sizes, args.worlds, device, spring_groups=not args.per_spring)))
+    print("\n".join(layout_table(args.sizes, args.worlds, device, layout=layout)))
 
 
 if __name__ == "__main__":

@@ -11,9 +11,10 @@ Its incidence entries are (spring, other particle); padding entries point a part
 coincident pair whose force, stiffness and strain are exactly zero (or "none"), so the head's unrolled
 slot loop needs no branch. Where a group of springs shares one rest length, ke and kd, the head may be laid
 out group by group and the gathered force read the group's values once instead of per slot
-(``SpringSpec.slot_groups``). The stiffness matrix block Kₛ = ∂fᵢ/∂xⱼ is clamped positive
-semi-definite (the transverse term of a compressed spring dropped), so K ⪰ 0 as implicit Euler and power
-iteration need.
+(``SpringSpec.slot_groups``); where the particles are one grid in grid order, it may also find each slot's
+neighbour from the particle's row and column instead of the table (``SpringSpec.grid_slots``). The
+stiffness matrix block Kₛ = ∂fᵢ/∂xⱼ is clamped positive semi-definite (the transverse term of a compressed
+spring dropped), so K ⪰ 0 as implicit Euler and power iteration need.
 
 Worlds: topology and rest lengths are shared (plastic springs: one rest length per world and spring,
 world-major in the same ``rest_length`` field); stiffness and damping have one row for every world or one
@@ -277,16 +278,31 @@ def spring_funcs(scalar: type, law: SpringLaw = HOOKE):
     return spring_law_values, spring_force, spring_energy, spring_stiffness_matrix
 
 
-def spring_arrays_type(scalar: type, per_spring_law: bool = False, grouped: bool = False):
+def spring_arrays_type(scalar: type, per_spring_law: bool = False, grouped: bool = False, grid: bool = False):
     """The struct of the spring family's arrays in one precision; ``per_spring_law`` adds the per-spring law
     arrays (``SpringLaw.per_spring``), ``grouped`` the springs the gather reads each uniform group's values
-    at (``SpringSpec.slot_groups``), so scenes of linear springs read per spring keep the struct, and every
+    at (``SpringSpec.slot_groups``), ``grid`` (with ``grouped``) the grid's size the gather finds neighbours
+    from (``SpringSpec.grid_slots``), so scenes of linear springs read per spring keep the struct, and every
     kernel's parameters, as they were. One struct type per combination, however the call spells it."""
-    return _spring_arrays_type(scalar, bool(per_spring_law), bool(grouped))
+    return _spring_arrays_type(scalar, bool(per_spring_law), bool(grouped), bool(grid) and bool(grouped))
 
 
 @functools.cache
-def _spring_arrays_type(scalar: type, per_spring_law: bool, grouped: bool):
+def _spring_arrays_type(scalar: type, per_spring_law: bool, grouped: bool, grid: bool):
+
+    if grid:
+
+        @wp.struct
+        class SpringGridArrays:
+            indices: wp.array[wp.vec2i]  # [spring_count]: the two particles of each spring (per-world indices)
+            rest_length: wp.array[scalar]  # [m], [spring_count]
+            stiffness: wp.array2d[scalar]  # ke [N/m], [1 or world_count, spring_count]
+            damping: wp.array2d[scalar]  # kd [N·s/m], [1 or world_count, spring_count]
+            incidence: Incidence  # entries (spring, other particle), group-major slots; padding (0, the particle)
+            group_spring: wp.array[wp.int32]  # [group_count]: one spring of each group (a uniform group's values)
+            grid_size: wp.array[wp.int32]  # [2]: (nx, ny), the grid's particles per row and rows (i = row·nx + col)
+
+        return SpringGridArrays
 
     if grouped:
 
@@ -326,16 +342,16 @@ def _spring_arrays_type(scalar: type, per_spring_law: bool, grouped: bool):
     return SpringLawArrays
 
 
-def spring_access_funcs(scalar: type, law: SpringLaw, grouped: bool = False):
+def spring_access_funcs(scalar: type, law: SpringLaw, grouped: bool = False, grid: bool = False):
     """(rest_at, law_at): a spring's current rest length in a world, and the law's values completed with a
     spring's own (its law code and compression ratio), for the struct of ``spring_arrays_type`` of ``law``
-    (and ``grouped``)."""
-    return _spring_access_funcs(scalar, law, bool(grouped))
+    (and ``grouped``, ``grid``)."""
+    return _spring_access_funcs(scalar, law, bool(grouped), bool(grid) and bool(grouped))
 
 
 @functools.cache
-def _spring_access_funcs(scalar: type, law: SpringLaw, grouped: bool):
-    SpringArrays = spring_arrays_type(scalar, law.per_spring, grouped)
+def _spring_access_funcs(scalar: type, law: SpringLaw, grouped: bool, grid: bool):
+    SpringArrays = spring_arrays_type(scalar, law.per_spring, grouped, grid)
     SpringLawValues = spring_law_type(scalar)
 
     @wp.func
@@ -361,6 +377,16 @@ def _spring_access_funcs(scalar: type, law: SpringLaw, grouped: bool):
     return rest_at, law_at
 
 
+@wp.func
+def grid_neighbour(i: int, row: int, column: int, nx: int, ny: int, dx: int, dy: int) -> int:
+    """The particle (dx, dy) columns and rows from particle i = row·nx + column of an nx × ny grid in grid
+    order: i + dy·nx + dx, or i itself (a padding entry: zero force) where that is off the grid."""
+    c = column + dx
+    r = row + dy
+    inside = c >= 0 and c < nx and r >= 0 and r < ny
+    return wp.where(inside, i + dy * nx + dx, i)
+
+
 @dataclass(frozen=True)
 class SpringSpec:
     """Compile-time switches of the spring family.
@@ -376,12 +402,20 @@ class SpringSpec:
             force reads each uniform group's values once, at ``group_spring[g]``, and in its slots never the
             spring index. ``()``: values per spring everywhere. Only a gathered spec without tail, per-spring
             law arrays or plasticity has groups.
+        grid_slots: with ``slot_groups``, where the particles are one grid in grid order (i = row·nx + col,
+            nx and ny read from ``grid_size``), the direction (dx, dy) in columns and rows of each head slot's
+            neighbour: in a uniform group's slot the gathered force takes j = i + dy·nx + dx, or i itself
+            (padding) where that is off the grid, and loads nothing of the incidence table; slots of -1 still
+            read it. A particle's springs of a group lie in its slots in these directions' order, those off the
+            grid left out (``core/springs.grid_slots`` checks it), so both layouts sum the same terms in the same
+            order. ``()``: the table everywhere.
     """
 
     incidence: IncidenceShape
     law: SpringLaw = HOOKE
     gathered: bool = True
     slot_groups: tuple = ()
+    grid_slots: tuple = ()
 
     def funcs(self, scalar: type) -> FamilyFuncs:
         return spring_family_funcs(scalar, self)
@@ -397,15 +431,22 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
     if grouped and (tail or spec.law.per_spring or spec.law.plastic or len(spec.slot_groups) != head_slots):
         raise ValueError(f"slot groups need one group per head slot, no tail, no per-spring law arrays and no "
                          f"plasticity; got {spec}")
-    SpringArrays = spring_arrays_type(scalar, spec.law.per_spring, grouped)
+    grid = grouped and bool(spec.grid_slots)
+    if grid and len(spec.grid_slots) != head_slots:
+        raise ValueError(f"grid slots need one direction per head slot; got {spec}")
+    SpringArrays = spring_arrays_type(scalar, spec.law.per_spring, grouped, grid)
     spring_law_values, spring_force, spring_energy, spring_stiffness_matrix = spring_funcs(scalar, spec.law)
-    rest_at, law_at = spring_access_funcs(scalar, spec.law, grouped)
+    rest_at, law_at = spring_access_funcs(scalar, spec.law, grouped, grid)
     SpringLawValues = spring_law_type(scalar)
     group_count = max(spec.slot_groups, default=-1) + 1
     group_values = wp.types.vector(length=max(group_count, 1), dtype=scalar)
     # The group of each slot, a constant of the kernel (the unrolled slot loop indexes it at fixed k).
     slot_group = wp.constant(wp.types.vector(length=max(head_slots, 1), dtype=wp.int32)(
         *(spec.slot_groups if grouped else (0,) * max(head_slots, 1))))
+    # The grid's direction of each slot, constants likewise (zeros without a grid: never read).
+    directions = spec.grid_slots if grid else ((0, 0),) * max(head_slots, 1)
+    slot_dx = wp.constant(wp.types.vector(length=max(head_slots, 1), dtype=wp.int32)(*(d[0] for d in directions)))
+    slot_dy = wp.constant(wp.types.vector(length=max(head_slots, 1), dtype=wp.int32)(*(d[1] for d in directions)))
 
     @wp.func
     def spring_block(
@@ -441,12 +482,26 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
                 kd[g] = springs.damping[damping_row, s]
             head_local = springs.incidence.head_local
             head_element = springs.incidence.head_element
+            # The grid: i's row and column once; nx and ny are data, so every size shares the kernel.
+            nx = int(0)
+            ny = int(0)
+            row = int(0)
+            column = int(0)
+            if wp.static(grid):
+                nx = springs.grid_size[0]
+                ny = springs.grid_size[1]
+                row = i // nx
+                column = i - row * nx
             for k in range(wp.static(head_slots)):
-                j = base + head_local[k, i]
                 g = slot_group[k]  # a constant once the loop is unrolled: the branch compiles away
                 if g >= 0:
+                    if wp.static(grid):
+                        j = base + grid_neighbour(i, row, column, nx, ny, slot_dx[k], slot_dy[k])
+                    else:
+                        j = base + head_local[k, i]
                     f += spring_force(xi, particle_q[j], vi, particle_qd[j], rest[g], ke[g], kd[g], values)
                 else:
+                    j = base + head_local[k, i]
                     s = head_element[k, i]
                     f += spring_force(xi, particle_q[j], vi, particle_qd[j], springs.rest_length[s],
                                       springs.stiffness[stiffness_row, s], springs.damping[damping_row, s], values)

@@ -208,15 +208,15 @@ def test_the_traffic_model_counts_the_gathers_arrays():
 
 
 def test_the_traffic_model_counts_spring_data_per_group():
-    """With spring data per group (the cloth's default: structural, shear and bend each uniform), by hand: the
-    same 48 B of state and 12 B of flags and masses, 12 slots × 4 B of other particles (no spring index), and
-    per group its spring and three values, 3 × (4 + 3 × 4) B for the whole model; a non-uniform group's slots
-    add their spring index and its springs' values."""
+    """With spring data per group over the incidence table (``spring_grid=False``; structural, shear and bend each
+    uniform), by hand: the same 48 B of state and 12 B of flags and masses, 12 slots × 4 B of other particles
+    (no spring index), and per group its spring and three values, 3 × (4 + 3 × 4) B for the whole model; a
+    non-uniform group's slots add their spring index and its springs' values."""
     import traffic
 
     for worlds in (1, 4):
-        model = cloth.warpspring_model(8, "cpu", "gather", worlds=worlds)
-        assert model.spring_slot_groups == (0,) * 4 + (1,) * 4 + (2,) * 4
+        model = cloth.warpspring_model(8, "cpu", "gather", worlds=worlds, spring_grid=False)
+        assert model.spring_slot_groups == (0,) * 4 + (1,) * 4 + (2,) * 4 and model.spring_layout == "groups"
         rows = traffic.gather_traffic(model)
         assert "head_element" not in [r.name for r in rows]
         b = traffic.per_particle(rows, model)
@@ -233,6 +233,29 @@ def test_the_traffic_model_counts_spring_data_per_group():
     b = traffic.per_particle(traffic.gather_traffic(model), model)
     assert b["topology"] == (12 + 4) * 4 / 4
     np.testing.assert_allclose(b["spring"], (3 * (4 + 3 * 4) + 112 * 12) / (64 * 4))
+
+
+def test_the_traffic_model_counts_the_grid_layout():
+    """On the grid layout (the gathered cloth's default), by hand: 48 B of state, 12 B of flags and masses, the
+    groups' 3 × (4 + 3 × 4) B, and of topology only the grid's size (nx, ny), 8 B for the model: a uniform
+    group's slot loads no table entry. A non-uniform group's 4 slots load the table's two ints again."""
+    import traffic
+
+    for worlds in (1, 4):
+        model = cloth.warpspring_model(8, "cpu", "gather", worlds=worlds)
+        assert model.spring_layout == "grid"
+        rows = traffic.gather_traffic(model)
+        assert not {"head_element", "head_local"} & {r.name for r in rows}
+        b = traffic.per_particle(rows, model)
+        assert (b["state"], b["topology"]) == (48.0, 8 / (64 * worlds))
+        np.testing.assert_allclose(b["spring"], 3 * (4 + 3 * 4) / (64 * worlds))
+        np.testing.assert_allclose(b["particle"], 4 + 8 / worlds + (model.inputs.shape[1] * 4 + 16) / 64)
+    ke = model.world_values("spring_stiffness")[0].copy()
+    ke[0] *= 2.0
+    model.set_world_values("spring_stiffness", ke)
+    assert model.spring_layout == "grid" and model.spring_slot_groups == (-1,) * 4 + (1,) * 4 + (2,) * 4
+    b = traffic.per_particle(traffic.gather_traffic(model), model)
+    assert b["topology"] == (4 + 4) * 4 / 4 + 8 / (64 * 4)
 
 
 def test_ncu_output_is_read_in_base_units():

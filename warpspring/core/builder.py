@@ -130,6 +130,7 @@ class ModelBuilder:
         self._spring_kd: list[np.ndarray] = []
         self._spring_count = 0
         self._spring_law: list[tuple] = []  # per group: count, law code, compression ratio, plastic, plasticity row
+        self._cloth_grids: list[tuple] = []  # (first particle, nx, ny) of each add_cloth_grid (the grid layout)
 
         self._hinges: list[np.ndarray] = []
         self._hinge_rest: list[np.ndarray] = []
@@ -700,6 +701,7 @@ class ModelBuilder:
             pinned=self._grid_pins(pin, nx, ny),
         )
         grid = ids.reshape(ny, nx)
+        self._cloth_grids.append((int(ids[0]), nx, ny))
 
         def pairs(a, b):
             return np.stack([a.ravel(), b.ravel()], axis=1)
@@ -1229,7 +1231,8 @@ class ModelBuilder:
 
     def finalize(self, device=None, *, precision: str = "float32", spring_evaluation: str = "auto",
                  worlds: int = 1, contact_stage: bool | None = None, contact_slots: int | None = None,
-                 integrator: str = "symplectic_euler", check_memory: bool = True, spring_groups: bool = True) -> Model:
+                 integrator: str = "symplectic_euler", check_memory: bool = True, spring_groups: bool = True,
+                 spring_grid: bool = True) -> Model:
         """Copy the scene to ``device`` as a :class:`Model`.
 
         Before it allocates anything, finalize estimates the memory of the model and of a run of it
@@ -1260,6 +1263,10 @@ class ModelBuilder:
             spring_groups: with gathered springs, read each spring group's rest length, ke and kd once per
                 group where every spring of the group has the same ones (``Model.spring_slot_groups``), instead
                 of once per spring; ``False`` reads them per spring.
+            spring_grid: with ``spring_groups``, where the scene is one :meth:`add_cloth_grid` and nothing else
+                (its particles in grid order), find a uniform group's neighbours from the particle's row and
+                column instead of the incidence table (``Model.spring_layout`` "grid"; the same bits, fewer bytes
+                per step); ``False`` keeps the table ("groups").
 
         Raises:
             ConfigError: a bad option, a scene beyond the kernels' 32-bit indices, or a model that does not fit in
@@ -1288,7 +1295,7 @@ class ModelBuilder:
             memory.check_fits(estimate, memory.available_memory(device), precision=precision)
         try:
             return self._finalize(device, precision, scalar, worlds, spring_evaluation, contact_stage, contact_slots,
-                                  spring_groups=spring_groups)
+                                  spring_groups=spring_groups, spring_grid=spring_grid)
         except (RuntimeError, MemoryError) as exc:
             if not memory.out_of_memory(exc):
                 raise
@@ -1355,7 +1362,8 @@ class ModelBuilder:
         )
 
     def _finalize(self, device, precision: str, scalar, worlds: int, spring_evaluation: str,
-                  contact_stage: bool | None, contact_slots: int | None, *, spring_groups: bool = True) -> Model:
+                  contact_stage: bool | None, contact_slots: int | None, *, spring_groups: bool = True,
+                  spring_grid: bool = True) -> Model:
         """The model's arrays on ``device`` (the arguments checked by :meth:`finalize`)."""
         vec3 = vec3_type(scalar)
         float_np = np.float64 if scalar is wp.float64 else np.float32
@@ -1432,6 +1440,11 @@ class ModelBuilder:
         )
         self._finalize_spring_laws(model, farray, iarray)
         model._spring_grouping = spring_groups
+        # The grid layout: one cloth grid holding every particle, in grid order (its first particle is 0).
+        grids = self._cloth_grids
+        if len(grids) == 1 and grids[0][0] == 0 and grids[0][1] * grids[0][2] == n:
+            model.spring_grid_shape = grids[0][1:]
+        model._spring_grid = bool(spring_grid)
         set_spring_layout(model, spring_groups)
 
         hinges = np.concatenate(self._hinges) if self._hinges else np.zeros((0, 4), dtype=np.int64)

@@ -300,6 +300,10 @@ class Model:
     #   layout (core/springs.spring_layout)
     spring_group_spring: wp.array | None  # int32, shape [group_count]: one spring of each group (its values
     #   are the group's), or None
+    spring_grid_shape: tuple | None  # host-side: (nx, ny) when the particles are one add_cloth_grid in grid order
+    spring_grid_slots: tuple  # host-side: per head slot, the grid direction (dx, dy) [columns, rows] the gather
+    #   finds a uniform group's neighbour in, instead of the table (see spring_layout); () for the table
+    spring_grid_size: wp.array | None  # int32, shape [2]: (nx, ny) on the device, or None
     spring_material_law: SpringLaw  # the laws the spring groups use (square, asymmetric, plastic switches)
     spring_law_code: wp.array | None  # int32, shape [spring_count]: SPRING_LINEAR or SPRING_SQUARE (laws in use)
     spring_compression_ratio: wp.array | None  # kc / ke [-], shape [spring_count] (laws in use)
@@ -359,7 +363,11 @@ class Model:
         self.spring_families = {}
         self.spring_slot_groups = ()
         self.spring_group_spring = None
+        self.spring_grid_shape = None
+        self.spring_grid_slots = ()
+        self.spring_grid_size = None
         self._spring_grouping = False  # finalize(spring_groups=): whether the layout follows the values
+        self._spring_grid = False  # finalize(spring_grid=): whether a grid's neighbours may be implicit
         self.spring_material_law = SpringLaw()
         self.spring_plastic_count = 0
         for name in ("spring_law_code", "spring_compression_ratio", "spring_plastic_index", "spring_yield_strain",
@@ -909,6 +917,19 @@ class Model:
             return cached[1]
         return self.elements.head
 
+    @property
+    def spring_layout(self) -> str:
+        """How the spring force is evaluated: "scatter" (per spring, atomic adds), or gathered per particle over
+        the incidence table with values per spring ("springs"), each uniform group's values once ("groups"),
+        or those and, in a uniform group's slots, the neighbour from the particle's row and column of the
+        model's one grid instead of the table ("grid"; the slots of a group read per spring still use the
+        table). Chosen by finalize (``spring_groups=``, ``spring_grid=``) and :meth:`refresh_spring_layout`."""
+        if not self.spring_gather:
+            return "scatter"
+        if not self.spring_slot_groups:
+            return "springs"
+        return "grid" if self.spring_grid_slots else "groups"
+
     def refresh_spring_layout(self) -> None:
         """After in-place writes of spring rest lengths, stiffness or damping: lay the springs out as their
         values now call for (a group that no longer has one value is read per spring, one that has again per
@@ -998,8 +1019,9 @@ class Model:
         hinges = f", {self.hinge_count} hinges" if self.hinge_count else ""
         extra = "".join(f", {f.element_count} {f.name}" for f in self.extra_families)
         extra += "".join(f", emitter {e.name!r} (pool {e.capacity})" for e in self.emitters)
+        layout = f" ({self.spring_layout})" if self.spring_count else ""
         return (
-            f"{worlds}{self.particle_count} particles, {self.spring_count} springs{hinges}{extra}, "
+            f"{worlds}{self.particle_count} particles, {self.spring_count} springs{layout}{hinges}{extra}, "
             f"{self.tri_count} triangles{pins}, "
             f"colliders: {shapes} ({self.precision} on {self.device})"
         )

@@ -111,22 +111,27 @@ class SpringFamily(ElementFamily):
         # tangent at the state it linearises about, and the per-world rest lengths of plastic springs.
         material = model.spring_material_law
         gathered = model.spring_gather and not linear
+        slot_groups = model.spring_slot_groups if gathered else ()
         return SpringSpec(
             incidence=model.spring_incidence_shape,
             law=material if linear else model.spring_law,
             gathered=gathered,
-            slot_groups=model.spring_slot_groups if gathered else (),
+            slot_groups=slot_groups,
+            grid_slots=model.spring_grid_slots if slot_groups else (),
         )
 
     def arrays(self, model, *, stiffness=None, grouped: bool | None = None):
-        """The struct of the spring arrays for ``spec(model)`` (``grouped``: for a spec with slot groups or
-        without, default the model's gather spec's)."""
+        """The struct of the spring arrays for ``spec(model)`` (``grouped``: for a spec with slot groups, and
+        the grid's directions where the model has them, or per spring; default the model's gather spec's)."""
         law = model.spring_material_law
         if grouped is None:
             grouped = bool(model.spring_slot_groups) and model.spring_gather
-        springs = spring_arrays_type(model.scalar, law.per_spring, grouped)()
+        grid = grouped and bool(model.spring_grid_slots)
+        springs = spring_arrays_type(model.scalar, law.per_spring, grouped, grid)()
         if grouped:
             springs.group_spring = model.spring_group_spring
+        if grid:
+            springs.grid_size = model.spring_grid_size
         springs.indices = model.spring_indices
         springs.rest_length = model.spring_plastic_rest_length if law.plastic else model.spring_rest_length
         springs.stiffness = model.spring_stiffness if stiffness is None else stiffness
@@ -227,6 +232,26 @@ def group_incidence(springs: np.ndarray, group: np.ndarray, particle_count: int,
         (table, shape, slot_groups): the Incidence, its IncidenceShape and the group of each head slot; or
         None when the head would be wider than ``MAX_HEAD_SLOTS``.
     """
+    return head_incidence(group_head(springs, group, particle_count), particle_count, device=device)
+
+
+def head_incidence(head, particle_count: int, *, device):
+    """``group_incidence``'s result on ``device`` from ``group_head``'s (None stays None)."""
+    if head is None:
+        return None
+    head_element, head_local, slot_groups = head
+    table = Incidence()
+    table.head_element = wp.array(head_element, dtype=wp.int32, device=device)
+    table.head_local = wp.array(head_local, dtype=wp.int32, device=device)
+    table.tail_start = wp.zeros(particle_count + 1, dtype=wp.int32, device=device)
+    table.tail_element = wp.zeros(0, dtype=wp.int32, device=device)
+    table.tail_local = wp.zeros(0, dtype=wp.int32, device=device)
+    return table, IncidenceShape(head_slots=len(slot_groups), tail=False), slot_groups
+
+
+def group_head(springs: np.ndarray, group: np.ndarray, particle_count: int):
+    """The head of ``group_incidence`` on the host: (head_element, head_local, slot_groups), int32 arrays of
+    shape [head_slots, particle_count] and the group of each slot; or None when wider than ``MAX_HEAD_SLOTS``."""
     count = len(springs)
     group_count = int(group.max()) + 1 if count else 0
     owner = springs.T.ravel()
@@ -249,22 +274,57 @@ def group_incidence(springs: np.ndarray, group: np.ndarray, particle_count: int,
     head_local = np.broadcast_to(np.arange(particle_count, dtype=np.int32), (head_slots, particle_count)).copy()
     head_element[slot, owner] = element
     head_local[slot, owner] = other
-    table = Incidence()
-    table.head_element = wp.array(head_element, dtype=wp.int32, device=device)
-    table.head_local = wp.array(head_local, dtype=wp.int32, device=device)
-    table.tail_start = wp.zeros(particle_count + 1, dtype=wp.int32, device=device)
-    table.tail_element = wp.zeros(0, dtype=wp.int32, device=device)
-    table.tail_local = wp.zeros(0, dtype=wp.int32, device=device)
-    slot_groups = tuple(int(g) for g in np.repeat(np.arange(group_count), width))
-    return table, IncidenceShape(head_slots=head_slots, tail=False), slot_groups
+    return head_element, head_local, tuple(int(g) for g in np.repeat(np.arange(group_count), width))
+
+
+def grid_slots(head_local: np.ndarray, slot_groups: tuple, grid_shape: tuple) -> tuple:
+    """The grid direction of each head slot of a group-by-group table (``group_head``), or () where the table
+    is not the one the grid's directions give.
+
+    The particles must be an nx × ny grid in grid order (particle i at row i // nx, column i % nx). Each group's
+    directions (dx, dy) [columns, rows] are read at the first particle that fills all of the group's slots;
+    the table qualifies when, at every particle, the group's slots hold the neighbours in those directions that
+    lie on the grid, in that order, and padding (the particle itself) after them: what the implicit gather
+    (``kernels.springs.grid_neighbour``) sums, in the same order, with zeros where the table has none.
+
+    Args:
+        head_local: the other particle of each entry, int, shape [head_slots, particle_count].
+        slot_groups: each slot's group (contiguous ranges), length head_slots.
+        grid_shape: (nx, ny).
+    """
+    nx, ny = grid_shape
+    particle = np.arange(nx * ny)
+    if head_local.shape[1] != len(particle) or not len(slot_groups):
+        return ()
+    row, column = np.divmod(particle, nx)
+    groups = np.asarray(slot_groups)
+    directions = []
+    for g in dict.fromkeys(slot_groups):
+        slots = np.flatnonzero(groups == g)
+        other = head_local[slots[0] : slots[-1] + 1].astype(np.int64)
+        full = np.flatnonzero((other != particle).all(axis=0))
+        if not len(full):
+            return ()
+        dx, dy = other[:, full[0]] % nx - column[full[0]], other[:, full[0]] // nx - row[full[0]]
+        c, r = column + dx[:, None], row + dy[:, None]
+        inside = (c >= 0) & (c < nx) & (r >= 0) & (r < ny)
+        expected = np.broadcast_to(particle, other.shape).copy()
+        k, q = np.nonzero(inside)
+        expected[(np.cumsum(inside, axis=0) - 1)[k, q], q] = q + dy[k] * nx + dx[k]
+        if not np.array_equal(expected, other):
+            return ()
+        directions += zip(dx.tolist(), dy.tolist())
+    return tuple(directions)
 
 
 def spring_layout(model):
-    """The spring layout the model's values call for: (table, shape, slot_groups) of ``group_incidence`` with
-    the slots of non-uniform groups marked -1, where the springs are gathered without per-spring law arrays
-    or plasticity, some group is uniform, the grouped head fits and moves no more bytes than the per-spring
-    head; else None (per spring, role-major). A function of the topology and the values alone, so a model
-    switched between frames gets what a model built with its values gets."""
+    """The spring layout the model's values call for: (table, shape, slot_groups, grid_slots), the first three
+    of ``group_incidence`` with the slots of non-uniform groups marked -1, where the springs are gathered
+    without per-spring law arrays or plasticity, some group is uniform, the grouped head fits and moves no more
+    bytes than the per-spring head; else None (per spring, role-major). ``grid_slots`` are the directions of
+    ``grid_slots`` where the model is one grid in grid order (``Model.spring_grid_shape``) whose table they
+    give and the finalize option allows it (``spring_grid``), else (). A function of the topology and the
+    values alone, so a model switched between frames gets what a model built with its values gets."""
     law = model.spring_material_law
     if not (model.spring_gather and model.spring_count) or law.per_spring or law.plastic:
         return None
@@ -275,10 +335,17 @@ def spring_layout(model):
     group = np.zeros(model.spring_count, dtype=np.int64)
     for g, members in enumerate(model.spring_families.values()):
         group[members] = g
-    # The grouped table depends on the topology alone: built once, kept for later switches (``_spring_groups``).
+    # The grouped table and its grid directions depend on the topology alone: built once, kept for later
+    # switches (``_spring_groups``).
     cached = getattr(model, "_spring_groups", None)
-    layout = cached[0] if cached else group_incidence(springs, group, model.particle_count, device=model.device)
-    model._spring_groups = (layout,)
+    if cached is None:
+        head = group_head(springs, group, model.particle_count)
+        directions = ()
+        if head is not None and model._spring_grid and model.spring_grid_shape is not None:
+            directions = grid_slots(head[1], head[2], model.spring_grid_shape)
+        cached = (head_incidence(head, model.particle_count, device=model.device), directions)
+    model._spring_groups = cached
+    layout, directions = cached
     if layout is None:
         return None
     table, shape, slot_groups = layout
@@ -292,17 +359,18 @@ def spring_layout(model):
     width = head_slots(degree)
     if grouped_bytes > per_spring_slot * width:
         return None
-    return table, shape, slot_groups
+    return table, shape, slot_groups, directions
 
 
 def set_spring_layout(model, grouped: bool) -> None:
     """Lay the springs out as ``spring_layout`` says (``grouped``) or per spring (role-major incidence,
-    ``build_incidence``), setting ``spring_incidence``, ``spring_incidence_shape``, ``spring_slot_groups`` and
-    ``spring_group_spring``. On a finalized model, a layout other than the current one replaces them (a
-    structural change); the same layout changes nothing."""
+    ``build_incidence``), setting ``spring_incidence``, ``spring_incidence_shape``, ``spring_slot_groups``,
+    ``spring_group_spring``, ``spring_grid_slots`` and ``spring_grid_size``. On a finalized model, a layout
+    other than the current one replaces them (a structural change); the same layout changes nothing."""
     layout = spring_layout(model) if grouped else None
-    current = getattr(model, "spring_slot_groups", None) if hasattr(model, "spring_incidence") else None
-    if (layout[2] if layout else ()) == current:
+    current = ((getattr(model, "spring_slot_groups", None), getattr(model, "spring_grid_slots", None))
+               if hasattr(model, "spring_incidence") else None)
+    if (layout[2:] if layout else ((), ())) == current:
         return
     if layout is None:
         springs = model.spring_indices.numpy().reshape(-1, 2).astype(np.int64)
@@ -310,7 +378,11 @@ def set_spring_layout(model, grouped: bool) -> None:
             springs, model.particle_count, springs[:, ::-1], lambda particles: particles, device=model.device)
         model.spring_slot_groups = ()
         model.spring_group_spring = None
+        model.spring_grid_slots = ()
+        model.spring_grid_size = None
         return
     firsts = [int(members[0]) if len(members) else 0 for members in model.spring_families.values()]
-    model.spring_incidence, model.spring_incidence_shape, model.spring_slot_groups = layout
+    model.spring_incidence, model.spring_incidence_shape, model.spring_slot_groups, model.spring_grid_slots = layout
     model.spring_group_spring = wp.array(np.asarray(firsts, dtype=np.int32), dtype=wp.int32, device=model.device)
+    model.spring_grid_size = (wp.array(np.asarray(model.spring_grid_shape, dtype=np.int32), dtype=wp.int32,
+                                       device=model.device) if model.spring_grid_slots else None)
