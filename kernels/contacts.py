@@ -7,7 +7,12 @@ per world (animated shapes, each world at its own time). A kernel is specialised
 scene holds (:class:`ContactFeatures`); a kind adds a signed-distance function here and a branch in
 ``shape_surface``. A shape's distance is its surface's less its ``thickness``.
 
-**Meshes** (``SHAPE_MESH``, :func:`mesh_funcs`) are ``wp.Mesh`` BVHs in the shape's frame: the closest point
+**Meshes** (``SHAPE_MESH``) are ``wp.Mesh`` BVHs in the shape's frame. A particle's contacts with one come
+from :func:`mesh_cache_funcs`: the nearest triangle within the contact reach by an exact closest point per
+triangle, signed by the pseudo-normal of its closest feature, from a per-particle candidate cache refreshed by
+a BVH query only when the particle moved more than a margin (the cache changes the work, never the answer;
+the argument is in its docstring). Warp's own queries (:func:`mesh_funcs`, below) serve points that are no
+particle's (``p_index`` = -1), winding-number meshes, and meshes switched to them: the closest point
 within the mesh's depth (``size[0]``; a query costs with the distance it may search: for points anywhere
 around a 5120-triangle sphere, 40× more within 3 m than within 5 cm on the CPU, ``bench/mesh_queries.py``),
 signed by the closest feature's angle-weighted pseudo-normal (closed and one-sided meshes; exact for a
