@@ -109,6 +109,7 @@ class Runner:
     def __init__(self, model: ws.Model):
         self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=None)
         self.deforming = [c for c in model.mesh_colliders if c.info.deforming]
+        self.frames = 0
         for _ in range(SETTLE_FRAMES):
             self.frame()
         self.frames = 0

@@ -408,6 +408,69 @@ class MeshCache:
     refreshes: wp.array[wp.int32]  # [world_count], full queries made with the cache on (refreshes), accumulated
 
 
+
+@wp.func
+def face_unit_normal(mesh: wp.uint64, f: int) -> wp.vec3d:
+    """Face f's unit normal (counter-clockwise), float64 from the mesh's float32 points; zero if degenerate."""
+    a = wp.vec3d(wp.mesh_get_point(mesh, 3 * f))
+    n = wp.cross(wp.vec3d(wp.mesh_get_point(mesh, 3 * f + 1)) - a, wp.vec3d(wp.mesh_get_point(mesh, 3 * f + 2)) - a)
+    length = wp.length(n)
+    if length > wp.float64(0.0):
+        return n / length
+    return wp.vec3d()
+
+
+@wp.func
+def face_corner_angle(mesh: wp.uint64, f: int, k: int) -> wp.float64:
+    """Face f's interior angle [rad] at its corner k (0 for a degenerate corner)."""
+    p = wp.vec3d(wp.mesh_get_point(mesh, 3 * f + k))
+    u = wp.vec3d(wp.mesh_get_point(mesh, 3 * f + (k + 1) % 3)) - p
+    w = wp.vec3d(wp.mesh_get_point(mesh, 3 * f + (k + 2) % 3)) - p
+    lengths = wp.length(u) * wp.length(w)
+    if lengths > wp.float64(0.0):
+        return wp.acos(wp.clamp(wp.dot(u, w) / lengths, wp.float64(-1.0), wp.float64(1.0)))
+    return wp.float64(0.0)
+
+
+@wp.func
+def unit_or_zero(n: wp.vec3d) -> wp.vec3f:
+    length = wp.length(n)
+    if length > wp.float64(0.0):
+        return wp.vec3f(n / length)
+    return wp.vec3f()
+
+
+@wp.kernel(enable_backward=False)
+def pseudo_normals_kernel(
+    mesh: wp.uint64,
+    vertex_start: wp.array[wp.int32],  # [v + 1], CSR over the corners (3 f + k) at each vertex
+    vertex_corner: wp.array[wp.int32],  # [3 t], in face order
+    edge_group: wp.array[wp.int32],  # [3 t], the undirected edge of each face's edge k (ab, bc, ca)
+    edge_start: wp.array[wp.int32],  # [edges + 1], CSR over the faces at each edge
+    edge_face: wp.array[wp.int32],  # [3 t], in face order
+    offset: int,
+    normals: wp.array[wp.vec3f],
+):
+    """The seven unit pseudo-normals of face f (``MeshCache.normals``: face, edges ab bc ca, corners a b c) from
+    the mesh's current points, summed in float64 in a fixed order (no atomics). Launch over the faces."""
+    f = wp.tid()
+    base = offset + FACE_NORMALS * f
+    normals[base] = unit_or_zero(face_unit_normal(mesh, f))
+    for k in range(3):
+        group = edge_group[3 * f + k]
+        edge = wp.vec3d()
+        for j in range(edge_start[group], edge_start[group + 1]):
+            edge += face_unit_normal(mesh, edge_face[j])
+        normals[base + FEATURE_EDGE_AB + k] = unit_or_zero(edge)
+        vertex = wp.mesh_get_index(mesh, 3 * f + k)
+        corner_sum = wp.vec3d()
+        for j in range(vertex_start[vertex], vertex_start[vertex + 1]):
+            corner = vertex_corner[j]
+            g = corner / 3
+            corner_sum += face_corner_angle(mesh, g, corner - 3 * g) * face_unit_normal(mesh, g)
+        normals[base + FEATURE_VERTEX_A + k] = unit_or_zero(corner_sum)
+
+
 @functools.cache
 def mesh_cache_funcs(scalar: type):
     """The mesh path of the particle contacts: exact closest points and path crossings on a mesh collider's
@@ -638,7 +701,7 @@ def mesh_cache_funcs(scalar: type):
                     return distance, normal, velocity
                 if not closed:
                     return far, vec3(zero, zero, one), vec3(zero)
-                if nearest > delta:  # no crossing since x_ref: x_ref's side
+                if nearest > delta + pad_for(q, lower, upper, delta):  # no crossing since x_ref: x_ref's side
                     if cache.side[slot, p_index] < 0:
                         distance, normal, velocity = deep_result(mesh, cache, s, deep_reach, p)
                         return distance, normal, velocity

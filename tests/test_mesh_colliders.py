@@ -699,3 +699,26 @@ def test_mesh_cache_resumes_bit_for_bit(device, tmp_path):
         x, v = particles(resumed)
         np.testing.assert_array_equal(x, expected[0])
         np.testing.assert_array_equal(v, expected[1])
+
+
+def test_pseudo_normals_on_the_device_equal_the_float64_reference(device):
+    """The device's pseudo-normals of a box (corners (±1, ±1, ±1)/√3, edges the sum of two face normals) and of
+    a lumpy sphere whose points are then set (deforming) equal the host's float64 ones to float32 rounding."""
+    from warpspring.core.mesh_colliders import pseudo_normals
+
+    box = trimesh.creation.box(extents=(1.0, 2.0, 3.0))
+    reference = pseudo_normals(box.vertices, box.faces)
+    np.testing.assert_allclose(reference[:, 4:], np.sign(box.vertices[box.faces]) / math.sqrt(3.0), atol=1e-7)
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    builder = ws.ModelBuilder()
+    builder.add_particles([[0.0, 0.0, 5.0]], radius=R)
+    builder.add_collider_mesh(box, name="box")
+    builder.add_collider_mesh(ball, deforming=True, center=(3.0, 0.0, 0.0), name="ball")
+    model = builder.finalize(device, contact_stage=True)
+    normals = model.shape_arrays.cache.normals.numpy().reshape(-1, 7, 3)
+    np.testing.assert_allclose(normals[:len(box.faces)], reference, atol=1e-6)
+    lumpy = ball.vertices * np.random.default_rng(5).uniform(0.8, 1.2, (len(ball.vertices), 1))
+    model.mesh_collider("ball").set_points(lumpy)
+    normals = model.shape_arrays.cache.normals.numpy().reshape(-1, 7, 3)
+    np.testing.assert_allclose(normals[len(box.faces):], pseudo_normals(lumpy.astype(np.float32), ball.faces),
+                               atol=1e-6)

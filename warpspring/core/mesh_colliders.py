@@ -37,7 +37,7 @@ import numpy as np
 import warp as wp
 
 from ..errors import ConfigError
-from ..kernels.contacts import FACE_NORMALS, MESH_SIDES, MeshCache
+from ..kernels.contacts import FACE_NORMALS, MESH_SIDES, MeshCache, pseudo_normals_kernel
 
 
 @dataclass(eq=False)
@@ -175,6 +175,7 @@ class MeshCollider:
         self._bounds = info.bounds()
         self.slot = -1  # its row of the particles' mesh cache (-1: Warp's own queries, a winding-number mesh)
         self.normal_offset = 0  # its first pseudo-normal in the model's MeshCache.normals
+        self._topology = None  # the CSR tables pseudo_normals_kernel sums over (made with the cache)
 
     @property
     def name(self) -> str:
@@ -215,12 +216,9 @@ class MeshCollider:
         self.mesh.velocities.assign(np.ascontiguousarray(velocities, dtype=np.float32))
         self.mesh.refit()
         self._points = np.array(points)
-        if self.slot >= 0:  # new pseudo-normals; every particle's candidates are stale
-            cache = self.model.shape_arrays.cache
-            count = FACE_NORMALS * len(self.info.faces)
-            cache.normals[self.normal_offset:self.normal_offset + count].assign(
-                pseudo_normals(points, self.info.faces).reshape(-1, 3))
-            cache.side[self.slot].zero_()
+        if self.slot >= 0:  # new pseudo-normals (device work); every particle's candidates are stale
+            self.update_pseudo_normals()
+            self.model.shape_arrays.cache.side[self.slot].zero_()
         lower, upper = self.info.bounds(points)
         if (lower < self._bounds[0]).any() or (upper > self._bounds[1]).any():  # grown: widen its box and reach
             self._bounds = (np.minimum(lower, self._bounds[0]), np.maximum(upper, self._bounds[1]))
@@ -249,6 +247,29 @@ class MeshCollider:
             cache.side[self.slot].zero_()
         self.model.input_version += 1
 
+    def update_pseudo_normals(self) -> None:
+        """Write its faces' pseudo-normals from its current points into the model's ``MeshCache.normals``
+        (one launch; the same values as :func:`pseudo_normals` to float32 rounding)."""
+        if self._topology is None:
+            faces = self.info.faces.astype(np.int64)
+            corners = faces.reshape(-1)
+            groups = edge_groups(faces).reshape(-1)
+
+            def csr(keys, count):
+                order = np.argsort(keys, kind="stable").astype(np.int32)
+                start = np.zeros(count + 1, dtype=np.int32)
+                np.cumsum(np.bincount(keys, minlength=count), out=start[1:])
+                return start, order
+
+            vertex_start, vertex_corner = csr(corners, len(self._points))
+            edge_start, edge_entry = csr(groups, int(groups.max()) + 1)
+            device = self.model.device
+            self._topology = [wp.array(a, dtype=wp.int32, device=device) for a in
+                              (vertex_start, vertex_corner, groups.astype(np.int32), edge_start, edge_entry // 3)]
+        wp.launch(pseudo_normals_kernel, dim=len(self.info.faces),
+                  inputs=[self.mesh.id, *self._topology, self.normal_offset],
+                  outputs=[self.model.shape_arrays.cache.normals], device=self.model.device)
+
     def use_warp_query(self) -> None:
         """Resolve particle contacts with Warp's own closest-point query up to the depth and its ray cast (the
         path before the candidate cache, for comparisons: its closest points may differ from the cached path's
@@ -257,39 +278,44 @@ class MeshCollider:
         self.model.input_version += 1
 
 
-def pseudo_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def edge_groups(faces: np.ndarray) -> np.ndarray:
+    """For each face's edges ab, bc, ca, the index of the undirected edge it is (faces sharing an edge share
+    it), int64, shape [t, 3]: the topology :func:`pseudo_normals` sums over, computed once per mesh."""
+    f = np.asarray(faces, dtype=np.int64)
+    ends = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1), axis=2).reshape(-1, 2)
+    keys = ends[:, 0] * (int(f.max()) + 1) + ends[:, 1]
+    return np.unique(keys, return_inverse=True)[1].reshape(-1, 3)
+
+
+def pseudo_normals(points: np.ndarray, faces: np.ndarray, edges: np.ndarray | None = None) -> np.ndarray:
     """Unit angle-weighted pseudo-normals (Bærentzen and Aanæs) of each face's features, float32, shape
     [t, 7, 3]: the face's normal, its edges ab, bc, ca (the sum of the normals of the faces sharing the edge)
     and its corners a, b, c (the sum of the incident faces' normals weighted by their angles there). The sign
     of (p - c) · n, n the pseudo-normal of the feature that p's closest point c lies on, tells inside from
-    outside for a watertight mesh. Computed in float64; a degenerate face has a zero normal."""
+    outside for a watertight mesh. Computed in float64 (``edges``: :func:`edge_groups` of the faces, if known);
+    a degenerate face has a zero normal. The host reference of ``kernels.contacts.pseudo_normals_kernel``."""
     p = np.asarray(points, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
-    a, b, c = p[f[:, 0]], p[f[:, 1]], p[f[:, 2]]
-    normal = np.cross(b - a, c - a)
+    edges = edge_groups(f) if edges is None else edges
+    corners = p[f]  # [t, 3, 3]
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     length = np.linalg.norm(normal, axis=1)
     normal = np.divide(normal, length[:, None], out=np.zeros_like(normal), where=length[:, None] > 0.0)
-    # Edges: faces sharing an edge (either orientation) add their normals.
-    ends = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1)  # [t, 3, 2]
-    keys = np.sort(ends, axis=2).reshape(-1, 2)
-    _, inverse = np.unique(keys, axis=0, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    edge_sum = np.zeros((inverse.max() + 1, 3))
-    np.add.at(edge_sum, inverse, np.repeat(normal, 3, axis=0))
-    edge = edge_sum[inverse].reshape(-1, 3, 3)
-    # Corners: the angle of each incident face at the vertex.
-    corners = np.stack([a, b, c], axis=1)  # [t, 3, 3]
-    angle = np.zeros((len(f), 3))
-    for k in range(3):
-        u = corners[:, (k + 1) % 3] - corners[:, k]
-        w = corners[:, (k + 2) % 3] - corners[:, k]
-        nu, nw = np.linalg.norm(u, axis=1), np.linalg.norm(w, axis=1)
-        ok = (nu > 0.0) & (nw > 0.0)
-        cosine = np.einsum("ij,ij->i", u, w) / np.where(ok, nu * nw, 1.0)
-        angle[:, k] = np.where(ok, np.arccos(np.clip(cosine, -1.0, 1.0)), 0.0)
-    vertex_sum = np.zeros((len(p), 3))
-    np.add.at(vertex_sum, f.reshape(-1), (angle[:, :, None] * normal[:, None, :]).reshape(-1, 3))
-    vertex = vertex_sum[f]  # [t, 3, 3]
+    # The angle of each face at each of its corners.
+    u = np.roll(corners, -1, axis=1) - corners
+    w = np.roll(corners, -2, axis=1) - corners
+    nu, nw = np.linalg.norm(u, axis=2), np.linalg.norm(w, axis=2)
+    ok = (nu > 0.0) & (nw > 0.0)
+    cosine = np.einsum("tki,tki->tk", u, w) / np.where(ok, nu * nw, 1.0)
+    angle = np.where(ok, np.arccos(np.clip(cosine, -1.0, 1.0)), 0.0)
+    edge = np.empty((len(f), 3, 3))
+    vertex = np.empty((len(f), 3, 3))
+    groups = int(edges.max()) + 1
+    for axis in range(3):  # sums by bincount: faces sharing an edge, faces around a vertex
+        by_edge = np.bincount(edges.reshape(-1), weights=np.repeat(normal[:, axis], 3), minlength=groups)
+        edge[:, :, axis] = by_edge[edges]
+        by_vertex = np.bincount(f.reshape(-1), weights=(angle * normal[:, axis, None]).reshape(-1), minlength=len(p))
+        vertex[:, :, axis] = by_vertex[f]
     out = np.concatenate([normal[:, None, :], edge, vertex], axis=1)
     norm = np.linalg.norm(out, axis=2, keepdims=True)
     out = np.divide(out, norm, out=np.zeros_like(out), where=norm > 0.0)
@@ -306,7 +332,7 @@ def make_mesh_cache(model, colliders: list) -> MeshCache:
     reach = np.zeros(count, dtype=np.float32)
     margin = np.zeros(count, dtype=np.float32)
     offset = np.zeros(count, dtype=np.int32)
-    normals, start = [], 0
+    start = 0
     for k, c in enumerate(cached):
         c.slot, c.normal_offset = k, start
         thickness = model.shapes[c.index].thickness
@@ -314,7 +340,6 @@ def make_mesh_cache(model, colliders: list) -> MeshCache:
         # R: what the response and collide can touch (one-sided: its depth, up to which behind it is inside).
         reach[c.index] = c._range[0] if c.info.sides == "one_sided" else radius + thickness
         margin[c.index] = 0.25 * (radius + thickness) if c.info.cache_margin is None else c.info.cache_margin
-        normals.append(pseudo_normals(c.points(), c.info.faces).reshape(-1, 3))
         start += FACE_NORMALS * len(c.info.faces)
     rows, size = max(1, len(cached)), model.state_size if cached else 1
     candidates = max([c.info.cache_candidates for c in cached], default=1)
@@ -323,14 +348,16 @@ def make_mesh_cache(model, colliders: list) -> MeshCache:
     cache.reach = wp.array(reach, dtype=wp.float32, device=device)
     cache.margin = wp.array(margin, dtype=wp.float32, device=device)
     cache.normal_offset = wp.array(offset, dtype=wp.int32, device=device)
-    cache.normals = wp.array(np.concatenate(normals) if normals else np.zeros((1, 3), np.float32), dtype=wp.vec3f,
-                             device=device)
+    cache.normals = wp.zeros(max(1, start), dtype=wp.vec3f, device=device)
     cache.ref = wp.zeros((rows, size), dtype=wp.vec3f, device=device)
     cache.side = wp.zeros((rows, size), dtype=wp.int32, device=device)  # every entry invalid: a first full query
     cache.count = wp.zeros((rows, size), dtype=wp.int32, device=device)
     cache.face = wp.zeros((rows, size, candidates), dtype=wp.int32, device=device)
     cache.overflow = wp.zeros(max(1, model.world_count), dtype=wp.int32, device=device)
     cache.refreshes = wp.zeros(max(1, model.world_count), dtype=wp.int32, device=device)
+    model.shape_arrays.cache = cache
+    for c in cached:
+        c.update_pseudo_normals()
     return cache
 
 
@@ -359,7 +386,7 @@ def make_mesh_colliders(model) -> list:
         _write_row(model.shape_arrays.size, c.index, (*c._range, 0.0))
         _write_row(model.shape_arrays.lower, c.index, c._bounds[0])
         _write_row(model.shape_arrays.upper, c.index, c._bounds[1])
-    model.shape_arrays.cache = make_mesh_cache(model, colliders)
+    make_mesh_cache(model, colliders)
     return colliders
 
 
