@@ -37,7 +37,7 @@ import numpy as np
 import warp as wp
 
 from ..errors import ConfigError
-from ..kernels.contacts import FACE_NORMALS, MESH_SIDES, MeshCache, pseudo_normals_kernel
+from ..kernels.contacts import FACE_NORMALS, MESH_SIDES, MeshCache, face_normals_kernel, pseudo_normals_kernel
 
 
 @dataclass(eq=False)
@@ -249,7 +249,8 @@ class MeshCollider:
 
     def update_pseudo_normals(self) -> None:
         """Write its faces' pseudo-normals from its current points into the model's ``MeshCache.normals``
-        (one launch; the same values as :func:`pseudo_normals` to float32 rounding)."""
+        (two launches: the faces' normals and angles, then their sums; the same values as :func:`pseudo_normals`
+        to float32 rounding)."""
         if self._topology is None:
             faces = self.info.faces.astype(np.int64)
             corners = faces.reshape(-1)
@@ -264,10 +265,15 @@ class MeshCollider:
             vertex_start, vertex_corner = csr(corners, len(self._points))
             edge_start, edge_entry = csr(groups, int(groups.max()) + 1)
             device = self.model.device
+            count = len(faces)
+            self._terms = [wp.zeros(count, dtype=wp.vec3d, device=device),
+                           wp.zeros(3 * count, dtype=wp.float64, device=device)]
             self._topology = [wp.array(a, dtype=wp.int32, device=device) for a in
                               (vertex_start, vertex_corner, groups.astype(np.int32), edge_start, edge_entry // 3)]
-        wp.launch(pseudo_normals_kernel, dim=len(self.info.faces),
-                  inputs=[self.mesh.id, *self._topology, self.normal_offset],
+        count = len(self.info.faces)
+        wp.launch(face_normals_kernel, dim=count, inputs=[self.mesh.id], outputs=self._terms, device=self.model.device)
+        wp.launch(pseudo_normals_kernel, dim=count, inputs=[self.mesh.id, *self._terms, *self._topology,
+                                                            self.normal_offset],
                   outputs=[self.model.shape_arrays.cache.normals], device=self.model.device)
 
     def use_warp_query(self) -> None:
