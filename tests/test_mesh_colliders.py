@@ -565,7 +565,7 @@ def test_cloth_triangles_do_not_slip_over_a_small_sphere_or_a_thin_pole(device):
 
 def test_run_summary_gives_the_contact_slots_held():
     """The run summary's line names the most contact slots held at a frame's end (with the contact stage),
-    before the worlds' notes; without the stage it says nothing of them."""
+    before the worlds' notes; without the stage it says nothing of them. Overflowing mesh caches are named."""
     from warpspring.io.runner import RunSummary
 
     common = dict(output="out.usdc", frames=10, simulated_time=1.0, wall_time=1.0, setup_time=0.5, substeps=16,
@@ -573,6 +573,8 @@ def test_run_summary_gives_the_contact_slots_held():
     line = RunSummary(**common, peak_contacts=(37, 400), contact_overflow=3).line()
     assert "; model; at most 37 of 400 contact slots held at a frame's end; 3 contacts dropped" in line
     assert "contact slots held" not in RunSummary(**common).line()
+    assert "; 5 full mesh queries for overflowing candidate caches" in RunSummary(**common, mesh_cache_overflow=5).line()
+    assert "candidate caches" not in RunSummary(**common).line()
 
 
 def test_thin_colliders_example_runs(tmp_path, device):
