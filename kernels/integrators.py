@@ -91,7 +91,7 @@ def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures):
         x, v = update(particle_q_in[p], particle_qd_in[p], particle_f_in[p], effective_inv_mass(flags, inv_mass), h)
         if wp.static(has_contacts):
             if not is_kinematic(flags):
-                x, v = project_contacts(world, x, v, particle_radius[i], h, shapes, inputs)
+                x, v = project_contacts(world, p, x, v, particle_radius[i], h, shapes, inputs)
         particle_q_out[p] = x
         particle_qd_out[p] = v
 
@@ -153,7 +153,7 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
                            particle_q_in, particle_qd_in)
         x, v = update(x, v, f, particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i], h)
         if wp.static(has_contacts):
-            x, v = project_contacts(world, x, v, particle_radius[i], h, shapes, inputs)
+            x, v = project_contacts(world, p, x, v, particle_radius[i], h, shapes, inputs)
         particle_q_out[p] = x
         particle_qd_out[p] = v
 

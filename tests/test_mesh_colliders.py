@@ -74,7 +74,7 @@ def distance_kernel():
     def distances(shapes: Shapes, s: int, points: wp.array[wp.vec3], out: wp.array[float],
                   normals: wp.array[wp.vec3]):
         k = wp.tid()
-        d, n = shape_distance(shapes, s, 0, points[k])
+        d, n = shape_distance(shapes, s, 0, -1, points[k])
         out[k] = d
         normals[k] = n
 
@@ -565,7 +565,7 @@ def test_cloth_triangles_do_not_slip_over_a_small_sphere_or_a_thin_pole(device):
 
 def test_run_summary_gives_the_contact_slots_held():
     """The run summary's line names the most contact slots held at a frame's end (with the contact stage),
-    before the worlds' notes; without the stage it says nothing of them."""
+    before the worlds' notes; without the stage it says nothing of them. Overflowing mesh caches are named."""
     from warpspring.io.runner import RunSummary
 
     common = dict(output="out.usdc", frames=10, simulated_time=1.0, wall_time=1.0, setup_time=0.5, substeps=16,
@@ -573,6 +573,8 @@ def test_run_summary_gives_the_contact_slots_held():
     line = RunSummary(**common, peak_contacts=(37, 400), contact_overflow=3).line()
     assert "; model; at most 37 of 400 contact slots held at a frame's end; 3 contacts dropped" in line
     assert "contact slots held" not in RunSummary(**common).line()
+    assert "; 5 full mesh queries for overflowing candidate caches" in RunSummary(**common, mesh_cache_overflow=5).line()
+    assert "candidate caches" not in RunSummary(**common).line()
 
 
 def test_thin_colliders_example_runs(tmp_path, device):
@@ -597,3 +599,131 @@ def test_thin_colliders_example_runs(tmp_path, device):
     assert stage.GetPrimAtPath("/World/tent").GetAttribute("points").GetTimeSamples() == [0.0, 1.0, 2.0]
     assert stage.GetPrimAtPath("/World/colliders/rock").GetTypeName() == "Mesh"
     assert np.isfinite(sim.state.particle_q.numpy()).all()
+
+
+# ----------------------------------------------------------------------------------------- the candidate cache
+
+
+def _cache_scene(device, *, candidates=32, moving=False):
+    """Free particles (radius R) dropped, some at 20 m/s, on a closed icosphere, a two-sided bumpy sheet whose
+    points the caller moves every frame (deforming) and a one-sided floor under both; with ``moving``, the
+    sphere and the floor are moved by tracks instead (the sheet stays), in two worlds of their own gravity (so
+    each world's frames and caches are its own). The model, the sheet and its points."""
+    rng = np.random.default_rng(11)
+    builder = ws.ModelBuilder()
+    drop = np.c_[rng.uniform(-0.25, 0.25, (30, 2)), rng.uniform(0.7, 1.0, 30)]
+    builder.add_particles(drop, radius=R, velocities=np.c_[rng.uniform(-0.5, 0.5, (30, 2)), np.zeros(30)])
+    sheet_drop = np.c_[rng.uniform(1.6, 2.4, 30), rng.uniform(-0.4, 0.4, 30), rng.uniform(0.3, 0.6, 30)]
+    speed = np.where(np.arange(30) % 3 == 0, -20.0, -1.0)  # a third fast: their paths are swept through the sheet
+    builder.add_particles(sheet_drop, radius=R, velocities=np.c_[np.zeros((30, 2)), speed])
+    track = {}
+    if moving:
+        track = {"translation": ws.Track([0.0, 1.0], [[0.0, 0.0, 0.0], [0.3, 0.0, 0.1]], interpolation="smooth"),
+                 "rotation": ws.Track([0.0, 1.0], [[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]], interpolation="linear")}
+    builder.add_collider_mesh(trimesh.creation.icosphere(subdivisions=3, radius=0.3), center=(0.0, 0.0, 0.3),
+                              friction=0.3, name="ball", cache_candidates=candidates, **track)
+    vertices, faces = floor_mesh(half=0.6, z=0.0, cells=8)
+    builder.add_collider_mesh(vertices, faces=faces, sides="two_sided", center=(2.0, 0.0, 0.0), friction=0.2,
+                              deforming=True, name="sheet", cache_candidates=candidates)
+    floor, floor_faces = floor_mesh(half=4.0, z=-0.05, cells=6)
+    builder.add_collider_mesh(floor, faces=floor_faces, sides="one_sided", friction=0.5, name="floor",
+                              cache_candidates=candidates, **({"translation": track["translation"]} if moving else {}))
+    model = builder.finalize(device, contact_stage=True, contact_slots=2, worlds=2 if moving else 1)
+    if moving:
+        model.set_world_values("gravity", [[0.0, 0.0, -G], [1.0, 0.0, -0.5 * G]])
+    return model, model.mesh_collider("sheet"), vertices
+
+
+def _cache_run(model, sheet, vertices, *, margin, frames=30):
+    """Positions and velocities (every world) after ``frames`` frames (16 substeps each) with every mesh's cache
+    margin set to ``margin`` [m] (0: the full query at every use; None: the default), the sheet waving."""
+    for collider in model.mesh_colliders:
+        collider.cache_margin = 0.25 * R if margin is None else margin  # the default: (radius + thickness) / 4
+    sheet.set_points(vertices)
+    sim = ws.Simulator(model, fps=60, substeps=16, guard=None)
+    x, y = vertices[:, 0], vertices[:, 1]
+    for k in range(1, frames + 1):
+        t = k / 60.0
+        wave = vertices + np.c_[np.zeros((len(x), 2)), 0.05 * np.sin(4.0 * x + 3.0 * t) * np.cos(3.0 * y)]
+        sheet.set_points(wave, dt=1.0 / 60.0)
+        sim.step_frame()
+    return sim.state.particle_q.numpy(), sim.state.particle_qd.numpy()
+
+
+@pytest.mark.parametrize("moving", [False, True], ids=["static", "tracked"])
+def test_mesh_cache_changes_the_work_never_the_answer(device, moving):
+    """The candidate cache (margin 2R) against the full query at every use (``cache_margin = 0``): bit for bit
+    the same positions and velocities after 480 substeps, for a closed mesh (static, or moved by tracks), a
+    deforming two-sided sheet crossed by fast particles (swept paths) and a one-sided floor (static or
+    tracked, in two worlds of their own gravity); and with the default margin (R / 4) and caches of 2
+    triangles, which overflow (counted in every world), still the same bits. The cache is used: with it on, the full BVH queries are under an eighth of the uses (none
+    are stored with it off); the particles rest on the colliders (none fell through)."""
+    from warpspring.core.mesh_colliders import mesh_cache_counts
+
+    model, sheet, vertices = _cache_scene(device, moving=moving)
+    before = mesh_cache_counts(model)["refreshes"].sum()
+    x_cached, v_cached = _cache_run(model, sheet, vertices, margin=2.0 * R)
+    cached = mesh_cache_counts(model)
+    x_full, v_full = _cache_run(model, sheet, vertices, margin=0.0)
+    counts = mesh_cache_counts(model)
+    np.testing.assert_array_equal(x_cached, x_full)
+    np.testing.assert_array_equal(v_cached, v_full)
+    refreshes = cached["refreshes"].sum() - before
+    uses = 3 * model.state_size * 30 * 16  # collide queries the three meshes every substep (the response more)
+    print(f"full queries with the cache: {refreshes} of {uses} uses or more")
+    assert 0 < refreshes < uses / 8  # most from the cache
+    assert (counts["refreshes"] == cached["refreshes"]).all()  # margin 0: never stored
+    assert (counts["overflow"] == 0).all()
+    assert x_full[:, 2].min() > -0.05 + R - 1e-4  # on or above the floor, 0.5 s after the drop (free fall: -1.2 m)
+    assert (x_full[:, 2] > -0.06).all()
+
+    small, sheet, vertices = _cache_scene(device, candidates=2, moving=moving)
+    x_small, v_small = _cache_run(small, sheet, vertices, margin=None)
+    np.testing.assert_array_equal(x_small, x_full)
+    np.testing.assert_array_equal(v_small, v_full)
+    assert (mesh_cache_counts(small)["overflow"] > 0).all()
+
+
+def test_mesh_cache_resumes_bit_for_bit(device, tmp_path):
+    """A run with mesh caches continued from a checkpoint equals the uninterrupted run bit for bit, in the same
+    simulator rewound (its caches then hold entries from the run's later frames) and in a fresh one."""
+    model, sheet, vertices = _cache_scene(device)
+    for collider in model.mesh_colliders:
+        collider.cache_margin = 2.0 * R
+    sim = ws.Simulator(model, fps=60, substeps=16, guard=None)
+    for _ in range(10):
+        sim.step_frame()
+    path = sim.save_checkpoint(tmp_path / "run.npz")
+    for _ in range(10):
+        sim.step_frame()
+    expected = particles(sim)
+    for resumed in (sim, ws.Simulator(model, fps=60, substeps=16, guard=None)):
+        resumed.load_checkpoint(path)
+        for _ in range(10):
+            resumed.step_frame()
+        x, v = particles(resumed)
+        np.testing.assert_array_equal(x, expected[0])
+        np.testing.assert_array_equal(v, expected[1])
+
+
+def test_pseudo_normals_on_the_device_equal_the_float64_reference(device):
+    """The device's pseudo-normals of a box (corners (±1, ±1, ±1)/√3, edges the sum of two face normals) and of
+    a lumpy sphere whose points are then set (deforming) equal the host's float64 ones to float32 rounding."""
+    from warpspring.core.mesh_colliders import pseudo_normals
+
+    box = trimesh.creation.box(extents=(1.0, 2.0, 3.0))
+    reference = pseudo_normals(box.vertices, box.faces)
+    np.testing.assert_allclose(reference[:, 4:], np.sign(box.vertices[box.faces]) / math.sqrt(3.0), atol=1e-7)
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    builder = ws.ModelBuilder()
+    builder.add_particles([[0.0, 0.0, 5.0]], radius=R)
+    builder.add_collider_mesh(box, name="box")
+    builder.add_collider_mesh(ball, deforming=True, center=(3.0, 0.0, 0.0), name="ball")
+    model = builder.finalize(device, contact_stage=True)
+    normals = model.shape_arrays.cache.normals.numpy().reshape(-1, 7, 3)
+    np.testing.assert_allclose(normals[:len(box.faces)], reference, atol=1e-6)
+    lumpy = ball.vertices * np.random.default_rng(5).uniform(0.8, 1.2, (len(ball.vertices), 1))
+    model.mesh_collider("ball").set_points(lumpy)
+    normals = model.shape_arrays.cache.normals.numpy().reshape(-1, 7, 3)
+    np.testing.assert_allclose(normals[len(box.faces):], pseudo_normals(lumpy.astype(np.float32), ball.faces),
+                               atol=1e-6)

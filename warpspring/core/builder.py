@@ -1153,7 +1153,8 @@ class ModelBuilder:
                           orientation=(0.0, 0.0, 0.0, 1.0), scale=1.0, sides: str = "closed", thickness: float = 0.0,
                           friction: float = 0.5, static_friction: float | None = None, restitution: float = 0.0,
                           deforming: bool = False, depth: float | None = None, winding_number: bool = False,
-                          translation: Track | None = None, rotation: Track | None = None, name: str = "mesh") -> int:
+                          translation: Track | None = None, rotation: Track | None = None, name: str = "mesh",
+                          cache_candidates: int = 32, cache_margin: float | None = None) -> int:
         """Add a triangle-mesh collider (``core/mesh_colliders.py``).
 
         Args:
@@ -1180,6 +1181,8 @@ class ModelBuilder:
                 implied by time-sampled USD points.
             translation, rotation: keyframe tracks moving its frame (see :meth:`add_collider_box`).
             name: prim name for export.
+            cache_candidates, cache_margin: each particle's candidate cache (at most this many triangles; a full
+                query only after it moved more than the margin [m]; see ``core/mesh_colliders.py``).
 
         Returns:
             The collider's index.
@@ -1211,7 +1214,8 @@ class ModelBuilder:
         times, points = (None, None) if samples is None else samples
         info = mesh_shape(vertices * factor if vertices.ndim == 2 else vertices, faces, sides=sides,
                           deforming=deforming, sample_times=times, depth=depth, winding_number=winding_number,
-                          sample_points=None if points is None else points * factor)
+                          sample_points=None if points is None else points * factor,
+                          cache_candidates=cache_candidates, cache_margin=cache_margin)
         return self._add_shape(SHAPE_MESH, checks.vector("mesh center", center), _quaternion(orientation),
                                (0.0, 0.0, 0.0), friction, restitution, translation, rotation, name,
                                static_friction=static_friction, thickness=thickness, mesh=info)

@@ -42,10 +42,12 @@ class StepFinisher:
 
     def history(self) -> list:
         """Device arrays one step leaves to the next: the contact buffer's overflow counters, the self-collision
-        counters, and the plastic springs' rest lengths and plastic strains."""
+        counters, the mesh caches' counters, and the plastic springs' rest lengths and plastic strains."""
         carried = self.contacts.history() if self.contacts is not None else []
         if self.model.self_contact is not None:
             carried += self.model.self_contact.history()
+        if self.model.mesh_colliders:  # the mesh caches' counters (their entries never change a result)
+            carried += [self.model.shape_arrays.cache.overflow, self.model.shape_arrays.cache.refreshes]
         if self.plastic:
             carried += [self.model.spring_plastic_rest_length, self.model.spring_plastic_strain]
         return carried

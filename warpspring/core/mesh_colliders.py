@@ -16,6 +16,12 @@ mesh tells inside from outside is explicit (``sides``):
   side they come from (the side is kept by sweeping their path, not by the sign of a distance); it is looked
   for up to ``depth`` away.
 
+Particle contacts with a mesh (not ``winding_number``) keep a per-particle candidate cache (a Verlet list:
+``kernels.contacts.mesh_cache_funcs`` has the argument why it never changes the answer): a full BVH query only
+when a particle moved more than ``cache_margin`` [m] in the mesh's frame since its last one, otherwise the exact
+closest point on its (at most ``cache_candidates``) cached triangles. ``MeshCollider.cache_margin = 0`` forces
+the full query at every use, with the same results.
+
 A mesh's frame moves with the collider's translation and rotation tracks like any collider's; its points may
 also change between frames (:meth:`MeshCollider.set_points`: the BVH is refit in place, so captured graphs
 stay valid), with per-vertex velocities that the response takes as the surface's velocity. Points sampled in
@@ -31,7 +37,7 @@ import numpy as np
 import warp as wp
 
 from ..errors import ConfigError
-from ..kernels.contacts import MESH_SIDES
+from ..kernels.contacts import FACE_NORMALS, MESH_SIDES, MeshCache, face_normals_kernel, pseudo_normals_kernel
 
 
 @dataclass(eq=False)
@@ -51,6 +57,9 @@ class MeshShape:
         deforming: whether its points may change between frames (time samples, or
             :meth:`MeshCollider.set_points`): a deforming mesh does work on the particles, so the guard's energy
             balance is off for it.
+        cache_candidates: C, the triangles a particle's cache holds (more: a full query at that use, counted).
+        cache_margin: m [m], how far a particle moves in the mesh's frame before it queries the BVH again; None:
+            a quarter of the particles' largest radius plus the thickness.
     """
 
     vertices: np.ndarray
@@ -61,6 +70,8 @@ class MeshShape:
     deforming: bool = False
     depth: float | None = None
     winding_number: bool = False
+    cache_candidates: int = 32
+    cache_margin: float | None = None
 
     @property
     def sampled(self) -> bool:
@@ -95,7 +106,8 @@ class MeshShape:
 
 
 def mesh_shape(vertices, faces, *, sides: str, deforming: bool = False, sample_times=None,
-               sample_points=None, depth: float | None = None, winding_number: bool = False) -> MeshShape:
+               sample_points=None, depth: float | None = None, winding_number: bool = False,
+               cache_candidates: int = 32, cache_margin: float | None = None) -> MeshShape:
     """A checked :class:`MeshShape` (one-line errors for bad input)."""
     if sides not in MESH_SIDES:
         raise ConfigError(f"mesh collider sides must be one of {', '.join(map(repr, MESH_SIDES))} (closed: a "
@@ -124,9 +136,17 @@ def mesh_shape(vertices, faces, *, sides: str, deforming: bool = False, sample_t
     if winding_number and sides != "closed":
         raise ConfigError(f"winding_number applies to closed mesh colliders only (an open one has no inside), got "
                           f"sides={sides!r}")
+    if isinstance(cache_candidates, bool) or not isinstance(cache_candidates, (int, np.integer)) \
+            or not 1 <= cache_candidates <= 4096:
+        raise ConfigError(f"mesh collider cache_candidates must be an integer in 1 … 4096 (triangles a particle's "
+                          f"cache holds), got {cache_candidates!r}")
+    if cache_margin is not None and not (np.isfinite(cache_margin) and cache_margin >= 0.0):
+        raise ConfigError(f"mesh collider cache_margin must be ≥ 0 [m] (0: a full query at every use), got "
+                          f"{cache_margin!r}")
     return MeshShape(vertices=v, faces=f.astype(np.int32), sides=sides, sample_times=sample_times,
                      sample_points=sample_points, deforming=bool(deforming), depth=depth,
-                     winding_number=bool(winding_number))
+                     winding_number=bool(winding_number), cache_candidates=int(cache_candidates),
+                     cache_margin=None if cache_margin is None else float(cache_margin))
 
 
 class MeshCollider:
@@ -153,6 +173,9 @@ class MeshCollider:
         self._points = np.array(points)
         self._range = info.query_range()
         self._bounds = info.bounds()
+        self.slot = -1  # its row of the particles' mesh cache (-1: Warp's own queries, a winding-number mesh)
+        self.normal_offset = 0  # its first pseudo-normal in the model's MeshCache.normals
+        self._topology = None  # the CSR tables pseudo_normals_kernel sums over (made with the cache)
 
     @property
     def name(self) -> str:
@@ -193,6 +216,9 @@ class MeshCollider:
         self.mesh.velocities.assign(np.ascontiguousarray(velocities, dtype=np.float32))
         self.mesh.refit()
         self._points = np.array(points)
+        if self.slot >= 0:  # new pseudo-normals (device work); every particle's candidates are stale
+            self.update_pseudo_normals()
+            self.model.shape_arrays.cache.side[self.slot].zero_()
         lower, upper = self.info.bounds(points)
         if (lower < self._bounds[0]).any() or (upper > self._bounds[1]).any():  # grown: widen its box and reach
             self._bounds = (np.minimum(lower, self._bounds[0]), np.maximum(upper, self._bounds[1]))
@@ -203,6 +229,152 @@ class MeshCollider:
             _write_row(self.model.shape_arrays.lower, self.index, self._bounds[0])
             _write_row(self.model.shape_arrays.upper, self.index, self._bounds[1])
         self.model.input_version += 1
+
+
+    @property
+    def cache_margin(self) -> float:
+        """m [m]: how far a particle moves in the mesh's frame before its cache is refreshed by a full query; 0:
+        a full query at every use (the same results, for timing and tests). A live value (no recompilation)."""
+        return float(self.model.shape_arrays.cache.margin.numpy()[self.index])
+
+    @cache_margin.setter
+    def cache_margin(self, value: float) -> None:
+        if not (np.isfinite(value) and value >= 0.0):
+            raise ConfigError(f"mesh collider {self.name!r}: cache_margin must be ≥ 0 [m], got {value!r}")
+        cache = self.model.shape_arrays.cache
+        _write_row(cache.margin, self.index, value)
+        if self.slot >= 0:
+            cache.side[self.slot].zero_()
+        self.model.input_version += 1
+
+    def update_pseudo_normals(self) -> None:
+        """Write its faces' pseudo-normals from its current points into the model's ``MeshCache.normals``
+        (two launches: the faces' normals and angles, then their sums; the same values as :func:`pseudo_normals`
+        to float32 rounding)."""
+        if self._topology is None:
+            faces = self.info.faces.astype(np.int64)
+            corners = faces.reshape(-1)
+            groups = edge_groups(faces).reshape(-1)
+
+            def csr(keys, count):
+                order = np.argsort(keys, kind="stable").astype(np.int32)
+                start = np.zeros(count + 1, dtype=np.int32)
+                np.cumsum(np.bincount(keys, minlength=count), out=start[1:])
+                return start, order
+
+            vertex_start, vertex_corner = csr(corners, len(self._points))
+            edge_start, edge_entry = csr(groups, int(groups.max()) + 1)
+            device = self.model.device
+            count = len(faces)
+            self._terms = [wp.zeros(count, dtype=wp.vec3d, device=device),
+                           wp.zeros(3 * count, dtype=wp.float64, device=device)]
+            self._topology = [wp.array(a, dtype=wp.int32, device=device) for a in
+                              (vertex_start, vertex_corner, groups.astype(np.int32), edge_start, edge_entry // 3)]
+        count = len(self.info.faces)
+        wp.launch(face_normals_kernel, dim=count, inputs=[self.mesh.id], outputs=self._terms, device=self.model.device)
+        wp.launch(pseudo_normals_kernel, dim=count, inputs=[self.mesh.id, *self._terms, *self._topology,
+                                                            self.normal_offset],
+                  outputs=[self.model.shape_arrays.cache.normals], device=self.model.device)
+
+    def use_warp_query(self) -> None:
+        """Resolve particle contacts with Warp's own closest-point query up to the depth and its ray cast (the
+        path before the candidate cache, for comparisons: its closest points may differ from the cached path's
+        in the last bits); setting :attr:`cache_margin` goes back to the exact triangle path."""
+        _write_row(self.model.shape_arrays.cache.margin, self.index, -1.0)
+        self.model.input_version += 1
+
+
+def edge_groups(faces: np.ndarray) -> np.ndarray:
+    """For each face's edges ab, bc, ca, the index of the undirected edge it is (faces sharing an edge share
+    it), int64, shape [t, 3]: the topology :func:`pseudo_normals` sums over, computed once per mesh."""
+    f = np.asarray(faces, dtype=np.int64)
+    ends = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1), axis=2).reshape(-1, 2)
+    keys = ends[:, 0] * (int(f.max()) + 1) + ends[:, 1]
+    return np.unique(keys, return_inverse=True)[1].reshape(-1, 3)
+
+
+def pseudo_normals(points: np.ndarray, faces: np.ndarray, edges: np.ndarray | None = None) -> np.ndarray:
+    """Unit angle-weighted pseudo-normals (Bærentzen and Aanæs) of each face's features, float32, shape
+    [t, 7, 3]: the face's normal, its edges ab, bc, ca (the sum of the normals of the faces sharing the edge)
+    and its corners a, b, c (the sum of the incident faces' normals weighted by their angles there). The sign
+    of (p - c) · n, n the pseudo-normal of the feature that p's closest point c lies on, tells inside from
+    outside for a watertight mesh. Computed in float64 (``edges``: :func:`edge_groups` of the faces, if known);
+    a degenerate face has a zero normal. The host reference of ``kernels.contacts.pseudo_normals_kernel``."""
+    p = np.asarray(points, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    edges = edge_groups(f) if edges is None else edges
+    corners = p[f]  # [t, 3, 3]
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    length = np.linalg.norm(normal, axis=1)
+    normal = np.divide(normal, length[:, None], out=np.zeros_like(normal), where=length[:, None] > 0.0)
+    # The angle of each face at each of its corners.
+    u = np.roll(corners, -1, axis=1) - corners
+    w = np.roll(corners, -2, axis=1) - corners
+    nu, nw = np.linalg.norm(u, axis=2), np.linalg.norm(w, axis=2)
+    ok = (nu > 0.0) & (nw > 0.0)
+    cosine = np.einsum("tki,tki->tk", u, w) / np.where(ok, nu * nw, 1.0)
+    angle = np.where(ok, np.arccos(np.clip(cosine, -1.0, 1.0)), 0.0)
+    edge = np.empty((len(f), 3, 3))
+    vertex = np.empty((len(f), 3, 3))
+    groups = int(edges.max()) + 1
+    for axis in range(3):  # sums by bincount: faces sharing an edge, faces around a vertex
+        by_edge = np.bincount(edges.reshape(-1), weights=np.repeat(normal[:, axis], 3), minlength=groups)
+        edge[:, :, axis] = by_edge[edges]
+        by_vertex = np.bincount(f.reshape(-1), weights=(angle * normal[:, axis, None]).reshape(-1), minlength=len(p))
+        vertex[:, :, axis] = by_vertex[f]
+    out = np.concatenate([normal[:, None, :], edge, vertex], axis=1)
+    norm = np.linalg.norm(out, axis=2, keepdims=True)
+    out = np.divide(out, norm, out=np.zeros_like(out), where=norm > 0.0)
+    return out.astype(np.float32)
+
+
+def make_mesh_cache(model, colliders: list) -> MeshCache:
+    """The device struct of the mesh colliders' pseudo-normals and every particle's candidate cache (one row per
+    mesh collider that is not signed by its winding number; tiny arrays when there is none)."""
+    device, count = model.device, model.shape_count
+    radius = float(model.particle_radius.numpy().max()) if model.particle_count else 0.0
+    cached = [c for c in colliders if not c.info.winding_number]
+    slot = np.full(count, -1, dtype=np.int32)
+    reach = np.zeros(count, dtype=np.float32)
+    margin = np.zeros(count, dtype=np.float32)
+    offset = np.zeros(count, dtype=np.int32)
+    start = 0
+    for k, c in enumerate(cached):
+        c.slot, c.normal_offset = k, start
+        thickness = model.shapes[c.index].thickness
+        slot[c.index], offset[c.index] = k, start
+        # R: what the response and collide can touch (one-sided: its depth, up to which behind it is inside).
+        reach[c.index] = c._range[0] if c.info.sides == "one_sided" else radius + thickness
+        margin[c.index] = 0.25 * (radius + thickness) if c.info.cache_margin is None else c.info.cache_margin
+        start += FACE_NORMALS * len(c.info.faces)
+    rows, size = max(1, len(cached)), model.state_size if cached else 1
+    candidates = max([c.info.cache_candidates for c in cached], default=1)
+    cache = MeshCache()
+    cache.slot = wp.array(slot, dtype=wp.int32, device=device)
+    cache.reach = wp.array(reach, dtype=wp.float32, device=device)
+    cache.margin = wp.array(margin, dtype=wp.float32, device=device)
+    cache.normal_offset = wp.array(offset, dtype=wp.int32, device=device)
+    cache.normals = wp.zeros(max(1, start), dtype=wp.vec3f, device=device)
+    cache.ref = wp.zeros((rows, size), dtype=wp.vec3f, device=device)
+    cache.side = wp.zeros((rows, size), dtype=wp.int32, device=device)  # every entry invalid: a first full query
+    cache.count = wp.zeros((rows, size), dtype=wp.int32, device=device)
+    cache.face = wp.zeros((rows, size, candidates), dtype=wp.int32, device=device)
+    cache.overflow = wp.zeros(max(1, model.world_count), dtype=wp.int32, device=device)
+    cache.refreshes = wp.zeros(max(1, model.world_count), dtype=wp.int32, device=device)
+    model.shape_arrays.cache = cache
+    for c in cached:
+        c.update_pseudo_normals()
+    return cache
+
+
+def mesh_cache_counts(model) -> dict[str, np.ndarray]:
+    """The mesh cache's counters since finalize (reads the device), per world, int64: ``refreshes`` (full BVH
+    queries made with the cache on, including each particle's first) and ``overflow`` (full queries because a
+    particle had more than ``cache_candidates`` triangles within reach plus margin)."""
+    cache = model.shape_arrays.cache
+    worlds = model.world_count
+    return {"refreshes": cache.refreshes.numpy()[:worlds].astype(np.int64),
+            "overflow": cache.overflow.numpy()[:worlds].astype(np.int64)}
 
 
 def make_mesh_colliders(model) -> list:
@@ -220,6 +392,7 @@ def make_mesh_colliders(model) -> list:
         _write_row(model.shape_arrays.size, c.index, (*c._range, 0.0))
         _write_row(model.shape_arrays.lower, c.index, c._bounds[0])
         _write_row(model.shape_arrays.upper, c.index, c._bounds[1])
+    make_mesh_cache(model, colliders)
     return colliders
 
 

@@ -12,6 +12,7 @@ from .. import checks
 from ..errors import ConfigError, SimulationError
 from ..core.integrators import make_integrator
 from .scene import Scene, check_run_settings
+from ..core.mesh_colliders import mesh_cache_counts
 from ..core.simulator import Simulator
 from ..analysis.stability import diagnose
 from ..analysis.watch import WATCH_EVERY
@@ -45,6 +46,8 @@ class RunSummary:
             (all worlds together) and the pool's size: {name: (count, capacity)}.
         self_contact: with self-collision, (pairs pushed apart, vertices capped) summed over the run's steps and
             worlds; ``None`` without it.
+        mesh_cache_overflow: full mesh queries made because a particle's candidate cache overflowed (all worlds;
+            the results are the same, the work is not: raise the mesh's ``cache_candidates``).
     """
 
     output: str
@@ -66,6 +69,7 @@ class RunSummary:
     recycled: dict = field(default_factory=dict)
     peak_contacts: tuple | None = None
     self_contact: tuple | None = None
+    mesh_cache_overflow: int = 0
 
     def line(self) -> str:
         """The closing summary line of the CLI."""
@@ -88,6 +92,9 @@ class RunSummary:
         for name, (count, capacity) in self.recycled.items():
             worlds += (f"; emitter {name!r}: {count} particles recycled before their life span ended (its pool of "
                        f"{capacity} is too small: raise capacity)")
+        if self.mesh_cache_overflow:
+            worlds += (f"; {self.mesh_cache_overflow} full mesh queries for overflowing candidate caches (raise "
+                       "the mesh's cache_candidates)")
         if self.self_contact is not None:
             worlds += (f"; self-collision: {self.self_contact[0]} pairs pushed apart, {self.self_contact[1]} vertex "
                        "steps capped")
@@ -289,6 +296,7 @@ def run_scene(
         peak_contacts=None if sim.contacts is None else (peak_contacts, sim.contacts.capacity),
         self_contact=None if model.self_contact is None else tuple(
             int(v.sum()) for v in model.self_contact.counts().values()),
+        mesh_cache_overflow=int(mesh_cache_counts(model)["overflow"].sum()) if model.mesh_colliders else 0,
     )
 
 
