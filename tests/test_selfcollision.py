@@ -268,6 +268,26 @@ def test_pinned_strip_pressed_into_a_free_cloth(device):
     assert model.self_contact.counts()["pairs"][0] > 0
 
 
+def test_cap_subtracts_a_pins_prescribed_displacement(device):
+    """One step in which a pinned cloth moves 9.6 mm down toward a free cloth 12 mm below it (beyond the
+    repulsion's 8 mm reach) while the free cloth's integrator moves it 3.6 mm up: a cap of γD = 3 mm on the free
+    side would let them cross (3 + 9.6 > 12); bounded by γ(D - K) = 0.6 mm, the free cloth stops short and the
+    step audit finds no touch."""
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, 0.0), mass=0.05, velocity=(0.0, 0.0, 3.6),
+                           **CLOTH, name="free")
+    pinned = builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.005, 0.005, 0.012), mass=0.05, **CLOTH,
+                                    name="pinned")
+    builder.add_pin_group(pinned.ravel(), translation=ws.Track([0.0, 1e-3], [[0, 0, 0], [0, 0, -0.0096]]))
+    builder.add_self_collision(thickness=TAU)
+    model = builder.finalize(device)
+    touches, _, _, state = run_audited(model, ws.SymplecticEuler(model), 1e-3, 1, frame_every=1)
+    z = state.particle_q.numpy()[:, 2]
+    assert z[25:] == pytest.approx(0.012 - 0.0096, abs=1e-6)  # the pins moved as prescribed
+    assert touches == 0
+    assert z[:25].max() <= 0.25 * (0.012 - 0.0096) + 1e-6  # the free cloth moved at most γ(D - K)
+
+
 # -- the cap is load-bearing ----------------------------------------------------------------------------------
 
 
