@@ -78,7 +78,7 @@ SEARCH_REACH = 32.0
 #: Relative padding of the single-precision BVH's boxes (float32 rounding of the points is 6e-8).
 BOX_PAD = 1.0e-6
 #: Slots of a world's pair buffer per surface vertex (pairs beyond are dropped and counted).
-PAIRS_PER_VERTEX = 16
+PAIRS_PER_VERTEX = 24
 
 #: Columns of ``SelfContact.params`` [rows, PARAM_COUNT]: live values per world.
 PARAM_THICKNESS = 0  # τ [m]: the separation the repulsion keeps
