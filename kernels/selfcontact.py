@@ -318,6 +318,11 @@ def _broad_kernel(scalar: type, swept: bool, edges: bool):
     box_of, stage_end, is_free, sweep_bounds, push_pair = _pair_funcs(scalar)
 
     @wp.func
+    def boxes_overlap(lower_a: vec3, upper_a: vec3, lower_b: vec3, upper_b: vec3):
+        return (lower_a[0] <= upper_b[0] and lower_a[1] <= upper_b[1] and lower_a[2] <= upper_b[2]
+                and upper_a[0] >= lower_b[0] and upper_a[1] >= lower_b[1] and upper_a[2] >= lower_b[2])
+
+    @wp.func
     def keep(
         distance: scalar, reach: scalar, relaxation: scalar, vertex: wp.vec4i, base: int, mass_row: int,
         limit: scalar, particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
@@ -418,10 +423,23 @@ def _broad_kernel(scalar: type, swept: bool, edges: bool):
                     # shared vertex: index tests before any geometry.
                     if (f > me and surface.edge_owner[f] == t and other[0] != ends[0] and other[0] != ends[1]
                             and other[1] != ends[0] and other[1] != ends[1]):
-                        p1 = particle_q_start[base + ends[0]]
-                        q1 = particle_q_start[base + ends[1]]
                         p2 = particle_q_start[base + other[0]]
                         q2 = particle_q_start[base + other[1]]
+                        # The other edge's own (swept) box against the query box, before the geometry: a pair
+                        # closer than the reach overlaps it, and a disjoint swept pair cannot meet (proof, (a)).
+                        other_lower = wp.min(p2, q2)
+                        other_upper = wp.max(p2, q2)
+                        if wp.static(swept):
+                            for k in range(2):
+                                j = base + other[k]
+                                end = stage_end(is_free(particle_flags[j], particle_inv_mass[mass_row, other[k]]),
+                                                particle_q_start[j], particle_q_end[j], limit)
+                                other_lower = wp.min(other_lower, end)
+                                other_upper = wp.max(other_upper, end)
+                        if not boxes_overlap(other_lower, other_upper, vec3(box_lower), vec3(box_upper)):
+                            continue
+                        p1 = particle_q_start[base + ends[0]]
+                        q1 = particle_q_start[base + ends[1]]
                         st = edge_closest(p1, q1, p2, q2)
                         vertex = wp.vec4i(ends[0], ends[1], other[0], other[1])
                         distance = wp.length((p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)))
