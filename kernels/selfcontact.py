@@ -2,34 +2,62 @@
 
 A post-step pass: it reads the step's start x⁰ (``state_in``, assumed free of intersections) and the
 integrator's result x¹ (``state_out``), and rewrites ``state_out``. Pairs are vertex–triangle (VT) and
-edge–edge (EE) pairs of primitives that share no vertex, found through a BVH of each world's triangles at
-x⁰ (``wp.Mesh``, refit every step; ``wp.mesh_query_aabb``).
+edge–edge (EE) pairs of primitives that share no vertex. Each of the pass's two stages lists its pairs, each
+pair once, then evaluates them one thread per pair and gathers them one thread per vertex:
 
-1. **Repulsion and friction** (``repel_kernel``). Every pair closer than ``REPULSION_REACH`` × thickness τ
-   at x⁰ predicts its separation at the end, linearised at x⁰: d + n·Σₖ wₖΔₖ, with n the unit vector between
-   the closest points, wₖ the signed barycentric weights of the pair's four vertices (one side +, the other
-   −) and Δₖ = x¹ₖ − x⁰ₖ. A pair predicted closer than τ is pushed apart by c = τ − (d + n·Σ wₖΔₖ) along n,
-   shared by inverse mass like an inelastic impulse (Bridson, Fedkiw & Anderson 2002): vertex k moves by
-   wₖ mₖ⁻¹ c / Σⱼ wⱼ² mⱼ⁻¹ · n. Coulomb friction removes up to μc of the pair's relative tangential
-   displacement the same way (all of it when μc covers it: static friction). A vertex takes a weighted mean
-   of its pairs' corrections (Jacobi): their sum over max(1, Σ|wₖ|), its weights in its pairs, so several
-   pairs at one vertex do not add up to an overshoot, and a pair in which it barely takes part (a triangle
-   corner far from the closest point) does not dilute the others.
-2. **The displacement cap** (``cap_kernel``; Chen et al. 2024, "Offset Geometric Contact", as in Newton's
-   VBD): vertex i moves from x⁰ᵢ by at most γ·min(rᵢ, dᵢ), where dᵢ is its distance at x⁰ to the nearest
-   primitive pair it belongs to in any role (as the vertex or a triangle corner of a VT pair, as an end of
-   an EE pair) within the search radius rᵢ = min(|Δᵢ| / γ, ``SEARCH_REACH`` × τ), and γ < 1/2 the relaxation.
+* **broad phase** (``broad_vt_kernel``: one thread per surface vertex; ``broad_ee_kernel``: one thread per
+  edge, keeping the pairs with the higher edge): one query of the world's BVH of triangle boxes
+  (``wp.Bvh``, refit every stage), topological neighbours rejected by index before any geometry, then the
+  pair's distance D at x⁰ decides. A kept pair takes a slot of its world's buffer through an integer atomic
+  counter; pairs beyond ``capacity`` are counted (``COUNT_OVERFLOW``) and dropped;
+* **CSR** (``fill_kernel``): every pair's four vertices were counted per particle as it was written;
+  an exclusive scan of the counts (``wp.utils.array_scan``) gives each particle its segment of entries
+  (slot · 4 + role), filled through a per-particle integer cursor;
+* **narrow phase** (``repel_pairs_kernel``): one thread per pair writes its four vertices' corrections and
+  weights to the pair's own slots;
+* **gather** (``repel_gather_kernel``, ``cap_gather_kernel``): one thread per vertex sorts its segment by
+  the pairs' keys (a pair's identity: (vertex, triangle) or (edge, edge)), then folds it in that order. The
+  atomics decide only where a pair is stored, never the order of a sum: results are the same bits run to
+  run (unless a buffer overflows, when which pairs were kept depends on the atomics; see the cap).
 
-   Why no pair can cross: take a pair at distance D at x⁰, and any vertex k of it. If D ≥ rₖ, k moves at most
-   γrₖ ≤ γD. Otherwise k's search found the pair, so dₖ ≤ D and k moves at most γD again. Every point of
-   either primitive is a convex combination of its vertices, so it moves at most γD along the straight path
-   x⁰ → x, and the primitives stay at least D(1 − 2γ) > 0 apart throughout the step. Kinematic particles
-   follow their prescribed motion and are not capped: the proof covers pairs whose vertices are all free.
-   The BVH is single precision: query boxes are padded by ``BOX_PAD`` relative to the coordinates.
+1. **Repulsion and friction.** Pairs closer than ``REPULSION_REACH`` × thickness τ at x⁰ (query box: x⁰ of
+   the vertex or edge grown by the reach, against the triangles' boxes at x⁰) predict their separation at
+   the end, linearised at x⁰: d + n·Σₖ wₖΔₖ, with n the unit vector between the closest points, wₖ the
+   signed barycentric weights of the pair's four vertices (one side +, the other −) and Δₖ = x¹ₖ − x⁰ₖ. A
+   pair predicted closer than τ is pushed apart by c = τ − (d + n·Σ wₖΔₖ) along n, shared by inverse mass
+   like an inelastic impulse (Bridson, Fedkiw & Anderson 2002): vertex k moves by wₖ mₖ⁻¹ c / Σⱼ wⱼ² mⱼ⁻¹ · n.
+   A kinematic vertex has mₖ⁻¹ = 0: the free side takes the whole correction. Coulomb friction removes up to
+   μc of the pair's relative tangential displacement the same way (all of it when μc covers it: static
+   friction). A vertex takes a weighted mean of its pairs' corrections (Jacobi): their sum over
+   max(1, Σ|wₖ|), its weights in its pairs, so several pairs at one vertex do not add up to an overshoot.
+2. **The displacement cap** (Chen et al. 2024, "Offset Geometric Contact", as in Newton's VBD). Let x̂ be
+   the repelled positions, each free vertex's displacement first limited to γ · ``SEARCH_REACH`` · τ
+   (γ < 1/2 the relaxation); kinematic vertices keep their prescribed x¹. The cap's pairs are listed at
+   (x⁰, x̂): the query box is the vertex's or edge's swept box (x⁰ and x̂ of its ends), against the
+   triangles' swept boxes; a pair is kept when its free vertices could move far enough to matter:
+   K < D and maxₖ free δₖ > γ (D − K), with δₖ = |x̂ₖ − x⁰ₖ| and K the largest prescribed displacement
+   among its kinematic vertices (0 when it has none). Each free vertex i then ends on the segment x⁰ᵢ → x̂ᵢ
+   at distance at most γ · min(γ⁻¹ δᵢ, min over its listed pairs of (D − K)) from x⁰ᵢ.
+
+   Why no pair crosses within the step, when none of its kinematic vertices moves as far as D (K < D) and
+   not both of its sides hold kinematic vertices. Every point of a primitive is a fixed convex combination
+   of its vertices, each moving on a straight line, so it stays in the primitive's swept box and moves at
+   most the largest displacement among its vertices. (a) The pair's swept boxes are disjoint: the
+   primitives never meet. (b) The boxes overlap but the pair was not kept: every free vertex already moves
+   at most δₖ ≤ γ (D − K). (c) It was kept: the cap makes every free vertex move at most γ (D − K). In (b)
+   and (c) one side moves at most max(K, γ(D − K)), the other at most γ(D − K) (it holds no kinematic
+   vertex, or holds them with the first side free), so the separation along the path stays above
+   D − K − γ(D − K) = (1 − γ)(D − K) > 0 when K ≥ γ(D − K), and above D − 2γ(D − K) ≥ (1 − 2γ)(D − K) > 0
+   otherwise. With no kinematic vertex (K = 0) this is the bound γD per vertex and the margin D(1 − 2γ).
+   A pair with K ≥ D (a pin moving further in a step than its distance to the surface) is beyond the cap
+   (no bound on the free side could keep it apart; the repulsion alone acts on it), and is not listed.
+   If the world's cap buffer overflowed, a listed pair may be missing: every free vertex of that world then
+   stays at x⁰ for the step (δ = 0 satisfies every bound), and the overflow is counted.
+   The BVH is single precision: query and leaf boxes are padded by ``BOX_PAD`` relative to the coordinates.
 
 Velocities of the vertices the pass moved become v = (x − x⁰)/h; the others keep the integrator's.
-Deterministic without float atomics: each vertex gathers the pairs it belongs to in the BVH's traversal
-order and writes only itself; two integer counters per world (pairs pushed, vertices capped) use atomics.
+No float atomics: each pair writes its own slots and each vertex only itself; integer counters per world
+(pairs pushed, vertices capped, pairs dropped on overflow) and the buffer's counters use atomics.
 """
 
 import functools
@@ -45,10 +73,12 @@ wp.set_module_options({"enable_backward": False})
 
 #: Pairs closer than this many thicknesses at the step's start are checked for repulsion.
 REPULSION_REACH = 2.0
-#: The cap's search radius is at most this many thicknesses (a faster vertex is capped to γ of it).
+#: A free vertex moves at most γ times this many thicknesses per step (it bounds the cap's swept boxes).
 SEARCH_REACH = 32.0
-#: Relative padding of the single-precision BVH's query boxes (float32 rounding of the points is 6e-8).
+#: Relative padding of the single-precision BVH's boxes (float32 rounding of the points is 6e-8).
 BOX_PAD = 1.0e-6
+#: Slots of a world's pair buffer per surface vertex (pairs beyond are dropped and counted).
+PAIRS_PER_VERTEX = 24
 
 #: Columns of ``SelfContact.params`` [rows, PARAM_COUNT]: live values per world.
 PARAM_THICKNESS = 0  # τ [m]: the separation the repulsion keeps
@@ -59,7 +89,8 @@ PARAM_COUNT = 3
 #: Columns of the per-world counters [world_count, COUNTER_COUNT] (int32, summed over the steps).
 COUNT_PAIRS = 0  # pairs pushed apart by the repulsion
 COUNT_CAPPED = 1  # vertices whose displacement the cap shortened
-COUNTER_COUNT = 2
+COUNT_OVERFLOW = 2  # pairs dropped because the world's pair buffer was full
+COUNTER_COUNT = 3
 
 
 @wp.struct
@@ -72,11 +103,23 @@ class Surface:
     edge_owner: wp.array[wp.int32]  # the triangle through which queries report edge e, [edge_count]
     vertex_owner: wp.array[wp.int32]  # the triangle through which queries report vertex i, or -1 (not on the
     #   surface), shape [particle_count]
-    vertex_triangle_start: wp.array[wp.int32]  # CSR of the triangles at each vertex, [particle_count + 1]
-    vertex_triangle: wp.array[wp.int32]  # their indices, [3 · triangle_count]
-    vertex_edge_start: wp.array[wp.int32]  # CSR of the edges at each vertex, [particle_count + 1]
-    vertex_edge: wp.array[wp.int32]  # their indices, [2 · edge_count]
-    mesh: wp.array[wp.uint64]  # per world, the id of the wp.Mesh of its triangles at the step's start
+    bvh: wp.array[wp.uint64]  # per world, the id of the wp.Bvh of its triangles' boxes (``leaf_lower/upper``)
+    leaf_lower: wp.array[wp.vec3f]  # [m], the triangles' boxes, shape [world_count · triangle_count]
+    leaf_upper: wp.array[wp.vec3f]  # [m], likewise
+
+
+@wp.struct
+class Pairs:
+    """A pair buffer: ``capacity`` slots per world, and the CSR of the particles' entries in its pairs."""
+
+    count: wp.array[wp.int32]  # [world_count], pairs found by the last broad phase (beyond capacity: dropped)
+    key: wp.array[wp.int64]  # [world_count · capacity], the pair's identity within its world: VT v·T + t,
+    #   EE V·T + e·E + f (V, T, E: the per-world particle, triangle and edge counts)
+    vertex: wp.array[wp.vec4i]  # [world_count · capacity], its four vertices: VT (v, a, b, c), EE (p₁, q₁, p₂, q₂)
+    vertex_count: wp.array[wp.int32]  # [world_count · particle_count + 1], entries per particle (last: 0)
+    vertex_start: wp.array[wp.int32]  # [world_count · particle_count + 1], their exclusive scan
+    vertex_cursor: wp.array[wp.int32]  # [world_count · particle_count], entries filled per particle
+    entry: wp.array[wp.int32]  # [4 · world_count · capacity], slot · 4 + role, grouped by particle
 
 
 @functools.cache
@@ -155,202 +198,146 @@ def geometry_funcs(scalar: type):
 
 
 @functools.cache
-def _pass_funcs(scalar: type, repel: bool):
-    """The pair walk of one pass: ``visit_pairs`` enumerates every pair vertex i belongs to, in every role,
-    and folds each into (correction sum, pairs, nearest distance, pairs counted here): with ``repel`` the
-    repulsion and friction corrections and the pairs pushed, else the nearest distance and the pairs closer
-    than the reach (the cap, and ``proximity_kernel``)."""
+def _pair_funcs(scalar: type):
+    """Helpers shared by the stages' kernels, in precision ``scalar``."""
     vec3 = vec3_type(scalar)
-    vec4 = wp.types.vector(4, scalar)
-    triangle_closest, edge_closest = geometry_funcs(scalar)
     effective_inv_mass = particle_funcs(scalar)
 
     @wp.func
     def box_of(lower: vec3, upper: vec3, reach: scalar):
-        """A single-precision query box around [lower, upper] grown by ``reach`` and the rounding pad."""
+        """A single-precision box around [lower, upper] grown by ``reach`` and the rounding pad."""
         pad = reach + scalar(BOX_PAD) * (wp.max(wp.abs(lower)) + wp.max(wp.abs(upper)) + scalar(1.0))
         grow = vec3(pad, pad, pad)
         return wp.vec3f(lower - grow), wp.vec3f(upper + grow)
 
     @wp.func
-    def fold_pair(
-        me: int, index: wp.vec4i, weight: vec4, diff: vec3, fallback: vec3, base: int, mass_row: int,
-        thickness: scalar, friction: scalar, particle_flags: wp.array[wp.int32],
-        particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3], particle_q_in: wp.array[vec3],
-        correction: vec3, count: scalar,
-    ):
-        """Add the pair (vertices ``index``, signed weights ``weight``, closest-point difference ``diff`` at
-        the start) to the repulsion of its vertex ``me`` (0..3): returns the correction sum, the pairs' weight
-        at the vertex (each pair counts by the vertex's |weight| in it) and 1 if the pair is pushed."""
-        d = wp.length(diff)
-        n = fallback
-        if d > scalar(1.0e-12) * thickness:
-            n = diff / d
-        if wp.length(n) == scalar(0.0):
-            return correction, count, 0
-        relative = vec3(scalar(0.0))
-        generalized = scalar(0.0)
-        for k in range(4):
-            j = base + index[k]
-            relative += weight[k] * (particle_q_in[j] - particle_q_start[j])
-            generalized += weight[k] * weight[k] * effective_inv_mass(particle_flags[j],
-                                                                     particle_inv_mass[mass_row, index[k]])
-        normal = wp.dot(n, relative)
-        push = thickness - (d + normal)
-        if push <= scalar(0.0) or generalized <= scalar(0.0):
-            return correction, count, 0
-        tangential = relative - normal * n
-        slip = wp.length(tangential)
-        dx = push * n
-        if slip > scalar(0.0):
-            dx -= (wp.min(friction * push, slip) / slip) * tangential
-        j = base + index[me]
-        share = weight[me] * effective_inv_mass(particle_flags[j], particle_inv_mass[mass_row, index[me]])
-        return correction + (share / generalized) * dx, count + wp.abs(weight[me]), 1
+    def stage_end(free: bool, start: vec3, x: vec3, limit: scalar):
+        """Where a vertex ends the stage at most: a free vertex's displacement limited to ``limit``, a
+        kinematic one's as prescribed."""
+        step = wp.length(x - start)
+        if free and step > limit:
+            return start + (limit / step) * (x - start)
+        return x
 
     @wp.func
-    def visit_pairs(
-        i: int, base: int, mass_row: int, mesh: wp.uint64, reach: scalar, thickness: scalar, friction: scalar,
-        surface: Surface, particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
-        particle_q_start: wp.array[vec3], particle_q_in: wp.array[vec3],
+    def is_free(flags: wp.int32, inv_mass: scalar):
+        return effective_inv_mass(flags, inv_mass) > scalar(0.0)
+
+    @wp.func
+    def sweep_bounds(
+        vertex: wp.vec4i, base: int, mass_row: int, limit: scalar, particle_flags: wp.array[wp.int32],
+        particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
     ):
-        zero, one = scalar(0.0), scalar(1.0)
-        correction = vec3(zero)
-        count = zero  # the pairs' weight at i (repel), or the pairs within reach (else)
-        nearest = reach
-        counted = int(0)  # pairs this vertex counts (VT as the vertex; EE at the lower edge's first end)
-        xi = vec3(particle_q_start[base + i])
-        first_triangle = surface.vertex_triangle_start[i]
-        last_triangle = surface.vertex_triangle_start[i + 1]
-        first_edge = surface.vertex_edge_start[i]
-        last_edge = surface.vertex_edge_start[i + 1]
+        """(K, δ): the largest displacement [m] among the pair's kinematic vertices and among its free ones
+        (0 where none), free ones limited to ``limit``."""
+        kinematic = scalar(0.0)
+        free_step = scalar(0.0)
+        for k in range(4):
+            j = base + vertex[k]
+            free = is_free(particle_flags[j], particle_inv_mass[mass_row, vertex[k]])
+            step = wp.length(particle_q_end[j] - particle_q_start[j])
+            if free:
+                free_step = wp.max(free_step, wp.min(step, limit))
+            else:
+                kinematic = wp.max(kinematic, step)
+        return kinematic, free_step
 
-        # One query: the box of i's triangles grown by the reach holds every element within the reach of i,
-        # of its triangles or of its edges; each element is reported once, through its owner triangle.
-        lower = xi
-        upper = xi
-        for k in range(first_triangle, last_triangle):
-            ring = surface.triangle[surface.vertex_triangle[k]]
-            for m in range(3):
-                corner_x = vec3(particle_q_start[base + ring[m]])
-                lower = wp.min(lower, corner_x)
-                upper = wp.max(upper, corner_x)
-        box_lower, box_upper = box_of(lower, upper, reach)
-        query = wp.mesh_query_aabb(mesh, box_lower, box_upper)
-        other = int(0)
-        while wp.mesh_query_aabb_next(query, other):
-            near_tri = surface.triangle[other]
+    @wp.func
+    def push_pair(
+        world: int, base: int, key: wp.int64, vertex: wp.vec4i, distance: scalar, pairs: Pairs,
+        pair_distance: wp.array[scalar], counters: wp.array2d[wp.int32],
+    ):
+        """Store a pair in its world's buffer (or count it as overflow) and count its vertices' entries."""
+        capacity = pairs.key.shape[0] // pairs.count.shape[0]
+        slot = wp.atomic_add(pairs.count, world, 1)
+        if slot >= capacity:
+            wp.atomic_add(counters, world, COUNT_OVERFLOW, 1)
+        else:
+            s = world * capacity + slot
+            pairs.key[s] = key
+            pairs.vertex[s] = vertex
+            pair_distance[s] = distance
+            for k in range(4):
+                wp.atomic_add(pairs.vertex_count, base + vertex[k], 1)
 
-            # i as the vertex of a VT pair.
-            if near_tri[0] != i and near_tri[1] != i and near_tri[2] != i:
-                ta = vec3(particle_q_start[base + near_tri[0]])
-                tb = vec3(particle_q_start[base + near_tri[1]])
-                tc = vec3(particle_q_start[base + near_tri[2]])
-                bary = triangle_closest(xi, ta, tb, tc)
-                diff = xi - (bary[0] * ta + bary[1] * tb + bary[2] * tc)
-                nearest = wp.min(nearest, wp.length(diff))
-                if wp.length(diff) < reach:
-                    if wp.static(not repel):
-                        count += one
-                    if wp.static(repel):
-                        correction, count, pushed = fold_pair(
-                            0, wp.vec4i(i, near_tri[0], near_tri[1], near_tri[2]), vec4(one, -bary[0], -bary[1], -bary[2]),
-                            diff, wp.normalize(wp.cross(tb - ta, tc - ta)), base, mass_row, thickness, friction,
-                            particle_flags, particle_inv_mass, particle_q_start, particle_q_in, correction, count)
-                        counted += pushed
-
-            # i as a corner of the triangle of a VT pair: the vertices this triangle reports.
-            for m in range(3):
-                j = near_tri[m]
-                if surface.vertex_owner[j] == other:
-                    xj = vec3(particle_q_start[base + j])
-                    for k in range(first_triangle, last_triangle):
-                        own = surface.vertex_triangle[k]
-                        tri = surface.triangle[own]
-                        if j != tri[0] and j != tri[1] and j != tri[2]:
-                            a = vec3(particle_q_start[base + tri[0]])
-                            b = vec3(particle_q_start[base + tri[1]])
-                            c = vec3(particle_q_start[base + tri[2]])
-                            bary = triangle_closest(xj, a, b, c)
-                            diff = xj - (bary[0] * a + bary[1] * b + bary[2] * c)
-                            nearest = wp.min(nearest, wp.length(diff))
-                            if wp.length(diff) < reach:
-                                if wp.static(not repel):
-                                    count += one
-                                if wp.static(repel):
-                                    corner = int(0)
-                                    if tri[1] == i:
-                                        corner = 1
-                                    elif tri[2] == i:
-                                        corner = 2
-                                    correction, count, pushed = fold_pair(
-                                        corner + 1, wp.vec4i(j, tri[0], tri[1], tri[2]),
-                                        vec4(one, -bary[0], -bary[1], -bary[2]), diff,
-                                        wp.normalize(wp.cross(b - a, c - a)), base, mass_row, thickness, friction,
-                                        particle_flags, particle_inv_mass, particle_q_start, particle_q_in,
-                                        correction, count)
-
-            # i as an end of an edge of an EE pair: the edges this triangle reports.
-            edges = surface.triangle_edges[other]
-            for m in range(3):
-                f = edges[m]
-                if surface.edge_owner[f] == other:
-                    near_edge = surface.edge[f]
-                    p2 = vec3(particle_q_start[base + near_edge[0]])
-                    q2 = vec3(particle_q_start[base + near_edge[1]])
-                    for k in range(first_edge, last_edge):
-                        e = surface.vertex_edge[k]
-                        edge = surface.edge[e]
-                        if (near_edge[0] != edge[0] and near_edge[0] != edge[1] and near_edge[1] != edge[0]
-                                and near_edge[1] != edge[1]):
-                            p1 = vec3(particle_q_start[base + edge[0]])
-                            q1 = vec3(particle_q_start[base + edge[1]])
-                            st = edge_closest(p1, q1, p2, q2)
-                            diff = (p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2))
-                            nearest = wp.min(nearest, wp.length(diff))
-                            if wp.length(diff) < reach:
-                                if wp.static(not repel):
-                                    count += one
-                                if wp.static(repel):
-                                    end = int(0)
-                                    if edge[1] == i:
-                                        end = 1
-                                    correction, count, pushed = fold_pair(
-                                        end, wp.vec4i(edge[0], edge[1], near_edge[0], near_edge[1]),
-                                        vec4(one - st[0], st[0], st[1] - one, -st[1]), diff,
-                                        wp.normalize(wp.cross(q1 - p1, q2 - p2)), base, mass_row, thickness,
-                                        friction, particle_flags, particle_inv_mass, particle_q_start, particle_q_in,
-                                        correction, count)
-                                    if end == 0 and e < f:
-                                        counted += pushed
-        return correction, count, nearest, counted
-
-    return visit_pairs
+    return box_of, stage_end, is_free, sweep_bounds, push_pair
 
 
 @functools.cache
-def points_kernel(scalar: type):
-    """Kernel writing the BVH's single-precision points: the step's start positions."""
+def leaf_kernel(scalar: type, swept: bool):
+    """Kernel writing each triangle's single-precision box: at the step's start, or (``swept``) around its
+    corners at the start and at the stage's end (``stage_end``)."""
     vec3 = vec3_type(scalar)
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def bvh_points(particle_q_start: wp.array[vec3], points_out: wp.array[wp.vec3f]):
-        p = wp.tid()
-        points_out[p] = wp.vec3f(particle_q_start[p])
-
-    return bvh_points
-
-
-@functools.cache
-def repel_kernel(scalar: type):
-    """Kernel of the repulsion and friction pass: ``particle_q_in`` (the integrator's result) plus each
-    vertex's mean correction, into ``particle_q_out``."""
-    vec3 = vec3_type(scalar)
-    effective_inv_mass = particle_funcs(scalar)
-    visit_pairs = _pass_funcs(scalar, True)
+    box_of, stage_end, is_free, _, _ = _pair_funcs(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
-    def repel(
+    def leaves(
+        # Model:
+        particle_count: int,
+        particle_flags: wp.array[wp.int32],
+        particle_inv_mass: wp.array2d[scalar],
+        surface: Surface,
+        params: wp.array2d[scalar],
+        # State in:
+        particle_q_start: wp.array[vec3],
+        particle_q_end: wp.array[vec3],
+    ):
+        tid = wp.tid()
+        triangle_count = surface.triangle.shape[0]
+        world = tid // triangle_count
+        tri = surface.triangle[tid - world * triangle_count]
+        base = world * particle_count
+        mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
+        row = wp.min(world, params.shape[0] - 1)
+        limit = params[row, PARAM_RELAXATION] * scalar(SEARCH_REACH) * params[row, PARAM_THICKNESS]
+        lower = particle_q_start[base + tri[0]]
+        upper = lower
+        for k in range(3):
+            j = base + tri[k]
+            start = particle_q_start[j]
+            lower = wp.min(lower, start)
+            upper = wp.max(upper, start)
+            if wp.static(swept):
+                end = stage_end(is_free(particle_flags[j], particle_inv_mass[mass_row, tri[k]]), start,
+                                particle_q_end[j], limit)
+                lower = wp.min(lower, end)
+                upper = wp.max(upper, end)
+        box_lower, box_upper = box_of(lower, upper, scalar(0.0))
+        surface.leaf_lower[tid] = box_lower
+        surface.leaf_upper[tid] = box_upper
+
+    return leaves
+
+
+def _broad_kernel(scalar: type, swept: bool, edges: bool):
+    """The broad phase's kernel (module docstring): one thread per surface vertex (VT pairs) or, with
+    ``edges``, per edge (EE pairs). Without ``swept`` it keeps the pairs closer than reach_factor · τ +
+    reach_add at the start; with it the cap's pairs at (start, end)."""
+    vec3 = vec3_type(scalar)
+    triangle_closest, edge_closest = geometry_funcs(scalar)
+    box_of, stage_end, is_free, sweep_bounds, push_pair = _pair_funcs(scalar)
+
+    @wp.func
+    def boxes_overlap(lower_a: vec3, upper_a: vec3, lower_b: vec3, upper_b: vec3):
+        return (lower_a[0] <= upper_b[0] and lower_a[1] <= upper_b[1] and lower_a[2] <= upper_b[2]
+                and upper_a[0] >= lower_b[0] and upper_a[1] >= lower_b[1] and upper_a[2] >= lower_b[2])
+
+    @wp.func
+    def keep(
+        distance: scalar, reach: scalar, relaxation: scalar, vertex: wp.vec4i, base: int, mass_row: int,
+        limit: scalar, particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
+        particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
+    ):
+        """(kept, the value stored): the distance within the reach, or the cap's D - K when it matters."""
+        if wp.static(not swept):
+            return distance < reach, distance
+        kinematic, free_step = sweep_bounds(vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
+                                            particle_q_start, particle_q_end)
+        gap = distance - kinematic
+        return gap > scalar(0.0) and free_step > relaxation * gap, gap
+
+    @flat_kernel(module="unique", enable_backward=False)
+    def broad(
         # Model:
         particle_count: int,
         particle_flags: wp.array[wp.int32],
@@ -358,16 +345,276 @@ def repel_kernel(scalar: type):
         world_enabled: wp.array[wp.int32],
         surface: Surface,
         params: wp.array2d[scalar],
+        reach_factor: scalar,
+        reach_add: scalar,
+        # State in:
+        particle_q_start: wp.array[vec3],
+        particle_q_end: wp.array[vec3],
+        # Out:
+        pairs: Pairs,
+        pair_distance: wp.array[scalar],
+        counters: wp.array2d[wp.int32],
+    ):
+        tid = wp.tid()
+        triangle_count = surface.triangle.shape[0]
+        edge_count = surface.edge.shape[0]
+        per_world = particle_count
+        if wp.static(edges):
+            per_world = edge_count
+        world = tid // per_world
+        me = tid - world * per_world
+        base = world * particle_count
+        if world_enabled[world] == 0:
+            return
+        mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
+        row = wp.min(world, params.shape[0] - 1)
+        thickness = params[row, PARAM_THICKNESS]
+        relaxation = params[row, PARAM_RELAXATION]
+        limit = relaxation * scalar(SEARCH_REACH) * thickness
+        reach = reach_factor * thickness + reach_add
+        ends = wp.vec2i(me, me)
+        if wp.static(edges):
+            ends = surface.edge[me]
+        if wp.static(not edges):
+            if surface.vertex_owner[me] < 0:
+                return
+        lower = particle_q_start[base + ends[0]]
+        upper = lower
+        for k in range(2):
+            j = base + ends[k]
+            start = particle_q_start[j]
+            lower = wp.min(lower, start)
+            upper = wp.max(upper, start)
+            if wp.static(swept):
+                end = stage_end(is_free(particle_flags[j], particle_inv_mass[mass_row, ends[k]]), start,
+                                particle_q_end[j], limit)
+                lower = wp.min(lower, end)
+                upper = wp.max(upper, end)
+        query_reach = reach
+        if wp.static(swept):
+            query_reach = scalar(0.0)
+        box_lower, box_upper = box_of(lower, upper, query_reach)
+        query = wp.bvh_query_aabb(surface.bvh[world], box_lower, box_upper)
+        t = int(0)
+        while wp.bvh_query_next(query, t):
+            tri = surface.triangle[t]
+            if wp.static(not edges):
+                v = me
+                if tri[0] == v or tri[1] == v or tri[2] == v:  # a topological neighbour: no geometry
+                    continue
+                p = particle_q_start[base + v]
+                a = particle_q_start[base + tri[0]]
+                b = particle_q_start[base + tri[1]]
+                c = particle_q_start[base + tri[2]]
+                bary = triangle_closest(p, a, b, c)
+                vertex = wp.vec4i(v, tri[0], tri[1], tri[2])
+                kept, value = keep(wp.length(p - (bary[0] * a + bary[1] * b + bary[2] * c)), reach, relaxation,
+                                   vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
+                                   particle_q_start, particle_q_end)
+                if kept:
+                    key = wp.int64(v) * wp.int64(triangle_count) + wp.int64(t)
+                    push_pair(world, base, key, vertex, value, pairs, pair_distance, counters)
+            if wp.static(edges):
+                sides = surface.triangle_edges[t]
+                for m in range(3):
+                    f = sides[m]
+                    other = surface.edge[f]
+                    # Each pair once (from its lower edge, through the other edge's owner triangle), no
+                    # shared vertex: index tests before any geometry.
+                    if (f > me and surface.edge_owner[f] == t and other[0] != ends[0] and other[0] != ends[1]
+                            and other[1] != ends[0] and other[1] != ends[1]):
+                        p2 = particle_q_start[base + other[0]]
+                        q2 = particle_q_start[base + other[1]]
+                        # The other edge's own (swept) box against the query box, before the geometry: a pair
+                        # closer than the reach overlaps it, and a disjoint swept pair cannot meet (proof, (a)).
+                        other_lower = wp.min(p2, q2)
+                        other_upper = wp.max(p2, q2)
+                        if wp.static(swept):
+                            for k in range(2):
+                                j = base + other[k]
+                                end = stage_end(is_free(particle_flags[j], particle_inv_mass[mass_row, other[k]]),
+                                                particle_q_start[j], particle_q_end[j], limit)
+                                other_lower = wp.min(other_lower, end)
+                                other_upper = wp.max(other_upper, end)
+                        if not boxes_overlap(other_lower, other_upper, vec3(box_lower), vec3(box_upper)):
+                            continue
+                        p1 = particle_q_start[base + ends[0]]
+                        q1 = particle_q_start[base + ends[1]]
+                        st = edge_closest(p1, q1, p2, q2)
+                        vertex = wp.vec4i(ends[0], ends[1], other[0], other[1])
+                        distance = wp.length((p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)))
+                        kept, value = keep(distance, reach, relaxation, vertex, base, mass_row, limit,
+                                           particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
+                        if kept:
+                            key = (wp.int64(particle_count) * wp.int64(triangle_count)
+                                   + wp.int64(me) * wp.int64(edge_count) + wp.int64(f))
+                            push_pair(world, base, key, vertex, value, pairs, pair_distance, counters)
+
+    return broad
+
+
+@functools.cache
+def broad_vt_kernel(scalar: type, swept: bool):
+    """The broad phase's vertex–triangle kernel, one thread per particle of every world."""
+    return _broad_kernel(scalar, swept, False)
+
+
+@functools.cache
+def broad_ee_kernel(scalar: type, swept: bool):
+    """The broad phase's edge–edge kernel, one thread per edge of every world."""
+    return _broad_kernel(scalar, swept, True)
+
+
+@functools.cache
+def fill_kernel():
+    """Kernel writing each listed pair's four entries into its vertices' CSR segments (one thread per slot)."""
+
+    @flat_kernel(module="unique", enable_backward=False)
+    def fill(particle_count: int, pairs: Pairs):
+        s = wp.tid()
+        capacity = pairs.key.shape[0] // pairs.count.shape[0]
+        world = s // capacity
+        if s - world * capacity >= pairs.count[world]:
+            return
+        vertex = pairs.vertex[s]
+        for k in range(4):
+            j = world * particle_count + vertex[k]
+            pairs.entry[pairs.vertex_start[j] + wp.atomic_add(pairs.vertex_cursor, j, 1)] = 4 * s + k
+
+    return fill
+
+
+@wp.func
+def sorted_segment(pairs: Pairs, p: int):
+    """Particle p's segment of entries [first, last), sorted in place by the pairs' keys (insertion sort; a
+    particle appears once in a pair, so keys do not repeat within a segment)."""
+    first = pairs.vertex_start[p]
+    last = pairs.vertex_start[p + 1]
+    for a in range(first + 1, last):
+        item = pairs.entry[a]
+        key = pairs.key[item // 4]
+        b = a - 1
+        while b >= first and pairs.key[pairs.entry[b] // 4] > key:
+            pairs.entry[b + 1] = pairs.entry[b]
+            b -= 1
+        pairs.entry[b + 1] = item
+    return first, last
+
+
+@functools.cache
+def repel_pairs_kernel(scalar: type):
+    """Kernel of the repulsion's narrow phase: one thread per listed pair writes, for each of its four vertices,
+    its correction [m] and its weight |wₖ| (zeros when the pair is not pushed) to the pair's slots."""
+    vec3 = vec3_type(scalar)
+    vec4 = wp.types.vector(4, scalar)
+    triangle_closest, edge_closest = geometry_funcs(scalar)
+    effective_inv_mass = particle_funcs(scalar)
+
+    @flat_kernel(module="unique", enable_backward=False)
+    def repel_pairs(
+        # Model:
+        particle_count: int,
+        particle_flags: wp.array[wp.int32],
+        particle_inv_mass: wp.array2d[scalar],
+        surface: Surface,
+        params: wp.array2d[scalar],
+        pairs: Pairs,
         # State in:
         particle_q_start: wp.array[vec3],
         particle_q_in: wp.array[vec3],
         # Out:
-        particle_q_out: wp.array[vec3],
+        pair_correction: wp.array[vec3],
+        pair_weight: wp.array[scalar],
         counters: wp.array2d[wp.int32],
+    ):
+        s = wp.tid()
+        capacity = pairs.key.shape[0] // pairs.count.shape[0]
+        world = s // capacity
+        if s - world * capacity >= pairs.count[world]:
+            return
+        for k in range(4):
+            pair_correction[4 * s + k] = vec3(scalar(0.0))
+            pair_weight[4 * s + k] = scalar(0.0)
+        base = world * particle_count
+        mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
+        row = wp.min(world, params.shape[0] - 1)
+        thickness = params[row, PARAM_THICKNESS]
+        friction = params[row, PARAM_FRICTION]
+        index = pairs.vertex[s]
+        zero, one = scalar(0.0), scalar(1.0)
+        x0 = particle_q_start[base + index[0]]
+        x1 = particle_q_start[base + index[1]]
+        x2 = particle_q_start[base + index[2]]
+        x3 = particle_q_start[base + index[3]]
+        weight = vec4(zero)
+        diff = vec3(zero)
+        fallback = vec3(zero)
+        if pairs.key[s] < wp.int64(particle_count) * wp.int64(surface.triangle.shape[0]):  # VT
+            bary = triangle_closest(x0, x1, x2, x3)
+            diff = x0 - (bary[0] * x1 + bary[1] * x2 + bary[2] * x3)
+            weight = vec4(one, -bary[0], -bary[1], -bary[2])
+            fallback = wp.normalize(wp.cross(x2 - x1, x3 - x1))
+        else:  # EE
+            st = edge_closest(x0, x1, x2, x3)
+            diff = (x0 + st[0] * (x1 - x0)) - (x2 + st[1] * (x3 - x2))
+            weight = vec4(one - st[0], st[0], st[1] - one, -st[1])
+            fallback = wp.normalize(wp.cross(x1 - x0, x3 - x2))
+        d = wp.length(diff)
+        n = fallback
+        if d > scalar(1.0e-12) * thickness:
+            n = diff / d
+        if wp.length(n) == zero:
+            return
+        relative = vec3(zero)
+        generalized = zero
+        inv_mass = vec4(zero)
+        for k in range(4):
+            j = base + index[k]
+            inv_mass[k] = effective_inv_mass(particle_flags[j], particle_inv_mass[mass_row, index[k]])
+            relative += weight[k] * (particle_q_in[j] - particle_q_start[j])
+            generalized += weight[k] * weight[k] * inv_mass[k]
+        normal = wp.dot(n, relative)
+        push = thickness - (d + normal)
+        if push <= zero or generalized <= zero:
+            return
+        tangential = relative - normal * n
+        slip = wp.length(tangential)
+        dx = push * n
+        if slip > zero:
+            dx -= (wp.min(friction * push, slip) / slip) * tangential
+        for k in range(4):
+            pair_correction[4 * s + k] = (weight[k] * inv_mass[k] / generalized) * dx
+            pair_weight[4 * s + k] = wp.abs(weight[k])
+        wp.atomic_add(counters, world, COUNT_PAIRS, 1)
+
+    return repel_pairs
+
+
+@functools.cache
+def repel_gather_kernel(scalar: type):
+    """Kernel of the repulsion's gather: ``particle_q_in`` (the integrator's result) plus each free surface
+    vertex's mean correction over its pairs, summed in key order, into ``particle_q_out``."""
+    vec3 = vec3_type(scalar)
+    effective_inv_mass = particle_funcs(scalar)
+
+    @flat_kernel(module="unique", enable_backward=False)
+    def repel_gather(
+        # Model:
+        particle_count: int,
+        particle_flags: wp.array[wp.int32],
+        particle_inv_mass: wp.array2d[scalar],
+        world_enabled: wp.array[wp.int32],
+        surface: Surface,
+        pairs: Pairs,
+        pair_correction: wp.array[vec3],
+        pair_weight: wp.array[scalar],
+        # State in:
+        particle_q_in: wp.array[vec3],
+        # Out:
+        particle_q_out: wp.array[vec3],
     ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
-        base = p - i
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         x = particle_q_in[p]
         particle_q_out[p] = x
@@ -375,27 +622,27 @@ def repel_kernel(scalar: type):
             return
         if effective_inv_mass(particle_flags[p], particle_inv_mass[mass_row, i]) == scalar(0.0):
             return
-        row = wp.min(world, params.shape[0] - 1)
-        thickness = params[row, PARAM_THICKNESS]
-        correction, count, nearest, counted = visit_pairs(
-            i, base, mass_row, surface.mesh[world], scalar(REPULSION_REACH) * thickness, thickness,
-            params[row, PARAM_FRICTION], surface, particle_flags, particle_inv_mass, particle_q_start, particle_q_in)
+        first, last = sorted_segment(pairs, p)
+        correction = vec3(scalar(0.0))
+        count = scalar(0.0)
+        for a in range(first, last):
+            e = pairs.entry[a]
+            correction += pair_correction[e]
+            count += pair_weight[e]
         if count > scalar(0.0):  # a weighted mean: a pair counts by the vertex's weight in it, the sum by 1 at least
             particle_q_out[p] = x + correction / wp.max(count, scalar(1.0))
-        if counted > 0:
-            wp.atomic_add(counters, world, COUNT_PAIRS, counted)
 
-    return repel
+    return repel_gather
 
 
 @functools.cache
-def cap_kernel(scalar: type):
-    """Kernel of the displacement cap: each vertex of ``particle_q_in`` (the repelled result) moved back
-    toward ``particle_q_start`` until its displacement is at most γ·min(r, d); writes the state's positions
-    and, where they changed, its velocities (Δx / h)."""
+def cap_gather_kernel(scalar: type):
+    """Kernel of the displacement cap: each free surface vertex of ``particle_q_in`` (the repelled result)
+    moved back toward ``particle_q_start`` until its displacement is at most γ · min(SEARCH_REACH τ, the
+    smallest D - K of its listed pairs) (all of it when its world's buffer overflowed); writes the state's
+    positions and, where they changed, its velocities (Δx / h)."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
-    visit_pairs = _pass_funcs(scalar, False)
 
     @flat_kernel(module="unique", enable_backward=False)
     def cap(
@@ -406,6 +653,8 @@ def cap_kernel(scalar: type):
         world_enabled: wp.array[wp.int32],
         surface: Surface,
         params: wp.array2d[scalar],
+        pairs: Pairs,
+        pair_distance: wp.array[scalar],
         # State in:
         particle_q_start: wp.array[vec3],
         particle_q_in: wp.array[vec3],
@@ -418,29 +667,21 @@ def cap_kernel(scalar: type):
     ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
-        base = p - i
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         if world_enabled[world] == 0 or surface.vertex_owner[i] < 0:
             return
         if effective_inv_mass(particle_flags[p], particle_inv_mass[mass_row, i]) == scalar(0.0):
             return
         row = wp.min(world, params.shape[0] - 1)
-        thickness = params[row, PARAM_THICKNESS]
         relaxation = params[row, PARAM_RELAXATION]
         start = particle_q_start[p]
         x = particle_q_in[p]
         step = wp.length(x - start)
-        unbounded = step / relaxation  # the search radius at which the cap would allow the whole step
-        reach = wp.min(unbounded, scalar(SEARCH_REACH) * thickness)
-        allowed = step
-        if reach < unbounded:
-            allowed = relaxation * reach
-        if reach > scalar(0.0):
-            correction, count, nearest, counted = visit_pairs(
-                i, base, mass_row, surface.mesh[world], reach, thickness, scalar(0.0), surface, particle_flags,
-                particle_inv_mass, particle_q_start, particle_q_start)
-            if nearest < reach:
-                allowed = wp.min(allowed, relaxation * nearest)
+        allowed = wp.min(step, relaxation * scalar(SEARCH_REACH) * params[row, PARAM_THICKNESS])
+        if pairs.count[world] > pairs.key.shape[0] // pairs.count.shape[0]:
+            allowed = scalar(0.0)  # overflow: a listed pair may be missing, so nothing free moves
+        for a in range(pairs.vertex_start[p], pairs.vertex_start[p + 1]):  # a minimum: any order gives it
+            allowed = wp.min(allowed, relaxation * pair_distance[pairs.entry[a] // 4])
         if step > allowed:
             x = start + (allowed / step) * (x - start)
             wp.atomic_add(counters, world, COUNT_CAPPED, 1)
@@ -454,21 +695,17 @@ def cap_kernel(scalar: type):
 
 @functools.cache
 def proximity_kernel(scalar: type):
-    """Kernel of the broad phase's audit: per surface vertex, its distance to the nearest pair it belongs to
-    within ``reach`` [m] (``reach`` when none) and the number of those pairs, at ``particle_q_start``
-    (-1 for vertices off the surface). The tests compare both with an all-pairs float64 reference."""
-    vec3 = vec3_type(scalar)
-    visit_pairs = _pass_funcs(scalar, False)
+    """Kernel of the broad phase's audit, after a broad phase without ``swept``: per surface vertex, its
+    distance to the nearest listed pair it belongs to (``reach`` [m] when none) and their number (-1 for
+    vertices off the surface)."""
 
     @flat_kernel(module="unique", enable_backward=False)
     def proximity(
         # Model:
         particle_count: int,
-        particle_flags: wp.array[wp.int32],
-        particle_inv_mass: wp.array2d[scalar],
         surface: Surface,
-        # State in:
-        particle_q_start: wp.array[vec3],
+        pairs: Pairs,
+        pair_distance: wp.array[scalar],
         reach: scalar,
         # Out:
         nearest_out: wp.array[scalar],
@@ -480,11 +717,10 @@ def proximity_kernel(scalar: type):
         count_out[p] = -1
         if surface.vertex_owner[i] < 0:
             return
-        mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
-        correction, count, nearest, counted = visit_pairs(
-            i, p - i, mass_row, surface.mesh[world], reach, reach, scalar(0.0), surface, particle_flags,
-            particle_inv_mass, particle_q_start, particle_q_start)
+        nearest = reach
+        for a in range(pairs.vertex_start[p], pairs.vertex_start[p + 1]):
+            nearest = wp.min(nearest, pair_distance[pairs.entry[a] // 4])
         nearest_out[p] = nearest
-        count_out[p] = int(count)
+        count_out[p] = pairs.vertex_start[p + 1] - pairs.vertex_start[p]
 
     return proximity

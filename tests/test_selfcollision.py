@@ -20,8 +20,6 @@ from warpspring.analysis.audit import (
     vertex_triangle_distance,
 )
 from warpspring.io.scene import parse_scene
-from warpspring.kernels.flatten import flat_launch
-from warpspring.kernels.selfcontact import repel_kernel
 
 TAU = 0.004  # [m]: every scene's thickness, below 0.7 × the 0.02 m grids' smallest altitude (0.0141 m)
 CLOTH = dict(structural=ws.SpringMaterial(300.0, 0.05), shear=ws.SpringMaterial(300.0, 0.05),
@@ -43,6 +41,8 @@ def run_audited(model, integrator, dt, steps, *, frame_every):
             intersections += len(frame.intersections)
             nearest = min(nearest, frame.min_distance)
         a, b = b, a
+    if hasattr(model.self_contact, "overflow"):  # the pass itself (not a test's stand-in): no pair was dropped
+        assert model.self_contact.overflow().sum() == 0
     return touches, intersections, nearest, a
 
 
@@ -136,6 +136,30 @@ def test_broad_phase_equals_brute_force(device):
     np.testing.assert_allclose(nearest[checked], expected_nearest[checked], atol=1e-6)
 
 
+def test_pair_list_equals_brute_force(device):
+    """The broad phase lists each vertex–triangle and edge–edge pair within the reach exactly once, the same set
+    as the all-pairs float64 reference (pairs within float32 rounding of the reach may fall either side), and
+    a second run on a fresh model lists the same set."""
+    reach = 0.012
+    runs = []
+    for _ in range(2):
+        model = crumpled_pair(device)
+        runs.append(model.self_contact.pairs(model.state(), reach))
+    x = model.state().particle_q.numpy().astype(np.float64)
+    triangles = model.tri_indices.numpy()
+    inner = brute_pairs(x, triangles, reach - 1e-5)
+    outer = brute_pairs(x, triangles, reach + 1e-5)
+    for (vt, ee) in runs:
+        for found, sure, maybe in ((vt, inner[0], outer[0]), (ee, inner[2], outer[2])):
+            assert np.all(found[:, 0] == 0)
+            listed = [tuple(row) for row in found[:, 1:]]
+            assert len(listed) == len(set(listed))  # each pair once
+            assert set(map(tuple, sure)) <= set(listed) <= set(map(tuple, maybe))
+        assert len(vt) > 100 and len(ee) > 100
+    for a, b in zip(runs[0], runs[1]):
+        assert set(map(tuple, a)) == set(map(tuple, b))
+
+
 # -- scenes ---------------------------------------------------------------------------------------------------
 
 
@@ -204,6 +228,7 @@ def test_stacked_cloths_keep_their_order(device):
         a, b = b, a
     x = a.particle_q.numpy()
     assert x[:64, 2].min() < 0.06  # the cloths draped down the box's sides
+    assert model.self_contact.overflow().sum() == 0
     assert worst > 0.5 * TAU
 
 
@@ -225,6 +250,47 @@ def test_twisted_strip_does_not_pass_through_itself(device):
     assert model.self_contact.counts()["pairs"][0] > 0
 
 
+def test_pinned_strip_pressed_into_a_free_cloth(device):
+    """A pinned strip (kinematic: infinite mass, never capped) moves down at 0.3 m/s into a free cloth 8 mm below
+    it and carries on 2.5 cm: the free cloth takes the whole correction, is pushed ahead of the strip, and
+    neither the step audit nor the frame audit finds a crossing (the cap bounds a free vertex by its distance
+    minus the strip's prescribed displacement, 0.3 mm per step, well below the layers' ~τ gap)."""
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    builder.add_cloth_grid(nx=8, ny=8, spacing=0.02, origin=(-0.07, -0.07, 0.0), mass=0.05, **CLOTH, name="free")
+    strip = builder.add_cloth_grid(nx=5, ny=2, spacing=0.02, origin=(-0.037, -0.013, 0.008), mass=0.05, **CLOTH,
+                                   name="strip")
+    builder.add_pin_group(strip.ravel(), translation=ws.Track([0.0, 0.11], [[0, 0, 0], [0, 0, -0.033]]))
+    builder.add_self_collision(thickness=TAU, friction=0.2)
+    model = builder.finalize(device)
+    touches, intersections, nearest, state = run_audited(model, ws.SymplecticEuler(model), 1e-3, 110,
+                                                         frame_every=10)
+    x = state.particle_q.numpy()
+    assert x[64:, 2].max() == pytest.approx(0.008 - 0.033, abs=1e-6)  # the strip went where it was told
+    assert touches == 0 and intersections == 0 and nearest >= 0.5 * TAU
+    assert x[:64, 2].min() < -0.02  # the free cloth was pushed down ahead of it
+    assert model.self_contact.counts()["pairs"][0] > 0
+
+
+def test_cap_subtracts_a_pins_prescribed_displacement(device):
+    """One step in which a pinned cloth moves 9.6 mm down toward a free cloth 12 mm below it (beyond the
+    repulsion's 8 mm reach) while the free cloth's integrator moves it 3.6 mm up: a cap of γD = 3 mm on the free
+    side would let them cross (3 + 9.6 > 12); bounded by γ(D - K) = 0.6 mm, the free cloth stops short and the
+    step audit finds no touch."""
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, 0.0), mass=0.05, velocity=(0.0, 0.0, 3.6),
+                           **CLOTH, name="free")
+    pinned = builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.005, 0.005, 0.012), mass=0.05, **CLOTH,
+                                    name="pinned")
+    builder.add_pin_group(pinned.ravel(), translation=ws.Track([0.0, 1e-3], [[0, 0, 0], [0, 0, -0.0096]]))
+    builder.add_self_collision(thickness=TAU)
+    model = builder.finalize(device)
+    touches, _, _, state = run_audited(model, ws.SymplecticEuler(model), 1e-3, 1, frame_every=1)
+    z = state.particle_q.numpy()[:, 2]
+    assert z[25:] == pytest.approx(0.012 - 0.0096, abs=1e-6)  # the pins moved as prescribed
+    assert touches == 0
+    assert z[:25].max() <= 0.25 * (0.012 - 0.0096) + 1e-6  # the free cloth moved at most γ(D - K)
+
+
 # -- the cap is load-bearing ----------------------------------------------------------------------------------
 
 
@@ -240,13 +306,7 @@ class RepulsionOnly:
         return []
 
     def __call__(self, state_in, state_out, dt):
-        sc, model = self.full, self.full.model
-        sc.refit(state_in.particle_q)
-        flat_launch(repel_kernel(model.scalar),
-                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
-                            sc.surface, sc.params, state_in.particle_q, state_out.particle_q],
-                    outputs=[sc.corrected, sc.counters], dim=model.particle_dim, device=model.device)
-        wp.copy(state_out.particle_q, sc.corrected)
+        wp.copy(state_out.particle_q, self.full.repel(state_in, state_out.particle_q))
 
 
 def thrown_cloth(device, worlds=1):
@@ -279,6 +339,24 @@ def test_the_cap_is_load_bearing(device):
         assert model.self_contact.counts()["capped"][0] > 0
         finals.append(state.particle_q.numpy())
     np.testing.assert_array_equal(finals[0], finals[1])
+
+
+def test_overflow_is_counted_and_safe(device):
+    """With pair buffers of 4 slots the thrown cloth's pairs overflow them: the dropped pairs are counted, and a
+    world whose cap list overflowed keeps its free vertices where the step started (nothing crosses, the
+    thrown cloth stays where it was)."""
+    dt = 1.0 / 1200.0
+    model = thrown_cloth(device)
+    sc = model.self_contact
+    sc.capacity = 4
+    sc.repel_pairs, sc.cap_pairs, sc.pair_distance = sc._pair_buffers(sc.capacity, 2)
+    z0 = model.particle_q.numpy()[:, 2]
+    integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
+    integrator.step(a, b, None, dt)
+    assert len(audit_motion(a.particle_q.numpy(), b.particle_q.numpy(), model.tri_indices.numpy()).touches) == 0
+    assert sc.overflow()[0] > 0 and sc.listed()["cap"][0] > 4  # the cap found more pairs than it could hold
+    a = b
+    np.testing.assert_array_equal(a.particle_q.numpy()[:, 2], z0)
 
 
 # -- configuration --------------------------------------------------------------------------------------------

@@ -16,17 +16,25 @@ from ..errors import ConfigError
 from ..kernels.flatten import flat_launch
 from ..kernels.selfcontact import (
     COUNT_CAPPED,
+    COUNT_OVERFLOW,
     COUNT_PAIRS,
     COUNTER_COUNT,
+    PAIRS_PER_VERTEX,
     PARAM_COUNT,
     PARAM_FRICTION,
     PARAM_RELAXATION,
     PARAM_THICKNESS,
+    REPULSION_REACH,
+    Pairs,
     Surface,
-    cap_kernel,
-    points_kernel,
+    broad_ee_kernel,
+    broad_vt_kernel,
+    cap_gather_kernel,
+    fill_kernel,
+    leaf_kernel,
     proximity_kernel,
-    repel_kernel,
+    repel_gather_kernel,
+    repel_pairs_kernel,
 )
 
 #: The default relaxation γ of the displacement cap: a vertex moves at most a quarter of its distance to the
@@ -71,18 +79,9 @@ def surface_topology(triangles: np.ndarray, particle_count: int) -> dict:
     vertex_owner = np.full(particle_count, -1, dtype=np.int64)
     vertex_owner[triangles.ravel()[::-1]] = np.repeat(np.arange(count), 3)[::-1]
 
-    def csr(owners: np.ndarray, items: np.ndarray):
-        order = np.argsort(owners, kind="stable")
-        start = np.zeros(particle_count + 1, dtype=np.int64)
-        np.cumsum(np.bincount(owners, minlength=particle_count), out=start[1:])
-        return start, items[order]
-
-    tri_start, tri_list = csr(triangles.ravel(), np.repeat(np.arange(count), 3))
-    edge_start, edge_list = csr(edges.ravel(), np.repeat(np.arange(len(edges)), 2))
     as32 = lambda a: np.ascontiguousarray(a, dtype=np.int32)  # noqa: E731
     return dict(triangle=as32(triangles), triangle_edges=as32(triangle_edges), edge=as32(edges),
-                edge_owner=as32(edge_owner), vertex_owner=as32(vertex_owner), vertex_triangle_start=as32(tri_start),
-                vertex_triangle=as32(tri_list), vertex_edge_start=as32(edge_start), vertex_edge=as32(edge_list))
+                edge_owner=as32(edge_owner), vertex_owner=as32(vertex_owner))
 
 
 def smallest_altitude(positions: np.ndarray, triangles: np.ndarray) -> float:
@@ -94,15 +93,18 @@ def smallest_altitude(positions: np.ndarray, triangles: np.ndarray) -> float:
 
 
 class SelfContact:
-    """Self-collision of a model's triangle surface: the BVHs, the live values and the counters.
+    """Self-collision of a model's triangle surface: the BVHs, the pair buffers, the live values and the counters.
 
     Attributes:
         triangle_count: triangles of the colliding surface (per world).
         edge_count: its unique edges.
+        capacity: slots of each world's pair buffer (``PAIRS_PER_VERTEX`` per surface vertex); pairs beyond
+            are dropped and counted (:meth:`overflow`), and a world whose cap list overflowed keeps its free
+            vertices where the step started (``kernels/selfcontact.py``).
         params: live values per world, shape [world_count, 3] in the model's precision: thickness τ [m],
             friction μ [-], relaxation γ [-] (``kernels/selfcontact.py`` PARAM_*); write through :meth:`set`.
-        counters: int32, shape [world_count, 2]: pairs pushed apart and vertices capped, summed over the steps
-            since the model was made or :meth:`reset`.
+        counters: int32, shape [world_count, 3]: pairs pushed apart, vertices capped and pairs dropped on
+            overflow, summed over the steps since the model was made or :meth:`reset`.
     """
 
     def __init__(self, model, triangles: np.ndarray, *, thickness: float, friction: float, relaxation: float):
@@ -115,19 +117,53 @@ class SelfContact:
         for name, values in topology.items():
             dtype = {"triangle": wp.vec3i, "triangle_edges": wp.vec3i, "edge": wp.vec2i}.get(name, wp.int32)
             setattr(surface, name, wp.array(values, dtype=dtype, device=device))
-        # One BVH per world over single-precision copies of the step's start positions, built at the model's
-        # initial positions (its topology follows them: built on coincident points it would degenerate into a
-        # list) and refit every step.
-        self.points = wp.array(model.particle_q.numpy().astype(np.float32), dtype=wp.vec3f, device=device)
-        indices = wp.array(topology["triangle"].ravel(), dtype=wp.int32, device=device)
-        self.meshes = [wp.Mesh(points=self.points[w * n:(w + 1) * n], indices=indices) for w in range(worlds)]
-        surface.mesh = wp.array(np.array([m.id for m in self.meshes], dtype=np.uint64), dtype=wp.uint64,
-                                device=device)
+        leaves = worlds * self.triangle_count
+        surface.leaf_lower = wp.zeros(leaves, dtype=wp.vec3f, device=device)
+        surface.leaf_upper = wp.zeros(leaves, dtype=wp.vec3f, device=device)
+        surface.bvh = wp.zeros(worlds, dtype=wp.uint64, device=device)
         self.surface = surface
         self.params = wp.zeros((worlds, PARAM_COUNT), dtype=model.scalar, device=device)
         self.set(thickness=thickness, friction=friction, relaxation=relaxation)
         self.corrected = wp.zeros(model.state_size, dtype=model.vec3, device=device)
         self.counters = wp.zeros((worlds, COUNTER_COUNT), dtype=wp.int32, device=device)
+        # The pair buffers: the repulsion's and the cap's lists share their storage (used one after the other)
+        # but keep their own counts, which tell how many pairs each stage listed.
+        self.capacity = max(64, PAIRS_PER_VERTEX * int(np.count_nonzero(topology["vertex_owner"] >= 0)))
+        self.repel_pairs, self.cap_pairs, self.pair_distance = self._pair_buffers(self.capacity, 2)
+        slots = worlds * self.capacity
+        self.pair_correction = wp.zeros(4 * slots, dtype=model.vec3, device=device)
+        self.pair_weight = wp.zeros(4 * slots, dtype=model.scalar, device=device)
+        # One BVH per world over the single-precision boxes of its triangles, built at the model's initial
+        # positions (its topology follows them: built on coincident points it would degenerate into a list)
+        # and refit at every stage.
+        self._leaves(model.particle_q, model.particle_q, swept=False, refit=False)
+        T = self.triangle_count
+        self.bvhs = [wp.Bvh(surface.leaf_lower[w * T:(w + 1) * T], surface.leaf_upper[w * T:(w + 1) * T])
+                     for w in range(worlds)]
+        surface.bvh = wp.array(np.array([b.id for b in self.bvhs], dtype=np.uint64), dtype=wp.uint64, device=device)
+
+    def _pair_buffers(self, capacity: int, lists: int):
+        """``lists`` pair buffers of ``capacity`` slots per world sharing their storage but their counts, and
+        the pairs' distances."""
+        model = self.model
+        device = model.device
+        slots = model.world_count * capacity
+        shared = dict(
+            key=wp.zeros(slots, dtype=wp.int64, device=device),
+            vertex=wp.zeros(slots, dtype=wp.vec4i, device=device),
+            vertex_count=wp.zeros(model.particle_dim + 1, dtype=wp.int32, device=device),
+            vertex_start=wp.zeros(model.particle_dim + 1, dtype=wp.int32, device=device),
+            vertex_cursor=wp.zeros(model.particle_dim, dtype=wp.int32, device=device),
+            entry=wp.zeros(4 * slots, dtype=wp.int32, device=device),
+        )
+        buffers = []
+        for _ in range(lists):
+            pairs = Pairs()
+            pairs.count = wp.zeros(model.world_count, dtype=wp.int32, device=device)
+            for name, array in shared.items():
+                setattr(pairs, name, array)
+            buffers.append(pairs)
+        return (*buffers, wp.zeros(slots, dtype=model.scalar, device=device))
 
     def set(self, *, thickness: float | None = None, friction: float | None = None,
             relaxation: float | None = None, world: int | None = None) -> None:
@@ -164,6 +200,17 @@ class SelfContact:
         counters = self.counters.numpy().astype(np.int64)
         return {"pairs": counters[:, COUNT_PAIRS], "capped": counters[:, COUNT_CAPPED]}
 
+    def overflow(self) -> np.ndarray:
+        """Pairs dropped because a world's pair buffer was full, per world, summed since the start or
+        :meth:`reset` (int64 [world_count]; reads the device). Zero in a healthy run."""
+        return self.counters.numpy()[:, COUNT_OVERFLOW].astype(np.int64)
+
+    def listed(self) -> dict[str, np.ndarray]:
+        """Pairs the last pass listed per world: ``repel`` (closer than the repulsion's reach) and ``cap`` (the
+        cap's pairs); int64 arrays [world_count], reads the device."""
+        return {"repel": self.repel_pairs.count.numpy().astype(np.int64),
+                "cap": self.cap_pairs.count.numpy().astype(np.int64)}
+
     def reset(self) -> None:
         """Zero the counters."""
         self.counters.zero_()
@@ -175,51 +222,136 @@ class SelfContact:
     @property
     def capturable(self) -> bool:
         """Whether a step with self-collision can be captured in a graph: on CUDA (the BVH refit is device work),
-        not on the CPU (Warp refits a CPU mesh on the host, outside what its CPU graphs record)."""
+        not on the CPU (Warp refits a CPU BVH on the host, outside what its CPU graphs record)."""
         return self.model.device.is_cuda
 
-    def refit(self, positions: wp.array) -> None:
-        """Bring every world's BVH to ``positions`` (a state's ``particle_q``)."""
+    def _leaves(self, start: wp.array, end: wp.array, *, swept: bool, refit: bool = True) -> None:
+        """Write the triangles' boxes (at ``start``, or swept from ``start`` to ``end``) and refit the BVHs."""
         model = self.model
-        wp.launch(points_kernel(model.scalar), dim=model.particle_dim, block_dim=model.block_dim,
-                  inputs=[positions], outputs=[self.points], device=model.device)
-        for mesh in self.meshes:
-            mesh.refit()
-
-    def proximity(self, state, reach: float) -> tuple[np.ndarray, np.ndarray]:
-        """The device's broad and narrow phase at ``state``, for audits: per particle of every world, the
-        distance [m] to the nearest vertex–triangle or edge–edge pair it belongs to within ``reach`` [m]
-        (``reach`` when none) and how many such pairs there are (-1 off the surface); NumPy arrays
-        [world_count · particle_count]."""
-        model = self.model
-        self.refit(state.particle_q)
-        nearest = wp.empty(model.state_size, dtype=model.scalar, device=model.device)
-        count = wp.empty(model.state_size, dtype=wp.int32, device=model.device)
-        flat_launch(proximity_kernel(model.scalar),
+        flat_launch(leaf_kernel(model.scalar, swept),
                     inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface,
-                            state.particle_q, model.scalar(reach)],
-                    outputs=[nearest, count], dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
-        return nearest.numpy().astype(np.float64), count.numpy()
+                            self.params, start, end],
+                    dim=model.world_count * self.triangle_count, device=model.device)
+        if refit:
+            for bvh in self.bvhs:
+                bvh.refit()
 
-    def __call__(self, state_in, state_out, dt: float) -> None:
-        """Make ``state_out`` (the integrator's result from ``state_in``) free of self-intersections: refit the
-        BVHs at ``state_in``, repel, cap (device work only: capturable)."""
+    def _list_pairs(self, pairs, pair_distance: wp.array, start: wp.array, end: wp.array, *, swept: bool,
+                    reach_factor: float, reach_add: float, counters: wp.array, world_enabled: wp.array) -> None:
+        """The broad phase into ``pairs`` and ``pair_distance``, then the CSR of its entries (device work
+        only, fixed sizes: capturable)."""
         model = self.model
-        common = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
-        self.refit(state_in.particle_q)
-        shared = dict(
+        pairs.count.zero_()
+        pairs.vertex_count.zero_()
+        pairs.vertex_cursor.zero_()
+        self._leaves(start, end, swept=swept)
+        args = dict(
             particle_count=model.particle_count,
             particle_flags=model.particle_flags,
             particle_inv_mass=model.particle_inv_mass,
-            world_enabled=model.world_enabled,
+            world_enabled=world_enabled,
             surface=self.surface,
             params=self.params,
-            particle_q_start=state_in.particle_q,
+            reach_factor=model.scalar(reach_factor),
+            reach_add=model.scalar(reach_add),
+            particle_q_start=start,
+            particle_q_end=end,
         )
-        flat_launch(repel_kernel(model.scalar), inputs=[*shared.values(), state_out.particle_q],
-                    outputs=[self.corrected, self.counters], **common)
-        flat_launch(cap_kernel(model.scalar), inputs=[*shared.values(), self.corrected, model.scalar(dt)],
-                    outputs=[state_out.particle_q, state_out.particle_qd, self.counters], **common)
+        outputs = dict(pairs=pairs, pair_distance=pair_distance, counters=counters)
+        flat_launch(broad_vt_kernel(model.scalar, swept), inputs=list(args.values()), outputs=list(outputs.values()),
+                    dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
+        flat_launch(broad_ee_kernel(model.scalar, swept), inputs=list(args.values()), outputs=list(outputs.values()),
+                    dim=model.world_count * self.edge_count, block_dim=model.block_dim, device=model.device)
+        wp.utils.array_scan(pairs.vertex_count, pairs.vertex_start, inclusive=False)
+        flat_launch(fill_kernel(), inputs=[model.particle_count, pairs], dim=pairs.key.shape[0],
+                    block_dim=model.block_dim, device=model.device)
+
+    def repel(self, state_in, particle_q: wp.array) -> wp.array:
+        """The repulsion stage alone: ``particle_q`` (the integrator's result from ``state_in``) repelled, into
+        ``self.corrected`` (returned)."""
+        model = self.model
+        pairs = self.repel_pairs
+        self._list_pairs(pairs, self.pair_distance, state_in.particle_q, state_in.particle_q, swept=False, reach_factor=REPULSION_REACH,
+                         reach_add=0.0, counters=self.counters, world_enabled=model.world_enabled)
+        slots = dict(dim=model.world_count * self.capacity, block_dim=model.block_dim, device=model.device)
+        flat_launch(repel_pairs_kernel(model.scalar),
+                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface,
+                            self.params, pairs, state_in.particle_q, particle_q],
+                    outputs=[self.pair_correction, self.pair_weight, self.counters], **slots)
+        flat_launch(repel_gather_kernel(model.scalar),
+                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
+                            self.surface, pairs, self.pair_correction, self.pair_weight, particle_q],
+                    outputs=[self.corrected], dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
+        return self.corrected
+
+    def cap(self, state_in, particle_q: wp.array, state_out, dt: float) -> None:
+        """The cap stage alone: ``particle_q`` (the repelled positions) capped into ``state_out``'s positions and,
+        where they changed, velocities."""
+        model = self.model
+        pairs = self.cap_pairs
+        self._list_pairs(pairs, self.pair_distance, state_in.particle_q, particle_q, swept=True, reach_factor=0.0, reach_add=0.0,
+                         counters=self.counters, world_enabled=model.world_enabled)
+        flat_launch(cap_gather_kernel(model.scalar),
+                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
+                            self.surface, self.params, pairs, self.pair_distance, state_in.particle_q, particle_q,
+                            model.scalar(dt)],
+                    outputs=[state_out.particle_q, state_out.particle_qd, self.counters],
+                    dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
+
+    def _near_pairs(self, state, reach: float):
+        """The pairs within ``reach`` [m] at ``state`` in a buffer of their own, grown until none overflows
+        (host reads: for audits and tests, never inside a step). Returns (pairs, distances)."""
+        model = self.model
+        capacity = self.capacity
+        everywhere = wp.ones(model.world_count, dtype=wp.int32, device=model.device)
+        while True:
+            pairs, distance = self._pair_buffers(capacity, 1)
+            scratch = wp.zeros((model.world_count, COUNTER_COUNT), dtype=wp.int32, device=model.device)
+            self._list_pairs(pairs, distance, state.particle_q, state.particle_q, swept=False, reach_factor=0.0,
+                             reach_add=reach, counters=scratch, world_enabled=everywhere)
+            found = int(pairs.count.numpy().max())
+            if found <= capacity:
+                return pairs, distance
+            capacity = found
+
+    def proximity(self, state, reach: float) -> tuple[np.ndarray, np.ndarray]:
+        """The device's broad phase at ``state``, for audits: per particle of every world, the distance [m] to
+        the nearest vertex–triangle or edge–edge pair it belongs to within ``reach`` [m] (``reach`` when
+        none) and how many such pairs there are (-1 off the surface); NumPy arrays
+        [world_count · particle_count]."""
+        model = self.model
+        pairs, distance = self._near_pairs(state, reach)
+        nearest = wp.empty(model.state_size, dtype=model.scalar, device=model.device)
+        count = wp.empty(model.state_size, dtype=wp.int32, device=model.device)
+        flat_launch(proximity_kernel(model.scalar),
+                    inputs=[model.particle_count, self.surface, pairs, distance, model.scalar(reach)],
+                    outputs=[nearest, count], dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
+        return nearest.numpy().astype(np.float64), count.numpy()
+
+    def pairs(self, state, reach: float) -> tuple[np.ndarray, np.ndarray]:
+        """The broad phase's pair list at ``state`` within ``reach`` [m], for tests: (vt [k, 3] rows (world,
+        vertex, triangle), ee [m, 3] rows (world, edge, edge), first edge < second), each in the order the
+        device stored them (an integer atomic's order)."""
+        model = self.model
+        pairs, _ = self._near_pairs(state, reach)
+        count = pairs.count.numpy()
+        capacity = pairs.key.shape[0] // model.world_count
+        keys = pairs.key.numpy().reshape(model.world_count, capacity)
+        n, T, E = model.particle_count, self.triangle_count, self.edge_count
+        vt, ee = [], []
+        for world in range(model.world_count):
+            k = keys[world, :count[world]]
+            near = k < n * T
+            vt.append(np.stack([np.full(near.sum(), world), k[near] // T, k[near] % T], axis=1))
+            rest = k[~near] - n * T
+            ee.append(np.stack([np.full(len(rest), world), rest // E, rest % E], axis=1))
+        return np.concatenate(vt).astype(np.int64), np.concatenate(ee).astype(np.int64)
+
+    def __call__(self, state_in, state_out, dt: float) -> None:
+        """Make ``state_out`` (the integrator's result from ``state_in``) free of self-intersections: repel, then
+        cap (device work only, fixed launch sizes: capturable)."""
+        repelled = self.repel(state_in, state_out.particle_q)
+        self.cap(state_in, repelled, state_out, dt)
 
 
 def make_self_contact(model, triangles: np.ndarray, positions: np.ndarray, settings: dict) -> SelfContact:
