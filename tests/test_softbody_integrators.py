@@ -1,12 +1,16 @@
-"""Soft bodies under every integrator on the device: a voxel and a tetrahedral body, deformed and falling
-together, whose centres of mass follow each integrator's exact discrete free fall (springs are internal forces:
-they sum to zero over a body, so its centre of mass sees gravity alone)."""
+"""Soft bodies under every integrator on the device: the seven methods' bodies of one ball, each integrator's
+discrete free fall of every particle while the springs are at rest, and a short oscillation of the deformed bodies
+against a float64 small-step reference of the same network plus the integrator's own discretization error (the
+same recurrence run in float64 on the network linearised at rest); and a voxel cube settling to its static solve."""
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 import trimesh
 
 import warpspring as ws
+from warpspring.core import softbody as sb
 
 try:
     import pytetwild  # noqa: F401  (the tetrahedral method's optional extra, warpspring[tet])
@@ -15,10 +19,11 @@ try:
 except ImportError:
     TET = False
 
-E = 1.0e3  # [Pa]: ω ≈ √(2Σk/m) ≈ 100 rad/s on the 5 cm lattice, so ω·dt ≈ 0.1 for every integrator
+E = 4.0e3  # [Pa]: the stiffest mode of the seven bodies (tetrahedral) has ω ≈ 140 rad/s, so ω·dt ≤ 0.1
 RHO = 1000.0  # [kg/m³]
 G = 9.81  # [m/s²]
-DT, STEPS = 1.0e-3, 20  # [s]: the drop's schemes differ by g·dt²·n = 2e-4 m, twenty times the tolerance
+DT, STEPS = 7.0e-4, 80  # [s]: the schemes' falls differ by g·dt²·n = 3.8e-4 m, 380 times the free-fall tolerance
+AMPLITUDE = 5.0e-4  # [m]: each particle's displacement from rest along each axis (strains up to ~2 %)
 
 #: z_n − z₀ of a point mass falling from rest, per integrator's update: explicit Euler moves with the old
 #: velocity (n(n−1)/2), symplectic and implicit Euler with the new (n(n+1)/2); the second-order and higher
@@ -32,51 +37,175 @@ FALL = {
     "rk4": lambda n: n * n / 2.0,
     "dopri5": lambda n: n * n / 2.0,
 }
+#: Force evaluations per step (dopri5: per internal step; its error control bounds the rest).
+STAGES = {"explicit_euler": 1, "symplectic_euler": 1, "implicit_euler": 1, "velocity_verlet": 2, "midpoint": 2,
+          "rk4": 4, "dopri5": 7}
 
 
 @pytest.fixture(scope="module")
 def bodies():
-    """The builder's bodies (a 0.2 m cube as a voxel body and, with pytetwild, as a tetrahedral one), built once."""
-    cube = trimesh.creation.box((0.2, 0.2, 0.2))
+    """The seven methods' bodies of one ball (an icosphere of subdivision 1, radius 0.2 m, spacing 0.1 m: 42 to 162
+    particles each), all at the origin (they do not touch: no contacts), built once; and the network in float64:
+    particle pairs, stiffness [N/m] and rest lengths [m] of every spring."""
+    ball = trimesh.creation.icosphere(subdivisions=1, radius=0.2)
     builder = ws.ModelBuilder()
-    methods = ["voxel"] + (["tetrahedral"] if TET else [])
-    options = {"tetrahedral": {"epsilon": 1.0e-2}}
-    made = [builder.add_soft_body(cube, method=method, youngs_modulus=E, density=RHO, spacing=0.05,
-                                  origin=(0.5 * i, 0.0, 1.0), name=method, options=options.get(method))
-            for i, method in enumerate(methods)]
-    return builder, made
+    made = [builder.add_soft_body(ball, method=method, youngs_modulus=E, density=RHO, spacing=0.1, name=method,
+                                  options={"epsilon": 1.0e-2} if method == "tetrahedral" else None)
+            for method in sb.METHODS if TET or method != "tetrahedral"]
+    rest = np.zeros((sum(body.particle_count for body in made), 3))
+    pairs, ke = [], []
+    for body in made:
+        rest[body.particles] = body.topology.positions  # origin 0, no rotation, scale 1: the mesh's frame
+        for local, k in body.topology.springs.values():
+            pairs.append(body.particles[local])
+            ke.append(k)
+    pairs, ke = np.concatenate(pairs), np.concatenate(ke)
+    return builder, made, rest, pairs, ke
 
 
-@pytest.mark.parametrize("name", sorted(FALL))
-def test_deformed_bodies_fall_with_every_integrator(device, bodies, name):
-    """Each particle displaced by up to 2 mm (springs strained by up to 8 %) and released: after 20 steps the
-    centre of mass of each body is at z₀ − g·dt²·FALL(n). Tolerance 1e-5 m: float32 positions near 1 m (6e-8 m
-    a rounding) over 20 steps of up to 7 stages, and the spring forces' float32 sum (the largest ~0.1 N on
-    0.016 kg particles) moving the centre by less; dopri5 adds its tolerance per accepted internal step.
-    The bodies did deform: some particle moves 0.1 mm or more relative to its body's centre of mass."""
-    builder, made = bodies
-    model = builder.finalize(device)
-    integrator = ws.make_integrator(name, model)
+def _run(model, name, q0):
+    """``STEPS`` steps of ``DT`` from positions ``q0`` (float32-rounded) at rest: the integrator and the final
+    positions [m] (float64 copy). dopri5 at a local tolerance of 1e-7 (its default, 1e-6, summed over its ~80
+    internal steps would bound its error only by ~1e-4 m, the size of the motion checked)."""
+    options = {"tolerance": 1.0e-7} if name == "dopri5" else {}
+    integrator = ws.make_integrator(name, model, **options)
     a, b = model.state(), model.state()
-    rng = np.random.default_rng(7)
-    q0 = a.particle_q.numpy().astype(np.float64) + rng.uniform(-2.0e-3, 2.0e-3, (model.particle_count, 3))
     a.particle_q.assign(q0.astype(np.float32))
-    q0 = a.particle_q.numpy().astype(np.float64)
-    mass = model.particle_mass.numpy()[0].astype(np.float64)  # one world
     for _ in range(STEPS):
         integrator.step(a, b, None, DT)
         a, b = b, a
-    q = a.particle_q.numpy().astype(np.float64)
-    atol = 1.0e-5
+    return integrator, a.particle_q.numpy().astype(np.float64)
+
+
+@pytest.mark.parametrize("name", sorted(FALL))
+def test_every_method_falls_freely_with_every_integrator(device, bodies, name):
+    """Springs at rest exert no force: every particle of every body follows the integrator's discrete free fall
+    z₀ − g·dt²·FALL(n) exactly. Tolerance 1e-6 m: float32 positions of at most 0.2 m (1.5e-8 m a rounding) over
+    80 steps, and float32 rest lengths (their rounding, ~1e-8 m, is a spring stretch whose force moves a particle
+    by about as much); the schemes differ by 3.8e-4 m."""
+    builder, made, rest, _, _ = bodies
+    model = builder.finalize(device)
+    integrator, q = _run(model, name, rest)
+    expected = rest.astype(np.float32).astype(np.float64) - [0.0, 0.0, G * DT * DT * FALL[name](STEPS)]
+    atol = 1.0e-6
     if integrator.adaptive:
         atol += integrator.accepted_steps * integrator.tolerance * (1.0 + np.abs(q).max())
     for body in made:
-        m = mass[body.particles]
-        centre0, centre = m @ q0[body.particles] / m.sum(), m @ q[body.particles] / m.sum()
-        expected = centre0 - np.array([0.0, 0.0, G * DT * DT * FALL[name](STEPS)])
-        np.testing.assert_allclose(centre, expected, rtol=0.0, atol=atol, err_msg=body.method)
-        relative = (q[body.particles] - centre) - (q0[body.particles] - centre0)
-        assert np.abs(relative).max() > 1.0e-4, body.method
+        np.testing.assert_allclose(q[body.particles], expected[body.particles], rtol=0.0, atol=atol, err_msg=body.method)
+
+
+# -- the float64 reference ----------------------------------------------------------------------------------------
+
+
+def _forces(x, pairs, ke, length0):
+    """Hooke springs' forces [N] on every particle at positions x [m] (float64): ke (|d| − L) d̂ on the first end."""
+    d = x[pairs[:, 1]] - x[pairs[:, 0]]
+    length = np.linalg.norm(d, axis=1)
+    f = (ke * (length - length0) / length)[:, None] * d
+    out = np.zeros_like(x)
+    for axis in range(3):
+        out[:, axis] = np.bincount(pairs[:, 0], f[:, axis], len(x)) - np.bincount(pairs[:, 1], f[:, axis], len(x))
+    return out
+
+
+def _rk4(accel, x, v, h, steps):
+    """``steps`` classic RK4 steps of x'' = accel(x): positions and velocities."""
+    for _ in range(steps):
+        k1x, k1v = v, accel(x)
+        k2x, k2v = v + 0.5 * h * k1v, accel(x + 0.5 * h * k1x)
+        k3x, k3v = v + 0.5 * h * k2v, accel(x + 0.5 * h * k2x)
+        k4x, k4v = v + h * k3v, accel(x + h * k3x)
+        x = x + h / 6.0 * (k1x + 2.0 * k2x + 2.0 * k3x + k4x)
+        v = v + h / 6.0 * (k1v + 2.0 * k2v + 2.0 * k3v + k4v)
+    return x, v
+
+
+def _linear_step(name, accel, backward, u, v, h):
+    """One step of integrator ``name`` on the linear system u'' = accel(u) = −M⁻¹K u + g. Implicit Euler is
+    Baraff-Witkin, for a linear force exactly backward Euler: Δv = (M + h²K)⁻¹ M · h (accel(u) − h M⁻¹K v), with
+    ``backward`` applying (M + h²K)⁻¹ M."""
+    if name == "explicit_euler":
+        return u + h * v, v + h * accel(u)
+    if name == "symplectic_euler":
+        v = v + h * accel(u)
+        return u + h * v, v
+    if name == "implicit_euler":
+        stiffness_times_v = accel(np.zeros_like(v)) - accel(v)  # M⁻¹K v
+        v = v + backward(h * (accel(u) - h * stiffness_times_v))
+        return u + h * v, v
+    if name == "velocity_verlet":
+        v = v + 0.5 * h * accel(u)
+        u = u + h * v
+        return u, v + 0.5 * h * accel(u)
+    if name == "midpoint":
+        return u + h * (v + 0.5 * h * accel(u)), v + h * accel(u + 0.5 * h * v)
+    return _rk4(accel, u, v, h, 1)
+
+
+@pytest.fixture(scope="module")
+def reference(bodies):
+    """Each particle displaced by up to ``AMPLITUDE`` (seeded) and released at rest: the positions after
+    ``STEPS`` × ``DT`` by the nonlinear network in float64 (RK4 at DT/4: error ~(ωh)⁴ωt/120 ≈ 2e-8 of the
+    motion), the same without springs (free fall), and per integrator its own discretization error on the network
+    linearised at rest (its recurrence run in float64, less RK4 at DT/16 on the same linear system)."""
+    builder, made, rest, pairs, ke = bodies
+    model = builder.finalize("cpu")
+    mass = model.particle_mass.numpy()[0].astype(np.float64)
+    rng = np.random.default_rng(11)
+    q0 = (rest + rng.uniform(-AMPLITUDE, AMPLITUDE, rest.shape)).astype(np.float32).astype(np.float64)
+    length0 = np.linalg.norm(rest[pairs[:, 1]] - rest[pairs[:, 0]], axis=1)
+    gravity = np.array([0.0, 0.0, -G])
+
+    def accel(x):
+        return _forces(x, pairs, ke, length0) / mass[:, None] + gravity
+
+    zero = np.zeros_like(q0)
+    q_ref = _rk4(accel, q0, zero, DT / 4, 4 * STEPS)[0]
+    q_fall = q0 + gravity * 0.5 * (DT * STEPS) ** 2
+    K = sb.stiffness_matrix(rest, pairs, ke)
+    m3 = np.repeat(mass, 3)
+
+    def linear(u):
+        return (-(K @ u.ravel()) / m3).reshape(-1, 3) + gravity
+
+    implicit = spla.factorized((sp.diags(m3) + DT * DT * K).tocsc())
+
+    def backward(b):  # (M + h²K)⁻¹ M b
+        return implicit(m3 * b.ravel()).reshape(-1, 3)
+
+    u0 = q0 - rest
+    exact = _rk4(linear, u0, zero, DT / 4, 4 * STEPS)[0]
+    error = {"dopri5": np.zeros_like(u0)}  # its own error control bounds it (see the test)
+    for name in FALL.keys() - {"dopri5"}:
+        u, v = u0, zero
+        for _ in range(STEPS):
+            u, v = _linear_step(name, linear, backward, u, v, DT)
+        error[name] = u - exact
+    return q0, q_ref, q_fall, error
+
+
+@pytest.mark.parametrize("name", sorted(FALL))
+def test_every_method_oscillates_as_the_float64_reference(device, bodies, reference, name):
+    """The deformed bodies, released: after 80 steps every particle is where the float64 reference of the same
+    network puts it plus the integrator's own discretization error, predicted on the network linearised at rest
+    (~1e-4 m for the Eulers, 1e-8 to 1e-6 m for the second-order methods, ~1e-10 m for RK4). Tolerance: 5 % of
+    the springs' part of that error (the free fall's part is exact; the springs' nonlinear part is of the order of
+    the strain, ≤ 2 %) plus float32 round-off, bounded by one unit in the last place of the largest coordinate per
+    force evaluation (steps × stages × 2⁻²³ |x|max); dopri5 adds its local tolerance per internal step. The test
+    can fail: the springs moved every body by at least 10 times its tolerance (the reference against free fall)."""
+    builder, made, _, _, _ = bodies
+    q0, q_ref, q_fall, error = reference
+    model = builder.finalize(device)
+    integrator, q = _run(model, name, q0)
+    fall = np.array([0.0, 0.0, G * DT * DT * (STEPS**2 / 2.0 - FALL[name](STEPS))])  # the scheme's lag in free fall
+    steps = integrator.accepted_steps if integrator.adaptive else STEPS
+    for body in made:
+        p = body.particles
+        atol = 0.05 * np.abs(error[name][p] - fall).max() + steps * STAGES[name] * 2.0**-23 * np.abs(q[p]).max()
+        if integrator.adaptive:
+            atol += integrator.accepted_steps * integrator.tolerance * (1.0 + np.abs(q[p]).max())
+        assert np.abs(q_ref[p] - q_fall[p]).max() >= 10.0 * atol, body.method
+        np.testing.assert_allclose(q[p], q_ref[p] + error[name][p], rtol=0.0, atol=atol, err_msg=body.method)
 
 
 @pytest.fixture(scope="module")

@@ -34,12 +34,17 @@ It resets Blender to factory settings (an empty scene), imports the file with
   seconds converted): ``reads_time_code`` says which one Blender sampled (objects that are the same at both
   candidates say ``same_at_time_codes`` instead); ``velocity_equals_usd_velocities`` and
   ``normals_max_angle_deg_vs_usd`` compare the velocities and the shading normals with the file's;
+  ``points_max_error_vs_usd`` [m] compares every evaluated vertex (mesh, curve or point) with the file's points
+  at the time code read, and ``primvars_max_error_vs_usd`` every value of each vertex primvar (a soft body's or
+  cloth's ``strain``, ``pinned``, ``rest``, ``st``; a spring curve's ``strain``) with Blender's point attribute
+  (or UV map) of the same name, or says why it could not (no such attribute, another count);
 - with ``--fps N``: ``samples_at_fps``: the same after ``scene.render.fps = N`` (fps_base 1), each frame k
   with its time in seconds, k / N, beside the seconds of the USD time code that Blender read;
 - ``summary``: the answers in short: the scene's fps and range after the import, which time code each
   sampled frame read, and per mesh the polygon sizes (Blender's and the file's), the velocity attribute's
-  name, the face sets of the file beside Blender's material slots, vertex groups and face attributes, and
-  which guide prims were imported and whether they render.
+  name, the face sets of the file beside Blender's material slots, vertex groups and face attributes, the
+  largest point and primvar differences over the sampled frames (meshes, and in ``other_geometry`` the
+  spring curves and particles), and which guide prims were imported and whether they render.
 
 ``--write-sample PATH`` writes a small hand-authored ``.usda`` that exercises every question at once (no
 bpy nor pxr needed for that): a quad mesh with time-sampled ``points``, ``velocities`` and a vertex primvar,
@@ -145,6 +150,8 @@ for code in request.get("time_codes", []):
             sample["centroid"] = to_blender(mean(world.Transform(p) for p in points))
         else:
             sample["centroid"] = to_blender(world.Transform((0.0, 0.0, 0.0)))
+        if points and request.get("points"):  # every point, compared with Blender's, then dropped
+            sample["points"] = [to_blender(world.Transform(p)) for p in points]
         normals = prim.GetAttribute("normals").Get(code) if prim.HasAttribute("normals") else None
         if normals and points and len(normals) == len(points):  # per vertex: compared, then dropped
             sample["normals"] = [list(n) for n in normals]
@@ -158,6 +165,9 @@ for code in request.get("time_codes", []):
             try:
                 sample["primvar:" + pv.GetPrimvarName()] = mean(v if isinstance(v, (int, float)) else tuple(v)
                                                                  for v in value)
+                if request.get("points"):  # every value, compared with Blender's attribute, then dropped
+                    sample["primvar_values:" + pv.GetPrimvarName()] = [v if isinstance(v, (int, float)) else list(v)
+                                                                        for v in value]
             except TypeError:
                 pass
         per_prim[str(prim.GetPath())] = sample
@@ -454,6 +464,17 @@ def _mean_attribute(attribute):
     return float(values[0]) if width == 1 else values.tolist()
 
 
+def _attribute_values(attribute):
+    """A point attribute's values, shape [n, width] (float64), for the types :func:`_mean_attribute` reads."""
+    import numpy as np
+
+    width = {"FLOAT": 1, "INT": 1, "BOOLEAN": 1, "FLOAT_VECTOR": 3, "FLOAT2": 2}[attribute.data_type]
+    key = {"FLOAT_VECTOR": "vector", "FLOAT2": "vector"}.get(attribute.data_type, "value")
+    values = np.zeros(len(attribute.data) * width, dtype=bool if attribute.data_type == "BOOLEAN" else np.float64)
+    attribute.data.foreach_get(key, values)
+    return values.astype(np.float64).reshape(-1, width)
+
+
 def sample_object(obj, depsgraph) -> dict:
     """World-space centroid of the evaluated geometry (its origin when it has no vertices) and the means of
     its evaluated point-domain attributes, at the scene's current frame."""
@@ -473,6 +494,7 @@ def sample_object(obj, depsgraph) -> dict:
             data.attributes["position"].data.foreach_get("vector", positions)
             positions = positions.reshape(-1, 3) @ matrix[:3, :3].T + matrix[:3, 3]
             sample["centroid"] = positions.mean(axis=0).tolist()
+            sample["_positions"] = positions  # compared with the file's points, then dropped
         else:
             sample["centroid"] = sample["location"]
         if mesh is not None and len(mesh.loops):
@@ -485,12 +507,17 @@ def sample_object(obj, depsgraph) -> dict:
             first = np.full(len(mesh.vertices), -1, dtype=np.int64)
             first[corner_vertex[::-1]] = np.arange(len(corner_vertex))[::-1]
             sample["_normals"] = np.where(first[:, None] >= 0, corner_normals.reshape(-1, 3)[first], 0.0)
+            for layer in mesh.uv_layers:  # a UV map (corners) at each vertex's first corner, for a vertex primvar
+                uv = np.zeros(len(mesh.loops) * 2)
+                layer.uv.foreach_get("vector", uv)
+                sample[f"_values:{layer.name}"] = np.where(first[:, None] >= 0, uv.reshape(-1, 2)[first], np.nan)
         if data is not None:
             for attribute in data.attributes:
                 if attribute.domain == "POINT" and attribute.name != "position" and not attribute.name.startswith("."):
                     value = _mean_attribute(attribute)
                     if value is not None:
                         sample[f"mean:{attribute.name}"] = value
+                        sample[f"_values:{attribute.name}"] = _attribute_values(attribute)
     finally:
         if mesh is not None:
             evaluated.to_mesh_clear()
@@ -513,15 +540,17 @@ def drop_private(samples: dict) -> dict:
     """Remove the per-vertex arrays kept for the comparison with the file."""
     for sample in samples.values():
         for obj_sample in sample["objects"].values():
-            obj_sample.pop("_normals", None)
+            for key in [k for k in obj_sample if k.startswith("_")]:
+                del obj_sample[key]
     return samples
 
 
 # ------------------------------------------------------------------------------------------------ reference
 
-def pxr_reference(python: str, path: str, time_codes=()) -> dict:
-    """What pxr reads from the file (see ``_PXR_PROBE``), computed by ``python`` in its own process."""
-    request = json.dumps({"file": path, "time_codes": sorted(set(float(c) for c in time_codes))})
+def pxr_reference(python: str, path: str, time_codes=(), points: bool = False) -> dict:
+    """What pxr reads from the file (see ``_PXR_PROBE``), computed by ``python`` in its own process; with
+    ``points``, every point and vertex primvar value at the time codes too."""
+    request = json.dumps({"file": path, "time_codes": sorted(set(float(c) for c in time_codes)), "points": points})
     try:
         done = subprocess.run([python, "-c", _PXR_PROBE, request], capture_output=True, text=True, timeout=600)
     except OSError as error:
@@ -544,6 +573,40 @@ def _flat(matrix) -> list:
     return [float(v) for row in matrix for v in row]
 
 
+def _compare_points(obj_sample: dict, usd: dict | None) -> None:
+    """Every point and every vertex primvar of the file at the time code Blender read (or, where it read none,
+    at the frame's number) against Blender's evaluated positions and point attributes (or UV maps, read at each
+    vertex's first corner) of the same name:
+    ``points_max_error_vs_usd`` [m] and ``primvars_max_error_vs_usd`` (a number, or why none: the attribute is
+    missing, or its count differs)."""
+    import numpy as np
+
+    if not usd:
+        return
+    positions = obj_sample.get("_positions")
+    if usd.get("points") is not None and positions is not None:
+        points = np.asarray(usd["points"], dtype=np.float64)
+        if points.shape == positions.shape:
+            obj_sample["points_max_error_vs_usd"] = float(np.abs(points - positions).max())
+        else:
+            obj_sample["points_max_error_vs_usd"] = f"counts differ: Blender {len(positions)}, file {len(points)}"
+    errors = {}
+    for key, values in usd.items():
+        if not key.startswith("primvar_values:"):
+            continue
+        name = key.split(":", 1)[1]
+        mine = obj_sample.get(f"_values:{name}")
+        values = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
+        if mine is None:
+            errors[name] = "no point attribute or UV map of this name"
+        elif mine.shape != values.shape:
+            errors[name] = f"shape differs: Blender {list(mine.shape)}, file {list(values.shape)}"
+        else:
+            errors[name] = float(np.abs(mine - values).max())
+    if errors:
+        obj_sample["primvars_max_error_vs_usd"] = errors
+
+
 def compare(samples: dict, reference: dict, scene_fps: float, paths: dict) -> None:
     """Add to each object's sample the pxr values at the candidate time codes and say which one matches."""
     import numpy as np
@@ -560,7 +623,8 @@ def compare(samples: dict, reference: dict, scene_fps: float, paths: dict) -> No
             if not any(usd.values()):
                 continue
             obj_sample["usd"] = {kind: {"time_code": candidates[kind],
-                                        **{k: v for k, v in (value or {}).items() if k != "normals"}}
+                                        **{k: v for k, v in (value or {}).items()
+                                           if k not in ("normals", "points") and not k.startswith("primvar_values:")}}
                                  for kind, value in usd.items()}
             # The same vertex centroid and the same world matrix (a turning box keeps its centroid).
             matches = [kind for kind, value in usd.items() if value
@@ -574,6 +638,7 @@ def compare(samples: dict, reference: dict, scene_fps: float, paths: dict) -> No
             else:
                 obj_sample["matches_no_candidate"] = True
             reference_values = usd[matches[0]] if matches else None
+            _compare_points(obj_sample, reference_values or usd["frame"])
             blender_normals = obj_sample.pop("_normals", None)
             usd_normals = reference_values.get("normals") if reference_values else None
             if usd_normals is not None and blender_normals is not None and len(usd_normals) == len(blender_normals):
@@ -671,7 +736,7 @@ def check(args) -> dict:
         for _, fps in runs:
             codes.update(f for f in frames)
             codes.update(f / fps * reference["stage"]["timeCodesPerSecond"] for f in frames)
-        reference.update({k: v for k, v in pxr_reference(args.reference_python, path, codes).items()
+        reference.update({k: v for k, v in pxr_reference(args.reference_python, path, codes, points=True).items()
                           if k == "samples"})
         for key, fps in runs:
             compare(report[key], reference, fps, paths)
@@ -714,7 +779,24 @@ def summary(report: dict) -> dict:
         out["frame_reads" if key == "samples" else "frame_reads_at_fps"] = read
     meshes = [o for o in report["objects"] if "mesh" in o]
     prims = {p["path"]: p for p in usd["prims"]} if usd else {}
+
+    def worst(name: str, key: str):
+        """The largest of an object's per-sample comparisons ``key`` (a number [m], or the first reason none
+        was made), over every sampled frame; per primvar for ``primvars_max_error_vs_usd``."""
+        found = [s["objects"][name][key] for s in report["samples"].values() if key in s["objects"].get(name, {})]
+        if key == "primvars_max_error_vs_usd":
+            names = sorted({n for f in found for n in f})
+            return {n: worst_of([f[n] for f in found if n in f]) for n in names} or None
+        return worst_of(found)
+
+    def worst_of(values):
+        reasons = [v for v in values if isinstance(v, str)]
+        return reasons[0] if reasons else max(values, default=None)
+
     out["meshes"] = {o["usd_path"]: {
+        "points_max_error_vs_usd": worst(o["name"], "points_max_error_vs_usd"),
+        "usd_primvars": prims.get(o["usd_path"], {}).get("primvars") if usd else None,
+        "primvars_max_error_vs_usd": worst(o["name"], "primvars_max_error_vs_usd"),
         "polygon_sizes_blender": o["mesh"]["polygon_sizes"],
         "polygon_sizes_usd": prims.get(o["usd_path"], {}).get("polygon_sizes") if usd else None,
         "velocity_attribute": [n for n in ("velocity", "velocities") if o["mesh"][f"has_{n}_attribute"]] or None,
@@ -736,6 +818,13 @@ def summary(report: dict) -> dict:
         "face_attributes": [a[0] for a in o["mesh"]["attributes"] if a[1] == "FACE" and not a[0].startswith(".")],
         "sequence_cache": [m["read_data"] for m in o["modifiers"] if m["type"] == "MESH_SEQUENCE_CACHE"] or None,
     } for o in meshes}
+    out["other_geometry"] = {o["usd_path"]: {
+        "type": o["type"], "usd_type": o.get("usd_type"), "points": o.get("geometry", {}).get("points"),
+        "attributes": [a[0] for a in o.get("geometry", {}).get("attributes", []) if not a[0].startswith(".")],
+        "points_max_error_vs_usd": worst(o["name"], "points_max_error_vs_usd"),
+        "usd_primvars": prims.get(o["usd_path"], {}).get("primvars") if usd else None,
+        "primvars_max_error_vs_usd": worst(o["name"], "primvars_max_error_vs_usd"),
+    } for o in report["objects"] if o["type"] in ("CURVES", "POINTCLOUD", "CURVE")}
     if usd:
         out["guide_prims"] = usd["guide_prims"]
         out["not_imported"] = [p["path"] for p in usd["not_imported"]]

@@ -289,7 +289,14 @@ def voxel_topology(mesh, *, pitch: float, youngs_modulus: float, body_diagonals:
 
 def grid_topology(mesh, *, spacing: float, youngs_modulus: float, neighbours: int = 18, ties: int = 4) -> Topology:
     """Interior nodes of a uniform grid, joined to their 6, 18 or 26 neighbours, plus the mesh vertices as
-    particles, each tied to its ``ties`` nearest nodes; springs that would leave the body are dropped.
+    particles, each tied to the ``ties`` nearest nodes it reaches without leaving the body.
+
+    No spring crosses the surface: a lattice spring or a tie is kept only if the ray from its node towards its
+    other end meets the surface no sooner than that end (:func:`segments_cross`; exact up to the ray engine, so a
+    spring that crosses a gap thinner than the spacing between test points is caught) and none of 7 points
+    along it lies outside (:func:`springs_leave`). Where the grid cuts a non-convex surface (the inside of a
+    bend, a torus's hole) a vertex's nearest nodes may lie across outside space: its ties then go to the nearest
+    of its ``max(4·ties, 16)`` nearest nodes that it reaches from inside.
 
     Lattice springs take the full interior shares of the cubic-lattice rule (18: k = 2aE/5; 26: k₂ = 4aE/15,
     k₁ = 2k₂, k₃ = 3k₂/8; 6: k = aE, no shear stiffness). Ties and the mesh's edges take k = E·V/L² with the
@@ -335,6 +342,8 @@ def grid_topology(mesh, *, spacing: float, youngs_modulus: float, neighbours: in
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     positions = np.concatenate([nodes, vertices])
     tolerance = 1.0e-9 * float(np.ptp(vertices, axis=0).max())
+    # A ray's hit at a tie's vertex may land short of it by the ray engine's rounding (Embree: float32).
+    hair = 1.0e-5 * float(np.ptp(vertices, axis=0).max() + np.abs(vertices).max())
     springs = {}
     for o, name in names.items():
         if o not in stiffness:
@@ -348,19 +357,22 @@ def grid_topology(mesh, *, spacing: float, youngs_modulus: float, neighbours: in
             i = np.flatnonzero(j >= 0)
             group.append(np.column_stack([i, j[i]]))
         pairs = np.concatenate(group)
-        pairs = pairs[~springs_leave(mesh, positions, pairs, tolerance=tolerance)]
+        pairs = pairs[~_leaves(mesh, positions, pairs, tolerance=tolerance, hair=hair)]
         springs[name] = (pairs, np.full(len(pairs), stiffness[o]))
 
     count = min(int(ties), n_nodes)
-    _, nearest = cKDTree(nodes).query(vertices, k=count)
-    nearest = nearest.reshape(len(vertices), count)
-    tie = np.column_stack([np.repeat(n_nodes + np.arange(len(vertices)), count), nearest.ravel()])
-    keep = ~springs_leave(mesh, positions, tie, tolerance=tolerance)
-    tied = np.bincount(tie[keep, 0] - n_nodes, minlength=len(vertices))
+    candidates = min(max(4 * count, 16), n_nodes)
+    _, nearest = cKDTree(nodes).query(vertices, k=candidates)
+    nearest = nearest.reshape(len(vertices), candidates)
+    # Each tie as (node, vertex): the ray is cast from the node, inside the body, to the vertex on its surface.
+    tie = np.column_stack([nearest.ravel(), np.repeat(n_nodes + np.arange(len(vertices)), candidates)])
+    visible = ~_leaves(mesh, positions, tie, tolerance=tolerance, hair=hair).reshape(len(vertices), candidates)
+    keep = visible & (np.cumsum(visible, axis=1) <= count)  # the nearest `count` it reaches from inside
+    tied = keep.sum(axis=1)
     if (tied == 0).any():
-        raise ConfigError(f"mesh vertex {int(np.flatnonzero(tied == 0)[0])} sees none of its {count} nearest grid "
-                          "nodes from inside the body: use a smaller spacing or more ties")
-    tie = tie[keep]
+        raise ConfigError(f"mesh vertex {int(np.flatnonzero(tied == 0)[0])} reaches none of its {candidates} nearest "
+                          "grid nodes without leaving the body: use a smaller spacing")
+    tie = tie[keep.ravel()][:, ::-1]  # (vertex, node)
     skin_volume = _area_shares(mesh) * (0.5 * a)
     tie_volume = skin_volume[tie[:, 0] - n_nodes] / tied[tie[:, 0] - n_nodes]
     springs["tie"] = (tie, _volume_rule(youngs_modulus, tie_volume, positions, tie))
@@ -629,6 +641,29 @@ def springs_leave(mesh, positions: np.ndarray, pairs: np.ndarray, *, tolerance: 
         _, distance, _ = mesh.nearest.on_surface(points[where])
         outside[where] = distance > tolerance
     return outside.reshape(len(pairs), samples).any(axis=1)
+
+
+def segments_cross(mesh, starts: np.ndarray, ends: np.ndarray, *, hair: float) -> np.ndarray:
+    """Which segments from ``starts`` (inside the body) to ``ends`` (inside or on its surface) cross the
+    surface: the first hit of the ray from the start towards the end lies more than ``hair`` [m] short of the
+    end. A segment from inside that passes outside, or ends outside, must cross the surface before its end, so
+    this holds however thin the outside space it passes; a vertex's own faces (hit at the end) do not count.
+    Positions [m], shape [s, 3]; returns shape [s], bool."""
+    cross = np.zeros(len(starts), dtype=bool)
+    if len(starts) == 0:
+        return cross
+    d = ends - starts
+    length = np.linalg.norm(d, axis=1)
+    locations, ray, _ = mesh.ray.intersects_location(starts, d / length[:, None], multiple_hits=False)
+    distance = np.linalg.norm(locations - starts[ray], axis=1)
+    cross[ray[distance < length[ray] - hair]] = True
+    return cross
+
+
+def _leaves(mesh, positions: np.ndarray, pairs: np.ndarray, *, tolerance: float, hair: float) -> np.ndarray:
+    """Springs (first end inside the body) that cross the surface by the ray test or leave it at a test point."""
+    crossing = segments_cross(mesh, positions[pairs[:, 0]], positions[pairs[:, 1]], hair=hair)
+    return crossing | springs_leave(mesh, positions, pairs, tolerance=tolerance)
 
 
 def _identity(n: int, *, offset: int = 0):
