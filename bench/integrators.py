@@ -97,12 +97,19 @@ def one_second(model: ws.Model, integrator: str, substeps: int) -> tuple[np.ndar
     return runner.final()
 
 
+def energy_excess(network: SpringNetwork, q: np.ndarray, qd: np.ndarray) -> float:
+    """Mechanical energy (kinetic + elastic + gravitational, zero at the start: at rest, springs at rest) of a run
+    from rest that ended at (q, qd), as a fraction of the gravitational energy it released; ∞ when non-finite."""
+    if not (np.isfinite(q).all() and np.isfinite(qd).all()):
+        return math.inf
+    released = float(np.sum(network.mass * ((q - network.initial_q) @ network.gravity)))
+    energy = network.energy(q, qd)
+    return energy / released if released > 0.0 else (math.inf if energy > 0.0 else 0.0)
+
+
 def blown_up(network: SpringNetwork, q: np.ndarray, qd: np.ndarray) -> bool:
     """Whether a run from rest that ended at (q, qd) created energy (see ``ENERGY_BLOWUP``) or went non-finite."""
-    if not (np.isfinite(q).all() and np.isfinite(qd).all()):
-        return True
-    released = float(np.sum(network.mass * ((q - network.initial_q) @ network.gravity)))
-    return network.energy(q, qd) > ENERGY_BLOWUP * max(released, 0.0)
+    return energy_excess(network, q, qd) > ENERGY_BLOWUP
 
 
 def stable_substeps(model: ws.Model) -> tuple[dict[str, int], float]:

@@ -356,3 +356,16 @@ def test_newtons_vbd_and_implicit_euler_take_the_same_backward_euler_step(device
     step_error = np.abs(implicit - finer).max()
     assert step_error > 1e-4  # the comparison below is not vacuous
     assert np.abs(newton_vbd - implicit).max() < 0.1 * step_error
+
+
+def test_the_vbd_bench_reads_cost_at_equal_error_off_the_pareto_front():
+    """``vbd.cost_at_error``: a dominated point (dearer and less accurate) leaves the front; between two front points
+    the cost is linear in log cost against log error (error 10⁻².⁵ between (3, 10⁻²) and (10, 10⁻³): √30);
+    outside the front's errors there is none."""
+    import vbd
+
+    points = [(1.0, 0.1), (2.0, 0.2), (3.0, 0.01), (10.0, 0.001)]
+    assert vbd.pareto_front(points) == [(1.0, 0.1), (3.0, 0.01), (10.0, 0.001)]
+    assert vbd.cost_at_error(points, 0.01) == pytest.approx(3.0)
+    assert vbd.cost_at_error(points, 10**-2.5) == pytest.approx(30**0.5)
+    assert vbd.cost_at_error(points, 0.5) is None and vbd.cost_at_error(points, 1e-4) is None
