@@ -20,7 +20,7 @@ batches, warm-up and capture excluded, device synchronised before every timer re
 many).
 
 ``--study floor``: in one run on one device, the time per substep of (a) a captured graph of trivial kernel
-launches over 4,096 threads, one per substep, (b) warpspring's fused symplectic Euler substep on the 64²
+launches over as many threads as particles, one per substep, (b) warpspring's fused symplectic Euler substep on the 64²
 cloth, (c) the same kernel compiled without springs (the same particles and pins: the update alone),
 (d) with ``--with-newton``, Newton's ``SolverSemiImplicit`` substep on the same cloth; with the launches
 and memsets each substep records, and on CUDA each kernel's own execution time (Warp's timing API, one
@@ -43,7 +43,7 @@ import warp as wp
 
 import warpspring as ws
 from cloth import (FPS, KD, KE, MASS, SPACING, SUBSTEPS, NewtonRunner, WarpspringRunner, emit_table, measure,
-                   warpspring_model)
+                   measure_interleaved, round_ratio, warpspring_model)
 from warpspring.analysis.stability import network_stable_step
 from warpspring.analysis.trade import SpringNetwork
 
@@ -52,7 +52,6 @@ INTEGRATORS = ["symplectic_euler", "velocity_verlet", "explicit_euler", "midpoin
 #: A run has blown up when its mechanical energy ends this fraction of the released gravitational energy
 #: above its start (a damped cloth released at rest ends below its start).
 ENERGY_BLOWUP = 0.1
-FLOOR_SIZE = 64  # [particles per side] of the floor study
 
 
 def anchors_model(n: int, device, *, precision: str = "float32") -> ws.Model:
@@ -183,7 +182,8 @@ def rows_study(args, device) -> list[str]:
                 label = f"{substeps} (largest stable)" if substeps == largest else f"{substeps}"
                 lines.append(
                     f"| {n} | {name} | {label} | {1e3 / (FPS * substeps):.3g} | {check} | {rate:,.0f} | "
-                    f"{giga(rate * model.particle_count)} | {r['frame_s'] * FPS * 1e3:,.1f} | {r['spread']:.0%} | {error} |"
+                    f"{giga(rate * model.particle_count)} | {r['frame_s'] * FPS * 1e3:,.1f} | {r['spread']:.0%} | "
+                    f"{error} |"
                 )
                 print(lines[-1], flush=True)
     return lines + [""] + notes
@@ -192,8 +192,8 @@ def rows_study(args, device) -> list[str]:
 # -- the 64² floor ------------------------------------------------------------------------------------------
 
 
-@wp.kernel
-def _trivial(flag: wp.array(dtype=wp.int32)):
+@wp.kernel(enable_backward=False)
+def _trivial(flag: wp.array[wp.int32]):
     i = wp.tid()
     if i < 0:  # never true: the launch does nothing but exist
         flag[0] = 1
@@ -278,9 +278,9 @@ def kernel_times(substep, device) -> float | None:
 
 
 def floor_study(args, device) -> list[str]:
-    n = FLOOR_SIZE
+    n = args.floor_size
     cloth = anchors_model(n, device)
-    rows = []  # (label, runner factory, substep function for counting, particles)
+    rows = []  # (label, runner factory, one uncaptured substep)
 
     def ws_substep(model):
         integrator = ws.make_integrator("symplectic_euler", model)
@@ -288,7 +288,7 @@ def floor_study(args, device) -> list[str]:
         return lambda: integrator.step(state_a, state_b, control, 1.0 / (FPS * SUBSTEPS))
 
     trivial = TrivialRunner(device, n * n)
-    rows.append(("(a) trivial kernel, 4,096 threads", lambda: trivial, trivial.substep))
+    rows.append((f"(a) trivial kernel, {n * n:,} threads", lambda: trivial, trivial.substep))
     rows.append((f"(b) warpspring fused substep ({'gather' if cloth.spring_gather else 'scatter'})",
                  lambda: WarpspringRunner(cloth), ws_substep(cloth)))
     if not cloth.spring_gather:  # the CPU's default is the scatter: the gather row too, for the GPU's kernel
@@ -306,14 +306,16 @@ def floor_study(args, device) -> list[str]:
             newton.solver.step(newton.state_0, newton.state_1, newton.control, None, newton.dt)
 
         rows.append(("(d) Newton SemiImplicit substep", lambda: newton, newton_substep))
-    results = {}
-    for label, make, substep in rows:
+    counts, busy = {}, {}
+    for label, _, substep in rows:
         substep()  # compile and load before counting
         with Counting() as count:
             substep()
-        r = measure(make, device, args.seconds, args.batches)
-        results[label] = (r["frame_s"] / SUBSTEPS, count, kernel_times(substep, device), r["spread"])
-        print(label, f"{results[label][0] * 1e6:.2f} µs", flush=True)
+        counts[label], busy[label] = count, kernel_times(substep, device)
+    # Batches taken in turn, so that a load which comes and goes (a shared host) falls on every row alike.
+    timed = measure_interleaved({label: make for label, make, _ in rows}, device, args.seconds, args.batches)
+    results = {label: (timed[label]["frame_s"] / SUBSTEPS, counts[label], busy[label], timed[label]["spread"])
+               for label, _, _ in rows}
     version = ""
     if args.with_newton:
         import newton as newton_module
@@ -321,11 +323,11 @@ def floor_study(args, device) -> list[str]:
         version = f"; Newton {newton_module.__version__}"
     lines = [
         f"Time per substep at {n}² ({n * n:,} particles), {SUBSTEPS} substeps per graph-captured frame, median of "
-        f"{args.batches} batches. Device: {device.name} ({device.alias}); Warp {wp.__version__}{version}; "
+        f"{args.batches} batches taken in turn. Device: {device.name} ({device.alias}); Warp {wp.__version__}{version}; "
         f"{datetime.date.today().isoformat()}.",
         "",
-        "| what | µs per substep | substeps/s | launches + memsets + copies per substep | kernel execution (CUDA, uncaptured) "
-        "[µs] | spread |",
+        "| what | µs per substep | substeps/s | launches + memsets + copies per substep | "
+        "kernel execution (CUDA, uncaptured) [µs] | spread |",
         "|---|---|---|---|---|---|",
     ]
     for label, (seconds, count, busy, spread) in results.items():
@@ -333,13 +335,14 @@ def floor_study(args, device) -> list[str]:
                      f"{'' if busy is None else f'{busy * 1e6:.2f}'} | {spread:.1%} |")
     floor, fused = results[rows[0][0]][0], results[rows[1][0]][0]
     update = results[rows[-2 if args.with_newton else -1][0]][0]
-    lines += ["", f"Launch floor (a): {floor * 1e6:.2f} µs; update alone (c) − (a): {(update - floor) * 1e6:.2f} µs; "
-              f"spring work (b) − (c): {(fused - update) * 1e6:.2f} µs."]
+    lines += ["", f"Launch floor (a): {floor * 1e6:.2f} µs; update alone (c) − (a): {(update - floor) * 1e6:.2f} "
+              f"µs; spring work (b) − (c): {(fused - update) * 1e6:.2f} µs."]
     if args.with_newton:
         newton_time = results[rows[-1][0]][0]
-        lines[-1] += (f" Newton (d): {newton_time * 1e6:.2f} µs per substep, {newton_time / fused:.2f}× warpspring's; "
-                      f"2× Newton needs ≤ {newton_time / 2 * 1e6:.2f} µs per substep, i.e. "
-                      f"{newton_time / 2 / floor:.2f} launch floors.")
+        speed = round_ratio(timed[rows[1][0]], timed[rows[-1][0]])
+        lines[-1] += (f" Newton (d): {newton_time * 1e6:.2f} µs per substep; warpspring (b) runs {speed:.2f}× "
+                      f"Newton's speed (median of the per-round ratios); 2× Newton needs ≤ "
+                      f"{newton_time / 2 * 1e6:.2f} µs per substep, i.e. {newton_time / 2 / floor:.2f} launch floors.")
     return lines
 
 
@@ -354,6 +357,7 @@ def main():
     parser.add_argument("--reference-substeps", type=int, default=64, help="substeps per frame of the reference")
     parser.add_argument("--seconds", type=float, default=1.0, help="timed seconds per row")
     parser.add_argument("--batches", type=int, default=5, help="timed batches per row (median)")
+    parser.add_argument("--floor-size", type=int, default=64, help="floor study: the cloth's N (default 64)")
     parser.add_argument("--with-newton", action="store_true", help="floor study: Newton's substep too")
     parser.add_argument("--out", help="also write the Markdown table to this file")
     args = parser.parse_args()

@@ -176,7 +176,8 @@ def sweep(n: int, device, args, newton_version: str | None) -> tuple[list[str], 
                        f"{best[2]} iterations (error {best[3]:.2e}): {best[4] * 1e3:,.1f} | {best[4] / cost:.2f}× | "
                        f"{equal} |")
     notes = [f"{n}²: the reference (float64 RK4, {args.reference_substeps} substeps per frame) differs from itself at "
-             f"half the step by {self_error:.1e} m" + (f"; VBD's spring colouring has {colors} colours." if colors else ".")]
+             f"half the step by {self_error:.1e} m"
+             + (f"; VBD's spring colouring has {colors} colours." if colors else ".")]
     return rows + notes, matched
 
 
@@ -204,8 +205,8 @@ def main():
     sizes = args.sizes or ([64, 256] if device.is_cuda else [32])
     lines = [
         f"The ANCHORS cloth (ke = {KE:g} N/m, kd = {KD:g} N·s/m), float32, the same springs in both solvers, both "
-        f"backward Euler: max |x − x_ref| after 1 s against float64 RK4, and wall time per simulated second (frames of "
-        f"1/{FPS} s, one graph each). Device: {device.name} ({device.alias}); Warp {wp.__version__}"
+        f"backward Euler: max |x − x_ref| after 1 s against float64 RK4, and wall time per simulated second "
+        f"(frames of 1/{FPS} s, one graph each). Device: {device.name} ({device.alias}); Warp {wp.__version__}"
         + (f"; Newton {newton_version}" if newton_version else " (Newton not run: --with-newton)")
         + f"; {datetime.date.today().isoformat()}.",
         "",
