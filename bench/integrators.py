@@ -13,8 +13,9 @@ under gravity, float32), each integrator at two steps:
   energy above its start has blown up).
 
 Reported per row: substeps/s, particle-substeps/s and wall time per simulated second (frames of ``Stepper``
-captured as one graph each, CUDA graph or Warp's CPU graph, timed as ``cloth.py`` times them: median of
-batches, warm-up and capture excluded, device synchronised before every timer read), and, for the sizes of
+captured as one graph each, CUDA graph or Warp's CPU graph, timed as ``cloth.py --interleave`` times them:
+median of batches, the rows of one size taking their batches in turn, warm-up and capture excluded, device
+synchronised before every timer read), and, for the sizes of
 ``--error-sizes``, the largest position error after 1 s against a float64 RK4 reference at
 ``--reference-substeps`` substeps per frame (its own error bounded by its difference from a run at half as
 many).
@@ -42,7 +43,7 @@ import numpy as np
 import warp as wp
 
 import warpspring as ws
-from cloth import (FPS, KD, KE, MASS, SPACING, SUBSTEPS, NewtonRunner, WarpspringRunner, emit_table, measure,
+from cloth import (FPS, KD, KE, MASS, SPACING, SUBSTEPS, NewtonRunner, WarpspringRunner, emit_table,
                    measure_interleaved, round_ratio, warpspring_model)
 from warpspring.analysis.stability import network_stable_step
 from warpspring.analysis.trade import SpringNetwork
@@ -159,6 +160,7 @@ def rows_study(args, device) -> list[str]:
                          f"step by {self_error:.1e} m.")
         else:
             notes.append(f"{n}²: ω_max {omega:.0f} rad/s at its peak.")
+        specs = []  # (name, substeps, check, error) of each row
         for name in args.integrators:
             largest = limits[name]
             if not largest:
@@ -177,15 +179,21 @@ def rows_study(args, device) -> list[str]:
                         check += " / " + ("blew up" if fewer else "held")
                 elif substeps < largest or not largest:
                     check = "beyond the advisor's limit"
-                r = measure(lambda: StepperRunner(model, name, substeps), device, args.seconds, args.batches)
-                rate = substeps / r["frame_s"]
-                label = f"{substeps} (largest stable)" if substeps == largest else f"{substeps}"
-                lines.append(
-                    f"| {n} | {name} | {label} | {1e3 / (FPS * substeps):.3g} | {check} | {rate:,.0f} | "
-                    f"{giga(rate * model.particle_count)} | {r['frame_s'] * FPS * 1e3:,.1f} | {r['spread']:.0%} | "
-                    f"{error} |"
-                )
-                print(lines[-1], flush=True)
+                specs.append((name, substeps, check, error))
+        # Batches of every row taken in turn, so that a load which comes and goes falls on all rows alike.
+        timed = measure_interleaved({(name, substeps): lambda name=name, substeps=substeps:
+                                     StepperRunner(model, name, substeps) for name, substeps, _, _ in specs},
+                                    device, args.seconds, args.batches)
+        for name, substeps, check, error in specs:
+            r = timed[(name, substeps)]
+            rate = substeps / r["frame_s"]
+            label = f"{substeps} (largest stable)" if substeps == limits[name] else f"{substeps}"
+            lines.append(
+                f"| {n} | {name} | {label} | {1e3 / (FPS * substeps):.3g} | {check} | {rate:,.0f} | "
+                f"{giga(rate * model.particle_count)} | {r['frame_s'] * FPS * 1e3:,.1f} | {r['spread']:.0%} | "
+                f"{error} |"
+            )
+            print(lines[-1], flush=True)
     return lines + [""] + notes
 
 
@@ -323,8 +331,8 @@ def floor_study(args, device) -> list[str]:
         version = f"; Newton {newton_module.__version__}"
     lines = [
         f"Time per substep at {n}² ({n * n:,} particles), {SUBSTEPS} substeps per graph-captured frame, median of "
-        f"{args.batches} batches taken in turn. Device: {device.name} ({device.alias}); Warp {wp.__version__}{version}; "
-        f"{datetime.date.today().isoformat()}.",
+        f"{args.batches} batches taken in turn. Device: {device.name} ({device.alias}); Warp {wp.__version__}"
+        f"{version}; {datetime.date.today().isoformat()}.",
         "",
         "| what | µs per substep | substeps/s | launches + memsets + copies per substep | "
         "kernel execution (CUDA, uncaptured) [µs] | spread |",

@@ -16,8 +16,9 @@ The scene is ``cloth.py``'s (the ANCHORS cloth, float32, two corners pinned: New
 run frames of ``s`` substeps captured as one graph. For each solver and configuration (substeps per 1/60 s
 frame; VBD also its iterations), the largest position error after 1 s against a float64 RK4 reference at
 ``--reference-substeps`` per frame, and the wall time per simulated second (median of timed batches, warm-up
-and capture excluded). Then, at matched accuracy: for each implicit-Euler row's error, the cheapest VBD
-configuration that reaches it.
+and capture excluded; the configurations of one size take their batches in turn). Then, at matched accuracy:
+for each implicit-Euler row's error, the cheapest VBD configuration that reaches it, and VBD's cost at that
+error on its Pareto front.
 
     python bench/vbd.py --device cuda:0 --sizes 64 256 --with-newton --out vbd.md
     python bench/vbd.py --device cpu --sizes 32 --with-newton
@@ -33,7 +34,7 @@ import math
 import numpy as np
 import warp as wp
 
-from cloth import FPS, KD, KE, emit_table, measure
+from cloth import FPS, KD, KE, emit_table, measure_interleaved
 from integrators import ENERGY_BLOWUP, StepperRunner, anchors_model, energy_excess, reference
 from warpspring.analysis.trade import SpringNetwork
 
@@ -134,7 +135,7 @@ def sweep(n: int, device, args, newton_version: str | None) -> tuple[list[str], 
     if newton_version:
         configurations += [(f"Newton {newton_version} VBD", s, k) for s in args.substeps for k in args.iterations]
     results = []  # (solver, substeps, iterations, error or None, wall per simulated second)
-    rows = []
+    rows, makers, shown = [], {}, {}
     colors = None
     for solver, substeps, iterations in configurations:
         if iterations is None:
@@ -147,17 +148,24 @@ def sweep(n: int, device, args, newton_version: str | None) -> tuple[list[str], 
         if iterations is not None:
             colors = len(runner.colors)
         q, qd = run_one_second(runner)
+        del runner
         excess = energy_excess(network, q, qd)
         error = float(np.linalg.norm(q - ref, axis=1).max()) if excess < math.inf else None
-        r = measure(make, device, args.seconds, args.batches)
-        cost = r["frame_s"] * FPS
-        results.append((solver, substeps, iterations, error, cost))
-        shown = "non-finite" if error is None else f"{error:.2e}"
+        key = (solver, substeps, iterations)
+        makers[key] = make
+        shown[key] = "non-finite" if error is None else f"{error:.2e}"
         if error is not None and excess > ENERGY_BLOWUP:  # finite, but it ends above its start's energy
-            shown += f" (energy created: {excess:.0%} of the released)"
+            shown[key] += f" (energy created: {excess:.0%} of the released)"
+        results.append((solver, substeps, iterations, error))
+    # Batches of every configuration taken in turn, so that a load which comes and goes falls on all alike.
+    timed = measure_interleaved(makers, device, args.seconds, args.batches)
+    for i, (solver, substeps, iterations, error) in enumerate(results):
+        r = timed[(solver, substeps, iterations)]
+        cost = r["frame_s"] * FPS
+        results[i] = (solver, substeps, iterations, error, cost)
         rows.append(f"| {n} | {solver} | {substeps} | {1e3 / (FPS * substeps):.3g} | "
-                    f"{'' if iterations is None else iterations} | {shown} | {cost * 1e3:,.1f} | "
-                    f"{substeps * FPS / cost:,.0f} | {r['spread']:.0%} |")
+                    f"{'' if iterations is None else iterations} | {shown[(solver, substeps, iterations)]} | "
+                    f"{cost * 1e3:,.1f} | {substeps * FPS / cost:,.0f} | {r['spread']:.0%} |")
         print(rows[-1], flush=True)
     matched = []
     vbd_points = [(r[4], r[3]) for r in results if r[2] is not None and r[3] is not None]
