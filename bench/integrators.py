@@ -126,6 +126,22 @@ def stable_substeps(model: ws.Model) -> tuple[dict[str, int], float]:
     return substeps, advice.omega_max
 
 
+def nodes_per_step(model: ws.Model, integrator: str) -> str:
+    """Launches + memsets + copies of one uncaptured step from the initial state (``Counting``). Implicit Euler's
+    CG loop, one conditional node of a captured graph (``wp.capture_while``), runs here on the host from a cold
+    start, so its count includes every CG iteration: marked †, with the iterations."""
+    stepper = ws.make_integrator(integrator, model)
+    a, b, control = model.state(), model.state(), model.control()
+    dt = 1.0 / (FPS * SUBSTEPS)
+    stepper.step(a, b, control, dt)  # compiles and loads
+    stepper.reset()  # no warm start (the same step again would start from its solution)
+    with Counting() as count:
+        stepper.step(a, b, control, dt)
+    if integrator != "implicit_euler":
+        return str(count)
+    return f"{count} † ({stepper.solve_report()[0]} CG iterations)"
+
+
 def reference(n: int, device, substeps: int) -> tuple[np.ndarray, float]:
     """The float64 RK4 positions after 1 s at ``substeps`` per frame, and their largest difference [m] from a run
     at half as many (a bound on the reference's own error: RK4's error falls 16× per halving)."""
@@ -142,11 +158,12 @@ def rows_study(args, device) -> list[str]:
         f"Device: {device.name} ({device.alias}); Warp {wp.__version__}; {datetime.date.today().isoformat()}. "
         f"Largest stable step: fewest substeps per frame within the advisor's limit (ω_max at its peak over a "
         f"1 s dry run); 'check' = 1 s there / 1 s at one substep fewer (energy test). Error: max |x − x_ref| after "
-        f"1 s against float64 RK4 at {args.reference_substeps} substeps per frame.",
+        f"1 s against float64 RK4 at {args.reference_substeps} substeps per frame. Launches, memsets and copies: one "
+        f"uncaptured step of 1.04 ms from the start; †: from a cold start, every CG iteration counted (a captured frame holds the loop as one conditional node).",
         "",
-        "| N | integrator | substeps per frame | dt [ms] | check | substeps/s | particle-substeps/s | "
-        "wall per simulated s [ms] | spread | max error after 1 s [m] |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| N | integrator | substeps per frame | dt [ms] | check | launches + memsets + copies per step | substeps/s | "
+        "particle-substeps/s | wall per simulated s [ms] | spread | max error after 1 s [m] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     notes = []
     for n in sizes:
@@ -160,9 +177,10 @@ def rows_study(args, device) -> list[str]:
                          f"step by {self_error:.1e} m.")
         else:
             notes.append(f"{n}²: ω_max {omega:.0f} rad/s at its peak.")
-        specs = []  # (name, substeps, check, error) of each row
+        specs, nodes = [], {}  # (name, substeps, check, error) of each row; graph nodes per step
         for name in args.integrators:
             largest = limits[name]
+            nodes[name] = nodes_per_step(model, name)
             if not largest:
                 notes.append(f"{n}²: {name} is unstable at every step for these springs (advisor).")
             for substeps in [SUBSTEPS] + ([largest] if largest and largest != SUBSTEPS else []):
@@ -189,7 +207,7 @@ def rows_study(args, device) -> list[str]:
             rate = substeps / r["frame_s"]
             label = f"{substeps} (largest stable)" if substeps == limits[name] else f"{substeps}"
             lines.append(
-                f"| {n} | {name} | {label} | {1e3 / (FPS * substeps):.3g} | {check} | {rate:,.0f} | "
+                f"| {n} | {name} | {label} | {1e3 / (FPS * substeps):.3g} | {check} | {nodes[name]} | {rate:,.0f} | "
                 f"{giga(rate * model.particle_count)} | {r['frame_s'] * FPS * 1e3:,.1f} | {r['spread']:.0%} | "
                 f"{error} |"
             )
