@@ -159,7 +159,8 @@ def rows_study(args, device) -> list[str]:
         f"Largest stable step: fewest substeps per frame within the advisor's limit (ω_max at its peak over a "
         f"1 s dry run); 'check' = 1 s there / 1 s at one substep fewer (energy test). Error: max |x − x_ref| after "
         f"1 s against float64 RK4 at {args.reference_substeps} substeps per frame. Launches, memsets and copies: one "
-        f"uncaptured step of 1.04 ms from the start; †: from a cold start, every CG iteration counted (a captured frame holds the loop as one conditional node).",
+        f"uncaptured step of 1.04 ms from the start; †: from a cold start, every CG iteration counted (a captured "
+        f"frame holds the loop as one conditional node).",
         "",
         "| N | integrator | substeps per frame | dt [ms] | check | launches + memsets + copies per step | substeps/s | "
         "particle-substeps/s | wall per simulated s [ms] | spread | max error after 1 s [m] |",
