@@ -21,11 +21,12 @@ synchronised before every timer read), and, for the sizes of
 many).
 
 ``--study floor``: in one run on one device, the time per substep of (a) a captured graph of trivial kernel
-launches over as many threads as particles, one per substep, (b) warpspring's fused symplectic Euler substep on the 64²
-cloth, (c) the same kernel compiled without springs (the same particles and pins: the update alone),
-(d) with ``--with-newton``, Newton's ``SolverSemiImplicit`` substep on the same cloth; with the launches
-and memsets each substep records, and on CUDA each kernel's own execution time (Warp's timing API, one
-uncaptured substep): what is launch floor and what is spring work, and what 2× Newton would need.
+launches over as many threads as particles, one per substep, (b) warpspring's symplectic Euler substep on the
+64² cloth (the fused gather; on the CPU also its default, the scatter), (c) the fused kernel compiled without
+springs (the same particles and pins: the update alone), (d) with ``--with-newton``, Newton's
+``SolverSemiImplicit`` substep on the same cloth; with the launches, memsets and copies each substep records,
+and on CUDA each substep's kernel execution time (Warp's timing API, one uncaptured substep): what is launch
+floor and what is spring work, and what 2× Newton would need.
 
     python bench/integrators.py --device cuda:0 --sizes 256 1024 --error-sizes 64 256 --out rows.md
     python bench/integrators.py --device cpu --sizes 32 64 --error-sizes 32
@@ -316,7 +317,7 @@ def floor_study(args, device) -> list[str]:
 
     trivial = TrivialRunner(device, n * n)
     rows.append((f"(a) trivial kernel, {n * n:,} threads", lambda: trivial, trivial.substep))
-    rows.append((f"(b) warpspring fused substep ({'gather' if cloth.spring_gather else 'scatter'})",
+    rows.append((f"(b) warpspring substep ({'fused gather' if cloth.spring_gather else 'scatter'})",
                  lambda: WarpspringRunner(cloth), ws_substep(cloth)))
     if not cloth.spring_gather:  # the CPU's default is the scatter: the gather row too, for the GPU's kernel
         cloth_gather = warpspring_model(n, device, "gather")
