@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import warp as wp
 
 import warpspring as ws
 
@@ -293,3 +294,101 @@ def test_the_scaling_plot_draws_a_csv(tmp_path):
                     + ",".join(scaling.COLUMNS) + "\n" + "\n".join(rows) + "\n")
     scaling_plot.plot(str(path), str(tmp_path / "scaling.png"))
     assert (tmp_path / "scaling.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_the_integrator_bench_tells_a_stable_run_from_a_blow_up(device):
+    """``integrators.one_second`` and ``blown_up`` on the 8 × 8 ANCHORS cloth: symplectic Euler at 16 substeps per
+    frame (ω_max h ≈ 305 rad/s × 1.04 ms ≈ 0.32, well within its limit) ends 1 s with less mechanical energy than it
+    started with (the springs' damping); at one step per frame (ω_max h ≈ 5) the energy test flags the blow-up.
+    Pins hold in the stable run."""
+    import integrators
+    from warpspring.analysis.trade import SpringNetwork
+
+    model = integrators.anchors_model(8, device)
+    network = SpringNetwork.of(model)
+    q, qd = integrators.one_second(model, "symplectic_euler", cloth.SUBSTEPS)
+    assert not integrators.blown_up(network, q, qd)
+    assert network.energy(q, qd) < 0.0  # damped: below the start (at rest, springs at rest)
+    pinned = model.kinematic_mask()
+    np.testing.assert_array_equal(q[pinned], network.initial_q[pinned])
+    assert integrators.blown_up(network, *integrators.one_second(model, "symplectic_euler", 1))
+
+
+def test_the_floor_bench_counts_graph_nodes_and_its_update_only_cloth_falls_freely(device):
+    """``integrators.Counting`` counts what a substep records (launches, memsets, copies; a fill inside a copy once),
+    and ``update_only_model`` keeps the 8 × 8 cloth's particles and pins without springs: after one frame every
+    free particle has fallen exactly symplectic Euler's free-fall drop, the pins not at all."""
+    import integrators
+
+    trivial = integrators.TrivialRunner(device, 64)
+    trivial.frame()
+    scratch, ones = wp.zeros(4, dtype=float, device=device), wp.ones(4, dtype=float, device=device)
+    with integrators.Counting() as count:
+        for _ in range(3):
+            trivial.substep()
+        scratch.zero_()
+        scratch.assign(np.ones(4, dtype=np.float32))
+        wp.copy(scratch, ones)
+    assert count.counts == {"launch": 3, "memset": 1, "copy": 2}
+    bare = integrators.update_only_model(cloth.warpspring_model(8, device))
+    assert bare.spring_count == 0 and bare.particle_count == 64
+    q0 = positions(bare.state())
+    runner = cloth.WarpspringRunner(bare)
+    runner.frame()
+    q = runner.positions().astype(np.float64)
+    pinned = bare.kinematic_mask()
+    assert pinned.sum() == 2
+    np.testing.assert_array_equal(q[pinned], q0[pinned])
+    np.testing.assert_allclose(q0[~pinned, 2] - q[~pinned, 2], free_fall_drop(G, cloth.SUBSTEPS), rtol=0, atol=1e-6)
+
+
+def test_the_vbd_bench_colours_the_spring_graph():
+    """``vbd.spring_coloring`` of the 8 × 8 cloth's springs: every particle in exactly one colour, no spring
+    (structural, shear or bend) joining two particles of one colour, which VBD's Gauss–Seidel sweep needs."""
+    import vbd
+
+    model = cloth.warpspring_model(8, "cpu")
+    springs = model.spring_indices.numpy().reshape(-1, 2)
+    color = np.full(model.particle_count, -1)
+    for c, group in enumerate(vbd.spring_coloring(springs, model.particle_count)):
+        assert (color[group] == -1).all()
+        color[group] = c
+    assert (color >= 0).all()
+    assert (color[springs[:, 0]] != color[springs[:, 1]]).all()
+
+
+def test_newtons_vbd_and_implicit_euler_take_the_same_backward_euler_step(device):
+    """``vbd.VBDRunner`` (Newton 1.5 or 1.8, 50 iterations) and warpspring's implicit Euler on the 8 × 8 cloth, 4
+    substeps per frame for 6 frames: both approximate backward Euler of the same springs (VBD solves it, implicit
+    Euler takes one linearised Newton step of it), so they differ far less than implicit Euler does from itself at
+    half the step (the time discretisation's error): measured 1.4e-5 m against 6.5e-4 m on the CPU."""
+    pytest.importorskip("newton")
+    import integrators
+    import vbd
+
+    model = integrators.anchors_model(8, device)
+
+    def six_frames(runner):
+        for _ in range(6):
+            runner.frame()
+        return runner.final()[0]
+
+    implicit = six_frames(integrators.StepperRunner(model, "implicit_euler", 4))
+    finer = six_frames(integrators.StepperRunner(model, "implicit_euler", 8))
+    newton_vbd = six_frames(vbd.VBDRunner(model, 4, 50))
+    step_error = np.abs(implicit - finer).max()
+    assert step_error > 1e-4  # the comparison below is not vacuous
+    assert np.abs(newton_vbd - implicit).max() < 0.1 * step_error
+
+
+def test_the_vbd_bench_reads_cost_at_equal_error_off_the_pareto_front():
+    """``vbd.cost_at_error``: a dominated point (dearer and less accurate) leaves the front; between two front points
+    the cost is linear in log cost against log error (error 10⁻².⁵ between (3, 10⁻²) and (10, 10⁻³): √30);
+    outside the front's errors there is none."""
+    import vbd
+
+    points = [(1.0, 0.1), (2.0, 0.2), (3.0, 0.01), (10.0, 0.001)]
+    assert vbd.pareto_front(points) == [(1.0, 0.1), (3.0, 0.01), (10.0, 0.001)]
+    assert vbd.cost_at_error(points, 0.01) == pytest.approx(3.0)
+    assert vbd.cost_at_error(points, 10**-2.5) == pytest.approx(30**0.5)
+    assert vbd.cost_at_error(points, 0.5) is None and vbd.cost_at_error(points, 1e-4) is None
