@@ -419,11 +419,13 @@ def test_voxel_cube_and_bar_honour_young_modulus(body_diagonals):
 @needs_tet
 def test_tetrahedral_bar_and_cube_honour_young_modulus():
     """k_e = E·ΣV_t/L_e² on fTetWild's tets at the target edge length (not coarsened). fTetWild has no seed, so
-    its meshes and the errors differ from run to run; measured over seven runs (bench/RESULTS.md §18): the bar
-    at 2 / 3 / 4 cells across −2.9 … +20 / +6.7 … +8.9 / +1.0 … +3.9 %, the cube at 4 / 6 / 8 per side
-    +6.5 … +13 / −4.8 … +0.2 / −2.8 … +7.4 %. Asserted at the finest, with the spread's margin: the bar
-    within 6 %, the cube within 10 % (the issue's target)."""
-    bar, cube = _bar("tetrahedral", 4), _cube("tetrahedral", 8)
+    its meshes and the errors differ from run to run: over 15 builds each (2026-11-26, CPU) the bar at 4 cells
+    across measured +0.4 … +6.0 %, the cube at 8 per side −4.7 … +9.1 %, so one build can fail any bound inside
+    that spread. The test takes the median of five builds of each, which is what the mesher delivers typically
+    (medians near +3 % and 0 %; a median beyond the bounds needs three of five builds beyond them): the bar within
+    6 %, the cube within 10 % (the issue's target)."""
+    bar = float(np.median([_bar("tetrahedral", 4) for _ in range(5)]))
+    cube = float(np.median([_cube("tetrahedral", 8) for _ in range(5)]))
     assert abs(bar) < 0.06, bar
     assert abs(cube) < 0.10, cube
 
