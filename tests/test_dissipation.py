@@ -127,3 +127,23 @@ def test_damper_and_drag_power_hooks_against_float64(device):
     drag = 0.3 * u[3] @ u[3]
     assert springs > 0.0 and hinge > 0.0
     assert total == pytest.approx(h * (springs + hinge + drag), rel=1e-5)
+
+
+def test_dissipation_switched_off_and_on_between_frames(device):
+    """``GuardLimits(dissipation=False)`` set between frames stops counting D (it stays where it was) and
+    re-captures; switched back on, D grows again from a fresh trapezoid. The spring-mass of the first test,
+    symplectic Euler."""
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, -G))
+    builder.add_particles([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0 - MASS * G / K - AMPLITUDE]], mass=[1.0, MASS])
+    builder.pin_particles([0])
+    builder.add_springs([[0, 1]], stiffness=K, damping=KD, rest_length=1.0)
+    model = builder.finalize(device)
+    sim = ws.Simulator(model, fps=60, substeps=8)
+    run_frames(sim, 30)
+    first = sim.guard.energy_balance().dissipated[0]
+    sim.guard.limits = ws.GuardLimits(dissipation=False)
+    run_frames(sim, 30)
+    assert sim.guard.energy_balance().dissipated[0] == first > 0.0
+    sim.guard.limits = ws.GuardLimits()
+    run_frames(sim, 30)
+    assert sim.guard.energy_balance().dissipated[0] > first

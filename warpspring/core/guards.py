@@ -355,6 +355,8 @@ class Guard(StepHook):
                        and getattr(integrator, "name", None) not in DISSIPATION_UNCOUNTED
                        and not getattr(integrator, "adaptive", False))
         if every != self._every or dissipating != self._dissipating:
+            if self._dissipating is not None and dissipating != self._dissipating:
+                self._clear_running()  # no trapezoid from a power sampled before the switch
             self._every = every
             self._dissipating = dissipating
             self.revision += 1
@@ -445,6 +447,10 @@ class Guard(StepHook):
         balance = np.zeros((self.model.world_count, BALANCE_SLOTS))
         balance[:, BALANCE_REBASE] = 1.0
         self._balance.assign(balance)
+        self._clear_running()
+
+    def _clear_running(self) -> None:
+        """No dissipation pending, no power sampled yet (between frames: the last check gathered the sums)."""
         running = np.zeros(self._running.shape)
         running[..., RUNNING_POWER] = math.nan
         self._running.assign(running)
