@@ -147,3 +147,30 @@ def test_dissipation_switched_off_and_on_between_frames(device):
     sim.guard.limits = ws.GuardLimits()
     run_frames(sim, 30)
     assert sim.guard.energy_balance().dissipated[0] > first
+
+
+@pytest.mark.parametrize("integrator, counted", [("symplectic_euler", True), ("velocity_verlet", True),
+                                                 ("rk4", True), ("explicit_euler", False), ("midpoint", False),
+                                                 ("dopri5", False)])
+def test_which_runs_count_the_dissipation(device, integrator, counted):
+    """D is counted where the balance with it is exact up to the integrator's error: not for the integrators
+    that need damping to be stable (their own energy error on a damped mode nears its damping at their
+    limit), not for dopri5 (internal steps), not with a collider or strain limiting (position corrections),
+    and not without a step or with ``dissipation=False``. Nothing runs: construction only."""
+    from warpspring.core.guards import Guard
+
+    def guard(*, sphere=False, limits=ws.GuardLimits(), dt=1.0 / 480.0, strain_limit=False):
+        builder = ws.ModelBuilder(stabilizers=ws.Stabilizers(max_strain=0.1) if strain_limit else None)
+        builder.add_particles([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0]], mass=[1.0, MASS])
+        builder.pin_particles([0])
+        builder.add_springs([[0, 1]], stiffness=K, damping=KD)
+        if sphere:
+            builder.add_collider_sphere(center=(0.0, 0.0, -3.0), radius=0.5)
+        model = builder.finalize(device)
+        return Guard(model, limits, 8, integrator=ws.make_integrator(integrator, model), dt=dt)
+
+    assert guard().counts_dissipation == counted
+    assert not guard(sphere=True).counts_dissipation
+    assert not guard(strain_limit=True).counts_dissipation
+    assert not guard(dt=None).counts_dissipation
+    assert not guard(limits=ws.GuardLimits(dissipation=False)).counts_dissipation

@@ -77,12 +77,15 @@ TEAR_STRAIN = 10.0
 ENERGY_BALANCE = 0.1
 #: ... plus this fraction of the scene's energy scale (round-off of a world at rest).
 BALANCE_FLOOR = 1.0e-3
-#: Integrators whose balance leaves the dissipation out (D = 0, as before it was counted): explicit Euler's own
-#: energy error, ½ h² (m |a|² + vᵀ K v) per step, is a fixed share of what its dampers take out (h / (2 kd/k) on
-#: every spring mode, up to one half at its stability limit h = kd/k), so with D its stable runs would read as
-#: creating energy (tests/test_extremes.py: the 1 MN/m cloth at 2000 substeps). Adaptive integrators (dopri5) are
-#: left out too: their internal steps are finer than the step the guard would integrate the power over.
-DISSIPATION_UNCOUNTED = ("explicit_euler",)
+#: Integrators whose balance leaves the dissipation out (D = 0, as before it was counted): those that need damping
+#: to be stable. Their own energy error on a damped mode is a share of what its damper takes out that reaches
+#: one at their stability limit (explicit Euler: ½ h² (m |a|² + vᵀ K v) per step, h / (2 kd/k) of the damping on
+#: every spring mode; midpoint: (ωh)⁴/4 of the mode's energy per step against the damper's 2ζωh), so with D
+#: their stable runs near the limit read as creating energy: explicit Euler's 1 MN/m cloth at 2000 substeps
+#: (tests/test_extremes.py) and midpoint's battery cloth at 5.1 kN/m and 1/3840 s, inside the advisor's limit
+#: (bench/RESULTS.md §11), were stopped. Adaptive integrators (dopri5) are left out too: their internal steps
+#: are finer than the step the guard would integrate the power over.
+DISSIPATION_UNCOUNTED = ("explicit_euler", "midpoint")
 #: Live inputs whose value is part of the springs' potential: animated by a track, the elastic energy
 #: changes without work and the balance is off.
 POTENTIAL_INPUTS = ("biphasic_strain", "biphasic_ratio", "max_spring_force")
@@ -104,8 +107,9 @@ class GuardLimits:
             it was given.
         energy_balance: energy created [-]: a world whose kinetic plus elastic energy exceeds its value at the
             start plus the work its loads put in since, less the energy its dampers and drag took out (counted
-            per substep where the guard knows the step: a Simulator's; not for explicit Euler and dopri5:
-            ``DISSIPATION_UNCOUNTED``), by more than this fraction of the most
+            per substep where the guard knows the step: a Simulator's; not for explicit Euler, midpoint and
+            dopri5, ``DISSIPATION_UNCOUNTED``, nor with contacts or strain limiting, ``dissipation_exact``), by
+            more than this fraction of the most
             energy they could have supplied so far (plus ``BALANCE_FLOOR`` × its energy scale) is unstable and
             stops
             (default ``ENERGY_BALANCE`` = 0.1; 0 switches it off). The balance re-bases when the model's
@@ -276,7 +280,8 @@ class Guard(StepHook):
         integrator: the integrator whose steps are checked.
         dt: the step h [s]; given, the energy the dampers and drag take out is integrated after every step
             (``kernels/guards.py``) and counted in the energy balance (but for the integrators of
-            ``DISSIPATION_UNCOUNTED`` and adaptive ones); ``None`` leaves it out (one-sided).
+            ``DISSIPATION_UNCOUNTED``, adaptive ones and models with contacts or strain limiting:
+            :func:`dissipation_exact`); ``None`` leaves it out (one-sided).
     """
 
     def __init__(self, model: Model, limits: GuardLimits, substeps: int, *, control=None, integrator=None,
@@ -328,7 +333,7 @@ class Guard(StepHook):
         self._drag_grid = reduce_launch_dim(worlds, model.particle_count, self._lanes) if self._tiled else (worlds, 1, 1)
         blocks = self._drag_grid[1]
         for family, lanes, grid, _ in self._energy_layout:
-            if family.spec(model).funcs(model.scalar).dissipation is not None:
+            if getattr(family.spec(model).funcs(model.scalar), "dissipation", None) is not None:
                 grid = grid if self._tiled else (worlds, 1, 1)
                 self._dissipation_layout.append((family, lanes, grid, blocks))
                 blocks += grid[1]
@@ -415,6 +420,13 @@ class Guard(StepHook):
         return float(self.world_max_kinetic_energy[0])
 
     @property
+    def counts_dissipation(self) -> bool:
+        """Whether the energy balance counts the dampers' and drag's dissipation D now (a step given, the balance
+        and ``GuardLimits.dissipation`` on, an integrator outside ``DISSIPATION_UNCOUNTED`` and not adaptive,
+        a model without position corrections: :func:`dissipation_exact`)."""
+        return bool(self._dissipating) and dissipation_exact(self.model)
+
+    @property
     def every(self) -> int:
         """Substeps between checks (the last substep of a frame is always checked)."""
         return self._every
@@ -497,10 +509,12 @@ class Guard(StepHook):
         model = self.model
         cached = getattr(self, "_dissipation_cache", None)
         if cached is None or cached[0] != model.revision:
-            features = model.force_features(self.control)
-            drag = guard_drag_kernel(model.scalar, self._tiled, features.wind) if features.drag else None
-            families = [(guard_dissipation_kernel(model.scalar, family.spec(model), self._tiled), family, lanes, grid,
-                         offset) for family, lanes, grid, offset in self._dissipation_layout]
+            drag, families = None, []
+            if dissipation_exact(model):
+                features = model.force_features(self.control)
+                drag = guard_drag_kernel(model.scalar, self._tiled, features.wind) if features.drag else None
+                families = [(guard_dissipation_kernel(model.scalar, family.spec(model), self._tiled), family, lanes,
+                             grid, offset) for family, lanes, grid, offset in self._dissipation_layout]
             cached = (model.revision, (drag, families))
             self._dissipation_cache = cached
         return cached[1]
@@ -601,6 +615,16 @@ class Guard(StepHook):
         device: synchronises)."""
         found = self.reports()
         return min(found, key=lambda r: (r.substep, r.world)) if found else None
+
+
+def dissipation_exact(model: Model) -> bool:
+    """Whether the energy balance can count the dampers' dissipation for ``model`` as it is now: no stage moves
+    particles outside the forces (colliders and the ground, self-collision, strain limiting), whose energy
+    change the balance cannot tell from an instability's once the dissipated energy is no longer slack (Provot
+    strain limiting on a soft cloth: 11 % of the budget within 0.5 s, tests/test_stabilizers.py). Elsewhere D
+    is left out and the balance stays one-sided."""
+    return (model.shape_count == 0 and getattr(model, "self_contact", None) is None
+            and not model.stabilizers.enabled("max_strain"))
 
 
 def energy_scales(model: Model) -> np.ndarray:
