@@ -30,7 +30,9 @@ substep, no per-world pass; on the CPU one thread per world and family sums in o
 ``gather`` adds a world's blocks in order at the check and clears them.
 Contact and friction losses are not counted (a contact's penalty work is neither potential nor separable
 here), nor any other damping (stabilisers): what is not counted only loosens the balance, it never stops a
-correct run.
+correct run. The host leaves D out altogether where the balance with it would not be exact up to the
+integrator's error (``core/guards.py``: integrators that need damping to be stable, adaptive ones, models
+with position corrections).
 
 **Two energy criteria.** A world's kinetic plus elastic energy can never exceed its value at the start
 plus the work its loads did since, less the energy the dampers took out: E(t) ≤ E(0) + W(t) - D(t).
