@@ -6,11 +6,13 @@ structural + shear + bend springs of 1 kN/m and 10 N·s/m) hanging from its two 
 swings ±0.2 m sideways at 0.5 Hz (a pin-group track: energy goes in and out), light air drag, symplectic Euler with 16 substeps per 1/60 s frame, each
 frame one captured graph. Sampled every ``--every`` frames: the process's resident memory (RSS), Python's
 own allocations (tracemalloc), the device's memory in use (CUDA), and the guard's energy balance: kinetic +
-elastic energy E, the loads' net work W and the energy created, E - (E_ref + W).
+elastic energy E, the loads' net work W, the energy the dampers and drag took out D, and the energy
+created, E - (E_ref + W - D).
 
 Verdict: the growth of each memory measure over the second half of the run (a leak per frame shows up
 there; the first half holds compilation and the first captures), and the largest energy created relative
-to the budget E_ref + W (≤ 0 up to the integrator's energy error: the run neither gains energy nor drifts).
+to the budget E_ref + W and to D (≈ 0 up to the integrator's energy error: the run neither gains energy nor
+drifts).
 
     python bench/soak.py --device cuda:0 --out bench/results
     python bench/soak.py --device cpu --steps 20000
@@ -70,7 +72,8 @@ def soak(device, steps: int, every: int):
             balance = sim.guard.energy_balance()
             budget = balance.reference[0] + balance.work[0]
             rows.append((frame * SUBSTEPS, resident_bytes(), tracemalloc.get_traced_memory()[0], device_bytes(device),
-                         balance.energy[0], balance.work[0], balance.created[0], budget, balance.peak[0]))
+                         balance.energy[0], balance.work[0], balance.created[0], budget, balance.peak[0],
+                         balance.dissipated[0]))
     wall = time.perf_counter() - started
     tracemalloc.stop()
     return np.array(rows, dtype=np.float64), wall
@@ -86,7 +89,8 @@ def plot(rows: np.ndarray, path: str, title: str) -> None:
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     top.plot(step, rows[:, 4], label="kinetic + elastic energy E")
     top.plot(step, rows[:, 7], label="budget E_ref + W (start + loads' net work)")
-    top.plot(step, rows[:, 6], label="energy created E - (E_ref + W)")
+    top.plot(step, rows[:, 9], label="dissipated D (dampers and drag)")
+    top.plot(step, rows[:, 6], label="energy created E - (E_ref + W - D)")
     top.set_ylabel("energy [J]")
     top.legend(fontsize=8)
     top.set_title(title, fontsize=9)
@@ -113,16 +117,18 @@ def main():
     half = rows[rows[:, 0] >= rows[-1, 0] / 2]
     growth = {name: half[-1, c] - half[0, c] for name, c in (("RSS", 1), ("Python", 2), ("device", 3))}
     created = float(np.max(rows[:, 6] / np.maximum(rows[:, 8], 1e-30)))
+    closure = float(np.max(np.abs(rows[:, 6]) / np.maximum(rows[:, 9], 1e-30)))
     title = (f"Soak on {device.name}, Warp {wp.config.version}, {datetime.date.today()}: {int(rows[-1, 0])} substeps "
              f"of a driven 32 × 32 cloth")
     lines = [
         title, "",
         "| substeps | wall [s] | RSS growth, 2nd half | Python growth, 2nd half | device growth, 2nd half | "
-        "largest energy created / budget | largest E [J] | W at the end [J] |",
-        "|---|---|---|---|---|---|---|---|",
+        "largest energy created / budget | largest \\|created\\| / D | largest E [J] | W at the end [J] | "
+        "D at the end [J] |",
+        "|---|---|---|---|---|---|---|---|---|---|",
         f"| {int(rows[-1, 0])} | {wall:.1f} | {growth['RSS'] / 1024:+.0f} KiB | {growth['Python'] / 1024:+.1f} KiB | "
         + (f"{growth['device'] / 1024:+.0f} KiB" if device.is_cuda else "—")
-        + f" | {created:+.2e} | {rows[:, 4].max():.4g} | {rows[-1, 5]:.4g} |",
+        + f" | {created:+.2e} | {closure:.2e} | {rows[:, 4].max():.4g} | {rows[-1, 5]:.4g} | {rows[-1, 9]:.4g} |",
     ]
     if args.out:
         os.makedirs(args.out, exist_ok=True)

@@ -16,7 +16,10 @@ incidence (below), so every result is written once, without float atomics:
   family's elements at particle i and the element holding it; (-1, -1) where the family has no strain
   (the guards compare it with their tear limit);
 * ``energy(world, element, base, arrays, inputs, particle_q) -> scalar``: the elastic energy [J] of one
-  element (the guards' energy scale; tests of conservation and of force = -∇E).
+  element (the guards' energy scale; tests of conservation and of force = -∇E);
+* ``dissipation(world, element, base, arrays, inputs, particle_q, particle_qd) -> scalar`` (optional,
+  ``None`` where the family has no dampers): the power [W] ≥ 0 one element's dampers take out of the
+  motion (the guards' energy balance integrates it per step, ``kernels/guards.py``).
 
 A family's *spec* is a frozen dataclass holding its compile-time switches (hashable, and equal only to specs
 of its own class, so kernel caches never confuse two families), with a method ``funcs(scalar) ->
@@ -88,6 +91,7 @@ class FamilyFuncs(NamedTuple):
     # Flat leaf paths of ``arrays`` that the gathered hooks (force, product, strain) never read in this spec;
     # kernels taking the family through ``elements`` pass them last (``flat_kernel(last=)``).
     idle: tuple = ()
+    dissipation: Any = None  # per element, like ``energy``; None: the family dissipates nothing of its own
 
 
 # -- gathering over the incidence ----------------------------------------------------------------------------

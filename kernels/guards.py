@@ -1,7 +1,8 @@
 """Run-time guards: detect a state going bad on the device, per world, without a host synchronisation per
 substep.
 
-A check is five launches captured with the substeps: ``measure`` (per particle: non-finite position or
+A check is five launches captured with the substeps (and, with the dissipation counted, one or two more
+after every substep: below): ``measure`` (per particle: non-finite position or
 velocity, the largest strain of its elements (the families' ``strain`` hook), kinetic energy (of the free
 particles: a kinematic one moves as prescribed), and the work the loads did on it since the previous
 check; per-block partials, no float atomics), ``element_energy_partials`` (one per family: per-block sums of
@@ -18,19 +19,36 @@ applies through them. Weight and the drive's force enter by the trapezoidal rule
 checks; exact for constant gravity and still pins, second order for tracks), the control's force by its
 value at the check (it is constant within a frame, set between frames). W⁺ sums the positive parts.
 
-**Two energy criteria.** With dissipative damping and drag, a world's kinetic plus elastic energy can
-never exceed its value at the start plus the work its loads did since: E(t) ≤ E(0) + W(t).
+**The energy taken out.** D sums the power the dampers take out of the motion, P = Σ_springs kd ((vj -
+vi)·d̂)² + Σ_hinges kd θ̇² + Σ_free particles c v·(v - u) (viscous drag c against the air's velocity u; the
+families' ``dissipation`` hook, so a new family brings its own), by the trapezoidal rule over every substep
+h: D += h (P' + P) / 2 with P' the power after the previous substep. A check's reach is many substeps, and a
+damped mode's power oscillates at twice its frequency, so sampling at the checks alone would alias; per
+substep it is second order in h where the motion is smooth. Each reducing block keeps its own running sum
+and last power (``running[world, block]``: float64, no atomics, one launch per family and one for drag per
+substep, no per-world pass; on the CPU one thread per world and family sums in order, a single block);
+``gather`` adds a world's blocks in order at the check and clears them.
+Contact and friction losses are not counted (a contact's penalty work is neither potential nor separable
+here), nor any other damping (stabilisers): what is not counted only loosens the balance, it never stops a
+correct run. The host leaves D out altogether where the balance with it would not be exact up to the
+integrator's error (``core/guards.py``: integrators that need damping to be stable, adaptive ones, models
+with position corrections).
+
+**Two energy criteria.** A world's kinetic plus elastic energy can never exceed its value at the start
+plus the work its loads did since, less the energy the dampers took out: E(t) ≤ E(0) + W(t) - D(t).
 
 * *Runaway*: the kinetic energy against ``limit + factor · W⁺`` (10⁶ times the scene's energy scale and
   the work put in by default), so that a pushed body at rest, whose energy scale is ~0, is not stopped
   for the energy it was given. Catches what has gone far wrong, whatever the model.
-* *Balance*: the energy created, E(t) - (E_ref + W(t)), against ``tolerance`` × the peak of E_ref + W
+* *Balance*: the energy created, E(t) - (E_ref + W(t) - D(t)), against ``tolerance`` × the peak of E_ref + W
   (the most energy the world could physically hold so far) + ``floor``. An explicit integrator beyond its
   stability limit pumps energy into its unstable modes; where the nonlinearity saturates their growth the
   state stays finite and untorn but holds several times the energy of the converged solution, and the
   balance stops it when that excess first reaches ``tolerance`` of the budget. E_ref is taken at the first
   check after a rebase (the start, or a host write of the model's values, which changes the elastic
-  energy without work), so the energy balance holds from there on. The families' energy is the potential
+  energy without work), and D counts from there, so the energy balance holds from there on. Without D, the
+  energy a long damped run dissipated would be slack: an unstable step would have to re-create all of it
+  before the balance noticed. The families' energy is the potential
   of their force (biphasic knee, force clamp), so the balance is exact up to the integrator's own energy
   error, which the tolerance covers (symplectic Euler's is O(h): ~1 % of a swinging cloth at 1/120 s).
 
@@ -44,7 +62,7 @@ import functools
 import warp as wp
 
 from .families import elements
-from .inputs import INPUT_GRAVITY, input_funcs
+from .inputs import INPUT_DRAG, INPUT_GRAVITY, INPUT_WIND, input_funcs
 from .kinematics import is_kinematic
 from .linalg import reduction_funcs
 from .precision import vec3_type
@@ -76,7 +94,13 @@ BALANCE_WORK = 1  # W: the loads' work since the start, signed [J]
 BALANCE_PEAK = 2  # the peak of E_ref + W since the last rebase [J]
 BALANCE_REBASE = 3  # 1: take the next check's energy as the reference (at the start, after a host write)
 BALANCE_ENERGY = 4  # kinetic + elastic energy at the last check [J]
-BALANCE_SLOTS = 5
+BALANCE_DISSIPATION = 5  # D: the energy the dampers and drag took out since the last rebase [J]
+BALANCE_SLOTS = 6
+# float64 slots of a reducing block's running dissipation (``running[world, block, slot]``), carried from
+# substep to substep
+RUNNING_DISSIPATION = 0  # energy taken out since the last check [J]
+RUNNING_POWER = 1  # the power after the last substep [W]; non-finite: none yet (the first trapezoid's start)
+RUNNING_SLOTS = 2
 # float64 slots of the limits: live settings, read by ``decide``
 GUARD_LIMIT_STRAIN = 0  # an element strain beyond this tears the run [-]
 GUARD_LIMIT_KINETIC_ENERGY = 1  # a total kinetic energy beyond this is a runaway [J]
@@ -180,14 +204,17 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         partials: wp.array3d[wp.float64],
         energy_partials: wp.array2d[wp.float64],
         status: wp.array2d[wp.int32],
+        # In/out:
+        running: wp.array3d[wp.float64],
         # Out:
         values: wp.array2d[wp.float64],
         work_total: wp.array[wp.float64],
         balance: wp.array2d[wp.float64],
     ):
-        """A world's kinetic and elastic energy and the work put in since the last check (its blocks'
-        partials summed in order; the work added to the balance, its positive part to the world's running
-        total W⁺), its largest strain, and the energy beyond the balance's budget."""
+        """A world's kinetic and elastic energy, the work put in and the energy dissipated since the last
+        check (its blocks' partials and running sums, summed in order, the running sums cleared; the work and
+        the dissipation added to the balance, the work's positive part to the world's running total W⁺), its
+        largest strain, and the energy beyond the balance's budget."""
         world = wp.tid()
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
             return
@@ -201,22 +228,28 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         elastic = wp.float64(0.0)
         for b in range(energy_partials.shape[1]):
             elastic += energy_partials[world, b]
+        dissipated = wp.float64(0.0)
+        for b in range(running.shape[1]):
+            dissipated += running[world, b, RUNNING_DISSIPATION]
+            running[world, b, RUNNING_DISSIPATION] = wp.float64(0.0)
         values[world, GUARD_KINETIC_ENERGY] = energy
         values[world, GUARD_ELASTIC_ENERGY] = elastic
         values[world, GUARD_MAX_STRAIN] = worst
         values[world, GUARD_WORK] = work
-        if not (wp.isfinite(work) and wp.isfinite(energy + elastic)):
+        if not (wp.isfinite(work) and wp.isfinite(energy + elastic) and wp.isfinite(dissipated)):
             return  # ``decide`` stops a non-finite world; its balance stays as it was
         work_total[world] += wp.max(work, wp.float64(0.0))
         balance[world, BALANCE_WORK] += work
+        balance[world, BALANCE_DISSIPATION] += dissipated
         if balance[world, BALANCE_REBASE] != wp.float64(0.0):
             balance[world, BALANCE_REFERENCE] = energy + elastic - balance[world, BALANCE_WORK]
             balance[world, BALANCE_PEAK] = energy + elastic
+            balance[world, BALANCE_DISSIPATION] = wp.float64(0.0)
             balance[world, BALANCE_REBASE] = wp.float64(0.0)
         balance[world, BALANCE_ENERGY] = energy + elastic
         budget = balance[world, BALANCE_REFERENCE] + balance[world, BALANCE_WORK]
         balance[world, BALANCE_PEAK] = wp.max(balance[world, BALANCE_PEAK], budget)
-        values[world, GUARD_EXCESS] = energy + elastic - budget
+        values[world, GUARD_EXCESS] = energy + elastic - (budget - balance[world, BALANCE_DISSIPATION])
         values[world, GUARD_BUDGET] = balance[world, BALANCE_PEAK]
 
     @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
@@ -322,3 +355,120 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool):
             partials[world, offset + block] = energy
 
     return element_energy_partials
+
+
+@functools.cache
+def trapezoid_func():
+    """``accumulate(running, world, block, power, h)``: a block's running dissipation by the trapezoidal rule,
+    D += h (P' + P) / 2 with P' its power after the previous substep (none yet: P only recorded)."""
+
+    @wp.func
+    def accumulate(running: wp.array3d[wp.float64], world: int, block: int, power: wp.float64, h: wp.float64):
+        before = running[world, block, RUNNING_POWER]
+        if wp.isfinite(before):
+            running[world, block, RUNNING_DISSIPATION] += wp.float64(0.5) * h * (before + power)
+        running[world, block, RUNNING_POWER] = power
+
+    return accumulate
+
+
+@functools.cache
+def guard_dissipation_kernel(scalar: type, spec, tiled: bool):
+    """Kernel adding to ``running[world, offset + block]`` the energy [J] one family's dampers took out over
+    the last substep (the family's ``dissipation`` hook, trapezoidal rule) after every substep. On CUDA
+    (``tiled``) per-block sums, launched over ``reduce_launch_dim(worlds, element_count, lanes)``; on the CPU,
+    where a kernel's threads run in turn anyway, one thread per world sums its elements in order (launched
+    over ``worlds``, block 0): no per-element running sums to read and write."""
+    vec3 = vec3_type(scalar)
+    block_sum, _ = reduction_funcs(tiled)
+    funcs = spec.funcs(scalar)
+    Arrays = funcs.arrays
+    power_func = funcs.dissipation
+    accumulate = trapezoid_func()
+
+    # An element's damping power reads its own entries, never the incidence table.
+    @flat_kernel(module="unique", enable_backward=False, last=("arrays__incidence",))
+    def element_dissipation(
+        particle_count: int,
+        element_count: int,
+        offset: int,
+        h: wp.float64,
+        world_enabled: wp.array[wp.int32],
+        status: wp.array2d[wp.int32],
+        arrays: Arrays,
+        inputs: wp.array2d[scalar],
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+        # In/out:
+        running: wp.array3d[wp.float64],
+    ):
+        world, block, lane = wp.tid()
+        if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
+            return
+        base = world * particle_count
+        power = wp.float64(0.0)
+        if wp.static(tiled):
+            element = block * wp.block_dim() + lane
+            if element < element_count:
+                power = wp.float64(power_func(world, element, base, arrays, inputs, particle_q, particle_qd))
+            power = block_sum(power)
+        else:
+            for element in range(element_count):
+                power += wp.float64(power_func(world, element, base, arrays, inputs, particle_q, particle_qd))
+        if lane == 0:
+            accumulate(running, world, offset + block, power, h)
+
+    return element_dissipation
+
+
+@functools.cache
+def guard_drag_kernel(scalar: type, tiled: bool, wind: bool):
+    """Kernel adding to ``running[world, block]`` the energy [J] viscous drag took out of the free particles
+    over the last substep: power c v·(v - u) (u the air's velocity where the model has wind, else 0;
+    trapezoidal rule). On CUDA per-block sums over ``reduce_launch_dim(worlds, particle_count, lanes)``, on
+    the CPU one thread per world (as ``guard_dissipation_kernel``)."""
+    vec3 = vec3_type(scalar)
+    block_sum, _ = reduction_funcs(tiled)
+    input_vec3 = input_funcs(scalar)
+    accumulate = trapezoid_func()
+
+    @wp.func
+    def drag_power(world: int, p: int, particle_flags: wp.array[wp.int32], inputs: wp.array2d[scalar],
+                   particle_qd: wp.array[vec3]) -> wp.float64:
+        if is_kinematic(particle_flags[p]):  # a kinematic particle moves as prescribed: drag does nothing
+            return wp.float64(0.0)
+        v = particle_qd[p]
+        air = vec3(scalar(0.0))
+        if wp.static(wind):
+            air = input_vec3(inputs, world, INPUT_WIND)
+        return wp.float64(inputs[world, INPUT_DRAG] * wp.dot(v, v - air))
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def drag_dissipation(
+        particle_count: int,
+        h: wp.float64,
+        world_enabled: wp.array[wp.int32],
+        status: wp.array2d[wp.int32],
+        particle_flags: wp.array[wp.int32],
+        inputs: wp.array2d[scalar],
+        particle_qd: wp.array[vec3],
+        # In/out:
+        running: wp.array3d[wp.float64],
+    ):
+        world, block, lane = wp.tid()
+        if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
+            return
+        base = world * particle_count
+        power = wp.float64(0.0)
+        if wp.static(tiled):
+            i = block * wp.block_dim() + lane
+            if i < particle_count:
+                power = drag_power(world, base + i, particle_flags, inputs, particle_qd)
+            power = block_sum(power)
+        else:
+            for i in range(particle_count):
+                power += drag_power(world, base + i, particle_flags, inputs, particle_qd)
+        if lane == 0:
+            accumulate(running, world, block, power, h)
+
+    return drag_dissipation

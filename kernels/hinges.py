@@ -113,4 +113,15 @@ def hinge_family_funcs(scalar: type, spec: HingeSpec) -> FamilyFuncs:
                                     particle_q[base + ids[3]], hinges.rest_angle[h],
                                     hinges.stiffness[wp.min(world, hinges.stiffness.shape[0] - 1), h])
 
-    return FamilyFuncs(HingeArrays, force, product, strain, energy, spec.incidence.idle())
+    @wp.func
+    def dissipation(world: int, h: int, base: int, hinges: HingeArrays, inputs: wp.array2d[scalar],
+                    particle_q: wp.array[vec3], particle_qd: wp.array[vec3]) -> scalar:
+        """Power [W] the angular damper of hinge h takes out in ``world``: kd θ̇² ≥ 0, θ̇ = Σ_b ∇_b θ · v_b."""
+        ids = hinges.indices[h]
+        theta, g0, g1, g2, g3 = angle_gradient(particle_q[base + ids[0]], particle_q[base + ids[1]],
+                                               particle_q[base + ids[2]], particle_q[base + ids[3]])
+        rate = wp.dot(g0, particle_qd[base + ids[0]]) + wp.dot(g1, particle_qd[base + ids[1]])
+        rate += wp.dot(g2, particle_qd[base + ids[2]]) + wp.dot(g3, particle_qd[base + ids[3]])
+        return hinges.damping[wp.min(world, hinges.damping.shape[0] - 1), h] * rate * rate
+
+    return FamilyFuncs(HingeArrays, force, product, strain, energy, spec.incidence.idle(), dissipation=dissipation)

@@ -617,8 +617,27 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
                              springs.stiffness[wp.min(world, springs.stiffness.shape[0] - 1), s],
                              law_at(spring_law_values(inputs, world), springs, s))
 
+    @wp.func
+    def dissipation(world: int, s: int, base: int, springs: SpringArrays, inputs: wp.array2d[scalar],
+                    particle_q: wp.array[vec3], particle_qd: wp.array[vec3]) -> scalar:
+        """Power [W] the damper of spring s takes out in ``world``: kd ((vj - vi)·d̂)² ≥ 0. Zero under the
+        force clamp (the damper's share of a clamped force is not separable: not counted, so the guard's
+        balance stays one-sided) and for a broken plastic spring."""
+        if wp.static(spec.law.clamp_force):
+            return scalar(0.0)
+        if wp.static(spec.law.plastic):
+            if rest_at(springs, world, s) < scalar(0.0):
+                return scalar(0.0)
+        ends = springs.indices[s]
+        d = particle_q[base + ends[1]] - particle_q[base + ends[0]]
+        length = wp.length(d)
+        n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
+        rate = wp.dot(particle_qd[base + ends[1]] - particle_qd[base + ends[0]], n)
+        return springs.damping[wp.min(world, springs.damping.shape[0] - 1), s] * rate * rate
+
     # The gathered hooks find a spring's other end in the incidence entry, never in ``indices``.
-    return FamilyFuncs(SpringArrays, force, product, strain, energy, ("indices", *spec.incidence.idle()))
+    return FamilyFuncs(SpringArrays, force, product, strain, energy, ("indices", *spec.incidence.idle()),
+                       dissipation=dissipation)
 
 
 @functools.cache

@@ -171,6 +171,7 @@ def test_work_does_not_hide_a_blow_up(device):
     ({"tear_strain": 0.0}, "guard tear_strain must be a finite number > 0"),
     ({"tear_strain": float("nan")}, "guard tear_strain must be a finite number > 0"),
     ({"max_kinetic_energy": -1.0}, "guard max_kinetic_energy must be a finite number > 0"),
+    ({"dissipation": 1}, "guard dissipation must be true or false"),
 ])
 def test_guard_limits_reject_bad_values_when_made(kwargs, message):
     with pytest.raises(ws.ConfigError, match=message):

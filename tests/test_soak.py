@@ -22,26 +22,31 @@ def used_device_memory(device) -> int:
 def test_a_long_driven_run_keeps_its_memory_and_its_energy(device):
     """4,800 substeps (300 frames of 16, two handle cycles and a half): after the first 100 frames (compiles,
     captures) Python's allocations grow by less than 16 KiB over the remaining 200 (no per-frame leak: a
-    frame's record alone is ~1 KiB) and device memory not at all; the guard's energy balance never shows
-    energy created beyond 0.5 % of what the start and the handle supplied (symplectic Euler's O(h) energy
-    error at h = 1/960 s; a leak of energy into the cloth would grow without bound) while the handle really
-    works on the cloth (W changes sign as it pulls and brakes)."""
+    frame's record alone is ~1 KiB) and device memory not at all; the guard's energy balance, which counts
+    what the dampers and drag took out (D), closes: E - (E_ref + W - D) stays within 3 % of D and 1 % of what
+    the start and the handle supplied (symplectic Euler's O(h) energy error at h = 1/960 s: measured 1.0 %
+    and 0.35 % on the CPU; a leak of energy into the cloth would grow without bound, and without D the
+    balance would read 40-50 % of the budget missing) while the handle really works on the cloth (W changes
+    sign as it pulls and brakes) and the dampers take out more than the cloth holds."""
     model = driven_cloth(device, n=12)
     sim = ws.Simulator(model, fps=60, substeps=16, watch=10)
     for _ in range(100):
         sim.step_frame()
     tracemalloc.start()
     python_before, device_before = tracemalloc.get_traced_memory()[0], used_device_memory(device)
-    created, work = [], []
+    created, closure, work = [], [], []
     for frame in range(200):
         sim.step_frame()
         if frame % 10 == 9:
             balance = sim.guard.energy_balance()
             created.append(balance.created[0] / balance.peak[0])
+            closure.append(abs(balance.created[0]) / balance.dissipated[0])
             work.append(balance.work[0])
     python_growth = tracemalloc.get_traced_memory()[0] - python_before
     tracemalloc.stop()
     assert python_growth < 16 * 1024, python_growth
     assert used_device_memory(device) == device_before
-    assert max(created) <= 5e-3, max(created)
+    assert max(created) <= 1e-2, max(created)
+    assert max(closure) <= 3e-2, max(closure)
+    assert balance.dissipated[0] > balance.energy[0]
     assert np.ptp(work) > 1.0 and not sim.watch.warned.any()

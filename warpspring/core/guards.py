@@ -16,6 +16,7 @@ import warp as wp
 
 from .. import checks
 from ..kernels.guards import (
+    BALANCE_DISSIPATION,
     BALANCE_ENERGY,
     BALANCE_PEAK,
     BALANCE_REBASE,
@@ -47,6 +48,10 @@ from ..kernels.guards import (
     GUARD_WORK_FACTOR,
     GUARD_TRIPPED,
     NO_PARTICLE,
+    RUNNING_POWER,
+    RUNNING_SLOTS,
+    guard_dissipation_kernel,
+    guard_drag_kernel,
     guard_energy_kernel,
     guard_kernels,
 )
@@ -72,6 +77,15 @@ TEAR_STRAIN = 10.0
 ENERGY_BALANCE = 0.1
 #: ... plus this fraction of the scene's energy scale (round-off of a world at rest).
 BALANCE_FLOOR = 1.0e-3
+#: Integrators whose balance leaves the dissipation out (D = 0, as before it was counted): those that need damping
+#: to be stable. Their own energy error on a damped mode is a share of what its damper takes out that reaches
+#: one at their stability limit (explicit Euler: ½ h² (m |a|² + vᵀ K v) per step, h / (2 kd/k) of the damping on
+#: every spring mode; midpoint: (ωh)⁴/4 of the mode's energy per step against the damper's 2ζωh), so with D
+#: their stable runs near the limit read as creating energy: explicit Euler's 1 MN/m cloth at 2000 substeps
+#: (tests/test_extremes.py) and midpoint's battery cloth at 5.1 kN/m and 1/3840 s, inside the advisor's limit
+#: (bench/RESULTS.md §11), were stopped. Adaptive integrators (dopri5) are left out too: their internal steps
+#: are finer than the step the guard would integrate the power over.
+DISSIPATION_UNCOUNTED = ("explicit_euler", "midpoint")
 #: Live inputs whose value is part of the springs' potential: animated by a track, the elastic energy
 #: changes without work and the balance is off.
 POTENTIAL_INPUTS = ("biphasic_strain", "biphasic_ratio", "max_spring_force")
@@ -92,13 +106,21 @@ class GuardLimits:
             particles; ``kernels/guards.py``), so a forced or driven run is never stopped for the energy
             it was given.
         energy_balance: energy created [-]: a world whose kinetic plus elastic energy exceeds its value at the
-            start plus the work its loads put in since by more than this fraction of the most energy they
-            could have supplied so far (plus ``BALANCE_FLOOR`` × its energy scale) is unstable and stops
+            start plus the work its loads put in since, less the energy its dampers and drag took out (counted
+            per substep where the guard knows the step: a Simulator's; not for explicit Euler, midpoint and
+            dopri5, ``DISSIPATION_UNCOUNTED``, nor with contacts or strain limiting, ``dissipation_exact``), by
+            more than this fraction of the most
+            energy they could have supplied so far (plus ``BALANCE_FLOOR`` × its energy scale) is unstable and
+            stops
             (default ``ENERGY_BALANCE`` = 0.1; 0 switches it off). The balance re-bases when the model's
             values are written between frames, and is off where it cannot be kept: colliders that move (their
             work is not counted), the particle force clamp (not a potential), tracks of the springs' law
             (biphasic knee and ratio, force clamp), and unconditionally stable integrators (implicit Euler:
             the energy its one Newton step per step adds at large steps is not an instability).
+        dissipation: count the energy the springs' and hinges' dampers and viscous drag take out (D) in the
+            energy balance (default on): integrated after every substep (one launch per damped family, one for
+            drag; ``kernels/guards.py``), so a long damped run keeps its sensitivity; off, that energy is
+            slack the balance allows an instability to re-create.
         stop: what a failure stops: "run" (the simulator raises a SimulationError at the end of the frame)
             or "world" (the failed world is held from the failing check on, its failure is recorded in
             ``Simulator.world_failures``, and the other worlds go on; the run stops only when every world
@@ -116,10 +138,11 @@ class GuardLimits:
     max_kinetic_energy: float | None = None
     energy_balance: float = ENERGY_BALANCE
     stop: str = "run"
+    dissipation: bool = True
 
     def __init__(self, *, every: int | None = None, tear_strain: float | None = None,
                  max_kinetic_energy: float | None = None, energy_balance: float = ENERGY_BALANCE, stop: str = "run",
-                 max_strain: float | None = None):
+                 max_strain: float | None = None, dissipation: bool = True):
         name = "guard tear_strain"
         if max_strain is not None:
             if tear_strain is not None:
@@ -137,6 +160,9 @@ class GuardLimits:
         if stop not in ("run", "world"):
             raise ConfigError(f"guard stop must be 'run' or 'world', got {stop!r}")
         checks.non_negative("guard energy_balance", energy_balance)
+        if not isinstance(dissipation, bool):
+            raise ConfigError(f"guard dissipation must be true or false, got {dissipation!r}")
+        object.__setattr__(self, "dissipation", dissipation)
         object.__setattr__(self, "energy_balance", float(energy_balance))
         object.__setattr__(self, "stop", stop)
         object.__setattr__(self, "every", every)
@@ -220,17 +246,21 @@ class EnergyBalance:
         reference: E_ref, the energy at the last rebase less the work counted until then [J].
         work: the loads' net work since the start, W [J] (signed: weight, the control's force, drives).
         peak: the most energy the start and the loads could have supplied so far, max of E_ref + W [J].
+        dissipated: D, the energy the springs' and hinges' dampers and viscous drag took out since the last
+            rebase [J] (≥ 0; zero where the guard does not count it: no step given, balance off).
     """
 
     energy: np.ndarray
     reference: np.ndarray
     work: np.ndarray
     peak: np.ndarray
+    dissipated: np.ndarray
 
     @property
     def created(self) -> np.ndarray:
-        """Energy beyond the balance, E - (E_ref + W) [J]: ≤ 0 up to the integrator's energy error."""
-        return self.energy - self.reference - self.work
+        """Energy beyond the balance, E - (E_ref + W - D) [J]: ≈ 0 up to the integrator's energy error (and
+        ≤ 0 by what is not counted: contact and friction losses)."""
+        return self.energy - self.reference - self.work + self.dissipated
 
 
 class Guard(StepHook):
@@ -239,11 +269,29 @@ class Guard(StepHook):
     last.
 
     The limits are device values: setting :attr:`limits` between frames changes no captured launch (but
-    a new ``every`` does, and the stepper re-captures)."""
+    a new ``every`` does, and switching the energy balance on or off where the guard counts dissipation;
+    the stepper re-captures).
 
-    def __init__(self, model: Model, limits: GuardLimits, substeps: int, *, control=None, integrator=None):
+    Args:
+        model: the model.
+        limits: what to check.
+        substeps: steps per frame.
+        control: the control whose external force counts as work put in (``None``: none).
+        integrator: the integrator whose steps are checked.
+        dt: the step h [s]; given, the energy the dampers and drag take out is integrated after every step
+            (``kernels/guards.py``) and counted in the energy balance (but for the integrators of
+            ``DISSIPATION_UNCOUNTED``, adaptive ones and models with contacts or strain limiting:
+            :func:`dissipation_exact`); ``None`` leaves it out (one-sided).
+    """
+
+    def __init__(self, model: Model, limits: GuardLimits, substeps: int, *, control=None, integrator=None,
+                 dt: float | None = None):
         self.model = model
         self.substeps = substeps
+        if dt is not None:
+            checks.positive("guard dt", dt)
+        #: The step [s] over which the dissipation is integrated (``None``: not counted).
+        self.dt = dt
         #: The integrator whose steps are checked (an unconditionally stable one has no energy balance).
         self.integrator = integrator
         #: The control whose external force counts as work put in (``None``: no external force).
@@ -278,9 +326,22 @@ class Guard(StepHook):
                 self._energy_layout.append((family, lanes, grid, blocks))
                 blocks += grid[1]
         self._energy_partials = wp.zeros((worlds, max(blocks, 1)), dtype=wp.float64, device=device)
+        # Running dissipation per reducing block (``kernels/guards.py``): drag's particle blocks first, then the
+        # blocks of each family with dampers.
+        # On the CPU one thread per world sums a family's (or drag's) power: one block, launched over worlds.
+        self._dissipation_layout = []
+        self._drag_grid = reduce_launch_dim(worlds, model.particle_count, self._lanes) if self._tiled else (worlds, 1, 1)
+        blocks = self._drag_grid[1]
+        for family, lanes, grid, _ in self._energy_layout:
+            if getattr(family.spec(model).funcs(model.scalar), "dissipation", None) is not None:
+                grid = grid if self._tiled else (worlds, 1, 1)
+                self._dissipation_layout.append((family, lanes, grid, blocks))
+                blocks += grid[1]
+        self._running = wp.zeros((worlds, blocks, RUNNING_SLOTS), dtype=wp.float64, device=device)
         self._restart_balance()
         self.revision = 0
         self._every = None
+        self._dissipating = None
         self.limits = limits
 
     @property
@@ -294,8 +355,15 @@ class Guard(StepHook):
             raise TypeError(f"guard limits must be a warpspring.GuardLimits, got {type(limits).__name__}")
         self._limits_host = limits
         every = min(limits.every or self.substeps, self.substeps)
-        if every != self._every:
+        integrator = self.integrator
+        dissipating = (self.dt is not None and limits.energy_balance > 0.0 and limits.dissipation
+                       and getattr(integrator, "name", None) not in DISSIPATION_UNCOUNTED
+                       and not getattr(integrator, "adaptive", False))
+        if every != self._every or dissipating != self._dissipating:
+            if self._dissipating is not None and dissipating != self._dissipating:
+                self._clear_running()  # no trapezoid from a power sampled before the switch
             self._every = every
+            self._dissipating = dissipating
             self.revision += 1
         if limits.stop == "world":
             self.model.hold_worlds()  # a failed world is held by the integrators' last pass
@@ -352,6 +420,13 @@ class Guard(StepHook):
         return float(self.world_max_kinetic_energy[0])
 
     @property
+    def counts_dissipation(self) -> bool:
+        """Whether the energy balance counts the dampers' and drag's dissipation D now (a step given, the balance
+        and ``GuardLimits.dissipation`` on, an integrator outside ``DISSIPATION_UNCOUNTED`` and not adaptive,
+        a model without position corrections: :func:`dissipation_exact`)."""
+        return bool(self._dissipating) and dissipation_exact(self.model)
+
+    @property
     def every(self) -> int:
         """Substeps between checks (the last substep of a frame is always checked)."""
         return self._every
@@ -361,8 +436,8 @@ class Guard(StepHook):
 
     def history(self) -> list:
         """The arrays a check carries to the next (the work put in, the last check's positions and loads,
-        the energy balance)."""
-        return [self._work_total, self._previous_q, self._previous_load, self._balance]
+        the energy balance, the running dissipation)."""
+        return [self._work_total, self._previous_q, self._previous_load, self._balance, self._running]
 
     def restart(self, state: State | None = None) -> None:
         """Forget the work put in and measure from ``state`` (default the model's initial state) on: the loads
@@ -376,12 +451,21 @@ class Guard(StepHook):
         self.reset()
         self._measure(state)  # Δx = 0: no work, the loads at the start recorded
         self.reset()
+        if self._dissipating:
+            self._dissipate(state)  # the power at the start: the first substep's trapezoid
 
     def _restart_balance(self) -> None:
         self._previous_load.fill_(self.model.vec3(math.nan, math.nan, math.nan))
         balance = np.zeros((self.model.world_count, BALANCE_SLOTS))
         balance[:, BALANCE_REBASE] = 1.0
         self._balance.assign(balance)
+        self._clear_running()
+
+    def _clear_running(self) -> None:
+        """No dissipation pending, no power sampled yet (between frames: the last check gathered the sums)."""
+        running = np.zeros(self._running.shape)
+        running[..., RUNNING_POWER] = math.nan
+        self._running.assign(running)
 
     def work(self) -> np.ndarray:
         """The work the loads put into each world since the start [J], float64, shape [world_count] (the
@@ -392,11 +476,48 @@ class Guard(StepHook):
         """Each world's energy balance at its last check (reads the device)."""
         b = self._balance.numpy().astype(np.float64)
         return EnergyBalance(energy=b[:, BALANCE_ENERGY].copy(), reference=b[:, BALANCE_REFERENCE].copy(),
-                             work=b[:, BALANCE_WORK].copy(), peak=b[:, BALANCE_PEAK].copy())
+                             work=b[:, BALANCE_WORK].copy(), peak=b[:, BALANCE_PEAK].copy(),
+                             dissipated=b[:, BALANCE_DISSIPATION].copy())
 
     def after_step(self, state: State, step: int, steps: int) -> None:
+        if self._dissipating:
+            self._dissipate(state)
         if (step + 1) % self._every == 0 or step + 1 == steps:
             self.check(state, step)
+
+    def _dissipate(self, state: State) -> None:
+        """Add the energy the dampers and drag took out over the last step to the blocks' running sums
+        (device only; capturable)."""
+        model = self.model
+        h = float(self.dt)
+        drag, families = self._dissipation_kernels()
+        if drag is not None:
+            wp.launch(drag, dim=self._drag_grid, block_dim=self._lanes,
+                      inputs=[model.particle_count, h, model.world_enabled, self._status, model.particle_flags,
+                              model.inputs, state.particle_qd],
+                      outputs=[self._running], device=model.device)
+        for kernel, family, lanes, grid, offset in families:
+            flat_launch(kernel, dim=grid, block_dim=lanes,
+                        inputs=[model.particle_count, family.element_count, offset, h, model.world_enabled,
+                                self._status, family.arrays(model), model.inputs, state.particle_q,
+                                state.particle_qd],
+                        outputs=[self._running], device=model.device)
+
+    def _dissipation_kernels(self) -> tuple:
+        """(the drag kernel or ``None``, [(kernel, family, lanes, grid, offset)] of the damped families), rebuilt
+        after a structural change of the model (drag switched on or off)."""
+        model = self.model
+        cached = getattr(self, "_dissipation_cache", None)
+        if cached is None or cached[0] != model.revision:
+            drag, families = None, []
+            if dissipation_exact(model):
+                features = model.force_features(self.control)
+                drag = guard_drag_kernel(model.scalar, self._tiled, features.wind) if features.drag else None
+                families = [(guard_dissipation_kernel(model.scalar, family.spec(model), self._tiled), family, lanes,
+                             grid, offset) for family, lanes, grid, offset in self._dissipation_layout]
+            cached = (model.revision, (drag, families))
+            self._dissipation_cache = cached
+        return cached[1]
 
     def reset(self) -> None:
         """Clear the record (device copies: capturable, done at the start of every frame)."""
@@ -446,7 +567,8 @@ class Guard(StepHook):
                         inputs=[model.particle_count, family.element_count, offset, model.world_enabled, self._status,
                                 family.arrays(model), model.inputs, state.particle_q],
                         outputs=[self._energy_partials], device=device)
-        wp.launch(gather, dim=worlds, inputs=[model.world_enabled, self._partials, self._energy_partials, self._status],
+        wp.launch(gather, dim=worlds, inputs=[model.world_enabled, self._partials, self._energy_partials, self._status,
+                                              self._running],
                   outputs=[self._values, self._work_total, self._balance], device=device)
         flat_launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
                     inputs=[model.particle_count, model.world_enabled, model.elements, state.particle_q],
@@ -493,6 +615,16 @@ class Guard(StepHook):
         device: synchronises)."""
         found = self.reports()
         return min(found, key=lambda r: (r.substep, r.world)) if found else None
+
+
+def dissipation_exact(model: Model) -> bool:
+    """Whether the energy balance can count the dampers' dissipation for ``model`` as it is now: no stage moves
+    particles outside the forces (colliders and the ground, self-collision, strain limiting), whose energy
+    change the balance cannot tell from an instability's once the dissipated energy is no longer slack (Provot
+    strain limiting on a soft cloth: 11 % of the budget within 0.5 s, tests/test_stabilizers.py). Elsewhere D
+    is left out and the balance stays one-sided."""
+    return (model.shape_count == 0 and getattr(model, "self_contact", None) is None
+            and not model.stabilizers.enabled("max_strain"))
 
 
 def energy_scales(model: Model) -> np.ndarray:

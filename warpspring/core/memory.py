@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 from .. import checks
 from ..errors import ConfigError
-from ..kernels.guards import BALANCE_SLOTS, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS
+from ..kernels.guards import BALANCE_SLOTS, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS, RUNNING_SLOTS
 from ..kernels.inputs import INPUT_COUNT
 
 #: Bytes per floating-point number of each precision.
@@ -281,12 +281,14 @@ def estimate_memory(
         scratch += 16  # the CG settings
     # The guard: its records (and their clear copies), partial sums per block, limits, each world's work put in
     # and energy balance, the positions and loads of its last check, and the elastic energy's partial sums per
-    # block of each family's elements.
+    # block of each family's elements, and the running dissipation of those blocks and the particles' blocks.
     def element_blocks(count: int) -> int:
         return w * (count if not cuda else -(-count // _lanes(count, block_dim))) if count else 0
 
     guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * GUARD_FLOATS * blocks + 8 * GUARD_LIMITS * w
-             + 8 * w + 8 * BALANCE_SLOTS * w + 2 * vec3 * size + 8 * max(element_blocks(s) + element_blocks(h), w))
+             + 8 * w + 8 * BALANCE_SLOTS * w + 2 * vec3 * size + 8 * max(element_blocks(s) + element_blocks(h), w)
+             + 8 * RUNNING_SLOTS * ((blocks + element_blocks(s) + element_blocks(h)) if cuda
+                                    else w * (1 + bool(s) + bool(h))))
     post_step = (3 * vec3 * size if strain_limiting and s else 0)
     if contact_slots:
         post_step += (8 * contact_slots + 4) * size + 4 * w + f  # colliders and features per slot, counts, overflow

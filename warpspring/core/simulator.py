@@ -80,8 +80,8 @@ class Simulator:
         control = control if control is not None else model.control()
         # The guard counts the work of the control's external force (its kinetic-energy limit grows by it).
         integrator = integrator if integrator is not None else SymplecticEuler(model)
-        self.guard = (Guard(model, guard, self.substeps, control=control, integrator=integrator) if guard is not None
-                      else None)
+        self.guard = (Guard(model, guard, self.substeps, control=control, integrator=integrator, dt=self.dt)
+                      if guard is not None else None)
         self.stepper = Stepper(
             model,
             integrator,

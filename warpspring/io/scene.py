@@ -539,6 +539,7 @@ _SCHEMA = {
         "tear_strain": POSITIVE,
         "max_kinetic_energy": POSITIVE,
         "energy_balance": NON_NEGATIVE,
+        "dissipation": _Since(2, bool),
         "stop": _Since(2, str),
     },
     "wind": {

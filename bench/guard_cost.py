@@ -1,0 +1,67 @@
+"""What the run-time guard costs per substep, and what counting the dampers' dissipation in its energy
+balance adds (``GuardLimits(dissipation=...)``: one launch per damped family and one for drag after every
+substep, ``kernels/guards.py``).
+
+The scene is the soak's cloth (``bench/soak.py``: n × n particles of 0.1 kg 0.1 m apart, springs of
+1 kN/m and kd = 10 N·s/m in every family, drag 0.01 N·s/m, two top corners swung by a track), symplectic
+Euler, 16 substeps per 1/60 s frame replayed as one captured graph. Each configuration is timed over
+``--frames`` frames after ``--warmup`` frames (compiles, captures), ``wp.synchronize_device`` before every
+timer read; the table gives µs per substep and the ratio to the run without a guard.
+
+    python bench/guard_cost.py --device cpu --sizes 16 32
+    python bench/guard_cost.py --device cuda:0 --sizes 32 128 512 --out guard_cost.md
+"""
+
+import argparse
+import datetime
+import time
+
+import warp as wp
+
+import warpspring as ws
+from cloth import emit_table
+from soak import driven_cloth
+
+SUBSTEPS = 16
+CONFIGS = (("no guard", None), ("guard, balance without D", ws.GuardLimits(dissipation=False)),
+           ("guard, balance with D (default)", ws.GuardLimits()))
+
+
+def time_substep(device, n: int, guard, *, frames: int, warmup: int) -> float:
+    """µs per substep of the soak's n × n cloth under ``guard`` (``None``: no guard)."""
+    model = driven_cloth(device, n=n)
+    sim = ws.Simulator(model, fps=60, substeps=SUBSTEPS, guard=guard)
+    for _ in range(warmup):
+        sim.step_frame()
+    wp.synchronize_device(device)
+    started = time.perf_counter()
+    for _ in range(frames):
+        sim.step_frame()
+    wp.synchronize_device(device)
+    return (time.perf_counter() - started) / (frames * SUBSTEPS) * 1e6
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--sizes", type=int, nargs="+", default=[32, 128])
+    parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument("--warmup", type=int, default=10)
+    parser.add_argument("--out", default=None, help="also write the table to this file")
+    args = parser.parse_args()
+    device = wp.get_device(args.device)
+    lines = [f"Guard cost on {device.name}, Warp {wp.config.version}, {datetime.date.today()}: the soak's cloth, "
+             f"symplectic Euler, {SUBSTEPS} substeps per frame as one graph, {args.frames} frames timed", "",
+             "| particles | configuration | µs per substep | × no guard |", "|---|---|---|---|"]
+    for n in args.sizes:
+        base = None
+        for name, guard in CONFIGS:
+            us = time_substep(device, n, guard, frames=args.frames, warmup=args.warmup)
+            base = base or us
+            lines.append(f"| {n * n} | {name} | {us:.1f} | {us / base:.2f} |")
+            print(lines[-1], flush=True)
+    emit_table(lines, args.out)
+
+
+if __name__ == "__main__":
+    main()
