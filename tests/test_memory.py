@@ -75,7 +75,19 @@ SCENES = {
         ke=1e-3, kd=1e-5))),
     "pin group, moving collider": lambda: _moving(grid_builder()),
     "wind with noise, handles, emitters": lambda: _wind_and_handles(grid_builder()),
+    "mesh colliders: cached, winding number, one-sided": lambda: _meshes(grid_builder()),
 }
+
+
+def _meshes(builder):
+    import trimesh
+
+    builder.add_collider_mesh(trimesh.creation.icosphere(subdivisions=1), center=(0.0, 0.0, -1.0))
+    builder.add_collider_mesh(trimesh.creation.box(), center=(3.0, 0.0, -1.0), cache_candidates=8)
+    builder.add_collider_mesh(trimesh.creation.box(), center=(6.0, 0.0, -1.0), winding_number=True)
+    sheet = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
+    builder.add_collider_mesh(sheet, faces=[[0, 1, 2], [1, 3, 2]], center=(0.0, 5.0, -1.0), sides="one_sided")
+    return builder
 
 
 def _wind_and_handles(builder):

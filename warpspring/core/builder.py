@@ -80,6 +80,22 @@ DEFAULT_SHEAR = SpringMaterial(ke=1.0e3, kd=1.0)
 DEFAULT_BEND = SpringMaterial(ke=1.0e2, kd=0.1)
 
 
+def _mesh_collider_bytes(meshes: list) -> int:
+    """Device bytes of mesh colliders (``mesh_colliders.MeshCollider``): the ``wp.Mesh``'s points, velocities and
+    triangle indices, and for a cached mesh (not signed by its winding number) the pseudo-normals' face terms and
+    CSR tables (per vertex, per corner, per edge group); the BVH lives in Warp's native memory, not counted."""
+    from .mesh_colliders import edge_groups
+
+    total = 0
+    for info in meshes:
+        v, f = len(info.points_at(0.0)), len(info.faces)
+        total += 24 * v + 12 * f
+        if not info.winding_number:
+            groups = int(edge_groups(info.faces.astype(np.int64)).max()) + 1 if f else 0
+            total += 48 * f + 4 * (v + 1) + 36 * f + 4 * (groups + 1)
+    return total
+
+
 class ModelBuilder:
     """Collects a scene on the host and finalizes it into a :class:`Model` on a device.
 
@@ -1341,6 +1357,7 @@ class ModelBuilder:
             for extra in self._extra_pins:
                 mask[extra] = True
             pinned = int(mask.sum())
+        cached = [s for s in self._shapes if getattr(s, "mesh", None) is not None and not s.mesh.winding_number]
         return memory.estimate_memory(
             particles=n,
             springs=self._spring_count,
@@ -1363,6 +1380,10 @@ class ModelBuilder:
             block_dim=_block_dim(device, n * worlds),
             family_bytes=sum(f.device_bytes(n, 8 if precision == "float64" else 4, worlds) for f in self._families)
             + sum(e.device_bytes(worlds) for e in self._emitters),
+            cached_meshes=len(cached),
+            mesh_faces=sum(len(s.mesh.faces) for s in cached),
+            mesh_candidates=max([s.mesh.cache_candidates for s in cached], default=1),
+            mesh_bytes=_mesh_collider_bytes([s.mesh for s in self._shapes if getattr(s, "mesh", None) is not None]),
         )
 
     def _finalize(self, device, precision: str, scalar, worlds: int, spring_evaluation: str,

@@ -182,6 +182,18 @@ def incidence_bytes(members, particle_count: int) -> int:
     return 8 * slots * particle_count + 4 * (particle_count + 1) + 8 * tail
 
 
+def _mesh_cache_bytes(shapes: int, worlds: int, size: int, meshes: int, faces: int, candidates: int) -> int:
+    """The mesh colliders' candidate cache (``mesh_colliders.make_mesh_cache``) [B]: slot, reach, margin and normal
+    offset per collider; seven pseudo-normals per cached triangle; per cached mesh and state entry a reference
+    position, a side, a count and C triangles; overflow and refresh counts per world. Without a cached mesh the
+    per-particle arrays are one-entry placeholders."""
+    meshes = checks.count("cached_meshes", meshes, minimum=0)
+    faces = checks.count("mesh_faces", faces, minimum=0)
+    candidates = checks.count("mesh_candidates", candidates, minimum=1) if meshes else 1
+    rows, entries = (meshes, size) if meshes else (1, 1)
+    return 16 * shapes + 12 * max(1, 7 * faces) + rows * entries * (12 + 4 + 4 + 4 * candidates) + 8 * worlds
+
+
 def estimate_memory(
     *,
     particles: int,
@@ -205,6 +217,10 @@ def estimate_memory(
     exported_worlds: int | None = None,
     block_dim: int = 256,
     family_bytes: int = 0,
+    cached_meshes: int = 0,
+    mesh_faces: int = 0,
+    mesh_candidates: int = 1,
+    mesh_bytes: int = 0,
 ) -> MemoryEstimate:
     """Estimate the memory of a model and of a run of it, from counts, before anything is allocated.
 
@@ -228,6 +244,11 @@ def estimate_memory(
         block_dim: CUDA threads per reducing block (the partial sums' count); the CPU reduces per particle.
         family_bytes: the device arrays of the element families beyond springs and hinges (wind, handles: each
             family's ``ElementFamily.device_bytes``) [B].
+        cached_meshes: mesh colliders with a candidate cache (every mesh not signed by its winding number).
+        mesh_faces: the triangles of those meshes, in all (seven pseudo-normals each).
+        mesh_candidates: the largest ``cache_candidates`` among them (C: the cache's triangles per particle).
+        mesh_bytes: the mesh colliders' own device arrays (points, velocities, triangles, and the cached meshes'
+            pseudo-normal tables: ``ModelBuilder.estimate_memory`` counts them from the meshes) [B].
 
     Returns:
         The :class:`MemoryEstimate`.
@@ -271,7 +292,10 @@ def estimate_memory(
         # colliders: kind, size, scale, friction, restitution, mesh, rest frame, track indices; their frames at a
         # step's start and end in one row, or one row per world when a collider moves
         + shapes * (4 + 8 * f + 8 + 56 + 8) + 14 * f * shapes * (w if moving_colliders else 1)
+        + 36 * shapes  # thickness, static friction, sides, and the bounds (lower, upper) of each collider
         + checks.count("family_bytes", family_bytes, minimum=0)
+        + _mesh_cache_bytes(shapes, w, size, cached_meshes, mesh_faces, mesh_candidates)
+        + checks.count("mesh_bytes", mesh_bytes, minimum=0)
     )
     states = 2 * (3 * vec3 * size + 8 * w)
     per_vec3, per_scalar, per_block, per_world_f64, per_world_i32 = INTEGRATOR_SCRATCH[integrator]
