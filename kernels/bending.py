@@ -30,6 +30,7 @@ from typing import NamedTuple
 
 import warp as wp
 
+from .families import four_point_funcs
 from .precision import mat33_type, vec3_type
 
 wp.set_module_options({"enable_backward": False})
@@ -101,10 +102,7 @@ def dihedral_funcs(scalar: type) -> DihedralFuncs:
         g0 = -(g1 + g2 + g3)
         return theta, g0, g1, g2, g3
 
-    @wp.func
-    def gradient_of_role(role: int, g0: vec3, g1: vec3, g2: vec3, g3: vec3) -> vec3:
-        """The gradient of particle ``role`` (0..3) among the four, without dynamic tuple indexing."""
-        return wp.where(role == 0, g0, wp.where(role == 1, g1, wp.where(role == 2, g2, g3)))
+    gradient_of_role = four_point_funcs(scalar).gradient_of_role
 
     @wp.func
     def wrap_angle(angle: scalar) -> scalar:

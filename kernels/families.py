@@ -114,6 +114,43 @@ def masked_operand(scalar: type):
     return operand
 
 
+class FourPointFuncs(NamedTuple):
+    """``@wp.func`` helpers of families whose elements are four particles with one scalar measure each
+    (dihedral hinges: the angle; tets: the volume), in one precision (see ``four_point_funcs``)."""
+
+    gradient_of_role: wp.Function
+    gauss_newton_entry: wp.Function
+
+
+@functools.cache
+def four_point_funcs(scalar: type) -> FourPointFuncs:
+    """``gradient_of_role(role, g0, g1, g2, g3) -> vec3``: the gradient of particle ``role`` (0..3) among the
+    four, without dynamic tuple indexing.
+
+    ``gauss_newton_entry(k, role, base, ids, g0, g1, g2, g3, particle_flags, x, free_only) -> (vec3, mat33)``:
+    the element's Gauss-Newton stiffness k g gᵀ (g the measure's gradient over the four particles ``ids``,
+    from state entry ``base``) applied to x, row ``role``: k g_role Σ_b g_b · x_b (x masked by
+    ``masked_operand``), and its diagonal block k g_role g_roleᵀ."""
+    vec3 = vec3_type(scalar)
+    operand = masked_operand(scalar)
+
+    @wp.func
+    def gradient_of_role(role: int, g0: vec3, g1: vec3, g2: vec3, g3: vec3) -> vec3:
+        return wp.where(role == 0, g0, wp.where(role == 1, g1, wp.where(role == 2, g2, g3)))
+
+    @wp.func
+    def gauss_newton_entry(k: scalar, role: int, base: int, ids: wp.vec4i, g0: vec3, g1: vec3, g2: vec3, g3: vec3,
+                           particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool):
+        ga = gradient_of_role(role, g0, g1, g2, g3)
+        rate = wp.dot(g0, operand(base + ids[0], particle_flags, x, free_only))
+        rate += wp.dot(g1, operand(base + ids[1], particle_flags, x, free_only))
+        rate += wp.dot(g2, operand(base + ids[2], particle_flags, x, free_only))
+        rate += wp.dot(g3, operand(base + ids[3], particle_flags, x, free_only))
+        return (k * rate) * ga, k * wp.outer(ga, ga)
+
+    return FourPointFuncs(gradient_of_role, gauss_newton_entry)
+
+
 def gathered_force(scalar: type, Arrays, shape: IncidenceShape, entry):
     """A family's ``force`` hook summing ``entry`` over particle i's incidence entries (head, then tail).
 

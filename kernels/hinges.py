@@ -15,7 +15,8 @@ from dataclasses import dataclass
 import warp as wp
 
 from .bending import dihedral_funcs
-from .families import FamilyFuncs, Incidence, IncidenceShape, gathered_force, gathered_product, masked_operand
+from .families import (FamilyFuncs, Incidence, IncidenceShape, four_point_funcs, gathered_force,
+                       gathered_product)
 from .precision import mat33_type, vec3_type
 
 wp.set_module_options({"enable_backward": False})
@@ -56,7 +57,7 @@ def hinge_family_funcs(scalar: type, spec: HingeSpec) -> FamilyFuncs:
     angle_gradient = bending.dihedral_angle_gradient
     gradient_of_role = bending.gradient_of_role
     hinge_moment = bending.hinge_moment
-    operand = masked_operand(scalar)
+    gauss_newton_entry = four_point_funcs(scalar).gauss_newton_entry
 
     @wp.func
     def hinge_force_on(
@@ -89,12 +90,8 @@ def hinge_family_funcs(scalar: type, spec: HingeSpec) -> FamilyFuncs:
                                                particle_q[base + ids[2]], particle_q[base + ids[3]])
         k = alpha * hinges.stiffness[wp.min(world, hinges.stiffness.shape[0] - 1), h] + beta * hinges.damping[
             wp.min(world, hinges.damping.shape[0] - 1), h]
-        ga = gradient_of_role(role, g0, g1, g2, g3)
-        rate = wp.dot(g0, operand(base + ids[0], particle_flags, x, free_only))
-        rate += wp.dot(g1, operand(base + ids[1], particle_flags, x, free_only))
-        rate += wp.dot(g2, operand(base + ids[2], particle_flags, x, free_only))
-        rate += wp.dot(g3, operand(base + ids[3], particle_flags, x, free_only))
-        return (k * rate) * ga, k * wp.outer(ga, ga)
+        product, block = gauss_newton_entry(k, role, base, ids, g0, g1, g2, g3, particle_flags, x, free_only)
+        return product, block
 
     force = gathered_force(scalar, HingeArrays, spec.incidence, hinge_force_on)
     product = gathered_product(scalar, HingeArrays, spec.incidence, product_entry)

@@ -37,7 +37,8 @@ from typing import Any, NamedTuple
 
 import warp as wp
 
-from .families import FamilyFuncs, Incidence, IncidenceShape, gathered_force, gathered_product, masked_operand
+from .families import (FamilyFuncs, Incidence, IncidenceShape, four_point_funcs, gathered_force,
+                       gathered_product)
 from .precision import mat33_type, vec3_type
 
 wp.set_module_options({"enable_backward": False})
@@ -75,10 +76,7 @@ def tet_volume_funcs(scalar: type) -> TetVolumeFuncs:
         g3 = wp.cross(e1, e2) * sixth
         return wp.dot(e1, g1), -(g1 + g2 + g3), g1, g2, g3
 
-    @wp.func
-    def gradient_of_role(role: int, g0: vec3, g1: vec3, g2: vec3, g3: vec3) -> vec3:
-        """The gradient of particle ``role`` (0..3) among the four, without dynamic tuple indexing."""
-        return wp.where(role == 0, g0, wp.where(role == 1, g1, wp.where(role == 2, g2, g3)))
+    gradient_of_role = four_point_funcs(scalar).gradient_of_role
 
     @wp.func
     def corner_gradient(role: int, x0: vec3, x1: vec3, x2: vec3, x3: vec3) -> vec3:
@@ -170,9 +168,8 @@ def volume_family_funcs(scalar: type, spec: VolumeSpec) -> VolumeFuncs:
     funcs = tet_volume_funcs(scalar)
     volume_gradient = funcs.tet_volume_gradient
     corner_gradient = funcs.corner_gradient
-    gradient_of_role = funcs.gradient_of_role
     tet_pressure = funcs.tet_pressure
-    operand = masked_operand(scalar)
+    gauss_newton_entry = four_point_funcs(scalar).gauss_newton_entry
 
     @wp.func
     def whole_tet_pressure(world: int, t: int, base: int, tets: VolumeArrays, particle_q: wp.array[vec3],
@@ -217,12 +214,8 @@ def volume_family_funcs(scalar: type, spec: VolumeSpec) -> VolumeFuncs:
                                             particle_q[base + ids[2]], particle_q[base + ids[3]])
         k = (alpha * tets.bulk_modulus[wp.min(world, tets.bulk_modulus.shape[0] - 1), t]
              + beta * tets.viscosity[wp.min(world, tets.viscosity.shape[0] - 1), t]) / tets.rest_volume[t]
-        ga = gradient_of_role(role, g0, g1, g2, g3)
-        rate = wp.dot(g0, operand(base + ids[0], particle_flags, x, free_only))
-        rate += wp.dot(g1, operand(base + ids[1], particle_flags, x, free_only))
-        rate += wp.dot(g2, operand(base + ids[2], particle_flags, x, free_only))
-        rate += wp.dot(g3, operand(base + ids[3], particle_flags, x, free_only))
-        return (k * rate) * ga, k * wp.outer(ga, ga)
+        product, block = gauss_newton_entry(k, role, base, ids, g0, g1, g2, g3, particle_flags, x, free_only)
+        return product, block
 
     force = gathered_force(scalar, VolumeArrays, spec.incidence, tet_force_on)
     product = gathered_product(scalar, VolumeArrays, spec.incidence, product_entry)
