@@ -621,6 +621,15 @@ def mesh_cache_funcs(scalar: type):
         return True, t, det > none
 
     @wp.func
+    def face_ray(mesh: wp.uint64, f: int, o: wp.vec3f, dir: wp.vec3f):
+        """``ray_triangle`` of the segment o → o + dir against face f of the mesh: hit, its parameter, front."""
+        a = wp.mesh_get_point(mesh, 3 * f)
+        b = wp.mesh_get_point(mesh, 3 * f + 1)
+        c = wp.mesh_get_point(mesh, 3 * f + 2)
+        hit, t, front = ray_triangle(a, b, c, o, dir)
+        return hit, t, front
+
+    @wp.func
     def face_result(mesh: wp.uint64, cache: MeshCache, s: int, sides: int, f: int, closest: wp.vec3f, wa: f32, wb: f32,
                     feature: int, p: vec3):
         """Signed distance [m] of p from face f's closest point, the outward unit normal and the surface's
@@ -796,10 +805,7 @@ def mesh_cache_funcs(scalar: type):
             if cached:
                 for k in range(cache.count[slot, p_index]):
                     f = cache.face[slot, p_index, k]
-                    a = wp.mesh_get_point(mesh, 3 * f)
-                    b = wp.mesh_get_point(mesh, 3 * f + 1)
-                    c = wp.mesh_get_point(mesh, 3 * f + 2)
-                    hit, t, front = ray_triangle(a, b, c, o, dir)
+                    hit, t, front = face_ray(mesh, f, o, dir)
                     if hit and nearer(t, f, best_t, best_f):
                         best_t = t
                         best_f = f
@@ -812,10 +818,7 @@ def mesh_cache_funcs(scalar: type):
                 query = wp.mesh_query_aabb(mesh, low, high)
                 f = int(0)
                 while wp.mesh_query_aabb_next(query, f):
-                    a = wp.mesh_get_point(mesh, 3 * f)
-                    b = wp.mesh_get_point(mesh, 3 * f + 1)
-                    c = wp.mesh_get_point(mesh, 3 * f + 2)
-                    hit, t, front = ray_triangle(a, b, c, o, dir)
+                    hit, t, front = face_ray(mesh, f, o, dir)
                     if hit and nearer(t, f, best_t, best_f):
                         best_t = t
                         best_f = f
