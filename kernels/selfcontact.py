@@ -198,6 +198,31 @@ def geometry_funcs(scalar: type):
 
 
 @functools.cache
+def _vertex_extent(scalar: type, swept: bool):
+    """``extend(lower, upper, j, local, mass_row, particle_flags, particle_inv_mass, particle_q_start,
+    particle_q_end, limit) -> (lower, upper)``: the box [lower, upper] grown to hold vertex j's (state entry;
+    ``local`` its index in the world) start and, with ``swept``, where it ends the stage at most."""
+    vec3 = vec3_type(scalar)
+    _, stage_end, is_free, _, _ = _pair_funcs(scalar)
+
+    @wp.func
+    def extend(lower: vec3, upper: vec3, j: int, local: int, mass_row: int, particle_flags: wp.array[wp.int32],
+               particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3],
+               particle_q_end: wp.array[vec3], limit: scalar):
+        start = particle_q_start[j]
+        low = wp.min(lower, start)
+        high = wp.max(upper, start)
+        if wp.static(swept):
+            end = stage_end(is_free(particle_flags[j], particle_inv_mass[mass_row, local]), start,
+                            particle_q_end[j], limit)
+            low = wp.min(low, end)
+            high = wp.max(high, end)
+        return low, high
+
+    return extend
+
+
+@functools.cache
 def _pair_funcs(scalar: type):
     """Helpers shared by the stages' kernels, in precision ``scalar``."""
     vec3 = vec3_type(scalar)
@@ -268,7 +293,8 @@ def leaf_kernel(scalar: type, swept: bool):
     """Kernel writing each triangle's single-precision box: at the step's start, or (``swept``) around its
     corners at the start and at the stage's end (``stage_end``)."""
     vec3 = vec3_type(scalar)
-    box_of, stage_end, is_free, _, _ = _pair_funcs(scalar)
+    box_of = _pair_funcs(scalar)[0]
+    extend = _vertex_extent(scalar, swept)
 
     @flat_kernel(module="unique", enable_backward=False)
     def leaves(
@@ -293,15 +319,8 @@ def leaf_kernel(scalar: type, swept: bool):
         lower = particle_q_start[base + tri[0]]
         upper = lower
         for k in range(3):
-            j = base + tri[k]
-            start = particle_q_start[j]
-            lower = wp.min(lower, start)
-            upper = wp.max(upper, start)
-            if wp.static(swept):
-                end = stage_end(is_free(particle_flags[j], particle_inv_mass[mass_row, tri[k]]), start,
-                                particle_q_end[j], limit)
-                lower = wp.min(lower, end)
-                upper = wp.max(upper, end)
+            lower, upper = extend(lower, upper, base + tri[k], tri[k], mass_row, particle_flags, particle_inv_mass,
+                                  particle_q_start, particle_q_end, limit)
         box_lower, box_upper = box_of(lower, upper, scalar(0.0))
         surface.leaf_lower[tid] = box_lower
         surface.leaf_upper[tid] = box_upper
@@ -315,7 +334,8 @@ def _broad_kernel(scalar: type, swept: bool, edges: bool):
     reach_add at the start; with it the cap's pairs at (start, end)."""
     vec3 = vec3_type(scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
-    box_of, stage_end, is_free, sweep_bounds, push_pair = _pair_funcs(scalar)
+    box_of, _, _, sweep_bounds, push_pair = _pair_funcs(scalar)
+    extend = _vertex_extent(scalar, swept)
 
     @wp.func
     def boxes_overlap(lower_a: vec3, upper_a: vec3, lower_b: vec3, upper_b: vec3):
@@ -381,15 +401,8 @@ def _broad_kernel(scalar: type, swept: bool, edges: bool):
         lower = particle_q_start[base + ends[0]]
         upper = lower
         for k in range(2):
-            j = base + ends[k]
-            start = particle_q_start[j]
-            lower = wp.min(lower, start)
-            upper = wp.max(upper, start)
-            if wp.static(swept):
-                end = stage_end(is_free(particle_flags[j], particle_inv_mass[mass_row, ends[k]]), start,
-                                particle_q_end[j], limit)
-                lower = wp.min(lower, end)
-                upper = wp.max(upper, end)
+            lower, upper = extend(lower, upper, base + ends[k], ends[k], mass_row, particle_flags, particle_inv_mass,
+                                  particle_q_start, particle_q_end, limit)
         query_reach = reach
         if wp.static(swept):
             query_reach = scalar(0.0)
@@ -427,15 +440,12 @@ def _broad_kernel(scalar: type, swept: bool, edges: bool):
                         q2 = particle_q_start[base + other[1]]
                         # The other edge's own (swept) box against the query box, before the geometry: a pair
                         # closer than the reach overlaps it, and a disjoint swept pair cannot meet (proof, (a)).
-                        other_lower = wp.min(p2, q2)
-                        other_upper = wp.max(p2, q2)
-                        if wp.static(swept):
-                            for k in range(2):
-                                j = base + other[k]
-                                end = stage_end(is_free(particle_flags[j], particle_inv_mass[mass_row, other[k]]),
-                                                particle_q_start[j], particle_q_end[j], limit)
-                                other_lower = wp.min(other_lower, end)
-                                other_upper = wp.max(other_upper, end)
+                        other_lower = p2
+                        other_upper = p2
+                        for k in range(2):
+                            other_lower, other_upper = extend(other_lower, other_upper, base + other[k], other[k],
+                                                              mass_row, particle_flags, particle_inv_mass,
+                                                              particle_q_start, particle_q_end, limit)
                         if not boxes_overlap(other_lower, other_upper, vec3(box_lower), vec3(box_upper)):
                             continue
                         p1 = particle_q_start[base + ends[0]]
