@@ -19,6 +19,10 @@ what the term does to E and ν (float64 static solves of the pulled bar):
 
     python bench/softbody.py --volume-elasticity
 
+the patch test of the tet networks beside their cube and bar errors (RESULTS §18f; static solves):
+
+    python bench/softbody.py --patch-test --builds 3 --out bench/results/softbody_patch_test.md
+
 and the term's cost per substep (one CUDA graph of 200 substeps on a GPU):
 
     python bench/softbody.py --device cuda:0 --family-cost --out FILE
@@ -312,6 +316,41 @@ def family_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int = 7,
          f"{1e9 * (median[v] - off) / max(tets, 1):.1f} ns |" for v in variants[1:]]) + "\n"
 
 
+def patch_test(*, builds: int = 3, cube_cells=(4, 6, 8, 10, 12), bar_cells=(3, 4, 6, 8)) -> str:
+    """Why the tetrahedral bodies' errors do not fall with resolution: each build's patch test
+    (``se.uniform_stress_compliance``: the body's compliance under the six uniform stresses against the
+    material's; linear elasticity on the same tets gives 1 exactly) beside its cube or bar error, and the
+    tets' real median edge (fTetWild does not follow the requested length monotonically). Static solves, no
+    device; also the Delaunay body (seeded, one build)."""
+    lines = [
+        f"The patch test of the tet networks, {datetime.date.today()} (float64 static solves; E = {E:g} Pa, ν = 1/4; "
+        "ratio = the network's complementary energy under a uniform stress / the material's, > 1 softer):",
+        "",
+        "| body | method | cells asked | median edge [m] | particles | σxx, σyy, σzz | τyz, τxz, τxy | "
+        "linear FEM, same tets | error of the check |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    shapes = {"cube": ((1.0, 1.0, 1.0), 1.0, cube_cells), "bar": ((1.0, 0.2, 0.2), 0.2, bar_cells)}
+    for body, (size, across, cells) in shapes.items():
+        for method, repeats in (("tetrahedral", builds), ("delaunay", 1)):
+            for n in cells:
+                for _ in range(repeats):
+                    topology = se.box_topology(method, size, youngs_modulus=E, spacing=across / n)
+                    x, (pairs, _) = topology.positions, topology.springs[next(iter(topology.springs))]
+                    edge = float(np.median(np.linalg.norm(x[pairs[:, 1]] - x[pairs[:, 0]], axis=1)))
+                    ratio = se.uniform_stress_compliance(topology, youngs_modulus=E)
+                    fem = se.uniform_stress_compliance(topology, youngs_modulus=E, stiffness=se.linear_fem_stiffness(
+                        x, topology.tets, youngs_modulus=E))
+                    error = (se.cube_shortening(topology, youngs_modulus=E, density=RHO) if body == "cube"
+                             else se.bar_stretch(topology, youngs_modulus=E))
+                    axial = ", ".join(f"{ratio[m]:.3f}" for m in ("xx", "yy", "zz"))
+                    shear = ", ".join(f"{ratio[m]:.3f}" for m in ("yz", "xz", "xy"))
+                    lines.append(f"| {body} | {method} | {n} | {edge:.3f} | {len(x)} | {axial} | {shear} | "
+                                 f"{max(abs(v - 1.0) for v in fem.values()):.0e} off 1 | {100 * error:+.1f} % |")
+                    print(lines[-1], flush=True)
+    return "\n".join(lines) + "\n"
+
+
 def table(drop_rows, elastic: dict, step: float, dt: float, device) -> str:
     def pct(x):
         return "—" if x is None or not np.isfinite(x) else f"{100.0 * x:+.1f} %"
@@ -352,10 +391,20 @@ def table(drop_rows, elastic: dict, step: float, dt: float, device) -> str:
     return "\n".join(lines) + "\n"
 
 
+def emit(text: str, out: str | None) -> None:
+    """Print ``text`` and, with ``out``, write it there."""
+    if out:
+        os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
+        with open(out, "w") as f:
+            f.write(text)
+    print(text)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--out", default="bench/results/softbody_cpu.md")
+    parser.add_argument("--out", default=None,
+                        help="write the table here too (default for the full run: bench/results/softbody_cpu.md)")
     parser.add_argument("--picture", default="docs/images/softbody.png")
     parser.add_argument("--usd", default="/tmp/softbody_drop.usdc")
     parser.add_argument("--drop-only", action="store_true",
@@ -364,6 +413,9 @@ def main() -> None:
                         help="only time a substep with and without the tet volume term (--methods: the balls)")
     parser.add_argument("--volume-elasticity", action="store_true",
                         help="only the bar's E and ν without and with the tet volume term (static solves, no device)")
+    parser.add_argument("--patch-test", action="store_true",
+                        help="only the tet networks' patch test beside their cube and bar errors (static solves)")
+    parser.add_argument("--builds", type=int, default=3, help="fTetWild builds per resolution for --patch-test")
     parser.add_argument("--methods", nargs="+", choices=[c[0] for c in CASES], help="the balls to drop (default all)")
     parser.add_argument("--volume", choices=("off", "on", "both"), default="off",
                         help="the tet volume term on the tetrahedral and Delaunay balls; both: two drops, one table")
@@ -373,22 +425,13 @@ def main() -> None:
     args = parser.parse_args()
     wp.init()
     if args.volume_elasticity:
-        text = volume_elasticity(tuple(args.methods or ("tetrahedral", "delaunay")), bulk_modulus=args.bulk_modulus)
-        if args.out:
-            os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-            with open(args.out, "w") as f:
-                f.write(text)
-        print(text)
-        return
+        return emit(volume_elasticity(tuple(args.methods or ("tetrahedral", "delaunay")),
+                                      bulk_modulus=args.bulk_modulus), args.out)
+    if args.patch_test:
+        return emit(patch_test(builds=args.builds), args.out)
     if args.family_cost:
-        text = family_cost(args.device, methods=tuple(args.methods or ("tetrahedral", "delaunay")),
-                           bulk_modulus=args.bulk_modulus)
-        if args.out:
-            os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-            with open(args.out, "w") as f:
-                f.write(text)
-        print(text)
-        return
+        return emit(family_cost(args.device, methods=tuple(args.methods or ("tetrahedral", "delaunay")),
+                                bulk_modulus=args.bulk_modulus), args.out)
     if args.drop_only:
         runs, dt = [], None
         # with both, the drop with the term first: the one without takes its (smaller) step, so only the term differs
@@ -396,23 +439,14 @@ def main() -> None:
             rows, step, dt = drop(args.device, None, methods=args.methods, volume=on, bulk_modulus=args.bulk_modulus,
                                   youngs_modulus=args.youngs_modulus, height=args.height, dt=dt)
             runs.insert(0, (on, rows, step, dt))
-        text = volume_table(runs, args.device, youngs_modulus=args.youngs_modulus, height=args.height,
-                            bulk_modulus=args.bulk_modulus)
-        if args.out:
-            os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-            with open(args.out, "w") as f:
-                f.write(text)
-        print(text)
-        return
+        return emit(volume_table(runs, args.device, youngs_modulus=args.youngs_modulus, height=args.height,
+                                 bulk_modulus=args.bulk_modulus), args.out)
     elastic = {}
     for method, cube, bar, options in CASES:
         elastic[method] = elasticity(method, cube, bar, options)
     rows, step, dt = drop(args.device, args.usd)
     text = table(rows, elastic, step, dt, args.device)
-    os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-    with open(args.out, "w") as f:
-        f.write(text)
-    print(text)
+    emit(text, args.out or "bench/results/softbody_cpu.md")
     if args.picture:
         from warpspring.io.render import render_usd
 

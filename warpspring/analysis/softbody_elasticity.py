@@ -8,7 +8,10 @@ linear stiffness (``core.softbody.stiffness_matrix``) against the closed forms o
   and contracts sideways by ν times its strain (:func:`bar_poisson_ratio` returns ν itself);
 * a cantilever of length L and square section s (L/s ≥ 10) clamped at one end deflects under its own weight
   q = ρgA by qL⁴/(8EI), I = s⁴/12 (Euler-Bernoulli; shear adds ~(s/L)² relative);
-* a free bar rings in its first longitudinal mode at f = √(E/ρ)/(2L) (lumped masses).
+* a free bar rings in its first longitudinal mode at f = √(E/ρ)/(2L) (lumped masses);
+* a body under a uniform stress σ (tractions σn on its surface, no other load) stores the complementary
+  energy ½ V σ:S:σ, S the compliance of the isotropic material (:func:`uniform_stress_compliance`: the
+  patch test; linear tetrahedra pass it exactly, a spring network only where its relaxation is affine).
 """
 
 from __future__ import annotations
@@ -147,3 +150,110 @@ def _hold_rigid_in_plane(fixed: np.ndarray, x: np.ndarray, layer: np.ndarray, ax
     b = layer[np.argmax(np.abs(x[layer, i] - x[a, i]) - 10.0 * np.abs(x[layer, j] - x[a, j]))]
     fixed[a, i] = fixed[a, j] = True
     fixed[b, j] = True
+
+
+STRESS_MODES = ("xx", "yy", "zz", "yz", "xz", "xy")
+
+
+def uniform_stress_compliance(topology, *, youngs_modulus: float, poisson_ratio: float = 0.25,
+                              stiffness=None) -> dict:
+    """The patch test of a tetrahedral body: for each of the six unit stress states σ (three uniaxial, three
+    pure shears) the body's surface carries the tractions σn (each boundary triangle's σ·a shared equally by
+    its corners, a its outward area vector) and nothing holds it but the six rigid motions (a 3-2-1 support,
+    which carries no reaction under self-equilibrated loads); the float64 static solve's complementary energy
+    ½ fᵀu against the continuum's ½ V σ:S:σ, S of (E, ν). Returns {mode: ratio} (1 = the body is exactly as
+    compliant as the material; > 1 softer), modes :data:`STRESS_MODES`.
+
+    Args:
+        topology: a body with tetrahedra (``Topology.tets``: the tetrahedral and Delaunay methods).
+        stiffness: the [3n, 3n] stiffness to test (default the springs', ``softbody.stiffness_matrix``);
+            :func:`linear_fem_stiffness` gives linear elasticity's on the same tets, which passes exactly.
+    """
+    import scipy.sparse.linalg as spla
+
+    if getattr(topology, "tets", None) is None:
+        raise ValueError("uniform_stress_compliance needs a body with tetrahedra (methods tetrahedral, delaunay)")
+    x = np.asarray(topology.positions, dtype=np.float64)
+    tets = np.asarray(topology.tets)
+    if stiffness is None:
+        pairs = np.concatenate([p for p, _ in topology.springs.values()])
+        ke = np.concatenate([k for _, k in topology.springs.values()])
+        stiffness = sb.stiffness_matrix(x, pairs, ke)
+    faces, area = boundary_faces(x, tets)
+    volume = float(np.abs(sb._signed_volumes(x, tets)).sum())
+    free = np.setdiff1d(np.arange(3 * len(x)), _rigid_support(x))
+    solve = spla.splu(stiffness.tocsr()[free][:, free].tocsc()).solve
+    e, nu = float(youngs_modulus), float(poisson_ratio)
+    ratios = {}
+    for name in STRESS_MODES:
+        i, j = ("xyz".index(name[0]), "xyz".index(name[1]))
+        sigma = np.zeros((3, 3))
+        sigma[i, j] = sigma[j, i] = 1.0
+        strain = (1.0 + nu) / e * sigma - nu / e * np.trace(sigma) * np.eye(3)
+        force = np.zeros((len(x), 3))
+        np.add.at(force, faces.ravel(), np.repeat(area @ sigma / 3.0, 3, axis=0))
+        f = force.ravel()
+        u = np.zeros_like(f)
+        u[free] = solve(f[free])
+        ratios[name] = float(0.5 * f @ u / (0.5 * volume * np.sum(sigma * strain)))
+    return ratios
+
+
+def linear_fem_stiffness(positions: np.ndarray, tets: np.ndarray, *, youngs_modulus: float,
+                         poisson_ratio: float = 0.25):
+    """Linear elasticity's stiffness on linear tetrahedra (constant strain per tet, Lamé λ, μ of (E, ν)), a
+    ``scipy.sparse.csr_matrix`` [3n, 3n] float64: the reference :func:`uniform_stress_compliance` compares the
+    springs with."""
+    import scipy.sparse as sp
+
+    e, nu = float(youngs_modulus), float(poisson_ratio)
+    lam, mu = e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)), e / (2.0 * (1.0 + nu))
+    x = np.asarray(positions, dtype=np.float64)
+    corner = x[tets]
+    edges = np.swapaxes(corner[:, 1:] - corner[:, :1], 1, 2)  # [t, 3, 3], columns x_k − x_0
+    inverse = np.linalg.inv(edges)
+    grad = np.concatenate([-inverse.sum(axis=1, keepdims=True), inverse], axis=1)  # [t, 4, 3]: ∇N_a
+    b = np.zeros((len(tets), 6, 12))  # Voigt strain (xx, yy, zz, xy, yz, xz) of the 12 corner displacements
+    for a in range(4):
+        gx, gy, gz = grad[:, a, 0], grad[:, a, 1], grad[:, a, 2]
+        b[:, 0, 3 * a], b[:, 1, 3 * a + 1], b[:, 2, 3 * a + 2] = gx, gy, gz
+        b[:, 3, 3 * a], b[:, 3, 3 * a + 1] = gy, gx
+        b[:, 4, 3 * a + 1], b[:, 4, 3 * a + 2] = gz, gy
+        b[:, 5, 3 * a], b[:, 5, 3 * a + 2] = gz, gx
+    c = np.zeros((6, 6))
+    c[:3, :3] = lam
+    c[np.arange(3), np.arange(3)] += 2.0 * mu
+    c[3:, 3:] = mu * np.eye(3)
+    element = np.abs(sb._signed_volumes(x, tets))[:, None, None] * np.einsum("tai,ab,tbj->tij", b, c, b)
+    dof = (3 * tets[:, :, None] + np.arange(3)).reshape(len(tets), 12)
+    rows, cols = np.repeat(dof, 12, axis=1).ravel(), np.tile(dof, (1, 12)).ravel()
+    return sp.csr_matrix((element.ravel(), (rows, cols)), shape=(3 * len(x), 3 * len(x)))
+
+
+def boundary_faces(positions: np.ndarray, tets: np.ndarray):
+    """The faces that belong to one tet only, [f, 3], and their outward area vectors [m²], [f, 3]."""
+    faces = np.concatenate([tets[:, [0, 1, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 3]], tets[:, [1, 2, 3]]])
+    opposite = np.concatenate([tets[:, 3], tets[:, 2], tets[:, 1], tets[:, 0]])
+    _, inverse, count = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
+    once = count[inverse.ravel()] == 1
+    faces, opposite = faces[once], opposite[once]
+    p = positions[faces]
+    area = 0.5 * np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    inward = np.einsum("ij,ij->i", area, p.mean(axis=1) - positions[opposite]) < 0.0
+    area[inward] *= -1.0
+    return faces, area
+
+
+def _rigid_support(x: np.ndarray) -> np.ndarray:
+    """Six degrees of freedom whose holding removes exactly the rigid motions (3-2-1): all of the particle
+    nearest the centroid, the two components across the line to the farthest particle that vary least along
+    it, and the component most normal to the plane through a third particle farthest from that line."""
+    a = int(np.argmin(np.linalg.norm(x - x.mean(axis=0), axis=1)))
+    d = x - x[a]
+    b = int(np.argmax(np.linalg.norm(d, axis=1)))
+    axis = d[b] / np.linalg.norm(d[b])
+    across = d - np.outer(d @ axis, axis)
+    c = int(np.argmax(np.linalg.norm(across, axis=1)))
+    normal = np.cross(axis, across[c])
+    held = [3 * a, 3 * a + 1, 3 * a + 2, *(3 * b + np.argsort(np.abs(axis))[:2]), 3 * c + int(np.argmax(np.abs(normal)))]
+    return np.asarray(held, dtype=np.int64)
