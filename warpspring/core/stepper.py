@@ -36,6 +36,10 @@ class StepHook:
     def begin(self) -> None:
         """Called at the start of every :meth:`Stepper.advance`, before the first step."""
 
+    def before_step(self, state: State, step: int, steps: int) -> None:
+        """Called before step ``step`` (0-based) of ``steps``, with the state it starts from (optional: a hook
+        without this method is not called)."""
+
     def after_step(self, state: State, step: int, steps: int) -> None:
         """Called after step ``step`` (0-based) of ``steps``, with the state that step produced."""
 
@@ -138,7 +142,10 @@ class Stepper:
         for hook in self.hooks:
             hook.begin()
         a, b = self.state, self._scratch
+        before = [hook for hook in self.hooks if _wants_before_step(hook)]
         for k in range(self.steps):
+            for hook in before:
+                hook.before_step(a, k, self.steps)
             self.integrator.step(a, b, self.control, self.dt)
             a, b = b, a
             for hook in self.hooks:
@@ -154,6 +161,9 @@ class Stepper:
         history = [wp.clone(a) for a in carried]
         for hook in self.hooks:
             hook.begin()
+        for hook in self.hooks:
+            if _wants_before_step(hook):
+                hook.before_step(self.state, self.steps - 1, self.steps)
         self.integrator.step(self.state, self._scratch, self.control, self.dt)
         for hook in self.hooks:
             hook.after_step(self._scratch, self.steps - 1, self.steps)
@@ -163,3 +173,9 @@ class Stepper:
             self._run()
         self._graph = capture.graph
         self.captures += 1
+
+
+def _wants_before_step(hook) -> bool:
+    """Whether ``hook`` does something before a step (its class overrides :meth:`StepHook.before_step`)."""
+    method = getattr(type(hook), "before_step", None)
+    return method is not None and method is not StepHook.before_step
