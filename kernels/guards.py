@@ -386,15 +386,16 @@ def dissipation_rule_func(midpoint: bool):
 
 @functools.cache
 def step_midpoint_kernel(scalar: type):
-    """Kernel turning ``q``, ``qd`` (the positions [m] and velocities [m/s] at a substep's start) into the
-    substep's midpoint state, the means of start and end, in place; one thread per particle of every world."""
+    """Kernel writing a substep's midpoint state, the means of the positions [m] and velocities [m/s] at its
+    start and end; one thread per particle of every world."""
     vec3 = vec3_type(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def step_midpoint(end_q: wp.array[vec3], end_qd: wp.array[vec3], q: wp.array[vec3], qd: wp.array[vec3]):
+    def step_midpoint(start_q: wp.array[vec3], start_qd: wp.array[vec3], end_q: wp.array[vec3],
+                      end_qd: wp.array[vec3], q: wp.array[vec3], qd: wp.array[vec3]):
         i = wp.tid()
-        q[i] = (q[i] + end_q[i]) * scalar(0.5)
-        qd[i] = (qd[i] + end_qd[i]) * scalar(0.5)
+        q[i] = (start_q[i] + end_q[i]) * scalar(0.5)
+        qd[i] = (start_qd[i] + end_qd[i]) * scalar(0.5)
 
     return step_midpoint
 

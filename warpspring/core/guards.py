@@ -350,7 +350,7 @@ class Guard(StepHook):
         self._every = None
         self._dissipating = None
         self._midpoint = False
-        self._step_position = self._step_velocity = None
+        self._step_position = self._step_velocity = self._step_start = None
         self.limits = limits
 
     @property
@@ -495,8 +495,7 @@ class Guard(StepHook):
 
     def before_step(self, state: State, step: int, steps: int) -> None:
         if self._dissipating and self._midpoint:
-            wp.copy(self._step_position, state.particle_q)  # x_n, v_n: for the step's midpoint state
-            wp.copy(self._step_velocity, state.particle_qd)
+            self._step_start = state  # x_n, v_n: the step leaves its input as it was until after_step
 
     def after_step(self, state: State, step: int, steps: int) -> None:
         if self._dissipating:
@@ -513,8 +512,10 @@ class Guard(StepHook):
         position, velocity = state.particle_q, state.particle_qd
         if self._midpoint:  # the power at the step's midpoint state (MIDPOINT_DISSIPATION)
             position, velocity = self._step_position, self._step_velocity
+            start = self._step_start
             wp.launch(step_midpoint_kernel(model.scalar), dim=len(velocity),
-                      inputs=[state.particle_q, state.particle_qd], outputs=[position, velocity], device=model.device)
+                      inputs=[start.particle_q, start.particle_qd, state.particle_q, state.particle_qd],
+                      outputs=[position, velocity], device=model.device)
         if drag is not None:
             wp.launch(drag, dim=self._drag_grid, block_dim=self._lanes,
                       inputs=[model.particle_count, h, model.world_enabled, self._status, model.particle_flags,
