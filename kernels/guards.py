@@ -214,26 +214,43 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         balance: wp.array2d[wp.float64],
     ):
         """A world's kinetic and elastic energy, the work put in and the energy dissipated since the last
-        check (its blocks' partials and running sums, summed in order, the running sums cleared; the work and
-        the dissipation added to the balance, the work's positive part to the world's running total W⁺), its
-        largest strain, and the energy beyond the balance's budget."""
-        world = wp.tid()
+        check (its blocks' partials and running sums, the running sums cleared; the work and the dissipation
+        added to the balance, the work's positive part to the world's running total W⁺), its largest strain,
+        and the energy beyond the balance's budget. Launched over [world, lanes] with ``block_dim`` = lanes
+        (one lane on the CPU): each lane sums every lanes-th block in order, then a fixed-order tree
+        (``block_sum``) joins the lanes, so the sums are deterministic; one thread walking a world's ~10³ blocks
+        of a 512² cloth in turn took 0.9 ms on an H100, most of a check."""
+        world, lane = wp.tid()
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
             return
+        lanes = wp.block_dim()
         energy = wp.float64(0.0)
         worst = wp.float64(-1.0)
         work = wp.float64(0.0)
-        for b in range(partials.shape[1]):
+        b = lane
+        while b < partials.shape[1]:
             energy += partials[world, b, GUARD_KINETIC_ENERGY]
             worst = wp.max(worst, partials[world, b, GUARD_MAX_STRAIN])
             work += partials[world, b, GUARD_WORK]
+            b += lanes
         elastic = wp.float64(0.0)
-        for b in range(energy_partials.shape[1]):
+        b = lane
+        while b < energy_partials.shape[1]:
             elastic += energy_partials[world, b]
+            b += lanes
         dissipated = wp.float64(0.0)
-        for b in range(running.shape[1]):
+        b = lane
+        while b < running.shape[1]:
             dissipated += running[world, b, RUNNING_DISSIPATION]
             running[world, b, RUNNING_DISSIPATION] = wp.float64(0.0)
+            b += lanes
+        energy = block_sum(energy)
+        worst = block_max(worst)
+        work = block_sum(work)
+        elastic = block_sum(elastic)
+        dissipated = block_sum(dissipated)
+        if lane != 0:
+            return
         values[world, GUARD_KINETIC_ENERGY] = energy
         values[world, GUARD_ELASTIC_ENERGY] = elastic
         values[world, GUARD_MAX_STRAIN] = worst

@@ -594,8 +594,8 @@ class Guard(StepHook):
                         inputs=[model.particle_count, family.element_count, offset, model.world_enabled, self._status,
                                 family.arrays(model), model.inputs, state.particle_q],
                         outputs=[self._energy_partials], device=device)
-        wp.launch(gather, dim=worlds, inputs=[model.world_enabled, self._partials, self._energy_partials, self._status,
-                                              self._running],
+        wp.launch(gather, dim=(worlds, self._lanes), block_dim=self._lanes,
+                  inputs=[model.world_enabled, self._partials, self._energy_partials, self._status, self._running],
                   outputs=[self._values, self._work_total, self._balance], device=device)
         flat_launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
                     inputs=[model.particle_count, model.world_enabled, model.elements, state.particle_q],
