@@ -356,9 +356,10 @@ def verlet_kernels(scalar: type):
 
 
 @functools.cache
-def step_control_kernels(scalar: type):
+def step_control_kernels(scalar: type, tiled: bool = False):
     """Device-side step-size control of an embedded Runge-Kutta pair, one controller per world (one thread
-    per world, but ``commit``: one per particle).
+    per world, but ``commit``: one per particle, and ``decide``: a block of lanes per world, launched over
+    [world, lanes] with ``block_dim`` = lanes, one lane on the CPU, ``tiled`` off).
 
     Row w of the control array holds, by the ``STEP_*`` slots: the target interval, the time reached, the
     step in use, the proposed step, the growth cap, the scaled error of the last attempt, the error
@@ -368,6 +369,7 @@ def step_control_kernels(scalar: type):
     ``keep_going`` counts the running worlds: the attempt loop ends at zero.
     """
     vec3 = vec3_type(scalar)
+    _, block_max = reduction_funcs(tiled)
 
     @wp.kernel(module="unique", enable_backward=False)
     def begin(
@@ -408,13 +410,21 @@ def step_control_kernels(scalar: type):
     ):
         """Accept or reject the attempt (its error: the largest of the world's block partials), choose the
         next step, and whether the world goes on."""
-        world = wp.tid()
+        world, lane = wp.tid()
         if counters[world, STEP_RUNNING] == 0:
-            counters[world, STEP_LAST_ACCEPTED] = 0
+            if lane == 0:
+                counters[world, STEP_LAST_ACCEPTED] = 0
             return
+        # The lanes take every lanes-th block partial, then the block's max (one thread walking ~10³ blocks
+        # of a 512² cloth in turn costs ~1 ms per attempt on a GPU).
         error = wp.float64(0.0)
-        for b in range(partials.shape[1]):
+        b = lane
+        while b < partials.shape[1]:
             error = wp.max(error, partials[world, b])
+            b += wp.block_dim()
+        error = block_max(error)
+        if lane != 0:
+            return
         h = control[world, STEP_SIZE]
         proposed = control[world, STEP_PROPOSED]
         accept = error <= wp.float64(1.0)

@@ -163,7 +163,7 @@ class DormandPrince(ExplicitRungeKutta):
 
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         model = self.model
-        begin, decide, commit = step_control_kernels(model.scalar)
+        begin, decide, commit = step_control_kernels(model.scalar, self._tiled)
         y = self._y
         y.assign(state_in)
         worlds = model.world_count
@@ -175,7 +175,7 @@ class DormandPrince(ExplicitRungeKutta):
         def attempt():
             self.eval_stages(y, control, self._step_size, first=False)
             self._measure_error(y)
-            wp.launch(decide, dim=worlds, inputs=[self._error_partials],
+            wp.launch(decide, dim=(worlds, self._lanes), block_dim=self._lanes, inputs=[self._error_partials],
                       outputs=[self._control, self._counters, self._step_size, self._keep_going], device=model.device)
             # The 5th-order solution is stage 6's state (a₆ = b), its force f(y_new) stage 0's next (FSAL).
             wp.launch(commit, dim=model.particle_dim, block_dim=model.block_dim,
