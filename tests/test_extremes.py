@@ -82,7 +82,11 @@ CASES = [
      {"symplectic_euler": STABLE, "explicit_euler": STABLE}),
     ("mass ratio 1e6", lambda d: alternating_chain(d, ratio=1e6), 60, 16,
      {"symplectic_euler": STOPS, "rk4": STOPS, "explicit_euler": STOPS, "implicit_euler": STABLE}),
-    ("mass ratio 1e6, enough substeps", lambda d: alternating_chain(d, ratio=1e6), 60, 2000,
+    # The light particles' ω ≈ √(2k/m) = 1.4e4 rad/s caps symplectic Euler's step at 2/ω = 141 µs (RK4's at
+    # 200 µs): 400 substeps (h = 42 µs, ωh = 0.59) are enough with a 3.4× margin, and undamped explicit Euler
+    # still grows, by √(1 + (ωh)²) = 1.16 per step. (Explicit Euler's slow growth, just past its limit, is the
+    # "k=1e6 damped, 800 substeps" case; 2000 substeps here cost 20 s on the CPU, 400 cost a fifth.)
+    ("mass ratio 1e6, enough substeps", lambda d: alternating_chain(d, ratio=1e6), 60, 400,
      {"symplectic_euler": STABLE, "rk4": STABLE, "explicit_euler": STOPS, "implicit_euler": STABLE}),
 ]
 
