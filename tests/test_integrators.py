@@ -31,9 +31,9 @@ def exact_x(t):
 
 
 # Step counts over t ∈ [0, 1] s inside each method's asymptotic range (ωh from 0.25 to 0.003), and
-# above float64 round-off. The first-order methods start at 400 steps (ωh = 0.025: the next term of the error,
-# relative to the first, is of order ωh): measured orders 1.028 (explicit) and 0.973 (implicit Euler) on the CPU, against
-# 1.014 and 0.986 from 800 to 6400 steps, at half the cost (12 s -> 6 s for the two).
+# above float64 round-off. The first-order methods start at 400 steps (ωh = 0.025: the error's next
+# term, relative to the first, is of order ωh): measured orders 1.028 (explicit) and 0.973 (implicit
+# Euler) on the CPU, against 1.014 and 0.986 from 800 to 6400 steps, at half the cost.
 STEPS = {
     "explicit_euler": (400, 800, 1600, 3200),
     "symplectic_euler": (400, 800, 1600, 3200),
