@@ -84,7 +84,9 @@ def points_samples(path, prim: str = "/World/cloth") -> tuple[list[np.ndarray], 
 # implicit Euler steps under gravity and wind) took 25 of the test's 29 s at 31 × 21 on the CPU; at 16 × 11
 # (the same 0.9 m × 0.6 m flag, twice the spacing) the scene keeps every feature (wind track, noise, lift,
 # ground, implicit Euler) and the advisor's pass.
-COARSER = {"flag_in_wind.toml": {"grid = { nx = 31, ny = 21, spacing = 0.03 }": "grid = { nx = 16, ny = 11, spacing = 0.06 }"}}
+COARSER = {"flag_in_wind.toml": {
+    "grid = { nx = 31, ny = 21, spacing = 0.03 }": "grid = { nx = 16, ny = 11, spacing = 0.06 }",
+}}
 
 
 @pytest.mark.parametrize("example, frames, prim", [("hanging_cloth.toml", 2, "/World/cloth"),

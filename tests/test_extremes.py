@@ -191,8 +191,9 @@ def falling_particle(device, precision, *, fps, substeps):
 
 def test_1e5_substeps_per_frame(device):
     """One frame of 1e5 substeps (h = 0.17 µs) runs as one graph without hanging, and in float64 a falling
-    particle lands on ½ g t (t + h) within 1e-9 m (1e5 roundings of ≤ 1.1e-16 m each add up to ≤ 1.1e-11 m). The one run of 1e5
-    substeps the suite keeps (~45 s on the CPU); float32 at the same step is shown on a shorter frame below."""
+    particle lands on ½ g t (t + h) within 1e-9 m (1e5 roundings of ≤ 1.1e-16 m each add up to ≤ 1.1e-11 m).
+    The one run of 1e5 substeps the suite keeps (~45 s on the CPU); float32 at the same step is shown on a
+    shorter frame below."""
     z, exact = falling_particle(device, "float64", fps=60, substeps=100_000)
     assert abs(z - exact) < 1e-9
 
