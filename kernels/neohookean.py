@@ -28,24 +28,29 @@ forces' Jacobian at rest against linear elasticity's stiffness on the same tets.
 ∂(λ/2 V₀ (J - α)²)/∂x_a = λ (J - α) ∇_aV (the volume family's shape with K → λ, 1 → α; ∇_aV from
 ``volume.tet_volume_funcs``), so f_a = -μ V₀ F G_a - λ (J - α) ∇_aV.
 
-**Damping** (β [s] per tet ≥ 0): a Kelvin-Voigt damper on the rate of the Green strain Ė = sym(FᵀḞ),
-Ḟ = Σ_b v_b ⊗ G_b, with the dissipation potential φ = β V₀ (μ Ė:Ė + λ_L/2 (tr Ė)²), λ_L = λ - μ: the force
-f_a^d = -∂φ/∂v_a = -β V₀ F S_d G_a, S_d = 2μ Ė + λ_L tr(Ė) I. At rest it is Rayleigh's stiffness-proportional
-damper -β K₀ v (K₀ the exact linear stiffness), so a mode of angular frequency ω is damped by ζ = βω/2 as the
-springs' kd = β ke; unlike -β K̃ v with the product's K̃ below, it vanishes on every rigid motion at any F (Ė = 0).
-Its power is 2φ = β V₀ (2μ Ė:Ė + λ_L (tr Ė)²) ≥ 0 (λ_L + 2μ/3 > 0 for ν > -1; the ``dissipation`` hook), and its
-damping matrix D (linear in v) enters the product exactly.
+**Stiffness** (the ``product`` hook: implicit Euler's system and the advisor's power iteration). The exact
+Hessian, μ V₀ (G_a · G_b) I + (λ/V₀) ∇_aV ∇_bVᵀ + λ (J - α) ∇²V, is indefinite; dropping the last term (the
+volume family's Gauss-Newton) is not exact at rest here, where λ (J - α) = -μ: the result would hold rigid
+rotations with stiffness μ (a Rayleigh damper built on it would brake a spinning body, and implicit Euler's step
+would) and halve the shear stiffness. The family uses instead the Gauss-Newton stiffness of the Green strain
+E = ½(FᵀF - I) with linear elasticity's constants, in terms of δF = Σ_b δx_b ⊗ G_b:
 
-**Stiffness** (the ``product`` hook: implicit Euler's system and the advisor's power iteration): the μ term's
-Hessian μ V₀ (G_a · G_b) I (constant, positive semi-definite) plus the Gauss-Newton (λ/V₀) ∇_aV ∇_bVᵀ; the term
-λ (J - α) ∇²V is dropped, as the volume family drops K (J - 1) ∇²V, to keep the matrix positive semi-definite.
-Unlike the volume family's, this is *not* exact at rest: there λ (J - α) = -μ, and the dropped -μ ∇²V is what
-makes the exact Hessian vanish on rotations and double the shear stiffness. The product is therefore stiffer
-than the exact Jacobian on the rigid rotations (μ instead of 0) and on pure volume change (3λ + μ instead of
-3λ - μ per unit V₀ in F-space), softer on shear (μ instead of 2μ): implicit Euler stays unconditionally stable
-on this linear model (its amplification needs K̃ ≥ K/2 - 2M/h², which holds), but its Newton step is inexact
-and it damps rigid rotation artificially by ~(h ω_μ)² per step, ω_μ² ~ μ/(ρ L²) (module ``warpspring/core/
-neohookean.py``). Incidence entries are (tet, role of the particle: 0..3); padding entries have role -1 and
+    K̃: δP = 2μ F sym(FᵀδF) + λ_L⁻ tr(FᵀδF) F + λ_L⁺ (g : δF) g,   (K̃ δx)_a = V₀ δP G_a,
+
+with g = cof F = ∂J/∂F (so V₀ g G_a = ∇_aV and the last term is the volume family's Gauss-Newton
+(λ_L⁺/V₀) ∇_aV ∇_bVᵀ), λ_L⁺ = max(λ_L, 0), λ_L⁻ = min(λ_L, 0). It is symmetric and positive semi-definite
+(2μ |sym C|² + λ_L⁻ (tr C)² ≥ (2μ/3 + λ_L⁻)(tr C)² ≥ 0 for ν > -1), zero on every infinitesimal rigid rotation
+at any F (FᵀWF is skew for skew W, and g : WF = J tr W = 0), and at rest (F = g = I) exactly the energy's
+Hessian, linear elasticity's stiffness. Away from rest it is an approximation of the Jacobian (implicit Euler's
+step is then an inexact Newton step; its fixed point, f = 0, is unchanged).
+
+**Damping** (β [s] per tet ≥ 0), Rayleigh's stiffness-proportional damper on K̃: f^d = -β K̃ v, i.e.
+f_a^d = -β (V₀ (2μ F sym(FᵀḞ) + λ_L⁻ tr(FᵀḞ) F) G_a + λ_L⁺ J̇ ∇_aV), Ḟ = Σ_b v_b ⊗ G_b, J̇ = Σ_b ∇_bV · v_b / V₀. At
+rest a mode of angular frequency ω is damped by ζ = βω/2, as the springs' kd = β ke; it exerts nothing on rigid
+motions. Its power is β vᵀK̃v = β V₀ (2μ |sym(FᵀḞ)|² + λ_L⁻ (tr FᵀḞ)² + λ_L⁺ J̇²) ≥ 0 (the ``dissipation`` hook), and
+D = β K̃ enters the product exactly: (α K̃ + β_arg D) x = (α + β_arg β) K̃ x.
+
+Incidence entries are (tet, role of the particle: 0..3); padding entries have role -1 and
 contribute nothing. No strain for the guards. Worlds: μ, λ and β have one row for every world or one per world;
 V₀ and D_m⁻¹ are shared.
 """
@@ -78,7 +83,7 @@ class NeoHookeanTetFuncs(NamedTuple):
 
     deformation: wp.Function
     shape_gradient: wp.Function
-    damper_stress: wp.Function
+    tangent_stress: wp.Function
     tet_energy: wp.Function
     tet_force: wp.Function
     tet_power: wp.Function
@@ -123,33 +128,36 @@ def neohookean_tet_funcs(scalar: type) -> NeoHookeanTetFuncs:
         return rest * (scalar(0.5) * mu * ic + scalar(0.5) * lam * d * d - scalar(0.5) * mu * mu / lam)
 
     @wp.func
-    def damper_stress(f: mat33, fdot: mat33, mu: scalar, lam: scalar) -> mat33:
-        """F S_d [Pa/s]: S_d = 2μ Ė + λ_L tr(Ė) I, Ė = sym(FᵀḞ), λ_L = λ - μ (times β V₀ G_a: the damper's force)."""
-        c = wp.transpose(f) * fdot
-        rate = scalar(0.5) * (c + wp.transpose(c))
-        return f * (scalar(2.0) * mu * rate + ((lam - mu) * wp.trace(rate)) * wp.identity(n=3, dtype=scalar))
+    def tangent_stress(f: mat33, df: mat33, mu: scalar, lam: scalar) -> mat33:
+        """2μ F sym(FᵀδF) + λ_L⁻ tr(FᵀδF) F [Pa·(unit of δF)]: K̃'s part beside the volume Gauss-Newton (module)."""
+        c = wp.transpose(f) * df
+        negative = wp.min(lam - mu, scalar(0.0))
+        return f * (mu * (c + wp.transpose(c)) + (negative * wp.trace(c)) * wp.identity(n=3, dtype=scalar))
 
     @wp.func
     def tet_force(role: int, x0: vec3, x1: vec3, x2: vec3, x3: vec3, v0: vec3, v1: vec3, v2: vec3, v3: vec3,
                   rest_inverse: mat33, rest: scalar, mu: scalar, lam: scalar, beta: scalar) -> vec3:
-        """Force [N] on corner ``role`` (0..3): -μ V₀ F G_a - λ (J - α) ∇_aV - β V₀ F S_d G_a."""
+        """Force [N] on corner ``role`` (0..3): -μ V₀ F G_a - λ (J - α) ∇_aV - β (K̃ v)_a."""
         v, g0, g1, g2, g3 = volume_gradient(x0, x1, x2, x3)
+        rate = (wp.dot(g0, v0) + wp.dot(g1, v1) + wp.dot(g2, v2) + wp.dot(g3, v3)) / rest
         f = deformation(x0, x1, x2, x3, rest_inverse)
-        stress = mu * f + beta * damper_stress(f, deformation(v0, v1, v2, v3, rest_inverse), mu, lam)
-        pressure = lam * ((v - rest) / rest - mu / lam)
+        stress = mu * f + beta * tangent_stress(f, deformation(v0, v1, v2, v3, rest_inverse), mu, lam)
+        pressure = lam * ((v - rest) / rest - mu / lam) + beta * wp.max(lam - mu, scalar(0.0)) * rate
         return -rest * (stress * shape_gradient(role, rest_inverse)) - pressure * gradient_of_role(role, g0, g1, g2, g3)
 
     @wp.func
     def tet_power(x0: vec3, x1: vec3, x2: vec3, x3: vec3, v0: vec3, v1: vec3, v2: vec3, v3: vec3,
                   rest_inverse: mat33, rest: scalar, mu: scalar, lam: scalar, beta: scalar) -> scalar:
-        """Power [W] ≥ 0 the damper takes out: β V₀ (2μ Ė:Ė + λ_L (tr Ė)²)."""
-        f = deformation(x0, x1, x2, x3, rest_inverse)
-        c = wp.transpose(f) * deformation(v0, v1, v2, v3, rest_inverse)
-        rate = scalar(0.5) * (c + wp.transpose(c))
-        trace = wp.trace(rate)
-        return beta * rest * (scalar(2.0) * mu * wp.ddot(rate, rate) + (lam - mu) * trace * trace)
+        """Power [W] ≥ 0 the damper takes out: β vᵀK̃v = β V₀ (2μ |sym C|² + λ_L⁻ (tr C)² + λ_L⁺ J̇²), C = FᵀḞ."""
+        _, g0, g1, g2, g3 = volume_gradient(x0, x1, x2, x3)
+        rate = (wp.dot(g0, v0) + wp.dot(g1, v1) + wp.dot(g2, v2) + wp.dot(g3, v3)) / rest
+        c = wp.transpose(deformation(x0, x1, x2, x3, rest_inverse)) * deformation(v0, v1, v2, v3, rest_inverse)
+        sym = scalar(0.5) * (c + wp.transpose(c))
+        trace = wp.trace(c)
+        return beta * rest * (scalar(2.0) * mu * wp.ddot(sym, sym) + wp.min(lam - mu, scalar(0.0)) * trace * trace
+                              + wp.max(lam - mu, scalar(0.0)) * rate * rate)
 
-    return NeoHookeanTetFuncs(deformation, shape_gradient, damper_stress, tet_energy, tet_force, tet_power)
+    return NeoHookeanTetFuncs(deformation, shape_gradient, tangent_stress, tet_energy, tet_force, tet_power)
 
 
 @functools.cache
@@ -216,9 +224,8 @@ def neohookean_family_funcs(scalar: type, spec: NeoHookeanSpec) -> FamilyFuncs:
         particle_q: wp.array[vec3], particle_flags: wp.array[wp.int32], x: wp.array[vec3], free_only: bool,
         alpha: scalar, beta: scalar,
     ):
-        """Row ``role`` of (α K̃ + β D) x for tet t and its diagonal block: K̃ x = μ V₀ X G_a + (λ/V₀) ∇_aV Σ_b ∇_bV · x_b
-        and D x = β_t V₀ F S_d(X) G_a (the damper's exact Jacobian), X = Σ_b x_b ⊗ G_b; blocks μ V₀ |G_a|² I +
-        (λ/V₀) ∇_aV ∇_aVᵀ and β_t V₀ (μ |G_a|² F Fᵀ + λ w wᵀ), w = F G_a."""
+        """Row ``role`` of (α K̃ + β D) x = (α + β β_t) K̃ x for tet t (module), X = Σ_b x_b ⊗ G_b, and its diagonal
+        block (α + β β_t) [V₀ (μ |G_a|² F Fᵀ + (μ + λ_L⁻) w wᵀ) + (λ_L⁺/V₀) ∇_aV ∇_aVᵀ], w = F G_a."""
         if role < 0:
             return vec3(scalar(0.0)), mat33(scalar(0.0))
         ids = tets.indices[t]
@@ -230,8 +237,9 @@ def neohookean_family_funcs(scalar: type, spec: NeoHookeanSpec) -> FamilyFuncs:
         rest = tets.rest_volume[t]
         mu = row(tets.mu, world, t)
         lam = row(tets.lam, world, t)
-        product, block = gauss_newton_entry(alpha * lam / rest, role, base, ids, g0, g1, g2, g3, particle_flags, x,
-                                            free_only)
+        scale = alpha + beta * row(tets.damping, world, t)
+        product, block = gauss_newton_entry(scale * wp.max(lam - mu, scalar(0.0)) / rest, role, base, ids, g0, g1, g2,
+                                            g3, particle_flags, x, free_only)
         inverse = tets.rest_inverse[t]
         xs = funcs.deformation(operand(base + ids[0], particle_flags, x, free_only),
                                operand(base + ids[1], particle_flags, x, free_only),
@@ -239,13 +247,11 @@ def neohookean_family_funcs(scalar: type, spec: NeoHookeanSpec) -> FamilyFuncs:
                                operand(base + ids[3], particle_flags, x, free_only), inverse)
         ga = funcs.shape_gradient(role, inverse)
         f = funcs.deformation(x0, x1, x2, x3, inverse)
-        damping = beta * row(tets.damping, world, t) * rest
-        stress = (alpha * mu * rest) * xs + damping * funcs.damper_stress(f, xs, mu, lam)
         w = f * ga
-        identity = wp.identity(n=3, dtype=scalar)
-        block += (alpha * mu * rest * wp.dot(ga, ga)) * identity
-        block += damping * ((mu * wp.dot(ga, ga)) * (f * wp.transpose(f)) + lam * wp.outer(w, w))
-        return product + stress * ga, block
+        k = scale * rest
+        block += k * ((mu * wp.dot(ga, ga)) * (f * wp.transpose(f))
+                      + (mu + wp.min(lam - mu, scalar(0.0))) * wp.outer(w, w))
+        return product + k * (funcs.tangent_stress(f, xs, mu, lam) * ga), block
 
     force = gathered_force(scalar, Arrays, spec.incidence, tet_force_on)
     product = gathered_product(scalar, Arrays, spec.incidence, product_entry)
@@ -267,7 +273,7 @@ def neohookean_family_funcs(scalar: type, spec: NeoHookeanSpec) -> FamilyFuncs:
     @wp.func
     def dissipation(world: int, t: int, base: int, tets: Arrays, inputs: wp.array2d[scalar],
                     particle_q: wp.array[vec3], particle_qd: wp.array[vec3]) -> scalar:
-        """Power [W] ≥ 0 the damper of tet t takes out in ``world``."""
+        """Power [W] ≥ 0 the damper of tet t takes out in ``world``: β vᵀK̃v."""
         ids = tets.indices[t]
         return funcs.tet_power(particle_q[base + ids[0]], particle_q[base + ids[1]], particle_q[base + ids[2]],
                                particle_q[base + ids[3]], particle_qd[base + ids[0]], particle_qd[base + ids[1]],

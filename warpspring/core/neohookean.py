@@ -26,7 +26,16 @@ from .volume import signed_volumes, volume_gradients
 ELASTICITIES = ("springs", "neohookean")
 
 __all__ = ["ELASTICITIES", "NeoHookeanFamily", "add_neohookean_term", "neohookean_energy_np", "neohookean_forces_np",
-           "shape_gradients", "stable_lame"]
+           "shape_gradients", "stable_lame", "tangent_blocks", "tangent_stiffness"]
+
+
+def wound(rest_positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """``tets`` (int64 [t, 4]) rewound as the family winds them: V₀ > 0 at ``rest_positions`` (the host references
+    take either winding)."""
+    tets = np.array(tets, dtype=np.int64).reshape(-1, 4)
+    flip = signed_volumes(rest_positions, tets) < 0.0
+    tets[flip] = tets[flip][:, [1, 0, 2, 3]]
+    return tets
 
 
 def shape_gradients(positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -39,7 +48,7 @@ def shape_gradients(positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
 
 def neohookean_energy_np(positions: np.ndarray, rest_positions: np.ndarray, tets: np.ndarray, mu, lam) -> np.ndarray:
     """Ψ − Ψ_rest [J] of tets (the energy hook), float64, shape [t]: V₀ [μ/2 (I_C − 3) + λ/2 (J − α)² − μ²/(2λ)]."""
-    tets = np.asarray(tets, dtype=np.int64)
+    tets = wound(rest_positions, tets)
     rest = signed_volumes(rest_positions, tets)
     f = np.einsum("tai,taj->tij", np.asarray(positions, dtype=np.float64)[tets], shape_gradients(rest_positions, tets))
     j = signed_volumes(positions, tets) / rest
@@ -48,26 +57,59 @@ def neohookean_energy_np(positions: np.ndarray, rest_positions: np.ndarray, tets
                    - 0.5 * mu * mu / lam)
 
 
+def tangent_blocks(positions: np.ndarray, rest_positions: np.ndarray, tets: np.ndarray, mu, lam) -> np.ndarray:
+    """The blocks K̃_ab [N/m] of the family's stiffness (its ``product``; ``kernels/neohookean.py``) at ``positions``,
+    float64, shape [t, 4, 4, 3, 3]: V₀ [μ (G_a·G_b) F Fᵀ + μ w_b w_aᵀ + λ_L⁻ w_a w_bᵀ] + (λ_L⁺/V₀) ∇_aV ∇_bVᵀ,
+    w_a = F G_a, λ_L = λ − μ; ``mu``, ``lam``: numbers or one per tet."""
+    tets = wound(rest_positions, tets)
+    return _tangent_blocks(positions, tets, shape_gradients(rest_positions, tets), signed_volumes(rest_positions, tets),
+                           mu, lam)
+
+
+def _tangent_blocks(positions, tets, g, rest, mu, lam) -> np.ndarray:
+    """:func:`tangent_blocks` from the tets' G_a [t, 4, 3] and V₀ [t]."""
+    x = np.asarray(positions, dtype=np.float64)
+    f = np.einsum("tai,taj->tij", x[tets], g)
+    w = np.einsum("tij,taj->tai", f, g)
+    grad_v = volume_gradients(x, tets)
+    mu = np.broadcast_to(np.asarray(mu, dtype=np.float64), rest.shape)
+    lam_l = np.broadcast_to(np.asarray(lam, dtype=np.float64), rest.shape) - mu
+    ffT = np.einsum("tik,tjk->tij", f, f)
+    blocks = (mu * rest)[:, None, None, None, None] * np.einsum("tab,tij->tabij", np.einsum("tai,tbi->tab", g, g), ffT)
+    blocks += (mu * rest)[:, None, None, None, None] * np.einsum("tbi,taj->tabij", w, w)
+    blocks += (np.minimum(lam_l, 0.0) * rest)[:, None, None, None, None] * np.einsum("tai,tbj->tabij", w, w)
+    blocks += (np.maximum(lam_l, 0.0) / rest)[:, None, None, None, None] * np.einsum("tai,tbj->tabij", grad_v, grad_v)
+    return blocks
+
+
+def tangent_stiffness(positions: np.ndarray, rest_positions: np.ndarray, tets: np.ndarray, mu, lam):
+    """The family's stiffness K̃ (:func:`tangent_blocks`) assembled, a ``scipy.sparse.csr_matrix`` [3n, 3n] float64;
+    at rest it is linear elasticity's (``analysis.softbody_elasticity.linear_fem_stiffness``)."""
+    import scipy.sparse as sp
+
+    tets = wound(rest_positions, tets)
+    blocks = tangent_blocks(positions, rest_positions, tets, mu, lam).transpose(0, 1, 3, 2, 4).reshape(-1, 12, 12)
+    dof = (3 * tets[:, :, None] + np.arange(3)).reshape(len(tets), 12)
+    rows, cols = np.repeat(dof, 12, axis=1).ravel(), np.tile(dof, (1, 12)).ravel()
+    size = 3 * len(positions)
+    return sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(size, size))
+
+
 def neohookean_forces_np(positions: np.ndarray, velocities: np.ndarray, rest_positions: np.ndarray, tets: np.ndarray,
                          mu, lam, beta=0.0) -> np.ndarray:
-    """Forces [N] of tets on every particle, float64, shape [n, 3]: −μ V₀ F G_a − λ (J − α) ∇_aV − β V₀ F S_d G_a,
-    S_d = 2μĖ + (λ − μ) tr(Ė) I, Ė = sym(FᵀḞ) (``kernels/neohookean.py``)."""
-    tets = np.asarray(tets, dtype=np.int64)
+    """Forces [N] of tets on every particle, float64, shape [n, 3]: −μ V₀ F G_a − λ (J − α) ∇_aV − β (K̃ v)_a
+    (``kernels/neohookean.py``)."""
+    tets = wound(rest_positions, tets)
     x = np.asarray(positions, dtype=np.float64)
     v = np.asarray(velocities, dtype=np.float64)
     rest = signed_volumes(rest_positions, tets)
     g = shape_gradients(rest_positions, tets)
-    grad_v = volume_gradients(x, tets)
     f = np.einsum("tai,taj->tij", x[tets], g)
-    fdot = np.einsum("tai,taj->tij", v[tets], g)
-    c = np.einsum("tki,tkj->tij", f, fdot)
-    rate = 0.5 * (c + np.swapaxes(c, 1, 2))
     j = signed_volumes(x, tets) / rest
     mu, lam = np.broadcast_to(mu, rest.shape), np.broadcast_to(lam, rest.shape)
-    s_d = 2.0 * mu[:, None, None] * rate + ((lam - mu) * np.trace(rate, axis1=1, axis2=2))[:, None, None] * np.eye(3)
-    stress = mu[:, None, None] * f + beta * np.einsum("tik,tkj->tij", f, s_d)
-    corner = -rest[:, None, None] * np.einsum("tij,taj->tai", stress, g) \
-        - (lam * (j - 1.0 - mu / lam))[:, None, None] * grad_v
+    corner = -(mu * rest)[:, None, None] * np.einsum("tij,taj->tai", f, g) \
+        - (lam * (j - 1.0 - mu / lam))[:, None, None] * volume_gradients(x, tets)
+    corner -= beta * np.einsum("tabij,tbj->tai", tangent_blocks(x, rest_positions, tets, mu, lam), v[tets])
     out = np.zeros_like(x)
     for axis in range(3):
         out[:, axis] = np.bincount(tets.ravel(), weights=corner[..., axis].ravel(), minlength=len(x))
@@ -259,28 +301,21 @@ class NeoHookeanFamily(ElementFamily):
         return arrays
 
     def gershgorin_rows(self, model, free: np.ndarray, stiffness: np.ndarray | None = None) -> np.ndarray:
-        """The product's block a, b is μ V₀ (G_a·G_b) I + (λ/V₀) ∇_aV ∇_bVᵀ, of spectral norm at most
-        μ V₀ |G_a·G_b| + (λ/V₀)|∇_aV||∇_bV|: row a gains it for b = a and for every free b ≠ a (at the model's
-        initial positions)."""
+        """Row a gains the spectral norm of the product's block K̃_ab (:func:`tangent_blocks`, at the model's initial
+        positions) for b = a and for every free b ≠ a."""
         worlds, n = model.world_count, model.particle_count
         tets = self.tets
-        rest = self.rest_volume
-        mu = np.broadcast_to(self.values("mu"), (worlds, len(tets)))
-        lam = np.broadcast_to(self.values("lam"), (worlds, len(tets)))
-        x = model.particle_q.numpy().astype(np.float64).reshape(worlds, n, 3)
         g = np.concatenate(self._inverse)
-        g = np.concatenate([-g.sum(axis=1, keepdims=True), g], axis=1)  # [t, 4, 3]
-        dots = np.abs(np.einsum("tai,tbi->tab", g, g))  # [t, 4, 4]
-        norms = np.linalg.norm(volume_gradients(x, tets), axis=-1)  # [worlds, t, 4]
-        weight = free[:, tets].astype(np.float64)  # [worlds, t, 4]: column b counts when free
-        eye = np.eye(4)[None, None]
-        columns = np.maximum(weight[:, :, None, :], eye)  # b = a always
-        blocks = (mu * rest)[..., None, None] * dots[None] + (lam / rest)[..., None, None] * norms[..., :, None] \
-            * norms[..., None, :]
-        weights = (blocks * columns).sum(axis=-1)  # [worlds, t, 4]
-        entries = (np.arange(worlds) * n)[:, None, None] + tets[None]
-        rows = np.bincount(entries.ravel(), weights=weights.ravel(), minlength=worlds * n)
-        return rows.reshape(worlds, n)
+        g = np.concatenate([-g.sum(axis=1, keepdims=True), g], axis=1)
+        x = model.particle_q.numpy().astype(np.float64).reshape(worlds, n, 3)
+        mu, lam = self.values("mu"), self.values("lam")
+        rows = np.zeros((worlds, n))
+        columns = np.maximum(free[:, tets][:, :, None, :].astype(np.float64), np.eye(4)[None, None])  # [w, t, a, b]
+        for world in range(worlds):
+            blocks = _tangent_blocks(x[world], tets, g, self.rest_volume, mu[world], lam[world])
+            norms = np.linalg.norm(blocks, ord=2, axis=(-2, -1))  # [t, 4, 4]
+            rows[world] = np.bincount(tets.ravel(), weights=(norms * columns[world]).sum(axis=-1).ravel(), minlength=n)
+        return rows
 
     def describe_element(self, model, element: int) -> str:
         a, b, c, d = self.tets[element]
