@@ -23,6 +23,10 @@ the patch test of the tet networks beside their cube and bar errors (RESULTS §1
 
     python bench/softbody.py --patch-test --builds 3 --out bench/results/softbody_patch_test.md
 
+the tetrahedral body's springs against the neo-Hookean tet family (RESULTS §18g; static solves):
+
+    python bench/softbody.py --neohookean --builds 3 --out bench/results/softbody_neohookean.md
+
 and the term's cost per substep (one CUDA graph of 200 substeps on a GPU):
 
     python bench/softbody.py --device cuda:0 --family-cost --out FILE
@@ -351,6 +355,55 @@ def patch_test(*, builds: int = 3, cube_cells=(4, 6, 8, 10, 12), bar_cells=(3, 4
     return "\n".join(lines) + "\n"
 
 
+def neohookean_elasticity(*, builds: int = 3, cube_cells=(4, 6, 8, 10, 12), bar_cells=(3, 4, 6, 8),
+                          poisson_ratio: float = 0.25) -> str:
+    """The tetrahedral body's elasticity carried by its springs against the neo-Hookean tet family
+    (``add_soft_body(elasticity="neohookean")``, linearised at rest: linear elasticity on the same tets), by the
+    float64 static solves of the cube on frictionless ground and the pulled bar: per resolution ``builds`` fTetWild
+    builds (not seedable), both on each build; the median and range over the builds, with the tets' real median
+    edge. Then the seeded Delaunay body (one build). The family also at ν = 0: the cube's closed form ρgh²/(2E)
+    assumes a uniaxial stress, whose free solution bows the bottom face by ν; flat frictionless ground holds it
+    flat, so at ν > 0 the continuum itself differs from the closed form a little. Static solves, no device."""
+    lines = [
+        f"Springs against the neo-Hookean tet family, {datetime.date.today()} (float64 static solves on the same tets; "
+        f"E = {E:g} Pa, ν = {poisson_ratio:g} for the family, ρ = {RHO:g} kg/m³; error = measured / closed form − 1; "
+        f"tetrahedral: median [min … max] over {builds} fTetWild builds, Delaunay: one seeded build):",
+        "",
+        f"| body | method | cells asked | median edge [m] | particles | tets | springs | neo-Hookean tets, ν = {poisson_ratio:g} "
+        "| neo-Hookean tets, ν = 0 |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    shapes = {"cube": ((1.0, 1.0, 1.0), 1.0, cube_cells), "bar": ((1.0, 0.2, 0.2), 0.2, bar_cells)}
+
+    def spread(values):
+        values = np.asarray(values)
+        if len(values) == 1:
+            return f"{100 * values[0]:+.2f} %"
+        return f"{100 * np.median(values):+.2f} % [{100 * values.min():+.2f} … {100 * values.max():+.2f}]"
+
+    for body, (size, across, cells) in shapes.items():
+        for method, repeats in (("tetrahedral", builds), ("delaunay", 1)):
+            for n in cells:
+                edges, particles, tets, springs, fem, fem0 = [], [], [], [], [], []
+                for _ in range(repeats):
+                    topology = se.box_topology(method, size, youngs_modulus=E, spacing=across / n)
+                    x, (pairs, _) = topology.positions, topology.springs[next(iter(topology.springs))]
+                    edges.append(float(np.median(np.linalg.norm(x[pairs[:, 1]] - x[pairs[:, 0]], axis=1))))
+                    particles.append(len(x))
+                    tets.append(len(topology.tets))
+                    for name, nu, out in (("springs", 0.25, springs), ("neohookean", poisson_ratio, fem),
+                                          ("neohookean", 0.0, fem0)):
+                        if body == "cube":
+                            out.append(se.cube_shortening(topology, youngs_modulus=E, density=RHO, elasticity=name,
+                                                          poisson_ratio=nu))
+                        else:
+                            out.append(se.bar_stretch(topology, youngs_modulus=E, elasticity=name, poisson_ratio=nu))
+                lines.append(f"| {body} | {method} | {n} | {np.median(edges):.3f} | {int(np.median(particles))} | "
+                             f"{int(np.median(tets))} | {spread(springs)} | {spread(fem)} | {spread(fem0)} |")
+                print(lines[-1], flush=True)
+    return "\n".join(lines) + "\n"
+
+
 def table(drop_rows, elastic: dict, step: float, dt: float, device) -> str:
     def pct(x):
         return "—" if x is None or not np.isfinite(x) else f"{100.0 * x:+.1f} %"
@@ -415,7 +468,11 @@ def main() -> None:
                         help="only the bar's E and ν without and with the tet volume term (static solves, no device)")
     parser.add_argument("--patch-test", action="store_true",
                         help="only the tet networks' patch test beside their cube and bar errors (static solves)")
-    parser.add_argument("--builds", type=int, default=3, help="fTetWild builds per resolution for --patch-test")
+    parser.add_argument("--neohookean", action="store_true",
+                        help="only the tet bodies' cube and bar errors with springs against the neo-Hookean tet "
+                             "family (static solves)")
+    parser.add_argument("--builds", type=int, default=3,
+                        help="fTetWild builds per resolution for --patch-test and --neohookean")
     parser.add_argument("--methods", nargs="+", choices=[c[0] for c in CASES], help="the balls to drop (default all)")
     parser.add_argument("--volume", choices=("off", "on", "both"), default="off",
                         help="the tet volume term on the tetrahedral and Delaunay balls; both: two drops, one table")
@@ -429,6 +486,8 @@ def main() -> None:
                                       bulk_modulus=args.bulk_modulus), args.out)
     if args.patch_test:
         return emit(patch_test(builds=args.builds), args.out)
+    if args.neohookean:
+        return emit(neohookean_elasticity(builds=args.builds), args.out)
     if args.family_cost:
         return emit(family_cost(args.device, methods=tuple(args.methods or ("tetrahedral", "delaunay")),
                                 bulk_modulus=args.bulk_modulus), args.out)
