@@ -189,6 +189,38 @@ def test_rotation_invariance_and_inversion(device):
     assert signed_volumes(a.particle_q.numpy(), TET)[0] == pytest.approx(signed_volumes(REST, TET)[0], rel=1e-3)
 
 
+def test_values_are_live_per_world(device):
+    """Two worlds of the tet at one deformation: E and ν set for world 1 alone (a row per world from then on)
+    scale its elastic force as μ and λ do (the force is linear in them: f = μ a + λ b at a fixed state), world 0
+    keeps its own; β written for every world shows in ``values``; a bad ν or a lone E is a one-line error."""
+    builder = ws.ModelBuilder()
+    builder.add_particles(REST, mass=MASS)
+    family = builder.add_family(NeoHookeanFamily())
+    family.add(TET, REST, youngs_modulus=E, poisson_ratio=NU)
+    model = builder.finalize(device, precision="float64", worlds=2)
+    q = REST + np.random.default_rng(5).normal(scale=0.01, size=(4, 3))
+    state = model.state()
+    state.particle_q.assign(np.concatenate([q, q]))
+    family.set_values(youngs_modulus=3.0 * E, poisson_ratio=0.1, world=1)
+    family.set_values(damping=1.0e-3)
+    ws.eval_forces(model, state, None)
+    f = state.particle_f.numpy().reshape(2, 4, 3) - MASS * G
+    mu1, lam1 = stable_lame(3.0 * E, 0.1)
+    np.testing.assert_allclose(family.values("mu")[:, 0], [MU, mu1], rtol=1e-12)
+    np.testing.assert_allclose(family.values("lam")[:, 0], [LAM, lam1], rtol=1e-12)
+    np.testing.assert_allclose(family.values("damping"), 1.0e-3)
+    zero = np.zeros((4, 3))
+    np.testing.assert_allclose(f[0], neohookean_forces_np(q, zero, REST, TET, MU, LAM), rtol=0,
+                               atol=1e-11 * np.abs(f[0]).max())
+    np.testing.assert_allclose(f[1], neohookean_forces_np(q, zero, REST, TET, mu1, lam1), rtol=0,
+                               atol=1e-11 * np.abs(f[1]).max())
+    for keys, message in (({"youngs_modulus": E}, "together"), ({"youngs_modulus": E, "poisson_ratio": 0.5}, "lie in"),
+                          ({"damping": -1.0}, "damping")):
+        with pytest.raises(ws.ConfigError, match=message) as info:
+            family.set_values(**keys)
+        assert "\n" not in str(info.value)
+
+
 def test_product_is_the_gauss_newton_stiffness(device):
     """The advisor's power iteration (the family's product hook, α = 1, β = 0) finds √λ_max(M⁻¹K̃) of the host
     matrix K̃ (``tangent_stiffness``: the Green strain's Gauss-Newton stiffness, ``kernels/neohookean.py``) at a
@@ -342,7 +374,8 @@ def test_scene_key_builds_tets_and_no_springs():
     positive), μ and λ of (E, ν) and β = damping, and no springs."""
     from warpspring.io.scene import parse_scene
 
-    builder = parse_scene(bar_scene(poisson_ratio=0.2)).builder()
+    scene = parse_scene(bar_scene(poisson_ratio=0.2))
+    builder = scene.builder()
     family = next(f for f in builder._families if isinstance(f, NeoHookeanFamily))
     assert builder.spring_count == 0
     assert family.element_count > 0 and (family.rest_volume > 0.0).all()

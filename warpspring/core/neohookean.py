@@ -19,6 +19,7 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError
 from ..kernels.neohookean import NeoHookeanSpec, neohookean_arrays_type, stable_lame
+from ..kernels.precision import mat33_type
 from .families import ElementFamily, build_incidence
 from .volume import signed_volumes, volume_gradients
 
@@ -211,8 +212,7 @@ class NeoHookeanFamily(ElementFamily):
         self.incidence, self.shape = build_incidence(tets, model.particle_count, roles, -1, device=device)
         self._indices = wp.array(tets.astype(np.int32), dtype=wp.vec4i, device=device)
         self._rest_volume = wp.array(self.rest_volume, dtype=scalar, device=device)
-        mat33 = wp.types.matrix(shape=(3, 3), dtype=scalar)
-        self._rest_inverse = wp.array(np.concatenate(self._inverse), dtype=mat33, device=device)
+        self._rest_inverse = wp.array(np.concatenate(self._inverse), dtype=mat33_type(scalar), device=device)
         self._live_arrays = {name: wp.array(np.concatenate(v)[None, :], dtype=scalar, device=device)
                              for name, v in self._values.items()}
         self._model = model
