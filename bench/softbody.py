@@ -333,17 +333,22 @@ def family_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int = 7,
 
 
 def elasticity_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int = 7, substeps: int = 200) -> str:
-    """The substep's cost of the tet balls (``methods``) with springs against neo-Hookean tets, on the same tets
-    (the tetrahedral ball built once: fTetWild is not repeatable), resting on the ground, ``substeps`` symplectic
-    Euler steps of 0.1 ms per timing (one CUDA graph on a GPU), the two models alternating for ``rounds`` rounds;
-    median µs per substep, and each model's Gershgorin step limit 2/ω (the advisor's bound over every family)."""
+    """The substep's cost of the tet balls (``methods``) with springs against neo-Hookean tets (each tet's stress
+    precomputed once per force evaluation, the default, or computed by every corner), on the same tets (the
+    tetrahedral ball built once: fTetWild is not repeatable), resting on the ground, ``substeps`` symplectic Euler
+    steps of 0.1 ms per timing (one CUDA graph on a GPU), the models alternating for ``rounds`` rounds; median µs
+    per substep, and each model's Gershgorin step limit 2/ω (the advisor's bound over every family)."""
     from warpspring.analysis.stability import gershgorin_omega_max
+    from warpspring.core.neohookean import NeoHookeanFamily
 
     ball = trimesh.load(BALL, force="mesh", process=False)
     topologies = {}
 
-    def build(elasticity: str):
+    def build(variant: str):
+        elasticity = "springs" if variant == "springs" else "neohookean"
         builder = ws.ModelBuilder()
+        if variant == "neohookean, per corner":
+            builder.add_family(NeoHookeanFamily(precompute=False))  # add_soft_body appends its tets to this one
         tets = springs = 0
         for i, method in enumerate(methods):
             options = dict(next(c[3] for c in CASES if c[0] == method))
@@ -361,7 +366,8 @@ def elasticity_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int 
     try:
         models["springs"] = build("springs")
         sb.build_topology = lambda mesh, method, **kw: topologies[method]
-        models["neohookean"] = build("neohookean")
+        models["neohookean, precomputed"] = build("neohookean, precomputed")
+        models["neohookean, per corner"] = build("neohookean, per corner")
     finally:
         sb.build_topology = real
     runners, limits = {}, {}
@@ -402,7 +408,7 @@ def elasticity_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int 
         "|---|---|---|---|---|---|",
     ]
     for variant, (model, tets, springs) in models.items():
-        lines.append(f"| {variant} | {springs} | {tets if variant == 'neohookean' else 0} | {1e6 * median[variant]:.1f} | "
+        lines.append(f"| {variant} | {springs} | {tets if variant != 'springs' else 0} | {1e6 * median[variant]:.1f} | "
                      f"{median[variant] / median['springs']:.2f}× | {1e3 * limits[variant]:.3f} |")
     return "\n".join(lines) + "\n"
 

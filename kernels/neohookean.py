@@ -52,12 +52,13 @@ D = β K̃ enters the product exactly: (α K̃ + β_arg D) x = (α + β_arg β) 
 
 Incidence entries are (tet, role of the particle: 0..3); padding entries have role -1 and
 contribute nothing. No strain for the guards. Worlds: μ, λ and β have one row for every world or one per world;
-V₀ and D_m⁻¹ are shared.
+V₀ and D_m⁻¹ are shared. By default (``NeoHookeanSpec.precomputed``) a pass computes each tet's S and p once per force
+evaluation (f_a = -V₀ S G_a - p ∇_aV, below) and a corner's entry reads them and computes only its own ∇_aV.
 """
 
 import functools
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import warp as wp
 
@@ -84,6 +85,7 @@ class NeoHookeanTetFuncs(NamedTuple):
     deformation: wp.Function
     shape_gradient: wp.Function
     tangent_stress: wp.Function
+    tet_stress: wp.Function
     tet_energy: wp.Function
     tet_force: wp.Function
     tet_power: wp.Function
@@ -135,15 +137,24 @@ def neohookean_tet_funcs(scalar: type) -> NeoHookeanTetFuncs:
         return f * (mu * (c + wp.transpose(c)) + (negative * wp.trace(c)) * wp.identity(n=3, dtype=scalar))
 
     @wp.func
-    def tet_force(role: int, x0: vec3, x1: vec3, x2: vec3, x3: vec3, v0: vec3, v1: vec3, v2: vec3, v3: vec3,
-                  rest_inverse: mat33, rest: scalar, mu: scalar, lam: scalar, beta: scalar) -> vec3:
-        """Force [N] on corner ``role`` (0..3): -μ V₀ F G_a - λ (J - α) ∇_aV - β (K̃ v)_a."""
+    def tet_stress(x0: vec3, x1: vec3, x2: vec3, x3: vec3, v0: vec3, v1: vec3, v2: vec3, v3: vec3,
+                   rest_inverse: mat33, rest: scalar, mu: scalar, lam: scalar, beta: scalar):
+        """The tet's (S [Pa], p [Pa]) with the force on corner a = -V₀ S G_a - p ∇_aV: S = μF + β (2μ F sym(FᵀḞ) +
+        λ_L⁻ tr(FᵀḞ) F), p = λ (J - α) + β λ_L⁺ J̇."""
         v, g0, g1, g2, g3 = volume_gradient(x0, x1, x2, x3)
         rate = (wp.dot(g0, v0) + wp.dot(g1, v1) + wp.dot(g2, v2) + wp.dot(g3, v3)) / rest
         f = deformation(x0, x1, x2, x3, rest_inverse)
         stress = mu * f + beta * tangent_stress(f, deformation(v0, v1, v2, v3, rest_inverse), mu, lam)
         pressure = lam * ((v - rest) / rest - mu / lam) + beta * wp.max(lam - mu, scalar(0.0)) * rate
-        return -rest * (stress * shape_gradient(role, rest_inverse)) - pressure * gradient_of_role(role, g0, g1, g2, g3)
+        return stress, pressure
+
+    @wp.func
+    def tet_force(role: int, x0: vec3, x1: vec3, x2: vec3, x3: vec3, v0: vec3, v1: vec3, v2: vec3, v3: vec3,
+                  rest_inverse: mat33, rest: scalar, mu: scalar, lam: scalar, beta: scalar) -> vec3:
+        """Force [N] on corner ``role`` (0..3): -μ V₀ F G_a - λ (J - α) ∇_aV - β (K̃ v)_a."""
+        stress, pressure = tet_stress(x0, x1, x2, x3, v0, v1, v2, v3, rest_inverse, rest, mu, lam, beta)
+        return -rest * (stress * shape_gradient(role, rest_inverse)) - pressure * volume.corner_gradient(
+            role, x0, x1, x2, x3)
 
     @wp.func
     def tet_power(x0: vec3, x1: vec3, x2: vec3, x3: vec3, v0: vec3, v1: vec3, v2: vec3, v3: vec3,
@@ -157,7 +168,7 @@ def neohookean_tet_funcs(scalar: type) -> NeoHookeanTetFuncs:
         return beta * rest * (scalar(2.0) * mu * wp.ddot(sym, sym) + wp.min(lam - mu, scalar(0.0)) * trace * trace
                               + wp.max(lam - mu, scalar(0.0)) * rate * rate)
 
-    return NeoHookeanTetFuncs(deformation, shape_gradient, tangent_stress, tet_energy, tet_force, tet_power)
+    return NeoHookeanTetFuncs(deformation, shape_gradient, tangent_stress, tet_stress, tet_energy, tet_force, tet_power)
 
 
 @functools.cache
@@ -173,6 +184,9 @@ def neohookean_arrays_type(scalar: type):
         mu: wp.array2d[scalar]  # μ [Pa], [1 or world_count, tet_count]
         lam: wp.array2d[scalar]  # λ [Pa] (> 0; not the Lamé λ_L = λ - μ), [1 or world_count, tet_count]
         damping: wp.array2d[scalar]  # β [s], [1 or world_count, tet_count]
+        stress: wp.array[mat33]  # S [Pa], [world_count · tet_count], each tet's at the state of the last force
+        #   evaluation (where precomputed; one entry otherwise)
+        pressure: wp.array[scalar]  # p [Pa], likewise
         incidence: Incidence  # entries (tet, role 0..3); padding (0, -1)
 
     return NeoHookeanArrays
@@ -180,22 +194,39 @@ def neohookean_arrays_type(scalar: type):
 
 @dataclass(frozen=True)
 class NeoHookeanSpec:
-    """Compile-time switches of the neo-Hookean family: the shape of its incidence table."""
+    """Compile-time switches of the neo-Hookean family: the shape of its incidence table, and whether each tet's
+    (S, p) is computed once per force evaluation by ``tet_stresses`` (then a corner's gather reads it and computes
+    only its own face's gradient) or by every corner's entry."""
 
     incidence: IncidenceShape
+    precomputed: bool = False
 
     def funcs(self, scalar: type) -> FamilyFuncs:
         return neohookean_family_funcs(scalar, self)
 
 
+class NeoHookeanFuncs(NamedTuple):
+    """:class:`FamilyFuncs` and the kernel that precomputes the tets' (S, p)."""
+
+    arrays: type
+    force: Any
+    product: Any
+    strain: Any
+    energy: Any
+    idle: tuple
+    dissipation: Any
+    tet_stresses: Any
+
+
 @functools.cache
-def neohookean_family_funcs(scalar: type, spec: NeoHookeanSpec) -> FamilyFuncs:
+def neohookean_family_funcs(scalar: type, spec: NeoHookeanSpec) -> NeoHookeanFuncs:
     """The family hooks of neo-Hookean tets (``families.py``) for one precision and spec."""
     vec3 = vec3_type(scalar)
     mat33 = mat33_type(scalar)
     Arrays = neohookean_arrays_type(scalar)
     funcs = neohookean_tet_funcs(scalar)
     volume_gradient = tet_volume_funcs(scalar).tet_volume_gradient
+    corner_gradient = tet_volume_funcs(scalar).corner_gradient
     gauss_newton_entry = four_point_funcs(scalar).gauss_newton_entry
     operand = masked_operand(scalar)
 
@@ -212,6 +243,11 @@ def neohookean_family_funcs(scalar: type, spec: NeoHookeanSpec) -> FamilyFuncs:
         if role < 0:
             return vec3(scalar(0.0))
         ids = tets.indices[t]
+        if wp.static(spec.precomputed):
+            slot = world * tets.indices.shape[0] + t
+            return -tets.rest_volume[t] * (tets.stress[slot] * funcs.shape_gradient(role, tets.rest_inverse[t])) \
+                - tets.pressure[slot] * corner_gradient(role, particle_q[base + ids[0]], particle_q[base + ids[1]],
+                                                        particle_q[base + ids[2]], particle_q[base + ids[3]])
         return funcs.tet_force(role, particle_q[base + ids[0]], particle_q[base + ids[1]], particle_q[base + ids[2]],
                                particle_q[base + ids[3]], particle_qd[base + ids[0]], particle_qd[base + ids[1]],
                                particle_qd[base + ids[2]], particle_qd[base + ids[3]], tets.rest_inverse[t],
@@ -281,4 +317,25 @@ def neohookean_family_funcs(scalar: type, spec: NeoHookeanSpec) -> FamilyFuncs:
                                tets.rest_volume[t], row(tets.mu, world, t), row(tets.lam, world, t),
                                row(tets.damping, world, t))
 
-    return FamilyFuncs(Arrays, force, product, strain, energy, spec.incidence.idle(), dissipation=dissipation)
+    @wp.kernel(module="unique", enable_backward=False)
+    def tet_stresses(
+        particle_count: int,
+        tets: Arrays,
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+    ):
+        """Each tet's (S, p) at a state, once (launch over [world_count, tet_count])."""
+        world, t = wp.tid()
+        base = world * particle_count
+        ids = tets.indices[t]
+        stress, pressure = funcs.tet_stress(
+            particle_q[base + ids[0]], particle_q[base + ids[1]], particle_q[base + ids[2]], particle_q[base + ids[3]],
+            particle_qd[base + ids[0]], particle_qd[base + ids[1]], particle_qd[base + ids[2]],
+            particle_qd[base + ids[3]], tets.rest_inverse[t], tets.rest_volume[t], row(tets.mu, world, t),
+            row(tets.lam, world, t), row(tets.damping, world, t))
+        slot = world * tets.indices.shape[0] + t
+        tets.stress[slot] = stress
+        tets.pressure[slot] = pressure
+
+    idle = spec.incidence.idle() + (() if spec.precomputed else ("stress", "pressure"))
+    return NeoHookeanFuncs(Arrays, force, product, strain, energy, idle, dissipation, tet_stresses)

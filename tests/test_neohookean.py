@@ -31,12 +31,12 @@ REST = np.array([[0.0, 0.0, 0.0], [0.1, 0.01, -0.02], [0.03, 0.09, 0.01], [0.02,
 BAR = os.path.join(os.path.dirname(__file__), "..", "examples", "meshes", "bar.obj")  # 1 × 0.1 × 0.1 m
 
 
-def tet_model(device, *, damping=0.0, positions=REST, tets=TET, pinned=None):
-    """Particles at ``positions`` (mass MASS each) joined by neo-Hookean ``tets`` (E, NU, Rayleigh β = ``damping``
-    [s]), float64, default gravity, no springs."""
+def tet_model(device, *, damping=0.0, positions=REST, tets=TET, pinned=None, precompute=True):
+    """Particles at ``positions`` (mass MASS each) joined by neo-Hookean ``tets`` (E, NU, damper β = ``damping``
+    [s], each tet's stress precomputed or computed per corner), float64, default gravity, no springs."""
     builder = ws.ModelBuilder()
     builder.add_particles(positions, mass=MASS, pinned=pinned)
-    family = builder.add_family(NeoHookeanFamily())
+    family = builder.add_family(NeoHookeanFamily(precompute=precompute))
     family.add(tets, positions, youngs_modulus=E, poisson_ratio=NU, damping=damping)
     return builder.finalize(device, precision="float64"), family
 
@@ -81,15 +81,17 @@ def power_kernel():
     return get
 
 
-def test_forces_are_minus_the_gradient_of_the_energy(device, power_kernel):
+@pytest.mark.parametrize("precompute", [True, False], ids=["precomputed", "per_corner"])
+def test_forces_are_minus_the_gradient_of_the_energy(device, power_kernel, precompute):
     """At a random large deformation (J ≈ 0.7 … 1.3 and shear), the gathered forces equal -∂E/∂x by float64 central
     differences of the energy hook (step 1e-7 m: truncation ~(1e-7/0.05)² ~ 1e-11 relative, rounding ~1e-16 ·
     E_scale/1e-7 ~ 1e-9), the energy hook equals Ψ − Ψ_rest computed from F and det F, and the forces with
     velocities equal the float64 reference -μV₀(F + βḞ)G_a - λ(J - α + βJ̇)∇_aV; the forces sum to zero and
     exert no torque (the damper included: it acts on the strain rate); the dissipation hook gives the damper's
-    power -Σ f_dampᵃ·vₐ ≥ 0."""
+    power -Σ f_dampᵃ·vₐ ≥ 0. Both gathers: each tet's (S, p) precomputed once (the default; every other test steps
+    it) and computed by every corner."""
     beta = 2.0e-3
-    model, family = tet_model(device, damping=beta)
+    model, family = tet_model(device, damping=beta, precompute=precompute)
     rng = np.random.default_rng(3)
     q = REST + rng.normal(scale=0.015, size=(4, 3))
     v = rng.normal(size=(4, 3))

@@ -124,11 +124,17 @@ class NeoHookeanFamily(ElementFamily):
     Live values (per world, in device memory, read by the kernels; writing them compiles nothing): ``mu`` μ [Pa],
     ``lam`` λ [Pa] (the energy's, λ = λ_L + μ, :func:`stable_lame`) and ``damping`` β [s] per tet
     (:meth:`set_values`).
+
+    Args:
+        precompute: compute each tet's stress S and pressure p once per force evaluation in a pass of its own
+            (``at_time``; ten scalars per tet and world) and let each corner's gather read them with its own face's
+            gradient; ``False``: every corner computes its tet's F, Ḟ and volume gradient itself.
     """
 
     name = "neo-Hookean tets"
 
-    def __init__(self):
+    def __init__(self, *, precompute: bool = True):
+        self.precompute = bool(precompute)
         self._tets: list[np.ndarray] = []
         self._rest: list[np.ndarray] = []
         self._inverse: list[np.ndarray] = []
@@ -203,7 +209,8 @@ class NeoHookeanFamily(ElementFamily):
         """Indices, V₀, D_m⁻¹, μ, λ and β per tet (one row each), and the incidence table."""
         from .memory import incidence_bytes
 
-        return (16 + 13 * scalar_bytes) * self.element_count + incidence_bytes(self.tets, particle_count)
+        stress = 10 * scalar_bytes * (worlds * self.element_count if self.precompute else 1)
+        return (16 + 13 * scalar_bytes) * self.element_count + stress + incidence_bytes(self.tets, particle_count)
 
     def finalize(self, model) -> None:
         device, scalar = model.device, model.scalar
@@ -215,6 +222,9 @@ class NeoHookeanFamily(ElementFamily):
         self._rest_inverse = wp.array(np.concatenate(self._inverse), dtype=mat33_type(scalar), device=device)
         self._live_arrays = {name: wp.array(np.concatenate(v)[None, :], dtype=scalar, device=device)
                              for name, v in self._values.items()}
+        slots = model.world_count * len(tets) if self.precompute else 1
+        self._stress = wp.zeros(slots, dtype=mat33_type(scalar), device=device)
+        self._pressure = wp.zeros(slots, dtype=scalar, device=device)
         self._model = model
 
     # -- live values -------------------------------------------------------------------------------------------
@@ -287,7 +297,15 @@ class NeoHookeanFamily(ElementFamily):
         return bool((self.values("damping") != 0.0).any())
 
     def spec(self, model, *, linear: bool = False) -> NeoHookeanSpec:
-        return NeoHookeanSpec(incidence=self.shape)
+        return NeoHookeanSpec(incidence=self.shape, precomputed=self.precompute)
+
+    def at_time(self, model, state) -> None:
+        """Where precomputed: each tet's (S, p) at ``state``, before the corners gather them."""
+        if not self.precompute:
+            return
+        wp.launch(self.spec(model).funcs(model.scalar).tet_stresses, dim=(model.world_count, self.element_count),
+                  inputs=[model.particle_count, self.arrays(model), state.particle_q, state.particle_qd],
+                  device=model.device)
 
     def arrays(self, model, *, stiffness=None):
         arrays = neohookean_arrays_type(model.scalar)()
@@ -297,6 +315,8 @@ class NeoHookeanFamily(ElementFamily):
         arrays.mu = self._live_arrays["mu"]
         arrays.lam = self._live_arrays["lam"]
         arrays.damping = self._live_arrays["damping"]
+        arrays.stress = self._stress
+        arrays.pressure = self._pressure
         arrays.incidence = self.incidence
         return arrays
 
