@@ -1846,7 +1846,9 @@ def _elasticity(elasticity, poisson_ratio, *, method: str, volume, bulk_modulus,
             raise ConfigError(f"{source}: poisson_ratio={poisson_ratio!r} is the neo-Hookean material's (a spring "
                               "network is fixed at 0.25): give elasticity='neohookean' with it")
         return False
-    if method not in ("tetrahedral", "delaunay"):
+    from .softbody import METHODS
+
+    if method in METHODS and method not in ("tetrahedral", "delaunay"):  # an unknown method: build_topology names it
         raise ConfigError(f"{source}: elasticity='neohookean' needs tets, which the {method} method does not make: use "
                           "method='tetrahedral' or 'delaunay'")
     if volume or bulk_modulus is not None:
