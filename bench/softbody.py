@@ -114,14 +114,15 @@ def gershgorin_step(body) -> float:
 
 def drop(device, usd_path: str | None, *, methods=None, volume: bool = False, bulk_modulus: float | None = None,
          youngs_modulus: float = BALL_E, height: float = 0.3, dt: float | None = None,
-         elasticity: str = "springs") -> tuple[list[dict], float, float]:
+         elasticity: str = "springs", integrator: str = "symplectic_euler") -> tuple[list[dict], float, float]:
     """Every method's ball (or those of ``methods``) dropped from ``height`` [m] onto the ground, side by side, for
     1 s; per body: particles, springs, build and step time, volume change of the surface, inverted tets; written to
     USD unless ``usd_path`` is None. ``volume``: the tetrahedral and Delaunay balls get the tet volume term
     (``add_soft_body(volume=True)``, K = ``bulk_modulus`` or 2E/3), and the step also respects its stiffness (half
     the model's Gershgorin limit, which counts every family); ``dt`` [s]: a step to take instead (rounded down to
     whole substeps of a 1/30 s frame). ``elasticity="neohookean"``: the tetrahedral and Delaunay balls' tets carry
-    their elasticity (no springs; ν = 1/4, as the networks'), and the step respects the model's Gershgorin limit."""
+    their elasticity (no springs; ν = 1/4, as the networks'), and the step respects the model's Gershgorin limit.
+    ``integrator``: the integrator's name (with ``dt``, e.g. implicit Euler at a frame's step)."""
     ball = trimesh.load(BALL, force="mesh", process=False)
     rest_volume = float(ball.volume)
     builder = ws.ModelBuilder()
@@ -145,7 +146,7 @@ def drop(device, usd_path: str | None, *, methods=None, volume: bool = False, bu
             from warpspring.analysis.stability import gershgorin_omega_max
 
             dt = min(dt, 0.5 * 2.0 / gershgorin_omega_max(model))
-    integrator = ws.make_integrator("symplectic_euler", model)
+    integrator = ws.make_integrator(integrator, model)
     a, b = model.state(), model.state()
     fps = 30
     substeps = int(np.ceil(1.0 / fps / dt))
@@ -188,14 +189,16 @@ def drop(device, usd_path: str | None, *, methods=None, volume: bool = False, bu
     return rows, step, dt
 
 
-def volume_table(runs: list, device, *, youngs_modulus: float, height: float, bulk_modulus) -> str:
+def volume_table(runs: list, device, *, youngs_modulus: float, height: float, bulk_modulus,
+                 integrator: str = "symplectic_euler", dt_given: bool = False) -> str:
     """The drop with and without the volume term: ``runs`` of (volume on, rows, step [s], dt [s])."""
     k = "2E/3" if bulk_modulus is None else f"{bulk_modulus:g} Pa"
     lines = [
         f"Balls dropped with and without the tet volume term or with neo-Hookean tets carrying the elasticity "
         f"(elasticity column; ν = 1/4), {datetime.date.today()}, Warp {wp.config.version}, "
         f"device {device}: icosphere r = 0.2 m, E = {youngs_modulus:g} Pa, ρ = {RHO:g} kg/m³, spacing {BALL_SPACING} m, "
-        f"β = {BALL_DAMPING:g} s, from {height:g} m, 1 s of symplectic Euler at half the Gershgorin limit (the same "
+        f"β = {BALL_DAMPING:g} s, from {height:g} m, 1 s of {integrator.replace('_', ' ')} at "
+        f"{'the step given' if dt_given else 'half the Gershgorin limit'} (the same "
         "step with and without the term when both ran); volume term "
         f"K = {k} (kd = βK). Volume: the authored surface's at 1 s over its rest volume; inverted: tets with V ≤ 0 "
         "against their rest orientation.",
@@ -601,6 +604,10 @@ def main() -> None:
     parser.add_argument("--elasticity", choices=("springs", "neohookean", "both"), default="springs",
                         help="what carries the tetrahedral and Delaunay balls' elasticity in the drop (neohookean: "
                              "their tets, no springs; both: two drops, one table)")
+    parser.add_argument("--integrator", default="symplectic_euler", help="the drop's integrator")
+    parser.add_argument("--dt", type=float, default=None,
+                        help="the drop's step [s] (default half the Gershgorin limit; rounded down to whole substeps "
+                             "of a 1/30 s frame)")
     parser.add_argument("--elasticity-cost", action="store_true",
                         help="only time a substep of the tet balls with springs against neo-Hookean tets")
     parser.add_argument("--youngs-modulus", type=float, default=BALL_E, help="E of the dropped balls [Pa]")
@@ -620,7 +627,7 @@ def main() -> None:
     if args.elasticity_cost:
         return emit(elasticity_cost(args.device, methods=tuple(args.methods or ("tetrahedral", "delaunay"))), args.out)
     if args.drop_only:
-        runs, dt = [], None
+        runs, dt = [], args.dt
         # with both, the drop with the term (or the tets) first: the other takes its (smaller) step, so only the term
         # differs
         volumes = {"off": (False,), "on": (True,), "both": (True, False)}[args.volume]
@@ -630,10 +637,12 @@ def main() -> None:
             for on in volumes if elasticity == "springs" else (False,):
                 rows, step, dt = drop(args.device, None, methods=args.methods, volume=on,
                                       bulk_modulus=args.bulk_modulus, youngs_modulus=args.youngs_modulus,
-                                      height=args.height, dt=dt, elasticity=elasticity)
+                                      height=args.height, dt=dt, elasticity=elasticity,
+                                      integrator=args.integrator)
                 runs.insert(0, (on, rows, step, dt))
         return emit(volume_table(runs, args.device, youngs_modulus=args.youngs_modulus, height=args.height,
-                                 bulk_modulus=args.bulk_modulus), args.out)
+                                 bulk_modulus=args.bulk_modulus, integrator=args.integrator,
+                                 dt_given=args.dt is not None), args.out)
     elastic = {}
     for method, cube, bar, options in CASES:
         elastic[method] = elasticity(method, cube, bar, options)
