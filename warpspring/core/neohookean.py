@@ -153,9 +153,10 @@ class NeoHookeanFamily(ElementFamily):
             positions: the rest positions [m] of the model's particles so far, shape [n, 3] (float64).
             youngs_modulus: E [Pa], > 0.
             poisson_ratio: ν, in (−1, ½).
-            damping: β [s], ≥ 0: a damper on the Green strain's rate that is Rayleigh's −β K₀ v at rest (K₀ the
-                linear stiffness), so a mode of angular frequency ω is damped by ζ = βω/2, as the springs'
-                kd = β ke; it exerts nothing on rigid motions.
+            damping: β [s], ≥ 0: Rayleigh's stiffness-proportional damper −β K̃ v on the family's stiffness K̃
+                (``kernels/neohookean.py``: it acts on the Green strain's rate and the volume's, so it exerts nothing
+                on rigid motions); at rest a mode of angular frequency ω is damped by ζ = βω/2, as the springs'
+                kd = β ke.
             source: the body's name, for messages.
 
         Returns:
