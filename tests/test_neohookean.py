@@ -315,7 +315,7 @@ def test_resting_cube_settles_to_the_linear_static_solve(device):
     bottom = x[:, 2] < x[:, 2].min() + 1e-9
     builder.pin_particles(body.particles[bottom])
     model = builder.finalize(device, precision="float64")
-    assert model.spring_count == 0
+    assert model.spring_count == 0 and body.spring_count == 0 and body.stiffness_rule.startswith("neo-Hookean tets")
     fixed = np.repeat(bottom[:, None], 3, axis=1)
     force = np.zeros_like(x)
     force[:, 2] = -9.81 * sb.distribute_mass(body.topology, body.mass)

@@ -1089,7 +1089,9 @@ class ModelBuilder:
             elastic_tets = add_neohookean_term(self, topology, ids, method=method, youngs_modulus=youngs_modulus,
                                                poisson_ratio=poisson_ratio, damping=beta, source=name)
         return softbody.SoftBody(
-            name=name, method=method, particles=ids, springs=springs, skin=skin, stiffness_rule=topology.stiffness_rule,
+            name=name, method=method, particles=ids, springs=springs, skin=skin,
+            stiffness_rule=(f"neo-Hookean tets (E = {float(youngs_modulus):g} Pa, ν = {float(poisson_ratio):g}), no springs"
+                            if neohookean else topology.stiffness_rule),
             youngs_modulus=float(youngs_modulus), mass=float(masses.sum()), slivers=topology.slivers,
             topology=topology, build_seconds=time.perf_counter() - started, volume_tets=volume_tets,
             elasticity=elasticity, elastic_tets=elastic_tets,
