@@ -23,6 +23,15 @@ the patch test of the tet networks beside their cube and bar errors (RESULTS §1
 
     python bench/softbody.py --patch-test --builds 3 --out bench/results/softbody_patch_test.md
 
+the tetrahedral body's springs against the neo-Hookean tet family (RESULTS §18g; static solves):
+
+    python bench/softbody.py --neohookean --builds 3 --out bench/results/softbody_neohookean.md
+
+the drop with the tets carrying the elasticity (and their cost per substep against the springs, on a GPU):
+
+    python bench/softbody.py --device cpu --drop-only --methods tetrahedral delaunay --elasticity both --out FILE
+    python bench/softbody.py --device cuda:0 --elasticity-cost --out FILE
+
 and the term's cost per substep (one CUDA graph of 200 substeps on a GPU):
 
     python bench/softbody.py --device cuda:0 --family-cost --out FILE
@@ -104,13 +113,16 @@ def gershgorin_step(body) -> float:
 
 
 def drop(device, usd_path: str | None, *, methods=None, volume: bool = False, bulk_modulus: float | None = None,
-         youngs_modulus: float = BALL_E, height: float = 0.3, dt: float | None = None) -> tuple[list[dict], float, float]:
+         youngs_modulus: float = BALL_E, height: float = 0.3, dt: float | None = None,
+         elasticity: str = "springs", integrator: str = "symplectic_euler") -> tuple[list[dict], float, float]:
     """Every method's ball (or those of ``methods``) dropped from ``height`` [m] onto the ground, side by side, for
     1 s; per body: particles, springs, build and step time, volume change of the surface, inverted tets; written to
     USD unless ``usd_path`` is None. ``volume``: the tetrahedral and Delaunay balls get the tet volume term
     (``add_soft_body(volume=True)``, K = ``bulk_modulus`` or 2E/3), and the step also respects its stiffness (half
     the model's Gershgorin limit, which counts every family); ``dt`` [s]: a step to take instead (rounded down to
-    whole substeps of a 1/30 s frame)."""
+    whole substeps of a 1/30 s frame). ``elasticity="neohookean"``: the tetrahedral and Delaunay balls' tets carry
+    their elasticity (no springs; ν = 1/4, as the networks'), and the step respects the model's Gershgorin limit.
+    ``integrator``: the integrator's name (with ``dt``, e.g. implicit Euler at a frame's step)."""
     ball = trimesh.load(BALL, force="mesh", process=False)
     rest_volume = float(ball.volume)
     builder = ws.ModelBuilder()
@@ -118,7 +130,10 @@ def drop(device, usd_path: str | None, *, methods=None, volume: bool = False, bu
     for i, (method, _, _, options) in enumerate(CASES):
         if methods and method not in methods:
             continue
-        extra = {"volume": True, "bulk_modulus": bulk_modulus} if volume and method in ("tetrahedral", "delaunay") else {}
+        tets = method in ("tetrahedral", "delaunay")
+        extra = {"volume": True, "bulk_modulus": bulk_modulus} if volume and tets else {}
+        if elasticity == "neohookean" and tets:
+            extra = {"elasticity": "neohookean"}
         body = builder.add_soft_body(ball, method=method, youngs_modulus=youngs_modulus, density=RHO,
                                      spacing=BALL_SPACING, damping=BALL_DAMPING, origin=(0.55 * i, 0.0, 0.2 + height),
                                      name=method, options=options, **extra)
@@ -126,12 +141,12 @@ def drop(device, usd_path: str | None, *, methods=None, volume: bool = False, bu
     builder.add_ground_plane(friction=0.5)
     model = builder.finalize(device)
     if dt is None:
-        dt = min(gershgorin_step(body) for body in bodies)
-        if volume:
+        dt = min([gershgorin_step(body) for body in bodies if body.spring_count] or [np.inf])
+        if volume or elasticity == "neohookean":
             from warpspring.analysis.stability import gershgorin_omega_max
 
             dt = min(dt, 0.5 * 2.0 / gershgorin_omega_max(model))
-    integrator = ws.make_integrator("symplectic_euler", model)
+    integrator = ws.make_integrator(integrator, model)
     a, b = model.state(), model.state()
     fps = 30
     substeps = int(np.ceil(1.0 / fps / dt))
@@ -169,29 +184,33 @@ def drop(device, usd_path: str | None, *, methods=None, volume: bool = False, bu
         rows.append({"method": body.method, "particles": body.particle_count, "springs": body.spring_count,
                      "build": body.build_seconds, "volume": float(surface.volume) / rest_volume - 1.0,
                      "inverted": inverted, "tets": tets, "slivers": body.slivers,
-                     "volume_term": body.volume_tets is not None})
+                     "volume_term": body.volume_tets is not None, "elasticity": body.elasticity})
     step = seconds / (fps * substeps)
     return rows, step, dt
 
 
-def volume_table(runs: list, device, *, youngs_modulus: float, height: float, bulk_modulus) -> str:
+def volume_table(runs: list, device, *, youngs_modulus: float, height: float, bulk_modulus,
+                 integrator: str = "symplectic_euler", dt_given: bool = False) -> str:
     """The drop with and without the volume term: ``runs`` of (volume on, rows, step [s], dt [s])."""
     k = "2E/3" if bulk_modulus is None else f"{bulk_modulus:g} Pa"
     lines = [
-        f"Balls dropped with and without the tet volume term, {datetime.date.today()}, Warp {wp.config.version}, "
+        f"Balls dropped with and without the tet volume term or with neo-Hookean tets carrying the elasticity "
+        f"(elasticity column; ν = 1/4), {datetime.date.today()}, Warp {wp.config.version}, "
         f"device {device}: icosphere r = 0.2 m, E = {youngs_modulus:g} Pa, ρ = {RHO:g} kg/m³, spacing {BALL_SPACING} m, "
-        f"β = {BALL_DAMPING:g} s, from {height:g} m, 1 s of symplectic Euler at half the Gershgorin limit (the same "
+        f"β = {BALL_DAMPING:g} s, from {height:g} m, 1 s of {integrator.replace('_', ' ')} at "
+        f"{'the step given' if dt_given else 'half the Gershgorin limit'} (the same "
         "step with and without the term when both ran); volume term "
         f"K = {k} (kd = βK). Volume: the authored surface's at 1 s over its rest volume; inverted: tets with V ≤ 0 "
         "against their rest orientation.",
         "",
-        "| method | volume term | particles | springs | tets | dt [ms] | µs per substep (all bodies) | volume at 1 s | "
-        "inverted tets |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| method | elasticity | volume term | particles | springs | tets | dt [ms] | µs per substep (all bodies) | "
+        "volume at 1 s | inverted tets |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for on, rows, step, dt in runs:
         for r in rows:
-            lines.append(f"| {r['method']} | {'on' if r['volume_term'] else 'off'} | {r['particles']} | {r['springs']} | "
+            lines.append(f"| {r['method']} | {r['elasticity']} | {'on' if r['volume_term'] else 'off'} | {r['particles']} | "
+                         f"{r['springs']} | "
                          f"{r['tets'] if r['tets'] is not None else '—'} | {1e3 * dt:.3f} | {1e6 * step:.0f} | "
                          f"{100.0 * r['volume']:+.1f} % | {r['inverted'] if r['inverted'] is not None else '—'} |")
     return "\n".join(lines) + "\n"
@@ -316,6 +335,87 @@ def family_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int = 7,
          f"{1e9 * (median[v] - off) / max(tets, 1):.1f} ns |" for v in variants[1:]]) + "\n"
 
 
+def elasticity_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int = 7, substeps: int = 200) -> str:
+    """The substep's cost of the tet balls (``methods``) with springs against neo-Hookean tets (each tet's stress
+    precomputed once per force evaluation, the default, or computed by every corner), on the same tets (the
+    tetrahedral ball built once: fTetWild is not repeatable), resting on the ground, ``substeps`` symplectic Euler
+    steps of 0.1 ms per timing (one CUDA graph on a GPU), the models alternating for ``rounds`` rounds; median µs
+    per substep, and each model's Gershgorin step limit 2/ω (the advisor's bound over every family)."""
+    from warpspring.analysis.stability import gershgorin_omega_max
+    from warpspring.core.neohookean import NeoHookeanFamily
+
+    ball = trimesh.load(BALL, force="mesh", process=False)
+    topologies = {}
+
+    def build(variant: str):
+        elasticity = "springs" if variant == "springs" else "neohookean"
+        builder = ws.ModelBuilder()
+        if variant == "neohookean, per corner":
+            builder.add_family(NeoHookeanFamily(precompute=False))  # add_soft_body appends its tets to this one
+        tets = springs = 0
+        for i, method in enumerate(methods):
+            options = dict(next(c[3] for c in CASES if c[0] == method))
+            body = builder.add_soft_body(ball, method=method, youngs_modulus=BALL_E, density=RHO, spacing=BALL_SPACING,
+                                         damping=BALL_DAMPING, origin=(0.55 * i, 0.0, 0.2), name=method,
+                                         options=options, elasticity=elasticity)
+            topologies.setdefault(method, body.topology)
+            tets += len(body.topology.tets)
+            springs += body.spring_count
+        builder.add_ground_plane(friction=0.5)
+        return builder.finalize(device), tets, springs
+
+    real = sb.build_topology
+    models = {}
+    try:
+        models["springs"] = build("springs")
+        sb.build_topology = lambda mesh, method, **kw: topologies[method]
+        models["neohookean, precomputed"] = build("neohookean, precomputed")
+        models["neohookean, per corner"] = build("neohookean, per corner")
+    finally:
+        sb.build_topology = real
+    runners, limits = {}, {}
+    for variant, (model, _, _) in models.items():
+        integrator = ws.make_integrator("symplectic_euler", model)
+        states = [model.state(), model.state()]
+        limits[variant] = 2.0 / gershgorin_omega_max(model)
+
+        def loop(integrator=integrator, states=states):
+            for k in range(substeps):
+                integrator.step(states[k % 2], states[(k + 1) % 2], None, 1.0e-4)
+
+        loop()  # compiles, warms
+        graph = None
+        if wp.get_device(device).is_cuda:
+            with wp.ScopedCapture(device=device) as capture:
+                loop()
+            graph = capture.graph
+        runners[variant] = (lambda loop=loop, graph=graph: wp.capture_launch(graph) if graph is not None else loop())
+    times = {v: [] for v in models}
+    for _ in range(rounds):
+        for variant in models:
+            wp.synchronize_device(device)
+            started = time.perf_counter()
+            runners[variant]()
+            wp.synchronize_device(device)
+            times[variant].append((time.perf_counter() - started) / substeps)
+    median = {v: float(np.median(times[v])) for v in models}
+    name = wp.get_device(device).name
+    lines = [
+        f"Springs against neo-Hookean tets, cost per substep, {datetime.date.today()}, Warp {wp.config.version}, {device} "
+        f"({name}): balls {', '.join(methods)} ({models['springs'][0].particle_count} particles, {models['springs'][1]} "
+        f"tets) resting on the ground, E = {BALL_E:g} Pa, symplectic Euler, {substeps} substeps of 0.1 ms per timing"
+        f"{' (one CUDA graph)' if wp.get_device(device).is_cuda else ''}, median of {rounds} alternating rounds; "
+        "Gershgorin limit: 2/ω for the advisor's bound on ω over every family, at rest.",
+        "",
+        "| elasticity | springs | tets in a family | µs per substep | ratio | Gershgorin limit [ms] |",
+        "|---|---|---|---|---|---|",
+    ]
+    for variant, (model, tets, springs) in models.items():
+        lines.append(f"| {variant} | {springs} | {tets if variant != 'springs' else 0} | {1e6 * median[variant]:.1f} | "
+                     f"{median[variant] / median['springs']:.2f}× | {1e3 * limits[variant]:.3f} |")
+    return "\n".join(lines) + "\n"
+
+
 def patch_test(*, builds: int = 3, cube_cells=(4, 6, 8, 10, 12), bar_cells=(3, 4, 6, 8)) -> str:
     """Why the tetrahedral bodies' errors do not fall with resolution: each build's patch test
     (``se.uniform_stress_compliance``: the body's compliance under the six uniform stresses against the
@@ -348,6 +448,83 @@ def patch_test(*, builds: int = 3, cube_cells=(4, 6, 8, 10, 12), bar_cells=(3, 4
                     lines.append(f"| {body} | {method} | {n} | {edge:.3f} | {len(x)} | {axial} | {shear} | "
                                  f"{max(abs(v - 1.0) for v in fem.values()):.0e} off 1 | {100 * error:+.1f} % |")
                     print(lines[-1], flush=True)
+    return "\n".join(lines) + "\n"
+
+
+def neohookean_elasticity(*, builds: int = 3, cube_cells=(4, 6, 8, 10, 12), bar_cells=(3, 4, 6, 8),
+                          poisson_ratio: float = 0.25) -> str:
+    """The tetrahedral body's elasticity carried by its springs against the neo-Hookean tet family
+    (``add_soft_body(elasticity="neohookean")``, linearised at rest: linear elasticity on the same tets), by the
+    float64 static solves of the cube on frictionless ground and the pulled bar: per resolution ``builds`` fTetWild
+    builds (not seedable), both on each build; the median and range over the builds, with the tets' real median
+    edge. Then the seeded Delaunay body (one build). The bar also with its end faces taken within 2e-3 L of the
+    planes (fTetWild's envelope leaves some of their vertices up to ~1 mm off, which the default 1e-6 L neither
+    holds nor pulls). The family also at ν = 0: the cube's closed form ρgh²/(2E)
+    assumes a uniaxial stress, whose free solution bows the bottom face by ν; flat frictionless ground holds it
+    flat, so at ν > 0 the continuum itself differs from the closed form a little. Static solves, no device."""
+    lines = [
+        f"Springs against the neo-Hookean tet family, {datetime.date.today()} (float64 static solves on the same tets; "
+        f"E = {E:g} Pa, ν = {poisson_ratio:g} for the family, ρ = {RHO:g} kg/m³; error = measured / closed form − 1; "
+        f"tetrahedral: median [min … max] over {builds} fTetWild builds, Delaunay: one seeded build):",
+        "",
+        f"| body | method | cells asked | median edge [m] | particles | tets | springs | neo-Hookean tets, ν = {poisson_ratio:g} "
+        "| neo-Hookean tets, ν = 0 | bar's ends within 2e-3 L: springs | neo-Hookean |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    shapes = {"cube": ((1.0, 1.0, 1.0), 1.0, cube_cells), "bar": ((1.0, 0.2, 0.2), 0.2, bar_cells)}
+
+    def spread(values):
+        values = np.asarray(values)
+        if len(values) == 1:
+            return f"{100 * values[0]:+.2f} %"
+        return f"{100 * np.median(values):+.2f} % [{100 * values.min():+.2f} … {100 * values.max():+.2f}]"
+
+    for body, (size, across, cells) in shapes.items():
+        for method, repeats in (("tetrahedral", builds), ("delaunay", 1)):
+            for n in cells:
+                edges, particles, tets, springs, fem, fem0, wide_springs, wide_fem = [], [], [], [], [], [], [], []
+                for _ in range(repeats):
+                    topology = se.box_topology(method, size, youngs_modulus=E, spacing=across / n)
+                    x, (pairs, _) = topology.positions, topology.springs[next(iter(topology.springs))]
+                    edges.append(float(np.median(np.linalg.norm(x[pairs[:, 1]] - x[pairs[:, 0]], axis=1))))
+                    particles.append(len(x))
+                    tets.append(len(topology.tets))
+                    for name, nu, out in (("springs", 0.25, springs), ("neohookean", poisson_ratio, fem),
+                                          ("neohookean", 0.0, fem0)):
+                        if body == "cube":
+                            out.append(se.cube_shortening(topology, youngs_modulus=E, density=RHO, elasticity=name,
+                                                          poisson_ratio=nu))
+                        else:
+                            out.append(se.bar_stretch(topology, youngs_modulus=E, elasticity=name, poisson_ratio=nu))
+                    if body == "bar":  # the end faces taken wider: fTetWild's envelope leaves vertices off the plane
+                        for name, out in (("springs", wide_springs), ("neohookean", wide_fem)):
+                            out.append(se.bar_stretch(topology, youngs_modulus=E, elasticity=name,
+                                                      poisson_ratio=poisson_ratio, face_tolerance=2.0e-3))
+                lines.append(f"| {body} | {method} | {n} | {np.median(edges):.3f} | {int(np.median(particles))} | "
+                             f"{int(np.median(tets))} | {spread(springs)} | {spread(fem)} | {spread(fem0)} | "
+                             f"{spread(wide_springs) if wide_springs else '—'} | {spread(wide_fem) if wide_fem else '—'} |")
+                print(lines[-1], flush=True)
+    lines += [
+        "",
+        "The cantilever (1 × 0.1 × 0.1 m, spacing 0.025 m: 4 cells across) under its own weight against qL⁴/(8EI), and the "
+        f"free bar's first longitudinal mode (the bar at 3 across) against √(E/ρ)/(2L), same builds as above (ν = "
+        f"{poisson_ratio:g}):",
+        "",
+        "| method | cantilever, springs | cantilever, neo-Hookean | ring, springs | ring, neo-Hookean |",
+        "|---|---|---|---|---|",
+    ]
+    for method, repeats in (("tetrahedral", builds), ("delaunay", 1)):
+        results = {key: [] for key in ("cs", "cn", "rs", "rn")}
+        for _ in range(repeats):
+            beam = se.box_topology(method, (1.0, 0.1, 0.1), youngs_modulus=E, spacing=0.025)
+            bar = se.box_topology(method, (1.0, 0.2, 0.2), youngs_modulus=E, spacing=0.2 / 3)
+            for key, name in (("s", "springs"), ("n", "neohookean")):
+                results["c" + key].append(se.cantilever_deflection(beam, youngs_modulus=E, density=RHO, elasticity=name,
+                                                                   poisson_ratio=poisson_ratio))
+                results["r" + key].append(se.ring_frequency(bar, youngs_modulus=E, density=RHO, elasticity=name,
+                                                            poisson_ratio=poisson_ratio))
+        lines.append(f"| {method} | " + " | ".join(spread(results[k]) for k in ("cs", "cn", "rs", "rn")) + " |")
+        print(lines[-1], flush=True)
     return "\n".join(lines) + "\n"
 
 
@@ -415,11 +592,24 @@ def main() -> None:
                         help="only the bar's E and ν without and with the tet volume term (static solves, no device)")
     parser.add_argument("--patch-test", action="store_true",
                         help="only the tet networks' patch test beside their cube and bar errors (static solves)")
-    parser.add_argument("--builds", type=int, default=3, help="fTetWild builds per resolution for --patch-test")
+    parser.add_argument("--neohookean", action="store_true",
+                        help="only the tet bodies' cube and bar errors with springs against the neo-Hookean tet "
+                             "family (static solves)")
+    parser.add_argument("--builds", type=int, default=3,
+                        help="fTetWild builds per resolution for --patch-test and --neohookean")
     parser.add_argument("--methods", nargs="+", choices=[c[0] for c in CASES], help="the balls to drop (default all)")
     parser.add_argument("--volume", choices=("off", "on", "both"), default="off",
                         help="the tet volume term on the tetrahedral and Delaunay balls; both: two drops, one table")
     parser.add_argument("--bulk-modulus", type=float, default=None, help="the volume term's K [Pa] (default 2E/3)")
+    parser.add_argument("--elasticity", choices=("springs", "neohookean", "both"), default="springs",
+                        help="what carries the tetrahedral and Delaunay balls' elasticity in the drop (neohookean: "
+                             "their tets, no springs; both: two drops, one table)")
+    parser.add_argument("--integrator", default="symplectic_euler", help="the drop's integrator")
+    parser.add_argument("--dt", type=float, default=None,
+                        help="the drop's step [s] (default half the Gershgorin limit; rounded down to whole substeps "
+                             "of a 1/30 s frame)")
+    parser.add_argument("--elasticity-cost", action="store_true",
+                        help="only time a substep of the tet balls with springs against neo-Hookean tets")
     parser.add_argument("--youngs-modulus", type=float, default=BALL_E, help="E of the dropped balls [Pa]")
     parser.add_argument("--height", type=float, default=0.3, help="drop height [m]")
     args = parser.parse_args()
@@ -429,18 +619,30 @@ def main() -> None:
                                       bulk_modulus=args.bulk_modulus), args.out)
     if args.patch_test:
         return emit(patch_test(builds=args.builds), args.out)
+    if args.neohookean:
+        return emit(neohookean_elasticity(builds=args.builds), args.out)
     if args.family_cost:
         return emit(family_cost(args.device, methods=tuple(args.methods or ("tetrahedral", "delaunay")),
                                 bulk_modulus=args.bulk_modulus), args.out)
+    if args.elasticity_cost:
+        return emit(elasticity_cost(args.device, methods=tuple(args.methods or ("tetrahedral", "delaunay"))), args.out)
     if args.drop_only:
-        runs, dt = [], None
-        # with both, the drop with the term first: the one without takes its (smaller) step, so only the term differs
-        for on in {"off": (False,), "on": (True,), "both": (True, False)}[args.volume]:
-            rows, step, dt = drop(args.device, None, methods=args.methods, volume=on, bulk_modulus=args.bulk_modulus,
-                                  youngs_modulus=args.youngs_modulus, height=args.height, dt=dt)
-            runs.insert(0, (on, rows, step, dt))
+        runs, dt = [], args.dt
+        # with both, the drop with the term (or the tets) first: the other takes its (smaller) step, so only the term
+        # differs
+        volumes = {"off": (False,), "on": (True,), "both": (True, False)}[args.volume]
+        elasticities = {"springs": ("springs",), "neohookean": ("neohookean",),
+                        "both": ("neohookean", "springs")}[args.elasticity]
+        for elasticity in elasticities:
+            for on in volumes if elasticity == "springs" else (False,):
+                rows, step, dt = drop(args.device, None, methods=args.methods, volume=on,
+                                      bulk_modulus=args.bulk_modulus, youngs_modulus=args.youngs_modulus,
+                                      height=args.height, dt=dt, elasticity=elasticity,
+                                      integrator=args.integrator)
+                runs.insert(0, (on, rows, step, dt))
         return emit(volume_table(runs, args.device, youngs_modulus=args.youngs_modulus, height=args.height,
-                                 bulk_modulus=args.bulk_modulus), args.out)
+                                 bulk_modulus=args.bulk_modulus, integrator=args.integrator,
+                                 dt_given=args.dt is not None), args.out)
     elastic = {}
     for method, cube, bar, options in CASES:
         elastic[method] = elasticity(method, cube, bar, options)

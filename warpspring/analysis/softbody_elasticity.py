@@ -12,6 +12,11 @@ linear stiffness (``core.softbody.stiffness_matrix``) against the closed forms o
 * a body under a uniform stress σ (tractions σn on its surface, no other load) stores the complementary
   energy ½ V σ:S:σ, S the compliance of the isotropic material (:func:`uniform_stress_compliance`: the
   patch test; linear tetrahedra pass it exactly, a spring network only where its relaxation is affine).
+
+The static and modal checks take the body's stiffness from its spring network (``elasticity="springs"``, the
+default) or, for a tetrahedral or Delaunay body built with ``add_soft_body(elasticity="neohookean")``, from the
+neo-Hookean tets linearised at rest, which is linear elasticity's stiffness on the same tets
+(``elasticity="neohookean"``, :func:`linear_fem_stiffness` of E and ``poisson_ratio``).
 """
 
 from __future__ import annotations
@@ -21,6 +26,26 @@ import numpy as np
 from ..core import softbody as sb
 
 G = 9.81  # [m/s²]
+#: What carries a tet body's elasticity: its spring network, or the neo-Hookean tet family.
+ELASTICITIES = ("springs", "neohookean")
+
+
+def body_stiffness(topology, *, elasticity: str = "springs", youngs_modulus: float | None = None,
+                   poisson_ratio: float = 0.25):
+    """The body's linear stiffness at rest, a ``scipy.sparse.csr_matrix`` [3n, 3n] float64: its spring network's
+    (``"springs"``) or its tets' neo-Hookean energy linearised at rest (``"neohookean"``: linear elasticity on
+    the tets, :func:`linear_fem_stiffness`, which needs E [Pa] and ν; ``tests/test_neohookean.py`` checks the
+    family's forces against it)."""
+    if elasticity == "springs":
+        pairs = np.concatenate([p for p, _ in topology.springs.values()])
+        ke = np.concatenate([k for _, k in topology.springs.values()])
+        return sb.stiffness_matrix(topology.positions, pairs, ke)
+    if elasticity != "neohookean":
+        raise ValueError(f"elasticity must be one of {', '.join(ELASTICITIES)}, got {elasticity!r}")
+    if getattr(topology, "tets", None) is None or youngs_modulus is None:
+        raise ValueError("the neohookean stiffness needs a body with tets (tetrahedral, delaunay) and youngs_modulus")
+    return linear_fem_stiffness(topology.positions, topology.tets, youngs_modulus=youngs_modulus,
+                                poisson_ratio=poisson_ratio)
 
 
 def box_topology(method: str, size, *, youngs_modulus: float, spacing: float, surface_spacing: float | None = None,
@@ -39,9 +64,10 @@ def box_topology(method: str, size, *, youngs_modulus: float, spacing: float, su
     return sb.build_topology(box, method, youngs_modulus=youngs_modulus, spacing=spacing, **options)
 
 
-def cube_shortening(topology, *, youngs_modulus: float, density: float) -> float:
+def cube_shortening(topology, *, youngs_modulus: float, density: float, elasticity: str = "springs",
+                    poisson_ratio: float = 0.25) -> float:
     """Relative error of the cube's shortening under its own weight on frictionless ground (the box of
-    ``topology`` must be a cube)."""
+    ``topology`` must be a cube); ``elasticity``, ``poisson_ratio``: see :func:`body_stiffness`."""
     x = topology.positions
     side = float(np.ptp(x[:, 2]))
     tolerance = 1.0e-6 * side
@@ -51,33 +77,43 @@ def cube_shortening(topology, *, youngs_modulus: float, density: float) -> float
     _hold_rigid_in_plane(fixed, x, np.flatnonzero(bottom), (0, 1))
     force = np.zeros_like(x)
     force[:, 2] = -G * sb.distribute_mass(topology, density * side**3)
-    u = sb.static_displacement(topology, force, fixed)
+    u = sb.static_displacement(topology, force, fixed, stiffness=body_stiffness(
+        topology, elasticity=elasticity, youngs_modulus=youngs_modulus, poisson_ratio=poisson_ratio))
     return (u[bottom, 2].mean() - u[top, 2].mean()) / (density * G * side**2 / (2.0 * youngs_modulus)) - 1.0
 
 
-def bar_stretch(topology, *, youngs_modulus: float) -> float:
+def bar_stretch(topology, *, youngs_modulus: float, elasticity: str = "springs", poisson_ratio: float = 0.25,
+                face_tolerance: float = 1.0e-6) -> float:
     """Relative error of a bar's stretch (the box of ``topology``, long along x) pulled by F at x = max, spread
-    over that face by area (a Delaunay triangulation of its particles), its x = min face held axially."""
-    x, u, left, right, pull = _pulled_bar(topology)
+    over that face by area (a Delaunay triangulation of its particles), its x = min face held axially;
+    ``elasticity``, ``poisson_ratio``: see :func:`body_stiffness`. The end faces are the particles within
+    ``face_tolerance`` × L of x = min and x = max (fTetWild leaves some within its envelope, ~1e-3 of the box's
+    diagonal, off the plane: those are neither held nor pulled at the default)."""
+    x, u, left, right, pull = _pulled_bar(topology, body_stiffness(topology, elasticity=elasticity,
+                                                                   youngs_modulus=youngs_modulus,
+                                                                   poisson_ratio=poisson_ratio), face_tolerance)
     length, side_y, side_z = np.ptp(x, axis=0)
     return (u[right, 0].mean() - u[left, 0].mean()) / (pull * length / (youngs_modulus * side_y * side_z)) - 1.0
 
 
-def bar_poisson_ratio(topology) -> float:
+def bar_poisson_ratio(topology, *, elasticity: str = "springs", poisson_ratio: float = 0.25) -> float:
     """Poisson's ratio of the pulled bar of :func:`bar_stretch`, −ε_lateral / ε_axial, the strains fitted by least
-    squares to the displacements of the particles in its middle third (away from the ends' constraints)."""
-    x, u, _, _, _ = _pulled_bar(topology)
+    squares to the displacements of the particles in its middle third (away from the ends' constraints);
+    ``elasticity``, ``poisson_ratio`` (the neo-Hookean material's): see :func:`body_stiffness`."""
+    x, u, _, _, _ = _pulled_bar(topology, body_stiffness(topology, elasticity=elasticity, youngs_modulus=1.0,
+                                                         poisson_ratio=poisson_ratio))
     span = x[:, 0].max() - x[:, 0].min()
     middle = np.abs(x[:, 0] - x[:, 0].mean()) < span / 6.0
     strain = [np.polyfit(x[middle, k], u[middle, k], 1)[0] for k in range(3)]
     return -0.5 * (strain[1] + strain[2]) / strain[0]
 
 
-def _pulled_bar(topology):
-    """The bar of :func:`bar_stretch` solved: positions, displacements, the end faces' masks and the pull [N]."""
+def _pulled_bar(topology, stiffness=None, face_tolerance: float = 1.0e-6):
+    """The bar of :func:`bar_stretch` solved (with ``stiffness``, default the springs'): positions, displacements,
+    the end faces' masks and the pull [N]."""
     x = topology.positions
     length = float(np.ptp(x[:, 0]))
-    tolerance = 1.0e-6 * length
+    tolerance = face_tolerance * length
     left, right = x[:, 0] < x[:, 0].min() + tolerance, x[:, 0] > x[:, 0].max() - tolerance
     fixed = np.zeros(x.shape, dtype=bool)
     fixed[left, 0] = True
@@ -85,12 +121,14 @@ def _pulled_bar(topology):
     pull = 10.0  # [N]
     force = np.zeros_like(x)
     force[right, 0] = pull * face_shares(x[right][:, 1:])
-    return x, sb.static_displacement(topology, force, fixed), left, right, pull
+    return x, sb.static_displacement(topology, force, fixed, stiffness=stiffness), left, right, pull
 
 
-def cantilever_deflection(topology, *, youngs_modulus: float, density: float) -> float:
+def cantilever_deflection(topology, *, youngs_modulus: float, density: float, elasticity: str = "springs",
+                          poisson_ratio: float = 0.25) -> float:
     """Relative error of a cantilever's tip deflection under its own weight (the box of ``topology``, long along
-    x, square section), clamped (every component held) at x = min, gravity along −z."""
+    x, square section), clamped (every component held) at x = min, gravity along −z; ``elasticity``,
+    ``poisson_ratio``: see :func:`body_stiffness`."""
     x = topology.positions
     length, side, _ = np.ptp(x, axis=0)
     tolerance = 1.0e-6 * length
@@ -99,24 +137,26 @@ def cantilever_deflection(topology, *, youngs_modulus: float, density: float) ->
     fixed[root] = True
     force = np.zeros_like(x)
     force[:, 2] = -G * sb.distribute_mass(topology, density * length * side * side)
-    u = sb.static_displacement(topology, force, fixed)
+    u = sb.static_displacement(topology, force, fixed, stiffness=body_stiffness(
+        topology, elasticity=elasticity, youngs_modulus=youngs_modulus, poisson_ratio=poisson_ratio))
     q = density * G * side * side
     return -u[tip, 2].mean() / (q * length**4 / (8.0 * youngs_modulus * side**4 / 12.0)) - 1.0
 
 
-def ring_frequency(topology, *, youngs_modulus: float, density: float, modes: int = 24) -> float:
+def ring_frequency(topology, *, youngs_modulus: float, density: float, modes: int = 24, elasticity: str = "springs",
+                   poisson_ratio: float = 0.25) -> float:
     """Relative error of a free bar's first longitudinal frequency (the box of ``topology``, long along x): of its
-    ``modes`` lowest modes (lumped masses, a shift-invert eigensolve), the one closest in shape to cos(πx/L)."""
+    ``modes`` lowest modes (lumped masses, a shift-invert eigensolve), the one closest in shape to cos(πx/L);
+    ``elasticity``, ``poisson_ratio``: see :func:`body_stiffness`."""
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
 
     x = topology.positions
     length, side_y, side_z = np.ptp(x, axis=0)
     mass = sb.distribute_mass(topology, density * length * side_y * side_z)
-    pairs = np.concatenate([p for p, _ in topology.springs.values()])
-    ke = np.concatenate([k for _, k in topology.springs.values()])
     scale = sp.diags(np.repeat(1.0 / np.sqrt(mass), 3))
-    a = scale @ sb.stiffness_matrix(x, pairs, ke) @ scale
+    a = scale @ body_stiffness(topology, elasticity=elasticity, youngs_modulus=youngs_modulus,
+                               poisson_ratio=poisson_ratio) @ scale
     shift = -1.0e-6 * a.diagonal().mean()
     omega2, vectors = spla.eigsh(a.tocsc(), k=min(modes, a.shape[0] - 2), sigma=shift, which="LM")
     shapes = (vectors / np.repeat(np.sqrt(mass), 3)[:, None]).reshape(len(x), 3, -1)

@@ -935,6 +935,8 @@ class ModelBuilder:
         plasticity: SpringPlasticity | None = None,
         volume: bool = False,
         bulk_modulus: float | None = None,
+        elasticity: str = "springs",
+        poisson_ratio: float = 0.25,
     ):
         """Add a soft body made from a closed mesh by one of the seven mass-spring topologies.
 
@@ -980,6 +982,14 @@ class ModelBuilder:
             bulk_modulus: the term's K [Pa], > 0; default E / (3(1 − 2ν)) = 2E/3 at the networks' ν = 1/4. Its
                 damper has kd = ``damping`` × K [Pa·s]. Live per world after finalize
                 (``VolumeFamily.set_values``).
+            elasticity: what carries the body's elasticity: ``"springs"`` (the method's spring network), or, for the
+                ``"tetrahedral"`` and ``"delaunay"`` methods, ``"neohookean"``: the tets carry it as the energy
+                V₀[μ/2 (I_C − 3) + λ/2 (J − 1 − μ/λ)²] per tet (the neo-Hookean family,
+                :mod:`warpspring.core.neohookean`), whose linearisation at rest is linear elasticity of (E, ν) and
+                passes the patch test; no springs are made (masses as with springs). Its damper (β = ``damping``) acts
+                on the strain rate: at rest it is Rayleigh's −β K v, and it spares rigid motions. Live per world
+                after finalize (``NeoHookeanFamily.set_values``).
+            poisson_ratio: ν of the ``"neohookean"`` material, in (−1, ½) (the spring networks are fixed at ¼).
 
         Returns:
             A :class:`~warpspring.core.softbody.SoftBody`: the particles and springs added, per group counts,
@@ -993,6 +1003,8 @@ class ModelBuilder:
 
         started = time.perf_counter()
         source = os.fspath(mesh) if isinstance(mesh, (str, os.PathLike)) else name
+        neohookean = _elasticity(elasticity, poisson_ratio, method=method, volume=volume, bulk_modulus=bulk_modulus,
+                                 plasticity=plasticity, source=name)
         uv = polygons = None
         face_sets = {}
         usd = isinstance(mesh, (str, os.PathLike)) and os.fspath(mesh).lower().endswith(USD_EXTENSIONS)
@@ -1050,7 +1062,7 @@ class ModelBuilder:
                                  + [e.name for e in self._emitters] + list(RESERVED_PRIM_NAMES))
         springs = {}
         for group, (pairs, ke) in topology.springs.items():
-            if len(pairs):
+            if len(pairs) and not neohookean:
                 springs[group] = self.add_springs(ids[pairs], stiffness=ke, damping=beta * ke, family=f"{name}_{group}",
                                                   plasticity=plasticity)
         skin = SkinGroup(
@@ -1070,10 +1082,19 @@ class ModelBuilder:
 
             volume_tets = add_volume_term(self, topology, ids, volume=volume, method=method, youngs_modulus=youngs_modulus,
                                           bulk_modulus=bulk_modulus, damping=beta, source=name)
+        elastic_tets = None
+        if neohookean:
+            from .neohookean import add_neohookean_term
+
+            elastic_tets = add_neohookean_term(self, topology, ids, method=method, youngs_modulus=youngs_modulus,
+                                               poisson_ratio=poisson_ratio, damping=beta, source=name)
         return softbody.SoftBody(
-            name=name, method=method, particles=ids, springs=springs, skin=skin, stiffness_rule=topology.stiffness_rule,
+            name=name, method=method, particles=ids, springs=springs, skin=skin,
+            stiffness_rule=(f"neo-Hookean tets (E = {float(youngs_modulus):g} Pa, ν = {float(poisson_ratio):g}), no springs"
+                            if neohookean else topology.stiffness_rule),
             youngs_modulus=float(youngs_modulus), mass=float(masses.sum()), slivers=topology.slivers,
             topology=topology, build_seconds=time.perf_counter() - started, volume_tets=volume_tets,
+            elasticity=elasticity, elastic_tets=elastic_tets,
         )
 
     # -- colliders ------------------------------------------------------------------------------------
@@ -1812,3 +1833,29 @@ def _block_dim(device, n: int) -> int:
         return 256
     per_sm = n // max(device.sm_count, 1)
     return int(min(256, max(32, 1 << max(per_sm, 1).bit_length() - 1)))
+
+
+def _elasticity(elasticity, poisson_ratio, *, method: str, volume, bulk_modulus, plasticity, source: str) -> bool:
+    """Check a soft body's ``elasticity=`` and ``poisson_ratio=`` before its topology is built (one-line
+    ConfigErrors); whether the neo-Hookean tets carry it."""
+    from .neohookean import ELASTICITIES, poisson
+
+    if elasticity not in ELASTICITIES:
+        raise ConfigError(f"{source}: elasticity must be one of {', '.join(ELASTICITIES)}, got {elasticity!r}")
+    nu = poisson(poisson_ratio, source)
+    if elasticity == "springs":
+        if nu != 0.25:
+            raise ConfigError(f"{source}: poisson_ratio={poisson_ratio!r} is the neo-Hookean material's (a spring "
+                              "network is fixed at 0.25): give elasticity='neohookean' with it")
+        return False
+    from .softbody import METHODS
+
+    if method in METHODS and method not in ("tetrahedral", "delaunay"):  # an unknown method: build_topology names it
+        raise ConfigError(f"{source}: elasticity='neohookean' needs tets, which the {method} method does not make: use "
+                          "method='tetrahedral' or 'delaunay'")
+    if volume or bulk_modulus is not None:
+        raise ConfigError(f"{source}: the neo-Hookean tets already carry the bulk stiffness (λ of E and ν): drop "
+                          "volume=/bulk_modulus=")
+    if plasticity is not None:
+        raise ConfigError(f"{source}: plasticity= acts on springs, and a neo-Hookean body has none")
+    return True

@@ -759,6 +759,9 @@ class SoftBody:
         build_seconds: wall time of the build [s].
         volume_tets: with ``volume=True``, the slice of the tet volume family's elements holding its tets (the
             ``tets`` argument of ``VolumeFamily.set_values``); else ``None``.
+        elasticity: what carries its elasticity, ``"springs"`` or ``"neohookean"``.
+        elastic_tets: with ``elasticity="neohookean"``, the slice of the neo-Hookean family's elements holding its
+            tets (``NeoHookeanFamily.set_values(tets=)``); else ``None``.
     """
 
     name: str
@@ -773,6 +776,8 @@ class SoftBody:
     topology: Topology = field(repr=False)
     build_seconds: float = 0.0
     volume_tets: slice | None = None
+    elasticity: str = "springs"
+    elastic_tets: slice | None = None
 
     @property
     def particle_count(self) -> int:
@@ -810,14 +815,18 @@ def stiffness_matrix(positions: np.ndarray, pairs: np.ndarray, stiffness: np.nda
     return sp.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
 
 
-def static_displacement(topology: Topology, force: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+def static_displacement(topology: Topology, force: np.ndarray, fixed: np.ndarray, *, stiffness=None) -> np.ndarray:
     """Small displacements [m], shape [n, 3], of the body under ``force`` [N] (shape [n, 3]) with the degrees of
-    freedom in the boolean mask ``fixed`` (shape [n, 3]) held at zero: K u = f solved in float64 (sparse LU)."""
+    freedom in the boolean mask ``fixed`` (shape [n, 3]) held at zero: K u = f solved in float64 (sparse LU).
+    ``stiffness``: the [3n, 3n] matrix K (default the spring network's, :func:`stiffness_matrix`)."""
     import scipy.sparse.linalg as spla
 
-    pairs = np.concatenate([p for p, _ in topology.springs.values()])
-    ke = np.concatenate([k for _, k in topology.springs.values()])
-    K = stiffness_matrix(topology.positions, pairs, ke)
+    if stiffness is None:
+        pairs = np.concatenate([p for p, _ in topology.springs.values()])
+        ke = np.concatenate([k for _, k in topology.springs.values()])
+        K = stiffness_matrix(topology.positions, pairs, ke)
+    else:
+        K = stiffness.tocsr()
     free = np.flatnonzero(~np.asarray(fixed).ravel())
     u = np.zeros(K.shape[0])
     u[free] = spla.spsolve(K[free][:, free].tocsc(), np.asarray(force, dtype=np.float64).ravel()[free])

@@ -455,6 +455,8 @@ _SOFT_BODY = {
                    "hardening": NON_NEGATIVE, "break_strain": POSITIVE},
     "volume": bool,  # the tet volume term (tetrahedral and delaunay methods)
     "bulk_modulus": POSITIVE,  # its K [Pa]; default 2E/3
+    "elasticity": str,  # "springs" or "neohookean" (tetrahedral and delaunay methods: the tets carry it)
+    "poisson_ratio": NUMBER,  # ν of the neohookean material, in (-1, 0.5)
 }
 _SCHEMA = {
     "simulation": {
@@ -1078,6 +1080,7 @@ def _add_soft_body(builder: ModelBuilder, body: dict, base: str) -> None:
         name=body.get("name", "soft_body"), prim=body.get("prim"),
         plasticity=SpringPlasticity(**body["plasticity"]) if "plasticity" in body else None,
         volume=body.get("volume", False), bulk_modulus=body.get("bulk_modulus"),
+        elasticity=body.get("elasticity", "springs"), poisson_ratio=body.get("poisson_ratio", 0.25),
     )
     if "pin" in body:
         placed = builder.particle_positions(soft.particles)
