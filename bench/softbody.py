@@ -293,32 +293,7 @@ def family_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int = 7,
         models["per corner"] = build("per corner")
     finally:
         sb.build_topology = real
-    runners = {}
-    for variant, (model, _) in models.items():
-        integrator = ws.make_integrator("symplectic_euler", model)
-        states = [model.state(), model.state()]
-        dt = 1.0e-4
-
-        def loop(integrator=integrator, states=states, dt=dt):
-            for k in range(substeps):
-                integrator.step(states[k % 2], states[(k + 1) % 2], None, dt)
-
-        loop()  # compiles, warms
-        graph = None
-        if wp.get_device(device).is_cuda:
-            with wp.ScopedCapture(device=device) as capture:
-                loop()
-            graph = capture.graph
-        runners[variant] = (lambda loop=loop, graph=graph: wp.capture_launch(graph) if graph is not None else loop())
-    times = {v: [] for v in variants}
-    for _ in range(rounds):
-        for variant in variants:
-            wp.synchronize_device(device)
-            started = time.perf_counter()
-            runners[variant]()
-            wp.synchronize_device(device)
-            times[variant].append((time.perf_counter() - started) / substeps)
-    median = {v: float(np.median(times[v])) for v in variants}
+    median = substep_medians(device, {v: models[v][0] for v in variants}, substeps=substeps, rounds=rounds)
     off = median["off"]
     tets = models["precomputed"][1]
     name = wp.get_device(device).name
@@ -333,6 +308,37 @@ def family_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int = 7,
         f"| off | {1e6 * off:.1f} | — | — |",
     ] + [f"| on, {v} | {1e6 * median[v]:.1f} | {1e6 * (median[v] - off):+.1f} µs ({median[v] / off:.2f}×) | "
          f"{1e9 * (median[v] - off) / max(tets, 1):.1f} ns |" for v in variants[1:]]) + "\n"
+
+
+def substep_medians(device, models: dict, *, substeps: int, rounds: int, dt: float = 1.0e-4) -> dict:
+    """{variant: median seconds per substep} of symplectic Euler on each model (a dict variant -> model): each
+    variant's ``substeps`` substeps of ``dt`` [s] timed as one CUDA graph (a plain loop on the CPU), the variants
+    alternating over ``rounds`` rounds after one warm-up each."""
+    runners = {}
+    for variant, model in models.items():
+        integrator = ws.make_integrator("symplectic_euler", model)
+        states = [model.state(), model.state()]
+
+        def loop(integrator=integrator, states=states):
+            for k in range(substeps):
+                integrator.step(states[k % 2], states[(k + 1) % 2], None, dt)
+
+        loop()  # compiles, warms
+        graph = None
+        if wp.get_device(device).is_cuda:
+            with wp.ScopedCapture(device=device) as capture:
+                loop()
+            graph = capture.graph
+        runners[variant] = (lambda loop=loop, graph=graph: wp.capture_launch(graph) if graph is not None else loop())
+    times = {v: [] for v in models}
+    for _ in range(rounds):
+        for variant in models:
+            wp.synchronize_device(device)
+            started = time.perf_counter()
+            runners[variant]()
+            wp.synchronize_device(device)
+            times[variant].append((time.perf_counter() - started) / substeps)
+    return {v: float(np.median(times[v])) for v in models}
 
 
 def elasticity_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int = 7, substeps: int = 200) -> str:
@@ -373,32 +379,8 @@ def elasticity_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int 
         models["neohookean, per corner"] = build("neohookean, per corner")
     finally:
         sb.build_topology = real
-    runners, limits = {}, {}
-    for variant, (model, _, _) in models.items():
-        integrator = ws.make_integrator("symplectic_euler", model)
-        states = [model.state(), model.state()]
-        limits[variant] = 2.0 / gershgorin_omega_max(model)
-
-        def loop(integrator=integrator, states=states):
-            for k in range(substeps):
-                integrator.step(states[k % 2], states[(k + 1) % 2], None, 1.0e-4)
-
-        loop()  # compiles, warms
-        graph = None
-        if wp.get_device(device).is_cuda:
-            with wp.ScopedCapture(device=device) as capture:
-                loop()
-            graph = capture.graph
-        runners[variant] = (lambda loop=loop, graph=graph: wp.capture_launch(graph) if graph is not None else loop())
-    times = {v: [] for v in models}
-    for _ in range(rounds):
-        for variant in models:
-            wp.synchronize_device(device)
-            started = time.perf_counter()
-            runners[variant]()
-            wp.synchronize_device(device)
-            times[variant].append((time.perf_counter() - started) / substeps)
-    median = {v: float(np.median(times[v])) for v in models}
+    limits = {variant: 2.0 / gershgorin_omega_max(model) for variant, (model, _, _) in models.items()}
+    median = substep_medians(device, {v: m[0] for v, m in models.items()}, substeps=substeps, rounds=rounds)
     name = wp.get_device(device).name
     lines = [
         f"Springs against neo-Hookean tets, cost per substep, {datetime.date.today()}, Warp {wp.config.version}, {device} "

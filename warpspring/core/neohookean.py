@@ -20,8 +20,8 @@ from .. import checks
 from ..errors import ConfigError
 from ..kernels.neohookean import NeoHookeanSpec, neohookean_arrays_type, stable_lame
 from ..kernels.precision import mat33_type
-from .families import ElementFamily, build_incidence
-from .volume import signed_volumes, volume_gradients
+from .tets import TetFamily, signed_volumes
+from .volume import volume_gradients
 
 #: What carries a soft body's elasticity: its springs, or (tetrahedral and Delaunay bodies) the neo-Hookean tets.
 ELASTICITIES = ("springs", "neohookean")
@@ -117,7 +117,7 @@ def neohookean_forces_np(positions: np.ndarray, velocities: np.ndarray, rest_pos
     return out
 
 
-class NeoHookeanFamily(ElementFamily):
+class NeoHookeanFamily(TetFamily):
     """The neo-Hookean energy of every tet of a model's soft bodies built with ``elasticity="neohookean"`` (one family
     per model, each body's tets appended by :meth:`add`).
 
@@ -132,14 +132,15 @@ class NeoHookeanFamily(ElementFamily):
     """
 
     name = "neo-Hookean tets"
+    live_names = ("mu", "lam", "damping")
+    damper = "damping"
+    label = "the neo-Hookean family"
+    element_label = "neo-Hookean tet"
+    precompute_kernel = "tet_stresses"
 
     def __init__(self, *, precompute: bool = True):
-        self.precompute = bool(precompute)
-        self._tets: list[np.ndarray] = []
-        self._rest: list[np.ndarray] = []
+        super().__init__(precompute=precompute)
         self._inverse: list[np.ndarray] = []
-        self._values = {"mu": [], "lam": [], "damping": []}
-        self._model = None
 
     # -- building -----------------------------------------------------------------------------------------
 
@@ -165,46 +166,13 @@ class NeoHookeanFamily(ElementFamily):
         Raises:
             ConfigError: no tets, an index out of range, a tet of (nearly) zero rest volume, E or ν out of range.
         """
-        tets = np.array(tets, dtype=np.int64).reshape(-1, 4)
-        positions = np.asarray(positions, dtype=np.float64)
         e = checks.positive(f"{source}: youngs_modulus [Pa]", youngs_modulus)
         nu = poisson(poisson_ratio, source)
-        if len(tets) == 0:
-            raise ConfigError(f"{source}: the neo-Hookean family needs tetrahedra, and the body has none")
-        if tets.min() < 0 or tets.max() >= len(positions):
-            raise ConfigError(f"{source}: a tet's particle index is outside 0..{len(positions) - 1}")
-        volume = signed_volumes(positions, tets)
-        flip = volume < 0.0
-        tets[flip] = tets[flip][:, [1, 0, 2, 3]]
-        volume = np.abs(volume)
-        edges = np.linalg.norm(positions[tets[:, 1:]] - positions[tets[:, :1]], axis=-1).max(axis=1)
-        flat = np.flatnonzero(~(volume > 1.0e-12 * edges**3))
-        if len(flat):
-            raise ConfigError(f"{source}: tet {int(flat[0])} {tets[flat[0]].tolist()} has no volume at rest "
-                              f"({len(flat)} such tets): the neo-Hookean family needs V₀ > 0")
         mu, lam = stable_lame(e, nu)
-        start = self.element_count
-        self._tets.append(tets)
-        self._rest.append(volume)
-        self._inverse.append(shape_gradients(positions, tets)[:, 1:])
-        self._values["mu"].append(np.full(len(tets), mu))
-        self._values["lam"].append(np.full(len(tets), lam))
-        self._values["damping"].append(np.full(len(tets), checks.non_negative(f"{source}: damping [s]", damping)))
-        return slice(start, start + len(tets))
-
-    @property
-    def element_count(self) -> int:
-        return sum(len(t) for t in self._tets)
-
-    @property
-    def tets(self) -> np.ndarray:
-        """Every tet's particles (per-world indices, wound so that V₀ > 0), int64, shape [tet_count, 4]."""
-        return np.concatenate(self._tets) if self._tets else np.zeros((0, 4), dtype=np.int64)
-
-    @property
-    def rest_volume(self) -> np.ndarray:
-        """V₀ [m³] of every tet, float64, shape [tet_count]."""
-        return np.concatenate(self._rest) if self._rest else np.zeros(0)
+        values = {"mu": mu, "lam": lam, "damping": checks.non_negative(f"{source}: damping [s]", damping)}
+        added, tets, _ = self._add_tets(tets, positions, values, source)
+        self._inverse.append(shape_gradients(np.asarray(positions, dtype=np.float64), tets)[:, 1:])
+        return added
 
     def device_bytes(self, particle_count: int, scalar_bytes: int, worlds: int) -> int:
         """Indices, V₀, D_m⁻¹, μ, λ and β per tet (one row each), and the incidence table."""
@@ -214,26 +182,14 @@ class NeoHookeanFamily(ElementFamily):
         return (16 + 13 * scalar_bytes) * self.element_count + stress + incidence_bytes(self.tets, particle_count)
 
     def finalize(self, model) -> None:
+        self._finalize_tets(model)
         device, scalar = model.device, model.scalar
-        tets = self.tets
-        roles = np.broadcast_to(np.arange(4), tets.shape)
-        self.incidence, self.shape = build_incidence(tets, model.particle_count, roles, -1, device=device)
-        self._indices = wp.array(tets.astype(np.int32), dtype=wp.vec4i, device=device)
-        self._rest_volume = wp.array(self.rest_volume, dtype=scalar, device=device)
         self._rest_inverse = wp.array(np.concatenate(self._inverse), dtype=mat33_type(scalar), device=device)
-        self._live_arrays = {name: wp.array(np.concatenate(v)[None, :], dtype=scalar, device=device)
-                             for name, v in self._values.items()}
-        slots = model.world_count * len(tets) if self.precompute else 1
+        slots = model.world_count * self.element_count if self.precompute else 1
         self._stress = wp.zeros(slots, dtype=mat33_type(scalar), device=device)
         self._pressure = wp.zeros(slots, dtype=scalar, device=device)
-        self._model = model
 
     # -- live values -------------------------------------------------------------------------------------------
-
-    def values(self, name: str) -> np.ndarray:
-        """Every world's ``mu`` [Pa], ``lam`` [Pa] or ``damping`` [s] per tet, float64, [world_count, tet_count]."""
-        data = self._live(name).numpy().astype(np.float64)
-        return np.broadcast_to(data, (self._model.world_count, data.shape[1])).copy()
 
     def set_values(self, *, youngs_modulus=None, poisson_ratio=None, damping=None, world: int | None = None,
                    tets=None) -> None:
@@ -247,16 +203,8 @@ class NeoHookeanFamily(ElementFamily):
             world: one world, or every world (``None``).
             tets: the tets to change (an index array, a slice such as the one :meth:`add` returned, or ``None``).
         """
-        model = self._model
-        if model is None:
-            raise ConfigError("the neo-Hookean family's values live on the device: finalize the model first")
         if (youngs_modulus is None) != (poisson_ratio is None):
             raise ConfigError("give youngs_modulus and poisson_ratio together (μ and λ follow from both)")
-        select = np.arange(self.element_count)[slice(None) if tets is None else tets]
-        if world is not None:
-            world = checks.count("world", world, minimum=0)
-            if world >= model.world_count:
-                raise ConfigError(f"world {world} does not exist: the model has worlds 0..{model.world_count - 1}")
         writes = {}
         if youngs_modulus is not None:
             writes["mu"], writes["lam"] = stable_lame(checks.positive("youngs_modulus [Pa]", youngs_modulus),
@@ -266,47 +214,12 @@ class NeoHookeanFamily(ElementFamily):
             if not (np.isfinite(value).all() and (value >= 0.0).all()):
                 raise ConfigError(f"the neo-Hookean damping must be finite and >= 0 [s], got {damping!r}")
             writes["damping"] = value
-        for name, value in writes.items():
-            array = self._live(name)
-            rows = array.numpy().astype(np.float64)
-            if world is not None and rows.shape[0] == 1 and model.world_count > 1:
-                rows = np.repeat(rows, model.world_count, axis=0)
-            try:
-                rows[slice(None) if world is None else world, select] = value
-            except ValueError:
-                raise ConfigError(f"the neo-Hookean {name} must be a number or one per selected tet ({len(select)}), "
-                                  f"got shape {np.shape(value)}") from None
-            cast = rows.astype(np.float32 if model.scalar is wp.float32 else np.float64)
-            if cast.shape == array.shape:
-                array.assign(cast)
-            else:
-                self._live_arrays[name] = wp.array(cast, dtype=model.scalar, device=model.device)
-                model._structure_changed()
-        model.input_version += 1  # the elastic energy changed without work: the guard re-bases
-
-    def _live(self, name: str) -> wp.array:
-        if self._model is None:
-            raise ConfigError("the neo-Hookean family's values live on the device: finalize the model first")
-        if name not in self._live_arrays:
-            raise ConfigError(f"the neo-Hookean family has no value {name!r}: mu, lam or damping")
-        return self._live_arrays[name]
+        self._write_values(writes, world=world, tets=tets)
 
     # -- the protocol ----------------------------------------------------------------------------------------------
 
-    def velocity_dependent(self, model) -> bool:
-        """Whether some tet's damper is on (β ≠ 0 in some world)."""
-        return bool((self.values("damping") != 0.0).any())
-
     def spec(self, model, *, linear: bool = False) -> NeoHookeanSpec:
         return NeoHookeanSpec(incidence=self.shape, precomputed=self.precompute)
-
-    def at_time(self, model, state) -> None:
-        """Where precomputed: each tet's (S, p) at ``state``, before the corners gather them."""
-        if not self.precompute:
-            return
-        wp.launch(self.spec(model).funcs(model.scalar).tet_stresses, dim=(model.world_count, self.element_count),
-                  inputs=[model.particle_count, self.arrays(model), state.particle_q, state.particle_qd],
-                  device=model.device)
 
     def arrays(self, model, *, stiffness=None):
         arrays = neohookean_arrays_type(model.scalar)()
@@ -337,10 +250,6 @@ class NeoHookeanFamily(ElementFamily):
             norms = np.linalg.norm(blocks, ord=2, axis=(-2, -1))  # [t, 4, 4]
             rows[world] = np.bincount(tets.ravel(), weights=(norms * columns[world]).sum(axis=-1).ravel(), minlength=n)
         return rows
-
-    def describe_element(self, model, element: int) -> str:
-        a, b, c, d = self.tets[element]
-        return f"neo-Hookean tet {element} (particles {a}, {b}, {c}, {d})"
 
 
 def poisson(value, source: str) -> float:

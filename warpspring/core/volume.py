@@ -17,7 +17,7 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError
 from ..kernels.volume import VolumeSpec, volume_arrays_type
-from .families import ElementFamily, build_incidence
+from .tets import TetFamily, signed_volumes
 
 #: The Poisson ratio of a network of central springs (every soft-body lattice: ``core/softbody.py``).
 NETWORK_POISSON_RATIO = 0.25
@@ -27,14 +27,6 @@ def network_bulk_modulus(youngs_modulus: float, poisson_ratio: float = NETWORK_P
     """K = E / (3 (1 - 2ν)) [Pa]: the bulk modulus of an isotropic solid of Young's modulus E [Pa] and Poisson
     ratio ν; at the spring networks' ν = 1/4, K = 2E/3."""
     return float(youngs_modulus) / (3.0 * (1.0 - 2.0 * float(poisson_ratio)))
-
-
-def signed_volumes(positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Signed volumes V [m³] of tets, (x1 - x0)·((x2 - x0) × (x3 - x0))/6, float64, shape [..., t] for positions
-    [..., n, 3] and tets [t, 4]."""
-    p = np.asarray(positions, dtype=np.float64)[..., np.asarray(tets, dtype=np.int64), :]
-    e1, e2, e3 = p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :], p[..., 3, :] - p[..., 0, :]
-    return np.einsum("...i,...i->...", e1, np.cross(e2, e3)) / 6.0
 
 
 def volume_gradients(positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -71,7 +63,7 @@ def volume_stiffness_matrix(positions: np.ndarray, tets: np.ndarray, bulk_modulu
     return sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(size, size))
 
 
-class VolumeFamily(ElementFamily):
+class VolumeFamily(TetFamily):
     """The volume term of every tet of a model's soft bodies built with ``volume=True`` (one family per model,
     each body's tets appended by :meth:`add`).
 
@@ -87,14 +79,11 @@ class VolumeFamily(ElementFamily):
     """
 
     name = "volume tets"
-
-    def __init__(self, *, precompute: bool = True):
-        self.precompute = bool(precompute)
-        self._tets: list[np.ndarray] = []
-        self._rest: list[np.ndarray] = []
-        self._bulk: list[np.ndarray] = []
-        self._viscosity: list[np.ndarray] = []
-        self._model = None
+    live_names = ("bulk_modulus", "viscosity")
+    damper = "viscosity"
+    label = "the volume term"
+    element_label = "volume tet"
+    precompute_kernel = "tet_pressures"
 
     # -- building -----------------------------------------------------------------------------------------
 
@@ -115,41 +104,9 @@ class VolumeFamily(ElementFamily):
         Raises:
             ConfigError: no tets, an index out of range, or a tet of (nearly) zero rest volume.
         """
-        tets = np.array(tets, dtype=np.int64).reshape(-1, 4)
-        positions = np.asarray(positions, dtype=np.float64)
-        if len(tets) == 0:
-            raise ConfigError(f"{source}: the volume term needs tetrahedra, and the body has none")
-        if tets.min() < 0 or tets.max() >= len(positions):
-            raise ConfigError(f"{source}: a tet's particle index is outside 0..{len(positions) - 1}")
-        volume = signed_volumes(positions, tets)
-        flip = volume < 0.0
-        tets[flip] = tets[flip][:, [1, 0, 2, 3]]
-        volume = np.abs(volume)
-        edges = np.linalg.norm(positions[tets[:, 1:]] - positions[tets[:, :1]], axis=-1).max(axis=1)
-        flat = np.flatnonzero(~(volume > 1.0e-12 * edges**3))
-        if len(flat):
-            raise ConfigError(f"{source}: tet {int(flat[0])} {tets[flat[0]].tolist()} has no volume at rest "
-                              f"({len(flat)} such tets): the volume term needs V₀ > 0")
-        start = self.element_count
-        self._tets.append(tets)
-        self._rest.append(volume)
-        self._bulk.append(np.full(len(tets), checks.non_negative(f"{source}: bulk_modulus [Pa]", bulk_modulus)))
-        self._viscosity.append(np.full(len(tets), checks.non_negative(f"{source}: volume viscosity [Pa·s]", viscosity)))
-        return slice(start, start + len(tets))
-
-    @property
-    def element_count(self) -> int:
-        return sum(len(t) for t in self._tets)
-
-    @property
-    def tets(self) -> np.ndarray:
-        """Every tet's particles (per-world indices, wound so that V₀ > 0), int64, shape [tet_count, 4]."""
-        return np.concatenate(self._tets) if self._tets else np.zeros((0, 4), dtype=np.int64)
-
-    @property
-    def rest_volume(self) -> np.ndarray:
-        """V₀ [m³] of every tet, float64, shape [tet_count]."""
-        return np.concatenate(self._rest) if self._rest else np.zeros(0)
+        values = {"bulk_modulus": checks.non_negative(f"{source}: bulk_modulus [Pa]", bulk_modulus),
+                  "viscosity": checks.non_negative(f"{source}: volume viscosity [Pa·s]", viscosity)}
+        return self._add_tets(tets, positions, values, source)[0]
 
     def device_bytes(self, particle_count: int, scalar_bytes: int, worlds: int) -> int:
         """Indices, V₀, K and kd per tet (one row of K and kd), the factor per tet and world where precomputed, and
@@ -160,24 +117,11 @@ class VolumeFamily(ElementFamily):
         return (16 + 3 * scalar_bytes) * self.element_count + factor + incidence_bytes(self.tets, particle_count)
 
     def finalize(self, model) -> None:
-        device, scalar = model.device, model.scalar
-        tets = self.tets
-        roles = np.broadcast_to(np.arange(4), tets.shape)
-        self.incidence, self.shape = build_incidence(tets, model.particle_count, roles, -1, device=device)
-        self._indices = wp.array(tets.astype(np.int32), dtype=wp.vec4i, device=device)
-        self._rest_volume = wp.array(self.rest_volume, dtype=scalar, device=device)
-        self._bulk_modulus = wp.array(np.concatenate(self._bulk)[None, :], dtype=scalar, device=device)
-        self._viscosity_array = wp.array(np.concatenate(self._viscosity)[None, :], dtype=scalar, device=device)
-        self._pressure = wp.zeros(model.world_count * len(tets) if self.precompute else 1, dtype=scalar, device=device)
-        self._model = model
+        self._finalize_tets(model)
+        slots = model.world_count * self.element_count if self.precompute else 1
+        self._pressure = wp.zeros(slots, dtype=model.scalar, device=model.device)
 
     # -- live values -------------------------------------------------------------------------------------------
-
-    def values(self, name: str) -> np.ndarray:
-        """Every world's ``bulk_modulus`` [Pa] or ``viscosity`` [Pa·s] per tet, float64, [world_count, tet_count]."""
-        array = self._live(name)
-        data = array.numpy().astype(np.float64)
-        return np.broadcast_to(data, (self._model.world_count, data.shape[1])).copy()
 
     def set_values(self, *, bulk_modulus=None, viscosity=None, world: int | None = None, tets=None) -> None:
         """Change K [Pa] and/or kd [Pa·s] between frames: live values (nothing compiles or re-captures, except the
@@ -189,70 +133,27 @@ class VolumeFamily(ElementFamily):
             tets: the tets to change (an index array, a slice such as the one :meth:`add` returned, or ``None``
                 for all).
         """
-        model = self._model
-        if model is None:
-            raise ConfigError("the volume family's values live on the device: finalize the model first")
-        select = np.arange(self.element_count)[slice(None) if tets is None else tets]
-        if world is not None:
-            world = checks.count("world", world, minimum=0)
-            if world >= model.world_count:
-                raise ConfigError(f"world {world} does not exist: the model has worlds 0..{model.world_count - 1}")
+        writes = {}
         for name, value in (("bulk_modulus", bulk_modulus), ("viscosity", viscosity)):
             if value is None:
                 continue
             v = np.asarray(value, dtype=np.float64)
             if not (np.isfinite(v).all() and (v >= 0.0).all()):
                 raise ConfigError(f"the volume term's {name} must be finite and >= 0, got {value!r}")
-            array = self._live(name)
-            rows = array.numpy().astype(np.float64)
-            if world is not None and rows.shape[0] == 1 and model.world_count > 1:
-                rows = np.repeat(rows, model.world_count, axis=0)
-            try:
-                rows[slice(None) if world is None else world, select] = v
-            except ValueError:
-                raise ConfigError(f"the volume term's {name} must be a number or one per selected tet "
-                                  f"({len(select)}), got shape {v.shape}") from None
-            cast = rows.astype(np.float32 if model.scalar is wp.float32 else np.float64)
-            if cast.shape == array.shape:
-                array.assign(cast)
-            else:
-                setattr(self, "_bulk_modulus" if name == "bulk_modulus" else "_viscosity_array",
-                        wp.array(cast, dtype=model.scalar, device=model.device))
-                model._structure_changed()
-        model.input_version += 1  # the elastic energy changed without work: the guard re-bases
-
-    def _live(self, name: str) -> wp.array:
-        if self._model is None:
-            raise ConfigError("the volume family's values live on the device: finalize the model first")
-        if name == "bulk_modulus":
-            return self._bulk_modulus
-        if name == "viscosity":
-            return self._viscosity_array
-        raise ConfigError(f"the volume term has no value {name!r}: bulk_modulus or viscosity")
+            writes[name] = v
+        self._write_values(writes, world=world, tets=tets)
 
     # -- the protocol ----------------------------------------------------------------------------------------------
 
-    def velocity_dependent(self, model) -> bool:
-        """Whether some tet's damper is on (kd ≠ 0 in some world)."""
-        return bool((self.values("viscosity") != 0.0).any())
-
     def spec(self, model, *, linear: bool = False) -> VolumeSpec:
         return VolumeSpec(incidence=self.shape, precomputed=self.precompute)
-
-    def at_time(self, model, state) -> None:
-        """Where precomputed: each tet's factor at ``state``, before the corners gather it."""
-        if not self.precompute:
-            return
-        wp.launch(self.spec(model).funcs(model.scalar).tet_pressures, dim=(model.world_count, self.element_count),
-                  inputs=[model.particle_count, self.arrays(model), state.particle_q, state.particle_qd],
-                  device=model.device)
 
     def arrays(self, model, *, stiffness=None):
         arrays = volume_arrays_type(model.scalar)()
         arrays.indices = self._indices
         arrays.rest_volume = self._rest_volume
-        arrays.bulk_modulus = self._bulk_modulus if stiffness is None else stiffness
-        arrays.viscosity = self._viscosity_array
+        arrays.bulk_modulus = self._live("bulk_modulus") if stiffness is None else stiffness
+        arrays.viscosity = self._live("viscosity")
         arrays.pressure = self._pressure
         arrays.incidence = self.incidence
         return arrays
@@ -271,10 +172,6 @@ class VolumeFamily(ElementFamily):
         entries = (np.arange(worlds) * n)[:, None, None] + tets[None]
         rows = np.bincount(entries.ravel(), weights=weights.ravel(), minlength=worlds * n)
         return rows.reshape(worlds, n)
-
-    def describe_element(self, model, element: int) -> str:
-        a, b, c, d = self.tets[element]
-        return f"volume tet {element} (particles {a}, {b}, {c}, {d})"
 
 
 def inverted_tets(positions: np.ndarray, family: VolumeFamily) -> np.ndarray:
