@@ -15,8 +15,14 @@ from soak import driven_cloth  # noqa: E402  (the bench's scene, at 12 × 12)
 
 
 def used_device_memory(device) -> int:
+    """This process's device allocations [B]: Warp's memory pool where it is on (other processes on the GPU, such
+    as pytest-xdist's other workers, do not count), else what the driver sees in use; 0 on the CPU."""
     d = wp.get_device(device)
-    return int(d.total_memory - d.free_memory) if d.is_cuda else 0
+    if not d.is_cuda:
+        return 0
+    if wp.is_mempool_enabled(d):
+        return int(wp.get_mempool_used_mem_current(d))
+    return int(d.total_memory - d.free_memory)
 
 
 def _own(snapshot: tracemalloc.Snapshot) -> tracemalloc.Snapshot:
