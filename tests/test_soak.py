@@ -34,8 +34,10 @@ def _own(snapshot: tracemalloc.Snapshot) -> tracemalloc.Snapshot:
 
 def test_a_long_driven_run_keeps_its_memory_and_its_energy(device):
     """4,800 substeps (300 frames of 16, two handle cycles and a half): after the first 100 frames (compiles,
-    captures) Python's allocations grow by less than 16 KiB over the remaining 200 (no per-frame leak: a
-    frame's record alone is ~1 KiB) and device memory not at all; the guard's energy balance, which counts
+    captures) Python's allocations grow by less than 48 KiB over the remaining 200 (a leak of a frame's record,
+    ~1 KiB, would grow 200 KiB; measured: < 16 KiB on the CPU with Warp 1.19, 24-26 KiB on an H100 with Warp
+    1.16 run alone, ~60 B per frame that tracemalloc places in Warp's device lookup and NumPy under the
+    guard's per-frame status read, steady over 1,200 frames) and device memory not at all; the guard's energy balance, which counts
     what the dampers and drag took out (D), closes: E - (E_ref + W - D) stays within 3 % of D and 1 % of what
     the start and the handle supplied (symplectic Euler's O(h) energy error at h = 1/960 s: measured 1.0 %
     and 0.35 % on the CPU; a leak of energy into the cloth would grow without bound, and without D the
@@ -57,7 +59,7 @@ def test_a_long_driven_run_keeps_its_memory_and_its_energy(device):
             work.append(balance.work[0])
     python_growth = sum(stat.size_diff for stat in _own(tracemalloc.take_snapshot()).compare_to(_own(before), "filename"))
     tracemalloc.stop()
-    assert python_growth < 16 * 1024, python_growth
+    assert python_growth < 48 * 1024, python_growth
     assert used_device_memory(device) == device_before
     assert max(created) <= 1e-2, max(created)
     assert max(closure) <= 3e-2, max(closure)
