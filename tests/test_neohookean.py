@@ -354,11 +354,13 @@ def test_bar_and_cube_through_the_static_solves():
 @pytest.mark.slow
 def test_tetrahedral_bar_and_cube_with_neohookean_tets():
     """fTetWild's tets (not seedable; one build each) carrying the elasticity: the bar at 4 cells across within 1.5 %
-    (measured +0.04 … +0.79 % over 3 builds; the springs on the same tets +1.8 … +4.1 %), the cube at 8 per side
+    (measured +0.04 … +0.79 % over 3 builds; the springs on the same tets +1.8 … +4.1 %), its end faces taken
+    within 2e-3 L (fTetWild's envelope leaves end vertices ~1 mm off the plane, which the default 1e-6 L neither
+    holds nor pulls: with it 2 of 6 builds read +1.7 and +2.4 %; with 2e-3 L, 10 builds +0.00 … +0.09 %), the cube at 8 per side
     within 1.5 % (measured −0.48 … −0.93 %; springs −2.5 … +2.5 %), and at ν = 0 within 0.3 %."""
     pytest.importorskip("pytetwild")
     bar = se.box_topology("tetrahedral", (1.0, 0.2, 0.2), youngs_modulus=E, spacing=0.05)
-    assert abs(se.bar_stretch(bar, youngs_modulus=E, elasticity="neohookean")) < 0.015
+    assert abs(se.bar_stretch(bar, youngs_modulus=E, elasticity="neohookean", face_tolerance=2.0e-3)) < 0.015
     cube = se.box_topology("tetrahedral", (1.0, 1.0, 1.0), youngs_modulus=E, spacing=1.0 / 8)
     assert abs(se.cube_shortening(cube, youngs_modulus=E, density=1000.0, elasticity="neohookean")) < 0.015
     assert abs(se.cube_shortening(cube, youngs_modulus=E, density=1000.0, elasticity="neohookean",
