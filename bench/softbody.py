@@ -177,8 +177,8 @@ def drop(device, usd_path: str | None, *, methods=None, volume: bool = False, bu
         inverted = tets = None
         if body.topology.tets is not None:
             # against each tet's own rest orientation (the Delaunay method keeps scipy's, of either sign)
-            rest = sb._signed_volumes(body.topology.positions, body.topology.tets)
-            now = sb._signed_volumes(q, body.particles[body.topology.tets])
+            rest = sb.signed_volumes(body.topology.positions, body.topology.tets)
+            now = sb.signed_volumes(q, body.particles[body.topology.tets])
             inverted = int((now * np.sign(rest) <= 0.0).sum())
             tets = len(body.topology.tets)
         rows.append({"method": body.method, "particles": body.particle_count, "springs": body.spring_count,

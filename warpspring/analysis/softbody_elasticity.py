@@ -220,7 +220,7 @@ def uniform_stress_compliance(topology, *, youngs_modulus: float, poisson_ratio:
         ke = np.concatenate([k for _, k in topology.springs.values()])
         stiffness = sb.stiffness_matrix(x, pairs, ke)
     faces, area = boundary_faces(x, tets)
-    volume = float(np.abs(sb._signed_volumes(x, tets)).sum())
+    volume = float(np.abs(sb.signed_volumes(x, tets)).sum())
     free = np.setdiff1d(np.arange(3 * len(x)), _rigid_support(x))
     solve = spla.splu(stiffness.tocsr()[free][:, free].tocsc()).solve
     e, nu = float(youngs_modulus), float(poisson_ratio)
@@ -264,7 +264,7 @@ def linear_fem_stiffness(positions: np.ndarray, tets: np.ndarray, *, youngs_modu
     c[:3, :3] = lam
     c[np.arange(3), np.arange(3)] += 2.0 * mu
     c[3:, 3:] = mu * np.eye(3)
-    element = np.abs(sb._signed_volumes(x, tets))[:, None, None] * np.einsum("tai,ab,tbj->tij", b, c, b)
+    element = np.abs(sb.signed_volumes(x, tets))[:, None, None] * np.einsum("tai,ab,tbj->tij", b, c, b)
     dof = (3 * tets[:, :, None] + np.arange(3)).reshape(len(tets), 12)
     rows, cols = np.repeat(dof, 12, axis=1).ravel(), np.tile(dof, (1, 12)).ravel()
     return sp.csr_matrix((element.ravel(), (rows, cols)), shape=(3 * len(x), 3 * len(x)))
@@ -295,5 +295,6 @@ def _rigid_support(x: np.ndarray) -> np.ndarray:
     across = d - np.outer(d @ axis, axis)
     c = int(np.argmax(np.linalg.norm(across, axis=1)))
     normal = np.cross(axis, across[c])
-    held = [3 * a, 3 * a + 1, 3 * a + 2, *(3 * b + np.argsort(np.abs(axis))[:2]), 3 * c + int(np.argmax(np.abs(normal)))]
+    held = [3 * a, 3 * a + 1, 3 * a + 2, *(3 * b + np.argsort(np.abs(axis))[:2]),
+            3 * c + int(np.argmax(np.abs(normal)))]
     return np.asarray(held, dtype=np.int64)

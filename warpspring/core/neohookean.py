@@ -20,7 +20,7 @@ from .. import checks
 from ..errors import ConfigError
 from ..kernels.neohookean import NeoHookeanSpec, neohookean_arrays_type, stable_lame
 from ..kernels.precision import mat33_type
-from .tets import TetFamily, signed_volumes
+from .tets import TetFamily, signed_volumes, wound_tets
 from .volume import volume_gradients
 
 #: What carries a soft body's elasticity: its springs, or (tetrahedral and Delaunay bodies) the neo-Hookean tets.
@@ -33,10 +33,7 @@ __all__ = ["ELASTICITIES", "NeoHookeanFamily", "add_neohookean_term", "neohookea
 def wound(rest_positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """``tets`` (int64 [t, 4]) rewound as the family winds them: V₀ > 0 at ``rest_positions`` (the host references
     take either winding)."""
-    tets = np.array(tets, dtype=np.int64).reshape(-1, 4)
-    flip = signed_volumes(rest_positions, tets) < 0.0
-    tets[flip] = tets[flip][:, [1, 0, 2, 3]]
-    return tets
+    return wound_tets(rest_positions, tets)[0]
 
 
 def shape_gradients(positions: np.ndarray, tets: np.ndarray) -> np.ndarray:

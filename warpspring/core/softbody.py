@@ -529,11 +529,7 @@ def tetrahedral_topology(mesh, *, edge_length: float, youngs_modulus: float, eps
         finally:
             os.chdir(here)
     positions = np.asarray(positions, dtype=np.float64)
-    tets = np.asarray(tets, dtype=np.int64)
-    volume_t = _signed_volumes(positions, tets)
-    flip = volume_t < 0.0
-    tets[flip] = tets[flip][:, [1, 0, 2, 3]]
-    volume_t = np.abs(volume_t)
+    tets, volume_t = wound_tets(positions, tets)
     flat = volume_t <= 1.0e-12 * float(np.ptp(positions, axis=0).max()) ** 3
     if flat.any():  # fTetWild without optimisation may leave a few flat tets: no volume, no embedding
         tets, volume_t = tets[~flat], volume_t[~flat]
@@ -564,7 +560,7 @@ def delaunay_topology(mesh, *, radius: float, youngs_modulus: float, seed: int =
     positions = np.concatenate([vertices, samples])
     tets = np.asarray(Delaunay(positions).simplices, dtype=np.int64)
     tets = tets[mesh.contains(positions[tets].mean(axis=1))]
-    volume_t = _signed_volumes(positions, tets)
+    volume_t = signed_volumes(positions, tets)
     keep = np.abs(volume_t) > 1.0e-12 * size**3
     tets, volume_t = tets[keep], np.abs(volume_t[keep])
     pairs, ke = _tet_springs(positions, tets, volume_t, youngs_modulus)
@@ -697,9 +693,22 @@ def _edge_area(mesh) -> np.ndarray:
                        minlength=len(mesh.edges_unique))
 
 
-def _signed_volumes(positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    p = positions[tets]
-    return np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0
+def signed_volumes(positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Signed volumes V [m³] of tets, (x1 - x0)·((x2 - x0) × (x3 - x0))/6, float64, shape [..., t] for positions
+    [..., n, 3] and tets [t, 4]."""
+    p = np.asarray(positions, dtype=np.float64)[..., np.asarray(tets, dtype=np.int64), :]
+    e1, e2, e3 = p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :], p[..., 3, :] - p[..., 0, :]
+    return np.einsum("...i,...i->...", e1, np.cross(e2, e3)) / 6.0
+
+
+def wound_tets(positions: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A copy of ``tets`` (int64 [t, 4]) with each tet whose signed volume at ``positions`` [m] is negative
+    rewound (its first two corners swapped), and the tets' volumes |V| [m³], float64 [t]."""
+    tets = np.array(tets, dtype=np.int64).reshape(-1, 4)
+    volume = signed_volumes(positions, tets)
+    flip = volume < 0.0
+    tets[flip] = tets[flip][:, [1, 0, 2, 3]]
+    return tets, np.abs(volume)
 
 
 _TETWILD_LOCK = threading.Lock()  # fTetWild runs in a changed working directory: one build at a time

@@ -12,14 +12,9 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError
 from .families import ElementFamily, build_incidence
+from .softbody import signed_volumes, wound_tets
 
-
-def signed_volumes(positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Signed volumes V [m³] of tets, (x1 - x0)·((x2 - x0) × (x3 - x0))/6, float64, shape [..., t] for positions
-    [..., n, 3] and tets [t, 4]."""
-    p = np.asarray(positions, dtype=np.float64)[..., np.asarray(tets, dtype=np.int64), :]
-    e1, e2, e3 = p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :], p[..., 3, :] - p[..., 0, :]
-    return np.einsum("...i,...i->...", e1, np.cross(e2, e3)) / 6.0
+__all__ = ["TetFamily", "signed_volumes", "wound_tets"]
 
 
 class TetFamily(ElementFamily):
@@ -53,10 +48,7 @@ class TetFamily(ElementFamily):
             raise ConfigError(f"{source}: {self.label} needs tetrahedra, and the body has none")
         if tets.min() < 0 or tets.max() >= len(positions):
             raise ConfigError(f"{source}: a tet's particle index is outside 0..{len(positions) - 1}")
-        volume = signed_volumes(positions, tets)
-        flip = volume < 0.0
-        tets[flip] = tets[flip][:, [1, 0, 2, 3]]
-        volume = np.abs(volume)
+        tets, volume = wound_tets(positions, tets)
         edges = np.linalg.norm(positions[tets[:, 1:]] - positions[tets[:, :1]], axis=-1).max(axis=1)
         flat = np.flatnonzero(~(volume > 1.0e-12 * edges**3))
         if len(flat):
