@@ -2,12 +2,12 @@
 balance adds (``GuardLimits(dissipation=...)``: one launch per damped family and one for drag after every
 substep, ``kernels/guards.py``).
 
-The scene is the soak's cloth (``bench/soak.py``: n × n particles of 0.1 kg 0.1 m apart, springs of
-1 kN/m and kd = 10 N·s/m in every family, drag 0.01 N·s/m) with its whole top row, not its two corners, swung
-by the track (two corners cannot carry the weight of a cloth much larger than the soak's 32²: at 128² it tore
-and the guard stopped it), symplectic Euler, 16 substeps per 1/60 s frame replayed as one captured graph. Each configuration is timed over
-``--frames`` frames after ``--warmup`` frames (compiles, captures), ``wp.synchronize_device`` before every
-timer read; the table gives µs per substep and the ratio to the run without a guard.
+The scene is the soak's cloth (``bench/soak.py``: n × n particles of 0.1 kg 0.1 m apart, springs of 1 kN/m and
+kd = 10 N·s/m in every family, drag 0.01 N·s/m) with its whole top row, not its two corners, swung by the track (two
+corners cannot carry the weight of a cloth much larger than the soak's 32²: at 128² it tore and the guard stopped
+it), symplectic Euler, 16 substeps per 1/60 s frame replayed as one captured graph. Each configuration is timed over
+``--frames`` frames after ``--warmup`` frames (compiles, captures), ``wp.synchronize_device`` before every timer
+read; the table gives µs per substep and the ratio to the run without a guard.
 
     python bench/guard_cost.py --device cpu --sizes 16 32
     python bench/guard_cost.py --device cuda:0 --sizes 32 128 512 --out guard_cost.md

@@ -19,17 +19,17 @@ applies through them. Weight and the drive's force enter by the trapezoidal rule
 checks; exact for constant gravity and still pins, second order for tracks), the control's force by its
 value at the check (it is constant within a frame, set between frames). W⁺ sums the positive parts.
 
-**The energy taken out.** D sums the power the dampers take out of the motion, P = Σ_springs kd ((vj -
-vi)·d̂)² + Σ_hinges kd θ̇² + Σ_free particles c v·(v - u) (viscous drag c against the air's velocity u; the
-families' ``dissipation`` hook, so a new family brings its own), by the trapezoidal rule over every substep
-h: D += h (P' + P) / 2 with P' the power after the previous substep. A check's reach is many substeps, and a
-damped mode's power oscillates at twice its frequency, so sampling at the checks alone would alias; per
-substep it is second order in h where the motion is smooth. Symplectic Euler samples the power at each
-substep's midpoint state instead (midpoint rule, ``dissipation_rule_func``): its damper acts with the step's
-first velocity over a displacement made with its last, and the trapezoid over-counts that loss. Each reducing block keeps its own running sum
-and last power (``running[world, block]``: float64, no atomics, one launch per family and one for drag per
-substep, no per-world pass; on the CPU one thread per world and family sums in order, a single block);
-``gather`` adds a world's blocks in order at the check and clears them.
+**The energy taken out.** D sums the power the dampers take out of the motion, P = Σ_springs kd ((vj - vi)·d̂)² +
+Σ_hinges kd θ̇² + Σ_free particles c v·(v - u) (viscous drag c against the air's velocity u; the families'
+``dissipation`` hook, so a new family brings its own), by the trapezoidal rule over every substep h: D += h (P' + P)/2
+with P' the power after the previous substep. A check's reach is many substeps, and a damped mode's power
+oscillates at twice its frequency, so sampling at the checks alone would alias; per substep it is second order in h
+where the motion is smooth. Symplectic Euler samples the power at each substep's midpoint state instead (midpoint
+rule, ``dissipation_rule_func``): its damper acts with the step's first velocity over a displacement made with its
+last, and the trapezoid over-counts that loss. Each reducing block keeps its own running sum and last power
+(``running[world, block]``: float64, no atomics, one launch per family and one for drag per substep, no per-world
+pass; on the CPU one thread per world and family sums in order, a single block); ``gather`` adds a world's blocks in
+order at the check and clears them.
 Contact and friction losses are not counted (a contact's penalty work is neither potential nor separable
 here), nor any other damping (stabilisers): what is not counted only loosens the balance, it never stops a
 correct run. The host leaves D out altogether where the balance with it would not be exact up to the
@@ -382,10 +382,10 @@ def dissipation_rule_func(midpoint: bool):
 
     * trapezoidal (``midpoint`` off): D += h (P' + P) / 2, P the power at the step's end state and P' the one
       recorded after the previous substep (none yet: P only recorded);
-    * midpoint (on): D += h P, P the power at the step's midpoint state ((x_n + x_{n+1}) / 2,
-      (v_n + v_{n+1}) / 2; the caller passes it). Symplectic Euler's damper acts with v_n over a displacement h v_{n+1}: on a damped
-      oscillator the trapezoid of c v² over-counts its loss by ~(ωh)²/4 of it (+6.7 % at ωh = 0.5, +33 % at
-      1, +129 % at 1.5), which the balance reads as energy created; c ((v_n + v_{n+1})/2)² closes it to 1e-3
+    * midpoint (on): D += h P, P the power at the step's midpoint state ((x_n + x_{n+1}) / 2, (v_n + v_{n+1}) / 2;
+      the caller passes it). Symplectic Euler's damper acts with v_n over a displacement h v_{n+1}: on a damped
+      oscillator the trapezoid of c v² over-counts its loss by ~(ωh)²/4 of it (+6.7 % at ωh = 0.5, +33 % at 1,
+      +129 % at 1.5), which the balance reads as energy created; c ((v_n + v_{n+1})/2)² closes it to 1e-3
       (``tests/test_dissipation.py``)."""
 
     @wp.func
@@ -471,8 +471,9 @@ def guard_dissipation_kernel(scalar: type, spec, tiled: bool, midpoint: bool = F
 def guard_drag_kernel(scalar: type, tiled: bool, wind: bool, midpoint: bool = False):
     """Kernel adding to ``running[world, block]`` the energy [J] viscous drag took out of the free particles
     over the last substep: power c v·(v - u) (u the air's velocity where the model has wind, else 0;
-    trapezoidal rule, or midpoint as ``guard_dissipation_kernel``). On CUDA per-block sums over ``reduce_launch_dim(worlds, particle_count, lanes)``, on
-    the CPU one thread per world (as ``guard_dissipation_kernel``)."""
+    trapezoidal rule, or midpoint as ``guard_dissipation_kernel``). On CUDA per-block sums over
+    ``reduce_launch_dim(worlds, particle_count, lanes)``, on the CPU one thread per world (as
+    ``guard_dissipation_kernel``)."""
     vec3 = vec3_type(scalar)
     block_sum, _ = reduction_funcs(tiled)
     input_vec3 = input_funcs(scalar)

@@ -51,16 +51,16 @@ def test_dissipation_of_a_damped_spring_mass_is_its_lost_energy(device, integrat
 
 @pytest.mark.parametrize("omega_h", [0.5, 1.0, 1.5])
 def test_symplectic_euler_counts_its_damper_loss_at_large_steps(device, omega_h):
-    """Symplectic Euler's damper acts with the step's first velocity over the displacement of its last, so
-    its loss per step is not the trapezoid of kd v² at the step's ends: that over-counts by ~(ωh)²/4 of the
-    loss (NumPy, this oscillator: +6.7 %, +33 %, +129 % at ωh = 0.5, 1, 1.5), which the balance reads as
-    energy created, and a driven cloth near its step limit was stopped (the next test). The guard samples
-    the power at the step's midpoint state ((x_n + x_{n+1})/2, (v_n + v_{n+1})/2). A 2 kg mass on a spring without gravity, released 0.1 m from
-    rest, 1 substep of 1/60 s at ωh as given, kd h/m = 0.01: after 10 s, when ~99.8 % of its energy is
-    gone, D is the energy lost within 1 % (NumPy: 1e-4 to 1e-3; the trapezoid's error is 7 to 130 %).
-    The balance's limit is raised out of the way: while the oscillation lasts, the energy at a step's end
-    swings about what the step conserves by up to 1/(1 - ωh/2) (+33 % at ωh = 0.5), which a cloth, whose
-    top modes hold little of its energy, keeps inside the limit, but one mode holding all of it does not."""
+    """Symplectic Euler's damper acts with the step's first velocity over the displacement of its last, so its loss
+    per step is not the trapezoid of kd v² at the step's ends: that over-counts by ~(ωh)²/4 of the loss (NumPy, this
+    oscillator: +6.7 %, +33 %, +129 % at ωh = 0.5, 1, 1.5), which the balance reads as energy created, and a driven
+    cloth near its step limit was stopped (the next test). The guard samples the power at the step's midpoint state
+    ((x_n + x_{n+1})/2, (v_n + v_{n+1})/2). A 2 kg mass on a spring without gravity, released 0.1 m from rest, 1
+    substep of 1/60 s at ωh as given, kd h/m = 0.01: after 10 s, when ~99.8 % of its energy is gone, D is the energy
+    lost within 1 % (NumPy: 1e-4 to 1e-3; the trapezoid's error is 7 to 130 %). The balance's limit is raised out of
+    the way: while the oscillation lasts, the energy at a step's end swings about what the step conserves by up to
+    1/(1 - ωh/2) (+33 % at ωh = 0.5), which a cloth, whose top modes hold little of its energy, keeps inside the
+    limit, but one mode holding all of it does not."""
     h = 1.0 / 60.0
     stiffness = MASS * (omega_h / h) ** 2
     builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))

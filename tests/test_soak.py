@@ -35,14 +35,14 @@ def _own(snapshot: tracemalloc.Snapshot) -> tracemalloc.Snapshot:
 def test_a_long_driven_run_keeps_its_memory_and_its_energy(device):
     """4,800 substeps (300 frames of 16, two handle cycles and a half): after the first 100 frames (compiles,
     captures) Python's allocations grow by less than 48 KiB over the remaining 200 (a leak of a frame's record,
-    ~1 KiB, would grow 200 KiB; measured: < 16 KiB on the CPU with Warp 1.19, 24-26 KiB on an H100 with Warp
-    1.16 run alone, ~60 B per frame that tracemalloc places in Warp's device lookup and NumPy under the
-    guard's per-frame status read, steady over 1,200 frames) and device memory not at all; the guard's energy balance, which counts
-    what the dampers and drag took out (D), closes: E - (E_ref + W - D) stays within 3 % of D and 1 % of what
-    the start and the handle supplied (symplectic Euler's O(h) energy error at h = 1/960 s: measured 1.0 %
-    and 0.35 % on the CPU; a leak of energy into the cloth would grow without bound, and without D the
-    balance would read 40-50 % of the budget missing) while the handle really works on the cloth (W changes
-    sign as it pulls and brakes) and the dampers take out more than the cloth holds."""
+    ~1 KiB, would grow 200 KiB; measured: < 16 KiB on the CPU with Warp 1.19, 24-26 KiB on an H100 with Warp 1.16 run
+    alone, ~60 B per frame that tracemalloc places in Warp's device lookup and NumPy under the guard's per-frame
+    status read, steady over 1,200 frames) and device memory not at all; the guard's energy balance, which counts
+    what the dampers and drag took out (D), closes: E - (E_ref + W - D) stays within 3 % of D and 1 % of what the
+    start and the handle supplied (symplectic Euler's O(h) energy error at h = 1/960 s: measured 1.0 % and 0.35 % on
+    the CPU; a leak of energy into the cloth would grow without bound, and without D the balance would read 40-50 %
+    of the budget missing) while the handle really works on the cloth (W changes sign as it pulls and brakes) and
+    the dampers take out more than the cloth holds."""
     model = driven_cloth(device, n=12)
     sim = ws.Simulator(model, fps=60, substeps=16, watch=10)
     for _ in range(100):

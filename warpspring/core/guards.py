@@ -52,9 +52,9 @@ from ..kernels.guards import (
     RUNNING_SLOTS,
     guard_dissipation_kernel,
     guard_drag_kernel,
-    step_midpoint_kernel,
     guard_energy_kernel,
     guard_kernels,
+    step_midpoint_kernel,
 )
 from ..errors import ConfigError
 from ..kernels.families import elements, fill_elements
