@@ -25,7 +25,8 @@ positions, not velocities): per triangle D_u = ½ ρ A (C_D |u·n| I + (C_D + C_
 shared as D_u / 9 between every pair of its corners (u depends on the mean of three velocities; each corner
 takes a third); the stability advisor adds its largest eigenvalue over three to each corner's drag
 (``AeroFamily.damping_rates``). Its stiffness matrix (−∂f/∂x, from the normal's rotation) is left out:
-zero. Wind does work on the cloth, so the family has no energy (the guards' energy balance is off with wind).
+zero. Wind does work on the cloth, so the family has no energy: the guards count its work per substep
+(``kernels/guards.py``, ``guard_work_kernel``).
 """
 
 import functools
@@ -194,7 +195,7 @@ def aero_family_funcs(scalar: type, spec: AeroSpec) -> FamilyFuncs:
     @wp.func
     def energy(world: int, t: int, base: int, aero: AeroArrays, inputs: wp.array2d[scalar],
                particle_q: wp.array[vec3]) -> scalar:
-        """Wind stores no energy (it does work: the guards' balance is off with wind)."""
+        """Wind stores no energy (it does work, which the guards count)."""
         return scalar(0.0)
 
     @wp.kernel(module="unique", enable_backward=False)

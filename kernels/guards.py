@@ -1,8 +1,8 @@
 """Run-time guards: detect a state going bad on the device, per world, without a host synchronisation per
 substep.
 
-A check is five launches captured with the substeps (and, with the dissipation counted, one or two more
-after every substep: below): ``measure`` (per particle: non-finite position or
+A check is five launches captured with the substeps (and, with the dissipation or the work of wind and handles
+counted, a few more after every substep: below): ``measure`` (per particle: non-finite position or
 velocity, the largest strain of its elements (the families' ``strain`` hook), kinetic energy (of the free
 particles: a kinematic one moves as prescribed), and the work the loads did on it since the previous
 check; per-block partials, no float atomics), ``element_energy_partials`` (one per family: per-block sums of
@@ -17,7 +17,12 @@ positions at the previous check: weight mᵢ g and the control's external force 
 kinematic particles (pins, tracks) the negative of the elements' force on them, i.e. the force the driver
 applies through them. Weight and the drive's force enter by the trapezoidal rule (their values at both
 checks; exact for constant gravity and still pins, second order for tracks), the control's force by its
-value at the check (it is constant within a frame, set between frames). W⁺ sums the positive parts.
+value at the check (it is constant within a frame, set between frames). The families that do work from outside
+(wind, handles) depend on the velocity and move with the cloth within a frame, so their work is summed after
+every substep instead, while the balance is on (``guard_work_kernel``: their forces at the substep's midpoint
+state over its displacement, midpoint rule; the battery's wind- and handle-driven cloth was unguarded by the
+balance before, and RK4 ran 10 s at up to 1.4× its stability limit carrying a numerical oscillation out of which
+the dampers took 30 to 350 times the stable runs' energy: bench/RESULTS.md §11). W⁺ sums the positive parts.
 
 **The energy taken out.** D sums the power the dampers take out of the motion, P = Σ_springs kd ((vj - vi)·d̂)² +
 Σ_hinges kd θ̇² + Σ_free particles c v·(v - u) (viscous drag c against the air's velocity u; the families'
@@ -102,7 +107,8 @@ BALANCE_SLOTS = 6
 # substep to substep
 RUNNING_DISSIPATION = 0  # energy taken out since the last check [J]
 RUNNING_POWER = 1  # the power after the last substep [W]; non-finite: none yet (the first trapezoid's start)
-RUNNING_SLOTS = 2
+RUNNING_WORK = 2  # work the families that do work from outside did since the last check [J] (``guard_work_kernel``)
+RUNNING_SLOTS = 3
 # float64 slots of the limits: live settings, read by ``decide``
 GUARD_LIMIT_STRAIN = 0  # an element strain beyond this tears the run [-]
 GUARD_LIMIT_KINETIC_ENERGY = 1  # a total kinetic energy beyond this is a runaway [J]
@@ -214,7 +220,8 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         balance: wp.array2d[wp.float64],
     ):
         """A world's kinetic and elastic energy, the work put in and the energy dissipated since the last
-        check (its blocks' partials and running sums, the running sums cleared; the work and the dissipation
+        check (its blocks' partials and running sums: the dissipation and the working families' work, the running
+        sums cleared; the work and the dissipation
         added to the balance, the work's positive part to the world's running total W⁺), its largest strain,
         and the energy beyond the balance's budget. Launched over [world, lanes] with ``block_dim`` = lanes
         (one lane on the CPU): each lane sums every lanes-th block in order, then a fixed-order tree
@@ -242,7 +249,9 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         b = lane
         while b < running.shape[1]:
             dissipated += running[world, b, RUNNING_DISSIPATION]
+            work += running[world, b, RUNNING_WORK]
             running[world, b, RUNNING_DISSIPATION] = wp.float64(0.0)
+            running[world, b, RUNNING_WORK] = wp.float64(0.0)
             b += lanes
         energy = block_sum(energy)
         worst = block_max(worst)
@@ -403,16 +412,19 @@ def dissipation_rule_func(midpoint: bool):
 
 @functools.cache
 def step_midpoint_kernel(scalar: type):
-    """Kernel writing a substep's midpoint state, the means of the positions [m] and velocities [m/s] at its
-    start and end; one thread per particle of every world."""
+    """Kernel writing a substep's midpoint state, the means of the positions [m], velocities [m/s] and each
+    world's time [s] at its start and end; one thread per particle of every world (as many as worlds at least)."""
     vec3 = vec3_type(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def step_midpoint(start_q: wp.array[vec3], start_qd: wp.array[vec3], end_q: wp.array[vec3],
-                      end_qd: wp.array[vec3], q: wp.array[vec3], qd: wp.array[vec3]):
+    def step_midpoint(start_q: wp.array[vec3], start_qd: wp.array[vec3], start_time: wp.array[wp.float64],
+                      end_q: wp.array[vec3], end_qd: wp.array[vec3], end_time: wp.array[wp.float64],
+                      q: wp.array[vec3], qd: wp.array[vec3], time: wp.array[wp.float64]):
         i = wp.tid()
         q[i] = (start_q[i] + end_q[i]) * scalar(0.5)
         qd[i] = (start_qd[i] + end_qd[i]) * scalar(0.5)
+        if i < time.shape[0]:
+            time[i] = (start_time[i] + end_time[i]) * wp.float64(0.5)
 
     return step_midpoint
 
@@ -519,3 +531,65 @@ def guard_drag_kernel(scalar: type, tiled: bool, wind: bool, midpoint: bool = Fa
             accumulate(running, world, block, power, h)
 
     return drag_dissipation
+
+
+@functools.cache
+def guard_work_kernel(scalar: type, working: tuple, tiled: bool):
+    """Kernel adding to ``running[world, block, RUNNING_WORK]`` the work [J] the families that do work from outside
+    (``working``: their specs; wind, handles) did on the free particles over the last substep:
+    Σᵢ Fᵢ(x̄, v̄) · (xᵢ' - xᵢ), the forces at the substep's midpoint state (x̄, v̄) = ((x + x')/2, (v + v')/2) over its
+    displacement (midpoint rule, as ``dissipation_rule_func``). Their forces depend on the velocity (drag, a PD
+    handle's damper) and the state (a handle's spring), so sampling them at the checks alone would alias as the
+    dampers' power would; a constant force's work is exact. Launched as ``guard_drag_kernel`` (per-block sums on
+    CUDA over ``reduce_launch_dim(worlds, particle_count, lanes)``, one thread per world on the CPU), into the
+    drag's blocks' own slot."""
+    vec3 = vec3_type(scalar)
+    block_sum, _ = reduction_funcs(tiled)
+    composed = elements(scalar, working)
+    WorkElements = composed.arrays
+    work_force = composed.force
+
+    @wp.func
+    def particle_work(world: int, i: int, base: int, particle_flags: wp.array[wp.int32], work_arrays: WorkElements,
+                      inputs: wp.array2d[scalar], mid_q: wp.array[vec3], mid_qd: wp.array[vec3],
+                      start_q: wp.array[vec3], end_q: wp.array[vec3]) -> wp.float64:
+        p = base + i
+        if is_kinematic(particle_flags[p]):  # a kinematic particle moves as prescribed: no work on it counts
+            return wp.float64(0.0)
+        force = work_force(world, i, base, mid_q[p], mid_qd[p], work_arrays, inputs, mid_q, mid_qd)
+        return wp.float64(wp.dot(force, end_q[p] - start_q[p]))
+
+    @flat_kernel(module="unique", enable_backward=False, last=composed.last("work_arrays"))
+    def family_work(
+        particle_count: int,
+        world_enabled: wp.array[wp.int32],
+        status: wp.array2d[wp.int32],
+        particle_flags: wp.array[wp.int32],
+        work_arrays: WorkElements,
+        inputs: wp.array2d[scalar],
+        mid_q: wp.array[vec3],
+        mid_qd: wp.array[vec3],
+        start_q: wp.array[vec3],
+        end_q: wp.array[vec3],
+        # In/out:
+        running: wp.array3d[wp.float64],
+    ):
+        world, block, lane = wp.tid()
+        if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
+            return
+        base = world * particle_count
+        work = wp.float64(0.0)
+        if wp.static(tiled):
+            i = block * wp.block_dim() + lane
+            if i < particle_count:
+                work = particle_work(world, i, base, particle_flags, work_arrays, inputs, mid_q, mid_qd, start_q,
+                                     end_q)
+            work = block_sum(work)
+        else:
+            for i in range(particle_count):
+                work += particle_work(world, i, base, particle_flags, work_arrays, inputs, mid_q, mid_qd, start_q,
+                                      end_q)
+        if lane == 0:
+            running[world, block, RUNNING_WORK] += work
+
+    return family_work

@@ -54,6 +54,7 @@ from ..kernels.guards import (
     guard_drag_kernel,
     guard_energy_kernel,
     guard_kernels,
+    guard_work_kernel,
     step_midpoint_kernel,
 )
 from ..errors import ConfigError
@@ -63,6 +64,7 @@ from ..kernels.linalg import reduce_lanes, reduce_launch_dim
 from .families import world_elastic_energy
 from .model import Model, State
 from .stepper import StepHook
+from .tracks import evaluate_input_tracks
 
 #: Default limit of the kinetic energy, as a multiple of the scene's energy scale (see GuardLimits).
 ENERGY_FACTOR = 1.0e6
@@ -93,6 +95,13 @@ DISSIPATION_UNCOUNTED = ("explicit_euler", "midpoint")
 #: the balance as created energy (the battery's driven cloth at 1/480 s was stopped from 8.6 kN/m, where the
 #: advisor passes 12.3 kN/m and the run is stable; bench/RESULTS.md §11).
 MIDPOINT_DISSIPATION = ("symplectic_euler",)
+#: Integrators whose balance cannot count the work of wind and handles: their forces damp (drag, a handle's Kd), and
+#: explicit Euler creates ω²h² of a mode's energy per step at any step, a share ωh / 2ζ of what a damper of ratio ζ
+#: takes out: counted exactly, a correct run reads as creating energy (a particle on a handle at ωh = 0.021,
+#: ζ = 0.05: 20 % of the start's energy within 0.5 s, tests/test_guard_work.py). Midpoint's share, (ωh)³ / 8ζ, is
+#: small but near its limit, where the springs' dampers (not counted for it) take the top modes: its battery in
+#: wind and on a handle stopped no run the advisor passes (bench/RESULTS.md §11).
+WORK_UNCOUNTED = ("explicit_euler",)
 #: Live inputs whose value is part of the springs' potential: animated by a track, the elastic energy
 #: changes without work and the balance is off.
 POTENTIAL_INPUTS = ("biphasic_strain", "biphasic_ratio", "max_spring_force")
@@ -350,7 +359,8 @@ class Guard(StepHook):
         self._every = None
         self._dissipating = None
         self._midpoint = False
-        self._step_position = self._step_velocity = self._step_start = None
+        self._working = False
+        self._step_position = self._step_velocity = self._step_time = self._step_start = None
         self.limits = limits
 
     @property
@@ -369,10 +379,17 @@ class Guard(StepHook):
                        and getattr(integrator, "name", None) not in DISSIPATION_UNCOUNTED
                        and not getattr(integrator, "adaptive", False))
         self._midpoint = bool(dissipating) and getattr(integrator, "name", None) in MIDPOINT_DISSIPATION
-        if self._midpoint and self._step_velocity is None:
+        # Wind and handles: their work counted per substep where the balance needs it (see ``_family_work``).
+        working = (limits.energy_balance > 0.0 and self._family_work_countable()
+                   and any(family.does_work for family in self.model.families))
+        if working != self._working:
+            self._working = working
+            self.revision += 1
+        if (self._midpoint or working) and self._step_velocity is None:
             size = self.model.world_count * self.model.particle_count
             self._step_position = wp.zeros(size, dtype=self.model.vec3, device=self.model.device)
             self._step_velocity = wp.zeros(size, dtype=self.model.vec3, device=self.model.device)
+            self._step_time = wp.zeros(self.model.world_count, dtype=wp.float64, device=self.model.device)
         if every != self._every or dissipating != self._dissipating:
             if self._dissipating is not None and dissipating != self._dissipating:
                 self._clear_running()  # no trapezoid from a power sampled before the switch
@@ -400,9 +417,16 @@ class Guard(StepHook):
         stabilizers = model.stabilizers
         return not (model.shape_moving or getattr(model, "shape_deforming", False)
                     or stabilizers.enabled("max_particle_force")
-                    or any(family.does_work for family in model.families) or bool(model.emitters)
+                    or bool(model.emitters)
+                    or (any(family.does_work for family in model.families) and not self._family_work_countable())
                     or any(name in model._tracks for name in POTENTIAL_INPUTS)
                     or getattr(self.integrator, "unconditionally_stable", False))
+
+    def _family_work_countable(self) -> bool:
+        """Whether the balance can count wind's and handles' work for the integrator (``WORK_UNCOUNTED``; adaptive
+        integrators step finer than the guard sees). Where not, the balance is off with wind or handles."""
+        integrator = self.integrator
+        return getattr(integrator, "name", None) not in WORK_UNCOUNTED and not getattr(integrator, "adaptive", False)
 
     def rebase(self) -> None:
         """Take the energy balance's reference anew at the next check: call after writing a state's positions
@@ -494,14 +518,48 @@ class Guard(StepHook):
                              dissipated=b[:, BALANCE_DISSIPATION].copy())
 
     def before_step(self, state: State, step: int, steps: int) -> None:
-        if self._dissipating and self._midpoint:
+        if (self._dissipating and self._midpoint) or self._working:
             self._step_start = state  # x_n, v_n: the step leaves its input as it was until after_step
 
     def after_step(self, state: State, step: int, steps: int) -> None:
+        if (self._dissipating and self._midpoint) or self._working:
+            # The substep's midpoint state, ((x_n + x_{n+1}) / 2, (v_n + v_{n+1}) / 2).
+            start = self._step_start
+            wp.launch(step_midpoint_kernel(self.model.scalar), dim=len(state.particle_qd),
+                      inputs=[start.particle_q, start.particle_qd, start.time, state.particle_q, state.particle_qd,
+                              state.time],
+                      outputs=[self._step_position, self._step_velocity, self._step_time], device=self.model.device)
         if self._dissipating:
             self._dissipate(state)
+        if self._working:
+            self._family_work(state)
         if (step + 1) % self._every == 0 or step + 1 == steps:
             self.check(state, step)
+
+    def _family_work(self, state: State) -> None:
+        """Add the work wind and handles (the families that do work from outside) did over the last substep to the
+        running sums: their forces at the substep's midpoint state over its displacement (``guard_work_kernel``).
+        Their forces depend on the velocity and move with the cloth within a frame: sampled at the checks alone,
+        by the trapezoid of the loads, their work aliases like the dampers' power, and the balance could not be
+        kept with wind or handles (device only; capturable)."""
+        model = self.model
+        working = self._working_families()
+        specs = tuple(_direct(family.spec(model)) for family in working)
+        # The animated inputs (the wind's track) and the handles' targets at the midpoint's time, then back at the
+        # step's end for the passes after this one (launches only where something is animated). Wind's per-triangle
+        # precompute is not needed (``_direct``).
+        timed = [family for family in model.extra_families if not getattr(family, "precompute", False)]
+        middle = _StepPoint(self._step_position, self._step_velocity, self._step_time)
+        evaluate_input_tracks(model, middle, families=timed)
+        flat_launch(guard_work_kernel(model.scalar, specs, self._tiled), dim=self._drag_grid, block_dim=self._lanes,
+                    inputs=[model.particle_count, model.world_enabled, self._status, model.particle_flags,
+                            self._work_arrays(working, specs), model.inputs, self._step_position,
+                            self._step_velocity, self._step_start.particle_q, state.particle_q],
+                    outputs=[self._running], device=model.device)
+        evaluate_input_tracks(model, state, families=timed)
+
+    def _working_families(self) -> list:
+        return [family for family in self.model.families if family.does_work]
 
     def _dissipate(self, state: State) -> None:
         """Add the energy the dampers and drag took out over the last step to the blocks' running sums
@@ -510,12 +568,8 @@ class Guard(StepHook):
         h = float(self.dt)
         drag, families = self._dissipation_kernels()
         position, velocity = state.particle_q, state.particle_qd
-        if self._midpoint:  # the power at the step's midpoint state (MIDPOINT_DISSIPATION)
+        if self._midpoint:  # the power at the step's midpoint state (MIDPOINT_DISSIPATION; after_step wrote it)
             position, velocity = self._step_position, self._step_velocity
-            start = self._step_start
-            wp.launch(step_midpoint_kernel(model.scalar), dim=len(velocity),
-                      inputs=[start.particle_q, start.particle_qd, state.particle_q, state.particle_qd],
-                      outputs=[position, velocity], device=model.device)
         if drag is not None:
             wp.launch(drag, dim=self._drag_grid, block_dim=self._lanes,
                       inputs=[model.particle_count, h, model.world_enabled, self._status, model.particle_flags,
@@ -551,17 +605,18 @@ class Guard(StepHook):
         wp.copy(self._status, self._status_clear)
         wp.copy(self._values, self._values_clear)
 
-    def _work_arrays(self, working: list):
-        """The struct of the working families' arrays (``guard_kernels``'s ``work_arrays``), rebuilt after a
-        structural change of the model."""
+    def _work_arrays(self, working: list, specs: tuple):
+        """The struct of the working families' arrays for their ``specs`` (``guard_kernels``'s and
+        ``guard_work_kernel``'s ``work_arrays``), rebuilt after a structural change of the model."""
         model = self.model
-        cached = getattr(self, "_work_cache", None)
-        if cached is None or cached[0] != model.revision:
-            specs = tuple(family.spec(model) for family in working)
+        cache = getattr(self, "_work_cache", None)
+        if cache is None or cache[0] != model.revision:
+            cache = (model.revision, {})
+            self._work_cache = cache
+        if specs not in cache[1]:
             chain = elements(model.scalar, specs).arrays()
-            cached = (model.revision, fill_elements(chain, [family.arrays(model) for family in working]))
-            self._work_cache = cached
-        return cached[1]
+            cache[1][specs] = fill_elements(chain, [family.arrays(model) for family in working])
+        return cache[1][specs]
 
     def _measure(self, state: State) -> tuple:
         """The per-particle pass of a check (kinetic energy, strain, the loads' work since the last check,
@@ -571,13 +626,15 @@ class Guard(StepHook):
         # The force on kinematic particles (a drive's work) is gathered even where the integrator scatters it.
         specs = tuple(dataclasses.replace(s, gathered=True) if getattr(s, "gathered", True) is False else s
                       for s in model.family_specs())
-        working = [family for family in model.families if family.does_work]
+        # Wind's and handles' work: here by the trapezoid of the checks, or per substep (``_family_work``).
+        working = [] if self._working else self._working_families()
+        working_specs = tuple(family.spec(model) for family in working)
         measure, gather, locate, decide = guard_kernels(model.scalar, specs, self._tiled, force is not None,
-                                                        tuple(family.spec(model) for family in working))
+                                                        working_specs)
         flat_launch(measure, dim=reduce_launch_dim(model.world_count, model.particle_count, self._lanes),
                     block_dim=self._lanes,
                     inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
-                            model.elements, self._work_arrays(working), model.inputs,
+                            model.elements, self._work_arrays(working, working_specs), model.inputs,
                             force if force is not None else state.particle_q,
                             state.particle_q, state.particle_qd],
                     outputs=[self._previous_q, self._previous_load, self._status, self._partials],
@@ -642,6 +699,21 @@ class Guard(StepHook):
         device: synchronises)."""
         found = self.reports()
         return min(found, key=lambda r: (r.substep, r.world)) if found else None
+
+
+@dataclass(frozen=True)
+class _StepPoint:
+    """A substep's midpoint as the input tracks read a state: positions [m], velocities [m/s], each world's time [s]."""
+
+    particle_q: wp.array
+    particle_qd: wp.array
+    time: wp.array
+
+
+def _direct(spec):
+    """``spec`` computing its forces where they are asked for: wind's precomputed per-triangle forces belong to the
+    integrator's last force evaluation, not to the state the guard evaluates."""
+    return dataclasses.replace(spec, precomputed=False) if getattr(spec, "precomputed", False) else spec
 
 
 def dissipation_exact(model: Model) -> bool:

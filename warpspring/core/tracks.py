@@ -207,10 +207,11 @@ class TrackTable:
         return next(k for k, t in enumerate(self.tracks) if t is track)
 
 
-def evaluate_input_tracks(model, state) -> None:
+def evaluate_input_tracks(model, state, *, families=None) -> None:
     """Write the model's animated inputs at the time of ``state`` into its input table, each world's at that
-    world's time (device work only; nothing is launched when no input is animated)."""
-    for family in model.extra_families:
+    world's time, and bring ``families`` (default: every family beyond the springs) to that time (device work
+    only; nothing is launched when no input is animated)."""
+    for family in model.extra_families if families is None else families:
         family.at_time(model, state)
     animated = model.input_tracks
     if animated is None:
