@@ -146,6 +146,59 @@ def test_values_changed_mid_run_are_restored(device, tmp_path):
     assert_bitwise_equal(snapshot(fresh), expected)
 
 
+def cloth_with_families(device):
+    """The two-world cloth with its bottom row on a PD handle and a free neo-Hookean tet beside it."""
+    from warpspring.core.neohookean import NeoHookeanFamily
+
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    ids = builder.add_cloth_grid(nx=6, ny=6, spacing=0.1, origin=(-0.25, -0.25, 1.0), particle_mass=0.02,
+                                 structural=ws.SpringMaterial(60.0, 0.05), shear=ws.SpringMaterial(20.0, 0.02),
+                                 bend=None, pin=["top-left", "top-right"])
+    builder.add_handle(ids[0], kp=2.0, kd=0.05, max_force=1.0)
+    rest = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0], [0.0, 0.0, 0.1]]) + [1.0, 0.0, 1.0]
+    tet = builder.add_particles(rest, mass=0.01)
+    family = builder.add_family(NeoHookeanFamily())
+    positions = builder.particle_positions(np.arange(tet.max() + 1))
+    family.add(np.array([tet]), positions, youngs_modulus=1.0e4, poisson_ratio=0.3, damping=1.0e-4)
+    return builder.finalize(device, worlds=2), family
+
+
+def test_family_live_values_are_restored(device, tmp_path):
+    """A handle's gains and the target set from the host in one world, and a neo-Hookean tet's E and ν set in one
+    world (its arrays then hold a row per world), changed mid-run: a simulator of the scene as built takes them
+    from the checkpoint (``ElementFamily.live_arrays``) and continues bit for bit."""
+    from warpspring.core.handles import HandleFamily
+
+    model, tets = cloth_with_families(device)
+    sim = simulator(model)
+    advance(sim, 1)
+    handles = next(f for f in model.families if isinstance(f, HandleFamily))
+    handles.set_gains(0, kp=3.0, kd=0.08, max_force=0.8)
+    handles.set_target(0, (0.05, 0.1, 0.0), velocity=(0.0, 0.2, 0.0), world=1)
+    tets.set_values(youngs_modulus=2.0e4, poisson_ratio=0.2, world=1)
+    advance(sim, 1)
+    path = sim.save_checkpoint(tmp_path / "families.npz")
+    advance(sim, 2)
+    expected = snapshot(sim)
+
+    fresh_model, fresh_tets = cloth_with_families(device)
+    fresh = simulator(fresh_model)
+    fresh.load_checkpoint(path)
+    np.testing.assert_array_equal(fresh_tets.values("mu"), tets.values("mu"))
+    fresh_handles = next(f for f in fresh_model.families if isinstance(f, HandleFamily))
+    for name, array in handles.live_arrays().items():
+        np.testing.assert_array_equal(fresh_handles.live_arrays()[name].numpy(), array.numpy(), err_msg=name)
+    advance(fresh, 2)
+    assert_bitwise_equal(snapshot(fresh), expected)
+    # Without the families' arrays (a checkpoint from before they were saved) the run would not repeat.
+    stale = simulator(cloth_with_families(device)[0])
+    checkpoint = Checkpoint.load(path)
+    checkpoint.arrays = {k: v for k, v in checkpoint.arrays.items() if not k.startswith("families/")}
+    checkpoint.restore(stale)
+    advance(stale, 2)
+    assert not np.array_equal(snapshot(stale)["particle_q"], expected["particle_q"])
+
+
 def test_integrator_settings_are_restored(device, tmp_path):
     """A tolerance set mid-run (a device value) comes back with the step-size history."""
     sim = simulator(cloth(device), "dopri5")

@@ -16,6 +16,8 @@ are), under names grouped by owner:
 * ``control/``: the external force and the pin targets of control-driven pin groups, when present;
 * ``springs/``: plastic springs' state (each world's rest lengths and plastic strains) and parameters
   (:data:`PLASTIC_ARRAYS`), when the model has plastic springs;
+* ``families/<k>/``: the live arrays of the model's ``k``-th element family (``ElementFamily.live_arrays``: the
+  tet families' per-tet values, the handles' gains and host-set targets), where it has some;
 * ``contacts/``: the contact buffer's overflow counters (the contact stage);
 * ``hooks/``: the arrays the step hooks (the run-time guard) carry from one frame to the next.
 
@@ -23,8 +25,8 @@ A JSON header (the ``header`` entry) names the format and its version, the packa
 scene's counts and precision, the integrator's name and settings, fps and substeps, the frame counter,
 the model's on/off switches (gravity, drag, stabilisers, held worlds) and the guard's world failures.
 
-Not saved: the scene itself (topology, colliders, meshes, keyframe tracks and pin-group tracks, extra
-element families' arrays: build the simulator from the same scene, then load), the guard's limits and
+Not saved: the scene itself (topology, colliders, meshes, keyframe tracks and pin-group tracks, the element
+families' fixed arrays: build the simulator from the same scene, then load), the guard's limits and
 ``use_graph`` (the simulator's configuration), and scratch arrays every step rewrites before reading them.
 """
 
@@ -187,6 +189,9 @@ class Checkpoint:
             if owner == "model" and name in PER_WORLD_ROWS and live[key].shape != values.shape:
                 # One row for all worlds against one per world: a new array (a structural change).
                 setattr(model, name, wp.array(values, dtype=model.scalar, device=model.device))
+            elif owner == "families":
+                k, array_name = name.split("/", 1)
+                model.families[int(k)].restore_live_array(model, array_name, values)
             elif values.size:
                 live[key].assign(values)
         model.refresh_spring_layout()  # saved per-spring values within a group read per group: per spring now
@@ -207,7 +212,8 @@ class Checkpoint:
         # An external force the simulator's control has not allocated yet is allocated by the restore.
         if "control/particle_force" not in live:
             live["control/particle_force"] = sim.state.particle_q
-        optional = ("hooks/", "control/particle_force")
+        # Checkpoints from before the families' live arrays were saved leave them as the scene built them.
+        optional = ("hooks/", "control/particle_force", "families/")
         missing = sorted(key for key in live if key not in self.arrays and not key.startswith(optional))
         if missing:
             raise ConfigError(f"{self._name()} lacks {missing[0]}, which this simulator has: {_SCENE_REMEDY}")
@@ -221,8 +227,8 @@ class Checkpoint:
                                   f"{_SCENE_REMEDY}")
             shape, dtype = _layout(live[key])
             owner, name = key.split("/", 1)
-            rows_differ = owner == "model" and name in PER_WORLD_ROWS and values.shape[1:] == shape[1:] and \
-                values.shape[0] in (1, sim.model.world_count)
+            rows_differ = (owner == "families" or (owner == "model" and name in PER_WORLD_ROWS)) and \
+                values.shape[1:] == shape[1:] and values.shape[0] in (1, sim.model.world_count)
             if values.dtype != dtype or (values.shape != shape and not rows_differ):
                 raise ConfigError(f"{self._name()} holds {key} of shape {values.shape} ({values.dtype}), but this "
                                   f"simulator's is {shape} ({dtype}): {_SCENE_REMEDY}")
@@ -345,6 +351,8 @@ def live_arrays(sim: Simulator) -> dict[str, wp.array]:
     if control.pin_targets is not None:
         arrays["control/pin_target_position"] = control.pin_targets.position
         arrays["control/pin_target_time"] = control.pin_targets.time
+    for k, family in enumerate(model.families):
+        arrays.update({f"families/{k}/{name}": array for name, array in family.live_arrays().items()})
     if sim.contacts is not None:
         arrays["contacts/overflow"] = sim.contacts.arrays.overflow
     for k, hook in enumerate(sim.stepper.hooks):

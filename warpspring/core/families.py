@@ -30,8 +30,8 @@ class ElementFamily:
 
     #: Plural noun naming the elements in messages and reports ("springs", "hinges").
     name: str = "elements"
-    #: Whether the family's forces do work from outside (wind): it has no energy, and the guards' energy
-    #: balance cannot be kept.
+    #: Whether the family's forces do work from outside (wind, handles): it has no energy, and the guards count
+    #: its work (``kernels/guards.py``).
     does_work: bool = False
 
     def finalize(self, model) -> None:
@@ -54,6 +54,16 @@ class ElementFamily:
         """Whether the family's forces depend on velocity (a damper with a nonzero value in some world): velocity
         Verlet then runs its corrector. Read when an integrator is made."""
         return False
+
+    def live_arrays(self) -> dict:
+        """The family's device arrays a user may change between frames (live values, host-set targets), by name:
+        checkpoints save them and :meth:`restore_live_array` puts them back. Default: none."""
+        return {}
+
+    def restore_live_array(self, model, name: str, values: np.ndarray) -> None:
+        """Write a checkpoint's ``values`` of :meth:`live_arrays`' ``name`` (validated: same dtype, same shape or
+        another number of world rows). Default: in place."""
+        self.live_arrays()[name].assign(values)
 
     def tracks(self) -> tuple:
         """The keyframe tracks the family reads (they join the model's track table before :meth:`finalize`,

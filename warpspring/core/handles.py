@@ -122,6 +122,13 @@ class HandleFamily(ElementFamily):
             values[:, h] = check(f"handle {name}", value)
             array.assign(values)
 
+    def live_arrays(self) -> dict:
+        """The gains (kp [N/m], kd [N·s/m], max_force [N]: [1, handle_count]) and the targets' frames (translation [m],
+        velocity [m/s], rotation [rad], angular velocity [rad/s]: [world_count, handle_count] 3-vectors; set from
+        the host by :meth:`set_target` or by the tracks at every force evaluation), for checkpoints."""
+        return {"kp": self._kp, "kd": self._kd, "max_force": self._max_force,
+                **dict(zip(("translation", "velocity", "rotation", "angular"), self._frames))}
+
     def _handle_index(self, handle) -> int:
         names = [h.name for h in self.handles]
         if isinstance(handle, str):

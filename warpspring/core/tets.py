@@ -131,6 +131,20 @@ class TetFamily(ElementFamily):
                 model._structure_changed()
         model.input_version += 1  # the elastic energy changed without work: the guard re-bases
 
+    def live_arrays(self) -> dict:
+        """Each live value's array, [1 or world_count, tet_count] (checkpoints)."""
+        return dict(self._live_arrays)
+
+    def restore_live_array(self, model, name: str, values: np.ndarray) -> None:
+        """In place, or (one row for every world against one per world) a new array: a structural change."""
+        array = self._live(name)
+        if array.shape == values.shape:
+            array.assign(values)
+        else:
+            self._live_arrays[name] = wp.array(values, dtype=model.scalar, device=model.device)
+            model._structure_changed()
+        model.input_version += 1  # the elastic energy changed without work: the guard re-bases
+
     # -- the protocol ----------------------------------------------------------------------------------------------
 
     def velocity_dependent(self, model) -> bool:
