@@ -114,8 +114,7 @@ class TetFamily(ElementFamily):
             if world >= model.world_count:
                 raise ConfigError(f"world {world} does not exist: the model has worlds 0..{model.world_count - 1}")
         for name, value in writes.items():
-            array = self._live(name)
-            rows = array.numpy().astype(np.float64)
+            rows = self._live(name).numpy().astype(np.float64)
             if world is not None and rows.shape[0] == 1 and model.world_count > 1:
                 rows = np.repeat(rows, model.world_count, axis=0)
             try:
@@ -123,13 +122,18 @@ class TetFamily(ElementFamily):
             except ValueError:
                 raise ConfigError(f"{self.label}'s {name} must be a number or one per selected tet ({len(select)}), "
                                   f"got shape {np.shape(value)}") from None
-            cast = rows.astype(np.float32 if model.scalar is wp.float32 else np.float64)
-            if cast.shape == array.shape:
-                array.assign(cast)
-            else:
-                self._live_arrays[name] = wp.array(cast, dtype=model.scalar, device=model.device)
-                model._structure_changed()
+            self._store(model, name, rows.astype(np.float32 if model.scalar is wp.float32 else np.float64))
         model.input_version += 1  # the elastic energy changed without work: the guard re-bases
+
+    def _store(self, model, name: str, rows: np.ndarray) -> None:
+        """Write ``rows`` (the model's dtype) to the live value ``name``: in place, or (one row for every world
+        against one per world) as a new array, a structural change."""
+        array = self._live(name)
+        if rows.shape == array.shape:
+            array.assign(rows)
+        else:
+            self._live_arrays[name] = wp.array(rows, dtype=model.scalar, device=model.device)
+            model._structure_changed()
 
     def live_arrays(self) -> dict:
         """Each live value's array, [1 or world_count, tet_count] (checkpoints)."""
@@ -137,12 +141,7 @@ class TetFamily(ElementFamily):
 
     def restore_live_array(self, model, name: str, values: np.ndarray) -> None:
         """In place, or (one row for every world against one per world) a new array: a structural change."""
-        array = self._live(name)
-        if array.shape == values.shape:
-            array.assign(values)
-        else:
-            self._live_arrays[name] = wp.array(values, dtype=model.scalar, device=model.device)
-            model._structure_changed()
+        self._store(model, name, values)
         model.input_version += 1  # the elastic energy changed without work: the guard re-bases
 
     # -- the protocol ----------------------------------------------------------------------------------------------
