@@ -86,6 +86,28 @@ def test_a_restored_run_continues_bit_for_bit(device, name, tmp_path):
     assert np.abs(q[0] - q[1]).max() > 1e-5
 
 
+def test_a_guard_record_with_fewer_running_slots_still_loads(device, tmp_path):
+    """A checkpoint whose guard's running sums have fewer slots per block (written before they held the working
+    families' work) loads, the missing slots at zero, and the run and its energy balance continue bit for bit."""
+    from warpspring.kernels.guards import RUNNING_SLOTS, RUNNING_WORK
+
+    sim = simulator(cloth(device))
+    advance(sim, SAVE_AT)
+    checkpoint = Checkpoint.capture(sim)
+    advance(sim, FRAMES - SAVE_AT)
+    expected, balance = snapshot(sim), sim.guard.energy_balance()
+    running = [k for k, v in checkpoint.arrays.items() if k.startswith("hooks/") and v.ndim == 3
+               and v.shape[-1] == RUNNING_SLOTS]
+    assert len(running) == 1 and RUNNING_WORK == RUNNING_SLOTS - 1
+    assert not checkpoint.arrays[running[0]][..., RUNNING_WORK].any()  # zero at a frame's end
+    checkpoint.arrays[running[0]] = checkpoint.arrays[running[0]][..., :RUNNING_WORK]
+    fresh = simulator(cloth(device))
+    checkpoint.restore(fresh)
+    advance(fresh, FRAMES - SAVE_AT)
+    assert_bitwise_equal(snapshot(fresh), expected)
+    np.testing.assert_array_equal(fresh.guard.energy_balance().created, balance.created)
+
+
 @pytest.mark.parametrize("name", ["implicit_euler", "dopri5"])
 def test_the_integrators_history_is_restored(device, name, tmp_path):
     """The checkpoint holds what makes the stateful integrators' continuation exact: the restored arrays

@@ -227,6 +227,12 @@ class Checkpoint:
                                   f"{_SCENE_REMEDY}")
             shape, dtype = _layout(live[key])
             owner, name = key.split("/", 1)
+            if owner == "hooks" and values.ndim == len(shape) and values.shape[:-1] == shape[:-1] and \
+                    values.shape[-1] < shape[-1]:
+                # A hook's record from a version with fewer slots per entry (the guard's running sums gained the
+                # working families' work, zero at every frame's end): the new slots start at zero.
+                values = np.concatenate([values, np.zeros(values.shape[:-1] + (shape[-1] - values.shape[-1],),
+                                                          dtype=values.dtype)], axis=-1)
             rows_differ = (owner == "families" or (owner == "model" and name in PER_WORLD_ROWS)) and \
                 values.shape[1:] == shape[1:] and values.shape[0] in (1, sim.model.world_count)
             if values.dtype != dtype or (values.shape != shape and not rows_differ):
