@@ -189,12 +189,10 @@ def test_family_live_values_are_restored(device, tmp_path):
     """A handle's gains and the target set from the host in one world, and a neo-Hookean tet's E and ν set in one
     world (its arrays then hold a row per world), changed mid-run: a simulator of the scene as built takes them
     from the checkpoint (``ElementFamily.live_arrays``) and continues bit for bit."""
-    from warpspring.core.handles import HandleFamily
-
     model, tets = cloth_with_families(device)
     sim = simulator(model)
     advance(sim, 1)
-    handles = next(f for f in model.families if isinstance(f, HandleFamily))
+    handles = model.handles
     handles.set_gains(0, kp=3.0, kd=0.08, max_force=0.8)
     handles.set_target(0, (0.05, 0.1, 0.0), velocity=(0.0, 0.2, 0.0), world=1)
     tets.set_values(youngs_modulus=2.0e4, poisson_ratio=0.2, world=1)
@@ -207,9 +205,8 @@ def test_family_live_values_are_restored(device, tmp_path):
     fresh = simulator(fresh_model)
     fresh.load_checkpoint(path)
     np.testing.assert_array_equal(fresh_tets.values("mu"), tets.values("mu"))
-    fresh_handles = next(f for f in fresh_model.families if isinstance(f, HandleFamily))
     for name, array in handles.live_arrays().items():
-        np.testing.assert_array_equal(fresh_handles.live_arrays()[name].numpy(), array.numpy(), err_msg=name)
+        np.testing.assert_array_equal(fresh_model.handles.live_arrays()[name].numpy(), array.numpy(), err_msg=name)
     advance(fresh, 2)
     assert_bitwise_equal(snapshot(fresh), expected)
     # Without the families' arrays (a checkpoint from before they were saved) the run would not repeat.
