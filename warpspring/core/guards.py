@@ -517,12 +517,22 @@ class Guard(StepHook):
                              work=b[:, BALANCE_WORK].copy(), peak=b[:, BALANCE_PEAK].copy(),
                              dissipated=b[:, BALANCE_DISSIPATION].copy())
 
+    def _needs_midpoint(self) -> bool:
+        """Whether a substep's midpoint state is needed: symplectic Euler's D where something dissipates (drag, a
+        family with dampers), or the working families' work."""
+        if self._working:
+            return True
+        if not (self._dissipating and self._midpoint):
+            return False
+        drag, families = self._dissipation_kernels()
+        return drag is not None or bool(families)
+
     def before_step(self, state: State, step: int, steps: int) -> None:
-        if (self._dissipating and self._midpoint) or self._working:
+        if self._needs_midpoint():
             self._step_start = state  # x_n, v_n: the step leaves its input as it was until after_step
 
     def after_step(self, state: State, step: int, steps: int) -> None:
-        if (self._dissipating and self._midpoint) or self._working:
+        if self._needs_midpoint():
             # The substep's midpoint state, ((x_n + x_{n+1}) / 2, (v_n + v_{n+1}) / 2).
             start = self._step_start
             wp.launch(step_midpoint_kernel(self.model.scalar), dim=len(state.particle_qd),
