@@ -35,7 +35,8 @@ from typing import Any, NamedTuple
 
 import warp as wp
 
-from .families import FamilyFuncs, Incidence, IncidenceShape, gathered_force, gathered_product, masked_operand
+from .families import (FamilyFuncs, Incidence, IncidenceShape, gathered_force, gathered_product, masked_operand,
+                       no_strain_func)
 from .inputs import INPUT_AIR_DENSITY, INPUT_WIND, INPUT_WIND_NOISE, input_funcs
 from .precision import mat33_type, vec3_type
 
@@ -187,10 +188,7 @@ def aero_family_funcs(scalar: type, spec: AeroSpec) -> FamilyFuncs:
     force = gathered_force(scalar, AeroArrays, spec.incidence, triangle_force_on)
     product = gathered_product(scalar, AeroArrays, spec.incidence, product_entry)
 
-    @wp.func
-    def strain(world: int, i: int, base: int, xi: vec3, aero: AeroArrays, particle_q: wp.array[vec3]):
-        """Wind has no strain for the guards."""
-        return wp.float64(-1.0), -1
+    strain = no_strain_func(scalar, AeroArrays)  # no strain for the guards
 
     @wp.func
     def energy(world: int, t: int, base: int, aero: AeroArrays, inputs: wp.array2d[scalar],

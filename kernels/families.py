@@ -94,6 +94,19 @@ class FamilyFuncs(NamedTuple):
     dissipation: Any = None  # per element, like ``energy``; None: the family dissipates nothing of its own
 
 
+@functools.cache
+def no_strain_func(scalar: type, arrays: type):
+    """The ``strain`` hook of a family that has none for the guards (wind, handles, hinges, tets: a fold, a pull or
+    a compression is not a tear): (-1, -1) for every particle. ``arrays``: the family's struct type."""
+    vec3 = vec3_type(scalar)
+
+    @wp.func
+    def strain(world: int, i: int, base: int, xi: vec3, elements: arrays, particle_q: wp.array[vec3]):
+        return wp.float64(-1.0), -1
+
+    return strain
+
+
 # -- gathering over the incidence ----------------------------------------------------------------------------
 
 

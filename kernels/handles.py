@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import warp as wp
 
-from .families import FamilyFuncs, Incidence, IncidenceShape, gathered_force, gathered_product
+from .families import FamilyFuncs, Incidence, IncidenceShape, gathered_force, gathered_product, no_strain_func
 from .kinematics import angular_velocity, rotate_by_vector
 from .precision import mat33_type, vec3_type
 from .tracks import Tracks, track_sample
@@ -160,10 +160,7 @@ def handle_family_funcs(scalar: type, spec: HandleSpec) -> FamilyFuncs:
     force = gathered_force(scalar, HandleArrays, spec.incidence, grab_force)
     product = gathered_product(scalar, HandleArrays, spec.incidence, product_entry)
 
-    @wp.func
-    def strain(world: int, i: int, base: int, xi: vec3, handles: HandleArrays, particle_q: wp.array[vec3]):
-        """Handles have no strain for the guards."""
-        return wp.float64(-1.0), -1
+    strain = no_strain_func(scalar, HandleArrays)  # no strain for the guards
 
     @wp.func
     def energy(world: int, g: int, base: int, handles: HandleArrays, inputs: wp.array2d[scalar],

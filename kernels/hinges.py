@@ -16,7 +16,7 @@ import warp as wp
 
 from .bending import dihedral_funcs
 from .families import (FamilyFuncs, Incidence, IncidenceShape, four_point_funcs, gathered_force,
-                       gathered_product)
+                       gathered_product, no_strain_func)
 from .precision import mat33_type, vec3_type
 
 wp.set_module_options({"enable_backward": False})
@@ -96,10 +96,7 @@ def hinge_family_funcs(scalar: type, spec: HingeSpec) -> FamilyFuncs:
     force = gathered_force(scalar, HingeArrays, spec.incidence, hinge_force_on)
     product = gathered_product(scalar, HingeArrays, spec.incidence, product_entry)
 
-    @wp.func
-    def strain(world: int, i: int, base: int, xi: vec3, hinges: HingeArrays, particle_q: wp.array[vec3]):
-        """Hinges have no strain for the guards."""
-        return wp.float64(-1.0), -1
+    strain = no_strain_func(scalar, HingeArrays)  # no strain for the guards
 
     @wp.func
     def energy(world: int, h: int, base: int, hinges: HingeArrays, inputs: wp.array2d[scalar],

@@ -63,7 +63,7 @@ from typing import Any, NamedTuple
 import warp as wp
 
 from .families import (FamilyFuncs, Incidence, IncidenceShape, four_point_funcs, gathered_force, gathered_product,
-                       masked_operand)
+                       masked_operand, no_strain_func)
 from .precision import mat33_type, vec3_type
 from .volume import tet_volume_funcs
 
@@ -292,10 +292,7 @@ def neohookean_family_funcs(scalar: type, spec: NeoHookeanSpec) -> NeoHookeanFun
     force = gathered_force(scalar, Arrays, spec.incidence, tet_force_on)
     product = gathered_product(scalar, Arrays, spec.incidence, product_entry)
 
-    @wp.func
-    def strain(world: int, i: int, base: int, xi: vec3, tets: Arrays, particle_q: wp.array[vec3]):
-        """Neo-Hookean tets have no strain for the guards."""
-        return wp.float64(-1.0), -1
+    strain = no_strain_func(scalar, Arrays)  # no strain for the guards
 
     @wp.func
     def energy(world: int, t: int, base: int, tets: Arrays, inputs: wp.array2d[scalar],

@@ -38,7 +38,7 @@ from typing import Any, NamedTuple
 import warp as wp
 
 from .families import (FamilyFuncs, Incidence, IncidenceShape, four_point_funcs, gathered_force,
-                       gathered_product)
+                       gathered_product, no_strain_func)
 from .precision import mat33_type, vec3_type
 
 wp.set_module_options({"enable_backward": False})
@@ -220,10 +220,7 @@ def volume_family_funcs(scalar: type, spec: VolumeSpec) -> VolumeFuncs:
     force = gathered_force(scalar, VolumeArrays, spec.incidence, tet_force_on)
     product = gathered_product(scalar, VolumeArrays, spec.incidence, product_entry)
 
-    @wp.func
-    def strain(world: int, i: int, base: int, xi: vec3, tets: VolumeArrays, particle_q: wp.array[vec3]):
-        """Tet volumes have no strain for the guards."""
-        return wp.float64(-1.0), -1
+    strain = no_strain_func(scalar, VolumeArrays)  # no strain for the guards
 
     @wp.func
     def energy(world: int, t: int, base: int, tets: VolumeArrays, inputs: wp.array2d[scalar],
