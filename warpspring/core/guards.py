@@ -381,7 +381,7 @@ class Guard(StepHook):
         self._midpoint = bool(dissipating) and getattr(integrator, "name", None) in MIDPOINT_DISSIPATION
         # Wind and handles: their work counted per substep where the balance needs it (see ``_family_work``).
         working = (limits.energy_balance > 0.0 and self._family_work_countable()
-                   and any(family.does_work for family in self.model.families))
+                   and bool(self._working_families()))
         if working != self._working:
             self._working = working
             self.revision += 1
@@ -418,7 +418,7 @@ class Guard(StepHook):
         return not (model.shape_moving or getattr(model, "shape_deforming", False)
                     or stabilizers.enabled("max_particle_force")
                     or bool(model.emitters)
-                    or (any(family.does_work for family in model.families) and not self._family_work_countable())
+                    or (bool(self._working_families()) and not self._family_work_countable())
                     or any(name in model._tracks for name in POTENTIAL_INPUTS)
                     or getattr(self.integrator, "unconditionally_stable", False))
 
@@ -555,10 +555,10 @@ class Guard(StepHook):
         model = self.model
         working = self._working_families()
         specs = tuple(_direct(family.spec(model)) for family in working)
-        # The animated inputs (the wind's track) and the handles' targets at the midpoint's time, then back at the
-        # step's end for the passes after this one (launches only where something is animated). Wind's per-triangle
-        # precompute is not needed (``_direct``).
-        timed = [family for family in model.extra_families if not getattr(family, "precompute", False)]
+        # The animated inputs (the wind's track) and the working families' time-dependent arrays (the handles'
+        # targets) at the midpoint's time, then back at the step's end for the passes after this one (launches only
+        # where something is animated). Wind's per-triangle precompute is not needed (``_direct``).
+        timed = [family for family in working if not getattr(family, "precompute", False)]
         middle = _StepPoint(self._step_position, self._step_velocity, self._step_time)
         evaluate_input_tracks(model, middle, families=timed)
         flat_launch(guard_work_kernel(model.scalar, specs, self._tiled), dim=self._drag_grid, block_dim=self._lanes,
