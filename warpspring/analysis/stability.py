@@ -65,9 +65,12 @@ scene (:func:`transient_peak`): velocity Verlet at half the step the Gershgorin 
 any state, ω_max re-estimated along the way by warm-started power iterations, until the peaks stop rising
 (or the run's duration). Measured with it on the battery (three scenes, five integrators, two steps
 each): no run it passes blows up; it is within 10 % for symplectic Euler, velocity Verlet and RK4, and
-14–41 % conservative for explicit Euler and midpoint over 10 s runs. Those two rely on damping, and the
-transverse modes have none (see above): they grow slowly at any step, and over 100 s explicit Euler blows
-up inside the advisor's limit.
+14–41 % conservative for explicit Euler and midpoint over 10 s runs. Against the exact one-step map of the
+linearised cloth (:mod:`.modal`, :func:`step_matrix`) the advisor linearised at the equilibrium is the top
+mode's limit for all five (to the power iteration's ~1e-4), so those two integrators' runs past it are
+linearly unstable, only too slowly to show in 10 s. They rely on damping, and the transverse modes have
+none (see above): those grow slowly at any step, and over 100 s explicit Euler blows up inside the
+advisor's limit.
 
 **The advisor** (:func:`advise`) combines both for a model, an integrator and a step; with several worlds
 each world gets its own limit and the smallest binds.
@@ -181,7 +184,6 @@ class _Row:
 
 _A = _Poly({(1, 0): Fraction(1)})  # a = ωh
 _B = _Poly({(0, 1): Fraction(1)})  # b = 2ζωh
-_HALF = Fraction(1, 2)
 
 
 def _kick(x: _Row, v: _Row) -> _Row:
@@ -201,39 +203,67 @@ def _tableau_rational(value: float) -> Fraction:
     return Fraction(value).limit_denominator(1_000_000)
 
 
-def _runge_kutta(a: tuple, b: tuple) -> tuple[tuple[_Row, _Row], _Poly]:
-    x0, v0 = _Row(1, 0), _Row(0, 1)
+@dataclass(frozen=True)
+class _Algebra:
+    """What an integrator's update equations act on: the step's input (x₀, v₀) as elements of a linear
+    algebra, ``kick`` (h × the acceleration at (x, v)), ``drift`` (h × the rate of x at v) and how a
+    coefficient of the method enters (``coefficient``). The test oscillator's algebra is that of
+    :class:`_Row` with exact rational coefficients; :func:`step_matrix` uses dense matrices."""
+
+    x0: object
+    v0: object
+    kick: object
+    drift: object
+    coefficient: object
+
+
+_OSCILLATOR = _Algebra(_Row(1, 0), _Row(0, 1), _kick, _drift, _tableau_rational)
+
+
+def _runge_kutta(a: tuple, b: tuple, algebra: _Algebra) -> tuple:
+    x0, v0, c = algebra.x0, algebra.v0, algebra.coefficient
     stage_x, stage_v = [], []
     for k in range(len(b)):
         x, v = x0, v0
-        for j, c in enumerate(a[k]):
-            if c:
-                x, v = x + _tableau_rational(c) * stage_x[j], v + _tableau_rational(c) * stage_v[j]
-        stage_x.append(_drift(v))
-        stage_v.append(_kick(x, v))
+        for j, value in enumerate(a[k]):
+            if value:
+                x, v = x + c(value) * stage_x[j], v + c(value) * stage_v[j]
+        stage_x.append(algebra.drift(v))
+        stage_v.append(algebra.kick(x, v))
     x, v = x0, v0
-    for j, c in enumerate(b):
-        if c:
-            x, v = x + _tableau_rational(c) * stage_x[j], v + _tableau_rational(c) * stage_v[j]
-    return (x, v), _Poly.lift(1)
+    for j, value in enumerate(b):
+        if value:
+            x, v = x + c(value) * stage_x[j], v + c(value) * stage_v[j]
+    return x, v
 
 
-def _symplectic_euler() -> tuple[tuple[_Row, _Row], _Poly]:
-    x0, v0 = _Row(1, 0), _Row(0, 1)
-    v1 = v0 + _kick(x0, v0)
-    x1 = x0 + _drift(v1)
-    return (x1, v1), _Poly.lift(1)
+def _symplectic_euler(algebra: _Algebra) -> tuple:
+    v1 = algebra.v0 + algebra.kick(algebra.x0, algebra.v0)
+    x1 = algebra.x0 + algebra.drift(v1)
+    return x1, v1
 
 
-def _velocity_verlet() -> tuple[tuple[_Row, _Row], _Poly]:
+def _velocity_verlet(algebra: _Algebra) -> tuple:
     # The corrector runs only for velocity-dependent forces; without damping (b = 0) it changes nothing,
     # so one expression covers both cases.
-    x0, v0 = _Row(1, 0), _Row(0, 1)
-    v_half = v0 + _HALF * _kick(x0, v0)
-    x1 = x0 + _drift(v_half)
-    v_star = v_half + _HALF * _kick(x1, v_half)
-    v1 = v_half + _HALF * _kick(x1, v_star)
-    return (x1, v1), _Poly.lift(1)
+    half, kick = algebra.coefficient(0.5), algebra.kick
+    v_half = algebra.v0 + half * kick(algebra.x0, algebra.v0)
+    x1 = algebra.x0 + algebra.drift(v_half)
+    v_star = v_half + half * kick(x1, v_half)
+    v1 = v_half + half * kick(x1, v_star)
+    return x1, v1
+
+
+def _explicit_update(integrator: str, algebra: _Algebra) -> tuple | None:
+    """(x₁, v₁) of one step of the named integrator in ``algebra``; None for an implicit one."""
+    cls = _integrator_class(integrator)
+    if issubclass(cls, ExplicitRungeKutta):
+        return _runge_kutta(cls.a, cls.b, algebra)
+    if issubclass(cls, SymplecticEuler):
+        return _symplectic_euler(algebra)
+    if issubclass(cls, VelocityVerlet):
+        return _velocity_verlet(algebra)
+    return None
 
 
 def _implicit_euler() -> tuple[tuple[_Row, _Row], _Poly]:
@@ -244,17 +274,14 @@ def _implicit_euler() -> tuple[tuple[_Row, _Row], _Poly]:
 @functools.cache
 def _propagator(integrator: str) -> tuple[tuple[tuple[_Poly, _Poly], tuple[_Poly, _Poly]], _Poly]:
     """(N, q) of the named integrator: its one-step map of the test oscillator is N / q."""
-    cls = _integrator_class(integrator)
-    if issubclass(cls, ExplicitRungeKutta):
-        (x1, v1), q = _runge_kutta(cls.a, cls.b)
-    elif issubclass(cls, SymplecticEuler):
-        (x1, v1), q = _symplectic_euler()
-    elif issubclass(cls, VelocityVerlet):
-        (x1, v1), q = _velocity_verlet()
-    elif issubclass(cls, ImplicitEuler):
+    update = _explicit_update(integrator, _OSCILLATOR)
+    if update is not None:
+        (x1, v1), q = update, _Poly.lift(1)
+    elif issubclass(_integrator_class(integrator), ImplicitEuler):
         (x1, v1), q = _implicit_euler()
     else:
-        raise ConfigError(f"no stability theory for the {integrator!r} integrator ({cls.__name__})")
+        raise ConfigError(f"no stability theory for the {integrator!r} integrator "
+                          f"({_integrator_class(integrator).__name__})")
     return ((x1.x, x1.v), (v1.x, v1.v)), q
 
 
@@ -365,6 +392,37 @@ def amplification_matrix(integrator: str, omega_h: float, zeta: float) -> np.nda
 def spectral_radius(integrator: str, omega_h: float, zeta: float) -> float:
     """ρ of :func:`amplification_matrix` (float64 eigenvalues): the asymptotic growth factor per step."""
     return float(np.abs(np.linalg.eigvals(amplification_matrix(integrator, omega_h, zeta))).max())
+
+
+def step_matrix(integrator: str, dt: float, mass, stiffness, damping) -> np.ndarray:
+    """The one-step map of the linear system M ẍ + D ẋ + K x = 0 under ``integrator``, built by the same
+    update equations as its test-oscillator theory (:func:`amplification_matrix`), in dense float64.
+
+    Args:
+        integrator: registry name of an explicit integrator (dopri5: a fixed step of its 5th-order solution).
+        dt: the step [s], > 0.
+        mass: the coordinates' masses [kg], shape [n], each > 0.
+        stiffness: K [N/m], shape [n, n].
+        damping: D [N·s/m], shape [n, n].
+
+    Returns:
+        R, shape [2n, 2n], float64: (x₁, v₁) = R (x₀, v₀). ρ(R) > 1 means some mode grows.
+    """
+    dt = checks.positive("dt", dt)
+    mass = np.asarray(mass, dtype=np.float64)
+    K, D = np.asarray(stiffness, dtype=np.float64), np.asarray(damping, dtype=np.float64)
+    n = len(mass)
+    if K.shape != (n, n) or D.shape != (n, n) or not (mass > 0.0).all():
+        raise ConfigError(f"step_matrix needs masses > 0 of shape [n] and K, D of shape [n, n]; got "
+                          f"{mass.shape}, {K.shape}, {D.shape}")
+    inverse = dt / mass[:, None]
+    eye, zero = np.eye(n), np.zeros((n, n))
+    algebra = _Algebra(np.hstack([eye, zero]), np.hstack([zero, eye]),
+                       lambda x, v: -inverse * (K @ x + D @ v), lambda v: dt * v, float)
+    update = _explicit_update(integrator, algebra)
+    if update is None:
+        raise ConfigError(f"step_matrix covers explicit integrators only, not {integrator!r}")
+    return np.vstack(update)
 
 
 def stable_omega_h(integrator: str, zeta: float) -> float:
