@@ -12,6 +12,7 @@ import pytest
 
 import warpspring as ws
 from helpers import ZERO_GRAVITY, hanging_cloth
+from warpspring.analysis import modal
 from warpspring.analysis import stability as st
 from warpspring.analysis import stability_map as sm
 
@@ -139,22 +140,9 @@ def chain(device, precision, n=40, k=50.0, m=0.2):
 
 
 def dense_omega_max(model, positions=None):
-    """√λ_max(M⁻¹K) from the dense float64 matrix (clamped spring blocks, pinned rows and columns removed) of
-    a single-world model."""
-    n = model.particle_count
-    q = (model.particle_q.numpy() if positions is None else positions).astype(np.float64)
-    K = np.zeros((3 * n, 3 * n))
-    for (i, j), rest, ke in zip(model.spring_indices.numpy(), model.spring_rest_length.numpy(),
-                                model.world_values("spring_stiffness")[0]):
-        d = q[j] - q[i]
-        length = np.linalg.norm(d)
-        nn = np.outer(d, d) / length**2
-        block = ke * (nn + max(0.0, 1.0 - rest / length) * (np.eye(3) - nn))
-        for a, b, sign in ((i, i, 1), (j, j, 1), (i, j, -1), (j, i, -1)):
-            K[3 * a:3 * a + 3, 3 * b:3 * b + 3] += sign * block
-    free = np.repeat(~model.kinematic_mask(), 3)
-    m = np.repeat(model.world_values("particle_mass")[0], 3)[free]
-    return math.sqrt(np.linalg.eigvalsh(K[np.ix_(free, free)] / np.sqrt(np.outer(m, m)))[-1])
+    """√λ_max(M⁻¹K) of a single-world model from the dense float64 reference (``analysis.modal``)."""
+    q = model.particle_q.numpy() if positions is None else positions
+    return float(modal.linearise(model, q).modes().omega[-1])
 
 
 def test_power_iteration_on_a_chain(device, precision):

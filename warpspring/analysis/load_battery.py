@@ -55,8 +55,8 @@ SHAKE = 0.1  # [m] amplitude of the handle at 1 Hz (driven)
 PULL = 0.3  # [m] amplitude of the PD handle at 0.5 Hz (pulled)
 
 
-def battery_cloth(scene: str, stiffness, device, *, n: int = 20) -> Model:
-    """The battery's cloth of ``scene``, one world per value of ``stiffness`` [N/m]."""
+def battery_cloth(scene: str, stiffness, device, *, n: int = 20, precision: str = "float32") -> Model:
+    """The battery's cloth of ``scene``, n × n particles, one world per value of ``stiffness`` [N/m]."""
     if scene not in SCENES:
         raise ConfigError(f"unknown battery scene {scene!r}: choose from {', '.join(SCENES)}")
     stiffness = np.atleast_1d(np.asarray(stiffness, dtype=np.float64))
@@ -78,7 +78,7 @@ def battery_cloth(scene: str, stiffness, device, *, n: int = 20) -> Model:
         sway = Track([0.0, 0.5, 1.0, 1.5, 2.0], [[0, 0, 0], [0, PULL, 0], [0, 0, 0], [0, -PULL, 0], [0, 0, 0]],
                      interpolation="smooth", extrapolation="cycle")
         builder.add_handle(ids[0], kp=20.0, kd=0.5, max_force=5.0, translation=sway)  # row 0: the bottom
-    model = builder.finalize(device, worlds=len(stiffness))
+    model = builder.finalize(device, worlds=len(stiffness), precision=precision)
     model.set_world_values("spring_stiffness", stiffness[:, None] * np.ones((1, model.spring_count)))
     return model
 

@@ -1,0 +1,157 @@
+"""The dense modal reference (``warpspring.analysis.modal``) and the advisor against it.
+
+The reference is checked against closed forms (one damped oscillator under every explicit integrator; a
+particle hanging on a spring, whose sideways modes are a pendulum's); the advisor, linearised at the
+static equilibrium of a loaded cloth, against the whole linearised system's one-step map in float64.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+import warpspring as ws
+from warpspring.analysis import load_battery as lb
+from warpspring.analysis import modal
+from warpspring.analysis import stability as st
+from warpspring.errors import ConfigError
+
+EXPLICIT = ["explicit_euler", "symplectic_euler", "velocity_verlet", "midpoint", "rk4", "dopri5"]
+
+
+@pytest.mark.parametrize("integrator", EXPLICIT)
+def test_step_matrix_of_one_oscillator_is_the_amplification_matrix(integrator):
+    """The dense one-step map built from the update equations, for a 1 × 1 system m ẍ + c ẋ + k x = 0, is
+    the theory's amplification matrix in the coordinates (ωx, v), to rounding."""
+    omega, zeta, h, m = 7.0, 0.03, 0.05, 2.0
+    R = st.step_matrix(integrator, h, [m], [[m * omega**2]], [[2.0 * zeta * omega * m]])
+    scale = np.diag([omega, 1.0])
+    assert np.allclose(scale @ R @ np.linalg.inv(scale), st.amplification_matrix(integrator, omega * h, zeta),
+                       rtol=0.0, atol=1e-14)
+
+
+def test_step_matrix_refuses_implicit_and_misshapen_input():
+    with pytest.raises(ConfigError, match="explicit integrators only"):
+        st.step_matrix("implicit_euler", 0.01, [1.0], [[1.0]], [[0.0]])
+    with pytest.raises(ConfigError, match="shape"):
+        st.step_matrix("rk4", 0.01, [1.0, 1.0], [[1.0]], [[0.0]])
+
+
+def test_hanging_particle_modes_are_a_spring_and_a_pendulum(device):
+    """A 0.2 kg particle on a spring (k = 50 N/m, kd = 0.3 N·s/m, L = 0.5 m) below a pin, at its static
+    equilibrium l = L + mg/k: one axial mode ω² = k/m with ζ = kd / (2√(km)), and two sideways modes
+    ω² = (T/l)/m = g/l (the pendulum of length l) carrying no damping; the drag c adds c/(2mω) to each."""
+    m, k, kd, rest, g, c = 0.2, 50.0, 0.3, 0.5, 9.81, 0.01
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, -g), drag=c)
+    builder.add_particles([[0.0, 0.0, 0.0], [0.0, 0.0, -rest]], mass=m, pinned=[0])
+    builder.add_springs([[0, 1]], stiffness=k, damping=kd)
+    model = builder.finalize(device)
+    equilibrium = st.static_equilibrium(model)
+    length = rest + m * g / k
+    assert equilibrium.positions[1, 2] == pytest.approx(-length, rel=1e-5)
+    modes = modal.linearise(model, equilibrium.positions).modes()
+    pendulum, axial = math.sqrt(g / length), math.sqrt(k / m)
+    # float32 positions: the equilibrium's ~1e-6 of l carries into T/l = k (1 - L/l) as ~1e-5.
+    assert modes.omega == pytest.approx([pendulum, pendulum, axial], rel=1e-4)
+    assert modes.zeta == pytest.approx([c / (2 * m * pendulum)] * 2 + [kd / (2 * math.sqrt(k * m)) + c / (2 * m * axial)],
+                                       rel=1e-4)
+
+
+def test_linearise_refuses_what_it_does_not_model(device):
+    builder = ws.ModelBuilder()
+    builder.add_cloth_grid(nx=3, ny=3, spacing=0.1, particle_mass=0.1)
+    builder.add_aerodynamics(wind=(0.0, 1.0, 0.0))
+    model = builder.finalize(device)
+    with pytest.raises(ConfigError, match="linear springs and drag, not .*use the advisor"):
+        modal.linearise(model, model.particle_q.numpy())
+
+
+#: The battery's steps (``load_battery.STEPS``, the first of each) and a horizon for the growth.
+STEPS = {name: 1.0 / (lb.FPS * substeps[0]) for name, substeps in lb.STEPS.items()}
+HORIZON = 10.0
+#: The cloth's stiffness [N/m]: its weight stretches the corner springs by ~20 %.
+STIFFNESS = 700.0
+
+
+@pytest.mark.parametrize("integrator", list(lb.EXPLICIT))
+def test_advisor_at_the_equilibrium_is_the_linear_systems_limit(device, integrator):
+    """The battery's hanging cloth (8 × 8 here), linearised at its static
+    equilibrium. The advisor's step (``transient=False``) against the whole system's one-step map R
+    (float64, every coupling of the axial dampers kept):
+
+    * it is the top mode's exact limit, to the power iteration's accuracy (its Rayleigh quotient is within
+      ~1e-4 of ω_max², which moves the step by as much: measured 1.8e-5 to 1.8e-4 above);
+    * 5 % above it the top mode grows, as one of R's modes (to 1e-7) and its fastest, but for explicit
+      Euler, whose undamped transverse modes grow faster still (see below);
+    * 5 % below it R grows nothing for the integrators that damp or conserve an undamped mode, and for
+      explicit Euler and midpoint exactly what the advisor reports as the transverse modes' growth over
+      the horizon (ρ(R)^(T/h), to 1e-6 of its logarithm; measured 1e-8).
+    """
+    dt = STEPS[integrator]
+    model = lb.battery_cloth("hanging", [STIFFNESS], device, n=8)
+    advice = st.advise(model, integrator, dt, fps=lb.FPS, transient=False, horizon=HORIZON)
+    positions = st.static_equilibrium(model).positions
+    linear = modal.linearise(model, positions)
+    modes = linear.modes()
+    exact = st.stable_step(integrator, modes.omega[-1], modes.zeta[-1])
+    assert advice.dt_stable == pytest.approx(exact, rel=5e-4)
+
+    above = np.abs(np.linalg.eigvals(linear.step_matrix(integrator, 1.05 * exact)))
+    top = modes.growth(integrator, 1.05 * exact, top=1)[0]
+    assert top > 1.0
+    assert np.abs(above - top).min() <= 1e-7 * top  # the modal picture's top mode is one of R's
+    if integrator != "explicit_euler":  # whose undamped transverse modes grow faster still
+        assert above.max() == pytest.approx(top, rel=1e-7)
+
+    below = np.abs(np.linalg.eigvals(linear.step_matrix(integrator, 0.95 * exact))).max()
+    if integrator in ("explicit_euler", "midpoint"):
+        growth = st.advise(model, integrator, 0.95 * exact, fps=lb.FPS, transient=False,
+                           horizon=HORIZON).transverse_growth
+        assert growth > 1.0
+        assert math.log(growth) == pytest.approx(HORIZON / (0.95 * exact) * math.log(below), rel=1e-6)
+    else:
+        assert below <= 1.0 + 1e-9
+
+
+@pytest.mark.parametrize("integrator, factor, steps", [("midpoint", 1.5, 2000), ("midpoint", 0.8, 2000), ("rk4", 1.001, 400)])
+def test_the_kernels_follow_the_linear_map(device, integrator, factor, steps):
+    """Past the top mode's limit a run is unstable, however slowly it grows; before it, that mode decays.
+    The 8 × 8 hanging cloth in float64, at its static equilibrium plus 1e-8 m along its top mode, run by
+    the integrator's kernels at ``factor`` × the exact limit: after ``steps`` steps its state is R^steps of
+    the start's (R the dense one-step map), to the nonlinearity's share (∝ the amplitude: at 1e-8 m
+    measured 4e-6 to 1.8e-4 of the state, 10× that at 1e-7 m), and the top mode's amplitude has changed by the theory's ρ^steps
+    (×11.9 and ×0.76 for midpoint, ×17.6 for RK4 just 0.1 % past its limit), to the modal picture's
+    coupling through the dampers (measured 2e-3; 1 %)."""
+    model = lb.battery_cloth("hanging", [STIFFNESS], device, n=8, precision="float64")
+    equilibrium = st.static_equilibrium(model, tolerance=1e-13, max_steps=2000)
+    assert equilibrium.converged
+    linear = modal.linearise(model, equilibrium.positions)
+    modes = linear.modes()
+    omega, shape = modes.omega[-1], modes.shapes[:, -1]
+    dt = factor * st.stable_step(integrator, omega, modes.zeta[-1])
+    growth = modes.growth(integrator, dt, top=1)[0] ** steps
+    assert growth > 10.0 if factor > 1.0 else growth < 0.8
+
+    free = np.repeat(st.free_particles(model)[0], 3)
+    start = 1e-8 * shape / np.abs(shape).max()
+    q = equilibrium.positions.reshape(-1).copy()
+    q[free] += start
+    state, scratch = model.state(), model.state()
+    state.particle_q.assign(q.reshape(-1, 3))
+    integrator_ = ws.make_integrator(integrator, model)
+    for _ in range(steps):
+        integrator_.step(state, scratch, None, dt)
+        state, scratch = scratch, state
+    n = len(start)
+    measured = np.concatenate([state.particle_q.numpy().reshape(-1)[free] - equilibrium.positions.reshape(-1)[free],
+                               state.particle_qd.numpy().reshape(-1)[free]])
+    predicted = np.linalg.matrix_power(linear.step_matrix(integrator, dt), steps) @ np.concatenate([start, np.zeros(n)])
+    weight = np.concatenate([np.full(n, omega), np.ones(n)])  # (ωx, v): both in m/s
+    assert np.linalg.norm(weight * (measured - predicted)) <= 1e-3 * np.linalg.norm(weight * predicted)
+
+    def amplitude(u):  # of the top mode, in (ωx, v)
+        return math.hypot(omega * shape @ (linear.mass * u[:n]), shape @ (linear.mass * u[n:]))
+
+    initial = amplitude(np.concatenate([start, np.zeros(n)]))
+    assert amplitude(measured) / initial == pytest.approx(amplitude(predicted) / initial, rel=1e-4)
+    assert amplitude(predicted) / initial == pytest.approx(growth, rel=0.01)
