@@ -13,6 +13,7 @@ import trimesh
 import warp as wp
 
 import warpspring as ws
+from warpspring.core.checkpoint import Checkpoint
 from warpspring.errors import ConfigError, ContactOverflowWarning
 from warpspring.io.scene import load_scene
 from warpspring.kernels.contacts import SHAPE_MESH, ContactFeatures, shape_funcs, shapes_type
@@ -704,6 +705,45 @@ def test_mesh_cache_resumes_bit_for_bit(device, tmp_path):
         x, v = particles(resumed)
         np.testing.assert_array_equal(x, expected[0])
         np.testing.assert_array_equal(v, expected[1])
+
+
+def test_a_deforming_mesh_resumes_bit_for_bit(device, tmp_path):
+    """A checkpoint keeps a deforming mesh's points as the host last set them (with their surface velocity, swept
+    box and reach): a fresh simulator of the same scene, its sheet still as built, loads it and goes on waving
+    the sheet (the velocity of each new set of points derived from the last, as the caller does) bit for bit
+    as the uninterrupted run; without the sheet's entries (a checkpoint of an older version) it does not."""
+    model, sheet, vertices = _cache_scene(device)
+    x, y = vertices[:, 0], vertices[:, 1]
+
+    def wave(k):  # the sheet at frame k, lifted on one side: its box grows as it waves
+        return vertices + np.c_[np.zeros((len(x), 2)), 0.05 * np.sin(4.0 * x + 0.3 * k) * np.cos(3.0 * y) + 0.01 * k]
+
+    def run(sim, sheet, frames):
+        for k in frames:
+            sheet.set_points(wave(k), dt=1.0 / 60.0)
+            sim.step_frame()
+
+    sim = ws.Simulator(model, fps=60, substeps=16, guard=None)
+    run(sim, sheet, range(1, 11))
+    path = sim.save_checkpoint(tmp_path / "run.npz")
+    run(sim, sheet, range(11, 21))
+    expected = particles(sim)
+
+    fresh, fresh_sheet, _ = _cache_scene(device)
+    resumed = ws.Simulator(fresh, fps=60, substeps=16, guard=None)
+    resumed.load_checkpoint(path)
+    np.testing.assert_array_equal(fresh_sheet.points(), wave(10))
+    run(resumed, fresh_sheet, range(11, 21))
+    np.testing.assert_array_equal(particles(resumed)[0], expected[0])
+    np.testing.assert_array_equal(particles(resumed)[1], expected[1])
+
+    saved = Checkpoint.load(path)
+    older = Checkpoint(saved.header, {k: v for k, v in saved.arrays.items() if not k.startswith("colliders/")})
+    stale, stale_sheet, _ = _cache_scene(device)
+    without = ws.Simulator(stale, fps=60, substeps=16, guard=None)
+    older.restore(without)
+    run(without, stale_sheet, range(11, 21))
+    assert not np.array_equal(particles(without)[1], expected[1])
 
 
 def test_pseudo_normals_on_the_device_equal_the_float64_reference(device):

@@ -18,6 +18,8 @@ are), under names grouped by owner:
   (:data:`PLASTIC_ARRAYS`), when the model has plastic springs;
 * ``families/<k>/``: the live arrays of the model's ``k``-th element family (``ElementFamily.live_arrays``: the
   tet families' per-tet values, the handles' gains and host-set targets), where it has some;
+* ``colliders/<i>/``: each deforming mesh collider's current points, surface velocities, swept box and query
+  range (``MeshCollider.snapshot``; ``i`` its index among the colliders), which the host set between frames;
 * ``contacts/``: the contact buffer's overflow counters (the contact stage);
 * ``hooks/``: the arrays the step hooks (the run-time guard) carry from one frame to the next.
 
@@ -25,7 +27,7 @@ A JSON header (the ``header`` entry) names the format and its version, the packa
 scene's counts and precision, the integrator's name and settings, fps and substeps, the frame counter,
 the model's on/off switches (gravity, drag, stabilisers, held worlds) and the guard's world failures.
 
-Not saved: the scene itself (topology, colliders, meshes, keyframe tracks and pin-group tracks, the element
+Not saved: the scene itself (topology, colliders and meshes as built, keyframe tracks and pin-group tracks, the element
 families' fixed arrays: build the simulator from the same scene, then load), the guard's limits and
 ``use_graph`` (the simulator's configuration), and scratch arrays every step rewrites before reading them.
 """
@@ -142,6 +144,7 @@ class Checkpoint:
 
         model = sim.model
         arrays = {name: array.numpy().copy() for name, array in live_arrays(sim).items()}
+        arrays.update(collider_arrays(model))
         header = {
             "format": FORMAT,
             "format_version": FORMAT_VERSION,
@@ -181,6 +184,7 @@ class Checkpoint:
         """
         self._check_configuration(sim)
         plan = self._plan(sim)
+        colliders = self._collider_plan(sim)
         self._restore_structure(sim)
         model = sim.model
         live = live_arrays(sim)
@@ -195,6 +199,8 @@ class Checkpoint:
             elif values.size:
                 live[key].assign(values)
         model.refresh_spring_layout()  # saved per-spring values within a group read per group: per spring now
+        for collider, values in colliders:
+            collider.restore_snapshot(values)
         sim.frame = self.frame
         sim.world_failures = self.world_failures()
 
@@ -220,6 +226,8 @@ class Checkpoint:
         plan = []
         for key in sorted(self.arrays):
             values = self.arrays[key]
+            if key.startswith("colliders/"):
+                continue  # host-side: _collider_plan
             if key not in live:
                 if key.startswith("hooks/"):
                     continue  # the simulator runs without that hook (e.g. no guard): nothing to carry
@@ -239,6 +247,26 @@ class Checkpoint:
                 raise ConfigError(f"{self._name()} holds {key} of shape {values.shape} ({values.dtype}), but this "
                                   f"simulator's is {shape} ({dtype}): {_SCENE_REMEDY}")
             plan.append((key, values))
+        return plan
+
+    def _collider_plan(self, sim: Simulator) -> list:
+        """(collider, snapshot) of each deforming mesh collider the checkpoint holds, each checked against the
+        simulator's (checkpoints from before colliders were saved hold none: the points stay as they are)."""
+        saved: dict[int, dict] = {}
+        for key, values in self.arrays.items():
+            if key.startswith("colliders/"):
+                _, index, name = key.split("/", 2)
+                saved.setdefault(int(index), {})[name] = values
+        deforming = {c.index: c for c in sim.model.mesh_colliders if c.info.deforming}
+        plan = []
+        for index, values in sorted(saved.items()):
+            collider = deforming.get(index)
+            shape = None if collider is None else collider.points().shape
+            if collider is None or values.get("points", np.empty(0)).shape != shape or \
+                    set(values) != set(collider.snapshot()):
+                raise ConfigError(f"{self._name()} holds the points of a deforming mesh collider {index} that this "
+                                  f"simulator has not (or of another vertex count): {_SCENE_REMEDY}")
+            plan.append((collider, values))
         return plan
 
     def _restore_structure(self, sim: Simulator) -> None:
@@ -364,6 +392,12 @@ def live_arrays(sim: Simulator) -> dict[str, wp.array]:
     for k, hook in enumerate(sim.stepper.hooks):
         arrays.update({f"hooks/{k}/{j}": array for j, array in enumerate(hook.history())})
     return arrays
+
+
+def collider_arrays(model) -> dict[str, np.ndarray]:
+    """The deforming mesh colliders' snapshots (host copies), by checkpoint name (see the module docstring)."""
+    return {f"colliders/{c.index}/{name}": values for c in model.mesh_colliders if c.info.deforming
+            for name, values in c.snapshot().items()}
 
 
 def integrator_settings(integrator) -> dict:

@@ -230,6 +230,29 @@ class MeshCollider:
             _write_row(self.model.shape_arrays.upper, self.index, self._bounds[1])
         self.model.input_version += 1
 
+    def snapshot(self) -> dict[str, np.ndarray]:
+        """What a checkpoint keeps of a deforming mesh, by name: its ``points`` [m] (the host's float64 copy, shape
+        [v, 3]), the surface ``velocities`` the response uses [m/s] (float32, shape [v, 3]), and the box its points
+        have swept so far (``bounds`` [m], shape [2, 3]) with its query ``range`` [m] (shape [2])."""
+        return {"points": self._points.copy(), "velocities": self.mesh.velocities.numpy().copy(),
+                "bounds": np.array(self._bounds), "range": np.array(self._range, dtype=np.float64)}
+
+    def restore_snapshot(self, values: dict[str, np.ndarray]) -> None:
+        """Put a :meth:`snapshot` back: the same float32 points and velocities on the device, its BVH and
+        pseudo-normals refit to them, its swept box and query range as saved."""
+        points = np.asarray(values["points"], dtype=np.float64)
+        bounds, reach = np.asarray(values["bounds"], dtype=np.float64), np.asarray(values["range"], dtype=np.float64)
+        if bounds.shape != (2, 3) or reach.shape != (2,):
+            raise ConfigError(f"mesh collider {self.name!r}: a snapshot's bounds must have shape (2, 3) and its range "
+                              f"(2,), got {bounds.shape} and {reach.shape}")
+        # The saved box holds the saved points (it is the union of every set of points the run had), so
+        # set_points does not grow it.
+        self._bounds, self._range = (bounds[0].copy(), bounds[1].copy()), (float(reach[0]), float(reach[1]))
+        self.set_points(points, velocities=np.asarray(values["velocities"], dtype=np.float64))
+        _write_row(self.model.shape_arrays.size, self.index, (*self._range, 0.0))
+        _write_row(self.model.shape_arrays.lower, self.index, self._bounds[0])
+        _write_row(self.model.shape_arrays.upper, self.index, self._bounds[1])
+
 
     @property
     def cache_margin(self) -> float:
