@@ -20,9 +20,9 @@ import time
 
 import warp as wp
 
-from warpspring.analysis import modal
-from warpspring.analysis.load_battery import EXPLICIT, FPS, STEPS, battery_cloth, battery_control
-from warpspring.analysis.stability import advise, static_equilibrium
+from warpspring.analysis.load_battery import (EXPLICIT, FPS, STATIC_SCENES, STEPS, battery_cloth, battery_control,
+                                              linear_limit, linearised)
+from warpspring.analysis.stability import advise
 
 from cloth import emit_table
 
@@ -41,7 +41,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--integrators", nargs="+", default=list(EXPLICIT), choices=EXPLICIT)
-    parser.add_argument("--scenes", nargs="+", default=["hanging"], choices=("hanging", "forced"))
+    parser.add_argument("--scenes", nargs="+", default=["hanging"], choices=STATIC_SCENES)
     parser.add_argument("--seconds", type=float, default=10.0, help="the run whose growth is reported [s]")
     parser.add_argument("--rtol", type=float, default=1e-3, help="bisection tolerance on ke")
     parser.add_argument("--out", default=None, help="also write the table to this file")
@@ -49,11 +49,9 @@ def main():
     device = wp.get_device(args.device)
     cache = {}
 
-    def linear(scene: str, ke: float) -> modal.Modes:
+    def modes(scene: str, ke: float):
         if (scene, ke) not in cache:
-            model = battery_cloth(scene, [ke], device)
-            positions = static_equilibrium(model, control=battery_control(scene, model)).positions
-            cache[scene, ke] = modal.linearise(model, positions).modes()
+            cache[scene, ke] = linearised(scene, ke, device).modes()
         return cache[scene, ke]
 
     growths = " | ".join(f"×{g:.0e} over {args.seconds:g} s from" for g in GROWTHS)
@@ -65,21 +63,14 @@ def main():
         dt = 1.0 / (FPS * substeps)
 
         def rho(ke: float) -> float:
-            return float(linear(scene, ke).growth(name, dt, top=1)[0])
+            return float(modes(scene, ke).growth(name, dt, top=1)[0])
 
         def advisor(ke: float) -> bool:
             model = battery_cloth(scene, [ke], device)
             return dt <= advise(model, name, dt, fps=FPS, control=battery_control(scene, model),
                                 transient=False).dt_stable
 
-        # The unloaded cloth's limit bounds the loaded one's from above (loads stiffen it); start below.
-        high = 100.0
-        while rho(high) <= 1.0:
-            high *= 2.0
-        low = high / 2.0
-        while rho(low) > 1.0:
-            low /= 2.0
-        exact = bisect(lambda ke: rho(ke) <= 1.0, low, high, args.rtol)
+        exact = linear_limit(scene, name, dt, device, rtol=args.rtol)
         passed = bisect(advisor, exact / 2.0, exact * 2.0, args.rtol)
         steps = 2.0 * args.seconds / dt  # energy: ρ² per step
 

@@ -26,6 +26,8 @@ def main():
     parser.add_argument("--worlds", type=int, default=32)
     parser.add_argument("--span", type=float, default=4.0, help="the first grid spans guess/span .. guess·span^¼")
     parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--linear", action="store_true",
+                        help="also the exact linear limit at the equilibrium (hanging and forced; dense float64 on the host)")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
     device = wp.get_device(args.device)
@@ -34,7 +36,7 @@ def main():
         for name in args.integrators:
             for substeps in args.substeps or STEPS[name]:
                 cases.append(run_case(scene, name, substeps, device, worlds=args.worlds, span=args.span,
-                                      seconds=args.seconds))
+                                      seconds=args.seconds, linear=args.linear))
                 print(table(cases[-1:])[2], f"({cases[-1].seconds:.0f} s)", flush=True)
     lines = [f"Advisor under load on {device.name}, Warp {wp.config.version}, {datetime.date.today()}: 20 × 20 cloth, "
              f"{args.worlds} stiffnesses per grid as worlds, two grids, {args.seconds:g} s runs", "", *table(cases)]

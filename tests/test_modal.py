@@ -155,3 +155,35 @@ def test_the_kernels_follow_the_linear_map(device, integrator, factor, steps):
     initial = amplitude(np.concatenate([start, np.zeros(n)]))
     assert amplitude(measured) / initial == pytest.approx(amplitude(predicted) / initial, rel=1e-4)
     assert amplitude(predicted) / initial == pytest.approx(growth, rel=0.01)
+
+
+@pytest.mark.parametrize("start", [10.0, 1.0e4])
+def test_top_mode_limit_brackets_from_either_side(start):
+    """The bisection finds the stiffness where the 8 × 8 cloth's top mode turns unstable under midpoint at
+    1/960 s, whether it starts below the limit or above it: stable there, growing 2 × rtol above."""
+    dt, rtol = 1.0 / 960.0, 1.0e-2
+
+    def at(ke):
+        model = lb.battery_cloth("hanging", [ke], "cpu", n=8)
+        return modal.linearise(model, st.static_equilibrium(model).positions)
+
+    limit = modal.top_mode_limit(at, "midpoint", dt, start=start, rtol=rtol)
+    assert at(limit).modes().growth("midpoint", dt, top=1)[0] <= 1.0
+    assert at(limit * (1.0 + 2.0 * rtol)).modes().growth("midpoint", dt, top=1)[0] > 1.0
+
+
+def test_battery_table_gives_the_lower_of_the_two_limits():
+    """A case's limit is the lower of its 10 s blow-up and its linear limit; the table adds both columns where
+    some case has a linear limit, a dash where one has none."""
+    hanging = lb.LoadCase(scene="hanging", integrator="midpoint", substeps=16, dt=1 / 960, blow_up=1111.0,
+                          passed=668.6, unsafe=0, torn=0.0, runs=64, seconds=1.0, linear=694.9)
+    driven = lb.LoadCase(scene="driven", integrator="rk4", substeps=4, dt=1 / 240, blow_up=6421.0, passed=5922.0,
+                         unsafe=0, torn=0.0, runs=64, seconds=1.0)
+    assert hanging.limit == 694.9 and hanging.ratio_to_limit == pytest.approx(668.6 / 694.9)
+    assert driven.limit == 6421.0 and driven.ratio_to_limit == pytest.approx(5922.0 / 6421.0)
+    lines = lb.table([hanging, driven])
+    assert lines[0].endswith("| unstable at equilibrium from | ratio to the lower |")
+    assert lines[2].endswith("| 0.602 | 0 | 694.9 N/m | 0.962 |")
+    assert lines[3].endswith("| 0 | – | – |")
+    assert lines[-1] == "Against the lower of the blow-up and the linear limit: 0.962 … 0.962."
+    assert "unstable at equilibrium" not in lb.table([driven])[0]

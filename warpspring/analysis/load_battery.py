@@ -22,6 +22,12 @@ are listed, not counted. The advisor's verdict per world is ``advise(...)`` as `
 duration as its horizon). Bisection on ke, in
 parallel: a first grid of ``worlds`` stiffnesses from the limit the advisor finds at rest down by ``span``
 (loads only lower it) and up by span^¼, then a second over ±10 % around the two transitions found.
+
+Where the scene has a static equilibrium (``hanging``, ``forced``) a case can also carry its exact linear
+limit (:func:`linear_limit`): the stiffness from which the top mode of the cloth linearised there grows
+(dense float64, :mod:`.modal`). A run past it is unstable however slowly it grows, which 10 s runs do not
+always show (explicit Euler and midpoint grow their top modes only slowly); the case's limit is then the
+lower of the two.
 """
 
 from __future__ import annotations
@@ -40,7 +46,8 @@ from ..core.simulator import Simulator
 from ..core.tracks import Track
 from ..core.transforms import quat_from_axis_angle
 from ..errors import ConfigError, SimulationError
-from .stability import advise
+from . import modal
+from .stability import advise, static_equilibrium
 
 #: The explicit integrators of the battery.
 EXPLICIT = ("explicit_euler", "symplectic_euler", "velocity_verlet", "midpoint", "rk4")
@@ -49,6 +56,8 @@ EXPLICIT = ("explicit_euler", "symplectic_euler", "velocity_verlet", "midpoint",
 STEPS = {"explicit_euler": (2000, 8000), "symplectic_euler": (2, 8), "velocity_verlet": (2, 8), "midpoint": (16, 64),
          "rk4": (1, 4)}
 SCENES = ("hanging", "forced", "driven", "windy", "pulled")
+#: The scenes with a static equilibrium, where :func:`linear_limit` applies.
+STATIC_SCENES = ("hanging", "forced")
 FPS = 60.0
 PUSH = 0.5  # [N] per particle, sideways (forced)
 SHAKE = 0.1  # [m] amplitude of the handle at 1 Hz (driven)
@@ -132,6 +141,23 @@ def at_rest_limit(integrator: str, dt: float, device, *, iterations: int = 24) -
     return low
 
 
+def linearised(scene: str, stiffness: float, device) -> modal.Linearisation:
+    """The battery's cloth of ``scene`` at ``stiffness`` [N/m], linearised at its static equilibrium under the
+    scene's loads (dense float64)."""
+    model = battery_cloth(scene, [stiffness], device)
+    return modal.linearise(model, static_equilibrium(model, control=battery_control(scene, model)).positions)
+
+
+def linear_limit(scene: str, integrator: str, dt: float, device, *, rtol: float = 1.0e-3) -> float:
+    """The stiffness [N/m] from which the top mode of the battery's cloth of ``scene``, linearised at its
+    static equilibrium, grows under ``integrator`` at step ``dt`` [s] (:func:`.modal.top_mode_limit` to
+    ``rtol``; NaN for a scene without a static equilibrium). Each stiffness tried costs a relaxation and a
+    dense eigenproblem of the 1,194 free coordinates (~3 s on a CPU core)."""
+    if scene not in STATIC_SCENES:
+        return float("nan")
+    return modal.top_mode_limit(lambda ke: linearised(scene, ke, device), integrator, dt, start=100.0, rtol=rtol)
+
+
 @dataclass(frozen=True)
 class LoadCase:
     """One case of the battery.
@@ -143,6 +169,8 @@ class LoadCase:
         unsafe: worlds the advisor passed that blew up (must be 0).
         torn: the largest stiffness [N/m] torn by the cloth's weight (0: none).
         runs: the worlds run; seconds: wall time [s].
+        linear: the exact linear limit [N/m] (:func:`linear_limit`; NaN: not computed or no static
+            equilibrium).
     """
 
     scene: str
@@ -155,16 +183,30 @@ class LoadCase:
     torn: float
     runs: int
     seconds: float
+    linear: float = float("nan")
 
     @property
     def ratio(self) -> float:
         """passed / blow_up: 1 exact, < 1 conservative, > 1 unsafe; NaN without a blow-up."""
         return self.passed / self.blow_up if np.isfinite(self.blow_up) and self.blow_up > 0.0 else float("nan")
 
+    @property
+    def limit(self) -> float:
+        """The case's limit [N/m]: the lower of the blow-up and the linear limit (either alone where the other
+        is missing; NaN without both)."""
+        known = [v for v in (self.blow_up, self.linear) if np.isfinite(v) and v > 0.0]
+        return min(known) if known else float("nan")
+
+    @property
+    def ratio_to_limit(self) -> float:
+        """passed / :attr:`limit`."""
+        return self.passed / self.limit
+
 
 def run_case(scene: str, integrator: str, substeps: int, device, *, worlds: int = 32, span: float = 4.0,
-             seconds: float = 10.0) -> LoadCase:
-    """Bisect one case in two parallel grids (module docstring)."""
+             seconds: float = 10.0, linear: bool = False) -> LoadCase:
+    """Bisect one case in two parallel grids (module docstring); with ``linear``, also its exact linear limit
+    (scenes with a static equilibrium)."""
     checks.count("worlds", worlds, minimum=2)
     dt = 1.0 / (FPS * substeps)
     started = time.perf_counter()
@@ -190,20 +232,31 @@ def run_case(scene: str, integrator: str, substeps: int, device, *, worlds: int 
                 break
             low = min(found) / 1.1 if passed > 0.0 else low / span
             high = max(found) * 1.1 if np.isfinite(blow_up) else high * span
+    exact = linear_limit(scene, integrator, dt, device) if linear else float("nan")
     return LoadCase(scene=scene, integrator=integrator, substeps=substeps, dt=dt, blow_up=blow_up, passed=passed,
-                    unsafe=unsafe, torn=torn_max, runs=runs, seconds=time.perf_counter() - started)
+                    unsafe=unsafe, torn=torn_max, runs=runs, seconds=time.perf_counter() - started, linear=exact)
 
 
 def table(cases: list[LoadCase]) -> list[str]:
-    """Markdown rows of ``cases`` and a closing line with the most conservative ratio and the unsafe count."""
-    lines = ["| scene | integrator | dt | blows up from ke | advisor passes up to | ratio | passed but blew up |",
-             "|---|---|---|---|---|---|---|"]
+    """Markdown rows of ``cases`` and a closing line with the most conservative ratio and the unsafe count; with
+    the linear limit where a case has it, and the ratio to the lower of the two limits."""
+    linear = any(np.isfinite(c.linear) for c in cases)
+    extra = (" unstable at equilibrium from | ratio to the lower |", "---|---|") if linear else ("", "")
+    lines = ["| scene | integrator | dt | blows up from ke | advisor passes up to | ratio | passed but blew up |" + extra[0],
+             "|---|---|---|---|---|---|---|" + extra[1]]
     for c in cases:
         blow = f"{c.blow_up:.4g} N/m" if np.isfinite(c.blow_up) else "none in the grids"
-        lines.append(f"| {c.scene} | {c.integrator} | 1/{FPS * c.substeps:g} s | {blow} | {c.passed:.4g} N/m | "
-                     f"{c.ratio:.3f} | {c.unsafe} |")
+        row = (f"| {c.scene} | {c.integrator} | 1/{FPS * c.substeps:g} s | {blow} | {c.passed:.4g} N/m | "
+               f"{c.ratio:.3f} | {c.unsafe} |")
+        if linear:
+            row += (f" {c.linear:.4g} N/m | {c.ratio_to_limit:.3f} |" if np.isfinite(c.linear) else " – | – |")
+        lines.append(row)
     ratios = [c.ratio for c in cases if np.isfinite(c.ratio)]
     if ratios:
         lines += ["", f"Most conservative ratio {min(ratios):.3f}, least {max(ratios):.3f}; worlds the advisor passed "
                       f"that blew up: {sum(c.unsafe for c in cases)}."]
+    to_limit = [c.ratio_to_limit for c in cases if np.isfinite(c.linear)]
+    if to_limit:
+        lines.append(f"Against the lower of the blow-up and the linear limit: {min(to_limit):.3f} … "
+                     f"{max(to_limit):.3f}.")
     return lines

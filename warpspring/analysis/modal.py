@@ -116,17 +116,25 @@ def linearise(model: Model, positions, *, world: int = 0) -> Linearisation:
     return Linearisation(mass=mass, stiffness=K[np.ix_(free, free)], damping=D[np.ix_(free, free)])
 
 
-def top_mode_limit(linearisation_at, integrator: str, dt: float, *, low: float, high: float,
-                   rtol: float = 1.0e-4) -> float:
-    """The stiffness [N/m] at which the highest mode turns unstable: bisection on log ke over [low, high]
-    of ρ_top(ke) ≤ 1, ``linearisation_at(ke)`` giving the :class:`Linearisation` at ke (e.g. about that
-    stiffness's static equilibrium). Raises when the interval does not bracket the crossing."""
+def top_mode_limit(linearisation_at, integrator: str, dt: float, *, start: float, rtol: float = 1.0e-4) -> float:
+    """The stiffness [N/m] from which the highest mode grows (ρ_top > 1) under ``integrator`` at step ``dt`` [s]:
+    bracketed by doubling or halving from ``start`` [N/m], then bisected on log ke to ``rtol``.
+    ``linearisation_at(ke)`` gives the :class:`Linearisation` at ke (e.g. about that stiffness's static
+    equilibrium); ρ_top must grow with ke, as it does for a stiffer cloth at a fixed step."""
     def stable(ke: float) -> bool:
         return float(linearisation_at(ke).modes().growth(integrator, dt, top=1)[0]) <= 1.0
 
-    if not stable(low) or stable(high):
-        raise ConfigError(f"[{low:.4g}, {high:.4g}] N/m does not bracket the top mode's limit for {integrator} at "
-                          f"dt = {dt:.4g} s: widen it")
+    low = high = float(start)
+    for _ in range(64):
+        if stable(high):
+            low, high = high, 2.0 * high
+        elif not stable(low):
+            low, high = 0.5 * low, low
+        else:
+            break
+    else:
+        raise ConfigError(f"no stiffness within 2^±64 of {start:.4g} N/m brackets the top mode's limit for "
+                          f"{integrator} at dt = {dt:.4g} s")
     while high / low > 1.0 + rtol:
         middle = float(np.sqrt(low * high))
         low, high = (middle, high) if stable(middle) else (low, middle)
