@@ -113,6 +113,27 @@ def test_advisor_at_the_equilibrium_is_the_linear_systems_limit(device, integrat
         assert below <= 1.0 + 1e-9
 
 
+@pytest.mark.parametrize("integrator, factor", [("midpoint", 1.05), ("explicit_euler", 1.05), ("rk4", 1.01),
+                                                ("midpoint", 0.95)])
+def test_advisor_states_how_fast_the_top_mode_grows(device, integrator, factor):
+    """Past its limit the advisor says how much the top mode grows over the run (``Advice.top_growth``, in
+    the message): the dense reference's ρ_top^(T/h), to the power iteration's accuracy: the advisor's limit is within 2e-4
+    of the exact one, a share 2e-4 / (factor - 1) of the margin that sets the growth rate (2 % at 1 % past
+    the limit; 5 % allowed); inside it, a decay."""
+    model = lb.battery_cloth("hanging", [STIFFNESS], device, n=8)
+    modes = modal.linearise(model, st.static_equilibrium(model).positions).modes()
+    dt = factor * st.stable_step(integrator, modes.omega[-1], modes.zeta[-1])
+    advice = st.advise(model, integrator, dt, fps=lb.FPS, transient=False, horizon=HORIZON)
+    exact = HORIZON / dt * math.log(modes.growth(integrator, dt, top=1)[0])
+    assert math.log(advice.top_growth) == pytest.approx(exact, rel=0.05)
+    if factor > 1.0:
+        assert not advice.stable and advice.top_growth > 1.0
+        shown = f"{advice.top_growth:.3g}" if advice.top_growth < 1e6 else f"1e{math.log10(advice.top_growth):.0f}"
+        assert f"past it their top mode grows ×{shown} over a 10 s run" in advice.message
+    else:
+        assert advice.stable and advice.top_growth < 1.0
+
+
 @pytest.mark.parametrize("integrator, factor, steps", [("midpoint", 1.5, 2000), ("midpoint", 0.8, 2000), ("rk4", 1.001, 400)])
 def test_the_kernels_follow_the_linear_map(device, integrator, factor, steps):
     """Past the top mode's limit a run is unstable, however slowly it grows; before it, that mode decays.

@@ -1069,6 +1069,9 @@ class Advice:
             where none grows.
         peak_time: when the binding world's ω_max peaked in the dry run [s] (0: at the state linearised
             about, not later).
+        top_growth: the amplitude factor of the binding world's top mode (ω_max, its least damping) over
+            ``horizon`` at ``dt``, ρ^(horizon/dt): above 1 exactly when ``dt`` is past the limit, and how slowly
+            it grows there (explicit Euler and midpoint just past theirs: barely); 1 for adaptive integrators.
     """
 
     integrator: str
@@ -1087,6 +1090,7 @@ class Advice:
     dry_run: float = 0.0
     peak_time: float = 0.0
     transverse_growth: float = 1.0
+    top_growth: float = 1.0
 
 
 def _damping_ranges(model: Model, stiffness: np.ndarray, modes: list, positions: wp.array | np.ndarray) -> list:
@@ -1167,6 +1171,17 @@ def _transverse_growth(model: Model, integrator: str, dt: float, stiffness: np.n
     drag = float(np.min(rates))
     rho = max(spectral_radius(integrator, w * dt, drag / (2.0 * w)) for w in omega * np.geomspace(1e-2, 1.0, 9))
     return float(np.exp(min(math.log(rho) * horizon / dt, 700.0))) if rho > 1.0 else 1.0
+
+
+def _top_growth(integrator: str, dt: float, omega: float, ranges: tuple, horizon: float) -> float:
+    """ρ^(horizon/dt) of the top mode (angular frequency ``omega`` [rad/s]) at its least damping among the
+    world's ``ranges`` (kd/k ratios, drag rates), capped at e^700."""
+    if omega <= 0.0:
+        return 1.0
+    ratios, rates = ranges
+    zeta = (float(np.min(ratios)) * omega * omega + float(np.min(rates))) / (2.0 * omega)
+    rho = spectral_radius(integrator, omega * dt, zeta)
+    return float(np.exp(min(math.log(rho) * horizon / dt, 700.0)))
 
 
 def _world_limits(integrator: str, omegas: np.ndarray, ranges: list) -> np.ndarray:
@@ -1279,6 +1294,7 @@ def advise(
     if worlds > 1:
         springs += f" in world {w}, the binding one of {worlds} worlds"
     frame = f"1/{fps:g} s frame"
+    top = 1.0 if adaptive or not 0.0 < limit < math.inf else _top_growth(integrator, dt, omega, ranges[w], horizon)
 
     if adaptive:
         internal = math.ceil(dt / limit) if 0.0 < limit < math.inf else None
@@ -1314,10 +1330,11 @@ def advise(
                 f"{format_duration(limit)}, i.e. at least {substeps} substeps per {frame}"
             )
         else:
+            grows = f"×{top:.3g}" if top < 1e6 else f"×1e{math.log10(top):.0f}"
             message = (
                 f"{integrator} is unstable at dt = {format_duration(dt)}: the springs ({springs}) allow at most "
-                f"{format_duration(limit)}; use a smaller dt, at least {substeps} substeps per {frame}, or implicit_euler "
-                f"(unconditionally stable)"
+                f"{format_duration(limit)} (past it their top mode grows {grows} over a {horizon:g} s run); use a "
+                f"smaller dt, at least {substeps} substeps per {frame}, or implicit_euler (unconditionally stable)"
             )
     advice = Advice(
         integrator=integrator,
@@ -1341,7 +1358,7 @@ def advise(
         message += (f"; its stretched springs' transverse modes carry no damping and {integrator} grows them at any "
                     f"step: ×{growth:.3g} over a {horizon:g} s run at this dt (symplectic_euler, velocity_verlet and "
                     f"rk4 do not)")
-    advice = dataclasses.replace(advice, message=message, transverse_growth=growth)
+    advice = dataclasses.replace(advice, message=message, transverse_growth=growth, top_growth=top)
     if strict and not stable:
         raise ConfigError(message)
     return advice
