@@ -1170,18 +1170,22 @@ def _transverse_growth(model: Model, integrator: str, dt: float, stiffness: np.n
         return 1.0
     drag = float(np.min(rates))
     rho = max(spectral_radius(integrator, w * dt, drag / (2.0 * w)) for w in omega * np.geomspace(1e-2, 1.0, 9))
-    return float(np.exp(min(math.log(rho) * horizon / dt, 700.0))) if rho > 1.0 else 1.0
+    return _over_run(rho, horizon, dt) if rho > 1.0 else 1.0
+
+
+def _over_run(rho: float, horizon: float, dt: float) -> float:
+    """ρ^(horizon/dt): a growth factor ρ per step of ``dt`` [s] over ``horizon`` [s], capped at e^700."""
+    return float(np.exp(min(math.log(rho) * horizon / dt, 700.0)))
 
 
 def _top_growth(integrator: str, dt: float, omega: float, ranges: tuple, horizon: float) -> float:
     """ρ^(horizon/dt) of the top mode (angular frequency ``omega`` [rad/s]) at its least damping among the
-    world's ``ranges`` (kd/k ratios, drag rates), capped at e^700."""
+    world's ``ranges`` (kd/k ratios, drag rates) (:func:`_over_run`)."""
     if omega <= 0.0:
         return 1.0
     ratios, rates = ranges
     zeta = (float(np.min(ratios)) * omega * omega + float(np.min(rates))) / (2.0 * omega)
-    rho = spectral_radius(integrator, omega * dt, zeta)
-    return float(np.exp(min(math.log(rho) * horizon / dt, 700.0)))
+    return _over_run(spectral_radius(integrator, omega * dt, zeta), horizon, dt)
 
 
 def _world_limits(integrator: str, omegas: np.ndarray, ranges: list) -> np.ndarray:
