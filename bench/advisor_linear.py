@@ -22,19 +22,12 @@ import warp as wp
 
 from warpspring.analysis.load_battery import (EXPLICIT, FPS, STATIC_SCENES, STEPS, battery_cloth, battery_control,
                                               linear_limit, linearised)
+from warpspring.analysis.modal import log_bisect
 from warpspring.analysis.stability import advise
 
 from cloth import emit_table
 
 GROWTHS = (10.0, 1.0e3, 1.0e6)
-
-
-def bisect(passes, low: float, high: float, rtol: float) -> float:
-    """The largest value in [low, high] (log bisection to ``rtol``) where ``passes`` holds; passes(low) must."""
-    while high / low > 1.0 + rtol:
-        middle = math.sqrt(low * high)
-        low, high = (middle, high) if passes(middle) else (low, middle)
-    return low
 
 
 def main():
@@ -71,7 +64,7 @@ def main():
                                 transient=False).dt_stable
 
         exact = linear_limit(scene, name, dt, device, rtol=args.rtol)
-        passed = bisect(advisor, exact / 2.0, exact * 2.0, args.rtol)
+        passed = log_bisect(advisor, exact / 2.0, exact * 2.0, args.rtol)
         steps = 2.0 * args.seconds / dt  # energy: ρ² per step
 
         def below(ke: float, growth: float) -> bool:  # in logarithms: RK4's ρ^steps overflows
@@ -82,7 +75,7 @@ def main():
             top = exact
             while below(top, growth):
                 top *= 1.25
-            at.append(bisect(lambda ke, g=growth: below(ke, g), exact, top, args.rtol))
+            at.append(log_bisect(lambda ke, g=growth: below(ke, g), exact, top, args.rtol))
         row = (f"| {scene} | {name} | 1/{FPS * substeps:g} s | {exact:.4g} N/m | {passed:.4g} N/m | {passed / exact:.4f} | "
                + " | ".join(f"{ke:.4g} N/m ({ke / exact:.2f}×)" for ke in at) + " |")
         print(row, f"({time.perf_counter() - started:.0f} s)", flush=True)

@@ -135,7 +135,13 @@ def top_mode_limit(linearisation_at, integrator: str, dt: float, *, start: float
     else:
         raise ConfigError(f"no stiffness within 2^±64 of {start:.4g} N/m brackets the top mode's limit for "
                           f"{integrator} at dt = {dt:.4g} s")
+    return log_bisect(stable, low, high, rtol)
+
+
+def log_bisect(holds, low: float, high: float, rtol: float) -> float:
+    """The largest value where ``holds`` is true, by bisection on the logarithm of [low, high] (``holds(low)``
+    true, ``holds(high)`` false) until high / low ≤ 1 + ``rtol``: the last ``low``."""
     while high / low > 1.0 + rtol:
         middle = float(np.sqrt(low * high))
-        low, high = (middle, high) if stable(middle) else (low, middle)
+        low, high = (middle, high) if holds(middle) else (low, middle)
     return low
