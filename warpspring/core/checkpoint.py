@@ -263,7 +263,7 @@ class Checkpoint:
             collider = deforming.get(index)
             shape = None if collider is None else collider.points().shape
             if collider is None or values.get("points", np.empty(0)).shape != shape or \
-                    set(values) != set(collider.snapshot()):
+                    set(values) != set(collider.SNAPSHOT):
                 raise ConfigError(f"{self._name()} holds the points of a deforming mesh collider {index} that this "
                                   f"simulator has not (or of another vertex count): {_SCENE_REMEDY}")
             plan.append((collider, values))

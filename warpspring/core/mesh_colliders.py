@@ -230,6 +230,9 @@ class MeshCollider:
             _write_row(self.model.shape_arrays.upper, self.index, self._bounds[1])
         self.model.input_version += 1
 
+    #: The names of a :meth:`snapshot`'s entries.
+    SNAPSHOT = ("points", "velocities", "bounds", "range")
+
     def snapshot(self) -> dict[str, np.ndarray]:
         """What a checkpoint keeps of a deforming mesh, by name: its ``points`` [m] (the host's float64 copy, shape
         [v, 3]), the surface ``velocities`` the response uses [m/s] (float32, shape [v, 3]), and the box its points
