@@ -27,7 +27,9 @@ def main():
     parser.add_argument("--span", type=float, default=4.0, help="the first grid spans guess/span .. guess·span^¼")
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--linear", action="store_true",
-                        help="also the exact linear limit at the equilibrium (hanging and forced; dense float64 on the host)")
+                        help="also the exact linear limit at the equilibrium (hanging and forced; dense float64 on the "
+                             "host) and, in every scene, the stiffness from which the top mode frozen at the states "
+                             "of a run's second half grows on average (load_battery.frozen_growth)")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
     device = wp.get_device(args.device)

@@ -193,18 +193,85 @@ def test_top_mode_limit_brackets_from_either_side(start):
     assert at(limit * (1.0 + 2.0 * rtol)).modes().growth("midpoint", dt, top=1)[0] > 1.0
 
 
-def test_battery_table_gives_the_lower_of_the_two_limits():
-    """A case's limit is the lower of its 10 s blow-up and its linear limit; the table adds both columns where
-    some case has a linear limit, a dash where one has none."""
+@pytest.mark.parametrize("scene", ["hanging", "forced"])
+def test_top_modes_at_the_equilibrium_are_the_dense_top_mode(device, scene):
+    """At a static equilibrium of springs and drag, the top mode frozen there (the springs' sparse tangent's
+    top eigenvector, ω and ζ by central differences of the model's own forces along it) is the dense
+    reference's highest mode: ω to 1e-9, ζ to 1e-6 (measured 3e-11 and 8e-9), in each of two worlds."""
+    model = lb.battery_cloth(scene, [STIFFNESS, 300.0], device, n=8, precision="float64")
+    control = lb.battery_control(scene, model)
+    q = st.static_equilibrium(model, control=control).positions
+    top = modal.top_modes(model, q, np.zeros_like(q), 0.0, control=control)
+    for world in range(2):
+        modes = modal.linearise(model, q, world=world).modes()
+        assert top.omega[world] == pytest.approx(modes.omega[-1], rel=1e-9)
+        assert top.zeta[world] == pytest.approx(modes.zeta[-1], rel=1e-6)
+    assert top.growth("midpoint", 1.0 / 960.0) == pytest.approx(
+        [modal.linearise(model, q, world=w).modes().growth("midpoint", 1.0 / 960.0, top=1)[0] for w in range(2)],
+        rel=1e-10)
+
+
+def test_top_modes_take_a_handle_along_the_mode(device):
+    """The battery's *pulled* cloth at its start (flat, unstretched, at rest; the PD handle on its bottom row
+    on target, so not capped): the springs' top mode x, and the whole model's ω² and 2ζω along it are the
+    springs' xᵀKx and xᵀDx plus the handle's Kp and Kd times x's share on the handled particles, to the
+    differences' rounding (1e-9)."""
+    model = lb.battery_cloth("pulled", [STIFFNESS], device, n=8, precision="float64")
+    state = model.state()
+    q = state.particle_q.numpy()
+    top = modal.top_modes(model, q, state.particle_qd.numpy(), 0.0)
+    x = top.shapes[0].reshape(-1)
+    K, D = modal.spring_tangent(model, q)
+    handled = (x.reshape(-1, 3)[:8] ** 2).sum()  # row 0, the handle's 8 particles
+    assert handled * 20.0 > 1e-5 * top.omega[0] ** 2  # the handle's share (8e-5 of ω²) is far above 1e-9
+    assert top.omega[0] ** 2 == pytest.approx(x @ K @ x + 20.0 * handled, rel=1e-9)
+    assert 2.0 * top.zeta[0] * top.omega[0] == pytest.approx(x @ D @ x + 0.5 * handled, rel=1e-9)
+
+
+def test_top_modes_refuse_what_they_cannot_follow(device):
+    model = lb.battery_cloth("hanging", [STIFFNESS], device, n=4)
+    q = model.particle_q.numpy()
+    with pytest.raises(ConfigError, match="needs float64"):
+        modal.top_modes(model, q, np.zeros_like(q), 0.0)
+    builder = ws.ModelBuilder()
+    builder.add_cloth_grid(nx=3, ny=3, spacing=0.1, particle_mass=0.1)
+    builder.add_hinges([[0, 4, 1, 3]], stiffness=1.0)
+    model = builder.finalize(device, precision="float64")
+    q = model.particle_q.numpy()
+    with pytest.raises(ConfigError, match="springs' top mode, with wind and handles along it; this model has hinges"):
+        modal.top_modes(model, q, np.zeros_like(q), 0.0)
+
+
+@pytest.mark.parametrize("scene", ["hanging", "windy"])
+def test_frozen_growth_finds_the_runs_that_grow(device, scene):
+    """The battery's cloth under midpoint at 1/960 s, 2 s runs at 0.93× and 1.07× its equilibrium's linear
+    limit (694.9 N/m): neither blows up, but the top mode frozen at the states of the runs' second half
+    decays on average in the first and grows in the second (the hanging cloth's runs cross over within
+    0.6 % of the equilibrium's limit over 10 s; the windy one's within 0.3 %)."""
+    ke = np.array([0.93, 1.07]) * 694.9
+    outcome = lb.blow_ups(scene, "midpoint", 16, ke, device, 2.0, sample_every=6)
+    assert not outcome.blown.any() and len(outcome.samples) == 10
+    growth = lb.frozen_growth(scene, "midpoint", 1.0 / 960.0, ke, outcome.samples)
+    assert growth[0] < 1.0 < growth[1]
+
+
+def test_battery_table_gives_the_lowest_limit():
+    """A case's limit is the lowest of its 10 s blow-up, its linear limit at the equilibrium and the stiffness
+    from which its run's top mode grows; the table adds those columns where some case has one, a dash where
+    one has none."""
     hanging = lb.LoadCase(scene="hanging", integrator="midpoint", substeps=16, dt=1 / 960, blow_up=1111.0,
-                          passed=668.6, unsafe=0, torn=0.0, runs=64, seconds=1.0, linear=694.9)
+                          passed=668.6, unsafe=0, torn=0.0, runs=64, seconds=1.0, linear=694.9, grows=700.0)
+    windy = lb.LoadCase(scene="windy", integrator="midpoint", substeps=16, dt=1 / 960, blow_up=1138.0,
+                        passed=668.6, unsafe=0, torn=0.0, runs=64, seconds=1.0, grows=690.0)
     driven = lb.LoadCase(scene="driven", integrator="rk4", substeps=4, dt=1 / 240, blow_up=6421.0, passed=5922.0,
                          unsafe=0, torn=0.0, runs=64, seconds=1.0)
     assert hanging.limit == 694.9 and hanging.ratio_to_limit == pytest.approx(668.6 / 694.9)
+    assert windy.limit == 690.0 and windy.ratio_to_limit == pytest.approx(668.6 / 690.0)
     assert driven.limit == 6421.0 and driven.ratio_to_limit == pytest.approx(5922.0 / 6421.0)
-    lines = lb.table([hanging, driven])
-    assert lines[0].endswith("| unstable at equilibrium from | ratio to the lower |")
-    assert lines[2].endswith("| 0.602 | 0 | 694.9 N/m | 0.962 |")
-    assert lines[3].endswith("| 0 | – | – |")
-    assert lines[-1] == "Against the lower of the blow-up and the linear limit: 0.962 … 0.962."
+    lines = lb.table([hanging, windy, driven])
+    assert lines[0].endswith("| unstable at equilibrium from | top mode grows along the run from | ratio to the lowest |")
+    assert lines[2].endswith("| 0.602 | 0 | 694.9 N/m | 700 N/m | 0.962 |")
+    assert lines[3].endswith("| 0 | – | 690 N/m | 0.969 |")
+    assert lines[4].endswith("| 0 | – | – | 0.922 |")
+    assert lines[-1] == "Against the lowest of the blow-up and the linear limits: 0.922 … 0.969."
     assert "unstable at equilibrium" not in lb.table([driven])[0]

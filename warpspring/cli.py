@@ -425,9 +425,9 @@ def _battery(args, device) -> str:
     ratios = [c.ratio for c in cases if c.ratio == c.ratio]
     unsafe = sum(c.unsafe for c in cases)
     spread = f"advisor / blow-up {min(ratios):.3f} … {max(ratios):.3f}" if ratios else "no blow-up in the grids"
-    lower = [c.ratio_to_limit for c in cases if c.linear == c.linear]
-    if lower:
-        spread += f", advisor / the lower of blow-up and linear limit {min(lower):.3f} … {max(lower):.3f}"
+    lowest = [c.ratio_to_limit for c in cases if c.linear == c.linear or c.grows == c.grows]
+    if lowest:
+        spread += f", advisor / the lowest of blow-up and linear limits {min(lowest):.3f} … {max(lowest):.3f}"
     print(f"  advisor under load: {len(cases)} cases, {spread}, {unsafe} passed world(s) blew up")
     return path
 

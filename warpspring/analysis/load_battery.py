@@ -108,21 +108,58 @@ def advisor_passes(scene: str, integrator: str, dt: float, stiffness: np.ndarray
     return dt <= advice.world_dt_stable
 
 
-def blow_ups(scene: str, integrator: str, substeps: int, stiffness: np.ndarray, device, seconds: float) -> tuple:
-    """(blown up, torn by their weight), bool arrays of shape [len(stiffness)], from one run of ``seconds``."""
+@dataclass(frozen=True)
+class Outcome:
+    """One run of a grid of stiffnesses (:func:`blow_ups`).
+
+    Attributes:
+        blown: worlds that blew up, bool, shape [worlds].
+        torn: worlds torn by their own weight (below the lowest survivor), bool, shape [worlds].
+        samples: (positions [m], velocities [m/s], each [worlds · particles, 3], times [s], [worlds]) every
+            ``sample_every`` frames of the run's second half, for :func:`frozen_growth`; empty without.
+    """
+
+    blown: np.ndarray
+    torn: np.ndarray
+    samples: list
+
+
+def blow_ups(scene: str, integrator: str, substeps: int, stiffness: np.ndarray, device, seconds: float, *,
+             sample_every: int = 0) -> Outcome:
+    """Which of the worlds of ``stiffness`` [N/m] blow up in one run of ``seconds``, and which are torn by their
+    weight; with ``sample_every`` (frames), the states of the run's second half to judge it by."""
     model = battery_cloth(scene, stiffness, device)
     sim = Simulator(model, integrator=make_integrator(integrator, model), fps=FPS, substeps=substeps,
                     control=battery_control(scene, model), guard=GuardLimits(stop="world"))
+    frames, samples = int(round(seconds * FPS)), []
     try:
-        for _ in range(int(round(seconds * FPS))):
+        for frame in range(1, frames + 1):
             sim.step_frame()
+            if sample_every and frame > frames // 2 and (frame - frames // 2) % sample_every == 0:
+                samples.append((sim.state.particle_q.numpy(), sim.state.particle_qd.numpy(), sim.state.time.numpy()))
     except SimulationError:
         pass  # every world failed
     q = sim.state.particle_q.numpy().reshape(len(stiffness), -1, 3)
     failed = np.array([w in sim.world_failures or not np.isfinite(q[w]).all() for w in range(len(stiffness))])
     alive = np.flatnonzero(~failed)
     torn = failed & (np.arange(len(stiffness)) < (alive.min() if len(alive) else len(stiffness)))
-    return failed & ~torn, torn
+    return Outcome(blown=failed & ~torn, torn=torn, samples=samples)
+
+
+def frozen_growth(scene: str, integrator: str, dt: float, stiffness: np.ndarray, samples: list) -> np.ndarray:
+    """Each world's top-mode growth per step, e^⟨log ρ⟩ [-], shape [len(stiffness)]: ρ of its top mode frozen
+    at each of ``samples`` (:func:`.modal.top_modes`, float64 on the host), averaged on the log. Above 1 the
+    top mode grows on average over the states the run passes through, slowly as it may: the adiabatic
+    measure of a run's linear instability where it has no equilibrium to linearise at. NaN where a sampled
+    state is not finite."""
+    model = battery_cloth(scene, stiffness, "cpu", precision="float64")
+    control = battery_control(scene, model)
+    logs, shapes = [], None
+    for q, qd, t in samples:
+        modes = modal.top_modes(model, q, qd, t, control=control, starts=shapes)
+        logs.append(np.log(modes.growth(integrator, dt)))
+        shapes = modes.shapes
+    return np.exp(np.mean(logs, axis=0)) if logs else np.full(len(stiffness), np.nan)
 
 
 def at_rest_limit(integrator: str, dt: float, device, *, iterations: int = 24) -> float:
@@ -171,6 +208,8 @@ class LoadCase:
         runs: the worlds run; seconds: wall time [s].
         linear: the exact linear limit [N/m] (:func:`linear_limit`; NaN: not computed or no static
             equilibrium).
+        grows: the smallest stiffness [N/m] of the grids whose run did not blow up but whose top mode grows on
+            average over its second half (:func:`frozen_growth`; ∞: none; NaN: not computed).
     """
 
     scene: str
@@ -184,6 +223,7 @@ class LoadCase:
     runs: int
     seconds: float
     linear: float = float("nan")
+    grows: float = float("nan")
 
     @property
     def ratio(self) -> float:
@@ -192,9 +232,9 @@ class LoadCase:
 
     @property
     def limit(self) -> float:
-        """The case's limit [N/m]: the lower of the blow-up and the linear limit (either alone where the other
-        is missing; NaN without both)."""
-        known = [v for v in (self.blow_up, self.linear) if np.isfinite(v) and v > 0.0]
+        """The case's limit [N/m]: the lowest of the blow-up, the linear limit and where the run's top mode
+        grows (those known; NaN without any)."""
+        known = [v for v in (self.blow_up, self.linear, self.grows) if np.isfinite(v) and v > 0.0]
         return min(known) if known else float("nan")
 
     @property
@@ -204,20 +244,24 @@ class LoadCase:
 
 
 def run_case(scene: str, integrator: str, substeps: int, device, *, worlds: int = 32, span: float = 4.0,
-             seconds: float = 10.0, linear: bool = False) -> LoadCase:
+             seconds: float = 10.0, linear: bool = False, sample_every: int = 6) -> LoadCase:
     """Bisect one case in two parallel grids (module docstring); with ``linear``, also its exact linear limit
-    (scenes with a static equilibrium)."""
+    (scenes with a static equilibrium) and, from states every ``sample_every`` frames of the same runs' second
+    halves, the smallest stiffness whose top mode grows there (:func:`frozen_growth`)."""
     checks.count("worlds", worlds, minimum=2)
     dt = 1.0 / (FPS * substeps)
     started = time.perf_counter()
     guess = at_rest_limit(integrator, dt, device)
     passed, blow_up, unsafe, torn_max, runs = 0.0, np.inf, 0, 0.0, 0
+    grows = np.inf if linear else float("nan")
     if np.isfinite(guess):
         low, high = guess / span, guess * span**0.25
         for _ in range(2):
             ke = np.geomspace(low, high, worlds)
             passes = advisor_passes(scene, integrator, dt, ke, device, seconds=seconds)
-            blown, torn = blow_ups(scene, integrator, substeps, ke, device, seconds)
+            outcome = blow_ups(scene, integrator, substeps, ke, device, seconds,
+                               sample_every=sample_every if linear else 0)
+            blown, torn = outcome.blown, outcome.torn
             runs += worlds
             unsafe += int((passes & blown).sum())
             if torn.any():
@@ -226,37 +270,48 @@ def run_case(scene: str, integrator: str, substeps: int, device, *, worlds: int 
                 passed = max(passed, float(ke[passes & ~torn].max()))
             if blown.any():
                 blow_up = min(blow_up, float(ke[blown].min()))
-            # The second grid: ±10 % around both transitions, or on past the first where one was not found.
-            found = [v for v in (passed, blow_up) if 0.0 < v < np.inf]
+            if linear:
+                growing = ~(blown | torn) & (frozen_growth(scene, integrator, dt, ke, outcome.samples) > 1.0)
+                if growing.any():
+                    grows = min(grows, float(ke[growing].min()))
+            # The second grid: ±10 % around the transitions, or on past the first where one was not found.
+            found = [v for v in (passed, blow_up, grows) if 0.0 < v < np.inf]
             if not found:
                 break
             low = min(found) / 1.1 if passed > 0.0 else low / span
-            high = max(found) * 1.1 if np.isfinite(blow_up) else high * span
+            high = max(found) * 1.1 if np.isfinite(blow_up) or 0.0 < grows < np.inf else high * span
     exact = linear_limit(scene, integrator, dt, device) if linear else float("nan")
     return LoadCase(scene=scene, integrator=integrator, substeps=substeps, dt=dt, blow_up=blow_up, passed=passed,
-                    unsafe=unsafe, torn=torn_max, runs=runs, seconds=time.perf_counter() - started, linear=exact)
+                    unsafe=unsafe, torn=torn_max, runs=runs, seconds=time.perf_counter() - started, linear=exact,
+                    grows=grows)
 
 
 def table(cases: list[LoadCase]) -> list[str]:
     """Markdown rows of ``cases`` and a closing line with the most conservative ratio and the unsafe count; with
-    the linear limit where a case has it, and the ratio to the lower of the two limits."""
-    linear = any(np.isfinite(c.linear) for c in cases)
-    extra = (" unstable at equilibrium from | ratio to the lower |", "---|---|") if linear else ("", "")
+    the linear limits where a case has them (at the equilibrium, and along the run), and the ratio to the lowest
+    limit."""
+    linear = any(np.isfinite(c.linear) or np.isfinite(c.grows) for c in cases)
+    extra = ((" unstable at equilibrium from | top mode grows along the run from | ratio to the lowest |",
+              "---|---|---|") if linear else ("", ""))
     lines = ["| scene | integrator | dt | blows up from ke | advisor passes up to | ratio | passed but blew up |" + extra[0],
              "|---|---|---|---|---|---|---|" + extra[1]]
+
+    def stiffness(value: float, missing: str) -> str:
+        return f"{value:.4g} N/m" if np.isfinite(value) else missing
+
     for c in cases:
-        blow = f"{c.blow_up:.4g} N/m" if np.isfinite(c.blow_up) else "none in the grids"
-        row = (f"| {c.scene} | {c.integrator} | 1/{FPS * c.substeps:g} s | {blow} | {c.passed:.4g} N/m | "
-               f"{c.ratio:.3f} | {c.unsafe} |")
+        row = (f"| {c.scene} | {c.integrator} | 1/{FPS * c.substeps:g} s | {stiffness(c.blow_up, 'none in the grids')} "
+               f"| {c.passed:.4g} N/m | {c.ratio:.3f} | {c.unsafe} |")
         if linear:
-            row += (f" {c.linear:.4g} N/m | {c.ratio_to_limit:.3f} |" if np.isfinite(c.linear) else " – | – |")
+            grows = "–" if np.isnan(c.grows) else stiffness(c.grows, "none in the grids")
+            row += f" {stiffness(c.linear, '–')} | {grows} | {c.ratio_to_limit:.3f} |"
         lines.append(row)
     ratios = [c.ratio for c in cases if np.isfinite(c.ratio)]
     if ratios:
         lines += ["", f"Most conservative ratio {min(ratios):.3f}, least {max(ratios):.3f}; worlds the advisor passed "
                       f"that blew up: {sum(c.unsafe for c in cases)}."]
-    to_limit = [c.ratio_to_limit for c in cases if np.isfinite(c.linear)]
-    if to_limit:
-        lines.append(f"Against the lower of the blow-up and the linear limit: {min(to_limit):.3f} … "
+    to_limit = [c.ratio_to_limit for c in cases if np.isfinite(c.ratio_to_limit)]
+    if linear and to_limit:
+        lines.append(f"Against the lowest of the blow-up and the linear limits: {min(to_limit):.3f} … "
                      f"{max(to_limit):.3f}.")
     return lines

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..core.model import Model
 from ..errors import ConfigError
-from .stability import free_particles, spectral_radius, step_matrix
+from .stability import free_particles, pair_block_matrix, spectral_radius, step_matrix, top_eigenpair
 
 
 @dataclass(frozen=True)
@@ -84,15 +84,30 @@ def linearise(model: Model, positions, *, world: int = 0) -> Linearisation:
     or [particle_count, 3] for the world alone), with that world's stiffness, damping, masses, drag and
     (plastic) rest lengths. Linear springs and drag only."""
     others = [f.name for f in model.families if f.name != "springs"]
-    if others or model.spring_material_law.per_spring:
-        what = ", ".join(others + (["non-linear spring laws"] if model.spring_material_law.per_spring else []))
-        raise ConfigError(f"the dense linearisation covers linear springs and drag, not {what}: "
-                          "use the advisor (warpspring.analysis.stability.advise) for this model")
-    if not 0 <= world < model.world_count:
-        raise ConfigError(f"world must be in [0, {model.world_count}), got {world}")
+    if others:
+        raise ConfigError(f"the dense linearisation covers linear springs and drag, not {', '.join(others)}: "
+                          "use the advisor (warpspring.analysis.stability.advise) for this model, or top_modes "
+                          "for its springs' top mode")
+    _check_world(model, world)
     n = model.particle_count
     q = np.asarray(positions, dtype=np.float64).reshape(-1, n, 3)
-    q = q[world] if len(q) > 1 else q[0]
+    K, D = spring_tangent(model, q[world] if len(q) > 1 else q[0], world=world)
+    D = D.toarray()
+    D[np.diag_indices(3 * n)] += float(model.world_values("drag")[world, 0])
+    free = np.repeat(free_particles(model)[world], 3)
+    mass = np.repeat(model.world_values("particle_mass")[world].astype(np.float64), 3)[free]
+    return Linearisation(mass=mass, stiffness=K.toarray()[np.ix_(free, free)], damping=D[np.ix_(free, free)])
+
+
+def spring_tangent(model: Model, positions, *, world: int = 0) -> tuple:
+    """The springs' tangent stiffness K [N/m] and their dampers' D [N·s/m] (module docstring) of ``world`` at
+    ``positions`` [m] (that world's particles, shape [particle_count, 3]), ``scipy.sparse.csr_matrix`` [3n, 3n]
+    each over every particle's coordinates, kinematic ones included. Linear springs only."""
+    if model.spring_material_law.per_spring:
+        raise ConfigError("the springs' tangent here is that of linear springs, not of non-linear spring laws: "
+                          "use the advisor (warpspring.analysis.stability.advise) for this model")
+    n = model.particle_count
+    q = np.asarray(positions, dtype=np.float64).reshape(n, 3)
     stiffness = model.world_values("spring_stiffness")[world].astype(np.float64)
     damping = model.world_values("spring_damping")[world].astype(np.float64)
     rest = model.spring_rest_lengths()[world]
@@ -103,17 +118,105 @@ def linearise(model: Model, positions, *, world: int = 0) -> Linearisation:
     unit = d[acting] / length[acting, None]
     axial = unit[:, :, None] * unit[:, None, :]
     across = np.maximum(1.0 - rest[acting] / length[acting], 0.0)
-    k_blocks = stiffness[acting, None, None] * (axial + across[:, None, None] * (np.eye(3) - axial))
-    d_blocks = damping[acting, None, None] * axial
-    K, D = np.zeros((3 * n, 3 * n)), np.zeros((3 * n, 3 * n))
-    for matrix, blocks in ((K, k_blocks), (D, d_blocks)):
-        view = matrix.reshape(n, 3, n, 3)
-        for a, b, sign in ((i, i, 1.0), (j, j, 1.0), (i, j, -1.0), (j, i, -1.0)):
-            np.add.at(view, (a[acting], slice(None), b[acting], slice(None)), sign * blocks)
-    D[np.diag_indices(3 * n)] += float(model.world_values("drag")[world, 0])
-    free = np.repeat(free_particles(model)[world], 3)
-    mass = np.repeat(model.world_values("particle_mass")[world].astype(np.float64), 3)[free]
-    return Linearisation(mass=mass, stiffness=K[np.ix_(free, free)], damping=D[np.ix_(free, free)])
+    K = pair_block_matrix(n, i[acting], j[acting],
+                          stiffness[acting, None, None] * (axial + across[:, None, None] * (np.eye(3) - axial)))
+    D = pair_block_matrix(n, i[acting], j[acting], damping[acting, None, None] * axial)
+    return K, D
+
+
+def _check_world(model: Model, world: int) -> None:
+    if not 0 <= world < model.world_count:
+        raise ConfigError(f"world must be in [0, {model.world_count}), got {world}")
+
+
+#: The force terms :func:`top_modes` takes along the springs' top mode: the springs, and terms whose stiffness
+#: and damping only shift it a little (wind on the cloth's triangles, PD handles).
+ALONG_SPRINGS = ("springs", "wind triangles", "handle grabs")
+
+
+@dataclass(frozen=True)
+class TopModes:
+    """Each world's highest mode, frozen at a state that need not be at rest (:func:`top_modes`).
+
+    Attributes:
+        omega: ω = √(xᵀ K x) [rad/s], shape [world_count], K = −∂F/∂x of the whole model's forces.
+        zeta: ζ = xᵀ D x / (2ω) [-], shape [world_count], D = −∂F/∂v.
+        shapes: x, the top mode of the springs' tangent stiffness, M-orthonormal (xᵀ M x = 1) [m/√kg], shape
+            [world_count, particle_count, 3], 0 on kinematic particles. NaN everywhere in a world whose state
+            is not finite.
+    """
+
+    omega: np.ndarray
+    zeta: np.ndarray
+    shapes: np.ndarray
+
+    def growth(self, integrator: str, dt: float) -> np.ndarray:
+        """Each world's top-mode growth factor per step ρ [-] under ``integrator`` at step ``dt`` [s], shape
+        [world_count] (NaN where the state was not finite)."""
+        return np.array([spectral_radius(integrator, w * dt, z) if np.isfinite(w) else np.nan
+                         for w, z in zip(self.omega, self.zeta)])
+
+
+def top_modes(model: Model, positions, velocities, time, *, control=None, starts=None,
+              step: float = 1.0e-6) -> TopModes:
+    """Every world's highest mode frozen at a state in motion: the top mode x of its springs' tangent
+    stiffness there (:func:`spring_tangent`, sparse Lanczos), with ω² and ζ the Rayleigh quotients of the
+    whole model's force Jacobian along x, by central differences of :func:`~warpspring.core.forces.eval_forces`
+    (the model's own kernels: the springs, their dampers, drag, wind, handles, at the state's time). To first
+    order in what the other terms add to the springs, these are the top mode's ω and ζ; at a static
+    equilibrium of springs and drag they are :meth:`Linearisation.modes`' highest.
+
+    Args:
+        model: a float64 model (the differences need its precision) whose force terms are in
+            ``ALONG_SPRINGS``.
+        positions, velocities: the state [m], [m/s], shape [world_count · particle_count, 3] (any precision).
+        time: the state's time [s], one number or one per world.
+        control: the run's Control, or ``None``.
+        starts: earlier ``shapes`` to start each world's Lanczos from (a sequence of nearby states).
+        step: the largest displacement [m] (and velocity change [m/s]) of a coordinate in the differences.
+    """
+    import warp as wp
+
+    from ..core.forces import eval_forces
+
+    if model.scalar is not wp.float64:
+        raise ConfigError("top_modes differentiates the model's forces, which needs float64: build the model with "
+                          "precision='float64'")
+    others = [f.name for f in model.families if f.name not in ALONG_SPRINGS]
+    if others or model.spring_count == 0:
+        raise ConfigError("top_modes follows the springs' top mode, with wind and handles along it; this model has "
+                          f"{', '.join(others) if others else 'no springs'}")
+    worlds, n = model.world_count, model.particle_count
+    q = np.asarray(positions, dtype=np.float64).reshape(worlds, n, 3)
+    v = np.asarray(velocities, dtype=np.float64).reshape(worlds, n, 3)
+    finite = np.isfinite(q).all(axis=(1, 2)) & np.isfinite(v).all(axis=(1, 2))
+    free = np.repeat(free_particles(model), 3, axis=1)
+    mass = np.repeat(model.world_values("particle_mass").astype(np.float64), 3, axis=1)
+    shapes = np.full((worlds, 3 * n), np.nan)
+    for w in np.flatnonzero(finite):
+        keep = free[w]
+        start = None if starts is None else np.asarray(starts, dtype=np.float64).reshape(worlds, 3 * n)[w, keep]
+        K, _ = spring_tangent(model, q[w], world=w)
+        shapes[w] = 0.0
+        shapes[w, keep] = top_eigenpair(K[keep][:, keep], mass[w, keep],
+                                        start=start if start is not None and np.isfinite(start).all() else None)[1]
+    shapes = shapes.reshape(worlds, n, 3)
+    reach = step / np.where(finite, np.abs(np.nan_to_num(shapes)).max(axis=(1, 2)), 1.0)[:, None, None]
+    probe = model.state()
+    probe.time.assign(np.broadcast_to(np.asarray(time, dtype=np.float64), (worlds,)))
+
+    def forces(dq, dv):
+        probe.particle_q.assign((q + dq).reshape(-1, 3))
+        probe.particle_qd.assign((v + dv).reshape(-1, 3))
+        eval_forces(model, probe, control)
+        return probe.particle_f.numpy().astype(np.float64).reshape(worlds, n, 3)
+
+    dx = np.nan_to_num(reach * shapes)
+    along_x = -(forces(dx, 0.0) - forces(-dx, 0.0)) / (2.0 * reach)  # K x
+    along_v = -(forces(0.0, dx) - forces(0.0, -dx)) / (2.0 * reach)  # D x
+    omega = np.sqrt(np.maximum(np.einsum("wij,wij->w", shapes, along_x), 0.0))
+    zeta = np.einsum("wij,wij->w", shapes, along_v) / (2.0 * omega)
+    return TopModes(omega=np.where(finite, omega, np.nan), zeta=np.where(finite, zeta, np.nan), shapes=shapes)
 
 
 def top_mode_limit(linearisation_at, integrator: str, dt: float, *, start: float, rtol: float = 1.0e-4) -> float:

@@ -988,14 +988,26 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
     return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), sim.time, sim.dt, finite)
 
 
+def pair_block_matrix(n: int, i: np.ndarray, j: np.ndarray, blocks: np.ndarray):
+    """Σₑ of a two-particle element's 3 × 3 ``blocks`` [e, 3, 3] placed +B on (i, i) and (j, j) and −B on
+    (i, j) and (j, i): the stiffness or damping of springs (and their like) over the 3 ``n`` coordinates of
+    n particles, a ``scipy.sparse.csr_matrix`` [3n, 3n] (duplicate entries summed)."""
+    import scipy.sparse
+
+    rows, cols, values = [], [], []
+    for a, b, sign in ((i, i, 1.0), (j, j, 1.0), (i, j, -1.0), (j, i, -1.0)):
+        rows.append((3 * a[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2).ravel())
+        cols.append((3 * b[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1).ravel())
+        values.append(sign * blocks.ravel())
+    return scipy.sparse.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))),
+                                   shape=(3 * n, 3 * n))
+
+
 def transverse_omega_max(model: Model, positions, world: int = 0, *, stiffness=None) -> float:
     """The highest frequency [rad/s] of ``world``'s springs' *transverse* stiffness at ``positions`` [m]
     (shape [world_count · particle_count, 3]): λ_max of M⁻¹K_t, K_t = Σₛ kₛ (1 - L/l)⁺ (I - d̂d̂ᵀ) across
     each stretched spring, which its axial damper does not damp; pinned particles held. Sparse Lanczos
     (``scipy.sparse.linalg.eigsh``) on the host; 0 where no spring is stretched."""
-    import scipy.sparse
-    import scipy.sparse.linalg
-
     n = model.particle_count
     free = free_particles(model)[world]
     q = np.asarray(positions if isinstance(positions, np.ndarray) else positions.numpy(), dtype=np.float64)
@@ -1015,22 +1027,30 @@ def transverse_omega_max(model: Model, positions, world: int = 0, *, stiffness=N
     across = k[stretched] * tension_scale * (1.0 - rest[stretched] / length)
     unit = d / length[:, None]
     blocks = across[:, None, None] * (np.eye(3)[None] - unit[:, :, None] * unit[:, None, :])  # [s, 3, 3]
-    rows, cols, values = [], [], []
-    for a, b, sign in ((i, i, 1.0), (j, j, 1.0), (i, j, -1.0), (j, i, -1.0)):
-        rows.append((3 * a[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2).ravel())
-        cols.append((3 * b[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1).ravel())
-        values.append(sign * blocks.ravel())
-    stiff = scipy.sparse.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))),
-                                    shape=(3 * n, 3 * n))
     keep = np.repeat(free, 3)
-    scale = 1.0 / np.sqrt(np.repeat(model.world_values("particle_mass")[world], 3)[keep])
-    reduced = stiff[keep][:, keep]
-    reduced = scipy.sparse.diags(scale) @ reduced @ scipy.sparse.diags(scale)
-    if reduced.shape[0] <= 3:
-        top = float(np.linalg.eigvalsh(reduced.toarray()).max())
-    else:
-        top = float(scipy.sparse.linalg.eigsh(reduced, k=1, which="LA", return_eigenvectors=False, tol=1e-6)[0])
+    mass = np.repeat(model.world_values("particle_mass")[world], 3)[keep]
+    top, _ = top_eigenpair(pair_block_matrix(n, i, j, blocks)[keep][:, keep], mass, tol=1e-6)
     return math.sqrt(max(top, 0.0))
+
+
+def top_eigenpair(stiffness, mass: np.ndarray, *, start: np.ndarray | None = None, tol: float = 0.0) -> tuple:
+    """The largest eigenvalue λ [1/s²] of K x = λ M x and its M-orthonormal eigenvector x (xᵀ M x = 1) [m/√kg],
+    shape [n]: ``stiffness`` K a symmetric ``scipy.sparse`` matrix [n, n] [N/m], ``mass`` the diagonal of M
+    [kg], shape [n]. Lanczos on M^-½ K M^-½ (``scipy.sparse.linalg.eigsh``, relative accuracy ``tol``; 0:
+    machine precision), started from ``start`` (an earlier x, say) where given; dense below 4 coordinates."""
+    import scipy.sparse
+    import scipy.sparse.linalg
+
+    scale = 1.0 / np.sqrt(np.asarray(mass, dtype=np.float64))
+    reduced = scipy.sparse.diags(scale) @ scipy.sparse.csr_matrix(stiffness) @ scipy.sparse.diags(scale)
+    if reduced.shape[0] <= 3:
+        values, vectors = np.linalg.eigh(reduced.toarray())
+        top, y = values[-1], vectors[:, -1]
+    else:
+        v0 = None if start is None else np.asarray(start, dtype=np.float64) / scale
+        values, vectors = scipy.sparse.linalg.eigsh(reduced, k=1, which="LA", tol=tol, v0=v0)
+        top, y = values[0], vectors[:, 0]
+    return float(top), scale * y
 
 
 # -- the advisor --------------------------------------------------------------------------------------------
