@@ -269,9 +269,11 @@ def test_battery_table_gives_the_lowest_limit():
     assert windy.limit == 690.0 and windy.ratio_to_limit == pytest.approx(668.6 / 690.0)
     assert driven.limit == 6421.0 and driven.ratio_to_limit == pytest.approx(5922.0 / 6421.0)
     lines = lb.table([hanging, windy, driven])
-    assert lines[0].endswith("| unstable at equilibrium from | top mode grows along the run from | ratio to the lowest |")
-    assert lines[2].endswith("| 0.602 | 0 | 694.9 N/m | 700 N/m | 0.962 |")
-    assert lines[3].endswith("| 0 | – | 690 N/m | 0.969 |")
-    assert lines[4].endswith("| 0 | – | – | 0.922 |")
-    assert lines[-1] == "Against the lowest of the blow-up and the linear limits: 0.922 … 0.969."
+    assert lines[0].endswith("| unstable at equilibrium from | top mode grows along the run from | passed but grows "
+                             "| ratio to the lowest |")
+    assert lines[2].endswith("| 0.602 | 0 | 694.9 N/m | 700 N/m | 0 | 0.962 |")
+    assert lines[3].endswith("| 0 | – | 690 N/m | 0 | 0.969 |")
+    assert lines[4].endswith("| 0 | – | – | – | 0.922 |")
+    assert lines[-1] == ("Against the lowest of the blow-up and the linear limits: 0.922 … 0.969; worlds the advisor "
+                         "passed whose top mode grows along the run: 0.")
     assert "unstable at equilibrium" not in lb.table([driven])[0]

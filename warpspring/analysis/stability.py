@@ -880,6 +880,9 @@ class TransientPeak:
         duration: simulated time of the dry run [s].
         step: its step [s].
         finite: False when the dry run's state turned non-finite (it stopped there).
+        world_lowest_ratio: with ``lowest_ratio``, each world's lowest top-mode damping ratio xᵀDx / xᵀKx [s]
+            over the start and the dry run's re-estimates (:func:`top_mode_ratios`), shape [world_count];
+            else ``None``.
     """
 
     world_omega_max: np.ndarray
@@ -889,6 +892,7 @@ class TransientPeak:
     duration: float
     step: float
     finite: bool
+    world_lowest_ratio: np.ndarray | None = None
 
 
 def _keeps_plasticity(function):
@@ -912,7 +916,8 @@ def _keeps_plasticity(function):
 
 @_keeps_plasticity
 def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float = PROBE_HORIZON,
-                   start: OmegaMaxEstimate | None = None, start_positions: np.ndarray | None = None) -> TransientPeak:
+                   start: OmegaMaxEstimate | None = None, start_positions: np.ndarray | None = None,
+                   lowest_ratio: bool = False) -> TransientPeak:
     """The highest ω_max each world reaches on its way from the initial state: a dry run of the scene as it
     will run (loads, control, pins and their tracks, colliders), by velocity Verlet at a step that is stable
     at any state, with ω_max re-estimated along it (constants ``PROBE_*``).
@@ -929,6 +934,9 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
         start: an estimate to start from and to beat (e.g. at the static equilibrium), with
             ``start_positions`` [m], float64, shape [world_count · particle_count, 3], where it was made;
             default: the initial state's.
+        lowest_ratio: also keep each world's lowest top-mode damping ratio along the way (explicit Euler's
+            limit: the stretch that makes the top mode stiffer across its springs than along them, where their
+            dampers act, need not come with the highest ω_max); one host read of the state per re-estimate.
     """
     from ..core.simulator import Simulator
     from ..core.integrators import VelocityVerlet
@@ -943,11 +951,12 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
     mode = start.world_mode.copy()
     positions = np.array(start_positions, dtype=np.float64).reshape(worlds, n, 3)
     peak_time = np.zeros(worlds)
+    lowest = top_mode_ratios(model, k, list(mode), positions) if lowest_ratio else None
     bound = _gershgorin(model, k, free_particles(model))
     safe = _world_limits("velocity_verlet", bound, _damping_ranges(model, k, [None] * worlds, model.particle_q))
     safe = float(safe[bound > 0.0].min()) if (bound > 0.0).any() else math.inf
     if not math.isfinite(safe) or safe <= 0.0:
-        return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), 0.0, 0.0, True)
+        return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), 0.0, 0.0, True, lowest)
     substeps = max(1, math.ceil(PROBE_CHECK / (PROBE_FRACTION * safe)))
     sim = Simulator(model, integrator=VelocityVerlet(model), fps=1.0 / PROBE_CHECK, substeps=substeps,
                     control=control, guard=None)
@@ -978,14 +987,16 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
             rise = sim.time
             level = omega if level is None else np.maximum(level, omega)
         higher = omega > peak
-        if higher.any():
+        if higher.any() or lowest_ratio:
             q = sim.state.particle_q.numpy().astype(np.float64).reshape(worlds, n, 3)
             if not np.isfinite(q[higher]).all():
                 finite = False
                 break
             x = iteration.x.numpy().astype(np.float64).reshape(worlds, n, 3)
             positions[higher], mode[higher], peak_time[higher], peak[higher] = q[higher], x[higher], sim.time, omega[higher]
-    return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), sim.time, sim.dt, finite)
+            if lowest_ratio:
+                lowest = np.fmin(lowest, top_mode_ratios(model, k, list(x), q))
+    return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), sim.time, sim.dt, finite, lowest)
 
 
 def pair_block_matrix(n: int, i: np.ndarray, j: np.ndarray, blocks: np.ndarray):
@@ -1113,7 +1124,8 @@ class Advice:
     top_growth: float = 1.0
 
 
-def _damping_ranges(model: Model, stiffness: np.ndarray, modes: list, positions: wp.array | np.ndarray) -> list:
+def _damping_ranges(model: Model, stiffness: np.ndarray, modes: list, positions: wp.array | np.ndarray, *,
+                    lowest_top: np.ndarray | None = None) -> list:
     """Each world's (kd/k values [s], c/m values [1/s]) for :func:`network_stable_step`.
 
     kd/k: the springs' smallest ratio (the least damped modes, which explicit Euler and midpoint cannot
@@ -1129,19 +1141,18 @@ def _damping_ranges(model: Model, stiffness: np.ndarray, modes: list, positions:
     """
     worlds, n = model.world_count, model.particle_count
     free = free_particles(model)
-    springs = next((f for f in model.families if isinstance(f, SpringFamily)), None)
-    k_all = np.broadcast_to(stiffness, (worlds, model.spring_count))
-    if springs is not None:  # each law's tangent at the positions: kd/k is a ratio of tangents
-        k_all = k_all * springs.tangent_factor(model, positions)
+    k_all = _tangent_stiffness(model, stiffness, positions)
     kd_all = model.world_values("spring_damping")
     mass_all = model.world_values("particle_mass")
     drag = model.world_values("drag")[:, 0]
     ends = model.spring_indices.numpy().reshape(-1, 2)
-    rest_all = model.spring_rest_length.numpy().astype(np.float64)
     q_all = np.asarray(positions if isinstance(positions, np.ndarray) else positions.numpy(), dtype=np.float64)
     q_all = q_all.reshape(worlds, n, 3)
     extra = sum((family.damping_rates(model, q_all) for family in model.extra_families),
                 np.zeros((worlds, n)))
+    tops = top_mode_ratios(model, stiffness, modes, q_all)
+    if lowest_top is not None:
+        tops = np.fmin(tops, lowest_top)
     ranges = []
     for w in range(worlds):
         mass = mass_all[w][free[w]]
@@ -1156,6 +1167,39 @@ def _damping_ranges(model: Model, stiffness: np.ndarray, modes: list, positions:
         if modes[w] is None:
             ranges.append((ratios, rates))
             continue
+        top = tops[w] if np.isfinite(tops[w]) else float(ratios.max())
+        ranges.append((np.array([ratios.min(), top]), rates))
+    return ranges
+
+
+def _tangent_stiffness(model: Model, stiffness: np.ndarray, positions) -> np.ndarray:
+    """Each world's springs' tangent stiffness [N/m] at ``positions``, shape [world_count, spring_count]."""
+    springs = next((f for f in model.families if isinstance(f, SpringFamily)), None)
+    k_all = np.broadcast_to(stiffness, (model.world_count, model.spring_count))
+    if springs is not None:  # each law's tangent at the positions: kd/k is a ratio of tangents
+        k_all = k_all * springs.tangent_factor(model, positions)
+    return k_all
+
+
+def top_mode_ratios(model: Model, stiffness, modes: list, positions) -> np.ndarray:
+    """Each world's top-mode damping ratio xᵀDx / xᵀKx [s] on its power-iteration vector x (``modes[w]``,
+    shape [particle_count, 3]) at ``positions`` [m], shape [world_count, particle_count, 3]: K the springs'
+    tangent stiffness (transverse part clamped, as in the kernels), D their axial dampers. Explicit Euler's
+    step limit for that mode is this ratio itself (h* = 2ζ/ω). NaN where ``modes[w]`` is ``None`` or no
+    stretched direction carries stiffness. Shape [world_count]."""
+    worlds, n = model.world_count, model.particle_count
+    free = free_particles(model)
+    q_all = np.asarray(positions, dtype=np.float64).reshape(worlds, n, 3)
+    k_all = _tangent_stiffness(model, _stiffness_values(model, stiffness), q_all.reshape(-1, 3))
+    kd_all = model.world_values("spring_damping")
+    ends = model.spring_indices.numpy().reshape(-1, 2)
+    rest_all = model.spring_rest_length.numpy().astype(np.float64)
+    tops = np.full(worlds, np.nan)
+    for w in range(worlds):
+        k, kd = k_all[w], kd_all[w]
+        acting = (k > 0.0) & free[w][ends].any(axis=1)
+        if modes[w] is None or not acting.any():
+            continue
         q = q_all[w]
         mode = modes[w] * free[w][:, None]
         i, j = ends[acting].T
@@ -1168,10 +1212,9 @@ def _damping_ranges(model: Model, stiffness: np.ndarray, modes: list, positions:
         rest = rest_all[acting]
         transverse = np.where(coincident, 0.0, np.maximum(1.0 - rest / safe, 0.0))  # clamped, as in K
         xkx = float((k[acting] * (axial2 + transverse * (np.einsum("sk,sk->s", delta, delta) - axial2))).sum())
-        xdx = float((kd[acting] * axial2).sum())
-        top = xdx / xkx if xkx > 0.0 else float(ratios.max())
-        ranges.append((np.array([ratios.min(), top]), rates))
-    return ranges
+        if xkx > 0.0:
+            tops[w] = float((kd[acting] * axial2).sum()) / xkx
+    return tops
 
 
 #: The transverse growth (:attr:`Advice.transverse_growth`) from which the advisor's message mentions it.
@@ -1294,7 +1337,8 @@ def advise(
         step_limited = not (cls.adaptive or getattr(cls, "unconditionally_stable", False))
         if judge_run and transient and step_limited and in_motion(model, control):
             probe = transient_peak(model, control=control, stiffness=stiffness, horizon=horizon, start=estimate,
-                                   start_positions=positions.numpy().astype(np.float64))
+                                   start_positions=positions.numpy().astype(np.float64),
+                                   lowest_ratio=integrator == "explicit_euler")
             peaks, positions = probe.world_omega_max, probe.positions
             estimate = dataclasses.replace(estimate, world_mode=probe.world_mode)
         omegas = np.where(converged, peaks, estimate.world_gershgorin)  # the bound where not
@@ -1305,7 +1349,8 @@ def advise(
         modes = [None] * worlds
         positions = model.particle_q if state is None else state.particle_q
         probe = None
-    ranges = _damping_ranges(model, k, modes, positions)
+    ranges = _damping_ranges(model, k, modes, positions,
+                             lowest_top=None if probe is None else probe.world_lowest_ratio)
     limits = _world_limits(integrator, omegas, ranges)
     w = int(np.lexsort((-omegas, limits))[0])  # the smallest step; among equals, the stiffest world
     omega, limit = float(omegas[w]), float(limits[w])
