@@ -242,6 +242,16 @@ def test_top_modes_refuse_what_they_cannot_follow(device):
         modal.top_modes(model, q, np.zeros_like(q), 0.0)
 
 
+def test_top_modes_growth_is_undefined_where_a_world_has_no_mode():
+    """A world whose state was not finite, or torn apart (no stiffness along its mode), has no growth: NaN,
+    not an error, so that a grid's other worlds are still judged."""
+    top = modal.TopModes(omega=np.array([np.nan, 200.0, np.nan]), zeta=np.array([np.nan, 0.002, np.nan]),
+                         shapes=np.zeros((3, 1, 3)))
+    growth = top.growth("midpoint", 1.0 / 960.0)
+    assert np.isnan(growth[[0, 2]]).all()
+    assert growth[1] == pytest.approx(st.spectral_radius("midpoint", 200.0 / 960.0, 0.002), rel=1e-15)
+
+
 @pytest.mark.parametrize("scene", ["hanging", "windy"])
 def test_frozen_growth_finds_the_runs_that_grow(device, scene):
     """The battery's cloth under midpoint at 1/960 s, 2 s runs at 0.93× and 1.07× its equilibrium's linear

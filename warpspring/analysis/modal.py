@@ -140,7 +140,8 @@ class TopModes:
 
     Attributes:
         omega: ω = √(xᵀ K x) [rad/s], shape [world_count], K = −∂F/∂x of the whole model's forces.
-        zeta: ζ = xᵀ D x / (2ω) [-], shape [world_count], D = −∂F/∂v.
+        zeta: ζ = xᵀ D x / (2ω) [-], shape [world_count], D = −∂F/∂v. Both NaN in a world whose state is not
+            finite or that has no stiffness along x (torn apart).
         shapes: x, the top mode of the springs' tangent stiffness, M-orthonormal (xᵀ M x = 1) [m/√kg], shape
             [world_count, particle_count, 3], 0 on kinematic particles. NaN everywhere in a world whose state
             is not finite.
@@ -153,7 +154,7 @@ class TopModes:
     def growth(self, integrator: str, dt: float) -> np.ndarray:
         """Each world's top-mode growth factor per step ρ [-] under ``integrator`` at step ``dt`` [s], shape
         [world_count] (NaN where the state was not finite)."""
-        return np.array([spectral_radius(integrator, w * dt, z) if np.isfinite(w) else np.nan
+        return np.array([spectral_radius(integrator, w * dt, z) if np.isfinite(w) and np.isfinite(z) else np.nan
                          for w, z in zip(self.omega, self.zeta)])
 
 
@@ -215,7 +216,8 @@ def top_modes(model: Model, positions, velocities, time, *, control=None, starts
     along_x = -(forces(dx, 0.0) - forces(-dx, 0.0)) / (2.0 * reach)  # K x
     along_v = -(forces(0.0, dx) - forces(0.0, -dx)) / (2.0 * reach)  # D x
     omega = np.sqrt(np.maximum(np.einsum("wij,wij->w", shapes, along_x), 0.0))
-    zeta = np.einsum("wij,wij->w", shapes, along_v) / (2.0 * omega)
+    finite &= omega > 0.0  # a world torn apart: no stiffness along x
+    zeta = np.einsum("wij,wij->w", shapes, along_v) / (2.0 * np.where(finite, omega, 1.0))
     return TopModes(omega=np.where(finite, omega, np.nan), zeta=np.where(finite, zeta, np.nan), shapes=shapes)
 
 
