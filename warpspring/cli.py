@@ -160,9 +160,10 @@ def build_parser() -> argparse.ArgumentParser:
     stability.add_argument("--battery", nargs="*", metavar="SCENE",
                            help="also measure the advisor under load (analysis/load_battery.py): where the battery's "
                                 "cloth really blows up against what --strict passes, for the explicit integrators, "
-                                "in these scenes (hanging, forced, driven, windy, pulled; none named: all), and for the "
-                                "hanging and forced cloth the exact linear limit at their equilibrium, table in "
-                                "OUT/battery.md; --quick: one step per integrator, 6 worlds, 2 s runs, no linear limit")
+                                "in these scenes (hanging, forced, driven, windy, pulled; none named: all), and the "
+                                "linear limits (at the hanging and forced cloth's equilibrium; along every scene's "
+                                "runs), table in OUT/battery.md; --quick: one step per integrator, 6 worlds, 2 s runs, "
+                                "no linear limits")
     stability.set_defaults(handler=_cmd_stability)
     _add_ray_option(stability)
 

@@ -23,11 +23,15 @@ duration as its horizon). Bisection on ke, in
 parallel: a first grid of ``worlds`` stiffnesses from the limit the advisor finds at rest down by ``span``
 (loads only lower it) and up by span^¼, then a second over ±10 % around the two transitions found.
 
-Where the scene has a static equilibrium (``hanging``, ``forced``) a case can also carry its exact linear
-limit (:func:`linear_limit`): the stiffness from which the top mode of the cloth linearised there grows
-(dense float64, :mod:`.modal`). A run past it is unstable however slowly it grows, which 10 s runs do not
-always show (explicit Euler and midpoint grow their top modes only slowly); the case's limit is then the
-lower of the two.
+A run past its linear limit is unstable however slowly it grows, which 10 s runs do not always show (explicit
+Euler and midpoint grow their top modes only slowly), so a case can also carry two linear limits, and its
+limit is then the lowest of the three:
+
+* where the scene has a static equilibrium (``hanging``, ``forced``), the exact one (:func:`linear_limit`): the
+  stiffness from which the top mode of the cloth linearised there grows (dense float64, :mod:`.modal`);
+* in every scene, the smallest stiffness of the grids whose run does not blow up but whose top mode, frozen at
+  its states every ``sample_every`` frames of the run's second half, grows on average (:func:`frozen_growth`):
+  the measure for cloth that never comes to rest.
 """
 
 from __future__ import annotations
@@ -150,8 +154,8 @@ def frozen_growth(scene: str, integrator: str, dt: float, stiffness: np.ndarray,
     """Each world's top-mode growth per step, e^⟨log ρ⟩ [-], shape [len(stiffness)]: ρ of its top mode frozen
     at each of ``samples`` (:func:`.modal.top_modes`, float64 on the host), averaged on the log. Above 1 the
     top mode grows on average over the states the run passes through, slowly as it may: the adiabatic
-    measure of a run's linear instability where it has no equilibrium to linearise at. NaN where a sampled
-    state is not finite."""
+    measure of a run's linear instability where it has no equilibrium to linearise at. NaN for a world with a
+    sampled state that is not finite or torn apart."""
     model = battery_cloth(scene, stiffness, "cpu", precision="float64")
     control = battery_control(scene, model)
     logs, shapes = [], None
