@@ -392,3 +392,18 @@ def test_the_vbd_bench_reads_cost_at_equal_error_off_the_pareto_front():
     assert vbd.cost_at_error(points, 0.01) == pytest.approx(3.0)
     assert vbd.cost_at_error(points, 10**-2.5) == pytest.approx(30**0.5)
     assert vbd.cost_at_error(points, 0.5) is None and vbd.cost_at_error(points, 1e-4) is None
+
+
+def test_the_battery_plot_reads_every_case_of_the_raw_file():
+    """``plot_advisor_battery.read_rows`` on the committed battery results: the 45 cases of the two-grid battery
+    (explicit Euler at 1/480000 s is on fine grids only), none passed that blew up or grows, and every ratio to
+    the lowest limit within the 10 % the README states."""
+    import plot_advisor_battery as plot
+
+    rows = plot.read_rows(str(BENCH / "results" / "advisor_frozen_h100.md"))
+    assert len(rows) == 45
+    assert {r["scene"] for r in rows} == {"hanging", "forced", "driven", "windy", "pulled"}
+    assert all(r["passed but blew up"] == "0" and r.get("passed but grows", "0") == "0" for r in rows)
+    lowest = [float(r.get("ratio to the lowest", r["ratio"])) for r in rows]
+    assert 0.9 <= min(lowest) and max(lowest) <= 1.0
+    assert plot.stiffness("1.247e+04 N/m") == 12470.0 and np.isnan(plot.stiffness("none in the grids"))
