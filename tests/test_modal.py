@@ -279,6 +279,41 @@ def test_top_modes_growth_is_undefined_where_a_world_has_no_mode():
     assert growth[1] == pytest.approx(st.spectral_radius("midpoint", 200.0 / 960.0, 0.002), rel=1e-15)
 
 
+@pytest.mark.parametrize("low, high, grows", [(0.1, 1.3, True), (0.6, 1.6, False)])
+def test_the_kernels_follow_the_frozen_growth(device, low, high, grows):
+    """The measure behind :func:`load_battery.frozen_growth`, against the kernels, on a system whose top mode
+    changes along the run: a 0.1 kg particle hanging on a 400 N/m spring (no damper) in a drag that follows
+    a keyframe track between ``low`` and ``high`` × ζ*, midpoint's limit damping at ωh = 0.2, every 0.5 s. The
+    frozen ρ of its axial mode (``top_modes`` at each step's state and time) crosses 1 twice a cycle; over 3 s
+    the kernels' axial amplitude, started 1e-6 m from the equilibrium, changes by Π ρ to 1e-3 (measured 4e-5
+    and 2e-4), so it grows or decays as the mean of log ρ says, not as its peak or its trough."""
+    m, k, rest, g = 0.1, 400.0, 0.5, 9.81
+    omega = math.sqrt(k / m)
+    h = 0.2 / omega
+    zstar = modal.log_bisect(lambda z: st.spectral_radius("midpoint", 0.2, z) > 1.0, 1e-6, 0.1, 1e-9)
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, -g))
+    below = rest + m * g / k  # the equilibrium
+    builder.add_particles([[0.0, 0.0, 0.0], [0.0, 0.0, -below - 1e-6]], mass=m, pinned=[0])
+    builder.add_springs([[0, 1]], stiffness=k, rest_length=rest)
+    drag = [[2.0 * m * omega * f * zstar] for f in (low, high, low)]
+    builder.set_track("drag", ws.Track([0.0, 0.25, 0.5], drag, interpolation="smooth", extrapolation="cycle"))
+    model = builder.finalize(device, precision="float64")
+    integrator = ws.make_integrator("midpoint", model)
+    state, scratch = model.state(), model.state()
+    logs, growth = [], []
+    for _ in range(int(round(3.0 / h))):
+        top = modal.top_modes(model, state.particle_q.numpy(), state.particle_qd.numpy(), state.time.numpy())
+        growth.append(top.growth("midpoint", h)[0])
+        integrator.step(state, scratch, None, h)
+        state, scratch = scratch, state
+    assert min(growth) < 1.0 < max(growth)
+    x = state.particle_q.numpy()[1, 2] + below
+    measured = math.hypot(omega * x, state.particle_qd.numpy()[1, 2]) / (omega * 1e-6)
+    predicted = math.exp(np.log(growth).sum())
+    assert measured == pytest.approx(predicted, rel=1e-3)
+    assert (predicted > 1.0) == grows
+
+
 @pytest.mark.parametrize("scene", ["hanging", "windy"])
 def test_frozen_growth_finds_the_runs_that_grow(device, scene):
     """The battery's cloth under midpoint at 1/960 s, 2 s runs at 0.93× and 1.07× its equilibrium's linear
