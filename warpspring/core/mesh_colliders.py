@@ -225,10 +225,14 @@ class MeshCollider:
             depth, reach = MeshShape(vertices=np.array(self._bounds), faces=self.info.faces, sides=self.info.sides,
                                      depth=self.info.depth).query_range()
             self._range = (self._range[0], max(reach, self._range[1]))
-            _write_row(self.model.shape_arrays.size, self.index, (*self._range, 0.0))
-            _write_row(self.model.shape_arrays.lower, self.index, self._bounds[0])
-            _write_row(self.model.shape_arrays.upper, self.index, self._bounds[1])
+            self._write_box()
         self.model.input_version += 1
+
+    def _write_box(self) -> None:
+        """Write the box its points have swept and its query range to its rows of the model's shape arrays."""
+        _write_row(self.model.shape_arrays.size, self.index, (*self._range, 0.0))
+        _write_row(self.model.shape_arrays.lower, self.index, self._bounds[0])
+        _write_row(self.model.shape_arrays.upper, self.index, self._bounds[1])
 
     #: The names of a :meth:`snapshot`'s entries.
     SNAPSHOT = ("points", "velocities", "bounds", "range")
@@ -252,9 +256,7 @@ class MeshCollider:
         # set_points does not grow it.
         self._bounds, self._range = (bounds[0].copy(), bounds[1].copy()), (float(reach[0]), float(reach[1]))
         self.set_points(points, velocities=np.asarray(values["velocities"], dtype=np.float64))
-        _write_row(self.model.shape_arrays.size, self.index, (*self._range, 0.0))
-        _write_row(self.model.shape_arrays.lower, self.index, self._bounds[0])
-        _write_row(self.model.shape_arrays.upper, self.index, self._bounds[1])
+        self._write_box()
 
 
     @property
