@@ -103,25 +103,43 @@ def spring_tangent(model: Model, positions, *, world: int = 0) -> tuple:
     """The springs' tangent stiffness K [N/m] and their dampers' D [N·s/m] (module docstring) of ``world`` at
     ``positions`` [m] (that world's particles, shape [particle_count, 3]), ``scipy.sparse.csr_matrix`` [3n, 3n]
     each over every particle's coordinates, kinematic ones included. Linear springs only."""
-    if model.spring_material_law.per_spring:
-        raise ConfigError("the springs' tangent here is that of linear springs, not of non-linear spring laws: "
-                          "use the advisor (warpspring.analysis.stability.advise) for this model")
-    n = model.particle_count
-    q = np.asarray(positions, dtype=np.float64).reshape(n, 3)
-    stiffness = model.world_values("spring_stiffness")[world].astype(np.float64)
-    damping = model.world_values("spring_damping")[world].astype(np.float64)
-    rest = model.spring_rest_lengths()[world]
-    i, j = model.spring_indices.numpy().reshape(-1, 2).T
-    d = q[j] - q[i]
-    length = np.linalg.norm(d, axis=1)
-    acting = (rest >= 0.0) & (length > 0.0)  # broken or coincident springs carry nothing
-    unit = d[acting] / length[acting, None]
-    axial = unit[:, :, None] * unit[:, None, :]
-    across = np.maximum(1.0 - rest[acting] / length[acting], 0.0)
-    K = pair_block_matrix(n, i[acting], j[acting],
-                          stiffness[acting, None, None] * (axial + across[:, None, None] * (np.eye(3) - axial)))
-    D = pair_block_matrix(n, i[acting], j[acting], damping[acting, None, None] * axial)
-    return K, D
+    springs = _Springs(model)
+    return springs.stiffness_matrix(positions, world), springs.damping_matrix(positions, world)
+
+
+class _Springs:
+    """A model's linear springs as the host reads them once (ends, and each world's ke, kd and rest lengths), to
+    assemble their tangent stiffness and damping at any number of states."""
+
+    def __init__(self, model: Model):
+        if model.spring_material_law.per_spring:
+            raise ConfigError("the springs' tangent here is that of linear springs, not of non-linear spring laws: "
+                              "use the advisor (warpspring.analysis.stability.advise) for this model")
+        self.n = model.particle_count
+        self.i, self.j = model.spring_indices.numpy().reshape(-1, 2).T
+        self.ke = model.world_values("spring_stiffness").astype(np.float64)
+        self.kd = model.world_values("spring_damping").astype(np.float64)
+        self.rest = model.spring_rest_lengths()
+
+    def _axes(self, positions, world: int) -> tuple:
+        """(acting, their unit directions d̂ [s, 3], d̂d̂ᵀ [s, 3, 3], (1 - L/l)⁺ [s]) at ``positions``."""
+        q = np.asarray(positions, dtype=np.float64).reshape(self.n, 3)
+        rest = self.rest[world]
+        d = q[self.j] - q[self.i]
+        length = np.linalg.norm(d, axis=1)
+        acting = (rest >= 0.0) & (length > 0.0)  # broken or coincident springs carry nothing
+        unit = d[acting] / length[acting, None]
+        across = np.maximum(1.0 - rest[acting] / length[acting], 0.0)
+        return acting, unit[:, :, None] * unit[:, None, :], across
+
+    def stiffness_matrix(self, positions, world: int):
+        acting, axial, across = self._axes(positions, world)
+        blocks = self.ke[world, acting, None, None] * (axial + across[:, None, None] * (np.eye(3) - axial))
+        return pair_block_matrix(self.n, self.i[acting], self.j[acting], blocks)
+
+    def damping_matrix(self, positions, world: int):
+        acting, axial, _ = self._axes(positions, world)
+        return pair_block_matrix(self.n, self.i[acting], self.j[acting], self.kd[world, acting, None, None] * axial)
 
 
 def _check_world(model: Model, world: int) -> None:
@@ -188,16 +206,18 @@ def top_modes(model: Model, positions, velocities, time, *, control=None, starts
         raise ConfigError("top_modes follows the springs' top mode, with wind and handles along it; this model has "
                           f"{', '.join(others) if others else 'no springs'}")
     worlds, n = model.world_count, model.particle_count
+    springs = _Springs(model)
     q = np.asarray(positions, dtype=np.float64).reshape(worlds, n, 3)
     v = np.asarray(velocities, dtype=np.float64).reshape(worlds, n, 3)
     finite = np.isfinite(q).all(axis=(1, 2)) & np.isfinite(v).all(axis=(1, 2))
     free = np.repeat(free_particles(model), 3, axis=1)
     mass = np.repeat(model.world_values("particle_mass").astype(np.float64), 3, axis=1)
+    starts = None if starts is None else np.asarray(starts, dtype=np.float64).reshape(worlds, 3 * n)
     shapes = np.full((worlds, 3 * n), np.nan)
     for w in np.flatnonzero(finite):
         keep = free[w]
-        start = None if starts is None else np.asarray(starts, dtype=np.float64).reshape(worlds, 3 * n)[w, keep]
-        K, _ = spring_tangent(model, q[w], world=w)
+        start = None if starts is None else starts[w, keep]
+        K = springs.stiffness_matrix(q[w], w)
         shapes[w] = 0.0
         shapes[w, keep] = top_eigenpair(K[keep][:, keep], mass[w, keep],
                                         start=start if start is not None and np.isfinite(start).all() else None)[1]
