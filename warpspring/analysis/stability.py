@@ -951,7 +951,12 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
     mode = start.world_mode.copy()
     positions = np.array(start_positions, dtype=np.float64).reshape(worlds, n, 3)
     peak_time = np.zeros(worlds)
-    lowest = top_mode_ratios(model, k, list(mode), positions) if lowest_ratio else None
+    ratio_arrays = _ratio_arrays(model) if lowest_ratio else None  # read once, not at every re-estimate
+
+    def ratios(x: np.ndarray, q: np.ndarray) -> np.ndarray:
+        return _top_mode_ratios(_tangent_stiffness(model, k, q.reshape(-1, 3)), ratio_arrays, list(x), q)
+
+    lowest = ratios(mode, positions) if lowest_ratio else None
     bound = _gershgorin(model, k, free_particles(model))
     safe = _world_limits("velocity_verlet", bound, _damping_ranges(model, k, [None] * worlds, model.particle_q))
     safe = float(safe[bound > 0.0].min()) if (bound > 0.0).any() else math.inf
@@ -995,7 +1000,7 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
             x = iteration.x.numpy().astype(np.float64).reshape(worlds, n, 3)
             positions[higher], mode[higher], peak_time[higher], peak[higher] = q[higher], x[higher], sim.time, omega[higher]
             if lowest_ratio:
-                lowest = np.fmin(lowest, top_mode_ratios(model, k, list(x), q))
+                lowest = np.fmin(lowest, ratios(x, q))
     return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), sim.time, sim.dt, finite, lowest)
 
 
@@ -1150,7 +1155,8 @@ def _damping_ranges(model: Model, stiffness: np.ndarray, modes: list, positions:
     q_all = q_all.reshape(worlds, n, 3)
     extra = sum((family.damping_rates(model, q_all) for family in model.extra_families),
                 np.zeros((worlds, n)))
-    tops = top_mode_ratios(model, stiffness, modes, q_all)
+    rest_all = model.spring_rest_length.numpy().astype(np.float64)
+    tops = _top_mode_ratios(k_all, (free, kd_all, ends, rest_all), modes, q_all)
     if lowest_top is not None:
         tops = np.fmin(tops, lowest_top)
     ranges = []
@@ -1187,15 +1193,25 @@ def top_mode_ratios(model: Model, stiffness, modes: list, positions) -> np.ndarr
     tangent stiffness (transverse part clamped, as in the kernels), D their axial dampers. Explicit Euler's
     step limit for that mode is this ratio itself (h* = 2ζ/ω). NaN where ``modes[w]`` is ``None`` or no
     stretched direction carries stiffness. Shape [world_count]."""
-    worlds, n = model.world_count, model.particle_count
-    free = free_particles(model)
-    q_all = np.asarray(positions, dtype=np.float64).reshape(worlds, n, 3)
+    q_all = np.asarray(positions, dtype=np.float64).reshape(model.world_count, model.particle_count, 3)
     k_all = _tangent_stiffness(model, _stiffness_values(model, stiffness), q_all.reshape(-1, 3))
-    kd_all = model.world_values("spring_damping")
-    ends = model.spring_indices.numpy().reshape(-1, 2)
-    rest_all = model.spring_rest_length.numpy().astype(np.float64)
-    tops = np.full(worlds, np.nan)
-    for w in range(worlds):
+    return _top_mode_ratios(k_all, _ratio_arrays(model), modes, q_all)
+
+
+def _ratio_arrays(model: Model) -> tuple:
+    """What :func:`top_mode_ratios` reads of a model besides the stiffness and the state: (free particles
+    [world_count, particle_count], kd [world_count, spring_count], spring ends [spring_count, 2], rest lengths
+    [spring_count]), from the device."""
+    return (free_particles(model), model.world_values("spring_damping"),
+            model.spring_indices.numpy().reshape(-1, 2), model.spring_rest_length.numpy().astype(np.float64))
+
+
+def _top_mode_ratios(k_all: np.ndarray, arrays: tuple, modes: list, q_all: np.ndarray) -> np.ndarray:
+    """:func:`top_mode_ratios` from the tangent stiffness ``k_all`` [world_count, spring_count] and
+    :func:`_ratio_arrays`."""
+    free, kd_all, ends, rest_all = arrays
+    tops = np.full(len(q_all), np.nan)
+    for w in range(len(q_all)):
         k, kd = k_all[w], kd_all[w]
         acting = (k > 0.0) & free[w][ends].any(axis=1)
         if modes[w] is None or not acting.any():
