@@ -12,37 +12,6 @@ Typical use::
     sim.step_frame()
 """
 
-import importlib.util as _importlib_util
-import pathlib as _pathlib
-import sys as _sys
-
-
-def _bind_kernels() -> None:
-    """Make ``warpspring.kernels`` the ``kernels/`` of this very copy of the package.
-
-    An installed wheel carries it as ``warpspring/kernels/``; a source checkout keeps it beside the
-    package (``<checkout>/kernels``), which an editable install maps by name. That mapping names one
-    checkout, so a second checkout run from its own directory would silently load the first one's
-    kernels: bind the sibling folder explicitly before anything imports it.
-    """
-    here = _pathlib.Path(__file__).resolve().parent
-    if (here / "kernels" / "__init__.py").is_file():
-        return  # an installed wheel (or a link to the sibling): the ordinary import finds it
-    sibling = here.parent / "kernels"
-    init = sibling / "__init__.py"
-    if not init.is_file():
-        raise ImportError(
-            f"warpspring's kernels are missing: neither {here / 'kernels'} nor {sibling} exists; "
-            "reinstall with `python -m pip install -e .` from the checkout"
-        )
-    spec = _importlib_util.spec_from_file_location(__name__ + ".kernels", init, submodule_search_locations=[str(sibling)])
-    module = _importlib_util.module_from_spec(spec)
-    _sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-
-
-_bind_kernels()
-
 from .core.bending import DihedralMaterial
 from .core.builder import ModelBuilder, SpringMaterial
 from .core.springs import SPRING_LAWS, SpringPlasticity
