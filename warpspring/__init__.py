@@ -40,8 +40,11 @@ from .core.handles import HandleFamily
 from .core.kinematics import PinGroup
 from .core.material import ClothMaterial
 from .core.memory import MemoryEstimate, available_memory, estimate_memory
-from .core.model import Control, MeshGroup, Model, ShapeInfo, Stabilizers, State
-from .core.model import SkinGroup
+from .core.model import Model
+from .core.state import State
+from .core.control import Control
+from .core.records import MeshGroup, ShapeInfo, Stabilizers
+from .core.records import SkinGroup
 from .core.softbody import SoftBody
 from .core.simulator import Simulator
 from .core.stepper import StepHook, Stepper

@@ -45,7 +45,8 @@ from .. import checks
 from ..core.builder import ModelBuilder, SpringMaterial
 from ..core.guards import GuardLimits
 from ..core.integrators import make_integrator
-from ..core.model import Control, Model
+from ..core.model import Model
+from ..core.control import Control
 from ..core.simulator import Simulator
 from ..core.tracks import Track
 from ..core.transforms import quat_from_axis_angle

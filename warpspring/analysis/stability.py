@@ -96,7 +96,8 @@ from ..kernels.flatten import flat_launch
 from ..kernels.linalg import reduce_lanes, reduce_launch_dim, sum_partials_kernel
 from ..kernels.stability import (PI_LAMBDA, PI_PARTIALS, PI_RESIDUAL, PI_SCALARS, PI_XKX,
                                  power_iteration_kernels)
-from ..core.model import Model, State
+from ..core.model import Model
+from ..core.state import State
 from ..core.springs import SPRING_LAWS, SpringFamily, spring_law_codes
 
 #: Estimates of ω_max (see :func:`advise`).

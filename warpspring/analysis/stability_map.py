@@ -58,7 +58,8 @@ from ..errors import ConfigError
 from ..core.forces import eval_forces
 from ..core.integrators import INTEGRATORS, ImplicitEuler, Integrator
 from ..kernels.stability import spring_motion_kernel
-from ..core.model import Model, State
+from ..core.model import Model
+from ..core.state import State
 from ..core.stepper import StepHook, Stepper
 from .stability import advise, free_particles, network_stable_step, stable_omega_h, world_dynamic_inv_mass
 

@@ -53,7 +53,8 @@ from ..checks import format_duration
 from ..errors import ConfigError, SimulationError
 from ..core.integrators import INTEGRATORS, Integrator, make_integrator
 from .stability import estimate_omega_max
-from ..core.model import Control, Model
+from ..core.model import Model
+from ..core.control import Control
 from ..core.stepper import StepHook, Stepper
 
 #: A run whose position error exceeds this many times the problem's length scale has blown up.

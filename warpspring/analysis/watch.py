@@ -28,7 +28,8 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError, StabilityWarning
 from ..kernels.stability import PI_LAMBDA
-from ..core.model import Model, State
+from ..core.model import Model
+from ..core.state import State
 from .stability import Advice, PowerIteration, _stiffness_values, advise, free_particles
 
 #: Default frames between re-checks.

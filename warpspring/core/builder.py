@@ -30,7 +30,8 @@ from .handles import HandleFamily, make_handle
 from .hinges import dihedral_angle, mesh_hinges
 from .kinematics import PinGroup, PinGroupTable
 from .material import ClothMaterial, edge_springs, grid_masses, grid_springs, hinge_parameters, lumped_masses
-from .model import MeshGroup, Model, ShapeInfo, SkinGroup, Stabilizers
+from .model import Model
+from .records import MeshGroup, ShapeInfo, SkinGroup, Stabilizers
 from .selfcontact import DEFAULT_RELAXATION, check_settings, make_self_contact
 from .springs import SPRING_LAWS, SpringPlasticity, set_spring_layout, spring_law_code
 from ..kernels.springs import SpringLaw
@@ -943,7 +944,7 @@ class ModelBuilder:
         The topology, its springs' stiffness from E and the particles' volume shares come from
         :mod:`warpspring.core.softbody` (where each method and each E → k mapping is stated). The mesh as
         authored (its faces, UVs, face sets) is exported as a USD mesh whose vertices follow the particles
-        through the method's embedding weights (:class:`~warpspring.core.model.SkinGroup`).
+        through the method's embedding weights (:class:`~warpspring.core.records.SkinGroup`).
 
         Args:
             mesh: a ``trimesh.Trimesh``, a file trimesh reads (OBJ, STL, PLY, GLB, ...) or a USD file (``prim``

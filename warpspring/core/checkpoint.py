@@ -5,7 +5,7 @@ uninterrupted run would on the same device.
 A checkpoint holds NumPy copies of device arrays, in their own dtypes (float32 or float64 bits as they
 are), under names grouped by owner:
 
-* ``state/``: the current :class:`~warpspring.core.model.State`: ``particle_q`` [m], ``particle_qd`` [m/s],
+* ``state/``: the current :class:`~warpspring.core.state.State`: ``particle_q`` [m], ``particle_qd`` [m/s],
   ``particle_f`` [N] (each shape [world_count · particle_count, 3]) and ``time`` [s] (float64, shape
   [world_count]: each world's clock, at which keyframe tracks and driven pins are evaluated);
 * ``integrator/``: the integrator's :meth:`~warpspring.core.integrators.Integrator.persistent_arrays`
@@ -50,7 +50,7 @@ import warp as wp
 from ..errors import ConfigError
 from ..kernels.inputs import INPUTS
 from .guards import GuardReport
-from .model import Stabilizers
+from .records import Stabilizers
 
 if TYPE_CHECKING:
     from .simulator import Simulator

@@ -15,7 +15,8 @@ from .contacts import Contacts, apply_contacts, collide_positions, empty_contact
 from .contacts import apply_triangle_contacts
 from ..kernels.constraints import finish_step_kernel, strain_limit_kernel
 from ..kernels.springs import spring_plastic_kernel
-from .model import Model, State
+from .model import Model
+from .state import State
 from .tracks import evaluate_input_tracks
 from ..kernels.flatten import flat_launch
 

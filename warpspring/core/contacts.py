@@ -28,7 +28,8 @@ from ..kernels.contacts import (
 )
 from .. import checks
 from ..errors import ConfigError
-from .model import Model, State
+from .model import Model
+from .state import State
 from ..kernels.flatten import flat_launch
 from ..kernels.triangle_contacts import TRIANGLE_KINDS, triangle_gather_kernel, triangle_push_kernel
 from ..kernels.contacts import ContactFeatures

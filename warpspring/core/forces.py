@@ -9,7 +9,9 @@ import warp as wp
 
 from ..kernels.forces import clamp_forces_kernel, eval_forces_kernel
 from ..kernels.springs import spring_scatter_kernel
-from .model import Control, Model, State
+from .model import Model
+from .state import State
+from .control import Control
 from .tracks import evaluate_input_tracks
 from ..kernels.flatten import flat_launch
 

@@ -62,7 +62,8 @@ from ..kernels.families import elements, fill_elements
 from ..kernels.flatten import flat_launch
 from ..kernels.linalg import reduce_lanes, reduce_launch_dim
 from .families import world_elastic_energy
-from .model import Model, State
+from .model import Model
+from .state import State
 from .stepper import StepHook
 from .tracks import evaluate_input_tracks
 

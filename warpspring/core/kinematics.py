@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from ..errors import ConfigError
 from ..kernels.kinematics import NO_GROUP, PinGroups, PinTargets, kinematics_kernel
 from .tracks import Track
 
@@ -198,3 +199,13 @@ def apply_kinematics(model, control, state_in, q_out: wp.array, qd_out: wp.array
         outputs=[q_out, qd_out],
         device=model.device,
     )
+
+
+def pin_group_index(pins: PinGroupTable | None, group) -> int:
+    """The index of pin ``group`` (an index or a name) in ``pins``, or a ConfigError saying what exists."""
+    if pins is None:
+        raise ConfigError("the model has no pin groups: add one with ModelBuilder.add_pin_group(particles)")
+    try:
+        return pins.group_index(group)
+    except KeyError as exc:
+        raise ConfigError(str(exc.args[0])) from None

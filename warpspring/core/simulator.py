@@ -17,7 +17,9 @@ from .emitters import EmitterHook
 from .mesh_colliders import advance_mesh_colliders
 from .guards import Guard, GuardLimits
 from .integrators import Integrator, SymplecticEuler
-from .model import Control, Model, State
+from .model import Model
+from .state import State
+from .control import Control
 from .stepper import Stepper
 
 

@@ -759,7 +759,7 @@ class SoftBody:
         method: the topology (one of :data:`METHODS`).
         particles: global indices of its particles, shape [n], consecutive.
         springs: group name -> global indices of its springs (family ``<name>_<group>``).
-        skin: the embedded surface (:class:`~warpspring.core.model.SkinGroup`), in global particle indices.
+        skin: the embedded surface (:class:`~warpspring.core.records.SkinGroup`), in global particle indices.
         stiffness_rule: how E was mapped to ke, in words.
         youngs_modulus: E [Pa].
         mass: total mass [kg].

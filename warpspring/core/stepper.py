@@ -21,7 +21,9 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError
 from .integrators import Integrator
-from .model import Control, Model, State, check_compatible
+from .model import Model
+from .state import State, check_compatible
+from .control import Control
 
 
 class StepHook:

@@ -83,7 +83,8 @@ from ..core.springs import SpringPlasticity
 from ..errors import ConfigError
 from ..core.guards import GuardLimits
 from ..core.integrators import INTEGRATORS
-from ..core.model import MAX_CONTACT_SLOTS, STABILIZER_INPUTS, Model, Stabilizers
+from ..core.model import Model
+from ..core.records import MAX_CONTACT_SLOTS, STABILIZER_INPUTS, Stabilizers
 from ..core.tracks import EXTRAPOLATIONS, INTERPOLATIONS, Track
 from ..core.transforms import quat_from_axis_angle
 

@@ -73,7 +73,9 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError, OutputError, SimulationError, os_error_reason
 from ..kernels.geometry import vertex_normal_kernel
-from ..core.model import PARTICLE_KINEMATIC, Model, State
+from ..core.model import Model
+from ..kernels.kinematics import PARTICLE_KINEMATIC
+from ..core.state import State
 from ..core.transforms import quat_to_matrix
 
 _EXTENSIONS = (".usdc", ".usda", ".usd")

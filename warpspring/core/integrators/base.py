@@ -9,7 +9,9 @@ import warp as wp
 
 from ...kernels.worlds import hold_worlds_kernel
 from ..constraints import StepFinisher
-from ..model import Control, Model, State
+from ..model import Model
+from ..state import State
+from ..control import Control
 
 
 def step_arguments(scalar: type, dt: float) -> tuple:

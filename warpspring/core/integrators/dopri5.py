@@ -34,7 +34,9 @@ from ...kernels.integrators import (
 )
 from ...kernels.linalg import reduce_lanes, reduce_launch_dim
 from ..forces import eval_forces
-from ..model import Control, Model, State
+from ..model import Model
+from ..state import State
+from ..control import Control
 from .runge_kutta import ExplicitRungeKutta
 
 

@@ -39,7 +39,9 @@ from ...kernels.linalg import (
 from ...kernels.precision import mat33_type
 from ..forces import eval_forces
 from ..kinematics import apply_kinematics
-from ..model import Control, Model, State
+from ..model import Model
+from ..state import State
+from ..control import Control
 from .base import Integrator, step_arguments, write_setting
 from ...kernels.flatten import flat_launch
 

@@ -18,7 +18,9 @@ import warp as wp
 from ...kernels.integrators import rk_combine_kernel
 from ..forces import eval_forces
 from ..kinematics import apply_kinematics
-from ..model import Control, Model, State
+from ..model import Model
+from ..state import State
+from ..control import Control
 from .base import Integrator
 
 

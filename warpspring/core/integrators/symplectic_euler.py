@@ -10,7 +10,8 @@ from ...kernels.contacts import NO_CONTACTS
 from ..contacts import update_shape_frames
 from ..forces import eval_forces, force_inputs
 from ..kinematics import apply_kinematics
-from ..model import Control, State
+from ..state import State
+from ..control import Control
 from ..tracks import evaluate_input_tracks
 from .base import Integrator, step_arguments
 from ...kernels.flatten import flat_launch
