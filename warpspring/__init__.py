@@ -53,7 +53,7 @@ from .analysis.stability import Advice, TransientPeak, advise, transient_peak
 from .analysis.watch import StabilityWatch
 from .core.transforms import quat_from_axis_angle
 
-__version__ = "0.1.0"
+from .version import __version__  # noqa: F401  (the package's version, warpspring.__version__)
 
 __all__ = [
     "INTEGRATORS",

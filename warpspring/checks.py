@@ -7,6 +7,7 @@ import math
 import os
 
 import numpy as np
+import warp as wp
 
 from .errors import ConfigError
 
@@ -81,3 +82,17 @@ def identifier(name: str, value) -> str:
         raise ConfigError(f"{name} must be a name of letters, digits and _ that does not start with a digit "
                           f"(it names a USD prim), got {value!r}")
     return value
+
+
+def device(name: str | None):
+    """The Warp device called ``name`` (None: Warp's default), or a ConfigError listing those present."""
+    if name is None:
+        return wp.get_device()
+    try:
+        device = wp.get_device(name)
+    except (RuntimeError, ValueError):
+        device = None
+    if device is None:
+        found = ", ".join(d.alias for d in wp.get_devices())
+        raise ConfigError(f"device {name!r} is not available; this machine has: {found}")
+    return device

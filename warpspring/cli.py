@@ -312,14 +312,13 @@ def _cmd_render(args) -> int:
 def _cmd_trade(args) -> int:
     import warp as wp
 
-    from .io.runner import resolve_device
     from .analysis.trade import FULL, QUICK, convergence_orders, run_study
     from .analysis.trade_report import write_report
 
     checks.output_dir(args.out)  # fail before the study runs, not after
     pyplot("the trade plots")
     wp.config.log_level = wp.LOG_WARNING
-    device = resolve_device(args.device)
+    device = checks.device(args.device)
     engine = _study_engine(args)
     study = run_study(
         device,
@@ -361,7 +360,6 @@ def _cmd_stability(args) -> int:
 
     import warp as wp
 
-    from .io.runner import resolve_device
     from .analysis.stability_map import FULL, QUICK, run_map
     from .analysis.stability_map_report import to_markdown, write_report
 
@@ -379,7 +377,7 @@ def _cmd_stability(args) -> int:
     started = time.perf_counter()
     engine = _study_engine(args)
     on_ray = {} if engine is None else {"engine": engine}
-    result = run_map(QUICK if args.quick else FULL, resolve_device(args.device), integrators=args.integrators, **on_ray)
+    result = run_map(QUICK if args.quick else FULL, checks.device(args.device), integrators=args.integrators, **on_ray)
     if engine is not None:
         engine.close()
     paths = write_report(result, args.out)
@@ -391,7 +389,7 @@ def _cmd_stability(args) -> int:
     for line in stability_summary(result):
         print(line)
     if args.battery is not None:
-        paths.append(_battery(args, resolve_device(args.device)))
+        paths.append(_battery(args, checks.device(args.device)))
     print(f"full report: {report}; also wrote {', '.join(p for p in paths if p != report)} "
           f"in {time.perf_counter() - started:.1f} s")
     return 0

@@ -68,6 +68,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import checks
 from ..errors import ConfigError, SimulationError
 
 #: The sweep file's format; part of every variant's hash, so results of another format are not reused.
@@ -675,10 +676,9 @@ def _run_worlds(variants, scene_path: str, settings: RunSettings) -> BatchOutput
 
     from ..core.integrators import make_integrator
     from ..core.simulator import Simulator
-    from ..io.runner import resolve_device
 
     t0 = time.perf_counter()
-    device = resolve_device(settings.device)
+    device = checks.device(settings.device)
     model, scenes = _batched_model(variants, scene_path, device)
     scene = scenes[0]
     n, worlds = model.particle_count, len(variants)

@@ -48,6 +48,7 @@ import numpy as np
 import warp as wp
 
 from ..errors import ConfigError
+from ..version import __version__
 from ..kernels.inputs import INPUTS
 from .guards import GuardReport
 from .records import Stabilizers
@@ -140,8 +141,6 @@ class Checkpoint:
     @classmethod
     def capture(cls, sim: Simulator) -> Checkpoint:
         """Copy everything ``sim`` needs to go on from its current frame (reads the device: synchronises)."""
-        from .. import __version__
-
         model = sim.model
         arrays = {name: array.numpy().copy() for name, array in live_arrays(sim).items()}
         arrays.update(collider_arrays(model))

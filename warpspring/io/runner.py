@@ -110,20 +110,6 @@ class RunSummary:
         )
 
 
-def resolve_device(name: str | None):
-    """The Warp device called ``name`` (None: Warp's default), or a ConfigError listing those present."""
-    if name is None:
-        return wp.get_device()
-    try:
-        device = wp.get_device(name)
-    except (RuntimeError, ValueError):
-        device = None
-    if device is None:
-        found = ", ".join(d.alias for d in wp.get_devices())
-        raise ConfigError(f"device {name!r} is not available; this machine has: {found}")
-    return device
-
-
 def checkpoint_path(output: str) -> str:
     """Where ``run_scene(checkpoint_every=...)`` saves the checkpoints of a run writing ``output``: beside it,
     ``out.usdc`` → ``out.checkpoint.npz``."""
@@ -192,7 +178,7 @@ def run_scene(
     )
 
     t0 = time.perf_counter()
-    dev = resolve_device(device or scene.device)
+    dev = checks.device(device or scene.device)
     model = scene.finalize(dev)
     try:
         integrator = make_integrator(scene.integrator, model, **scene.integrator_options)

@@ -81,6 +81,7 @@ from ..core.builder import DEFAULT_BEND, DEFAULT_SHEAR, DEFAULT_STRUCTURAL, Mode
 from ..core.builder import spring_law_options
 from ..core.springs import SpringPlasticity
 from ..errors import ConfigError
+from ..version import __version__
 from ..core.guards import GuardLimits
 from ..core.integrators import INTEGRATORS
 from ..core.model import Model
@@ -823,8 +824,6 @@ def _format_version(data: dict, where: str) -> int:
         raise ConfigError(f"{where}: version must be an integer >= 1 (the scene format; this warpspring reads "
                           f"{reads}), got {version!r}")
     if version > SCENE_FORMAT_VERSION:
-        from .. import __version__
-
         raise ConfigError(f"{where}: scene format version {version} needs a newer warpspring: warpspring "
                           f"{__version__} reads {reads}; upgrade it (pip install --upgrade warpspring)")
     return version

@@ -72,6 +72,7 @@ import warp as wp
 
 from .. import checks
 from ..errors import ConfigError, OutputError, SimulationError, os_error_reason
+from ..version import __version__
 from ..kernels.geometry import vertex_normal_kernel
 from ..core.model import Model
 from ..kernels.kinematics import PARTICLE_KINEMATIC
@@ -490,8 +491,6 @@ class UsdWriter:
 
     def _stage_metadata(self, layer, *, end: float) -> None:
         """Author what DCC tools need to play the file (USD's fallbacks are wrong for simulation caches)."""
-        from .. import __version__
-
         layer.defaultPrim = "World"
         layer.pseudoRoot.SetInfo("upAxis", self.model.up_axis)
         layer.pseudoRoot.SetInfo("metersPerUnit", 1.0)
