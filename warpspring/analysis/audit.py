@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import ConfigError
+
 
 def surface_edges(triangles: np.ndarray) -> np.ndarray:
     """The unique edges [edge_count, 2] (sorted ends) of ``triangles`` [triangle_count, 3]."""
@@ -297,9 +299,7 @@ def audit_usd(path: str, *, reach: float | None = None) -> UsdAudit:
     """
     import os
 
-    from pxr import Tf, Usd, UsdGeom
-
-    from ..errors import ConfigError
+    from pxr import Tf, Usd, UsdGeom  # optional: usd-core, loaded only for an audit
 
     if not os.path.isfile(path):
         raise ConfigError(f"USD file not found: {path}")

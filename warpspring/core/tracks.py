@@ -16,6 +16,7 @@ import numpy as np
 import warp as wp
 
 from ..errors import ConfigError
+from ..kernels.inputs import INPUTS
 from ..kernels.tracks import (
     EXTRAPOLATE_CYCLE,
     EXTRAPOLATE_HOLD,
@@ -155,8 +156,6 @@ class Track:
 def input_track(name: str, track: Track | None) -> Track | None:
     """``track`` checked as a keyframe track of the live input ``name`` (see ``kernels.inputs.INPUTS``;
     ``None`` passes once the name is checked), or a ConfigError naming the inputs or the expected width."""
-    from ..kernels.inputs import INPUTS
-
     if name not in INPUTS:
         raise ConfigError(f"there is no live input {name!r} to animate; inputs: {', '.join(INPUTS)}")
     return None if track is None else as_track(name, track, INPUTS[name][1])
