@@ -39,7 +39,7 @@ def test_a_cloth_stiffening_under_load_is_warned_before_it_blows_up(device):
 def test_a_run_inside_its_limit_is_not_warned(device):
     """The same cloth at 10 substeps (a tenth of the step) sags to the same state without a warning; the
     watch's ω_max there agrees with the advisor linearised about the frame's state within 1 %."""
-    from warpspring.analysis.stability import estimate_omega_max
+    from warpspring.analysis.omega import estimate_omega_max
 
     sim, found = _run(device, 480.0, frames=30, substeps=10)
     assert not found

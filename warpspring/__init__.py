@@ -49,7 +49,8 @@ from .core.softbody import SoftBody
 from .core.simulator import Simulator
 from .core.stepper import StepHook, Stepper
 from .core.tracks import Track
-from .analysis.stability import Advice, TransientPeak, advise, transient_peak
+from .analysis.advisor import Advice, advise
+from .analysis.under_load import TransientPeak, transient_peak
 from .analysis.watch import StabilityWatch
 from .core.transforms import quat_from_axis_angle
 

@@ -1,5 +1,5 @@
 """Dense float64 modal analysis of a spring network linearised at a state of rest: the exact reference the
-advisor (:mod:`.stability`) is measured against. Dense eigenproblems cost O(n³) in the free coordinates,
+advisor (:mod:`.advisor`) is measured against. Dense eigenproblems cost O(n³) in the free coordinates,
 so this is for models of a few thousand free coordinates at most.
 
 About positions x* where the model is at rest (a static equilibrium, say), small motions obey
@@ -25,7 +25,8 @@ import numpy as np
 
 from ..core.model import Model
 from ..errors import ConfigError
-from .stability import free_particles, pair_block_matrix, spectral_radius, step_matrix, top_eigenpair
+from .omega import free_particles, pair_block_matrix, top_eigenpair
+from .stability import spectral_radius, step_matrix
 
 
 @dataclass(frozen=True)
@@ -86,7 +87,7 @@ def linearise(model: Model, positions, *, world: int = 0) -> Linearisation:
     others = [f.name for f in model.families if f.name != "springs"]
     if others:
         raise ConfigError(f"the dense linearisation covers linear springs and drag, not {', '.join(others)}: "
-                          "use the advisor (warpspring.analysis.stability.advise) for this model, or top_modes "
+                          "use the advisor (warpspring.analysis.advisor.advise) for this model, or top_modes "
                           "for its springs' top mode")
     _check_world(model, world)
     n = model.particle_count
@@ -114,7 +115,7 @@ class _Springs:
     def __init__(self, model: Model):
         if model.spring_material_law.per_spring:
             raise ConfigError("the springs' tangent here is that of linear springs, not of non-linear spring laws: "
-                              "use the advisor (warpspring.analysis.stability.advise) for this model")
+                              "use the advisor (warpspring.analysis.advisor.advise) for this model")
         self.n = model.particle_count
         self.i, self.j = model.spring_indices.numpy().reshape(-1, 2).T
         self.ke = model.world_values("spring_stiffness").astype(np.float64)

@@ -30,7 +30,8 @@ from ..errors import ConfigError, StabilityWarning
 from ..kernels.stability import PI_LAMBDA
 from ..core.model import Model
 from ..core.state import State
-from .stability import Advice, PowerIteration, _stiffness_values, advise, free_particles
+from .advisor import Advice, advise
+from .omega import PowerIteration, _stiffness_values, free_particles
 
 #: Default frames between re-checks.
 WATCH_EVERY = 10

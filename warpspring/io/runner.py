@@ -14,7 +14,8 @@ from ..core.integrators import make_integrator
 from .scene import Scene, check_run_settings
 from ..core.mesh_colliders import mesh_cache_counts
 from ..core.simulator import Simulator
-from ..analysis.stability import diagnose
+from ..analysis.advisor import advise, diagnose
+from ..analysis.under_load import PROBE_HORIZON
 from ..analysis.watch import WATCH_EVERY
 
 
@@ -288,7 +289,7 @@ def run_scene(
 
 def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = False, control=None,
               horizon: float | None = None):
-    """The stability advisor's verdict on a run (:func:`warpspring.analysis.stability.advise`): ω_max at the
+    """The stability advisor's verdict on a run (:func:`warpspring.analysis.advisor.advise`): ω_max at the
     static equilibrium under the run's loads (gravity, ``control``'s external force) when any act, and at
     its peak over a dry run of the scene up to ``horizon`` [s] (the run's duration; default
     ``PROBE_HORIZON``) when the model moves by itself.
@@ -302,8 +303,6 @@ def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = F
     Raises:
         ConfigError: with ``strict``, when ``dt`` is outside the integrator's stability limit.
     """
-    from ..analysis.stability import PROBE_HORIZON, advise
-
     return advise(model, integrator, dt, fps=fps, strict=strict, control=control,
                   horizon=PROBE_HORIZON if horizon is None else horizon, omega_estimate=_omega_estimate(model))
 
