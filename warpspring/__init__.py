@@ -46,7 +46,7 @@ from .core.control import Control
 from .core.records import MeshGroup, ShapeInfo, Stabilizers
 from .core.records import SkinGroup
 from .core.softbody import SoftBody
-from .core.simulator import Simulator
+from .core.simulator import FrameHook, Simulator
 from .core.stepper import StepHook, Stepper
 from .core.tracks import Track
 from .analysis.advisor import Advice, advise
@@ -89,6 +89,7 @@ __all__ = [
     "ShapeInfo",
     "SimulationError",
     "Simulator",
+    "FrameHook",
     "StabilityWarning",
     "StabilityWatch",
     "Stabilizers",
