@@ -22,7 +22,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import warp as wp
 
+from ..core.forces import eval_forces
 from ..core.model import Model
 from ..errors import ConfigError
 from .omega import free_particles, pair_block_matrix, top_eigenpair
@@ -195,10 +197,6 @@ def top_modes(model: Model, positions, velocities, time, *, control=None, starts
         starts: earlier ``shapes`` to start each world's Lanczos from (a sequence of nearby states).
         step: the largest displacement [m] (and velocity change [m/s]) of a coordinate in the differences.
     """
-    import warp as wp
-
-    from ..core.forces import eval_forces
-
     if model.scalar is not wp.float64:
         raise ConfigError("top_modes differentiates the model's forces, which needs float64: build the model with "
                           "precision='float64'")
