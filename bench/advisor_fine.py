@@ -14,7 +14,7 @@ import numpy as np
 import warp as wp
 
 from warpspring.analysis import load_battery as lb
-from warpspring.analysis.stability import advise
+from warpspring.analysis.advisor import advise
 
 from cloth import emit_table
 

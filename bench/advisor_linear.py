@@ -23,7 +23,7 @@ import warp as wp
 from warpspring.analysis.load_battery import (EXPLICIT, FPS, STATIC_SCENES, STEPS, battery_cloth, battery_control,
                                               linear_limit, linearised)
 from warpspring.analysis.modal import log_bisect
-from warpspring.analysis.stability import advise
+from warpspring.analysis.advisor import advise
 
 from cloth import emit_table
 

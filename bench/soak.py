@@ -65,7 +65,8 @@ def device_bytes(device) -> int:
 
 def soak(device, steps: int, every: int):
     model = driven_cloth(device)
-    sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, watch=10)
+    sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS)
+    ws.StabilityWatch.attach(sim, every=10)
     frames = steps // SUBSTEPS
     tracemalloc.start()
     rows = []

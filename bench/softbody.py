@@ -143,7 +143,7 @@ def drop(device, usd_path: str | None, *, methods=None, volume: bool = False, bu
     if dt is None:
         dt = min([gershgorin_step(body) for body in bodies if body.spring_count] or [np.inf])
         if volume or elasticity == "neohookean":
-            from warpspring.analysis.stability import gershgorin_omega_max
+            from warpspring.analysis.omega import gershgorin_omega_max
 
             dt = min(dt, 0.5 * 2.0 / gershgorin_omega_max(model))
     integrator = ws.make_integrator(integrator, model)
@@ -347,7 +347,7 @@ def elasticity_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int 
     tetrahedral ball built once: fTetWild is not repeatable), resting on the ground, ``substeps`` symplectic Euler
     steps of 0.1 ms per timing (one CUDA graph on a GPU), the models alternating for ``rounds`` rounds; median µs
     per substep, and each model's Gershgorin step limit 2/ω (the advisor's bound over every family)."""
-    from warpspring.analysis.stability import gershgorin_omega_max
+    from warpspring.analysis.omega import gershgorin_omega_max
     from warpspring.core.neohookean import NeoHookeanFamily
 
     ball = trimesh.load(BALL, force="mesh", process=False)

@@ -15,7 +15,7 @@ import pytest
 
 import warpspring as ws
 from helpers import ZERO_GRAVITY
-from warpspring.analysis.stability import advise
+from warpspring.analysis.advisor import advise
 
 FRAMES = 20
 

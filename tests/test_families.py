@@ -157,7 +157,7 @@ def test_a_family_from_a_test_module_in_energy_and_advisor(device):
     model = tethered_particle(device, mass=mass, k=k, amplitude=amplitude)
     family = model.families[0]
     np.testing.assert_allclose(element_energies(model, family), [[0.5 * k * amplitude**2]], rtol=1e-5)
-    estimate = ws.analysis.stability.estimate_omega_max(model)
+    estimate = ws.analysis.omega.estimate_omega_max(model)
     assert estimate.omega_max == pytest.approx(math.sqrt(k / mass), rel=1e-4)
     assert estimate.gershgorin == pytest.approx(math.sqrt(k / mass), rel=1e-6)
 
@@ -233,7 +233,7 @@ def test_hinge_advisor_frequency_is_the_linearised_one(device):
     Gershgorin bound is above it)."""
     ke, mass = 0.02, 0.01
     model, r = hinge_pair(device, ke=ke, mass=mass, fold=0.0)
-    estimate = ws.analysis.stability.estimate_omega_max(model)
+    estimate = ws.analysis.omega.estimate_omega_max(model)
     omega = math.sqrt(ke / (mass * r * r))
     assert estimate.omega_max == pytest.approx(omega, rel=1e-4)
     assert estimate.gershgorin >= omega * (1.0 - 1e-6)

@@ -231,7 +231,7 @@ def test_energy_created_by_an_unstable_step_is_caught(device):
     state stays finite and untorn (with the balance off, 60 frames pass) while holding several times the
     energy of the converged run: the energy balance stops it, diagnosed as instability. With 10 substeps
     both run and create no energy."""
-    from warpspring.analysis.stability import diagnose
+    from warpspring.analysis.advisor import diagnose
 
     model = battery_cloth(device, [300.0, 480.0])
     rk4 = ws.make_integrator("rk4", model)
@@ -289,7 +289,7 @@ def test_a_too_soft_cloth_is_told_to_stiffen_not_to_substep(device):
     """A 10 N/m cloth carrying 0.1 kg per particle tears under its own weight however small the step: the stop
     is diagnosed at the last good frame as physical over-stretch, with the material as the remedy; the same
     cloth with 4× the substeps stops at the same frame, which is what makes more substeps the wrong advice."""
-    from warpspring.analysis.stability import diagnose
+    from warpspring.analysis.advisor import diagnose
 
     soft = ws.SpringMaterial(ke=10.0, kd=0.1)
     model, _ = hanging_cloth(device, n=8, structural=soft, shear=soft, bend=soft)
@@ -308,7 +308,7 @@ def test_a_too_soft_cloth_is_told_to_stiffen_not_to_substep(device):
 def test_an_unstable_step_is_told_to_substep(device):
     """The 1 kN/m cloth with RK4 at one 1/60 s step (ω_max h ≈ 19, far past RK4's 2.8) blows up: the stop
     is diagnosed as numerical instability, with the substep count the stretched state needs."""
-    from warpspring.analysis.stability import diagnose
+    from warpspring.analysis.advisor import diagnose
 
     model, _ = hanging_cloth(device, n=8)
     sim = ws.Simulator(model, integrator=ws.make_integrator("rk4", model), fps=60, substeps=1)

@@ -14,6 +14,10 @@ import warpspring as ws
 from warpspring.analysis import load_battery as lb
 from warpspring.analysis import modal
 from warpspring.analysis import stability as st
+from warpspring.analysis.advisor import advise
+from warpspring.analysis.damping import top_mode_ratios
+from warpspring.analysis.omega import free_particles
+from warpspring.analysis.under_load import static_equilibrium
 from warpspring.errors import ConfigError
 
 EXPLICIT = ["explicit_euler", "symplectic_euler", "velocity_verlet", "midpoint", "rk4", "dopri5"]
@@ -46,7 +50,7 @@ def test_hanging_particle_modes_are_a_spring_and_a_pendulum(device):
     builder.add_particles([[0.0, 0.0, 0.0], [0.0, 0.0, -rest]], mass=m, pinned=[0])
     builder.add_springs([[0, 1]], stiffness=k, damping=kd)
     model = builder.finalize(device)
-    equilibrium = st.static_equilibrium(model)
+    equilibrium = static_equilibrium(model)
     length = rest + m * g / k
     assert equilibrium.positions[1, 2] == pytest.approx(-length, rel=1e-5)
     modes = modal.linearise(model, equilibrium.positions).modes()
@@ -89,8 +93,8 @@ def test_advisor_at_the_equilibrium_is_the_linear_systems_limit(device, integrat
     """
     dt = STEPS[integrator]
     model = lb.battery_cloth("hanging", [STIFFNESS], device, n=8)
-    advice = st.advise(model, integrator, dt, fps=lb.FPS, transient=False, horizon=HORIZON)
-    positions = st.static_equilibrium(model).positions
+    advice = advise(model, integrator, dt, fps=lb.FPS, transient=False, horizon=HORIZON)
+    positions = static_equilibrium(model).positions
     linear = modal.linearise(model, positions)
     modes = linear.modes()
     exact = st.stable_step(integrator, modes.omega[-1], modes.zeta[-1])
@@ -105,7 +109,7 @@ def test_advisor_at_the_equilibrium_is_the_linear_systems_limit(device, integrat
 
     below = np.abs(np.linalg.eigvals(linear.step_matrix(integrator, 0.95 * exact))).max()
     if integrator in ("explicit_euler", "midpoint"):
-        growth = st.advise(model, integrator, 0.95 * exact, fps=lb.FPS, transient=False,
+        growth = advise(model, integrator, 0.95 * exact, fps=lb.FPS, transient=False,
                            horizon=HORIZON).transverse_growth
         assert growth > 1.0
         assert math.log(growth) == pytest.approx(HORIZON / (0.95 * exact) * math.log(below), rel=1e-6)
@@ -117,12 +121,12 @@ def test_top_mode_ratios_are_the_dense_quotient(device):
     """``top_mode_ratios`` on the dense reference's top mode at the equilibrium is xᵀDx / xᵀKx of its matrices
     (to 1e-9; the springs' axial dampers, no drag): explicit Euler's exact step limit for that mode."""
     model = lb.battery_cloth("hanging", [STIFFNESS], device, n=8)
-    q = st.static_equilibrium(model).positions
+    q = static_equilibrium(model).positions
     linear = modal.linearise(model, q)
     x = linear.modes().shapes[:, -1]
     full = np.zeros(3 * model.particle_count)
-    full[np.repeat(st.free_particles(model)[0], 3)] = x
-    ratio = st.top_mode_ratios(model, None, [full.reshape(-1, 3)], q)
+    full[np.repeat(free_particles(model)[0], 3)] = x
+    ratio = top_mode_ratios(model, None, [full.reshape(-1, 3)], q)
     assert ratio[0] == pytest.approx((x @ linear.damping @ x) / (x @ linear.stiffness @ x), rel=1e-9)
     assert ratio[0] == pytest.approx(st.stable_step("explicit_euler", linear.modes().omega[-1],
                                                     linear.modes().zeta[-1]), rel=1e-6)
@@ -134,9 +138,9 @@ def test_explicit_euler_verdict_holds_below_the_equilibriums_limit(device):
     the exact limit at the equilibrium, within 2 % (measured 0.7 % below on the 8 × 8 hanging cloth). Taken at
     the peak ω_max alone it was 0.4 % above it: optimistic."""
     model = lb.battery_cloth("hanging", [STIFFNESS], device, n=8)
-    modes = modal.linearise(model, st.static_equilibrium(model).positions).modes()
+    modes = modal.linearise(model, static_equilibrium(model).positions).modes()
     exact = st.stable_step("explicit_euler", modes.omega[-1], modes.zeta[-1])
-    verdict = st.advise(model, "explicit_euler", 1e-5, fps=lb.FPS, horizon=2.0).dt_stable
+    verdict = advise(model, "explicit_euler", 1e-5, fps=lb.FPS, horizon=2.0).dt_stable
     assert 0.98 * exact <= verdict <= exact
 
 
@@ -148,9 +152,9 @@ def test_advisor_states_how_fast_the_top_mode_grows(device, integrator, factor):
     of the exact one, a share 2e-4 / (factor - 1) of the margin that sets the growth rate (2 % at 1 % past
     the limit; 5 % allowed); inside it, a decay."""
     model = lb.battery_cloth("hanging", [STIFFNESS], device, n=8)
-    modes = modal.linearise(model, st.static_equilibrium(model).positions).modes()
+    modes = modal.linearise(model, static_equilibrium(model).positions).modes()
     dt = factor * st.stable_step(integrator, modes.omega[-1], modes.zeta[-1])
-    advice = st.advise(model, integrator, dt, fps=lb.FPS, transient=False, horizon=HORIZON)
+    advice = advise(model, integrator, dt, fps=lb.FPS, transient=False, horizon=HORIZON)
     exact = HORIZON / dt * math.log(modes.growth(integrator, dt, top=1)[0])
     assert math.log(advice.top_growth) == pytest.approx(exact, rel=0.05)
     if factor > 1.0:
@@ -171,7 +175,7 @@ def test_the_kernels_follow_the_linear_map(device, integrator, factor, steps):
     (×11.9 and ×0.76 for midpoint, ×17.6 for RK4 just 0.1 % past its limit), to the modal picture's
     coupling through the dampers (measured 2e-3; 1 %)."""
     model = lb.battery_cloth("hanging", [STIFFNESS], device, n=8, precision="float64")
-    equilibrium = st.static_equilibrium(model, tolerance=1e-13, max_steps=2000)
+    equilibrium = static_equilibrium(model, tolerance=1e-13, max_steps=2000)
     assert equilibrium.converged
     linear = modal.linearise(model, equilibrium.positions)
     modes = linear.modes()
@@ -180,7 +184,7 @@ def test_the_kernels_follow_the_linear_map(device, integrator, factor, steps):
     growth = modes.growth(integrator, dt, top=1)[0] ** steps
     assert growth > 10.0 if factor > 1.0 else growth < 0.8
 
-    free = np.repeat(st.free_particles(model)[0], 3)
+    free = np.repeat(free_particles(model)[0], 3)
     start = 1e-8 * shape / np.abs(shape).max()
     q = equilibrium.positions.reshape(-1).copy()
     q[free] += start
@@ -213,7 +217,7 @@ def test_top_mode_limit_brackets_from_either_side(start):
 
     def at(ke):
         model = lb.battery_cloth("hanging", [ke], "cpu", n=8)
-        return modal.linearise(model, st.static_equilibrium(model).positions)
+        return modal.linearise(model, static_equilibrium(model).positions)
 
     limit = modal.top_mode_limit(at, "midpoint", dt, start=start, rtol=rtol)
     assert at(limit).modes().growth("midpoint", dt, top=1)[0] <= 1.0
@@ -227,7 +231,7 @@ def test_top_modes_at_the_equilibrium_are_the_dense_top_mode(device, scene):
     reference's highest mode: ω to 1e-9, ζ to 1e-6 (measured 3e-11 and 8e-9), in each of two worlds."""
     model = lb.battery_cloth(scene, [STIFFNESS, 300.0], device, n=8, precision="float64")
     control = lb.battery_control(scene, model)
-    q = st.static_equilibrium(model, control=control).positions
+    q = static_equilibrium(model, control=control).positions
     top = modal.top_modes(model, q, np.zeros_like(q), 0.0, control=control)
     for world in range(2):
         modes = modal.linearise(model, q, world=world).modes()

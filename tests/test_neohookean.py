@@ -15,7 +15,7 @@ import warp as wp
 
 import warpspring as ws
 from warpspring.analysis import softbody_elasticity as se
-from warpspring.analysis import stability as st
+from warpspring.analysis.omega import estimate_omega_max, gershgorin_omega_max
 from warpspring.core.families import element_energies
 from warpspring.core.neohookean import (NeoHookeanFamily, neohookean_forces_np, shape_gradients, stable_lame,
                                         tangent_stiffness)
@@ -179,7 +179,7 @@ def test_rotation_invariance_and_inversion(device):
     f = forces(model, inverted)
     assert np.sum(f * volume_gradients(inverted, TET)[0]) > 0.0
     # released: free tet in free fall; the fastest mode ω² ≤ Gershgorin, h = 0.1/ω_max, β = 2/ω_min-ish damping
-    omega = st.gershgorin_omega_max(model)
+    omega = gershgorin_omega_max(model)
     damped, _ = tet_model(device, damping=4.0 / omega)
     integrator = ws.make_integrator("symplectic_euler", damped)
     a, b = damped.state(), damped.state()
@@ -235,10 +235,10 @@ def test_product_is_the_gauss_newton_stiffness(device):
     def omega_max(positions):
         return math.sqrt(np.linalg.eigvalsh(tangent_stiffness(positions, REST, TET, MU, LAM).toarray() / MASS).max())
 
-    estimate = st.estimate_omega_max(model, state=state, tolerance=1e-8, max_iterations=5000)
+    estimate = estimate_omega_max(model, state=state, tolerance=1e-8, max_iterations=5000)
     assert estimate.omega_max == pytest.approx(omega_max(q), rel=1e-6)
     assert abs(omega_max(q) / omega_max(REST) - 1.0) > 1e-3  # the state matters: the test sees it
-    assert st.gershgorin_omega_max(model) >= omega_max(REST) * (1.0 - 1e-9)  # at the model's initial positions
+    assert gershgorin_omega_max(model) >= omega_max(REST) * (1.0 - 1e-9)  # at the model's initial positions
 
 
 @pytest.mark.parametrize("integrator", ["symplectic_euler", "implicit_euler"])
@@ -284,7 +284,7 @@ def test_the_guard_balances_a_damped_body(device):
                                  youngs_modulus=E, density=1000.0, spacing=0.1, damping=2.0e-3,
                                  elasticity="neohookean", poisson_ratio=NU)
     model = builder.finalize(device, precision="float64")
-    substeps = int(np.ceil(st.gershgorin_omega_max(model) / 0.1 / 60.0))
+    substeps = int(np.ceil(gershgorin_omega_max(model) / 0.1 / 60.0))
     sim = ws.Simulator(model, integrator=ws.make_integrator("velocity_verlet", model), fps=60, substeps=substeps)
     velocity = np.random.default_rng(1).normal(scale=0.5, size=(body.particle_count, 3))
     sim.state.particle_qd.assign(velocity - velocity.mean(axis=0))

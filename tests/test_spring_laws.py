@@ -14,7 +14,7 @@ import scipy.special
 import warp as wp
 
 import warpspring as ws
-from warpspring.analysis.stability import world_gershgorin_omega_max
+from warpspring.analysis.omega import world_gershgorin_omega_max
 from warpspring.core.families import element_energies
 from warpspring.core.integrators import make_integrator
 from warpspring.kernels.inputs import INPUT_COUNT

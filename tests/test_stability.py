@@ -14,6 +14,10 @@ import warpspring as ws
 from helpers import ZERO_GRAVITY, hanging_cloth
 from warpspring.analysis import modal
 from warpspring.analysis import stability as st
+from warpspring.analysis.advisor import advise
+from warpspring.analysis.omega import (estimate_omega_max, free_particles, gershgorin_omega_max, transverse_omega_max,
+                                       world_gershgorin_omega_max)
+from warpspring.analysis.under_load import PROBE_CHECK, PROBE_MIN_TIME, loaded_state, transient_peak
 from warpspring.analysis import stability_map as sm
 
 FIXED_STEP = [name for name in ws.INTEGRATORS if name != "dopri5"]
@@ -149,7 +153,7 @@ def test_power_iteration_on_a_chain(device, precision):
     """A pinned-free chain: power iteration matches the dense eigenvalue (the residual tolerance 1e-3 leaves
     ω within ~1e-4), which approaches 2√(k/m) for long chains; Gershgorin bounds it from above."""
     model = chain(device, precision)
-    estimate = st.estimate_omega_max(model)
+    estimate = estimate_omega_max(model)
     exact = dense_omega_max(model)
     assert estimate.converged and estimate.residual <= 1e-3
     assert estimate.omega_max == pytest.approx(exact, rel=5e-4)
@@ -162,24 +166,24 @@ def test_power_iteration_on_a_cloth(device, precision):
     """A 16² ANCHORS cloth, flat at rest and stretched by 10 % (transverse stiffness on): power iteration
     against dense eigenvalues of M⁻¹K; Gershgorin ≥ both; a stiffness override scales ω_max by √2."""
     model, _ = hanging_cloth(device, n=16, precision=precision)
-    estimate = st.estimate_omega_max(model)
+    estimate = estimate_omega_max(model)
     exact = dense_omega_max(model)
     assert estimate.converged
     assert estimate.omega_max == pytest.approx(exact, rel=5e-4)
-    assert exact <= estimate.gershgorin == pytest.approx(st.gershgorin_omega_max(model))
+    assert exact <= estimate.gershgorin == pytest.approx(gershgorin_omega_max(model))
 
     stretched = model.state()
     q0 = model.particle_q.numpy().astype(np.float64)
     q = q0.mean(0) + 1.1 * (q0 - q0.mean(0))
     stretched.particle_q.assign(q)
-    estimate = st.estimate_omega_max(model, state=stretched)
+    estimate = estimate_omega_max(model, state=stretched)
     exact_stretched = dense_omega_max(model, q)
     assert exact_stretched > exact * 1.01  # the transverse terms add stiffness
     assert estimate.omega_max == pytest.approx(exact_stretched, rel=5e-4)
     assert exact_stretched <= estimate.gershgorin
 
     doubled = 2.0 * model.spring_stiffness.numpy()
-    assert st.estimate_omega_max(model, stiffness=doubled).omega_max == pytest.approx(math.sqrt(2) * exact, rel=5e-4)
+    assert estimate_omega_max(model, stiffness=doubled).omega_max == pytest.approx(math.sqrt(2) * exact, rel=5e-4)
 
 
 # -- worlds -----------------------------------------------------------------------------------------------
@@ -227,11 +231,11 @@ def test_power_iteration_per_world(device, stiffness_worlds):
     scale as √factor to OMEGA_BOUND / (1 - OMEGA_BOUND) (a ratio of two values each in
     [(1 - OMEGA_BOUND) ω, ω]); each world stops at its own tolerance, in as many iterations as alone."""
     model = stiffness_worlds(device)
-    estimate = st.estimate_omega_max(model, tolerance=WORLD_TOLERANCE)
+    estimate = estimate_omega_max(model, tolerance=WORLD_TOLERANCE)
     assert estimate.world_omega_max.shape == (4,) and estimate.world_mode.shape == (4, model.particle_count, 3)
     assert estimate.world_converged.all() and (estimate.world_residual <= WORLD_TOLERANCE).all()
     for w, factor in enumerate(WORLD_FACTORS):
-        alone = st.estimate_omega_max(damped_cloth(device, factor), tolerance=WORLD_TOLERANCE)
+        alone = estimate_omega_max(damped_cloth(device, factor), tolerance=WORLD_TOLERANCE)
         assert estimate.world_omega_max[w] == pytest.approx(alone.omega_max, rel=OMEGA_BOUND)
         # The same iterates up to rounding (bitwise on the CPU; on CUDA the reduction's lanes follow the model's
         # block size, which may differ), so the tolerance is crossed at the same iteration, or one apart.
@@ -242,10 +246,10 @@ def test_power_iteration_per_world(device, stiffness_worlds):
     ratio = estimate.world_omega_max / estimate.world_omega_max[0]
     np.testing.assert_allclose(ratio, np.sqrt(WORLD_FACTORS), rtol=OMEGA_BOUND / (1.0 - OMEGA_BOUND))
     # Gershgorin rows are linear in k: exactly √factor, to float64 rounding; the summaries take the stiffest world.
-    np.testing.assert_allclose(st.world_gershgorin_omega_max(model) / estimate.world_gershgorin[0],
+    np.testing.assert_allclose(world_gershgorin_omega_max(model) / estimate.world_gershgorin[0],
                                np.sqrt(WORLD_FACTORS), rtol=1e-12)
     assert estimate.world == 3 and estimate.omega_max == estimate.world_omega_max[3]
-    assert estimate.gershgorin == st.gershgorin_omega_max(model) == estimate.world_gershgorin[3]
+    assert estimate.gershgorin == gershgorin_omega_max(model) == estimate.world_gershgorin[3]
     assert (estimate.world_omega_max <= estimate.world_gershgorin).all()
 
 
@@ -253,13 +257,13 @@ def test_power_iteration_stiffness_override_per_world(stiffness_worlds):
     """An override of shape [world_count, spring_count] replaces each world's row: the reversed factors give
     the reversed ω_max (to OMEGA_BOUND: each value within it of its exact one, see above)."""
     model = stiffness_worlds("cpu")
-    forward = st.estimate_omega_max(model, tolerance=WORLD_TOLERANCE)
+    forward = estimate_omega_max(model, tolerance=WORLD_TOLERANCE)
     reversed_k = model.world_values("spring_stiffness")[::-1]
-    backward = st.estimate_omega_max(model, stiffness=reversed_k, tolerance=WORLD_TOLERANCE)
+    backward = estimate_omega_max(model, stiffness=reversed_k, tolerance=WORLD_TOLERANCE)
     np.testing.assert_allclose(backward.world_omega_max, forward.world_omega_max[::-1], rtol=OMEGA_BOUND)
     assert backward.world == 0
     with pytest.raises(ws.ConfigError, match=r"stiffness must have shape \(\d+,\) or \(4, \d+\)"):
-        st.estimate_omega_max(model, stiffness=reversed_k[:2])
+        estimate_omega_max(model, stiffness=reversed_k[:2])
 
 
 def test_power_iteration_per_world_masses(stiffness_worlds):
@@ -269,8 +273,8 @@ def test_power_iteration_per_world_masses(stiffness_worlds):
     stiff = stiffness_worlds("cpu")
     light = damped_cloth("cpu", worlds=len(WORLD_FACTORS))
     light.set_world_values("particle_mass", light.world_values("particle_mass")[0][None, :] / WORLD_FACTORS[:, None])
-    expected = st.estimate_omega_max(stiff, tolerance=WORLD_TOLERANCE)
-    estimate = st.estimate_omega_max(light, tolerance=WORLD_TOLERANCE)
+    expected = estimate_omega_max(stiff, tolerance=WORLD_TOLERANCE)
+    estimate = estimate_omega_max(light, tolerance=WORLD_TOLERANCE)
     np.testing.assert_allclose(estimate.world_omega_max, expected.world_omega_max, rtol=OMEGA_BOUND)
     np.testing.assert_allclose(estimate.world_gershgorin, expected.world_gershgorin, rtol=1e-12)
 
@@ -282,20 +286,20 @@ def test_advisor_names_the_binding_world(device, stiffness_worlds):
     moves h by at most 2·OMEGA_BOUND."""
     model = stiffness_worlds(device)
     dt = 1.0e-3
-    advice = st.advise(model, "symplectic_euler", dt, tolerance=WORLD_TOLERANCE)
+    advice = advise(model, "symplectic_euler", dt, tolerance=WORLD_TOLERANCE)
     assert advice.world == 3 and "in world 3, the binding one of 4 worlds" in advice.message
     assert advice.dt_stable == advice.world_dt_stable.min() == advice.world_dt_stable[3]
     assert advice.omega_max == advice.world_omega_max[3]
     assert (np.diff(advice.world_dt_stable) < 0.0).all()  # stiffer worlds, smaller steps
     for w, factor in enumerate(WORLD_FACTORS):
-        alone = st.advise(damped_cloth(device, factor), "symplectic_euler", dt, tolerance=WORLD_TOLERANCE)
+        alone = advise(damped_cloth(device, factor), "symplectic_euler", dt, tolerance=WORLD_TOLERANCE)
         assert advice.world_dt_stable[w] == pytest.approx(alone.dt_stable, rel=2.0 * OMEGA_BOUND)
         assert "world" not in alone.message and alone.world == 0
     assert advice.stable == (dt <= advice.world_dt_stable[3])
     assert advice.substeps == math.ceil(1.0 / (60.0 * advice.world_dt_stable[3]))
-    gershgorin = st.advise(model, "symplectic_euler", dt, omega_estimate="gershgorin")
+    gershgorin = advise(model, "symplectic_euler", dt, omega_estimate="gershgorin")
     assert gershgorin.world == 3 and gershgorin.omega_source == "Gershgorin bound"
-    np.testing.assert_allclose(gershgorin.world_omega_max, st.world_gershgorin_omega_max(model), rtol=0.0)
+    np.testing.assert_allclose(gershgorin.world_omega_max, world_gershgorin_omega_max(model), rtol=0.0)
 
 
 def test_spring_motion_record_per_world(device):
@@ -332,21 +336,21 @@ def cloth8():
 
 def test_advisor_messages(cloth8):
     """Stable and unstable verdicts with their suggestions, for fixed-step, implicit and adaptive methods."""
-    ok = st.advise(cloth8, "symplectic_euler", 1.0 / 960.0)
+    ok = advise(cloth8, "symplectic_euler", 1.0 / 960.0)
     assert ok.stable and ok.omega_source == "power iteration" and ok.dt_stable > ok.dt
     assert "is stable at dt = 1.042 ms" in ok.message and f"at least {ok.substeps} substeps" in ok.message
     assert ok.substeps == math.ceil(1.0 / (60.0 * ok.dt_stable))
 
-    bad = st.advise(cloth8, "symplectic_euler", 1.0 / 60.0)
+    bad = advise(cloth8, "symplectic_euler", 1.0 / 60.0)
     assert not bad.stable
     assert "unstable at dt = 16.67 ms" in bad.message
     assert f"at least {bad.substeps} substeps per 1/60 s frame" in bad.message and "implicit_euler" in bad.message
     with pytest.raises(ws.ConfigError, match="unstable at dt = 16.67 ms"):
-        st.advise(cloth8, "symplectic_euler", 1.0 / 60.0, strict=True)
+        advise(cloth8, "symplectic_euler", 1.0 / 60.0, strict=True)
 
-    implicit = st.advise(cloth8, "implicit_euler", 1.0, strict=True)
+    implicit = advise(cloth8, "implicit_euler", 1.0, strict=True)
     assert implicit.stable and implicit.dt_stable == math.inf and "unconditionally stable" in implicit.message
-    adaptive = st.advise(cloth8, "dopri5", 1.0 / 60.0, strict=True)
+    adaptive = advise(cloth8, "dopri5", 1.0 / 60.0, strict=True)
     assert adaptive.adaptive and adaptive.stable and "adapts its internal step" in adaptive.message
 
 
@@ -356,7 +360,7 @@ def test_advisor_unstable_at_every_step():
     builder.add_cloth_grid(nx=4, ny=4, spacing=0.1, particle_mass=0.1, structural=ws.SpringMaterial(1e3, 0.0),
                            shear=None, bend=None, pin=["top-left"])
     model = builder.finalize("cpu")
-    advice = st.advise(model, "explicit_euler", 1e-5)
+    advice = advise(model, "explicit_euler", 1e-5)
     assert not advice.stable and advice.dt_stable == 0.0 and advice.substeps is None
     assert "unstable at every dt" in advice.message and "symplectic_euler (dt ≤" in advice.message
 
@@ -364,19 +368,19 @@ def test_advisor_unstable_at_every_step():
 def test_advisor_stiffness_override_and_fallback(cloth8):
     """A stiffer override (as for biphasic springs) lowers the limit; a power iteration that does not
     converge falls back to the Gershgorin bound, whose limit is smaller (conservative)."""
-    base = st.advise(cloth8, "rk4", 1e-3)
-    stiffer = st.advise(cloth8, "rk4", 1e-3, stiffness=100.0 * cloth8.spring_stiffness.numpy())
+    base = advise(cloth8, "rk4", 1e-3)
+    stiffer = advise(cloth8, "rk4", 1e-3, stiffness=100.0 * cloth8.spring_stiffness.numpy())
     assert stiffer.omega_max == pytest.approx(10.0 * base.omega_max, rel=1e-3)
     assert stiffer.dt_stable < base.dt_stable
-    fallback = st.advise(cloth8, "rk4", 1e-3, max_iterations=2)
+    fallback = advise(cloth8, "rk4", 1e-3, max_iterations=2)
     assert fallback.omega_source == "Gershgorin bound" and fallback.omega_max > base.omega_max
     assert fallback.dt_stable < base.dt_stable
-    gershgorin = st.advise(cloth8, "rk4", 1e-3, omega_estimate="gershgorin")
+    gershgorin = advise(cloth8, "rk4", 1e-3, omega_estimate="gershgorin")
     assert gershgorin.omega_max == pytest.approx(fallback.omega_max)
     with pytest.raises(ws.ConfigError, match="unknown integrator"):
-        st.advise(cloth8, "leapfrog", 1e-3)
+        advise(cloth8, "leapfrog", 1e-3)
     with pytest.raises(ws.ConfigError, match="stiffness must have shape"):
-        st.advise(cloth8, "rk4", 1e-3, stiffness=[1.0])
+        advise(cloth8, "rk4", 1e-3, stiffness=[1.0])
 
 
 def test_advisor_judges_biphasic_springs_by_their_stiffer_branch():
@@ -390,8 +394,8 @@ def test_advisor_judges_biphasic_springs_by_their_stiffer_branch():
                                shear=ws.SpringMaterial(1e3, 0.0), bend=None, pin=["top-left", "top-right"])
         return builder.finalize("cpu")
 
-    plain = st.advise(cloth(None), "symplectic_euler", 1e-3, transient=False)
-    biphasic = st.advise(cloth(ws.Stabilizers(biphasic_strain=0.1, biphasic_ratio=9.0)), "symplectic_euler", 1e-3,
+    plain = advise(cloth(None), "symplectic_euler", 1e-3, transient=False)
+    biphasic = advise(cloth(ws.Stabilizers(biphasic_strain=0.1, biphasic_ratio=9.0)), "symplectic_euler", 1e-3,
                          transient=False)
     assert biphasic.omega_max == pytest.approx(3.0 * plain.omega_max, rel=2e-3)
     assert biphasic.dt_stable == pytest.approx(plain.dt_stable / 3.0, rel=2e-3)
@@ -433,7 +437,7 @@ def test_cloth_limit_matches_the_advisor(device):
     """The 10² ANCHORS cloth (ke = 10³ N/m, kd = 10 N·s/m): symplectic Euler is stable at 0.97× the advised
     step and unstable at 1.03×."""
     model = sm.cloth_model(1.0e3, size=10, device=device)
-    advice = st.advise(model, "symplectic_euler", 1e-3)
+    advice = advise(model, "symplectic_euler", 1e-3)
     start = sm.perturbed_state(model, sm.CLOTH_PERTURBATION * sm.CLOTH_SPACING)
     integrator = ws.SymplecticEuler(model)
     verdicts = [sm._Recorder(model, integrator, f * advice.dt_stable, [0]).unstable(start, 1024, 2)[0]
@@ -451,7 +455,7 @@ def test_advisor_damps_the_top_mode_by_its_own_springs(device):
                            structural=ws.SpringMaterial(1.0e3, 0.0), shear=ws.SpringMaterial(10.0, 1.0), bend=None,
                            pin=["top-left", "top-right"])
     model = builder.finalize(device, precision="float64")
-    advice = st.advise(model, "symplectic_euler", 1e-3)
+    advice = advise(model, "symplectic_euler", 1e-3)
     assert 0.9 < advice.dt_stable * advice.omega_max / 2.0 < 1.0
     assert advice.dt_stable > 5.0 * st.network_stable_step("symplectic_euler", advice.omega_max, rayleigh=0.1)
     start = sm.perturbed_state(model, 1e-9)
@@ -496,14 +500,14 @@ def test_the_dry_run_finds_the_peak_stiffness_of_a_release(device):
     and second order on this one (ωh ≈ 0.16: (ωh)²/24 ≈ 1e-3 of the stretch u* ≈ 13 mm, i.e. ~1e-5 m),
     float32 rounding ~1e-7 relative."""
     model, turn, omega = released_vee(device)
-    at_rest = st.estimate_omega_max(model, tolerance=1e-6).omega_max
-    peak = st.transient_peak(model)
+    at_rest = estimate_omega_max(model, tolerance=1e-6).omega_max
+    peak = transient_peak(model)
     assert peak.finite and peak.world_omega_max[0] > at_rest
     assert peak.world_omega_max[0] == pytest.approx(omega, rel=1e-5)
     assert peak.positions[2, 2] == pytest.approx(-1.0 - turn, abs=2e-5)
     assert peak.positions[2, :2] == pytest.approx([0.0, 0.0], abs=1e-6)
     # The same peak recurs every period: the dry run ends at PROBE_MIN_TIME, twice its first rise.
-    assert peak.duration == pytest.approx(st.PROBE_MIN_TIME, abs=st.PROBE_CHECK)
+    assert peak.duration == pytest.approx(PROBE_MIN_TIME, abs=PROBE_CHECK)
 
 
 def test_the_advisor_judges_the_release_transient(device):
@@ -513,15 +517,15 @@ def test_the_advisor_judges_the_release_transient(device):
     from test_guards import battery_cloth
 
     model = battery_cloth(device, [13000.0])
-    settled = st.advise(model, "symplectic_euler", 1.0 / 480.0, transient=False)
-    advice = st.advise(model, "symplectic_euler", 1.0 / 480.0)
+    settled = advise(model, "symplectic_euler", 1.0 / 480.0, transient=False)
+    advice = advise(model, "symplectic_euler", 1.0 / 480.0)
     assert settled.stable and not advice.stable  # the step RESULTS §11 saw blow up at 13 kN/m
     assert advice.omega_max == pytest.approx(989.5, rel=2e-3) and settled.omega_max == pytest.approx(923.7, rel=2e-3)
     assert advice.dt_stable == pytest.approx(2.0 / advice.omega_max, rel=1e-3)  # kd/k = 8e-7 s: near undamped
     assert 0.4 < advice.peak_time < 0.5 and advice.dry_run >= 2.0 * advice.peak_time
     assert "dry run" in advice.message
     model.gravity = (0.0, 0.0, 0.0)
-    assert st.advise(model, "symplectic_euler", 1.0 / 480.0).dry_run == 0.0
+    assert advise(model, "symplectic_euler", 1.0 / 480.0).dry_run == 0.0
 
 
 def test_explicit_euler_is_told_how_much_it_grows_undamped_transverse_modes(device):
@@ -532,9 +536,9 @@ def test_explicit_euler_is_told_how_much_it_grows_undamped_transverse_modes(devi
     from test_guards import battery_cloth
 
     model = battery_cloth(device, [1192.0])
-    state = st.loaded_state(model)
+    state = loaded_state(model)
     q = state.particle_q.numpy().astype(np.float64)
-    n, free = model.particle_count, st.free_particles(model)[0]
+    n, free = model.particle_count, free_particles(model)[0]
     dense = np.zeros((3 * n, 3 * n))
     for (i, j), rest in zip(model.spring_indices.numpy().reshape(-1, 2), model.spring_rest_length.numpy()):
         d = q[j] - q[i]
@@ -545,11 +549,11 @@ def test_explicit_euler_is_told_how_much_it_grows_undamped_transverse_modes(devi
                 dense[3 * a:3 * a + 3, 3 * b:3 * b + 3] += sign * block
     keep = np.repeat(free, 3)
     reference = np.sqrt(np.linalg.eigvalsh(dense[keep][:, keep] / 0.1).max())
-    omega = st.transverse_omega_max(model, state.particle_q)
+    omega = transverse_omega_max(model, state.particle_q)
     assert omega == pytest.approx(reference, rel=1e-5)
     h, horizon = 1.0 / 120000.0, 10.0
-    advice = st.advise(model, "explicit_euler", h, state=state, horizon=horizon)
+    advice = advise(model, "explicit_euler", h, state=state, horizon=horizon)
     expected = math.exp(0.5 * math.log1p((omega * h) ** 2) * horizon / h)
     assert advice.stable and advice.transverse_growth == pytest.approx(expected, rel=1e-4) and expected > 2.0
     assert f"×{expected:.3g} over a 10 s run" in advice.message
-    assert st.advise(model, "symplectic_euler", 1.0 / 480.0, state=state).transverse_growth == 1.0
+    assert advise(model, "symplectic_euler", 1.0 / 480.0, state=state).transverse_growth == 1.0

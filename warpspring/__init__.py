@@ -46,10 +46,11 @@ from .core.control import Control
 from .core.records import MeshGroup, ShapeInfo, Stabilizers
 from .core.records import SkinGroup
 from .core.softbody import SoftBody
-from .core.simulator import Simulator
+from .core.simulator import FrameHook, Simulator
 from .core.stepper import StepHook, Stepper
 from .core.tracks import Track
-from .analysis.stability import Advice, TransientPeak, advise, transient_peak
+from .analysis.advisor import Advice, advise
+from .analysis.under_load import TransientPeak, transient_peak
 from .analysis.watch import StabilityWatch
 from .core.transforms import quat_from_axis_angle
 
@@ -88,6 +89,7 @@ __all__ = [
     "ShapeInfo",
     "SimulationError",
     "Simulator",
+    "FrameHook",
     "StabilityWarning",
     "StabilityWatch",
     "Stabilizers",

@@ -52,7 +52,8 @@ from ..core.tracks import Track
 from ..core.transforms import quat_from_axis_angle
 from ..errors import ConfigError, SimulationError
 from . import modal
-from .stability import advise, static_equilibrium
+from .advisor import advise
+from .under_load import static_equilibrium
 
 #: The explicit integrators of the battery.
 EXPLICIT = ("explicit_euler", "symplectic_euler", "velocity_verlet", "midpoint", "rk4")

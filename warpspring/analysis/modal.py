@@ -1,5 +1,5 @@
 """Dense float64 modal analysis of a spring network linearised at a state of rest: the exact reference the
-advisor (:mod:`.stability`) is measured against. Dense eigenproblems cost O(n³) in the free coordinates,
+advisor (:mod:`.advisor`) is measured against. Dense eigenproblems cost O(n³) in the free coordinates,
 so this is for models of a few thousand free coordinates at most.
 
 About positions x* where the model is at rest (a static equilibrium, say), small motions obey
@@ -22,10 +22,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import warp as wp
 
+from ..core.forces import eval_forces
 from ..core.model import Model
 from ..errors import ConfigError
-from .stability import free_particles, pair_block_matrix, spectral_radius, step_matrix, top_eigenpair
+from .omega import free_particles, pair_block_matrix, top_eigenpair
+from .stability import spectral_radius, step_matrix
 
 
 @dataclass(frozen=True)
@@ -86,7 +89,7 @@ def linearise(model: Model, positions, *, world: int = 0) -> Linearisation:
     others = [f.name for f in model.families if f.name != "springs"]
     if others:
         raise ConfigError(f"the dense linearisation covers linear springs and drag, not {', '.join(others)}: "
-                          "use the advisor (warpspring.analysis.stability.advise) for this model, or top_modes "
+                          "use the advisor (warpspring.analysis.advisor.advise) for this model, or top_modes "
                           "for its springs' top mode")
     _check_world(model, world)
     n = model.particle_count
@@ -114,7 +117,7 @@ class _Springs:
     def __init__(self, model: Model):
         if model.spring_material_law.per_spring:
             raise ConfigError("the springs' tangent here is that of linear springs, not of non-linear spring laws: "
-                              "use the advisor (warpspring.analysis.stability.advise) for this model")
+                              "use the advisor (warpspring.analysis.advisor.advise) for this model")
         self.n = model.particle_count
         self.i, self.j = model.spring_indices.numpy().reshape(-1, 2).T
         self.ke = model.world_values("spring_stiffness").astype(np.float64)
@@ -194,10 +197,6 @@ def top_modes(model: Model, positions, velocities, time, *, control=None, starts
         starts: earlier ``shapes`` to start each world's Lanczos from (a sequence of nearby states).
         step: the largest displacement [m] (and velocity change [m/s]) of a coordinate in the differences.
     """
-    import warp as wp
-
-    from ..core.forces import eval_forces
-
     if model.scalar is not wp.float64:
         raise ConfigError("top_modes differentiates the model's forces, which needs float64: build the model with "
                           "precision='float64'")

@@ -61,7 +61,9 @@ from ..kernels.stability import spring_motion_kernel
 from ..core.model import Model
 from ..core.state import State
 from ..core.stepper import StepHook, Stepper
-from .stability import advise, free_particles, network_stable_step, stable_omega_h, world_dynamic_inv_mass
+from .advisor import advise
+from .omega import free_particles, world_dynamic_inv_mass
+from .stability import network_stable_step, stable_omega_h
 
 #: Growth threshold of a run: unstable when its late mean E exceeds its early one by (1 + GROWTH)².
 GROWTH = 0.01

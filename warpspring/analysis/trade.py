@@ -52,7 +52,7 @@ from ..core.builder import ModelBuilder, SpringMaterial
 from ..checks import format_duration
 from ..errors import ConfigError, SimulationError
 from ..core.integrators import INTEGRATORS, Integrator, make_integrator
-from .stability import estimate_omega_max
+from .omega import estimate_omega_max
 from ..core.model import Model
 from ..core.control import Control
 from ..core.stepper import StepHook, Stepper

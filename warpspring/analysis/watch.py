@@ -1,9 +1,10 @@
 """The stability advisor during a run: a cloth that sags, is pulled or is driven stiffens as its springs
 stretch, and a step that was stable at the start may not be at the state the run reaches.
 
-Every ``every`` frames the :class:`StabilityWatch` copies the state and runs a few warm-started power
-iterations on M⁻¹K about it (``kernels/stability.py``, the advisor's own estimate of ω_max, all worlds in
-the same launches). On CUDA they run on a stream of their own, off the critical path: the frames go on
+A :class:`StabilityWatch` is a frame hook (:class:`~warpspring.core.simulator.FrameHook`) that the runner,
+or any caller, attaches to a simulator: ``StabilityWatch.attach(sim, every=N)``. Every ``every`` frames it
+copies the state and runs a few warm-started power iterations on M⁻¹K about it (``kernels/stability.py``,
+the advisor's own estimate of ω_max, all worlds in the same launches). On CUDA they run on a stream of their own, off the critical path: the frames go on
 while they run, and their result is read at the next re-check, one period later, when it is long done.
 On the CPU they run in line and are read at once. A world whose ω_max has reached ``margin`` of the
 highest frequency its step keeps stable gets a :class:`~warpspring.errors.StabilityWarning` naming the
@@ -29,8 +30,10 @@ from .. import checks
 from ..errors import ConfigError, StabilityWarning
 from ..kernels.stability import PI_LAMBDA
 from ..core.model import Model
+from ..core.simulator import FrameHook, Simulator
 from ..core.state import State
-from .stability import Advice, PowerIteration, _stiffness_values, advise, free_particles
+from .advisor import Advice, advise
+from .omega import PowerIteration, _stiffness_values, free_particles
 
 #: Default frames between re-checks.
 WATCH_EVERY = 10
@@ -44,8 +47,10 @@ WATCH_MARGIN = 1.0
 WATCH_TOLERANCE = 1.0e-4
 
 
-class StabilityWatch:
-    """Re-checks the stability of a running simulation's step at the state it reached (module docstring).
+class StabilityWatch(FrameHook):
+    """Re-checks the stability of a running simulation's step at the state it reached (module docstring):
+    a frame hook that re-checks after every ``every``-th frame. :meth:`attach` makes one for a simulator
+    and adds it to the simulator's frame hooks.
 
     Args:
         model: the model.
@@ -59,6 +64,7 @@ class StabilityWatch:
             run here, linearised about ``state``.
         iterations: power iterations per re-check, ≥ 1.
         margin: fraction of the stable limit at which to warn, in (0, 1].
+        every: frames between re-checks (≥ 1): it re-checks after the frames that are multiples of it.
 
     Attributes:
         omega_limit: each world's highest stable angular frequency at ``dt`` [rad/s], float64,
@@ -73,7 +79,8 @@ class StabilityWatch:
 
     def __init__(self, model: Model, integrator: str, dt: float, *, fps: float, substeps: int, state: State,
                  control=None, advice: Advice | None = None, iterations: int = WATCH_ITERATIONS,
-                 margin: float = WATCH_MARGIN):
+                 margin: float = WATCH_MARGIN, every: int = WATCH_EVERY):
+        self.every = checks.count("watch", every, minimum=1)
         self.model = model
         self.integrator = integrator
         self.dt = checks.positive("dt", dt)
@@ -106,6 +113,21 @@ class StabilityWatch:
         self._stream = wp.Stream(device) if device.is_cuda else None
         self._done = None
         self._build()
+
+    @classmethod
+    def attach(cls, sim: Simulator, *, every: int = WATCH_EVERY, advice: Advice | None = None,
+               **options) -> StabilityWatch:
+        """A watch of ``sim``'s run from its current state, re-checking every ``every`` frames from now on,
+        added to its frame hooks (:meth:`~warpspring.core.simulator.Simulator.add_frame_hook`); returns it.
+        ``advice``: the advisor's verdict on this run, if the caller already has one (else the watch runs the
+        advisor about the current state); ``options``: ``iterations``, ``margin``."""
+        return sim.add_frame_hook(cls(sim.model, sim.integrator.name, sim.dt, fps=sim.fps, substeps=sim.substeps,
+                                      state=sim.state, control=sim.control, advice=advice, every=every, **options))
+
+    def after_frame(self, sim: Simulator, frame: int) -> None:
+        """Re-check after the frames that are multiples of :attr:`every` (:meth:`check`)."""
+        if frame % self.every == 0:
+            self.check(sim.state, frame)
 
     def _build(self) -> None:
         """The iteration's buffers for the model's current values (the last iterate carried over), and no

@@ -42,7 +42,6 @@ import os
 import uuid
 import zipfile
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
@@ -52,9 +51,6 @@ from ..version import __version__
 from ..kernels.inputs import INPUTS
 from .guards import GuardReport
 from .records import Stabilizers
-
-if TYPE_CHECKING:
-    from .simulator import Simulator
 
 #: The format's name, stored in every header.
 FORMAT = "warpspring-checkpoint"
@@ -114,6 +110,8 @@ class Checkpoint:
 
     Make one with :meth:`capture` (or ``Simulator.save_checkpoint``), write it with :meth:`save`, read it
     back with :meth:`load` and put it into a simulator with :meth:`restore` (or ``Simulator.load_checkpoint``).
+    Here and in this module's functions, ``sim`` is a :class:`~warpspring.core.simulator.Simulator` (which
+    imports this module, so it is named here rather than imported).
 
     Args:
         header: the JSON-serialisable description (format, versions, scene, integrator, frame, switches).
@@ -139,7 +137,7 @@ class Checkpoint:
     # -- capture and restore ----------------------------------------------------------------------------------
 
     @classmethod
-    def capture(cls, sim: Simulator) -> Checkpoint:
+    def capture(cls, sim) -> Checkpoint:
         """Copy everything ``sim`` needs to go on from its current frame (reads the device: synchronises)."""
         model = sim.model
         arrays = {name: array.numpy().copy() for name, array in live_arrays(sim).items()}
@@ -165,7 +163,7 @@ class Checkpoint:
         }
         return cls(header, arrays)
 
-    def restore(self, sim: Simulator) -> None:
+    def restore(self, sim) -> None:
         """Put this checkpoint into ``sim``: its state, frame counter and world failures, the integrator's
         persistent arrays and settings, the model's live arrays and switches, the control's inputs, the
         contact overflow counters and the hooks' records.
@@ -203,7 +201,7 @@ class Checkpoint:
         sim.frame = self.frame
         sim.world_failures = self.world_failures()
 
-    def _check_configuration(self, sim: Simulator) -> None:
+    def _check_configuration(self, sim) -> None:
         mine = _configuration(sim)
         saved = self.header
         for key, label, remedy in _COMPATIBILITY:
@@ -211,7 +209,7 @@ class Checkpoint:
                 raise ConfigError(f"{self._name()} was saved with {label} {_show(saved.get(key))}, but this "
                                   f"simulator has {_show(mine[key])}: {remedy.format(saved=saved.get(key))}")
 
-    def _plan(self, sim: Simulator) -> list[tuple[str, np.ndarray]]:
+    def _plan(self, sim) -> list[tuple[str, np.ndarray]]:
         """The saved arrays to write, in order, each checked against the simulator's array of that name."""
         live = live_arrays(sim)
         # An external force the simulator's control has not allocated yet is allocated by the restore.
@@ -248,7 +246,7 @@ class Checkpoint:
             plan.append((key, values))
         return plan
 
-    def _collider_plan(self, sim: Simulator) -> list:
+    def _collider_plan(self, sim) -> list:
         """(collider, snapshot) of each deforming mesh collider the checkpoint holds, each checked against the
         simulator's (checkpoints from before colliders were saved hold none: the points stay as they are)."""
         saved: dict[int, dict] = {}
@@ -268,7 +266,7 @@ class Checkpoint:
             plan.append((collider, values))
         return plan
 
-    def _restore_structure(self, sim: Simulator) -> None:
+    def _restore_structure(self, sim) -> None:
         """Set up, through the public setters, the switches and inputs the saved run had and ``sim`` lacks."""
         model, control, switches = sim.model, sim.control, self.header["switches"]
         if "control/particle_force" in self.arrays and control.particle_force is None:
@@ -366,7 +364,7 @@ class Checkpoint:
         return cls(header, arrays, source=str(path))
 
 
-def live_arrays(sim: Simulator) -> dict[str, wp.array]:
+def live_arrays(sim) -> dict[str, wp.array]:
     """Every device array of ``sim`` a checkpoint holds, by checkpoint name (see the module docstring)."""
     model, control = sim.model, sim.control
     state = sim.state
@@ -409,7 +407,7 @@ def integrator_settings(integrator) -> dict:
             if isinstance(getattr(cls, name, None), property) and getattr(cls, name).fset is not None}
 
 
-def _configuration(sim: Simulator) -> dict:
+def _configuration(sim) -> dict:
     """What a checkpoint must agree on with the simulator it is loaded into (see ``_COMPATIBILITY``)."""
     model = sim.model
     return {

@@ -1,5 +1,5 @@
 """Frame loop: a fixed number of integrator substeps per output frame, replayed as one graph by the Stepper,
-with run-time guards and clear errors."""
+with run-time guards, clear errors and host-side hooks after each frame."""
 
 from __future__ import annotations
 
@@ -21,6 +21,17 @@ from .model import Model
 from .state import State
 from .control import Control
 from .stepper import Stepper
+
+
+class FrameHook:
+    """Host work a :class:`Simulator` runs after every frame it completes, in the order the hooks were added
+    (:meth:`Simulator.add_frame_hook`); not captured, so it may read the device. The analyses attach theirs
+    (the run-time stability watch: :class:`~warpspring.analysis.watch.StabilityWatch`); device work inside
+    the substeps is a :class:`~warpspring.core.stepper.StepHook` instead."""
+
+    def after_frame(self, sim: Simulator, frame: int) -> None:
+        """Called at the end of :meth:`Simulator.step_frame`, once ``sim`` has completed frame ``frame``
+        (1-based: ``sim.frame``) and :attr:`Simulator.state` holds its end state."""
 
 
 class Simulator:
@@ -45,14 +56,14 @@ class Simulator:
             the frame, or with ``GuardLimits(stop="world")`` holds the failed world, records it in
             :attr:`world_failures` and goes on with the others. ``None`` disables them (and the per-frame
             read of their record).
-        watch: re-check the step's stability at the state reached every ``watch`` frames
-            (:class:`~warpspring.analysis.watch.StabilityWatch`: a few power iterations, on a stream of their
-            own on CUDA), warning with a :class:`~warpspring.errors.StabilityWarning` that names the substeps
-            when a world nears its limit; ``None`` (default) does not.
 
     Attributes:
         world_failures: the worlds stopped by the guard (``stop="world"``) so far: world → (frame, report),
             the frame being the one during which it failed (its last valid frame is the one before).
+        frame_hooks: the :class:`FrameHook` objects run after every frame (:meth:`add_frame_hook`), in order.
+            The run-time stability check is one: ``StabilityWatch.attach(sim, every=N)``
+            (:class:`~warpspring.analysis.watch.StabilityWatch`) re-checks the step at the state reached every
+            N frames and warns with a :class:`~warpspring.errors.StabilityWarning` naming the substeps.
 
     With the contact stage (``Model.contact_stage``), the guard also reads the contact buffer's overflow
     after every frame and warns (:class:`~warpspring.errors.ContactOverflowWarning`) in a frame that dropped
@@ -72,7 +83,6 @@ class Simulator:
         control: Control | None = None,
         use_graph: bool = True,
         guard: GuardLimits | None = GuardLimits(),
-        watch: int | None = None,
     ):
         self.model = model
         self.fps = checks.positive("fps", fps)
@@ -97,9 +107,7 @@ class Simulator:
         )
         if self.guard is not None:
             self.guard.restart(self.state)  # Δx of the first check from the start state (pins at t = 0)
-        self.watch_every, self.watch = None, None
-        if watch is not None:
-            self.start_watch(watch)
+        self.frame_hooks: list[FrameHook] = []
         self.frame = 0
         self.world_failures: dict = {}
         self._overflow_seen = np.zeros(model.world_count, dtype=np.int64)
@@ -137,15 +145,11 @@ class Simulator:
         """Simulated time [s] of :attr:`state`."""
         return self.frame * self.frame_dt
 
-    def start_watch(self, every: int, *, advice=None) -> None:
-        """Re-check the step's stability every ``every`` frames from now on (the ``watch`` argument);
-        ``advice``: the advisor's verdict on this run, if the caller already has one (else the watch runs
-        the advisor about the current state)."""
-        from ..analysis.watch import StabilityWatch
-
-        self.watch_every = checks.count("watch", every, minimum=1)
-        self.watch = StabilityWatch(self.model, self.integrator.name, self.dt, fps=self.fps, substeps=self.substeps,
-                                    state=self.state, control=self.control, advice=advice)
+    def add_frame_hook(self, hook: FrameHook) -> FrameHook:
+        """Run ``hook.after_frame(self, frame)`` after every frame from now on, after the hooks added before
+        it; returns ``hook``."""
+        self.frame_hooks.append(hook)
+        return hook
 
     def step_frame(self) -> None:
         """Advance :attr:`state` by one frame.
@@ -183,8 +187,8 @@ class Simulator:
             if self.contacts is not None:
                 self._report_overflow()
         self.frame += 1
-        if self.watch is not None and self.frame % self.watch_every == 0:
-            self.watch.check(self.state, self.frame)
+        for hook in self.frame_hooks:
+            hook.after_frame(self, self.frame)
 
     def _report_overflow(self) -> None:
         overflow = self.contact_overflow()

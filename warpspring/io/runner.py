@@ -14,8 +14,9 @@ from ..core.integrators import make_integrator
 from .scene import Scene, check_run_settings
 from ..core.mesh_colliders import mesh_cache_counts
 from ..core.simulator import Simulator
-from ..analysis.stability import diagnose
-from ..analysis.watch import WATCH_EVERY
+from ..analysis.advisor import advise, diagnose
+from ..analysis.under_load import PROBE_HORIZON
+from ..analysis.watch import WATCH_EVERY, StabilityWatch
 
 
 @dataclass
@@ -198,8 +199,8 @@ def run_scene(
                        horizon=frames / fps)
     if model.self_contact is not None:
         model.self_contact.reset()  # the advisor's dry run stepped the model: count the run's steps only
-    if watch:
-        sim.start_watch(watch, advice=advice)  # its limits from the verdict just made, not a second analysis
+    # Its limits from the verdict just made, not a second analysis.
+    stability_watch = StabilityWatch.attach(sim, every=watch, advice=advice) if watch else None
     last_good = model.state()  # the last frame the guard passed: where a stop is diagnosed
     if not advice.stable and warn is not None:
         warn(advice.message)
@@ -213,12 +214,12 @@ def run_scene(
         if failures:
             usd.stop_worlds(failures)  # worlds the guard held before the checkpoint get no new samples
         bar = _progress(frames, enabled=progress, initial=start)
-        if sim.watch is not None and warn is not None:
+        if stability_watch is not None and warn is not None:
             def notify(message: str) -> None:
                 with bar.external_write_mode():  # a line of its own, not through the progress bar
                     warn(message)
 
-            sim.watch.notify = notify
+            stability_watch.notify = notify
         t1 = None
         peak_contacts = 0
         try:
@@ -288,7 +289,7 @@ def run_scene(
 
 def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = False, control=None,
               horizon: float | None = None):
-    """The stability advisor's verdict on a run (:func:`warpspring.analysis.stability.advise`): ω_max at the
+    """The stability advisor's verdict on a run (:func:`warpspring.analysis.advisor.advise`): ω_max at the
     static equilibrium under the run's loads (gravity, ``control``'s external force) when any act, and at
     its peak over a dry run of the scene up to ``horizon`` [s] (the run's duration; default
     ``PROBE_HORIZON``) when the model moves by itself.
@@ -302,8 +303,6 @@ def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = F
     Raises:
         ConfigError: with ``strict``, when ``dt`` is outside the integrator's stability limit.
     """
-    from ..analysis.stability import PROBE_HORIZON, advise
-
     return advise(model, integrator, dt, fps=fps, strict=strict, control=control,
                   horizon=PROBE_HORIZON if horizon is None else horizon, omega_estimate=_omega_estimate(model))
 

@@ -1,0 +1,277 @@
+"""The states a run reaches under its loads, which the stability advisor linearises about: the static
+equilibrium (:func:`static_equilibrium`, :func:`loaded_state`) and each world's peak ω_max over a dry run of
+the scene (:func:`transient_peak`).
+
+A stretched spring of tension T and length
+l adds the transverse stiffness T/l = k(1 - L/l) to the axial k: a cloth hanging from two pins has stiffer
+modes than the same cloth at rest, up to √2 times the frequency of its in-plane modes when every spring is
+far stretched (a flat cloth at rest has no transverse stiffness at all). Linearised about its initial
+state, the advisor overrated a 20 × 20 RK4 cloth's stable stiffness by 1/0.65 under gravity. So when loads
+act (gravity, the control's external force), the advisor linearises about the state they carry the model
+to: the static equilibrium x_eq (pins held at their t = 0 place), found by quasi-static implicit Euler
+steps (each one a regularised Newton step on the potential, the velocities zeroed after it). That is not
+yet the stiffest state of the run: released unstretched, the cloth swings past its static stretch before
+it settles, and the advisor linearised at x_eq was 2.5–13.5 % optimistic for symplectic Euler, velocity
+Verlet and RK4 at small steps (bench/RESULTS.md §11). A swing along the ray x₀ + s (x_eq - x₀) does not
+model it (the cloth reaches equilibrium through large rotations, which the ray turns into stretch). So
+when the model moves by itself, the advisor also takes each world's peak ω_max over a dry run of the
+scene (:func:`transient_peak`): velocity Verlet at half the step the Gershgorin bound proves stable at
+any state, ω_max re-estimated along the way by warm-started power iterations, until the peaks stop rising
+(or the run's duration). Measured with it on the battery (three scenes, five integrators, two steps
+each): no run it passes blows up; it is within 10 % for symplectic Euler, velocity Verlet and RK4, and
+14–41 % conservative for explicit Euler and midpoint over 10 s runs. Against the exact one-step map of the
+linearised cloth (:mod:`.modal`, :func:`.stability.step_matrix`) the advisor linearised at the equilibrium is the top
+mode's limit for all five (to the power iteration's ~1e-4), so those two integrators' runs past it are
+linearly unstable, only too slowly to show in 10 s. They rely on damping, and the transverse modes have
+none (:mod:`.stability`): those grow slowly at any step, and over 100 s explicit Euler blows up inside the
+advisor's limit.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .. import checks
+from ..kernels.stability import PI_LAMBDA
+from ..core.integrators import ImplicitEuler, VelocityVerlet
+from ..core.model import Model
+from ..core.simulator import Simulator
+from ..core.state import State
+from .damping import _damping_ranges, _ratio_arrays, _tangent_stiffness, _top_mode_ratios
+from .omega import OmegaMaxEstimate, PowerIteration, _gershgorin, _power_iteration, _stiffness_values, free_particles
+from .stability import _world_limits
+
+# -- under load ---------------------------------------------------------------------------------------------
+
+#: Where between the start (0) and the static equilibrium (1) :func:`loaded_state` linearises by default.
+OVERSHOOT = 1.0
+#: Quasi-static relaxation: the implicit step [s] (a trust region: unsupported directions move g h² per step
+#: at most), the most steps, and the convergence test (largest move per step / the model's extent; the
+#: 20 × 20 cloth's ω_max agrees to 5e-6 with a 10× tighter test).
+RELAX_STEP, RELAX_MAX_STEPS, RELAX_TOLERANCE = 0.2, 200, 1.0e-5
+
+
+def has_loads(model: Model, control=None) -> bool:
+    """Whether gravity acts in some world or the control carries an external force."""
+    gravity = np.linalg.norm(model.world_values("gravity"), axis=1)
+    return bool(gravity.any()) or (control is not None and control.particle_force is not None)
+
+
+@dataclass(frozen=True)
+class Equilibrium:
+    """The static equilibrium :func:`static_equilibrium` found.
+
+    Attributes:
+        positions: particle positions [m], float64, shape [world_count · particle_count, 3].
+        steps: relaxation steps taken.
+        converged: whether the largest move of the last step fell below ``RELAX_TOLERANCE`` × the extent.
+        residual: that move over the extent [-].
+    """
+
+    positions: np.ndarray
+    steps: int
+    converged: bool
+    residual: float
+
+
+def static_equilibrium(model: Model, *, control=None, step: float = RELAX_STEP, max_steps: int = RELAX_MAX_STEPS,
+                       tolerance: float = RELAX_TOLERANCE) -> Equilibrium:
+    """The positions where the loads (gravity, the control's external force) balance the elements, the
+    pins held at their t = 0 place: implicit Euler steps of ``step`` from rest, the velocities zeroed and
+    the clock and pins put back after each, until the largest move per step is below ``tolerance`` × the
+    model's extent (or ``max_steps``). Each step solves (M + h²K) Δx = h² f, a Newton step on the
+    potential regularised by the mass (K the elements' stiffness, made positive semi-definite)."""
+    checks.positive("step", step)
+    checks.count("max_steps", max_steps, minimum=1)
+    integrator = ImplicitEuler(model)
+    state, scratch = model.state(), model.state()
+    start = state.particle_q.numpy().astype(np.float64)
+    pinned = ~free_particles(model).reshape(-1)
+    extent = max(float(np.ptp(start, axis=0).max()) if len(start) else 0.0, 1.0e-6)
+    previous, residual, steps = start, math.inf, 0
+    while steps < max_steps and residual > tolerance:
+        state.particle_qd.zero_()
+        state.time.zero_()
+        integrator.step(state, scratch, control, step)
+        q = scratch.particle_q.numpy().astype(np.float64)
+        q[pinned] = start[pinned]
+        if not np.isfinite(q).all():
+            break
+        residual = float(np.abs(q - previous).max()) / extent
+        state.particle_q.assign(q.astype(wp.dtype_to_numpy(model.scalar)))
+        previous, steps = q, steps + 1
+    return Equilibrium(positions=previous, steps=steps, converged=residual <= tolerance, residual=residual)
+
+
+def loaded_state(model: Model, *, control=None, overshoot: float = OVERSHOOT) -> State:
+    """A state at x₀ + ``overshoot`` (x_eq - x₀), x_eq the :func:`static_equilibrium` under the loads, at rest
+    (default: the equilibrium itself), to linearise the advisor about."""
+    start = model.state()
+    equilibrium = static_equilibrium(model, control=control)
+    q0 = start.particle_q.numpy().astype(np.float64)
+    swing = q0 + overshoot * (equilibrium.positions - q0)
+    start.particle_q.assign(swing.astype(wp.dtype_to_numpy(model.scalar)))
+    return start
+
+
+#: The dry run (:func:`transient_peak`): velocity Verlet at ``PROBE_FRACTION`` of the step the Gershgorin
+#: bound proves stable (no state exceeds that bound, so the dry run is stable wherever it goes; on a linear
+#: spring released from rest Verlet's turning points are exact at any stable step, where symplectic Euler's
+#: overshoot by 1/√(1 - (ωh/2)²)), ω_max
+#: re-estimated every ``PROBE_CHECK`` seconds of simulated time by ``PROBE_ITERATIONS`` power iterations
+#: warm-started from the last (a world stops at ``PROBE_TOLERANCE``; 20 iterations leave the 20 × 20 cloth's
+#: peak 4e-4 below 200 iterations'), captured once into a graph and replayed. It ends once twice the time of the last rise of some
+#: world's peak (by more than ``PROBE_RISE``) has passed, not before ``PROBE_MIN_TIME`` and not after its
+#: horizon (``PROBE_HORIZON`` by default; ``warpspring run`` passes the run's duration).
+PROBE_FRACTION = 0.5
+PROBE_CHECK = 1.0 / 240.0
+PROBE_ITERATIONS, PROBE_TOLERANCE = 20, 1.0e-4
+PROBE_RISE = 1.0e-3
+PROBE_MIN_TIME, PROBE_HORIZON = 0.25, 2.0
+
+
+def in_motion(model: Model, control=None) -> bool:
+    """Whether the model leaves its initial state by itself: loads act (:func:`has_loads`), a keyframe track
+    drives pins or inputs, or a particle starts moving."""
+    return (has_loads(model, control) or bool(model.track_table.tracks)
+            or bool(np.any(model.particle_qd.numpy())))
+
+
+@dataclass(frozen=True)
+class TransientPeak:
+    """The highest ω_max each world reached in the dry run of :func:`transient_peak`.
+
+    Attributes:
+        world_omega_max: each world's peak ω_max [rad/s], float64, shape [world_count] (at least the
+            ``start`` estimate's).
+        world_peak_time: when each world reached it [s], float64, shape [world_count] (0: at the start).
+        world_mode: each world's power-iteration vector at its peak, float64, shape [world_count,
+            particle_count, 3].
+        positions: each world's positions at its peak [m], float64, shape [world_count · particle_count, 3].
+        duration: simulated time of the dry run [s].
+        step: its step [s].
+        finite: False when the dry run's state turned non-finite (it stopped there).
+        world_lowest_ratio: with ``lowest_ratio``, each world's lowest top-mode damping ratio xᵀDx / xᵀKx [s]
+            over the start and the dry run's re-estimates (:func:`~.damping.top_mode_ratios`), shape [world_count];
+            else ``None``.
+    """
+
+    world_omega_max: np.ndarray
+    world_peak_time: np.ndarray
+    world_mode: np.ndarray
+    positions: np.ndarray
+    duration: float
+    step: float
+    finite: bool
+    world_lowest_ratio: np.ndarray | None = None
+
+
+def _keeps_plasticity(function):
+    """Run ``function(model, ...)`` and put the model's plastic springs back as they were: its static solves and
+    dry runs step the model, and plastic springs keep their yield in the model (a plastic bar that sagged in
+    the dry run would start the real run collapsed)."""
+
+    @functools.wraps(function)
+    def wrapper(model, *args, **kwargs):
+        if not model.spring_material_law.plastic:
+            return function(model, *args, **kwargs)
+        saved = wp.clone(model.spring_plastic_rest_length), wp.clone(model.spring_plastic_strain)
+        try:
+            return function(model, *args, **kwargs)
+        finally:
+            wp.copy(model.spring_plastic_rest_length, saved[0])
+            wp.copy(model.spring_plastic_strain, saved[1])
+
+    return wrapper
+
+
+@_keeps_plasticity
+def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float = PROBE_HORIZON,
+                   start: OmegaMaxEstimate | None = None, start_positions: np.ndarray | None = None,
+                   lowest_ratio: bool = False) -> TransientPeak:
+    """The highest ω_max each world reaches on its way from the initial state: a dry run of the scene as it
+    will run (loads, control, pins and their tracks, colliders), by velocity Verlet at a step that is stable
+    at any state, with ω_max re-estimated along it (constants ``PROBE_*``).
+
+    A cloth released unstretched swings past its static stretch before it settles: measured on the 20 × 20
+    hanging cloth at 13 kN/m, ω_max is 719 rad/s at the start, 924 at the static equilibrium and 989 at
+    t = 0.45 s, and a step that keeps the equilibrium stable (ωh = 1.92 for symplectic Euler) blows up there.
+
+    Args:
+        model: the model.
+        control: the run's Control (its external force acts in the dry run).
+        stiffness: as in :func:`~.advisor.advise` (the power iterations' spring stiffness; the dry run uses the model's).
+        horizon: the longest dry run [s] (> 0).
+        start: an estimate to start from and to beat (e.g. at the static equilibrium), with
+            ``start_positions`` [m], float64, shape [world_count · particle_count, 3], where it was made;
+            default: the initial state's.
+        lowest_ratio: also keep each world's lowest top-mode damping ratio along the way (explicit Euler's
+            limit: the stretch that makes the top mode stiffer across its springs than along them, where their
+            dampers act, need not come with the highest ω_max); one host read of the state per re-estimate.
+    """
+    horizon = checks.positive("horizon", horizon)
+    k = _stiffness_values(model, stiffness)
+    worlds, n = model.world_count, model.particle_count
+    if start is None:
+        start = _power_iteration(model, k, None, 1000, PROBE_TOLERANCE, 0)
+        start_positions = model.particle_q.numpy().astype(np.float64)
+    peak = start.world_omega_max.copy()
+    mode = start.world_mode.copy()
+    positions = np.array(start_positions, dtype=np.float64).reshape(worlds, n, 3)
+    peak_time = np.zeros(worlds)
+    ratio_arrays = _ratio_arrays(model) if lowest_ratio else None  # read once, not at every re-estimate
+
+    def ratios(x: np.ndarray, q: np.ndarray) -> np.ndarray:
+        return _top_mode_ratios(_tangent_stiffness(model, k, q.reshape(-1, 3)), ratio_arrays, list(x), q)
+
+    lowest = ratios(mode, positions) if lowest_ratio else None
+    bound = _gershgorin(model, k, free_particles(model))
+    safe = _world_limits("velocity_verlet", bound, _damping_ranges(model, k, [None] * worlds, model.particle_q))
+    safe = float(safe[bound > 0.0].min()) if (bound > 0.0).any() else math.inf
+    if not math.isfinite(safe) or safe <= 0.0:
+        return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), 0.0, 0.0, True, lowest)
+    substeps = max(1, math.ceil(PROBE_CHECK / (PROBE_FRACTION * safe)))
+    sim = Simulator(model, integrator=VelocityVerlet(model), fps=1.0 / PROBE_CHECK, substeps=substeps,
+                    control=control, guard=None)
+    iteration = PowerIteration(model, k, mode)
+    iteration.tolerance, iteration.max_iterations = PROBE_TOLERANCE, PROBE_ITERATIONS
+    running = wp.array((bound > 0.0).astype(np.int32), dtype=wp.int32, device=model.device)
+    snapshot = wp.clone(sim.state.particle_q)
+
+    def recheck():
+        iteration.iteration.zero_()
+        wp.copy(iteration.active, running)
+        for _ in range(PROBE_ITERATIONS):
+            iteration.iterate(snapshot)
+
+    recheck()  # uncaptured: loads the modules (a capture must not)
+    with wp.ScopedCapture(device=model.device, force_module_load=False) as capture:
+        recheck()
+    rise, finite, level = 0.0, True, None  # level: the dry run's own running peak (not the start's)
+    while sim.time < horizon and (sim.time < PROBE_MIN_TIME or sim.time < 2.0 * rise):
+        sim.step_frame()
+        wp.copy(snapshot, sim.state.particle_q)
+        wp.capture_launch(capture.graph)
+        omega = np.sqrt(np.maximum(iteration.scalars.numpy()[:, PI_LAMBDA], 0.0))
+        if not np.isfinite(omega).all():
+            finite = False
+            break
+        if level is None or (omega > level * (1.0 + PROBE_RISE)).any():  # still rising somewhere
+            rise = sim.time
+            level = omega if level is None else np.maximum(level, omega)
+        higher = omega > peak
+        if higher.any() or lowest_ratio:
+            q = sim.state.particle_q.numpy().astype(np.float64).reshape(worlds, n, 3)
+            if not np.isfinite(q[higher]).all():
+                finite = False
+                break
+            x = iteration.x.numpy().astype(np.float64).reshape(worlds, n, 3)
+            positions[higher], mode[higher], peak_time[higher], peak[higher] = q[higher], x[higher], sim.time, omega[higher]
+            if lowest_ratio:
+                lowest = np.fmin(lowest, ratios(x, q))
+    return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), sim.time, sim.dt, finite, lowest)
