@@ -29,6 +29,7 @@ from .emitters import Emitter, make_emitter
 from .handles import HandleFamily, make_handle
 from .hinges import dihedral_angle, mesh_hinges
 from .kinematics import PinGroup, PinGroupTable
+from .mesh_files import USD_EXTENSIONS, load_mesh_file, read_usd_mesh, read_usd_mesh_samples
 from .material import ClothMaterial, edge_springs, grid_masses, grid_springs, hinge_parameters, lumped_masses
 from .model import Model
 from .records import MeshGroup, ShapeInfo, SkinGroup, Stabilizers
@@ -41,7 +42,6 @@ from .transforms import quat_between, quat_to_matrix
 _AXES = {"Y": 1, "Z": 2}  # USD knows only Y-up and Z-up stages
 #: Prim names under /World that the USD writer uses itself: a mesh named so gets a suffix.
 RESERVED_PRIM_NAMES = ("particles", "springs", "colliders")
-USD_EXTENSIONS = (".usd", ".usda", ".usdc")  # mesh files read through USD, not trimesh
 
 #: Host bytes of the temporaries of making a cloth grid, per spring and per particle (measured; see
 #: ``ModelBuilder._check_grid_room``).
@@ -792,7 +792,7 @@ class ModelBuilder:
 
         Args:
             mesh: a ``trimesh.Trimesh``, a file path trimesh can load (OBJ, STL, PLY, GLB, ...), a USD file
-                (``.usd``, ``.usda``, ``.usdc``: see :func:`~warpspring.io.usd_mesh.read_usd_mesh` for what is
+                (``.usd``, ``.usda``, ``.usdc``: see :func:`~warpspring.core.mesh_files.read_usd_mesh` for what is
                 applied; its polygons are written back as authored, its face sets kept), or a vertex array
                 [m], shape [v, 3] (then ``faces`` is required).
             faces: vertex indices of each triangle, shape [t, 3], when ``mesh`` is an array.
@@ -828,8 +828,6 @@ class ModelBuilder:
         if prim is not None and not usd:
             raise ConfigError(f"prim= chooses a mesh of a USD file ({', '.join(USD_EXTENSIONS)}), not of {mesh!r}")
         if usd:
-            from ..io.usd_mesh import read_usd_mesh
-
             read = read_usd_mesh(mesh, prim=prim, up_axis=self.up_axis)
             vertices, faces = read.vertices, read.triangles
             polygons = (read.polygon_counts, read.polygon_indices)
@@ -1012,8 +1010,6 @@ class ModelBuilder:
         if prim is not None and not usd:
             raise ConfigError(f"prim= chooses a mesh of a USD file ({', '.join(USD_EXTENSIONS)}), not of {mesh!r}")
         if usd:
-            from ..io.usd_mesh import read_usd_mesh
-
             read = read_usd_mesh(mesh, prim=prim, up_axis=self.up_axis)
             vertices, faces = read.vertices, read.triangles
             polygons, face_sets = (read.polygon_counts, read.polygon_indices), read.face_sets
@@ -1197,7 +1193,7 @@ class ModelBuilder:
 
         Args:
             mesh: a file (any format trimesh reads, or ``.usd``/``.usda``/``.usdc``: see
-                :func:`~warpspring.io.usd_mesh.read_usd_mesh`, whose time-sampled points make the collider
+                :func:`~warpspring.core.mesh_files.read_usd_mesh`, whose time-sampled points make the collider
                 deform), a ``trimesh.Trimesh``, or vertices [m], shape [v, 3] (then ``faces`` is required).
                 Its coordinates are the collider's own frame.
             faces: vertex indices of each triangle, shape [t, 3], counter-clockwise seen from outside.
@@ -1230,9 +1226,7 @@ class ModelBuilder:
         samples = None
         if isinstance(mesh, (str, os.PathLike)):
             path = os.fspath(mesh)
-            if path.lower().endswith((".usd", ".usda", ".usdc")):
-                from ..io.usd_mesh import read_usd_mesh, read_usd_mesh_samples
-
+            if path.lower().endswith(USD_EXTENSIONS):
                 read = read_usd_mesh(path, prim=prim, up_axis=self.up_axis)
                 vertices, faces = read.vertices, read.triangles
                 samples = read_usd_mesh_samples(path, prim=read.prim, up_axis=self.up_axis)
@@ -1680,20 +1674,6 @@ def _quaternion(value) -> np.ndarray:
     if q.shape != (4,) or not np.isfinite(q).all() or np.linalg.norm(q) == 0.0:
         raise ConfigError(f"rotation must be a nonzero quaternion (x, y, z, w), got {value!r}")
     return q / np.linalg.norm(q)
-
-
-def load_mesh_file(path, *, what: str = "mesh"):
-    """The ``trimesh.Trimesh`` in the file at ``path`` (any format trimesh reads, unprocessed: vertices in the
-    file's order), or a one-line ConfigError naming the file."""
-    import trimesh
-
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise ConfigError(f"{what} file not found: {path}")
-    try:
-        return trimesh.load(path, force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many types for unreadable files
-        raise ConfigError(f"cannot read {what} file {path}: {exc}") from None
 
 
 def _weld_seams(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray | None):
