@@ -22,7 +22,7 @@ from pxr import Sdf, Tf, Usd
 import warpspring as ws
 from test_cli import points_samples, write_scene
 from warpspring.cli import EXIT_CONFIG, EXIT_IO, EXIT_NO_CHOICE, main, os_error_line
-from warpspring.core.builder import DEFAULT_SHEAR, spring_family
+from warpspring.core.builder.spring_materials import DEFAULT_SHEAR, spring_family
 from warpspring.io import usd as usd_module
 from warpspring.io.scene import load_scene
 from warpspring.io.usd import UsdWriter, check_output_path

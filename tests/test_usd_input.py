@@ -1,4 +1,4 @@
-"""Reading a polygon mesh from a USD file (:mod:`warpspring.io.usd_mesh`): placement (transform, units, up
+"""Reading a polygon mesh from a USD file (:mod:`warpspring.core.mesh_files`): placement (transform, units, up
 axis), triangulation, orientation, face sets, time, and the one-line errors. Host only: no Warp kernels.
 
 Expected values are computed here from what the test authors, independently of the module's helpers.
@@ -14,7 +14,7 @@ import pytest
 from pxr import Gf, Usd, UsdGeom, Vt
 
 from warpspring.errors import ConfigError
-from warpspring.io.usd_mesh import UsdMesh, read_usd_mesh
+from warpspring.core.mesh_files import UsdMesh, read_usd_mesh
 
 
 def _stage(path: Path, *, up: str = "Z", meters_per_unit: float = 1.0) -> Usd.Stage:

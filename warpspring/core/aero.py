@@ -14,7 +14,7 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError
 from ..kernels.aero import AeroSpec, aero_arrays_type
-from .families import ElementFamily, build_incidence
+from .families import ElementFamily, build_incidence, incidence_bytes
 
 #: Default coefficients: C_D of a flat square plate normal to the flow (Hoerner, "Fluid-Dynamic Drag",
 #: 1965: 1.17 at high Reynolds numbers) and a lift coefficient of the same order (a tuning value: cloth
@@ -65,8 +65,6 @@ class AeroFamily(ElementFamily):
 
     def device_bytes(self, particle_count: int, scalar_bytes: int, worlds: int) -> int:
         """Indices, C_D and C_L per triangle, the noise's scale and seed, and the incidence table."""
-        from .memory import incidence_bytes
-
         cache = 3 * scalar_bytes * (worlds * len(self.triangles) if self.precompute else 1)
         return ((12 + 2 * scalar_bytes) * len(self.triangles) + scalar_bytes + 4 + cache
                 + incidence_bytes(self.triangles, particle_count))

@@ -172,6 +172,16 @@ def build_incidence(members: np.ndarray, particle_count: int, local: np.ndarray,
     return table, IncidenceShape(head_slots=width, tail=bool(tail.any()))
 
 
+def incidence_bytes(members, particle_count: int) -> int:
+    """Bytes of an incidence table (:func:`build_incidence`) of elements with these particles, int, shape
+    [element_count, arity]: an ELL head of element and local per slot and particle, the tail's start per
+    particle, and element and local per tail entry."""
+    degree = np.bincount(np.asarray(members, dtype=np.int64).ravel(), minlength=particle_count)
+    slots = head_slots(degree)
+    tail = int(np.maximum(degree - slots, 0).sum())
+    return 8 * slots * particle_count + 4 * (particle_count + 1) + 8 * tail
+
+
 def incidence_entries(table: Incidence, shape: IncidenceShape) -> list[list[tuple[int, int]]]:
     """Every particle's (element, local) entries of an incidence table, head then tail, without padding (a
     host read, for tests and inspection)."""

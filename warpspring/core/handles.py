@@ -12,7 +12,7 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError
 from ..kernels.handles import HandleSpec, handle_arrays_type, handle_frames_kernel
-from .families import ElementFamily, build_incidence
+from .families import ElementFamily, build_incidence, incidence_bytes
 from .tracks import Track, as_track
 
 
@@ -47,8 +47,6 @@ class HandleFamily(ElementFamily):
     def device_bytes(self, particle_count: int, scalar_bytes: int, worlds: int) -> int:
         """Per grab its handle and rest position; per handle the pivot, gains, cap, four frame vectors per
         world and two track indices; the incidence table."""
-        from .memory import incidence_bytes
-
         grabs = np.concatenate([h.particles for h in self.handles])
         count = len(self.handles)
         return (28 * len(grabs) + count * (24 + 3 * scalar_bytes + 4 * 24 * worlds + 8)

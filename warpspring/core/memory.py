@@ -168,20 +168,6 @@ class AvailableMemory:
     device_total: int | None = None
 
 
-def incidence_bytes(members, particle_count: int) -> int:
-    """Bytes of an incidence table (``families.build_incidence``) of elements with these particles, int, shape
-    [element_count, arity]: an ELL head of element and local per slot and particle, the tail's start per
-    particle, and element and local per tail entry."""
-    from .families import head_slots
-
-    import numpy as np
-
-    degree = np.bincount(np.asarray(members, dtype=np.int64).ravel(), minlength=particle_count)
-    slots = head_slots(degree)
-    tail = int(np.maximum(degree - slots, 0).sum())
-    return 8 * slots * particle_count + 4 * (particle_count + 1) + 8 * tail
-
-
 def _mesh_cache_bytes(shapes: int, worlds: int, size: int, meshes: int, faces: int, candidates: int) -> int:
     """The mesh colliders' candidate cache (``mesh_colliders.make_mesh_cache``) [B]: slot, reach, margin and normal
     offset per collider; seven pseudo-normals per cached triangle; per cached mesh and state entry a reference

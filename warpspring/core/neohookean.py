@@ -20,6 +20,7 @@ from .. import checks
 from ..errors import ConfigError
 from ..kernels.neohookean import NeoHookeanSpec, neohookean_arrays_type, stable_lame
 from ..kernels.precision import mat33_type
+from .families import incidence_bytes
 from .tets import TetFamily, signed_volumes, wound_tets
 from .volume import volume_gradients
 
@@ -173,8 +174,6 @@ class NeoHookeanFamily(TetFamily):
 
     def device_bytes(self, particle_count: int, scalar_bytes: int, worlds: int) -> int:
         """Indices, V₀, D_m⁻¹, μ, λ and β per tet (one row each), and the incidence table."""
-        from .memory import incidence_bytes
-
         stress = 10 * scalar_bytes * (worlds * self.element_count if self.precompute else 1)
         return (16 + 13 * scalar_bytes) * self.element_count + stress + incidence_bytes(self.tets, particle_count)
 

@@ -170,7 +170,7 @@ def build_topology(mesh, method: str, *, youngs_modulus: float, spacing: float |
 
 def require_closed(mesh, method: str, source: str) -> None:
     """Raise a one-line ConfigError unless ``mesh`` is watertight (every edge shared by exactly two faces)."""
-    import trimesh
+    import trimesh  # trimesh loads lazily
 
     if mesh.is_watertight:
         if not mesh.volume > 0.0:

@@ -17,6 +17,7 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError
 from ..kernels.volume import VolumeSpec, volume_arrays_type
+from .families import incidence_bytes
 from .tets import TetFamily, signed_volumes
 
 #: The Poisson ratio of a network of central springs (every soft-body lattice: ``core/softbody.py``).
@@ -111,8 +112,6 @@ class VolumeFamily(TetFamily):
     def device_bytes(self, particle_count: int, scalar_bytes: int, worlds: int) -> int:
         """Indices, V₀, K and kd per tet (one row of K and kd), the factor per tet and world where precomputed, and
         the incidence table."""
-        from .memory import incidence_bytes
-
         factor = scalar_bytes * (worlds * self.element_count if self.precompute else 1)
         return (16 + 3 * scalar_bytes) * self.element_count + factor + incidence_bytes(self.tets, particle_count)
 

@@ -77,8 +77,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..core.aero import AIR_DENSITY, DEFAULT_DRAG, DEFAULT_LIFT
-from ..core.builder import DEFAULT_BEND, DEFAULT_SHEAR, DEFAULT_STRUCTURAL, ModelBuilder, SpringMaterial
-from ..core.builder import spring_law_options
+from ..core.builder import ModelBuilder, SpringMaterial
+from ..core.builder.spring_materials import DEFAULT_BEND, DEFAULT_SHEAR, DEFAULT_STRUCTURAL, spring_law_options
 from ..core.springs import SpringPlasticity
 from ..errors import ConfigError
 from ..version import __version__

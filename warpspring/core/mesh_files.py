@@ -1,7 +1,9 @@
-"""Read one polygon mesh from a USD file (``.usda``, ``.usdc``, ``.usd``) for the simulation: a cloth mesh
-(later soft bodies and mesh colliders).
+"""Read meshes from files for the builder's recipes (cloth meshes, soft bodies, mesh colliders, emitters): one
+polygon mesh from a USD file (``.usda``, ``.usdc``, ``.usd``: :func:`read_usd_mesh`, its time samples
+:func:`read_usd_mesh_samples`), or a file of any other format trimesh reads (:func:`load_mesh_file`). pxr and
+trimesh are optional and slow to import: each loads inside the function that needs it.
 
-What is applied, in this order, so that the result is in warpspring's frame and units:
+Reading a USD mesh, what is applied, in this order, so that the result is in warpspring's frame and units:
 
 * time: points (and transforms, face-set indices) are read at ``time``; by default at the stage's start
   time code when the stage authors a time range, else at the earliest time sample of each attribute
@@ -44,7 +46,9 @@ import numpy as np
 
 from ..errors import ConfigError
 
-__all__ = ["UsdMesh", "read_usd_mesh"]
+__all__ = ["USD_EXTENSIONS", "UsdMesh", "load_mesh_file", "read_usd_mesh", "read_usd_mesh_samples"]
+
+USD_EXTENSIONS = (".usd", ".usda", ".usdc")  # mesh files read through USD, not trimesh
 
 _UP_AXES = ("Y", "Z")
 _LISTED_MESHES = 5
@@ -128,7 +132,7 @@ def read_usd_mesh(path: str | os.PathLike[str], *, prim: str | None = None, up_a
         raise ConfigError(f"{file}: up_axis must be \"Y\" or \"Z\", got {up_axis!r}; "
                           f"pass up_axis=\"Z\" (warpspring's frame) or up_axis=\"Y\"")
 
-    from pxr import UsdGeom  # imported here, as in io.usd: pxr is slow to import
+    from pxr import UsdGeom  # optional: usd-core (slow to import)
 
     stage = _open_stage(file)
     mesh_prim = _find_mesh(stage, file, prim)
@@ -177,7 +181,7 @@ def read_usd_mesh_samples(path: str | os.PathLike[str], *, prim: str | None = No
     """The time samples of a mesh prim's points, as :func:`read_usd_mesh` reads them at each (world space,
     metres, the requested up axis): (times [s] (time codes over the stage's ``timeCodesPerSecond``), shape
     [k]; points [m], shape [k, v, 3]), or None when the points have fewer than two samples."""
-    from pxr import UsdGeom
+    from pxr import UsdGeom  # optional: usd-core
 
     file = os.fspath(path)
     stage = _open_stage(file)
@@ -191,12 +195,26 @@ def read_usd_mesh_samples(path: str | os.PathLike[str], *, prim: str | None = No
     return np.asarray(codes, dtype=np.float64) / rate, points
 
 
+def load_mesh_file(path, *, what: str = "mesh"):
+    """The ``trimesh.Trimesh`` in the file at ``path`` (any format trimesh reads, unprocessed: vertices in the
+    file's order), or a one-line ConfigError naming the file."""
+    import trimesh  # trimesh loads lazily
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise ConfigError(f"{what} file not found: {path}")
+    try:
+        return trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise ConfigError(f"cannot read {what} file {path}: {exc}") from None
+
+
 # ---------------------------------------------------------------------------------------------- stage
 
 
 def _open_stage(file: str):
     """The stage of ``file``; ConfigError for a missing or unreadable file."""
-    from pxr import Tf, Usd
+    from pxr import Tf, Usd  # optional: usd-core
 
     if not os.path.exists(file):
         raise ConfigError(f"{file}: no such file; check the path")
@@ -233,7 +251,7 @@ def _usd_reason(error: BaseException) -> str:
 
 def _mesh_paths(stage) -> list[str]:
     """Paths of the active, defined mesh prims of the stage, in traversal order."""
-    from pxr import UsdGeom
+    from pxr import UsdGeom  # optional: usd-core
 
     return [str(p.GetPath()) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
 
@@ -247,7 +265,7 @@ def _listed(paths: list[str]) -> str:
 
 def _find_mesh(stage, file: str, prim: str | None):
     """The mesh prim to read: ``prim``, or the one mesh of the stage."""
-    from pxr import Sdf, UsdGeom
+    from pxr import Sdf, UsdGeom  # optional: usd-core
 
     if prim is None:
         meshes = _mesh_paths(stage)
@@ -280,7 +298,7 @@ def _find_mesh(stage, file: str, prim: str | None):
 
 def _time_code(stage, time: float | None, where: str):
     """The time code to read at (see :func:`read_usd_mesh`)."""
-    from pxr import Usd
+    from pxr import Usd  # optional: usd-core
 
     if time is None:
         if stage.HasAuthoredTimeCodeRange():
@@ -436,7 +454,7 @@ def _triangulate(vertices: np.ndarray, counts: np.ndarray, indices: np.ndarray, 
 
 def _face_sets(mesh_prim, num_faces: int, code, where: str) -> dict[str, np.ndarray]:
     """GeomSubset name -> sorted unique int32 face indices, for the subsets of element type face."""
-    from pxr import UsdGeom
+    from pxr import UsdGeom  # optional: usd-core
 
     sets: dict[str, np.ndarray] = {}
     for subset in UsdGeom.Subset.GetAllGeomSubsets(UsdGeom.Imageable(mesh_prim)):
