@@ -222,7 +222,9 @@ def _study_engine(args):
 
 
 def _cmd_sweep(args) -> int:
-    from .analysis.sweep import LocalEngine, load_sweep, run_sweep
+    from .analysis.engines import LocalEngine
+    from .analysis.sweep import run_sweep
+    from .analysis.sweep_plan import load_sweep
     from .analysis.sweep_report import summary, write_report
 
     plan = load_sweep(args.sweep)  # every variant checked before anything starts

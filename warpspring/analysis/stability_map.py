@@ -61,6 +61,7 @@ from ..kernels.stability import spring_motion_kernel
 from ..core.model import Model
 from ..core.state import State
 from ..core.stepper import StepHook, Stepper
+from .engines import map_jobs
 from .stability import advise, free_particles, network_stable_step, stable_omega_h, world_dynamic_inv_mass
 
 #: Growth threshold of a run: unstable when its late mean E exceeds its early one by (1 + GROWTH)².
@@ -650,8 +651,6 @@ def run_map(plan: MapPlan = QUICK, device=None, *, integrators=None, log: Callab
 
 def _run_on(engine, result: StabilityMap, device: str, names: list, log: Callable[[str], None]) -> StabilityMap:
     """:func:`run_map` through a sweep engine: its jobs gathered in the local loop's order."""
-    from .sweep import map_jobs
-
     jobs = [("single spring", n) for n in names] + [("cloth", n) for n in names]
     if "rk4" in names:
         jobs.append(("seed", "rk4"))

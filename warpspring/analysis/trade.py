@@ -52,6 +52,7 @@ from ..core.builder import ModelBuilder, SpringMaterial
 from ..checks import format_duration
 from ..errors import ConfigError, SimulationError
 from ..core.integrators import INTEGRATORS, Integrator, make_integrator
+from .engines import map_jobs
 from .stability import estimate_omega_max
 from ..core.model import Model
 from ..core.control import Control
@@ -743,8 +744,6 @@ def _run_on(engine, study: Study, device: str, names: list, progress: bool) -> N
     """Measure ``study``'s plan through a sweep engine: the cloth references first, then one job per
     problem × precision × integrator, gathered in the order the local loop measures them."""
     from tqdm import tqdm
-
-    from .sweep import map_jobs
 
     plan = study.plan
     cloth = [i for i, problem in enumerate(plan.problems) if isinstance(problem, ClothProblem)]
