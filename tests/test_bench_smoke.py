@@ -302,7 +302,7 @@ def test_the_integrator_bench_tells_a_stable_run_from_a_blow_up(device):
     started with (the springs' damping); at one step per frame (ω_max h ≈ 5) the energy test flags the blow-up.
     Pins hold in the stable run."""
     import integrators
-    from warpspring.analysis.trade import SpringNetwork
+    from warpspring.analysis.trade_problems import SpringNetwork
 
     model = integrators.anchors_model(8, device)
     network = SpringNetwork.of(model)

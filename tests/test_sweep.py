@@ -149,7 +149,7 @@ def test_every_variant_is_a_row_with_its_metrics(device, tmp_path_factory):
     """Against the scene run alone and measured here: the batched worlds give each variant's own bits."""
     import warp as wp
 
-    from warpspring.analysis.trade import SpringNetwork
+    from warpspring.analysis.trade_problems import SpringNetwork
     from warpspring.core.simulator import Simulator
     from warpspring.io.scene import parse_scene
 
@@ -309,7 +309,8 @@ def test_on_ray_a_killed_worker_is_retried_and_the_metrics_match(device, tmp_pat
 
 def test_on_ray_the_trade_study_gives_the_local_rows(device, ray_engine):
     from warpspring.analysis.analytic import DampedOscillator
-    from warpspring.analysis.trade import ClothProblem, SpringProblem, StudyPlan, run_study
+    from warpspring.analysis.trade import StudyPlan, run_study
+    from warpspring.analysis.trade_problems import ClothProblem, SpringProblem
 
     plan = StudyPlan(
         name="tiny",
