@@ -15,6 +15,7 @@ import sys
 import numpy as np
 import pytest
 
+from helpers import CUDA
 from warpspring.analysis.sweep import results_dir, run_sweep
 from warpspring.analysis.sweep_batch import make_batches
 from warpspring.analysis.sweep_plan import plan_sweep
@@ -269,15 +270,9 @@ def ray_engine():
     pytest.importorskip("psutil")
     from warpspring.analysis.sweep_ray import RayEngine
 
-    engine = RayEngine(workers=2, gpus_per_task=0.5 if _cuda() else 0.0)
+    engine = RayEngine(workers=2, gpus_per_task=0.5 if CUDA else 0.0)
     yield engine
     engine.close()
-
-
-def _cuda() -> bool:
-    from conftest import CUDA
-
-    return CUDA
 
 
 def _kill_first_attempt(marker: str):
