@@ -75,6 +75,22 @@ def loaded_modules() -> int:
     return sum(len(module.execs) for module in list(user_modules.values()))
 
 
+def driven_cloth(device, *, n: int = 32) -> ws.Model:
+    """The soak's cloth (a copy of ``bench/soak.py``'s scene): n × n particles 0.1 m apart, 0.1 kg each, the grid
+    turned upright about x from z = 4 m, structural + shear + bend springs (ke = 1e3 N/m, kd = 10 N·s/m), air
+    drag 0.01, the two corners of its last row a pin group swung ±0.2 m along x and back every 2 s (smooth,
+    cycled)."""
+    builder = ws.ModelBuilder(drag=0.01)
+    spring = ws.SpringMaterial(ke=1.0e3, kd=10.0)
+    ids = builder.add_cloth_grid(nx=n, ny=n, spacing=0.1, particle_mass=0.1, origin=(0.0, 0.0, 4.0),
+                                 structural=spring, shear=spring, bend=spring,
+                                 rotation=ws.quat_from_axis_angle((1.0, 0.0, 0.0), np.pi / 2))
+    swing = ws.Track([0.0, 0.5, 1.0, 1.5, 2.0], [[0, 0, 0], [0.2, 0, 0], [0, 0, 0], [-0.2, 0, 0], [0, 0, 0]],
+                     interpolation="smooth", extrapolation="cycle")
+    builder.add_pin_group([ids[-1, 0], ids[-1, -1]], translation=swing, name="handle")
+    return builder.finalize(device)
+
+
 def battery_cloth(device, stiffness):
     """The advisor battery's hanging cloth (``warpspring/analysis/load_battery.py``): 20 × 20 particles of
     0.1 kg hanging from its top corners, structural springs only (kd = 0.01 N·s/m), one world per stiffness."""
