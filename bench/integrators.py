@@ -47,7 +47,7 @@ import warpspring as ws
 from cloth import (FPS, KD, KE, MASS, SPACING, SUBSTEPS, NewtonRunner, WarpspringRunner, emit_table,
                    measure_interleaved, round_ratio, warpspring_model)
 from warpspring.analysis.stability import network_stable_step
-from warpspring.analysis.trade import SpringNetwork
+from warpspring.analysis.trade_problems import SpringNetwork
 
 #: Fixed-step integrators, cheapest per step first (dopri5 chooses its own step: not a row here).
 INTEGRATORS = ["symplectic_euler", "velocity_verlet", "explicit_euler", "midpoint", "rk4", "implicit_euler"]

@@ -1,5 +1,7 @@
 """Plot the advisor battery's ratios from its raw tables: per case, what ``--strict`` passes against the 10 s
 blow-up and against the case's lowest limit (the blow-up and the two linear limits), by integrator and step.
+A table that contradicts the battery's claim (no passed world blew up or grows; every pass within 10 % of the
+case's lowest limit) is named row by row on stderr, and the exit status is 1.
 
     python bench/plot_advisor_battery.py                       # results/advisor_frozen_h100.md → docs/images
     python bench/plot_advisor_battery.py --results FILE.md --out PLOT.png
@@ -7,6 +9,7 @@ blow-up and against the case's lowest limit (the blow-up and the two linear limi
 
 import argparse
 import os
+import sys
 
 import numpy as np
 
@@ -72,7 +75,24 @@ def main():
     fig.tight_layout()
     fig.savefig(args.out, dpi=120)
     print(f"wrote {args.out} ({len(rows)} cases from {args.results})")
+    problems = claim_problems(rows)
+    for line in problems:
+        print(f"warning: {line}", file=sys.stderr)
+    return 1 if problems else 0
+
+
+def claim_problems(rows: list[dict]) -> list[str]:
+    """What in ``rows`` contradicts the battery's claim (README, RESULTS §11): the advisor passes no world that
+    blew up or whose top mode grows, and passes within 10 % of each case's lowest limit."""
+    problems = [f"{r['scene']}, {r['integrator']}, {r['dt']}: passed {r['passed but blew up']} world(s) that blew up "
+                f"and {r.get('passed but grows', '0')} whose top mode grows" for r in rows
+                if r["passed but blew up"] != "0" or r.get("passed but grows", "0") not in ("0", "–")]
+    for r in rows:
+        lowest = float(r.get("ratio to the lowest", r["ratio"]))
+        if not 0.9 <= lowest <= 1.0:
+            problems.append(f"{r['scene']}, {r['integrator']}, {r['dt']}: passes {lowest:.3f} of its lowest limit")
+    return problems
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -35,7 +35,8 @@ FPS, SUBSTEPS = 60, 16
 
 
 def driven_cloth(device, *, n: int = 32) -> ws.Model:
-    """The soak's n × n cloth (the module docstring); ``tests/test_soak.py`` runs it at 12 × 12."""
+    """The soak's n × n cloth (the module docstring); ``tests/test_soak.py`` runs a copy of it (``tests/helpers.py``)
+    at 12 × 12."""
     builder = ws.ModelBuilder(drag=0.01)
     spring = ws.SpringMaterial(ke=1.0e3, kd=10.0)
     ids = builder.add_cloth_grid(nx=n, ny=n, spacing=0.1, particle_mass=0.1, origin=(0.0, 0.0, 4.0),

@@ -35,7 +35,9 @@ import warp as wp
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from warpspring.analysis import sweep as sw  # noqa: E402
+from warpspring.analysis.sweep import run_sweep  # noqa: E402
+from warpspring.analysis.sweep_batch import Batch, RunSettings, run_batch  # noqa: E402
+from warpspring.analysis.sweep_plan import DEFAULT_BATCH, SweepPlan, Variant, plan_sweep, variant_hash  # noqa: E402
 
 FPS, SUBSTEPS = 60.0, 16
 
@@ -53,8 +55,8 @@ def cloth_scene(side: int, frames: int) -> dict:
     }
 
 
-def ray_plan(variants: int, batch: int, side: int) -> sw.SweepPlan:
-    return sw.plan_sweep({
+def ray_plan(variants: int, batch: int, side: int) -> SweepPlan:
+    return plan_sweep({
         "scene": cloth_scene(side, 60),
         "sweep": {"batch": batch},
         "axes": {"cloth.structural.ke": {"log": [1.0e2, 1.0e4], "count": variants // 2},
@@ -72,11 +74,11 @@ def measure_ray(variants: int, workers_list: list[int], device: str | None, side
         engine = RayEngine(workers=workers)
         startup = time.perf_counter() - started
         try:
-            for batch, label in ((sw.DEFAULT_BATCH, f"worlds, {sw.DEFAULT_BATCH} a task"), (1, "one variant a task")):
+            for batch, label in ((DEFAULT_BATCH, f"worlds, {DEFAULT_BATCH} a task"), (1, "one variant a task")):
                 plan = ray_plan(variants, batch, side)
                 out = tempfile.mkdtemp(prefix="bench-sweep-")
                 try:
-                    result = sw.run_sweep(plan, out, engine=engine, device=device)
+                    result = run_sweep(plan, out, engine=engine, device=device)
                 finally:
                     shutil.rmtree(out, ignore_errors=True)
                 bad = sum(r.status != "ok" for r in result.rows)
@@ -97,25 +99,25 @@ def worlds_variants(count: int) -> tuple[list, str]:
         scene = copy.deepcopy(base)
         scene["cloth"]["structural"]["ke"] = float(1.0e3 * rng.uniform(0.5, 2.0))
         scene["world"]["gravity"] = [0.0, 0.0, float(-rng.uniform(5.0, 15.0))]
-        variants.append(sw.Variant(index=i, params={}, scene=scene, key=sw.variant_hash(scene)))
+        variants.append(Variant(index=i, params={}, scene=scene, key=variant_hash(scene)))
     return variants, "bench-sweep"
 
 
 def measure_worlds(counts: list[int], device: str, metrics_every: int) -> list[str]:
-    settings = sw.RunSettings(device=device, metrics_every=metrics_every)
+    settings = RunSettings(device=device, metrics_every=metrics_every)
     warm, path = worlds_variants(2)
-    sw.run_batch(sw.Batch(tuple(warm), path), settings)  # compile (and load) the kernels
-    sw.run_batch(sw.Batch(tuple(warm[:1]), path), settings)
+    run_batch(Batch(tuple(warm), path), settings)  # compile (and load) the kernels
+    run_batch(Batch(tuple(warm[:1]), path), settings)
     rows = ["| variants | one model of N worlds [s] | one variant at a time [s] | variants / s (worlds) | "
             "variants / s (one at a time) | speed-up |", "|---|---|---|---|---|---|"]
     for count in counts:
         variants, path = worlds_variants(count)
         start = time.perf_counter()
-        batched = sw.run_batch(sw.Batch(tuple(variants), path), settings)
+        batched = run_batch(Batch(tuple(variants), path), settings)
         wp.synchronize_device(device)
         together = time.perf_counter() - start
         start = time.perf_counter()
-        alone = [sw.run_batch(sw.Batch((v,), path), settings) for v in variants]
+        alone = [run_batch(Batch((v,), path), settings) for v in variants]
         wp.synchronize_device(device)
         apart = time.perf_counter() - start
         same = all(a.results[0].max_strain == b.max_strain for a, b in zip(alone, batched.results))

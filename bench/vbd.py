@@ -36,7 +36,7 @@ import warp as wp
 
 from cloth import FPS, KD, KE, emit_table, measure_interleaved
 from integrators import ENERGY_BLOWUP, StepperRunner, anchors_model, energy_excess, reference
-from warpspring.analysis.trade import SpringNetwork
+from warpspring.analysis.trade_problems import SpringNetwork
 
 
 def spring_coloring(springs: np.ndarray, particle_count: int) -> list[np.ndarray]:

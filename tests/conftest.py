@@ -9,7 +9,8 @@ import warp as wp
 
 wp.config.log_level = wp.LOG_WARNING
 
-CUDA = wp.is_cuda_available()
+from helpers import CUDA  # noqa: E402  (after the log level: looking for CUDA initialises Warp)
+
 DEVICES = [pytest.param("cpu", id="cpu")]
 if CUDA:
     DEVICES.append(pytest.param("cuda:0", id="cuda", marks=pytest.mark.cuda))

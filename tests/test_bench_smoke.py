@@ -1,409 +1,151 @@
-"""The benchmarks still build and run: every ``bench/*.py`` imports, and each benchmark scene, built by its own
-script's builder at a tiny size, steps a frame or two to a state that obeys something checkable in closed form
-(pins held, free fall where no force has reached yet, pin tracks followed). Speed is not tested here: it
-lives in ``bench/RESULTS.md``."""
+"""The benchmarks still build and run: ``bench/smoke.py``, run as a script in a process of its own, checks that
+every ``bench/*.py`` imports and that each benchmark scene, built by its own script's builder at a tiny size, steps
+a frame or two to a state that obeys something checkable in closed form (each check's docstring says what). Each
+test here reports one of its checks (same name, without ``test_``); the tests import nothing from ``bench/``.
+Speed is not tested here: it lives in ``bench/RESULTS.md``."""
 
 from __future__ import annotations
 
-import importlib
+import json
+import os
+import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
-import warp as wp
 
-import warpspring as ws
+from helpers import CUDA
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
-sys.path.insert(0, str(BENCH))
-
-import cloth  # noqa: E402  (the bench's scenes and runners)
-
-G = 9.81  # [m/s²], the default gravity of every bench scene but worlds.py's
-H = 1.0 / (cloth.FPS * cloth.SUBSTEPS)  # [s], the bench's substep
+ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / "bench"
 
 
-def free_fall_drop(g: float, steps: int) -> float:
-    """Symplectic Euler's exact drop [m] after ``steps`` steps of H from rest: v_k = g H k, x_k = g H² k(k+1)/2."""
-    return g * H * H * steps * (steps + 1) / 2
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory) -> dict:
+    """Every check's result from one run of ``bench/smoke.py`` on the CPU (and ``cuda:0`` where present), by
+    (check, param, device), with this checkout's warpspring first on the child's path."""
+    report = tmp_path_factory.mktemp("smoke") / "report.json"
+    devices = ["cpu", "cuda:0"] if CUDA else ["cpu"]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    command = [sys.executable, str(BENCH / "smoke.py"), "--report", str(report)]
+    for device in devices:
+        command += ["--device", device]
+    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=600)
+    if not report.exists():
+        pytest.fail(f"bench/smoke.py wrote no report (exit {done.returncode}):\n{done.stdout}\n{done.stderr}",
+                    pytrace=False)
+    return {(r["check"], r["param"], r["device"]): r for r in json.loads(report.read_text())}
 
 
-def positions(state) -> np.ndarray:
-    return state.particle_q.numpy().astype(np.float64)
+@pytest.fixture
+def check(request, smoke):
+    """A function that reports this test's check: passed, skipped (with its reason) or failed (with its
+    traceback). The check has the test's name without ``test_``, its parameter and its device."""
+
+    def report():
+        params = dict(request.node.callspec.params) if hasattr(request.node, "callspec") else {}
+        device = params.pop("device", None)
+        param = next(iter(params.values()), None)
+        name = request.node.originalname.removeprefix("test_")
+        result = smoke.get((name, param, device))
+        if result is None:
+            pytest.fail(f"bench/smoke.py has no check {name}[{param}] on {device}", pytrace=False)
+        if result["status"] == "skipped":
+            pytest.skip(result["detail"])
+        if result["status"] != "passed":
+            pytest.fail(f"bench/smoke.py: {name}[{param}] on {device}:\n{result['detail']}", pytrace=False)
+
+    return report
 
 
 @pytest.mark.parametrize("script", sorted(path.stem for path in BENCH.glob("*.py")))
-def test_every_bench_script_imports(script):
-    assert hasattr(importlib.import_module(script), "main")
+def test_every_bench_script_imports(script, check):
+    check()
 
 
-def test_the_hanging_cloth_holds_its_pins_and_its_bottom_row_falls_freely(device):
-    """The ANCHORS cloth (``cloth.warpspring_model``), 16 × 16, one frame of 16 substeps: the pinned corners
-    stay exactly where they were; the bottom row, 1.5 m below the pins, falls as a free particle does. The
-    pins' pull travels at the longitudinal wave speed, ≈ 0.1 m · √(6 ke / m) ≈ 25 m/s with the bend springs,
-    so ~0.4 m in 1/60 s; what the discrete scheme carries ahead of the front decays fast with distance
-    (measured: 5e-6 m at 0.9 m, 8e-7 m at 1.1 m, 2e-8 m at 1.5 m), and float32 positions near 1 m round to
-    6e-8 m per step: 1e-6 m bounds both at 1.5 m."""
-    model = cloth.warpspring_model(16, device)
-    start = model.state()
-    runner = cloth.WarpspringRunner(model)
-    runner.frame()
-    q0, q = positions(start), runner.positions().astype(np.float64)
-    assert np.isfinite(q).all()
-    pinned = model.kinematic_mask()
-    np.testing.assert_array_equal(q[pinned], q0[pinned])
-    bottom = np.isclose(q0[:, 2], q0[:, 2].min())
-    np.testing.assert_allclose(q0[bottom, 2] - q[bottom, 2], free_fall_drop(G, cloth.SUBSTEPS), rtol=0, atol=1e-6)
-    np.testing.assert_allclose(q[bottom, :2], q0[bottom, :2], atol=1e-6)
+def test_the_hanging_cloth_holds_its_pins_and_its_bottom_row_falls_freely(device, check):
+    check()
 
 
-def test_newton_runs_the_same_cloth_to_the_same_positions(device):
-    """``cloth.NewtonRunner`` (Newton 1.5 or 1.8) on two worlds of the 8 × 8 cloth: both engines integrate the
-    same equations, so two frames (32 substeps) agree to float32 summation order: measured 3e-11 m on the
-    CPU; on a GPU the orders differ more (2e-6 m after a whole second at 64², RESULTS §1), so 1e-6 m."""
-    pytest.importorskip("newton")
-    model = cloth.warpspring_model(8, device, worlds=2)
-    finals = []
-    for engine in (cloth.WarpspringRunner, cloth.NewtonRunner):
-        runner = engine(model)
-        for _ in range(2):
-            runner.frame()
-        finals.append(runner.positions())
-    np.testing.assert_allclose(finals[1], finals[0], rtol=0, atol=1e-6)
+def test_newton_runs_the_same_cloth_to_the_same_positions(device, check):
+    check()
 
 
-def test_worlds_fall_under_their_own_gravity(device):
-    """``worlds.batch``: three 32² cloths, each with its own gravity and stiffness, one frame: each world's
-    bottom row (3.1 m below its pins) has fallen freely under its own g (tolerance as above)."""
-    import worlds
-
-    model = worlds.batch(3, device)
-    start = model.state()
-    runner = worlds.Batch(model)
-    runner.frame()
-    n = model.particle_count
-    q0, q = positions(start).reshape(3, n, 3), positions(runner.sim.state).reshape(3, n, 3)
-    g = -model.world_values("gravity")[:, 2]
-    bottom = np.isclose(q0[0, :, 2], q0[0, :, 2].min())
-    for w in range(3):
-        np.testing.assert_allclose(q0[w, bottom, 2] - q[w, bottom, 2], free_fall_drop(g[w], cloth.SUBSTEPS),
-                                   rtol=0, atol=1e-6)
+def test_worlds_fall_under_their_own_gravity(device, check):
+    check()
 
 
 @pytest.mark.parametrize("variant", ["fused", "stage"])
-def test_the_contact_scene_falls_as_one_body_before_it_touches(device, variant, monkeypatch):
-    """``contacts.contact_model`` (a free 6 × 6 cloth 0.1 m above a sphere, the ground below), one frame after
-    no settling: nothing touches yet and the springs start at rest, so every particle falls the free-fall
-    drop (float32 rounding of |d| - L leaves spring forces ~1e-5 N against 0.98 N of weight)."""
-    import contacts
-
-    monkeypatch.setattr(contacts, "SETTLE_FRAMES", 0)
-    model = contacts.contact_model(6, device, variant)
-    q0 = positions(model.state())
-    runner = contacts.Runner(model)
-    runner.frame()
-    q = positions(runner.sim.state)
-    np.testing.assert_allclose(q0[:, 2] - q[:, 2], free_fall_drop(G, cloth.SUBSTEPS), rtol=1e-3)
-    np.testing.assert_allclose(q[:, :2], q0[:, :2], atol=1e-6)
+def test_the_contact_scene_falls_as_one_body_before_it_touches(device, variant, check):
+    check()
 
 
 @pytest.mark.parametrize("scene", ["wind", "handle", "emitter", "strain limit"])
-def test_scene_force_benches_run_and_hold_their_pins(device, scene):
-    """The scenes of ``scene_forces.py`` and ``stabilizers.py`` at 6 × 6, two frames: a finite state whose
-    pinned corners have not moved (the handle grabs the top row but pins outrank it)."""
-    import scene_forces
-    import stabilizers
-
-    if scene == "wind":
-        model = scene_forces.model_with_wind(6, device, noise=False)
-    elif scene == "handle":
-        model = scene_forces.model_with_handle(6, device)
-    elif scene == "emitter":
-        model = scene_forces.model_with_emitter(6, device)
-    else:
-        model = stabilizers.soft_cloth(6, ws.Stabilizers(max_strain=0.1, strain_iterations=4), device)
-    q0 = positions(model.state())[: model.particle_count]
-    sim = ws.Simulator(model, fps=cloth.FPS, substeps=cloth.SUBSTEPS, guard=None)
-    for _ in range(2):
-        sim.step_frame()
-    q = positions(sim.state)
-    assert np.isfinite(q).all()
-    pinned = model.kinematic_mask()
-    np.testing.assert_array_equal(q[: model.particle_count][pinned], q0[pinned])
+def test_scene_force_benches_run_and_hold_their_pins(device, scene, check):
+    check()
 
 
-def test_the_soak_scene_follows_its_pin_track(device):
-    """``soak.driven_cloth`` at 6 × 6, one frame: the two driven pins moved along x only, by the smooth track's
-    value at 1/60 s (0 → 0.2 m over 0.5 s; its PCHIP sample on the host), to float32 rounding."""
-    import soak
-
-    model = soak.driven_cloth(device, n=6)
-    q0 = positions(model.state())
-    sim = ws.Simulator(model, fps=cloth.FPS, substeps=cloth.SUBSTEPS, guard=None)
-    sim.step_frame()
-    q = positions(sim.state)
-    swing = ws.Track([0.0, 0.5, 1.0, 1.5, 2.0], [[0, 0, 0], [0.2, 0, 0], [0, 0, 0], [-0.2, 0, 0], [0, 0, 0]],
-                     interpolation="smooth", extrapolation="cycle")
-    offset = swing.sample(1.0 / cloth.FPS)[0][0]
-    assert offset[0] > 1e-4  # the check below is not vacuous
-    pinned = model.kinematic_mask()
-    np.testing.assert_allclose(q[pinned] - q0[pinned], np.broadcast_to(offset, q[pinned].shape), atol=1e-6)
+def test_the_soak_scene_follows_its_pin_track(device, check):
+    check()
 
 
-def test_the_delaunay_network_holds_its_pinned_base(device):
-    """``adjacency.network_model`` on 200 random points (a hybrid ELL + CSR incidence), one frame: finite, the
-    pinned bottom 5 % unmoved."""
-    import adjacency
-
-    points, springs = adjacency.delaunay_springs(200)
-    model = adjacency.network_model(points, springs, device, "gather")
-    q0 = positions(model.state())
-    sim = ws.Simulator(model, fps=cloth.FPS, substeps=cloth.SUBSTEPS, guard=None)
-    sim.step_frame()
-    q = positions(sim.state)
-    assert np.isfinite(q).all()
-    pinned = model.kinematic_mask()
-    assert pinned.any()
-    np.testing.assert_array_equal(q[pinned], q0[pinned])
+def test_the_delaunay_network_holds_its_pinned_base(device, check):
+    check()
 
 
-def test_the_usd_stream_bench_writes_its_frames(device, tmp_path):
-    """``usd_stream.stream`` writes two frames of the 6 × 6 cloth to a file that reads back with both samples."""
-    import usd_stream
-    from pxr import Usd, UsdGeom
-
-    model = usd_stream.cloth(6, device)
-    path = str(tmp_path / "stream.usdc")
-    result = usd_stream.stream(model, path, frames=2)
-    assert len(result["times"]) == 2
-    stage = Usd.Stage.Open(path)
-    meshes = [prim for prim in stage.Traverse() if prim.IsA(UsdGeom.Mesh)]
-    assert meshes and len(UsdGeom.Mesh(meshes[0]).GetPointsAttr().GetTimeSamples()) == 2
+def test_the_usd_stream_bench_writes_its_frames(device, check):
+    check()
 
 
-def test_the_build_bench_counts_the_anchors_springs():
-    """``build.warpspring_build``: an n × n cloth has 2n(n-1) structural, 2(n-1)² shear, 2n(n-2) bend springs."""
-    import build
-
-    _, particles, springs = build.warpspring_build(8)
-    assert (particles, springs) == (64, 2 * 8 * 7 + 2 * 7 * 7 + 2 * 8 * 6)
+def test_the_build_bench_counts_the_anchors_springs(check):
+    check()
 
 
-def test_the_traffic_model_counts_the_gathers_arrays():
-    """``traffic.gather_traffic`` on the 8 × 8 cloth, one and four worlds, against counts made by hand from the
-    kernel: 48 B of state (x, v in and out, 12 B each), 12 B per particle of flags and masses, 2 × 12 slots ×
-    4 B of incidence, 12 B per spring (rest length, ke, kd); shared arrays divide among the worlds."""
-    import traffic
-
-    for worlds in (1, 4):
-        model = cloth.warpspring_model(8, "cpu", "gather", worlds=worlds, spring_groups=False)
-        b = traffic.per_particle(traffic.gather_traffic(model), model)
-        assert b["state"] == 48.0
-        assert b["topology"] == 2 * 12 * 4 / worlds
-        np.testing.assert_allclose(b["spring"], 12 * 306 / (64 * worlds))
-        np.testing.assert_allclose(b["particle"], 4 + 8 / worlds + (model.inputs.shape[1] * 4 + 16) / 64)
-        assert b["requested"] > b["compulsory"]
-    with pytest.raises(ValueError, match="spring_evaluation='gather'"):
-        traffic.gather_traffic(cloth.warpspring_model(8, "cpu", "scatter"))
+def test_the_traffic_model_counts_the_gathers_arrays(check):
+    check()
 
 
-def test_the_traffic_model_counts_spring_data_per_group():
-    """With spring data per group over the incidence table (``spring_grid=False``; structural, shear and bend each
-    uniform), by hand: the same 48 B of state and 12 B of flags and masses, 12 slots × 4 B of other particles
-    (no spring index), and per group its spring and three values, 3 × (4 + 3 × 4) B for the whole model; a
-    non-uniform group's slots add their spring index and its springs' values."""
-    import traffic
-
-    for worlds in (1, 4):
-        model = cloth.warpspring_model(8, "cpu", "gather", worlds=worlds, spring_grid=False)
-        assert model.spring_slot_groups == (0,) * 4 + (1,) * 4 + (2,) * 4 and model.spring_layout == "groups"
-        rows = traffic.gather_traffic(model)
-        assert "head_element" not in [r.name for r in rows]
-        b = traffic.per_particle(rows, model)
-        assert b["state"] == 48.0
-        assert b["topology"] == 12 * 4 / worlds
-        np.testing.assert_allclose(b["spring"], 3 * (4 + 3 * 4) / (64 * worlds))
-        np.testing.assert_allclose(b["particle"], 4 + 8 / worlds + (model.inputs.shape[1] * 4 + 16) / 64)
-    # One structural spring's ke doubled: the structural slots read per spring again, spring index and values
-    # of its 112 springs, each 4 B of index and 12 B of values; shear and bend stay per group.
-    ke = model.world_values("spring_stiffness")[0].copy()
-    ke[0] *= 2.0
-    model.set_world_values("spring_stiffness", ke)
-    assert model.spring_slot_groups == (-1,) * 4 + (1,) * 4 + (2,) * 4
-    b = traffic.per_particle(traffic.gather_traffic(model), model)
-    assert b["topology"] == (12 + 4) * 4 / 4
-    np.testing.assert_allclose(b["spring"], (3 * (4 + 3 * 4) + 112 * 12) / (64 * 4))
+def test_the_traffic_model_counts_spring_data_per_group(check):
+    check()
 
 
-def test_the_traffic_model_counts_the_grid_layout():
-    """On the grid layout (the gathered cloth's default), by hand: 48 B of state, 12 B of flags and masses, the
-    groups' 3 × (4 + 3 × 4) B, and of topology only the grid's size (nx, ny), 8 B for the model: a uniform
-    group's slot loads no table entry. A non-uniform group's 4 slots load the table's two ints again."""
-    import traffic
-
-    for worlds in (1, 4):
-        model = cloth.warpspring_model(8, "cpu", "gather", worlds=worlds)
-        assert model.spring_layout == "grid"
-        rows = traffic.gather_traffic(model)
-        assert not {"head_element", "head_local"} & {r.name for r in rows}
-        b = traffic.per_particle(rows, model)
-        assert (b["state"], b["topology"]) == (48.0, 8 / (64 * worlds))
-        np.testing.assert_allclose(b["spring"], 3 * (4 + 3 * 4) / (64 * worlds))
-        np.testing.assert_allclose(b["particle"], 4 + 8 / worlds + (model.inputs.shape[1] * 4 + 16) / 64)
-    ke = model.world_values("spring_stiffness")[0].copy()
-    ke[0] *= 2.0
-    model.set_world_values("spring_stiffness", ke)
-    assert model.spring_layout == "grid" and model.spring_slot_groups == (-1,) * 4 + (1,) * 4 + (2,) * 4
-    b = traffic.per_particle(traffic.gather_traffic(model), model)
-    assert b["topology"] == (4 + 4) * 4 / 4 + 8 / (64 * 4)
+def test_the_traffic_model_counts_the_grid_layout(check):
+    check()
 
 
-def test_ncu_output_is_read_in_base_units():
-    """``traffic.parse_ncu_csv`` on Nsight Compute's CSV layout: values with thousands separators and unit
-    prefixes come back in bytes and seconds; other lines are ignored."""
-    import traffic
-
-    header = '"ID","Kernel Name","Metric Name","Metric Unit","Metric Value"'
-    text = "\n".join([
-        "==PROF== Connected to process 1",
-        header,
-        '"0","symplectic_euler","dram__bytes_read.sum","byte","244,891,136"',
-        '"0","symplectic_euler","dram__bytes_write.sum","Mbyte","25.5"',
-        '"0","symplectic_euler","gpu__time_duration.sum","usecond","111.9"',
-    ])
-    assert traffic.parse_ncu_csv(text) == {"dram__bytes_read.sum": 244891136.0, "dram__bytes_write.sum": 25.5e6,
-                                           "gpu__time_duration.sum": pytest.approx(111.9e-6)}
-    # `--print-units base` as the H100 machine's Nsight Compute prints a duration: "ns"
-    base = text.replace('"usecond","111.9"', '"ns","111,900"')
-    assert traffic.parse_ncu_csv(base)["gpu__time_duration.sum"] == pytest.approx(111.9e-6)
+def test_ncu_output_is_read_in_base_units(check):
+    check()
 
 
-def test_the_scaling_plot_draws_a_csv(tmp_path):
-    """``scaling_plot.plot`` draws the CSV layout ``scaling.py`` writes into a PNG."""
-    pytest.importorskip("matplotlib")
-    import scaling
-    import scaling_plot
-
-    path = tmp_path / "scaling.csv"
-    rows = [",".join(map(str, [engine, scene, side, worlds, side * side * worlds, 0.1, 1000.0,
-                               1000.0 * side * side * worlds, 0.01]))
-            for engine in ("warpspring (gather)", "newton 1.8.0")
-            for scene, side, worlds in scaling.scenes([16, 32], [4, 16])]
-    path.write_text("# test machine; Warp 1.19.0; 2026-11-25; wp.copy 10.0 GB/s; gather 228 B/particle-substep\n"
-                    + ",".join(scaling.COLUMNS) + "\n" + "\n".join(rows) + "\n")
-    scaling_plot.plot(str(path), str(tmp_path / "scaling.png"))
-    assert (tmp_path / "scaling.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+def test_the_scaling_plot_draws_a_csv(check):
+    check()
 
 
-def test_the_integrator_bench_tells_a_stable_run_from_a_blow_up(device):
-    """``integrators.one_second`` and ``blown_up`` on the 8 × 8 ANCHORS cloth: symplectic Euler at 16 substeps per
-    frame (ω_max h ≈ 305 rad/s × 1.04 ms ≈ 0.32, well within its limit) ends 1 s with less mechanical energy than it
-    started with (the springs' damping); at one step per frame (ω_max h ≈ 5) the energy test flags the blow-up.
-    Pins hold in the stable run."""
-    import integrators
-    from warpspring.analysis.trade import SpringNetwork
-
-    model = integrators.anchors_model(8, device)
-    network = SpringNetwork.of(model)
-    q, qd = integrators.one_second(model, "symplectic_euler", cloth.SUBSTEPS)
-    assert not integrators.blown_up(network, q, qd)
-    assert network.energy(q, qd) < 0.0  # damped: below the start (at rest, springs at rest)
-    pinned = model.kinematic_mask()
-    np.testing.assert_array_equal(q[pinned], network.initial_q[pinned])
-    assert integrators.blown_up(network, *integrators.one_second(model, "symplectic_euler", 1))
+def test_the_integrator_bench_tells_a_stable_run_from_a_blow_up(device, check):
+    check()
 
 
-def test_the_floor_bench_counts_graph_nodes_and_its_update_only_cloth_falls_freely(device):
-    """``integrators.Counting`` counts what a substep records (launches, memsets, copies; a fill inside a copy once),
-    and ``update_only_model`` keeps the 8 × 8 cloth's particles and pins without springs: after one frame every
-    free particle has fallen exactly symplectic Euler's free-fall drop, the pins not at all."""
-    import integrators
-
-    trivial = integrators.TrivialRunner(device, 64)
-    trivial.frame()
-    scratch, ones = wp.zeros(4, dtype=float, device=device), wp.ones(4, dtype=float, device=device)
-    with integrators.Counting() as count:
-        for _ in range(3):
-            trivial.substep()
-        scratch.zero_()
-        scratch.assign(np.ones(4, dtype=np.float32))
-        wp.copy(scratch, ones)
-    assert count.counts == {"launch": 3, "memset": 1, "copy": 2}
-    bare = integrators.update_only_model(cloth.warpspring_model(8, device))
-    assert bare.spring_count == 0 and bare.particle_count == 64
-    q0 = positions(bare.state())
-    runner = cloth.WarpspringRunner(bare)
-    runner.frame()
-    q = runner.positions().astype(np.float64)
-    pinned = bare.kinematic_mask()
-    assert pinned.sum() == 2
-    np.testing.assert_array_equal(q[pinned], q0[pinned])
-    np.testing.assert_allclose(q0[~pinned, 2] - q[~pinned, 2], free_fall_drop(G, cloth.SUBSTEPS), rtol=0, atol=1e-6)
+def test_the_floor_bench_counts_graph_nodes_and_its_update_only_cloth_falls_freely(device, check):
+    check()
 
 
-def test_the_vbd_bench_colours_the_spring_graph():
-    """``vbd.spring_coloring`` of the 8 × 8 cloth's springs: every particle in exactly one colour, no spring
-    (structural, shear or bend) joining two particles of one colour, which VBD's Gauss–Seidel sweep needs."""
-    import vbd
-
-    model = cloth.warpspring_model(8, "cpu")
-    springs = model.spring_indices.numpy().reshape(-1, 2)
-    color = np.full(model.particle_count, -1)
-    for c, group in enumerate(vbd.spring_coloring(springs, model.particle_count)):
-        assert (color[group] == -1).all()
-        color[group] = c
-    assert (color >= 0).all()
-    assert (color[springs[:, 0]] != color[springs[:, 1]]).all()
+def test_the_vbd_bench_colours_the_spring_graph(check):
+    check()
 
 
-def test_newtons_vbd_and_implicit_euler_take_the_same_backward_euler_step(device):
-    """``vbd.VBDRunner`` (Newton 1.5 or 1.8, 50 iterations) and warpspring's implicit Euler on the 8 × 8 cloth, 4
-    substeps per frame for 6 frames: both approximate backward Euler of the same springs (VBD solves it, implicit
-    Euler takes one linearised Newton step of it), so they differ far less than implicit Euler does from itself at
-    half the step (the time discretisation's error): measured 1.4e-5 m against 6.5e-4 m on the CPU."""
-    pytest.importorskip("newton")
-    import integrators
-    import vbd
-
-    model = integrators.anchors_model(8, device)
-
-    def six_frames(runner):
-        for _ in range(6):
-            runner.frame()
-        return runner.final()[0]
-
-    implicit = six_frames(integrators.StepperRunner(model, "implicit_euler", 4))
-    finer = six_frames(integrators.StepperRunner(model, "implicit_euler", 8))
-    newton_vbd = six_frames(vbd.VBDRunner(model, 4, 50))
-    step_error = np.abs(implicit - finer).max()
-    assert step_error > 1e-4  # the comparison below is not vacuous
-    assert np.abs(newton_vbd - implicit).max() < 0.1 * step_error
+def test_newtons_vbd_and_implicit_euler_take_the_same_backward_euler_step(device, check):
+    check()
 
 
-def test_the_vbd_bench_reads_cost_at_equal_error_off_the_pareto_front():
-    """``vbd.cost_at_error``: a dominated point (dearer and less accurate) leaves the front; between two front points
-    the cost is linear in log cost against log error (error 10⁻².⁵ between (3, 10⁻²) and (10, 10⁻³): √30);
-    outside the front's errors there is none."""
-    import vbd
-
-    points = [(1.0, 0.1), (2.0, 0.2), (3.0, 0.01), (10.0, 0.001)]
-    assert vbd.pareto_front(points) == [(1.0, 0.1), (3.0, 0.01), (10.0, 0.001)]
-    assert vbd.cost_at_error(points, 0.01) == pytest.approx(3.0)
-    assert vbd.cost_at_error(points, 10**-2.5) == pytest.approx(30**0.5)
-    assert vbd.cost_at_error(points, 0.5) is None and vbd.cost_at_error(points, 1e-4) is None
+def test_the_vbd_bench_reads_cost_at_equal_error_off_the_pareto_front(check):
+    check()
 
 
-def test_the_battery_plot_reads_every_case_of_the_raw_file():
-    """``plot_advisor_battery.read_rows`` on the committed battery results: the 45 cases of the two-grid battery
-    (explicit Euler at 1/480000 s is on fine grids only), none passed that blew up or grows, and every ratio to
-    the lowest limit within the 10 % the README states."""
-    import plot_advisor_battery as plot
+def test_the_battery_plot_reads_every_case_of_a_battery_table(check):
+    check()
 
-    rows = plot.read_rows(str(BENCH / "results" / "advisor_frozen_h100.md"))
-    assert len(rows) == 45
-    assert {r["scene"] for r in rows} == {"hanging", "forced", "driven", "windy", "pulled"}
-    assert all(r["passed but blew up"] == "0" and r.get("passed but grows", "0") == "0" for r in rows)
-    lowest = [float(r.get("ratio to the lowest", r["ratio"])) for r in rows]
-    assert 0.9 <= min(lowest) and max(lowest) <= 1.0
-    assert plot.stiffness("1.247e+04 N/m") == 12470.0 and np.isnan(plot.stiffness("none in the grids"))
+
+def test_every_check_of_the_smoke_script_is_a_test_here(smoke):
+    """No check of ``bench/smoke.py`` goes unreported: each is a test of this module."""
+    tests = {name.removeprefix("test_") for name in globals() if name.startswith("test_")}
+    assert {name for name, _, _ in smoke} <= tests

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 import warpspring as ws
+from helpers import SEAM_OBJ
 from warpspring.core.transforms import quat_to_matrix
 
 
@@ -188,23 +189,6 @@ def test_values_beyond_float32_are_rejected_at_finalize(positions, mass, message
         builder.finalize("cpu")
     model = builder.finalize("cpu", precision="float64")
     assert np.isfinite(model.particle_q.numpy()).all() and np.isfinite(model.particle_inv_mass.numpy()).all()
-
-
-SEAM_OBJ = """v 0 0 0
-v 1 0 0
-v 1 1 0
-v 0 1 0
-v 2 0 0
-vt 0 0
-vt 1 0
-vt 1 1
-vt 0 1
-vt 0.5 0.5
-vt 0.2 0.2
-f 1/1 2/2 3/3
-f 1/1 3/3 4/4
-f 2/5 5/6 3/3
-"""
 
 
 def test_obj_uv_seam_is_welded_not_torn(tmp_path):

@@ -14,34 +14,12 @@ import warnings
 
 import numpy as np
 import pytest
-from pxr import Usd
 
+from helpers import points_samples, write_scene
 from warpspring.cli import EXIT_CONFIG, EXIT_SIMULATION, main
 from warpspring.io.scene import DeprecatedKeyWarning
 
 EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"
-
-SCENE = """\
-[simulation]
-fps = 60
-frames = 5
-substeps = 4
-
-[world]
-drag = 0.002
-
-[cloth]
-grid = { nx = 5, ny = 5, spacing = 0.1 }
-origin = [0.0, 0.0, 1.0]
-mass = 0.25
-pin = ["top-left", "top-right"]
-structural = { ke = 40.0, kd = 0.01 }
-shear = { ke = 10.0, kd = 0.01 }
-bend = { ke = 1.0, kd = 0.001 }
-
-[[collider]]
-type = "ground"
-"""
 
 # Tiny masses on stiff springs, one substep per frame: ω·dt ≈ 100 ≫ 2, so symplectic Euler diverges within frames.
 UNSTABLE = {
@@ -52,29 +30,11 @@ UNSTABLE = {
 }
 
 
-def write_scene(tmp_path, replace: dict | None = None, extra: str = "", name: str = "scene.toml") -> pathlib.Path:
-    """SCENE with each ``old: new`` of ``replace`` applied (each ``old`` must occur) and ``extra`` appended."""
-    text = SCENE
-    for old, new in (replace or {}).items():
-        assert old in text, old
-        text = text.replace(old, new)
-    path = tmp_path / name
-    path.write_text(text + extra)
-    return path
-
-
 def run_cli(capsys, *args) -> tuple[int, str, list[str]]:
     """Exit status, stdout and the lines of stderr of ``warpspring run ARGS --device cpu``."""
     status = main(["run", *map(str, args), "--device", "cpu"])
     out, err = capsys.readouterr()
     return status, out, err.splitlines()
-
-
-def points_samples(path, prim: str = "/World/cloth") -> tuple[list[np.ndarray], list[float], float]:
-    """The cloth's point samples in ``path`` in time order, their time codes, and the stage's time codes per second."""
-    stage = Usd.Stage.Open(str(path))
-    attr = stage.GetPrimAtPath(prim).GetAttribute("points")
-    return [np.array(attr.Get(t)) for t in attr.GetTimeSamples()], attr.GetTimeSamples(), stage.GetTimeCodesPerSecond()
 
 
 # -- runs that succeed ------------------------------------------------------------------------------------

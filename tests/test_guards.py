@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import warpspring as ws
-from helpers import ZERO_GRAVITY, hanging_cloth, run_frames
+from helpers import ZERO_GRAVITY, battery_cloth, hanging_cloth, run_frames
 
 
 def test_healthy_run_is_not_stopped(device):
@@ -215,14 +215,6 @@ def test_energy_balance_of_a_conservative_run_is_exact(device):
     # At rest and unstretched at the start: E_ref, taken at the first check, is 0 but for one frame's error.
     assert balance.reference[0] == pytest.approx(0.0, abs=1e-5 * balance.peak[0])
     assert abs(balance.created[0]) <= 1e-3 * balance.peak[0]  # (ωh)² = 4e-4
-
-
-def battery_cloth(device, stiffness):
-    """The advisor battery's hanging cloth (``warpspring/analysis/load_battery.py``): 20 × 20 particles of
-    0.1 kg hanging from its top corners, structural springs only (kd = 0.01 N·s/m), one world per stiffness."""
-    from warpspring.analysis.load_battery import battery_cloth as hanging
-
-    return hanging("hanging", stiffness, device)
 
 
 def test_energy_created_by_an_unstable_step_is_caught(device):

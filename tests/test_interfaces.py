@@ -20,7 +20,7 @@ import pytest
 from pxr import Sdf, Tf, Usd
 
 import warpspring as ws
-from test_cli import points_samples, write_scene
+from helpers import points_samples, write_scene
 from warpspring.cli import EXIT_CONFIG, EXIT_IO, EXIT_NO_CHOICE, main, os_error_line
 from warpspring.core.builder.spring_materials import DEFAULT_SHEAR, spring_family
 from warpspring.io import usd as usd_module
@@ -39,7 +39,7 @@ def springs_of(builder: ws.ModelBuilder) -> tuple:
 
 
 def api_builder(**families) -> ws.ModelBuilder:
-    """tests/test_cli.py's SCENE through the API, with ``families`` replacing its spring families."""
+    """helpers.SCENE (the CLI tests' scene) through the API, with ``families`` replacing its spring families."""
     builder = ws.ModelBuilder(drag=0.002)
     options = dict(structural=ws.SpringMaterial(40.0, 0.01), shear=ws.SpringMaterial(10.0, 0.01),
                    bend=ws.SpringMaterial(1.0, 0.001))

@@ -6,18 +6,14 @@ Strains are small (1e-6): the spring energy's deviation from its quadratic form 
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
-from scipy.spatial import Delaunay
 
+from helpers import (delaunay_square, engineering, mesh_edges, mesh_hinges, moduli, network_moduli, spring_energy,
+                     strained)
 from warpspring.core import material as wm
 from warpspring.errors import ConfigError
 
 MATERIAL = wm.ClothMaterial(stretch=2.0e3, shear=150.0, bending=4.0e-5, density=0.2,
                             stretch_damping=3.0, bending_damping=2.0e-6)
-EPS = 1.0e-6
-#: Strain states (ε_xx, ε_yy, γ_xy) probed to measure C: their energies give C11, C22, C66, C12 and C16.
-PROBES = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1]], dtype=float) * EPS
 
 
 # -- geometry ---------------------------------------------------------------------------------------------
@@ -39,17 +35,6 @@ def grid_mesh(n: int, spacing: float):
     return x, faces, structural, diagonal
 
 
-def delaunay_square(n: int, side: float = 1.0, seed: int = 0):
-    """Delaunay mesh of the square [0, side]² on an n × n grid of points jittered by up to ±0.3 spacing
-    (boundary points stay on the boundary): vertices [n², 3], faces, and a mask of the boundary vertices."""
-    a = side / (n - 1)
-    rows, cols = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-    p = np.stack([cols, rows], -1).reshape(-1, 2) * a
-    boundary = np.any((p < 0.5 * a) | (p > side - 0.5 * a), axis=1)
-    p[~boundary] += np.random.default_rng(seed).uniform(-0.3 * a, 0.3 * a, ((~boundary).sum(), 2))
-    return np.c_[p, np.zeros(len(p))], Delaunay(p).simplices, boundary
-
-
 def equilateral_mesh(rows: int, side: float):
     """Equilateral triangles of side ``side``: ``rows`` rows of 2·rows triangles (a parallelogram)."""
     j, i = np.meshgrid(np.arange(rows + 1), np.arange(rows + 1), indexing="ij")
@@ -57,21 +42,6 @@ def equilateral_mesh(rows: int, side: float):
     g = np.arange((rows + 1) ** 2).reshape(rows + 1, rows + 1)
     a, b, c, d = g[:-1, :-1].ravel(), g[:-1, 1:].ravel(), g[1:, 1:].ravel(), g[1:, :-1].ravel()
     return x, np.concatenate([np.stack([a, b, d], 1), np.stack([b, c, d], 1)])
-
-
-def mesh_edges(faces):
-    return np.unique(np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
-
-
-def mesh_hinges(faces):
-    """[h, 4] hinges (shared edge, wing of one face, wing of the other) of the interior edges."""
-    sides = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    wing = faces[:, [2, 0, 1]].ravel()
-    key = np.sort(sides, axis=1)
-    order = np.lexsort((key[:, 1], key[:, 0]))
-    pair = np.all(key[order[1:]] == key[order[:-1]], axis=1)
-    first, second = order[:-1][pair], order[1:][pair]
-    return np.c_[sides[first], wing[first], wing[second]]
 
 
 def dihedral_angles(x, hinges):
@@ -82,32 +52,6 @@ def dihedral_angles(x, hinges):
     n2 /= np.linalg.norm(n2, axis=1, keepdims=True)
     e = (x1 - x0) / np.linalg.norm(x1 - x0, axis=1, keepdims=True)
     return np.arctan2(np.sum(np.cross(n1, n2) * e, axis=1), np.sum(n1 * n2, axis=1))
-
-
-def strained(x, v):
-    """x under the affine in-plane strain v = (ε_xx, ε_yy, γ_xy)."""
-    eps = np.array([[v[0], 0.5 * v[2], 0.0], [0.5 * v[2], v[1], 0.0], [0.0, 0.0, 0.0]])
-    return x + x @ eps.T
-
-
-def spring_energy(x0, x, pairs, k):
-    """Σ ½ k (|d| - L)² per spring, shape [s]."""
-    rest = np.linalg.norm(x0[pairs[:, 1]] - x0[pairs[:, 0]], axis=1)
-    length = np.linalg.norm(x[pairs[:, 1]] - x[pairs[:, 0]], axis=1)
-    return 0.5 * k * (length - rest) ** 2
-
-
-def moduli(energy_density) -> np.ndarray:
-    """The 3 × 3 matrix C [N/m] of W = ½ vᵀ C v, measured from W at the PROBES strains."""
-    w = 2.0 * np.array([energy_density(v) for v in PROBES]) / EPS**2
-    c11, c22, c66 = w[:3]
-    c12, c16 = 0.5 * (w[3] - c11 - c22), 0.5 * (w[4] - c11 - c66)
-    return np.array([[c11, c12, c16], [c12, c22, 0.0], [c16, 0.0, c66]])
-
-
-def engineering(c):
-    """(E_x, E_y, G, ν_xy) of an orthotropic C: the uniaxial-stress moduli and Poisson's ratio."""
-    return c[0, 0] - c[0, 1] ** 2 / c[1, 1], c[1, 1] - c[0, 1] ** 2 / c[0, 0], c[2, 2], c[0, 1] / c[1, 1]
 
 
 # -- membrane: regular grid -------------------------------------------------------------------------------
@@ -185,36 +129,6 @@ def test_van_gelder_is_exact_on_an_equilateral_triangle():
     e, nu = MATERIAL.stretch, wm.MESH_POISSON_RATIO
     expected = e / (1 - nu**2) * np.array([[1, nu, 0], [nu, 1, 0], [0, 0, (1 - nu) / 2]])
     np.testing.assert_allclose(c, expected, rtol=1e-5, atol=1e-5 * e)
-
-
-def network_moduli(x, faces, boundary, ke):
-    """C of an edge-spring network on a flat mesh, (affine, relaxed): the energy per area of the affine
-    strain, and of the linear equilibrium with the boundary vertices held on the affine field."""
-    edges = mesh_edges(faces)
-    area = wm.lumped_masses(wm.ClothMaterial(stretch=1, shear=1, bending=1, density=1), x, faces).sum()
-    affine = moduli(lambda v: spring_energy(x, strained(x, v), edges, ke).sum() / area)
-
-    d = x[edges[:, 1], :2] - x[edges[:, 0], :2]
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    block = ke[:, None, None] * d[:, :, None] * d[:, None, :]  # [e, 2, 2] linearised spring stiffness
-    rows, cols, vals = [], [], []
-    for p, q, sign in [(0, 0, 1.0), (1, 1, 1.0), (0, 1, -1.0), (1, 0, -1.0)]:
-        for i in range(2):
-            for j in range(2):
-                rows.append(2 * edges[:, p] + i)
-                cols.append(2 * edges[:, q] + j)
-                vals.append(sign * block[:, i, j])
-    stiffness = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                              shape=(2 * len(x), 2 * len(x)))
-    held = np.repeat(boundary, 2)
-    solve = spla.factorized(stiffness[~held][:, ~held].tocsc())
-
-    def relaxed_energy(v):
-        u = (strained(x, v) - x)[:, :2].ravel()
-        u[~held] = solve(-(stiffness[~held][:, held] @ u[held]))
-        return 0.5 * u @ (stiffness @ u) / area
-
-    return affine, moduli(relaxed_energy)
 
 
 def test_irregular_mesh_patch_test_and_resolution_independence():

@@ -34,7 +34,7 @@ from scipy.interpolate import RegularGridInterpolator
 import warpspring as ws
 from warpspring.core import material as wm
 from warpspring.core.builder.spring_materials import DEFAULT_STRUCTURAL
-from test_material import delaunay_square, engineering, mesh_edges, mesh_hinges, network_moduli
+from helpers import delaunay_square, engineering, mesh_edges, mesh_hinges, network_moduli
 
 MATERIAL = ws.ClothMaterial(stretch=50.0, shear=18.75, bending=1.0e-5, density=0.2)
 #: Side of each square corner clamp [m].

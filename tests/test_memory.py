@@ -281,7 +281,7 @@ def test_a_grid_too_large_to_build_is_refused_before_its_arrays(monkeypatch):
 
 def test_the_cli_refuses_a_scene_that_does_not_fit(tmp_path, capsys, monkeypatch):
     """`warpspring run` on a machine with too little memory: exit 2, one line with the estimate, no file."""
-    from test_cli import write_scene
+    from helpers import write_scene
 
     from warpspring.cli import EXIT_CONFIG, main
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import warpspring as ws
-from helpers import ZERO_GRAVITY, hanging_cloth, run_frames, trajectory
+from helpers import CUDA, ZERO_GRAVITY, hanging_cloth, run_frames, trajectory
 
 G = 9.81
 # Rounding budget of positions of O(1-10) m after O(10³) float32 steps (≈ √steps · 10 m · 6e-8, ×10);
@@ -161,8 +161,6 @@ def test_ground_friction_stopping_distance(device):
 def test_cpu_and_cuda_trajectories_agree(precision, atol):
     """The same cloth on cpu and cuda:0 follows the same trajectory (float32: FMA contraction and
     transcendental rounding differ, ~1e-6 m per frame over a smooth swing; float64 ~1e-14)."""
-    from conftest import CUDA
-
     if not CUDA:
         pytest.skip("no CUDA device")
     results = []

@@ -1,17 +1,13 @@
 """A long run in short (bench/soak.py runs 100,000 substeps): a driven cloth with the default guard and the
 run-time watch keeps its memory constant frame after frame and neither gains nor drifts in energy."""
 
-import sys
 import tracemalloc
-from pathlib import Path
 
 import numpy as np
 import warp as wp
 
 import warpspring as ws
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-from soak import driven_cloth  # noqa: E402  (the bench's scene, at 12 × 12)
+from helpers import driven_cloth
 
 
 def used_device_memory(device) -> int:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import warpspring as ws
-from helpers import ZERO_GRAVITY, hanging_cloth
+from helpers import ZERO_GRAVITY, battery_cloth, hanging_cloth
 from warpspring.analysis import modal
 from warpspring.analysis import stability as st
 from warpspring.analysis.advisor import advise
@@ -514,8 +514,6 @@ def test_the_advisor_judges_the_release_transient(device):
     """The battery's hanging cloth at 13 kN/m: released unstretched, it swings past its static stretch, and
     ω_max peaks above the equilibrium's (989 against 924 rad/s on the H100, RESULTS §11). The advisor
     takes the peak, names it, and its stable step is that of the peak; a cloth without loads has no dry run."""
-    from test_guards import battery_cloth
-
     model = battery_cloth(device, [13000.0])
     settled = advise(model, "symplectic_euler", 1.0 / 480.0, transient=False)
     advice = advise(model, "symplectic_euler", 1.0 / 480.0)
@@ -533,8 +531,6 @@ def test_explicit_euler_is_told_how_much_it_grows_undamped_transverse_modes(devi
     any step by ρ = √(1 + (ωh)²) per step. transverse_omega_max equals the dense eigenvalue of M⁻¹K_t
     (assembled here spring by spring), and the advisor's growth over the horizon is ρ^(T/h) at that ω, named
     in its message; symplectic Euler's is 1 (its undamped modes keep their amplitude)."""
-    from test_guards import battery_cloth
-
     model = battery_cloth(device, [1192.0])
     state = loaded_state(model)
     q = state.particle_q.numpy().astype(np.float64)

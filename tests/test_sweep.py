@@ -15,7 +15,10 @@ import sys
 import numpy as np
 import pytest
 
-from warpspring.analysis import sweep as sw
+from helpers import CUDA
+from warpspring.analysis.sweep import results_dir, run_sweep
+from warpspring.analysis.sweep_batch import make_batches
+from warpspring.analysis.sweep_plan import plan_sweep
 from warpspring.cli import EXIT_CONFIG, main
 from warpspring.errors import ConfigError
 
@@ -45,7 +48,7 @@ METRICS = ("status", "message", "frames", "worlds", "particles", "max_strain", "
 def plan_of(data=None, **sweep):
     data = copy.deepcopy(PLAN if data is None else data)
     data["sweep"].update(sweep)
-    return sw.plan_sweep(data, path="plan.toml")
+    return plan_sweep(data, path="plan.toml")
 
 
 _LOCAL = {}
@@ -55,7 +58,7 @@ def local_sweep(device, tmp_path_factory):
     """The plan run in this process (once per device for the module): (result, out folder)."""
     if device not in _LOCAL:
         out = str(tmp_path_factory.mktemp(f"local-{device.replace(':', '')}"))
-        _LOCAL[device] = sw.run_sweep(plan_of(), out, device=device), out
+        _LOCAL[device] = run_sweep(plan_of(), out, device=device), out
     return _LOCAL[device]
 
 
@@ -68,20 +71,20 @@ def test_axes_expand_lists_ranges_logs_and_seeded_samples():
         "world.drag": {"log": [1.0e-3, 1.0e-1], "count": 3},
         "cloth.shear.kd": {"random": [0.1, 10.0], "count": 2, "seed": 3, "log": True},
     }}
-    plan = sw.plan_sweep(data)
+    plan = plan_sweep(data)
     assert plan.axes["simulation.substeps"] == [2, 4, 6, 8]
     np.testing.assert_allclose(plan.axes["world.drag"], [1.0e-3, 1.0e-2, 1.0e-1], rtol=1e-12)
     u = np.random.default_rng(3).random(2)  # the documented sampler: log-uniform from a seeded generator
     np.testing.assert_allclose(plan.axes["cloth.shear.kd"], 0.1 * 100.0**u, rtol=1e-12)
     assert len(plan.variants) == 4 * 3 * 2 and len({v.key for v in plan.variants}) == 24
-    assert sw.plan_sweep(data).axes == plan.axes  # the seed makes the samples reproducible
-    sparse = sw.plan_sweep({**data, "sweep": {"metrics_every": 10}})
+    assert plan_sweep(data).axes == plan.axes  # the seed makes the samples reproducible
+    sparse = plan_sweep({**data, "sweep": {"metrics_every": 10}})
     assert {v.key for v in sparse.variants}.isdisjoint(v.key for v in plan.variants)  # results not mixed up
     v = plan.variants[-1]
     assert v.scene["cloth"]["shear"] == {"ke": 1.0e3, "kd": v.params["cloth.shear.kd"]}
     assert v.scene["simulation"]["substeps"] == 8 and BASE["simulation"]["substeps"] == SUBSTEPS  # base untouched
 
-    zipped = sw.plan_sweep({"scene": BASE, "sweep": {"combine": "zip"},
+    zipped = plan_sweep({"scene": BASE, "sweep": {"combine": "zip"},
                             "axes": {"world.drag": [0.0, 0.1], "cloth.bend": [False, True]}})
     assert [v.params for v in zipped.variants] == [{"world.drag": 0.0, "cloth.bend": False},
                                                    {"world.drag": 0.1, "cloth.bend": True}]
@@ -89,17 +92,17 @@ def test_axes_expand_lists_ranges_logs_and_seeded_samples():
 
 def test_topology_batches_variants_that_differ_in_per_world_values_only():
     plan = plan_of()
-    batches = sw.make_batches(plan.variants, plan.scene_path, 8)
+    batches = make_batches(plan.variants, plan.scene_path, 8)
     # drag 0 and drag > 0 compile differently; the stiffnesses are per-world rows.
     assert [[v.index for v in b.variants] for b in batches] == [[0, 2, 4], [1, 3, 5]]
-    assert len(sw.make_batches(plan.variants, plan.scene_path, 2)) == 4
+    assert len(make_batches(plan.variants, plan.scene_path, 2)) == 4
 
 
 def test_a_bad_sweep_names_every_offending_variant_before_anything_runs():
     data = {"scene": BASE, "axes": {"cloth.structural.ke": [-1.0, 1.0e3, -5.0],
                                     "simulation.integrator": ["symplectic_euler", "no_such_method"]}}
     with pytest.raises(ConfigError) as caught:
-        sw.plan_sweep(data, path="bad.toml")
+        plan_sweep(data, path="bad.toml")
     lines = str(caught.value).splitlines()
     assert lines[0] == "bad.toml: 5 of 6 variants refused; nothing ran:"
     assert len(lines) == 6
@@ -115,7 +118,7 @@ def test_a_bad_sweep_names_every_offending_variant_before_anything_runs():
                          ({"sweep": {"reference": {"simulation.frames": 9}}, "axes": {"world.drag": [0.0]}},
                           "the error compares end states at one time")]:
         with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace("[", r"\[")):
-            sw.plan_sweep({"scene": BASE, "sweep": {}, **bad})
+            plan_sweep({"scene": BASE, "sweep": {}, **bad})
 
 
 def test_a_sweep_file_holds_data_only(tmp_path):
@@ -132,7 +135,7 @@ def test_a_sweep_file_holds_data_only(tmp_path):
     ]
     for axes, message in attempts:
         with pytest.raises(ConfigError) as caught:
-            sw.plan_sweep({"scene": BASE, "axes": axes})
+            plan_sweep({"scene": BASE, "axes": axes})
         assert message in str(caught.value)
     sweep_file = tmp_path / "evil.toml"
     sweep_file.write_text('[sweep]\nscene = "x.toml"\n[axes]\n"{payload}" = [1]\n'.replace("'", "\\'"))
@@ -147,7 +150,7 @@ def test_every_variant_is_a_row_with_its_metrics(device, tmp_path_factory):
     """Against the scene run alone and measured here: the batched worlds give each variant's own bits."""
     import warp as wp
 
-    from warpspring.analysis.trade import SpringNetwork
+    from warpspring.analysis.trade_problems import SpringNetwork
     from warpspring.core.simulator import Simulator
     from warpspring.io.scene import parse_scene
 
@@ -182,7 +185,7 @@ def test_every_variant_is_a_row_with_its_metrics(device, tmp_path_factory):
         # (the radius as the model stores it, in its precision).
         radius = model.particle_radius.numpy().astype(np.float64)
         assert row.min_contact_distance == np.min(q[:, 2] - radius)
-        ref = np.load(os.path.join(sw.results_dir(out), f"{plan.reference_key}.npy"))
+        ref = np.load(os.path.join(results_dir(out), f"{plan.reference_key}.npy"))
         assert row.error_max == np.linalg.norm(q - ref, axis=1).max()
         # Symplectic Euler is first order: 4× the substeps leaves ~3/4 of the error, which the pinned
         # cloth's fall after 5 frames (|a| ~ g, t = 0.083 s) bounds by ~ g t h ≈ 3e-3 m.
@@ -204,12 +207,12 @@ def test_every_variant_is_a_row_with_its_metrics(device, tmp_path_factory):
 def test_resume_runs_only_what_is_missing(device, tmp_path_factory):
     result, out = local_sweep(device, tmp_path_factory)
     with pytest.raises(ConfigError, match="pass --resume"):
-        sw.run_sweep(result.plan, out, device=device)
-    folder = sw.results_dir(out)
+        run_sweep(result.plan, out, device=device)
+    folder = results_dir(out)
     missing = [result.plan.variants[i].key for i in (1, 4)]
     for key in missing:
         os.replace(os.path.join(folder, f"{key}.json"), os.path.join(folder, f"{key}.json.tmp999"))  # as if killed
-    again = sw.run_sweep(result.plan, out, device=device, resume=True)
+    again = run_sweep(result.plan, out, device=device, resume=True)
     assert again.ran == 2
     same = [m for m in METRICS if m != "worlds"]
     for a, b in zip(again.rows, result.rows):
@@ -267,15 +270,9 @@ def ray_engine():
     pytest.importorskip("psutil")
     from warpspring.analysis.sweep_ray import RayEngine
 
-    engine = RayEngine(workers=2, gpus_per_task=0.5 if _cuda() else 0.0)
+    engine = RayEngine(workers=2, gpus_per_task=0.5 if CUDA else 0.0)
     yield engine
     engine.close()
-
-
-def _cuda() -> bool:
-    from conftest import CUDA
-
-    return CUDA
 
 
 def _kill_first_attempt(marker: str):
@@ -295,7 +292,7 @@ def test_on_ray_a_killed_worker_is_retried_and_the_metrics_match(device, tmp_pat
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the hook travels to the workers
     local, _ = local_sweep(device, tmp_path_factory)
     marker = str(tmp_path / "killed-once")
-    result = sw.run_sweep(plan_of(), str(tmp_path / "out"), engine=ray_engine, device=device,
+    result = run_sweep(plan_of(), str(tmp_path / "out"), engine=ray_engine, device=device,
                           task_hook=_kill_first_attempt(marker))
     assert os.path.exists(marker)  # a worker died, and its task ran again
     assert result.ran == 6
@@ -307,7 +304,8 @@ def test_on_ray_a_killed_worker_is_retried_and_the_metrics_match(device, tmp_pat
 
 def test_on_ray_the_trade_study_gives_the_local_rows(device, ray_engine):
     from warpspring.analysis.analytic import DampedOscillator
-    from warpspring.analysis.trade import ClothProblem, SpringProblem, StudyPlan, run_study
+    from warpspring.analysis.trade import StudyPlan, run_study
+    from warpspring.analysis.trade_problems import ClothProblem, SpringProblem
 
     plan = StudyPlan(
         name="tiny",

@@ -12,17 +12,9 @@ import pytest
 
 from warpspring.cli import EXIT_CONFIG, main
 from warpspring.errors import ConfigError
-from warpspring.analysis.trade import (
-    SEED,
-    Measurement,
-    SpringProblem,
-    StudyPlan,
-    asymptotic_range,
-    choose,
-    fit_order,
-    pareto_front,
-    run_study,
-)
+from warpspring.analysis.trade import Measurement, StudyPlan, run_study
+from warpspring.analysis.trade_choice import asymptotic_range, choose, fit_order, pareto_front
+from warpspring.analysis.trade_problems import SEED, SpringProblem
 from warpspring.analysis.trade_report import read_csv, write_csv
 
 

@@ -360,7 +360,7 @@ def test_rewriting_a_path_replaces_the_old_animation(tmp_path):
 
 def test_uv_seams_are_written_face_varying(tmp_path):
     """A mesh with a UV seam exports its st primvar per face corner, in face-vertex order."""
-    from test_builder import SEAM_OBJ
+    from helpers import SEAM_OBJ
 
     (tmp_path / "seam.obj").write_text(SEAM_OBJ)
     builder = ws.ModelBuilder()

@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 
 import warpspring as ws
-from helpers import run_frames
-from test_guards import battery_cloth
+from helpers import battery_cloth, run_frames
 from warpspring.analysis.watch import WATCH_MARGIN, StabilityWatch
 
 

@@ -222,7 +222,9 @@ def _study_engine(args):
 
 
 def _cmd_sweep(args) -> int:
-    from .analysis.sweep import LocalEngine, load_sweep, run_sweep
+    from .analysis.engines import LocalEngine
+    from .analysis.sweep import run_sweep
+    from .analysis.sweep_plan import load_sweep
     from .analysis.sweep_report import summary, write_report
 
     plan = load_sweep(args.sweep)  # every variant checked before anything starts
@@ -312,7 +314,8 @@ def _cmd_render(args) -> int:
 def _cmd_trade(args) -> int:
     import warp as wp
 
-    from .analysis.trade import FULL, QUICK, convergence_orders, run_study
+    from .analysis.trade import FULL, QUICK, run_study
+    from .analysis.trade_choice import convergence_orders
     from .analysis.trade_report import write_report
 
     checks.output_dir(args.out)  # fail before the study runs, not after
@@ -344,7 +347,7 @@ def _cmd_trade(args) -> int:
 
 
 def _cmd_choose(args) -> int:
-    from .analysis.trade import choose
+    from .analysis.trade_choice import choose
     from .analysis.trade_report import read_csv
 
     choice = choose(read_csv(args.study), args.error, time_budget=args.budget, problem=args.problem)

@@ -62,6 +62,7 @@ from ..core.model import Model
 from ..core.state import State
 from ..core.stepper import StepHook, Stepper
 from .advisor import advise
+from .engines import map_jobs
 from .omega import free_particles, world_dynamic_inv_mass
 from .stability import network_stable_step, stable_omega_h
 
@@ -652,8 +653,6 @@ def run_map(plan: MapPlan = QUICK, device=None, *, integrators=None, log: Callab
 
 def _run_on(engine, result: StabilityMap, device: str, names: list, log: Callable[[str], None]) -> StabilityMap:
     """:func:`run_map` through a sweep engine: its jobs gathered in the local loop's order."""
-    from .sweep import map_jobs
-
     jobs = [("single spring", n) for n in names] + [("cloth", n) for n in names]
     if "rk4" in names:
         jobs.append(("seed", "rk4"))

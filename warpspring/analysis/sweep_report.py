@@ -11,7 +11,8 @@ import os
 import numpy as np
 
 from ..plotting import pyplot
-from .sweep import SweepResult, VariantResult, _atomic_write
+from .sweep import SweepResult, atomic_write
+from .sweep_batch import VariantResult
 
 #: The metric columns, after ``variant``, ``hash`` and the parameters.
 METRICS = [f.name for f in dataclasses.fields(VariantResult) if f.name not in ("index", "key")]
@@ -45,7 +46,7 @@ def write_csv(result: SweepResult, path: str) -> str:
     writer.writerow(header)
     for row in rows:
         writer.writerow(["" if x is None else repr(x) if isinstance(x, float) else x for x in row])
-    _atomic_write(path, buffer.getvalue().encode())
+    atomic_write(path, buffer.getvalue().encode())
     return path
 
 

@@ -1,19 +1,9 @@
 """The speed/accuracy trade of the integrators, measured.
 
 For every registered integrator × time step × precision (float32, float64) a study measures the wall
-time per simulated second and the error against a reference, on three problems:
-
-* ``spring``, the seed case: a 45 kg block on a spring (k = 180 N/m, c = 18 N·s/m: ω₀ = 2 rad/s, ζ = 0.1)
-  pushed from rest by a constant 75 N: it overshoots to 1.73× its 0.42 m equilibrium and rings down over
-  the 10 s run (3.2 periods);
-* ``stiff-spring``: 1 kg on k = 10⁴ N/m (ω₀ = 100 rad/s) with ζ = 0.01, pushed by 100 N, for 1 s (16 periods);
-* ``cloth``: the hanging cloth of ANCHORS.md (0.1 m spacing, 0.1 kg particles, structural + shear + bend
-  springs with ke = 1e3 N/m and kd = 10 N·s/m, two top corners pinned) released flat and swinging down
-  for 1 s.
-
-The springs are one particle tied by a spring to a pinned anchor, moving along x without gravity: the
-closed form of :class:`~warpspring.analysis.analytic.DampedOscillator` is the reference. The cloth's reference is
-a float64 RK4 run (the highest-order fixed-step integrator when RK4 is not registered) at a step
+time per simulated second and the error against a reference, on the problems of
+:mod:`warpspring.analysis.trade_problems` (the seed spring, a stiff spring, the hanging cloth). The cloth's
+reference is a float64 RK4 run (the highest-order fixed-step integrator when RK4 is not registered) at a step
 ``REFERENCE_REFINEMENT`` times smaller than the finest one tested.
 
 Cost: each configuration first runs two uncaptured steps (compilation and module loading stay out of
@@ -30,7 +20,8 @@ Only the integrator steps are timed: no Simulator run-time guards, no export.
 Outputs (:func:`warpspring.analysis.trade_report.write_report`): ``trade.csv`` (every measurement), ``trade.md`` (tables with the fitted
 convergence orders), ``pareto.png`` (error against cost), ``convergence.png`` (error against step, with
 fitted orders) and ``seed.png`` (x(t) and v(t) of the seed block under each integrator against the
-exact solution). :func:`choose` picks the cheapest measured configuration that meets an error target.
+exact solution). :func:`warpspring.analysis.trade_choice.choose` picks the cheapest measured configuration
+that meets an error target.
 """
 
 from __future__ import annotations
@@ -42,295 +33,25 @@ import platform
 import statistics
 import time
 from dataclasses import dataclass, field
-from typing import ClassVar
 
 import numpy as np
 import warp as wp
 
-from .analytic import DampedOscillator
-from ..core.builder import ModelBuilder, SpringMaterial
-from ..checks import format_duration
-from ..errors import ConfigError, SimulationError
-from ..core.integrators import INTEGRATORS, Integrator, make_integrator
-from .omega import estimate_omega_max
-from ..core.model import Model
 from ..core.control import Control
+from ..core.integrators import INTEGRATORS, Integrator, make_integrator
+from ..core.model import Model
 from ..core.stepper import StepHook, Stepper
+from ..errors import ConfigError, SimulationError
+from .engines import map_jobs
+from .omega import estimate_omega_max
+from .trade_problems import SEED, STIFF, ClothProblem, ClothReference, SpringNetwork, SpringProblem
 
-#: A run whose position error exceeds this many times the problem's length scale has blown up.
-BLOWUP_FACTOR = 10.0
-#: ... and so has one that ends with more energy than the reference by more than this many times the
-#: energy the motion was given: these damped systems cannot gain energy, so the integrator drove it.
-ENERGY_BLOWUP = 1.0
 #: The cloth reference runs at the finest tested step divided by this.
 REFERENCE_REFINEMENT = 16
 #: Most steps captured in one graph (capturing costs as much Python time per step as running uncaptured).
 MAX_CHUNK = 64
-#: Fits of the convergence order keep steps with ω_max·h at most this (coarser ones are pre-asymptotic) ...
-ASYMPTOTIC_OMEGA_H = 0.5
-#: ... errors below this fraction of the problem's length scale (larger ones are saturated) ...
-ASYMPTOTIC_CEILING = 0.1
-#: ... and above this multiple of the noise floor (float64 rounding accumulated over the run, and the
-#: cloth reference's own error, estimated by its difference from a run at twice its step).
-NOISE_MARGIN = 10.0
 #: Status of a measured configuration (see :class:`Measurement`).
 STATUSES = ("ok", "non-finite", "blown up", "failed", "skipped")
-
-
-# -- problems ---------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class SpringProblem:
-    """One particle tied by a spring to a pinned anchor, driven by a constant force along x, without gravity.
-
-    The anchor sits at x = −L and the particle starts at x₀ (the spring at its rest length L when x₀ = 0),
-    so the particle's x coordinate is the oscillator's displacement and the spring stays along x: the
-    motion is exactly that of :class:`DampedOscillator` with k = ke and c = kd.
-
-    Attributes:
-        name: problem name in tables and on the command line.
-        oscillator: mass, stiffness, damping, force and initial state.
-        duration: simulated time of each run [s].
-        steps: fixed-step runs, as numbers of steps over ``duration`` (dt = duration / steps), coarse to fine.
-        outputs: steps over ``duration`` of adaptive integrators (their dt, which they subdivide themselves).
-        rest_length: L [m].
-        plot_steps: the step count of the x(t), v(t) plot (``seed.png``), or ``None`` for no plot.
-    """
-
-    records_trajectory: ClassVar[bool] = True  # errors are taken over every step, not only at the end
-
-    name: str
-    oscillator: DampedOscillator
-    duration: float
-    steps: tuple[int, ...]
-    outputs: int
-    rest_length: float = 1.0
-    plot_steps: int | None = None
-
-    def describe(self) -> str:
-        """One line naming the problem's parameters (inputs, not measurements)."""
-        o = self.oscillator
-        return (
-            f"one {o.mass:g} kg particle on a spring to a pinned anchor, k = {o.stiffness:g} N/m, "
-            f"c = {o.damping:g} N·s/m (ω₀ = {o.natural_frequency:.4g} rad/s, ζ = {o.damping_ratio:.3g}, "
-            f"{o.regime}), pushed by F = {o.force:g} N along x from x(0) = {o.x0:g} m, v(0) = {o.v0:g} m/s, "
-            f"no gravity; {self.duration:g} s simulated"
-        )
-
-    @property
-    def fastest_frequency(self) -> float:
-        """ω₀ [rad/s], the only frequency of the problem."""
-        return self.oscillator.natural_frequency
-
-    @property
-    def length_scale(self) -> float:
-        """Peak-to-peak excursion [m] of the exact x(t) over the run."""
-        x = self.oscillator.position(np.linspace(0.0, self.duration, 20001))
-        return float(np.ptp(x))
-
-    def build(self, device, precision: str) -> tuple[Model, Control]:
-        """The model (anchor = particle 0, pinned; block = particle 1) and a control holding the force."""
-        o = self.oscillator
-        builder = ModelBuilder(gravity=(0.0, 0.0, 0.0))
-        builder.add_particles(
-            [[-self.rest_length, 0.0, 0.0], [o.x0, 0.0, 0.0]],
-            velocities=[[0.0, 0.0, 0.0], [o.v0, 0.0, 0.0]],
-            mass=o.mass,
-            pinned=[0],
-        )
-        builder.add_springs([[0, 1]], stiffness=o.stiffness, damping=o.damping, rest_length=self.rest_length)
-        model = builder.finalize(device, precision=precision)
-        control = model.control()
-        control.set_particle_force([[0.0, 0.0, 0.0], [o.force, 0.0, 0.0]])
-        return model, control
-
-    def evaluate(self, t: np.ndarray, q: np.ndarray, qd: np.ndarray) -> dict:
-        """Errors of a run sampled at times ``t`` [s], shape [samples], with positions ``q`` [m] and
-        velocities ``qd`` [m/s], shape [samples, 2, 3]: the :class:`Measurement` fields it determines."""
-        x, v = q[:, 1, 0], qd[:, 1, 0]
-        if not (np.isfinite(x).all() and np.isfinite(v).all()):
-            return {"status": "non-finite"}
-        exact = self.oscillator.position(t)
-        error = np.abs(x - exact)
-        if error.max() > BLOWUP_FACTOR * self.length_scale:
-            return {"status": "blown up"}
-        o = self.oscillator
-        drift = float((o.state_energy(x[-1], v[-1]) - o.energy(t[-1])) / o.oscillation_energy)
-        if drift > ENERGY_BLOWUP:
-            return {"status": "blown up"}
-        return {
-            "status": "ok",
-            "error_max": float(error.max()),
-            "error_rms": float(np.sqrt(np.mean(error**2))),
-            "error_end": float(error[-1]),
-            "energy_drift": drift,
-        }
-
-
-@dataclass(frozen=True)
-class ClothProblem:
-    """The hanging cloth of ANCHORS.md: ``size`` × ``size`` particles ``spacing`` apart, ``particle_mass`` each,
-    structural + shear + bend springs of one material, the two top corners pinned, gravity 9.81 m/s² down z.
-    It starts flat, horizontal and at rest at z = 1 m, and swings down.
-
-    Attributes:
-        name: problem name in tables and on the command line.
-        size: particles per side.
-        duration: simulated time of each run [s]; errors are taken at its end.
-        steps: fixed-step runs, as numbers of steps over ``duration``, coarse to fine.
-        outputs: steps over ``duration`` of adaptive integrators.
-        spacing: particle spacing [m].
-        particle_mass: [kg].
-        spring: stiffness ke [N/m] and damping kd [N·s/m] of every spring.
-    """
-
-    records_trajectory: ClassVar[bool] = False
-
-    name: str
-    size: int
-    duration: float
-    steps: tuple[int, ...]
-    outputs: int
-    spacing: float = 0.1
-    particle_mass: float = 0.1
-    spring: SpringMaterial = SpringMaterial(ke=1.0e3, kd=10.0)
-
-    def describe(self) -> str:
-        """One line naming the problem's parameters (inputs, not measurements)."""
-        return (
-            f"{self.size} × {self.size} particles {self.spacing:g} m apart, {self.particle_mass:g} kg each, "
-            f"structural + shear + bend springs ke = {self.spring.ke:g} N/m, kd = {self.spring.kd:g} N·s/m, "
-            f"two top corners pinned, released flat at rest under gravity; {self.duration:g} s simulated"
-        )
-
-    @property
-    def length_scale(self) -> float:
-        """Side length of the cloth [m]."""
-        return (self.size - 1) * self.spacing
-
-    def build(self, device, precision: str) -> tuple[Model, Control]:
-        """The model and an empty control."""
-        builder = ModelBuilder()
-        half = 0.5 * self.length_scale
-        builder.add_cloth_grid(
-            nx=self.size,
-            ny=self.size,
-            spacing=self.spacing,
-            origin=(-half, -half, 1.0),
-            particle_mass=self.particle_mass,
-            structural=self.spring,
-            shear=self.spring,
-            bend=self.spring,
-            pin=["top-left", "top-right"],
-        )
-        model = builder.finalize(device, precision=precision)
-        return model, model.control()
-
-    def evaluate(self, q: np.ndarray, qd: np.ndarray, reference: ClothReference) -> dict:
-        """Errors of the end state (positions ``q`` [m], velocities ``qd`` [m/s], shape [particles, 3])
-        against ``reference``: the :class:`Measurement` fields it determines."""
-        if not (np.isfinite(q).all() and np.isfinite(qd).all()):
-            return {"status": "non-finite"}
-        error = np.linalg.norm(q - reference.q, axis=1)
-        if error.max() > BLOWUP_FACTOR * self.length_scale:
-            return {"status": "blown up"}
-        drift = float((reference.geometry.energy(q, qd) - reference.energy) / reference.released)
-        if drift > ENERGY_BLOWUP:
-            return {"status": "blown up"}
-        return {
-            "status": "ok",
-            "error_max": float(error.max()),
-            "error_rms": float(np.sqrt(np.mean(error**2))),
-            "energy_drift": drift,
-            "max_strain": reference.geometry.max_strain(q),
-        }
-
-
-@dataclass(frozen=True)
-class SpringNetwork:
-    """Host copies (float64) of what the energy and strain of a spring network need (one world of a model).
-
-    Attributes:
-        mass: particle masses [kg], shape [particles].
-        gravity: gravitational acceleration [m/s²], shape [3].
-        springs: particle pairs, shape [springs, 2].
-        rest_length: [m], shape [springs].
-        stiffness: ke [N/m], shape [springs].
-        initial_q: initial positions [m], shape [particles, 3].
-        free: whether each particle moves (nonzero inverse mass), shape [particles].
-    """
-
-    mass: np.ndarray
-    gravity: np.ndarray
-    springs: np.ndarray
-    rest_length: np.ndarray
-    stiffness: np.ndarray
-    initial_q: np.ndarray
-    free: np.ndarray
-
-    @classmethod
-    def of(cls, model: Model, *, world: int = 0) -> SpringNetwork:
-        """Read the arrays of ``world`` of ``model``."""
-        n = model.particle_count
-        return cls(
-            mass=model.world_values("particle_mass")[world],
-            gravity=model.world_values("gravity")[world],
-            springs=model.spring_indices.numpy().reshape(-1, 2).astype(np.int64),
-            rest_length=model.spring_rest_length.numpy().astype(np.float64),
-            stiffness=model.world_values("spring_stiffness")[world],
-            initial_q=model.particle_q.numpy().astype(np.float64)[world * n : (world + 1) * n],
-            free=~model.kinematic_mask(world=world),
-        )
-
-    def lengths(self, q: np.ndarray) -> np.ndarray:
-        """Spring lengths [m] at positions ``q`` [m], shape [particles, 3]."""
-        return np.linalg.norm(q[self.springs[:, 1]] - q[self.springs[:, 0]], axis=1)
-
-    def energy(self, q: np.ndarray, qd: np.ndarray) -> float:
-        """Kinetic + gravitational (zero at the initial positions) + elastic energy [J]."""
-        kinetic = 0.5 * float(np.sum(self.mass * np.sum(qd * qd, axis=1)))
-        gravitational = -float(np.sum(self.mass * ((q - self.initial_q) @ self.gravity)))
-        stretch = self.lengths(q) - self.rest_length
-        return kinetic + gravitational + 0.5 * float(np.sum(self.stiffness * stretch * stretch))
-
-    def max_strain(self, q: np.ndarray) -> float:
-        """Largest (|d| − L) / L over the springs [-]."""
-        return float(np.max(self.lengths(q) / self.rest_length - 1.0))
-
-
-@dataclass(frozen=True)
-class ClothReference:
-    """The reference end state of a cloth problem.
-
-    Attributes:
-        integrator: integrator name.
-        dt: its step [s].
-        q: positions at the end [m], shape [particles, 3].
-        energy: mechanical energy at the end [J] (see :meth:`SpringNetwork.energy`).
-        released: gravitational energy released by the end [J]: the scale of the energy drift.
-        max_strain: largest spring strain at the end [-].
-        self_difference: max |q(dt) − q(2 dt)| [m]: the reference against itself at twice the step.
-        fastest_frequency: ω_max of the cloth at rest [rad/s] (power iteration: ``estimate_omega_max``).
-        wall: wall time of the two reference runs [s].
-        geometry: the network's host arrays.
-    """
-
-    integrator: str
-    dt: float
-    q: np.ndarray
-    energy: float
-    released: float
-    max_strain: float
-    self_difference: float
-    fastest_frequency: float
-    wall: float
-    geometry: SpringNetwork
-
-
-#: The seed case and the stiff spring; see the module docstring.
-SEED = DampedOscillator(mass=45.0, damping=18.0, stiffness=180.0, force=75.0)
-STIFF = DampedOscillator.from_frequency(omega=100.0, zeta=0.01, mass=1.0, force=100.0)
 
 
 # -- plans --------------------------------------------------------------------------------------------------
@@ -744,8 +465,6 @@ def _run_on(engine, study: Study, device: str, names: list, progress: bool) -> N
     problem × precision × integrator, gathered in the order the local loop measures them."""
     from tqdm import tqdm
 
-    from .sweep import map_jobs
-
     plan = study.plan
     cloth = [i for i, problem in enumerate(plan.problems) if isinstance(problem, ClothProblem)]
     for i, reference in zip(cloth, map_jobs(engine, _reference_job, [(plan, i, device) for i in cloth])):
@@ -809,245 +528,8 @@ def _plotted(problem, row: Measurement, plan: StudyPlan, steps: int) -> bool:
     return steps == problem.plot_steps
 
 
-# -- analysis -----------------------------------------------------------------------------------------------
-
-
-def fit_order(step, error) -> float:
-    """The convergence order p of error ≈ C · stepᵖ: the least-squares slope of log(error) against log(step).
-
-    Args:
-        step: step sizes [s], shape [n], n ≥ 2 distinct values.
-        error: errors (any unit), shape [n], > 0.
-
-    Raises:
-        ConfigError: fewer than two distinct steps, mismatched shapes, or a non-positive value.
-    """
-    step, error = np.asarray(step, dtype=np.float64), np.asarray(error, dtype=np.float64)
-    if step.shape != error.shape or step.ndim != 1:
-        raise ConfigError(f"step and error must be 1-D arrays of one length, got shapes {step.shape} and {error.shape}")
-    if len(np.unique(step)) < 2:
-        raise ConfigError("fitting a convergence order needs at least two distinct steps")
-    if not (np.all(step > 0) and np.all(error > 0)):
-        raise ConfigError("fitting a convergence order needs positive steps and errors")
-    return float(np.polyfit(np.log(step), np.log(error), 1)[0])
-
-
-def asymptotic_range(
-    rows: list[Measurement], *, frequency: float, length_scale: float, duration: float, noise: float = 0.0
-) -> list[Measurement]:
-    """The float64, stable rows in the asymptotic range: for fixed-step integrators a step h with
-    ``frequency`` · h at most ``ASYMPTOTIC_OMEGA_H`` (``frequency``: the problem's fastest, ω_max [rad/s];
-    adaptive integrators size their steps from their error estimate instead), an error below
-    ``ASYMPTOTIC_CEILING`` × ``length_scale`` [m] and above ``NOISE_MARGIN`` × the noise floor: ``noise``
-    [m] (e.g. the reference's own error) plus float64 rounding accumulated over the steps of a run of
-    ``duration`` [s], ε · length_scale · steps."""
-    chosen = []
-    for r in rows:
-        if r.status != "ok" or r.precision != "float64" or r.error_max is None or r.mean_step is None:
-            continue
-        if r.tolerance is None and frequency * r.dt > ASYMPTOTIC_OMEGA_H:
-            continue
-        steps = r.steps_per_second * duration
-        floor = NOISE_MARGIN * (noise + np.finfo(np.float64).eps * length_scale * steps)
-        if floor < r.error_max <= ASYMPTOTIC_CEILING * length_scale:
-            chosen.append(r)
-    return chosen
-
-
-def convergence_orders(study: Study, problem: str) -> dict[str, tuple[float | None, list[Measurement]]]:
-    """Fitted order per integrator on ``problem``: name → (order or ``None`` with fewer than 3 usable
-    points, the rows fitted). Fixed-step integrators are fitted against dt, adaptive ones against their
-    mean accepted step."""
-    spec = study.problem(problem)
-    reference = study.references.get(problem)
-    noise = reference.self_difference if reference is not None else 0.0
-    frequency = reference.fastest_frequency if reference is not None else spec.fastest_frequency
-    orders = {}
-    for name in dict.fromkeys(r.integrator for r in study.rows if r.problem == problem):
-        rows = [r for r in study.rows if r.problem == problem and r.integrator == name]
-        fitted = asymptotic_range(
-            rows, frequency=frequency, length_scale=spec.length_scale, duration=spec.duration, noise=noise
-        )
-        distinct = len({r.mean_step for r in fitted})
-        order = fit_order([r.mean_step for r in fitted], [r.error_max for r in fitted]) if distinct >= 3 else None
-        orders[name] = (order, fitted)
-    return orders
-
-
-def pareto_front(rows: list[Measurement]) -> list[Measurement]:
-    """The measured rows no other row beats in both wall time and error, by increasing wall time."""
-    usable = sorted(
-        (r for r in rows if r.status == "ok" and r.wall_per_second is not None and r.error_max is not None),
-        key=lambda r: (r.wall_per_second, r.error_max),
-    )
-    front, best = [], math.inf
-    for r in usable:
-        if r.error_max < best:
-            front.append(r)
-            best = r.error_max
-    return front
-
-
-# -- the tolerance knob -------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Choice:
-    """What :func:`choose` recommends.
-
-    Attributes:
-        integrator: integrator name.
-        options: its options, e.g. ``{"tolerance": 1e-5}`` for an adaptive integrator.
-        dt: the step [s] (adaptive: the output interval measured), or ``None`` when unmeasured.
-        precision: "float32" / "float64", or ``None`` when unmeasured.
-        row: the measured configuration behind the choice, or ``None`` when the recommendation is untested.
-        runner_up: the next-best measured configuration the explanation compares with, or ``None``.
-        explanation: one paragraph: what was chosen and why, with the measured error and cost of the
-            pick and of the runner-up.
-    """
-
-    integrator: str
-    options: dict
-    dt: float | None
-    precision: str | None
-    row: Measurement | None
-    runner_up: Measurement | None
-    explanation: str
-
-
-def choose(study_rows, target_error: float, *, time_budget: float | None = None, problem: str | None = None) -> Choice:
-    """The fastest measured fixed-step configuration whose max error meets ``target_error``, within
-    ``time_budget`` if given; when none does, an adaptive integrator with a tolerance.
-
-    Args:
-        study_rows: :class:`Measurement` rows (from :func:`run_study` or :func:`warpspring.analysis.trade_report.read_csv`).
-        target_error: the largest acceptable max position error [m].
-        time_budget: the most wall time per simulated second [s/s], or ``None`` for no limit.
-        problem: use only the rows of this problem; needed when the rows hold several.
-
-    Raises:
-        ConfigError: a non-positive target or budget, an unknown problem, or rows of several problems
-            without ``problem``.
-    """
-    if not (isinstance(target_error, (int, float)) and math.isfinite(target_error) and target_error > 0):
-        raise ConfigError(f"target error must be a finite number > 0 [m], got {target_error!r}")
-    if time_budget is not None and not (
-        isinstance(time_budget, (int, float)) and math.isfinite(time_budget) and time_budget > 0
-    ):
-        raise ConfigError(f"time budget must be a finite number > 0 [s per simulated s], got {time_budget!r}")
-    rows = list(study_rows)
-    problems = list(dict.fromkeys(r.problem for r in rows))
-    if problem is not None:
-        if problem not in problems:
-            raise ConfigError(f"the study has no problem {problem!r}; it has: {', '.join(problems) or 'no rows'}")
-        rows = [r for r in rows if r.problem == problem]
-    elif len(problems) > 1:
-        raise ConfigError(f"the study holds several problems ({', '.join(problems)}): say which one")
-    if not rows:
-        raise ConfigError("the study has no measurements")
-
-    measured = [r for r in rows if r.status == "ok" and r.error_max is not None and r.wall_per_second is not None]
-    fixed = [r for r in measured if r.tolerance is None]
-    adaptive = sorted((r for r in measured if r.tolerance is not None), key=lambda r: r.wall_per_second)
-    accurate = sorted((r for r in fixed if r.error_max <= target_error), key=lambda r: r.wall_per_second)
-    affordable = [r for r in accurate if time_budget is None or r.wall_per_second <= time_budget]
-    adaptive_accurate = [r for r in adaptive if r.error_max <= target_error]
-    target = f"a max error of at most {target_error:.3g} m"
-    if affordable:
-        pick = affordable[0]  # fixed steps first: their cost does not depend on how the motion goes
-        adaptive_affordable = [r for r in adaptive_accurate if time_budget is None or r.wall_per_second <= time_budget]
-        runner_up = _runner_up(sorted(affordable + adaptive_affordable, key=lambda r: r.wall_per_second), pick)
-        within = f" within {_rate(time_budget)}" if time_budget is not None else ""
-        text = (
-            f"{pick.label} is the fastest measured configuration with {target}{within}: error "
-            f"{pick.error_max:.3g} m at {_rate(pick.wall_per_second)} on {pick.device}. "
-            + _compare(pick, runner_up, f"No other integrator meets the target{within}.")
-        )
-        return Choice(pick.integrator, {}, pick.dt, pick.precision, pick, runner_up, text)
-
-    if accurate:  # only the budget fails: nothing measured meets both, so name the cheapest that meets the error
-        candidates = sorted(accurate + adaptive_accurate, key=lambda r: r.wall_per_second)
-        pick = candidates[0]
-        runner_up = _runner_up(candidates, pick)
-        text = (
-            f"No measured configuration has {target} within {_rate(time_budget)}. The cheapest that meets the "
-            f"error is {pick.label}: error {pick.error_max:.3g} m at {_rate(pick.wall_per_second)} "
-            f"({pick.wall_per_second / time_budget:.3g}× the budget) on {pick.device}. "
-            + _compare(pick, runner_up, "No other integrator meets the error.")
-            + " Raise the budget or the error target."
-        )
-        options = {} if pick.tolerance is None else {"tolerance": pick.tolerance}
-        return Choice(pick.integrator, options, pick.dt, pick.precision, pick, runner_up, text)
-
-    # No fixed-step configuration reaches the error: an adaptive integrator, measured if possible.
-    if fixed:
-        closest = min(fixed, key=lambda r: r.error_max)
-        why = (
-            f"No measured fixed-step configuration reaches {target}: the most accurate, {closest.label}, has "
-            f"{closest.error_max:.3g} m at {_rate(closest.wall_per_second)}."
-        )
-    else:
-        closest = None
-        why = "The study holds no stable fixed-step measurement."
-    if adaptive_accurate:
-        pick = adaptive_accurate[0]
-        over = time_budget is not None and pick.wall_per_second > time_budget
-        text = (
-            f"{why} Use {pick.label}: measured error {pick.error_max:.3g} m at {_rate(pick.wall_per_second)}"
-            + (f", over the budget of {_rate(time_budget)}." if over else ".")
-        )
-        return Choice(pick.integrator, {"tolerance": pick.tolerance}, pick.dt, pick.precision, pick, closest, text)
-    names = [r.integrator for r in adaptive] or [n for n, c in INTEGRATORS.items() if c.adaptive] or ["dopri5"]
-    if adaptive:
-        best = min(adaptive, key=lambda r: r.error_max)
-        tolerance = _round_down(best.tolerance * target_error / best.error_max)
-        text = (
-            f"{why} Use {best.integrator} in {best.precision} with a tolerance of about {tolerance:g} (untested: "
-            f"scaled from its most accurate measured run, {best.label}, error {best.error_max:.3g} m at "
-            f"{_rate(best.wall_per_second)}, assuming error ∝ tolerance); check it with 'warpspring trade'."
-        )
-        return Choice(best.integrator, {"tolerance": tolerance}, None, best.precision, None, best, text)
-    tolerance = _round_down(0.1 * target_error)
-    text = (
-        f"{why} Use {names[0]} with a tolerance of about {tolerance:g} (a tenth of the target; untested, as the "
-        f"study measured no adaptive integrator); check it with 'warpspring trade'."
-    )
-    return Choice(names[0], {"tolerance": tolerance}, None, None, None, closest, text)
-
-
-def _runner_up(candidates: list[Measurement], pick: Measurement) -> Measurement | None:
-    """The cheapest of ``candidates`` (sorted by cost) with another integrator than ``pick``'s."""
-    return next((r for r in candidates if r.integrator != pick.integrator), None)
-
-
-def _compare(pick: Measurement, runner_up: Measurement | None, otherwise: str) -> str:
-    """The sentence on the runner-up: its measured error and cost, relative to the pick's."""
-    if runner_up is None:
-        return otherwise
-    return (
-        f"Runner-up: {runner_up.label}, error {runner_up.error_max:.3g} m at {_rate(runner_up.wall_per_second)} "
-        f"({runner_up.wall_per_second / pick.wall_per_second:.3g}× the cost)."
-    )
-
-
-def _round_down(value: float) -> float:
-    """``value`` rounded down to one significant digit (a tolerance setting)."""
-    exponent = math.floor(math.log10(value))
-    digit = max(1, math.floor(value / 10**exponent * (1.0 + 1e-12)))  # 0.99999… of a power of ten is that power
-    return digit * 10.0**exponent
-
-
 # -- formatting ---------------------------------------------------------------------------------------------
 
 
 def _ms(seconds: float) -> str:
     return f"{seconds * 1e3:.4g} ms"
-
-
-def _rate(wall_per_second: float) -> str:
-    """A cost in wall time per simulated second, in readable units."""
-    return f"{format_duration(wall_per_second)} per simulated second"
-
-
-def _num(value, spec: str) -> str:
-    return "—" if value is None else format(value, spec)

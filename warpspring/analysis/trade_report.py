@@ -13,23 +13,9 @@ from .. import checks
 from ..errors import ConfigError
 from ..core.integrators import INTEGRATORS
 from ..plotting import pyplot
-from .trade import (
-    ASYMPTOTIC_CEILING,
-    ASYMPTOTIC_OMEGA_H,
-    BLOWUP_FACTOR,
-    ENERGY_BLOWUP,
-    NOISE_MARGIN,
-    REFERENCE_REFINEMENT,
-    STATUSES,
-    ClothProblem,
-    Measurement,
-    SpringProblem,
-    Study,
-    _ms,
-    _num,
-    convergence_orders,
-    pareto_front,
-)
+from .trade import REFERENCE_REFINEMENT, STATUSES, Measurement, Study, _ms
+from .trade_choice import ASYMPTOTIC_CEILING, ASYMPTOTIC_OMEGA_H, NOISE_MARGIN, convergence_orders, pareto_front
+from .trade_problems import BLOWUP_FACTOR, ENERGY_BLOWUP, ClothProblem, SpringProblem
 
 
 # -- files --------------------------------------------------------------------------------------------------
@@ -316,3 +302,7 @@ def plot_seed(study: Study, path: str) -> str:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def _num(value, spec: str) -> str:
+    return "—" if value is None else format(value, spec)
