@@ -17,8 +17,8 @@ import warp as wp
 
 from .. import checks
 from ..errors import ConfigError
-from ..kernels.contacts import SHAPE_BOX, SHAPE_CAPSULE, SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
-from ..kernels.contacts import SHAPE_MESH
+from ..kernels.shapes import SHAPE_BOX, SHAPE_CAPSULE, SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
+from ..kernels.shapes import SHAPE_MESH
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import scalar_type, vec3_type
 from .bending import DihedralMaterial

@@ -19,20 +19,15 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..kernels.contacts import (
-    NO_SHAPE,
-    collide_kernel,
-    contact_slots_type,
-    project_contacts_kernel,
-    shape_motion_kernel,
-)
+from ..kernels.contacts import NO_SHAPE, collide_kernel, contact_slots_type, project_contacts_kernel
+from ..kernels.swept import shape_motion_kernel
 from .. import checks
 from ..errors import ConfigError
 from .model import Model
 from .state import State
 from ..kernels.flatten import flat_launch
 from ..kernels.triangle_contacts import TRIANGLE_KINDS, triangle_gather_kernel, triangle_push_kernel
-from ..kernels.contacts import ContactFeatures
+from ..kernels.shapes import ContactFeatures
 
 
 class Contacts:

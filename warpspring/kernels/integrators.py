@@ -23,12 +23,13 @@ import functools
 
 import warp as wp
 
-from .contacts import ContactFeatures, project_all_func, shapes_type
 from .families import FORCE_KERNEL_OPTIONS, elements
 from .forces import ForceFeatures, particle_force_func
 from .kinematics import is_kinematic, particle_funcs
 from .linalg import reduction_funcs
 from .precision import vec3_type
+from .response import project_all_func
+from .shapes import ContactFeatures, shapes_type
 from .worlds import world_and_index
 from .flatten import flat_kernel
 

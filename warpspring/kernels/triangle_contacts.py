@@ -20,7 +20,7 @@ import functools
 
 import warp as wp
 
-from .contacts import SHAPE_CAPSULE, SHAPE_SPHERE, ContactFeatures, shapes_type
+from .shapes import SHAPE_CAPSULE, SHAPE_SPHERE, ContactFeatures, shapes_type
 from .flatten import flat_kernel
 from .kinematics import is_kinematic
 from .precision import vec3_type
