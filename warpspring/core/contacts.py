@@ -153,8 +153,8 @@ def apply_contacts(model: Model, state: State, dt: float, contacts: Contacts | N
         project_contacts_kernel(model.scalar, features),
         dim=model.particle_dim,
         block_dim=model.block_dim,
-        inputs=[model.particle_count, model.particle_flags, model.particle_radius, model.shape_arrays,
-                (contacts or empty_contacts(model)).arrays, model.inputs, model.scalar(dt)],
+        inputs=[model.particle_count, model.particle_flags, model.particle_radius, model.shape_arrays, model.inputs,
+                (contacts or empty_contacts(model)).arrays, model.scalar(dt)],
         outputs=[state.particle_q, state.particle_qd],
         device=model.device,
     )

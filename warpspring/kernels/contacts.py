@@ -89,15 +89,18 @@ def collide_kernel(scalar: type, features: ContactFeatures):
 
     @flat_kernel(module="unique", enable_backward=False)
     def collide(
+        # Model:
         particle_count: int,
         particle_flags: wp.array[wp.int32],
         particle_radius: wp.array[scalar],
         shapes: Shapes,
+        # State in:
         particle_q: wp.array[vec3],
         particle_q_before: wp.array[vec3],
         particle_qd: wp.array[vec3],
         dt: scalar,
-        contacts: ContactSlots,
+        # In/out (the contact buffer; its margin in, its slots out):
+        contacts_in_out: ContactSlots,
     ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
@@ -105,8 +108,8 @@ def collide_kernel(scalar: type, features: ContactFeatures):
         if not is_kinematic(particle_flags[p]):
             x = particle_q[p]
             x0 = particle_q_before[p] - dt * particle_qd[p]  # the response's path start (see the module docstring)
-            reach = particle_radius[i] + contacts.margin[0]
-            slots = contacts.shape.shape[1]
+            reach = particle_radius[i] + contacts_in_out.margin[0]
+            slots = contacts_in_out.shape.shape[1]
             for s in range(shapes.kind.shape[0]):
                 distance, normal = shape_distance(shapes, s, world, p, x)
                 touched = distance < reach
@@ -117,12 +120,12 @@ def collide_kernel(scalar: type, features: ContactFeatures):
                         touched = crossed
                 if touched:
                     if found < slots:
-                        contacts.shape[p, found] = s
-                        contacts.feature[p, found] = NO_SHAPE
+                        contacts_in_out.shape[p, found] = s
+                        contacts_in_out.feature[p, found] = NO_SHAPE
                         found += 1
                     else:
-                        wp.atomic_add(contacts.overflow, world, 1)
-        contacts.count[p] = found
+                        wp.atomic_add(contacts_in_out.overflow, world, 1)
+        contacts_in_out.count[p] = found
 
     return collide
 
@@ -137,13 +140,16 @@ def project_contacts_kernel(scalar: type, features: ContactFeatures):
 
     @flat_kernel(module="unique", enable_backward=False)
     def project(
+        # Model:
         particle_count: int,
         particle_flags: wp.array[wp.int32],
         particle_radius: wp.array[scalar],
         shapes: Shapes,
-        contacts: ContactSlots,
         inputs: wp.array2d[scalar],
+        # Contacts in (the buffer collide filled), the step:
+        contacts: ContactSlots,
         dt: scalar,
+        # State in/out:
         particle_q_in_out: wp.array[vec3],
         particle_qd_in_out: wp.array[vec3],
     ):

@@ -191,18 +191,22 @@ def unit_or_zero(n: wp.vec3d) -> wp.vec3f:
 
 
 @wp.kernel(enable_backward=False)
-def face_normals_kernel(mesh: wp.uint64, face_normal: wp.array[wp.vec3d], corner_angle: wp.array[wp.float64]):
+def face_normals_kernel(
+    mesh: wp.uint64, face_normal_out: wp.array[wp.vec3d], corner_angle_out: wp.array[wp.float64]
+):
     """Each face's unit normal and its angles [rad] at its corners (3 f + k), float64 from the mesh's points:
     the terms :func:`pseudo_normals_kernel` sums. Launch over the faces."""
     f = wp.tid()
-    face_normal[f] = face_unit_normal(mesh, f)
+    face_normal_out[f] = face_unit_normal(mesh, f)
     for k in range(3):
-        corner_angle[3 * f + k] = face_corner_angle(mesh, f, k)
+        corner_angle_out[3 * f + k] = face_corner_angle(mesh, f, k)
 
 
 @wp.kernel(enable_backward=False)
 def pseudo_normals_kernel(
+    # Mesh:
     mesh: wp.uint64,
+    # In (face_normals_kernel's terms, the mesh's topology):
     face_normal: wp.array[wp.vec3d],  # [t], from face_normals_kernel
     corner_angle: wp.array[wp.float64],  # [rad], [3 t], from face_normals_kernel
     vertex_start: wp.array[wp.int32],  # [v + 1], CSR over the corners (3 f + k) at each vertex
@@ -211,25 +215,26 @@ def pseudo_normals_kernel(
     edge_start: wp.array[wp.int32],  # [edges + 1], CSR over the faces at each edge
     edge_face: wp.array[wp.int32],  # [3 t], in face order
     offset: int,
-    normals: wp.array[wp.vec3f],
+    # Out:
+    normals_out: wp.array[wp.vec3f],
 ):
     """The seven unit pseudo-normals of face f (``MeshCache.normals``: face, edges ab bc ca, corners a b c),
     summed in float64 in a fixed order (no atomics). Launch over the faces."""
     f = wp.tid()
     base = offset + FACE_NORMALS * f
-    normals[base] = unit_or_zero(face_normal[f])
+    normals_out[base] = unit_or_zero(face_normal[f])
     for k in range(3):
         group = edge_group[3 * f + k]
         edge = wp.vec3d()
         for j in range(edge_start[group], edge_start[group + 1]):
             edge += face_normal[edge_face[j]]
-        normals[base + FEATURE_EDGE_AB + k] = unit_or_zero(edge)
+        normals_out[base + FEATURE_EDGE_AB + k] = unit_or_zero(edge)
         vertex = wp.mesh_get_index(mesh, 3 * f + k)
         corner_sum = wp.vec3d()
         for j in range(vertex_start[vertex], vertex_start[vertex + 1]):
             corner = vertex_corner[j]
             corner_sum += corner_angle[corner] * face_normal[corner / 3]
-        normals[base + FEATURE_VERTEX_A + k] = unit_or_zero(corner_sum)
+        normals_out[base + FEATURE_VERTEX_A + k] = unit_or_zero(corner_sum)
 
 
 @functools.cache

@@ -216,20 +216,23 @@ def shape_motion_kernel(scalar: type):
 
     @flat_kernel(module="unique", enable_backward=False)
     def shape_motion(
+        # Model:
         rest: wp.array[wp.transformd],
         translation_track: wp.array[wp.int32],
         rotation_track: wp.array[wp.int32],
         tracks: Tracks,
+        # State in:
         time: wp.array[wp.float64],
         dt: wp.float64,
         ahead: wp.float64,
-        shapes: Shapes,
+        # Out (the shapes' frames):
+        shapes_out: Shapes,
     ):
         world, s = wp.tid()
         t1 = time[world] + ahead
         X0 = shape_frame(tracks, rest[s], translation_track[s], rotation_track[s], t1 - dt)
         X1 = shape_frame(tracks, rest[s], translation_track[s], rotation_track[s], t1)
-        shapes.transform_start[world, s] = rounded(X0)
-        shapes.transform_end[world, s] = rounded(X1)
+        shapes_out.transform_start[world, s] = rounded(X0)
+        shapes_out.transform_end[world, s] = rounded(X1)
 
     return shape_motion
