@@ -1,6 +1,6 @@
 """Box and capsule colliders, colliders moved by keyframe tracks, restitution, and the contact stage.
 
-The response (``kernels/contacts.py``) projects a particle of radius r whose centre is closer than r to a
+The response (``kernels/response.py``) projects a particle of radius r whose centre is closer than r to a
 surface back onto it, removes (or, above two steps of gravity, reverses by e) the normal velocity relative
 to the surface, and takes μ·(1 + e)|Δv_n| off the relative tangential velocity. Relative to a surface that
 moves rigidly from frame X₀ to X₁ in a step h, the surface velocity at x is (x - X₀X₁⁻¹x)/h, the exact
@@ -21,7 +21,7 @@ import pytest
 import warpspring as ws
 from warpspring.core.transforms import quat_to_matrix
 from warpspring.errors import ConfigError, ContactOverflowWarning
-from warpspring.kernels.contacts import SHAPE_BOX
+from warpspring.kernels.shapes import SHAPE_BOX
 
 G = 9.81
 R = 0.05  # particle radius [m]

@@ -1,6 +1,6 @@
 """A particle on a tilted plane (Coulomb friction: sliding and sticking) and kinematic (pinned) particles.
 
-Contact model (``kernels/contacts.py``): after each symplectic Euler update x' = x + h v', v' = v + h g, a
+Contact model (``kernels/response.py``): after each symplectic Euler update x' = x + h v', v' = v + h g, a
 particle closer than its radius r to a collider is moved back along the collider's normal onto the
 surface, its approaching normal velocity is removed, and its tangential velocity is reduced by at most
 μ·|Δv_n|, where μ is the *collider's* friction (``add_collider_plane(friction=μ)``, ``Model.shape_arrays.friction``):

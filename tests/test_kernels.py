@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warpspring.kernels.contacts import contact_funcs
+from warpspring.kernels.response import contact_response_func
+from warpspring.kernels.shapes import distance_funcs
 from warpspring.kernels.springs import spring_funcs, spring_law_type
 from warpspring.kernels.precision import scalar_type, vec3_type
 
@@ -85,7 +86,8 @@ def test_spring_force_is_antisymmetric_and_zero_for_coincident_particles(device,
 @functools.cache
 def contact_kernel(scalar):
     vec3 = vec3_type(scalar)
-    _, sphere_distance, _, _, contact_response = contact_funcs(scalar)
+    _, sphere_distance, _, _ = distance_funcs(scalar)
+    contact_response = contact_response_func(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
     def kernel(
@@ -159,7 +161,7 @@ def test_sphere_contact_response_matches_reference(device, precision, moving):
 @functools.cache
 def distance_kernel(scalar):
     vec3 = vec3_type(scalar)
-    _, _, box_distance, capsule_distance, _ = contact_funcs(scalar)
+    _, _, box_distance, capsule_distance = distance_funcs(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
     def kernel(p: wp.array[vec3], half: vec3, radius: scalar, half_height: scalar, box: wp.array[scalar],

@@ -16,7 +16,7 @@ import warpspring as ws
 from warpspring.core.checkpoint import Checkpoint
 from warpspring.errors import ConfigError, ContactOverflowWarning
 from warpspring.io.scene import load_scene
-from warpspring.kernels.contacts import SHAPE_MESH, ContactFeatures, shape_funcs, shapes_type
+from warpspring.kernels.shapes import SHAPE_MESH, ContactFeatures, shapes_type, surface_funcs
 
 G = 9.81
 R = 0.02  # particle radius [m]
@@ -68,7 +68,7 @@ def particles(sim) -> tuple[np.ndarray, np.ndarray]:
 @pytest.fixture(scope="module")
 def distance_kernel():
     features = ContactFeatures(kinds=(SHAPE_MESH,), buffered=True, swept=True)
-    shape_distance, _, _ = shape_funcs(wp.float32, features)
+    _, shape_distance = surface_funcs(wp.float32, features)
     Shapes = shapes_type(wp.float32)
 
     @wp.kernel(module="unique", enable_backward=False)

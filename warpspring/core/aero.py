@@ -112,7 +112,7 @@ class AeroFamily(ElementFamily):
             return
         spec = self.spec(model)
         wp.launch(spec.funcs(model.scalar).triangle_forces, dim=(model.world_count, len(self.triangles)),
-                  inputs=[model.particle_count, self.arrays(model), model.inputs, state.particle_q, state.particle_qd],
+                  inputs=[model.particle_count, model.inputs, state.particle_q, state.particle_qd, self.arrays(model)],
                   device=model.device)
 
     def arrays(self, model, *, stiffness=None):

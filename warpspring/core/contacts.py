@@ -19,20 +19,15 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..kernels.contacts import (
-    NO_SHAPE,
-    collide_kernel,
-    contact_slots_type,
-    project_contacts_kernel,
-    shape_motion_kernel,
-)
+from ..kernels.contacts import NO_SHAPE, collide_kernel, contact_slots_type, project_contacts_kernel
+from ..kernels.swept import shape_motion_kernel
 from .. import checks
 from ..errors import ConfigError
 from .model import Model
 from .state import State
 from ..kernels.flatten import flat_launch
 from ..kernels.triangle_contacts import TRIANGLE_KINDS, triangle_gather_kernel, triangle_push_kernel
-from ..kernels.contacts import ContactFeatures
+from ..kernels.shapes import ContactFeatures
 
 
 class Contacts:
@@ -158,8 +153,8 @@ def apply_contacts(model: Model, state: State, dt: float, contacts: Contacts | N
         project_contacts_kernel(model.scalar, features),
         dim=model.particle_dim,
         block_dim=model.block_dim,
-        inputs=[model.particle_count, model.particle_flags, model.particle_radius, model.shape_arrays,
-                (contacts or empty_contacts(model)).arrays, model.inputs, model.scalar(dt)],
+        inputs=[model.particle_count, model.particle_flags, model.particle_radius, model.shape_arrays, model.inputs,
+                (contacts or empty_contacts(model)).arrays, model.scalar(dt)],
         outputs=[state.particle_q, state.particle_qd],
         device=model.device,
     )

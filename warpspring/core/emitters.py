@@ -148,11 +148,11 @@ class EmitterHook(StepHook):
         for emitter in model.emitters:
             kind = SHAPES[emitter.shape]
             wp.launch(emit_kernel(model.scalar, kind), dim=(model.world_count, emitter.capacity),
-                      inputs=[model.particle_count, model.world_enabled, emitter.arrays, state.time,
-                              wp.float64(self.dt)],
-                      outputs=[model.particle_flags, state.particle_q, state.particle_qd], device=model.device)
+                      inputs=[model.particle_count, model.world_enabled, state.time, wp.float64(self.dt)],
+                      outputs=[emitter.arrays, model.particle_flags, state.particle_q, state.particle_qd],
+                      device=model.device)
             wp.launch(emit_counts_kernel, dim=model.world_count,
-                      inputs=[model.world_enabled, emitter.arrays, state.time, wp.float64(self.dt)],
+                      inputs=[model.world_enabled, state.time, wp.float64(self.dt), emitter.arrays],
                       device=model.device)
 
     def history(self) -> list:

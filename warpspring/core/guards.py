@@ -563,8 +563,8 @@ class Guard(StepHook):
         middle = _StepPoint(self._step_position, self._step_velocity, self._step_time)
         evaluate_input_tracks(model, middle, families=timed)
         flat_launch(guard_work_kernel(model.scalar, specs, self._tiled), dim=self._drag_grid, block_dim=self._lanes,
-                    inputs=[model.particle_count, model.world_enabled, self._status, model.particle_flags,
-                            self._work_arrays(working, specs), model.inputs, self._step_position,
+                    inputs=[model.particle_count, model.world_enabled, model.particle_flags,
+                            self._work_arrays(working, specs), model.inputs, self._status, self._step_position,
                             self._step_velocity, self._step_start.particle_q, state.particle_q],
                     outputs=[self._running], device=model.device)
         evaluate_input_tracks(model, state, families=timed)
@@ -583,13 +583,13 @@ class Guard(StepHook):
             position, velocity = self._step_position, self._step_velocity
         if drag is not None:
             wp.launch(drag, dim=self._drag_grid, block_dim=self._lanes,
-                      inputs=[model.particle_count, h, model.world_enabled, self._status, model.particle_flags,
-                              model.inputs, velocity],
+                      inputs=[model.particle_count, h, model.world_enabled, model.particle_flags, model.inputs,
+                              self._status, velocity],
                       outputs=[self._running], device=model.device)
         for kernel, family, lanes, grid, offset in families:
             flat_launch(kernel, dim=grid, block_dim=lanes,
                         inputs=[model.particle_count, family.element_count, offset, h, model.world_enabled,
-                                self._status, family.arrays(model), model.inputs, position, velocity],
+                                family.arrays(model), model.inputs, self._status, position, velocity],
                         outputs=[self._running], device=model.device)
 
     def _dissipation_kernels(self) -> tuple:
@@ -659,15 +659,15 @@ class Guard(StepHook):
         worlds, device = model.world_count, model.device
         for family, lanes, grid, offset in self._energy_layout:
             flat_launch(guard_energy_kernel(model.scalar, family.spec(model), self._tiled), dim=grid, block_dim=lanes,
-                        inputs=[model.particle_count, family.element_count, offset, model.world_enabled, self._status,
-                                family.arrays(model), model.inputs, state.particle_q],
+                        inputs=[model.particle_count, family.element_count, offset, model.world_enabled,
+                                family.arrays(model), model.inputs, self._status, state.particle_q],
                         outputs=[self._energy_partials], device=device)
         wp.launch(gather, dim=(worlds, self._lanes), block_dim=self._lanes,
                   inputs=[model.world_enabled, self._partials, self._energy_partials, self._status, self._running],
                   outputs=[self._values, self._work_total, self._balance], device=device)
         flat_launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
-                    inputs=[model.particle_count, model.world_enabled, model.elements, state.particle_q],
-                    outputs=[self._status, self._values], device=device)
+                    inputs=[model.particle_count, model.world_enabled, model.elements, state.particle_q, self._values],
+                    outputs=[self._status], device=device)
         wp.launch(decide, dim=worlds, inputs=[substep, self._limits, self._work_total],
                   outputs=[model.world_enabled, self._status, self._values], device=device)
 

@@ -1,7 +1,7 @@
 """Mesh colliders: a triangle mesh as a collider kind, static, moved by keyframe tracks, or deforming.
 
 A mesh collider is a ``wp.Mesh`` (its BVH) in the collider's own frame; the contact kernels query it for the
-closest point (``kernels.contacts.mesh_funcs``) and cast each particle's path of the step against it. How a
+closest point (``kernels.mesh_colliders.mesh_funcs``) and cast each particle's path of the step against it. How a
 mesh tells inside from outside is explicit (``sides``):
 
 * ``"closed"``: a closed (watertight) mesh, signed by the closest feature's angle-weighted pseudo-normal (exact
@@ -17,7 +17,7 @@ mesh tells inside from outside is explicit (``sides``):
   for up to ``depth`` away.
 
 Particle contacts with a mesh (not ``winding_number``) keep a per-particle candidate cache (a Verlet list:
-``kernels.contacts.mesh_cache_funcs`` has the argument why it never changes the answer): a full BVH query only
+``kernels.mesh_colliders.mesh_cache_funcs`` has the argument why it never changes the answer): a full BVH query only
 when a particle moved more than ``cache_margin`` [m] in the mesh's frame since its last one, otherwise the exact
 closest point on its (at most ``cache_candidates``) cached triangles. ``MeshCollider.cache_margin = 0`` forces
 the full query at every use, with the same results.
@@ -37,7 +37,7 @@ import numpy as np
 import warp as wp
 
 from ..errors import ConfigError
-from ..kernels.contacts import FACE_NORMALS, MESH_SIDES, MeshCache, face_normals_kernel, pseudo_normals_kernel
+from ..kernels.mesh_colliders import FACE_NORMALS, MESH_SIDES, MeshCache, face_normals_kernel, pseudo_normals_kernel
 
 
 @dataclass(eq=False)
@@ -327,7 +327,7 @@ def pseudo_normals(points: np.ndarray, faces: np.ndarray, edges: np.ndarray | No
     and its corners a, b, c (the sum of the incident faces' normals weighted by their angles there). The sign
     of (p - c) · n, n the pseudo-normal of the feature that p's closest point c lies on, tells inside from
     outside for a watertight mesh. Computed in float64 (``edges``: :func:`edge_groups` of the faces, if known);
-    a degenerate face has a zero normal. The host reference of ``kernels.contacts.pseudo_normals_kernel``."""
+    a degenerate face has a zero normal. The host reference of ``kernels.mesh_colliders.pseudo_normals_kernel``."""
     p = np.asarray(points, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     edges = edge_groups(f) if edges is None else edges

@@ -13,8 +13,9 @@ from ..kernels.families import fill_elements
 from ..kernels.forces import ForceFeatures
 from ..kernels.springs import SpringLaw
 from ..kernels.families import Incidence, IncidenceShape
-from ..kernels.contacts import NO_CONTACTS, ContactFeatures, shapes_type
-from ..kernels.contacts import MESH_SIDES, MESH_WINDING, SWEPT_KINDS
+from ..kernels.shapes import NO_CONTACTS, ContactFeatures, shapes_type
+from ..kernels.mesh_colliders import MESH_SIDES, MESH_WINDING
+from ..kernels.swept import SWEPT_KINDS
 from ..kernels.inputs import INPUT_COUNT, INPUTS
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import transform_type, vec3_type
@@ -137,8 +138,8 @@ class Model:
 
     shape_count: int
     shapes: list  # list[ShapeInfo], host-side: the colliders as built (rest frames, tracks), for export
-    shape_arrays: object  # kernels.contacts.shapes_type(scalar): the colliders on the device (struct of arrays)
-    shape_types: tuple  # sorted collider kinds present (kernels.contacts.SHAPE_*): the kernels' specialization
+    shape_arrays: object  # kernels.shapes.shapes_type(scalar): the colliders on the device (struct of arrays)
+    shape_types: tuple  # sorted collider kinds present (kernels.shapes.SHAPE_*): the kernels' specialization
     shape_moving: bool  # some collider has a track: its frames are per world, written every step
     shape_rest: wp.array  # wp.transformd, shape [shape_count], each collider's frame at rest
     shape_translation_track: wp.array  # int32, shape [shape_count], track table index of T(t), or -1

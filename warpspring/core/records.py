@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from .. import checks
 from ..kernels.springs import SpringLaw
-from ..kernels.contacts import SHAPE_NAMES
+from ..kernels.shapes import SHAPE_NAMES
 from .tracks import Track
 
 

@@ -229,8 +229,8 @@ class SelfContact:
         """Write the triangles' boxes (at ``start``, or swept from ``start`` to ``end``) and refit the BVHs."""
         model = self.model
         flat_launch(leaf_kernel(model.scalar, swept),
-                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface,
-                            self.params, start, end],
+                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.params, start,
+                            end, self.surface],
                     dim=model.world_count * self.triangle_count, device=model.device)
         if refit:
             for bvh in self.bvhs:
@@ -257,7 +257,7 @@ class SelfContact:
             particle_q_start=start,
             particle_q_end=end,
         )
-        outputs = dict(pairs=pairs, pair_distance=pair_distance, counters=counters)
+        outputs = dict(pairs_out=pairs, pair_distance_out=pair_distance, counters_out=counters)
         flat_launch(broad_vt_kernel(model.scalar, swept), inputs=list(args.values()), outputs=list(outputs.values()),
                     dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
         flat_launch(broad_ee_kernel(model.scalar, swept), inputs=list(args.values()), outputs=list(outputs.values()),
@@ -280,8 +280,8 @@ class SelfContact:
                     outputs=[self.pair_correction, self.pair_weight, self.counters], **slots)
         flat_launch(repel_gather_kernel(model.scalar),
                     inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
-                            self.surface, pairs, self.pair_correction, self.pair_weight, particle_q],
-                    outputs=[self.corrected], dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
+                            self.surface, self.pair_correction, self.pair_weight, particle_q],
+                    outputs=[pairs, self.corrected], dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
         return self.corrected
 
     def cap(self, state_in, particle_q: wp.array, state_out, dt: float) -> None:

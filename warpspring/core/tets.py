@@ -156,7 +156,7 @@ class TetFamily(ElementFamily):
             return
         wp.launch(getattr(self.spec(model).funcs(model.scalar), self.precompute_kernel),
                   dim=(model.world_count, self.element_count),
-                  inputs=[model.particle_count, self.arrays(model), state.particle_q, state.particle_qd],
+                  inputs=[model.particle_count, state.particle_q, state.particle_qd, self.arrays(model)],
                   device=model.device)
 
     def describe_element(self, model, element: int) -> str:

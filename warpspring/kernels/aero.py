@@ -198,16 +198,19 @@ def aero_family_funcs(scalar: type, spec: AeroSpec) -> FamilyFuncs:
 
     @wp.kernel(module="unique", enable_backward=False)
     def triangle_forces(
+        # Model:
         particle_count: int,
-        aero: AeroArrays,
         inputs: wp.array2d[scalar],
+        # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
+        # In/out (the triangles' forces written into the family's arrays):
+        aero_in_out: AeroArrays,
     ):
         """Each triangle's wind force at a state, once (launch over [world_count, triangle_count])."""
         world, t = wp.tid()
-        aero.triangle_force[world * aero.indices.shape[0] + t] = whole_triangle_force(
-            world, t, world * particle_count, aero, inputs, particle_q, particle_qd)
+        aero_in_out.triangle_force[world * aero_in_out.indices.shape[0] + t] = whole_triangle_force(
+            world, t, world * particle_count, aero_in_out, inputs, particle_q, particle_qd)
 
     idle = spec.incidence.idle() + (() if spec.precomputed else ("triangle_force",))
     return AeroFuncs(AeroArrays, force, product, strain, energy, idle, triangle_forces)

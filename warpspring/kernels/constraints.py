@@ -13,11 +13,12 @@ import functools
 
 import warp as wp
 
-from .contacts import ContactFeatures, contact_slots_type, project_contacts_func, shapes_type
+from .contacts import contact_slots_type, project_contacts_func
 from .families import IncidenceShape
 from .inputs import INPUT_MAX_SPEED, INPUT_MAX_STRAIN
 from .kinematics import is_kinematic, particle_funcs
 from .precision import vec3_type
+from .shapes import ContactFeatures, shapes_type
 from .springs import HOOKE, SpringLaw, spring_access_funcs, spring_arrays_type
 from .worlds import world_and_index
 from .flatten import flat_kernel

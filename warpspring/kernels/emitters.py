@@ -102,63 +102,66 @@ def emit_kernel(scalar: type, kind: int):
         # Model:
         particle_count: int,
         world_enabled: wp.array[wp.int32],
-        emitter: EmitterArrays,
         # State in (the step's result):
         time: wp.array[wp.float64],
         h: wp.float64,
-        # Out (in place):
-        particle_flags: wp.array[wp.int32],
-        particle_q: wp.array[vec3],
-        particle_qd: wp.array[vec3],
+        # In/out (in place):
+        emitter_in_out: EmitterArrays,
+        particle_flags_in_out: wp.array[wp.int32],
+        particle_q_out: wp.array[vec3],
+        particle_qd_out: wp.array[vec3],
     ):
         world, j = wp.tid()
         if world_enabled[world] == 0:
             return  # a held world: nothing is born or dies
-        capacity = emitter.capacity
+        capacity = emitter_in_out.capacity
         slot = world * capacity + j
-        p = world * particle_count + emitter.first + j
+        p = world * particle_count + emitter_in_out.first + j
         t = time[world]
-        serial = emitter.serial[slot]
-        if serial != DEAD and t - emitter.birth_time[slot] >= emitter.life[0]:
+        serial = emitter_in_out.serial[slot]
+        if serial != DEAD and t - emitter_in_out.birth_time[slot] >= emitter_in_out.life[0]:
             serial = DEAD  # its life span is over: kinematic, still, until the slot is reused
-            emitter.serial[slot] = DEAD
-            particle_flags[p] = particle_flags[p] | PARTICLE_KINEMATIC
-            particle_qd[p] = vec3(scalar(0.0))
-        n = births_in_step(emitter, world, t, h)
-        first = emitter.births[world]
+            emitter_in_out.serial[slot] = DEAD
+            particle_flags_in_out[p] = particle_flags_in_out[p] | PARTICLE_KINEMATIC
+            particle_qd_out[p] = vec3(scalar(0.0))
+        n = births_in_step(emitter_in_out, world, t, h)
+        first = emitter_in_out.births[world]
         k = (j - first % capacity + capacity) % capacity  # this slot's first new serial is first + k
         if k >= n:
             return
         latest = first + k + ((n - 1 - k) // capacity) * capacity  # several in one step: the last one stays
         dropped = (n - 1 - k) // capacity + wp.where(serial != DEAD, 1, 0)
         if dropped > 0:
-            wp.atomic_add(emitter.recycled, world, dropped)
-        state = wp.rand_init(emitter.seed * 7919 + world, latest)  # a stream per world, an offset per serial
-        x = sample_shape(emitter, wp.static(kind), state)
-        sigma = emitter.spread[0]
-        v = emitter.velocity[0] + sigma * wp.vec3d(wp.float64(wp.randn(state)), wp.float64(wp.randn(state)),
-                                                   wp.float64(wp.randn(state)))
-        emitter.serial[slot] = latest
-        emitter.birth_time[slot] = t
-        particle_q[p] = vec3(x)
-        particle_qd[p] = vec3(v)
-        particle_flags[p] = particle_flags[p] & ~PARTICLE_KINEMATIC
+            wp.atomic_add(emitter_in_out.recycled, world, dropped)
+        state = wp.rand_init(emitter_in_out.seed * 7919 + world, latest)  # a stream per world, an offset per serial
+        x = sample_shape(emitter_in_out, wp.static(kind), state)
+        sigma = emitter_in_out.spread[0]
+        v = emitter_in_out.velocity[0] + sigma * wp.vec3d(wp.float64(wp.randn(state)),
+                                                          wp.float64(wp.randn(state)), wp.float64(wp.randn(state)))
+        emitter_in_out.serial[slot] = latest
+        emitter_in_out.birth_time[slot] = t
+        particle_q_out[p] = vec3(x)
+        particle_qd_out[p] = vec3(v)
+        particle_flags_in_out[p] = particle_flags_in_out[p] & ~PARTICLE_KINEMATIC
 
     return emit
 
 
 @wp.kernel(enable_backward=False)
 def emit_counts_kernel(
+    # Model:
     world_enabled: wp.array[wp.int32],
-    emitter: EmitterArrays,
+    # State in:
     time: wp.array[wp.float64],
     h: wp.float64,
+    # In/out:
+    emitter_in_out: EmitterArrays,
 ):
     """After ``emit``: the serials used and the rate's fraction carried on; launch over [world_count]."""
     world = wp.tid()
     if world_enabled[world] == 0:
         return
-    n = births_in_step(emitter, world, time[world], h)
-    carried = emitter.fraction[world] + emitter.rate[0] * h
-    emitter.fraction[world] = carried - wp.floor(carried)
-    emitter.births[world] = emitter.births[world] + n
+    n = births_in_step(emitter_in_out, world, time[world], h)
+    carried = emitter_in_out.fraction[world] + emitter_in_out.rate[0] * h
+    emitter_in_out.fraction[world] = carried - wp.floor(carried)
+    emitter_in_out.births[world] = emitter_in_out.births[world] + n

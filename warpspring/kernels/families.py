@@ -347,7 +347,7 @@ def fill_elements(chain, family_arrays: list):
 @functools.cache
 def element_energy_kernel(scalar: type, spec):
     """Kernel writing the elastic energy [J] of every element of one family in every world, float64, into
-    ``energy[world, element]``; launch over (world_count, element_count)."""
+    ``energy_out[world, element]``; launch over (world_count, element_count)."""
     vec3 = vec3_type(scalar)
     funcs = spec.funcs(scalar)
     Arrays = funcs.arrays
@@ -356,14 +356,17 @@ def element_energy_kernel(scalar: type, spec):
     # An element's energy reads its own entries, never the incidence table.
     @flat_kernel(module="unique", enable_backward=False, last=("arrays__incidence",))
     def element_energy(
+        # Model:
         particle_count: int,
         arrays: Arrays,
         inputs: wp.array2d[scalar],
+        # State in:
         particle_q: wp.array[vec3],
-        energy: wp.array2d[wp.float64],
+        # Out:
+        energy_out: wp.array2d[wp.float64],
     ):
         world, element = wp.tid()
-        energy[world, element] = wp.float64(
+        energy_out[world, element] = wp.float64(
             energy_func(world, element, world * particle_count, arrays, inputs, particle_q)
         )
 

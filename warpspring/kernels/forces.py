@@ -113,12 +113,12 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures):
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
         # Out:
-        particle_f: wp.array[vec3],
+        particle_f_out: wp.array[vec3],
     ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
-        particle_f[p] = particle_force(world, i, p - i, particle_q[p], particle_qd[p], particle_mass, element_arrays,
-                                       inputs, particle_force_ext, particle_q, particle_qd)
+        particle_f_out[p] = particle_force(world, i, p - i, particle_q[p], particle_qd[p], particle_mass,
+                                           element_arrays, inputs, particle_force_ext, particle_q, particle_qd)
 
     return eval_forces
 

@@ -159,13 +159,13 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
         # In/out:
-        previous_q: wp.array[vec3],
-        previous_load: wp.array[vec3],
-        status: wp.array2d[wp.int32],
-        partials: wp.array3d[wp.float64],
+        previous_q_in_out: wp.array[vec3],
+        previous_load_in_out: wp.array[vec3],
+        status_in_out: wp.array2d[wp.int32],
+        partials_out: wp.array3d[wp.float64],
     ):
         world, block, lane = wp.tid()
-        if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
+        if status_in_out[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
             return
         i = block * wp.block_dim() + lane
         energy = wp.float64(0.0)
@@ -189,35 +189,37 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                         load += work_force(world, i, base, x, v, work_arrays, inputs, particle_q, particle_qd)
                     if wp.static(external):
                         held = particle_force_ext[p]
-                before = previous_load[p]
+                before = previous_load_in_out[p]
                 if not wp.isfinite(before):  # the first check: no earlier value
                     before = load
-                work = wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - previous_q[p]))
-                previous_load[p] = load
+                work = wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - previous_q_in_out[p]))
+                previous_load_in_out[p] = load
             else:
-                wp.atomic_min(status, world, GUARD_NONFINITE_PARTICLE, i)
-                wp.atomic_add(status, world, GUARD_NONFINITE_COUNT, 1)
-            previous_q[p] = x
+                wp.atomic_min(status_in_out, world, GUARD_NONFINITE_PARTICLE, i)
+                wp.atomic_add(status_in_out, world, GUARD_NONFINITE_COUNT, 1)
+            previous_q_in_out[p] = x
         energy = block_sum(energy)
         worst = block_max(worst)
         work = block_sum(work)
         if lane == 0:
-            partials[world, block, GUARD_KINETIC_ENERGY] = energy
-            partials[world, block, GUARD_MAX_STRAIN] = worst
-            partials[world, block, GUARD_WORK] = work
+            partials_out[world, block, GUARD_KINETIC_ENERGY] = energy
+            partials_out[world, block, GUARD_MAX_STRAIN] = worst
+            partials_out[world, block, GUARD_WORK] = work
 
     @wp.kernel(module="unique", enable_backward=False)
     def gather(
+        # Model:
         world_enabled: wp.array[wp.int32],
+        # Guards in (the check's partials, the status):
         partials: wp.array3d[wp.float64],
         energy_partials: wp.array2d[wp.float64],
         status: wp.array2d[wp.int32],
         # In/out:
-        running: wp.array3d[wp.float64],
+        running_in_out: wp.array3d[wp.float64],
         # Out:
-        values: wp.array2d[wp.float64],
-        work_total: wp.array[wp.float64],
-        balance: wp.array2d[wp.float64],
+        values_out: wp.array2d[wp.float64],
+        work_total_in_out: wp.array[wp.float64],
+        balance_in_out: wp.array2d[wp.float64],
     ):
         """A world's kinetic and elastic energy, the work put in and the energy dissipated since the last
         check (its blocks' partials and running sums: the dissipation and the working families' work, the running
@@ -247,11 +249,11 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
             b += lanes
         dissipated = wp.float64(0.0)
         b = lane
-        while b < running.shape[1]:
-            dissipated += running[world, b, RUNNING_DISSIPATION]
-            work += running[world, b, RUNNING_WORK]
-            running[world, b, RUNNING_DISSIPATION] = wp.float64(0.0)
-            running[world, b, RUNNING_WORK] = wp.float64(0.0)
+        while b < running_in_out.shape[1]:
+            dissipated += running_in_out[world, b, RUNNING_DISSIPATION]
+            work += running_in_out[world, b, RUNNING_WORK]
+            running_in_out[world, b, RUNNING_DISSIPATION] = wp.float64(0.0)
+            running_in_out[world, b, RUNNING_WORK] = wp.float64(0.0)
             b += lanes
         energy = block_sum(energy)
         worst = block_max(worst)
@@ -260,25 +262,25 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         dissipated = block_sum(dissipated)
         if lane != 0:
             return
-        values[world, GUARD_KINETIC_ENERGY] = energy
-        values[world, GUARD_ELASTIC_ENERGY] = elastic
-        values[world, GUARD_MAX_STRAIN] = worst
-        values[world, GUARD_WORK] = work
+        values_out[world, GUARD_KINETIC_ENERGY] = energy
+        values_out[world, GUARD_ELASTIC_ENERGY] = elastic
+        values_out[world, GUARD_MAX_STRAIN] = worst
+        values_out[world, GUARD_WORK] = work
         if not (wp.isfinite(work) and wp.isfinite(energy + elastic) and wp.isfinite(dissipated)):
             return  # ``decide`` stops a non-finite world; its balance stays as it was
-        work_total[world] += wp.max(work, wp.float64(0.0))
-        balance[world, BALANCE_WORK] += work
-        balance[world, BALANCE_DISSIPATION] += dissipated
-        if balance[world, BALANCE_REBASE] != wp.float64(0.0):
-            balance[world, BALANCE_REFERENCE] = energy + elastic - balance[world, BALANCE_WORK]
-            balance[world, BALANCE_PEAK] = energy + elastic
-            balance[world, BALANCE_DISSIPATION] = wp.float64(0.0)
-            balance[world, BALANCE_REBASE] = wp.float64(0.0)
-        balance[world, BALANCE_ENERGY] = energy + elastic
-        budget = balance[world, BALANCE_REFERENCE] + balance[world, BALANCE_WORK]
-        balance[world, BALANCE_PEAK] = wp.max(balance[world, BALANCE_PEAK], budget)
-        values[world, GUARD_EXCESS] = energy + elastic - (budget - balance[world, BALANCE_DISSIPATION])
-        values[world, GUARD_BUDGET] = balance[world, BALANCE_PEAK]
+        work_total_in_out[world] += wp.max(work, wp.float64(0.0))
+        balance_in_out[world, BALANCE_WORK] += work
+        balance_in_out[world, BALANCE_DISSIPATION] += dissipated
+        if balance_in_out[world, BALANCE_REBASE] != wp.float64(0.0):
+            balance_in_out[world, BALANCE_REFERENCE] = energy + elastic - balance_in_out[world, BALANCE_WORK]
+            balance_in_out[world, BALANCE_PEAK] = energy + elastic
+            balance_in_out[world, BALANCE_DISSIPATION] = wp.float64(0.0)
+            balance_in_out[world, BALANCE_REBASE] = wp.float64(0.0)
+        balance_in_out[world, BALANCE_ENERGY] = energy + elastic
+        budget = balance_in_out[world, BALANCE_REFERENCE] + balance_in_out[world, BALANCE_WORK]
+        balance_in_out[world, BALANCE_PEAK] = wp.max(balance_in_out[world, BALANCE_PEAK], budget)
+        values_out[world, GUARD_EXCESS] = energy + elastic - (budget - balance_in_out[world, BALANCE_DISSIPATION])
+        values_out[world, GUARD_BUDGET] = balance_in_out[world, BALANCE_PEAK]
 
     @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
     def locate(
@@ -288,61 +290,65 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         element_arrays: Elements,
         # State in:
         particle_q: wp.array[vec3],
-        # In/out:
-        status: wp.array2d[wp.int32],
+        # Guards in (the gathered values):
         values: wp.array2d[wp.float64],
+        # In/out:
+        status_in_out: wp.array2d[wp.int32],
     ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
         largest = values[world, GUARD_MAX_STRAIN]
-        if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0 or largest < wp.float64(0.0):
+        if status_in_out[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0 or largest < wp.float64(0.0):
             return
         strain, element, family = element_strain(world, i, p - i, particle_q[p], element_arrays, particle_q)
         if strain == largest:  # the same evaluation as in measure
-            wp.atomic_min(status, world, GUARD_STRAIN_PARTICLE, i)
-            wp.atomic_min(status, world, GUARD_STRAIN_ELEMENT, element)
-            wp.atomic_min(status, world, GUARD_STRAIN_FAMILY, family)
+            wp.atomic_min(status_in_out, world, GUARD_STRAIN_PARTICLE, i)
+            wp.atomic_min(status_in_out, world, GUARD_STRAIN_ELEMENT, element)
+            wp.atomic_min(status_in_out, world, GUARD_STRAIN_FAMILY, family)
 
     @wp.kernel(module="unique", enable_backward=False)
     def decide(
+        # Guards in:
         substep: int,
         limits: wp.array2d[wp.float64],
         work_total: wp.array[wp.float64],
         # In/out:
-        world_enabled: wp.array[wp.int32],
-        status: wp.array2d[wp.int32],
-        values: wp.array2d[wp.float64],
+        world_enabled_in_out: wp.array[wp.int32],
+        status_in_out: wp.array2d[wp.int32],
+        values_in_out: wp.array2d[wp.float64],
     ):
         world = wp.tid()
-        if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
+        if status_in_out[world, GUARD_TRIPPED] != 0 or world_enabled_in_out[world] == 0:
             return
         reason = 0
-        if status[world, GUARD_NONFINITE_PARTICLE] != NO_PARTICLE or not wp.isfinite(values[world, GUARD_KINETIC_ENERGY]):
+        if status_in_out[world, GUARD_NONFINITE_PARTICLE] != NO_PARTICLE or not wp.isfinite(
+            values_in_out[world, GUARD_KINETIC_ENERGY]
+        ):
             reason = GUARD_NONFINITE
-        elif values[world, GUARD_MAX_STRAIN] > limits[world, GUARD_LIMIT_STRAIN]:
+        elif values_in_out[world, GUARD_MAX_STRAIN] > limits[world, GUARD_LIMIT_STRAIN]:
             reason = GUARD_STRAIN
-        elif values[world, GUARD_KINETIC_ENERGY] > (
+        elif values_in_out[world, GUARD_KINETIC_ENERGY] > (
             limits[world, GUARD_LIMIT_KINETIC_ENERGY] + limits[world, GUARD_WORK_FACTOR] * work_total[world]
         ):
             reason = GUARD_ENERGY
-        elif limits[world, GUARD_BALANCE_TOLERANCE] > wp.float64(0.0) and values[world, GUARD_EXCESS] > (
-            limits[world, GUARD_BALANCE_TOLERANCE] * wp.max(values[world, GUARD_BUDGET], wp.float64(0.0))
+        elif limits[world, GUARD_BALANCE_TOLERANCE] > wp.float64(0.0) and values_in_out[world, GUARD_EXCESS] > (
+            limits[world, GUARD_BALANCE_TOLERANCE] * wp.max(values_in_out[world, GUARD_BUDGET], wp.float64(0.0))
             + limits[world, GUARD_BALANCE_FLOOR]
         ):
             reason = GUARD_BALANCE
         if reason != 0:
-            status[world, GUARD_TRIPPED] = reason
-            status[world, GUARD_SUBSTEP] = substep
+            status_in_out[world, GUARD_TRIPPED] = reason
+            status_in_out[world, GUARD_SUBSTEP] = substep
             if limits[world, GUARD_STOP_WORLD] != wp.float64(0.0):
-                world_enabled[world] = 0
+                world_enabled_in_out[world] = 0
             return
-        values[world, GUARD_MAX_STRAIN] = wp.float64(-1.0)
-        values[world, GUARD_KINETIC_ENERGY] = wp.float64(0.0)
-        values[world, GUARD_ELASTIC_ENERGY] = wp.float64(0.0)
-        values[world, GUARD_EXCESS] = wp.float64(0.0)
-        status[world, GUARD_STRAIN_PARTICLE] = NO_PARTICLE
-        status[world, GUARD_STRAIN_ELEMENT] = NO_PARTICLE
-        status[world, GUARD_STRAIN_FAMILY] = NO_PARTICLE
+        values_in_out[world, GUARD_MAX_STRAIN] = wp.float64(-1.0)
+        values_in_out[world, GUARD_KINETIC_ENERGY] = wp.float64(0.0)
+        values_in_out[world, GUARD_ELASTIC_ENERGY] = wp.float64(0.0)
+        values_in_out[world, GUARD_EXCESS] = wp.float64(0.0)
+        status_in_out[world, GUARD_STRAIN_PARTICLE] = NO_PARTICLE
+        status_in_out[world, GUARD_STRAIN_ELEMENT] = NO_PARTICLE
+        status_in_out[world, GUARD_STRAIN_FAMILY] = NO_PARTICLE
 
     return measure, gather, locate, decide
 
@@ -360,16 +366,19 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool):
     # An element's energy reads its own entries, never the incidence table.
     @flat_kernel(module="unique", enable_backward=False, last=("arrays__incidence",))
     def element_energy_partials(
+        # Model:
         particle_count: int,
         element_count: int,
         offset: int,
         world_enabled: wp.array[wp.int32],
-        status: wp.array2d[wp.int32],
         arrays: Arrays,
         inputs: wp.array2d[scalar],
+        # Guards in:
+        status: wp.array2d[wp.int32],
+        # State in:
         particle_q: wp.array[vec3],
         # Out:
-        partials: wp.array2d[wp.float64],
+        partials_out: wp.array2d[wp.float64],
     ):
         world, block, lane = wp.tid()
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
@@ -380,7 +389,7 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool):
             energy = wp.float64(energy_func(world, element, world * particle_count, arrays, inputs, particle_q))
         energy = block_sum(energy)
         if lane == 0:
-            partials[world, offset + block] = energy
+            partials_out[world, offset + block] = energy
 
     return element_energy_partials
 
@@ -417,14 +426,24 @@ def step_midpoint_kernel(scalar: type):
     vec3 = vec3_type(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def step_midpoint(start_q: wp.array[vec3], start_qd: wp.array[vec3], start_time: wp.array[wp.float64],
-                      end_q: wp.array[vec3], end_qd: wp.array[vec3], end_time: wp.array[wp.float64],
-                      q: wp.array[vec3], qd: wp.array[vec3], time: wp.array[wp.float64]):
+    def step_midpoint(
+        # State in (the step's start and end):
+        start_q: wp.array[vec3],
+        start_qd: wp.array[vec3],
+        start_time: wp.array[wp.float64],
+        end_q: wp.array[vec3],
+        end_qd: wp.array[vec3],
+        end_time: wp.array[wp.float64],
+        # Out (the midpoint):
+        q_out: wp.array[vec3],
+        qd_out: wp.array[vec3],
+        time_out: wp.array[wp.float64],
+    ):
         i = wp.tid()
-        q[i] = (start_q[i] + end_q[i]) * scalar(0.5)
-        qd[i] = (start_qd[i] + end_qd[i]) * scalar(0.5)
-        if i < time.shape[0]:
-            time[i] = (start_time[i] + end_time[i]) * wp.float64(0.5)
+        q_out[i] = (start_q[i] + end_q[i]) * scalar(0.5)
+        qd_out[i] = (start_qd[i] + end_qd[i]) * scalar(0.5)
+        if i < time_out.shape[0]:
+            time_out[i] = (start_time[i] + end_time[i]) * wp.float64(0.5)
 
     return step_midpoint
 
@@ -447,18 +466,21 @@ def guard_dissipation_kernel(scalar: type, spec, tiled: bool, midpoint: bool = F
     # An element's damping power reads its own entries, never the incidence table.
     @flat_kernel(module="unique", enable_backward=False, last=("arrays__incidence",))
     def element_dissipation(
+        # Model:
         particle_count: int,
         element_count: int,
         offset: int,
         h: wp.float64,
         world_enabled: wp.array[wp.int32],
-        status: wp.array2d[wp.int32],
         arrays: Arrays,
         inputs: wp.array2d[scalar],
+        # Guards in:
+        status: wp.array2d[wp.int32],
+        # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
         # In/out:
-        running: wp.array3d[wp.float64],
+        running_in_out: wp.array3d[wp.float64],
     ):
         world, block, lane = wp.tid()
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
@@ -474,7 +496,7 @@ def guard_dissipation_kernel(scalar: type, spec, tiled: bool, midpoint: bool = F
             for element in range(element_count):
                 power += wp.float64(power_func(world, element, base, arrays, inputs, particle_q, particle_qd))
         if lane == 0:
-            accumulate(running, world, offset + block, power, h)
+            accumulate(running_in_out, world, offset + block, power, h)
 
     return element_dissipation
 
@@ -504,15 +526,18 @@ def guard_drag_kernel(scalar: type, tiled: bool, wind: bool, midpoint: bool = Fa
 
     @wp.kernel(module="unique", enable_backward=False)
     def drag_dissipation(
+        # Model:
         particle_count: int,
         h: wp.float64,
         world_enabled: wp.array[wp.int32],
-        status: wp.array2d[wp.int32],
         particle_flags: wp.array[wp.int32],
         inputs: wp.array2d[scalar],
+        # Guards in:
+        status: wp.array2d[wp.int32],
+        # State in:
         particle_qd: wp.array[vec3],
         # In/out:
-        running: wp.array3d[wp.float64],
+        running_in_out: wp.array3d[wp.float64],
     ):
         world, block, lane = wp.tid()
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
@@ -528,7 +553,7 @@ def guard_drag_kernel(scalar: type, tiled: bool, wind: bool, midpoint: bool = Fa
             for i in range(particle_count):
                 power += drag_power(world, base + i, particle_flags, inputs, particle_qd)
         if lane == 0:
-            accumulate(running, world, block, power, h)
+            accumulate(running_in_out, world, block, power, h)
 
     return drag_dissipation
 
@@ -561,18 +586,21 @@ def guard_work_kernel(scalar: type, working: tuple, tiled: bool):
 
     @flat_kernel(module="unique", enable_backward=False, last=composed.last("work_arrays"))
     def family_work(
+        # Model:
         particle_count: int,
         world_enabled: wp.array[wp.int32],
-        status: wp.array2d[wp.int32],
         particle_flags: wp.array[wp.int32],
         work_arrays: WorkElements,
         inputs: wp.array2d[scalar],
+        # Guards in:
+        status: wp.array2d[wp.int32],
+        # State in (the substep's midpoint, start and end):
         mid_q: wp.array[vec3],
         mid_qd: wp.array[vec3],
         start_q: wp.array[vec3],
         end_q: wp.array[vec3],
         # In/out:
-        running: wp.array3d[wp.float64],
+        running_in_out: wp.array3d[wp.float64],
     ):
         world, block, lane = wp.tid()
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
@@ -590,6 +618,6 @@ def guard_work_kernel(scalar: type, working: tuple, tiled: bool):
                 work += particle_work(world, i, base, particle_flags, work_arrays, inputs, mid_q, mid_qd, start_q,
                                       end_q)
         if lane == 0:
-            running[world, block, RUNNING_WORK] += work
+            running_in_out[world, block, RUNNING_WORK] += work
 
     return family_work

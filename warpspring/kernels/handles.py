@@ -74,22 +74,22 @@ def handle_frames_kernel(
     # State in:
     time: wp.array[wp.float64],  # [world_count]
     # Out:
-    translation: wp.array2d[wp.vec3d],
-    velocity: wp.array2d[wp.vec3d],
-    rotation: wp.array2d[wp.vec3d],
-    angular: wp.array2d[wp.vec3d],
+    translation_out: wp.array2d[wp.vec3d],
+    velocity_out: wp.array2d[wp.vec3d],
+    rotation_out: wp.array2d[wp.vec3d],
+    angular_out: wp.array2d[wp.vec3d],
 ):
     """Every handle's target frame in every world at that world's time; launch over [world_count, handles]."""
     world, h = wp.tid()
     t = time[world]
     if translation_track[h] >= 0:  # (a part without a track keeps what the host set: HandleFamily.set_target)
         value, rate = track_sample(tracks, translation_track[h], t)
-        translation[world, h] = value
-        velocity[world, h] = rate
+        translation_out[world, h] = value
+        velocity_out[world, h] = rate
     if rotation_track[h] >= 0:
         phi, phi_rate = track_sample(tracks, rotation_track[h], t)
-        rotation[world, h] = phi
-        angular[world, h] = angular_velocity(phi, phi_rate)
+        rotation_out[world, h] = phi
+        angular_out[world, h] = angular_velocity(phi, phi_rate)
 
 
 @functools.cache

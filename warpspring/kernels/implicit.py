@@ -61,14 +61,14 @@ def implicit_kernels(scalar: type, families: tuple, tiled: bool, drag: bool, dri
         particle_q_end: wp.array[vec3],
         dt: scalar,
         # Out:
-        delta_qd: wp.array[vec3],
+        delta_qd_out: wp.array[vec3],
     ):
         """z = the prescribed Δv of driven pins, (x(t + h) - x)/h - v, and 0 at free particles."""
         p = wp.tid()
         z = vec3(scalar(0.0))
         if is_kinematic(particle_flags[p]):
             z = (particle_q_end[p] - particle_q[p]) / dt - particle_qd[p]
-        delta_qd[p] = z
+        delta_qd_out[p] = z
 
     @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
                  last=composed.last("element_arrays"))
@@ -86,8 +86,8 @@ def implicit_kernels(scalar: type, families: tuple, tiled: bool, drag: bool, dri
         dt: scalar,
         prescribed_delta_qd: wp.array[vec3],
         # Out:
-        rhs: wp.array[vec3],
-        diagonal_inverse: wp.array[mat33],
+        rhs_out: wp.array[vec3],
+        diagonal_inverse_out: wp.array[mat33],
     ):
         """b = h f - h² K v (- (h D + h² K) z with driven pins) and the inverse 3 × 3 diagonal blocks of A
         (block-Jacobi preconditioner)."""
@@ -95,8 +95,8 @@ def implicit_kernels(scalar: type, families: tuple, tiled: bool, drag: bool, dri
         world, i = world_and_index(p, particle_count)
         base = p - i
         if is_kinematic(particle_flags[p]):
-            rhs[p] = vec3(scalar(0.0))
-            diagonal_inverse[p] = wp.identity(n=3, dtype=scalar)
+            rhs_out[p] = vec3(scalar(0.0))
+            diagonal_inverse_out[p] = wp.identity(n=3, dtype=scalar)
             return
         xi = particle_q[p]
         h = dt
@@ -110,9 +110,9 @@ def implicit_kernels(scalar: type, families: tuple, tiled: bool, drag: bool, dri
         else:
             unused, blocks = element_product(world, i, base, xi, element_arrays, inputs, particle_q, particle_flags,
                                              particle_qd, False, h * h, h)
-        rhs[p] = b
+        rhs_out[p] = b
         mass = mass_term(particle_mass[wp.min(world, particle_mass.shape[0] - 1), i], inputs, world, h)
-        diagonal_inverse[p] = wp.inverse(mass * wp.identity(n=3, dtype=scalar) + blocks)
+        diagonal_inverse_out[p] = wp.inverse(mass * wp.identity(n=3, dtype=scalar) + blocks)
 
     @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
                  last=composed.last("element_arrays"))
@@ -130,8 +130,8 @@ def implicit_kernels(scalar: type, families: tuple, tiled: bool, drag: bool, dri
         active: wp.array[wp.int32],
         p: wp.array[vec3],
         # Out:
-        a_p: wp.array[vec3],
-        partials: wp.array3d[wp.float64],
+        a_p_out: wp.array[vec3],
+        partials_out: wp.array3d[wp.float64],
     ):
         """Ap (kinematic rows: the identity), and the block partial sums of p·Ap, in the worlds still
         iterating."""
@@ -150,11 +150,11 @@ def implicit_kernels(scalar: type, families: tuple, tiled: bool, drag: bool, dri
                                              particle_flags, p, True, dt * dt, dt)
                 api = mass_term(particle_mass[wp.min(world, particle_mass.shape[0] - 1), i], inputs, world, dt) * pi
                 api += coupled
-            a_p[k] = api
+            a_p_out[k] = api
             p_ap = wp.float64(wp.dot(pi, api))
         p_ap = block_sum(p_ap)
         if lane == 0:
-            partials[world, block, CG_PAP] = p_ap
+            partials_out[world, block, CG_PAP] = p_ap
 
     @wp.kernel(module="unique", enable_backward=False)
     def update(

@@ -23,12 +23,13 @@ import functools
 
 import warp as wp
 
-from .contacts import ContactFeatures, project_all_func, shapes_type
 from .families import FORCE_KERNEL_OPTIONS, elements
 from .forces import ForceFeatures, particle_force_func
 from .kinematics import is_kinematic, particle_funcs
 from .linalg import reduction_funcs
 from .precision import vec3_type
+from .response import project_all_func
+from .shapes import ContactFeatures, shapes_type
 from .worlds import world_and_index
 from .flatten import flat_kernel
 
@@ -268,7 +269,7 @@ def rk_error_kernel(scalar: type, stages: int, tiled: bool):
         control: wp.array2d[wp.float64],
         counters: wp.array2d[wp.int32],
         # Out:
-        partials: wp.array2d[wp.float64],
+        partials_out: wp.array2d[wp.float64],
     ):
         world, block, lane = wp.tid()
         if counters[world, STEP_RUNNING] == 0:
@@ -295,7 +296,7 @@ def rk_error_kernel(scalar: type, stages: int, tiled: bool):
                 worst = wp.float64(wp.inf)  # a NaN must reject the step, and a max would drop it
         worst = block_max(worst)
         if lane == 0:
-            partials[world, block] = worst
+            partials_out[world, block] = worst
 
     return rk_error
 
@@ -373,47 +374,51 @@ def step_control_kernels(scalar: type, tiled: bool = False):
 
     @wp.kernel(module="unique", enable_backward=False)
     def begin(
+        # In:
         interval: wp.float64,
         world_enabled: wp.array[wp.int32],
-        control: wp.array2d[wp.float64],
-        counters: wp.array2d[wp.int32],
-        step: wp.array[wp.float64],
-        keep_going: wp.array[wp.int32],
+        # In/out (the step control):
+        control_in_out: wp.array2d[wp.float64],
+        counters_out: wp.array2d[wp.int32],
+        step_out: wp.array[wp.float64],
+        keep_going_out: wp.array[wp.int32],
     ):
         """Start an interval in every enabled world (``keep_going`` zeroed beforehand): t = 0,
         h = min(proposed, interval)."""
         world = wp.tid()
-        control[world, STEP_INTERVAL] = interval
-        control[world, STEP_TIME] = wp.float64(0.0)
-        proposed = control[world, STEP_PROPOSED]
+        control_in_out[world, STEP_INTERVAL] = interval
+        control_in_out[world, STEP_TIME] = wp.float64(0.0)
+        proposed = control_in_out[world, STEP_PROPOSED]
         proposed = wp.where(proposed > wp.float64(0.0), proposed, interval)
-        control[world, STEP_PROPOSED] = proposed
-        control[world, STEP_GROWTH] = wp.float64(STEP_MAX_GROWTH)
-        control[world, STEP_ERROR] = wp.float64(0.0)
-        counters[world, STEP_ATTEMPTS_NOW] = 0
-        counters[world, STEP_LAST_ACCEPTED] = 0
+        control_in_out[world, STEP_PROPOSED] = proposed
+        control_in_out[world, STEP_GROWTH] = wp.float64(STEP_MAX_GROWTH)
+        control_in_out[world, STEP_ERROR] = wp.float64(0.0)
+        counters_out[world, STEP_ATTEMPTS_NOW] = 0
+        counters_out[world, STEP_LAST_ACCEPTED] = 0
         running = world_enabled[world]
-        counters[world, STEP_RUNNING] = running
+        counters_out[world, STEP_RUNNING] = running
         # A world that does not run takes steps of 0: its stages reproduce its state.
-        control[world, STEP_SIZE] = wp.where(running != 0, wp.min(proposed, interval), wp.float64(0.0))
-        step[world] = control[world, STEP_SIZE]
+        control_in_out[world, STEP_SIZE] = wp.where(running != 0, wp.min(proposed, interval), wp.float64(0.0))
+        step_out[world] = control_in_out[world, STEP_SIZE]
         if running != 0:
-            wp.atomic_add(keep_going, 0, 1)
+            wp.atomic_add(keep_going_out, 0, 1)
 
     @wp.kernel(module="unique", enable_backward=False)
     def decide(
+        # In (the attempt's block partials):
         partials: wp.array2d[wp.float64],
-        control: wp.array2d[wp.float64],
-        counters: wp.array2d[wp.int32],
-        step: wp.array[wp.float64],
-        keep_going: wp.array[wp.int32],
+        # In/out (the step control):
+        control_in_out: wp.array2d[wp.float64],
+        counters_in_out: wp.array2d[wp.int32],
+        step_out: wp.array[wp.float64],
+        keep_going_out: wp.array[wp.int32],
     ):
         """Accept or reject the attempt (its error: the largest of the world's block partials), choose the
         next step, and whether the world goes on."""
         world, lane = wp.tid()
-        if counters[world, STEP_RUNNING] == 0:
+        if counters_in_out[world, STEP_RUNNING] == 0:
             if lane == 0:
-                counters[world, STEP_LAST_ACCEPTED] = 0
+                counters_in_out[world, STEP_LAST_ACCEPTED] = 0
             return
         # The lanes take every lanes-th block partial, then the block's max (one thread walking ~10³ blocks
         # of a 512² cloth in turn costs ~1 ms per attempt on a GPU).
@@ -425,56 +430,59 @@ def step_control_kernels(scalar: type, tiled: bool = False):
         error = block_max(error)
         if lane != 0:
             return
-        h = control[world, STEP_SIZE]
-        proposed = control[world, STEP_PROPOSED]
+        h = control_in_out[world, STEP_SIZE]
+        proposed = control_in_out[world, STEP_PROPOSED]
         accept = error <= wp.float64(1.0)
         factor = wp.float64(STEP_MIN_GROWTH)
         if wp.isfinite(error) and error > wp.float64(0.0):
             factor = wp.max(factor, wp.float64(STEP_SAFETY) * wp.pow(error, wp.float64(-0.2)))
         elif error == wp.float64(0.0):
-            factor = control[world, STEP_GROWTH]
-        counters[world, STEP_ATTEMPTS_NOW] = counters[world, STEP_ATTEMPTS_NOW] + 1
-        control[world, STEP_ERROR] = error
+            factor = control_in_out[world, STEP_GROWTH]
+        counters_in_out[world, STEP_ATTEMPTS_NOW] = counters_in_out[world, STEP_ATTEMPTS_NOW] + 1
+        control_in_out[world, STEP_ERROR] = error
         if accept:
-            control[world, STEP_TIME] = control[world, STEP_TIME] + h
-            counters[world, STEP_ACCEPTED] = counters[world, STEP_ACCEPTED] + 1
-            next_h = h * wp.min(control[world, STEP_GROWTH], factor)
+            control_in_out[world, STEP_TIME] = control_in_out[world, STEP_TIME] + h
+            counters_in_out[world, STEP_ACCEPTED] = counters_in_out[world, STEP_ACCEPTED] + 1
+            next_h = h * wp.min(control_in_out[world, STEP_GROWTH], factor)
             # A step cut short to land on the interval's end says nothing against the step in use before.
             proposed = wp.where(h < proposed, wp.max(proposed, next_h), next_h)
-            control[world, STEP_GROWTH] = wp.float64(STEP_MAX_GROWTH)
-            counters[world, STEP_LAST_ACCEPTED] = 1
+            control_in_out[world, STEP_GROWTH] = wp.float64(STEP_MAX_GROWTH)
+            counters_in_out[world, STEP_LAST_ACCEPTED] = 1
         else:
-            counters[world, STEP_REJECTED] = counters[world, STEP_REJECTED] + 1
+            counters_in_out[world, STEP_REJECTED] = counters_in_out[world, STEP_REJECTED] + 1
             proposed = h * wp.min(wp.float64(1.0), factor)
-            control[world, STEP_GROWTH] = wp.float64(1.0)
-            counters[world, STEP_LAST_ACCEPTED] = 0
-        control[world, STEP_PROPOSED] = proposed
-        remaining = control[world, STEP_INTERVAL] - control[world, STEP_TIME]
-        unfinished = remaining > wp.float64(1.0e-12) * control[world, STEP_INTERVAL]
-        exhausted = wp.float64(counters[world, STEP_ATTEMPTS_NOW]) >= control[world, STEP_MAX_ATTEMPTS]
+            control_in_out[world, STEP_GROWTH] = wp.float64(1.0)
+            counters_in_out[world, STEP_LAST_ACCEPTED] = 0
+        control_in_out[world, STEP_PROPOSED] = proposed
+        remaining = control_in_out[world, STEP_INTERVAL] - control_in_out[world, STEP_TIME]
+        unfinished = remaining > wp.float64(1.0e-12) * control_in_out[world, STEP_INTERVAL]
+        exhausted = wp.float64(counters_in_out[world, STEP_ATTEMPTS_NOW]) >= control_in_out[world, STEP_MAX_ATTEMPTS]
         if unfinished and exhausted:
-            counters[world, STEP_FAILED] = 1
+            counters_in_out[world, STEP_FAILED] = 1
         if unfinished and not exhausted:
-            control[world, STEP_SIZE] = wp.min(proposed, remaining)
+            control_in_out[world, STEP_SIZE] = wp.min(proposed, remaining)
         else:
-            control[world, STEP_SIZE] = wp.float64(0.0)
-            counters[world, STEP_RUNNING] = 0
-            wp.atomic_sub(keep_going, 0, 1)
-        step[world] = control[world, STEP_SIZE]
+            control_in_out[world, STEP_SIZE] = wp.float64(0.0)
+            counters_in_out[world, STEP_RUNNING] = 0
+            wp.atomic_sub(keep_going_out, 0, 1)
+        step_out[world] = control_in_out[world, STEP_SIZE]
 
     @wp.kernel(module="unique", enable_backward=False)
     def commit(
+        # Model:
         particle_count: int,
+        # Step control in:
         counters: wp.array2d[wp.int32],
+        # Stage in (the last stage):
         stage_q: wp.array[vec3],
         stage_qd: wp.array[vec3],
         stage_time: wp.array[wp.float64],
         stage_f_last: wp.array[vec3],
-        # In/out:
-        particle_q: wp.array[vec3],
-        particle_qd: wp.array[vec3],
-        time: wp.array[wp.float64],
-        stage_f_first: wp.array[vec3],
+        # Out (on acceptance):
+        particle_q_out: wp.array[vec3],
+        particle_qd_out: wp.array[vec3],
+        time_out: wp.array[wp.float64],
+        stage_f_first_out: wp.array[vec3],
     ):
         """On acceptance: y ← the last stage's state (its time t + h included), and its force becomes
         stage 0's (FSAL)."""
@@ -482,9 +490,9 @@ def step_control_kernels(scalar: type, tiled: bool = False):
         world, i = world_and_index(p, particle_count)
         if counters[world, STEP_LAST_ACCEPTED] == 1:
             if i == 0:
-                time[world] = stage_time[world]
-            particle_q[p] = stage_q[p]
-            particle_qd[p] = stage_qd[p]
-            stage_f_first[p] = stage_f_last[p]
+                time_out[world] = stage_time[world]
+            particle_q_out[p] = stage_q[p]
+            particle_qd_out[p] = stage_qd[p]
+            stage_f_first_out[p] = stage_f_last[p]
 
     return begin, decide, commit

@@ -83,11 +83,12 @@ def sum_partials_kernel(tiled: bool):
 
     @wp.kernel(module="unique", enable_backward=False)
     def sum_partials(
+        # In:
         first: int,
         count: int,
         partials: wp.array3d[wp.float64],
         # Out:
-        scalars: wp.array2d[wp.float64],
+        scalars_out: wp.array2d[wp.float64],
     ):
         world, lane = wp.tid()
         lanes = wp.block_dim()
@@ -100,7 +101,7 @@ def sum_partials_kernel(tiled: bool):
                 b += lanes
             total = block_sum(total)
             if lane == 0:
-                scalars[world, first + c] = total
+                scalars_out[world, first + c] = total
 
     return sum_partials
 
@@ -115,34 +116,36 @@ def cg_kernels(scalar: type, tiled: bool):
 
     @wp.kernel(module="unique", enable_backward=False)
     def begin(
+        # Model:
         world_enabled: wp.array[wp.int32],
         # Out:
-        scalars: wp.array2d[wp.float64],
-        iteration: wp.array[wp.int32],
-        active: wp.array[wp.int32],
-        keep_going: wp.array[wp.int32],
+        scalars_out: wp.array2d[wp.float64],
+        iteration_out: wp.array[wp.int32],
+        active_out: wp.array[wp.int32],
+        keep_going_out: wp.array[wp.int32],
     ):
         """Start a solve in every enabled world (``keep_going`` zeroed beforehand counts them)."""
         world = wp.tid()
         for slot in range(CG_SCALARS):
-            scalars[world, slot] = wp.float64(0.0)
-        iteration[world] = -1
-        active[world] = world_enabled[world]
+            scalars_out[world, slot] = wp.float64(0.0)
+        iteration_out[world] = -1
+        active_out[world] = world_enabled[world]
         if world_enabled[world] != 0:
-            wp.atomic_add(keep_going, 0, 1)
+            wp.atomic_add(keep_going_out, 0, 1)
 
     @wp.kernel(module="unique", enable_backward=False)
     def start(
+        # In (the system):
         count: int,
         active: wp.array[wp.int32],
         rhs: wp.array[vec3],
         a_x: wp.array[vec3],
         diagonal_inverse: wp.array[mat33],
         # Out:
-        r: wp.array[vec3],
-        z: wp.array[vec3],
-        p: wp.array[vec3],
-        partials: wp.array3d[wp.float64],
+        r_out: wp.array[vec3],
+        z_out: wp.array[vec3],
+        p_out: wp.array[vec3],
+        partials_out: wp.array3d[wp.float64],
     ):
         """r = b - A x, z = P r, p = z; partial sums of r·z, r·r and b·b."""
         world, block, lane = wp.tid()
@@ -157,9 +160,9 @@ def cg_kernels(scalar: type, tiled: bool):
             b = rhs[k]
             ri = b - a_x[k]
             zi = diagonal_inverse[k] * ri
-            r[k] = ri
-            z[k] = zi
-            p[k] = zi
+            r_out[k] = ri
+            z_out[k] = zi
+            p_out[k] = zi
             rz = wp.float64(wp.dot(ri, zi))
             rr = wp.float64(wp.dot(ri, ri))
             bb = wp.float64(wp.dot(b, b))
@@ -167,12 +170,13 @@ def cg_kernels(scalar: type, tiled: bool):
         rr = block_sum(rr)
         bb = block_sum(bb)
         if lane == 0:
-            partials[world, block, CG_RZ_NEW] = rz
-            partials[world, block, CG_RR] = rr
-            partials[world, block, CG_BB] = bb
+            partials_out[world, block, CG_RZ_NEW] = rz
+            partials_out[world, block, CG_RR] = rr
+            partials_out[world, block, CG_BB] = bb
 
     @wp.kernel(module="unique", enable_backward=False)
     def update_solution(
+        # In:
         count: int,
         active: wp.array[wp.int32],
         p: wp.array[vec3],
@@ -180,10 +184,10 @@ def cg_kernels(scalar: type, tiled: bool):
         diagonal_inverse: wp.array[mat33],
         scalars: wp.array2d[wp.float64],
         # In/out:
-        x: wp.array[vec3],
-        r: wp.array[vec3],
-        z: wp.array[vec3],
-        partials: wp.array3d[wp.float64],
+        x_in_out: wp.array[vec3],
+        r_in_out: wp.array[vec3],
+        z_out: wp.array[vec3],
+        partials_out: wp.array3d[wp.float64],
     ):
         """α = r·z / p·Ap; x += α p; r -= α Ap; z = P r; partial sums of the new r·z and r·r."""
         world, block, lane = wp.tid()
@@ -196,55 +200,63 @@ def cg_kernels(scalar: type, tiled: bool):
             k = world * count + i
             p_ap = scalars[world, CG_PAP]
             alpha = scalar(wp.where(p_ap > wp.float64(0.0), scalars[world, CG_RZ] / p_ap, wp.float64(0.0)))
-            x[k] = x[k] + alpha * p[k]
-            ri = r[k] - alpha * a_p[k]
+            x_in_out[k] = x_in_out[k] + alpha * p[k]
+            ri = r_in_out[k] - alpha * a_p[k]
             zi = diagonal_inverse[k] * ri
-            r[k] = ri
-            z[k] = zi
+            r_in_out[k] = ri
+            z_out[k] = zi
             rz = wp.float64(wp.dot(ri, zi))
             rr = wp.float64(wp.dot(ri, ri))
         rz = block_sum(rz)
         rr = block_sum(rr)
         if lane == 0:
-            partials[world, block, CG_RZ_NEW] = rz
-            partials[world, block, CG_RR] = rr
+            partials_out[world, block, CG_RZ_NEW] = rz
+            partials_out[world, block, CG_RR] = rr
 
     @wp.kernel(module="unique", enable_backward=False)
     def update_direction(
-        count: int, active: wp.array[wp.int32], z: wp.array[vec3], scalars: wp.array2d[wp.float64], p: wp.array[vec3]
+        # In:
+        count: int,
+        active: wp.array[wp.int32],
+        z: wp.array[vec3],
+        scalars: wp.array2d[wp.float64],
+        # In/out:
+        p_in_out: wp.array[vec3],
     ):
         """p = z + β p."""
         k = wp.tid()
         world, i = world_and_index(k, count)
         if active[world] == 0:
             return
-        p[k] = z[k] + scalar(scalars[world, CG_BETA]) * p[k]
+        p_in_out[k] = z[k] + scalar(scalars[world, CG_BETA]) * p_in_out[k]
 
     @wp.kernel(module="unique", enable_backward=False)
     def condition(
+        # Settings:
         settings: wp.array[wp.float64],
-        scalars: wp.array2d[wp.float64],
-        iteration: wp.array[wp.int32],
-        active: wp.array[wp.int32],
-        keep_going: wp.array[wp.int32],
+        # In/out:
+        scalars_in_out: wp.array2d[wp.float64],
+        iteration_in_out: wp.array[wp.int32],
+        active_in_out: wp.array[wp.int32],
+        keep_going_out: wp.array[wp.int32],
     ):
         """Per world: count an iteration; stop when ‖r‖ ≤ tol·‖b‖, when the iterations are spent, or when the
         residual is not finite (a diverged world: the guards report it); else take β and go on."""
         world = wp.tid()
-        if active[world] == 0:
+        if active_in_out[world] == 0:
             return
-        rr = scalars[world, CG_RR]
+        rr = scalars_in_out[world, CG_RR]
         tolerance = settings[CG_TOLERANCE]
-        iteration[world] = iteration[world] + 1
-        converged = rr <= wp.max(tolerance * tolerance * scalars[world, CG_BB], wp.float64(1.0e-300))
-        exhausted = wp.float64(iteration[world]) >= settings[CG_MAX_ITERATIONS]
-        rz = scalars[world, CG_RZ]
-        rz_new = scalars[world, CG_RZ_NEW]
-        scalars[world, CG_BETA] = wp.where(rz > wp.float64(0.0), rz_new / rz, wp.float64(0.0))
-        scalars[world, CG_RZ] = rz_new
-        scalars[world, CG_RR_LAST] = rr
+        iteration_in_out[world] = iteration_in_out[world] + 1
+        converged = rr <= wp.max(tolerance * tolerance * scalars_in_out[world, CG_BB], wp.float64(1.0e-300))
+        exhausted = wp.float64(iteration_in_out[world]) >= settings[CG_MAX_ITERATIONS]
+        rz = scalars_in_out[world, CG_RZ]
+        rz_new = scalars_in_out[world, CG_RZ_NEW]
+        scalars_in_out[world, CG_BETA] = wp.where(rz > wp.float64(0.0), rz_new / rz, wp.float64(0.0))
+        scalars_in_out[world, CG_RZ] = rz_new
+        scalars_in_out[world, CG_RR_LAST] = rr
         if converged or exhausted or not wp.isfinite(rr):
-            active[world] = 0
-            wp.atomic_sub(keep_going, 0, 1)
+            active_in_out[world] = 0
+            wp.atomic_sub(keep_going_out, 0, 1)
 
     return begin, start, update_solution, update_direction, condition

@@ -316,23 +316,26 @@ def neohookean_family_funcs(scalar: type, spec: NeoHookeanSpec) -> NeoHookeanFun
 
     @wp.kernel(module="unique", enable_backward=False)
     def tet_stresses(
+        # Model:
         particle_count: int,
-        tets: Arrays,
+        # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
+        # In/out (each tet's stress and pressure written into the family's arrays):
+        tets_in_out: Arrays,
     ):
         """Each tet's (S, p) at a state, once (launch over [world_count, tet_count])."""
         world, t = wp.tid()
         base = world * particle_count
-        ids = tets.indices[t]
+        ids = tets_in_out.indices[t]
         stress, pressure = funcs.tet_stress(
             particle_q[base + ids[0]], particle_q[base + ids[1]], particle_q[base + ids[2]], particle_q[base + ids[3]],
             particle_qd[base + ids[0]], particle_qd[base + ids[1]], particle_qd[base + ids[2]],
-            particle_qd[base + ids[3]], tets.rest_inverse[t], tets.rest_volume[t], row(tets.mu, world, t),
-            row(tets.lam, world, t), row(tets.damping, world, t))
-        slot = world * tets.indices.shape[0] + t
-        tets.stress[slot] = stress
-        tets.pressure[slot] = pressure
+            particle_qd[base + ids[3]], tets_in_out.rest_inverse[t], tets_in_out.rest_volume[t],
+            row(tets_in_out.mu, world, t), row(tets_in_out.lam, world, t), row(tets_in_out.damping, world, t))
+        slot = world * tets_in_out.indices.shape[0] + t
+        tets_in_out.stress[slot] = stress
+        tets_in_out.pressure[slot] = pressure
 
     idle = spec.incidence.idle() + (() if spec.precomputed else ("stress", "pressure"))
     return NeoHookeanFuncs(Arrays, force, product, strain, energy, idle, dissipation, tet_stresses)

@@ -302,16 +302,17 @@ def leaf_kernel(scalar: type, swept: bool):
         particle_count: int,
         particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array2d[scalar],
-        surface: Surface,
         params: wp.array2d[scalar],
         # State in:
         particle_q_start: wp.array[vec3],
         particle_q_end: wp.array[vec3],
+        # In/out (the surface; its triangles in, their leaf boxes out):
+        surface_in_out: Surface,
     ):
         tid = wp.tid()
-        triangle_count = surface.triangle.shape[0]
+        triangle_count = surface_in_out.triangle.shape[0]
         world = tid // triangle_count
-        tri = surface.triangle[tid - world * triangle_count]
+        tri = surface_in_out.triangle[tid - world * triangle_count]
         base = world * particle_count
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         row = wp.min(world, params.shape[0] - 1)
@@ -322,8 +323,8 @@ def leaf_kernel(scalar: type, swept: bool):
             lower, upper = extend(lower, upper, base + tri[k], tri[k], mass_row, particle_flags, particle_inv_mass,
                                   particle_q_start, particle_q_end, limit)
         box_lower, box_upper = box_of(lower, upper, scalar(0.0))
-        surface.leaf_lower[tid] = box_lower
-        surface.leaf_upper[tid] = box_upper
+        surface_in_out.leaf_lower[tid] = box_lower
+        surface_in_out.leaf_upper[tid] = box_upper
 
     return leaves
 
@@ -371,9 +372,9 @@ def _broad_kernel(scalar: type, swept: bool, edges: bool):
         particle_q_start: wp.array[vec3],
         particle_q_end: wp.array[vec3],
         # Out:
-        pairs: Pairs,
-        pair_distance: wp.array[scalar],
-        counters: wp.array2d[wp.int32],
+        pairs_out: Pairs,
+        pair_distance_out: wp.array[scalar],
+        counters_out: wp.array2d[wp.int32],
     ):
         tid = wp.tid()
         triangle_count = surface.triangle.shape[0]
@@ -426,7 +427,7 @@ def _broad_kernel(scalar: type, swept: bool, edges: bool):
                                    particle_q_start, particle_q_end)
                 if kept:
                     key = wp.int64(v) * wp.int64(triangle_count) + wp.int64(t)
-                    push_pair(world, base, key, vertex, value, pairs, pair_distance, counters)
+                    push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
             if wp.static(edges):
                 sides = surface.triangle_edges[t]
                 for m in range(3):
@@ -458,7 +459,7 @@ def _broad_kernel(scalar: type, swept: bool, edges: bool):
                         if kept:
                             key = (wp.int64(particle_count) * wp.int64(triangle_count)
                                    + wp.int64(me) * wp.int64(edge_count) + wp.int64(f))
-                            push_pair(world, base, key, vertex, value, pairs, pair_distance, counters)
+                            push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
 
     return broad
 
@@ -480,16 +481,18 @@ def fill_kernel():
     """Kernel writing each listed pair's four entries into its vertices' CSR segments (one thread per slot)."""
 
     @flat_kernel(module="unique", enable_backward=False)
-    def fill(particle_count: int, pairs: Pairs):
+    def fill(particle_count: int, pairs_in_out: Pairs):
         s = wp.tid()
-        capacity = pairs.key.shape[0] // pairs.count.shape[0]
+        capacity = pairs_in_out.key.shape[0] // pairs_in_out.count.shape[0]
         world = s // capacity
-        if s - world * capacity >= pairs.count[world]:
+        if s - world * capacity >= pairs_in_out.count[world]:
             return
-        vertex = pairs.vertex[s]
+        vertex = pairs_in_out.vertex[s]
         for k in range(4):
             j = world * particle_count + vertex[k]
-            pairs.entry[pairs.vertex_start[j] + wp.atomic_add(pairs.vertex_cursor, j, 1)] = 4 * s + k
+            pairs_in_out.entry[
+                pairs_in_out.vertex_start[j] + wp.atomic_add(pairs_in_out.vertex_cursor, j, 1)
+            ] = 4 * s + k
 
     return fill
 
@@ -533,9 +536,9 @@ def repel_pairs_kernel(scalar: type):
         particle_q_start: wp.array[vec3],
         particle_q_in: wp.array[vec3],
         # Out:
-        pair_correction: wp.array[vec3],
-        pair_weight: wp.array[scalar],
-        counters: wp.array2d[wp.int32],
+        pair_correction_out: wp.array[vec3],
+        pair_weight_out: wp.array[scalar],
+        counters_out: wp.array2d[wp.int32],
     ):
         s = wp.tid()
         capacity = pairs.key.shape[0] // pairs.count.shape[0]
@@ -543,8 +546,8 @@ def repel_pairs_kernel(scalar: type):
         if s - world * capacity >= pairs.count[world]:
             return
         for k in range(4):
-            pair_correction[4 * s + k] = vec3(scalar(0.0))
-            pair_weight[4 * s + k] = scalar(0.0)
+            pair_correction_out[4 * s + k] = vec3(scalar(0.0))
+            pair_weight_out[4 * s + k] = scalar(0.0)
         base = world * particle_count
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         row = wp.min(world, params.shape[0] - 1)
@@ -593,9 +596,9 @@ def repel_pairs_kernel(scalar: type):
         if slip > zero:
             dx -= (wp.min(friction * push, slip) / slip) * tangential
         for k in range(4):
-            pair_correction[4 * s + k] = (weight[k] * inv_mass[k] / generalized) * dx
-            pair_weight[4 * s + k] = wp.abs(weight[k])
-        wp.atomic_add(counters, world, COUNT_PAIRS, 1)
+            pair_correction_out[4 * s + k] = (weight[k] * inv_mass[k] / generalized) * dx
+            pair_weight_out[4 * s + k] = wp.abs(weight[k])
+        wp.atomic_add(counters_out, world, COUNT_PAIRS, 1)
 
     return repel_pairs
 
@@ -615,11 +618,13 @@ def repel_gather_kernel(scalar: type):
         particle_inv_mass: wp.array2d[scalar],
         world_enabled: wp.array[wp.int32],
         surface: Surface,
-        pairs: Pairs,
+        # Pairs in (repel_pairs' corrections and weights):
         pair_correction: wp.array[vec3],
         pair_weight: wp.array[scalar],
         # State in:
         particle_q_in: wp.array[vec3],
+        # In/out (each vertex's segment of pair entries sorted in place):
+        pairs_in_out: Pairs,
         # Out:
         particle_q_out: wp.array[vec3],
     ):
@@ -632,11 +637,11 @@ def repel_gather_kernel(scalar: type):
             return
         if effective_inv_mass(particle_flags[p], particle_inv_mass[mass_row, i]) == scalar(0.0):
             return
-        first, last = sorted_segment(pairs, p)
+        first, last = sorted_segment(pairs_in_out, p)
         correction = vec3(scalar(0.0))
         count = scalar(0.0)
         for a in range(first, last):
-            e = pairs.entry[a]
+            e = pairs_in_out.entry[a]
             correction += pair_correction[e]
             count += pair_weight[e]
         if count > scalar(0.0):  # a weighted mean: a pair counts by the vertex's weight in it, the sum by 1 at least
@@ -673,7 +678,7 @@ def cap_gather_kernel(scalar: type):
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
         # Out:
-        counters: wp.array2d[wp.int32],
+        counters_out: wp.array2d[wp.int32],
     ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
@@ -694,7 +699,7 @@ def cap_gather_kernel(scalar: type):
             allowed = wp.min(allowed, relaxation * pair_distance[pairs.entry[a] // 4])
         if step > allowed:
             x = start + (allowed / step) * (x - start)
-            wp.atomic_add(counters, world, COUNT_CAPPED, 1)
+            wp.atomic_add(counters_out, world, COUNT_CAPPED, 1)
         moved = x - particle_q_out[p]
         if wp.dot(moved, moved) > scalar(0.0):
             particle_qd_out[p] = (x - start) / dt

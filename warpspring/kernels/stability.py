@@ -90,8 +90,8 @@ def power_iteration_kernels(scalar: type, families: tuple, tiled: bool):
         active: wp.array[wp.int32],
         x: wp.array[vec3],
         # Out:
-        y: wp.array[vec3],
-        partials: wp.array3d[wp.float64],
+        y_out: wp.array[vec3],
+        partials_out: wp.array3d[wp.float64],
     ):
         """y = K x on dynamic particles (0 on kinematic ones), and the block partial sums of xᵀKx, xᵀMx and
         yᵀM⁻¹y, in the worlds still iterating."""
@@ -114,14 +114,14 @@ def power_iteration_kernels(scalar: type, families: tuple, tiled: bool):
                 xkx = dot64(xi, yi)
                 xmx = mass * dot64(xi, xi)
                 ymy = dot64(yi, yi) / mass
-            y[p] = yi
+            y_out[p] = yi
         xkx = block_sum(xkx)
         xmx = block_sum(xmx)
         ymy = block_sum(ymy)
         if lane == 0:
-            partials[world, block, PI_XKX] = xkx
-            partials[world, block, PI_XMX] = xmx
-            partials[world, block, PI_YMY] = ymy
+            partials_out[world, block, PI_XKX] = xkx
+            partials_out[world, block, PI_XMX] = xmx
+            partials_out[world, block, PI_YMY] = ymy
 
     @wp.kernel(module="unique", enable_backward=False)
     def normalize(
@@ -134,7 +134,7 @@ def power_iteration_kernels(scalar: type, families: tuple, tiled: bool):
         y: wp.array[vec3],
         scalars: wp.array2d[wp.float64],
         # Out:
-        x: wp.array[vec3],
+        x_out: wp.array[vec3],
     ):
         """x = M⁻¹y / ‖M⁻¹y‖_M (x = 0 when y = 0, and on kinematic particles), in the worlds still iterating."""
         p = wp.tid()
@@ -144,36 +144,37 @@ def power_iteration_kernels(scalar: type, families: tuple, tiled: bool):
         ymy = scalars[world, PI_YMY]
         scale = wp.where(ymy > wp.float64(0.0), wp.float64(1.0) / wp.sqrt(ymy), wp.float64(0.0))
         inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i])
-        x[p] = (inv_mass * scalar(scale)) * y[p]
+        x_out[p] = (inv_mass * scalar(scale)) * y[p]
 
     @wp.kernel(module="unique", enable_backward=False)
     def condition(
+        # Settings:
         tolerance: wp.float64,
         max_iterations: int,
         # In/out:
-        scalars: wp.array2d[wp.float64],
-        iteration: wp.array[wp.int32],
-        active: wp.array[wp.int32],
-        keep_going: wp.array[wp.int32],
+        scalars_in_out: wp.array2d[wp.float64],
+        iteration_in_out: wp.array[wp.int32],
+        active_in_out: wp.array[wp.int32],
+        keep_going_out: wp.array[wp.int32],
     ):
         """Per world still iterating: θ and the relative residual of the iteration; stop when the residual
         is within the tolerance, when the iterations are spent or when it is not finite."""
         world = wp.tid()
-        if active[world] == 0:
+        if active_in_out[world] == 0:
             return
-        xkx = scalars[world, PI_XKX]
-        xmx = scalars[world, PI_XMX]
+        xkx = scalars_in_out[world, PI_XKX]
+        xmx = scalars_in_out[world, PI_XMX]
         theta = wp.where(xmx > wp.float64(0.0), xkx / xmx, wp.float64(0.0))
-        residual2 = scalars[world, PI_YMY] - wp.float64(2.0) * theta * xkx + theta * theta * xmx
+        residual2 = scalars_in_out[world, PI_YMY] - wp.float64(2.0) * theta * xkx + theta * theta * xmx
         positive = theta > wp.float64(0.0)
         scale = wp.where(positive, theta * theta * xmx, wp.float64(1.0))
         relative = wp.where(positive, wp.sqrt(wp.max(residual2, wp.float64(0.0)) / scale), wp.float64(0.0))
-        scalars[world, PI_LAMBDA] = theta
-        scalars[world, PI_RESIDUAL] = relative
-        iteration[world] = iteration[world] + 1
-        if relative <= tolerance or iteration[world] >= max_iterations or not wp.isfinite(relative):
-            active[world] = 0
-            wp.atomic_sub(keep_going, 0, 1)
+        scalars_in_out[world, PI_LAMBDA] = theta
+        scalars_in_out[world, PI_RESIDUAL] = relative
+        iteration_in_out[world] = iteration_in_out[world] + 1
+        if relative <= tolerance or iteration_in_out[world] >= max_iterations or not wp.isfinite(relative):
+            active_in_out[world] = 0
+            wp.atomic_sub(keep_going_out, 0, 1)
 
     return product, normalize, condition
 
@@ -198,7 +199,7 @@ def spring_motion_kernel(scalar: type):
         particle_qd: wp.array[vec3],
         row: int,
         # Out:
-        motion: wp.array2d[wp.vec2d],
+        motion_out: wp.array2d[wp.vec2d],
     ):
         world, s = wp.tid()
         base = world * particle_count
@@ -209,7 +210,7 @@ def spring_motion_kernel(scalar: type):
         length = wp.length(d)
         n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
         rate = wp.dot(particle_qd[j] - particle_qd[i], n)
-        motion[row, world * spring_indices.shape[0] + s] = wp.vec2d(
+        motion_out[row, world * spring_indices.shape[0] + s] = wp.vec2d(
             wp.float64(length - spring_rest_length[s]), wp.float64(rate)
         )
 

@@ -98,18 +98,19 @@ def track_sample(tracks: Tracks, track: int, t: wp.float64):
 
 @wp.kernel(enable_backward=False)
 def sample_tracks(
+    # In:
     tracks: Tracks,
     track: wp.array[wp.int32],
     time: wp.array[wp.float64],
     # Out:
-    value: wp.array[wp.vec3d],
-    rate: wp.array[wp.vec3d],
+    value_out: wp.array[wp.vec3d],
+    rate_out: wp.array[wp.vec3d],
 ):
     """Sample ``track[k]`` at ``time[k]`` (for inspection and tests)."""
     k = wp.tid()
     v, r = track_sample(tracks, track[k], time[k])
-    value[k] = v
-    rate[k] = r
+    value_out[k] = v
+    rate_out[k] = r
 
 
 @functools.cache
@@ -129,13 +130,13 @@ def apply_input_tracks_kernel(scalar: type):
         # State in:
         time: wp.array[wp.float64],
         # Out:
-        inputs: wp.array2d[scalar],
+        inputs_out: wp.array2d[scalar],
     ):
         a = wp.tid()
         world = input_world[a]
         value, rate = track_sample(tracks, input_track[a], time[world])
         slot = input_slot[a]
         for c in range(input_width[a]):
-            inputs[world, slot + c] = scalar(value[c])
+            inputs_out[world, slot + c] = scalar(value[c])
 
     return apply_input_tracks

@@ -20,7 +20,7 @@ import functools
 
 import warp as wp
 
-from .contacts import SHAPE_CAPSULE, SHAPE_SPHERE, ContactFeatures, shapes_type
+from .shapes import SHAPE_CAPSULE, SHAPE_SPHERE, ContactFeatures, shapes_type
 from .flatten import flat_kernel
 from .kinematics import is_kinematic
 from .precision import vec3_type
@@ -129,7 +129,7 @@ def triangle_push_kernel(scalar: type, features: ContactFeatures):
         # State in:
         particle_q: wp.array[vec3],
         # Out:
-        corner_push: wp.array[vec3],
+        corner_push_out: wp.array[vec3],
     ):
         k = wp.tid()
         tri_count = tri_indices.shape[0]
@@ -176,9 +176,9 @@ def triangle_push_kernel(scalar: type, features: ContactFeatures):
                     push_a += w[0] * n
                     push_b += w[1] * n
                     push_c += w[2] * n
-        corner_push[3 * k + 0] = push_a
-        corner_push[3 * k + 1] = push_b
-        corner_push[3 * k + 2] = push_c
+        corner_push_out[3 * k + 0] = push_a
+        corner_push_out[3 * k + 1] = push_b
+        corner_push_out[3 * k + 2] = push_c
 
     return triangle_push
 

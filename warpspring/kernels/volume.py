@@ -233,15 +233,18 @@ def volume_family_funcs(scalar: type, spec: VolumeSpec) -> VolumeFuncs:
 
     @wp.kernel(module="unique", enable_backward=False)
     def tet_pressures(
+        # Model:
         particle_count: int,
-        tets: VolumeArrays,
+        # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
+        # In/out (each tet's pressure written into the family's arrays):
+        tets_in_out: VolumeArrays,
     ):
         """Each tet's factor K (J - 1) + kd J̇ at a state, once (launch over [world_count, tet_count])."""
         world, t = wp.tid()
-        tets.pressure[world * tets.indices.shape[0] + t] = whole_tet_pressure(world, t, world * particle_count, tets,
-                                                                              particle_q, particle_qd)
+        tets_in_out.pressure[world * tets_in_out.indices.shape[0] + t] = whole_tet_pressure(
+            world, t, world * particle_count, tets_in_out, particle_q, particle_qd)
 
     idle = spec.incidence.idle() + (() if spec.precomputed else ("pressure",))
     return VolumeFuncs(VolumeArrays, force, product, strain, energy, idle, tet_pressures)

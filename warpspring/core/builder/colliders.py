@@ -10,8 +10,8 @@ import numpy as np
 
 from ... import checks
 from ...errors import ConfigError
-from ...kernels.contacts import SHAPE_BOX, SHAPE_CAPSULE, SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
-from ...kernels.contacts import SHAPE_MESH
+from ...kernels.shapes import SHAPE_BOX, SHAPE_CAPSULE, SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
+from ...kernels.shapes import SHAPE_MESH
 from ..mesh_colliders import edge_groups, mesh_shape
 from ..mesh_files import USD_EXTENSIONS, load_mesh_file, read_usd_mesh, read_usd_mesh_samples
 from ..records import ShapeInfo

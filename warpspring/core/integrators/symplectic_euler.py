@@ -6,7 +6,7 @@ from __future__ import annotations
 
 
 from ...kernels.integrators import symplectic_euler_kernel, symplectic_euler_update_kernel
-from ...kernels.contacts import NO_CONTACTS
+from ...kernels.shapes import NO_CONTACTS
 from ..contacts import update_shape_frames
 from ..forces import eval_forces, force_inputs
 from ..kinematics import apply_kinematics
