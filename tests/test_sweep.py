@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from warpspring.analysis import sweep as sw
-from warpspring.cli import EXIT_CONFIG, main
+from warpspring.app.cli import EXIT_CONFIG, main
 from warpspring.errors import ConfigError
 
 FRAMES, SUBSTEPS, FPS = 5, 4, 60.0

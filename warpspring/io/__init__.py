@@ -1,2 +1,2 @@
-"""Input and output: ``scene`` (TOML scene files), ``usd`` (streaming USD writer), ``render`` (PNG frames
-of a USD file) and ``runner`` (a scene run to a USD file, as ``warpspring run`` does it)."""
+"""Input and output: ``scene`` (TOML scene files), ``usd`` (streaming USD writer), ``usd_mesh`` (meshes read
+from USD) and ``render`` (PNG frames of a USD file)."""

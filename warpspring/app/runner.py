@@ -11,7 +11,7 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError, SimulationError
 from ..core.integrators import make_integrator
-from .scene import Scene, check_run_settings
+from ..io.scene import Scene, check_run_settings
 from ..core.mesh_colliders import mesh_cache_counts
 from ..core.simulator import Simulator
 from ..analysis.stability import diagnose
@@ -164,7 +164,7 @@ def run_scene(
     output = output or scene.output
     if not output:
         raise ConfigError("no output file: pass -o out.usdc or set [output] path in the scene")
-    from .usd import UsdWriter, check_output_path  # pxr loads only for runs that write USD
+    from ..io.usd import UsdWriter, check_output_path  # pxr loads only for runs that write USD
 
     output = check_output_path(output)  # fail before the model is built and the kernels compiled
     world = scene.export_world if world is None else world

@@ -24,9 +24,9 @@ import sys
 import tempfile
 import warnings
 
-from . import checks
-from .errors import ConfigError, OutputError, SimulationError, os_error_reason
-from .plotting import pyplot
+from .. import checks
+from ..errors import ConfigError, OutputError, SimulationError, os_error_reason
+from ..plotting import pyplot
 
 EXIT_CONFIG = 2
 EXIT_SIMULATION = 3
@@ -213,7 +213,7 @@ def _study_engine(args):
     """The engine of a study's jobs: a RayEngine for --ray, else None (in this process, in order)."""
     if args.ray is None:
         return None
-    from .analysis.sweep_ray import RayEngine
+    from ..analysis.sweep_ray import RayEngine
 
     import warp as wp
 
@@ -222,8 +222,8 @@ def _study_engine(args):
 
 
 def _cmd_sweep(args) -> int:
-    from .analysis.sweep import LocalEngine, load_sweep, run_sweep
-    from .analysis.sweep_report import summary, write_report
+    from ..analysis.sweep import LocalEngine, load_sweep, run_sweep
+    from ..analysis.sweep_report import summary, write_report
 
     plan = load_sweep(args.sweep)  # every variant checked before anything starts
     checks.output_dir(args.out)
@@ -233,7 +233,7 @@ def _cmd_sweep(args) -> int:
             raise ConfigError("--no-ray runs in this process: drop --address (or --no-ray)")
         engine = LocalEngine()
     else:
-        from .analysis.sweep_ray import RayEngine
+        from ..analysis.sweep_ray import RayEngine
 
         engine = RayEngine(args.address, workers=args.workers, gpus_per_task=args.gpus)
     try:
@@ -254,7 +254,7 @@ def _cmd_sweep(args) -> int:
 
 
 def _cmd_audit(args) -> int:
-    from .analysis.audit import audit_usd
+    from ..analysis.audit import audit_usd
 
     found = audit_usd(args.usd)
     print(f"{args.usd}: {found.line(args.thickness)}")
@@ -265,8 +265,8 @@ def _cmd_audit(args) -> int:
 def _cmd_run(args) -> int:
     import warp as wp
 
-    from .io.runner import run_scene
-    from .io.scene import DeprecatedKeyWarning, load_scene
+    from .runner import run_scene
+    from ..io.scene import DeprecatedKeyWarning, load_scene
 
     def warn(message: str) -> None:
         print(f"warpspring: warning: {message}", file=sys.stderr)
@@ -302,7 +302,7 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_render(args) -> int:
-    from .io.render import render_usd
+    from ..io.render import render_usd
 
     path = render_usd(args.usd, args.output, frame=args.frame, width=args.size)
     print(f"wrote {path}")
@@ -312,8 +312,8 @@ def _cmd_render(args) -> int:
 def _cmd_trade(args) -> int:
     import warp as wp
 
-    from .analysis.trade import FULL, QUICK, convergence_orders, run_study
-    from .analysis.trade_report import write_report
+    from ..analysis.trade import FULL, QUICK, convergence_orders, run_study
+    from ..analysis.trade_report import write_report
 
     checks.output_dir(args.out)  # fail before the study runs, not after
     pyplot("the trade plots")
@@ -344,8 +344,8 @@ def _cmd_trade(args) -> int:
 
 
 def _cmd_choose(args) -> int:
-    from .analysis.trade import choose
-    from .analysis.trade_report import read_csv
+    from ..analysis.trade import choose
+    from ..analysis.trade_report import read_csv
 
     choice = choose(read_csv(args.study), args.error, time_budget=args.budget, problem=args.problem)
     print(choice.explanation)
@@ -360,14 +360,14 @@ def _cmd_stability(args) -> int:
 
     import warp as wp
 
-    from .analysis.stability_map import FULL, QUICK, run_map
-    from .analysis.stability_map_report import to_markdown, write_report
+    from ..analysis.stability_map import FULL, QUICK, run_map
+    from ..analysis.stability_map_report import to_markdown, write_report
 
     checks.output_dir(args.out)  # fail before the map runs, not after
     if args.report is not None:
         _check_report_path(args.report)
     if args.battery is not None:
-        from .analysis.load_battery import SCENES
+        from ..analysis.load_battery import SCENES
 
         unknown = [s for s in args.battery if s not in SCENES]
         if unknown:
@@ -402,7 +402,7 @@ def _battery(args, device) -> str:
 
     import warp as wp
 
-    from .analysis.load_battery import EXPLICIT, SCENES, STEPS, run_case, table
+    from ..analysis.load_battery import EXPLICIT, SCENES, STEPS, run_case, table
 
     scenes = args.battery or list(SCENES)
     names = [n for n in (args.integrators or EXPLICIT) if n in EXPLICIT]
@@ -548,7 +548,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"warpspring: output failed: {os_error_line(exc)}", file=sys.stderr)
         return EXIT_IO
     except (RuntimeError, MemoryError) as exc:
-        from .core.memory import out_of_memory
+        from ..core.memory import out_of_memory
 
         if not out_of_memory(exc):
             raise
