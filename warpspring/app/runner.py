@@ -12,9 +12,10 @@ from .. import checks
 from ..errors import ConfigError, SimulationError
 from ..core.integrators import make_integrator
 from ..io.scene import Scene, check_run_settings
+from ..io.usd import UsdWriter, check_output_path
 from ..core.mesh_colliders import mesh_cache_counts
 from ..core.simulator import Simulator
-from ..analysis.stability import diagnose
+from ..analysis.stability import PROBE_HORIZON, advise, diagnose
 from ..analysis.watch import WATCH_EVERY
 
 
@@ -164,8 +165,6 @@ def run_scene(
     output = output or scene.output
     if not output:
         raise ConfigError("no output file: pass -o out.usdc or set [output] path in the scene")
-    from ..io.usd import UsdWriter, check_output_path  # pxr loads only for runs that write USD
-
     output = check_output_path(output)  # fail before the model is built and the kernels compiled
     world = scene.export_world if world is None else world
     if world is not None and world >= scene.world_count:
@@ -302,8 +301,6 @@ def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = F
     Raises:
         ConfigError: with ``strict``, when ``dt`` is outside the integrator's stability limit.
     """
-    from ..analysis.stability import PROBE_HORIZON, advise
-
     return advise(model, integrator, dt, fps=fps, strict=strict, control=control,
                   horizon=PROBE_HORIZON if horizon is None else horizon, omega_estimate=_omega_estimate(model))
 
