@@ -11,7 +11,8 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError, SimulationError
 from ..core.integrators import make_integrator
-from ..io.scene import Scene, check_run_settings
+from ..io.scene import Scene
+from ..io.scene_checks import check_run_settings
 from ..io.usd import UsdWriter, check_output_path
 from ..core.mesh_colliders import mesh_cache_counts
 from ..core.simulator import Simulator
