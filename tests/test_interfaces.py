@@ -25,7 +25,8 @@ from warpspring.app.cli import EXIT_CONFIG, EXIT_IO, EXIT_NO_CHOICE, main, os_er
 from warpspring.core.builder import DEFAULT_SHEAR, spring_family
 from warpspring.io import usd as usd_module
 from warpspring.io.scene import load_scene
-from warpspring.io.usd import UsdWriter, check_output_path
+from warpspring.io.usd import UsdWriter
+from warpspring.io.usd_stream import check_output_path
 
 LINUX = sys.platform.startswith("linux")
 

@@ -13,7 +13,8 @@ from ..errors import ConfigError, SimulationError
 from ..core.integrators import make_integrator
 from ..io.scene import Scene
 from ..io.scene_checks import check_run_settings
-from ..io.usd import UsdWriter, check_output_path
+from ..io.usd import UsdWriter
+from ..io.usd_stream import check_output_path
 from ..core.mesh_colliders import mesh_cache_counts
 from ..core.simulator import Simulator
 from ..analysis.stability import PROBE_HORIZON, advise, diagnose

@@ -35,7 +35,7 @@ from .scene_schema import (
     Tables,
     TrackTable,
 )
-from .usd import PRIMVARS, PURPOSES
+from .usd_prims import PRIMVARS, PURPOSES
 
 
 def check_run_settings(*, fps, frames, substeps, where: str = "options") -> None:
