@@ -11,7 +11,7 @@ cloth.csv, seed.csv, spring.png and cloth.png to --out.
 
 import sys
 
-from warpspring.cli import main
+from warpspring.app.cli import main
 
 if __name__ == "__main__":
     sys.exit(main(["stability", *sys.argv[1:]]))

@@ -11,7 +11,7 @@ float64 RK4 reference. Writes trade.csv, trade.md, pareto.png, convergence.png a
 
 import sys
 
-from warpspring.cli import main
+from warpspring.app.cli import main
 
 if __name__ == "__main__":
     sys.exit(main(["trade", *sys.argv[1:]]))

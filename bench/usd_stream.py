@@ -1,6 +1,6 @@
 """USD streaming: file size and per-frame write time over long runs, for ``.usdc`` and ``.usda``.
 
-What it measures (the claims of ``warpspring.io.usd``): a run's file is as small as a re-export of the same
+What it measures (the claims of ``warpspring.io.usd_stream``): a run's file is as small as a re-export of the same
 content (within 10 %), and writing a frame costs the same however many frames came before (the median of
 the last 1,000 frames' write times within 1.2× the first 1,000's). It writes ``--frames`` frames of an
 n × n cloth through :class:`~warpspring.UsdWriter` (points, normals, velocities every frame), then times

@@ -1,7 +1,7 @@
 """The ``warpspring`` command: example scenes, option overrides, one-line errors with exit status 2 for bad input,
 and exit status 3 with a readable partial file for an unstable run.
 
-Commands run in-process through ``warpspring.cli.main`` (fast: kernels stay loaded); one test runs the real
+Commands run in-process through ``warpspring.app.cli.main`` (fast: kernels stay loaded); one test runs the real
 ``python -m warpspring`` entry point. Every scene here has the hanging-cloth example's feature set (springs,
 gravity, drag, a ground plane, float32), so they all share its compiled kernel.
 """
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from helpers import points_samples, write_scene
-from warpspring.cli import EXIT_CONFIG, EXIT_SIMULATION, main
+from warpspring.app.cli import EXIT_CONFIG, EXIT_SIMULATION, main
 from warpspring.io.scene import DeprecatedKeyWarning
 
 EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"

@@ -78,7 +78,7 @@ def test_ballistic_particles_follow_the_closed_form_at_first_order(device):
 def test_a_pool_too_small_is_reported_and_recycles_the_oldest(tmp_path):
     """capacity < rate × life: a PoolTooSmallWarning when built, at most capacity particles live, and the run's
     summary counts the particles recycled before their life span ended."""
-    from warpspring.cli import main
+    from warpspring.app.cli import main
 
     with pytest.warns(PoolTooSmallWarning, match="smaller than the 60"):
         model, emitter, sim = stream("cpu", rate=120.0, life=0.5, capacity=40)

@@ -38,7 +38,7 @@ def test_soft_body_scene_exports_valid_usd(name, tmp_path):
     import numpy as np
     from pxr import Usd, UsdGeom, UsdValidation
 
-    from warpspring.cli import main
+    from warpspring.app.cli import main
 
     out = tmp_path / f"{name}.usdc"
     assert main(["run", str(Path(__file__).parent.parent / "examples" / f"{name}.toml"), "-o", str(out),

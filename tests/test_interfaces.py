@@ -2,7 +2,7 @@
 reasons, a full disk mid-run (exit 4, every frame before it kept), no CUDA-driver warning on a CPU run, the
 stability report in a file with a short summary, and `warpspring choose`'s exit status.
 
-CLI runs go through ``warpspring.cli.main`` in-process with ``tests/test_cli.py``'s scene (the hanging-cloth
+CLI runs go through ``warpspring.app.cli.main`` in-process with ``tests/test_cli.py``'s scene (the hanging-cloth
 feature set, so its compiled kernels are shared); one test runs the real ``python -m warpspring``.
 """
 
@@ -21,11 +21,12 @@ from pxr import Sdf, Tf, Usd
 
 import warpspring as ws
 from helpers import points_samples, write_scene
-from warpspring.cli import EXIT_CONFIG, EXIT_IO, EXIT_NO_CHOICE, main, os_error_line
+from warpspring.app.cli import EXIT_CONFIG, EXIT_IO, EXIT_NO_CHOICE, main, os_error_line
 from warpspring.core.builder.spring_materials import DEFAULT_SHEAR, spring_family
 from warpspring.io import usd as usd_module
 from warpspring.io.scene import load_scene
-from warpspring.io.usd import UsdWriter, check_output_path
+from warpspring.io.usd import UsdWriter
+from warpspring.io.usd_stream import check_output_path
 
 LINUX = sys.platform.startswith("linux")
 
@@ -175,7 +176,7 @@ def test_a_failed_save_without_a_reason_is_diagnosed(tmp_path):
 def test_a_failed_allocation_in_a_run_is_one_line(tmp_path, capsys, monkeypatch):
     """Warp's "Failed to allocate" while the run sets up (the integrator's or the simulator's buffers) ends with
     one line and exit 2, not a traceback."""
-    import warpspring.io.runner as runner
+    import warpspring.app.runner as runner
 
     def no_memory(*args, **kwargs):
         raise RuntimeError("Failed to allocate 1234567 bytes on device 'cuda:0'")

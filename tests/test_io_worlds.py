@@ -12,9 +12,9 @@ import pytest
 from pxr import Usd, UsdGeom
 
 import warpspring as ws
-from warpspring.cli import EXIT_CONFIG, EXIT_SIMULATION, main
+from warpspring.app.cli import EXIT_CONFIG, EXIT_SIMULATION, main
 from warpspring.io.render import _sampled_frames
-from warpspring.io.runner import run_scene
+from warpspring.app.runner import run_scene
 from warpspring.io.scene import parse_scene
 from warpspring.io.usd import UsdWriter, default_world_spacing, world_offsets
 

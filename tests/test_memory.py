@@ -283,7 +283,7 @@ def test_the_cli_refuses_a_scene_that_does_not_fit(tmp_path, capsys, monkeypatch
     """`warpspring run` on a machine with too little memory: exit 2, one line with the estimate, no file."""
     from helpers import write_scene
 
-    from warpspring.cli import EXIT_CONFIG, main
+    from warpspring.app.cli import EXIT_CONFIG, main
 
     from warpspring.io.scene import load_scene
 
@@ -323,7 +323,7 @@ def _measure_run(n: int, integrator: str, folder: str) -> dict:
     import ctypes
     import gc
 
-    from warpspring.io.runner import preflight
+    from warpspring.app.runner import preflight
     from warpspring.io.usd import UsdWriter
 
     wp.config.log_level = wp.LOG_WARNING

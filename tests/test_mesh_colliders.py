@@ -567,7 +567,7 @@ def test_cloth_triangles_do_not_slip_over_a_small_sphere_or_a_thin_pole(device):
 def test_run_summary_gives_the_contact_slots_held():
     """The run summary's line names the most contact slots held at a frame's end (with the contact stage),
     before the worlds' notes; without the stage it says nothing of them. Overflowing mesh caches are named."""
-    from warpspring.io.runner import RunSummary
+    from warpspring.app.runner import RunSummary
 
     common = dict(output="out.usdc", frames=10, simulated_time=1.0, wall_time=1.0, setup_time=0.5, substeps=16,
                   dt=1e-3, device="cpu", model="model", integrator="symplectic_euler", advice="")

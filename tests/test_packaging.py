@@ -27,7 +27,7 @@ def test_wheel_contains_every_module(tmp_path):
         assert source in names, f"{source} missing from the wheel"
     assert not any(n.startswith(("kernels/", "tests/", "bench/")) for n in names)
     entry_points = next(n for n in names if n.endswith("entry_points.txt"))
-    assert "warpspring = warpspring.cli:main" in zipfile.ZipFile(wheel).read(entry_points).decode()
+    assert "warpspring = warpspring.app.cli:main" in zipfile.ZipFile(wheel).read(entry_points).decode()
 
 
 def test_a_copy_imports_its_own_kernels(tmp_path):

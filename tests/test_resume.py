@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from pxr import Usd
 
-from warpspring.cli import EXIT_CONFIG, main
+from warpspring.app.cli import EXIT_CONFIG, main
 
 SCENE = """\
 [simulation]

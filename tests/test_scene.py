@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import warpspring as ws
-from warpspring.io.scene import SCENE_FORMAT_VERSION, DeprecatedKeyWarning, load_scene, parse_scene
+from warpspring.io.scene import DeprecatedKeyWarning, load_scene, parse_scene
+from warpspring.io.scene_schema import SCENE_FORMAT_VERSION
 
 EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"
 

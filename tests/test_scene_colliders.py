@@ -9,7 +9,7 @@ import pytest
 from pxr import Usd, UsdGeom
 
 import warpspring as ws
-from warpspring.cli import main
+from warpspring.app.cli import main
 from warpspring.io.scene import load_scene, parse_scene, tomllib
 
 EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"

@@ -411,7 +411,7 @@ def test_cli_audit_of_a_usd_file(tmp_path, capsys):
     frames whose layers come closer than half of it."""
     from pxr import Usd, UsdGeom
 
-    from warpspring.cli import EXIT_AUDIT, main
+    from warpspring.app.cli import EXIT_AUDIT, main
 
     def write(path, second_z):
         stage = Usd.Stage.CreateNew(str(path))

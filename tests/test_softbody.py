@@ -463,7 +463,7 @@ def test_soft_body_scene_runs(tmp_path):
     moved by gravity; the torus and jelly-cube examples build."""
     from pxr import Usd, UsdGeom
 
-    from warpspring.cli import main
+    from warpspring.app.cli import main
     from warpspring.io.scene import load_scene
 
     out = tmp_path / "ball.usdc"

@@ -19,7 +19,7 @@ from helpers import CUDA
 from warpspring.analysis.sweep import results_dir, run_sweep
 from warpspring.analysis.sweep_batch import make_batches
 from warpspring.analysis.sweep_plan import plan_sweep
-from warpspring.cli import EXIT_CONFIG, main
+from warpspring.app.cli import EXIT_CONFIG, main
 from warpspring.errors import ConfigError
 
 FRAMES, SUBSTEPS, FPS = 5, 4, 60.0

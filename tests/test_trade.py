@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from warpspring.cli import EXIT_CONFIG, main
+from warpspring.app.cli import EXIT_CONFIG, main
 from warpspring.errors import ConfigError
 from warpspring.analysis.trade import Measurement, StudyPlan, run_study
 from warpspring.analysis.trade_choice import asymptotic_range, choose, fit_order, pareto_front

@@ -194,7 +194,7 @@ def test_a_usd_mesh_runs_and_comes_back_with_its_own_faces(tmp_path, capsys):
     """A scene's cloth from a USD file (a prim chosen among two, centimetres, Y-up, under a transform): it is
     placed in metres Z-up; the output holds its quads in its vertex order, its face sets, velocities and the
     primvars; the run moved it (gravity, two pinned corners)."""
-    from warpspring.cli import main
+    from warpspring.app.cli import main
 
     source = tmp_path / "asset.usda"
     vertices, quads = quad_sheet_usd(source)

@@ -11,7 +11,10 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError, SimulationError
 from ..core.integrators import make_integrator
-from .scene import Scene, check_run_settings
+from ..io.scene import Scene
+from ..io.scene_checks import check_run_settings
+from ..io.usd import UsdWriter
+from ..io.usd_stream import check_output_path
 from ..core.mesh_colliders import mesh_cache_counts
 from ..core.simulator import Simulator
 from ..analysis.advisor import advise, diagnose
@@ -165,8 +168,6 @@ def run_scene(
     output = output or scene.output
     if not output:
         raise ConfigError("no output file: pass -o out.usdc or set [output] path in the scene")
-    from .usd import UsdWriter, check_output_path  # pxr loads only for runs that write USD
-
     output = check_output_path(output)  # fail before the model is built and the kernels compiled
     world = scene.export_world if world is None else world
     if world is not None and world >= scene.world_count:

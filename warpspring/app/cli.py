@@ -19,14 +19,26 @@ driver"), which concerns GPUs only, unless the command asks for a CUDA device.
 from __future__ import annotations
 
 import argparse
+import datetime
 import os
 import sys
 import tempfile
+import time
 import warnings
 
-from . import checks
-from .errors import ConfigError, OutputError, SimulationError, os_error_reason
-from .plotting import pyplot
+import warp as wp
+
+from .. import checks
+from ..analysis import (engines, load_battery, stability_map, stability_map_report, sweep, sweep_plan, sweep_report, trade,
+                        trade_choice, trade_report)
+from ..analysis.audit import audit_usd
+from ..analysis.sweep_ray import RayEngine  # Ray itself loads only when an engine starts (optional: ray)
+from ..core.memory import out_of_memory
+from ..errors import ConfigError, OutputError, SimulationError, os_error_reason
+from ..io.render import render_usd
+from ..io.scene import DeprecatedKeyWarning, load_scene
+from ..plotting import pyplot
+from .runner import run_scene
 
 EXIT_CONFIG = 2
 EXIT_SIMULATION = 3
@@ -133,14 +145,14 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--size", type=_positive_int, default=900, help="image width in pixels")
     render.set_defaults(handler=_cmd_render)
 
-    trade = sub.add_parser(
+    trade_cmd = sub.add_parser(
         "trade",
         help="measure each integrator's error against its cost: tables, CSV, plots (x(t), v(t) of the seed spring too)",
     )
-    _add_study_options(trade, "trade")
-    trade.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    trade.set_defaults(handler=_cmd_trade)
-    _add_ray_option(trade)
+    _add_study_options(trade_cmd, "trade")
+    trade_cmd.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    trade_cmd.set_defaults(handler=_cmd_trade)
+    _add_ray_option(trade_cmd)
 
     choose = sub.add_parser("choose", help="pick the cheapest integrator and step that meet an error target")
     choose.add_argument("--error", type=_positive_float, required=True, help="largest acceptable position error [m]")
@@ -167,28 +179,28 @@ def build_parser() -> argparse.ArgumentParser:
     stability.set_defaults(handler=_cmd_stability)
     _add_ray_option(stability)
 
-    sweep = sub.add_parser(
+    sweep_cmd = sub.add_parser(
         "sweep",
         help="run many variants of a scene (a sweep file's axes over scene keys) on Ray, locally or on a cluster: "
              "a table (CSV, Parquet) and a plot of their metrics",
     )
-    sweep.add_argument("sweep", help="sweep file (.toml); see examples/sweep.toml")
-    sweep.add_argument("--address", metavar="ADDR",
-                       help="run on the Ray cluster at ADDR (ray://host:10001, host:6379 or auto); default: start Ray "
-                            "on this machine, bound to 127.0.0.1")
-    sweep.add_argument("--workers", type=_positive_int, metavar="N",
-                       help="tasks in flight at once (locally also the CPUs Ray uses); default: every CPU")
-    sweep.add_argument("--gpus", type=_non_negative_float, default=0.0, metavar="F",
-                       help="GPUs per task, fractional to share one (0.25: four tasks per GPU); default 0: the CPU")
-    sweep.add_argument("--out", default="sweep", help="output directory (default: %(default)s)")
-    sweep.add_argument("--resume", action="store_true",
-                       help="continue a sweep in --out: variants whose result is there are skipped")
-    sweep.add_argument("--no-ray", action="store_true",
-                       help="run every variant in this process, one batch after the other (no Ray needed)")
-    sweep.add_argument("--device", help="Warp device of every task (default: cuda:0 in a task given a GPU, else the "
-                                        "CPU)")
-    sweep.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    sweep.set_defaults(handler=_cmd_sweep)
+    sweep_cmd.add_argument("sweep", help="sweep file (.toml); see examples/sweep.toml")
+    sweep_cmd.add_argument("--address", metavar="ADDR",
+                           help="run on the Ray cluster at ADDR (ray://host:10001, host:6379 or auto); default: start "
+                                "Ray on this machine, bound to 127.0.0.1")
+    sweep_cmd.add_argument("--workers", type=_positive_int, metavar="N",
+                           help="tasks in flight at once (locally also the CPUs Ray uses); default: every CPU")
+    sweep_cmd.add_argument("--gpus", type=_non_negative_float, default=0.0, metavar="F",
+                           help="GPUs per task, fractional to share one (0.25: four tasks per GPU); default 0: the CPU")
+    sweep_cmd.add_argument("--out", default="sweep", help="output directory (default: %(default)s)")
+    sweep_cmd.add_argument("--resume", action="store_true",
+                           help="continue a sweep in --out: variants whose result is there are skipped")
+    sweep_cmd.add_argument("--no-ray", action="store_true",
+                           help="run every variant in this process, one batch after the other (no Ray needed)")
+    sweep_cmd.add_argument("--device", help="Warp device of every task (default: cuda:0 in a task given a GPU, else "
+                                            "the CPU)")
+    sweep_cmd.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    sweep_cmd.set_defaults(handler=_cmd_sweep)
 
     audit = sub.add_parser("audit", help="check every frame of a USD file for surfaces passing through themselves "
                                          "(float64 segment-triangle tests, minimum distances)")
@@ -213,51 +225,38 @@ def _study_engine(args):
     """The engine of a study's jobs: a RayEngine for --ray, else None (in this process, in order)."""
     if args.ray is None:
         return None
-    from .analysis.sweep_ray import RayEngine
-
-    import warp as wp
-
     gpus = 1.0 if wp.get_device(args.device).is_cuda else 0.0  # a task runs where the study was asked to
     return RayEngine(None if args.ray == "local" else args.ray, workers=args.workers, gpus_per_task=gpus)
 
 
 def _cmd_sweep(args) -> int:
-    from .analysis.engines import LocalEngine
-    from .analysis.sweep import run_sweep
-    from .analysis.sweep_plan import load_sweep
-    from .analysis.sweep_report import summary, write_report
-
-    plan = load_sweep(args.sweep)  # every variant checked before anything starts
+    plan = sweep_plan.load_sweep(args.sweep)  # every variant checked before anything starts
     checks.output_dir(args.out)
     pyplot("the sweep's plot")
     if args.no_ray:
         if args.address is not None:
             raise ConfigError("--no-ray runs in this process: drop --address (or --no-ray)")
-        engine = LocalEngine()
+        engine = engines.LocalEngine()
     else:
-        from .analysis.sweep_ray import RayEngine
-
         engine = RayEngine(args.address, workers=args.workers, gpus_per_task=args.gpus)
     try:
         print(f"sweep {args.sweep}: {len(plan.variants)} variants on {engine.describe()}", flush=True)
-        result = run_sweep(plan, args.out, engine=engine, resume=args.resume, device=args.device,
-                           progress=not args.quiet and sys.stderr.isatty())
+        result = sweep.run_sweep(plan, args.out, engine=engine, resume=args.resume, device=args.device,
+                                 progress=not args.quiet and sys.stderr.isatty())
     except KeyboardInterrupt:
         print(f"warpspring: interrupted; the results so far are in {args.out}: continue with --resume",
               file=sys.stderr)
         return 130
     finally:
         engine.close()
-    paths = write_report(result, args.out)
-    for line in summary(result):
+    paths = sweep_report.write_report(result, args.out)
+    for line in sweep_report.summary(result):
         print(line)
     print(f"wrote {', '.join(paths)}")
     return 0
 
 
 def _cmd_audit(args) -> int:
-    from .analysis.audit import audit_usd
-
     found = audit_usd(args.usd)
     print(f"{args.usd}: {found.line(args.thickness)}")
     close = args.thickness is not None and any(d < 0.5 * args.thickness for d in found.min_distance)
@@ -265,11 +264,6 @@ def _cmd_audit(args) -> int:
 
 
 def _cmd_run(args) -> int:
-    import warp as wp
-
-    from .io.runner import run_scene
-    from .io.scene import DeprecatedKeyWarning, load_scene
-
     def warn(message: str) -> None:
         print(f"warpspring: warning: {message}", file=sys.stderr)
 
@@ -304,37 +298,29 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_render(args) -> int:
-    from .io.render import render_usd
-
     path = render_usd(args.usd, args.output, frame=args.frame, width=args.size)
     print(f"wrote {path}")
     return 0
 
 
 def _cmd_trade(args) -> int:
-    import warp as wp
-
-    from .analysis.trade import FULL, QUICK, run_study
-    from .analysis.trade_choice import convergence_orders
-    from .analysis.trade_report import write_report
-
     checks.output_dir(args.out)  # fail before the study runs, not after
     pyplot("the trade plots")
     wp.config.log_level = wp.LOG_WARNING
     device = checks.device(args.device)
     engine = _study_engine(args)
-    study = run_study(
+    study = trade.run_study(
         device,
-        plan=QUICK if args.quick else FULL,
+        plan=trade.QUICK if args.quick else trade.FULL,
         integrators=args.integrators,
         progress=not args.quiet and sys.stderr.isatty(),
         **({} if engine is None else {"engine": engine}),
     )
     if engine is not None:
         engine.close()
-    paths = write_report(study, args.out)
+    paths = trade_report.write_report(study, args.out)
     for problem in study.plan.problems:
-        orders = convergence_orders(study, problem.name)
+        orders = trade_choice.convergence_orders(study, problem.name)
         fitted = ", ".join(f"{name} {'n/a' if p is None else f'{p:.2f}'}" for name, (p, _) in orders.items())
         print(f"{problem.name}: fitted orders {fitted}")
     unstable = sum(r.status in ("non-finite", "blown up") for r in study.rows)
@@ -347,10 +333,7 @@ def _cmd_trade(args) -> int:
 
 
 def _cmd_choose(args) -> int:
-    from .analysis.trade_choice import choose
-    from .analysis.trade_report import read_csv
-
-    choice = choose(read_csv(args.study), args.error, time_budget=args.budget, problem=args.problem)
+    choice = trade_choice.choose(trade_report.read_csv(args.study), args.error, time_budget=args.budget, problem=args.problem)
     print(choice.explanation)
     row = choice.row
     met = (row is not None and row.error_max is not None and row.error_max <= args.error
@@ -359,35 +342,27 @@ def _cmd_choose(args) -> int:
 
 
 def _cmd_stability(args) -> int:
-    import time
-
-    import warp as wp
-
-    from .analysis.stability_map import FULL, QUICK, run_map
-    from .analysis.stability_map_report import to_markdown, write_report
-
     checks.output_dir(args.out)  # fail before the map runs, not after
     if args.report is not None:
         _check_report_path(args.report)
     if args.battery is not None:
-        from .analysis.load_battery import SCENES
-
-        unknown = [s for s in args.battery if s not in SCENES]
+        unknown = [s for s in args.battery if s not in load_battery.SCENES]
         if unknown:
-            raise ConfigError(f"unknown battery scene {unknown[0]!r}: choose from {', '.join(SCENES)}")
+            raise ConfigError(f"unknown battery scene {unknown[0]!r}: choose from {', '.join(load_battery.SCENES)}")
     pyplot("the stability plots")
     wp.config.log_level = wp.LOG_WARNING
     started = time.perf_counter()
     engine = _study_engine(args)
     on_ray = {} if engine is None else {"engine": engine}
-    result = run_map(QUICK if args.quick else FULL, checks.device(args.device), integrators=args.integrators, **on_ray)
+    plan = stability_map.QUICK if args.quick else stability_map.FULL
+    result = stability_map.run_map(plan, checks.device(args.device), integrators=args.integrators, **on_ray)
     if engine is not None:
         engine.close()
-    paths = write_report(result, args.out)
+    paths = stability_map_report.write_report(result, args.out)
     report = paths[0]  # OUT/stability.md
     if args.report is not None and os.path.abspath(args.report) != os.path.abspath(report):
         with open(args.report, "w") as f:
-            f.write(to_markdown(result))
+            f.write(stability_map_report.to_markdown(result))
         report = args.report
     for line in stability_summary(result):
         print(line)
@@ -401,29 +376,23 @@ def _cmd_stability(args) -> int:
 def _battery(args, device) -> str:
     """Run the advisor-under-load battery for ``warpspring stability --battery``: one line per case as it
     ends, a summary line, and the table in OUT/battery.md (its path is returned)."""
-    import datetime
-
-    import warp as wp
-
-    from .analysis.load_battery import EXPLICIT, SCENES, STEPS, run_case, table
-
-    scenes = args.battery or list(SCENES)
-    names = [n for n in (args.integrators or EXPLICIT) if n in EXPLICIT]
+    scenes = args.battery or list(load_battery.SCENES)
+    names = [n for n in (args.integrators or load_battery.EXPLICIT) if n in load_battery.EXPLICIT]
     worlds, seconds = (6, 2.0) if args.quick else (32, 10.0)
     cases = []
     for scene in scenes:
         for name in names:
-            for substeps in STEPS[name][:1] if args.quick else STEPS[name]:
-                cases.append(run_case(scene, name, substeps, device, worlds=worlds, seconds=seconds,
-                                      linear=not args.quick))
-                print(f"  battery: {table(cases[-1:])[2]} ({cases[-1].seconds:.0f} s)", flush=True)
+            for substeps in load_battery.STEPS[name][:1] if args.quick else load_battery.STEPS[name]:
+                cases.append(load_battery.run_case(scene, name, substeps, device, worlds=worlds, seconds=seconds,
+                                                   linear=not args.quick))
+                print(f"  battery: {load_battery.table(cases[-1:])[2]} ({cases[-1].seconds:.0f} s)", flush=True)
     path = os.path.join(args.out, "battery.md")
     header = (f"# The advisor under load\n\n`warpspring stability --battery {' '.join(scenes)}"
               f"{' --quick' if args.quick else ''}` on {device}, Warp {wp.__version__}, {datetime.date.today()}: "
               f"the 20 × 20 cloth of warpspring/analysis/load_battery.py, {worlds} stiffnesses per grid as worlds, "
               f"two grids, {seconds:g} s runs.\n\n")
     with open(path, "w") as f:
-        f.write(header + "\n".join(table(cases)) + "\n")
+        f.write(header + "\n".join(load_battery.table(cases)) + "\n")
     ratios = [c.ratio for c in cases if c.ratio == c.ratio]
     unsafe = sum(c.unsafe for c in cases)
     spread = f"advisor / blow-up {min(ratios):.3f} … {max(ratios):.3f}" if ratios else "no blow-up in the grids"
@@ -479,8 +448,6 @@ def init_warp(device: str | None = None) -> None:
     ``device`` names a CUDA device. Every other line Warp prints while it initialises is passed on to stderr.
     A no-op once Warp is initialised."""
     global _CUDA_DRIVER_MISSING
-    import warp as wp
-
     wp.config.log_level = wp.LOG_WARNING
     if _warp_initialized():
         return
@@ -551,8 +518,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"warpspring: output failed: {os_error_line(exc)}", file=sys.stderr)
         return EXIT_IO
     except (RuntimeError, MemoryError) as exc:
-        from .core.memory import out_of_memory
-
         if not out_of_memory(exc):
             raise
         print(f"warpspring: error: out of memory: {' '.join(str(exc).split()) or type(exc).__name__}; the "
