@@ -16,7 +16,7 @@ import numpy as np
 import warp as wp
 
 from ..errors import ConfigError
-from ..kernels.kinematics import NO_GROUP, PinGroups, PinTargets, kinematics_kernel
+from ..kernels.kinematics import NO_GROUP, NO_TARGET_TIME, PinGroups, PinTargets, kinematics_kernel
 from .tracks import Track
 
 
@@ -149,8 +149,6 @@ class PinGroupTable:
 
     def new_targets(self, device, world_count: int = 1) -> PinTargets:
         """Pin targets that ask nothing yet, in every world: every control-driven group rests where it is."""
-        from ..kernels.kinematics import NO_TARGET_TIME
-
         targets = PinTargets()
         targets.position = wp.array(np.broadcast_to(self.rest, (world_count, *self.rest.shape)).copy(),
                                     dtype=wp.vec3d, device=device)
