@@ -63,9 +63,14 @@ def external_name_exists(module: str | None, parts: list[str]) -> bool:
 
 
 def layout_block(text: str) -> str:
-    start = text.index("## Layout")
-    opening = text.index("```", start)
-    return text[opening + 3 : text.index("```", opening + 3)]
+    """The layout's tree: the first code block after "## Layout" that starts at ``warpspring/``."""
+    position = text.index("## Layout")
+    while True:
+        opening = text.index("```", position) + 3
+        closing = text.index("```", opening)
+        if text[opening:closing].lstrip("\n").startswith("warpspring/"):
+            return text[opening:closing]
+        position = closing + 3
 
 
 def layout_files(block: str) -> list[Path]:
@@ -112,8 +117,8 @@ def test_every_cited_name_exists():
                 unknown.append(token)
         elif IDENTIFIER.match(token) and token not in NOT_NAMES and not PATH.match(token):
             parts = token.removesuffix("()").split(".")
-            if parts[0] in EXTERNAL and token.removesuffix("()") not in names:
-                if not external_name_exists(EXTERNAL[parts[0]], parts[1:]):
+            if parts[0] in EXTERNAL:
+                if token.removesuffix("()") not in names and not external_name_exists(EXTERNAL[parts[0]], parts[1:]):
                     unknown.append(token)
             elif not all(part in names or hasattr(wp, part) for part in parts):
                 unknown.append(token)
