@@ -50,6 +50,7 @@ import warp as wp
 
 import warpspring as ws
 from warpspring.analysis import softbody_elasticity as se
+from warpspring.core import soft_topologies
 from warpspring.core import softbody as sb
 
 E = 1.0e5  # [Pa] for the elasticity checks
@@ -177,8 +178,8 @@ def drop(device, usd_path: str | None, *, methods=None, volume: bool = False, bu
         inverted = tets = None
         if body.topology.tets is not None:
             # against each tet's own rest orientation (the Delaunay method keeps scipy's, of either sign)
-            rest = sb.signed_volumes(body.topology.positions, body.topology.tets)
-            now = sb.signed_volumes(q, body.particles[body.topology.tets])
+            rest = soft_topologies.signed_volumes(body.topology.positions, body.topology.tets)
+            now = soft_topologies.signed_volumes(q, body.particles[body.topology.tets])
             inverted = int((now * np.sign(rest) <= 0.0).sum())
             tets = len(body.topology.tets)
         rows.append({"method": body.method, "particles": body.particle_count, "springs": body.spring_count,
@@ -283,16 +284,16 @@ def family_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int = 7,
         return builder.finalize(device), tets
 
     # the same tets in both: fTetWild is not repeatable, so the second build reuses the first one's topology
-    real = sb.build_topology
+    real = soft_topologies.build_topology
     variants = ("off", "per corner", "precomputed")
     models = {}
     try:
         models["precomputed"] = build("precomputed")
-        sb.build_topology = lambda mesh, method, **kw: topologies[method]
+        soft_topologies.build_topology = lambda mesh, method, **kw: topologies[method]
         models["off"] = build("off")
         models["per corner"] = build("per corner")
     finally:
-        sb.build_topology = real
+        soft_topologies.build_topology = real
     median = substep_medians(device, {v: models[v][0] for v in variants}, substeps=substeps, rounds=rounds)
     off = median["off"]
     tets = models["precomputed"][1]
@@ -370,15 +371,15 @@ def elasticity_cost(device, *, methods=("tetrahedral", "delaunay"), rounds: int 
         builder.add_ground_plane(friction=0.5)
         return builder.finalize(device), tets, springs
 
-    real = sb.build_topology
+    real = soft_topologies.build_topology
     models = {}
     try:
         models["springs"] = build("springs")
-        sb.build_topology = lambda mesh, method, **kw: topologies[method]
+        soft_topologies.build_topology = lambda mesh, method, **kw: topologies[method]
         models["neohookean, precomputed"] = build("neohookean, precomputed")
         models["neohookean, per corner"] = build("neohookean, per corner")
     finally:
-        sb.build_topology = real
+        soft_topologies.build_topology = real
     limits = {variant: 2.0 / gershgorin_omega_max(model) for variant, (model, _, _) in models.items()}
     median = substep_medians(device, {v: m[0] for v, m in models.items()}, substeps=substeps, rounds=rounds)
     name = wp.get_device(device).name

@@ -8,7 +8,7 @@ import warp as wp
 
 from warpspring.kernels.response import contact_response_func
 from warpspring.kernels.shapes import distance_funcs
-from warpspring.kernels.springs import spring_funcs, spring_law_type
+from warpspring.kernels.spring_laws import spring_funcs, spring_law_type
 from warpspring.kernels.precision import scalar_type, vec3_type
 
 # float32 rounding of O(1) inputs through a handful of operations; float64 is exact to ~1e-15.

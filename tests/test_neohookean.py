@@ -135,9 +135,9 @@ def test_linear_stiffness_at_rest_is_linear_elasticity(device):
     matrix K̃ (``tangent_stiffness``) is that same stiffness."""
     import trimesh
 
-    from warpspring.core import softbody as sb
+    from warpspring.core.soft_topologies import build_topology
 
-    box = sb.build_topology(trimesh.creation.box((0.2, 0.2, 0.2)), "delaunay", youngs_modulus=E, spacing=0.1)
+    box = build_topology(trimesh.creation.box((0.2, 0.2, 0.2)), "delaunay", youngs_modulus=E, spacing=0.1)
     for positions, tets in ((REST, TET), (box.positions, box.tets)):
         model, _ = tet_model(device, positions=positions, tets=tets)
         n = len(positions)

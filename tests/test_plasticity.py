@@ -15,7 +15,7 @@ import warpspring as ws
 from warpspring.core.families import element_energies
 from warpspring.core.integrators import make_integrator
 from warpspring.io.scene import parse_scene
-from warpspring.kernels.springs import BROKEN_REST_LENGTH, SpringLaw
+from warpspring.kernels.spring_laws import BROKEN_REST_LENGTH, SpringLaw
 
 L0, KE = 1.0, 100.0
 

@@ -1,8 +1,8 @@
-"""Soft bodies from a closed mesh (core/softbody.py, ModelBuilder.add_soft_body): each method's counts on small
-meshes, springs that stay inside the body, embeddings that reproduce the surface, masses, clear errors, a model of
-every method stepping on the device with its surface exported through the weights, and the lattice's and the
-tetrahedra's elasticity against closed forms by float64 static solves (NumPy/SciPy; no kernels but in
-``test_every_method_falls_and_exports``)."""
+"""Soft bodies from a closed mesh (core/soft_topologies.py, core/softbody.py, ModelBuilder.add_soft_body): each method's
+counts on small meshes, springs that stay inside the body, embeddings that reproduce the surface, masses, clear
+errors, a model of every method stepping on the device with its surface exported through the weights, and the
+lattice's and the tetrahedra's elasticity against closed forms by float64 static solves (NumPy/SciPy; no kernels but
+in ``test_every_method_falls_and_exports``)."""
 
 import numpy as np
 import pytest
@@ -15,6 +15,8 @@ import warpspring as ws
 from warpspring.analysis.softbody_elasticity import (bar_poisson_ratio, bar_stretch, box_topology, cube_shortening,
                                                      linear_fem_stiffness, uniform_stress_compliance)
 from warpspring.core import softbody as sb
+from warpspring.core.soft_topologies import (METHODS, VOLUME_METHODS, Topology, build_topology, grid_topology,
+                                              segments_cross, shell_topology, springs_leave)
 from warpspring.errors import ConfigError
 
 try:
@@ -49,7 +51,7 @@ def topologies():
             pytest.skip("the tetrahedral method needs pytetwild (pip install warpspring[tet])")
         if (mesh, method) not in cache:
             m = MESHES[mesh]()
-            cache[mesh, method] = (m, sb.build_topology(m, method, youngs_modulus=E, spacing=SPACING[mesh],
+            cache[mesh, method] = (m, build_topology(m, method, youngs_modulus=E, spacing=SPACING[mesh],
                                                         **OPTIONS.get(method, {})))
         return cache[mesh, method]
 
@@ -132,7 +134,7 @@ def test_plain_delaunay_of_a_torus_bridges_its_hole(topologies):
     m, topology = topologies("torus", "delaunay")
     tets = Delaunay(topology.positions).simplices
     pairs = np.unique(np.sort(tets[:, [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]].reshape(-1, 2), axis=1), axis=0)
-    plain = sb.Topology(topology.positions, {"all": (pairs, np.ones(len(pairs)))}, topology.volume,
+    plain = Topology(topology.positions, {"all": (pairs, np.ones(len(pairs)))}, topology.volume,
                         topology.skin_indices, topology.skin_weights, "")
     assert _outside_depth(m, plain) > 0.25  # spans the hole (radius 0.3)
 
@@ -179,7 +181,7 @@ def test_grid_ties_stay_inside_a_non_convex_body(shape, spacing):
     crossed the slit, up to 5 mm outside), every vertex keeps its 4 ties (before: 20 had 2; the torus at 0.15 m
     did not build), the network is one piece, and the embedding reproduces the surface."""
     mesh = _slit_ring() if shape == "slit ring" else MESHES["torus"]()
-    topology = sb.grid_topology(mesh, spacing=spacing, youngs_modulus=E)
+    topology = grid_topology(mesh, spacing=spacing, youngs_modulus=E)
     for group, (pairs, _) in topology.springs.items():
         assert _depth_outside(mesh, topology.positions, pairs).max() <= 1.0e-9, group
     ties = topology.springs["tie"][0]
@@ -207,17 +209,17 @@ def test_a_ray_finds_a_slit_between_test_points(engine):
     if engine == "rtree":
         blocks.ray = RayMeshIntersector(blocks)
     ends = np.array([[-0.4, 0.0, 0.0], [0.37, 0.0, 0.0]])
-    assert not sb.springs_leave(blocks, ends, np.array([[0, 1]]), tolerance=1.0e-9)[0]
+    assert not springs_leave(blocks, ends, np.array([[0, 1]]), tolerance=1.0e-9)[0]
     start = np.array([[-0.3, 0.05, 0.0]] * 4)
     end = np.array([[0.37, 0.0, 0.0], [0.4005, 0.1, 0.1], [-0.05, 0.1, 0.0], [-0.0005, 0.1, 0.1]])
-    np.testing.assert_array_equal(sb.segments_cross(blocks, start, end, hair=1.0e-6), [True, True, False, False])
+    np.testing.assert_array_equal(segments_cross(blocks, start, end, hair=1.0e-6), [True, True, False, False])
 
 
 # -- embedding ----------------------------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("mesh", list(MESHES))
-@pytest.mark.parametrize("method", sb.METHODS)
+@pytest.mark.parametrize("method", METHODS)
 def test_embedding_reproduces_the_surface(topologies, mesh, method):
     m, topology = topologies(mesh, method)
     w, idx = topology.skin_weights, topology.skin_indices
@@ -235,7 +237,7 @@ def test_embedding_reproduces_the_surface(topologies, mesh, method):
 # -- errors -------------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("method", sb.VOLUME_METHODS)
+@pytest.mark.parametrize("method", VOLUME_METHODS)
 def test_open_mesh_is_refused_by_volume_methods(method, tmp_path):
     box = trimesh.creation.box((1.0, 1.0, 1.0))
     box.update_faces(np.arange(len(box.faces)) != 0)
@@ -258,25 +260,25 @@ def test_open_mesh_suits_brute_force_and_scaffold():
 def test_brute_force_refuses_a_large_mesh():
     big = trimesh.creation.icosphere(subdivisions=4)  # 2562 vertices
     with pytest.raises(ConfigError, match=r"2562 vertices \(3,280,641 springs\).*more than 2000"):
-        sb.build_topology(big, "brute_force", youngs_modulus=E)
+        build_topology(big, "brute_force", youngs_modulus=E)
 
 
 def test_bad_options_are_named():
     box = trimesh.creation.box((1.0, 1.0, 1.0))
     with pytest.raises(ConfigError, match="unknown soft-body method 'fem'"):
-        sb.build_topology(box, "fem", youngs_modulus=E)
+        build_topology(box, "fem", youngs_modulus=E)
     with pytest.raises(ConfigError, match="the voxel method takes no option 'ties'; its options: body_diagonals"):
-        sb.build_topology(box, "voxel", youngs_modulus=E, ties=3)
+        build_topology(box, "voxel", youngs_modulus=E, ties=3)
     with pytest.raises(ConfigError, match="grid neighbours must be one of"):
-        sb.build_topology(box, "grid", youngs_modulus=E, neighbours=12)
+        build_topology(box, "grid", youngs_modulus=E, neighbours=12)
     with pytest.raises(ConfigError, match="youngs_modulus must be"):
         ws.ModelBuilder().add_soft_body(box, youngs_modulus=-1.0, mass=1.0)
     with pytest.raises(ConfigError, match=r"spacing of 0.001 m .* ~1e\+09 cells, more than 20,000,000"):
-        sb.build_topology(box, "voxel", youngs_modulus=E, spacing=1.0e-3)
+        build_topology(box, "voxel", youngs_modulus=E, spacing=1.0e-3)
     inside_out = box.copy()
     inside_out.invert()
     with pytest.raises(ConfigError, match="encloses no volume.*fix_normals"):
-        sb.build_topology(inside_out, "grid", youngs_modulus=E)
+        build_topology(inside_out, "grid", youngs_modulus=E)
 
 
 # -- masses -------------------------------------------------------------------------------------------------------
@@ -318,7 +320,7 @@ def test_every_method_falls_and_exports(device, tmp_path):
     ball = trimesh.creation.icosphere(subdivisions=1, radius=0.2)
     bodies = [builder.add_soft_body(ball, method=method, youngs_modulus=E, density=RHO, spacing=0.1, damping=1e-3,
                                     origin=(0.6 * i, 0.0, 1.0), name=method, options=OPTIONS.get(method))
-              for i, method in enumerate(sb.METHODS) if TET or method != "tetrahedral"]
+              for i, method in enumerate(METHODS) if TET or method != "tetrahedral"]
     model = builder.finalize(device)
     integrator = ws.make_integrator("symplectic_euler", model)
     a, b = model.state(), model.state()
@@ -348,7 +350,7 @@ def test_every_method_falls_and_exports(device, tmp_path):
         # the rest frame: every spring at its rest length, up to float32 positions (6e-8 m near 1 m over 5 cm springs)
         np.testing.assert_allclose(strain, 0.0, atol=1.0e-5)
         rest = np.asarray(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("rest").Get(), dtype=np.float64)
-        np.testing.assert_allclose(rest, ball.vertices + (0.6 * sb.METHODS.index(body.method), 0.0, 1.0), atol=1e-6)
+        np.testing.assert_allclose(rest, ball.vertices + (0.6 * METHODS.index(body.method), 0.0, 1.0), atol=1e-6)
         for group, springs in body.springs.items():  # one curves prim per spring group, a chain through its springs
             curves = UsdGeom.BasisCurves(stage.GetPrimAtPath(f"/World/springs/{body.name}_{group}"))
             assert sum(n - 1 for n in curves.GetCurveVertexCountsAttr().Get()) == len(springs)
@@ -505,7 +507,7 @@ def test_shell_layer_is_offset_with_either_ray_engine():
 
     ball = trimesh.creation.icosphere(subdivisions=2, radius=0.2)
     ball.ray = RayMeshIntersector(ball)  # the engine without Embree
-    topology = sb.shell_topology(ball, youngs_modulus=E, thickness=0.5)
+    topology = shell_topology(ball, youngs_modulus=E, thickness=0.5)
     n = len(ball.vertices)
     depth = np.linalg.norm(topology.positions[:n] - topology.positions[n:], axis=1)
     # The chord through the centre is 2r up to the icosphere's facets (its vertices are on the sphere).

@@ -12,6 +12,7 @@ import trimesh
 
 import warpspring as ws
 from warpspring.core import softbody as sb
+from warpspring.core.soft_topologies import METHODS
 
 try:
     import pytetwild  # noqa: F401  (the tetrahedral method's optional extra, warpspring[tet])
@@ -52,7 +53,7 @@ def bodies():
     builder = ws.ModelBuilder()
     made = [builder.add_soft_body(ball, method=method, youngs_modulus=E, density=RHO, spacing=0.1, name=method,
                                   options={"epsilon": 1.0e-2} if method == "tetrahedral" else None)
-            for method in sb.METHODS if TET or method != "tetrahedral"]
+            for method in METHODS if TET or method != "tetrahedral"]
     rest = np.zeros((sum(body.particle_count for body in made), 3))
     pairs, ke = [], []
     for body in made:

@@ -18,7 +18,7 @@ from warpspring.analysis.omega import world_gershgorin_omega_max
 from warpspring.core.families import element_energies
 from warpspring.core.integrators import make_integrator
 from warpspring.kernels.inputs import INPUT_COUNT
-from warpspring.kernels.springs import SpringLaw, spring_funcs
+from warpspring.kernels.spring_laws import SpringLaw, spring_funcs
 
 LAW = SpringLaw(square=True, asymmetric=True)
 G = 9.81

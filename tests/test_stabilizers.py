@@ -8,7 +8,7 @@ import warp as wp
 
 import warpspring as ws
 from helpers import run_frames
-from warpspring.kernels.springs import SpringLaw, spring_funcs
+from warpspring.kernels.spring_laws import SpringLaw, spring_funcs
 from warpspring.kernels.inputs import INPUT_COUNT, INPUTS
 
 # A law is its switches; its values come from the live-input table, as in the simulation's kernels.

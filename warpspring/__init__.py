@@ -33,7 +33,7 @@ from .core.integrators import (
     VelocityVerlet,
     make_integrator,
 )
-from .core.guards import EnergyBalance, GuardLimits
+from .core.guard_records import EnergyBalance, GuardLimits
 from .core.aero import AeroFamily
 from .core.emitters import Emitter, PoolTooSmallWarning
 from .core.handles import HandleFamily

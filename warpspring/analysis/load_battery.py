@@ -43,7 +43,7 @@ import numpy as np
 
 from .. import checks
 from ..core.builder import ModelBuilder, SpringMaterial
-from ..core.guards import GuardLimits
+from ..core.guard_records import GuardLimits
 from ..core.integrators import make_integrator
 from ..core.model import Model
 from ..core.control import Control

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..core import soft_topologies
 from ..core import softbody as sb
 
 G = 9.81  # [m/s²]
@@ -61,7 +62,7 @@ def box_topology(method: str, size, *, youngs_modulus: float, spacing: float, su
         edge = surface_spacing or spacing
         vertices, faces = trimesh.remesh.subdivide_to_size(box.vertices, box.faces, max_edge=edge * 1.5)
         box = trimesh.Trimesh(vertices, faces, process=True)
-    return sb.build_topology(box, method, youngs_modulus=youngs_modulus, spacing=spacing, **options)
+    return soft_topologies.build_topology(box, method, youngs_modulus=youngs_modulus, spacing=spacing, **options)
 
 
 def cube_shortening(topology, *, youngs_modulus: float, density: float, elasticity: str = "springs",
@@ -220,7 +221,7 @@ def uniform_stress_compliance(topology, *, youngs_modulus: float, poisson_ratio:
         ke = np.concatenate([k for _, k in topology.springs.values()])
         stiffness = sb.stiffness_matrix(x, pairs, ke)
     faces, area = boundary_faces(x, tets)
-    volume = float(np.abs(sb.signed_volumes(x, tets)).sum())
+    volume = float(np.abs(soft_topologies.signed_volumes(x, tets)).sum())
     free = np.setdiff1d(np.arange(3 * len(x)), _rigid_support(x))
     solve = spla.splu(stiffness.tocsr()[free][:, free].tocsc()).solve
     e, nu = float(youngs_modulus), float(poisson_ratio)
@@ -264,7 +265,7 @@ def linear_fem_stiffness(positions: np.ndarray, tets: np.ndarray, *, youngs_modu
     c[:3, :3] = lam
     c[np.arange(3), np.arange(3)] += 2.0 * mu
     c[3:, 3:] = mu * np.eye(3)
-    element = np.abs(sb.signed_volumes(x, tets))[:, None, None] * np.einsum("tai,ab,tbj->tij", b, c, b)
+    element = np.abs(soft_topologies.signed_volumes(x, tets))[:, None, None] * np.einsum("tai,ab,tbj->tij", b, c, b)
     dof = (3 * tets[:, :, None] + np.arange(3)).reshape(len(tets), 12)
     rows, cols = np.repeat(dof, 12, axis=1).ravel(), np.tile(dof, (1, 12)).ravel()
     return sp.csr_matrix((element.ravel(), (rows, cols)), shape=(3 * len(x), 3 * len(x)))

@@ -49,7 +49,7 @@ import warp as wp
 from ..errors import ConfigError
 from ..version import __version__
 from ..kernels.inputs import INPUTS
-from .guards import GuardReport
+from .guard_records import GuardReport
 from .records import Stabilizers
 
 #: The format's name, stored in every header.
@@ -130,7 +130,7 @@ class Checkpoint:
         return int(self.header["frame"])
 
     def world_failures(self) -> dict:
-        """The saved simulator's ``world_failures``: world → (frame, :class:`~warpspring.core.guards.GuardReport`)."""
+        """The saved simulator's ``world_failures``: world → (frame, :class:`~warpspring.core.guard_records.GuardReport`)."""
         return {int(item["world"]): (int(item["frame"]), GuardReport(**item["report"]))
                 for item in self.header["world_failures"]}
 

@@ -2,13 +2,13 @@
 and a remedy, when the state turns non-finite, a spring tears far past its rest length, or the kinetic
 energy runs away. The checks run on the device inside the captured frame, per world
 (``kernels/guards.py``); the host reads one small status record per world and frame. A failure stops the
-run, or (``GuardLimits(stop="world")``) holds only the failed world while the others go on."""
+run, or (``GuardLimits(stop="world")``) holds only the failed world while the others go on. What the guard
+checks and what it reports (``GuardLimits``, ``GuardReport``, ``EnergyBalance``) are in ``guard_records.py``."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,227 +57,25 @@ from ..kernels.guards import (
     guard_work_kernel,
     step_midpoint_kernel,
 )
-from ..errors import ConfigError
 from ..kernels.families import elements, fill_elements
 from ..kernels.flatten import flat_launch
 from ..kernels.linalg import reduce_lanes, reduce_launch_dim
 from .families import world_elastic_energy
+from .guard_records import (
+    BALANCE_FLOOR,
+    DISSIPATION_UNCOUNTED,
+    ENERGY_FACTOR,
+    MIDPOINT_DISSIPATION,
+    POTENTIAL_INPUTS,
+    WORK_UNCOUNTED,
+    EnergyBalance,
+    GuardLimits,
+    GuardReport,
+)
 from .model import Model
 from .state import State
 from .stepper import StepHook
 from .tracks import evaluate_input_tracks
-
-#: Default limit of the kinetic energy, as a multiple of the scene's energy scale (see GuardLimits).
-ENERGY_FACTOR = 1.0e6
-
-
-#: Default spring strain at which the guard stops a run (eleven times the rest length).
-TEAR_STRAIN = 10.0
-
-#: Default energy-balance tolerance: energy created beyond this fraction of the most energy the loads could
-#: have supplied stops a run (``kernels/guards.py``). Symplectic Euler's own energy error on a swinging
-#: cloth is ~1 % at 1/120 s and grows as O(h); an unstable RK4 cloth creates 30 % within 10 % above its
-#: stability limit (bench/advisor_load.py).
-ENERGY_BALANCE = 0.1
-#: ... plus this fraction of the scene's energy scale (round-off of a world at rest).
-BALANCE_FLOOR = 1.0e-3
-#: Integrators whose balance leaves the dissipation out (D = 0, as before it was counted): those that need damping
-#: to be stable. Their own energy error on a damped mode is a share of what its damper takes out that reaches
-#: one at their stability limit (explicit Euler: ½ h² (m |a|² + vᵀ K v) per step, h / (2 kd/k) of the damping on
-#: every spring mode; midpoint: (ωh)⁴/4 of the mode's energy per step against the damper's 2ζωh), so with D
-#: their stable runs near the limit read as creating energy: explicit Euler's 1 MN/m cloth at 2000 substeps
-#: (tests/test_extremes.py) and midpoint's battery cloth at 5.1 kN/m and 1/3840 s, inside the advisor's limit
-#: (bench/RESULTS.md §11), were stopped. Adaptive integrators (dopri5) are left out too: their internal steps
-#: are finer than the step the guard would integrate the power over.
-DISSIPATION_UNCOUNTED = ("explicit_euler", "midpoint")
-#: Integrators whose D samples the dampers' power at each substep's mean velocity (midpoint rule) instead of the
-#: trapezoid of its ends: symplectic Euler's damper acts with the step's first velocity over the displacement
-#: of its last, and the trapezoid over-counts what it takes out by ~(ωh)²/4 of it (+33 % at ωh = 1), read by
-#: the balance as created energy (the battery's driven cloth at 1/480 s was stopped from 8.6 kN/m, where the
-#: advisor passes 12.3 kN/m and the run is stable; bench/RESULTS.md §11).
-MIDPOINT_DISSIPATION = ("symplectic_euler",)
-#: Integrators whose balance cannot count the work of wind and handles: their forces damp (drag, a handle's Kd), and
-#: explicit Euler creates ω²h² of a mode's energy per step at any step, a share ωh / 2ζ of what a damper of ratio ζ
-#: takes out: counted exactly, a correct run reads as creating energy (a particle on a handle at ωh = 0.021,
-#: ζ = 0.05: 20 % of the start's energy within 0.5 s, tests/test_guard_work.py). Midpoint's share, (ωh)³ / 8ζ, is
-#: small but near its limit, where the springs' dampers (not counted for it) take the top modes: its battery in
-#: wind and on a handle stopped no run the advisor passes (bench/RESULTS.md §11).
-WORK_UNCOUNTED = ("explicit_euler",)
-#: Live inputs whose value is part of the springs' potential: animated by a track, the elastic energy
-#: changes without work and the balance is off.
-POTENTIAL_INPUTS = ("biphasic_strain", "biphasic_ratio", "max_spring_force")
-
-
-@dataclass(frozen=True, init=False)
-class GuardLimits:
-    """What the run-time guard checks, and how often (each argument is also an attribute).
-
-    Args:
-        every: substeps between checks; ``None`` checks once per frame, after its last substep.
-        tear_strain: spring strain |d|/L - 1 [-] at which a spring counts as torn and the run stops
-            (default ``TEAR_STRAIN`` = 10: eleven times the rest length). Not the strain limit of
-            ``Stabilizers.max_strain``.
-        max_kinetic_energy: largest allowed kinetic energy of a world's free particles [J], fixed; ``None``: 10⁶ times
-            the world's energy scale (initial kinetic + elastic energy + total weight × (extent + 1 m)) plus
-            the work its loads put in so far (weight, the control's external force, the drive of kinematic
-            particles; ``kernels/guards.py``), so a forced or driven run is never stopped for the energy
-            it was given.
-        energy_balance: energy created [-]: a world whose kinetic plus elastic energy exceeds its value at the
-            start plus the work its loads put in since, less the energy its dampers and drag took out (counted
-            per substep where the guard knows the step: a Simulator's; not for explicit Euler, midpoint and
-            dopri5, ``DISSIPATION_UNCOUNTED``, nor with contacts or strain limiting, ``dissipation_exact``), by
-            more than this fraction of the most
-            energy they could have supplied so far (plus ``BALANCE_FLOOR`` × its energy scale) is unstable and
-            stops
-            (default ``ENERGY_BALANCE`` = 0.1; 0 switches it off). The balance re-bases when the model's
-            values are written between frames, and is off where it cannot be kept: colliders that move (their
-            work is not counted), the particle force clamp (not a potential), tracks of the springs' law
-            (biphasic knee and ratio, force clamp), and unconditionally stable integrators (implicit Euler:
-            the energy its one Newton step per step adds at large steps is not an instability).
-        dissipation: count the energy the springs' and hinges' dampers and viscous drag take out (D) in the
-            energy balance (default on): integrated after every substep (one launch per damped family, one for
-            drag; ``kernels/guards.py``), so a long damped run keeps its sensitivity; off, that energy is
-            slack the balance allows an instability to re-create.
-        stop: what a failure stops: "run" (the simulator raises a SimulationError at the end of the frame)
-            or "world" (the failed world is held from the failing check on, its failure is recorded in
-            ``Simulator.world_failures``, and the other worlds go on; the run stops only when every world
-            has failed).
-        max_strain: deprecated name of ``tear_strain`` (a DeprecationWarning; same value; also readable
-            as a deprecated property).
-
-    Raises:
-        ConfigError: a value out of range.
-        TypeError: both ``tear_strain`` and its deprecated name ``max_strain``.
-    """
-
-    every: int | None = None
-    tear_strain: float = TEAR_STRAIN
-    max_kinetic_energy: float | None = None
-    energy_balance: float = ENERGY_BALANCE
-    stop: str = "run"
-    dissipation: bool = True
-
-    def __init__(self, *, every: int | None = None, tear_strain: float | None = None,
-                 max_kinetic_energy: float | None = None, energy_balance: float = ENERGY_BALANCE, stop: str = "run",
-                 max_strain: float | None = None, dissipation: bool = True):
-        name = "guard tear_strain"
-        if max_strain is not None:
-            if tear_strain is not None:
-                raise TypeError("GuardLimits got tear_strain and max_strain, its deprecated name: pass tear_strain "
-                                "only")
-            warnings.warn(_MAX_STRAIN_RENAMED, DeprecationWarning, stacklevel=2)
-            tear_strain, name = max_strain, "guard max_strain"
-        elif tear_strain is None:
-            tear_strain = TEAR_STRAIN
-        if every is not None:
-            checks.count("guard every", every, minimum=1)
-        checks.positive(name, tear_strain)
-        if max_kinetic_energy is not None:
-            checks.positive("guard max_kinetic_energy", max_kinetic_energy)
-        if stop not in ("run", "world"):
-            raise ConfigError(f"guard stop must be 'run' or 'world', got {stop!r}")
-        checks.non_negative("guard energy_balance", energy_balance)
-        if not isinstance(dissipation, bool):
-            raise ConfigError(f"guard dissipation must be true or false, got {dissipation!r}")
-        object.__setattr__(self, "dissipation", dissipation)
-        object.__setattr__(self, "energy_balance", float(energy_balance))
-        object.__setattr__(self, "stop", stop)
-        object.__setattr__(self, "every", every)
-        object.__setattr__(self, "tear_strain", tear_strain)
-        object.__setattr__(self, "max_kinetic_energy", max_kinetic_energy)
-
-    @property
-    def max_strain(self) -> float:
-        """Deprecated name of :attr:`tear_strain` [-] (a DeprecationWarning)."""
-        warnings.warn(_MAX_STRAIN_RENAMED, DeprecationWarning, stacklevel=2)
-        return self.tear_strain
-
-
-_MAX_STRAIN_RENAMED = (
-    "GuardLimits.max_strain is deprecated: it is now GuardLimits.tear_strain (the strain at which a spring "
-    "counts as torn; Stabilizers.max_strain is the strain limit)"
-)
-
-
-@dataclass(frozen=True)
-class GuardReport:
-    """The first failure a guard saw within a frame.
-
-    Attributes:
-        world: the world it happened in.
-        reason: "non-finite state", "strain", "kinetic energy" or "energy balance".
-        substep: substep of the frame at whose check it was seen (the failure happened at or before it).
-        particle: index of the offending particle (lowest-index non-finite one, or one holding the worst
-            element).
-        spring: index of the most strained spring, or ``None`` (also when the worst element is not a spring).
-        nonfinite_count: particles with a non-finite position or velocity at that check.
-        strain: largest element strain at that check [-] (springs: |d|/L - 1).
-        family: name of the family of the most strained element ("springs", ...), or ``None``.
-        element: index of the most strained element in its family, or ``None``.
-        kinetic_energy: total kinetic energy at that check [J].
-        energy_created: kinetic + elastic energy beyond the start's plus the work put in, at that check [J].
-        energy_budget: the most energy the start and the loads could have supplied so far [J].
-    """
-
-    world: int
-    reason: str
-    substep: int
-    particle: int | None
-    spring: int | None
-    strain: float
-    kinetic_energy: float
-    nonfinite_count: int = 0
-    family: str | None = None
-    element: int | None = None
-    energy_created: float = 0.0
-    energy_budget: float = 0.0
-
-    def describe(self, model: Model, *, name_world: bool = True) -> str:
-        """One clause naming what went wrong and where (the world too, in a model of several, unless
-        ``name_world`` is off)."""
-        where = f"in world {self.world}, " if model.world_count > 1 and name_world else ""
-        if self.reason == "non-finite state":
-            if self.nonfinite_count == 1:
-                return f"{where}particle {self.particle} has a non-finite position or velocity"
-            return (f"{where}{self.nonfinite_count} of {model.particle_count} particles have non-finite positions or "
-                    f"velocities (lowest index {self.particle})")
-        if self.reason == "strain":
-            family = next(f for f in model.families if f.name == self.family)
-            return (f"{where}{family.describe_element(model, self.element)} stretched to {self.strain + 1:.3g}× its "
-                    "rest length (guard limit exceeded)")
-        if self.reason == "energy balance":
-            share = self.energy_created / self.energy_budget if self.energy_budget > 0.0 else math.inf
-            return (f"{where}the integration created {self.energy_created:.3g} J of energy ({share:.0%} of the "
-                    f"{self.energy_budget:.3g} J the start and the loads supplied; guard limit exceeded): the step "
-                    "is unstable at the state the run reached")
-        return f"{where}the kinetic energy ran away to {self.kinetic_energy:.3g} J (guard limit exceeded)"
-
-
-@dataclass(frozen=True)
-class EnergyBalance:
-    """A guard's energy balance per world at its last check (``kernels/guards.py``), float64 arrays of shape
-    [world_count].
-
-    Attributes:
-        energy: kinetic (free particles) + elastic energy [J].
-        reference: E_ref, the energy at the last rebase less the work counted until then [J].
-        work: the loads' net work since the start, W [J] (signed: weight, the control's force, drives).
-        peak: the most energy the start and the loads could have supplied so far, max of E_ref + W [J].
-        dissipated: D, the energy the springs' and hinges' dampers and viscous drag took out since the last
-            rebase [J] (≥ 0; zero where the guard does not count it: no step given, balance off).
-    """
-
-    energy: np.ndarray
-    reference: np.ndarray
-    work: np.ndarray
-    peak: np.ndarray
-    dissipated: np.ndarray
-
-    @property
-    def created(self) -> np.ndarray:
-        """Energy beyond the balance, E - (E_ref + W - D) [J]: ≈ 0 up to the integrator's energy error (and
-        ≤ 0 by what is not counted: contact and friction losses)."""
-        return self.energy - self.reference - self.work + self.dissipated
 
 
 class Guard(StepHook):

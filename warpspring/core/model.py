@@ -11,7 +11,7 @@ from ..errors import ConfigError
 from ..kernels.families import elements as composed_elements
 from ..kernels.families import fill_elements
 from ..kernels.forces import ForceFeatures
-from ..kernels.springs import SpringLaw
+from ..kernels.spring_laws import SpringLaw
 from ..kernels.families import Incidence, IncidenceShape
 from ..kernels.shapes import NO_CONTACTS, ContactFeatures, shapes_type
 from ..kernels.mesh_colliders import MESH_SIDES, MESH_WINDING

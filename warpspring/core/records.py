@@ -9,7 +9,7 @@ import warp as wp
 from scipy.spatial.transform import Rotation
 
 from .. import checks
-from ..kernels.springs import SpringLaw
+from ..kernels.spring_laws import SpringLaw
 from ..kernels.shapes import SHAPE_NAMES
 from .tracks import Track
 

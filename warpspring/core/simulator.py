@@ -15,7 +15,8 @@ from .checkpoint import Checkpoint
 from .contacts import Contacts
 from .emitters import EmitterHook
 from .mesh_colliders import advance_mesh_colliders
-from .guards import Guard, GuardLimits
+from .guard_records import GuardLimits
+from .guards import Guard
 from .integrators import Integrator, SymplecticEuler
 from .model import Model
 from .state import State

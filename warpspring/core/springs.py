@@ -12,13 +12,8 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError
 from ..kernels.families import MAX_HEAD_SLOTS, Incidence, IncidenceShape
-from ..kernels.springs import (
-    SPRING_LINEAR,
-    SPRING_SQUARE,
-    SpringSpec,
-    plastic_arrays_type,
-    spring_arrays_type,
-)
+from ..kernels.spring_laws import SPRING_LINEAR, SPRING_SQUARE
+from ..kernels.springs import SpringSpec, plastic_arrays_type, spring_arrays_type
 from .families import ElementFamily, build_incidence, head_slots
 
 #: The spring laws a group of springs may follow (``ModelBuilder.add_springs(law=...)``), by name: the

@@ -12,7 +12,7 @@ import warp as wp
 from .. import checks
 from ..errors import ConfigError
 from .families import ElementFamily, build_incidence
-from .softbody import signed_volumes, wound_tets
+from .soft_topologies import signed_volumes, wound_tets
 
 __all__ = ["TetFamily", "signed_volumes", "wound_tets"]
 

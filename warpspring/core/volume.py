@@ -20,7 +20,7 @@ from ..kernels.volume import VolumeSpec, volume_arrays_type
 from .families import incidence_bytes
 from .tets import TetFamily, signed_volumes
 
-#: The Poisson ratio of a network of central springs (every soft-body lattice: ``core/softbody.py``).
+#: The Poisson ratio of a network of central springs (every soft-body lattice: ``core/soft_topologies.py``).
 NETWORK_POISSON_RATIO = 0.25
 
 

@@ -16,7 +16,7 @@ import warnings
 from dataclasses import dataclass, field
 
 from ..core.builder import ModelBuilder
-from ..core.guards import GuardLimits
+from ..core.guard_records import GuardLimits
 from ..core.integrators import INTEGRATORS
 from ..core.model import Model
 from ..core.records import MAX_CONTACT_SLOTS, STABILIZER_INPUTS, Stabilizers

@@ -14,7 +14,8 @@ Modules:
     tracks: keyframe tracks evaluated on the device; animated inputs.
     kinematics: the kinematic flag and pin-group motion.
     families: the element-family hooks, their composition into one struct and one set of funcs; incidence.
-    springs, hinges: the spring family (laws, hooks, scatter, the plastic pass) and the hinge family.
+    spring_laws: the spring force laws (SpringLaw); one spring's force, energy and stiffness as typed funcs.
+    springs, hinges: the spring family (hooks, scatter, the plastic pass) and the hinge family.
     bending: dihedral angle, gradient, energy and Gauss-Newton blocks.
     aero: wind drag and lift on triangles (a family).
     handles: PD handles (a family) and the pass of their target frames.

@@ -19,7 +19,8 @@ from .inputs import INPUT_MAX_SPEED, INPUT_MAX_STRAIN
 from .kinematics import is_kinematic, particle_funcs
 from .precision import vec3_type
 from .shapes import ContactFeatures, shapes_type
-from .springs import HOOKE, SpringLaw, spring_access_funcs, spring_arrays_type
+from .spring_laws import HOOKE, SpringLaw
+from .springs import spring_access_funcs, spring_arrays_type
 from .worlds import world_and_index
 from .flatten import flat_kernel
 

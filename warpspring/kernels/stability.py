@@ -26,7 +26,7 @@ import functools
 import warp as wp
 
 from .families import elements
-from .springs import COINCIDENT_DISTANCE
+from .spring_laws import COINCIDENT_DISTANCE
 from .kinematics import is_kinematic, particle_funcs
 from .linalg import reduction_funcs
 from .precision import vec3_type

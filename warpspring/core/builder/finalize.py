@@ -11,7 +11,7 @@ from ... import checks
 from ...errors import ConfigError
 from ...kernels.kinematics import PARTICLE_KINEMATIC
 from ...kernels.precision import scalar_type, vec3_type
-from ...kernels.springs import SpringLaw
+from ...kernels.spring_laws import SpringLaw
 from .. import memory
 from ..families import build_incidence, head_slots
 from ..kinematics import PinGroupTable

@@ -1,5 +1,5 @@
 """The builder's soft-body recipe: :meth:`SoftBodyRecipes.add_soft_body` makes a body from a closed mesh by one of
-the topologies of :mod:`warpspring.core.softbody`, its elasticity carried by springs or by neo-Hookean tets
+the topologies of :mod:`warpspring.core.soft_topologies`, its elasticity carried by springs or by neo-Hookean tets
 (:mod:`warpspring.core.neohookean`), optionally with the tet volume term (:mod:`warpspring.core.volume`)."""
 
 from __future__ import annotations
@@ -12,11 +12,11 @@ import numpy as np
 
 from ... import checks
 from ...errors import ConfigError
-from .. import softbody
+from .. import soft_topologies, softbody
 from ..mesh_files import USD_EXTENSIONS, load_mesh_file, read_usd_mesh
 from ..neohookean import ELASTICITIES, add_neohookean_term, poisson
 from ..records import SkinGroup
-from ..softbody import METHODS
+from ..soft_topologies import METHODS
 from ..springs import SpringPlasticity
 from ..volume import add_volume_term
 from .arguments import RESERVED_PRIM_NAMES, _indices, _points
@@ -57,7 +57,7 @@ class SoftBodyRecipes:
         """Add a soft body made from a closed mesh by one of the seven mass-spring topologies.
 
         The topology, its springs' stiffness from E and the particles' volume shares come from
-        :mod:`warpspring.core.softbody` (where each method and each E → k mapping is stated). The mesh as
+        :mod:`warpspring.core.soft_topologies` (where each method and each E → k mapping is stated). The mesh as
         authored (its faces, UVs, face sets) is exported as a USD mesh whose vertices follow the particles
         through the method's embedding weights (:class:`~warpspring.core.records.SkinGroup`).
 
@@ -149,7 +149,7 @@ class SoftBodyRecipes:
             raise ConfigError("give exactly one of density= (kg/m³) or mass= (total, kg) for a soft body")
         if options is not None and not isinstance(options, Mapping):
             raise ConfigError(f"a soft body's options must be a mapping of the method's options, got {options!r}")
-        topology = softbody.build_topology(body, method, youngs_modulus=checks.positive("youngs_modulus", youngs_modulus),
+        topology = soft_topologies.build_topology(body, method, youngs_modulus=checks.positive("youngs_modulus", youngs_modulus),
                                            spacing=spacing, source=source, **dict(options or {}))
         if mass is None:
             if not body.is_watertight:
