@@ -50,6 +50,29 @@ def test_bench_index_names_every_script():
             assert f"| §{cited} |" in sections, f"{path.name} cites §{cited}"
 
 
+def test_every_results_table_names_its_device_versions_and_date():
+    """In each topic file of bench/results/ (those bench/README.md links), the text between a table and the one
+    before it (or the file's start) names the device, the Warp version and the date the table was measured on."""
+    index = (ROOT / "bench" / "README.md").read_text()
+    topics = sorted(set(re.findall(r"\]\(results/(\w+\.md)\)", index)))
+    assert {"cloth.md", "trade.md", "guard.md", "selfcontact.md", "cloth_materials.md"} <= set(topics)
+    checks = {"device": r"H100|H200|CPU|VM|host", "Warp version": r"Warp\s+\d", "date": r"20\d\d-\d\d-\d\d"}
+    for name in topics:
+        lines = (ROOT / "bench" / "results" / name).read_text().split("\n")
+        context: list[str] = []
+        previous_was_table = False
+        for number, line in enumerate(lines, 1):
+            is_table = line.startswith("|")
+            if is_table and not previous_was_table:
+                text = "\n".join(context)
+                missing = [what for what, pattern in checks.items() if not re.search(pattern, text)]
+                assert not missing, f"bench/results/{name}:{number}: the table does not say its {', '.join(missing)}"
+                context = []
+            elif not is_table:
+                context.append(line)
+            previous_was_table = is_table
+
+
 def table_after(text: str, marker: str) -> list[list[str]]:
     """The rows (cells) of the first markdown table after ``marker``, header and rule left out."""
     lines = text[text.index(marker):].split("\n")
