@@ -13,6 +13,7 @@ import numpy as np
 import warp as wp
 
 import warpspring as ws
+from warpspring.app.cli import init_warp
 from warpspring.io.usd import UsdWriter
 
 
@@ -74,6 +75,7 @@ if __name__ == "__main__":
     )
     parser.add_argument("--num-frames", type=int, default=300, help="Total number of frames.")
     args = parser.parse_known_args()[0]
+    init_warp(args.device)  # without Warp's banner, module-load lines and (on the CPU) its CUDA-driver warning
 
     with wp.ScopedDevice(args.device):
         example = Example(stage_path=args.stage_path)

@@ -15,6 +15,7 @@ import numpy as np
 import warp as wp
 
 import warpspring as ws
+from warpspring.app.cli import init_warp
 from warpspring.io.usd import UsdWriter
 
 EARTH, MOON = (0.0, 0.0, -9.81), (0.0, 0.0, -1.62)  # [m/s²]
@@ -80,6 +81,7 @@ if __name__ == "__main__":
     )
     parser.add_argument("--num-frames", type=int, default=360, help="Total number of frames.")
     args = parser.parse_known_args()[0]
+    init_warp(args.device)  # without Warp's banner, module-load lines and (on the CPU) its CUDA-driver warning
 
     with wp.ScopedDevice(args.device):
         example = Example(stage_path=args.stage_path)

@@ -91,6 +91,45 @@ def test_options_override_the_scene(tmp_path, capsys):
     assert fps == 60.0 and times == [float(k) for k in range(6)]
 
 
+PROGRESS_LINE = re.compile(r"^frame (\d+) of (\d+) \((\d+) %\), ([\d.e+]+) frames/s, (\d+) s left$")
+
+
+def test_run_to_a_pipe_prints_progress_lines(tmp_path, capsys, monkeypatch):
+    """A run whose stderr is not a terminal (here pytest's capture, as a log file or CI) prints progress lines:
+    with the interval at 0 s one after every frame but the first (the rate is measured from the first frame on,
+    which compiles), each naming the frame, the total, frames/s and the seconds left; the summary stays alone on
+    stdout. ``-q`` prints none."""
+    from warpspring.app import runner
+
+    monkeypatch.setattr(runner, "PROGRESS_EVERY", 0.0)
+    status, stdout, stderr = run_cli(capsys, EXAMPLES / "hanging_cloth.toml", "-o", tmp_path / "a.usdc", "--frames", 4)
+    assert status == 0 and stdout.startswith("wrote 5 frames ") and stdout.count("\n") == 1
+    matches = [PROGRESS_LINE.match(line) for line in stderr]
+    assert all(matches), stderr
+    assert [int(m.group(1)) for m in matches] == [2, 3, 4] and {m.group(2) for m in matches} == {"4"}
+    assert [int(m.group(3)) for m in matches] == [50, 75, 100] and int(matches[-1].group(5)) == 0
+    assert all(float(m.group(4)) > 0 for m in matches)
+
+    status, _, stderr = run_cli(capsys, EXAMPLES / "hanging_cloth.toml", "-o", tmp_path / "b.usdc", "--frames", 4,
+                                "-q")
+    assert status == 0 and stderr == []
+
+
+def test_progress_lines_keep_their_interval_and_rate(capsys, monkeypatch):
+    """On a clock that advances 1 s per frame and an interval of 2.5 s, lines come every third frame after the
+    first; the rate is 1 frame/s (the first frame's setup left out) and the time left is the frames left at it."""
+    from warpspring.app import runner
+
+    monkeypatch.setattr(runner, "PROGRESS_EVERY", 2.5)
+    ticks = iter(range(100))
+    bar = runner.ProgressLines(10, clock=lambda: float(next(ticks)))  # t = 0 at the start
+    for _ in range(10):
+        bar.update(1)  # frame k ends at t = k
+    lines = capsys.readouterr().err.splitlines()
+    assert lines == ["frame 3 of 10 (30 %), 1 frames/s, 7 s left", "frame 6 of 10 (60 %), 1 frames/s, 4 s left",
+                     "frame 9 of 10 (90 %), 1 frames/s, 1 s left"]
+
+
 def test_deprecated_key_is_one_warning_line(tmp_path, capsys):
     """A scene using a renamed key ([guard] max_strain, now tear_strain) runs, with exactly one
     'warpspring: warning:' line naming the file and both keys, and no Python warning besides."""

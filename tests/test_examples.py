@@ -11,7 +11,8 @@ EXAMPLES = sorted((Path(__file__).parent.parent / "examples").glob("*.py"))
 
 @pytest.mark.parametrize("script", EXAMPLES, ids=[p.stem for p in EXAMPLES])
 def test_example_runs(script, tmp_path):
-    """``python examples/X.py --num-frames 2`` exits 0 and writes 3 frames (initial + 2) to USD."""
+    """``python examples/X.py --num-frames 2`` exits 0, prints its one line and nothing of Warp's, and writes 3 frames
+    (initial + 2) to USD."""
     from pxr import Usd
 
     stage_path = tmp_path / f"{script.stem}.usdc"
@@ -23,6 +24,8 @@ def test_example_runs(script, tmp_path):
     )
     assert result.returncode == 0, result.stderr
     assert "t = 0.03 s" in result.stdout
+    # Quiet: the example's own line only, no Warp banner, module-load lines or CUDA-driver warning.
+    assert result.stdout.strip().count("\n") == 0 and result.stderr == "", (result.stdout, result.stderr)
     stage = Usd.Stage.Open(str(stage_path))
     mesh = next(p for p in stage.Traverse() if p.GetTypeName() == "Mesh" and "colliders" not in str(p.GetPath()))
     assert mesh.GetAttribute("points").GetTimeSamples() == [0.0, 1.0, 2.0]

@@ -114,7 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--frames", type=_positive_int, help="frames to simulate")
     run.add_argument("--fps", type=_positive_float, help="frames per second [1/s]")
     run.add_argument("--substeps", type=_positive_int, help="integrator steps per frame")
-    run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    run.add_argument("-q", "--quiet", action="store_true", help="no progress bar or lines")
     run.add_argument("--world", type=_non_negative_int, metavar="K",
                      help="write only world K of a scene of several worlds (default: the scene's [output] world, "
                           "else every world, each as its own prim /World/world_NNNN)")
@@ -284,7 +284,7 @@ def _cmd_run(args) -> int:
         frames=args.frames,
         fps=args.fps,
         substeps=args.substeps,
-        progress=not args.quiet and sys.stderr.isatty(),  # a redirected stderr gets no progress bar
+        progress=not args.quiet,  # a bar on a terminal, else a line every few seconds (runner.PROGRESS_EVERY)
         strict=args.strict,
         warn=warn,
         watch=args.watch_every,

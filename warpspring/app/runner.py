@@ -328,7 +328,62 @@ def _remedy(advice, substeps: int) -> str:
     return f"{advice.message}{hint}"
 
 
-def _progress(total: int, *, enabled: bool, initial: int = 0):
-    from tqdm import tqdm
+#: Seconds of wall time between the progress lines of a run whose stderr is not a terminal (a log file, CI).
+PROGRESS_EVERY = 5.0
 
-    return tqdm(total=total, initial=initial, unit="frame", disable=not enabled, dynamic_ncols=True, leave=False)
+
+def _progress(total: int, *, enabled: bool, initial: int = 0):
+    """The run's progress on stderr: a tqdm bar on a terminal; elsewhere (a pipe, a log file) a line every
+    :data:`PROGRESS_EVERY` seconds (:class:`ProgressLines`), so a long run shows that it is alive."""
+    import sys
+
+    if enabled and sys.stderr.isatty():
+        from tqdm import tqdm
+
+        return tqdm(total=total, initial=initial, unit="frame", dynamic_ncols=True, leave=False)
+    return ProgressLines(total, initial=initial, enabled=enabled)
+
+
+class ProgressLines:
+    """Progress as plain lines, for output that is not a terminal: every :data:`PROGRESS_EVERY` seconds of wall
+    time, ``frame 120 of 600 (20 %), 35.2 frames/s, 14 s left``. The rate is taken over the frames since the
+    first one (which compiles the kernels and captures the graph), so the time left is the run's steady pace.
+    The interface is the part of tqdm's that the runner uses (``update``, ``external_write_mode``, ``close``).
+
+    Args:
+        total: the run's last frame.
+        initial: the frame it starts from (a resumed run's checkpoint).
+        enabled: ``False`` prints nothing.
+        clock: wall-clock seconds (``time.perf_counter``; a test passes its own).
+    """
+
+    def __init__(self, total: int, *, initial: int = 0, enabled: bool = True, clock=time.perf_counter):
+        self.total, self.frame, self.enabled, self.clock = total, initial, enabled, clock
+        self._base = None  # (frame, time) after the first frame: where the rate is measured from
+        self._last = clock()
+
+    def update(self, frames: int = 1) -> None:
+        """Count ``frames`` more frames done; print a line when the interval has passed since the last one."""
+        import sys
+
+        self.frame += frames
+        now = self.clock()
+        if self._base is None:
+            self._base = (self.frame, now)
+        if not self.enabled or now - self._last < PROGRESS_EVERY or self.frame <= self._base[0]:
+            return
+        self._last = now
+        rate = (self.frame - self._base[0]) / max(now - self._base[1], 1e-9)
+        left = (self.total - self.frame) / rate
+        share = 100.0 * self.frame / max(self.total, 1)
+        print(f"frame {self.frame} of {self.total} ({share:.0f} %), {rate:.3g} frames/s, {left:.0f} s left",
+              file=sys.stderr, flush=True)
+
+    def external_write_mode(self):
+        """Another line may be written at any time: lines do not share the terminal with a bar."""
+        import contextlib
+
+        return contextlib.nullcontext()
+
+    def close(self) -> None:
+        """Nothing to clear: every line printed stays."""

@@ -4,7 +4,7 @@ to build the model and how to run and write it.
 Every key is checked: an unknown key, a wrong type or a bad value is a :class:`ConfigError` naming the
 file, the table and the key. The format (its tables and keys, versions and renamed keys) is declared in
 :mod:`~warpspring.io.scene_schema`, checked by :mod:`~warpspring.io.scene_checks`, and built into a model by
-:mod:`~warpspring.io.scene_build`. See the README's scene-file reference, or ``examples/*.toml``.
+:mod:`~warpspring.io.scene_build`. See the scene-file reference (docs/scenes.md), or ``examples/*.toml``.
 """
 
 from __future__ import annotations

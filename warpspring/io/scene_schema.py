@@ -1,7 +1,7 @@
 """The scene file format: the tables and keys a scene file (TOML: cloth, materials, pins, colliders, gravity,
 integrator and output) may hold, the type of each value, the scene format versions and renamed keys.
 Declarations only: :mod:`~warpspring.io.scene_checks` checks a parsed file against them, and
-:func:`~warpspring.io.scene.load_scene` reads one. See the README's scene-file reference, or
+:func:`~warpspring.io.scene.load_scene` reads one. See the scene-file reference (docs/scenes.md), or
 ``examples/*.toml``.
 
 Scene files are versioned: a top-level ``version = 2`` declares the format (:data:`SCENE_FORMAT_VERSION`);
