@@ -25,7 +25,6 @@ from __future__ import annotations
 import ast
 import pathlib
 import re
-import time
 
 KERNELS = pathlib.Path(__file__).resolve().parents[1] / "warpspring" / "kernels"
 PACKAGE = "warpspring.kernels"
@@ -438,12 +437,9 @@ def check(package: Package) -> tuple[list[str], int]:
 
 
 def test_kernels_follow_the_parameter_conventions():
-    start = time.perf_counter()
     problems, count = check(Package(KERNELS))
-    elapsed = time.perf_counter() - start
     assert count >= 60, f"only {count} kernels found: is the scan still finding factory kernels?"
     assert not problems, "kernel parameter conventions (tests/test_kernel_conventions.py):\n" + "\n".join(problems)
-    assert elapsed < 1.0, f"the check took {elapsed:.2f} s"
 
 
 BAD = '''
