@@ -73,6 +73,7 @@ from .inputs import INPUT_DRAG, INPUT_GRAVITY, INPUT_WIND, input_funcs
 from .kinematics import is_kinematic
 from .linalg import reduction_funcs
 from .precision import vec3_type
+from .springs import COINCIDENT_DISTANCE, damper_step_func, spring_arrays_type
 from .worlds import world_and_index
 from .flatten import flat_kernel
 
@@ -499,6 +500,88 @@ def guard_dissipation_kernel(scalar: type, spec, tiled: bool, midpoint: bool = F
             accumulate(running_in_out, world, offset + block, power, h)
 
     return element_dissipation
+
+
+@functools.cache
+def guard_damper_kernel(scalar: type, law, tiled: bool, rule: int):
+    """Kernel closing the springs' dissipation counted by the scattered force pass (``spring_scatter_kernel``'s
+    ``dissipation``) at a check: each spring's last step (its damper at the check's state against the value kept at
+    the step's start, ``damper_step_func``), then the springs' running sums into ``running[world, offset + block,
+    RUNNING_DISSIPATION]`` in a fixed order (per-block tile sums on CUDA, one thread per world in spring order on
+    the CPU), the sums cleared, the values at the check's state kept, and the world marked counted (``skip``: the
+    next step starts from this state, whose step the force pass must not count again). With ``h`` = 0 it only
+    records the state (a restart). Launch over ``reduce_launch_dim(worlds, spring_count, lanes)`` on CUDA,
+    ``(worlds, 1, 1)`` on the CPU."""
+    vec3 = vec3_type(scalar)
+    block_sum, _ = reduction_funcs(tiled)
+    SpringArrays = spring_arrays_type(scalar, law.per_spring)
+    damper_step = damper_step_func(scalar, rule)
+
+    @wp.func
+    def close(world: int, s: int, base: int, springs: SpringArrays, particle_q: wp.array[vec3],
+              particle_qd: wp.array[vec3], h: wp.float64, damper: wp.array[scalar],
+              dissipated: wp.array[wp.float64]) -> wp.float64:
+        ends = springs.indices[s]
+        d = particle_q[base + ends[1]] - particle_q[base + ends[0]]
+        length = wp.length(d)
+        n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
+        rate = wp.dot(particle_qd[base + ends[1]] - particle_qd[base + ends[0]], n)
+        k = world * springs.indices.shape[0] + s
+        kd = springs.damping[wp.min(world, springs.damping.shape[0] - 1), s]
+        energy, value = damper_step(kd, rate, damper[k], wp.int32(0), h)
+        total = dissipated[k] + energy
+        dissipated[k] = wp.float64(0.0)
+        damper[k] = value
+        return total
+
+    @flat_kernel(module="unique", enable_backward=False, last=("springs__incidence",))
+    def spring_damper_close(
+        # Model:
+        particle_count: int,
+        offset: int,
+        h: wp.float64,
+        springs: SpringArrays,
+        # State in:
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+        # In/out:
+        damper_in_out: wp.array[scalar],
+        dissipated_in_out: wp.array[wp.float64],
+        skip_in_out: wp.array[wp.int32],
+        running_in_out: wp.array3d[wp.float64],
+    ):
+        world, block, lane = wp.tid()
+        base = world * particle_count
+        spring_count = springs.indices.shape[0]
+        total = wp.float64(0.0)
+        if wp.static(tiled):
+            s = block * wp.block_dim() + lane
+            if s < spring_count:
+                total = close(world, s, base, springs, particle_q, particle_qd, h, damper_in_out, dissipated_in_out)
+            total = block_sum(total)
+        else:
+            for s in range(spring_count):
+                total += close(world, s, base, springs, particle_q, particle_qd, h, damper_in_out, dissipated_in_out)
+        if lane == 0:
+            running_in_out[world, offset + block, RUNNING_DISSIPATION] += total
+            if block == 0:
+                skip_in_out[world] = 1
+
+    return spring_damper_close
+
+
+@functools.cache
+def guard_skip_clear_kernel():
+    """Kernel clearing each world's ``skip`` after the step that started from a check's state (``guard_damper_kernel``)."""
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def skip_clear(
+        # Out:
+        skip_out: wp.array[wp.int32],
+    ):
+        skip_out[wp.tid()] = 0
+
+    return skip_clear
 
 
 @functools.cache
