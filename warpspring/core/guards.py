@@ -302,6 +302,9 @@ class Guard(StepHook):
         self.reset()
         if self._dissipating and not self._midpoint:
             self._dissipate(state)  # the power at the start: the first substep's trapezoid
+        air = self._air_kernel()
+        if air is not None and not air[1]:
+            self._air_work(state)  # the air's power at the start: the first substep's trapezoid
         self._dissipation_kernels()
         if self._dampers is not None:
             self._close_dampers(state, 0.0)  # the dampers at the start: the first step's
@@ -361,6 +364,7 @@ class Guard(StepHook):
                       outputs=[self._step_position, self._step_velocity, self._step_time], device=self.model.device)
         if self._dissipating:
             self._dissipate(state)
+        self._air_work(state)
         if self._dampers is not None and self._dissipating and (step == 0 or step % self._every == 0):
             # This step started from a check's state, whose step the check counted: count the next ones.
             wp.launch(guard_skip_clear_kernel(), dim=self.model.world_count, outputs=[self._dampers.skip],
@@ -394,6 +398,41 @@ class Guard(StepHook):
 
     def _working_families(self) -> list:
         return [family for family in self.model.families if family.does_work]
+
+    def _air_kernel(self):
+        """(kernel, midpoint) counting the work the wind does through viscous drag where the balance leaves the drag's
+        dissipation out (``guard_drag_kernel``'s ``air_only``), else ``None``. Drag against moving air,
+        -c (v - u), is drag against still air, -c v, whose power -c |v|² is taken out (left out with D, the balance
+        stays one-sided), plus the wind's steady push c u, a load whose work c u·v the balance must count wherever it
+        is on: left out
+        with D (a collider in the scene, explicit Euler), a cloth in wind read as creating the energy the wind gave
+        it (``examples/hanging_cloth.toml`` with a ``[wind]`` was stopped at frame 4, "created" energy that did not
+        shrink with the step)."""
+        model = self.model
+        limits = self._limits_host
+        integrator = self.integrator
+        if (self.dt is None or limits.energy_balance <= 0.0 or getattr(integrator, "adaptive", False)
+                or (self._dissipating and dissipation_exact(model))):
+            return None
+        features = model.force_features(self.control)
+        if not (features.drag and features.wind):
+            return None
+        midpoint = getattr(integrator, "name", None) in MIDPOINT_DISSIPATION and self._needs_midpoint()
+        return guard_drag_kernel(model.scalar, self._tiled, True, midpoint, air_only=True), midpoint
+
+    def _air_work(self, state: State) -> None:
+        """Add the wind's work through drag over the last step to the drag blocks' running sums, as negative
+        dissipation (``_air_kernel``; device only, capturable)."""
+        air = self._air_kernel()
+        if air is None:
+            return
+        kernel, midpoint = air
+        model = self.model
+        velocity = self._step_velocity if midpoint else state.particle_qd
+        wp.launch(kernel, dim=self._drag_grid, block_dim=self._lanes,
+                  inputs=[model.particle_count, float(self.dt), model.world_enabled, model.particle_flags, model.inputs,
+                          self._status, velocity],
+                  outputs=[self._running], device=model.device)
 
     def _dissipate(self, state: State) -> None:
         """Add the energy the dampers and drag took out over the last step to the blocks' running sums
@@ -539,11 +578,11 @@ class Guard(StepHook):
         wp.launch(gather, dim=(worlds, self._lanes), block_dim=self._lanes,
                   inputs=[model.world_enabled, self._partials, self._energy_partials, self._status, self._running],
                   outputs=[self._values, self._work_total, self._balance], device=device)
-        flat_launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
-                    inputs=[model.particle_count, model.world_enabled, model.elements, state.particle_q, self._values],
-                    outputs=[self._status], device=device)
         wp.launch(decide, dim=worlds, inputs=[substep, self._limits, self._work_total],
                   outputs=[model.world_enabled, self._status, self._values], device=device)
+        flat_launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
+                    inputs=[model.particle_count, model.elements, state.particle_q, substep, self._values],
+                    outputs=[self._status], device=device)
 
     def reports(self) -> list[GuardReport]:
         """Each world's first failure since the last reset, in world order (reads the device: synchronises)."""

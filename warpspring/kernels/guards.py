@@ -8,9 +8,9 @@ particles: a kinematic one moves as prescribed), and the work the loads did on i
 check; per-block partials, no float atomics), ``element_energy_partials`` (one per family: per-block sums of
 its elements' elastic energy, the families' ``energy`` hook), ``gather`` (per world: the world's kinetic
 and elastic energy and work, summed in a fixed order, its largest strain, and the energy balance below),
-``locate`` (the particle, element and family holding the largest strain), ``decide`` (per world: compare
-with the world's limits, latch the world's first failure with its substep, reset the accumulators, and
-with ``stop_world`` set hold the failed world: ``world_enabled`` 0).
+``decide`` (per world: compare with the world's limits, latch the world's first failure with its substep, reset
+the accumulators, and with ``stop_world`` set hold the failed world: ``world_enabled`` 0), ``locate`` (in a world
+that failed at this check only: the particle, element and family holding the largest strain).
 
 **The work put in.** W sums, check by check, Σᵢ Fᵢ · (xᵢ - xᵢ') over the world's particles, xᵢ' the
 positions at the previous check: weight mᵢ g and the control's external force on free particles, and for
@@ -287,19 +287,23 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
     def locate(
         # Model:
         particle_count: int,
-        world_enabled: wp.array[wp.int32],
         element_arrays: Elements,
         # State in:
         particle_q: wp.array[vec3],
-        # Guards in (the gathered values):
+        # Guards in (the check's substep, the gathered values):
+        substep: int,
         values: wp.array2d[wp.float64],
         # In/out:
         status_in_out: wp.array2d[wp.int32],
     ):
+        """The most strained particle, element and family of a world that failed at this check (``decide`` ran
+        first: a world that passed, or failed at an earlier check, is left alone, so a passing check costs one
+        early return per particle, not a second strain pass)."""
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
         largest = values[world, GUARD_MAX_STRAIN]
-        if status_in_out[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0 or largest < wp.float64(0.0):
+        if (status_in_out[world, GUARD_TRIPPED] == 0 or status_in_out[world, GUARD_SUBSTEP] != substep
+                or largest < wp.float64(0.0)):
             return
         strain, element, family = element_strain(world, i, p - i, particle_q[p], element_arrays, particle_q)
         if strain == largest:  # the same evaluation as in measure
@@ -585,10 +589,13 @@ def guard_skip_clear_kernel():
 
 
 @functools.cache
-def guard_drag_kernel(scalar: type, tiled: bool, wind: bool, midpoint: bool = False):
+def guard_drag_kernel(scalar: type, tiled: bool, wind: bool, midpoint: bool = False, air_only: bool = False):
     """Kernel adding to ``running[world, block]`` the energy [J] viscous drag took out of the free particles
     over the last substep: power c v·(v - u) (u the air's velocity where the model has wind, else 0;
-    trapezoidal rule, or midpoint as ``guard_dissipation_kernel``). On CUDA per-block sums over
+    trapezoidal rule, or midpoint as ``guard_dissipation_kernel``); with ``air_only``, only the wind's work with the sign of
+    a loss, -c u·v: drag against moving air is drag against still air, -c v (a loss, c |v|², left out where the
+    balance leaves D out), plus the steady push c u of the wind, a load whose work c u·v the balance must count
+    wherever it is on. On CUDA per-block sums over
     ``reduce_launch_dim(worlds, particle_count, lanes)``, on the CPU one thread per world (as
     ``guard_dissipation_kernel``)."""
     vec3 = vec3_type(scalar)
@@ -605,6 +612,8 @@ def guard_drag_kernel(scalar: type, tiled: bool, wind: bool, midpoint: bool = Fa
         air = vec3(scalar(0.0))
         if wp.static(wind):
             air = input_vec3(inputs, world, INPUT_WIND)
+        if wp.static(air_only):
+            return wp.float64(-inputs[world, INPUT_DRAG] * wp.dot(air, v))
         return wp.float64(inputs[world, INPUT_DRAG] * wp.dot(v, v - air))
 
     @wp.kernel(module="unique", enable_backward=False)
