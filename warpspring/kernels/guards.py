@@ -159,8 +159,11 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
+        # Guards in (the lead λ [s]: the steady loads' work on free particles is F·(Δx + λ Δv)):
+        lead: scalar,
         # In/out:
         previous_q_in_out: wp.array[vec3],
+        previous_qd_in_out: wp.array[vec3],
         previous_load_in_out: wp.array[vec3],
         status_in_out: wp.array2d[wp.int32],
         partials_out: wp.array3d[wp.float64],
@@ -181,6 +184,7 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                 mass = particle_mass[wp.min(world, particle_mass.shape[0] - 1), i]
                 worst, _, _ = element_strain(world, i, base, x, element_arrays, particle_q)
                 held = vec3(scalar(0.0))  # a load constant within a frame: its value at the check
+                steady = vec3(scalar(0.0))  # the loads constant within a frame (weight, the control's force)
                 if is_kinematic(particle_flags[p]):  # prescribed motion: no runaway of its own, a drive's work
                     load = -element_force(world, i, base, x, v, element_arrays, inputs, particle_q, particle_qd)
                 else:
@@ -190,15 +194,18 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                         load += work_force(world, i, base, x, v, work_arrays, inputs, particle_q, particle_qd)
                     if wp.static(external):
                         held = particle_force_ext[p]
+                    steady = mass * input_vec3(inputs, world, INPUT_GRAVITY) + held
                 before = previous_load_in_out[p]
                 if not wp.isfinite(before):  # the first check: no earlier value
                     before = load
-                work = wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - previous_q_in_out[p]))
+                work = wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - previous_q_in_out[p])
+                                  + lead * wp.dot(steady, v - previous_qd_in_out[p]))
                 previous_load_in_out[p] = load
             else:
                 wp.atomic_min(status_in_out, world, GUARD_NONFINITE_PARTICLE, i)
                 wp.atomic_add(status_in_out, world, GUARD_NONFINITE_COUNT, 1)
             previous_q_in_out[p] = x
+            previous_qd_in_out[p] = v
         energy = block_sum(energy)
         worst = block_max(worst)
         work = block_sum(work)
