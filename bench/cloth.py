@@ -21,6 +21,7 @@ launch of the kernel.
     python bench/cloth.py --device cpu --sizes 32 64 --seconds 2
     python bench/cloth.py --device cpu --sizes 32 64 --batches 9 --interleave   # a host shared with other jobs
     python bench/cloth.py --device cuda:0 --sizes 256 1024 --evaluation gather --bytes
+    python bench/cloth.py --device cuda:0 --sizes 64 256 1024 --guard default off --pin top --interleave
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ DEFAULT_SIZES = {"cuda": [64, 128, 256, 512], "cpu": [32, 64]}
 
 
 def warpspring_model(n: int, device, spring_evaluation: str = "auto", worlds: int = 1, *,
-                     spring_groups: bool = True, spring_grid: bool = True) -> ws.Model:
+                     spring_groups: bool = True, spring_grid: bool = True, pin: str = "corners") -> ws.Model:
     builder = ws.ModelBuilder()
     spring = ws.SpringMaterial(ke=KE, kd=KD)
     builder.add_cloth_grid(
@@ -55,7 +56,7 @@ def warpspring_model(n: int, device, spring_evaluation: str = "auto", worlds: in
         structural=spring,
         shear=spring,
         bend=spring,
-        pin=["top-left", "top-right"],
+        pin=["top"] if pin == "top" else ["top-left", "top-right"],
     )
     return builder.finalize(device, spring_evaluation=spring_evaluation, worlds=worlds, spring_groups=spring_groups,
                             spring_grid=spring_grid)
@@ -70,13 +71,16 @@ EVALUATIONS = {"gather-table": ("gather", {"spring_grid": False}),
 class WarpspringRunner:
     name = "warpspring"
 
-    def __init__(self, model: ws.Model):
+    def __init__(self, model: ws.Model, guard: bool = False):
         self.model = model
         self.name = f"warpspring ({'gather' if model.spring_gather else 'scatter'}"
-        self.name += {"springs": ", per spring)", "groups": ", table)"}.get(model.spring_layout, ")")
-        # No run-time guard: Newton has none, and the heavy ANCHORS cloth (0.1 kg per particle) stretches
-        # its corner springs past the guard's default limit at N ≥ 128.
-        self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, use_graph=True, guard=None)
+        self.name += {"springs": ", per spring", "groups": ", table"}.get(model.spring_layout, "")
+        self.name += ", default guard)" if guard else ", guard off)"
+        # The default Simulator (its GuardLimits()) is what a user gets; guard off is the engine alone, as Newton has
+        # no guard. The heavy ANCHORS cloth (0.1 kg per particle) hung from two corners stretches its corner springs
+        # past the guard's tear limit at N ≥ 128: with the guard, hang it from its top row (``--pin top``).
+        self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, use_graph=True,
+                                guard=ws.GuardLimits() if guard else None)
 
     def frame(self):
         self.sim.step_frame()
@@ -239,6 +243,10 @@ def main():
         "--interleave", action="store_true",
         help="take the engines' timed batches in turn and give the median of the per-round ratios (shared hosts)",
     )
+    parser.add_argument("--guard", nargs="+", default=["off"], choices=["off", "default"],
+                        help="warpspring rows with the guard off and/or the default Simulator's guard (GuardLimits())")
+    parser.add_argument("--pin", default="corners", choices=["corners", "top"],
+                        help="hang the cloth from its two top corners (ANCHORS.md) or its whole top row")
     parser.add_argument("--out", help="also write the Markdown table to this file")
     args = parser.parse_args()
 
@@ -271,10 +279,11 @@ def main():
         makers = {}
         for mode in args.evaluation:
             evaluation, options = EVALUATIONS.get(mode, (mode, {}))
-            model = warpspring_model(n, device, evaluation, **options)
-            name = WarpspringRunner(model).name
-            models[name] = model
-            makers[name] = lambda model=model: WarpspringRunner(model)
+            for guard in args.guard:
+                model = warpspring_model(n, device, evaluation, pin=args.pin, **options)
+                name = WarpspringRunner(model, guard == "default").name
+                models[name] = model
+                makers[name] = lambda model=model, guard=guard: WarpspringRunner(model, guard == "default")
         with_newton = newton_version and model.particle_count <= (args.newton_max_particles or model.particle_count)
         if with_newton:
             makers["newton"] = lambda: NewtonRunner(model)

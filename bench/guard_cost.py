@@ -1,90 +1,142 @@
-"""What the run-time guard costs per substep, and what counting the dampers' dissipation in its energy
-balance adds (``GuardLimits(dissipation=...)``: one launch per damped family and one for drag after every
-substep, ``kernels/guards.py``), and with ``--wind`` what counting the wind's work per substep adds (a gusting wind
-across the cloth, ``add_aerodynamics``; the balance then evaluates the wind's force once more per substep, at its
-midpoint state: ``guard_work_kernel``).
+"""What the run-time guard costs: the default ``Simulator`` (``GuardLimits()``, energy balance and dissipation on)
+beside the same run with ``guard=None``, in one process, their timed batches interleaved (round k times every
+configuration once, so that a load which comes and goes on a shared host falls on all of them alike), with
+NVIDIA Newton's ``SolverSemiImplicit`` in the same run where it is importable (``cloth.NewtonRunner``).
 
-The scene is the soak's cloth (``bench/soak.py``: n × n particles of 0.1 kg 0.1 m apart, springs of 1 kN/m and
-kd = 10 N·s/m in every family, drag 0.01 N·s/m) with its whole top row, not its two corners, swung by the track (two
-corners cannot carry the weight of a cloth much larger than the soak's 32²: at 128² it tore and the guard stopped
-it), symplectic Euler, 16 substeps per 1/60 s frame replayed as one captured graph. Each configuration is timed over
-``--frames`` frames after ``--warmup`` frames (compiles, captures), ``wp.synchronize_device`` before every timer
-read; the table gives µs per substep and the ratio to the run without a guard.
+The scene is ANCHORS.md's hanging cloth (N × N particles 0.1 m apart, 0.1 kg each, structural + shear + bend
+springs of ke = 1 kN/m, kd = 10 N·s/m, gravity) hung from its whole top row (two corners cannot carry the heavy
+cloth at N ≥ 128: its corner springs tear), 16 substeps per 1/60 s frame, one captured graph per frame; ``--worlds W``
+runs W worlds of it in one model. Per size and integrator: substeps/s of each configuration (median of
+``--batches`` batches, ``wp.synchronize_device`` before every timer read), the spread of its batches
+((max - min) / median), the guard's ratio (median over rounds of guard-off time / default time: ≥ 0.91 on the GPU,
+≥ 0.87 on the CPU is the target) and, for symplectic Euler, the default run against Newton.
 
-    python bench/guard_cost.py --device cpu --sizes 16 32
-    python bench/guard_cost.py --device cuda:0 --sizes 32 128 512 --out guard_cost.md
-    python bench/guard_cost.py --device cuda:0 --sizes 64 256 --wind
+    python bench/guard_cost.py --device cpu --sizes 32 --batches 7
+    python bench/guard_cost.py --device cuda:0 --sizes 64 256 1024 --worlds-sizes 4096 --batches 5 \
+        --out bench/results/guard_cost_gpu.md
 """
+
+from __future__ import annotations
 
 import argparse
 import datetime
-import time
+import statistics
 
 import numpy as np
 import warp as wp
 
 import warpspring as ws
-from cloth import emit_table
-from soak import handle_swing
+from cloth import KD, KE, MASS, SPACING, NewtonRunner, emit_table, set_up, timed_batch, batch_size
 
-SUBSTEPS = 16
-CONFIGS = (("no guard", None), ("guard, balance without D", ws.GuardLimits(dissipation=False)),
-           ("guard, balance with D (default)", ws.GuardLimits()))
-WIND_CONFIGS = (("no guard", None), ("guard without the balance", ws.GuardLimits(energy_balance=0.0)),
-                ("guard, balance without D", ws.GuardLimits(dissipation=False)),
-                ("guard, balance with D (default)", ws.GuardLimits()))
+FPS, SUBSTEPS = 60, 16
+INTEGRATORS = ("symplectic_euler", "rk4", "implicit_euler")
 
 
-def row_driven_cloth(device, n: int, *, wind: bool = False) -> ws.Model:
-    """The soak's n × n cloth hung from its whole top row, which the soak's track swings; with ``wind``, in gusts
-    across it (4 → 10 m/s and back every 2 s, drag 1.2, lift 1.0 on every triangle)."""
-    builder = ws.ModelBuilder(drag=0.01)
-    spring = ws.SpringMaterial(ke=1.0e3, kd=10.0)
-    ids = builder.add_cloth_grid(nx=n, ny=n, spacing=0.1, particle_mass=0.1, origin=(0.0, 0.0, 4.0),
-                                 structural=spring, shear=spring, bend=spring,
-                                 rotation=ws.quat_from_axis_angle((1.0, 0.0, 0.0), np.pi / 2))
-    builder.add_pin_group(ids[-1, :], translation=handle_swing(), name="handle")
-    if wind:
-        builder.add_aerodynamics(wind=(0.0, 4.0, 0.0), drag=1.2, lift=1.0)
-        builder.set_track("wind", ws.Track([0.0, 1.0, 2.0], [[0, 4, 0], [0, 10, 0], [0, 4, 0]], interpolation="smooth",
-                                           extrapolation="cycle"))
-    return builder.finalize(device)
+def hanging_cloth(n: int, device, worlds: int = 1) -> ws.Model:
+    """ANCHORS.md's cloth hung from its top row (``worlds`` copies in one model)."""
+    builder = ws.ModelBuilder()
+    spring = ws.SpringMaterial(ke=KE, kd=KD)
+    builder.add_cloth_grid(nx=n, ny=n, spacing=SPACING, origin=(0.0, 0.0, 0.5 * n * SPACING),
+                           rotation=ws.quat_from_axis_angle((1.0, 0.0, 0.0), np.pi / 2), particle_mass=MASS,
+                           structural=spring, shear=spring, bend=spring, pin=["top"])
+    return builder.finalize(device, worlds=worlds)
 
 
-def time_substep(device, n: int, guard, *, frames: int, warmup: int, wind: bool = False) -> float:
-    """µs per substep of the row-driven n × n cloth under ``guard`` (``None``: no guard)."""
-    model = row_driven_cloth(device, n, wind=wind)
-    sim = ws.Simulator(model, fps=60, substeps=SUBSTEPS, guard=guard)
-    for _ in range(warmup):
+class Run:
+    """One ``Simulator`` of the cloth: ``guard`` ``None`` (off) or a ``GuardLimits``."""
+
+    def __init__(self, model: ws.Model, integrator: str, guard):
+        self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=guard,
+                                integrator=ws.make_integrator(integrator, model))
+
+    def frame(self):
+        self.sim.step_frame()
+
+
+def launches_per_substep(model: ws.Model, integrator: str, guard) -> float:
+    """Kernel launches per substep of one uncaptured frame (``wp.launch`` counted)."""
+    sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=guard, integrator=ws.make_integrator(integrator, model),
+                       use_graph=False)
+    sim.step_frame()
+    count = [0]
+    launch = wp.launch
+
+    def counted(*args, **kwargs):
+        count[0] += 1
+        return launch(*args, **kwargs)
+
+    wp.launch = counted
+    try:
         sim.step_frame()
-    wp.synchronize_device(device)
-    started = time.perf_counter()
-    for _ in range(frames):
-        sim.step_frame()
-    wp.synchronize_device(device)
-    return (time.perf_counter() - started) / (frames * SUBSTEPS) * 1e6
+    finally:
+        wp.launch = launch
+    return count[0] / SUBSTEPS
+
+
+def measure(makers: dict, device, seconds: float, batches: int) -> dict:
+    """Each configuration's batch times [s per frame], their batches taken in turn."""
+    runners = {name: set_up(make, device)[0] for name, make in makers.items()}
+    sizes = {name: batch_size(runner, device, seconds / batches) for name, runner in runners.items()}
+    times = {name: [] for name in runners}
+    for _ in range(batches):
+        for name, runner in runners.items():
+            times[name].append(timed_batch(runner, device, sizes[name]))
+    return times
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--sizes", type=int, nargs="+", default=[32, 128])
-    parser.add_argument("--frames", type=int, default=60)
-    parser.add_argument("--warmup", type=int, default=10)
-    parser.add_argument("--wind", action="store_true", help="the cloth in gusting wind (the wind's work counted)")
+    parser.add_argument("--sizes", type=int, nargs="*", default=[32], help="single cloths of N × N")
+    parser.add_argument("--worlds-sizes", type=int, nargs="*", default=[], help="W worlds of the 32² cloth")
+    parser.add_argument("--integrators", nargs="+", default=list(INTEGRATORS))
+    parser.add_argument("--seconds", type=float, default=2.0, help="timed seconds per configuration")
+    parser.add_argument("--batches", type=int, default=7)
+    parser.add_argument("--no-newton", action="store_true")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
+    wp.config.quiet = True
     device = wp.get_device(args.device)
-    scene = "the soak's cloth in gusting wind" if args.wind else "the soak's cloth"
-    lines = [f"Guard cost on {device.name}, Warp {wp.config.version}, {datetime.date.today()}: {scene}, "
-             f"symplectic Euler, {SUBSTEPS} substeps per frame as one graph, {args.frames} frames timed", "",
-             "| particles | configuration | µs per substep | × no guard |", "|---|---|---|---|"]
-    for n in args.sizes:
-        base = None
-        for name, guard in WIND_CONFIGS if args.wind else CONFIGS:
-            us = time_substep(device, n, guard, frames=args.frames, warmup=args.warmup, wind=args.wind)
-            base = base or us
-            lines.append(f"| {n * n} | {name} | {us:.1f} | {us / base:.2f} |")
+    newton_version = None
+    if not args.no_newton:
+        try:
+            import newton
+
+            newton_version = newton.__version__
+        except ImportError:
+            print("newton is not installed: timing warpspring alone")
+    lines = [f"Guard cost on {device.name} ({device.alias}), Warp {wp.config.version}"
+             + (f", Newton {newton_version}" if newton_version else "") + f", {datetime.date.today()}: ANCHORS cloth "
+             f"hung from its top row, {SUBSTEPS} substeps per 1/{FPS} s frame as one graph, {args.batches} interleaved "
+             "batches", "",
+             "| scene | integrator | launches/substep (off → default) | guard off [substeps/s] | default [substeps/s] "
+             "| spread off / default | default ÷ off | Newton [substeps/s] | default ÷ Newton |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    scenes = [(f"{n}²", n, 1) for n in args.sizes] + [(f"{w} × 32²", 32, w) for w in args.worlds_sizes]
+    for label, n, worlds in scenes:
+        for integrator in args.integrators:
+            makers = {"off": lambda: Run(hanging_cloth(n, device, worlds), integrator, None),
+                      "default": lambda: Run(hanging_cloth(n, device, worlds), integrator, ws.GuardLimits())}
+            # Newton's builder takes the worlds as one flat set of particles: single cloths only (the issue's table).
+            newton = newton_version and integrator == "symplectic_euler" and worlds == 1
+            if newton:
+                makers["newton"] = lambda: NewtonRunner(hanging_cloth(n, device, worlds))
+            times = measure(makers, device, args.seconds, args.batches)
+            rate = {name: SUBSTEPS / statistics.median(t) for name, t in times.items()}
+            spread = {name: (max(t) - min(t)) / statistics.median(t) for name, t in times.items()}
+            ratio = statistics.median(off / on for off, on in zip(times["off"], times["default"]))
+            ratio_range = [off / on for off, on in zip(times["off"], times["default"])]
+            launches = (f"{launches_per_substep(hanging_cloth(n, device, worlds), integrator, None):.2f} → "
+                        f"{launches_per_substep(hanging_cloth(n, device, worlds), integrator, ws.GuardLimits()):.2f}")
+            vs_newton = (f"{statistics.median(nt / on for nt, on in zip(times['newton'], times['default'])):.2f}×"
+                         if newton else "")
+            lines.append(f"| {label} | {integrator} | {launches} | {rate['off']:,.0f} | {rate['default']:,.0f} | "
+                         f"{spread['off']:.0%} / {spread['default']:.0%} | {ratio:.3f} "
+                         f"[{min(ratio_range):.2f}, {max(ratio_range):.2f}] | "
+                         f"{rate['newton']:,.0f} | {vs_newton} |" if newton else
+                         f"| {label} | {integrator} | {launches} | {rate['off']:,.0f} | {rate['default']:,.0f} | "
+                         f"{spread['off']:.0%} / {spread['default']:.0%} | {ratio:.3f} "
+                         f"[{min(ratio_range):.2f}, {max(ratio_range):.2f}] | | |")
             print(lines[-1], flush=True)
     emit_table(lines, args.out)
 

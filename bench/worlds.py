@@ -8,8 +8,9 @@ stiffness (a stiffness row per world: the memory traffic of a real parameter swe
 run the way one would without worlds: W single-world simulators, one graph each, advanced one after the
 other.
 
-Reported: particle-substeps/s (median of timed batches, device synchronised before every timer read),
-and the batch's speed-up over the loop of single-world simulators.
+Reported: particle-substeps/s (median of timed batches, device synchronised before every timer read) with the
+guard off, the default Simulator's rate (its guard, ``GuardLimits()``) and their ratio, and the batch's speed-up over
+the loop of single-world simulators (guard off).
 
     python bench/worlds.py --device cuda:0
     python bench/worlds.py --device cpu --seconds 2
@@ -44,8 +45,10 @@ def batch(worlds: int, device) -> ws.Model:
 
 
 class Batch:
-    def __init__(self, model: ws.Model):
-        self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=None)
+    """The worlds in one Simulator: with ``guard`` its default guard (``GuardLimits()``), else none."""
+
+    def __init__(self, model: ws.Model, guard: bool = False):
+        self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=ws.GuardLimits() if guard else None)
 
     def frame(self):
         self.sim.step_frame()
@@ -83,8 +86,9 @@ def main():
     name = device.name if device.is_cuda else platform.processor() or "CPU"
     print(f"# worlds of a {SIDE}² cloth — {name}, Warp {wp.config.version}, {datetime.date.today()}")
     print(f"`python bench/worlds.py --device {device}`\n")
-    print("| scene | particles | substeps/s | particle-substeps/s | vs loop of single worlds |")
-    print("|---|---|---|---|---|")
+    print("| scene | particles | guard off [substeps/s] | particle-substeps/s | default guard [substeps/s] "
+          "| default ÷ off | vs loop of single worlds |")
+    print("|---|---|---|---|---|---|---|")
     rows = [(f"{w} × {SIDE}²", w) for w in args.worlds]
     if not args.no_large:
         rows.append((f"1 × {LARGE}²", None))
@@ -96,11 +100,19 @@ def main():
         particles = model.state_size
         result = measure(lambda: Batch(model), device, args.seconds)
         rate = SUBSTEPS / result["frame_s"]
+        # The default Simulator on a copy of the scene (the guard's kernels on the same worlds).
+        guarded_model = warpspring_model(LARGE, device) if worlds is None else batch(worlds, device)
+        try:
+            guarded_rate = SUBSTEPS / measure(lambda: Batch(guarded_model, guard=True), device, args.seconds)["frame_s"]
+        except ws.SimulationError as error:  # the 1024² cloth from two corners tears its corner springs
+            print(f"| {label} | the default guard stopped the run: {error} |")
+            guarded_rate = float("nan")
         speedup = ""
         if worlds in LOOP_WORLDS[kind]:
             loop = measure(lambda: Loop(worlds, device), device, args.seconds)
             speedup = f"{loop['frame_s'] / result['frame_s']:.1f}×"
-        print(f"| {label} | {particles:,} | {rate:,.0f} | {rate * particles:.3g} | {speedup} |", flush=True)
+        print(f"| {label} | {particles:,} | {rate:,.0f} | {rate * particles:.3g} | {guarded_rate:,.0f} | "
+              f"{guarded_rate / rate:.2f} | {speedup} |", flush=True)
 
 
 if __name__ == "__main__":

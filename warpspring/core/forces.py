@@ -5,15 +5,40 @@ first."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import warp as wp
 
 from ..kernels.forces import clamp_forces_kernel, eval_forces_kernel
-from ..kernels.springs import spring_scatter_kernel
+from ..kernels.springs import DAMPER_NONE, spring_scatter_kernel
 from .model import Model
 from .state import State
 from .control import Control
 from .tracks import evaluate_input_tracks
 from ..kernels.flatten import flat_launch
+
+
+@dataclass
+class DamperSums:
+    """Where the scattered springs' pass at a step's start also counts the dampers' dissipation of the step before
+    (``spring_scatter_kernel``'s ``dissipation``): set on ``Model._damper_sums`` by the guard that reads the sums.
+
+    Attributes:
+        rule: the ``DAMPER_*`` rule of ``kernels/springs.py``.
+        h: the step [s].
+        skip: per world, non-zero where the step before was counted already, int32, shape [world_count].
+        damper: each spring's rate [m/s] or power [W] at the last step's start, shape [world_count · spring_count].
+        dissipated: each spring's energy taken out since the guard last read it [J], float64, same shape.
+        start: the state the next step starts from (the guard sets it before every step); only an evaluation at it
+            counts.
+    """
+
+    rule: int
+    h: float
+    skip: wp.array
+    damper: wp.array
+    dissipated: wp.array
+    start: State | None = None
 
 
 def force_inputs(model: Model, control: Control | None, features) -> list:
@@ -50,11 +75,14 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
         device=model.device,
     )
     if scatter:
+        sums = getattr(model, "_damper_sums", None)
+        counted = sums is not None and state is sums.start
         flat_launch(
-            spring_scatter_kernel(model.scalar, model.spring_law),
+            spring_scatter_kernel(model.scalar, model.spring_law, sums.rule if counted else DAMPER_NONE),
             dim=(model.world_count, model.spring_count),
-            inputs=[model.particle_count, model.spring_arrays(), model.inputs, state.particle_q, state.particle_qd],
-            outputs=[out],
+            inputs=[model.particle_count, model.spring_arrays(), model.inputs, state.particle_q, state.particle_qd,
+                    sums.h if counted else 0.0, sums.skip if counted else None],
+            outputs=[out, sums.damper if counted else None, sums.dissipated if counted else None],
             device=model.device,
         )
         if features.clamp_particle_force:

@@ -50,17 +50,21 @@ from ..kernels.guards import (
     NO_PARTICLE,
     RUNNING_POWER,
     RUNNING_SLOTS,
+    guard_damper_kernel,
     guard_dissipation_kernel,
     guard_drag_kernel,
     guard_energy_kernel,
     guard_kernels,
+    guard_skip_clear_kernel,
     guard_work_kernel,
     step_midpoint_kernel,
 )
 from ..kernels.families import elements, fill_elements
 from ..kernels.flatten import flat_launch
 from ..kernels.linalg import reduce_lanes, reduce_launch_dim
+from ..kernels.springs import DAMPER_MEAN_RATE, DAMPER_TRAPEZOID
 from .families import world_elastic_energy
+from .forces import DamperSums
 from .guard_records import (
     BALANCE_FLOOR,
     DISSIPATION_UNCOUNTED,
@@ -76,6 +80,10 @@ from .model import Model
 from .state import State
 from .stepper import StepHook
 from .tracks import evaluate_input_tracks
+
+#: Integrators whose every step evaluates the forces once at its start state (``eval_forces`` on ``state_in``): there
+#: the scattered springs' pass counts the dampers' dissipation (``DamperSums``) instead of a pass of its own.
+DAMPERS_IN_FORCE_PASS = ("symplectic_euler", "rk4", "velocity_verlet")
 
 
 class Guard(StepHook):
@@ -128,6 +136,8 @@ class Guard(StepHook):
         # run's start state: :meth:`restart`).
         self._work_total = wp.zeros(worlds, dtype=wp.float64, device=device)
         self._previous_q = wp.clone(model.particle_q)
+        # ... and its velocities (the lead of an explicit Euler's kinetic energy over its displacement: ``_lead``).
+        self._previous_qd = wp.clone(model.particle_qd)
         # The loads at the last check (the trapezoidal rule; non-finite: none yet) and the energy balance.
         self._previous_load = wp.empty_like(model.particle_q)
         self._balance = wp.zeros((worlds, BALANCE_SLOTS), dtype=wp.float64, device=device)
@@ -153,6 +163,9 @@ class Guard(StepHook):
                 self._dissipation_layout.append((family, lanes, grid, blocks))
                 blocks += grid[1]
         self._running = wp.zeros((worlds, blocks, RUNNING_SLOTS), dtype=wp.float64, device=device)
+        # The springs' dissipation counted by the scattered force pass (``DamperSums``; ``None``: by a pass of its
+        # own after every substep).
+        self._dampers = None
         self._restart_balance()
         self.revision = 0
         self._every = None
@@ -274,7 +287,9 @@ class Guard(StepHook):
     def history(self) -> list:
         """The arrays a check carries to the next (the work put in, the last check's positions and loads,
         the energy balance, the running dissipation)."""
-        return [self._work_total, self._previous_q, self._previous_load, self._balance, self._running]
+        dampers = [] if self._dampers is None else [self._dampers.damper, self._dampers.dissipated, self._dampers.skip]
+        return [self._work_total, self._previous_q, self._previous_qd, self._previous_load, self._balance, self._running,
+                *dampers]
 
     def restart(self, state: State | None = None) -> None:
         """Forget the work put in and measure from ``state`` (default the model's initial state) on: the loads
@@ -284,12 +299,19 @@ class Guard(StepHook):
         state = state if state is not None else self.model.state()
         self._work_total.zero_()
         wp.copy(self._previous_q, state.particle_q)
+        wp.copy(self._previous_qd, state.particle_qd)
         self._restart_balance()
         self.reset()
         self._measure(state)  # Δx = 0: no work, the loads at the start recorded
         self.reset()
         if self._dissipating and not self._midpoint:
             self._dissipate(state)  # the power at the start: the first substep's trapezoid
+        air = self._air_kernel()
+        if air is not None and not air[1]:
+            self._air_work(state)  # the air's power at the start: the first substep's trapezoid
+        self._dissipation_kernels()
+        if self._dampers is not None:
+            self._close_dampers(state, 0.0)  # the dampers at the start: the first step's
 
     def _restart_balance(self) -> None:
         self._previous_load.fill_(self.model.vec3(math.nan, math.nan, math.nan))
@@ -303,6 +325,9 @@ class Guard(StepHook):
         running = np.zeros(self._running.shape)
         running[..., RUNNING_POWER] = math.nan
         self._running.assign(running)
+        if getattr(self, "_dampers", None) is not None:
+            self._dampers.dissipated.zero_()
+            self._dampers.skip.fill_(1)  # the values kept are stale: the next step starts the count
 
     def work(self) -> np.ndarray:
         """The work the loads put into each world since the start [J], float64, shape [world_count] (the
@@ -327,6 +352,9 @@ class Guard(StepHook):
         return drag is not None or bool(families)
 
     def before_step(self, state: State, step: int, steps: int) -> None:
+        self._dissipation_kernels()  # the springs' pass counting their dampers attached or not
+        if self._dampers is not None:
+            self._dampers.start = state
         if self._needs_midpoint():
             self._step_start = state  # x_n, v_n: the step leaves its input as it was until after_step
 
@@ -340,6 +368,11 @@ class Guard(StepHook):
                       outputs=[self._step_position, self._step_velocity, self._step_time], device=self.model.device)
         if self._dissipating:
             self._dissipate(state)
+        self._air_work(state)
+        if self._dampers is not None and self._dissipating and (step == 0 or step % self._every == 0):
+            # This step started from a check's state, whose step the check counted: count the next ones.
+            wp.launch(guard_skip_clear_kernel(), dim=self.model.world_count, outputs=[self._dampers.skip],
+                      device=self.model.device)
         if self._working:
             self._family_work(state)
         if (step + 1) % self._every == 0 or step + 1 == steps:
@@ -370,6 +403,41 @@ class Guard(StepHook):
     def _working_families(self) -> list:
         return [family for family in self.model.families if family.does_work]
 
+    def _air_kernel(self):
+        """(kernel, midpoint) counting the work the wind does through viscous drag where the balance leaves the drag's
+        dissipation out (``guard_drag_kernel``'s ``air_only``), else ``None``. Drag against moving air,
+        -c (v - u), is drag against still air, -c v, whose power -c |v|² is taken out (left out with D, the balance
+        stays one-sided), plus the wind's steady push c u, a load whose work c u·v the balance must count wherever it
+        is on: left out
+        with D (a collider in the scene, explicit Euler), a cloth in wind read as creating the energy the wind gave
+        it (``examples/hanging_cloth.toml`` with a ``[wind]`` was stopped at frame 4, "created" energy that did not
+        shrink with the step)."""
+        model = self.model
+        limits = self._limits_host
+        integrator = self.integrator
+        if (self.dt is None or limits.energy_balance <= 0.0 or getattr(integrator, "adaptive", False)
+                or (self._dissipating and dissipation_exact(model))):
+            return None
+        features = model.force_features(self.control)
+        if not (features.drag and features.wind):
+            return None
+        midpoint = getattr(integrator, "name", None) in MIDPOINT_DISSIPATION and self._needs_midpoint()
+        return guard_drag_kernel(model.scalar, self._tiled, True, midpoint, air_only=True), midpoint
+
+    def _air_work(self, state: State) -> None:
+        """Add the wind's work through drag over the last step to the drag blocks' running sums, as negative
+        dissipation (``_air_kernel``; device only, capturable)."""
+        air = self._air_kernel()
+        if air is None:
+            return
+        kernel, midpoint = air
+        model = self.model
+        velocity = self._step_velocity if midpoint else state.particle_qd
+        wp.launch(kernel, dim=self._drag_grid, block_dim=self._lanes,
+                  inputs=[model.particle_count, float(self.dt), model.world_enabled, model.particle_flags, model.inputs,
+                          self._status, velocity],
+                  outputs=[self._running], device=model.device)
+
     def _dissipate(self, state: State) -> None:
         """Add the energy the dampers and drag took out over the last step to the blocks' running sums
         (device only; capturable)."""
@@ -391,23 +459,72 @@ class Guard(StepHook):
                         outputs=[self._running], device=model.device)
 
     def _dissipation_kernels(self) -> tuple:
-        """(the drag kernel or ``None``, [(kernel, family, lanes, grid, offset)] of the damped families), rebuilt
-        after a structural change of the model (drag switched on or off)."""
+        """(the drag kernel or ``None``, [(kernel, family, lanes, grid, offset)] of the damped families whose
+        dissipation a pass of its own counts after every substep), rebuilt after a structural change of the model
+        (drag switched on or off); the springs' dampers counted in their scattered force pass where they can be
+        (``_force_pass_dampers``)."""
         model = self.model
         cached = getattr(self, "_dissipation_cache", None)
-        key = (model.revision, self._midpoint)
+        key = (model.revision, self._midpoint, self._dissipating)
         if cached is None or cached[0] != key:
             drag, families = None, []
             midpoint = self._midpoint
+            springs = self._force_pass_dampers()
             if dissipation_exact(model):
                 features = model.force_features(self.control)
                 drag = (guard_drag_kernel(model.scalar, self._tiled, features.wind, midpoint) if features.drag
                         else None)
                 families = [(guard_dissipation_kernel(model.scalar, family.spec(model), self._tiled, midpoint),
-                             family, lanes, grid, offset) for family, lanes, grid, offset in self._dissipation_layout]
+                             family, lanes, grid, offset) for family, lanes, grid, offset in self._dissipation_layout
+                            if springs is None or family is not springs[0]]
             cached = (key, (drag, families))
             self._dissipation_cache = cached
+            self._attach_dampers(springs)
         return cached[1]
+
+    def _force_pass_dampers(self):
+        """The springs' (family, lanes, grid, offset) where their scattered force pass counts their dampers'
+        dissipation (``DamperSums``: an integrator of ``DAMPERS_IN_FORCE_PASS``, scattered springs of Hooke's law or
+        its biphasic and asymmetric kinds), else ``None``."""
+        model = self.model
+        law = model.spring_law
+        if not (self._dissipating and dissipation_exact(model) and model.spring_count > 0 and not model.spring_gather
+                and getattr(self.integrator, "name", None) in DAMPERS_IN_FORCE_PASS
+                and not law.clamp_force and not law.plastic):
+            return None
+        return next((entry for entry in self._dissipation_layout if entry[0].name == "springs"), None)
+
+    def _attach_dampers(self, springs=None) -> None:
+        """Give the model the springs' dissipation sums (``Model._damper_sums``) where ``springs`` (the family's layout
+        entry) count in the force pass, or take them back."""
+        model = self.model
+        if springs is None:
+            if self._dampers is not None and getattr(model, "_damper_sums", None) is self._dampers:
+                model._damper_sums = None
+            self._dampers = None
+            return
+        if self._dampers is None or self._dampers.damper.shape[0] != model.world_count * model.spring_count:
+            size, device = model.world_count * model.spring_count, model.device
+            rule = DAMPER_MEAN_RATE if self._midpoint else DAMPER_TRAPEZOID
+            self._dampers = DamperSums(rule=rule, h=float(self.dt), skip=wp.ones(model.world_count, dtype=wp.int32,
+                                                                                   device=device),
+                                       damper=wp.zeros(size, dtype=model.scalar, device=device),
+                                       dissipated=wp.zeros(size, dtype=wp.float64, device=device))
+        self._dampers.rule = DAMPER_MEAN_RATE if self._midpoint else DAMPER_TRAPEZOID
+        self._dampers_entry = springs
+        model._damper_sums = self._dampers
+
+    def _close_dampers(self, state: State, h: float) -> None:
+        """Count the springs' last step up to ``state`` (h [s]; 0: only record it) and add their sums to the running
+        dissipation (``guard_damper_kernel``)."""
+        model = self.model
+        family, lanes, grid, offset = self._dampers_entry
+        dampers = self._dampers
+        flat_launch(guard_damper_kernel(model.scalar, model.spring_law, self._tiled, dampers.rule), dim=grid,
+                    block_dim=lanes,
+                    inputs=[model.particle_count, offset, h, model.spring_arrays(), state.particle_q,
+                            state.particle_qd],
+                    outputs=[dampers.damper, dampers.dissipated, dampers.skip, self._running], device=model.device)
 
     def reset(self) -> None:
         """Clear the record (device copies: capturable, done at the start of every frame)."""
@@ -445,16 +562,29 @@ class Guard(StepHook):
                     inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
                             model.elements, self._work_arrays(working, working_specs), model.inputs,
                             force if force is not None else state.particle_q,
-                            state.particle_q, state.particle_qd],
-                    outputs=[self._previous_q, self._previous_load, self._status, self._partials],
+                            state.particle_q, state.particle_qd, self._lead()],
+                    outputs=[self._previous_q, self._previous_qd, self._previous_load, self._status, self._partials],
                     device=model.device)
         return gather, locate, decide
+
+    def _lead(self) -> float:
+        """λ [s] of the steady loads' work on free particles (weight, the control's force: constant within a frame),
+        Σ F·(Δx + λ Δv) over a check's span, exact for a constant force: h/2 for explicit Euler,
+        whose positions move with each step's first velocity while its kinetic energy takes the mean, so that
+        Σ F·Δx lags the energy a constant force puts in by F·h Δv/2 (a 45 kg block pushed from rest by 75 N
+        held 0.0062 J "created" at frame 2, 33 % of the work, and was stopped at h = 10 ms, 1/10 of its
+        stability limit); 0 for every other integrator (the means of their steps' velocities move them)."""
+        if self.dt is None or getattr(self.integrator, "name", None) != "explicit_euler":
+            return 0.0
+        return 0.5 * float(self.dt)
 
     def check(self, state: State, substep: int) -> None:
         """Launch the checks of ``state`` after ``substep`` (device only; capturable)."""
         model = self.model
         gather, locate, decide = self._measure(state)
         worlds, device = model.world_count, model.device
+        if self._dampers is not None and self._dissipating:
+            self._close_dampers(state, float(self.dt))
         for family, lanes, grid, offset in self._energy_layout:
             flat_launch(guard_energy_kernel(model.scalar, family.spec(model), self._tiled), dim=grid, block_dim=lanes,
                         inputs=[model.particle_count, family.element_count, offset, model.world_enabled,
@@ -463,11 +593,11 @@ class Guard(StepHook):
         wp.launch(gather, dim=(worlds, self._lanes), block_dim=self._lanes,
                   inputs=[model.world_enabled, self._partials, self._energy_partials, self._status, self._running],
                   outputs=[self._values, self._work_total, self._balance], device=device)
-        flat_launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
-                    inputs=[model.particle_count, model.world_enabled, model.elements, state.particle_q, self._values],
-                    outputs=[self._status], device=device)
         wp.launch(decide, dim=worlds, inputs=[substep, self._limits, self._work_total],
                   outputs=[model.world_enabled, self._status, self._values], device=device)
+        flat_launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
+                    inputs=[model.particle_count, model.elements, state.particle_q, substep, self._values],
+                    outputs=[self._status], device=device)
 
     def reports(self) -> list[GuardReport]:
         """Each world's first failure since the last reset, in world order (reads the device: synchronises)."""

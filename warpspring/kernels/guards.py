@@ -8,9 +8,9 @@ particles: a kinematic one moves as prescribed), and the work the loads did on i
 check; per-block partials, no float atomics), ``element_energy_partials`` (one per family: per-block sums of
 its elements' elastic energy, the families' ``energy`` hook), ``gather`` (per world: the world's kinetic
 and elastic energy and work, summed in a fixed order, its largest strain, and the energy balance below),
-``locate`` (the particle, element and family holding the largest strain), ``decide`` (per world: compare
-with the world's limits, latch the world's first failure with its substep, reset the accumulators, and
-with ``stop_world`` set hold the failed world: ``world_enabled`` 0).
+``decide`` (per world: compare with the world's limits, latch the world's first failure with its substep, reset
+the accumulators, and with ``stop_world`` set hold the failed world: ``world_enabled`` 0), ``locate`` (in a world
+that failed at this check only: the particle, element and family holding the largest strain).
 
 **The work put in.** W sums, check by check, Σᵢ Fᵢ · (xᵢ - xᵢ') over the world's particles, xᵢ' the
 positions at the previous check: weight mᵢ g and the control's external force on free particles, and for
@@ -73,6 +73,7 @@ from .inputs import INPUT_DRAG, INPUT_GRAVITY, INPUT_WIND, input_funcs
 from .kinematics import is_kinematic
 from .linalg import reduction_funcs
 from .precision import vec3_type
+from .springs import COINCIDENT_DISTANCE, damper_step_func, spring_arrays_type
 from .worlds import world_and_index
 from .flatten import flat_kernel
 
@@ -158,8 +159,11 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
+        # Guards in (the lead λ [s]: the steady loads' work on free particles is F·(Δx + λ Δv)):
+        lead: scalar,
         # In/out:
         previous_q_in_out: wp.array[vec3],
+        previous_qd_in_out: wp.array[vec3],
         previous_load_in_out: wp.array[vec3],
         status_in_out: wp.array2d[wp.int32],
         partials_out: wp.array3d[wp.float64],
@@ -180,6 +184,7 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                 mass = particle_mass[wp.min(world, particle_mass.shape[0] - 1), i]
                 worst, _, _ = element_strain(world, i, base, x, element_arrays, particle_q)
                 held = vec3(scalar(0.0))  # a load constant within a frame: its value at the check
+                steady = vec3(scalar(0.0))  # the loads constant within a frame (weight, the control's force)
                 if is_kinematic(particle_flags[p]):  # prescribed motion: no runaway of its own, a drive's work
                     load = -element_force(world, i, base, x, v, element_arrays, inputs, particle_q, particle_qd)
                 else:
@@ -189,15 +194,18 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                         load += work_force(world, i, base, x, v, work_arrays, inputs, particle_q, particle_qd)
                     if wp.static(external):
                         held = particle_force_ext[p]
+                    steady = mass * input_vec3(inputs, world, INPUT_GRAVITY) + held
                 before = previous_load_in_out[p]
                 if not wp.isfinite(before):  # the first check: no earlier value
                     before = load
-                work = wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - previous_q_in_out[p]))
+                work = wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - previous_q_in_out[p])
+                                  + lead * wp.dot(steady, v - previous_qd_in_out[p]))
                 previous_load_in_out[p] = load
             else:
                 wp.atomic_min(status_in_out, world, GUARD_NONFINITE_PARTICLE, i)
                 wp.atomic_add(status_in_out, world, GUARD_NONFINITE_COUNT, 1)
             previous_q_in_out[p] = x
+            previous_qd_in_out[p] = v
         energy = block_sum(energy)
         worst = block_max(worst)
         work = block_sum(work)
@@ -286,19 +294,23 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
     def locate(
         # Model:
         particle_count: int,
-        world_enabled: wp.array[wp.int32],
         element_arrays: Elements,
         # State in:
         particle_q: wp.array[vec3],
-        # Guards in (the gathered values):
+        # Guards in (the check's substep, the gathered values):
+        substep: int,
         values: wp.array2d[wp.float64],
         # In/out:
         status_in_out: wp.array2d[wp.int32],
     ):
+        """The most strained particle, element and family of a world that failed at this check (``decide`` ran
+        first: a world that passed, or failed at an earlier check, is left alone, so a passing check costs one
+        early return per particle, not a second strain pass)."""
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
         largest = values[world, GUARD_MAX_STRAIN]
-        if status_in_out[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0 or largest < wp.float64(0.0):
+        if (status_in_out[world, GUARD_TRIPPED] == 0 or status_in_out[world, GUARD_SUBSTEP] != substep
+                or largest < wp.float64(0.0)):
             return
         strain, element, family = element_strain(world, i, p - i, particle_q[p], element_arrays, particle_q)
         if strain == largest:  # the same evaluation as in measure
@@ -502,10 +514,95 @@ def guard_dissipation_kernel(scalar: type, spec, tiled: bool, midpoint: bool = F
 
 
 @functools.cache
-def guard_drag_kernel(scalar: type, tiled: bool, wind: bool, midpoint: bool = False):
+def guard_damper_kernel(scalar: type, law, tiled: bool, rule: int):
+    """Kernel closing the springs' dissipation counted by the scattered force pass (``spring_scatter_kernel``'s
+    ``dissipation``) at a check: each spring's last step (its damper at the check's state against the value kept at
+    the step's start, ``damper_step_func``), then the springs' running sums into ``running[world, offset + block,
+    RUNNING_DISSIPATION]`` in a fixed order (per-block tile sums on CUDA, one thread per world in spring order on
+    the CPU), the sums cleared, the values at the check's state kept, and the world marked counted (``skip``: the
+    next step starts from this state, whose step the force pass must not count again). With ``h`` = 0 it only
+    records the state (a restart). Launch over ``reduce_launch_dim(worlds, spring_count, lanes)`` on CUDA,
+    ``(worlds, 1, 1)`` on the CPU."""
+    vec3 = vec3_type(scalar)
+    block_sum, _ = reduction_funcs(tiled)
+    SpringArrays = spring_arrays_type(scalar, law.per_spring)
+    damper_step = damper_step_func(scalar, rule)
+
+    @wp.func
+    def close(world: int, s: int, base: int, springs: SpringArrays, particle_q: wp.array[vec3],
+              particle_qd: wp.array[vec3], h: wp.float64, damper: wp.array[scalar],
+              dissipated: wp.array[wp.float64]) -> wp.float64:
+        ends = springs.indices[s]
+        d = particle_q[base + ends[1]] - particle_q[base + ends[0]]
+        length = wp.length(d)
+        n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
+        rate = wp.dot(particle_qd[base + ends[1]] - particle_qd[base + ends[0]], n)
+        k = world * springs.indices.shape[0] + s
+        kd = springs.damping[wp.min(world, springs.damping.shape[0] - 1), s]
+        energy, value = damper_step(kd, rate, damper[k], wp.int32(0), h)
+        total = dissipated[k] + energy
+        dissipated[k] = wp.float64(0.0)
+        damper[k] = value
+        return total
+
+    @flat_kernel(module="unique", enable_backward=False, last=("springs__incidence",))
+    def spring_damper_close(
+        # Model:
+        particle_count: int,
+        offset: int,
+        h: wp.float64,
+        springs: SpringArrays,
+        # State in:
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+        # In/out:
+        damper_in_out: wp.array[scalar],
+        dissipated_in_out: wp.array[wp.float64],
+        skip_in_out: wp.array[wp.int32],
+        running_in_out: wp.array3d[wp.float64],
+    ):
+        world, block, lane = wp.tid()
+        base = world * particle_count
+        spring_count = springs.indices.shape[0]
+        total = wp.float64(0.0)
+        if wp.static(tiled):
+            s = block * wp.block_dim() + lane
+            if s < spring_count:
+                total = close(world, s, base, springs, particle_q, particle_qd, h, damper_in_out, dissipated_in_out)
+            total = block_sum(total)
+        else:
+            for s in range(spring_count):
+                total += close(world, s, base, springs, particle_q, particle_qd, h, damper_in_out, dissipated_in_out)
+        if lane == 0:
+            running_in_out[world, offset + block, RUNNING_DISSIPATION] += total
+            if block == 0:
+                skip_in_out[world] = 1
+
+    return spring_damper_close
+
+
+@functools.cache
+def guard_skip_clear_kernel():
+    """Kernel clearing each world's ``skip`` after the step that started from a check's state (``guard_damper_kernel``)."""
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def skip_clear(
+        # Out:
+        skip_out: wp.array[wp.int32],
+    ):
+        skip_out[wp.tid()] = 0
+
+    return skip_clear
+
+
+@functools.cache
+def guard_drag_kernel(scalar: type, tiled: bool, wind: bool, midpoint: bool = False, air_only: bool = False):
     """Kernel adding to ``running[world, block]`` the energy [J] viscous drag took out of the free particles
     over the last substep: power c v·(v - u) (u the air's velocity where the model has wind, else 0;
-    trapezoidal rule, or midpoint as ``guard_dissipation_kernel``). On CUDA per-block sums over
+    trapezoidal rule, or midpoint as ``guard_dissipation_kernel``); with ``air_only``, only the wind's work with the sign of
+    a loss, -c u·v: drag against moving air is drag against still air, -c v (a loss, c |v|², left out where the
+    balance leaves D out), plus the steady push c u of the wind, a load whose work c u·v the balance must count
+    wherever it is on. On CUDA per-block sums over
     ``reduce_launch_dim(worlds, particle_count, lanes)``, on the CPU one thread per world (as
     ``guard_dissipation_kernel``)."""
     vec3 = vec3_type(scalar)
@@ -522,6 +619,8 @@ def guard_drag_kernel(scalar: type, tiled: bool, wind: bool, midpoint: bool = Fa
         air = vec3(scalar(0.0))
         if wp.static(wind):
             air = input_vec3(inputs, world, INPUT_WIND)
+        if wp.static(air_only):
+            return wp.float64(-inputs[world, INPUT_DRAG] * wp.dot(air, v))
         return wp.float64(inputs[world, INPUT_DRAG] * wp.dot(v, v - air))
 
     @wp.kernel(module="unique", enable_backward=False)

@@ -403,17 +403,56 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
                        dissipation=dissipation)
 
 
+#: ``spring_scatter_kernel``'s ``dissipation`` rules (``DAMPER_*``): none, the trapezoid of the dampers' power, or
+#: the power at the mean of the damper rates of a step's two ends (symplectic Euler's; ``guards.py``).
+DAMPER_NONE, DAMPER_TRAPEZOID, DAMPER_MEAN_RATE = 0, 1, 2
+
+
 @functools.cache
-def spring_scatter_kernel(scalar: type, law: SpringLaw):
+def damper_step_func(scalar: type, rule: int):
+    """``(running, value) = damper_step(kd, rate, previous, skip, h)``: spring s's damper over the step that ended at
+    the state where its rate (vj - vi)·d̂ [m/s] is ``rate``, and the value to keep for the next step; ``previous``
+    is the value kept at the step's start (its rate, or with ``DAMPER_TRAPEZOID`` its power [W]), ``skip`` non-zero
+    where that step was counted already (``guards.py``: the check counts the last step of its span)."""
+
+    @wp.func
+    def damper_step(kd: scalar, rate: scalar, previous: scalar, skip: wp.int32, h: wp.float64):
+        value = rate
+        energy = wp.float64(0.0)
+        if wp.static(rule == DAMPER_TRAPEZOID):
+            value = kd * rate * rate
+            if skip == 0:
+                energy = wp.float64(0.5) * h * wp.float64(previous + value)
+        else:
+            mean = scalar(0.5) * (previous + rate)
+            if skip == 0:
+                energy = h * wp.float64(kd * mean * mean)
+        return energy, value
+
+    return damper_step
+
+
+@functools.cache
+def spring_scatter_kernel(scalar: type, law: SpringLaw, dissipation: int = DAMPER_NONE):
     """Kernel adding every spring's force to its two particles (one thread per spring of every world).
 
     Each spring is evaluated once, but its two ends are written with atomic adds: on the CPU, where Warp
     runs a kernel's threads in order, the sums are deterministic; it is the CPU's default (``finalize``).
+
+    With ``dissipation`` (a ``DAMPER_*`` rule; Hooke's law, its biphasic and asymmetric kinds: no force clamp, no
+    plasticity), the evaluation at a step's start also adds to spring s's running sum ``dissipated_in_out[world,
+    s]`` the energy [J] its damper took out over the step before, from the value kept in ``damper_in_out``
+    (``damper_step_func``): the guard's dissipation counted in the pass that already reads the springs, no pass of
+    its own per substep (``guards.py``). Each thread writes its own spring's entries: no atomics.
     """
     vec3 = vec3_type(scalar)
     SpringArrays = spring_arrays_type(scalar, law.per_spring)
     spring_law_values, spring_force, _, _ = spring_funcs(scalar, law)
     rest_at, law_at = spring_access_funcs(scalar, law)
+    counted = dissipation != DAMPER_NONE
+    if counted and (law.clamp_force or law.plastic):
+        raise ValueError(f"the dampers' dissipation is not separable under {law}")
+    damper_step = damper_step_func(scalar, dissipation if counted else DAMPER_TRAPEZOID)
 
     # The scatter walks the springs, never the incidence table.
     @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
@@ -426,22 +465,37 @@ def spring_scatter_kernel(scalar: type, law: SpringLaw):
         # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
+        # Guard in:
+        h: wp.float64,  # the step [s] (read with ``dissipation`` only)
+        damper_skip: wp.array[wp.int32],  # per world: non-zero where the step before was counted already
         # In/out:
         particle_f_in_out: wp.array[vec3],
+        damper_in_out: wp.array[scalar],
+        dissipated_in_out: wp.array[wp.float64],
     ):
         world, s = wp.tid()
         base = world * particle_count
         ends = springs.indices[s]
         i = base + ends[0]
         j = base + ends[1]
+        kd = springs.damping[wp.min(world, springs.damping.shape[0] - 1), s]
         f = spring_force(
             particle_q[i], particle_q[j], particle_qd[i], particle_qd[j], rest_at(springs, world, s),
             springs.stiffness[wp.min(world, springs.stiffness.shape[0] - 1), s],
-            springs.damping[wp.min(world, springs.damping.shape[0] - 1), s],
+            kd,
             law_at(spring_law_values(inputs, world), springs, s),
         )
         wp.atomic_add(particle_f_in_out, i, f)
         wp.atomic_sub(particle_f_in_out, j, f)
+        if wp.static(counted):
+            d = particle_q[j] - particle_q[i]
+            length = wp.length(d)
+            rate = wp.where(length > scalar(COINCIDENT_DISTANCE), wp.dot(particle_qd[j] - particle_qd[i], d) / length,
+                            scalar(0.0))
+            k = world * springs.indices.shape[0] + s
+            energy, value = damper_step(kd, rate, damper_in_out[k], damper_skip[world], h)
+            dissipated_in_out[k] += energy
+            damper_in_out[k] = value
 
     return scatter_springs
 
