@@ -13,6 +13,7 @@ triangles' own hinges (the material grid's bending before the crossed hinges) fo
 
     python bench/drape.py --device cuda:0                                  # study, silk, denim at c/2, c/4, c/8
     python bench/drape.py --device cuda:0 --hinges triangles --materials study
+    python bench/drape.py --device cuda:0 --materials study --contact-radius 0     # radius = spacing / 4
     python bench/drape.py --device cpu --materials study --fractions 1 2 --seeds 0   # a small check
 """
 
@@ -60,6 +61,8 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--hinges", default="crossed", choices=["crossed", "triangles"])
     parser.add_argument("--max-time", type=float, default=10.0, help="most simulated seconds per run")
+    parser.add_argument("--contact-radius", type=float, default=1.0e-3,
+                        help="particles' contact radius [m]; 0: a quarter of the spacing (the builder's default)")
     parser.add_argument("--no-picture", action="store_true")
     args = parser.parse_args()
     wp.init()
@@ -72,7 +75,9 @@ def main() -> None:
         for fraction in args.fractions:
             runs, start = [], time.perf_counter()
             for seed in args.seeds:
-                runs.append(drape.cusick(material, spacing=c / fraction, seed=seed, hinges=args.hinges,
+                spacing = c / fraction
+                runs.append(drape.cusick(material, spacing=spacing, seed=seed, hinges=args.hinges,
+                                         contact_radius=args.contact_radius or 0.25 * spacing,
                                          max_time=args.max_time, device=device))
             dc = np.array([r.coefficient for r in runs])
             means.append(dc.mean())
@@ -90,9 +95,11 @@ def main() -> None:
             verdicts.append(f"- {name}: DC {means[-1]:.3f} at c/{args.fractions[-1]}; change from "
                             f"c/{args.fractions[-2]}: {change:+.4f} ({'within' if abs(change) <= 0.02 else 'outside'} ±0.02)")
     command = (f"python bench/drape.py --device {args.device} --materials {' '.join(args.materials)} --fractions "
-               f"{' '.join(map(str, args.fractions))} --seeds {' '.join(map(str, args.seeds))} --hinges {args.hinges}")
+               f"{' '.join(map(str, args.fractions))} --seeds {' '.join(map(str, args.seeds))} --hinges {args.hinges} "
+               f"--contact-radius {args.contact_radius}")
     text = "\n".join([
-        f"## Cusick drape coefficient against resolution ({args.hinges} hinges)",
+        f"## Cusick drape coefficient against resolution ({args.hinges} hinges, contact radius "
+        f"{args.contact_radius or 'spacing/4'})",
         "",
         f"`{command}` — {device.name} ({device.alias}), Warp {wp.config.version}, {datetime.date.today()}",
         "",
@@ -103,7 +110,7 @@ def main() -> None:
         *verdicts,
     ])
     print(text)
-    write_section(f"drape-{args.hinges}-{device.alias.replace(':', '')}", text)
+    write_section(f"drape-{args.hinges}-r{args.contact_radius:g}-{device.alias.replace(':', '')}", text)
 
 
 if __name__ == "__main__":

@@ -108,8 +108,8 @@ def test_d1388_simulated_overhang_matches_the_elastica(device):
     converging at second order (the error shrinks 3.9×; asserted > 3×).
 
     With the triangles' own hinges and no rigid-side rule the same strips came out -13.0 % and -9.9 % short
-    (-18.5 % at 4 cells, -8.3 % at 32), converging at first order to -7.2 % = 0.8^⅓ - 1: a strip free to
-    twist bent with 0.8 D, and the clamp acted half a cell behind its edge (``grid_hinges``)."""
+    (-18.5 % at 4 cells, -8.3 % at 32), converging at first order towards about -7.2 % = 0.8^⅓ - 1: a strip
+    free to twist bent with 0.8 D, and the clamp acted half a cell behind its edge (``grid_hinges``)."""
     coarse, fine = (d1388.simulate(MATERIAL, cells=cells, device=device) for cells in (8, 16))
     print(f"overhang {coarse.overhang * 1e3:.3f}, {fine.overhang * 1e3:.3f} mm, elastica "
           f"{fine.reference * 1e3:.3f} mm: errors {coarse.error:+.2%}, {fine.error:+.2%}")
