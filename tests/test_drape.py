@@ -73,13 +73,13 @@ def test_count_folds_of_a_wavy_hem(folds):
 @pytest.mark.slow
 def test_a_coarse_drape_settles_and_repeats_exactly():
     """The drape study's cloth at a spacing of its bending length (15.8 mm, 305 particles), CPU: it settles
-    (kinetic energy below 1e-6 J for 0.1 s, measured within 0.4 s of simulated time), folds, and the same
+    (kinetic energy below 1e-6 J and no particle moving 0.1 mm in 0.1 s, within 2 s), folds, and the same
     start gives the same drape coefficient to the last bit (no float atomics on the path to the positions).
     Measured DC 0.354 with 12 folds; what it converges to is bench/drape.py's business (c/2 … c/8).
     (Slow: ~20 s on a loaded CPU.)"""
     c = (MATERIAL.bending / (MATERIAL.density * 9.81)) ** (1.0 / 3.0)
     first, again = (drape.cusick(MATERIAL, spacing=c, seed=3, max_time=2.0, device="cpu") for _ in range(2))
-    assert first.kinetic_energy < 1e-6 and first.time < 2.0
+    assert first.kinetic_energy < 1e-6 and first.creep < 1e-4 and first.time < 2.0
     assert first.coefficient == again.coefficient and first.folds == again.folds
     assert first.folds >= 3  # a drape with folds, not a flat disc or a cone
     disc = math.pi * 0.09**2
