@@ -233,8 +233,8 @@ def test_old_constant_springs_converge_slower(device):
 
 def test_material_grid_has_the_documented_masses_springs_and_hinges():
     """5 × 4 particles, spacing 0.1 m: masses sum to density × area (dual cells), structural springs on the
-    outer rows/columns at half stiffness, shear springs on both diagonals, no skip-one bend springs, one flat
-    hinge per interior edge (k_θ = D on row/column edges, 2D on diagonals), damping τ × stiffness."""
+    outer rows/columns at half stiffness, shear springs on both diagonals, no skip-one bend springs, two
+    crossed flat hinges per interior row and column edge (``grid_hinges``), damping τ × stiffness."""
     material = ws.ClothMaterial(stretch=2.0e3, shear=150.0, bending=4.0e-5, density=0.2,
                                 stretch_damping=3.0, bending_damping=2.0e-6)
     nx, ny, a = 5, 4, 0.1
@@ -259,15 +259,19 @@ def test_material_grid_has_the_documented_masses_springs_and_hinges():
     np.testing.assert_allclose(kd, material.stretch_damping / material.stretch * expected, rtol=1e-12)
     assert outer.sum() == 2 * (nx - 1) + 2 * (ny - 1)
 
-    edges = ny * (nx - 1) + nx * (ny - 1) + (nx - 1) * (ny - 1)
-    assert model.hinge_count == edges - 2 * (nx - 1) - 2 * (ny - 1)
+    # Two crossed hinges (k_θ = D/2) on every interior row and column edge, none on the diagonals. One pinned
+    # row holds no rigid triangle, so no hinge is doubled (tests/test_d1388.py tests a clamp's doubling).
+    assert model.hinge_count == 2 * ((nx - 2) * (ny - 1) + (ny - 2) * (nx - 1))
     hinges = model.hinge_indices.numpy()
-    q = model.particle_q.numpy()
-    along_diagonal = np.isclose(np.linalg.norm(q[hinges[:, 1]] - q[hinges[:, 0]], axis=1), a * math.sqrt(2.0))
+    rc = np.argwhere(grid >= 0)[hinges.ravel()].reshape(-1, 4, 2)  # (row, column) of each hinge particle
+    edge_step = np.abs(rc[:, 1] - rc[:, 0]).sum(axis=1)
+    assert np.all(edge_step == 1)  # no diagonal edges
+    wings = rc[:, 3] - rc[:, 2]  # the wings sit across the edge, one diagonal step apart each way
+    assert np.all(np.abs(wings).max(axis=1) == 2) and np.all(np.abs(wings).min(axis=1) == 1)
     k_theta = model.hinge_stiffness.numpy()[0]
-    np.testing.assert_allclose(k_theta, np.where(along_diagonal, 2.0, 1.0) * material.bending, rtol=1e-9)
+    np.testing.assert_allclose(k_theta, 0.5 * material.bending, rtol=1e-12)
     np.testing.assert_allclose(model.hinge_damping.numpy()[0],
-                               material.bending_damping / material.bending * k_theta, rtol=1e-9)
+                               material.bending_damping / material.bending * k_theta, rtol=1e-12)
     assert not model.hinge_rest_angle.numpy().any()
 
 

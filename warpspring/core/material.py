@@ -69,23 +69,48 @@ class ClothMaterial:
             object.__setattr__(self, f.name, value)
 
 
-# Presets. KES (Kawabata) units convert as 1 gf·cm²/cm = 9.81e-5 N·m (bending B), 1 gf/(cm·deg) = 56.2 N/m
-# (shear G), and a strain EMT at 500 gf/cm = 490 N/m gives the secant E·t ≈ 490 N/m / EMT. Woven fabrics
-# are non-linear (soft at first, stiffening as the crimp straightens): these are secant values to 500 gf/cm.
-#: Cotton shirting, ~130 g/m²: representative KES values (B ≈ 0.05 gf·cm²/cm, G ≈ 0.9 gf/(cm·deg),
-#: EMT ≈ 10 %).
+#: KES (Kawabata) units in SI: bending B [gf·cm²/cm → N·m], shear G [gf/(cm·deg) → N/m per rad], and the
+#: load 500 gf/cm [N/m] at which the strain EMT is measured.
+KES_BENDING = 9.80665e-3 * 1.0e-4 / 1.0e-2
+KES_SHEAR = 9.80665e-3 / 1.0e-2 * 180.0 / math.pi
+KES_EMT_LOAD = 500.0 * 9.80665e-3 / 1.0e-2
+
+
+def kes_material(*, bending: float, shear: float, emt: float, density: float) -> ClothMaterial:
+    """A :class:`ClothMaterial` from Kawabata (KES-F) values: B [gf·cm²/cm], G [gf/(cm·deg)], EMT [%] (strain at
+    500 gf/cm) and areal density [kg/m²]. Woven fabrics are non-linear (soft at first, stiffening as the crimp
+    straightens): ``stretch`` is the secant 500 gf/cm / EMT, not the initial slope."""
+    return ClothMaterial(stretch=KES_EMT_LOAD / (checks.positive("emt [%]", emt) / 100.0),
+                         shear=KES_SHEAR * shear, bending=KES_BENDING * bending, density=density)
+
+
+#: Cotton shirting, ~130 g/m²: representative values, NOT from a measurement of one fabric (B ≈ 0.05
+#: gf·cm²/cm, G ≈ 0.9 gf/(cm·deg), EMT ≈ 10 %); no retrievable source found (``PRESET_SOURCES``).
 COTTON = ClothMaterial(stretch=5.0e3, shear=50.0, bending=5.0e-6, density=0.13)
-#: A light silk-like woven (charmeuse, ~16 momme ≈ 70 g/m²): representative (B ≈ 0.01 gf·cm²/cm,
-#: G ≈ 0.35 gf/(cm·deg)).
+#: A light silk-like woven (charmeuse, ~16 momme ≈ 70 g/m²): representative, NOT measured (B ≈ 0.01
+#: gf·cm²/cm, G ≈ 0.35 gf/(cm·deg)); no retrievable source found.
 SILK = ClothMaterial(stretch=2.0e3, shear=20.0, bending=1.0e-6, density=0.07)
-#: Denim, 12 oz/yd² ≈ 0.41 kg/m²: KES of six denims in Hindawi J. Textiles 2016 (art. 4614168, table 5):
-#: B = 0.14-0.23 gf·cm²/cm, G = 1.5-3.4 gf/(cm·deg), EMT = 4.7-5.7 %.
-DENIM = ClothMaterial(stretch=1.0e4, shear=120.0, bending=2.0e-5, density=0.41)
+#: Denim: fabric A of Kumari & Khurana, "Regenerated cellulose-based denim fabric for tropical regions",
+#: J. Textiles 2016, art. 4614168, table 5 (KES-F: B = 0.172 gf·cm²/cm, G = 2.180 gf/(cm·deg),
+#: EMT = 5.515 %); density 0.41 kg/m² (12 oz/yd²) NOT from that table (see ``PRESET_SOURCES``).
+DENIM = kes_material(bending=0.172, shear=2.180, emt=5.515, density=0.41)
 #: Natural-rubber sheet 1 mm thick: E = 1.5 MPa, ν = 0.5, 930 kg/m³ (handbook values): E·t = 1.5e3 N/m,
 #: G·t = E·t / 2(1+ν), D = E t³ / 12(1-ν²). Isotropic: on a grid it keeps E and G but gets ν ≈ 0.30.
 RUBBER_SHEET = ClothMaterial(stretch=1.5e3, shear=5.0e2, bending=1.5e-3 / 9.0, density=0.93)
 #: The presets by name (for scene files and the command line).
 PRESETS = {"cotton": COTTON, "silk": SILK, "denim": DENIM, "rubber_sheet": RUBBER_SHEET}
+#: Where each preset's values come from, field by field ("none found" where no retrievable measurement was).
+PRESET_SOURCES = {
+    "cotton": {"all": "none found: representative values, not a measurement of one fabric"},
+    "silk": {"all": "none found: representative values, not a measurement of one fabric"},
+    "denim": {
+        "bending, shear, stretch": "https://www.hindawi.com/journals/jtex/2016/4614168/tab5/ (fabric A, KES-F)",
+        "density": "none found: 12 oz/yd², the usual weight of jeans denim; the same table's weight row reads "
+                   "104 mg/cm² (1.04 kg/m²), which with its 1.07 mm thickness is 975 kg/m³, implausible for "
+                   "denim, so it is not used",
+    },
+    "rubber_sheet": {"all": "handbook values of natural rubber (E = 1.5 MPa, ν = 0.5, 930 kg/m³), 1 mm thick"},
+}
 
 
 class GridSprings(NamedTuple):
@@ -118,8 +143,8 @@ def grid_springs(material: ClothMaterial) -> GridSprings:
     the returned values makes the total stiffness exact (with full values the sheet's structural
     stiffness k_s is too high by 1/(n-1): 7 % at 16², 1.6 % at 64²). Diagonals need no correction.
 
-    Bending is not a spring here: use dihedral hinges on the grid's triangles (:func:`hinge_parameters`)
-    and no skip-one bend springs. Masses: :func:`grid_masses`.
+    Bending is not a spring here: use the grid's crossed hinges (:func:`grid_hinges`) and no skip-one bend
+    springs. Masses: :func:`grid_masses`.
 
     Returns:
         :class:`GridSprings`; damping kd = (stretch_damping / stretch) · ke (see the module docstring).
@@ -130,20 +155,38 @@ def grid_springs(material: ClothMaterial) -> GridSprings:
     return GridSprings(k_structural, k_shear, tau * k_structural, tau * k_shear)
 
 
-def grid_masses(material: ClothMaterial, nx: int, ny: int, spacing: float) -> np.ndarray:
+def grid_masses(material: ClothMaterial, nx: int, ny: int, spacing: float, *, cells=None) -> np.ndarray:
     """Particle masses of an nx × ny grid with ``spacing`` [m]: density × the particle's dual cell.
 
     Interior particles carry a², edge particles a²/2, corners a²/4 (symmetric, unlike the 1/3-of-triangles
     rule of :func:`lumped_masses` on the grid's triangulation, which weighs two corners twice the others).
+    With ``cells`` (a grid trimmed to a shape), each particle carries a²/4 for each present cell it touches.
+
+    Args:
+        cells: optional boolean mask of the cells present, shape [ny-1, nx-1] (cell (r, c) spans rows r, r+1
+            and columns c, c+1); default all.
 
     Returns:
-        Masses [kg], shape [ny·nx], index r·nx + c (row r, column c), summing to density·(nx-1)(ny-1)a².
+        Masses [kg], shape [ny·nx], index r·nx + c (row r, column c), summing to density·a² × the cells.
     """
     nx, ny = checks.count("nx", nx, minimum=2), checks.count("ny", ny, minimum=2)
     spacing = checks.positive("spacing", spacing)
-    wx, wy = np.ones(nx), np.ones(ny)
-    wx[[0, -1]] = wy[[0, -1]] = 0.5
-    return (material.density * spacing**2 * np.outer(wy, wx)).ravel()
+    present = _cell_mask(cells, nx, ny)
+    share = np.zeros((ny, nx))
+    for dr in (0, 1):
+        for dc in (0, 1):
+            share[dr:dr + ny - 1, dc:dc + nx - 1] += present
+    return (material.density * spacing**2 * 0.25 * share).ravel()
+
+
+def _cell_mask(cells, nx: int, ny: int) -> np.ndarray:
+    if cells is None:
+        return np.ones((ny - 1, nx - 1), dtype=bool)
+    mask = np.asarray(cells)
+    if mask.shape != (ny - 1, nx - 1) or mask.dtype != bool:
+        raise ConfigError(f"cells must be a boolean mask of shape [ny-1, nx-1] = [{ny - 1}, {nx - 1}], "
+                          f"got {mask.dtype} {mask.shape}")
+    return mask
 
 
 def edge_springs(material: ClothMaterial, vertices, faces, edges) -> tuple[np.ndarray, np.ndarray]:
@@ -238,6 +281,66 @@ def hinge_parameters(material: ClothMaterial, vertices, hinges) -> tuple[np.ndar
         raise ConfigError(f"hinge {int(flat[0])} has two triangles of zero area: remove degenerate faces")
     k_theta = material.bending * np.sum(edge**2, axis=1) / areas
     return k_theta, (material.bending_damping / material.bending) * k_theta
+
+
+def grid_hinges(material: ClothMaterial, nx: int, ny: int, *, pinned=None,
+                cells=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bending hinges of an nx × ny grid (particle r·nx + c at column c, row r): two crossed hinges on every
+    interior row and column edge, none on the diagonals, which bend the grid as an isotropic plate.
+
+    The hinges of the grid's own triangles (one diagonal per cell, :func:`hinge_parameters`) store, for a
+    curvature tensor (A, B, C) = (κ_xx, κ_xy, κ_yy), ½ D ((A + B)² + (B + C)² + 4 B²) per unit area: a column
+    edge folds by a|A + B| because its two wings sit on different rows. Bending and twist are then coupled: a
+    strip free to twist (any cloth not held along its sides) relieves its bending by twisting, B = -A/5, and
+    bends with 4/5 of D (measured: a D1388 cantilever's overhang, -13.0, -9.9, -8.3 % at 8, 16, 32 cells,
+    tends to about the -7.2 % = 0.8^⅓ - 1 of a 0.8 D strip), and the stiffness depends on the direction
+    (1 to 3 × D).
+
+    Here each interior column edge (r, c)-(r+1, c) carries two hinges, wings (r, c-1) & (r+1, c+1) and
+    (r+1, c-1) & (r, c+1), which fold by a|A + B| and a|A - B|; each row edge likewise with a|C + B| and
+    a|C - B|. With k_θ = D/2 on each the energy per unit area is exactly
+    ½ D/2 ((A + B)² + (A - B)² + (C + B)² + (C - B)²) = ½ D (A² + C² + 2 B²) = ½ D |κ|²:
+    the isotropic plate of Poisson's ratio 0 (woven cloth's bending ν is near 0), the same in every
+    direction, with twist stiffness, and independent of the spacing.
+
+    Rigid side: a hinge whose edge and one wing are all in ``pinned`` has that wing's triangle rigid, so all of
+    its fold belongs to the free half of its dual area: k_θ = D (twice). Without this a clamped edge acts as
+    if it were half a cell behind the last pinned row, an error of order spacing (measured: a cantilever of
+    the elastica's D1388 overhang over 4, 8, 16, 32 cells has its chord at 54.0, 48.2, 44.9, 43.2° instead of
+    41.5°; with the rule 43.4, 42.0, 41.6, 41.5°, second order).
+
+    Args:
+        nx, ny: particles per row and per column (≥ 2).
+        pinned: optional boolean mask of pinned particles, shape [ny·nx].
+        cells: optional boolean mask of the cells present (see :func:`grid_masses`): an edge gets its hinges
+            when both cells beside it are present.
+
+    Returns:
+        ``(hinges, k_theta, kd_theta)``: local particle indices [h, 4] (edge x0 → x1, wings x2 and x3 wound as
+        the grid's faces, normals along the grid's +z), stiffness [N·m/rad] and damping [N·m·s/rad], shape [h].
+    """
+    nx, ny = checks.count("nx", nx, minimum=2), checks.count("ny", ny, minimum=2)
+    g = np.arange(nx * ny).reshape(ny, nx)
+    present = _cell_mask(cells, nx, ny)
+    blocks = []
+    if nx > 2:  # column edges (r, c) → (r+1, c), 0 < c < nx-1: wings at columns c-1 (x2) and c+1 (x3)
+        x0, x1 = g[:-1, 1:-1], g[1:, 1:-1]
+        both = present[:, :-1] & present[:, 1:]
+        blocks += [np.stack([x0, x1, g[:-1, :-2], g[1:, 2:]], -1)[both], np.stack([x0, x1, g[1:, :-2], g[:-1, 2:]], -1)[both]]
+    if ny > 2:  # row edges (r, c) → (r, c+1), 0 < r < ny-1: wings at rows r+1 (x2) and r-1 (x3)
+        x0, x1 = g[1:-1, :-1], g[1:-1, 1:]
+        both = present[:-1, :] & present[1:, :]
+        blocks += [np.stack([x0, x1, g[2:, :-1], g[:-2, 1:]], -1)[both], np.stack([x0, x1, g[2:, 1:], g[:-2, :-1]], -1)[both]]
+    hinges = np.concatenate(blocks) if blocks else np.zeros((0, 4), np.int64)
+    k = np.full(len(hinges), 0.5 * material.bending)
+    if pinned is not None:
+        fixed = np.asarray(pinned, dtype=bool).ravel()
+        if fixed.shape != (nx * ny,):
+            raise ConfigError(f"pinned must be a mask of nx·ny = {nx * ny} particles, got shape {fixed.shape}")
+        edge = fixed[hinges[:, 0]] & fixed[hinges[:, 1]]
+        rigid_side = edge & (fixed[hinges[:, 2]] ^ fixed[hinges[:, 3]])
+        k[rigid_side] *= 2.0
+    return hinges, k, (material.bending_damping / material.bending) * k
 
 
 def lumped_masses(material: ClothMaterial, vertices, faces) -> np.ndarray:

@@ -15,7 +15,8 @@ from ...errors import ConfigError
 from .. import memory
 from ..bending import DihedralMaterial
 from ..hinges import mesh_hinges
-from ..material import ClothMaterial, edge_springs, grid_masses, grid_springs, hinge_parameters, lumped_masses
+from ..material import (ClothMaterial, edge_springs, grid_hinges, grid_masses, grid_springs, hinge_parameters,
+                        lumped_masses)
 from ..mesh_files import USD_EXTENSIONS, load_mesh_file, read_usd_mesh
 from ..records import MeshGroup
 from .arguments import RESERVED_PRIM_NAMES, _indices, _points
@@ -135,8 +136,9 @@ class ClothRecipes:
         :func:`~warpspring.core.material.grid_masses` (density × each particle's dual cell), structural and
         shear springs from :func:`~warpspring.core.material.grid_springs` (structural springs along the
         outer rows and columns at half stiffness and damping: each spans half a cell), no skip-one bend
-        springs, and dihedral hinges on every interior edge of the triangles with
-        :func:`~warpspring.core.material.hinge_parameters` and rest angle 0 (flat).
+        springs, and two crossed hinges on every interior row and column edge with rest angle 0 (flat), which
+        bend it as an isotropic plate (:func:`~warpspring.core.material.grid_hinges`; a hinge with one side
+        in a pinned region twice as stiff).
 
         Args:
             nx, ny: particles per row and per column (≥ 2).
@@ -184,12 +186,13 @@ class ClothRecipes:
         rows, cols = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
         local = np.stack([cols * spacing, rows * spacing, np.zeros_like(rows, dtype=float)], axis=-1).reshape(-1, 3)
         q = self._place(local, origin, rotation)
+        pinned = self._grid_pins(pin, nx, ny)
         ids = self.add_particles(
             q,
             velocities=np.broadcast_to(checks.vector("velocity", velocity), (n, 3)),
             mass=m,
             radius=0.25 * spacing if radius is None else radius,
-            pinned=self._grid_pins(pin, nx, ny),
+            pinned=pinned,
         )
         grid = ids.reshape(ny, nx)
         self._cloth_grids.append((int(ids[0]), nx, ny))
@@ -226,7 +229,8 @@ class ClothRecipes:
         quads = np.stack([a, b, c, d], 1)  # written to USD as quads, as a modeller would make the grid
         self.add_triangles(faces, name=name, uvs=uv, polygon_counts=np.full(len(quads), 4), polygon_indices=quads)
         if material is not None:
-            self._add_mesh_hinges(q, faces - ids[0], ids, material, rest="flat")
+            hinges, k_theta, kd_theta = grid_hinges(material, nx, ny, pinned=pinned)
+            self.add_hinges(ids[hinges], stiffness=k_theta, damping=kd_theta, rest_angle=0.0)
         elif dihedral is not None:
             self._add_mesh_hinges(q, faces - ids[0], ids, dihedral)
         return grid
