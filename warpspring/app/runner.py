@@ -124,8 +124,9 @@ def scene_output_path(scene: Scene) -> str | None:
     """The output a scene names itself (``[output] path``), as a path to write, or ``None`` when it names none.
 
     A scene file may come from anyone, so its output stays home: a relative path is taken in the scene file's
-    folder (not the working directory), and an absolute path, a ``..`` that climbs out of the folder, or a
-    symbolic link that leads out of it is refused. Only the command line (``-o``) writes elsewhere.
+    folder (not the working directory), and a path that leaves that folder is refused: an absolute path
+    elsewhere, a ``..`` that climbs out, a symbolic link (a folder or the file) that leads out. Only the
+    command line (``-o``) writes elsewhere.
 
     Raises:
         ConfigError: the path leaves the scene's folder (one line naming the scene, the path and the remedy).
@@ -138,14 +139,18 @@ def scene_output_path(scene: Scene) -> str | None:
     home = os.path.dirname(os.path.abspath(scene_file)) if scene_file and os.path.isfile(scene_file) else os.getcwd()
     where = f"{os.path.basename(scene_file) if scene_file else 'the scene'}: [output] path = {path!r}"
     remedy = "a scene writes only inside its own folder; pass -o to write elsewhere"
-    if os.path.isabs(path):
-        raise ConfigError(f"{where} is absolute: {remedy}")
     real_home = os.path.realpath(home)
-    joined = os.path.join(home, path)
-    real = os.path.realpath(joined)  # every symbolic link followed, as the OS will
-    if os.path.commonpath([real_home, real]) != real_home:
-        climbs = os.pardir in path.replace("\\", "/").split("/")
-        how = "climbs out of" if climbs else "leads (through a symbolic link) out of"
+    joined = os.path.join(home, path)  # an absolute path stays as it is; realpath follows links as the OS will
+    def inside(where_to: str) -> bool:
+        return os.path.commonpath([real_home, os.path.realpath(where_to)]) == real_home
+
+    if not inside(joined):
+        if os.path.isabs(path) and not inside(os.path.dirname(path)):
+            how = "is an absolute path outside"
+        elif os.pardir in path.replace("\\", "/").split("/"):
+            how = "climbs out of"
+        else:
+            how = "leads (through a symbolic link) out of"
         raise ConfigError(f"{where} {how} the scene's folder {home}: {remedy}")
     return os.path.join(os.path.realpath(os.path.dirname(joined)), os.path.basename(joined))
 

@@ -19,10 +19,10 @@ A save that fails (a full disk, the file or its folder removed) raises
 :class:`~warpspring.errors.OutputError`, one line naming the frame and the OS's reason (USD's own errors often
 carry none, or quote it in words: the OS's reason is then given alone, "No space left on device [ENOSPC]",
 without USD's noise after it such as "crate file corrupt" about the temporary file; else the file system is
-examined for one). The root's ``endTimeCode`` is the last frame on disk at every moment (the start before
-the first frame is saved, and after a failed save the last frame saved). The file keeps every frame saved before it, a valid
-stage through its frames folder, and the writer drops the unsaved frame instead of trying to save it again on
-close.
+examined for one). The file keeps every frame saved before it, a valid stage through its frames folder, and
+the writer drops the unsaved frame instead of trying to save it again on close. The root's ``endTimeCode`` is
+the last frame on disk at every moment (the start before the first frame is saved; after a failed save, the
+last frame saved).
 
 One run owns an output: the writer holds an advisory lock (``flock``) on ``out.usdc.lock`` beside the file,
 which names its process (its PID is written in it), from before it reads or removes anything of the output until
