@@ -596,23 +596,29 @@ def read_frames(path: str, frames: int, start_frame: int) -> list:
     if not os.path.isfile(path):
         raise ConfigError(f"cannot resume into {path!r}: the file is missing (resume writes into the stopped run's "
                           "output: pass the same -o)")
+    said: list = []
     try:
-        layer = Sdf.Layer.FindOrOpen(path)
-        if layer is not None:
-            layer.Reload()
-        stage = Usd.Stage.Open(layer if layer is not None else path)
+        with Tf.DiagnosticTrap() as trap:  # USD's warnings (a clip it cannot open) go into the error, or nowhere
+            try:
+                layer = Sdf.Layer.FindOrOpen(path)
+                if layer is not None:
+                    layer.Reload()
+                stage = Usd.Stage.Open(layer if layer is not None else path)
+                kept, last = [], -1.0
+                end = start_frame + frames
+                for prim in stage.Traverse():
+                    for attribute in prim.GetAttributes():
+                        times = attribute.GetTimeSamples()
+                        last = max([last, *times])
+                        times = [t for t in times if start_frame <= t < end]
+                        if times:
+                            kept.append((attribute.GetPath(), [(t, attribute.Get(Usd.TimeCode(t))) for t in times]))
+                del stage
+            finally:
+                said = _trapped(trap)
     except Tf.ErrorException as exc:
-        raise ConfigError(f"cannot resume into {path!r}: USD cannot read it ({_reason(exc) or 'no reason'})") from None
-    kept, last = [], -1.0
-    end = start_frame + frames
-    for prim in stage.Traverse():
-        for attribute in prim.GetAttributes():
-            times = attribute.GetTimeSamples()
-            last = max([last, *times])
-            times = [t for t in times if start_frame <= t < end]
-            if times:
-                kept.append((attribute.GetPath(), [(t, attribute.Get(Usd.TimeCode(t))) for t in times]))
-    del stage
+        raise ConfigError(f"cannot resume into {path!r}: USD cannot read it "
+                          f"({_reason(exc, said) or 'no reason'})") from None
     held = int(last) + 1 - start_frame
     if held < frames:
         raise ConfigError(f"cannot resume into {path!r}: it holds frames 0..{held - 1}, the checkpoint continues "
