@@ -22,7 +22,8 @@ PURPOSES = ("guide", "default", "render", "proxy")
 class UsdPrims:
     """Prim definitions of :class:`~warpspring.io.usd.UsdWriter`, a base of it: the writer holds ``stage`` (the
     static stage), ``model``, the pxr modules (``_UsdGeom``, ``_Vt``, ``_Gf``), the chosen ``_primvars``,
-    ``_purpose`` and ``_tile``, and :meth:`~warpspring.io.usd_stream.UsdStream._animate` to register the
+    ``_purpose`` and ``_tile``, ``_previous_normals`` (the normals written last, by attribute: the fallback of a
+    vertex whose faces cancel or have no area, :func:`fallback_normals`), and :meth:`~warpspring.io.usd_stream.UsdStream._animate` to register the
     attributes sampled per frame."""
 
     def _define_polygon_mesh(self, path: str, group):

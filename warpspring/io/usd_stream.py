@@ -107,6 +107,7 @@ class UsdStream:
         Raises:
             ConfigError: something could not be written (what was written is removed).
         """
+        said: list = []
         try:
             with self._Tf.DiagnosticTrap() as trap:
                 try:
