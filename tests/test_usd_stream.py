@@ -171,7 +171,8 @@ def test_a_killed_runs_file_can_be_resumed_into(tmp_path):
     for k in range(5):
         state.particle_q.assign((q0 + k * step).astype(np.float32))
         writer.write_frame(state)
-    writer._reaper.finish()  # as if the process had died here: no close, no packing
+    writer._reaper.finish()  # as if the process had died here: no close, no packing, the output's lock let go
+    writer._lock.release()
     assert (tmp_path / "killed.usdc.frames").is_dir()
     with UsdWriter(path, model, fps=60, start_frame=1, keep_frames=3) as resumed:
         for k in range(3, 6):

@@ -3,10 +3,14 @@
 Errors a user can fix (a missing file, a malformed scene, a bad option, a model too large for the memory,
 an unstable run, a full disk) end with one line on stderr and a non-zero exit status, never a traceback:
 
-* 2 (:data:`EXIT_CONFIG`): bad input, or a model that does not fit in memory;
+* 2 (:data:`EXIT_CONFIG`): bad input, or a model that does not fit in memory; also an output another run is
+  writing (the line names its process: ``the USD output 'out.usdc' is being written by another run (process
+  1234); ...``) and a scene's ``[output] path`` that leads out of the scene's folder;
 * 3 (:data:`EXIT_SIMULATION`): a simulation that went numerically bad (a guard stop);
 * 4 (:data:`EXIT_IO`): an output that cannot be written (a full disk, a file removed mid-run), with the OS's
-  reason; a USD file keeps every frame written before;
+  reason (``cannot write frame 17 to the USD file 'out.usdc': No space left on device [ENOSPC]; the file holds
+  frames 0..16``; USD's own diagnostics are folded into that line, never printed beside it); a USD file keeps
+  every frame written before;
 * 5 (:data:`EXIT_NO_CHOICE`): ``warpspring choose`` found no measured configuration that meets the error target
   within the budget (it still prints the closest one and what to change).
 * 6 (:data:`EXIT_AUDIT`): ``warpspring audit`` found a surface passing through itself (or, with --thickness,
@@ -109,7 +113,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="simulate a TOML scene and write the animation to USD")
     run.add_argument("scene", help="scene file (.toml); see examples/")
-    run.add_argument("-o", "--output", help="output USD file (.usdc, or .usda for text); default: the scene's")
+    run.add_argument("-o", "--output",
+                     help="output USD file (.usdc, or .usda for text), written as given; default: the scene's "
+                          "[output] path, taken in the scene file's folder and refused if it leads out of it "
+                          "(absolute, '..', a symbolic link). One run owns an output: while it writes, it holds a "
+                          "lock on OUT.lock beside it (naming its process), and another run on the same output "
+                          "exits with status 2")
     run.add_argument("--device", help="Warp device: cpu, cuda:0, ... (default: the scene's, else Warp's default)")
     run.add_argument("--frames", type=_positive_int, help="frames to simulate")
     run.add_argument("--fps", type=_positive_float, help="frames per second [1/s]")

@@ -14,7 +14,7 @@ from ..core.integrators import make_integrator
 from ..io.scene import Scene
 from ..io.scene_checks import check_run_settings
 from ..io.usd import UsdWriter
-from ..io.usd_stream import check_output_path
+from ..io.usd_stream import OutputLock, check_output_path
 from ..core.mesh_colliders import mesh_cache_counts
 from ..core.simulator import Simulator
 from ..analysis.advisor import advise, diagnose
@@ -120,6 +120,41 @@ def checkpoint_path(output: str) -> str:
     return os.path.splitext(output)[0] + ".checkpoint.npz"
 
 
+def scene_output_path(scene: Scene) -> str | None:
+    """The output a scene names itself (``[output] path``), as a path to write, or ``None`` when it names none.
+
+    A scene file may come from anyone, so its output stays home: a relative path is taken in the scene file's
+    folder (not the working directory), and a path that leaves that folder is refused: an absolute path
+    elsewhere, a ``..`` that climbs out, a symbolic link (a folder or the file) that leads out. Only the
+    command line (``-o``) writes elsewhere.
+
+    Raises:
+        ConfigError: the path leaves the scene's folder (one line naming the scene, the path and the remedy).
+    """
+    path = scene.output
+    if not path:
+        return None
+    path = os.fspath(path)
+    scene_file = getattr(scene, "path", None)
+    home = os.path.dirname(os.path.abspath(scene_file)) if scene_file and os.path.isfile(scene_file) else os.getcwd()
+    where = f"{os.path.basename(scene_file) if scene_file else 'the scene'}: [output] path = {path!r}"
+    remedy = "a scene writes only inside its own folder; pass -o to write elsewhere"
+    real_home = os.path.realpath(home)
+    joined = os.path.join(home, path)  # an absolute path stays as it is; realpath follows links as the OS will
+    def inside(where_to: str) -> bool:
+        return os.path.commonpath([real_home, os.path.realpath(where_to)]) == real_home
+
+    if not inside(joined):
+        if os.path.isabs(path) and not inside(os.path.dirname(path)):
+            how = "is an absolute path outside"
+        elif os.pardir in path.replace("\\", "/").split("/"):
+            how = "climbs out of"
+        else:
+            how = "leads (through a symbolic link) out of"
+        raise ConfigError(f"{where} {how} the scene's folder {home}: {remedy}")
+    return os.path.join(os.path.realpath(os.path.dirname(joined)), os.path.basename(joined))
+
+
 def run_scene(
     scene: Scene,
     *,
@@ -152,12 +187,18 @@ def run_scene(
     a checkpoint: the output's frames up to the checkpoint's are kept and the run goes on from there to
     ``frames``, bit for bit as the uninterrupted run on the same device.
 
+    ``output`` (the command line's ``-o``) is used as given. Without it the scene's ``[output] path`` is used,
+    which must stay in the scene file's folder (:func:`scene_output_path`). The run owns its output from
+    before the model is built until the file is packed (:class:`~warpspring.io.usd_stream.OutputLock`): a run
+    on an output another run is writing is refused at once.
+
     With ``[guard] stop = "world"`` a world that fails a guard check is held and the others go on: the
     world gets no samples from the failing frame on, its failure goes to ``warn`` at once and is listed in
     :attr:`RunSummary.world_failures`. The run fails only when every world has failed.
 
     Raises:
-        ConfigError: bad scene or options, or (``strict``) an unstable step; nothing is written.
+        ConfigError: bad scene or options, a scene's output path that leaves its folder, an output another run
+            is writing (naming its process), or (``strict``) an unstable step; nothing is written.
         SimulationError: the state became non-finite (in every world, with ``stop = "world"``); the file
             holds every frame before that one.
     """
@@ -165,10 +206,22 @@ def run_scene(
     fps = scene.fps if fps is None else fps
     substeps = scene.substeps if substeps is None else substeps
     check_run_settings(fps=fps, frames=frames, substeps=substeps)
-    output = output or scene.output
+    output = output or scene_output_path(scene)
     if not output:
         raise ConfigError("no output file: pass -o out.usdc or set [output] path in the scene")
     output = check_output_path(output)  # fail before the model is built and the kernels compiled
+    lock = OutputLock(output)  # this run owns the output: another run writing it is refused now, not later
+    try:
+        return _run(scene, output=output, lock=lock, device=device, frames=frames, fps=fps, substeps=substeps,
+                    progress=progress, strict=strict, warn=warn, world=world, world_spacing=world_spacing,
+                    world_columns=world_columns, watch=watch, checkpoint_every=checkpoint_every, resume=resume)
+    finally:
+        lock.release()
+
+
+def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fps: float, substeps: int, progress,
+         strict, warn, world, world_spacing, world_columns, watch, checkpoint_every, resume) -> RunSummary:
+    """:func:`run_scene` once its output is checked and owned (``lock`` held)."""
     world = scene.export_world if world is None else world
     if world is not None and world >= scene.world_count:
         raise ConfigError(f"cannot write world {world}: the scene has {scene.world_count} world(s), "
@@ -208,7 +261,8 @@ def run_scene(
 
     saved_at = os.path.abspath(checkpoint_path(output))
     with UsdWriter(output, model, fps=fps, particles=scene.export_particles, springs=scene.export_springs,
-                   keep_frames=start + 1 if resume is not None else 0, **scene.export_options, **export) as usd:
+                   keep_frames=start + 1 if resume is not None else 0, lock=lock, **scene.export_options,
+                   **export) as usd:
         if resume is None:
             usd.write_frame(sim.state)
         failures = sorted(sim.world_failures)

@@ -75,7 +75,7 @@ class Scene:
         integrator_options: keyword options of the integrator.
         precision: "float32" or "float64".
         device: Warp device name, or ``None`` for Warp's default.
-        output: output USD path (relative paths are relative to the working directory), or ``None``.
+        output: output USD path as the file gives it (a run takes it in the scene file's folder), or ``None``.
         export_particles, export_springs: also write particles / springs to USD.
         export_options: the ``[output]`` table's other options of :class:`~warpspring.io.usd.UsdWriter`
             (``primvars``, ``start_frame``, ``collider_purpose``), as given.

@@ -53,8 +53,8 @@ from ..core.state import State
 from ..errors import ConfigError, SimulationError
 from ..kernels.geometry import vertex_normal_kernel
 from ..kernels.kinematics import PARTICLE_KINEMATIC
-from .usd_prims import PRIMVARS, PURPOSES, UsdPrims, vec3_array
-from .usd_stream import STATIC_NAME, UsdStream, check_output_path, read_frames
+from .usd_prims import PRIMVARS, PURPOSES, UsdPrims, cancelled_vertices, fallback_normals, vec3_array
+from .usd_stream import STATIC_NAME, OutputLock, UsdStream, check_output_path, read_frames
 
 
 class UsdWriter(UsdPrims, UsdStream):
@@ -85,10 +85,15 @@ class UsdWriter(UsdPrims, UsdStream):
         keep_frames: keep the first ``keep_frames`` frames of the file already at ``path``, written by a run
             of the same scene and export options that stopped (or was killed), and append after them
             (``warpspring run --resume``); later samples of that file are dropped.
+        lock: the :class:`~warpspring.io.usd_stream.OutputLock` of ``path`` the caller holds (the runner takes it
+            before it builds the model, and releases it after :meth:`close`); ``None``: the writer takes it and
+            releases it when it closes. One run owns an output: while it is held, another writer of ``path``
+            (another process, or this one) is refused.
 
     Raises:
         ConfigError: a bad path, fps, world, spacing, column count, primvar name, start frame or purpose,
-            or (``keep_frames``) a file that is missing or holds fewer frames; nothing is written.
+            or (``keep_frames``) a file that is missing or holds fewer frames; nothing is written. Another run
+            writes ``path`` (the message names its process); nothing is touched.
     """
 
     def __init__(
@@ -106,6 +111,7 @@ class UsdWriter(UsdPrims, UsdStream):
         world_spacing: float | None = None,
         world_columns: int | None = None,
         keep_frames: int = 0,
+        lock: OutputLock | None = None,
     ):
         from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
@@ -136,6 +142,22 @@ class UsdWriter(UsdPrims, UsdStream):
             offsets = None
             roots = [(0 if world is None else world, "/World")]
         keep_frames = checks.count("keep_frames", keep_frames, minimum=0)
+        if lock is not None and (not lock.held or lock.output != path):
+            raise ValueError(f"the lock given is not a held lock of {path!r}")
+        self._owns_lock = lock is None
+        self._lock = OutputLock(path) if lock is None else lock  # this writer owns the output from here
+        try:
+            self._begin(path, ext, model, fps=fps, start_frame=start_frame, primvars=primvars,
+                        collider_purpose=collider_purpose, world=world, offsets=offsets, roots=roots,
+                        particles=particles, springs=springs, keep_frames=keep_frames)
+        except BaseException:
+            self._release()
+            raise
+
+    def _begin(self, path: str, ext: str, model: Model, *, fps, start_frame, primvars, collider_purpose, world,
+               offsets, roots, particles, springs, keep_frames) -> None:
+        """Read what a resume keeps, begin the file and define the static stage (the output's lock is held)."""
+        Usd, UsdGeom, Gf = self._Usd, self._UsdGeom, self._Gf
         kept = read_frames(path, keep_frames, start_frame) if keep_frames else None  # before the file is replaced
 
         self.model = model
@@ -158,6 +180,8 @@ class UsdWriter(UsdPrims, UsdStream):
             root.GetPrim().SetCustomDataByKey("warpspring:world", world)
         self.worlds = [w for w, _ in roots]
         self._stopped: dict[int, int] = {}
+        self._previous_normals: dict = {}  # normals attribute → the normals written last (fallbacks)
+        self._orphans = None  # cloth vertices whose triangles cancel in pairs (their normal is found on the host)
         self._slots = []
         for w, path_root in roots:
             if offsets is not None:
@@ -287,14 +311,25 @@ class UsdWriter(UsdPrims, UsdStream):
         self._vertex_tri_start = wp.array(start.astype(np.int32), dtype=wp.int32, device=device)
         self._vertex_tris = wp.array((order // 3).astype(np.int32), dtype=wp.int32, device=device)
         self._normals = wp.empty(model.state_size, dtype=wp.vec3f, device=device)
+        orphans = cancelled_vertices(tri)
+        if len(orphans):  # their triangles: those of any orphan, in order
+            self._orphans = (orphans, tri[np.isin(tri, orphans).any(axis=1)])
 
     def _vertex_normals(self, state: State) -> np.ndarray:
-        """Unit vertex normals of every particle, shape [state_size, 3] (those of exported worlds' meshes set)."""
+        """Unit vertex normals of every particle, shape [state_size, 3] (those of exported worlds' meshes set).
+        A vertex whose triangles cancel in pairs (one triangle with both windings) gets the normal of its first
+        triangle of nonzero area, else the one it had the frame before (:func:`fallback_normals`)."""
         model = self.model
         wp.launch(vertex_normal_kernel(model.scalar), dim=model.state_size,
                   inputs=[self._export_tris, self._vertex_tri_start, self._vertex_tris, state.particle_q],
                   outputs=[self._normals], device=model.device)
-        return self._normals.numpy()
+        normals = self._normals.numpy()
+        if self._orphans is not None:
+            orphans, tris = self._orphans
+            normals[orphans] = fallback_normals(state.particle_q.numpy(), tris, orphans, model.up_axis,
+                                                self._previous_normals.get("cloth"))
+            self._previous_normals["cloth"] = normals[orphans]  # a copy
+        return normals
 
     def _strain_topology(self) -> None:
         """Spring ends sorted by particle, for the per-vertex maximum of the springs' strain."""

@@ -22,7 +22,8 @@ PURPOSES = ("guide", "default", "render", "proxy")
 class UsdPrims:
     """Prim definitions of :class:`~warpspring.io.usd.UsdWriter`, a base of it: the writer holds ``stage`` (the
     static stage), ``model``, the pxr modules (``_UsdGeom``, ``_Vt``, ``_Gf``), the chosen ``_primvars``,
-    ``_purpose`` and ``_tile``, and :meth:`~warpspring.io.usd_stream.UsdStream._animate` to register the
+    ``_purpose`` and ``_tile``, ``_previous_normals`` (the normals written last, by attribute: the fallback of a
+    vertex whose faces cancel or have no area, :func:`fallback_normals`), and :meth:`~warpspring.io.usd_stream.UsdStream._animate` to register the
     attributes sampled per frame."""
 
     def _define_polygon_mesh(self, path: str, group):
@@ -167,10 +168,19 @@ class UsdPrims:
         corner = x[skin.faces]
         face_normal = np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])  # length 2 × area
         normal = np.zeros_like(x)
+        total = np.zeros(len(x))  # the lengths summed: what the normal would be without cancellation
+        face_length = np.linalg.norm(face_normal, axis=1)
         for k in range(3):
             np.add.at(normal, skin.faces[:, k], face_normal)
-        length = np.linalg.norm(normal, axis=1, keepdims=True)
-        normal = np.divide(normal, length, out=np.zeros_like(normal), where=length > 0.0)
+            np.add.at(total, skin.faces[:, k], face_length)
+        length = np.linalg.norm(normal, axis=1)
+        normal = np.divide(normal, length[:, None], out=np.zeros_like(normal), where=length[:, None] > 0.0)
+        cancelled = np.flatnonzero(~(length > _CANCELLED * total))  # opposite faces, or no area around it
+        if len(cancelled):
+            previous = self._previous_normals.get(prims.normals)
+            normal[cancelled] = fallback_normals(x, skin.faces, cancelled, self.model.up_axis,
+                                                 None if previous is None else previous[cancelled])
+        self._previous_normals[prims.normals] = normal
         points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(x, dtype=np.float32))
         samples = [(prims.points, points), (prims.extent, UsdGeom.PointBased.ComputeExtent(points)),
                    (prims.normals, vec3_array(Vt, normal)), (prims.velocities, vec3_array(Vt, skin.points(v)))]
@@ -266,6 +276,71 @@ class UsdPrims:
             if shape.moving:
                 moving.append((shape, self._animate(translate.GetAttr()), self._animate(orient.GetAttr())))
         return moving
+
+
+def fallback_normals(x: np.ndarray, faces: np.ndarray, vertices: np.ndarray, up_axis: str,
+                     previous: np.ndarray | None = None) -> np.ndarray:
+    """Unit normals for ``vertices`` whose summed face normals cancel (two faces of the same corners with
+    opposite winding, as when two quads triangulate to one triangle both ways) or vanish (faces of no area):
+    the normal of the vertex's first face (lowest index) of nonzero area; where it has none, its ``previous``
+    frame's normal; where there is none, the up axis. Never a zero vector.
+
+    Args:
+        x: positions [m], shape [n, 3].
+        faces: triangles, shape [t, 3] (indices into ``x``); those of the vertices suffice, in their order.
+        vertices: the vertices to find normals for, shape [k].
+        up_axis: "Y" or "Z", the last resort.
+        previous: the vertices' normals of the frame before, shape [k, 3], or ``None``.
+
+    Returns:
+        Unit normals, shape [k, 3].
+    """
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    x = np.asarray(x, dtype=np.float64)
+    corner = x[faces]
+    face_normal = np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
+    face_length = np.linalg.norm(face_normal, axis=1)
+    usable = np.isfinite(face_length) & (face_length > 0.0)
+    slot = np.full(len(x), -1, dtype=np.int64)
+    slot[vertices] = np.arange(len(vertices))
+    first = np.full(len(vertices), len(faces), dtype=np.int64)
+    for k in range(3):
+        s = slot[faces[:, k]]
+        chosen = usable & (s >= 0)
+        np.minimum.at(first, s[chosen], np.flatnonzero(chosen))
+    out = np.zeros((len(vertices), 3))
+    out[:, 1 if up_axis == "Y" else 2] = 1.0
+    if previous is not None:
+        previous = np.asarray(previous, dtype=np.float64)
+        kept = np.linalg.norm(previous, axis=1) > 0.5  # a unit normal written before
+        out[kept] = previous[kept]
+    found = first < len(faces)
+    out[found] = face_normal[first[found]] / face_length[first[found], None]
+    return out
+
+
+def cancelled_vertices(faces: np.ndarray) -> np.ndarray:
+    """The vertices every incident triangle of which is cancelled by another of the same three vertices with the
+    opposite winding: their area-weighted normal is zero at every frame. Shape [k], ascending.
+
+    Args:
+        faces: triangles, shape [t, 3].
+    """
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if not len(faces):
+        return np.zeros(0, dtype=np.int64)
+    order = np.argsort(faces, axis=1, kind="stable")
+    key = np.take_along_axis(faces, order, axis=1)  # the corners, sorted
+    sign = np.where((order[:, 1] - order[:, 0]) % 3 == 1, 1, -1)  # +1: the sorting was a rotation (same winding)
+    rows = np.column_stack([faces.ravel(), np.repeat(key, 3, axis=0)])  # per corner: vertex, triangle's corners
+    unique, inverse = np.unique(rows, axis=0, return_inverse=True)
+    total = np.zeros(len(unique), dtype=np.int64)
+    np.add.at(total, inverse.ravel(), np.repeat(sign, 3))
+    return np.setdiff1d(np.unique(faces), unique[total != 0, 0])
+
+
+#: Relative length below which a vertex's summed face normals count as cancelled (float64 rounding is ~1e-16).
+_CANCELLED = 1.0e-9
 
 
 def vec3_array(Vt, values: np.ndarray):

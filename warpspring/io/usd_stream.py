@@ -17,9 +17,21 @@ dies while one is being written, so a killed run leaves its file, its frames fol
 
 A save that fails (a full disk, the file or its folder removed) raises
 :class:`~warpspring.errors.OutputError`, one line naming the frame and the OS's reason (USD's own errors often
-carry none: the file system is then examined for one). The file keeps every frame saved before it, a valid
-stage through its frames folder, and the writer drops the unsaved frame instead of trying to save it again on
-close.
+carry none, or quote it in words: the OS's reason is then given alone, "No space left on device [ENOSPC]",
+without USD's noise after it such as "crate file corrupt" about the temporary file; else the file system is
+examined for one). The file keeps every frame saved before it, a valid stage through its frames folder, and
+the writer drops the unsaved frame instead of trying to save it again on close. The root's ``endTimeCode`` is
+the last frame on disk at every moment (the start before the first frame is saved; after a failed save, the
+last frame saved).
+
+One run owns an output: the writer holds an advisory lock (``flock``) on ``out.usdc.lock`` beside the file,
+which names its process (its PID is written in it), from before it reads or removes anything of the output until
+the file is packed (:class:`OutputLock`); the frames folder is only touched under it. A second writer of the same
+output, in another process or this one, is refused with a ConfigError naming that process. The kernel releases
+the lock when the process dies, however it dies, so a killed run leaves nothing stuck: the companion process
+removes the lock file, and a lock file left without a holder is taken over by the next run. USD's own warnings
+and errors while the file is written never reach stderr: they are trapped, and folded into the one-line error
+of a failed save.
 
 The writer defines the prims (:class:`~warpspring.io.usd_prims.UsdPrims`) and each frame's samples; this module
 holds the frames folder, the clips, the root layer, packing, the companion process and the reasons of failures.
@@ -28,6 +40,7 @@ holds the frames folder, the clips, the root layer, packing, the companion proce
 from __future__ import annotations
 
 import errno
+import fcntl
 import os
 import re
 import shutil
@@ -56,8 +69,9 @@ class UsdStream:
     """
 
     def _open(self, path: str, ext: str) -> None:
-        """Begin the file at ``path`` (a checked output path of extension ``ext``): remove an earlier output there
-        and its frames folder, create the frames folder and start the reaper.
+        """Begin the file at ``path`` (a checked output path of extension ``ext``, whose :class:`OutputLock` the
+        writer holds): remove an earlier output there and its frames folder, create the frames folder and start
+        the reaper.
 
         Raises:
             ConfigError: the frames folder cannot be created (with the OS's reason).
@@ -81,6 +95,7 @@ class UsdStream:
             os.makedirs(self.parts)
             self._reaper = _Reaper(path)
         except OSError as exc:
+            self._release()
             reason = _reason(exc) or _diagnose(path) or "no reason given"
             raise ConfigError(f"cannot create the USD file {path!r}: {reason}") from None
 
@@ -92,15 +107,23 @@ class UsdStream:
         Raises:
             ConfigError: something could not be written (what was written is removed).
         """
+        said: list = []
         try:
-            self._export(self.stage.GetRootLayer(), os.path.join(self.parts, STATIC_NAME))
-            self._export(self._manifest(), os.path.join(self.parts, MANIFEST_NAME))
-            if kept is not None:
-                self._write_kept(kept, keep_frames)
-            self._write_root()
+            with self._Tf.DiagnosticTrap() as trap:
+                try:
+                    self._export(self.stage.GetRootLayer(), os.path.join(self.parts, STATIC_NAME))
+                    self._export(self._manifest(), os.path.join(self.parts, MANIFEST_NAME))
+                    if kept is not None:
+                        self._write_kept(kept, keep_frames)
+                    self._write_root()
+                finally:
+                    said = _trapped(trap)
         except (OSError, self._Tf.ErrorException) as exc:
             self._abandon()
-            reason = _reason(exc) or _diagnose(self.path) or "USD gave no reason"
+            reason = _reason(exc, said) or _diagnose(self.path) or "USD gave no reason"
+            code = getattr(exc, "errno", None) or _os_code(reason)
+            if code in _OS_MESSAGES:  # the OS's reason alone, without USD's noise after it
+                reason = os_error_reason(OSError(code, os.strerror(code)))
             raise ConfigError(f"cannot create the USD file {self.path!r}: {reason}") from None
         self.frames_saved = self.frame_count
 
@@ -150,23 +173,39 @@ class UsdStream:
         """Save the pending frame: its layer into the frames folder, then the root layer that makes it part of
         the stage. A failure releases the writer and raises OutputError; the file keeps the frames before."""
         frames = self.frame_count
+        said: list = []
         try:
-            saved = self._save_layer()
-            if saved is not False:
-                self._add_clip(*self._pending)
-                self._write_root()
+            with self._Tf.DiagnosticTrap() as trap:  # USD's warnings go into the error, not to stderr
+                try:
+                    saved = self._save_layer()
+                    if saved is not False:
+                        self._add_clip(*self._pending)
+                        self._write_root()
+                finally:
+                    said = _trapped(trap)
         except (OSError, self._Tf.ErrorException) as exc:
-            reason, code = _reason(exc), getattr(exc, "errno", None)
+            reason, code = _reason(exc, said), getattr(exc, "errno", None)
         else:
             if saved is not False:
                 self.frames_saved = frames
                 self._pending = None
-                self._gather()
+                with self._Tf.DiagnosticTrap() as trap:  # a chunk that fails leaves the clips as they were
+                    try:
+                        self._gather()
+                    finally:
+                        _trapped(trap)
                 return
-            reason, code = "", None  # USD refused without a word
-        if code is None:  # no OS error number: say what the file system shows
+            reason, code = "; ".join(said), None  # USD refused, perhaps with a warning
+        if code is None:  # USD quotes an OS error in words only ("No space left on device"): that reason alone
+            code = _os_code(reason)
+            if code is not None:
+                reason = os_error_reason(OSError(code, os.strerror(code)))
+        if code is None:  # no OS error: say what the file system shows (a full disk: the OS's reason alone)
             diagnosis = _diagnose(self.path)
-            reason = f"{reason} ({diagnosis})" if reason and diagnosis else reason or diagnosis
+            if diagnosis.endswith(_FULL_DISK):
+                code, reason = errno.ENOSPC, os_error_reason(OSError(errno.ENOSPC, os.strerror(errno.ENOSPC)))
+            else:
+                reason = f"{reason} ({diagnosis})" if reason and diagnosis else reason or diagnosis
         reason = reason or "USD gave no reason (a full disk, or the file or its folder removed?)"
         saved = self.frames_saved
         lost = frames - saved
@@ -265,8 +304,8 @@ class UsdStream:
         saved frames as value clips (chunks of frames, then the latest frames one by one)."""
         Sdf, Vt, Gf = self._Sdf, self._Vt, self._Gf
         layer = Sdf.Layer.CreateAnonymous(self._format)
-        last = self.start_frame + max(self.frame_count - 1, 0)
-        self._stage_metadata(layer, end=max(last, self.start_frame + 1))
+        last = self._clips[-1].last if self._clips else self.start_frame  # the last frame on disk
+        self._stage_metadata(layer, end=last)
         folder = os.path.basename(self.parts)
         layer.subLayerPaths.append(f"./{folder}/{STATIC_NAME}")
         if self._clips:
@@ -336,54 +375,71 @@ class UsdStream:
         frames' samples), written beside it and renamed over it, then remove the frames folder."""
         Sdf = self._Sdf
         packed = os.path.join(self.parts, PACKED_NAME + self._format)
+        said: list = []
         try:
-            static = os.path.join(self.parts, STATIC_NAME)
-            layer = Sdf.Layer.Find(packed)  # a stale one of an earlier writer of this path, in this process
-            if layer is not None:
-                layer.Clear()
-            else:
-                layer = Sdf.Layer.CreateNew(packed)
-            layer.TransferContent(Sdf.Layer.FindOrOpen(static))
-            self._stage_metadata(layer, end=self.start_frame + max(self.frames_saved - 1, 1))
-            pending = 0  # bytes of samples (on disk, as clip files) gathered since the last save
-            for clip in self._clips:
-                clip_path = os.path.join(self.parts, clip.name)
-                self._copy_samples(Sdf.Layer.OpenAsAnonymous(clip_path), layer)
-                pending += os.path.getsize(clip_path)
-                if not self._text and pending >= _PACK_FLUSH_BYTES:
-                    layer.Save()  # a crate appends: the samples saved leave memory
-                    pending = 0
-            if not layer.Save():
-                raise OSError("USD did not save the packed file")
-            del layer
+            with self._Tf.DiagnosticTrap() as trap:
+                try:
+                    self._pack_layer(packed)
+                finally:
+                    said = _trapped(trap)
             os.replace(packed, self.path)
         except (OSError, self._Tf.ErrorException) as exc:
             self._failed = True
-            reason = _reason(exc) or _diagnose(self.path) or "USD gave no reason"
+            reason = _reason(exc, said) or _diagnose(self.path) or "USD gave no reason"
+            code = getattr(exc, "errno", None)
+            if code is None and _os_code(reason) is not None:
+                code = _os_code(reason)
+                reason = os_error_reason(OSError(code, os.strerror(code)))
             raise OutputError(f"cannot pack the USD file {self.path!r} into one file: {reason}; it holds frames "
                               f"0..{self.frames_saved - 1} through its frames folder {self.parts!r}",
-                              path=self.path, frames_saved=self.frames_saved,
-                              code=getattr(exc, "errno", None)) from None
+                              path=self.path, frames_saved=self.frames_saved, code=code) from None
         self._reaper.packed()
         shutil.rmtree(self.parts, ignore_errors=True)
         layer = Sdf.Layer.Find(self.path)
         if layer is not None:  # a stale layer of this path in this process's registry: read the new file
             layer.Reload()
 
+    def _pack_layer(self, packed: str) -> None:
+        """Write the packed layer at ``packed``: the static layer with every clip's samples."""
+        Sdf = self._Sdf
+        static = os.path.join(self.parts, STATIC_NAME)
+        layer = Sdf.Layer.Find(packed)  # a stale one of an earlier writer of this path, in this process
+        if layer is not None:
+            layer.Clear()
+        else:
+            layer = Sdf.Layer.CreateNew(packed)
+        layer.TransferContent(Sdf.Layer.FindOrOpen(static))
+        self._stage_metadata(layer, end=self.start_frame + max(self.frames_saved - 1, 0))
+        pending = 0  # bytes of samples (on disk, as clip files) gathered since the last save
+        for clip in self._clips:
+            clip_path = os.path.join(self.parts, clip.name)
+            self._copy_samples(Sdf.Layer.OpenAsAnonymous(clip_path), layer)
+            pending += os.path.getsize(clip_path)
+            if not self._text and pending >= _PACK_FLUSH_BYTES:
+                layer.Save()  # a crate appends: the samples saved leave memory
+                pending = 0
+        if not layer.Save():
+            raise OSError("USD did not save the packed file")
+        del layer
+
     @property
     def _text(self) -> bool:
         return self._format == ".usda"
 
     def _release(self) -> None:
-        """Drop the stage (and the writer's prims), and end the reaper: cleanly after a packed file, else it keeps
-        the frames folder (the file's frames) and removes only temporaries."""
+        """Drop the stage (and the writer's prims), end the reaper (cleanly after a packed file, else it keeps the
+        frames folder (the file's frames) and removes only temporaries), and let go of the output's lock if the
+        writer took it."""
         self._closed = True
         self.stage = None
         self._slots = []
         self._pending = None
-        if self._reaper is not None:
-            self._reaper.finish()
-            self._reaper = None
+        reaper, self._reaper = getattr(self, "_reaper", None), None
+        if reaper is not None:
+            reaper.finish()
+        lock, self._lock = getattr(self, "_lock", None), None
+        if lock is not None and getattr(self, "_owns_lock", False):
+            lock.release()
 
     def _abandon(self) -> None:
         """Undo a writer whose set-up failed: remove what it wrote."""
@@ -450,7 +506,7 @@ class _Reaper:
     its frames folder and nothing else. It notices the writer's death as the end of a pipe."""
 
     _CODE = r"""
-import os, re, shutil, sys, time
+import fcntl, os, re, shutil, sys, time
 parts, path = sys.argv[1:3]
 started = time.time() - 1.0
 said = sys.stdin.read().split("\n")
@@ -478,6 +534,26 @@ if "done" not in said:
             pass
     if "packed" in said:
         shutil.rmtree(parts, ignore_errors=True)
+    lock = path + ".lock"  # the dead writer's lock, released by the kernel: removed unless another run took it
+    for _ in range(100):
+        try:
+            handle = os.open(lock, os.O_RDWR | os.O_NOFOLLOW)
+        except OSError:
+            break
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(handle)
+            time.sleep(0.02)  # its process is still closing its files, or another run holds it
+            continue
+        try:
+            mine, there = os.fstat(handle), os.stat(lock, follow_symlinks=False)
+            if (mine.st_dev, mine.st_ino) == (there.st_dev, there.st_ino):
+                os.remove(lock)
+        except OSError:
+            pass
+        os.close(handle)
+        break
 """
 
     def __init__(self, path: str):
@@ -521,23 +597,29 @@ def read_frames(path: str, frames: int, start_frame: int) -> list:
     if not os.path.isfile(path):
         raise ConfigError(f"cannot resume into {path!r}: the file is missing (resume writes into the stopped run's "
                           "output: pass the same -o)")
+    said: list = []
     try:
-        layer = Sdf.Layer.FindOrOpen(path)
-        if layer is not None:
-            layer.Reload()
-        stage = Usd.Stage.Open(layer if layer is not None else path)
+        with Tf.DiagnosticTrap() as trap:  # USD's warnings (a clip it cannot open) go into the error, or nowhere
+            try:
+                layer = Sdf.Layer.FindOrOpen(path)
+                if layer is not None:
+                    layer.Reload()
+                stage = Usd.Stage.Open(layer if layer is not None else path)
+                kept, last = [], -1.0
+                end = start_frame + frames
+                for prim in stage.Traverse():
+                    for attribute in prim.GetAttributes():
+                        times = attribute.GetTimeSamples()
+                        last = max([last, *times])
+                        times = [t for t in times if start_frame <= t < end]
+                        if times:
+                            kept.append((attribute.GetPath(), [(t, attribute.Get(Usd.TimeCode(t))) for t in times]))
+                del stage
+            finally:
+                said = _trapped(trap)
     except Tf.ErrorException as exc:
-        raise ConfigError(f"cannot resume into {path!r}: USD cannot read it ({_reason(exc) or 'no reason'})") from None
-    kept, last = [], -1.0
-    end = start_frame + frames
-    for prim in stage.Traverse():
-        for attribute in prim.GetAttributes():
-            times = attribute.GetTimeSamples()
-            last = max([last, *times])
-            times = [t for t in times if start_frame <= t < end]
-            if times:
-                kept.append((attribute.GetPath(), [(t, attribute.Get(Usd.TimeCode(t))) for t in times]))
-    del stage
+        raise ConfigError(f"cannot resume into {path!r}: USD cannot read it "
+                          f"({_reason(exc, said) or 'no reason'})") from None
     held = int(last) + 1 - start_frame
     if held < frames:
         raise ConfigError(f"cannot resume into {path!r}: it holds frames 0..{held - 1}, the checkpoint continues "
@@ -584,13 +666,14 @@ def _probe_folder(folder: str) -> str:
     return ""
 
 
-def _reason(error: BaseException) -> str:
-    """The reason an OS or USD (Tf) error gives, on one line; "" when it gives none. A Tf error's text is
-    USD's call stack: only its messages (the quoted last part of each entry) are kept."""
+def _reason(error: BaseException, said: list | None = None) -> str:
+    """The reason an OS or USD (Tf) error gives, on one line, with the messages USD posted meanwhile (``said``,
+    from :func:`_trapped`); "" when it gives none. A Tf error's text is USD's call stack: only its messages (the
+    quoted last part of each entry) are kept."""
     if isinstance(error, OSError) and (error.strerror or error.errno):
         return os_error_reason(error)
     entries = [str(a) for a in getattr(error, "args", ()) if str(a).strip()] or [str(error)]
-    messages = []
+    messages = list(said or ())
     for entry in entries:
         for line in entry.strip().splitlines():
             found = re.search(r" : '(.*)'\s*$", line.strip())
@@ -611,7 +694,7 @@ def _diagnose(path: str) -> str:
     except OSError:
         fs = None
     if fs is not None and fs.f_blocks > 0 and fs.f_bavail * fs.f_frsize < _LOW_SPACE:  # (virtual file systems: 0)
-        return f"{os.strerror(errno.ENOSPC)} [ENOSPC]: {fs.f_bavail * fs.f_frsize} bytes free in {folder}"
+        return f"{fs.f_bavail * fs.f_frsize} bytes free in {folder}: {os.strerror(errno.ENOSPC)} {_FULL_DISK}"
     if os.path.exists(path) and not os.access(path, os.W_OK):
         return "the file is read-only"
     return _probe_folder(folder)
@@ -619,3 +702,126 @@ def _diagnose(path: str) -> str:
 
 #: Free space [B] below which a failed write is put down to a full disk.
 _LOW_SPACE = 1 << 20
+
+
+def lock_path(path: str) -> str:
+    """The lock file of the output ``path`` (``out.usdc.lock``, beside it), which the writing run holds."""
+    return path + ".lock"
+
+
+class OutputLock:
+    """An output owned by one run: an advisory lock (``flock``) on ``out.usdc.lock`` beside the output, taken
+    before anything of the output is read, removed or written and held until the file is packed; the lock file
+    holds the owner's process id. The kernel releases the lock when the process ends, however it ends (a SIGKILL
+    too), so nothing stays stuck: a lock file without a holder is taken over by the next run (and removed by the
+    writer's companion process after a killed run). :meth:`release` removes the file while still holding it, and
+    a run that opened the removed file sees that and takes the new one, so two runs never both hold the output.
+
+    A second lock of the same output, from another process or from this one, is refused.
+
+    Raises:
+        ConfigError: another run holds the output (the message names its process), or the lock file cannot be
+            created (the OS's reason).
+    """
+
+    def __init__(self, output: str | os.PathLike):
+        self.output = os.fspath(output)
+        self.path = lock_path(self.output)
+        self._handle = None
+        waited = 0.0
+        while True:
+            try:
+                handle = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+            except OSError as exc:
+                raise ConfigError(f"cannot create the USD file {self.output!r}: {os_error_reason(exc)}") from None
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                if waited < _LOCK_PATIENCE:  # a holder about to let go (a killed run's companion process tidying)
+                    os.close(handle)
+                    time.sleep(0.02)
+                    waited += 0.02
+                    continue
+                holder = _lock_holder(handle)
+                os.close(handle)
+                raise ConfigError(f"the USD output {self.output!r} is being written by another run ({holder}); "
+                                  "wait for it to end, or write elsewhere with -o") from None
+            except OSError as exc:
+                os.close(handle)
+                raise ConfigError(f"cannot lock the USD output {self.output!r}: {os_error_reason(exc)} (the file "
+                                  "system does not lock files: write elsewhere with -o)") from None
+            try:
+                there = os.stat(self.path, follow_symlinks=False)
+            except OSError:
+                there = None
+            mine = os.fstat(handle)
+            if there is not None and (there.st_dev, there.st_ino) == (mine.st_dev, mine.st_ino):
+                break
+            os.close(handle)  # the holder removed it as we opened it: lock the new one
+        os.ftruncate(handle, 0)
+        os.write(handle, f"{os.getpid()}\n".encode())
+        self._handle = handle
+
+    @property
+    def held(self) -> bool:
+        """Whether this lock is held (taken, not yet released)."""
+        return self._handle is not None
+
+    def release(self) -> None:
+        """Remove the lock file (while holding it) and let go. Safe to call twice."""
+        handle, self._handle = self._handle, None
+        if handle is None:
+            return
+        try:
+            mine, there = os.fstat(handle), os.stat(self.path, follow_symlinks=False)
+            if (there.st_dev, there.st_ino) == (mine.st_dev, mine.st_ino):
+                os.remove(self.path)
+        except OSError:
+            pass
+        os.close(handle)
+
+    def __enter__(self) -> OutputLock:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def _lock_holder(handle: int) -> str:
+    """The process named in a held lock file, "process 1234"; it writes its id just after it locks."""
+    for _ in range(50):
+        text = os.pread(handle, 32, 0).decode(errors="replace").strip()
+        if text.isdigit():
+            return f"process {text}"
+        time.sleep(0.01)
+    return "a process that has not yet written its id"
+
+
+#: Seconds a lock is tried again before the output is called taken.
+_LOCK_PATIENCE = 0.25
+
+
+def _trapped(trap) -> list[str]:
+    """The messages of the warnings and errors USD posted in a ``Tf.DiagnosticTrap``, which are dismissed
+    (they would otherwise be printed on stderr)."""
+    said = []
+    for diagnostic in [*trap.GetErrors(), *trap.GetWarnings()]:
+        message = " ".join(str(diagnostic.commentary).split())
+        if message and message not in said:
+            said.append(message)
+    trap.Clear()
+    return said
+
+
+#: The OS's words for the errors a write may end with, by error number.
+_OS_MESSAGES = {code: os.strerror(code) for code in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO, errno.EFBIG)}
+#: How :func:`_diagnose` ends when the disk is full.
+_FULL_DISK = "[ENOSPC]"
+
+
+def _os_code(text: str) -> int | None:
+    """The error number whose words USD quoted in ``text`` (it reports OS errors in words only), or None."""
+    for code, words in _OS_MESSAGES.items():
+        if words in text:
+            return code
+    return None
