@@ -19,7 +19,7 @@ from helpers import hanging_cloth
 
 viser = pytest.importorskip("viser", reason="the viewer needs viser: pip install 'warpspring[view]'")
 
-from warpspring.app.viewer import ViewGuard, colormap  # noqa: E402
+from warpspring.app.viewer import colormap  # noqa: E402
 from warpspring.app.viewer_file import FileView, UsdFrames, triangulate  # noqa: E402
 from warpspring.app.viewer_live import STIFFNESS_RANGE, LiveView, stiffness_limit  # noqa: E402
 from warpspring.io.usd import UsdWriter  # noqa: E402
