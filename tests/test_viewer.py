@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import warpspring as ws
-from helpers import hanging_cloth
+from helpers import hanging_cloth, write_scene
 
 viser = pytest.importorskip("viser", reason="the viewer needs viser: pip install 'warpspring[view]'")
 
@@ -139,6 +139,14 @@ def test_guard_refuses_without_token_origin_or_host(cloth_file):
 # -- in a browser ---------------------------------------------------------------------------------------------
 
 
+@pytest.fixture(scope="module")
+def chromium():
+    """One headless Chromium for the module's browser tests (Selenium), or a skip with the reason."""
+    driver = _chromium()
+    yield driver
+    driver.quit()
+
+
 def _chromium():
     """A headless Chromium through Selenium, or a skip with the reason."""
     webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed (pip install selenium)")
@@ -162,7 +170,7 @@ def _canvas(driver) -> np.ndarray:
     from selenium.webdriver.common.by import By
 
     png = driver.find_element(By.TAG_NAME, "canvas").screenshot_as_png
-    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.int16)
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.int16)[::3, ::3]  # every 9th pixel
 
 
 def _drawn_fraction(image: np.ndarray) -> float:
@@ -182,12 +190,13 @@ def _wait(condition, timeout=10.0, step=0.1):
     return False
 
 
-def test_file_view_in_chromium(cloth_file):
+@pytest.mark.slow  # 10-30 s: Chromium's start and software WebGL
+def test_file_view_in_chromium(cloth_file, chromium):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.common.keys import Keys
 
     view = FileView(cloth_file[0], follow=False)
-    driver = _chromium()
+    driver = chromium
     try:
         driver.get(view.url)
         assert _wait(lambda: view.viewer.server.get_clients(), 15), "the page did not connect"
@@ -201,11 +210,11 @@ def test_file_view_in_chromium(cloth_file):
         assert _wait(lambda: np.abs(_canvas(driver) - before).sum(axis=2).astype(bool).mean() > 0.005), \
             "moving the frame slider did not change the picture"
     finally:
-        driver.quit()
         view.close()
 
 
-def test_live_gravity_from_chromium_reaches_the_simulation():
+@pytest.mark.slow  # 10-30 s: Chromium's start and software WebGL
+def test_live_gravity_from_chromium_reaches_the_simulation(chromium):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.common.keys import Keys
 
@@ -215,7 +224,7 @@ def test_live_gravity_from_chromium_reaches_the_simulation():
     model.gravity = (0.0, 0.0, -9.81)
     sim = ws.Simulator(model, fps=60.0, substeps=16)
     live = LiveView().attach(sim)
-    driver = _chromium()
+    driver = chromium
     try:
         driver.get(live.url)
         assert _wait(lambda: live.viewer.server.get_clients(), 15), "the page did not connect"
@@ -244,6 +253,36 @@ def test_live_gravity_from_chromium_reaches_the_simulation():
         live.apply(sim, {"stiffness": 1.0e6})
         np.testing.assert_allclose(model.spring_stiffness.numpy(), base * live.stiffness_max, rtol=1e-6)
     finally:
-        driver.quit()
         live.close()
 
+
+
+def test_usd_frames_follow_a_growing_file(tmp_path):
+    model, _ = hanging_cloth("cpu", n=4)
+    state = model.state()
+    path = str(tmp_path / "growing.usdc")
+    with UsdWriter(path, model, fps=30.0) as usd:
+        usd.write_frame(state)
+        usd.write_frame(state)
+        reader = UsdFrames(path)
+        assert reader.last == 1
+        assert not reader.refresh()  # unchanged on disk
+        q = state.particle_q.numpy().copy()
+        for k in range(3):
+            time.sleep(0.01)  # a new modification time
+            state.particle_q.assign(q + np.float32(0.1 * (k + 1)))
+            usd.write_frame(state)
+        assert reader.refresh()
+        assert reader.last == 4
+        (cloth,) = reader.picture(4).surfaces[""]
+        np.testing.assert_array_equal(cloth.points.astype(np.float32), q + np.float32(0.3))
+
+
+def test_run_with_view_writes_its_file(tmp_path):
+    from warpspring.app.cli import main
+
+    out = tmp_path / "viewed.usdc"
+    assert main(["run", str(write_scene(tmp_path)), "-o", str(out), "--frames", "3", "-q", "--view",
+                 "--view-port", "0"]) == 0
+    reader = UsdFrames(out)
+    assert (reader.first, reader.last) == (0, 3)

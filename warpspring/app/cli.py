@@ -331,12 +331,14 @@ def _cmd_run(args) -> int:
     )
     print(summary.line())
     if live is not None:
-        print(f"the run has ended; the viewer stays at {live.url} until Ctrl-C", flush=True)
-        try:
-            while True:
-                time.sleep(3600)
-        finally:
-            live.close()
+        if sys.stdin.isatty():  # someone is there to look: the page stays
+            print(f"the run has ended; the viewer stays at {live.url} until Ctrl-C", flush=True)
+            try:
+                while True:
+                    time.sleep(3600)
+            finally:
+                live.close()
+        live.close()
     return 0
 
 

@@ -305,6 +305,7 @@ class Viewer:
         self.lock = threading.Lock()  # one show() at a time
         self._handles: dict = {}
         self._shapes: dict = {}
+        self._sent: dict = {}  # name → the points array last sent
         self._color_range: tuple[float, float] | None = None
         self._framed = False
         self._last: Picture | None = None
@@ -417,6 +418,7 @@ class Viewer:
                 for name in set(self._handles) - seen:
                     self._handles.pop(name).remove()
                     self._shapes.pop(name, None)
+                    self._sent.pop(name, None)
             if not self._framed:
                 self._framed = True
                 self.frame(picture)
@@ -442,12 +444,14 @@ class Viewer:
         shape = ("mesh", surface.faces.shape, surface.faces.tobytes().__hash__())
         handle = self._handles.get(name)
         if handle is not None and self._shapes.get(name) == shape:
-            if visible:  # a hidden layer's data is not sent
+            if visible and self._sent.get(name) is not surface.points:  # a hidden or unchanged layer is not sent
                 handle.vertices = surface.points.astype(np.float32)
+                self._sent[name] = surface.points
             if handle.visible != visible:
                 handle.visible = visible
             return name
         self._drop(name, shape)
+        self._sent[name] = surface.points
         self._handles[name] = self.server.scene.add_mesh_simple(
             name, surface.points.astype(np.float32), surface.faces.astype(np.uint32), color=color, side="double",
             opacity=opacity, visible=visible)

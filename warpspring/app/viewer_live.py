@@ -6,7 +6,7 @@ limits: values in the model's device arrays, which the next frame's replay reads
 re-capture; pause, step and reset), then hands the frame to the page through a slot of depth one: if the page
 has not taken the previous frame yet, or the page's frame rate is reached, the frame is dropped from the view.
 The run and its USD file never wait for the page: a server thread draws, the simulation thread only copies the
-positions to the host when the slot is free. Only "pause" holds the run, because the page asked for it.
+positions to the host when the slot is free; layers the page hides are neither built nor sent. Only "pause" holds the run, because the page asked for it.
 
 The stiffness scale multiplies every spring's stiffness as the scene built it. Its range stops where the
 advisor's verdict at the run's step stops holding: the top frequency of a spring network grows as √scale
@@ -82,6 +82,9 @@ class LiveView(FrameHook):
         self._base_stiffness = model.spring_stiffness.numpy().astype(np.float64) if model.spring_count else None
         dt_stable = advice.dt_stable if advice is not None else float("inf")
         self.stiffness_max = stiffness_limit(sim.dt, dt_stable)
+        self._springs = model.spring_indices.numpy().astype(np.int64) if model.spring_count else None
+        x0 = model.particle_q.numpy()[: model.particle_count].astype(np.float64)
+        self._collider_meshes = [self._colliders(x0, offset) for offset in self._offsets]  # at rest: drawn once
         self._build_controls(model)
         sim.add_frame_hook(self)
         self._thread = threading.Thread(target=self._serve, name="warpspring-view-live", daemon=True)
@@ -209,27 +212,34 @@ class LiveView(FrameHook):
 
     def picture(self, q: np.ndarray, qd: np.ndarray, flags: np.ndarray, t: float = 0.0) -> Picture:
         """A state's positions [m] and velocities [m/s] (every world, world-major) as a :class:`Picture`: the
-        worlds laid out on the export grid, colliders at rest."""
-        model = self.sim.model
+        worlds laid out on the export grid, colliders at rest. Layers the page hides are left out."""
+        model, viewer = self.sim.model, self.viewer
         n = model.particle_count
         picture = Picture(time=t)
         q = np.asarray(q, dtype=np.float64).reshape(model.world_count, n, 3)
         qd = np.asarray(qd, dtype=np.float64).reshape(model.world_count, n, 3)
         pinned = (flags.reshape(model.world_count, n) & PARTICLE_KINEMATIC) != 0
-        springs = model.spring_indices.numpy().astype(np.int64) if model.spring_count else None
+        speed_shown = viewer.color_by.value == "speed"
         for w in range(model.world_count):
             key = f"world_{w:04d}" if model.world_count > 1 else ""
             x = q[w] + self._offsets[w if len(self._offsets) > 1 else 0]
-            speed = np.linalg.norm(qd[w], axis=1)
-            surfaces = [Surface(g.name, x[g.particles], g.faces, {"speed": speed[g.particles]}) for g in model.meshes]
-            surfaces += [Surface(s.name, s.points(x), s.faces,
-                                 {"speed": np.linalg.norm(s.points(qd[w]), axis=1)}) for s in model.skins]
+            speed = np.linalg.norm(qd[w], axis=1) if speed_shown else None
+            surfaces = []
+            for g in model.meshes:
+                surfaces.append(Surface(g.name, x[g.particles], g.faces,
+                                        {"speed": speed[g.particles]} if speed_shown else {}))
+            for skin in model.skins:
+                values = {"speed": np.linalg.norm(skin.points(qd[w]), axis=1)} if speed_shown else {}
+                surfaces.append(Surface(skin.name, skin.points(x), skin.faces, values))
             picture.surfaces[key] = surfaces
-            picture.particles[key] = x
-            picture.pins[key] = x[pinned[w]]
-            if springs is not None:
-                picture.springs[key] = np.stack([x[springs[:, 0]], x[springs[:, 1]]], axis=1)
-            picture.colliders[key] = self._colliders(x, self._offsets[w if len(self._offsets) > 1 else 0])
+            if viewer.show_particles.value:
+                picture.particles[key] = x
+            if viewer.show_pins.value:
+                picture.pins[key] = x[pinned[w]]
+            if viewer.show_springs.value and self._springs is not None:
+                picture.springs[key] = np.stack([x[self._springs[:, 0]], x[self._springs[:, 1]]], axis=1)
+            if viewer.show_colliders.value:
+                picture.colliders[key] = self._collider_meshes[w if len(self._collider_meshes) > 1 else 0]
         return picture
 
     def _colliders(self, x: np.ndarray, offset: np.ndarray) -> list:
