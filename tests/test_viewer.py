@@ -286,3 +286,24 @@ def test_run_with_view_writes_its_file(tmp_path):
                  "--view-port", "0"]) == 0
     reader = UsdFrames(out)
     assert (reader.first, reader.last) == (0, 3)
+
+
+def test_live_handle_target_reaches_the_simulation():
+    # A free cloth at rest, no gravity: the first step after the page moves the handle's target by d pushes the
+    # grabbed particle with kp·d, and the springs' forces cancel in pairs, so the momentum is kp·d·dt exactly.
+    builder = ws.ModelBuilder()
+    builder.add_cloth_grid(nx=4, ny=4, spacing=0.1, particle_mass=0.1)
+    builder.add_handle([0], kp=50.0, name="grab")
+    model = builder.finalize("cpu")
+    model.gravity = (0.0, 0.0, 0.0)
+    sim = ws.Simulator(model, fps=100.0, substeps=1)
+    live = LiveView().attach(sim)
+    try:
+        assert list(live.handles) == ["grab"]
+        d = np.array([0.02, 0.0, -0.01])
+        live.apply(sim, {("handle", 0): tuple(d)})
+        sim.step_frame()
+        momentum = 0.1 * sim.state.particle_qd.numpy().astype(np.float64).sum(axis=0)
+        np.testing.assert_allclose(momentum, 50.0 * d * 0.01, rtol=1e-5, atol=1e-9)
+    finally:
+        live.close()

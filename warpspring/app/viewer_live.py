@@ -2,11 +2,12 @@
 
 :class:`LiveView` is a :class:`~warpspring.core.simulator.FrameHook`. After a frame it applies what the page
 changed since the last one (gravity, drag, wind velocity, the spring stiffness scale, the enabled stabilisers'
-limits: values in the model's device arrays, which the next frame's replay reads with no recompile and no
-re-capture; pause, step and reset), then hands the frame to the page through a slot of depth one: if the page
-has not taken the previous frame yet, or the page's frame rate is reached, the frame is dropped from the view.
-The run and its USD file never wait for the page: a server thread draws, the simulation thread only copies the
-positions to the host when the slot is free; layers the page hides are neither built nor sent. Only "pause" holds the run, because the page asked for it.
+limits, the targets of PD handles dragged in the view: values in the model's device arrays, which the next
+frame's replay reads with no recompile and no re-capture; pause, step and reset), then hands the frame to the
+page through a slot of depth one: if the page has not taken the previous frame yet, or the page's frame rate is
+reached, the frame is dropped from the view. The run and its USD file never wait for the page: a server thread
+draws, the simulation thread only copies the positions to the host when the slot is free; layers the page
+hides are neither built nor sent. Only "pause" holds the run, because the page asked for it.
 
 The stiffness scale multiplies every spring's stiffness as the scene built it. Its range stops where the
 advisor's verdict at the run's step stops holding: the top frequency of a spring network grows as √scale
@@ -123,6 +124,17 @@ class LiveView(FrameHook):
                     handle = gui.add_number(name, float(value), min=0.0, step=float(value) / 100 or 0.01)
                     handle.on_update(lambda _, n=name, h=handle: self._set(n, float(h.value)))
                     self.stabilizers[name] = handle
+        self.handles = {}
+        family = model.handles
+        for k, handle in enumerate(family.handles if family is not None else ()):
+            if handle.translation is not None:  # follows a track: not the page's to move
+                continue
+            gizmo = self.viewer.server.scene.add_transform_controls(
+                f"/handles/{handle.name}", scale=0.25, disable_rotations=True,
+                position=tuple(np.asarray(handle.pivot, dtype=np.float64) + self._offsets[0]))
+            gizmo.on_update(lambda _, k=k, g=gizmo, h=handle: self._set(
+                ("handle", k), tuple(np.asarray(g.position, dtype=np.float64) - self._offsets[0] - h.pivot)))
+            self.handles[handle.name] = gizmo
         self.gravity.on_update(lambda _: self._set("gravity", tuple(self.gravity.value)))
         self.drag.on_update(lambda _: self._set("drag", float(self.drag.value)))
         self.wind.on_update(lambda _: self._set("wind", tuple(self.wind.value)))
@@ -152,6 +164,9 @@ class LiveView(FrameHook):
             scale = float(np.clip(changes["stiffness"], STIFFNESS_RANGE[0], self.stiffness_max))
             self.stiffness_scale = scale
             model.set_world_values("spring_stiffness", self._base_stiffness * scale)
+        for name, value in changes.items():
+            if isinstance(name, tuple) and name[0] == "handle":  # a handle's target dragged in the page
+                model.handles.set_target(name[1], value)
         limits = {n: max(0.0, v) for n, v in changes.items() if n in STABILIZER_INPUTS}
         if limits:
             model.stabilizers = dataclasses.replace(model.stabilizers, **limits)
