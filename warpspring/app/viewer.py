@@ -254,6 +254,14 @@ class Picture:
     colliders: dict = field(default_factory=dict)
     time: float = 0.0
 
+    def only(self, worlds) -> Picture:
+        """The picture of ``worlds`` alone."""
+        def pick(table):
+            return {w: v for w, v in table.items() if w in worlds}
+
+        return Picture(pick(self.surfaces), pick(self.particles), pick(self.springs), pick(self.pins),
+                       pick(self.colliders), self.time)
+
     def worlds(self) -> list[str]:
         return sorted(set(self.surfaces) | set(self.particles) | set(self.springs) | set(self.colliders))
 
@@ -324,6 +332,7 @@ class Viewer:
                         self.show_colliders, self.world):
             control.on_update(lambda _: self.redraw())
         self.color_by.on_update(lambda _: setattr(self, "_color_range", None))
+        self.world.on_update(lambda _: self.frame(self._last))  # one world at a time: the camera follows
         self.frame_camera.on_click(lambda _: self.frame(self._last))
 
     @property
@@ -357,7 +366,9 @@ class Viewer:
             self.show(self._last)
 
     def frame(self, picture: Picture | None) -> None:
-        """Point every client's camera (and the initial camera) at the picture's moving parts."""
+        """Point every client's camera (and the initial camera) at the moving parts of the worlds shown."""
+        if picture is not None and self.world.value != "all, laid out":
+            picture = picture.only([self.world.value])
         box = picture.bounds() if picture is not None else None
         if box is None:
             return
