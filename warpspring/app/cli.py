@@ -238,9 +238,17 @@ def _add_view_options(parser: argparse.ArgumentParser, switch: str | None, help_
 def _cmd_view(args) -> int:
     view = FileView(args.usd, host=args.view_host, port=args.view_port, follow=not args.no_follow)
     print(f"viewer of {args.usd} at {view.url} (Ctrl-C to stop)", flush=True)
+    _serve_until_interrupted(view)
+    return 0
+
+
+def _serve_until_interrupted(view) -> None:
+    """Keep a viewer's page up until Ctrl-C, then close it."""
     try:
         while True:
             time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
     finally:
         view.close()
 
@@ -330,15 +338,12 @@ def _cmd_run(args) -> int:
         on_start=functools.partial(_start_view, live) if live is not None else None,
     )
     print(summary.line())
-    if live is not None:
+    if live is not None:  # (a run that fails ends the process, and the page's threads with it)
         if sys.stdin.isatty():  # someone is there to look: the page stays
             print(f"the run has ended; the viewer stays at {live.url} until Ctrl-C", flush=True)
-            try:
-                while True:
-                    time.sleep(3600)
-            finally:
-                live.close()
-        live.close()
+            _serve_until_interrupted(live)
+        else:
+            live.close()
     return 0
 
 

@@ -283,6 +283,8 @@ class LiveView(FrameHook):
     def close(self) -> None:
         """Stop serving (a paused run goes on)."""
         with self._wake:
+            if self._closed:
+                return
             self._closed = True
             self._wake.notify_all()
         if self.viewer is not None:
