@@ -19,9 +19,10 @@ from helpers import hanging_cloth, write_scene
 
 viser = pytest.importorskip("viser", reason="the viewer needs viser: pip install 'warpspring[view]'")
 
-from warpspring.app.viewer import colormap  # noqa: E402
+from warpspring.app.viewer import ViewGuard, colormap  # noqa: E402
 from warpspring.app.viewer_file import FileView, UsdFrames, triangulate  # noqa: E402
 from warpspring.app.viewer_live import STIFFNESS_RANGE, LiveView, stiffness_limit  # noqa: E402
+from warpspring.app.cli import main  # noqa: E402
 from warpspring.io.usd import UsdWriter  # noqa: E402
 
 FRAMES = 6
@@ -279,8 +280,6 @@ def test_usd_frames_follow_a_growing_file(tmp_path):
 
 
 def test_run_with_view_writes_its_file(tmp_path):
-    from warpspring.app.cli import main
-
     out = tmp_path / "viewed.usdc"
     assert main(["run", str(write_scene(tmp_path)), "-o", str(out), "--frames", "3", "-q", "--view",
                  "--view-port", "0"]) == 0
@@ -307,3 +306,18 @@ def test_live_handle_target_reaches_the_simulation():
         np.testing.assert_allclose(momentum, 50.0 * d * 0.01, rtol=1e-5, atol=1e-9)
     finally:
         live.close()
+
+
+def test_guard_on_every_address_wants_the_pages_own_origin():
+    guard = ViewGuard(1, host="0.0.0.0", port=0)
+    try:
+        def head(host, origin, token=guard.token):
+            return (f"GET /?token={token} HTTP/1.1\r\nHost: {host}\r\nUpgrade: websocket\r\nOrigin: {origin}\r\n"
+                    "\r\n").encode()
+
+        address = f"192.0.2.7:{guard.port}"  # the machine as another computer reaches it
+        assert guard.check(head(address, f"http://{address}"))[0]
+        assert not guard.check(head(address, "http://evil.example"))[0]
+        assert not guard.check(head(address, f"http://{address}", token="wrong"))[0]
+    finally:
+        guard.close()

@@ -138,8 +138,11 @@ class ViewGuard:
         given = [t for t in query.get("token", [])] + ([cookies[self.cookie].value] if self.cookie in cookies else [])
         if not any(secrets.compare_digest(t, self.token) for t in given):
             return False, ""
-        if headers.get("upgrade", "").lower() == "websocket" and headers.get("origin") not in self.origins:
-            return False, ""
+        if headers.get("upgrade", "").lower() == "websocket":
+            origin = headers.get("origin")
+            wildcard = self.host in ("0.0.0.0", "::")  # any address of the machine: the page's own, as asked
+            if origin not in self.origins and not (wildcard and origin == f"http://{headers.get('host')}"):
+                return False, ""
         return True, "" if self.cookie in cookies else self.cookie
 
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
