@@ -5,9 +5,11 @@ and passes a connection on to the viser server, which listens on an ephemeral po
 
 * the request carries the viewer's random token: in the page's URL (``/?token=…``), which the guard answers
   by setting a cookie (``HttpOnly``, ``SameSite=Strict``, named after the port), or in that cookie;
-* its ``Host`` header names the viewer's own address (a page reached by DNS rebinding names its own host);
+* its ``Host`` header names the viewer's own address (a page reached by DNS rebinding names its own host; not
+  checked when listening on every address, 0.0.0.0 or ::);
 * a WebSocket handshake's ``Origin`` header is the viewer's own origin (any web page may open a WebSocket to
-  127.0.0.1; the browser sets ``Origin`` and a page cannot change it).
+  127.0.0.1; the browser sets ``Origin`` and a page cannot change it); listening on every address, the origin
+  of the address the page was loaded from.
 
 Everything else gets ``403 Forbidden`` and never reaches viser. The guard forwards one HTTP request per
 connection (it reads no further requests from a connection it passed on), so a kept-alive connection cannot
