@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import functools
 import os
 import sys
 import tempfile
@@ -43,6 +44,8 @@ from ..io.render import render_usd
 from ..io.scene import DeprecatedKeyWarning, load_scene
 from ..plotting import pyplot
 from .runner import run_scene
+from .viewer_file import FileView
+from .viewer_live import LiveView
 
 EXIT_CONFIG = 2
 EXIT_SIMULATION = 3
@@ -145,7 +148,17 @@ def build_parser() -> argparse.ArgumentParser:
                      help="continue a stopped run from its checkpoint: the output (the same -o) keeps its frames "
                           "up to the checkpoint's and the run goes on to the end, bit for bit as if uninterrupted "
                           "on the same device")
+    _add_view_options(run, "--view", "serve a page in the browser that shows the run as it goes, with its live "
+                                     "inputs (gravity, drag, wind, stiffness, stabilisers; pause, step, reset) "
+                                     "(pip install 'warpspring[view]')")
     run.set_defaults(handler=_cmd_run)
+
+    view = sub.add_parser("view", help="show a USD file in the browser: play, scrub, colour by speed or a primvar; "
+                                       "follows a file still being written (pip install 'warpspring[view]')")
+    view.add_argument("usd", help="a USD file written by warpspring run")
+    view.add_argument("--no-follow", action="store_true", help="do not re-read the file as it grows")
+    _add_view_options(view, None, None)
+    view.set_defaults(handler=_cmd_view)
 
     render = sub.add_parser("render", help="render a frame of a USD animation to PNG (needs matplotlib)")
     render.add_argument("usd", help="USD file written by 'warpspring run'")
@@ -220,6 +233,35 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _add_view_options(parser: argparse.ArgumentParser, switch: str | None, help_text: str | None) -> None:
+    """The viewer's options: its switch (``run --view``), address and port."""
+    if switch is not None:
+        parser.add_argument(switch, action="store_true", help=help_text)
+    parser.add_argument("--view-host", default="127.0.0.1", metavar="ADDR",
+                        help="address the viewer listens on (default: %(default)s, this machine only; another "
+                             "address serves plain HTTP to the network, the URL's token the only key)")
+    parser.add_argument("--view-port", type=_non_negative_int, default=8080, metavar="PORT",
+                        help="the viewer's port (default: %(default)s; 0: any free port)")
+
+
+def _cmd_view(args) -> int:
+    view = FileView(args.usd, host=args.view_host, port=args.view_port, follow=not args.no_follow)
+    print(f"viewer of {args.usd} at {view.url} (Ctrl-C to stop)", flush=True)
+    _serve_until_interrupted(view)
+    return 0
+
+
+def _serve_until_interrupted(view) -> None:
+    """Keep a viewer's page up until Ctrl-C, then close it."""
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        view.close()
+
+
 def _add_ray_option(parser: argparse.ArgumentParser) -> None:
     """``--ray [ADDRESS]`` of the studies: their plans' jobs as Ray tasks (the same tables)."""
     parser.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS",
@@ -286,6 +328,7 @@ def _cmd_run(args) -> int:
     if device is not None and str(device).startswith("cuda") and _CUDA_DRIVER_MISSING:
         raise ConfigError(f"device {device!r} is not available: Warp could not find or load the NVIDIA CUDA driver "
                           "on this machine; run on the CPU with --device cpu")
+    live = LiveView(host=args.view_host, port=args.view_port, title=os.path.basename(args.scene)) if args.view else None
     summary = run_scene(
         scene,
         output=args.output,
@@ -301,9 +344,21 @@ def _cmd_run(args) -> int:
         resume=args.resume,
         world=args.world,
         world_spacing=args.world_spacing,
+        on_start=functools.partial(_start_view, live) if live is not None else None,
     )
     print(summary.line())
+    if live is not None:  # (a run that fails ends the process, and the page's threads with it)
+        if sys.stdin.isatty():  # someone is there to look: the page stays
+            print(f"the run has ended; the viewer stays at {live.url} until Ctrl-C", flush=True)
+            _serve_until_interrupted(live)
+        else:
+            live.close()
     return 0
+
+
+def _start_view(live: LiveView, sim, advice) -> None:
+    live.attach(sim, advice)
+    print(f"viewer at {live.url}", flush=True)
 
 
 def _cmd_render(args) -> int:

@@ -172,6 +172,7 @@ def run_scene(
     watch: int | None = None,
     checkpoint_every: int = 0,
     resume: str | None = None,
+    on_start=None,
 ) -> RunSummary:
     """Simulate ``scene`` and write it to USD. Arguments other than ``scene`` override the file's values
     (``world``, ``world_spacing`` and ``world_columns`` those of its ``[output]``: see
@@ -195,6 +196,9 @@ def run_scene(
     With ``[guard] stop = "world"`` a world that fails a guard check is held and the others go on: the
     world gets no samples from the failing frame on, its failure goes to ``warn`` at once and is listed in
     :attr:`RunSummary.world_failures`. The run fails only when every world has failed.
+
+    ``on_start(sim, advice)``, if given, is called once the simulator is made and the advisor has judged
+    the step, before the first frame (the live viewer attaches itself there).
 
     Raises:
         ConfigError: bad scene or options, a scene's output path that leaves its folder, an output another run
@@ -258,6 +262,8 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
     last_good = model.state()  # the last frame the guard passed: where a stop is diagnosed
     if not advice.stable and warn is not None:
         warn(advice.message)
+    if on_start is not None:
+        on_start(sim, advice)
 
     saved_at = os.path.abspath(checkpoint_path(output))
     with UsdWriter(output, model, fps=fps, particles=scene.export_particles, springs=scene.export_springs,
