@@ -5,6 +5,8 @@ Every error is a :class:`ConfigError` naming the file, the table and the key."""
 
 from __future__ import annotations
 
+import re
+
 from ..core.builder.spring_materials import spring_law_options
 from ..core.tracks import EXTRAPOLATIONS, INTERPOLATIONS, Track
 from ..errors import ConfigError
@@ -46,6 +48,47 @@ def check_run_settings(*, fps, frames, substeps, where: str = "options") -> None
         raise ConfigError(f"{where}: frames must be an integer >= 1, got {frames!r}")
     if not Number(1, integer=True).accepts(substeps):
         raise ConfigError(f"{where}: substeps must be an integer >= 1 (dt = 1 / (fps * substeps)), got {substeps!r}")
+
+
+# -- bounded nesting --------------------------------------------------------------------------------------
+
+#: The deepest nesting of arrays and inline tables a scene file may hold (a table header counts one level per
+#: dotted part). The deepest the schema uses is 5 (a per-world track's keyframes of vectors); the limit
+#: keeps the parser and every check after it (recursive, like TOML's own parser) far from Python's
+#: recursion limit.
+MAX_NESTING = 32
+
+#: TOML's strings (multi-line first) and comments, which may hold brackets that do not nest.
+_NOT_NESTING = re.compile(r'"""(?:[^\\]|\\.)*?"""|\'\'\'.*?\'\'\'|"(?:[^"\\\n]|\\.)*"|\'[^\'\n]*\'|#[^\n]*',
+                          re.DOTALL)
+_BRACKETS = re.compile(r"[\[\]{}]")
+
+
+def check_nesting(text: str, where: str) -> None:
+    """Refuse a scene file's text whose arrays and inline tables nest deeper than :data:`MAX_NESTING`, before
+    it is parsed: a cheap scan of its brackets outside strings and comments (a malformed file may miscount;
+    the parser then refuses it)."""
+    depth = deepest = 0
+    for match in _BRACKETS.finditer(_NOT_NESTING.sub("", text)):
+        depth += 1 if match.group() in "[{" else -1
+        deepest = max(deepest, depth)
+        if deepest > MAX_NESTING:
+            raise ConfigError(f"{where}: arrays and inline tables nest deeper than {MAX_NESTING} levels; no scene "
+                              "needs more: flatten the value")
+
+
+def check_depth(data, where: str) -> None:
+    """Refuse a parsed scene (dicts and lists) that nests deeper than :data:`MAX_NESTING` (without recursion)."""
+    pending = [(data, 0)]
+    while pending:
+        value, depth = pending.pop()
+        if depth > MAX_NESTING:
+            raise ConfigError(f"{where}: tables and arrays nest deeper than {MAX_NESTING} levels; no scene needs "
+                              "more: flatten the value")
+        if isinstance(value, dict):
+            pending.extend((v, depth + 1) for v in value.values())
+        elif isinstance(value, (list, tuple)):
+            pending.extend((v, depth + 1) for v in value)
 
 
 # -- versions and renames ---------------------------------------------------------------------------------
