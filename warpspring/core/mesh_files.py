@@ -31,6 +31,11 @@ its own), ``subdivisionScheme`` (the cage is read as it is, never subdivided), c
 (``holeIndices``), velocities, ``doubleSided``, materials and any other prim of the file. Vertices that no
 face uses are kept.
 
+Every input is checked to be a regular file before it is opened (:func:`check_regular_file`,
+:func:`open_regular_file`): a named pipe, a device or a socket would block a reader or feed it forever. A USD
+file's own layers — sublayers, references and payloads, transitively — are checked the same way before the
+stage composes them (:func:`check_usd_layers`); value clips' asset paths are not (no scene reads clips).
+
 Every problem is raised as :class:`~warpspring.errors.ConfigError`, one line naming the file and (where
 known) the prim, what is wrong and how to fix it.
 """
@@ -48,8 +53,8 @@ import numpy as np
 
 from ..errors import ConfigError
 
-__all__ = ["USD_EXTENSIONS", "UsdMesh", "check_regular_file", "load_mesh_file", "open_regular_file", "read_usd_mesh",
-           "read_usd_mesh_samples"]
+__all__ = ["USD_EXTENSIONS", "UsdMesh", "check_regular_file", "check_usd_layers", "load_mesh_file", "open_regular_file",
+           "read_usd_mesh", "read_usd_mesh_samples"]
 
 USD_EXTENSIONS = (".usd", ".usda", ".usdc")  # mesh files read through USD, not trimesh
 
