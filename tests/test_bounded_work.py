@@ -3,7 +3,9 @@
 stops at its step budget with a conservative verdict that says so (``shear = { ke = 1e18 }`` on a tiny cloth
 kept it going for minutes)."""
 
+import contextlib
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -20,9 +22,24 @@ from warpspring.analysis.advisor import advise
 from warpspring.app.cli import EXIT_CONFIG, main
 from warpspring.errors import ConfigError
 from warpspring.io.scene import parse_scene
-from warpspring.io.scene_checks import MAX_NESTING
+from warpspring.io.scene_checks import MAX_NESTING, check_nesting
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+@contextlib.contextmanager
+def deadline(seconds: float):
+    """Raise TimeoutError in this thread after ``seconds`` of wall time (SIGALRM)."""
+    def expire(signum, frame):
+        raise TimeoutError(f"took more than {seconds:g} s")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
 
 CLOTH = """\
 [simulation]
@@ -66,6 +83,35 @@ def test_brackets_in_strings_and_comments_do_not_count(tmp_path, capsys):
     text = CLOTH.replace("[cloth]", "[cloth]\nname = \"" + "[{" * 100 + "\"  # " + "[" * 100)
     status, err = run(tmp_path, capsys, text)
     assert status == 0, err
+
+
+DEEP = "[" * (MAX_NESTING + 1) + "]" * (MAX_NESTING + 1)
+
+
+@pytest.mark.parametrize("text, refused", [
+    ('a = "x\\"[[" # [[[\ne = ' + DEEP, True),  # an escaped quote does not end the string
+    ('f = "a\\\\"\ng = ' + DEEP, True),  # an escaped backslash does not escape the quote
+    ('b = """\n' + DEEP + '\n"""\n', False),
+    ("c = '" + DEEP + "'\n", False),
+    ("d = '''\n" + DEEP + "\n'''\n", False),
+    ("# " + DEEP, False),
+    ("[" * MAX_NESTING + "]" * MAX_NESTING, False),
+])
+def test_the_nesting_scan_skips_strings_and_comments(text, refused):
+    if refused:
+        with pytest.raises(ConfigError, match="deeper than"):
+            check_nesting(text, "scene.toml")
+    else:
+        check_nesting(text, "scene.toml")
+
+
+@pytest.mark.parametrize("piece", ['"\\', '"""\\', "'''a\n", '"""a"', '\\"'])
+def test_the_nesting_scan_is_linear(piece):
+    """Unterminated strings, escapes and quotes by the hundred thousand: one pass (a first, regular-expression
+    scan took 150 s on 150 KB of '"\\', quadratic); a deadline turns a regression into a failure, not a
+    stall."""
+    with deadline(30.0):
+        check_nesting(piece * 200_000, "scene.toml")
 
 
 def test_a_deep_dict_is_refused_without_recursion():

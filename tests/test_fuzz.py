@@ -2,7 +2,7 @@
 of the schema set to adversarial values (wrong types, NaN, ±∞, extreme integers, nested lists and tables,
 odd strings), keys deleted, unknown keys added — runs through ``warpspring run`` and ends with exit status 0
 (it ran), 2 (refused) or 3 (a guard stopped it), with at most one error line on stderr: no traceback, no
-hang, no signal.
+hang, no signal, no NumPy overflow warning (a value past the checks).
 
 Derandomized (the same examples on every run, so CI is reproducible), at most ``EXAMPLES`` examples within
 ``TIME_BUDGET`` seconds; each runs in this process (``main(argv)``, stderr captured) under a wall-clock deadline (``DEADLINE`` seconds,
@@ -17,6 +17,7 @@ import os
 import signal
 import sys
 import time
+import warnings
 
 import pytest
 
@@ -227,14 +228,21 @@ def deadline(seconds: float):
 
 
 def run_scene_text(text: str, folder) -> tuple[int, list[str]]:
+    """The exit status and stderr's lines of ``warpspring run`` on ``text``; a RuntimeWarning (NumPy's overflow
+    or invalid value: a value that leaked past the checks; on the command line two lines of noise on stderr)
+    counts as a line of its own."""
     scene = os.path.join(folder, "scene.toml")
     with open(scene, "w", encoding="utf-8") as f:
         f.write(text)
     err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()), deadline(DEADLINE):
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()), deadline(DEADLINE), \
+            warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         status = main(["run", scene, "-o", os.path.join(folder, "out.usdc"), "--device", "cpu", "-q",
                        "--watch-every", "0"])
-    return status, err.getvalue().splitlines()
+    leaked = [f"RuntimeWarning: {w.message} ({os.path.basename(w.filename)})" for w in caught
+              if issubclass(w.category, RuntimeWarning)]
+    return status, err.getvalue().splitlines() + leaked
 
 
 @pytest.fixture(scope="module")
@@ -250,6 +258,10 @@ def folder(tmp_path_factory):
 @example(mutations=[("set", ("world", "gravity"), ("raw", "[" * 3000 + "]" * 3000))])
 # ... and an absurd stiffness on the tiny cloth (the advisor's dry run ran for minutes).
 @example(mutations=[("set", ("cloth", "shear"), {"ke": 1e18})])
+# Found by this test: a float32 scene's wind lift of 1e300 became infinite on the device (NumPy's overflow
+# warning, then an internal "omega_max must be a finite number" error naming no key).
+@example(mutations=[("set", ("wind", "lift"), 1e300)])
+@example(mutations=[("set", ("cloth", "structural"), {"ke": 1e39, "kd": 0.1})])
 def test_every_scene_ends_cleanly(folder, mutations):
     if time.monotonic() - _clock.setdefault("start", time.monotonic()) > TIME_BUDGET:
         return  # past the budget: the pinned examples (run first) and those before have run

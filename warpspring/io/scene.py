@@ -30,6 +30,7 @@ from .scene_checks import (
     check_depth,
     check_export_options,
     check_nesting,
+    check_representable,
     check_run_settings,
     check_soft_body_pin,
     check_table,
@@ -267,6 +268,7 @@ def _parse(data: dict, path: str) -> Scene:
     precision = sim.get("precision", Scene.precision)
     if precision not in PRECISIONS:
         raise ConfigError(f"{where}: simulation.precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    check_representable(data, where, precision)
 
     tracks = {
         name: make_track(value, where, f"{table}.{name}")
