@@ -69,6 +69,9 @@ class Advice:
         top_growth: the amplitude factor of the binding world's top mode (ω_max, its least damping) over
             ``horizon`` at ``dt``, ρ^(horizon/dt): above 1 exactly when ``dt`` is past the limit, and how slowly
             it grows there (explicit Euler and midpoint just past theirs: barely); 1 for adaptive integrators.
+        dry_run_cut_short: why the dry run stopped at its budget (:attr:`~.under_load.TransientPeak.cut_short`), in
+            which case ω_max is the Gershgorin bound and the verdict conservative (the message says so); empty
+            otherwise.
     """
 
     integrator: str
@@ -88,6 +91,7 @@ class Advice:
     peak_time: float = 0.0
     transverse_growth: float = 1.0
     top_growth: float = 1.0
+    dry_run_cut_short: str = ""
 
 
 #: The transverse growth (:attr:`Advice.transverse_growth`) from which the advisor's message mentions it.
@@ -166,6 +170,8 @@ def _estimated_frequencies(model: Model, integrator: str, k: np.ndarray, *, stif
                                lowest_ratio=integrator == "explicit_euler")
         peaks, positions = probe.world_omega_max, probe.positions
         estimate = dataclasses.replace(estimate, world_mode=probe.world_mode)
+    if probe is not None and probe.cut_short:  # its peaks are not the run's: the bound holds at any state
+        converged = np.zeros(worlds, dtype=bool)
     omegas = np.where(converged, peaks, estimate.world_gershgorin)  # the bound where not
     modes = [estimate.world_mode[w] if converged[w] else None for w in range(worlds)]
     return _Frequencies(omegas, converged, modes, positions, probe)
@@ -189,6 +195,9 @@ def _springs_phrase(found: _Frequencies, w: int, peak_time: float, worlds: int) 
     springs = f"ω_max = {omega:.4g} rad/s by {source}"
     if peak_time > 0.0:
         springs += f" at its peak, t = {peak_time:.3g} s into a {found.probe.duration:.3g} s dry run"
+    if found.probe is not None and found.probe.cut_short:
+        springs += (f", conservative: the dry run was cut short ({found.probe.cut_short}), so the bound, which "
+                    "holds at any state, stands in for its peak")
     if worlds > 1:
         springs += f" in world {w}, the binding one of {worlds} worlds"
     return springs
@@ -353,6 +362,7 @@ def advise(
         peak_time=peak_time,
         transverse_growth=growth,
         top_growth=top,
+        dry_run_cut_short=probe.cut_short if probe is not None else "",
     )
 
 

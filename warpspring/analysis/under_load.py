@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import functools
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -133,6 +134,12 @@ PROBE_CHECK = 1.0 / 240.0
 PROBE_ITERATIONS, PROBE_TOLERANCE = 20, 1.0e-4
 PROBE_RISE = 1.0e-3
 PROBE_MIN_TIME, PROBE_HORIZON = 0.25, 2.0
+#: The dry run's budget: at most ``PROBE_MAX_STEPS`` velocity Verlet steps (a dry run that would need more
+#: to reach ``PROBE_MIN_TIME`` is not started) and ``PROBE_TIME_BUDGET`` wall seconds after its first frame
+#: (which compiles); past either it stops and says so (:attr:`TransientPeak.cut_short`), and the advisor
+#: judges by the Gershgorin bound, which holds at any state the run reaches (conservative). The examples'
+#: dry runs take 180–720 steps.
+PROBE_MAX_STEPS, PROBE_TIME_BUDGET = 50_000, 10.0
 
 
 def in_motion(model: Model, control=None) -> bool:
@@ -159,6 +166,9 @@ class TransientPeak:
         world_lowest_ratio: with ``lowest_ratio``, each world's lowest top-mode damping ratio xᵀDx / xᵀKx [s]
             over the start and the dry run's re-estimates (:func:`~.damping.top_mode_ratios`), shape [world_count];
             else ``None``.
+        cut_short: why the dry run stopped at its budget before it was done (``PROBE_MAX_STEPS``,
+            ``PROBE_TIME_BUDGET``), one phrase; empty when it ran its course. The peaks are then not to be
+            trusted: judge by a bound.
     """
 
     world_omega_max: np.ndarray
@@ -169,6 +179,7 @@ class TransientPeak:
     step: float
     finite: bool
     world_lowest_ratio: np.ndarray | None = None
+    cut_short: str = ""
 
 
 def _keeps_plasticity(function):
@@ -235,7 +246,13 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
     safe = float(safe[bound > 0.0].min()) if (bound > 0.0).any() else math.inf
     if not math.isfinite(safe) or safe <= 0.0:
         return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), 0.0, 0.0, True, lowest)
-    substeps = max(1, math.ceil(PROBE_CHECK / (PROBE_FRACTION * safe)))
+    substeps = PROBE_CHECK / (PROBE_FRACTION * safe)  # a float: ~1e16 for an absurd stiffness
+    needed = math.ceil(min(horizon, PROBE_MIN_TIME) / PROBE_CHECK) * max(1.0, math.ceil(substeps))
+    if needed > PROBE_MAX_STEPS:  # a dry run that would take too long: none, and the caller bounds ω_max
+        return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), 0.0, PROBE_FRACTION * safe, True,
+                             lowest, cut_short=f"it would take {needed:.3g} steps of {PROBE_FRACTION * safe:.3g} s, "
+                             f"past its budget of {PROBE_MAX_STEPS}")
+    substeps = max(1, math.ceil(substeps))
     sim = Simulator(model, integrator=VelocityVerlet(model), fps=1.0 / PROBE_CHECK, substeps=substeps,
                     control=control, guard=None)
     iteration = PowerIteration(model, k, mode)
@@ -253,8 +270,17 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
     with wp.ScopedCapture(device=model.device, force_module_load=False) as capture:
         recheck()
     rise, finite, level = 0.0, True, None  # level: the dry run's own running peak (not the start's)
+    cut_short, started = "", None
     while sim.time < horizon and (sim.time < PROBE_MIN_TIME or sim.time < 2.0 * rise):
+        if sim.frame * substeps >= PROBE_MAX_STEPS:
+            cut_short = f"it reached its budget of {PROBE_MAX_STEPS} steps at t = {sim.time:.3g} s"
+            break
+        if started is not None and time.perf_counter() - started > PROBE_TIME_BUDGET:
+            cut_short = f"it reached its budget of {PROBE_TIME_BUDGET:g} wall seconds at t = {sim.time:.3g} s"
+            break
         sim.step_frame()
+        if started is None:
+            started = time.perf_counter()  # after the first frame, which compiles the kernels
         wp.copy(snapshot, sim.state.particle_q)
         wp.capture_launch(capture.graph)
         omega = np.sqrt(np.maximum(iteration.scalars.numpy()[:, PI_LAMBDA], 0.0))
@@ -274,4 +300,5 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
             positions[higher], mode[higher], peak_time[higher], peak[higher] = q[higher], x[higher], sim.time, omega[higher]
             if lowest_ratio:
                 lowest = np.fmin(lowest, ratios(x, q))
-    return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), sim.time, sim.dt, finite, lowest)
+    return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), sim.time, sim.dt, finite, lowest,
+                         cut_short=cut_short)

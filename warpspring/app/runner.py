@@ -6,6 +6,7 @@ import os
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
 import warp as wp
 
 from .. import checks
@@ -14,12 +15,16 @@ from ..core.integrators import make_integrator
 from ..io.scene import Scene
 from ..io.scene_checks import check_run_settings
 from ..io.usd import UsdWriter
+from ..core.checkpoint import Checkpoint
+from ..core.records import STABILIZER_INPUTS
 from ..io.usd_stream import OutputLock, check_output_path
 from ..core.mesh_colliders import mesh_cache_counts
 from ..core.simulator import Simulator
 from ..analysis.advisor import advise, diagnose
 from ..analysis.under_load import PROBE_HORIZON
 from ..analysis.watch import WATCH_EVERY, StabilityWatch
+from ..kernels.inputs import INPUTS
+from ..version import __version__
 
 
 @dataclass
@@ -248,7 +253,10 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
     sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps, guard=scene.guard)
     start = 0
     if resume is not None:
+        _check_resume(Checkpoint.load(resume), sim, warn)
+        scene_inputs = model.inputs.numpy().copy()  # the scene's live inputs: they may differ from the saved run's
         sim.load_checkpoint(resume)
+        _keep_scene_inputs(model, scene_inputs)
         start = sim.frame
         if start >= frames:
             raise ConfigError(f"the checkpoint {resume!r} is at frame {start}, at or past the run's end (frame "
@@ -346,6 +354,44 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
             int(v.sum()) for v in model.self_contact.counts().values()),
         mesh_cache_overflow=int(mesh_cache_counts(model)["overflow"].sum()) if model.mesh_colliders else 0,
     )
+
+
+def _check_resume(checkpoint: Checkpoint, sim: Simulator, warn) -> None:
+    """Refuse to resume from ``checkpoint`` into ``sim`` (built from the scene, not yet restored) when the model
+    differs in any key of its fingerprint (the message names the keys); the end time, the output and the live
+    inputs may differ. A checkpoint from another warpspring version is resumed with a warning."""
+    name = f"checkpoint {checkpoint.source}"
+    checkpoint.check_configuration(sim)  # counts, integrator, fps, substeps: named with their fix
+    differences = checkpoint.model_differences(sim)
+    if differences:
+        shown = "; ".join(differences[:4]) + (f"; and {len(differences) - 4} more" if len(differences) > 4 else "")
+        raise ConfigError(f"{name} was saved from another model than this scene builds: {shown}; "
+                          "resume with the scene (and options) it was saved from, or start the run over "
+                          "(the end time, the output and live inputs such as gravity and drag may change)")
+    saved = checkpoint.header.get("warpspring_version")
+    if saved != __version__ and warn is not None:
+        warn(f"{name} was saved by warpspring {saved}, this is {__version__}: the resumed run may "
+             "not continue the saved one bit for bit")
+    if "model" not in checkpoint.header and warn is not None:
+        warn(f"{name} predates checkpoints that record their model: it cannot be checked against "
+             "this scene")
+
+
+def _keep_scene_inputs(model, scene_inputs) -> None:
+    """After a checkpoint restored the saved run's live inputs, write back those the scene gives other values
+    (gravity, drag, stabiliser limits, wind: a resumed run may change them, as between frames), except those a
+    keyframe track animates (the track sets them at every step) and the limits of a stabiliser that is off."""
+    saved = model.inputs.numpy()
+    for name, (slot, width) in INPUTS.items():
+        columns = slice(slot, slot + width)
+        if np.array_equal(saved[:, columns], scene_inputs[:, columns]):
+            continue
+        if any(model.track(name, world=w) is not None for w in range(model.world_count)):
+            continue
+        if name in STABILIZER_INPUTS and not model.stabilizers.enabled(name):
+            continue
+        values = scene_inputs[:, columns].astype(np.float64)
+        model.set_world_values(name, values if width == 3 else values[:, 0])
 
 
 def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = False, control=None,

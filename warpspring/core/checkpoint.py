@@ -25,7 +25,11 @@ are), under names grouped by owner:
 
 A JSON header (the ``header`` entry) names the format and its version, the package and Warp versions, the
 scene's counts and precision, the integrator's name and settings, fps and substeps, the frame counter,
-the model's on/off switches (gravity, drag, stabilisers, held worlds) and the guard's world failures.
+the model's on/off switches (gravity, drag, stabilisers, held worlds), the guard's world failures and the
+model's fingerprint (:func:`~.checkpoint_checks.model_fingerprint`: per key of the model as built — topology, materials,
+colliders, integrator, dt — a hash and a short readable summary), which a resumed run compares with the
+model it built (:meth:`Checkpoint.model_differences`). :meth:`Checkpoint.load` checks every header field's
+type and range, and refuses a state that is not finite (but in worlds the guard stopped).
 
 Not saved: the scene itself (topology, colliders and meshes as built, keyframe tracks and pin-group tracks, the element
 families' fixed arrays: build the simulator from the same scene, then load), the guard's limits and
@@ -36,7 +40,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import inspect
 import json
 import os
 import uuid
@@ -49,13 +52,15 @@ import warp as wp
 from ..errors import ConfigError
 from ..version import __version__
 from ..kernels.inputs import INPUTS
+from .checkpoint_checks import check_finite, check_header, integrator_settings, model_fingerprint, summary
 from .guard_records import GuardReport
+from .mesh_files import check_regular_file
 from .records import Stabilizers
 
 #: The format's name, stored in every header.
 FORMAT = "warpspring-checkpoint"
-#: The format's version: a reader refuses newer ones.
-FORMAT_VERSION = 1
+#: The format's version: a reader refuses newer ones. Version 2 added the model's fingerprint (``model``).
+FORMAT_VERSION = 2
 
 #: Model arrays a user may change between frames (live values and in-place edits), saved and restored.
 MODEL_ARRAYS = (
@@ -160,6 +165,7 @@ class Checkpoint:
             "world_failures": [{"world": int(w), "frame": int(frame), "report": dataclasses.asdict(report)}
                                for w, (frame, report) in sorted(sim.world_failures.items())],
             "arrays": sorted(arrays),
+            "model": model_fingerprint(sim),
         }
         return cls(header, arrays)
 
@@ -179,7 +185,7 @@ class Checkpoint:
             ConfigError: the checkpoint was saved from another scene, integrator, fps or substeps (the
                 message names the difference and the fix), or holds an array this simulator has not.
         """
-        self._check_configuration(sim)
+        self.check_configuration(sim)
         plan = self._plan(sim)
         colliders = self._collider_plan(sim)
         self._restore_structure(sim)
@@ -201,7 +207,22 @@ class Checkpoint:
         sim.frame = self.frame
         sim.world_failures = self.world_failures()
 
-    def _check_configuration(self, sim) -> None:
+    def model_differences(self, sim) -> list[str]:
+        """The keys of :func:`model_fingerprint` in which the model this checkpoint was saved from differs from
+        ``sim``'s (as built: call this before :meth:`restore`, which writes the saved live values over
+        it), each as ``"key (saved: summary; now: summary)"``; empty when they agree, and for a checkpoint of
+        format 1, which recorded no fingerprint."""
+        saved = self.header.get("model")
+        if saved is None:
+            return []
+        mine = model_fingerprint(sim)
+        return [f"{key} (saved: {summary(saved.get(key))}; now: {summary(mine.get(key))})"
+                for key in sorted(set(saved) | set(mine))
+                if (saved.get(key) or {}).get("hash") != (mine.get(key) or {}).get("hash")]
+
+    def check_configuration(self, sim) -> None:
+        """Raise a one-line ConfigError naming the first of the counts, precision, integrator, fps and substeps
+        that differ between this checkpoint and ``sim``, and how to fix it."""
         mine = _configuration(sim)
         saved = self.header
         for key, label, remedy in _COMPATIBILITY:
@@ -334,8 +355,9 @@ class Checkpoint:
         """
         path = Path(path)
         name = f"checkpoint {path}"
-        if not path.is_file():
+        if not path.exists():
             raise ConfigError(f"{name} does not exist (or is not a file)")
+        check_regular_file(path, "checkpoint")  # a named pipe would block the reader
         try:
             data = np.load(path, allow_pickle=False)
             if not isinstance(data, np.lib.npyio.NpzFile):
@@ -357,10 +379,12 @@ class Checkpoint:
             raise ConfigError(f"{name} has format version {version!r}, newer than this warpspring "
                               f"({header.get('warpspring_version')!r} wrote it; this one reads version "
                               f"{FORMAT_VERSION}): upgrade warpspring")
-        missing = sorted(set(header.get("arrays", ())) - set(arrays))
+        check_header(header, name)
+        missing = sorted(set(header["arrays"]) - set(arrays))
         if missing:
             raise ConfigError(f"{name} lacks {len(missing)} of its arrays (first: {missing[0]}): it is damaged; "
                               "save it again")
+        check_finite(header, arrays, name)
         return cls(header, arrays, source=str(path))
 
 
@@ -395,16 +419,6 @@ def collider_arrays(model) -> dict[str, np.ndarray]:
     """The deforming mesh colliders' snapshots (host copies), by checkpoint name (see the module docstring)."""
     return {f"colliders/{c.index}/{name}": values for c in model.mesh_colliders if c.info.deforming
             for name, values in c.snapshot().items()}
-
-
-def integrator_settings(integrator) -> dict:
-    """The integrator's settings that are live values: the keyword-only options of its class that are
-    settable properties (dopri5's ``tolerance`` and ``max_steps``, implicit Euler's ``cg_iterations`` and
-    ``cg_tolerance``), by name."""
-    cls = type(integrator)
-    names = [p.name for p in inspect.signature(cls).parameters.values() if p.kind is p.KEYWORD_ONLY]
-    return {name: getattr(integrator, name) for name in names
-            if isinstance(getattr(cls, name, None), property) and getattr(cls, name).fset is not None}
 
 
 def _configuration(sim) -> dict:

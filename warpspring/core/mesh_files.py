@@ -31,22 +31,30 @@ its own), ``subdivisionScheme`` (the cage is read as it is, never subdivided), c
 (``holeIndices``), velocities, ``doubleSided``, materials and any other prim of the file. Vertices that no
 face uses are kept.
 
+Every input is checked to be a regular file before it is opened (:func:`check_regular_file`,
+:func:`open_regular_file`): a named pipe, a device or a socket would block a reader or feed it forever. A USD
+file's own layers — sublayers, references and payloads, transitively — are checked the same way before the
+stage composes them (:func:`check_usd_layers`); value clips' asset paths are not (no scene reads clips).
+
 Every problem is raised as :class:`~warpspring.errors.ConfigError`, one line naming the file and (where
 known) the prim, what is wrong and how to fix it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
+import stat
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..errors import ConfigError
 
-__all__ = ["USD_EXTENSIONS", "UsdMesh", "load_mesh_file", "read_usd_mesh", "read_usd_mesh_samples"]
+__all__ = ["USD_EXTENSIONS", "UsdMesh", "check_regular_file", "check_usd_layers", "load_mesh_file", "open_regular_file",
+           "read_usd_mesh", "read_usd_mesh_samples"]
 
 USD_EXTENSIONS = (".usd", ".usda", ".usdc")  # mesh files read through USD, not trimesh
 
@@ -201,12 +209,110 @@ def load_mesh_file(path, *, what: str = "mesh"):
     import trimesh  # trimesh loads lazily
 
     path = os.fspath(path)
-    if not os.path.isfile(path):
+    if not os.path.exists(path):
         raise ConfigError(f"{what} file not found: {path}")
+    check_regular_file(path, f"{what} file")
     try:
         return trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise ConfigError(f"cannot read {what} file {path}: {exc}") from None
+
+
+# ---------------------------------------------------------------------------------------------- input files
+
+#: The most layers a USD mesh file may pull in (sublayers, references, payloads, transitively).
+MAX_USD_LAYERS = 1000
+
+
+def _kind(mode: int) -> str:
+    """What a file that is not a regular file is, in words."""
+    for test, name in ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISSOCK, "a socket"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def check_regular_file(path: str | os.PathLike[str], what: str = "file") -> str:
+    """``path`` (as a str) if it is a regular file (a symbolic link is followed); else a one-line ConfigError
+    naming ``what`` and the path. Only a stat: a named pipe, a device or a socket is refused without being
+    opened, so a reader that would block on it (or read it forever) never starts."""
+    path = os.fspath(path)
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        raise ConfigError(f"{what} {path}: no such file; check the path") from None
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"{what} {path}: cannot read it ({getattr(exc, 'strerror', None) or exc})") from None
+    if not stat.S_ISREG(mode):
+        raise ConfigError(f"{what} {path}: is {_kind(mode)}, not a regular file; give the path of a file")
+    return path
+
+
+@contextlib.contextmanager
+def open_regular_file(path: str | os.PathLike[str], what: str = "file"):
+    """Open ``path`` for binary reading if it is a regular file, else a one-line ConfigError naming ``what``.
+    It is opened without blocking and checked on the open descriptor (no window between check and open in
+    which a pipe could take the file's place), then read as a normal file."""
+    path = os.fspath(path)
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
+    except FileNotFoundError:
+        raise ConfigError(f"{what} {path}: no such file; check the path") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{what} {path}: is a folder, not a regular file; give the path of a file") from None
+    except OSError as exc:
+        raise ConfigError(f"{what} {path}: cannot read it ({exc.strerror or exc})") from None
+    mode = os.fstat(fd).st_mode
+    if not stat.S_ISREG(mode):
+        os.close(fd)
+        raise ConfigError(f"{what} {path}: is {_kind(mode)}, not a regular file; give the path of a file")
+    if hasattr(os, "set_blocking"):
+        os.set_blocking(fd, True)
+    with open(fd, "rb") as file:
+        yield file
+
+
+def check_usd_layers(file: str) -> list:
+    """Check that ``file`` and every layer it pulls in (sublayers, references and payloads, transitively; at
+    most ``MAX_USD_LAYERS``) that exists is a regular file, before a stage composes them: each layer is
+    opened on its own (``Sdf.Layer``, no composition) only after its path passed :func:`check_regular_file`,
+    so a named pipe among them is refused instead of blocking the reader. A dependency that does not exist
+    is left to USD (it warns and composes without it).
+
+    Returns:
+        the layers opened (``Sdf.Layer``): while the caller holds them, a stage opened on ``file`` reuses them.
+    """
+    from pxr import Sdf, Tf  # optional: usd-core
+
+    check_regular_file(file, "USD file")
+    pending, seen, layers = [os.path.abspath(file)], set(), []
+    while pending:
+        path = pending.pop()
+        if path in seen:
+            continue
+        seen.add(path)
+        if len(seen) > MAX_USD_LAYERS:
+            raise ConfigError(f"{file}: pulls in more than {MAX_USD_LAYERS} layers (sublayers, references, "
+                              "payloads); flatten it (usdcat --flatten)")
+        try:
+            layer = Sdf.Layer.FindOrOpen(path)
+        except Tf.ErrorException as error:
+            raise ConfigError(f"{file}: USD cannot open {'it' if path == os.path.abspath(file) else path} "
+                              f"({_usd_reason(error)}); check that it is a valid .usda, .usdc or .usd file (open it "
+                              "in usdview or run usdcat on it)") from None
+        if layer is None:
+            continue  # USD refuses it when the stage opens, with its own reason
+        layers.append(layer)
+        for asset in layer.GetCompositionAssetDependencies():
+            if not asset or asset.startswith("anon:"):
+                continue
+            resolved = layer.ComputeAbsolutePath(asset.split(":SDF_FORMAT_ARGS:", 1)[0])
+            if not resolved or not os.path.exists(resolved):
+                continue
+            check_regular_file(resolved, f"{file}: the layer {asset!r} it pulls in,")
+            pending.append(os.path.abspath(resolved))
+    return layers
 
 
 # ---------------------------------------------------------------------------------------------- stage
@@ -221,11 +327,13 @@ def _open_stage(file: str):
     if os.path.isdir(file):
         raise ConfigError(f"{file}: is a folder, not a USD file; give the path of a .usda, .usdc or "
                           f".usd file")
+    layers = check_usd_layers(file)  # before the stage composes them: a named pipe among them would block it
     try:
         stage = Usd.Stage.Open(file)
     except Tf.ErrorException as error:
         raise ConfigError(f"{file}: USD cannot open it ({_usd_reason(error)}); check that it is a "
                           f"valid .usda, .usdc or .usd file (open it in usdview or run usdcat on it)") from None
+    del layers  # the stage holds what it uses
     if stage is None:
         raise ConfigError(f"{file}: USD cannot open it; check that it is a valid .usda, .usdc or .usd "
                           f"file (open it in usdview or run usdcat on it)")

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from ..core.builder import ModelBuilder
 from ..core.guard_records import GuardLimits
 from ..core.integrators import INTEGRATORS
+from ..core.mesh_files import open_regular_file
 from ..core.model import Model
 from ..core.records import MAX_CONTACT_SLOTS, STABILIZER_INPUTS, Stabilizers
 from ..errors import ConfigError
@@ -26,7 +27,10 @@ from .scene_checks import (
     apply_renames,
     check_cloth,
     check_collider,
+    check_depth,
     check_export_options,
+    check_nesting,
+    check_representable,
     check_run_settings,
     check_soft_body_pin,
     check_table,
@@ -178,15 +182,19 @@ def load_scene(path: str | os.PathLike) -> Scene:
             the schema.
     """
     path = os.fspath(path)
-    if not os.path.isfile(path):
+    if not os.path.exists(path):
         raise ConfigError(f"scene file not found: {path}")
     try:
-        with open(path, "rb") as f:
-            data = tomllib.load(f)
+        with open_regular_file(path, "scene file") as f:
+            text = f.read().decode("utf-8")
+        check_nesting(text, path)
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {one_line(exc)}") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: cannot read: {one_line(exc)}") from None
+    except RecursionError:  # a backstop: check_nesting bounds the nesting the parser recurses on
+        raise ConfigError(f"{path}: nests too deep to parse; flatten its arrays and inline tables") from None
     scene = _parse(data, path)
     for message in scene.deprecations:
         warnings.warn(message, DeprecatedKeyWarning, stacklevel=2)
@@ -214,6 +222,7 @@ def _parse(data: dict, path: str) -> Scene:
     where = os.path.basename(path)
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: a scene must be a table of tables, got {type(data).__name__}")
+    check_depth(data, where)  # every check below recurses on the values
     version = format_version(data, where)  # first: a newer file's keys would only confuse the checks below
     data = copy.deepcopy(data)
     deprecations = apply_renames(data, version, where)
@@ -259,6 +268,7 @@ def _parse(data: dict, path: str) -> Scene:
     precision = sim.get("precision", Scene.precision)
     if precision not in PRECISIONS:
         raise ConfigError(f"{where}: simulation.precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    check_representable(data, where, precision)
 
     tracks = {
         name: make_track(value, where, f"{table}.{name}")

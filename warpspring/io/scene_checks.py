@@ -5,6 +5,9 @@ Every error is a :class:`ConfigError` naming the file, the table and the key."""
 
 from __future__ import annotations
 
+import math
+import re
+
 from ..core.builder.spring_materials import spring_law_options
 from ..core.tracks import EXTRAPOLATIONS, INTERPOLATIONS, Track
 from ..errors import ConfigError
@@ -46,6 +49,95 @@ def check_run_settings(*, fps, frames, substeps, where: str = "options") -> None
         raise ConfigError(f"{where}: frames must be an integer >= 1, got {frames!r}")
     if not Number(1, integer=True).accepts(substeps):
         raise ConfigError(f"{where}: substeps must be an integer >= 1 (dt = 1 / (fps * substeps)), got {substeps!r}")
+
+
+# -- bounded nesting --------------------------------------------------------------------------------------
+
+#: The deepest nesting of arrays and inline tables a scene file may hold (a table header counts one level per
+#: dotted part). The deepest the schema uses is 5 (a per-world track's keyframes of vectors); the limit
+#: keeps the parser and every check after it (recursive, like TOML's own parser) far from Python's
+#: recursion limit.
+MAX_NESTING = 32
+
+#: What the nesting scan stops at: a bracket, a string's quote or a comment.
+_SCAN = re.compile(r"[\[\]{}\"'#]")
+
+
+def _string_end(text: str, start: int, quote: str) -> int:
+    """Where the string opening at ``start`` (its first quote) ends, just past its closing quote(s); -1 when it
+    does not end (the parser refuses the file). Linear: each search starts past the last."""
+    multi = text.startswith(quote * 3, start)
+    close = quote * 3 if multi else quote
+    i = start + len(close)
+    while True:
+        j = text.find(close, i)
+        line = -1 if multi else text.find("\n", i, j if j >= 0 else len(text))
+        if j < 0 or line >= 0:
+            return -1
+        backslashes = 0
+        while quote == '"' and text[j - 1 - backslashes] == "\\":  # an escaped quote does not close it
+            backslashes += 1
+        if backslashes % 2 == 0:
+            return j + len(close)
+        i = j + 1
+
+
+def check_nesting(text: str, where: str) -> None:
+    """Refuse a scene file's text whose arrays and inline tables nest deeper than :data:`MAX_NESTING`, before
+    it is parsed: one pass over its brackets outside strings and comments, in time linear in its length (a
+    malformed file may miscount; the parser then refuses it)."""
+    depth, i = 0, 0
+    while (match := _SCAN.search(text, i)) is not None:
+        char, i = match.group(), match.end()
+        if char == "#":
+            i = text.find("\n", i)
+        elif char in "\"'":
+            i = _string_end(text, match.start(), char)
+        else:
+            depth += 1 if char in "[{" else -1
+            if depth > MAX_NESTING:
+                raise ConfigError(f"{where}: arrays and inline tables nest deeper than {MAX_NESTING} levels; no "
+                                  "scene needs more: flatten the value")
+        if i < 0:
+            return
+
+
+#: The largest magnitude each precision holds (a float32 value past it becomes infinite on the device).
+_LARGEST = {"float32": 3.4028234663852886e38, "float64": 1.7976931348623157e308}
+
+
+def check_representable(data, where: str, precision: str) -> None:
+    """Refuse a number of the scene (in any table, at any depth) that the model's ``precision`` cannot hold: a
+    float32 scene's 1e300 became infinite when it reached the device, and a NaN later, far from its key."""
+    largest = _LARGEST.get(precision, _LARGEST["float64"])
+    pending = [(data, "")]
+    while pending:
+        value, key = pending.pop()
+        if isinstance(value, dict):
+            pending.extend((v, f"{key}.{k}" if key else str(k)) for k, v in value.items())
+        elif isinstance(value, (list, tuple)):
+            pending.extend((v, f"{key}[{i}]") for i, v in enumerate(value))
+        elif isinstance(value, (int, float)) and not isinstance(value, bool) and abs(value) > largest:
+            if isinstance(value, float) and not math.isfinite(value):
+                continue  # NaN and ±inf: each key's own check names them
+            if key.rsplit(".", 1)[-1] in ("seed", "version"):
+                continue  # integers that never reach the device as floats (their own checks bound them)
+            raise ConfigError(f"{where}: {key} = {value:g} is beyond what {precision} holds (±{largest:.3g}); "
+                              "use a smaller value" + (" or precision = \"float64\"" if precision == "float32" else ""))
+
+
+def check_depth(data, where: str) -> None:
+    """Refuse a parsed scene (dicts and lists) that nests deeper than :data:`MAX_NESTING` (without recursion)."""
+    pending = [(data, 0)]
+    while pending:
+        value, depth = pending.pop()
+        if depth > MAX_NESTING:
+            raise ConfigError(f"{where}: tables and arrays nest deeper than {MAX_NESTING} levels; no scene needs "
+                              "more: flatten the value")
+        if isinstance(value, dict):
+            pending.extend((v, depth + 1) for v in value.values())
+        elif isinstance(value, (list, tuple)):
+            pending.extend((v, depth + 1) for v in value)
 
 
 # -- versions and renames ---------------------------------------------------------------------------------
