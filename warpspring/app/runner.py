@@ -223,13 +223,14 @@ def run_scene(
     try:
         return _run(scene, output=output, lock=lock, device=device, frames=frames, fps=fps, substeps=substeps,
                     progress=progress, strict=strict, warn=warn, world=world, world_spacing=world_spacing,
-                    world_columns=world_columns, watch=watch, checkpoint_every=checkpoint_every, resume=resume)
+                    world_columns=world_columns, watch=watch, checkpoint_every=checkpoint_every, resume=resume,
+                    on_start=on_start)
     finally:
         lock.release()
 
 
 def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fps: float, substeps: int, progress,
-         strict, warn, world, world_spacing, world_columns, watch, checkpoint_every, resume) -> RunSummary:
+         strict, warn, world, world_spacing, world_columns, watch, checkpoint_every, resume, on_start) -> RunSummary:
     """:func:`run_scene` once its output is checked and owned (``lock`` held)."""
     world = scene.export_world if world is None else world
     if world is not None and world >= scene.world_count:
