@@ -150,6 +150,22 @@ class SelfContact:
         self.bvhs = [wp.Bvh(surface.leaf_lower[w * T:(w + 1) * T], surface.leaf_upper[w * T:(w + 1) * T])
                      for w in range(worlds)]
         surface.bvh = wp.array(np.array([b.id for b in self.bvhs], dtype=np.uint64), dtype=wp.uint64, device=device)
+        if device.is_cuda:
+            self._load_modules()
+
+    def _load_modules(self) -> None:
+        """Load every kernel of the pass, its conditional branches' included, so that a frame's capture never
+        loads one (a branch may not run in the stepper's warm-up step)."""
+        model = self.model
+        scalar = model.scalar
+        for kernel in (leaf_kernel(scalar, False), leaf_kernel(scalar, True), *scan_kernels()):
+            kernel.module.load(model.device)  # launched with Warp's default block size
+        flat = [broad_vt_kernel(scalar, False),
+                broad_vt_kernel(scalar, True), broad_ee_kernel(scalar, False), broad_ee_kernel(scalar, True),
+                reset_kernel(), fill_kernel(), check_kernel(scalar), anchor_kernel(scalar), repel_pairs_kernel(scalar),
+                repel_gather_kernel(scalar), cap_bounds_kernel(scalar), cap_gather_kernel(scalar)]
+        for kernel in flat:
+            kernel.module.load(model.device, model.block_dim)
 
     def _allocate(self, capacity: int) -> None:
         """The cache and the cap's list with ``capacity`` slots per world (emptied: the next step rebuilds)."""

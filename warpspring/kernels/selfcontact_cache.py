@@ -4,12 +4,14 @@ pair the pass needs, not every step.
 The cache of a world is the list of vertex–triangle and edge–edge pairs closer than R = ``CACHE_REACH`` τ at
 its *anchor* positions xᵃ (the step's start when it was built), with a CSR of their vertices, in the layout
 of ``kernels/selfcontact.py``'s pair buffers. Every point of a primitive is a convex combination of its
-vertices, so while every surface vertex stays within m of its anchor, a pair's distance differs from its
-distance at the anchor by at most 2m. Each step:
+vertices, and a translation c of all of them changes no distance, so while every surface vertex stays
+within m of its anchor moved by c, a pair's distance differs from its distance at the anchor by at most 2m.
+c is the world's reference vertex's displacement from its anchor (a fixed surface vertex): a cloth that
+falls or slides as a whole keeps its cache. Each step:
 
 1. ``check_kernel``: a world whose surface vertex drifted further than m = (R - REPULSION_REACH τ)/2 (less a
-   slack for rounding) at the step's start x⁰ is flagged for a rebuild (FLAG_REBUILD): pairs outside the
-   cache are then at least REPULSION_REACH τ apart at x⁰. The world's largest kinematic displacement K_w
+   slack for rounding) from its anchor moved by c at the step's start x⁰ is flagged for a rebuild
+   (FLAG_REBUILD): pairs outside the cache are then at least REPULSION_REACH τ apart at x⁰. The world's largest kinematic displacement K_w
    of the step is reduced into FLAG_KINEMATIC (an integer maximum of K_w rounded up, order-free). A world
    that was never built has R = 0 and is flagged; so is one whose τ grew or whose state was replaced.
 2. The flagged worlds' broad phase (BVH refit and queries, as ``kernels/selfcontact.py``) at x⁰ with reach R,
@@ -62,6 +64,12 @@ from .worlds import world_and_index
 
 wp.set_module_options({"enable_backward": False})
 
+
+@wp.func
+def base_index(world: int, particle_count: int):
+    """World ``world``'s first entry in a state's arrays."""
+    return world * particle_count
+
 #: Bound stored for a cached pair the cap does not keep (no bound).
 NO_BOUND = 1.0e30
 
@@ -97,10 +105,15 @@ def check_kernel(scalar: type):
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         thickness = params[wp.min(world, params.shape[0] - 1), PARAM_THICKNESS]
         start = particle_q_start[p]
-        anchor = cache_anchor[p]
+        # Drift relative to the world's reference vertex (a middle triangle's first corner): a translation of the
+        # whole surface changes no pair's distance.
+        ref = base_index(world, particle_count) + surface.triangle[surface.triangle.shape[0] // 2][0]
+        shift = particle_q_start[ref] - cache_anchor[ref]
+        anchor = cache_anchor[p] + shift
         drift = wp.length(start - anchor)
         margin = (scalar(0.5) * (cache_reach[world] - scalar(REPULSION_REACH) * thickness) * scalar(1.0 - SAFETY)
-                  - scalar(BOX_PAD) * (wp.max(wp.abs(start)) + wp.max(wp.abs(anchor)) + scalar(1.0)))
+                  - scalar(BOX_PAD) * (wp.max(wp.abs(start)) + wp.max(wp.abs(anchor)) + wp.max(wp.abs(shift))
+                                       + scalar(1.0)))
         if not (drift <= margin):  # NaN included
             raise_flag(flags_out, FLAG_REBUILD, world, world_count)
         if effective_inv_mass(particle_flags[p], particle_inv_mass[mass_row, i]) == scalar(0.0):
