@@ -140,7 +140,7 @@ class SelfContact:
         self.cache_anchor = wp.zeros(model.state_size, dtype=model.vec3, device=device)
         self.cache_reach = wp.zeros(worlds, dtype=model.scalar, device=device)
         self.flags = wp.zeros(2 + FLAG_KINDS * worlds, dtype=wp.int32, device=device)
-        self._scan_blocks = wp.zeros((model.particle_dim + SCAN_BLOCK) // SCAN_BLOCK, dtype=wp.int32, device=device)
+        self._scan_blocks = wp.zeros(worlds * ((n + SCAN_BLOCK - 1) // SCAN_BLOCK), dtype=wp.int32, device=device)
         self._allocate(max(64, PAIRS_PER_VERTEX * int(np.count_nonzero(topology["vertex_owner"] >= 0))))
         # One BVH per world over the single-precision boxes of its triangles, built at the model's initial
         # positions (its topology follows them: built on coincident points it would degenerate into a list)
@@ -306,10 +306,12 @@ class SelfContact:
                     dim=model.world_count * self.edge_count, block_dim=model.block_dim, device=model.device)
         block_sums, block_offsets, block_prefixes = scan_kernels()
         blocks = self._scan_blocks
-        wp.launch(block_sums, dim=blocks.shape[0], inputs=[pairs.vertex_count], outputs=[blocks], device=model.device)
-        wp.launch(block_offsets, dim=1, inputs=[], outputs=[blocks], device=model.device)
-        wp.launch(block_prefixes, dim=blocks.shape[0], inputs=[pairs.vertex_count, blocks], outputs=[pairs.vertex_start],
+        capacity = pairs.key.shape[0] // model.world_count
+        wp.launch(block_sums, dim=blocks.shape[0], inputs=[model.particle_count, pairs.vertex_count], outputs=[blocks],
                   device=model.device)
+        wp.launch(block_offsets, dim=1, inputs=[model.particle_count, capacity], outputs=[blocks], device=model.device)
+        wp.launch(block_prefixes, dim=blocks.shape[0], inputs=[model.particle_count, pairs.vertex_count, blocks],
+                  outputs=[pairs.vertex_start], device=model.device)
         flat_launch(fill_kernel(), inputs=[model.particle_count, active, pairs], dim=pairs.key.shape[0],
                     block_dim=model.block_dim, device=model.device)
 

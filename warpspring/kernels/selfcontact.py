@@ -131,7 +131,8 @@ class Pairs:
     #   EE V·T + e·E + f (V, T, E: the per-world particle, triangle and edge counts)
     vertex: wp.array[wp.vec4i]  # [world_count · capacity], its four vertices: VT (v, a, b, c), EE (p₁, q₁, p₂, q₂)
     vertex_count: wp.array[wp.int32]  # [world_count · particle_count + 1], entries per particle (last: 0)
-    vertex_start: wp.array[wp.int32]  # [world_count · particle_count + 1], their exclusive scan
+    vertex_start: wp.array[wp.int32]  # [world_count · particle_count + 1], their exclusive scan within the world,
+    #   from 4 · world · capacity (``scan_kernels``); a particle's segment is [start, start + count)
     vertex_cursor: wp.array[wp.int32]  # [world_count · particle_count], entries filled per particle
     entry: wp.array[wp.int32]  # [4 · world_count · capacity], slot · 4 + role, grouped by particle
 
@@ -537,32 +538,44 @@ SCAN_BLOCK = 256
 
 @functools.cache
 def scan_kernels():
-    """An exclusive integer scan in three launches and no allocation (so that it may run inside a conditional
-    graph node, where ``wp.utils.array_scan``'s temporary buffer may not): each block of ``SCAN_BLOCK`` entries
-    sums itself, one thread scans the block sums, each block writes its prefixes. Integer sums in a fixed
-    order: the same result every run."""
+    """The CSR's exclusive scan, world by world, in three launches and no allocation (so that it may run inside
+    a conditional graph node, where ``wp.utils.array_scan``'s temporary buffer may not): world w's segments
+    start at 4 w · capacity, so that rebuilding one world's list moves no other world's entries. Each block of
+    ``SCAN_BLOCK`` particles of a world sums itself, one thread scans the block sums, each block writes its
+    prefixes. Integer sums in a fixed order: the same result every run. A particle's segment is
+    [vertex_start[p], vertex_start[p] + vertex_count[p])."""
 
     @wp.kernel(module="unique", enable_backward=False)
-    def block_sums(values: wp.array[wp.int32], block_total_out: wp.array[wp.int32]):
+    def block_sums(particle_count: int, values: wp.array[wp.int32], block_total_out: wp.array[wp.int32]):
         b = wp.tid()
+        blocks = (particle_count + SCAN_BLOCK - 1) // SCAN_BLOCK
+        world = b // blocks
+        first = world * particle_count + (b - world * blocks) * SCAN_BLOCK
         total = int(0)
-        for i in range(b * SCAN_BLOCK, wp.min((b + 1) * SCAN_BLOCK, values.shape[0])):
+        for i in range(first, wp.min(first + SCAN_BLOCK, (world + 1) * particle_count)):
             total += values[i]
         block_total_out[b] = total
 
     @wp.kernel(module="unique", enable_backward=False)
-    def block_offsets(block_total_in_out: wp.array[wp.int32]):
+    def block_offsets(particle_count: int, capacity: int, block_total_in_out: wp.array[wp.int32]):
+        blocks = (particle_count + SCAN_BLOCK - 1) // SCAN_BLOCK
         running = int(0)
         for b in range(block_total_in_out.shape[0]):
+            if b % blocks == 0:
+                running = 4 * (b // blocks) * capacity
             total = block_total_in_out[b]
             block_total_in_out[b] = running
             running += total
 
     @wp.kernel(module="unique", enable_backward=False)
-    def block_prefixes(values: wp.array[wp.int32], block_offset: wp.array[wp.int32], prefix_out: wp.array[wp.int32]):
+    def block_prefixes(particle_count: int, values: wp.array[wp.int32], block_offset: wp.array[wp.int32],
+                       prefix_out: wp.array[wp.int32]):
         b = wp.tid()
+        blocks = (particle_count + SCAN_BLOCK - 1) // SCAN_BLOCK
+        world = b // blocks
+        first = world * particle_count + (b - world * blocks) * SCAN_BLOCK
         running = block_offset[b]
-        for i in range(b * SCAN_BLOCK, wp.min((b + 1) * SCAN_BLOCK, values.shape[0])):
+        for i in range(first, wp.min(first + SCAN_BLOCK, (world + 1) * particle_count)):
             prefix_out[i] = running
             running += values[i]
 
@@ -574,7 +587,7 @@ def sorted_segment(pairs: Pairs, p: int):
     """Particle p's segment of entries [first, last), sorted in place by the pairs' keys (insertion sort; a
     particle appears once in a pair, so keys do not repeat within a segment)."""
     first = pairs.vertex_start[p]
-    last = pairs.vertex_start[p + 1]
+    last = first + pairs.vertex_count[p]
     for a in range(first + 1, last):
         item = pairs.entry[a]
         key = pairs.key[item // 4]
@@ -826,10 +839,10 @@ def cap_gather_kernel(scalar: type):
         if flags[flag_slot(FLAG_FALLBACK, world, pairs.count.shape[0])] != 0:
             if pairs.count[world] > pairs.key.shape[0] // pairs.count.shape[0]:
                 allowed = scalar(0.0)  # overflow: a listed pair may be missing, so nothing free moves
-            for a in range(pairs.vertex_start[p], pairs.vertex_start[p + 1]):  # a minimum: any order gives it
+            for a in range(pairs.vertex_start[p], pairs.vertex_start[p] + pairs.vertex_count[p]):  # a minimum
                 allowed = wp.min(allowed, relaxation * pair_distance[pairs.entry[a] // 4])
         else:
-            for a in range(cache.vertex_start[p], cache.vertex_start[p + 1]):
+            for a in range(cache.vertex_start[p], cache.vertex_start[p] + cache.vertex_count[p]):
                 allowed = wp.min(allowed, relaxation * cache_bound[cache.entry[a] // 4])
         if step > allowed:
             x = start + (allowed / step) * (x - start)
@@ -867,9 +880,9 @@ def proximity_kernel(scalar: type):
         if surface.vertex_owner[i] < 0:
             return
         nearest = reach
-        for a in range(pairs.vertex_start[p], pairs.vertex_start[p + 1]):
+        for a in range(pairs.vertex_start[p], pairs.vertex_start[p] + pairs.vertex_count[p]):
             nearest = wp.min(nearest, pair_distance[pairs.entry[a] // 4])
         nearest_out[p] = nearest
-        count_out[p] = pairs.vertex_start[p + 1] - pairs.vertex_start[p]
+        count_out[p] = pairs.vertex_count[p]
 
     return proximity
