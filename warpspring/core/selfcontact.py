@@ -16,6 +16,7 @@ from ..errors import ConfigError
 from ..kernels.flatten import flat_launch
 from ..kernels.selfcontact import (
     CACHE_REACH,
+    CACHE_SLOTS,
     COUNT_CAPPED,
     COUNT_FALLBACKS,
     COUNT_OVERFLOW,
@@ -105,9 +106,11 @@ class SelfContact:
     Attributes:
         triangle_count: triangles of the colliding surface (per world).
         edge_count: its unique edges.
-        capacity: slots of each world's pair buffer (``PAIRS_PER_VERTEX`` per surface vertex); pairs beyond
-            are dropped and counted (:meth:`overflow`), and a world whose cap list overflowed keeps its free
-            vertices where the step started (``kernels/selfcontact.py``).
+        capacity: slots of each world's pair buffer of the cap (``PAIRS_PER_VERTEX`` per surface vertex); pairs
+            beyond are dropped and counted (:meth:`overflow`), and a world whose cap list overflowed keeps its
+            free vertices where the step started (``kernels/selfcontact.py``).
+        cache_capacity: slots of each world's pair cache (``CACHE_SLOTS`` × ``capacity``); a world whose cache
+            overflowed drops the pairs beyond (counted) and runs the cap's swept broad phase.
         params: live values per world, shape [world_count, 3] in the model's precision: thickness τ [m],
             friction μ [-], relaxation γ [-] (``kernels/selfcontact.py`` PARAM_*); write through :meth:`set`.
         counters: int32, shape [world_count, 5]: pairs pushed apart, vertices capped, pairs dropped on
@@ -168,12 +171,14 @@ class SelfContact:
             kernel.module.load(model.device, model.block_dim)
 
     def _allocate(self, capacity: int) -> None:
-        """The cache and the cap's list with ``capacity`` slots per world (emptied: the next step rebuilds)."""
+        """The cap's list with ``capacity`` slots per world and the cache with CACHE_SLOTS times as many (emptied:
+        the next step rebuilds)."""
         model = self.model
         self.capacity = capacity
-        self.cache, self.cache_bound = self._pair_buffers(capacity, 1)
+        self.cache_capacity = CACHE_SLOTS * capacity
+        self.cache, self.cache_bound = self._pair_buffers(self.cache_capacity, 1)
         self.cap_pairs, self.pair_distance = self._pair_buffers(capacity, 1)
-        slots = model.world_count * capacity
+        slots = model.world_count * self.cache_capacity
         self.pair_correction = wp.zeros(4 * slots, dtype=model.vec3, device=model.device)
         self.pair_weight = wp.zeros(4 * slots, dtype=model.scalar, device=model.device)
         self.cache_reach.zero_()

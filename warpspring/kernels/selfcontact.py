@@ -97,6 +97,9 @@ COUNTER_COUNT = 5
 #: The pair cache (module ``selfcontact_cache``): it lists the pairs closer than this many thicknesses at its
 #: anchor positions, and is rebuilt when a vertex has drifted half the difference to REPULSION_REACH from them.
 CACHE_REACH = 3.0
+#: The cache's slots per slot of a pair buffer: it holds the pairs within CACHE_REACH τ, where the repulsion's list
+#: held those within REPULSION_REACH τ ((3/2)² more between layers, (3/2)³ more in a volume).
+CACHE_SLOTS = 3
 #: Kinds of the pass's flags: rebuild the cache, run the cap's swept broad phase, the kinematic displacement.
 FLAG_REBUILD = 0
 FLAG_FALLBACK = 1
