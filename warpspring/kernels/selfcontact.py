@@ -571,8 +571,14 @@ def scan_kernels():
             running += total
 
     @wp.kernel(module="unique", enable_backward=False)
-    def block_prefixes(particle_count: int, values: wp.array[wp.int32], block_offset: wp.array[wp.int32],
-                       prefix_out: wp.array[wp.int32]):
+    def block_prefixes(
+        # In:
+        particle_count: int,
+        values: wp.array[wp.int32],
+        block_offset: wp.array[wp.int32],
+        # Out:
+        prefix_out: wp.array[wp.int32],
+    ):
         b = wp.tid()
         blocks = (particle_count + SCAN_BLOCK - 1) // SCAN_BLOCK
         world = b // blocks
