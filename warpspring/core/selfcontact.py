@@ -317,7 +317,7 @@ class SelfContact:
         wp.launch(block_offsets, dim=1, inputs=[model.particle_count, capacity], outputs=[blocks], device=model.device)
         wp.launch(block_prefixes, dim=blocks.shape[0], inputs=[model.particle_count, pairs.vertex_count, blocks],
                   outputs=[pairs.vertex_start], device=model.device)
-        flat_launch(fill_kernel(), inputs=[model.particle_count, active, pairs], dim=pairs.key.shape[0],
+        flat_launch(fill_kernel(), inputs=[model.particle_count, active, pairs], dim=model.particle_dim,
                     block_dim=model.block_dim, device=model.device)
 
     def _branch(self, condition: wp.array, body, **kwargs) -> None:
@@ -325,7 +325,7 @@ class SelfContact:
         otherwise. Where the device has no conditional nodes it runs unconditionally inside a capture (its
         kernels skip the worlds not flagged: the same result, at more cost)."""
         device = self.model.device
-        if device.is_cuda and device.is_capturing and not wp.is_conditional_graph_supported():
+        if device.is_cuda and device.is_capturing and not getattr(wp, "is_conditional_graph_supported", bool)():
             body(**kwargs)
         else:
             wp.capture_if(condition, on_true=body, **kwargs)

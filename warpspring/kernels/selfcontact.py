@@ -496,22 +496,25 @@ def broad_ee_kernel(scalar: type, swept: bool):
 
 @functools.cache
 def fill_kernel():
-    """Kernel writing each listed pair's four entries into its vertices' CSR segments (one thread per slot), in
-    the worlds ``active`` names."""
+    """Kernel writing each listed pair's four entries into its vertices' CSR segments, in the worlds ``active``
+    names (one thread per particle of every world, each taking its world's slots local, local +
+    particle_count, ...)."""
 
     @flat_kernel(module="unique", enable_backward=False)
     def fill(particle_count: int, active: wp.array[wp.int32], pairs_in_out: Pairs):
-        s = wp.tid()
-        capacity = pairs_in_out.key.shape[0] // pairs_in_out.count.shape[0]
-        world = s // capacity
-        if active[world] == 0 or s - world * capacity >= pairs_in_out.count[world]:
+        p = wp.tid()
+        world, local = world_and_index(p, particle_count)
+        if active[world] == 0:
             return
-        vertex = pairs_in_out.vertex[s]
-        for k in range(4):
-            j = world * particle_count + vertex[k]
-            pairs_in_out.entry[
-                pairs_in_out.vertex_start[j] + wp.atomic_add(pairs_in_out.vertex_cursor, j, 1)
-            ] = 4 * s + k
+        capacity = pairs_in_out.key.shape[0] // pairs_in_out.count.shape[0]
+        for slot in range(local, wp.min(pairs_in_out.count[world], capacity), particle_count):
+            s = world * capacity + slot
+            vertex = pairs_in_out.vertex[s]
+            for k in range(4):
+                j = world * particle_count + vertex[k]
+                pairs_in_out.entry[
+                    pairs_in_out.vertex_start[j] + wp.atomic_add(pairs_in_out.vertex_cursor, j, 1)
+                ] = 4 * s + k
 
     return fill
 
