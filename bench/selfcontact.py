@@ -387,11 +387,12 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
         f"over a sphere on the ground (symplectic Euler, {SUBSTEPS} substeps per 1/{FPS} s frame, each frame one "
         f"captured graph on CUDA, timed after {SETTLE_FRAMES} frames of settling; self-collision τ = {THICKNESS} m, "
         f"μ = {FRICTION}), µs per substep"
-        + (", against the baseline's warpspring measured in the same call" if old else ""),
+        + (f", against the baseline's warpspring ({old['warpspring']}) measured in the same call" if old else ""),
         "",
-        "| N | without | with | with / without | baseline: with | baseline: with / without | pass cost, baseline "
-        "/ now | pairs pushed / capped vertices per substep | cache rebuilds / cap fallbacks per substep |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| N | without | with | with / without | pass cost (with - without) | baseline: with | baseline: with / "
+        "without | baseline: pass cost | pass cost, baseline / now | pairs pushed / capped vertices per substep | "
+        "cache rebuilds / cap fallbacks per substep |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for n, now in new["sizes"].items():
         then = (old or {}).get("sizes", {}).get(n, {})
@@ -399,8 +400,9 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
         extra_now = now["self"] - now["none"]
         extra_then = then.get("self", 0) - then.get("none", 0) if then else 0
         lines.append(
-            f"| {n} | {now['none']:.1f} | {now['self']:.1f} | {ratio(now['self'], now['none'])} | "
+            f"| {n} | {now['none']:.1f} | {now['self']:.1f} | {ratio(now['self'], now['none'])} | {extra_now:.1f} | "
             f"{then.get('self', float('nan')):.1f} | {ratio(then.get('self'), then.get('none'))} | "
+            f"{extra_then if then else float('nan'):.1f} | "
             f"{ratio(extra_then, extra_now) if then else '–'} | {c['pairs']:.1f} / {c['capped']:.1f} | "
             f"{c.get('rebuilds', float('nan')):.3f} / {c.get('fallbacks', float('nan')):.3f} |")
     if new["examples"]:
