@@ -147,7 +147,7 @@ class SelfContact:
         self._allocate(max(64, PAIRS_PER_VERTEX * int(np.count_nonzero(topology["vertex_owner"] >= 0))))
         # One BVH per world over the single-precision boxes of its triangles, built at the model's initial
         # positions (its topology follows them: built on coincident points it would degenerate into a list)
-        # and refit at every stage.
+        # and refit at every broad phase (the cache's rebuilds, the cap's swept broad phase).
         self._leaves(model.particle_q, model.particle_q, swept=False, refit=False)
         T = self.triangle_count
         self.bvhs = [wp.Bvh(surface.leaf_lower[w * T:(w + 1) * T], surface.leaf_upper[w * T:(w + 1) * T])

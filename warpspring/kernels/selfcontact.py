@@ -2,26 +2,30 @@
 
 A post-step pass: it reads the step's start x⁰ (``state_in``, assumed free of intersections) and the
 integrator's result x¹ (``state_out``), and rewrites ``state_out``. Pairs are vertex–triangle (VT) and
-edge–edge (EE) pairs of primitives that share no vertex. Each of the pass's two stages lists its pairs, each
-pair once, then evaluates them one thread per pair and gathers them one thread per vertex:
+edge–edge (EE) pairs of primitives that share no vertex. The pass's two stages work on lists of pairs, each
+pair once, which they evaluate pair by pair and gather one thread per vertex; the lists come from a cache
+that the broad phase rebuilds only when it may miss a pair (``selfcontact_cache``, which proves that the
+stages keep the same pairs as a broad phase every step):
 
 * **broad phase** (``broad_vt_kernel``: one thread per surface vertex; ``broad_ee_kernel``: one thread per
   edge, keeping the pairs with the higher edge): one query of the world's BVH of triangle boxes
-  (``wp.Bvh``, refit every stage), topological neighbours rejected by index before any geometry, then the
-  pair's distance D at x⁰ decides. A kept pair takes a slot of its world's buffer through an integer atomic
-  counter; pairs beyond ``capacity`` are counted (``COUNT_OVERFLOW``) and dropped;
+  (``wp.Bvh``, refit at each broad phase), topological neighbours rejected by index before any geometry,
+  then the pair's distance D at x⁰ decides. A kept pair takes a slot of its world's buffer through an
+  integer atomic counter; pairs beyond ``capacity`` are counted (``COUNT_OVERFLOW``) and dropped. It lists
+  the worlds an ``active`` array names (``reset_kernel`` empties theirs), the others keep their lists;
 * **CSR** (``fill_kernel``): every pair's four vertices were counted per particle as it was written;
-  an exclusive scan of the counts (``wp.utils.array_scan``) gives each particle its segment of entries
-  (slot · 4 + role), filled through a per-particle integer cursor;
-* **narrow phase** (``repel_pairs_kernel``): one thread per pair writes its four vertices' corrections and
-  weights to the pair's own slots;
+  an exclusive scan of the counts within each world (``scan_kernels``, no allocation: it runs inside
+  conditional graph nodes) gives each particle its segment of entries (slot · 4 + role), filled through a
+  per-particle integer cursor;
+* **narrow phase** (``repel_pairs_kernel``): one thread per particle walks its world's pairs and writes each
+  pair's four vertices' corrections and weights to the pair's own slots;
 * **gather** (``repel_gather_kernel``, ``cap_gather_kernel``): one thread per vertex sorts its segment by
   the pairs' keys (a pair's identity: (vertex, triangle) or (edge, edge)), then folds it in that order. The
   atomics decide only where a pair is stored, never the order of a sum: results are the same bits run to
   run (unless a buffer overflows, when which pairs were kept depends on the atomics; see the cap).
 
-1. **Repulsion and friction.** Pairs closer than ``REPULSION_REACH`` × thickness τ at x⁰ (query box: x⁰ of
-   the vertex or edge grown by the reach, against the triangles' boxes at x⁰) predict their separation at
+1. **Repulsion and friction.** Pairs closer than ``REPULSION_REACH`` × thickness τ at x⁰ (the cached pairs
+   cut at that distance) predict their separation at
    the end, linearised at x⁰: d + n·Σₖ wₖΔₖ, with n the unit vector between the closest points, wₖ the
    signed barycentric weights of the pair's four vertices (one side +, the other −) and Δₖ = x¹ₖ − x⁰ₖ. A
    pair predicted closer than τ is pushed apart by c = τ − (d + n·Σ wₖΔₖ) along n, shared by inverse mass
@@ -32,9 +36,10 @@ pair once, then evaluates them one thread per pair and gathers them one thread p
    max(1, Σ|wₖ|), its weights in its pairs, so several pairs at one vertex do not add up to an overshoot.
 2. **The displacement cap** (Chen et al. 2024, "Offset Geometric Contact", as in Newton's VBD). Let x̂ be
    the repelled positions, each free vertex's displacement first limited to γ · ``SEARCH_REACH`` · τ
-   (γ < 1/2 the relaxation); kinematic vertices keep their prescribed x¹. The cap's pairs are listed at
-   (x⁰, x̂): the query box is the vertex's or edge's swept box (x⁰ and x̂ of its ends), against the
-   triangles' swept boxes; a pair is kept when its free vertices could move far enough to matter:
+   (γ < 1/2 the relaxation); kinematic vertices keep their prescribed x¹. The cap's pairs are those whose
+   swept boxes overlap at (x⁰, x̂): the vertex's or edge's swept box (x⁰ and x̂ of its ends) against the
+   triangles' swept boxes (tested on the cached pairs by ``selfcontact_cache.cap_bounds_kernel``, or listed
+   by the swept broad phase where the cache may miss one); a pair is kept when its free vertices could move far enough to matter:
    K < D and maxₖ free δₖ > γ (D − K), with δₖ = |x̂ₖ − x⁰ₖ| and K the largest prescribed displacement
    among its kinematic vertices (0 when it has none). Each free vertex i then ends on the segment x⁰ᵢ → x̂ᵢ
    at distance at most γ · min(γ⁻¹ δᵢ, min over its listed pairs of (D − K)) from x⁰ᵢ.
