@@ -22,10 +22,19 @@ pair buffers hold.
 memsets, the scan's and the BVH refit's own kernels), on the CPU a synchronised wall-clock timer around each
 launch, scan and refit.
 
-    python bench/selfcontact.py --device cuda:0            # 64² and 256², the table for bench/RESULTS.md
+    python bench/selfcontact.py --device cuda:0 --baseline-tree OLD   # the cost table, against OLD's warpspring
     python bench/selfcontact.py --device cuda:0 --profile  # where the pass's time goes, per launch
-    python bench/selfcontact.py --device cpu --sizes 16 32
+    python bench/selfcontact.py --device cpu --sizes 16 32 --example-frames 3 --baseline 65f7792
     python bench/selfcontact.py --device cpu --sizes 16 --radius-study   # the cap's pair counts by radius
+
+The cost table (the default mode) times, at each size, the substep without and with self-collision
+(``none``, ``self``; ``--pass-alone`` adds ``pass``), and each self-collision example's simulation loop
+(``--examples``: its scene, integrator, fps and substeps, no guard and no USD writing; the first frame, which
+compiles, untimed; ``--example-frames`` caps the frames, default the scene's) in µs per substep. With
+``--baseline REV`` (a ``git worktree`` of REV, made in a temporary folder) or ``--baseline-tree PATH`` (a
+checkout, or any folder holding an older ``warpspring/`` package) the same measurement runs again in a
+subprocess that imports that tree's ``warpspring`` (this script and its bench helpers are the same), in the
+same call, and the table puts the two side by side. ``--json PATH`` writes the numbers.
 
 ``--radius-study`` steps the ``self`` scene through its fall (the settling frames, every substep uncaptured)
 and, every fourth substep, counts on the host in float64 the pairs a radius-based cap would have to examine
@@ -38,7 +47,18 @@ from __future__ import annotations
 import argparse
 import collections
 import datetime
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import tempfile
 import time
+
+# This checkout's warpspring (not an installed one), or with --import-from (a baseline run) that tree's.
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+if "--import-from" in sys.argv:
+    sys.path.insert(0, os.path.abspath(sys.argv[sys.argv.index("--import-from") + 1]))
 
 import numpy as np
 import warp as wp
@@ -130,10 +150,16 @@ def profile(n: int, device, repeats: int) -> list[str]:
         labelled += [(kernels["leaf_kernel"](model.scalar, swept), f"triangle boxes ({stage})"),
                      (kernels["broad_vt_kernel"](model.scalar, swept), f"broad phase VT ({stage})"),
                      (kernels["broad_ee_kernel"](model.scalar, swept), f"broad phase EE ({stage})")]
-    labelled += [(kernels["fill_kernel"](), "CSR fill (both stages)"),
+    labelled += [(kernels["fill_kernel"](), "CSR fill"),
                  (kernels["repel_pairs_kernel"](model.scalar), "narrow phase: repulsion per pair"),
                  (kernels["repel_gather_kernel"](model.scalar), "gather: repulsion per vertex"),
                  (kernels["cap_gather_kernel"](model.scalar), "gather: cap per vertex")]
+    for name, text in (("check_kernel", "cache check per vertex"), ("cap_bounds_kernel", "cap bounds per cached pair"),
+                       ("anchor_kernel", "cache anchors (rebuild)")):
+        if name in kernels:
+            labelled.append((kernels[name](model.scalar), text))
+    if "reset_kernel" in kernels:
+        labelled.append((kernels["reset_kernel"](), "pair buffer reset"))
     by_id = {id(kernel): text for kernel, text in labelled}
     by_name = {}
     for kernel, text in labelled:
@@ -159,36 +185,51 @@ def profile(n: int, device, repeats: int) -> list[str]:
             times[label(result.name)] += result.elapsed * 1e3
             calls[label(result.name)] += 1
     else:
+        depth = [0]
+
         def timed(name_of, call):
             def wrapper(*args, **kwargs):
                 wp.synchronize_device(device)
                 t0 = time.perf_counter()
-                call(*args, **kwargs)
+                depth[0] += 1
+                try:
+                    call(*args, **kwargs)
+                finally:
+                    depth[0] -= 1
                 wp.synchronize_device(device)
-                name = name_of(*args)
+                name = name_of(*args) + (" (inside a branch)" if depth[0] else "")
                 times[name] += (time.perf_counter() - t0) * 1e6
                 calls[name] += 1
             return wrapper
 
-        saved = host.flat_launch, wp.utils.array_scan, wp.Bvh.refit
+        saved = [(host, "flat_launch", host.flat_launch), (wp.utils, "array_scan", wp.utils.array_scan),
+                 (wp.Bvh, "refit", wp.Bvh.refit)]
         host.flat_launch = timed(lambda kernel, *a: by_id.get(id(kernel), kernel.key), host.flat_launch)
         wp.utils.array_scan = timed(lambda *a: "array_scan", wp.utils.array_scan)
         wp.Bvh.refit = timed(lambda *a: "Bvh.refit", wp.Bvh.refit)
+        for branch in ("_rebuild", "_fallback"):
+            if hasattr(host.SelfContact, branch):
+                saved.append((host.SelfContact, branch, getattr(host.SelfContact, branch)))
+                setattr(host.SelfContact, branch, timed(lambda *a, b=branch: f"branch {b} (whole)",
+                                                        getattr(host.SelfContact, branch)))
         try:
             for _ in range(repeats):
                 one_pass()
         finally:
-            host.flat_launch, wp.utils.array_scan, wp.Bvh.refit = saved
+            for owner, name, value in saved:
+                setattr(owner, name, value)
     wp.synchronize_device(device)
     wall = (time.perf_counter() - wall) / repeats * 1e6
     listed = {k: int(v.sum()) for k, v in sc.listed().items()}
     rows = []
     for name, total in sorted(times.items(), key=lambda item: -item[1]):
         rows.append(f"| {n} | {name} | {calls[name] / repeats:g} | {total / repeats:.1f} |")
-    rows.append(f"| {n} | sum of the above | | {sum(times.values()) / repeats:.1f} |")
+    top = sum(t for name, t in times.items() if "inside a branch" not in name)
+    rows.append(f"| {n} | sum of the above (outermost calls) | | {top / repeats:.1f} |")
     rows.append(f"| {n} | the pass, wall clock (profiler on) | | {wall:.1f} |")
-    rows.append(f"| {n} | pairs listed: repulsion / cap | | {listed['repel']} / {listed['cap']} "
-                f"(capacity {sc.capacity}) |")
+    first = listed.get("cache", listed.get("repel"))
+    rows.append(f"| {n} | pairs listed: {'cache' if 'cache' in listed else 'repulsion'} / cap | | {first} / "
+                f"{listed['cap']} (capacity {sc.capacity}) |")
     return rows
 
 
@@ -227,12 +268,176 @@ def radius_study(n: int, device) -> list[str]:
         ("D < 32τ", counts["fixed"]))]
 
 
+EXAMPLES = ["twisted_cloth", "stacked_cloths", "cloth_fold_on_bar", "thin_colliders"]
+
+
+def cost(n: int, device, seconds: float, pass_alone: bool) -> dict:
+    """The draped cloth at N = n: µs per substep without and with self-collision (and the pass alone), the pairs
+    pushed, vertices capped, cache rebuilds and cap fallbacks per substep over one frame after the timing."""
+    result = {}
+    variants = [("none", lambda: Runner(scene(n, device, False))), ("self", lambda: Runner(scene(n, device, True)))]
+    if pass_alone:
+        variants.append(("pass", lambda: PassRunner(scene(n, device, True))))
+    for variant, make in variants:
+        holder = {}
+
+        def runner():
+            holder["runner"] = make()
+            return holder["runner"]
+
+        result[variant] = measure(runner, device, seconds)["frame_s"] / SUBSTEPS * 1e6
+        print(f"N={n} {variant}: {result[variant]:.1f} µs per substep", flush=True)
+        if variant == "self":
+            sc = holder["runner"].sim.model.self_contact
+            sc.reset()
+            holder["runner"].frame()
+            counts = {k: int(v.sum()) / SUBSTEPS for k, v in sc.counts().items()}
+            if hasattr(sc, "cache_counts"):
+                counts.update({k: int(v.sum()) / SUBSTEPS for k, v in sc.cache_counts().items()})
+            result["counts"] = counts
+            result["dropped"] = int(sc.overflow().sum())
+    return result
+
+
+def example_cost(name: str, device, frames: int | None) -> dict:
+    """An example's simulation loop (its scene, integrator, fps and substeps; no guard, no USD): µs per substep
+    over its frames after the first (which compiles), and its self-collision counts over them."""
+    from warpspring.core.integrators import make_integrator
+    from warpspring.io.scene import load_scene
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "examples" / f"{name}.toml"
+    scene_ = load_scene(path)
+    model = scene_.finalize(device)
+    integrator = make_integrator(scene_.integrator, model, **scene_.integrator_options)
+    sim = ws.Simulator(model, integrator=integrator, fps=scene_.fps, substeps=scene_.substeps, guard=None)
+    frames = scene_.frames if frames is None else min(frames, scene_.frames)
+    sim.step_frame()
+    model.self_contact.reset()
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    for _ in range(frames - 1):
+        sim.step_frame()
+    wp.synchronize_device(device)
+    substeps = (frames - 1) * scene_.substeps
+    sc = model.self_contact
+    counts = {k: int(v.sum()) / max(substeps, 1) for k, v in sc.counts().items()}
+    if hasattr(sc, "cache_counts"):
+        counts.update({k: int(v.sum()) / max(substeps, 1) for k, v in sc.cache_counts().items()})
+    us = (time.perf_counter() - t0) / max(substeps, 1) * 1e6
+    print(f"{name}: {us:.1f} µs per substep over {frames - 1} frames", flush=True)
+    return {"us": us, "frames": frames - 1, "substeps_per_frame": scene_.substeps,
+            "particles": model.particle_count, "counts": counts}
+
+
+def measure_all(args, device) -> dict:
+    return {"device": device.name, "warp": wp.config.version, "warpspring": os.path.dirname(ws.__file__),
+            "sizes": {str(n): cost(n, device, args.seconds, args.pass_alone) for n in args.sizes},
+            "examples": {name: example_cost(name, device, args.example_frames) for name in args.examples}}
+
+
+def baseline_tree(args) -> tuple[str, object]:
+    """(the baseline's folder, a cleanup callable): ``--baseline-tree`` as given, or a git worktree of
+    ``--baseline`` in a temporary folder."""
+    if args.baseline_tree:
+        if not (pathlib.Path(args.baseline_tree) / "warpspring" / "__init__.py").exists():
+            sys.exit(f"--baseline-tree {args.baseline_tree}: no warpspring/ package there")
+        return args.baseline_tree, lambda: None
+    root = pathlib.Path(__file__).resolve().parents[1]
+    folder = tempfile.mkdtemp(prefix="selfcontact-baseline-")
+    subprocess.run(["git", "-C", str(root), "worktree", "add", "--detach", folder, args.baseline], check=True,
+                   stdout=subprocess.DEVNULL)
+
+    def cleanup():
+        subprocess.run(["git", "-C", str(root), "worktree", "remove", "--force", folder], check=False)
+
+    return folder, cleanup
+
+
+def run_baseline(args, argv: list[str]) -> dict:
+    """The same measurement in a subprocess importing the baseline's warpspring."""
+    folder, cleanup = baseline_tree(args)
+    try:
+        with tempfile.TemporaryDirectory() as scratch:
+            out = os.path.join(scratch, "baseline.json")
+            drop = {"--baseline": 1, "--baseline-tree": 1, "--json": 1, "--out": 1}
+            rest, skip = [], 0
+            for item in argv:
+                if skip:
+                    skip -= 1
+                    continue
+                if item in drop:
+                    skip = drop[item]
+                    continue
+                rest.append(item)
+            subprocess.run([sys.executable, os.path.abspath(__file__), *rest, "--import-from", folder, "--json", out],
+                           check=True)
+            with open(out) as f:
+                return json.load(f)
+    finally:
+        cleanup()
+
+
+def ratio(a, b) -> str:
+    return f"{a / b:.1f}×" if a and b else "–"
+
+
+def cost_table(new: dict, old: dict | None, args) -> list[str]:
+    lines = [
+        f"Self-collision's cost on {new['device']}, Warp {new['warp']}, {datetime.date.today()}: the cloth draped "
+        f"over a sphere on the ground (symplectic Euler, {SUBSTEPS} substeps per 1/{FPS} s frame, each frame one "
+        f"captured graph on CUDA, timed after {SETTLE_FRAMES} frames of settling; self-collision τ = {THICKNESS} m, "
+        f"μ = {FRICTION}), µs per substep"
+        + (f", against the baseline's warpspring ({old['warpspring']}) measured in the same call" if old else ""),
+        "",
+        "| N | without | with | with / without | pass cost (with - without) | baseline: with | baseline: with / "
+        "without | baseline: pass cost | pass cost, baseline / now | pairs pushed / capped vertices per substep | "
+        "cache rebuilds / cap fallbacks per substep |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for n, now in new["sizes"].items():
+        then = (old or {}).get("sizes", {}).get(n, {})
+        c = now["counts"]
+        extra_now = now["self"] - now["none"]
+        extra_then = then.get("self", 0) - then.get("none", 0) if then else 0
+        lines.append(
+            f"| {n} | {now['none']:.1f} | {now['self']:.1f} | {ratio(now['self'], now['none'])} | {extra_now:.1f} | "
+            f"{then.get('self', float('nan')):.1f} | {ratio(then.get('self'), then.get('none'))} | "
+            f"{extra_then if then else float('nan'):.1f} | "
+            f"{ratio(extra_then, extra_now) if then else '–'} | {c['pairs']:.1f} / {c['capped']:.1f} | "
+            f"{c.get('rebuilds', float('nan')):.3f} / {c.get('fallbacks', float('nan')):.3f} |")
+    if new["examples"]:
+        lines += [
+            "",
+            "Examples: the scene's simulation loop (its integrator, fps, substeps; no guard, no USD writing), µs per "
+            "substep over the frames after the first",
+            "",
+            "| example | particles | frames | µs per substep | baseline | baseline / now | pairs pushed per substep "
+            "| cache rebuilds / cap fallbacks per substep |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for name, now in new["examples"].items():
+            then = (old or {}).get("examples", {}).get(name, {})
+            c = now["counts"]
+            lines.append(
+                f"| {name} | {now['particles']} | {now['frames']} | {now['us']:.1f} | {then.get('us', float('nan')):.1f} "
+                f"| {ratio(then.get('us'), now['us'])} | {c['pairs']:.1f} | {c.get('rebuilds', float('nan')):.3f} / "
+                f"{c.get('fallbacks', float('nan')):.3f} |")
+    return lines
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default=None)
-    parser.add_argument("--sizes", type=int, nargs="+", default=[64, 256])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[64, 256, 1024])
     parser.add_argument("--seconds", type=float, default=1.0)
     parser.add_argument("--out", default=None, help="also write the table to this file")
+    parser.add_argument("--json", default=None, help="write the cost table's numbers to this file")
+    parser.add_argument("--pass-alone", action="store_true", help="also time the pass alone on the settled state")
+    parser.add_argument("--examples", nargs="*", default=EXAMPLES, help="self-collision examples to time")
+    parser.add_argument("--example-frames", type=int, default=None, help="frames per example (default: the scene's)")
+    parser.add_argument("--baseline", default=None, help="git revision to measure alongside (a temporary worktree)")
+    parser.add_argument("--baseline-tree", default=None, help="a folder holding the baseline's warpspring/ package")
+    parser.add_argument("--import-from", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--profile", action="store_true", help="time each launch of one pass instead")
     parser.add_argument("--repeats", type=int, default=20, help="passes averaged by --profile")
     parser.add_argument("--radius-study", action="store_true", help="count the cap's pairs by candidate rule instead")
@@ -265,42 +470,14 @@ def main():
             lines += profile(n, device, args.repeats)
         emit_table(lines, args.out)
         return
-    lines = [
-        f"Cloth draped over a sphere on the ground on {device.name}, Warp {wp.config.version}, "
-        f"{datetime.date.today()}, symplectic Euler, {SUBSTEPS} substeps per frame, self-collision τ = "
-        f"{THICKNESS} m, μ = {FRICTION}",
-        "",
-        "| N | without (particle-substeps/s) | with | self-collision's share of the substep | the pass alone, "
-        "share of a substep with it | pairs pushed / capped vertices per substep | pairs listed at the last "
-        "substep: repulsion / cap (dropped) |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for n in args.sizes:
-        rates = {}
-        for variant, make in (("none", lambda: Runner(scene(n, device, False))),
-                              ("self", lambda: Runner(scene(n, device, True))),
-                              ("pass", lambda: PassRunner(scene(n, device, True)))):
-            holder = {}
-
-            def runner():
-                holder["runner"] = make()
-                return holder["runner"]
-
-            frame_s = measure(runner, device, args.seconds)["frame_s"]
-            rates[variant] = n * n * SUBSTEPS / frame_s
-            print(f"N={n} {variant}: {rates[variant]:.4g} particle-substeps/s", flush=True)
-            if variant == "self":
-                sc = holder["runner"].sim.model.self_contact
-                sc.reset()
-                holder["runner"].frame()
-                counts = {k: int(v.sum()) / SUBSTEPS for k, v in sc.counts().items()}
-                listed = {k: int(v.sum()) for k, v in sc.listed().items()}
-                dropped = int(sc.overflow().sum())
-        share = 1.0 - rates["self"] / rates["none"]
-        alone = rates["self"] / rates["pass"]
-        lines.append(f"| {n} | {rates['none']:.3e} | {rates['self']:.3e} | {100 * share:.0f} % | {100 * alone:.0f} % "
-                     f"| {counts['pairs']:.0f} / {counts['capped']:.0f} | {listed['repel']} / {listed['cap']} ({dropped}) |")
-    emit_table(lines, args.out)
+    new = measure_all(args, device)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(new, f, indent=1)
+    if args.import_from:  # a baseline run: its numbers go back through --json
+        return
+    old = run_baseline(args, sys.argv[1:]) if (args.baseline or args.baseline_tree) else None
+    emit_table(cost_table(new, old, args), args.out)
 
 
 if __name__ == "__main__":

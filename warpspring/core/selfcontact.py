@@ -15,16 +15,21 @@ import warp as wp
 from ..errors import ConfigError
 from ..kernels.flatten import flat_launch
 from ..kernels.selfcontact import (
+    CACHE_REACH,
+    CACHE_SLOTS,
     COUNT_CAPPED,
+    COUNT_FALLBACKS,
     COUNT_OVERFLOW,
     COUNT_PAIRS,
+    COUNT_REBUILDS,
     COUNTER_COUNT,
+    FLAG_KINDS,
     PAIRS_PER_VERTEX,
     PARAM_COUNT,
     PARAM_FRICTION,
     PARAM_RELAXATION,
     PARAM_THICKNESS,
-    REPULSION_REACH,
+    SCAN_BLOCK,
     Pairs,
     Surface,
     broad_ee_kernel,
@@ -35,7 +40,10 @@ from ..kernels.selfcontact import (
     proximity_kernel,
     repel_gather_kernel,
     repel_pairs_kernel,
+    reset_kernel,
+    scan_kernels,
 )
+from ..kernels.selfcontact_cache import anchor_kernel, cap_bounds_kernel, check_kernel
 
 #: The default relaxation γ of the displacement cap: a vertex moves at most a quarter of its distance to the
 #: nearest primitive, so a pair beyond the repulsion's reach (2 τ) ends a step at least τ apart.
@@ -98,13 +106,16 @@ class SelfContact:
     Attributes:
         triangle_count: triangles of the colliding surface (per world).
         edge_count: its unique edges.
-        capacity: slots of each world's pair buffer (``PAIRS_PER_VERTEX`` per surface vertex); pairs beyond
-            are dropped and counted (:meth:`overflow`), and a world whose cap list overflowed keeps its free
-            vertices where the step started (``kernels/selfcontact.py``).
+        capacity: slots of each world's pair buffer of the cap (``PAIRS_PER_VERTEX`` per surface vertex); pairs
+            beyond are dropped and counted (:meth:`overflow`), and a world whose cap list overflowed keeps its
+            free vertices where the step started (``kernels/selfcontact.py``).
+        cache_capacity: slots of each world's pair cache (``CACHE_SLOTS`` × ``capacity``); a world whose cache
+            overflowed drops the pairs beyond (counted) and runs the cap's swept broad phase.
         params: live values per world, shape [world_count, 3] in the model's precision: thickness τ [m],
             friction μ [-], relaxation γ [-] (``kernels/selfcontact.py`` PARAM_*); write through :meth:`set`.
-        counters: int32, shape [world_count, 3]: pairs pushed apart, vertices capped and pairs dropped on
-            overflow, summed over the steps since the model was made or :meth:`reset`.
+        counters: int32, shape [world_count, 5]: pairs pushed apart, vertices capped, pairs dropped on
+            overflow, steps that rebuilt the pair cache and steps whose cap ran the swept broad phase, summed
+            over the steps since the model was made or :meth:`reset`.
     """
 
     def __init__(self, model, triangles: np.ndarray, *, thickness: float, friction: float, relaxation: float):
@@ -126,21 +137,51 @@ class SelfContact:
         self.set(thickness=thickness, friction=friction, relaxation=relaxation)
         self.corrected = wp.zeros(model.state_size, dtype=model.vec3, device=device)
         self.counters = wp.zeros((worlds, COUNTER_COUNT), dtype=wp.int32, device=device)
-        # The pair buffers: the repulsion's and the cap's lists share their storage (used one after the other)
-        # but keep their own counts, which tell how many pairs each stage listed.
-        self.capacity = max(64, PAIRS_PER_VERTEX * int(np.count_nonzero(topology["vertex_owner"] >= 0)))
-        self.repel_pairs, self.cap_pairs, self.pair_distance = self._pair_buffers(self.capacity, 2)
-        slots = worlds * self.capacity
-        self.pair_correction = wp.zeros(4 * slots, dtype=model.vec3, device=device)
-        self.pair_weight = wp.zeros(4 * slots, dtype=model.scalar, device=device)
+        # The pair cache (kernels/selfcontact_cache.py: its anchors, its reach, 0 until built) and the cap's
+        # swept list, for the steps that need it; the pass's flags (any rebuild, any fallback, then per world:
+        # rebuild, fallback, kinematic displacement), zeroed at every step's start.
+        self.cache_anchor = wp.zeros(model.state_size, dtype=model.vec3, device=device)
+        self.cache_reach = wp.zeros(worlds, dtype=model.scalar, device=device)
+        self.flags = wp.zeros(2 + FLAG_KINDS * worlds, dtype=wp.int32, device=device)
+        self._scan_blocks = wp.zeros(worlds * ((n + SCAN_BLOCK - 1) // SCAN_BLOCK), dtype=wp.int32, device=device)
+        self._allocate(max(64, PAIRS_PER_VERTEX * int(np.count_nonzero(topology["vertex_owner"] >= 0))))
         # One BVH per world over the single-precision boxes of its triangles, built at the model's initial
         # positions (its topology follows them: built on coincident points it would degenerate into a list)
-        # and refit at every stage.
+        # and refit at every broad phase (the cache's rebuilds, the cap's swept broad phase).
         self._leaves(model.particle_q, model.particle_q, swept=False, refit=False)
         T = self.triangle_count
         self.bvhs = [wp.Bvh(surface.leaf_lower[w * T:(w + 1) * T], surface.leaf_upper[w * T:(w + 1) * T])
                      for w in range(worlds)]
         surface.bvh = wp.array(np.array([b.id for b in self.bvhs], dtype=np.uint64), dtype=wp.uint64, device=device)
+        if device.is_cuda:
+            self._load_modules()
+
+    def _load_modules(self) -> None:
+        """Load every kernel of the pass, its conditional branches' included, so that a frame's capture never
+        loads one (a branch may not run in the stepper's warm-up step)."""
+        model = self.model
+        scalar = model.scalar
+        for kernel in (leaf_kernel(scalar, False), leaf_kernel(scalar, True), *scan_kernels()):
+            kernel.module.load(model.device)  # launched with Warp's default block size
+        flat = [broad_vt_kernel(scalar, False),
+                broad_vt_kernel(scalar, True), broad_ee_kernel(scalar, False), broad_ee_kernel(scalar, True),
+                reset_kernel(), fill_kernel(), check_kernel(scalar), anchor_kernel(scalar), repel_pairs_kernel(scalar),
+                repel_gather_kernel(scalar), cap_bounds_kernel(scalar), cap_gather_kernel(scalar)]
+        for kernel in flat:
+            kernel.module.load(model.device, model.block_dim)
+
+    def _allocate(self, capacity: int) -> None:
+        """The cap's list with ``capacity`` slots per world and the cache with CACHE_SLOTS times as many (emptied:
+        the next step rebuilds)."""
+        model = self.model
+        self.capacity = capacity
+        self.cache_capacity = CACHE_SLOTS * capacity
+        self.cache, self.cache_bound = self._pair_buffers(self.cache_capacity, 1)
+        self.cap_pairs, self.pair_distance = self._pair_buffers(capacity, 1)
+        slots = model.world_count * self.cache_capacity
+        self.pair_correction = wp.zeros(4 * slots, dtype=model.vec3, device=model.device)
+        self.pair_weight = wp.zeros(4 * slots, dtype=model.scalar, device=model.device)
+        self.cache_reach.zero_()
 
     def _pair_buffers(self, capacity: int, lists: int):
         """``lists`` pair buffers of ``capacity`` slots per world sharing their storage but their counts, and
@@ -206,10 +247,16 @@ class SelfContact:
         return self.counters.numpy()[:, COUNT_OVERFLOW].astype(np.int64)
 
     def listed(self) -> dict[str, np.ndarray]:
-        """Pairs the last pass listed per world: ``repel`` (closer than the repulsion's reach) and ``cap`` (the
-        cap's pairs); int64 arrays [world_count], reads the device."""
-        return {"repel": self.repel_pairs.count.numpy().astype(np.int64),
+        """Pairs listed per world: ``cache`` (closer than CACHE_REACH τ at the cache's last rebuild) and ``cap`` (the
+        cap's swept broad phase, at its last run); int64 arrays [world_count], reads the device."""
+        return {"cache": self.cache.count.numpy().astype(np.int64),
                 "cap": self.cap_pairs.count.numpy().astype(np.int64)}
+
+    def cache_counts(self) -> dict[str, np.ndarray]:
+        """Per world, summed since the start or :meth:`reset`: steps that ``rebuilt`` the pair cache and steps whose
+        cap ran its swept broad phase (``fallbacks``); int64 arrays [world_count], reads the device."""
+        counters = self.counters.numpy().astype(np.int64)
+        return {"rebuilds": counters[:, COUNT_REBUILDS], "fallbacks": counters[:, COUNT_FALLBACKS]}
 
     def reset(self) -> None:
         """Zero the counters."""
@@ -237,19 +284,19 @@ class SelfContact:
                 bvh.refit()
 
     def _list_pairs(self, pairs, pair_distance: wp.array, start: wp.array, end: wp.array, *, swept: bool,
-                    reach_factor: float, reach_add: float, counters: wp.array, world_enabled: wp.array) -> None:
-        """The broad phase into ``pairs`` and ``pair_distance``, then the CSR of its entries (device work
-        only, fixed sizes: capturable)."""
+                    reach_factor: float, reach_add: float, counters: wp.array, active: wp.array) -> None:
+        """The broad phase of the worlds ``active`` names into ``pairs`` and ``pair_distance``, then the CSR of
+        its entries (device work only, fixed sizes, no allocation: capturable, also in a conditional node);
+        the other worlds' pairs stay as they were."""
         model = self.model
-        pairs.count.zero_()
-        pairs.vertex_count.zero_()
-        pairs.vertex_cursor.zero_()
+        flat_launch(reset_kernel(), inputs=[model.particle_count, active], outputs=[pairs], dim=model.particle_dim,
+                    block_dim=model.block_dim, device=model.device)
         self._leaves(start, end, swept=swept)
         args = dict(
             particle_count=model.particle_count,
             particle_flags=model.particle_flags,
             particle_inv_mass=model.particle_inv_mass,
-            world_enabled=world_enabled,
+            world_enabled=active,
             surface=self.surface,
             params=self.params,
             reach_factor=model.scalar(reach_factor),
@@ -262,41 +309,81 @@ class SelfContact:
                     dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
         flat_launch(broad_ee_kernel(model.scalar, swept), inputs=list(args.values()), outputs=list(outputs.values()),
                     dim=model.world_count * self.edge_count, block_dim=model.block_dim, device=model.device)
-        wp.utils.array_scan(pairs.vertex_count, pairs.vertex_start, inclusive=False)
-        flat_launch(fill_kernel(), inputs=[model.particle_count, pairs], dim=pairs.key.shape[0],
+        block_sums, block_offsets, block_prefixes = scan_kernels()
+        blocks = self._scan_blocks
+        capacity = pairs.key.shape[0] // model.world_count
+        wp.launch(block_sums, dim=blocks.shape[0], inputs=[model.particle_count, pairs.vertex_count], outputs=[blocks],
+                  device=model.device)
+        wp.launch(block_offsets, dim=1, inputs=[model.particle_count, capacity], outputs=[blocks], device=model.device)
+        wp.launch(block_prefixes, dim=blocks.shape[0], inputs=[model.particle_count, pairs.vertex_count, blocks],
+                  outputs=[pairs.vertex_start], device=model.device)
+        flat_launch(fill_kernel(), inputs=[model.particle_count, active, pairs], dim=model.particle_dim,
                     block_dim=model.block_dim, device=model.device)
 
-    def repel(self, state_in, particle_q: wp.array) -> wp.array:
-        """The repulsion stage alone: ``particle_q`` (the integrator's result from ``state_in``) repelled, into
-        ``self.corrected`` (returned)."""
+    def _branch(self, condition: wp.array, body, **kwargs) -> None:
+        """``body(**kwargs)`` when ``condition[0]`` is set: a conditional node in a CUDA capture, a host test
+        otherwise. Where the device has no conditional nodes it runs unconditionally inside a capture (its
+        kernels skip the worlds not flagged: the same result, at more cost)."""
+        device = self.model.device
+        if device.is_cuda and device.is_capturing and not getattr(wp, "is_conditional_graph_supported", bool)():
+            body(**kwargs)
+        else:
+            wp.capture_if(condition, on_true=body, **kwargs)
+
+    def _rebuild(self, start: wp.array) -> None:
+        """The cache of the worlds flagged for a rebuild, at ``start`` (the step's start)."""
         model = self.model
-        pairs = self.repel_pairs
-        self._list_pairs(pairs, self.pair_distance, state_in.particle_q, state_in.particle_q, swept=False, reach_factor=REPULSION_REACH,
-                         reach_add=0.0, counters=self.counters, world_enabled=model.world_enabled)
-        slots = dict(dim=model.world_count * self.capacity, block_dim=model.block_dim, device=model.device)
+        worlds = model.world_count
+        self._list_pairs(self.cache, self.cache_bound, start, start, swept=False, reach_factor=CACHE_REACH,
+                         reach_add=0.0, counters=self.counters, active=self.flags[2:2 + worlds])
+        flat_launch(anchor_kernel(model.scalar), inputs=[model.particle_count, self.params, self.flags, start],
+                    outputs=[self.cache_reach, self.cache_anchor, self.counters], dim=model.particle_dim,
+                    block_dim=model.block_dim, device=model.device)
+
+    def _fallback(self, start: wp.array, end: wp.array) -> None:
+        """The cap's swept broad phase (start → the repelled ``end``) of the worlds flagged for it."""
+        worlds = self.model.world_count
+        self._list_pairs(self.cap_pairs, self.pair_distance, start, end, swept=True, reach_factor=0.0,
+                         reach_add=0.0, counters=self.counters, active=self.flags[2 + worlds:2 + 2 * worlds])
+
+    def repel(self, state_in, particle_q: wp.array) -> wp.array:
+        """The repulsion stage alone (with the cache's check and, where needed, its rebuild): ``particle_q`` (the
+        integrator's result from ``state_in``) repelled, into ``self.corrected`` (returned)."""
+        model = self.model
+        start = state_in.particle_q
+        per_particle = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
+        self.flags.zero_()
+        flat_launch(check_kernel(model.scalar),
+                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
+                            self.surface, self.params, self.cache_reach, self.cache_anchor, start, particle_q],
+                    outputs=[self.flags], **per_particle)
+        self._branch(self.flags[0:1], self._rebuild, start=start)
         flat_launch(repel_pairs_kernel(model.scalar),
-                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface,
-                            self.params, pairs, state_in.particle_q, particle_q],
-                    outputs=[self.pair_correction, self.pair_weight, self.counters], **slots)
+                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
+                            self.surface, self.params, self.cache, start, particle_q],
+                    outputs=[self.pair_correction, self.pair_weight, self.counters], **per_particle)
         flat_launch(repel_gather_kernel(model.scalar),
                     inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
-                            self.surface, self.pair_correction, self.pair_weight, particle_q],
-                    outputs=[pairs, self.corrected], dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
+                            self.surface, self.params, self.pair_correction, self.pair_weight, start, particle_q],
+                    outputs=[self.cache, self.flags, self.corrected], **per_particle)
         return self.corrected
 
     def cap(self, state_in, particle_q: wp.array, state_out, dt: float) -> None:
-        """The cap stage alone: ``particle_q`` (the repelled positions) capped into ``state_out``'s positions and,
-        where they changed, velocities."""
+        """The cap stage alone, after :meth:`repel` (it reads the flags that left): ``particle_q`` (the repelled
+        positions) capped into ``state_out``'s positions and, where they changed, velocities."""
         model = self.model
-        pairs = self.cap_pairs
-        self._list_pairs(pairs, self.pair_distance, state_in.particle_q, particle_q, swept=True, reach_factor=0.0, reach_add=0.0,
-                         counters=self.counters, world_enabled=model.world_enabled)
+        start = state_in.particle_q
+        per_particle = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
+        self._branch(self.flags[1:2], self._fallback, start=start, end=particle_q)
+        flat_launch(cap_bounds_kernel(model.scalar),
+                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
+                            self.surface, self.params, self.cache, self.flags, start, particle_q],
+                    outputs=[self.cache_bound, self.counters], **per_particle)
         flat_launch(cap_gather_kernel(model.scalar),
                     inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
-                            self.surface, self.params, pairs, self.pair_distance, state_in.particle_q, particle_q,
-                            model.scalar(dt)],
-                    outputs=[state_out.particle_q, state_out.particle_qd, self.counters],
-                    dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
+                            self.surface, self.params, self.cache, self.cache_bound, self.cap_pairs,
+                            self.pair_distance, self.flags, start, particle_q, model.scalar(dt)],
+                    outputs=[state_out.particle_q, state_out.particle_qd, self.counters], **per_particle)
 
     def _near_pairs(self, state, reach: float):
         """The pairs within ``reach`` [m] at ``state`` in a buffer of their own, grown until none overflows
@@ -308,7 +395,7 @@ class SelfContact:
             pairs, distance = self._pair_buffers(capacity, 1)
             scratch = wp.zeros((model.world_count, COUNTER_COUNT), dtype=wp.int32, device=model.device)
             self._list_pairs(pairs, distance, state.particle_q, state.particle_q, swept=False, reach_factor=0.0,
-                             reach_add=reach, counters=scratch, world_enabled=everywhere)
+                             reach_add=reach, counters=scratch, active=everywhere)
             found = int(pairs.count.numpy().max())
             if found <= capacity:
                 return pairs, distance

@@ -29,6 +29,7 @@ Modules:
     contacts: the contact stage: per-particle contact slots, collide and project kernels.
     triangle_contacts: cloth triangles against small spheres and thin capsules.
     selfcontact: self-collision of triangle surfaces (broad phase, repulsion, displacement cap).
+    selfcontact_cache: self-collision's pair cache (when to rebuild it, the cap over it).
     integrators: the per-particle update kernels of the integrators; dopri5's step control.
     implicit: the matrix-free system of linearised implicit Euler.
     linalg: device reductions and the preconditioned conjugate-gradient iteration.

@@ -2,26 +2,30 @@
 
 A post-step pass: it reads the step's start x⁰ (``state_in``, assumed free of intersections) and the
 integrator's result x¹ (``state_out``), and rewrites ``state_out``. Pairs are vertex–triangle (VT) and
-edge–edge (EE) pairs of primitives that share no vertex. Each of the pass's two stages lists its pairs, each
-pair once, then evaluates them one thread per pair and gathers them one thread per vertex:
+edge–edge (EE) pairs of primitives that share no vertex. The pass's two stages work on lists of pairs, each
+pair once, which they evaluate pair by pair and gather one thread per vertex; the lists come from a cache
+that the broad phase rebuilds only when it may miss a pair (``selfcontact_cache``, which proves that the
+stages keep the same pairs as a broad phase every step):
 
 * **broad phase** (``broad_vt_kernel``: one thread per surface vertex; ``broad_ee_kernel``: one thread per
   edge, keeping the pairs with the higher edge): one query of the world's BVH of triangle boxes
-  (``wp.Bvh``, refit every stage), topological neighbours rejected by index before any geometry, then the
-  pair's distance D at x⁰ decides. A kept pair takes a slot of its world's buffer through an integer atomic
-  counter; pairs beyond ``capacity`` are counted (``COUNT_OVERFLOW``) and dropped;
+  (``wp.Bvh``, refit at each broad phase), topological neighbours rejected by index before any geometry,
+  then the pair's distance D at x⁰ decides. A kept pair takes a slot of its world's buffer through an
+  integer atomic counter; pairs beyond ``capacity`` are counted (``COUNT_OVERFLOW``) and dropped. It lists
+  the worlds an ``active`` array names (``reset_kernel`` empties theirs), the others keep their lists;
 * **CSR** (``fill_kernel``): every pair's four vertices were counted per particle as it was written;
-  an exclusive scan of the counts (``wp.utils.array_scan``) gives each particle its segment of entries
-  (slot · 4 + role), filled through a per-particle integer cursor;
-* **narrow phase** (``repel_pairs_kernel``): one thread per pair writes its four vertices' corrections and
-  weights to the pair's own slots;
+  an exclusive scan of the counts within each world (``scan_kernels``, no allocation: it runs inside
+  conditional graph nodes) gives each particle its segment of entries (slot · 4 + role), filled through a
+  per-particle integer cursor;
+* **narrow phase** (``repel_pairs_kernel``): one thread per particle walks its world's pairs and writes each
+  pair's four vertices' corrections and weights to the pair's own slots;
 * **gather** (``repel_gather_kernel``, ``cap_gather_kernel``): one thread per vertex sorts its segment by
   the pairs' keys (a pair's identity: (vertex, triangle) or (edge, edge)), then folds it in that order. The
   atomics decide only where a pair is stored, never the order of a sum: results are the same bits run to
   run (unless a buffer overflows, when which pairs were kept depends on the atomics; see the cap).
 
-1. **Repulsion and friction.** Pairs closer than ``REPULSION_REACH`` × thickness τ at x⁰ (query box: x⁰ of
-   the vertex or edge grown by the reach, against the triangles' boxes at x⁰) predict their separation at
+1. **Repulsion and friction.** Pairs closer than ``REPULSION_REACH`` × thickness τ at x⁰ (the cached pairs
+   cut at that distance) predict their separation at
    the end, linearised at x⁰: d + n·Σₖ wₖΔₖ, with n the unit vector between the closest points, wₖ the
    signed barycentric weights of the pair's four vertices (one side +, the other −) and Δₖ = x¹ₖ − x⁰ₖ. A
    pair predicted closer than τ is pushed apart by c = τ − (d + n·Σ wₖΔₖ) along n, shared by inverse mass
@@ -32,9 +36,10 @@ pair once, then evaluates them one thread per pair and gathers them one thread p
    max(1, Σ|wₖ|), its weights in its pairs, so several pairs at one vertex do not add up to an overshoot.
 2. **The displacement cap** (Chen et al. 2024, "Offset Geometric Contact", as in Newton's VBD). Let x̂ be
    the repelled positions, each free vertex's displacement first limited to γ · ``SEARCH_REACH`` · τ
-   (γ < 1/2 the relaxation); kinematic vertices keep their prescribed x¹. The cap's pairs are listed at
-   (x⁰, x̂): the query box is the vertex's or edge's swept box (x⁰ and x̂ of its ends), against the
-   triangles' swept boxes; a pair is kept when its free vertices could move far enough to matter:
+   (γ < 1/2 the relaxation); kinematic vertices keep their prescribed x¹. The cap's pairs are those whose
+   swept boxes overlap at (x⁰, x̂): the vertex's or edge's swept box (x⁰ and x̂ of its ends) against the
+   triangles' swept boxes (tested on the cached pairs by ``selfcontact_cache.cap_bounds_kernel``, or listed
+   by the swept broad phase where the cache may miss one); a pair is kept when its free vertices could move far enough to matter:
    K < D and maxₖ free δₖ > γ (D − K), with δₖ = |x̂ₖ − x⁰ₖ| and K the largest prescribed displacement
    among its kinematic vertices (0 when it has none). Each free vertex i then ends on the segment x⁰ᵢ → x̂ᵢ
    at distance at most γ · min(γ⁻¹ δᵢ, min over its listed pairs of (D − K)) from x⁰ᵢ.
@@ -90,7 +95,24 @@ PARAM_COUNT = 3
 COUNT_PAIRS = 0  # pairs pushed apart by the repulsion
 COUNT_CAPPED = 1  # vertices whose displacement the cap shortened
 COUNT_OVERFLOW = 2  # pairs dropped because the world's pair buffer was full
-COUNTER_COUNT = 3
+COUNT_REBUILDS = 3  # steps that rebuilt the world's pair cache (module selfcontact_cache)
+COUNT_FALLBACKS = 4  # steps whose cap ran the swept broad phase instead of the cache
+COUNTER_COUNT = 5
+
+#: The pair cache (module ``selfcontact_cache``): it lists the pairs closer than this many thicknesses at its
+#: anchor positions, and is rebuilt when a vertex has drifted half the difference to REPULSION_REACH from them.
+CACHE_REACH = 3.0
+#: The cache's slots per slot of a pair buffer: it holds the pairs within CACHE_REACH τ, where the repulsion's list
+#: held those within REPULSION_REACH τ ((3/2)² more between layers, (3/2)³ more in a volume).
+CACHE_SLOTS = 3
+#: Kinds of the pass's flags: rebuild the cache, run the cap's swept broad phase, the kinematic displacement.
+FLAG_REBUILD = 0
+FLAG_FALLBACK = 1
+FLAG_KINEMATIC = 2  # K_w, the largest displacement of the world's kinematic vertices, in τ / KINEMATIC_STEPS (up)
+FLAG_KINDS = 3
+KINEMATIC_STEPS = 4096
+#: Relative slack of the cache's bounds (drift, the cap's budget) against rounding.
+SAFETY = 1.0 / 64.0
 
 
 @wp.struct
@@ -117,7 +139,8 @@ class Pairs:
     #   EE V·T + e·E + f (V, T, E: the per-world particle, triangle and edge counts)
     vertex: wp.array[wp.vec4i]  # [world_count · capacity], its four vertices: VT (v, a, b, c), EE (p₁, q₁, p₂, q₂)
     vertex_count: wp.array[wp.int32]  # [world_count · particle_count + 1], entries per particle (last: 0)
-    vertex_start: wp.array[wp.int32]  # [world_count · particle_count + 1], their exclusive scan
+    vertex_start: wp.array[wp.int32]  # [world_count · particle_count + 1], their exclusive scan within the world,
+    #   from 4 · world · capacity (``scan_kernels``); a particle's segment is [start, start + count)
     vertex_cursor: wp.array[wp.int32]  # [world_count · particle_count], entries filled per particle
     entry: wp.array[wp.int32]  # [4 · world_count · capacity], slot · 4 + role, grouped by particle
 
@@ -478,23 +501,102 @@ def broad_ee_kernel(scalar: type, swept: bool):
 
 @functools.cache
 def fill_kernel():
-    """Kernel writing each listed pair's four entries into its vertices' CSR segments (one thread per slot)."""
+    """Kernel writing each listed pair's four entries into its vertices' CSR segments, in the worlds ``active``
+    names (one thread per particle of every world, each taking its world's slots local, local +
+    particle_count, ...)."""
 
     @flat_kernel(module="unique", enable_backward=False)
-    def fill(particle_count: int, pairs_in_out: Pairs):
-        s = wp.tid()
-        capacity = pairs_in_out.key.shape[0] // pairs_in_out.count.shape[0]
-        world = s // capacity
-        if s - world * capacity >= pairs_in_out.count[world]:
+    def fill(particle_count: int, active: wp.array[wp.int32], pairs_in_out: Pairs):
+        p = wp.tid()
+        world, local = world_and_index(p, particle_count)
+        if active[world] == 0:
             return
-        vertex = pairs_in_out.vertex[s]
-        for k in range(4):
-            j = world * particle_count + vertex[k]
-            pairs_in_out.entry[
-                pairs_in_out.vertex_start[j] + wp.atomic_add(pairs_in_out.vertex_cursor, j, 1)
-            ] = 4 * s + k
+        capacity = pairs_in_out.key.shape[0] // pairs_in_out.count.shape[0]
+        for slot in range(local, wp.min(pairs_in_out.count[world], capacity), particle_count):
+            s = world * capacity + slot
+            vertex = pairs_in_out.vertex[s]
+            for k in range(4):
+                j = world * particle_count + vertex[k]
+                pairs_in_out.entry[
+                    pairs_in_out.vertex_start[j] + wp.atomic_add(pairs_in_out.vertex_cursor, j, 1)
+                ] = 4 * s + k
 
     return fill
+
+
+@functools.cache
+def reset_kernel():
+    """Kernel emptying the pair buffer of the worlds ``active`` names (its count, and its particles' entry counts
+    and cursors), one thread per particle of every world; the others keep theirs."""
+
+    @flat_kernel(module="unique", enable_backward=False)
+    def reset(particle_count: int, active: wp.array[wp.int32], pairs_out: Pairs):
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
+        if active[world] == 0:
+            return
+        if i == 0:
+            pairs_out.count[world] = 0
+        pairs_out.vertex_count[p] = 0
+        pairs_out.vertex_cursor[p] = 0
+
+    return reset
+
+
+#: Entries per block of ``scan_kernels``' exclusive scan.
+SCAN_BLOCK = 256
+
+
+@functools.cache
+def scan_kernels():
+    """The CSR's exclusive scan, world by world, in three launches and no allocation (so that it may run inside
+    a conditional graph node, where ``wp.utils.array_scan``'s temporary buffer may not): world w's segments
+    start at 4 w · capacity, so that rebuilding one world's list moves no other world's entries. Each block of
+    ``SCAN_BLOCK`` particles of a world sums itself, one thread scans the block sums, each block writes its
+    prefixes. Integer sums in a fixed order: the same result every run. A particle's segment is
+    [vertex_start[p], vertex_start[p] + vertex_count[p])."""
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def block_sums(particle_count: int, values: wp.array[wp.int32], block_total_out: wp.array[wp.int32]):
+        b = wp.tid()
+        blocks = (particle_count + SCAN_BLOCK - 1) // SCAN_BLOCK
+        world = b // blocks
+        first = world * particle_count + (b - world * blocks) * SCAN_BLOCK
+        total = int(0)
+        for i in range(first, wp.min(first + SCAN_BLOCK, (world + 1) * particle_count)):
+            total += values[i]
+        block_total_out[b] = total
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def block_offsets(particle_count: int, capacity: int, block_total_in_out: wp.array[wp.int32]):
+        blocks = (particle_count + SCAN_BLOCK - 1) // SCAN_BLOCK
+        running = int(0)
+        for b in range(block_total_in_out.shape[0]):
+            if b % blocks == 0:
+                running = 4 * (b // blocks) * capacity
+            total = block_total_in_out[b]
+            block_total_in_out[b] = running
+            running += total
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def block_prefixes(
+        # In:
+        particle_count: int,
+        values: wp.array[wp.int32],
+        block_offset: wp.array[wp.int32],
+        # Out:
+        prefix_out: wp.array[wp.int32],
+    ):
+        b = wp.tid()
+        blocks = (particle_count + SCAN_BLOCK - 1) // SCAN_BLOCK
+        world = b // blocks
+        first = world * particle_count + (b - world * blocks) * SCAN_BLOCK
+        running = block_offset[b]
+        for i in range(first, wp.min(first + SCAN_BLOCK, (world + 1) * particle_count)):
+            prefix_out[i] = running
+            running += values[i]
+
+    return block_sums, block_offsets, block_prefixes
 
 
 @wp.func
@@ -502,7 +604,7 @@ def sorted_segment(pairs: Pairs, p: int):
     """Particle p's segment of entries [first, last), sorted in place by the pairs' keys (insertion sort; a
     particle appears once in a pair, so keys do not repeat within a segment)."""
     first = pairs.vertex_start[p]
-    last = pairs.vertex_start[p + 1]
+    last = first + pairs.vertex_count[p]
     for a in range(first + 1, last):
         item = pairs.entry[a]
         key = pairs.key[item // 4]
@@ -516,43 +618,25 @@ def sorted_segment(pairs: Pairs, p: int):
 
 @functools.cache
 def repel_pairs_kernel(scalar: type):
-    """Kernel of the repulsion's narrow phase: one thread per listed pair writes, for each of its four vertices,
-    its correction [m] and its weight |wₖ| (zeros when the pair is not pushed) to the pair's slots."""
+    """Kernel of the repulsion's narrow phase over a world's listed pairs (one thread per particle of every world,
+    each taking its world's slots local, local + particle_count, ...): for each pair closer than the repulsion's
+    reach at the step's start, its four vertices' corrections [m] and weights |wₖ| into the pair's slots, zeros
+    for the other pairs (they are pushed by nothing)."""
     vec3 = vec3_type(scalar)
     vec4 = wp.types.vector(4, scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
     effective_inv_mass = particle_funcs(scalar)
 
-    @flat_kernel(module="unique", enable_backward=False)
-    def repel_pairs(
-        # Model:
-        particle_count: int,
-        particle_flags: wp.array[wp.int32],
-        particle_inv_mass: wp.array2d[scalar],
-        surface: Surface,
-        params: wp.array2d[scalar],
-        pairs: Pairs,
-        # State in:
-        particle_q_start: wp.array[vec3],
-        particle_q_in: wp.array[vec3],
-        # Out:
-        pair_correction_out: wp.array[vec3],
-        pair_weight_out: wp.array[scalar],
-        counters_out: wp.array2d[wp.int32],
+    @wp.func
+    def repel_pair(
+        s: int, world: int, base: int, mass_row: int, thickness: scalar, friction: scalar, particle_count: int,
+        particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar], surface: Surface, pairs: Pairs,
+        particle_q_start: wp.array[vec3], particle_q_in: wp.array[vec3],
+        pair_correction_out: wp.array[vec3], pair_weight_out: wp.array[scalar], counters_out: wp.array2d[wp.int32],
     ):
-        s = wp.tid()
-        capacity = pairs.key.shape[0] // pairs.count.shape[0]
-        world = s // capacity
-        if s - world * capacity >= pairs.count[world]:
-            return
         for k in range(4):
             pair_correction_out[4 * s + k] = vec3(scalar(0.0))
             pair_weight_out[4 * s + k] = scalar(0.0)
-        base = world * particle_count
-        mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
-        row = wp.min(world, params.shape[0] - 1)
-        thickness = params[row, PARAM_THICKNESS]
-        friction = params[row, PARAM_FRICTION]
         index = pairs.vertex[s]
         zero, one = scalar(0.0), scalar(1.0)
         x0 = particle_q_start[base + index[0]]
@@ -573,6 +657,9 @@ def repel_pairs_kernel(scalar: type):
             weight = vec4(one - st[0], st[0], st[1] - one, -st[1])
             fallback = wp.normalize(wp.cross(x1 - x0, x3 - x2))
         d = wp.length(diff)
+        # The distance exactly as the broad phase computes it: the same pairs as a list cut at the reach.
+        if not (d < scalar(REPULSION_REACH) * thickness):
+            return
         n = fallback
         if d > scalar(1.0e-12) * thickness:
             n = diff / d
@@ -600,13 +687,63 @@ def repel_pairs_kernel(scalar: type):
             pair_weight_out[4 * s + k] = wp.abs(weight[k])
         wp.atomic_add(counters_out, world, COUNT_PAIRS, 1)
 
+    @flat_kernel(module="unique", enable_backward=False)
+    def repel_pairs(
+        # Model:
+        particle_count: int,
+        particle_flags: wp.array[wp.int32],
+        particle_inv_mass: wp.array2d[scalar],
+        world_enabled: wp.array[wp.int32],
+        surface: Surface,
+        params: wp.array2d[scalar],
+        pairs: Pairs,
+        # State in:
+        particle_q_start: wp.array[vec3],
+        particle_q_in: wp.array[vec3],
+        # Out:
+        pair_correction_out: wp.array[vec3],
+        pair_weight_out: wp.array[scalar],
+        counters_out: wp.array2d[wp.int32],
+    ):
+        p = wp.tid()
+        world, local = world_and_index(p, particle_count)
+        if world_enabled[world] == 0:
+            return
+        capacity = pairs.key.shape[0] // pairs.count.shape[0]
+        base = world * particle_count
+        mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
+        row = wp.min(world, params.shape[0] - 1)
+        thickness = params[row, PARAM_THICKNESS]
+        friction = params[row, PARAM_FRICTION]
+        for slot in range(local, wp.min(pairs.count[world], capacity), particle_count):
+            repel_pair(world * capacity + slot, world, base, mass_row, thickness, friction, particle_count,
+                       particle_flags, particle_inv_mass, surface, pairs, particle_q_start, particle_q_in,
+                       pair_correction_out, pair_weight_out, counters_out)
+
     return repel_pairs
+
+
+@wp.func
+def flag_slot(kind: int, world: int, world_count: int):
+    """The entry of world ``world``'s flag ``kind`` (FLAG_REBUILD, FLAG_FALLBACK, FLAG_KINEMATIC) in the pass's
+    flag array: [any rebuild, any fallback, then world_count entries per kind]."""
+    return 2 + kind * world_count + world
+
+
+@wp.func
+def raise_flag(flags: wp.array[wp.int32], kind: int, world: int, world_count: int):
+    """Set world ``world``'s flag ``kind`` and the matching any-world flag (FLAG_REBUILD or FLAG_FALLBACK)."""
+    flags[flag_slot(kind, world, world_count)] = 1
+    flags[kind] = 1
 
 
 @functools.cache
 def repel_gather_kernel(scalar: type):
     """Kernel of the repulsion's gather: ``particle_q_in`` (the integrator's result) plus each free surface
-    vertex's mean correction over its pairs, summed in key order, into ``particle_q_out``."""
+    vertex's mean correction over its pairs, summed in key order, into ``particle_q_out``; and whether the cached
+    pairs suffice for the cap: a world is flagged for the swept broad phase (FLAG_FALLBACK) when its list
+    overflowed or one of its free vertices moves further than γ (REPULSION_REACH τ - K_w) (K_w: its
+    kinematic vertices' largest displacement; module ``selfcontact_cache``)."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
 
@@ -618,13 +755,16 @@ def repel_gather_kernel(scalar: type):
         particle_inv_mass: wp.array2d[scalar],
         world_enabled: wp.array[wp.int32],
         surface: Surface,
+        params: wp.array2d[scalar],
         # Pairs in (repel_pairs' corrections and weights):
         pair_correction: wp.array[vec3],
         pair_weight: wp.array[scalar],
         # State in:
+        particle_q_start: wp.array[vec3],
         particle_q_in: wp.array[vec3],
-        # In/out (each vertex's segment of pair entries sorted in place):
+        # In/out (each vertex's segment of pair entries sorted in place; the pass's flags):
         pairs_in_out: Pairs,
+        flags_in_out: wp.array[wp.int32],
         # Out:
         particle_q_out: wp.array[vec3],
     ):
@@ -645,7 +785,23 @@ def repel_gather_kernel(scalar: type):
             correction += pair_correction[e]
             count += pair_weight[e]
         if count > scalar(0.0):  # a weighted mean: a pair counts by the vertex's weight in it, the sum by 1 at least
-            particle_q_out[p] = x + correction / wp.max(count, scalar(1.0))
+            x = x + correction / wp.max(count, scalar(1.0))
+            particle_q_out[p] = x
+        # Does the cache hold every pair the cap could keep? (module selfcontact_cache: pairs outside it are at
+        # least REPULSION_REACH τ apart at the step's start.)
+        world_count = pairs_in_out.count.shape[0]
+        row = wp.min(world, params.shape[0] - 1)
+        thickness = params[row, PARAM_THICKNESS]
+        relaxation = params[row, PARAM_RELAXATION]
+        start = particle_q_start[p]
+        delta = wp.min(wp.length(x - start), relaxation * scalar(SEARCH_REACH) * thickness)
+        kinematic = (scalar(flags_in_out[flag_slot(FLAG_KINEMATIC, world, world_count)]) / scalar(KINEMATIC_STEPS)
+                     * thickness)
+        budget = (relaxation * (scalar(REPULSION_REACH) * thickness - kinematic) * scalar(1.0 - SAFETY)
+                  - scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0)))
+        overflow = pairs_in_out.count[world] > pairs_in_out.key.shape[0] // world_count
+        if overflow or (delta > scalar(0.0) and not (delta <= budget)):
+            raise_flag(flags_in_out, FLAG_FALLBACK, world, world_count)
 
     return repel_gather
 
@@ -654,7 +810,8 @@ def repel_gather_kernel(scalar: type):
 def cap_gather_kernel(scalar: type):
     """Kernel of the displacement cap: each free surface vertex of ``particle_q_in`` (the repelled result)
     moved back toward ``particle_q_start`` until its displacement is at most γ · min(SEARCH_REACH τ, the
-    smallest D - K of its listed pairs) (all of it when its world's buffer overflowed); writes the state's
+    smallest D - K of its kept pairs): the cached pairs' bounds (``cap_bounds_kernel``), or in a world flagged
+    FLAG_FALLBACK the swept broad phase's list (all of it when that list overflowed); writes the state's
     positions and, where they changed, its velocities (Δx / h)."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
@@ -668,8 +825,11 @@ def cap_gather_kernel(scalar: type):
         world_enabled: wp.array[wp.int32],
         surface: Surface,
         params: wp.array2d[scalar],
+        cache: Pairs,
+        cache_bound: wp.array[scalar],
         pairs: Pairs,
         pair_distance: wp.array[scalar],
+        flags: wp.array[wp.int32],
         # State in:
         particle_q_start: wp.array[vec3],
         particle_q_in: wp.array[vec3],
@@ -693,10 +853,14 @@ def cap_gather_kernel(scalar: type):
         x = particle_q_in[p]
         step = wp.length(x - start)
         allowed = wp.min(step, relaxation * scalar(SEARCH_REACH) * params[row, PARAM_THICKNESS])
-        if pairs.count[world] > pairs.key.shape[0] // pairs.count.shape[0]:
-            allowed = scalar(0.0)  # overflow: a listed pair may be missing, so nothing free moves
-        for a in range(pairs.vertex_start[p], pairs.vertex_start[p + 1]):  # a minimum: any order gives it
-            allowed = wp.min(allowed, relaxation * pair_distance[pairs.entry[a] // 4])
+        if flags[flag_slot(FLAG_FALLBACK, world, pairs.count.shape[0])] != 0:
+            if pairs.count[world] > pairs.key.shape[0] // pairs.count.shape[0]:
+                allowed = scalar(0.0)  # overflow: a listed pair may be missing, so nothing free moves
+            for a in range(pairs.vertex_start[p], pairs.vertex_start[p] + pairs.vertex_count[p]):  # a minimum
+                allowed = wp.min(allowed, relaxation * pair_distance[pairs.entry[a] // 4])
+        else:
+            for a in range(cache.vertex_start[p], cache.vertex_start[p] + cache.vertex_count[p]):
+                allowed = wp.min(allowed, relaxation * cache_bound[cache.entry[a] // 4])
         if step > allowed:
             x = start + (allowed / step) * (x - start)
             wp.atomic_add(counters_out, world, COUNT_CAPPED, 1)
@@ -733,9 +897,9 @@ def proximity_kernel(scalar: type):
         if surface.vertex_owner[i] < 0:
             return
         nearest = reach
-        for a in range(pairs.vertex_start[p], pairs.vertex_start[p + 1]):
+        for a in range(pairs.vertex_start[p], pairs.vertex_start[p] + pairs.vertex_count[p]):
             nearest = wp.min(nearest, pair_distance[pairs.entry[a] // 4])
         nearest_out[p] = nearest
-        count_out[p] = pairs.vertex_start[p + 1] - pairs.vertex_start[p]
+        count_out[p] = pairs.vertex_count[p]
 
     return proximity
