@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from dataclasses import dataclass
 
 from .. import checks
@@ -351,9 +352,65 @@ def available_memory(device=None) -> AvailableMemory:
     return AvailableMemory(host=host)
 
 
+#: Environment variable capping the host memory warpspring counts as available (bytes, or with a unit:
+#: "8GiB", "512MiB"): a process sharing a machine, or a watchdog's limit, tells the checks what it may use.
+MEMORY_LIMIT_VARIABLE = "WARPSPRING_MEMORY_LIMIT"
+_UNITS = {"": 1, "B": 1, "KIB": 2**10, "MIB": 2**20, "GIB": 2**30, "TIB": 2**40, "KB": 10**3, "MB": 10**6, "GB": 10**9,
+          "TB": 10**12, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
+
+
+def parse_bytes(text: str, *, name: str = MEMORY_LIMIT_VARIABLE) -> int:
+    """A byte count from "123", "8GiB", "1.5 GB", "512M" (binary units for K/M/G/T alone)."""
+    match = re.fullmatch(r"\s*([0-9]+(?:\.[0-9]*)?)\s*([A-Za-z]*)\s*", str(text))
+    unit = match.group(2).upper() if match else None
+    if not match or unit not in _UNITS:
+        raise ConfigError(f"{name} must be a number of bytes, optionally with a unit (e.g. 8GiB, 512MiB), got {text!r}")
+    return int(float(match.group(1)) * _UNITS[unit])
+
+
+def _process_limit() -> int | None:
+    """What this process may still take [B] by its own limits: :data:`MEMORY_LIMIT_VARIABLE` less its resident
+    memory, and the address-space limit (``RLIMIT_AS``) less its virtual size; ``None`` without either."""
+    limits = []
+    text = os.environ.get(MEMORY_LIMIT_VARIABLE, "").strip()
+    if text:
+        limits.append(parse_bytes(text) - (_status_bytes("VmRSS") or 0))
+    try:
+        import resource  # optional: POSIX only
+
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if soft != resource.RLIM_INFINITY:
+            limits.append(soft - (_status_bytes("VmSize") or 0))
+    except (ImportError, OSError, ValueError):
+        pass
+    return max(min(limits), 0) if limits else None
+
+
+def _status_bytes(key: str) -> int | None:
+    """A memory figure of this process from ``/proc/self/status`` [B] (VmRSS, VmSize, VmHWM); ``None`` off Linux."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(key + ":"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
 def host_available_memory() -> int | None:
     """Host memory available to this process [B]: ``MemAvailable`` (Linux), capped by the cgroup's memory
-    limit less its usage where a container sets one; elsewhere the free physical pages; ``None`` if unknown."""
+    limit less its usage where a container sets one, and by the process's own limits (:data:`MEMORY_LIMIT_VARIABLE`,
+    ``RLIMIT_AS``); elsewhere the free physical pages; ``None`` if unknown."""
+    machine = _machine_available_memory()
+    limit = _process_limit()
+    if limit is None:
+        return machine
+    return limit if machine is None else min(machine, limit)
+
+
+def _machine_available_memory() -> int | None:
+    """``MemAvailable`` within a cgroup's limit, else the free physical pages [B]."""
     available = None
     try:
         with open("/proc/meminfo") as f:
@@ -385,6 +442,16 @@ def host_available_memory() -> int | None:
 
 
 # -- the check -----------------------------------------------------------------------------------------------
+
+
+def check_host_room(what: str, needed: int, *, remedy: str) -> None:
+    """Refuse, before it is made, something that needs ``needed`` bytes of host memory [B] when less is
+    available (:func:`available_memory`): one line naming ``what``, the estimate, what is available and ``remedy``.
+    An unknown amount is not checked."""
+    available = available_memory(None).host
+    if available is not None and needed > available:
+        raise ConfigError(f"{what} needs an estimated {format_bytes(needed)} of host memory, but "
+                          f"{format_bytes(available)} is available: {remedy}")
 
 
 def check_fits(estimate: MemoryEstimate, available: AvailableMemory, *, precision: str = "float32") -> None:
