@@ -10,8 +10,12 @@ Where a refusal must come before the expensive step, that step is replaced by on
 from __future__ import annotations
 
 import itertools
+import os
+import subprocess
+import sys
 import time
 import tracemalloc
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -33,6 +37,15 @@ SCENE = {
 def _host(monkeypatch, available: int) -> None:
     """Stand for a machine with ``available`` bytes of host memory."""
     monkeypatch.setattr(memory, "available_memory", lambda device=None: AvailableMemory(host=int(available)))
+
+
+def _rss() -> int:
+    """This process's resident memory [B] (Linux; 0 elsewhere)."""
+    try:
+        with open("/proc/self/status") as f:
+            return next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmRSS:"))
+    except (OSError, StopIteration):
+        return 0
 
 
 def _one_line(exc: pytest.ExceptionInfo) -> str:
@@ -95,9 +108,7 @@ def test_many_worlds_are_refused_within_the_process_memory_limit(monkeypatch):
     builder = ws.ModelBuilder()
     builder.add_cloth_grid(nx=6, ny=6, spacing=0.1, mass=1.0, pin=["top-left"])
     estimate = builder.estimate_memory("cpu", worlds=20_000)
-    rss = memory._status_bytes("VmRSS") or 0
-    monkeypatch.setenv(memory.MEMORY_LIMIT_VARIABLE, str(rss + estimate.host_bytes // 2))
-    assert memory.host_available_memory() <= estimate.host_bytes // 2 + 2**20
+    monkeypatch.setenv("WARPSPRING_MEMORY_LIMIT", str(_rss() + estimate.host_bytes // 2))
     with pytest.raises(ws.ConfigError, match=r"does not fit in memory.*fewer worlds \(about \d+ fit\)") as caught:
         builder.finalize("cpu", worlds=20_000)
     _one_line(caught)
@@ -107,9 +118,23 @@ def test_the_memory_limit_variable_is_read_and_checked(monkeypatch):
     """Byte counts with binary or decimal units; a malformed value is a one-line ConfigError."""
     assert memory.parse_bytes("8GiB") == 8 * 2**30 and memory.parse_bytes("1.5 GB") == 1_500_000_000
     assert memory.parse_bytes("512M") == 512 * 2**20 and memory.parse_bytes("1000") == 1000
-    monkeypatch.setenv(memory.MEMORY_LIMIT_VARIABLE, "lots")
+    monkeypatch.setenv("WARPSPRING_MEMORY_LIMIT", "lots")
     with pytest.raises(ws.ConfigError, match="WARPSPRING_MEMORY_LIMIT must be a number of bytes"):
         memory.host_available_memory()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="RLIMIT_AS and /proc are Linux's")
+def test_an_address_space_limit_counts_as_the_available_memory():
+    """A process started under an address-space limit (ulimit -v, a job scheduler's) has at most that limit less
+    what it has mapped available, whatever the machine has free."""
+    code = ("import resource; hard = resource.getrlimit(resource.RLIMIT_AS)[1]; "
+            "cap = 6 * 2**30 if hard == resource.RLIM_INFINITY else min(6 * 2**30, hard); "
+            "resource.setrlimit(resource.RLIMIT_AS, (cap, hard)); "
+            "from warpspring.core import memory; print(memory.host_available_memory(), cap)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    available, cap = map(int, done.stdout.split())
+    assert 0 < available < cap
 
 
 # -- soft bodies -------------------------------------------------------------------------------------------------
@@ -129,9 +154,7 @@ def test_a_soft_body_that_cannot_fit_is_refused_before_its_topology(monkeypatch,
     """Soft bodies were not estimated: tets at 3 mm grew to 8 GiB in 205 s, voxels at 2 mm to 4.3 GiB. The
     topology's counts and host peak are estimated from the body's volume and area and the spacing; one that
     does not fit is refused in one line before anything is generated."""
-    planned = soft_topologies.estimate_topology(_sphere(), method, spacing=spacing)
-    assert planned.particles > 10_000 and planned.host > 0
-    _host(monkeypatch, planned.host // 2)
+    _host(monkeypatch, 32 * 2**20)  # below each estimate here (~0.7 GiB for the voxels, ~1 GiB for the tets)
     monkeypatch.setattr(soft_topologies, "build_topology", _no_topology)
     with pytest.raises(ws.ConfigError, match=rf"a {method} soft body at spacing {spacing} \(~[\d,]+ particles.* "
                                              r"needs an estimated .* use a larger spacing") as caught:
@@ -158,13 +181,13 @@ def test_ftetwild_runs_in_a_child_capped_in_memory():
     pytest.importorskip("pytetwild")
     mesh = _sphere()
     options = dict(edge_length_abs=0.003, epsilon=1e-3, optimize=True, coarsen=False, num_threads=1, quiet=True)
-    before = memory._status_bytes("VmRSS")
+    before = _rss()
     with pytest.raises(ws.ConfigError, match=r"fTetWild ran out of memory tetrahedralizing 1,280 triangles at edge "
                                              r"length 0.003 m \(its process was limited to .*300 MiB\)") as caught:
         soft_topologies.run_tetwild(np.asarray(mesh.vertices), np.asarray(mesh.faces, dtype=np.int32), options,
                                     limit=300 * 2**20)
     _one_line(caught)
-    assert memory._status_bytes("VmRSS") - before < 64 * 2**20
+    assert _rss() - before < 64 * 2**20
 
 
 # -- emitters and meshes -------------------------------------------------------------------------------------

@@ -26,10 +26,11 @@ from .spring_materials import DEFAULT_BEND, DEFAULT_SHEAR, DEFAULT_STRUCTURAL, S
 GRID_TEMPORARY_PER_SPRING = 72
 GRID_TEMPORARY_PER_PARTICLE = 48
 #: Host bytes per triangle of making a cloth from a mesh beyond the builder's arrays (welding, trimesh's edge
-#: and adjacency tables, the springs' checks; measured ~370 B, ~930 B with dihedral hinges, on a 318k-triangle
-#: sheet: ``bench/memory.py``), and of trimesh reading a mesh file (measured ~166 B per OBJ face).
-MESH_TEMPORARY_PER_TRIANGLE = 450
-MESH_HINGE_TEMPORARY_PER_TRIANGLE = 1050
+#: and adjacency tables, the springs' checks; measured ~370 B on a 318k-triangle sheet and ~530 B on a 179k one,
+#: ~930 B with dihedral hinges: ``bench/memory.py``), and of trimesh reading a mesh file (measured ~166 B per
+#: OBJ face).
+MESH_TEMPORARY_PER_TRIANGLE = 600
+MESH_HINGE_TEMPORARY_PER_TRIANGLE = 1200
 MESH_LOAD_PER_FACE = 200
 
 _GRID_PINS = ("top-left", "top-right", "bottom-left", "bottom-right", "top", "bottom", "left", "right")
