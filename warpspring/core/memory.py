@@ -17,9 +17,10 @@ On the CPU the device is host memory, so both add up there.
 Measured on the CPU (``tests/test_memory.py``; ``python tests/test_memory.py 256 512 1024`` prints the
 table): the model's arrays, the states, every integrator's scratch, the guard's and the post-step buffers
 agree with the estimate to the byte (but for keyframe tracks); the growth of the process's peak resident
-memory while it builds and finalizes a 256², 512² and 1024² cloth grid is :attr:`MemoryEstimate.finalize_peak`
-within -0.7 %, +1.5 % and +4.1 % (held to :data:`PEAK_TOLERANCE`), and that of a run of a few frames with
-the USD writer after it within -7 % … +11 % (512² with four integrators, 1024²).
+memory while it builds and finalizes a 256² and 512² cloth grid is below :attr:`MemoryEstimate.finalize_peak`
+by 1.1 % and 1.8 % (held to :data:`PEAK_TOLERANCE`; ``bench/memory.py`` holds measured ≤ estimate ≤ 2 × measured
+for every kind of scene), and that of a run of a few frames with the USD writer after it within -7 % … +11 %
+(512² with four integrators, 1024²).
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ INTEGRATOR_SCRATCH = {
 
 #: Relative tolerances the estimate is held to against measurement (``tests/test_memory.py``): the model's
 #: arrays (exact but for keyframe tracks), and the peak resident memory of building and finalizing a grid
-#: (-1 % … +4 % measured).
+#: (estimate above the measured peak by 1 … 2 %).
 MODEL_TOLERANCE = 0.02
 PEAK_TOLERANCE = 0.10
 
@@ -77,8 +78,9 @@ _BUILDER_VERTEX = 8 + 16
 # Host bytes per incidence entry (one per element and member: 2 per spring, 4 per hinge) that
 # ``build_incidence`` holds at its peak: the entries' owner, element and local value (int64) before and
 # after the sort's permutation, the permutation, and the slot and head-mask arrays (see its code);
-# measured 64-68 bytes per entry.
-_INCIDENCE_ENTRY = 66
+# measured 64-68 bytes per entry, counted as 76 so that the estimate of finalize's peak stays above the measured
+# one (at 66 a 256² grid measured 4 % above it under load; at 76: +1.1 % and +1.8 % for 256² and 512²).
+_INCIDENCE_ENTRY = 76
 
 
 @dataclass(frozen=True)

@@ -139,7 +139,7 @@ class TopologyEstimate:
 #: lattice per interior cell C = V/s³ and per surface cell S = A/s² (trimesh's voxelization and inside tests),
 #: the grid's ray tests per spring, the tetrahedral post-processing per tet, Delaunay's per sample point,
 #: brute force per spring, the shell and scaffold per mesh vertex.
-TOPOLOGY_BYTES = {"voxel_cell": 700, "voxel_surface": 11_000, "grid_spring": 4_000, "tet": 700,
+TOPOLOGY_BYTES = {"voxel_cell": 700, "voxel_surface": 11_000, "grid_spring": 4_000, "tet": 850,
                   "delaunay_point": 48_000, "brute_spring": 160, "surface_vertex": 4_000}
 
 
