@@ -27,6 +27,10 @@ from .sweep_batch import STATUSES, Batch, BatchOutput, RunSettings, VariantResul
 from .sweep_plan import SweepPlan, Variant, apply_override, one_line
 
 
+#: Batches of variants a sweep holds at once (a window of the plan's stream; see :func:`run_sweep`).
+WINDOW_BATCHES = 64
+
+
 @dataclass
 class SweepResult:
     """A finished sweep: its plan and one row per variant, in plan order.
@@ -103,32 +107,53 @@ def run_sweep(plan: SweepPlan, out_dir: str, *, engine=None, resume: bool = Fals
         log(f"reference: {reference.frames} frames in {reference.wall_time or 0.0:.2f} s")
         settings = dataclasses.replace(settings, reference_q=reference_q)
 
-    found = {}
-    if resume:
-        for v in plan.variants:
-            row, _ = _load(folder, v.key)
-            if row is not None:
-                row.index = v.index
-                found[v.key] = row
-    todo = [v for v in plan.variants if v.key not in found]
-    batches = make_batches(todo, plan.scene_path, plan.batch)
-    with tqdm(total=len(plan.variants), initial=len(found), unit="variant", disable=not progress,
+    # The variants stream through in windows of WINDOW_BATCHES batches: only a window's scenes are held at once
+    # (the plan makes each variant when it is read); the rows kept are the results, one small record each.
+    found, ran, warmed = {}, 0, set()
+    window = WINDOW_BATCHES * plan.batch
+    with tqdm(total=len(plan.variants), unit="variant", disable=not progress,
               dynamic_ncols=True, desc=f"sweep on {engine.describe()}") as bar:
-        if batches:
-            engine.warm_up(run_batch, _warm_up_jobs(batches), shared=(RunSettings(device=device),))
-        for i, output in engine.run(run_batch, batches, shared=(settings,), on_error=_failed_batch):
-            for row in output.results:
-                _save(folder, row, None)
-                found[row.key] = row
-            bar.update(len(output.results))
-            statuses = [r.status for r in output.results]
-            log(f"batch of {len(statuses)}: " + ", ".join(f"{statuses.count(s)} {s}" for s in STATUSES
-                                                          if s in statuses))
+        for chunk in _windows(plan.variants, window):
+            todo = []
+            for v in chunk:
+                row = _load(folder, v.key)[0] if resume and v.key not in found else found.get(v.key)
+                if row is not None:
+                    row.index = v.index
+                    found[v.key] = row
+                    bar.update(1)
+                else:
+                    todo.append(v)
+            batches = make_batches(todo, plan.scene_path, plan.batch)
+            warm = [job for job in _warm_up_jobs(batches) if topology(job.variants[0].scene) not in warmed]
+            if warm:
+                engine.warm_up(run_batch, warm, shared=(RunSettings(device=device),))
+                warmed.update(topology(job.variants[0].scene) for job in warm)
+            ran += len(todo)
+            for i, output in engine.run(run_batch, batches, shared=(settings,), on_error=_failed_batch):
+                for row in output.results:
+                    _save(folder, row, None)
+                    found[row.key] = row
+                bar.update(len(output.results))
+                statuses = [r.status for r in output.results]
+                log(f"batch of {len(statuses)}: " + ", ".join(f"{statuses.count(s)} {s}" for s in STATUSES
+                                                              if s in statuses))
     rows = [found[v.key] for v in plan.variants]
     for v, row in zip(plan.variants, rows):
         row.index = v.index
-    return SweepResult(plan=plan, rows=rows, ran=len(todo), elapsed=time.perf_counter() - start,
+    return SweepResult(plan=plan, rows=rows, ran=ran, elapsed=time.perf_counter() - start,
                        engine=engine.describe(), reference=reference)
+
+
+def _windows(variants, size: int):
+    """``variants`` in consecutive lists of at most ``size``, read lazily."""
+    chunk = []
+    for v in variants:
+        chunk.append(v)
+        if len(chunk) == size:
+            yield chunk
+            chunk = []
+    if chunk:
+        yield chunk
 
 
 def _failed_batch(batch: Batch, exc: BaseException) -> BatchOutput:

@@ -8,6 +8,7 @@ A sweep file (TOML) names a base scene and axes over its keys::
     reference = { "simulation.substeps" = 64 }   # optional: the run the variants' error is measured against
     usd = false                        # write each variant's animation to OUT/usd/<hash>.usdc
     batch = 16                         # variants of one topology run as worlds of one model, this many at most
+    max_variants = 1000                # refuse a sweep of more variants (the default; raise it for a larger one)
     metrics_every = 1                  # frames between the metrics' samples (the first and last always)
 
     [set]                              # overrides of every variant (and of the reference)
@@ -22,7 +23,13 @@ A sweep file (TOML) names a base scene and axes over its keys::
 An axis key is a dotted path into the scene file (``collider[1].friction`` names the second of several
 ``[[collider]]``); a variant is the base scene with the keys of its axes overridden, checked by the scene
 parser itself (:func:`warpspring.io.scene.parse_scene`). Before any job starts every variant is checked, and
-every offending one is reported, one line each (:func:`plan_sweep`). A sweep file holds data only: keys must
+the offending ones are reported, the first :data:`SHOWN_PROBLEMS` one line each, with their count
+(:func:`plan_sweep`).
+
+Variants stream: the plan holds the axes, not their product (:class:`Variants` makes each variant when it is
+read), so a plan's memory does not grow with its variant count. A sweep of more than :data:`MAX_VARIANTS`
+variants is refused at once, from its axes' lengths, before any value is generated, unless ``[sweep]
+max_variants`` raises the limit (``max_variants = 50000``). A sweep file holds data only: keys must
 be dotted scene paths and values TOML numbers, booleans, strings without control characters, or lists of
 them; nothing in it is evaluated or passed to a shell.
 
@@ -41,6 +48,7 @@ import math
 import os
 import re
 import warnings
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +60,10 @@ from ..io.scene import DeprecatedKeyWarning, parse_scene, tomllib
 SWEEP_FORMAT_VERSION = 1
 #: Default most worlds (variants) in one model.
 DEFAULT_BATCH = 16
+#: Default most variants of a sweep (``[sweep] max_variants`` raises it): a larger one is refused at once.
+MAX_VARIANTS = 1000
+#: Offending variants a refused plan names, one line each (their count is given in full).
+SHOWN_PROBLEMS = 20
 
 #: A key: dotted names, each optionally indexed ("collider[1].friction").
 _KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\[[0-9]+\])?(\.[A-Za-z_][A-Za-z0-9_]*(\[[0-9]+\])?)*")
@@ -60,7 +72,7 @@ _SEGMENT = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)(?:\[([0-9]+)\])?")
 _RESERVED = {"output.path": "the sweep writes each variant's USD to OUT/usd/<hash>.usdc (set [sweep] usd = true)",
              "simulation.device": "the engine chooses each task's device (warpspring sweep --device, --gpus)",
              "version": "set it in the base scene"}
-_SWEEP_KEYS = {"scene", "combine", "reference", "usd", "batch", "metrics_every"}
+_SWEEP_KEYS = {"scene", "combine", "reference", "usd", "batch", "metrics_every", "max_variants"}
 _AXIS_KEYS = {"range": ("step", "count"), "log": ("count",), "random": ("count", "seed", "log", "integer")}
 
 
@@ -84,6 +96,67 @@ class Variant:
     key: str
 
 
+class Variants(Sequence):
+    """A sweep's variants, made when read (by index or in order), never held: the base scene, the axes and
+    how they combine are all it keeps, so its memory is flat in the variant count.
+
+    Variant ``i`` of a product is the mixed-radix decomposition of ``i`` over the axes' lengths (the last axis
+    fastest, as ``itertools.product``); of a zip, the axes' ``i``-th values.
+    """
+
+    def __init__(self, base: dict, axes: dict, combine: str, extras: dict, where: str):
+        self._base, self._axes, self._combine, self._extras, self._where = base, axes, combine, extras, where
+        lengths = [len(values) for values in axes.values()]
+        self._length = math.prod(lengths) if combine == "product" else (lengths[0] if lengths else 0)
+
+    def __len__(self) -> int:
+        return self._length
+
+    def combos(self) -> Iterator[tuple]:
+        """The axes' values of each variant, in plan order, generated lazily."""
+        values = list(self._axes.values())
+        return itertools.product(*values) if self._combine == "product" else zip(*values)
+
+    def scene_of(self, params: dict) -> dict:
+        """The base scene with ``params`` applied (ConfigError if an override does not apply)."""
+        scene = self._base
+        for key, value in params.items():
+            scene = apply_override(scene, key, value, where=self._where)
+        return scene
+
+    def make(self, index: int, combo: tuple) -> Variant:
+        params = dict(zip(self._axes, combo))
+        scene = self.scene_of(params)
+        return Variant(index=index, params=params, scene=scene, key=variant_hash(scene, **self._extras))
+
+    def _combo(self, index: int) -> tuple:
+        values = list(self._axes.values())
+        if self._combine == "zip":
+            return tuple(v[index] for v in values)
+        combo = []
+        for axis in reversed(values):
+            index, digit = divmod(index, len(axis))
+            combo.append(axis[digit])
+        return tuple(reversed(combo))
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return [self[i] for i in range(*index.indices(self._length))]
+        index = int(index)
+        if index < 0:
+            index += self._length
+        if not 0 <= index < self._length:
+            raise IndexError(f"variant {index} of {self._length}")
+        return self.make(index, self._combo(index))
+
+    def __iter__(self) -> Iterator[Variant]:
+        for i, combo in enumerate(self.combos()):
+            yield self.make(i, combo)
+
+    def __repr__(self) -> str:
+        return f"Variants({self._length} of {', '.join(self._axes)}, {self._combine})"
+
+
 @dataclass(frozen=True)
 class SweepPlan:
     """A checked sweep: its variants and how they are run.
@@ -92,7 +165,7 @@ class SweepPlan:
         path: the sweep file (or "<sweep>").
         scene_path: the base scene's file: relative paths inside it (meshes) are relative to its folder.
         axes: each axis's key and values, in the file's order.
-        variants: the variants, in plan order.
+        variants: the variants, in plan order (:class:`Variants`: made when read, never all held).
         reference: the reference run's scene (base scene + ``[set]`` + ``[sweep] reference``), or ``None``.
         reference_key: its hash, or ``None``.
         usd: write each variant's USD.
@@ -104,7 +177,7 @@ class SweepPlan:
     path: str
     scene_path: str
     axes: dict
-    variants: list
+    variants: Sequence
     reference: dict | None = None
     reference_key: str | None = None
     usd: bool = False
@@ -134,15 +207,18 @@ def load_sweep(path: str | os.PathLike) -> SweepPlan:
     return plan_sweep(data, path=path)
 
 
-def plan_sweep(data: dict, *, path: str = "<sweep>") -> SweepPlan:
-    """Check a sweep (the parsed TOML of a sweep file) and expand its variants.
+def plan_sweep(data: dict, *, path: str = "<sweep>", max_variants: int | None = None) -> SweepPlan:
+    """Check a sweep (the parsed TOML of a sweep file) and plan its variants.
 
-    Every variant (and the reference) is checked by the scene parser before anything runs; the error lists
-    every offending variant, one line each.
+    The variant count comes from the axes' lengths before any value is generated: above the limit
+    (``max_variants``, else ``[sweep] max_variants``, else :data:`MAX_VARIANTS`) the sweep is refused at once.
+    Then every variant (and the reference) is checked by the scene parser before anything runs, streaming (one
+    variant at a time); the error names the first :data:`SHOWN_PROBLEMS` offending variants, one line each, and
+    their count.
 
     Raises:
         ConfigError: a malformed sweep table, an axis key that is not a scene key, a value of a type a scene
-            file cannot hold, or variants the scene parser refuses.
+            file cannot hold, more variants than the limit, or variants the scene parser refuses.
     """
     where = os.path.basename(path)
     if not isinstance(data, dict):
@@ -171,57 +247,68 @@ def plan_sweep(data: dict, *, path: str = "<sweep>") -> SweepPlan:
     if isinstance(every, bool) or not isinstance(every, int) or every < 1:
         raise ConfigError(f"{where}: sweep.metrics_every must be an integer >= 1 (frames between the metrics' "
                           f"samples), got {every!r}")
+    limit = sweep.get("max_variants", MAX_VARIANTS) if max_variants is None else max_variants
+    if isinstance(limit, bool) or not isinstance(limit, int) or limit < 1:
+        raise ConfigError(f"{where}: sweep.max_variants must be an integer >= 1 (most variants the sweep may have), "
+                          f"got {limit!r}")
+    specs = _table(data.get("axes"), where, "axes")
+    if not specs:
+        raise ConfigError(f'{where}: [axes] is empty: give at least one axis, e.g. "world.drag" = [0.0, 0.01]')
+    lengths = {key: _axis_length(spec, where, key) for key, spec in specs.items()}
+    total = math.prod(lengths.values()) if combine == "product" else min(lengths.values())
+    if total > limit:
+        shown = " × ".join(f"{n:,}" for n in lengths.values()) if combine == "product" else f"{total:,}"
+        raise ConfigError(f"{where}: the sweep has {total:,} variants ({shown}), more than the limit of {limit:,}; "
+                          f"nothing ran: use fewer or shorter axes, or raise the limit with [sweep] max_variants = "
+                          f"{total}")
     fixed = _overrides(data.get("set", {}), where, "set")
     for key, value in fixed.items():
         base = apply_override(base, key, value, where=f"{where}: [set]")
-    axes = {key: _axis_values(spec, where, key) for key, spec in _table(data.get("axes"), where, "axes").items()}
-    if not axes:
-        raise ConfigError(f'{where}: [axes] is empty: give at least one axis, e.g. "world.drag" = [0.0, 0.01]')
+    axes = {key: _axis_values(spec, where, key) for key, spec in specs.items()}
+    if combine == "zip" and len({len(values) for values in axes.values()}) > 1:
+        shown = ", ".join(f"{k}: {len(v)}" for k, v in axes.items())
+        raise ConfigError(f"{where}: combine = 'zip' needs axes of one length, got {shown}")
     reference = None
     if "reference" in sweep:
         reference = base
         for key, value in _overrides(sweep["reference"], where, "sweep.reference").items():
             reference = apply_override(reference, key, value, where=f"{where}: sweep.reference")
 
-    if combine == "zip":
-        lengths = {key: len(values) for key, values in axes.items()}
-        if len(set(lengths.values())) > 1:
-            shown = ", ".join(f"{k}: {n}" for k, n in lengths.items())
-            raise ConfigError(f"{where}: combine = 'zip' needs axes of one length, got {shown}")
-        combos = list(zip(*axes.values()))
-    else:
-        combos = list(itertools.product(*axes.values()))
     extras = {"reference": reference is not None and digest(reference), "usd": usd, "metrics_every": every}
-    variants, problems, durations = [], [], []
-    for i, combo in enumerate(combos):
-        params = dict(zip(axes, combo))
-        try:
-            scene = base
-            for key, value in params.items():
-                scene = apply_override(scene, key, value, where=where)
-            parsed = check_scene(scene, scene_path)
-        except ConfigError as exc:
-            problems.append(f"variant {i} ({describe_params(params)}): {one_line(exc)}")
-            continue
-        variants.append(Variant(index=i, params=params, scene=scene, key=variant_hash(scene, **extras)))
-        durations.append(parsed.frames / parsed.fps)
-    reference_key = None
+    variants = Variants(base, axes, combine, extras, where)
+    problems, count = [], 0
+    ref_duration = reference_key = None
     if reference is not None:
         try:
             ref = check_scene(reference, scene_path)
         except ConfigError as exc:
-            problems.insert(0, f"reference: {one_line(exc)}")
+            problems.append(f"reference: {one_line(exc)}")
+            count += 1
         else:
             reference_key = variant_hash(reference, reference=False, usd=False)
-            for v, duration in zip(variants, durations):
-                if not math.isclose(duration, ref.frames / ref.fps, rel_tol=1e-12):
-                    problems.append(f"variant {v.index} ({describe_params(v.params)}): runs {duration:.6g} s but the "
-                                    f"reference {ref.frames / ref.fps:.6g} s: the error compares end states at one time")
-    if problems:
-        count = len(problems)
-        raise ConfigError(f"{where}: {count} of {len(combos)} variant{'s' if len(combos) > 1 else ''} refused"
-                          f"{' (and the reference)' if problems[0].startswith('reference') else ''}; nothing ran:\n  "
-                          + "\n  ".join(problems))
+            ref_duration = ref.frames / ref.fps
+    for i, combo in enumerate(variants.combos()):  # streamed: one variant's scene at a time
+        params = dict(zip(axes, combo))
+        problem = None
+        try:
+            parsed = check_scene(variants.scene_of(params), scene_path)
+        except ConfigError as exc:
+            problem = one_line(exc)
+        else:
+            duration = parsed.frames / parsed.fps
+            if ref_duration is not None and not math.isclose(duration, ref_duration, rel_tol=1e-12):
+                problem = (f"runs {duration:.6g} s but the reference {ref_duration:.6g} s: the error compares end "
+                           "states at one time")
+        if problem is not None:
+            count += 1
+            if len(problems) < SHOWN_PROBLEMS:
+                problems.append(f"variant {i} ({describe_params(params)}): {problem}")
+    if count:
+        refused = count - (1 if problems[0].startswith("reference") else 0)
+        more = f"\n  ... and {count - len(problems)} more" if count > len(problems) else ""
+        raise ConfigError(f"{where}: {refused} of {len(variants)} variant{'s' if len(variants) > 1 else ''} refused"
+                          f"{' (and the reference)' if problems[0].startswith('reference') else ''}; nothing ran"
+                          f"{f' (the first {len(problems)} shown)' if more else ''}:\n  " + "\n  ".join(problems) + more)
     return SweepPlan(path=path, scene_path=scene_path, axes=axes, variants=variants, reference=reference,
                      reference_key=reference_key, usd=usd, batch=batch, metrics_every=every)
 
@@ -261,6 +348,23 @@ def _overrides(value, where: str, name: str) -> dict:
     for key, v in table.items():
         check_value(v, where=f"{where}: {name} {key!r}")
     return table
+
+
+def _axis_length(spec, where: str, key: str) -> int:
+    """An axis's value count, from its spec alone (nothing generated): a list's length, a table's ``count``, or
+    a range's ``(stop - start) / step + 1``; a malformed spec is left to :func:`_axis_values` (counted 1)."""
+    if isinstance(spec, list):
+        return max(len(spec), 1)
+    if not isinstance(spec, dict):
+        return 1
+    count = spec.get("count")
+    if isinstance(count, int) and not isinstance(count, bool) and count >= 1:
+        return count
+    ends, step = spec.get("range"), spec.get("step")
+    if (isinstance(ends, list) and len(ends) == 2 and all(_is_number(e) for e in ends) and _is_number(step)
+            and step != 0 and (ends[1] - ends[0]) / step >= 0):
+        return int(math.floor((ends[1] - ends[0]) / step * (1 + 1e-12) + 1e-9)) + 1
+    return 1
 
 
 def _axis_values(spec, where: str, key: str) -> list:

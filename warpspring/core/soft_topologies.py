@@ -41,12 +41,12 @@ from __future__ import annotations
 import inspect
 import math
 import os
-import threading
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..errors import ConfigError
+from . import memory
 
 #: The seven methods, in the order of the soft-body seed's Table 1.
 METHODS = ("brute_force", "voxel", "grid", "scaffold", "shell", "tetrahedral", "delaunay")
@@ -117,6 +117,70 @@ class Topology:
 
 
 # -- entry point ----------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TopologyEstimate:
+    """What a topology will hold and need, estimated from the mesh and the spacing before it is made.
+
+    Attributes:
+        particles, springs, tets: the counts (upper estimates).
+        host: the host memory [B] making it holds at its peak (beyond what it returns; for the tetrahedral
+            method this process's part: fTetWild runs in a child process capped by :func:`run_tetwild`).
+    """
+
+    particles: int
+    springs: int
+    tets: int
+    host: int
+
+
+#: Measured host bytes of making each topology (``bench/memory.py``), per unit of what drives it: the voxel
+#: lattice per interior cell C = V/s³ and per surface cell S = A/s² (trimesh's voxelization and inside tests),
+#: the grid's ray tests per spring, the tetrahedral post-processing per tet, Delaunay's per sample point,
+#: brute force per spring, the shell and scaffold per mesh vertex.
+TOPOLOGY_BYTES = {"voxel_cell": 700, "voxel_surface": 11_000, "grid_spring": 4_000, "tet": 850,
+                  "delaunay_point": 48_000, "brute_spring": 160, "surface_vertex": 4_000}
+
+
+def estimate_topology(mesh, method: str, *, spacing: float | None = None, **options) -> TopologyEstimate:
+    """Estimate the counts and the host memory of :func:`build_topology` from the mesh's volume, area and vertex
+    count and the spacing, before anything is made (counts per cell measured on spheres and boxes: the voxel
+    lattice ~1.1 nodes and ~9.5 springs per cell; fTetWild ~6.5–8.5 tets per cell of the target edge; Poisson
+    disks ~0.5 samples per cell of their radius, Delaunay ~6.5 tets and ~7.5 edges per point)."""
+    if method not in METHODS:
+        raise ConfigError(f"unknown soft-body method {method!r}: choose from {', '.join(METHODS)}")
+    extent = np.ptp(np.asarray(mesh.vertices, dtype=np.float64), axis=0)
+    if spacing is None:
+        spacing = float(extent.max()) / 6.0
+    if not (math.isfinite(spacing) and spacing > 0.0):
+        raise ConfigError(f"soft-body spacing must be a finite length > 0 [m], got {spacing!r}")
+    v = len(mesh.vertices)
+    volume = abs(float(mesh.volume)) if mesh.is_watertight else float(np.prod(np.maximum(extent, spacing)))
+    cells = volume / spacing**3
+    surface = float(mesh.area) / spacing**2
+    b = TOPOLOGY_BYTES
+    if method == "voxel":
+        particles, springs, tets = 1.1 * cells + surface, (10 + 4 * bool(options.get("body_diagonals"))) * cells + 5 * surface, 0
+        host = b["voxel_cell"] * cells + b["voxel_surface"] * surface
+    elif method == "grid":
+        particles = 1.1 * cells + v
+        neighbours, ties = (x if isinstance(x, (int, float)) else d for x, d in
+                            ((options.get("neighbours", 18), 18), (options.get("ties", 4), 4)))
+        springs = neighbours / 2 * cells + ties * v
+        tets, host = 0, b["grid_spring"] * springs
+    elif method == "tetrahedral":
+        tets = 9 * cells + 3 * surface
+        particles, springs, host = 1.6 * cells + surface, 1.3 * tets, b["tet"] * tets
+    elif method == "delaunay":
+        points = 0.5 * cells + v
+        particles, springs, tets, host = points, 7.5 * points, 6.5 * points, b["delaunay_point"] * points
+    elif method == "brute_force":
+        particles, springs, tets = v, v * (v - 1) / 2, 0
+        host = b["brute_spring"] * springs
+    else:  # shell and scaffold: the surface's vertices and a copy or a reduced shape, ~10 springs per vertex
+        particles, springs, tets, host = 2 * v, 10 * v, 0, b["surface_vertex"] * v
+    return TopologyEstimate(int(particles), int(springs), int(tets), int(host))
 
 
 def build_topology(mesh, method: str, *, youngs_modulus: float, spacing: float | None = None, source: str = "mesh",
@@ -512,22 +576,12 @@ def tetrahedral_topology(mesh, *, edge_length: float, youngs_modulus: float, eps
     except ImportError as exc:
         raise ConfigError("the tetrahedral method needs the optional tetrahedraliser pytetwild (fTetWild, MPL-2.0): "
                           f"pip install 'warpspring[tet]' ({exc})") from None
-    import tempfile
-
+    del pytetwild  # it runs in the child process
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    # fTetWild writes "__tracked_surface.stl" into the working directory and pytetwild takes no directory for it:
-    # let it write into a temporary one. The working directory is the process's, so two builds in threads hold
-    # the lock in turn; other threads that open relative paths meanwhile would still see the temporary one.
-    here = os.getcwd()
-    with _TETWILD_LOCK, tempfile.TemporaryDirectory(prefix="warpspring_tet_") as scratch:
-        os.chdir(scratch)
-        try:
-            positions, tets = pytetwild.tetrahedralize(vertices, np.asarray(mesh.faces, dtype=np.int32),
-                                                       edge_length_abs=float(edge_length), epsilon=float(epsilon),
-                                                       optimize=bool(optimize), coarsen=bool(optimize and coarsen),
-                                                       num_threads=1, quiet=True)
-        finally:
-            os.chdir(here)
+    positions, tets = run_tetwild(vertices, np.asarray(mesh.faces, dtype=np.int32),
+                                  dict(edge_length_abs=float(edge_length), epsilon=float(epsilon), optimize=bool(optimize),
+                                       coarsen=bool(optimize and coarsen), num_threads=1, quiet=True),
+                                  limit=memory.available_memory(None).host)
     positions = np.asarray(positions, dtype=np.float64)
     tets, volume_t = wound_tets(positions, tets)
     flat = volume_t <= 1.0e-12 * float(np.ptp(positions, axis=0).max()) ** 3
@@ -539,6 +593,70 @@ def tetrahedral_topology(mesh, *, edge_length: float, youngs_modulus: float, eps
     indices, weights = _barycentric_embedding(positions, tets, vertices)
     return Topology(positions, {"tet_edge": (pairs, ke)}, volume, indices, weights, rule,
                     slivers=_slivers(positions, tets, volume_t, sliver_quality), tets=tets)
+
+
+def run_tetwild(vertices: np.ndarray, faces: np.ndarray, options: dict, *, limit: int | None) -> tuple:
+    """``pytetwild.tetrahedralize(vertices, faces, **options)`` in a child process whose address space may grow by
+    ``limit`` bytes once pytetwild is loaded (``RLIMIT_AS``; ``None``: uncapped): fTetWild's peak memory cannot be predicted from the
+    mesh, so a run that would exhaust the host's memory fails in the child, and is reported in one line, instead
+    of taking the machine down. The child (a fresh interpreter running :data:`_TETWILD_CHILD`: numpy and
+    pytetwild only) works in a temporary directory, which also takes fTetWild's scratch file
+    ("__tracked_surface.stl", written to the working directory).
+
+    Returns:
+        (positions [m], shape [p, 3]; tets, shape [t, 4]).
+
+    Raises:
+        ConfigError: fTetWild ran out of memory within ``limit``, failed, or its process died.
+    """
+    import json
+    import subprocess
+    import sys
+    import tempfile
+
+    edge = options.get("edge_length_abs")
+    with tempfile.TemporaryDirectory(prefix="warpspring_tet_") as scratch:
+        np.savez(os.path.join(scratch, "in.npz"), vertices=np.asarray(vertices, dtype=np.float64),
+                 faces=np.asarray(faces, dtype=np.int32))
+        done = subprocess.run([sys.executable, "-c", _TETWILD_CHILD, scratch, str(int(limit or 0)), json.dumps(options)],
+                              cwd=scratch, capture_output=True, text=True)
+        if done.returncode == 0:
+            with np.load(os.path.join(scratch, "out.npz")) as out:
+                return out["positions"], out["tets"]
+    cap = f"the available host memory, {memory.format_bytes(limit)}" if limit else "no limit"
+    said = [line for line in done.stderr.splitlines() if line.strip()]
+    if done.returncode in (_TETWILD_OUT_OF_MEMORY, -6, 134) or "bad_alloc" in done.stderr:
+        raise ConfigError(f"fTetWild ran out of memory tetrahedralizing {len(faces):,} triangles at edge length "
+                          f"{edge:g} m (its process was limited to {cap}): use a larger spacing")
+    raise ConfigError(f"fTetWild failed at edge length {edge:g} m (exit code {done.returncode}"
+                      f"{': ' + said[-1][:300] if said else ''}; its process was limited to {cap})")
+
+
+#: The exit code of :data:`_TETWILD_CHILD` when fTetWild runs out of memory (a MemoryError).
+_TETWILD_OUT_OF_MEMORY = 3
+#: The child of :func:`run_tetwild`: cap the address space, read the surface, tetrahedralize in the working
+#: directory, write the result (arguments: the directory, the limit in bytes or 0, the options as JSON).
+_TETWILD_CHILD = f"""
+import json, resource, sys
+import numpy as np
+import pytetwild
+folder, limit, options = sys.argv[1], int(sys.argv[2]), json.loads(sys.argv[3])
+if limit:  # the cap counts what fTetWild allocates: its code and the interpreter's are mapped already
+    try:
+        with open("/proc/self/status") as status:
+            mapped = next((int(line.split()[1]) * 1024 for line in status if line.startswith("VmSize:")), 0)
+    except OSError:  # not Linux: the interpreter's own mapping is not known, the cap counts it
+        mapped = 0
+    hard = resource.getrlimit(resource.RLIMIT_AS)[1]
+    cap = mapped + limit
+    resource.setrlimit(resource.RLIMIT_AS, (cap if hard == resource.RLIM_INFINITY else min(cap, hard), hard))
+surface = np.load(folder + "/in.npz")
+try:
+    positions, tets = pytetwild.tetrahedralize(surface["vertices"], surface["faces"], **options)
+    np.savez(folder + "/out.npz", positions=np.asarray(positions, dtype=np.float64), tets=np.asarray(tets))
+except MemoryError:
+    sys.exit({_TETWILD_OUT_OF_MEMORY})
+"""
 
 
 def delaunay_topology(mesh, *, radius: float, youngs_modulus: float, seed: int = 0) -> Topology:
@@ -665,7 +783,6 @@ def wound_tets(positions: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.
     return tets, np.abs(volume)
 
 
-_TETWILD_LOCK = threading.Lock()  # fTetWild runs in a changed working directory: one build at a time
 
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 

@@ -26,6 +26,13 @@ from .spring_materials import DEFAULT_BEND, DEFAULT_SHEAR, DEFAULT_STRUCTURAL, S
 #: ``ModelBuilder._check_grid_room``).
 GRID_TEMPORARY_PER_SPRING = 72
 GRID_TEMPORARY_PER_PARTICLE = 48
+#: Host bytes per triangle of making a cloth from a mesh beyond the builder's arrays (welding, trimesh's edge
+#: and adjacency tables, the springs' checks; measured ~370 B on a 318k-triangle sheet and ~530 B on a 179k one,
+#: ~930 B with dihedral hinges: ``bench/memory.py``), and of trimesh reading a mesh file (measured ~166 B per
+#: OBJ face).
+MESH_TEMPORARY_PER_TRIANGLE = 600
+MESH_HINGE_TEMPORARY_PER_TRIANGLE = 1200
+MESH_LOAD_PER_FACE = 200
 
 _GRID_PINS = ("top-left", "top-right", "bottom-left", "bottom-right", "top", "bottom", "left", "right")
 
@@ -311,6 +318,8 @@ class ClothRecipes:
             polygons = (read.polygon_counts, read.polygon_indices)
             face_sets = read.face_sets
         elif isinstance(mesh, (str, os.PathLike)):
+            self._check_mesh_room(str(os.fspath(mesh)), count_obj_faces(mesh), hinges=bool(material or dihedral),
+                                  loading=True)
             mesh = load_mesh_file(mesh)
         loaded = not usd and isinstance(mesh, trimesh.Trimesh)
         if loaded:
@@ -329,6 +338,7 @@ class ClothRecipes:
         if faces.ndim != 2 or faces.shape[1] != 3:
             raise ConfigError(f"mesh faces must be triangles, shape [t, 3], got {faces.shape}")
         faces = _indices("mesh face vertex", faces, len(vertices)).reshape(-1, 3)
+        self._check_mesh_room(name, (len(vertices), len(faces)), hinges=bool(material or dihedral))
         if loaded:  # loaders split a vertex wherever its UVs differ (a texture seam): the cloth must not tear
             vertices, faces, uv = _weld_seams(vertices, faces, uv)
         scale = checks.positive("scale", scale)
@@ -403,20 +413,40 @@ class ClothRecipes:
         triangles = 2 * (nx - 1) * (ny - 1)
         edges = structural_count + (nx - 1) * (ny - 1)
         interior = edges - 2 * (nx - 1) - 2 * (ny - 1)
-        estimate = memory.estimate_memory(particles=n, springs=springs, hinges=interior if hinges else 0,
-                                          triangles=triangles)
-        # Making the grid holds each family's pairs twice (built, then checked as int64) and its rest-length
-        # differences (float64) beside the arrays it keeps; ~70 bytes per spring, measured.
-        needed = estimate.builder + GRID_TEMPORARY_PER_SPRING * springs + GRID_TEMPORARY_PER_PARTICLE * n
+        hinges = interior if hinges else 0
+        # The whole scene with the grid: the builder's arrays, and beside them the larger of making the grid's
+        # temporaries (each family's pairs twice, built then checked as int64, and its rest-length differences,
+        # float64: ~70 bytes per spring, measured) and finalize's host copies of the scene (whatever the device).
+        estimate = memory.estimate_memory(
+            particles=self._particle_count + n, springs=self._spring_count + springs,
+            hinges=self._hinge_count + hinges, triangles=sum(len(g.faces) for g in self._meshes) + triangles)
+        temporary = GRID_TEMPORARY_PER_SPRING * springs + GRID_TEMPORARY_PER_PARTICLE * n
+        needed = estimate.builder + max(temporary, estimate.finalize_host)
         available = memory.available_memory(None).host  # the host's (Warp need not be initialised yet)
         if available is not None and needed > available:
             share = available / (needed * 1.05)
             side = max(int(math.sqrt(share * n)), 2)
             raise ConfigError(
                 f"a {nx} × {ny} cloth grid needs an estimated {memory.format_bytes(needed)} of host memory to build "
-                f"({n:,} particles, {springs:,} springs), but {memory.format_bytes(available)} is available: use a "
-                f"smaller grid (about {side} × {side} fits), and see warpspring.estimate_memory for the run's needs"
+                f"with finalize's copies ({n:,} particles, {springs:,} springs), but {memory.format_bytes(available)} is "
+                f"available: use a smaller grid (about {side} × {side} fits), and see warpspring.estimate_memory for "
+                "the run's needs"
             )
+
+    def _check_mesh_room(self, what: str, counts: tuple[int, int] | None, *, hinges: bool,
+                         loading: bool = False) -> None:
+        """Refuse a cloth mesh of ``counts`` (vertices, triangles) whose making (or, ``loading``, reading its file
+        too) needs more host memory than is available, before the work starts (``counts`` ``None``: unknown)."""
+        if counts is None:
+            return
+        vertices, faces = counts
+        edges = 3 * faces // 2  # a closed or nearly closed surface: each interior edge shared by two triangles
+        temporary = (MESH_HINGE_TEMPORARY_PER_TRIANGLE if hinges else MESH_TEMPORARY_PER_TRIANGLE) * faces
+        if loading:
+            temporary += MESH_LOAD_PER_FACE * faces
+        self._check_room(f"a cloth mesh of {faces:,} triangles ({what})", particles=vertices,
+                         springs=2 * edges, hinges=edges if hinges else 0, triangles=faces, temporary=temporary,
+                         remedy="decimate the mesh (fewer triangles), or split it into parts built apart")
 
     def _add_mesh_hinges(self, vertices: np.ndarray, faces: np.ndarray, ids: np.ndarray,
                          material: DihedralMaterial | ClothMaterial, *, rest: str = "mesh") -> None:
@@ -460,6 +490,26 @@ class ClothRecipes:
             else:
                 mask.flat[_indices("pin", [p], nx * ny)] = True
         return mask.ravel()
+
+
+def count_obj_faces(path) -> tuple[int, int] | None:
+    """(vertices, faces) of an OBJ file, counted by streaming its lines (constant memory, ~1 s per 200 MB) before
+    trimesh reads it; ``None`` for other formats or an unreadable file (then checked once read)."""
+    path = os.fspath(path)
+    if not path.lower().endswith(".obj") or not os.path.isfile(path):
+        return None
+    vertices = faces = 0
+    last = b"\n"
+    try:
+        with open(path, "rb") as f:
+            while chunk := f.read(1 << 24):
+                text = last + chunk
+                vertices += text.count(b"\nv ")
+                faces += text.count(b"\nf ")
+                last = chunk[-2:]
+    except OSError:
+        return None
+    return vertices, faces
 
 
 def _weld_seams(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray | None):

@@ -10,6 +10,7 @@ import re
 import numpy as np
 
 from ... import checks
+from .. import memory
 from ...errors import ConfigError
 from ..aero import AIR_DENSITY, DEFAULT_DRAG, DEFAULT_LIFT, AeroFamily
 from ..emitters import Emitter, make_emitter
@@ -28,6 +29,10 @@ from .cloth import ClothRecipes
 from .colliders import ColliderRecipes
 from .finalize import Finalization
 from .soft_body import SoftBodyRecipes
+
+#: Host bytes per pool particle that adding an emitter's pool holds beyond the builder's arrays (its pin mask
+#: and the broadcast centre's checks).
+EMITTER_POOL_TEMPORARY = 8
 
 _AXES = {"Y": 1, "Z": 2}  # USD knows only Y-up and Z-up stages
 
@@ -150,6 +155,17 @@ class ModelBuilder(ClothRecipes, SoftBodyRecipes, ColliderRecipes, Finalization)
         self._pinned.append(pin_mask)
         self._particle_count += n
         return np.arange(start, start + n)
+
+    def _check_room(self, what: str, *, particles: int, springs: int = 0, hinges: int = 0, triangles: int = 0,
+                    temporary: int = 0, remedy: str) -> None:
+        """Refuse, before any of its arrays is made, an addition whose host memory exceeds what is available: the
+        builder's arrays with it, plus the larger of its own temporaries (``temporary`` [B]) and the host copies
+        :meth:`finalize` makes of the whole scene (``memory.estimate_memory``'s ``finalize_host``, whatever the
+        device). :meth:`finalize` checks the model's arrays on its device later."""
+        estimate = memory.estimate_memory(
+            particles=self._particle_count + particles, springs=self._spring_count + springs,
+            hinges=self._hinge_count + hinges, triangles=sum(len(g.faces) for g in self._meshes) + triangles)
+        memory.check_host_room(what, estimate.builder + max(int(temporary), estimate.finalize_host), remedy=remedy)
 
     def particle_positions(self, indices) -> np.ndarray:
         """The positions [m], shape [n, 3], of particles added so far, by global index (float64 copies)."""
@@ -393,7 +409,11 @@ class ModelBuilder(ClothRecipes, SoftBodyRecipes, ColliderRecipes, Finalization)
         emitter = make_emitter(name, self._particle_count, shape=shape, center=center, half_extents=half_extents,
                                mesh=mesh, rate=rate, bursts=list(bursts), life=life, velocity=velocity,
                                spread=spread, seed=seed, capacity=capacity)
-        # The pool: kinematic (dead) and still until born, at the emitter's centre.
+        # The pool: kinematic (dead) and still until born, at the emitter's centre; checked before it is made.
+        self._check_room(f"emitter {name!r}: a pool of {emitter.capacity:,} particles", particles=emitter.capacity,
+                         temporary=EMITTER_POOL_TEMPORARY * emitter.capacity,
+                         remedy=f"lower its rate × life ({emitter.rate:g}/s × {emitter.life:g} s) or give a smaller "
+                                "capacity= (the oldest particles are then recycled early)")
         self.add_particles(np.broadcast_to(emitter.center, (emitter.capacity, 3)), mass=mass, radius=radius,
                            pinned=np.ones(emitter.capacity, dtype=bool))
         self._emitters.append(emitter)

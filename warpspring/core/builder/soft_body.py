@@ -149,6 +149,14 @@ class SoftBodyRecipes:
             raise ConfigError("give exactly one of density= (kg/m³) or mass= (total, kg) for a soft body")
         if options is not None and not isinstance(options, Mapping):
             raise ConfigError(f"a soft body's options must be a mapping of the method's options, got {options!r}")
+        if method in soft_topologies.METHODS:  # (an unknown method is refused by build_topology)
+            planned = soft_topologies.estimate_topology(body, method, spacing=spacing, **dict(options or {}))
+            self._check_room(
+                f"{source}: a {method} soft body at spacing {spacing if spacing is not None else 'default'} "
+                f"(~{planned.particles:,} particles, {planned.springs:,} springs"
+                + (f", {planned.tets:,} tets)" if planned.tets else ")"),
+                particles=planned.particles, springs=0 if neohookean else planned.springs, temporary=planned.host,
+                remedy="use a larger spacing (memory grows as 1/spacing³) or a smaller body")
         topology = soft_topologies.build_topology(body, method, youngs_modulus=checks.positive("youngs_modulus", youngs_modulus),
                                            spacing=spacing, source=source, **dict(options or {}))
         if mass is None:

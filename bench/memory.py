@@ -1,0 +1,339 @@
+"""Memory estimates against measured peaks, and the refusals of models and sweeps that do not fit.
+
+Two tables, each row measured in a fresh Python process (a peak is per process):
+
+1. **Estimate vs measured**: for grids, cloth meshes, soft bodies (voxel, grid, tetrahedral, Delaunay),
+   emitter pools and many worlds, at several sizes, the estimate the pre-allocation checks use against the
+   growth of the process's peak resident memory (Linux ``VmHWM``, reset through ``/proc/self/clear_refs``
+   after a warm-up that loads the modules) on the host; with ``--device cuda:0`` also the model and a
+   simulator on the GPU against the memory pool's high-water mark (``wp.get_mempool_used_mem_high``). The
+   bound held: measured ≤ estimate ≤ 2 × measured.
+2. **Refusals**: the cases of issue 38 at their full sizes, each in a process whose host memory is capped at
+   ``--limit`` (8 GiB: the watch of the issue; the OBJ also at 2 GiB, as it fits in 8) through
+   ``WARPSPRING_MEMORY_LIMIT``: the time, the process's peak resident memory (``VmHWM``, imports included) and
+   the one line each is refused with ("ran": it fitted and was built).
+
+Run: ``python bench/memory.py [--device cuda:0] [--quick] [--out bench/results/memory.md]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+CHILD_ENV = {**os.environ, "PYTHONPATH": ROOT + os.pathsep + os.environ.get("PYTHONPATH", "")}
+
+# -- the matrix: (kind, size, label) --------------------------------------------------------------------------
+
+MATRIX = [
+    ("grid", 256, "cloth grid 256²"), ("grid", 512, "cloth grid 512²"), ("grid", 1024, "cloth grid 1024²"),
+    ("mesh", 300, "cloth mesh, 179k triangles"), ("mesh", 600, "cloth mesh, 718k triangles"),
+    ("mesh_dihedral", 400, "cloth mesh + hinges, 319k triangles"),
+    ("voxel_sphere", 0.005, "voxel sphere r=0.1, 5 mm"), ("voxel_sphere", 0.0025, "voxel sphere r=0.1, 2.5 mm"),
+    ("voxel_box", 0.0025, "voxel box 0.3×0.1×0.05, 2.5 mm"),
+    ("grid_sphere", 0.006, "grid sphere r=0.1, 6 mm"), ("grid_sphere", 0.004, "grid sphere r=0.1, 4 mm"),
+    ("tetrahedral_sphere", 0.008, "tetrahedral sphere r=0.1, 8 mm"),
+    ("tetrahedral_sphere", 0.005, "tetrahedral sphere r=0.1, 5 mm"),
+    ("delaunay_sphere", 0.006, "Delaunay sphere r=0.1, 6 mm"),
+    ("emitter", 1_000_000, "emitter pool 1e6"), ("emitter", 10_000_000, "emitter pool 1e7"),
+    ("worlds", 20_000, "20k worlds of 6×6, simulator"), ("worlds", 100_000, "100k worlds of 6×6, simulator"),
+]
+QUICK = {("grid", 256), ("mesh", 300), ("voxel_sphere", 0.005), ("tetrahedral_sphere", 0.008),
+         ("emitter", 1_000_000), ("worlds", 20_000)}
+
+# -- the issue's cases at full size ---------------------------------------------------------------------------
+
+CASES = {
+    "grid 5000²": "b = ws.ModelBuilder(); b.add_cloth_grid(nx=5000, ny=5000, spacing=0.01, mass=1.0); b.finalize('cpu')",
+    "grid nx=2 ny=1e7 spacing=1e30": "b = ws.ModelBuilder(); b.add_cloth_grid(nx=2, ny=10_000_000, spacing=1e30, "
+                                     "mass=1.0); b.finalize('cpu')",
+    "1e6 worlds of 6×6": "b = ws.ModelBuilder(); b.add_cloth_grid(nx=6, ny=6, spacing=0.1, mass=1.0); "
+                         "m = b.finalize('cpu', worlds=1_000_000); ws.Simulator(m, fps=60, substeps=1)",
+    "tetrahedral at 3 mm": "ws.ModelBuilder().add_soft_body(sphere(0.2), method='tetrahedral', youngs_modulus=1e5, "
+                           "density=1000.0, spacing=0.003)",
+    "voxel at 2 mm": "ws.ModelBuilder().add_soft_body(sphere(0.2), method='voxel', youngs_modulus=1e5, "
+                     "density=1000.0, spacing=0.002)",
+    "emitter rate 1e9": "ws.ModelBuilder().add_emitter(rate=1e9, life=1.0)",
+    "5M-triangle OBJ": "ws.ModelBuilder().add_cloth_mesh(OBJ, mass=1.0)",
+    "5M-triangle OBJ, capped at 2 GiB": "ws.ModelBuilder().add_cloth_mesh(OBJ, mass=1.0)",
+    "sweep 10 axes × 10 values": "plan_sweep({'scene': SCENE, 'axes': {f'cloth.structural.ke{i}': {'log': [1.0, 10.0], "
+                                 "'count': 10} for i in range(10)}})",
+    "sweep count = 1e9": "plan_sweep({'scene': SCENE, 'axes': {'world.drag': {'range': [0.0, 1.0], "
+                         "'count': 1_000_000_000}}})",
+    "sweep 1e4 variants": "plan_sweep({'scene': SCENE, 'axes': {'world.drag': {'range': [0.0, 1.0], 'count': 10_000}}})",
+}
+CASE_PRELUDE = """
+import os, sys, time, json, numpy as np, trimesh
+import warpspring as ws
+from warpspring.analysis.sweep_plan import plan_sweep
+def sphere(r): return trimesh.creation.icosphere(subdivisions=4, radius=r)
+OBJ = os.environ.get("BENCH_OBJ")
+SCENE = {"cloth": {"nx": 4, "ny": 4, "spacing": 0.1, "mass": 0.1}, "simulation": {"frames": 2}}
+start = time.perf_counter()
+try:
+    CASE
+    outcome = "ran"
+except Exception as exc:
+    outcome = f"{type(exc).__name__}: {exc}"
+with open("/proc/self/status") as status:  # VmHWM: this process's own peak (ru_maxrss may carry the parent's)
+    peak = next(int(line.split()[1]) * 1024 for line in status if line.startswith("VmHWM:"))
+print(json.dumps(dict(seconds=time.perf_counter() - start, peak=peak, outcome=outcome)))
+"""
+
+
+def _status(key: str) -> int:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) * 1024
+    raise KeyError(key)
+
+
+def _reset_peak() -> int:
+    """Reset the high-water mark (Linux) and return the resident memory now [B]."""
+    with open("/proc/self/clear_refs", "w") as f:
+        f.write("5")
+    return _status("VmRSS")
+
+
+def _sheet(k: int):
+    """A k × k vertex sheet, wavy (no two vertices at one position): (vertices, faces)."""
+    import numpy as np
+
+    xs, ys = np.meshgrid(np.linspace(0.0, 1.0, k), np.linspace(0.0, 1.0, k))
+    vertices = np.column_stack([xs.ravel(), ys.ravel(), 0.01 * np.sin(7.0 * xs.ravel())])
+    i = np.arange(k * k).reshape(k, k)
+    a, b, c, d = i[:-1, :-1].ravel(), i[:-1, 1:].ravel(), i[1:, 1:].ravel(), i[1:, :-1].ravel()
+    return vertices, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+
+
+def measure(kind: str, size, device: str) -> dict:
+    """In this (fresh) process: one matrix row's host estimate and measured peak growth [B], and on a CUDA
+    ``device`` the device estimate and the memory pool's high-water mark [B]."""
+    import trimesh
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING
+    wp.init()
+    import warpspring as ws
+    from warpspring.core import memory, soft_topologies
+    from warpspring.core.builder import cloth
+    from warpspring.core.builder.model_builder import EMITTER_POOL_TEMPORARY
+
+    row = dict(kind=kind, size=size)
+    if kind == "grid":
+        warm = ws.ModelBuilder()
+        warm.add_cloth_grid(nx=8, ny=8, spacing=0.1, mass=1.0)
+        warm.finalize("cpu")  # warm-up
+        base = _reset_peak()
+        b = ws.ModelBuilder()
+        b.add_cloth_grid(nx=size, ny=size, spacing=1.0 / size, mass=1.0, pin=["top-left"])
+        estimate = b.estimate_memory("cpu")
+        b.finalize("cpu")
+        row.update(measured=_status("VmHWM") - base, estimate=estimate.finalize_peak,
+                   what="build + finalize on the CPU: builder + finalize's copies + model")
+    elif kind in ("mesh", "mesh_dihedral"):
+        hinges = kind == "mesh_dihedral"
+        options = {"dihedral": ws.DihedralMaterial(1.0, 0.0)} if hinges else {}
+        vertices, faces = _sheet(size)
+        v8, f8 = _sheet(8)
+        ws.ModelBuilder().add_cloth_mesh(trimesh.Trimesh(v8, f8, process=False), mass=1.0, **options)
+        mesh = trimesh.Trimesh(vertices, faces, process=False)
+        base = _reset_peak()
+        b = ws.ModelBuilder()
+        b.add_cloth_mesh(mesh, mass=1.0, **options)
+        per = cloth.MESH_HINGE_TEMPORARY_PER_TRIANGLE if hinges else cloth.MESH_TEMPORARY_PER_TRIANGLE
+        t = len(faces)
+        e = memory.estimate_memory(particles=len(vertices), springs=3 * t, hinges=3 * t // 2 if hinges else 0,
+                                   triangles=t)
+        row.update(measured=_status("VmHWM") - base, estimate=e.builder + per * t, triangles=t,
+                   what="add_cloth_mesh: builder arrays + temporaries")
+    elif kind.endswith("_sphere") or kind.endswith("_box"):
+        method, shape = kind.rsplit("_", 1)
+        mesh = (trimesh.creation.icosphere(subdivisions=3, radius=0.1) if shape == "sphere"
+                else trimesh.creation.box(extents=(0.3, 0.1, 0.05)))
+        soft_topologies.build_topology(mesh, method, youngs_modulus=1e5, spacing=0.03)  # warm-up
+        planned = soft_topologies.estimate_topology(mesh, method, spacing=size)
+        base = _reset_peak()
+        topology = soft_topologies.build_topology(mesh, method, youngs_modulus=1e5, spacing=size)
+        row.update(measured=_status("VmHWM") - base, estimate=planned.host, particles=topology.particle_count,
+                   particles_estimate=planned.particles,
+                   springs=sum(len(p) for p, _ in topology.springs.values()), springs_estimate=planned.springs,
+                   what="topology: peak of making it (tetrahedral: this process; fTetWild's child is capped)")
+    elif kind == "emitter":
+        ws.ModelBuilder().add_emitter(rate=10.0, life=1.0)
+        base = _reset_peak()
+        b = ws.ModelBuilder()
+        emitter = b.add_emitter(rate=size / 1.05, life=1.0)
+        e = memory.estimate_memory(particles=emitter.capacity)
+        row.update(measured=_status("VmHWM") - base, estimate=e.builder + EMITTER_POOL_TEMPORARY * emitter.capacity,
+                   what="add_emitter: the pool's builder arrays")
+    elif kind == "worlds":
+        b = ws.ModelBuilder()
+        b.add_cloth_grid(nx=6, ny=6, spacing=0.1, mass=1.0, pin=["top-left"])
+        ws.Simulator(b.finalize("cpu", worlds=2), fps=60, substeps=1).step_frame()  # warm-up: kernels compiled
+        estimate = b.estimate_memory("cpu", worlds=size)
+        base = _reset_peak()
+        model = b.finalize("cpu", worlds=size)
+        ws.Simulator(model, fps=60, substeps=1)
+        row.update(measured=_status("VmHWM") - base,
+                   estimate=max(estimate.finalize_host + estimate.model,
+                                estimate.run_host + estimate.device_bytes - estimate.writer),
+                   what="finalize + simulator (guard) on the CPU")
+    if str(device).startswith("cuda"):
+        row.update(_measure_device(kind, size, device))
+    return row
+
+
+def _measure_device(kind: str, size, device: str) -> dict:
+    """The model (and a simulator: states, guard, integrator) on a CUDA device: the memory pool's high-water mark
+    against the estimate's device bytes (the USD writer's buffers left out: no writer is made)."""
+    import warp as wp
+
+    import warpspring as ws
+
+    if kind not in ("grid", "worlds"):
+        return {}
+    b = ws.ModelBuilder()
+    if kind == "grid":
+        b.add_cloth_grid(nx=size, ny=size, spacing=1.0 / size, mass=1.0, pin=["top-left"])
+        worlds = 1
+    else:
+        b.add_cloth_grid(nx=6, ny=6, spacing=0.1, mass=1.0, pin=["top-left"])
+        worlds = size
+    estimate = b.estimate_memory(device, worlds=worlds)
+    wp.synchronize_device(device)
+    before = wp.get_mempool_used_mem_current(device)
+    model = b.finalize(device, worlds=worlds)
+    sim = ws.Simulator(model, fps=60, substeps=1)
+    sim.step_frame()
+    wp.synchronize_device(device)
+    return dict(device_measured=wp.get_mempool_used_mem_high(device) - before,
+                device_estimate=estimate.device_bytes - estimate.writer)
+
+
+def run_matrix(device: str, quick: bool) -> list[dict]:
+    rows = []
+    for kind, size, label in MATRIX:
+        if quick and (kind, size) not in QUICK:
+            continue
+        done = subprocess.run([sys.executable, __file__, "--one", kind, repr(size), "--device", device],
+                              capture_output=True, text=True, env=CHILD_ENV, timeout=900)
+        if done.returncode != 0:
+            print(f"{label}: failed: {done.stderr.strip().splitlines()[-1:]}", file=sys.stderr)
+            continue
+        row = json.loads(done.stdout.splitlines()[-1])
+        row["label"] = label
+        rows.append(row)
+        print(f"{label}: measured {row['measured'] / 2**20:.1f} MiB, estimate {row['estimate'] / 2**20:.1f} MiB "
+              f"({row['estimate'] / row['measured']:.2f}×)", flush=True)
+    return rows
+
+
+def run_cases(limit: str, quick: bool) -> list[dict]:
+    """The issue's cases, each in a process capped at ``limit`` through WARPSPRING_MEMORY_LIMIT."""
+    rows = []
+    with tempfile.TemporaryDirectory() as folder:
+        obj = os.path.join(folder, "sheet.obj")
+        if not quick:
+            _write_obj(obj, 1582)  # 1581² × 2 = 5.0 M triangles
+        for name, code in CASES.items():
+            if quick and "OBJ" in name:
+                continue
+            cap = "2GiB" if "capped at 2 GiB" in name else limit
+            env = {**CHILD_ENV, "WARPSPRING_MEMORY_LIMIT": cap, "BENCH_OBJ": obj}
+            started = time.perf_counter()
+            done = subprocess.run([sys.executable, "-c", CASE_PRELUDE.replace("CASE", code)], capture_output=True,
+                                  text=True, env=env, timeout=600)
+            wall = time.perf_counter() - started
+            if done.returncode != 0 or not done.stdout.strip():
+                rows.append(dict(case=name, wall=wall, seconds=None, peak=None,
+                                 outcome=f"process failed: {done.stderr.strip().splitlines()[-1:]}"))
+                continue
+            row = json.loads(done.stdout.splitlines()[-1])
+            row.update(case=name, wall=wall)
+            rows.append(row)
+            print(f"{name}: {row['seconds']:.1f} s, peak {row['peak'] / 2**30:.2f} GiB: {row['outcome'][:160]}",
+                  flush=True)
+    return rows
+
+
+def _write_obj(path: str, k: int) -> None:
+    """A k × k-vertex sheet as an OBJ file, written in blocks (2(k-1)² triangles)."""
+    import numpy as np
+
+    vertices, faces = _sheet(k)
+    with open(path, "w") as f:
+        for start in range(0, len(vertices), 1 << 20):
+            np.savetxt(f, vertices[start:start + (1 << 20)], fmt="v %.6f %.6f %.6f")
+        for start in range(0, len(faces), 1 << 20):
+            np.savetxt(f, faces[start:start + (1 << 20)] + 1, fmt="f %d %d %d")
+
+
+def report(rows: list[dict], cases: list[dict], device: str, limit: str, command: str) -> str:
+    import warp as wp
+
+    lines = [
+        "# Memory: estimates against measured peaks, and refusals", "",
+        f"Command: `{command}`  ",
+        f"Device: {device} ({platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores); "
+        f"Warp {wp.config.version}; {datetime.date.today().isoformat()}", "",
+        "## Estimate vs measured (host: growth of the peak resident memory)", "",
+        "| scene | what | measured | estimate | estimate / measured |", "|---|---|---|---|---|",
+    ]
+    for r in rows:
+        ratio = r["estimate"] / r["measured"]
+        lines.append(f"| {r['label']} | {r['what']} | {r['measured'] / 2**20:.1f} MiB | {r['estimate'] / 2**20:.1f} MiB"
+                     f" | {ratio:.2f}{'' if 1.0 <= ratio <= 2.0 else ' **outside [1, 2]**'} |")
+    gpu = [r for r in rows if "device_measured" in r]
+    if gpu:
+        lines += ["", f"## Device ({device}: the memory pool's high-water mark)", "",
+                  "| scene | measured | estimate | estimate / measured |", "|---|---|---|---|"]
+        for r in gpu:
+            lines.append(f"| {r['label']} | {r['device_measured'] / 2**20:.1f} MiB | "
+                         f"{r['device_estimate'] / 2**20:.1f} MiB | {r['device_estimate'] / r['device_measured']:.2f} |")
+    if cases:
+        lines += ["", f"## The issue's cases, host memory capped at {limit} (WARPSPRING_MEMORY_LIMIT)", "",
+                  "| case | time to refusal | peak RSS | the line |", "|---|---|---|---|"]
+        for c in cases:
+            seconds = "—" if c.get("seconds") is None else f"{c['seconds']:.1f} s"
+            peak = "—" if c.get("peak") is None else f"{c['peak'] / 2**30:.2f} GiB"
+            text = c["outcome"].replace("|", "\\|").replace("\n", " ⏎ ")
+            lines.append(f"| {c['case']} | {seconds} | {peak} | {text[:400]} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--quick", action="store_true", help="the smaller sizes only, no 5M-triangle OBJ")
+    parser.add_argument("--limit", default="8GiB", help="host memory cap of the issue's cases")
+    parser.add_argument("--no-cases", action="store_true")
+    parser.add_argument("--out", default=os.path.join(HERE, "results", "memory.md"))
+    parser.add_argument("--one", nargs=2, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.one:
+        import ast
+
+        print(json.dumps(measure(args.one[0], ast.literal_eval(args.one[1]), args.device)))
+        return
+    rows = run_matrix(args.device, args.quick)
+    cases = [] if args.no_cases else run_cases(args.limit, args.quick)
+    command = "python bench/memory.py " + " ".join(sys.argv[1:])
+    text = report(rows, cases, args.device, args.limit, command.strip())
+    with open(args.out, "w") as f:
+        f.write(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
