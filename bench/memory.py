@@ -8,8 +8,8 @@ Two tables, each row measured in a fresh Python process (a peak is per process):
    after a warm-up that loads the modules) on the host; with ``--device cuda:0`` also the model and a
    simulator on the GPU against the memory pool's high-water mark (``wp.get_mempool_used_mem_high``). The
    bound held: measured ≤ estimate ≤ 2 × measured.
-2. **Refusals**: the cases of issue 38 at their full sizes, each in a process whose host memory is capped at
-   ``--limit`` (8 GiB: the watch of the issue; the OBJ also at 2 GiB, as it fits in 8) through
+2. **Refusals**: the oversized scenes at their full sizes, each in a process whose host memory is capped at
+   ``--limit`` (8 GiB; the OBJ also at 2 GiB, as it fits in 8) through
    ``WARPSPRING_MEMORY_LIMIT``: the time, the process's peak resident memory (``VmHWM``, imports included) and
    the one line each is refused with ("ran": it fitted and was built).
 
@@ -50,7 +50,7 @@ MATRIX = [
 QUICK = {("grid", 256), ("mesh", 300), ("voxel_sphere", 0.005), ("tetrahedral_sphere", 0.008),
          ("emitter", 1_000_000), ("worlds", 20_000)}
 
-# -- the issue's cases at full size ---------------------------------------------------------------------------
+# -- the oversized scenes at full size ---------------------------------------------------------------------------
 
 CASES = {
     "grid 5000²": "b = ws.ModelBuilder(); b.add_cloth_grid(nx=5000, ny=5000, spacing=0.01, mass=1.0); b.finalize('cpu')",
