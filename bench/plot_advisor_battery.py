@@ -82,8 +82,8 @@ def main():
 
 
 def claim_problems(rows: list[dict]) -> list[str]:
-    """What in ``rows`` contradicts the battery's claim (README, RESULTS §11): the advisor passes no world that
-    blew up or whose top mode grows, and passes within 10 % of each case's lowest limit."""
+    """What in ``rows`` contradicts the battery's claim (docs/stability.md, bench/results/advisor.md): the advisor
+    passes no world that blew up or whose top mode grows, and passes within 10 % of each case's lowest limit."""
     problems = [f"{r['scene']}, {r['integrator']}, {r['dt']}: passed {r['passed but blew up']} world(s) that blew up "
                 f"and {r.get('passed but grows', '0')} whose top mode grows" for r in rows
                 if r["passed but blew up"] != "0" or r.get("passed but grows", "0") not in ("0", "–")]

@@ -133,3 +133,32 @@ def test_the_checks_in_process(tmp_path):
         load_mesh_file(folder)
     assert check_regular_file(plain) == str(plain)
     assert len(check_usd_layers(str(plain))) == 1  # the absent sublayer is USD's to report
+
+
+def command(tmp_path, *args: str):
+    """A ``warpspring`` command in a child process of this checkout, under TIMEOUT."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.run([sys.executable, "-m", "warpspring", *args], capture_output=True, text=True,
+                          timeout=TIMEOUT, cwd=ROOT, env=env)
+
+
+@pytest.mark.parametrize("verb", ["audit", "render"])
+def test_audit_and_render_refuse_a_pipe_among_the_layers(tmp_path, verb):
+    """``warpspring audit`` and ``warpspring render`` read a USD file the same way: a sublayer that is a FIFO
+    is refused in one line before USD composes the stage (it would block there)."""
+    os.mkfifo(tmp_path / "pipe.usda")
+    root = tmp_path / "frames.usda"
+    root.write_text(LAYER["sublayer"])
+    extra = ["-o", str(tmp_path / "frame.png")] if verb == "render" else []
+    assert_one_line(command(tmp_path, verb, str(root), *extra), str(tmp_path / "pipe.usda"), "named pipe (FIFO)")
+
+
+def test_a_sweep_file_is_read_like_a_scene_file(tmp_path):
+    """A sweep file that is a FIFO, and one whose arrays nest past the parser's limit, are refused in one
+    line (the sweep reader shares the scene reader's checks)."""
+    pipe = tmp_path / "sweep.toml"
+    os.mkfifo(pipe)
+    assert_one_line(command(tmp_path, "sweep", str(pipe), "--no-ray"), str(pipe), "named pipe (FIFO)")
+    deep = tmp_path / "deep.toml"
+    deep.write_text("x = " + "[" * 400 + "]" * 400 + "\n")
+    assert_one_line(command(tmp_path, "sweep", str(deep), "--no-ray"), str(deep), "nest deeper")

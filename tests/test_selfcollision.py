@@ -434,8 +434,8 @@ def test_cli_audit_of_a_usd_file(tmp_path, capsys):
 
 @pytest.mark.parametrize("example", ["cloth_fold_on_bar", "twisted_cloth", "stacked_cloths"])
 def test_example_scenes_build(example):
-    """The self-collision examples parse and build with it (their runs are minutes on a CPU: README's table
-    has them audited over their frames)."""
+    """The self-collision examples parse and build with it (their runs are minutes on a CPU:
+    bench/results/selfcontact.md has them audited over their frames)."""
     from pathlib import Path
 
     from warpspring.io.scene import load_scene

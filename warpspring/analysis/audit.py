@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..core.mesh_files import check_usd_layers
 from ..errors import ConfigError
 
 
@@ -304,7 +305,9 @@ def audit_usd(path: str, *, reach: float | None = None) -> UsdAudit:
     if not os.path.isfile(path):
         raise ConfigError(f"USD file not found: {path}")
     try:
+        layers = check_usd_layers(str(path))  # every layer a regular file before USD opens it (held: reused)
         stage = Usd.Stage.Open(str(path))
+        del layers
     except Tf.ErrorException:
         stage = None
     if stage is None:

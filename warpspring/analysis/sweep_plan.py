@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError
-from ..io.scene import DeprecatedKeyWarning, parse_scene, tomllib
+from ..io.scene import DeprecatedKeyWarning, parse_scene, read_toml
 
 #: The sweep file's format; part of every variant's hash, so results of another format are not reused.
 SWEEP_FORMAT_VERSION = 1
@@ -197,14 +197,7 @@ def load_sweep(path: str | os.PathLike) -> SweepPlan:
         ConfigError: the file is missing or not TOML, or the plan is refused (every offending variant named).
     """
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise ConfigError(f"sweep file not found: {path}")
-    try:
-        with open(path, "rb") as f:
-            data = tomllib.load(f)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {' '.join(str(exc).split())}") from None
-    return plan_sweep(data, path=path)
+    return plan_sweep(read_toml(path, "sweep file"), path=path)
 
 
 def plan_sweep(data: dict, *, path: str = "<sweep>", max_variants: int | None = None) -> SweepPlan:
@@ -325,13 +318,9 @@ def _base_scene(data: dict, sweep: dict, path: str, where: str) -> tuple[dict, s
     if not isinstance(name, str):
         raise ConfigError(f"{where}: sweep.scene must be a file name, got {name!r}")
     scene_path = name if os.path.isabs(name) else os.path.join(os.path.dirname(os.path.abspath(path)), name)
-    if not os.path.isfile(scene_path):
+    if not os.path.exists(scene_path):
         raise ConfigError(f"{where}: sweep.scene {name!r} not found (looked for {scene_path})")
-    try:
-        with open(scene_path, "rb") as f:
-            return tomllib.load(f), scene_path
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{scene_path}: not valid TOML: {one_line(exc)}") from None
+    return read_toml(scene_path, "sweep scene"), scene_path
 
 
 def _table(value, where: str, name: str) -> dict:

@@ -405,7 +405,7 @@ def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = F
     Biphasic springs are judged by their stiffer branch. ω_max comes from power iteration on GPUs and
     on CPUs for models up to ``POWER_ITERATION_CPU_LIMIT`` particles, else from the (conservative, also
     under load) Gershgorin bound. The static equilibrium is up to ``RELAX_MAX_STEPS`` implicit steps: a
-    stiff cloth settles in a few, a soft one hung from two corners does not (the README's denim at 32², 200
+    stiff cloth settles in a few, a soft one hung from two corners does not (a denim cloth at 32², 200
     steps and 20 s on a 2-core CPU; at 64² 79 s), which is most of the check's time on a CPU.
 
     Raises:

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..core.mesh_files import check_usd_layers
 from ..errors import ConfigError
 from ..plotting import pyplot
 
@@ -113,7 +114,9 @@ def render_usd(usd_path: str, png_path: str, *, frame: int = -1, width: int = 90
     if not os.path.isdir(folder):
         raise ConfigError(f"output folder does not exist: {folder}")
     try:
+        layers = check_usd_layers(usd_path)  # every layer a regular file before USD opens it (held: reused)
         stage = Usd.Stage.Open(usd_path)
+        del layers
     except Tf.ErrorException:
         stage = None
     if stage is None:

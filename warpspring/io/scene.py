@@ -182,23 +182,30 @@ def load_scene(path: str | os.PathLike) -> Scene:
             the schema.
     """
     path = os.fspath(path)
+    scene = _parse(read_toml(path, "scene file"), path)
+    for message in scene.deprecations:
+        warnings.warn(message, DeprecatedKeyWarning, stacklevel=2)
+    return scene
+
+
+def read_toml(path: str | os.PathLike[str], what: str) -> dict:
+    """The TOML file at ``path`` (a scene or a sweep file, named ``what`` in messages) parsed, or a one-line
+    ConfigError: missing, not a regular file (a pipe is refused without blocking), nesting deeper than the
+    parser should recurse, not UTF-8, or not valid TOML."""
+    path = os.fspath(path)
     if not os.path.exists(path):
-        raise ConfigError(f"scene file not found: {path}")
+        raise ConfigError(f"{what} not found: {path}")
     try:
-        with open_regular_file(path, "scene file") as f:
+        with open_regular_file(path, what) as f:
             text = f.read().decode("utf-8")
         check_nesting(text, path)
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {one_line(exc)}") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: cannot read: {one_line(exc)}") from None
     except RecursionError:  # a backstop: check_nesting bounds the nesting the parser recurses on
         raise ConfigError(f"{path}: nests too deep to parse; flatten its arrays and inline tables") from None
-    scene = _parse(data, path)
-    for message in scene.deprecations:
-        warnings.warn(message, DeprecatedKeyWarning, stacklevel=2)
-    return scene
 
 
 def parse_scene(data: dict, *, path: str = "<scene>") -> Scene:
