@@ -115,7 +115,7 @@ def test_unusable_inputs_raise_config_errors(tmp_path):
         render_usd(empty, str(tmp_path / "x.png"))
     garbage = tmp_path / "garbage.usda"
     garbage.write_text("not a USD layer")
-    with pytest.raises(ConfigError, match="cannot open .* as USD"):
+    with pytest.raises(ConfigError, match="garbage.usda.*cannot open it .*valid .usda"):  # its layers read first
         render_usd(str(garbage), str(tmp_path / "x.png"))
     scene = _write(tmp_path / "ball.usda", spheres=[BALL])
     with pytest.raises(ConfigError, match="output folder does not exist"):
