@@ -17,6 +17,7 @@ import warp as wp
 from .. import checks
 from ..kernels.guards import (
     BALANCE_DISSIPATION,
+    DAMPERS_IN_FORCE_PASS,
     BALANCE_ENERGY,
     BALANCE_PEAK,
     BALANCE_REBASE,
@@ -80,11 +81,6 @@ from .model import Model
 from .state import State
 from .stepper import StepHook
 from .tracks import evaluate_input_tracks
-
-#: Integrators whose every step evaluates the forces once at its start state (``eval_forces`` on ``state_in``): there
-#: the scattered springs' pass counts the dampers' dissipation (``DamperSums``) instead of a pass of its own.
-DAMPERS_IN_FORCE_PASS = ("symplectic_euler", "rk4", "velocity_verlet")
-
 
 class Guard(StepHook):
     """Device-side checks of one simulator's states, per world; see :class:`GuardLimits`. A :class:`StepHook`:

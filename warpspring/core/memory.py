@@ -293,13 +293,14 @@ def estimate_memory(
     if integrator == "implicit_euler":
         scratch += 16  # the CG settings
     # The guard: its records (and their clear copies), partial sums per block, limits, each world's work put in
-    # and energy balance, the positions and loads of its last check, and the elastic energy's partial sums per
-    # block of each family's elements, and the running dissipation of those blocks and the particles' blocks.
+    # and energy balance, the positions, velocities and loads of its last check, and the elastic energy's partial
+    # sums per block of each family's elements, and the running dissipation of those blocks and the particles'
+    # blocks. (What a run adds lazily, the midpoint state and the dampers' sums, is not counted here.)
     def element_blocks(count: int) -> int:
         return w * (count if not cuda else -(-count // _lanes(count, block_dim))) if count else 0
 
     guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * GUARD_FLOATS * blocks + 8 * GUARD_LIMITS * w
-             + 8 * w + 8 * BALANCE_SLOTS * w + 2 * vec3 * size + 8 * max(element_blocks(s) + element_blocks(h), w)
+             + 8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + 8 * max(element_blocks(s) + element_blocks(h), w)
              + 8 * RUNNING_SLOTS * ((blocks + element_blocks(s) + element_blocks(h)) if cuda
                                     else w * (1 + bool(s) + bool(h))))
     post_step = (3 * vec3 * size if strain_limiting and s else 0)

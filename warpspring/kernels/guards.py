@@ -103,6 +103,10 @@ BALANCE_PEAK = 2  # the peak of E_ref + W since the last rebase [J]
 BALANCE_REBASE = 3  # 1: take the next check's energy as the reference (at the start, after a host write)
 BALANCE_ENERGY = 4  # kinetic + elastic energy at the last check [J]
 BALANCE_DISSIPATION = 5  # D: the energy the dampers and drag took out since the last rebase [J]
+#: Integrators whose every step evaluates the forces once at its start state (``eval_forces`` on ``state_in``): there
+#: the scattered springs' pass counts the dampers' dissipation (``DamperSums``) instead of a pass of its own.
+DAMPERS_IN_FORCE_PASS = ("symplectic_euler", "rk4", "velocity_verlet")
+
 BALANCE_SLOTS = 6
 # float64 slots of a reducing block's running dissipation (``running[world, block, slot]``), carried from
 # substep to substep
