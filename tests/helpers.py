@@ -4,7 +4,9 @@ test scene, the advisor battery's cloth, and flat meshes with the elastic moduli
 
 from __future__ import annotations
 
+import contextlib
 import pathlib
+import signal
 
 import numpy as np
 import scipy.sparse as sp
@@ -250,3 +252,19 @@ def network_moduli(x, faces, boundary, ke):
         return 0.5 * u @ (stiffness @ u) / area
 
     return affine, moduli(relaxed_energy)
+
+
+@contextlib.contextmanager
+def deadline(seconds: float, error: type[BaseException] = TimeoutError):
+    """Raise ``error`` in this (the main) thread after ``seconds`` of wall time (SIGALRM): a hang fails the test
+    instead of stalling the suite."""
+    def expire(signum, frame):
+        raise error(f"took more than {seconds:g} s")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)

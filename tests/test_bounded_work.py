@@ -3,9 +3,7 @@
 stops at its step budget with a conservative verdict that says so (``shear = { ke = 1e18 }`` on a tiny cloth
 kept it going for minutes)."""
 
-import contextlib
 import os
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -17,6 +15,7 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
+from helpers import deadline
 from warpspring.analysis import under_load
 from warpspring.analysis.advisor import advise
 from warpspring.app.cli import EXIT_CONFIG, main
@@ -26,20 +25,6 @@ from warpspring.io.scene_checks import MAX_NESTING, check_nesting
 
 ROOT = Path(__file__).resolve().parents[1]
 
-
-@contextlib.contextmanager
-def deadline(seconds: float):
-    """Raise TimeoutError in this thread after ``seconds`` of wall time (SIGALRM)."""
-    def expire(signum, frame):
-        raise TimeoutError(f"took more than {seconds:g} s")
-
-    previous = signal.signal(signal.SIGALRM, expire)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
 
 CLOTH = """\
 [simulation]

@@ -25,6 +25,7 @@ hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import HealthCheck, example, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
+from helpers import deadline  # noqa: E402
 from warpspring.app.cli import EXIT_CONFIG, EXIT_SIMULATION, main  # noqa: E402
 from warpspring.io.scene_schema import (EMITTER, QUATERNION, SCHEMA, SOFT_BODY, VECTOR, Live, Number,  # noqa: E402
                                         PerWorld, Since, Tables, TrackTable)
@@ -213,19 +214,6 @@ class Hang(Exception):
     """An example ran past DEADLINE."""
 
 
-@contextlib.contextmanager
-def deadline(seconds: float):
-    def expire(signum, frame):
-        raise Hang(f"the run took more than {seconds:g} s")
-
-    previous = signal.signal(signal.SIGALRM, expire)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
-
 
 def run_scene_text(text: str, folder) -> tuple[int, list[str]]:
     """The exit status and stderr's lines of ``warpspring run`` on ``text``; a RuntimeWarning (NumPy's overflow
@@ -235,7 +223,7 @@ def run_scene_text(text: str, folder) -> tuple[int, list[str]]:
     with open(scene, "w", encoding="utf-8") as f:
         f.write(text)
     err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()), deadline(DEADLINE), \
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()), deadline(DEADLINE, Hang), \
             warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         status = main(["run", scene, "-o", os.path.join(folder, "out.usdc"), "--device", "cpu", "-q",
