@@ -36,57 +36,16 @@ import numpy as np
 import warp as wp
 
 import warpspring as ws
+from cloth_scene import FPS, KD, KE, MASS, SPACING, SUBSTEPS, WarpspringRunner, warpspring_model  # noqa: F401
+from traffic import copy_bandwidth, gather_traffic, ncu_dram_bytes, per_particle
 
-FPS, SUBSTEPS = 60, 16
-KE, KD, MASS, SPACING = 1.0e3, 10.0, 0.1, 0.1
 DEFAULT_SIZES = {"cuda": [64, 128, 256, 512], "cpu": [32, 64]}
-
-
-def warpspring_model(n: int, device, spring_evaluation: str = "auto", worlds: int = 1, *,
-                     spring_groups: bool = True, spring_grid: bool = True, pin: str = "corners") -> ws.Model:
-    builder = ws.ModelBuilder()
-    spring = ws.SpringMaterial(ke=KE, kd=KD)
-    builder.add_cloth_grid(
-        nx=n,
-        ny=n,
-        spacing=SPACING,
-        origin=(0.0, 0.0, 0.5 * n * SPACING),
-        rotation=ws.quat_from_axis_angle((1.0, 0.0, 0.0), np.pi / 2),  # vertical, top edge up
-        particle_mass=MASS,
-        structural=spring,
-        shear=spring,
-        bend=spring,
-        pin=["top"] if pin == "top" else ["top-left", "top-right"],
-    )
-    return builder.finalize(device, spring_evaluation=spring_evaluation, worlds=worlds, spring_groups=spring_groups,
-                            spring_grid=spring_grid)
 
 
 #: ``--evaluation`` names of the gather's spring layouts (``Model.spring_layout``) beyond the default ("gather":
 #: neighbours from the grid's rows and columns, each group's values once): (spring_evaluation, finalize options).
 EVALUATIONS = {"gather-table": ("gather", {"spring_grid": False}),
                "gather-per-spring": ("gather", {"spring_groups": False})}
-
-
-class WarpspringRunner:
-    name = "warpspring"
-
-    def __init__(self, model: ws.Model, guard: bool = False):
-        self.model = model
-        self.name = f"warpspring ({'gather' if model.spring_gather else 'scatter'}"
-        self.name += {"springs": ", per spring", "groups": ", table"}.get(model.spring_layout, "")
-        self.name += ", default guard)" if guard else ", guard off)"
-        # The default Simulator (its GuardLimits()) is what a user gets; guard off is the engine alone, as Newton has
-        # no guard. The heavy ANCHORS cloth (0.1 kg per particle) hung from two corners stretches its corner springs
-        # past the guard's tear limit at N ≥ 128: with the guard, hang it from its top row (``--pin top``).
-        self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, use_graph=True,
-                                guard=ws.GuardLimits() if guard else None)
-
-    def frame(self):
-        self.sim.step_frame()
-
-    def positions(self) -> np.ndarray:
-        return self.sim.state.particle_q.numpy()
 
 
 class NewtonRunner:
@@ -315,7 +274,6 @@ def main():
 
 def bytes_table(gathered: list[tuple[int, ws.Model, float]], device) -> list[str]:
     """Markdown rows of the gather rows' traffic: (N, model, substeps/s) each."""
-    from traffic import copy_bandwidth, gather_traffic, ncu_dram_bytes, per_particle
 
     copy = copy_bandwidth(device)
     lines = [

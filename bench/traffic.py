@@ -56,6 +56,7 @@ from dataclasses import dataclass
 import warp as wp
 
 import warpspring as ws
+from cloth_scene import WarpspringRunner, warpspring_model
 
 #: Nsight Compute metrics read for one launch of the fused kernel.
 NCU_METRICS = ("dram__bytes_read.sum", "dram__bytes_write.sum", "lts__t_bytes.sum", "gpu__time_duration.sum")
@@ -240,7 +241,6 @@ def parse_ncu_csv(text: str) -> dict[str, float]:
 def profile(n: int, device, frames: int = 3, *, layout: str = "grid") -> None:
     """The target of ``ncu_dram_bytes``: the n × n ANCHORS cloth, gather in ``layout``, a few graph-replayed
     frames."""
-    from cloth import WarpspringRunner, warpspring_model
 
     runner = WarpspringRunner(warpspring_model(n, device, "gather", **LAYOUTS[layout]))
     for _ in range(frames):
@@ -251,7 +251,6 @@ def profile(n: int, device, frames: int = 3, *, layout: str = "grid") -> None:
 def layout_table(sizes: list[int], worlds: list[int], device, *, layout: str = "grid") -> list[str]:
     """Markdown rows of the traffic model for n × n cloths (one world) and ``worlds`` × 32² cloths in the spring
     ``layout`` (``LAYOUTS``; "grid", these cloths' default)."""
-    from cloth import warpspring_model
 
     lines = [
         "| scene | head slots | state | particle | topology | spring data | compulsory | requested | "
