@@ -28,7 +28,7 @@ from helpers import points_samples, write_scene
 from warpspring.app.cli import EXIT_CONFIG, EXIT_IO, main
 from warpspring.io.usd import UsdWriter
 from warpspring.io.usd_prims import cancelled_vertices, fallback_normals
-from warpspring.io.usd_stream import OutputLock, lock_path
+from warpspring.io.output_lock import OutputLock, lock_path
 
 LINUX = sys.platform.startswith("linux")
 REPO = pathlib.Path(__file__).resolve().parents[1]

@@ -17,7 +17,8 @@ from ..io.scene_checks import check_run_settings
 from ..io.usd import UsdWriter
 from ..core.checkpoint import Checkpoint
 from ..core.records import STABILIZER_INPUTS
-from ..io.usd_stream import OutputLock, check_output_path
+from ..io.output_lock import OutputLock
+from ..io.usd_stream import check_output_path
 from ..core.mesh_colliders import mesh_cache_counts
 from ..core.simulator import Simulator
 from ..analysis.advisor import advise, diagnose
@@ -195,7 +196,7 @@ def run_scene(
 
     ``output`` (the command line's ``-o``) is used as given. Without it the scene's ``[output] path`` is used,
     which must stay in the scene file's folder (:func:`scene_output_path`). The run owns its output from
-    before the model is built until the file is packed (:class:`~warpspring.io.usd_stream.OutputLock`): a run
+    before the model is built until the file is packed (:class:`~warpspring.io.output_lock.OutputLock`): a run
     on an output another run is writing is refused at once.
 
     With ``[guard] stop = "world"`` a world that fails a guard check is held and the others go on: the

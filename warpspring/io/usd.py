@@ -54,7 +54,8 @@ from ..errors import ConfigError, SimulationError
 from ..kernels.geometry import vertex_normal_kernel
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from .usd_prims import PRIMVARS, PURPOSES, UsdPrims, cancelled_vertices, fallback_normals, vec3_array
-from .usd_stream import STATIC_NAME, OutputLock, UsdStream, check_output_path, read_frames
+from .output_lock import OutputLock
+from .usd_stream import STATIC_NAME, UsdStream, check_output_path, read_frames
 
 
 class UsdWriter(UsdPrims, UsdStream):
@@ -85,7 +86,7 @@ class UsdWriter(UsdPrims, UsdStream):
         keep_frames: keep the first ``keep_frames`` frames of the file already at ``path``, written by a run
             of the same scene and export options that stopped (or was killed), and append after them
             (``warpspring run --resume``); later samples of that file are dropped.
-        lock: the :class:`~warpspring.io.usd_stream.OutputLock` of ``path`` the caller holds (the runner takes it
+        lock: the :class:`~warpspring.io.output_lock.OutputLock` of ``path`` the caller holds (the runner takes it
             before it builds the model, and releases it after :meth:`close`); ``None``: the writer takes it and
             releases it when it closes. One run owns an output: while it is held, another writer of ``path``
             (another process, or this one) is refused.
