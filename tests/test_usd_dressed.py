@@ -147,3 +147,23 @@ def test_a_dressed_asset_comes_back_dressed(tmp_path: Path, suffix: str):
         target = UsdShade.MaterialBindingAPI(stage.GetPrimAtPath(f"/World/Sheet/{name}")).GetDirectBindingRel().GetTargets()
         assert len(target) == 1 and stage.GetRootLayer().GetPrimAtPath(target[0]) is not None
     assert not stage.GetRootLayer().GetExternalReferences()
+
+
+def test_an_authored_primvar_named_like_the_simulations_is_kept_and_the_simulations_skipped(tmp_path: Path):
+    """The asset authors ``pinned`` (uniform) and ``strain`` (constant): the output keeps both as authored, with
+    no time samples, and still writes the simulation's ``rest``, which the asset does not author."""
+    asset, out = tmp_path / "sheet.usda", tmp_path / "out.usda"
+    _author(asset)
+    stage = Usd.Stage.Open(str(asset))
+    api = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath(PRIM))
+    api.CreatePrimvar("pinned", Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.uniform).Set(Vt.IntArray([1] * NX * NY))
+    api.CreatePrimvar("strain", Sdf.ValueTypeNames.Float, UsdGeom.Tokens.constant).Set(0.5)
+    stage.Save()
+    _run(asset, out)
+    output = Usd.Stage.Open(str(out))
+    got = UsdGeom.PrimvarsAPI(output.GetPrimAtPath("/World/Sheet"))
+    pinned, strain, rest = got.GetPrimvar("pinned"), got.GetPrimvar("strain"), got.GetPrimvar("rest")
+    assert pinned.GetInterpolation() == UsdGeom.Tokens.uniform and list(pinned.Get()) == [1] * NX * NY
+    assert strain.GetInterpolation() == UsdGeom.Tokens.constant and strain.Get() == 0.5
+    assert not pinned.GetAttr().GetTimeSamples() and not strain.GetAttr().GetTimeSamples()
+    assert rest.GetInterpolation() == UsdGeom.Tokens.vertex and len(rest.Get()) == (NX + 1) * (NY + 1)
