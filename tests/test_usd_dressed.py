@@ -29,7 +29,7 @@ def _material(stage: Usd.Stage, path: str, color) -> UsdShade.Material:
     return material
 
 
-def _author(path: Path) -> dict:
+def _author(path: Path, *, mirror: float = 1.0, orientation: str = "leftHanded") -> dict:
     """Write the dressed sheet; return what was authored, to compare the output with."""
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
@@ -39,7 +39,7 @@ def _author(path: Path) -> dict:
     xform = UsdGeom.Xformable(mesh)
     xform.AddTranslateOp().Set(Gf.Vec3d(10.0, 150.0, -20.0))
     xform.AddRotateXYZOp().Set(Gf.Vec3f(-90.0, 0.0, 30.0))
-    xform.AddScaleOp().Set(Gf.Vec3f(1.0, 1.5, 1.0))
+    xform.AddScaleOp().Set(Gf.Vec3f(mirror, 1.5, 1.0))
     points = np.array([(i * CELL, j * CELL, 0.0) for j in range(NY + 1) for i in range(NX + 1)])
     quads = np.array([(j * (NX + 1) + i, j * (NX + 1) + i + 1, (j + 1) * (NX + 1) + i + 1, (j + 1) * (NX + 1) + i)
                       for j in range(NY) for i in range(NX)])
@@ -48,7 +48,7 @@ def _author(path: Path) -> dict:
     mesh.CreateFaceVertexCountsAttr(Vt.IntArray([4] * len(quads)))
     mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(quads.reshape(-1).astype(np.int32)))
     mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.bilinear)
-    mesh.CreateOrientationAttr(UsdGeom.Tokens.leftHanded)
+    mesh.CreateOrientationAttr(orientation)
     Usd.ModelAPI(mesh.GetPrim()).SetKind(Kind.Tokens.component)
 
     api = UsdGeom.PrimvarsAPI(mesh)
@@ -62,6 +62,8 @@ def _author(path: Path) -> dict:
     panel = np.arange(len(quads), dtype=np.int32) % 3
     api.CreatePrimvar("panel", Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.uniform).Set(Vt.IntArray.FromNumpy(panel))
     api.CreatePrimvar("fabric", Sdf.ValueTypeNames.String, UsdGeom.Tokens.constant).Set("denim")
+    api.CreatePrimvar("grain", Sdf.ValueTypeNames.Double3, UsdGeom.Tokens.constant).Set(Gf.Vec3d(0.0, 1.0, 0.5))
+    api.CreatePrimvar("tags", Sdf.ValueTypeNames.TokenArray, UsdGeom.Tokens.constant).Set(Vt.TokenArray(["hem", "seam"]))
     api.CreatePrimvar("displayColor", Sdf.ValueTypeNames.Color3fArray, UsdGeom.Tokens.constant).Set(
         Vt.Vec3fArray([Gf.Vec3f(0.2, 0.3, 0.4)]))
     api.CreatePrimvar("weight", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.varying).Set(
@@ -167,3 +169,22 @@ def test_an_authored_primvar_named_like_the_simulations_is_kept_and_the_simulati
     assert strain.GetInterpolation() == UsdGeom.Tokens.constant and strain.Get() == 0.5
     assert not pinned.GetAttr().GetTimeSamples() and not strain.GetAttr().GetTimeSamples()
     assert rest.GetInterpolation() == UsdGeom.Tokens.vertex and len(rest.Get()) == (NX + 1) * (NY + 1)
+
+
+def test_a_mirroring_transform_flips_the_written_orientation_and_the_normals_face_the_front(tmp_path: Path):
+    """Points are written in world space, so a right-handed mesh under a mirroring transform (scale x -1) is
+    written left-handed, with its faces as authored; the normals written face that orientation's front (the
+    left-hand rule on the authored face order), as the asset's front faces in world space."""
+    asset, out = tmp_path / "sheet.usda", tmp_path / "out.usda"
+    authored = _author(asset, mirror=-1.0, orientation=UsdGeom.Tokens.rightHanded)
+    _run(asset, out)
+    stage = Usd.Stage.Open(str(out))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/Sheet"))
+    assert mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded
+    assert list(mesh.GetFaceVertexIndicesAttr().Get()) == authored["indices"].tolist()
+    x = np.array(mesh.GetPointsAttr().Get(0.0), dtype=np.float64)
+    normals = np.array(mesh.GetNormalsAttr().Get(0.0), dtype=np.float64)
+    for face in authored["indices"].reshape(-1, 4):
+        a, b, c = x[face[0]], x[face[1]], x[face[2]]
+        left_hand = -np.cross(b - a, c - a)
+        assert np.dot(left_hand, normals[face[0]]) > 0.0

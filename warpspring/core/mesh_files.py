@@ -70,8 +70,9 @@ class UsdPrimvar:
         name: its name without the ``primvars:`` namespace (``"st"``, ``"panel"``).
         type_name: its USD value type name (``"texCoord2f[]"``: the role is kept).
         interpolation: ``constant``, ``uniform``, ``vertex``, ``varying`` or ``faceVarying``.
-        value: the authored value: a numpy array for numeric arrays (one row per element), else the value
-            as pxr gives it in Python (a scalar, a string, a list of strings).
+        value: the authored value (at the time read): a numpy array for an array type (one row per element;
+            strings and tokens as a numpy string array, asset paths as a list of strings), else the value as
+            pxr gives it in Python (a float, a string, a ``Gf.Vec3d``, ...).
         indices: ``[n]`` int32 for an indexed primvar, else ``None``.
         element_size: the primvar's elementSize (1 unless authored).
     """
@@ -679,9 +680,9 @@ def _dressing(mesh, file: str, code, authored: np.ndarray, mirrored: bool) -> Us
         if name == "normals" or not primvar.HasAuthoredValue():
             continue  # normals are recomputed every frame
         raw = primvar.Get(code)
-        value = np.array(raw) if hasattr(raw, "__len__") and not isinstance(raw, str) else raw
-        if isinstance(value, np.ndarray) and value.dtype == object:
-            value = [str(v) for v in raw]
+        value = np.array(raw) if primvar.GetTypeName().isArray else raw  # a scalar (Gf.Vec3d, str, ...) as is
+        if isinstance(value, np.ndarray) and value.dtype == object:  # asset paths
+            value = [str(getattr(v, "path", v)) for v in raw]
         indices = primvar.GetIndices(code) if primvar.IsIndexed() else None
         primvars.append(UsdPrimvar(name=name, type_name=str(primvar.GetTypeName()),
                                    interpolation=str(primvar.GetInterpolation()), value=value,
