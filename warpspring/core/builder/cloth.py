@@ -282,7 +282,9 @@ class ClothRecipes:
         Args:
             mesh: a ``trimesh.Trimesh``, a file path trimesh can load (OBJ, STL, PLY, GLB, ...), a USD file
                 (``.usd``, ``.usda``, ``.usdc``: see :func:`~warpspring.core.mesh_files.read_usd_mesh` for what is
-                applied; its polygons are written back as authored, its face sets kept), or a vertex array
+                applied; the output prim comes back dressed as authored: its polygons, primvars, subsets with
+                their material bindings, subdivision scheme, orientation, name and kind, see
+                :class:`~warpspring.core.mesh_files.UsdDressing`), or a vertex array
                 [m], shape [v, 3] (then ``faces`` is required).
             faces: vertex indices of each triangle, shape [t, 3], when ``mesh`` is an array.
             origin, rotation, scale: placement; world = origin + rotation · (scale · vertex).
