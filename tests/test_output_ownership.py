@@ -231,7 +231,7 @@ def test_a_vertex_whose_triangles_cancel_gets_a_face_normal_then_the_previous_on
     the unit normal of its first triangle, (0, -1, 0); once that triangle has no area (vertex 1 on the line 0-2),
     the normal written the frame before; never a zero-length normal, on any vertex, in any frame."""
     builder = ws.ModelBuilder()
-    ids = builder.add_cloth_mesh(str(two_quads_usd(tmp_path)), mass=0.1, bend=False)  # no bend across edge 0-2
+    ids = builder.add_cloth_mesh(str(two_quads_usd(tmp_path)), mass=0.1, bend=False, name="cloth")  # no bend across edge 0-2
     model = builder.finalize(device)
     tris = np.sort(model.tri_indices.numpy(), axis=1).tolist()
     assert tris.count(sorted(ids[[0, 1, 2]].tolist())) == 2  # the precondition: the triangle twice

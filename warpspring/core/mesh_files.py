@@ -53,13 +53,94 @@ import numpy as np
 
 from ..errors import ConfigError
 
-__all__ = ["USD_EXTENSIONS", "UsdMesh", "check_regular_file", "check_usd_layers", "load_mesh_file", "open_regular_file",
+__all__ = ["USD_EXTENSIONS", "UsdDressing", "UsdMesh", "UsdPrimvar", "UsdSubset", "check_regular_file", "check_usd_layers", "load_mesh_file", "open_regular_file",
            "read_usd_mesh", "read_usd_mesh_samples"]
 
 USD_EXTENSIONS = (".usd", ".usda", ".usdc")  # mesh files read through USD, not trimesh
 
 _UP_AXES = ("Y", "Z")
 _LISTED_MESHES = 5
+
+
+@dataclass(frozen=True)
+class UsdPrimvar:
+    """One authored primvar of a mesh prim, as authored (no unit or axis conversion).
+
+    Attributes:
+        name: its name without the ``primvars:`` namespace (``"st"``, ``"panel"``).
+        type_name: its USD value type name (``"texCoord2f[]"``: the role is kept).
+        interpolation: ``constant``, ``uniform``, ``vertex``, ``varying`` or ``faceVarying``.
+        value: the authored value (at the time read): a numpy array for an array type (one row per element;
+            strings and tokens as a numpy string array, asset paths as a list of strings), else the value as
+            pxr gives it in Python (a float, a string, a ``Gf.Vec3d``, ...).
+        indices: ``[n]`` int32 for an indexed primvar, else ``None``.
+        element_size: the primvar's elementSize (1 unless authored).
+    """
+
+    name: str
+    type_name: str
+    interpolation: str
+    value: object
+    indices: np.ndarray | None = None
+    element_size: int = 1
+
+
+@dataclass(frozen=True)
+class UsdSubset:
+    """One authored ``GeomSubset`` of a mesh prim.
+
+    Attributes:
+        name: the subset prim's name.
+        element_type: ``face`` (or ``point``, ``edge``, ...), as authored.
+        family: its ``familyName`` (``"materialBind"``), ``""`` when none is authored.
+        family_type: the family's type on the mesh (``nonOverlapping``, ``partition``, ``unrestricted``).
+        indices: ``[n]`` int32 element indices, as authored.
+        material: path of the Material its direct binding targets in the source, or ``None``.
+    """
+
+    name: str
+    element_type: str
+    family: str
+    family_type: str
+    indices: np.ndarray
+    material: str | None = None
+
+
+@dataclass(frozen=True)
+class UsdDressing:
+    """What a mesh prim carries besides its geometry, kept so that the output is dressed like the input.
+
+    Attributes:
+        source: the file read.
+        prim_name: the mesh prim's name.
+        kind: its model kind (``""`` when none).
+        subdivision_scheme: its ``subdivisionScheme`` (``catmullClark`` when not authored, USD's fallback).
+        orientation: its ``orientation`` as authored (``rightHanded`` or ``leftHanded``).
+        mirrored: whether its world transform mirrors (the reader's faces are reversed when
+            ``orientation`` is left-handed xor this).
+        face_vertex_indices: ``[sum(polygon_counts)]`` int32: ``faceVertexIndices`` as authored (the order a
+            faceVarying primvar follows).
+        primvars: every authored primvar (:class:`UsdPrimvar`) except ``normals`` (recomputed every frame).
+        subsets: every ``GeomSubset`` (:class:`UsdSubset`).
+        material: path of the Material the mesh's own direct binding targets, or ``None``.
+    """
+
+    source: str
+    prim_name: str
+    kind: str
+    subdivision_scheme: str
+    orientation: str
+    mirrored: bool
+    face_vertex_indices: np.ndarray
+    primvars: tuple = ()
+    subsets: tuple = ()
+    material: str | None = None
+
+    @property
+    def materials(self) -> list[str]:
+        """The source paths of every Material bound (by the mesh or a subset), without repeats, in order."""
+        found = [self.material] + [s.material for s in self.subsets]
+        return list(dict.fromkeys(m for m in found if m))
 
 
 @dataclass(frozen=True)
@@ -83,6 +164,8 @@ class UsdMesh:
         triangle_polygon: ``[t]`` int32: the face (index into ``polygon_counts``) each triangle comes from.
         face_sets: ``GeomSubset`` name -> int32 indices of faces (into ``polygon_counts``), sorted and
             unique, for the subsets of element type ``face``.
+        dressing: the prim's primvars, subsets, bindings, subdivision scheme, orientation, name and kind
+            (:class:`UsdDressing`), or ``None``.
     """
 
     path: str
@@ -93,6 +176,7 @@ class UsdMesh:
     triangles: np.ndarray
     triangle_polygon: np.ndarray
     face_sets: dict[str, np.ndarray] = field(default_factory=dict)
+    dressing: UsdDressing | None = None
 
     @property
     def num_vertices(self) -> int:
@@ -175,14 +259,17 @@ def read_usd_mesh(path: str | os.PathLike[str], *, prim: str | None = None, up_a
     left_handed = mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded
     mirrored = bool(np.linalg.det(matrix[:3, :3]) < 0.0)
     offsets = np.concatenate(([0], np.cumsum(counts)[:-1])).astype(np.int64)
+    authored = indices.astype(np.int32)
     if left_handed != mirrored:
         indices = _reverse_faces(counts, indices, offsets)
 
     triangles, triangle_polygon = _triangulate(vertices, counts, indices, offsets, where)
     face_sets = _face_sets(mesh_prim, len(counts), code, where)
+    dressing = _dressing(mesh, file, code, authored, mirrored)
     return UsdMesh(path=file, prim=str(mesh_prim.GetPath()), vertices=vertices,
                    polygon_counts=counts.astype(np.int32), polygon_indices=indices.astype(np.int32),
-                   triangles=triangles, triangle_polygon=triangle_polygon, face_sets=face_sets)
+                   triangles=triangles, triangle_polygon=triangle_polygon, face_sets=face_sets,
+                   dressing=dressing)
 
 
 def read_usd_mesh_samples(path: str | os.PathLike[str], *, prim: str | None = None, up_axis: str = "Z"):
@@ -577,3 +664,47 @@ def _face_sets(mesh_prim, num_faces: int, code, where: str) -> dict[str, np.ndar
                               f"and export it again")
         sets[name] = np.unique(idx).astype(np.int32)
     return sets
+
+
+# ------------------------------------------------------------------------------------------ dressing
+
+
+def _dressing(mesh, file: str, code, authored: np.ndarray, mirrored: bool) -> UsdDressing:
+    """The primvars, subsets, bindings, scheme, orientation, name and kind of a mesh prim (see UsdDressing)."""
+    from pxr import Usd, UsdGeom, UsdShade  # optional: usd-core
+
+    prim = mesh.GetPrim()
+    primvars = []
+    for primvar in UsdGeom.PrimvarsAPI(prim).GetAuthoredPrimvars():
+        name = str(primvar.GetPrimvarName())
+        if name == "normals" or not primvar.HasAuthoredValue():
+            continue  # normals are recomputed every frame
+        raw = primvar.Get(code)
+        value = np.array(raw) if primvar.GetTypeName().isArray else raw  # a scalar (Gf.Vec3d, str, ...) as is
+        if isinstance(value, np.ndarray) and value.dtype == object:  # asset paths
+            value = [str(getattr(v, "path", v)) for v in raw]
+        indices = primvar.GetIndices(code) if primvar.IsIndexed() else None
+        primvars.append(UsdPrimvar(name=name, type_name=str(primvar.GetTypeName()),
+                                   interpolation=str(primvar.GetInterpolation()), value=value,
+                                   indices=None if indices is None else _int_array(indices).astype(np.int32),
+                                   element_size=int(primvar.GetElementSize())))
+    imageable = UsdGeom.Imageable(prim)
+    subsets = []
+    for subset in UsdGeom.Subset.GetAllGeomSubsets(imageable):
+        family = str(subset.GetFamilyNameAttr().Get() or "")
+        subsets.append(UsdSubset(
+            name=subset.GetPrim().GetName(), element_type=str(subset.GetElementTypeAttr().Get()), family=family,
+            family_type=str(UsdGeom.Subset.GetFamilyType(imageable, family)) if family else "",
+            indices=_int_array(subset.GetIndicesAttr().Get(code)).astype(np.int32),
+            material=_bound_material(UsdShade, subset.GetPrim())))
+    return UsdDressing(
+        source=file, prim_name=prim.GetName(), kind=str(Usd.ModelAPI(prim).GetKind() or ""),
+        subdivision_scheme=str(mesh.GetSubdivisionSchemeAttr().Get()),
+        orientation=str(mesh.GetOrientationAttr().Get()), mirrored=mirrored, face_vertex_indices=authored,
+        primvars=tuple(primvars), subsets=tuple(subsets), material=_bound_material(UsdShade, prim))
+
+
+def _bound_material(UsdShade, prim) -> str | None:
+    """The path of the Material a prim's direct (all-purpose) binding targets, or None."""
+    targets = UsdShade.MaterialBindingAPI(prim).GetDirectBindingRel().GetTargets()
+    return str(targets[0]) if targets else None

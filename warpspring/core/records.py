@@ -97,6 +97,10 @@ class MeshGroup:
             [polygon_counts.sum()], int32; ``None`` with ``polygon_counts``.
         face_sets: named subsets of the faces (the polygons where there are, else the triangles), each
             int32 face indices, ascending; written as USD face sets (``UsdGeom.Subset``).
+        dressing: what the USD mesh prim the mesh was read from carries besides its geometry (its primvars,
+            subsets and their material bindings, subdivision scheme, orientation, name and kind), written
+            back on export (:class:`~warpspring.core.mesh_files.UsdDressing`), or ``None``. With it,
+            ``particles`` are the prim's points in order and ``polygon_counts`` its faces in order.
     """
 
     name: str
@@ -106,6 +110,7 @@ class MeshGroup:
     polygon_counts: np.ndarray | None = None
     polygon_indices: np.ndarray | None = None
     face_sets: dict = field(default_factory=dict)
+    dressing: object | None = None
 
 
 @dataclass

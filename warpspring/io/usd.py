@@ -253,9 +253,9 @@ class UsdWriter(UsdPrims, UsdStream):
                 samples += [(mesh.points, points), (mesh.extent, UsdGeom.PointBased.ComputeExtent(points)),
                             (mesh.normals, vec3_array(Vt, normals_all[slot.world][particles])),
                             (mesh.velocities, vec3_array(Vt, v[particles]))]
-                if vertex_strain is not None:
+                if vertex_strain is not None and mesh.strain is not None:  # None: an authored "strain" kept
                     samples.append((mesh.strain, Vt.FloatArray.FromNumpy(vertex_strain[particles])))
-                if kinematic is not None:
+                if kinematic is not None and mesh.pinned is not None:  # None: an authored "pinned" kept
                     samples.append((mesh.pinned, Vt.IntArray.FromNumpy(kinematic[slot.world][particles].astype(np.int32))))
             for skin in slot.skins:
                 samples += self._skin_samples(skin, q, v, vertex_strain,

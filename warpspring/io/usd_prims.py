@@ -32,17 +32,89 @@ class UsdPrims:
         subdivision, double-sided, right-handed, per-vertex normals. ``group``: a MeshGroup or a SkinGroup."""
         UsdGeom, Vt = self._UsdGeom, self._Vt
         mesh = UsdGeom.Mesh.Define(self.stage, path)
+        dressing = getattr(group, "dressing", None)
         if group.polygon_counts is not None:
             counts, indices = group.polygon_counts, group.polygon_indices
         else:
             counts, indices = np.full(len(group.faces), 3, np.int32), group.faces.reshape(-1)
+        scheme, orientation = UsdGeom.Tokens.none, UsdGeom.Tokens.rightHanded
+        if dressing is not None:  # the faces as authored (a faceVarying primvar follows their order)
+            indices, scheme = dressing.face_vertex_indices, dressing.subdivision_scheme
+            orientation = dressing.orientation
+            if dressing.mirrored:  # points are written in world space: a mirroring transform's flip goes here
+                orientation = (UsdGeom.Tokens.rightHanded if orientation == UsdGeom.Tokens.leftHanded
+                               else UsdGeom.Tokens.leftHanded)
         mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(counts.astype(np.int32)))
         mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(indices.astype(np.int32)))
-        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        mesh.CreateSubdivisionSchemeAttr(scheme)
         mesh.CreateDoubleSidedAttr(True)
-        mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+        mesh.CreateOrientationAttr(orientation)
         mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
         return mesh
+
+    def _dress(self, mesh, dressing) -> set:
+        """Author a USD input's dressing on the output ``mesh``: its primvars (values, interpolation, indices,
+        elementSize, type with role), its GeomSubsets (element type, family name and type) and the material
+        bindings of the mesh and the subsets, to the bound Materials copied into this stage under
+        ``/World/Looks`` (the output stands alone); its kind. Returns the names of the primvars authored,
+        which the simulation's own primvars (``strain``, ``rest``, ``pinned``) then do not replace: where an
+        authored primvar has one of their names, the authored one is kept and the simulation's is skipped."""
+        from pxr import Kind, Sdf, Usd, UsdShade  # noqa: F401 - Kind registers the kind tokens
+
+        UsdGeom, Vt = self._UsdGeom, self._Vt
+        api = UsdGeom.PrimvarsAPI(mesh)
+        for primvar in dressing.primvars:
+            created = api.CreatePrimvar(primvar.name, Sdf.ValueTypeNames.Find(primvar.type_name),
+                                        primvar.interpolation, primvar.element_size)
+            created.Set(primvar.value)
+            if primvar.indices is not None:
+                created.SetIndices(Vt.IntArray.FromNumpy(primvar.indices))
+        bound = self._copy_materials(dressing)
+        if dressing.material:
+            UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(UsdShade.Material(
+                self.stage.GetPrimAtPath(bound[dressing.material])))
+        imageable = UsdGeom.Imageable(mesh.GetPrim())
+        for subset in dressing.subsets:
+            made = UsdGeom.Subset.CreateGeomSubset(imageable, subset.name, subset.element_type,
+                                                   Vt.IntArray.FromNumpy(subset.indices), familyName=subset.family)
+            if subset.family and subset.family_type:
+                UsdGeom.Subset.SetFamilyType(imageable, subset.family, subset.family_type)
+            if subset.material:
+                UsdShade.MaterialBindingAPI.Apply(made.GetPrim()).Bind(UsdShade.Material(
+                    self.stage.GetPrimAtPath(bound[subset.material])))
+        if dressing.kind:
+            Usd.ModelAPI(mesh.GetPrim()).SetKind(dressing.kind)
+        return {p.name for p in dressing.primvars}
+
+    def _copy_materials(self, dressing) -> dict:
+        """Copy the Materials ``dressing`` binds from its source file into this stage, once per source
+        Material, under ``/World/Looks`` (the source's flattened specs, so their shaders come along);
+        returns source path -> path in this stage."""
+        from pxr import Sdf, Usd
+
+        copied = self.__dict__.setdefault("_copied_materials", {})
+        wanted = [m for m in dressing.materials if (dressing.source, m) not in copied]
+        if wanted:
+            flat = Usd.Stage.Open(dressing.source).Flatten()
+            layer = self.stage.GetRootLayer()
+            looks, n = Sdf.Path("/World/Looks"), 1
+            while layer.GetPrimAtPath(looks) and layer.GetPrimAtPath(looks).typeName != "Scope":
+                n += 1  # a mesh of that name: the materials go beside it
+                looks = Sdf.Path(f"/World/Looks_{n}")
+            if not layer.GetPrimAtPath(looks):
+                Sdf.CreatePrimInLayer(layer, looks).specifier = Sdf.SpecifierDef
+                layer.GetPrimAtPath(looks).typeName = "Scope"
+            for source in wanted:
+                name, n = Sdf.Path(source).name, 1
+                target = looks.AppendChild(name)
+                while layer.GetPrimAtPath(target):
+                    n += 1
+                    target = looks.AppendChild(f"{name}_{n}")
+                if flat.GetPrimAtPath(source) is None:
+                    continue  # a binding to a material the source does not have: nothing to copy
+                Sdf.CopySpec(flat, source, layer, target)
+                copied[(dressing.source, source)] = str(target)
+        return {m: copied[(dressing.source, m)] for m in dressing.materials if (dressing.source, m) in copied}
 
     def _define_world(self, world: int, root: str, *, particles: bool, springs: bool) -> _WorldPrims:
         """Define the prims of one exported world under ``root``; topology and constant attributes once."""
@@ -60,17 +132,21 @@ class UsdPrims:
                     UsdGeom.Tokens.faceVarying if corners else UsdGeom.Tokens.vertex,
                 )
                 st.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(group.uvs.reshape(-1, 2), dtype=np.float32)))
-            for name, faces in group.face_sets.items():
-                UsdGeom.Subset.CreateGeomSubset(mesh, name, UsdGeom.Tokens.face, Vt.IntArray.FromNumpy(faces),
-                                                familyName="warpspring")
+            authored = set()
+            if group.dressing is not None:  # a USD input: its primvars, subsets and bindings as authored
+                authored = self._dress(mesh, group.dressing)
+            else:
+                for name, faces in group.face_sets.items():
+                    UsdGeom.Subset.CreateGeomSubset(mesh, name, UsdGeom.Tokens.face, Vt.IntArray.FromNumpy(faces),
+                                                    familyName="warpspring")
             strain = pinned = None
-            if "strain" in self._primvars:
+            if "strain" in self._primvars and "strain" not in authored:
                 strain = self._animate(primvars.CreatePrimvar(
                     "strain", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).GetAttr())
-            if "pinned" in self._primvars:
+            if "pinned" in self._primvars and "pinned" not in authored:
                 pinned = self._animate(primvars.CreatePrimvar(
                     "pinned", Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.vertex).GetAttr())
-            if "rest" in self._primvars:  # the world's positions at the start
+            if "rest" in self._primvars and "rest" not in authored:  # the world's positions at the start
                 q0 = model.particle_q.numpy().reshape(model.world_count, model.particle_count, 3)[world]
                 primvars.CreatePrimvar("rest", Sdf.ValueTypeNames.Point3fArray, UsdGeom.Tokens.vertex).Set(
                     vec3_array(Vt, q0[group.particles]))

@@ -42,7 +42,7 @@ class ClothRecipes:
     particles, springs and hinges)."""
 
     def add_triangles(self, faces, *, name: str = "mesh", uvs=None, polygon_counts=None, polygon_indices=None,
-                      face_sets=None) -> MeshGroup:
+                      face_sets=None, dressing=None) -> MeshGroup:
         """Add a triangle mesh over existing particles (exported as one USD mesh; later used by
         aerodynamics and collisions).
 
@@ -57,6 +57,9 @@ class ClothRecipes:
                 Not with per-corner ``uvs``.
             face_sets: named subsets of the authored faces (or of the triangles without polygons), kept on
                 export as USD face sets: a mapping name -> face indices.
+            dressing: a :class:`~warpspring.core.mesh_files.UsdDressing` (what the USD prim the mesh was read
+                from carries besides its geometry) to write back on export, with ``polygon_counts`` given
+                as authored and the particles in the prim's point order; ``None``: none.
         """
         faces = np.asarray(faces)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
@@ -107,6 +110,7 @@ class ClothRecipes:
             polygon_counts=counts,
             polygon_indices=indices,
             face_sets=sets,
+            dressing=dressing,
         )
         self._meshes.append(group)
         return group
@@ -259,7 +263,7 @@ class ClothRecipes:
         dihedral: DihedralMaterial | bool | None = None,
         material: ClothMaterial | None = None,
         pin=(),
-        name: str = "cloth",
+        name: str | None = None,
         prim: str | None = None,
     ) -> np.ndarray:
         """Add a cloth from any triangle or polygon mesh.
@@ -278,7 +282,9 @@ class ClothRecipes:
         Args:
             mesh: a ``trimesh.Trimesh``, a file path trimesh can load (OBJ, STL, PLY, GLB, ...), a USD file
                 (``.usd``, ``.usda``, ``.usdc``: see :func:`~warpspring.core.mesh_files.read_usd_mesh` for what is
-                applied; its polygons are written back as authored, its face sets kept), or a vertex array
+                applied; the output prim comes back dressed as authored: its polygons, primvars, subsets with
+                their material bindings, subdivision scheme, orientation, name and kind, see
+                :class:`~warpspring.core.mesh_files.UsdDressing`), or a vertex array
                 [m], shape [v, 3] (then ``faces`` is required).
             faces: vertex indices of each triangle, shape [t, 3], when ``mesh`` is an array.
             origin, rotation, scale: placement; world = origin + rotation · (scale · vertex).
@@ -295,7 +301,7 @@ class ClothRecipes:
                 springs, hinges and their damping: ``mass``/``density`` must not be given, nor
                 ``structural``, ``bend`` or ``dihedral`` other than their defaults.
             pin: vertex indices of pinned particles.
-            name: mesh name for export.
+            name: mesh name for export; ``None``: a USD mesh prim's own name, else ``"cloth"``.
             prim: for a USD file, the path of the mesh prim to read (``"/World/cloth"``); ``None``: the
                 file's only mesh.
 
@@ -307,7 +313,7 @@ class ClothRecipes:
         structural = spring_family("structural", structural, DEFAULT_STRUCTURAL)
         bend = spring_family("bend", bend, DEFAULT_BEND)
         dihedral = None if dihedral is False else dihedral
-        uv = polygons = None
+        uv = polygons = dressing = None
         face_sets = {}
         usd = isinstance(mesh, (str, os.PathLike)) and os.fspath(mesh).lower().endswith(USD_EXTENSIONS)
         if prim is not None and not usd:
@@ -317,6 +323,8 @@ class ClothRecipes:
             vertices, faces = read.vertices, read.triangles
             polygons = (read.polygon_counts, read.polygon_indices)
             face_sets = read.face_sets
+            dressing = read.dressing
+            name = dressing.prim_name if name is None else name
         elif isinstance(mesh, (str, os.PathLike)):
             self._check_mesh_room(str(os.fspath(mesh)), count_obj_faces(mesh), hinges=bool(material or dihedral),
                                   loading=True)
@@ -338,6 +346,7 @@ class ClothRecipes:
         if faces.ndim != 2 or faces.shape[1] != 3:
             raise ConfigError(f"mesh faces must be triangles, shape [t, 3], got {faces.shape}")
         faces = _indices("mesh face vertex", faces, len(vertices)).reshape(-1, 3)
+        name = "cloth" if name is None else name
         self._check_mesh_room(name, (len(vertices), len(faces)), hinges=bool(material or dihedral))
         if loaded:  # loaders split a vertex wherever its UVs differ (a texture seam): the cloth must not tear
             vertices, faces, uv = _weld_seams(vertices, faces, uv)
@@ -386,7 +395,7 @@ class ClothRecipes:
                 if len(opposite):
                     self.add_springs(ids[opposite], stiffness=bend.ke, damping=bend.kd, family="bend",
                                      **bend.spring_options())
-        self.add_triangles(ids[faces], name=name, uvs=uv, face_sets=face_sets,
+        self.add_triangles(ids[faces], name=name, uvs=uv, face_sets=face_sets, dressing=dressing,
                            polygon_counts=None if polygons is None else polygons[0],
                            polygon_indices=None if polygons is None else ids[polygons[1]])
         if material is not None:
