@@ -168,6 +168,7 @@ def main() -> None:
     print("\n".join(lines))
     if args.out:
         name = "viewer.md" if device.is_cpu else "viewer_gpu.md"
+        os.makedirs(args.out, exist_ok=True)
         with open(os.path.join(args.out, name), "w") as f:
             f.write("\n".join(lines) + "\n")
         print(f"wrote {os.path.join(args.out, name)}")
