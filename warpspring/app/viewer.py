@@ -474,37 +474,31 @@ class Viewer:
         self._shapes[name] = shape
         return name
 
-    def _points(self, name: str, points: np.ndarray, color, visible: bool, *, size: float) -> str:
-        shape = ("points", len(points))
+    def _layer(self, name: str, shape: tuple, values: np.ndarray, visible: bool, add) -> str:
+        """Show ``values`` (points or segments, float32 on the wire) as the layer ``name``: updated in place while
+        its ``shape`` is unchanged (a hidden layer's data is not sent), else made anew by ``add(values)``."""
         handle = self._handles.get(name)
         if handle is not None and self._shapes.get(name) == shape:
-            if visible:  # a hidden layer's data is not sent
-                handle.points = points.astype(np.float32)
+            if visible:
+                handle.points = values.astype(np.float32)
             if handle.visible != visible:
                 handle.visible = visible
             return name
         self._drop(name, shape)
-        self._handles[name] = self.server.scene.add_point_cloud(
-            name, points.astype(np.float32), colors=color, point_size=size, point_shape="circle", visible=visible)
+        self._handles[name] = add(values.astype(np.float32))
         self._shapes[name] = shape
         return name
+
+    def _points(self, name: str, points: np.ndarray, color, visible: bool, *, size: float) -> str:
+        return self._layer(name, ("points", len(points)), points, visible,
+                           lambda values: self.server.scene.add_point_cloud(
+                               name, values, colors=color, point_size=size, point_shape="circle", visible=visible))
 
     def _segments(self, name: str, segments: np.ndarray, visible: bool) -> str:
-        shape = ("segments", len(segments))
-        handle = self._handles.get(name)
-        if handle is not None and self._shapes.get(name) == shape:
-            if visible:  # a hidden layer's data is not sent
-                handle.points = segments.astype(np.float32)
-            if handle.visible != visible:
-                handle.visible = visible
-            return name
-        self._drop(name, shape)
-        self._handles[name] = self.server.scene.add_line_segments(
-            name, segments.astype(np.float32), colors=SPRING_COLOR, thickness=1.0, thickness_units="screen",
-            visible=visible)
-        self._shapes[name] = shape
-        return name
-
+        return self._layer(name, ("segments", len(segments)), segments, visible,
+                           lambda values: self.server.scene.add_line_segments(
+                               name, values, colors=SPRING_COLOR, thickness=1.0, thickness_units="screen",
+                               visible=visible))
 
 
 def _no_share(*args, **kwargs) -> None:
