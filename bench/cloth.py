@@ -99,6 +99,18 @@ class NewtonRunner:
         return self.state_0.particle_q.numpy()
 
 
+def installed_newton(wanted: bool) -> str | None:
+    """Newton's version where it is wanted and installed (the peer timed beside warpspring), else None (said once)."""
+    if not wanted:
+        return None
+    try:
+        import newton
+    except ImportError:
+        print("newton is not installed: timing warpspring alone")
+        return None
+    return newton.__version__
+
+
 def set_up(make_runner, device):
     """A runner and its setup time [s]: engine model + solver creation, kernel compilation, graph capture and the
     first frame."""
@@ -214,14 +226,7 @@ def main():
     wp.config.kernel_cache_dir = tempfile.mkdtemp(prefix="warpspring-bench-")
     device = wp.get_device(args.device)
     sizes = args.sizes or DEFAULT_SIZES["cuda" if device.is_cuda else "cpu"]
-    newton_version = None
-    if not args.no_newton:
-        try:
-            import newton
-
-            newton_version = newton.__version__
-        except ImportError:
-            print("newton is not installed: timing warpspring alone")
+    newton_version = installed_newton(not args.no_newton)
 
     lines = [
         f"Hanging cloth, {SUBSTEPS} substeps per 1/{FPS} s frame, one graph per frame. "

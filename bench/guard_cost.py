@@ -26,7 +26,7 @@ import numpy as np
 import warp as wp
 
 import warpspring as ws
-from cloth import KD, KE, MASS, SPACING, NewtonRunner, emit_table, set_up, timed_batch, batch_size
+from cloth import KD, KE, MASS, SPACING, NewtonRunner, batch_size, emit_table, installed_newton, set_up, timed_batch
 
 FPS, SUBSTEPS = 60, 16
 INTEGRATORS = ("symplectic_euler", "rk4", "implicit_euler")
@@ -95,16 +95,9 @@ def main():
     parser.add_argument("--no-newton", action="store_true")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device)
-    newton_version = None
-    if not args.no_newton:
-        try:
-            import newton
-
-            newton_version = newton.__version__
-        except ImportError:
-            print("newton is not installed: timing warpspring alone")
+    newton_version = installed_newton(not args.no_newton)
     lines = [f"Guard cost on {device.name} ({device.alias}), Warp {wp.config.version}"
              + (f", Newton {newton_version}" if newton_version else "") + f", {datetime.date.today()}: ANCHORS cloth "
              f"hung from its top row, {SUBSTEPS} substeps per 1/{FPS} s frame as one graph, {args.batches} interleaved "

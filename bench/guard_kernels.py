@@ -28,7 +28,7 @@ def main():
     parser.add_argument("--guard", choices=["off", "default"], default="default")
     parser.add_argument("--frames", type=int, default=30)
     args = parser.parse_args()
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device)
     model = hanging_cloth(args.size, device)
     sim = ws.Simulator(model, fps=60, substeps=SUBSTEPS, guard=ws.GuardLimits() if args.guard == "default" else None,

@@ -30,7 +30,7 @@ import tempfile
 
 import warp as wp
 
-from cloth import SUBSTEPS, NewtonRunner, WarpspringRunner, measure_interleaved, warpspring_model
+from cloth import SUBSTEPS, NewtonRunner, WarpspringRunner, installed_newton, measure_interleaved, warpspring_model
 from traffic import copy_bandwidth, gather_traffic, per_particle
 
 SIDE = 32  # the side of each world's cloth in the many-worlds scenes
@@ -76,14 +76,7 @@ def main():
     wp.config.kernel_cache_dir = tempfile.mkdtemp(prefix="warpspring-bench-")  # setup includes compilation
     device = wp.get_device(args.device)
     defaults = DEFAULTS["cuda" if device.is_cuda else "cpu"]
-    newton_version = None
-    if not args.no_newton:
-        try:
-            import newton
-
-            newton_version = newton.__version__
-        except ImportError:
-            print("newton is not installed: timing warpspring alone")
+    newton_version = installed_newton(not args.no_newton)
     if args.plot:
         from warpspring.errors import ConfigError
         from warpspring.plotting import pyplot
