@@ -44,6 +44,8 @@ ENGINES = {
     "default-gather": ("gather", True, True),
     "default-scatter": ("scatter", True, True),
     "off-nograph": ("auto", False, False),  # every launch from Python: the host's cost per launch
+    "gather-nograph": ("gather", False, False),
+    "scatter-nograph": ("scatter", False, False),
     "newton": None,
 }
 
@@ -143,6 +145,12 @@ def _launch_profile(wp, runner, repeat: int, device) -> dict:
     if graph_attr is not None and getattr(graph_attr, "_apic_capture", None) is not None:
         ops = graph_attr._apic_capture.operation_count
     wp.launch = counting
+    # Every launch of the counted frame through wp.launch: a tree whose flat_launch replays recorded launches on the
+    # CPU (kernels/flatten.py) records nothing during it.
+    flatten = sys.modules.get("warpspring.kernels.flatten")
+    key = getattr(flatten, "_launch_key", None)
+    if key is not None:
+        flatten._launch_key = lambda *args: None
     try:
         if hasattr(runner, "sim"):
             owner = getattr(runner.sim, "stepper", runner.sim)  # the stepper, or an older tree's Simulator
@@ -153,6 +161,8 @@ def _launch_profile(wp, runner, repeat: int, device) -> dict:
             runner.simulate()
     finally:
         wp.launch = original
+        if key is not None:
+            flatten._launch_key = key
     by_kernel = collections.Counter(_kernel_name(k) for k, _, _ in calls)
     # Each distinct kernel of the frame, timed alone: its first call's arguments, replayed `repeat` times in a graph.
     seen, timing = set(), {}

@@ -1,7 +1,7 @@
 """Launches per substep: a plain cloth (springs, gravity, two pinned corners; no colliders, tracks, held worlds,
 clamps or guard) launches its force and update kernels and nothing for what the scene lacks.
 
-Counted through a wrapper of ``wp.launch`` during uncaptured frames: the Stepper captures the very same launches
+Counted through wrappers of ``wp.launch`` and of a recorded launch's replay during uncaptured frames: the Stepper captures the very same launches
 (its capture runs the same ``_run``), so what is counted here is what every replayed frame runs. The positive
 controls (a held world, the contact stage, a pin track, the guard) show that the counter sees a pass when the
 scene has one, so the absences asserted for the plain cloth are not vacuous.
@@ -14,6 +14,7 @@ import pytest
 import warp as wp
 
 import warpspring as ws
+from warpspring.kernels.flatten import flat_launch
 
 SUBSTEPS = 4
 
@@ -38,17 +39,27 @@ def cloth(device, evaluation: str = "auto", *, worlds: int = 1, track: bool = Fa
 
 @contextlib.contextmanager
 def counted_launches(monkeypatch):
-    """Every ``wp.launch`` made inside the block, as a list of kernel names (in order): a factory's kernel by its
-    factory and its own name (``guard_kernels.measure``)."""
+    """Every kernel launched inside the block, in order, by name (a factory's kernel by its factory and its own
+    name: ``guard_kernels.measure``): each ``wp.launch`` and each replay of a recorded launch (``wp.Launch.launch``,
+    which ``flat_launch`` replays on the CPU); recording one (``record_cmd``) launches nothing."""
     names = []
-    launch = wp.launch
+    launch, replay = wp.launch, wp.Launch.launch
+
+    def name(kernel) -> str:
+        return kernel.key.replace("__locals__", ".")
 
     def counting(kernel, *args, **kwargs):
-        names.append(kernel.key.replace("__locals__", "."))
+        if not kwargs.get("record_cmd"):
+            names.append(name(kernel))
         return launch(kernel, *args, **kwargs)
+
+    def counting_replay(command, *args, **kwargs):
+        names.append(name(command.kernel))
+        return replay(command, *args, **kwargs)
 
     with monkeypatch.context() as patch:
         patch.setattr(wp, "launch", counting)
+        patch.setattr(wp.Launch, "launch", counting_replay)
         yield names
 
 
@@ -115,3 +126,49 @@ def test_the_guard_launches_only_at_its_checks(device, monkeypatch):
     extra = [name for name in names if name not in step_kernels(model)]
     assert any("guard" in name for name in extra)
     assert names.count(step_kernels(model)[0]) == SUBSTEPS
+
+
+@wp.kernel(module="unique", enable_backward=False)
+def scale_add(
+    # Control:
+    factor: float,
+    # In/out:
+    x_in_out: wp.array[float],
+):
+    i = wp.tid()
+    x_in_out[i] = factor * x_in_out[i] + 1.0
+
+
+def test_cpu_launches_outside_a_graph_replay_what_they_recorded(monkeypatch):
+    """``flat_launch`` on the CPU records a launch once and replays it while its arguments are the same arrays and
+    equal values; a new value, or a new array (even one at a dead array's address and id), is recorded anew."""
+    with counted_launches(monkeypatch) as names:
+        x = wp.zeros(4, dtype=float, device="cpu")
+        for _ in range(3):
+            flat_launch(scale_add, dim=4, inputs=[2.0], outputs=[x], device="cpu")
+    np.testing.assert_array_equal(x.numpy(), 7.0)  # 0 → 1 → 3 → 7
+    assert len(names) == 3
+    assert len(scale_add._recorded_launches) == 1  # recorded once, replayed twice
+    flat_launch(scale_add, dim=4, inputs=[3.0], outputs=[x], device="cpu")
+    np.testing.assert_array_equal(x.numpy(), 22.0)  # the new factor, not the recorded one
+    del x
+    for _ in range(3):  # arrays freed and made again: the recorded command's address would be stale
+        y = wp.zeros(4, dtype=float, device="cpu")
+        flat_launch(scale_add, dim=4, inputs=[2.0], outputs=[y], device="cpu")
+        np.testing.assert_array_equal(y.numpy(), 1.0)
+
+
+def test_an_uncaptured_cpu_frame_launches_nothing_anew(monkeypatch):
+    """After its first frame, an uncaptured frame of the plain cloth replays recorded launches only (no argument
+    packing), to the same bits as the captured frames."""
+    graph = ws.Simulator(cloth("cpu"), substeps=SUBSTEPS, use_graph=True, guard=None)
+    loose = ws.Simulator(cloth("cpu"), substeps=SUBSTEPS, use_graph=False, guard=None)
+    for sim in (graph, loose):
+        sim.step_frame()
+    packed = []
+    launch = wp.launch
+    monkeypatch.setattr(wp, "launch", lambda kernel, *a, **k: packed.append(kernel) or launch(kernel, *a, **k))
+    for sim in (graph, loose):
+        sim.step_frame()
+    assert packed == []
+    np.testing.assert_array_equal(loose.state.particle_q.numpy(), graph.state.particle_q.numpy())
