@@ -18,6 +18,9 @@ alone, replayed inside a CPU graph of ``--repeat`` copies of it (what it costs i
     python bench/cpu_launches.py --sizes 32 64 --batches 7
     python bench/cpu_launches.py --tree old=/path/to/old/worktree --sizes 32 64 --batches 7 --launches
     python bench/cpu_launches.py --sizes 32 --engines off default --batches 7 --out bench/results/x.md
+    python bench/cpu_launches.py --device cuda:0 --tree main=../main --sizes 64 256 1024 --engines off default
+
+The last compares two trees on a GPU the same way (each tree's process replays its CUDA graphs in turn).
 """
 
 from __future__ import annotations
@@ -279,7 +282,7 @@ def main():
     parser.add_argument("--seconds", type=float, default=0.3, help="seconds per timed batch")
     parser.add_argument("--no-newton", action="store_true")
     parser.add_argument("--launches", action="store_true", help="also count and time each tree's launches")
-    parser.add_argument("--repeat", type=int, default=200, help="copies of a launch in its timing graph")
+    parser.add_argument("--repeat", type=int, default=3, help="copies of a launch in its timing graph")
     parser.add_argument("--out", help="also write the Markdown tables to this file")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
