@@ -501,6 +501,25 @@ def the_battery_plot_reads_every_case_of_a_battery_table():
 # -- running them -----------------------------------------------------------------------------------------------
 
 
+@check(device=False)
+def the_cpu_bench_times_two_trees_and_counts_a_plain_cloths_launches():
+    """``cpu_launches.run_size`` on the CPU, 4 × 4 cloth, this tree against itself, two rounds: every row has a
+    positive rate and a ratio to the first tree (the same code: the ratio is only noise, so it is not bounded
+    here), and the counted launches per substep are the plain cloth's one fused step (guard off, ``auto``)."""
+    import cpu_launches
+
+    trees = {"new": str(HERE.parent), "same": str(HERE.parent)}
+    rows, workers = cpu_launches.run_size(4, trees, ["off"], batches=2, seconds=0.01, launches=True, repeat=2,
+                                          newton=False)
+    assert [(r["tree"], r["engine"]) for r in rows] == [("new", "off"), ("same", "off")]
+    assert all(r["substeps_per_s"] > 0 and len(r["times"]) == 2 for r in rows)
+    assert "vs_first" in rows[1]
+    for worker in workers:
+        profile = worker.info["launches"]["off"]
+        assert profile["frame_launches"] == worker.info["substeps"], profile
+        assert list(profile["by_kernel"]) == ["symplectic_euler_kernel__locals__symplectic_euler"], profile
+
+
 def run(name: str, param, device: str | None) -> dict:
     """Run one check: {"check", "param", "device", "status" ("passed", "failed" or "skipped"), "detail"}."""
     fn, _, _ = CHECKS[name]

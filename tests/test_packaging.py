@@ -56,7 +56,7 @@ def test_kernels_are_a_leaf():
     """``warpspring/kernels/`` imports only ``warp`` and its sibling modules (replaces the test of the removed
     sibling-folder binding: the kernels now live inside the package)."""
     allowed_roots = {"warp", "functools", "math", "dataclasses", "typing", "__future__", "enum", "itertools",
-                     "collections", "ast", "inspect", "textwrap", "types", "linecache", "hashlib"}
+                     "collections", "ast", "inspect", "textwrap", "types", "linecache", "hashlib", "weakref"}
     offenders = []
     for path in sorted((ROOT / "warpspring" / "kernels").rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):

@@ -22,7 +22,11 @@ def world_and_index(p: int, particle_count: int):
 
     Per-particle kernels launch over all worlds' particles in one dimension and derive the world with one
     32-bit division: a two-dimensional launch (world, particle) has Warp unravel a 64-bit linear index,
-    which cost the one-world fused step 18-31 % on an H100 (bench/RESULTS.md §8)."""
+    which cost the one-world fused step 18-31 % on an H100 (bench/RESULTS.md §8). World 0's entries skip the
+    division: on the CPU, where a kernel's threads run in a loop, the division costs ~1 ns per particle (a
+    one-world model's per-particle pass 5.1 → 4.3 µs at 1,024 particles, bench/results/performance_cpu.md)."""
+    if p < particle_count:
+        return 0, p
     world = p // particle_count
     return world, p - world * particle_count
 
