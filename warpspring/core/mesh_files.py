@@ -26,10 +26,13 @@ one; a concave quad along the one diagonal that lies inside it); a polygon of mo
 its first vertex when it is convex in its own plane, and refused otherwise (triangulate it in the DCC
 tool). ``GeomSubset`` prims of element type ``face`` are read as face sets.
 
-What is ignored: UVs (``primvars:st``) and every other primvar, authored normals (the simulation computes
-its own), ``subdivisionScheme`` (the cage is read as it is, never subdivided), creases, holes
-(``holeIndices``), velocities, ``doubleSided``, materials and any other prim of the file. Vertices that no
-face uses are kept.
+What the simulation ignores, and the output keeps (:class:`UsdDressing`, written back by
+:class:`~warpspring.io.usd.UsdWriter`): every primvar (UVs by any name, custom ones), ``GeomSubset`` prims
+with their family names and material bindings, ``subdivisionScheme`` (the cage is simulated as it is, never
+subdivided), ``orientation``, the prim's name and kind; authored normals give the interpolation of the
+normals written every frame, and where they differ across an edge (or an infinitely sharp crease marks it)
+that edge stays hard (:func:`smoothing_groups`). What is ignored altogether: holes (``holeIndices``),
+velocities, ``doubleSided`` and any other prim of the file. Vertices that no face uses are kept.
 
 Every input is checked to be a regular file before it is opened (:func:`check_regular_file`,
 :func:`open_regular_file`): a named pipe, a device or a socket would block a reader or feed it forever. A USD
@@ -53,8 +56,9 @@ import numpy as np
 
 from ..errors import ConfigError
 
-__all__ = ["USD_EXTENSIONS", "UsdDressing", "UsdMesh", "UsdPrimvar", "UsdSubset", "check_regular_file", "check_usd_layers", "load_mesh_file", "open_regular_file",
-           "read_usd_mesh", "read_usd_mesh_samples"]
+__all__ = ["USD_EXTENSIONS", "UsdDressing", "UsdMesh", "UsdPrimvar", "UsdSubset", "check_regular_file", "check_usd_layers",
+           "convert_up_axis", "load_mesh_file", "open_regular_file", "open_usd_stage", "read_usd_mesh",
+           "read_usd_mesh_samples", "smoothing_groups"]
 
 USD_EXTENSIONS = (".usd", ".usda", ".usdc")  # mesh files read through USD, not trimesh
 
@@ -123,6 +127,16 @@ class UsdDressing:
         primvars: every authored primvar (:class:`UsdPrimvar`) except ``normals`` (recomputed every frame).
         subsets: every ``GeomSubset`` (:class:`UsdSubset`).
         material: path of the Material the mesh's own direct binding targets, or ``None``.
+        prim_path: the mesh prim's path in the source (where a layer over the source overrides it).
+        normals: the interpolation of the normals to write: the authored one (``vertex``, ``uniform`` or
+            ``faceVarying``; ``varying`` and ``constant`` as ``vertex``), ``faceVarying`` where hard creases are
+            authored, ``None`` when the prim authors neither (vertex normals).
+        normals_primvar: whether the authored normals are ``primvars:normals`` (which USD prefers over the
+            ``normals`` attribute), so that a layer over the source overrides that one.
+        normals_indexed: whether the authored ``primvars:normals`` is indexed (a layer over it blocks the indices).
+        smoothing: ``[sum(polygon_counts)]`` int32 for ``faceVarying`` normals: per face-vertex (authored order),
+            its smoothing group; the corners of one group share one normal, the area-weighted sum of their faces'
+            (:func:`smoothing_groups`); ``None`` otherwise.
     """
 
     source: str
@@ -135,6 +149,11 @@ class UsdDressing:
     primvars: tuple = ()
     subsets: tuple = ()
     material: str | None = None
+    prim_path: str = ""
+    normals: str | None = None
+    normals_primvar: bool = False
+    normals_indexed: bool = False
+    smoothing: np.ndarray | None = None
 
     @property
     def materials(self) -> list[str]:
@@ -250,7 +269,7 @@ def read_usd_mesh(path: str | os.PathLike[str], *, prim: str | None = None, up_a
         raise ConfigError(f"{where}: the stage's metersPerUnit is {scale!r}; author a positive "
                           f"metersPerUnit (1 for metres, 0.01 for centimetres)")
     world = (np.c_[points, np.ones(len(points))] @ matrix)[:, :3] * scale
-    vertices = _convert_up_axis(world, str(UsdGeom.GetStageUpAxis(stage)), axis)
+    vertices = convert_up_axis(world, str(UsdGeom.GetStageUpAxis(stage)), axis)
     if not np.all(np.isfinite(vertices)):
         bad = int(np.flatnonzero(~np.all(np.isfinite(vertices), axis=1))[0])
         raise ConfigError(f"{where}: vertex {bad} is not finite after the world transform; "
@@ -265,7 +284,7 @@ def read_usd_mesh(path: str | os.PathLike[str], *, prim: str | None = None, up_a
 
     triangles, triangle_polygon = _triangulate(vertices, counts, indices, offsets, where)
     face_sets = _face_sets(mesh_prim, len(counts), code, where)
-    dressing = _dressing(mesh, file, code, authored, mirrored)
+    dressing = _dressing(mesh, file, code, authored, mirrored, counts)
     return UsdMesh(path=file, prim=str(mesh_prim.GetPath()), vertices=vertices,
                    polygon_counts=counts.astype(np.int32), polygon_indices=indices.astype(np.int32),
                    triangles=triangles, triangle_polygon=triangle_polygon, face_sets=face_sets,
@@ -403,6 +422,12 @@ def check_usd_layers(file: str) -> list:
 
 
 # ---------------------------------------------------------------------------------------------- stage
+
+
+def open_usd_stage(path: str | os.PathLike[str]):
+    """The ``Usd.Stage`` of a USD file, its layers checked to be regular files first (:func:`check_usd_layers`);
+    a one-line ConfigError naming the file when USD cannot open it."""
+    return _open_stage(os.fspath(path))
 
 
 def _open_stage(file: str):
@@ -564,8 +589,9 @@ def _vector(v: np.ndarray) -> str:
     return "(" + ", ".join(f"{float(x):g}" for x in v) + ")"
 
 
-def _convert_up_axis(points: np.ndarray, stage_axis: str, axis: str) -> np.ndarray:
-    """``[v, 3]`` points of a stage of up axis ``stage_axis`` in the frame of up axis ``axis``."""
+def convert_up_axis(points: np.ndarray, stage_axis: str, axis: str) -> np.ndarray:
+    """``[v, 3]`` points (or vectors) of a stage of up axis ``stage_axis`` ("Y" or "Z") in the frame of up axis
+    ``axis``: the rotation of 90° about X that the reader applies (its inverse is the call with the axes swapped)."""
     if stage_axis == axis:
         return points
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
@@ -669,7 +695,7 @@ def _face_sets(mesh_prim, num_faces: int, code, where: str) -> dict[str, np.ndar
 # ------------------------------------------------------------------------------------------ dressing
 
 
-def _dressing(mesh, file: str, code, authored: np.ndarray, mirrored: bool) -> UsdDressing:
+def _dressing(mesh, file: str, code, authored: np.ndarray, mirrored: bool, counts: np.ndarray) -> UsdDressing:
     """The primvars, subsets, bindings, scheme, orientation, name and kind of a mesh prim (see UsdDressing)."""
     from pxr import Usd, UsdGeom, UsdShade  # optional: usd-core
 
@@ -697,11 +723,113 @@ def _dressing(mesh, file: str, code, authored: np.ndarray, mirrored: bool) -> Us
             family_type=str(UsdGeom.Subset.GetFamilyType(imageable, family)) if family else "",
             indices=_int_array(subset.GetIndicesAttr().Get(code)).astype(np.int32),
             material=_bound_material(UsdShade, subset.GetPrim())))
+    normals, interpolation, as_primvar, indexed = None, None, False, False
+    primvar = UsdGeom.PrimvarsAPI(prim).GetPrimvar("normals")
+    if primvar and primvar.HasAuthoredValue():
+        normals, interpolation = primvar.ComputeFlattened(code), str(primvar.GetInterpolation())
+        as_primvar, indexed = True, primvar.IsIndexed()
+    elif mesh.GetNormalsAttr().HasAuthoredValue():
+        normals, interpolation = mesh.GetNormalsAttr().Get(code), str(mesh.GetNormalsInterpolation())
+    hard = _hard_edges(mesh, code)
+    if interpolation in ("vertex", "varying", "constant"):
+        interpolation = "vertex"
+    corner_normals = None
+    if interpolation == "faceVarying" and normals is not None and len(normals) == len(authored):
+        corner_normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    elif interpolation == "faceVarying":
+        interpolation = "vertex"  # a faceVarying value of the wrong length: USD ignores it too
+    smoothing = None
+    if interpolation == "faceVarying" or len(hard):
+        interpolation = "faceVarying"
+        smoothing = smoothing_groups(counts, authored, corner_normals=corner_normals, hard_edges=hard)
     return UsdDressing(
         source=file, prim_name=prim.GetName(), kind=str(Usd.ModelAPI(prim).GetKind() or ""),
         subdivision_scheme=str(mesh.GetSubdivisionSchemeAttr().Get()),
         orientation=str(mesh.GetOrientationAttr().Get()), mirrored=mirrored, face_vertex_indices=authored,
-        primvars=tuple(primvars), subsets=tuple(subsets), material=_bound_material(UsdShade, prim))
+        primvars=tuple(primvars), subsets=tuple(subsets), material=_bound_material(UsdShade, prim),
+        prim_path=str(prim.GetPath()), normals=interpolation, normals_primvar=as_primvar,
+        normals_indexed=bool(indexed), smoothing=smoothing)
+
+
+def _hard_edges(mesh, code) -> np.ndarray:
+    """``[e, 2]`` vertex pairs (smaller first) of the edges an infinitely sharp crease marks (sharpness ≥
+    ``UsdGeom.Mesh.SHARPNESS_INFINITE``): edges that normals do not smooth across."""
+    from pxr import UsdGeom  # optional: usd-core
+
+    indices = _int_array(mesh.GetCreaseIndicesAttr().Get(code))
+    lengths = _int_array(mesh.GetCreaseLengthsAttr().Get(code))
+    sharpness = np.asarray(mesh.GetCreaseSharpnessesAttr().Get(code) or [], dtype=np.float64)
+    if not len(indices) or not len(lengths) or lengths.sum() != len(indices):
+        return np.zeros((0, 2), dtype=np.int64)
+    crease = np.repeat(np.arange(len(lengths)), lengths)
+    same = crease[1:] == crease[:-1]  # consecutive vertices of one crease: an edge
+    a, b = indices[:-1][same], indices[1:][same]
+    if len(sharpness) == len(lengths):  # one sharpness per crease
+        edge_sharpness = sharpness[crease[:-1][same]]
+    elif len(sharpness) == len(a):  # one per edge
+        edge_sharpness = sharpness
+    else:
+        return np.zeros((0, 2), dtype=np.int64)
+    hard = edge_sharpness >= UsdGeom.Mesh.SHARPNESS_INFINITE
+    return np.stack([np.minimum(a, b)[hard], np.maximum(a, b)[hard]], axis=1)
+
+
+#: Authored corner normals closer than this (unit vectors, Euclidean) count as one smooth normal.
+SMOOTH_TOLERANCE = 1.0e-4
+
+
+def smoothing_groups(counts: np.ndarray, indices: np.ndarray, *, corner_normals: np.ndarray | None = None,
+                     hard_edges: np.ndarray | None = None) -> np.ndarray:
+    """The smoothing groups of a polygon mesh's face-vertices: two faces that share an edge smooth across it at
+    one of its vertices when their normals there agree (authored ``corner_normals`` within
+    :data:`SMOOTH_TOLERANCE` after normalising; any, when none are given) and the edge is not hard; a group is
+    a connected set of face-vertices of one vertex. An edge of more than two faces (non-manifold) is hard.
+
+    Args:
+        counts: ``[p]`` vertices per face.
+        indices: ``[sum(counts)]`` the faces' vertices, in order (face-vertex order: a faceVarying primvar's).
+        corner_normals: ``[sum(counts), 3]`` authored normals per face-vertex, or ``None``.
+        hard_edges: ``[e, 2]`` vertex pairs of hard edges (either order), or ``None``.
+
+    Returns:
+        ``[sum(counts)]`` int32: a group index per face-vertex, 0 .. groups - 1.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    counts = np.asarray(counts, dtype=np.int64)
+    indices = np.asarray(indices, dtype=np.int64)
+    n = len(indices)
+    offsets = np.concatenate(([0], np.cumsum(counts)[:-1])).astype(np.int64)
+    following = np.arange(1, n + 1)
+    following[offsets + counts - 1] = offsets  # the next face-vertex around each face
+    a, b = indices, indices[following]
+    span = int(indices.max()) + 1 if n else 1
+    key = np.minimum(a, b) * span + np.maximum(a, b)
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    run = np.flatnonzero(np.diff(sorted_key) == 0)  # positions i where half-edges i, i + 1 share an edge
+    twin = ((run == 0) | (sorted_key[np.maximum(run - 1, 0)] != sorted_key[run])) & (  # exactly two half-edges
+        (run + 2 >= n) | (sorted_key[np.minimum(run + 2, n - 1)] != sorted_key[run]))
+    h1, h2 = order[run[twin]], order[run[twin] + 1]
+    keep = a[h1] != b[h1]  # a degenerate edge joins nothing
+    if hard_edges is not None and len(hard_edges):
+        hard = np.asarray(hard_edges, dtype=np.int64).reshape(-1, 2)
+        hard_key = np.minimum(hard[:, 0], hard[:, 1]) * span + np.maximum(hard[:, 0], hard[:, 1])
+        keep &= ~np.isin(key[h1], hard_key)
+    h1, h2 = h1[keep], h2[keep]
+    same_way = a[h1] == a[h2]  # both faces walk the edge the same way (inconsistent winding)
+    first = np.concatenate([h1, following[h1]])  # the face-vertex of each end in face 1 ...
+    second = np.concatenate([np.where(same_way, h2, following[h2]), np.where(same_way, following[h2], h2)])  # ... in 2
+    if corner_normals is not None:
+        unit = np.asarray(corner_normals, dtype=np.float64).reshape(-1, 3)
+        length = np.linalg.norm(unit, axis=1, keepdims=True)
+        unit = np.divide(unit, length, out=np.zeros_like(unit), where=length > 0.0)
+        agree = np.linalg.norm(unit[first] - unit[second], axis=1) <= SMOOTH_TOLERANCE
+        first, second = first[agree], second[agree]
+    graph = coo_matrix((np.ones(len(first)), (first, second)), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    return labels.astype(np.int32)
 
 
 def _bound_material(UsdShade, prim) -> str | None:
