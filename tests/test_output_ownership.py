@@ -27,7 +27,7 @@ import warpspring as ws
 from helpers import points_samples, write_scene
 from warpspring.app.cli import EXIT_CONFIG, EXIT_IO, main
 from warpspring.io.usd import UsdWriter
-from warpspring.io.usd_prims import cancelled_vertices, fallback_normals
+from warpspring.io.usd_normals import cancelled_vertices, fallback_normals
 from warpspring.io.output_lock import OutputLock, lock_path
 
 LINUX = sys.platform.startswith("linux")

@@ -99,7 +99,7 @@ class MeshGroup:
             int32 face indices, ascending; written as USD face sets (``UsdGeom.Subset``).
         dressing: what the USD mesh prim the mesh was read from carries besides its geometry (its primvars,
             subsets and their material bindings, subdivision scheme, orientation, name and kind), written
-            back on export (:class:`~warpspring.core.mesh_files.UsdDressing`), or ``None``. With it,
+            back on export (:class:`~warpspring.core.usd_dressing.UsdDressing`), or ``None``. With it,
             ``particles`` are the prim's points in order and ``polygon_counts`` its faces in order.
     """
 

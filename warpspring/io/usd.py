@@ -59,7 +59,8 @@ from ..errors import ConfigError, SimulationError
 from ..kernels.geometry import vertex_normal_kernel
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from .usd_layer import ARCS, EXTRAS_ROOT, LayerOver
-from .usd_prims import PRIMVARS, PURPOSES, UsdPrims, _WorldPrims, cancelled_vertices, fallback_normals, vec3_array
+from .usd_normals import cancelled_vertices, fallback_normals
+from .usd_prims import PRIMVARS, PURPOSES, UsdPrims, _WorldPrims, vec3_array
 from .output_lock import OutputLock
 from .usd_stream import STATIC_NAME, UsdStream, check_output_path, read_frames
 
