@@ -349,3 +349,57 @@ def test_a_soft_bodys_skin_over_its_asset_keeps_its_hard_edges(tmp_path: Path):
     box = UsdGeom.Mesh(prim)
     assert box.GetNormalsInterpolation() == UsdGeom.Tokens.faceVarying
     np.testing.assert_allclose(np.array(box.GetNormalsAttr().Get(0.0)), np.repeat(flat, 4, axis=0), atol=1e-5)
+
+
+def test_a_layer_resumes_like_a_stage(tmp_path: Path):
+    """``keep_frames`` over an asset (``--resume``): the layer's own first frames are kept (not the asset's values
+    beneath them) at their time codes, exact multiples of 24/60 (3 × 24/60 is 1.2, not 1.2000000000000002), and the
+    frames written again equal the first run's."""
+    asset, layer = tmp_path / "sheet.usda", tmp_path / "sim.usdc"
+    _author(asset)
+    q, _ = _simulate(asset, layer)
+    stage = Usd.Stage.Open(str(layer))
+    first = {t: np.array(stage.GetPrimAtPath(PRIM).GetAttribute("points").Get(t))
+             for t in stage.GetPrimAtPath(PRIM).GetAttribute("points").GetTimeSamples()}
+    del stage
+    assert sorted(first) == [k * 24.0 / FPS for k in range(FRAMES)]
+    builder = ws.ModelBuilder(up_axis="Z")
+    builder.add_cloth_mesh(str(asset), prim=PRIM, density=0.2, pin=[0, NX])
+    model = builder.finalize("cpu")
+    state = model.state()
+    with UsdWriter(layer, model, fps=FPS, layer_over=asset, primvars=["strain"], keep_frames=2) as writer:
+        for frame in range(2, FRAMES):
+            state.particle_q.assign(q[frame].astype(np.float32))
+            writer.write_frame(state)
+    stage = Usd.Stage.Open(str(layer))
+    points = stage.GetPrimAtPath(PRIM).GetAttribute("points")
+    assert points.GetTimeSamples() == sorted(first)
+    for t, value in first.items():
+        np.testing.assert_array_equal(np.array(points.Get(t)), value)
+
+
+def test_particles_and_colliders_over_an_asset_only_when_asked(tmp_path: Path):
+    """Colliders and the particles are not written over an asset unless asked; asked, they go under /warpspring, whose
+    transform takes warpspring's Z-up metres into the asset's Y-up centimetres: their composed world positions are
+    the simulation's."""
+    asset = tmp_path / "sheet.usda"
+    _author(asset)
+    builder = ws.ModelBuilder(up_axis="Z")
+    builder.add_cloth_mesh(str(asset), prim=PRIM, density=0.2, pin=[0, NX])
+    builder.add_collider_sphere(center=(0.3, -0.2, 1.0), radius=0.1)
+    model = builder.finalize("cpu")
+    state = model.state()
+    with UsdWriter(tmp_path / "bare.usda", model, fps=FPS, layer_over=asset) as writer:
+        writer.write_frame(state)
+    assert not Sdf.Layer.FindOrOpen(str(tmp_path / "bare.usda")).GetPrimAtPath("/warpspring")
+    with UsdWriter(tmp_path / "sim.usda", model, fps=FPS, layer_over=asset, particles=True,
+                   layer_colliders=True) as writer:
+        writer.write_frame(state)
+    stage = Usd.Stage.Open(str(tmp_path / "sim.usda"))
+    points = UsdGeom.Points(stage.GetPrimAtPath("/warpspring/particles"))
+    matrix = np.array(points.ComputeLocalToWorldTransform(0.0))
+    world = np.array(points.GetPointsAttr().Get(0.0), dtype=np.float64) @ matrix[:3, :3] + matrix[3, :3]
+    np.testing.assert_allclose(convert_up_axis(world * 0.01, "Y", "Z"), state.particle_q.numpy(), atol=1e-6)
+    sphere = stage.GetPrimAtPath("/warpspring/colliders/sphere")
+    centre = np.array(UsdGeom.Xformable(sphere).ComputeLocalToWorldTransform(0.0))[3, :3]
+    np.testing.assert_allclose(convert_up_axis(centre[None] * 0.01, "Y", "Z")[0], (0.3, -0.2, 1.0), atol=1e-9)

@@ -198,7 +198,7 @@ class UsdWriter(UsdPrims, UsdStream):
         self.model = model
         self.fps = float(fps)
         self.start_frame = start_frame
-        self._step = 1.0 if self._layer is None else self._layer.step  # time codes per frame
+        self._codes_per_second = None if self._layer is None else self._layer.time_codes_per_second
         self._primvars = primvars
         self._purpose = collider_purpose
         self._open(path, ext)  # the frames folder beside the file, and its reaper

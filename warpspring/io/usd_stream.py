@@ -142,13 +142,16 @@ class UsdStream:
         return dict(self._animated)
 
     def _time_code(self, frame: int) -> float:
-        """The time code of frame ``frame``: ``start_frame`` + frame × the time codes per frame (1, or over an
-        asset its timeCodesPerSecond / fps)."""
-        return self.start_frame + frame * getattr(self, "_step", 1.0)
+        """The time code of frame ``frame``: ``start_frame`` + frame, or over an asset ``start_frame`` + frame ×
+        its timeCodesPerSecond / fps (``_codes_per_second``; computed so, 3 × 24 / 60 is 1.2 exactly)."""
+        codes = getattr(self, "_codes_per_second", None)
+        return self.start_frame + (frame if codes is None else frame * codes / self.fps)
 
     def _frame_index(self, time_code: float) -> int:
         """The number in the file name of the frame at ``time_code``: ``start_frame`` + its frame."""
-        return self.start_frame + int(round((time_code - self.start_frame) / getattr(self, "_step", 1.0)))
+        codes = getattr(self, "_codes_per_second", None)
+        frames = time_code - self.start_frame if codes is None else (time_code - self.start_frame) * self.fps / codes
+        return self.start_frame + int(round(frames))
 
     def _append(self, samples: list, amend: list = ()) -> None:
         """Save one frame's samples, (attribute path, value) pairs, as the next frame: time code
