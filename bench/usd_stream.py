@@ -40,15 +40,16 @@ def cloth(n: int, device) -> ws.Model:
     return builder.finalize(device)
 
 
-def stream(model: ws.Model, path: str, frames: int, fps: float = 60.0) -> dict:
-    """Write ``frames`` synthetic frames to ``path``; the write time of each frame [s] and the close time."""
+def stream(model: ws.Model, path: str, frames: int, fps: float = 60.0, accelerations: bool = True) -> dict:
+    """Write ``frames`` synthetic frames to ``path`` (with ``accelerations``: each frame written again when the next
+    comes, as shipped); the write time of each frame [s] and the close time."""
     q0 = model.particle_q.numpy().astype(np.float64)
     phase = q0[:, 0] * 7.0 + q0[:, 1] * 3.0
     state = model.state()
     times = np.empty(frames)
     base = resident = resident_bytes()
     dtype = np.float64 if model.precision == "float64" else np.float32
-    writer = UsdWriter(path, model, fps=fps)
+    writer = UsdWriter(path, model, fps=fps, accelerations=accelerations)
     for k in range(frames):
         t = k / fps
         wave = np.sin(phase + 2.0 * t)
@@ -93,6 +94,8 @@ def main() -> None:
     parser.add_argument("--window", type=int, default=1000, help="frames in the first and last median")
     parser.add_argument("--out", default=None, help="folder for a markdown table (printed in any case)")
     parser.add_argument("--scratch", default=None, help="folder for the files written (default: a temporary one)")
+    parser.add_argument("--accelerations", choices=["on", "off", "both"], default="on",
+                        help="write accelerations (on: as shipped; both: a row each, side by side)")
     args = parser.parse_args()
 
     wp.config.quiet = True
@@ -100,22 +103,23 @@ def main() -> None:
     model = cloth(args.size, device)
     scratch = args.scratch or tempfile.mkdtemp(prefix="usd_stream_")
     rows = []
-    for fmt in args.formats:
+    modes = {"on": [True], "off": [False], "both": [True, False]}[args.accelerations]
+    for fmt, accelerations in [(f, a) for f in args.formats for a in modes]:
         path = os.path.join(scratch, f"stream.{fmt}")
-        result = stream(model, path, args.frames)
+        result = stream(model, path, args.frames, accelerations=accelerations)
         times = result["times"]
         w = min(args.window, len(times) // 2)
         first, last = statistics.median(times[:w]), statistics.median(times[-w:])
         size = os.path.getsize(path)
         again, export_seconds = reexport_size(path, scratch)
         rows.append({
-            "format": fmt, "frames": args.frames, "first": first, "last": last, "ratio": last / first,
+            "format": fmt, "accelerations": "yes" if accelerations else "no", "frames": args.frames, "first": first, "last": last, "ratio": last / first,
             "p99": float(np.percentile(times, 99)), "total": float(times.sum()), "close": result["close"],
             "size": size, "reexport": again, "size_ratio": size / again, "export": export_seconds,
             "resident": result["resident"],
         })
         os.remove(path)
-        print(f"{fmt}: {args.frames} frames of {args.size}²: median write {first * 1e3:.2f} ms (first {w}) / "
+        print(f"{fmt}, accelerations {'on' if accelerations else 'off'}: {args.frames} frames of {args.size}²: median write {first * 1e3:.2f} ms (first {w}) / "
               f"{last * 1e3:.2f} ms (last {w}) = {last / first:.2f}×; pack on close {result['close']:.1f} s; "
               f"{size / 1e6:.1f} MB vs re-export {again / 1e6:.1f} MB = {size / again:.3f}×; resident memory "
               f"grew ≤ {result['resident'] / 1e6:.0f} MB while writing", flush=True)
@@ -124,16 +128,16 @@ def main() -> None:
 
     lines = [
         f"`python bench/usd_stream.py --frames {args.frames} --size {args.size} --formats {' '.join(args.formats)} "
-        f"--device {args.device}` — {device.name if device.is_cuda else platform.processor() or 'CPU'}, "
+        f"--device {args.device} --accelerations {args.accelerations}` — {device.name if device.is_cuda else platform.processor() or 'CPU'}, "
         f"Warp {wp.__version__}, {datetime.date.today().isoformat()}; {args.size}² = {model.particle_count} "
-        f"particles (points, normals, velocities per frame)",
+        f"particles (points, normals, velocities per frame; accelerations where said)",
         "",
-        f"| format | frames | median write, first {w} [ms] | last {w} [ms] | last / first | p99 [ms] | "
+        f"| format | accelerations | frames | median write, first {w} [ms] | last {w} [ms] | last / first | p99 [ms] | "
         "pack on close [s] | file [MB] | re-export [MB] | file / re-export | memory growth while writing [MB] |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        lines.append(f"| .{r['format']} | {r['frames']:,} | {r['first'] * 1e3:.2f} | {r['last'] * 1e3:.2f} | "
+        lines.append(f"| .{r['format']} | {r['accelerations']} | {r['frames']:,} | {r['first'] * 1e3:.2f} | {r['last'] * 1e3:.2f} | "
                      f"{r['ratio']:.2f} | {r['p99'] * 1e3:.1f} | {r['close']:.1f} | {r['size'] / 1e6:.1f} | "
                      f"{r['reexport'] / 1e6:.1f} | {r['size_ratio']:.3f} | {r['resident'] / 1e6:.0f} |")
     table = "\n".join(lines)

@@ -27,7 +27,7 @@ import warpspring as ws
 from helpers import points_samples, write_scene
 from warpspring.app.cli import EXIT_CONFIG, EXIT_IO, main
 from warpspring.io.usd import UsdWriter
-from warpspring.io.usd_prims import cancelled_vertices, fallback_normals
+from warpspring.io.usd_normals import cancelled_vertices, fallback_normals
 from warpspring.io.output_lock import OutputLock, lock_path
 
 LINUX = sys.platform.startswith("linux")
@@ -265,14 +265,14 @@ def test_a_skins_cancelled_normal_falls_back_the_same_way(tmp_path):
     model = model_2x2()
     writer = UsdWriter(tmp_path / "skin.usdc", model, fps=30)
     try:
-        skin = SimpleNamespace(faces=faces, points=lambda x: x, weights=None, indices=None)
-        prims = SimpleNamespace(skin=skin, points="p", extent="e", normals="/skin.normals", velocities="v",
-                                strain=None, pinned=None)
-        samples = dict(writer._skin_samples(prims, points, np.zeros_like(points), None))
+        skin = SimpleNamespace(faces=faces)
+        prims = SimpleNamespace(group=skin, points="p", extent="e", normals="/skin.normals", velocities="v",
+                                accelerations=None, strain=None, pinned=None, front=None, prim_path=None)
+        samples = dict(writer._surface_samples(prims, points, np.zeros_like(points)))
         np.testing.assert_allclose(np.array(samples["/skin.normals"])[1], (0.0, -1.0, 0.0), atol=1e-7)
         flat = points.copy()
         flat[1] = (0.5, 0.0, 0.5)  # no area around vertex 1
-        normals = np.array(dict(writer._skin_samples(prims, flat, np.zeros_like(flat), None))["/skin.normals"])
+        normals = np.array(dict(writer._surface_samples(prims, flat, np.zeros_like(flat)))["/skin.normals"])
         np.testing.assert_allclose(normals[1], (0.0, -1.0, 0.0), atol=1e-7)  # the previous frame's
         np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-6)
     finally:

@@ -382,7 +382,7 @@ def test_a_usd_mesh_keeps_its_quads(tmp_path):
     with UsdWriter(path, model, fps=30.0) as writer:
         writer.write_frame(model.state())
     output = Usd.Stage.Open(str(path))  # held: a prim does not keep its stage alive
-    written = UsdGeom.Mesh(output.GetPrimAtPath("/World/soft_body"))
+    written = UsdGeom.Mesh(output.GetPrimAtPath("/World/cube"))  # the prim's own name
     assert list(written.GetFaceVertexCountsAttr().Get()) == [4] * 6
     assert list(written.GetFaceVertexIndicesAttr().Get()) == sum(quads, [])
     np.testing.assert_allclose(np.asarray(written.GetPointsAttr().Get(0)), corners, atol=1e-6)

@@ -188,3 +188,160 @@ def test_a_mirroring_transform_flips_the_written_orientation_and_the_normals_fac
         a, b, c = x[face[0]], x[face[1]], x[face[2]]
         left_hand = -np.cross(b - a, c - a)
         assert np.dot(left_hand, normals[face[0]]) > 0.0
+
+
+# -- soft bodies: the same dressing, by the same path ---------------------------------------------------------------
+
+CUBE = "/Root/Box"
+
+
+def _author_cube(path: Path, *, normals: str | None = None, creases: bool = False) -> dict:
+    """A dressed box of quads (40 cm, Y-up, centimetres, moved and turned), with UVs per face-vertex, a custom
+    uniform primvar, two subsets bound to two materials; ``normals``: authored ``faceVarying`` (flat faces: every
+    edge hard), ``vertex`` (smooth), or none; ``creases``: every edge an infinitely sharp crease."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, "/Root").GetPrim())
+    mesh = UsdGeom.Mesh.Define(stage, CUBE)
+    xform = UsdGeom.Xformable(mesh)
+    xform.AddTranslateOp().Set(Gf.Vec3d(5.0, 60.0, -10.0))
+    xform.AddRotateXYZOp().Set(Gf.Vec3f(10.0, 25.0, 0.0))
+    corners = np.array([[x, y, z] for z in (0.0, 40.0) for y in (0.0, 40.0) for x in (0.0, 40.0)])
+    quads = np.array([[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]])
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(corners.astype(np.float32)))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([4] * 6))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(quads.reshape(-1).astype(np.int32)))
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    Usd.ModelAPI(mesh.GetPrim()).SetKind(Kind.Tokens.component)
+    api = UsdGeom.PrimvarsAPI(mesh)
+    st = np.tile([[0, 0], [1, 0], [1, 1], [0, 1]], (6, 1)).astype(np.float32)
+    api.CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying).Set(Vt.Vec2fArray.FromNumpy(st))
+    api.CreatePrimvar("panel", Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.uniform).Set(Vt.IntArray([0, 1, 2, 0, 1, 2]))
+    centre = corners.mean(axis=0)
+    face_normal = np.array([np.cross(corners[q[1]] - corners[q[0]], corners[q[2]] - corners[q[0]]) for q in quads])
+    face_normal /= np.linalg.norm(face_normal, axis=1, keepdims=True)
+    assert all(np.dot(n, corners[q].mean(axis=0) - centre) > 0 for n, q in zip(face_normal, quads))  # outward
+    if normals == "faceVarying":
+        mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(np.repeat(face_normal, 4, axis=0).astype(np.float32)))
+        mesh.SetNormalsInterpolation(UsdGeom.Tokens.faceVarying)
+    elif normals == "vertex":
+        smooth = (corners - centre) / np.linalg.norm(corners - centre, axis=1, keepdims=True)
+        mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(smooth.astype(np.float32)))
+        mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+    if creases:
+        edges = sorted({tuple(sorted((int(q[k]), int(q[(k + 1) % 4])))) for q in quads for k in range(4)})
+        mesh.CreateCreaseIndicesAttr(Vt.IntArray([v for e in edges for v in e]))
+        mesh.CreateCreaseLengthsAttr(Vt.IntArray([2] * len(edges)))
+        mesh.CreateCreaseSharpnessesAttr(Vt.FloatArray([UsdGeom.Mesh.SHARPNESS_INFINITE] * len(edges)))
+    red, blue = _material(stage, "/Root/Looks/Red", (1, 0, 0)), _material(stage, "/Root/Looks/Blue", (0, 0, 1))
+    binding = UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim())
+    for name, faces, material in (("Red", [0, 1, 2], red), ("Blue", [3, 4, 5], blue)):
+        subset = binding.CreateMaterialBindSubset(name, Vt.IntArray(faces), UsdGeom.Tokens.face)
+        UsdShade.MaterialBindingAPI.Apply(subset.GetPrim()).Bind(material)
+    stage.GetRootLayer().Save()
+    return {"indices": quads.reshape(-1), "face_normal": face_normal}
+
+
+def _run_cube(asset: Path, out: Path, frames: int = 3) -> None:
+    builder = ws.ModelBuilder(up_axis="Y")
+    builder.add_soft_body(str(asset), prim=CUBE, method="voxel", youngs_modulus=2.0e4, density=100.0, spacing=0.1)
+    model = builder.finalize("cpu")
+    sim = ws.Simulator(model, integrator=ws.make_integrator("implicit_euler", model), fps=60, substeps=4)
+    with UsdWriter(out, model, fps=60, primvars=["strain", "pinned", "rest"]) as writer:
+        writer.write_frame(sim.state)
+        for _ in range(frames):
+            sim.step_frame()
+            writer.write_frame(sim.state)
+
+
+def test_a_soft_body_from_a_dressed_asset_comes_back_dressed(tmp_path: Path):
+    """The soft body's skin goes through the cloth's path: its UVs, custom primvar, subsets with their family and
+    materials, kind and the prim's own name come back."""
+    asset, out = tmp_path / "box.usda", tmp_path / "out.usda"
+    authored = _author_cube(asset)
+    _run_cube(asset, out)
+    source_stage = Usd.Stage.Open(str(asset))
+    source = source_stage.GetPrimAtPath(CUBE)
+    stage = Usd.Stage.Open(str(out))
+    prim = stage.GetPrimAtPath("/World/Box")
+    assert prim.IsValid() and prim.IsA(UsdGeom.Mesh)
+    assert list(UsdGeom.Mesh(prim).GetFaceVertexIndicesAttr().Get()) == authored["indices"].tolist()
+    assert Usd.ModelAPI(prim).GetKind() == Kind.Tokens.component
+    expected, got = _primvars(source), _primvars(prim)
+    for name, value in expected.items():
+        assert got.get(name) == value, f"primvar {name}: {got.get(name)} != {value}"
+    for name in ("strain", "pinned", "rest"):
+        assert got[name][1] == UsdGeom.Tokens.vertex and len(UsdGeom.PrimvarsAPI(prim).GetPrimvar(name).Get(0.0)) == 8
+    assert _subsets(prim) == {"Red": ("face", "materialBind", [0, 1, 2], (1.0, 0.0, 0.0)),
+                              "Blue": ("face", "materialBind", [3, 4, 5], (0.0, 0.0, 1.0))}
+
+
+# -- normals with the authored interpolation; hard edges stay hard --------------------------------------------------
+
+
+def _world_normals(asset: Path, normals_local: np.ndarray) -> np.ndarray:
+    """Local normals of the box in warpspring's Y-up world frame: the inverse transpose of its transform."""
+    stage = Usd.Stage.Open(str(asset))
+    prim = stage.GetPrimAtPath(CUBE)
+    linear = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(0.0))[:3, :3]
+    n = normals_local @ np.linalg.inv(linear).T
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("how", ["faceVarying", "creases"])
+def test_hard_edges_stay_hard(tmp_path: Path, how: str):
+    """A box whose every edge is hard (flat faceVarying normals, or smooth vertex normals with every edge an
+    infinitely sharp crease) comes back with faceVarying normals, each face-vertex's normal its own face's: at rest
+    the authored flat normals (turned into world space), and every frame the face's normal of the points written
+    (a box's faces stay nearly flat). Smoothing across the edges would give the corner's diagonal instead, 55°
+    away."""
+    asset, out = tmp_path / "box.usda", tmp_path / "out.usda"
+    authored = _author_cube(asset, normals="faceVarying" if how == "faceVarying" else "vertex", creases=how == "creases")
+    _run_cube(asset, out)
+    output = Usd.Stage.Open(str(out))
+    mesh = UsdGeom.Mesh(output.GetPrimAtPath("/World/Box"))
+    assert mesh.GetNormalsInterpolation() == UsdGeom.Tokens.faceVarying
+    at_rest = np.array(mesh.GetNormalsAttr().Get(0.0), dtype=np.float64)
+    expected = _world_normals(asset, np.repeat(authored["face_normal"], 4, axis=0))
+    np.testing.assert_allclose(at_rest, expected, atol=1e-6)  # float32 points of a 40 cm box
+    quads = authored["indices"].reshape(6, 4)
+    for t in (1.0, 2.0, 3.0):
+        x = np.array(mesh.GetPointsAttr().Get(t), dtype=np.float64)
+        n = np.array(mesh.GetNormalsAttr().Get(t), dtype=np.float64).reshape(6, 4, 3)
+        for face, corner_normals in zip(quads, n):
+            p = x[face] - x[face[0]]
+            newell = np.cross(p, np.roll(p, -1, axis=0)).sum(axis=0)
+            np.testing.assert_allclose(corner_normals, np.tile(newell / np.linalg.norm(newell), (4, 1)), atol=1e-5)
+
+
+def test_vertex_normals_stay_smooth_and_uniform_ones_per_face(tmp_path: Path):
+    """Authored vertex normals (no crease): vertex normals, one per point, each an area-weighted mean of the three
+    faces at the box's corner (a blend with positive weights of their normals: smooth across the edges);
+    authored uniform normals: one per face, the face's own."""
+    asset, out = tmp_path / "box.usda", tmp_path / "out.usda"
+    authored = _author_cube(asset, normals="vertex")
+    _run_cube(asset, out, frames=1)
+    output = Usd.Stage.Open(str(out))
+    mesh = UsdGeom.Mesh(output.GetPrimAtPath("/World/Box"))
+    assert mesh.GetNormalsInterpolation() == UsdGeom.Tokens.vertex
+    normals = np.array(mesh.GetNormalsAttr().Get(0.0), dtype=np.float64)
+    assert normals.shape == (8, 3)
+    faces = _world_normals(asset, authored["face_normal"])
+    quads = authored["indices"].reshape(6, 4)
+    for vertex, n in enumerate(normals):
+        around = faces[[f for f, q in enumerate(quads) if vertex in q]]  # the corner's three faces
+        weights = np.linalg.solve(around.T, n)
+        assert (weights > 0.1).all(), weights  # each face counts: no edge is hard
+
+    stage = Usd.Stage.Open(str(asset))
+    box = UsdGeom.Mesh(stage.GetPrimAtPath(CUBE))
+    box.GetNormalsAttr().Set(Vt.Vec3fArray([Gf.Vec3f(0, 0, 1)] * 6))
+    box.SetNormalsInterpolation(UsdGeom.Tokens.uniform)
+    stage.Save()
+    _run_cube(asset, out, frames=1)
+    output = Usd.Stage.Open(str(out))
+    mesh = UsdGeom.Mesh(output.GetPrimAtPath("/World/Box"))
+    assert mesh.GetNormalsInterpolation() == UsdGeom.Tokens.uniform
+    flat = _author_cube(tmp_path / "flat.usda")["face_normal"]
+    np.testing.assert_allclose(np.array(mesh.GetNormalsAttr().Get(0.0)), _world_normals(asset, flat), atol=1e-6)

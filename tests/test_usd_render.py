@@ -223,7 +223,7 @@ start_frame = 1
     assert main(["run", str(scene), "-o", str(out), "--device", "cpu", "--quiet"]) == 0
     stage = Usd.Stage.Open(str(out))
     assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (1.0, 7.0)  # the start and 6 frames after it
-    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/cloth"))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/sheet"))  # the prim's own name
     assert list(mesh.GetFaceVertexCountsAttr().Get()) == [4] * len(quads)
     np.testing.assert_array_equal(np.array(mesh.GetFaceVertexIndicesAttr().Get()), quads.ravel())
     np.testing.assert_allclose(np.array(mesh.GetPointsAttr().Get(1)), vertices, atol=1e-6)

@@ -33,7 +33,8 @@ It resets Blender to factory settings (an empty scene), imports the file with
   ``frame / scene_fps * timeCodesPerSecond`` (Blender's frame number read as a time code, or Blender's time in
   seconds converted): ``reads_time_code`` says which one Blender sampled (objects that are the same at both
   candidates say ``same_at_time_codes`` instead); ``velocity_equals_usd_velocities`` and
-  ``normals_max_angle_deg_vs_usd`` compare the velocities and the shading normals with the file's;
+  ``normals_max_angle_deg_vs_usd`` compare the velocities and the shading normals with the file's (per
+  vertex, or per corner where the file's normals are faceVarying);
   ``points_max_error_vs_usd`` [m] compares every evaluated vertex (mesh, curve or point) with the file's points
   at the time code read, and ``primvars_max_error_vs_usd`` every value of each vertex primvar (a soft body's or
   cloth's ``strain``, ``pinned``, ``rest``, ``st``; a spring curve's ``strain``) with Blender's point attribute
@@ -155,6 +156,10 @@ for code in request.get("time_codes", []):
         normals = prim.GetAttribute("normals").Get(code) if prim.HasAttribute("normals") else None
         if normals and points and len(normals) == len(points):  # per vertex: compared, then dropped
             sample["normals"] = [list(n) for n in normals]
+        elif normals and points and prim.HasAttribute("faceVertexCounts"):  # faceVarying: per corner, likewise
+            counts = prim.GetAttribute("faceVertexCounts").Get(code)
+            if counts is not None and len(normals) == sum(counts):
+                sample["corner_normals"] = [list(n) for n in normals]
         velocities = prim.GetAttribute("velocities").Get(code) if prim.HasAttribute("velocities") else None
         if velocities:
             sample["velocities_mean"] = mean(tuple(v) for v in velocities)
@@ -507,6 +512,7 @@ def sample_object(obj, depsgraph) -> dict:
             first = np.full(len(mesh.vertices), -1, dtype=np.int64)
             first[corner_vertex[::-1]] = np.arange(len(corner_vertex))[::-1]
             sample["_normals"] = np.where(first[:, None] >= 0, corner_normals.reshape(-1, 3)[first], 0.0)
+            sample["_corner_normals"] = corner_normals.reshape(-1, 3)  # every corner, for faceVarying normals
             for layer in mesh.uv_layers:  # a UV map (corners) at each vertex's first corner, for a vertex primvar
                 uv = np.zeros(len(mesh.loops) * 2)
                 layer.uv.foreach_get("vector", uv)
@@ -624,7 +630,8 @@ def compare(samples: dict, reference: dict, scene_fps: float, paths: dict) -> No
                 continue
             obj_sample["usd"] = {kind: {"time_code": candidates[kind],
                                         **{k: v for k, v in (value or {}).items()
-                                           if k not in ("normals", "points") and not k.startswith("primvar_values:")}}
+                                           if k not in ("normals", "corner_normals", "points")
+                                           and not k.startswith("primvar_values:")}}
                                  for kind, value in usd.items()}
             # The same vertex centroid and the same world matrix (a turning box keeps its centroid).
             matches = [kind for kind, value in usd.items() if value
@@ -640,7 +647,10 @@ def compare(samples: dict, reference: dict, scene_fps: float, paths: dict) -> No
             reference_values = usd[matches[0]] if matches else None
             _compare_points(obj_sample, reference_values or usd["frame"])
             blender_normals = obj_sample.pop("_normals", None)
+            blender_corners = obj_sample.pop("_corner_normals", None)
             usd_normals = reference_values.get("normals") if reference_values else None
+            if usd_normals is None and reference_values and reference_values.get("corner_normals") is not None:
+                usd_normals, blender_normals = reference_values["corner_normals"], blender_corners  # per corner
             if usd_normals is not None and blender_normals is not None and len(usd_normals) == len(blender_normals):
                 # Are the normals Blender shades with the file's normals of that time code?
                 unit = np.asarray(usd_normals, dtype=np.float64)

@@ -148,6 +148,14 @@ def build_parser() -> argparse.ArgumentParser:
                      help="continue a stopped run from its checkpoint: the output (the same -o) keeps its frames "
                           "up to the checkpoint's and the run goes on to the end, bit for bit as if uninterrupted "
                           "on the same device")
+    run.add_argument("--layer-over", metavar="ASSET",
+                     help="write the simulation as a layer over the artist's USD file ASSET (never written): overrides "
+                          "at its prim paths of what the simulation changes (points, normals, velocities, "
+                          "accelerations, extent), in its units, up axis and time codes, the asset as a sublayer; the "
+                          "scene must read a cloth or soft body from ASSET")
+    run.add_argument("--layer-arc", choices=("sublayer", "reference", "none"), default="sublayer",
+                     help="with --layer-over: the asset as the layer's sublayer (default), referenced at its root "
+                          "prims, or not at all (bare overrides, for a shot that stacks them over the asset)")
     _add_view_options(run, "--view", "serve a page in the browser that shows the run as it goes, with its live "
                                      "inputs (gravity, drag, wind, stiffness, stabilisers; pause, step, reset) "
                                      "(pip install 'warpspring[view]')")
@@ -328,6 +336,8 @@ def _cmd_run(args) -> int:
     if device is not None and str(device).startswith("cuda") and _CUDA_DRIVER_MISSING:
         raise ConfigError(f"device {device!r} is not available: Warp could not find or load the NVIDIA CUDA driver "
                           "on this machine; run on the CPU with --device cpu")
+    if args.layer_over is not None:  # the writer's options: the layer over the asset
+        scene.export_options = {**scene.export_options, "layer_over": args.layer_over, "layer_arc": args.layer_arc}
     live = LiveView(host=args.view_host, port=args.view_port, title=os.path.basename(args.scene)) if args.view else None
     summary = run_scene(
         scene,

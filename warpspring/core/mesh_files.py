@@ -26,10 +26,13 @@ one; a concave quad along the one diagonal that lies inside it); a polygon of mo
 its first vertex when it is convex in its own plane, and refused otherwise (triangulate it in the DCC
 tool). ``GeomSubset`` prims of element type ``face`` are read as face sets.
 
-What is ignored: UVs (``primvars:st``) and every other primvar, authored normals (the simulation computes
-its own), ``subdivisionScheme`` (the cage is read as it is, never subdivided), creases, holes
-(``holeIndices``), velocities, ``doubleSided``, materials and any other prim of the file. Vertices that no
-face uses are kept.
+What the simulation ignores, and the output keeps (:class:`UsdDressing`, written back by
+:class:`~warpspring.io.usd.UsdWriter`): every primvar (UVs by any name, custom ones), ``GeomSubset`` prims
+with their family names and material bindings, ``subdivisionScheme`` (the cage is simulated as it is, never
+subdivided), ``orientation``, the prim's name and kind; authored normals give the interpolation of the
+normals written every frame, and where they differ across an edge (or an infinitely sharp crease marks it)
+that edge stays hard (:func:`smoothing_groups`). What is ignored altogether: holes (``holeIndices``),
+velocities, ``doubleSided`` and any other prim of the file. Vertices that no face uses are kept.
 
 Every input is checked to be a regular file before it is opened (:func:`check_regular_file`,
 :func:`open_regular_file`): a named pipe, a device or a socket would block a reader or feed it forever. A USD
@@ -52,95 +55,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ConfigError
+from .usd_dressing import UsdDressing, UsdPrimvar, UsdSubset, int_array, read_dressing, smoothing_groups
 
-__all__ = ["USD_EXTENSIONS", "UsdDressing", "UsdMesh", "UsdPrimvar", "UsdSubset", "check_regular_file", "check_usd_layers", "load_mesh_file", "open_regular_file",
-           "read_usd_mesh", "read_usd_mesh_samples"]
+__all__ = ["USD_EXTENSIONS", "UsdDressing", "UsdMesh", "UsdPrimvar", "UsdSubset", "check_regular_file", "check_usd_layers",
+           "convert_up_axis", "load_mesh_file", "open_regular_file", "open_usd_stage", "read_usd_mesh",
+           "read_usd_mesh_samples", "smoothing_groups"]
 
 USD_EXTENSIONS = (".usd", ".usda", ".usdc")  # mesh files read through USD, not trimesh
 
 _UP_AXES = ("Y", "Z")
 _LISTED_MESHES = 5
-
-
-@dataclass(frozen=True)
-class UsdPrimvar:
-    """One authored primvar of a mesh prim, as authored (no unit or axis conversion).
-
-    Attributes:
-        name: its name without the ``primvars:`` namespace (``"st"``, ``"panel"``).
-        type_name: its USD value type name (``"texCoord2f[]"``: the role is kept).
-        interpolation: ``constant``, ``uniform``, ``vertex``, ``varying`` or ``faceVarying``.
-        value: the authored value (at the time read): a numpy array for an array type (one row per element;
-            strings and tokens as a numpy string array, asset paths as a list of strings), else the value as
-            pxr gives it in Python (a float, a string, a ``Gf.Vec3d``, ...).
-        indices: ``[n]`` int32 for an indexed primvar, else ``None``.
-        element_size: the primvar's elementSize (1 unless authored).
-    """
-
-    name: str
-    type_name: str
-    interpolation: str
-    value: object
-    indices: np.ndarray | None = None
-    element_size: int = 1
-
-
-@dataclass(frozen=True)
-class UsdSubset:
-    """One authored ``GeomSubset`` of a mesh prim.
-
-    Attributes:
-        name: the subset prim's name.
-        element_type: ``face`` (or ``point``, ``edge``, ...), as authored.
-        family: its ``familyName`` (``"materialBind"``), ``""`` when none is authored.
-        family_type: the family's type on the mesh (``nonOverlapping``, ``partition``, ``unrestricted``).
-        indices: ``[n]`` int32 element indices, as authored.
-        material: path of the Material its direct binding targets in the source, or ``None``.
-    """
-
-    name: str
-    element_type: str
-    family: str
-    family_type: str
-    indices: np.ndarray
-    material: str | None = None
-
-
-@dataclass(frozen=True)
-class UsdDressing:
-    """What a mesh prim carries besides its geometry, kept so that the output is dressed like the input.
-
-    Attributes:
-        source: the file read.
-        prim_name: the mesh prim's name.
-        kind: its model kind (``""`` when none).
-        subdivision_scheme: its ``subdivisionScheme`` (``catmullClark`` when not authored, USD's fallback).
-        orientation: its ``orientation`` as authored (``rightHanded`` or ``leftHanded``).
-        mirrored: whether its world transform mirrors (the reader's faces are reversed when
-            ``orientation`` is left-handed xor this).
-        face_vertex_indices: ``[sum(polygon_counts)]`` int32: ``faceVertexIndices`` as authored (the order a
-            faceVarying primvar follows).
-        primvars: every authored primvar (:class:`UsdPrimvar`) except ``normals`` (recomputed every frame).
-        subsets: every ``GeomSubset`` (:class:`UsdSubset`).
-        material: path of the Material the mesh's own direct binding targets, or ``None``.
-    """
-
-    source: str
-    prim_name: str
-    kind: str
-    subdivision_scheme: str
-    orientation: str
-    mirrored: bool
-    face_vertex_indices: np.ndarray
-    primvars: tuple = ()
-    subsets: tuple = ()
-    material: str | None = None
-
-    @property
-    def materials(self) -> list[str]:
-        """The source paths of every Material bound (by the mesh or a subset), without repeats, in order."""
-        found = [self.material] + [s.material for s in self.subsets]
-        return list(dict.fromkeys(m for m in found if m))
 
 
 @dataclass(frozen=True)
@@ -234,8 +158,8 @@ def read_usd_mesh(path: str | os.PathLike[str], *, prim: str | None = None, up_a
 
     _constant_topology(mesh.GetFaceVertexCountsAttr(), "faceVertexCounts", where)
     _constant_topology(mesh.GetFaceVertexIndicesAttr(), "faceVertexIndices", where)
-    counts = _int_array(mesh.GetFaceVertexCountsAttr().Get(code))
-    indices = _int_array(mesh.GetFaceVertexIndicesAttr().Get(code))
+    counts = int_array(mesh.GetFaceVertexCountsAttr().Get(code))
+    indices = int_array(mesh.GetFaceVertexIndicesAttr().Get(code))
     raw_points = mesh.GetPointsAttr().Get(code)
     points = (np.zeros((0, 3)) if raw_points is None
               else np.asarray(raw_points, dtype=np.float64).reshape(-1, 3))
@@ -250,7 +174,7 @@ def read_usd_mesh(path: str | os.PathLike[str], *, prim: str | None = None, up_a
         raise ConfigError(f"{where}: the stage's metersPerUnit is {scale!r}; author a positive "
                           f"metersPerUnit (1 for metres, 0.01 for centimetres)")
     world = (np.c_[points, np.ones(len(points))] @ matrix)[:, :3] * scale
-    vertices = _convert_up_axis(world, str(UsdGeom.GetStageUpAxis(stage)), axis)
+    vertices = convert_up_axis(world, str(UsdGeom.GetStageUpAxis(stage)), axis)
     if not np.all(np.isfinite(vertices)):
         bad = int(np.flatnonzero(~np.all(np.isfinite(vertices), axis=1))[0])
         raise ConfigError(f"{where}: vertex {bad} is not finite after the world transform; "
@@ -265,7 +189,7 @@ def read_usd_mesh(path: str | os.PathLike[str], *, prim: str | None = None, up_a
 
     triangles, triangle_polygon = _triangulate(vertices, counts, indices, offsets, where)
     face_sets = _face_sets(mesh_prim, len(counts), code, where)
-    dressing = _dressing(mesh, file, code, authored, mirrored)
+    dressing = read_dressing(mesh, file, code, authored, mirrored, counts)
     return UsdMesh(path=file, prim=str(mesh_prim.GetPath()), vertices=vertices,
                    polygon_counts=counts.astype(np.int32), polygon_indices=indices.astype(np.int32),
                    triangles=triangles, triangle_polygon=triangle_polygon, face_sets=face_sets,
@@ -405,6 +329,12 @@ def check_usd_layers(file: str) -> list:
 # ---------------------------------------------------------------------------------------------- stage
 
 
+def open_usd_stage(path: str | os.PathLike[str]):
+    """The ``Usd.Stage`` of a USD file, its layers checked to be regular files first (:func:`check_usd_layers`);
+    a one-line ConfigError naming the file when USD cannot open it."""
+    return _open_stage(os.fspath(path))
+
+
 def _open_stage(file: str):
     """The stage of ``file``; ConfigError for a missing or unreadable file."""
     from pxr import Tf, Usd  # optional: usd-core
@@ -511,11 +441,6 @@ def _time_code(stage, time: float | None, where: str):
 # ------------------------------------------------------------------------------------------- topology
 
 
-def _int_array(value) -> np.ndarray:
-    """An authored int array as a 1-d int64 array (empty when not authored)."""
-    if value is None:
-        return np.zeros(0, dtype=np.int64)
-    return np.asarray(value, dtype=np.int64).reshape(-1)
 
 
 def _constant_topology(attr, name: str, where: str) -> None:
@@ -523,9 +448,9 @@ def _constant_topology(attr, name: str, where: str) -> None:
     samples = attr.GetTimeSamples()
     if len(samples) < 2:
         return
-    first = _int_array(attr.Get(samples[0]))
+    first = int_array(attr.Get(samples[0]))
     for t in samples[1:]:
-        if not np.array_equal(first, _int_array(attr.Get(t))):
+        if not np.array_equal(first, int_array(attr.Get(t))):
             raise ConfigError(f"{where}: its {name} changes over time (time samples {samples[0]:g} and "
                               f"{t:g} differ); warpspring needs constant topology: export one frame "
                               f"of the mesh, or a mesh whose faces stay the same")
@@ -564,8 +489,9 @@ def _vector(v: np.ndarray) -> str:
     return "(" + ", ".join(f"{float(x):g}" for x in v) + ")"
 
 
-def _convert_up_axis(points: np.ndarray, stage_axis: str, axis: str) -> np.ndarray:
-    """``[v, 3]`` points of a stage of up axis ``stage_axis`` in the frame of up axis ``axis``."""
+def convert_up_axis(points: np.ndarray, stage_axis: str, axis: str) -> np.ndarray:
+    """``[v, 3]`` points (or vectors) of a stage of up axis ``stage_axis`` ("Y" or "Z") in the frame of up axis
+    ``axis``: the rotation of 90° about X that the reader applies (its inverse is the call with the axes swapped)."""
     if stage_axis == axis:
         return points
     x, y, z = points[:, 0], points[:, 1], points[:, 2]
@@ -656,7 +582,7 @@ def _face_sets(mesh_prim, num_faces: int, code, where: str) -> dict[str, np.ndar
         if subset.GetElementTypeAttr().Get() != UsdGeom.Tokens.face:
             continue
         name = subset.GetPrim().GetName()
-        idx = _int_array(subset.GetIndicesAttr().Get(code))
+        idx = int_array(subset.GetIndicesAttr().Get(code))
         out = np.flatnonzero((idx < 0) | (idx >= num_faces))
         if len(out):
             raise ConfigError(f"{where}: face set {name} names face {int(idx[out[0]])}, out of range for "
@@ -664,47 +590,3 @@ def _face_sets(mesh_prim, num_faces: int, code, where: str) -> dict[str, np.ndar
                               f"and export it again")
         sets[name] = np.unique(idx).astype(np.int32)
     return sets
-
-
-# ------------------------------------------------------------------------------------------ dressing
-
-
-def _dressing(mesh, file: str, code, authored: np.ndarray, mirrored: bool) -> UsdDressing:
-    """The primvars, subsets, bindings, scheme, orientation, name and kind of a mesh prim (see UsdDressing)."""
-    from pxr import Usd, UsdGeom, UsdShade  # optional: usd-core
-
-    prim = mesh.GetPrim()
-    primvars = []
-    for primvar in UsdGeom.PrimvarsAPI(prim).GetAuthoredPrimvars():
-        name = str(primvar.GetPrimvarName())
-        if name == "normals" or not primvar.HasAuthoredValue():
-            continue  # normals are recomputed every frame
-        raw = primvar.Get(code)
-        value = np.array(raw) if primvar.GetTypeName().isArray else raw  # a scalar (Gf.Vec3d, str, ...) as is
-        if isinstance(value, np.ndarray) and value.dtype == object:  # asset paths
-            value = [str(getattr(v, "path", v)) for v in raw]
-        indices = primvar.GetIndices(code) if primvar.IsIndexed() else None
-        primvars.append(UsdPrimvar(name=name, type_name=str(primvar.GetTypeName()),
-                                   interpolation=str(primvar.GetInterpolation()), value=value,
-                                   indices=None if indices is None else _int_array(indices).astype(np.int32),
-                                   element_size=int(primvar.GetElementSize())))
-    imageable = UsdGeom.Imageable(prim)
-    subsets = []
-    for subset in UsdGeom.Subset.GetAllGeomSubsets(imageable):
-        family = str(subset.GetFamilyNameAttr().Get() or "")
-        subsets.append(UsdSubset(
-            name=subset.GetPrim().GetName(), element_type=str(subset.GetElementTypeAttr().Get()), family=family,
-            family_type=str(UsdGeom.Subset.GetFamilyType(imageable, family)) if family else "",
-            indices=_int_array(subset.GetIndicesAttr().Get(code)).astype(np.int32),
-            material=_bound_material(UsdShade, subset.GetPrim())))
-    return UsdDressing(
-        source=file, prim_name=prim.GetName(), kind=str(Usd.ModelAPI(prim).GetKind() or ""),
-        subdivision_scheme=str(mesh.GetSubdivisionSchemeAttr().Get()),
-        orientation=str(mesh.GetOrientationAttr().Get()), mirrored=mirrored, face_vertex_indices=authored,
-        primvars=tuple(primvars), subsets=tuple(subsets), material=_bound_material(UsdShade, prim))
-
-
-def _bound_material(UsdShade, prim) -> str | None:
-    """The path of the Material a prim's direct (all-purpose) binding targets, or None."""
-    targets = UsdShade.MaterialBindingAPI(prim).GetDirectBindingRel().GetTargets()
-    return str(targets[0]) if targets else None

@@ -99,7 +99,7 @@ class MeshGroup:
             int32 face indices, ascending; written as USD face sets (``UsdGeom.Subset``).
         dressing: what the USD mesh prim the mesh was read from carries besides its geometry (its primvars,
             subsets and their material bindings, subdivision scheme, orientation, name and kind), written
-            back on export (:class:`~warpspring.core.mesh_files.UsdDressing`), or ``None``. With it,
+            back on export (:class:`~warpspring.core.usd_dressing.UsdDressing`), or ``None``. With it,
             ``particles`` are the prim's points in order and ``polygon_counts`` its faces in order.
     """
 
@@ -127,6 +127,8 @@ class SkinGroup:
         polygon_counts, polygon_indices: the authored faces (quads stay quads), as in :class:`MeshGroup`, or
             ``None``.
         face_sets: named subsets of the faces, as in :class:`MeshGroup`.
+        dressing: what the USD mesh prim the surface was read from carries besides its geometry, written back on
+            export, as in :class:`MeshGroup` (the skin's vertices are the prim's points in order), or ``None``.
     """
 
     name: str
@@ -137,6 +139,7 @@ class SkinGroup:
     polygon_counts: np.ndarray | None = None
     polygon_indices: np.ndarray | None = None
     face_sets: dict = field(default_factory=dict)
+    dressing: object | None = None
 
     def points(self, q: np.ndarray) -> np.ndarray:
         """The skin's vertices [m] (or velocities [m/s]) for one world's particle values ``q`` [n, 3]: a fixed-order

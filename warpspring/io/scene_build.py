@@ -124,7 +124,7 @@ def _add_soft_body(builder: ModelBuilder, body: dict, base: str) -> None:
         velocity=body.get("velocity", (0.0, 0.0, 0.0)), radius=body.get("radius"),
         mass_distribution=body.get("mass_distribution", "volume"), skin_mass_factor=body.get("skin_mass_factor", 1.0),
         mass_gradient=body.get("mass_gradient", (0.0, 0.0, 0.0)), options=body.get("options"),
-        name=body.get("name", "soft_body"), prim=body.get("prim"),
+        name=body.get("name"), prim=body.get("prim"),
         plasticity=SpringPlasticity(**body["plasticity"]) if "plasticity" in body else None,
         volume=body.get("volume", False), bulk_modulus=body.get("bulk_modulus"),
         elasticity=body.get("elasticity", "springs"), poisson_ratio=body.get("poisson_ratio", 0.25),
@@ -183,7 +183,7 @@ def _add_cloth(builder: ModelBuilder, cloth: dict, base: str) -> None:
         structural=_springs(cloth, "structural", DEFAULT_STRUCTURAL),
         bend=_springs(cloth, "bend", DEFAULT_BEND),
         pin=cloth.get("pin", []),
-        name=cloth.get("name", "cloth"),
+        name=cloth.get("name", "cloth" if "grid" in cloth else None),  # a mesh: a USD prim's own name
         mass=cloth.get("mass"),
     )
     if "grid" in cloth:

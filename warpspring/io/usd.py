@@ -8,11 +8,13 @@ What is authored, and why (USD's fallbacks are wrong for simulation caches):
 * each cloth mesh: its faces as authored (a grid's cells and a USD mesh's quads stay quads; the simulation
   uses their triangles), in the input's vertex order, once; ``subdivisionScheme = "none"`` (the fallback,
   Catmull-Clark, makes Blender and Houdini subdivide the cloth), ``doubleSided``, ``primvars:st`` when the
-  mesh has UVs, its face sets; per frame ``points``, ``extent``, vertex ``normals`` and ``velocities``
-  [m/s] (renderers motion-blur from them); optionally the primvars ``strain`` and ``pinned`` per frame and
-  ``rest`` (Pref) once. Normals are gathered per vertex in a fixed order (no atomics), so a rerun on the
-  same device writes the same bytes;
-* each soft body's mesh (``model.skins``) likewise, its faces as authored; per frame its points are the fixed
+  mesh has UVs, its face sets (a USD input: its whole dressing, name and kind); per frame ``points``,
+  ``extent``, ``normals`` (per vertex, or with a USD input's interpolation: per face, or per face-vertex
+  keeping its hard edges), ``velocities`` [m/s] and ``accelerations`` [m/s²] (renderers motion-blur from them;
+  frame k's meets frame k + 1, added when that frame comes); optionally the primvars ``strain`` and ``pinned``
+  per frame and ``rest`` (Pref) once. Normals are gathered per vertex in a fixed order (no atomics), so a rerun
+  on the same device writes the same bytes;
+* each soft body's mesh (``model.skins``) by the same path, its faces as authored; per frame its points are the fixed
   weighted sums of particles that embed it (a host product over the positions read back), with velocities,
   area-weighted normals, and optionally ``strain`` (its particles' weighted) and ``rest``;
 * colliders as prims of purpose ``guide`` by default (shown in viewports, left out of final renders) with
@@ -35,6 +37,9 @@ and a translation that lays the worlds out side by side on a grid in the ground 
 A world that the run-time guard stopped (:meth:`UsdWriter.stop_worlds`) gets no samples after its last
 good frame: DCC tools hold a prim's last sample, so the file stays a valid animation of every world.
 
+Over an asset (``layer_over``), the file is instead a layer of overrides at the asset's prim paths, in the asset's
+frame (:mod:`~warpspring.io.usd_layer`).
+
 How the frames reach the disk (a valid file at every moment, also after a kill) is
 :mod:`~warpspring.io.usd_stream`'s; the prims of a world are defined in :mod:`~warpspring.io.usd_prims`.
 """
@@ -53,7 +58,9 @@ from ..core.state import State
 from ..errors import ConfigError, SimulationError
 from ..kernels.geometry import vertex_normal_kernel
 from ..kernels.kinematics import PARTICLE_KINEMATIC
-from .usd_prims import PRIMVARS, PURPOSES, UsdPrims, cancelled_vertices, fallback_normals, vec3_array
+from .usd_layer import ARCS, EXTRAS_ROOT, LayerOver
+from .usd_normals import cancelled_vertices, fallback_normals
+from .usd_prims import PRIMVARS, PURPOSES, UsdPrims, _WorldPrims, vec3_array
 from .output_lock import OutputLock
 from .usd_stream import STATIC_NAME, UsdStream, check_output_path, read_frames
 
@@ -90,6 +97,16 @@ class UsdWriter(UsdPrims, UsdStream):
             before it builds the model, and releases it after :meth:`close`); ``None``: the writer takes it and
             releases it when it closes. One run owns an output: while it is held, another writer of ``path``
             (another process, or this one) is refused.
+        accelerations: write each surface's ``accelerations`` [m/s²]: frame k's is 2 (x_{k+1} − x_k − v_k Δt) / Δt²,
+            so that the quadratic a renderer draws between samples (x + v t + ½ a t²) passes through the next frame
+            (across an impact the velocity alone overshoots). It needs frame k + 1: frame k's file is rewritten (whole,
+            renamed) when frame k + 1 comes, so a reader sees every frame so far and the last one without its
+            accelerations (USD then holds the frame before's); the packed file gives it the frame before's.
+        layer_over: an asset (a USD file) to write the simulation over, as a layer of overrides at the asset's own
+            prim paths of what the simulation changes (:mod:`~warpspring.io.usd_layer`): in the asset's units, up
+            axis, time codes and each prim's local space; ``None``: a stage of its own.
+        layer_arc: how the layer reaches the asset: ``"sublayer"``, ``"reference"`` or ``"none"``.
+        layer_colliders: over an asset, also write the colliders (under ``/warpspring``).
 
     Raises:
         ConfigError: a bad path, fps, world, spacing, column count, primvar name, start frame or purpose,
@@ -113,6 +130,10 @@ class UsdWriter(UsdPrims, UsdStream):
         world_columns: int | None = None,
         keep_frames: int = 0,
         lock: OutputLock | None = None,
+        accelerations: bool = True,
+        layer_over: str | os.PathLike | None = None,
+        layer_arc: str = "sublayer",
+        layer_colliders: bool = False,
     ):
         from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
@@ -143,6 +164,18 @@ class UsdWriter(UsdPrims, UsdStream):
             offsets = None
             roots = [(0 if world is None else world, "/World")]
         keep_frames = checks.count("keep_frames", keep_frames, minimum=0)
+        self._layer = None
+        if layer_over is not None:
+            self._layer = LayerOver(layer_over, output=path, fps=fps, up_axis=model.up_axis, arc=layer_arc)
+            if world is None and model.world_count > 1:
+                raise ConfigError(f"a layer over {os.fspath(layer_over)!r} holds one world: choose it with world=K "
+                                  f"(--world K), 0..{model.world_count - 1}")
+            roots, offsets = [(roots[0][0], EXTRAS_ROOT)], None
+            self._tile = None
+        elif layer_arc not in ARCS:
+            raise ConfigError(f"layer_arc must be one of {', '.join(ARCS)}, got {layer_arc!r}")
+        self._accelerations = bool(accelerations)
+        self._layer_colliders = bool(layer_colliders)
         if lock is not None and (not lock.held or lock.output != path):
             raise ValueError(f"the lock given is not a held lock of {path!r}")
         self._owns_lock = lock is None
@@ -159,25 +192,32 @@ class UsdWriter(UsdPrims, UsdStream):
                offsets, roots, particles, springs, keep_frames) -> None:
         """Read what a resume keeps, begin the file and define the static stage (the output's lock is held)."""
         Usd, UsdGeom, Gf = self._Usd, self._UsdGeom, self._Gf
-        kept = read_frames(path, keep_frames, start_frame) if keep_frames else None  # before the file is replaced
+        step = 1.0 if self._layer is None else self._layer.step
+        kept = read_frames(path, keep_frames, start_frame, step=step) if keep_frames else None  # before it is replaced
 
         self.model = model
         self.fps = float(fps)
         self.start_frame = start_frame
+        self._codes_per_second = None if self._layer is None else self._layer.time_codes_per_second
         self._primvars = primvars
         self._purpose = collider_purpose
         self._open(path, ext)  # the frames folder beside the file, and its reaper
+        self._keep_last = self._accelerations  # a frame's accelerations are added when the next frame comes
 
         # The static layer: every prim, its topology and constant attributes, and an unvalued spec of each
         # animated attribute (the frames' samples compose onto them through the clips).
         self.stage = Usd.Stage.CreateInMemory(STATIC_NAME)
         stage = self.stage
-        root = UsdGeom.Xform.Define(stage, "/World")
-        stage.SetDefaultPrim(root.GetPrim())
+        layer = self._layer
+        self._clip_roots = ["/World"] if layer is None else []
+        self._held, self._held_next, self._amend = {}, {}, []  # accelerations' look-ahead (UsdPrims._look_ahead)
+        if layer is None:
+            root = UsdGeom.Xform.Define(stage, "/World")
+            stage.SetDefaultPrim(root.GetPrim())
         self._deforming_meshes: dict = {}  # world root → (MeshCollider, points path, extent path) of deforming meshes
         self._strain_ends = None  # the springs' particles, when strain is written
         self._radius = model.particle_radius.numpy().astype(np.float64)  # [m], for emitted particles' widths
-        if world is not None and model.world_count > 1:
+        if world is not None and model.world_count > 1 and layer is None:
             root.GetPrim().SetCustomDataByKey("warpspring:world", world)
         self.worlds = [w for w, _ in roots]
         self._stopped: dict[int, int] = {}
@@ -189,9 +229,13 @@ class UsdWriter(UsdPrims, UsdStream):
                 xform = UsdGeom.Xform.Define(stage, path_root)
                 xform.AddTranslateOp().Set(Gf.Vec3d(*offsets[w]))
                 xform.GetPrim().SetCustomDataByKey("warpspring:world", w)
-            slot = self._define_world(w, path_root, particles=particles, springs=springs)
-            slot.colliders = self._write_colliders(path_root)
-            slot.skins = [self._define_skin(skin, w, path_root) for skin in model.skins]
+            if layer is not None:
+                slot = self._define_layer(w, particles=particles, springs=springs)
+            else:
+                slot = self._define_world(w, path_root, particles=particles, springs=springs)
+                slot.colliders = self._write_colliders(path_root)
+                q0 = model.particle_q.numpy().reshape(model.world_count, model.particle_count, 3)[w]
+                slot.skins = [self._define_surface(path_root, skin, skin.points(q0)) for skin in model.skins]
             slot.mesh_colliders = self._deforming_meshes.pop(path_root, [])
             self._slots.append(slot)
         if model.tri_count and any(slot.meshes for slot in self._slots):
@@ -199,6 +243,38 @@ class UsdWriter(UsdPrims, UsdStream):
         if "strain" in primvars or springs:
             self._strain_topology()
         self._start(kept, keep_frames)
+        if kept and self._accelerations:  # the last kept frame gets its accelerations from the next one
+            self._held = _last_kept(kept, self._animated)
+
+    def _define_layer(self, world: int, *, particles: bool, springs: bool) -> _WorldPrims:
+        """The overrides of a layer over an asset (``_layer``) for ``world``: every surface read from the asset, at
+        its prim path; particles, springs and emitters when asked for, and colliders with ``layer_colliders``,
+        under ``/warpspring`` (warpspring's metres and up axis turned into the asset's)."""
+        layer, model, UsdGeom = self._layer, self.model, self._UsdGeom
+        q0 = model.particle_q.numpy().reshape(model.world_count, model.particle_count, 3)[world]
+        meshes = [g for g in model.meshes if layer.owns(g.dressing)]
+        skins = [s for s in model.skins if layer.owns(s.dressing)]
+        if not meshes and not skins:
+            raise ConfigError(f"layer_over {layer.file!r}: the scene reads no mesh from that file; give a cloth or soft "
+                              "body mesh = that file (and prim = its mesh), or write a stage of its own (no layer_over)")
+        for group in meshes:
+            layer.check_prim(group.dressing, len(group.particles))
+        for skin in skins:
+            layer.check_prim(skin.dressing, len(skin.indices))
+        extras = particles or springs or bool(model.emitters) or (self._layer_colliders and bool(model.shapes))
+        if extras:
+            xform = UsdGeom.Xform.Define(self.stage, EXTRAS_ROOT)
+            xform.AddTransformOp().Set(self._Gf.Matrix4d(layer.extras_matrix().tolist()))
+            slot = self._define_world(world, EXTRAS_ROOT, particles=particles, springs=springs, surfaces=False)
+            if self._layer_colliders:
+                slot.colliders = self._write_colliders(EXTRAS_ROOT)
+        else:
+            slot = _WorldPrims(world, [], None, [])
+        slot.meshes = [self._define_surface(None, g, q0[g.particles]) for g in meshes]
+        slot.skins = [self._define_surface(None, s, s.points(q0)) for s in skins]
+        tops = ["/" + p.prim_path.split("/")[1] for p in slot.meshes + slot.skins] + ([EXTRAS_ROOT] if extras else [])
+        self._clip_roots = list(dict.fromkeys(tops))
+        return slot
 
     # -- frames ---------------------------------------------------------------------------------------
 
@@ -232,7 +308,7 @@ class UsdWriter(UsdPrims, UsdStream):
             v_all = state.particle_qd.numpy().reshape(q_all.shape).astype(np.float32)
         v_all[~np.isfinite(v_all)] = 0.0  # a velocity beyond float32 blurs nothing useful
         normals_all = None
-        if any(slot.meshes for slot in live):
+        if any(mesh.front is None for slot in live for mesh in slot.meshes):
             normals_all = self._vertex_normals(state).reshape(q_all.shape)
         rest = self._rest_lengths() if self._strain_ends is not None else None
         kinematic = None
@@ -243,23 +319,21 @@ class UsdWriter(UsdPrims, UsdStream):
 
         Vt, UsdGeom, Gf = self._Vt, self._UsdGeom, self._Gf
         samples = []  # (attribute path, value)
+        self._held_next, self._amend = {}, []  # accelerations: this frame's values; the frame before's samples
         for slot in live:
             q, v = q_all[slot.world], v_all[slot.world]
             strain = None if rest is None else self._spring_strain(q, rest[slot.world])
             vertex_strain = None if strain is None or "strain" not in self._primvars else self._vertex_strain(strain)
-            for mesh in slot.meshes:
+            for mesh in slot.meshes:  # (strain, pinned: None where the input authors its own, which is kept)
                 particles = mesh.group.particles
-                points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q[particles]))
-                samples += [(mesh.points, points), (mesh.extent, UsdGeom.PointBased.ComputeExtent(points)),
-                            (mesh.normals, vec3_array(Vt, normals_all[slot.world][particles])),
-                            (mesh.velocities, vec3_array(Vt, v[particles]))]
-                if vertex_strain is not None and mesh.strain is not None:  # None: an authored "strain" kept
-                    samples.append((mesh.strain, Vt.FloatArray.FromNumpy(vertex_strain[particles])))
-                if kinematic is not None and mesh.pinned is not None:  # None: an authored "pinned" kept
-                    samples.append((mesh.pinned, Vt.IntArray.FromNumpy(kinematic[slot.world][particles].astype(np.int32))))
+                samples += self._surface_samples(
+                    mesh, q[particles], v[particles],
+                    normals=normals_all[slot.world][particles] if mesh.front is None else None,
+                    strain=None if vertex_strain is None else vertex_strain[particles],
+                    pinned=None if kinematic is None else kinematic[slot.world][particles])
             for skin in slot.skins:
-                samples += self._skin_samples(skin, q, v, vertex_strain,
-                                              kinematic=None if kinematic is None else kinematic[slot.world])
+                samples += self._surface_samples(skin, **self._skin_values(
+                    skin.group, q, v, vertex_strain, None if kinematic is None else kinematic[slot.world]))
             if slot.points is not None:
                 points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(q))
                 samples += [(slot.points.points, points), (slot.points.velocities, vec3_array(Vt, v)),
@@ -279,7 +353,15 @@ class UsdWriter(UsdPrims, UsdStream):
             for collider, points_path, extent_path in slot.mesh_colliders:  # deforming meshes: their points now
                 points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(collider.points(), dtype=np.float32))
                 samples += [(points_path, points), (extent_path, UsdGeom.PointBased.ComputeExtent(points))]
-        self._append(samples)
+        self._held = self._held_next
+        self._append(samples, amend=self._amend)
+
+    def _closing_samples(self) -> list:
+        """The last frame's accelerations when the file is packed: the frame before's (no next frame tells more;
+        USD would hold it too), zero after a single frame."""
+        given = dict(self._amend)
+        return [(attribute, given.get(attribute, self._Vt.Vec3fArray(len(x))))
+                for attribute, (x, _) in self._held.items()]
 
     def stop_worlds(self, worlds) -> None:
         """Write no further samples of ``worlds`` (an index or indices; worlds not exported are ignored):
@@ -363,6 +445,22 @@ class UsdWriter(UsdPrims, UsdStream):
         per_corner = strain[self._corner_order // 2]
         out[self._corner_vertex] = np.maximum.reduceat(per_corner, self._corner_start)
         return out
+
+
+def _last_kept(kept: list, animated: list) -> dict:
+    """The points and velocities of the last kept frame of a resumed file, by the accelerations attribute they
+    belong to (what :meth:`~warpspring.io.usd_prims.UsdPrims._look_ahead` holds)."""
+    values = {attribute: samples[-1] for attribute, samples in kept}  # attribute → (time code, value)
+    last = max((t for t, _ in values.values()), default=None)
+    held = {}
+    for attribute, _ in animated:
+        if attribute.name != "accelerations":
+            continue
+        points = values.get(attribute.GetPrimPath().AppendProperty("points"))
+        velocities = values.get(attribute.GetPrimPath().AppendProperty("velocities"))
+        if points is not None and velocities is not None and points[0] == last == velocities[0]:
+            held[attribute] = (np.array(points[1], dtype=np.float64), np.array(velocities[1], dtype=np.float64))
+    return held
 
 
 def world_prim_name(world: int, world_count: int) -> str:

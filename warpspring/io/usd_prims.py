@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..core.transforms import quat_to_matrix
+from .usd_normals import FaceNormals, vertex_normals
 
 #: The optional per-vertex primvars of :class:`~warpspring.io.usd.UsdWriter`.
 PRIMVARS = ("strain", "pinned", "rest")
@@ -23,7 +24,7 @@ class UsdPrims:
     """Prim definitions of :class:`~warpspring.io.usd.UsdWriter`, a base of it: the writer holds ``stage`` (the
     static stage), ``model``, the pxr modules (``_UsdGeom``, ``_Vt``, ``_Gf``), the chosen ``_primvars``,
     ``_purpose`` and ``_tile``, ``_previous_normals`` (the normals written last, by attribute: the fallback of a
-    vertex whose faces cancel or have no area, :func:`fallback_normals`), and :meth:`~warpspring.io.usd_stream.UsdStream._animate` to register the
+    vertex whose faces cancel or have no area, :func:`~warpspring.io.usd_normals.fallback_normals`), and :meth:`~warpspring.io.usd_stream.UsdStream._animate` to register the
     attributes sampled per frame."""
 
     def _define_polygon_mesh(self, path: str, group):
@@ -116,48 +117,16 @@ class UsdPrims:
                 copied[(dressing.source, source)] = str(target)
         return {m: copied[(dressing.source, m)] for m in dressing.materials if (dressing.source, m) in copied}
 
-    def _define_world(self, world: int, root: str, *, particles: bool, springs: bool) -> _WorldPrims:
-        """Define the prims of one exported world under ``root``; topology and constant attributes once."""
+    def _define_world(self, world: int, root: str, *, particles: bool, springs: bool,
+                      surfaces: bool = True) -> _WorldPrims:
+        """Define the prims of one exported world under ``root``; topology and constant attributes once. With
+        ``surfaces`` false (a layer over an asset: its surfaces are overrides, :meth:`_define_surface`), only the
+        particles, springs and emitters."""
         from pxr import Sdf
 
         stage, UsdGeom, Vt, model = self.stage, self._UsdGeom, self._Vt, self.model
-        meshes = []
-        for group in model.meshes:
-            mesh = self._define_polygon_mesh(f"{root}/{group.name}", group)
-            primvars = UsdGeom.PrimvarsAPI(mesh)
-            if group.uvs is not None:  # per vertex, or per corner where seams give a particle two UVs
-                corners = group.uvs.ndim == 3
-                st = primvars.CreatePrimvar(
-                    "st", Sdf.ValueTypeNames.TexCoord2fArray,
-                    UsdGeom.Tokens.faceVarying if corners else UsdGeom.Tokens.vertex,
-                )
-                st.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(group.uvs.reshape(-1, 2), dtype=np.float32)))
-            authored = set()
-            if group.dressing is not None:  # a USD input: its primvars, subsets and bindings as authored
-                authored = self._dress(mesh, group.dressing)
-            else:
-                for name, faces in group.face_sets.items():
-                    UsdGeom.Subset.CreateGeomSubset(mesh, name, UsdGeom.Tokens.face, Vt.IntArray.FromNumpy(faces),
-                                                    familyName="warpspring")
-            strain = pinned = None
-            if "strain" in self._primvars and "strain" not in authored:
-                strain = self._animate(primvars.CreatePrimvar(
-                    "strain", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).GetAttr())
-            if "pinned" in self._primvars and "pinned" not in authored:
-                pinned = self._animate(primvars.CreatePrimvar(
-                    "pinned", Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.vertex).GetAttr())
-            if "rest" in self._primvars and "rest" not in authored:  # the world's positions at the start
-                q0 = model.particle_q.numpy().reshape(model.world_count, model.particle_count, 3)[world]
-                primvars.CreatePrimvar("rest", Sdf.ValueTypeNames.Point3fArray, UsdGeom.Tokens.vertex).Set(
-                    vec3_array(Vt, q0[group.particles]))
-            meshes.append(_MeshPrims(
-                group,
-                points=self._animate(mesh.CreatePointsAttr()),
-                extent=self._animate(mesh.CreateExtentAttr()),
-                normals=self._animate(mesh.CreateNormalsAttr()),
-                velocities=self._animate(mesh.CreateVelocitiesAttr()),
-                strain=strain, pinned=pinned,
-            ))
+        q0 = model.particle_q.numpy().reshape(model.world_count, model.particle_count, 3)[world]
+        meshes = [self._define_surface(root, group, q0[group.particles]) for group in model.meshes] if surfaces else []
 
         points = None
         if particles:
@@ -203,70 +172,128 @@ class UsdPrims:
             ))
         return _WorldPrims(world, meshes, points, curves, emitters)
 
-    def _define_skin(self, skin, world: int, root: str) -> _SkinPrims:
-        """Define the USD mesh of a surface embedded in the particles (a soft body's mesh as authored): its faces,
-        UVs and face sets once, like a cloth mesh's; its points, extent, normals and velocities per frame."""
+    def _define_surface(self, root: str, group, rest: np.ndarray) -> _SurfacePrims:
+        """Define the USD mesh of a simulated surface, a cloth's (``MeshGroup``) or a soft body's (``SkinGroup``,
+        its vertices following the particles), by one path: its faces as authored, UVs and face sets once (a USD
+        input: its whole dressing, :meth:`_dress`); the simulation's primvars asked for (``rest``: ``rest`` [m],
+        the vertices at the start); per frame its points, extent, normals (the interpolation the input authors,
+        :class:`~warpspring.core.usd_dressing.UsdDressing`), velocities and accelerations. Over an asset
+        (``_layer``): an override at the asset's prim path of the animated attributes only."""
         from pxr import Sdf
 
-        UsdGeom, Vt, model = self._UsdGeom, self._Vt, self.model
-        mesh = self._define_polygon_mesh(f"{root}/{skin.name}", skin)
+        UsdGeom, Vt = self._UsdGeom, self._Vt
+        dressing = group.dressing
+        layer = getattr(self, "_layer", None)
+        if layer is not None:  # the asset's own prim: only what the simulation changes
+            mesh = UsdGeom.Mesh(self.stage.OverridePrim(dressing.prim_path))
+            authored = {p.name for p in dressing.primvars}
+            rest = layer.local(dressing.prim_path, self._time_code(0), rest)[0]
+        else:
+            mesh = self._define_polygon_mesh(f"{root}/{group.name}", group)
+            if group.uvs is not None:  # per vertex, or per corner where seams give a particle two UVs
+                corners = group.uvs.ndim == 3
+                UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
+                    "st", Sdf.ValueTypeNames.TexCoord2fArray,
+                    UsdGeom.Tokens.faceVarying if corners else UsdGeom.Tokens.vertex,
+                ).Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(group.uvs.reshape(-1, 2), dtype=np.float32)))
+            authored = set()
+            if dressing is not None:  # a USD input: its primvars, subsets and bindings as authored
+                authored = self._dress(mesh, dressing)
+            else:
+                for name, faces in group.face_sets.items():
+                    UsdGeom.Subset.CreateGeomSubset(mesh, name, UsdGeom.Tokens.face, Vt.IntArray.FromNumpy(faces),
+                                                    familyName="warpspring")
         primvars = UsdGeom.PrimvarsAPI(mesh)
-        if skin.uvs is not None:
-            primvars.CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex).Set(
-                Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(skin.uvs, dtype=np.float32)))
-        for name, faces in skin.face_sets.items():
-            UsdGeom.Subset.CreateGeomSubset(mesh, name, UsdGeom.Tokens.face, Vt.IntArray.FromNumpy(faces),
-                                            familyName="warpspring")
-        strain = None
-        if "strain" in self._primvars:
+        strain = pinned = None
+        if "strain" in self._primvars and "strain" not in authored:
             strain = self._animate(primvars.CreatePrimvar(
                 "strain", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).GetAttr())
-        if "rest" in self._primvars:
-            q0 = model.particle_q.numpy().reshape(model.world_count, model.particle_count, 3)[world]
-            primvars.CreatePrimvar("rest", Sdf.ValueTypeNames.Point3fArray, UsdGeom.Tokens.vertex).Set(
-                vec3_array(Vt, skin.points(q0)))
-        pinned = None
-        if "pinned" in self._primvars:  # per frame: 1 where every particle the vertex follows is pinned
+        if "pinned" in self._primvars and "pinned" not in authored:  # a skin: 1 where all its particles are
             pinned = self._animate(primvars.CreatePrimvar(
                 "pinned", Sdf.ValueTypeNames.IntArray, UsdGeom.Tokens.vertex).GetAttr())
-        return _SkinPrims(skin, points=self._animate(mesh.CreatePointsAttr()),
-                          extent=self._animate(mesh.CreateExtentAttr()),
-                          normals=self._animate(mesh.CreateNormalsAttr()),
-                          velocities=self._animate(mesh.CreateVelocitiesAttr()), strain=strain, pinned=pinned)
+        if "rest" in self._primvars and "rest" not in authored:
+            primvars.CreatePrimvar("rest", Sdf.ValueTypeNames.Point3fArray, UsdGeom.Tokens.vertex).Set(
+                vec3_array(Vt, rest))
+        interpolation = (dressing.normals if dressing is not None else None) or UsdGeom.Tokens.vertex
+        if layer is not None and dressing.normals_primvar:  # USD prefers primvars:normals: override that one
+            normals = primvars.CreatePrimvar("normals", Sdf.ValueTypeNames.Normal3fArray, interpolation)
+            if dressing.normals_indexed:
+                normals.BlockIndices()  # the values written are per element, not indexed
+            normals = normals.GetAttr()
+        else:
+            normals = mesh.CreateNormalsAttr()
+            mesh.SetNormalsInterpolation(interpolation)
+        front = None
+        if dressing is not None and interpolation != UsdGeom.Tokens.vertex:  # per face-vertex or per face
+            flip = (dressing.orientation == UsdGeom.Tokens.leftHanded) != dressing.mirrored
+            counts = np.asarray(group.polygon_counts if group.polygon_counts is not None
+                                else np.full(len(group.faces), 3), dtype=np.int64)
+            front = FaceNormals(counts, dressing.face_vertex_indices.astype(np.int64), -1.0 if flip else 1.0,
+                           dressing.smoothing)
+        return _SurfacePrims(
+            group, points=self._animate(mesh.CreatePointsAttr()), extent=self._animate(mesh.CreateExtentAttr()),
+            normals=self._animate(normals), velocities=self._animate(mesh.CreateVelocitiesAttr()),
+            accelerations=self._animate(mesh.CreateAccelerationsAttr()) if self._accelerations else None,
+            strain=strain, pinned=pinned, interpolation=str(interpolation), front=front,
+            prim_path=dressing.prim_path if layer is not None else None,
+        )
 
-    def _skin_samples(self, prims, q: np.ndarray, v: np.ndarray, vertex_strain, *, kinematic=None) -> list:
-        """One frame's samples of an embedded surface: its vertices Σ w x and velocities Σ w v by a host product
-        over the positions already read back (no extra transfer, a fixed order: the same bytes on a rerun),
-        area-weighted vertex normals, and the weighted mean of its particles' strain [-] when asked for."""
+    def _surface_samples(self, prims, x: np.ndarray, v: np.ndarray, *, normals=None, strain=None, pinned=None) -> list:
+        """One frame's samples of a simulated surface from its vertices ``x`` [m] and velocities ``v`` [m/s]
+        (shape [vertex_count, 3], world space): points, extent, normals (``normals``: vertex normals computed on the
+        device; else found here, :meth:`_host_vertex_normals` or per face / per smoothing group of face-vertices),
+        velocities, its ``strain`` [-] and ``pinned`` (0/1) per vertex when given, accelerations (the frame before's,
+        once this frame is known, :meth:`_look_ahead`). Over an asset, every value in the prim's frame."""
         Vt, UsdGeom = self._Vt, self._UsdGeom
-        skin = prims.skin
-        x = skin.points(q)
-        corner = x[skin.faces]
-        face_normal = np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])  # length 2 × area
-        normal = np.zeros_like(x)
-        total = np.zeros(len(x))  # the lengths summed: what the normal would be without cancellation
-        face_length = np.linalg.norm(face_normal, axis=1)
-        for k in range(3):
-            np.add.at(normal, skin.faces[:, k], face_normal)
-            np.add.at(total, skin.faces[:, k], face_length)
-        length = np.linalg.norm(normal, axis=1)
-        normal = np.divide(normal, length[:, None], out=np.zeros_like(normal), where=length[:, None] > 0.0)
-        cancelled = np.flatnonzero(~(length > _CANCELLED * total))  # opposite faces, or no area around it
-        if len(cancelled):
-            previous = self._previous_normals.get(prims.normals)
-            normal[cancelled] = fallback_normals(x, skin.faces, cancelled, self.model.up_axis,
-                                                 None if previous is None else previous[cancelled])
-        self._previous_normals[prims.normals] = normal
+        x = np.asarray(x, dtype=np.float64)
+        if prims.front is not None:
+            normals = prims.front.normals(x, self.model.up_axis, prims.interpolation == UsdGeom.Tokens.uniform)
+        elif normals is None:
+            normals = self._host_vertex_normals(prims.normals, x, prims.group.faces)
+        if prims.prim_path is not None:
+            x, (v,), normals = self._layer.local(prims.prim_path, self._time_code(self.frame_count), x, [v], normals)
         points = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(x, dtype=np.float32))
         samples = [(prims.points, points), (prims.extent, UsdGeom.PointBased.ComputeExtent(points)),
-                   (prims.normals, vec3_array(Vt, normal)), (prims.velocities, vec3_array(Vt, skin.points(v)))]
-        if prims.strain is not None and vertex_strain is not None:
-            strain = (skin.weights * vertex_strain[skin.indices]).sum(axis=1)
-            samples.append((prims.strain, Vt.FloatArray.FromNumpy(strain.astype(np.float32))))
-        if prims.pinned is not None and kinematic is not None:  # held: no weight on a free particle
-            held = ~((skin.weights != 0.0) & ~kinematic[skin.indices]).any(axis=1)
-            samples.append((prims.pinned, Vt.IntArray.FromNumpy(held.astype(np.int32))))
+                   (prims.normals, vec3_array(Vt, normals)), (prims.velocities, vec3_array(Vt, v))]
+        if prims.accelerations is not None:
+            self._look_ahead(prims.accelerations, x, v)
+        if prims.strain is not None and strain is not None:
+            samples.append((prims.strain, Vt.FloatArray.FromNumpy(np.asarray(strain, dtype=np.float32))))
+        if prims.pinned is not None and pinned is not None:
+            samples.append((prims.pinned, Vt.IntArray.FromNumpy(np.asarray(pinned, dtype=np.int32))))
         return samples
+
+    def _look_ahead(self, attribute, x: np.ndarray, v: np.ndarray) -> None:
+        """Keep this frame's points and velocities for the accelerations of this frame, and give the frame before
+        its accelerations a = 2 (x₁ − x₀ − v₀ Δt) / Δt² (Δt = 1 / fps) of the float32 values written (a resumed run's
+        kept frame gives the same): the quadratic x₀ + v₀ t + ½ a t² that renderers draw between samples passes
+        through this frame's points (written into the frame before by
+        :meth:`~warpspring.io.usd_stream.UsdStream._append`)."""
+        x, v = (np.asarray(a, dtype=np.float32).astype(np.float64) for a in (x, v))  # the values as written
+        held = self._held.get(attribute)
+        if held is not None:
+            x0, v0 = held
+            dt = 1.0 / self.fps
+            self._amend.append((attribute, vec3_array(self._Vt, 2.0 * (x - x0 - v0 * dt) / (dt * dt))))
+        self._held_next[attribute] = (x, v)
+
+    def _host_vertex_normals(self, key, x: np.ndarray, faces: np.ndarray) -> np.ndarray:
+        """Area-weighted unit vertex normals of triangles ``faces`` at vertices ``x`` (:func:`~warpspring.io.usd_normals.vertex_normals`), the
+        normals written last for ``key`` (an attribute) kept where a vertex's faces cancel or have no area."""
+        normal = vertex_normals(x, faces, self.model.up_axis, self._previous_normals.get(key))
+        self._previous_normals[key] = normal
+        return normal
+
+    def _skin_values(self, skin, q: np.ndarray, v: np.ndarray, vertex_strain, kinematic) -> dict:
+        """An embedded surface's vertices Σ w x and velocities Σ w v (a host product over the positions already read
+        back: no extra transfer, a fixed order), the weighted mean of its particles' strain [-] and, per vertex,
+        whether every particle it follows (of nonzero weight) is pinned: the arguments of :meth:`_surface_samples`."""
+        values = dict(x=skin.points(q), v=skin.points(v))
+        if vertex_strain is not None:
+            values["strain"] = (skin.weights * vertex_strain[skin.indices]).sum(axis=1)
+        if kinematic is not None:  # held: no weight on a free particle
+            values["pinned"] = ~((skin.weights != 0.0) & ~kinematic[skin.indices]).any(axis=1)
+        return values
 
     def _emitter_samples(self, prims, world: int, q: np.ndarray, v: np.ndarray) -> list:
         """One frame's samples of an emitter's live particles in ``world``: points, ids, widths, velocities,
@@ -354,71 +381,6 @@ class UsdPrims:
         return moving
 
 
-def fallback_normals(x: np.ndarray, faces: np.ndarray, vertices: np.ndarray, up_axis: str,
-                     previous: np.ndarray | None = None) -> np.ndarray:
-    """Unit normals for ``vertices`` whose summed face normals cancel (two faces of the same corners with
-    opposite winding, as when two quads triangulate to one triangle both ways) or vanish (faces of no area):
-    the normal of the vertex's first face (lowest index) of nonzero area; where it has none, its ``previous``
-    frame's normal; where there is none, the up axis. Never a zero vector.
-
-    Args:
-        x: positions [m], shape [n, 3].
-        faces: triangles, shape [t, 3] (indices into ``x``); those of the vertices suffice, in their order.
-        vertices: the vertices to find normals for, shape [k].
-        up_axis: "Y" or "Z", the last resort.
-        previous: the vertices' normals of the frame before, shape [k, 3], or ``None``.
-
-    Returns:
-        Unit normals, shape [k, 3].
-    """
-    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    x = np.asarray(x, dtype=np.float64)
-    corner = x[faces]
-    face_normal = np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
-    face_length = np.linalg.norm(face_normal, axis=1)
-    usable = np.isfinite(face_length) & (face_length > 0.0)
-    slot = np.full(len(x), -1, dtype=np.int64)
-    slot[vertices] = np.arange(len(vertices))
-    first = np.full(len(vertices), len(faces), dtype=np.int64)
-    for k in range(3):
-        s = slot[faces[:, k]]
-        chosen = usable & (s >= 0)
-        np.minimum.at(first, s[chosen], np.flatnonzero(chosen))
-    out = np.zeros((len(vertices), 3))
-    out[:, 1 if up_axis == "Y" else 2] = 1.0
-    if previous is not None:
-        previous = np.asarray(previous, dtype=np.float64)
-        kept = np.linalg.norm(previous, axis=1) > 0.5  # a unit normal written before
-        out[kept] = previous[kept]
-    found = first < len(faces)
-    out[found] = face_normal[first[found]] / face_length[first[found], None]
-    return out
-
-
-def cancelled_vertices(faces: np.ndarray) -> np.ndarray:
-    """The vertices every incident triangle of which is cancelled by another of the same three vertices with the
-    opposite winding: their area-weighted normal is zero at every frame. Shape [k], ascending.
-
-    Args:
-        faces: triangles, shape [t, 3].
-    """
-    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    if not len(faces):
-        return np.zeros(0, dtype=np.int64)
-    order = np.argsort(faces, axis=1, kind="stable")
-    key = np.take_along_axis(faces, order, axis=1)  # the corners, sorted
-    sign = np.where((order[:, 1] - order[:, 0]) % 3 == 1, 1, -1)  # +1: the sorting was a rotation (same winding)
-    rows = np.column_stack([faces.ravel(), np.repeat(key, 3, axis=0)])  # per corner: vertex, triangle's corners
-    unique, inverse = np.unique(rows, axis=0, return_inverse=True)
-    total = np.zeros(len(unique), dtype=np.int64)
-    np.add.at(total, inverse.ravel(), np.repeat(sign, 3))
-    return np.setdiff1d(np.unique(faces), unique[total != 0, 0])
-
-
-#: Relative length below which a vertex's summed face normals count as cancelled (float64 rounding is ~1e-16).
-_CANCELLED = 1.0e-9
-
-
 def vec3_array(Vt, values: np.ndarray):
     return Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(values, dtype=np.float32))
 
@@ -470,29 +432,25 @@ def spring_chains(ends: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 @dataclass
-class _MeshPrims:
-    """The animated attributes (paths) of one exported cloth mesh."""
+class _SurfacePrims:
+    """The animated attributes (paths) of one exported surface: a cloth mesh (``group``: MeshGroup) or an embedded
+    one (a SkinGroup); how its normals are found; its prim path in the asset when written over one."""
 
-    group: object  # MeshGroup
+    group: object
     points: object
     extent: object
     normals: object
     velocities: object
+    accelerations: object = None
     strain: object = None
     pinned: object = None
+    interpolation: str = "vertex"
+    front: FaceNormals | None = None  # the faces, for normals per face or per face-vertex
+    prim_path: str | None = None
 
-
-@dataclass
-class _SkinPrims:
-    """The animated attributes (paths) of one exported embedded surface (a soft body's mesh)."""
-
-    skin: object  # SkinGroup
-    points: object
-    extent: object
-    normals: object
-    velocities: object
-    strain: object = None
-    pinned: object = None
+    @property
+    def skin(self):
+        return self.group
 
 
 @dataclass
@@ -534,12 +492,12 @@ class _WorldPrims:
     """The animated prims of one exported world."""
 
     world: int
-    meshes: list  # _MeshPrims per cloth mesh
+    meshes: list  # _SurfacePrims per cloth mesh
     points: object  # _PointsPrims of the particles, or None
     curves: list  # _CurvePrims per spring family
     emitters: list = field(default_factory=list)  # _EmitterPrims per emitter
     colliders: list = field(default_factory=list)  # (ShapeInfo, translate path, orient path) per moving collider
-    skins: list = field(default_factory=list)  # _SkinPrims per embedded surface (soft bodies)
+    skins: list = field(default_factory=list)  # _SurfacePrims per embedded surface (soft bodies)
     mesh_colliders: list = field(default_factory=list)  # (MeshCollider, points path, extent path) per deforming mesh
 
 

@@ -5,7 +5,9 @@ While a run writes ``out.usdc``, its frames live in a folder beside it, ``out.us
 once (``static.usdc``), and each frame as its own small layer (``frame.001001.usdc``), written whole through a
 temporary file and renamed, so a file is either absent or complete; every 100 frames they are gathered into a
 chunk layer, and neighbouring chunks merge as they grow (up to 64 MB), so the stage has few clips at any frame
-count. ``out.usdc`` itself is a small root layer, rewritten the same way after every frame: the stage's
+count. A frame whose accelerations come with the next frame is written again then under a new name
+(``frame.001001.full.usdc``), and the root names it once it is saved (the first file goes after a grace period),
+so a frame on disk is never rewritten in place. ``out.usdc`` itself is a small root layer, rewritten the same way after every frame: the stage's
 metadata, the static layer as a sublayer, and the frames as value clips (a template of the frame files up to
 the last one written). So at every moment the file is a valid stage holding every frame written: another
 process can open it as often as it likes while the run goes on and never sees a torn file or the frame count
@@ -84,7 +86,10 @@ class UsdStream:
         self._reaper = None
         self._format = ".usda" if ext == ".usda" else ".usdc"
         self._animated: list = []  # (attribute path, value type) of every attribute sampled per frame
-        self._pending = None  # (time code, layer) of the frame being saved
+        self._pending = None  # (time code, layer, the frame before's (time code, layer) if amended) being saved
+        self._last_frame = None  # (time code, layer) of the last frame saved while it may still be amended
+        self._keep_last = False  # keep the last frame out of chunks (its accelerations come with the next frame)
+        self._clip_roots = getattr(self, "_clip_roots", ["/World"])  # the prims whose subtrees the clips hold
         self._clips: list[_Clip] = []  # the clip layers in the frames folder, in time order
         self._loose: list = []  # (time code, layer) of the saved frames not yet gathered into a chunk
         self._loose_bytes = 0  # their size on disk [B]
@@ -136,11 +141,29 @@ class UsdStream:
     def _types(self) -> dict:
         return dict(self._animated)
 
-    def _append(self, samples: list) -> None:
-        """Save one frame's samples, (attribute path, value) pairs, as the next frame: time code ``start_frame``
-        + :attr:`frame_count`."""
-        time_code = self.start_frame + self.frame_count
-        self._pending = (time_code, self._frame_layer(time_code, samples))
+    def _time_code(self, frame: int) -> float:
+        """The time code of frame ``frame``: ``start_frame`` + frame, or over an asset ``start_frame`` + frame ×
+        its timeCodesPerSecond / fps (``_codes_per_second``; computed so, 3 × 24 / 60 is 1.2 exactly)."""
+        codes = getattr(self, "_codes_per_second", None)
+        return self.start_frame + (frame if codes is None else frame * codes / self.fps)
+
+    def _frame_index(self, time_code: float) -> int:
+        """The number in the file name of the frame at ``time_code``: ``start_frame`` + its frame."""
+        codes = getattr(self, "_codes_per_second", None)
+        frames = time_code - self.start_frame if codes is None else (time_code - self.start_frame) * self.fps / codes
+        return self.start_frame + int(round(frames))
+
+    def _append(self, samples: list, amend: list = ()) -> None:
+        """Save one frame's samples, (attribute path, value) pairs, as the next frame: time code
+        :meth:`_time_code` of :attr:`frame_count`. ``amend``: samples of the frame before (its accelerations, known
+        now), added to its layer, which is written again (whole, renamed) before this frame's."""
+        time_code = self._time_code(self.frame_count)
+        amended = None
+        if amend and self._last_frame is not None:
+            before, layer = self._last_frame
+            self._add_samples(layer, before, amend)
+            amended = (before, layer)
+        self._pending = (time_code, self._frame_layer(time_code, samples), amended)
         self.frame_count += 1
         self._save()
 
@@ -178,8 +201,12 @@ class UsdStream:
                 try:
                     saved = self._save_layer()
                     if saved is not False:
+                        old = self._swap_amended() if self._pending[2] is not None else []
                         self._add_clip(*self._pending)
                         self._write_root()
+                        if old:  # only now: a reader (or the root left by a kill) named it until here
+                            self._obsolete.append((time.monotonic() + _GRACE, old))
+                            self._reaper.obsolete(old)
                 finally:
                     said = _trapped(trap)
         except (OSError, self._Tf.ErrorException) as exc:
@@ -218,17 +245,34 @@ class UsdStream:
     def _save_layer(self) -> bool:
         """Write the pending frame's layer into the frames folder: whether USD saved it (it may also raise
         OSError or Tf.ErrorException)."""
-        time_code, layer = self._pending
-        return self._export(layer, os.path.join(self.parts, frame_name(time_code, self._format)))
+        time_code, layer, amended = self._pending
+        if amended is not None:  # under a new name: a failed write never touches the frame saved before
+            if self._export(amended[1], os.path.join(self.parts, self._frame_file(amended[0], amended=True))) is False:
+                return False
+        return self._export(layer, os.path.join(self.parts, self._frame_file(time_code)))
+
+    def _frame_file(self, time_code: float, *, amended: bool = False) -> str:
+        """The file name of the frame at ``time_code`` (``amended``: once its accelerations are added)."""
+        return frame_name(self._frame_index(time_code), (".full" if amended else "") + self._format)
+
+    def _swap_amended(self) -> list:
+        """After a save: the clip of the frame before names its amended file; returns its first file, to remove
+        after a grace period once the root that names the amended one is written."""
+        time_code, _ = self._pending[2]
+        clip = self._clips[-1]
+        name = self._frame_file(time_code, amended=True)
+        self._clips[-1] = clip._replace(name=name, size=os.path.getsize(os.path.join(self.parts, name)))
+        return [os.path.join(self.parts, clip.name)]
 
     def _export(self, layer, path: str) -> bool:
         """Write ``layer`` to ``path`` whole (USD writes a temporary file and renames it: a reader sees the
         old file or the new one, never a part)."""
         return layer.Export(path)
 
-    def _add_clip(self, time_code: float, layer) -> None:
+    def _add_clip(self, time_code: float, layer, amended=None) -> None:
         """Count a frame saved in the frames folder as a clip of the stage, and keep its layer for its chunk."""
-        name = frame_name(time_code, self._format)
+        self._last_frame = (time_code, layer)
+        name = self._frame_file(time_code)
         size = os.path.getsize(os.path.join(self.parts, name))
         self._clips.append(_Clip(time_code, time_code, name, -1, size))
         self._loose.append((time_code, layer))
@@ -247,36 +291,39 @@ class UsdStream:
                     os.remove(path)
                 except OSError:
                     pass
-        if len(self._loose) < _CHUNK_FRAMES and self._loose_bytes < _CHUNK_BYTES:
+        keep = 1 if self._keep_last and self._loose else 0  # the last frame waits for its accelerations
+        if len(self._loose) - keep < _CHUNK_FRAMES and self._loose_bytes < _CHUNK_BYTES:
             return
-        loose, self._loose, self._loose_bytes = self._loose, [], 0
+        loose, self._loose = self._loose[: len(self._loose) - keep], self._loose[len(self._loose) - keep:]
+        self._loose_bytes = 0
         if len(loose) >= 2:
             chunk = self._Sdf.Layer.CreateAnonymous(self._format)
             for _, layer in loose:
                 self._copy_samples(layer, chunk)
-            if not self._replace_clips(len(loose), chunk, level=0):
+            if not self._replace_clips(len(loose), chunk, level=0, skip=keep):
                 return
-        while len(self._clips) >= 2:
-            a, b = self._clips[-2:]
+        while len(self._clips) >= 2 + keep:
+            a, b = self._clips[len(self._clips) - keep - 2: len(self._clips) - keep]
             if a.level < 0 or a.level != b.level or a.size + b.size > _CHUNK_BYTES:
                 return
             merged = self._Sdf.Layer.CreateAnonymous(self._format)
             for clip in (a, b):
                 self._copy_samples(self._Sdf.Layer.OpenAsAnonymous(os.path.join(self.parts, clip.name)), merged)
-            if not self._replace_clips(2, merged, level=a.level + 1):
+            if not self._replace_clips(2, merged, level=a.level + 1, skip=keep):
                 return
 
-    def _replace_clips(self, count: int, layer, *, level: int) -> bool:
-        """Write ``layer`` as one chunk in place of the last ``count`` clips, then the root that uses it;
-        whether it worked (if not, the clips stay as they were: the file is as valid)."""
-        replaced = self._clips[-count:]
+    def _replace_clips(self, count: int, layer, *, level: int, skip: int = 0) -> bool:
+        """Write ``layer`` as one chunk in place of ``count`` clips (the last ones but ``skip``), then the root that
+        uses it; whether it worked (if not, the clips stay as they were: the file is as valid)."""
+        end = len(self._clips) - skip
+        replaced = self._clips[end - count: end]
         first, last = replaced[0].first, replaced[-1].last
-        name = chunk_name(first, last, self._format)
+        name = chunk_name(self._frame_index(first), self._frame_index(last), self._format)
         path = os.path.join(self.parts, name)
         clips = self._clips
         try:
             self._export(layer, path)
-            self._clips = clips[:-count] + [_Clip(first, last, name, level, os.path.getsize(path))]
+            self._clips = clips[:end - count] + [_Clip(first, last, name, level, os.path.getsize(path))] + clips[end:]
             self._write_root()
         except (OSError, self._Tf.ErrorException):
             self._clips = clips
@@ -307,30 +354,37 @@ class UsdStream:
         self._stage_metadata(layer, end=last)
         folder = os.path.basename(self.parts)
         layer.subLayerPaths.append(f"./{folder}/{STATIC_NAME}")
-        if self._clips:
-            world = Sdf.CreatePrimInLayer(layer, "/World")
-            world.specifier = Sdf.SpecifierOver
+        over = getattr(self, "_layer", None)
+        if over is not None:  # the asset, sublayered or referenced
+            over.author_arc(layer)
+        for root in self._clip_roots if self._clips else ():
+            spec = layer.GetPrimAtPath(root) or Sdf.CreatePrimInLayer(layer, root)
+            spec.specifier = Sdf.SpecifierOver
             start = float(self.start_frame)
-            world.SetInfo("clips", {"default": {
+            spec.SetInfo("clips", {"default": {
                 "assetPaths": Sdf.AssetPathArray([Sdf.AssetPath(f"./{folder}/{c.name}") for c in self._clips]),
                 "active": Vt.Vec2dArray([Gf.Vec2d(float(c.first), float(i)) for i, c in enumerate(self._clips)]),
                 "times": Vt.Vec2dArray([Gf.Vec2d(start, start), Gf.Vec2d(float(last), float(last))]),
-                "primPath": "/World",
+                "primPath": root,
                 "manifestAssetPath": Sdf.AssetPath(f"./{folder}/{MANIFEST_NAME}"),
                 "interpolateMissingClipValues": True,  # a stopped world holds its last sample
             }})
         self._export(layer, self.path)
 
     def _stage_metadata(self, layer, *, end: float) -> None:
-        """Author what DCC tools need to play the file (USD's fallbacks are wrong for simulation caches)."""
+        """Author what DCC tools need to play the file (USD's fallbacks are wrong for simulation caches); over an
+        asset, the asset's metadata."""
+        layer.startTimeCode = float(self.start_frame)
+        layer.endTimeCode = float(end)
+        layer.customLayerData = {"generator": f"warpspring {__version__} (warp {wp.__version__})"}
+        if getattr(self, "_layer", None) is not None:
+            self._layer.stage_metadata(layer)
+            return
         layer.defaultPrim = "World"
         layer.pseudoRoot.SetInfo("upAxis", self.model.up_axis)
         layer.pseudoRoot.SetInfo("metersPerUnit", 1.0)
         layer.timeCodesPerSecond = self.fps
         layer.framesPerSecond = self.fps
-        layer.startTimeCode = float(self.start_frame)
-        layer.endTimeCode = float(end)
-        layer.customLayerData = {"generator": f"warpspring {__version__} (warp {wp.__version__})"}
 
     def _manifest(self):
         """The clips' manifest: every animated attribute, declared with its type and no value."""
@@ -343,14 +397,19 @@ class UsdStream:
 
     def _frame_layer(self, time_code: float, samples: list):
         """A layer holding one frame's samples, each (attribute path, value), at ``time_code``."""
+        layer = self._Sdf.Layer.CreateAnonymous(self._format)
+        self._add_samples(layer, time_code, samples)
+        return layer
+
+    def _add_samples(self, layer, time_code: float, samples: list) -> None:
+        """Add samples, each (attribute path, value), at ``time_code`` to ``layer``."""
         Sdf = self._Sdf
-        layer = Sdf.Layer.CreateAnonymous(self._format)
         types = self._types
         for attribute, value in samples:
-            prim = Sdf.CreatePrimInLayer(layer, attribute.GetPrimPath())
-            Sdf.AttributeSpec(prim, attribute.name, types[attribute], Sdf.VariabilityVarying)
+            if not layer.GetAttributeAtPath(attribute):
+                prim = Sdf.CreatePrimInLayer(layer, attribute.GetPrimPath())
+                Sdf.AttributeSpec(prim, attribute.name, types[attribute], Sdf.VariabilityVarying)
             layer.SetTimeSample(attribute, time_code, value)
-        return layer
 
     def _write_kept(self, kept: list, frames: int) -> None:
         """Write the frames of a stopped run being resumed, (attribute path, [(time code, value)]) pairs."""
@@ -362,7 +421,7 @@ class UsdStream:
             for time_code, value in values:
                 by_time.setdefault(time_code, []).append((attribute, value))
         for time_code in sorted(by_time):
-            self._pending = (time_code, self._frame_layer(time_code, by_time[time_code]))
+            self._pending = (time_code, self._frame_layer(time_code, by_time[time_code]), None)
             self._save_layer()
             self._add_clip(*self._pending)
             self._gather()
@@ -408,7 +467,9 @@ class UsdStream:
         else:
             layer = Sdf.Layer.CreateNew(packed)
         layer.TransferContent(Sdf.Layer.FindOrOpen(static))
-        self._stage_metadata(layer, end=self.start_frame + max(self.frames_saved - 1, 0))
+        self._stage_metadata(layer, end=self._time_code(max(self.frames_saved - 1, 0)))
+        if getattr(self, "_layer", None) is not None:
+            self._layer.author_arc(layer)
         pending = 0  # bytes of samples (on disk, as clip files) gathered since the last save
         for clip in self._clips:
             clip_path = os.path.join(self.parts, clip.name)
@@ -417,9 +478,15 @@ class UsdStream:
             if not self._text and pending >= _PACK_FLUSH_BYTES:
                 layer.Save()  # a crate appends: the samples saved leave memory
                 pending = 0
+        if self._clips:  # what the last frame lacks while frames come (its accelerations)
+            self._add_samples(layer, self._clips[-1].last, self._closing_samples())
         if not layer.Save():
             raise OSError("USD did not save the packed file")
         del layer
+
+    def _closing_samples(self) -> list:
+        """Samples of the last frame that only the end of the run gives: none here (the writer's accelerations)."""
+        return []
 
     @property
     def _text(self) -> bool:
@@ -587,10 +654,11 @@ if "done" not in said:
         self._process.wait()
 
 
-def read_frames(path: str, frames: int, start_frame: int) -> list:
-    """Every time sample of the first ``frames`` frames (time codes ``start_frame`` ..) of the USD file at
-    ``path``, packed or a killed run's (read through its frames folder): (attribute path, [(time code, value)])
-    pairs, read into memory so that the file can be replaced."""
+def read_frames(path: str, frames: int, start_frame: int, *, step: float = 1.0) -> list:
+    """Every time sample of the first ``frames`` frames (time codes ``start_frame`` + k × ``step``) of the USD file
+    at ``path``, packed or a killed run's (read through its frames folder): (attribute path, [(time code, value)])
+    pairs, read into memory so that the file can be replaced. Only the file's own layers are read (not a layer's
+    asset beneath it)."""
     from pxr import Sdf, Tf, Usd
 
     if not os.path.isfile(path):
@@ -604,9 +672,14 @@ def read_frames(path: str, frames: int, start_frame: int) -> list:
                 if layer is not None:
                     layer.Reload()
                 stage = Usd.Stage.Open(layer if layer is not None else path)
+                own = (os.path.realpath(path), os.path.realpath(parts_folder(path)) + os.sep)
+                for used in stage.GetUsedLayers():  # an asset beneath a layer over it: not the run's frames
+                    real = os.path.realpath(used.realPath) if used.realPath else ""
+                    if real and real != own[0] and not real.startswith(own[1]):
+                        stage.MuteLayer(used.identifier)
                 kept, last = [], -1.0
-                end = start_frame + frames
-                for prim in stage.Traverse():
+                end = start_frame + (frames - 0.5) * step  # frames 0 .. frames - 1
+                for prim in stage.TraverseAll():
                     for attribute in prim.GetAttributes():
                         times = attribute.GetTimeSamples()
                         last = max([last, *times])
@@ -619,7 +692,7 @@ def read_frames(path: str, frames: int, start_frame: int) -> list:
     except Tf.ErrorException as exc:
         raise ConfigError(f"cannot resume into {path!r}: USD cannot read it "
                           f"({_reason(exc, said) or 'no reason'})") from None
-    held = int(last) + 1 - start_frame
+    held = int(round((last - start_frame) / step)) + 1
     if held < frames:
         raise ConfigError(f"cannot resume into {path!r}: it holds frames 0..{held - 1}, the checkpoint continues "
                           f"after frame {frames - 1}")

@@ -57,7 +57,7 @@ class ClothRecipes:
                 Not with per-corner ``uvs``.
             face_sets: named subsets of the authored faces (or of the triangles without polygons), kept on
                 export as USD face sets: a mapping name -> face indices.
-            dressing: a :class:`~warpspring.core.mesh_files.UsdDressing` (what the USD prim the mesh was read
+            dressing: a :class:`~warpspring.core.usd_dressing.UsdDressing` (what the USD prim the mesh was read
                 from carries besides its geometry) to write back on export, with ``polygon_counts`` given
                 as authored and the particles in the prim's point order; ``None``: none.
         """
@@ -284,7 +284,7 @@ class ClothRecipes:
                 (``.usd``, ``.usda``, ``.usdc``: see :func:`~warpspring.core.mesh_files.read_usd_mesh` for what is
                 applied; the output prim comes back dressed as authored: its polygons, primvars, subsets with
                 their material bindings, subdivision scheme, orientation, name and kind, see
-                :class:`~warpspring.core.mesh_files.UsdDressing`), or a vertex array
+                :class:`~warpspring.core.usd_dressing.UsdDressing`), or a vertex array
                 [m], shape [v, 3] (then ``faces`` is required).
             faces: vertex indices of each triangle, shape [t, 3], when ``mesh`` is an array.
             origin, rotation, scale: placement; world = origin + rotation · (scale · vertex).

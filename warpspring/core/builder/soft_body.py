@@ -46,7 +46,7 @@ class SoftBodyRecipes:
         skin_mass_factor: float = 1.0,
         mass_gradient=(0.0, 0.0, 0.0),
         options: Mapping | None = None,
-        name: str = "soft_body",
+        name: str | None = None,
         prim: str | None = None,
         plasticity: SpringPlasticity | None = None,
         volume: bool = False,
@@ -84,7 +84,8 @@ class SoftBodyRecipes:
                 :func:`~warpspring.core.softbody.distribute_mass`. Positions are in the mesh's scaled frame.
             options: the method's own options (``body_diagonals``, ``neighbours``, ``ties``, ``scaffold``,
                 ``thickness``, ``epsilon``, ``optimize``, ``seed``, ``max_vertices``, ...).
-            name: the exported mesh's name; the spring families are ``<name>_<group>``.
+            name: the exported mesh's name (``None``: a USD mesh prim's own name, else ``"soft_body"``); the spring
+                families are ``<name>_<group>``.
             prim: for a USD file, the path of the mesh prim to read.
             plasticity: how every spring of the body yields and breaks (:class:`SpringPlasticity`, its limits
                 per spring, e.g. ``yield_strain``); default: elastic.
@@ -114,10 +115,10 @@ class SoftBodyRecipes:
         import trimesh  # trimesh loads lazily
 
         started = time.perf_counter()
-        source = os.fspath(mesh) if isinstance(mesh, (str, os.PathLike)) else name
+        source = os.fspath(mesh) if isinstance(mesh, (str, os.PathLike)) else name or "soft_body"
         neohookean = _elasticity(elasticity, poisson_ratio, method=method, volume=volume, bulk_modulus=bulk_modulus,
-                                 plasticity=plasticity, source=name)
-        uv = polygons = None
+                                 plasticity=plasticity, source=name or "soft_body")
+        uv = polygons = dressing = None
         face_sets = {}
         usd = isinstance(mesh, (str, os.PathLike)) and os.fspath(mesh).lower().endswith(USD_EXTENSIONS)
         if prim is not None and not usd:
@@ -125,7 +126,7 @@ class SoftBodyRecipes:
         if usd:
             read = read_usd_mesh(mesh, prim=prim, up_axis=self.up_axis)
             vertices, faces = read.vertices, read.triangles
-            polygons, face_sets = (read.polygon_counts, read.polygon_indices), read.face_sets
+            polygons, face_sets, dressing = (read.polygon_counts, read.polygon_indices), read.face_sets, read.dressing
         else:
             if isinstance(mesh, (str, os.PathLike)):
                 mesh = load_mesh_file(mesh, what="soft-body mesh")
@@ -135,6 +136,7 @@ class SoftBodyRecipes:
             visual_uv = getattr(getattr(mesh, "visual", None), "uv", None)
             if visual_uv is not None and len(visual_uv) == len(vertices):
                 uv = np.asarray(visual_uv, dtype=np.float64)
+        name = (dressing.prim_name if dressing is not None else "soft_body") if name is None else name
         vertices = _points("soft-body mesh vertices", vertices)
         faces = np.asarray(faces)
         if len(vertices) == 0 or faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
@@ -192,6 +194,7 @@ class SoftBodyRecipes:
             polygon_counts=None if polygons is None else np.asarray(polygons[0], dtype=np.int32),
             polygon_indices=None if polygons is None else np.asarray(polygons[1], dtype=np.int32),
             face_sets={checks.identifier("face set name", k): np.asarray(v, dtype=np.int32) for k, v in face_sets.items()},
+            dressing=dressing,
         )
         self._skins.append(skin)
         volume_tets = None
