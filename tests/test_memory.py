@@ -189,7 +189,8 @@ def test_counts_alone_give_the_builders_estimate():
                                  integrator="rk4")
     assert counted == exact
     assert set(memory.INTEGRATOR_SCRATCH) == set(ws.INTEGRATORS)
-    assert counted.device_bytes == counted.model + counted.states + counted.integrator + counted.guard + counted.writer
+    assert counted.device_bytes == (counted.model + counted.states + counted.integrator + counted.guard + counted.writer
+                                    + counted.warmup)
     assert "model" in counted.describe() and "states" in counted.describe()
     with pytest.raises(ws.ConfigError, match="unknown integrator"):
         ws.estimate_memory(particles=10, integrator="leapfrog")

@@ -106,6 +106,8 @@ class MemoryEstimate:
         frame_host: host memory of writing one frame to USD (positions and normals read back, USD's arrays).
         run_host: host memory of a run's setup (the guard's energy scale, the advisor's bound), freed after it.
         self_contact: self-collision's device arrays and BVHs (:func:`self_contact_bytes`; 0 without it).
+        warmup: the stepper's copies of what a step carries to the next (the guard's and the integrator's), held
+            during its warm-up step before a capture and freed after it.
     """
 
     device: str
@@ -123,12 +125,14 @@ class MemoryEstimate:
     frame_host: int
     run_host: int
     self_contact: int = 0
+    warmup: int = 0
 
     @property
     def device_bytes(self) -> int:
-        """Everything a run keeps on the device [B]: the model and the run's buffers."""
+        """The device memory of a run at its peak [B]: the model and the run's buffers, and the stepper's warm-up
+        copies."""
         return (self.model + self.self_contact + self.states + self.integrator + self.guard + self.post_step
-                + self.writer)
+                + self.writer + self.warmup)
 
     @property
     def host_bytes(self) -> int:
@@ -148,7 +152,7 @@ class MemoryEstimate:
     def parts(self) -> dict:
         """The device parts by name [B], largest first, zero parts left out."""
         named = {"model": self.model, "self-collision": self.self_contact, "states": self.states,
-                 "integrator": self.integrator, "guard": self.guard,
+                 "integrator": self.integrator, "guard": self.guard, "capture warm-up": self.warmup,
                  "stabilizers and contacts": self.post_step, "USD writer": self.writer}
         return dict(sorted(((k, v) for k, v in named.items() if v), key=lambda kv: -kv[1]))
 
@@ -264,6 +268,10 @@ def self_contact_bytes(*, particles: int, worlds: int, triangles: int, edges: in
 #: sorted sides and their unique edges), the smallest altitude's float64 corners and products, and on the CPU its
 #: BVH builds' own temporaries; measured with ``bench/memory.py``.
 SELF_CONTACT_HOST_PER_TRIANGLE = 420
+#: Host bytes per triangle of a mesh collider that finalize holds beyond the model's arrays (the points' float32
+#: cast and float64 copy, the pseudo-normals' tables, the edge groups): measured ~26 B for a 977k-triangle sheet
+#: (``bench/memory.py``), counted as 64.
+MESH_FINALIZE_HOST_PER_FACE = 64
 
 
 def estimate_memory(
@@ -296,6 +304,8 @@ def estimate_memory(
     self_contact_triangles: int = 0,
     self_contact_edges: int | None = None,
     self_contact_vertices: int | None = None,
+    collider_faces: int = 0,
+    emitter_slots: int = 0,
 ) -> MemoryEstimate:
     """Estimate the memory of a model and of a run of it, from counts, before anything is allocated.
 
@@ -328,6 +338,8 @@ def estimate_memory(
         self_contact_triangles: triangles of the self-colliding surface (0: no self-collision).
         self_contact_edges, self_contact_vertices: its unique edges and vertices (default the upper bounds 3 × its
             triangles and every particle; ``ModelBuilder.estimate_memory`` counts them exactly).
+        collider_faces: the triangles of every mesh collider (their host temporaries in finalize).
+        emitter_slots: the particles of every emitter's pool (a run carries their slots from step to step).
 
     Returns:
         The :class:`MemoryEstimate`.
@@ -392,11 +404,19 @@ def estimate_memory(
     def element_blocks(count: int) -> int:
         return w * (count if not cuda else -(-count // _lanes(count, block_dim))) if count else 0
 
+    running = 8 * RUNNING_SLOTS * ((blocks + element_blocks(s) + element_blocks(h)) if cuda
+                                   else w * (1 + bool(s) + bool(h)))
+    dampers = (4 + (f + 8) * s) * w if s else 0
+    carried = 8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + running + dampers  # what a check carries on
     guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * GUARD_FLOATS * blocks + 8 * GUARD_LIMITS * w
-             + 8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + 8 * max(element_blocks(s) + element_blocks(h), w)
-             + 8 * RUNNING_SLOTS * ((blocks + element_blocks(s) + element_blocks(h)) if cuda
-                                    else w * (1 + bool(s) + bool(h)))
-             + 2 * vec3 * size + 8 * w + ((4 + (f + 8) * s) * w if s else 0))
+             + 8 * max(element_blocks(s) + element_blocks(h), w) + carried + 2 * vec3 * size + 8 * w)
+    # The stepper's warm-up before a capture copies what a step carries to the next (the guard's, the integrator's
+    # per-world state and implicit Euler's Δv, the emitters' flags and slots, the contact, self-collision and mesh
+    # caches' counters), and frees the copies once the warm-up step is undone.
+    slots = checks.count("emitter_slots", emitter_slots, minimum=0)
+    warmup = (carried + 8 * per_world_f64 * w + 4 * per_world_i32 * w + 64 * w
+              + (vec3 * size if integrator == "implicit_euler" else 0)
+              + ((4 * size + (12 * slots + 32) * w) if slots else 0))
     post_step = (3 * vec3 * size if strain_limiting and s else 0)
     if contact_slots:
         post_step += (8 * contact_slots + 4) * size + 4 * w + f  # colliders and features per slot, counts, overflow
@@ -415,7 +435,8 @@ def estimate_memory(
     self_v = n if self_contact_vertices is None else self_contact_vertices
     self_contact = self_contact_bytes(particles=n, worlds=w, triangles=self_t, edges=self_e, surface_vertices=self_v,
                                       precision=precision, cuda=cuda)
-    finalize_host = max(springs_peak, hinges_peak, particles_peak, SELF_CONTACT_HOST_PER_TRIANGLE * self_t)
+    finalize_host = (max(springs_peak, hinges_peak, particles_peak, SELF_CONTACT_HOST_PER_TRIANGLE * self_t)
+                     + MESH_FINALIZE_HOST_PER_FACE * checks.count("collider_faces", collider_faces, minimum=0))
     # A frame: positions read back (a copy on CUDA) and cast to float32, normals read back, and per exported mesh
     # vertex its points and normals gathered, then copied into USD arrays.
     frame_host = (vec3 * size if cuda else 0) + 12 * size + (12 * size if t else 0) + 48 * vertices * exported
@@ -426,7 +447,7 @@ def estimate_memory(
         device=str(device), cuda=cuda, particles=n, worlds=w, model=int(model), states=int(states),
         integrator=int(scratch), guard=int(guard), post_step=int(post_step), writer=int(writer),
         builder=int(builder), finalize_host=int(finalize_host), frame_host=int(frame_host), run_host=int(run_host),
-        self_contact=int(self_contact),
+        self_contact=int(self_contact), warmup=int(warmup),
     )
 
 

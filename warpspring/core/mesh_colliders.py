@@ -41,9 +41,11 @@ from ..kernels.mesh_colliders import FACE_NORMALS, MESH_SIDES, MeshCache, face_n
 from . import memory
 from .mesh_counts import mesh_file_counts
 
-#: Host bytes per triangle of adding a mesh collider read from a file (trimesh's loading, the float64 vertices and
-#: faces kept): measured 274-295 B for OBJ sheets of 179k and 977k triangles (``bench/memory.py``), counted as 400.
-MESH_COLLIDER_FILE_PER_FACE = 400
+#: Host bytes of adding a mesh collider read from a file (trimesh's loading, the float64 vertices and faces kept):
+#: per triangle and fixed; an OBJ sheet measured 421 B per triangle at 179k triangles and 265 B at 977k
+#: (``bench/memory.py``), that is ~230 B per triangle and ~28 MiB, counted as 320 B and 24 MiB.
+MESH_COLLIDER_FILE_PER_FACE = 320
+MESH_COLLIDER_FILE_FIXED = 24 << 20
 
 
 def check_mesh_file_room(path: str) -> None:
@@ -55,7 +57,7 @@ def check_mesh_file_room(path: str) -> None:
         return
     vertices, faces = counts
     memory.check_host_room(f"the mesh collider {path} ({faces:,} triangles, {vertices:,} vertices)",
-                           MESH_COLLIDER_FILE_PER_FACE * faces + 24 * vertices,
+                           MESH_COLLIDER_FILE_PER_FACE * faces + 24 * vertices + MESH_COLLIDER_FILE_FIXED,
                            remedy="decimate the mesh (fewer triangles) or use a simpler collider (a box, a capsule)")
 
 

@@ -175,6 +175,8 @@ class Finalization:
             mesh_bytes=_mesh_collider_bytes(meshes) + sum(
                 memory.mesh_native_bytes(len(m.faces), winding_number=m.winding_number, cuda=device.is_cuda)
                 for m in meshes),
+            collider_faces=sum(len(m.faces) for m in meshes),
+            emitter_slots=sum(e.capacity for e in self._emitters),
             **_surface_counts(surface, n),
         )
 
