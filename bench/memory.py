@@ -78,8 +78,11 @@ CASES = {
     "voxel at 2 mm": "ws.ModelBuilder().add_soft_body(sphere(0.2), method='voxel', youngs_modulus=1e5, "
                      "density=1000.0, spacing=0.002)",
     "emitter rate 1e9": "ws.ModelBuilder().add_emitter(rate=1e9, life=1.0)",
+    "self-collision on a 1024² cloth": "b = ws.ModelBuilder(); b.add_cloth_grid(nx=1024, ny=1024, spacing=0.001, "
+                                       "mass=1.0); b.add_self_collision(thickness=0.0002); b.finalize('cpu')",
     "5M-triangle OBJ": "ws.ModelBuilder().add_cloth_mesh(OBJ, mass=1.0)",
     "5M-triangle OBJ, capped at 2 GiB": "ws.ModelBuilder().add_cloth_mesh(OBJ, mass=1.0)",
+    "5M-triangle OBJ as a mesh collider, capped at 2 GiB": "ws.ModelBuilder().add_collider_mesh(OBJ, sides='two_sided')",
     "sweep 10 axes × 10 values": "plan_sweep({'scene': SCENE, 'axes': {f'cloth.structural.ke{i}': {'log': [1.0, 10.0], "
                                  "'count': 10} for i in range(10)}})",
     "sweep count = 1e9": "plan_sweep({'scene': SCENE, 'axes': {'world.drag': {'range': [0.0, 1.0], "

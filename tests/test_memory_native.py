@@ -20,6 +20,10 @@ from warpspring.core.mesh_colliders import MESH_COLLIDER_FILE_FIXED, MESH_COLLID
 
 from helpers import warp_allocations
 
+#: On CUDA the memory pool's counters hold each allocation rounded up to its granularity: a tolerance of 512 B for
+#: each of up to 512 allocations (these models make a few hundred).
+POOL_SLACK = 512 * 512
+
 
 def _self_colliding(n: int = 24, m: int = 16, *, second: bool = False) -> ws.ModelBuilder:
     builder = ws.ModelBuilder()
@@ -49,9 +53,10 @@ def test_self_collision_is_estimated_as_allocated(device, precision, worlds, sec
     assert estimate.self_contact > estimate.model  # not a negligible part
     assert surface.triangle_count == (2 * 23 * 15) and estimate.self_contact > 0
     slack = memory.NATIVE_DESCRIPTOR_BYTES * (worlds + 1)
+    rounding = POOL_SLACK if estimate.cuda else 0
     if estimate.cuda:
-        slack += memory.BVH_BUILD_TEMPORARY_CUDA * surface.triangle_count + 512 * 64  # pool alignment of ~64 arrays
-    assert allocated["live"] - 1024 <= expected <= allocated["live"] + slack
+        slack += memory.BVH_BUILD_TEMPORARY_CUDA * surface.triangle_count  # freed after each build
+    assert allocated["live"] - 1024 - rounding <= expected <= allocated["live"] + slack
 
 
 def test_counted_self_collision_bounds_the_exact_one():
@@ -78,6 +83,7 @@ def test_a_self_colliding_model_that_cannot_fit_is_refused_naming_the_part(monke
         builder.finalize("cpu")
     line = str(refused.value)
     assert "\n" not in line and "self-collision" in line and memory.format_bytes(estimate.self_contact) in line
+    assert "add_self_collision(meshes=" in line  # the remedy names the part that does not fit
 
 
 @pytest.mark.parametrize("winding_number", [False, True])
@@ -217,4 +223,5 @@ def test_a_runs_device_peak_is_estimated(device, integrator):
         assert allocated["peak"] == run - midpoint - stage_time - counters
         assert allocated["live"] == run - estimate.warmup - midpoint
     else:
-        assert run - estimate.warmup - midpoint - 512 * 64 <= allocated["live"] <= run - estimate.warmup - midpoint
+        kept = run - estimate.warmup - midpoint
+        assert kept - POOL_SLACK <= allocated["live"] <= kept + POOL_SLACK

@@ -5,9 +5,13 @@ The estimate counts every array the code allocates, byte for byte, from the mode
 springs, hinges, triangles and colliders; worlds; the scalar type; the incidence tables' widths (keyframe
 tracks, tens of bytes per key, are left out). The run's parts follow the code that allocates them: a :class:`~warpspring.core.stepper.Stepper` holds two states
 (the current one and the scratch one it alternates with); each integrator allocates its own scratch
-(:data:`INTEGRATOR_SCRATCH`, read from each ``__init__``); the guard one partial sum per reducing block;
-strain limiting three position buffers; the contact stage its slot buffer; the USD writer a vertex-normal
-buffer on the device and, per frame, the positions and normals it reads back and hands to USD.
+(:data:`INTEGRATOR_SCRATCH`, read from each ``__init__``); the guard one partial sum per reducing block, and
+what it makes lazily (a substep's midpoint state, the springs' damper sums); strain limiting three position
+buffers; the contact stage its slot buffer; the stepper's warm-up, copies of what a step carries to the next;
+the USD writer a vertex-normal buffer on the device and, per frame, the positions and normals it reads back and
+hands to USD. Warp's native memory counts too: each world's BVH of self-collision
+(:func:`self_contact_bytes`, with its pair buffers and caches) and each mesh collider's ``wp.Mesh``
+(:func:`mesh_native_bytes`), from the sizes Warp's ``bvh.cpp``/``bvh.cu`` and ``mesh.cu`` allocate.
 
 Host memory is estimated as well, as what :meth:`ModelBuilder.finalize` holds at its peak beyond the
 builder's own arrays: its concatenated copies and the temporaries of the incidence tables' stable sort
@@ -615,6 +619,9 @@ def remedy(estimate: MemoryEstimate, ratio: float, *, precision: str = "float32"
         advice.append("precision='float32' (half the floating-point arrays)")
     if estimate.worlds > 1:
         advice.append(f"fewer worlds (about {max(int(estimate.worlds * share), 1)} fit)")
+    if estimate.self_contact > estimate.device_bytes / 2:
+        advice.insert(0, "self-collision on fewer or coarser meshes (add_self_collision(meshes=[...]): it holds "
+                         f"{format_bytes(estimate.self_contact)} here)")
     return "Use " + ", or ".join(advice) + "."
 
 
