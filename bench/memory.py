@@ -19,7 +19,8 @@ The bound held in both: measured ≤ estimate ≤ 2 × measured.
    ``WARPSPRING_MEMORY_LIMIT``: the time, the process's peak resident memory (``VmHWM``, imports included) and
    the one line each is refused with ("ran": it fitted and was built).
 
-Run: ``python bench/memory.py [--device cuda:0] [--quick] [--out bench/results/memory.md]``.
+Run: ``python bench/memory.py [--device cuda:0] [--quick] [--no-cases] [--out FILE]`` (results in
+``bench/results/memory.md``; on CUDA ``memory-cuda.md``, whose refusals are the CPU's: give ``--no-cases``).
 """
 
 from __future__ import annotations
@@ -424,7 +425,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="the smaller sizes only, no 5M-triangle OBJ")
     parser.add_argument("--limit", default="8GiB", help="host memory cap of the issue's cases")
     parser.add_argument("--no-cases", action="store_true")
-    parser.add_argument("--out", default=os.path.join(HERE, "results", "memory.md"))
+    parser.add_argument("--out", help="results file (default bench/results/memory.md, on CUDA memory-cuda.md)")
     parser.add_argument("--one", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
@@ -436,7 +437,8 @@ def main() -> None:
     cases = [] if args.no_cases else run_cases(args.limit, args.quick)
     command = "python bench/memory.py " + " ".join(sys.argv[1:])
     text = report(rows, cases, args.device, args.limit, command.strip())
-    with open(args.out, "w") as f:
+    out = args.out or os.path.join(HERE, "results", "memory.md" if args.device == "cpu" else "memory-cuda.md")
+    with open(out, "w") as f:
         f.write(text)
     print(text)
 
