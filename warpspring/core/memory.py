@@ -269,13 +269,16 @@ def self_contact_bytes(*, particles: int, worlds: int, triangles: int, edges: in
 
 
 #: Host bytes per colliding triangle of making self-collision (``make_self_contact``): the surface's topology (its
-#: sorted sides and their unique edges), the smallest altitude's float64 corners and products, and on the CPU its
-#: BVH builds' own temporaries; measured with ``bench/memory.py``.
-SELF_CONTACT_HOST_PER_TRIANGLE = 420
+#: sorted sides and their unique edges) and the smallest altitude's float64 corners and products; the peak of
+#: NumPy's allocations (``tracemalloc``) measured 556-559 B for 128² and 256² cloths, counted as 600.
+SELF_CONTACT_HOST_PER_TRIANGLE = 600
 #: Host bytes per triangle of a mesh collider that finalize holds beyond the model's arrays (the points' float32
-#: cast and float64 copy, the pseudo-normals' tables, the edge groups): measured ~26 B for a 977k-triangle sheet
-#: (``bench/memory.py``), counted as 64.
-MESH_FINALIZE_HOST_PER_FACE = 64
+#: cast and float64 copy, the pseudo-normals' tables, the edge groups): the peak of NumPy's allocations measured
+#: 243 B for a 977k-triangle sheet (the resident memory grows less: freed heap is reused), counted as 260.
+MESH_FINALIZE_HOST_PER_FACE = 260
+#: Host bytes per triangle the builder keeps of a mesh collider read from a file (its vertices and faces, the
+#: reader's cached copy): measured 144 B (``tracemalloc``), counted as 160.
+MESH_COLLIDER_KEPT_PER_FACE = 160
 
 
 def estimate_memory(
@@ -342,7 +345,8 @@ def estimate_memory(
         self_contact_triangles: triangles of the self-colliding surface (0: no self-collision).
         self_contact_edges, self_contact_vertices: its unique edges and vertices (default the upper bounds 3 × its
             triangles and every particle; ``ModelBuilder.estimate_memory`` counts them exactly).
-        collider_faces: the triangles of every mesh collider (their host temporaries in finalize).
+        collider_faces: the triangles of every mesh collider (the builder's copies, their host temporaries in
+            finalize).
         emitter_slots: the particles of every emitter's pool (a run carries their slots from step to step).
 
     Returns:
@@ -358,6 +362,7 @@ def estimate_memory(
     shapes = checks.count("colliders", colliders, minimum=0)
     w = checks.count("worlds", worlds, minimum=1)
     pinned = checks.count("pinned", pinned, minimum=0)
+    collider_faces = checks.count("collider_faces", collider_faces, minimum=0)
     if precision not in SCALAR_BYTES:
         raise ConfigError(f"precision must be 'float32' or 'float64', got {precision!r}")
     if integrator not in INTEGRATOR_SCRATCH:
@@ -427,7 +432,7 @@ def estimate_memory(
     writer = (12 * size + 12 * t * exported) if t else 0  # vertex normals (float32) and the exported triangles
 
     builder = (_BUILDER_PARTICLE * n + _BUILDER_SPRING * s + _BUILDER_HINGE * h + _BUILDER_TRIANGLE * t
-               + _BUILDER_VERTEX * vertices)
+               + _BUILDER_VERTEX * vertices + MESH_COLLIDER_KEPT_PER_FACE * collider_faces)
     # finalize: the concatenated pairs (int64) stay for the whole call; each family's incidence sort peaks at
     # _INCIDENCE_ENTRY per entry plus its head tables (int32); the particles' copies (float64 and cast) come first.
     springs_peak = 16 * s + _INCIDENCE_ENTRY * 2 * s + 8 * spring_slots * n
@@ -440,7 +445,7 @@ def estimate_memory(
     self_contact = self_contact_bytes(particles=n, worlds=w, triangles=self_t, edges=self_e, surface_vertices=self_v,
                                       precision=precision, cuda=cuda)
     finalize_host = (max(springs_peak, hinges_peak, particles_peak, SELF_CONTACT_HOST_PER_TRIANGLE * self_t)
-                     + MESH_FINALIZE_HOST_PER_FACE * checks.count("collider_faces", collider_faces, minimum=0))
+                     + MESH_FINALIZE_HOST_PER_FACE * collider_faces)
     # A frame: positions read back (a copy on CUDA) and cast to float32, normals read back, and per exported mesh
     # vertex its points and normals gathered, then copied into USD arrays.
     frame_host = (vec3 * size if cuda else 0) + 12 * size + (12 * size if t else 0) + 48 * vertices * exported
