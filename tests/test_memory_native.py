@@ -137,15 +137,19 @@ def test_an_obj_of_quads_is_counted_as_the_triangles_trimesh_makes(tmp_path, mon
     assert counted[1] == len(loaded.faces)
 
 
-@pytest.mark.parametrize("kind", ["ply", "ply_ascii", "stl", "stl_ascii", "off"])
+@pytest.mark.parametrize("kind", ["ply", "ply_ascii", "stl", "stl_ascii", "off", "glb", "gltf"])
 def test_headers_give_the_counts_without_reading_the_file(tmp_path, kind):
-    """PLY (binary: the polygon size from the file's length; ASCII), STL (binary: its count; ASCII: its facets) and
-    OFF give (vertices, triangles) equal to the mesh trimesh reads (STL before its vertices are merged)."""
+    """PLY (binary: the polygon size from the file's length; ASCII), STL (binary: its count; ASCII: its facets), OFF
+    and glTF / GLB (their JSON) give (vertices, triangles) equal to the mesh trimesh reads (STL before its vertices
+    are merged)."""
     mesh = trimesh.creation.icosphere(subdivisions=3)
     extension = kind.split("_")[0]
     path = tmp_path / f"sphere.{extension}"
-    data = mesh.export(file_type=extension, encoding="ascii") if kind == "ply_ascii" else \
-        trimesh.exchange.stl.export_stl_ascii(mesh) if kind == "stl_ascii" else mesh.export(file_type=extension)
+    if kind == "gltf":  # the JSON with its buffer embedded
+        data = trimesh.exchange.gltf.export_gltf(trimesh.Scene(mesh), embed_buffers=True)["model.gltf"]
+    else:
+        data = mesh.export(file_type=extension, encoding="ascii") if kind == "ply_ascii" else \
+            trimesh.exchange.stl.export_stl_ascii(mesh) if kind == "stl_ascii" else mesh.export(file_type=extension)
     path.write_bytes(data.encode() if isinstance(data, str) else data)
     loaded = trimesh.load(path, process=False, force="mesh")
     vertices, triangles = mesh_counts.mesh_file_counts(path)
@@ -172,9 +176,11 @@ def test_formats_without_counts_and_unreadable_files_are_not_counted(tmp_path):
     assert mesh_counts.mesh_file_counts(tmp_path / "missing.obj") is None
     (tmp_path / "bad.ply").write_bytes(b"not a ply file")
     assert mesh_counts.mesh_file_counts(tmp_path / "bad.ply") is None
-    path = tmp_path / "box.glb"
-    path.write_bytes(trimesh.creation.box().export(file_type="glb"))
+    path = tmp_path / "box.dae"  # a format not counted (its content does not matter: nothing is read)
+    path.write_bytes(b"<COLLADA/>")
     assert mesh_counts.mesh_file_counts(path) is None
+    (tmp_path / "bad.glb").write_bytes(b"glTF" + bytes(16))
+    assert mesh_counts.mesh_file_counts(tmp_path / "bad.glb") is None
 
 
 def test_a_mesh_collider_file_too_large_is_refused_before_it_is_read(tmp_path, monkeypatch):

@@ -3,13 +3,15 @@ memory is refused before trimesh loads it.
 
 Where the format says it in a header, the header is all that is read: PLY (``element vertex``, ``element face``;
 a binary file's polygon size follows from its length), binary STL (its triangle count, checked against the file's
-length), OFF (its count line). OBJ and ASCII STL have no header: their lines are streamed in blocks (constant
-memory, ~1 s per 100 MB), an OBJ face of k corners counted as the k − 2 triangles trimesh makes of it. Other
-formats (glTF, 3MF, ...) are not counted (``None``).
+length), OFF (its count line), glTF and GLB (their JSON's accessor counts: positions, and indices / 3 of triangle
+primitives, each mesh counted once per node that places it). OBJ and ASCII STL have no header: their lines are
+streamed in blocks (constant memory, ~1 s per 100 MB), an OBJ face of k corners counted as the k − 2 triangles
+trimesh makes of it. Other formats (3MF, DAE, ...) are not counted (``None``).
 """
 
 from __future__ import annotations
 
+import json
 import os
 import struct
 
@@ -40,7 +42,9 @@ def mesh_file_counts(path) -> tuple[int, int] | None:
             return _stl_counts(path)
         if extension == ".off":
             return _off_counts(path)
-    except (OSError, ValueError, struct.error):
+        if extension in (".glb", ".gltf"):
+            return _gltf_counts(path, binary=extension == ".glb")
+    except (OSError, ValueError, struct.error, KeyError, TypeError, IndexError):
         return None
     return None
 
@@ -154,3 +158,31 @@ def _off_counts(path: str) -> tuple[int, int]:
     if len(words) < 2:
         raise ValueError("no OFF count line")
     return int(words[0]), int(words[1])
+
+
+def _gltf_counts(path: str, *, binary: bool) -> tuple[int, int]:
+    """glTF / GLB: the JSON's accessors (a GLB's first chunk, read alone): each triangle primitive's positions and
+    indices / 3 (or positions / 3 without indices), a mesh counted once per node that uses it (at least once)."""
+    with open(path, "rb") as f:
+        if binary:
+            magic, _, _, length, kind = struct.unpack("<4sIIII", f.read(20))
+            if magic != b"glTF" or kind != 0x4E4F534A:  # "JSON"
+                raise ValueError("not a GLB file")
+            document = json.loads(f.read(length))
+        else:
+            document = json.load(f)
+    accessors = document.get("accessors", [])
+    uses = [0] * len(document.get("meshes", []))
+    for node in document.get("nodes", []):
+        if "mesh" in node:
+            uses[node["mesh"]] += 1
+    vertices = triangles = 0
+    for mesh, used in zip(document.get("meshes", []), uses):
+        for primitive in mesh.get("primitives", []):
+            if primitive.get("mode", 4) != 4:  # not TRIANGLES: trimesh reads no faces from it
+                continue
+            points = accessors[primitive["attributes"]["POSITION"]]["count"]
+            corners = accessors[primitive["indices"]]["count"] if "indices" in primitive else points
+            vertices += max(used, 1) * points
+            triangles += max(used, 1) * (corners // 3)
+    return vertices, triangles
