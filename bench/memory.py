@@ -3,17 +3,24 @@
 Two tables, each row measured in a fresh Python process (a peak is per process):
 
 1. **Estimate vs measured**: for grids, cloth meshes, soft bodies (voxel, grid, tetrahedral, Delaunay),
-   emitter pools and many worlds, at several sizes, the estimate the pre-allocation checks use against the
-   growth of the process's peak resident memory (Linux ``VmHWM``, reset through ``/proc/self/clear_refs``
-   after a warm-up that loads the modules) on the host; with ``--device cuda:0`` also the model and a
-   simulator on the GPU against the memory pool's high-water mark (``wp.get_mempool_used_mem_high``). The
-   bound held: measured ≤ estimate ≤ 2 × measured.
-2. **Refusals**: the oversized scenes at their full sizes, each in a process whose host memory is capped at
-   ``--limit`` (8 GiB; the OBJ also at 2 GiB, as it fits in 8) through
+   emitter pools, many worlds, self-collision and mesh colliders, at several sizes, the estimate the
+   pre-allocation checks use against the growth of the process's peak resident memory (Linux ``VmHWM``, reset
+   through ``/proc/self/clear_refs`` after a warm-up that loads the modules) on the host.
+2. **Device**: each row's model finalized on ``--device`` and a simulator's first frame (the default guard on),
+   their peak device memory against the estimate's device bytes (less the USD writer's, as no writer is made):
+   on a CUDA device the growth of the memory pool's high-water mark (``wp.get_mempool_used_mem_high``) with the
+   drop of the device's free memory (``wp.get_device(...).free_memory``, which also holds what is not pooled)
+   beside it; on the CPU the peak of every Warp allocation, native ones (BVHs, meshes) included (Warp's
+   allocation tracker).
+
+The bound held in both: measured ≤ estimate ≤ 2 × measured.
+3. **Refusals**: the oversized scenes at their full sizes, each in a process whose host memory is capped at
+   ``--limit`` (8 GiB; the OBJ also at 2 GiB as a cloth and at 1 GiB as a mesh collider, as it fits in 8) through
    ``WARPSPRING_MEMORY_LIMIT``: the time, the process's peak resident memory (``VmHWM``, imports included) and
    the one line each is refused with ("ran": it fitted and was built).
 
-Run: ``python bench/memory.py [--device cuda:0] [--quick] [--out bench/results/memory.md]``.
+Run: ``python bench/memory.py [--device cuda:0] [--quick] [--no-cases] [--out FILE]`` (results in
+``bench/results/memory.md``; on CUDA ``memory-cuda.md``, whose refusals are the CPU's: give ``--no-cases``).
 """
 
 from __future__ import annotations
@@ -45,10 +52,19 @@ MATRIX = [
     ("tetrahedral_sphere", 0.005, "tetrahedral sphere r=0.1, 5 mm"),
     ("delaunay_sphere", 0.006, "Delaunay sphere r=0.1, 6 mm"),
     ("emitter", 1_000_000, "emitter pool 1e6"), ("emitter", 10_000_000, "emitter pool 1e7"),
-    ("worlds", 20_000, "20k worlds of 6×6, simulator"), ("worlds", 100_000, "100k worlds of 6×6, simulator"),
+    ("worlds", 20_000, "20k worlds of 6×6, a frame"), ("worlds", 100_000, "100k worlds of 6×6, a frame"),
+    ("selfcontact", 128, "cloth grid 128² + self-collision"), ("selfcontact", 256, "cloth grid 256² + self-collision"),
+    ("selfcontact", 512, "cloth grid 512² + self-collision"),
+    ("collider_file", 300, "mesh collider from an OBJ, 179k triangles"),
+    ("collider_file", 700, "mesh collider from an OBJ, 977k triangles"),
+    ("collider", 300, "mesh collider, 179k triangles"), ("collider", 700, "mesh collider, 977k triangles"),
+    ("collider_winding", 700, "mesh collider (winding number), 977k triangles"),
 ]
 QUICK = {("grid", 256), ("mesh", 300), ("voxel_sphere", 0.005), ("tetrahedral_sphere", 0.008),
-         ("emitter", 1_000_000), ("worlds", 20_000)}
+         ("emitter", 1_000_000), ("worlds", 20_000), ("selfcontact", 128), ("collider_file", 300), ("collider", 300)}
+#: Rows whose host peak is not compared (the device table holds them): a winding-number mesh's tables on the CPU are
+#: allocated in full but touched in part, so the resident memory is below what is allocated (and reserved).
+DEVICE_ONLY = {"collider_winding"}
 
 # -- the oversized scenes at full size ---------------------------------------------------------------------------
 
@@ -63,8 +79,11 @@ CASES = {
     "voxel at 2 mm": "ws.ModelBuilder().add_soft_body(sphere(0.2), method='voxel', youngs_modulus=1e5, "
                      "density=1000.0, spacing=0.002)",
     "emitter rate 1e9": "ws.ModelBuilder().add_emitter(rate=1e9, life=1.0)",
+    "self-collision on a 1024² cloth": "b = ws.ModelBuilder(); b.add_cloth_grid(nx=1024, ny=1024, spacing=0.001, "
+                                       "mass=1.0); b.add_self_collision(thickness=0.0002); b.finalize('cpu')",
     "5M-triangle OBJ": "ws.ModelBuilder().add_cloth_mesh(OBJ, mass=1.0)",
     "5M-triangle OBJ, capped at 2 GiB": "ws.ModelBuilder().add_cloth_mesh(OBJ, mass=1.0)",
+    "5M-triangle OBJ as a mesh collider, capped at 1 GiB": "ws.ModelBuilder().add_collider_mesh(OBJ, sides='two_sided')",
     "sweep 10 axes × 10 values": "plan_sweep({'scene': SCENE, 'axes': {f'cloth.structural.ke{i}': {'log': [1.0, 10.0], "
                                  "'count': 10} for i in range(10)}})",
     "sweep count = 1e9": "plan_sweep({'scene': SCENE, 'axes': {'world.drag': {'range': [0.0, 1.0], "
@@ -178,47 +197,124 @@ def measure(kind: str, size, device: str) -> dict:
         row.update(measured=_status("VmHWM") - base, estimate=e.builder + EMITTER_POOL_TEMPORARY * emitter.capacity,
                    what="add_emitter: the pool's builder arrays")
     elif kind == "worlds":
-        b = ws.ModelBuilder()
-        b.add_cloth_grid(nx=6, ny=6, spacing=0.1, mass=1.0, pin=["top-left"])
-        ws.Simulator(b.finalize("cpu", worlds=2), fps=60, substeps=1).step_frame()  # warm-up: kernels compiled
-        estimate = b.estimate_memory("cpu", worlds=size)
+        b, worlds = _builder(kind, size)
+        _frame(*_builder(kind, 2), "cpu")  # warm-up: kernels compiled
+        estimate = b.estimate_memory("cpu", worlds=worlds)
         base = _reset_peak()
-        model = b.finalize("cpu", worlds=size)
-        ws.Simulator(model, fps=60, substeps=1)
+        _frame(b, worlds, "cpu")
         row.update(measured=_status("VmHWM") - base,
                    estimate=max(estimate.finalize_host + estimate.model,
                                 estimate.run_host + estimate.device_bytes - estimate.writer),
-                   what="finalize + simulator (guard) on the CPU")
-    if str(device).startswith("cuda"):
+                   what="finalize + a frame (guard on) on the CPU")
+    elif kind in ("selfcontact", "collider", "collider_winding"):
+        _builder(kind, 8 if kind == "selfcontact" else 20)[0].finalize("cpu")  # warm-up
+        b, _ = _builder(kind, size)
+        estimate = b.estimate_memory("cpu")
+        base = _reset_peak()
+        b.finalize("cpu")
+        row.update(measured=_status("VmHWM") - base, estimate=estimate.finalize_peak - estimate.builder,
+                   what="finalize on the CPU: finalize's copies + model" + (" + self-collision" if kind == "selfcontact"
+                                                                             else " (the mesh's native memory too)"))
+    elif kind == "collider_file":
+        from warpspring.core.mesh_colliders import MESH_COLLIDER_FILE_FIXED, MESH_COLLIDER_FILE_PER_FACE
+        from warpspring.core.mesh_counts import mesh_file_counts
+
+        path = _obj(size)
+        ws.ModelBuilder().add_collider_mesh(_obj(20), sides="two_sided")  # warm-up
+        vertices, faces = mesh_file_counts(path)
+        base = _reset_peak()
+        ws.ModelBuilder().add_collider_mesh(path, sides="two_sided")
+        needed = MESH_COLLIDER_FILE_PER_FACE * faces + 24 * vertices + MESH_COLLIDER_FILE_FIXED
+        row.update(measured=_status("VmHWM") - base, estimate=needed,
+                   triangles=faces, what="add_collider_mesh(file): the pre-check's estimate against reading it")
+    if kind in DEVICE_ONLY:
+        row.update(measured=None)
+    if kind != "collider_file":
         row.update(_measure_device(kind, size, device))
     return row
 
 
-def _measure_device(kind: str, size, device: str) -> dict:
-    """The model (and a simulator: states, guard, integrator) on a CUDA device: the memory pool's high-water mark
-    against the estimate's device bytes (the USD writer's buffers left out: no writer is made)."""
-    import warp as wp
+def _obj(k: int) -> str:
+    """A k × k-vertex sheet as an OBJ file in the temporary folder (written once)."""
+    path = os.path.join(tempfile.gettempdir(), f"warpspring-bench-sheet-{k}.obj")
+    if not os.path.exists(path):
+        _write_obj(path + ".part", k)
+        os.replace(path + ".part", path)
+    return path
+
+
+def _builder(kind: str, size):
+    """A row's scene as a builder, and its worlds."""
+    import trimesh
 
     import warpspring as ws
 
-    if kind not in ("grid", "worlds"):
-        return {}
     b = ws.ModelBuilder()
-    if kind == "grid":
+    worlds = 1
+    if kind in ("grid", "selfcontact"):
         b.add_cloth_grid(nx=size, ny=size, spacing=1.0 / size, mass=1.0, pin=["top-left"])
-        worlds = 1
-    else:
+        if kind == "selfcontact":
+            b.add_self_collision(thickness=0.2 / size)
+    elif kind in ("mesh", "mesh_dihedral"):
+        vertices, faces = _sheet(size)
+        options = {"dihedral": ws.DihedralMaterial(1.0, 0.0)} if kind == "mesh_dihedral" else {}
+        b.add_cloth_mesh(trimesh.Trimesh(vertices, faces, process=False), mass=1.0, **options)
+    elif kind.endswith("_sphere") or kind.endswith("_box"):
+        method, shape = kind.rsplit("_", 1)
+        mesh = (trimesh.creation.icosphere(subdivisions=3, radius=0.1) if shape == "sphere"
+                else trimesh.creation.box(extents=(0.3, 0.1, 0.05)))
+        b.add_soft_body(mesh, method=method, youngs_modulus=1e5, density=1000.0, spacing=size)
+    elif kind == "emitter":
+        b.add_emitter(rate=size / 1.05, life=1.0)
+    elif kind == "worlds":
         b.add_cloth_grid(nx=6, ny=6, spacing=0.1, mass=1.0, pin=["top-left"])
         worlds = size
+    elif kind in ("collider", "collider_winding"):
+        b.add_cloth_grid(nx=4, ny=4, spacing=0.1, mass=1.0)
+        winding = kind == "collider_winding"
+        b.add_collider_mesh(_obj(size), sides="closed" if winding else "two_sided", winding_number=winding)
+    return b, worlds
+
+
+def _frame(builder, worlds: int, device: str):
+    """Finalize on ``device`` and run a simulator's first frame (the default guard on); a frame the guard stops
+    has made its allocations all the same. Returns the simulator (its model and buffers alive)."""
+    import warpspring as ws
+
+    sim = ws.Simulator(builder.finalize(device, worlds=worlds), fps=60, substeps=1)
+    try:
+        sim.step_frame()
+    except ws.SimulationError:
+        pass
+    return sim
+
+
+def _measure_device(kind: str, size, device: str) -> dict:
+    """The row's model on ``device`` and a simulator's first frame: their peak device memory against the estimate's
+    device bytes (less the USD writer's: no writer is made). CUDA: the memory pool's high-water mark above the pool's
+    use before, and the drop of the device's free memory; CPU: the peak of Warp's allocations (its tracker)."""
+    import warp as wp
+
+    from warp._src.context import runtime  # the tracker's counters have no public getter
+
+    b, worlds = _builder(kind, size)
     estimate = b.estimate_memory(device, worlds=worlds)
-    wp.synchronize_device(device)
-    before = wp.get_mempool_used_mem_current(device)
-    model = b.finalize(device, worlds=worlds)
-    sim = ws.Simulator(model, fps=60, substeps=1)
-    sim.step_frame()
-    wp.synchronize_device(device)
-    return dict(device_measured=wp.get_mempool_used_mem_high(device) - before,
-                device_estimate=estimate.device_bytes - estimate.writer)
+    found = dict(device_estimate=estimate.device_bytes - estimate.writer)
+    if wp.get_device(device).is_cuda:  # a fresh process: nothing on the pool yet, its high-water mark at 0
+        wp.synchronize_device(device)
+        before, free = wp.get_mempool_used_mem_current(device), wp.get_device(device).free_memory
+        sim = _frame(b, worlds, device)
+        wp.synchronize_device(device)  # the free memory read while the model and the simulator are alive
+        found.update(device_measured=wp.get_mempool_used_mem_high(device) - before,
+                     device_free_drop=free - wp.get_device(device).free_memory, device_how="memory pool high-water mark")
+        del sim
+    else:
+        with wp.ScopedMemoryTracker("bench", print=False):
+            runtime.core.wp_alloc_tracker_reset()
+            _frame(b, worlds, device)
+            found.update(device_measured=runtime.core.wp_alloc_tracker_get_peak_bytes(),
+                         device_how="Warp allocation tracker peak")
+    return found
 
 
 def run_matrix(device: str, quick: bool) -> list[dict]:
@@ -234,8 +330,12 @@ def run_matrix(device: str, quick: bool) -> list[dict]:
         row = json.loads(done.stdout.splitlines()[-1])
         row["label"] = label
         rows.append(row)
-        print(f"{label}: measured {row['measured'] / 2**20:.1f} MiB, estimate {row['estimate'] / 2**20:.1f} MiB "
-              f"({row['estimate'] / row['measured']:.2f}×)", flush=True)
+        host = (f"host: measured {row['measured'] / 2**20:.1f} MiB, estimate {row['estimate'] / 2**20:.1f} MiB "
+                f"({row['estimate'] / row['measured']:.2f}×)") if row.get("measured") else "host: —"
+        gpu = (f"; device: measured {row['device_measured'] / 2**20:.1f} MiB, estimate "
+               f"{row['device_estimate'] / 2**20:.1f} MiB ({row['device_estimate'] / row['device_measured']:.2f}×)"
+               if row.get("device_measured") else "")
+        print(f"{label}: {host}{gpu}", flush=True)
     return rows
 
 
@@ -249,7 +349,7 @@ def run_cases(limit: str, quick: bool) -> list[dict]:
         for name, code in CASES.items():
             if quick and "OBJ" in name:
                 continue
-            cap = "2GiB" if "capped at 2 GiB" in name else limit
+            cap = next((f"{g}GiB" for g in (1, 2) if f"capped at {g} GiB" in name), limit)
             env = {**CHILD_ENV, "WARPSPRING_MEMORY_LIMIT": cap, "BENCH_OBJ": obj}
             started = time.perf_counter()
             done = subprocess.run([sys.executable, "-c", CASE_PRELUDE.replace("CASE", code)], capture_output=True,
@@ -291,16 +391,30 @@ def report(rows: list[dict], cases: list[dict], device: str, limit: str, command
         "| scene | what | measured | estimate | estimate / measured |", "|---|---|---|---|---|",
     ]
     for r in rows:
+        if not r.get("measured"):
+            continue
         ratio = r["estimate"] / r["measured"]
         lines.append(f"| {r['label']} | {r['what']} | {r['measured'] / 2**20:.1f} MiB | {r['estimate'] / 2**20:.1f} MiB"
                      f" | {ratio:.2f}{'' if 1.0 <= ratio <= 2.0 else ' **outside [1, 2]**'} |")
-    gpu = [r for r in rows if "device_measured" in r]
+    unmeasured = [r["label"] for r in rows if r.get("measured", 0) is None]
+    if unmeasured:
+        lines += ["", f"Not compared on the host (the device table holds them): {', '.join(unmeasured)}: a winding-number "
+                  "mesh's tables are allocated in full but touched in part on the CPU, so its resident memory stays "
+                  "below what is allocated."]
+    gpu = [r for r in rows if r.get("device_measured")]
     if gpu:
-        lines += ["", f"## Device ({device}: the memory pool's high-water mark)", "",
-                  "| scene | measured | estimate | estimate / measured |", "|---|---|---|---|"]
+        cuda = str(device).startswith("cuda")
+        how = ("growth of the memory pool's high-water mark; the drop of the device's free memory beside it" if cuda
+               else "peak of Warp's allocations, native ones included (its allocation tracker)")
+        lines += ["", f"## Device ({device}: the model and a simulator's first frame; measured: {how})", "",
+                  "| scene | measured | " + ("free memory drop | " if cuda else "") + "estimate | estimate / measured |",
+                  "|---|---|" + ("---|" if cuda else "") + "---|---|"]
         for r in gpu:
-            lines.append(f"| {r['label']} | {r['device_measured'] / 2**20:.1f} MiB | "
-                         f"{r['device_estimate'] / 2**20:.1f} MiB | {r['device_estimate'] / r['device_measured']:.2f} |")
+            ratio = r["device_estimate"] / r["device_measured"]
+            drop = f"{r['device_free_drop'] / 2**20:.1f} MiB | " if cuda else ""
+            lines.append(f"| {r['label']} | {r['device_measured'] / 2**20:.1f} MiB | {drop}"
+                         f"{r['device_estimate'] / 2**20:.1f} MiB | {ratio:.2f}"
+                         f"{'' if 1.0 <= ratio <= 2.0 else ' **outside [1, 2]**'} |")
     if cases:
         lines += ["", f"## The issue's cases, host memory capped at {limit} (WARPSPRING_MEMORY_LIMIT)", "",
                   "| case | time to refusal | peak RSS | the line |", "|---|---|---|---|"]
@@ -318,7 +432,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="the smaller sizes only, no 5M-triangle OBJ")
     parser.add_argument("--limit", default="8GiB", help="host memory cap of the issue's cases")
     parser.add_argument("--no-cases", action="store_true")
-    parser.add_argument("--out", default=os.path.join(HERE, "results", "memory.md"))
+    parser.add_argument("--out", help="results file (default bench/results/memory.md, on CUDA memory-cuda.md)")
     parser.add_argument("--one", nargs=2, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
@@ -330,7 +444,8 @@ def main() -> None:
     cases = [] if args.no_cases else run_cases(args.limit, args.quick)
     command = "python bench/memory.py " + " ".join(sys.argv[1:])
     text = report(rows, cases, args.device, args.limit, command.strip())
-    with open(args.out, "w") as f:
+    out = args.out or os.path.join(HERE, "results", "memory.md" if args.device == "cpu" else "memory-cuda.md")
+    with open(out, "w") as f:
         f.write(text)
     print(text)
 

@@ -268,3 +268,27 @@ def deadline(seconds: float, error: type[BaseException] = TimeoutError):
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
+
+
+@contextlib.contextmanager
+def warp_allocations(device):
+    """Bytes Warp allocates on ``device`` inside the block, its native memory (BVHs, meshes) included: yields a dict
+    that holds on exit ``live`` (still allocated) and, on the CPU, ``peak`` (the high-water mark above the start) [B].
+    The CPU is measured by Warp's allocation tracker; a CUDA device by its memory pool's counters (``peak`` None:
+    the pool's high-water mark cannot be reset)."""
+    from warp._src.context import runtime  # Warp's tracker counters have no public getter
+
+    device = wp.get_device(device)
+    wp.synchronize_device(device)
+    found: dict = {}
+    if device.is_cuda:
+        start = wp.get_mempool_used_mem_current(device)
+        yield found
+        wp.synchronize_device(device)
+        found.update(live=wp.get_mempool_used_mem_current(device) - start, peak=None)
+        return
+    with wp.ScopedMemoryTracker("test", print=False):
+        runtime.core.wp_alloc_tracker_reset()
+        yield found
+        found.update(live=runtime.core.wp_alloc_tracker_get_current_bytes(),
+                     peak=runtime.core.wp_alloc_tracker_get_peak_bytes())

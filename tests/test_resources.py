@@ -23,7 +23,7 @@ import trimesh
 
 import warpspring as ws
 from warpspring.analysis.sweep_plan import MAX_VARIANTS, SHOWN_PROBLEMS, plan_sweep
-from warpspring.core import memory, soft_topologies
+from warpspring.core import memory, mesh_counts, soft_topologies
 from warpspring.core.builder import cloth
 from warpspring.core.memory import AvailableMemory
 
@@ -222,7 +222,7 @@ def test_a_mesh_file_too_large_is_refused_before_it_is_read(monkeypatch, tmp_pat
     trimesh reads it, and a cloth mesh that cannot fit is refused before it is read."""
     path = tmp_path / "sheet.obj"
     faces = _sheet_obj(path, 120)
-    assert cloth.count_obj_faces(path) == (120 * 120, faces)
+    assert mesh_counts.mesh_file_counts(path) == (120 * 120, faces)
     _host(monkeypatch, 2 * 2**20)
     monkeypatch.setattr(cloth, "load_mesh_file", _no_topology)
     with pytest.raises(ws.ConfigError, match=rf"a cloth mesh of {faces:,} triangles \(.*sheet.obj\) needs an "

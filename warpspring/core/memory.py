@@ -5,9 +5,13 @@ The estimate counts every array the code allocates, byte for byte, from the mode
 springs, hinges, triangles and colliders; worlds; the scalar type; the incidence tables' widths (keyframe
 tracks, tens of bytes per key, are left out). The run's parts follow the code that allocates them: a :class:`~warpspring.core.stepper.Stepper` holds two states
 (the current one and the scratch one it alternates with); each integrator allocates its own scratch
-(:data:`INTEGRATOR_SCRATCH`, read from each ``__init__``); the guard one partial sum per reducing block;
-strain limiting three position buffers; the contact stage its slot buffer; the USD writer a vertex-normal
-buffer on the device and, per frame, the positions and normals it reads back and hands to USD.
+(:data:`INTEGRATOR_SCRATCH`, read from each ``__init__``); the guard one partial sum per reducing block, and
+what it makes lazily (a substep's midpoint state, the springs' damper sums); strain limiting three position
+buffers; the contact stage its slot buffer; the stepper's warm-up, copies of what a step carries to the next;
+the USD writer a vertex-normal buffer on the device and, per frame, the positions and normals it reads back and
+hands to USD. Warp's native memory counts too: each world's BVH of self-collision
+(:func:`self_contact_bytes`, with its pair buffers and caches) and each mesh collider's ``wp.Mesh``
+(:func:`mesh_native_bytes`), from the sizes Warp's ``bvh.cpp``/``bvh.cu`` and ``mesh.cu`` allocate.
 
 Host memory is estimated as well, as what :meth:`ModelBuilder.finalize` holds at its peak beyond the
 builder's own arrays: its concatenated copies and the temporaries of the incidence tables' stable sort
@@ -34,6 +38,7 @@ from .. import checks
 from ..errors import ConfigError
 from ..kernels.guards import BALANCE_SLOTS, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS, RUNNING_SLOTS
 from ..kernels.inputs import INPUT_COUNT
+from ..kernels.selfcontact import CACHE_SLOTS, COUNTER_COUNT, FLAG_KINDS, PAIRS_PER_VERTEX, PARAM_COUNT, SCAN_BLOCK
 
 #: Bytes per floating-point number of each precision.
 SCALAR_BYTES = {"float32": 4, "float64": 8}
@@ -104,6 +109,9 @@ class MemoryEstimate:
             copies, the incidence tables' sort), freed when it returns.
         frame_host: host memory of writing one frame to USD (positions and normals read back, USD's arrays).
         run_host: host memory of a run's setup (the guard's energy scale, the advisor's bound), freed after it.
+        self_contact: self-collision's device arrays and BVHs (:func:`self_contact_bytes`; 0 without it).
+        warmup: the stepper's copies of what a step carries to the next (the guard's and the integrator's), held
+            during its warm-up step before a capture and freed after it.
     """
 
     device: str
@@ -120,18 +128,22 @@ class MemoryEstimate:
     finalize_host: int
     frame_host: int
     run_host: int
+    self_contact: int = 0
+    warmup: int = 0
 
     @property
     def device_bytes(self) -> int:
-        """Everything a run keeps on the device [B]: the model and the run's buffers."""
-        return self.model + self.states + self.integrator + self.guard + self.post_step + self.writer
+        """The device memory of a run at its peak [B]: the model and the run's buffers, and the stepper's warm-up
+        copies."""
+        return (self.model + self.self_contact + self.states + self.integrator + self.guard + self.post_step
+                + self.writer + self.warmup)
 
     @property
     def host_bytes(self) -> int:
         """Peak host memory [B] beyond the builder's arrays: finalize's or a run's, whichever is larger. On the
         CPU the device arrays are host memory and are included."""
         on_host = 0 if self.cuda else 1
-        finalize_peak = self.finalize_host + on_host * self.model
+        finalize_peak = self.finalize_host + on_host * (self.model + self.self_contact)
         run_peak = max(self.frame_host, self.run_host) + on_host * self.device_bytes
         return max(finalize_peak, run_peak)
 
@@ -139,11 +151,12 @@ class MemoryEstimate:
     def finalize_peak(self) -> int:
         """Host memory [B] at the peak of building and finalizing: the builder's arrays, finalize's copies and (on
         the CPU) the model's arrays; what a process's peak resident memory grows by when it finalizes."""
-        return self.builder + self.finalize_host + (0 if self.cuda else self.model)
+        return self.builder + self.finalize_host + (0 if self.cuda else self.model + self.self_contact)
 
     def parts(self) -> dict:
         """The device parts by name [B], largest first, zero parts left out."""
-        named = {"model": self.model, "states": self.states, "integrator": self.integrator, "guard": self.guard,
+        named = {"model": self.model, "self-collision": self.self_contact, "states": self.states,
+                 "integrator": self.integrator, "guard": self.guard, "capture warm-up": self.warmup,
                  "stabilizers and contacts": self.post_step, "USD writer": self.writer}
         return dict(sorted(((k, v) for k, v in named.items() if v), key=lambda kv: -kv[1]))
 
@@ -183,6 +196,91 @@ def _mesh_cache_bytes(shapes: int, worlds: int, size: int, meshes: int, faces: i
     return 16 * shapes + 12 * max(1, 7 * faces) + rows * entries * (12 + 4 + 4 + 4 * candidates) + 8 * worlds
 
 
+#: Bytes per item of a Warp BVH's own native memory (``warp/native/bvh.cpp``, ``bvh.cu``), beyond its items' boxes
+#: (which its caller owns): 2 n - 1 nodes of two 16-byte halves and a parent index, and a primitive index per item;
+#: on CUDA (the LBVH builder) a refit count per node too. Its LBVH build on CUDA holds, until it returns, indices and
+#: Morton keys doubled for the radix sort, deltas and three int32 arrays per node (52 bytes per item), and the sort's
+#: own temporary storage (counted as 8 more).
+BVH_NODE_BYTES = 36
+BVH_NODE_BYTES_CUDA = 40
+BVH_BUILD_TEMPORARY_CUDA = 60
+#: Native bytes of a ``wp.Mesh`` per triangle beyond its points, velocities and indices (the caller's arrays): the
+#: triangles' boxes (two vec3), its BVH, and with ``support_winding_number`` a 144-byte ``SolidAngleProps`` per BVH node
+#: (2 per triangle); and per mesh or BVH its descriptors (a few hundred bytes, counted as 1 KiB).
+MESH_BOX_BYTES = 24
+MESH_WINDING_BYTES = 288
+NATIVE_DESCRIPTOR_BYTES = 1024
+
+
+def bvh_bytes(items: int, *, cuda: bool, building: bool = False) -> int:
+    """The native memory of a Warp BVH over ``items`` boxes [B] (measured equal on the CPU through Warp's allocation
+    tracker, ``tests/test_memory_native.py``); ``building``: with its CUDA build's temporaries."""
+    items = checks.count("bvh items", items, minimum=0)
+    if not items:
+        return NATIVE_DESCRIPTOR_BYTES
+    nodes = 2 * items - 1
+    persistent = (BVH_NODE_BYTES_CUDA if cuda else BVH_NODE_BYTES) * nodes + 4 * items + NATIVE_DESCRIPTOR_BYTES
+    return persistent + (BVH_BUILD_TEMPORARY_CUDA * items if cuda and building else 0)
+
+
+def mesh_native_bytes(faces: int, *, winding_number: bool, cuda: bool) -> int:
+    """The native memory of a ``wp.Mesh`` of ``faces`` triangles [B]: boxes, BVH (its CUDA build's temporaries
+    included: a peak, conservatively counted as kept), winding-number tables."""
+    faces = checks.count("mesh faces", faces, minimum=0)
+    return (MESH_BOX_BYTES * faces + bvh_bytes(faces, cuda=cuda, building=True)
+            + (MESH_WINDING_BYTES * faces if winding_number else 0))
+
+
+def self_contact_bytes(*, particles: int, worlds: int, triangles: int, edges: int, surface_vertices: int,
+                       precision: str = "float32", cuda: bool = False) -> int:
+    """Device bytes of self-collision (``core/selfcontact.py``'s :class:`SelfContact`) [B], from its counts, before it
+    is made: the surface's topology, each world's triangle boxes and BVH (with one CUDA build's temporaries), the live
+    values, counters, flags and scan blocks, the repelled positions and the cache's anchors, and the two pair buffers
+    (the cache of ``CACHE_SLOTS`` × the cap's ``PAIRS_PER_VERTEX`` slots per surface vertex, each slot a key, four
+    vertices, four CSR entries and a distance, with per-particle CSR counts, starts and cursors), and the cache's
+    per-slot corrections and weights.
+
+    Args:
+        particles: particles per world; worlds: worlds of the model.
+        triangles, edges, surface_vertices: the colliding surface's triangles, unique edges and vertices (per world).
+        precision: the model's "float32" or "float64"; cuda: whether the device is a CUDA GPU.
+    """
+    n = checks.count("particles", particles, minimum=0)
+    w = checks.count("worlds", worlds, minimum=1)
+    t = checks.count("self-collision triangles", triangles, minimum=0)
+    if not t:
+        return 0
+    e = checks.count("self-collision edges", edges, minimum=0)
+    v = checks.count("self-collision vertices", surface_vertices, minimum=0)
+    f = SCALAR_BYTES[precision]
+    size = w * n
+    capacity = max(64, PAIRS_PER_VERTEX * v)
+
+    def pair_buffer(slots_per_world: int) -> int:  # key, four vertices, four entries, distance; CSR per particle
+        slots = w * slots_per_world
+        return (8 + 16 + 16 + f) * slots + 4 * (size + 1) * 2 + 4 * size + 4 * w
+
+    surface = 24 * t + 12 * e + 4 * n + 24 * w * t + 8 * w
+    live = (PARAM_COUNT * f + 4 * COUNTER_COUNT + f) * w + 4 * (2 + FLAG_KINDS * w) + 4 * w * -(-n // SCAN_BLOCK)
+    positions = 2 * 3 * f * size  # the repelled positions and the cache's anchors
+    pairs = pair_buffer(CACHE_SLOTS * capacity) + pair_buffer(capacity) + 4 * w * CACHE_SLOTS * capacity * 4 * f
+    bvhs = w * bvh_bytes(t, cuda=cuda) + (BVH_BUILD_TEMPORARY_CUDA * t if cuda else 0)
+    return int(surface + live + positions + pairs + bvhs)
+
+
+#: Host bytes per colliding triangle of making self-collision (``make_self_contact``): the surface's topology (its
+#: sorted sides and their unique edges) and the smallest altitude's float64 corners and products; the peak of
+#: NumPy's allocations (``tracemalloc``) measured 556-559 B for 128² and 256² cloths, counted as 600.
+SELF_CONTACT_HOST_PER_TRIANGLE = 600
+#: Host bytes per triangle of a mesh collider that finalize holds beyond the model's arrays (the points' float32
+#: cast and float64 copy, the pseudo-normals' tables, the edge groups): the peak of NumPy's allocations measured
+#: 243 B for a 977k-triangle sheet (the resident memory grows less: freed heap is reused), counted as 260.
+MESH_FINALIZE_HOST_PER_FACE = 260
+#: Host bytes per triangle the builder keeps of a mesh collider read from a file (its vertices and faces, the
+#: reader's cached copy): measured 144 B (``tracemalloc``), counted as 160.
+MESH_COLLIDER_KEPT_PER_FACE = 160
+
+
 def estimate_memory(
     *,
     particles: int,
@@ -210,6 +308,11 @@ def estimate_memory(
     mesh_faces: int = 0,
     mesh_candidates: int = 1,
     mesh_bytes: int = 0,
+    self_contact_triangles: int = 0,
+    self_contact_edges: int | None = None,
+    self_contact_vertices: int | None = None,
+    collider_faces: int = 0,
+    emitter_slots: int = 0,
 ) -> MemoryEstimate:
     """Estimate the memory of a model and of a run of it, from counts, before anything is allocated.
 
@@ -236,8 +339,15 @@ def estimate_memory(
         cached_meshes: mesh colliders with a candidate cache (every mesh not signed by its winding number).
         mesh_faces: the triangles of those meshes, in all (seven pseudo-normals each).
         mesh_candidates: the largest ``cache_candidates`` among them (C: the cache's triangles per particle).
-        mesh_bytes: the mesh colliders' own device arrays (points, velocities, triangles, and the cached meshes'
-            pseudo-normal tables: ``ModelBuilder.estimate_memory`` counts them from the meshes) [B].
+        mesh_bytes: the mesh colliders' own device memory (points, velocities, triangles, the cached meshes'
+            pseudo-normal tables, and each ``wp.Mesh``'s native boxes, BVH and winding-number tables,
+            :func:`mesh_native_bytes`: ``ModelBuilder.estimate_memory`` counts them from the meshes) [B].
+        self_contact_triangles: triangles of the self-colliding surface (0: no self-collision).
+        self_contact_edges, self_contact_vertices: its unique edges and vertices (default the upper bounds 3 × its
+            triangles and every particle; ``ModelBuilder.estimate_memory`` counts them exactly).
+        collider_faces: the triangles of every mesh collider (the builder's copies, their host temporaries in
+            finalize).
+        emitter_slots: the particles of every emitter's pool (a run carries their slots from step to step).
 
     Returns:
         The :class:`MemoryEstimate`.
@@ -252,6 +362,7 @@ def estimate_memory(
     shapes = checks.count("colliders", colliders, minimum=0)
     w = checks.count("worlds", worlds, minimum=1)
     pinned = checks.count("pinned", pinned, minimum=0)
+    collider_faces = checks.count("collider_faces", collider_faces, minimum=0)
     if precision not in SCALAR_BYTES:
         raise ConfigError(f"precision must be 'float32' or 'float64', got {precision!r}")
     if integrator not in INTEGRATOR_SCRATCH:
@@ -295,27 +406,46 @@ def estimate_memory(
     # The guard: its records (and their clear copies), partial sums per block, limits, each world's work put in
     # and energy balance, the positions, velocities and loads of its last check, and the elastic energy's partial
     # sums per block of each family's elements, and the running dissipation of those blocks and the particles'
-    # blocks. (What a run adds lazily, the midpoint state and the dampers' sums, is not counted here.)
+    # blocks; and what it allocates lazily, counted whether or not the run's settings need it (an upper bound):
+    # the substep's midpoint state (positions, velocities, each world's time) where dissipation or the work of wind
+    # and handles is counted, and the springs' damper sums (a skip flag per world, per spring its damper power
+    # and the float64 energy it dissipated) where the scattered force pass counts them.
     def element_blocks(count: int) -> int:
         return w * (count if not cuda else -(-count // _lanes(count, block_dim))) if count else 0
 
+    running = 8 * RUNNING_SLOTS * ((blocks + element_blocks(s) + element_blocks(h)) if cuda
+                                   else w * (1 + bool(s) + bool(h)))
+    dampers = (4 + (f + 8) * s) * w if s else 0
+    carried = 8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + running + dampers  # what a check carries on
     guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * GUARD_FLOATS * blocks + 8 * GUARD_LIMITS * w
-             + 8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + 8 * max(element_blocks(s) + element_blocks(h), w)
-             + 8 * RUNNING_SLOTS * ((blocks + element_blocks(s) + element_blocks(h)) if cuda
-                                    else w * (1 + bool(s) + bool(h))))
+             + 8 * max(element_blocks(s) + element_blocks(h), w) + carried + 2 * vec3 * size + 8 * w)
+    # The stepper's warm-up before a capture copies what a step carries to the next (the guard's, the integrator's
+    # per-world state and implicit Euler's Δv, the emitters' flags and slots, the contact, self-collision and mesh
+    # caches' counters), and frees the copies once the warm-up step is undone.
+    slots = checks.count("emitter_slots", emitter_slots, minimum=0)
+    warmup = (carried + 8 * per_world_f64 * w + 4 * per_world_i32 * w + 64 * w
+              + (vec3 * size if integrator == "implicit_euler" else 0)
+              + ((4 * size + (12 * slots + 32) * w) if slots else 0))
     post_step = (3 * vec3 * size if strain_limiting and s else 0)
     if contact_slots:
         post_step += (8 * contact_slots + 4) * size + 4 * w + f  # colliders and features per slot, counts, overflow
     writer = (12 * size + 12 * t * exported) if t else 0  # vertex normals (float32) and the exported triangles
 
     builder = (_BUILDER_PARTICLE * n + _BUILDER_SPRING * s + _BUILDER_HINGE * h + _BUILDER_TRIANGLE * t
-               + _BUILDER_VERTEX * vertices)
+               + _BUILDER_VERTEX * vertices + MESH_COLLIDER_KEPT_PER_FACE * collider_faces)
     # finalize: the concatenated pairs (int64) stay for the whole call; each family's incidence sort peaks at
     # _INCIDENCE_ENTRY per entry plus its head tables (int32); the particles' copies (float64 and cast) come first.
     springs_peak = 16 * s + _INCIDENCE_ENTRY * 2 * s + 8 * spring_slots * n
     hinges_peak = 16 * s + 32 * h + _INCIDENCE_ENTRY * 4 * h + 8 * hinge_slots * n
     particles_peak = 24 * n + (24 + vec3) * size
-    finalize_host = max(springs_peak, hinges_peak, particles_peak)
+    # Self-collision is made last, its host temporaries after the others are freed.
+    self_t = checks.count("self_contact_triangles", self_contact_triangles, minimum=0)
+    self_e = 3 * self_t if self_contact_edges is None else self_contact_edges
+    self_v = n if self_contact_vertices is None else self_contact_vertices
+    self_contact = self_contact_bytes(particles=n, worlds=w, triangles=self_t, edges=self_e, surface_vertices=self_v,
+                                      precision=precision, cuda=cuda)
+    finalize_host = (max(springs_peak, hinges_peak, particles_peak, SELF_CONTACT_HOST_PER_TRIANGLE * self_t)
+                     + MESH_FINALIZE_HOST_PER_FACE * collider_faces)
     # A frame: positions read back (a copy on CUDA) and cast to float32, normals read back, and per exported mesh
     # vertex its points and normals gathered, then copied into USD arrays.
     frame_host = (vec3 * size if cuda else 0) + 12 * size + (12 * size if t else 0) + 48 * vertices * exported
@@ -326,6 +456,7 @@ def estimate_memory(
         device=str(device), cuda=cuda, particles=n, worlds=w, model=int(model), states=int(states),
         integrator=int(scratch), guard=int(guard), post_step=int(post_step), writer=int(writer),
         builder=int(builder), finalize_host=int(finalize_host), frame_host=int(frame_host), run_host=int(run_host),
+        self_contact=int(self_contact), warmup=int(warmup),
     )
 
 
@@ -493,6 +624,9 @@ def remedy(estimate: MemoryEstimate, ratio: float, *, precision: str = "float32"
         advice.append("precision='float32' (half the floating-point arrays)")
     if estimate.worlds > 1:
         advice.append(f"fewer worlds (about {max(int(estimate.worlds * share), 1)} fit)")
+    if estimate.self_contact > estimate.device_bytes / 2:
+        advice.insert(0, "self-collision on fewer or coarser meshes (add_self_collision(meshes=[...]): it holds "
+                         f"{format_bytes(estimate.self_contact)} here)")
     return "Use " + ", or ".join(advice) + "."
 
 

@@ -38,6 +38,27 @@ import warp as wp
 
 from ..errors import ConfigError
 from ..kernels.mesh_colliders import FACE_NORMALS, MESH_SIDES, MeshCache, face_normals_kernel, pseudo_normals_kernel
+from . import memory
+from .mesh_counts import mesh_file_counts
+
+#: Host bytes of adding a mesh collider read from a file (trimesh's loading, the float64 vertices and faces kept):
+#: per triangle and fixed; an OBJ sheet measured 421 B per triangle at 179k triangles and 265 B at 977k
+#: (``bench/memory.py``), that is ~230 B per triangle and ~28 MiB, counted as 320 B and 24 MiB.
+MESH_COLLIDER_FILE_PER_FACE = 320
+MESH_COLLIDER_FILE_FIXED = 24 << 20
+
+
+def check_mesh_file_room(path: str) -> None:
+    """Refuse a mesh collider's file whose reading would need more host memory than is available, before trimesh
+    reads it: its triangles counted from its header or streamed lines (:func:`mesh_file_counts`; a format not
+    counted is checked at finalize, with the model)."""
+    counts = mesh_file_counts(path)
+    if counts is None:
+        return
+    vertices, faces = counts
+    memory.check_host_room(f"the mesh collider {path} ({faces:,} triangles, {vertices:,} vertices)",
+                           MESH_COLLIDER_FILE_PER_FACE * faces + 24 * vertices + MESH_COLLIDER_FILE_FIXED,
+                           remedy="decimate the mesh (fewer triangles) or use a simpler collider (a box, a capsule)")
 
 
 @dataclass(eq=False)

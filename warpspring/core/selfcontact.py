@@ -172,7 +172,7 @@ class SelfContact:
 
     def _allocate(self, capacity: int) -> None:
         """The cap's list with ``capacity`` slots per world and the cache with CACHE_SLOTS times as many (emptied:
-        the next step rebuilds)."""
+        the next step rebuilds). ``memory.self_contact_bytes`` counts what this class allocates (change both)."""
         model = self.model
         self.capacity = capacity
         self.cache_capacity = CACHE_SLOTS * capacity

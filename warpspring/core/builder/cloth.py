@@ -17,6 +17,7 @@ from ..bending import DihedralMaterial
 from ..hinges import mesh_hinges
 from ..material import (ClothMaterial, edge_springs, grid_hinges, grid_masses, grid_springs, hinge_parameters,
                         lumped_masses)
+from ..mesh_counts import mesh_file_counts
 from ..mesh_files import USD_EXTENSIONS, load_mesh_file, read_usd_mesh
 from ..records import MeshGroup
 from .arguments import RESERVED_PRIM_NAMES, _indices, _points
@@ -326,7 +327,7 @@ class ClothRecipes:
             dressing = read.dressing
             name = dressing.prim_name if name is None else name
         elif isinstance(mesh, (str, os.PathLike)):
-            self._check_mesh_room(str(os.fspath(mesh)), count_obj_faces(mesh), hinges=bool(material or dihedral),
+            self._check_mesh_room(str(os.fspath(mesh)), mesh_file_counts(mesh), hinges=bool(material or dihedral),
                                   loading=True)
             mesh = load_mesh_file(mesh)
         loaded = not usd and isinstance(mesh, trimesh.Trimesh)
@@ -499,26 +500,6 @@ class ClothRecipes:
             else:
                 mask.flat[_indices("pin", [p], nx * ny)] = True
         return mask.ravel()
-
-
-def count_obj_faces(path) -> tuple[int, int] | None:
-    """(vertices, faces) of an OBJ file, counted by streaming its lines (constant memory, ~1 s per 200 MB) before
-    trimesh reads it; ``None`` for other formats or an unreadable file (then checked once read)."""
-    path = os.fspath(path)
-    if not path.lower().endswith(".obj") or not os.path.isfile(path):
-        return None
-    vertices = faces = 0
-    last = b"\n"
-    try:
-        with open(path, "rb") as f:
-            while chunk := f.read(1 << 24):
-                text = last + chunk
-                vertices += text.count(b"\nv ")
-                faces += text.count(b"\nf ")
-                last = chunk[-2:]
-    except OSError:
-        return None
-    return vertices, faces
 
 
 def _weld_seams(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray | None):

@@ -12,7 +12,7 @@ from ... import checks
 from ...errors import ConfigError
 from ...kernels.shapes import SHAPE_BOX, SHAPE_CAPSULE, SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
 from ...kernels.shapes import SHAPE_MESH
-from ..mesh_colliders import edge_groups, mesh_shape
+from ..mesh_colliders import check_mesh_file_room, edge_groups, mesh_shape
 from ..mesh_files import USD_EXTENSIONS, load_mesh_file, read_usd_mesh, read_usd_mesh_samples
 from ..records import ShapeInfo
 from ..tracks import Track, as_track
@@ -171,6 +171,7 @@ class ColliderRecipes:
                 vertices, faces = read.vertices, read.triangles
                 samples = read_usd_mesh_samples(path, prim=read.prim, up_axis=self.up_axis)
             else:
+                check_mesh_file_room(path)
                 loaded = load_mesh_file(path, what="mesh collider")
                 vertices, faces = np.asarray(loaded.vertices), np.asarray(loaded.faces)
         elif hasattr(mesh, "vertices") and hasattr(mesh, "faces"):

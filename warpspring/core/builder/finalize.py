@@ -146,6 +146,8 @@ class Finalization:
                 mask[extra] = True
             pinned = int(mask.sum())
         cached = [s for s in self._shapes if getattr(s, "mesh", None) is not None and not s.mesh.winding_number]
+        meshes = [s.mesh for s in self._shapes if getattr(s, "mesh", None) is not None]
+        surface = self._self_contact_surface()
         return memory.estimate_memory(
             particles=n,
             springs=self._spring_count,
@@ -171,8 +173,21 @@ class Finalization:
             cached_meshes=len(cached),
             mesh_faces=sum(len(s.mesh.faces) for s in cached),
             mesh_candidates=max([s.mesh.cache_candidates for s in cached], default=1),
-            mesh_bytes=_mesh_collider_bytes([s.mesh for s in self._shapes if getattr(s, "mesh", None) is not None]),
+            mesh_bytes=_mesh_collider_bytes(meshes) + sum(
+                memory.mesh_native_bytes(len(m.faces), winding_number=m.winding_number, cuda=device.is_cuda)
+                for m in meshes),
+            collider_faces=sum(len(m.faces) for m in meshes),
+            emitter_slots=sum(e.capacity for e in self._emitters),
+            **_surface_counts(surface, n),
         )
+
+    def _self_contact_surface(self) -> np.ndarray | None:
+        """The triangles (per-world particle indices, [t, 3]) that self-collision is asked for, or ``None``."""
+        if self._self_collision is None:
+            return None
+        chosen = self._self_collision["meshes"]
+        groups = [g for g in self._meshes if chosen is None or g.name in chosen]
+        return np.concatenate([g.particles[g.faces] for g in groups]) if groups else np.zeros((0, 3), np.int64)
 
     def _finalize(self, device, precision: str, scalar, worlds: int, spring_evaluation: str,
                   contact_stage: bool | None, contact_slots: int | None, *, spring_groups: bool = True,
@@ -295,9 +310,7 @@ class Finalization:
             emitter.finalize(model)
         model.emitters = list(self._emitters)
         if self._self_collision is not None:
-            chosen = self._self_collision["meshes"]
-            groups = [g for g in self._meshes if chosen is None or g.name in chosen]
-            surface = np.concatenate([g.particles[g.faces] for g in groups]) if groups else np.zeros((0, 3), np.int64)
+            surface = self._self_contact_surface()
             model.self_contact = make_self_contact(model, surface, np.concatenate(self._q), self._self_collision)
         model._finalized = True
         return model
@@ -339,3 +352,14 @@ def _block_dim(device, n: int) -> int:
         return 256
     per_sm = n // max(device.sm_count, 1)
     return int(min(256, max(32, 1 << max(per_sm, 1).bit_length() - 1)))
+
+
+def _surface_counts(surface: np.ndarray | None, n: int) -> dict:
+    """The self-colliding surface's triangles, unique edges and vertices (``memory.estimate_memory``'s arguments)."""
+    if surface is None or not len(surface):
+        return {}
+    t = np.asarray(surface, dtype=np.int64)
+    sides = np.sort(np.stack([t, np.roll(t, -1, axis=1)], axis=2).reshape(-1, 2), axis=1)
+    keys = np.sort(sides[:, 0] * n + sides[:, 1])  # sorted, the distinct ones counted (np.unique hashes: slower)
+    return dict(self_contact_triangles=len(t), self_contact_edges=1 + int(np.count_nonzero(np.diff(keys))),
+                self_contact_vertices=int(np.count_nonzero(np.bincount(t.ravel(), minlength=n))))
