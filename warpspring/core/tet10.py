@@ -158,11 +158,44 @@ def quadratic_topology(topology: Topology) -> Topology:
     T10 makes none)."""
     if topology.tets is None:
         raise ConfigError("quadratic tets are made from a body's tets: use the tetrahedral or delaunay method")
+    cracks = crack_count(topology.tets)
+    if cracks:
+        raise ConfigError(f"the body's tets leave {cracks} flat gap(s) inside it (four coplanar points whose flat tet the "
+                          "mesher dropped: the two sides' faces differ, and quadratic tets there would not join up): use "
+                          "method='tetrahedral', or another spacing or seed")
     positions, tets = quadratic_tets(topology.positions, topology.tets)
     tets, _ = wound_quadratic(positions, tets)
     indices, weights = _quadratic_skin(topology, positions, tets)
     return Topology(positions, topology.springs, lumped_volumes(positions, tets, len(positions)), indices, weights,
                     topology.stiffness_rule, slivers=topology.slivers, tets=tets)
+
+
+def crack_count(tets: np.ndarray) -> int:
+    """Flat gaps in a linear tet mesh: four points whose every triangle is a boundary face (a face of one tet only).
+    Such a quad is triangulated twice, once on each side, where a flat tet was dropped: linear tets still join along it
+    (each side's field is linear on the same plane quad... up to the diagonal), quadratic ones do not (each side has a
+    mid-edge node on its own diagonal)."""
+    tets = np.asarray(tets, dtype=np.int64)[:, :4]
+    faces = np.sort(np.concatenate([tets[:, [0, 1, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 3]], tets[:, [1, 2, 3]]]),
+                    axis=1)
+    unique, count = np.unique(faces, axis=0, return_counts=True)
+    boundary = unique[count == 1]
+    if len(boundary) < 4:
+        return 0
+    # pairs of boundary faces sharing an edge, and the four points they span
+    edges = np.sort(np.concatenate([boundary[:, [0, 1]], boundary[:, [0, 2]], boundary[:, [1, 2]]]), axis=1)
+    owner = np.tile(np.arange(len(boundary)), 3)
+    _, edge_id = np.unique(edges, axis=0, return_inverse=True)
+    order = np.argsort(edge_id.ravel(), kind="stable")
+    edge_id, owner = edge_id.ravel()[order], owner[order]
+    same = np.flatnonzero(edge_id[1:] == edge_id[:-1])
+    quads = np.sort(np.concatenate([boundary[owner[same]], boundary[owner[same + 1]]], axis=1), axis=1)
+    quads = np.unique(np.array([np.unique(q) for q in quads if len(np.unique(q)) == 4]).reshape(-1, 4), axis=0)
+    if len(quads) == 0:
+        return 0
+    faces_of = {tuple(f) for f in boundary.tolist()}
+    whole = [all(tuple(q[list(c)]) in faces_of for c in ((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3))) for q in quads]
+    return int(np.sum(whole))
 
 
 def _quadratic_skin(topology: Topology, positions: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
