@@ -60,6 +60,8 @@ EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 SWAPPED = np.array([1, 0, 2, 3, 4, 7, 8, 5, 6, 9])
 #: HRZ lumped mass of a straight T10 (module): the share of the tet's mass at each corner and at each mid-edge node.
 CORNER_SHARE, EDGE_SHARE = 1.0 / 36.0, 4.0 / 27.0
+#: Elements per batch of the host's Gershgorin rows (their blocks take ~7 kB an element in float64).
+GERSHGORIN_CHUNK = 4096
 #: The four Gauss points' barycentric coordinates [4, 4] (weight ¼ each).
 QUADRATURE = np.full((4, 4), QUADRATURE_BETA) + np.eye(4) * (QUADRATURE_ALPHA - QUADRATURE_BETA)
 
@@ -459,9 +461,12 @@ class QuadraticTetFamily(TetFamily):
         rows = np.zeros((worlds, n))
         columns = np.maximum(free[:, tets][:, :, None, :].astype(np.float64), np.eye(10)[None, None])  # [w, t, a, b]
         for world in range(worlds):
-            blocks = _tangent_blocks(x[world], tets, linear, mu[world], lam[world])
-            norms = np.linalg.norm(blocks, ord=2, axis=(-2, -1))  # [t, 10, 10]
-            rows[world] = np.bincount(tets.ravel(), weights=(norms * columns[world]).sum(axis=-1).ravel(), minlength=n)
+            for start in range(0, len(tets), GERSHGORIN_CHUNK):  # 7 kB of blocks per element: bounded host memory
+                part = slice(start, start + GERSHGORIN_CHUNK)
+                blocks = _tangent_blocks(x[world], tets[part], linear[part], mu[world, part], lam[world, part])
+                norms = np.linalg.norm(blocks, ord=2, axis=(-2, -1))  # [t, 10, 10]
+                rows[world] += np.bincount(tets[part].ravel(), weights=(norms * columns[world, part]).sum(axis=-1).ravel(),
+                                           minlength=n)
         return rows
 
     def describe_element(self, model, element: int) -> str:
