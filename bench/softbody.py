@@ -126,7 +126,7 @@ def gershgorin_step(body) -> float:
 def drop(device, usd_path: str | None, *, methods=None, volume: bool = False, bulk_modulus: float | None = None,
          youngs_modulus: float = BALL_E, height: float = 0.3, dt: float | None = None,
          elasticity: str = "springs", integrator: str = "symplectic_euler",
-         element: str = "tet4") -> tuple[list[dict], float, float]:
+         element: str = "tet4", cg_iterations: int | None = None) -> tuple[list[dict], float, float]:
     """Every method's ball (or those of ``methods``) dropped from ``height`` [m] onto the ground, side by side, for
     1 s; per body: particles, springs, build and step time, volume change of the surface, inverted tets; written to
     USD unless ``usd_path`` is None. ``volume``: the tetrahedral and Delaunay balls get the tet volume term
@@ -158,7 +158,8 @@ def drop(device, usd_path: str | None, *, methods=None, volume: bool = False, bu
             from warpspring.analysis.omega import gershgorin_omega_max
 
             dt = min(dt, 0.5 * 2.0 / gershgorin_omega_max(model))
-    integrator = ws.make_integrator(integrator, model)
+    integrator = ws.make_integrator(integrator, model,
+                                    **({} if cg_iterations is None else {"cg_iterations": cg_iterations}))
     a, b = model.state(), model.state()
     fps = 30
     substeps = int(np.ceil(1.0 / fps / dt))
@@ -787,6 +788,8 @@ def main() -> None:
                              "of a 1/30 s frame)")
     parser.add_argument("--elasticity-cost", action="store_true",
                         help="only time a substep of the tet balls with springs against neo-Hookean tets")
+    parser.add_argument("--cg-iterations", type=int, default=None,
+                        help="implicit Euler's most CG iterations per step in the drop (default its own)")
     parser.add_argument("--element", choices=("tet4", "tet10"), default="tet4",
                         help="the tets of the neo-Hookean balls in the drop (tet10: quadratic)")
     parser.add_argument("--beam", action="store_true",
@@ -830,7 +833,8 @@ def main() -> None:
                 rows, step, dt = drop(args.device, None, methods=args.methods, volume=on,
                                       bulk_modulus=args.bulk_modulus, youngs_modulus=args.youngs_modulus,
                                       height=args.height, dt=dt, elasticity=elasticity,
-                                      integrator=args.integrator, element=args.element)
+                                      integrator=args.integrator, element=args.element,
+                                      cg_iterations=args.cg_iterations)
                 runs.insert(0, (on, rows, step, dt))
         return emit(volume_table(runs, args.device, youngs_modulus=args.youngs_modulus, height=args.height,
                                  bulk_modulus=args.bulk_modulus, integrator=args.integrator,
