@@ -33,7 +33,9 @@ class SoftBody:
             ``tets`` argument of ``VolumeFamily.set_values``); else ``None``.
         elasticity: what carries its elasticity, ``"springs"`` or ``"neohookean"``.
         elastic_tets: with ``elasticity="neohookean"``, the slice of the neo-Hookean family's elements holding its
-            tets (``NeoHookeanFamily.set_values(tets=)``); else ``None``.
+            tets (``NeoHookeanFamily.set_values(tets=)``, or ``QuadraticTetFamily``'s for ``element="tet10"``); else
+            ``None``.
+        element: the tets of a neo-Hookean body, ``"tet4"`` or ``"tet10"`` (then ``topology.tets`` is [t, 10]).
     """
 
     name: str
@@ -50,6 +52,7 @@ class SoftBody:
     volume_tets: slice | None = None
     elasticity: str = "springs"
     elastic_tets: slice | None = None
+    element: str = "tet4"
 
     @property
     def particle_count(self) -> int:

@@ -24,6 +24,9 @@ class TetFamily(ElementFamily):
     (``precompute_kernel``), and calls :meth:`_add_tets`, :meth:`_finalize_tets` and :meth:`_write_values`."""
 
     live_names: tuple = ()
+    #: Particles per element: 4 (linear tets) or 10 (quadratic: corners first), and the index vector type on the device.
+    nodes: int = 4
+    index_type = wp.vec4i
     damper: str = ""
     label: str = ""
     element_label: str = ""
@@ -42,14 +45,14 @@ class TetFamily(ElementFamily):
     def _add_tets(self, tets, positions, values: dict, source: str) -> tuple[slice, np.ndarray, np.ndarray]:
         """Validate and append one body's tets with each live value (a number per name); returns the slice of
         the family's elements they occupy, the tets as wound and their rest volumes V₀ [m³]."""
-        tets = np.array(tets, dtype=np.int64).reshape(-1, 4)
+        tets = np.array(tets, dtype=np.int64).reshape(-1, self.nodes)
         positions = np.asarray(positions, dtype=np.float64)
         if len(tets) == 0:
             raise ConfigError(f"{source}: {self.label} needs tetrahedra, and the body has none")
         if tets.min() < 0 or tets.max() >= len(positions):
             raise ConfigError(f"{source}: a tet's particle index is outside 0..{len(positions) - 1}")
-        tets, volume = wound_tets(positions, tets)
-        edges = np.linalg.norm(positions[tets[:, 1:]] - positions[tets[:, :1]], axis=-1).max(axis=1)
+        tets, volume = self._wind(positions, tets)
+        edges = np.linalg.norm(positions[tets[:, 1:4]] - positions[tets[:, :1]], axis=-1).max(axis=1)
         flat = np.flatnonzero(~(volume > 1.0e-12 * edges**3))
         if len(flat):
             raise ConfigError(f"{source}: tet {int(flat[0])} {tets[flat[0]].tolist()} has no volume at rest "
@@ -61,14 +64,18 @@ class TetFamily(ElementFamily):
             self._values[name].append(np.full(len(tets), float(values[name])))
         return slice(start, start + len(tets)), tets, volume
 
+    def _wind(self, positions: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``tets`` rewound so that V₀ > 0 (corners 0..3), and their volumes |V₀| [m³]."""
+        return wound_tets(positions, tets)
+
     @property
     def element_count(self) -> int:
         return sum(len(t) for t in self._tets)
 
     @property
     def tets(self) -> np.ndarray:
-        """Every tet's particles (per-world indices, wound so that V₀ > 0), int64, shape [tet_count, 4]."""
-        return np.concatenate(self._tets) if self._tets else np.zeros((0, 4), dtype=np.int64)
+        """Every tet's particles (per-world indices, wound so that V₀ > 0), int64, shape [tet_count, nodes]."""
+        return np.concatenate(self._tets) if self._tets else np.zeros((0, self.nodes), dtype=np.int64)
 
     @property
     def rest_volume(self) -> np.ndarray:
@@ -76,12 +83,12 @@ class TetFamily(ElementFamily):
         return np.concatenate(self._rest) if self._rest else np.zeros(0)
 
     def _finalize_tets(self, model) -> None:
-        """The incidence table (roles 0..3), the indices, V₀ and one row of each live value on the device."""
+        """The incidence table (roles 0..nodes - 1), the indices, V₀ and one row of each live value on the device."""
         device, scalar = model.device, model.scalar
         tets = self.tets
-        roles = np.broadcast_to(np.arange(4), tets.shape)
+        roles = np.broadcast_to(np.arange(self.nodes), tets.shape)
         self.incidence, self.shape = build_incidence(tets, model.particle_count, roles, -1, device=device)
-        self._indices = wp.array(tets.astype(np.int32), dtype=wp.vec4i, device=device)
+        self._indices = wp.array(tets.astype(np.int32), dtype=self.index_type, device=device)
         self._rest_volume = wp.array(self.rest_volume, dtype=scalar, device=device)
         self._live_arrays = {name: wp.array(np.concatenate(v)[None, :], dtype=scalar, device=device)
                              for name, v in self._values.items()}

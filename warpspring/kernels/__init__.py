@@ -20,6 +20,7 @@ Modules:
     aero: wind drag and lift on triangles (a family).
     handles: PD handles (a family) and the pass of their target frames.
     volume, neohookean: the tet families (bulk volume energy; stable neo-Hookean).
+    tet10: the stable neo-Hookean energy on quadratic 10-node tets (a family).
     emitters: births and deaths in an emitter's pool of particles.
     forces: gravity, drag, external and family forces per particle (gather, no atomics); force clamps.
     shapes: collider kinds, the colliders' struct of arrays, signed distances from each kind.

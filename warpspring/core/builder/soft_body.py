@@ -12,7 +12,7 @@ import numpy as np
 
 from ... import checks
 from ...errors import ConfigError
-from .. import soft_topologies, softbody
+from .. import soft_topologies, softbody, tet10
 from ..mesh_files import USD_EXTENSIONS, load_mesh_file, read_usd_mesh
 from ..neohookean import ELASTICITIES, add_neohookean_term, poisson
 from ..records import SkinGroup
@@ -53,6 +53,7 @@ class SoftBodyRecipes:
         bulk_modulus: float | None = None,
         elasticity: str = "springs",
         poisson_ratio: float = 0.25,
+        element: str = "tet4",
     ):
         """Add a soft body made from a closed mesh by one of the seven mass-spring topologies.
 
@@ -107,6 +108,13 @@ class SoftBodyRecipes:
                 on the strain rate: at rest it is Rayleigh's −β K v, and it spares rigid motions. Live per world
                 after finalize (``NeoHookeanFamily.set_values``).
             poisson_ratio: ν of the ``"neohookean"`` material, in (−1, ½) (the spring networks are fixed at ¼).
+            element: the tets that carry a ``"neohookean"`` body: ``"tet4"`` (linear: the method's tets) or ``"tet10"``
+                (quadratic: a particle added at the middle of every tet edge, four Gauss points per element,
+                :mod:`warpspring.core.tet10`). Linear tets lock in bending: a cantilever at 3 tets across its thickness
+                is ~18 % too stiff with them and within 1 % with T10s, which cost more per element and add about as
+                many particles as the body has tets (``bench/results/softbody_tet10.md``). Masses are lumped (HRZ:
+                1/36 of a tet's mass at each corner, 4/27 at each mid-edge node) and the surface follows the
+                quadratic field. Live per world after finalize (``QuadraticTetFamily.set_values``).
 
         Returns:
             A :class:`~warpspring.core.softbody.SoftBody`: the particles and springs added, per group counts,
@@ -118,6 +126,7 @@ class SoftBodyRecipes:
         source = os.fspath(mesh) if isinstance(mesh, (str, os.PathLike)) else name or "soft_body"
         neohookean = _elasticity(elasticity, poisson_ratio, method=method, volume=volume, bulk_modulus=bulk_modulus,
                                  plasticity=plasticity, source=name or "soft_body")
+        quadratic = _element(element, neohookean=neohookean, source=name or "soft_body")
         uv = polygons = dressing = None
         face_sets = {}
         usd = isinstance(mesh, (str, os.PathLike)) and os.fspath(mesh).lower().endswith(USD_EXTENSIONS)
@@ -157,10 +166,14 @@ class SoftBodyRecipes:
                 f"{source}: a {method} soft body at spacing {spacing if spacing is not None else 'default'} "
                 f"(~{planned.particles:,} particles, {planned.springs:,} springs"
                 + (f", {planned.tets:,} tets)" if planned.tets else ")"),
-                particles=planned.particles, springs=0 if neohookean else planned.springs, temporary=planned.host,
+                # T10: a particle per tet edge too, about as many as vertices plus tets (Euler's formula)
+                particles=planned.particles + (planned.particles + planned.tets if quadratic else 0),
+                springs=0 if neohookean else planned.springs, temporary=planned.host,
                 remedy="use a larger spacing (memory grows as 1/spacing³) or a smaller body")
         topology = soft_topologies.build_topology(body, method, youngs_modulus=checks.positive("youngs_modulus", youngs_modulus),
                                            spacing=spacing, source=source, **dict(options or {}))
+        if quadratic:
+            topology = tet10.quadratic_topology(topology)
         if mass is None:
             if not body.is_watertight:
                 raise ConfigError(f"{source}: density= needs the mesh's volume, and an open mesh has none: give mass= "
@@ -176,7 +189,7 @@ class SoftBodyRecipes:
             self._place(topology.positions, origin, rotation),
             velocities=np.broadcast_to(checks.vector("velocity", velocity), (topology.particle_count, 3)),
             mass=masses,
-            radius=0.25 * float(lengths.mean()) if radius is None else radius,
+            radius=(0.125 if quadratic else 0.25) * float(lengths.mean()) if radius is None else radius,
         )
         name = self._unique_name(name, [m.name for m in self._meshes] + [k.name for k in self._skins]
                                  + [e.name for e in self._emitters] + list(RESERVED_PRIM_NAMES))
@@ -202,17 +215,29 @@ class SoftBodyRecipes:
             volume_tets = add_volume_term(self, topology, ids, volume=volume, method=method, youngs_modulus=youngs_modulus,
                                           bulk_modulus=bulk_modulus, damping=beta, source=name)
         elastic_tets = None
-        if neohookean:
+        if quadratic:
+            elastic_tets = tet10.add_tet10_term(self, topology, ids, youngs_modulus=youngs_modulus,
+                                                poisson_ratio=poisson_ratio, damping=beta, source=name)
+        elif neohookean:
             elastic_tets = add_neohookean_term(self, topology, ids, method=method, youngs_modulus=youngs_modulus,
                                                poisson_ratio=poisson_ratio, damping=beta, source=name)
         return softbody.SoftBody(
             name=name, method=method, particles=ids, springs=springs, skin=skin,
-            stiffness_rule=(f"neo-Hookean tets (E = {float(youngs_modulus):g} Pa, ν = {float(poisson_ratio):g}), no springs"
-                            if neohookean else topology.stiffness_rule),
+            stiffness_rule=(f"{'quadratic (T10) ' if quadratic else ''}neo-Hookean tets (E = {float(youngs_modulus):g} Pa, "
+                            f"ν = {float(poisson_ratio):g}), no springs" if neohookean else topology.stiffness_rule),
             youngs_modulus=float(youngs_modulus), mass=float(masses.sum()), slivers=topology.slivers,
             topology=topology, build_seconds=time.perf_counter() - started, volume_tets=volume_tets,
-            elasticity=elasticity, elastic_tets=elastic_tets,
+            elasticity=elasticity, elastic_tets=elastic_tets, element=element if neohookean else "tet4",
         )
+
+
+def _element(element, *, neohookean: bool, source: str) -> bool:
+    """Check a soft body's ``element=`` (one-line ConfigErrors); whether its tets are quadratic."""
+    if element not in tet10.ELEMENTS:
+        raise ConfigError(f"{source}: element must be one of {', '.join(tet10.ELEMENTS)}, got {element!r}")
+    if element == "tet10" and not neohookean:
+        raise ConfigError(f"{source}: element='tet10' is a neo-Hookean element: give elasticity='neohookean' with it")
+    return element == "tet10"
 
 
 def _elasticity(elasticity, poisson_ratio, *, method: str, volume, bulk_modulus, plasticity, source: str) -> bool:
