@@ -71,7 +71,8 @@ def scene_builder(scene) -> ModelBuilder:
 def scene_model(scene, device=None) -> Model:
     """The model of ``scene`` on ``device`` (:meth:`Scene.finalize <warpspring.io.scene.Scene.finalize>`):
     :func:`scene_builder` finalized in the scene's precision with its ``world_count`` worlds, each given its
-    ``[worlds]`` values and tracks, and the ``[contacts]`` options.
+    ``[worlds]`` values and tracks, and the ``[contacts]`` options (without ``triangles``, triangle contacts
+    switch on where a sphere or capsule is too thin for particle contacts: :meth:`ModelBuilder.triangle_contacts`).
 
     Raises:
         ConfigError: as :func:`scene_builder`, or a per-world value the model rejects (prefixed with the file
@@ -79,9 +80,7 @@ def scene_model(scene, device=None) -> Model:
     """
     model = scene_builder(scene).finalize(device, precision=scene.precision, worlds=scene.world_count,
                                           contact_stage=scene.contact_stage, contact_slots=scene.contact_slots,
-                                          integrator=scene.integrator)
-    if scene.contact_triangles:
-        model.contact_triangles = True
+                                          integrator=scene.integrator, contact_triangles=scene.contact_triangles)
     if not scene.contact_swept:
         model.contact_swept = False
     with in_table(os.path.basename(scene.path), "worlds"):

@@ -42,13 +42,15 @@ from .usd_prims import PRIMVARS, PURPOSES
 
 
 def check_run_settings(*, fps, frames, substeps, where: str = "options") -> None:
-    """Raise ConfigError unless fps > 0, frames ≥ 1 and substeps ≥ 1 (so that dt = 1 / (fps · substeps) > 0)."""
+    """Raise ConfigError unless fps > 0, frames ≥ 1 and substeps ≥ 1 (so that dt = 1 / (fps · substeps) > 0) or
+    "auto" (chosen before the run: :mod:`warpspring.analysis.step_choice`)."""
     if not (POSITIVE.accepts(fps)):
         raise ConfigError(f"{where}: fps must be a finite number > 0 (dt = 1 / (fps * substeps)), got {fps!r}")
     if not Number(1, integer=True).accepts(frames):
         raise ConfigError(f"{where}: frames must be an integer >= 1, got {frames!r}")
-    if not Number(1, integer=True).accepts(substeps):
-        raise ConfigError(f"{where}: substeps must be an integer >= 1 (dt = 1 / (fps * substeps)), got {substeps!r}")
+    if substeps != "auto" and not Number(1, integer=True).accepts(substeps):
+        raise ConfigError(f"{where}: substeps must be an integer >= 1 (dt = 1 / (fps * substeps)) or \"auto\" (the "
+                          f"fewest the stability advisor passes), got {substeps!r}")
 
 
 # -- bounded nesting --------------------------------------------------------------------------------------

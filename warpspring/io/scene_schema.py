@@ -61,7 +61,9 @@ stage and its per-particle buffer; false: every collider tested in the update; d
 collider moves) and ``slots``, the contacts one particle holds in that buffer (1 to 64; default: the
 number of colliders, at most 4; contacts beyond it are dropped and counted in the run summary),
 ``triangles`` (true: cloth triangles are pushed out of spheres and capsules too, so one smaller than the
-particle spacing cannot slip between particles; default false) and ``swept`` (false: particles' paths over
+particle spacing cannot slip between particles; default: on where a sphere or capsule is too thin for particle
+contacts to hold the cloth, by the rule of ``core/builder/colliders.py``, which the run summary states; false
+switches them off) and ``swept`` (false: particles' paths over
 a step are not swept against spheres, boxes, capsules and meshes; default true).
 The new collider types and keys (box, capsule, restitution, orientation, tracks) need format 2.
 """
@@ -282,7 +284,7 @@ SCHEMA = {
     "simulation": {
         "fps": POSITIVE,
         "frames": Number(1, integer=True),
-        "substeps": Number(1, integer=True),
+        "substeps": (int, str),  # >= 1 or "auto" (the default): scene_checks.check_run_settings
         "integrator": str,
         "precision": str,
         "device": str,

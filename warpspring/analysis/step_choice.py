@@ -1,0 +1,144 @@
+"""``substeps = "auto"``: the step a run takes when none is given, chosen once before capture.
+
+* **Explicit integrators** (explicit Euler, symplectic Euler, velocity Verlet, midpoint, RK4): the fewest substeps
+  per frame whose step the advisor passes with a margin, dt ≤ ``STABILITY_MARGIN`` × the binding world's
+  largest stable step (:func:`~.advisor.advise`: every world, the states the run reaches, its tracks over the
+  dry run). Where the advisor finds no stable step (explicit Euler and midpoint on springs without damping) the
+  choice is refused with its message, which recommends symplectic Euler or implicit Euler.
+* **Implicit Euler** passes any step: the fewest substeps, doubling from 1, whose position error over a frame
+  stays within ``ACCURACY_FLOOR`` [m], estimated by step doubling (a first-order method's error at n substeps is
+  about twice its difference from 2n) over the first ``ACCURACY_HORIZON`` seconds of the run. The floor: the
+  trade study's cloth (``bench/results/trade.md`` §3) lands between 1e-3 and 1e-2 m over its run with
+  symplectic Euler, midpoint and Verlet at their largest stable steps; 1 mm per frame keeps implicit Euler in
+  that company (one substep per 1/60 s frame erred 0.48 m there).
+* **dopri5** meets its own tolerance at any outer step (``tolerance``): one substep per frame, more only where the
+  internal steps that stability caps per frame would pass a tenth of its ``max_steps``.
+
+The core's :class:`~warpspring.core.simulator.Simulator` cannot reach this layer: it takes a step chooser,
+``Simulator(model, substeps=auto_substeps)``, and calls it once before it captures; scene files and
+``warpspring run`` use :func:`choose_substeps` (the runner prints its reason).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import checks
+from ..errors import ConfigError
+from ..core.integrators import Integrator, ImplicitEuler
+from ..core.model import Model
+from ..core.simulator import Simulator
+from .advisor import Advice, advise
+from .stability import _integrator_class
+from .under_load import PROBE_HORIZON
+
+#: Auto substeps keep dt at most this fraction of the advisor's largest stable step.
+STABILITY_MARGIN = 0.9
+#: Implicit Euler's auto substeps keep the position error over a frame within this [m].
+ACCURACY_FLOOR = 1.0e-3
+#: ... measured by step doubling over this much of the run [s].
+ACCURACY_HORIZON = 0.25
+#: The most substeps per frame auto chooses for accuracy (implicit Euler); beyond it, set them by hand.
+MAX_ACCURACY_SUBSTEPS = 256
+
+
+@dataclass(frozen=True)
+class SubstepChoice:
+    """What ``substeps = "auto"`` chose and why.
+
+    Attributes:
+        substeps: integrator steps per 1/fps frame.
+        dt: the step [s], 1 / (fps · substeps).
+        reason: one line for the run summary (what bound it: the stability limit and the margin, or the
+            accuracy floor).
+        advice: the advisor's verdict at ``dt`` (None for implicit Euler, which the accuracy floor binds).
+        error: implicit Euler: the estimated position error over a frame at ``substeps`` [m]; else NaN.
+    """
+
+    substeps: int
+    dt: float
+    reason: str
+    advice: Advice | None = None
+    error: float = math.nan
+
+
+def choose_substeps(model: Model, integrator: Integrator | str, *, fps: float = 60.0, control=None,
+                    horizon: float = PROBE_HORIZON) -> SubstepChoice:
+    """The substeps ``"auto"`` stands for (this module's docstring), for ``model`` stepped by ``integrator`` (an
+    instance, or a registry name for the explicit ones and dopri5) at ``fps`` [1/s] with ``control``;
+    ``horizon`` [s]: how long the run lasts, for the advisor's growth figures and dry run.
+
+    Raises:
+        ConfigError: an integrator that is unstable at every step for these springs (the advisor's message).
+    """
+    fps = checks.positive("fps", fps)
+    name = integrator if isinstance(integrator, str) else integrator.name
+    cls = _integrator_class(name)
+    if issubclass(cls, ImplicitEuler):
+        if isinstance(integrator, str):
+            raise ConfigError("choose_substeps needs the implicit_euler instance (its options), not its name")
+        return _accurate_substeps(model, integrator, fps, control)
+    probe = advise(model, name, 1.0 / (16.0 * fps), fps=fps, control=control, horizon=horizon)
+    limit = probe.dt_stable
+    if cls.adaptive:
+        internal = math.inf if limit <= 0.0 else 1.0 / (fps * limit)
+        budget = 0.1 * getattr(integrator, "max_steps", 100_000)
+        substeps = max(1, math.ceil(internal / budget))
+        reason = (f"{substeps} substep{'s' if substeps > 1 else ''} per frame: {name} meets its tolerance at any "
+                  f"outer step (stability caps its internal step near {limit * 1e3:.3g} ms)")
+        return SubstepChoice(substeps, 1.0 / (fps * substeps), reason, probe)
+    if limit <= 0.0:
+        raise ConfigError(f"substeps = \"auto\" finds no stable step: {probe.message}")
+    substeps = max(1, math.ceil(1.0 / (fps * STABILITY_MARGIN * limit)))
+    dt = 1.0 / (fps * substeps)
+    advice = advise(model, name, dt, fps=fps, control=control, horizon=horizon)
+    while not advice.stable or dt > STABILITY_MARGIN * advice.dt_stable:  # the dry run at dt may find more
+        if advice.dt_stable <= 0.0:
+            raise ConfigError(f"substeps = \"auto\" finds no stable step: {advice.message}")
+        substeps = max(substeps + 1, math.ceil(1.0 / (fps * STABILITY_MARGIN * advice.dt_stable)))
+        dt = 1.0 / (fps * substeps)
+        advice = advise(model, name, dt, fps=fps, control=control, horizon=horizon)
+    reason = (f"{substeps} substeps per 1/{fps:g} s frame (dt = {dt * 1e3:.4g} ms): the fewest within "
+              f"{STABILITY_MARGIN:g} × the advisor's limit of {advice.dt_stable * 1e3:.4g} ms ({advice.omega_source}, "
+              f"ω_max = {advice.omega_max:.4g} rad/s)")
+    return SubstepChoice(substeps, dt, reason, advice)
+
+
+def auto_substeps(model: Model, integrator: Integrator, *, fps: float, control=None) -> int:
+    """A step chooser for :class:`~warpspring.core.simulator.Simulator`: ``Simulator(model,
+    substeps=auto_substeps)`` runs :func:`choose_substeps` once, before it captures."""
+    return choose_substeps(model, integrator, fps=fps, control=control).substeps
+
+
+def _frames(model: Model, integrator: Integrator, fps: float, substeps: int, control, frames: int) -> np.ndarray:
+    """Positions [m] after each of ``frames`` frames from the model's start, float64, shape [frames, n·worlds, 3]."""
+    sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps, control=control, guard=None)
+    out = []
+    for _ in range(frames):
+        sim.step_frame()
+        out.append(sim.state.particle_q.numpy().astype(np.float64))
+    return np.stack(out)
+
+
+def _accurate_substeps(model: Model, integrator: Integrator, fps: float, control) -> SubstepChoice:
+    """Implicit Euler: the fewest substeps (1, 2, 4, …) whose error over a frame, 2 × the largest change of a
+    frame's end positions from n to 2n substeps (first order: e(n) ≈ 2 (x(n) - x(2n))), stays within
+    ``ACCURACY_FLOOR`` over the first ``ACCURACY_HORIZON`` seconds."""
+    frames = max(1, round(ACCURACY_HORIZON * fps))
+    substeps, coarse = 1, _frames(model, integrator, fps, 1, control, frames)
+    while True:
+        fine = _frames(model, integrator, fps, 2 * substeps, control, frames)
+        # The error over one frame: how much each frame adds to the gap, at most.
+        gap = 2.0 * np.linalg.norm(coarse - fine, axis=-1).max(axis=-1)
+        error = float(np.max(np.diff(np.concatenate([[0.0], gap]))))
+        if error <= ACCURACY_FLOOR or substeps >= MAX_ACCURACY_SUBSTEPS:
+            break
+        substeps, coarse = 2 * substeps, fine
+    bound = "within" if error <= ACCURACY_FLOOR else "still above"
+    reason = (f"{substeps} substep{'s' if substeps > 1 else ''} per 1/{fps:g} s frame: {integrator.name} is "
+              f"stable at any step; its position error over a frame, {error:.2g} m by step doubling, is {bound} "
+              f"the accuracy floor of {ACCURACY_FLOOR:g} m")
+    return SubstepChoice(substeps, 1.0 / (fps * substeps), reason, None, error)
