@@ -268,10 +268,10 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
         chosen = choose_substeps(model, integrator, fps=fps, control=control, horizon=frames / fps)
         substeps = chosen.substeps
         choices.append(f"substeps auto: {chosen.reason}")
-    if scene.contact_triangles is None:  # switched by the rule, not by the scene's key
+    if scene.contact_triangles is None:  # switched on by the rule, not by the scene's key
         rule = model_triangle_contacts(model)
-        if rule.reason:
-            choices.append(rule.reason + " ([contacts] triangles = false/true decides)")
+        if rule.needed:
+            choices.append(rule.reason + " ([contacts] triangles = false switches them off)")
     for line in choices:
         if note is not None:
             note(line)

@@ -26,6 +26,7 @@ from .scene_schema import (
     ROTATION_TRACK_TABLE,
     SCENE_FORMAT_VERSION,
     SCHEMA,
+    SUBSTEPS,
     TRACK_TABLE,
     TYPE_NAMES,
     VECTOR,
@@ -48,7 +49,7 @@ def check_run_settings(*, fps, frames, substeps, where: str = "options") -> None
         raise ConfigError(f"{where}: fps must be a finite number > 0 (dt = 1 / (fps * substeps)), got {fps!r}")
     if not Number(1, integer=True).accepts(frames):
         raise ConfigError(f"{where}: frames must be an integer >= 1, got {frames!r}")
-    if substeps != "auto" and not Number(1, integer=True).accepts(substeps):
+    if not SUBSTEPS.accepts(substeps):
         raise ConfigError(f"{where}: substeps must be an integer >= 1 (dt = 1 / (fps * substeps)) or \"auto\" (the "
                           f"fewest the stability advisor passes), got {substeps!r}")
 

@@ -159,6 +159,21 @@ class Number:
 
 
 @dataclass(frozen=True)
+class CountOrAuto(Number):
+    """An integer ≥ ``minimum``, or the string "auto" (chosen before the run)."""
+
+    def describe(self) -> str:
+        return super().describe() + ' or "auto"'
+
+    def accepts(self, value) -> bool:
+        return value == "auto" or super().accepts(value)
+
+
+#: ``[simulation] substeps``: a count, or "auto" (the default: ``analysis/step_choice.py``).
+SUBSTEPS = CountOrAuto(1, integer=True)
+
+
+@dataclass(frozen=True)
 class TrackTable:
     """A track table: ``{ times, values, interpolation, extrapolation }`` with each value fitting ``value``
     (a value spec); or, with ``rotation``, ``{ times, axis, degrees, interpolation, extrapolation }``."""
@@ -284,7 +299,7 @@ SCHEMA = {
     "simulation": {
         "fps": POSITIVE,
         "frames": Number(1, integer=True),
-        "substeps": (int, str),  # >= 1 or "auto" (the default): scene_checks.check_run_settings
+        "substeps": SUBSTEPS,
         "integrator": str,
         "precision": str,
         "device": str,
