@@ -276,7 +276,8 @@ def test_mesh_path_is_relative_to_the_scene_file(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     model = load_scene(os.path.join("scenes", "s.toml")).builder().finalize("cpu")
     assert (model.particle_count, model.tri_count) == (4, 2)
-    assert model.spring_count == 5 + 1  # five edges, one bend spring across the shared edge
+    # Only a mass: the default material, one spring per edge and a hinge across the shared one.
+    assert (model.spring_count, model.hinge_count) == (5, 1)
     np.testing.assert_allclose(model.particle_mass.numpy().sum(), 0.4)
 
 

@@ -1,9 +1,9 @@
 """``substeps = "auto"``: the step a run takes when none is given, chosen once before capture.
 
 * **Explicit integrators** (explicit Euler, symplectic Euler, velocity Verlet, midpoint, RK4): the fewest substeps
-  per frame whose step the advisor passes with a margin, dt ≤ ``STABILITY_MARGIN`` × the binding world's
-  largest stable step (:func:`~.advisor.advise`: every world, the states the run reaches, its tracks over the
-  dry run). Where the advisor finds no stable step (explicit Euler and midpoint on springs without damping) the
+  per frame whose step the advisor passes with a margin, dt ≤ ``STABILITY_MARGIN`` × the largest step it passes
+  in the binding world (:attr:`~.advisor.Advice.dt_passed`: every world, the states the run reaches, its tracks
+  over the dry run). Where the advisor finds no stable step (explicit Euler and midpoint on springs without damping) the
   choice is refused with its message, which recommends symplectic Euler or implicit Euler.
 * **Implicit Euler** passes any step: the fewest substeps, doubling from 1, whose position error over a frame
   stays within ``ACCURACY_FLOOR`` [m], estimated by step doubling (a first-order method's error at n substeps is
@@ -153,7 +153,7 @@ def _integrator_substeps(model: Model, integrator: Integrator | str, fps: float,
             raise ConfigError("choose_substeps needs the implicit_euler instance (its options), not its name")
         return _accurate_substeps(model, integrator, fps, control)
     probe = advise(model, name, 1.0 / (16.0 * fps), fps=fps, control=control, horizon=horizon)
-    limit = probe.dt_stable
+    limit = probe.dt_stable if cls.adaptive else probe.dt_passed
     if cls.adaptive:
         internal = math.inf if limit <= 0.0 else 1.0 / (fps * limit)
         budget = 0.1 * getattr(integrator, "max_steps", 100_000)
@@ -166,16 +166,16 @@ def _integrator_substeps(model: Model, integrator: Integrator | str, fps: float,
     substeps = max(1, math.ceil(1.0 / (fps * STABILITY_MARGIN * limit)))
     dt = 1.0 / (fps * substeps)
     advice = advise(model, name, dt, fps=fps, control=control, horizon=horizon)
-    while not advice.stable or dt > STABILITY_MARGIN * advice.dt_stable:  # the dry run at dt may find more
-        if advice.dt_stable <= 0.0:
+    while not advice.stable or dt > STABILITY_MARGIN * advice.dt_passed:  # the dry run at dt may find more
+        if advice.dt_passed <= 0.0:
             raise ConfigError(f"substeps = \"auto\" finds no stable step: {advice.message}")
-        substeps = max(substeps + 1, math.ceil(1.0 / (fps * STABILITY_MARGIN * advice.dt_stable)))
+        substeps = max(substeps + 1, math.ceil(1.0 / (fps * STABILITY_MARGIN * advice.dt_passed)))
         dt = 1.0 / (fps * substeps)
         advice = advise(model, name, dt, fps=fps, control=control, horizon=horizon)
     reason = (f"{substeps} substep{'s' if substeps > 1 else ''} per 1/{fps:g} s frame (dt = {dt * 1e3:.4g} ms): the "
               f"fewest within "
-              f"{STABILITY_MARGIN:g} × the advisor's limit of {advice.dt_stable * 1e3:.4g} ms ({advice.omega_source}, "
-              f"ω_max = {advice.omega_max:.4g} rad/s)")
+              f"{STABILITY_MARGIN:g} × the step the advisor passes, {advice.dt_passed * 1e3:.4g} ms ({advice.omega_source}, "
+              f"ω_max = {advice.omega_max:.4g} rad/s{'; ' + advice.passed_reason if advice.passed_reason else ''})")
     return SubstepChoice(substeps, dt, reason, advice)
 
 

@@ -269,10 +269,10 @@ def check_cloth(c: dict, where: str, label: str, *, version: int) -> None:
         kind, other = ("grid", "mesh") if grid else ("mesh", "grid")
         raise ConfigError(f"{where}: {label}.{wrong[0]} applies to a {other} cloth only, not to a {kind} cloth")
     per_particle = "particle_mass" if grid else "density"
-    if ("mass" in c) == (per_particle in c):
+    if ("mass" in c and per_particle in c) or ("mass" not in c and per_particle not in c and "material" not in c):
         raise ConfigError(
             f"{where}: [{label}] needs exactly one of mass (total, kg) or {per_particle} "
-            f"({'kg per particle' if grid else 'kg/m²'})"
+            f"({'kg per particle' if grid else 'kg/m²'}), or a material (its density)"
         )
     axis = c.get("rotation", {}).get("axis")
     if axis is not None and not any(axis):

@@ -325,6 +325,9 @@ SCHEMA = {
         "structural": (bool, _SPRING),
         "shear": (bool, _SPRING),
         "bend": (bool, _SPRING),
+        # A preset's name or {stretch, shear, bending, density, ...} (ClothMaterial); without it and without
+        # springs, DEFAULT_CLOTH at the table's mass (io/scene_build.py).
+        "material": Since(2, (str, dict)),
     },
     "collider": {
         "type": str,
