@@ -9,6 +9,7 @@ date.
 
 import argparse
 import datetime
+import os
 import sys
 import time
 
@@ -56,15 +57,18 @@ def main():
             refusals.append(f"| {n}² flat, undamped | {name} | {'refused' if advice.dt_passed == 0 else 'PASSED'} | "
                             f"{'yes' if named else 'no'} |")
     at, below = sb.exact_limit(device)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    command = " ".join(os.path.relpath(a, root) if os.path.isabs(a) and a.startswith(root) else a for a in sys.argv[1:])
+    where = f"{device.name} ({device}), Warp {wp.config.version}, {datetime.date.today()}"
     one_sided = all(r.one_sided() for r in results)
     tight = sum(r.tight() for r in results)
     lines = [
-        f"Advisor battery on {device.name} ({device}), Warp {wp.config.version}, {datetime.date.today()}: "
-        f"`python bench/advisor_battery.py {' '.join(sys.argv[1:])}`; {args.seconds:g} s runs; "
+        f"Advisor battery on {where}: `python bench/advisor_battery.py {command}`; {args.seconds:g} s runs; "
         f"{time.perf_counter() - t0:.0f} s in all.", "",
         f"One-sided in every case: {'yes' if one_sided else 'NO'}; tight (a run within 1/0.9 of P fails) in "
         f"{tight} of {len(results)}.", "",
         *sb.table(results), "",
+        f"Explicit Euler and midpoint on undamped cloth ({where}):", "",
         "| case | integrator | verdict | names symplectic_euler and velocity_verlet |", "|---|---|---|---|",
         *refusals, "",
         f"Exact limit (16² flat, kd = {sb.EXACT:g} s·ke, explicit Euler, linear limit {at.dt_stable * 1e3:.4g} ms): "

@@ -3,7 +3,7 @@
 * **Explicit integrators** (explicit Euler, symplectic Euler, velocity Verlet, midpoint, RK4): the fewest substeps
   per frame whose step the advisor passes with a margin, dt ≤ ``STABILITY_MARGIN`` × the largest step it passes
   in the binding world (:attr:`~.advisor.Advice.dt_passed`: every world, the states the run reaches, its tracks
-  over the dry run). Where the advisor finds no stable step (explicit Euler and midpoint on springs without damping) the
+  over the dry run; a drag track at its least and its most drag). Where the advisor finds no stable step (explicit Euler and midpoint on springs without damping) the
   choice is refused with its message, which recommends symplectic Euler or implicit Euler.
 * **Implicit Euler** passes any step: the fewest substeps, doubling from 1, whose position error over a frame
   stays within ``ACCURACY_FLOOR`` [m], estimated by step doubling (a first-order method's error at n substeps is
@@ -84,7 +84,7 @@ def choose_substeps(model: Model, integrator: Integrator | str, *, fps: float = 
         ConfigError: an integrator that is unstable at every step for these springs (the advisor's message).
     """
     fps = checks.positive("fps", fps)
-    choice = _integrator_substeps(model, integrator, fps, control, horizon)
+    choice = _over_drag_track(model, lambda: _integrator_substeps(model, integrator, fps, control, horizon))
     contact = contact_substeps(model, fps=fps)
     if contact is None or contact[0] <= choice.substeps:
         return choice
@@ -98,6 +98,31 @@ def choose_substeps(model: Model, integrator: Integrator | str, *, fps: float = 
     reason = f"{substeps} substeps per 1/{fps:g} s frame (dt = {dt * 1e3:.4g} ms) for the contacts: {why} (the " \
              f"integrator alone: {choice.reason})"
     return SubstepChoice(substeps, dt, reason, advice, choice.error)
+
+
+def _over_drag_track(model: Model, choose) -> SubstepChoice:
+    """``choose()`` at the model's drag, or, where a world's drag is a keyframe track, at the least and the most drag
+    its tracks reach (drag lowers symplectic Euler's limit and raises explicit Euler's): the choice of more
+    substeps. The tracks are put back after."""
+    tracks = [model.track("drag", world=w) for w in range(model.world_count)]
+    if all(t is None for t in tracks):
+        return choose()
+    values = np.concatenate([np.asarray(t.values, dtype=np.float64).ravel() for t in tracks if t is not None])
+    current = model.world_values("drag")[:, 0]
+    values = np.concatenate([values, current])
+    try:
+        choices = []
+        for drag in sorted({float(values.min()), float(values.max())}):
+            model.set_world_values("drag", drag)
+            choices.append(choose())
+    finally:
+        model.set_world_values("drag", current)
+        for w, track in enumerate(tracks):
+            if track is not None:
+                model.set_track("drag", track, world=w)
+    best = max(choices, key=lambda c: c.substeps)
+    return SubstepChoice(best.substeps, best.dt, best.reason + f" (over the drag track's {values.min():g}…"
+                         f"{values.max():g} N·s/m)", best.advice, best.error)
 
 
 def contact_substeps(model: Model, *, fps: float) -> tuple[int, str] | None:
