@@ -408,7 +408,7 @@ class Diagnosis:
 
 
 def diagnose(model: Model, integrator: str, dt: float, *, fps: float, reason: str, state: State,
-             control=None, omega_estimate: str = "power_iteration") -> Diagnosis:
+             control=None, omega_estimate: str = "power_iteration", substeps_floor: int = 0) -> Diagnosis:
     """Tell numerical instability from physical over-stretch after a guard stop whose ``reason`` is
     "strain", "kinetic energy" or "non-finite state", from ``state``, the last frame the guard passed.
 
@@ -416,7 +416,8 @@ def diagnose(model: Model, integrator: str, dt: float, *, fps: float, reason: st
     more substeps or implicit Euler integrate the same tearing more accurately, so the remedy is the
     material (stiffer springs, strain limiting, biphasic springs). A step beyond the limit at that state is
     instability: more substeps (the number that the state needs) or implicit Euler. ``omega_estimate`` as
-    in :func:`advise`."""
+    in :func:`advise`; ``substeps_floor``: the substeps the run's own verdict asked for (the suggestion is never
+    fewer, so that it also passes that verdict, e.g. ``--strict``)."""
     advice = advise(model, integrator, dt, fps=fps, state=state, control=control, omega_estimate=omega_estimate)
     if reason == "strain" and advice.stable:
         return Diagnosis("overstretch", advice, (
@@ -425,7 +426,7 @@ def diagnose(model: Model, integrator: str, dt: float, *, fps: float, reason: st
             "that; use stiffer springs (ke), strain limiting (Stabilizers(max_strain=0.1), [stabilizers] "
             "max_strain) or biphasic springs (biphasic_strain, biphasic_ratio)"))
     if not advice.stable:
-        hint = f" (e.g. --substeps {advice.substeps})" if advice.substeps else ""
+        hint = f" (e.g. --substeps {max(advice.substeps, substeps_floor)})" if advice.substeps else ""
         return Diagnosis("instability", advice, (
             f"numerical instability: at the state the run reached, {advice.message}{hint}"))
     return Diagnosis("instability", advice, (

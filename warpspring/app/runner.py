@@ -346,7 +346,8 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
             reason = getattr(exc, "reason", None)
             if reason is not None:
                 remedy = diagnose(model, integrator.name, sim.dt, fps=fps, reason=reason, state=last_good,
-                                  control=sim.control, omega_estimate=_omega_estimate(model)).remedy
+                                  control=sim.control, omega_estimate=_omega_estimate(model),
+                                  substeps_floor=advice.substeps or 0).remedy
             resumable = ""
             if checkpoint_every and os.path.exists(saved_at):
                 resumable = f"; continue from the last checkpoint with --resume {checkpoint_path(output)}"
