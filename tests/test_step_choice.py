@@ -168,3 +168,9 @@ def test_a_drag_track_takes_its_worst_value(device):
     assert tracked.substeps == fixed.substeps > choose_substeps(hanging_cloth(device, n=6)[0], "symplectic_euler",
                                                                 fps=FPS).substeps
     assert model.track("drag") is track and "drag track" in tracked.reason
+
+
+def test_simulator_names_the_chooser_for_auto():
+    model, _ = hanging_cloth("cpu", n=3)
+    with pytest.raises(ws.ConfigError, match="auto_substeps"):
+        ws.Simulator(model, substeps="auto")

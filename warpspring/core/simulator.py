@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import checks
-from ..errors import ContactOverflowWarning, SimulationError
+from ..errors import ConfigError, ContactOverflowWarning, SimulationError
 from .checkpoint import Checkpoint
 from .contacts import Contacts
 from .emitters import EmitterHook
@@ -95,6 +95,8 @@ class Simulator:
         integrator = integrator if integrator is not None else SymplecticEuler(model)
         if callable(substeps):  # a step chooser (analysis.step_choice.auto_substeps): once, before capture
             substeps = substeps(model, integrator, fps=self.fps, control=control)
+        elif substeps == "auto":  # the advisor lives above the core: the chooser is passed in
+            raise ConfigError('Simulator(substeps="auto"): pass the chooser, substeps=warpspring.auto_substeps')
         self.substeps = checks.count("substeps", substeps, minimum=1)
         self.frame_dt = 1.0 / self.fps
         self.dt = self.frame_dt / self.substeps
