@@ -3,14 +3,15 @@
 * **Explicit integrators** (explicit Euler, symplectic Euler, velocity Verlet, midpoint, RK4): the fewest substeps
   per frame whose step the advisor passes with a margin, dt ≤ ``STABILITY_MARGIN`` × the largest step it passes
   in the binding world (:attr:`~.advisor.Advice.dt_passed`: every world, the states the run reaches, its tracks
-  over the dry run; a drag track at its least and its most drag). Where the advisor finds no stable step (explicit Euler and midpoint on springs without damping) the
-  choice is refused with its message, which recommends symplectic Euler or implicit Euler.
+  over the dry run; a drag track at its least and its most drag). Where the advisor finds no stable step
+  (explicit Euler and midpoint on springs without damping) the choice is refused with its message, which
+  recommends symplectic Euler, velocity Verlet or implicit Euler.
 * **Implicit Euler** passes any step: the fewest substeps, doubling from 1, whose position error over a frame
   stays within ``ACCURACY_FLOOR`` [m], estimated by step doubling (a first-order method's error at n substeps is
-  about twice its difference from 2n) over the first ``ACCURACY_HORIZON`` seconds of the run. The floor: the
-  trade study's cloth (``bench/results/trade.md`` §3) lands between 1e-3 and 1e-2 m over its run with
-  symplectic Euler, midpoint and Verlet at their largest stable steps; 1 mm per frame keeps implicit Euler in
-  that company (one substep per 1/60 s frame erred 0.48 m there).
+  about twice its difference from 2n) over the first ``ACCURACY_HORIZON`` seconds of the run. The floor, 1 mm
+  per frame, is taken from the trade study's cloth (``bench/results/trade.md`` §3, the 16² ANCHORS cloth): the
+  explicit methods at their largest stable steps err 5e-4 m (Verlet) to 3.2e-3 m (symplectic Euler) over its run,
+  implicit Euler at one step per frame 0.48 m; the floor keeps implicit Euler among the explicit ones.
 * **dopri5** meets its own tolerance at any outer step (``tolerance``): one substep per frame, more only where the
   internal steps that stability caps per frame would pass a tenth of its ``max_steps``.
 * **Contacts** (any integrator, with colliders): contacts are projections after each step, which the advisor
@@ -39,7 +40,7 @@ from ..core.model import Model
 from ..core.simulator import Simulator
 from .advisor import Advice, advise
 from .stability import _integrator_class
-from .under_load import PROBE_HORIZON
+from .under_load import PROBE_HORIZON, _keeps_plasticity
 
 #: Auto substeps keep dt at most this fraction of the advisor's largest stable step.
 STABILITY_MARGIN = 0.9
@@ -220,6 +221,7 @@ def _frames(model: Model, integrator: Integrator, fps: float, substeps: int, con
     return np.stack(out)
 
 
+@_keeps_plasticity  # its runs step the model: plastic springs start the real run as built
 def _accurate_substeps(model: Model, integrator: Integrator, fps: float, control) -> SubstepChoice:
     """Implicit Euler: the fewest substeps (1, 2, 4, …) whose error over a frame, 2 × the largest change of a
     frame's end positions from n to 2n substeps (first order: e(n) ≈ 2 (x(n) - x(2n))), stays within
