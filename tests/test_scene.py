@@ -49,9 +49,10 @@ def parse_error(data: dict) -> str:
 
 
 def test_defaults_of_a_minimal_scene():
-    """A scene with only a cloth gets 60 fps, 120 frames, 16 substeps, symplectic Euler, float32 and no output."""
+    """A scene with only a cloth gets 60 fps, 120 frames, substeps chosen before the run ("auto"), symplectic
+    Euler, float32 and no output."""
     scene = parse_scene(minimal(), path="s.toml")
-    assert (scene.fps, scene.frames, scene.substeps) == (60.0, 120, 16)
+    assert (scene.fps, scene.frames, scene.substeps) == (60.0, 120, "auto")
     assert (scene.integrator, scene.precision) == ("symplectic_euler", "float32")
     assert scene.device is None and scene.output is None
     assert scene.export_particles is False and scene.export_springs is False
@@ -275,7 +276,8 @@ def test_mesh_path_is_relative_to_the_scene_file(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     model = load_scene(os.path.join("scenes", "s.toml")).builder().finalize("cpu")
     assert (model.particle_count, model.tri_count) == (4, 2)
-    assert model.spring_count == 5 + 1  # five edges, one bend spring across the shared edge
+    # Only a mass: the default material, one spring per edge and a hinge across the shared one.
+    assert (model.spring_count, model.hinge_count) == (5, 1)
     np.testing.assert_allclose(model.particle_mass.numpy().sum(), 0.4)
 
 

@@ -50,6 +50,7 @@ from .core.simulator import FrameHook, Simulator
 from .core.stepper import StepHook, Stepper
 from .core.tracks import Track
 from .analysis.advisor import Advice, advise
+from .analysis.step_choice import SubstepChoice, auto_substeps, choose_substeps
 from .analysis.under_load import TransientPeak, transient_peak
 from .analysis.watch import StabilityWatch
 from .core.transforms import quat_from_axis_angle
@@ -60,6 +61,9 @@ __all__ = [
     "INTEGRATORS",
     "Advice",
     "advise",
+    "SubstepChoice",
+    "auto_substeps",
+    "choose_substeps",
     "TransientPeak",
     "transient_peak",
     "RK4",

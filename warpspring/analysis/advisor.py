@@ -23,7 +23,7 @@ from ..core.state import State
 from .damping import _damping_ranges
 from .omega import (_check_iteration, _gershgorin, _power_iteration, _stiffness_values, free_particles,
                     transverse_omega_max)
-from .stability import _integrator_class, _world_limits, spectral_radius
+from .stability import _integrator_class, _world_limits, passed_step, spectral_radius
 from .under_load import (PROBE_HORIZON, TransientPeak, _keeps_plasticity, has_loads, in_motion, loaded_state,
                          transient_peak)
 
@@ -72,6 +72,11 @@ class Advice:
         dry_run_cut_short: why the dry run stopped at its budget (:attr:`~.under_load.TransientPeak.cut_short`), in
             which case ω_max is the Gershgorin bound and the verdict conservative (the message says so); empty
             otherwise.
+        dt_passed: the largest step [s] the verdict passes in the binding world: ``dt_stable``, or less where the
+            linear limit is not enough (:func:`~.stability.passed_step`): a margin for explicit Euler and midpoint,
+            the three-wave limit of a weakly damped cloth for the others; ``stable`` is ``dt`` ≤ it, ``substeps``
+            its substeps. NaN where not set.
+        passed_reason: why ``dt_passed`` is below ``dt_stable`` ("" where it is not).
     """
 
     integrator: str
@@ -92,6 +97,8 @@ class Advice:
     transverse_growth: float = 1.0
     top_growth: float = 1.0
     dry_run_cut_short: str = ""
+    dt_passed: float = math.nan
+    passed_reason: str = ""
 
 
 #: The transverse growth (:attr:`Advice.transverse_growth`) from which the advisor's message mentions it.
@@ -230,10 +237,13 @@ def _verdict(integrator: str, dt: float, fps: float, limit: float, springs: str,
         )
     elif limit == 0.0:
         stable, substeps = False, None
-        fallback = float(_world_limits("symplectic_euler", found.omegas, ranges).min())
+        fallback = min(passed_step("symplectic_euler", float(o), float(lim), rayleigh=r[0], drag_rate=r[1])[0]
+                       for o, lim, r in zip(found.omegas, _world_limits("symplectic_euler", found.omegas, ranges),
+                                             ranges))
         message = (
             f"{integrator} is unstable at every dt for these springs (their weakly damped modes grow at any step; "
-            f"{springs}): use symplectic_euler (dt ≤ {format_duration(fallback)}) or implicit_euler (unconditionally stable)"
+            f"{springs}): use symplectic_euler or velocity_verlet (dt ≤ {format_duration(fallback)}) or implicit_euler "
+            "(unconditionally stable)"
         )
     else:
         substeps = max(1, math.ceil(1.0 / (fps * limit)))
@@ -245,10 +255,12 @@ def _verdict(integrator: str, dt: float, fps: float, limit: float, springs: str,
             )
         else:
             grows = f"×{top:.3g}" if top < 1e6 else f"×1e{math.log10(top):.0f}"
+            past = (f"past it their top mode grows {grows} over a {horizon:g} s run" if top > 1.0 + 1e-9 else
+                    "past it the step is within the springs' linear limit but not passed")
             message = (
                 f"{integrator} is unstable at dt = {format_duration(dt)}: the springs ({springs}) allow at most "
-                f"{format_duration(limit)} (past it their top mode grows {grows} over a {horizon:g} s run); use a "
-                f"smaller dt, at least {substeps} substeps per {frame}, or implicit_euler (unconditionally stable)"
+                f"{format_duration(limit)} ({past}); use a smaller dt, at least {substeps} substeps per {frame}, or "
+                f"implicit_euler (unconditionally stable)"
             )
     return stable, substeps, message
 
@@ -333,13 +345,20 @@ def advise(
     ranges = _damping_ranges(model, k, found.modes, found.positions,
                              lowest_top=None if probe is None else probe.world_lowest_ratio)
     limits = _world_limits(integrator, found.omegas, ranges)
-    w = int(np.lexsort((-found.omegas, limits))[0])  # the smallest step; among equals, the stiffest world
+    passed = [(float(lim), "") if cls.adaptive else passed_step(integrator, float(o), float(lim), rayleigh=r[0],
+                                                                  drag_rate=r[1])
+              for o, lim, r in zip(found.omegas, limits, ranges)]
+    passed_limits = np.array([p[0] for p in passed])
+    w = int(np.lexsort((-found.omegas, passed_limits))[0])  # the smallest step; among equals, the stiffest world
     omega, limit = float(found.omegas[w]), float(limits[w])
+    passed_limit, passed_reason = float(passed_limits[w]), passed[w][1]
     peak_time = float(probe.world_peak_time[w]) if probe is not None and found.converged[w] else 0.0
     springs = _springs_phrase(found, w, peak_time, model.world_count)
     adaptive = cls.adaptive
     top = 1.0 if adaptive or not 0.0 < limit < math.inf else _top_growth(integrator, dt, omega, ranges[w], horizon)
-    stable, substeps, message = _verdict(integrator, dt, fps, limit, springs, top, horizon, found, ranges)
+    stable, substeps, message = _verdict(integrator, dt, fps, passed_limit, springs, top, horizon, found, ranges)
+    if passed_reason:
+        message += f" (the springs' linear limit is {format_duration(limit)}; passed: {passed_reason})"
     growth = _transverse_growth(model, integrator, dt, k, found.positions, ranges[w][1], horizon, w)
     message = _with_transverse_note(message, integrator, growth, horizon)
     if strict and not stable:
@@ -363,6 +382,8 @@ def advise(
         transverse_growth=growth,
         top_growth=top,
         dry_run_cut_short=probe.cut_short if probe is not None else "",
+        dt_passed=passed_limit,
+        passed_reason=passed_reason,
     )
 
 
@@ -387,7 +408,7 @@ class Diagnosis:
 
 
 def diagnose(model: Model, integrator: str, dt: float, *, fps: float, reason: str, state: State,
-             control=None, omega_estimate: str = "power_iteration") -> Diagnosis:
+             control=None, omega_estimate: str = "power_iteration", substeps_floor: int = 0) -> Diagnosis:
     """Tell numerical instability from physical over-stretch after a guard stop whose ``reason`` is
     "strain", "kinetic energy" or "non-finite state", from ``state``, the last frame the guard passed.
 
@@ -395,7 +416,8 @@ def diagnose(model: Model, integrator: str, dt: float, *, fps: float, reason: st
     more substeps or implicit Euler integrate the same tearing more accurately, so the remedy is the
     material (stiffer springs, strain limiting, biphasic springs). A step beyond the limit at that state is
     instability: more substeps (the number that the state needs) or implicit Euler. ``omega_estimate`` as
-    in :func:`advise`."""
+    in :func:`advise`; ``substeps_floor``: the substeps the run's own verdict asked for (the suggestion is never
+    fewer, so that it also passes that verdict, e.g. ``--strict``)."""
     advice = advise(model, integrator, dt, fps=fps, state=state, control=control, omega_estimate=omega_estimate)
     if reason == "strain" and advice.stable:
         return Diagnosis("overstretch", advice, (
@@ -404,7 +426,7 @@ def diagnose(model: Model, integrator: str, dt: float, *, fps: float, reason: st
             "that; use stiffer springs (ke), strain limiting (Stabilizers(max_strain=0.1), [stabilizers] "
             "max_strain) or biphasic springs (biphasic_strain, biphasic_ratio)"))
     if not advice.stable:
-        hint = f" (e.g. --substeps {advice.substeps})" if advice.substeps else ""
+        hint = f" (e.g. --substeps {max(advice.substeps, substeps_floor)})" if advice.substeps else ""
         return Diagnosis("instability", advice, (
             f"numerical instability: at the state the run reached, {advice.message}{hint}"))
     return Diagnosis("instability", advice, (

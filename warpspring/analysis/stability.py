@@ -439,6 +439,72 @@ def network_stable_step(integrator: str, omega_max: float, *, rayleigh=0.0, drag
     return best
 
 
+#: Three-wave resonance: a spring network's forces are nonlinear (quadratic in the displacement to leading order),
+#: so three modes whose numerical phases per step θ₁ + θ₂ + θ₃ meet 2π (the step aliases their sum) trade energy,
+#: and a step whose map neither damps nor dissipates feeds them. The sum of three phases in [0, π] reaches 2π only
+#: where one of them reaches 2π/3: the top mode's phase below it excludes every such triad. For symplectic Euler
+#: and velocity Verlet without damping, cos θ = 1 - (ωh)²/2, so ωh ≤ √3 (0.866 of their linear limit of 2):
+#: measured, an undamped 16² cloth released flat (bench/advisor_battery.py) grows at ωh = 1.84 and not at 1.67.
+TRIAD_PHASE = 2.0 * math.pi / 3.0
+#: ... where the top mode decays more slowly than this [1/s] (its damping and the map's own loss per step): the
+#: same cloth with kd/k = 1e-6 s (a decay of 0.6/s) no longer grows at ωh = 1.84; the undamped one grows at
+#: ~0.4/s in amplitude, so 2/s keeps a factor of 5.
+TRIAD_DECAY = 2.0
+#: Explicit Euler and midpoint rely on damping: at their limit the least damped mode is neutral, and the
+#: undamped transverse modes of stretched springs grow at any step; the advisor passes steps up to this share
+#: of their limit only (the exact-limit battery case: kd/k = 1e-4 s at dt = 0.1 ms = the limit blows up).
+DAMPED_MARGIN = 0.9
+
+
+def _phase(integrator: str, omega_h: float, zeta: float) -> float:
+    """The phase per step [rad] of the test oscillator's least decaying eigenvalue (π for a negative real one)."""
+    values = np.linalg.eigvals(amplification_matrix(integrator, omega_h, zeta))
+    top = values[np.argmax(np.abs(values))]
+    return float(abs(np.angle(top)))
+
+
+def triad_step(integrator: str, omega: float, zeta: float, limit: float) -> float:
+    """The largest step [s] ≤ ``limit`` at which the mode of angular frequency ``omega`` [rad/s] and damping ratio
+    ``zeta`` keeps its phase per step within ``TRIAD_PHASE`` (``limit`` itself if it does up to there): a scan of
+    64 steps, then bisection on the first crossing (the phase grows with the step up to it)."""
+    if not (omega > 0.0 and 0.0 < limit < math.inf):
+        return limit
+    steps = limit * np.linspace(1.0 / 64.0, 1.0, 64)
+    phases = [_phase(integrator, omega * h, zeta) for h in steps]
+    above = [k for k, phase in enumerate(phases) if phase > TRIAD_PHASE]
+    if not above:
+        return limit
+    k = above[0]
+    low, high = (steps[k - 1] if k else 0.0), steps[k]
+    for _ in range(40):
+        mid = 0.5 * (low + high)
+        low, high = (mid, high) if _phase(integrator, omega * mid, zeta) <= TRIAD_PHASE else (low, mid)
+    return low
+
+
+def passed_step(integrator: str, omega_max: float, limit: float, *, rayleigh=0.0, drag_rate=0.0) -> tuple[float, str]:
+    """The largest step [s] the advisor passes on a network of linear limit ``limit`` [s] (:func:`network_stable_step`)
+    whose top mode is ``omega_max`` [rad/s] with the least damping of ``rayleigh`` (kd/k [s]) and ``drag_rate``
+    (c/m [1/s]), and why it is below ``limit`` ("" where it is not): ``DAMPED_MARGIN`` × ``limit`` for the
+    integrators that rely on damping (explicit Euler, midpoint), the three-wave limit (:func:`triad_step`) where
+    the top mode decays more slowly than ``TRIAD_DECAY``."""
+    if not 0.0 < limit < math.inf:
+        return limit, ""
+    if spectral_radius(integrator, 0.1, 0.0) > 1.0 + 1.0e-9:  # grows undamped modes: relies on damping
+        return DAMPED_MARGIN * limit, f"{DAMPED_MARGIN:g} of the limit: {integrator} relies on damping, neutral at its limit"
+    ratio, rate = min(_extremes("rayleigh", rayleigh)), min(_extremes("drag_rate", drag_rate))
+    zeta = (ratio * omega_max * omega_max + rate) / (2.0 * omega_max) if omega_max > 0.0 else 0.0
+    step = triad_step(integrator, omega_max, zeta, limit)
+    if step >= limit:
+        return limit, ""
+    decay = max(0.0, -math.log(max(spectral_radius(integrator, omega_max * step, zeta), 1e-300)) / step)
+    if decay >= TRIAD_DECAY:
+        return limit, ""
+    return step, (f"the three-wave limit of a weakly damped cloth (its top mode's phase per step within 2π/3, "
+                  f"decaying at {decay:.2g}/s < {TRIAD_DECAY:g}/s)" if decay > 1e-6 else
+                  "the three-wave limit of an undamped cloth (its top mode's phase per step within 2π/3)")
+
+
 def _world_limits(integrator: str, omegas: np.ndarray, ranges: list) -> np.ndarray:
     """:func:`network_stable_step` of each world [s], shape [world_count]; worlds with the same ω_max and
     damping extremes (e.g. identical worlds) are computed once."""

@@ -62,6 +62,10 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_CONFIG, f"warpspring: error: {message} (see {self.prog} --help)\n")
 
 
+def _substeps(text: str) -> int | str:
+    return "auto" if text == "auto" else _positive_int(text)
+
+
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -125,7 +129,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--device", help="Warp device: cpu, cuda:0, ... (default: the scene's, else Warp's default)")
     run.add_argument("--frames", type=_positive_int, help="frames to simulate")
     run.add_argument("--fps", type=_positive_float, help="frames per second [1/s]")
-    run.add_argument("--substeps", type=_positive_int, help="integrator steps per frame")
+    run.add_argument("--substeps", type=_substeps, metavar="N|auto",
+                     help="integrator steps per frame, or auto: the fewest the stability advisor passes with a margin "
+                          "(implicit Euler: an accuracy floor), chosen before the run and printed (default: the "
+                          "scene's [simulation] substeps, else auto)")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress bar or lines")
     run.add_argument("--world", type=_non_negative_int, metavar="K",
                      help="write only world K of a scene of several worlds (default: the scene's [output] world, "
@@ -355,6 +362,7 @@ def _cmd_run(args) -> int:
         world=args.world,
         world_spacing=args.world_spacing,
         on_start=functools.partial(_start_view, live) if live is not None else None,
+        note=lambda line: print(line, flush=True),  # what the run chose by itself (substeps, contacts)
     )
     print(summary.line())
     if live is not None:  # (a run that fails ends the process, and the page's threads with it)

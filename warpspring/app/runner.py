@@ -21,7 +21,9 @@ from ..io.output_lock import OutputLock
 from ..io.usd_stream import check_output_path
 from ..core.mesh_colliders import mesh_cache_counts
 from ..core.simulator import Simulator
+from ..core.builder.colliders import model_triangle_contacts
 from ..analysis.advisor import advise, diagnose
+from ..analysis.step_choice import choose_substeps
 from ..analysis.under_load import PROBE_HORIZON
 from ..analysis.watch import WATCH_EVERY, StabilityWatch
 from ..kernels.inputs import INPUTS
@@ -58,6 +60,8 @@ class RunSummary:
             worlds; ``None`` without it.
         mesh_cache_overflow: full mesh queries made because a particle's candidate cache overflowed (all worlds;
             the results are the same, the work is not: raise the mesh's ``cache_candidates``).
+        choices: what the scene switched on or chose by itself and why, one line each (``substeps = "auto"``,
+            triangle contacts by the rule of ``core/builder/colliders.py``).
     """
 
     output: str
@@ -80,6 +84,7 @@ class RunSummary:
     peak_contacts: tuple | None = None
     self_contact: tuple | None = None
     mesh_cache_overflow: int = 0
+    choices: tuple = ()
 
     def line(self) -> str:
         """The closing summary line of the CLI."""
@@ -117,7 +122,7 @@ class RunSummary:
             f"wrote {self.frames + 1} frames{resumed} ({self.simulated_time:.3g} s simulated) to {self.output} in "
             f"{self.wall_time:.2f} s + {self.setup_time:.2f} s setup: {speed}; {self.integrator}, "
             f"dt = {self.dt * 1e3:.4g} ms; {self.model}{contacts}{worlds}"
-        )
+        ) + "".join(f"; {choice}" for choice in self.choices)
 
 
 def checkpoint_path(output: str) -> str:
@@ -168,7 +173,7 @@ def run_scene(
     device: str | None = None,
     frames: int | None = None,
     fps: float | None = None,
-    substeps: int | None = None,
+    substeps: int | str | None = None,
     progress: bool = True,
     strict: bool = False,
     warn=None,
@@ -179,6 +184,7 @@ def run_scene(
     checkpoint_every: int = 0,
     resume: str | None = None,
     on_start=None,
+    note=None,
 ) -> RunSummary:
     """Simulate ``scene`` and write it to USD. Arguments other than ``scene`` override the file's values
     (``world``, ``world_spacing`` and ``world_columns`` those of its ``[output]``: see
@@ -206,6 +212,10 @@ def run_scene(
     ``on_start(sim, advice)``, if given, is called once the simulator is made and the advisor has judged
     the step, before the first frame (the live viewer attaches itself there).
 
+    ``substeps = "auto"`` (the scene's default: :func:`~warpspring.analysis.step_choice.choose_substeps`) is chosen
+    once the model is built, before the run; what the run chose by itself (the substeps, triangle contacts)
+    goes to ``note`` (a callable taking one string), if given, and into :attr:`RunSummary.choices`.
+
     Raises:
         ConfigError: bad scene or options, a scene's output path that leaves its folder, an output another run
             is writing (naming its process), or (``strict``) an unstable step; nothing is written.
@@ -225,13 +235,14 @@ def run_scene(
         return _run(scene, output=output, lock=lock, device=device, frames=frames, fps=fps, substeps=substeps,
                     progress=progress, strict=strict, warn=warn, world=world, world_spacing=world_spacing,
                     world_columns=world_columns, watch=watch, checkpoint_every=checkpoint_every, resume=resume,
-                    on_start=on_start)
+                    on_start=on_start, note=note)
     finally:
         lock.release()
 
 
-def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fps: float, substeps: int, progress,
-         strict, warn, world, world_spacing, world_columns, watch, checkpoint_every, resume, on_start) -> RunSummary:
+def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fps: float, substeps, progress,
+         strict, warn, world, world_spacing, world_columns, watch, checkpoint_every, resume, on_start,
+         note=None) -> RunSummary:
     """:func:`run_scene` once its output is checked and owned (``lock`` held)."""
     world = scene.export_world if world is None else world
     if world is not None and world >= scene.world_count:
@@ -252,7 +263,19 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
         raise ConfigError(f"{os.path.basename(scene.path)}: [simulation] {exc}") from None
     watch = WATCH_EVERY if watch is None else checks.count("watch", watch, minimum=0)
     checkpoint_every = checks.count("checkpoint_every", checkpoint_every, minimum=0)
-    sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps, guard=scene.guard)
+    control, choices, chosen = model.control(), [], None
+    if substeps == "auto":
+        chosen = choose_substeps(model, integrator, fps=fps, control=control, horizon=frames / fps)
+        substeps = chosen.substeps
+        choices.append(f"substeps auto: {chosen.reason}")
+    if scene.contact_triangles is None:  # switched on by the rule, not by the scene's key
+        rule = model_triangle_contacts(model)
+        if rule.needed:
+            choices.append(rule.reason + " ([contacts] triangles = false switches them off)")
+    for line in choices:
+        if note is not None:
+            note(line)
+    sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps, control=control, guard=scene.guard)
     start = 0
     if resume is not None:
         _check_resume(Checkpoint.load(resume), sim, warn)
@@ -263,8 +286,11 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
         if start >= frames:
             raise ConfigError(f"the checkpoint {resume!r} is at frame {start}, at or past the run's end (frame "
                               f"{frames}): nothing to resume; pass more --frames")
-    advice = preflight(model, integrator.name, sim.dt, fps=fps, strict=strict, control=sim.control,
-                       horizon=frames / fps)
+    if chosen is not None and chosen.advice is not None and chosen.advice.dt == sim.dt:
+        advice = chosen.advice  # the verdict at the chosen step, made just now
+    else:
+        advice = preflight(model, integrator.name, sim.dt, fps=fps, strict=strict, control=sim.control,
+                           horizon=frames / fps)
     if model.self_contact is not None:
         model.self_contact.reset()  # the advisor's dry run stepped the model: count the run's steps only
     # Its limits from the verdict just made, not a second analysis.
@@ -320,7 +346,8 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
             reason = getattr(exc, "reason", None)
             if reason is not None:
                 remedy = diagnose(model, integrator.name, sim.dt, fps=fps, reason=reason, state=last_good,
-                                  control=sim.control, omega_estimate=_omega_estimate(model)).remedy
+                                  control=sim.control, omega_estimate=_omega_estimate(model),
+                                  substeps_floor=advice.substeps or 0).remedy
             resumable = ""
             if checkpoint_every and os.path.exists(saved_at):
                 resumable = f"; continue from the last checkpoint with --resume {checkpoint_path(output)}"
@@ -355,6 +382,7 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
         self_contact=None if model.self_contact is None else tuple(
             int(v.sum()) for v in model.self_contact.counts().values()),
         mesh_cache_overflow=int(mesh_cache_counts(model)["overflow"].sum()) if model.mesh_colliders else 0,
+        choices=tuple(choices),
     )
 
 

@@ -19,7 +19,7 @@ bending)·k_θ. A mode of angular frequency ω is then damped by ζ = τω/2 at 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -99,6 +99,28 @@ DENIM = kes_material(bending=0.172, shear=2.180, emt=5.515, density=0.41)
 RUBBER_SHEET = ClothMaterial(stretch=1.5e3, shear=5.0e2, bending=1.5e-3 / 9.0, density=0.93)
 #: The presets by name (for scene files and the command line).
 PRESETS = {"cotton": COTTON, "silk": SILK, "denim": DENIM, "rubber_sheet": RUBBER_SHEET}
+
+#: Retardation time τ [s] of the default cloth's Kelvin-Voigt damping: kd = τ ke on every spring and hinge, so a
+#: mode of angular frequency ω is damped by ζ = τω/2 (0.05 at 10⁴ rad/s, the top of a 64² cloth of a metre:
+#: the grid-scale jitter dies out, the swing of the whole cloth, ζ ~ 1e-4, is left to drag).
+DEFAULT_RETARDATION = 1.0e-5
+#: The cloth a scene's ``[cloth]`` gets when it names no springs and no material (``io/scene_build.py``): cotton's
+#: moduli (:data:`COTTON`: stretch 5e3 N/m, shear 50 N/m, bending 5e-6 N·m) with :data:`DEFAULT_RETARDATION`,
+#: its areal density then taken from the table's mass (:func:`with_mass`), else cotton's 0.13 kg/m².
+DEFAULT_CLOTH = ClothMaterial(stretch=COTTON.stretch, shear=COTTON.shear, bending=COTTON.bending,
+                              density=COTTON.density, stretch_damping=DEFAULT_RETARDATION * COTTON.stretch,
+                              bending_damping=DEFAULT_RETARDATION * COTTON.bending)
+
+
+def with_mass(material: ClothMaterial, mass: float, area: float) -> ClothMaterial:
+    """``material`` with the areal density that gives a cloth of ``area`` [m²] the total ``mass`` [kg]."""
+    mass, area = checks.positive("cloth mass [kg]", mass), checks.positive("cloth area [m²]", area)
+    return replace(material, density=mass / area)
+
+
+def mesh_area(vertices, faces) -> float:
+    """The total area [m²] of a triangle mesh (vertices [m], shape [v, 3]; faces, shape [t, 3])."""
+    return float(_triangle_areas(_vertices(vertices), np.asarray(faces, dtype=np.int64)).sum())
 #: Where each preset's values come from, field by field ("none found" where no retrievable measurement was).
 PRESET_SOURCES = {
     "cotton": {"all": "none found: representative values, not a measurement of one fabric"},

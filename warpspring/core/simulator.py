@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import os
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from .. import checks
-from ..errors import ContactOverflowWarning, SimulationError
+from ..errors import ConfigError, ContactOverflowWarning, SimulationError
 from .checkpoint import Checkpoint
 from .contacts import Contacts
 from .emitters import EmitterHook
@@ -48,7 +49,10 @@ class Simulator:
         model: the model to simulate.
         integrator: the integrator; default :class:`SymplecticEuler`.
         fps: output frames per second [1/s].
-        substeps: integrator steps per frame; the step is dt = 1 / (fps · substeps) [s].
+        substeps: integrator steps per frame; the step is dt = 1 / (fps · substeps) [s]. Or a step chooser,
+            ``chooser(model, integrator, fps=..., control=...) -> int``, called once before capture:
+            :func:`~warpspring.analysis.step_choice.auto_substeps` picks the fewest substeps the stability advisor
+            passes with a margin (what scene files and ``warpspring run`` do by default).
         control: time-varying inputs; default ``model.control()``.
         use_graph: capture each frame as a graph (a CUDA graph, or Warp's CPU graph); off runs the same
             launches from Python every frame (for debugging). Both give the same result bit for bit.
@@ -80,19 +84,23 @@ class Simulator:
         *,
         integrator: Integrator | None = None,
         fps: float = 60.0,
-        substeps: int = 16,
+        substeps: int | Callable[..., int] = 16,
         control: Control | None = None,
         use_graph: bool = True,
         guard: GuardLimits | None = GuardLimits(),
     ):
         self.model = model
         self.fps = checks.positive("fps", fps)
+        control = control if control is not None else model.control()
+        integrator = integrator if integrator is not None else SymplecticEuler(model)
+        if callable(substeps):  # a step chooser (analysis.step_choice.auto_substeps): once, before capture
+            substeps = substeps(model, integrator, fps=self.fps, control=control)
+        elif substeps == "auto":  # the advisor lives above the core: the chooser is passed in
+            raise ConfigError('Simulator(substeps="auto"): pass the chooser, substeps=warpspring.auto_substeps')
         self.substeps = checks.count("substeps", substeps, minimum=1)
         self.frame_dt = 1.0 / self.fps
         self.dt = self.frame_dt / self.substeps
-        control = control if control is not None else model.control()
         # The guard counts the work of the control's external force (its kinetic-energy limit grows by it).
-        integrator = integrator if integrator is not None else SymplecticEuler(model)
         self.guard = (Guard(model, guard, self.substeps, control=control, integrator=integrator, dt=self.dt)
                       if guard is not None else None)
         self.stepper = Stepper(

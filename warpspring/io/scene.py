@@ -74,7 +74,8 @@ class Scene:
         path: the scene file.
         fps: output frames per second [1/s].
         frames: frames to simulate.
-        substeps: integrator steps per frame.
+        substeps: integrator steps per frame, or "auto" (the default: the fewest the stability advisor passes with
+            a margin, chosen before the run; :mod:`warpspring.analysis.step_choice`).
         integrator: integrator name (see ``warpspring.INTEGRATORS``).
         integrator_options: keyword options of the integrator.
         precision: "float32" or "float64".
@@ -108,7 +109,9 @@ class Scene:
             update (False); ``None``: the model's default (the stage when a collider moves).
         contact_slots: ``[contacts] slots``: contacts a particle holds in the stage's buffer, or ``None`` (the
             model's default).
-        contact_triangles: ``[contacts] triangles``: push cloth triangles out of spheres and capsules too.
+        contact_triangles: ``[contacts] triangles``: push cloth triangles out of spheres and capsules too;
+            ``None`` (no key): on where a sphere or capsule is too thin for particle contacts
+            (:meth:`~warpspring.core.builder.ModelBuilder.triangle_contacts`); false switches them off.
         contact_swept: ``[contacts] swept``: sweep particles' paths against spheres, boxes, capsules and meshes (default
             true).
         version: the file's scene format (1 for a file without ``version``).
@@ -119,7 +122,7 @@ class Scene:
     path: str
     fps: float = 60.0
     frames: int = 120
-    substeps: int = 16
+    substeps: int | str = "auto"
     integrator: str = "symplectic_euler"
     integrator_options: dict = field(default_factory=dict)
     precision: str = "float32"
@@ -145,7 +148,7 @@ class Scene:
     world_columns: int | None = None
     contact_stage: bool | None = None
     contact_slots: int | None = None
-    contact_triangles: bool = False
+    contact_triangles: bool | None = None
     contact_swept: bool = True
     self_collision: dict | None = None
     version: int = SCENE_FORMAT_VERSION
@@ -320,7 +323,7 @@ def _parse(data: dict, path: str) -> Scene:
                           f"particle holds), got {contacts['slots']!r}")
     scene.contact_stage = contacts.get("stage")
     scene.contact_slots = contacts.get("slots")
-    scene.contact_triangles = contacts.get("triangles", False)
+    scene.contact_triangles = contacts.get("triangles")
     scene.contact_swept = contacts.get("swept", True)
     self_collision = data.get("self_collision")
     if self_collision is not None:

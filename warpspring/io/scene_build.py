@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import replace
 
 import numpy as np
 
@@ -15,6 +16,7 @@ from ..core.aero import AIR_DENSITY, DEFAULT_DRAG, DEFAULT_LIFT
 from ..core.builder import ModelBuilder, SpringMaterial
 from ..core.builder.spring_materials import DEFAULT_BEND, DEFAULT_SHEAR, DEFAULT_STRUCTURAL
 from ..core.builder.spring_materials import spring_law_options
+from ..core.material import DEFAULT_CLOTH, PRESETS, ClothMaterial, with_mass
 from ..core.model import Model
 from ..core.springs import SpringPlasticity
 from ..core.tracks import Track
@@ -71,7 +73,8 @@ def scene_builder(scene) -> ModelBuilder:
 def scene_model(scene, device=None) -> Model:
     """The model of ``scene`` on ``device`` (:meth:`Scene.finalize <warpspring.io.scene.Scene.finalize>`):
     :func:`scene_builder` finalized in the scene's precision with its ``world_count`` worlds, each given its
-    ``[worlds]`` values and tracks, and the ``[contacts]`` options.
+    ``[worlds]`` values and tracks, and the ``[contacts]`` options (without ``triangles``, triangle contacts
+    switch on where a sphere or capsule is too thin for particle contacts: :meth:`ModelBuilder.triangle_contacts`).
 
     Raises:
         ConfigError: as :func:`scene_builder`, or a per-world value the model rejects (prefixed with the file
@@ -79,9 +82,7 @@ def scene_model(scene, device=None) -> Model:
     """
     model = scene_builder(scene).finalize(device, precision=scene.precision, worlds=scene.world_count,
                                           contact_stage=scene.contact_stage, contact_slots=scene.contact_slots,
-                                          integrator=scene.integrator)
-    if scene.contact_triangles:
-        model.contact_triangles = True
+                                          integrator=scene.integrator, contact_triangles=scene.contact_triangles)
     if not scene.contact_swept:
         model.contact_swept = False
     with in_table(os.path.basename(scene.path), "worlds"):
@@ -174,7 +175,52 @@ def _rotation(cloth: dict):
     return quat_from_axis_angle(rot.get("axis", [1.0, 0.0, 0.0]), math.radians(rot.get("degrees", 0.0)))
 
 
+#: The keys that give a cloth its springs; a ``[cloth]`` table with none of them and no ``material`` is made of
+#: :data:`~warpspring.core.material.DEFAULT_CLOTH`.
+SPRING_KEYS = ("structural", "shear", "bend")
+
+
+def _material(cloth: dict, builder: ModelBuilder, path: str | None) -> ClothMaterial | None:
+    """The cloth's :class:`ClothMaterial`: its ``material`` (a preset's name or a table of the fields), or, with no
+    springs named either, :data:`DEFAULT_CLOTH` whose density gives the table's ``mass`` (or ``particle_mass`` ×
+    the grid's particles), or its ``density``; ``None`` for a cloth of springs."""
+    spec = cloth.get("material")
+    if spec is None and any(key in cloth for key in SPRING_KEYS):
+        return None
+    if isinstance(spec, str):
+        if spec not in PRESETS:
+            raise ConfigError(f"material must be one of {', '.join(map(repr, PRESETS))} or a table {{stretch = ..., "
+                              f"shear = ..., bending = ..., density = ...}}, got {spec!r}")
+        material = PRESETS[spec]
+    elif isinstance(spec, dict):
+        try:
+            material = ClothMaterial(**spec)
+        except TypeError as exc:
+            raise ConfigError(f"material: {exc} (its keys: stretch, shear [N/m], bending [N·m], density [kg/m²], "
+                              "stretch_damping [N·s/m], bending_damping [N·m·s])") from None
+    else:
+        material = DEFAULT_CLOTH
+    mass = cloth.get("mass")
+    if "grid" in cloth:
+        g = cloth["grid"]
+        if "particle_mass" in cloth:
+            mass = cloth["particle_mass"] * g["nx"] * g["ny"]
+        area = (g["nx"] - 1) * (g["ny"] - 1) * g["spacing"] ** 2
+    elif mass is not None:  # the mesh's area: its masses at a density of 1 kg/m²
+        probe = ModelBuilder(up_axis=builder.up_axis)
+        probe.add_cloth_mesh(path, scale=cloth.get("scale", 1.0), prim=cloth.get("prim"),
+                             material=replace(material, density=1.0))
+        area = float(probe.world_rows()["particle_mass"].sum())
+    if "density" in cloth:
+        return replace(material, density=cloth["density"])
+    return material if mass is None else with_mass(material, mass, area)
+
+
 def _add_cloth(builder: ModelBuilder, cloth: dict, base: str) -> None:
+    path = None
+    if "mesh" in cloth:
+        path = cloth["mesh"] if os.path.isabs(cloth["mesh"]) else os.path.join(base, cloth["mesh"])
+    material = _material(cloth, builder, path)
     common = dict(
         origin=cloth.get("origin", (0.0, 0.0, 0.0)),
         rotation=_rotation(cloth),
@@ -184,7 +230,8 @@ def _add_cloth(builder: ModelBuilder, cloth: dict, base: str) -> None:
         bend=_springs(cloth, "bend", DEFAULT_BEND),
         pin=cloth.get("pin", []),
         name=cloth.get("name", "cloth" if "grid" in cloth else None),  # a mesh: a USD prim's own name
-        mass=cloth.get("mass"),
+        mass=None if material is not None else cloth.get("mass"),
+        material=material,
     )
     if "grid" in cloth:
         g = cloth["grid"]
@@ -192,15 +239,14 @@ def _add_cloth(builder: ModelBuilder, cloth: dict, base: str) -> None:
             nx=g["nx"],
             ny=g["ny"],
             spacing=g["spacing"],
-            particle_mass=cloth.get("particle_mass"),
+            particle_mass=None if material is not None else cloth.get("particle_mass"),
             shear=_springs(cloth, "shear", DEFAULT_SHEAR),
             **common,
         )
     else:
-        mesh = cloth["mesh"]
-        path = mesh if os.path.isabs(mesh) else os.path.join(base, mesh)
         try:
-            ids = builder.add_cloth_mesh(path, scale=cloth.get("scale", 1.0), density=cloth.get("density"),
+            ids = builder.add_cloth_mesh(path, scale=cloth.get("scale", 1.0),
+                                         density=None if material is not None else cloth.get("density"),
                                          prim=cloth.get("prim"), **common)
         except ConfigError as exc:  # name the mesh file in every message about its contents
             raise exc if path in str(exc) else ConfigError(f"mesh {path}: {exc}") from None

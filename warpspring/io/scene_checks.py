@@ -26,6 +26,7 @@ from .scene_schema import (
     ROTATION_TRACK_TABLE,
     SCENE_FORMAT_VERSION,
     SCHEMA,
+    SUBSTEPS,
     TRACK_TABLE,
     TYPE_NAMES,
     VECTOR,
@@ -42,13 +43,15 @@ from .usd_prims import PRIMVARS, PURPOSES
 
 
 def check_run_settings(*, fps, frames, substeps, where: str = "options") -> None:
-    """Raise ConfigError unless fps > 0, frames ≥ 1 and substeps ≥ 1 (so that dt = 1 / (fps · substeps) > 0)."""
+    """Raise ConfigError unless fps > 0, frames ≥ 1 and substeps ≥ 1 (so that dt = 1 / (fps · substeps) > 0) or
+    "auto" (chosen before the run: :mod:`warpspring.analysis.step_choice`)."""
     if not (POSITIVE.accepts(fps)):
         raise ConfigError(f"{where}: fps must be a finite number > 0 (dt = 1 / (fps * substeps)), got {fps!r}")
     if not Number(1, integer=True).accepts(frames):
         raise ConfigError(f"{where}: frames must be an integer >= 1, got {frames!r}")
-    if not Number(1, integer=True).accepts(substeps):
-        raise ConfigError(f"{where}: substeps must be an integer >= 1 (dt = 1 / (fps * substeps)), got {substeps!r}")
+    if not SUBSTEPS.accepts(substeps):
+        raise ConfigError(f"{where}: substeps must be an integer >= 1 (dt = 1 / (fps * substeps)) or \"auto\" (the "
+                          f"fewest the stability advisor passes), got {substeps!r}")
 
 
 # -- bounded nesting --------------------------------------------------------------------------------------
@@ -266,10 +269,10 @@ def check_cloth(c: dict, where: str, label: str, *, version: int) -> None:
         kind, other = ("grid", "mesh") if grid else ("mesh", "grid")
         raise ConfigError(f"{where}: {label}.{wrong[0]} applies to a {other} cloth only, not to a {kind} cloth")
     per_particle = "particle_mass" if grid else "density"
-    if ("mass" in c) == (per_particle in c):
+    if ("mass" in c and per_particle in c) or ("mass" not in c and per_particle not in c and "material" not in c):
         raise ConfigError(
             f"{where}: [{label}] needs exactly one of mass (total, kg) or {per_particle} "
-            f"({'kg per particle' if grid else 'kg/m²'})"
+            f"({'kg per particle' if grid else 'kg/m²'}), or a material (its density)"
         )
     axis = c.get("rotation", {}).get("axis")
     if axis is not None and not any(axis):

@@ -61,7 +61,9 @@ stage and its per-particle buffer; false: every collider tested in the update; d
 collider moves) and ``slots``, the contacts one particle holds in that buffer (1 to 64; default: the
 number of colliders, at most 4; contacts beyond it are dropped and counted in the run summary),
 ``triangles`` (true: cloth triangles are pushed out of spheres and capsules too, so one smaller than the
-particle spacing cannot slip between particles; default false) and ``swept`` (false: particles' paths over
+particle spacing cannot slip between particles; default: on where a sphere or capsule is too thin for particle
+contacts to hold the cloth, by the rule of ``core/builder/colliders.py``, which the run summary states; false
+switches them off) and ``swept`` (false: particles' paths over
 a step are not swept against spheres, boxes, capsules and meshes; default true).
 The new collider types and keys (box, capsule, restitution, orientation, tracks) need format 2.
 """
@@ -154,6 +156,21 @@ class Number:
         if self.minimum is None:
             return True
         return value >= self.minimum if self.inclusive else value > self.minimum
+
+
+@dataclass(frozen=True)
+class CountOrAuto(Number):
+    """An integer ≥ ``minimum``, or the string "auto" (chosen before the run)."""
+
+    def describe(self) -> str:
+        return super().describe() + ' or "auto"'
+
+    def accepts(self, value) -> bool:
+        return value == "auto" or super().accepts(value)
+
+
+#: ``[simulation] substeps``: a count, or "auto" (the default: ``analysis/step_choice.py``).
+SUBSTEPS = CountOrAuto(1, integer=True)
 
 
 @dataclass(frozen=True)
@@ -282,7 +299,7 @@ SCHEMA = {
     "simulation": {
         "fps": POSITIVE,
         "frames": Number(1, integer=True),
-        "substeps": Number(1, integer=True),
+        "substeps": SUBSTEPS,
         "integrator": str,
         "precision": str,
         "device": str,
@@ -308,6 +325,9 @@ SCHEMA = {
         "structural": (bool, _SPRING),
         "shear": (bool, _SPRING),
         "bend": (bool, _SPRING),
+        # A preset's name or {stretch, shear, bending, density, ...} (ClothMaterial); without it and without
+        # springs, DEFAULT_CLOTH at the table's mass (io/scene_build.py).
+        "material": Since(2, (str, dict)),
     },
     "collider": {
         "type": str,

@@ -1,10 +1,26 @@
 """The builder's collider recipes: an infinite plane (and the ground), a sphere, a box, a capsule and a triangle
-mesh (:mod:`warpspring.core.mesh_colliders`), each optionally moved by keyframe tracks; and the device bytes of
-mesh colliders for the memory estimate."""
+mesh (:mod:`warpspring.core.mesh_colliders`), each optionally moved by keyframe tracks; the device bytes of
+mesh colliders for the memory estimate; and the rule that switches triangle contacts on where a collider is too
+thin for particle contacts alone (:func:`triangle_contact_rule`).
+
+**The rule.** Particle contacts keep every particle's centre ``c = R + thickness + r`` from the centre (or the
+axis) of a sphere or a capsule of radius R, r the particle's contact radius. Between the particles the cloth's
+triangles are flat: the point of a triangle farthest from its corners lies ρ from each of them, ρ the triangle's
+covering radius (its circumradius if acute, half its longest edge if not). With the corners at distance c, that
+point dips to √(c² - ρ²) from the centre: the triangle sags into the collider by s = c - √(c² - ρ²), and for
+ρ ≥ c the collider slips between the corners (seed 002: R = 4 cm under a cloth of 10 cm spacing). Triangle
+contacts switch on when the sag of the cloth's largest triangle exceeds half the particle radius, s > r/2, so
+that without them the surface stays at least R + thickness + r/2 from the centre; the half is the margin
+for the stretch a falling cloth picks up. Boxes and meshes have edges and corners of zero radius, but triangle
+contacts do not cover them (``kernels/triangle_contacts.py``: spheres and capsules), so the rule concerns spheres
+and capsules only.
+"""
 
 from __future__ import annotations
 
+import math
 import os
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -12,6 +28,7 @@ from ... import checks
 from ...errors import ConfigError
 from ...kernels.shapes import SHAPE_BOX, SHAPE_CAPSULE, SHAPE_NAMES, SHAPE_PLANE, SHAPE_SPHERE
 from ...kernels.shapes import SHAPE_MESH
+from ...kernels.triangle_contacts import TRIANGLE_KINDS
 from ..mesh_colliders import check_mesh_file_room, edge_groups, mesh_shape
 from ..mesh_files import USD_EXTENSIONS, load_mesh_file, read_usd_mesh, read_usd_mesh_samples
 from ..records import ShapeInfo
@@ -34,9 +51,101 @@ def _mesh_collider_bytes(meshes: list) -> int:
     return total
 
 
+@dataclass(frozen=True)
+class TriangleContactRule:
+    """Whether a scene needs triangle contacts (:func:`triangle_contact_rule`), and why.
+
+    Attributes:
+        needed: whether some sphere or capsule is too thin for particle contacts to hold the cloth.
+        reason: one line naming the binding collider, its radius [m], the triangles' covering radius ρ [m],
+            the particle radius r [m] and the sag [m] against r/2; empty when the scene has no cloth
+            triangles or no sphere or capsule.
+        collider: the binding collider's name (the largest sag), or "".
+    """
+
+    needed: bool
+    reason: str = ""
+    collider: str = ""
+
+
+def covering_radius(corners: np.ndarray) -> np.ndarray:
+    """Each triangle's covering radius [m]: the largest distance from a point of the triangle to its nearest
+    corner (the circumradius of an acute triangle, half the longest edge of a right or obtuse one).
+
+    Args:
+        corners: the triangles' corners [m], shape [t, 3, 3].
+
+    Returns:
+        float64, shape [t].
+    """
+    x = np.asarray(corners, dtype=np.float64)
+    edges = np.stack([x[:, 2] - x[:, 1], x[:, 0] - x[:, 2], x[:, 1] - x[:, 0]], axis=1)  # opposite each corner
+    squared = np.einsum("tij,tij->ti", edges, edges)
+    longest = squared.max(axis=1)
+    area2 = np.linalg.norm(np.cross(edges[:, 0], edges[:, 1]), axis=1)  # twice the area
+    obtuse = 2.0 * longest >= squared.sum(axis=1)  # a² ≥ b² + c² for the longest side a
+    with np.errstate(divide="ignore", invalid="ignore"):
+        circum = np.sqrt(squared.prod(axis=1)) / (2.0 * area2)
+    return np.where(obtuse | ~(area2 > 0.0), 0.5 * np.sqrt(longest), circum)
+
+
+def triangle_contact_rule(shapes: list, corners: np.ndarray, radius: float) -> TriangleContactRule:
+    """The rule of this module's docstring: triangle contacts are needed where, for some sphere or capsule
+    of radius R and thickness t, the cloth's largest triangle sags more than r/2 into it,
+    c - √(c² - ρ²) > r/2 with c = R + t + r (or ρ ≥ c: the collider slips between the corners).
+
+    Args:
+        shapes: the colliders (:class:`~warpspring.core.records.ShapeInfo`).
+        corners: the cloth triangles' corners at rest [m], shape [t, 3, 3].
+        radius: the particles' contact radius r [m] (the smallest of the triangles' corners).
+    """
+    thin = [s for s in shapes if s.kind in {SHAPE_NAMES[k] for k in TRIANGLE_KINDS}]
+    if not thin or len(corners) == 0:
+        return TriangleContactRule(False)
+    rho = float(covering_radius(corners).max())
+    r = float(radius)
+    worst = None
+    for shape in thin:
+        c = shape.size[0] + shape.thickness + r
+        sag = c - math.sqrt(c * c - rho * rho) if rho < c else math.inf
+        if worst is None or sag > worst[0]:
+            worst = (sag, shape)
+    sag, shape = worst
+    needed = sag > 0.5 * r
+    sagged = "slips between the particles" if sag == math.inf else f"sags {sag * 1e3:.3g} mm into it"
+    verdict = "more than" if needed else "at most"
+    reason = (f"triangle contacts {'on' if needed else 'off'}: against the {shape.kind} {shape.name!r} (radius "
+              f"{shape.size[0]:g} m) a cloth triangle of covering radius {rho:.3g} m between particles of radius "
+              f"{r:g} m {sagged}, {verdict} r/2 = {0.5 * r * 1e3:.3g} mm")
+    return TriangleContactRule(needed, reason, shape.name)
+
+
+def model_triangle_contacts(model) -> TriangleContactRule:
+    """:func:`triangle_contact_rule` of a finalized model (its colliders, its triangles at their initial
+    positions in world 0, the smallest radius of their corners): what ``finalize`` decided by when it was not
+    told (the run summary states it)."""
+    if not model.tri_count or not model.shapes:
+        return TriangleContactRule(False)
+    tris = model.tri_indices.numpy().reshape(-1, 3)
+    q = model.particle_q.numpy()[: model.particle_count].astype(np.float64)
+    r = np.broadcast_to(model.particle_radius.numpy(), (model.particle_count,))
+    return triangle_contact_rule(model.shapes, q[tris], float(r[tris].min()))
+
+
 class ColliderRecipes:
     """The collider recipes of :class:`~warpspring.core.builder.ModelBuilder` (a mixin: it adds to the builder's
     shapes)."""
+
+    def triangle_contacts(self) -> TriangleContactRule:
+        """Whether this scene needs triangle contacts (:func:`triangle_contact_rule` on its cloth triangles
+        at rest, its spheres and capsules and the smallest radius of the triangles' corners); ``finalize``
+        switches them on by it unless told otherwise."""
+        faces = [g.particles[g.faces] for g in self._meshes]
+        if not faces or not self._shapes:
+            return TriangleContactRule(False)
+        tris = np.concatenate(faces)
+        q, r = np.concatenate(self._q), np.concatenate(self._radius)
+        return triangle_contact_rule(self._shapes, q[tris], float(r[tris].min()))
 
     def add_collider_plane(self, *, point=(0.0, 0.0, 0.0), normal=None, friction: float = 0.5,
                            restitution: float = 0.0, translation: Track | None = None,

@@ -39,7 +39,7 @@ class Finalization:
     def finalize(self, device=None, *, precision: str = "float32", spring_evaluation: str = "auto",
                  worlds: int = 1, contact_stage: bool | None = None, contact_slots: int | None = None,
                  integrator: str = "symplectic_euler", check_memory: bool = True, spring_groups: bool = True,
-                 spring_grid: bool = True) -> Model:
+                 spring_grid: bool = True, contact_triangles: bool | None = None) -> Model:
         """Copy the scene to ``device`` as a :class:`Model`.
 
         Before it allocates anything, finalize estimates the memory of the model and of a run of it
@@ -75,6 +75,10 @@ class Finalization:
                 (its particles in grid order), find a uniform group's neighbours from the particle's row and
                 column instead of the incidence table (``Model.spring_layout`` "grid"; the same bits, fewer bytes
                 per step); ``False`` keeps the table ("groups").
+            contact_triangles: push the cloth's triangles out of spheres and capsules too
+                (``Model.contact_triangles``); default (``None``): on where a sphere or capsule is too thin for
+                particle contacts to hold the cloth, by the rule of :meth:`triangle_contacts`
+                (``core/builder/colliders.py``).
 
         Raises:
             ConfigError: a bad option, a scene beyond the kernels' 32-bit indices, or a model that does not fit in
@@ -102,8 +106,11 @@ class Finalization:
         if check_memory:
             memory.check_fits(estimate, memory.available_memory(device), precision=precision)
         try:
-            return self._finalize(device, precision, scalar, worlds, spring_evaluation, contact_stage, contact_slots,
-                                  spring_groups=spring_groups, spring_grid=spring_grid)
+            model = self._finalize(device, precision, scalar, worlds, spring_evaluation, contact_stage, contact_slots,
+                                   spring_groups=spring_groups, spring_grid=spring_grid)
+            model.contact_triangles = (self.triangle_contacts().needed if contact_triangles is None
+                                       else bool(contact_triangles))
+            return model
         except (RuntimeError, MemoryError) as exc:
             if not memory.out_of_memory(exc):
                 raise

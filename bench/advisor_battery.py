@@ -1,0 +1,82 @@
+"""The advisor on free, undamped and large-motion cloth: does ``--strict`` pass a step whose run blows up or grows,
+and is its step within 10 % of the largest that does neither? Cloth, cases and protocol:
+``warpspring/analysis/stability_battery.py``. Writes a markdown table with the command, device, Warp version and
+date.
+
+    python bench/advisor_battery.py --device cpu --sizes 8 16 --out bench/results/advisor_battery_cpu.md
+    python bench/advisor_battery.py --device cuda:0 --out bench/results/advisor_battery_h100.md   # 8² … 64²
+"""
+
+import argparse
+import datetime
+import os
+import sys
+import time
+
+import warp as wp
+
+from warpspring.analysis import stability_battery as sb
+from warpspring.analysis.advisor import advise
+from warpspring.analysis.stability import DAMPED_MARGIN
+
+from cloth import emit_table
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--sizes", type=int, nargs="+", default=[8, 16, 32, 64])
+    parser.add_argument("--taus", type=float, nargs="+", default=[0.0, sb.LIGHT], help="kd/k ratios [s]")
+    parser.add_argument("--integrators", nargs="+", default=list(sb.CONSERVATIVE), choices=sb.CONSERVATIVE)
+    parser.add_argument("--factors", type=float, nargs="+", default=list(sb.FACTORS))
+    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--no-exact", action="store_true",
+                        help="skip the runs of the exact-limit case (16², kd = 1e-4 s·ke, explicit Euler and midpoint "
+                             "at f · P: 0.1 ms steps, ~1e5 per run)")
+    parser.add_argument("--out", default=None, help="also write the table to this file")
+    args = parser.parse_args()
+    wp.config.log_level = wp.LOG_WARNING
+    device = wp.get_device(args.device)
+    t0 = time.perf_counter()
+    results = []
+    for case in sb.cases(args.sizes, args.taus):
+        for integrator in args.integrators:
+            results.append(sb.measure(case, integrator, device, seconds=args.seconds, factors=args.factors))
+            print(sb.table(results[-1:])[2], flush=True)
+    if not args.no_exact:  # explicit Euler and midpoint on damped cloth: P keeps DAMPED_MARGIN below the limit
+        for name in sb.DISSIPATIVE:
+            results.append(sb.measure(sb.Case(16, sb.EXACT, "flat", True), name, device, seconds=args.seconds,
+                                      factors=args.factors))
+            print(sb.table(results[-1:])[2], flush=True)
+    refusals = []
+    for n in args.sizes:  # explicit Euler and midpoint on undamped cloth: refused, with the remedy named
+        model = sb.battery_cloth(sb.Case(n, 0.0, "flat", True), device)
+        for name in sb.DISSIPATIVE:
+            advice = advise(model, name, 1.0e-4, horizon=args.seconds)
+            named = "symplectic_euler" in advice.message and "velocity_verlet" in advice.message
+            refusals.append(f"| {n}² flat, undamped | {name} | {'refused' if advice.dt_passed == 0 else 'PASSED'} | "
+                            f"{'yes' if named else 'no'} |")
+    at, below = sb.exact_limit(device)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    command = " ".join(os.path.relpath(a, root) if os.path.isabs(a) and a.startswith(root) else a for a in sys.argv[1:])
+    where = f"{device.name} ({device}), Warp {wp.config.version}, {datetime.date.today()}"
+    one_sided = all(r.one_sided() for r in results)
+    tight = sum(r.tight() for r in results)
+    lines = [
+        f"Advisor battery on {where}: `python bench/advisor_battery.py {command}`; {args.seconds:g} s runs; "
+        f"{time.perf_counter() - t0:.0f} s in all.", "",
+        f"One-sided in every case: {'yes' if one_sided else 'NO'}; tight (a run within 1/0.9 of P fails) in "
+        f"{tight} of {len(results)}.", "",
+        *sb.table(results), "",
+        f"Explicit Euler and midpoint on undamped cloth ({where}):", "",
+        "| case | integrator | verdict | names symplectic_euler and velocity_verlet |", "|---|---|---|---|",
+        *refusals, "",
+        f"Exact limit (16² flat, kd = {sb.EXACT:g} s·ke, explicit Euler, linear limit {at.dt_stable * 1e3:.4g} ms): "
+        f"at dt = {sb.EXACT * 1e3:g} ms {'refused' if not at.stable else 'PASSED'}; at {DAMPED_MARGIN:g} of it "
+        f"{'passed' if below.stable else 'refused'}.",
+    ]
+    emit_table(lines, args.out)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,68 @@
+"""The advisor on free, undamped and large-motion cloth (analysis/stability_battery.py; the whole battery is
+bench/advisor_battery.py): a small subset of its cases. What ``--strict`` passes neither blows up nor grows, and a
+step 6-11 % beyond it does; explicit Euler and midpoint are refused on undamped cloth and kept a margin below
+their limit on damped cloth."""
+
+import math
+
+import pytest
+
+from warpspring.analysis import stability_battery as sb
+from warpspring.analysis.advisor import advise
+from warpspring.analysis.stability import DAMPED_MARGIN, TRIAD_PHASE, passed_step, triad_step
+
+
+def test_triad_step_of_an_undamped_oscillator():
+    # Symplectic Euler and Verlet without damping: cos θ = 1 - (ωh)²/2, so θ = 2π/3 at ωh = √3 exactly.
+    for integrator in ("symplectic_euler", "velocity_verlet"):
+        assert triad_step(integrator, 1.0, 0.0, 2.0) == pytest.approx(math.sqrt(3.0), rel=1e-9)
+        step, why = passed_step(integrator, 1.0, 2.0)
+        assert step == pytest.approx(math.sqrt(3.0), rel=1e-9) and "three-wave" in why
+    assert math.cos(TRIAD_PHASE) == pytest.approx(1.0 - 3.0 / 2.0)
+    # RK4 loses amplitude per step near its limit (|R| = 0.72 where its phase reaches 2π/3): its linear limit stands.
+    limit = 2.0 * math.sqrt(2.0) / 1000.0
+    assert passed_step("rk4", 1000.0, limit) == (limit, "")
+    # Damping that decays the top mode faster than TRIAD_DECAY lifts the three-wave limit.
+    assert passed_step("symplectic_euler", 1000.0, 1.9e-3, rayleigh=1e-5)[0] == 1.9e-3
+
+
+@pytest.mark.slow
+def test_the_flat_released_cloth(device):
+    # The issue's case: the undamped 16² cloth (1000 / 200 / 20 N/m, 1 kg) released flat from its top corners.
+    # Its linear limit is 1.814 ms (10 substeps pass it), but a run at 1.667 ms grows to ~10× its motion's
+    # energy within 10 s (then NaN); the advisor passes √3/ω_max = 1.571 ms (11 substeps), whose run holds.
+    case = sb.Case(16, 0.0, "flat", True)
+    model = sb.battery_cloth(case, device)
+    ten, eleven = (advise(model, "symplectic_euler", 1.0 / (60.0 * n), horizon=10.0) for n in (10, 11))
+    assert ten.dt_stable == pytest.approx(1.814e-3, rel=2e-3) and not ten.stable and ten.substeps == 11
+    assert eleven.stable and "three-wave" in ten.message
+    passes = sb.run(case, "symplectic_euler", 1.0 / 660.0, device, factor=1.0 / 660.0 / ten.dt_passed)
+    fails = sb.run(case, "symplectic_euler", 1.0 / 600.0, device, factor=1.0 / 600.0 / ten.dt_passed)
+    assert passes.ok and passes.excess < 0.2  # the first-order band of symplectic Euler, not growth
+    assert not fails.ok
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("integrator", sb.CONSERVATIVE)
+def test_one_sided_and_tight_on_small_cloth(device, integrator):
+    # 8², released folded without gravity (the fold's springs open it) and flat with gravity: the run at the
+    # advisor's step holds, the run at 1/0.9 of it does not.
+    for case in (sb.Case(8, 0.0, "folded", False), sb.Case(8, 0.0, "flat", True)):
+        result = sb.measure(case, integrator, device, factors=(1.0, 1.111))
+        assert result.one_sided(), sb.table([result])
+        assert result.tight(), sb.table([result])
+
+
+def test_explicit_euler_and_midpoint(device):
+    # Undamped: refused at every step, symplectic Euler and Verlet named. Damped (the exact-limit case, kd = 1e-4
+    # s · ke: explicit Euler's limit is τ = 0.1 ms whatever the stiffness): the step at the limit is refused, one
+    # at DAMPED_MARGIN of it passed.
+    model = sb.battery_cloth(sb.Case(8, 0.0, "flat", True), device)
+    for name in sb.DISSIPATIVE:
+        advice = advise(model, name, 1.0e-4, horizon=10.0)
+        assert advice.dt_passed == 0.0 and not advice.stable
+        assert "symplectic_euler or velocity_verlet" in advice.message
+    at, below = sb.exact_limit(device)
+    assert at.dt_stable == pytest.approx(sb.EXACT, rel=1e-3)
+    assert not at.stable and below.stable
+    assert at.dt_passed == pytest.approx(DAMPED_MARGIN * at.dt_stable)

@@ -1,0 +1,243 @@
+"""``substeps = "auto"``: the step a run takes when none is given, chosen once before capture.
+
+* **Explicit integrators** (explicit Euler, symplectic Euler, velocity Verlet, midpoint, RK4): the fewest substeps
+  per frame whose step the advisor passes with a margin, dt ≤ ``STABILITY_MARGIN`` × the largest step it passes
+  in the binding world (:attr:`~.advisor.Advice.dt_passed`: every world, the states the run reaches, its tracks
+  over the dry run; a drag track at its least and its most drag). Where the advisor finds no stable step
+  (explicit Euler and midpoint on springs without damping) the choice is refused with its message, which
+  recommends symplectic Euler, velocity Verlet or implicit Euler.
+* **Implicit Euler** passes any step: the fewest substeps, doubling from 1, whose position error over a frame
+  stays within ``ACCURACY_FLOOR`` [m], estimated by step doubling (a first-order method's error at n substeps is
+  about twice its difference from 2n) over the first ``ACCURACY_HORIZON`` seconds of the run. The floor, 1 mm
+  per frame, is taken from the trade study's cloth (``bench/results/trade.md`` §3, the 16² ANCHORS cloth): the
+  explicit methods at their largest stable steps err 5e-4 m (Verlet) to 3.2e-3 m (symplectic Euler) over its run,
+  implicit Euler at one step per frame 0.48 m; the floor keeps implicit Euler among the explicit ones.
+* **dopri5** meets its own tolerance at any outer step (``tolerance``): one substep per frame, more only where the
+  internal steps that stability caps per frame would pass a tenth of its ``max_steps``.
+* **Contacts** (any integrator, with colliders): contacts are projections after each step, which the advisor
+  does not analyse; a particle may move at most ``CONTACT_TRAVEL`` × its contact radius r per step at the speed
+  it can reach, v = its start speed + √(2 g Δh), Δh its fall from its highest start to the lowest collider's top:
+  dt ≤ ``CONTACT_TRAVEL`` · r / v. The quarter is measured: seed 002's soft cloth dropped 0.26 m onto a 4 cm
+  sphere keeps its surface outside the sphere from r/4 per step (16 substeps: 4.6 cm from its centre) and not at
+  r/2 (8 substeps: 2.7 cm); ``tests/test_contact_rule.py``.
+
+The core's :class:`~warpspring.core.simulator.Simulator` cannot reach this layer: it takes a step chooser,
+``Simulator(model, substeps=auto_substeps)``, and calls it once before it captures; scene files and
+``warpspring run`` use :func:`choose_substeps` (the runner prints its reason).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import checks
+from ..errors import ConfigError
+from ..core.integrators import Integrator, ImplicitEuler
+from ..core.model import Model
+from ..core.simulator import Simulator
+from .advisor import Advice, advise
+from .stability import _integrator_class
+from .under_load import PROBE_HORIZON, _keeps_plasticity
+
+#: Auto substeps keep dt at most this fraction of the advisor's largest stable step.
+STABILITY_MARGIN = 0.9
+#: Implicit Euler's auto substeps keep the position error over a frame within this [m].
+ACCURACY_FLOOR = 1.0e-3
+#: ... measured by step doubling over this much of the run [s].
+ACCURACY_HORIZON = 0.25
+#: The most substeps per frame auto chooses for accuracy (implicit Euler); beyond it, set them by hand.
+MAX_ACCURACY_SUBSTEPS = 256
+#: With colliders, a particle moves at most this fraction of its contact radius per step.
+CONTACT_TRAVEL = 0.25
+
+
+@dataclass(frozen=True)
+class SubstepChoice:
+    """What ``substeps = "auto"`` chose and why.
+
+    Attributes:
+        substeps: integrator steps per 1/fps frame.
+        dt: the step [s], 1 / (fps · substeps).
+        reason: one line for the run summary (what bound it: the stability limit and the margin, or the
+            accuracy floor).
+        advice: the advisor's verdict at ``dt`` (None for implicit Euler, which the accuracy floor binds).
+        error: implicit Euler: the estimated position error over a frame at ``substeps`` [m]; else NaN.
+    """
+
+    substeps: int
+    dt: float
+    reason: str
+    advice: Advice | None = None
+    error: float = math.nan
+
+
+def choose_substeps(model: Model, integrator: Integrator | str, *, fps: float = 60.0, control=None,
+                    horizon: float = PROBE_HORIZON) -> SubstepChoice:
+    """The substeps ``"auto"`` stands for (this module's docstring), for ``model`` stepped by ``integrator`` (an
+    instance, or a registry name for the explicit ones and dopri5) at ``fps`` [1/s] with ``control``;
+    ``horizon`` [s]: how long the run lasts, for the advisor's growth figures and dry run. The larger of the
+    integrator's choice and the contacts' (:func:`contact_substeps`).
+
+    Raises:
+        ConfigError: an integrator that is unstable at every step for these springs (the advisor's message).
+    """
+    fps = checks.positive("fps", fps)
+    choice = _over_drag_track(model, lambda: _integrator_substeps(model, integrator, fps, control, horizon))
+    contact = contact_substeps(model, fps=fps)
+    if contact is None or contact[0] <= choice.substeps:
+        return choice
+    substeps, why = contact
+    dt = 1.0 / (fps * substeps)
+    name = integrator if isinstance(integrator, str) else integrator.name
+    cls = _integrator_class(name)
+    advice = choice.advice
+    if advice is not None and not cls.adaptive:  # the verdict at the step taken
+        advice = advise(model, name, dt, fps=fps, control=control, horizon=horizon)
+    reason = f"{substeps} substeps per 1/{fps:g} s frame (dt = {dt * 1e3:.4g} ms) for the contacts: {why} (the " \
+             f"integrator alone: {choice.reason})"
+    return SubstepChoice(substeps, dt, reason, advice, choice.error)
+
+
+def _over_drag_track(model: Model, choose) -> SubstepChoice:
+    """``choose()`` at the model's drag, or, where a world's drag is a keyframe track, at the least and the most drag
+    its tracks reach (drag lowers symplectic Euler's limit and raises explicit Euler's): the choice of more
+    substeps. The tracks are put back after."""
+    tracks = [model.track("drag", world=w) for w in range(model.world_count)]
+    if all(t is None for t in tracks):
+        return choose()
+    values = np.concatenate([np.asarray(t.values, dtype=np.float64).ravel() for t in tracks if t is not None])
+    current = model.world_values("drag")[:, 0]
+    values = np.concatenate([values, current])
+    try:
+        choices = []
+        for drag in sorted({float(values.min()), float(values.max())}):
+            model.set_world_values("drag", drag)
+            choices.append(choose())
+    finally:
+        model.set_world_values("drag", current)
+        for w, track in enumerate(tracks):
+            if track is not None:
+                model.set_track("drag", track, world=w)
+    best = max(choices, key=lambda c: c.substeps)
+    return SubstepChoice(best.substeps, best.dt, best.reason + f" (over the drag track's {values.min():g}…"
+                         f"{values.max():g} N·s/m)", best.advice, best.error)
+
+
+def contact_substeps(model: Model, *, fps: float) -> tuple[int, str] | None:
+    """The substeps per 1/``fps`` frame the contacts need (this module's docstring: dt ≤ ``CONTACT_TRAVEL`` · r / v),
+    and why; ``None`` without colliders, gravity or start speed, or with particles of no contact radius."""
+    n = model.particle_count
+    if not model.shape_count or n == 0:
+        return None
+    radius = float(np.min(model.particle_radius.numpy()))
+    gravity = np.asarray(model.world_values("gravity"), dtype=np.float64).reshape(-1, 3)
+    for w in range(model.world_count):
+        track = model.track("gravity", world=w)
+        if track is not None:
+            gravity = np.concatenate([gravity, np.asarray(track.values, dtype=np.float64).reshape(-1, 3)])
+    g = float(np.linalg.norm(gravity, axis=1).max())
+    q = model.particle_q.numpy().astype(np.float64).reshape(-1, 3)
+    speed = float(np.linalg.norm(model.particle_qd.numpy().astype(np.float64).reshape(-1, 3), axis=1).max())
+    if radius <= 0.0 or (g == 0.0 and speed == 0.0):
+        return None
+    up = -np.mean(gravity, axis=0) if g > 0.0 else np.zeros(3)
+    norm = float(np.linalg.norm(up))
+    up = up / norm if norm > 0.0 else np.zeros(3)
+    drop = max(0.0, float((q @ up).max()) - min(_top(shape, up) for shape in model.shapes)) if norm > 0.0 else 0.0
+    v = speed + math.sqrt(2.0 * g * drop)
+    if v <= 0.0:
+        return None
+    dt = CONTACT_TRAVEL * radius / v
+    substeps = max(1, math.ceil(1.0 / (fps * dt)))
+    why = (f"a particle of radius {radius:g} m reaching {v:.3g} m/s (a {drop:.3g} m fall) moves at most "
+           f"{CONTACT_TRAVEL:g} r per step")
+    return substeps, why
+
+
+def _top(shape, up: np.ndarray) -> float:
+    """How high a collider reaches along ``up`` at rest [m] (a mesh: its frame's origin, which errs low: a longer
+    fall, more substeps)."""
+    position = np.asarray(shape.position, dtype=np.float64)
+    height = float(position @ up)
+    if shape.kind in ("sphere", "capsule"):
+        return height + shape.size[0] + shape.size[1]
+    if shape.kind == "box":
+        return height + float(np.linalg.norm(shape.size))
+    return height
+
+
+def _integrator_substeps(model: Model, integrator: Integrator | str, fps: float, control,
+                         horizon: float) -> SubstepChoice:
+    """The integrator's part of :func:`choose_substeps`."""
+    name = integrator if isinstance(integrator, str) else integrator.name
+    cls = _integrator_class(name)
+    if issubclass(cls, ImplicitEuler):
+        if isinstance(integrator, str):
+            raise ConfigError("choose_substeps needs the implicit_euler instance (its options), not its name")
+        return _accurate_substeps(model, integrator, fps, control)
+    probe = advise(model, name, 1.0 / (16.0 * fps), fps=fps, control=control, horizon=horizon)
+    limit = probe.dt_stable if cls.adaptive else probe.dt_passed
+    if cls.adaptive:
+        internal = math.inf if limit <= 0.0 else 1.0 / (fps * limit)
+        budget = 0.1 * getattr(integrator, "max_steps", 100_000)
+        substeps = max(1, math.ceil(internal / budget))
+        reason = (f"{substeps} substep{'s' if substeps > 1 else ''} per frame: {name} meets its tolerance at any "
+                  f"outer step (stability caps its internal step near {limit * 1e3:.3g} ms)")
+        return SubstepChoice(substeps, 1.0 / (fps * substeps), reason, probe)
+    if limit <= 0.0:
+        raise ConfigError(f"substeps = \"auto\" finds no stable step: {probe.message}")
+    substeps = max(1, math.ceil(1.0 / (fps * STABILITY_MARGIN * limit)))
+    dt = 1.0 / (fps * substeps)
+    advice = advise(model, name, dt, fps=fps, control=control, horizon=horizon)
+    while not advice.stable or dt > STABILITY_MARGIN * advice.dt_passed:  # the dry run at dt may find more
+        if advice.dt_passed <= 0.0:
+            raise ConfigError(f"substeps = \"auto\" finds no stable step: {advice.message}")
+        substeps = max(substeps + 1, math.ceil(1.0 / (fps * STABILITY_MARGIN * advice.dt_passed)))
+        dt = 1.0 / (fps * substeps)
+        advice = advise(model, name, dt, fps=fps, control=control, horizon=horizon)
+    reason = (f"{substeps} substep{'s' if substeps > 1 else ''} per 1/{fps:g} s frame (dt = {dt * 1e3:.4g} ms): the "
+              f"fewest within "
+              f"{STABILITY_MARGIN:g} × the step the advisor passes, {advice.dt_passed * 1e3:.4g} ms ({advice.omega_source}, "
+              f"ω_max = {advice.omega_max:.4g} rad/s{'; ' + advice.passed_reason if advice.passed_reason else ''})")
+    return SubstepChoice(substeps, dt, reason, advice)
+
+
+def auto_substeps(model: Model, integrator: Integrator, *, fps: float, control=None) -> int:
+    """A step chooser for :class:`~warpspring.core.simulator.Simulator`: ``Simulator(model,
+    substeps=auto_substeps)`` runs :func:`choose_substeps` once, before it captures."""
+    return choose_substeps(model, integrator, fps=fps, control=control).substeps
+
+
+def _frames(model: Model, integrator: Integrator, fps: float, substeps: int, control, frames: int) -> np.ndarray:
+    """Positions [m] after each of ``frames`` frames from the model's start, float64, shape [frames, n·worlds, 3]."""
+    sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps, control=control, guard=None)
+    out = []
+    for _ in range(frames):
+        sim.step_frame()
+        out.append(sim.state.particle_q.numpy().astype(np.float64))
+    return np.stack(out)
+
+
+@_keeps_plasticity  # its runs step the model: plastic springs start the real run as built
+def _accurate_substeps(model: Model, integrator: Integrator, fps: float, control) -> SubstepChoice:
+    """Implicit Euler: the fewest substeps (1, 2, 4, …) whose error over a frame, 2 × the largest change of a
+    frame's end positions from n to 2n substeps (first order: e(n) ≈ 2 (x(n) - x(2n))), stays within
+    ``ACCURACY_FLOOR`` over the first ``ACCURACY_HORIZON`` seconds."""
+    frames = max(1, round(ACCURACY_HORIZON * fps))
+    substeps, coarse = 1, _frames(model, integrator, fps, 1, control, frames)
+    while True:
+        fine = _frames(model, integrator, fps, 2 * substeps, control, frames)
+        # The error over one frame: how much each frame adds to the gap, at most.
+        gap = 2.0 * np.linalg.norm(coarse - fine, axis=-1).max(axis=-1)
+        error = float(np.max(np.diff(np.concatenate([[0.0], gap]))))
+        if error <= ACCURACY_FLOOR or substeps >= MAX_ACCURACY_SUBSTEPS:
+            break
+        substeps, coarse = 2 * substeps, fine
+    bound = "within" if error <= ACCURACY_FLOOR else "still above"
+    reason = (f"{substeps} substep{'s' if substeps > 1 else ''} per 1/{fps:g} s frame: {integrator.name} is "
+              f"stable at any step; its position error over a frame, {error:.2g} m by step doubling, is {bound} "
+              f"the accuracy floor of {ACCURACY_FLOOR:g} m")
+    return SubstepChoice(substeps, 1.0 / (fps * substeps), reason, None, error)
