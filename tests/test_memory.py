@@ -159,13 +159,14 @@ def test_guard_buffers_match_the_estimate():
     """The guard's record, partial sums, limits, work and last-check positions, byte for byte; and what it allocates
     lazily (a substep's midpoint state where dissipation is counted, the springs' damper sums where the scattered
     force pass counts them), which the estimate counts whether or not a run needs it: after a frame of the default
-    simulator (symplectic Euler, dissipation counted: both allocated here) the guard holds exactly the estimate."""
+    simulator (symplectic Euler, dissipation counted) on scattered springs (both allocated here) the guard holds
+    exactly the estimate."""
     from warpspring.core.guards import Guard
 
     builder = grid_builder()
     builder.drag = 0.1  # something dissipates: the guard counts it at each substep's midpoint
-    estimate = builder.estimate_memory("cpu", worlds=2)
-    model = builder.finalize("cpu", worlds=2)
+    estimate = builder.estimate_memory("cpu", worlds=2, spring_evaluation="scatter")
+    model = builder.finalize("cpu", worlds=2, spring_evaluation="scatter")
     seen: dict = {}
     owned_bytes(model, seen=seen)
     fresh = owned_bytes(Guard(model, ws.GuardLimits(), 4), seen=dict(seen))

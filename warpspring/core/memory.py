@@ -291,6 +291,7 @@ def estimate_memory(
     worlds: int = 1,
     precision: str = "float32",
     device: str = "cpu",
+    spring_evaluation: str = "auto",
     integrator: str = "symplectic_euler",
     spring_slots: int | None = None,
     spring_tail: int = 0,
@@ -321,6 +322,8 @@ def estimate_memory(
         springs, hinges, triangles, colliders: elements per world (shared by the worlds).
         worlds: worlds of the model.
         precision: "float32" or "float64".
+        spring_evaluation: as :meth:`ModelBuilder.finalize`'s: "auto" and "gather" gather the springs per particle,
+            "scatter" scatters them per spring (the guard's damper sums then count).
         device: the Warp device name ("cpu", "cuda:0", ...); only whether it is CUDA matters.
         integrator: the integrator's name (:data:`INTEGRATOR_SCRATCH`).
         spring_slots, hinge_slots: ELL head widths of the incidence tables; default the mean number of elements
@@ -365,6 +368,8 @@ def estimate_memory(
     collider_faces = checks.count("collider_faces", collider_faces, minimum=0)
     if precision not in SCALAR_BYTES:
         raise ConfigError(f"precision must be 'float32' or 'float64', got {precision!r}")
+    if spring_evaluation not in ("auto", "gather", "scatter"):
+        raise ConfigError(f"spring_evaluation must be 'auto', 'gather' or 'scatter', got {spring_evaluation!r}")
     if integrator not in INTEGRATOR_SCRATCH:
         raise ConfigError(f"unknown integrator {integrator!r}: choose one of {', '.join(sorted(INTEGRATOR_SCRATCH))}")
     f = SCALAR_BYTES[precision]
@@ -409,13 +414,13 @@ def estimate_memory(
     # blocks; and what it allocates lazily, counted whether or not the run's settings need it (an upper bound):
     # the substep's midpoint state (positions, velocities, each world's time) where dissipation or the work of wind
     # and handles is counted, and the springs' damper sums (a skip flag per world, per spring its damper power
-    # and the float64 energy it dissipated) where the scattered force pass counts them.
+    # and the float64 energy it dissipated) where the scattered force pass counts them (scattered springs only).
     def element_blocks(count: int) -> int:
         return w * (count if not cuda else -(-count // _lanes(count, block_dim))) if count else 0
 
     running = 8 * RUNNING_SLOTS * ((blocks + element_blocks(s) + element_blocks(h)) if cuda
                                    else w * (1 + bool(s) + bool(h)))
-    dampers = (4 + (f + 8) * s) * w if s else 0
+    dampers = (4 + (f + 8) * s) * w if s and spring_evaluation == "scatter" else 0
     carried = 8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + running + dampers  # what a check carries on
     guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * GUARD_FLOATS * blocks + 8 * GUARD_LIMITS * w
              + 8 * max(element_blocks(s) + element_blocks(h), w) + carried + 2 * vec3 * size + 8 * w)

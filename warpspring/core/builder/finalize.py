@@ -102,7 +102,8 @@ class Finalization:
                 "kernels (at most 2^31 - 1 particles in all worlds and 2^30 springs): use fewer worlds per model"
             )
         estimate = self.estimate_memory(device, precision=precision, worlds=worlds, integrator=integrator,
-                                        contact_stage=contact_stage, contact_slots=contact_slots)
+                                        contact_stage=contact_stage, contact_slots=contact_slots,
+                                        spring_evaluation=spring_evaluation)
         if check_memory:
             memory.check_fits(estimate, memory.available_memory(device), precision=precision)
         try:
@@ -121,14 +122,14 @@ class Finalization:
 
     def estimate_memory(self, device=None, *, precision: str = "float32", worlds: int = 1,
                         integrator: str = "symplectic_euler", contact_stage: bool | None = None,
-                        contact_slots: int | None = None) -> memory.MemoryEstimate:
+                        contact_slots: int | None = None, spring_evaluation: str = "auto") -> memory.MemoryEstimate:
         """Estimate the memory :meth:`finalize` and a run of the model will need, before anything is allocated
         (:func:`warpspring.core.memory.estimate_memory` with this builder's counts and its incidence tables'
         exact widths).
 
         Args:
             device: the Warp device the model will live on (default: Warp's default).
-            precision, worlds, contact_stage, contact_slots: as :meth:`finalize`.
+            precision, worlds, contact_stage, contact_slots, spring_evaluation: as :meth:`finalize`.
             integrator: the integrator's name (its scratch states count).
 
         Returns:
@@ -164,6 +165,7 @@ class Finalization:
             worlds=worlds,
             precision=precision,
             device=str(device),
+            spring_evaluation=spring_evaluation,
             integrator=integrator,
             spring_slots=spring_slots,
             spring_tail=int(np.maximum(spring_degree - spring_slots, 0).sum()),
