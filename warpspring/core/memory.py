@@ -21,8 +21,8 @@ On the CPU the device is host memory, so both add up there.
 Measured on the CPU (``tests/test_memory.py``; ``python tests/test_memory.py 256 512 1024`` prints the
 table): the model's arrays, the states, every integrator's scratch, the guard's and the post-step buffers
 agree with the estimate to the byte (but for keyframe tracks); the growth of the process's peak resident
-memory while it builds and finalizes a 256² and 512² cloth grid is below :attr:`MemoryEstimate.finalize_peak`
-by 1.1 % and 1.8 % (held to :data:`PEAK_TOLERANCE`; ``bench/memory.py`` holds measured ≤ estimate ≤ 2 × measured
+memory while it builds and finalizes a 256² and 512² cloth grid (springs gathered and laid out by group) is below
+:attr:`MemoryEstimate.finalize_peak` by 2.6 % and 3.7 % (held to :data:`PEAK_TOLERANCE`; ``bench/memory.py`` holds measured ≤ estimate ≤ 2 × measured
 for every kind of scene), and that of a run of a few frames with the USD writer after it within -7 % … +11 %
 (512² with four integrators, 1024²).
 """
@@ -86,6 +86,11 @@ _BUILDER_VERTEX = 8 + 16
 # measured 64-68 bytes per entry, counted as 76 so that the estimate of finalize's peak stays above the measured
 # one (at 66 a 256² grid measured 4 % above it under load; at 76: +1.1 % and +1.8 % for 256² and 512²).
 _INCIDENCE_ENTRY = 76
+# Host bytes per spring of laying gathered springs out by group (``springs.group_head``: each entry's owner, spring,
+# other particle and group (int64), their sort and its reordered copies): NumPy's allocations peak at 185 B per
+# spring (``tracemalloc``, 128² to 512² grids), counted as 200; beyond the pairs finalize holds, and with the head
+# tables made twice (NumPy's, then Warp's copy).
+_GROUPED_LAYOUT_PER_SPRING = 200
 
 
 @dataclass(frozen=True)
@@ -292,6 +297,8 @@ def estimate_memory(
     precision: str = "float32",
     device: str = "cpu",
     spring_evaluation: str = "auto",
+    spring_groups: int | None = None,
+    spring_grid: bool = True,
     integrator: str = "symplectic_euler",
     spring_slots: int | None = None,
     spring_tail: int = 0,
@@ -324,6 +331,9 @@ def estimate_memory(
         precision: "float32" or "float64".
         spring_evaluation: as :meth:`ModelBuilder.finalize`'s: "auto" and "gather" gather the springs per particle,
             "scatter" scatters them per spring (the guard's damper sums then count).
+        spring_groups: groups of gathered springs laid out by group (``springs.set_spring_layout``: each keeps one
+            spring's index on the device; default 3, a cloth's structural, shear and bend springs; 0: not grouped).
+        spring_grid: whether that layout reads the springs as one cloth grid (its size, two int32, on the device).
         device: the Warp device name ("cpu", "cuda:0", ...); only whether it is CUDA matters.
         integrator: the integrator's name (:data:`INTEGRATOR_SCRATCH`).
         spring_slots, hinge_slots: ELL head widths of the incidence tables; default the mean number of elements
@@ -375,6 +385,8 @@ def estimate_memory(
     f = SCALAR_BYTES[precision]
     vec3 = 3 * f
     cuda = str(device).startswith("cuda")
+    groups = 3 if spring_groups is None else checks.count("spring_groups", spring_groups, minimum=0)
+    grouped = bool(s and groups and spring_evaluation != "scatter")  # gathered springs laid out by group
     size = w * n  # entries of a state's per-particle arrays
     spring_slots = _mean_degree(2 * s, n) if spring_slots is None else checks.count("spring_slots", spring_slots,
                                                                                    minimum=0)
@@ -392,6 +404,7 @@ def estimate_memory(
         + 3 * f * n  # mass, inverse mass (one row for every world), radius
         + (32 * pinned if pinned else 0)  # pin groups: index, group, rest position (float64) per pinned particle
         + (8 + 3 * f) * s + incidence(spring_slots, spring_tail)  # pairs, rest length, ke and kd rows
+        + ((4 * groups + (8 if spring_grid else 0)) if grouped else 0)  # each group's spring, the grid's size
         + (16 + 3 * f) * h + incidence(hinge_slots, hinge_tail)  # hinges, rest angle, ke and kd rows
         + 12 * t  # triangles
         # colliders: kind, size, scale, friction, restitution, mesh, rest frame, track indices; their frames at a
@@ -441,6 +454,8 @@ def estimate_memory(
     # finalize: the concatenated pairs (int64) stay for the whole call; each family's incidence sort peaks at
     # _INCIDENCE_ENTRY per entry plus its head tables (int32); the particles' copies (float64 and cast) come first.
     springs_peak = 16 * s + _INCIDENCE_ENTRY * 2 * s + 8 * spring_slots * n
+    if grouped:  # then the layout by group, after the incidence's sort
+        springs_peak = max(springs_peak, 16 * s + _GROUPED_LAYOUT_PER_SPRING * s + 2 * 8 * spring_slots * n)
     hinges_peak = 16 * s + 32 * h + _INCIDENCE_ENTRY * 4 * h + 8 * hinge_slots * n
     particles_peak = 24 * n + (24 + vec3) * size
     # Self-collision is made last, its host temporaries after the others are freed.

@@ -103,7 +103,8 @@ class Finalization:
             )
         estimate = self.estimate_memory(device, precision=precision, worlds=worlds, integrator=integrator,
                                         contact_stage=contact_stage, contact_slots=contact_slots,
-                                        spring_evaluation=spring_evaluation)
+                                        spring_evaluation=spring_evaluation, spring_groups=spring_groups,
+                                        spring_grid=spring_grid)
         if check_memory:
             memory.check_fits(estimate, memory.available_memory(device), precision=precision)
         try:
@@ -122,14 +123,16 @@ class Finalization:
 
     def estimate_memory(self, device=None, *, precision: str = "float32", worlds: int = 1,
                         integrator: str = "symplectic_euler", contact_stage: bool | None = None,
-                        contact_slots: int | None = None, spring_evaluation: str = "auto") -> memory.MemoryEstimate:
+                        contact_slots: int | None = None, spring_evaluation: str = "auto", spring_groups: bool = True,
+                        spring_grid: bool = True) -> memory.MemoryEstimate:
         """Estimate the memory :meth:`finalize` and a run of the model will need, before anything is allocated
         (:func:`warpspring.core.memory.estimate_memory` with this builder's counts and its incidence tables'
         exact widths).
 
         Args:
             device: the Warp device the model will live on (default: Warp's default).
-            precision, worlds, contact_stage, contact_slots, spring_evaluation: as :meth:`finalize`.
+            precision, worlds, contact_stage, contact_slots, spring_evaluation, spring_groups, spring_grid: as
+                :meth:`finalize`.
             integrator: the integrator's name (its scratch states count).
 
         Returns:
@@ -166,6 +169,8 @@ class Finalization:
             precision=precision,
             device=str(device),
             spring_evaluation=spring_evaluation,
+            spring_groups=self._grouped_spring_families(precision) if spring_groups else 0,
+            spring_grid=bool(spring_grid) and self._one_grid(),
             integrator=integrator,
             spring_slots=spring_slots,
             spring_tail=int(np.maximum(spring_degree - spring_slots, 0).sum()),
@@ -189,6 +194,30 @@ class Finalization:
             emitter_slots=sum(e.capacity for e in self._emitters),
             **_surface_counts(surface, n),
         )
+
+    def _grouped_spring_families(self, precision: str) -> int:
+        """The spring families that ``springs.set_spring_layout`` lays out by group (each keeps one spring's index on
+        the device), or 0 where it lays them out per spring: with per-spring law arrays or plasticity, or where no
+        family has one rest length, ke and kd in the model's precision (``springs.uniform_groups``)."""
+        laws = [law for law in self._spring_law if law[0]]
+        if not laws or any(law[1] == SPRING_LAWS["square"] or law[3] or np.any(np.asarray(law[2]) != 1.0)
+                           for law in laws):
+            return 0
+        scalar = np.float64 if precision == "float64" else np.float32
+        first: dict = {}
+        uniform: dict = {}
+        for family, *values in zip(self._spring_family, self._spring_rest, self._spring_ke, self._spring_kd):
+            values = [np.asarray(v).astype(scalar) for v in values]
+            if not len(values[0]):
+                continue
+            head = first.setdefault(family, [v[0] for v in values])
+            uniform[family] = uniform.get(family, True) and all(bool(np.all(v == h)) for v, h in zip(values, head))
+        return len(dict.fromkeys(self._spring_family)) if any(uniform.values()) else 0
+
+    def _one_grid(self) -> bool:
+        """Whether the scene is one cloth grid holding every particle, in grid order (its first particle is 0)."""
+        grids = self._cloth_grids
+        return len(grids) == 1 and grids[0][0] == 0 and grids[0][1] * grids[0][2] == self._particle_count
 
     def _self_contact_surface(self) -> np.ndarray | None:
         """The triangles (per-world particle indices, [t, 3]) that self-collision is asked for, or ``None``."""
@@ -280,9 +309,8 @@ class Finalization:
         self._finalize_spring_laws(model, farray, iarray)
         model._spring_grouping = spring_groups
         # The grid layout: one cloth grid holding every particle, in grid order (its first particle is 0).
-        grids = self._cloth_grids
-        if len(grids) == 1 and grids[0][0] == 0 and grids[0][1] * grids[0][2] == n:
-            model.spring_grid_shape = grids[0][1:]
+        if self._one_grid():
+            model.spring_grid_shape = self._cloth_grids[0][1:]
         model._spring_grid = bool(spring_grid)
         set_spring_layout(model, spring_groups)
 
