@@ -24,7 +24,7 @@ import functools
 import warp as wp
 
 from .families import FORCE_KERNEL_OPTIONS, elements
-from .forces import ForceFeatures, particle_force_func
+from .forces import ForceFeatures, particle_force_func, particle_power_func
 from .kinematics import is_kinematic, particle_funcs
 from .linalg import reduction_funcs
 from .precision import vec3_type
@@ -100,12 +100,23 @@ def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures):
 
 
 @functools.cache
-def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures):
+def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
+                            power: tuple | None = None):
     """Fused force + symplectic Euler + contact kernel: v' = v + h M⁻¹ f(x, v); x' = x + h v'; ``contacts``
-    fused (static colliders, every one tested)."""
+    fused (static colliders, every one tested).
+
+    With ``power`` (one ``forces.POWER_*`` mode per family of ``features``) each free particle also adds to its own
+    entry of the guard's power sums (``core/forces.PowerSums``) the energy [J] its dampers and drag took out over
+    the step, -h f_d·(v + v')/2, and the work the loads from outside did on it, h f_w·(v + v')/2 (f_d, f_w: their
+    parts of f, ``forces.particle_power_func``; v' before the contacts). That is exactly what they changed its
+    kinetic energy by, ½ m (|v'|² - |v|²) = h f·(v + v')/2, so the guard's balance closes up to the integrator's
+    error in the elastic energy; one thread writes each entry (no atomics), no pass of its own."""
     vec3 = vec3_type(scalar)
+    vec2 = wp.types.vector(length=2, dtype=scalar)
     Shapes = shapes_type(scalar)
-    particle_force = particle_force_func(scalar, features)
+    counted = power is not None
+    particle_force = (particle_power_func(scalar, features, power) if counted
+                      else particle_force_func(scalar, features))
     composed = elements(scalar, features.families)
     Elements = composed.arrays
     update = symplectic_euler_funcs(scalar)
@@ -137,6 +148,8 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
         time_out: wp.array[wp.float64],
+        # In/out (the guard's power sums [J], read with ``power`` only):
+        power_in_out: wp.array[vec2],
     ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
@@ -150,9 +163,18 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
             particle_q_out[p] = x + h * v
             particle_qd_out[p] = v
             return
-        f = particle_force(world, i, base, x, v, particle_mass, element_arrays, inputs, particle_force_ext,
-                           particle_q_in, particle_qd_in)
-        x, v = update(x, v, f, particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i], h)
+        inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
+        if wp.static(counted):
+            f, dampers, work = particle_force(world, i, base, x, v, particle_mass, element_arrays, inputs,
+                                              particle_force_ext, particle_q_in, particle_qd_in)
+            v_start = v
+            x, v = update(x, v, f, inv_mass, h)
+            mean = (v_start + v) * (scalar(0.5) * h)
+            power_in_out[p] += vec2(-wp.dot(dampers, mean), wp.dot(work, mean))
+        else:
+            f = particle_force(world, i, base, x, v, particle_mass, element_arrays, inputs, particle_force_ext,
+                               particle_q_in, particle_qd_in)
+            x, v = update(x, v, f, inv_mass, h)
         if wp.static(has_contacts):
             x, v = project_contacts(world, p, x, v, particle_radius[i], h, shapes, inputs)
         particle_q_out[p] = x
