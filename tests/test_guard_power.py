@@ -1,5 +1,6 @@
 """The guard's power counted in the integrator's own force pass (``core/forces.PowerSums``): symplectic Euler's fused
-step with gathered springs (the CUDA default; here forced on the CPU too) and RK4's evaluation at each step's start.
+step with gathered springs (the CUDA default; here forced on the CPU too), its update after scattered springs (the
+CPU default) and RK4's evaluation at each step's start.
 The balance it keeps matches closed forms as the passes of its own did, the run it watches is the same to the last
 bit, and it launches nothing per substep."""
 
@@ -39,12 +40,12 @@ def oscillator(device, evaluation: str) -> ws.Model:
 def test_power_in_the_force_pass_is_the_oscillators_lost_energy(device, integrator, order, evaluation):
     """Over 2 s (fps 60, 8 substeps: ωh = 0.021) D equals the closed-form energy loss from the first check on and the
     balance closes, within (ωh)^order of the loss as ``test_dissipation.py`` derives it: RK4's trapezoid of the
-    power at the steps' starts (closed at each check) is second order; symplectic Euler's f_d·(v + v')/2 h is what
-    its damper changed the kinetic energy by, its error the integrator's first-order one."""
+    power at the steps' starts (closed at each check) is second order; symplectic Euler's mean-rate rule (each
+    step's f_d·(v + v')/2 h, what its damper changed the kinetic energy by, closed at the checks) first order."""
     model = oscillator(device, evaluation)
     sim = ws.Simulator(model, integrator=ws.make_integrator(integrator, model), fps=60, substeps=8)
     run_frames(sim, 120)
-    assert (sim.guard._power is not None) == (integrator == "rk4" or evaluation == "gather")
+    assert sim.guard._power is not None
     tolerance = (OMEGA * sim.dt) ** order
     lost = oscillator_energy(1.0 / 60.0) - oscillator_energy(2.0)
     balance = sim.guard.energy_balance()
@@ -56,9 +57,10 @@ def test_power_in_the_force_pass_is_the_oscillators_lost_energy(device, integrat
 @pytest.mark.parametrize("omega_h", [0.5, 1.0, 1.5])
 def test_symplectic_euler_fused_counts_its_loss_at_large_steps(device, omega_h):
     """``test_dissipation.py``'s large-step oscillator (no gravity, 1 substep of 1/60 s at ωh as given, kd h/m = 0.01)
-    through the fused step: after 10 s D is the energy lost within 1 % as there (the fused rule is exact per step;
-    what is left is the energy at the end, < 1 % of the start, swinging about what the steps conserve by up to
-    1/(1 - ωh/2): measured 2e-3 at ωh = 1), where the trapezoid of kd v² at the steps' ends is 7 to 130 % off."""
+    through the fused step with gathered springs: after 10 s D is the energy lost since the first check within 1 %
+    as there (the step's exact energy closed by the quarter of h P at the checks: the mean-rate rule kd ((r + r')/2)²
+    per step, whose first step, from rest to v₁ = hω²A, took out h kd (v₁/2)² before the first check; the trapezoid
+    of kd v² at the steps' ends is 7 to 130 % off)."""
     h = 1.0 / 60.0
     stiffness = MASS * (omega_h / h) ** 2
     builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
@@ -74,9 +76,8 @@ def test_symplectic_euler_fused_counts_its_loss_at_large_steps(device, omega_h):
     balance = sim.guard.energy_balance()
     assert sim.guard._power is not None
     assert balance.energy[0] < 0.01 * start
-    # D counts from the first check on, after the first step (from rest: v₁ = hω²A, f_d = 0 at rest, so the step
-    # took out nothing; its energy left is the start's less what the spring holds).
-    assert balance.dissipated[0] == pytest.approx(start - balance.energy[0], rel=1.0e-2)
+    first = h * kd * (h * omega_h**2 / h**2 * AMPLITUDE / 2.0) ** 2
+    assert balance.dissipated[0] == pytest.approx(start - balance.energy[0] - first, rel=1.0e-2)
 
 
 @pytest.mark.parametrize("integrator", ["symplectic_euler", "rk4"])
@@ -160,7 +161,7 @@ def test_two_simulators_on_one_model_keep_their_own_sums(device):
     model = oscillator(device, "scatter")
     first = ws.Simulator(model, integrator=ws.make_integrator("symplectic_euler", model), fps=60, substeps=8)
     second = ws.Simulator(model, integrator=ws.make_integrator("symplectic_euler", model), fps=60, substeps=8)
-    assert first.integrator.dampers is not second.integrator.dampers
+    assert first.integrator.power is not second.integrator.power
     assert getattr(model, "_damper_sums", None) is None
     run_frames(first, 30)
     alone = first.guard.energy_balance().dissipated[0]
@@ -168,3 +169,27 @@ def test_two_simulators_on_one_model_keep_their_own_sums(device):
     assert second.guard.energy_balance().dissipated[0] == 0.0
     run_frames(second, 30)
     assert second.guard.energy_balance().dissipated[0] == pytest.approx(alone, rel=1e-6)
+
+
+@pytest.mark.parametrize("integrator", ["symplectic_euler", "rk4"])
+def test_dampers_past_their_limit_are_caught_in_the_force_pass(device, integrator):
+    """``test_dissipation.py``'s unstable dampers with gathered springs: an 8 × 8 cloth swings 1 s, then its dampers
+    are raised in place to 21 N·s/m (kd h λ_D/m ≈ 2 on the stiffest damping mode at 16 substeps: the step
+    overshoots and grows it; RK4's limit on a damping mode is 2.79: raised to 30 N·s/m for it). The counted D keeps
+    every damper's loss ≥ 0 (the mean-rate rule, the trapezoid), so the energy the overshooting step creates shows
+    in the balance and the run is stopped for it within 60 frames; an exact count of the step's damper work would
+    have read it as the dampers putting energy in."""
+    builder = ws.ModelBuilder()
+    spring = ws.SpringMaterial(ke=1.0e3, kd=10.0)
+    builder.add_cloth_grid(nx=8, ny=8, spacing=0.1, origin=(-0.35, -0.35, 1.0), particle_mass=0.1,
+                           structural=spring, shear=spring, bend=spring, pin=["top-left", "top-right"])
+    model = builder.finalize(device, spring_evaluation="gather")
+    sim = ws.Simulator(model, integrator=ws.make_integrator(integrator, model), fps=60, substeps=16)
+    run_frames(sim, 60)
+    before = sim.guard.energy_balance()
+    assert abs(before.created[0]) < 0.02 * before.peak[0]  # a correct run: the balance closed
+    raised = 21.0 if integrator == "symplectic_euler" else 30.0
+    model.spring_damping.assign(np.full(model.spring_damping.shape, raised, dtype=np.float32))
+    with pytest.raises(ws.SimulationError, match="energy") as stop:
+        run_frames(sim, 60)
+    assert stop.value.reason in ("energy balance", "kinetic energy")

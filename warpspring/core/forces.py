@@ -45,18 +45,25 @@ class PowerSums:
     already evaluates the forces: the guard hands them to its integrator (``Integrator.power``). Each free particle
     adds to its own entry (no atomics): symplectic Euler's fused step the energy over the step
     (``symplectic_euler_kernel``'s ``power``), the other integrators' evaluation at a step's start state h times the
-    power there (``eval_forces``'s ``power``; the guard closes the trapezoid at its checks).
+    power there (``eval_forces``'s ``power``; the guard closes the trapezoid at its checks). Symplectic Euler with
+    scattered springs stores the dampers' and the outside loads' parts of the force instead (``forces``, the
+    scattered springs' dampers added by their pass), and its update counts them with the step's velocities.
 
     Attributes:
         modes: one ``kernels/forces.POWER_*`` per family of the model, in its order.
         h: the step [s].
         sums: per particle, (energy the dampers and drag took out [J], work the loads from outside did [J]) since the
             guard's last check, vec2 of the model's precision, shape [world_count · particle_count].
+        forces: ``None``, or (the dampers' part [N], the outside loads' part [N]) of each particle's force, vec3
+            arrays of the state's shape, which the force passes write and symplectic Euler's update reads.
+        springs: with ``forces``, whether the scattered springs' pass adds their dampers' part.
     """
 
     modes: tuple
     h: float
     sums: wp.array
+    forces: tuple | None = None
+    springs: bool = False
 
 
 def force_inputs(model: Model, control: Control | None, features) -> list:
@@ -88,25 +95,28 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
     features = model.force_features(control)
     scatter = model.spring_count > 0 and not model.spring_gather
     out = state.particle_f if particle_f is None else particle_f
+    stored = power is not None and power.forces is not None
     flat_launch(
         # With scattered springs the force clamp must wait for the springs: a pass of its own below.
         eval_forces_kernel(model.scalar, features._replace(clamp_particle_force=False) if scatter else features,
-                           None if power is None else power.modes),
+                           None if power is None else power.modes, stored),
         dim=model.particle_dim,
         block_dim=model.block_dim,
         inputs=[model.particle_count, model.particle_flags, *force_inputs(model, control, features), state.particle_q,
                 state.particle_qd, 0.0 if power is None else power.h],
-        outputs=[out, None if power is None else power.sums],
+        outputs=[out, *(power.forces if stored else (None, None)), None if power is None else power.sums],
         device=model.device,
     )
     if scatter:
         counted = dampers is not None
+        split = stored and power.springs
         flat_launch(
-            spring_scatter_kernel(model.scalar, model.spring_law, dampers.rule if counted else DAMPER_NONE),
+            spring_scatter_kernel(model.scalar, model.spring_law, dampers.rule if counted else DAMPER_NONE, split),
             dim=(model.world_count, model.spring_count),
             inputs=[model.particle_count, model.spring_arrays(), model.inputs, state.particle_q, state.particle_qd,
                     dampers.h if counted else 0.0, dampers.skip if counted else None],
-            outputs=[out, dampers.damper if counted else None, dampers.dissipated if counted else None],
+            outputs=[out, dampers.damper if counted else None, dampers.dissipated if counted else None,
+                     power.forces[0] if split else None],
             device=model.device,
         )
         if features.clamp_particle_force:

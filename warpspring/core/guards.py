@@ -81,6 +81,7 @@ from .guard_records import (
     EnergyBalance,
     GuardLimits,
     GuardReport,
+    stop_advice,
 )
 from .model import Model
 from .state import State
@@ -152,6 +153,8 @@ class Guard(StepHook):
                 self._energy_layout.append((family, lanes, grid, blocks))
                 blocks += grid[1]
         self._energy_partials = wp.zeros((worlds, max(blocks, 1)), dtype=wp.float64, device=device)
+        # ... and of their largest strain, where a family measures it per element (``guard_energy_kernel``; -1: none).
+        self._strain_partials = wp.full((worlds, max(blocks, 1)), -1.0, dtype=wp.float64, device=device)
         # Running dissipation per reducing block (``kernels/guards.py``): drag's particle blocks first, then the
         # blocks of each family with dampers.
         # On the CPU one thread per world sums a family's (or drag's) power: one block, launched over worlds.
@@ -178,6 +181,7 @@ class Guard(StepHook):
         self._midpoint = False
         self._working = False
         self._step_position = self._step_velocity = self._step_time = self._step_start = None
+        self._locate = None  # (kernel, state, substep) of the frame's last check: ``reports`` runs it on a failure
         self.limits = limits
 
     @property
@@ -388,7 +392,7 @@ class Guard(StepHook):
         if self._working and self._power is None:
             self._family_work(state)
         if (step + 1) % self._every == 0 or step + 1 == steps:
-            self.check(state, step)
+            self.check(state, step, last=step + 1 == steps)
 
     def _family_work(self, state: State) -> None:
         """Add the work wind and handles (the families that do work from outside) did over the last substep to the
@@ -492,16 +496,29 @@ class Guard(StepHook):
                 families = [(guard_dissipation_kernel(model.scalar, family.spec(model), self._tiled, midpoint),
                              family, lanes, grid, offset) for family, lanes, grid, offset in self._dissipation_layout
                             if (springs is None or family is not springs[0])
-                            and (modes is None or modes[index[family.name]] != POWER_DAMPERS)]
+                            and not self._power_counts(family, modes, index)]
             cached = (key, (drag, families))
             self._dissipation_cache = cached
             self._attach_dampers(springs)
             self._attach_power(modes)
         return cached[1]
 
+    def _power_counts(self, family, modes, index: dict) -> bool:
+        """Whether the integrator's force passes count ``family``'s dampers (``modes``: ``_power_modes``): its mode, or
+        the scattered springs' pass under symplectic Euler (``PowerSums.springs``)."""
+        if modes is None:
+            return False
+        if modes[index[family.name]] == POWER_DAMPERS:
+            return True
+        model = self.model
+        law = model.spring_law
+        return (family.name == "springs" and not model.spring_gather and self._power_rule() == POWER_RULE_MEAN
+                and not law.clamp_force and not law.plastic)
+
     def _power_rule(self) -> int:
         """How the integrator's per-particle force pass counts the power for the balance (``POWER_RULE_*`` of
-        ``kernels/guards.py``): symplectic Euler's fused step (gathered springs, or none) the energy over each step,
+        ``kernels/guards.py``): symplectic Euler's fused step (gathered springs, or none), or its update after the
+        force passes stored the dampers' and loads' parts of the force (scattered springs), the energy over each step,
         exactly what the forces changed the kinetic energy by (``POWER_RULE_MEAN``); RK4's evaluation at each step's
         start the power there, a trapezoid the checks close (``POWER_RULE_START``); elsewhere none (passes of their
         own). Not under the particle force clamp (its share of a force is not separable; the balance is off)."""
@@ -512,7 +529,7 @@ class Guard(StepHook):
                 or getattr(integrator, "unconditionally_stable", False) or self._limits_host.energy_balance <= 0.0
                 or model.stabilizers.enabled("max_particle_force") or model.particle_count == 0):
             return POWER_RULE_NONE
-        if name == "symplectic_euler" and (model.spring_gather or model.spring_count == 0):
+        if name == "symplectic_euler":
             return POWER_RULE_MEAN
         if name == "rk4":
             return POWER_RULE_START
@@ -532,7 +549,7 @@ class Guard(StepHook):
         for family in model.families:
             if family.does_work:
                 modes.append(POWER_WORK if self._working else POWER_NONE)
-            elif (counted and family.spec(model).funcs(model.scalar).split is not None
+            elif (counted and getattr(family.spec(model).funcs(model.scalar), "split", None) is not None
                   and getattr(family.spec(model).funcs(model.scalar), "dissipation", None) is not None
                   and (family.name != "springs" or model.spring_gather or gathered)):
                 modes.append(POWER_DAMPERS)
@@ -554,8 +571,19 @@ class Guard(StepHook):
         if self._power is None or self._power.sums.shape[0] != size:
             vec2 = wp.types.vector(length=2, dtype=model.scalar)
             self._power = PowerSums(modes=modes, h=float(self.dt), sums=wp.zeros(size, dtype=vec2, device=model.device))
-        self._power.modes = modes
-        integrator.power = self._power
+        power = self._power
+        power.modes = modes
+        # Symplectic Euler with scattered springs: the force passes store the parts its update counts.
+        stored = self._power_rule() == POWER_RULE_MEAN and model.spring_count > 0 and not model.spring_gather
+        if stored and (power.forces is None or power.forces[0].shape[0] != size):
+            power.forces = (wp.zeros(size, dtype=model.vec3, device=model.device),
+                            wp.zeros(size, dtype=model.vec3, device=model.device))
+        elif not stored:
+            power.forces = None
+        law = model.spring_law
+        power.springs = (stored and bool(self._dissipating) and dissipation_exact(model)
+                         and not law.clamp_force and not law.plastic)
+        integrator.power = power
 
     def _force_pass_dampers(self):
         """The springs' (family, lanes, grid, offset) where their scattered force pass counts their dampers'
@@ -565,6 +593,7 @@ class Guard(StepHook):
         law = model.spring_law
         if not (self._dissipating and dissipation_exact(model) and model.spring_count > 0 and not model.spring_gather
                 and getattr(self.integrator, "name", None) in DAMPERS_IN_FORCE_PASS
+                and self._power_rule() != POWER_RULE_MEAN  # (symplectic Euler: its update counts them, PowerSums)
                 and not law.clamp_force and not law.plastic):
             return None
         return next((entry for entry in self._dissipation_layout if entry[0].name == "springs"), None)
@@ -636,9 +665,11 @@ class Guard(StepHook):
         rule, features, modes = POWER_RULE_NONE, None, ()
         if power is not None:
             rule, modes = self._power_rule(), power.modes
-            if rule == POWER_RULE_START:
-                features = model.force_features(self.control)._replace(families=specs, clamp_particle_force=False,
-                                                                       external=force is not None)
+            if power.springs:  # the scattered springs' dampers: here gathered (``specs``), counted with the rest
+                modes = tuple(POWER_DAMPERS if family.name == "springs" else mode
+                              for family, mode in zip(model.families, modes))
+            features = model.force_features(self.control)._replace(families=specs, clamp_particle_force=False,
+                                                                   external=force is not None)
         measure, gather, locate = guard_kernels(model.scalar, specs, self._tiled, force is not None,
                                                         working_specs, rule, features, modes,
                                                         self.counts_dissipation)
@@ -665,10 +696,13 @@ class Guard(StepHook):
             return 0.0
         return 0.5 * float(self.dt)
 
-    def check(self, state: State, substep: int) -> None:
-        """Launch the checks of ``state`` after ``substep`` (device only; capturable)."""
+    def check(self, state: State, substep: int, *, last: bool = False) -> None:
+        """Launch the checks of ``state`` after ``substep`` (device only; capturable). The check that ends a frame
+        (``last``) leaves finding the most strained element of a world that failed to :meth:`reports`, which runs
+        it on the same state after the frame, where a failure is seen (no launch in a frame that passes)."""
         model = self.model
         gather, locate = self._measure(state)
+        self._locate = (locate, state, substep) if last else None
         worlds, device = model.world_count, model.device
         if self._dampers is not None and self._dissipating:
             self._close_dampers(state, float(self.dt))
@@ -676,14 +710,19 @@ class Guard(StepHook):
             flat_launch(guard_energy_kernel(model.scalar, family.spec(model), self._tiled), dim=grid, block_dim=lanes,
                         inputs=[model.particle_count, family.element_count, offset, model.world_enabled,
                                 family.arrays(model), model.inputs, self._status, state.particle_q],
-                        outputs=[self._energy_partials], device=device)
+                        outputs=[self._energy_partials, self._strain_partials], device=device)
         wp.launch(gather, dim=(worlds, self._lanes), block_dim=self._lanes,
-                  inputs=[self._partials, self._energy_partials, substep, self._limits],
+                  inputs=[self._partials, self._energy_partials, self._strain_partials, substep, self._limits],
                   outputs=[model.world_enabled, self._status, self._running, self._values, self._work_total,
                            self._balance], device=device)
+        if not last:
+            self._launch_locate(locate, state, substep)
+
+    def _launch_locate(self, locate, state: State, substep: int) -> None:
+        model = self.model
         flat_launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
                     inputs=[model.particle_count, model.elements, state.particle_q, substep, self._values],
-                    outputs=[self._status], device=device)
+                    outputs=[self._status], device=model.device)
 
     def reports(self) -> list[GuardReport]:
         """Each world's first failure since the last reset, in world order (reads the device: synchronises). The
@@ -697,6 +736,12 @@ class Guard(StepHook):
         tripped = status[:, GUARD_TRIPPED]
         if not tripped.any():  # the common case, every frame: one read, nothing allocated that could linger
             return []
+        pending = getattr(self, "_locate", None)
+        if pending is not None and (status[tripped != 0, GUARD_SUBSTEP] == pending[2]).any():
+            # A world failed at the frame's last check, whose state the frame left as it was: find its element now.
+            self._launch_locate(*pending)
+            self._locate = None
+            status = self._status.numpy()
         values = self._values.numpy()
         for world in np.flatnonzero(tripped):
             row = status[world]
@@ -721,6 +766,14 @@ class Guard(StepHook):
             ))
         self._reported = True  # cleared before the next frame (``refresh``)
         return found
+
+    def explain(self, report: GuardReport) -> str:
+        """``report`` described (:meth:`GuardReport.describe`), with the scene's suspects and a remedy to try after an
+        instability (:func:`stop_advice`)."""
+        advice = stop_advice(report, self.model, integrator=getattr(self.integrator, "name", None),
+                             substeps=self.substeps, dt=float(self.dt) if self.dt is not None else 0.0,
+                             control=self.control)
+        return report.describe(self.model) + (f"; {advice}" if advice else "")
 
     def report(self) -> GuardReport | None:
         """The earliest failure since the last reset (the lowest world among equals), or ``None`` (reads the

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 from .. import checks
 from ..errors import ConfigError
-from ..kernels.guards import BALANCE_SLOTS, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS, RUNNING_SLOTS
+from ..kernels.guards import BALANCE_SLOTS, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS, PARTIAL_SLOTS, RUNNING_SLOTS
 from ..kernels.inputs import INPUT_COUNT
 
 #: Bytes per floating-point number of each precision.
@@ -299,8 +299,9 @@ def estimate_memory(
     def element_blocks(count: int) -> int:
         return w * (count if not cuda else -(-count // _lanes(count, block_dim))) if count else 0
 
-    guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * GUARD_FLOATS * blocks + 8 * GUARD_LIMITS * w
-             + 8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + 8 * max(element_blocks(s) + element_blocks(h), w)
+    guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * PARTIAL_SLOTS * blocks + 8 * GUARD_LIMITS * w
+             + 8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size
+             + 2 * 8 * max(element_blocks(s) + element_blocks(h), w)  # the energy's and the strain's partial sums
              + 8 * RUNNING_SLOTS * ((blocks + element_blocks(s) + element_blocks(h)) if cuda
                                     else w * (1 + bool(s) + bool(h))))
     post_step = (3 * vec3 * size if strain_limiting and s else 0)

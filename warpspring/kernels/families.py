@@ -95,6 +95,9 @@ class FamilyFuncs(NamedTuple):
     # Optional, gathered like ``force``: (force, its dampers' part) at particle i, the guard's power counted in the
     # pass that evaluates the force (``forces.particle_power_func``); None: the guard counts a pass of its own.
     split: Any = None
+    # Optional, per element like ``energy``: ``element_strain(world, element, base, arrays, particle_q) -> float64``,
+    # the strain ``strain`` gives at its particles (the same bits); the guard measures it in its energy pass.
+    element_strain: Any = None
 
 
 @functools.cache

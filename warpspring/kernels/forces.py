@@ -93,13 +93,15 @@ def particle_force_func(scalar: type, features: ForceFeatures):
 
 
 @functools.cache
-def eval_forces_kernel(scalar: type, features: ForceFeatures, power: tuple | None = None):
+def eval_forces_kernel(scalar: type, features: ForceFeatures, power: tuple | None = None, store: bool = False):
     """Kernel writing the total force on every particle (one thread per particle of every world).
 
     With ``power`` (one ``POWER_*`` mode per family of ``features``) each free particle also adds to its own entry of
     the guard's power sums (``core/forces.PowerSums``) h times the power its dampers and drag take out, -f_d·v, and
     the power of the loads from outside, f_w·v, at the state evaluated (a step's start: the guard's trapezoid of the
-    power, closed at its checks)."""
+    power, closed at its checks); with ``store`` it writes the dampers' and the outside loads' parts of the force to
+    ``particle_fd_out`` and ``particle_fw_out`` instead (symplectic Euler's update counts them with the step's
+    velocities; a scattered spring pass adds its dampers' part after)."""
     vec3 = vec3_type(scalar)
     vec2 = wp.types.vector(length=2, dtype=scalar)
     counted = power is not None
@@ -125,6 +127,8 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures, power: tuple | Non
         power_h: scalar,
         # Out:
         particle_f_out: wp.array[vec3],
+        particle_fd_out: wp.array[vec3],
+        particle_fw_out: wp.array[vec3],
         # In/out (the guard's power sums [J], read with ``power`` only):
         power_in_out: wp.array[vec2],
     ):
@@ -132,10 +136,14 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures, power: tuple | Non
         world, i = world_and_index(p, particle_count)
         if wp.static(counted):
             v = particle_qd[p]
-            f, dampers, work = particle_force(world, i, p - i, particle_q[p], v, particle_mass, element_arrays, inputs,
-                                              particle_force_ext, particle_q, particle_qd)
+            f, dampers, work = particle_force(world, i, p - i, particle_q[p], v, not is_kinematic(particle_flags[p]),
+                                              particle_mass, element_arrays, inputs, particle_force_ext, particle_q,
+                                              particle_qd)
             particle_f_out[p] = f
-            if not is_kinematic(particle_flags[p]):
+            if wp.static(store):
+                particle_fd_out[p] = dampers
+                particle_fw_out[p] = work
+            else:
                 power_in_out[p] += vec2(-power_h * wp.dot(dampers, v), power_h * wp.dot(work, v))
         else:
             particle_f_out[p] = particle_force(world, i, p - i, particle_q[p], particle_qd[p], particle_mass,
@@ -187,11 +195,12 @@ def split_elements(scalar: type, specs: tuple, modes: tuple):
         return split_none
     funcs = specs[0].funcs(scalar)
     mode = modes[0]
-    if mode == POWER_DAMPERS and funcs.split is None:
+    split = getattr(funcs, "split", None)
+    if mode == POWER_DAMPERS and split is None:
         raise ValueError(f"{type(specs[0]).__name__} has no split hook: its dampers cannot be counted in its force "
                          "pass")
     head_force = funcs.force
-    head_split = funcs.split if mode == POWER_DAMPERS else funcs.force
+    head_split = split if mode == POWER_DAMPERS else funcs.force
 
     @wp.func
     def split_head(world: int, i: int, base: int, xi: vec3, vi: vec3, arrays: funcs.arrays, inputs: wp.array2d[scalar],
@@ -227,11 +236,14 @@ def split_elements(scalar: type, specs: tuple, modes: tuple):
 
 @functools.cache
 def particle_power_func(scalar: type, features: ForceFeatures, modes: tuple):
-    """``particle_power(world, i, base, xi, vi, ...) -> (force, dampers, work)``: ``particle_force_func``'s force [N]
-    on particle i (not clamped: the guard's power is not counted under ``clamp_particle_force``) with the part of it
-    that dampers and drag exert (drag against still air, -c v) and the part that does work from outside (the wind's
-    push through drag, c u; the families of mode ``POWER_WORK``): ``modes`` one ``POWER_*`` per family of
-    ``features``. The guard's power sums (``core/forces.PowerSums``) take -dampers·v̄ and work·v̄ of them."""
+    """``particle_power(world, i, base, xi, vi, free, ...) -> (force, dampers, work)``: ``particle_force_func``'s force
+    [N] on particle i (not clamped: the guard's power is not counted under ``clamp_particle_force``) with the part of
+    it that dampers and drag exert (drag against still air, -c v) and the part that does work from outside (the
+    wind's push through drag, c u; the families of mode ``POWER_WORK``): ``modes`` one ``POWER_*`` per family of
+    ``features``. The guard's power sums (``core/forces.PowerSums``) take -dampers·v̄ and work·v̄ of them. For a
+    kinematic particle (``free`` off) only the elements' dampers count: what the drive does against them is in the
+    drive's work (the guard's check), their damper's share of the power here, so that D is each damper's whole power;
+    drag and the outside loads act on free particles only."""
     vec3 = vec3_type(scalar)
     Elements = elements(scalar, features.families).arrays
     split = split_elements(scalar, features.families, modes)
@@ -244,6 +256,7 @@ def particle_power_func(scalar: type, features: ForceFeatures, modes: tuple):
         base: int,
         xi: vec3,
         vi: vec3,
+        free: bool,
         # Model:
         particle_mass: wp.array2d[scalar],
         element_arrays: Elements,
@@ -272,6 +285,8 @@ def particle_power_func(scalar: type, features: ForceFeatures, modes: tuple):
         elements_f, elements_dampers, elements_work = split(world, i, base, xi, vi, element_arrays, inputs, particle_q,
                                                             particle_qd)
         f += elements_f
+        if not free:
+            return f, elements_dampers, vec3(scalar(0.0))
         return f, dampers + elements_dampers, work + elements_work
 
     return particle_power

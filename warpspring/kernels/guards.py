@@ -142,6 +142,48 @@ NO_PARTICLE = 2**31 - 1
 
 
 @functools.cache
+def particle_strain_func(scalar: type, specs: tuple):
+    """``strain(world, i, base, xi, element_arrays, particle_q) -> float64``: the largest strain [-] of the elements at
+    particle i over the families of ``specs`` without an ``element_strain`` hook (those with one are measured per
+    element in the energy pass, ``guard_energy_kernel``); -1 where none."""
+    vec3 = vec3_type(scalar)
+    Elements = elements(scalar, specs).arrays
+    if not specs:
+
+        @wp.func
+        def no_strain(world: int, i: int, base: int, xi: vec3, arrays: Elements, particle_q: wp.array[vec3]):
+            return wp.float64(-1.0)
+
+        return no_strain
+    funcs = specs[0].funcs(scalar)
+    skipped = getattr(funcs, "element_strain", None) is not None
+    head_strain = funcs.strain
+
+    @wp.func
+    def head(world: int, i: int, base: int, xi: vec3, arrays: funcs.arrays, particle_q: wp.array[vec3]):
+        if wp.static(skipped):
+            return wp.float64(-1.0)
+        worst, _ = head_strain(world, i, base, xi, arrays, particle_q)
+        return worst
+
+    if len(specs) == 1:
+
+        @wp.func
+        def strain_1(world: int, i: int, base: int, xi: vec3, arrays: Elements, particle_q: wp.array[vec3]):
+            return head(world, i, base, xi, arrays.head, particle_q)
+
+        return strain_1
+    rest = particle_strain_func(scalar, specs[1:])
+
+    @wp.func
+    def strain_n(world: int, i: int, base: int, xi: vec3, arrays: Elements, particle_q: wp.array[vec3]):
+        return wp.max(head(world, i, base, xi, arrays.head, particle_q), rest(world, i, base, xi, arrays.tail,
+                                                                            particle_q))
+
+    return strain_n
+
+
+@functools.cache
 def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, working: tuple = (),
                   power: int = POWER_RULE_NONE, power_features: ForceFeatures | None = None,
                   power_modes: tuple = (), dissipation: bool = False):
@@ -155,17 +197,29 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
     the power at each step's start; ``measure`` evaluates it at the check's state too (``power_features``, whose
     families are ``families``, and ``power_modes``: ``forces.particle_power_func``), adds half of it to the check's
     span and leaves minus half for the next span, whose first step adds all of it: the trapezoid of the power
-    over the substeps. ``dissipation``: ``gather`` adds the dampers' and drag's energy to D (else only the loads'
+    over the substeps. With ``POWER_RULE_MEAN`` the sums hold each step's exact energy, -h f_d·(v + v')/2, whose sum
+    over steps differs from the mean-rate rule's, Σ h c ((r + r')/2)² per damper (≥ 0 for each), by a quarter of
+    h P at the span's ends (P = -f_d·v, the dampers' power: the algebra of (r + r')² = r² + 2 r r' + r'²): the
+    check adds that quarter at its state and leaves minus it for the next span. The exact energy alone would
+    count a damper that an unstable step drives (kd h/m past its limit) as putting energy in, and the balance
+    would never see the energy that step creates; the mean rate keeps every damper's loss ≥ 0. ``dissipation``:
+    ``gather`` adds the dampers' and drag's energy to D (else only the loads'
     work counts: D left out, ``core/guards.dissipation_exact``)."""
     vec3 = vec3_type(scalar)
     vec2 = wp.types.vector(length=2, dtype=scalar)
     counted = power != POWER_RULE_NONE
-    boundary = power == POWER_RULE_START
+    boundary = counted
     particle_power = particle_power_func(scalar, power_features, power_modes) if boundary else None
+    # The closing terms' shares of h times the power at the check's state (dampers, loads from outside): the
+    # trapezoid's halves (RK4), or for symplectic Euler's D a quarter, which turns its exact step energy into the
+    # mean-rate rule's (below); its loads' work stays exact.
+    share_dampers = 0.5 if power == POWER_RULE_START else 0.25
+    share_work = 0.5 if power == POWER_RULE_START else 0.0
     block_sum, block_max = reduction_funcs(tiled)
     composed = elements(scalar, families)
     Elements = composed.arrays
     element_strain = composed.strain
+    particle_strain = particle_strain_func(scalar, families)
     element_force = composed.force
     work_composed = elements(scalar, working)
     WorkElements = work_composed.arrays
@@ -215,7 +269,7 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
             v = particle_qd[p]
             if wp.isfinite(x) and wp.isfinite(v):
                 mass = particle_mass[wp.min(world, particle_mass.shape[0] - 1), i]
-                worst, _, _ = element_strain(world, i, base, x, element_arrays, particle_q)
+                worst = particle_strain(world, i, base, x, element_arrays, particle_q)
                 held = vec3(scalar(0.0))  # a load constant within a frame: its value at the check
                 steady = vec3(scalar(0.0))  # the loads constant within a frame (weight, the control's force)
                 if is_kinematic(particle_flags[p]):  # prescribed motion: no runaway of its own, a drive's work
@@ -234,19 +288,21 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                 work = wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - previous_q_in_out[p])
                                   + lead * wp.dot(steady, v - previous_qd_in_out[p]))
                 previous_load_in_out[p] = load
-                if wp.static(counted):
-                    if not is_kinematic(particle_flags[p]):  # a kinematic particle's sums stay 0
-                        sums = power_in_out[p]
-                        left = vec2(scalar(0.0))
-                        if wp.static(boundary):  # the trapezoid's end at this state, its start for the next span
-                            total, dampers, pushes = particle_power(world, i, base, x, v, particle_mass, element_arrays,
-                                                                    inputs, particle_force_ext, particle_q, particle_qd)
-                            left = (scalar(0.5) * power_h) * vec2(-wp.dot(dampers, v), wp.dot(pushes, v))
-                            sums += left
-                            left = -left
-                        dissipated = wp.float64(sums[0])
-                        family_work = wp.float64(sums[1])
-                        power_in_out[p] = left
+                if wp.static(counted):  # (a kinematic particle's sums: its elements' dampers only)
+                    sums = power_in_out[p]
+                    left = vec2(scalar(0.0))
+                    if wp.static(boundary):  # the closing term at this state; minus it starts the next span
+                        free = not is_kinematic(particle_flags[p])
+                        total, dampers, pushes = particle_power(world, i, base, x, v, free, particle_mass,
+                                                                element_arrays, inputs, particle_force_ext, particle_q,
+                                                                particle_qd)
+                        left = power_h * vec2(-scalar(share_dampers) * wp.dot(dampers, v),
+                                              scalar(share_work) * wp.dot(pushes, v))
+                        sums += left
+                        left = -left
+                    dissipated = wp.float64(sums[0])
+                    family_work = wp.float64(sums[1])
+                    power_in_out[p] = left
             else:
                 wp.atomic_min(status_in_out, world, GUARD_NONFINITE_PARTICLE, i)
                 wp.atomic_add(status_in_out, world, GUARD_NONFINITE_COUNT, 1)
@@ -327,6 +383,7 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         # Guards in (the check's partials, its substep, the limits):
         partials: wp.array3d[wp.float64],
         energy_partials: wp.array2d[wp.float64],
+        strain_partials: wp.array2d[wp.float64],
         substep: int,
         limits: wp.array2d[wp.float64],
         # In/out:
@@ -368,6 +425,7 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         b = lane
         while b < energy_partials.shape[1]:
             elastic += energy_partials[world, b]
+            worst = wp.max(worst, strain_partials[world, b])
             b += lanes
         b = lane
         while b < running_in_out.shape[1]:
@@ -426,12 +484,17 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
 @functools.cache
 def guard_energy_kernel(scalar: type, spec, tiled: bool):
     """Kernel writing per-block sums of the elastic energy [J] of one family's elements in every world into
-    ``partials[world, offset + block]``; launch over ``reduce_launch_dim(worlds, element_count, lanes)``."""
+    ``partials[world, offset + block]``, and where the family has an ``element_strain`` hook the block's largest
+    strain [-] into ``strain_partials[world, offset + block]`` (each element once, with the length its energy
+    takes: ``measure`` then leaves the family out of its per-particle strain); launch over
+    ``reduce_launch_dim(worlds, element_count, lanes)``."""
     vec3 = vec3_type(scalar)
-    block_sum, _ = reduction_funcs(tiled)
+    block_sum, block_max = reduction_funcs(tiled)
     funcs = spec.funcs(scalar)
     Arrays = funcs.arrays
     energy_func = funcs.energy
+    strain_func = getattr(funcs, "element_strain", None)
+    strained = strain_func is not None
 
     # An element's energy reads its own entries, never the incidence table.
     @flat_kernel(module="unique", enable_backward=False, last=("arrays__incidence",))
@@ -449,17 +512,25 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool):
         particle_q: wp.array[vec3],
         # Out:
         partials_out: wp.array2d[wp.float64],
+        strain_partials_out: wp.array2d[wp.float64],
     ):
         world, block, lane = wp.tid()
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
             return
         element = block * wp.block_dim() + lane
         energy = wp.float64(0.0)
+        worst = wp.float64(-1.0)
         if element < element_count:
             energy = wp.float64(energy_func(world, element, world * particle_count, arrays, inputs, particle_q))
+            if wp.static(strained):
+                worst = strain_func(world, element, world * particle_count, arrays, particle_q)
         energy = block_sum(energy)
+        if wp.static(strained):
+            worst = block_max(worst)
         if lane == 0:
             partials_out[world, offset + block] = energy
+            if wp.static(strained):
+                strain_partials_out[world, offset + block] = worst
 
     return element_energy_partials
 

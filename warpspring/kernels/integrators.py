@@ -51,10 +51,13 @@ def symplectic_euler_funcs(scalar: type):
 
 
 @functools.cache
-def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures):
+def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures, power: bool = False):
     """Symplectic Euler + contact kernel from precomputed forces (the scatter path); ``contacts`` fused
-    (static colliders, every one tested)."""
+    (static colliders, every one tested). With ``power`` each free particle adds to its entry of the guard's power
+    sums -h f_d·(v + v')/2 and h f_w·(v + v')/2 from the dampers' and the outside loads' parts of its force, which the
+    force passes wrote (``symplectic_euler_kernel``'s rule)."""
     vec3 = vec3_type(scalar)
+    vec2 = wp.types.vector(length=2, dtype=scalar)
     Shapes = shapes_type(scalar)
     update = symplectic_euler_funcs(scalar)
     effective_inv_mass = particle_funcs(scalar)
@@ -77,10 +80,15 @@ def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures):
         time_in: wp.array[wp.float64],
         dt: scalar,
         dt_rest: scalar,
+        # Guard in (the dampers' and the outside loads' parts of the force [N], read with ``power`` only):
+        particle_fd: wp.array[vec3],
+        particle_fw: wp.array[vec3],
         # State out:
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
         time_out: wp.array[wp.float64],
+        # In/out (the guard's power sums [J], read with ``power`` only):
+        power_in_out: wp.array[vec2],
     ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
@@ -89,7 +97,11 @@ def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures):
         h = dt
         flags = particle_flags[p]
         inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
-        x, v = update(particle_q_in[p], particle_qd_in[p], particle_f_in[p], effective_inv_mass(flags, inv_mass), h)
+        v_start = particle_qd_in[p]
+        x, v = update(particle_q_in[p], v_start, particle_f_in[p], effective_inv_mass(flags, inv_mass), h)
+        if wp.static(power):  # (a kinematic particle's stored parts: its elements' dampers only)
+            mean = (v_start + v) * (scalar(0.5) * h)
+            power_in_out[p] += vec2(-wp.dot(particle_fd[p], mean), wp.dot(particle_fw[p], mean))
         if wp.static(has_contacts):
             if not is_kinematic(flags):
                 x, v = project_contacts(world, p, x, v, particle_radius[i], h, shapes, inputs)
@@ -162,10 +174,15 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
         if is_kinematic(particle_flags[p]):
             particle_q_out[p] = x + h * v
             particle_qd_out[p] = v
+            if wp.static(counted):  # its elements' dampers: their share of the dampers' power (the drive's work has
+                # the rest)
+                _, dampers, _ = particle_force(world, i, base, x, v, False, particle_mass, element_arrays, inputs,
+                                               particle_force_ext, particle_q_in, particle_qd_in)
+                power_in_out[p] += vec2(-h * wp.dot(dampers, v), scalar(0.0))
             return
         inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
         if wp.static(counted):
-            f, dampers, work = particle_force(world, i, base, x, v, particle_mass, element_arrays, inputs,
+            f, dampers, work = particle_force(world, i, base, x, v, True, particle_mass, element_arrays, inputs,
                                               particle_force_ext, particle_q_in, particle_qd_in)
             v_start = v
             x, v = update(x, v, f, inv_mass, h)

@@ -54,9 +54,11 @@ class SymplecticEuler(Integrator):
                 **common,
             )
         else:
-            eval_forces(model, state_in, control, dampers=self.dampers)
+            power = self.power
+            eval_forces(model, state_in, control, dampers=self.dampers, power=power)
+            counted = power is not None and power.forces is not None
             flat_launch(
-                symplectic_euler_update_kernel(model.scalar, contacts),
+                symplectic_euler_update_kernel(model.scalar, contacts, counted),
                 inputs=[
                     model.particle_count,
                     model.particle_flags,
@@ -69,8 +71,10 @@ class SymplecticEuler(Integrator):
                     state_in.particle_f,
                     state_in.time,
                     *step_arguments(model.scalar, dt),
+                    *(power.forces if counted else (None, None)),
                 ],
-                outputs=[state_out.particle_q, state_out.particle_qd, state_out.time],
+                outputs=[state_out.particle_q, state_out.particle_qd, state_out.time,
+                         power.sums if counted else None],
                 **common,
             )
         apply_kinematics(model, control, state_in, state_out.particle_q, state_out.particle_qd, dt)
