@@ -46,8 +46,8 @@ class PowerSums:
     adds to its own entry (no atomics): symplectic Euler's fused step the energy over the step
     (``symplectic_euler_kernel``'s ``power``), the other integrators' evaluation at a step's start state h times the
     power there (``eval_forces``'s ``power``; the guard closes the trapezoid at its checks). Symplectic Euler with
-    scattered springs stores the dampers' and the outside loads' parts of the force instead (``forces``, the
-    scattered springs' dampers added by their pass), and its update counts them with the step's velocities.
+    scattered springs (their dampers counted in their own pass: ``DamperSums``) stores the other dampers' and the
+    outside loads' parts of the force instead (``forces``), and its update counts them with the step's velocities.
 
     Attributes:
         modes: one ``kernels/forces.POWER_*`` per family of the model, in its order.
@@ -55,15 +55,13 @@ class PowerSums:
         sums: per particle, (energy the dampers and drag took out [J], work the loads from outside did [J]) since the
             guard's last check, vec2 of the model's precision, shape [world_count · particle_count].
         forces: ``None``, or (the dampers' part [N], the outside loads' part [N]) of each particle's force, vec3
-            arrays of the state's shape, which the force passes write and symplectic Euler's update reads.
-        springs: with ``forces``, whether the scattered springs' pass adds their dampers' part.
+            arrays of the state's shape, which the force pass writes and symplectic Euler's update reads.
     """
 
     modes: tuple
     h: float
     sums: wp.array
     forces: tuple | None = None
-    springs: bool = False
 
 
 def force_inputs(model: Model, control: Control | None, features) -> list:
@@ -109,14 +107,12 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
     )
     if scatter:
         counted = dampers is not None
-        split = stored and power.springs
         flat_launch(
-            spring_scatter_kernel(model.scalar, model.spring_law, dampers.rule if counted else DAMPER_NONE, split),
+            spring_scatter_kernel(model.scalar, model.spring_law, dampers.rule if counted else DAMPER_NONE),
             dim=(model.world_count, model.spring_count),
             inputs=[model.particle_count, model.spring_arrays(), model.inputs, state.particle_q, state.particle_qd,
                     dampers.h if counted else 0.0, dampers.skip if counted else None],
-            outputs=[out, dampers.damper if counted else None, dampers.dissipated if counted else None,
-                     power.forces[0] if split else None],
+            outputs=[out, dampers.damper if counted else None, dampers.dissipated if counted else None],
             device=model.device,
         )
         if features.clamp_particle_force:

@@ -504,16 +504,10 @@ class Guard(StepHook):
         return cached[1]
 
     def _power_counts(self, family, modes, index: dict) -> bool:
-        """Whether the integrator's force passes count ``family``'s dampers (``modes``: ``_power_modes``): its mode, or
-        the scattered springs' pass under symplectic Euler (``PowerSums.springs``)."""
+        """Whether the integrator's force pass counts ``family``'s dampers (``modes``: ``_power_modes``)."""
         if modes is None:
             return False
-        if modes[index[family.name]] == POWER_DAMPERS:
-            return True
-        model = self.model
-        law = model.spring_law
-        return (family.name == "springs" and not model.spring_gather and self._power_rule() == POWER_RULE_MEAN
-                and not law.clamp_force and not law.plastic)
+        return modes[index[family.name]] == POWER_DAMPERS
 
     def _power_rule(self) -> int:
         """How the integrator's per-particle force pass counts the power for the balance (``POWER_RULE_*`` of
@@ -530,7 +524,15 @@ class Guard(StepHook):
                 or model.stabilizers.enabled("max_particle_force") or model.particle_count == 0):
             return POWER_RULE_NONE
         if name == "symplectic_euler":
-            return POWER_RULE_MEAN
+            if model.spring_gather or model.spring_count == 0:
+                return POWER_RULE_MEAN
+            # Scattered springs (their dampers counted in their pass, ``DamperSums``): the update counts the rest
+            # where there is any (drag, the working families, other damped families with a ``split`` hook).
+            features = model.force_features(self.control)
+            others = any(family.does_work or (family.name != "springs"
+                                              and getattr(family.spec(model).funcs(model.scalar), "split", None))
+                         for family in model.families)
+            return POWER_RULE_MEAN if features.drag or others else POWER_RULE_NONE
         if name == "rk4":
             return POWER_RULE_START
         return POWER_RULE_NONE
@@ -580,9 +582,6 @@ class Guard(StepHook):
                             wp.zeros(size, dtype=model.vec3, device=model.device))
         elif not stored:
             power.forces = None
-        law = model.spring_law
-        power.springs = (stored and bool(self._dissipating) and dissipation_exact(model)
-                         and not law.clamp_force and not law.plastic)
         integrator.power = power
 
     def _force_pass_dampers(self):
@@ -593,7 +592,6 @@ class Guard(StepHook):
         law = model.spring_law
         if not (self._dissipating and dissipation_exact(model) and model.spring_count > 0 and not model.spring_gather
                 and getattr(self.integrator, "name", None) in DAMPERS_IN_FORCE_PASS
-                and self._power_rule() != POWER_RULE_MEAN  # (symplectic Euler: its update counts them, PowerSums)
                 and not law.clamp_force and not law.plastic):
             return None
         return next((entry for entry in self._dissipation_layout if entry[0].name == "springs"), None)
@@ -665,9 +663,6 @@ class Guard(StepHook):
         rule, features, modes = POWER_RULE_NONE, None, ()
         if power is not None:
             rule, modes = self._power_rule(), power.modes
-            if power.springs:  # the scattered springs' dampers: here gathered (``specs``), counted with the rest
-                modes = tuple(POWER_DAMPERS if family.name == "springs" else mode
-                              for family, mode in zip(model.families, modes))
             features = model.force_features(self.control)._replace(families=specs, clamp_particle_force=False,
                                                                    external=force is not None)
         measure, gather, locate = guard_kernels(model.scalar, specs, self._tiled, force is not None,

@@ -470,7 +470,7 @@ def damper_step_func(scalar: type, rule: int):
 
 
 @functools.cache
-def spring_scatter_kernel(scalar: type, law: SpringLaw, dissipation: int = DAMPER_NONE, split: bool = False):
+def spring_scatter_kernel(scalar: type, law: SpringLaw, dissipation: int = DAMPER_NONE):
     """Kernel adding every spring's force to its two particles (one thread per spring of every world).
 
     Each spring is evaluated once, but its two ends are written with atomic adds: on the CPU, where Warp
@@ -481,16 +481,13 @@ def spring_scatter_kernel(scalar: type, law: SpringLaw, dissipation: int = DAMPE
     s]`` the energy [J] its damper took out over the step before, from the value kept in ``damper_in_out``
     (``damper_step_func``): the guard's dissipation counted in the pass that already reads the springs, no pass of
     its own per substep (``guards.py``). Each thread writes its own spring's entries: no atomics.
-
-    With ``split`` (Hooke's law and the kinds above) the dampers' part of each force is also added to both ends in
-    ``particle_fd_in_out`` (the guard's power sums: symplectic Euler's update takes -h f_d·(v + v')/2 of it).
     """
     vec3 = vec3_type(scalar)
     SpringArrays = spring_arrays_type(scalar, law.per_spring)
     spring_law_values, spring_force, _, _ = spring_funcs(scalar, law)
     rest_at, law_at = spring_access_funcs(scalar, law)
     counted = dissipation != DAMPER_NONE
-    if (counted or split) and (law.clamp_force or law.plastic):
+    if counted and (law.clamp_force or law.plastic):
         raise ValueError(f"the dampers' dissipation is not separable under {law}")
     damper_step = damper_step_func(scalar, dissipation if counted else DAMPER_TRAPEZOID)
 
@@ -512,7 +509,6 @@ def spring_scatter_kernel(scalar: type, law: SpringLaw, dissipation: int = DAMPE
         particle_f_in_out: wp.array[vec3],
         damper_in_out: wp.array[scalar],
         dissipated_in_out: wp.array[wp.float64],
-        particle_fd_in_out: wp.array[vec3],
     ):
         world, s = wp.tid()
         base = world * particle_count
@@ -528,13 +524,6 @@ def spring_scatter_kernel(scalar: type, law: SpringLaw, dissipation: int = DAMPE
         )
         wp.atomic_add(particle_f_in_out, i, f)
         wp.atomic_sub(particle_f_in_out, j, f)
-        if wp.static(split):
-            d = particle_q[j] - particle_q[i]
-            length = wp.length(d)
-            n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
-            fd = n * (kd * wp.dot(particle_qd[j] - particle_qd[i], n))
-            wp.atomic_add(particle_fd_in_out, i, fd)
-            wp.atomic_sub(particle_fd_in_out, j, fd)
         if wp.static(counted):
             d = particle_q[j] - particle_q[i]
             length = wp.length(d)
