@@ -312,5 +312,5 @@ def stop_advice(report: GuardReport, model: Model, *, integrator: str | None, su
         return ""  # free particles under steady loads: no step is unstable, nothing in the scene to name
     clauses.append(step)
     clauses += others
-    return (f"suspects in this scene: {'; '.join(clauses)}. Remedy: run with substeps = {target} (a scene file's "
-            f"[simulation] substeps, warpspring run --substeps {target})")
+    return (f"suspects in this scene: {'; '.join(clauses)}. Remedy: run with substeps = {target} (a bound: the "
+            "advisor's estimate, where it runs, is tighter)")
