@@ -53,7 +53,9 @@ class PowerSums:
         modes: one ``kernels/forces.POWER_*`` per family of the model, in its order.
         h: the step [s].
         sums: per particle, (energy the dampers and drag took out [J], work the loads from outside did [J]) since the
-            guard's last check, vec2 of the model's precision, shape [world_count · particle_count].
+            guard's last check, vec2 of the model's precision, shape [world_count · particle_count]; the energy alone
+            (a scalar) where nothing does work from outside (``work`` off: ``kernels/forces.counts_work``).
+        work: whether ``sums`` carry the loads' work.
         forces: ``None``, or (the dampers' part [N], the outside loads' part [N]) of each particle's force, vec3
             arrays of the state's shape, which the force pass writes and symplectic Euler's update reads.
     """
@@ -62,6 +64,7 @@ class PowerSums:
     h: float
     sums: wp.array
     forces: tuple | None = None
+    work: bool = True
 
 
 def force_inputs(model: Model, control: Control | None, features) -> list:

@@ -67,7 +67,7 @@ from ..kernels.guards import (
 from ..kernels.families import elements, fill_elements
 from ..kernels.flatten import flat_launch
 from ..kernels.linalg import reduce_lanes, reduce_launch_dim
-from ..kernels.forces import POWER_DAMPERS, POWER_NONE, POWER_WORK
+from ..kernels.forces import POWER_DAMPERS, POWER_NONE, POWER_WORK, counts_work, power_sums_funcs
 from ..kernels.springs import DAMPER_MEAN_RATE, DAMPER_TRAPEZOID
 from .families import world_elastic_energy
 from .forces import DamperSums, PowerSums
@@ -131,6 +131,9 @@ class Guard(StepHook):
         self._values_clear = wp.array(values, dtype=wp.float64, device=device)
         self._status = wp.clone(self._status_clear)
         self._values = wp.clone(self._values_clear)
+        # The status's host copy the frame's read lands in (pinned on CUDA: one small copy, nothing allocated).
+        self._status_host = (wp.empty_like(self._status, device="cpu", pinned=True) if device.is_cuda
+                             else self._status)
         grid = reduce_launch_dim(worlds, model.particle_count, self._lanes)
         self._partials = wp.zeros((worlds, grid[1], PARTIAL_SLOTS), dtype=wp.float64, device=device)
         self._limits = wp.zeros((worlds, GUARD_LIMITS), dtype=wp.float64, device=device)
@@ -570,9 +573,11 @@ class Guard(StepHook):
             return
         model = self.model
         size = model.world_count * model.particle_count
-        if self._power is None or self._power.sums.shape[0] != size:
-            vec2 = wp.types.vector(length=2, dtype=model.scalar)
-            self._power = PowerSums(modes=modes, h=float(self.dt), sums=wp.zeros(size, dtype=vec2, device=model.device))
+        work = counts_work(model.force_features(self.control), modes)
+        if self._power is None or self._power.sums.shape[0] != size or self._power.work != work:
+            sums = power_sums_funcs(model.scalar, work).type
+            self._power = PowerSums(modes=modes, h=float(self.dt), sums=wp.zeros(size, dtype=sums, device=model.device),
+                                    work=work)
         power = self._power
         power.modes = modes
         # Symplectic Euler with scattered springs: the force passes store the parts its update counts.
@@ -723,7 +728,10 @@ class Guard(StepHook):
         """Each world's first failure since the last reset, in world order (reads the device: synchronises). The
         record is cleared before the next frame (:meth:`refresh`; a held world is not checked again, so it is
         reported once)."""
-        status = self._status.numpy()
+        if self._status_host is not self._status:
+            wp.copy(self._status_host, self._status)
+            wp.synchronize_stream(self.model.device)
+        status = self._status_host.numpy()
         reasons = {GUARD_NONFINITE: "non-finite state", GUARD_STRAIN: "strain", GUARD_ENERGY: "kinetic energy",
                    GUARD_BALANCE: "energy balance"}
         families = self.model.families

@@ -103,9 +103,11 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures, power: tuple | Non
     ``particle_fd_out`` and ``particle_fw_out`` instead (symplectic Euler's update counts them with the step's
     velocities; a scattered spring pass adds its dampers' part after)."""
     vec3 = vec3_type(scalar)
-    vec2 = wp.types.vector(length=2, dtype=scalar)
     counted = power is not None
     particle_force = particle_power_func(scalar, features, power) if counted else particle_force_func(scalar, features)
+    sums = power_sums_funcs(scalar, counted and counts_work(features, power))
+    Sums = sums.type
+    pack = sums.pack
     composed = elements(scalar, features.families)
     Elements = composed.arrays
 
@@ -130,7 +132,7 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures, power: tuple | Non
         particle_fd_out: wp.array[vec3],
         particle_fw_out: wp.array[vec3],
         # In/out (the guard's power sums [J], read with ``power`` only):
-        power_in_out: wp.array[vec2],
+        power_in_out: wp.array[Sums],
     ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
@@ -144,7 +146,7 @@ def eval_forces_kernel(scalar: type, features: ForceFeatures, power: tuple | Non
                 particle_fd_out[p] = dampers
                 particle_fw_out[p] = work
             else:
-                power_in_out[p] += vec2(-power_h * wp.dot(dampers, v), power_h * wp.dot(work, v))
+                power_in_out[p] += pack(-power_h * wp.dot(dampers, v), power_h * wp.dot(work, v))
         else:
             particle_f_out[p] = particle_force(world, i, p - i, particle_q[p], particle_qd[p], particle_mass,
                                                element_arrays, inputs, particle_force_ext, particle_q, particle_qd)
@@ -174,6 +176,59 @@ def clamp_forces_kernel(scalar: type):
 #: counted elsewhere), its dampers' part (the ``split`` hook) as dissipation, or all of it as work from outside
 #: (wind, handles: ``ElementFamily.does_work``).
 POWER_NONE, POWER_DAMPERS, POWER_WORK = 0, 1, 2
+
+
+class PowerSumsFuncs(NamedTuple):
+    """The guard's per-particle power sums in one precision (``power_sums_funcs``): their element type and how a
+    kernel packs (energy taken out, work done) into one and reads them back."""
+
+    type: type
+    pack: wp.Function
+    dissipated: wp.Function
+    worked: wp.Function
+
+
+def counts_work(features: ForceFeatures, modes: tuple) -> bool:
+    """Whether the power sums of ``features`` and family ``modes`` (``POWER_*``) carry the loads' work besides the
+    dampers' loss: a family whose force does work from outside, or drag in wind (its push)."""
+    return POWER_WORK in modes or (features.drag and features.wind)
+
+
+@functools.cache
+def power_sums_funcs(scalar: type, work: bool) -> PowerSumsFuncs:
+    """The power sums' element: (energy taken out [J], work done [J]) as a 2-vector with ``work``, else the energy
+    taken out alone (half the memory traffic of the step that adds to it: the common scene has no loads from
+    outside)."""
+    vec2 = wp.types.vector(length=2, dtype=scalar)
+    if work:
+
+        @wp.func
+        def pack2(dissipated: scalar, worked: scalar) -> vec2:
+            return vec2(dissipated, worked)
+
+        @wp.func
+        def dissipated2(sums: vec2) -> scalar:
+            return sums[0]
+
+        @wp.func
+        def worked2(sums: vec2) -> scalar:
+            return sums[1]
+
+        return PowerSumsFuncs(vec2, pack2, dissipated2, worked2)
+
+    @wp.func
+    def pack1(dissipated: scalar, worked: scalar) -> scalar:
+        return dissipated
+
+    @wp.func
+    def dissipated1(sums: scalar) -> scalar:
+        return sums
+
+    @wp.func
+    def worked1(sums: scalar) -> scalar:
+        return scalar(0.0)
+
+    return PowerSumsFuncs(scalar, pack1, dissipated1, worked1)
 
 
 @functools.cache

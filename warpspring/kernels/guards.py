@@ -70,7 +70,7 @@ import functools
 import warp as wp
 
 from .families import elements
-from .forces import ForceFeatures, particle_power_func
+from .forces import ForceFeatures, counts_work, particle_power_func, power_sums_funcs
 from .inputs import INPUT_DRAG, INPUT_GRAVITY, INPUT_WIND, input_funcs
 from .kinematics import is_kinematic
 from .linalg import reduction_funcs
@@ -206,8 +206,12 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
     ``gather`` adds the dampers' and drag's energy to D (else only the loads'
     work counts: D left out, ``core/guards.dissipation_exact``)."""
     vec3 = vec3_type(scalar)
-    vec2 = wp.types.vector(length=2, dtype=scalar)
     counted = power != POWER_RULE_NONE
+    sums_funcs = power_sums_funcs(scalar, counted and counts_work(power_features, power_modes))
+    Sums = sums_funcs.type
+    pack = sums_funcs.pack
+    sums_dissipated = sums_funcs.dissipated
+    sums_worked = sums_funcs.worked
     boundary = counted
     particle_power = particle_power_func(scalar, power_features, power_modes) if boundary else None
     # The closing terms' shares of h times the power at the check's state (dampers, loads from outside): the
@@ -246,7 +250,7 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         lead: scalar,
         power_h: scalar,
         # In/out:
-        power_in_out: wp.array[vec2],
+        power_in_out: wp.array[Sums],
         previous_q_in_out: wp.array[vec3],
         previous_qd_in_out: wp.array[vec3],
         previous_load_in_out: wp.array[vec3],
@@ -290,18 +294,18 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                 previous_load_in_out[p] = load
                 if wp.static(counted):  # (a kinematic particle's sums: its elements' dampers only)
                     sums = power_in_out[p]
-                    left = vec2(scalar(0.0))
+                    left = pack(scalar(0.0), scalar(0.0))
                     if wp.static(boundary):  # the closing term at this state; minus it starts the next span
                         free = not is_kinematic(particle_flags[p])
                         total, dampers, pushes = particle_power(world, i, base, x, v, free, particle_mass,
                                                                 element_arrays, inputs, particle_force_ext, particle_q,
                                                                 particle_qd)
-                        left = power_h * vec2(-scalar(share_dampers) * wp.dot(dampers, v),
-                                              scalar(share_work) * wp.dot(pushes, v))
+                        left = pack(-power_h * scalar(share_dampers) * wp.dot(dampers, v),
+                                    power_h * scalar(share_work) * wp.dot(pushes, v))
                         sums += left
                         left = -left
-                    dissipated = wp.float64(sums[0])
-                    family_work = wp.float64(sums[1])
+                    dissipated = wp.float64(sums_dissipated(sums))
+                    family_work = wp.float64(sums_worked(sums))
                     power_in_out[p] = left
             else:
                 wp.atomic_min(status_in_out, world, GUARD_NONFINITE_PARTICLE, i)

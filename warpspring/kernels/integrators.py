@@ -24,7 +24,7 @@ import functools
 import warp as wp
 
 from .families import FORCE_KERNEL_OPTIONS, elements
-from .forces import ForceFeatures, particle_force_func, particle_power_func
+from .forces import ForceFeatures, counts_work, particle_force_func, particle_power_func, power_sums_funcs
 from .kinematics import is_kinematic, particle_funcs
 from .linalg import reduction_funcs
 from .precision import vec3_type
@@ -51,13 +51,16 @@ def symplectic_euler_funcs(scalar: type):
 
 
 @functools.cache
-def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures, power: bool = False):
+def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures, power: bool = False, work: bool = False):
     """Symplectic Euler + contact kernel from precomputed forces (the scatter path); ``contacts`` fused
     (static colliders, every one tested). With ``power`` each free particle adds to its entry of the guard's power
     sums -h f_d·(v + v')/2 and h f_w·(v + v')/2 from the dampers' and the outside loads' parts of its force, which the
-    force passes wrote (``symplectic_euler_kernel``'s rule)."""
+    force passes wrote (``symplectic_euler_kernel``'s rule); ``work``: the sums carry the work
+    (``forces.power_sums_funcs``)."""
     vec3 = vec3_type(scalar)
-    vec2 = wp.types.vector(length=2, dtype=scalar)
+    sums = power_sums_funcs(scalar, work)
+    Sums = sums.type
+    pack = sums.pack
     Shapes = shapes_type(scalar)
     update = symplectic_euler_funcs(scalar)
     effective_inv_mass = particle_funcs(scalar)
@@ -88,7 +91,7 @@ def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures, powe
         particle_qd_out: wp.array[vec3],
         time_out: wp.array[wp.float64],
         # In/out (the guard's power sums [J], read with ``power`` only):
-        power_in_out: wp.array[vec2],
+        power_in_out: wp.array[Sums],
     ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
@@ -101,7 +104,10 @@ def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures, powe
         x, v = update(particle_q_in[p], v_start, particle_f_in[p], effective_inv_mass(flags, inv_mass), h)
         if wp.static(power):  # (a kinematic particle's stored parts: its elements' dampers only)
             mean = (v_start + v) * (scalar(0.5) * h)
-            power_in_out[p] += vec2(-wp.dot(particle_fd[p], mean), wp.dot(particle_fw[p], mean))
+            worked = scalar(0.0)
+            if wp.static(work):
+                worked = wp.dot(particle_fw[p], mean)
+            power_in_out[p] += pack(-wp.dot(particle_fd[p], mean), worked)
         if wp.static(has_contacts):
             if not is_kinematic(flags):
                 x, v = project_contacts(world, p, x, v, particle_radius[i], h, shapes, inputs)
@@ -124,9 +130,11 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
     kinetic energy by, ½ m (|v'|² - |v|²) = h f·(v + v')/2, so the guard's balance closes up to the integrator's
     error in the elastic energy; one thread writes each entry (no atomics), no pass of its own."""
     vec3 = vec3_type(scalar)
-    vec2 = wp.types.vector(length=2, dtype=scalar)
     Shapes = shapes_type(scalar)
     counted = power is not None
+    sums = power_sums_funcs(scalar, counted and counts_work(features, power))
+    Sums = sums.type
+    pack = sums.pack
     particle_force = (particle_power_func(scalar, features, power) if counted
                       else particle_force_func(scalar, features))
     composed = elements(scalar, features.families)
@@ -161,7 +169,7 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
         particle_qd_out: wp.array[vec3],
         time_out: wp.array[wp.float64],
         # In/out (the guard's power sums [J], read with ``power`` only):
-        power_in_out: wp.array[vec2],
+        power_in_out: wp.array[Sums],
     ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
@@ -178,7 +186,7 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
                 # the rest)
                 _, dampers, _ = particle_force(world, i, base, x, v, False, particle_mass, element_arrays, inputs,
                                                particle_force_ext, particle_q_in, particle_qd_in)
-                power_in_out[p] += vec2(-h * wp.dot(dampers, v), scalar(0.0))
+                power_in_out[p] += pack(-h * wp.dot(dampers, v), scalar(0.0))
             return
         inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
         if wp.static(counted):
@@ -187,7 +195,7 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
             v_start = v
             x, v = update(x, v, f, inv_mass, h)
             mean = (v_start + v) * (scalar(0.5) * h)
-            power_in_out[p] += vec2(-wp.dot(dampers, mean), wp.dot(work, mean))
+            power_in_out[p] += pack(-wp.dot(dampers, mean), wp.dot(work, mean))
         else:
             f = particle_force(world, i, base, x, v, particle_mass, element_arrays, inputs, particle_force_ext,
                                particle_q_in, particle_qd_in)

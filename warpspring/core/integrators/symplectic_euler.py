@@ -58,7 +58,7 @@ class SymplecticEuler(Integrator):
             eval_forces(model, state_in, control, dampers=self.dampers, power=power)
             counted = power is not None and power.forces is not None
             flat_launch(
-                symplectic_euler_update_kernel(model.scalar, contacts, counted),
+                symplectic_euler_update_kernel(model.scalar, contacts, counted, counted and power.work),
                 inputs=[
                     model.particle_count,
                     model.particle_flags,
