@@ -635,7 +635,8 @@ class Guard(StepHook):
                     outputs=[dampers.damper, dampers.dissipated, dampers.skip, self._running], device=model.device)
 
     def reset(self) -> None:
-        """Clear the record (device copies: capturable, done at the start of every frame)."""
+        """Clear the record (device copies: between frames after a reported failure, :meth:`refresh`, and at a
+        restart)."""
         wp.copy(self._status, self._status_clear)
         wp.copy(self._values, self._values_clear)
 
