@@ -1,9 +1,9 @@
 """Run-time guards: detect a state going bad on the device, per world, without a host synchronisation per
 substep.
 
-A check is three launches and one per family, captured with the substeps (and, with the dissipation or the work of
-wind and handles counted where the integrator's own force pass does not count them, a few more after every substep:
-below): ``measure`` (per particle: non-finite position or
+A check is two launches and one per family, captured with the substeps (``locate`` a third, in-frame only for a check
+before the frame's last; and, with the dissipation or the work of wind and handles counted where the integrator's
+own force pass does not count them, a few more after every substep: below): ``measure`` (per particle: non-finite position or
 velocity, the largest strain of its elements (the families' ``strain`` hook), kinetic energy (of the free
 particles: a kinematic one moves as prescribed), and the work the loads did on it since the previous
 check; per-block partials, no float atomics), ``element_energy_partials`` (one per family: per-block sums of
