@@ -32,25 +32,31 @@ FPS, SUBSTEPS = 60, 16
 INTEGRATORS = ("symplectic_euler", "rk4", "implicit_euler")
 
 
-def hanging_cloth(n: int, device, worlds: int = 1) -> ws.Model:
-    """ANCHORS.md's cloth hung from its top row (``worlds`` copies in one model)."""
+def hanging_cloth(n: int, device, worlds: int = 1, evaluation: str = "auto") -> ws.Model:
+    """ANCHORS.md's cloth hung from its top row (``worlds`` copies in one model; springs evaluated as
+    ``finalize``'s ``spring_evaluation`` says)."""
     builder = ws.ModelBuilder()
     spring = ws.SpringMaterial(ke=KE, kd=KD)
     builder.add_cloth_grid(nx=n, ny=n, spacing=SPACING, origin=(0.0, 0.0, 0.5 * n * SPACING),
                            rotation=ws.quat_from_axis_angle((1.0, 0.0, 0.0), np.pi / 2), particle_mass=MASS,
                            structural=spring, shear=spring, bend=spring, pin=["top"])
-    return builder.finalize(device, worlds=worlds)
+    return builder.finalize(device, worlds=worlds, spring_evaluation=evaluation)
 
 
 class Run:
-    """One ``Simulator`` of the cloth: ``guard`` ``None`` (off) or a ``GuardLimits``."""
+    """One ``Simulator`` of the cloth: ``guard`` ``None`` (off) or a ``GuardLimits``; with ``probe`` (guard off) a
+    small device array read after every frame, as the guard reads its status: what the host's wait for the frame
+    costs alone (on a GPU the next frame's launch then waits for the host)."""
 
-    def __init__(self, model: ws.Model, integrator: str, guard):
+    def __init__(self, model: ws.Model, integrator: str, guard, probe: bool = False):
         self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=guard,
                                 integrator=ws.make_integrator(integrator, model))
+        self.probe = wp.zeros((model.world_count, 7), dtype=wp.int32, device=model.device) if probe else None
 
     def frame(self):
         self.sim.step_frame()
+        if self.probe is not None:
+            self.probe.numpy()
 
 
 def launches_per_substep(model: ws.Model, integrator: str, guard) -> float:
@@ -93,6 +99,11 @@ def main():
     parser.add_argument("--seconds", type=float, default=2.0, help="timed seconds per configuration")
     parser.add_argument("--batches", type=int, default=7)
     parser.add_argument("--no-newton", action="store_true")
+    parser.add_argument("--evaluation", default="auto", choices=["auto", "gather", "scatter"],
+                        help="the springs' evaluation (auto: gather on CUDA, scatter on the CPU; gather on the CPU "
+                             "runs the CUDA default's kernels)")
+    parser.add_argument("--probe", action="store_true",
+                        help="also guard off with a status-sized read after every frame (the host's wait alone)")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
@@ -101,28 +112,39 @@ def main():
     lines = [f"Guard cost on {device.name} ({device.alias}), Warp {wp.config.version}"
              + (f", Newton {newton_version}" if newton_version else "") + f", {datetime.date.today()}: ANCHORS cloth "
              f"hung from its top row, {SUBSTEPS} substeps per 1/{FPS} s frame as one graph, {args.batches} interleaved "
-             "batches", "",
+             f"batches, springs {args.evaluation}", "",
              "| scene | integrator | launches/substep (off → default) | guard off [substeps/s] | default [substeps/s] "
              "| spread off / default | default ÷ off | Newton [substeps/s] | default ÷ Newton |",
              "|---|---|---|---|---|---|---|---|---|"]
+    notes = []
     scenes = [(f"{n}²", n, 1) for n in args.sizes] + [(f"{w} × 32²", 32, w) for w in args.worlds_sizes]
     for label, n, worlds in scenes:
         for integrator in args.integrators:
-            makers = {"off": lambda: Run(hanging_cloth(n, device, worlds), integrator, None),
-                      "default": lambda: Run(hanging_cloth(n, device, worlds), integrator, ws.GuardLimits())}
+            def cloth(n=n, worlds=worlds):
+                return hanging_cloth(n, device, worlds, args.evaluation)
+
+            makers = {"off": lambda: Run(cloth(), integrator, None),
+                      "default": lambda: Run(cloth(), integrator, ws.GuardLimits())}
+            if args.probe:
+                makers["probe"] = lambda: Run(cloth(), integrator, None, probe=True)
             # Newton's builder takes the worlds as one flat set of particles: single cloths only (the issue's table).
             newton = newton_version and integrator == "symplectic_euler" and worlds == 1
             if newton:
-                makers["newton"] = lambda: NewtonRunner(hanging_cloth(n, device, worlds))
+                makers["newton"] = lambda: NewtonRunner(cloth())
             times = measure(makers, device, args.seconds, args.batches)
             rate = {name: SUBSTEPS / statistics.median(t) for name, t in times.items()}
             spread = {name: (max(t) - min(t)) / statistics.median(t) for name, t in times.items()}
             ratio = statistics.median(off / on for off, on in zip(times["off"], times["default"]))
             ratio_range = [off / on for off, on in zip(times["off"], times["default"])]
-            launches = (f"{launches_per_substep(hanging_cloth(n, device, worlds), integrator, None):.2f} → "
-                        f"{launches_per_substep(hanging_cloth(n, device, worlds), integrator, ws.GuardLimits()):.2f}")
+            launches = (f"{launches_per_substep(cloth(), integrator, None):.2f} → "
+                        f"{launches_per_substep(cloth(), integrator, ws.GuardLimits()):.2f}")
             vs_newton = (f"{statistics.median(nt / on for nt, on in zip(times['newton'], times['default'])):.2f}×"
                          if newton else "")
+            if args.probe:
+                probe = statistics.median(off / p for off, p in zip(times["off"], times["probe"]))
+                notes.append(f"- {label}, {integrator}: guard off with a read after every frame ÷ guard off = "
+                             f"{probe:.3f}")
+                print(notes[-1], flush=True)
             lines.append(f"| {label} | {integrator} | {launches} | {rate['off']:,.0f} | {rate['default']:,.0f} | "
                          f"{spread['off']:.0%} / {spread['default']:.0%} | {ratio:.3f} "
                          f"[{min(ratio_range):.2f}, {max(ratio_range):.2f}] | "
@@ -131,7 +153,7 @@ def main():
                          f"{spread['off']:.0%} / {spread['default']:.0%} | {ratio:.3f} "
                          f"[{min(ratio_range):.2f}, {max(ratio_range):.2f}] | | |")
             print(lines[-1], flush=True)
-    emit_table(lines, args.out)
+    emit_table(lines + ([""] + notes if notes else []), args.out)
 
 
 if __name__ == "__main__":

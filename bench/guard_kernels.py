@@ -27,10 +27,12 @@ def main():
     parser.add_argument("--integrator", default="symplectic_euler")
     parser.add_argument("--guard", choices=["off", "default"], default="default")
     parser.add_argument("--frames", type=int, default=30)
+    parser.add_argument("--evaluation", default="auto", choices=["auto", "gather", "scatter"],
+                        help="the springs' evaluation (gather on the CPU runs the CUDA default's kernels)")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device)
-    model = hanging_cloth(args.size, device)
+    model = hanging_cloth(args.size, device, evaluation=args.evaluation)
     sim = ws.Simulator(model, fps=60, substeps=SUBSTEPS, guard=ws.GuardLimits() if args.guard == "default" else None,
                        integrator=ws.make_integrator(args.integrator, model), use_graph=False)
     for _ in range(3):
@@ -55,7 +57,8 @@ def main():
     finally:
         wp.launch = launch
     substeps = args.frames * SUBSTEPS
-    print(f"{args.size}², {args.integrator}, guard {args.guard}, {device.name}, Warp {wp.config.version}: "
+    print(f"{args.size}², {args.integrator}, springs {args.evaluation}, guard {args.guard}, {device.name}, "
+          f"Warp {wp.config.version}: "
           f"{sum(count.values()) / substeps:.2f} launches per substep")
     print("| kernel | launches/substep | fastest launch [µs] |\n|---|---|---|")
     for key, seconds in sorted(fastest.items(), key=lambda kv: -kv[1] * count[kv[0]]):

@@ -177,8 +177,11 @@ def test_guard_buffers_match_the_estimate():
     after = owned_bytes(sim.guard, seen=seen)
     f, vec3, size, springs = 4, 12, 2 * model.particle_count, 2 * model.spring_count
     lazy = 2 * vec3 * size + 8 * 2 + 4 * 2 + (f + 8) * springs
-    assert fresh + lazy == estimate.guard
-    assert after == estimate.guard
+    power = 2 * f * size  # the power sums the guard hands the integrator (counted with it above)
+    assert fresh + lazy + power == estimate.guard
+    # After a frame: the estimate counts the midpoint state and the springs' damper sums whichever path the integrator
+    # takes (symplectic Euler's fused force pass needs neither): an upper bound there.
+    assert after + power <= estimate.guard <= 1.5 * (after + power)
 
 
 def test_counts_alone_give_the_builders_estimate():

@@ -229,8 +229,11 @@ def test_a_runs_device_peak_is_estimated(device, integrator):
     midpoint, stage_time = (2 * 12 * 5 * model.particle_count + 8 * 5, 8 * 5) if rk4 else (0, 0)
     if allocated["peak"] is not None:
         counters = 64 * 5  # the warm-up's allowance for counters this scene lacks (contacts, self-collision, meshes)
-        assert allocated["peak"] == run - midpoint - stage_time - counters
-        assert allocated["live"] == run - estimate.warmup - midpoint
+        # The power sums the guard hands the integrator are counted as two scalars a particle (energy out, work in),
+        # in the guard and in the warm-up's copy; without wind or handles it makes one.
+        work_slack = 2 * 4 * 5 * model.particle_count
+        assert 0 <= run - midpoint - stage_time - counters - allocated["peak"] <= work_slack
+        assert 0 <= run - estimate.warmup - midpoint - allocated["live"] <= work_slack
     else:
         kept = run - estimate.warmup - midpoint
         assert kept - POOL_SLACK <= allocated["live"] <= kept + POOL_SLACK

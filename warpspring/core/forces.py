@@ -20,8 +20,9 @@ from ..kernels.flatten import flat_launch
 
 @dataclass
 class DamperSums:
-    """Where the scattered springs' pass at a step's start also counts the dampers' dissipation of the step before
-    (``spring_scatter_kernel``'s ``dissipation``): set on ``Model._damper_sums`` by the guard that reads the sums.
+    """The scattered springs' dampers counted in their force pass (``spring_scatter_kernel``'s ``dissipation``): the
+    guard that reads the sums hands them to its integrator (``Integrator.dampers``), which passes them to the
+    evaluation at each step's start state (``eval_forces``'s ``dampers``).
 
     Attributes:
         rule: the ``DAMPER_*`` rule of ``kernels/springs.py``.
@@ -29,8 +30,6 @@ class DamperSums:
         skip: per world, non-zero where the step before was counted already, int32, shape [world_count].
         damper: each spring's rate [m/s] or power [W] at the last step's start, shape [world_count · spring_count].
         dissipated: each spring's energy taken out since the guard last read it [J], float64, same shape.
-        start: the state the next step starts from (the guard sets it before every step); only an evaluation at it
-            counts.
     """
 
     rule: int
@@ -38,7 +37,34 @@ class DamperSums:
     skip: wp.array
     damper: wp.array
     dissipated: wp.array
-    start: State | None = None
+
+
+@dataclass
+class PowerSums:
+    """The power of the dampers, drag and the loads from outside, counted for the guard in the per-particle pass that
+    already evaluates the forces: the guard hands them to its integrator (``Integrator.power``). Each free particle
+    adds to its own entry (no atomics): symplectic Euler's fused step the energy over the step
+    (``symplectic_euler_kernel``'s ``power``), the other integrators' evaluation at a step's start state h times the
+    power there (``eval_forces``'s ``power``; the guard closes the trapezoid at its checks). Symplectic Euler with
+    scattered springs (their dampers counted in their own pass: ``DamperSums``) stores the other dampers' and the
+    outside loads' parts of the force instead (``forces``), and its update counts them with the step's velocities.
+
+    Attributes:
+        modes: one ``kernels/forces.POWER_*`` per family of the model, in its order.
+        h: the step [s].
+        sums: per particle, (energy the dampers and drag took out [J], work the loads from outside did [J]) since the
+            guard's last check, vec2 of the model's precision, shape [world_count · particle_count]; the energy alone
+            (a scalar) where nothing does work from outside (``work`` off: ``kernels/forces.counts_work``).
+        work: whether ``sums`` carry the loads' work.
+        forces: ``None``, or (the dampers' part [N], the outside loads' part [N]) of each particle's force, vec3
+            arrays of the state's shape, which the force pass writes and symplectic Euler's update reads.
+    """
+
+    modes: tuple
+    h: float
+    sums: wp.array
+    forces: tuple | None = None
+    work: bool = True
 
 
 def force_inputs(model: Model, control: Control | None, features) -> list:
@@ -47,7 +73,8 @@ def force_inputs(model: Model, control: Control | None, features) -> list:
     return [model.particle_mass, model.elements, model.inputs, control.particle_force if features.external else None]
 
 
-def eval_forces(model: Model, state: State, control: Control | None, *, particle_f: wp.array | None = None) -> None:
+def eval_forces(model: Model, state: State, control: Control | None, *, particle_f: wp.array | None = None,
+                dampers: DamperSums | None = None, power: PowerSums | None = None) -> None:
     """Write the total force [N] on every particle (gravity, drag, external, element families) to ``particle_f``.
 
     Springs are gathered per particle or scattered per spring as ``model.spring_gather`` says; every other
@@ -58,6 +85,10 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
         state: positions and velocities to evaluate at.
         control: external inputs, or ``None``.
         particle_f: output, shape [world_count · particle_count]; default ``state.particle_f``.
+        dampers: the guard's springs' sums, given at a step's start state only (scattered springs: the step before
+            counted), or ``None``.
+        power: the guard's power sums, given at a step's start state only (h times the power there added), or
+            ``None``.
     """
     if model.particle_count == 0:
         return
@@ -65,24 +96,26 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
     features = model.force_features(control)
     scatter = model.spring_count > 0 and not model.spring_gather
     out = state.particle_f if particle_f is None else particle_f
+    stored = power is not None and power.forces is not None
     flat_launch(
         # With scattered springs the force clamp must wait for the springs: a pass of its own below.
-        eval_forces_kernel(model.scalar, features._replace(clamp_particle_force=False) if scatter else features),
+        eval_forces_kernel(model.scalar, features._replace(clamp_particle_force=False) if scatter else features,
+                           None if power is None else power.modes, stored),
         dim=model.particle_dim,
         block_dim=model.block_dim,
-        inputs=[model.particle_count, *force_inputs(model, control, features), state.particle_q, state.particle_qd],
-        outputs=[out],
+        inputs=[model.particle_count, model.particle_flags, *force_inputs(model, control, features), state.particle_q,
+                state.particle_qd, 0.0 if power is None else power.h],
+        outputs=[out, *(power.forces if stored else (None, None)), None if power is None else power.sums],
         device=model.device,
     )
     if scatter:
-        sums = getattr(model, "_damper_sums", None)
-        counted = sums is not None and state is sums.start
+        counted = dampers is not None
         flat_launch(
-            spring_scatter_kernel(model.scalar, model.spring_law, sums.rule if counted else DAMPER_NONE),
+            spring_scatter_kernel(model.scalar, model.spring_law, dampers.rule if counted else DAMPER_NONE),
             dim=(model.world_count, model.spring_count),
             inputs=[model.particle_count, model.spring_arrays(), model.inputs, state.particle_q, state.particle_qd,
-                    sums.h if counted else 0.0, sums.skip if counted else None],
-            outputs=[out, sums.damper if counted else None, sums.dissipated if counted else None],
+                    dampers.h if counted else 0.0, dampers.skip if counted else None],
+            outputs=[out, dampers.damper if counted else None, dampers.dissipated if counted else None],
             device=model.device,
         )
         if features.clamp_particle_force:

@@ -226,3 +226,91 @@ class EnergyBalance:
         """Energy beyond the balance, E - (E_ref + W - D) [J]: ≈ 0 up to the integrator's energy error (and
         ≤ 0 by what is not counted: contact and friction losses)."""
         return self.energy - self.reference - self.work + self.dissipated
+
+
+#: The largest ω h [-] at which each fixed-step integrator is stable on an undamped mode (its amplification's
+#: modulus reaches 1 there: symplectic Euler and velocity Verlet 2, RK4 2√2); the others need damping
+#: (explicit Euler, midpoint) or have no limit.
+STABLE_OMEGA_H = {"symplectic_euler": 2.0, "velocity_verlet": 2.0, "rk4": 2.0 * math.sqrt(2.0)}
+
+
+def spring_bounds(model: Model, world: int = 0) -> tuple[int, float, float, float] | None:
+    """(the particle whose springs bound the network, its stiffest spring's ke [N/m], Gershgorin bounds of ω_max
+    [rad/s] and of the damping rate λ_D [1/s]) of ``world``'s springs: ω_max² ≤ maxᵢ Σₛ keₛ (wᵢ + √(wᵢ wⱼ)) over the
+    springs s = (i, j) at i, w the inverse masses (a kinematic end: w = 0), and λ_D likewise with kd; ``None``
+    without springs with a free end (float64, reads the device)."""
+    if model.spring_count == 0:
+        return None
+    ends = model.spring_indices.numpy()
+    ke = model.world_values("spring_stiffness")[world]
+    kd = model.world_values("spring_damping")[world]
+    w = model.world_values("particle_inv_mass")[world]
+    stiffness = np.zeros(model.particle_count)
+    damping = np.zeros(model.particle_count)
+    for a, b in ((0, 1), (1, 0)):
+        i, j = ends[:, a], ends[:, b]
+        share = w[i] + np.sqrt(w[i] * w[j])
+        np.add.at(stiffness, i, ke * share)
+        np.add.at(damping, i, kd * share)
+    particle = int(np.argmax(stiffness))
+    if stiffness[particle] <= 0.0:
+        return None
+    at = (ends[:, 0] == particle) | (ends[:, 1] == particle)
+    return particle, float(ke[at].max()), float(math.sqrt(stiffness[particle])), float(damping.max())
+
+
+def scene_suspects(model: Model, *, control=None) -> list[str]:
+    """What in ``model`` can put energy into a run besides its elastic forces, each named as the scene has it:
+    contacts (colliders, self-collision, the ground), loads (the control's force, wind, handles, driven pins,
+    animated inputs, emitters)."""
+    found = []
+    if model.shape_count:
+        found.append(f"contacts with {model.shape_count} collider{'s' if model.shape_count > 1 else ''}")
+    if getattr(model, "self_contact", None) is not None:
+        found.append("self-collision")
+    if control is not None and getattr(control, "particle_force", None) is not None:
+        found.append("the control's external force")
+    for family in model.families:
+        if family.does_work:
+            found.append(family.name)
+    if getattr(model, "pin_groups", None) is not None:
+        found.append("driven pins")
+    tracks = sorted(getattr(model, "_tracks", {}))
+    if tracks:
+        found.append("animated " + ", ".join(tracks))
+    if getattr(model, "emitters", None):
+        found.append("emitters")
+    return found
+
+
+def stop_advice(report: GuardReport, model: Model, *, integrator: str | None, substeps: int, dt: float,
+                control=None) -> str:
+    """What to suspect and what to try after a stop for an instability (energy balance, runaway kinetic energy,
+    non-finite state): the step h [s] (``substeps`` per frame, with ``integrator``) against the stiffest spring's
+    bound of ω_max h (:func:`spring_bounds`) and the integrator's limit, then the scene's other suspects
+    (:func:`scene_suspects`), and a remedy a run can take as printed: twice the substeps, or as many as bring the
+    bound to half the limit and the dampers' rate to 1/h, whichever is more. Empty for a strain stop (the advisor
+    tells over-stretch from instability: ``analysis.advisor.diagnose``) and for a scene with neither springs nor
+    other suspects (free particles under steady loads: no step of theirs is unstable)."""
+    if report.reason == "strain":
+        return ""
+    clauses = []
+    target = 2 * substeps
+    limit = STABLE_OMEGA_H.get(integrator or "")
+    bounds = spring_bounds(model, report.world)
+    step = f"the step (h = {dt * 1e3:.3g} ms, {substeps} substeps per frame)"
+    if bounds is not None:
+        particle, ke, omega, damping = bounds
+        where = f"the springs at particle {particle}, ke up to {ke:.3g} N/m: ω_max h ≤ {omega * dt:.2f}"
+        if limit is not None:
+            where += f" against {integrator}'s limit {limit:.2f}"
+            # Half the limit (a stretched state stiffens) and the dampers' rate at most 1/h.
+            target = max(target, math.ceil(substeps * omega * dt / (0.5 * limit)), math.ceil(substeps * damping * dt))
+        step += f" against the stiffest elements ({where})"
+    others = scene_suspects(model, control=control)
+    if bounds is None and not others:
+        return ""  # free particles under steady loads: no step is unstable, nothing in the scene to name
+    clauses.append(step)
+    clauses += others
+    return (f"suspects in this scene: {'; '.join(clauses)}. Remedy: run with substeps = {target} (a bound: the "
+            "advisor's estimate, where it runs, is tighter)")

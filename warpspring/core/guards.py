@@ -58,14 +58,19 @@ from ..kernels.guards import (
     guard_kernels,
     guard_skip_clear_kernel,
     guard_work_kernel,
+    PARTIAL_SLOTS,
+    POWER_RULE_MEAN,
+    POWER_RULE_NONE,
+    POWER_RULE_START,
     step_midpoint_kernel,
 )
 from ..kernels.families import elements, fill_elements
 from ..kernels.flatten import flat_launch
 from ..kernels.linalg import reduce_lanes, reduce_launch_dim
+from ..kernels.forces import POWER_DAMPERS, POWER_NONE, POWER_WORK, counts_work, power_sums_funcs
 from ..kernels.springs import DAMPER_MEAN_RATE, DAMPER_TRAPEZOID
 from .families import world_elastic_energy
-from .forces import DamperSums
+from .forces import DamperSums, PowerSums
 from .guard_records import (
     BALANCE_FLOOR,
     DISSIPATION_UNCOUNTED,
@@ -76,6 +81,7 @@ from .guard_records import (
     EnergyBalance,
     GuardLimits,
     GuardReport,
+    stop_advice,
 )
 from .model import Model
 from .state import State
@@ -125,8 +131,11 @@ class Guard(StepHook):
         self._values_clear = wp.array(values, dtype=wp.float64, device=device)
         self._status = wp.clone(self._status_clear)
         self._values = wp.clone(self._values_clear)
+        # The status's host copy the frame's read lands in (pinned on CUDA: one small copy, nothing allocated).
+        self._status_host = (wp.empty_like(self._status, device="cpu", pinned=True) if device.is_cuda
+                             else self._status)
         grid = reduce_launch_dim(worlds, model.particle_count, self._lanes)
-        self._partials = wp.zeros((worlds, grid[1], GUARD_FLOATS), dtype=wp.float64, device=device)
+        self._partials = wp.zeros((worlds, grid[1], PARTIAL_SLOTS), dtype=wp.float64, device=device)
         self._limits = wp.zeros((worlds, GUARD_LIMITS), dtype=wp.float64, device=device)
         # The work put in since the start [J] per world, and the positions of the last check (its Δx; the
         # run's start state: :meth:`restart`).
@@ -147,6 +156,8 @@ class Guard(StepHook):
                 self._energy_layout.append((family, lanes, grid, blocks))
                 blocks += grid[1]
         self._energy_partials = wp.zeros((worlds, max(blocks, 1)), dtype=wp.float64, device=device)
+        # ... and of their largest strain, where a family measures it per element (``guard_energy_kernel``; -1: none).
+        self._strain_partials = wp.full((worlds, max(blocks, 1)), -1.0, dtype=wp.float64, device=device)
         # Running dissipation per reducing block (``kernels/guards.py``): drag's particle blocks first, then the
         # blocks of each family with dampers.
         # On the CPU one thread per world sums a family's (or drag's) power: one block, launched over worlds.
@@ -160,15 +171,20 @@ class Guard(StepHook):
                 blocks += grid[1]
         self._running = wp.zeros((worlds, blocks, RUNNING_SLOTS), dtype=wp.float64, device=device)
         # The springs' dissipation counted by the scattered force pass (``DamperSums``; ``None``: by a pass of its
-        # own after every substep).
+        # own after every substep), and the power of dampers, drag and loads from outside counted by the integrator's
+        # per-particle force pass (``PowerSums``, ``_power_rule``; ``None``: by passes of their own). The integrator
+        # carries both to its force passes (``Integrator.dampers``, ``Integrator.power``).
         self._dampers = None
+        self._power = None
         self._restart_balance()
         self.revision = 0
+        self._reported = False
         self._every = None
         self._dissipating = None
         self._midpoint = False
         self._working = False
         self._step_position = self._step_velocity = self._step_time = self._step_start = None
+        self._locate = None  # (kernel, state, substep) of the frame's last check: ``reports`` runs it on a failure
         self.limits = limits
 
     @property
@@ -183,13 +199,14 @@ class Guard(StepHook):
         self._limits_host = limits
         every = min(limits.every or self.substeps, self.substeps)
         integrator = self.integrator
-        dissipating = (self.dt is not None and limits.energy_balance > 0.0 and limits.dissipation
+        # An unconditionally stable integrator has no balance (``balance_applies``): nothing to count per substep.
+        balanced = limits.energy_balance > 0.0 and not getattr(integrator, "unconditionally_stable", False)
+        dissipating = (self.dt is not None and balanced and limits.dissipation
                        and getattr(integrator, "name", None) not in DISSIPATION_UNCOUNTED
                        and not getattr(integrator, "adaptive", False))
         self._midpoint = bool(dissipating) and getattr(integrator, "name", None) in MIDPOINT_DISSIPATION
         # Wind and handles: their work counted per substep where the balance needs it (see ``_family_work``).
-        working = (limits.energy_balance > 0.0 and self._family_work_countable()
-                   and bool(self._working_families()))
+        working = balanced and self._family_work_countable() and bool(self._working_families())
         if working != self._working:
             self._working = working
             self.revision += 1
@@ -211,8 +228,11 @@ class Guard(StepHook):
     def refresh(self) -> None:
         """After the model's values were written (gravity switched on mid-run raises the scene's energy scale;
         a new stiffness changes the elastic energy without work): re-derive the default limits and re-base
-        the energy balance at the next check; value writes, no re-capture. Call between frames (the
-        Simulator does)."""
+        the energy balance at the next check; and clear the record of failures :meth:`reports` read. Value writes, no
+        re-capture. Call between frames (the Simulator does)."""
+        if self._reported:
+            self.reset()
+            self._reported = False
         if self._input_version != self.model.input_version:
             self._write_limits()
             self.rebase()
@@ -278,14 +298,17 @@ class Guard(StepHook):
         return self._every
 
     def begin(self) -> None:
-        self.reset()
+        """Nothing: a check that passes leaves the record clear for the next (``decide``), and the record of a frame
+        whose failures were reported is cleared before the next (:meth:`refresh`); no launch at the start of a
+        frame."""
 
     def history(self) -> list:
         """The arrays a check carries to the next (the work put in, the last check's positions and loads,
         the energy balance, the running dissipation)."""
         dampers = [] if self._dampers is None else [self._dampers.damper, self._dampers.dissipated, self._dampers.skip]
+        power = [] if self._power is None else [self._power.sums]
         return [self._work_total, self._previous_q, self._previous_qd, self._previous_load, self._balance, self._running,
-                *dampers]
+                self._status, self._values, *dampers, *power]
 
     def restart(self, state: State | None = None) -> None:
         """Forget the work put in and measure from ``state`` (default the model's initial state) on: the loads
@@ -324,6 +347,8 @@ class Guard(StepHook):
         if getattr(self, "_dampers", None) is not None:
             self._dampers.dissipated.zero_()
             self._dampers.skip.fill_(1)  # the values kept are stale: the next step starts the count
+        if getattr(self, "_power", None) is not None:
+            self._power.sums.zero_()
 
     def work(self) -> np.ndarray:
         """The work the loads put into each world since the start [J], float64, shape [world_count] (the
@@ -340,7 +365,7 @@ class Guard(StepHook):
     def _needs_midpoint(self) -> bool:
         """Whether a substep's midpoint state is needed: symplectic Euler's D where something dissipates (drag, a
         family with dampers), or the working families' work."""
-        if self._working:
+        if self._working and self._power is None:
             return True
         if not (self._dissipating and self._midpoint):
             return False
@@ -348,9 +373,7 @@ class Guard(StepHook):
         return drag is not None or bool(families)
 
     def before_step(self, state: State, step: int, steps: int) -> None:
-        self._dissipation_kernels()  # the springs' pass counting their dampers attached or not
-        if self._dampers is not None:
-            self._dampers.start = state
+        self._dissipation_kernels()  # the force passes counting the dampers and the power attached or not
         if self._needs_midpoint():
             self._step_start = state  # x_n, v_n: the step leaves its input as it was until after_step
 
@@ -369,10 +392,10 @@ class Guard(StepHook):
             # This step started from a check's state, whose step the check counted: count the next ones.
             wp.launch(guard_skip_clear_kernel(), dim=self.model.world_count, outputs=[self._dampers.skip],
                       device=self.model.device)
-        if self._working:
+        if self._working and self._power is None:
             self._family_work(state)
         if (step + 1) % self._every == 0 or step + 1 == steps:
-            self.check(state, step)
+            self.check(state, step, last=step + 1 == steps)
 
     def _family_work(self, state: State) -> None:
         """Add the work wind and handles (the families that do work from outside) did over the last substep to the
@@ -412,8 +435,8 @@ class Guard(StepHook):
         limits = self._limits_host
         integrator = self.integrator
         if (self.dt is None or limits.energy_balance <= 0.0 or getattr(integrator, "adaptive", False)
-                or (self._dissipating and dissipation_exact(model))):
-            return None
+                or (self._dissipating and dissipation_exact(model)) or self._power_rule() != POWER_RULE_NONE):
+            return None  # (with the power counted in the force pass, the wind's push is among its loads)
         features = model.force_features(self.control)
         if not (features.drag and features.wind):
             return None
@@ -458,25 +481,113 @@ class Guard(StepHook):
         """(the drag kernel or ``None``, [(kernel, family, lanes, grid, offset)] of the damped families whose
         dissipation a pass of its own counts after every substep), rebuilt after a structural change of the model
         (drag switched on or off); the springs' dampers counted in their scattered force pass where they can be
-        (``_force_pass_dampers``)."""
+        (``_force_pass_dampers``), drag, the families with a ``split`` hook and the loads from outside in the
+        integrator's per-particle force pass where it can (``_power_rule``)."""
         model = self.model
         cached = getattr(self, "_dissipation_cache", None)
-        key = (model.revision, self._midpoint, self._dissipating)
+        key = (model.revision, self._midpoint, self._dissipating, self._working, self.revision)
         if cached is None or cached[0] != key:
             drag, families = None, []
             midpoint = self._midpoint
             springs = self._force_pass_dampers()
-            if dissipation_exact(model):
+            modes = self._power_modes()
+            if dissipation_exact(model) and self._dissipating:
                 features = model.force_features(self.control)
-                drag = (guard_drag_kernel(model.scalar, self._tiled, features.wind, midpoint) if features.drag
-                        else None)
+                drag = (guard_drag_kernel(model.scalar, self._tiled, features.wind, midpoint)
+                        if features.drag and modes is None else None)
+                index = {family.name: k for k, family in enumerate(model.families)}
                 families = [(guard_dissipation_kernel(model.scalar, family.spec(model), self._tiled, midpoint),
                              family, lanes, grid, offset) for family, lanes, grid, offset in self._dissipation_layout
-                            if springs is None or family is not springs[0]]
+                            if (springs is None or family is not springs[0])
+                            and not self._power_counts(family, modes, index)]
             cached = (key, (drag, families))
             self._dissipation_cache = cached
             self._attach_dampers(springs)
+            self._attach_power(modes)
         return cached[1]
+
+    def _power_counts(self, family, modes, index: dict) -> bool:
+        """Whether the integrator's force pass counts ``family``'s dampers (``modes``: ``_power_modes``)."""
+        if modes is None:
+            return False
+        return modes[index[family.name]] == POWER_DAMPERS
+
+    def _power_rule(self) -> int:
+        """How the integrator's per-particle force pass counts the power for the balance (``POWER_RULE_*`` of
+        ``kernels/guards.py``): symplectic Euler's fused step (gathered springs, or none), or its update after the
+        force passes stored the dampers' and loads' parts of the force (scattered springs), the energy over each step,
+        exactly what the forces changed the kinetic energy by (``POWER_RULE_MEAN``); RK4's evaluation at each step's
+        start the power there, a trapezoid the checks close (``POWER_RULE_START``); elsewhere none (passes of their
+        own). Not under the particle force clamp (its share of a force is not separable; the balance is off)."""
+        integrator = self.integrator
+        name = getattr(integrator, "name", None)
+        model = self.model
+        if (self.dt is None or integrator is None or getattr(integrator, "adaptive", False)
+                or getattr(integrator, "unconditionally_stable", False) or self._limits_host.energy_balance <= 0.0
+                or model.stabilizers.enabled("max_particle_force") or model.particle_count == 0):
+            return POWER_RULE_NONE
+        if name == "symplectic_euler":
+            if model.spring_gather or model.spring_count == 0:
+                return POWER_RULE_MEAN
+            # Scattered springs (their dampers counted in their pass, ``DamperSums``): the update counts the rest
+            # where there is any (drag, the working families, other damped families with a ``split`` hook).
+            features = model.force_features(self.control)
+            others = any(family.does_work or (family.name != "springs"
+                                              and getattr(family.spec(model).funcs(model.scalar), "split", None))
+                         for family in model.families)
+            return POWER_RULE_MEAN if features.drag or others else POWER_RULE_NONE
+        if name == "rk4":
+            return POWER_RULE_START
+        return POWER_RULE_NONE
+
+    def _power_modes(self, gathered: bool = False):
+        """Each family's ``POWER_*`` mode in the integrator's force pass (``None``: the power not counted there,
+        ``_power_rule``): the working families' force as work from outside (where the balance counts it), the
+        dampers of a family with a ``split`` hook where D is counted (the springs where gathered, or ``gathered``: the
+        check's own evaluation, whose springs are gathered), the rest not. Drag's and the wind's push are always
+        counted (the balance uses D only where ``counts_dissipation``)."""
+        if self._power_rule() == POWER_RULE_NONE:
+            return None
+        model = self.model
+        counted = bool(self._dissipating) and dissipation_exact(model)
+        modes = []
+        for family in model.families:
+            if family.does_work:
+                modes.append(POWER_WORK if self._working else POWER_NONE)
+            elif (counted and getattr(family.spec(model).funcs(model.scalar), "split", None) is not None
+                  and getattr(family.spec(model).funcs(model.scalar), "dissipation", None) is not None
+                  and (family.name != "springs" or model.spring_gather or gathered)):
+                modes.append(POWER_DAMPERS)
+            else:
+                modes.append(POWER_NONE)
+        return tuple(modes)
+
+    def _attach_power(self, modes) -> None:
+        """Hand the integrator the power sums (``PowerSums``) where its force pass counts them (``modes``), or take
+        them back."""
+        integrator = self.integrator
+        if modes is None:
+            if self._power is not None and getattr(integrator, "power", None) is self._power:
+                integrator.power = None
+            self._power = None
+            return
+        model = self.model
+        size = model.world_count * model.particle_count
+        work = counts_work(model.force_features(self.control), modes)
+        if self._power is None or self._power.sums.shape[0] != size or self._power.work != work:
+            sums = power_sums_funcs(model.scalar, work).type
+            self._power = PowerSums(modes=modes, h=float(self.dt), sums=wp.zeros(size, dtype=sums, device=model.device),
+                                    work=work)
+        power = self._power
+        power.modes = modes
+        # Symplectic Euler with scattered springs: the force passes store the parts its update counts.
+        stored = self._power_rule() == POWER_RULE_MEAN and model.spring_count > 0 and not model.spring_gather
+        if stored and (power.forces is None or power.forces[0].shape[0] != size):
+            power.forces = (wp.zeros(size, dtype=model.vec3, device=model.device),
+                            wp.zeros(size, dtype=model.vec3, device=model.device))
+        elif not stored:
+            power.forces = None
+        integrator.power = power
 
     def _force_pass_dampers(self):
         """The springs' (family, lanes, grid, offset) where their scattered force pass counts their dampers'
@@ -491,12 +602,13 @@ class Guard(StepHook):
         return next((entry for entry in self._dissipation_layout if entry[0].name == "springs"), None)
 
     def _attach_dampers(self, springs=None) -> None:
-        """Give the model the springs' dissipation sums (``Model._damper_sums``) where ``springs`` (the family's layout
-        entry) count in the force pass, or take them back."""
+        """Hand the integrator the springs' dissipation sums (``Integrator.dampers``) where ``springs`` (the family's
+        layout entry) count in the force pass, or take them back."""
         model = self.model
+        integrator = self.integrator
         if springs is None:
-            if self._dampers is not None and getattr(model, "_damper_sums", None) is self._dampers:
-                model._damper_sums = None
+            if self._dampers is not None and getattr(integrator, "dampers", None) is self._dampers:
+                integrator.dampers = None
             self._dampers = None
             return
         if self._dampers is None or self._dampers.damper.shape[0] != model.world_count * model.spring_count:
@@ -508,7 +620,7 @@ class Guard(StepHook):
                                        dissipated=wp.zeros(size, dtype=wp.float64, device=device))
         self._dampers.rule = DAMPER_MEAN_RATE if self._midpoint else DAMPER_TRAPEZOID
         self._dampers_entry = springs
-        model._damper_sums = self._dampers
+        integrator.dampers = self._dampers
 
     def _close_dampers(self, state: State, h: float) -> None:
         """Count the springs' last step up to ``state`` (h [s]; 0: only record it) and add their sums to the running
@@ -523,7 +635,8 @@ class Guard(StepHook):
                     outputs=[dampers.damper, dampers.dissipated, dampers.skip, self._running], device=model.device)
 
     def reset(self) -> None:
-        """Clear the record (device copies: capturable, done at the start of every frame)."""
+        """Clear the record (device copies: between frames after a reported failure, :meth:`refresh`, and at a
+        restart)."""
         wp.copy(self._status, self._status_clear)
         wp.copy(self._values, self._values_clear)
 
@@ -548,20 +661,30 @@ class Guard(StepHook):
         # The force on kinematic particles (a drive's work) is gathered even where the integrator scatters it.
         specs = tuple(dataclasses.replace(s, gathered=True) if getattr(s, "gathered", True) is False else s
                       for s in model.family_specs())
-        # Wind's and handles' work: here by the trapezoid of the checks, or per substep (``_family_work``).
+        # Wind's and handles' work: here by the trapezoid of the checks, or per substep (``_family_work``, or the
+        # integrator's force pass: ``PowerSums``).
         working = [] if self._working else self._working_families()
         working_specs = tuple(family.spec(model) for family in working)
-        measure, gather, locate, decide = guard_kernels(model.scalar, specs, self._tiled, force is not None,
-                                                        working_specs)
+        power = self._power
+        rule, features, modes = POWER_RULE_NONE, None, ()
+        if power is not None:
+            rule, modes = self._power_rule(), power.modes
+            features = model.force_features(self.control)._replace(families=specs, clamp_particle_force=False,
+                                                                   external=force is not None)
+        measure, gather, locate = guard_kernels(model.scalar, specs, self._tiled, force is not None,
+                                                        working_specs, rule, features, modes,
+                                                        self.counts_dissipation)
         flat_launch(measure, dim=reduce_launch_dim(model.world_count, model.particle_count, self._lanes),
                     block_dim=self._lanes,
                     inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
                             model.elements, self._work_arrays(working, working_specs), model.inputs,
                             force if force is not None else state.particle_q,
-                            state.particle_q, state.particle_qd, self._lead()],
-                    outputs=[self._previous_q, self._previous_qd, self._previous_load, self._status, self._partials],
+                            state.particle_q, state.particle_qd, self._lead(),
+                            0.0 if self.dt is None else float(self.dt)],
+                    outputs=[None if power is None else power.sums, self._previous_q, self._previous_qd,
+                             self._previous_load, self._status, self._partials],
                     device=model.device)
-        return gather, locate, decide
+        return gather, locate
 
     def _lead(self) -> float:
         """λ [s] of the steady loads' work on free particles (weight, the control's force: constant within a frame),
@@ -574,10 +697,13 @@ class Guard(StepHook):
             return 0.0
         return 0.5 * float(self.dt)
 
-    def check(self, state: State, substep: int) -> None:
-        """Launch the checks of ``state`` after ``substep`` (device only; capturable)."""
+    def check(self, state: State, substep: int, *, last: bool = False) -> None:
+        """Launch the checks of ``state`` after ``substep`` (device only; capturable). The check that ends a frame
+        (``last``) leaves finding the most strained element of a world that failed to :meth:`reports`, which runs
+        it on the same state after the frame, where a failure is seen (no launch in a frame that passes)."""
         model = self.model
-        gather, locate, decide = self._measure(state)
+        gather, locate = self._measure(state)
+        self._locate = (locate, state, substep) if last else None
         worlds, device = model.world_count, model.device
         if self._dampers is not None and self._dissipating:
             self._close_dampers(state, float(self.dt))
@@ -585,19 +711,28 @@ class Guard(StepHook):
             flat_launch(guard_energy_kernel(model.scalar, family.spec(model), self._tiled), dim=grid, block_dim=lanes,
                         inputs=[model.particle_count, family.element_count, offset, model.world_enabled,
                                 family.arrays(model), model.inputs, self._status, state.particle_q],
-                        outputs=[self._energy_partials], device=device)
+                        outputs=[self._energy_partials, self._strain_partials], device=device)
         wp.launch(gather, dim=(worlds, self._lanes), block_dim=self._lanes,
-                  inputs=[model.world_enabled, self._partials, self._energy_partials, self._status, self._running],
-                  outputs=[self._values, self._work_total, self._balance], device=device)
-        wp.launch(decide, dim=worlds, inputs=[substep, self._limits, self._work_total],
-                  outputs=[model.world_enabled, self._status, self._values], device=device)
+                  inputs=[self._partials, self._energy_partials, self._strain_partials, substep, self._limits],
+                  outputs=[model.world_enabled, self._status, self._running, self._values, self._work_total,
+                           self._balance], device=device)
+        if not last:
+            self._launch_locate(locate, state, substep)
+
+    def _launch_locate(self, locate, state: State, substep: int) -> None:
+        model = self.model
         flat_launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
                     inputs=[model.particle_count, model.elements, state.particle_q, substep, self._values],
-                    outputs=[self._status], device=device)
+                    outputs=[self._status], device=model.device)
 
     def reports(self) -> list[GuardReport]:
-        """Each world's first failure since the last reset, in world order (reads the device: synchronises)."""
-        status = self._status.numpy()
+        """Each world's first failure since the last reset, in world order (reads the device: synchronises). The
+        record is cleared before the next frame (:meth:`refresh`; a held world is not checked again, so it is
+        reported once)."""
+        if self._status_host is not self._status:
+            wp.copy(self._status_host, self._status)
+            wp.synchronize_stream(self.model.device)
+        status = self._status_host.numpy()
         reasons = {GUARD_NONFINITE: "non-finite state", GUARD_STRAIN: "strain", GUARD_ENERGY: "kinetic energy",
                    GUARD_BALANCE: "energy balance"}
         families = self.model.families
@@ -605,6 +740,12 @@ class Guard(StepHook):
         tripped = status[:, GUARD_TRIPPED]
         if not tripped.any():  # the common case, every frame: one read, nothing allocated that could linger
             return []
+        pending = getattr(self, "_locate", None)
+        if pending is not None and (status[tripped != 0, GUARD_SUBSTEP] == pending[2]).any():
+            # A world failed at the frame's last check, whose state the frame left as it was: find its element now.
+            self._launch_locate(*pending)
+            self._locate = None
+            status = self._status.numpy()
         values = self._values.numpy()
         for world in np.flatnonzero(tripped):
             row = status[world]
@@ -627,7 +768,16 @@ class Guard(StepHook):
                 energy_created=float(values[world, GUARD_EXCESS]),
                 energy_budget=float(values[world, GUARD_BUDGET]),
             ))
+        self._reported = True  # cleared before the next frame (``refresh``)
         return found
+
+    def explain(self, report: GuardReport) -> str:
+        """``report`` described (:meth:`GuardReport.describe`), with the scene's suspects and a remedy to try after an
+        instability (:func:`stop_advice`)."""
+        advice = stop_advice(report, self.model, integrator=getattr(self.integrator, "name", None),
+                             substeps=self.substeps, dt=float(self.dt) if self.dt is not None else 0.0,
+                             control=self.control)
+        return report.describe(self.model) + (f"; {advice}" if advice else "")
 
     def report(self) -> GuardReport | None:
         """The earliest failure since the last reset (the lowest world among equals), or ``None`` (reads the

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 from .. import checks
 from ..errors import ConfigError
-from ..kernels.guards import BALANCE_SLOTS, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS, RUNNING_SLOTS
+from ..kernels.guards import BALANCE_SLOTS, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS, PARTIAL_SLOTS, RUNNING_SLOTS
 from ..kernels.inputs import INPUT_COUNT
 from ..kernels.selfcontact import CACHE_SLOTS, COUNTER_COUNT, FLAG_KINDS, PAIRS_PER_VERTEX, PARAM_COUNT, SCAN_BLOCK
 
@@ -434,9 +434,11 @@ def estimate_memory(
     running = 8 * RUNNING_SLOTS * ((blocks + element_blocks(s) + element_blocks(h)) if cuda
                                    else w * (1 + bool(s) + bool(h)))
     dampers = (4 + (f + 8) * s) * w if s and spring_evaluation == "scatter" else 0
-    carried = 8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + running + dampers  # what a check carries on
-    guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * GUARD_FLOATS * blocks + 8 * GUARD_LIMITS * w
-             + 8 * max(element_blocks(s) + element_blocks(h), w) + carried + 2 * vec3 * size + 8 * w)
+    power = 2 * f * size  # the per-particle power sums the guard hands the integrator (energy out, work in)
+    carried = 8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + running + dampers + power  # what a check carries on
+    guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * PARTIAL_SLOTS * blocks + 8 * GUARD_LIMITS * w
+             + 2 * 8 * max(element_blocks(s) + element_blocks(h), w)  # the energy's and the strain's partial sums
+             + carried + 2 * vec3 * size + 8 * w)
     # The stepper's warm-up before a capture copies what a step carries to the next (the guard's, the integrator's
     # per-world state and implicit Euler's Δv, the emitters' flags and slots, the contact, self-collision and mesh
     # caches' counters), and frees the copies once the warm-up step is undone.

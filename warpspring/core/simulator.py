@@ -187,7 +187,7 @@ class Simulator:
                 report = min(reports, key=lambda r: (r.substep, r.world))
                 error = SimulationError(
                     f"frame {self.frame + 1}, substep {report.substep + 1} of {self.substeps} "
-                    f"(t ≤ {self.time + (report.substep + 1) * self.dt:.4g} s): {report.describe(self.model)}",
+                    f"(t ≤ {self.time + (report.substep + 1) * self.dt:.4g} s): {self.guard.explain(report)}",
                     frame=self.frame + 1,
                     substep=report.substep + 1,
                 )

@@ -92,6 +92,12 @@ class FamilyFuncs(NamedTuple):
     # kernels taking the family through ``elements`` pass them last (``flat_kernel(last=)``).
     idle: tuple = ()
     dissipation: Any = None  # per element, like ``energy``; None: the family dissipates nothing of its own
+    # Optional, gathered like ``force``: (force, its dampers' part) at particle i, the guard's power counted in the
+    # pass that evaluates the force (``forces.particle_power_func``); None: the guard counts a pass of its own.
+    split: Any = None
+    # Optional, per element like ``energy``: ``element_strain(world, element, base, arrays, particle_q) -> float64``,
+    # the strain ``strain`` gives at its particles (the same bits); the guard measures it in its energy pass.
+    element_strain: Any = None
 
 
 @functools.cache

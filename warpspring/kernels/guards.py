@@ -1,14 +1,15 @@
 """Run-time guards: detect a state going bad on the device, per world, without a host synchronisation per
 substep.
 
-A check is five launches captured with the substeps (and, with the dissipation or the work of wind and handles
-counted, a few more after every substep: below): ``measure`` (per particle: non-finite position or
+A check is two launches and one per family, captured with the substeps (``locate`` a third, in-frame only for a check
+before the frame's last; and, with the dissipation or the work of wind and handles counted where the integrator's
+own force pass does not count them, a few more after every substep: below): ``measure`` (per particle: non-finite position or
 velocity, the largest strain of its elements (the families' ``strain`` hook), kinetic energy (of the free
 particles: a kinematic one moves as prescribed), and the work the loads did on it since the previous
 check; per-block partials, no float atomics), ``element_energy_partials`` (one per family: per-block sums of
 its elements' elastic energy, the families' ``energy`` hook), ``gather`` (per world: the world's kinetic
-and elastic energy and work, summed in a fixed order, its largest strain, and the energy balance below),
-``decide`` (per world: compare with the world's limits, latch the world's first failure with its substep, reset
+and elastic energy and work, summed in a fixed order, its largest strain, and the energy balance below; then
+``decide`` in its lane 0: compare with the world's limits, latch the world's first failure with its substep, reset
 the accumulators, and with ``stop_world`` set hold the failed world: ``world_enabled`` 0), ``locate`` (in a world
 that failed at this check only: the particle, element and family holding the largest strain).
 
@@ -69,6 +70,7 @@ import functools
 import warp as wp
 
 from .families import elements
+from .forces import ForceFeatures, counts_work, particle_power_func, power_sums_funcs
 from .inputs import INPUT_DRAG, INPUT_GRAVITY, INPUT_WIND, input_funcs
 from .kinematics import is_kinematic
 from .linalg import reduction_funcs
@@ -96,6 +98,15 @@ GUARD_ELASTIC_ENERGY = 3  # Σ of the elements' elastic energy of the check [J]
 GUARD_EXCESS = 4  # kinetic + elastic energy beyond the balance's budget E_ref + W [J]
 GUARD_BUDGET = 5  # the budget's peak so far, max over checks of E_ref + W [J]
 GUARD_FLOATS = 6
+# float64 slots of a check's per-block partials (``partials[world, block, slot]``): GUARD_KINETIC_ENERGY,
+# GUARD_MAX_STRAIN and GUARD_WORK, then the power sums' (``measure``'s ``power``)
+PARTIAL_DISSIPATION = GUARD_FLOATS  # energy the dampers and drag took out since the last check [J]
+PARTIAL_FAMILY_WORK = GUARD_FLOATS + 1  # work the loads from outside (wind, handles) did since the last check [J]
+PARTIAL_SLOTS = GUARD_FLOATS + 2
+# How the integrator's force pass counts the power for the balance (``measure``'s ``power``; ``core/forces.PowerSums``):
+# not at all (passes of their own), the energy over each step (symplectic Euler: f·(v + v')/2 h, exact), or h times
+# the power at each step's start, which the check turns into the trapezoid of the power (RK4)
+POWER_RULE_NONE, POWER_RULE_MEAN, POWER_RULE_START = 0, 1, 2
 # float64 slots of the energy balance: carried from check to check
 BALANCE_REFERENCE = 0  # E_ref: kinetic + elastic energy less the work counted, at the last rebase [J]
 BALANCE_WORK = 1  # W: the loads' work since the start, signed [J]
@@ -131,16 +142,88 @@ NO_PARTICLE = 2**31 - 1
 
 
 @functools.cache
-def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, working: tuple = ()):
+def particle_strain_func(scalar: type, specs: tuple):
+    """``strain(world, i, base, xi, element_arrays, particle_q) -> float64``: the largest strain [-] of the elements at
+    particle i over the families of ``specs`` without an ``element_strain`` hook (those with one are measured per
+    element in the energy pass, ``guard_energy_kernel``); -1 where none."""
+    vec3 = vec3_type(scalar)
+    Elements = elements(scalar, specs).arrays
+    if not specs:
+
+        @wp.func
+        def no_strain(world: int, i: int, base: int, xi: vec3, arrays: Elements, particle_q: wp.array[vec3]):
+            return wp.float64(-1.0)
+
+        return no_strain
+    funcs = specs[0].funcs(scalar)
+    skipped = getattr(funcs, "element_strain", None) is not None
+    head_strain = funcs.strain
+
+    @wp.func
+    def head(world: int, i: int, base: int, xi: vec3, arrays: funcs.arrays, particle_q: wp.array[vec3]):
+        if wp.static(skipped):
+            return wp.float64(-1.0)
+        worst, _ = head_strain(world, i, base, xi, arrays, particle_q)
+        return worst
+
+    if len(specs) == 1:
+
+        @wp.func
+        def strain_1(world: int, i: int, base: int, xi: vec3, arrays: Elements, particle_q: wp.array[vec3]):
+            return head(world, i, base, xi, arrays.head, particle_q)
+
+        return strain_1
+    rest = particle_strain_func(scalar, specs[1:])
+
+    @wp.func
+    def strain_n(world: int, i: int, base: int, xi: vec3, arrays: Elements, particle_q: wp.array[vec3]):
+        return wp.max(head(world, i, base, xi, arrays.head, particle_q), rest(world, i, base, xi, arrays.tail,
+                                                                            particle_q))
+
+    return strain_n
+
+
+@functools.cache
+def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, working: tuple = (),
+                  power: int = POWER_RULE_NONE, power_features: ForceFeatures | None = None,
+                  power_modes: tuple = (), dissipation: bool = False):
     """(measure, gather, locate, decide) kernels of one precision and tuple of family specs; ``external``:
     the control has an external force (part of the loads' work); ``working``: the specs of the families that
     do work from outside (wind, handles: ``ElementFamily.does_work``), whose forces on free particles count
-    among the loads."""
+    among the loads here (not where the integrator's force pass counts their work).
+
+    ``power`` (a ``POWER_RULE_*``): what the integrator's force pass added to the power sums since the last check,
+    which ``measure`` takes into the check's partials and clears. With ``POWER_RULE_START`` the sums hold h times
+    the power at each step's start; ``measure`` evaluates it at the check's state too (``power_features``, whose
+    families are ``families``, and ``power_modes``: ``forces.particle_power_func``), adds half of it to the check's
+    span and leaves minus half for the next span, whose first step adds all of it: the trapezoid of the power
+    over the substeps. With ``POWER_RULE_MEAN`` the sums hold each step's exact energy, -h f_d·(v + v')/2, whose sum
+    over steps differs from the mean-rate rule's, Σ h c ((r + r')/2)² per damper (≥ 0 for each), by a quarter of
+    h P at the span's ends (P = -f_d·v, the dampers' power: the algebra of (r + r')² = r² + 2 r r' + r'²): the
+    check adds that quarter at its state and leaves minus it for the next span. The exact energy alone would
+    count a damper that an unstable step drives (kd h/m past its limit) as putting energy in, and the balance
+    would never see the energy that step creates; the mean rate keeps every damper's loss ≥ 0. ``dissipation``:
+    ``gather`` adds the dampers' and drag's energy to D (else only the loads'
+    work counts: D left out, ``core/guards.dissipation_exact``)."""
     vec3 = vec3_type(scalar)
+    counted = power != POWER_RULE_NONE
+    sums_funcs = power_sums_funcs(scalar, counted and counts_work(power_features, power_modes))
+    Sums = sums_funcs.type
+    pack = sums_funcs.pack
+    sums_dissipated = sums_funcs.dissipated
+    sums_worked = sums_funcs.worked
+    boundary = counted
+    particle_power = particle_power_func(scalar, power_features, power_modes) if boundary else None
+    # The closing terms' shares of h times the power at the check's state (dampers, loads from outside): the
+    # trapezoid's halves (RK4), or for symplectic Euler's D a quarter, which turns its exact step energy into the
+    # mean-rate rule's (below); its loads' work stays exact.
+    share_dampers = 0.5 if power == POWER_RULE_START else 0.25
+    share_work = 0.5 if power == POWER_RULE_START else 0.0
     block_sum, block_max = reduction_funcs(tiled)
     composed = elements(scalar, families)
     Elements = composed.arrays
     element_strain = composed.strain
+    particle_strain = particle_strain_func(scalar, families)
     element_force = composed.force
     work_composed = elements(scalar, working)
     WorkElements = work_composed.arrays
@@ -163,9 +246,11 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
-        # Guards in (the lead λ [s]: the steady loads' work on free particles is F·(Δx + λ Δv)):
+        # Guards in (the lead λ [s]: the steady loads' work on free particles is F·(Δx + λ Δv); the step h [s]):
         lead: scalar,
+        power_h: scalar,
         # In/out:
+        power_in_out: wp.array[Sums],
         previous_q_in_out: wp.array[vec3],
         previous_qd_in_out: wp.array[vec3],
         previous_load_in_out: wp.array[vec3],
@@ -179,6 +264,8 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         energy = wp.float64(0.0)
         worst = wp.float64(-1.0)
         work = wp.float64(0.0)
+        dissipated = wp.float64(0.0)
+        family_work = wp.float64(0.0)
         if i < particle_count:
             base = world * particle_count
             p = base + i
@@ -186,7 +273,7 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
             v = particle_qd[p]
             if wp.isfinite(x) and wp.isfinite(v):
                 mass = particle_mass[wp.min(world, particle_mass.shape[0] - 1), i]
-                worst, _, _ = element_strain(world, i, base, x, element_arrays, particle_q)
+                worst = particle_strain(world, i, base, x, element_arrays, particle_q)
                 held = vec3(scalar(0.0))  # a load constant within a frame: its value at the check
                 steady = vec3(scalar(0.0))  # the loads constant within a frame (weight, the control's force)
                 if is_kinematic(particle_flags[p]):  # prescribed motion: no runaway of its own, a drive's work
@@ -205,6 +292,21 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                 work = wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - previous_q_in_out[p])
                                   + lead * wp.dot(steady, v - previous_qd_in_out[p]))
                 previous_load_in_out[p] = load
+                if wp.static(counted):  # (a kinematic particle's sums: its elements' dampers only)
+                    sums = power_in_out[p]
+                    left = pack(scalar(0.0), scalar(0.0))
+                    if wp.static(boundary):  # the closing term at this state; minus it starts the next span
+                        free = not is_kinematic(particle_flags[p])
+                        total, dampers, pushes = particle_power(world, i, base, x, v, free, particle_mass,
+                                                                element_arrays, inputs, particle_force_ext, particle_q,
+                                                                particle_qd)
+                        left = pack(-power_h * scalar(share_dampers) * wp.dot(dampers, v),
+                                    power_h * scalar(share_work) * wp.dot(pushes, v))
+                        sums += left
+                        left = -left
+                    dissipated = wp.float64(sums_dissipated(sums))
+                    family_work = wp.float64(sums_worked(sums))
+                    power_in_out[p] = left
             else:
                 wp.atomic_min(status_in_out, world, GUARD_NONFINITE_PARTICLE, i)
                 wp.atomic_add(status_in_out, world, GUARD_NONFINITE_COUNT, 1)
@@ -213,129 +315,23 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         energy = block_sum(energy)
         worst = block_max(worst)
         work = block_sum(work)
+        if wp.static(counted):
+            dissipated = block_sum(dissipated)
+            family_work = block_sum(family_work)
         if lane == 0:
             partials_out[world, block, GUARD_KINETIC_ENERGY] = energy
             partials_out[world, block, GUARD_MAX_STRAIN] = worst
             partials_out[world, block, GUARD_WORK] = work
+            if wp.static(counted):
+                partials_out[world, block, PARTIAL_DISSIPATION] = dissipated
+                partials_out[world, block, PARTIAL_FAMILY_WORK] = family_work
 
-    @wp.kernel(module="unique", enable_backward=False)
-    def gather(
-        # Model:
-        world_enabled: wp.array[wp.int32],
-        # Guards in (the check's partials, the status):
-        partials: wp.array3d[wp.float64],
-        energy_partials: wp.array2d[wp.float64],
-        status: wp.array2d[wp.int32],
-        # In/out:
-        running_in_out: wp.array3d[wp.float64],
-        # Out:
-        values_out: wp.array2d[wp.float64],
-        work_total_in_out: wp.array[wp.float64],
-        balance_in_out: wp.array2d[wp.float64],
-    ):
-        """A world's kinetic and elastic energy, the work put in and the energy dissipated since the last
-        check (its blocks' partials and running sums: the dissipation and the working families' work, the running
-        sums cleared; the work and the dissipation
-        added to the balance, the work's positive part to the world's running total W⁺), its largest strain,
-        and the energy beyond the balance's budget. Launched over [world, lanes] with ``block_dim`` = lanes
-        (one lane on the CPU): each lane sums every lanes-th block in order, then a fixed-order tree
-        (``block_sum``) joins the lanes, so the sums are deterministic; one thread walking a world's ~10³ blocks
-        of a 512² cloth in turn took 0.9 ms on an H100, most of a check."""
-        world, lane = wp.tid()
-        if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
-            return
-        lanes = wp.block_dim()
-        energy = wp.float64(0.0)
-        worst = wp.float64(-1.0)
-        work = wp.float64(0.0)
-        b = lane
-        while b < partials.shape[1]:
-            energy += partials[world, b, GUARD_KINETIC_ENERGY]
-            worst = wp.max(worst, partials[world, b, GUARD_MAX_STRAIN])
-            work += partials[world, b, GUARD_WORK]
-            b += lanes
-        elastic = wp.float64(0.0)
-        b = lane
-        while b < energy_partials.shape[1]:
-            elastic += energy_partials[world, b]
-            b += lanes
-        dissipated = wp.float64(0.0)
-        b = lane
-        while b < running_in_out.shape[1]:
-            dissipated += running_in_out[world, b, RUNNING_DISSIPATION]
-            work += running_in_out[world, b, RUNNING_WORK]
-            running_in_out[world, b, RUNNING_DISSIPATION] = wp.float64(0.0)
-            running_in_out[world, b, RUNNING_WORK] = wp.float64(0.0)
-            b += lanes
-        energy = block_sum(energy)
-        worst = block_max(worst)
-        work = block_sum(work)
-        elastic = block_sum(elastic)
-        dissipated = block_sum(dissipated)
-        if lane != 0:
-            return
-        values_out[world, GUARD_KINETIC_ENERGY] = energy
-        values_out[world, GUARD_ELASTIC_ENERGY] = elastic
-        values_out[world, GUARD_MAX_STRAIN] = worst
-        values_out[world, GUARD_WORK] = work
-        if not (wp.isfinite(work) and wp.isfinite(energy + elastic) and wp.isfinite(dissipated)):
-            return  # ``decide`` stops a non-finite world; its balance stays as it was
-        work_total_in_out[world] += wp.max(work, wp.float64(0.0))
-        balance_in_out[world, BALANCE_WORK] += work
-        balance_in_out[world, BALANCE_DISSIPATION] += dissipated
-        if balance_in_out[world, BALANCE_REBASE] != wp.float64(0.0):
-            balance_in_out[world, BALANCE_REFERENCE] = energy + elastic - balance_in_out[world, BALANCE_WORK]
-            balance_in_out[world, BALANCE_PEAK] = energy + elastic
-            balance_in_out[world, BALANCE_DISSIPATION] = wp.float64(0.0)
-            balance_in_out[world, BALANCE_REBASE] = wp.float64(0.0)
-        balance_in_out[world, BALANCE_ENERGY] = energy + elastic
-        budget = balance_in_out[world, BALANCE_REFERENCE] + balance_in_out[world, BALANCE_WORK]
-        balance_in_out[world, BALANCE_PEAK] = wp.max(balance_in_out[world, BALANCE_PEAK], budget)
-        values_out[world, GUARD_EXCESS] = energy + elastic - (budget - balance_in_out[world, BALANCE_DISSIPATION])
-        values_out[world, GUARD_BUDGET] = balance_in_out[world, BALANCE_PEAK]
-
-    @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
-    def locate(
-        # Model:
-        particle_count: int,
-        element_arrays: Elements,
-        # State in:
-        particle_q: wp.array[vec3],
-        # Guards in (the check's substep, the gathered values):
-        substep: int,
-        values: wp.array2d[wp.float64],
-        # In/out:
-        status_in_out: wp.array2d[wp.int32],
-    ):
-        """The most strained particle, element and family of a world that failed at this check (``decide`` ran
-        first: a world that passed, or failed at an earlier check, is left alone, so a passing check costs one
-        early return per particle, not a second strain pass)."""
-        p = wp.tid()
-        world, i = world_and_index(p, particle_count)
-        largest = values[world, GUARD_MAX_STRAIN]
-        if (status_in_out[world, GUARD_TRIPPED] == 0 or status_in_out[world, GUARD_SUBSTEP] != substep
-                or largest < wp.float64(0.0)):
-            return
-        strain, element, family = element_strain(world, i, p - i, particle_q[p], element_arrays, particle_q)
-        if strain == largest:  # the same evaluation as in measure
-            wp.atomic_min(status_in_out, world, GUARD_STRAIN_PARTICLE, i)
-            wp.atomic_min(status_in_out, world, GUARD_STRAIN_ELEMENT, element)
-            wp.atomic_min(status_in_out, world, GUARD_STRAIN_FAMILY, family)
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def decide(
-        # Guards in:
-        substep: int,
-        limits: wp.array2d[wp.float64],
-        work_total: wp.array[wp.float64],
-        # In/out:
-        world_enabled_in_out: wp.array[wp.int32],
-        status_in_out: wp.array2d[wp.int32],
-        values_in_out: wp.array2d[wp.float64],
-    ):
-        world = wp.tid()
-        if status_in_out[world, GUARD_TRIPPED] != 0 or world_enabled_in_out[world] == 0:
-            return
+    @wp.func
+    def decide(world: int, substep: int, limits: wp.array2d[wp.float64], work_total: wp.array[wp.float64],
+               world_enabled_in_out: wp.array[wp.int32], status_in_out: wp.array2d[wp.int32],
+               values_in_out: wp.array2d[wp.float64]):
+        """Compare a world's gathered values with its limits: latch its first failure with the check's substep (and
+        with ``stop_world`` hold the world: ``world_enabled`` 0), or clear the check's values for the next."""
         reason = 0
         if status_in_out[world, GUARD_NONFINITE_PARTICLE] != NO_PARTICLE or not wp.isfinite(
             values_in_out[world, GUARD_KINETIC_ENERGY]
@@ -366,18 +362,143 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         status_in_out[world, GUARD_STRAIN_ELEMENT] = NO_PARTICLE
         status_in_out[world, GUARD_STRAIN_FAMILY] = NO_PARTICLE
 
-    return measure, gather, locate, decide
+    @wp.func
+    def balance(world: int, energy: wp.float64, work: wp.float64, dissipated: wp.float64,
+                values_in_out: wp.array2d[wp.float64], work_total_in_out: wp.array[wp.float64],
+                balance_in_out: wp.array2d[wp.float64]):
+        """Add a check's work and dissipation to the world's balance (re-based where asked) and write the energy
+        beyond its budget and the budget's peak."""
+        work_total_in_out[world] += wp.max(work, wp.float64(0.0))
+        balance_in_out[world, BALANCE_WORK] += work
+        balance_in_out[world, BALANCE_DISSIPATION] += dissipated
+        if balance_in_out[world, BALANCE_REBASE] != wp.float64(0.0):
+            balance_in_out[world, BALANCE_REFERENCE] = energy - balance_in_out[world, BALANCE_WORK]
+            balance_in_out[world, BALANCE_PEAK] = energy
+            balance_in_out[world, BALANCE_DISSIPATION] = wp.float64(0.0)
+            balance_in_out[world, BALANCE_REBASE] = wp.float64(0.0)
+        balance_in_out[world, BALANCE_ENERGY] = energy
+        budget = balance_in_out[world, BALANCE_REFERENCE] + balance_in_out[world, BALANCE_WORK]
+        balance_in_out[world, BALANCE_PEAK] = wp.max(balance_in_out[world, BALANCE_PEAK], budget)
+        values_in_out[world, GUARD_EXCESS] = energy - (budget - balance_in_out[world, BALANCE_DISSIPATION])
+        values_in_out[world, GUARD_BUDGET] = balance_in_out[world, BALANCE_PEAK]
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def gather(
+        # Guards in (the check's partials, its substep, the limits):
+        partials: wp.array3d[wp.float64],
+        energy_partials: wp.array2d[wp.float64],
+        strain_partials: wp.array2d[wp.float64],
+        substep: int,
+        limits: wp.array2d[wp.float64],
+        # In/out:
+        world_enabled_in_out: wp.array[wp.int32],
+        status_in_out: wp.array2d[wp.int32],
+        running_in_out: wp.array3d[wp.float64],
+        values_in_out: wp.array2d[wp.float64],
+        work_total_in_out: wp.array[wp.float64],
+        balance_in_out: wp.array2d[wp.float64],
+    ):
+        """A world's kinetic and elastic energy, the work put in and the energy dissipated since the last
+        check (its blocks' partials and running sums: the dissipation and the working families' work, the running
+        sums cleared; the work and the dissipation
+        added to the balance, the work's positive part to the world's running total W⁺), its largest strain,
+        and the energy beyond the balance's budget. Launched over [world, lanes] with ``block_dim`` = lanes
+        (one lane on the CPU): each lane sums every lanes-th block in order, then a fixed-order tree
+        (``block_sum``) joins the lanes, so the sums are deterministic; one thread walking a world's ~10³ blocks
+        of a 512² cloth in turn took 0.9 ms on an H100, most of a check. Lane 0 then decides (``decide``): one launch
+        for the world's sums and its verdict."""
+        world, lane = wp.tid()
+        if status_in_out[world, GUARD_TRIPPED] != 0 or world_enabled_in_out[world] == 0:
+            return
+        lanes = wp.block_dim()
+        energy = wp.float64(0.0)
+        worst = wp.float64(-1.0)
+        work = wp.float64(0.0)
+        dissipated = wp.float64(0.0)
+        b = lane
+        while b < partials.shape[1]:
+            energy += partials[world, b, GUARD_KINETIC_ENERGY]
+            worst = wp.max(worst, partials[world, b, GUARD_MAX_STRAIN])
+            work += partials[world, b, GUARD_WORK]
+            if wp.static(counted):
+                work += partials[world, b, PARTIAL_FAMILY_WORK]
+                if wp.static(dissipation):
+                    dissipated += partials[world, b, PARTIAL_DISSIPATION]
+            b += lanes
+        elastic = wp.float64(0.0)
+        b = lane
+        while b < energy_partials.shape[1]:
+            elastic += energy_partials[world, b]
+            worst = wp.max(worst, strain_partials[world, b])
+            b += lanes
+        b = lane
+        while b < running_in_out.shape[1]:
+            dissipated += running_in_out[world, b, RUNNING_DISSIPATION]
+            work += running_in_out[world, b, RUNNING_WORK]
+            running_in_out[world, b, RUNNING_DISSIPATION] = wp.float64(0.0)
+            running_in_out[world, b, RUNNING_WORK] = wp.float64(0.0)
+            b += lanes
+        energy = block_sum(energy)
+        worst = block_max(worst)
+        work = block_sum(work)
+        elastic = block_sum(elastic)
+        dissipated = block_sum(dissipated)
+        if lane != 0:
+            return
+        values_in_out[world, GUARD_KINETIC_ENERGY] = energy
+        values_in_out[world, GUARD_ELASTIC_ENERGY] = elastic
+        values_in_out[world, GUARD_MAX_STRAIN] = worst
+        values_in_out[world, GUARD_WORK] = work
+        if wp.isfinite(work) and wp.isfinite(energy + elastic) and wp.isfinite(dissipated):
+            # (a non-finite world's balance stays as it was: ``decide`` stops it)
+            balance(world, energy + elastic, work, dissipated, values_in_out, work_total_in_out, balance_in_out)
+        decide(world, substep, limits, work_total_in_out, world_enabled_in_out, status_in_out, values_in_out)
+
+    @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
+    def locate(
+        # Model:
+        particle_count: int,
+        element_arrays: Elements,
+        # State in:
+        particle_q: wp.array[vec3],
+        # Guards in (the check's substep, the gathered values):
+        substep: int,
+        values: wp.array2d[wp.float64],
+        # In/out:
+        status_in_out: wp.array2d[wp.int32],
+    ):
+        """The most strained particle, element and family of a world that failed at this check (``decide`` ran
+        first: a world that passed, or failed at an earlier check, is left alone, so a passing check costs one
+        early return per particle, not a second strain pass)."""
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
+        largest = values[world, GUARD_MAX_STRAIN]
+        if (status_in_out[world, GUARD_TRIPPED] == 0 or status_in_out[world, GUARD_SUBSTEP] != substep
+                or largest < wp.float64(0.0)):
+            return
+        strain, element, family = element_strain(world, i, p - i, particle_q[p], element_arrays, particle_q)
+        if strain == largest:  # the same evaluation as in measure
+            wp.atomic_min(status_in_out, world, GUARD_STRAIN_PARTICLE, i)
+            wp.atomic_min(status_in_out, world, GUARD_STRAIN_ELEMENT, element)
+            wp.atomic_min(status_in_out, world, GUARD_STRAIN_FAMILY, family)
+
+    return measure, gather, locate
 
 
 @functools.cache
 def guard_energy_kernel(scalar: type, spec, tiled: bool):
     """Kernel writing per-block sums of the elastic energy [J] of one family's elements in every world into
-    ``partials[world, offset + block]``; launch over ``reduce_launch_dim(worlds, element_count, lanes)``."""
+    ``partials[world, offset + block]``, and where the family has an ``element_strain`` hook the block's largest
+    strain [-] into ``strain_partials[world, offset + block]`` (each element once, with the length its energy
+    takes: ``measure`` then leaves the family out of its per-particle strain); launch over
+    ``reduce_launch_dim(worlds, element_count, lanes)``."""
     vec3 = vec3_type(scalar)
-    block_sum, _ = reduction_funcs(tiled)
+    block_sum, block_max = reduction_funcs(tiled)
     funcs = spec.funcs(scalar)
     Arrays = funcs.arrays
     energy_func = funcs.energy
+    strain_func = getattr(funcs, "element_strain", None)
+    strained = strain_func is not None
 
     # An element's energy reads its own entries, never the incidence table.
     @flat_kernel(module="unique", enable_backward=False, last=("arrays__incidence",))
@@ -395,17 +516,25 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool):
         particle_q: wp.array[vec3],
         # Out:
         partials_out: wp.array2d[wp.float64],
+        strain_partials_out: wp.array2d[wp.float64],
     ):
         world, block, lane = wp.tid()
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
             return
         element = block * wp.block_dim() + lane
         energy = wp.float64(0.0)
+        worst = wp.float64(-1.0)
         if element < element_count:
             energy = wp.float64(energy_func(world, element, world * particle_count, arrays, inputs, particle_q))
+            if wp.static(strained):
+                worst = strain_func(world, element, world * particle_count, arrays, particle_q)
         energy = block_sum(energy)
+        if wp.static(strained):
+            worst = block_max(worst)
         if lane == 0:
             partials_out[world, offset + block] = energy
+            if wp.static(strained):
+                strain_partials_out[world, offset + block] = worst
 
     return element_energy_partials
 

@@ -24,7 +24,7 @@ import functools
 import warp as wp
 
 from .families import FORCE_KERNEL_OPTIONS, elements
-from .forces import ForceFeatures, particle_force_func
+from .forces import ForceFeatures, counts_work, particle_force_func, particle_power_func, power_sums_funcs
 from .kinematics import is_kinematic, particle_funcs
 from .linalg import reduction_funcs
 from .precision import vec3_type
@@ -51,10 +51,16 @@ def symplectic_euler_funcs(scalar: type):
 
 
 @functools.cache
-def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures):
+def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures, power: bool = False, work: bool = False):
     """Symplectic Euler + contact kernel from precomputed forces (the scatter path); ``contacts`` fused
-    (static colliders, every one tested)."""
+    (static colliders, every one tested). With ``power`` each free particle adds to its entry of the guard's power
+    sums -h f_d·(v + v')/2 and h f_w·(v + v')/2 from the dampers' and the outside loads' parts of its force, which the
+    force passes wrote (``symplectic_euler_kernel``'s rule); ``work``: the sums carry the work
+    (``forces.power_sums_funcs``)."""
     vec3 = vec3_type(scalar)
+    sums = power_sums_funcs(scalar, work)
+    Sums = sums.type
+    pack = sums.pack
     Shapes = shapes_type(scalar)
     update = symplectic_euler_funcs(scalar)
     effective_inv_mass = particle_funcs(scalar)
@@ -77,10 +83,15 @@ def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures):
         time_in: wp.array[wp.float64],
         dt: scalar,
         dt_rest: scalar,
+        # Guard in (the dampers' and the outside loads' parts of the force [N], read with ``power`` only):
+        particle_fd: wp.array[vec3],
+        particle_fw: wp.array[vec3],
         # State out:
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
         time_out: wp.array[wp.float64],
+        # In/out (the guard's power sums [J], read with ``power`` only):
+        power_in_out: wp.array[Sums],
     ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
@@ -89,7 +100,14 @@ def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures):
         h = dt
         flags = particle_flags[p]
         inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
-        x, v = update(particle_q_in[p], particle_qd_in[p], particle_f_in[p], effective_inv_mass(flags, inv_mass), h)
+        v_start = particle_qd_in[p]
+        x, v = update(particle_q_in[p], v_start, particle_f_in[p], effective_inv_mass(flags, inv_mass), h)
+        if wp.static(power):  # (a kinematic particle's stored parts: its elements' dampers only)
+            mean = (v_start + v) * (scalar(0.5) * h)
+            worked = scalar(0.0)
+            if wp.static(work):
+                worked = wp.dot(particle_fw[p], mean)
+            power_in_out[p] += pack(-wp.dot(particle_fd[p], mean), worked)
         if wp.static(has_contacts):
             if not is_kinematic(flags):
                 x, v = project_contacts(world, p, x, v, particle_radius[i], h, shapes, inputs)
@@ -100,12 +118,25 @@ def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures):
 
 
 @functools.cache
-def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures):
+def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
+                            power: tuple | None = None):
     """Fused force + symplectic Euler + contact kernel: v' = v + h M⁻¹ f(x, v); x' = x + h v'; ``contacts``
-    fused (static colliders, every one tested)."""
+    fused (static colliders, every one tested).
+
+    With ``power`` (one ``forces.POWER_*`` mode per family of ``features``) each free particle also adds to its own
+    entry of the guard's power sums (``core/forces.PowerSums``) the energy [J] its dampers and drag took out over
+    the step, -h f_d·(v + v')/2, and the work the loads from outside did on it, h f_w·(v + v')/2 (f_d, f_w: their
+    parts of f, ``forces.particle_power_func``; v' before the contacts). That is exactly what they changed its
+    kinetic energy by, ½ m (|v'|² - |v|²) = h f·(v + v')/2, so the guard's balance closes up to the integrator's
+    error in the elastic energy; one thread writes each entry (no atomics), no pass of its own."""
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
-    particle_force = particle_force_func(scalar, features)
+    counted = power is not None
+    sums = power_sums_funcs(scalar, counted and counts_work(features, power))
+    Sums = sums.type
+    pack = sums.pack
+    particle_force = (particle_power_func(scalar, features, power) if counted
+                      else particle_force_func(scalar, features))
     composed = elements(scalar, features.families)
     Elements = composed.arrays
     update = symplectic_euler_funcs(scalar)
@@ -137,6 +168,8 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
         time_out: wp.array[wp.float64],
+        # In/out (the guard's power sums [J], read with ``power`` only):
+        power_in_out: wp.array[Sums],
     ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
@@ -149,10 +182,24 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
         if is_kinematic(particle_flags[p]):
             particle_q_out[p] = x + h * v
             particle_qd_out[p] = v
+            if wp.static(counted):  # its elements' dampers: their share of the dampers' power (the drive's work has
+                # the rest)
+                _, dampers, _ = particle_force(world, i, base, x, v, False, particle_mass, element_arrays, inputs,
+                                               particle_force_ext, particle_q_in, particle_qd_in)
+                power_in_out[p] += pack(-h * wp.dot(dampers, v), scalar(0.0))
             return
-        f = particle_force(world, i, base, x, v, particle_mass, element_arrays, inputs, particle_force_ext,
-                           particle_q_in, particle_qd_in)
-        x, v = update(x, v, f, particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i], h)
+        inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
+        if wp.static(counted):
+            f, dampers, work = particle_force(world, i, base, x, v, True, particle_mass, element_arrays, inputs,
+                                              particle_force_ext, particle_q_in, particle_qd_in)
+            v_start = v
+            x, v = update(x, v, f, inv_mass, h)
+            mean = (v_start + v) * (scalar(0.5) * h)
+            power_in_out[p] += pack(-wp.dot(dampers, mean), wp.dot(work, mean))
+        else:
+            f = particle_force(world, i, base, x, v, particle_mass, element_arrays, inputs, particle_force_ext,
+                               particle_q_in, particle_qd_in)
+            x, v = update(x, v, f, inv_mass, h)
         if wp.static(has_contacts):
             x, v = project_contacts(world, p, x, v, particle_radius[i], h, shapes, inputs)
         particle_q_out[p] = x

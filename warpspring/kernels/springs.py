@@ -222,13 +222,28 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
         n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
         return (beta * kd) * wp.outer(n, n) + alpha * spring_stiffness_matrix(xi, xj, rest, ke, True, values)
 
+    # The dampers' part of a spring's force is separable for the laws whose dissipation the guard counts.
+    splittable = not (spec.law.clamp_force or spec.law.plastic)
+
     @wp.func
-    def force(
+    def damper_force(xi: vec3, xj: vec3, vi: vec3, vj: vec3, kd: scalar) -> vec3:
+        """The damper's part [N] of the spring (i, j)'s force on i, kd ((vj - vi)·d̂) d̂ (0 where the law's force is
+        not separable: ``splittable``); the same terms as ``spring_force``, which the compiler shares."""
+        if wp.static(not splittable):
+            return vec3(scalar(0.0))
+        d = xj - xi
+        length = wp.length(d)
+        n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
+        return n * (kd * wp.dot(vj - vi, n))
+
+    @wp.func
+    def force_split(
         world: int, i: int, base: int, xi: vec3, vi: vec3, springs: SpringArrays, inputs: wp.array2d[scalar],
         particle_q: wp.array[vec3], particle_qd: wp.array[vec3],
-    ) -> vec3:
-        """Sum of the forces [N] of the springs at particle i of ``world``."""
+    ):
+        """(sum of the forces [N] of the springs at particle i of ``world``, their dampers' part [N])."""
         f = vec3(scalar(0.0))
+        damping_part = vec3(scalar(0.0))
         if wp.static(grouped):
             # Uniform groups: each group's rest length, ke and kd once, then per slot only its other particle
             # (the slots of a group read per spring also load their spring and its values).
@@ -263,11 +278,13 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
                     else:
                         j = base + head_local[k, i]
                     f += spring_force(xi, particle_q[j], vi, particle_qd[j], rest[g], ke[g], kd[g], values)
+                    damping_part += damper_force(xi, particle_q[j], vi, particle_qd[j], kd[g])
                 else:
                     j = base + head_local[k, i]
                     s = head_element[k, i]
                     f += spring_force(xi, particle_q[j], vi, particle_qd[j], springs.rest_length[s],
                                       springs.stiffness[stiffness_row, s], springs.damping[damping_row, s], values)
+                    damping_part += damper_force(xi, particle_q[j], vi, particle_qd[j], springs.damping[damping_row, s])
         elif wp.static(spec.gathered):
             values = spring_law_values(inputs, world)
             # The arrays in locals once: the slot loop then indexes them without reloading the struct.
@@ -287,6 +304,7 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
                 s = head_element[k, i]
                 f += spring_force(xi, particle_q[j], vi, particle_qd[j], rest_length[rest_base + s],
                                   stiffness[stiffness_row, s], damping[damping_row, s], law_at(values, springs, s))
+                damping_part += damper_force(xi, particle_q[j], vi, particle_qd[j], damping[damping_row, s])
             if wp.static(tail):
                 tail_start = springs.incidence.tail_start
                 tail_local = springs.incidence.tail_local
@@ -296,6 +314,16 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
                     s = tail_element[t]
                     f += spring_force(xi, particle_q[j], vi, particle_qd[j], rest_length[rest_base + s],
                                       stiffness[stiffness_row, s], damping[damping_row, s], law_at(values, springs, s))
+                    damping_part += damper_force(xi, particle_q[j], vi, particle_qd[j], damping[damping_row, s])
+        return f, damping_part
+
+    @wp.func
+    def force(
+        world: int, i: int, base: int, xi: vec3, vi: vec3, springs: SpringArrays, inputs: wp.array2d[scalar],
+        particle_q: wp.array[vec3], particle_qd: wp.array[vec3],
+    ) -> vec3:
+        """Sum of the forces [N] of the springs at particle i of ``world`` (``force_split``'s first part)."""
+        f, _ = force_split(world, i, base, xi, vi, springs, inputs, particle_q, particle_qd)
         return f
 
     @wp.func
@@ -372,6 +400,14 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
         return worst, wp.where(worst > wp.float64(-1.0), element, -1)
 
     @wp.func
+    def element_strain(world: int, s: int, base: int, springs: SpringArrays, particle_q: wp.array[vec3]) -> wp.float64:
+        """|d|/L - 1 of spring s in ``world`` (``spring_strain`` from its first end: the bits ``strain`` gives at
+        either)."""
+        ends = springs.indices[s]
+        return spring_strain(ends[0], ends[1], particle_q[base + ends[0]], particle_q[base + ends[1]],
+                             rest_at(springs, world, s))
+
+    @wp.func
     def energy(world: int, s: int, base: int, springs: SpringArrays, inputs: wp.array2d[scalar],
                particle_q: wp.array[vec3]) -> scalar:
         """Elastic energy [J] of spring s in ``world``."""
@@ -400,7 +436,8 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
 
     # The gathered hooks find a spring's other end in the incidence entry, never in ``indices``.
     return FamilyFuncs(SpringArrays, force, product, strain, energy, ("indices", *spec.incidence.idle()),
-                       dissipation=dissipation)
+                       dissipation=dissipation, split=force_split if splittable else None,
+                       element_strain=element_strain)
 
 
 #: ``spring_scatter_kernel``'s ``dissipation`` rules (``DAMPER_*``): none, the trapezoid of the dampers' power, or

@@ -46,6 +46,11 @@ class Integrator(abc.ABC):
     #: Counts structural changes of the integrator's launches (a Stepper re-captures when it changes).
     #: Its settings (tolerances, iteration caps) are device values: changing them changes no launch.
     revision: int = 0
+    #: The guard's sums counted in this integrator's force passes (``core/forces.py``), set by the guard that reads
+    #: them: the scattered springs' dampers (``DamperSums``) and the power of dampers, drag and loads from outside
+    #: (``PowerSums``); ``None``: not counted. Each simulator's integrator carries its own guard's.
+    dampers = None
+    power = None
 
     def __init__(self, model: Model):
         self.model = model

@@ -94,7 +94,8 @@ class ExplicitRungeKutta(Integrator):
         """Evaluate the forces of every stage of a step of ``dt`` (seconds, or a device array holding
         them) from ``state_in``; with ``first=False`` stage 0's forces are already in place."""
         if first:
-            eval_forces(self.model, state_in, control, particle_f=self._stage_f[0])
+            eval_forces(self.model, state_in, control, particle_f=self._stage_f[0], dampers=self.dampers,
+                        power=self.power)
         for k in range(1, len(self.b)):
             self.combine(state_in, control, self.a[k], dt, self._stages[k], upto=k)
             eval_forces(self.model, self._stages[k], control)

@@ -35,7 +35,8 @@ class SymplecticEuler(Integrator):
             evaluate_input_tracks(model, state_in)
             features = model.force_features(control)
             flat_launch(
-                symplectic_euler_kernel(model.scalar, features, contacts),
+                symplectic_euler_kernel(model.scalar, features, contacts,
+                                        None if self.power is None else self.power.modes),
                 inputs=[
                     model.particle_count,
                     model.particle_flags,
@@ -48,13 +49,16 @@ class SymplecticEuler(Integrator):
                     state_in.time,
                     *step_arguments(model.scalar, dt),
                 ],
-                outputs=[state_out.particle_q, state_out.particle_qd, state_out.time],
+                outputs=[state_out.particle_q, state_out.particle_qd, state_out.time,
+                         None if self.power is None else self.power.sums],
                 **common,
             )
         else:
-            eval_forces(model, state_in, control)
+            power = self.power
+            eval_forces(model, state_in, control, dampers=self.dampers, power=power)
+            counted = power is not None and power.forces is not None
             flat_launch(
-                symplectic_euler_update_kernel(model.scalar, contacts),
+                symplectic_euler_update_kernel(model.scalar, contacts, counted, counted and power.work),
                 inputs=[
                     model.particle_count,
                     model.particle_flags,
@@ -67,8 +71,10 @@ class SymplecticEuler(Integrator):
                     state_in.particle_f,
                     state_in.time,
                     *step_arguments(model.scalar, dt),
+                    *(power.forces if counted else (None, None)),
                 ],
-                outputs=[state_out.particle_q, state_out.particle_qd, state_out.time],
+                outputs=[state_out.particle_q, state_out.particle_qd, state_out.time,
+                         power.sums if counted else None],
                 **common,
             )
         apply_kinematics(model, control, state_in, state_out.particle_q, state_out.particle_qd, dt)

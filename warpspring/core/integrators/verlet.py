@@ -59,7 +59,7 @@ class VelocityVerlet(Integrator):
         h = model.scalar(dt)
         half = self._half
         mass = [model.particle_count, model.particle_flags, model.particle_inv_mass]
-        eval_forces(model, state_in, control)
+        eval_forces(model, state_in, control, dampers=self.dampers)
         wp.launch(
             drift,
             inputs=[*mass, state_in.particle_q, state_in.particle_qd, state_in.particle_f, state_in.time,

@@ -1,0 +1,218 @@
+"""The guard's power counted in the integrator's own force pass (``core/forces.PowerSums``): symplectic Euler's fused
+step with gathered springs (the CUDA default; here forced on the CPU too), its update after scattered springs (the
+CPU default: drag and the loads from outside; the springs' pass counts their own dampers) and RK4's evaluation at
+each step's start.
+The balance it keeps matches closed forms as the passes of its own did, the run it watches is the same to the last
+bit, and it launches nothing per substep."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warpspring as ws
+from helpers import run_frames
+
+# A 2 kg mass on a 200 N/m spring with 5 % of critical damping, hanging from a pin, released 0.1 m below its static
+# equilibrium at rest: ω = 10 rad/s, kd = 2 ζ √(k m) = 2 N·s/m (``test_dissipation.py``'s oscillator).
+MASS, K, G, ZETA, AMPLITUDE = 2.0, 200.0, 9.81, 0.05, 0.1
+OMEGA = np.sqrt(K / MASS)
+KD = 2.0 * ZETA * np.sqrt(K * MASS)
+
+
+def oscillator_energy(t: float) -> float:
+    """½ m v² + ½ k y² [J] of the damped oscillation about its static equilibrium at time t [s] (closed form)."""
+    wd = OMEGA * np.sqrt(1.0 - ZETA**2)
+    decay = np.exp(-ZETA * OMEGA * t)
+    y = -AMPLITUDE * decay * (np.cos(wd * t) + ZETA * OMEGA / wd * np.sin(wd * t))
+    v = AMPLITUDE * OMEGA**2 / wd * decay * np.sin(wd * t)
+    return 0.5 * MASS * v * v + 0.5 * K * y * y
+
+
+def oscillator(device, evaluation: str) -> ws.Model:
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, -G))
+    builder.add_particles([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0 - MASS * G / K - AMPLITUDE]], mass=[1.0, MASS])
+    builder.pin_particles([0])
+    builder.add_springs([[0, 1]], stiffness=K, damping=KD, rest_length=1.0)
+    return builder.finalize(device, spring_evaluation=evaluation)
+
+
+@pytest.mark.parametrize("integrator, order", [("rk4", 2), ("symplectic_euler", 1)])
+@pytest.mark.parametrize("evaluation", ["gather", "scatter"])
+def test_power_in_the_force_pass_is_the_oscillators_lost_energy(device, integrator, order, evaluation):
+    """Over 2 s (fps 60, 8 substeps: ωh = 0.021) D equals the closed-form energy loss from the first check on and the
+    balance closes, within (ωh)^order of the loss as ``test_dissipation.py`` derives it: RK4's trapezoid of the
+    power at the steps' starts (closed at each check) is second order; symplectic Euler's mean-rate rule (each
+    step's f_d·(v + v')/2 h, what its damper changed the kinetic energy by, closed at the checks) first order."""
+    model = oscillator(device, evaluation)
+    sim = ws.Simulator(model, integrator=ws.make_integrator(integrator, model), fps=60, substeps=8)
+    run_frames(sim, 120)
+    # (scattered springs under symplectic Euler: their own pass counts them, DamperSums, and nothing else is left)
+    assert (sim.guard._power is not None) == (integrator == "rk4" or evaluation == "gather")
+    tolerance = (OMEGA * sim.dt) ** order
+    lost = oscillator_energy(1.0 / 60.0) - oscillator_energy(2.0)
+    balance = sim.guard.energy_balance()
+    assert lost > 0.8 * oscillator_energy(0.0)
+    assert balance.dissipated[0] == pytest.approx(lost, rel=tolerance)
+    assert abs(balance.created[0]) <= tolerance * oscillator_energy(0.0)
+
+
+@pytest.mark.parametrize("omega_h", [0.5, 1.0, 1.5])
+def test_symplectic_euler_fused_counts_its_loss_at_large_steps(device, omega_h):
+    """``test_dissipation.py``'s large-step oscillator (no gravity, 1 substep of 1/60 s at ωh as given, kd h/m = 0.01)
+    through the fused step with gathered springs: after 10 s D is the energy lost since the first check within 1 %
+    as there (the step's exact energy closed by the quarter of h P at the checks: the mean-rate rule kd ((r + r')/2)²
+    per step, whose first step, from rest to v₁ = hω²A, took out h kd (v₁/2)² before the first check; the trapezoid
+    of kd v² at the steps' ends is 7 to 130 % off)."""
+    h = 1.0 / 60.0
+    stiffness = MASS * (omega_h / h) ** 2
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    builder.add_particles([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0 - AMPLITUDE]], mass=[1.0, MASS])
+    builder.pin_particles([0])
+    kd = 0.01 * MASS / h
+    builder.add_springs([[0, 1]], stiffness=stiffness, damping=kd, rest_length=1.0)
+    model = builder.finalize(device, spring_evaluation="gather")
+    sim = ws.Simulator(model, integrator=ws.make_integrator("symplectic_euler", model), fps=60, substeps=1,
+                       guard=ws.GuardLimits(energy_balance=10.0))
+    start = 0.5 * stiffness * AMPLITUDE**2
+    run_frames(sim, 600)
+    balance = sim.guard.energy_balance()
+    assert sim.guard._power is not None
+    assert balance.energy[0] < 0.01 * start
+    first = h * kd * (h * omega_h**2 / h**2 * AMPLITUDE / 2.0) ** 2
+    assert balance.dissipated[0] == pytest.approx(start - balance.energy[0] - first, rel=1.0e-2)
+
+
+@pytest.mark.parametrize("integrator", ["symplectic_euler", "rk4"])
+def test_drag_and_wind_counted_in_the_force_pass(device, integrator):
+    """A 6 × 6 cloth hung from its top row in a 3 m/s wind (aerodynamics) with viscous drag (0.02 N·s/m per
+    particle): the force pass counts the dampers and drag against still air, c v·v̄, as D, and the wind's push
+    through drag, c u·v̄, and its drag and lift on the triangles as work of loads. Over 1 s the balance closes to
+    the integrators' energy error, bounded by (ω_max h)^order of the budget (ω_max ≈ 2√(ke/m)·2 for the crossed
+    springs of ke = 100 N/m on 0.05 kg: 180 rad/s, h = 1/480 s)."""
+    builder = ws.ModelBuilder(drag=0.02)
+    spring = ws.SpringMaterial(ke=100.0, kd=0.5)
+    builder.add_cloth_grid(nx=6, ny=6, spacing=0.1, particle_mass=0.05, structural=spring, shear=spring,
+                           pin=["top"])
+    builder.add_aerodynamics(wind=(3.0, 0.0, 0.0))
+    model = builder.finalize(device, spring_evaluation="gather")
+    sim = ws.Simulator(model, integrator=ws.make_integrator(integrator, model), fps=60, substeps=8)
+    run_frames(sim, 60)
+    assert sim.guard._power is not None
+    balance = sim.guard.energy_balance()
+    order = 2 if integrator == "rk4" else 1
+    assert balance.work[0] > 0.01 * balance.peak[0]  # the wind did work worth checking
+    assert balance.dissipated[0] > 0.01 * balance.peak[0]
+    assert abs(balance.created[0]) <= (180.0 * sim.dt) ** order * balance.peak[0]
+
+
+@pytest.mark.parametrize("integrator", ["symplectic_euler", "rk4"])
+def test_the_guarded_run_is_the_unguarded_run_bit_for_bit(device, integrator):
+    """Counting the power changes no force: a hanging cloth's positions after 10 frames are the same to the last bit
+    with the default guard and with none."""
+    def cloth():
+        builder = ws.ModelBuilder(drag=0.05)
+        spring = ws.SpringMaterial(ke=1.0e3, kd=10.0)
+        builder.add_cloth_grid(nx=8, ny=8, spacing=0.1, particle_mass=0.1, structural=spring, shear=spring,
+                               bend=spring, pin=["top"])
+        return builder.finalize(device, spring_evaluation="gather")
+
+    positions = []
+    for guard in (ws.GuardLimits(), None):
+        model = cloth()
+        sim = ws.Simulator(model, integrator=ws.make_integrator(integrator, model), fps=60, substeps=8, guard=guard)
+        run_frames(sim, 10)
+        positions.append(sim.state.particle_q.numpy())
+    assert sim.guard is None
+    assert np.array_equal(positions[0], positions[1])
+
+
+def test_no_launch_per_substep_for_the_guard(device):
+    """Symplectic Euler with gathered springs and drag: the default guard adds no launch to a substep; its check
+    runs once per frame (a frame of 16 substeps: the launches of the guarded frame less the unguarded frame's are
+    the same whatever the substeps)."""
+    def launches(guard, substeps):
+        builder = ws.ModelBuilder(drag=0.05)
+        spring = ws.SpringMaterial(ke=1.0e3, kd=10.0)
+        builder.add_cloth_grid(nx=6, ny=6, spacing=0.1, particle_mass=0.1, structural=spring, shear=spring,
+                               pin=["top"])
+        model = builder.finalize(device, spring_evaluation="gather")
+        sim = ws.Simulator(model, integrator=ws.make_integrator("symplectic_euler", model), fps=60, substeps=substeps,
+                           guard=guard, use_graph=False)
+        sim.step_frame()
+        count = [0]
+        launch = wp.launch
+
+        def counted(*args, **kwargs):
+            count[0] += 1
+            return launch(*args, **kwargs)
+
+        wp.launch = counted
+        try:
+            sim.step_frame()
+        finally:
+            wp.launch = launch
+        return count[0]
+
+    extra = [launches(ws.GuardLimits(), n) - launches(None, n) for n in (4, 16)]
+    assert extra[0] == extra[1] > 0
+
+
+def test_two_simulators_on_one_model_keep_their_own_sums(device):
+    """Each guard hands its sums to its own integrator: two simulators of one model, one stepped, leave the other's
+    balance untouched, and the stepped one's D is what it is alone."""
+    model = oscillator(device, "scatter")
+    first = ws.Simulator(model, integrator=ws.make_integrator("symplectic_euler", model), fps=60, substeps=8)
+    second = ws.Simulator(model, integrator=ws.make_integrator("symplectic_euler", model), fps=60, substeps=8)
+    assert first.integrator.dampers is not second.integrator.dampers
+    assert getattr(model, "_damper_sums", None) is None
+    run_frames(first, 30)
+    alone = first.guard.energy_balance().dissipated[0]
+    assert alone > 0.0
+    assert second.guard.energy_balance().dissipated[0] == 0.0
+    run_frames(second, 30)
+    assert second.guard.energy_balance().dissipated[0] == pytest.approx(alone, rel=1e-6)
+
+
+@pytest.mark.parametrize("integrator", ["symplectic_euler", "rk4"])
+def test_dampers_past_their_limit_are_caught_in_the_force_pass(device, integrator):
+    """``test_dissipation.py``'s unstable dampers with gathered springs: an 8 × 8 cloth swings 1 s, then its dampers
+    are raised in place to 21 N·s/m (kd h λ_D/m ≈ 2 on the stiffest damping mode at 16 substeps: the step
+    overshoots and grows it; RK4's limit on a damping mode is 2.79: raised to 30 N·s/m for it). The counted D keeps
+    every damper's loss ≥ 0 (the mean-rate rule, the trapezoid), so the energy the overshooting step creates shows
+    in the balance and the run is stopped for it within 60 frames; an exact count of the step's damper work would
+    have read it as the dampers putting energy in."""
+    builder = ws.ModelBuilder()
+    spring = ws.SpringMaterial(ke=1.0e3, kd=10.0)
+    builder.add_cloth_grid(nx=8, ny=8, spacing=0.1, origin=(-0.35, -0.35, 1.0), particle_mass=0.1,
+                           structural=spring, shear=spring, bend=spring, pin=["top-left", "top-right"])
+    model = builder.finalize(device, spring_evaluation="gather")
+    sim = ws.Simulator(model, integrator=ws.make_integrator(integrator, model), fps=60, substeps=16)
+    run_frames(sim, 60)
+    before = sim.guard.energy_balance()
+    assert abs(before.created[0]) < 0.02 * before.peak[0]  # a correct run: the balance closed
+    raised = 21.0 if integrator == "symplectic_euler" else 30.0
+    model.spring_damping.assign(np.full(model.spring_damping.shape, raised, dtype=np.float32))
+    with pytest.raises(ws.SimulationError, match="energy") as stop:
+        run_frames(sim, 60)
+    assert stop.value.reason in ("energy balance", "kinetic energy")
+
+
+def test_scattered_springs_with_drag_count_in_the_update(device):
+    """Symplectic Euler with scattered springs (the CPU default) and drag: the springs' pass counts their dampers
+    (``DamperSums``), the update the drag (``PowerSums.forces``), and over 2 s the oscillator's balance closes as the
+    gathered run's does: the two runs' D agree to float32 round-off of their different summation orders (1e-4)."""
+    dissipated = {}
+    for evaluation in ("scatter", "gather"):
+        builder = ws.ModelBuilder(gravity=(0.0, 0.0, -G), drag=0.5)
+        builder.add_particles([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0 - MASS * G / K - AMPLITUDE]], mass=[1.0, MASS])
+        builder.pin_particles([0])
+        builder.add_springs([[0, 1]], stiffness=K, damping=KD, rest_length=1.0)
+        model = builder.finalize(device, spring_evaluation=evaluation)
+        sim = ws.Simulator(model, integrator=ws.make_integrator("symplectic_euler", model), fps=60, substeps=8)
+        run_frames(sim, 120)
+        assert sim.guard._power is not None
+        assert (sim.guard._power.forces is not None) == (evaluation == "scatter")
+        balance = sim.guard.energy_balance()
+        assert abs(balance.created[0]) <= OMEGA * sim.dt * balance.peak[0]
+        dissipated[evaluation] = balance.dissipated[0]
+    assert dissipated["scatter"] == pytest.approx(dissipated["gather"], rel=1e-4)
