@@ -31,6 +31,7 @@ import numpy as np
 import warp as wp
 from d1388 import MATERIALS, write_section
 
+import warpspring as ws
 from warpspring.analysis import drape, elastica
 
 PICTURES = pathlib.Path(__file__).parent / "results"
@@ -85,15 +86,22 @@ def main() -> None:
         means = []
         spacings = args.spacings or [c / fraction for fraction in args.fractions]
         for spacing in spacings:
-            runs, start = [], time.perf_counter()
+            runs, stopped, start = [], [], time.perf_counter()
             for seed in args.seeds:
-                runs.append(drape.cusick(material, spacing=spacing, seed=seed, hinges=args.hinges,
-                                         contact_radius=args.contact_radius or 0.25 * spacing, drag=args.drag,
-                                         fixed_time=args.fixed_time, max_time=args.max_time, substeps=args.substeps,
-                                         cg_tolerance=args.cg_tolerance, cg_iterations=args.cg_iterations,
-                                         device=device))
+                try:
+                    runs.append(drape.cusick(material, spacing=spacing, seed=seed, hinges=args.hinges,
+                                             contact_radius=args.contact_radius or 0.25 * spacing, drag=args.drag,
+                                             fixed_time=args.fixed_time, max_time=args.max_time,
+                                             substeps=args.substeps, cg_tolerance=args.cg_tolerance,
+                                             cg_iterations=args.cg_iterations, device=device))
+                except ws.SimulationError as error:  # a run that stopped is reported, not averaged
+                    stopped.append(f"- {name} at {spacing * 1e3:.2f} mm, seed {seed}: stopped: {error}")
+                    print(stopped[-1], flush=True)
+            verdicts.extend(stopped)
+            if not runs:
+                continue
             dc = np.array([r.coefficient for r in runs])
-            means.append(dc.mean())
+            means.append(dc.mean() if not stopped else float("nan"))
             rows.append(f"| {name} | {c * 1e3:.2f} | c/{c / spacing:.2f} = {spacing * 1e3:.2f} | {dc.mean():.4f} | "
                         f"{np.ptp(dc):.4f} | {', '.join(str(r.folds) for r in runs)} | "
                         f"{max(r.kinetic_energy for r in runs):.1e} | {max(r.creep for r in runs) * 1e3:.3f} | "
