@@ -131,9 +131,10 @@ class Guard(StepHook):
         self._values_clear = wp.array(values, dtype=wp.float64, device=device)
         self._status = wp.clone(self._status_clear)
         self._values = wp.clone(self._values_clear)
-        # The status's host copy the frame's read lands in (pinned on CUDA: one small copy, nothing allocated).
-        self._status_host = (wp.empty_like(self._status, device="cpu", pinned=True) if device.is_cuda
-                             else self._status)
+        # The frame's read of the status: the device array itself. A pinned host copy was tried: a guard's pinned buffer
+        # freed by the garbage collector while another simulator captured its graph is a cudaFreeHost inside the
+        # capture, which invalidates it (CUDA error 901 at the next launch, tests/test_extremes.py on an H200).
+        self._status_host = self._status
         grid = reduce_launch_dim(worlds, model.particle_count, self._lanes)
         self._partials = wp.zeros((worlds, grid[1], PARTIAL_SLOTS), dtype=wp.float64, device=device)
         self._limits = wp.zeros((worlds, GUARD_LIMITS), dtype=wp.float64, device=device)
