@@ -32,6 +32,7 @@ from .scene_checks import (
     check_nesting,
     check_representable,
     check_run_settings,
+    check_soft_body_element,
     check_soft_body_pin,
     check_table,
     format_version,
@@ -252,6 +253,7 @@ def _parse(data: dict, path: str) -> Scene:
         if ("density" in body) == ("mass" in body):
             raise ConfigError(f"{where}: [{label}] needs exactly one of density = ... [kg/m³] or mass = ... [kg]")
         check_soft_body_pin(body.get("pin"), where, label)
+        check_soft_body_element(body.get("element"), where, label)
         if "plasticity" in body and not ({"yield_strain", "yield_force"} & set(body["plasticity"])):
             raise ConfigError(f"{where}: {label}.plasticity needs yield_strain = ... [-] or yield_force = ... [N] "
                               "(its elastic limit)")

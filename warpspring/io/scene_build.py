@@ -129,6 +129,7 @@ def _add_soft_body(builder: ModelBuilder, body: dict, base: str) -> None:
         plasticity=SpringPlasticity(**body["plasticity"]) if "plasticity" in body else None,
         volume=body.get("volume", False), bulk_modulus=body.get("bulk_modulus"),
         elasticity=body.get("elasticity", "springs"), poisson_ratio=body.get("poisson_ratio", 0.25),
+        element=body.get("element", "tet4"),
     )
     if "pin" in body:
         placed = builder.particle_positions(soft.particles)

@@ -9,6 +9,7 @@ import math
 import re
 
 from ..core.builder.spring_materials import spring_law_options
+from ..core.tet10 import ELEMENTS
 from ..core.tracks import EXTRAPOLATIONS, INTERPOLATIONS, Track
 from ..errors import ConfigError
 from ..version import __version__
@@ -389,6 +390,14 @@ def check_soft_body_pin(pin, where: str, label: str) -> None:
                           "whose particles are pinned")
     if any(lo > hi for lo, hi in zip(pin["min"], pin["max"])):
         raise ConfigError(f"{where}: {label}.pin has min {pin['min']} above max {pin['max']} on some axis: swap them")
+
+
+def check_soft_body_element(element, where: str, label: str) -> None:
+    """A soft body's ``element`` (types checked): one of the tet elements; the builder checks that it goes with
+    ``elasticity = "neohookean"``."""
+    if element is not None and element not in ELEMENTS:
+        raise ConfigError(f"{where}: {label}.element must be one of {', '.join(map(repr, ELEMENTS))}, got {element!r} "
+                          "(\"tet10\": quadratic tets, with elasticity = \"neohookean\")")
 
 
 def check_export_options(out: dict, where: str) -> dict:

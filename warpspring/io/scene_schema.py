@@ -294,6 +294,7 @@ SOFT_BODY = {
     "bulk_modulus": POSITIVE,  # its K [Pa]; default 2E/3
     "elasticity": str,  # "springs" or "neohookean" (tetrahedral and delaunay methods: the tets carry it)
     "poisson_ratio": NUMBER,  # ν of the neohookean material, in (-1, 0.5)
+    "element": str,  # "tet4" or "tet10": linear or quadratic tets carry the neohookean material
 }
 SCHEMA = {
     "simulation": {
