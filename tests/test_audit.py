@@ -4,7 +4,6 @@ not reported."""
 
 import numpy as np
 import pytest
-import warp as wp
 
 import warpspring as ws
 from warpspring.analysis.audit import SubstepAudit, SurfaceAudit, audit_frame, audit_motion, surface_edges
