@@ -9,7 +9,7 @@ Scenes (:data:`SCENES`), each at a ``size`` ("full" or "small": the grid's spaci
   while it approaches the other, pinned, short edge by 0.2 m (τ = 5 mm); then held.
 * ``ring``: a square cloth pulled by its centre down through a ring (twelve capsules on a circle) smaller than it.
 * ``stack``: five cloths dropped onto a box, their left edges lowered with them, then pulled off sideways.
-* ``crumple``: a cloth on the ground crumpled by a sphere that presses it into the ground while it turns.
+* ``crumple``: a cloth draped over a sphere that sinks, turning, until it presses the folded pile into the ground.
 * ``turntable``: a cloth dropped onto a turning box in the wind.
 
 :func:`run_case` runs one scene under one integrator and returns a :class:`CaseResult`.
@@ -102,19 +102,21 @@ def stack(builder: ModelBuilder, spacing: float, duration: float) -> float:
 
 def crumple(builder: ModelBuilder, spacing: float, duration: float) -> float:
     builder.add_ground_plane(friction=0.8)
-    _cloth(builder, 0.4, 0.4, spacing, (-0.2, -0.2, 0.006), name="cloth")
-    press = 1.0 * duration
+    _cloth(builder, 0.6, 0.6, spacing, (-0.3, -0.3, 0.3), name="cloth")
+    drop, sink = 0.5 * duration, 1.0 * duration
+    # The cloth drapes over the sphere, which then sinks until its top is 1 cm above the ground: the skirt
+    # folds onto the ground and the sphere presses the pile into it, turning.
     builder.add_collider_sphere(
-        center=(0.0, 0.0, 0.25), radius=0.12, friction=1.0,
-        translation=Track([0.0, press], [[0, 0, 0], [0, 0, -0.118]], interpolation="smooth"),
-        rotation=Track.rotation([0.0, press, 2.0 * press], axis=(0, 0, 1), degrees=[0.0, 90.0, 270.0],
+        center=(0.0, 0.0, 0.13), radius=0.12, friction=0.8,
+        translation=Track([0.0, drop, drop + sink], [[0, 0, 0], [0, 0, 0], [0, 0, -0.24]], interpolation="smooth"),
+        rotation=Track.rotation([0.0, drop, drop + sink], axis=(0, 0, 1), degrees=[0.0, 0.0, 180.0],
                                 interpolation="smooth"))
-    return 2.0 * press
+    return drop + sink + 0.5 * duration
 
 
 def turntable(builder: ModelBuilder, spacing: float, duration: float) -> float:
     builder.add_ground_plane(friction=0.5)
-    ids = _cloth(builder, 0.5, 0.5, spacing, (-0.25, -0.25, 0.32), name="cloth")
+    ids = _cloth(builder, 0.9, 0.9, spacing, (-0.45, -0.45, 0.32), name="cloth")
     builder.add_collider_box(center=(0.0, 0.0, 0.15), half_extents=(0.1, 0.1, 0.15), friction=0.8,
                              rotation=Track.rotation([0.0, 3.0 * duration], axis=(0, 0, 1), degrees=[0.0, 540.0]))
     builder.add_aerodynamics(wind=(3.0, 1.0, 0.0))
