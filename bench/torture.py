@@ -39,35 +39,39 @@ def main(argv=None) -> int:
     wp.init()
     device = wp.get_device(args.device)
     frames = None if args.seconds is None else max(1, int(round(args.seconds * 60.0)))
+    out = pathlib.Path(args.out or pathlib.Path(__file__).parent / "results" / f"torture_{device.alias.replace(':', '')}.md")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    header = HEADER + ["audit [s]"]
     rows, clean = [], True
     started = time.perf_counter()
+
+    def write() -> list:  # after every row: a long battery keeps what it measured
+        lines = [
+            f"# Self-collision torture battery ({args.size} size, {device})",
+            "",
+            f"Command: `python bench/torture.py {' '.join(sys.argv[1:] if argv is None else argv)}`  ",
+            f"Device: {device} ({device.name}), Warp {wp.config.version}, {datetime.date.today().isoformat()}, "
+            f"{time.perf_counter() - started:.0f} s in all.",
+            "",
+            "Every substep audited in float64: crossings (continuous, over the substep's straight path), intersections "
+            "and pairs closer than τ/2 = 2.5 mm at its end, each summed over substeps; min d: the smallest distance "
+            "at a substep's end.",
+            "",
+            "| " + " | ".join(header) + " |",
+            "|" + "---|" * len(header),
+            *("| " + " | ".join(map(str, row)) + " |" for row in rows),
+            "",
+        ]
+        out.write_text("\n".join(lines))
+        return lines
+
     for scene in args.scenes:
         for integrator in args.integrators:
             result = run_case(scene, integrator, size=args.size, device=device, frames=frames)
             rows.append(result.row() + [f"{result.audit_wall:.0f}"])
             clean &= result.clean
             print(" | ".join(map(str, rows[-1])), flush=True)
-    header = HEADER + ["audit [s]"]
-    lines = [
-        f"# Self-collision torture battery ({args.size} size, {device})",
-        "",
-        f"Command: `python bench/torture.py {' '.join(sys.argv[1:] if argv is None else argv)}`  ",
-        f"Device: {device} ({device.name}), Warp {wp.config.version}, {datetime.date.today().isoformat()}, "
-        f"{time.perf_counter() - started:.0f} s in all.",
-        "",
-        "Every substep audited in float64: crossings (continuous, over the substep's straight path), intersections "
-        "and pairs closer than τ/2 = 2.5 mm at its end, summed over substeps; min d: the smallest distance at a "
-        "substep's end.",
-        "",
-        "| " + " | ".join(header) + " |",
-        "|" + "---|" * len(header),
-        *("| " + " | ".join(map(str, row)) + " |" for row in rows),
-        "",
-    ]
-    out = pathlib.Path(args.out or pathlib.Path(__file__).parent / "results" / f"torture_{device.alias.replace(':', '')}.md")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines))
-    print("\n".join(lines[-len(rows) - 3:]))
+            write()
     print(f"wrote {out}")
     return 0 if clean else 1
 

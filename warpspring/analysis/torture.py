@@ -181,7 +181,8 @@ class CaseResult:
         first = "" if a.first is None else f"{a.first[0]:.3f} s: {a.first[2]}"
         return [self.scene, self.integrator, self.particles, self.frames * self.substeps, a.crossings,
                 a.intersections, a.close, f"{a.min_distance * 1e3:.3f}" if np.isfinite(a.min_distance) else "-",
-                self.pairs, self.capped, self.overflow, first or (self.error or ""), f"{self.wall:.0f}"]
+                self.pairs, self.capped, self.overflow,
+                "; ".join(filter(None, [first, self.error and f"stopped: {self.error}"])), f"{self.wall:.0f}"]
 
 
 HEADER = ["scene", "integrator", "particles", "substeps", "crossings", "intersections", "pairs < τ/2", "min d [mm]",
