@@ -1,18 +1,20 @@
 """Float64 audits of a triangle surface on the host: does anything pass through anything?
 
-Per frame (:func:`audit_frame`): segment–triangle intersections between an edge and a triangle that share no
-vertex (zero expected) and the minimum vertex–triangle and edge–edge distances between elements that share
-no vertex. Per step (:func:`audit_motion`): whether any vertex–triangle or edge–edge pair touches while every
-vertex moves on the straight line between two states, by conservative advancement, which is a proof: along
-linear motion every point of a primitive moves at most as fast as its fastest vertex, so a pair's distance
-D(t) is Lipschitz with constant L = (fastest vertex of one) + (fastest of the other) displacement per unit t,
-and from any t the pair cannot touch before t + D(t)/L. Stepping by that amount either reaches t = 1 (no
-contact, hence no crossing) or finds D below ``resolution`` (a touch, reported).
+Per state (:func:`audit_frame`): segment–triangle intersections between an edge and a triangle that share no
+vertex (zero expected; two triangles that intersect always have an edge of one through the other) and the
+vertex–triangle and edge–edge distances between elements that share no vertex. Per substep
+(:func:`audit_motion`, :meth:`SurfaceAudit.motion`): continuous collision detection over the straight path of
+every vertex from one state to the next, each vertex–triangle and edge–edge pair sharing no vertex decided by IPC
+Toolkit's Tight-Inclusion CCD in float64 (certified: it misses no touch). :class:`SurfaceAudit` prepares a
+surface once for many substeps; :class:`SubstepAudit` audits every substep of a run (``warpspring run
+--audit-substeps``): a :class:`~warpspring.core.stepper.StepHook` keeps the substeps' positions on the device,
+a :class:`~warpspring.core.simulator.FrameHook` audits them after each frame.
 
-Candidates come from SciPy's k-d tree over bounding spheres (exact pruning: a pair is skipped only when its
-bounding spheres are farther apart than the distance of interest); :func:`brute_pairs` is the all-pairs
-reference the device's broad phase is tested against. ``warpspring audit OUT.usdc`` runs the per-frame audit
-on a written USD file.
+Candidates of the per-state audit come from SciPy's k-d tree over bounding spheres (exact pruning: a pair is
+skipped only when its bounding spheres are farther apart than the distance of interest), those of the
+continuous one from IPC Toolkit's broad phase over swept boxes; :func:`brute_pairs` is the all-pairs reference
+the device's broad phase is tested against. ``warpspring audit OUT.usdc`` runs the per-state audit on every
+frame of a written USD file.
 """
 
 from __future__ import annotations
@@ -20,8 +22,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import warp as wp
 
 from ..core.mesh_files import check_usd_layers
+from ..core.simulator import FrameHook
+from ..core.stepper import StepHook
 from ..errors import ConfigError
 
 
@@ -154,33 +159,24 @@ class FrameAudit:
         min_vertex_triangle: the smallest vertex–triangle distance [m] between elements sharing no vertex
             (``inf`` when none is within the audit's reach).
         min_edge_edge: the smallest edge–edge distance [m] likewise.
+        vertex_triangle, edge_edge: the distances [m] of the pairs the reach kept (a superset of those closer
+            than it), one per pair.
     """
 
     intersections: np.ndarray
     min_vertex_triangle: float
     min_edge_edge: float
+    vertex_triangle: np.ndarray
+    edge_edge: np.ndarray
 
     @property
     def min_distance(self) -> float:
         return min(self.min_vertex_triangle, self.min_edge_edge)
 
 
-def audit_frame(x: np.ndarray, triangles: np.ndarray, *, reach: float | None = None) -> FrameAudit:
-    """Audit one configuration ``x`` [vertex_count, 3] of the surface ``triangles`` in float64.
-
-    Args:
-        reach: distances are measured for pairs closer than this [m] (default: the longest edge, which
-            covers every intersection test too); a farther minimum reads as ``inf``.
-    """
-    x = np.asarray(x, dtype=np.float64)
-    triangles = np.asarray(triangles, dtype=np.int64)
-    edges = surface_edges(triangles)
-    if reach is None:
-        reach = float(np.max(np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1)))
-    vt, ee = candidate_pairs(x, triangles, edges, reach)
-    dvt = vertex_triangle_distance(x[vt[:, 0]], *(x[triangles[vt[:, 1], k]] for k in range(3)))
-    dee = edge_edge_distance(x[edges[ee[:, 0], 0]], x[edges[ee[:, 0], 1]], x[edges[ee[:, 1], 0]], x[edges[ee[:, 1], 1]])
-    # Edges against triangles sharing no vertex: candidates from the triangles' and edges' bounding spheres.
+def edge_triangle_intersections(x: np.ndarray, triangles: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """The (edge, triangle) pairs sharing no vertex where the edge passes through the triangle at ``x`` [m]
+    (:func:`segment_crosses_triangle`), shape [k, 2]; candidates from the triangles' and edges' bounding spheres."""
     from scipy.spatial import cKDTree
 
     tc, tr = _spheres(x, triangles)
@@ -192,79 +188,313 @@ def audit_frame(x: np.ndarray, triangles: np.ndarray, *, reach: float | None = N
     keep = ~((triangles[tri][:, :, None] == edges[edge][:, None, :]).any(axis=(1, 2)))
     tri, edge = tri[keep], edge[keep]
     hit = segment_crosses_triangle(x[edges[edge, 0]], x[edges[edge, 1]], *(x[triangles[tri, k]] for k in range(3)))
+    return np.stack([edge[hit], tri[hit]], axis=1)
+
+
+def audit_frame(x: np.ndarray, triangles: np.ndarray, *, reach: float | None = None,
+                edges: np.ndarray | None = None) -> FrameAudit:
+    """Audit one configuration ``x`` [vertex_count, 3] of the surface ``triangles`` in float64.
+
+    Args:
+        reach: distances are measured for pairs closer than this [m] (default: the longest edge, which
+            covers every intersection test too); a farther minimum reads as ``inf``.
+        edges: :func:`surface_edges` of ``triangles``, if already known.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    edges = surface_edges(triangles) if edges is None else edges
+    if reach is None:
+        reach = float(np.max(np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1)))
+    vt, ee = candidate_pairs(x, triangles, edges, reach)
+    dvt = vertex_triangle_distance(x[vt[:, 0]], *(x[triangles[vt[:, 1], k]] for k in range(3)))
+    dee = edge_edge_distance(x[edges[ee[:, 0], 0]], x[edges[ee[:, 0], 1]], x[edges[ee[:, 1], 0]], x[edges[ee[:, 1], 1]])
     return FrameAudit(
-        intersections=np.stack([edge[hit], tri[hit]], axis=1),
+        intersections=edge_triangle_intersections(x, triangles, edges),
         min_vertex_triangle=float(dvt.min()) if len(dvt) else np.inf,
         min_edge_edge=float(dee.min()) if len(dee) else np.inf,
+        vertex_triangle=dvt,
+        edge_edge=dee,
     )
+
+
+#: Tight-Inclusion CCD's settings: its time tolerance [-] and its iteration cap. A query that reaches the cap (only
+#: a pair touching, or coplanar and within ~tolerance over a stretch of the step: a degenerate touch) is reported
+#: as a touch, never dropped; its default cap (1e7) spends minutes on such a pair.
+CCD_TOLERANCE = 1.0e-6
+CCD_ITERATIONS = 100_000
+#: Relative distance [-] (of the coordinates' magnitude) at which a pair counts as touching already at a step's start.
+CONTACT = 1.0e-12
+
+
+def _ipctk():
+    """IPC Toolkit's Python module (Tight-Inclusion CCD, its broad phases), its log quietened to errors, or a
+    ConfigError saying how to get it."""
+    try:
+        import ipctk  # optional: ipctk (pip install 'warpspring[audit]'), for the continuous audits only
+    except ImportError:
+        raise ConfigError("the continuous audit needs IPC Toolkit's Python module: pip install 'warpspring[audit]' "
+                          "(or pip install ipctk)") from None
+    ipctk.set_logger_level(ipctk.LoggerLevel.error)  # not a warning per pair that starts in contact
+    return ipctk
+
+
+def _fortran(a, dtype) -> np.ndarray:
+    return np.asfortranarray(a, dtype=dtype)
+
+
+class SurfaceAudit:
+    """The float64 audits of one triangle surface, its topology prepared once (every call takes positions
+    [vertex_count, 3] indexed like ``triangles``).
+
+    * :meth:`motion`: continuous collision detection over the straight path x⁰ → x¹ of every vertex (one
+      substep's motion): every vertex–triangle and edge–edge pair sharing no vertex whose primitives touch at
+      some t in [0, 1]. IPC Toolkit's Tight-Inclusion CCD (Wang et al. 2021) decides each pair in float64 with
+      a certified error bound: it never misses a touch (no false negatives); it may report a pair that comes
+      within its numerical tolerance (~1e-6 of the pair's extent) without touching, far below any thickness.
+      Candidates come from its broad phase over the swept boxes (not O(n²)).
+    * :meth:`frame`: the state at one time: edge–triangle intersections between primitives sharing no vertex
+      (any two intersecting triangles have an edge of one through the other), and the distances.
+    * :meth:`step`: both, for one substep (``thickness``: also the pairs closer than τ/2 at its end).
+
+    Args:
+        triangles: [triangle_count, 3] vertex indices.
+    """
+
+    def __init__(self, triangles: np.ndarray):
+        self.triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+        self.edges = surface_edges(self.triangles)
+        self.vertices = np.unique(self.triangles)  # the surface's vertices; others (interiors, points) are skipped
+        local = np.searchsorted(self.vertices, self.triangles)
+        self._faces = _fortran(local, np.int32)
+        self._edges = _fortran(np.searchsorted(self.vertices, self.edges), np.int32)
+        self._mesh = None
+
+    def _collision_mesh(self, x: np.ndarray):
+        if self._mesh is None:
+            self._mesh = _ipctk().CollisionMesh(_fortran(x[self.vertices], np.float64), self._edges, self._faces)
+        return self._mesh
+
+    def motion(self, x0: np.ndarray, x1: np.ndarray) -> MotionAudit:
+        """The pairs that touch while every vertex moves on the straight line from ``x0`` to ``x1`` [m]."""
+        ipctk = _ipctk()
+        v0 = _fortran(np.asarray(x0, dtype=np.float64)[self.vertices], np.float64)
+        v1 = _fortran(np.asarray(x1, dtype=np.float64)[self.vertices], np.float64)
+        mesh = self._collision_mesh(np.asarray(x0, dtype=np.float64))
+        ccd = ipctk.TightInclusionCCD(CCD_TOLERANCE, CCD_ITERATIONS)
+        candidates = ipctk.Candidates()
+        candidates.build(mesh, v0, v1, 0.0)
+        pairs = len(candidates.fv_candidates) + len(candidates.ee_candidates)
+        if candidates.is_step_collision_free(mesh, v0, v1, 0.0, ccd):
+            return MotionAudit(touches=np.zeros((0, 3), np.int64), time=np.zeros(0), pairs=pairs)
+        # The pairs: (vertex, triangle) and (edge, edge) in this surface's local indices.
+        fv = np.array([(c.vertex_id, c.face_id) for c in candidates.fv_candidates], np.int64).reshape(-1, 2)
+        ee = np.array([(c.edge0_id, c.edge1_id) for c in candidates.ee_candidates], np.int64).reshape(-1, 2)
+        e = self._edges
+        start = np.concatenate([
+            vertex_triangle_distance(v0[fv[:, 0]], *(v0[self._faces[fv[:, 1], k]] for k in range(3))),
+            edge_edge_distance(v0[e[ee[:, 0], 0]], v0[e[ee[:, 0], 1]], v0[e[ee[:, 1], 0]], v0[e[ee[:, 1], 1]])])
+        # A pair already touching at the start touches at t = 0 (Tight-Inclusion's retries on it can take minutes).
+        touching = start <= CONTACT * max(1.0, float(np.abs(v0).max()))
+        rows, times = [], []
+        for i, c in enumerate(list(candidates.fv_candidates) + list(candidates.ee_candidates)):
+            if touching[i]:
+                hit, toi = True, 0.0
+            else:
+                hit, toi = c.ccd(c.dof(v0, self._edges, self._faces), c.dof(v1, self._edges, self._faces),
+                                 narrow_phase_ccd=ccd)
+            if hit:
+                rows.append((0, self.vertices[fv[i, 0]], fv[i, 1]) if i < len(fv) else (1, *ee[i - len(fv)]))
+                times.append(toi)
+        touches = np.array(rows, dtype=np.int64).reshape(-1, 3)
+        ee = touches[:, 0] == 1
+        touches[ee, 1:] = np.sort(touches[ee, 1:], axis=1)
+        return MotionAudit(touches=touches, time=np.array(times, dtype=np.float64), pairs=pairs)
+
+    def frame(self, x: np.ndarray, *, reach: float | None = None) -> FrameAudit:
+        """:func:`audit_frame` of this surface at ``x`` [m]."""
+        return audit_frame(x, self.triangles, reach=reach, edges=self.edges)
+
+    def intersections(self, x: np.ndarray) -> np.ndarray:
+        """The (edge, triangle) intersections at ``x`` [m] (:func:`edge_triangle_intersections`), looked for only
+        where IPC Toolkit's robust test says the surface intersects itself (its orientation tests are exact)."""
+        x = np.asarray(x, dtype=np.float64)
+        if not _ipctk().has_intersections(self._collision_mesh(x), _fortran(x[self.vertices], np.float64)):
+            return np.zeros((0, 2), np.int64)
+        return edge_triangle_intersections(x, self.triangles, self.edges)
+
+    def near(self, x: np.ndarray, reach: float) -> tuple[float, int]:
+        """(the smallest distance [m] between primitives sharing no vertex if below ``reach``, else ``inf``; the
+        pairs closer than ``reach / 2``) at ``x``: IPC Toolkit's collision set (vertex–triangle pairs whose
+        nearest points are on an edge or a corner count once, as vertex–edge or vertex–vertex pairs)."""
+        ipctk = _ipctk()
+        x = np.asarray(x, dtype=np.float64)
+        mesh, v = self._collision_mesh(x), _fortran(x[self.vertices], np.float64)
+
+        def collisions(dhat):
+            found = ipctk.NormalCollisions()
+            found.build(mesh, v, dhat)
+            return found, sum(len(c) for c in (found.vv_collisions, found.ev_collisions, found.ee_collisions,
+                                                found.fv_collisions))
+
+        found, count = collisions(reach)
+        if count == 0:
+            return np.inf, 0
+        nearest = float(np.sqrt(found.compute_minimum_distance(mesh, v)))  # it returns the squared distance
+        return nearest, (collisions(0.5 * reach)[1] if nearest < 0.5 * reach else 0)
+
+    def step(self, x0: np.ndarray, x1: np.ndarray, *, thickness: float | None = None) -> StepAudit:
+        """One substep x⁰ → x¹: :meth:`motion`'s touches, and at x¹ the intersections and, with ``thickness`` τ
+        [m], the smallest distance within τ (``inf`` beyond or without τ) and the pairs closer than τ/2."""
+        x1 = np.asarray(x1, dtype=np.float64)
+        motion = self.motion(x0, x1)
+        nearest, close = self.near(x1, thickness) if thickness is not None else (np.inf, 0)
+        return StepAudit(crossings=motion.touches, time=motion.time, intersections=self.intersections(x1),
+                         min_distance=nearest, close=close)
 
 
 @dataclass
 class MotionAudit:
-    """What :func:`audit_motion` found over one step.
+    """What :func:`audit_motion` (:meth:`SurfaceAudit.motion`) found over one substep.
 
     Attributes:
-        touches: pairs whose distance fell below the resolution during the step: rows (kind, a, b) with kind
-            0 for vertex–triangle (vertex, triangle) and 1 for edge–edge (edge, edge).
-        min_distance: the smallest distance [m] any advancement step evaluated (an upper bound of the true
-            minimum over the step; a lower bound is min_distance's pairs' D - L·step, not reported).
-        pairs: pairs examined (those that could come within reach of each other).
+        touches: the pairs whose primitives touched during the step, rows (kind, a, b): kind 0 vertex–triangle
+            (vertex, triangle), kind 1 edge–edge (edge, edge; indices into :func:`surface_edges`, a < b).
+        time: each touch's first time of impact in [0, 1] (the step's parameter t), shape [len(touches)].
+        pairs: candidate pairs the broad phase handed to the narrow phase.
     """
 
     touches: np.ndarray
-    min_distance: float
+    time: np.ndarray
     pairs: int
 
 
-def audit_motion(x0: np.ndarray, x1: np.ndarray, triangles: np.ndarray, *, resolution: float = 1e-9,
-                 max_iterations: int = 10000) -> MotionAudit:
-    """Whether any vertex–triangle or edge–edge pair sharing no vertex touches (comes within ``resolution``
-    [m]) while every vertex moves on a straight line from ``x0`` to ``x1`` (float64 conservative advancement;
-    the module's docstring gives the proof). A pair still unresolved after ``max_iterations`` counts as a
-    touch."""
-    x0 = np.asarray(x0, dtype=np.float64)
-    x1 = np.asarray(x1, dtype=np.float64)
-    triangles = np.asarray(triangles, dtype=np.int64)
-    edges = surface_edges(triangles)
-    speed = np.linalg.norm(x1 - x0, axis=1)  # per unit of the step's parameter t in [0, 1]
-    vt, ee = candidate_pairs(x0, triangles, edges, 2.0 * float(speed.max()) + resolution)
-    kinds = np.concatenate([np.zeros(len(vt), np.int64), np.ones(len(ee), np.int64)])
-    first = np.concatenate([vt[:, 0], ee[:, 0]])
-    second = np.concatenate([vt[:, 1], ee[:, 1]])
-    corners = np.concatenate([
-        np.concatenate([vt[:, :1], triangles[vt[:, 1]]], axis=1),
-        np.concatenate([edges[ee[:, 0]], edges[ee[:, 1]]], axis=1),
-    ]).astype(np.int64)  # four vertices per pair: VT (v, a, b, c); EE (p1, q1, p2, q2)
-    split = np.where(kinds == 0, 1, 2)  # the first side's vertex count
-    side = np.arange(4)[None, :] < split[:, None]
-    lipschitz = (np.where(side, speed[corners], 0).max(axis=1) + np.where(~side, speed[corners], 0).max(axis=1))
+@dataclass
+class StepAudit:
+    """What :meth:`SurfaceAudit.step` found over one substep x⁰ → x¹.
 
-    def distance(idx, t):
-        x = x0[corners[idx]] + t[:, None, None] * (x1 - x0)[corners[idx]]
-        out = np.empty(len(idx))
-        is_vt = kinds[idx] == 0
-        out[is_vt] = vertex_triangle_distance(x[is_vt, 0], x[is_vt, 1], x[is_vt, 2], x[is_vt, 3])
-        out[~is_vt] = edge_edge_distance(x[~is_vt, 0], x[~is_vt, 1], x[~is_vt, 2], x[~is_vt, 3])
-        return out
+    Attributes:
+        crossings: :attr:`MotionAudit.touches` of the step (rows (kind, a, b)), with ``time`` their times of impact.
+        intersections: (edge, triangle) intersections at x¹, shape [k, 2].
+        min_distance: the smallest vertex–triangle or edge–edge distance [m] at x¹ within the reach (else ``inf``).
+        close: pairs closer than half the thickness at x¹ (0 without one).
+    """
 
-    active = np.arange(len(kinds))
-    t = np.zeros(len(kinds))
-    touched = np.zeros(len(kinds), dtype=bool)
-    smallest = np.inf
-    for _ in range(max_iterations):
-        if len(active) == 0:
-            break
-        d = distance(active, t[active])
-        smallest = min(smallest, float(d.min()))
-        hit = d < resolution
-        touched[active[hit]] = True
-        moving = lipschitz[active] > 0
-        t[active] = np.where(moving, t[active] + d / np.where(moving, lipschitz[active], 1.0), 2.0)
-        active = active[~hit & (t[active] < 1.0)]
-    else:
-        touched[active] = True
-    rows = np.stack([kinds, first, second], axis=1)[touched]
-    return MotionAudit(touches=rows, min_distance=smallest, pairs=len(kinds))
+    crossings: np.ndarray
+    time: np.ndarray
+    intersections: np.ndarray
+    min_distance: float
+    close: int
+
+    @property
+    def clean(self) -> bool:
+        return not len(self.crossings) and not len(self.intersections) and not self.close
+
+
+def audit_motion(x0: np.ndarray, x1: np.ndarray, triangles: np.ndarray) -> MotionAudit:
+    """The vertex–triangle and edge–edge pairs sharing no vertex that touch while every vertex moves on the
+    straight line from ``x0`` to ``x1`` [m] (float64 continuous collision detection:
+    :meth:`SurfaceAudit.motion`; for many steps of one surface, make one :class:`SurfaceAudit`)."""
+    return SurfaceAudit(triangles).motion(x0, x1)
+
+
+class SubstepRecord(StepHook):
+    """Keeps the positions of every substep of a frame on the device (the StepHook half of
+    :class:`SubstepAudit`): slot 0 the frame's start, slot k + 1 the end of substep k; capturable."""
+
+    def __init__(self, model, substeps: int):
+        self.model = model
+        self.substeps = substeps
+        self.positions = wp.zeros((substeps + 1) * model.state_size, dtype=model.vec3, device=model.device)
+
+    def before_step(self, state, step: int, steps: int) -> None:
+        if step == 0:
+            wp.copy(self.positions, state.particle_q, dest_offset=0, count=self.model.state_size)
+
+    def after_step(self, state, step: int, steps: int) -> None:
+        n = self.model.state_size
+        wp.copy(self.positions, state.particle_q, dest_offset=(step + 1) * n, count=n)
+
+    def read(self) -> np.ndarray:
+        """The frame's positions [m], float64, shape [substeps + 1, world_count, particle_count, 3]."""
+        model = self.model
+        return self.positions.numpy().astype(np.float64).reshape(self.substeps + 1, model.world_count,
+                                                                 model.particle_count, 3)
+
+
+class SubstepAudit(FrameHook):
+    """Audits every substep of a run (a :class:`FrameHook` with a :class:`SubstepRecord` in the stepper): after
+    each frame, per world and substep, :meth:`SurfaceAudit.step` of the colliding surface (the self-collision's,
+    else the model's triangles). Attach with :meth:`attach`; read :attr:`crossings`, :meth:`line`.
+
+    Args:
+        thickness: τ [m] whose half no pair may come closer than (default: the self-collision's thickness, or
+            none).
+
+    Attributes:
+        substeps: substeps audited (all worlds). crossings, intersections, close: their totals.
+        min_distance: the smallest distance [m] at any substep's end (within τ; ``inf`` when none came that close).
+        first: (time [s], world, what) of the first finding, or ``None``.
+        overflow: the self-collision's pairs dropped for a full pair list (0 without self-collision).
+    """
+
+    def __init__(self, *, thickness: float | None = None):
+        self.thickness = thickness
+        self.substeps = self.crossings = self.intersections = self.close = self.overflow = 0
+        self.min_distance = np.inf
+        self.first = None
+        self._record = self._surface = None
+
+    def attach(self, sim) -> SubstepAudit:
+        """Audit ``sim``'s substeps from its next frame on (its stepper re-captures once with the record)."""
+        model = sim.model
+        self_contact = model.self_contact
+        triangles = (self_contact.surface.triangle.numpy() if self_contact is not None
+                     else model.tri_indices.numpy()[: len(model.tri_indices) // model.world_count])
+        if len(triangles) == 0:
+            raise ConfigError("the substep audit needs a triangle surface: the model has no cloth or mesh")
+        if self.thickness is None and self_contact is not None:
+            self.thickness = self_contact.thickness
+        self._surface = SurfaceAudit(triangles)
+        self._record = SubstepRecord(model, sim.substeps)
+        sim.stepper.hooks.append(self._record)
+        sim.add_frame_hook(self)
+        return self
+
+    def after_frame(self, sim, frame: int) -> None:
+        x = self._record.read()
+        start = sim.time - sim.frame_dt
+        for world in range(x.shape[1]):
+            for k in range(self._record.substeps):
+                found = self._surface.step(x[k, world], x[k + 1, world], thickness=self.thickness)
+                self.substeps += 1
+                self.crossings += len(found.crossings)
+                self.intersections += len(found.intersections)
+                self.close += found.close
+                self.min_distance = min(self.min_distance, found.min_distance)
+                if self.first is None and not found.clean:
+                    what = (f"{len(found.crossings)} crossing(s)" if len(found.crossings) else
+                            f"{len(found.intersections)} intersection(s)" if len(found.intersections) else
+                            f"{found.close} pair(s) closer than {0.5 * self.thickness:.4g} m")
+                    self.first = (start + (k + 1) * sim.dt, world, what)
+        if sim.model.self_contact is not None:
+            self.overflow = int(sim.model.self_contact.overflow().sum())
+
+    @property
+    def clean(self) -> bool:
+        return not (self.crossings or self.intersections or self.close)
+
+    def line(self) -> str:
+        """One line of findings."""
+        text = (f"substep audit: {self.substeps} substeps, {self.crossings} crossings, {self.intersections} "
+                f"intersections")
+        if self.thickness is not None:
+            text += f", {self.close} pairs closer than {0.5 * self.thickness:.4g} m"
+            text += f", minimum distance {self.min_distance:.4g} m" if np.isfinite(self.min_distance) else ""
+        if self.first is not None:
+            text += f"; first at t = {self.first[0]:.4g} s (world {self.first[1]}: {self.first[2]})"
+        if self.overflow:
+            text += f"; {self.overflow} self-collision pairs dropped for a full pair list"
+        return text
 
 
 @dataclass

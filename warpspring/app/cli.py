@@ -14,7 +14,7 @@ an unstable run, a full disk) end with one line on stderr and a non-zero exit st
 * 5 (:data:`EXIT_NO_CHOICE`): ``warpspring choose`` found no measured configuration that meets the error target
   within the budget (it still prints the closest one and what to change).
 * 6 (:data:`EXIT_AUDIT`): ``warpspring audit`` found a surface passing through itself (or, with --thickness,
-  layers closer than half the thickness).
+  layers closer than half the thickness); likewise ``warpspring run --audit-substeps`` over any substep.
 
 Commands that use Warp initialise it without its CUDA-driver warning ("Could not find or load the NVIDIA CUDA
 driver"), which concerns GPUs only, unless the command asks for a CUDA device.
@@ -36,7 +36,7 @@ import warp as wp
 from .. import checks
 from ..analysis import (engines, load_battery, stability_map, stability_map_report, sweep, sweep_plan, sweep_report, trade,
                         trade_choice, trade_report)
-from ..analysis.audit import audit_usd
+from ..analysis.audit import SubstepAudit, audit_usd
 from ..analysis.sweep_ray import RayEngine  # Ray itself loads only when an engine starts (optional: ray)
 from ..core.memory import out_of_memory
 from ..errors import ConfigError, OutputError, SimulationError, os_error_reason
@@ -134,6 +134,10 @@ def build_parser() -> argparse.ArgumentParser:
                           "(implicit Euler: an accuracy floor), chosen before the run and printed (default: the "
                           "scene's [simulation] substeps, else auto)")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress bar or lines")
+    run.add_argument("--audit-substeps", action="store_true",
+                     help="audit every substep in float64 (continuous crossings, intersections, pairs closer than "
+                          "half the self-collision thickness; slow: a check, not a production run) and exit with "
+                          "status 6 when anything was found (pip install 'warpspring[audit]')")
     run.add_argument("--world", type=_non_negative_int, metavar="K",
                      help="write only world K of a scene of several worlds (default: the scene's [output] world, "
                           "else every world, each as its own prim /World/world_NNNN)")
@@ -346,6 +350,7 @@ def _cmd_run(args) -> int:
     if args.layer_over is not None:  # the writer's options: the layer over the asset
         scene.export_options = {**scene.export_options, "layer_over": args.layer_over, "layer_arc": args.layer_arc}
     live = LiveView(host=args.view_host, port=args.view_port, title=os.path.basename(args.scene)) if args.view else None
+    audit = SubstepAudit() if args.audit_substeps else None
     summary = run_scene(
         scene,
         output=args.output,
@@ -361,22 +366,27 @@ def _cmd_run(args) -> int:
         resume=args.resume,
         world=args.world,
         world_spacing=args.world_spacing,
-        on_start=functools.partial(_start_view, live) if live is not None else None,
+        on_start=functools.partial(_on_start, live, audit),
         note=lambda line: print(line, flush=True),  # what the run chose by itself (substeps, contacts)
     )
     print(summary.line())
+    if audit is not None:
+        print(audit.line())
     if live is not None:  # (a run that fails ends the process, and the page's threads with it)
         if sys.stdin.isatty():  # someone is there to look: the page stays
             print(f"the run has ended; the viewer stays at {live.url} until Ctrl-C", flush=True)
             _serve_until_interrupted(live)
         else:
             live.close()
-    return 0
+    return EXIT_AUDIT if audit is not None and not audit.clean else 0
 
 
-def _start_view(live: LiveView, sim, advice) -> None:
-    live.attach(sim, advice)
-    print(f"viewer at {live.url}", flush=True)
+def _on_start(live: LiveView | None, audit: SubstepAudit | None, sim, advice) -> None:
+    if audit is not None:
+        audit.attach(sim)
+    if live is not None:
+        live.attach(sim, advice)
+        print(f"viewer at {live.url}", flush=True)
 
 
 def _cmd_render(args) -> int:

@@ -853,16 +853,21 @@ def cap_gather_kernel(scalar: type):
         x = particle_q_in[p]
         step = wp.length(x - start)
         allowed = wp.min(step, relaxation * scalar(SEARCH_REACH) * params[row, PARAM_THICKNESS])
+        # A pair's D - K carries the rounding of D (computed from the rounded positions): the bound takes off a
+        # pad above it, so a pair closer than the precision resolves holds its free vertices where they are.
+        pad = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0))
         if flags[flag_slot(FLAG_FALLBACK, world, pairs.count.shape[0])] != 0:
             if pairs.count[world] > pairs.key.shape[0] // pairs.count.shape[0]:
                 allowed = scalar(0.0)  # overflow: a listed pair may be missing, so nothing free moves
             for a in range(pairs.vertex_start[p], pairs.vertex_start[p] + pairs.vertex_count[p]):  # a minimum
-                allowed = wp.min(allowed, relaxation * pair_distance[pairs.entry[a] // 4])
+                allowed = wp.min(allowed, relaxation * wp.max(pair_distance[pairs.entry[a] // 4] - pad, scalar(0.0)))
         else:
             for a in range(cache.vertex_start[p], cache.vertex_start[p] + cache.vertex_count[p]):
-                allowed = wp.min(allowed, relaxation * cache_bound[cache.entry[a] // 4])
+                allowed = wp.min(allowed, relaxation * wp.max(cache_bound[cache.entry[a] // 4] - pad, scalar(0.0)))
         if step > allowed:
             x = start + (allowed / step) * (x - start)
+            if not (wp.length(x - start) <= allowed):  # rounded past the bound (a bound below the precision)
+                x = start
             wp.atomic_add(counters_out, world, COUNT_CAPPED, 1)
         moved = x - particle_q_out[p]
         if wp.dot(moved, moved) > scalar(0.0):
