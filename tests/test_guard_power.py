@@ -216,3 +216,20 @@ def test_scattered_springs_with_drag_count_in_the_update(device):
         assert abs(balance.created[0]) <= OMEGA * sim.dt * balance.peak[0]
         dissipated[evaluation] = balance.dissipated[0]
     assert dissipated["scatter"] == pytest.approx(dissipated["gather"], rel=1e-4)
+
+
+def test_switching_the_balance_recaptures(device):
+    """The force pass counts the power sums only where the balance is on, so switching it on or off between frames
+    re-captures (with dissipation off and no working family, nothing else would)."""
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, -G), drag=0.05)
+    builder.add_cloth_grid(nx=4, ny=4, spacing=0.1, mass=0.2, pin=["top-left"])
+    model = builder.finalize(device)
+    sim = ws.Simulator(model, fps=60, substeps=8, guard=ws.GuardLimits(energy_balance=0.0, dissipation=False))
+    sim.step_frame()
+    assert sim.stepper.captures == 1 and sim.integrator.power is None
+    sim.guard.limits = ws.GuardLimits(dissipation=False)
+    sim.step_frame()
+    assert sim.stepper.captures == 2
+    sim.guard.limits = ws.GuardLimits(energy_balance=0.0, dissipation=False)
+    sim.step_frame()
+    assert sim.stepper.captures == 3

@@ -175,3 +175,23 @@ def test_simulator_names_the_chooser_for_auto():
     model, _ = hanging_cloth("cpu", n=3)
     with pytest.raises(ws.ConfigError, match="auto_substeps"):
         ws.Simulator(model, substeps="auto")
+
+
+def test_a_colliders_top_errs_low():
+    """The contact bound's fall ends at a lower bound of each collider's top (a lower top: a longer fall, more
+    substeps): a capsule lying flat reaches its radius, a box turned on its side its smallest half extent, a mesh
+    hanging below its frame's origin its highest vertex."""
+    from types import SimpleNamespace
+
+    from warpspring.analysis.step_choice import _top
+
+    up = np.array([0.0, 0.0, 1.0])
+    flat = (math.sin(math.pi / 4), 0.0, 0.0, math.cos(math.pi / 4))  # the capsule's z axis turned into y
+    capsule = SimpleNamespace(kind="capsule", position=(0.0, 0.0, 1.0), rotation=flat, size=(0.1, 0.5, 0.0))
+    assert _top(capsule, up) == pytest.approx(1.1)
+    box = SimpleNamespace(kind="box", position=(0.0, 0.0, 0.0), rotation=flat, size=(0.5, 0.2, 0.3))
+    assert _top(box, up) == pytest.approx(0.2)  # ≤ its true top, 0.2 (y turned up)
+    hanging = SimpleNamespace(vertices=np.array([[0.0, 0.0, -0.5], [1.0, 0.0, -0.2], [0.0, 1.0, -0.4]]))
+    mesh = SimpleNamespace(kind="mesh", position=(0.0, 0.0, 2.0), rotation=(0.0, 0.0, 0.0, 1.0), size=(0, 0, 0),
+                           mesh=hanging)
+    assert _top(mesh, up) == pytest.approx(1.8)

@@ -158,15 +158,28 @@ def contact_substeps(model: Model, *, fps: float) -> tuple[int, str] | None:
 
 
 def _top(shape, up: np.ndarray) -> float:
-    """How high a collider reaches along ``up`` at rest [m] (a mesh: its frame's origin, which errs low: a longer
-    fall, more substeps)."""
+    """A lower bound of how high a collider reaches along ``up`` at rest [m] (a lower top means a longer fall and
+    more substeps: the safe side): a sphere's top exactly; a capsule's at least its radius above its centre (lying
+    flat); a box's at least its smallest half extent; a mesh's highest vertex in the world (rotation applied, or
+    its frame's origin where its points are not at hand); a plane's height."""
     position = np.asarray(shape.position, dtype=np.float64)
     height = float(position @ up)
     if shape.kind in ("sphere", "capsule"):
-        return height + shape.size[0] + shape.size[1]
+        return height + float(shape.size[0])
     if shape.kind == "box":
-        return height + float(np.linalg.norm(shape.size))
+        return height + float(np.min(np.abs(shape.size)))
+    vertices = getattr(getattr(shape, "mesh", None), "vertices", None)
+    if vertices is not None and len(vertices):
+        x, y, z, w = (float(c) for c in shape.rotation)
+        rotation = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                             [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+        return height + float((np.asarray(vertices, dtype=np.float64) @ rotation.T @ up).max())
     return height
+
+
+#: The most substeps per frame ``auto`` searches before it refuses (the advisor's dry run at each try costs a run).
+MAX_AUTO_SUBSTEPS = 4096
 
 
 def _integrator_substeps(model: Model, integrator: Integrator | str, fps: float, control,
@@ -193,8 +206,9 @@ def _integrator_substeps(model: Model, integrator: Integrator | str, fps: float,
     dt = 1.0 / (fps * substeps)
     advice = advise(model, name, dt, fps=fps, control=control, horizon=horizon)
     while not advice.stable or dt > STABILITY_MARGIN * advice.dt_passed:  # the dry run at dt may find more
-        if advice.dt_passed <= 0.0:
-            raise ConfigError(f"substeps = \"auto\" finds no stable step: {advice.message}")
+        if advice.dt_passed <= 0.0 or substeps >= MAX_AUTO_SUBSTEPS:
+            raise ConfigError(f"substeps = \"auto\" finds no stable step within {MAX_AUTO_SUBSTEPS} substeps per frame: "
+                              f"{advice.message}")
         substeps = max(substeps + 1, math.ceil(1.0 / (fps * STABILITY_MARGIN * advice.dt_passed)))
         dt = 1.0 / (fps * substeps)
         advice = advise(model, name, dt, fps=fps, control=control, horizon=horizon)

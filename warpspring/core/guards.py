@@ -208,8 +208,11 @@ class Guard(StepHook):
         self._midpoint = bool(dissipating) and getattr(integrator, "name", None) in MIDPOINT_DISSIPATION
         # Wind and handles: their work counted per substep where the balance needs it (see ``_family_work``).
         working = balanced and self._family_work_countable() and bool(self._working_families())
-        if working != self._working:
+        if working != self._working or balanced != getattr(self, "_balanced", None):
+            # The integrator's force pass counts the power sums by ``balanced`` (``_power_modes``): a switch of the
+            # balance re-captures, as a switch of the working families does.
             self._working = working
+            self._balanced = balanced
             self.revision += 1
         if (self._midpoint or working) and self._step_velocity is None:
             size = self.model.world_count * self.model.particle_count
