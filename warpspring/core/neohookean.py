@@ -199,18 +199,8 @@ class NeoHookeanFamily(TetFamily):
             world: one world, or every world (``None``).
             tets: the tets to change (an index array, a slice such as the one :meth:`add` returned, or ``None``).
         """
-        if (youngs_modulus is None) != (poisson_ratio is None):
-            raise ConfigError("give youngs_modulus and poisson_ratio together (μ and λ follow from both)")
-        writes = {}
-        if youngs_modulus is not None:
-            writes["mu"], writes["lam"] = stable_lame(checks.positive("youngs_modulus [Pa]", youngs_modulus),
-                                                      poisson(poisson_ratio, "neo-Hookean tets"))
-        if damping is not None:
-            value = np.asarray(damping, dtype=np.float64)
-            if not (np.isfinite(value).all() and (value >= 0.0).all()):
-                raise ConfigError(f"the neo-Hookean damping must be finite and >= 0 [s], got {damping!r}")
-            writes["damping"] = value
-        self._write_values(writes, world=world, tets=tets)
+        write_elastic_values(self, "neo-Hookean tets", youngs_modulus=youngs_modulus, poisson_ratio=poisson_ratio,
+                             damping=damping, world=world, tets=tets)
 
     # -- the protocol ----------------------------------------------------------------------------------------------
 
@@ -274,3 +264,21 @@ def add_neohookean_term(builder, topology, ids: np.ndarray, *, method: str, youn
     tets = ids[topology.tets]
     return family.add(tets, builder.particle_positions(np.arange(int(tets.max()) + 1)), youngs_modulus=youngs_modulus,
                       poisson_ratio=poisson_ratio, damping=damping, source=source)
+
+
+def write_elastic_values(family: TetFamily, label: str, *, youngs_modulus, poisson_ratio, damping, world, tets) -> None:
+    """The live-value writes of a neo-Hookean tet family (linear or quadratic): E [Pa] and ν together (μ and λ by
+    :func:`stable_lame`) and/or β [s], checked (one-line ConfigErrors naming ``label``) and written to ``tets`` of
+    ``world``."""
+    if (youngs_modulus is None) != (poisson_ratio is None):
+        raise ConfigError("give youngs_modulus and poisson_ratio together (μ and λ follow from both)")
+    writes = {}
+    if youngs_modulus is not None:
+        writes["mu"], writes["lam"] = stable_lame(checks.positive("youngs_modulus [Pa]", youngs_modulus),
+                                                  poisson(poisson_ratio, label))
+    if damping is not None:
+        value = np.asarray(damping, dtype=np.float64)
+        if not (np.isfinite(value).all() and (value >= 0.0).all()):
+            raise ConfigError(f"the {label}' damping must be finite and >= 0 [s], got {damping!r}")
+        writes["damping"] = value
+    family._write_values(writes, world=world, tets=tets)

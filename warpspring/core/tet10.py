@@ -44,7 +44,7 @@ from ..kernels.tet10 import (
     vec10i,
 )
 from .families import incidence_bytes
-from .neohookean import poisson
+from .neohookean import poisson, write_elastic_values
 from .soft_topologies import Topology, signed_volumes, wound_tets
 from .tets import TetFamily
 
@@ -421,18 +421,8 @@ class QuadraticTetFamily(TetFamily):
             world: one world, or every world (``None``).
             tets: the elements to change (an index array, a slice such as the one :meth:`add` returned, or ``None``).
         """
-        if (youngs_modulus is None) != (poisson_ratio is None):
-            raise ConfigError("give youngs_modulus and poisson_ratio together (μ and λ follow from both)")
-        writes = {}
-        if youngs_modulus is not None:
-            writes["mu"], writes["lam"] = stable_lame(checks.positive("youngs_modulus [Pa]", youngs_modulus),
-                                                      poisson(poisson_ratio, self.name))
-        if damping is not None:
-            value = np.asarray(damping, dtype=np.float64)
-            if not (np.isfinite(value).all() and (value >= 0.0).all()):
-                raise ConfigError(f"the quadratic tets' damping must be finite and >= 0 [s], got {damping!r}")
-            writes["damping"] = value
-        self._write_values(writes, world=world, tets=tets)
+        write_elastic_values(self, "quadratic tets", youngs_modulus=youngs_modulus, poisson_ratio=poisson_ratio,
+                             damping=damping, world=world, tets=tets)
 
     def spec(self, model, *, linear: bool = False) -> Tet10Spec:
         return Tet10Spec(incidence=self.shape, precomputed=self.precompute)
