@@ -156,6 +156,11 @@ def test_cpu_launches_outside_a_graph_replay_what_they_recorded(monkeypatch):
         y = wp.zeros(4, dtype=float, device="cpu")
         flat_launch(scale_add, dim=4, inputs=[2.0], outputs=[y], device="cpu")
         np.testing.assert_array_equal(y.numpy(), 1.0)
+    z = wp.zeros(4, dtype=float, device="cpu")
+    scale_add._recorded_launches.clear()
+    flat_launch(scale_add, dim=4, inputs=[0.0], outputs=[z], device="cpu")
+    flat_launch(scale_add, dim=4, inputs=[-0.0], outputs=[z], device="cpu")  # -0.0 == 0.0, yet its own value
+    assert len(scale_add._recorded_launches) == 2
 
 
 def test_an_uncaptured_cpu_frame_launches_nothing_anew(monkeypatch):

@@ -42,6 +42,7 @@ import functools
 import hashlib
 import inspect
 import linecache
+import math
 import textwrap
 import weakref
 
@@ -166,7 +167,9 @@ RECORDED_LAUNCHES = 8
 
 def _launch(kernel, inputs: list, outputs: list, options: dict) -> None:
     device = wp.get_device(options.get("device"))
-    key = _launch_key(inputs, outputs, options) if device.is_cpu and not device.is_capturing else None
+    # Warp's debug and floating-point verification run their checks in its launch path, which a replay skips.
+    replayable = device.is_cpu and not device.is_capturing and wp.config.mode != "debug" and not wp.config.verify_fp
+    key = _launch_key(inputs, outputs, options) if replayable else None
     if key is None:
         wp.launch(kernel, inputs=inputs, outputs=outputs, **options)
         return
@@ -198,7 +201,8 @@ def _launch_key(inputs: list, outputs: list, options: dict):
     for value in (*inputs, None, *outputs):
         kind = type(value)
         if kind in _BY_VALUE:
-            key.append((kind, value))
+            # -0.0 == 0.0 and both hash alike: the sign goes in the key too (NaN never equals itself: not replayed).
+            key.append((kind, value, math.copysign(1.0, value) if kind is float else 1.0))
         elif isinstance(value, wp.array):
             key.append(id(value))
         else:
