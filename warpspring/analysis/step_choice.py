@@ -38,6 +38,7 @@ from ..errors import ConfigError
 from ..core.integrators import Integrator, ImplicitEuler
 from ..core.model import Model
 from ..core.simulator import Simulator
+from ..core.transforms import quat_to_matrix
 from .advisor import Advice, advise
 from .stability import _integrator_class
 from .under_load import PROBE_HORIZON, _keeps_plasticity
@@ -170,10 +171,7 @@ def _top(shape, up: np.ndarray) -> float:
         return height + float(np.min(np.abs(shape.size)))
     vertices = getattr(getattr(shape, "mesh", None), "vertices", None)
     if vertices is not None and len(vertices):
-        x, y, z, w = (float(c) for c in shape.rotation)
-        rotation = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                             [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+        rotation = quat_to_matrix(shape.rotation)
         return height + float((np.asarray(vertices, dtype=np.float64) @ rotation.T @ up).max())
     return height
 
