@@ -382,12 +382,14 @@ def _write_obj(path: str, k: int) -> None:
 def report(rows: list[dict], cases: list[dict], device: str, limit: str, command: str) -> str:
     import warp as wp
 
+    # Said above every table (tests/test_readme.py): the device, the Warp version and the date.
+    measured_on = (f"Device: {device}{'' if str(device) == 'cpu' else ' (' + wp.get_device(device).name + ')'} "
+                   f"({platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores); "
+                   f"Warp {wp.config.version}; {datetime.date.today().isoformat()}")
     lines = [
         "# Memory: estimates against measured peaks, and refusals", "",
         f"Command: `{command}`  ",
-        f"Device: {device}{'' if str(device) == 'cpu' else ' (' + wp.get_device(device).name + ')'} "
-        f"({platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores); "
-        f"Warp {wp.config.version}; {datetime.date.today().isoformat()}", "",
+        measured_on, "",
         "## Estimate vs measured (host: growth of the peak resident memory)", "",
         "| scene | what | measured | estimate | estimate / measured |", "|---|---|---|---|---|",
     ]
@@ -408,7 +410,7 @@ def report(rows: list[dict], cases: list[dict], device: str, limit: str, command
         how = ("growth of the memory pool's high-water mark; the drop of the device's free memory beside it" if cuda
                else "peak of Warp's allocations, native ones included (its allocation tracker)")
         lines += ["", f"## Device ({device}: the model and a simulator's first frame; measured: {how})", "",
-                  lines[3], "",
+                  measured_on, "",
                   "| scene | measured | " + ("free memory drop | " if cuda else "") + "estimate | estimate / measured |",
                   "|---|---|" + ("---|" if cuda else "") + "---|---|"]
         for r in gpu:
@@ -418,7 +420,7 @@ def report(rows: list[dict], cases: list[dict], device: str, limit: str, command
                          f"{r['device_estimate'] / 2**20:.1f} MiB | {ratio:.2f}"
                          f"{'' if 1.0 <= ratio <= 2.0 else ' **outside [1, 2]**'} |")
     if cases:
-        lines += ["", f"## The issue's cases, host memory capped at {limit} (WARPSPRING_MEMORY_LIMIT)", "", lines[3], "",
+        lines += ["", f"## The issue's cases, host memory capped at {limit} (WARPSPRING_MEMORY_LIMIT)", "", measured_on, "",
                   "| case | time to refusal | peak RSS | the line |", "|---|---|---|---|"]
         for c in cases:
             seconds = "—" if c.get("seconds") is None else f"{c['seconds']:.1f} s"
