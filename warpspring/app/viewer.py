@@ -182,7 +182,7 @@ class ViewGuard:
         first = True
         try:
             while True:
-                data = await reader.read(65536)
+                data = await reader.read(1 << 20)  # a frame's message in few reads
                 if not data:
                     break
                 if first and set_cookie:  # the page's response: the token goes into a cookie for what follows
@@ -319,6 +319,7 @@ class Viewer:
         self._handles: dict = {}
         self._shapes: dict = {}
         self._sent: dict = {}  # name → the points array last sent
+        self._faces: dict = {}  # name → the faces array its mesh was made with
         self._color_range: tuple[float, float] | None = None
         self._framed = False
         self._last: Picture | None = None
@@ -457,17 +458,21 @@ class Viewer:
             self._handles.pop(name).remove()
 
     def _mesh(self, name: str, surface: Surface, color, visible: bool, *, opacity: float | None = None) -> str:
-        shape = ("mesh", surface.faces.shape, surface.faces.tobytes().__hash__())
+        shape = ("mesh", surface.faces.shape)
         handle = self._handles.get(name)
-        if handle is not None and self._shapes.get(name) == shape:
+        faces = self._faces.get(name)
+        if (handle is not None and self._shapes.get(name) == shape
+                and (faces is surface.faces or np.array_equal(faces, surface.faces))):  # the same object: no compare
+            self._faces[name] = surface.faces
             if visible and self._sent.get(name) is not surface.points:  # a hidden or unchanged layer is not sent
-                handle.vertices = surface.points.astype(np.float32)
+                handle.vertices = surface.points.astype(np.float32, copy=False)
                 self._sent[name] = surface.points
             if handle.visible != visible:
                 handle.visible = visible
             return name
-        self._drop(name, shape)
+        self._drop(name, "mesh anew")
         self._sent[name] = surface.points
+        self._faces[name] = surface.faces
         self._handles[name] = self.server.scene.add_mesh_simple(
             name, surface.points.astype(np.float32), surface.faces.astype(np.uint32), color=color, side="double",
             opacity=opacity, visible=visible)
@@ -480,7 +485,7 @@ class Viewer:
         handle = self._handles.get(name)
         if handle is not None and self._shapes.get(name) == shape:
             if visible:
-                handle.points = values.astype(np.float32)
+                handle.points = values.astype(np.float32, copy=False)
             if handle.visible != visible:
                 handle.visible = visible
             return name

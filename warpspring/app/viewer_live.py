@@ -36,6 +36,14 @@ from .viewer import Picture, Surface, Viewer
 STIFFNESS_RANGE = (0.05, 10.0)
 
 
+def _rows(particles: np.ndarray):
+    """The particle indices of a surface as a slice where they are one ascending run (a view, no copy)."""
+    p = np.asarray(particles)
+    if len(p) and p[-1] - p[0] + 1 == len(p) and np.all(np.diff(p) == 1):
+        return slice(int(p[0]), int(p[-1]) + 1)
+    return p
+
+
 def stiffness_limit(dt: float, dt_stable: float) -> float:
     """The largest spring stiffness scale that keeps the step ``dt`` [s] within a stable step ``dt_stable`` [s]
     found at scale 1 (see the module's docstring), capped at the slider's range."""
@@ -79,7 +87,8 @@ class LiveView(FrameHook):
         self.sim = sim
         model = sim.model
         self.viewer = Viewer(host=self.host, port=self.port, up_axis=model.up_axis, title=self.title)
-        self._offsets = world_offsets(model) if model.world_count > 1 else np.zeros((1, 3))
+        self._offsets = (world_offsets(model) if model.world_count > 1 else np.zeros((1, 3))).astype(np.float32)
+        self._mesh_rows = [_rows(g.particles) for g in model.meshes]  # a slice where contiguous: no gather
         self._base_stiffness = model.spring_stiffness.numpy().astype(np.float64) if model.spring_count else None
         dt_stable = advice.dt_stable if advice is not None else float("inf")
         self.stiffness_max = stiffness_limit(sim.dt, dt_stable)
@@ -202,8 +211,9 @@ class LiveView(FrameHook):
             self.dropped += 1
             return
         state = sim.state
-        q, qd = state.particle_q.numpy(), state.particle_qd.numpy()
-        flags = sim.model.particle_flags.numpy()
+        q = state.particle_q.numpy()
+        qd = state.particle_qd.numpy() if self.viewer.color_by.value == "speed" else None  # only what is drawn
+        flags = sim.model.particle_flags.numpy() if self.viewer.show_pins.value else None
         with self._wake:
             self._slot = (sim.frame, sim.time, q, qd, flags)
             self._last_sent = now
@@ -225,31 +235,32 @@ class LiveView(FrameHook):
             with self._wake:
                 self._slot = None
 
-    def picture(self, q: np.ndarray, qd: np.ndarray, flags: np.ndarray, t: float = 0.0) -> Picture:
-        """A state's positions [m] and velocities [m/s] (every world, world-major) as a :class:`Picture`: the
-        worlds laid out on the export grid, colliders at rest. Layers the page hides are left out."""
+    def picture(self, q: np.ndarray, qd: np.ndarray | None, flags: np.ndarray | None, t: float = 0.0) -> Picture:
+        """A state's positions [m] and velocities [m/s] (every world, world-major; float32 as the page draws
+        them) as a :class:`Picture`: the worlds laid out on the export grid, colliders at rest. Layers the page
+        hides are left out; ``qd`` is needed only to colour by speed, ``flags`` only to show the pins."""
         model, viewer = self.sim.model, self.viewer
         n = model.particle_count
         picture = Picture(time=t)
-        q = np.asarray(q, dtype=np.float64).reshape(model.world_count, n, 3)
-        qd = np.asarray(qd, dtype=np.float64).reshape(model.world_count, n, 3)
-        pinned = (flags.reshape(model.world_count, n) & PARTICLE_KINEMATIC) != 0
-        speed_shown = viewer.color_by.value == "speed"
+        q = np.asarray(q, dtype=np.float32).reshape(model.world_count, n, 3)
+        speed_shown = viewer.color_by.value == "speed" and qd is not None
+        if speed_shown:
+            qd = np.asarray(qd, dtype=np.float32).reshape(model.world_count, n, 3)
+        pinned = (flags.reshape(model.world_count, n) & PARTICLE_KINEMATIC) != 0 if flags is not None else None
         for w in range(model.world_count):
             key = f"world_{w:04d}" if model.world_count > 1 else ""
-            x = q[w] + self._offsets[w if len(self._offsets) > 1 else 0]
+            x = q[w] + self._offsets[w] if model.world_count > 1 else q[w]
             speed = np.linalg.norm(qd[w], axis=1) if speed_shown else None
             surfaces = []
-            for g in model.meshes:
-                surfaces.append(Surface(g.name, x[g.particles], g.faces,
-                                        {"speed": speed[g.particles]} if speed_shown else {}))
+            for g, rows in zip(model.meshes, self._mesh_rows):
+                surfaces.append(Surface(g.name, x[rows], g.faces, {"speed": speed[rows]} if speed_shown else {}))
             for skin in model.skins:
                 values = {"speed": np.linalg.norm(skin.points(qd[w]), axis=1)} if speed_shown else {}
                 surfaces.append(Surface(skin.name, skin.points(x), skin.faces, values))
             picture.surfaces[key] = surfaces
             if viewer.show_particles.value:
                 picture.particles[key] = x
-            if viewer.show_pins.value:
+            if viewer.show_pins.value and pinned is not None:
                 picture.pins[key] = x[pinned[w]]
             if viewer.show_springs.value and self._springs is not None:
                 picture.springs[key] = np.stack([x[self._springs[:, 0]], x[self._springs[:, 1]]], axis=1)
