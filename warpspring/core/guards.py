@@ -376,6 +376,18 @@ class Guard(StepHook):
         drag, families = self._dissipation_kernels()
         return drag is not None or bool(families)
 
+    def quiet_between_steps(self, steps: int) -> bool:
+        """Whether the guard launches nothing but at the frame's last step: it checks once per frame and its sums
+        come from the integrator's force pass alone (no pass of its own per substep: no midpoint state, drag,
+        dampers', wind's or families' work counted apart)."""
+        if self._every is None or self._every < steps or self._needs_midpoint():
+            return False
+        if self._dissipating:
+            drag, families = self._dissipation_kernels()
+            if drag is not None or families or self._dampers is not None:
+                return False
+        return self._air_kernel() is None and not (self._working and self._power is None)
+
     def before_step(self, state: State, step: int, steps: int) -> None:
         self._dissipation_kernels()  # the force passes counting the dampers and the power attached or not
         if self._needs_midpoint():

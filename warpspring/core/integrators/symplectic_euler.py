@@ -5,9 +5,13 @@ contacts in one pass); with scattered springs (CPU) it is force evaluation then 
 from __future__ import annotations
 
 
+import warp as wp
+
+from ...kernels.frames import symplectic_euler_frame_kernel
 from ...kernels.integrators import symplectic_euler_kernel, symplectic_euler_update_kernel
 from ...kernels.shapes import NO_CONTACTS
 from ..contacts import update_shape_frames
+from ..families import ElementFamily
 from ..forces import eval_forces, force_inputs
 from ..kinematics import apply_kinematics
 from ..state import State
@@ -18,10 +22,81 @@ from ...kernels.flatten import flat_launch
 
 
 class SymplecticEuler(Integrator):
-    """Symplectic Euler with explicit spring damping. Stable for undamped springs while ω_max·h < 2."""
+    """Symplectic Euler with explicit spring damping. Stable for undamped springs while ω_max·h < 2.
+
+    Args:
+        model: the model.
+        one_launch: run a frame's substeps in one launch, one thread block per world (``kernels/frames.py``; the
+            same bits on the CPU, within float32 rounding on a GPU): ``None`` (default) where it pays, on a GPU
+            whose worlds' blocks give at least :attr:`ONE_LAUNCH_THREADS_PER_SM` threads per multiprocessor;
+            ``True`` wherever the scene allows it
+            (on the CPU too, one thread per world); ``False`` never. The scene allows it with gathered springs,
+            colliders that do not move, no stabiliser, contact stage, triangle contacts or self-collision, no
+            animated input, no driven pin, no family with time-dependent arrays (wind's, handles', precomputed
+            tets'), no held worlds, and step hooks that work at the frame's end alone (the default guard does).
+    """
 
     name = "symplectic_euler"
     order = 1
+    #: Threads (worlds × lanes) per streaming multiprocessor from which a frame in one launch is faster than one
+    #: launch per substep (H200, bench/results/frames.md, 16² to 64² cloth): 128 per SM gave 0.81-0.94×, 256 gave
+    #: 1.02-1.10×, 512-2048 gave 1.03-1.18× (the default guard's rows at the low end). A world's block runs on one
+    #: multiprocessor: one world alone is 2-5× slower.
+    ONE_LAUNCH_THREADS_PER_SM = 256
+    #: Particles each lane of a one-launch frame takes per substep (the fastest of 2-8 at 16², 32², 64², H200).
+    ONE_LAUNCH_PARTICLES_PER_LANE = 8
+
+    def __init__(self, model, *, one_launch: bool | None = None):
+        super().__init__(model)
+        self.one_launch = one_launch
+
+    def frame_lanes(self, control: Control | None, steps: int) -> int:
+        model = self.model
+        if self.one_launch is False or steps < 2 or model.particle_count == 0:
+            return 0
+        if self.one_launch is None and not model.device.is_cuda:
+            return 0
+        if not (model.spring_gather or model.spring_count == 0) or not self.finish_step.only_contacts:
+            return 0
+        if model.shape_moving or model.input_tracks is not None or model.holds_worlds:
+            return 0
+        if model.pin_groups is not None and model.pin_groups.driven:
+            return 0
+        if any(type(family).at_time is not ElementFamily.at_time for family in model.extra_families):
+            return 0
+        if model.device.is_cpu:
+            return 1  # a CPU launch runs its threads in turn: one per world, each substep over the whole world
+        per_lane = self.ONE_LAUNCH_PARTICLES_PER_LANE
+        lanes = int(min(256, max(32, 32 * -(-model.particle_count // (32 * per_lane)))))
+        if self.one_launch is None and model.world_count * lanes < self.ONE_LAUNCH_THREADS_PER_SM * model.device.sm_count:
+            return 0  # too few blocks to fill the device: one launch per substep spreads a world over many
+        return lanes
+
+    def advance_frame(self, state_a: State, state_b: State, control: Control | None, dt: float, steps: int,
+                      lanes: int) -> None:
+        model = self.model
+        features = model.force_features(control)
+        contacts = model.contact_features()
+        flat_launch(
+            symplectic_euler_frame_kernel(model.scalar, features, contacts,
+                                          None if self.power is None else self.power.modes),
+            inputs=[
+                model.particle_count,
+                lanes,
+                model.particle_flags,
+                model.particle_inv_mass,
+                model.particle_radius,
+                model.shape_arrays,
+                *force_inputs(model, control, features),
+                steps,
+                *step_arguments(model.scalar, dt),
+            ],
+            outputs=[state_a.particle_q, state_a.particle_qd, state_b.particle_q, state_b.particle_qd, state_a.time,
+                     None if self.power is None else self.power.sums],
+            dim=model.world_count * lanes, block_dim=lanes, device=model.device,
+        )
+        if steps % 2:
+            wp.copy(state_b.time, state_a.time)  # the clock advanced in A; the result is B
 
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         model = self.model

@@ -1,0 +1,97 @@
+"""A frame's substeps in one launch against one launch per substep, for one world and many.
+
+The ANCHORS hanging cloth of ``bench/cloth.py`` (n × n, hung from its top row, symplectic Euler, 16 substeps per
+1/60 s frame, one captured graph per frame) as ``worlds`` worlds of one model, through the public API: a
+``Simulator`` with ``SymplecticEuler(model, one_launch=True)`` beside ``one_launch=False``, with the default guard
+(``GuardLimits()``: what a user gets) and with the guard off. The configurations' timed batches alternate (the
+median of each configuration's batches, and the median of the per-round ratios); before timing, both paths run the
+same frames and their positions are compared (they must be equal to the bit). The "auto" column says which path a
+default ``SymplecticEuler(model)`` takes there.
+
+    python bench/frames.py --device cuda:0 --sizes 32 --worlds 1 66 132 264 1056 4096 --out bench/results/frames.md
+    python bench/frames.py --device cuda:0 --sizes 16 64 --worlds 1 264 1056
+    python bench/frames.py --device cpu --sizes 16 32 --worlds 1 8
+"""
+
+import argparse
+import datetime
+import statistics
+import time
+
+import numpy as np
+import warp as wp
+
+import warpspring as ws
+from cloth_scene import FPS, SUBSTEPS, warpspring_model
+
+
+def simulator(n: int, worlds: int, device, *, one_launch, guard: bool) -> ws.Simulator:
+    model = warpspring_model(n, device, worlds=worlds, pin="top")
+    return ws.Simulator(model, integrator=ws.SymplecticEuler(model, one_launch=one_launch), fps=FPS,
+                        substeps=SUBSTEPS, guard=ws.GuardLimits() if guard else None)
+
+
+def timed(sim: ws.Simulator, frames: int) -> float:
+    """Seconds per frame over ``frames`` frames (device synchronised before each timer read)."""
+    wp.synchronize_device(sim.model.device)
+    start = time.perf_counter()
+    for _ in range(frames):
+        sim.step_frame()
+    wp.synchronize_device(sim.model.device)
+    return (time.perf_counter() - start) / frames
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default=None)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[32])
+    parser.add_argument("--worlds", type=int, nargs="+", default=[1, 264, 1056])
+    parser.add_argument("--batches", type=int, default=5)
+    parser.add_argument("--seconds", type=float, default=0.3, help="timed seconds per batch and configuration")
+    parser.add_argument("--out", help="also write the Markdown table to this file")
+    args = parser.parse_args()
+    wp.config.log_level = wp.LOG_WARNING
+    device = wp.get_device(args.device)
+    lines = [
+        f"Hanging cloth as worlds of one model, symplectic Euler, {SUBSTEPS} substeps per 1/{FPS} s frame. "
+        f"Device: {device.name} ({device.alias}"
+        + (f", {device.sm_count} multiprocessors" if device.is_cuda else "") + f"); Warp {wp.__version__}; "
+        f"{datetime.date.today().isoformat()}. `python bench/frames.py --device {args.device} --sizes "
+        f"{' '.join(map(str, args.sizes))} --worlds {' '.join(map(str, args.worlds))} --batches {args.batches}`",
+        "",
+        "| n² × worlds | guard | per substep [G particle-substeps/s] | one launch [G] | one launch ÷ per substep "
+        "(median of rounds, spread) | auto takes | max \\|Δx\\| after 10 frames [m] |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    print("\n".join(lines), flush=True)
+    for n in args.sizes:
+        for worlds in args.worlds:
+            for guard in (True, False):
+                sims = {key: simulator(n, worlds, device, one_launch=key, guard=guard) for key in (False, True)}
+                for sim in sims.values():
+                    for _ in range(10):
+                        sim.step_frame()
+                diff = float(np.abs(sims[True].state.particle_q.numpy() - sims[False].state.particle_q.numpy()).max())
+                frame = timed(sims[False], 3)
+                frames = max(3, int(args.seconds / max(frame, 1e-6)))
+                times = {False: [], True: []}
+                for _ in range(args.batches):
+                    for key, sim in sims.items():
+                        times[key].append(timed(sim, frames))
+                work = n * n * worlds * SUBSTEPS
+                rates = {key: work / statistics.median(t) / 1e9 for key, t in times.items()}
+                ratios = [a / b for a, b in zip(times[False], times[True])]
+                auto = ws.SymplecticEuler(sims[False].model).frame_lanes(sims[False].control, SUBSTEPS) > 0
+                row = (f"| {n}² × {worlds} | {'default' if guard else 'off'} | {rates[False]:.3g} | {rates[True]:.3g} | "
+                       f"{statistics.median(ratios):.2f}× ({min(ratios):.2f}-{max(ratios):.2f}) | "
+                       f"{'one launch' if auto else 'per substep'} | {diff:.3g} |")
+                lines.append(row)
+                print(row, flush=True)
+    if args.out:
+        with open(args.out, "w") as f:
+            f.write("# A frame in one launch\n\n" + "\n".join(lines) + "\n")
+        print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

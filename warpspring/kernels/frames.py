@@ -1,0 +1,151 @@
+"""A frame's substeps in one launch: the fused symplectic Euler step looped inside one thread block per world.
+
+Between launches a GPU idles: a small scene's substep is a few microseconds of work behind a launch of its own
+(~1.2 µs a graph node on an H100, more for the data to come back through L2). Here one block of ``lanes``
+threads owns one world: each lane updates the particles ``lane, lane + lanes, ...`` of its world with the
+same per-particle step as :func:`~warpspring.kernels.integrators.symplectic_euler_kernel` (forces gathered,
+velocity then position updated, contacts resolved), and the block synchronises between substeps, so a substep
+reads only what the previous one finished writing. The state alternates between the two buffers as the
+per-substep path's does (substep k reads buffer k mod 2), so the arithmetic is the same, operation for
+operation, and the results are the same bits.
+
+On the CPU a launch runs its threads one after another, so the kernel is launched with one lane per world:
+each substep then runs over the whole world before the next begins, and the barrier is empty.
+
+The guard's power sums are accumulated per particle as the per-substep path does (same order, same bits).
+"""
+
+import functools
+
+import warp as wp
+
+from .families import FORCE_KERNEL_OPTIONS, elements
+from .forces import ForceFeatures, counts_work, particle_force_func, particle_power_func, power_sums_funcs
+from .integrators import symplectic_euler_funcs
+from .kinematics import is_kinematic
+from .precision import vec3_type
+from .response import project_all_func
+from .shapes import ContactFeatures, shapes_type
+from .flatten import flat_kernel
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+__syncthreads();
+#endif
+""")
+def block_barrier():
+    """Every lane of the block waits here until all have arrived (``__syncthreads``; nothing on the CPU)."""
+    ...
+
+
+@functools.cache
+def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
+                                  power: tuple | None = None):
+    """``steps`` fused symplectic Euler steps of every world, one block of ``lanes`` threads per world
+    (module docstring). Substep k reads buffer A when k is even and writes B, and the other way round when k is
+    odd; an odd ``steps`` leaves the result in B. Each world's clock (``time_in_out``) advances by
+    ``steps`` · (dt + dt_rest), added one step at a time as the per-substep path adds it."""
+    vec3 = vec3_type(scalar)
+    Shapes = shapes_type(scalar)
+    counted = power is not None
+    sums = power_sums_funcs(scalar, counted and counts_work(features, power))
+    Sums = sums.type
+    pack = sums.pack
+    particle_force = (particle_power_func(scalar, features, power) if counted
+                      else particle_force_func(scalar, features))
+    composed = elements(scalar, features.families)
+    Elements = composed.arrays
+    update = symplectic_euler_funcs(scalar)
+    _, project_contacts = project_all_func(scalar, contacts)
+    has_contacts = bool(contacts)
+
+    @wp.func
+    def substep(world: int, lane: int, lanes: int, particle_count: int,
+                particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
+                particle_radius: wp.array[scalar], shapes: Shapes, particle_mass: wp.array2d[scalar],
+                element_arrays: Elements, inputs: wp.array2d[scalar], particle_force_ext: wp.array[vec3],
+                q_in: wp.array[vec3], qd_in: wp.array[vec3], h: scalar,
+                q_out: wp.array[vec3], qd_out: wp.array[vec3], power_in_out: wp.array[Sums]):
+        base = world * particle_count
+        i = lane
+        while i < particle_count:
+            p = base + i
+            x = q_in[p]
+            v = qd_in[p]
+            if is_kinematic(particle_flags[p]):
+                q_out[p] = x + h * v
+                qd_out[p] = v
+                if wp.static(counted):
+                    _, dampers, _ = particle_force(world, i, base, x, v, False, particle_mass, element_arrays,
+                                                   inputs, particle_force_ext, q_in, qd_in)
+                    power_in_out[p] += pack(-h * wp.dot(dampers, v), scalar(0.0))
+            else:
+                inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
+                if wp.static(counted):
+                    f, dampers, work = particle_force(world, i, base, x, v, True, particle_mass, element_arrays,
+                                                      inputs, particle_force_ext, q_in, qd_in)
+                    v_start = v
+                    x, v = update(x, v, f, inv_mass, h)
+                    mean = (v_start + v) * (scalar(0.5) * h)
+                    power_in_out[p] += pack(-wp.dot(dampers, mean), wp.dot(work, mean))
+                else:
+                    f = particle_force(world, i, base, x, v, particle_mass, element_arrays, inputs,
+                                       particle_force_ext, q_in, qd_in)
+                    x, v = update(x, v, f, inv_mass, h)
+                if wp.static(has_contacts):
+                    x, v = project_contacts(world, p, x, v, particle_radius[i], h, shapes, inputs)
+                q_out[p] = x
+                qd_out[p] = v
+            i += lanes
+
+    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
+                 last=contacts.idle() + composed.last("element_arrays"))
+    def symplectic_euler_frame(
+        # Model:
+        particle_count: int,
+        lanes: int,
+        particle_flags: wp.array[wp.int32],
+        particle_inv_mass: wp.array2d[scalar],
+        particle_radius: wp.array[scalar],
+        shapes: Shapes,
+        # Model, the forces:
+        particle_mass: wp.array2d[scalar],
+        element_arrays: Elements,
+        inputs: wp.array2d[scalar],
+        # Control:
+        particle_force_ext: wp.array[vec3],
+        # Step:
+        steps: int,
+        dt: scalar,
+        dt_rest: scalar,
+        # In/out:
+        # (the two state buffers, the worlds' clocks [s], the guard's power sums [J], read with ``power`` only)
+        q_a_in_out: wp.array[vec3],
+        qd_a_in_out: wp.array[vec3],
+        q_b_in_out: wp.array[vec3],
+        qd_b_in_out: wp.array[vec3],
+        time_in_out: wp.array[wp.float64],
+        power_in_out: wp.array[Sums],
+    ):
+        t = wp.tid()
+        world = t / lanes
+        lane = t - world * lanes
+        k = int(0)
+        while k < steps:
+            if k % 2 == 0:
+                substep(world, lane, lanes, particle_count, particle_flags, particle_inv_mass, particle_radius, shapes,
+                        particle_mass, element_arrays, inputs, particle_force_ext, q_a_in_out, qd_a_in_out, dt,
+                        q_b_in_out, qd_b_in_out, power_in_out)
+            else:
+                substep(world, lane, lanes, particle_count, particle_flags, particle_inv_mass, particle_radius, shapes,
+                        particle_mass, element_arrays, inputs, particle_force_ext, q_b_in_out, qd_b_in_out, dt,
+                        q_a_in_out, qd_a_in_out, power_in_out)
+            if lane == 0:
+                time_in_out[world] = time_in_out[world] + (wp.float64(dt) + wp.float64(dt_rest))
+            block_barrier()
+            k += 1
+
+    return symplectic_euler_frame
