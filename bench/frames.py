@@ -81,10 +81,10 @@ def main():
                 work = n * n * worlds * SUBSTEPS
                 rates = {key: work / statistics.median(t) / 1e9 for key, t in times.items()}
                 ratios = [a / b for a, b in zip(times[False], times[True])]
-                auto = ws.SymplecticEuler(sims[False].model).frame_lanes(sims[False].control, SUBSTEPS) > 0
+                auto = ws.SymplecticEuler(sims[False].model).frame_shape(sims[False].control, SUBSTEPS)
                 row = (f"| {n}² × {worlds} | {'default' if guard else 'off'} | {rates[False]:.3g} | {rates[True]:.3g} | "
                        f"{statistics.median(ratios):.2f}× ({min(ratios):.2f}-{max(ratios):.2f}) | "
-                       f"{'one launch' if auto else 'per substep'} | {diff:.3g} |")
+                       f"{'per substep' if auto is None else f'one launch {auto[0]}×{auto[1]}'} | {diff:.3g} |")
                 lines.append(row)
                 print(row, flush=True)
     if args.out:

@@ -53,7 +53,7 @@ class StepHook:
     def quiet_between_steps(self, steps: int) -> bool:
         """Whether, in an advance of ``steps`` steps, the hook launches nothing around any step but the last
         (its ``before_step`` and ``after_step`` of the last step may still work). Only then may the integrator run
-        the advance's steps in one launch (``Integrator.frame_lanes``). Default: no."""
+        the advance's steps in one launch (``Integrator.frame_shape``). Default: no."""
         return False
 
 
@@ -151,13 +151,13 @@ class Stepper:
             hook.begin()
         a, b = self.state, self._scratch
         before = [hook for hook in self.hooks if _wants_before_step(hook)]
-        lanes = self.integrator.frame_lanes(self.control, self.steps)
-        if lanes and all(hook.quiet_between_steps(self.steps) for hook in self.hooks):
+        shape = self.integrator.frame_shape(self.control, self.steps)
+        if shape is not None and all(hook.quiet_between_steps(self.steps) for hook in self.hooks):
             # The advance's steps in one launch (the same arithmetic, the same bits); the hooks see the last step.
             last = self.steps - 1
             for hook in before:
                 hook.before_step(a if last % 2 == 0 else b, last, self.steps)
-            self.integrator.advance_frame(a, b, self.control, self.dt, self.steps, lanes)
+            self.integrator.advance_frame(a, b, self.control, self.dt, self.steps, shape)
             result = a if self.steps % 2 == 0 else b
             for hook in self.hooks:
                 hook.after_step(result, last, self.steps)

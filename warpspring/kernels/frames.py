@@ -1,18 +1,22 @@
-"""A frame's substeps in one launch: the fused symplectic Euler step looped inside one thread block per world.
+"""A frame's substeps in one launch: the fused symplectic Euler step looped over the substeps by each world's
+threads, which meet at a barrier between substeps.
 
 Between launches a GPU idles: a small scene's substep is a few microseconds of work behind a launch of its own
-(~1.2 µs a graph node on an H100, more for the data to come back through L2). Here one block of ``lanes``
-threads owns one world: each lane updates the particles ``lane, lane + lanes, ...`` of its world with the
-same per-particle step as :func:`~warpspring.kernels.integrators.symplectic_euler_kernel` (forces gathered,
-velocity then position updated, contacts resolved), and the block synchronises between substeps, so a substep
-reads only what the previous one finished writing. The state alternates between the two buffers as the
-per-substep path's does (substep k reads buffer k mod 2), so the arithmetic is the same, operation for
-operation, and the results are the same bits.
+(~1.2 µs a graph node on an H100, more for the data to come back through L2). Here a world's threads (``lanes``
+per block, ``blocks`` blocks) stay resident for the whole frame: thread l of a world updates its particles
+l, l + L, ... (L the world's threads) with the same per-particle step as
+:func:`~warpspring.kernels.integrators.symplectic_euler_kernel` (forces gathered, velocity then position updated,
+contacts resolved), then waits at a barrier, so a substep reads only what the previous one finished writing. The
+barrier is the block's own (``__syncthreads``) where a world is one block; where it spreads over several, each
+block's first thread counts its block in with an integer atomic on the world's counter and waits for all of
+them, reading the counter past its cache (the blocks must all be resident: the caller launches at most one per
+multiprocessor). The state alternates between the two buffers as the per-substep path's does (substep k reads
+buffer k mod 2): the same operations in the same order.
 
-On the CPU a launch runs its threads one after another, so the kernel is launched with one lane per world:
-each substep then runs over the whole world before the next begins, and the barrier is empty.
+On the CPU a launch runs its threads one after another, so the kernel is launched with one thread per world:
+each substep then runs over the whole world before the next begins, and the barriers are empty.
 
-The guard's power sums are accumulated per particle as the per-substep path does (same order, same bits).
+The guard's power sums are accumulated per particle as the per-substep path does.
 """
 
 import functools
@@ -41,12 +45,37 @@ def block_barrier():
     ...
 
 
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+__threadfence();
+#endif
+""")
+def memory_fence():
+    """This thread's writes to memory are seen by every thread of the device before its later ones
+    (``__threadfence``; nothing on the CPU)."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+volatile int* count = &barrier[world];
+while (*count < target) { }
+__threadfence();
+#endif
+""")
+def wait_for_arrivals(barrier: wp.array[wp.int32], world: int, target: int):
+    """Spin until ``barrier[world]`` reaches ``target`` (read past the multiprocessor's cache), then order this
+    thread's later reads after it; nothing on the CPU."""
+    ...
+
+
 @functools.cache
 def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
                                   power: tuple | None = None):
-    """``steps`` fused symplectic Euler steps of every world, one block of ``lanes`` threads per world
-    (module docstring). Substep k reads buffer A when k is even and writes B, and the other way round when k is
-    odd; an odd ``steps`` leaves the result in B. Each world's clock (``time_in_out``) advances by
+    """``steps`` fused symplectic Euler steps of every world, ``blocks`` blocks of ``lanes`` threads per world
+    (module docstring); ``barrier_in_out`` one counter per world, zero at the launch where ``blocks`` > 1.
+    Substep k reads buffer A when k is even and writes B, and the other way round when k is odd; an odd
+    ``steps`` leaves the result in B. Each world's clock (``time_in_out``) advances by
     ``steps`` · (dt + dt_rest), added one step at a time as the per-substep path adds it."""
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
@@ -107,6 +136,7 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         # Model:
         particle_count: int,
         lanes: int,
+        blocks: int,
         particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array2d[scalar],
         particle_radius: wp.array[scalar],
@@ -129,23 +159,31 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         qd_b_in_out: wp.array[vec3],
         time_in_out: wp.array[wp.float64],
         power_in_out: wp.array[Sums],
+        barrier_in_out: wp.array[wp.int32],
     ):
         t = wp.tid()
-        world = t / lanes
-        lane = t - world * lanes
+        stride = lanes * blocks  # a world's threads
+        world = t / stride
+        lane = t - world * stride
         k = int(0)
         while k < steps:
             if k % 2 == 0:
-                substep(world, lane, lanes, particle_count, particle_flags, particle_inv_mass, particle_radius, shapes,
-                        particle_mass, element_arrays, inputs, particle_force_ext, q_a_in_out, qd_a_in_out, dt,
+                substep(world, lane, stride, particle_count, particle_flags, particle_inv_mass, particle_radius,
+                        shapes, particle_mass, element_arrays, inputs, particle_force_ext, q_a_in_out, qd_a_in_out, dt,
                         q_b_in_out, qd_b_in_out, power_in_out)
             else:
-                substep(world, lane, lanes, particle_count, particle_flags, particle_inv_mass, particle_radius, shapes,
-                        particle_mass, element_arrays, inputs, particle_force_ext, q_b_in_out, qd_b_in_out, dt,
+                substep(world, lane, stride, particle_count, particle_flags, particle_inv_mass, particle_radius,
+                        shapes, particle_mass, element_arrays, inputs, particle_force_ext, q_b_in_out, qd_b_in_out, dt,
                         q_a_in_out, qd_a_in_out, power_in_out)
             if lane == 0:
                 time_in_out[world] = time_in_out[world] + (wp.float64(dt) + wp.float64(dt_rest))
-            block_barrier()
+            block_barrier()  # the block's lanes have written their particles
+            if blocks > 1 and lane % lanes == 0:  # the world's blocks meet: each block's first lane counts it in
+                memory_fence()
+                wp.atomic_add(barrier_in_out, world, 1)
+                wait_for_arrivals(barrier_in_out, world, (k + 1) * blocks)
+            if blocks > 1:
+                block_barrier()
             k += 1
 
     return symplectic_euler_frame

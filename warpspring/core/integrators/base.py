@@ -56,15 +56,16 @@ class Integrator(abc.ABC):
         self.model = model
         self.finish_step = StepFinisher(model)  # strain limiting, speed clamp, contacts: call on the result
 
-    def frame_lanes(self, control: Control | None, steps: int) -> int:
-        """Threads per world with which :meth:`advance_frame` runs ``steps`` steps in one launch, or 0 where this
-        integrator, the scene or the device does not allow it (the default: steps one launch at a time)."""
-        return 0
+    def frame_shape(self, control: Control | None, steps: int) -> tuple[int, int] | None:
+        """(threads per block, blocks per world) with which :meth:`advance_frame` runs ``steps`` steps in one launch,
+        or ``None`` where this integrator, the scene or the device does not allow it (the default: steps one launch
+        at a time)."""
+        return None
 
     def advance_frame(self, state_a: State, state_b: State, control: Control | None, dt: float, steps: int,
-                      lanes: int) -> None:
-        """``steps`` steps of ``dt`` [s] from ``state_a`` in one launch, alternating between the two states as the
-        stepper does (an odd count leaves the result in ``state_b``); only where :meth:`frame_lanes` said so."""
+                      shape: tuple[int, int]) -> None:
+        """``steps`` steps of ``dt`` [s] from ``state_a`` in one launch of ``shape`` (:meth:`frame_shape`),
+        alternating between the two states as the stepper does (an odd count leaves the result in ``state_b``)."""
         raise NotImplementedError(f"{type(self).__name__} has no one-launch frame")
 
     def hold_worlds(self, state_in: State, state_out: State) -> None:

@@ -26,55 +26,74 @@ class SymplecticEuler(Integrator):
 
     Args:
         model: the model.
-        one_launch: run a frame's substeps in one launch, one thread block per world (``kernels/frames.py``; the
-            same bits on the CPU, within float32 rounding on a GPU): ``None`` (default) where it pays, on a GPU
-            whose worlds' blocks give at least :attr:`ONE_LAUNCH_THREADS_PER_SM` threads per multiprocessor;
-            ``True`` wherever the scene allows it
-            (on the CPU too, one thread per world); ``False`` never. The scene allows it with gathered springs,
-            colliders that do not move, no stabiliser, contact stage, triangle contacts or self-collision, no
-            animated input, no driven pin, no family with time-dependent arrays (wind's, handles', precomputed
-            tets'), no held worlds, and step hooks that work at the frame's end alone (the default guard does).
+        one_launch: run a frame's substeps in one launch (``kernels/frames.py``; the same bits on the CPU, within
+            float32 rounding on a GPU). ``None`` (default): where it pays, on a GPU: a world spread over blocks of
+            :attr:`SPREAD_LANES` threads (one particle each) where every world's blocks fit one per multiprocessor
+            (one world up to 128² on an H200: 1.36-1.51× at 32²-128²), else one block per world where the worlds
+            give at least :attr:`ONE_LAUNCH_THREADS_PER_SM` threads per multiprocessor (1.02-1.18×). ``True``:
+            wherever the scene allows it (on the CPU too, one thread per world). ``False``: never. The scene allows it
+            with gathered springs, colliders that do not move, no stabiliser, contact stage, triangle contacts or
+            self-collision, no animated input, no driven pin, no family with time-dependent arrays (wind's,
+            handles', precomputed tets'), no held worlds, and step hooks that work at the frame's end alone (the
+            default guard does).
     """
 
     name = "symplectic_euler"
     order = 1
-    #: Threads (worlds × lanes) per streaming multiprocessor from which a frame in one launch is faster than one
-    #: launch per substep (H200, bench/results/frames.md, 16² to 64² cloth): 128 per SM gave 0.81-0.94×, 256 gave
-    #: 1.02-1.10×, 512-2048 gave 1.03-1.18× (the default guard's rows at the low end). A world's block runs on one
-    #: multiprocessor: one world alone is 2-5× slower.
+    #: Threads (worlds × lanes) per streaming multiprocessor from which a frame in one launch, one block per world,
+    #: is faster than one launch per substep (H200, bench/results/frames.md, 16² to 64² cloth): 128 per SM gave
+    #: 0.81-0.94×, 256 gave 1.02-1.10×, 512-2048 gave 1.03-1.18× (the default guard's rows at the low end).
     ONE_LAUNCH_THREADS_PER_SM = 256
-    #: Particles each lane of a one-launch frame takes per substep (the fastest of 2-8 at 16², 32², 64², H200).
+    #: Particles each lane of a one-block-per-world frame takes per substep (the fastest of 2-8 at 16²-64², H200).
     ONE_LAUNCH_PARTICLES_PER_LANE = 8
+    #: Threads per block where a world spreads over several blocks (one particle each; 32²-128², H200).
+    SPREAD_LANES = 128
+    #: Particles per world from which a world is spread over blocks by default (the smallest size measured faster).
+    SPREAD_MIN_PARTICLES = 1024
 
     def __init__(self, model, *, one_launch: bool | None = None):
         super().__init__(model)
         self.one_launch = one_launch
+        self._barrier = None  # per world: the block arrivals of a world spread over several blocks
 
-    def frame_lanes(self, control: Control | None, steps: int) -> int:
+    def frame_shape(self, control: Control | None, steps: int) -> tuple[int, int] | None:
+        """(threads per block, blocks per world) of a frame in one launch, or ``None``. Few worlds (a world's
+        blocks, one particle per thread, all resident at once: at most one block per multiprocessor) spread each
+        world over blocks that meet at a barrier in memory between substeps; many worlds (filling the device) take
+        one block each. On the CPU, one thread per world."""
         model = self.model
         if self.one_launch is False or steps < 2 or model.particle_count == 0:
-            return 0
+            return None
         if self.one_launch is None and not model.device.is_cuda:
-            return 0
+            return None
         if not (model.spring_gather or model.spring_count == 0) or not self.finish_step.only_contacts:
-            return 0
+            return None
         if model.shape_moving or model.input_tracks is not None or model.holds_worlds:
-            return 0
+            return None
         if model.pin_groups is not None and model.pin_groups.driven:
-            return 0
+            return None
         if any(type(family).at_time is not ElementFamily.at_time for family in model.extra_families):
-            return 0
+            return None
         if model.device.is_cpu:
-            return 1  # a CPU launch runs its threads in turn: one per world, each substep over the whole world
-        per_lane = self.ONE_LAUNCH_PARTICLES_PER_LANE
-        lanes = int(min(256, max(32, 32 * -(-model.particle_count // (32 * per_lane)))))
-        if self.one_launch is None and model.world_count * lanes < self.ONE_LAUNCH_THREADS_PER_SM * model.device.sm_count:
-            return 0  # too few blocks to fill the device: one launch per substep spreads a world over many
-        return lanes
+            return 1, 1  # a CPU launch runs its threads in turn: one per world, each substep over the whole world
+        sms = model.device.sm_count
+        spread = -(-model.particle_count // self.SPREAD_LANES)
+        if (spread > 1 and model.world_count * spread <= sms
+                and (self.one_launch or model.particle_count >= self.SPREAD_MIN_PARTICLES)):
+            return self.SPREAD_LANES, spread
+        lanes = int(min(256, max(32, 32 * -(-model.particle_count // (32 * self.ONE_LAUNCH_PARTICLES_PER_LANE)))))
+        if self.one_launch is None and model.world_count * lanes < self.ONE_LAUNCH_THREADS_PER_SM * sms:
+            return None  # too few blocks to fill the device, too many to spread: one launch per substep
+        return lanes, 1
 
     def advance_frame(self, state_a: State, state_b: State, control: Control | None, dt: float, steps: int,
-                      lanes: int) -> None:
+                      shape: tuple[int, int]) -> None:
         model = self.model
+        lanes, blocks = shape
+        if self._barrier is None or len(self._barrier) != model.world_count:
+            self._barrier = wp.zeros(model.world_count, dtype=wp.int32, device=model.device)
+        if blocks > 1:
+            self._barrier.zero_()
         features = model.force_features(control)
         contacts = model.contact_features()
         flat_launch(
@@ -83,6 +102,7 @@ class SymplecticEuler(Integrator):
             inputs=[
                 model.particle_count,
                 lanes,
+                blocks,
                 model.particle_flags,
                 model.particle_inv_mass,
                 model.particle_radius,
@@ -92,8 +112,8 @@ class SymplecticEuler(Integrator):
                 *step_arguments(model.scalar, dt),
             ],
             outputs=[state_a.particle_q, state_a.particle_qd, state_b.particle_q, state_b.particle_qd, state_a.time,
-                     None if self.power is None else self.power.sums],
-            dim=model.world_count * lanes, block_dim=lanes, device=model.device,
+                     None if self.power is None else self.power.sums, self._barrier],
+            dim=model.world_count * lanes * blocks, block_dim=lanes, device=model.device,
         )
         if steps % 2:
             wp.copy(state_b.time, state_a.time)  # the clock advanced in A; the result is B
