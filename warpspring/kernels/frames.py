@@ -24,11 +24,9 @@ import functools
 import warp as wp
 
 from .families import FORCE_KERNEL_OPTIONS, elements
-from .forces import ForceFeatures, counts_work, particle_force_func, particle_power_func, power_sums_funcs
-from .integrators import symplectic_euler_funcs
-from .kinematics import is_kinematic
+from .forces import ForceFeatures, counts_work, power_sums_funcs
+from .integrators import symplectic_euler_particle_func
 from .precision import vec3_type
-from .response import project_all_func
 from .shapes import ContactFeatures, shapes_type
 from .flatten import flat_kernel
 
@@ -79,17 +77,10 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
     ``steps`` · (dt + dt_rest), added one step at a time as the per-substep path adds it."""
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
-    counted = power is not None
-    sums = power_sums_funcs(scalar, counted and counts_work(features, power))
-    Sums = sums.type
-    pack = sums.pack
-    particle_force = (particle_power_func(scalar, features, power) if counted
-                      else particle_force_func(scalar, features))
+    Sums = power_sums_funcs(scalar, power is not None and counts_work(features, power)).type
     composed = elements(scalar, features.families)
     Elements = composed.arrays
-    update = symplectic_euler_funcs(scalar)
-    _, project_contacts = project_all_func(scalar, contacts)
-    has_contacts = bool(contacts)
+    step_particle = symplectic_euler_particle_func(scalar, features, contacts, power)
 
     @wp.func
     def substep(world: int, lane: int, lanes: int, particle_count: int,
@@ -102,32 +93,11 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         i = lane
         while i < particle_count:
             p = base + i
-            x = q_in[p]
-            v = qd_in[p]
-            if is_kinematic(particle_flags[p]):
-                q_out[p] = x + h * v
-                qd_out[p] = v
-                if wp.static(counted):
-                    _, dampers, _ = particle_force(world, i, base, x, v, False, particle_mass, element_arrays,
-                                                   inputs, particle_force_ext, q_in, qd_in)
-                    power_in_out[p] += pack(-h * wp.dot(dampers, v), scalar(0.0))
-            else:
-                inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
-                if wp.static(counted):
-                    f, dampers, work = particle_force(world, i, base, x, v, True, particle_mass, element_arrays,
-                                                      inputs, particle_force_ext, q_in, qd_in)
-                    v_start = v
-                    x, v = update(x, v, f, inv_mass, h)
-                    mean = (v_start + v) * (scalar(0.5) * h)
-                    power_in_out[p] += pack(-wp.dot(dampers, mean), wp.dot(work, mean))
-                else:
-                    f = particle_force(world, i, base, x, v, particle_mass, element_arrays, inputs,
-                                       particle_force_ext, q_in, qd_in)
-                    x, v = update(x, v, f, inv_mass, h)
-                if wp.static(has_contacts):
-                    x, v = project_contacts(world, p, x, v, particle_radius[i], h, shapes, inputs)
-                q_out[p] = x
-                qd_out[p] = v
+            x, v = step_particle(world, i, p, base, particle_flags, particle_inv_mass, particle_radius, shapes,
+                                 particle_mass, element_arrays, inputs, particle_force_ext, q_in, qd_in, h,
+                                 power_in_out)
+            q_out[p] = x
+            qd_out[p] = v
             i += lanes
 
     @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,

@@ -118,6 +118,62 @@ def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures, powe
 
 
 @functools.cache
+def symplectic_euler_particle_func(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
+                                   power: tuple | None = None):
+    """``step_particle(world, i, p, base, ..., q_in, qd_in, h, power_in_out) -> (x', v')``: one particle's fused
+    symplectic Euler step (forces gathered, velocity then position, contacts), the one body of the per-substep kernel
+    (``symplectic_euler_kernel``) and of the one-launch frame (``kernels/frames.py``). A kinematic particle moves on
+    with its velocity. With ``power`` the particle adds to its entry of the guard's power sums
+    (``symplectic_euler_kernel``'s rule)."""
+    vec3 = vec3_type(scalar)
+    Shapes = shapes_type(scalar)
+    counted = power is not None
+    sums = power_sums_funcs(scalar, counted and counts_work(features, power))
+    Sums = sums.type
+    pack = sums.pack
+    particle_force = (particle_power_func(scalar, features, power) if counted
+                      else particle_force_func(scalar, features))
+    Elements = elements(scalar, features.families).arrays
+    update = symplectic_euler_funcs(scalar)
+    _, project_contacts = project_all_func(scalar, contacts)
+    has_contacts = bool(contacts)
+
+    @wp.func
+    def step_particle(world: int, i: int, p: int, base: int, particle_flags: wp.array[wp.int32],
+                      particle_inv_mass: wp.array2d[scalar], particle_radius: wp.array[scalar], shapes: Shapes,
+                      particle_mass: wp.array2d[scalar], element_arrays: Elements, inputs: wp.array2d[scalar],
+                      particle_force_ext: wp.array[vec3], q_in: wp.array[vec3], qd_in: wp.array[vec3], h: scalar,
+                      power_in_out: wp.array[Sums]):
+        x = q_in[p]
+        v = qd_in[p]
+        x_new = x + h * v
+        v_new = v
+        if is_kinematic(particle_flags[p]):
+            if wp.static(counted):  # its elements' dampers: their share of the dampers' power (the drive's work has
+                # the rest)
+                _, dampers, _ = particle_force(world, i, base, x, v, False, particle_mass, element_arrays, inputs,
+                                               particle_force_ext, q_in, qd_in)
+                power_in_out[p] += pack(-h * wp.dot(dampers, v), scalar(0.0))
+        else:
+            inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
+            if wp.static(counted):
+                f, dampers, work = particle_force(world, i, base, x, v, True, particle_mass, element_arrays, inputs,
+                                                  particle_force_ext, q_in, qd_in)
+                x_new, v_new = update(x, v, f, inv_mass, h)
+                mean = (v + v_new) * (scalar(0.5) * h)
+                power_in_out[p] += pack(-wp.dot(dampers, mean), wp.dot(work, mean))
+            else:
+                f = particle_force(world, i, base, x, v, particle_mass, element_arrays, inputs, particle_force_ext,
+                                   q_in, qd_in)
+                x_new, v_new = update(x, v, f, inv_mass, h)
+            if wp.static(has_contacts):
+                x_new, v_new = project_contacts(world, p, x_new, v_new, particle_radius[i], h, shapes, inputs)
+        return x_new, v_new
+
+    return step_particle
+
+
+@functools.cache
 def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
                             power: tuple | None = None):
     """Fused force + symplectic Euler + contact kernel: v' = v + h M⁻¹ f(x, v); x' = x + h v'; ``contacts``
@@ -131,17 +187,10 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
     error in the elastic energy; one thread writes each entry (no atomics), no pass of its own."""
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
-    counted = power is not None
-    sums = power_sums_funcs(scalar, counted and counts_work(features, power))
-    Sums = sums.type
-    pack = sums.pack
-    particle_force = (particle_power_func(scalar, features, power) if counted
-                      else particle_force_func(scalar, features))
+    Sums = power_sums_funcs(scalar, power is not None and counts_work(features, power)).type
     composed = elements(scalar, features.families)
     Elements = composed.arrays
-    update = symplectic_euler_funcs(scalar)
-    _, project_contacts = project_all_func(scalar, contacts)
-    has_contacts = bool(contacts)
+    step_particle = symplectic_euler_particle_func(scalar, features, contacts, power)
 
     @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
                  last=contacts.idle() + composed.last("element_arrays"))
@@ -175,33 +224,9 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
         world, i = world_and_index(p, particle_count)
         if i == 0:
             time_out[world] = time_in[world] + (wp.float64(dt) + wp.float64(dt_rest))
-        base = p - i
-        h = dt
-        x = particle_q_in[p]
-        v = particle_qd_in[p]
-        if is_kinematic(particle_flags[p]):
-            particle_q_out[p] = x + h * v
-            particle_qd_out[p] = v
-            if wp.static(counted):  # its elements' dampers: their share of the dampers' power (the drive's work has
-                # the rest)
-                _, dampers, _ = particle_force(world, i, base, x, v, False, particle_mass, element_arrays, inputs,
-                                               particle_force_ext, particle_q_in, particle_qd_in)
-                power_in_out[p] += pack(-h * wp.dot(dampers, v), scalar(0.0))
-            return
-        inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
-        if wp.static(counted):
-            f, dampers, work = particle_force(world, i, base, x, v, True, particle_mass, element_arrays, inputs,
-                                              particle_force_ext, particle_q_in, particle_qd_in)
-            v_start = v
-            x, v = update(x, v, f, inv_mass, h)
-            mean = (v_start + v) * (scalar(0.5) * h)
-            power_in_out[p] += pack(-wp.dot(dampers, mean), wp.dot(work, mean))
-        else:
-            f = particle_force(world, i, base, x, v, particle_mass, element_arrays, inputs, particle_force_ext,
-                               particle_q_in, particle_qd_in)
-            x, v = update(x, v, f, inv_mass, h)
-        if wp.static(has_contacts):
-            x, v = project_contacts(world, p, x, v, particle_radius[i], h, shapes, inputs)
+        x, v = step_particle(world, i, p, p - i, particle_flags, particle_inv_mass, particle_radius, shapes,
+                             particle_mass, element_arrays, inputs, particle_force_ext, particle_q_in, particle_qd_in,
+                             dt, power_in_out)
         particle_q_out[p] = x
         particle_qd_out[p] = v
 
