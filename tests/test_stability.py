@@ -294,7 +294,9 @@ def test_advisor_names_the_binding_world(device, stiffness_worlds):
     for w, factor in enumerate(WORLD_FACTORS):
         alone = advise(damped_cloth(device, factor), "symplectic_euler", dt, tolerance=WORLD_TOLERANCE)
         assert advice.world_dt_stable[w] == pytest.approx(alone.dt_stable, rel=2.0 * OMEGA_BOUND)
+        assert advice.world_dt_passed[w] == pytest.approx(alone.dt_passed, rel=2.0 * OMEGA_BOUND)
         assert "world" not in alone.message and alone.world == 0
+    assert advice.dt_passed == advice.world_dt_passed[3] == advice.world_dt_passed.min()
     assert advice.stable == (dt <= advice.world_dt_stable[3])
     assert advice.substeps == math.ceil(1.0 / (60.0 * advice.world_dt_stable[3]))
     gershgorin = advise(model, "symplectic_euler", dt, omega_estimate="gershgorin")
