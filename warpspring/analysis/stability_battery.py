@@ -23,15 +23,16 @@ A run
 * **grows** when its energy, averaged over ``MEAN_WINDOW`` (1 s), rises more than ``GROWTH`` = 1 % of F above
   its start within the run: the issue's criterion, read on the energy the integrator conserves. Symplectic Euler
   and velocity Verlet keep a shadow energy H̃, not H (:class:`EnergyMeter`); H itself swings by O(h) (O(h²)) about
-  it, which on the 16² flat cloth at P is 12 % of F within 10 s (symplectic Euler) however stable the run. H̃
-  through its O(h²) terms (error O(h⁴)) holds to 1e-5 of F for the first 2 s of that run; as the motion spreads
-  into the cloth's top modes (ωh up to √3, where the series converges slowly) its residual becomes a bias of
-  about -1 % of F that settles (-0.8 % at 0.8 P over 40 s for Verlet); the 1 s mean removes the residual's
-  swing. A run past the step that holds crosses +1 % 2-4 s before it turns non-finite (8² flat at 1.111 P,
-  velocity Verlet: at 5.7-7.8 s over eight round-off-sized perturbations of its start, where half the motion's
-  energy, this battery's former threshold, was reached after 10 s by two of them). The table gives, per run,
-  the highest 1 s mean and, in brackets, the highest single value of H̃ - H̃(0), in % of F; RK4 has no shadow
-  energy (its H falls: it dissipates at large steps).
+  it, 12 % of F within 10 s on the 16² flat cloth at the three-wave step (symplectic Euler) however stable the
+  run. H̃ through its O(h²) terms (error O(h⁴)) holds to 1e-5 of F for the first 2 s of that run; as the motion
+  spreads into the cloth's top modes (ωh up to √3, where the series converges slowly) its residual becomes a bias
+  of about -1 % of F that settles (-0.8 % at 0.8 of that step over 40 s, Verlet); the 1 s mean removes the
+  residual's swing. A run past the step that holds crosses +1 % seconds before it turns non-finite, and does so
+  whatever the round-off: 8² flat, Verlet, at 1.111 × the three-wave step, at 5.7-7.8 s over eight perturbations
+  of its start by 1e-7 m, where half the motion's energy in the last 2 s (this battery's former threshold) missed
+  two of them. Measurements: ``bench/results/advisor_battery_cpu.md``. The table gives, per run, the highest 1 s
+  mean and, in brackets, the highest single value of H̃ - H̃(0), in % of F; RK4 has no shadow energy (its H falls:
+  it dissipates at large steps).
 
 A case passes when every run at f ≤ 1 neither blows up nor grows (one-sided) and some run at f ≤ 1/0.9 does
 (tight: the advisor's step is within 10 % of the largest step that does neither, as far as the grid of factors
