@@ -1,7 +1,7 @@
 """The advisor on free, undamped and large-motion cloth (analysis/stability_battery.py; the whole battery is
-bench/advisor_battery.py): a small subset of its cases. What ``--strict`` passes neither blows up nor grows, and a
-step 6-11 % beyond it does; explicit Euler and midpoint are refused on undamped cloth and kept a margin below
-their limit on damped cloth."""
+bench/advisor_battery.py): a small subset of its cases. What ``--strict`` passes neither blows up nor grows (its
+shadow energy, whose measure is checked on one spring against its order), and a step 11 % beyond it does; explicit
+Euler and midpoint are refused on undamped cloth and kept a margin below their limit on damped cloth."""
 
 import math
 
@@ -12,8 +12,9 @@ import warpspring as ws
 
 from warpspring.analysis import stability_battery as sb
 from warpspring.analysis.advisor import advise
-from warpspring.core.integrators import make_integrator
 from warpspring.analysis.stability import DAMPED_MARGIN, TRIAD_MARGIN, TRIAD_PHASE, passed_step, triad_step
+from warpspring.analysis.step_choice import STABILITY_MARGIN, choose_substeps
+from warpspring.core.integrators import make_integrator
 
 
 def test_triad_step_of_an_undamped_oscillator():
@@ -48,6 +49,18 @@ def test_the_flat_released_cloth(device):
     assert passes.ok and abs(passes.excess) <= sb.GROWTH
     assert passes.raw_excess > sb.GROWTH  # what the shadow energy is for: H alone would call the run growing
     assert not fails.ok
+
+
+@pytest.mark.slow
+def test_the_flat_released_cloth_with_no_step_given(device):
+    # The same cloth as a new user runs it, no step given: substeps = "auto" (choose_substeps) takes STABILITY_MARGIN
+    # of the advisor's step, 13 substeps per 1/60 s (1.282 ms), and that run neither blows up nor grows.
+    case = sb.Case(16, 0.0, "flat", True)
+    choice = choose_substeps(sb.battery_cloth(case, device), "symplectic_euler", fps=60.0, horizon=10.0)
+    assert choice.substeps == 13 and choice.advice.stable
+    assert choice.dt <= STABILITY_MARGIN * choice.advice.dt_passed
+    result = sb.run(case, "symplectic_euler", choice.dt, device, factor=choice.dt / choice.advice.dt_passed)
+    assert result.ok and result.excess < 0.2 * sb.GROWTH
 
 
 @pytest.mark.slow
