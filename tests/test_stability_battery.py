@@ -1,15 +1,20 @@
 """The advisor on free, undamped and large-motion cloth (analysis/stability_battery.py; the whole battery is
-bench/advisor_battery.py): a small subset of its cases. What ``--strict`` passes neither blows up nor grows, and a
-step 6-11 % beyond it does; explicit Euler and midpoint are refused on undamped cloth and kept a margin below
-their limit on damped cloth."""
+bench/advisor_battery.py): a small subset of its cases. What ``--strict`` passes neither blows up nor grows (its
+shadow energy, whose measure is checked on one spring against its order), and a step 11 % beyond it does; explicit
+Euler and midpoint are refused on undamped cloth and kept a margin below their limit on damped cloth."""
 
 import math
 
+import numpy as np
 import pytest
+
+import warpspring as ws
 
 from warpspring.analysis import stability_battery as sb
 from warpspring.analysis.advisor import advise
-from warpspring.analysis.stability import DAMPED_MARGIN, TRIAD_PHASE, passed_step, triad_step
+from warpspring.analysis.stability import DAMPED_MARGIN, TRIAD_MARGIN, TRIAD_PHASE, passed_step, triad_step
+from warpspring.analysis.step_choice import STABILITY_MARGIN, choose_substeps
+from warpspring.core.integrators import make_integrator
 
 
 def test_triad_step_of_an_undamped_oscillator():
@@ -17,7 +22,7 @@ def test_triad_step_of_an_undamped_oscillator():
     for integrator in ("symplectic_euler", "velocity_verlet"):
         assert triad_step(integrator, 1.0, 0.0, 2.0) == pytest.approx(math.sqrt(3.0), rel=1e-9)
         step, why = passed_step(integrator, 1.0, 2.0)
-        assert step == pytest.approx(math.sqrt(3.0), rel=1e-9) and "three-wave" in why
+        assert step == pytest.approx(TRIAD_MARGIN * math.sqrt(3.0), rel=1e-9) and "three-wave" in why
     assert math.cos(TRIAD_PHASE) == pytest.approx(1.0 - 3.0 / 2.0)
     # RK4 loses amplitude per step near its limit (|R| = 0.72 where its phase reaches 2π/3): its linear limit stands.
     limit = 2.0 * math.sqrt(2.0) / 1000.0
@@ -29,28 +34,53 @@ def test_triad_step_of_an_undamped_oscillator():
 @pytest.mark.slow
 def test_the_flat_released_cloth(device):
     # The issue's case: the undamped 16² cloth (1000 / 200 / 20 N/m, 1 kg) released flat from its top corners.
-    # Its linear limit is 1.814 ms (10 substeps pass it), but a run at 1.667 ms grows to ~10× its motion's
-    # energy within 10 s (then NaN); the advisor passes √3/ω_max = 1.571 ms (11 substeps), whose run holds.
+    # Its linear limit is 1.814 ms (10 substeps pass it), but a run at 1.667 ms grows (its shadow energy, 1 s
+    # mean, passes 1 % of the released energy within 10 s; then NaN). The advisor passes TRIAD_MARGIN · √3/ω_max
+    # = 1.492 ms (12 substeps), whose run holds: its shadow energy's mean stays within 1 % of its start, though H
+    # itself swings by more (symplectic Euler's O(h) band).
     case = sb.Case(16, 0.0, "flat", True)
     model = sb.battery_cloth(case, device)
-    ten, eleven = (advise(model, "symplectic_euler", 1.0 / (60.0 * n), horizon=10.0) for n in (10, 11))
-    assert ten.dt_stable == pytest.approx(1.814e-3, rel=2e-3) and not ten.stable and ten.substeps == 11
-    assert eleven.stable and "three-wave" in ten.message
-    passes = sb.run(case, "symplectic_euler", 1.0 / 660.0, device, factor=1.0 / 660.0 / ten.dt_passed)
+    ten, twelve = (advise(model, "symplectic_euler", 1.0 / (60.0 * n), horizon=10.0) for n in (10, 12))
+    assert ten.dt_stable == pytest.approx(1.814e-3, rel=2e-3) and not ten.stable and ten.substeps == 12
+    assert twelve.stable and "three-wave" in ten.message
+    assert ten.dt_passed == pytest.approx(TRIAD_MARGIN * math.sqrt(3.0) / ten.omega_max, rel=1e-9)
+    passes = sb.run(case, "symplectic_euler", 1.0 / 720.0, device, factor=1.0 / 720.0 / ten.dt_passed)
     fails = sb.run(case, "symplectic_euler", 1.0 / 600.0, device, factor=1.0 / 600.0 / ten.dt_passed)
-    assert passes.ok and passes.excess < 0.2  # the first-order band of symplectic Euler, not growth
+    assert passes.ok and abs(passes.excess) <= sb.GROWTH
+    assert passes.raw_excess > sb.GROWTH  # what the shadow energy is for: H alone would call the run growing
     assert not fails.ok
+
+
+@pytest.mark.slow
+def test_the_flat_released_cloth_with_no_step_given(device):
+    # The same cloth as a new user runs it, no step given: substeps = "auto" (choose_substeps) takes STABILITY_MARGIN
+    # of the advisor's step, 13 substeps per 1/60 s (1.282 ms), and that run neither blows up nor grows.
+    case = sb.Case(16, 0.0, "flat", True)
+    choice = choose_substeps(sb.battery_cloth(case, device), "symplectic_euler", fps=60.0, horizon=10.0)
+    assert choice.substeps == 13 and choice.advice.stable
+    assert choice.dt <= STABILITY_MARGIN * choice.advice.dt_passed
+    result = sb.run(case, "symplectic_euler", choice.dt, device, factor=choice.dt / choice.advice.dt_passed)
+    assert result.ok and result.excess < 0.2 * sb.GROWTH
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("integrator", sb.CONSERVATIVE)
 def test_one_sided_and_tight_on_small_cloth(device, integrator):
     # 8², released folded without gravity (the fold's springs open it) and flat with gravity: the run at the
-    # advisor's step holds, the run at 1/0.9 of it does not.
-    for case in (sb.Case(8, 0.0, "folded", False), sb.Case(8, 0.0, "flat", True)):
-        result = sb.measure(case, integrator, device, factors=(1.0, 1.111))
-        assert result.one_sided(), sb.table([result])
-        assert result.tight(), sb.table([result])
+    # advisor's step holds (its shadow energy's 1 s mean rises less than 0.2 % of the released energy, measured,
+    # against the 1 % of growth). A run past the limit grows from round-off, which differs between devices (summation
+    # order, fused multiply-adds), so whether it shows within 10 s is a matter of how fast it grows: measured on
+    # the CPU over round-off-sized perturbations of the start (1e-7 m), the folded cloth at 1/0.9 of the step
+    # passes 1 % at 3-5 s (Verlet), the flat one at 6.5-9.8 s (Verlet) and 7.5-9.0 s (symplectic Euler). Only the
+    # former is a verdict every device reaches; the battery (bench/advisor_battery.py) reports the latter. Judged
+    # by "half the motion's energy in the last 2 s" instead, two of eight such flat runs at the former step (then
+    # the three-wave step itself) held: the failure of this test once seen on an H200 (Verlet).
+    folded = sb.measure(sb.Case(8, 0.0, "folded", False), integrator, device, factors=(1.0, 1.111))
+    assert folded.one_sided() and folded.tight(), sb.table([folded])
+    flat = sb.measure(sb.Case(8, 0.0, "flat", True), integrator, device, factors=(1.0,))
+    assert flat.one_sided(), sb.table([flat])
+    for result in (folded, flat):  # far from growing (RK4 dissipates: its energy falls)
+        assert result.runs[0].excess < 0.2 * sb.GROWTH, sb.table([result])
 
 
 def test_explicit_euler_and_midpoint(device):
@@ -66,3 +96,57 @@ def test_explicit_euler_and_midpoint(device):
     assert at.dt_stable == pytest.approx(sb.EXACT, rel=1e-3)
     assert not at.stable and below.stable
     assert at.dt_passed == pytest.approx(DAMPED_MARGIN * at.dt_stable)
+
+
+@pytest.mark.parametrize("integrator, order", [("symplectic_euler", 1), ("velocity_verlet", 2)])
+def test_shadow_energy_of_a_swinging_spring(device, integrator, order):
+    # One particle (0.5 kg) on a 200 N/m spring of rest length 1 m from a pin, released 0.2 m stretched and
+    # horizontal: it swings and bounces under gravity (nonlinear), float64. The energy H of a symplectic
+    # integrator oscillates by O(h^order); the meter's shadow energy (Verlet: H + h² (U''(v, v)/12 - |f|²_M⁻¹/24);
+    # symplectic Euler: the same at the synchronised velocity v + (h/2) M⁻¹ f) by O(h⁴). Halving h: H's range falls
+    # by 2^order, the shadow's by 2⁴ (within 20 % on the exponent: the ranges are the leading terms' up to O(h)
+    # relative terms at ωh = 0.04-0.08), and the shadow's range is below 1e-3 of H's.
+    ranges = []
+    for h in (4.0e-3, 2.0e-3):
+        builder = ws.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+        builder.add_particles([[0.0, 0.0, 0.0], [1.2, 0.0, 0.0]], mass=0.5, pinned=[0])
+        builder.add_springs([[0, 1]], stiffness=200.0, rest_length=1.0)
+        model = builder.finalize(device, precision="float64")
+        meter = sb.EnergyMeter(model, integrator, h)
+        step = make_integrator(integrator, model)
+        a, b = model.state(), model.state()
+        energies = [meter(a.particle_q.numpy(), a.particle_qd.numpy())[:2]]
+        for _ in range(int(round(2.0 / h))):  # 2 s: a full swing
+            step.step(a, b, None, h)
+            a, b = b, a
+            energies.append(meter(a.particle_q.numpy(), a.particle_qd.numpy())[:2])
+        ranges.append(np.ptp(np.array(energies), axis=0))
+    (raw, shadow), (raw_half, shadow_half) = ranges
+    assert math.log2(raw / raw_half) == pytest.approx(order, rel=0.2)
+    assert math.log2(shadow / shadow_half) == pytest.approx(4.0, rel=0.2)
+    assert shadow_half < 1.0e-3 * raw_half
+
+
+@pytest.mark.slow
+def test_the_exact_limit_in_worlds(device):
+    # The issue's exact-limit battery: the 16² cloth with kd = 1e-4 s · ke as 12 worlds at 0.6-1.6 × ke = 1e5 N/m
+    # (shear and bend in the battery's proportions), explicit Euler at dt = 0.1 ms. Explicit Euler's limit is the
+    # damping ratio τ itself in every world (0.1 ms, to the power iteration's 1e-3 on the top mode's kd/k), which
+    # --strict used to pass and which blew up in every world; now every world's verdict stops at DAMPED_MARGIN of
+    # it and the step is refused, while one just below the margin passes.
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    builder.add_cloth_grid(nx=16, ny=16, spacing=sb.SPACING, origin=(0.0, 0.0, 1.0), particle_mass=sb.PARTICLE_MASS,
+                           pin=["top-left", "top-right"],
+                           **{name: ws.SpringMaterial(100.0 * ke, sb.EXACT * 100.0 * ke)
+                              for name, ke in sb.STIFFNESS.items()})
+    factors = np.linspace(0.6, 1.6, 12)
+    model = builder.finalize(device, worlds=len(factors))
+    base_k, base_d = model.spring_stiffness.numpy()[0], model.spring_damping.numpy()[0]
+    model.set_world_values("spring_stiffness", factors[:, None] * base_k[None, :])
+    model.set_world_values("spring_damping", factors[:, None] * base_d[None, :])
+    at = advise(model, "explicit_euler", sb.EXACT, horizon=10.0)
+    np.testing.assert_allclose(at.world_dt_stable, sb.EXACT, rtol=2e-3)
+    np.testing.assert_allclose(at.world_dt_passed, DAMPED_MARGIN * at.world_dt_stable, rtol=1e-12)
+    assert not at.stable and (at.world_dt_passed < sb.EXACT).all()
+    below = advise(model, "explicit_euler", 0.99 * DAMPED_MARGIN * sb.EXACT, horizon=10.0)
+    assert below.stable

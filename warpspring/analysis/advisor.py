@@ -77,6 +77,7 @@ class Advice:
             the three-wave limit of a weakly damped cloth for the others; ``stable`` is ``dt`` ≤ it, ``substeps``
             its substeps. NaN where not set.
         passed_reason: why ``dt_passed`` is below ``dt_stable`` ("" where it is not).
+        world_dt_passed: each world's ``dt_passed`` [s], float64, shape [world_count] (NaN where not set).
     """
 
     integrator: str
@@ -99,6 +100,7 @@ class Advice:
     dry_run_cut_short: str = ""
     dt_passed: float = math.nan
     passed_reason: str = ""
+    world_dt_passed: np.ndarray = field(default_factory=lambda: np.full(1, math.nan), compare=False)
 
 
 #: The transverse growth (:attr:`Advice.transverse_growth`) from which the advisor's message mentions it.
@@ -384,6 +386,7 @@ def advise(
         dry_run_cut_short=probe.cut_short if probe is not None else "",
         dt_passed=passed_limit,
         passed_reason=passed_reason,
+        world_dt_passed=passed_limits,
     )
 
 

@@ -111,7 +111,7 @@ def advisor_passes(scene: str, integrator: str, dt: float, stiffness: np.ndarray
     horizon, as ``warpspring run`` passes the run's duration), bool, shape [len(stiffness)]."""
     model = battery_cloth(scene, stiffness, device)
     advice = advise(model, integrator, dt, fps=FPS, control=battery_control(scene, model), horizon=seconds)
-    return dt <= advice.world_dt_stable
+    return dt <= advice.world_dt_passed
 
 
 @dataclass(frozen=True)
