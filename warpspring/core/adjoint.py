@@ -23,6 +23,7 @@ Scalars a user names (a ``ClothMaterial``'s stretch, a spring group's stiffness)
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,7 +42,7 @@ from ..kernels.adjoint import (
     loss_kernel,
     smooth_colliders_type,
 )
-from ..kernels.families import elements, fill_elements
+from ..kernels.families import Incidence, IncidenceShape, elements, fill_elements
 from ..kernels.springs import SpringSpec
 from .model import Model
 
@@ -145,6 +146,12 @@ class DiffRun:
                 struct = family.arrays(model, grouped=False)
             else:
                 spec, struct = family.spec(model), family.arrays(model)
+                if getattr(spec, "precomputed", False):  # a pass of its own would be off the tape: per corner here
+                    spec = dataclasses.replace(spec, precomputed=False)
+            if spec.incidence.tail:  # a CSR tail is a dynamic loop, whose adjoint Warp does not sum right: no tail
+                struct.incidence, shape = _without_tail(struct.incidence, spec.incidence, model.particle_count,
+                                                        self_padding=family.name == "springs")
+                spec = dataclasses.replace(spec, incidence=shape)
             for field in struct._cls.vars:
                 value = getattr(struct, field)
                 if (isinstance(value, wp.array) and value.ndim == 2 and value.dtype == scalar
@@ -329,6 +336,33 @@ def _check_model(model: Model) -> None:
         raise ConfigError("a differentiable run does not take emitters")
     if model.stabilizers.max_particle_force is not None:
         raise ConfigError("a differentiable run does not clamp forces: set max_particle_force to None")
+
+
+def _without_tail(table: Incidence, shape: IncidenceShape, n: int, *, self_padding: bool):
+    """The incidence table with its CSR tail moved into a head as wide as the largest degree (a compile-time
+    loop, whose adjoint Warp generates right). Padding entries as the families make them: element 0 with local
+    the particle itself (springs, ``self_padding``) or -1."""
+    head_element, head_local = table.head_element.numpy(), table.head_local.numpy()
+    start = table.tail_start.numpy()
+    tail_element, tail_local = table.tail_element.numpy(), table.tail_local.numpy()
+    width = shape.head_slots + int(np.diff(start).max(initial=0))
+    pad = np.arange(n) if self_padding else np.full(n, -1)
+    element = np.zeros((width, n), dtype=np.int32)
+    local = np.broadcast_to(pad.astype(np.int32), (width, n)).copy()
+    element[: shape.head_slots] = head_element
+    local[: shape.head_slots] = head_local
+    for i in np.flatnonzero(np.diff(start)):
+        count = start[i + 1] - start[i]
+        element[shape.head_slots: shape.head_slots + count, i] = tail_element[start[i]: start[i + 1]]
+        local[shape.head_slots: shape.head_slots + count, i] = tail_local[start[i]: start[i + 1]]
+    out = Incidence()
+    device = table.head_element.device
+    out.head_element = wp.array(element, dtype=wp.int32, device=device)
+    out.head_local = wp.array(local, dtype=wp.int32, device=device)
+    out.tail_start = wp.zeros(n + 1, dtype=wp.int32, device=device)
+    out.tail_element = wp.zeros(0, dtype=wp.int32, device=device)
+    out.tail_local = wp.zeros(0, dtype=wp.int32, device=device)
+    return out, IncidenceShape(head_slots=width, tail=False)
 
 
 def _velocity_dependent(model: Model) -> bool:
