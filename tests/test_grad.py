@@ -14,14 +14,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import warp as wp
 
 from warpspring.analysis.grad_scenes import SCENES
-from warpspring.core.adjoint import DiffRun, SmoothContact, Target
+from warpspring.core.adjoint import DiffRun, Target
 from warpspring.core.adjoint_params import ParameterMap
-from warpspring.errors import ConfigError
 
-import helpers
 
 
 def _run(scene, device, *, worlds=1, integrator=None, checkpoint_every=None, deterministic=False):

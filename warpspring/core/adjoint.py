@@ -120,7 +120,7 @@ class DiffRun:
         self.checkpoint_every = max(1, int(np.ceil(np.sqrt(steps)))) if checkpoint_every is None else int(checkpoint_every)
         if self.checkpoint_every < 1:
             raise ConfigError(f"checkpoint_every must be ≥ 1, got {checkpoint_every!r}")
-        self.deterministic = deterministic
+        self.deterministic = bool(deterministic) and model.device.is_cuda  # the CPU runs threads in order
         device, scalar, worlds, n = model.device, model.scalar, model.world_count, model.particle_count
         self._n = worlds * n
         self.values: dict[str, wp.array] = {}
