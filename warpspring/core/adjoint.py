@@ -85,8 +85,25 @@ class Target:
     weight: float = 1.0
 
 
-def _fresh(like: wp.array) -> wp.array:
-    return wp.zeros(like.shape, dtype=like.dtype, device=like.device, requires_grad=True)
+class _Pool:
+    """The arrays a run's steps write, rows of one block handed out in order: a segment's (``grad``: with
+    gradients, zeroed at each reset with one fill) or, cycling, a ring of two steps' (forward only)."""
+
+    def __init__(self, like: wp.array, count: int, grad: bool):
+        self.block = wp.zeros((count, like.shape[0]), dtype=like.dtype, device=like.device, requires_grad=grad)
+        self.rows = [self.block[r] for r in range(count)]
+        self.next = 0
+
+    def take(self) -> wp.array:
+        row = self.rows[self.next % len(self.rows)]
+        self.next += 1
+        return row
+
+    def reset(self) -> "_Pool":
+        self.next = 0
+        if self.block.requires_grad:
+            self.block.grad.zero_()
+        return self
 
 
 class DiffRun:
@@ -172,6 +189,7 @@ class DiffRun:
         self._velocity_dependent = integrator == "velocity_verlet" and _velocity_dependent(model)
         self.targets: list[Target] = []
         self._device_targets: dict[int, tuple] = {}
+        self._forward_pool = self._segment_pool = None
 
     # -- targets ---------------------------------------------------------------------------------------------
 
@@ -212,26 +230,39 @@ class DiffRun:
             device=model.device,
         )
 
-    def _step(self, q, v):
-        """One step from (q, v) into new arrays; returns them."""
+    @property
+    def _arrays_per_step(self) -> int:
+        if self.integrator == "symplectic_euler":
+            return 3
+        return 7 if self._velocity_dependent else 5
+
+    def _ring(self) -> _Pool:
+        """The forward-only arrays: a ring of two steps'."""
+        if self._forward_pool is None:
+            self._forward_pool = _Pool(self.values["particle_q"], 2 * self._arrays_per_step, grad=False)
+        return self._forward_pool.reset()
+
+    def _step(self, q, v, pool: _Pool):
+        """One step from (q, v) into arrays of ``pool``; returns the new (q, v)."""
+        _fresh = pool.take
         model = self.model
         symplectic, drift, kick = diff_update_kernels(model.scalar, self.deterministic)
         mass = [model.particle_count, model.particle_flags, self.values["particle_inv_mass"]]
         h = model.scalar(self.dt)
         common = dict(dim=self._n, device=model.device)
-        f = _fresh(q)
+        f = _fresh()
         self._forces(q, v, f)
-        q_out, v_out = _fresh(q), _fresh(v)
+        q_out, v_out = _fresh(), _fresh()
         if self.integrator == "symplectic_euler":
             wp.launch(symplectic, inputs=[*mass, q, v, f, h], outputs=[q_out, v_out], **common)
             return q_out, v_out
-        v_half = _fresh(v)
+        v_half = _fresh()
         wp.launch(drift, inputs=[*mass, q, v, f, h], outputs=[q_out, v_half], **common)
-        f_half = _fresh(q)
+        f_half = _fresh()
         self._forces(q_out, v_half, f_half)
         wp.launch(kick, inputs=[*mass, v_half, f_half, h], outputs=[v_out], **common)
         if self._velocity_dependent:  # the corrector of core/integrators/verlet.py: f(x', v*)
-            f_star, v_final = _fresh(q), _fresh(v)
+            f_star, v_final = _fresh(), _fresh()
             self._forces(q_out, v_out, f_star)
             wp.launch(kick, inputs=[*mass, v_half, f_star, h], outputs=[v_final], **common)
             v_out = v_final
@@ -249,12 +280,29 @@ class DiffRun:
         """Positions [m] of every ``every``-th step (step 0 first), float64, [steps // every + 1, world_count, n, 3]."""
         q, v = self.values["particle_q"], self.values["particle_qd"]
         out = [q.numpy()]
+        ring = self._ring()
         for k in range(1, self.steps + 1):
-            q, v = self._step(q, v)
+            q, v = self._step(q, v, ring)
             if k % every == 0:
                 out.append(q.numpy())
         shape = (self.model.world_count, self.model.particle_count, 3)
         return np.stack([np.asarray(x, dtype=np.float64).reshape(shape) for x in out])
+
+    def positions(self, steps) -> np.ndarray:
+        """Positions [m] after each of ``steps`` (ascending step counts, 0 … :attr:`steps`), float64,
+        [len(steps), world_count, n, 3] (a forward run, no tape)."""
+        wanted = sorted(set(int(s) for s in steps))
+        if wanted and not (0 <= wanted[0] and wanted[-1] <= self.steps):
+            raise ConfigError(f"steps must be in [0, {self.steps}], got {wanted[0]} … {wanted[-1]}")
+        shape = (self.model.world_count, self.model.particle_count, 3)
+        q, v = self.values["particle_q"], self.values["particle_qd"]
+        found = {0: q.numpy()} if 0 in wanted else {}
+        ring = self._ring()
+        for k in range(1, (wanted[-1] if wanted else 0) + 1):
+            q, v = self._step(q, v, ring)
+            if k in wanted:
+                found[k] = q.numpy()
+        return np.stack([np.asarray(found[int(s)], dtype=np.float64).reshape(shape) for s in steps])
 
     # -- loss and gradient -----------------------------------------------------------------------------------
 
@@ -264,8 +312,9 @@ class DiffRun:
         loss = wp.zeros((self.steps + 1, worlds), dtype=self.model.scalar, device=self.model.device)
         q, v = self.values["particle_q"], self.values["particle_qd"]
         self._loss_at(0, q, loss, 0)
+        ring = self._ring()
         for k in range(1, self.steps + 1):
-            q, v = self._step(q, v)
+            q, v = self._step(q, v, ring)
             self._loss_at(k, q, loss, k)
         return loss.numpy().astype(np.float64).sum(axis=0)
 
@@ -281,12 +330,16 @@ class DiffRun:
         # Forward: keep the state at every k-th step (no tape).
         checkpoints = {0: (self.values["particle_q"], self.values["particle_qd"])}
         q, v = checkpoints[0]
+        ring = self._ring()
         for step in range(1, self.steps + 1):
-            q, v = self._step(q, v)
+            q, v = self._step(q, v, ring)
             if step % k == 0 and step < self.steps:
                 checkpoints[step] = (wp.clone(q), wp.clone(v))
         total = np.zeros(model.world_count)
         adj_q = adj_v = None
+        if self._segment_pool is None:  # (kept between gradients: a fit evaluates many)
+            self._segment_pool = _Pool(self.values["particle_q"], k * self._arrays_per_step, grad=True)
+        pool = self._segment_pool
         starts = sorted(checkpoints)
         for start in reversed(starts):
             end = min(start + k, self.steps)
@@ -298,12 +351,13 @@ class DiffRun:
             loss = wp.zeros((end - start + 1, model.world_count), dtype=model.scalar, device=model.device,
                             requires_grad=True)
             tape = wp.Tape()
+            pool.reset()
             with tape:
                 q, v = q0, v0
                 if start == 0:
                     self._loss_at(0, q, loss, 0)
                 for step in range(start + 1, end + 1):
-                    q, v = self._step(q, v)
+                    q, v = self._step(q, v, pool)
                     self._loss_at(step, q, loss, step - start)
             total += loss.numpy().astype(np.float64).sum(axis=0)
             grads = {loss: wp.ones_like(loss, requires_grad=False)}
