@@ -13,6 +13,8 @@ parameters): the standard error of each parameter is the square root of its diag
 
 from __future__ import annotations
 
+import copy
+import os
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -22,6 +24,7 @@ from ..core.adjoint import DiffRun, SmoothContact, Target
 from ..core.adjoint_params import ParameterMap
 from ..core.model import Model
 from ..errors import ConfigError
+from ..io.scene import parse_scene, read_toml
 
 
 @dataclass(frozen=True)
@@ -164,18 +167,29 @@ def fit(build: Callable[[dict, int], Model], guess: dict, motion: Motion, *, dt:
         return loss, gradient
 
     loss0, _ = evaluate(np.log(points).ravel())
-    scale = max(float(np.min(loss0)), 1e-300)  # the objective near 1 at the best start (L-BFGS-B's tolerances)
+    # A start whose run is not finite (an explicit step past its stability limit) is dropped: held at its values,
+    # left out of the objective. A step of the search into such values meets a barrier (1e30) and backs off.
+    dropped = loss0 >= 1e30
+    if dropped.all():
+        raise ConfigError("every start's run blew up (not finite): give more substeps or guesses and bounds nearer "
+                          "the target's values")
+    scale = max(float(np.min(loss0[~dropped])), 1e-300)  # the objective near 1 at the best start
 
     def objective(phi_all):
         loss, gradient = evaluate(phi_all)
+        loss[dropped] = 0.0
+        gradient[dropped] = 0.0
         return float(loss.sum() / scale), gradient.ravel() / scale
 
+    low = np.tile(np.log(lower), (starts, 1))
+    high = np.tile(np.log(upper), (starts, 1))
+    low[dropped] = high[dropped] = np.log(points[dropped])
     result = minimize(objective, np.log(points).ravel(), jac=True, method="L-BFGS-B",
-                      bounds=list(zip(np.tile(np.log(lower), starts), np.tile(np.log(upper), starts))),
+                      bounds=list(zip(low.ravel(), high.ravel())),
                       options=dict(maxiter=max_iterations, ftol=1e-12, gtol=1e-9))
     final = np.exp(result.x.reshape(starts, P))
     mapping.apply(run, final)
-    losses = run.loss()
+    losses = np.where(np.isfinite(run.loss()), run.loss(), np.inf)
     best = int(np.argmin(losses))
     values = final[best]
     covariance, residual_count = _gauss_newton(build, mapping, run, motion, steps, values, float(losses[best]),
@@ -210,3 +224,81 @@ def _gauss_newton(build, mapping: ParameterMap, run: DiffRun, motion: Motion, st
     variance = loss / (m - P)
     covariance = variance * np.linalg.inv(jacobian.T @ jacobian)
     return covariance, m
+
+
+# -- targets and scenes from files ----------------------------------------------------------------------------
+
+
+def motion_from_file(path: str, *, prim: str | None = None) -> Motion:
+    """A captured motion from a file: a ``.npz`` of ``times`` [s], ``particles`` (indices) and ``positions`` [m]
+    ([times, particles, 3]); or a USD file of the same mesh (every point of the mesh prim ``prim``, default the first
+    mesh outside ``/colliders``, at every time sample after the first, times from the stage's time codes per second;
+    its points are the particles in order, as ``warpspring run`` writes a cloth)."""
+    if not os.path.isfile(path):
+        raise ConfigError(f"no target file {path!r}: give a .npz of markers or a USD file of the same mesh")
+    if path.endswith(".npz"):
+        with np.load(path) as data:
+            missing = {"times", "particles", "positions"} - set(data.files)
+            if missing:
+                raise ConfigError(f"{path}: a markers file needs arrays times, particles and positions; missing "
+                                  f"{', '.join(sorted(missing))}")
+            return Motion(times=data["times"], particles=data["particles"], positions=data["positions"])
+    from pxr import Usd, UsdGeom  # optional: pxr (usd-core)
+
+    stage = Usd.Stage.Open(path)
+    if stage is None:
+        raise ConfigError(f"{path}: not a USD file USD can open")
+    meshes = [p for p in stage.Traverse() if p.GetTypeName() == "Mesh" and "colliders" not in str(p.GetPath())]
+    chosen = [p for p in meshes if prim is None or str(p.GetPath()) == prim]
+    if not chosen:
+        raise ConfigError(f"{path}: no mesh prim {prim or ''} to fit to (meshes: "
+                          f"{', '.join(str(p.GetPath()) for p in meshes) or 'none'})")
+    points = UsdGeom.Mesh(chosen[0]).GetPointsAttr()
+    samples = [t for t in points.GetTimeSamples()]
+    if len(samples) < 2:
+        raise ConfigError(f"{path}: the mesh {chosen[0].GetPath()} has {len(samples)} time samples: a motion needs 2 or more")
+    rate = stage.GetTimeCodesPerSecond()
+    first = samples[0]
+    positions = np.stack([np.asarray(points.Get(t), dtype=np.float64) for t in samples[1:]])
+    return Motion(times=(np.asarray(samples[1:]) - first) / rate, particles=np.arange(positions.shape[1]),
+                  positions=positions)
+
+
+def scene_parameters(path: str, names) -> tuple[Callable[[dict, int], Model], dict]:
+    """A scene file's builder for :func:`fit` and the guesses: ``names`` are dotted keys of the file's tables
+    (``cloth.material.stretch``, ``world.drag``, ``soft_body.0.youngs_modulus`` for the first of an array of
+    tables), each holding a number there (the guess); the model is built in float64."""
+    data = read_toml(path, "scene file")
+
+    def locate(tree, name):
+        keys = name.split(".")
+        node = tree
+        for key in keys[:-1]:
+            node = node[int(key)] if isinstance(node, list) else node.get(key) if isinstance(node, dict) else None
+            if node is None:
+                raise ConfigError(f"{path}: no table {name.rsplit('.', 1)[0]!r} for the parameter {name!r}")
+        if isinstance(node, list):
+            raise ConfigError(f"{path}: {name!r} names an array of tables: add the index, e.g. {name}.0")
+        return node, keys[-1]
+
+    guess = {}
+    for name in names:
+        node, key = locate(data, name)
+        value = node.get(key) if isinstance(node, dict) else None
+        if not isinstance(value, (int, float)) or isinstance(value, bool):
+            raise ConfigError(f"{path}: the parameter {name!r} must be a number written in the scene file "
+                              f"(its guess), got {value!r}")
+        guess[name] = float(value)
+
+    def build(values: dict, worlds: int, device=None) -> Model:
+        tree = copy.deepcopy(data)
+        for name, value in values.items():
+            node, key = locate(tree, name)
+            node[key] = float(value)
+        scene = parse_scene(tree, path=path)
+        scene.precision = "float64"
+        scene.world_count = worlds
+        scene.world_inputs, scene.world_scales = {}, {}
+        return scene.finalize(device)
+
+    return build, guess
