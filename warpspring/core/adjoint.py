@@ -279,12 +279,12 @@ class DiffRun:
     def trajectory(self, every: int = 1) -> np.ndarray:
         """Positions [m] of every ``every``-th step (step 0 first), float64, [steps // every + 1, world_count, n, 3]."""
         q, v = self.values["particle_q"], self.values["particle_qd"]
-        out = [q.numpy()]
+        out = [np.array(q.numpy(), dtype=np.float64)]  # (copies: on the CPU numpy() is a view of the ring)
         ring = self._ring()
         for k in range(1, self.steps + 1):
             q, v = self._step(q, v, ring)
             if k % every == 0:
-                out.append(q.numpy())
+                out.append(np.array(q.numpy(), dtype=np.float64))
         shape = (self.model.world_count, self.model.particle_count, 3)
         return np.stack([np.asarray(x, dtype=np.float64).reshape(shape) for x in out])
 
@@ -296,12 +296,12 @@ class DiffRun:
             raise ConfigError(f"steps must be in [0, {self.steps}], got {wanted[0]} … {wanted[-1]}")
         shape = (self.model.world_count, self.model.particle_count, 3)
         q, v = self.values["particle_q"], self.values["particle_qd"]
-        found = {0: q.numpy()} if 0 in wanted else {}
+        found = {0: np.array(q.numpy(), dtype=np.float64)} if 0 in wanted else {}
         ring = self._ring()
         for k in range(1, (wanted[-1] if wanted else 0) + 1):
             q, v = self._step(q, v, ring)
             if k in wanted:
-                found[k] = q.numpy()
+                found[k] = np.array(q.numpy(), dtype=np.float64)  # (a copy: the ring's rows are reused)
         return np.stack([np.asarray(found[int(s)], dtype=np.float64).reshape(shape) for s in steps])
 
     # -- loss and gradient -----------------------------------------------------------------------------------
