@@ -27,6 +27,7 @@ def _motion(build, values, *, frames, substeps, integrator="symplectic_euler", n
     return Motion(times=np.arange(1, frames + 1) / 60.0, particles=np.arange(model.particle_count), positions=x)
 
 
+@pytest.mark.slow
 def test_fit_recovers_its_own_motion_and_the_noise(device):
     """Two parameters of a 6 × 6 cloth from a target of the same model: without noise the fit is the truth (to
     1e-4: L-BFGS-B's stopping rule); with 1 mm noise on 648 residuals the residual rms is 1 mm within 10 % (its
