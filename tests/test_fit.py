@@ -125,3 +125,33 @@ def test_held_out_cloth_recovers_stretch_bending_and_damping():
     for name, value in zip(result.names, result.values):
         assert value == pytest.approx(truth[name], rel=0.05), name
     assert result.residual_rms == pytest.approx(1e-3, rel=0.05)
+
+
+@pytest.mark.slow
+def test_warpspring_fit_reads_a_usd_target_of_the_same_mesh(tmp_path, capsys):
+    """A USD file written by the ordinary simulator (float64 model, symplectic Euler, 16 substeps; points stored in
+    float32, ~1e-8 m) at stretch = 60 N/m is a target of the same mesh: its times come from the time codes, and the
+    fit from 80 N/m finds 60 to 1e-4."""
+    import warpspring as ws
+    from warpspring.io.usd import UsdWriter
+
+    truth = tmp_path / "truth.toml"
+    truth.write_text(SCENE.format(stretch=60.0))
+    build, _ = scene_parameters(str(truth), ["cloth.material.stretch"])
+    model = build({}, 1, device="cpu")
+    sim = ws.Simulator(model, integrator=ws.SymplecticEuler(model), fps=60, substeps=16)
+    writer = UsdWriter(str(tmp_path / "captured.usdc"), model, fps=60)
+    writer.write_frame(sim.state)
+    for _ in range(4):
+        sim.step_frame()
+        writer.write_frame(sim.state)
+    writer.close()
+    motion = motion_from_file(str(tmp_path / "captured.usdc"))
+    np.testing.assert_allclose(motion.times, np.arange(1, 5) / 60.0, rtol=1e-12)
+    assert motion.positions.shape == (4, 36, 3)
+    scene = tmp_path / "scene.toml"
+    scene.write_text(SCENE.format(stretch=80.0))
+    assert main(["fit", str(scene), "--target", str(tmp_path / "captured.usdc"), "--param", "cloth.material.stretch",
+                 "--starts", "1", "--device", "cpu"]) == 0
+    row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("cloth.material.stretch"))
+    assert float(row.split()[1]) == pytest.approx(60.0, rel=1e-4)
