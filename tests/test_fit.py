@@ -110,8 +110,9 @@ def test_warpspring_fit_recovers_a_scene_key_from_markers(tmp_path, capsys):
 def test_held_out_cloth_recovers_stretch_bending_and_damping():
     """The issue's held-out case: the target made by velocity Verlet at 4× the substeps (128 per frame) with 1 mm
     Gaussian noise on every point, fitted with symplectic Euler at 32 substeps from three starts 30-40 % off:
-    stretch, bending and stretch damping each within 5 % of the truth."""
-    truth = {**TRUTH, "bending": 2.0e-3}
+    stretch, bending and stretch damping each within 5 % of the truth. (Without noise the integrators' difference
+    alone leaves the damping 3.5 % low, the others within 0.6 %: measured.)"""
+    truth = {**TRUTH, "stretch": 20.0, "bending": 2.0e-3, "stretch_damping": 0.5}  # examples/fit_cloth.py's
 
     def build(values, worlds):
         return hanging_cloth({**truth, **values}, "cpu", worlds=worlds)
