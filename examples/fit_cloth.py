@@ -20,6 +20,7 @@ from warpspring.analysis.grad_scenes import SCENES, hanging_cloth
 from warpspring.app.cli import init_warp
 from warpspring.core.adjoint import DiffRun
 from warpspring.io.usd import UsdWriter
+from warpspring.plotting import pyplot
 
 #: The held-out material: a soft, viscous fabric with a bending length of ~10 cm (stretch 20 N/m, bending 2e-3 N·m,
 #: stretch damping 0.5 N·s/m), the scene's other values as they are.
@@ -67,6 +68,32 @@ class Example:
         if self.usd:
             self.usd.write_frame(self.sim.state)
 
+    def plot(self, path: str) -> None:
+        """The target's points (noisy) against the fitted run and the first guess: height of the two free corners
+        and of the middle of the bottom edge over time."""
+        plt = pyplot("the fit's plot")
+        frames = len(self.target.times)
+        steps = np.arange(1, frames + 1) * self.substeps
+        fitted = dict(zip(self.result.names, self.result.values))
+        runs = {}
+        for label, values in (("fit", fitted), ("first guess", self.result.starts[0]["start"])):
+            run = DiffRun(self.build(values, 1), dt=1.0 / self.fps / self.substeps, steps=int(steps[-1]))
+            runs[label] = run.positions(steps)[:, 0]
+        n = int(round(np.sqrt(self.target.positions.shape[1])))
+        corners = {"bottom-left corner": 0, "bottom middle": n // 2, "bottom-right corner": n - 1}
+        fig, ax = plt.subplots(figsize=(7, 4))
+        for (name, i), color in zip(corners.items(), ("C0", "C1", "C2")):
+            ax.plot(self.target.times, self.target.positions[:, i, 2], ".", color=color, label=f"target: {name}")
+            ax.plot(self.target.times, runs["fit"][:, i, 2], "-", color=color)
+            ax.plot(self.target.times, runs["first guess"][:, i, 2], ":", color=color)
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel("height z [m]")
+        ax.set_title("held-out target (dots), fitted run (lines), first guess (dotted)")
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+
     def errors(self) -> str:
         return ", ".join(f"{name} {value:.4g} ({value / TRUTH[name] - 1.0:+.1%} ± {error / TRUTH[name]:.1%})"
                          for name, value, error in zip(self.result.names, self.result.values,
@@ -83,6 +110,7 @@ if __name__ == "__main__":
         help="Path to the output USD file (None: no output).",
     )
     parser.add_argument("--num-frames", type=int, default=30, help="Frames of the captured motion (and of the output).")
+    parser.add_argument("--plot", type=str, default=None, help="PNG of the target against the fit (needs matplotlib).")
     args = parser.parse_known_args()[0]
     init_warp(args.device)  # without Warp's banner, module-load lines and (on the CPU) its CUDA-driver warning
 
@@ -93,5 +121,7 @@ if __name__ == "__main__":
             example.render()
         if example.usd:
             example.usd.close()
+        if args.plot:
+            example.plot(args.plot)
         print(f"t = {example.sim_time:.2f} s: fitted {example.errors()}; residual rms "
               f"{example.result.residual_rms * 1e3:.3f} mm")
