@@ -128,7 +128,6 @@ def test_held_out_cloth_recovers_stretch_bending_and_damping():
     assert result.residual_rms == pytest.approx(1e-3, rel=0.05)
 
 
-@pytest.mark.slow
 def test_warpspring_fit_reads_a_usd_target_of_the_same_mesh(tmp_path, capsys):
     """A USD file written by the ordinary simulator (float64 model, symplectic Euler, 16 substeps; points stored in
     float32, ~1e-8 m) at stretch = 60 N/m is a target of the same mesh: its times come from the time codes, and the
@@ -158,7 +157,6 @@ def test_warpspring_fit_reads_a_usd_target_of_the_same_mesh(tmp_path, capsys):
     assert float(row.split()[1]) == pytest.approx(60.0, rel=1e-4)
 
 
-@pytest.mark.slow
 def test_held_out_soft_body_drop_recovers_youngs_modulus():
     """The voxel ball of ``grad_scenes`` dropped on the ground (smooth contact), the target made by velocity Verlet
     at 4× the substeps with 1 mm noise on every particle: E fitted with symplectic Euler from 1.5× and 0.6× the
