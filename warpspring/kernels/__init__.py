@@ -32,11 +32,11 @@ Modules:
     selfcontact: self-collision of triangle surfaces (broad phase, repulsion, displacement cap).
     selfcontact_cache: self-collision's pair cache (when to rebuild it, the cap over it).
     integrators: the per-particle update kernels of the integrators; dopri5's step control.
-    adjoint: differentiable steps (the particle force, updates, smooth contact, loss) compiled with adjoints.
     implicit: the matrix-free system of linearised implicit Euler.
     linalg: device reductions and the preconditioned conjugate-gradient iteration.
     constraints: post-step passes (strain limiting, speed clamp, contacts).
     guards: run-time checks of non-finite state, torn springs and runaway energy.
     stability: power iteration for the highest spring frequency of a model; spring motion records.
     geometry: export helpers (vertex normals).
+    adjoint: differentiable steps (the particle force, updates, smooth contact, loss) compiled with adjoints.
 """
