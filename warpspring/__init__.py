@@ -53,12 +53,22 @@ from .analysis.advisor import Advice, advise
 from .analysis.step_choice import SubstepChoice, auto_substeps, choose_substeps
 from .analysis.under_load import TransientPeak, transient_peak
 from .analysis.watch import StabilityWatch
+from .core.adjoint import DiffRun, SmoothContact, Target
+from .core.adjoint_params import ParameterMap
+from .analysis.fit import FitResult, Motion, fit
 from .core.transforms import quat_from_axis_angle
 
 from .version import __version__  # noqa: F401  (the package's version, warpspring.__version__)
 
 __all__ = [
     "INTEGRATORS",
+    "DiffRun",
+    "SmoothContact",
+    "Target",
+    "ParameterMap",
+    "FitResult",
+    "Motion",
+    "fit",
     "Advice",
     "advise",
     "SubstepChoice",

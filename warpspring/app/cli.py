@@ -37,6 +37,7 @@ from .. import checks
 from ..analysis import (engines, load_battery, stability_map, stability_map_report, sweep, sweep_plan, sweep_report, trade,
                         trade_choice, trade_report)
 from ..analysis.audit import SubstepAudit, audit_usd
+from ..analysis import fit as fit_analysis
 from ..analysis.sweep_ray import RayEngine  # Ray itself loads only when an engine starts (optional: ray)
 from ..core.memory import out_of_memory
 from ..errors import ConfigError, OutputError, SimulationError, os_error_reason
@@ -243,6 +244,25 @@ def build_parser() -> argparse.ArgumentParser:
     sweep_cmd.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     sweep_cmd.set_defaults(handler=_cmd_sweep)
 
+    fit_cmd = sub.add_parser("fit", help="fit a scene's parameters to a target motion (a USD file of the same mesh, or "
+                                         "markers at times in a .npz) by differentiable runs and L-BFGS-B")
+    fit_cmd.add_argument("scene", help="scene file (.toml); each fitted parameter's value in it is the first guess")
+    fit_cmd.add_argument("--target", required=True,
+                         help="the motion: a USD file of the same mesh (its points at every time sample after the "
+                              "first) or a .npz of times [s], particles (indices) and positions [m]")
+    fit_cmd.add_argument("--param", action="append", required=True, metavar="KEY",
+                         help="a dotted key of the scene file to fit, e.g. cloth.material.stretch or world.drag "
+                              "(repeat for several)")
+    fit_cmd.add_argument("--prim", help="the target USD file's mesh prim (default: the first mesh)")
+    fit_cmd.add_argument("--starts", type=_positive_int, default=4,
+                         help="starting points, run together as worlds (default 4)")
+    fit_cmd.add_argument("--integrator", choices=("symplectic_euler", "velocity_verlet"), default=None,
+                         help="default: the scene's when differentiable, else symplectic_euler")
+    fit_cmd.add_argument("--substeps", type=_positive_int, help="steps per frame (default: the scene's)")
+    fit_cmd.add_argument("--device", help="Warp device (default: the scene's, else Warp's default)")
+    fit_cmd.add_argument("--max-iterations", type=_positive_int, default=100)
+    fit_cmd.set_defaults(handler=_cmd_fit)
+
     audit = sub.add_parser("audit", help="check every frame of a USD file for surfaces passing through themselves "
                                          "(float64 segment-triangle tests, minimum distances)")
     audit.add_argument("usd", help="a USD file written by warpspring run")
@@ -323,6 +343,26 @@ def _cmd_sweep(args) -> int:
     for line in sweep_report.summary(result):
         print(line)
     print(f"wrote {', '.join(paths)}")
+    return 0
+
+
+def _cmd_fit(args) -> int:
+    wp.config.log_level = wp.LOG_WARNING
+    scene = load_scene(args.scene)
+    substeps = args.substeps or scene.substeps
+    if not isinstance(substeps, int):
+        raise ConfigError("the scene's substeps are 'auto': give --substeps N for the fit's step")
+    integrator = args.integrator or (scene.integrator if scene.integrator in ("symplectic_euler", "velocity_verlet")
+                                     else "symplectic_euler")
+    device = args.device or scene.device
+    build, guess = fit_analysis.scene_parameters(args.scene, args.param)
+    motion = fit_analysis.motion_from_file(args.target, prim=args.prim)
+    print(f"fit {', '.join(guess)} of {args.scene} to {args.target}: {len(motion.times)} times, "
+          f"{len(motion.particles)} points, {args.starts} starts, {integrator} at {substeps} substeps", flush=True)
+    result = fit_analysis.fit(functools.partial(build, device=device), guess, motion,
+                              dt=1.0 / (scene.fps * substeps), integrator=integrator, starts=args.starts,
+                              max_iterations=args.max_iterations, device=device)
+    print(result.table())
     return 0
 
 
@@ -597,7 +637,7 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # argparse has printed its message (or the help)
         return exc.code if isinstance(exc.code, int) else EXIT_CONFIG if exc.code else 0
     try:
-        if args.command in ("run", "trade", "stability", "sweep"):
+        if args.command in ("run", "trade", "stability", "sweep", "fit"):
             init_warp(args.device)
         return args.handler(args)
     except ConfigError as exc:

@@ -39,4 +39,5 @@ Modules:
     guards: run-time checks of non-finite state, torn springs and runaway energy.
     stability: power iteration for the highest spring frequency of a model; spring motion records.
     geometry: export helpers (vertex normals).
+    adjoint: differentiable steps (the particle force, updates, smooth contact, loss) compiled with adjoints.
 """

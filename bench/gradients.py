@@ -1,0 +1,151 @@
+"""The cost of a gradient over a long run: time per gradient relative to the forward run and peak memory, with
+checkpointed recomputation (every k-th state kept, k = ⌈√steps⌉ by default) against one tape over the whole run.
+
+Scene: the hanging cloth of ``analysis/grad_scenes.py`` (n × n, ClothMaterial, two pinned corners) in float64,
+``--frames`` frames of 1/60 s at ``--substeps`` steps each, symplectic Euler; the loss is the squared distance of
+every particle from its start at every frame's end. Each row runs in a fresh process, so its peak is its own: on
+the CPU the peak of Warp's allocation tracker, on CUDA the growth of the memory pool's high-water mark. Times are
+the best of ``--repeats`` after one untimed warm-up (compiles), ``wp.synchronize_device`` before each clock read.
+
+    python bench/gradients.py --device cpu --out bench/results/gradients.md
+    python bench/gradients.py --device cuda:0 --sizes 8 32 128 --out bench/results/gradients_cuda.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import pathlib
+import platform
+import subprocess
+import sys
+import time
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # this checkout's warpspring
+
+import numpy as np  # noqa: E402
+
+ROW = "--one"
+
+
+def measure(device: str, n: int, frames: int, substeps: int, checkpoint: str, repeats: int) -> dict:
+    """One row: forward and gradient times [s] and the peak device memory [B] of the gradient."""
+    import warp as wp
+
+    from warp._src import context  # the allocation tracker's counters have no public getter
+
+    from warpspring.analysis.grad_scenes import SCENES, hanging_cloth
+    from warpspring.core.adjoint import DiffRun, Target
+
+    wp.config.quiet = True
+    steps = frames * substeps
+    model = hanging_cloth(SCENES["hanging_cloth"].values, device, n=n)
+    every = None if checkpoint == "auto" else steps if checkpoint == "none" else int(checkpoint)
+    run = DiffRun(model, dt=1.0 / 60.0 / substeps, steps=steps, checkpoint_every=every)
+    q0 = model.particle_q.numpy().astype(np.float64)
+    everyone = np.arange(model.particle_count)
+    run.set_targets([Target(f * substeps, everyone, q0) for f in range(1, frames + 1)])
+
+    def timed(call):
+        best = np.inf
+        for _ in range(repeats):
+            wp.synchronize_device(device)
+            start = time.perf_counter()
+            value = call()
+            wp.synchronize_device(device)
+            best = min(best, time.perf_counter() - start)
+        return best, value
+
+    run.loss()  # warm-up: compiles
+    forward, loss = timed(run.loss)
+    run.gradient()  # warm-up: compiles the adjoints, allocates the segment's arrays (kept, as a fit reuses them)
+    gradient, (loss_g, _) = timed(run.gradient)
+    # Memory: one gradient from nothing allocated (the run's pooled arrays dropped), so its peak holds them all.
+    run._segment_pool = run._forward_pool = None
+    wp.synchronize_device(device)
+    if wp.get_device(device).is_cuda:
+        before = wp.get_mempool_used_mem_current(device)
+        run.gradient()
+        wp.synchronize_device(device)
+        peak = wp.get_mempool_used_mem_high(device) - before
+        how = "pool high-water mark"
+    else:
+        with wp.ScopedMemoryTracker("bench", print=False):
+            context.runtime.core.wp_alloc_tracker_reset()
+            run.gradient()
+            peak = context.runtime.core.wp_alloc_tracker_get_peak_bytes()
+        how = "Warp allocation tracker peak"
+    state = model.particle_count * 2 * 3 * 8  # (q, v) of one world in float64 [B]
+    return dict(n=n, particles=model.particle_count, steps=steps, k=run.checkpoint_every,
+                stored=-(-steps // run.checkpoint_every), forward=forward, gradient=gradient, peak=int(peak), how=how,
+                state=state, loss_match=bool(abs(loss_g[0] - loss[0]) <= 1e-12 * abs(loss[0])))
+
+
+def table(rows: list[dict], device: str, command: str) -> str:
+    import warp as wp
+
+    name = device if device == "cpu" else f"{device} ({wp.get_device(device).name})"
+    lines = [
+        "# Gradients over long runs: time and memory", "",
+        f"Command: `{command}`  ",
+        f"Device: {name} ({platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores); "
+        f"Warp {wp.config.version}; {datetime.date.today().isoformat()}", "",
+        "Hanging ClothMaterial cloth, float64, symplectic Euler; loss at every frame's end. k: checkpoint interval "
+        "(steps); stored: checkpoints kept; gradient / forward: time of one loss-and-gradient over one forward run; "
+        f"peak: the gradient's peak device memory ({rows[0]['how'] if rows else ''}); states: the peak over one "
+        "state (q, v) of the cloth.", "",
+        "| n | particles | steps | k | stored | forward [s] | gradient [s] | gradient / forward | peak [MiB] | "
+        "peak / state |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(f"| {r['n']} | {r['particles']} | {r['steps']} | {r['k']} | {r['stored']} | {r['forward']:.3f} | "
+                     f"{r['gradient']:.3f} | {r['gradient'] / r['forward']:.2f} | {r['peak'] / 2**20:.2f} | "
+                     f"{r['peak'] / r['state']:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--sizes", type=int, nargs="+", default=[8, 32])
+    parser.add_argument("--frames", type=int, default=1000)
+    parser.add_argument("--substeps", type=int, default=8)
+    parser.add_argument("--checkpoints", nargs="+", default=["auto", "none"],
+                        help="k per row: auto (⌈√steps⌉), none (one tape over the run) or an int; 'none' runs at the "
+                             "smallest size only (its memory grows with the horizon)")
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--out", default=None, help="markdown file to write")
+    parser.add_argument(ROW, nargs=2, metavar=("N", "K"), help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.one:
+        row = measure(args.device, int(args.one[0]), args.frames, args.substeps, args.one[1], args.repeats)
+        print(json.dumps(row))
+        return
+    rows = []
+    for n in args.sizes:
+        for k in args.checkpoints:
+            if k == "none" and n != min(args.sizes):
+                continue
+            done = subprocess.run([sys.executable, __file__, ROW, str(n), k, "--device", args.device, "--frames",
+                                   str(args.frames), "--substeps", str(args.substeps), "--repeats", str(args.repeats)],
+                                  capture_output=True, text=True)
+            if done.returncode != 0:
+                print(f"n={n} k={k}: failed: {done.stderr.strip().splitlines()[-1:]}", file=sys.stderr)
+                continue
+            row = json.loads(done.stdout.strip().splitlines()[-1])
+            print(f"n={n} k={row['k']}: forward {row['forward']:.3f} s, gradient {row['gradient']:.3f} s "
+                  f"({row['gradient'] / row['forward']:.2f}x), peak {row['peak'] / 2**20:.2f} MiB", flush=True)
+            rows.append(row)
+    command = "python bench/gradients.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    text = table(rows, args.device, command)
+    print(text)
+    if args.out:
+        with open(args.out, "w") as f:
+            f.write(text)
+
+
+if __name__ == "__main__":
+    main()
