@@ -34,9 +34,10 @@ substep of T10 against linear tets, and the balls dropped with T10:
     python bench/softbody.py --beam --out FILE
     python bench/softbody.py --beam --lattice --out FILE
     python bench/softbody.py --device cuda:0 --vibration --out FILE
+    python bench/softbody.py --device cuda:0 --vibration --lattice --out FILE
     python bench/softbody.py --device cuda:0 --tet10-cost --out FILE
 
-(``--beam --lattice`` and ``--tet10-cost`` use a lattice of six tets per cell: warp, numpy, scipy and trimesh alone, no
+(``--lattice`` and ``--tet10-cost`` use a lattice of six tets per cell: warp, numpy, scipy and trimesh alone, no
 tetrahedraliser; on a GPU the cost table takes linear tets to 29 across, 262k particles and 1.46M tets)
     python bench/softbody.py --device cuda:0 --drop-only --methods tetrahedral delaunay --elasticity neohookean \
         --element tet10 --out FILE
@@ -647,11 +648,14 @@ def beam_body(builder, *, cells: int, element: str, damping: float = 0.0):
     return body, body.particles[x[:, 0] > x[:, 0].max() - 1.0e-6]
 
 
-def beam_vibration(device, runs=(("tet10", 2), ("tet10", 3), ("tet4", 3)), *, seconds: float = 2.2) -> str:
+def beam_vibration(device, runs=(("tet10", 2), ("tet10", 3), ("tet4", 3)), *, seconds: float = 2.2,
+                   lattice: bool = False) -> str:
     """Free vibration of the cantilever on the device: released from rest, undeformed, under g/100 (float32, symplectic
     Euler at 1/ω_max of the power iteration, no damper), its tip's mean z sampled every 10 substeps, and
     c + a cos(ω₁t) + b cos(ω₂t + φ) fitted by least squares in float64 (scipy): ω₁/2π against the modal solve on the
-    same mesh and Timoshenko's frequency, c (the static deflection the motion swings about) against the static solve."""
+    same mesh and Timoshenko's frequency, c (the static deflection the motion swings about) against the static solve.
+    ``lattice``: on the lattice of six tets per cell (:func:`lattice_beam`, no tetrahedraliser) instead of fTetWild's
+    tets."""
     from scipy.optimize import curve_fit
 
     from warpspring.analysis.omega import estimate_omega_max
@@ -659,7 +663,8 @@ def beam_vibration(device, runs=(("tet10", 2), ("tet10", 3), ("tet4", 3)), *, se
     tip_ref, f_ref = se.timoshenko_cantilever(length=1.0, side=0.1, youngs_modulus=BEAM_E, poisson_ratio=BEAM_NU,
                                               density=RHO, gravity=BEAM_G)
     lines = [
-        f"Free vibration of the cantilever, {datetime.date.today()}, Warp {wp.config.version}, {device} "
+        f"Free vibration of the cantilever{' (lattice mesh)' if lattice else ''}, {datetime.date.today()}, "
+        f"Warp {wp.config.version}, {device} "
         f"({wp.get_device(device).name}): released from rest under g/100, float32, symplectic Euler at h = 1/ω_max "
         f"(power iteration), {seconds:g} s, tip z fitted in float64 by c + a cos ω₁t + b cos(ω₂t + φ); against the "
         f"float64 modal and static solves on the same mesh and Timoshenko's {f_ref:.4f} Hz and {1e3 * tip_ref:.3f} mm.",
@@ -670,11 +675,17 @@ def beam_vibration(device, runs=(("tet10", 2), ("tet10", 3), ("tet4", 3)), *, se
     ]
     for element, cells in runs:
         builder = ws.ModelBuilder(gravity=(0.0, 0.0, -BEAM_G))
-        body, tip = beam_body(builder, cells=cells, element=element)
+        if lattice:
+            topology = lattice_beam(builder, cells=cells, element=element)
+            x = topology.positions
+            tip = np.flatnonzero(x[:, 0] > x[:, 0].max() - 1.0e-6)  # the only body: its indices are global
+        else:
+            body, tip = beam_body(builder, cells=cells, element=element)
+            topology = body.topology
         model = builder.finalize(device)
         keys = {"youngs_modulus": BEAM_E, "density": RHO, "elasticity": "neohookean", "poisson_ratio": BEAM_NU}
-        modal = se.cantilever_frequency(body.topology, **keys)
-        static = se.cantilever_tip(body.topology, gravity=BEAM_G, **keys)
+        modal = se.cantilever_frequency(topology, **keys)
+        static = se.cantilever_tip(topology, gravity=BEAM_G, **keys)
         dt = 1.0 / estimate_omega_max(model).omega_max
         steps = int(np.ceil(seconds / dt / 10.0)) * 10
         dt = seconds / steps
@@ -893,8 +904,8 @@ def main() -> None:
                         help="only the cantilever and cube by element and resolution against Timoshenko (static and "
                              "modal solves, no device)")
     parser.add_argument("--lattice", action="store_true",
-                        help="with --beam: the lattice meshes of six tets per cell (no tetrahedraliser) instead of "
-                             "fTetWild's")
+                        help="with --beam or --vibration: the lattice meshes of six tets per cell (no "
+                             "tetrahedraliser) instead of fTetWild's")
     parser.add_argument("--vibration", action="store_true",
                         help="only the cantilever's free vibration on the device (T10 and linear tets)")
     parser.add_argument("--tet10-cost", action="store_true",
@@ -913,7 +924,7 @@ def main() -> None:
     if args.beam:
         return emit(beam_resolution(LATTICE_CASES if args.lattice else BEAM_CASES), args.out)
     if args.vibration:
-        return emit(beam_vibration(args.device), args.out)
+        return emit(beam_vibration(args.device, lattice=args.lattice), args.out)
     if args.cg_study:
         return emit(cg_study(args.device), args.out)
     if args.tet10_cost:
