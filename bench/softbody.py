@@ -42,10 +42,6 @@ tetrahedraliser; on a GPU the cost table takes linear tets to 29 across, 262k pa
     python bench/softbody.py --device cuda:0 --drop-only --methods tetrahedral delaunay --elasticity neohookean \
         --element tet10 --out FILE
 
-implicit Euler's CG iterations by problem and step, against its automatic iteration cap:
-
-    python bench/softbody.py --device cpu --cg-study --out FILE
-
 the drop with the tets carrying the elasticity (and their cost per substep against the springs, on a GPU):
 
     python bench/softbody.py --device cpu --drop-only --methods tetrahedral delaunay --elasticity both --out FILE
@@ -801,59 +797,6 @@ def tet10_cost(device, *, cases=None, rounds: int = 5, substeps: int = 200, fram
     return "\n".join(lines) + "\n"
 
 
-def cg_study(device, *, steps: int = 25, dts=(1.0 / 60.0, 1.0 / 240.0)) -> str:
-    """What implicit Euler's CG needs: the ball of the drop (Delaunay, E = 20 kPa, β = 1 ms) as T10 and as linear
-    neo-Hookean tets, falling from 0.3 m onto the ground, and the 32 × 32 hanging cloth of the test suite (k = 1000
-    N/m, 0.1 kg a particle, two corners pinned), ``steps`` steps of each ``dt`` [s] with a cap that never binds
-    (20000) at the default tolerance 1e-5: the most and median iterations a solve took, against h ω_max (the
-    Gershgorin bound) and the automatic cap (``auto_iteration_cap``) that the default ``cg_iterations=None``
-    chooses."""
-    from warpspring.core.integrators.implicit_euler import auto_iteration_cap, gershgorin_bound
-
-    ball = trimesh.load(BALL, force="mesh", process=False)
-
-    def ball_model(element):
-        builder = ws.ModelBuilder()
-        builder.add_soft_body(ball, method="delaunay", youngs_modulus=BALL_E, density=RHO, spacing=BALL_SPACING,
-                              damping=BALL_DAMPING, origin=(0.0, 0.0, 0.5), elasticity="neohookean", element=element)
-        builder.add_ground_plane(friction=0.5)
-        return builder.finalize(device)
-
-    def cloth_model():
-        builder = ws.ModelBuilder()
-        material = ws.SpringMaterial(1.0e3, 10.0)
-        builder.add_cloth_grid(nx=32, ny=32, spacing=0.1, origin=(-1.55, -1.55, 1.0), particle_mass=0.1,
-                               structural=material, shear=material, bend=material, pin=["top-left", "top-right"])
-        return builder.finalize(device)
-
-    cases = {"T10 ball (Delaunay)": lambda: ball_model("tet10"), "linear-tet ball (Delaunay)": lambda: ball_model("tet4"),
-             "hanging cloth 32 × 32": cloth_model}
-    lines = [
-        f"Implicit Euler's CG iterations by problem and step, {datetime.date.today()}, Warp {wp.config.version}, "
-        f"{device}: {steps} steps from rest, tolerance 1e-5, cap 20000 (never reached); h ω_max by the Gershgorin bound "
-        "at the initial positions; the automatic cap ⌈ln(2/tol)(1 + h ω_max)⌉ ≥ 100.",
-        "",
-        "| problem | particles | h [ms] | h ω_max | most iterations | median | most / h ω_max | automatic cap |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for name, make in cases.items():
-        model = make()
-        omega = gershgorin_bound(model)
-        for dt in dts:
-            integrator = ws.make_integrator("implicit_euler", model, cg_iterations=20000, cg_unconverged="ignore")
-            a, b = model.state(), model.state()
-            iterations = []
-            for _ in range(steps):
-                integrator.step(a, b, None, dt)
-                a, b = b, a
-                iterations.append(integrator.solve_report()[0])
-            lines.append(f"| {name} | {model.particle_count} | {1e3 * dt:.2f} | {dt * omega:.1f} | {max(iterations)} | "
-                         f"{int(np.median(iterations))} | {max(iterations) / (dt * omega):.1f} | "
-                         f"{auto_iteration_cap(dt * omega, 1e-5)} |")
-            print(lines[-1], flush=True)
-    return "\n".join(lines) + "\n"
-
-
 def emit(text: str, out: str | None) -> None:
     """Print ``text`` and, with ``out``, write it there."""
     if out:
@@ -910,8 +853,6 @@ def main() -> None:
                         help="only the cantilever's free vibration on the device (T10 and linear tets)")
     parser.add_argument("--tet10-cost", action="store_true",
                         help="only time a substep of the cantilever with T10 against linear tets")
-    parser.add_argument("--cg-study", action="store_true",
-                        help="only implicit Euler's CG iterations by problem and step, against the automatic cap")
     parser.add_argument("--youngs-modulus", type=float, default=BALL_E, help="E of the dropped balls [Pa]")
     parser.add_argument("--height", type=float, default=0.3, help="drop height [m]")
     args = parser.parse_args()
@@ -925,8 +866,6 @@ def main() -> None:
         return emit(beam_resolution(LATTICE_CASES if args.lattice else BEAM_CASES), args.out)
     if args.vibration:
         return emit(beam_vibration(args.device, lattice=args.lattice), args.out)
-    if args.cg_study:
-        return emit(cg_study(args.device), args.out)
     if args.tet10_cost:
         return emit(tet10_cost(args.device), args.out)
     if args.neohookean:
