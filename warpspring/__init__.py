@@ -16,7 +16,7 @@ from .core.bending import DihedralMaterial
 from .core.builder import ModelBuilder, SpringMaterial
 from .core.springs import SPRING_LAWS, SpringPlasticity
 from .core.families import ElementFamily
-from .errors import ConfigError, OutputError, SimulationError, StabilityWarning, WarpspringError
+from .errors import ConfigError, OutputError, SimulationError, SolverWarning, StabilityWarning, WarpspringError
 from .core.contacts import Contacts, apply_contacts, collide
 from .core.contacts import apply_triangle_contacts
 from .core.mesh_colliders import MeshCollider
@@ -104,6 +104,7 @@ __all__ = [
     "SimulationError",
     "Simulator",
     "FrameHook",
+    "SolverWarning",
     "StabilityWarning",
     "StabilityWatch",
     "Stabilizers",

@@ -69,6 +69,12 @@ class StabilityWarning(UserWarning):
     world and the substeps the state needs."""
 
 
+class SolverWarning(UserWarning):
+    """An implicit step's inner solve stopped at its iteration cap short of its tolerance (once per run, from the
+    :class:`~warpspring.core.simulator.Simulator`): those steps are not the method's and may add energy. The message
+    gives the residual reached and the remedy (more ``cg_iterations``, or more substeps)."""
+
+
 class ContactOverflowWarning(UserWarning):
     """Contacts were found beyond a particle's slots in the contact buffer and dropped: those particles were
     not kept out of those colliders. Raise ``contact_slots`` in ``ModelBuilder.finalize``."""

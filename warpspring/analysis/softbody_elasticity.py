@@ -73,6 +73,37 @@ def box_topology(method: str, size, *, youngs_modulus: float, spacing: float, su
     return tet10.quadratic_topology(topology) if element == "tet10" else topology
 
 
+#: The six tets of a unit cell around its main diagonal (Kuhn's or Freudenthal's subdivision): one per order in which
+#: the path from corner (0, 0, 0) to (1, 1, 1) takes the three axes; corners numbered by their bits x + 2y + 4z.
+KUHN_TETS = np.array([[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]])
+
+
+def lattice_box_topology(size, *, cells: int, element: str = "tet4"):
+    """An axis-aligned box of ``size`` (x, y, z) [m] centred at the origin, cut into a lattice of near-cubic cells,
+    ``cells`` across its smallest side (each side gets round(side / pitch) cells, pitch = smallest side / ``cells``),
+    and each cell into six tets around its main diagonal (:data:`KUHN_TETS`). Every cell is cut the same way, so two
+    neighbours split their shared face along the same diagonal: the mesh is conforming, also for T10, and it needs no
+    tetrahedraliser (fTetWild's meshes vary between builds and need the optional ``pytetwild``). For the neo-Hookean
+    families (:func:`body_stiffness` with ``elasticity="neohookean"``, the bench's models): no springs; each particle
+    its volume share (a quarter of each tet's, or the HRZ shares with ``element="tet10"``); the skin is the lattice's
+    nodes themselves."""
+    size = np.asarray(size, dtype=np.float64)
+    counts = np.maximum(np.rint(size / (size.min() / cells)).astype(np.int64), 1)
+    axes = [np.linspace(-0.5 * s, 0.5 * s, c + 1) for s, c in zip(size, counts)]
+    x, y, z = np.meshgrid(*axes, indexing="ij")
+    positions = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+    node = np.arange(len(positions)).reshape(counts + 1)
+    i, j, k = (a.ravel() for a in np.meshgrid(*(np.arange(c) for c in counts), indexing="ij"))
+    corners = np.stack([node[i + (b & 1), j + ((b >> 1) & 1), k + ((b >> 2) & 1)] for b in range(8)], axis=1)
+    tets, volume_t = soft_topologies.wound_tets(positions, corners[:, KUHN_TETS].reshape(-1, 4))
+    volume = np.bincount(tets.ravel(), weights=np.repeat(volume_t / 4.0, 4), minlength=len(positions))
+    n = len(positions)
+    topology = soft_topologies.Topology(
+        positions, {}, volume, np.arange(n, dtype=np.int64)[:, None], np.ones((n, 1)),
+        "a lattice of cells of six tets each, no springs (for the neo-Hookean families)", tets=tets)
+    return tet10.quadratic_topology(topology) if element == "tet10" else topology
+
+
 def cube_shortening(topology, *, youngs_modulus: float, density: float, elasticity: str = "springs",
                     poisson_ratio: float = 0.25) -> float:
     """Relative error of the cube's shortening under its own weight on frictionless ground (the box of

@@ -181,8 +181,8 @@ def _header_rules() -> dict:
         "colliders": count,
         "integrator": text,
         "integrator_settings": (lambda v: isinstance(v, dict) and all(
-            isinstance(k, str) and (_is_number(x) or isinstance(x, bool)) for k, x in v.items()),
-            "a table of finite numbers"),
+            isinstance(k, str) and (_is_number(x) or isinstance(x, bool) or x is None) for k, x in v.items()),
+            "a table of finite numbers (or null: the integrator chooses it, e.g. implicit Euler's cg_iterations)"),
         "fps": (lambda v: _is_number(v) and v > 0, "a finite number > 0"),
         "substeps": (lambda v: _is_int(v, 1), "an integer >= 1"),
         "frame": count,

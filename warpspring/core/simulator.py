@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import checks
-from ..errors import ConfigError, ContactOverflowWarning, SimulationError
+from ..errors import ConfigError, ContactOverflowWarning, SimulationError, SolverWarning
 from .checkpoint import Checkpoint
 from .contacts import Contacts
 from .emitters import EmitterHook
@@ -176,6 +176,11 @@ class Simulator:
             failure = self.integrator.failure()
             if failure is not None:
                 raise SimulationError(f"frame {self.frame + 1}: {failure}", frame=self.frame + 1)
+        shortfall = self.integrator.solve_shortfall()  # an implicit step's CG stopped at its cap: once, or raise
+        if shortfall is not None:
+            if self.integrator.strict_solves:
+                raise SimulationError(f"frame {self.frame + 1}: {shortfall}", frame=self.frame + 1)
+            warnings.warn(SolverWarning(f"frame {self.frame + 1}: {shortfall}"), stacklevel=2)
         if self.guard is not None:
             reports = self.guard.reports()
             if reports and self.guard.limits.stop == "world":

@@ -38,6 +38,11 @@ CG_SCALARS = 7
 CG_TOLERANCE = 0  # stop when ‖r‖ ≤ tolerance · ‖b‖
 CG_MAX_ITERATIONS = 1  # most iterations per solve
 CG_SETTINGS = 2
+# Slots of the float64 record of solves that stopped at the iteration cap unconverged, one row per world (kept
+# across solves until the host reads and clears it).
+CG_SHORT_COUNT = 0  # solves stopped at the cap with ‖r‖ > tolerance · ‖b‖
+CG_SHORT_WORST = 1  # the largest ‖r‖² / ‖b‖² such a solve left
+CG_SHORT_SLOTS = 2
 
 
 def reduce_lanes(count: int, block_dim: int, tiled: bool) -> int:
@@ -239,9 +244,12 @@ def cg_kernels(scalar: type, tiled: bool):
         iteration_in_out: wp.array[wp.int32],
         active_in_out: wp.array[wp.int32],
         keep_going_out: wp.array[wp.int32],
+        shortfall_in_out: wp.array2d[wp.float64],
     ):
         """Per world: count an iteration; stop when ‖r‖ ≤ tol·‖b‖, when the iterations are spent, or when the
-        residual is not finite (a diverged world: the guards report it); else take β and go on."""
+        residual is not finite (a diverged world: the guards report it); else take β and go on. A solve that
+        stops at the cap unconverged (finite) is counted in the world's row of ``shortfall`` with its ‖r‖²/‖b‖²
+        (the largest so far kept): one thread per world writes it, no atomics."""
         world = wp.tid()
         if active_in_out[world] == 0:
             return
@@ -258,5 +266,9 @@ def cg_kernels(scalar: type, tiled: bool):
         if converged or exhausted or not wp.isfinite(rr):
             active_in_out[world] = 0
             wp.atomic_sub(keep_going_out, 0, 1)
+            if exhausted and not converged and wp.isfinite(rr):
+                relative = rr / wp.max(scalars_in_out[world, CG_BB], wp.float64(1.0e-300))
+                shortfall_in_out[world, CG_SHORT_COUNT] = shortfall_in_out[world, CG_SHORT_COUNT] + wp.float64(1.0)
+                shortfall_in_out[world, CG_SHORT_WORST] = wp.max(shortfall_in_out[world, CG_SHORT_WORST], relative)
 
     return begin, start, update_solution, update_direction, condition

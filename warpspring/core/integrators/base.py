@@ -99,6 +99,15 @@ class Integrator(abc.ABC):
         with a step budget), else ``None``. May read the device."""
         return None
 
+    #: Whether a shortfall of the inner solves (:meth:`solve_shortfall`) stops the run instead of warning.
+    strict_solves: bool = False
+
+    def solve_shortfall(self) -> str | None:
+        """A line on inner iterative solves of the last steps that stopped short of their tolerance (the residual
+        reached, the remedy), for the Simulator to warn with (or raise, with :attr:`strict_solves`), else ``None``.
+        Integrators without inner solves have none. May read the device."""
+        return None
+
     @abc.abstractmethod
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         """Advance ``state_in`` by ``dt`` [s] under ``control`` and write the result to ``state_out``.
