@@ -206,15 +206,20 @@ def test_a_mesh_collider_file_too_large_is_refused_before_it_is_read(tmp_path, m
     assert ws.ModelBuilder().add_collider_mesh(str(path), sides="one_sided") == 0
 
 
+@pytest.mark.parametrize("plastic", [False, True])
 @pytest.mark.parametrize("integrator", ["symplectic_euler", "rk4"])
-def test_a_runs_device_peak_is_estimated(device, integrator):
-    """A simulator's first frame: its states, the integrator's scratch, the guard (its lazily made midpoint state and
-    damper sums included) and the stepper's warm-up copies of what a step carries on (held until the warm-up step
-    is undone) peak at the estimate's device bytes less the model and the USD writer, exactly on the CPU (Warp's
-    allocation tracker); on CUDA what stays allocated after it is within that peak by the warm-up copies."""
+def test_a_runs_device_peak_is_estimated(device, integrator, plastic):
+    """A simulator's first frame: its states, the integrator's scratch, the guard (what it makes for the run's path
+    included) and the stepper's warm-up copies of what a step carries on (the plastic springs' rest lengths and strains
+    among them; held until the warm-up step is undone) peak at the estimate's device bytes less the model and the USD
+    writer, exactly on the CPU (Warp's allocation tracker) but for the warm-up's allowances; on CUDA what stays
+    allocated after it is within that peak by the warm-up copies."""
     builder = ws.ModelBuilder()
     builder.add_cloth_grid(nx=12, ny=10, spacing=0.02, mass=0.5, pin=["top-left"])
     builder.drag = 0.1
+    if plastic:
+        builder.add_springs([[0, 13], [1, 14], [2, 15]], stiffness=10.0, damping=0.01, family="plastic",
+                            plasticity=ws.SpringPlasticity(yield_strain=0.1))
     estimate = builder.estimate_memory(device, worlds=5, integrator=integrator)
     model = builder.finalize(device, worlds=5, integrator=integrator)
     ws.Simulator(model, fps=60, substeps=100, integrator=ws.make_integrator(integrator, model)).step_frame()  # loaded
@@ -223,17 +228,15 @@ def test_a_runs_device_peak_is_estimated(device, integrator):
         sim.step_frame()
     run = estimate.device_bytes - estimate.model - estimate.writer
     assert estimate.warmup > 0 and estimate.guard > estimate.states
-    # Counted whether or not a run needs them: the guard's midpoint state (symplectic Euler's dissipation only) and,
-    # in the warm-up, each world's stage time (which rk4 does not carry): none for symplectic Euler.
-    rk4 = integrator == "rk4"
-    midpoint, stage_time = (2 * 12 * 5 * model.particle_count + 8 * 5, 8 * 5) if rk4 else (0, 0)
+    # The warm-up's allowances: each world's stage time, which rk4 does not carry, and 64 bytes a world for the
+    # counters this scene lacks (contacts, self-collision, meshes).
+    stage_time = 8 * 5 if integrator == "rk4" else 0
+    counters = 64 * 5
+    carried = 2 * 4 * 5 * model.spring_count if plastic else 0  # the plastic springs' rest lengths and strains
+    assert carried == 0 or estimate.warmup > carried
     if allocated["peak"] is not None:
-        counters = 64 * 5  # the warm-up's allowance for counters this scene lacks (contacts, self-collision, meshes)
-        # The power sums the guard hands the integrator are counted as two scalars a particle (energy out, work in),
-        # in the guard and in the warm-up's copy; without wind or handles it makes one.
-        work_slack = 2 * 4 * 5 * model.particle_count
-        assert 0 <= run - midpoint - stage_time - counters - allocated["peak"] <= work_slack
-        assert 0 <= run - estimate.warmup - midpoint - allocated["live"] <= work_slack
+        assert run - stage_time - counters == allocated["peak"]
+        assert run - estimate.warmup == allocated["live"]
     else:
-        kept = run - estimate.warmup - midpoint
+        kept = run - estimate.warmup
         assert kept - POOL_SLACK <= allocated["live"] <= kept + POOL_SLACK

@@ -6,7 +6,8 @@ springs, hinges, triangles and colliders; worlds; the scalar type; the incidence
 tracks, tens of bytes per key, are left out). The run's parts follow the code that allocates them: a :class:`~warpspring.core.stepper.Stepper` holds two states
 (the current one and the scratch one it alternates with); each integrator allocates its own scratch
 (:data:`INTEGRATOR_SCRATCH`, read from each ``__init__``); the guard one partial sum per reducing block, and
-what it makes lazily (a substep's midpoint state, the springs' damper sums); strain limiting three position
+what it makes for the run's path (:func:`guard_path`: a substep's midpoint state, the scattered springs' damper
+sums, the power sums of the integrator's force pass); strain limiting three position
 buffers; the contact stage its slot buffer; the stepper's warm-up, copies of what a step carries to the next;
 the USD writer a vertex-normal buffer on the device and, per frame, the positions and normals it reads back and
 hands to USD. Warp's native memory counts too: each world's BVH of self-collision
@@ -286,6 +287,76 @@ MESH_FINALIZE_HOST_PER_FACE = 260
 MESH_COLLIDER_KEPT_PER_FACE = 160
 
 
+#: What the guard allocates for each integrator beyond its fixed buffers, by the rules of ``core/guards.py`` (with its
+#: default limits: the energy balance and the dissipation on), read from ``core/guard_records.py``'s integrator lists
+#: and the integrators' ``adaptive`` and ``unconditionally_stable`` (``tests/test_memory.py`` checks both): (the
+#: dissipation counted, at each substep's midpoint state, the work of wind and handles counted, the scattered springs'
+#: dampers counted in their force pass, how the integrator's force pass counts the power: "mean" over the step,
+#: "start" of the step, "" not at all).
+#:
+#: * symplectic Euler: everything, its D at the midpoint, its fused pass the step's mean power;
+#: * velocity Verlet: D and work by passes of their own, the springs' dampers in their scattered pass;
+#: * explicit Euler: neither D nor work (``DISSIPATION_UNCOUNTED``, ``WORK_UNCOUNTED``); midpoint: work only;
+#: * RK4: D, work, the dampers in the scattered pass, the power at each step's start in its evaluation;
+#: * dopri5 (adaptive) and implicit Euler (unconditionally stable, no balance): nothing.
+GUARD_RULES = {
+    "symplectic_euler": (True, True, True, True, "mean"),
+    "velocity_verlet": (True, False, True, True, ""),
+    "explicit_euler": (False, False, False, False, ""),
+    "midpoint": (False, False, True, False, ""),
+    "rk4": (True, False, True, True, "start"),
+    "dopri5": (False, False, False, False, ""),
+    "implicit_euler": (False, False, False, False, ""),
+}
+
+
+@dataclass(frozen=True)
+class GuardPath:
+    """What the run-time guard allocates beyond its fixed buffers, for a run's integrator and model
+    (:func:`guard_path`).
+
+    Attributes:
+        midpoint: a substep's midpoint state (positions, velocities, each world's time).
+        dampers: the scattered springs' damper sums (a rate and the float64 energy per spring, a flag per world).
+        power: scalars per particle of the power sums the integrator's force pass adds to (0: none; 1: the energy
+            the dampers and drag take out; 2: with the work of the loads from outside).
+        stored_forces: the dampers' and loads' parts of the force per particle (two vec3 arrays), stored by the
+            force passes of symplectic Euler on scattered springs for its update.
+    """
+
+    midpoint: bool
+    dampers: bool
+    power: int
+    stored_forces: bool
+
+
+def guard_path(*, integrator: str, springs: int, gathered: bool, drag: bool = False, wind: bool = False,
+               working: bool = False, exact: bool = True, spring_force_clamp: bool = False, plastic: bool = False,
+               particle_force_clamp: bool = False) -> GuardPath:
+    """The guard's path for a run with the default limits (``core/guards.py``: ``Guard.limits``,
+    ``_force_pass_dampers``, ``_power_rule``, ``_power_modes``), from the integrator's name and the model's features.
+
+    Args:
+        integrator: the integrator's name (:data:`GUARD_RULES`).
+        springs: springs per world; gathered: whether they are gathered per particle (else scattered).
+        drag: viscous drag on; wind: a family moves the air; working: a family does work from outside (wind, handles).
+        exact: no stage moves particles outside the forces (no collider, self-collision or strain limiting: the
+            guard's ``dissipation_exact``).
+        spring_force_clamp, plastic: the springs' force clamp, plastic springs (their dampers' part not separable).
+        particle_force_clamp: the particle force clamp (the power not counted in the force pass).
+    """
+    dissipation, midpoint, work, dampers_in_pass, rule = GUARD_RULES[integrator]
+    working = work and working  # the wind's and handles' work counted per substep
+    dampers = (dissipation and dampers_in_pass and exact and springs > 0 and not gathered
+               and not (spring_force_clamp or plastic))
+    if particle_force_clamp or (rule == "mean" and springs and not gathered and not (drag or working)):
+        rule = ""  # scattered springs count their dampers in their own pass: the update counts only drag and work
+    # The power sums carry the work done besides the energy taken out where a family's work or drag in wind counts.
+    power = (2 if working or (drag and wind) else 1) if rule else 0
+    return GuardPath(midpoint=(dissipation and midpoint) or working, dampers=dampers, power=power,
+                     stored_forces=rule == "mean" and springs > 0 and not gathered)
+
+
 def estimate_memory(
     *,
     particles: int,
@@ -321,6 +392,14 @@ def estimate_memory(
     self_contact_vertices: int | None = None,
     collider_faces: int = 0,
     emitter_slots: int = 0,
+    drag: bool = False,
+    wind: bool = False,
+    working_families: bool = False,
+    spring_force_clamp: bool = False,
+    particle_force_clamp: bool = False,
+    plastic_springs: int = 0,
+    spring_law_arrays: bool = False,
+    family_elements: tuple = (),
 ) -> MemoryEstimate:
     """Estimate the memory of a model and of a run of it, from counts, before anything is allocated.
 
@@ -361,6 +440,17 @@ def estimate_memory(
         collider_faces: the triangles of every mesh collider (the builder's copies, their host temporaries in
             finalize).
         emitter_slots: the particles of every emitter's pool (a run carries their slots from step to step).
+        drag, wind, working_families, spring_force_clamp, particle_force_clamp: what decides the guard's path
+            (:func:`guard_path`): viscous drag on, a family that moves the air (wind), a family that does work from
+            outside (wind, handles), the springs' force clamp (``Stabilizers.max_spring_force``), the particle force
+            clamp.
+        plastic_springs: springs that may yield or break (``add_springs(plasticity=...)``): with any, every spring
+            has its yield parameters and each world its rest lengths and plastic strains (which the stepper's
+            warm-up copies too); and the guard's path changes.
+        spring_law_arrays: whether some spring follows the square law or has a compression stiffness of its own (a
+            law code and a compression ratio per spring).
+        family_elements: the elements per world of each family beyond springs and hinges (wind's triangles, handles'
+            particles, tets): the guard sums their elastic energy and strain per reducing block.
 
     Returns:
         The :class:`MemoryEstimate`.
@@ -376,6 +466,7 @@ def estimate_memory(
     w = checks.count("worlds", worlds, minimum=1)
     pinned = checks.count("pinned", pinned, minimum=0)
     collider_faces = checks.count("collider_faces", collider_faces, minimum=0)
+    plastic = checks.count("plastic_springs", plastic_springs, minimum=0)
     if precision not in SCALAR_BYTES:
         raise ConfigError(f"precision must be 'float32' or 'float64', got {precision!r}")
     if spring_evaluation not in ("auto", "gather", "scatter"):
@@ -405,6 +496,10 @@ def estimate_memory(
         + (32 * pinned if pinned else 0)  # pin groups: index, group, rest position (float64) per pinned particle
         + (8 + 3 * f) * s + incidence(spring_slots, spring_tail)  # pairs, rest length, ke and kd rows
         + ((4 * groups + (8 if spring_grid else 0)) if grouped else 0)  # each group's spring, the grid's size
+        + ((4 + f) * s if spring_law_arrays else 0)  # each spring's law code and compression ratio
+        # plastic springs: their indices; each spring's five yield parameters, and per world and spring its rest
+        # length and plastic strain
+        + ((4 * plastic + (5 + 2 * w) * f * s) if plastic else 0)
         + (16 + 3 * f) * h + incidence(hinge_slots, hinge_tail)  # hinges, rest angle, ke and kd rows
         + 12 * t  # triangles
         # colliders: kind, size, scale, friction, restitution, mesh, rest frame, track indices; their frames at a
@@ -424,28 +519,36 @@ def estimate_memory(
     # The guard: its records (and their clear copies), partial sums per block, limits, each world's work put in
     # and energy balance, the positions, velocities and loads of its last check, and the elastic energy's partial
     # sums per block of each family's elements, and the running dissipation of those blocks and the particles'
-    # blocks; and what it allocates lazily, counted whether or not the run's settings need it (an upper bound):
-    # the substep's midpoint state (positions, velocities, each world's time) where dissipation or the work of wind
-    # and handles is counted, and the springs' damper sums (a skip flag per world, per spring its damper power
-    # and the float64 energy it dissipated) where the scattered force pass counts them (scattered springs only).
+    # blocks; and what it allocates for the path the run takes (:func:`guard_path`): a substep's midpoint state,
+    # the scattered springs' damper sums, the power sums it hands the integrator and the force parts they store.
     def element_blocks(count: int) -> int:
         return w * (count if not cuda else -(-count // _lanes(count, block_dim))) if count else 0
 
+    path = guard_path(integrator=integrator, springs=s, gathered=spring_evaluation != "scatter", drag=drag,
+                      wind=wind, working=working_families, exact=not (shapes or self_contact_triangles
+                                                                       or strain_limiting),
+                      spring_force_clamp=spring_force_clamp, plastic=plastic > 0,
+                      particle_force_clamp=particle_force_clamp)
     running = 8 * RUNNING_SLOTS * ((blocks + element_blocks(s) + element_blocks(h)) if cuda
                                    else w * (1 + bool(s) + bool(h)))
-    dampers = (4 + (f + 8) * s) * w if s and spring_evaluation == "scatter" else 0
-    power = 2 * f * size  # the per-particle power sums the guard hands the integrator (energy out, work in)
+    dampers = (4 + (f + 8) * s) * w if path.dampers else 0
+    power = path.power * f * size  # the power sums the guard hands the integrator (energy out[, work in])
     carried = 8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + running + dampers + power  # what a check carries on
     guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * PARTIAL_SLOTS * blocks + 8 * GUARD_LIMITS * w
-             + 2 * 8 * max(element_blocks(s) + element_blocks(h), w)  # the energy's and the strain's partial sums
-             + carried + 2 * vec3 * size + 8 * w)
-    # The stepper's warm-up before a capture copies what a step carries to the next (the guard's, the integrator's
-    # per-world state and implicit Euler's Δv, the emitters' flags and slots, the contact, self-collision and mesh
-    # caches' counters), and frees the copies once the warm-up step is undone.
+             + 2 * 8 * max(element_blocks(s) + element_blocks(h) + sum(element_blocks(checks.count(
+                 "family_elements", e, minimum=0)) for e in family_elements), w)  # energy's and strain's sums
+             + carried + (2 * vec3 * size + 8 * w if path.midpoint else 0)
+             + (2 * vec3 * size if path.stored_forces else 0))
+    # The stepper's warm-up before a capture copies what a step carries to the next (the guard's sums and record, the
+    # integrator's per-world state and implicit Euler's Δv, the emitters' flags and slots, the plastic springs' rest
+    # lengths and strains, the contact, self-collision and mesh caches' counters), and frees the copies once the
+    # warm-up step is undone.
     slots = checks.count("emitter_slots", emitter_slots, minimum=0)
-    warmup = (carried + 8 * per_world_f64 * w + 4 * per_world_i32 * w + 64 * w
+    warmup = (carried + (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w  # with the guard's record
+              + 8 * per_world_f64 * w + 4 * per_world_i32 * w + 64 * w
               + (vec3 * size if integrator == "implicit_euler" else 0)
-              + ((4 * size + (12 * slots + 32) * w) if slots else 0))
+              + ((4 * size + (12 * slots + 32) * w) if slots else 0)
+              + (2 * f * w * s if plastic else 0))
     post_step = (3 * vec3 * size if strain_limiting and s else 0)
     if contact_slots:
         post_step += (8 * contact_slots + 4) * size + 4 * w + f  # colliders and features per slot, counts, overflow

@@ -192,6 +192,15 @@ class Finalization:
                 for m in meshes),
             collider_faces=sum(len(m.faces) for m in meshes),
             emitter_slots=sum(e.capacity for e in self._emitters),
+            drag=self.drag != 0.0 or "drag" in self._tracks,
+            wind=any(getattr(f, "moves_air", False) for f in self._families),
+            working_families=any(f.does_work for f in self._families),
+            spring_force_clamp=self.stabilizers.max_spring_force is not None,
+            particle_force_clamp=self.stabilizers.max_particle_force is not None,
+            plastic_springs=sum(law[0] for law in self._spring_law if law[3]),
+            spring_law_arrays=any(law[0] and (law[1] == SPRING_LAWS["square"] or np.any(np.asarray(law[2]) != 1.0))
+                                  for law in self._spring_law),
+            family_elements=tuple(f.element_count for f in self._families),
             **_surface_counts(surface, n),
         )
 
