@@ -240,6 +240,50 @@ def test_guard_rules_follow_the_guard():
         assert power == {"symplectic_euler": "mean", "rk4": "start"}.get(name, "")
 
 
+def test_the_substep_audit_is_estimated():
+    """A run that audits every substep: the record of every substep's positions on the device, byte for byte, in the
+    estimate's device bytes; its host part (the record read back as float64, the surface's pair lists) in the host
+    peak."""
+    from warpspring.analysis.audit import SubstepAudit
+
+    builder = grid_builder()
+    plain = builder.estimate_memory("cpu", worlds=2)
+    estimate = builder.estimate_memory("cpu", worlds=2, audit_substeps=8)
+    model = builder.finalize("cpu", worlds=2)
+    sim = ws.Simulator(model, fps=60, substeps=8)
+    seen: dict = {}
+    owned_bytes(model, sim, seen=seen)
+    audit = SubstepAudit().attach(sim)
+    assert owned_bytes(audit, seen=seen) == estimate.audit == 9 * 2 * model.particle_count * 12
+    assert estimate.device_bytes == plain.device_bytes + estimate.audit
+    assert "substep audit" in estimate.parts()
+    record, host = memory.audit_bytes(particles=model.particle_count, worlds=2, substeps=8,
+                                      surface_vertices=model.particle_count)
+    assert estimate.audit_host == host == 9 * 2 * model.particle_count * 24 + memory.AUDIT_HOST_PER_VERTEX * 384
+    assert estimate.host_bytes == max(estimate.finalize_host + estimate.model, estimate.audit_host
+                                      + estimate.device_bytes)
+
+
+def test_a_substep_audit_that_cannot_fit_is_refused_before_it_is_made(monkeypatch):
+    """The audit's record and pair lists checked before anything is made: one line with the estimate and a remedy,
+    the simulator left as it was."""
+    from warpspring.analysis.audit import SubstepAudit
+
+    model = grid_builder().finalize("cpu")
+    sim = ws.Simulator(model, fps=60, substeps=1000)
+    hooks = list(sim.stepper.hooks)
+    record, host = memory.audit_bytes(particles=model.particle_count, worlds=1, substeps=1000,
+                                      surface_vertices=model.particle_count)
+    monkeypatch.setattr(memory, "available_memory", lambda device=None: AvailableMemory(host=host))
+    with pytest.raises(ws.ConfigError) as refused:
+        SubstepAudit().attach(sim)
+    line = str(refused.value)
+    assert "\n" not in line and "auditing every substep" in line and format_bytes(host + record) in line
+    assert "fewer substeps" in line and sim.stepper.hooks == hooks
+    monkeypatch.setattr(memory, "available_memory", lambda device=None: AvailableMemory(host=host + record))
+    SubstepAudit().attach(sim)
+
+
 def test_counts_alone_give_the_builders_estimate():
     """``ws.estimate_memory`` from counts equals the builder's exact one for a grid (a uniform degree: the mean
     degree rounded up is the incidence table's width), and every integrator has its scratch listed."""

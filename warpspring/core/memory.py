@@ -118,6 +118,9 @@ class MemoryEstimate:
         self_contact: self-collision's device arrays and BVHs (:func:`self_contact_bytes`; 0 without it).
         warmup: the stepper's copies of what a step carries to the next (the guard's and the integrator's), held
             during its warm-up step before a capture and freed after it.
+        audit: the substep audit's record of every substep's positions on the device (:func:`audit_bytes`; 0 when
+            the run does not audit).
+        audit_host: the substep audit's host memory after a frame (the record read back, the pair lists).
     """
 
     device: str
@@ -136,13 +139,15 @@ class MemoryEstimate:
     run_host: int
     self_contact: int = 0
     warmup: int = 0
+    audit: int = 0
+    audit_host: int = 0
 
     @property
     def device_bytes(self) -> int:
         """The device memory of a run at its peak [B]: the model and the run's buffers, and the stepper's warm-up
         copies."""
         return (self.model + self.self_contact + self.states + self.integrator + self.guard + self.post_step
-                + self.writer + self.warmup)
+                + self.writer + self.warmup + self.audit)
 
     @property
     def host_bytes(self) -> int:
@@ -150,7 +155,7 @@ class MemoryEstimate:
         CPU the device arrays are host memory and are included."""
         on_host = 0 if self.cuda else 1
         finalize_peak = self.finalize_host + on_host * (self.model + self.self_contact)
-        run_peak = max(self.frame_host, self.run_host) + on_host * self.device_bytes
+        run_peak = max(self.frame_host, self.run_host, self.audit_host) + on_host * self.device_bytes
         return max(finalize_peak, run_peak)
 
     @property
@@ -163,7 +168,8 @@ class MemoryEstimate:
         """The device parts by name [B], largest first, zero parts left out."""
         named = {"model": self.model, "self-collision": self.self_contact, "states": self.states,
                  "integrator": self.integrator, "guard": self.guard, "capture warm-up": self.warmup,
-                 "stabilizers and contacts": self.post_step, "USD writer": self.writer}
+                 "stabilizers and contacts": self.post_step, "USD writer": self.writer,
+                 "substep audit": self.audit}
         return dict(sorted(((k, v) for k, v in named.items() if v), key=lambda kv: -kv[1]))
 
     def describe(self) -> str:
@@ -287,6 +293,36 @@ MESH_FINALIZE_HOST_PER_FACE = 260
 MESH_COLLIDER_KEPT_PER_FACE = 160
 
 
+#: Host bytes per vertex of the audited surface that auditing a substep holds at its peak (``analysis/audit.py``,
+#: :class:`~warpspring.analysis.audit.SurfaceAudit`): the surface's topology and IPC Toolkit's collision mesh, the
+#: float64 copies of the substep's ends, the broad phase's candidate pairs and the collision set within the thickness
+#: (C++ lists, and the Python lists and float64 distances of the pairs it decides). Measured 13.1 KB per vertex
+#: (the resident memory's peak over the first substep) on two stacked sheets 0.2 spacings apart, 8.8 candidate pairs
+#: per vertex; the torture battery's scenes reach 9.3 (``stack``); counted as 20 KiB (room for ~13 per vertex).
+AUDIT_HOST_PER_VERTEX = 20 * 1024
+
+
+def audit_bytes(*, particles: int, worlds: int, substeps: int, surface_vertices: int, precision: str = "float32",
+                cuda: bool = False) -> tuple[int, int]:
+    """(device, host) bytes [B] of auditing every substep of a run (``warpspring run --audit-substeps``,
+    :class:`~warpspring.analysis.audit.SubstepAudit`), before it is attached: on the device the record of every
+    substep's positions (substeps + 1 states); on the host after each frame the record read back (a copy on CUDA)
+    and as float64, and a substep's audit of the surface (:data:`AUDIT_HOST_PER_VERTEX`).
+
+    Args:
+        particles: particles per world; worlds: worlds of the model; substeps: substeps per frame.
+        surface_vertices: vertices of the audited surface (the self-collision's, else the model's triangles').
+        precision: the model's "float32" or "float64"; cuda: whether the device is a CUDA GPU.
+    """
+    size = checks.count("particles", particles, minimum=0) * checks.count("worlds", worlds, minimum=1)
+    states = checks.count("substeps", substeps, minimum=1) + 1
+    vec3 = 3 * SCALAR_BYTES[precision]
+    record = states * size * vec3
+    host = states * size * (24 + (vec3 if cuda else 0)) + AUDIT_HOST_PER_VERTEX * checks.count(
+        "surface vertices", surface_vertices, minimum=0)
+    return record, host
+
+
 #: What the guard allocates for each integrator beyond its fixed buffers, by the rules of ``core/guards.py`` (with its
 #: default limits: the energy balance and the dissipation on), read from ``core/guard_records.py``'s integrator lists
 #: and the integrators' ``adaptive`` and ``unconditionally_stable`` (``tests/test_memory.py`` checks both): (the
@@ -400,6 +436,7 @@ def estimate_memory(
     plastic_springs: int = 0,
     spring_law_arrays: bool = False,
     family_elements: tuple = (),
+    audit_substeps: int = 0,
 ) -> MemoryEstimate:
     """Estimate the memory of a model and of a run of it, from counts, before anything is allocated.
 
@@ -449,6 +486,8 @@ def estimate_memory(
             warm-up copies too); and the guard's path changes.
         spring_law_arrays: whether some spring follows the square law or has a compression stiffness of its own (a
             law code and a compression ratio per spring).
+        audit_substeps: substeps per frame of a run that audits every substep (:func:`audit_bytes`; 0: none): the
+            audited surface is the self-collision's (``self_contact_vertices``), else the meshes' (``mesh_vertices``).
         family_elements: the elements per world of each family beyond springs and hinges (wind's triangles, handles'
             particles, tets): the guard sums their elastic energy and strain per reducing block.
 
@@ -577,11 +616,14 @@ def estimate_memory(
     # Setup: the guard's energy scale reads positions and velocities as float64 and sums element energies
     # (float64 per element and world); the advisor's Gershgorin bound bincounts each spring's ends per world.
     run_host = 48 * size + 8 * w * (s + h) + (40 * w * s + 8 * size if s else 0)
+    audit, audit_host = (audit_bytes(particles=n, worlds=w, substeps=audit_substeps,
+                                     surface_vertices=self_v if self_t else vertices, precision=precision, cuda=cuda)
+                         if checks.count("audit_substeps", audit_substeps, minimum=0) else (0, 0))
     return MemoryEstimate(
         device=str(device), cuda=cuda, particles=n, worlds=w, model=int(model), states=int(states),
         integrator=int(scratch), guard=int(guard), post_step=int(post_step), writer=int(writer),
         builder=int(builder), finalize_host=int(finalize_host), frame_host=int(frame_host), run_host=int(run_host),
-        self_contact=int(self_contact), warmup=int(warmup),
+        self_contact=int(self_contact), warmup=int(warmup), audit=int(audit), audit_host=int(audit_host),
     )
 
 
@@ -711,6 +753,19 @@ def check_host_room(what: str, needed: int, *, remedy: str) -> None:
     if available is not None and needed > available:
         raise ConfigError(f"{what} needs an estimated {format_bytes(needed)} of host memory, but "
                           f"{format_bytes(available)} is available: {remedy}")
+
+
+def check_device_room(what: str, needed: int, device, *, remedy: str) -> None:
+    """Refuse, before it is made, something that needs ``needed`` bytes [B] of ``device`` (a ``wp.Device``): on a CUDA
+    device against its free memory, on the CPU against the host's available memory (:func:`check_host_room`). One
+    line naming ``what``, the estimate, what is free and ``remedy``; an unknown amount is not checked."""
+    if not getattr(device, "is_cuda", False):
+        check_host_room(what, needed, remedy=remedy)
+        return
+    free = available_memory(device).device
+    if free is not None and needed > free:
+        raise ConfigError(f"{what} needs an estimated {format_bytes(needed)} on {device}, but {format_bytes(free)} is "
+                          f"free: {remedy}")
 
 
 def check_fits(estimate: MemoryEstimate, available: AvailableMemory, *, precision: str = "float32") -> None:

@@ -124,7 +124,7 @@ class Finalization:
     def estimate_memory(self, device=None, *, precision: str = "float32", worlds: int = 1,
                         integrator: str = "symplectic_euler", contact_stage: bool | None = None,
                         contact_slots: int | None = None, spring_evaluation: str = "auto", spring_groups: bool = True,
-                        spring_grid: bool = True) -> memory.MemoryEstimate:
+                        spring_grid: bool = True, audit_substeps: int = 0) -> memory.MemoryEstimate:
         """Estimate the memory :meth:`finalize` and a run of the model will need, before anything is allocated
         (:func:`warpspring.core.memory.estimate_memory` with this builder's counts and its incidence tables'
         exact widths).
@@ -134,6 +134,8 @@ class Finalization:
             precision, worlds, contact_stage, contact_slots, spring_evaluation, spring_groups, spring_grid: as
                 :meth:`finalize`.
             integrator: the integrator's name (its scratch states count).
+            audit_substeps: substeps per frame of a run that audits every substep (``warpspring run
+                --audit-substeps``; its record and pair lists count); 0: none.
 
         Returns:
             The :class:`~warpspring.core.memory.MemoryEstimate`.
@@ -201,6 +203,7 @@ class Finalization:
             spring_law_arrays=any(law[0] and (law[1] == SPRING_LAWS["square"] or np.any(np.asarray(law[2]) != 1.0))
                                   for law in self._spring_law),
             family_elements=tuple(f.element_count for f in self._families),
+            audit_substeps=audit_substeps,
             **_surface_counts(surface, n),
         )
 
