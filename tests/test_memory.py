@@ -258,8 +258,10 @@ def test_the_substep_audit_is_estimated():
     assert estimate.device_bytes == plain.device_bytes + estimate.audit
     assert "substep audit" in estimate.parts()
     record, host = memory.audit_bytes(particles=model.particle_count, worlds=2, substeps=8,
-                                      surface_vertices=model.particle_count)
-    assert estimate.audit_host == host == 9 * 2 * model.particle_count * 24 + memory.AUDIT_HOST_PER_VERTEX * 384
+                                      surface_vertices=model.particle_count, thickness=False)
+    assert estimate.audit_host == host == 9 * 2 * model.particle_count * 24 + memory.AUDIT_MOTION_PER_VERTEX * 384
+    thick = builder.estimate_memory("cpu", worlds=2, audit_substeps=8, audit_thickness=True)
+    assert thick.audit_host == host + memory.AUDIT_NEAR_PER_VERTEX * 384
     assert estimate.host_bytes == max(estimate.finalize_host + estimate.model, estimate.audit_host
                                       + estimate.device_bytes)
 
@@ -273,7 +275,7 @@ def test_a_substep_audit_that_cannot_fit_is_refused_before_it_is_made(monkeypatc
     sim = ws.Simulator(model, fps=60, substeps=1000)
     hooks = list(sim.stepper.hooks)
     record, host = memory.audit_bytes(particles=model.particle_count, worlds=1, substeps=1000,
-                                      surface_vertices=model.particle_count)
+                                      surface_vertices=model.particle_count, thickness=False)
     monkeypatch.setattr(memory, "available_memory", lambda device=None: AvailableMemory(host=host))
     with pytest.raises(ws.ConfigError) as refused:
         SubstepAudit().attach(sim)

@@ -457,6 +457,7 @@ class SubstepAudit(FrameHook):
         # on the host does not fit.
         record, host = memory.audit_bytes(particles=model.particle_count, worlds=model.world_count,
                                           substeps=sim.substeps, surface_vertices=len(np.unique(triangles)),
+                                          thickness=self.thickness is not None or self_contact is not None,
                                           precision="float64" if model.scalar is wp.float64 else "float32",
                                           cuda=model.device.is_cuda)
         remedy = ("audit a smaller model, fewer worlds or fewer substeps per frame, or run without "

@@ -294,32 +294,37 @@ MESH_COLLIDER_KEPT_PER_FACE = 160
 
 
 #: Host bytes per vertex of the audited surface that auditing a substep holds at its peak (``analysis/audit.py``,
-#: :class:`~warpspring.analysis.audit.SurfaceAudit`): the surface's topology and IPC Toolkit's collision mesh, the
-#: float64 copies of the substep's ends, the broad phase's candidate pairs and the collision set within the thickness
-#: (C++ lists, and the Python lists and float64 distances of the pairs it decides). Measured 13.1 KB per vertex
-#: (the resident memory's peak over the first substep) on two stacked sheets 0.2 spacings apart, 8.8 candidate pairs
-#: per vertex; the torture battery's scenes reach 9.3 (``stack``); counted as 20 KiB (room for ~13 per vertex).
-AUDIT_HOST_PER_VERTEX = 20 * 1024
+#: :class:`~warpspring.analysis.audit.SurfaceAudit`): continuous collision detection (the surface's topology, IPC
+#: Toolkit's collision mesh, the substep's ends in float64, the broad phase's candidate pairs: ~8.8 a vertex of a
+#: cloth whatever its layering, the neighbours' boxes touching) measured 2.9 KB (two stacked 120² sheets, the first
+#: substep's peak of resident memory), counted as 4 KiB; and with a thickness, the collision set within it (the pairs'
+#: lists and distances), measured 10.6 KB where the sheets lie within it (5.9 pairs closer than half of it a vertex)
+#: and 0.25 KB where nothing does, counted as 16 KiB (the dense case).
+AUDIT_MOTION_PER_VERTEX = 4 * 1024
+AUDIT_NEAR_PER_VERTEX = 16 * 1024
 
 
-def audit_bytes(*, particles: int, worlds: int, substeps: int, surface_vertices: int, precision: str = "float32",
-                cuda: bool = False) -> tuple[int, int]:
+def audit_bytes(*, particles: int, worlds: int, substeps: int, surface_vertices: int, thickness: bool,
+                precision: str = "float32", cuda: bool = False) -> tuple[int, int]:
     """(device, host) bytes [B] of auditing every substep of a run (``warpspring run --audit-substeps``,
     :class:`~warpspring.analysis.audit.SubstepAudit`), before it is attached: on the device the record of every
     substep's positions (substeps + 1 states); on the host after each frame the record read back (a copy on CUDA)
-    and as float64, and a substep's audit of the surface (:data:`AUDIT_HOST_PER_VERTEX`).
+    and as float64, and a substep's audit of the surface (:data:`AUDIT_MOTION_PER_VERTEX`, and with a thickness
+    :data:`AUDIT_NEAR_PER_VERTEX`).
 
     Args:
         particles: particles per world; worlds: worlds of the model; substeps: substeps per frame.
         surface_vertices: vertices of the audited surface (the self-collision's, else the model's triangles').
+        thickness: whether the audit measures the pairs within a thickness (given, or the self-collision's).
         precision: the model's "float32" or "float64"; cuda: whether the device is a CUDA GPU.
     """
     size = checks.count("particles", particles, minimum=0) * checks.count("worlds", worlds, minimum=1)
     states = checks.count("substeps", substeps, minimum=1) + 1
     vec3 = 3 * SCALAR_BYTES[precision]
     record = states * size * vec3
-    host = states * size * (24 + (vec3 if cuda else 0)) + AUDIT_HOST_PER_VERTEX * checks.count(
-        "surface vertices", surface_vertices, minimum=0)
+    per_vertex = AUDIT_MOTION_PER_VERTEX + (AUDIT_NEAR_PER_VERTEX if thickness else 0)
+    host = states * size * (24 + (vec3 if cuda else 0)) + per_vertex * checks.count("surface vertices",
+                                                                                     surface_vertices, minimum=0)
     return record, host
 
 
@@ -437,6 +442,7 @@ def estimate_memory(
     spring_law_arrays: bool = False,
     family_elements: tuple = (),
     audit_substeps: int = 0,
+    audit_thickness: bool | None = None,
 ) -> MemoryEstimate:
     """Estimate the memory of a model and of a run of it, from counts, before anything is allocated.
 
@@ -488,6 +494,8 @@ def estimate_memory(
             law code and a compression ratio per spring).
         audit_substeps: substeps per frame of a run that audits every substep (:func:`audit_bytes`; 0: none): the
             audited surface is the self-collision's (``self_contact_vertices``), else the meshes' (``mesh_vertices``).
+        audit_thickness: whether that audit measures the pairs within a thickness (default: with self-collision,
+            whose thickness it takes).
         family_elements: the elements per world of each family beyond springs and hinges (wind's triangles, handles'
             particles, tets): the guard sums their elastic energy and strain per reducing block.
 
@@ -617,7 +625,8 @@ def estimate_memory(
     # (float64 per element and world); the advisor's Gershgorin bound bincounts each spring's ends per world.
     run_host = 48 * size + 8 * w * (s + h) + (40 * w * s + 8 * size if s else 0)
     audit, audit_host = (audit_bytes(particles=n, worlds=w, substeps=audit_substeps,
-                                     surface_vertices=self_v if self_t else vertices, precision=precision, cuda=cuda)
+                                     surface_vertices=self_v if self_t else vertices, precision=precision, cuda=cuda,
+                                     thickness=bool(self_t) if audit_thickness is None else audit_thickness)
                          if checks.count("audit_substeps", audit_substeps, minimum=0) else (0, 0))
     return MemoryEstimate(
         device=str(device), cuda=cuda, particles=n, worlds=w, model=int(model), states=int(states),

@@ -124,7 +124,8 @@ class Finalization:
     def estimate_memory(self, device=None, *, precision: str = "float32", worlds: int = 1,
                         integrator: str = "symplectic_euler", contact_stage: bool | None = None,
                         contact_slots: int | None = None, spring_evaluation: str = "auto", spring_groups: bool = True,
-                        spring_grid: bool = True, audit_substeps: int = 0) -> memory.MemoryEstimate:
+                        spring_grid: bool = True, audit_substeps: int = 0,
+                        audit_thickness: bool | None = None) -> memory.MemoryEstimate:
         """Estimate the memory :meth:`finalize` and a run of the model will need, before anything is allocated
         (:func:`warpspring.core.memory.estimate_memory` with this builder's counts and its incidence tables'
         exact widths).
@@ -135,7 +136,8 @@ class Finalization:
                 :meth:`finalize`.
             integrator: the integrator's name (its scratch states count).
             audit_substeps: substeps per frame of a run that audits every substep (``warpspring run
-                --audit-substeps``; its record and pair lists count); 0: none.
+                --audit-substeps``; its record and pair lists count); 0: none. audit_thickness: whether it
+                measures the pairs within a thickness (default: with self-collision).
 
         Returns:
             The :class:`~warpspring.core.memory.MemoryEstimate`.
@@ -204,6 +206,7 @@ class Finalization:
                                   for law in self._spring_law),
             family_elements=tuple(f.element_count for f in self._families),
             audit_substeps=audit_substeps,
+            audit_thickness=audit_thickness,
             **_surface_counts(surface, n),
         )
 
