@@ -576,14 +576,15 @@ def estimate_memory(
                                                                        or strain_limiting),
                       spring_force_clamp=spring_force_clamp, plastic=plastic > 0,
                       particle_force_clamp=particle_force_clamp)
+    others = [checks.count("family_elements", e, minimum=0) for e in family_elements]
+    energy_blocks = element_blocks(s) + element_blocks(h) + sum(element_blocks(e) for e in others)
     running = 8 * RUNNING_SLOTS * ((blocks + element_blocks(s) + element_blocks(h)) if cuda
                                    else w * (1 + bool(s) + bool(h)))
     dampers = (4 + (f + 8) * s) * w if path.dampers else 0
     power = path.power * f * size  # the power sums the guard hands the integrator (energy out[, work in])
     carried = 8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + running + dampers + power  # what a check carries on
     guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * PARTIAL_SLOTS * blocks + 8 * GUARD_LIMITS * w
-             + 2 * 8 * max(element_blocks(s) + element_blocks(h) + sum(element_blocks(checks.count(
-                 "family_elements", e, minimum=0)) for e in family_elements), w)  # energy's and strain's sums
+             + 2 * 8 * max(energy_blocks, w)  # every family's energy and strain partial sums
              + carried + (2 * vec3 * size + 8 * w if path.midpoint else 0)
              + (2 * vec3 * size if path.stored_forces else 0))
     # The stepper's warm-up before a capture copies what a step carries to the next (the guard's sums and record, the
