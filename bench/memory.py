@@ -3,7 +3,8 @@
 Two tables, each row measured in a fresh Python process (a peak is per process):
 
 1. **Estimate vs measured**: for grids, cloth meshes, soft bodies (voxel, grid, tetrahedral, Delaunay),
-   emitter pools, many worlds, self-collision and mesh colliders, at several sizes, the estimate the
+   emitter pools, many worlds, self-collision, mesh colliders (from OBJ and USD files too) and the substep audit,
+   at several sizes, the estimate the
    pre-allocation checks use against the growth of the process's peak resident memory (Linux ``VmHWM``, reset
    through ``/proc/self/clear_refs`` after a warm-up that loads the modules) on the host.
 2. **Device**: each row's model finalized on ``--device`` and a simulator's first frame (the default guard on),
@@ -15,7 +16,8 @@ Two tables, each row measured in a fresh Python process (a peak is per process):
 
 The bound held in both: measured ≤ estimate ≤ 2 × measured.
 3. **Refusals**: the oversized scenes at their full sizes, each in a process whose host memory is capped at
-   ``--limit`` (8 GiB; the OBJ also at 2 GiB as a cloth and at 1 GiB as a mesh collider, as it fits in 8) through
+   ``--limit`` (8 GiB; the OBJ also at 2 GiB as a cloth and at 1 GiB as a mesh collider, as it fits in 8, and the
+   same sheet as a .usdc and a .usda mesh collider at 1 GiB) through
    ``WARPSPRING_MEMORY_LIMIT``: the time, the process's peak resident memory (``VmHWM``, imports included) and
    the one line each is refused with ("ran": it fitted and was built).
 
