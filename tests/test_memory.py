@@ -80,7 +80,17 @@ SCENES = {
     "mesh colliders: cached, winding number, one-sided": lambda: _meshes(grid_builder()),
     "plastic springs": lambda: _plastic(grid_builder()),
     "square-law springs": lambda: _square(grid_builder()),
+    "soft body (grid): spring groups wider than the per-spring head": lambda: _lattice(),
 }
+
+
+def _lattice():
+    import trimesh
+
+    builder = ws.ModelBuilder()
+    builder.add_soft_body(trimesh.creation.icosphere(subdivisions=2, radius=0.1), method="grid", youngs_modulus=1e5,
+                          density=1000.0, spacing=0.02)
+    return builder
 
 
 def _meshes(builder):

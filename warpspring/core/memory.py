@@ -411,6 +411,7 @@ def estimate_memory(
     spring_evaluation: str = "auto",
     spring_groups: int | None = None,
     spring_grid: bool = True,
+    spring_group_slots: int | None = None,
     integrator: str = "symplectic_euler",
     spring_slots: int | None = None,
     spring_tail: int = 0,
@@ -456,6 +457,8 @@ def estimate_memory(
         spring_groups: groups of gathered springs laid out by group (``springs.set_spring_layout``: each keeps one
             spring's index on the device; default 3, a cloth's structural, shear and bend springs; 0: not grouped).
         spring_grid: whether that layout reads the springs as one cloth grid (its size, two int32, on the device).
+        spring_group_slots: that layout's head width, each group's largest degree at one particle summed (default
+            ``spring_slots``: the groups of a cloth grid fill the per-spring head's width exactly).
         device: the Warp device name ("cpu", "cuda:0", ...); only whether it is CUDA matters.
         integrator: the integrator's name (:data:`INTEGRATOR_SCRATCH`).
         spring_slots, hinge_slots: ELL head widths of the incidence tables; default the mean number of elements
@@ -528,6 +531,8 @@ def estimate_memory(
     size = w * n  # entries of a state's per-particle arrays
     spring_slots = _mean_degree(2 * s, n) if spring_slots is None else checks.count("spring_slots", spring_slots,
                                                                                    minimum=0)
+    group_slots = spring_slots if spring_group_slots is None else checks.count("spring_group_slots",
+                                                                               spring_group_slots, minimum=0)
     hinge_slots = _mean_degree(4 * h, n) if hinge_slots is None else checks.count("hinge_slots", hinge_slots, minimum=0)
     vertices = (n if t else 0) if mesh_vertices is None else checks.count("mesh_vertices", mesh_vertices, minimum=0)
     exported = w if exported_worlds is None else checks.count("exported_worlds", exported_worlds, minimum=1)
@@ -541,7 +546,8 @@ def estimate_memory(
         + 2 * vec3 * size + 4 * size  # initial positions and velocities, flags: per world
         + 3 * f * n  # mass, inverse mass (one row for every world), radius
         + (32 * pinned if pinned else 0)  # pin groups: index, group, rest position (float64) per pinned particle
-        + (8 + 3 * f) * s + incidence(spring_slots, spring_tail)  # pairs, rest length, ke and kd rows
+        + (8 + 3 * f) * s  # pairs, rest length, ke and kd rows
+        + (incidence(group_slots, 0) if grouped else incidence(spring_slots, spring_tail))
         + ((4 * groups + (8 if spring_grid else 0)) if grouped else 0)  # each group's spring, the grid's size
         + ((4 + f) * s if spring_law_arrays else 0)  # each spring's law code and compression ratio
         # plastic springs: their indices; each spring's five yield parameters, and per world and spring its rest
@@ -608,7 +614,7 @@ def estimate_memory(
     # _INCIDENCE_ENTRY per entry plus its head tables (int32); the particles' copies (float64 and cast) come first.
     springs_peak = 16 * s + _INCIDENCE_ENTRY * 2 * s + 8 * spring_slots * n
     if grouped:  # then the layout by group, after the incidence's sort
-        springs_peak = max(springs_peak, 16 * s + _GROUPED_LAYOUT_PER_SPRING * s + 2 * 8 * spring_slots * n)
+        springs_peak = max(springs_peak, 16 * s + _GROUPED_LAYOUT_PER_SPRING * s + 2 * 8 * group_slots * n)
     hinges_peak = 16 * s + 32 * h + _INCIDENCE_ENTRY * 4 * h + 8 * hinge_slots * n
     particles_peak = 24 * n + (24 + vec3) * size
     # Self-collision is made last, its host temporaries after the others are freed.
