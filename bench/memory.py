@@ -3,7 +3,8 @@
 Two tables, each row measured in a fresh Python process (a peak is per process):
 
 1. **Estimate vs measured**: for grids, cloth meshes, soft bodies (voxel, grid, tetrahedral, Delaunay),
-   emitter pools, many worlds, self-collision and mesh colliders, at several sizes, the estimate the
+   emitter pools, many worlds, self-collision, mesh colliders (from OBJ and USD files too) and the substep audit,
+   at several sizes, the estimate the
    pre-allocation checks use against the growth of the process's peak resident memory (Linux ``VmHWM``, reset
    through ``/proc/self/clear_refs`` after a warm-up that loads the modules) on the host.
 2. **Device**: each row's model finalized on ``--device`` and a simulator's first frame (the default guard on),
@@ -15,7 +16,8 @@ Two tables, each row measured in a fresh Python process (a peak is per process):
 
 The bound held in both: measured ≤ estimate ≤ 2 × measured.
 3. **Refusals**: the oversized scenes at their full sizes, each in a process whose host memory is capped at
-   ``--limit`` (8 GiB; the OBJ also at 2 GiB as a cloth and at 1 GiB as a mesh collider, as it fits in 8) through
+   ``--limit`` (8 GiB; the OBJ also at 2 GiB as a cloth and at 1 GiB as a mesh collider, as it fits in 8, and the
+   same sheet as a .usdc and a .usda mesh collider at 1 GiB) through
    ``WARPSPRING_MEMORY_LIMIT``: the time, the process's peak resident memory (``VmHWM``, imports included) and
    the one line each is refused with ("ran": it fitted and was built).
 
@@ -59,12 +61,24 @@ MATRIX = [
     ("collider_file", 700, "mesh collider from an OBJ, 977k triangles"),
     ("collider", 300, "mesh collider, 179k triangles"), ("collider", 700, "mesh collider, 977k triangles"),
     ("collider_winding", 700, "mesh collider (winding number), 977k triangles"),
+    ("collider_usd", 700, "mesh collider from a USD file (quads), 977k triangles"),
+    ("collider_usd_triangles", 700, "mesh collider from a USD file (triangles), 977k triangles"),
+    ("collider_usd_samples", 300, "mesh collider from a USD file (quads), 179k triangles, 4 time samples"),
+    ("audit", 60, "substep audit: two stacked 60² sheets, 4 substeps"),
+    ("audit", 120, "substep audit: two stacked 120² sheets, 4 substeps"),
+    ("audit_thick", 60, "substep audit with a thickness both sheets lie within: 60², 4 substeps"),
+    ("audit_thick", 120, "substep audit with a thickness both sheets lie within: 120², 4 substeps"),
 ]
 QUICK = {("grid", 256), ("mesh", 300), ("voxel_sphere", 0.005), ("tetrahedral_sphere", 0.008),
-         ("emitter", 1_000_000), ("worlds", 20_000), ("selfcontact", 128), ("collider_file", 300), ("collider", 300)}
+         ("emitter", 1_000_000), ("worlds", 20_000), ("selfcontact", 128), ("collider_file", 300), ("collider", 300),
+         ("collider_usd", 700), ("audit", 60), ("audit_thick", 60)}
 #: Rows whose host peak is not compared (the device table holds them): a winding-number mesh's tables on the CPU are
 #: allocated in full but touched in part, so the resident memory is below what is allocated (and reserved).
 DEVICE_ONLY = {"collider_winding"}
+#: Rows measured on the host only (reading a file: nothing on the device).
+HOST_ONLY = {"collider_file", "collider_usd", "collider_usd_triangles", "collider_usd_samples"}
+#: Substeps a frame of the audit rows (each recorded and audited).
+AUDIT_SUBSTEPS = 4
 
 # -- the oversized scenes at full size ---------------------------------------------------------------------------
 
@@ -84,6 +98,9 @@ CASES = {
     "5M-triangle OBJ": "ws.ModelBuilder().add_cloth_mesh(OBJ, mass=1.0)",
     "5M-triangle OBJ, capped at 2 GiB": "ws.ModelBuilder().add_cloth_mesh(OBJ, mass=1.0)",
     "5M-triangle OBJ as a mesh collider, capped at 1 GiB": "ws.ModelBuilder().add_collider_mesh(OBJ, sides='two_sided')",
+    "5M-triangle USD as a mesh collider, capped at 1 GiB": "ws.ModelBuilder().add_collider_mesh(USD, sides='two_sided')",
+    "5M-triangle text USD as a mesh collider, capped at 1 GiB": "ws.ModelBuilder().add_collider_mesh(USDA, "
+                                                                "sides='two_sided')",
     "sweep 10 axes × 10 values": "plan_sweep({'scene': SCENE, 'axes': {f'cloth.structural.ke{i}': {'log': [1.0, 10.0], "
                                  "'count': 10} for i in range(10)}})",
     "sweep count = 1e9": "plan_sweep({'scene': SCENE, 'axes': {'world.drag': {'range': [0.0, 1.0], "
@@ -96,6 +113,8 @@ import warpspring as ws
 from warpspring.analysis.sweep_plan import plan_sweep
 def sphere(r): return trimesh.creation.icosphere(subdivisions=4, radius=r)
 OBJ = os.environ.get("BENCH_OBJ")
+USD = os.environ.get("BENCH_USD")
+USDA = os.environ.get("BENCH_USDA")
 SCENE = {"cloth": {"nx": 4, "ny": 4, "spacing": 0.1, "mass": 0.1}, "simulation": {"frames": 2}}
 start = time.perf_counter()
 try:
@@ -118,7 +137,15 @@ def _status(key: str) -> int:
 
 
 def _reset_peak() -> int:
-    """Reset the high-water mark (Linux) and return the resident memory now [B]."""
+    """Reset the high-water mark (Linux) and return the resident memory now [B]; the heap's free pages are handed
+    back first (glibc's ``malloc_trim``), so that what the row allocates shows as growth rather than reusing pages
+    a warm-up freed."""
+    import ctypes
+
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc: the pages stay, the growth may read low
+        pass
     with open("/proc/self/clear_refs", "w") as f:
         f.write("5")
     return _status("VmRSS")
@@ -227,9 +254,36 @@ def measure(kind: str, size, device: str) -> dict:
         needed = MESH_COLLIDER_FILE_PER_FACE * faces + 24 * vertices + MESH_COLLIDER_FILE_FIXED
         row.update(measured=_status("VmHWM") - base, estimate=needed,
                    triangles=faces, what="add_collider_mesh(file): the pre-check's estimate against reading it")
+    elif kind.startswith("collider_usd"):
+        from warpspring.core.mesh_colliders import usd_collider_bytes
+        from warpspring.core.mesh_counts import usd_mesh_counts
+
+        path = _usd(size, triangles=kind.endswith("triangles"), samples=4 if kind.endswith("samples") else 0)
+        ws.ModelBuilder().add_collider_mesh(_usd(20), sides="two_sided")  # warm-up: USD loaded
+        base = _reset_peak()
+        ws.ModelBuilder().add_collider_mesh(path, sides="two_sided")
+        counts = usd_mesh_counts(path)
+        row.update(measured=_status("VmHWM") - base, estimate=usd_collider_bytes(counts), triangles=counts.triangles,
+                   what="add_collider_mesh(USD file): the pre-check's estimate against reading it")
+    elif kind.startswith("audit"):
+        from warpspring.analysis.audit import SubstepAudit
+
+        b, _ = _builder(kind, size)
+        thickness = _audit_thickness(kind, size)
+        estimate = b.estimate_memory("cpu", audit_substeps=AUDIT_SUBSTEPS, audit_thickness=thickness is not None)
+        sim = ws.Simulator(b.finalize("cpu"), fps=60, substeps=AUDIT_SUBSTEPS)
+        sim.step_frame()  # warm-up: the run's kernels and buffers
+        small = ws.Simulator(_builder(kind, 6)[0].finalize("cpu"), fps=60, substeps=AUDIT_SUBSTEPS)
+        SubstepAudit().attach(small)
+        small.step_frame()  # warm-up: IPC Toolkit loaded
+        base = _reset_peak()
+        SubstepAudit(thickness=thickness).attach(sim)
+        sim.step_frame()
+        row.update(measured=_status("VmHWM") - base, estimate=estimate.audit_host + estimate.audit,
+                   what="attach SubstepAudit and a frame on the CPU: the record, read back, the surface's pairs")
     if kind in DEVICE_ONLY:
         row.update(measured=None)
-    if kind != "collider_file":
+    if kind not in HOST_ONLY:
         row.update(_measure_device(kind, size, device))
     return row
 
@@ -240,6 +294,32 @@ def _obj(k: int) -> str:
     if not os.path.exists(path):
         _write_obj(path + ".part", k)
         os.replace(path + ".part", path)
+    return path
+
+
+def _usd(k: int, *, triangles: bool = False, samples: int = 0) -> str:
+    """A k × k-vertex sheet of quads (or triangles) as a .usdc file in the temporary folder (written once), its points
+    with ``samples`` time samples."""
+    import numpy as np
+    from pxr import Usd, UsdGeom, Vt
+
+    path = os.path.join(tempfile.gettempdir(), f"warpspring-bench-sheet-{k}-{'t' if triangles else 'q'}{samples}.usdc")
+    if os.path.exists(path):
+        return path
+    vertices, faces = _sheet(k)
+    if not triangles:  # _sheet's two triangles of each square, (a, b, c) and (a, c, d), as the quad (a, b, c, d)
+        half = len(faces) // 2
+        faces = np.column_stack([faces[:half], faces[half:, 2]])
+    stage = Usd.Stage.CreateNew(path + ".part.usdc")
+    mesh = UsdGeom.Mesh.Define(stage, "/World/sheet")
+    mesh.GetFaceVertexCountsAttr().Set(Vt.IntArray.FromNumpy(np.full(len(faces), faces.shape[1], dtype=np.int32)))
+    mesh.GetFaceVertexIndicesAttr().Set(Vt.IntArray.FromNumpy(faces.astype(np.int32).ravel()))
+    for t in range(max(samples, 1)):
+        points = Vt.Vec3fArray.FromNumpy((vertices + [0.0, 0.0, 0.01 * t]).astype(np.float32))
+        mesh.GetPointsAttr().Set(points, t) if samples else mesh.GetPointsAttr().Set(points)
+    stage.GetRootLayer().Save()
+    del stage
+    os.replace(path + ".part.usdc", path)
     return path
 
 
@@ -269,6 +349,11 @@ def _builder(kind: str, size):
     elif kind == "worlds":
         b.add_cloth_grid(nx=6, ny=6, spacing=0.1, mass=1.0, pin=["top-left"])
         worlds = size
+    elif kind.startswith("audit"):  # two sheets 0.2 spacings apart, a third of a spacing aside: ~9 candidate pairs a vertex
+        h = 1.0 / size  # 1 kg a particle: stable at 4 substeps of a 60 fps frame
+        b.add_cloth_grid(nx=size, ny=size, spacing=h, particle_mass=1.0)
+        b.add_cloth_grid(nx=size, ny=size, spacing=h, particle_mass=1.0, origin=(0.3 * h, 0.3 * h, 0.2 * h),
+                         name="upper")
     elif kind in ("collider", "collider_winding"):
         b.add_cloth_grid(nx=4, ny=4, spacing=0.1, mass=1.0)
         winding = kind == "collider_winding"
@@ -276,12 +361,22 @@ def _builder(kind: str, size):
     return b, worlds
 
 
-def _frame(builder, worlds: int, device: str):
-    """Finalize on ``device`` and run a simulator's first frame (the default guard on); a frame the guard stops
-    has made its allocations all the same. Returns the simulator (its model and buffers alive)."""
-    import warpspring as ws
+def _audit_thickness(kind: str, size) -> float | None:
+    """The audit rows' thickness [m]: half a spacing for "audit_thick" (the sheets, a fifth of a spacing apart, lie
+    within it), none for "audit"."""
+    return 0.5 / size if kind == "audit_thick" else None
 
-    sim = ws.Simulator(builder.finalize(device, worlds=worlds), fps=60, substeps=1)
+
+def _frame(builder, worlds: int, device: str, *, audit: bool = False, thickness: float | None = None):
+    """Finalize on ``device`` and run a simulator's first frame (the default guard on; with ``audit`` every substep
+    audited); a frame the guard stops has made its allocations all the same. Returns the simulator (its model and
+    buffers alive)."""
+    import warpspring as ws
+    from warpspring.analysis.audit import SubstepAudit
+
+    sim = ws.Simulator(builder.finalize(device, worlds=worlds), fps=60, substeps=AUDIT_SUBSTEPS if audit else 1)
+    if audit:
+        SubstepAudit(thickness=thickness).attach(sim)
     try:
         sim.step_frame()
     except ws.SimulationError:
@@ -298,12 +393,14 @@ def _measure_device(kind: str, size, device: str) -> dict:
     from warp._src.context import runtime  # the tracker's counters have no public getter
 
     b, worlds = _builder(kind, size)
-    estimate = b.estimate_memory(device, worlds=worlds)
+    audit = kind.startswith("audit")
+    estimate = b.estimate_memory(device, worlds=worlds, audit_substeps=AUDIT_SUBSTEPS if audit else 0,
+                                 audit_thickness=_audit_thickness(kind, size) is not None)
     found = dict(device_estimate=estimate.device_bytes - estimate.writer)
     if wp.get_device(device).is_cuda:  # a fresh process: nothing on the pool yet, its high-water mark at 0
         wp.synchronize_device(device)
         before, free = wp.get_mempool_used_mem_current(device), wp.get_device(device).free_memory
-        sim = _frame(b, worlds, device)
+        sim = _frame(b, worlds, device, audit=audit, thickness=_audit_thickness(kind, size))
         wp.synchronize_device(device)  # the free memory read while the model and the simulator are alive
         found.update(device_measured=wp.get_mempool_used_mem_high(device) - before,
                      device_free_drop=free - wp.get_device(device).free_memory, device_how="memory pool high-water mark")
@@ -311,7 +408,7 @@ def _measure_device(kind: str, size, device: str) -> dict:
     else:
         with wp.ScopedMemoryTracker("bench", print=False):
             runtime.core.wp_alloc_tracker_reset()
-            _frame(b, worlds, device)
+            _frame(b, worlds, device, audit=audit, thickness=_audit_thickness(kind, size))
             found.update(device_measured=runtime.core.wp_alloc_tracker_get_peak_bytes(),
                          device_how="Warp allocation tracker peak")
     return found
@@ -344,13 +441,16 @@ def run_cases(limit: str, quick: bool) -> list[dict]:
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         obj = os.path.join(folder, "sheet.obj")
+        usd, usda = os.path.join(folder, "sheet.usdc"), os.path.join(folder, "sheet.usda")
         if not quick:
             _write_obj(obj, 1582)  # 1581² × 2 = 5.0 M triangles
+            os.replace(_usd(1582), usd)  # 1581² quads: 5.0 M triangles of the reader's fan
+            _usda(usd, usda)
         for name, code in CASES.items():
-            if quick and "OBJ" in name:
+            if quick and ("OBJ" in name or "USD" in name):
                 continue
             cap = next((f"{g}GiB" for g in (1, 2) if f"capped at {g} GiB" in name), limit)
-            env = {**CHILD_ENV, "WARPSPRING_MEMORY_LIMIT": cap, "BENCH_OBJ": obj}
+            env = {**CHILD_ENV, "WARPSPRING_MEMORY_LIMIT": cap, "BENCH_OBJ": obj, "BENCH_USD": usd, "BENCH_USDA": usda}
             started = time.perf_counter()
             done = subprocess.run([sys.executable, "-c", CASE_PRELUDE.replace("CASE", code)], capture_output=True,
                                   text=True, env=env, timeout=600)
@@ -365,6 +465,12 @@ def run_cases(limit: str, quick: bool) -> list[dict]:
             print(f"{name}: {row['seconds']:.1f} s, peak {row['peak'] / 2**30:.2f} GiB: {row['outcome'][:160]}",
                   flush=True)
     return rows
+
+
+def _usda(usdc: str, usda: str) -> None:
+    """The .usdc file ``usdc`` saved as text (``usda``), in a child process (its layer's memory freed with it)."""
+    code = f"from pxr import Sdf; Sdf.Layer.FindOrOpen({usdc!r}).Export({usda!r})"
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=900)
 
 
 def _write_obj(path: str, k: int) -> None:

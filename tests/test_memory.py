@@ -78,7 +78,19 @@ SCENES = {
     "pin group, moving collider": lambda: _moving(grid_builder()),
     "wind with noise, handles, emitters": lambda: _wind_and_handles(grid_builder()),
     "mesh colliders: cached, winding number, one-sided": lambda: _meshes(grid_builder()),
+    "plastic springs": lambda: _plastic(grid_builder()),
+    "square-law springs": lambda: _square(grid_builder()),
+    "soft body (grid): spring groups wider than the per-spring head": lambda: _lattice(),
 }
+
+
+def _lattice():
+    import trimesh
+
+    builder = ws.ModelBuilder()
+    builder.add_soft_body(trimesh.creation.icosphere(subdivisions=2, radius=0.1), method="grid", youngs_modulus=1e5,
+                          density=1000.0, spacing=0.02)
+    return builder
 
 
 def _meshes(builder):
@@ -155,33 +167,133 @@ def test_run_buffers_match_the_estimate(integrator):
     assert owned_bytes(finish, seen=seen) == estimate.post_step
 
 
-def test_guard_buffers_match_the_estimate():
-    """The guard's record, partial sums, limits, work and last-check positions, byte for byte; and what it allocates
-    lazily (a substep's midpoint state where dissipation is counted, the springs' damper sums where the scattered
-    force pass counts them), which the estimate counts whether or not a run needs it: after a frame of the default
-    simulator (symplectic Euler, dissipation counted) on scattered springs (both allocated here) the guard holds
-    exactly the estimate."""
-    from warpspring.core.guards import Guard
+def _dragged(builder):
+    builder.drag = 0.1
+    return builder
 
-    builder = grid_builder()
-    builder.drag = 0.1  # something dissipates: the guard counts it at each substep's midpoint
-    estimate = builder.estimate_memory("cpu", worlds=2, spring_evaluation="scatter")
-    model = builder.finalize("cpu", worlds=2, spring_evaluation="scatter")
+
+def _windy(builder):
+    builder.drag = 0.1  # drag in wind: the power sums carry the wind's push as work
+    builder.add_aerodynamics(wind=(1.0, 0.0, 0.0))
+    return builder
+
+
+def _handled(builder):
+    builder.add_handle([0, 1, 2], kp=10.0, kd=0.1)
+    return builder
+
+
+def _plastic(builder):
+    builder.add_springs([[0, 30], [1, 31]], stiffness=10.0, damping=0.01, family="plastic", plasticity=ws.SpringPlasticity(yield_strain=0.1))
+    return builder
+
+
+def _square(builder):
+    builder.add_springs([[0, 30], [1, 31]], stiffness=10.0, family="square", law="square")
+    return builder
+
+
+#: Scenes that take the guard down each of its paths (``memory.guard_path``): plain springs, drag, drag in wind,
+#: handles' work, a collider (no dissipation counted), plastic springs and the force clamps (no dampers in the
+#: scattered pass, no power sums in the force pass).
+GUARD_SCENES = {
+    "springs": lambda: grid_builder(8, 6),
+    "drag": lambda: _dragged(grid_builder(8, 6)),
+    "drag in wind": lambda: _windy(grid_builder(8, 6)),
+    "handles": lambda: _handled(grid_builder(8, 6)),
+    "collider": lambda: _with_colliders(_dragged(grid_builder(8, 6))),
+    "plastic springs": lambda: _plastic(_dragged(grid_builder(8, 6))),
+    "force clamps": lambda: _dragged(grid_builder(8, 6, stabilizers=ws.Stabilizers(max_spring_force=100.0,
+                                                                                   max_particle_force=100.0))),
+}
+
+
+@pytest.mark.parametrize("scene", list(GUARD_SCENES))
+@pytest.mark.parametrize("evaluation", ["gather", "scatter"])
+@pytest.mark.parametrize("integrator", sorted(ws.INTEGRATORS))
+def test_guard_buffers_match_the_estimate(integrator, evaluation, scene):
+    """What the guard and the integrator hold after a frame of the default simulator, byte for byte: the guard's
+    fixed buffers and what it makes for the path the run takes (a substep's midpoint state, the scattered springs'
+    damper sums, the power sums the integrator's force pass adds to, the force parts symplectic Euler's scattered
+    update stores), with the integrator's scratch, for every integrator, both spring evaluations and each scene of
+    GUARD_SCENES."""
+    builder = GUARD_SCENES[scene]()
+    estimate = builder.estimate_memory("cpu", worlds=2, spring_evaluation=evaluation, integrator=integrator)
+    model = builder.finalize("cpu", worlds=2, spring_evaluation=evaluation, integrator=integrator)
     seen: dict = {}
     owned_bytes(model, seen=seen)
-    fresh = owned_bytes(Guard(model, ws.GuardLimits(), 4), seen=dict(seen))
-    sim = ws.Simulator(model, fps=60, substeps=100)  # stable for the grid's springs
-    sim.step_frame()
-    stepper = sim.stepper  # first the states, integrator and control the guard refers to
-    owned_bytes(stepper.state, stepper._scratch, stepper.integrator, stepper.control, seen=seen)
-    after = owned_bytes(sim.guard, seen=seen)
-    f, vec3, size, springs = 4, 12, 2 * model.particle_count, 2 * model.spring_count
-    lazy = 2 * vec3 * size + 8 * 2 + 4 * 2 + (f + 8) * springs
-    power = 2 * f * size  # the power sums the guard hands the integrator (counted with it above)
-    assert fresh + lazy + power == estimate.guard
-    # After a frame: the estimate counts the midpoint state and the springs' damper sums whichever path the integrator
-    # takes (symplectic Euler's fused force pass needs neither): an upper bound there.
-    assert after + power <= estimate.guard <= 1.5 * (after + power)
+    sim = ws.Simulator(model, fps=60, substeps=20, integrator=ws.make_integrator(integrator, model))
+    try:
+        sim.step_frame()
+    except ws.SimulationError:
+        pass  # a stopped frame has made its buffers all the same
+    stepper = sim.stepper  # the states and control the guard refers to are not its own
+    owned_bytes(stepper.state, stepper._scratch, stepper.control, seen=seen)
+    # The integrator holds the guard's damper and power sums while the guard hands them over: counted once, together.
+    assert owned_bytes(stepper.integrator, sim.guard, seen=seen) == estimate.guard + estimate.integrator
+
+
+def test_guard_rules_follow_the_guard():
+    """memory.GUARD_RULES reads the guard's integrator lists and the integrators' own flags."""
+    from warpspring.core.guard_records import DISSIPATION_UNCOUNTED, MIDPOINT_DISSIPATION, WORK_UNCOUNTED
+    from warpspring.kernels.guards import DAMPERS_IN_FORCE_PASS
+
+    assert set(memory.GUARD_RULES) == set(ws.INTEGRATORS)
+    model = grid_builder(4, 4).finalize("cpu")
+    for name, (dissipation, midpoint, work, dampers, power) in memory.GUARD_RULES.items():
+        integrator = ws.make_integrator(name, model)
+        off = getattr(integrator, "adaptive", False) or getattr(integrator, "unconditionally_stable", False)
+        assert dissipation == (not off and name not in DISSIPATION_UNCOUNTED)
+        assert midpoint == (dissipation and name in MIDPOINT_DISSIPATION)
+        assert work == (not off and name not in WORK_UNCOUNTED)
+        assert dampers == (dissipation and name in DAMPERS_IN_FORCE_PASS)
+        assert power == {"symplectic_euler": "mean", "rk4": "start"}.get(name, "")
+
+
+def test_the_substep_audit_is_estimated():
+    """A run that audits every substep: the record of every substep's positions on the device, byte for byte, in the
+    estimate's device bytes; its host part (the record read back as float64, the surface's pair lists) in the host
+    peak."""
+    from warpspring.analysis.audit import SubstepAudit
+
+    builder = grid_builder()
+    plain = builder.estimate_memory("cpu", worlds=2)
+    estimate = builder.estimate_memory("cpu", worlds=2, audit_substeps=8)
+    model = builder.finalize("cpu", worlds=2)
+    sim = ws.Simulator(model, fps=60, substeps=8)
+    seen: dict = {}
+    owned_bytes(model, sim, seen=seen)
+    audit = SubstepAudit().attach(sim)
+    assert owned_bytes(audit, seen=seen) == estimate.audit == 9 * 2 * model.particle_count * 12
+    assert estimate.device_bytes == plain.device_bytes + estimate.audit
+    assert "substep audit" in estimate.parts()
+    record, host = memory.audit_bytes(particles=model.particle_count, worlds=2, substeps=8,
+                                      surface_vertices=model.particle_count, thickness=False)
+    assert estimate.audit_host == host == 9 * 2 * model.particle_count * 24 + memory.AUDIT_MOTION_PER_VERTEX * 384
+    thick = builder.estimate_memory("cpu", worlds=2, audit_substeps=8, audit_thickness=True)
+    assert thick.audit_host == host + memory.AUDIT_NEAR_PER_VERTEX * 384
+    assert estimate.host_bytes == max(estimate.finalize_host + estimate.model, estimate.audit_host
+                                      + estimate.device_bytes)
+
+
+def test_a_substep_audit_that_cannot_fit_is_refused_before_it_is_made(monkeypatch):
+    """The audit's record and pair lists checked before anything is made: one line with the estimate and a remedy,
+    the simulator left as it was."""
+    from warpspring.analysis.audit import SubstepAudit
+
+    model = grid_builder().finalize("cpu")
+    sim = ws.Simulator(model, fps=60, substeps=1000)
+    hooks = list(sim.stepper.hooks)
+    record, host = memory.audit_bytes(particles=model.particle_count, worlds=1, substeps=1000,
+                                      surface_vertices=model.particle_count, thickness=False)
+    monkeypatch.setattr(memory, "available_memory", lambda device=None: AvailableMemory(host=host))
+    with pytest.raises(ws.ConfigError) as refused:
+        SubstepAudit().attach(sim)
+    line = str(refused.value)
+    assert "\n" not in line and "auditing every substep" in line and format_bytes(host + record) in line
+    assert "fewer substeps" in line and sim.stepper.hooks == hooks
+    monkeypatch.setattr(memory, "available_memory", lambda device=None: AvailableMemory(host=host + record))
+    SubstepAudit().attach(sim)
 
 
 def test_counts_alone_give_the_builders_estimate():

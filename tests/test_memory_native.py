@@ -1,12 +1,15 @@
 """The memory estimate's parts that live outside the model's own arrays: self-collision (its pair buffers, caches
 and per-world BVHs), mesh colliders' ``wp.Mesh`` (boxes, BVH, winding-number tables), and a mesh file's counts
-read before the file is, so that a collider too large is refused before trimesh loads it.
+read before the file is (a USD prim's from its arrays' lengths), so that a collider too large is refused before it is
+read.
 
 Allocations are measured as Warp makes them: on the CPU by Warp's allocation tracker (arrays and native memory),
 on CUDA by the memory pool's counters (``helpers.warp_allocations``).
 """
 
 from __future__ import annotations
+
+import os
 
 import numpy as np
 import pytest
@@ -16,7 +19,10 @@ import warpspring as ws
 from warpspring.core import memory, mesh_counts
 from warpspring.core.builder import colliders as collider_recipes
 from warpspring.core.memory import AvailableMemory
-from warpspring.core.mesh_colliders import MESH_COLLIDER_FILE_FIXED, MESH_COLLIDER_FILE_PER_FACE
+from warpspring.core.mesh_colliders import (MESH_COLLIDER_FILE_FIXED, MESH_COLLIDER_FILE_PER_FACE,
+                                            MESH_COLLIDER_USD_PER_FACE, MESH_COLLIDER_USD_PER_FANNED_FACE,
+                                            MESH_COLLIDER_USD_PER_SAMPLE_VERTEX, USDA_PARSE_PER_BYTE,
+                                            usd_collider_bytes)
 
 from helpers import warp_allocations
 
@@ -206,15 +212,76 @@ def test_a_mesh_collider_file_too_large_is_refused_before_it_is_read(tmp_path, m
     assert ws.ModelBuilder().add_collider_mesh(str(path), sides="one_sided") == 0
 
 
+def _usd_sheet(path, k: int, *, triangles: bool = False, samples: int = 0, text: bool = False) -> str:
+    """A k × k-vertex sheet of quads (or triangles) as a USD mesh prim, its points with ``samples`` time samples."""
+    from pxr import Usd, UsdGeom  # optional: usd-core
+
+    vertices, quads = _quad_sheet(k)
+    faces = np.concatenate([quads[:, :3], quads[:, [0, 2, 3]]]) if triangles else quads
+    file = str(path.with_suffix(".usda" if text else ".usdc"))
+    stage = Usd.Stage.CreateNew(file)
+    mesh = UsdGeom.Mesh.Define(stage, "/World/terrain")
+    mesh.GetFaceVertexCountsAttr().Set([faces.shape[1]] * len(faces))
+    mesh.GetFaceVertexIndicesAttr().Set(faces.ravel().tolist())
+    points = mesh.GetPointsAttr()
+    for t in range(max(samples, 1)):
+        moved = [tuple(p) for p in (vertices + [0.0, 0.0, 0.01 * t]).tolist()]
+        points.Set(moved, t) if samples else points.Set(moved)
+    stage.GetRootLayer().Save()
+    return file
+
+
+@pytest.mark.parametrize("triangles, samples, text", [(False, 0, False), (True, 3, False), (False, 0, True)])
+def test_a_usd_mesh_collider_too_large_is_refused_before_it_is_read(tmp_path, monkeypatch, triangles, samples, text):
+    """A USD collider's counts read from its prim's arrays' lengths (no triangulation, no float64 copy): the
+    triangles of the reader's fan, its vertices and its points' time samples; the host memory its reading needs
+    refused in one line before the mesh is read (the reader replaced by one that fails the test); a text file's
+    parse checked first by its size; a machine with room reads it."""
+    file = _usd_sheet(tmp_path / "terrain", 30, triangles=triangles, samples=samples, text=text)
+    counts = mesh_counts.usd_mesh_counts(file)
+    assert counts == (900, 2 * 29 * 29, 0 if triangles else 2 * 29 * 29, samples)
+    assert mesh_counts.usd_mesh_counts(file, prim="/World/terrain") == counts
+    assert mesh_counts.usd_mesh_counts(file, prim="/World/none") is None  # the reader says why, in its words
+    needed = (MESH_COLLIDER_USD_PER_FACE * (counts.triangles - counts.fanned)
+              + MESH_COLLIDER_USD_PER_FANNED_FACE * counts.fanned
+              + MESH_COLLIDER_USD_PER_SAMPLE_VERTEX * 900 * max(samples, 1) + MESH_COLLIDER_FILE_FIXED)
+    assert usd_collider_bytes(counts) == needed
+
+    def unread(*args, **kwargs):
+        raise AssertionError("the mesh was read before its size was checked")
+
+    monkeypatch.setattr(collider_recipes, "read_usd_mesh", unread)
+    parse = USDA_PARSE_PER_BYTE * os.path.getsize(file)
+    if text:  # its parse is checked first, from its size (far below the reading's estimate for this small file)
+        assert parse < needed
+        monkeypatch.setattr(memory, "available_memory", lambda device=None: AvailableMemory(host=parse - 1))
+        with pytest.raises(ws.ConfigError, match="of text") as refused:
+            ws.ModelBuilder().add_collider_mesh(file, sides="one_sided")
+        assert "\n" not in str(refused.value) and memory.format_bytes(parse) in str(refused.value)
+    monkeypatch.setattr(memory, "available_memory", lambda device=None: AvailableMemory(host=needed - 1))
+    with pytest.raises(ws.ConfigError) as refused:
+        ws.ModelBuilder().add_collider_mesh(file, sides="one_sided")
+    line = str(refused.value)
+    assert "\n" not in line and f"{counts.triangles:,} triangles" in line and "decimate" in line
+    assert memory.format_bytes(needed) in line and (f"{samples} time samples" in line) == (samples > 1)
+    monkeypatch.undo()
+    assert ws.ModelBuilder().add_collider_mesh(file, sides="one_sided") == 0
+
+
+@pytest.mark.parametrize("plastic", [False, True])
 @pytest.mark.parametrize("integrator", ["symplectic_euler", "rk4"])
-def test_a_runs_device_peak_is_estimated(device, integrator):
-    """A simulator's first frame: its states, the integrator's scratch, the guard (its lazily made midpoint state and
-    damper sums included) and the stepper's warm-up copies of what a step carries on (held until the warm-up step
-    is undone) peak at the estimate's device bytes less the model and the USD writer, exactly on the CPU (Warp's
-    allocation tracker); on CUDA what stays allocated after it is within that peak by the warm-up copies."""
+def test_a_runs_device_peak_is_estimated(device, integrator, plastic):
+    """A simulator's first frame: its states, the integrator's scratch, the guard (what it makes for the run's path
+    included) and the stepper's warm-up copies of what a step carries on (the plastic springs' rest lengths and strains
+    among them; held until the warm-up step is undone) peak at the estimate's device bytes less the model and the USD
+    writer, exactly on the CPU (Warp's allocation tracker) but for the warm-up's allowances; on CUDA what stays
+    allocated after it is within that peak by the warm-up copies."""
     builder = ws.ModelBuilder()
     builder.add_cloth_grid(nx=12, ny=10, spacing=0.02, mass=0.5, pin=["top-left"])
     builder.drag = 0.1
+    if plastic:
+        builder.add_springs([[0, 13], [1, 14], [2, 15]], stiffness=10.0, damping=0.01, family="plastic",
+                            plasticity=ws.SpringPlasticity(yield_strain=0.1))
     estimate = builder.estimate_memory(device, worlds=5, integrator=integrator)
     model = builder.finalize(device, worlds=5, integrator=integrator)
     ws.Simulator(model, fps=60, substeps=100, integrator=ws.make_integrator(integrator, model)).step_frame()  # loaded
@@ -223,17 +290,15 @@ def test_a_runs_device_peak_is_estimated(device, integrator):
         sim.step_frame()
     run = estimate.device_bytes - estimate.model - estimate.writer
     assert estimate.warmup > 0 and estimate.guard > estimate.states
-    # Counted whether or not a run needs them: the guard's midpoint state (symplectic Euler's dissipation only) and,
-    # in the warm-up, each world's stage time (which rk4 does not carry): none for symplectic Euler.
-    rk4 = integrator == "rk4"
-    midpoint, stage_time = (2 * 12 * 5 * model.particle_count + 8 * 5, 8 * 5) if rk4 else (0, 0)
+    # The warm-up's allowances: each world's stage time, which rk4 does not carry, and 64 bytes a world for the
+    # counters this scene lacks (contacts, self-collision, meshes).
+    stage_time = 8 * 5 if integrator == "rk4" else 0
+    counters = 64 * 5
+    carried = 2 * 4 * 5 * model.spring_count if plastic else 0  # the plastic springs' rest lengths and strains
+    assert carried == 0 or estimate.warmup > carried
     if allocated["peak"] is not None:
-        counters = 64 * 5  # the warm-up's allowance for counters this scene lacks (contacts, self-collision, meshes)
-        # The power sums the guard hands the integrator are counted as two scalars a particle (energy out, work in),
-        # in the guard and in the warm-up's copy; without wind or handles it makes one.
-        work_slack = 2 * 4 * 5 * model.particle_count
-        assert 0 <= run - midpoint - stage_time - counters - allocated["peak"] <= work_slack
-        assert 0 <= run - estimate.warmup - midpoint - allocated["live"] <= work_slack
+        assert run - stage_time - counters == allocated["peak"]
+        assert run - estimate.warmup == allocated["live"]
     else:
-        kept = run - estimate.warmup - midpoint
+        kept = run - estimate.warmup
         assert kept - POOL_SLACK <= allocated["live"] <= kept + POOL_SLACK

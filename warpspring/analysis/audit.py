@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from ..core import memory
 from ..core.mesh_files import check_usd_layers
 from ..core.simulator import FrameHook
 from ..core.stepper import StepHook
@@ -452,6 +453,19 @@ class SubstepAudit(FrameHook):
                      else model.tri_indices.numpy()[: len(model.tri_indices) // model.world_count])
         if len(triangles) == 0:
             raise ConfigError("the substep audit needs a triangle surface: the model has no cloth or mesh")
+        # Refused before anything is made where the record (substeps + 1 states on the device) or a frame's audit
+        # on the host does not fit.
+        record, host = memory.audit_bytes(particles=model.particle_count, worlds=model.world_count,
+                                          substeps=sim.substeps, surface_vertices=len(np.unique(triangles)),
+                                          thickness=self.thickness is not None or self_contact is not None,
+                                          precision="float64" if model.scalar is wp.float64 else "float32",
+                                          cuda=model.device.is_cuda)
+        remedy = ("audit a smaller model, fewer worlds or fewer substeps per frame, or run without "
+                  "--audit-substeps")
+        memory.check_device_room(f"auditing {sim.substeps} substeps a frame (their positions kept)", record,
+                                 model.device, remedy=remedy)
+        memory.check_host_room("auditing every substep (the record read back, the surface's pairs)",
+                               host + (0 if model.device.is_cuda else record), remedy=remedy)
         if self.thickness is None and self_contact is not None:
             self.thickness = self_contact.thickness
         self._surface = SurfaceAudit(triangles)

@@ -6,7 +6,8 @@ springs, hinges, triangles and colliders; worlds; the scalar type; the incidence
 tracks, tens of bytes per key, are left out). The run's parts follow the code that allocates them: a :class:`~warpspring.core.stepper.Stepper` holds two states
 (the current one and the scratch one it alternates with); each integrator allocates its own scratch
 (:data:`INTEGRATOR_SCRATCH`, read from each ``__init__``); the guard one partial sum per reducing block, and
-what it makes lazily (a substep's midpoint state, the springs' damper sums); strain limiting three position
+what it makes for the run's path (:func:`guard_path`: a substep's midpoint state, the scattered springs' damper
+sums, the power sums of the integrator's force pass); strain limiting three position
 buffers; the contact stage its slot buffer; the stepper's warm-up, copies of what a step carries to the next;
 the USD writer a vertex-normal buffer on the device and, per frame, the positions and normals it reads back and
 hands to USD. Warp's native memory counts too: each world's BVH of self-collision
@@ -117,6 +118,9 @@ class MemoryEstimate:
         self_contact: self-collision's device arrays and BVHs (:func:`self_contact_bytes`; 0 without it).
         warmup: the stepper's copies of what a step carries to the next (the guard's and the integrator's), held
             during its warm-up step before a capture and freed after it.
+        audit: the substep audit's record of every substep's positions on the device (:func:`audit_bytes`; 0 when
+            the run does not audit).
+        audit_host: the substep audit's host memory after a frame (the record read back, the pair lists).
     """
 
     device: str
@@ -135,13 +139,15 @@ class MemoryEstimate:
     run_host: int
     self_contact: int = 0
     warmup: int = 0
+    audit: int = 0
+    audit_host: int = 0
 
     @property
     def device_bytes(self) -> int:
         """The device memory of a run at its peak [B]: the model and the run's buffers, and the stepper's warm-up
         copies."""
         return (self.model + self.self_contact + self.states + self.integrator + self.guard + self.post_step
-                + self.writer + self.warmup)
+                + self.writer + self.warmup + self.audit)
 
     @property
     def host_bytes(self) -> int:
@@ -149,7 +155,7 @@ class MemoryEstimate:
         CPU the device arrays are host memory and are included."""
         on_host = 0 if self.cuda else 1
         finalize_peak = self.finalize_host + on_host * (self.model + self.self_contact)
-        run_peak = max(self.frame_host, self.run_host) + on_host * self.device_bytes
+        run_peak = max(self.frame_host, self.run_host, self.audit_host) + on_host * self.device_bytes
         return max(finalize_peak, run_peak)
 
     @property
@@ -162,7 +168,8 @@ class MemoryEstimate:
         """The device parts by name [B], largest first, zero parts left out."""
         named = {"model": self.model, "self-collision": self.self_contact, "states": self.states,
                  "integrator": self.integrator, "guard": self.guard, "capture warm-up": self.warmup,
-                 "stabilizers and contacts": self.post_step, "USD writer": self.writer}
+                 "stabilizers and contacts": self.post_step, "USD writer": self.writer,
+                 "substep audit": self.audit}
         return dict(sorted(((k, v) for k, v in named.items() if v), key=lambda kv: -kv[1]))
 
     def describe(self) -> str:
@@ -286,6 +293,111 @@ MESH_FINALIZE_HOST_PER_FACE = 260
 MESH_COLLIDER_KEPT_PER_FACE = 160
 
 
+#: Host bytes per vertex of the audited surface that auditing a substep holds at its peak (``analysis/audit.py``,
+#: :class:`~warpspring.analysis.audit.SurfaceAudit`): continuous collision detection (the surface's topology, IPC
+#: Toolkit's collision mesh, the substep's ends in float64, the broad phase's candidate pairs: ~8.8 a vertex of a
+#: cloth whatever its layering, the neighbours' boxes touching) measured 2.9 KB (two stacked 120² sheets, the first
+#: substep's peak of resident memory), counted as 4 KiB; and with a thickness, the collision set within it (the pairs'
+#: lists and distances), measured 10.6 KB where the sheets lie within it (5.9 pairs closer than half of it a vertex)
+#: and 0.25 KB where nothing does, counted as 16 KiB (the dense case).
+AUDIT_MOTION_PER_VERTEX = 4 * 1024
+AUDIT_NEAR_PER_VERTEX = 16 * 1024
+
+
+def audit_bytes(*, particles: int, worlds: int, substeps: int, surface_vertices: int, thickness: bool,
+                precision: str = "float32", cuda: bool = False) -> tuple[int, int]:
+    """(device, host) bytes [B] of auditing every substep of a run (``warpspring run --audit-substeps``,
+    :class:`~warpspring.analysis.audit.SubstepAudit`), before it is attached: on the device the record of every
+    substep's positions (substeps + 1 states); on the host after each frame the record read back (a copy on CUDA)
+    and as float64, and a substep's audit of the surface (:data:`AUDIT_MOTION_PER_VERTEX`, and with a thickness
+    :data:`AUDIT_NEAR_PER_VERTEX`).
+
+    Args:
+        particles: particles per world; worlds: worlds of the model; substeps: substeps per frame.
+        surface_vertices: vertices of the audited surface (the self-collision's, else the model's triangles').
+        thickness: whether the audit measures the pairs within a thickness (given, or the self-collision's).
+        precision: the model's "float32" or "float64"; cuda: whether the device is a CUDA GPU.
+    """
+    size = checks.count("particles", particles, minimum=0) * checks.count("worlds", worlds, minimum=1)
+    states = checks.count("substeps", substeps, minimum=1) + 1
+    vec3 = 3 * SCALAR_BYTES[precision]
+    record = states * size * vec3
+    per_vertex = AUDIT_MOTION_PER_VERTEX + (AUDIT_NEAR_PER_VERTEX if thickness else 0)
+    host = states * size * (24 + (vec3 if cuda else 0)) + per_vertex * checks.count("surface vertices",
+                                                                                     surface_vertices, minimum=0)
+    return record, host
+
+
+#: What the guard allocates for each integrator beyond its fixed buffers, by the rules of ``core/guards.py`` (with its
+#: default limits: the energy balance and the dissipation on), read from ``core/guard_records.py``'s integrator lists
+#: and the integrators' ``adaptive`` and ``unconditionally_stable`` (``tests/test_memory.py`` checks both): (the
+#: dissipation counted, at each substep's midpoint state, the work of wind and handles counted, the scattered springs'
+#: dampers counted in their force pass, how the integrator's force pass counts the power: "mean" over the step,
+#: "start" of the step, "" not at all).
+#:
+#: * symplectic Euler: everything, its D at the midpoint, its fused pass the step's mean power;
+#: * velocity Verlet: D and work by passes of their own, the springs' dampers in their scattered pass;
+#: * explicit Euler: neither D nor work (``DISSIPATION_UNCOUNTED``, ``WORK_UNCOUNTED``); midpoint: work only;
+#: * RK4: D, work, the dampers in the scattered pass, the power at each step's start in its evaluation;
+#: * dopri5 (adaptive) and implicit Euler (unconditionally stable, no balance): nothing.
+GUARD_RULES = {
+    "symplectic_euler": (True, True, True, True, "mean"),
+    "velocity_verlet": (True, False, True, True, ""),
+    "explicit_euler": (False, False, False, False, ""),
+    "midpoint": (False, False, True, False, ""),
+    "rk4": (True, False, True, True, "start"),
+    "dopri5": (False, False, False, False, ""),
+    "implicit_euler": (False, False, False, False, ""),
+}
+
+
+@dataclass(frozen=True)
+class GuardPath:
+    """What the run-time guard allocates beyond its fixed buffers, for a run's integrator and model
+    (:func:`guard_path`).
+
+    Attributes:
+        midpoint: a substep's midpoint state (positions, velocities, each world's time).
+        dampers: the scattered springs' damper sums (a rate and the float64 energy per spring, a flag per world).
+        power: scalars per particle of the power sums the integrator's force pass adds to (0: none; 1: the energy
+            the dampers and drag take out; 2: with the work of the loads from outside).
+        stored_forces: the dampers' and loads' parts of the force per particle (two vec3 arrays), stored by the
+            force passes of symplectic Euler on scattered springs for its update.
+    """
+
+    midpoint: bool
+    dampers: bool
+    power: int
+    stored_forces: bool
+
+
+def guard_path(*, integrator: str, springs: int, gathered: bool, drag: bool = False, wind: bool = False,
+               working: bool = False, exact: bool = True, spring_force_clamp: bool = False, plastic: bool = False,
+               particle_force_clamp: bool = False) -> GuardPath:
+    """The guard's path for a run with the default limits (``core/guards.py``: ``Guard.limits``,
+    ``_force_pass_dampers``, ``_power_rule``, ``_power_modes``), from the integrator's name and the model's features.
+
+    Args:
+        integrator: the integrator's name (:data:`GUARD_RULES`).
+        springs: springs per world; gathered: whether they are gathered per particle (else scattered).
+        drag: viscous drag on; wind: a family moves the air; working: a family does work from outside (wind, handles).
+        exact: no stage moves particles outside the forces (no collider, self-collision or strain limiting: the
+            guard's ``dissipation_exact``).
+        spring_force_clamp, plastic: the springs' force clamp, plastic springs (their dampers' part not separable).
+        particle_force_clamp: the particle force clamp (the power not counted in the force pass).
+    """
+    dissipation, midpoint, work, dampers_in_pass, rule = GUARD_RULES[integrator]
+    working = work and working  # the wind's and handles' work counted per substep
+    dampers = (dissipation and dampers_in_pass and exact and springs > 0 and not gathered
+               and not (spring_force_clamp or plastic))
+    if particle_force_clamp or (rule == "mean" and springs and not gathered and not (drag or working)):
+        rule = ""  # scattered springs count their dampers in their own pass: the update counts only drag and work
+    # The power sums carry the work done besides the energy taken out where a family's work or drag in wind counts.
+    power = (2 if working or (drag and wind) else 1) if rule else 0
+    return GuardPath(midpoint=(dissipation and midpoint) or working, dampers=dampers, power=power,
+                     stored_forces=rule == "mean" and springs > 0 and not gathered)
+
+
 def estimate_memory(
     *,
     particles: int,
@@ -299,6 +411,7 @@ def estimate_memory(
     spring_evaluation: str = "auto",
     spring_groups: int | None = None,
     spring_grid: bool = True,
+    spring_group_slots: int | None = None,
     integrator: str = "symplectic_euler",
     spring_slots: int | None = None,
     spring_tail: int = 0,
@@ -321,6 +434,16 @@ def estimate_memory(
     self_contact_vertices: int | None = None,
     collider_faces: int = 0,
     emitter_slots: int = 0,
+    drag: bool = False,
+    wind: bool = False,
+    working_families: bool = False,
+    spring_force_clamp: bool = False,
+    particle_force_clamp: bool = False,
+    plastic_springs: int = 0,
+    spring_law_arrays: bool = False,
+    family_elements: tuple = (),
+    audit_substeps: int = 0,
+    audit_thickness: bool | None = None,
 ) -> MemoryEstimate:
     """Estimate the memory of a model and of a run of it, from counts, before anything is allocated.
 
@@ -334,6 +457,8 @@ def estimate_memory(
         spring_groups: groups of gathered springs laid out by group (``springs.set_spring_layout``: each keeps one
             spring's index on the device; default 3, a cloth's structural, shear and bend springs; 0: not grouped).
         spring_grid: whether that layout reads the springs as one cloth grid (its size, two int32, on the device).
+        spring_group_slots: that layout's head width, each group's largest degree at one particle summed (default
+            ``spring_slots``: the groups of a cloth grid fill the per-spring head's width exactly).
         device: the Warp device name ("cpu", "cuda:0", ...); only whether it is CUDA matters.
         integrator: the integrator's name (:data:`INTEGRATOR_SCRATCH`).
         spring_slots, hinge_slots: ELL head widths of the incidence tables; default the mean number of elements
@@ -361,6 +486,21 @@ def estimate_memory(
         collider_faces: the triangles of every mesh collider (the builder's copies, their host temporaries in
             finalize).
         emitter_slots: the particles of every emitter's pool (a run carries their slots from step to step).
+        drag, wind, working_families, spring_force_clamp, particle_force_clamp: what decides the guard's path
+            (:func:`guard_path`): viscous drag on, a family that moves the air (wind), a family that does work from
+            outside (wind, handles), the springs' force clamp (``Stabilizers.max_spring_force``), the particle force
+            clamp.
+        plastic_springs: springs that may yield or break (``add_springs(plasticity=...)``): with any, every spring
+            has its yield parameters and each world its rest lengths and plastic strains (which the stepper's
+            warm-up copies too); and the guard's path changes.
+        spring_law_arrays: whether some spring follows the square law or has a compression stiffness of its own (a
+            law code and a compression ratio per spring).
+        audit_substeps: substeps per frame of a run that audits every substep (:func:`audit_bytes`; 0: none): the
+            audited surface is the self-collision's (``self_contact_vertices``), else the meshes' (``mesh_vertices``).
+        audit_thickness: whether that audit measures the pairs within a thickness (default: with self-collision,
+            whose thickness it takes).
+        family_elements: the elements per world of each family beyond springs and hinges (wind's triangles, handles'
+            particles, tets): the guard sums their elastic energy and strain per reducing block.
 
     Returns:
         The :class:`MemoryEstimate`.
@@ -376,6 +516,7 @@ def estimate_memory(
     w = checks.count("worlds", worlds, minimum=1)
     pinned = checks.count("pinned", pinned, minimum=0)
     collider_faces = checks.count("collider_faces", collider_faces, minimum=0)
+    plastic = checks.count("plastic_springs", plastic_springs, minimum=0)
     if precision not in SCALAR_BYTES:
         raise ConfigError(f"precision must be 'float32' or 'float64', got {precision!r}")
     if spring_evaluation not in ("auto", "gather", "scatter"):
@@ -390,6 +531,8 @@ def estimate_memory(
     size = w * n  # entries of a state's per-particle arrays
     spring_slots = _mean_degree(2 * s, n) if spring_slots is None else checks.count("spring_slots", spring_slots,
                                                                                    minimum=0)
+    group_slots = spring_slots if spring_group_slots is None else checks.count("spring_group_slots",
+                                                                               spring_group_slots, minimum=0)
     hinge_slots = _mean_degree(4 * h, n) if hinge_slots is None else checks.count("hinge_slots", hinge_slots, minimum=0)
     vertices = (n if t else 0) if mesh_vertices is None else checks.count("mesh_vertices", mesh_vertices, minimum=0)
     exported = w if exported_worlds is None else checks.count("exported_worlds", exported_worlds, minimum=1)
@@ -403,8 +546,13 @@ def estimate_memory(
         + 2 * vec3 * size + 4 * size  # initial positions and velocities, flags: per world
         + 3 * f * n  # mass, inverse mass (one row for every world), radius
         + (32 * pinned if pinned else 0)  # pin groups: index, group, rest position (float64) per pinned particle
-        + (8 + 3 * f) * s + incidence(spring_slots, spring_tail)  # pairs, rest length, ke and kd rows
+        + (8 + 3 * f) * s  # pairs, rest length, ke and kd rows
+        + (incidence(group_slots, 0) if grouped else incidence(spring_slots, spring_tail))
         + ((4 * groups + (8 if spring_grid else 0)) if grouped else 0)  # each group's spring, the grid's size
+        + ((4 + f) * s if spring_law_arrays else 0)  # each spring's law code and compression ratio
+        # plastic springs: their indices; each spring's five yield parameters, and per world and spring its rest
+        # length and plastic strain
+        + ((4 * plastic + (5 + 2 * w) * f * s) if plastic else 0)
         + (16 + 3 * f) * h + incidence(hinge_slots, hinge_tail)  # hinges, rest angle, ke and kd rows
         + 12 * t  # triangles
         # colliders: kind, size, scale, friction, restitution, mesh, rest frame, track indices; their frames at a
@@ -424,28 +572,37 @@ def estimate_memory(
     # The guard: its records (and their clear copies), partial sums per block, limits, each world's work put in
     # and energy balance, the positions, velocities and loads of its last check, and the elastic energy's partial
     # sums per block of each family's elements, and the running dissipation of those blocks and the particles'
-    # blocks; and what it allocates lazily, counted whether or not the run's settings need it (an upper bound):
-    # the substep's midpoint state (positions, velocities, each world's time) where dissipation or the work of wind
-    # and handles is counted, and the springs' damper sums (a skip flag per world, per spring its damper power
-    # and the float64 energy it dissipated) where the scattered force pass counts them (scattered springs only).
+    # blocks; and what it allocates for the path the run takes (:func:`guard_path`): a substep's midpoint state,
+    # the scattered springs' damper sums, the power sums it hands the integrator and the force parts they store.
     def element_blocks(count: int) -> int:
         return w * (count if not cuda else -(-count // _lanes(count, block_dim))) if count else 0
 
+    path = guard_path(integrator=integrator, springs=s, gathered=spring_evaluation != "scatter", drag=drag,
+                      wind=wind, working=working_families, exact=not (shapes or self_contact_triangles
+                                                                       or strain_limiting),
+                      spring_force_clamp=spring_force_clamp, plastic=plastic > 0,
+                      particle_force_clamp=particle_force_clamp)
+    others = [checks.count("family_elements", e, minimum=0) for e in family_elements]
+    energy_blocks = element_blocks(s) + element_blocks(h) + sum(element_blocks(e) for e in others)
     running = 8 * RUNNING_SLOTS * ((blocks + element_blocks(s) + element_blocks(h)) if cuda
                                    else w * (1 + bool(s) + bool(h)))
-    dampers = (4 + (f + 8) * s) * w if s and spring_evaluation == "scatter" else 0
-    power = 2 * f * size  # the per-particle power sums the guard hands the integrator (energy out, work in)
+    dampers = (4 + (f + 8) * s) * w if path.dampers else 0
+    power = path.power * f * size  # the power sums the guard hands the integrator (energy out[, work in])
     carried = 8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + running + dampers + power  # what a check carries on
     guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * PARTIAL_SLOTS * blocks + 8 * GUARD_LIMITS * w
-             + 2 * 8 * max(element_blocks(s) + element_blocks(h), w)  # the energy's and the strain's partial sums
-             + carried + 2 * vec3 * size + 8 * w)
-    # The stepper's warm-up before a capture copies what a step carries to the next (the guard's, the integrator's
-    # per-world state and implicit Euler's Δv, the emitters' flags and slots, the contact, self-collision and mesh
-    # caches' counters), and frees the copies once the warm-up step is undone.
+             + 2 * 8 * max(energy_blocks, w)  # every family's energy and strain partial sums
+             + carried + (2 * vec3 * size + 8 * w if path.midpoint else 0)
+             + (2 * vec3 * size if path.stored_forces else 0))
+    # The stepper's warm-up before a capture copies what a step carries to the next (the guard's sums and record, the
+    # integrator's per-world state and implicit Euler's Δv, the emitters' flags and slots, the plastic springs' rest
+    # lengths and strains, the contact, self-collision and mesh caches' counters), and frees the copies once the
+    # warm-up step is undone.
     slots = checks.count("emitter_slots", emitter_slots, minimum=0)
-    warmup = (carried + 8 * per_world_f64 * w + 4 * per_world_i32 * w + 64 * w
+    warmup = (carried + (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w  # with the guard's record
+              + 8 * per_world_f64 * w + 4 * per_world_i32 * w + 64 * w
               + (vec3 * size if integrator == "implicit_euler" else 0)
-              + ((4 * size + (12 * slots + 32) * w) if slots else 0))
+              + ((4 * size + (12 * slots + 32) * w) if slots else 0)
+              + (2 * f * w * s if plastic else 0))
     post_step = (3 * vec3 * size if strain_limiting and s else 0)
     if contact_slots:
         post_step += (8 * contact_slots + 4) * size + 4 * w + f  # colliders and features per slot, counts, overflow
@@ -457,7 +614,7 @@ def estimate_memory(
     # _INCIDENCE_ENTRY per entry plus its head tables (int32); the particles' copies (float64 and cast) come first.
     springs_peak = 16 * s + _INCIDENCE_ENTRY * 2 * s + 8 * spring_slots * n
     if grouped:  # then the layout by group, after the incidence's sort
-        springs_peak = max(springs_peak, 16 * s + _GROUPED_LAYOUT_PER_SPRING * s + 2 * 8 * spring_slots * n)
+        springs_peak = max(springs_peak, 16 * s + _GROUPED_LAYOUT_PER_SPRING * s + 2 * 8 * group_slots * n)
     hinges_peak = 16 * s + 32 * h + _INCIDENCE_ENTRY * 4 * h + 8 * hinge_slots * n
     particles_peak = 24 * n + (24 + vec3) * size
     # Self-collision is made last, its host temporaries after the others are freed.
@@ -474,11 +631,15 @@ def estimate_memory(
     # Setup: the guard's energy scale reads positions and velocities as float64 and sums element energies
     # (float64 per element and world); the advisor's Gershgorin bound bincounts each spring's ends per world.
     run_host = 48 * size + 8 * w * (s + h) + (40 * w * s + 8 * size if s else 0)
+    audit, audit_host = (audit_bytes(particles=n, worlds=w, substeps=audit_substeps,
+                                     surface_vertices=self_v if self_t else vertices, precision=precision, cuda=cuda,
+                                     thickness=bool(self_t) if audit_thickness is None else audit_thickness)
+                         if checks.count("audit_substeps", audit_substeps, minimum=0) else (0, 0))
     return MemoryEstimate(
         device=str(device), cuda=cuda, particles=n, worlds=w, model=int(model), states=int(states),
         integrator=int(scratch), guard=int(guard), post_step=int(post_step), writer=int(writer),
         builder=int(builder), finalize_host=int(finalize_host), frame_host=int(frame_host), run_host=int(run_host),
-        self_contact=int(self_contact), warmup=int(warmup),
+        self_contact=int(self_contact), warmup=int(warmup), audit=int(audit), audit_host=int(audit_host),
     )
 
 
@@ -608,6 +769,19 @@ def check_host_room(what: str, needed: int, *, remedy: str) -> None:
     if available is not None and needed > available:
         raise ConfigError(f"{what} needs an estimated {format_bytes(needed)} of host memory, but "
                           f"{format_bytes(available)} is available: {remedy}")
+
+
+def check_device_room(what: str, needed: int, device, *, remedy: str) -> None:
+    """Refuse, before it is made, something that needs ``needed`` bytes [B] of ``device`` (a ``wp.Device``): on a CUDA
+    device against its free memory, on the CPU against the host's available memory (:func:`check_host_room`). One
+    line naming ``what``, the estimate, what is free and ``remedy``; an unknown amount is not checked."""
+    if not getattr(device, "is_cuda", False):
+        check_host_room(what, needed, remedy=remedy)
+        return
+    free = available_memory(device).device
+    if free is not None and needed > free:
+        raise ConfigError(f"{what} needs an estimated {format_bytes(needed)} on {device}, but {format_bytes(free)} is "
+                          f"free: {remedy}")
 
 
 def check_fits(estimate: MemoryEstimate, available: AvailableMemory, *, precision: str = "float32") -> None:

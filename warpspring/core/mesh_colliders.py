@@ -31,6 +31,7 @@ points at the frame's end, the velocity their change over the frame.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,7 +40,8 @@ import warp as wp
 from ..errors import ConfigError
 from ..kernels.mesh_colliders import FACE_NORMALS, MESH_SIDES, MeshCache, face_normals_kernel, pseudo_normals_kernel
 from . import memory
-from .mesh_counts import mesh_file_counts
+from .mesh_counts import mesh_file_counts, usd_mesh_counts
+from .mesh_files import USD_EXTENSIONS
 
 #: Host bytes of adding a mesh collider read from a file (trimesh's loading, the float64 vertices and faces kept):
 #: per triangle and fixed; an OBJ sheet measured 421 B per triangle at 179k triangles and 265 B at 977k
@@ -48,17 +50,58 @@ MESH_COLLIDER_FILE_PER_FACE = 320
 MESH_COLLIDER_FILE_FIXED = 24 << 20
 
 
-def check_mesh_file_room(path: str) -> None:
-    """Refuse a mesh collider's file whose reading would need more host memory than is available, before trimesh
-    reads it: its triangles counted from its header or streamed lines (:func:`mesh_file_counts`; a format not
-    counted is checked at finalize, with the model)."""
+#: Host bytes of adding a mesh collider read from a USD file (``read_usd_mesh``: its points in float64, the fan of
+#: its polygons, its face-vertex arrays; the builder's copies): per triangle read as a triangle, per triangle of a
+#: polygon of four or more corners (the fan and its convexity test), per vertex and time sample of the points (each
+#: sample read, kept in float64 and stacked), and fixed. .usdc sheets of 977k triangles measured 203 B per triangle
+#: (triangles) and 417 B (quads), with four samples of 90k points 53 B more per vertex and sample
+#: (``bench/memory.py``); counted as 240 B, 480 B, 64 B and 24 MiB.
+MESH_COLLIDER_USD_PER_FACE = 240
+MESH_COLLIDER_USD_PER_FANNED_FACE = 480
+MESH_COLLIDER_USD_PER_SAMPLE_VERTEX = 64
+#: Host bytes per byte of a text USD file (.usda) of parsing it into its layer before its mesh can be counted:
+#: measured 7.1 for a 34 MiB sheet, counted as 8.
+USDA_PARSE_PER_BYTE = 8
+
+
+def check_mesh_file_room(path: str, *, prim: str | None = None) -> None:
+    """Refuse a mesh collider's file whose reading would need more host memory than is available, before it is
+    read: its triangles counted from its header or streamed lines (:func:`mesh_file_counts`), or for a USD file
+    from its mesh prim's array lengths (:func:`usd_mesh_counts`; a text file's parse checked first by its size); a
+    format not counted is checked at finalize, with the model."""
+    remedy = "decimate the mesh (fewer triangles) or use a simpler collider (a box, a capsule)"
+    if path.lower().endswith(USD_EXTENSIONS):
+        if os.path.isfile(path) and not _usd_crate(path):
+            memory.check_host_room(f"the USD file {path} ({memory.format_bytes(os.path.getsize(path))} of text)",
+                                   USDA_PARSE_PER_BYTE * os.path.getsize(path), remedy=remedy + ", or save it as .usdc")
+        counts = usd_mesh_counts(path, prim=prim)
+        if counts is None:
+            return
+        memory.check_host_room(
+            f"the mesh collider {path} ({counts.triangles:,} triangles, {counts.vertices:,} vertices"
+            + (f", {counts.samples} time samples" if counts.samples > 1 else "") + ")",
+            usd_collider_bytes(counts), remedy=remedy)
+        return
     counts = mesh_file_counts(path)
     if counts is None:
         return
     vertices, faces = counts
     memory.check_host_room(f"the mesh collider {path} ({faces:,} triangles, {vertices:,} vertices)",
                            MESH_COLLIDER_FILE_PER_FACE * faces + 24 * vertices + MESH_COLLIDER_FILE_FIXED,
-                           remedy="decimate the mesh (fewer triangles) or use a simpler collider (a box, a capsule)")
+                           remedy=remedy)
+
+
+def usd_collider_bytes(counts) -> int:
+    """Host bytes [B] of adding a mesh collider read from a USD file of ``counts`` (:class:`UsdMeshCounts`)."""
+    return (MESH_COLLIDER_USD_PER_FACE * (counts.triangles - counts.fanned)
+            + MESH_COLLIDER_USD_PER_FANNED_FACE * counts.fanned
+            + MESH_COLLIDER_USD_PER_SAMPLE_VERTEX * counts.vertices * max(counts.samples, 1) + MESH_COLLIDER_FILE_FIXED)
+
+
+def _usd_crate(path: str) -> bool:
+    """Whether a USD file is binary (a crate file: "PXR-USDC" first), whose arrays are read on demand."""
+    with open(path, "rb") as f:
+        return f.read(8) == b"PXR-USDC"
 
 
 @dataclass(eq=False)

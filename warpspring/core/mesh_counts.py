@@ -7,6 +7,11 @@ length), OFF (its count line), glTF and GLB (their JSON's accessor counts: posit
 primitives, each mesh counted once per node that places it). OBJ and ASCII STL have no header: their lines are
 streamed in blocks (constant memory, ~1 s per 100 MB), an OBJ face of k corners counted as the k − 2 triangles
 trimesh makes of it. Other formats (3MF, DAE, ...) are not counted (``None``).
+
+A USD mesh prim (:func:`usd_mesh_counts`) is counted from its attributes' array lengths, on the opened stage: its
+``faceVertexCounts`` (four bytes a polygon) give the triangles of the fan the reader makes, its points' array
+length the vertices (a binary ``.usdc`` maps the arrays it reads, a text ``.usda`` has parsed them into its layer),
+and its points' time samples are counted; nothing is triangulated, transformed or copied into float64.
 """
 
 from __future__ import annotations
@@ -14,8 +19,11 @@ from __future__ import annotations
 import json
 import os
 import struct
+from typing import NamedTuple
 
 import numpy as np
+
+from .mesh_files import open_usd_stage
 
 #: Bytes read per block when an OBJ or ASCII STL file is streamed.
 BLOCK_BYTES = 1 << 22
@@ -47,6 +55,45 @@ def mesh_file_counts(path) -> tuple[int, int] | None:
     except (OSError, ValueError, struct.error, KeyError, TypeError, IndexError):
         return None
     return None
+
+
+class UsdMeshCounts(NamedTuple):
+    """A USD mesh prim's counts (:func:`usd_mesh_counts`): its vertices; the triangles the reader makes of its
+    polygons, and how many of them come from polygons of four or more corners (the fan, whose test of each polygon
+    costs more than a triangle read as it is); its points' time samples."""
+
+    vertices: int
+    triangles: int
+    fanned: int
+    samples: int
+
+
+def usd_mesh_counts(path, *, prim: str | None = None) -> UsdMeshCounts | None:
+    """A USD file's mesh prim's counts (``prim``, or the file's one mesh), from its attributes' array lengths (see
+    the module's description); ``None`` where the prim cannot be told (no mesh, several, a bad path: the reader then
+    says why in its own words)."""
+    from pxr import Usd, UsdGeom  # optional: usd-core
+
+    stage = open_usd_stage(path)
+    if prim is None:
+        meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+        if len(meshes) != 1:
+            return None
+        found = meshes[0]
+    else:
+        try:
+            found = stage.GetPrimAtPath(prim)
+        except Exception:  # noqa: BLE001 - a malformed path: the reader refuses it with its own message
+            return None
+        if not found or not found.IsA(UsdGeom.Mesh):
+            return None
+    mesh = UsdGeom.Mesh(found)
+    earliest = Usd.TimeCode.EarliestTime()
+    corners = np.asarray(mesh.GetFaceVertexCountsAttr().Get(earliest) or [], dtype=np.int64)
+    points = mesh.GetPointsAttr().Get(earliest)
+    made = np.maximum(corners - 2, 0)
+    return UsdMeshCounts(vertices=len(points) if points else 0, triangles=int(made.sum()),
+                         fanned=int(made[corners > 3].sum()), samples=int(mesh.GetPointsAttr().GetNumTimeSamples()))
 
 
 def _blocks(path: str):

@@ -276,6 +276,7 @@ class ColliderRecipes:
         if isinstance(mesh, (str, os.PathLike)):
             path = os.fspath(mesh)
             if path.lower().endswith(USD_EXTENSIONS):
+                check_mesh_file_room(path, prim=prim)
                 read = read_usd_mesh(path, prim=prim, up_axis=self.up_axis)
                 vertices, faces = read.vertices, read.triangles
                 samples = read_usd_mesh_samples(path, prim=read.prim, up_axis=self.up_axis)

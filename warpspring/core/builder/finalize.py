@@ -9,6 +9,7 @@ import warp as wp
 
 from ... import checks
 from ...errors import ConfigError
+from ...kernels.families import MAX_HEAD_SLOTS
 from ...kernels.kinematics import PARTICLE_KINEMATIC
 from ...kernels.precision import scalar_type, vec3_type
 from ...kernels.spring_laws import SpringLaw
@@ -124,7 +125,8 @@ class Finalization:
     def estimate_memory(self, device=None, *, precision: str = "float32", worlds: int = 1,
                         integrator: str = "symplectic_euler", contact_stage: bool | None = None,
                         contact_slots: int | None = None, spring_evaluation: str = "auto", spring_groups: bool = True,
-                        spring_grid: bool = True) -> memory.MemoryEstimate:
+                        spring_grid: bool = True, audit_substeps: int = 0,
+                        audit_thickness: bool | None = None) -> memory.MemoryEstimate:
         """Estimate the memory :meth:`finalize` and a run of the model will need, before anything is allocated
         (:func:`warpspring.core.memory.estimate_memory` with this builder's counts and its incidence tables'
         exact widths).
@@ -134,6 +136,9 @@ class Finalization:
             precision, worlds, contact_stage, contact_slots, spring_evaluation, spring_groups, spring_grid: as
                 :meth:`finalize`.
             integrator: the integrator's name (its scratch states count).
+            audit_substeps: substeps per frame of a run that audits every substep (``warpspring run
+                --audit-substeps``; its record and pair lists count); 0: none. audit_thickness: whether it
+                measures the pairs within a thickness (default: with self-collision).
 
         Returns:
             The :class:`~warpspring.core.memory.MemoryEstimate`.
@@ -147,6 +152,8 @@ class Finalization:
         for block in self._hinges:
             hinge_degree += np.bincount(block.ravel(), minlength=n)
         spring_slots, hinge_slots = head_slots(spring_degree), head_slots(hinge_degree)
+        groups, group_slots = (self._spring_group_layout(precision, spring_slots)
+                               if spring_groups and spring_evaluation != "scatter" else (0, spring_slots))
         moving = any(s.translation_track is not None or s.rotation_track is not None for s in self._shapes)
         stage = bool(self._shapes) and (moving if contact_stage is None else bool(contact_stage))
         slots = max(1, min(len(self._shapes), 4)) if contact_slots is None else contact_slots
@@ -169,7 +176,8 @@ class Finalization:
             precision=precision,
             device=str(device),
             spring_evaluation=spring_evaluation,
-            spring_groups=self._grouped_spring_families(precision) if spring_groups else 0,
+            spring_groups=groups,
+            spring_group_slots=group_slots,
             spring_grid=bool(spring_grid) and self._one_grid(),
             integrator=integrator,
             spring_slots=spring_slots,
@@ -192,27 +200,51 @@ class Finalization:
                 for m in meshes),
             collider_faces=sum(len(m.faces) for m in meshes),
             emitter_slots=sum(e.capacity for e in self._emitters),
+            drag=self.drag != 0.0 or "drag" in self._tracks,
+            wind=any(getattr(f, "moves_air", False) for f in self._families),
+            working_families=any(f.does_work for f in self._families),
+            spring_force_clamp=self.stabilizers.max_spring_force is not None,
+            particle_force_clamp=self.stabilizers.max_particle_force is not None,
+            plastic_springs=sum(law[0] for law in self._spring_law if law[3]),
+            spring_law_arrays=any(law[0] and (law[1] == SPRING_LAWS["square"] or np.any(np.asarray(law[2]) != 1.0))
+                                  for law in self._spring_law),
+            family_elements=tuple(f.element_count for f in self._families),
+            audit_substeps=audit_substeps,
+            audit_thickness=audit_thickness,
             **_surface_counts(surface, n),
         )
 
-    def _grouped_spring_families(self, precision: str) -> int:
-        """The spring families that ``springs.set_spring_layout`` lays out by group (each keeps one spring's index on
-        the device), or 0 where it lays them out per spring: with per-spring law arrays or plasticity, or where no
-        family has one rest length, ke and kd in the model's precision (``springs.uniform_groups``)."""
+    def _spring_group_layout(self, precision: str, width: int) -> tuple[int, int]:
+        """(the spring families that ``springs.set_spring_layout`` lays out by group, each keeping one spring's index
+        on the device; the grouped head's width, the sum of each family's largest degree at one particle), or
+        (0, ``width``) where it lays them out per spring (``springs.spring_layout``'s rules): with per-spring law
+        arrays or plasticity, where no family has one rest length, ke and kd in the model's precision
+        (``springs.uniform_groups``), where the grouped head is wider than ``MAX_HEAD_SLOTS`` or moves more bytes than
+        the per-spring head of ``width`` slots."""
         laws = [law for law in self._spring_law if law[0]]
         if not laws or any(law[1] == SPRING_LAWS["square"] or law[3] or np.any(np.asarray(law[2]) != 1.0)
                            for law in laws):
-            return 0
+            return 0, width
         scalar = np.float64 if precision == "float64" else np.float32
         first: dict = {}
         uniform: dict = {}
-        for family, *values in zip(self._spring_family, self._spring_rest, self._spring_ke, self._spring_kd):
+        degree: dict = {}
+        n = self._particle_count
+        for family, springs, *values in zip(self._spring_family, self._springs, self._spring_rest, self._spring_ke,
+                                            self._spring_kd):
+            degree[family] = degree.get(family, 0) + np.bincount(np.asarray(springs).ravel(), minlength=n)
             values = [np.asarray(v).astype(scalar) for v in values]
             if not len(values[0]):
                 continue
             head = first.setdefault(family, [v[0] for v in values])
             uniform[family] = uniform.get(family, True) and all(bool(np.all(v == h)) for v, h in zip(values, head))
-        return len(dict.fromkeys(self._spring_family)) if any(uniform.values()) else 0
+        widths = {family: int(np.max(d, initial=0)) for family, d in degree.items()}
+        grouped = sum(widths.values())
+        per_spring_slot = 8 + 3 * (8 if precision == "float64" else 4)
+        moved = 4 * grouped + (per_spring_slot - 4) * sum(w for f, w in widths.items() if not uniform.get(f, False))
+        if not any(uniform.values()) or grouped > MAX_HEAD_SLOTS or moved > per_spring_slot * width:
+            return 0, width
+        return len(widths), grouped
 
     def _one_grid(self) -> bool:
         """Whether the scene is one cloth grid holding every particle, in grid order (its first particle is 0)."""
