@@ -1,12 +1,15 @@
 """Symplectic (semi-implicit) Euler: v' = v + h M⁻¹ f(x, v); x' = x + h v'. First order, symplectic for
-conservative forces. With gathered springs (CUDA) a step is one fused kernel (forces, update and
-contacts in one pass); with scattered springs (CPU) it is force evaluation then the update."""
+conservative forces. With gathered springs a step is one fused kernel (forces, update and contacts in one pass):
+on CUDA one thread per particle; on the CPU one thread per world sweeping its particles in order, each spring
+evaluated once (``kernels/sweep.py``). With scattered springs it is force evaluation then the update."""
 
 from __future__ import annotations
 
+import warp as wp
 
 from ...kernels.integrators import symplectic_euler_kernel, symplectic_euler_update_kernel
 from ...kernels.shapes import NO_CONTACTS
+from ...kernels.sweep import sweeps, symplectic_euler_sweep_kernel
 from ..contacts import update_shape_frames
 from ..forces import eval_forces, force_inputs
 from ..kinematics import apply_kinematics
@@ -18,10 +21,32 @@ from ...kernels.flatten import flat_launch
 
 
 class SymplecticEuler(Integrator):
-    """Symplectic Euler with explicit spring damping. Stable for undamped springs while ω_max·h < 2."""
+    """Symplectic Euler with explicit spring damping. Stable for undamped springs while ω_max·h < 2.
+
+    Args:
+        model: the model.
+        cpu_sweep: on the CPU, with gathered springs, step each world in one thread sweeping its particles in
+            order, each spring evaluated once (``kernels/sweep.py``; 1.6-1.9x the per-particle step at 32²-64²,
+            bench/results/performance_cpu.md); False: one thread per particle, as on CUDA. Both give the same
+            forces, summed in another order (float rounding). No effect on CUDA or with scattered springs.
+    """
 
     name = "symplectic_euler"
     order = 1
+
+    def __init__(self, model, *, cpu_sweep: bool = True):
+        super().__init__(model)
+        self.cpu_sweep = bool(cpu_sweep)
+        # The sweep's scratch (the springs' forces, and their dampers' part, on particles not yet swept), zero
+        # between steps; made at the first swept step.
+        self._sweep_scratch = None
+
+    def _scratch(self) -> list:
+        model = self.model
+        size = model.world_count * model.particle_count
+        if self._sweep_scratch is None or self._sweep_scratch[0].shape[0] != size:
+            self._sweep_scratch = [wp.zeros(size, dtype=model.vec3, device=model.device) for _ in range(2)]
+        return self._sweep_scratch
 
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         model = self.model
@@ -34,9 +59,15 @@ class SymplecticEuler(Integrator):
         if model.spring_gather or model.spring_count == 0:
             evaluate_input_tracks(model, state_in)
             features = model.force_features(control)
+            power = None if self.power is None else self.power.modes
+            swept = self.cpu_sweep and model.device.is_cpu and sweeps(features)
+            if swept:  # one thread per world: the particles in order, each spring once
+                kernel = symplectic_euler_sweep_kernel(model.scalar, features, contacts, power)
+                common["dim"], scratch = model.world_count, self._scratch()
+            else:
+                kernel, scratch = symplectic_euler_kernel(model.scalar, features, contacts, power), []
             flat_launch(
-                symplectic_euler_kernel(model.scalar, features, contacts,
-                                        None if self.power is None else self.power.modes),
+                kernel,
                 inputs=[
                     model.particle_count,
                     model.particle_flags,
@@ -50,7 +81,7 @@ class SymplecticEuler(Integrator):
                     *step_arguments(model.scalar, dt),
                 ],
                 outputs=[state_out.particle_q, state_out.particle_qd, state_out.time,
-                         None if self.power is None else self.power.sums],
+                         None if self.power is None else self.power.sums, *scratch],
                 **common,
             )
         else:
