@@ -32,6 +32,7 @@ Modules:
     selfcontact: self-collision of triangle surfaces (broad phase, repulsion, displacement cap).
     selfcontact_cache: self-collision's pair cache (when to rebuild it, the cap over it).
     integrators: the per-particle update kernels of the integrators; dopri5's step control.
+    sweep: the CPU's symplectic Euler step, a thread per world sweeping its particles, each spring once.
     implicit: the matrix-free system of linearised implicit Euler.
     linalg: device reductions and the preconditioned conjugate-gradient iteration.
     constraints: post-step passes (strain limiting, speed clamp, contacts).

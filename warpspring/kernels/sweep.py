@@ -62,7 +62,7 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
     counted = power is not None
     springs_spec, others = features.families[0], features.families[1:]
     spring_dampers = counted and power[0] == POWER_DAMPERS
-    sweep = spring_sweep_funcs(scalar, springs_spec, spring_dampers)
+    _, prepare, forward = spring_sweep_funcs(scalar, springs_spec, spring_dampers)
     # The other forces as the fused step's ``particle_force`` has them, without the springs and the clamp (which
     # takes the whole force: below).
     rest = features._replace(families=others, clamp_particle_force=False)
@@ -104,18 +104,17 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
         time_out: wp.array[wp.float64],
-        # In/out (the guard's power sums [J], read with ``power`` only; the sweep's scratch, zero between launches:
-        # the forces [N] and the dampers' part [N] of the springs to particles already swept):
-        power_in_out: wp.array[Sums],
-        force_in_out: wp.array[vec3],
-        dampers_in_out: wp.array[vec3],
+        # In/out:
+        power_in_out: wp.array[Sums],  # the guard's power sums [J] (read with ``power`` only)
+        force_in_out: wp.array[vec3],  # scratch, zero between launches: the forces [N] of springs to swept particles
+        dampers_in_out: wp.array[vec3],  # the same, their dampers' part [N] (read with the springs' dampers counted)
     ):
         world = wp.tid()
         base = world * particle_count
         time_out[world] = time_in[world] + (wp.float64(dt) + wp.float64(dt_rest))
         h = dt
         springs = element_arrays.head
-        prepared = sweep.prepare(world, springs, inputs)
+        prepared = prepare(world, springs, inputs)
         inv_mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         row = int(0)
         column = int(0)
@@ -123,8 +122,8 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
             p = base + i
             x = particle_q_in[p]
             v = particle_qd_in[p]
-            springs_f, springs_d = sweep.forward(i, row, column, base, x, v, springs, prepared, particle_q_in,
-                                                 particle_qd_in, force_in_out, dampers_in_out)
+            springs_f, springs_d = forward(i, row, column, base, x, v, springs, prepared, particle_q_in,
+                                           particle_qd_in, force_in_out, dampers_in_out)
             springs_f += force_in_out[p]
             force_in_out[p] = vec3(scalar(0.0))
             if wp.static(spring_dampers):
