@@ -127,8 +127,12 @@ def _model(ws, n, device, evaluation):
 
 class _Runner:
     def __init__(self, ws, model, guard: bool, fps: int, substeps: int, graph: bool, sweep: bool = True):
-        # Trees before the sweep take no cpu_sweep option: the default integrator there.
-        integrator = None if sweep else ws.SymplecticEuler(model, cpu_sweep=False)
+        integrator = None
+        if not sweep:
+            try:
+                integrator = ws.SymplecticEuler(model, cpu_sweep=False)
+            except TypeError:  # a tree before the sweep: its default step is the per-particle one
+                integrator = None
         self.sim = ws.Simulator(model, fps=fps, substeps=substeps, use_graph=graph, integrator=integrator,
                                 guard=ws.GuardLimits() if guard else None)
 
@@ -243,8 +247,9 @@ class Worker:
 def run_size(n: int, trees: dict[str, str], engines: list[str], batches: int, seconds: float, launches: bool,
              repeat: int, newton: bool, device: str = "cpu") -> tuple[list[dict], list[Worker]]:
     workers = []
+    own = [e for e in engines if e != "newton"]  # Newton runs once, in the first tree's worker
     for k, (label, tree) in enumerate(trees.items()):
-        workers.append(Worker(label, tree, n, engines + (["newton"] if newton and k == 0 else []), launches,
+        workers.append(Worker(label, tree, n, own + (["newton"] if newton and k == 0 else []), launches,
                               repeat, device))
     rows = [(w, e) for w in workers for e in w.engines]
     frames = {}

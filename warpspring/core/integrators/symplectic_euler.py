@@ -26,8 +26,8 @@ class SymplecticEuler(Integrator):
     Args:
         model: the model.
         cpu_sweep: on the CPU, with gathered springs, step each world in one thread sweeping its particles in
-            order, each spring evaluated once (``kernels/sweep.py``; 1.6-1.9x the per-particle step at 32²-64²,
-            bench/results/performance_cpu.md); False: one thread per particle, as on CUDA. Both give the same
+            order, each spring evaluated once (``kernels/sweep.py``; 1.7-1.8x the per-particle step at 32²-64²,
+            bench/results/performance_cpu.md §0); False: one thread per particle, as on CUDA. Both give the same
             forces, summed in another order (float rounding). No effect on CUDA or with scattered springs.
     """
 
