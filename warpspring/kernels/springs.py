@@ -459,8 +459,8 @@ def spring_sweep_funcs(scalar: type, spec: SpringSpec, dampers: bool = False) ->
     ``forward`` evaluates, of the springs at particle i, those whose other particle j comes after i (j > i): it
     returns their force on i and adds the opposite force to j's entry of ``force_in_out`` (a scratch array that
     holds, when the sweep reaches a particle, the forces of its springs to the particles before it). A spring (i, j)
-    is thus evaluated once, by its first particle, where the gather evaluates it at both (bit for bit the forces of
-    the gather, only summed in another order). With ``dampers`` the dampers' part of those forces likewise (its
+    is thus evaluated once, by its first particle, where the gather evaluates it at both (the gather's per-spring
+    forces, summed in another order). With ``dampers`` the dampers' part of those forces likewise (its
     return's second value, ``dampers_in_out``; zero where the law's is not separable, as ``force_split``).
 
     What ``force_split`` reads per particle and is the same for all of a world's particles (the law's values, the
