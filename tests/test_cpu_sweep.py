@@ -154,15 +154,22 @@ def test_the_guards_power_sums_are_the_per_particle_steps():
     np.testing.assert_allclose(states[0], states[1], rtol=0.0, atol=ATOL_Q)
 
 
-def test_the_sweeps_scratch_is_zero_between_steps():
-    """Every entry the sweep adds to is read and cleared within the same launch: nothing carries into the next
-    step (a carried force would show as a wrong state in the tests above, but only where a step followed)."""
+def test_the_sweep_ignores_what_the_force_arrays_held_and_leaves_them_zero():
+    """The sweep's scratch is the two states' force arrays: whatever they held before a step (another integrator's
+    forces, a user's writes), the step is the same; it leaves the input's zero (the output's is the dampers' scratch,
+    used with the guard only: untouched here)."""
     model = cloth(worlds=2)
     integrator = ws.SymplecticEuler(model)
-    a, b = model.state(), model.state()
-    integrator.step(a, b, None, DT)
-    for scratch in integrator._sweep_scratch:
-        np.testing.assert_array_equal(scratch.numpy(), 0.0)
+    clean = (model.state(), model.state())
+    dirty = (model.state(), model.state())
+    rng = np.random.default_rng(2)
+    for state in dirty:
+        state.particle_f.assign(rng.normal(scale=50.0, size=state.particle_f.shape + (3,)))
+    for a, b in (clean, dirty):
+        integrator.step(a, b, None, DT)
+    np.testing.assert_array_equal(dirty[1].particle_q.numpy(), clean[1].particle_q.numpy())
+    np.testing.assert_array_equal(dirty[1].particle_qd.numpy(), clean[1].particle_qd.numpy())
+    np.testing.assert_array_equal(dirty[0].particle_f.numpy(), 0.0)
 
 
 def test_the_option_changes_nothing_on_cuda(device):

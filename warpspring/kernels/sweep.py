@@ -10,8 +10,12 @@ evaluates each spring once: a world's particles are taken in order, and at parti
   swept), and those to particles after it are evaluated now (``springs.spring_sweep_funcs``'s ``forward``:
   i's share summed, the opposite added to the other particle's entry);
 * so its force is complete: the other forces (gravity, drag, external, the other element families, gathered as in
-  the fused step), the symplectic Euler update and the contacts follow at once, and the entry is cleared for the
-  next step (the scratch arrays are all zero between launches).
+  the fused step), the symplectic Euler update and the contacts follow at once.
+
+The scratch entries are the states' force arrays (``state_in.particle_f`` for the forces, ``state_out.particle_f``
+for the dampers' part, used only where the guard counts them: ``State``'s contract leaves both to the step), cleared
+by the thread before its sweep and consumed by it: whatever they held before, the step is the same, and it leaves
+those it used zero.
 
 Per-world values (the springs' groups, rows and law values, the world's row of the input table) are read once per
 world, not per particle. The results are the fused step's up to the order of the force's sums (float32 rounding).
@@ -54,7 +58,8 @@ def sweeps(features: ForceFeatures) -> bool:
 def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
                                   power: tuple | None = None):
     """Symplectic Euler step of every world, one thread per world (module docstring): the arguments of
-    ``integrators.symplectic_euler_kernel`` and the two scratch arrays. Launch over ``world_count``."""
+    ``integrators.symplectic_euler_kernel`` and the two scratch arrays (module docstring). Launch over
+    ``world_count``."""
     if not sweeps(features):
         raise ValueError(f"the sweep needs the springs first among the families, gathered; got {features.families}")
     vec3 = vec3_type(scalar)
@@ -106,11 +111,15 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
         time_out: wp.array[wp.float64],
         # In/out:
         power_in_out: wp.array[Sums],  # the guard's power sums [J] (read with ``power`` only)
-        force_in_out: wp.array[vec3],  # scratch, zero between launches: the forces [N] of springs to swept particles
-        dampers_in_out: wp.array[vec3],  # the same, their dampers' part [N] (read with the springs' dampers counted)
+        force_in_out: wp.array[vec3],  # scratch: the forces [N] of the springs to particles already swept
+        dampers_in_out: wp.array[vec3],  # scratch: their dampers' part [N] (with the springs' dampers counted)
     ):
         world = wp.tid()
         base = world * particle_count
+        for i in range(particle_count):
+            force_in_out[base + i] = vec3(scalar(0.0))
+            if wp.static(spring_dampers):
+                dampers_in_out[base + i] = vec3(scalar(0.0))
         time_out[world] = time_in[world] + (wp.float64(dt) + wp.float64(dt_rest))
         h = dt
         springs = element_arrays.head

@@ -5,7 +5,6 @@ evaluated once (``kernels/sweep.py``). With scattered springs it is force evalua
 
 from __future__ import annotations
 
-import warp as wp
 
 from ...kernels.integrators import symplectic_euler_kernel, symplectic_euler_update_kernel
 from ...kernels.shapes import NO_CONTACTS
@@ -37,16 +36,6 @@ class SymplecticEuler(Integrator):
     def __init__(self, model, *, cpu_sweep: bool = True):
         super().__init__(model)
         self.cpu_sweep = bool(cpu_sweep)
-        # The sweep's scratch (the springs' forces, and their dampers' part, on particles not yet swept), zero
-        # between steps; made at the first swept step.
-        self._sweep_scratch = None
-
-    def _scratch(self) -> list:
-        model = self.model
-        size = model.world_count * model.particle_count
-        if self._sweep_scratch is None or self._sweep_scratch[0].shape[0] != size:
-            self._sweep_scratch = [wp.zeros(size, dtype=model.vec3, device=model.device) for _ in range(2)]
-        return self._sweep_scratch
 
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         model = self.model
@@ -63,7 +52,8 @@ class SymplecticEuler(Integrator):
             swept = self.cpu_sweep and model.device.is_cpu and sweeps(features)
             if swept:  # one thread per world: the particles in order, each spring once
                 kernel = symplectic_euler_sweep_kernel(model.scalar, features, contacts, power)
-                common["dim"], scratch = model.world_count, self._scratch()
+                # Its scratch: the two states' force arrays (the step's to use; left zero).
+                common["dim"], scratch = model.world_count, [state_in.particle_f, state_out.particle_f]
             else:
                 kernel, scratch = symplectic_euler_kernel(model.scalar, features, contacts, power), []
             flat_launch(
