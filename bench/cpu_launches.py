@@ -38,7 +38,7 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 
-#: Engines a worker can time: warpspring rows (spring evaluation, guard, graph) and Newton.
+#: Engines a worker can time: warpspring rows (spring evaluation, guard, graph[, the CPU sweep]) and Newton.
 ENGINES = {
     "off": ("auto", False, True),  # what a user gets with the guard switched off
     "default": ("auto", True, True),  # the default Simulator (guard on)
@@ -49,6 +49,9 @@ ENGINES = {
     "off-nograph": ("auto", False, False),  # every launch from Python: the host's cost per launch
     "gather-nograph": ("gather", False, False),
     "scatter-nograph": ("scatter", False, False),
+    # The gathered springs' per-particle step on the CPU (as on CUDA) instead of the sweep (kernels/sweep.py).
+    "particles": ("gather", False, True, False),
+    "default-particles": ("gather", True, True, False),
     "newton": None,
 }
 
@@ -79,9 +82,9 @@ def _worker(tree: str, device: str, n: int, engines: list[str], launches: bool, 
 
             runners[name] = NewtonRunner(_model(ws, n, device, "auto"))
         else:
-            evaluation, guard, graph = ENGINES[name]
+            evaluation, guard, graph, *sweep = ENGINES[name]
             model = _model(ws, n, device, evaluation)
-            runners[name] = _Runner(ws, model, guard, FPS, SUBSTEPS, graph)
+            runners[name] = _Runner(ws, model, guard, FPS, SUBSTEPS, graph, sweep=sweep[0] if sweep else True)
         runners[name].frame()  # compile, capture
     info = {"warp": wp.__version__, "warpspring": tree, "substeps": SUBSTEPS, "particles": n * n,
             "device": f"{device.alias} ({device.name})"}
@@ -91,7 +94,9 @@ def _worker(tree: str, device: str, n: int, engines: list[str], launches: bool, 
         info["newton"] = newton.__version__
     for name, runner in runners.items():
         if name != "newton":
-            info[f"{name}_evaluation"] = "gather" if runner.sim.model.spring_gather else "scatter"
+            swept = device.is_cpu and getattr(runner.sim.integrator, "cpu_sweep", False)  # kernels/sweep.py
+            info[f"{name}_evaluation"] = (("sweep" if swept else "gather") if runner.sim.model.spring_gather
+                                          else "scatter")
     if launches:
         info["launches"] = {name: _launch_profile(wp, runner, repeat, device) for name, runner in runners.items()}
     print(json.dumps(info), flush=True)
@@ -121,8 +126,14 @@ def _model(ws, n, device, evaluation):
 
 
 class _Runner:
-    def __init__(self, ws, model, guard: bool, fps: int, substeps: int, graph: bool):
-        self.sim = ws.Simulator(model, fps=fps, substeps=substeps, use_graph=graph,
+    def __init__(self, ws, model, guard: bool, fps: int, substeps: int, graph: bool, sweep: bool = True):
+        integrator = None
+        if not sweep:
+            try:
+                integrator = ws.SymplecticEuler(model, cpu_sweep=False)
+            except TypeError:  # a tree before the sweep: its default step is the per-particle one
+                integrator = None
+        self.sim = ws.Simulator(model, fps=fps, substeps=substeps, use_graph=graph, integrator=integrator,
                                 guard=ws.GuardLimits() if guard else None)
 
     def frame(self):
@@ -236,8 +247,9 @@ class Worker:
 def run_size(n: int, trees: dict[str, str], engines: list[str], batches: int, seconds: float, launches: bool,
              repeat: int, newton: bool, device: str = "cpu") -> tuple[list[dict], list[Worker]]:
     workers = []
+    own = [e for e in engines if e != "newton"]  # Newton runs once, in the first tree's worker
     for k, (label, tree) in enumerate(trees.items()):
-        workers.append(Worker(label, tree, n, engines + (["newton"] if newton and k == 0 else []), launches,
+        workers.append(Worker(label, tree, n, own + (["newton"] if newton and k == 0 else []), launches,
                               repeat, device))
     rows = [(w, e) for w in workers for e in w.engines]
     frames = {}

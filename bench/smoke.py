@@ -505,7 +505,8 @@ def the_battery_plot_reads_every_case_of_a_battery_table():
 def the_cpu_bench_times_two_trees_and_counts_a_plain_cloths_launches():
     """``cpu_launches.run_size`` on the CPU, 4 × 4 cloth, this tree against itself, two rounds: every row has a
     positive rate and a ratio to the first tree (the same code: the ratio is only noise, so it is not bounded
-    here), and the counted launches per substep are the plain cloth's one fused step (guard off, ``auto``)."""
+    here), and the counted launches per substep are the plain cloth's one fused step (guard off, ``auto``: on the
+    CPU the sweep, ``kernels/sweep.py``)."""
     import cpu_launches
 
     trees = {"new": str(HERE.parent), "same": str(HERE.parent)}
@@ -517,7 +518,7 @@ def the_cpu_bench_times_two_trees_and_counts_a_plain_cloths_launches():
     for worker in workers:
         profile = worker.info["launches"]["off"]
         assert profile["frame_launches"] == worker.info["substeps"], profile
-        assert list(profile["by_kernel"]) == ["symplectic_euler_kernel__locals__symplectic_euler"], profile
+        assert list(profile["by_kernel"]) == ["symplectic_euler_sweep_kernel__locals__symplectic_euler_sweep"], profile
 
 
 def run(name: str, param, device: str | None) -> dict:

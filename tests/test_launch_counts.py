@@ -74,9 +74,12 @@ def frame_launches(model: ws.Model, monkeypatch, guard=None) -> list[str]:
 
 
 def step_kernels(model: ws.Model) -> list[str]:
-    """The kernels of one symplectic Euler substep of a plain cloth: the fused gather step, or the scattered
-    springs' three passes (the other forces, the springs, the update)."""
+    """The kernels of one symplectic Euler substep of a plain cloth: the fused gather step (on the CPU its sweep, one
+    thread per world: ``kernels/sweep.py``), or the scattered springs' three passes (the other forces, the springs,
+    the update)."""
     if model.spring_gather:
+        if model.device.is_cpu:
+            return ["symplectic_euler_sweep_kernel.symplectic_euler_sweep"]
         return ["symplectic_euler_kernel.symplectic_euler"]
     return ["eval_forces_kernel.eval_forces", "spring_scatter_kernel.scatter_springs",
             "symplectic_euler_update_kernel.symplectic_euler_from_forces"]
@@ -93,11 +96,12 @@ def test_a_plain_cloth_launches_its_step_kernels_and_nothing_else(device, evalua
 
 
 def test_auto_takes_one_launch_per_substep_on_the_cpu(monkeypatch):
-    """``auto`` picks the fused gather step on the CPU (measured faster there: bench/results/performance_cpu.md):
-    one launch per substep."""
+    """``auto`` picks the gathered springs on the CPU, whose symplectic Euler step is the sweep there (measured
+    faster than the scatter and than the per-particle step: bench/results/performance_cpu.md): one launch per
+    substep, one thread per world."""
     model = cloth("cpu")
     assert model.spring_gather
-    assert frame_launches(model, monkeypatch) == ["symplectic_euler_kernel.symplectic_euler"] * SUBSTEPS
+    assert frame_launches(model, monkeypatch) == ["symplectic_euler_sweep_kernel.symplectic_euler_sweep"] * SUBSTEPS
 
 
 def test_a_held_world_adds_one_pass_per_substep(device, monkeypatch):

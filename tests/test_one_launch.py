@@ -43,8 +43,10 @@ def run(device, *, one_launch: bool, substeps: int, frames: int = 10):
     model = scene(device)
     control = model.control()
     control.set_particle_force((0.01, 0.0, 0.0))  # a steady push [N] on every particle
-    sim = ws.Simulator(model, integrator=ws.SymplecticEuler(model, one_launch=one_launch), substeps=substeps,
-                       control=control)
+    # On the CPU the per-substep path's reference is the per-particle step the one-launch frame loops (the CPU's
+    # default sweep sums each particle's springs in another order).
+    sim = ws.Simulator(model, integrator=ws.SymplecticEuler(model, one_launch=one_launch, cpu_sweep=False),
+                       substeps=substeps, control=control)
     for _ in range(frames):
         sim.step_frame()
     wp.synchronize_device(model.device)

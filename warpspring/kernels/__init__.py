@@ -33,6 +33,7 @@ Modules:
     selfcontact_cache: self-collision's pair cache (when to rebuild it, the cap over it).
     integrators: the per-particle update kernels of the integrators; dopri5's step control.
     frames: a frame's substeps of symplectic Euler in one launch, one thread block per world.
+    sweep: the CPU's symplectic Euler step, a thread per world sweeping its particles, each spring once.
     implicit: the matrix-free system of linearised implicit Euler.
     linalg: device reductions and the preconditioned conjugate-gradient iteration.
     constraints: post-step passes (strain limiting, speed clamp, contacts).

@@ -21,6 +21,7 @@ row per world, read at row ``min(world, rows - 1)``.
 
 import functools
 from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import warp as wp
 
@@ -438,6 +439,172 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
     return FamilyFuncs(SpringArrays, force, product, strain, energy, ("indices", *spec.incidence.idle()),
                        dissipation=dissipation, split=force_split if splittable else None,
                        element_strain=element_strain)
+
+
+class SweepFuncs(NamedTuple):
+    """``spring_sweep_funcs``'s hooks: ``prepare(world, springs, inputs) -> SpringWorld``, a world's values read once;
+    ``forward(i, row, column, base, xi, vi, springs, world_values, particle_q, particle_qd, force_in_out,
+    dampers_in_out) -> (force, dampers)``: particle i's springs to the particles after it, each evaluated once."""
+
+    world_type: type
+    prepare: Any
+    forward: Any
+
+
+@functools.cache
+def spring_sweep_funcs(scalar: type, spec: SpringSpec, dampers: bool = False) -> SweepFuncs:
+    """The gathered springs of ``spec`` (its incidence table and layout) evaluated once each, for a sweep over one
+    world's particles in order (``kernels/sweep.py``, the CPU's symplectic Euler step).
+
+    ``forward`` evaluates, of the springs at particle i, those whose other particle j comes after i (j > i): it
+    returns their force on i and adds the opposite force to j's entry of ``force_in_out`` (a scratch array that
+    holds, when the sweep reaches a particle, the forces of its springs to the particles before it). A spring (i, j)
+    is thus evaluated once, by its first particle, where the gather evaluates it at both (the gather's per-spring
+    forces, summed in another order). With ``dampers`` the dampers' part of those forces likewise (its
+    return's second value, ``dampers_in_out``; zero where the law's is not separable, as ``force_split``).
+
+    What ``force_split`` reads per particle and is the same for all of a world's particles (the law's values, the
+    stiffness and damping rows, the uniform groups' rest length, ke and kd, the grid's size) ``prepare`` reads once
+    per world."""
+    vec3 = vec3_type(scalar)
+    head_slots, tail = spec.incidence
+    grouped = bool(spec.slot_groups) and spec.gathered
+    grid = grouped and bool(spec.grid_slots)
+    SpringArrays = spring_arrays_type(scalar, spec.law.per_spring, grouped, grid)
+    spring_law_values, spring_force, _, _ = spring_funcs(scalar, spec.law)
+    _, law_at = spring_access_funcs(scalar, spec.law, grouped, grid)
+    SpringLawValues = spring_law_type(scalar)
+    group_count = max(spec.slot_groups, default=-1) + 1
+    group_values = wp.types.vector(length=max(group_count, 1), dtype=scalar)
+    width = max(head_slots, 1)
+    slot_group = wp.constant(wp.types.vector(length=width, dtype=wp.int32)(
+        *(spec.slot_groups if grouped else (0,) * width)))
+    directions = spec.grid_slots if grid else ((0, 0),) * width
+    slot_dx = wp.constant(wp.types.vector(length=width, dtype=wp.int32)(*(d[0] for d in directions)))
+    slot_dy = wp.constant(wp.types.vector(length=width, dtype=wp.int32)(*(d[1] for d in directions)))
+    # A grid slot's neighbour comes after the particle where it is on a later row, or later on the same one.
+    slot_ahead = wp.constant(wp.types.vector(length=width, dtype=wp.int32)(
+        *(int(dy > 0 or (dy == 0 and dx > 0)) for dx, dy in directions)))
+    splittable = not (spec.law.clamp_force or spec.law.plastic)
+    counted = dampers and splittable
+
+    @wp.struct
+    class SpringWorld:
+        values: SpringLawValues  # the law's values of the world
+        stiffness_row: int  # the world's rows of stiffness and damping
+        damping_row: int
+        rest_base: int  # the world's first plastic rest length (0 otherwise)
+        rest: group_values  # each uniform group's rest length [m], ke [N/m] and kd [N·s/m]
+        ke: group_values
+        kd: group_values
+        nx: int  # the grid's particles per row and rows (grid layout only)
+        ny: int
+
+    @wp.func
+    def prepare(world: int, springs: SpringArrays, inputs: wp.array2d[scalar]) -> SpringWorld:
+        prepared = SpringWorld()
+        prepared.values = spring_law_values(inputs, world)
+        prepared.stiffness_row = wp.min(world, springs.stiffness.shape[0] - 1)
+        prepared.damping_row = wp.min(world, springs.damping.shape[0] - 1)
+        prepared.rest_base = int(0)
+        if wp.static(spec.law.plastic):
+            prepared.rest_base = world * springs.stiffness.shape[1]
+        rest = group_values()
+        ke = group_values()
+        kd = group_values()
+        if wp.static(grouped):
+            for g in range(wp.static(group_count)):
+                s = springs.group_spring[g]
+                rest[g] = springs.rest_length[s]
+                ke[g] = springs.stiffness[prepared.stiffness_row, s]
+                kd[g] = springs.damping[prepared.damping_row, s]
+        prepared.rest = rest
+        prepared.ke = ke
+        prepared.kd = kd
+        prepared.nx = int(0)
+        prepared.ny = int(0)
+        if wp.static(grid):
+            prepared.nx = springs.grid_size[0]
+            prepared.ny = springs.grid_size[1]
+        return prepared
+
+    @wp.func
+    def spring_pair(xi: vec3, xj: vec3, vi: vec3, vj: vec3, rest: scalar, ke: scalar, kd: scalar,
+                    values: SpringLawValues):
+        """(force [N] of the spring (i, j) on i, its damper's part [N]: zero unless ``counted``)."""
+        f = spring_force(xi, xj, vi, vj, rest, ke, kd, values)
+        damping = vec3(scalar(0.0))
+        if wp.static(counted):
+            d = xj - xi
+            length = wp.length(d)
+            n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
+            damping = n * (kd * wp.dot(vj - vi, n))
+        return f, damping
+
+    @wp.func
+    def forward(
+        i: int, row: int, column: int, base: int, xi: vec3, vi: vec3, springs: SpringArrays, prepared: SpringWorld,
+        particle_q: wp.array[vec3], particle_qd: wp.array[vec3], force_in_out: wp.array[vec3],
+        dampers_in_out: wp.array[vec3],
+    ):
+        f = vec3(scalar(0.0))
+        damping = vec3(scalar(0.0))
+        values = prepared.values
+        head_local = springs.incidence.head_local
+        head_element = springs.incidence.head_element
+        for k in range(wp.static(head_slots)):
+            g = slot_group[k]  # constants once the loop is unrolled: the branches compile away
+            if wp.static(grouped) and g >= 0:
+                j_local = i
+                if wp.static(grid):
+                    # A slot ahead (dy > 0, or dy = 0 and dx > 0): its neighbour, where on the grid (row + dy ≥ 0).
+                    if slot_ahead[k] != 0:
+                        c = column + slot_dx[k]
+                        if c >= 0 and c < prepared.nx and row + slot_dy[k] < prepared.ny:
+                            j_local = i + slot_dy[k] * prepared.nx + slot_dx[k]
+                else:
+                    j_local = head_local[k, i]
+                if j_local > i:
+                    j = base + j_local
+                    fk, dk = spring_pair(xi, particle_q[j], vi, particle_qd[j], prepared.rest[g], prepared.ke[g],
+                                         prepared.kd[g], values)
+                    f += fk
+                    force_in_out[j] = force_in_out[j] - fk
+                    if wp.static(counted):
+                        damping += dk
+                        dampers_in_out[j] = dampers_in_out[j] - dk
+            else:
+                j_local = head_local[k, i]
+                if j_local > i:
+                    j = base + j_local
+                    s = head_element[k, i]
+                    fk, dk = spring_pair(xi, particle_q[j], vi, particle_qd[j],
+                                         springs.rest_length[prepared.rest_base + s],
+                                         springs.stiffness[prepared.stiffness_row, s],
+                                         springs.damping[prepared.damping_row, s], law_at(values, springs, s))
+                    f += fk
+                    force_in_out[j] = force_in_out[j] - fk
+                    if wp.static(counted):
+                        damping += dk
+                        dampers_in_out[j] = dampers_in_out[j] - dk
+        if wp.static(tail):
+            for t in range(springs.incidence.tail_start[i], springs.incidence.tail_start[i + 1]):
+                j_local = springs.incidence.tail_local[t]
+                if j_local > i:
+                    j = base + j_local
+                    s = springs.incidence.tail_element[t]
+                    fk, dk = spring_pair(xi, particle_q[j], vi, particle_qd[j],
+                                         springs.rest_length[prepared.rest_base + s],
+                                         springs.stiffness[prepared.stiffness_row, s],
+                                         springs.damping[prepared.damping_row, s], law_at(values, springs, s))
+                    f += fk
+                    force_in_out[j] = force_in_out[j] - fk
+                    if wp.static(counted):
+                        damping += dk
+                        dampers_in_out[j] = dampers_in_out[j] - dk
+        return f, damping
+
+    return SweepFuncs(SpringWorld, prepare, forward)
 
 
 #: ``spring_scatter_kernel``'s ``dissipation`` rules (``DAMPER_*``): none, the trapezoid of the dampers' power, or

@@ -1,6 +1,7 @@
 """Symplectic (semi-implicit) Euler: v' = v + h M⁻¹ f(x, v); x' = x + h v'. First order, symplectic for
-conservative forces. With gathered springs (CUDA) a step is one fused kernel (forces, update and
-contacts in one pass); with scattered springs (CPU) it is force evaluation then the update."""
+conservative forces. With gathered springs a step is one fused kernel (forces, update and contacts in one pass):
+on CUDA one thread per particle; on the CPU one thread per world sweeping its particles in order, each spring
+evaluated once (``kernels/sweep.py``). With scattered springs it is force evaluation then the update."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import warp as wp
 from ...kernels.frames import symplectic_euler_frame_kernel
 from ...kernels.integrators import symplectic_euler_kernel, symplectic_euler_update_kernel
 from ...kernels.shapes import NO_CONTACTS
+from ...kernels.sweep import sweeps, symplectic_euler_sweep_kernel
 from ..contacts import update_shape_frames
 from ..families import ElementFamily
 from ..forces import eval_forces, force_inputs
@@ -35,7 +37,11 @@ class SymplecticEuler(Integrator):
             with gathered springs, colliders that do not move, no stabiliser, contact stage, triangle contacts or
             self-collision, no animated input, no driven pin, no family with time-dependent arrays (wind's,
             handles', precomputed tets'), no held worlds, and step hooks that work at the frame's end alone (the
-            default guard does).
+            default guard does). On the CPU it runs the per-particle step (``cpu_sweep`` does not apply).
+        cpu_sweep: on the CPU, with gathered springs, step each world in one thread sweeping its particles in
+            order, each spring evaluated once (``kernels/sweep.py``; 1.7-1.8x the per-particle step at 32²-64²,
+            bench/results/performance_cpu.md §0); False: one thread per particle, as on CUDA. Both give the same
+            forces, summed in another order (float rounding). No effect on CUDA or with scattered springs.
     """
 
     name = "symplectic_euler"
@@ -51,9 +57,10 @@ class SymplecticEuler(Integrator):
     #: Particles per world from which a world is spread over blocks by default (the smallest size measured faster).
     SPREAD_MIN_PARTICLES = 1024
 
-    def __init__(self, model, *, one_launch: bool | None = None):
+    def __init__(self, model, *, one_launch: bool | None = None, cpu_sweep: bool = True):
         super().__init__(model)
         self.one_launch = one_launch
+        self.cpu_sweep = bool(cpu_sweep)
         self._barrier = None  # per world: the block arrivals of a world spread over several blocks
 
     def frame_shape(self, control: Control | None, steps: int) -> tuple[int, int] | None:
@@ -129,9 +136,16 @@ class SymplecticEuler(Integrator):
         if model.spring_gather or model.spring_count == 0:
             evaluate_input_tracks(model, state_in)
             features = model.force_features(control)
+            power = None if self.power is None else self.power.modes
+            swept = self.cpu_sweep and model.device.is_cpu and sweeps(features)
+            if swept:  # one thread per world: the particles in order, each spring once
+                kernel = symplectic_euler_sweep_kernel(model.scalar, features, contacts, power)
+                # Its scratch: the two states' force arrays (the step's to use; left zero).
+                common["dim"], scratch = model.world_count, [state_in.particle_f, state_out.particle_f]
+            else:
+                kernel, scratch = symplectic_euler_kernel(model.scalar, features, contacts, power), []
             flat_launch(
-                symplectic_euler_kernel(model.scalar, features, contacts,
-                                        None if self.power is None else self.power.modes),
+                kernel,
                 inputs=[
                     model.particle_count,
                     model.particle_flags,
@@ -145,7 +159,7 @@ class SymplecticEuler(Integrator):
                     *step_arguments(model.scalar, dt),
                 ],
                 outputs=[state_out.particle_q, state_out.particle_qd, state_out.time,
-                         None if self.power is None else self.power.sums],
+                         None if self.power is None else self.power.sums, *scratch],
                 **common,
             )
         else:

@@ -1,0 +1,185 @@
+"""The CPU's symplectic Euler sweep (``kernels/sweep.py``): one thread per world, each spring evaluated once by its
+first particle, against the per-particle fused step it replaces on the CPU (``SymplecticEuler(cpu_sweep=False)``,
+the CUDA step).
+
+Both evaluate the same force terms: only the order of each particle's sum differs. In float64 a force sum's
+rounding is ~1e-16 relative to its terms, which symplectic Euler carries into the positions as h² f/m per step; over
+the few dozen steps here the states agree to ~1e-13 m, and the tolerances (1e-10 m, 1e-9 m/s) are far below any
+modelling difference (a spring left out or counted twice moves a particle by ≥ 1e-6 m in one step at these
+stiffnesses) while well above the rounding. The CPU only: the sweep is not launched on CUDA.
+"""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warpspring as ws
+from warpspring.kernels.sweep import sweeps
+
+DT = 1.0e-3
+STEPS = 40
+ATOL_Q, ATOL_QD = 1.0e-10, 1.0e-9
+
+
+def cloth(*, worlds=1, ground=False, hinges=False, device="cpu", **finalize) -> ws.Model:
+    """A 7 × 6 float64 cloth (structural, shear and bend springs of three stiffnesses), two corners pinned, with a
+    pinch of drag; ``ground``: a ground plane it falls onto; ``hinges``: dihedral hinges too (a second family)."""
+    builder = ws.ModelBuilder()
+    builder.add_cloth_grid(nx=7, ny=6, spacing=0.1, origin=(0.0, 0.0, 0.05 if ground else 1.0), particle_mass=0.05,
+                           structural=ws.SpringMaterial(800.0, 4.0), shear=ws.SpringMaterial(300.0, 2.0),
+                           bend=ws.SpringMaterial(100.0, 1.0), pin=["top-left", "top-right"],
+                           dihedral=ws.DihedralMaterial(1.0e-3, 1.0e-4) if hinges else None)
+    if ground:
+        builder.add_ground_plane(height=0.0)
+    model = builder.finalize(device, precision="float64", spring_evaluation="gather", worlds=worlds, **finalize)
+    model.gravity = (0.3, 0.0, -9.81)
+    model.drag = 0.02
+    return model
+
+
+def both(model: ws.Model, steps: int = STEPS, *, velocities=None) -> tuple:
+    """Trajectories of the sweep and of the per-particle step from the same start (random velocities, so that every
+    damper works from the first step)."""
+    start = model.state()
+    rng = np.random.default_rng(3)
+    qd = velocities if velocities is not None else rng.normal(scale=0.3, size=start.particle_qd.shape)
+    runs = []
+    for sweep in (True, False):
+        integrator = ws.SymplecticEuler(model, cpu_sweep=sweep)
+        a, b = model.state(), model.state()
+        a.particle_qd.assign(qd)
+        out = []
+        for _ in range(steps):
+            integrator.step(a, b, None, DT)
+            a, b = b, a
+            out.append((a.particle_q.numpy().copy(), a.particle_qd.numpy().copy()))
+        runs.append(out)
+    return runs
+
+
+def assert_same(runs) -> None:
+    for (q_sweep, qd_sweep), (q_fused, qd_fused) in zip(*runs):
+        np.testing.assert_allclose(q_sweep, q_fused, rtol=0.0, atol=ATOL_Q)
+        np.testing.assert_allclose(qd_sweep, qd_fused, rtol=0.0, atol=ATOL_QD)
+
+
+@pytest.mark.parametrize("layout", [{}, {"spring_grid": False}, {"spring_groups": False}])
+def test_the_sweep_steps_as_the_per_particle_step_in_every_layout(layout):
+    """The grid layout (neighbours from rows and columns), the grouped table and the per-spring table: the same
+    states as the per-particle step."""
+    model = cloth(**layout)
+    assert sweeps(model.force_features(None))
+    assert_same(both(model))
+
+
+def test_the_sweep_with_worlds_of_their_own_values_and_a_held_world():
+    """Three worlds with their own stiffness, damping, masses and gravity: each as in the per-particle step (every
+    world's row read once per sweep), and a held world left as it was by the hold pass after the sweep."""
+    model = cloth(worlds=3)
+    ke = model.world_values("spring_stiffness")[0]
+    model.set_world_values("spring_stiffness", ke[None, :] * np.array([0.5, 1.0, 2.0])[:, None])
+    model.set_world_values("spring_damping", np.array([0.5, 3.0, 1.0])[:, None] * np.ones_like(ke)[None, :])
+    model.set_world_values("particle_mass", np.array([0.04, 0.05, 0.08])[:, None] * np.ones(model.particle_count))
+    model.set_world_values("gravity", [[0.0, 0.0, -9.81], [0.0, 1.0, -5.0], [0.5, 0.0, -12.0]])
+    assert_same(both(model))
+    model.set_world_enabled([1], False)
+    runs = both(model)
+    assert_same(runs)
+    n = model.particle_count
+    held = model.state().particle_q.numpy()[n:2 * n]
+    np.testing.assert_array_equal(runs[0][-1][0][n:2 * n], held)
+
+
+def test_the_sweep_with_contacts_a_second_family_and_external_forces():
+    """A cloth falling onto the ground (contacts fused into the sweep) with dihedral hinges (a second family,
+    gathered per particle) and an external force per particle (the control's)."""
+    model = cloth(ground=True, hinges=True)
+    assert len(model.families) == 2 and sweeps(model.force_features(None))
+    runs = both(model, 60)
+    assert_same(runs)
+    assert runs[0][-1][0][:, 2].min() >= -1.0e-9  # the ground held it
+    control = model.control()
+    rng = np.random.default_rng(11)
+    control.particle_force = wp.array(rng.normal(scale=0.2, size=(model.particle_count, 3)), dtype=model.vec3,
+                                      device="cpu")
+    out = []
+    for sweep in (True, False):
+        a, b = model.state(), model.state()
+        integrator = ws.SymplecticEuler(model, cpu_sweep=sweep)
+        for _ in range(STEPS):
+            integrator.step(a, b, control, DT)
+            a, b = b, a
+        out.append(a.particle_q.numpy())
+    np.testing.assert_allclose(out[0], out[1], rtol=0.0, atol=ATOL_Q)
+
+
+def test_the_sweep_with_a_tail_and_per_spring_laws():
+    """A random network (particles with more springs than the table's head holds go to its tail) of linear, square
+    and asymmetric springs, rest lengths 0.6-1.4 times the built distances."""
+    rng = np.random.default_rng(5)
+    n = 40
+    q = rng.uniform(-1.0, 1.0, (n, 3))
+    builder = ws.ModelBuilder()
+    builder.add_particles(q, mass=rng.uniform(0.5, 2.0, n))
+    hub = np.stack([np.zeros(n - 1, dtype=np.int64), np.arange(1, n)], 1)  # particle 0 holds a spring to every other
+    pairs = np.unique(np.sort(rng.integers(0, n, (200, 2)), axis=1), axis=0)
+    pairs = np.concatenate([hub, pairs[(pairs[:, 0] != pairs[:, 1]) & (pairs[:, 0] != 0)]])
+    for group, options in zip(np.array_split(pairs, 3), ({}, {"law": "square"}, {"compression_stiffness": 3.0})):
+        distance = np.linalg.norm(q[group[:, 1]] - q[group[:, 0]], axis=1)
+        builder.add_springs(group, stiffness=10.0, damping=0.2,
+                            rest_length=distance * rng.uniform(0.6, 1.4, len(group)), **options)
+    model = builder.finalize("cpu", precision="float64", spring_evaluation="gather")
+    assert model.force_features(None).families[0].incidence.tail  # the hub's springs reach the tail
+    runs = both(model, 30, velocities=rng.normal(scale=0.5, size=(n, 3)))
+    assert_same(runs)
+
+
+def test_the_guards_power_sums_are_the_per_particle_steps():
+    """With the default guard the sweep counts the dampers' and drag's energy per particle as the per-particle
+    step does (the springs' dampers' part swept with their force): the power sums and the states agree."""
+    sums, states = [], []
+    for sweep in (True, False):
+        model = cloth()
+        sim = ws.Simulator(model, fps=60, substeps=8, integrator=ws.SymplecticEuler(model, cpu_sweep=sweep),
+                           guard=ws.GuardLimits())
+        sim.state.particle_qd.assign(np.random.default_rng(3).normal(scale=0.3, size=(model.particle_count, 3)))
+        for _ in range(3):
+            sim.step_frame()
+        power = sim.integrator.power
+        assert power is not None  # counted in the step
+        sums.append(power.sums.numpy().copy())
+        states.append(sim.state.particle_q.numpy())
+    assert np.abs(sums[1]).max() > 1.0e-6  # something was counted
+    np.testing.assert_allclose(sums[0], sums[1], rtol=1.0e-9, atol=1.0e-15)
+    np.testing.assert_allclose(states[0], states[1], rtol=0.0, atol=ATOL_Q)
+
+
+def test_the_sweep_ignores_what_the_force_arrays_held_and_leaves_them_zero():
+    """The sweep's scratch is the two states' force arrays: whatever they held before a step (another integrator's
+    forces, a user's writes), the step is the same; it leaves the input's zero (the output's is the dampers' scratch,
+    used with the guard only: untouched here)."""
+    model = cloth(worlds=2)
+    integrator = ws.SymplecticEuler(model)
+    clean = (model.state(), model.state())
+    dirty = (model.state(), model.state())
+    rng = np.random.default_rng(2)
+    for state in dirty:
+        state.particle_f.assign(rng.normal(scale=50.0, size=state.particle_f.shape + (3,)))
+    for a, b in (clean, dirty):
+        integrator.step(a, b, None, DT)
+    np.testing.assert_array_equal(dirty[1].particle_q.numpy(), clean[1].particle_q.numpy())
+    np.testing.assert_array_equal(dirty[1].particle_qd.numpy(), clean[1].particle_qd.numpy())
+    np.testing.assert_array_equal(dirty[0].particle_f.numpy(), 0.0)
+
+
+def test_the_option_changes_nothing_on_cuda(device):
+    """``cpu_sweep`` selects the CPU's step only: on CUDA both settings launch the per-particle step (bit for bit the
+    same states); on the CPU the two steps agree to the rounding of their sums."""
+    model = cloth(device=device)
+    runs = both(model, 10)
+    if device == "cpu":
+        assert_same(runs)
+        return
+    for (q_sweep, qd_sweep), (q_fused, qd_fused) in zip(*runs):
+        np.testing.assert_array_equal(q_sweep, q_fused)
+        np.testing.assert_array_equal(qd_sweep, qd_fused)
