@@ -39,6 +39,7 @@ from .. import checks
 from ..errors import ConfigError
 from ..kernels.guards import BALANCE_SLOTS, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS, PARTIAL_SLOTS, RUNNING_SLOTS
 from ..kernels.inputs import INPUT_COUNT
+from ..kernels.linalg import CG_SHORT_SLOTS
 from ..kernels.selfcontact import CACHE_SLOTS, COUNTER_COUNT, FLAG_KINDS, PAIRS_PER_VERTEX, PARAM_COUNT, SCAN_BLOCK
 
 #: Bytes per floating-point number of each precision.
@@ -568,7 +569,7 @@ def estimate_memory(
     scratch = per_vec3 * vec3 * size + per_scalar * f * size + 8 * per_block * blocks + 8 * per_world_f64 * w
     scratch += 4 * per_world_i32 * w + (4 if integrator in ("dopri5", "implicit_euler") else 0)
     if integrator == "implicit_euler":
-        scratch += 16  # the CG settings
+        scratch += 16 + 8 * CG_SHORT_SLOTS * w  # the CG settings; each world's solves stopped at the cap, worst residual
     # The guard: its records (and their clear copies), partial sums per block, limits, each world's work put in
     # and energy balance, the positions, velocities and loads of its last check, and the elastic energy's partial
     # sums per block of each family's elements, and the running dissipation of those blocks and the particles'
