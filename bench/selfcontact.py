@@ -147,15 +147,18 @@ def profile(n: int, device, repeats: int) -> list[str]:
     kernels = host.__dict__
     labelled = []
     for swept, stage in ((False, "repulsion"), (True, "cap")):
-        labelled += [(kernels["leaf_kernel"](model.scalar, swept), f"triangle boxes ({stage})"),
-                     (kernels["broad_vt_kernel"](model.scalar, swept), f"broad phase VT ({stage})"),
-                     (kernels["broad_ee_kernel"](model.scalar, swept), f"broad phase EE ({stage})")]
+        labelled.append((kernels["leaf_kernel"](model.scalar, swept), f"triangle boxes ({stage})"))
+        if "broad_kernel" in kernels:  # one query per triangle
+            labelled.append((kernels["broad_kernel"](model.scalar, swept), f"broad phase VT + EE ({stage})"))
+        else:  # one per vertex and one per edge
+            labelled += [(kernels["broad_vt_kernel"](model.scalar, swept), f"broad phase VT ({stage})"),
+                         (kernels["broad_ee_kernel"](model.scalar, swept), f"broad phase EE ({stage})")]
     labelled += [(kernels["fill_kernel"](), "CSR fill"),
                  (kernels["repel_pairs_kernel"](model.scalar), "narrow phase: repulsion per pair"),
                  (kernels["repel_gather_kernel"](model.scalar), "gather: repulsion per vertex"),
                  (kernels["cap_gather_kernel"](model.scalar), "gather: cap per vertex")]
     for name, text in (("check_kernel", "cache check per vertex"), ("cap_bounds_kernel", "cap bounds per cached pair"),
-                       ("anchor_kernel", "cache anchors (rebuild)")):
+                       ("anchor_kernel", "cache anchors (rebuild)"), ("decide_kernel", "cache decisions per world")):
         if name in kernels:
             labelled.append((kernels[name](model.scalar), text))
     if "reset_kernel" in kernels:
@@ -207,7 +210,7 @@ def profile(n: int, device, repeats: int) -> list[str]:
         host.flat_launch = timed(lambda kernel, *a: by_id.get(id(kernel), kernel.key), host.flat_launch)
         wp.utils.array_scan = timed(lambda *a: "array_scan", wp.utils.array_scan)
         wp.Bvh.refit = timed(lambda *a: "Bvh.refit", wp.Bvh.refit)
-        for branch in ("_rebuild", "_fallback"):
+        for branch in ("_rebuild", "_fallback", "_repel_stage", "_cap_stage"):
             if hasattr(host.SelfContact, branch):
                 saved.append((host.SelfContact, branch, getattr(host.SelfContact, branch)))
                 setattr(host.SelfContact, branch, timed(lambda *a, b=branch: f"branch {b} (whole)",
