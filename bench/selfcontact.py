@@ -26,6 +26,7 @@ launch, scan and refit.
     python bench/selfcontact.py --device cuda:0 --profile  # where the pass's time goes, per launch
     python bench/selfcontact.py --device cpu --sizes 16 32 --example-frames 3 --baseline 65f7792
     python bench/selfcontact.py --device cpu --sizes 16 --radius-study   # the cap's pair counts by radius
+    python bench/selfcontact.py --device cpu --sizes 32 64 --rebuild-study 4   # the cache's rebuilds by rule
 
 The cost table (the default mode) times, at each size, the substep without and with self-collision
 (``none``, ``self``; ``--pass-alone`` adds ``pass``), and each self-collision example's simulation loop
@@ -35,6 +36,10 @@ compiles, untimed; ``--example-frames`` caps the frames, default the scene's) in
 checkout, or any folder holding an older ``warpspring/`` package) the same measurement runs again in a
 subprocess that imports that tree's ``warpspring`` (this script and its bench helpers are the same), in the
 same call, and the table puts the two side by side. ``--json PATH`` writes the numbers.
+
+``--rebuild-study FRAMES`` replays the ``self`` scene's substeps over FRAMES frames after the settling on the host
+in float64 and counts the cache's rebuilds under four rules: the pass's before and now, the per-pair bound no
+pass can evaluate (it needs every pair), and the pairs' true distances (the fewest rebuilds any rule can make).
 
 ``--radius-study`` steps the ``self`` scene through its fall (the settling frames, every substep uncaptured)
 and, every fourth substep, counts on the host in float64 the pairs a radius-based cap would have to examine
@@ -210,7 +215,7 @@ def profile(n: int, device, repeats: int) -> list[str]:
         host.flat_launch = timed(lambda kernel, *a: by_id.get(id(kernel), kernel.key), host.flat_launch)
         wp.utils.array_scan = timed(lambda *a: "array_scan", wp.utils.array_scan)
         wp.Bvh.refit = timed(lambda *a: "Bvh.refit", wp.Bvh.refit)
-        for branch in ("_rebuild", "_fallback", "_repel_stage", "_cap_stage"):
+        for branch in ("_rebuild", "_fallback", "_stages"):
             if hasattr(host.SelfContact, branch):
                 saved.append((host.SelfContact, branch, getattr(host.SelfContact, branch)))
                 setattr(host.SelfContact, branch, timed(lambda *a, b=branch: f"branch {b} (whole)",
@@ -269,6 +274,77 @@ def radius_study(n: int, device) -> list[str]:
         ("swept boxes, kept when max δ > γ(D - K) (this pass)", counts["listed"]),
         ("D < max r over the pair's vertices, r = min(δ/γ, 32τ)", counts["radius"]),
         ("D < 32τ", counts["fixed"]))]
+
+
+def rebuild_study(n: int, device, frames: int) -> list[str]:
+    """Markdown rows: how often the pair cache must be rebuilt over ``frames`` frames after the settling, by rule,
+    replayed on the host in float64 over the ``self`` scene's substeps (the cache reach R = CACHE_REACH τ; a rule
+    rebuilds at a substep where it can no longer prove every pair outside the cache REPULSION_REACH τ apart)."""
+    from scipy.spatial import cKDTree
+
+    from warpspring.analysis.audit import edge_edge_distance, surface_edges, vertex_triangle_distance
+    from warpspring.kernels.selfcontact import CACHE_REACH, REPULSION_REACH
+
+    model = scene(n, device, True)
+    sim = ws.Simulator(model, fps=FPS * SUBSTEPS, substeps=1, guard=None)  # one substep per call: the same steps
+    for _ in range(SETTLE_FRAMES * SUBSTEPS):
+        sim.step_frame()
+    path = []
+    for _ in range(frames * SUBSTEPS):
+        sim.step_frame()
+        path.append(sim.state.particle_q.numpy().astype(np.float64))
+    triangles = model.tri_indices.numpy().astype(np.int64)
+    edges = surface_edges(triangles)
+    surface = np.unique(triangles)
+    ref = triangles[len(triangles) // 2][0]
+    tau = THICKNESS
+    reach, near = CACHE_REACH * tau, REPULSION_REACH * tau
+    # Candidate pairs: every pair sharing no vertex whose elements' centres are within 0.5 m at the first substep
+    # (0.5 m: further than any element moves relative to another over the frames studied here).
+    x0 = path[0]
+    vt = [(v, t) for v, ts in enumerate(cKDTree(x0[triangles].mean(1)).query_ball_point(x0, 0.5)) for t in ts
+          if v not in triangles[t]]
+    vt = np.array(vt, dtype=np.int64).reshape(-1, 2)
+    ee = np.array([(a, b) for a, b in cKDTree(x0[edges].mean(1)).query_pairs(0.5)
+                   if len({*edges[a], *edges[b]}) == 4], dtype=np.int64).reshape(-1, 2)
+    side_a = np.concatenate([np.repeat(vt[:, :1], 2, axis=1), edges[ee[:, 0]]])
+    side_b = np.concatenate([triangles[vt[:, 1]], np.concatenate([edges[ee[:, 1]], edges[ee[:, 1], :1]], axis=1)])
+
+    def distances(x):
+        return np.concatenate([
+            vertex_triangle_distance(x[vt[:, 0]], *(x[triangles[vt[:, 1], k]] for k in range(3))),
+            edge_edge_distance(x[edges[ee[:, 0], 0]], x[edges[ee[:, 0], 1]], x[edges[ee[:, 1], 0]],
+                               x[edges[ee[:, 1], 1]])])
+
+    def reference(drift, *_):
+        r = drift[surface] - drift[ref]
+        return np.linalg.norm(r, axis=1).max() > 0.5 * (reach - near)
+
+    def box(drift, *_):
+        r = drift[surface] - drift[ref]
+        return reference(drift) and np.linalg.norm(r.max(0) - r.min(0)) > reach - near
+
+    def per_pair(drift, anchored, _):
+        apart = np.linalg.norm(drift[side_a][:, :, None] - drift[side_b][:, None], axis=-1).max(axis=(1, 2))
+        return np.any((anchored >= reach) & (anchored - apart < near))
+
+    def exact(_, anchored, x):
+        return np.any((anchored >= reach) & (distances(x) < near))
+
+    rows = []
+    for name, rule in (("largest drift from the reference vertex ≤ (R - 2τ)/2 (before)", reference),
+                       ("that, or the drifts' box diagonal ≤ R - 2τ (now)", box),
+                       ("each pair's own largest drift difference (needs every pair: not implementable)", per_pair),
+                       ("the pairs' distances themselves (the least any rule can do)", exact)):
+        rebuilds, anchor, anchored = 0, None, None
+        for x in path:
+            if anchor is None or rule(x - anchor, anchored, x):
+                anchor, anchored, rebuilds = x, distances(x), rebuilds + 1
+        rows.append(f"| {n} | {name} | {rebuilds} / {len(path)} |")
+    step = np.linalg.norm(np.diff(np.array(path), axis=0), axis=2)
+    rows.append(f"| {n} | (a particle's step per substep: median {np.median(step) * 1e3:.2f} mm, largest "
+                f"{step.max() * 1e3:.2f} mm) | |")
+    return rows
 
 
 EXAMPLES = ["twisted_cloth", "stacked_cloths", "cloth_fold_on_bar", "thin_colliders"]
@@ -444,9 +520,24 @@ def main():
     parser.add_argument("--profile", action="store_true", help="time each launch of one pass instead")
     parser.add_argument("--repeats", type=int, default=20, help="passes averaged by --profile")
     parser.add_argument("--radius-study", action="store_true", help="count the cap's pairs by candidate rule instead")
+    parser.add_argument("--rebuild-study", type=int, default=0, metavar="FRAMES",
+                        help="count the cache's rebuilds by rule over FRAMES frames after the settling instead")
     args = parser.parse_args()
     wp.init()
     device = wp.get_device(args.device)
+    if args.rebuild_study:
+        lines = [
+            f"The pair cache's rebuilds by rule on {device.name}, Warp {wp.config.version}, {datetime.date.today()}: the "
+            f"draped cloth's {args.rebuild_study} frames after {SETTLE_FRAMES} frames of settling, every substep, "
+            f"replayed on the host in float64 (τ = {THICKNESS} m, cache reach R = 3τ)",
+            "",
+            "| N | the cache holds while | rebuilds / substeps |",
+            "|---|---|---|",
+        ]
+        for n in args.sizes:
+            lines += rebuild_study(n, device, args.rebuild_study)
+        emit_table(lines, args.out)
+        return
     if args.radius_study:
         lines = [
             f"The cap's pairs per substep by candidate rule on {device.name}, Warp {wp.config.version}, "

@@ -463,10 +463,15 @@ class SelfContact:
         start, particle_q = state_in.particle_q, state_out.particle_q
         self._prepare(start, particle_q)
         # The stages run where a world has cached pairs or a vertex steps too far for the cache; elsewhere they would
-        # leave state_out as it is (kernels/selfcontact_cache.py, decide_kernel): three conditional nodes, no nesting.
-        self._branch(self._work, self._repel_stage, start=start, particle_q=particle_q)
+        # leave state_out as it is (kernels/selfcontact_cache.py, decide_kernel).
+        self._branch(self._work, self._stages, start=start, particle_q=particle_q, state_out=state_out, dt=dt)
+
+    def _stages(self, start: wp.array, particle_q: wp.array, state_out, dt: float) -> None:
+        """Both stages after the flags: the repulsion, the cap's swept broad phase where flagged (a conditional node
+        within this one's), the cap."""
+        self._repel_stage(start, particle_q)
         self._branch(self.flags[1:2], self._fallback, start=start, end=self.corrected)
-        self._branch(self._work, self._cap_stage, start=start, particle_q=self.corrected, state_out=state_out, dt=dt)
+        self._cap_stage(start, self.corrected, state_out, dt)
 
 
 def make_self_contact(model, triangles: np.ndarray, positions: np.ndarray, settings: dict) -> SelfContact:
