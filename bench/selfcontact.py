@@ -73,6 +73,7 @@ from cloth import FPS, SUBSTEPS, emit_table, measure
 from contacts import SETTLE_FRAMES, contact_model
 
 THICKNESS = 0.02  # [m]
+COUNT_FRAMES = 4  # frames after the timing over which the pass's counts are taken
 FRICTION = 0.3
 
 
@@ -350,10 +351,44 @@ def rebuild_study(n: int, device, frames: int) -> list[str]:
 EXAMPLES = ["twisted_cloth", "stacked_cloths", "cloth_fold_on_bar", "thin_colliders"]
 
 
-def cost(n: int, device, seconds: float, pass_alone: bool) -> dict:
+def fixed_frames(make_runner, device, frames: int) -> tuple[object, float]:
+    """(the runner, µs per substep over ``frames`` frames right after the settling, one warm-up frame first): every
+    variant and every tree times the same stretch of the same motion (the pass's results are the same bits)."""
+    runner = make_runner()
+    runner.frame()  # the first frame after the settling (a graph capture, module loads) is not timed
+    wp.synchronize_device(device)
+    start = time.perf_counter()
+    for _ in range(frames):
+        runner.frame()
+    wp.synchronize_device(device)
+    return runner, (time.perf_counter() - start) / (frames * SUBSTEPS) * 1e6
+
+
+def cost(n: int, device, seconds: float, pass_alone: bool, timed_frames: int = 0) -> dict:
     """The draped cloth at N = n: µs per substep without and with self-collision (and the pass alone), the pairs
-    pushed, vertices capped, cache rebuilds and cap fallbacks per substep over one frame after the timing."""
+    pushed, vertices capped, cache rebuilds and cap fallbacks per substep over COUNT_FRAMES frames after the
+    timing; with ``timed_frames``, timed over exactly that many frames after the settling and its warm-up frame,
+    and counted over those and the warm-up frame."""
     result = {}
+    if timed_frames:
+        for variant, self_collision in (("none", False), ("self", True)):
+            def make(s=self_collision):
+                runner = Runner(scene(n, device, s))
+                if s:
+                    runner.sim.model.self_contact.reset()  # counted from the warm-up frame on
+                return runner
+
+            runner, result[variant] = fixed_frames(make, device, timed_frames)
+            print(f"N={n} {variant}: {result[variant]:.1f} µs per substep over {timed_frames} frames", flush=True)
+            if self_collision:
+                sc = runner.sim.model.self_contact
+                substeps = (timed_frames + 1) * SUBSTEPS
+                counts = {k: int(v.sum()) / substeps for k, v in sc.counts().items()}
+                if hasattr(sc, "cache_counts"):
+                    counts.update({k: int(v.sum()) / substeps for k, v in sc.cache_counts().items()})
+                result["counts"] = counts
+                result["dropped"] = int(sc.overflow().sum())
+        return result
     variants = [("none", lambda: Runner(scene(n, device, False))), ("self", lambda: Runner(scene(n, device, True)))]
     if pass_alone:
         variants.append(("pass", lambda: PassRunner(scene(n, device, True))))
@@ -369,10 +404,12 @@ def cost(n: int, device, seconds: float, pass_alone: bool) -> dict:
         if variant == "self":
             sc = holder["runner"].sim.model.self_contact
             sc.reset()
-            holder["runner"].frame()
-            counts = {k: int(v.sum()) / SUBSTEPS for k, v in sc.counts().items()}
+            for _ in range(COUNT_FRAMES):
+                holder["runner"].frame()
+            substeps = COUNT_FRAMES * SUBSTEPS
+            counts = {k: int(v.sum()) / substeps for k, v in sc.counts().items()}
             if hasattr(sc, "cache_counts"):
-                counts.update({k: int(v.sum()) / SUBSTEPS for k, v in sc.cache_counts().items()})
+                counts.update({k: int(v.sum()) / substeps for k, v in sc.cache_counts().items()})
             result["counts"] = counts
             result["dropped"] = int(sc.overflow().sum())
     return result
@@ -410,7 +447,7 @@ def example_cost(name: str, device, frames: int | None) -> dict:
 
 def measure_all(args, device) -> dict:
     return {"device": device.name, "warp": wp.config.version, "warpspring": os.path.dirname(ws.__file__),
-            "sizes": {str(n): cost(n, device, args.seconds, args.pass_alone) for n in args.sizes},
+            "sizes": {str(n): cost(n, device, args.seconds, args.pass_alone, args.timed_frames) for n in args.sizes},
             "examples": {name: example_cost(name, device, args.example_frames) for name in args.examples}}
 
 
@@ -460,6 +497,13 @@ def ratio(a, b) -> str:
     return f"{a / b:.1f}×" if a and b else "–"
 
 
+def counts_text(counts: dict | None) -> str:
+    """A baseline's cache rebuilds / cap fallbacks per substep, or a dash."""
+    if not counts or "rebuilds" not in counts:
+        return "–"
+    return f"{counts['rebuilds']:.3f} / {counts['fallbacks']:.3f}"
+
+
 def cost_table(new: dict, old: dict | None, args) -> list[str]:
     lines = [
         f"Self-collision's cost on {new['device']}, Warp {new['warp']}, {datetime.date.today()}: the cloth draped "
@@ -470,8 +514,8 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
         "",
         "| N | without | with | with / without | pass cost (with - without) | baseline: with | baseline: with / "
         "without | baseline: pass cost | pass cost, baseline / now | pairs pushed / capped vertices per substep | "
-        "cache rebuilds / cap fallbacks per substep |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "cache rebuilds / cap fallbacks per substep | baseline: rebuilds / fallbacks |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for n, now in new["sizes"].items():
         then = (old or {}).get("sizes", {}).get(n, {})
@@ -483,7 +527,8 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
             f"{then.get('self', float('nan')):.1f} | {ratio(then.get('self'), then.get('none'))} | "
             f"{extra_then if then else float('nan'):.1f} | "
             f"{ratio(extra_then, extra_now) if then else '–'} | {c['pairs']:.1f} / {c['capped']:.1f} | "
-            f"{c.get('rebuilds', float('nan')):.3f} / {c.get('fallbacks', float('nan')):.3f} |")
+            f"{c.get('rebuilds', float('nan')):.3f} / {c.get('fallbacks', float('nan')):.3f} | "
+            f"{counts_text(then.get('counts'))} |")
     if new["examples"]:
         lines += [
             "",
@@ -491,8 +536,8 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
             "substep over the frames after the first",
             "",
             "| example | particles | frames | µs per substep | baseline | baseline / now | pairs pushed per substep "
-            "| cache rebuilds / cap fallbacks per substep |",
-            "|---|---|---|---|---|---|---|---|",
+            "| cache rebuilds / cap fallbacks per substep | baseline: rebuilds / fallbacks |",
+            "|---|---|---|---|---|---|---|---|---|",
         ]
         for name, now in new["examples"].items():
             then = (old or {}).get("examples", {}).get(name, {})
@@ -500,7 +545,7 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
             lines.append(
                 f"| {name} | {now['particles']} | {now['frames']} | {now['us']:.1f} | {then.get('us', float('nan')):.1f} "
                 f"| {ratio(then.get('us'), now['us'])} | {c['pairs']:.1f} | {c.get('rebuilds', float('nan')):.3f} / "
-                f"{c.get('fallbacks', float('nan')):.3f} |")
+                f"{c.get('fallbacks', float('nan')):.3f} | {counts_text(then.get('counts'))} |")
     return lines
 
 
@@ -512,6 +557,9 @@ def main():
     parser.add_argument("--out", default=None, help="also write the table to this file")
     parser.add_argument("--json", default=None, help="write the cost table's numbers to this file")
     parser.add_argument("--pass-alone", action="store_true", help="also time the pass alone on the settled state")
+    parser.add_argument("--timed-frames", type=int, default=0,
+                        help="time exactly this many frames after the settling (the same motion in every run and tree; "
+                             "the counts over them) instead of --seconds of batches")
     parser.add_argument("--examples", nargs="*", default=EXAMPLES, help="self-collision examples to time")
     parser.add_argument("--example-frames", type=int, default=None, help="frames per example (default: the scene's)")
     parser.add_argument("--baseline", default=None, help="git revision to measure alongside (a temporary worktree)")
