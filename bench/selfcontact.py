@@ -23,6 +23,8 @@ memsets, the scan's and the BVH refit's own kernels), on the CPU a synchronised 
 launch, scan and refit.
 
     python bench/selfcontact.py --device cuda:0 --baseline-tree OLD   # the cost table, against OLD's warpspring
+    python bench/selfcontact.py --device cuda:0 --sizes 64 256 1024 --timed-frames 16 --example-frames 60 \
+        --baseline-tree build/baseline-303e64f   # the same 16 frames in both trees (the pass's bits are the same)
     python bench/selfcontact.py --device cuda:0 --profile  # where the pass's time goes, per launch
     python bench/selfcontact.py --device cpu --sizes 16 32 --example-frames 3 --baseline 65f7792
     python bench/selfcontact.py --device cpu --sizes 16 --radius-study   # the cap's pair counts by radius
