@@ -14,7 +14,8 @@ whole keeps its cache. Each step:
    units of τ / KINEMATIC_STEPS rounded up): the largest |r| and the box of the r, each padded for rounding;
    ``decide_kernel`` keeps the cache when |rᵢ - rⱼ| ≤ R - REPULSION_REACH τ (less a slack ``SAFETY``) for every
    i and j, by either bound: the largest |r| at most half of it, or the box's diagonal at most all of it (a
-   sheet falling past a still part of itself doubles the time between rebuilds against the first bound alone).
+   sheet falling past a still part of itself spreads its drifts along one axis: the second allows twice the
+   drift of the first there).
    Pairs outside the cache are then at least REPULSION_REACH τ apart at x⁰. Otherwise the world is flagged for a
    rebuild (FLAG_REBUILD). A world that was never built has R = 0 and is flagged; so is one whose τ grew or
    whose state was replaced. The world's largest kinematic displacement K_w of the step is reduced into
@@ -31,8 +32,7 @@ whole keeps its cache. Each step:
    run the cap's swept broad phase as before (a conditional node). The others test each cached pair as the
    swept broad phase would (``cap_bounds_kernel``: the same single-precision swept boxes, the same overlap
    and keep tests), so the cap keeps exactly the pairs it kept before, and ends at the same bits.
-
-5. The pair stages (3. and 4.) run in conditional nodes on FLAG_WORK, which ``decide_kernel`` and
+5. The pair stages (3. and 4., the swept broad phase's node nested) run in one conditional node on FLAG_WORK, which ``decide_kernel`` and
    ``anchor_kernel`` raise where a world has cached pairs, or where a free vertex's step (FLAG_STEP) may exceed
    what the repulsion's gather allows without the swept broad phase. Where none does, the stages would push no
    pair, run no swept broad phase and cap no vertex (each step is below γ SEARCH_REACH τ), so ``state_out`` is
