@@ -23,9 +23,12 @@ memsets, the scan's and the BVH refit's own kernels), on the CPU a synchronised 
 launch, scan and refit.
 
     python bench/selfcontact.py --device cuda:0 --baseline-tree OLD   # the cost table, against OLD's warpspring
+    python bench/selfcontact.py --device cuda:0 --sizes 64 256 1024 --timed-frames 16 --example-frames 60 \
+        --baseline-tree build/baseline-303e64f   # the same 16 frames in both trees (the pass's bits are the same)
     python bench/selfcontact.py --device cuda:0 --profile  # where the pass's time goes, per launch
     python bench/selfcontact.py --device cpu --sizes 16 32 --example-frames 3 --baseline 65f7792
     python bench/selfcontact.py --device cpu --sizes 16 --radius-study   # the cap's pair counts by radius
+    python bench/selfcontact.py --device cpu --sizes 32 64 --rebuild-study 4   # the cache's rebuilds by rule
 
 The cost table (the default mode) times, at each size, the substep without and with self-collision
 (``none``, ``self``; ``--pass-alone`` adds ``pass``), and each self-collision example's simulation loop
@@ -35,6 +38,10 @@ compiles, untimed; ``--example-frames`` caps the frames, default the scene's) in
 checkout, or any folder holding an older ``warpspring/`` package) the same measurement runs again in a
 subprocess that imports that tree's ``warpspring`` (this script and its bench helpers are the same), in the
 same call, and the table puts the two side by side. ``--json PATH`` writes the numbers.
+
+``--rebuild-study FRAMES`` replays the ``self`` scene's substeps over FRAMES frames after the settling on the host
+in float64 and counts the cache's rebuilds under four rules: the pass's before and now, the per-pair bound no
+pass can evaluate (it needs every pair), and the pairs' true distances (the fewest rebuilds any rule can make).
 
 ``--radius-study`` steps the ``self`` scene through its fall (the settling frames, every substep uncaptured)
 and, every fourth substep, counts on the host in float64 the pairs a radius-based cap would have to examine
@@ -68,6 +75,7 @@ from cloth import FPS, SUBSTEPS, emit_table, measure
 from contacts import SETTLE_FRAMES, contact_model
 
 THICKNESS = 0.02  # [m]
+COUNT_FRAMES = 4  # frames after the timing over which the pass's counts are taken
 FRICTION = 0.3
 
 
@@ -147,15 +155,18 @@ def profile(n: int, device, repeats: int) -> list[str]:
     kernels = host.__dict__
     labelled = []
     for swept, stage in ((False, "repulsion"), (True, "cap")):
-        labelled += [(kernels["leaf_kernel"](model.scalar, swept), f"triangle boxes ({stage})"),
-                     (kernels["broad_vt_kernel"](model.scalar, swept), f"broad phase VT ({stage})"),
-                     (kernels["broad_ee_kernel"](model.scalar, swept), f"broad phase EE ({stage})")]
+        labelled.append((kernels["leaf_kernel"](model.scalar, swept), f"triangle boxes ({stage})"))
+        if "broad_kernel" in kernels:  # one query per triangle
+            labelled.append((kernels["broad_kernel"](model.scalar, swept), f"broad phase VT + EE ({stage})"))
+        else:  # one per vertex and one per edge
+            labelled += [(kernels["broad_vt_kernel"](model.scalar, swept), f"broad phase VT ({stage})"),
+                         (kernels["broad_ee_kernel"](model.scalar, swept), f"broad phase EE ({stage})")]
     labelled += [(kernels["fill_kernel"](), "CSR fill"),
                  (kernels["repel_pairs_kernel"](model.scalar), "narrow phase: repulsion per pair"),
                  (kernels["repel_gather_kernel"](model.scalar), "gather: repulsion per vertex"),
                  (kernels["cap_gather_kernel"](model.scalar), "gather: cap per vertex")]
     for name, text in (("check_kernel", "cache check per vertex"), ("cap_bounds_kernel", "cap bounds per cached pair"),
-                       ("anchor_kernel", "cache anchors (rebuild)")):
+                       ("anchor_kernel", "cache anchors (rebuild)"), ("decide_kernel", "cache decisions per world")):
         if name in kernels:
             labelled.append((kernels[name](model.scalar), text))
     if "reset_kernel" in kernels:
@@ -207,7 +218,7 @@ def profile(n: int, device, repeats: int) -> list[str]:
         host.flat_launch = timed(lambda kernel, *a: by_id.get(id(kernel), kernel.key), host.flat_launch)
         wp.utils.array_scan = timed(lambda *a: "array_scan", wp.utils.array_scan)
         wp.Bvh.refit = timed(lambda *a: "Bvh.refit", wp.Bvh.refit)
-        for branch in ("_rebuild", "_fallback"):
+        for branch in ("_rebuild", "_fallback", "_stages"):
             if hasattr(host.SelfContact, branch):
                 saved.append((host.SelfContact, branch, getattr(host.SelfContact, branch)))
                 setattr(host.SelfContact, branch, timed(lambda *a, b=branch: f"branch {b} (whole)",
@@ -268,13 +279,118 @@ def radius_study(n: int, device) -> list[str]:
         ("D < 32τ", counts["fixed"]))]
 
 
+def rebuild_study(n: int, device, frames: int) -> list[str]:
+    """Markdown rows: how often the pair cache must be rebuilt over ``frames`` frames after the settling, by rule,
+    replayed on the host in float64 over the ``self`` scene's substeps (the cache reach R = CACHE_REACH τ; a rule
+    rebuilds at a substep where it can no longer prove every pair outside the cache REPULSION_REACH τ apart)."""
+    from scipy.spatial import cKDTree
+
+    from warpspring.analysis.audit import edge_edge_distance, surface_edges, vertex_triangle_distance
+    from warpspring.kernels.selfcontact import CACHE_REACH, REPULSION_REACH
+
+    model = scene(n, device, True)
+    sim = ws.Simulator(model, fps=FPS * SUBSTEPS, substeps=1, guard=None)  # one substep per call: the same steps
+    for _ in range(SETTLE_FRAMES * SUBSTEPS):
+        sim.step_frame()
+    path = []
+    for _ in range(frames * SUBSTEPS):
+        sim.step_frame()
+        path.append(sim.state.particle_q.numpy().astype(np.float64))
+    triangles = model.tri_indices.numpy().astype(np.int64)
+    edges = surface_edges(triangles)
+    surface = np.unique(triangles)
+    ref = triangles[len(triangles) // 2][0]
+    tau = THICKNESS
+    reach, near = CACHE_REACH * tau, REPULSION_REACH * tau
+    # Candidate pairs: every pair sharing no vertex whose elements' centres are within 0.5 m at the first substep
+    # (0.5 m: further than any element moves relative to another over the frames studied here).
+    x0 = path[0]
+    vt = [(v, t) for v, ts in enumerate(cKDTree(x0[triangles].mean(1)).query_ball_point(x0, 0.5)) for t in ts
+          if v not in triangles[t]]
+    vt = np.array(vt, dtype=np.int64).reshape(-1, 2)
+    ee = np.array([(a, b) for a, b in cKDTree(x0[edges].mean(1)).query_pairs(0.5)
+                   if len({*edges[a], *edges[b]}) == 4], dtype=np.int64).reshape(-1, 2)
+    side_a = np.concatenate([np.repeat(vt[:, :1], 2, axis=1), edges[ee[:, 0]]])
+    side_b = np.concatenate([triangles[vt[:, 1]], np.concatenate([edges[ee[:, 1]], edges[ee[:, 1], :1]], axis=1)])
+
+    def distances(x):
+        return np.concatenate([
+            vertex_triangle_distance(x[vt[:, 0]], *(x[triangles[vt[:, 1], k]] for k in range(3))),
+            edge_edge_distance(x[edges[ee[:, 0], 0]], x[edges[ee[:, 0], 1]], x[edges[ee[:, 1], 0]],
+                               x[edges[ee[:, 1], 1]])])
+
+    def reference(drift, *_):
+        r = drift[surface] - drift[ref]
+        return np.linalg.norm(r, axis=1).max() > 0.5 * (reach - near)
+
+    def box(drift, *_):
+        r = drift[surface] - drift[ref]
+        return reference(drift) and np.linalg.norm(r.max(0) - r.min(0)) > reach - near
+
+    def per_pair(drift, anchored, _):
+        apart = np.linalg.norm(drift[side_a][:, :, None] - drift[side_b][:, None], axis=-1).max(axis=(1, 2))
+        return np.any((anchored >= reach) & (anchored - apart < near))
+
+    def exact(_, anchored, x):
+        return np.any((anchored >= reach) & (distances(x) < near))
+
+    rows = []
+    for name, rule in (("largest drift from the reference vertex ≤ (R - 2τ)/2 (before)", reference),
+                       ("that, or the drifts' box diagonal ≤ R - 2τ (now)", box),
+                       ("each pair's own largest drift difference (needs every pair: not implementable)", per_pair),
+                       ("the pairs' distances themselves (the least any rule can do)", exact)):
+        rebuilds, anchor, anchored = 0, None, None
+        for x in path:
+            if anchor is None or rule(x - anchor, anchored, x):
+                anchor, anchored, rebuilds = x, distances(x), rebuilds + 1
+        rows.append(f"| {n} | {name} | {rebuilds} / {len(path)} |")
+    step = np.linalg.norm(np.diff(np.array(path), axis=0), axis=2)
+    rows.append(f"| {n} | (a particle's step per substep: median {np.median(step) * 1e3:.2f} mm, largest "
+                f"{step.max() * 1e3:.2f} mm) | |")
+    return rows
+
+
 EXAMPLES = ["twisted_cloth", "stacked_cloths", "cloth_fold_on_bar", "thin_colliders"]
 
 
-def cost(n: int, device, seconds: float, pass_alone: bool) -> dict:
+def fixed_frames(make_runner, device, frames: int) -> tuple[object, float]:
+    """(the runner, µs per substep over ``frames`` frames right after the settling, one warm-up frame first): every
+    variant and every tree times the same stretch of the same motion (the pass's results are the same bits)."""
+    runner = make_runner()
+    runner.frame()  # the first frame after the settling (a graph capture, module loads) is not timed
+    wp.synchronize_device(device)
+    start = time.perf_counter()
+    for _ in range(frames):
+        runner.frame()
+    wp.synchronize_device(device)
+    return runner, (time.perf_counter() - start) / (frames * SUBSTEPS) * 1e6
+
+
+def cost(n: int, device, seconds: float, pass_alone: bool, timed_frames: int = 0) -> dict:
     """The draped cloth at N = n: µs per substep without and with self-collision (and the pass alone), the pairs
-    pushed, vertices capped, cache rebuilds and cap fallbacks per substep over one frame after the timing."""
+    pushed, vertices capped, cache rebuilds and cap fallbacks per substep over COUNT_FRAMES frames after the
+    timing; with ``timed_frames``, timed over exactly that many frames after the settling and its warm-up frame,
+    and counted over those and the warm-up frame."""
     result = {}
+    if timed_frames:
+        for variant, self_collision in (("none", False), ("self", True)):
+            def make(s=self_collision):
+                runner = Runner(scene(n, device, s))
+                if s:
+                    runner.sim.model.self_contact.reset()  # counted from the warm-up frame on
+                return runner
+
+            runner, result[variant] = fixed_frames(make, device, timed_frames)
+            print(f"N={n} {variant}: {result[variant]:.1f} µs per substep over {timed_frames} frames", flush=True)
+            if self_collision:
+                sc = runner.sim.model.self_contact
+                substeps = (timed_frames + 1) * SUBSTEPS
+                counts = {k: int(v.sum()) / substeps for k, v in sc.counts().items()}
+                if hasattr(sc, "cache_counts"):
+                    counts.update({k: int(v.sum()) / substeps for k, v in sc.cache_counts().items()})
+                result["counts"] = counts
+                result["dropped"] = int(sc.overflow().sum())
+        return result
     variants = [("none", lambda: Runner(scene(n, device, False))), ("self", lambda: Runner(scene(n, device, True)))]
     if pass_alone:
         variants.append(("pass", lambda: PassRunner(scene(n, device, True))))
@@ -290,10 +406,12 @@ def cost(n: int, device, seconds: float, pass_alone: bool) -> dict:
         if variant == "self":
             sc = holder["runner"].sim.model.self_contact
             sc.reset()
-            holder["runner"].frame()
-            counts = {k: int(v.sum()) / SUBSTEPS for k, v in sc.counts().items()}
+            for _ in range(COUNT_FRAMES):
+                holder["runner"].frame()
+            substeps = COUNT_FRAMES * SUBSTEPS
+            counts = {k: int(v.sum()) / substeps for k, v in sc.counts().items()}
             if hasattr(sc, "cache_counts"):
-                counts.update({k: int(v.sum()) / SUBSTEPS for k, v in sc.cache_counts().items()})
+                counts.update({k: int(v.sum()) / substeps for k, v in sc.cache_counts().items()})
             result["counts"] = counts
             result["dropped"] = int(sc.overflow().sum())
     return result
@@ -331,7 +449,7 @@ def example_cost(name: str, device, frames: int | None) -> dict:
 
 def measure_all(args, device) -> dict:
     return {"device": device.name, "warp": wp.config.version, "warpspring": os.path.dirname(ws.__file__),
-            "sizes": {str(n): cost(n, device, args.seconds, args.pass_alone) for n in args.sizes},
+            "sizes": {str(n): cost(n, device, args.seconds, args.pass_alone, args.timed_frames) for n in args.sizes},
             "examples": {name: example_cost(name, device, args.example_frames) for name in args.examples}}
 
 
@@ -381,6 +499,13 @@ def ratio(a, b) -> str:
     return f"{a / b:.1f}×" if a and b else "–"
 
 
+def counts_text(counts: dict | None) -> str:
+    """A baseline's cache rebuilds / cap fallbacks per substep, or a dash."""
+    if not counts or "rebuilds" not in counts:
+        return "–"
+    return f"{counts['rebuilds']:.3f} / {counts['fallbacks']:.3f}"
+
+
 def cost_table(new: dict, old: dict | None, args) -> list[str]:
     lines = [
         f"Self-collision's cost on {new['device']}, Warp {new['warp']}, {datetime.date.today()}: the cloth draped "
@@ -391,8 +516,8 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
         "",
         "| N | without | with | with / without | pass cost (with - without) | baseline: with | baseline: with / "
         "without | baseline: pass cost | pass cost, baseline / now | pairs pushed / capped vertices per substep | "
-        "cache rebuilds / cap fallbacks per substep |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "cache rebuilds / cap fallbacks per substep | baseline: rebuilds / fallbacks |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for n, now in new["sizes"].items():
         then = (old or {}).get("sizes", {}).get(n, {})
@@ -404,7 +529,8 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
             f"{then.get('self', float('nan')):.1f} | {ratio(then.get('self'), then.get('none'))} | "
             f"{extra_then if then else float('nan'):.1f} | "
             f"{ratio(extra_then, extra_now) if then else '–'} | {c['pairs']:.1f} / {c['capped']:.1f} | "
-            f"{c.get('rebuilds', float('nan')):.3f} / {c.get('fallbacks', float('nan')):.3f} |")
+            f"{c.get('rebuilds', float('nan')):.3f} / {c.get('fallbacks', float('nan')):.3f} | "
+            f"{counts_text(then.get('counts'))} |")
     if new["examples"]:
         lines += [
             "",
@@ -412,8 +538,8 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
             "substep over the frames after the first",
             "",
             "| example | particles | frames | µs per substep | baseline | baseline / now | pairs pushed per substep "
-            "| cache rebuilds / cap fallbacks per substep |",
-            "|---|---|---|---|---|---|---|---|",
+            "| cache rebuilds / cap fallbacks per substep | baseline: rebuilds / fallbacks |",
+            "|---|---|---|---|---|---|---|---|---|",
         ]
         for name, now in new["examples"].items():
             then = (old or {}).get("examples", {}).get(name, {})
@@ -421,7 +547,7 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
             lines.append(
                 f"| {name} | {now['particles']} | {now['frames']} | {now['us']:.1f} | {then.get('us', float('nan')):.1f} "
                 f"| {ratio(then.get('us'), now['us'])} | {c['pairs']:.1f} | {c.get('rebuilds', float('nan')):.3f} / "
-                f"{c.get('fallbacks', float('nan')):.3f} |")
+                f"{c.get('fallbacks', float('nan')):.3f} | {counts_text(then.get('counts'))} |")
     return lines
 
 
@@ -433,6 +559,9 @@ def main():
     parser.add_argument("--out", default=None, help="also write the table to this file")
     parser.add_argument("--json", default=None, help="write the cost table's numbers to this file")
     parser.add_argument("--pass-alone", action="store_true", help="also time the pass alone on the settled state")
+    parser.add_argument("--timed-frames", type=int, default=0,
+                        help="time exactly this many frames after the settling (the same motion in every run and tree; "
+                             "the counts over them) instead of --seconds of batches")
     parser.add_argument("--examples", nargs="*", default=EXAMPLES, help="self-collision examples to time")
     parser.add_argument("--example-frames", type=int, default=None, help="frames per example (default: the scene's)")
     parser.add_argument("--baseline", default=None, help="git revision to measure alongside (a temporary worktree)")
@@ -441,9 +570,24 @@ def main():
     parser.add_argument("--profile", action="store_true", help="time each launch of one pass instead")
     parser.add_argument("--repeats", type=int, default=20, help="passes averaged by --profile")
     parser.add_argument("--radius-study", action="store_true", help="count the cap's pairs by candidate rule instead")
+    parser.add_argument("--rebuild-study", type=int, default=0, metavar="FRAMES",
+                        help="count the cache's rebuilds by rule over FRAMES frames after the settling instead")
     args = parser.parse_args()
     wp.init()
     device = wp.get_device(args.device)
+    if args.rebuild_study:
+        lines = [
+            f"The pair cache's rebuilds by rule on {device.name}, Warp {wp.config.version}, {datetime.date.today()}: the "
+            f"draped cloth's {args.rebuild_study} frames after {SETTLE_FRAMES} frames of settling, every substep, "
+            f"replayed on the host in float64 (τ = {THICKNESS} m, cache reach R = 3τ)",
+            "",
+            "| N | the cache holds while | rebuilds / substeps |",
+            "|---|---|---|",
+        ]
+        for n in args.sizes:
+            lines += rebuild_study(n, device, args.rebuild_study)
+        emit_table(lines, args.out)
+        return
     if args.radius_study:
         lines = [
             f"The cap's pairs per substep by candidate rule on {device.name}, Warp {wp.config.version}, "

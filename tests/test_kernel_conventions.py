@@ -5,7 +5,7 @@ Every ``@wp.kernel`` and ``@flat_kernel`` in ``warpspring/kernels/``, at module 
 
 * **Written parameters end in ``_out``, read-only ones do not.** A parameter (an array, or a struct of arrays)
   is written when the kernel stores into it (``a[i] = …``, ``a[i] += …``, ``a[i][j] = …``, ``s.field[i] = …``
-  for a struct ``s``), makes it the target of an ``atomic_*`` call, or passes it (or one of its fields) to a
+  for a struct ``s``), makes it the target of an ``atomic_*`` or ``tile_store`` call, or passes it (or one of its fields) to a
   ``@wp.func`` of the package that writes that argument, followed through the funcs it calls in turn. A func
   is followed where its name resolves statically: a ``def`` in scope, a sibling-module import, or a name
   bound to what a factory returns (an item of its tuple, a field of its NamedTuple); a call the analysis
@@ -263,7 +263,7 @@ class Module:
                         mark(element, "a store", need_subscript=True)
             if isinstance(node, ast.Call):
                 name = _decorator_name(node.func)
-                if name.startswith("atomic_") and node.args:
+                if (name.startswith("atomic_") or name == "tile_store") and node.args:
                     mark(node.args[0], f"{name}'s target", need_subscript=False)
                 elif isinstance(node.func, ast.Name):
                     for module, definition in self.resolve(node.func.id, function):

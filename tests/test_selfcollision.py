@@ -519,8 +519,8 @@ def test_cache_changes_the_work_not_the_answer(device, scene):
     finals, counts = [], []
     for every_step in (False, True):
         model = make()
-        if scene == "thrown":
-            model.self_contact.set(thickness=0.003, world=1)
+        if scene == "thrown":  # world 1's τ = 2 mm: its cache's slack (τ) is crossed at other steps than world 0's
+            model.self_contact.set(thickness=0.002, world=1)
         if every_step:
             object.__setattr__(model, "self_contact", BroadPhaseEveryStep(model.self_contact))
         integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
@@ -541,3 +541,34 @@ def test_cache_changes_the_work_not_the_answer(device, scene):
     else:  # 12.5 mm per step: the cap's swept broad phase runs, and caps
         assert cached["capped"].sum() > 0 and cached["fallbacks"].sum() > 0
         assert cached["rebuilds"][0] != cached["rebuilds"][1]  # one world's cache rebuilt while the other's held
+
+
+def test_cache_holds_while_the_drifts_spread_less_than_its_slack(device):
+    """Two cloths 0.1 m apart (beyond the cache's reach), one still, one sliding past it at 1.5 m/s (1.5 mm per
+    1 ms step, no gravity, springs at rest): every relative drift lies along one axis. The cache holds while the
+    drifts' box diagonal, the slider's displacement since the last build, stays within R - 2τ = τ (less SAFETY,
+    1/64): 4.5 mm > 3.94 mm ≥ 3.0 mm, so it is rebuilt every third step (steps 0, 3, ..., 27: 10 in 30), where the
+    largest drift from a reference vertex alone (≤ τ/2) would rebuild every second step (15). Nothing is cached and
+    no step reaches the repulsion's budget γ · 2τ (2 mm), so the pair stages never run (their flag stays down) and
+    the slider moves exactly as integrated."""
+    from warpspring.kernels.selfcontact import FLAG_WORK
+
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, 0.0), mass=0.05, **CLOTH, name="still")
+    builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, 0.1), mass=0.05, velocity=(1.5, 0.0, 0.0),
+                           **CLOTH, name="slider")
+    builder.add_self_collision(thickness=TAU)
+    model = builder.finalize(device)
+    sc = model.self_contact
+    integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
+    start = a.particle_q.numpy().astype(np.float64)
+    work = []
+    for _ in range(30):
+        integrator.step(a, b, None, 1e-3)
+        a, b = b, a
+        work.append(int(sc.flags.numpy()[2 + FLAG_WORK * model.world_count]))
+    assert sc.cache_counts()["rebuilds"][0] == 10
+    assert sc.listed()["cache"][0] == 0 and not any(work)
+    moved = a.particle_q.numpy().astype(np.float64) - start
+    np.testing.assert_allclose(moved[:25], 0.0, atol=1e-7)
+    np.testing.assert_allclose(moved[25:], np.tile([0.045, 0.0, 0.0], (25, 1)), atol=1e-5)  # 30 steps of 1.5 mm

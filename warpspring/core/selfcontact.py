@@ -24,16 +24,17 @@ from ..kernels.selfcontact import (
     COUNT_REBUILDS,
     COUNTER_COUNT,
     FLAG_KINDS,
+    FLAG_WORK,
     PAIRS_PER_VERTEX,
     PARAM_COUNT,
     PARAM_FRICTION,
     PARAM_RELAXATION,
     PARAM_THICKNESS,
     SCAN_BLOCK,
+    SCAN_THREADS,
     Pairs,
     Surface,
-    broad_ee_kernel,
-    broad_vt_kernel,
+    broad_kernel,
     cap_gather_kernel,
     fill_kernel,
     leaf_kernel,
@@ -43,7 +44,7 @@ from ..kernels.selfcontact import (
     reset_kernel,
     scan_kernels,
 )
-from ..kernels.selfcontact_cache import anchor_kernel, cap_bounds_kernel, check_kernel
+from ..kernels.selfcontact_cache import anchor_kernel, cap_bounds_kernel, check_kernel, decide_kernel
 
 #: The default relaxation γ of the displacement cap: a vertex moves at most a quarter of its distance to the
 #: nearest primitive, so a pair beyond the repulsion's reach (2 τ) ends a step at least τ apart.
@@ -138,12 +139,12 @@ class SelfContact:
         self.corrected = wp.zeros(model.state_size, dtype=model.vec3, device=device)
         self.counters = wp.zeros((worlds, COUNTER_COUNT), dtype=wp.int32, device=device)
         # The pair cache (kernels/selfcontact_cache.py: its anchors, its reach, 0 until built) and the cap's
-        # swept list, for the steps that need it; the pass's flags (any rebuild, any fallback, then per world:
-        # rebuild, fallback, kinematic displacement), zeroed at every step's start.
+        # swept list, for the steps that need it; the pass's flags (any rebuild, any fallback, then per world each
+        # kind of kernels/selfcontact.py FLAG_*), zeroed at every step's start.
         self.cache_anchor = wp.zeros(model.state_size, dtype=model.vec3, device=device)
         self.cache_reach = wp.zeros(worlds, dtype=model.scalar, device=device)
         self.flags = wp.zeros(2 + FLAG_KINDS * worlds, dtype=wp.int32, device=device)
-        self._scan_blocks = wp.zeros(worlds * ((n + SCAN_BLOCK - 1) // SCAN_BLOCK), dtype=wp.int32, device=device)
+        self._scan_blocks = wp.zeros((worlds, (n + SCAN_BLOCK - 1) // SCAN_BLOCK), dtype=wp.int32, device=device)
         self._allocate(max(64, PAIRS_PER_VERTEX * int(np.count_nonzero(topology["vertex_owner"] >= 0))))
         # One BVH per world over the single-precision boxes of its triangles, built at the model's initial
         # positions (its topology follows them: built on coincident points it would degenerate into a list)
@@ -161,11 +162,13 @@ class SelfContact:
         loads one (a branch may not run in the stepper's warm-up step)."""
         model = self.model
         scalar = model.scalar
-        for kernel in (leaf_kernel(scalar, False), leaf_kernel(scalar, True), *scan_kernels()):
+        for kernel in (leaf_kernel(scalar, False), leaf_kernel(scalar, True)):
             kernel.module.load(model.device)  # launched with Warp's default block size
-        flat = [broad_vt_kernel(scalar, False),
-                broad_vt_kernel(scalar, True), broad_ee_kernel(scalar, False), broad_ee_kernel(scalar, True),
-                reset_kernel(), fill_kernel(), check_kernel(scalar), anchor_kernel(scalar), repel_pairs_kernel(scalar),
+        for kernel in scan_kernels():
+            kernel.module.load(model.device, SCAN_THREADS)
+        flat = [broad_kernel(scalar, False), broad_kernel(scalar, True),
+                reset_kernel(), fill_kernel(), check_kernel(scalar), decide_kernel(scalar), anchor_kernel(scalar),
+                repel_pairs_kernel(scalar),
                 repel_gather_kernel(scalar), cap_bounds_kernel(scalar), cap_gather_kernel(scalar)]
         for kernel in flat:
             kernel.module.load(model.device, model.block_dim)
@@ -305,18 +308,18 @@ class SelfContact:
             particle_q_end=end,
         )
         outputs = dict(pairs_out=pairs, pair_distance_out=pair_distance, counters_out=counters)
-        flat_launch(broad_vt_kernel(model.scalar, swept), inputs=list(args.values()), outputs=list(outputs.values()),
-                    dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
-        flat_launch(broad_ee_kernel(model.scalar, swept), inputs=list(args.values()), outputs=list(outputs.values()),
-                    dim=model.world_count * self.edge_count, block_dim=model.block_dim, device=model.device)
-        block_sums, block_offsets, block_prefixes = scan_kernels()
-        blocks = self._scan_blocks
-        capacity = pairs.key.shape[0] // model.world_count
-        wp.launch(block_sums, dim=blocks.shape[0], inputs=[model.particle_count, pairs.vertex_count], outputs=[blocks],
-                  device=model.device)
-        wp.launch(block_offsets, dim=1, inputs=[model.particle_count, capacity], outputs=[blocks], device=model.device)
-        wp.launch(block_prefixes, dim=blocks.shape[0], inputs=[model.particle_count, pairs.vertex_count, blocks],
-                  outputs=[pairs.vertex_start], device=model.device)
+        flat_launch(broad_kernel(model.scalar, swept), inputs=list(args.values()), outputs=list(outputs.values()),
+                    dim=model.world_count * self.triangle_count, block_dim=model.block_dim, device=model.device)
+        tile_sums, tile_offsets, tile_prefixes = scan_kernels()
+        tiles = self._scan_blocks
+        worlds, n = model.world_count, model.particle_count
+        capacity = pairs.key.shape[0] // worlds
+        counts = pairs.vertex_count[:worlds * n].reshape((worlds, n))
+        starts = pairs.vertex_start[:worlds * n].reshape((worlds, n))
+        scan = dict(block_dim=SCAN_THREADS, device=model.device)
+        wp.launch_tiled(tile_sums, dim=tiles.shape, inputs=[counts], outputs=[tiles], **scan)
+        wp.launch_tiled(tile_offsets, dim=(worlds,), inputs=[4 * capacity], outputs=[tiles], **scan)
+        wp.launch_tiled(tile_prefixes, dim=tiles.shape, inputs=[counts, tiles], outputs=[starts], **scan)
         flat_launch(fill_kernel(), inputs=[model.particle_count, active, pairs], dim=model.particle_dim,
                     block_dim=model.block_dim, device=model.device)
 
@@ -336,8 +339,8 @@ class SelfContact:
         worlds = model.world_count
         self._list_pairs(self.cache, self.cache_bound, start, start, swept=False, reach_factor=CACHE_REACH,
                          reach_add=0.0, counters=self.counters, active=self.flags[2:2 + worlds])
-        flat_launch(anchor_kernel(model.scalar), inputs=[model.particle_count, self.params, self.flags, start],
-                    outputs=[self.cache_reach, self.cache_anchor, self.counters], dim=model.particle_dim,
+        flat_launch(anchor_kernel(model.scalar), inputs=[model.particle_count, self.params, self.cache, start],
+                    outputs=[self.flags, self.cache_reach, self.cache_anchor, self.counters], dim=model.particle_dim,
                     block_dim=model.block_dim, device=model.device)
 
     def _fallback(self, start: wp.array, end: wp.array) -> None:
@@ -346,18 +349,28 @@ class SelfContact:
         self._list_pairs(self.cap_pairs, self.pair_distance, start, end, swept=True, reach_factor=0.0,
                          reach_add=0.0, counters=self.counters, active=self.flags[2 + worlds:2 + 2 * worlds])
 
-    def repel(self, state_in, particle_q: wp.array) -> wp.array:
-        """The repulsion stage alone (with the cache's check and, where needed, its rebuild): ``particle_q`` (the
-        integrator's result from ``state_in``) repelled, into ``self.corrected`` (returned)."""
+    def _prepare(self, start: wp.array, particle_q: wp.array) -> None:
+        """The step's flags: the cache's check and decisions, then its rebuild where a world needs one."""
         model = self.model
-        start = state_in.particle_q
-        per_particle = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
         self.flags.zero_()
         flat_launch(check_kernel(model.scalar),
                     inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
-                            self.surface, self.params, self.cache_reach, self.cache_anchor, start, particle_q],
-                    outputs=[self.flags], **per_particle)
+                            self.surface, self.params, self.cache_anchor, start, particle_q],
+                    outputs=[self.flags], dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
+        flat_launch(decide_kernel(model.scalar), inputs=[model.world_enabled, self.params, self.cache_reach, self.cache],
+                    outputs=[self.flags], dim=model.world_count, block_dim=model.block_dim, device=model.device)
         self._branch(self.flags[0:1], self._rebuild, start=start)
+
+    @property
+    def _work(self) -> wp.array:
+        """The flag of the pair stages (FLAG_WORK's first entry), as a one-element array."""
+        slot = 2 + FLAG_WORK * self.model.world_count
+        return self.flags[slot:slot + 1]
+
+    def _repel_stage(self, start: wp.array, particle_q: wp.array) -> None:
+        """The repulsion over the cached pairs and its gather into ``self.corrected``."""
+        model = self.model
+        per_particle = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
         flat_launch(repel_pairs_kernel(model.scalar),
                     inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
                             self.surface, self.params, self.cache, start, particle_q],
@@ -366,15 +379,11 @@ class SelfContact:
                     inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
                             self.surface, self.params, self.pair_correction, self.pair_weight, start, particle_q],
                     outputs=[self.cache, self.flags, self.corrected], **per_particle)
-        return self.corrected
 
-    def cap(self, state_in, particle_q: wp.array, state_out, dt: float) -> None:
-        """The cap stage alone, after :meth:`repel` (it reads the flags that left): ``particle_q`` (the repelled
-        positions) capped into ``state_out``'s positions and, where they changed, velocities."""
+    def _cap_stage(self, start: wp.array, particle_q: wp.array, state_out, dt: float) -> None:
+        """The cap's bounds over the cached pairs and its gather into ``state_out``."""
         model = self.model
-        start = state_in.particle_q
         per_particle = dict(dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
-        self._branch(self.flags[1:2], self._fallback, start=start, end=particle_q)
         flat_launch(cap_bounds_kernel(model.scalar),
                     inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
                             self.surface, self.params, self.cache, self.flags, start, particle_q],
@@ -384,6 +393,20 @@ class SelfContact:
                             self.surface, self.params, self.cache, self.cache_bound, self.cap_pairs,
                             self.pair_distance, self.flags, start, particle_q, model.scalar(dt)],
                     outputs=[state_out.particle_q, state_out.particle_qd, self.counters], **per_particle)
+
+    def repel(self, state_in, particle_q: wp.array) -> wp.array:
+        """The repulsion stage alone (with the cache's check and, where needed, its rebuild): ``particle_q`` (the
+        integrator's result from ``state_in``) repelled, into ``self.corrected`` (returned)."""
+        self._prepare(state_in.particle_q, particle_q)
+        self._repel_stage(state_in.particle_q, particle_q)
+        return self.corrected
+
+    def cap(self, state_in, particle_q: wp.array, state_out, dt: float) -> None:
+        """The cap stage alone, after :meth:`repel` (it reads the flags that left): ``particle_q`` (the repelled
+        positions) capped into ``state_out``'s positions and, where they changed, velocities."""
+        start = state_in.particle_q
+        self._branch(self.flags[1:2], self._fallback, start=start, end=particle_q)
+        self._cap_stage(start, particle_q, state_out, dt)
 
     def _near_pairs(self, state, reach: float):
         """The pairs within ``reach`` [m] at ``state`` in a buffer of their own, grown until none overflows
@@ -437,8 +460,18 @@ class SelfContact:
     def __call__(self, state_in, state_out, dt: float) -> None:
         """Make ``state_out`` (the integrator's result from ``state_in``) free of self-intersections: repel, then
         cap (device work only, fixed launch sizes: capturable)."""
-        repelled = self.repel(state_in, state_out.particle_q)
-        self.cap(state_in, repelled, state_out, dt)
+        start, particle_q = state_in.particle_q, state_out.particle_q
+        self._prepare(start, particle_q)
+        # The stages run where a world has cached pairs or a vertex steps too far for the cache; elsewhere they would
+        # leave state_out as it is (kernels/selfcontact_cache.py, decide_kernel).
+        self._branch(self._work, self._stages, start=start, particle_q=particle_q, state_out=state_out, dt=dt)
+
+    def _stages(self, start: wp.array, particle_q: wp.array, state_out, dt: float) -> None:
+        """Both stages after the flags: the repulsion, the cap's swept broad phase where flagged (a conditional node
+        within this one's), the cap."""
+        self._repel_stage(start, particle_q)
+        self._branch(self.flags[1:2], self._fallback, start=start, end=self.corrected)
+        self._cap_stage(start, self.corrected, state_out, dt)
 
 
 def make_self_contact(model, triangles: np.ndarray, positions: np.ndarray, settings: dict) -> SelfContact:

@@ -7,14 +7,15 @@ pair once, which they evaluate pair by pair and gather one thread per vertex; th
 that the broad phase rebuilds only when it may miss a pair (``selfcontact_cache``, which proves that the
 stages keep the same pairs as a broad phase every step):
 
-* **broad phase** (``broad_vt_kernel``: one thread per surface vertex; ``broad_ee_kernel``: one thread per
-  edge, keeping the pairs with the higher edge): one query of the world's BVH of triangle boxes
-  (``wp.Bvh``, refit at each broad phase), topological neighbours rejected by index before any geometry,
+* **broad phase** (``broad_kernel``: one thread per triangle, for the vertices and edges it reports, an edge
+  keeping its pairs with the higher edges): one query of the world's BVH of triangle boxes (``wp.Bvh``, refit
+  at each broad phase) around their query boxes, each reported triangle tested against each primitive's own
+  box, topological neighbours rejected by index before any geometry,
   then the pair's distance D at x⁰ decides. A kept pair takes a slot of its world's buffer through an
   integer atomic counter; pairs beyond ``capacity`` are counted (``COUNT_OVERFLOW``) and dropped. It lists
   the worlds an ``active`` array names (``reset_kernel`` empties theirs), the others keep their lists;
 * **CSR** (``fill_kernel``): every pair's four vertices were counted per particle as it was written;
-  an exclusive scan of the counts within each world (``scan_kernels``, no allocation: it runs inside
+  an exclusive scan of the counts within each world (``scan_kernels``: tiled, no allocation: it runs inside
   conditional graph nodes) gives each particle its segment of entries (slot · 4 + role), filled through a
   per-particle integer cursor;
 * **narrow phase** (``repel_pairs_kernel``): one thread per particle walks its world's pairs and writes each
@@ -105,11 +106,16 @@ CACHE_REACH = 3.0
 #: The cache's slots per slot of a pair buffer: it holds the pairs within CACHE_REACH τ, where the repulsion's list
 #: held those within REPULSION_REACH τ ((3/2)² more between layers, (3/2)³ more in a volume).
 CACHE_SLOTS = 3
-#: Kinds of the pass's flags: rebuild the cache, run the cap's swept broad phase, the kinematic displacement.
-FLAG_REBUILD = 0
-FLAG_FALLBACK = 1
-FLAG_KINEMATIC = 2  # K_w, the largest displacement of the world's kinematic vertices, in τ / KINEMATIC_STEPS (up)
-FLAG_KINDS = 3
+#: Kinds of the pass's flags (``flag_slot``), one entry per world each. Lengths are integers in units of
+#: τ / KINEMATIC_STEPS, rounded up, reduced by integer maxima (order-free).
+FLAG_REBUILD = 0  # rebuild the world's cache
+FLAG_FALLBACK = 1  # run the world's cap through its swept broad phase
+FLAG_KINEMATIC = 2  # K_w, the largest displacement of the world's kinematic vertices
+FLAG_DRIFT = 3  # the largest drift from the anchors relative to the reference vertex, padded (module selfcontact_cache)
+FLAG_SPREAD = 4  # 6 kinds from here: the drifts' box, padded: max (r_k + pad) for k = x, y, z, then max (pad - r_k)
+FLAG_STEP = 10  # the largest step of a free surface vertex (limited to γ SEARCH_REACH τ), padded
+FLAG_WORK = 11  # its first entry only: some world's pair stages must run (module selfcontact_cache)
+FLAG_KINDS = 12
 KINEMATIC_STEPS = 4096
 #: Relative slack of the cache's bounds (drift, the cap's budget) against rounding.
 SAFETY = 1.0 / 64.0
@@ -352,10 +358,14 @@ def leaf_kernel(scalar: type, swept: bool):
     return leaves
 
 
-def _broad_kernel(scalar: type, swept: bool, edges: bool):
-    """The broad phase's kernel (module docstring): one thread per surface vertex (VT pairs) or, with
-    ``edges``, per edge (EE pairs). Without ``swept`` it keeps the pairs closer than reach_factor · τ +
-    reach_add at the start; with it the cap's pairs at (start, end)."""
+@functools.cache
+def broad_kernel(scalar: type, swept: bool):
+    """The broad phase's kernel (module docstring): one thread per triangle t of every world, querying the BVH once
+    for the primitives t reports, its corners whose ``vertex_owner`` it is (VT pairs) and its sides whose
+    ``edge_owner`` it is (EE pairs, kept from the lower edge). Each primitive's own query box (its start, and with
+    ``swept`` its end, grown by the reach) is tested against each reported leaf's box before its pairs: the same
+    pairs as one query per vertex and one per edge, in half the queries. Without ``swept`` it keeps the pairs
+    closer than reach_factor · τ + reach_add at the start; with it the cap's pairs at (start, end)."""
     vec3 = vec3_type(scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
     box_of, _, _, sweep_bounds, push_pair = _pair_funcs(scalar)
@@ -363,6 +373,11 @@ def _broad_kernel(scalar: type, swept: bool, edges: bool):
 
     @wp.func
     def boxes_overlap(lower_a: vec3, upper_a: vec3, lower_b: vec3, upper_b: vec3):
+        return (lower_a[0] <= upper_b[0] and lower_a[1] <= upper_b[1] and lower_a[2] <= upper_b[2]
+                and upper_a[0] >= lower_b[0] and upper_a[1] >= lower_b[1] and upper_a[2] >= lower_b[2])
+
+    @wp.func
+    def boxes_overlap_f(lower_a: wp.vec3f, upper_a: wp.vec3f, lower_b: wp.vec3f, upper_b: wp.vec3f):
         return (lower_a[0] <= upper_b[0] and lower_a[1] <= upper_b[1] and lower_a[2] <= upper_b[2]
                 and upper_a[0] >= lower_b[0] and upper_a[1] >= lower_b[1] and upper_a[2] >= lower_b[2])
 
@@ -379,6 +394,18 @@ def _broad_kernel(scalar: type, swept: bool, edges: bool):
                                             particle_q_start, particle_q_end)
         gap = distance - kinematic
         return gap > scalar(0.0) and free_step > relaxation * gap, gap
+
+    @wp.func
+    def query_box(ends: wp.vec2i, base: int, mass_row: int, limit: scalar, query_reach: scalar,
+                  particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
+                  particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3]):
+        """A vertex's (ends = (v, v)) or an edge's single-precision query box."""
+        lower = particle_q_start[base + ends[0]]
+        upper = lower
+        for k in range(2):
+            lower, upper = extend(lower, upper, base + ends[k], ends[k], mass_row, particle_flags, particle_inv_mass,
+                                  particle_q_start, particle_q_end, limit)
+        return box_of(lower, upper, query_reach)
 
     @flat_kernel(module="unique", enable_backward=False)
     def broad(
@@ -402,11 +429,8 @@ def _broad_kernel(scalar: type, swept: bool, edges: bool):
         tid = wp.tid()
         triangle_count = surface.triangle.shape[0]
         edge_count = surface.edge.shape[0]
-        per_world = particle_count
-        if wp.static(edges):
-            per_world = edge_count
-        world = tid // per_world
-        me = tid - world * per_world
+        world = tid // triangle_count
+        me = tid - world * triangle_count
         base = world * particle_count
         if world_enabled[world] == 0:
             return
@@ -416,87 +440,102 @@ def _broad_kernel(scalar: type, swept: bool, edges: bool):
         relaxation = params[row, PARAM_RELAXATION]
         limit = relaxation * scalar(SEARCH_REACH) * thickness
         reach = reach_factor * thickness + reach_add
-        ends = wp.vec2i(me, me)
-        if wp.static(edges):
-            ends = surface.edge[me]
-        if wp.static(not edges):
-            if surface.vertex_owner[me] < 0:
-                return
-        lower = particle_q_start[base + ends[0]]
-        upper = lower
-        for k in range(2):
-            lower, upper = extend(lower, upper, base + ends[k], ends[k], mass_row, particle_flags, particle_inv_mass,
-                                  particle_q_start, particle_q_end, limit)
         query_reach = reach
         if wp.static(swept):
             query_reach = scalar(0.0)
-        box_lower, box_upper = box_of(lower, upper, query_reach)
-        query = wp.bvh_query_aabb(surface.bvh[world], box_lower, box_upper)
+        corners = surface.triangle[me]
+        sides = surface.triangle_edges[me]
+        # The primitives this triangle reports, their query boxes (rows of the matrices) and their union.
+        vertex_lower = wp.mat33f()
+        vertex_upper = wp.mat33f()
+        edge_lower = wp.mat33f()
+        edge_upper = wp.mat33f()
+        owns_vertex = wp.vec3i(0, 0, 0)
+        owns_edge = wp.vec3i(0, 0, 0)
+        union_lower = wp.vec3f(3.0e38, 3.0e38, 3.0e38)
+        union_upper = wp.vec3f(-3.0e38, -3.0e38, -3.0e38)
+        for m in range(3):
+            if surface.vertex_owner[corners[m]] == me:
+                owns_vertex[m] = 1
+                lower, upper = query_box(wp.vec2i(corners[m], corners[m]), base, mass_row, limit, query_reach,
+                                         particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
+                vertex_lower[m] = lower
+                vertex_upper[m] = upper
+                union_lower = wp.min(union_lower, lower)
+                union_upper = wp.max(union_upper, upper)
+            if surface.edge_owner[sides[m]] == me:
+                owns_edge[m] = 1
+                lower, upper = query_box(surface.edge[sides[m]], base, mass_row, limit, query_reach,
+                                         particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
+                edge_lower[m] = lower
+                edge_upper[m] = upper
+                union_lower = wp.min(union_lower, lower)
+                union_upper = wp.max(union_upper, upper)
+        if owns_vertex[0] + owns_vertex[1] + owns_vertex[2] + owns_edge[0] + owns_edge[1] + owns_edge[2] == 0:
+            return
+        query = wp.bvh_query_aabb(surface.bvh[world], union_lower, union_upper)
         t = int(0)
         while wp.bvh_query_next(query, t):
             tri = surface.triangle[t]
-            if wp.static(not edges):
-                v = me
-                if tri[0] == v or tri[1] == v or tri[2] == v:  # a topological neighbour: no geometry
-                    continue
-                p = particle_q_start[base + v]
-                a = particle_q_start[base + tri[0]]
-                b = particle_q_start[base + tri[1]]
-                c = particle_q_start[base + tri[2]]
-                bary = triangle_closest(p, a, b, c)
-                vertex = wp.vec4i(v, tri[0], tri[1], tri[2])
-                kept, value = keep(wp.length(p - (bary[0] * a + bary[1] * b + bary[2] * c)), reach, relaxation,
-                                   vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
-                                   particle_q_start, particle_q_end)
-                if kept:
-                    key = wp.int64(v) * wp.int64(triangle_count) + wp.int64(t)
-                    push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
-            if wp.static(edges):
-                sides = surface.triangle_edges[t]
-                for m in range(3):
-                    f = sides[m]
-                    other = surface.edge[f]
-                    # Each pair once (from its lower edge, through the other edge's owner triangle), no
-                    # shared vertex: index tests before any geometry.
-                    if (f > me and surface.edge_owner[f] == t and other[0] != ends[0] and other[0] != ends[1]
-                            and other[1] != ends[0] and other[1] != ends[1]):
-                        p2 = particle_q_start[base + other[0]]
-                        q2 = particle_q_start[base + other[1]]
-                        # The other edge's own (swept) box against the query box, before the geometry: a pair
-                        # closer than the reach overlaps it, and a disjoint swept pair cannot meet (proof, (a)).
-                        other_lower = p2
-                        other_upper = p2
-                        for k in range(2):
-                            other_lower, other_upper = extend(other_lower, other_upper, base + other[k], other[k],
-                                                              mass_row, particle_flags, particle_inv_mass,
-                                                              particle_q_start, particle_q_end, limit)
-                        if not boxes_overlap(other_lower, other_upper, vec3(box_lower), vec3(box_upper)):
-                            continue
-                        p1 = particle_q_start[base + ends[0]]
-                        q1 = particle_q_start[base + ends[1]]
-                        st = edge_closest(p1, q1, p2, q2)
-                        vertex = wp.vec4i(ends[0], ends[1], other[0], other[1])
-                        distance = wp.length((p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)))
-                        kept, value = keep(distance, reach, relaxation, vertex, base, mass_row, limit,
-                                           particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
+            leaf_lower = surface.leaf_lower[world * triangle_count + t]
+            leaf_upper = surface.leaf_upper[world * triangle_count + t]
+            for m in range(3):
+                # VT: the vertex's own query would have reported t where its box overlaps t's leaf box.
+                if owns_vertex[m] == 1 and boxes_overlap_f(vertex_lower[m], vertex_upper[m], leaf_lower, leaf_upper):
+                    v = corners[m]
+                    if tri[0] != v and tri[1] != v and tri[2] != v:  # a topological neighbour: no geometry
+                        p = particle_q_start[base + v]
+                        a = particle_q_start[base + tri[0]]
+                        b = particle_q_start[base + tri[1]]
+                        c = particle_q_start[base + tri[2]]
+                        bary = triangle_closest(p, a, b, c)
+                        vertex = wp.vec4i(v, tri[0], tri[1], tri[2])
+                        kept, value = keep(wp.length(p - (bary[0] * a + bary[1] * b + bary[2] * c)), reach,
+                                           relaxation, vertex, base, mass_row, limit, particle_flags,
+                                           particle_inv_mass, particle_q_start, particle_q_end)
                         if kept:
-                            key = (wp.int64(particle_count) * wp.int64(triangle_count)
-                                   + wp.int64(me) * wp.int64(edge_count) + wp.int64(f))
+                            key = wp.int64(v) * wp.int64(triangle_count) + wp.int64(t)
                             push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
+                # EE: the edge's own query would have reported t where its box overlaps t's leaf box.
+                if owns_edge[m] == 1 and boxes_overlap_f(edge_lower[m], edge_upper[m], leaf_lower, leaf_upper):
+                    e = sides[m]
+                    ends = surface.edge[e]
+                    box_lower = vec3(edge_lower[m])
+                    box_upper = vec3(edge_upper[m])
+                    others = surface.triangle_edges[t]
+                    for n in range(3):
+                        f = others[n]
+                        other = surface.edge[f]
+                        # Each pair once (from its lower edge, through the other edge's owner triangle), no
+                        # shared vertex: index tests before any geometry.
+                        if (f > e and surface.edge_owner[f] == t and other[0] != ends[0] and other[0] != ends[1]
+                                and other[1] != ends[0] and other[1] != ends[1]):
+                            p2 = particle_q_start[base + other[0]]
+                            q2 = particle_q_start[base + other[1]]
+                            # The other edge's own (swept) box against the query box, before the geometry: a pair
+                            # closer than the reach overlaps it, and a disjoint swept pair cannot meet (proof, (a)).
+                            other_lower = p2
+                            other_upper = p2
+                            for k in range(2):
+                                other_lower, other_upper = extend(other_lower, other_upper, base + other[k], other[k],
+                                                                  mass_row, particle_flags, particle_inv_mass,
+                                                                  particle_q_start, particle_q_end, limit)
+                            if not boxes_overlap(other_lower, other_upper, box_lower, box_upper):
+                                continue
+                            p1 = particle_q_start[base + ends[0]]
+                            q1 = particle_q_start[base + ends[1]]
+                            st = edge_closest(p1, q1, p2, q2)
+                            vertex = wp.vec4i(ends[0], ends[1], other[0], other[1])
+                            distance = wp.length((p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)))
+                            kept, value = keep(distance, reach, relaxation, vertex, base, mass_row, limit,
+                                               particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
+                            if kept:
+                                key = (wp.int64(particle_count) * wp.int64(triangle_count)
+                                       + wp.int64(e) * wp.int64(edge_count) + wp.int64(f))
+                                push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out,
+                                          counters_out)
 
     return broad
-
-
-@functools.cache
-def broad_vt_kernel(scalar: type, swept: bool):
-    """The broad phase's vertex–triangle kernel, one thread per particle of every world."""
-    return _broad_kernel(scalar, swept, False)
-
-
-@functools.cache
-def broad_ee_kernel(scalar: type, swept: bool):
-    """The broad phase's edge–edge kernel, one thread per edge of every world."""
-    return _broad_kernel(scalar, swept, True)
 
 
 @functools.cache
@@ -543,60 +582,55 @@ def reset_kernel():
     return reset
 
 
-#: Entries per block of ``scan_kernels``' exclusive scan.
-SCAN_BLOCK = 256
+#: Entries per tile of ``scan_kernels``' exclusive scan, and the threads of each tile's block.
+SCAN_BLOCK = 1024
+SCAN_THREADS = 256
 
 
 @functools.cache
 def scan_kernels():
-    """The CSR's exclusive scan, world by world, in three launches and no allocation (so that it may run inside
-    a conditional graph node, where ``wp.utils.array_scan``'s temporary buffer may not): world w's segments
-    start at 4 w · capacity, so that rebuilding one world's list moves no other world's entries. Each block of
-    ``SCAN_BLOCK`` particles of a world sums itself, one thread scans the block sums, each block writes its
-    prefixes. Integer sums in a fixed order: the same result every run. A particle's segment is
+    """The CSR's exclusive scan, world by world, in three tiled launches (``wp.launch_tiled``, ``SCAN_THREADS``
+    threads per block) and no allocation (so that it may run inside a conditional graph node, where
+    ``wp.utils.array_scan``'s temporary buffer may not), over arrays viewed as [world_count, particle_count]:
+    world w's prefixes start at w · ``world_stride`` (4 w · capacity for a pair buffer), so that rebuilding one
+    world's list moves no other world's entries. Each tile of ``SCAN_BLOCK`` entries sums itself
+    (``tile_sums``), one block per world scans its tiles' sums (``tile_offsets``, in chunks of SCAN_BLOCK tiles),
+    each tile scans itself from its offset (``tile_prefixes``): every step a block's threads share, none a
+    single thread walks alone. Integer sums: the same result every run. A particle's segment is
     [vertex_start[p], vertex_start[p] + vertex_count[p])."""
 
     @wp.kernel(module="unique", enable_backward=False)
-    def block_sums(particle_count: int, values: wp.array[wp.int32], block_total_out: wp.array[wp.int32]):
-        b = wp.tid()
-        blocks = (particle_count + SCAN_BLOCK - 1) // SCAN_BLOCK
-        world = b // blocks
-        first = world * particle_count + (b - world * blocks) * SCAN_BLOCK
-        total = int(0)
-        for i in range(first, wp.min(first + SCAN_BLOCK, (world + 1) * particle_count)):
-            total += values[i]
-        block_total_out[b] = total
+    def tile_sums(values: wp.array2d[wp.int32], tile_total_out: wp.array2d[wp.int32]):
+        world, k = wp.tid()
+        t = wp.tile_load(values[world], shape=(SCAN_BLOCK,), offset=(k * SCAN_BLOCK,))
+        wp.tile_store(tile_total_out[world], wp.tile_sum(t), offset=(k,))
 
     @wp.kernel(module="unique", enable_backward=False)
-    def block_offsets(particle_count: int, capacity: int, block_total_in_out: wp.array[wp.int32]):
-        blocks = (particle_count + SCAN_BLOCK - 1) // SCAN_BLOCK
-        running = int(0)
-        for b in range(block_total_in_out.shape[0]):
-            if b % blocks == 0:
-                running = 4 * (b // blocks) * capacity
-            total = block_total_in_out[b]
-            block_total_in_out[b] = running
-            running += total
+    def tile_offsets(world_stride: int, tile_total_in_out: wp.array2d[wp.int32]):
+        world = wp.tid()
+        carry = world * world_stride
+        for chunk in range((tile_total_in_out.shape[1] + SCAN_BLOCK - 1) // SCAN_BLOCK):
+            t = wp.tile_load(tile_total_in_out[world], shape=(SCAN_BLOCK,), offset=(chunk * SCAN_BLOCK,))
+            inclusive = wp.tile_scan_inclusive(t)
+            exclusive = wp.tile_scan_exclusive(t)
+            wp.tile_store(tile_total_in_out[world], exclusive + wp.tile_full(shape=(SCAN_BLOCK,), value=carry, dtype=int),
+                          offset=(chunk * SCAN_BLOCK,))
+            carry += wp.tile_extract(inclusive, SCAN_BLOCK - 1)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def block_prefixes(
+    def tile_prefixes(
         # In:
-        particle_count: int,
-        values: wp.array[wp.int32],
-        block_offset: wp.array[wp.int32],
+        values: wp.array2d[wp.int32],
+        tile_offset: wp.array2d[wp.int32],
         # Out:
-        prefix_out: wp.array[wp.int32],
+        prefix_out: wp.array2d[wp.int32],
     ):
-        b = wp.tid()
-        blocks = (particle_count + SCAN_BLOCK - 1) // SCAN_BLOCK
-        world = b // blocks
-        first = world * particle_count + (b - world * blocks) * SCAN_BLOCK
-        running = block_offset[b]
-        for i in range(first, wp.min(first + SCAN_BLOCK, (world + 1) * particle_count)):
-            prefix_out[i] = running
-            running += values[i]
+        world, k = wp.tid()
+        t = wp.tile_load(values[world], shape=(SCAN_BLOCK,), offset=(k * SCAN_BLOCK,))
+        start = wp.tile_full(shape=(SCAN_BLOCK,), value=tile_offset[world, k], dtype=int)
+        wp.tile_store(prefix_out[world], wp.tile_scan_exclusive(t) + start, offset=(k * SCAN_BLOCK,))
 
-    return block_sums, block_offsets, block_prefixes
+    return tile_sums, tile_offsets, tile_prefixes
 
 
 @wp.func
@@ -725,8 +759,8 @@ def repel_pairs_kernel(scalar: type):
 
 @wp.func
 def flag_slot(kind: int, world: int, world_count: int):
-    """The entry of world ``world``'s flag ``kind`` (FLAG_REBUILD, FLAG_FALLBACK, FLAG_KINEMATIC) in the pass's
-    flag array: [any rebuild, any fallback, then world_count entries per kind]."""
+    """The entry of world ``world``'s flag ``kind`` (FLAG_*) in the pass's flag array: [any rebuild, any
+    fallback, then world_count entries per kind]."""
     return 2 + kind * world_count + world
 
 

@@ -4,16 +4,22 @@ pair the pass needs, not every step.
 The cache of a world is the list of vertex–triangle and edge–edge pairs closer than R = ``CACHE_REACH`` τ at
 its *anchor* positions xᵃ (the step's start when it was built), with a CSR of their vertices, in the layout
 of ``kernels/selfcontact.py``'s pair buffers. Every point of a primitive is a convex combination of its
-vertices, and a translation c of all of them changes no distance, so while every surface vertex stays
-within m of its anchor moved by c, a pair's distance differs from its distance at the anchor by at most 2m.
-c is the world's reference vertex's displacement from its anchor (a fixed surface vertex): a cloth that
-falls or slides as a whole keeps its cache. Each step:
+vertices, p = Σ wᵢ xᵢ, so two points p, q of a pair move apart or together by at most the largest |Δᵢ - Δⱼ| over
+a vertex i of one side and j of the other, Δ = x - xᵃ the drifts from the anchors: a pair's distance differs
+from its distance at the anchors by at most that. Drifts are measured relative to the world's reference vertex
+(a fixed surface vertex), r = Δ - Δ_ref, which changes no difference Δᵢ - Δⱼ: a cloth that falls or slides as a
+whole keeps its cache. Each step:
 
-1. ``check_kernel``: a world whose surface vertex drifted further than m = (R - REPULSION_REACH τ)/2 (less a
-   slack for rounding) from its anchor moved by c at the step's start x⁰ is flagged for a rebuild
-   (FLAG_REBUILD): pairs outside the cache are then at least REPULSION_REACH τ apart at x⁰. The world's largest kinematic displacement K_w
-   of the step is reduced into FLAG_KINEMATIC (an integer maximum of K_w rounded up, order-free). A world
-   that was never built has R = 0 and is flagged; so is one whose τ grew or whose state was replaced.
+1. ``check_kernel`` reduces each world's drifts at the step's start x⁰ into integers (order-free maxima, in
+   units of τ / KINEMATIC_STEPS rounded up): the largest |r| and the box of the r, each padded for rounding;
+   ``decide_kernel`` keeps the cache when |rᵢ - rⱼ| ≤ R - REPULSION_REACH τ (less a slack ``SAFETY``) for every
+   i and j, by either bound: the largest |r| at most half of it, or the box's diagonal at most all of it (a
+   sheet falling past a still part of itself spreads its drifts along one axis: the second allows twice the
+   drift of the first there).
+   Pairs outside the cache are then at least REPULSION_REACH τ apart at x⁰. Otherwise the world is flagged for a
+   rebuild (FLAG_REBUILD). A world that was never built has R = 0 and is flagged; so is one whose τ grew or
+   whose state was replaced. The world's largest kinematic displacement K_w of the step is reduced into
+   FLAG_KINEMATIC, and its free surface vertices' largest step into FLAG_STEP.
 2. The flagged worlds' broad phase (BVH refit and queries, as ``kernels/selfcontact.py``) at x⁰ with reach R,
    then ``anchor_kernel`` (xᵃ = x⁰, R = CACHE_REACH τ): a conditional graph node, launched only when a world
    is flagged.
@@ -26,6 +32,12 @@ falls or slides as a whole keeps its cache. Each step:
    run the cap's swept broad phase as before (a conditional node). The others test each cached pair as the
    swept broad phase would (``cap_bounds_kernel``: the same single-precision swept boxes, the same overlap
    and keep tests), so the cap keeps exactly the pairs it kept before, and ends at the same bits.
+5. The pair stages (3. and 4., the swept broad phase's node nested) run in one conditional node on FLAG_WORK, which ``decide_kernel`` and
+   ``anchor_kernel`` raise where a world has cached pairs, or where a free vertex's step (FLAG_STEP) may exceed
+   what the repulsion's gather allows without the swept broad phase. Where none does, the stages would push no
+   pair, run no swept broad phase and cap no vertex (each step is below γ SEARCH_REACH τ), so ``state_out`` is
+   left as the integrator wrote it: a substep without pairs nearby costs the check, one thread per world and
+   the conditional nodes.
 
 The cache changes the work and never the answer: results equal those of a broad phase every step, whenever
 it was built.
@@ -43,9 +55,14 @@ from .selfcontact import (
     CACHE_REACH,
     COUNT_FALLBACKS,
     COUNT_REBUILDS,
+    FLAG_DRIFT,
     FLAG_FALLBACK,
+    FLAG_KINDS,
     FLAG_KINEMATIC,
     FLAG_REBUILD,
+    FLAG_SPREAD,
+    FLAG_STEP,
+    FLAG_WORK,
     KINEMATIC_STEPS,
     PARAM_RELAXATION,
     PARAM_THICKNESS,
@@ -74,11 +91,42 @@ def base_index(world: int, particle_count: int):
 NO_BOUND = 1.0e30
 
 
+@wp.func
+def raise_to(flags: wp.array[wp.int32], slot: int, value: int):
+    """flags[slot] = max(flags[slot], value), an integer maximum (order-free); read first, so that most threads
+    of a world, below its maximum, skip the atomic (a stale read costs one more atomic, never a wrong result)."""
+    if value > flags[slot]:
+        wp.atomic_max(flags, slot, value)
+
+
+#: Lengths at or beyond this many units (τ / KINEMATIC_STEPS) are not reduced: the world is flagged at once.
+LENGTH_LIMIT = 1 << 29
+
+
+@functools.cache
+def length_funcs(scalar: type):
+    """``units(length, thickness) -> int``: a length [m] in units of τ / KINEMATIC_STEPS rounded up, or
+    LENGTH_LIMIT where it is that large, not finite, or τ is not positive (the caller then flags the world)."""
+
+    @wp.func
+    def units(length: scalar, thickness: scalar):
+        steps = length / thickness * scalar(KINEMATIC_STEPS)
+        if steps < scalar(LENGTH_LIMIT) and steps > -scalar(LENGTH_LIMIT):  # False for NaN
+            return int(wp.ceil(steps))
+        return int(LENGTH_LIMIT)
+
+    return units
+
+
 @functools.cache
 def check_kernel(scalar: type):
-    """Kernel of the cache's check (module docstring, 1.), one thread per particle of every world."""
+    """Kernel of the cache's check (module docstring, 1.), one thread per particle of every world: each surface
+    vertex's drift from its anchor relative to the reference vertex, r, reduced per world into its padded length
+    (FLAG_DRIFT) and its padded box (FLAG_SPREAD); the kinematic vertices' largest displacement (FLAG_KINEMATIC);
+    the free surface vertices' largest step (FLAG_STEP). ``decide_kernel`` reads them."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
+    units = length_funcs(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
     def check(
@@ -89,7 +137,6 @@ def check_kernel(scalar: type):
         world_enabled: wp.array[wp.int32],
         surface: Surface,
         params: wp.array2d[scalar],
-        cache_reach: wp.array[scalar],
         cache_anchor: wp.array[vec3],
         # State in:
         particle_q_start: wp.array[vec3],
@@ -101,35 +148,94 @@ def check_kernel(scalar: type):
         world, i = world_and_index(p, particle_count)
         if world_enabled[world] == 0 or surface.vertex_owner[i] < 0:
             return
-        world_count = cache_reach.shape[0]
+        world_count = (flags_out.shape[0] - 2) // FLAG_KINDS
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
-        thickness = params[wp.min(world, params.shape[0] - 1), PARAM_THICKNESS]
+        row = wp.min(world, params.shape[0] - 1)
+        thickness = params[row, PARAM_THICKNESS]
         start = particle_q_start[p]
         # Drift relative to the world's reference vertex (a middle triangle's first corner): a translation of the
         # whole surface changes no pair's distance.
         ref = base_index(world, particle_count) + surface.triangle[surface.triangle.shape[0] // 2][0]
         shift = particle_q_start[ref] - cache_anchor[ref]
         anchor = cache_anchor[p] + shift
-        drift = wp.length(start - anchor)
-        margin = (scalar(0.5) * (cache_reach[world] - scalar(REPULSION_REACH) * thickness) * scalar(1.0 - SAFETY)
-                  - scalar(BOX_PAD) * (wp.max(wp.abs(start)) + wp.max(wp.abs(anchor)) + wp.max(wp.abs(shift))
-                                       + scalar(1.0)))
-        if not (drift <= margin):  # NaN included
+        r = start - anchor
+        pad = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + wp.max(wp.abs(anchor)) + wp.max(wp.abs(shift)) + scalar(1.0))
+        drift = units(wp.length(r) + pad, thickness)
+        big = drift >= LENGTH_LIMIT
+        raise_to(flags_out, flag_slot(FLAG_DRIFT, world, world_count), drift)
+        for k in range(3):
+            high = units(r[k] + pad, thickness)
+            low = units(pad - r[k], thickness)
+            big = big or high >= LENGTH_LIMIT or low >= LENGTH_LIMIT
+            raise_to(flags_out, flag_slot(FLAG_SPREAD + k, world, world_count), high)
+            raise_to(flags_out, flag_slot(FLAG_SPREAD + 3 + k, world, world_count), low)
+        if big:  # beyond what the units hold (or NaN): rebuild
             raise_flag(flags_out, FLAG_REBUILD, world, world_count)
+        step = wp.length(particle_q_end[p] - start)
         if effective_inv_mass(particle_flags[p], particle_inv_mass[mass_row, i]) == scalar(0.0):
-            steps = wp.length(particle_q_end[p] - start) / thickness * scalar(KINEMATIC_STEPS)
             level = int(1 << 30)
+            steps = step / thickness * scalar(KINEMATIC_STEPS)
             if steps < scalar(1 << 29):  # else (or NaN) the largest level
                 level = int(steps) + 1  # rounded up
             wp.atomic_max(flags_out, flag_slot(FLAG_KINEMATIC, world, world_count), level)
+        elif not (step == scalar(0.0)):  # as the repulsion's gather tests it: its step limited, plus its pad
+            limited = wp.min(step, params[row, PARAM_RELAXATION] * scalar(SEARCH_REACH) * thickness)
+            raise_to(flags_out, flag_slot(FLAG_STEP, world, world_count),
+                     units(limited + scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0)), thickness))
 
     return check
 
 
 @functools.cache
+def decide_kernel(scalar: type):
+    """Kernel of the cache's decisions (module docstring, 1.), one thread per world, after ``check_kernel``: a
+    world rebuilds unless its drifts keep every pair outside the cache at least REPULSION_REACH τ apart, either
+    bound holding: the padded drift at most half the slack, (R - REPULSION_REACH τ)(1 - SAFETY) / 2, or the padded
+    box's diagonal at most the slack; and the pair stages run (FLAG_WORK's first entry) where a world has
+    cached pairs or a free vertex steps further than the repulsion's gather allows without the swept broad
+    phase (γ (REPULSION_REACH τ - K_w) (1 - SAFETY), less its pad)."""
+    vec3 = vec3_type(scalar)
+
+    @flat_kernel(module="unique", enable_backward=False)
+    def decide(
+        # Model:
+        world_enabled: wp.array[wp.int32],
+        params: wp.array2d[scalar],
+        cache_reach: wp.array[scalar],
+        cache: Pairs,
+        # In/out (the pass's flags):
+        flags_in_out: wp.array[wp.int32],
+    ):
+        world = wp.tid()
+        if world_enabled[world] == 0:
+            return
+        world_count = cache_reach.shape[0]
+        row = wp.min(world, params.shape[0] - 1)
+        thickness = params[row, PARAM_THICKNESS]
+        unit = thickness / scalar(KINEMATIC_STEPS)
+        slack = (cache_reach[world] - scalar(REPULSION_REACH) * thickness) * scalar(1.0 - SAFETY)
+        drift = scalar(flags_in_out[flag_slot(FLAG_DRIFT, world, world_count)]) * unit
+        width = vec3(scalar(0.0))
+        for k in range(3):
+            width[k] = scalar(flags_in_out[flag_slot(FLAG_SPREAD + k, world, world_count)]
+                              + flags_in_out[flag_slot(FLAG_SPREAD + 3 + k, world, world_count)]) * unit
+        holds = drift <= scalar(0.5) * slack or wp.length(width) <= slack  # False for a negative slack (R = 0)
+        if not holds:
+            raise_flag(flags_in_out, FLAG_REBUILD, world, world_count)
+        kinematic = scalar(flags_in_out[flag_slot(FLAG_KINEMATIC, world, world_count)]) * unit
+        step = scalar(flags_in_out[flag_slot(FLAG_STEP, world, world_count)]) * unit
+        budget = (params[row, PARAM_RELAXATION] * (scalar(REPULSION_REACH) * thickness - kinematic)
+                  * scalar(1.0 - SAFETY) * scalar(1.0 - SAFETY))  # the second factor: this test's own rounding
+        if cache.count[world] > 0 or not (step <= budget):
+            flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
+
+    return decide
+
+
+@functools.cache
 def anchor_kernel(scalar: type):
     """Kernel ending a rebuild (module docstring, 2.): the flagged worlds' anchors become the step's start and
-    their reach CACHE_REACH τ."""
+    their reach CACHE_REACH τ; a rebuilt world that found pairs sets FLAG_WORK."""
     vec3 = vec3_type(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
@@ -137,9 +243,11 @@ def anchor_kernel(scalar: type):
         # Model:
         particle_count: int,
         params: wp.array2d[scalar],
-        flags: wp.array[wp.int32],
+        cache: Pairs,
         # State in:
         particle_q_start: wp.array[vec3],
+        # In/out (the pass's flags):
+        flags_in_out: wp.array[wp.int32],
         # Out:
         cache_reach_out: wp.array[scalar],
         cache_anchor_out: wp.array[vec3],
@@ -147,12 +255,15 @@ def anchor_kernel(scalar: type):
     ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
-        if flags[flag_slot(FLAG_REBUILD, world, cache_reach_out.shape[0])] == 0:
+        world_count = cache_reach_out.shape[0]
+        if flags_in_out[flag_slot(FLAG_REBUILD, world, world_count)] == 0:
             return
         cache_anchor_out[p] = particle_q_start[p]
         if i == 0:
             cache_reach_out[world] = scalar(CACHE_REACH) * params[wp.min(world, params.shape[0] - 1), PARAM_THICKNESS]
             counters_out[world, COUNT_REBUILDS] += 1  # one thread per world
+            if cache.count[world] > 0:
+                flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
 
     return anchor
 
