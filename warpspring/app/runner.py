@@ -62,6 +62,8 @@ class RunSummary:
             the results are the same, the work is not: raise the mesh's ``cache_candidates``).
         choices: what the scene switched on or chose by itself and why, one line each (``substeps = "auto"``,
             triangle contacts by the rule of ``core/builder/colliders.py``).
+        balance: what the guard's energy balance counted, left out or why it was off (``BalanceTerms.describe``);
+            empty without a guard.
     """
 
     output: str
@@ -85,6 +87,7 @@ class RunSummary:
     self_contact: tuple | None = None
     mesh_cache_overflow: int = 0
     choices: tuple = ()
+    balance: str = ""
 
     def line(self) -> str:
         """The closing summary line of the CLI."""
@@ -122,7 +125,7 @@ class RunSummary:
             f"wrote {self.frames + 1} frames{resumed} ({self.simulated_time:.3g} s simulated) to {self.output} in "
             f"{self.wall_time:.2f} s + {self.setup_time:.2f} s setup: {speed}; {self.integrator}, "
             f"dt = {self.dt * 1e3:.4g} ms; {self.model}{contacts}{worlds}"
-        ) + "".join(f"; {choice}" for choice in self.choices)
+        ) + "".join(f"; {choice}" for choice in self.choices) + (f"; {self.balance}" if self.balance else "")
 
 
 def checkpoint_path(output: str) -> str:
@@ -383,6 +386,7 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
             int(v.sum()) for v in model.self_contact.counts().values()),
         mesh_cache_overflow=int(mesh_cache_counts(model)["overflow"].sum()) if model.mesh_colliders else 0,
         choices=tuple(choices),
+        balance=sim.guard.balance_terms().describe() if sim.guard is not None else "",
     )
 
 

@@ -228,6 +228,104 @@ class EnergyBalance:
         return self.energy - self.reference - self.work + self.dissipated
 
 
+@dataclass(frozen=True)
+class BalanceTerms:
+    """What a guard's energy balance counts for a model as it is now, term by term as the scene names them
+    (``Guard.balance_terms``, :func:`balance_terms`; the run summary prints :meth:`describe`).
+
+    Attributes:
+        on: whether the balance is kept (its tolerance > 0 and the work of every load in the scene known).
+        counted: the loads whose work it counts and the losses it counts, exactly up to the integrator's error.
+        losses: what takes energy out that it does not count (contacts, clamps, dampers without a count): the
+            balance then checks E ≤ E_ref + W − D with D without them, one-sided (never a stop for them, but an
+            instability must first re-create what they took out).
+        off: why it is off, each a term whose energy it cannot count (empty where on); the guard then checks
+            non-finite states, tears and runaway kinetic energy only.
+    """
+
+    on: bool
+    counted: tuple = ()
+    losses: tuple = ()
+    off: tuple = ()
+
+    def describe(self) -> str:
+        """One clause for the run summary."""
+        if not self.on:
+            return (f"energy balance off ({'; '.join(self.off)}): the guard checks non-finite states, tears and "
+                    "runaway kinetic energy")
+        text = "energy balance counts " + (", ".join(self.counted) if self.counted else "the elastic energy")
+        if self.losses:
+            text += (f"; not counted, losses only: {', '.join(self.losses)} (the balance checks that the energy "
+                     "stays at or below the start's plus the loads' work less the counted losses: one-sided)")
+        return text
+
+
+def balance_terms(model: Model, *, integrator, control, limits: GuardLimits, dissipation: bool,
+                  work_countable: bool, counted_losses: bool) -> BalanceTerms:
+    """Each term of ``model`` and its place in the energy balance (:class:`BalanceTerms`). ``dissipation``: the guard
+    integrates the dampers' power (a step given, ``limits.dissipation``, an integrator outside
+    ``DISSIPATION_UNCOUNTED``); ``counted_losses``: and the model lets it count them (``guards.dissipation_exact``);
+    ``work_countable``: the integrator lets it count the work of wind and handles (``WORK_UNCOUNTED``)."""
+    name = getattr(integrator, "name", None) or "the integrator"
+    off = []
+    if limits.energy_balance <= 0.0:
+        off.append("switched off: energy_balance = 0")
+    if getattr(integrator, "unconditionally_stable", False):
+        off.append(f"{name} is unconditionally stable: the energy its steps add at large steps is no instability")
+    if model.shape_moving:
+        off.append("the work of moving colliders is not counted")
+    if getattr(model, "shape_deforming", False):
+        off.append("the work of deforming mesh colliders is not counted")
+    if model.emitters:
+        off.append("the energy entering with emitted particles is not counted")
+    if model.stabilizers.enabled("max_particle_force"):
+        off.append("the particle force clamp is not a potential")
+    working = [family.name for family in model.families if family.does_work]
+    if working and not work_countable:
+        off.append(f"the work of {' and '.join(working)} is not counted for {name}")
+    animated = [key for key in POTENTIAL_INPUTS if key in getattr(model, "_tracks", {})]
+    if animated:
+        off.append(f"animated {', '.join(animated)} change the springs' potential without work")
+    features = model.force_features(control)
+    counted, losses = [], []
+    gravity = np.linalg.norm(model.world_values("gravity"), axis=1).max() > 0.0 or "gravity" in model._tracks
+    if gravity:
+        counted.append("the work of weight")
+    if features.external:
+        counted.append("the work of the control's external force")
+    if model.kinematic_mask().any() or model.pin_groups is not None:
+        counted.append("the work of the pins' drives")
+    counted += [f"the work of {family}" for family in working]
+    if features.drag and features.wind:
+        counted.append("the work of the wind's push through drag")
+    counted += [f"the elastic energy of the {family.name}" for family in model.families
+                if not family.does_work and family.element_count]
+    damped = [family for family in model.families if not family.does_work and family.element_count]
+    for family in damped:
+        hooks = family.spec(model).funcs(model.scalar)
+        if getattr(hooks, "dissipation", None) is not None and dissipation and counted_losses:
+            counted.append(f"the loss to the {family.name}' dampers")
+        else:
+            losses.append(f"the {family.name}' damping")
+    if features.drag:
+        if dissipation and counted_losses:
+            counted.append("the loss to drag")
+        else:
+            losses.append("drag")
+    if model.shape_count:
+        losses.append(f"contacts with {model.shape_count} collider{'s' if model.shape_count > 1 else ''} (response "
+                      "and friction)")
+    if getattr(model, "self_contact", None) is not None:
+        losses.append("self-collision")
+    if model.stabilizers.enabled("max_strain"):
+        losses.append("strain limiting")
+    if model.stabilizers.enabled("max_speed"):
+        losses.append("the speed clamp")
+    if model.spring_plastic_count:
+        losses.append("plastic flow and breaking of springs")
+    return BalanceTerms(on=not off, counted=tuple(counted), losses=tuple(losses), off=tuple(off))
+
+
 #: The largest ω h [-] at which each fixed-step integrator is stable on an undamped mode (its amplification's
 #: modulus reaches 1 there: symplectic Euler and velocity Verlet 2, RK4 2√2); the others need damping
 #: (explicit Euler, midpoint) or have no limit.

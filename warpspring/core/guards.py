@@ -78,9 +78,11 @@ from .guard_records import (
     MIDPOINT_DISSIPATION,
     POTENTIAL_INPUTS,
     WORK_UNCOUNTED,
+    BalanceTerms,
     EnergyBalance,
     GuardLimits,
     GuardReport,
+    balance_terms,
     stop_advice,
 )
 from .model import Model
@@ -253,6 +255,17 @@ class Guard(StepHook):
                     or (bool(self._working_families()) and not self._family_work_countable())
                     or any(name in model._tracks for name in POTENTIAL_INPUTS)
                     or getattr(self.integrator, "unconditionally_stable", False))
+
+    def balance_terms(self) -> BalanceTerms:
+        """What the energy balance counts for the model as it is now, term by term, and what it leaves out or why it
+        is off (:class:`BalanceTerms`; the run summary prints its ``describe()``)."""
+        integrator = self.integrator
+        dissipation = (self.dt is not None and self._limits_host.dissipation
+                       and getattr(integrator, "name", None) not in DISSIPATION_UNCOUNTED
+                       and not getattr(integrator, "adaptive", False))
+        return balance_terms(self.model, integrator=integrator, control=self.control, limits=self._limits_host,
+                             dissipation=dissipation, work_countable=self._family_work_countable(),
+                             counted_losses=dissipation_exact(self.model))
 
     def _family_work_countable(self) -> bool:
         """Whether the balance can count wind's and handles' work for the integrator (``WORK_UNCOUNTED``; adaptive
