@@ -381,34 +381,59 @@ def scene_suspects(model: Model, *, control=None) -> list[str]:
     return found
 
 
+def remedy_substeps(model: Model, *, integrator: str | None, substeps: int, dt: float, world: int = 0) -> int:
+    """The substeps :func:`stop_advice` prints as a remedy for ``world``: twice ``substeps``, or as many as bring the
+    springs' bound of ω_max h (:func:`spring_bounds`) to half the integrator's undamped limit and their dampers'
+    rate to 1/h, whichever is more."""
+    target = 2 * substeps
+    limit = STABLE_OMEGA_H.get(integrator or "")
+    bounds = spring_bounds(model, world)
+    if bounds is not None and limit is not None:
+        _, _, omega, damping = bounds
+        target = max(target, math.ceil(substeps * omega * dt / (0.5 * limit)), math.ceil(substeps * damping * dt))
+    return target
+
+
+def describe_suspects(model: Model, *, control=None) -> str:
+    """The scene's suspects besides its elements and the step (:func:`scene_suspects`) as one phrase."""
+    found = scene_suspects(model, control=control)
+    return "; ".join(found) if found else "none besides its elements (no contacts, no loads from outside)"
+
+
 def stop_advice(report: GuardReport, model: Model, *, integrator: str | None, substeps: int, dt: float,
                 control=None) -> str:
-    """What to suspect and what to try after a stop for an instability (energy balance, runaway kinetic energy,
-    non-finite state): the step h [s] (``substeps`` per frame, with ``integrator``) against the stiffest spring's
-    bound of ω_max h (:func:`spring_bounds`) and the integrator's limit, then the scene's other suspects
-    (:func:`scene_suspects`), and a remedy a run can take as printed: twice the substeps, or as many as bring the
-    bound to half the limit and the dampers' rate to 1/h, whichever is more. Empty for a strain stop (the advisor
-    tells over-stretch from instability: ``analysis.advisor.diagnose``) and for a scene with neither springs nor
-    other suspects (free particles under steady loads: no step of theirs is unstable)."""
-    if report.reason == "strain":
-        return ""
+    """What to suspect and what to try after a stop: the step h [s] (``substeps`` per frame, with ``integrator``)
+    against the stiffest spring's bound of ω_max h (:func:`spring_bounds`) and the integrator's limit, then the scene's
+    other suspects (:func:`scene_suspects`), and a remedy a run can take as printed: twice the substeps, or as many
+    as bring the bound to half the limit and the dampers' rate to 1/h, whichever is more. A tear (``strain``) at a
+    step whose bound is within the limit is over-stretch (the bound holds at every stretch of a Hooke spring: its
+    stiffness across the spring is below ke), and the remedy is the material, not the step (the advisor's
+    diagnosis, ``analysis.advisor.diagnose``, tells it at the stretched state the run reached). Empty for a scene
+    with neither springs nor other suspects (free particles under steady loads: no step of theirs is unstable)."""
     clauses = []
-    target = 2 * substeps
+    target = remedy_substeps(model, integrator=integrator, substeps=substeps, dt=dt, world=report.world)
     limit = STABLE_OMEGA_H.get(integrator or "")
     bounds = spring_bounds(model, report.world)
     step = f"the step (h = {dt * 1e3:.3g} ms, {substeps} substeps per frame)"
+    within = False
     if bounds is not None:
         particle, ke, omega, damping = bounds
         where = f"the springs at particle {particle}, ke up to {ke:.3g} N/m: ω_max h ≤ {omega * dt:.2f}"
         if limit is not None:
             where += f" against {integrator}'s limit {limit:.2f}"
-            # Half the limit (a stretched state stiffens) and the dampers' rate at most 1/h.
-            target = max(target, math.ceil(substeps * omega * dt / (0.5 * limit)), math.ceil(substeps * damping * dt))
+            # (the bound covers Hooke springs only: not biphasic ones, hinges or tets)
+            hooke = (not model.stabilizers.enabled("biphasic_strain")
+                     and all(family.name == "springs" or family.does_work for family in model.families))
+            within = hooke and omega * dt <= limit and damping * dt <= 1.0
         step += f" against the stiffest elements ({where})"
     others = scene_suspects(model, control=control)
     if bounds is None and not others:
         return ""  # free particles under steady loads: no step is unstable, nothing in the scene to name
     clauses.append(step)
     clauses += others
-    return (f"suspects in this scene: {'; '.join(clauses)}. Remedy: run with substeps = {target} (a bound: the "
-            "advisor's estimate, where it runs, is tighter)")
+    suspects = f"suspects in this scene: {'; '.join(clauses)}."
+    if report.reason == "strain" and within:
+        return (f"{suspects} The step is within the limit for these springs at any stretch, so they really stretch "
+                "that far: stiffer springs (ke), strain limiting (Stabilizers(max_strain=0.1)) or biphasic springs")
+    return (f"{suspects} Remedy: run with substeps = {target} (a bound: the advisor's estimate, where it runs, is "
+            "tighter)")

@@ -81,8 +81,10 @@ from .guard_records import (
     BalanceTerms,
     EnergyBalance,
     GuardLimits,
+    STABLE_OMEGA_H,
     GuardReport,
     balance_terms,
+    spring_bounds,
     stop_advice,
 )
 from .model import Model
@@ -183,6 +185,9 @@ class Guard(StepHook):
         self.revision = 0
         self._reported = False
         self._every = None
+        self._watching = False  # this frame checks every substep (``refresh``)
+        self._watch_start = True  # the first frame from a restart is watched where the step is not certified
+        self._bound = 0.0  # the springs' ω_max bound [rad/s] at the last refresh (``_step_bound``)
         self._dissipating = None
         self._midpoint = False
         self._working = False
@@ -200,7 +205,8 @@ class Guard(StepHook):
         if not isinstance(limits, GuardLimits):
             raise TypeError(f"guard limits must be a warpspring.GuardLimits, got {type(limits).__name__}")
         self._limits_host = limits
-        every = min(limits.every or self.substeps, self.substeps)
+        self._every_set = min(limits.every or self.substeps, self.substeps)
+        every = 1 if self._watching else self._every_set
         integrator = self.integrator
         # An unconditionally stable integrator has no balance (``balance_applies``): nothing to count per substep.
         balanced = limits.energy_balance > 0.0 and not getattr(integrator, "unconditionally_stable", False)
@@ -239,9 +245,54 @@ class Guard(StepHook):
         if self._reported:
             self.reset()
             self._reported = False
+        watch = False
         if self._input_version != self.model.input_version:
             self._write_limits()
             self.rebase()
+            before, self._bound = self._bound, self._step_bound()
+            watch = self._bound > before and not self._certified()
+        if self._watch_start:
+            self._bound = self._step_bound()
+            watch = watch or not self._certified()
+            self._watch_start = False
+        # Without the balance (a moving collider, an emitter) only the tear limit and the runaway catch a mode that
+        # grows: a step the bound does not certify is watched in every frame.
+        watch = watch or (not self._certified() and not self.balance_applies())
+        self._watch(watch)
+
+    def _watch(self, watching: bool) -> None:
+        """Check every substep of this frame (``watching``) or every ``every`` (a re-capture where it changes). A
+        frame that starts at a step the springs' bound does not certify stable (the first from a restart, the first
+        after a write that raised the bound: a stiffer spring, a lighter particle) is watched: an unstable mode
+        grows by |λ| per substep, up to ~10 at twice an integrator's limit and ~100 past it tenfold, so checked once
+        a frame of 40 substeps its state overflows before the check sees it (a spring made 100× stiffer mid-run on
+        examples/hanging_cloth.toml at the advisor's 42 substeps: non-finite at the frame's check); checked after
+        every substep, the balance or the tear limit stops it within a few substeps of its start."""
+        if watching == self._watching:
+            return
+        self._watching = watching
+        self.limits = self._limits_host  # the effective ``every`` (re-captures)
+
+    def _step_bound(self) -> float:
+        """The largest Gershgorin bound of ω_max [rad/s] of the model's springs over its worlds (0 without springs;
+        reads the device)."""
+        model = self.model
+        per_world = any(getattr(model, name).shape[0] > 1 for name in ("spring_stiffness", "particle_mass"))
+        worlds = range(model.world_count if per_world else 1)
+        bounds = [spring_bounds(model, w) for w in worlds]
+        return max((b[2] for b in bounds if b is not None), default=0.0)
+
+    def _certified(self) -> bool:
+        """Whether the springs' bound certifies the step stable for the integrator: ω_max h within its undamped limit
+        (``STABLE_OMEGA_H``; never for explicit Euler and midpoint, whose limit is their damping's). Implicit and
+        adaptive integrators, a guard without a step and models without springs are certified."""
+        integrator = self.integrator
+        name = getattr(integrator, "name", None)
+        if (self.dt is None or self._bound == 0.0 or getattr(integrator, "unconditionally_stable", False)
+                or getattr(integrator, "adaptive", False)):
+            return True
+        limit = STABLE_OMEGA_H.get(name)
+        return limit is not None and self._bound * float(self.dt) <= limit
 
     def balance_applies(self) -> bool:
         """Whether the energy balance can be kept for the model as it is now and applies to the integrator
@@ -333,6 +384,7 @@ class Guard(StepHook):
         the start, and its load at the first check alone would double that check's work); the energy balance
         takes its reference at the next check."""
         state = state if state is not None else self.model.state()
+        self._watch_start = True
         self._work_total.zero_()
         wp.copy(self._previous_q, state.particle_q)
         wp.copy(self._previous_qd, state.particle_qd)

@@ -280,7 +280,10 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                 if is_kinematic(particle_flags[p]):  # prescribed motion: no runaway of its own, a drive's work
                     load = -element_force(world, i, base, x, v, element_arrays, inputs, particle_q, particle_qd)
                 else:
-                    energy = wp.float64(scalar(0.5) * mass * wp.dot(v, v))
+                    # (in float64: a runaway's |v|² overflows float32 long before its state does)
+                    energy = wp.float64(0.5) * wp.float64(mass) * (wp.float64(v[0]) * wp.float64(v[0])
+                                                                   + wp.float64(v[1]) * wp.float64(v[1])
+                                                                   + wp.float64(v[2]) * wp.float64(v[2]))
                     load = mass * input_vec3(inputs, world, INPUT_GRAVITY)
                     if wp.static(len(working) > 0):  # wind, handles: forces from outside the cloth
                         load += work_force(world, i, base, x, v, work_arrays, inputs, particle_q, particle_qd)
