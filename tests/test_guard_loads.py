@@ -86,7 +86,7 @@ def loaded(device, load: str):
 ACCOUNTED = {
     "weight": "the work of weight",
     "external force": "the work of the control's external force",
-    "pin drive": "the work of the pins' drives",
+    "pin drive": "the work of the pins' drives (by the trapezoid of their force between checks)",
     "wind": "the work of wind triangles",
     "handle": "the work of handle grabs",
     "volume tets": "the elastic energy of the volume tets",

@@ -294,7 +294,7 @@ def balance_terms(model: Model, *, integrator, control, limits: GuardLimits, dis
     if features.external:
         counted.append("the work of the control's external force")
     if model.kinematic_mask().any() or model.pin_groups is not None:
-        counted.append("the work of the pins' drives")
+        counted.append("the work of the pins' drives (by the trapezoid of their force between checks)")
     counted += [f"the work of {family}" for family in working]
     if features.drag and features.wind:
         counted.append("the work of the wind's push through drag")

@@ -92,6 +92,11 @@ from .state import State
 from .stepper import StepHook
 from .tracks import evaluate_input_tracks
 
+#: Frames checked after every substep from a restart, or from a write that raised the springs' bound, at a step the bound
+#: does not certify stable (``Guard._watch``).
+WATCH_FRAMES = 4
+
+
 class Guard(StepHook):
     """Device-side checks of one simulator's states, per world; see :class:`GuardLimits`. A :class:`StepHook`:
     it clears its record at the start of every frame and checks after every ``every``-th substep and the
@@ -186,6 +191,7 @@ class Guard(StepHook):
         self._reported = False
         self._every = None
         self._watching = False  # this frame checks every substep (``refresh``)
+        self._watch_left = 0  # frames still to watch
         self._watch_start = True  # the first frame from a restart is watched where the step is not certified
         self._bound = 0.0  # the springs' ω_max bound [rad/s] at the last refresh (``_step_bound``)
         self._dissipating = None
@@ -245,29 +251,29 @@ class Guard(StepHook):
         if self._reported:
             self.reset()
             self._reported = False
-        watch = False
         if self._input_version != self.model.input_version:
             self._write_limits()
             self.rebase()
             before, self._bound = self._bound, self._step_bound()
-            watch = self._bound > before and not self._certified()
+            if self._bound > before and not self._certified():
+                self._watch_left = WATCH_FRAMES
         if self._watch_start:
             self._bound = self._step_bound()
-            watch = watch or not self._certified()
+            self._watch_left = 0 if self._certified() else WATCH_FRAMES
             self._watch_start = False
-        # Without the balance (a moving collider, an emitter) only the tear limit and the runaway catch a mode that
-        # grows: a step the bound does not certify is watched in every frame.
-        watch = watch or (not self._certified() and not self.balance_applies())
-        self._watch(watch)
+        self._watch(self._watch_left > 0)
+        self._watch_left = max(self._watch_left - 1, 0)
 
     def _watch(self, watching: bool) -> None:
-        """Check every substep of this frame (``watching``) or every ``every`` (a re-capture where it changes). A
-        frame that starts at a step the springs' bound does not certify stable (the first from a restart, the first
-        after a write that raised the bound: a stiffer spring, a lighter particle) is watched: an unstable mode
-        grows by |λ| per substep, up to ~10 at twice an integrator's limit and ~100 past it tenfold, so checked once
-        a frame of 40 substeps its state overflows before the check sees it (a spring made 100× stiffer mid-run on
-        examples/hanging_cloth.toml at the advisor's 42 substeps: non-finite at the frame's check); checked after
-        every substep, the balance or the tear limit stops it within a few substeps of its start."""
+        """Check every substep of this frame (``watching``) or every ``every`` (a re-capture where it changes). The
+        ``WATCH_FRAMES`` frames from a restart or from a write that raised the springs' bound (a stiffer spring, a
+        lighter particle) are watched where the bound does not certify the step stable: an unstable mode grows by
+        |λ| per substep, up to ~10 at twice an integrator's limit and ~100 past it tenfold, so checked once a frame
+        of 40 substeps its state overflows before the check sees it (a spring made 100× stiffer mid-run on
+        examples/hanging_cloth.toml at the advisor's 42 substeps: non-finite at the frame's check; RK4 at twice its
+        limit on that cloth with a moving collider, whose balance is off: non-finite at frame 2); checked after every
+        substep, the balance or the tear limit stops it within a few substeps of its start. A mode that grows more
+        slowly is seen by the frames' own checks before it overflows."""
         if watching == self._watching:
             return
         self._watching = watching
