@@ -100,7 +100,8 @@ WATCH_FRAMES = 4
 class Guard(StepHook):
     """Device-side checks of one simulator's states, per world; see :class:`GuardLimits`. A :class:`StepHook`:
     it clears its record at the start of every frame and checks after every ``every``-th substep and the
-    last.
+    last (after every substep in the ``WATCH_FRAMES`` frames from a restart, or from a write that raised the springs'
+    bound, at a step that bound does not certify: ``_watch``).
 
     The limits are device values: setting :attr:`limits` between frames changes no captured launch (but
     a new ``every`` does, and switching the energy balance on or off where the guard counts dissipation;
