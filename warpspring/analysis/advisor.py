@@ -17,6 +17,7 @@ import numpy as np
 from .. import checks
 from ..checks import format_duration
 from ..errors import ConfigError
+from ..core.guard_records import describe_suspects, remedy_substeps
 from ..core.integrators import ImplicitEuler
 from ..core.model import Model
 from ..core.state import State
@@ -432,6 +433,9 @@ def diagnose(model: Model, integrator: str, dt: float, *, fps: float, reason: st
         hint = f" (e.g. --substeps {max(advice.substeps, substeps_floor)})" if advice.substeps else ""
         return Diagnosis("instability", advice, (
             f"numerical instability: at the state the run reached, {advice.message}{hint}"))
+    substeps = max(1, round(1.0 / (fps * dt)))
+    more = max(remedy_substeps(model, integrator=integrator, substeps=substeps, dt=dt), substeps_floor)
     return Diagnosis("instability", advice, (
-        f"the advisor found the step stable for the elements at the state the run reached ({advice.message}), "
-        "so look at contacts, external forces or extreme parameters; more substeps or implicit_euler may help"))
+        f"the advisor found the step stable for the elements at the state the run reached ({advice.message}); the "
+        f"scene's other suspects: {describe_suspects(model, control=control)}; run with more substeps (e.g. "
+        f"--substeps {more})"))

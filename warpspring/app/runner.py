@@ -21,6 +21,7 @@ from ..io.output_lock import OutputLock
 from ..io.usd_stream import check_output_path
 from ..core.mesh_colliders import mesh_cache_counts
 from ..core.simulator import Simulator
+from ..core.guard_records import describe_suspects, remedy_substeps
 from ..core.builder.colliders import model_triangle_contacts
 from ..analysis.advisor import advise, diagnose
 from ..analysis.step_choice import choose_substeps
@@ -62,6 +63,11 @@ class RunSummary:
             the results are the same, the work is not: raise the mesh's ``cache_candidates``).
         choices: what the scene switched on or chose by itself and why, one line each (``substeps = "auto"``,
             triangle contacts by the rule of ``core/builder/colliders.py``).
+        balance: what the guard's energy balance counted, left out or why it was off (``BalanceTerms.describe``);
+            empty without a guard.
+        balance_created: the energy the integration created by the balance's count at the run's end, as a share of
+            its budget, E - (E_ref + W - D) over the peak of E_ref + W [-] (the largest over worlds; ``None`` where
+            the balance was off or there is no guard): within the guard's tolerance for a run it did not stop.
     """
 
     output: str
@@ -85,6 +91,8 @@ class RunSummary:
     self_contact: tuple | None = None
     mesh_cache_overflow: int = 0
     choices: tuple = ()
+    balance: str = ""
+    balance_created: float | None = None
 
     def line(self) -> str:
         """The closing summary line of the CLI."""
@@ -122,7 +130,7 @@ class RunSummary:
             f"wrote {self.frames + 1} frames{resumed} ({self.simulated_time:.3g} s simulated) to {self.output} in "
             f"{self.wall_time:.2f} s + {self.setup_time:.2f} s setup: {speed}; {self.integrator}, "
             f"dt = {self.dt * 1e3:.4g} ms; {self.model}{contacts}{worlds}"
-        ) + "".join(f"; {choice}" for choice in self.choices)
+        ) + "".join(f"; {choice}" for choice in self.choices) + (f"; {self.balance}" if self.balance else "")
 
 
 def checkpoint_path(output: str) -> str:
@@ -342,7 +350,7 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
             # A guard names its frame and substep; the writer's last-line check knows only the frame.
             frame = exc.frame if exc.frame is not None else sim.frame
             where = "" if exc.frame is not None else f"frame {frame} (t = {frame * sim.frame_dt:.4g} s): "
-            remedy = _remedy(advice, substeps)
+            remedy = _remedy(advice, substeps, model, sim.control, integrator.name, sim.dt)
             reason = getattr(exc, "reason", None)
             if reason is not None:
                 remedy = diagnose(model, integrator.name, sim.dt, fps=fps, reason=reason, state=last_good,
@@ -383,7 +391,17 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
             int(v.sum()) for v in model.self_contact.counts().values()),
         mesh_cache_overflow=int(mesh_cache_counts(model)["overflow"].sum()) if model.mesh_colliders else 0,
         choices=tuple(choices),
+        balance=sim.guard.balance_terms().describe() if sim.guard is not None else "",
+        balance_created=_created_share(sim),
     )
+
+
+def _created_share(sim) -> float | None:
+    """``RunSummary.balance_created`` of ``sim`` (reads the device)."""
+    if sim.guard is None or not sim.guard.balance_terms().on:
+        return None
+    balance = sim.guard.energy_balance()
+    return float(np.max(balance.created / np.maximum(balance.peak, 1.0e-300)))
 
 
 def _check_resume(checkpoint: Checkpoint, sim: Simulator, warn) -> None:
@@ -454,12 +472,15 @@ def _omega_estimate(model) -> str:
 POWER_ITERATION_CPU_LIMIT = 20_000
 
 
-def _remedy(advice, substeps: int) -> str:
-    """What to change after a run went bad: the advisor's verdict, or the generic advice when it saw no
-    spring instability (contacts, external forces or stabilizers can also drive a run unstable)."""
+def _remedy(advice, substeps: int, model, control, integrator: str, dt: float) -> str:
+    """What to change after a run went bad: the advisor's verdict; or, where it saw no spring instability, what else
+    the scene holds (its contacts and loads, as the guard names them: ``describe_suspects``) and the substeps the
+    guard's bound asks for (``remedy_substeps``): never implicit_euler, whose balance is off (a remedy that only
+    silences the guard)."""
     if advice.stable:
-        return (f"the advisor found the step stable for the springs ({advice.message}), so look at contacts, "
-                f"external forces or extreme parameters; more substeps (now {substeps}) or implicit_euler may help")
+        more = remedy_substeps(model, integrator=integrator, substeps=substeps, dt=dt)
+        return (f"the advisor found the step stable for the springs ({advice.message}); the scene's other suspects: "
+                f"{describe_suspects(model, control=control)}; run with more substeps (e.g. --substeps {more})")
     hint = f" (e.g. --substeps {advice.substeps})" if advice.substeps else ""
     return f"{advice.message}{hint}"
 

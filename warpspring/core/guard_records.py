@@ -228,6 +228,104 @@ class EnergyBalance:
         return self.energy - self.reference - self.work + self.dissipated
 
 
+@dataclass(frozen=True)
+class BalanceTerms:
+    """What a guard's energy balance counts for a model as it is now, term by term as the scene names them
+    (``Guard.balance_terms``, :func:`balance_terms`; the run summary prints :meth:`describe`).
+
+    Attributes:
+        on: whether the balance is kept (its tolerance > 0 and the work of every load in the scene known).
+        counted: the loads whose work it counts and the losses it counts, exactly up to the integrator's error.
+        losses: what takes energy out that it does not count (contacts, clamps, dampers without a count): the
+            balance then checks E ≤ E_ref + W − D with D without them, one-sided (never a stop for them, but an
+            instability must first re-create what they took out).
+        off: why it is off, each a term whose energy it cannot count (empty where on); the guard then checks
+            non-finite states, tears and runaway kinetic energy only.
+    """
+
+    on: bool
+    counted: tuple = ()
+    losses: tuple = ()
+    off: tuple = ()
+
+    def describe(self) -> str:
+        """One clause for the run summary."""
+        if not self.on:
+            return (f"energy balance off ({'; '.join(self.off)}): the guard checks non-finite states, tears and "
+                    "runaway kinetic energy")
+        text = "energy balance counts " + (", ".join(self.counted) if self.counted else "the elastic energy")
+        if self.losses:
+            text += (f"; not counted, losses only: {', '.join(self.losses)} (the balance checks that the energy "
+                     "stays at or below the start's plus the loads' work less the counted losses: one-sided)")
+        return text
+
+
+def balance_terms(model: Model, *, integrator, control, limits: GuardLimits, dissipation: bool,
+                  work_countable: bool, counted_losses: bool) -> BalanceTerms:
+    """Each term of ``model`` and its place in the energy balance (:class:`BalanceTerms`). ``dissipation``: the guard
+    integrates the dampers' power (a step given, ``limits.dissipation``, an integrator outside
+    ``DISSIPATION_UNCOUNTED``); ``counted_losses``: and the model lets it count them (``guards.dissipation_exact``);
+    ``work_countable``: the integrator lets it count the work of wind and handles (``WORK_UNCOUNTED``)."""
+    name = getattr(integrator, "name", None) or "the integrator"
+    off = []
+    if limits.energy_balance <= 0.0:
+        off.append("switched off: energy_balance = 0")
+    if getattr(integrator, "unconditionally_stable", False):
+        off.append(f"{name} is unconditionally stable: the energy its steps add at large steps is no instability")
+    if model.shape_moving:
+        off.append("the work of moving colliders is not counted")
+    if getattr(model, "shape_deforming", False):
+        off.append("the work of deforming mesh colliders is not counted")
+    if model.emitters:
+        off.append("the energy entering with emitted particles is not counted")
+    if model.stabilizers.enabled("max_particle_force"):
+        off.append("the particle force clamp is not a potential")
+    working = [family.name for family in model.families if family.does_work]
+    if working and not work_countable:
+        off.append(f"the work of {' and '.join(working)} is not counted for {name}")
+    animated = [key for key in POTENTIAL_INPUTS if key in getattr(model, "_tracks", {})]
+    if animated:
+        off.append(f"animated {', '.join(animated)} change the springs' potential without work")
+    features = model.force_features(control)
+    counted, losses = [], []
+    gravity = np.linalg.norm(model.world_values("gravity"), axis=1).max() > 0.0 or "gravity" in model._tracks
+    if gravity:
+        counted.append("the work of weight")
+    if features.external:
+        counted.append("the work of the control's external force")
+    if model.kinematic_mask().any() or model.pin_groups is not None:
+        counted.append("the work of the pins' drives (by the trapezoid of their force between checks)")
+    counted += [f"the work of {family}" for family in working]
+    if features.drag and features.wind:
+        counted.append("the work of the wind's push through drag")
+    counted += [f"the elastic energy of the {family.name}" for family in model.families
+                if not family.does_work and family.element_count]
+    damped = [family for family in model.families if not family.does_work and family.element_count]
+    for family in damped:
+        hooks = family.spec(model).funcs(model.scalar)
+        if getattr(hooks, "dissipation", None) is not None and dissipation and counted_losses:
+            counted.append(f"the loss to the {family.name}' dampers")
+        else:
+            losses.append(f"the {family.name}' damping")
+    if features.drag:
+        if dissipation and counted_losses:
+            counted.append("the loss to drag")
+        else:
+            losses.append("drag")
+    if model.shape_count:
+        losses.append(f"contacts with {model.shape_count} collider{'s' if model.shape_count > 1 else ''} (response "
+                      "and friction)")
+    if getattr(model, "self_contact", None) is not None:
+        losses.append("self-collision")
+    if model.stabilizers.enabled("max_strain"):
+        losses.append("strain limiting")
+    if model.stabilizers.enabled("max_speed"):
+        losses.append("the speed clamp")
+    if model.spring_plastic_count:
+        losses.append("plastic flow and breaking of springs")
+    return BalanceTerms(on=not off, counted=tuple(counted), losses=tuple(losses), off=tuple(off))
+
+
 #: The largest ω h [-] at which each fixed-step integrator is stable on an undamped mode (its amplification's
 #: modulus reaches 1 there: symplectic Euler and velocity Verlet 2, RK4 2√2); the others need damping
 #: (explicit Euler, midpoint) or have no limit.
@@ -283,34 +381,59 @@ def scene_suspects(model: Model, *, control=None) -> list[str]:
     return found
 
 
+def remedy_substeps(model: Model, *, integrator: str | None, substeps: int, dt: float, world: int = 0) -> int:
+    """The substeps :func:`stop_advice` prints as a remedy for ``world``: twice ``substeps``, or as many as bring the
+    springs' bound of ω_max h (:func:`spring_bounds`) to half the integrator's undamped limit and their dampers'
+    rate to 1/h, whichever is more."""
+    target = 2 * substeps
+    limit = STABLE_OMEGA_H.get(integrator or "")
+    bounds = spring_bounds(model, world)
+    if bounds is not None and limit is not None:
+        _, _, omega, damping = bounds
+        target = max(target, math.ceil(substeps * omega * dt / (0.5 * limit)), math.ceil(substeps * damping * dt))
+    return target
+
+
+def describe_suspects(model: Model, *, control=None) -> str:
+    """The scene's suspects besides its elements and the step (:func:`scene_suspects`) as one phrase."""
+    found = scene_suspects(model, control=control)
+    return "; ".join(found) if found else "none besides its elements (no contacts, no loads from outside)"
+
+
 def stop_advice(report: GuardReport, model: Model, *, integrator: str | None, substeps: int, dt: float,
                 control=None) -> str:
-    """What to suspect and what to try after a stop for an instability (energy balance, runaway kinetic energy,
-    non-finite state): the step h [s] (``substeps`` per frame, with ``integrator``) against the stiffest spring's
-    bound of ω_max h (:func:`spring_bounds`) and the integrator's limit, then the scene's other suspects
-    (:func:`scene_suspects`), and a remedy a run can take as printed: twice the substeps, or as many as bring the
-    bound to half the limit and the dampers' rate to 1/h, whichever is more. Empty for a strain stop (the advisor
-    tells over-stretch from instability: ``analysis.advisor.diagnose``) and for a scene with neither springs nor
-    other suspects (free particles under steady loads: no step of theirs is unstable)."""
-    if report.reason == "strain":
-        return ""
+    """What to suspect and what to try after a stop: the step h [s] (``substeps`` per frame, with ``integrator``)
+    against the stiffest spring's bound of ω_max h (:func:`spring_bounds`) and the integrator's limit, then the scene's
+    other suspects (:func:`scene_suspects`), and a remedy a run can take as printed: twice the substeps, or as many
+    as bring the bound to half the limit and the dampers' rate to 1/h, whichever is more. A tear (``strain``) at a
+    step whose bound is within the limit is over-stretch (the bound holds at every stretch of a Hooke spring: its
+    stiffness across the spring is below ke), and the remedy is the material, not the step (the advisor's
+    diagnosis, ``analysis.advisor.diagnose``, tells it at the stretched state the run reached). Empty for a scene
+    with neither springs nor other suspects (free particles under steady loads: no step of theirs is unstable)."""
     clauses = []
-    target = 2 * substeps
+    target = remedy_substeps(model, integrator=integrator, substeps=substeps, dt=dt, world=report.world)
     limit = STABLE_OMEGA_H.get(integrator or "")
     bounds = spring_bounds(model, report.world)
     step = f"the step (h = {dt * 1e3:.3g} ms, {substeps} substeps per frame)"
+    within = False
     if bounds is not None:
         particle, ke, omega, damping = bounds
         where = f"the springs at particle {particle}, ke up to {ke:.3g} N/m: ω_max h ≤ {omega * dt:.2f}"
         if limit is not None:
             where += f" against {integrator}'s limit {limit:.2f}"
-            # Half the limit (a stretched state stiffens) and the dampers' rate at most 1/h.
-            target = max(target, math.ceil(substeps * omega * dt / (0.5 * limit)), math.ceil(substeps * damping * dt))
+            # (the bound covers Hooke springs only: not biphasic ones, hinges or tets)
+            hooke = (not model.stabilizers.enabled("biphasic_strain")
+                     and all(family.name == "springs" or family.does_work for family in model.families))
+            within = hooke and omega * dt <= limit and damping * dt <= 1.0
         step += f" against the stiffest elements ({where})"
     others = scene_suspects(model, control=control)
     if bounds is None and not others:
         return ""  # free particles under steady loads: no step is unstable, nothing in the scene to name
     clauses.append(step)
     clauses += others
-    return (f"suspects in this scene: {'; '.join(clauses)}. Remedy: run with substeps = {target} (a bound: the "
-            "advisor's estimate, where it runs, is tighter)")
+    suspects = f"suspects in this scene: {'; '.join(clauses)}."
+    if report.reason == "strain" and within:
+        return (f"{suspects} The step is within the limit for these springs at any stretch, so they really stretch "
+                "that far: stiffer springs (ke), strain limiting (Stabilizers(max_strain=0.1)) or biphasic springs")
+    return (f"{suspects} Remedy: run with substeps = {target} (a bound: the advisor's estimate, where it runs, is "
+            "tighter)")

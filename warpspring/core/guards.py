@@ -78,9 +78,13 @@ from .guard_records import (
     MIDPOINT_DISSIPATION,
     POTENTIAL_INPUTS,
     WORK_UNCOUNTED,
+    BalanceTerms,
     EnergyBalance,
     GuardLimits,
+    STABLE_OMEGA_H,
     GuardReport,
+    balance_terms,
+    spring_bounds,
     stop_advice,
 )
 from .model import Model
@@ -88,10 +92,16 @@ from .state import State
 from .stepper import StepHook
 from .tracks import evaluate_input_tracks
 
+#: Frames checked after every substep from a restart, or from a write that raised the springs' bound, at a step the bound
+#: does not certify stable (``Guard._watch``).
+WATCH_FRAMES = 4
+
+
 class Guard(StepHook):
     """Device-side checks of one simulator's states, per world; see :class:`GuardLimits`. A :class:`StepHook`:
     it clears its record at the start of every frame and checks after every ``every``-th substep and the
-    last.
+    last (after every substep in the ``WATCH_FRAMES`` frames from a restart, or from a write that raised the springs'
+    bound, at a step that bound does not certify: ``_watch``).
 
     The limits are device values: setting :attr:`limits` between frames changes no captured launch (but
     a new ``every`` does, and switching the energy balance on or off where the guard counts dissipation;
@@ -181,6 +191,11 @@ class Guard(StepHook):
         self.revision = 0
         self._reported = False
         self._every = None
+        self._watching = False  # this frame checks every substep (``refresh``)
+        self._watch_left = 0  # frames still to watch
+        self._watch_start = True  # the first frame from a restart is watched where the step is not certified
+        self._bound = 0.0  # the springs' ω_max bound [rad/s] at the last refresh (``_step_bound``)
+        self._rate = 0.0  # ... and their dampers' rate bound [1/s]
         self._dissipating = None
         self._midpoint = False
         self._working = False
@@ -198,7 +213,8 @@ class Guard(StepHook):
         if not isinstance(limits, GuardLimits):
             raise TypeError(f"guard limits must be a warpspring.GuardLimits, got {type(limits).__name__}")
         self._limits_host = limits
-        every = min(limits.every or self.substeps, self.substeps)
+        self._every_set = min(limits.every or self.substeps, self.substeps)
+        every = 1 if self._watching else self._every_set
         integrator = self.integrator
         # An unconditionally stable integrator has no balance (``balance_applies``): nothing to count per substep.
         balanced = limits.energy_balance > 0.0 and not getattr(integrator, "unconditionally_stable", False)
@@ -240,6 +256,61 @@ class Guard(StepHook):
         if self._input_version != self.model.input_version:
             self._write_limits()
             self.rebase()
+            before, self._bound = self._bound, self._step_bound()
+            if self._bound > before and not self._certified():
+                self._watch_left = WATCH_FRAMES
+        if self._watch_start:
+            self._bound = self._step_bound()
+            self._watch_left = 0 if self._certified() else WATCH_FRAMES
+            self._watch_start = False
+        self._watch(self._watch_left > 0)
+        self._watch_left = max(self._watch_left - 1, 0)
+
+    def _watch(self, watching: bool) -> None:
+        """Check every substep of this frame (``watching``) or every ``every`` (a re-capture where it changes). The
+        ``WATCH_FRAMES`` frames from a restart or from a write that raised the springs' bound (a stiffer spring, a
+        lighter particle) are watched where the bound does not certify the step stable: an unstable mode grows by
+        |λ| per substep, up to ~10 at twice an integrator's limit and ~100 past it tenfold, so checked once a frame
+        of 40 substeps its state overflows before the check sees it (a spring made 100× stiffer mid-run on
+        examples/hanging_cloth.toml at the advisor's 42 substeps: non-finite at the frame's check; RK4 at twice its
+        limit on that cloth with a moving collider, whose balance is off: non-finite at frame 2); checked after every
+        substep, the balance or the tear limit stops it within a few substeps of its start. A mode that grows more
+        slowly is seen by the frames' own checks before it overflows."""
+        if watching == self._watching:
+            return
+        self._watching = watching
+        self.limits = self._limits_host  # the effective ``every`` (re-captures)
+
+    def _step_bound(self) -> float:
+        """The largest Gershgorin bound of ω_max [rad/s] of the model's springs over its worlds (0 without springs;
+        reads the device)."""
+        model = self.model
+        per_world = any(getattr(model, name).shape[0] > 1 for name in ("spring_stiffness", "particle_mass"))
+        worlds = range(model.world_count if per_world else 1)
+        bounds = [b for b in (spring_bounds(model, w) for w in worlds) if b is not None]
+        self._rate = max((b[3] for b in bounds), default=0.0)  # ... and of the dampers' rate λ_D [1/s]
+        return max((b[2] for b in bounds), default=0.0)
+
+    def _certified(self) -> bool:
+        """Whether the springs' bound certifies the step stable for the integrator: ω_max h within its undamped limit
+        (``STABLE_OMEGA_H``) and the dampers' rate λ_D h ≤ 1, in a model whose only elements are springs (wind
+        triangles, handles, hinges and tets have stiffness and damping of their own, outside the bound: the flag in
+        wind at twice the advisor's step, its springs' ω_max h ≤ 1.88, overflowed within its first frame). Implicit
+        and adaptive integrators and a guard without a step count as certified, and so do explicit Euler and
+        midpoint, whose limit is their damping's, which the bounds (upper bounds) cannot certify: they are not
+        watched (their modes past that limit grow by little more than 1 per step)."""
+        integrator = self.integrator
+        name = getattr(integrator, "name", None)
+        limit = STABLE_OMEGA_H.get(name)
+        if (self.dt is None or getattr(integrator, "unconditionally_stable", False)
+                or getattr(integrator, "adaptive", False) or limit is None):
+            return True
+        if self._bound == 0.0:
+            return True  # no springs: nothing the bound could tell (a handle alone, tets alone: not watched)
+        if any(family.name != "springs" and family.element_count for family in self.model.families):
+            return False
+        h = float(self.dt)
+        return self._bound * h <= limit and self._rate * h <= 1.0
 
     def balance_applies(self) -> bool:
         """Whether the energy balance can be kept for the model as it is now and applies to the integrator
@@ -253,6 +324,17 @@ class Guard(StepHook):
                     or (bool(self._working_families()) and not self._family_work_countable())
                     or any(name in model._tracks for name in POTENTIAL_INPUTS)
                     or getattr(self.integrator, "unconditionally_stable", False))
+
+    def balance_terms(self) -> BalanceTerms:
+        """What the energy balance counts for the model as it is now, term by term, and what it leaves out or why it
+        is off (:class:`BalanceTerms`; the run summary prints its ``describe()``)."""
+        integrator = self.integrator
+        dissipation = (self.dt is not None and self._limits_host.dissipation
+                       and getattr(integrator, "name", None) not in DISSIPATION_UNCOUNTED
+                       and not getattr(integrator, "adaptive", False))
+        return balance_terms(self.model, integrator=integrator, control=self.control, limits=self._limits_host,
+                             dissipation=dissipation, work_countable=self._family_work_countable(),
+                             counted_losses=dissipation_exact(self.model))
 
     def _family_work_countable(self) -> bool:
         """Whether the balance can count wind's and handles' work for the integrator (``WORK_UNCOUNTED``; adaptive
@@ -320,6 +402,7 @@ class Guard(StepHook):
         the start, and its load at the first check alone would double that check's work); the energy balance
         takes its reference at the next check."""
         state = state if state is not None else self.model.state()
+        self._watch_start = True
         self._work_total.zero_()
         wp.copy(self._previous_q, state.particle_q)
         wp.copy(self._previous_qd, state.particle_qd)

@@ -258,8 +258,9 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         partials_out: wp.array3d[wp.float64],
     ):
         world, block, lane = wp.tid()
-        if status_in_out[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
-            return
+        # A failed or held world is measured as any other (its sums cleared, its last check's state and loads kept:
+        # released without a restart, its first check counts from here), but its record is left as it was.
+        live = status_in_out[world, GUARD_TRIPPED] == 0 and world_enabled[world] != 0
         i = block * wp.block_dim() + lane
         energy = wp.float64(0.0)
         worst = wp.float64(-1.0)
@@ -279,7 +280,10 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                 if is_kinematic(particle_flags[p]):  # prescribed motion: no runaway of its own, a drive's work
                     load = -element_force(world, i, base, x, v, element_arrays, inputs, particle_q, particle_qd)
                 else:
-                    energy = wp.float64(scalar(0.5) * mass * wp.dot(v, v))
+                    # (in float64: a runaway's |v|² overflows float32 long before its state does)
+                    energy = wp.float64(0.5) * wp.float64(mass) * (wp.float64(v[0]) * wp.float64(v[0])
+                                                                   + wp.float64(v[1]) * wp.float64(v[1])
+                                                                   + wp.float64(v[2]) * wp.float64(v[2]))
                     load = mass * input_vec3(inputs, world, INPUT_GRAVITY)
                     if wp.static(len(working) > 0):  # wind, handles: forces from outside the cloth
                         load += work_force(world, i, base, x, v, work_arrays, inputs, particle_q, particle_qd)
@@ -307,7 +311,7 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                     dissipated = wp.float64(sums_dissipated(sums))
                     family_work = wp.float64(sums_worked(sums))
                     power_in_out[p] = left
-            else:
+            elif live:
                 wp.atomic_min(status_in_out, world, GUARD_NONFINITE_PARTICLE, i)
                 wp.atomic_add(status_in_out, world, GUARD_NONFINITE_COUNT, 1)
             previous_q_in_out[p] = x
@@ -408,9 +412,16 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         of a 512² cloth in turn took 0.9 ms on an H100, most of a check. Lane 0 then decides (``decide``): one launch
         for the world's sums and its verdict."""
         world, lane = wp.tid()
-        if status_in_out[world, GUARD_TRIPPED] != 0 or world_enabled_in_out[world] == 0:
-            return
         lanes = wp.block_dim()
+        if status_in_out[world, GUARD_TRIPPED] != 0 or world_enabled_in_out[world] == 0:
+            # A failed or held world: its record stays as it was, the running sums of its steps since the last check
+            # are dropped (released without a restart, its first check counts from here).
+            b = lane
+            while b < running_in_out.shape[1]:
+                running_in_out[world, b, RUNNING_DISSIPATION] = wp.float64(0.0)
+                running_in_out[world, b, RUNNING_WORK] = wp.float64(0.0)
+                b += lanes
+            return
         energy = wp.float64(0.0)
         worst = wp.float64(-1.0)
         work = wp.float64(0.0)
