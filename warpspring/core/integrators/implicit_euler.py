@@ -58,16 +58,24 @@ UNCONVERGED = ("warn", "raise", "ignore")
 
 #: The automatic iteration cap's least value (the fixed default before it).
 AUTO_CAP_FLOOR = 100
+#: The automatic cap's ceiling per unknown of a world (3 per particle): float32 CG loses orthogonality, so a few
+#: passes over the unknowns rather than one.
+CG_PASSES_PER_UNKNOWN = 4
 
 
-def auto_iteration_cap(step_omega: float, tolerance: float) -> int:
+def auto_iteration_cap(step_omega: float, tolerance: float, unknowns: int | None = None) -> int:
     """The default CG iteration cap for a step h with h ω_max = ``step_omega`` (ω_max bounded by Gershgorin) and a
-    relative ``tolerance``: ⌈ln(2/tol)·(1 + h ω_max)⌉, at least :data:`AUTO_CAP_FLOOR`. CG reaches tol within
+    relative ``tolerance``: ⌈ln(2/tol)·(1 + h ω_max)⌉, at least :data:`AUTO_CAP_FLOOR`, and at most
+    :data:`CG_PASSES_PER_UNKNOWN` times a world's ``unknowns`` (CG ends in as many iterations as unknowns in exact
+    arithmetic: an absurd stiffness, 1e18 N/m on a 4 × 4 cloth, would otherwise ask for ~1e10). CG reaches tol within
     ½√κ ln(2/tol) iterations, and κ(M + h²K) ≤ 1 + (h ω_max)² with M as the preconditioner; block-Jacobi on these
     systems took up to 10 h ω_max at tol = 1e-5 (measured: a T10 ball dropped on the ground at 1/60 s, h ω_max = 61,
     618 iterations; linear tets 8, cloth 4 per unit of h ω_max; ``bench/results/softbody_tet10.md``), so the cap is
     twice the bound (12.2 h ω_max at 1e-5)."""
-    return max(AUTO_CAP_FLOOR, int(math.ceil(math.log(2.0 / tolerance) * (1.0 + step_omega))))
+    cap = max(AUTO_CAP_FLOOR, int(math.ceil(math.log(2.0 / tolerance) * (1.0 + min(step_omega, 1e12)))))
+    if unknowns is not None:
+        cap = min(cap, max(AUTO_CAP_FLOOR, CG_PASSES_PER_UNKNOWN * unknowns))
+    return cap
 
 
 def gershgorin_bound(model: Model) -> float:
@@ -167,7 +175,7 @@ class ImplicitEuler(Integrator):
         if self._omega_max is None:
             self._omega_max = gershgorin_bound(self.model)
         self._cap_dt = dt
-        self._write_cap(auto_iteration_cap(dt * self._omega_max, self._cg_tolerance))
+        self._write_cap(auto_iteration_cap(dt * self._omega_max, self._cg_tolerance, 3 * self.model.particle_count))
 
     @property
     def cg_tolerance(self) -> float:
