@@ -80,6 +80,10 @@ class Equilibrium:
     residual: float
 
 
+#: CG iterations of each relaxation step of :func:`static_equilibrium` (implicit Euler's cap before it chose one).
+RELAX_CG_ITERATIONS = 100
+
+
 def static_equilibrium(model: Model, *, control=None, step: float = RELAX_STEP, max_steps: int = RELAX_MAX_STEPS,
                        tolerance: float = RELAX_TOLERANCE) -> Equilibrium:
     """The positions where the loads (gravity, the control's external force) balance the elements, the
@@ -89,7 +93,10 @@ def static_equilibrium(model: Model, *, control=None, step: float = RELAX_STEP, 
     potential regularised by the mass (K the elements' stiffness, made positive semi-definite)."""
     checks.positive("step", step)
     checks.count("max_steps", max_steps, minimum=1)
-    integrator = ImplicitEuler(model)
+    # A relaxation: each step need only move towards the equilibrium (the loop's residual decides when it is
+    # reached), so its solve keeps the fixed cap it always had rather than the run's automatic one, which for a
+    # large step asks for thousands of iterations.
+    integrator = ImplicitEuler(model, cg_iterations=RELAX_CG_ITERATIONS, cg_unconverged="ignore")
     state, scratch = model.state(), model.state()
     start = state.particle_q.numpy().astype(np.float64)
     pinned = ~free_particles(model).reshape(-1)
