@@ -334,7 +334,7 @@ def test_each_world_equals_the_single_world_run_of_its_gravity(tmp_path):
     summary = run_scene(load_scene(write_scene(tmp_path, "three.toml", extra=worlds)),
                         output=str(tmp_path / "three.usdc"), device="cpu", progress=False)
     assert summary.worlds == 3 and summary.world_failures == []
-    assert summary.line().endswith("; every world written")
+    assert "; every world written" in summary.line()
     three = Usd.Stage.Open(str(tmp_path / "three.usdc"))
     for k, g in enumerate(GRAVITIES):
         scene = load_scene(write_scene(tmp_path, f"g{k}.toml", world=f"gravity = {g}\n"))
@@ -366,7 +366,7 @@ def test_guard_stop_world_ends_only_the_failed_worlds_samples(tmp_path):
     frame = int(summary.world_failures[0].split("frame ")[1].split(",")[0])
     assert 1 <= frame <= 6
     assert summary.world_failures[0] in warnings
-    assert summary.line().endswith("; every world written; 1 world stopped by the guard")
+    assert "; every world written; 1 world stopped by the guard" in summary.line()
 
     stage = Usd.Stage.Open(str(tmp_path / "stop.usdc"))
     times, points = mesh_points(stage, "/World/world_0001/cloth")
@@ -395,10 +395,10 @@ def test_cli_world_flags(tmp_path, capsys):
     scene = write_scene(tmp_path, "w.toml", frames=2, extra=f"\n[worlds]\ncount = 3\ngravity = {GRAVITIES}\n")
     status, out, err = run_cli(capsys, scene, "-o", tmp_path / "all.usdc", "--world-spacing", 3)
     assert status == 0 and err == [], err
-    assert "3 worlds of 25 particles" in out and out.rstrip().endswith("; every world written")
+    assert "3 worlds of 25 particles" in out and "; every world written" in out
     status, out, err = run_cli(capsys, scene, "-o", tmp_path / "one.usdc", "--world", 2)
     assert status == 0 and err == [], err
-    assert out.rstrip().endswith("; world 2 written")
+    assert "; world 2 written" in out
 
     all_worlds, one = Usd.Stage.Open(str(tmp_path / "all.usdc")), Usd.Stage.Open(str(tmp_path / "one.usdc"))
     np.testing.assert_array_equal(world_transform(all_worlds, "/World/world_0001"), [3.0, 0.0, 0.0])

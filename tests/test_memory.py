@@ -19,6 +19,7 @@ import json
 import os
 import subprocess
 import sys
+import types
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +52,8 @@ def owned_bytes(*roots, seen: dict | None = None) -> int:
         obj = stack.pop()
         if id(obj) in seen or obj is None or isinstance(obj, (str, bytes, int, float, np.ndarray, type, wp.Device)):
             continue
+        if isinstance(obj, (types.ModuleType, types.FunctionType, types.MethodType, wp.Kernel)):
+            continue  # code, not data: a kernel reaches its module and Python's (six's lazy modules import on access)
         seen[id(obj)] = obj
         if isinstance(obj, wp.array):
             total += obj.capacity if obj.deleter is not None else 0
