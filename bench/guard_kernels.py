@@ -19,24 +19,33 @@ import warp as wp
 import warpspring as ws
 from guard_cost import SUBSTEPS, hanging_cloth
 
+#: The guard configurations compared: off, as shipped, without D in the balance, without the balance.
+GUARDS = {"off": None, "default": ws.GuardLimits(), "no-dissipation": ws.GuardLimits(dissipation=False),
+          "no-balance": ws.GuardLimits(energy_balance=0.0)}
+
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--size", type=int, default=32)
     parser.add_argument("--integrator", default="symplectic_euler")
-    parser.add_argument("--guard", choices=["off", "default"], default="default")
+    parser.add_argument("--guard", choices=["off", "default", "no-dissipation", "no-balance"], default="default")
     parser.add_argument("--frames", type=int, default=30)
+    parser.add_argument("--gpu-timing", action="store_true",
+                        help="CUDA: each kernel's time on the device (Warp's timing events), not the host's wall time")
     parser.add_argument("--evaluation", default="auto", choices=["auto", "gather", "scatter"],
                         help="the springs' evaluation (gather on the CPU runs the CUDA default's kernels)")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device)
     model = hanging_cloth(args.size, device, evaluation=args.evaluation)
-    sim = ws.Simulator(model, fps=60, substeps=SUBSTEPS, guard=ws.GuardLimits() if args.guard == "default" else None,
+    sim = ws.Simulator(model, fps=60, substeps=SUBSTEPS, guard=GUARDS[args.guard],
                        integrator=ws.make_integrator(args.integrator, model), use_graph=False)
     for _ in range(3):
         sim.step_frame()
+    if args.gpu_timing:
+        device_times(sim, args)
+        return
     fastest = collections.defaultdict(lambda: float("inf"))
     count = collections.Counter()
     launch = wp.launch
@@ -65,6 +74,30 @@ def main():
         print(f"| {key.split('__locals__')[-1][:48]} | {count[key] / substeps:.2f} | {seconds * 1e6:.1f} |")
     intrinsic = sum(fastest[k] * count[k] for k in fastest) / substeps
     print(f"intrinsic: {intrinsic * 1e6:.1f} µs per substep")
+
+
+def device_times(sim, args) -> None:
+    """Each kernel's total device time per substep over ``args.frames`` uncaptured frames (CUDA events around every
+    launch: no host overhead in the figures)."""
+    for _ in range(3):  # past the watched frames of a restart (``Guard.refresh``)
+        sim.step_frame()
+    wp.synchronize_device(sim.model.device)
+    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMCPY | wp.TIMING_MEMSET)
+    for _ in range(args.frames):
+        sim.step_frame()
+    results = wp.timing_end()
+    total = collections.defaultdict(float)
+    count = collections.Counter()
+    for r in results:
+        total[r.name] += r.elapsed  # milliseconds
+        count[r.name] += 1
+    substeps = args.frames * SUBSTEPS
+    print(f"{args.size}², {args.integrator}, guard {args.guard}, {sim.model.device.name}, Warp {wp.config.version}, "
+          "device time per substep (CUDA events):")
+    print("| kernel | launches/substep | µs per substep |\n|---|---|---|")
+    for name, ms in sorted(total.items(), key=lambda kv: -kv[1]):
+        print(f"| {name.split('__locals__')[-1][:60]} | {count[name] / substeps:.2f} | {ms * 1e3 / substeps:.2f} |")
+    print(f"sum: {sum(total.values()) * 1e3 / substeps:.2f} µs per substep")
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,7 +67,7 @@ from ..kernels.guards import (
 )
 from ..kernels.families import elements, fill_elements
 from ..kernels.flatten import flat_launch
-from ..kernels.linalg import reduce_lanes, reduce_launch_dim
+from ..kernels.linalg import REDUCE_PER_LANE, reduce_lanes, reduce_launch_dim, reduce_stride
 from ..kernels.forces import POWER_DAMPERS, POWER_NONE, POWER_WORK, counts_work, power_sums_funcs
 from ..kernels.springs import DAMPER_MEAN_RATE, DAMPER_TRAPEZOID
 from .families import world_elastic_energy
@@ -141,12 +142,17 @@ class Guard(StepHook):
         self._values_clear = wp.array(values, dtype=wp.float64, device=device)
         self._status = wp.clone(self._status_clear)
         self._values = wp.clone(self._values_clear)
-        # The frame's read of the status: the device array itself. A pinned host copy was tried: a guard's pinned buffer
-        # freed by the garbage collector while another simulator captured its graph is a cudaFreeHost inside the
-        # capture, which invalidates it (CUDA error 901 at the next launch, tests/test_extremes.py on an H200).
-        self._status_host = self._status
-        grid = reduce_launch_dim(worlds, model.particle_count, self._lanes)
-        self._partials = wp.zeros((worlds, grid[1], PARTIAL_SLOTS), dtype=wp.float64, device=device)
+        # The frame's read of the status: a pinned host copy on CUDA (a pageable one is staged: 13 µs of copy a frame
+        # on an H200), from a pool that never frees (a guard's pinned buffer freed by the garbage collector while
+        # another simulator captured its graph is a cudaFreeHost inside the capture, which invalidates it: CUDA error
+        # 901 at the next launch, tests/test_extremes.py on an H200); a collected guard hands its buffer back.
+        self._status_host = _pinned_status(status.shape) if device.is_cuda else self._status
+        if self._status_host is not self._status:
+            weakref.finalize(self, _PINNED_STATUS[status.shape].append, self._status_host)
+        # The check's passes stride on CUDA (each lane several particles or elements: few partial sums to gather).
+        per_lane = REDUCE_PER_LANE if self._tiled else 1
+        self._check_grid = reduce_launch_dim(worlds, model.particle_count, self._lanes, per_lane)
+        self._partials = wp.zeros((worlds, self._check_grid[1], PARTIAL_SLOTS), dtype=wp.float64, device=device)
         self._limits = wp.zeros((worlds, GUARD_LIMITS), dtype=wp.float64, device=device)
         # The work put in since the start [J] per world, and the positions of the last check (its Δx; the
         # run's start state: :meth:`restart`).
@@ -162,7 +168,7 @@ class Guard(StepHook):
         blocks = 0
         for family in model.families:
             lanes = reduce_lanes(family.element_count, model.block_dim, self._tiled)
-            grid = reduce_launch_dim(worlds, family.element_count, lanes)
+            grid = reduce_launch_dim(worlds, family.element_count, lanes, per_lane)
             if family.element_count:
                 self._energy_layout.append((family, lanes, grid, blocks))
                 blocks += grid[1]
@@ -175,9 +181,10 @@ class Guard(StepHook):
         self._dissipation_layout = []
         self._drag_grid = reduce_launch_dim(worlds, model.particle_count, self._lanes) if self._tiled else (worlds, 1, 1)
         blocks = self._drag_grid[1]
-        for family, lanes, grid, _ in self._energy_layout:
+        for family, lanes, _, _ in self._energy_layout:
             if getattr(family.spec(model).funcs(model.scalar), "dissipation", None) is not None:
-                grid = grid if self._tiled else (worlds, 1, 1)
+                # (one element per lane: the dissipation passes do not stride)
+                grid = reduce_launch_dim(worlds, family.element_count, lanes) if self._tiled else (worlds, 1, 1)
                 self._dissipation_layout.append((family, lanes, grid, blocks))
                 blocks += grid[1]
         self._running = wp.zeros((worlds, blocks, RUNNING_SLOTS), dtype=wp.float64, device=device)
@@ -773,13 +780,12 @@ class Guard(StepHook):
         measure, gather, locate = guard_kernels(model.scalar, specs, self._tiled, force is not None,
                                                         working_specs, rule, features, modes,
                                                         self.counts_dissipation)
-        flat_launch(measure, dim=reduce_launch_dim(model.world_count, model.particle_count, self._lanes),
-                    block_dim=self._lanes,
+        flat_launch(measure, dim=self._check_grid, block_dim=self._lanes,
                     inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
                             model.elements, self._work_arrays(working, working_specs), model.inputs,
                             force if force is not None else state.particle_q,
                             state.particle_q, state.particle_qd, self._lead(),
-                            0.0 if self.dt is None else float(self.dt)],
+                            0.0 if self.dt is None else float(self.dt), reduce_stride(self._check_grid)],
                     outputs=[None if power is None else power.sums, self._previous_q, self._previous_qd,
                              self._previous_load, self._status, self._partials],
                     device=model.device)
@@ -809,7 +815,8 @@ class Guard(StepHook):
         for family, lanes, grid, offset in self._energy_layout:
             flat_launch(guard_energy_kernel(model.scalar, family.spec(model), self._tiled), dim=grid, block_dim=lanes,
                         inputs=[model.particle_count, family.element_count, offset, model.world_enabled,
-                                family.arrays(model), model.inputs, self._status, state.particle_q],
+                                family.arrays(model), model.inputs, self._status, state.particle_q,
+                                reduce_stride(grid)],
                         outputs=[self._energy_partials, self._strain_partials], device=device)
         wp.launch(gather, dim=(worlds, self._lanes), block_dim=self._lanes,
                   inputs=[self._partials, self._energy_partials, self._strain_partials, substep, self._limits],
@@ -883,6 +890,17 @@ class Guard(StepHook):
         device: synchronises)."""
         found = self.reports()
         return min(found, key=lambda r: (r.substep, r.world)) if found else None
+
+
+#: Pinned host buffers for the guards' status reads, by shape: taken by a guard, handed back when it is collected,
+#: never freed (see ``Guard.__init__``).
+_PINNED_STATUS: dict[tuple, list] = {}
+
+
+def _pinned_status(shape: tuple) -> wp.array:
+    """A pinned int32 host array of ``shape`` from the pool (a new one where none is free)."""
+    free = _PINNED_STATUS.setdefault(shape, [])
+    return free.pop() if free else wp.empty(shape, dtype=wp.int32, device="cpu", pinned=True)
 
 
 @dataclass(frozen=True)

@@ -39,7 +39,7 @@ from .. import checks
 from ..errors import ConfigError
 from ..kernels.guards import BALANCE_SLOTS, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS, PARTIAL_SLOTS, RUNNING_SLOTS
 from ..kernels.inputs import INPUT_COUNT
-from ..kernels.linalg import CG_SHORT_SLOTS
+from ..kernels.linalg import CG_SHORT_SLOTS, REDUCE_PER_LANE
 from ..kernels.selfcontact import CACHE_SLOTS, COUNTER_COUNT, FLAG_KINDS, PAIRS_PER_VERTEX, PARAM_COUNT, SCAN_BLOCK
 
 #: Bytes per floating-point number of each precision.
@@ -575,8 +575,11 @@ def estimate_memory(
     # sums per block of each family's elements, and the running dissipation of those blocks and the particles'
     # blocks; and what it allocates for the path the run takes (:func:`guard_path`): a substep's midpoint state,
     # the scattered springs' damper sums, the power sums it hands the integrator and the force parts they store.
-    def element_blocks(count: int) -> int:
-        return w * (count if not cuda else -(-count // _lanes(count, block_dim))) if count else 0
+    def element_blocks(count: int, per_lane: int = 1) -> int:
+        return w * (count if not cuda else -(-count // (_lanes(count, block_dim) * per_lane))) if count else 0
+
+    # The check's passes stride on CUDA (``REDUCE_PER_LANE`` particles or elements per lane); the dissipation's do not.
+    check_blocks = element_blocks(n, REDUCE_PER_LANE)
 
     path = guard_path(integrator=integrator, springs=s, gathered=spring_evaluation != "scatter", drag=drag,
                       wind=wind, working=working_families, exact=not (shapes or self_contact_triangles
@@ -584,13 +587,14 @@ def estimate_memory(
                       spring_force_clamp=spring_force_clamp, plastic=plastic > 0,
                       particle_force_clamp=particle_force_clamp)
     others = [checks.count("family_elements", e, minimum=0) for e in family_elements]
-    energy_blocks = element_blocks(s) + element_blocks(h) + sum(element_blocks(e) for e in others)
+    energy_blocks = (element_blocks(s, REDUCE_PER_LANE) + element_blocks(h, REDUCE_PER_LANE)
+                     + sum(element_blocks(e, REDUCE_PER_LANE) for e in others))
     running = 8 * RUNNING_SLOTS * ((blocks + element_blocks(s) + element_blocks(h)) if cuda
                                    else w * (1 + bool(s) + bool(h)))
     dampers = (4 + (f + 8) * s) * w if path.dampers else 0
     power = path.power * f * size  # the power sums the guard hands the integrator (energy out[, work in])
     carried = 8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + running + dampers + power  # what a check carries on
-    guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * PARTIAL_SLOTS * blocks + 8 * GUARD_LIMITS * w
+    guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * PARTIAL_SLOTS * check_blocks + 8 * GUARD_LIMITS * w
              + 2 * 8 * max(energy_blocks, w)  # every family's energy and strain partial sums
              + carried + (2 * vec3 * size + 8 * w if path.midpoint else 0)
              + (2 * vec3 * size if path.stored_forces else 0))

@@ -249,6 +249,8 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         # Guards in (the lead λ [s]: the steady loads' work on free particles is F·(Δx + λ Δv); the step h [s]):
         lead: scalar,
         power_h: scalar,
+        # Launch (the items between a lane's successive particles: ``linalg.reduce_stride``):
+        stride: int,
         # In/out:
         power_in_out: wp.array[Sums],
         previous_q_in_out: wp.array[vec3],
@@ -267,21 +269,21 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         work = wp.float64(0.0)
         dissipated = wp.float64(0.0)
         family_work = wp.float64(0.0)
-        if i < particle_count:
+        while i < particle_count:  # every stride-th particle from the lane's first
             base = world * particle_count
             p = base + i
             x = particle_q[p]
             v = particle_qd[p]
             if wp.isfinite(x) and wp.isfinite(v):
                 mass = particle_mass[wp.min(world, particle_mass.shape[0] - 1), i]
-                worst = particle_strain(world, i, base, x, element_arrays, particle_q)
+                worst = wp.max(worst, particle_strain(world, i, base, x, element_arrays, particle_q))
                 held = vec3(scalar(0.0))  # a load constant within a frame: its value at the check
                 steady = vec3(scalar(0.0))  # the loads constant within a frame (weight, the control's force)
                 if is_kinematic(particle_flags[p]):  # prescribed motion: no runaway of its own, a drive's work
                     load = -element_force(world, i, base, x, v, element_arrays, inputs, particle_q, particle_qd)
                 else:
                     # (in float64: a runaway's |v|² overflows float32 long before its state does)
-                    energy = wp.float64(0.5) * wp.float64(mass) * (wp.float64(v[0]) * wp.float64(v[0])
+                    energy += wp.float64(0.5) * wp.float64(mass) * (wp.float64(v[0]) * wp.float64(v[0])
                                                                    + wp.float64(v[1]) * wp.float64(v[1])
                                                                    + wp.float64(v[2]) * wp.float64(v[2]))
                     load = mass * input_vec3(inputs, world, INPUT_GRAVITY)
@@ -293,7 +295,7 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                 before = previous_load_in_out[p]
                 if not wp.isfinite(before):  # the first check: no earlier value
                     before = load
-                work = wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - previous_q_in_out[p])
+                work += wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - previous_q_in_out[p])
                                   + lead * wp.dot(steady, v - previous_qd_in_out[p]))
                 previous_load_in_out[p] = load
                 if wp.static(counted):  # (a kinematic particle's sums: its elements' dampers only)
@@ -308,14 +310,15 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                                     power_h * scalar(share_work) * wp.dot(pushes, v))
                         sums += left
                         left = -left
-                    dissipated = wp.float64(sums_dissipated(sums))
-                    family_work = wp.float64(sums_worked(sums))
+                    dissipated += wp.float64(sums_dissipated(sums))
+                    family_work += wp.float64(sums_worked(sums))
                     power_in_out[p] = left
             elif live:
                 wp.atomic_min(status_in_out, world, GUARD_NONFINITE_PARTICLE, i)
                 wp.atomic_add(status_in_out, world, GUARD_NONFINITE_COUNT, 1)
             previous_q_in_out[p] = x
             previous_qd_in_out[p] = v
+            i += stride
         energy = block_sum(energy)
         worst = block_max(worst)
         work = block_sum(work)
@@ -502,7 +505,8 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool):
     ``partials[world, offset + block]``, and where the family has an ``element_strain`` hook the block's largest
     strain [-] into ``strain_partials[world, offset + block]`` (each element once, with the length its energy
     takes: ``measure`` then leaves the family out of its per-particle strain); launch over
-    ``reduce_launch_dim(worlds, element_count, lanes)``."""
+    ``reduce_launch_dim(worlds, element_count, lanes, REDUCE_PER_LANE)`` on CUDA (``stride``: that grid's
+    ``reduce_stride``), one lane per block on the CPU."""
     vec3 = vec3_type(scalar)
     block_sum, block_max = reduction_funcs(tiled)
     funcs = spec.funcs(scalar)
@@ -525,6 +529,8 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool):
         status: wp.array2d[wp.int32],
         # State in:
         particle_q: wp.array[vec3],
+        # Launch (the items between a lane's successive elements: ``linalg.reduce_stride``):
+        stride: int,
         # Out:
         partials_out: wp.array2d[wp.float64],
         strain_partials_out: wp.array2d[wp.float64],
@@ -535,10 +541,11 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool):
         element = block * wp.block_dim() + lane
         energy = wp.float64(0.0)
         worst = wp.float64(-1.0)
-        if element < element_count:
-            energy = wp.float64(energy_func(world, element, world * particle_count, arrays, inputs, particle_q))
+        while element < element_count:  # every stride-th element from the lane's first
+            energy += wp.float64(energy_func(world, element, world * particle_count, arrays, inputs, particle_q))
             if wp.static(strained):
-                worst = strain_func(world, element, world * particle_count, arrays, particle_q)
+                worst = wp.max(worst, strain_func(world, element, world * particle_count, arrays, particle_q))
+            element += stride
         energy = block_sum(energy)
         if wp.static(strained):
             worst = block_max(worst)
