@@ -309,7 +309,8 @@ def test_counts_alone_give_the_builders_estimate():
     assert counted == exact
     assert set(memory.INTEGRATOR_SCRATCH) == set(ws.INTEGRATORS)
     assert counted.device_bytes == (counted.model + counted.states + counted.integrator + counted.guard + counted.writer
-                                    + counted.warmup)
+                                    + max(counted.warmup, counted.setup))
+    assert counted.setup == 8 * builder.spring_count  # the springs' energies in float64, the largest family's
     assert "model" in counted.describe() and "states" in counted.describe()
     with pytest.raises(ws.ConfigError, match="unknown integrator"):
         ws.estimate_memory(particles=10, integrator="leapfrog")

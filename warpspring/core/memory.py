@@ -122,6 +122,8 @@ class MemoryEstimate:
         audit: the substep audit's record of every substep's positions on the device (:func:`audit_bytes`; 0 when
             the run does not audit).
         audit_host: the substep audit's host memory after a frame (the record read back, the pair lists).
+        setup: the guard's energy scale's device temporaries at a run's start (every element's energy of one family
+            in float64 per world, ``families.element_energies``), freed before the warm-up: the peak holds the larger.
     """
 
     device: str
@@ -142,13 +144,14 @@ class MemoryEstimate:
     warmup: int = 0
     audit: int = 0
     audit_host: int = 0
+    setup: int = 0
 
     @property
     def device_bytes(self) -> int:
         """The device memory of a run at its peak [B]: the model and the run's buffers, and the stepper's warm-up
         copies."""
         return (self.model + self.self_contact + self.states + self.integrator + self.guard + self.post_step
-                + self.writer + self.warmup + self.audit)
+                + self.writer + max(self.warmup, self.setup) + self.audit)
 
     @property
     def host_bytes(self) -> int:
@@ -645,6 +648,7 @@ def estimate_memory(
         integrator=int(scratch), guard=int(guard), post_step=int(post_step), writer=int(writer),
         builder=int(builder), finalize_host=int(finalize_host), frame_host=int(frame_host), run_host=int(run_host),
         self_contact=int(self_contact), warmup=int(warmup), audit=int(audit), audit_host=int(audit_host),
+        setup=8 * w * max([s, h, *others]),
     )
 
 
