@@ -67,7 +67,7 @@ from ..kernels.guards import (
 )
 from ..kernels.families import elements, fill_elements
 from ..kernels.flatten import flat_launch
-from ..kernels.linalg import REDUCE_PER_LANE, reduce_lanes, reduce_launch_dim, reduce_stride
+from ..kernels.linalg import REDUCE_FILL_BLOCKS, REDUCE_PER_LANE, reduce_lanes, reduce_launch_dim, reduce_stride
 from ..kernels.forces import POWER_DAMPERS, POWER_NONE, POWER_WORK, counts_work, power_sums_funcs
 from ..kernels.springs import DAMPER_MEAN_RATE, DAMPER_TRAPEZOID
 from .families import world_elastic_energy
@@ -150,8 +150,8 @@ class Guard(StepHook):
         if self._status_host is not self._status:
             weakref.finalize(self, _PINNED_STATUS[status.shape].append, self._status_host)
         # The check's passes stride on CUDA (each lane several particles or elements: few partial sums to gather).
-        per_lane = REDUCE_PER_LANE if self._tiled else 1
-        self._check_grid = reduce_launch_dim(worlds, model.particle_count, self._lanes, per_lane)
+        per_lane, fill = (REDUCE_PER_LANE, REDUCE_FILL_BLOCKS) if self._tiled else (1, 0)
+        self._check_grid = reduce_launch_dim(worlds, model.particle_count, self._lanes, per_lane, fill)
         self._partials = wp.zeros((worlds, self._check_grid[1], PARTIAL_SLOTS), dtype=wp.float64, device=device)
         self._limits = wp.zeros((worlds, GUARD_LIMITS), dtype=wp.float64, device=device)
         # The work put in since the start [J] per world, and the positions of the last check (its Δx; the
@@ -168,7 +168,7 @@ class Guard(StepHook):
         blocks = 0
         for family in model.families:
             lanes = reduce_lanes(family.element_count, model.block_dim, self._tiled)
-            grid = reduce_launch_dim(worlds, family.element_count, lanes, per_lane)
+            grid = reduce_launch_dim(worlds, family.element_count, lanes, per_lane, fill)
             if family.element_count:
                 self._energy_layout.append((family, lanes, grid, blocks))
                 blocks += grid[1]

@@ -39,7 +39,7 @@ from .. import checks
 from ..errors import ConfigError
 from ..kernels.guards import BALANCE_SLOTS, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS, PARTIAL_SLOTS, RUNNING_SLOTS
 from ..kernels.inputs import INPUT_COUNT
-from ..kernels.linalg import CG_SHORT_SLOTS, REDUCE_PER_LANE
+from ..kernels.linalg import CG_SHORT_SLOTS, REDUCE_FILL_BLOCKS, REDUCE_PER_LANE, reduce_launch_dim
 from ..kernels.selfcontact import CACHE_SLOTS, COUNTER_COUNT, FLAG_KINDS, PAIRS_PER_VERTEX, PARAM_COUNT, SCAN_BLOCK
 
 #: Bytes per floating-point number of each precision.
@@ -578,11 +578,12 @@ def estimate_memory(
     # sums per block of each family's elements, and the running dissipation of those blocks and the particles'
     # blocks; and what it allocates for the path the run takes (:func:`guard_path`): a substep's midpoint state,
     # the scattered springs' damper sums, the power sums it hands the integrator and the force parts they store.
-    def element_blocks(count: int, per_lane: int = 1) -> int:
-        return w * (count if not cuda else -(-count // (_lanes(count, block_dim) * per_lane))) if count else 0
+    def element_blocks(count: int, per_lane: int = 1, fill: int = 0) -> int:
+        return w * (count if not cuda else reduce_launch_dim(w, count, _lanes(count, block_dim), per_lane, fill)[1])
 
-    # The check's passes stride on CUDA (``REDUCE_PER_LANE`` particles or elements per lane); the dissipation's do not.
-    check_blocks = element_blocks(n, REDUCE_PER_LANE)
+    # The check's passes stride on CUDA (``reduce_launch_dim``: up to REDUCE_PER_LANE particles or elements a lane);
+    # the dissipation's do not.
+    check_blocks = element_blocks(n, REDUCE_PER_LANE, REDUCE_FILL_BLOCKS)
 
     path = guard_path(integrator=integrator, springs=s, gathered=spring_evaluation != "scatter", drag=drag,
                       wind=wind, working=working_families, exact=not (shapes or self_contact_triangles
@@ -590,8 +591,7 @@ def estimate_memory(
                       spring_force_clamp=spring_force_clamp, plastic=plastic > 0,
                       particle_force_clamp=particle_force_clamp)
     others = [checks.count("family_elements", e, minimum=0) for e in family_elements]
-    energy_blocks = (element_blocks(s, REDUCE_PER_LANE) + element_blocks(h, REDUCE_PER_LANE)
-                     + sum(element_blocks(e, REDUCE_PER_LANE) for e in others))
+    energy_blocks = sum(element_blocks(e, REDUCE_PER_LANE, REDUCE_FILL_BLOCKS) for e in (s, h, *others))
     running = 8 * RUNNING_SLOTS * ((blocks + element_blocks(s) + element_blocks(h)) if cuda
                                    else w * (1 + bool(s) + bool(h)))
     dampers = (4 + (f + 8) * s) * w if path.dampers else 0

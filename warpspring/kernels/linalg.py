@@ -53,18 +53,25 @@ def reduce_lanes(count: int, block_dim: int, tiled: bool) -> int:
     return int(min(block_dim, max(32, 1 << max(count - 1, 1).bit_length())))
 
 
-#: Items each lane of a striding reducing kernel on CUDA takes (``reduce_launch_dim``'s ``per_lane``): the guard's
-#: check passes. One item per lane left a 1024² cloth's check 4,096 particle blocks and 16,384 spring blocks, whose
-#: partial sums one block per world then gathered in 111 µs, and a float64 tree per 256 items (bench/guard_kernels.py
-#: --gpu-timing, H200).
+#: Items each lane of a striding reducing kernel on CUDA takes at most (``reduce_launch_dim``'s ``per_lane``): the
+#: guard's check passes. One item per lane left a 1024² cloth's check 4,096 particle blocks and 16,384 spring blocks,
+#: whose partial sums one block per world then gathered in 111 µs (bench/guard_kernels.py --gpu-timing, H200).
 REDUCE_PER_LANE = 8
+#: Blocks a striding reducing kernel keeps over all worlds where its items allow (``reduce_launch_dim``'s ``fill``):
+#: fewer leave the device idle and each lane's items in a serial chain (a 64² cloth's check pass in 2 blocks of 8
+#: items a lane took 54 µs, in 16 blocks of one 16 µs; H200, 132 multiprocessors).
+REDUCE_FILL_BLOCKS = 512
 
 
-def reduce_launch_dim(worlds: int, count: int, lanes: int, per_lane: int = 1) -> tuple[int, int, int]:
-    """The 3-D launch grid [world, block, lane] of a reducing kernel over ``count`` items per world, each lane taking
-    up to ``per_lane`` of them (a striding kernel: item ``block * lanes + lane``, then every ``blocks * lanes``-th
-    after it, ``reduce_stride``)."""
-    return (worlds, max((count + lanes * per_lane - 1) // (lanes * per_lane), 1 if count else 0), lanes)
+def reduce_launch_dim(worlds: int, count: int, lanes: int, per_lane: int = 1, fill: int = 0) -> tuple[int, int, int]:
+    """The 3-D launch grid [world, block, lane] of a reducing kernel over ``count`` items per world: one item a lane,
+    or with ``per_lane`` > 1 a striding kernel (item ``block * lanes + lane``, then every ``reduce_stride``-th after
+    it) whose lanes take up to ``per_lane`` items each while the worlds keep at least ``fill`` blocks in all."""
+    one_each = (count + lanes - 1) // lanes
+    blocks = (count + lanes * per_lane - 1) // (lanes * per_lane)
+    if fill:
+        blocks = max(blocks, -(-fill // max(worlds, 1)))
+    return (worlds, min(blocks, one_each), lanes)
 
 
 def reduce_stride(grid: tuple[int, int, int]) -> int:
