@@ -118,10 +118,12 @@ def spread(device: str, repeats: int) -> list[dict]:
     return out
 
 
-def spread_table(rows: list[dict], repeats: int) -> str:
+def spread_table(rows: list[dict], repeats: int, device: str) -> str:
+    cpu = " (on the CPU a run is never built deterministic: its threads run in order anyway)" if device == "cpu" else ""
     lines = ["", f"## Run-to-run spread of {repeats} gradients", "",
              "The driven cloth of `grad_scenes` (8 × 8, top row on a linear track, 100 steps of 1 ms, float64, symplectic "
-             "Euler), its gradient repeated in one process; spread: max |g_r - g_1| / max |g_1| over the repeats.", "",
+             "Euler), its gradient repeated in one process; spread: max |g_r - g_1| / max |g_1| over the repeats; arrays "
+             f"whose gradient is zero left out{cpu}.", "",
              "| array | spread (Warp's atomics) | spread (deterministic=True) |", "|---|---|---|"]
     for name in dict.fromkeys(r["array"] for r in rows):
         pair = {r["deterministic"]: r["spread"] for r in rows if r["array"] == name}
@@ -195,7 +197,7 @@ def main(argv=None) -> None:
     command = "python bench/gradients.py " + " ".join(argv if argv is not None else sys.argv[1:])
     text = table(rows, args.device, command)
     if args.spread > 1:
-        text += spread_table(spread(args.device, args.spread), args.spread)
+        text += spread_table(spread(args.device, args.spread), args.spread, args.device)
     print(text)
     out = args.out or str(pathlib.Path(__file__).parent / "results" /
                           f"gradients_{'cpu' if args.device == 'cpu' else 'cuda'}.md")

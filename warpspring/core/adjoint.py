@@ -315,7 +315,8 @@ class DiffRun:
             return
         model = self.model
         target, weight = self._device_targets[step]
-        wp.launch(loss_kernel(model.scalar, self.deterministic), dim=model.world_count,
+        records = model.particle_count if self.deterministic else 0
+        wp.launch(loss_kernel(model.scalar, self.deterministic, records), dim=model.world_count,
                   inputs=[model.particle_count, q, target, weight, row], outputs=[loss], device=model.device)
 
     def trajectory(self, every: int = 1) -> np.ndarray:

@@ -46,11 +46,13 @@ def vec4_type(scalar: type) -> type:
     return wp.vec4d if scalar == wp.float64 else wp.vec4f
 
 
-def options(deterministic: bool) -> dict:
+def options(deterministic: bool, records: int = 0) -> dict:
     """Module options of these kernels: with ``deterministic``, Warp's run-to-run deterministic atomics (the
-    adjoints of a gather add into shared gradient entries: in a fixed order then, at a cost)."""
-    return {"deterministic": wp.DeterministicMode.RUN_TO_RUN if deterministic
-            else wp.DeterministicMode.NOT_GUARANTEED}
+    adjoints of a gather add into shared gradient entries: in a fixed order then, at a cost); ``records``: the
+    atomic adds one thread may make into one array, where a loop of run-time length hides it from Warp's count."""
+    if not deterministic:
+        return {"deterministic": wp.DeterministicMode.NOT_GUARANTEED}
+    return {"deterministic": wp.DeterministicMode.RUN_TO_RUN, "deterministic_max_records": records}
 
 
 @functools.cache
@@ -303,12 +305,13 @@ def kick_kernel(scalar: type, deterministic: bool = False):
 
 
 @functools.cache
-def loss_kernel(scalar: type, deterministic: bool = False):
+def loss_kernel(scalar: type, deterministic: bool = False, particle_count: int = 0):
     """Kernel writing each world's weighted squared distance [m²] of its particles from targets into row ``row`` of
-    ``loss_out``: one thread per world sums its particles in order (no float atomics, the same bits every run)."""
+    ``loss_out``: one thread per world sums its particles in order (no float atomics, the same bits every run).
+    With ``deterministic``, ``particle_count`` bounds the adjoint's adds per thread (one per particle)."""
     vec3 = vec3_type(scalar)
 
-    @wp.kernel(module="unique", enable_backward=True, module_options=options(deterministic))
+    @wp.kernel(module="unique", enable_backward=True, module_options=options(deterministic, particle_count))
     def position_loss(
         # Model:
         particle_count: int,
