@@ -6,8 +6,8 @@ Scene: the hanging cloth of ``analysis/grad_scenes.py`` (n × n, ClothMaterial, 
 ``--frames`` frames of 1/60 s at ``--substeps`` steps each, symplectic Euler; the loss is the squared distance of
 every particle from its start at every frame's end. Each row runs in a fresh process, so its peak is its own: on
 the CPU the peak of Warp's allocation tracker, on CUDA the growth of the memory pool's high-water mark. Times are
-the best of ``--repeats`` after one untimed warm-up (compiles), ``wp.synchronize_device`` before each clock read; the
-memory is measured first, by the row's first gradient (on CUDA the pool's high-water mark only rises).
+the best of ``--repeats``, ``wp.synchronize_device`` before each clock read, after the row's first gradient (which
+compiles): the memory is measured by that first gradient (on CUDA the pool's high-water mark only rises).
 
 Spread: ``--spread`` gradients of the driven cloth of ``grad_scenes`` (its 100 steps; every array of ``DiffRun.values``,
 the pin-track keys included) repeated in one process, with Warp's default atomics and with ``deterministic=True``;
@@ -84,8 +84,7 @@ def measure(device: str, n: int, frames: int, substeps: int, checkpoint: str, re
             run.gradient()
             peak = context.runtime.core.wp_alloc_tracker_get_peak_bytes()
         how = "Warp allocation tracker peak"
-    run.loss()  # warm-up of the forward run
-    forward, loss = timed(run.loss)
+    forward, loss = timed(run.loss)  # (compiled by the gradient above)
     gradient, (loss_g, _) = timed(run.gradient)
     state = model.particle_count * 2 * 3 * 8  # (q, v) of one world in float64 [B]
     return dict(n=n, particles=model.particle_count, steps=steps, k=run.checkpoint_every,
@@ -179,6 +178,7 @@ def main(argv=None) -> None:
         row = measure(args.device, int(args.one[0]), args.frames, args.substeps, args.one[1], args.repeats)
         print(json.dumps(row))
         return
+    began = time.perf_counter()
     rows = []
     for n in args.sizes:
         for k in args.checkpoints:
@@ -198,6 +198,7 @@ def main(argv=None) -> None:
     text = table(rows, args.device, command)
     if args.spread > 1:
         text += spread_table(spread(args.device, args.spread), args.spread, args.device)
+    text += f"\nThe whole benchmark took {time.perf_counter() - began:.0f} s (compiles included).\n"
     print(text)
     out = args.out or str(pathlib.Path(__file__).parent / "results" /
                           f"gradients_{'cpu' if args.device == 'cpu' else 'cuda'}.md")
