@@ -119,15 +119,18 @@ def smooth_contact_func(scalar: type, planes: bool, spheres: bool):
 @functools.cache
 def diff_force_kernel(scalar: type, features: ForceFeatures, planes: bool, spheres: bool, deterministic: bool = False):
     """Kernel writing each particle's total force [N] at (x, v): the ordinary particle force plus the smooth
-    contact, with its adjoint."""
+    contact, with its adjoint. With ``deterministic``, the adjoint's adds per thread into one array are bounded by
+    the incidence: at most 10 particles (a quadratic tet) and their values per slot of every family's head (a head
+    wider than Warp's unrolling, 16 slots, is a loop Warp does not count), and a margin for the colliders' loops."""
     vec3 = vec3_type(scalar)
     particle_force = particle_force_func(scalar, features)
     Elements = elements(scalar, features.families).arrays
     Colliders = smooth_colliders_type(scalar)
     contact_force = smooth_contact_func(scalar, planes, spheres)
     touching = planes or spheres
+    records = 10 * sum(spec.incidence.head_slots for spec in features.families) + 64
 
-    @wp.kernel(module="unique", enable_backward=True, module_options=options(deterministic))
+    @wp.kernel(module="unique", enable_backward=True, module_options=options(deterministic, records))
     def diff_forces(
         # Model:
         particle_count: int,
