@@ -119,7 +119,7 @@ def spread(device: str, repeats: int) -> list[dict]:
 
 def spread_table(rows: list[dict], repeats: int, device: str) -> str:
     cpu = " (on the CPU a run is never built deterministic: its threads run in order anyway)" if device == "cpu" else ""
-    lines = ["", f"## Run-to-run spread of {repeats} gradients", "",
+    lines = ["", f"## Run-to-run spread of {repeats} gradients", "", machine(device), "",
              "The driven cloth of `grad_scenes` (8 × 8, top row on a linear track, 100 steps of 1 ms, float64, symplectic "
              "Euler), its gradient repeated in one process; spread: max |g_r - g_1| / max |g_1| over the repeats; arrays "
              f"whose gradient is zero left out{cpu}.", "",
@@ -135,15 +135,20 @@ def spread_table(rows: list[dict], repeats: int, device: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def table(rows: list[dict], device: str, command: str) -> str:
+def machine(device: str) -> str:
+    """The device, the host, Warp's version and the date, as the results' tables state them."""
     import warp as wp
 
     name = device if device == "cpu" else f"{device} ({wp.get_device(device).name})"
+    return (f"Device: {name} ({platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores); "
+            f"Warp {wp.config.version}; {datetime.date.today().isoformat()}")
+
+
+def table(rows: list[dict], device: str, command: str) -> str:
     lines = [
         "# Gradients over long runs: time and memory", "",
         f"Command: `{command}`  ",
-        f"Device: {name} ({platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores); "
-        f"Warp {wp.config.version}; {datetime.date.today().isoformat()}", "",
+        machine(device), "",
         "Hanging ClothMaterial cloth, float64, symplectic Euler; loss at every frame's end. k: checkpoint interval "
         "(steps); stored: checkpoints kept; gradient / forward: time of one loss-and-gradient over one forward run; "
         f"peak: the gradient's peak device memory ({rows[0]['how'] if rows else ''}); states: the peak over one "
