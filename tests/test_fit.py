@@ -83,20 +83,20 @@ material = {{ stretch = {stretch}, shear = 20.0, bending = 2.0e-4, density = 0.2
 """
 
 
-def test_warpspring_fit_recovers_a_scene_key_from_markers(tmp_path, capsys):
+def test_warpspring_fit_recovers_a_scene_key_from_markers(tmp_path, capsys, device):
     """``warpspring fit`` on a scene file and a markers file made from the scene at stretch = 60 N/m (every other
     particle observed), started at 80 N/m: the fit prints 60 (to 1e-4)."""
     truth = tmp_path / "truth.toml"
     truth.write_text(SCENE.format(stretch=60.0))
     build, guess = scene_parameters(str(truth), ["cloth.material.stretch"])
     assert guess == {"cloth.material.stretch": 60.0}
-    full = _motion(lambda v, w: build(v, w, device="cpu"), guess, frames=6, substeps=16)
+    full = _motion(lambda v, w: build(v, w, device=device), guess, frames=6, substeps=16)
     markers = np.arange(0, 36, 2)
     np.savez(tmp_path / "markers.npz", times=full.times, particles=markers, positions=full.positions[:, markers])
     scene = tmp_path / "scene.toml"
     scene.write_text(SCENE.format(stretch=80.0))
     assert main(["fit", str(scene), "--target", str(tmp_path / "markers.npz"), "--param", "cloth.material.stretch",
-                 "--starts", "2", "--device", "cpu"]) == 0
+                 "--starts", "2", "--device", device]) == 0
     out = capsys.readouterr().out
     row = next(line for line in out.splitlines() if line.startswith("cloth.material.stretch"))
     assert float(row.split()[1]) == pytest.approx(60.0, rel=1e-4)
@@ -107,7 +107,7 @@ def test_warpspring_fit_recovers_a_scene_key_from_markers(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_held_out_cloth_recovers_stretch_bending_and_damping():
+def test_held_out_cloth_recovers_stretch_bending_and_damping(device):
     """The issue's held-out case: the target made by velocity Verlet at 4× the substeps (128 per frame) with 1 mm
     Gaussian noise on every point, fitted with symplectic Euler at 32 substeps from three starts 30-40 % off:
     stretch, bending and stretch damping each within 5 % of the truth. (Without noise the integrators' difference
@@ -115,7 +115,7 @@ def test_held_out_cloth_recovers_stretch_bending_and_damping():
     truth = {**TRUTH, "stretch": 20.0, "bending": 2.0e-3, "stretch_damping": 0.5}  # examples/fit_cloth.py's
 
     def build(values, worlds):
-        return hanging_cloth({**truth, **values}, "cpu", worlds=worlds)
+        return hanging_cloth({**truth, **values}, device, worlds=worlds)
 
     target = _motion(build, {}, frames=30, substeps=128, integrator="velocity_verlet", noise=1e-3, seed=3)
     names = ("stretch", "bending", "stretch_damping")
@@ -128,7 +128,7 @@ def test_held_out_cloth_recovers_stretch_bending_and_damping():
     assert result.residual_rms == pytest.approx(1e-3, rel=0.05)
 
 
-def test_warpspring_fit_reads_a_usd_target_of_the_same_mesh(tmp_path, capsys):
+def test_warpspring_fit_reads_a_usd_target_of_the_same_mesh(tmp_path, capsys, device):
     """A USD file written by the ordinary simulator (float64 model, symplectic Euler, 16 substeps; points stored in
     float32, ~1e-8 m) at stretch = 60 N/m is a target of the same mesh: its times come from the time codes, and the
     fit from 80 N/m finds 60 to 1e-4."""
@@ -138,7 +138,7 @@ def test_warpspring_fit_reads_a_usd_target_of_the_same_mesh(tmp_path, capsys):
     truth = tmp_path / "truth.toml"
     truth.write_text(SCENE.format(stretch=60.0))
     build, _ = scene_parameters(str(truth), ["cloth.material.stretch"])
-    model = build({}, 1, device="cpu")
+    model = build({}, 1, device=device)
     sim = ws.Simulator(model, integrator=ws.SymplecticEuler(model), fps=60, substeps=16)
     writer = UsdWriter(str(tmp_path / "captured.usdc"), model, fps=60)
     writer.write_frame(sim.state)
@@ -152,12 +152,12 @@ def test_warpspring_fit_reads_a_usd_target_of_the_same_mesh(tmp_path, capsys):
     scene = tmp_path / "scene.toml"
     scene.write_text(SCENE.format(stretch=80.0))
     assert main(["fit", str(scene), "--target", str(tmp_path / "captured.usdc"), "--param", "cloth.material.stretch",
-                 "--starts", "1", "--device", "cpu"]) == 0
+                 "--starts", "1", "--device", device]) == 0
     row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("cloth.material.stretch"))
     assert float(row.split()[1]) == pytest.approx(60.0, rel=1e-4)
 
 
-def test_held_out_soft_body_drop_recovers_youngs_modulus():
+def test_held_out_soft_body_drop_recovers_youngs_modulus(device):
     """The voxel ball of ``grad_scenes`` dropped on the ground (smooth contact), the target made by velocity Verlet
     at 4× the substeps with 1 mm noise on every particle: E fitted with symplectic Euler from 1.5× and 0.6× the
     truth is within 5 % of it."""
@@ -165,7 +165,7 @@ def test_held_out_soft_body_drop_recovers_youngs_modulus():
     truth = dict(scene.values)
 
     def build(values, worlds):
-        return scene.build({**truth, **values}, "cpu", worlds=worlds)
+        return scene.build({**truth, **values}, device, worlds=worlds)
 
     frames, substeps = 4, 64  # 4 frames of 1/60 s at dt = 2.6e-4 s: the drop, the impact and the rebound
     model = build({}, 1)

@@ -112,3 +112,11 @@ def test_spring_group_gradients_match_finite_differences(device):
     fd = _finite_differences(run, mapping, theta)
     for name, g, f in zip(mapping.names, gradient[0], fd):
         assert abs(f) > 0.0 and abs(g - f) <= 1e-4 * abs(f), f"{name}: {g:.9e} vs {f:.9e}"
+
+
+@pytest.mark.parametrize("integrator", ["symplectic_euler", "velocity_verlet"])
+def test_pin_track_keys_gradients_match_finite_differences(device, integrator):
+    """The hanging cloth swung by its top row along a linear translation track: the gradient in each component of
+    its two free keys (the chain through ``ParameterMap`` into ``pin_keys``), within 1e-4 of central differences
+    (measured 1e-11 to 4e-9 on the CPU)."""
+    _check("driven_cloth", device, 1.0e-4, integrator)

@@ -25,12 +25,14 @@ def _targets(model, steps):
     return [Target(steps // 2, everyone, q0), Target(steps, everyone, q0 + 0.01)]
 
 
+@pytest.mark.parametrize("scene", ["hanging_cloth", "driven_cloth"])
 @pytest.mark.parametrize("integrator", ["symplectic_euler", "velocity_verlet"])
-def test_forward_run_is_the_ordinary_run(device, integrator):
+def test_forward_run_is_the_ordinary_run(device, integrator, scene):
     """Without colliders the differentiable kernels evaluate the ordinary particle force and update: the same
-    float64 positions as the ordinary integrator's (measured: identical bits on the CPU; CUDA may contract a
-    multiply-add differently, hence 1e-12 m)."""
-    model = hanging_cloth(HANGING.values, device)
+    float64 positions as the ordinary integrator's (measured: identical bits on the CPU for the hanging cloth; the
+    driven pins' x₀ + w_a K_a + w_b K_b rounds otherwise than the kinematics pass's p + (x₀ - p) + T, 2e-16 m; CUDA
+    may contract a multiply-add differently, hence 1e-12 m)."""
+    model = SCENES[scene].build(SCENES[scene].values, device)
     steps = 40
     run = DiffRun(model, dt=HANGING.dt, steps=steps, integrator=integrator)
     ours = run.trajectory()[-1, 0]
@@ -82,24 +84,61 @@ def test_a_batch_of_worlds_gives_each_world_its_gradient(device):
 
 @pytest.mark.parametrize("deterministic", [False, True])
 def test_gradient_spread_between_runs(device, deterministic):
-    """Warp's adjoints of the gather add into the gradients of neighbours' positions with atomics. On the CPU the
-    threads run in order: every run gives the same bits. On CUDA the order of those adds varies between runs
-    unless the kernels are compiled with Warp's deterministic mode (``deterministic=True``: the same bits); without
-    it the spread is a few float64 ulps of the sums (bounded here by 1e-12 relative)."""
-    model = hanging_cloth(HANGING.values, device)
-    results = []
-    for _ in range(3):
-        run = DiffRun(model, dt=HANGING.dt, steps=30, deterministic=deterministic)
-        run.set_targets(_targets(model, 30))
-        results.append(run.gradient()[1])
+    """Warp's adjoints of the gather add into the gradients of neighbours' positions with atomics, and so do those of
+    a pin-track key read by every pin of its group. On the CPU the threads run in order: every run gives the same
+    bits (measured: spread 0). On CUDA the order of those adds varies between runs unless the kernels are compiled
+    with Warp's deterministic mode (``deterministic=True``: the same bits); without it each reordered sum differs by
+    a few ulps (1e-16 relative), carried back through 60 steps of a cloth whose gradients change by O(1) over them:
+    bounded here by 1e-12 relative to each array's largest entry. The driven cloth's every array is checked, the
+    pin-track keys included."""
+    scene = SCENES["driven_cloth"]
+    model = scene.build(scene.values, device)
+    run = DiffRun(model, dt=scene.dt, steps=60, deterministic=deterministic)
+    run.set_targets(_targets(model, 60))
+    results = [run.gradient()[1] for _ in range(4)]
     exact = deterministic or wp.get_device(device).is_cpu
+    checked = 0
     for name in results[0]:
         scale = np.abs(results[0][name]).max()
         spread = max(np.abs(r[name] - results[0][name]).max() for r in results[1:])
+        if scale == 0.0:
+            continue  # (the contact's values, without colliders)
+        checked += 1
         if exact:
             assert spread == 0.0, name
         else:
-            assert spread <= 1e-12 * scale, name
+            assert spread <= 1e-12 * scale, f"{name}: spread {spread / scale:.1e} relative"
+    assert checked >= 8 and "pin_keys" in results[0]
+
+
+def test_pin_tracks_of_each_world_give_each_world_its_gradient(device):
+    """Two worlds of the driven cloth, world 1's top row moved by a track of its own (other key times, three keys
+    more): the forward run is the ordinary run in both worlds, and world 1's loss and key gradient (its track's
+    columns of ``pin_keys``) are those of a one-world run on that track (measured identical to 1e-15 relative)."""
+    scene = SCENES["driven_cloth"]
+    other = ws.Track([0.0, 0.0125, 0.0305, 0.0455, 0.0605, 0.0755], [[0.0, 0.0, 0.0], [0.01, 0.0, 0.02],
+                     [-0.02, 0.01, 0.03], [0.0, 0.02, -0.01], [0.03, 0.0, 0.0], [0.0, 0.0, 0.04]])
+    batch_model = scene.build(scene.values, device, worlds=2)
+    batch_model.set_pin_group_tracks("top", translation=other, world=1)
+    single_model = scene.build(scene.values, device)
+    single_model.set_pin_group_tracks("top", translation=other)
+    steps = 80  # past the last key (75.5 ms): every key moves the loss
+    batch = DiffRun(batch_model, dt=scene.dt, steps=steps)
+    reference = helpers.trajectory(batch_model, ws.make_integrator("symplectic_euler", batch_model), scene.dt, steps)
+    assert np.abs(reference[-1] - batch.trajectory()[-1].reshape(-1, 3)).max() <= 1e-12
+    single = DiffRun(single_model, dt=scene.dt, steps=steps)
+    results = []
+    for run in (batch, single):
+        run.set_targets(_targets(run.model, steps))
+        results.append(run.gradient())
+    (loss_b, grads_b), (loss_s, grads_s) = results
+    mine, its = batch.pin_key_columns("top", world=1), single.pin_key_columns("top")
+    assert mine.stop - mine.start == its.stop - its.start == 6
+    assert loss_b[1] == pytest.approx(loss_s[0], rel=1e-13)
+    np.testing.assert_allclose(grads_b["pin_keys"][1, mine], grads_s["pin_keys"][0, its], rtol=1e-12, atol=0.0)
+    assert np.abs(grads_s["pin_keys"][0, its]).min() > 0.0
+    assert not grads_b["pin_keys"][1, batch.pin_key_columns("top", world=0)].any()  # world 1 reads its own keys
+    assert not grads_b["pin_keys"][0, mine].any()
 
 
 def test_refused_scenes_say_why(device):
@@ -112,6 +151,18 @@ def test_refused_scenes_say_why(device):
     model = hanging_cloth(HANGING.values, device)
     with pytest.raises(ConfigError, match="symplectic_euler or velocity_verlet"):
         DiffRun(model, dt=1e-3, steps=10, integrator="implicit_euler")
+    for track, match in ((dict(translation=ws.Track([0.0, 1.0], [[0, 0, 0], [0, 0, 1]], interpolation="smooth")),
+                          "linear or step pin tracks"),
+                         (dict(rotation=ws.Track.rotation([0.0, 1.0], axis=(0, 0, 1), degrees=[0, 90])),
+                          "translation tracks only")):
+        driven = SCENES["driven_cloth"].build(SCENES["driven_cloth"].values, device)
+        driven.set_pin_group_tracks("top", **track)
+        with pytest.raises(ConfigError, match=match):
+            DiffRun(driven, dt=1e-3, steps=10)
+    builder = ws.ModelBuilder()
+    builder.add_pin_group(builder.add_cloth_grid(nx=3, ny=3, spacing=0.1, particle_mass=0.1)[-1], name="hand")
+    with pytest.raises(ConfigError, match="driven through Control"):
+        DiffRun(builder.finalize(device, precision="float64"), dt=1e-3, steps=10)
     run = DiffRun(model, dt=1e-3, steps=10)
     with pytest.raises(ConfigError, match="no targets"):
         run.gradient()

@@ -1,6 +1,6 @@
 """The named small scenes whose gradients are checked against finite differences (tests/test_grad*.py) and
 timed (bench/gradients.py): a hanging 8 × 8 cloth, the same cloth draped on a sphere, a voxel ball dropped on the
-ground, a flag in wind, and a neo-Hookean ball (E, ν). Each is a builder of one world for a dict of parameter
+ground, a flag in wind, a neo-Hookean ball (E, ν), and the hanging cloth swung by its top row (pin-track keys). Each is a builder of one world for a dict of parameter
 values, the parameters' nominal values, and the run's step, horizon and contact."""
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from ..core.adjoint import SmoothContact
 from ..core.builder.model_builder import ModelBuilder
 from ..core.material import ClothMaterial
 from ..core.model import Model
+from ..core.tracks import Track
 
 
 @dataclass(frozen=True)
@@ -55,6 +56,22 @@ def hanging_cloth(values: dict, device=None, precision: str = "float64", *, n: i
     builder.add_cloth_grid(nx=n, ny=n, spacing=0.1, origin=(-0.05 * (n - 1), -0.05 * (n - 1), 1.0),
                            material=_cloth_material(values), velocity=(0.0, 0.0, -values.get("speed", 0.0)),
                            pin=["top-left", "top-right"])
+    return builder.finalize(device, precision=precision, worlds=worlds)
+
+
+#: Key times [s] of the driven cloth's track (between steps of 1 ms, so no step's time meets a key).
+DRIVEN_KEY_TIMES = (0.0, 0.0405, 0.0805)
+
+
+def driven_cloth(values: dict, device=None, precision: str = "float64", *, n: int = 8, worlds: int = 1) -> Model:
+    """The hanging cloth's material with its whole top row pinned and driven by a linear translation track (pin
+    group "top"): at rest at t = 0, at (``key1_x``, ``key1_y``, ``key1_z``) [m] at 40.5 ms and (``key2_x``,
+    ``key2_y``, ``key2_z``) at 80.5 ms, held after."""
+    builder = ModelBuilder(drag=values.get("drag", 0.01))
+    grid = builder.add_cloth_grid(nx=n, ny=n, spacing=0.1, origin=(-0.05 * (n - 1), -0.05 * (n - 1), 1.0),
+                                  material=_cloth_material(values))
+    keys = [[0.0, 0.0, 0.0], [values.get(f"key1_{c}", 0.0) for c in "xyz"], [values.get(f"key2_{c}", 0.0) for c in "xyz"]]
+    builder.add_pin_group(grid[-1], translation=Track(DRIVEN_KEY_TIMES, keys, interpolation="linear"), name="top")
     return builder.finalize(device, precision=precision, worlds=worlds)
 
 
@@ -133,6 +150,10 @@ SCENES = {
     "flag": GradScene(
         "flag", flag, {"wind_x": 5.0, "wind_y": 1.0, "drag_coefficient": 1.2, "lift_coefficient": 1.0,
                        "stretch": 60.0},
+        dt=1.0e-3, steps=100),
+    "driven_cloth": GradScene(
+        "driven_cloth", driven_cloth,
+        {"key1_x": 0.03, "key1_y": -0.02, "key1_z": 0.05, "key2_x": -0.02, "key2_y": 0.01, "key2_z": 0.08},
         dt=1.0e-3, steps=100),
     "neohookean_ball": GradScene(
         "neohookean_ball", neohookean_ball, {"youngs_modulus": 2.0e4, "poisson_ratio": 0.3, "speed": 5.0},

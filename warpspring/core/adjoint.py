@@ -15,7 +15,9 @@ so a batch of worlds gives a batch of gradients):
 * ``<family>.<field>``: every per-world value of an element family (a 2-D float array with a row per world:
   ``springs.stiffness`` [N/m], ``springs.damping`` [N·s/m], ``hinges.stiffness`` [N·m/rad], ``hinges.damping``,
   the neo-Hookean tets' ``mu``, ``lam`` [Pa], ...), [world_count, element_count];
-* ``contact``: the smooth contact's values [world_count, CONTACT_COUNT] (``SmoothContact``).
+* ``contact``: the smooth contact's values [world_count, CONTACT_COUNT] (``SmoothContact``);
+* ``pin_keys``: with driven pin groups, the key values [m] of the model's track table [world_count, key_count] vec3
+  (the keys of a group's translation track: :meth:`DiffRun.pin_key_columns`).
 
 Scalars a user names (a ``ClothMaterial``'s stretch, a spring group's stiffness) map onto these arrays
 (``core/adjoint_params.py``).
@@ -40,11 +42,15 @@ from ..kernels.adjoint import (
     diff_force_kernel,
     diff_update_kernels,
     loss_kernel,
+    pin_tracks_type,
     smooth_colliders_type,
+    vec4_type,
 )
 from ..kernels.families import Incidence, IncidenceShape, elements, fill_elements
 from ..kernels.springs import SpringSpec
+from .kinematics import pin_group_index
 from .model import Model
+from .tracks import Track
 
 #: The integrators a run differentiates.
 DIFF_INTEGRATORS = ("symplectic_euler", "velocity_verlet")
@@ -185,7 +191,16 @@ class DiffRun:
             contact.stiffness, contact.smoothing, contact.damping, contact.slip_speed)
         row[CONTACT_FRICTION] = friction
         self.values["contact"] = wp.array(np.tile(row, (worlds, 1)), dtype=scalar, device=device, requires_grad=True)
+        self._pins = _pin_tracks(model, self.steps, self.dt)
+        if self._pins is not None:
+            keys = model.track_table.table.value.numpy()  # float64 [key_count, 3]
+            self.values["pin_keys"] = wp.array(np.ascontiguousarray(np.broadcast_to(keys, (worlds, *keys.shape))),
+                                               dtype=model.vec3, device=device, requires_grad=True)
+            self._pin_arguments = [self._pins, self.values["pin_keys"]]
+        else:
+            self._pin_arguments = [_no_pin_tracks(model), wp.zeros((1, 0), dtype=model.vec3, device=device)]
         self._no_force = wp.zeros(0, dtype=model.vec3, device=device)
+        self._zero_force = None if self._pins is None else wp.zeros(self._n, dtype=model.vec3, device=device)
         self._velocity_dependent = integrator == "velocity_verlet" and _velocity_dependent(model)
         self.targets: list[Target] = []
         self._device_targets: dict[int, tuple] = {}
@@ -237,27 +252,38 @@ class DiffRun:
         return 7 if self._velocity_dependent else 5
 
     def _ring(self) -> _Pool:
-        """The forward-only arrays: a ring of two steps'."""
+        """The forward-only arrays: a ring of two steps' (the start's two among them)."""
         if self._forward_pool is None:
             self._forward_pool = _Pool(self.values["particle_q"], 2 * self._arrays_per_step, grad=False)
         return self._forward_pool.reset()
 
-    def _step(self, q, v, pool: _Pool):
-        """One step from (q, v) into arrays of ``pool``; returns the new (q, v)."""
+    def pin_key_columns(self, group, *, world: int = 0) -> slice:
+        """The columns of ``values["pin_keys"]`` (and of its gradient) holding the keys of pin ``group``'s
+        translation track (a group index or name) in ``world``'s row."""
+        pins = self.model.pin_groups
+        g = pin_group_index(pins, group)
+        rows = _pin_rows(pins)
+        track = rows[world % len(rows)][g][0]
+        first = int(self.model.track_table.table.key_start.numpy()[self.model.track_table.index(track)])
+        return slice(first, first + len(track.times))
+
+    def _step(self, q, v, pool: _Pool, step: int):
+        """Step ``step`` (1, 2, ...) from (q, v) into arrays of ``pool``; returns the new (q, v)."""
         _fresh = pool.take
         model = self.model
-        symplectic, drift, kick = diff_update_kernels(model.scalar, self.deterministic)
+        symplectic, drift, kick = diff_update_kernels(model.scalar, self.deterministic, self._pins is not None)
         mass = [model.particle_count, model.particle_flags, self.values["particle_inv_mass"]]
+        pins = [*self._pin_arguments, step]
         h = model.scalar(self.dt)
         common = dict(dim=self._n, device=model.device)
         f = _fresh()
         self._forces(q, v, f)
         q_out, v_out = _fresh(), _fresh()
         if self.integrator == "symplectic_euler":
-            wp.launch(symplectic, inputs=[*mass, q, v, f, h], outputs=[q_out, v_out], **common)
+            wp.launch(symplectic, inputs=[*mass, *pins, q, v, f, h], outputs=[q_out, v_out], **common)
             return q_out, v_out
         v_half = _fresh()
-        wp.launch(drift, inputs=[*mass, q, v, f, h], outputs=[q_out, v_half], **common)
+        wp.launch(drift, inputs=[*mass, *pins, q, v, f, h], outputs=[q_out, v_half], **common)
         f_half = _fresh()
         self._forces(q_out, v_half, f_half)
         wp.launch(kick, inputs=[*mass, v_half, f_half, h], outputs=[v_out], **common)
@@ -268,21 +294,38 @@ class DiffRun:
             v_out = v_final
         return q_out, v_out
 
+    def _start(self, pool: _Pool):
+        """The initial state (q, v): ``values``' particle_q and particle_qd, with driven pins put where their tracks
+        are at t = 0 (the update kernel at h = 0, on the tape: the keys move the start too), as ``Model.state``
+        puts them."""
+        q, v = self.values["particle_q"], self.values["particle_qd"]
+        if self._pins is None:
+            return q, v
+        model = self.model
+        symplectic = diff_update_kernels(model.scalar, self.deterministic, True)[0]
+        q_out, v_out = pool.take(), pool.take()
+        wp.launch(symplectic, dim=self._n, device=model.device,
+                  inputs=[model.particle_count, model.particle_flags, self.values["particle_inv_mass"],
+                          *self._pin_arguments, 0, q, v, self._zero_force, model.scalar(0.0)],
+                  outputs=[q_out, v_out])
+        return q_out, v_out
+
     def _loss_at(self, step, q, loss, row):
         if step not in self._device_targets:
             return
         model = self.model
         target, weight = self._device_targets[step]
-        wp.launch(loss_kernel(model.scalar, self.deterministic), dim=model.world_count,
+        records = model.particle_count if self.deterministic else 0
+        wp.launch(loss_kernel(model.scalar, self.deterministic, records), dim=model.world_count,
                   inputs=[model.particle_count, q, target, weight, row], outputs=[loss], device=model.device)
 
     def trajectory(self, every: int = 1) -> np.ndarray:
         """Positions [m] of every ``every``-th step (step 0 first), float64, [steps // every + 1, world_count, n, 3]."""
-        q, v = self.values["particle_q"], self.values["particle_qd"]
-        out = [np.array(q.numpy(), dtype=np.float64)]  # (copies: on the CPU numpy() is a view of the ring)
         ring = self._ring()
+        q, v = self._start(ring)
+        out = [np.array(q.numpy(), dtype=np.float64)]  # (copies: on the CPU numpy() is a view of the ring)
         for k in range(1, self.steps + 1):
-            q, v = self._step(q, v, ring)
+            q, v = self._step(q, v, ring, k)
             if k % every == 0:
                 out.append(np.array(q.numpy(), dtype=np.float64))
         shape = (self.model.world_count, self.model.particle_count, 3)
@@ -295,11 +338,11 @@ class DiffRun:
         if wanted and not (0 <= wanted[0] and wanted[-1] <= self.steps):
             raise ConfigError(f"steps must be in [0, {self.steps}], got {wanted[0]} … {wanted[-1]}")
         shape = (self.model.world_count, self.model.particle_count, 3)
-        q, v = self.values["particle_q"], self.values["particle_qd"]
-        found = {0: np.array(q.numpy(), dtype=np.float64)} if 0 in wanted else {}
         ring = self._ring()
+        q, v = self._start(ring)
+        found = {0: np.array(q.numpy(), dtype=np.float64)} if 0 in wanted else {}
         for k in range(1, (wanted[-1] if wanted else 0) + 1):
-            q, v = self._step(q, v, ring)
+            q, v = self._step(q, v, ring, k)
             if k in wanted:
                 found[k] = np.array(q.numpy(), dtype=np.float64)  # (a copy: the ring's rows are reused)
         return np.stack([np.asarray(found[int(s)], dtype=np.float64).reshape(shape) for s in steps])
@@ -310,11 +353,11 @@ class DiffRun:
         """The loss of every world [m²], float64, [world_count] (a forward run, no tape)."""
         worlds = self.model.world_count
         loss = wp.zeros((self.steps + 1, worlds), dtype=self.model.scalar, device=self.model.device)
-        q, v = self.values["particle_q"], self.values["particle_qd"]
-        self._loss_at(0, q, loss, 0)
         ring = self._ring()
+        q, v = self._start(ring)
+        self._loss_at(0, q, loss, 0)
         for k in range(1, self.steps + 1):
-            q, v = self._step(q, v, ring)
+            q, v = self._step(q, v, ring, k)
             self._loss_at(k, q, loss, k)
         return loss.numpy().astype(np.float64).sum(axis=0)
 
@@ -329,16 +372,16 @@ class DiffRun:
             array.grad.zero_()
         # Forward: keep the state at every k-th step (no tape).
         checkpoints = {0: (self.values["particle_q"], self.values["particle_qd"])}
-        q, v = checkpoints[0]
         ring = self._ring()
+        q, v = self._start(ring)
         for step in range(1, self.steps + 1):
-            q, v = self._step(q, v, ring)
+            q, v = self._step(q, v, ring, step)
             if step % k == 0 and step < self.steps:
                 checkpoints[step] = (wp.clone(q), wp.clone(v))
         total = np.zeros(model.world_count)
         adj_q = adj_v = None
         if self._segment_pool is None:  # (kept between gradients: a fit evaluates many)
-            self._segment_pool = _Pool(self.values["particle_q"], k * self._arrays_per_step, grad=True)
+            self._segment_pool = _Pool(self.values["particle_q"], k * self._arrays_per_step + 2, grad=True)
         pool = self._segment_pool
         starts = sorted(checkpoints)
         for start in reversed(starts):
@@ -355,9 +398,10 @@ class DiffRun:
             with tape:
                 q, v = q0, v0
                 if start == 0:
+                    q, v = self._start(pool)
                     self._loss_at(0, q, loss, 0)
                 for step in range(start + 1, end + 1):
-                    q, v = self._step(q, v, pool)
+                    q, v = self._step(q, v, pool, step)
                     self._loss_at(step, q, loss, step - start)
             total += loss.numpy().astype(np.float64).sum(axis=0)
             grads = {loss: wp.ones_like(loss, requires_grad=False)}
@@ -375,8 +419,10 @@ def _check_model(model: Model) -> None:
     """What a differentiable run does not cover raises here, with what to do instead."""
     if model.input_tracks is not None:
         raise ConfigError("a differentiable run does not evaluate keyframe tracks of inputs: set the inputs constant")
-    if model.pin_groups is not None and model.pin_groups.driven:
-        raise ConfigError("a differentiable run does not move driven pin groups: pin particles without a track")
+    pins = model.pin_groups
+    for row in _pin_rows(pins) if pins is not None else ():
+        for group, (translation, rotation) in zip(pins.groups, row):
+            _check_pin_track(group.name, translation, rotation)
     if model.spring_plastic_count:
         raise ConfigError("a differentiable run does not take plastic springs (their flow has no gradient here)")
     if model.self_contact is not None:
@@ -390,6 +436,88 @@ def _check_model(model: Model) -> None:
         raise ConfigError("a differentiable run does not take emitters")
     if model.stabilizers.max_particle_force is not None:
         raise ConfigError("a differentiable run does not clamp forces: set max_particle_force to None")
+
+
+def _pin_rows(pins) -> list:
+    """The (translation, rotation) tracks of every pin group, one list per row of the pin table (one row for
+    every world, or one per world)."""
+    return pins.world_tracks or [[(g.translation, g.rotation) for g in pins.groups]]
+
+
+def _check_pin_track(name: str, translation: Track | None, rotation: Track | None) -> None:
+    if translation is None and rotation is None:
+        raise ConfigError(f"a differentiable run does not take pin group {name!r} driven through Control: give it a "
+                          "translation track")
+    if rotation is not None:
+        raise ConfigError(f"a differentiable run moves pin groups by translation tracks only: pin group {name!r} has a "
+                          "rotation track")
+    if translation.interpolation not in ("linear", "step"):
+        raise ConfigError(f"a differentiable run takes linear or step pin tracks: pin group {name!r}'s translation is "
+                          f"{translation.interpolation!r} (its tangents depend on the keys)")
+
+
+def _track_weights(track: Track, times: np.ndarray):
+    """For each of ``times`` [s], the two keys (local indices a ≤ b) a linear or step track mixes and their weights
+    in the value and in the rate, [len(times), 2] int and [len(times), 4], from the track's own host evaluation
+    (sampled on the unit keys: the value is linear in the keys)."""
+    count = len(track.times)
+    value = np.empty((len(times), count))
+    rate = np.empty((len(times), count))
+    for j in range(count):
+        unit = Track(track.times, np.eye(count)[j][:, None] * np.ones(3), interpolation=track.interpolation,
+                     extrapolation=track.extrapolation)
+        value[:, j], rate[:, j] = (part[:, 0] for part in unit.sample(times))
+    moved = (value != 0.0) | (rate != 0.0)
+    a = np.where(moved.any(axis=1), moved.argmax(axis=1), 0)
+    b = np.minimum(a + 1, count - 1)
+    rows = np.arange(len(times))
+    weights = np.stack([value[rows, a], np.where(b > a, value[rows, b], 0.0), rate[rows, a],
+                        np.where(b > a, rate[rows, b], 0.0)], axis=1)
+    rest = moved.copy()
+    rest[rows, a] = rest[rows, b] = False
+    assert not rest.any(), "a linear or step track mixes two neighbouring keys at most"
+    return np.stack([a, b], axis=1), weights
+
+
+def _pin_tracks(model: Model, steps: int, dt: float):
+    """The driven pins of a differentiable run (``kernels/adjoint.py``'s PinTracks), or None: each group's keys and
+    weights at the end time of every step, the times summed step by step in float64 as the ordinary run's clock."""
+    pins = model.pin_groups
+    if pins is None or not pins.groups:
+        return None
+    device, scalar = model.device, model.scalar
+    table = model.track_table
+    first = table.table.key_start.numpy()
+    times = np.concatenate([[0.0], np.cumsum(np.full(steps, dt))])
+    rows = _pin_rows(pins)
+    key = np.zeros((steps + 1, len(rows), len(pins.groups), 2), dtype=np.int32)
+    weight = np.zeros((steps + 1, len(rows), len(pins.groups), 4))
+    for r, row in enumerate(rows):
+        for g, (translation, _) in enumerate(row):
+            local, weight[:, r, g] = _track_weights(translation, times)
+            key[:, r, g] = first[table.index(translation)] + local
+    particle_pin = np.full(model.particle_count, -1, dtype=np.int32)
+    driven = np.flatnonzero(pins.table.group.numpy() >= 0)
+    particle_pin[pins.kinematic[driven]] = np.arange(len(driven))
+    out = pin_tracks_type(scalar)()
+    out.particle_pin = wp.array(particle_pin, dtype=wp.int32, device=device)
+    out.pin_group = wp.array(pins.table.group.numpy()[driven], dtype=wp.int32, device=device)
+    out.pin_rest = wp.array(pins.rest[driven], dtype=model.vec3, device=device)
+    out.key = wp.array(key, dtype=wp.vec2i, device=device)
+    out.weight = wp.array(weight, dtype=vec4_type(scalar), device=device)
+    return out
+
+
+def _no_pin_tracks(model: Model):
+    """Pin tracks of a run without driven pins (empty arrays: the kernels compiled without pins never read them)."""
+    out = pin_tracks_type(model.scalar)()
+    device = model.device
+    out.particle_pin = wp.zeros(0, dtype=wp.int32, device=device)
+    out.pin_group = wp.zeros(0, dtype=wp.int32, device=device)
+    out.pin_rest = wp.zeros(0, dtype=model.vec3, device=device)
+    out.key = wp.zeros((0, 0, 0), dtype=wp.vec2i, device=device)
+    out.weight = wp.zeros((0, 0, 0), dtype=vec4_type(model.scalar), device=device)
+    return out
 
 
 def _without_tail(table: Incidence, shape: IncidenceShape, n: int, *, self_padding: bool):

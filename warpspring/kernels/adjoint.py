@@ -17,7 +17,9 @@ with the same weight, -c_c σ(φ/ε) (v·n) n (σ the logistic function), and fr
 -μ |f_n| v_t / √(|v_t|² + v_ε²), a viscous law below the speed v_ε [m/s] and Coulomb's above it.
 
 Colliders here are planes and spheres at rest (the analytic shapes the ordinary contacts have; boxes,
-capsules, meshes and moving colliders are not differentiable yet).
+capsules, meshes and moving colliders are not differentiable yet). Driven pins move along linear or step
+translation tracks whose keys are a differentiable array (``pin_tracks_type``), put on their track at each step's
+end by the update kernels themselves (a pass of its own would overwrite the update's output on the tape).
 """
 
 import functools
@@ -39,11 +41,18 @@ CONTACT_SLIP_SPEED = 4  # v_ε [m/s]
 CONTACT_COUNT = 5
 
 
-def options(deterministic: bool) -> dict:
+def vec4_type(scalar: type) -> type:
+    """The 4-vector type of a scalar type (a driven pin's weights)."""
+    return wp.vec4d if scalar == wp.float64 else wp.vec4f
+
+
+def options(deterministic: bool, records: int = 0) -> dict:
     """Module options of these kernels: with ``deterministic``, Warp's run-to-run deterministic atomics (the
-    adjoints of a gather add into shared gradient entries: in a fixed order then, at a cost)."""
-    return {"deterministic": wp.config.DeterministicMode.RUN_TO_RUN if deterministic
-            else wp.config.DeterministicMode.NOT_GUARANTEED}
+    adjoints of a gather add into shared gradient entries: in a fixed order then, at a cost); ``records``: the
+    atomic adds one thread may make into one array, where a loop of run-time length hides it from Warp's count."""
+    if not deterministic:
+        return {"deterministic": wp.DeterministicMode.NOT_GUARANTEED}
+    return {"deterministic": wp.DeterministicMode.RUN_TO_RUN, "deterministic_max_records": records}
 
 
 @functools.cache
@@ -110,15 +119,18 @@ def smooth_contact_func(scalar: type, planes: bool, spheres: bool):
 @functools.cache
 def diff_force_kernel(scalar: type, features: ForceFeatures, planes: bool, spheres: bool, deterministic: bool = False):
     """Kernel writing each particle's total force [N] at (x, v): the ordinary particle force plus the smooth
-    contact, with its adjoint."""
+    contact, with its adjoint. With ``deterministic``, the adjoint's adds per thread into one array are bounded by
+    the incidence: at most 10 particles (a quadratic tet) and their values per slot of every family's head (a head
+    wider than Warp's unrolling, 16 slots, is a loop Warp does not count), and a margin for the colliders' loops."""
     vec3 = vec3_type(scalar)
     particle_force = particle_force_func(scalar, features)
     Elements = elements(scalar, features.families).arrays
     Colliders = smooth_colliders_type(scalar)
     contact_force = smooth_contact_func(scalar, planes, spheres)
     touching = planes or spheres
+    records = 10 * sum(spec.incidence.head_slots for spec in features.families) + 64
 
-    @wp.kernel(module="unique", enable_backward=True, module_options=options(deterministic))
+    @wp.kernel(module="unique", enable_backward=True, module_options=options(deterministic, records))
     def diff_forces(
         # Model:
         particle_count: int,
@@ -150,13 +162,58 @@ def diff_force_kernel(scalar: type, features: ForceFeatures, planes: bool, spher
 
 
 @functools.cache
-def diff_update_kernels(scalar: type, deterministic: bool = False):
+def pin_tracks_type(scalar: type):
+    """Driven pins of a differentiable run: each pin's translation at each step's time as a mix of two keys of its
+    track, x = x₀ + w_a K_a + w_b K_b and v = r_a K_a + r_b K_b (linear and step tracks, hold and cycle: the host
+    finds each step's keys and weights; the keys K [m] themselves are a differentiable array, a row per world)."""
+    vec3 = vec3_type(scalar)
+    vec4 = vec4_type(scalar)
+
+    @wp.struct
+    class PinTracks:
+        particle_pin: wp.array[wp.int32]  # [particle_count]: the driven pin a particle (of a world) is, or -1
+        pin_group: wp.array[wp.int32]  # [pin_count]: its pin group
+        pin_rest: wp.array[vec3]  # [m], [pin_count]: its position at t = 0 (x₀)
+        key: wp.array3d[wp.vec2i]  # [steps + 1, rows, group_count]: columns a, b of the keys a group's translation
+        #   mixes at step k's time; row world % rows (one row for all worlds, or one per world)
+        weight: wp.array3d[vec4]  # [-, -, 1/s, 1/s], same shape: (w_a, w_b, r_a, r_b)
+
+    return PinTracks
+
+
+@functools.cache
+def pin_motion_func(scalar: type):
+    """``pin_motion(world, pin, step, pins, keys) -> (x, v)``: a driven pin's position [m] and velocity [m/s] at
+    step ``step``'s time (``pin_tracks_type``)."""
+    PinTracks = pin_tracks_type(scalar)
+    vec3 = vec3_type(scalar)
+
+    @wp.func
+    def pin_motion(world: int, pin: int, step: int, pins: PinTracks, keys: wp.array2d[vec3]):
+        g = pins.pin_group[pin]
+        row = wp.min(world, pins.key.shape[1] - 1)
+        ab = pins.key[step, row, g]
+        c = pins.weight[step, row, g]
+        key_row = wp.min(world, keys.shape[0] - 1)
+        ka = keys[key_row, ab[0]]
+        kb = keys[key_row, ab[1]]
+        return pins.pin_rest[pin] + c[0] * ka + c[1] * kb, c[2] * ka + c[3] * kb
+
+    return pin_motion
+
+
+@functools.cache
+def diff_update_kernels(scalar: type, deterministic: bool = False, pins: bool = False):
     """Symplectic Euler's update and velocity Verlet's drift and kick from precomputed forces, with adjoints.
 
     ``symplectic_euler``: v' = v + h M⁻¹ f, x' = x + h v'. ``drift``: v½ = v + ½h M⁻¹ f, x' = x + h v½. ``kick``:
-    v' = v½ + ½h M⁻¹ f. Kinematic particles have M⁻¹ = 0 (they keep their velocity)."""
+    v' = v½ + ½h M⁻¹ f. Kinematic particles have M⁻¹ = 0 (they keep their velocity); with ``pins``, a driven pin
+    is put on its track at the step's end instead (``pin_motion_func``; the kick then keeps its velocity), as the
+    ordinary integrators' kinematics pass puts it."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
+    PinTracks = pin_tracks_type(scalar)
+    pin_motion = pin_motion_func(scalar)
 
     @wp.kernel(module="unique", enable_backward=True, module_options=options(deterministic))
     def symplectic_euler(
@@ -164,6 +221,10 @@ def diff_update_kernels(scalar: type, deterministic: bool = False):
         particle_count: int,
         particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array2d[scalar],
+        # Control (the driven pins, read with ``pins``; ``step``: the step whose end this update reaches):
+        pin_tracks: PinTracks,
+        pin_keys: wp.array2d[vec3],
+        step: int,
         # State in:
         particle_q_in: wp.array[vec3],
         particle_qd_in: wp.array[vec3],
@@ -177,8 +238,13 @@ def diff_update_kernels(scalar: type, deterministic: bool = False):
         world, i = world_and_index(p, particle_count)
         w = effective_inv_mass(particle_flags[p], particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i])
         v = particle_qd_in[p] + (dt * w) * particle_f[p]
+        x = particle_q_in[p] + dt * v
+        if wp.static(pins):
+            pin = pin_tracks.particle_pin[i]
+            if pin >= 0:
+                x, v = pin_motion(world, pin, step, pin_tracks, pin_keys)
         particle_qd_out[p] = v
-        particle_q_out[p] = particle_q_in[p] + dt * v
+        particle_q_out[p] = x
 
     @wp.kernel(module="unique", enable_backward=True, module_options=options(deterministic))
     def drift(
@@ -186,6 +252,10 @@ def diff_update_kernels(scalar: type, deterministic: bool = False):
         particle_count: int,
         particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array2d[scalar],
+        # Control (as symplectic_euler's):
+        pin_tracks: PinTracks,
+        pin_keys: wp.array2d[vec3],
+        step: int,
         # State in:
         particle_q_in: wp.array[vec3],
         particle_qd_in: wp.array[vec3],
@@ -199,8 +269,22 @@ def diff_update_kernels(scalar: type, deterministic: bool = False):
         world, i = world_and_index(p, particle_count)
         w = effective_inv_mass(particle_flags[p], particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i])
         v_half = particle_qd_in[p] + (scalar(0.5) * dt * w) * particle_f[p]
+        x = particle_q_in[p] + dt * v_half
+        if wp.static(pins):  # a driven pin at t + h, its velocity there standing in for v½
+            pin = pin_tracks.particle_pin[i]
+            if pin >= 0:
+                x, v_half = pin_motion(world, pin, step, pin_tracks, pin_keys)
         particle_qd_half_out[p] = v_half
-        particle_q_out[p] = particle_q_in[p] + dt * v_half
+        particle_q_out[p] = x
+
+    return symplectic_euler, drift, kick_kernel(scalar, deterministic)
+
+
+@functools.cache
+def kick_kernel(scalar: type, deterministic: bool = False):
+    """Velocity Verlet's kick v' = v½ + ½h M⁻¹ f, with its adjoint (``diff_update_kernels``)."""
+    vec3 = vec3_type(scalar)
+    effective_inv_mass = particle_funcs(scalar)
 
     @wp.kernel(module="unique", enable_backward=True, module_options=options(deterministic))
     def kick(
@@ -220,16 +304,17 @@ def diff_update_kernels(scalar: type, deterministic: bool = False):
         w = effective_inv_mass(particle_flags[p], particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i])
         particle_qd_out[p] = particle_qd_half[p] + (scalar(0.5) * dt * w) * particle_f[p]
 
-    return symplectic_euler, drift, kick
+    return kick
 
 
 @functools.cache
-def loss_kernel(scalar: type, deterministic: bool = False):
+def loss_kernel(scalar: type, deterministic: bool = False, particle_count: int = 0):
     """Kernel writing each world's weighted squared distance [m²] of its particles from targets into row ``row`` of
-    ``loss_out``: one thread per world sums its particles in order (no float atomics, the same bits every run)."""
+    ``loss_out``: one thread per world sums its particles in order (no float atomics, the same bits every run).
+    With ``deterministic``, ``particle_count`` bounds the adjoint's adds per thread (one per particle)."""
     vec3 = vec3_type(scalar)
 
-    @wp.kernel(module="unique", enable_backward=True, module_options=options(deterministic))
+    @wp.kernel(module="unique", enable_backward=True, module_options=options(deterministic, particle_count))
     def position_loss(
         # Model:
         particle_count: int,
