@@ -35,6 +35,9 @@ def main():
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--sizes", type=int, nargs="+", default=[8, 16, 32, 64])
     parser.add_argument("--taus", type=float, nargs="+", default=[0.0, sb.LIGHT], help="kd/k ratios [s]")
+    parser.add_argument("--releases", nargs="+", default=list(sb.RELEASES), choices=sb.RELEASES)
+    parser.add_argument("--gravity", nargs="+", default=["on", "off"], choices=["on", "off"],
+                        help="cases with gravity, without, or both (flat without gravity does not move)")
     parser.add_argument("--integrators", nargs="+", default=list(sb.CONSERVATIVE), choices=sb.CONSERVATIVE)
     parser.add_argument("--factors", type=float, nargs="+", default=list(sb.FACTORS))
     parser.add_argument("--seconds", type=float, default=10.0)
@@ -48,7 +51,9 @@ def main():
     device = wp.get_device(args.device)
     t0 = time.perf_counter()
     results = []
-    for case in sb.cases(args.sizes, args.taus):
+    chosen = [c for c in sb.cases(args.sizes, args.taus)
+              if c.release in args.releases and ("on" if c.gravity else "off") in args.gravity]
+    for case in chosen:
         for integrator in args.integrators:
             results.append(sb.measure(case, integrator, device, seconds=args.seconds, factors=args.factors,
                                       substeps=args.substeps))

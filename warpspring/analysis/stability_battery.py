@@ -82,17 +82,19 @@ RELEASES = ("flat", "folded")
 @dataclass(frozen=True)
 class Case:
     """One cloth of the battery: n × n particles, kd/k ratio ``tau`` [s], ``release`` ("flat" or "folded"),
-    ``gravity`` on or off."""
+    ``gravity`` on or off; ``columns``: a strip of that many columns of n particles instead (0: n)."""
 
     n: int
     tau: float
     release: str
     gravity: bool
+    columns: int = 0
 
     @property
     def label(self) -> str:
         damping = "undamped" if self.tau == 0.0 else f"kd = {self.tau:g} s·ke"
-        return f"{self.n}² {self.release}, {damping}, {'gravity' if self.gravity else 'no gravity'}"
+        size = f"{self.columns} × {self.n}" if self.columns else f"{self.n}²"
+        return f"{size} {self.release}, {damping}, {'gravity' if self.gravity else 'no gravity'}"
 
 
 def cases(sizes=(8, 16, 32, 64), taus=(0.0, LIGHT)) -> list[Case]:
@@ -107,14 +109,14 @@ def battery_cloth(case: Case, device, *, precision: str = "float32") -> Model:
     h = n // 2) lie under rows h+k one spacing below them, a U fold whose turn spans one spacing vertically, so
     that the structural and shear springs start at their rest lengths and only the bend springs across the fold
     start compressed (2s against √2 s)."""
-    n = case.n
+    n, columns = case.n, case.columns or case.n
     builder = ModelBuilder(gravity=(0.0, 0.0, -9.81) if case.gravity else (0.0, 0.0, 0.0))
     families = {name: SpringMaterial(ke, case.tau * ke) for name, ke in STIFFNESS.items()}
-    builder.add_cloth_grid(nx=n, ny=n, spacing=SPACING, origin=(0.0, 0.0, 1.0), particle_mass=PARTICLE_MASS,
+    builder.add_cloth_grid(nx=columns, ny=n, spacing=SPACING, origin=(0.0, 0.0, 1.0), particle_mass=PARTICLE_MASS,
                            pin=["top-left", "top-right"], **families)
     model = builder.finalize(device, precision=precision)
     if case.release == "folded":  # the rest lengths stay the flat grid's
-        q = model.particle_q.numpy().reshape(n, n, 3)
+        q = model.particle_q.numpy().reshape(n, columns, 3)
         h = n // 2
         for k in range(h):
             q[h - 1 - k, :, 1] = SPACING * (h + k)
