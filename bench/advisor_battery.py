@@ -24,6 +24,7 @@ import warp as wp
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # this checkout's warpspring
 
 from warpspring.analysis import stability_battery as sb  # noqa: E402
+from warpspring.analysis import under_load  # noqa: E402
 from warpspring.analysis.advisor import advise  # noqa: E402
 from warpspring.analysis.stability import DAMPED_MARGIN  # noqa: E402
 
@@ -45,10 +46,19 @@ def main():
     parser.add_argument("--no-exact", action="store_true",
                         help="skip the runs of the exact-limit case (16², kd = 1e-4 s·ke, explicit Euler and midpoint "
                              "at f · P: 0.1 ms steps, ~1e5 per run)")
+    parser.add_argument("--trace", type=float, default=0.0,
+                        help="also run each case at P for this long [s] and report the highest ω_max its states "
+                             "reach (stability_battery.omega_trace, every 1/120 s) against the advisor's")
+    parser.add_argument("--probe-budget", type=float, default=None,
+                        help="the advisor's dry-run wall budget [s] (under_load.PROBE_TIME_BUDGET, 10 s: a CPU "
+                             "needs ~40 s for the 64² cloth's 2.8 s dry run, and past the budget the advisor "
+                             "judges by the Gershgorin bound)")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device)
+    if args.probe_budget is not None:
+        under_load.PROBE_TIME_BUDGET = args.probe_budget
     t0 = time.perf_counter()
     results = []
     chosen = [c for c in sb.cases(args.sizes, args.taus)
@@ -58,6 +68,15 @@ def main():
             results.append(sb.measure(case, integrator, device, seconds=args.seconds, factors=args.factors,
                                       substeps=args.substeps))
             print(sb.table(results[-1:])[2], f"({time.perf_counter() - t0:.0f} s)", flush=True)
+    traces = []
+    for res in results if args.trace > 0.0 else []:  # the run's own peak ω_max against the advisor's
+        p = res.advice.dt_passed
+        if p > 0.0:
+            rows = sb.omega_trace(res.case, res.integrator, p, device, seconds=args.trace)
+            top = int(rows[:, 1].argmax())
+            traces.append(f"| {res.case.label} | {res.integrator} | {res.advice.omega_max:.5g} | {rows[top, 1]:.5g} "
+                          f"at {rows[top, 0]:.3g} s | {rows[top, 1] * p:.4g} |")
+            print(traces[-1], flush=True)
     if not args.no_exact:  # explicit Euler and midpoint on damped cloth: P keeps DAMPED_MARGIN below the limit
         for name in sb.DISSIPATIVE:
             results.append(sb.measure(sb.Case(16, sb.EXACT, "flat", True), name, device, seconds=args.seconds,
@@ -85,6 +104,9 @@ def main():
         f"One-sided in every case: {'yes' if one_sided else 'NO'}; tight (a run within 1/0.9 of P fails) in "
         f"{tight} of {len(results)}.", "",
         *sb.table(results), "",
+        *([f"ω_max along each run at P (its first {args.trace:g} s, every 1/120 s) against the advisor's:", "",
+           "| case | integrator | advisor's ω_max [rad/s] | the run's highest [rad/s] | its ω·P |", "|---|---|---|---|---|",
+           *traces, ""] if traces else []),
         f"Explicit Euler and midpoint on undamped cloth ({where}):", "",
         "| case | integrator | verdict | names symplectic_euler and velocity_verlet |", "|---|---|---|---|",
         *refusals, "",

@@ -86,15 +86,16 @@ def test_one_sided_and_tight_on_small_cloth(device, integrator):
 
 def test_explicit_euler_and_midpoint(device):
     # Undamped: refused at every step, symplectic Euler and Verlet named. Damped (the exact-limit case, kd = 1e-4
-    # s · ke: explicit Euler's limit is τ = 0.1 ms whatever the stiffness): the step at the limit is refused, one
-    # at DAMPED_MARGIN of it passed.
+    # s · ke: explicit Euler's limit is τ = 0.1 ms whatever the stiffness, 0.12 % below it at the swing's stretch,
+    # whose transverse stiffness the dampers do not damp): the step at τ is refused, one at DAMPED_MARGIN of the
+    # limit passed.
     model = sb.battery_cloth(sb.Case(8, 0.0, "flat", True), device)
     for name in sb.DISSIPATIVE:
         advice = advise(model, name, 1.0e-4, horizon=10.0)
         assert advice.dt_passed == 0.0 and not advice.stable
         assert "symplectic_euler or velocity_verlet" in advice.message
     at, below = sb.exact_limit(device)
-    assert at.dt_stable == pytest.approx(sb.EXACT, rel=1e-3)
+    assert sb.EXACT * (1.0 - 2e-3) < at.dt_stable <= sb.EXACT * (1.0 + 1e-4)
     assert not at.stable and below.stable
     assert at.dt_passed == pytest.approx(DAMPED_MARGIN * at.dt_stable)
 
