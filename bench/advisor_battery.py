@@ -4,9 +4,14 @@ within 10 % of the largest that does neither? Cloth, cases and protocol: ``warps
 Writes a markdown table with the command, device, Warp version and date.
 
     python bench/advisor_battery.py --device cpu --sizes 8 16 --no-exact --out bench/results/advisor_battery_cpu.md
-    # 64², undamped (the cases that grow), one GPU command:
-    python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 0 --factors 1.0 1.111 --substeps 20 \
-        --no-exact --out bench/results/advisor_battery_64_h100.md
+    # 64², undamped, with the runs' own ω_max peaks (--trace 3), then lightly damped; one GPU command each:
+    python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 0 --factors 1.0 1.05 1.111 --substeps 20 \
+        --no-exact --trace 3 --out bench/results/advisor_battery_64_h100.md
+    python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 1e-5 --factors 1.0 1.111 --substeps 20 \
+        --no-exact --out bench/results/advisor_battery_64_damped_h100.md
+    # the 64² folded cloth under gravity alone on a CPU (~15 min; its 2.8 s dry run needs ~40 s there):
+    python bench/advisor_battery.py --device cpu --sizes 64 --taus 0 --releases folded --gravity on \
+        --factors 1.0 1.111 --substeps 20 --no-exact --probe-budget 600 --trace 3
 
 The 64² cloth has 24k springs: the host's float64 energy sum (~20 ms a frame on a CPU core) outweighs the GPU's
 steps, so ``--substeps 20`` reads it every 20 steps (≥ 30 readings a second, enough for the 1 s mean).
