@@ -452,7 +452,8 @@ TRIAD_PHASE = 2.0 * math.pi / 3.0
 TRIAD_DECAY = 2.0
 #: The share of the three-wave step the advisor passes, below the measured resonance band. Against the highest ω_max
 #: a run's own states reach (``stability_battery.omega_trace``; the advisor's dry run, which lasts the cloth's first
-#: swing, finds it to 0.1 %), the undamped cloth of bench/advisor_battery.py released folded under gravity grows (its
+#: swing, finds the folded cloth's to 0.3 %; a flat cloth's back-swing whips it 4-5 % higher for an instant, 32² at
+#: 2.6 s, 64² at 4.0 s, and those runs hold at ωh = 1.72 there), the undamped cloth of bench/advisor_battery.py released folded under gravity grows (its
 #: shadow energy's 1 s mean past 1 % of what the release set free) within 10 s from ωh = 1.79 = 1.035 √3 (32²,
 #: velocity Verlet, at ~9 s) and at 1.87 = 1.08 √3 (64², symplectic Euler and Verlet), not within 10 s at 1.83 (64²)
 #: nor at 1.70 = 0.98 √3 (32², but past 1 % at ~15 s), and settles at 1.61 = 0.93 √3. A triad near resonance grows
