@@ -4,9 +4,14 @@ within 10 % of the largest that does neither? Cloth, cases and protocol: ``warps
 Writes a markdown table with the command, device, Warp version and date.
 
     python bench/advisor_battery.py --device cpu --sizes 8 16 --no-exact --out bench/results/advisor_battery_cpu.md
-    # 64², undamped (the cases that grow), one GPU command:
-    python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 0 --factors 1.0 1.111 --substeps 20 \
-        --no-exact --out bench/results/advisor_battery_64_h100.md
+    # 64², undamped, with the runs' own ω_max peaks (--trace 3), then lightly damped; one GPU command each:
+    python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 0 --factors 1.0 1.05 1.111 --substeps 20 \
+        --no-exact --trace 3 --out bench/results/advisor_battery_64_h100.md
+    python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 1e-5 --factors 1.0 1.111 --substeps 20 \
+        --no-exact --out bench/results/advisor_battery_64_damped_h100.md
+    # the 64² folded cloth under gravity alone on a CPU (~15 min; its 2.8 s dry run needs ~40 s there):
+    python bench/advisor_battery.py --device cpu --sizes 64 --taus 0 --releases folded --gravity on \
+        --factors 1.0 1.111 --substeps 20 --no-exact --probe-budget 600 --trace 3
 
 The 64² cloth has 24k springs: the host's float64 energy sum (~20 ms a frame on a CPU core) outweighs the GPU's
 steps, so ``--substeps 20`` reads it every 20 steps (≥ 30 readings a second, enough for the 1 s mean).
@@ -24,6 +29,7 @@ import warp as wp
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # this checkout's warpspring
 
 from warpspring.analysis import stability_battery as sb  # noqa: E402
+from warpspring.analysis import under_load  # noqa: E402
 from warpspring.analysis.advisor import advise  # noqa: E402
 from warpspring.analysis.stability import DAMPED_MARGIN  # noqa: E402
 
@@ -35,6 +41,9 @@ def main():
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--sizes", type=int, nargs="+", default=[8, 16, 32, 64])
     parser.add_argument("--taus", type=float, nargs="+", default=[0.0, sb.LIGHT], help="kd/k ratios [s]")
+    parser.add_argument("--releases", nargs="+", default=list(sb.RELEASES), choices=sb.RELEASES)
+    parser.add_argument("--gravity", nargs="+", default=["on", "off"], choices=["on", "off"],
+                        help="cases with gravity, without, or both (flat without gravity does not move)")
     parser.add_argument("--integrators", nargs="+", default=list(sb.CONSERVATIVE), choices=sb.CONSERVATIVE)
     parser.add_argument("--factors", type=float, nargs="+", default=list(sb.FACTORS))
     parser.add_argument("--seconds", type=float, default=10.0)
@@ -42,17 +51,37 @@ def main():
     parser.add_argument("--no-exact", action="store_true",
                         help="skip the runs of the exact-limit case (16², kd = 1e-4 s·ke, explicit Euler and midpoint "
                              "at f · P: 0.1 ms steps, ~1e5 per run)")
+    parser.add_argument("--trace", type=float, default=0.0,
+                        help="also run each case at P for this long [s] and report the highest ω_max its states "
+                             "reach (stability_battery.omega_trace, every 1/120 s) against the advisor's")
+    parser.add_argument("--probe-budget", type=float, default=None,
+                        help="the advisor's dry-run wall budget [s] (under_load.PROBE_TIME_BUDGET, 10 s: a CPU "
+                             "needs ~40 s for the 64² cloth's 2.8 s dry run, and past the budget the advisor "
+                             "judges by the Gershgorin bound)")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device)
+    if args.probe_budget is not None:
+        under_load.PROBE_TIME_BUDGET = args.probe_budget
     t0 = time.perf_counter()
     results = []
-    for case in sb.cases(args.sizes, args.taus):
+    chosen = [c for c in sb.cases(args.sizes, args.taus)
+              if c.release in args.releases and ("on" if c.gravity else "off") in args.gravity]
+    for case in chosen:
         for integrator in args.integrators:
             results.append(sb.measure(case, integrator, device, seconds=args.seconds, factors=args.factors,
                                       substeps=args.substeps))
             print(sb.table(results[-1:])[2], f"({time.perf_counter() - t0:.0f} s)", flush=True)
+    traces = []
+    for res in results if args.trace > 0.0 else []:  # the run's own peak ω_max against the advisor's
+        p = res.advice.dt_passed
+        if p > 0.0:
+            rows = sb.omega_trace(res.case, res.integrator, p, device, seconds=args.trace)
+            top = int(rows[:, 1].argmax())
+            traces.append(f"| {res.case.label} | {res.integrator} | {res.advice.omega_max:.5g} | {rows[top, 1]:.5g} "
+                          f"at {rows[top, 0]:.3g} s | {rows[top, 1] * p:.4g} |")
+            print(traces[-1], flush=True)
     if not args.no_exact:  # explicit Euler and midpoint on damped cloth: P keeps DAMPED_MARGIN below the limit
         for name in sb.DISSIPATIVE:
             results.append(sb.measure(sb.Case(16, sb.EXACT, "flat", True), name, device, seconds=args.seconds,
@@ -80,6 +109,9 @@ def main():
         f"One-sided in every case: {'yes' if one_sided else 'NO'}; tight (a run within 1/0.9 of P fails) in "
         f"{tight} of {len(results)}.", "",
         *sb.table(results), "",
+        *([f"ω_max along each run at P (its first {args.trace:g} s, every 1/120 s) against the advisor's:", "",
+           "| case | integrator | advisor's ω_max [rad/s] | the run's highest [rad/s] | its ω·P |", "|---|---|---|---|---|",
+           *traces, ""] if traces else []),
         f"Explicit Euler and midpoint on undamped cloth ({where}):", "",
         "| case | integrator | verdict | names symplectic_euler and velocity_verlet |", "|---|---|---|---|",
         *refusals, "",

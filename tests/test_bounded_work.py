@@ -3,6 +3,7 @@
 stops at its step budget with a conservative verdict that says so (``shear = { ke = 1e18 }`` on a tiny cloth
 kept it going for minutes)."""
 
+import math
 import os
 import subprocess
 import sys
@@ -124,16 +125,18 @@ def test_an_absurd_stiffness_gets_a_prompt_conservative_verdict(tmp_path):
 
 
 def test_a_dry_run_cut_short_is_no_less_conservative(monkeypatch):
-    """The small cloth's dry run (one step per re-estimate, at least 60 re-estimates) cut at 70 steps, and
-    skipped at 50 (fewer than the 60 it needs at least): ω_max becomes the Gershgorin bound, which holds at
+    """The small cloth's dry run (one step per re-estimate, at least as many as its first swing takes: 141) cut a
+    few steps past that, and skipped a few steps short of it: ω_max becomes the Gershgorin bound, which holds at
     every state, so the limit is at most the full dry run's, and the message says why."""
     scene = parse_scene(tomllib.loads(CLOTH))
     model = scene.finalize("cpu")
     dt = 1.0 / (scene.fps * scene.substeps)
     full = advise(model, "symplectic_euler", dt, fps=scene.fps)
     assert full.dry_run > 0.0 and not full.dry_run_cut_short
-    assert full.dry_run > 70 * under_load.PROBE_CHECK  # it runs past the budget below
-    for budget, reason in ((70, "it reached its budget of 70 steps"), (50, "it would take 60 steps")):
+    least = math.ceil(max(under_load.PROBE_MIN_TIME, under_load.swing_time(model)) / under_load.PROBE_CHECK)
+    assert full.dry_run > (least + 5) * under_load.PROBE_CHECK  # it runs past the budget below
+    for budget, reason in ((least + 5, f"it reached its budget of {least + 5} steps"),
+                           (least - 5, f"it would take {least} steps")):
         monkeypatch.setattr(under_load, "PROBE_MAX_STEPS", budget)
         cut = advise(model, "symplectic_euler", dt, fps=scene.fps)
         assert cut.dry_run_cut_short.startswith(reason), cut.dry_run_cut_short

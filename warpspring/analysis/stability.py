@@ -450,11 +450,16 @@ TRIAD_PHASE = 2.0 * math.pi / 3.0
 #: same cloth with kd/k = 1e-6 s (a decay of 0.6/s) no longer grows at ωh = 1.84; the undamped one grows at
 #: ~0.4/s in amplitude, so 2/s keeps a factor of 5.
 TRIAD_DECAY = 2.0
-#: The share of the three-wave step the advisor passes. A run's states reach a top mode above the dry run's peak
-#: (the 32² folded cloth with gravity of bench/advisor_battery.py: 1 % above it at 0.86 s, after the dry run had
-#: stopped at 0.25 s), and a triad near resonance grows too, the more the larger the motion: that cloth's energy
-#: grows by 1 % of what its release set free within 10 s at the three-wave step itself (at ~9 s, +13 % by 30 s),
-#: and at 0.95 of it only after 10 s (at ~15 s; at 0.9 of it not within 10 s).
+#: The share of the three-wave step the advisor passes, below the measured resonance band. Against the highest ω_max
+#: a run's own states reach (``stability_battery.omega_trace``; the advisor's dry run, which lasts the cloth's first
+#: swing, finds the folded cloth's to 0.3 %; a flat cloth's back-swing whips it 4-5 % higher for an instant, 32² at
+#: 2.6 s, 64² at 4.0 s, and those runs hold at ωh = 1.72 there), the undamped cloth of bench/advisor_battery.py released folded under gravity grows (its
+#: shadow energy's 1 s mean past 1 % of what the release set free) within 10 s from ωh = 1.79 = 1.035 √3 (32²,
+#: velocity Verlet, at ~9 s) and at 1.87 = 1.08 √3 (64², symplectic Euler and Verlet), not within 10 s at 1.83 (64²)
+#: nor at 1.70 = 0.98 √3 (32², but past 1 % at ~15 s), and settles at 1.61 = 0.93 √3. A triad near resonance grows
+#: too, the faster the larger the motion in its modes, so the band's lower edge is 0.98 √3 over 30 s; 0.95 keeps 3 %
+#: below it. Its width is what the margin costs: where growth within 10 s starts at 1.08 √3, 0.95 is 0.88 of the
+#: largest step that holds (bench/results/advisor_battery_cpu.md).
 TRIAD_MARGIN = 0.95
 #: Explicit Euler and midpoint rely on damping: at their limit the least damped mode is neutral, and the
 #: undamped transverse modes of stretched springs grow at any step; the advisor passes steps up to this share

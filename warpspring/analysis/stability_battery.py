@@ -56,7 +56,9 @@ from ..core.integrators import make_integrator
 from ..core.model import Model
 from ..core.simulator import Simulator
 from .advisor import Advice, advise
-from .omega import free_particles
+from .stability import DAMPED_MARGIN
+from ..kernels.stability import PI_LAMBDA
+from .omega import PowerIteration, _power_iteration, _stiffness_values, free_particles
 from .under_load import static_equilibrium
 
 #: The integrators whose passes are measured for one-sidedness and tightness, and those that rely on damping.
@@ -82,17 +84,19 @@ RELEASES = ("flat", "folded")
 @dataclass(frozen=True)
 class Case:
     """One cloth of the battery: n × n particles, kd/k ratio ``tau`` [s], ``release`` ("flat" or "folded"),
-    ``gravity`` on or off."""
+    ``gravity`` on or off; ``columns``: a strip of that many columns of n particles instead (0: n)."""
 
     n: int
     tau: float
     release: str
     gravity: bool
+    columns: int = 0
 
     @property
     def label(self) -> str:
         damping = "undamped" if self.tau == 0.0 else f"kd = {self.tau:g} s·ke"
-        return f"{self.n}² {self.release}, {damping}, {'gravity' if self.gravity else 'no gravity'}"
+        size = f"{self.columns} × {self.n}" if self.columns else f"{self.n}²"
+        return f"{size} {self.release}, {damping}, {'gravity' if self.gravity else 'no gravity'}"
 
 
 def cases(sizes=(8, 16, 32, 64), taus=(0.0, LIGHT)) -> list[Case]:
@@ -107,14 +111,14 @@ def battery_cloth(case: Case, device, *, precision: str = "float32") -> Model:
     h = n // 2) lie under rows h+k one spacing below them, a U fold whose turn spans one spacing vertically, so
     that the structural and shear springs start at their rest lengths and only the bend springs across the fold
     start compressed (2s against √2 s)."""
-    n = case.n
+    n, columns = case.n, case.columns or case.n
     builder = ModelBuilder(gravity=(0.0, 0.0, -9.81) if case.gravity else (0.0, 0.0, 0.0))
     families = {name: SpringMaterial(ke, case.tau * ke) for name, ke in STIFFNESS.items()}
-    builder.add_cloth_grid(nx=n, ny=n, spacing=SPACING, origin=(0.0, 0.0, 1.0), particle_mass=PARTICLE_MASS,
+    builder.add_cloth_grid(nx=columns, ny=n, spacing=SPACING, origin=(0.0, 0.0, 1.0), particle_mass=PARTICLE_MASS,
                            pin=["top-left", "top-right"], **families)
     model = builder.finalize(device, precision=precision)
     if case.release == "folded":  # the rest lengths stay the flat grid's
-        q = model.particle_q.numpy().reshape(n, n, 3)
+        q = model.particle_q.numpy().reshape(n, columns, 3)
         h = n // 2
         for k in range(h):
             q[h - 1 - k, :, 1] = SPACING * (h + k)
@@ -310,13 +314,36 @@ def measure(case: Case, integrator: str, device, *, seconds: float = 10.0, facto
     return result
 
 
+def omega_trace(case: Case, integrator: str, dt: float, device, *, seconds: float = 3.0,
+                every: float = 1.0 / 120.0, iterations: int = 40) -> np.ndarray:
+    """ω_max [rad/s] of the states a run of ``case`` with ``integrator`` at step ``dt`` [s] passes through: rows of
+    (time [s], ω_max) every ``every`` [s] (rounded to whole steps) for ``seconds``, each by ``iterations`` power
+    iterations warm-started from the last (as the advisor's dry run re-estimates, :func:`~.under_load.transient_peak`),
+    float64, shape [samples, 2]. What the advisor's ω_max must bound: its verdict is on the run's states."""
+    model = battery_cloth(case, device)
+    k = _stiffness_values(model, None)
+    iteration = PowerIteration(model, k, _power_iteration(model, k, None, 1000, 1.0e-4, 0).world_mode)
+    substeps = max(1, round(every / dt))
+    sim = Simulator(model, integrator=make_integrator(integrator, model), fps=1.0 / (substeps * dt),
+                    substeps=substeps, guard=None)
+    rows = []
+    while sim.time < seconds:
+        sim.step_frame()
+        iteration.restart(np.ones(model.world_count, dtype=bool), max_iterations=iterations, tolerance=1.0e-4)
+        for _ in range(iterations):
+            iteration.iterate(sim.state.particle_q)
+        rows.append((sim.time, math.sqrt(max(float(iteration.scalars.numpy()[0, PI_LAMBDA]), 0.0))))
+    return np.asarray(rows, dtype=np.float64)
+
+
 def exact_limit(device, *, n: int = 16) -> tuple[Advice, Advice]:
     """The exact-limit case: a 16² cloth with kd = ``EXACT`` · ke under explicit Euler, whose linear limit is τ
-    itself (0.1 ms at every stiffness): the advisor's verdicts at the limit and at ``DAMPED_MARGIN`` of it."""
+    itself (0.1 ms at every stiffness; 0.1 % below it where the swing's stretch adds transverse stiffness, which the
+    springs' dampers do not damp): the advisor's verdicts at τ and at ``DAMPED_MARGIN`` of its limit."""
     case = Case(n, EXACT, "flat", True)
     model = battery_cloth(case, device)
     at = advise(model, "explicit_euler", EXACT, horizon=10.0)
-    below = advise(model, "explicit_euler", 0.9 * EXACT * 0.999, horizon=10.0)
+    below = advise(model, "explicit_euler", 0.999 * DAMPED_MARGIN * at.dt_stable, horizon=10.0)
     return at, below
 
 

@@ -135,7 +135,9 @@ def loaded_state(model: Model, *, control=None, overshoot: float = OVERSHOOT) ->
 #: warm-started from the last (a world stops at ``PROBE_TOLERANCE``; 20 iterations leave the 20 × 20 cloth's
 #: peak 4e-4 below 200 iterations'), captured once into a graph and replayed. It ends once twice the time of the last rise of some
 #: world's peak (by more than ``PROBE_RISE``) has passed, not before ``PROBE_MIN_TIME`` and not after its
-#: horizon (``PROBE_HORIZON`` by default; ``warpspring run`` passes the run's duration).
+#: horizon (``PROBE_HORIZON`` by default; ``warpspring run`` passes the run's duration). Under gravity it also
+#: lasts the cloth's first swing (:func:`swing_time`): a large cloth's stretch peaks when its fall first passes
+#: the bottom, after the peaks of its first quarter second have stopped rising (bench/results/advisor_battery_cpu.md).
 PROBE_FRACTION = 0.5
 PROBE_CHECK = 1.0 / 240.0
 PROBE_ITERATIONS, PROBE_TOLERANCE = 20, 1.0e-4
@@ -147,6 +149,35 @@ PROBE_MIN_TIME, PROBE_HORIZON = 0.25, 2.0
 #: judges by the Gershgorin bound, which holds at any state the run reaches (conservative). The examples'
 #: dry runs take 180–720 steps.
 PROBE_MAX_STEPS, PROBE_TIME_BUDGET = 50_000, 10.0
+
+
+def swing_time(model: Model) -> float:
+    """How long the dry run must last to see a hanging cloth's first swing through the bottom [s]: half the period
+    of a pendulum as long as the longest hang, π √(ℓ/|g|), where ℓ [m] is the greatest distance from a free
+    particle to the nearest pinned one along springs (their rest lengths; the largest over the worlds); 0 without
+    gravity or pins. A pendulum released at an angle θ₀ first passes the bottom after a quarter of its period,
+    (2/π) K(sin(θ₀/2)) times its small-swing quarter period (1.18 at 90°, a cloth released flat), so half the
+    small-swing period covers releases up to 160°. Measured (velocity Verlet dry runs of 10 s on the undamped cloth of
+    :mod:`.stability_battery`, pinned at its two top corners): the 64² cloth released folded reaches its highest
+    ω_max, 14 % above its first quarter second's, at 1.23 s; its π √(ℓ/|g|) is 2.76 s (ℓ = 7.6 m)."""
+    g = float(np.linalg.norm(np.asarray(model.gravity, dtype=np.float64)))
+    free = free_particles(model)
+    if g <= 0.0 or model.spring_count == 0 or free.all():
+        return 0.0
+    from scipy.sparse import csgraph, csr_matrix  # a graph search on the host (scipy, a core dependency)
+
+    pairs = model.spring_indices.numpy().reshape(-1, 2)
+    rest = model.spring_rest_length.numpy().astype(np.float64)
+    n = model.particle_count
+    graph = csr_matrix((np.maximum(rest, 1e-12), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    longest = 0.0
+    for world in np.unique(free, axis=0):  # worlds that pin the same particles share their distances
+        if world.all():
+            continue
+        distance = csgraph.dijkstra(graph, directed=False, indices=np.flatnonzero(~world), min_only=True)
+        reached = distance[world & np.isfinite(distance)]
+        longest = max(longest, float(reached.max()) if reached.size else 0.0)
+    return math.pi * math.sqrt(longest / g)
 
 
 def in_motion(model: Model, control=None) -> bool:
@@ -211,7 +242,7 @@ def _keeps_plasticity(function):
 @_keeps_plasticity
 def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float = PROBE_HORIZON,
                    start: OmegaMaxEstimate | None = None, start_positions: np.ndarray | None = None,
-                   lowest_ratio: bool = False) -> TransientPeak:
+                   lowest_ratio: bool = False, least: float | None = None) -> TransientPeak:
     """The highest ω_max each world reaches on its way from the initial state: a dry run of the scene as it
     will run (loads, control, pins and their tracks, colliders), by velocity Verlet at a step that is stable
     at any state, with ω_max re-estimated along it (constants ``PROBE_*``).
@@ -231,6 +262,8 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
         lowest_ratio: also keep each world's lowest top-mode damping ratio along the way (explicit Euler's
             limit: the stretch that makes the top mode stiffer across its springs than along them, where their
             dampers act, need not come with the highest ω_max); one host read of the state per re-estimate.
+        least: the shortest dry run [s] (at most ``horizon``); default ``PROBE_MIN_TIME`` or the cloth's first
+            swing (:func:`swing_time`), whichever is longer.
     """
     horizon = checks.positive("horizon", horizon)
     k = _stiffness_values(model, stiffness)
@@ -253,8 +286,9 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
     safe = float(safe[bound > 0.0].min()) if (bound > 0.0).any() else math.inf
     if not math.isfinite(safe) or safe <= 0.0:
         return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), 0.0, 0.0, True, lowest)
+    least = min(horizon, max(PROBE_MIN_TIME, swing_time(model)) if least is None else checks.positive("least", least))
     substeps = PROBE_CHECK / (PROBE_FRACTION * safe)  # a float: ~1e16 for an absurd stiffness
-    needed = math.ceil(min(horizon, PROBE_MIN_TIME) / PROBE_CHECK) * max(1.0, math.ceil(substeps))
+    needed = math.ceil(least / PROBE_CHECK) * max(1.0, math.ceil(substeps))
     if needed > PROBE_MAX_STEPS:  # a dry run that would take too long: none, and the caller bounds ω_max
         return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), 0.0, PROBE_FRACTION * safe, True,
                              lowest, cut_short=f"it would take {needed:.3g} steps of {PROBE_FRACTION * safe:.3g} s, "
@@ -278,7 +312,7 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
         recheck()
     rise, finite, level = 0.0, True, None  # level: the dry run's own running peak (not the start's)
     cut_short, started = "", None
-    while sim.time < horizon and (sim.time < PROBE_MIN_TIME or sim.time < 2.0 * rise):
+    while sim.time < horizon and (sim.time < least or sim.time < 2.0 * rise):
         if sim.frame * substeps >= PROBE_MAX_STEPS:
             cut_short = f"it reached its budget of {PROBE_MAX_STEPS} steps at t = {sim.time:.3g} s"
             break
