@@ -67,7 +67,7 @@ from ..kernels.guards import (
 )
 from ..kernels.families import elements, fill_elements
 from ..kernels.flatten import flat_launch
-from ..kernels.linalg import REDUCE_FILL_BLOCKS, REDUCE_PER_LANE, reduce_lanes, reduce_launch_dim, reduce_stride
+from ..kernels.linalg import CPU_PER_LANE, REDUCE_FILL_BLOCKS, REDUCE_PER_LANE, reduce_lanes, reduce_launch_dim, reduce_stride
 from ..kernels.forces import POWER_DAMPERS, POWER_NONE, POWER_WORK, counts_work, power_sums_funcs
 from ..kernels.springs import DAMPER_MEAN_RATE, DAMPER_TRAPEZOID
 from .families import world_elastic_energy
@@ -149,8 +149,9 @@ class Guard(StepHook):
         self._status_host = _pinned_status(status.shape) if device.is_cuda else self._status
         if self._status_host is not self._status:
             weakref.finalize(self, _PINNED_STATUS[status.shape].append, self._status_host)
-        # The check's passes stride on CUDA (each lane several particles or elements: few partial sums to gather).
-        per_lane, fill = (REDUCE_PER_LANE, REDUCE_FILL_BLOCKS) if self._tiled else (1, 0)
+        # The check's passes stride (each lane several particles or elements: few partial sums to gather): on CUDA
+        # up to REDUCE_PER_LANE a lane, on the CPU one thread per world walks them all (its sums in the same order).
+        per_lane, fill = (REDUCE_PER_LANE, REDUCE_FILL_BLOCKS) if self._tiled else (CPU_PER_LANE, 0)
         self._check_grid = reduce_launch_dim(worlds, model.particle_count, self._lanes, per_lane, fill)
         self._partials = wp.zeros((worlds, self._check_grid[1], PARTIAL_SLOTS), dtype=wp.float64, device=device)
         self._limits = wp.zeros((worlds, GUARD_LIMITS), dtype=wp.float64, device=device)

@@ -581,9 +581,14 @@ def estimate_memory(
     def element_blocks(count: int, per_lane: int = 1, fill: int = 0) -> int:
         return w * (count if not cuda else reduce_launch_dim(w, count, _lanes(count, block_dim), per_lane, fill)[1])
 
-    # The check's passes stride on CUDA (``reduce_launch_dim``: up to REDUCE_PER_LANE particles or elements a lane);
-    # the dissipation's do not.
-    check_blocks = element_blocks(n, REDUCE_PER_LANE, REDUCE_FILL_BLOCKS)
+    def check_blocks_of(count: int) -> int:
+        """The blocks of a check's striding pass (``reduce_launch_dim``: up to REDUCE_PER_LANE items a lane on CUDA,
+        one thread per world on the CPU); the dissipation's passes do not stride."""
+        if not cuda:
+            return w if count else 0
+        return element_blocks(count, REDUCE_PER_LANE, REDUCE_FILL_BLOCKS)
+
+    check_blocks = check_blocks_of(n)
 
     path = guard_path(integrator=integrator, springs=s, gathered=spring_evaluation != "scatter", drag=drag,
                       wind=wind, working=working_families, exact=not (shapes or self_contact_triangles
@@ -591,7 +596,7 @@ def estimate_memory(
                       spring_force_clamp=spring_force_clamp, plastic=plastic > 0,
                       particle_force_clamp=particle_force_clamp)
     others = [checks.count("family_elements", e, minimum=0) for e in family_elements]
-    energy_blocks = sum(element_blocks(e, REDUCE_PER_LANE, REDUCE_FILL_BLOCKS) for e in (s, h, *others))
+    energy_blocks = sum(check_blocks_of(e) for e in (s, h, *others))
     running = 8 * RUNNING_SLOTS * ((blocks + element_blocks(s) + element_blocks(h)) if cuda
                                    else w * (1 + bool(s) + bool(h)))
     dampers = (4 + (f + 8) * s) * w if path.dampers else 0

@@ -63,6 +63,11 @@ REDUCE_PER_LANE = 8
 REDUCE_FILL_BLOCKS = 512
 
 
+#: ``per_lane`` of a striding reducing kernel on the CPU, where a block is one thread: one thread per world walks all
+#: its items (no partial sum per item to write and gather).
+CPU_PER_LANE = 1 << 62
+
+
 def reduce_launch_dim(worlds: int, count: int, lanes: int, per_lane: int = 1, fill: int = 0) -> tuple[int, int, int]:
     """The 3-D launch grid [world, block, lane] of a reducing kernel over ``count`` items per world: one item a lane,
     or with ``per_lane`` > 1 a striding kernel (item ``block * lanes + lane``, then every ``reduce_stride``-th after
