@@ -132,7 +132,8 @@ class Choice:
 
 def choose(study_rows, target_error: float, *, time_budget: float | None = None, problem: str | None = None) -> Choice:
     """The fastest measured fixed-step configuration whose max error meets ``target_error``, within
-    ``time_budget`` if given; when none does, an adaptive integrator with a tolerance.
+    ``time_budget`` if given; when none does, an adaptive integrator with a tolerance. Contact scenes' rows
+    carry their contact options (the pick's label names them); a row with a crossing is never picked.
 
     Args:
         study_rows: :class:`~warpspring.analysis.trade.Measurement` rows (from
@@ -162,7 +163,9 @@ def choose(study_rows, target_error: float, *, time_budget: float | None = None,
     if not rows:
         raise ConfigError("the study has no measurements")
 
-    measured = [r for r in rows if r.status == "ok" and r.error_max is not None and r.wall_per_second is not None]
+    # A contact run whose surface crossed itself is wrong however small its distance to the reference.
+    measured = [r for r in rows if r.status == "ok" and r.error_max is not None and r.wall_per_second is not None
+                and not r.crossings]
     fixed = [r for r in measured if r.tolerance is None]
     adaptive = sorted((r for r in measured if r.tolerance is not None), key=lambda r: r.wall_per_second)
     accurate = sorted((r for r in fixed if r.error_max <= target_error), key=lambda r: r.wall_per_second)
