@@ -104,6 +104,7 @@ def test_report_and_choose(study, tmp_path, capsys):
                  "tablecloth"]) == 0
     out = capsys.readouterr().out
     assert best.label in out and "2 slots" in out
+    assert f"trajectory error over the first {best.horizon:g} s ({best.error_horizon:.3g} m)" in out
     floor = min(r.error_max for r in rows if r.problem == "drape" and r.status == "ok")
     assert main(["choose", "--error", str(floor / 2), "--study", str(tmp_path / "trade.csv"), "--problem",
                  "drape"]) == EXIT_NO_CHOICE

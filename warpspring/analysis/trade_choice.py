@@ -181,6 +181,7 @@ def choose(study_rows, target_error: float, *, time_budget: float | None = None,
             f"{pick.label} is the fastest measured configuration with {target}{within}: error "
             f"{pick.error_max:.3g} m at {_rate(pick.wall_per_second)} on {pick.device}. "
             + _compare(pick, runner_up, f"No other integrator meets the target{within}.")
+            + _contact(pick)
         )
         return Choice(pick.integrator, {}, pick.dt, pick.precision, pick, runner_up, text)
 
@@ -246,6 +247,19 @@ def _compare(pick: Measurement, runner_up: Measurement | None, otherwise: str) -
     return (
         f"Runner-up: {runner_up.label}, error {runner_up.error_max:.3g} m at {_rate(runner_up.wall_per_second)} "
         f"({runner_up.wall_per_second / pick.wall_per_second:.3g}× the cost)."
+    )
+
+
+def _contact(pick: Measurement) -> str:
+    """For a contact scene's row: what its error is made of (:mod:`warpspring.analysis.trade_contact`)."""
+    if pick.option is None or pick.error_horizon is None:
+        return ""
+    crossings = "" if pick.crossings is None else f"; {pick.crossings} crossings"
+    return (
+        f" Its error is the larger of the trajectory error over the first {pick.horizon:g} s "
+        f"({pick.error_horizon:.3g} m) and the final shape's Hausdorff distance ({pick.hausdorff:.3g} m) to a "
+        f"float64 fine-step reference; its quantity of interest ends {pick.quantity_error:.3g} from the "
+        f"reference's{crossings}."
     )
 
 
