@@ -75,11 +75,17 @@ def plot_pareto(study: Study, path: str) -> str:
     from matplotlib.lines import Line2D
 
     plt = pyplot("the trade plots")
+    from matplotlib.ticker import NullFormatter
+
     problems = contact_problems(study)
-    fig, axes = plt.subplots(1, len(problems), figsize=(5.5 * len(problems), 5.6), squeeze=False)
-    for ax, problem in zip(axes[0], problems):
+    columns = min(len(problems), 3)
+    lines = -(-len(problems) // columns)
+    fig, axes = plt.subplots(lines, columns, figsize=(5.8 * columns, 4.6 * lines + 1.0), squeeze=False)
+    for ax in axes.flat[len(problems):]:
+        ax.set_visible(False)
+    for ax, problem in zip(axes.flat, problems):
         rows = [r for r in study.rows if r.problem == problem.name and r.status == "ok" and r.wall_per_second]
-        markers = {o.label: _MARKERS[k % len(_MARKERS)] for k, o in enumerate(problem.scene.options)}
+        markers = {o.label: _MARKERS[k % len(_MARKERS)] for k, o in enumerate(problem.measured_options)}
         front = pareto_front(rows)
         if front:
             ax.step([r.wall_per_second for r in front], [r.error_max for r in front], where="post", color="0.6",
@@ -92,12 +98,14 @@ def plot_pareto(study: Study, path: str) -> str:
         ax.axhline(max(floor["error_horizon"], floor["hausdorff"]), color="k", ls=":", lw=1)
         ax.set_xscale("log")
         ax.set_yscale("log")
+        ax.xaxis.set_minor_formatter(NullFormatter())  # minor labels collide over short ranges
+        ax.yaxis.set_minor_formatter(NullFormatter())
         ax.set_title(problem.name)
         ax.set_xlabel("wall time per simulated second [s/s]")
         ax.set_ylabel("error: max(horizon error, Hausdorff at rest) [m]")
         ax.grid(True, which="both", alpha=0.25)
         handles = [Line2D([], [], color="0.3", marker=m, ls="none", label=label) for label, m in markers.items()]
-        ax.legend(handles=handles, fontsize=7, loc="upper right", title="contact option", title_fontsize=7)
+        ax.legend(handles=handles, fontsize=7, loc="best", title="contact option", title_fontsize=7)
     names = dict.fromkeys(r.integrator for r in study.rows if any(r.problem == p.name for p in problems))
     handles = [Line2D([], [], color=_style(n), marker="o", ls="none", label=n) for n in names] + [
         Line2D([], [], color="0.3", marker="o", ls="none", label="float64 (filled)"),
@@ -105,9 +113,9 @@ def plot_pareto(study: Study, path: str) -> str:
         Line2D([], [], color="0.6", lw=1.5, label="Pareto front"),
         Line2D([], [], color="k", ls=":", lw=1, label="reference's own difference (h vs h/2)"),
     ]
-    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 6), frameon=False)
+    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 5), frameon=False)
     fig.suptitle(f"Contact scenes: error against cost ({study.device}: {study.device_name}, Warp {study.warp_version})")
-    fig.tight_layout(rect=(0, 0.1, 1, 0.95))
+    fig.tight_layout(rect=(0, 0.9 / (4.6 * lines + 1.0) + 0.04, 1, 0.95))
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
