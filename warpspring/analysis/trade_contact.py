@@ -340,13 +340,13 @@ def measure_run(problem: ContactProblem, device, precision: str, option: Option,
 FULL_PROBLEMS = {
     "drape": ContactProblem("drape", size=16, duration=2.0, horizon=0.5, substeps=(10, 20, 40, 80),
                             reference_substeps=160),
-    "stack": ContactProblem("stack", size=10, duration=1.5, horizon=0.5, substeps=(10, 20, 40),
+    "stack": ContactProblem("stack", size=10, duration=1.0, horizon=0.4, substeps=(10, 20, 40),
                             reference_substeps=80),
     "tablecloth": ContactProblem("tablecloth", size=16, duration=3.0, horizon=1.5, substeps=(10, 20, 40, 80),
                                  reference_substeps=160),
-    "softball": ContactProblem("softball", size=0, duration=2.0, horizon=0.4, substeps=(5, 10, 20, 40),
+    "softball": ContactProblem("softball", size=0, duration=1.5, horizon=0.4, substeps=(5, 10, 20, 40),
                                reference_substeps=80),
-    "softball-neohookean": ContactProblem("softball-neohookean", size=0, duration=2.0, horizon=0.4,
+    "softball-neohookean": ContactProblem("softball-neohookean", size=0, duration=1.5, horizon=0.4,
                                           substeps=(10, 20, 40), reference_substeps=80),
 }
 

@@ -32,6 +32,9 @@ def section(study: Study, problem: ContactProblem) -> list[str]:
         "",
         problem.describe() + ".",
         "",
+        f"Measured on {study.device} ({study.device_name}), Warp {study.warp_version}, {study.date}"
+        + (f": `{study.command}`." if study.command else "."),
+        "",
         f"Reference: {REFERENCE_INTEGRATOR}, float64, {option}, at {steps} substeps per frame (dt = "
         + ", ".join(f"{1e3 / (FPS * n):.4g}" for n in ref.substeps)
         + f" ms); the finest is the reference. Its quantity of interest at the end: {ref.quantity:.5g}"
