@@ -11,6 +11,17 @@ from .trade_choice import pareto_front
 from .trade_contact import FPS, REFERENCE_INTEGRATOR, ContactProblem
 
 _MARKERS = "osD^vP*Xph"
+#: How the contact scenes are measured: the report's paragraph (docs/trade.md says why).
+METHOD = (
+    "Contact scenes (warpspring.analysis.trade_contact; docs/trade.md). Cost: wall time per simulated second of a "
+    "Simulator run (its frame graphs, default guards on), the first frame (compilation, capture) excluded, the "
+    "device synchronised at both ends; runs projected past the plan's limit are skipped with the finer ones of "
+    "that integrator. Error [m]: the larger of the trajectory error over the horizon (the largest distance of a "
+    "particle from its place in the reference, over the frames up to the horizon) and the symmetric Hausdorff "
+    "distance of the particles at the end to the reference's. Δ quantity: |quantity of interest at the end − the "
+    "reference's|. Crossings: frame ends at which triangles of the self-colliding surface intersect "
+    "(IPC Toolkit; — where not audited). Status stopped: the run-time guard stopped the run."
+)
 _COLUMNS = ("integrator", "precision", "option", "substeps", "dt [ms]", "tolerance", "steps/s", "wall [ms/s]",
             "error [m]", "horizon error [m]", "Hausdorff [m]", "quantity", "Δ quantity", "max strain", "crossings",
             "status")
@@ -39,8 +50,7 @@ def section(study: Study, problem: ContactProblem) -> list[str]:
         + ", ".join(f"{1e3 / (FPS * n):.4g}" for n in ref.substeps)
         + f" ms); the finest is the reference. Its quantity of interest at the end: {ref.quantity:.5g}"
         + ("" if ref.max_strain is None else f"; max spring strain {ref.max_strain:.3f}")
-        + f". The reference runs took {ref.wall:.1f} s. Error [m] = max(horizon error, Hausdorff): see "
-        "docs/trade.md.",
+        + f". The reference runs took {ref.wall:.1f} s.",
         "",
         "Convergence of the reference: each run against the run at half its step (a first-order scheme: the "
         "finest run's own error is about the last row's).",

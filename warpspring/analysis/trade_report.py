@@ -73,6 +73,22 @@ def _parse(name: str, text: str):
     return int(text) if name in _INT_FIELDS else float(text)
 
 
+def _smooth_method(plan) -> str:
+    """How the closed forms and the hanging cloth are measured: the report's paragraph."""
+    return (
+        f"Closed forms and the hanging cloth. Cost: wall time per simulated second, device synchronised, "
+        f"compilation excluded: the median of {plan.repeats} batches of graph replays of at least "
+        f"{plan.min_batch * 1e3:g} ms each (integrators that cannot be captured: their whole run). Runs projected "
+        f"to take longer than {plan.run_limit:g} s are skipped. Unstable runs are reported as such: non-finite, or "
+        f"blown up (an error over {BLOWUP_FACTOR:g}× the problem's length scale, or an energy drift over "
+        f"{ENERGY_BLOWUP:g}: these damped systems cannot gain energy). Adaptive integrators are sampled at their "
+        "outputs (their dt). Convergence orders are least-squares slopes of log error against log step over the "
+        f"float64 runs in the asymptotic range (fixed steps: ω_max·h ≤ {ASYMPTOTIC_OMEGA_H:g}; error below "
+        f"{ASYMPTOTIC_CEILING:g}× the length scale and above {NOISE_MARGIN:g}× the rounding and reference "
+        "noise); adaptive integrators against their mean accepted step."
+    )
+
+
 def to_markdown(study: Study) -> str:
     """The study as Markdown: provenance, method, and per problem its reference, fitted orders and a table."""
     plan = study.plan
@@ -82,18 +98,11 @@ def to_markdown(study: Study) -> str:
         *([f"Command: `{study.command}`", ""] if study.command else []),
         f"Device: {study.device} ({study.device_name}); Warp {study.warp_version}; {study.date}; the study took "
         f"{study.elapsed:.0f} s.",
-        "",
-        f"Cost: wall time per simulated second, device synchronised, compilation excluded: the median of "
-        f"{plan.repeats} batches of graph replays of at least {plan.min_batch * 1e3:g} ms each (integrators that "
-        f"cannot be captured: their whole run). Runs projected to take longer than {plan.run_limit:g} s are "
-        f"skipped. Unstable runs are reported as such: non-finite, or blown up (an error over {BLOWUP_FACTOR:g}× "
-        f"the problem's length scale, or an energy drift over {ENERGY_BLOWUP:g}: these damped systems cannot "
-        "gain energy). Adaptive integrators are sampled at their outputs (their dt). Convergence orders are "
-        "least-squares slopes of log error against log step over the float64 runs in the asymptotic range "
-        f"(fixed steps: ω_max·h ≤ {ASYMPTOTIC_OMEGA_H:g}; error below "
-        f"{ASYMPTOTIC_CEILING:g}× the length scale and above {NOISE_MARGIN:g}× the rounding and reference "
-        "noise); adaptive integrators against their mean accepted step.",
     ]
+    if trade_contact_report.contact_problems(study):
+        lines += ["", trade_contact_report.METHOD]
+    if _smooth_problems(study):
+        lines += ["", _smooth_method(plan)]
     for problem in plan.problems:
         if getattr(problem, "contact", False):
             lines += trade_contact_report.section(study, problem)
