@@ -199,6 +199,8 @@ def choose(study_rows, target_error: float, *, time_budget: float | None = None,
         options = {} if pick.tolerance is None else {"tolerance": pick.tolerance}
         return Choice(pick.integrator, options, pick.dt, pick.precision, pick, runner_up, text)
 
+    if fixed and adaptive_accurate == [] and any(r.option is not None for r in fixed):
+        return _contact_fallback(fixed, target_error, target)
     # No fixed-step configuration reaches the error: an adaptive integrator, measured if possible.
     if fixed:
         closest = min(fixed, key=lambda r: r.error_max)
@@ -248,6 +250,23 @@ def _compare(pick: Measurement, runner_up: Measurement | None, otherwise: str) -
         f"Runner-up: {runner_up.label}, error {runner_up.error_max:.3g} m at {_rate(runner_up.wall_per_second)} "
         f"({runner_up.wall_per_second / pick.wall_per_second:.3g}× the cost)."
     )
+
+
+def _contact_fallback(fixed: list[Measurement], target_error: float, target: str) -> Choice:
+    """Contact scenes where nothing measured meets the target: the most accurate fixed-step configuration at a
+    step scaled down by first-order convergence (what the references' convergence shows for contact runs; an
+    adaptive integrator's tolerance does not bound the error its contact response makes)."""
+    closest = min(fixed, key=lambda r: r.error_max)
+    factor = closest.error_max / target_error
+    dt = closest.dt / factor
+    text = (
+        f"No measured configuration reaches {target}: the most accurate, {closest.label}, has "
+        f"{closest.error_max:.3g} m at {_rate(closest.wall_per_second)}. Contact runs converge at first order in "
+        f"the step (docs/trade.md), so the same configuration at about {factor:.2g}× its steps (dt ≈ "
+        f"{dt * 1e3:.3g} ms) should reach it, at about {factor:.2g}× its cost (untested: check it with "
+        "'warpspring trade')."
+    )
+    return Choice(closest.integrator, {}, dt, closest.precision, None, closest, text)
 
 
 def _contact(pick: Measurement) -> str:

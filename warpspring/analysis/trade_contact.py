@@ -62,6 +62,10 @@ CONTACT_INTEGRATORS = ("symplectic_euler", "velocity_verlet", "midpoint", "rk4",
 #: The references' integrator. The contact response is a first-order projection after every step whatever the
 #: integrator, so a higher-order one buys no order at contact: the references use the cheapest step, refined.
 REFERENCE_INTEGRATOR = "symplectic_euler"
+#: A multi-stage integrator run at the references' two finest steps, against the reference: whether its
+#: difference shrinks with the step, i.e. whether it approaches the same motion (its stages do not see the
+#: contacts, which the response handles after the step).
+CROSS_CHECK = "rk4"
 
 
 @dataclass(frozen=True)
@@ -74,6 +78,8 @@ class ContactReference:
         quantity: the scene's quantity of interest at the end of the finest run.
         convergence: per refinement, the measures of the run at h against the run at h/2 (:func:`measures`),
             and its wall time [s]: a list of dicts, coarse to fine.
+        cross_check: :data:`CROSS_CHECK` (float64, reference option) at the two finest reference steps against
+            the reference (full plans): the same list of dicts with ``integrator``; empty in quick plans.
         max_strain: the finest run's largest spring strain at the end, or ``None`` without springs.
         wall: wall time of all the reference runs [s].
     """
@@ -83,6 +89,7 @@ class ContactReference:
     frames: np.ndarray
     quantity: float
     convergence: list = field(default_factory=list)
+    cross_check: list = field(default_factory=list)
     max_strain: float | None = None
     wall: float = 0.0
 
@@ -296,9 +303,20 @@ def compute_reference(problem: ContactProblem, device) -> ContactReference:
         row = measures(problem, model, coarse, fine, fine_quantity)
         row.update(substeps=counts[k], wall=wall, quantity_fine=fine_quantity)
         convergence.append(row)
+    cross_check = []
+    if problem.refinements >= 2 and CROSS_CHECK in INTEGRATORS:
+        for substeps in counts[-2:]:
+            begun = time.perf_counter()
+            result = run(problem, model, CROSS_CHECK, substeps, None)
+            if result.error is not None or not np.isfinite(result.frames).all():
+                cross_check.append(dict(integrator=CROSS_CHECK, substeps=substeps, error=result.error or "non-finite"))
+                continue
+            row = measures(problem, model, result.frames, finest, end_quantity)
+            row.update(integrator=CROSS_CHECK, substeps=substeps, wall=time.perf_counter() - begun)
+            cross_check.append(row)
     return ContactReference(integrator=name, substeps=tuple(counts), frames=finest, quantity=end_quantity,
-                            convergence=convergence, max_strain=_max_strain(model, finest[-1]),
-                            wall=time.perf_counter() - start)
+                            convergence=convergence, cross_check=cross_check,
+                            max_strain=_max_strain(model, finest[-1]), wall=time.perf_counter() - start)
 
 
 def _row(problem, name, precision, device, substeps, tolerance, option, **fields) -> Measurement:

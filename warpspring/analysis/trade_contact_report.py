@@ -64,6 +64,22 @@ def section(study: Study, problem: ContactProblem) -> list[str]:
             f"| {c['substeps']} | {2 * c['substeps']} | {c['error_horizon']:.3g} | {c['error_rms']:.3g} | "
             f"{c['hausdorff']:.3g} | {c['quantity']:.5g} | {c['quantity_error']:.3g} | {c['wall']:.2f} |"
         )
+    if ref.cross_check:
+        lines += [
+            "",
+            f"Cross-check: {ref.cross_check[0]['integrator']} (float64, {option}) at the finest reference steps "
+            "against the reference: whether a multi-stage integrator, whose stages do not see the contacts (the "
+            "response runs after the step), approaches the same motion as its step shrinks.",
+            "",
+            "| integrator | substeps | horizon error [m] | Hausdorff at the end [m] | Δ quantity | wall [s] |",
+            "|---|---|---|---|---|---|",
+        ]
+        for c in ref.cross_check:
+            if "error" in c:
+                lines.append(f"| {c['integrator']} | {c['substeps']} | failed: {c['error']} | | | |")
+            else:
+                lines.append(f"| {c['integrator']} | {c['substeps']} | {c['error_horizon']:.3g} | {c['hausdorff']:.3g} "
+                             f"| {c['quantity_error']:.3g} | {c['wall']:.2f} |")
     lines += ["", "| " + " | ".join(_COLUMNS) + " |", "|" + "---|" * len(_COLUMNS)]
     for r in (r for r in study.rows if r.problem == problem.name):
         cells = [
