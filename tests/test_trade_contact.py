@@ -125,6 +125,15 @@ def test_choose_never_picks_a_crossing(tmp_path):
     assert read_csv(path) == [crossed, clean]
 
 
+def test_choose_scales_the_step_where_nothing_meets_a_contact_target():
+    """Contact runs converge at first order (the references show it): 8 mm at dt = 1 ms asks 8× the steps for 1 mm."""
+    rows = [_contact_row(0.3, 8e-3), dataclasses.replace(_contact_row(0.1, 2e-2), dt=2e-3)]
+    choice = choose(rows, 1e-3)
+    assert choice.row is None and choice.runner_up is rows[0]
+    assert choice.dt == pytest.approx(1e-3 / 8) and choice.integrator == "symplectic_euler"
+    assert "first order" in choice.explanation and "about 8× its steps" in choice.explanation
+
+
 def test_an_older_study_still_reads():
     """A study written before the contact scenes (no contact columns) reads, its rows without contact fields."""
     rows = read_csv(str(pathlib.Path(__file__).parents[1] / "bench" / "results" / "trade_cpu.csv"))
