@@ -11,7 +11,11 @@ pareto_contact.png).
     python bench/trade.py --device cpu --quick          # about a minute
     python bench/trade.py --device cuda:0 --out trade   # the full study
     python bench/trade.py --device cpu --problems drape stack tablecloth softball softball-neohookean \\
-        --out bench/results/trade_contact_cpu            # the contact scenes
+        --out bench/results/trade_contact_cpu            # the contact scenes: ~9 minutes on one CPU core
+    python bench/trade.py --device cuda:0 --problems drape tablecloth --out bench/results/trade_contact_cuda_cloth
+    python bench/trade.py --device cuda:0 --problems stack --out bench/results/trade_contact_cuda_stack
+    python bench/trade.py --device cuda:0 --problems softball softball-neohookean \\
+        --out bench/results/trade_contact_cuda_balls     # the contact scenes on a GPU, in three parts
 """
 
 import pathlib
