@@ -4,14 +4,26 @@ Every registered integrator × step × precision on the seed spring (45 kg, 75 N
 damped spring and the ANCHORS hanging cloth: wall time per simulated second (graph replays, device
 synchronised, compilation excluded, median of repeats) and error against the closed form or a
 float64 RK4 reference. Writes trade.csv, trade.md, pareto.png, convergence.png and seed.png to --out.
+``--problems`` picks problems, the contact scenes among them (``warpspring.analysis.trade_contact``: every
+integrator that applies × substeps × precision × contact options against float64 fine-step references;
+pareto_contact.png).
 
     python bench/trade.py --device cpu --quick          # about a minute
     python bench/trade.py --device cuda:0 --out trade   # the full study
+    python bench/trade.py --device cpu --problems drape stack tablecloth softball softball-neohookean \\
+        --out bench/results/trade_contact_cpu            # the contact scenes: ~9 minutes on one CPU core
+    python bench/trade.py --device cuda:0 --problems drape tablecloth --out bench/results/trade_contact_cuda_cloth
+    python bench/trade.py --device cuda:0 --problems stack --out bench/results/trade_contact_cuda_stack
+    python bench/trade.py --device cuda:0 --problems softball softball-neohookean \\
+        --out bench/results/trade_contact_cuda_balls     # the contact scenes on a GPU, in three parts
 """
 
+import pathlib
 import sys
 
-from warpspring.app.cli import main
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # this checkout's warpspring
+
+from warpspring.app.cli import main  # noqa: E402
 
 if __name__ == "__main__":
     sys.exit(main(["trade", *sys.argv[1:]]))

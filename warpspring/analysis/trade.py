@@ -51,7 +51,7 @@ REFERENCE_REFINEMENT = 16
 #: Most steps captured in one graph (capturing costs as much Python time per step as running uncaptured).
 MAX_CHUNK = 64
 #: Status of a measured configuration (see :class:`Measurement`).
-STATUSES = ("ok", "non-finite", "blown up", "failed", "skipped")
+STATUSES = ("ok", "non-finite", "blown up", "failed", "skipped", "stopped")
 
 
 # -- plans --------------------------------------------------------------------------------------------------
@@ -140,7 +140,8 @@ class Measurement:
         wall_per_second: wall time per simulated second [s/s]; ``None`` when not measured.
         status: "ok"; "non-finite" or "blown up" (an error over ``BLOWUP_FACTOR`` × the problem's length
             scale, or an energy drift over ``ENERGY_BLOWUP``): unstable; "failed": the integrator gave up
-            (SimulationError); "skipped": the run would take longer than the plan's ``run_limit``.
+            (SimulationError); "skipped": the run would take longer than the plan's ``run_limit``; "stopped":
+            the Simulator's run-time guard stopped a contact run.
         error_max: springs: max over the steps of |x − x_exact| [m]; cloth: max over the particles of
             |x − x_ref| at the end [m].
         error_rms: the RMS of the same errors (over steps, or over particles) [m].
@@ -149,6 +150,15 @@ class Measurement:
             is given [-]: springs: E(0) − E(rest); cloth: the gravitational energy the reference
             released. > 0: energy gained, < 0: lost (numerical damping).
         max_strain: cloth: max over the springs of (|d| − L) / L at the end [-]; springs: ``None``.
+        option: contact scenes: the contact options' label (:mod:`warpspring.analysis.trade_scenes`); else ``None``.
+        horizon: contact scenes: the trajectory error's horizon [s].
+        error_horizon: contact scenes: max over the frames up to the horizon and the particles of |x − x_ref| [m].
+        hausdorff: contact scenes: symmetric Hausdorff distance of the particles at the end to the reference's [m].
+        quantity: contact scenes: the quantity of interest at the end (drape coefficient, sag [m], volume ratio).
+        quantity_error: contact scenes: |quantity − the reference's| (the quantity's unit).
+        crossings: self-colliding scenes: frame ends at which triangles of the surface intersect; else ``None``.
+        (Contact scenes: ``error_max`` is max(error_horizon, hausdorff), ``error_rms`` the RMS of the distances
+        over the horizon, ``error_end`` the max distance at the end: :mod:`warpspring.analysis.trade_contact`.)
     """
 
     problem: str
@@ -167,6 +177,13 @@ class Measurement:
     error_end: float | None = None
     energy_drift: float | None = None
     max_strain: float | None = None
+    option: str | None = None
+    horizon: float | None = None
+    error_horizon: float | None = None
+    hausdorff: float | None = None
+    quantity: float | None = None
+    quantity_error: float | None = None
+    crossings: int | None = None
 
     @property
     def setting(self) -> str:
@@ -175,8 +192,10 @@ class Measurement:
 
     @property
     def label(self) -> str:
-        """Short configuration name: "rk4, dt = 1.042 ms, float32" or "dopri5, tolerance 1e-06, float64"."""
-        return f"{self.integrator}, {self.setting}, {self.precision}"
+        """Short configuration name: "rk4, dt = 1.042 ms, float32", "dopri5, tolerance 1e-06, float64", or with
+        contact options "symplectic_euler, dt = 0.8333 ms, float32, triangle contacts"."""
+        label = f"{self.integrator}, {self.setting}, {self.precision}"
+        return label if self.option is None else f"{label}, {self.option}"
 
 
 @dataclass
@@ -188,10 +207,10 @@ class Study:
         rows: one measurement per configuration.
         device: Warp device alias.
         device_name: the device's name (GPU model, or CPU model and core count).
-        references: the cloth references by problem name.
+        references: the cloth's and the contact scenes' references by problem name.
         trajectories: the seed plot's runs: label → (t [s], x [m], v [m/s]), each of shape [samples].
         elapsed: wall time of the whole study [s].
-        warp_version, date: provenance for the report.
+        warp_version, date, command: provenance for the report (the command line, when the caller sets it).
     """
 
     plan: StudyPlan
@@ -203,6 +222,7 @@ class Study:
     elapsed: float = 0.0
     warp_version: str = wp.__version__
     date: str = field(default_factory=lambda: datetime.date.today().isoformat())
+    command: str = ""
 
     def problem(self, name: str):
         """The plan's problem called ``name``."""
@@ -412,16 +432,24 @@ def run_study(device=None, *, plan: StudyPlan = FULL, integrators=None, progress
     start = time.perf_counter()
     study = Study(plan=plan, rows=[], device=device.alias, device_name=_device_name(device))
     if engine is not None:
+        if any(_is_contact(p) for p in plan.problems):
+            raise ConfigError("a sweep engine runs the closed forms and the hanging cloth only: measure the contact "
+                              "problems without --ray")
         _run_on(engine, study, device.alias, names, progress)
         study.elapsed = time.perf_counter() - start
         return study
     total = sum(
-        len(_configurations(problem, INTEGRATORS[name], plan)) * len(plan.precisions)
+        problem.count(names, plan) * len(plan.precisions) if _is_contact(problem) else
+        sum(len(_configurations(problem, INTEGRATORS[name], plan)) * len(plan.precisions) for name in names)
         for problem in plan.problems
-        for name in names
     )
     with tqdm(total=total, unit="run", disable=not progress, dynamic_ncols=True, leave=False) as bar:
         for problem in plan.problems:
+            if _is_contact(problem):  # a contact scene measures itself (warpspring.analysis.trade_contact)
+                bar.set_description(f"{problem.name}: reference and runs")
+                rows, study.references[problem.name] = problem.measure(device, plan, names, done=lambda: bar.update(1))
+                study.rows += rows
+                continue
             reference = None
             if isinstance(problem, ClothProblem):
                 bar.set_description(f"{problem.name}: reference")
@@ -436,6 +464,11 @@ def run_study(device=None, *, plan: StudyPlan = FULL, integrators=None, progress
                     study.trajectories.update(trajectories)
     study.elapsed = time.perf_counter() - start
     return study
+
+
+def _is_contact(problem) -> bool:
+    """Whether ``problem`` is a contact scene (:class:`~warpspring.analysis.trade_contact.ContactProblem`)."""
+    return getattr(problem, "contact", False)
 
 
 def _measure_integrator(problem, model, control, name, plan, reference, *, done=None) -> tuple[list, dict]:

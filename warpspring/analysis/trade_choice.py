@@ -132,7 +132,8 @@ class Choice:
 
 def choose(study_rows, target_error: float, *, time_budget: float | None = None, problem: str | None = None) -> Choice:
     """The fastest measured fixed-step configuration whose max error meets ``target_error``, within
-    ``time_budget`` if given; when none does, an adaptive integrator with a tolerance.
+    ``time_budget`` if given; when none does, an adaptive integrator with a tolerance. Contact scenes' rows
+    carry their contact options (the pick's label names them); a row with a crossing is never picked.
 
     Args:
         study_rows: :class:`~warpspring.analysis.trade.Measurement` rows (from
@@ -162,7 +163,9 @@ def choose(study_rows, target_error: float, *, time_budget: float | None = None,
     if not rows:
         raise ConfigError("the study has no measurements")
 
-    measured = [r for r in rows if r.status == "ok" and r.error_max is not None and r.wall_per_second is not None]
+    # A contact run whose surface crossed itself is wrong however small its distance to the reference.
+    measured = [r for r in rows if r.status == "ok" and r.error_max is not None and r.wall_per_second is not None
+                and not r.crossings]
     fixed = [r for r in measured if r.tolerance is None]
     adaptive = sorted((r for r in measured if r.tolerance is not None), key=lambda r: r.wall_per_second)
     accurate = sorted((r for r in fixed if r.error_max <= target_error), key=lambda r: r.wall_per_second)
@@ -178,6 +181,7 @@ def choose(study_rows, target_error: float, *, time_budget: float | None = None,
             f"{pick.label} is the fastest measured configuration with {target}{within}: error "
             f"{pick.error_max:.3g} m at {_rate(pick.wall_per_second)} on {pick.device}. "
             + _compare(pick, runner_up, f"No other integrator meets the target{within}.")
+            + _contact(pick)
         )
         return Choice(pick.integrator, {}, pick.dt, pick.precision, pick, runner_up, text)
 
@@ -195,6 +199,8 @@ def choose(study_rows, target_error: float, *, time_budget: float | None = None,
         options = {} if pick.tolerance is None else {"tolerance": pick.tolerance}
         return Choice(pick.integrator, options, pick.dt, pick.precision, pick, runner_up, text)
 
+    if fixed and adaptive_accurate == [] and any(r.option is not None for r in fixed):
+        return _contact_fallback(fixed, target_error, target)
     # No fixed-step configuration reaches the error: an adaptive integrator, measured if possible.
     if fixed:
         closest = min(fixed, key=lambda r: r.error_max)
@@ -243,6 +249,36 @@ def _compare(pick: Measurement, runner_up: Measurement | None, otherwise: str) -
     return (
         f"Runner-up: {runner_up.label}, error {runner_up.error_max:.3g} m at {_rate(runner_up.wall_per_second)} "
         f"({runner_up.wall_per_second / pick.wall_per_second:.3g}× the cost)."
+    )
+
+
+def _contact_fallback(fixed: list[Measurement], target_error: float, target: str) -> Choice:
+    """Contact scenes where nothing measured meets the target: the most accurate fixed-step configuration at a
+    step scaled down by first-order convergence (what the references' convergence shows for contact runs; an
+    adaptive integrator's tolerance does not bound the error its contact response makes)."""
+    closest = min(fixed, key=lambda r: r.error_max)
+    factor = closest.error_max / target_error
+    dt = closest.dt / factor
+    text = (
+        f"No measured configuration reaches {target}: the most accurate, {closest.label}, has "
+        f"{closest.error_max:.3g} m at {_rate(closest.wall_per_second)}. Contact runs converge at first order in "
+        f"the step (docs/trade.md), so the same configuration at about {factor:.2g}× its steps (dt ≈ "
+        f"{dt * 1e3:.3g} ms) should reach it, at about {factor:.2g}× its cost (untested: check it with "
+        "'warpspring trade')."
+    )
+    return Choice(closest.integrator, {}, dt, closest.precision, None, closest, text)
+
+
+def _contact(pick: Measurement) -> str:
+    """For a contact scene's row: what its error is made of (:mod:`warpspring.analysis.trade_contact`)."""
+    if pick.option is None or pick.error_horizon is None:
+        return ""
+    crossings = "" if pick.crossings is None else f"; {pick.crossings} crossings"
+    return (
+        f" Its error is the larger of the trajectory error over the first {pick.horizon:g} s "
+        f"({pick.error_horizon:.3g} m) and the final shape's Hausdorff distance ({pick.hausdorff:.3g} m) to a "
+        f"float64 fine-step reference; its quantity of interest ends {pick.quantity_error:.3g} from the "
+        f"reference's{crossings}."
     )
 
 

@@ -13,6 +13,7 @@ from .. import checks
 from ..errors import ConfigError
 from ..core.integrators import INTEGRATORS
 from ..plotting import pyplot
+from . import trade_contact_report
 from .trade import REFERENCE_REFINEMENT, STATUSES, Measurement, Study, _ms
 from .trade_choice import ASYMPTOTIC_CEILING, ASYMPTOTIC_OMEGA_H, NOISE_MARGIN, convergence_orders, pareto_front
 from .trade_problems import BLOWUP_FACTOR, ENERGY_BLOWUP, ClothProblem, SpringProblem
@@ -21,8 +22,10 @@ from .trade_problems import BLOWUP_FACTOR, ENERGY_BLOWUP, ClothProblem, SpringPr
 # -- files --------------------------------------------------------------------------------------------------
 
 _FIELDS = [f.name for f in dataclasses.fields(Measurement)]
-_INT_FIELDS = {"order"}
+_INT_FIELDS = {"order", "crossings"}
 _TEXT_FIELDS = {"problem", "integrator", "precision", "device", "status"}
+#: Columns a study written before the contact scenes lacks: read as not measured.
+_CONTACT_FIELDS = ("option", "horizon", "error_horizon", "hausdorff", "quantity", "quantity_error", "crossings")
 
 
 def write_csv(rows: list[Measurement], path: str) -> str:
@@ -46,19 +49,21 @@ def read_csv(path: str) -> list[Measurement]:
         raise ConfigError(f"study file not found: {path} (run 'warpspring trade' first, or pass --study)")
     with open(path, newline="") as f:
         reader = csv.DictReader(f)
-        missing = [name for name in _FIELDS if name not in (reader.fieldnames or [])]
+        missing = [name for name in _FIELDS if name not in (reader.fieldnames or []) and name not in _CONTACT_FIELDS]
         if missing:
             raise ConfigError(f"{path} is not a warpspring trade study: it lacks the column {missing[0]!r}")
         rows = []
         for line, raw in enumerate(reader, start=2):
             try:
-                rows.append(Measurement(**{name: _parse(name, raw[name]) for name in _FIELDS}))
+                rows.append(Measurement(**{name: _parse(name, raw.get(name) or "") for name in _FIELDS}))
             except ValueError:
-                raise ConfigError(f"{path}:{line}: malformed row: {','.join(raw[n] or '' for n in _FIELDS)}") from None
+                raise ConfigError(f"{path}:{line}: malformed row: {','.join(raw.get(n) or '' for n in _FIELDS)}") from None
     return rows
 
 
 def _parse(name: str, text: str):
+    if name == "option":
+        return text or None
     if name in _TEXT_FIELDS:
         if name == "status" and text not in STATUSES:
             raise ValueError(text)
@@ -68,27 +73,40 @@ def _parse(name: str, text: str):
     return int(text) if name in _INT_FIELDS else float(text)
 
 
+def _smooth_method(plan) -> str:
+    """How the closed forms and the hanging cloth are measured: the report's paragraph."""
+    return (
+        f"Closed forms and the hanging cloth. Cost: wall time per simulated second, device synchronised, "
+        f"compilation excluded: the median of {plan.repeats} batches of graph replays of at least "
+        f"{plan.min_batch * 1e3:g} ms each (integrators that cannot be captured: their whole run). Runs projected "
+        f"to take longer than {plan.run_limit:g} s are skipped. Unstable runs are reported as such: non-finite, or "
+        f"blown up (an error over {BLOWUP_FACTOR:g}× the problem's length scale, or an energy drift over "
+        f"{ENERGY_BLOWUP:g}: these damped systems cannot gain energy). Adaptive integrators are sampled at their "
+        "outputs (their dt). Convergence orders are least-squares slopes of log error against log step over the "
+        f"float64 runs in the asymptotic range (fixed steps: ω_max·h ≤ {ASYMPTOTIC_OMEGA_H:g}; error below "
+        f"{ASYMPTOTIC_CEILING:g}× the length scale and above {NOISE_MARGIN:g}× the rounding and reference "
+        "noise); adaptive integrators against their mean accepted step."
+    )
+
+
 def to_markdown(study: Study) -> str:
     """The study as Markdown: provenance, method, and per problem its reference, fitted orders and a table."""
     plan = study.plan
     lines = [
         f"# Integrators: speed against accuracy ({plan.name} study)",
         "",
+        *([f"Command: `{study.command}`", ""] if study.command else []),
         f"Device: {study.device} ({study.device_name}); Warp {study.warp_version}; {study.date}; the study took "
         f"{study.elapsed:.0f} s.",
-        "",
-        f"Cost: wall time per simulated second, device synchronised, compilation excluded: the median of "
-        f"{plan.repeats} batches of graph replays of at least {plan.min_batch * 1e3:g} ms each (integrators that "
-        f"cannot be captured: their whole run). Runs projected to take longer than {plan.run_limit:g} s are "
-        f"skipped. Unstable runs are reported as such: non-finite, or blown up (an error over {BLOWUP_FACTOR:g}× "
-        f"the problem's length scale, or an energy drift over {ENERGY_BLOWUP:g}: these damped systems cannot "
-        "gain energy). Adaptive integrators are sampled at their outputs (their dt). Convergence orders are "
-        "least-squares slopes of log error against log step over the float64 runs in the asymptotic range "
-        f"(fixed steps: ω_max·h ≤ {ASYMPTOTIC_OMEGA_H:g}; error below "
-        f"{ASYMPTOTIC_CEILING:g}× the length scale and above {NOISE_MARGIN:g}× the rounding and reference "
-        "noise); adaptive integrators against their mean accepted step.",
     ]
+    if trade_contact_report.contact_problems(study):
+        lines += ["", trade_contact_report.METHOD]
+    if _smooth_problems(study):
+        lines += ["", _smooth_method(plan)]
     for problem in plan.problems:
+        if getattr(problem, "contact", False):
+            lines += trade_contact_report.section(study, problem)
+            continue
         rows = [r for r in study.rows if r.problem == problem.name]
         lines += ["", f"## {problem.name}", "", problem.describe() + "."]
         if isinstance(problem, SpringProblem):
@@ -142,21 +160,30 @@ def to_markdown(study: Study) -> str:
 
 
 def write_report(study: Study, out_dir: str) -> list[str]:
-    """Write ``trade.csv``, ``trade.md``, ``pareto.png``, ``convergence.png`` and (when the plan has a seed
-    plot) ``seed.png`` to ``out_dir`` (created if missing); returns their paths."""
+    """Write ``trade.csv``, ``trade.md``, ``pareto.png`` and ``convergence.png`` (when the plan has closed forms or
+    the hanging cloth), ``pareto_contact.png`` (when it has contact scenes) and ``seed.png`` (when it has a seed
+    plot) to ``out_dir`` (created if missing); returns their paths."""
     os.makedirs(checks.output_dir(out_dir), exist_ok=True)
     paths = [write_csv(study.rows, os.path.join(out_dir, "trade.csv"))]
     with open(os.path.join(out_dir, "trade.md"), "w") as f:
         f.write(to_markdown(study))
     paths.append(f.name)
-    paths.append(plot_pareto(study, os.path.join(out_dir, "pareto.png")))
-    paths.append(plot_convergence(study, os.path.join(out_dir, "convergence.png")))
+    if _smooth_problems(study):
+        paths.append(plot_pareto(study, os.path.join(out_dir, "pareto.png")))
+        paths.append(plot_convergence(study, os.path.join(out_dir, "convergence.png")))
+    if trade_contact_report.contact_problems(study):
+        paths.append(trade_contact_report.plot_pareto(study, os.path.join(out_dir, "pareto_contact.png")))
     if study.trajectories:
         paths.append(plot_seed(study, os.path.join(out_dir, "seed.png")))
     return paths
 
 
 # -- plots --------------------------------------------------------------------------------------------------
+
+
+def _smooth_problems(study: Study) -> list:
+    """The study's closed forms and hanging cloth (the contact scenes have their own plot)."""
+    return [p for p in study.plan.problems if not getattr(p, "contact", False)]
 
 _MARKERS = "osD^vP*Xph"
 
@@ -192,7 +219,7 @@ def plot_pareto(study: Study, path: str) -> str:
     """Max error against wall time per simulated second (log-log), one panel per problem, one marker series
     per integrator, float64 filled and float32 hollow, the Pareto front as a grey staircase."""
     plt = pyplot("the trade plots")
-    problems = study.plan.problems
+    problems = _smooth_problems(study)
     fig, axes = plt.subplots(1, len(problems), figsize=(5.5 * len(problems), 4.8), squeeze=False)
     for ax, problem in zip(axes[0], problems):
         rows = [r for r in study.rows if r.problem == problem.name]
@@ -231,7 +258,7 @@ def plot_convergence(study: Study, path: str) -> str:
     """Max error against step (log-log), one panel per problem; float64 filled and joined, float32 hollow;
     the fitted order of each integrator in the legend and its fit as a dashed line."""
     plt = pyplot("the trade plots")
-    problems = study.plan.problems
+    problems = _smooth_problems(study)
     fig, axes = plt.subplots(1, len(problems), figsize=(5.5 * len(problems), 5.2), squeeze=False)
     for ax, problem in zip(axes[0], problems):
         rows = [r for r in study.rows if r.problem == problem.name]

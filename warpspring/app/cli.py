@@ -26,6 +26,7 @@ import argparse
 import datetime
 import functools
 import os
+import shlex
 import sys
 import tempfile
 import time
@@ -35,7 +36,7 @@ import warp as wp
 
 from .. import checks
 from ..analysis import (engines, load_battery, stability_map, stability_map_report, sweep, sweep_plan, sweep_report, trade,
-                        trade_choice, trade_report)
+                        trade_choice, trade_contact, trade_report)
 from ..analysis.audit import SubstepAudit, audit_usd
 from ..analysis import fit as fit_analysis
 from ..analysis.sweep_ray import RayEngine  # Ray itself loads only when an engine starts (optional: ray)
@@ -192,6 +193,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="measure each integrator's error against its cost: tables, CSV, plots (x(t), v(t) of the seed spring too)",
     )
     _add_study_options(trade_cmd, "trade")
+    trade_cmd.add_argument("--problems", nargs="+", metavar="NAME",
+                           help="measure these problems: spring, stiff-spring, cloth (the default three), and the contact "
+                                "scenes drape, stack, tablecloth, softball, softball-neohookean")
     trade_cmd.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     trade_cmd.set_defaults(handler=_cmd_trade)
     _add_ray_option(trade_cmd)
@@ -200,7 +204,8 @@ def build_parser() -> argparse.ArgumentParser:
     choose.add_argument("--error", type=_positive_float, required=True, help="largest acceptable position error [m]")
     choose.add_argument("--budget", type=_positive_float, help="most wall seconds per simulated second")
     choose.add_argument("--study", default="trade/trade.csv", help="CSV of 'warpspring trade' (default: %(default)s)")
-    choose.add_argument("--problem", default="cloth", help="the study's problem: cloth, spring, ... (default: cloth)")
+    choose.add_argument("--problem", default="cloth", help="the study's problem: cloth, spring, drape, stack, tablecloth, softball, ... "
+                             "(default: cloth)")
     choose.set_defaults(handler=_cmd_choose)
 
     stability = sub.add_parser(
@@ -443,22 +448,28 @@ def _cmd_trade(args) -> int:
     engine = _study_engine(args)
     study = trade.run_study(
         device,
-        plan=trade.QUICK if args.quick else trade.FULL,
+        plan=trade_contact.study_plan(args.problems, quick=args.quick),
         integrators=args.integrators,
         progress=not args.quiet and sys.stderr.isatty(),
         **({} if engine is None else {"engine": engine}),
     )
     if engine is not None:
         engine.close()
+    study.command = "warpspring " + " ".join(shlex.quote(a) for a in args.argv) if getattr(args, "argv", None) else ""
     paths = trade_report.write_report(study, args.out)
     for problem in study.plan.problems:
+        if getattr(problem, "contact", False):
+            ref = study.references[problem.name].convergence[-1]
+            print(f"{problem.name}: reference's own difference {max(ref['error_horizon'], ref['hausdorff']):.2g} m")
+            continue
         orders = trade_choice.convergence_orders(study, problem.name)
         fitted = ", ".join(f"{name} {'n/a' if p is None else f'{p:.2f}'}" for name, (p, _) in orders.items())
         print(f"{problem.name}: fitted orders {fitted}")
-    unstable = sum(r.status in ("non-finite", "blown up") for r in study.rows)
+    unstable = sum(r.status in ("non-finite", "blown up", "stopped") for r in study.rows)
     skipped = sum(r.status == "skipped" for r in study.rows)
     print(
-        f"measured {len(study.rows)} configurations ({unstable} unstable, {skipped} skipped as too slow) on "
+        f"measured {len(study.rows)} configurations ({unstable} unstable or stopped by the guard, {skipped} skipped "
+        "as too slow) on "
         f"{study.device} in {study.elapsed:.0f} s; wrote {', '.join(paths)}"
     )
     return 0
@@ -634,6 +645,7 @@ def main(argv: list[str] | None = None) -> int:
     the codes are listed in this module's docstring)."""
     try:
         args = build_parser().parse_args(argv)
+        args.argv = list(sys.argv[1:] if argv is None else argv)  # the command line, for the results files
     except SystemExit as exc:  # argparse has printed its message (or the help)
         return exc.code if isinstance(exc.code, int) else EXIT_CONFIG if exc.code else 0
     try:
