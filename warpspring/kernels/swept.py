@@ -115,7 +115,63 @@ def sweep_funcs(scalar: type):
             return True, p0 + enter * d, n
         return False, p1, vec3(zero, zero, one)
 
-    return sphere_crossing, box_crossing, capsule_crossing
+    @wp.func
+    def box_distance(p: vec3, half: vec3) -> scalar:
+        """The distance [m] of p from the box of half extents ``half`` at the origin (0 inside)."""
+        q = vec3(wp.max(wp.abs(p[0]) - half[0], zero), wp.max(wp.abs(p[1]) - half[1], zero),
+                 wp.max(wp.abs(p[2]) - half[2], zero))
+        return wp.length(q)
+
+    @wp.func
+    def rounded_box_crossing(p0: vec3, p1: vec3, half: vec3, grow: scalar):
+        """Whether p0 → p1 enters, from outside, the points within ``grow`` [m] of the box of half extents
+        ``half`` (what a particle of radius ``grow`` touches: faces moved out by ``grow``, edges and corners
+        rounded), the entry point and its outward normal. The slab test of the square-cornered grown box gives the
+        entry where it lands on a face; where it lands in an edge's or a corner's square region, which a sphere
+        does not reach, the path's distance from the box (convex along it) is searched for its first point at
+        ``grow``, if it has one (a square corner held a particle sliding off a table's edge until its centre was
+        a radius past it, where the rounded one lets it fall)."""
+        crossed, hit, normal = box_crossing(p0, p1, half + vec3(grow, grow, grow))
+        if not crossed:
+            return crossed, hit, normal
+        out = int(0)
+        for k in range(3):
+            if wp.abs(hit[k]) > half[k] + grow * scalar(1.0e-6) and normal[k] == zero:
+                out += 1
+        if out == 0:
+            return crossed, hit, normal  # on a face
+        d = p1 - p0
+        length = wp.length(d)
+        start = wp.length(hit - p0) / wp.max(length, scalar(1.0e-30))
+        lo = start
+        hi = one
+        for _ in range(48):  # the distance's minimum along [start, 1] (convex): ternary search
+            a = lo + (hi - lo) / scalar(3.0)
+            b = hi - (hi - lo) / scalar(3.0)
+            if box_distance(p0 + a * d, half) <= box_distance(p0 + b * d, half):
+                hi = b
+            else:
+                lo = a
+        nearest = scalar(0.5) * (lo + hi)
+        if box_distance(p0 + nearest * d, half) > grow:
+            return False, p1, vec3(zero, zero, one)
+        lo = start
+        hi = nearest
+        for _ in range(48):  # its first point at ``grow``: bisection (outside at ``start``, within at ``nearest``)
+            m = scalar(0.5) * (lo + hi)
+            if box_distance(p0 + m * d, half) > grow:
+                lo = m
+            else:
+                hi = m
+        point = p0 + hi * d
+        core = vec3(wp.clamp(point[0], -half[0], half[0]), wp.clamp(point[1], -half[1], half[1]),
+                    wp.clamp(point[2], -half[2], half[2]))
+        away = point - core
+        if wp.length(away) > zero:
+            normal = wp.normalize(away)
+        return True, point, normal
+
+    return sphere_crossing, rounded_box_crossing, capsule_crossing
 
 
 @functools.cache
@@ -155,7 +211,7 @@ def shape_crossing_func(scalar: type, features: ContactFeatures):
                 offset = pad
         if wp.static(SHAPE_BOX in kinds):
             if kind == SHAPE_BOX:
-                crossed, hit, normal = box_crossing(p0, p1, size + vec3(grow, grow, grow))
+                crossed, hit, normal = box_crossing(p0, p1, size, grow)
                 offset = pad
         if wp.static(SHAPE_CAPSULE in kinds):
             if kind == SHAPE_CAPSULE:
