@@ -39,6 +39,17 @@ def test_disc_grid_mass_springs_and_hinges():
     np.testing.assert_allclose(model.hinge_stiffness.numpy()[0], 0.5 * MATERIAL.bending, rtol=1e-12)
 
 
+def test_a_raised_start_keeps_the_flat_rest_lengths():
+    """Springs of a specimen raised by random heights (0.1 mm at 2 mm spacing) rest at the flat grid's lengths,
+    a and a√2 to float32; measured from the raised positions they would be longer by δz²/2a, up to 2.5e-6 m (a
+    compression of the flat sheet growing as 1/a²)."""
+    builder = ws.ModelBuilder(up_axis="Z")
+    drape.disc_grid(MATERIAL, builder, radius=0.02, spacing=0.002, contact_radius=1e-3, perturbation=1e-4, seed=1)
+    rest = builder.finalize("cpu").spring_rest_length.numpy()
+    expected = np.where(rest < 0.0025, 0.002, 0.002 * math.sqrt(2.0))
+    np.testing.assert_allclose(rest, expected, rtol=1e-7)
+
+
 def test_masked_grid_functions_match_the_full_grid():
     """With every cell present, the masked masses and hinges are the full grid's."""
     nx, ny = 6, 5
