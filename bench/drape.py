@@ -151,7 +151,8 @@ def main() -> None:
     ])
     print(text)
     key = (f"drape-{args.hinges}-r{args.contact_radius:g}-d{args.drag:g}-t{args.fixed_time or 0:g}"
-           + ("-se-" + "-".join(args.materials) if args.integrator == "symplectic_euler" else ""))
+           + ("-se-" + "-".join(args.materials) + ("" if args.spacings else "-f" + "-".join(map(str, args.fractions)))
+              if args.integrator == "symplectic_euler" else ""))
     write_section(f"{key}-{'s' if args.spacings else 'c'}-{device.alias.replace(':', '')}", text)
 
 
