@@ -101,6 +101,14 @@ def test_imbalance_of_single_particles_against_coulomb():
     # On the rim's edge (45° above and out of the corner) the normal is the diagonal.
     corner = 0.09 + 1e-3 / math.sqrt(2.0)
     assert unbalanced([corner, 0.0, 1e-3 / math.sqrt(2.0)], [-1.0, 0.0, -1.0]) == pytest.approx(0.0, abs=1e-12)
+    # A rim rounded to 3 mm: 45° round its quarter circle (centre 87 mm, -3 mm) the normal is the diagonal too,
+    # and a particle 1 mm above the top at 89.5 mm is 1.7 mm from the rounded rim: out of reach.
+    out = 0.087 + 4e-3 / math.sqrt(2.0)
+    rounded = dict(disc_radius=0.09, contact_radius=1e-3, friction=0.5, rim_radius=3e-3)
+    assert drape.imbalance(np.array([[out, 0.0, -3e-3 + 4e-3 / math.sqrt(2.0)]]), np.array([[-1.0, 0.0, -1.0]]),
+                           mass, **rounded) == pytest.approx(0.0, abs=1e-12)
+    assert drape.imbalance(np.array([[0.0895, 0.0, 1e-3]]), np.array([[0.0, 0.0, -1.0]]), mass,
+                           **rounded) == pytest.approx(1.0, rel=1e-12)
 
 
 def test_a_settled_drape_is_an_equilibrium():

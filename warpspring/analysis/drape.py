@@ -208,13 +208,14 @@ def count_folds(positions, hem, *, bins: int = 360, smooth: int = 9) -> int:
 
 
 def imbalance(positions, forces, mass, *, disc_radius: float, contact_radius: float, friction: float,
-              reach: float = 1.0e-4, floor: float = 0.0) -> float:
+              rim_radius: float = 0.0, reach: float = 1.0e-4, floor: float = 0.0) -> float:
     """How far a state is from a static equilibrium on the pedestal [-]: the part of the particles' forces that
     no contact within Coulomb's cone can balance, summed over the particles and divided by the total weight.
 
     The contact force a particle needs is -f (``forces``: gravity, drag and the elements, at rest nothing else
     acts). A particle within ``contact_radius`` + ``reach`` [m] of the pedestal (a solid cylinder of
-    ``disc_radius`` [m] with its top at z = 0: top, side or rim) can receive a force g with normal part
+    ``disc_radius`` [m] with its top at z = 0 and its rim rounded to ``rim_radius`` [m]: top, side or rim) can
+    receive a force g with normal part
     g_n ≥ 0 and tangential part |g_t| ≤ μ g_n; what lies outside that cone, max(|g_t| - μ g_n, -g_n, 0), is
     unbalanced, and a particle out of reach has all of |g| unbalanced; ``floor`` [N] of each particle's excess is
     not counted (the round-off of its forces). 0 for an exact equilibrium.
@@ -225,13 +226,16 @@ def imbalance(positions, forces, mass, *, disc_radius: float, contact_radius: fl
     p = np.asarray(positions, dtype=np.float64)
     g = -np.asarray(forces, dtype=np.float64)
     rho = np.hypot(p[:, 0], p[:, 1])
-    radial = p[:, :2] / np.maximum(rho, 1e-30)[:, None]
-    rim = np.c_[radial * disc_radius, np.zeros(len(p))]  # the nearest point of the rim's circle
-    offset = np.where((rho <= disc_radius)[:, None], [0.0, 0.0, 1.0] * np.maximum(p[:, 2:], 0.0),
-                      np.where((p[:, 2] <= 0.0)[:, None], np.c_[(rho - disc_radius)[:, None] * radial, np.zeros(len(p))],
-                               p - rim))
-    distance = np.linalg.norm(offset, axis=1)
-    normal = offset / np.maximum(distance, 1e-30)[:, None]
+    radial = np.c_[p[:, :2] / np.maximum(rho, 1e-30)[:, None], np.zeros(len(p))]
+    # In the (ρ, z) half-plane: the top (ρ ≤ R - f), the side (z ≤ -f), else the rim's quarter circle around
+    # (R - f, -f) (f = 0: the sharp corner).
+    inner, low = disc_radius - rim_radius, -rim_radius
+    corner = (rho - inner)[:, None] * radial + [0.0, 0.0, 1.0] * (p[:, 2:] - low)
+    corner_length = np.linalg.norm(corner, axis=1)
+    top, side = rho <= inner, (p[:, 2] <= low) & (rho > inner)
+    normal = np.where(top[:, None], [0.0, 0.0, 1.0],
+                      np.where(side[:, None], radial, corner / np.maximum(corner_length, 1e-30)[:, None]))
+    distance = np.where(top, p[:, 2], np.where(side, rho - disc_radius, corner_length - rim_radius))
     touching = (distance <= contact_radius + reach) & (distance > 0.0)
     g_n = np.sum(g * normal, axis=1)
     g_t = np.linalg.norm(g - g_n[:, None] * normal, axis=1)
@@ -271,7 +275,7 @@ def cusick(material: ClothMaterial, *, spacing: float, specimen_radius: float = 
            substeps: int | None = None, pixel: float = 2.5e-4, hinges: str = "crossed", drag: float = 0.0,
            fixed_time: float | None = None, cg_tolerance: float = 1.0e-7, cg_iterations: int = 5000,
            integrator: str = "symplectic_euler", damping_rate: float = 20.0, step_fraction: float = 0.8,
-           device=None) -> Drape:
+           rim_radius: float = 0.0, device=None) -> Drape:
     """Drape ``material`` on the pedestal and measure it (module docstring).
 
     ``drag`` [N·s/m] is the builder's per-particle drag (its damping rate drag / m grows as 1 / spacing²), and
@@ -294,8 +298,21 @@ def cusick(material: ClothMaterial, *, spacing: float, specimen_radius: float = 
     cloth = disc_grid(material, builder, radius=specimen_radius, spacing=spacing, height=1.5 * contact_radius,
                       contact_radius=contact_radius, perturbation=perturbation, seed=seed, hinges=hinges)
     pedestal_height = 2.0 * specimen_radius
-    pedestal = trimesh.creation.cylinder(radius=disc_radius, height=pedestal_height, sections=256)
-    builder.add_collider_mesh(pedestal, center=(0.0, 0.0, -0.5 * pedestal_height), friction=friction)
+    rim_radius = checks.non_negative("rim_radius", rim_radius)
+    if rim_radius == 0.0:
+        pedestal = trimesh.creation.cylinder(radius=disc_radius, height=pedestal_height, sections=256)
+        centre = (0.0, 0.0, -0.5 * pedestal_height)
+    elif rim_radius < disc_radius:
+        # The (ρ, z) profile from the bottom's centre up the side, round the rim and in to the top's centre.
+        turn = np.linspace(0.0, 0.5 * np.pi, 17)
+        profile = np.r_[[[0.0, -pedestal_height], [disc_radius, -pedestal_height]],
+                        np.c_[disc_radius - rim_radius + rim_radius * np.cos(turn), -rim_radius + rim_radius * np.sin(turn)],
+                        [[0.0, 0.0]]]
+        pedestal = trimesh.creation.revolve(profile, sections=256)
+        centre = (0.0, 0.0, 0.0)
+    else:
+        raise ConfigError(f"rim_radius must be below disc_radius ({disc_radius} m), got {rim_radius}")
+    builder.add_collider_mesh(pedestal, center=centre, friction=friction)
     model = builder.finalize(device)
     if integrator == "implicit_euler":
         stepper = make_integrator("implicit_euler", model, cg_tolerance=cg_tolerance, cg_iterations=cg_iterations)
@@ -332,7 +349,7 @@ def cusick(material: ClothMaterial, *, spacing: float, specimen_radius: float = 
     springs = grid_springs(material)
     epsilon = float(np.finfo(np.float32 if model.scalar == wp.float32 else np.float64).eps)
     floor = 8.0 * (springs.structural_stiffness + springs.shear_stiffness) * epsilon * float(np.abs(q).max())
-    unbalanced = imbalance(q, sim.state.particle_f.numpy(), mass, disc_radius=disc_radius,
+    unbalanced = imbalance(q, sim.state.particle_f.numpy(), mass, disc_radius=disc_radius, rim_radius=rim_radius,
                            contact_radius=contact_radius, friction=friction, floor=floor)
     shadow = shadow_area(q, cloth.faces, pixel=pixel)
     disc = math.pi * disc_radius**2
