@@ -79,6 +79,8 @@ def main() -> None:
     parser.add_argument("--substeps", type=int,
                         help="steps per 1/60 s frame (default: symplectic Euler's stability step from the Gershgorin "
                              "bound; implicit Euler 4)")
+    parser.add_argument("--rim-radius", type=float, default=0.0,
+                        help="the pedestal's rim rounded to this radius [m] (default 0: a sharp rim, the standard's)")
     parser.add_argument("--cg-tolerance", type=float, default=1.0e-7,
                         help="implicit solve's relative residual (a run stops where a solve ends above it)")
     parser.add_argument("--cg-iterations", type=int, default=5000, help="implicit solve's iteration cap")
@@ -100,7 +102,8 @@ def main() -> None:
                                              contact_radius=args.contact_radius or 0.25 * spacing, drag=args.drag,
                                              fixed_time=args.fixed_time, max_time=args.max_time,
                                              substeps=args.substeps, integrator=args.integrator,
-                                             damping_rate=args.damping_rate, cg_tolerance=args.cg_tolerance,
+                                             damping_rate=args.damping_rate, rim_radius=args.rim_radius,
+                                             cg_tolerance=args.cg_tolerance,
                                              cg_iterations=args.cg_iterations, device=device))
                 except ws.SimulationError as error:  # a run that stopped is reported, not averaged
                     stopped.append(f"- {name} at {spacing * 1e3:.2f} mm, seed {seed}: stopped: {error}")
@@ -134,7 +137,7 @@ def main() -> None:
                + (f" --damping-rate {args.damping_rate:g}" if args.integrator == "symplectic_euler" else
                   f" --cg-tolerance {args.cg_tolerance:g} --cg-iterations {args.cg_iterations}")
                + f" --hinges {args.hinges} --contact-radius {args.contact_radius}"
-               + f" --max-time {args.max_time:g}"
+               + f" --max-time {args.max_time:g}" + (f" --rim-radius {args.rim_radius:g}" if args.rim_radius else "")
                + (f" --drag {args.drag}" if args.drag else "") + (f" --fixed-time {args.fixed_time}" if args.fixed_time else ""))
     text = "\n".join([
         f"## Cusick drape coefficient against resolution ({args.integrator}, {args.hinges} hinges, contact radius "
@@ -152,7 +155,7 @@ def main() -> None:
     print(text)
     key = (f"drape-{args.hinges}-r{args.contact_radius:g}-d{args.drag:g}-t{args.fixed_time or 0:g}"
            + ("-se-" + "-".join(args.materials) + ("" if args.spacings else "-f" + "-".join(map(str, args.fractions)))
-              if args.integrator == "symplectic_euler" else ""))
+              if args.integrator == "symplectic_euler" else "") + (f"-rim{args.rim_radius:g}" if args.rim_radius else ""))
     write_section(f"{key}-{'s' if args.spacings else 'c'}-{device.alias.replace(':', '')}", text)
 
 
