@@ -107,10 +107,10 @@ def disc_grid(material: ClothMaterial, builder: ModelBuilder, *, radius: float, 
               hinges: str = "crossed") -> DiscCloth:
     """Add the trimmed-disc grid cloth of ``material`` (radius [m], spacing [m]) to ``builder``, flat at
     ``height`` [m], each particle raised by a uniform random height in [0, ``perturbation``) [m] (``seed``),
-    centred on the z axis. ``hinges``: "crossed" (``grid_hinges``) or "triangles" (the triangles' own hinges
+    centred on the z axis. ``hinges``: "crossed" or "straight" (``grid_hinges``' layouts) or "triangles" (the triangles' own hinges
     by ``hinge_parameters``, as the material grid had before: kept to measure the difference)."""
-    if hinges not in ("crossed", "triangles"):
-        raise ConfigError(f"hinges must be 'crossed' or 'triangles', got {hinges!r}")
+    if hinges not in ("crossed", "straight", "triangles"):
+        raise ConfigError(f"hinges must be 'crossed', 'straight' or 'triangles', got {hinges!r}")
     radius, spacing = checks.positive("radius", radius), checks.positive("spacing", spacing)
     half = math.ceil(radius / spacing)
     n = 2 * half + 1
@@ -150,8 +150,8 @@ def disc_grid(material: ClothMaterial, builder: ModelBuilder, *, radius: float, 
                         rest_length=math.sqrt(2.0) * spacing, family="shear")
     a, b, c, d = (corner[cells] for corner in (g[:-1, :-1], g[:-1, 1:], g[1:, 1:], g[1:, :-1]))
     faces = index[np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])]
-    if hinges == "crossed":
-        local, k_theta, kd_theta = grid_hinges(material, n, n, cells=cells)
+    if hinges in ("crossed", "straight"):
+        local, k_theta, kd_theta = grid_hinges(material, n, n, cells=cells, layout=hinges)
         local = index[local]
     else:
         flat = np.c_[xy, np.zeros(len(xy))]
