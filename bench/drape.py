@@ -67,7 +67,7 @@ def main() -> None:
     parser.add_argument("--drag", type=float, default=0.0, help="per-particle drag [N·s/m] (default none)")
     parser.add_argument("--fixed-time", type=float, help="stop at this time [s], settled or not")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--hinges", default="crossed", choices=["crossed", "straight", "triangles"])
+    parser.add_argument("--hinges", default="straight", choices=["straight", "crossed", "triangles"])
     parser.add_argument("--max-time", type=float, default=10.0, help="most simulated seconds per run")
     parser.add_argument("--contact-radius", type=float, default=1.0e-3,
                         help="particles' contact radius [m]; 0: a quarter of the spacing (the builder's default)")
