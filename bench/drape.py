@@ -12,13 +12,15 @@ random heights below 0.1 mm, seeds 0, 1, 2. Reported per spacing: the mean drape
 force no Coulomb contact can balance over the weight: 0 at an equilibrium), the substeps and the simulated time;
 and whether the two finest means are within ±0.02. ``--integrator implicit_euler`` runs the former settling
 (4 substeps, solves to 1e-7), whose settled states are not equilibria (imbalance ~200: analysis/drape.py);
-``--hinges triangles`` the triangles' own hinges (the material grid's bending before the crossed hinges).
+The hinges are ``grid_hinges``' straight layout (no checkerboard mode); ``--hinges crossed`` runs the material
+grid's crossed hinges and ``--hinges triangles`` the triangles' own hinges (the bending before those).
 
     python bench/drape.py --device cuda:0                                  # study, silk, denim at c/2, c/4, c/8
+    python bench/drape.py --device cuda:0 --hinges crossed --materials study
     python bench/drape.py --device cuda:0 --hinges triangles --materials study
     python bench/drape.py --device cuda:0 --materials study --contact-radius 0     # radius = spacing / 4
     python bench/drape.py --device cpu --materials study --fractions 1 2 --seeds 0   # a small check
-    python bench/drape.py --device cpu --materials study --spacings 0.015 0.0075 --seeds 0 --integrator implicit_euler --drag 2e-3 --fixed-time 1.5
+    python bench/drape.py --device cpu --materials study --spacings 0.015 0.0075 --seeds 0 --integrator implicit_euler --hinges crossed --drag 2e-3 --fixed-time 1.5
 """
 
 from __future__ import annotations
