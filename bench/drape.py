@@ -4,20 +4,23 @@ materials from light to stiff; prints the table, writes it into bench/results/cl
 picture (top view of the shadow and side view) of each material's finest drape.
 
 Scene (the issue's): specimen radius 0.15 m on a pedestal (closed mesh cylinder) of radius 0.09 m,
-friction 0.5, contact radius 1 mm at every spacing; implicit Euler at 16 substeps per 1/60 s frame (``--substeps``) until the
-kinetic energy is below 1e-6 J (each frame's implicit solve converged to a relative residual of 1e-7,
-``--cg-tolerance``: the integrator's default cap of 100 iterations, cut off above its 1e-5, added the energy
-that made silk at c/2 slide off) and no particle moved 0.1 mm in the last 0.1 s (at most ``--max-time`` s). Starts: the flat cloth raised by
-uniform random heights below 0.1 mm, seeds 0, 1, 2. Reported per spacing: the mean drape coefficient, its
-spread (max - min) over the starts, the folds of each start, the largest final kinetic energy and the
-simulated time; and whether the two finest means are within ±0.02. ``--hinges triangles`` runs the
-triangles' own hinges (the material grid's bending before the crossed hinges) for comparison.
+friction 0.5, contact radius 1 mm at every spacing; symplectic Euler at its stability step (h ω_max ≤ 1.6, ω_max
+by Gershgorin) with a drag of 20 /s as a rate (``--damping-rate``) until the kinetic energy is below 1e-6 J and
+no particle moved 0.1 mm in the last 0.1 s (at most ``--max-time`` s). Starts: the flat cloth raised by uniform
+random heights below 0.1 mm, seeds 0, 1, 2. Reported per spacing: the mean drape coefficient, its spread
+(max - min) over the starts, the folds of each start, the largest final kinetic energy, creep and imbalance (the
+force no Coulomb contact can balance over the weight: 0 at an equilibrium), the substeps and the simulated time;
+and whether the two finest means are within ±0.02. ``--integrator implicit_euler`` runs the former settling
+(4 substeps, solves to 1e-7), whose settled states are not equilibria (imbalance ~200: analysis/drape.py);
+The hinges are ``grid_hinges``' straight layout (no checkerboard mode); ``--hinges crossed`` runs the material
+grid's crossed hinges and ``--hinges triangles`` the triangles' own hinges (the bending before those).
 
     python bench/drape.py --device cuda:0                                  # study, silk, denim at c/2, c/4, c/8
+    python bench/drape.py --device cuda:0 --hinges crossed --materials study
     python bench/drape.py --device cuda:0 --hinges triangles --materials study
     python bench/drape.py --device cuda:0 --materials study --contact-radius 0     # radius = spacing / 4
     python bench/drape.py --device cpu --materials study --fractions 1 2 --seeds 0   # a small check
-    python bench/drape.py --device cpu --materials study --spacings 0.015 0.0075 --seeds 0 --drag 2e-3 --fixed-time 1.5
+    python bench/drape.py --device cpu --materials study --spacings 0.015 0.0075 --seeds 0 --integrator implicit_euler --hinges crossed --drag 2e-3 --fixed-time 1.5
 """
 
 from __future__ import annotations
@@ -66,12 +69,20 @@ def main() -> None:
     parser.add_argument("--drag", type=float, default=0.0, help="per-particle drag [N·s/m] (default none)")
     parser.add_argument("--fixed-time", type=float, help="stop at this time [s], settled or not")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--hinges", default="crossed", choices=["crossed", "triangles"])
+    parser.add_argument("--hinges", default="straight", choices=["straight", "crossed", "triangles"])
     parser.add_argument("--max-time", type=float, default=10.0, help="most simulated seconds per run")
     parser.add_argument("--contact-radius", type=float, default=1.0e-3,
                         help="particles' contact radius [m]; 0: a quarter of the spacing (the builder's default)")
-    parser.add_argument("--substeps", type=int, default=16,
-                        help="implicit Euler steps per 1/60 s frame (4 let silk at c/2 tunnel at the rim and slide off)")
+    parser.add_argument("--integrator", default="symplectic_euler", choices=["symplectic_euler", "implicit_euler"],
+                        help="symplectic Euler at its stability step (default) or implicit Euler, whose settled states "
+                             "are not equilibria (analysis/drape.py)")
+    parser.add_argument("--damping-rate", type=float, default=20.0,
+                        help="symplectic Euler's drag as a rate [1/s] (drag = rate x an interior particle's mass)")
+    parser.add_argument("--substeps", type=int,
+                        help="steps per 1/60 s frame (default: symplectic Euler's stability step from the Gershgorin "
+                             "bound; implicit Euler 4)")
+    parser.add_argument("--rim-radius", type=float, default=0.0,
+                        help="the pedestal's rim rounded to this radius [m] (default 0: a sharp rim, the standard's)")
     parser.add_argument("--cg-tolerance", type=float, default=1.0e-7,
                         help="implicit solve's relative residual (a run stops where a solve ends above it)")
     parser.add_argument("--cg-iterations", type=int, default=5000, help="implicit solve's iteration cap")
@@ -92,7 +103,9 @@ def main() -> None:
                     runs.append(drape.cusick(material, spacing=spacing, seed=seed, hinges=args.hinges,
                                              contact_radius=args.contact_radius or 0.25 * spacing, drag=args.drag,
                                              fixed_time=args.fixed_time, max_time=args.max_time,
-                                             substeps=args.substeps, cg_tolerance=args.cg_tolerance,
+                                             substeps=args.substeps, integrator=args.integrator,
+                                             damping_rate=args.damping_rate, rim_radius=args.rim_radius,
+                                             cg_tolerance=args.cg_tolerance,
                                              cg_iterations=args.cg_iterations, device=device))
                 except ws.SimulationError as error:  # a run that stopped is reported, not averaged
                     stopped.append(f"- {name} at {spacing * 1e3:.2f} mm, seed {seed}: stopped: {error}")
@@ -105,6 +118,7 @@ def main() -> None:
             rows.append(f"| {name} | {c * 1e3:.2f} | c/{c / spacing:.2f} = {spacing * 1e3:.2f} | {dc.mean():.4f} | "
                         f"{np.ptp(dc):.4f} | {', '.join(str(r.folds) for r in runs)} | "
                         f"{max(r.kinetic_energy for r in runs):.1e} | {max(r.creep for r in runs) * 1e3:.3f} | "
+                        f"{max(r.imbalance for r in runs):.3f} | {runs[0].substeps} | "
                         f"{max(r.time for r in runs):.2f} | "
                         f"{time.perf_counter() - start:.0f} |")
             print(rows[-1], flush=True)
@@ -120,24 +134,30 @@ def main() -> None:
     grid = (f"--spacings {' '.join(map(str, args.spacings))}" if args.spacings
             else f"--fractions {' '.join(map(str, args.fractions))}")
     command = (f"python bench/drape.py --device {args.device} --materials {' '.join(args.materials)} {grid} "
-               f"--seeds {' '.join(map(str, args.seeds))} --substeps {args.substeps} --hinges {args.hinges} --contact-radius {args.contact_radius}"
-               f" --cg-tolerance {args.cg_tolerance:g} --cg-iterations {args.cg_iterations}"
+               f"--seeds {' '.join(map(str, args.seeds))} --integrator {args.integrator}"
+               + (f" --substeps {args.substeps}" if args.substeps else "")
+               + (f" --damping-rate {args.damping_rate:g}" if args.integrator == "symplectic_euler" else
+                  f" --cg-tolerance {args.cg_tolerance:g} --cg-iterations {args.cg_iterations}")
+               + f" --hinges {args.hinges} --contact-radius {args.contact_radius}"
+               + f" --max-time {args.max_time:g}" + (f" --rim-radius {args.rim_radius:g}" if args.rim_radius else "")
                + (f" --drag {args.drag}" if args.drag else "") + (f" --fixed-time {args.fixed_time}" if args.fixed_time else ""))
     text = "\n".join([
-        f"## Cusick drape coefficient against resolution ({args.hinges} hinges, contact radius "
+        f"## Cusick drape coefficient against resolution ({args.integrator}, {args.hinges} hinges, contact radius "
         f"{args.contact_radius or 'spacing/4'})",
         "",
         f"`{command}` — {device.name} ({device.alias}), Warp {wp.config.version}, {datetime.date.today()}",
         "",
         "| material | c [mm] | spacing [mm] | DC mean | spread | folds per start | max KE [J] | max creep [mm/0.1 s] "
-        "| max time [s] | wall [s] |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| max imbalance | substeps | max time [s] | wall [s] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
         *rows,
         "",
         *verdicts,
     ])
     print(text)
-    key = f"drape-{args.hinges}-r{args.contact_radius:g}-d{args.drag:g}-t{args.fixed_time or 0:g}"
+    key = (f"drape-{args.hinges}-r{args.contact_radius:g}-d{args.drag:g}-t{args.fixed_time or 0:g}"
+           + ("-se-" + "-".join(args.materials) + ("" if args.spacings else "-f" + "-".join(map(str, args.fractions)))
+              if args.integrator == "symplectic_euler" else "") + (f"-rim{args.rim_radius:g}" if args.rim_radius else ""))
     write_section(f"{key}-{'s' if args.spacings else 'c'}-{device.alias.replace(':', '')}", text)
 
 

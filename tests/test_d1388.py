@@ -58,31 +58,60 @@ def grid(n: int, spacing: float) -> np.ndarray:
     return np.stack([cols * spacing, rows * spacing, np.zeros((n, n))], -1).reshape(-1, 3)
 
 
-def hinge_energy_density(curvature: np.ndarray, n: int = 17) -> float:
-    """Energy per unit area of the grid's hinges on the surface z = ½ xᵀ K x over the central hinges."""
+def hinge_energy_density(curvature: np.ndarray, n: int = 17, layout: str = "crossed") -> float:
+    """Energy per unit area of the grid's hinges on the surface z = ½ xᵀ K x over the central hinges: those on row
+    and column edges (2 of each per cell, a cell's share being half of each of its 4 edges') and those on the
+    cells' diagonals (2 per cell), each over its own count of cells."""
     spacing = 1.0 / (n - 1)
     x = grid(n, spacing)
     z = 0.5 * np.einsum("ni,ij,nj->n", x[:, :2] - 0.5, curvature, x[:, :2] - 0.5)
     bent = np.c_[x[:, :2], z]
-    hinges, k, _ = wm.grid_hinges(MATERIAL, n, n)
+    hinges, k, _ = wm.grid_hinges(MATERIAL, n, n, layout=layout)
     theta = dihedral_angle(*(bent[hinges[:, i]] for i in range(4)))
     mid = 0.5 * (x[hinges[:, 0], :2] + x[hinges[:, 1], :2])
-    inside = np.all(np.abs(mid - 0.5) < 0.25, axis=1)  # 8 × 8 cells: 64 row and 64 column edges, 2 hinges each
-    return float(np.sum(0.5 * k[inside] * theta[inside] ** 2) / (inside.sum() / 4 * spacing**2))
+    inside = np.all(np.abs(mid - 0.5) < 0.25, axis=1)  # the window's middle half
+    diagonal = np.all(x[hinges[:, 0], :2] != x[hinges[:, 1], :2], axis=1)
+    energy = 0.5 * k * theta**2
+    density = np.sum(energy[inside & ~diagonal]) / (np.sum(inside & ~diagonal) / 4 * spacing**2)
+    if diagonal.any():
+        density += np.sum(energy[inside & diagonal]) / (np.sum(inside & diagonal) / 2 * spacing**2)
+    return float(density)
 
 
+@pytest.mark.parametrize("layout", ["crossed", "straight"])
 @pytest.mark.parametrize("phi", np.linspace(0.0, np.pi, 7))
-def test_grid_hinges_bend_as_an_isotropic_plate(phi):
+def test_grid_hinges_bend_as_an_isotropic_plate(phi, layout):
     """A cylinder of curvature κ in any direction φ stores ½ D κ² (the triangles' own hinges store
     ½ D κ² (1 + sin 2φ + sin² 2φ)); a twist z = B x y stores ½ D · 2 B², a saddle ½ D · 2 κ²: the plate
-    ½ D |κ|² of Poisson's ratio 0. Exact up to the dihedral angles' higher-order terms on this quadratic
-    surface (slopes up to 0.05 inside the window): measured within 3.2e-4 (twist 5.7e-4); tolerance 1e-3."""
+    ½ D |κ|² of Poisson's ratio 0, with either layout. Exact up to the dihedral angles' higher-order terms on
+    this quadratic surface (slopes up to 0.05 inside the window): measured within 3.2e-4 (twist 5.7e-4);
+    tolerance 1e-3."""
     kappa = 0.1
     g = np.array([np.cos(phi), np.sin(phi)])
-    np.testing.assert_allclose(hinge_energy_density(kappa * np.outer(g, g)), 0.5 * MATERIAL.bending * kappa**2,
-                               rtol=1e-3)
+    np.testing.assert_allclose(hinge_energy_density(kappa * np.outer(g, g), layout=layout),
+                               0.5 * MATERIAL.bending * kappa**2, rtol=1e-3)
     twist = kappa * np.array([[0.0, 1.0], [1.0, 0.0]])
-    np.testing.assert_allclose(hinge_energy_density(twist), 0.5 * MATERIAL.bending * 2 * kappa**2, rtol=1e-3)
+    np.testing.assert_allclose(hinge_energy_density(twist, layout=layout), 0.5 * MATERIAL.bending * 2 * kappa**2,
+                               rtol=1e-3)
+
+
+def test_straight_layout_has_no_checkerboard_mode():
+    """The checkerboard z = ±h on alternate particles leaves every crossed hinge flat (energy 0 to round-off),
+    while the straight layout folds each straight hinge by 4h/a and each diagonal one by 4√2 h/a: on an 8 × 8
+    grid with a = 1 and h = 1e-3 that is ½ (D/2) (4h)² per straight hinge and ½ (D/2) (4√2 h)² per diagonal one."""
+    n, h = 8, 1e-3
+    x = grid(n, 1.0)
+    x[:, 2] = h * (-1.0) ** np.add.outer(np.arange(n), np.arange(n)).ravel()
+    energies = {}
+    for layout in ("crossed", "straight"):
+        hinges, k, _ = wm.grid_hinges(MATERIAL, n, n, layout=layout)
+        theta = dihedral_angle(*(x[hinges[:, i]] for i in range(4)))
+        energies[layout] = (hinges, np.sum(0.5 * k * theta**2))
+    assert energies["crossed"][1] < 1e-20
+    hinges = energies["straight"][0]
+    diagonal = np.sum(np.all(x[hinges[:, 0], :2] != x[hinges[:, 1], :2], axis=1))
+    expected = 0.5 * (0.5 * MATERIAL.bending) * ((len(hinges) - diagonal) * (4 * h) ** 2 + diagonal * 32 * h**2)
+    np.testing.assert_allclose(energies["straight"][1], expected, rtol=1e-5)
 
 
 def test_grid_hinges_rigid_side_is_twice_as_stiff():

@@ -3,20 +3,38 @@ centred on a round pedestal, left to settle, and its drape coefficient DC = (A_s
 (A_specimen - A_disc) measured from its shadow (its vertical projection).
 
 The specimen is a square grid trimmed to the disc: the cells whose centres lie within the specimen's
-radius, with the material grid's masses, springs and crossed hinges restricted to them (``grid_masses``,
+radius, with the material grid's masses, springs and hinges restricted to them (``grid_masses``,
 ``grid_springs``, ``grid_hinges`` with a cell mask; a structural spring with one of its two cells gets half
-its stiffness). A_specimen is the area of those cells. The staircase edge is within one cell of the circle
+its stiffness). The hinges are ``grid_hinges``' straight layout by default: the crossed layout (the material
+grid's) let a checkerboard of up to 0.33 mm form in the drape at c/4, shortening the cloth in its plane. A_specimen is the area of those cells. The staircase edge is within one cell of the circle
 and not biased inwards: the first rule tried, cells with all four corners inside, shortened the overhang by
 about half a cell (at 15.77 mm spacing the grid reached only 0.142 m along the axes, and DC came out 0.437
 with 8 folds against 0.354 with 12 folds at 15 mm). The pedestal is a closed mesh cylinder (``trimesh``, 256 sides) whose top face is at z = 0,
 with Coulomb friction; the particles' contact radius is fixed in metres so that it does not change with the
 spacing. The cloth starts flat, just above the pedestal, each particle raised by a random height below
-``perturbation`` (the seed picks the start), and falls under gravity; implicit Euler (no step limit from the
-springs; its conjugate-gradient solve converged to ``cg_tolerance`` at every frame's last step, or the run
-stops) advances it until, at the end of a tenth of a second, its kinetic energy is below ``settled`` [J]
-and no particle moved by ``creep_limit`` [m] or more during it. Kinetic energy alone is not enough: an
-overdamped cloth creeps (measured at 15 mm with a per-particle drag of 2e-3 N·s/m: DC 0.357 at 1 s with
-2e-8 J, 0.3285 at 3 s).
+``perturbation`` (the seed picks the start), and falls under gravity. Symplectic Euler at its stability step
+(h ω_max ≤ 2 ``step_fraction``, ω_max by Gershgorin) with a drag that is a rate (``damping_rate`` [1/s] times an
+interior particle's mass, the same at every spacing) advances it until, at the end of a tenth of a second, its
+kinetic energy is below ``settled`` [J] and no particle moved by ``creep_limit`` [m] or more during it. Kinetic
+energy alone is not enough: an overdamped cloth creeps (measured at 15 mm with a per-particle drag of
+2e-3 N·s/m: DC 0.357 at 1 s with 2e-8 J, 0.3285 at 3 s). The result states how far the settled state is from a
+static equilibrium (``imbalance``: the force that no contact within Coulomb's cone can balance, over the weight).
+
+Why not implicit Euler (``integrator="implicit_euler"``, the settling used before, kept to measure it): its
+settled states were not equilibria, and that is what made the drape coefficient move with the spacing. A
+contact here is a projection after the step. A step of implicit Euler moves each particle by
+(M/h² + K)⁻¹ f, which at h ω_max ≫ 1 (about 60 at 4 substeps and spacing c) is K⁻¹ f: the springs carry a
+particle's force to its neighbours, and the projection then takes back only the normal part of each contact
+particle's move. The fixed point of step and projection leaves contact particles with forces that have
+tangential parts of the order of K times their per-step dive, whatever the friction. Measured on the study
+cloth at c (15.8 mm; force balance of the settled state in float64, gravity, springs and hinges): imbalance 200
+(48 N of contact force for 0.088 N of weight), structural springs stretched up to 13 % around the rim (the
+cloth pulled tight over the pedestal like a drum, 0.014 J of spring energy against 2e-4 J of bending), also
+with friction 0 (0.028 J). At c/2 the same grew to springs stretched 30 % and 0.060 J, the artefact rising
+with resolution as K h²/m ∝ 1/a² at a fixed step. With 64 substeps at c the spring energy fell to 8e-6 J and
+the contact forces to 0.24 N. Symplectic Euler at its stability step has h²K/m = O(1) per particle and its
+contact response is that particle's own: its fixed point is Coulomb's equilibrium (imbalance 0.033 at c, the
+rest the 256-gon against the cylinder of ``imbalance`` and the drag of the last creep).
 
 The shadow is the union of the triangles' projections, rasterised on square pixels of ``pixel`` [m]
 (pixel centres tested against each triangle's edge functions: the area's error is of the order of the
@@ -40,9 +58,11 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+import warp as wp
 
 from .. import checks
 from ..core.builder import ModelBuilder
+from ..core.forces import eval_forces
 from ..core.hinges import mesh_hinges
 from ..core.integrators import make_integrator
 from ..core.material import (
@@ -53,6 +73,7 @@ from ..core.material import (
     hinge_parameters,
 )
 from ..core.simulator import Simulator
+from .omega import gershgorin_omega_max
 from ..errors import ConfigError, SimulationError
 
 GRAVITY = 9.81  # [m/s²]
@@ -78,17 +99,19 @@ class Drape(NamedTuple):
     time: float  # [s] simulated
     positions: np.ndarray  # [m], shape [n, 3]
     faces: np.ndarray  # shape [t, 3]
+    imbalance: float  # [-], the force no frictional contact can supply, over the specimen's weight (``imbalance``)
+    substeps: int  # integrator steps per frame
 
 
 def disc_grid(material: ClothMaterial, builder: ModelBuilder, *, radius: float, spacing: float,
               height: float = 0.0, contact_radius: float, perturbation: float = 0.0, seed: int = 0,
-              hinges: str = "crossed") -> DiscCloth:
+              hinges: str = "straight") -> DiscCloth:
     """Add the trimmed-disc grid cloth of ``material`` (radius [m], spacing [m]) to ``builder``, flat at
     ``height`` [m], each particle raised by a uniform random height in [0, ``perturbation``) [m] (``seed``),
-    centred on the z axis. ``hinges``: "crossed" (``grid_hinges``) or "triangles" (the triangles' own hinges
+    centred on the z axis. ``hinges``: "crossed" or "straight" (``grid_hinges``' layouts) or "triangles" (the triangles' own hinges
     by ``hinge_parameters``, as the material grid had before: kept to measure the difference)."""
-    if hinges not in ("crossed", "triangles"):
-        raise ConfigError(f"hinges must be 'crossed' or 'triangles', got {hinges!r}")
+    if hinges not in ("crossed", "straight", "triangles"):
+        raise ConfigError(f"hinges must be 'crossed', 'straight' or 'triangles', got {hinges!r}")
     radius, spacing = checks.positive("radius", radius), checks.positive("spacing", spacing)
     half = math.ceil(radius / spacing)
     n = 2 * half + 1
@@ -119,14 +142,17 @@ def disc_grid(material: ClothMaterial, builder: ModelBuilder, *, radius: float, 
     pairs = np.concatenate([np.stack([g[:, :-1], g[:, 1:]], -1)[row_share > 0],
                             np.stack([g[:-1, :], g[1:, :]], -1)[col_share > 0]])
     share = np.concatenate([row_share[row_share > 0], col_share[col_share > 0]])
-    builder.add_springs(ids[index[pairs]], stiffness=k.structural_stiffness * share,
+    # Rest lengths of the flat grid, not of the raised start: random heights δz would shorten the flat sheet's springs
+    # by δz²/2a, a compression ∝ 1/a² (1e-3 at 2 mm with δz up to 0.1 mm).
+    builder.add_springs(ids[index[pairs]], stiffness=k.structural_stiffness * share, rest_length=spacing,
                         damping=k.structural_damping * share, family="structural")
     diagonals = np.concatenate([np.stack([g[:-1, :-1], g[1:, 1:]], -1)[cells], np.stack([g[:-1, 1:], g[1:, :-1]], -1)[cells]])
-    builder.add_springs(ids[index[diagonals]], stiffness=k.shear_stiffness, damping=k.shear_damping, family="shear")
+    builder.add_springs(ids[index[diagonals]], stiffness=k.shear_stiffness, damping=k.shear_damping,
+                        rest_length=math.sqrt(2.0) * spacing, family="shear")
     a, b, c, d = (corner[cells] for corner in (g[:-1, :-1], g[:-1, 1:], g[1:, 1:], g[1:, :-1]))
     faces = index[np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])]
-    if hinges == "crossed":
-        local, k_theta, kd_theta = grid_hinges(material, n, n, cells=cells)
+    if hinges in ("crossed", "straight"):
+        local, k_theta, kd_theta = grid_hinges(material, n, n, cells=cells, layout=hinges)
         local = index[local]
     else:
         flat = np.c_[xy, np.zeros(len(xy))]
@@ -182,6 +208,42 @@ def count_folds(positions, hem, *, bins: int = 360, smooth: int = 9) -> int:
     return int(np.sum((smooth_profile > np.roll(smooth_profile, 1)) & (smooth_profile >= np.roll(smooth_profile, -1))))
 
 
+def imbalance(positions, forces, mass, *, disc_radius: float, contact_radius: float, friction: float,
+              rim_radius: float = 0.0, reach: float = 1.0e-4, floor: float = 0.0) -> float:
+    """How far a state is from a static equilibrium on the pedestal [-]: the part of the particles' forces that
+    no contact within Coulomb's cone can balance, summed over the particles and divided by the total weight.
+
+    The contact force a particle needs is -f (``forces``: gravity, drag and the elements, at rest nothing else
+    acts). A particle within ``contact_radius`` + ``reach`` [m] of the pedestal (a solid cylinder of
+    ``disc_radius`` [m] with its top at z = 0 and its rim rounded to ``rim_radius`` [m]: top, side or rim) can
+    receive a force g with normal part
+    g_n ≥ 0 and tangential part |g_t| ≤ μ g_n; what lies outside that cone, max(|g_t| - μ g_n, -g_n, 0), is
+    unbalanced, and a particle out of reach has all of |g| unbalanced; ``floor`` [N] of each particle's excess is
+    not counted (the round-off of its forces). 0 for an exact equilibrium.
+
+    Args:
+        positions: [m], shape [n, 3]; forces: [N], shape [n, 3]; mass: [kg], shape [n].
+    """
+    p = np.asarray(positions, dtype=np.float64)
+    g = -np.asarray(forces, dtype=np.float64)
+    rho = np.hypot(p[:, 0], p[:, 1])
+    radial = np.c_[p[:, :2] / np.maximum(rho, 1e-30)[:, None], np.zeros(len(p))]
+    # In the (ρ, z) half-plane: the top (ρ ≤ R - f), the side (z ≤ -f), else the rim's quarter circle around
+    # (R - f, -f) (f = 0: the sharp corner).
+    inner, low = disc_radius - rim_radius, -rim_radius
+    corner = (rho - inner)[:, None] * radial + [0.0, 0.0, 1.0] * (p[:, 2:] - low)
+    corner_length = np.linalg.norm(corner, axis=1)
+    top, side = rho <= inner, (p[:, 2] <= low) & (rho > inner)
+    normal = np.where(top[:, None], [0.0, 0.0, 1.0],
+                      np.where(side[:, None], radial, corner / np.maximum(corner_length, 1e-30)[:, None]))
+    distance = np.where(top, p[:, 2], np.where(side, rho - disc_radius, corner_length - rim_radius))
+    touching = (distance <= contact_radius + reach) & (distance > 0.0)
+    g_n = np.sum(g * normal, axis=1)
+    g_t = np.linalg.norm(g - g_n[:, None] * normal, axis=1)
+    excess = np.where(touching, np.maximum(np.maximum(g_t - friction * g_n, -g_n), 0.0), np.linalg.norm(g, axis=1))
+    return float(np.maximum(excess - floor, 0.0).sum() / (np.sum(mass) * GRAVITY))
+
+
 def _check_solve(integrator, t: float) -> None:
     """Raise where the last implicit solve stopped at its iteration cap above its tolerance (module docstring)."""
     iterations, residual, rhs = integrator.solve_report()
@@ -211,9 +273,10 @@ def _check_on_pedestal(q: np.ndarray, xy: np.ndarray, disc_radius: float, contac
 def cusick(material: ClothMaterial, *, spacing: float, specimen_radius: float = 0.15, disc_radius: float = 0.09,
            contact_radius: float = 1.0e-3, friction: float = 0.5, perturbation: float = 1.0e-4, seed: int = 0,
            settled: float = 1.0e-6, creep_limit: float = 1.0e-4, max_time: float = 20.0, fps: int = 60,
-           substeps: int = 4, pixel: float = 2.5e-4, hinges: str = "crossed", drag: float = 0.0,
+           substeps: int | None = None, pixel: float = 2.5e-4, hinges: str = "straight", drag: float = 0.0,
            fixed_time: float | None = None, cg_tolerance: float = 1.0e-7, cg_iterations: int = 5000,
-           device=None) -> Drape:
+           integrator: str = "symplectic_euler", damping_rate: float = 20.0, step_fraction: float = 0.8,
+           rim_radius: float = 0.0, device=None) -> Drape:
     """Drape ``material`` on the pedestal and measure it (module docstring).
 
     ``drag`` [N·s/m] is the builder's per-particle drag (its damping rate drag / m grows as 1 / spacing²), and
@@ -225,15 +288,41 @@ def cusick(material: ClothMaterial, *, spacing: float, specimen_radius: float = 
 
     if not isinstance(material, ClothMaterial):
         raise ConfigError(f"material must be a warpspring.ClothMaterial, got {type(material).__name__}")
+    if integrator not in ("symplectic_euler", "implicit_euler"):
+        raise ConfigError(f"integrator must be 'symplectic_euler' or 'implicit_euler', got {integrator!r}")
+    damping_rate = checks.non_negative("damping_rate", damping_rate)
+    if integrator == "symplectic_euler" and drag == 0.0:
+        # A rate, not a per-particle coefficient: an interior particle (mass ρ_A a²) loses damping_rate of its
+        # momentum per second at every spacing.
+        drag = damping_rate * material.density * spacing**2
     builder = ModelBuilder(up_axis="Z", gravity=(0.0, 0.0, -GRAVITY), drag=drag)
     cloth = disc_grid(material, builder, radius=specimen_radius, spacing=spacing, height=1.5 * contact_radius,
                       contact_radius=contact_radius, perturbation=perturbation, seed=seed, hinges=hinges)
     pedestal_height = 2.0 * specimen_radius
-    pedestal = trimesh.creation.cylinder(radius=disc_radius, height=pedestal_height, sections=256)
-    builder.add_collider_mesh(pedestal, center=(0.0, 0.0, -0.5 * pedestal_height), friction=friction)
+    rim_radius = checks.non_negative("rim_radius", rim_radius)
+    if rim_radius == 0.0:
+        pedestal = trimesh.creation.cylinder(radius=disc_radius, height=pedestal_height, sections=256)
+        centre = (0.0, 0.0, -0.5 * pedestal_height)
+    elif rim_radius < disc_radius:
+        # The (ρ, z) profile from the bottom's centre up the side, round the rim and in to the top's centre.
+        turn = np.linspace(0.0, 0.5 * np.pi, 17)
+        profile = np.r_[[[0.0, -pedestal_height], [disc_radius, -pedestal_height]],
+                        np.c_[disc_radius - rim_radius + rim_radius * np.cos(turn), -rim_radius + rim_radius * np.sin(turn)],
+                        [[0.0, 0.0]]]
+        pedestal = trimesh.creation.revolve(profile, sections=256)
+        centre = (0.0, 0.0, 0.0)
+    else:
+        raise ConfigError(f"rim_radius must be below disc_radius ({disc_radius} m), got {rim_radius}")
+    builder.add_collider_mesh(pedestal, center=centre, friction=friction)
     model = builder.finalize(device)
-    integrator = make_integrator("implicit_euler", model, cg_tolerance=cg_tolerance, cg_iterations=cg_iterations)
-    sim = Simulator(model, integrator=integrator, fps=fps, substeps=substeps)
+    if integrator == "implicit_euler":
+        stepper = make_integrator("implicit_euler", model, cg_tolerance=cg_tolerance, cg_iterations=cg_iterations)
+        substeps = 4 if substeps is None else substeps
+    else:
+        stepper = make_integrator("symplectic_euler", model)
+        if substeps is None:  # h ω_max ≤ 2 step_fraction, ω_max by Gershgorin (an upper bound)
+            substeps = math.ceil(gershgorin_omega_max(model) / (2.0 * step_fraction * fps))
+    sim = Simulator(model, integrator=stepper, fps=fps, substeps=substeps)
     mass = model.particle_mass.numpy().reshape(-1)
     window = max(1, round(0.1 * fps))  # frames in a tenth of a second
     frames, energy, creep = 0, math.inf, math.inf
@@ -242,7 +331,8 @@ def cusick(material: ClothMaterial, *, spacing: float, specimen_radius: float = 
     while frames < round(end * fps):
         sim.step_frame()
         frames += 1
-        _check_solve(integrator, frames / fps)
+        if integrator == "implicit_euler":
+            _check_solve(stepper, frames / fps)
         if frames % window:
             continue
         qd = sim.state.particle_qd.numpy().astype(np.float64)
@@ -254,7 +344,15 @@ def cusick(material: ClothMaterial, *, spacing: float, specimen_radius: float = 
         if fixed_time is None and energy < settled and creep < creep_limit:
             break
     q = sim.state.particle_q.numpy().astype(np.float64)
+    eval_forces(model, sim.state, None)
+    # Round-off: a stored position is off by up to ε |x| (float32: 1.8e-8 m at 0.15 m), which moves each of a
+    # particle's springs (4 structural, 4 shear) by as much at either end: at c/4 such forces reach its weight.
+    springs = grid_springs(material)
+    epsilon = float(np.finfo(np.float32 if model.scalar == wp.float32 else np.float64).eps)
+    floor = 8.0 * (springs.structural_stiffness + springs.shear_stiffness) * epsilon * float(np.abs(q).max())
+    unbalanced = imbalance(q, sim.state.particle_f.numpy(), mass, disc_radius=disc_radius, rim_radius=rim_radius,
+                           contact_radius=contact_radius, friction=friction, floor=floor)
     shadow = shadow_area(q, cloth.faces, pixel=pixel)
     disc = math.pi * disc_radius**2
     return Drape((shadow - disc) / (cloth.area - disc), count_folds(q, cloth.hem), shadow, energy, creep,
-                 frames / fps, q, cloth.faces)
+                 frames / fps, q, cloth.faces, unbalanced, substeps)

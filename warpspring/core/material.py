@@ -305,8 +305,8 @@ def hinge_parameters(material: ClothMaterial, vertices, hinges) -> tuple[np.ndar
     return k_theta, (material.bending_damping / material.bending) * k_theta
 
 
-def grid_hinges(material: ClothMaterial, nx: int, ny: int, *, pinned=None,
-                cells=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def grid_hinges(material: ClothMaterial, nx: int, ny: int, *, pinned=None, cells=None,
+                layout: str = "crossed") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Bending hinges of an nx × ny grid (particle r·nx + c at column c, row r): two crossed hinges on every
     interior row and column edge, none on the diagonals, which bend the grid as an isotropic plate.
 
@@ -331,28 +331,47 @@ def grid_hinges(material: ClothMaterial, nx: int, ny: int, *, pinned=None,
     the elastica's D1388 overhang over 4, 8, 16, 32 cells has its chord at 54.0, 48.2, 44.9, 43.2° instead of
     41.5°; with the rule 43.4, 42.0, 41.6, 41.5°, second order).
 
+    The crossed hinges leave one mode free: the checkerboard z = ±h on alternate particles keeps both hinges of
+    every edge flat, so only the springs resist it. ``layout="straight"`` has no such mode and the same energy
+    for smooth bending: each interior column edge carries two straight hinges, wings (r, c-1) & (r, c+1) and
+    (r+1, c-1) & (r+1, c+1), folding by a|A| each (row edges likewise by a|C|), and each cell's two diagonals a
+    hinge whose wings are the cell's other corners, folding by √2 a|B|; with k_θ = D/2 on all of them the energy
+    per unit area is ½ D/2 (2A² + 2C²) + 2 · ½ D/2 · 2B² = ½ D |κ|², while the checkerboard folds every
+    straight hinge by 4h/a and every diagonal one by 4√2 h/a. (Measured in the settled Cusick drape at c/4:
+    a checkerboard of up to 0.33 mm with the crossed hinges; analysis/drape.py.) The diagonal hinges' edges are
+    never both pinned unless the whole cell is, so the rigid-side rule concerns the straight hinges only.
+
     Args:
         nx, ny: particles per row and per column (≥ 2).
         pinned: optional boolean mask of pinned particles, shape [ny·nx].
         cells: optional boolean mask of the cells present (see :func:`grid_masses`): an edge gets its hinges
-            when both cells beside it are present.
+            when both cells beside it are present; a diagonal hinge when its cell is.
+        layout: "crossed" or "straight" (above).
 
     Returns:
         ``(hinges, k_theta, kd_theta)``: local particle indices [h, 4] (edge x0 → x1, wings x2 and x3 wound as
         the grid's faces, normals along the grid's +z), stiffness [N·m/rad] and damping [N·m·s/rad], shape [h].
     """
     nx, ny = checks.count("nx", nx, minimum=2), checks.count("ny", ny, minimum=2)
+    if layout not in ("crossed", "straight"):
+        raise ConfigError(f"layout must be 'crossed' or 'straight', got {layout!r}")
     g = np.arange(nx * ny).reshape(ny, nx)
     present = _cell_mask(cells, nx, ny)
     blocks = []
+    straight = layout == "straight"
     if nx > 2:  # column edges (r, c) → (r+1, c), 0 < c < nx-1: wings at columns c-1 (x2) and c+1 (x3)
         x0, x1 = g[:-1, 1:-1], g[1:, 1:-1]
         both = present[:, :-1] & present[:, 1:]
-        blocks += [np.stack([x0, x1, g[:-1, :-2], g[1:, 2:]], -1)[both], np.stack([x0, x1, g[1:, :-2], g[:-1, 2:]], -1)[both]]
+        first, second = (g[:-1, 2:], g[1:, 2:]) if straight else (g[1:, 2:], g[:-1, 2:])
+        blocks += [np.stack([x0, x1, g[:-1, :-2], first], -1)[both], np.stack([x0, x1, g[1:, :-2], second], -1)[both]]
     if ny > 2:  # row edges (r, c) → (r, c+1), 0 < r < ny-1: wings at rows r+1 (x2) and r-1 (x3)
         x0, x1 = g[1:-1, :-1], g[1:-1, 1:]
         both = present[:-1, :] & present[1:, :]
-        blocks += [np.stack([x0, x1, g[2:, :-1], g[:-2, 1:]], -1)[both], np.stack([x0, x1, g[2:, 1:], g[:-2, :-1]], -1)[both]]
+        first, second = (g[:-2, :-1], g[:-2, 1:]) if straight else (g[:-2, 1:], g[:-2, :-1])
+        blocks += [np.stack([x0, x1, g[2:, :-1], first], -1)[both], np.stack([x0, x1, g[2:, 1:], second], -1)[both]]
+    if straight:  # each cell's diagonals, wound as the faces: (r, c) → (r+1, c+1) and (r+1, c) → (r, c+1)
+        blocks += [np.stack([g[:-1, :-1], g[1:, 1:], g[1:, :-1], g[:-1, 1:]], -1)[present],
+                   np.stack([g[1:, :-1], g[:-1, 1:], g[1:, 1:], g[:-1, :-1]], -1)[present]]
     hinges = np.concatenate(blocks) if blocks else np.zeros((0, 4), np.int64)
     k = np.full(len(hinges), 0.5 * material.bending)
     if pinned is not None:
