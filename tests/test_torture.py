@@ -16,8 +16,9 @@ order than the per-particle step, so that the run follows another path) is not a
 one. Its one crossing (substep 18 of the 60th frame, t = 0.998 s) is between the turned, pinned edge 104-125, which
 moves 0.356 mm in the substep, and the free edge 123-124 beside it, 0.115 mm away at the substep's start (K >= D);
 through the frame the cap of its other pairs had held vertex 123 to at most 0.18 mm a substep (0 in 9 of the 20),
-against the 1.4-1.8 mm the integrator gave it, while the pinned edge closed in (1.9 mm at the frame's start). The cap bounds free vertices only: such a pair is beyond it, and the pass
-now counts it (``counts()["outrun"]``).
+against the 1.4-1.8 mm the integrator gave it, while the pinned edge closed in (1.9 mm at the frame's start). The
+cap bounds free vertices only: such a pair is beyond it, and the pass now counts it (``SelfContact.outrun()``). Every
+small run that crossed counted such pairs, every clean one none.
 """
 
 import numpy as np
@@ -64,7 +65,7 @@ def test_cap_holds_below_the_precision(device):
         assert moved.max() <= DEFAULT_RELAXATION * gap
         assert len(audit.motion(x0, x1).touches) == 0
         a, b = b, a
-    assert model.self_contact.counts()["outrun"][0] == 0  # no kinematic vertex: no pair beyond the cap
+    assert model.self_contact.outrun()[0] == 0  # no kinematic vertex: no pair beyond the cap
 
 
 # Thirteen vertices of the small 720° twist under symplectic Euler (the CPU's sweep) at the substep of its crossing
@@ -127,14 +128,14 @@ def pinned_edge_step(device):
 def test_a_pin_outrunning_its_gap_is_counted(device):
     """The twist's crossing cut out of the run (``pinned_edge_step``): the pinned edge 5-9 moves further (K) than its
     distance D to the free edge 7-8, beyond what the cap can hold apart (it bounds free vertices only); the pass
-    counts such pairs (``counts()["outrun"]``), and the fold squeezed without pins (no kinematic vertex) counts
+    counts such pairs (``SelfContact.outrun()``), and the fold squeezed without pins (no kinematic vertex) counts
     none."""
     x0 = PIN_START.astype(np.float64)
     gap = edge_edge_distance(*x0[[5, 9, 7, 8]])
     reach = np.linalg.norm(PIN_END.astype(np.float64)[[5, 9]] - x0[[5, 9]], axis=1).max()
     assert reach > 3.0 * gap  # the case: K = 0.356 mm against D = 0.115 mm
     model, _, _ = pinned_edge_step(device)
-    assert model.self_contact.counts()["outrun"][0] >= 1
+    assert model.self_contact.outrun()[0] >= 1
 
 
 @pytest.mark.xfail(strict=True, reason=KINEMATIC_CAUSE)
@@ -170,13 +171,14 @@ BATTERY = [
 @pytest.mark.parametrize("scene, integrator, duration, frames", BATTERY)
 def test_battery_never_crosses(scene, integrator, duration, frames):
     """A scene of the battery under an integrator (CPU, small size): no crossing during any substep and no
-    intersection at any substep's end (float64 continuous audit), no pair list overflowed, no guard stop; and the
-    surface did press on itself (pairs were pushed apart)."""
+    intersection at any substep's end (float64 continuous audit), no pair list overflowed, no pair beyond the cap
+    (a pin outrunning its distance), no guard stop; and the surface did press on itself (pairs were pushed apart)."""
     result = run_case(scene, integrator, size="small", device="cpu", duration=duration, frames=frames)
     assert result.error is None
     assert result.audit.substeps == result.frames * result.substeps > 0
     assert result.audit.crossings == 0 and result.audit.intersections == 0, result.audit.line()
     assert result.overflow == 0
+    assert result.outrun == 0  # no pair beyond the cap (every run that crossed had some; see KINEMATIC)
     assert result.pairs > 0
 
 

@@ -494,7 +494,7 @@ class SubstepAudit(FrameHook):
                     self.first = (start + (k + 1) * sim.dt, world, what)
         if sim.model.self_contact is not None:
             self.overflow = int(sim.model.self_contact.overflow().sum())
-            self.outrun = int(sim.model.self_contact.counts()["outrun"].sum())
+            self.outrun = int(sim.model.self_contact.outrun().sum())
 
     @property
     def clean(self) -> bool:
