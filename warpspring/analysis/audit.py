@@ -436,11 +436,13 @@ class SubstepAudit(FrameHook):
         min_distance: the smallest distance [m] at any substep's end (within τ; ``inf`` when none came that close).
         first: (time [s], world, what) of the first finding, or ``None``.
         overflow: the self-collision's pairs dropped for a full pair list (0 without self-collision).
+        outrun: the self-collision's pairs whose kinematic vertices moved in a step at least the pair's distance
+            (K ≥ D: beyond its cap; 0 without self-collision).
     """
 
     def __init__(self, *, thickness: float | None = None):
         self.thickness = thickness
-        self.substeps = self.crossings = self.intersections = self.close = self.overflow = 0
+        self.substeps = self.crossings = self.intersections = self.close = self.overflow = self.outrun = 0
         self.min_distance = np.inf
         self.first = None
         self._record = self._surface = None
@@ -492,6 +494,7 @@ class SubstepAudit(FrameHook):
                     self.first = (start + (k + 1) * sim.dt, world, what)
         if sim.model.self_contact is not None:
             self.overflow = int(sim.model.self_contact.overflow().sum())
+            self.outrun = int(sim.model.self_contact.outrun().sum())
 
     @property
     def clean(self) -> bool:
@@ -508,6 +511,9 @@ class SubstepAudit(FrameHook):
             text += f"; first at t = {self.first[0]:.4g} s (world {self.first[1]}: {self.first[2]})"
         if self.overflow:
             text += f"; {self.overflow} self-collision pairs dropped for a full pair list"
+        if self.outrun:
+            text += (f"; {self.outrun} pair-steps where a pinned (kinematic) element moved further than its distance "
+                     f"to the surface (beyond the self-collision's cap)")
         return text
 
 

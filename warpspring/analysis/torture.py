@@ -154,6 +154,8 @@ class CaseResult:
         audit: the :class:`SubstepAudit` (crossings, intersections, close pairs, minimum distance, first finding).
         pairs, capped: the self-collision's pairs pushed apart and vertices capped over the run.
         overflow: pairs dropped for a full pair list.
+        outrun: pair-steps whose kinematic vertices moved at least the pair's distance (K ≥ D: beyond the cap, the
+            guarantee does not cover them).
         error: the simulation's error message, if it stopped (a guard), else ``None``.
         wall: wall time [s] of the run (simulation and audit), audit: of the audit alone.
     """
@@ -168,6 +170,7 @@ class CaseResult:
     pairs: int
     capped: int
     overflow: int
+    outrun: int
     error: str | None
     wall: float
     audit_wall: float
@@ -181,12 +184,12 @@ class CaseResult:
         first = "" if a.first is None else f"{a.first[0]:.3f} s: {a.first[2]}"
         return [self.scene, self.integrator, self.particles, self.frames * self.substeps, a.crossings,
                 a.intersections, a.close, f"{a.min_distance * 1e3:.3f}" if np.isfinite(a.min_distance) else "-",
-                self.pairs, self.capped, self.overflow,
+                self.pairs, self.capped, self.overflow, self.outrun,
                 "; ".join(filter(None, [first, self.error and f"stopped: {self.error}"])), f"{self.wall:.0f}"]
 
 
 HEADER = ["scene", "integrator", "particles", "substeps", "crossings", "intersections", "pairs < τ/2", "min d [mm]",
-          "pairs pushed", "capped", "overflow", "first finding", "wall [s]"]
+          "pairs pushed", "capped", "overflow", "pins outran", "first finding", "wall [s]"]
 
 
 class _Timed(SubstepAudit):
@@ -226,4 +229,4 @@ def run_case(scene: str, integrator: str, *, size: str = "full", device=None, fr
     return CaseResult(scene=scene, integrator=integrator, device=str(model.device), particles=model.particle_count,
                       frames=sim.frame, substeps=substeps, audit=audit, pairs=int(counts["pairs"].sum()),
                       capped=int(counts["capped"].sum()), overflow=int(model.self_contact.overflow().sum()),
-                      error=error, wall=wall, audit_wall=audit.wall)
+                      outrun=int(model.self_contact.outrun().sum()), error=error, wall=wall, audit_wall=audit.wall)

@@ -19,6 +19,7 @@ from ..kernels.selfcontact import (
     CACHE_SLOTS,
     COUNT_CAPPED,
     COUNT_FALLBACKS,
+    COUNT_OUTRUN,
     COUNT_OVERFLOW,
     COUNT_PAIRS,
     COUNT_REBUILDS,
@@ -243,6 +244,12 @@ class SelfContact:
         ``capped`` vertices (int64 arrays [world_count]; reads the device)."""
         counters = self.counters.numpy().astype(np.int64)
         return {"pairs": counters[:, COUNT_PAIRS], "capped": counters[:, COUNT_CAPPED]}
+
+    def outrun(self) -> np.ndarray:
+        """Pairs whose kinematic vertices moved in a step at least the pair's distance (K ≥ D: beyond the cap, which
+        bounds free vertices only; such a pair may cross), per world, summed over steps since the start or
+        :meth:`reset` (int64 [world_count]; reads the device). Zero in a run the no-crossing guarantee covers."""
+        return self.counters.numpy()[:, COUNT_OUTRUN].astype(np.int64)
 
     def overflow(self) -> np.ndarray:
         """Pairs dropped because a world's pair buffer was full, per world, summed since the start or

@@ -56,7 +56,8 @@ stages keep the same pairs as a broad phase every step):
    D − K − γ(D − K) = (1 − γ)(D − K) > 0 when K ≥ γ(D − K), and above D − 2γ(D − K) ≥ (1 − 2γ)(D − K) > 0
    otherwise. With no kinematic vertex (K = 0) this is the bound γD per vertex and the margin D(1 − 2γ).
    A pair with K ≥ D (a pin moving further in a step than its distance to the surface) is beyond the cap
-   (no bound on the free side could keep it apart; the repulsion alone acts on it), and is not listed.
+   (no bound on the free side could keep it apart; the repulsion alone acts on it), and is not listed; it is
+   counted (COUNT_OUTRUN), so that a run says where the guarantee did not hold.
    If the world's cap buffer overflowed, a listed pair may be missing: every free vertex of that world then
    stays at x⁰ for the step (δ = 0 satisfies every bound), and the overflow is counted.
    The BVH is single precision: query and leaf boxes are padded by ``BOX_PAD`` relative to the coordinates.
@@ -98,7 +99,8 @@ COUNT_CAPPED = 1  # vertices whose displacement the cap shortened
 COUNT_OVERFLOW = 2  # pairs dropped because the world's pair buffer was full
 COUNT_REBUILDS = 3  # steps that rebuilt the world's pair cache (module selfcontact_cache)
 COUNT_FALLBACKS = 4  # steps whose cap ran the swept broad phase instead of the cache
-COUNTER_COUNT = 5
+COUNT_OUTRUN = 5  # pairs whose kinematic vertices moved at least the pair's distance (K >= D: beyond the cap)
+COUNTER_COUNT = 6
 
 #: The pair cache (module ``selfcontact_cache``): it lists the pairs closer than this many thicknesses at its
 #: anchor positions, and is rebuilt when a vertex has drifted half the difference to REPULSION_REACH from them.
@@ -396,6 +398,21 @@ def broad_kernel(scalar: type, swept: bool):
         return gap > scalar(0.0) and free_step > relaxation * gap, gap
 
     @wp.func
+    def outruns(
+        value: scalar, vertex: wp.vec4i, base: int, mass_row: int, limit: scalar, particle_flags: wp.array[wp.int32],
+        particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
+    ):
+        """Whether a pair the swept broad phase did not keep has D - K ≤ 0 (``value``) with kinematic vertices that
+        moved (K > 0): beyond the cap, counted (COUNT_OUTRUN)."""
+        if wp.static(not swept):
+            return False
+        if value > scalar(0.0):
+            return False
+        kinematic, _ = sweep_bounds(vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
+                                    particle_q_start, particle_q_end)
+        return kinematic > scalar(0.0)
+
+    @wp.func
     def query_box(ends: wp.vec2i, base: int, mass_row: int, limit: scalar, query_reach: scalar,
                   particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
                   particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3]):
@@ -496,6 +513,9 @@ def broad_kernel(scalar: type, swept: bool):
                         if kept:
                             key = wp.int64(v) * wp.int64(triangle_count) + wp.int64(t)
                             push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
+                        elif outruns(value, vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
+                                     particle_q_start, particle_q_end):
+                            wp.atomic_add(counters_out, world, COUNT_OUTRUN, 1)
                 # EE: the edge's own query would have reported t where its box overlaps t's leaf box.
                 if owns_edge[m] == 1 and boxes_overlap_f(edge_lower[m], edge_upper[m], leaf_lower, leaf_upper):
                     e = sides[m]
@@ -534,6 +554,9 @@ def broad_kernel(scalar: type, swept: bool):
                                        + wp.int64(e) * wp.int64(edge_count) + wp.int64(f))
                                 push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out,
                                           counters_out)
+                            elif outruns(value, vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
+                                         particle_q_start, particle_q_end):
+                                wp.atomic_add(counters_out, world, COUNT_OUTRUN, 1)
 
     return broad
 

@@ -54,6 +54,7 @@ from .selfcontact import (
     BOX_PAD,
     CACHE_REACH,
     COUNT_FALLBACKS,
+    COUNT_OUTRUN,
     COUNT_REBUILDS,
     FLAG_DRIFT,
     FLAG_FALLBACK,
@@ -273,7 +274,9 @@ def cap_bounds_kernel(scalar: type):
     """Kernel of the cap's narrow phase over the cache (module docstring, 4.), one thread per particle of every
     world taking its world's slots local, local + particle_count, ...: each cached pair's D - K where the swept
     broad phase would have kept it (its swept single-precision boxes overlap and max δ > γ (D - K) > 0),
-    ``NO_BOUND`` elsewhere. Worlds flagged FLAG_FALLBACK are skipped (their cap reads the swept list)."""
+    ``NO_BOUND`` elsewhere; a pair whose boxes overlap and whose kinematic vertices move at least its distance
+    (K ≥ D: beyond the cap) is counted (COUNT_OUTRUN). Worlds flagged FLAG_FALLBACK are skipped (their cap reads the
+    swept list)."""
     vec3 = vec3_type(scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
     box_of, _, _, sweep_bounds, _ = _pair_funcs(scalar)
@@ -351,6 +354,8 @@ def cap_bounds_kernel(scalar: type):
         gap = distance - kinematic
         if gap > zero and free_step > relaxation * gap:
             return gap
+        if not (gap > zero) and kinematic > zero:
+            return scalar(-NO_BOUND)  # a pin outruns the pair's distance (K >= D): beyond the cap
         return scalar(NO_BOUND)
 
     @flat_kernel(module="unique", enable_backward=False)
@@ -388,7 +393,11 @@ def cap_bounds_kernel(scalar: type):
         limit = relaxation * scalar(SEARCH_REACH) * params[row, PARAM_THICKNESS]
         for slot in range(local, wp.min(cache.count[world], capacity), particle_count):
             s = world * capacity + slot
-            cache_bound_out[s] = bound_of(s, base, mass_row, relaxation, limit, particle_count, particle_flags,
-                                          particle_inv_mass, surface, cache, particle_q_start, particle_q_end)
+            bound = bound_of(s, base, mass_row, relaxation, limit, particle_count, particle_flags, particle_inv_mass,
+                             surface, cache, particle_q_start, particle_q_end)
+            if bound < scalar(0.0):
+                wp.atomic_add(counters_out, world, COUNT_OUTRUN, 1)
+                bound = scalar(NO_BOUND)
+            cache_bound_out[s] = bound
 
     return cap_bounds
