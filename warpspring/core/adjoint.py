@@ -271,7 +271,7 @@ class DiffRun:
         """Step ``step`` (1, 2, ...) from (q, v) into arrays of ``pool``; returns the new (q, v)."""
         _fresh = pool.take
         model = self.model
-        symplectic, drift, kick = diff_update_kernels(model.scalar, self.deterministic, self._pins is not None)
+        update, kick = diff_update_kernels(model.scalar, self.deterministic, self._pins is not None)
         mass = [model.particle_count, model.particle_flags, self.values["particle_inv_mass"]]
         pins = [*self._pin_arguments, step]
         h = model.scalar(self.dt)
@@ -280,10 +280,10 @@ class DiffRun:
         self._forces(q, v, f)
         q_out, v_out = _fresh(), _fresh()
         if self.integrator == "symplectic_euler":
-            wp.launch(symplectic, inputs=[*mass, *pins, q, v, f, h], outputs=[q_out, v_out], **common)
+            wp.launch(update, inputs=[*mass, *pins, q, v, f, h, model.scalar(1.0)], outputs=[q_out, v_out], **common)
             return q_out, v_out
         v_half = _fresh()
-        wp.launch(drift, inputs=[*mass, *pins, q, v, f, h], outputs=[q_out, v_half], **common)
+        wp.launch(update, inputs=[*mass, *pins, q, v, f, h, model.scalar(0.5)], outputs=[q_out, v_half], **common)
         f_half = _fresh()
         self._forces(q_out, v_half, f_half)
         wp.launch(kick, inputs=[*mass, v_half, f_half, h], outputs=[v_out], **common)
@@ -302,11 +302,11 @@ class DiffRun:
         if self._pins is None:
             return q, v
         model = self.model
-        symplectic = diff_update_kernels(model.scalar, self.deterministic, True)[0]
+        update = diff_update_kernels(model.scalar, self.deterministic, True)[0]
         q_out, v_out = pool.take(), pool.take()
-        wp.launch(symplectic, dim=self._n, device=model.device,
+        wp.launch(update, dim=self._n, device=model.device,
                   inputs=[model.particle_count, model.particle_flags, self.values["particle_inv_mass"],
-                          *self._pin_arguments, 0, q, v, self._zero_force, model.scalar(0.0)],
+                          *self._pin_arguments, 0, q, v, self._zero_force, model.scalar(0.0), model.scalar(1.0)],
                   outputs=[q_out, v_out])
         return q_out, v_out
 

@@ -204,19 +204,21 @@ def pin_motion_func(scalar: type):
 
 @functools.cache
 def diff_update_kernels(scalar: type, deterministic: bool = False, pins: bool = False):
-    """Symplectic Euler's update and velocity Verlet's drift and kick from precomputed forces, with adjoints.
+    """(update, kick): symplectic Euler's update and velocity Verlet's drift, and Verlet's kick, from precomputed
+    forces, with adjoints.
 
-    ``symplectic_euler``: v' = v + h M⁻¹ f, x' = x + h v'. ``drift``: v½ = v + ½h M⁻¹ f, x' = x + h v½. ``kick``:
-    v' = v½ + ½h M⁻¹ f. Kinematic particles have M⁻¹ = 0 (they keep their velocity); with ``pins``, a driven pin
-    is put on its track at the step's end instead (``pin_motion_func``; the kick then keeps its velocity), as the
-    ordinary integrators' kinematics pass puts it."""
+    ``update``: v' = v + share h M⁻¹ f, x' = x + h v', with ``share`` 1 for symplectic Euler's update and ½ for
+    Verlet's drift (v' is then v½). ``kick``: v' = v½ + ½h M⁻¹ f. Kinematic particles have M⁻¹ = 0 (they keep their
+    velocity); with ``pins``, a driven pin is put on its track at the step's end instead (``pin_motion_func``; its
+    velocity there standing in for v½, and the kick then keeps it), as the ordinary integrators' kinematics pass
+    puts it."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
     PinTracks = pin_tracks_type(scalar)
     pin_motion = pin_motion_func(scalar)
 
     @wp.kernel(module="unique", enable_backward=True, module_options=options(deterministic))
-    def symplectic_euler(
+    def update(
         # Model:
         particle_count: int,
         particle_flags: wp.array[wp.int32],
@@ -225,11 +227,12 @@ def diff_update_kernels(scalar: type, deterministic: bool = False, pins: bool = 
         pin_tracks: PinTracks,
         pin_keys: wp.array2d[vec3],
         step: int,
-        # State in:
+        # State in (``share``: the step's share the velocity takes, 1 or ½):
         particle_q_in: wp.array[vec3],
         particle_qd_in: wp.array[vec3],
         particle_f: wp.array[vec3],
         dt: scalar,
+        share: scalar,
         # Out:
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
@@ -237,7 +240,7 @@ def diff_update_kernels(scalar: type, deterministic: bool = False, pins: bool = 
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
         w = effective_inv_mass(particle_flags[p], particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i])
-        v = particle_qd_in[p] + (dt * w) * particle_f[p]
+        v = particle_qd_in[p] + (share * dt * w) * particle_f[p]
         x = particle_q_in[p] + dt * v
         if wp.static(pins):
             pin = pin_tracks.particle_pin[i]
@@ -246,38 +249,7 @@ def diff_update_kernels(scalar: type, deterministic: bool = False, pins: bool = 
         particle_qd_out[p] = v
         particle_q_out[p] = x
 
-    @wp.kernel(module="unique", enable_backward=True, module_options=options(deterministic))
-    def drift(
-        # Model:
-        particle_count: int,
-        particle_flags: wp.array[wp.int32],
-        particle_inv_mass: wp.array2d[scalar],
-        # Control (as symplectic_euler's):
-        pin_tracks: PinTracks,
-        pin_keys: wp.array2d[vec3],
-        step: int,
-        # State in:
-        particle_q_in: wp.array[vec3],
-        particle_qd_in: wp.array[vec3],
-        particle_f: wp.array[vec3],
-        dt: scalar,
-        # Out:
-        particle_q_out: wp.array[vec3],
-        particle_qd_half_out: wp.array[vec3],
-    ):
-        p = wp.tid()
-        world, i = world_and_index(p, particle_count)
-        w = effective_inv_mass(particle_flags[p], particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i])
-        v_half = particle_qd_in[p] + (scalar(0.5) * dt * w) * particle_f[p]
-        x = particle_q_in[p] + dt * v_half
-        if wp.static(pins):  # a driven pin at t + h, its velocity there standing in for v½
-            pin = pin_tracks.particle_pin[i]
-            if pin >= 0:
-                x, v_half = pin_motion(world, pin, step, pin_tracks, pin_keys)
-        particle_qd_half_out[p] = v_half
-        particle_q_out[p] = x
-
-    return symplectic_euler, drift, kick_kernel(scalar, deterministic)
+    return update, kick_kernel(scalar, deterministic)
 
 
 @functools.cache
