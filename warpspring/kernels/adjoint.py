@@ -28,6 +28,7 @@ import warp as wp
 
 from .families import elements
 from .forces import ForceFeatures, particle_force_func
+from .integrators import verlet_kick_kernel
 from .kinematics import particle_funcs
 from .precision import vec3_type
 from .worlds import world_and_index
@@ -252,31 +253,10 @@ def diff_update_kernels(scalar: type, deterministic: bool = False, pins: bool = 
     return update, kick_kernel(scalar, deterministic)
 
 
-@functools.cache
 def kick_kernel(scalar: type, deterministic: bool = False):
-    """Velocity Verlet's kick v' = v½ + ½h M⁻¹ f, with its adjoint (``diff_update_kernels``)."""
-    vec3 = vec3_type(scalar)
-    effective_inv_mass = particle_funcs(scalar)
-
-    @wp.kernel(module="unique", enable_backward=True, module_options=options(deterministic))
-    def kick(
-        # Model:
-        particle_count: int,
-        particle_flags: wp.array[wp.int32],
-        particle_inv_mass: wp.array2d[scalar],
-        # State in:
-        particle_qd_half: wp.array[vec3],
-        particle_f: wp.array[vec3],
-        dt: scalar,
-        # Out:
-        particle_qd_out: wp.array[vec3],
-    ):
-        p = wp.tid()
-        world, i = world_and_index(p, particle_count)
-        w = effective_inv_mass(particle_flags[p], particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i])
-        particle_qd_out[p] = particle_qd_half[p] + (scalar(0.5) * dt * w) * particle_f[p]
-
-    return kick
+    """Velocity Verlet's kick v' = v½ + ½h M⁻¹ f, with its adjoint (``diff_update_kernels``): the integrator's own
+    kick compiled with its backward pass and these kernels' module options."""
+    return verlet_kick_kernel(scalar, True, tuple(options(deterministic).items()))
 
 
 @functools.cache

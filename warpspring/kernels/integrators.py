@@ -407,7 +407,17 @@ def verlet_kernels(scalar: type):
         particle_q_out[p] = particle_q_in[p] + h * v_half
         particle_qd_half_out[p] = v_half
 
-    @wp.kernel(module="unique", enable_backward=False)
+    return verlet_drift, verlet_kick_kernel(scalar)
+
+
+@functools.cache
+def verlet_kick_kernel(scalar: type, backward: bool = False, module_options: tuple = ()):
+    """Velocity Verlet's kick (v' = v½ + ½h a') kernel; with ``backward`` and ``module_options`` (the items of a
+    module options dict) the differentiable runs' (``adjoint.kick_kernel``)."""
+    vec3 = vec3_type(scalar)
+    effective_inv_mass = particle_funcs(scalar)
+
+    @wp.kernel(module="unique", enable_backward=backward, module_options=dict(module_options))
     def verlet_kick(
         # Model:
         particle_count: int,
@@ -425,7 +435,7 @@ def verlet_kernels(scalar: type):
         inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i])
         particle_qd_out[p] = particle_qd_half[p] + (scalar(0.5) * dt * inv_mass) * particle_f[p]
 
-    return verlet_drift, verlet_kick
+    return verlet_kick
 
 
 @functools.cache
