@@ -33,6 +33,9 @@ def main():
     parser.add_argument("--frames", type=int, default=30)
     parser.add_argument("--gpu-timing", action="store_true",
                         help="CUDA: each kernel's time on the device (Warp's timing events), not the host's wall time")
+    parser.add_argument("--resources", action="store_true",
+                        help="CUDA: each launched kernel's registers, local (spilled) bytes and resident blocks per "
+                             "multiprocessor at 256 threads a block (the driver's own figures)")
     parser.add_argument("--evaluation", default="auto", choices=["auto", "gather", "scatter"],
                         help="the springs' evaluation (gather on the CPU runs the CUDA default's kernels)")
     args = parser.parse_args()
@@ -45,6 +48,8 @@ def main():
         sim.step_frame()
     if args.gpu_timing:
         device_times(sim, args)
+        if args.resources:
+            resources(device)
         return
     fastest = collections.defaultdict(lambda: float("inf"))
     count = collections.Counter()
@@ -98,6 +103,36 @@ def device_times(sim, args) -> None:
     for name, ms in sorted(total.items(), key=lambda kv: -kv[1]):
         print(f"| {name.split('__locals__')[-1][:60]} | {count[name] / substeps:.2f} | {ms * 1e3 / substeps:.2f} |")
     print(f"sum: {sum(total.values()) * 1e3 / substeps:.2f} µs per substep")
+
+
+def resources(device) -> None:
+    """Registers per thread, local memory per thread (spills) and resident blocks of 256 threads per multiprocessor of
+    every kernel launched so far on ``device`` (``cuFuncGetAttribute``, ``cuOccupancyMaxActiveBlocksPerMultiprocessor``
+    through the driver library: what the compiler gave each kernel)."""
+    import ctypes
+    import gc
+
+    from warp._src.context import ModuleExec
+
+    cuda = ctypes.CDLL("libcuda.so.1")
+    num_regs, local_bytes, static_shared = 4, 3, 1  # CUfunction_attribute
+    print(f"{device.name}: kernel resources (256 threads a block)")
+    print("| kernel | registers | local [B] | static shared [B] | blocks/SM | occupancy |\n|---|---|---|---|---|---|")
+    max_threads = device.max_threads_per_multiprocessor if hasattr(device, "max_threads_per_multiprocessor") else 2048
+    with wp.ScopedDevice(device):
+        for module in [m for m in gc.get_objects() if isinstance(m, ModuleExec) and m.device == device]:
+            for name, hooks in module.kernel_hooks.items():
+                function = ctypes.c_void_p(hooks.forward)
+                values = []
+                for attribute in (num_regs, local_bytes, static_shared):
+                    value = ctypes.c_int(0)
+                    cuda.cuFuncGetAttribute(ctypes.byref(value), attribute, function)
+                    values.append(value.value)
+                blocks = ctypes.c_int(0)
+                cuda.cuOccupancyMaxActiveBlocksPerMultiprocessor(ctypes.byref(blocks), function, 256,
+                                                                 ctypes.c_size_t(hooks.forward_smem_bytes))
+                print(f"| {name.split('__locals__')[-1][:60]} | {values[0]} | {values[1]} | {values[2]} | "
+                      f"{blocks.value} | {blocks.value * 256 / max_threads:.0%} |")
 
 
 if __name__ == "__main__":
