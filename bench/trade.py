@@ -16,6 +16,14 @@ pareto_contact.png).
     python bench/trade.py --device cuda:0 --problems stack --out bench/results/trade_contact_cuda_stack
     python bench/trade.py --device cuda:0 --problems softball softball-neohookean \\
         --out bench/results/trade_contact_cuda_balls     # the contact scenes on a GPU, in three parts
+
+``--table CSV...`` writes the measured trade table that ``substeps = "auto"`` reads
+(``warpspring/analysis/trade_table.json``, shipped with the package; ``warpspring.analysis.trade_table``) from
+studies' CSV files, each with its report (``.md``) beside it for the provenance; a later file's problem replaces an
+earlier one's:
+
+    python bench/trade.py --table bench/results/trade_cpu.csv bench/results/trade_contact_cpu/trade.csv \
+        bench/results/trade_contact_cpu_tablecloth/trade.csv
 """
 
 import pathlib
@@ -23,7 +31,22 @@ import sys
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # this checkout's warpspring
 
+from warpspring.analysis.trade_table import load_table, write_table as write  # noqa: E402
 from warpspring.app.cli import main  # noqa: E402
 
+
+def write_table(paths: list[str]) -> int:
+    if not paths:
+        print("usage: python bench/trade.py --table STUDY.csv [STUDY.csv ...]", file=sys.stderr)
+        return 2
+    path = write(paths)
+    table = load_table(path)
+    print(f"wrote {path} ({pathlib.Path(path).stat().st_size} bytes): floor {table.floor:.3g} m over a frame, "
+          f"{len(table.problems)} contact problem options from {len(table.sources)} studies")
+    return 0
+
+
 if __name__ == "__main__":
+    if sys.argv[1:2] == ["--table"]:
+        sys.exit(write_table(sys.argv[2:]))
     sys.exit(main(["trade", *sys.argv[1:]]))
