@@ -12,17 +12,22 @@ pareto_contact.png).
     python bench/trade.py --device cuda:0 --out trade   # the full study
     python bench/trade.py --device cpu --problems drape stack tablecloth softball softball-neohookean \\
         --out bench/results/trade_contact_cpu            # the contact scenes: ~9 minutes on one CPU core
-    python bench/trade.py --device cuda:0 --problems drape tablecloth --out bench/results/trade_contact_cuda_cloth
-    python bench/trade.py --device cuda:0 --problems stack --out bench/results/trade_contact_cuda_stack
-    python bench/trade.py --device cuda:0 --problems softball softball-neohookean \\
-        --out bench/results/trade_contact_cuda_balls     # the contact scenes on a GPU, in three parts
+    python bench/trade.py --device cuda:0 --quick --problems drape stack tablecloth softball softball-neohookean \\
+        --out bench/results/trade_contact_cuda_quick -q   # the quick contact study on a GPU
+    python bench/trade.py --device cuda:0 --reduced --problems drape stack tablecloth softball softball-neohookean \\
+        --out bench/results/trade_contact_cuda_reduced -q # full-size scenes, every integrator at 20 and 40 substeps
+
+``--reduced`` keeps the full scenes (their costs compare with the full study's rows) with fewer runs: the reference
+option, 20 and 40 substeps, dopri5 at 1e-3, one reference refinement (110 configurations; 179 s on the 2-core CPU
+under load). Every file names the device: the report's header and plot titles, each CSV row (``device``,
+``device_name``), the command's last line.
 
 ``--table CSV...`` writes the measured trade table that ``substeps = "auto"`` reads
 (``warpspring/analysis/trade_table.json``, shipped with the package; ``warpspring.analysis.trade_table``) from
 studies' CSV files, each with its report (``.md``) beside it for the provenance; a later file's problem replaces an
 earlier one's:
 
-    python bench/trade.py --table bench/results/trade_cpu.csv bench/results/trade_contact_cpu/trade.csv \
+    python bench/trade.py --table bench/results/trade_cpu.csv bench/results/trade_contact_cpu/trade.csv \\
         bench/results/trade_contact_cpu_tablecloth/trade.csv
 """
 

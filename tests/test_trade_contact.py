@@ -117,6 +117,8 @@ def test_report_and_choose(study, tmp_path, capsys):
     assert "| run (substeps) | against | horizon error [m] |" in markdown
     rows = read_csv(str(tmp_path / "trade.csv"))
     assert rows == study.rows
+    assert {(r.device, r.device_name) for r in rows} == {(study.device, study.device_name)}  # the rows name it
+    assert f"Measured on {study.device} ({study.device_name})" in markdown
 
     # The cheapest measured tablecloth configuration within 1 mm, and what it says.
     target = 1e-3
@@ -125,7 +127,7 @@ def test_report_and_choose(study, tmp_path, capsys):
     assert main(["choose", "--error", str(target), "--study", str(tmp_path / "trade.csv"), "--problem",
                  "tablecloth"]) == 0
     out = capsys.readouterr().out
-    assert best.label in out and "2 slots" in out
+    assert best.label in out and "2 slots" in out and f"on {study.device} ({study.device_name})" in out
     assert f"trajectory error over the first {best.horizon:g} s ({best.error_horizon:.3g} m)" in out
     floor = min(r.error_max for r in rows if r.problem == "drape" and r.status == "ok")
     assert main(["choose", "--error", str(floor / 2), "--study", str(tmp_path / "trade.csv"), "--problem",
@@ -176,6 +178,16 @@ def test_plans():
         assert quick.horizon <= quick.duration and full.horizon <= full.duration
         assert quick.size <= full.size and quick.refinements == 1
         assert all(label in {o.label for o in quick.scene.options} for label in quick.options)
+    # The reduced plan (the GPU rows): the full scenes, the reference option, two steps, one reference refinement.
+    for name, reduced in trade_contact.REDUCED_PROBLEMS.items():
+        full = trade_contact.FULL_PROBLEMS[name]
+        assert (reduced.size, reduced.duration, reduced.horizon) == (full.size, full.duration, full.horizon)
+        assert reduced.measured_options == full.scene.options[:1] and reduced.substeps == (20, 40)
+        assert reduced.refinements == 1 and reduced.integrators == full.integrators
+    plan = trade_contact.study_plan(["drape"], reduced=True)
+    assert plan.name == "reduced" and plan.problems == (trade_contact.REDUCED_PROBLEMS["drape"],)
+    with pytest.raises(ConfigError, match="one of quick and reduced"):
+        trade_contact.study_plan(["drape"], quick=True, reduced=True)
     with pytest.raises(ConfigError, match="no contact option"):
         dataclasses.replace(trade_contact.QUICK_PROBLEMS["drape"], options=("edge contacts",)).measured_options
     assert math.isclose(trade_contact.FPS, 60.0)

@@ -276,7 +276,8 @@ def table_from_studies(csv_paths) -> dict:
         if not command:
             raise ConfigError(f"{sources[source]['file']}: its report names no command: the plan of its contact "
                               "problems is unknown")
-        plan = study_plan([problem], quick="--quick" in command.split())
+        words = command.split()
+        plan = study_plan([problem], quick="--quick" in words, reduced="--reduced" in words)
         spec = plan.problems[0]
         for option in dict.fromkeys(r.option for r in contact):
             model = spec.build(wp.get_device("cpu"), "float64", spec.scene.option(option))
