@@ -18,8 +18,8 @@ pareto_contact.png).
         --out bench/results/trade_contact_cuda_reduced -q # full-size scenes, every integrator at 20 and 40 substeps
 
 ``--reduced`` keeps the full scenes (their costs compare with the full study's rows) with fewer runs: the reference
-option, 20 and 40 substeps, dopri5 at 1e-3, one reference refinement (110 configurations; 179 s on the 2-core CPU
-under load). Every file names the device: the report's header and plot titles, each CSV row (``device``,
+option, 20 and 40 substeps, dopri5 at 1e-3, one reference refinement (110 configurations; 179 s and 338 s in two
+runs on the shared 2-core CPU; bench/results/trade_contact_cpu_reduced/). Every file names the device: the report's header and plot titles, each CSV row (``device``,
 ``device_name``), the command's last line.
 
 ``--table CSV...`` writes the measured trade table that ``substeps = "auto"`` reads

@@ -5,13 +5,15 @@ files and ``warpspring run`` defaulting to it, printing their choice, and an exp
 import functools
 import json
 import math
+import pathlib
 
 import numpy as np
 import pytest
 
 import warpspring as ws
 from warpspring.analysis.advisor import advise
-from warpspring.analysis import trade_contact
+from warpspring import checks
+from warpspring.analysis import trade_contact, trade_table
 from warpspring.analysis.step_choice import (CONTACT_TRAVEL, STABILITY_MARGIN, auto_substeps, choose_substeps,
                                              contact_substeps)
 from warpspring.analysis.trade_table import TABLE_PATH, load_table, signature
@@ -144,6 +146,25 @@ def test_a_measured_contact_scene_takes_the_tables_substeps(device, tmp_path):
     assert table.match(double) == ("floor cloth", "plain") and table.match(heavy) is None
     for other in (double, heavy):
         assert choose_substeps(other, "symplectic_euler", fps=FPS, table=table).row is None
+
+
+def test_the_cli_prints_the_table_row_it_chose_and_a_count_rules(tmp_path, capsys, monkeypatch):
+    """``warpspring run`` with no count: the package's table (here one that measured the CLI's test scene at 4
+    substeps within the floor, where the contact rule asks 12) gives the count, and the printed line names the row;
+    ``--substeps 3`` still rules."""
+    path = write_scene(tmp_path, {"substeps = 4\n": ""})
+    model = load_scene(str(path)).finalize(checks.device("cpu"))
+    rows = [["symplectic_euler", "float32", None, 4, 0.5 * load_table().floor]]
+    entry = dict(problem="test scene", option="ground", source=1, fps=FPS, signature=signature(model), rows=rows)
+    monkeypatch.setattr(trade_table, "TABLE_PATH", pathlib.Path(_table(tmp_path, problems=[entry]).path))
+    assert main(["run", str(path), "-o", str(tmp_path / "a.usdc"), "--device", "cpu", "-q"]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith("substeps auto: 4 substeps per 1/60 s frame (dt = 4.167 ms)")
+    assert "its row test scene, ground: symplectic_euler, float32, dt = 4.167 ms" in first
+    assert "fewer than the 12 the rules ask" in first
+    assert main(["run", str(path), "-o", str(tmp_path / "b.usdc"), "--device", "cpu", "-q", "--substeps", "3"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert not any(line.startswith("substeps auto") for line in lines) and "dt = 5.556 ms" in lines[0]
 
 
 def test_the_shipped_table_names_what_a_measured_drape_needs():
