@@ -18,6 +18,7 @@ from warpspring.analysis.step_choice import (CONTACT_TRAVEL, STABILITY_MARGIN, a
                                              contact_substeps)
 from warpspring.analysis.trade_table import TABLE_PATH, load_table, signature
 from warpspring.app.cli import main
+from warpspring.core.integrators import make_integrator
 from warpspring.app.runner import run_scene
 from warpspring.io.scene import load_scene
 from helpers import hanging_cloth, write_scene
@@ -106,9 +107,12 @@ def test_implicit_euler_meets_the_accuracy_floor(device, tmp_path):
 
 def test_dopri5_meets_the_floor(device):
     # dopri5 passes any step and meets its tolerance (1e-6) at one substep: step doubling confirms the floor.
+    # The dry runs use an integrator of their own: the run's (an instance) starts untouched.
     model, _ = hanging_cloth(device, n=6)
     choice = choose_substeps(model, "dopri5", fps=FPS)
     assert choice.substeps == 1 and choice.error <= load_table().floor and "accuracy floor" in choice.reason
+    integrator = make_integrator("dopri5", model, tolerance=1e-4)
+    assert choose_substeps(model, integrator, fps=FPS).substeps == 1 and integrator.accepted_steps == 0
 
 
 def _table(tmp_path, *, floor=None, problems=None):

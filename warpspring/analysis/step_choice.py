@@ -243,9 +243,11 @@ def _integrator_substeps(model: Model, integrator: Integrator | str, fps: float,
         internal = math.inf if limit <= 0.0 else 1.0 / (fps * limit)
         budget = 0.1 * getattr(integrator, "max_steps", 100_000)
         substeps = max(1, math.ceil(internal / budget))
-        if isinstance(integrator, str):
-            integrator = make_integrator(name, model)
-        accurate = _accurate_substeps(model, integrator, fps, control, table, start=substeps)
+        # The dry runs on an integrator of their own: the run's starts with its own step control and counts.
+        options = {} if isinstance(integrator, str) else dict(tolerance=integrator.tolerance,
+                                                               max_steps=integrator.max_steps)
+        accurate = _accurate_substeps(model, make_integrator(name, model, **options), fps, control, table,
+                                      start=substeps)
         reason = (f"{accurate.reason} (stability caps its internal step near {limit * 1e3:.3g} ms: at least "
                   f"{substeps} for its max_steps)")
         return SubstepChoice(accurate.substeps, accurate.dt, reason, probe, accurate.error)
