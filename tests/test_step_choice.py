@@ -133,9 +133,10 @@ def test_a_measured_contact_scene_takes_the_tables_substeps(device, tmp_path):
     another integrator's row, a float64 build (no float64 rows) and a heavier cloth (another scene) are not taken."""
     model, _ = hanging_cloth(device, n=6, ground=True, radius=0.025, pin=[])
     floor = load_table().floor
-    rows = [["symplectic_euler", "float32", None, 2, 3.0 * floor], ["symplectic_euler", "float32", None, 4, 0.5 * floor],
-            ["symplectic_euler", "float32", None, 8, 0.2 * floor], ["velocity_verlet", "float32", None, 1, 0.1 * floor]]
-    entry = dict(problem="floor cloth", option="plain", source=1, fps=FPS, signature=signature(model), rows=rows)
+    runs = [dict(integrator="symplectic_euler", precision="float32", tolerance=None,
+                 rows=[[2, 3.0 * floor], [4, 0.5 * floor], [8, 0.2 * floor]]),
+            dict(integrator="velocity_verlet", precision="float32", tolerance=None, rows=[[1, 0.1 * floor]])]
+    entry = dict(problem="floor cloth", option="plain", source=1, fps=FPS, signature=signature(model), runs=runs)
     table, bare = _table(tmp_path, problems=[entry]), _table(tmp_path, problems=[])
     rules = choose_substeps(model, "symplectic_euler", fps=FPS, table=bare)
     assert rules.substeps > 4 and rules.row is None
@@ -158,8 +159,8 @@ def test_the_cli_prints_the_table_row_it_chose_and_a_count_rules(tmp_path, capsy
     ``--substeps 3`` still rules."""
     path = write_scene(tmp_path, {"substeps = 4\n": ""})
     model = load_scene(str(path)).finalize(checks.device("cpu"))
-    rows = [["symplectic_euler", "float32", None, 4, 0.5 * load_table().floor]]
-    entry = dict(problem="test scene", option="ground", source=1, fps=FPS, signature=signature(model), rows=rows)
+    runs = [dict(integrator="symplectic_euler", precision="float32", tolerance=None, rows=[[4, 0.5 * load_table().floor]])]
+    entry = dict(problem="test scene", option="ground", source=1, fps=FPS, signature=signature(model), runs=runs)
     monkeypatch.setattr(trade_table, "TABLE_PATH", pathlib.Path(_table(tmp_path, problems=[entry]).path))
     assert main(["run", str(path), "-o", str(tmp_path / "a.usdc"), "--device", "cpu", "-q"]) == 0
     first = capsys.readouterr().out.splitlines()[0]

@@ -14,8 +14,8 @@ few kilobytes:
   more than the explicit integrators on their largest steps err over the whole run;
 * **the contact problems** measured: per problem and contact option, the signature of the model it was
   measured on (:func:`signature`: what a scene must match for the rows to apply) and every row that ran clean
-  (status ok, no crossing): integrator, precision, tolerance, substeps per frame at the study's frame rate (an
-  adaptive integrator's: its output interval) and error (``error_max``, the larger of the trajectory error over the
+  (status ok, no crossing), grouped by integrator, precision and tolerance: substeps per frame at the study's frame
+  rate (an adaptive integrator's: its output interval) and error (``error_max``, the larger of the trajectory error over the
   horizon and the Hausdorff distance at the end [m], to 4 digits).
 """
 
@@ -141,9 +141,9 @@ def _load(path: str) -> TradeTable:
         problems = {}
         for entry in data["problems"]:
             fps = float(entry["fps"])
-            rows = tuple(TableRow(entry["problem"], entry["option"], integrator, precision, tolerance,
-                                  1.0 / (fps * substeps), error, entry["source"])
-                         for integrator, precision, tolerance, substeps, error in entry["rows"])
+            rows = tuple(TableRow(entry["problem"], entry["option"], group["integrator"], group["precision"],
+                                  group["tolerance"], 1.0 / (fps * substeps), error, entry["source"])
+                         for group in entry["runs"] for substeps, error in group["rows"])
             problems[(entry["problem"], entry["option"])] = (entry["signature"], rows)
         return TradeTable(float(data["floor"]["value"]), floor_rows, problems, tuple(data["sources"]), path)
     except (KeyError, TypeError, ValueError) as exc:
@@ -281,9 +281,13 @@ def table_from_studies(csv_paths) -> dict:
         spec = plan.problems[0]
         for option in dict.fromkeys(r.option for r in contact):
             model = spec.build(wp.get_device("cpu"), "float64", spec.scene.option(option))
+            mine = [r for r in contact if r.option == option]
+            runs = [dict(integrator=i, precision=p, tolerance=t,
+                         rows=[[round(1.0 / (FPS * r.dt)), _short(r.error_max, 4)] for r in mine
+                               if (r.integrator, r.precision, r.tolerance) == (i, p, t)])
+                    for i, p, t in dict.fromkeys((r.integrator, r.precision, r.tolerance) for r in mine)]
             problems.append(dict(problem=problem, option=option, source=source, fps=FPS, signature=signature(model),
-                                 rows=[[r.integrator, r.precision, r.tolerance, round(1.0 / (FPS * r.dt)),
-                                        _short(r.error_max, 4)] for r in contact if r.option == option]))
+                                 runs=runs))
     return dict(format=FORMAT, sources=sources,
                 floor=dict(value=floor, unit="m over a frame", rule=f"geometric mean of {', '.join(FLOOR_INTEGRATORS)} "
                            f"at their coarsest stable float64 step on '{FLOOR_PROBLEM}'", rows=floor_rows),
