@@ -29,6 +29,7 @@
   fine-step reference, an upper bound of what any frame adds) give the fewest measured substeps; they are taken
   when fewer than the rules above ask (the measured run replaces the travel bound and the margin; the advisor still
   judges the step before the run). Where the table needs more than the rules give for the floor, the reason says so.
+  The rows cover the measured problem's own run (1-3 s, to rest or near it; ``trade_contact.FULL_PROBLEMS``).
 
 The core's :class:`~warpspring.core.simulator.Simulator` cannot reach this layer: it takes a step chooser,
 ``Simulator(model, substeps=auto_substeps)``, and calls it once before it captures; scene files and
