@@ -25,6 +25,7 @@ def test_wheel_contains_every_module(tmp_path):
     assert any(s.startswith("warpspring/kernels/") for s in sources), "no kernel sources found"
     for source in sources:
         assert source in names, f"{source} missing from the wheel"
+    assert "warpspring/analysis/trade_table.json" in names  # package data: the trade table auto reads
     assert not any(n.startswith(("kernels/", "tests/", "bench/")) for n in names)
     entry_points = next(n for n in names if n.endswith("entry_points.txt"))
     assert "warpspring = warpspring.app.cli:main" in zipfile.ZipFile(wheel).read(entry_points).decode()

@@ -2,16 +2,23 @@
 floor of implicit Euler, the contacts' travel bound, the maximum over worlds; the Simulator's step chooser; scene
 files and ``warpspring run`` defaulting to it, printing their choice, and an explicit count still ruling."""
 
+import functools
+import json
 import math
+import pathlib
 
 import numpy as np
 import pytest
 
 import warpspring as ws
 from warpspring.analysis.advisor import advise
-from warpspring.analysis.step_choice import (ACCURACY_FLOOR, CONTACT_TRAVEL, STABILITY_MARGIN, auto_substeps,
-                                             choose_substeps, contact_substeps)
+from warpspring import checks
+from warpspring.analysis import trade_contact, trade_table
+from warpspring.analysis.step_choice import (CONTACT_TRAVEL, STABILITY_MARGIN, auto_substeps, choose_substeps,
+                                             contact_substeps)
+from warpspring.analysis.trade_table import TABLE_PATH, load_table, signature
 from warpspring.app.cli import main
+from warpspring.core.integrators import make_integrator
 from warpspring.app.runner import run_scene
 from warpspring.io.scene import load_scene
 from helpers import hanging_cloth, write_scene
@@ -66,16 +73,20 @@ def test_explicit_euler_on_undamped_springs_is_refused(device):
         choose_substeps(model, "explicit_euler", fps=FPS)
 
 
-def test_implicit_euler_meets_the_accuracy_floor(device):
+def test_implicit_euler_meets_the_accuracy_floor(device, tmp_path):
     # Implicit Euler passes any step: the choice is the fewest substeps (doubling) whose error over a frame is
     # within the floor. Checked against a run at 8× the chosen substeps: the error of the first 0.25 s, per
     # frame, within 2× the floor (step doubling estimates a first-order error to within its second-order
     # remainder: a factor below 2 where the estimate is within the floor); and the halved count misses it.
+    # The floor is the measured trade table's (a looser table's floor takes fewer substeps).
     model, _ = hanging_cloth(device, n=8)
     integrator = ws.ImplicitEuler(model)
     choice = choose_substeps(model, integrator, fps=FPS)
     n = choice.substeps
-    assert choice.error <= ACCURACY_FLOOR and n > 1 and "accuracy floor" in choice.reason
+    ACCURACY_FLOOR = load_table().floor
+    assert choice.error <= ACCURACY_FLOOR and n > 1 and f"accuracy floor of {ACCURACY_FLOOR:.3g} m" in choice.reason
+    first = load_table().floor_rows[0]  # the table's row it comes from: symplectic Euler on the cloth
+    assert f"{first.integrator} {first.error:.3g} m at dt = {first.dt * 1e3:.4g} ms" in choice.reason
 
     def frames(substeps):
         sim = ws.Simulator(model, integrator=integrator, fps=FPS, substeps=substeps, guard=None)
@@ -91,6 +102,88 @@ def test_implicit_euler_meets_the_accuracy_floor(device):
     assert per_frame <= 2.0 * ACCURACY_FLOOR, per_frame
     coarse = np.linalg.norm(frames(n // 2) - reference, axis=-1).max(axis=-1)
     assert np.max(np.diff(np.concatenate([[0.0], coarse]))) > 0.5 * ACCURACY_FLOOR
+    loose = choose_substeps(model, integrator, fps=FPS, table=_table(tmp_path, floor=8.0 * ACCURACY_FLOOR))
+    assert loose.substeps < n and loose.error <= 8.0 * ACCURACY_FLOOR
+
+
+def test_dopri5_meets_the_floor(device):
+    # dopri5 passes any step and meets its tolerance (1e-6) at one substep: step doubling confirms the floor.
+    # The dry runs use an integrator of their own: the run's (an instance) starts untouched.
+    model, _ = hanging_cloth(device, n=6)
+    choice = choose_substeps(model, "dopri5", fps=FPS)
+    assert choice.substeps == 1 and choice.error <= load_table().floor and "accuracy floor" in choice.reason
+    integrator = make_integrator("dopri5", model, tolerance=1e-4)
+    assert choose_substeps(model, integrator, fps=FPS).substeps == 1 and integrator.accepted_steps == 0
+
+
+def _table(tmp_path, *, floor=None, problems=None):
+    """A copy of the package's trade table with its floor [m] or its contact problems replaced."""
+    data = json.loads(TABLE_PATH.read_text())
+    if floor is not None:
+        data["floor"]["value"] = floor
+    if problems is not None:
+        data["problems"] = problems
+    path = tmp_path / f"table{len(list(tmp_path.glob('table*.json')))}.json"
+    path.write_text(json.dumps(data))
+    return load_table(path)
+
+
+def test_a_measured_contact_scene_takes_the_tables_substeps(device, tmp_path):
+    """Where the model is one the table measured, its fewest substeps within the floor, when fewer than the rules':
+    a small cloth over the ground (the contact rule asks 12 substeps) measured at 4 within the floor, at 2 above it;
+    another integrator's row, a float64 build (no float64 rows) and a heavier cloth (another scene) are not taken."""
+    model, _ = hanging_cloth(device, n=6, ground=True, radius=0.025, pin=[])
+    floor = load_table().floor
+    runs = [dict(integrator="symplectic_euler", precision="float32", tolerance=None,
+                 rows=[[2, 3.0 * floor], [4, 0.5 * floor], [8, 0.2 * floor]]),
+            dict(integrator="velocity_verlet", precision="float32", tolerance=None, rows=[[1, 0.1 * floor]])]
+    entry = dict(problem="floor cloth", option="plain", source=1, fps=FPS, signature=signature(model), runs=runs)
+    table, bare = _table(tmp_path, problems=[entry]), _table(tmp_path, problems=[])
+    rules = choose_substeps(model, "symplectic_euler", fps=FPS, table=bare)
+    assert rules.substeps > 4 and rules.row is None
+    choice = choose_substeps(model, "symplectic_euler", fps=FPS, table=table)
+    assert choice.substeps == 4 and choice.dt == pytest.approx(1.0 / (4 * FPS)) and choice.row.error == 0.5 * floor
+    assert "its row floor cloth, plain: symplectic_euler, float32, dt = 4.167 ms" in choice.reason
+    assert f"fewer than the {rules.substeps} the rules ask" in choice.reason
+    assert f"measured on {table.provenance(choice.row)}" in choice.reason and "Warp " in choice.reason
+    sim = ws.Simulator(model, substeps=functools.partial(auto_substeps, table=table), fps=FPS)  # the Simulator's path
+    assert sim.substeps == 4
+    double, _ = hanging_cloth(device, n=6, ground=True, radius=0.025, pin=[], precision="float64")
+    heavy, _ = hanging_cloth(device, n=6, ground=True, radius=0.025, pin=[], particle_mass=0.2)
+    assert table.match(double) == ("floor cloth", "plain") and table.match(heavy) is None
+    for other in (double, heavy):
+        assert choose_substeps(other, "symplectic_euler", fps=FPS, table=table).row is None
+
+
+def test_the_cli_prints_the_table_row_it_chose_and_a_count_rules(tmp_path, capsys, monkeypatch):
+    """``warpspring run`` with no count: the package's table (here one that measured the CLI's test scene at 4
+    substeps within the floor, where the contact rule asks 12) gives the count, and the printed line names the row;
+    ``--substeps 3`` still rules."""
+    path = write_scene(tmp_path, {"substeps = 4\n": ""})
+    model = load_scene(str(path)).finalize(checks.device("cpu"))
+    runs = [dict(integrator="symplectic_euler", precision="float32", tolerance=None, rows=[[4, 0.5 * load_table().floor]])]
+    entry = dict(problem="test scene", option="ground", source=1, fps=FPS, signature=signature(model), runs=runs)
+    monkeypatch.setattr(trade_table, "TABLE_PATH", pathlib.Path(_table(tmp_path, problems=[entry]).path))
+    assert main(["run", str(path), "-o", str(tmp_path / "a.usdc"), "--device", "cpu", "-q"]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith("substeps auto: 4 substeps per 1/60 s frame (dt = 4.167 ms)")
+    assert "its row test scene, ground: symplectic_euler, float32, dt = 4.167 ms" in first
+    assert "fewer than the 12 the rules ask" in first
+    assert main(["run", str(path), "-o", str(tmp_path / "b.usdc"), "--device", "cpu", "-q", "--substeps", "3"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert not any(line.startswith("substeps auto") for line in lines) and "dt = 5.556 ms" in lines[0]
+
+
+def test_the_shipped_table_names_what_a_measured_drape_needs():
+    """The trade study's drape (16², particle contacts, float64) is in the package's table: the rules ask fewer
+    substeps than its rows need for the floor (40: 1.05 mm; 20: 2.5 mm), so the choice keeps the rules' count and its
+    reason names the measured row."""
+    spec = trade_contact.FULL_PROBLEMS["drape"]
+    model = spec.build("cpu", "float64", spec.scene.option("particle contacts"))
+    choice = choose_substeps(model, "symplectic_euler", fps=FPS)
+    assert choice.substeps < 40 and choice.row is None
+    assert ("reaches the accuracy floor of 0.00126 m at 40 substeps on the trade table's row drape, particle "
+            "contacts: symplectic_euler, float64, dt = 0.4167 ms, error 1.05e-03 m") in choice.reason
 
 
 def test_contact_travel_bound(device):

@@ -9,10 +9,11 @@ import math
 
 import numpy as np
 import pytest
+import warp as wp
 
 from warpspring.app.cli import EXIT_CONFIG, main
 from warpspring.errors import ConfigError
-from warpspring.analysis.trade import Measurement, StudyPlan, run_study
+from warpspring.analysis.trade import Measurement, StudyPlan, _device_name, run_study
 from warpspring.analysis.trade_choice import asymptotic_range, choose, fit_order, pareto_front
 from warpspring.analysis.trade_problems import SEED, SpringProblem
 from warpspring.analysis.trade_report import read_csv, write_csv
@@ -198,11 +199,14 @@ def test_trade_and_choose_commands(tmp_path, capsys):
     assert main(["trade", "--quick", "--device", "cpu", "--integrators", "symplectic_euler", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "spring: fitted orders symplectic_euler" in printed and "cloth:" in printed
+    device_name = _device_name(wp.get_device("cpu"))
+    assert f"on cpu ({device_name}) in " in printed  # the summary names the device (a GPU's model on cuda:0)
     for name in ("trade.csv", "trade.md", "pareto.png", "convergence.png", "seed.png"):
         assert (out / name).stat().st_size > 0, name
         if name.endswith(".png"):
             assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rows = read_csv(str(out / "trade.csv"))
+    assert {(r.device, r.device_name) for r in rows} == {("cpu", device_name)}  # each row of the CSV names it too
     assert {r.problem for r in rows} == {"spring", "stiff-spring", "cloth"}
     assert {r.precision for r in rows} == {"float32", "float64"}
     assert all(r.integrator == "symplectic_euler" for r in rows)

@@ -7,19 +7,29 @@
   (explicit Euler and midpoint on springs without damping) the choice is refused with its message, which
   recommends symplectic Euler, velocity Verlet or implicit Euler.
 * **Implicit Euler** passes any step: the fewest substeps, doubling from 1, whose position error over a frame
-  stays within ``ACCURACY_FLOOR`` [m], estimated by step doubling (a first-order method's error at n substeps is
-  about twice its difference from 2n) over the first ``ACCURACY_HORIZON`` seconds of the run. The floor, 1 mm
-  per frame, is taken from the trade study's cloth (``bench/results/trade.md`` §3, the 16² ANCHORS cloth): the
-  explicit methods at their largest stable steps err 5e-4 m (Verlet) to 3.2e-3 m (symplectic Euler) over its run,
-  implicit Euler at one step per frame 0.48 m; the floor keeps implicit Euler among the explicit ones.
-* **dopri5** meets its own tolerance at any outer step (``tolerance``): one substep per frame, more only where the
-  internal steps that stability caps per frame would pass a tenth of its ``max_steps``.
+  stays within the accuracy floor [m], estimated by step doubling (a first-order method's error at n substeps is
+  about twice its difference from 2n) over the first ``ACCURACY_HORIZON`` seconds of the run. The floor is read
+  from the measured trade table the package ships (:mod:`~warpspring.analysis.trade_table`): on the hanging
+  cloth, the geometric mean of the errors of symplectic Euler and velocity Verlet at the coarsest steps they ran
+  stably (3.15e-3 and 5.08e-4 m over its 1 s run on the CPU study: a floor of 1.26e-3 m), so that implicit Euler on
+  auto lands among the explicit integrators on theirs.
+* **dopri5** meets its own tolerance at any outer step (``tolerance``): one substep per frame, more where the
+  internal steps that stability caps per frame would pass a tenth of its ``max_steps``, and more (doubling) until
+  the same step-doubling estimate meets the floor (twice the difference is an upper estimate for any order ≥ 1).
 * **Contacts** (any integrator, with colliders): contacts are projections after each step, which the advisor
   does not analyse; a particle may move at most ``CONTACT_TRAVEL`` × its contact radius r per step at the speed
   it can reach, v = its start speed + √(2 g Δh), Δh its fall from its highest start to the lowest collider's top:
   dt ≤ ``CONTACT_TRAVEL`` · r / v. The quarter is measured: seed 002's soft cloth dropped 0.26 m onto a 4 cm
   sphere keeps its surface outside the sphere from r/4 per step (16 substeps: 4.6 cm from its centre) and not at
   r/2 (8 substeps: 2.7 cm); ``tests/test_contact_rule.py``.
+* **A measured contact scene**: where the model is one the trade table measured (:meth:`~.trade_table.TradeTable.match`:
+  the same counts, colliders, contact options, masses, springs and start), the table's rows of its integrator,
+  precision and contact option (and tolerance) that ran clean within the accuracy floor (their error: the larger of
+  the trajectory error over the problem's horizon and the final shape's Hausdorff distance, against a float64
+  fine-step reference, an upper bound of what any frame adds) give the fewest measured substeps; they are taken
+  when fewer than the rules above ask (the measured run replaces the travel bound and the margin; the advisor still
+  judges the step before the run). Where the table needs more than the rules give for the floor, the reason says so.
+  The rows cover the measured problem's own run (1-3 s, to rest or near it; ``trade_contact.FULL_PROBLEMS``).
 
 The core's :class:`~warpspring.core.simulator.Simulator` cannot reach this layer: it takes a step chooser,
 ``Simulator(model, substeps=auto_substeps)``, and calls it once before it captures; scene files and
@@ -35,19 +45,19 @@ import numpy as np
 
 from .. import checks
 from ..errors import ConfigError
-from ..core.integrators import Integrator, ImplicitEuler
+from ..core.integrators import Integrator, ImplicitEuler, make_integrator
 from ..core.model import Model
 from ..core.simulator import Simulator
 from ..core.transforms import quat_to_matrix
 from .advisor import Advice, advise
 from .stability import _integrator_class
+from .trade_table import TableRow, TradeTable, load_table
 from .under_load import PROBE_HORIZON, _keeps_plasticity
 
 #: Auto substeps keep dt at most this fraction of the advisor's largest stable step.
 STABILITY_MARGIN = 0.9
-#: Implicit Euler's auto substeps keep the position error over a frame within this [m].
-ACCURACY_FLOOR = 1.0e-3
-#: ... measured by step doubling over this much of the run [s].
+#: Implicit Euler's and dopri5's position error over a frame (the accuracy floor) is measured over this much of
+#: the run [s].
 ACCURACY_HORIZON = 0.25
 #: The most substeps per frame auto chooses for accuracy (implicit Euler); beyond it, set them by hand.
 MAX_ACCURACY_SUBSTEPS = 256
@@ -65,7 +75,9 @@ class SubstepChoice:
         reason: one line for the run summary (what bound it: the stability limit and the margin, or the
             accuracy floor).
         advice: the advisor's verdict at ``dt`` (None for implicit Euler, which the accuracy floor binds).
-        error: implicit Euler: the estimated position error over a frame at ``substeps`` [m]; else NaN.
+        error: implicit Euler, dopri5: the estimated position error over a frame at ``substeps`` [m]; a measured
+            contact scene's row: its error [m]; else NaN.
+        row: the trade table's row the choice was taken from (a measured contact scene), or ``None``.
     """
 
     substeps: int
@@ -73,33 +85,70 @@ class SubstepChoice:
     reason: str
     advice: Advice | None = None
     error: float = math.nan
+    row: TableRow | None = None
 
 
 def choose_substeps(model: Model, integrator: Integrator | str, *, fps: float = 60.0, control=None,
-                    horizon: float = PROBE_HORIZON) -> SubstepChoice:
+                    horizon: float = PROBE_HORIZON, table: TradeTable | str | None = None) -> SubstepChoice:
     """The substeps ``"auto"`` stands for (this module's docstring), for ``model`` stepped by ``integrator`` (an
     instance, or a registry name for the explicit ones and dopri5) at ``fps`` [1/s] with ``control``;
     ``horizon`` [s]: how long the run lasts, for the advisor's growth figures and dry run. The larger of the
-    integrator's choice and the contacts' (:func:`contact_substeps`).
+    integrator's choice and the contacts' (:func:`contact_substeps`), or fewer where the trade table measured this
+    scene within the accuracy floor. ``table``: the measured trade table (a :class:`~.trade_table.TradeTable` or
+    its path; default: the package's, :func:`~.trade_table.load_table`).
 
     Raises:
-        ConfigError: an integrator that is unstable at every step for these springs (the advisor's message).
+        ConfigError: an integrator that is unstable at every step for these springs (the advisor's message); a
+            missing or malformed table.
     """
     fps = checks.positive("fps", fps)
-    choice = _over_drag_track(model, lambda: _integrator_substeps(model, integrator, fps, control, horizon))
+    table = table if isinstance(table, TradeTable) else load_table(table)
+    choice = _over_drag_track(model, lambda: _integrator_substeps(model, integrator, fps, control, horizon, table))
     contact = contact_substeps(model, fps=fps)
-    if contact is None or contact[0] <= choice.substeps:
+    if contact is not None and contact[0] > choice.substeps:
+        substeps, why = contact
+        dt = 1.0 / (fps * substeps)
+        name = integrator if isinstance(integrator, str) else integrator.name
+        advice = choice.advice
+        if advice is not None and not _integrator_class(name).adaptive:  # the verdict at the step taken
+            advice = advise(model, name, dt, fps=fps, control=control, horizon=horizon)
+        reason = (f"{substeps} substeps per 1/{fps:g} s frame (dt = {dt * 1e3:.4g} ms) for the contacts: {why} (the "
+                  f"integrator alone: {choice.reason})")
+        choice = SubstepChoice(substeps, dt, reason, advice, choice.error)
+    return _measured(model, integrator, fps, table, choice)
+
+
+def _measured(model: Model, integrator: Integrator | str, fps: float, table: TradeTable,
+              choice: SubstepChoice) -> SubstepChoice:
+    """``choice``, or the trade table's fewest substeps within the floor where the model is a measured contact scene
+    and they are fewer (this module's docstring)."""
+    if not model.shape_count and model.self_contact is None:
         return choice
-    substeps, why = contact
-    dt = 1.0 / (fps * substeps)
+    key = table.match(model)
+    if key is None:
+        return choice
     name = integrator if isinstance(integrator, str) else integrator.name
-    cls = _integrator_class(name)
-    advice = choice.advice
-    if advice is not None and not cls.adaptive:  # the verdict at the step taken
-        advice = advise(model, name, dt, fps=fps, control=control, horizon=horizon)
-    reason = f"{substeps} substeps per 1/{fps:g} s frame (dt = {dt * 1e3:.4g} ms) for the contacts: {why} (the " \
-             f"integrator alone: {choice.reason})"
-    return SubstepChoice(substeps, dt, reason, advice, choice.error)
+    tolerance = getattr(integrator, "tolerance", None) if _integrator_class(name).adaptive else None
+    _, rows = table.problems[key]
+    fits = [r for r in rows if r.integrator == name and r.precision == model.precision and r.error <= table.floor
+            and (r.tolerance is None) == (tolerance is None)
+            and (tolerance is None or math.isclose(r.tolerance, tolerance, rel_tol=1e-9))]
+    if not fits:
+        return choice
+    row = min(fits, key=lambda r: (r.substeps(fps), r.error))
+    substeps = row.substeps(fps)
+    measured = f"the trade table's row {row.describe()} (measured on {table.provenance(row)})"
+    if substeps >= choice.substeps:
+        extra = "" if substeps == choice.substeps else (
+            f"; this scene reaches the accuracy floor of {table.floor:.3g} m at {substeps} substeps on {measured}: "
+            "give more substeps for that accuracy")
+        return SubstepChoice(choice.substeps, choice.dt, choice.reason + extra, choice.advice, choice.error)
+    dt = 1.0 / (fps * substeps)
+    reason = (f"{substeps} substep{'s' if substeps > 1 else ''} per 1/{fps:g} s frame (dt = {dt * 1e3:.4g} ms): this "
+              f"scene is one the trade table measured, its row {row.describe()} within the accuracy floor of "
+              f"{table.floor:.3g} m (measured on {table.provenance(row)}); fewer than the {choice.substeps} the rules "
+              f"ask ({choice.reason})")
+    return SubstepChoice(substeps, dt, reason, None, row.error, row)
 
 
 def _over_drag_track(model: Model, choose) -> SubstepChoice:
@@ -181,23 +230,28 @@ MAX_AUTO_SUBSTEPS = 4096
 
 
 def _integrator_substeps(model: Model, integrator: Integrator | str, fps: float, control,
-                         horizon: float) -> SubstepChoice:
+                         horizon: float, table: TradeTable) -> SubstepChoice:
     """The integrator's part of :func:`choose_substeps`."""
     name = integrator if isinstance(integrator, str) else integrator.name
     cls = _integrator_class(name)
     if issubclass(cls, ImplicitEuler):
         if isinstance(integrator, str):
             raise ConfigError("choose_substeps needs the implicit_euler instance (its options), not its name")
-        return _accurate_substeps(model, integrator, fps, control)
+        return _accurate_substeps(model, integrator, fps, control, table)
     probe = advise(model, name, 1.0 / (16.0 * fps), fps=fps, control=control, horizon=horizon)
     limit = probe.dt_stable if cls.adaptive else probe.dt_passed
     if cls.adaptive:
         internal = math.inf if limit <= 0.0 else 1.0 / (fps * limit)
         budget = 0.1 * getattr(integrator, "max_steps", 100_000)
         substeps = max(1, math.ceil(internal / budget))
-        reason = (f"{substeps} substep{'s' if substeps > 1 else ''} per frame: {name} meets its tolerance at any "
-                  f"outer step (stability caps its internal step near {limit * 1e3:.3g} ms)")
-        return SubstepChoice(substeps, 1.0 / (fps * substeps), reason, probe)
+        # The dry runs on an integrator of their own: the run's starts with its own step control and counts.
+        options = {} if isinstance(integrator, str) else dict(tolerance=integrator.tolerance,
+                                                               max_steps=integrator.max_steps)
+        accurate = _accurate_substeps(model, make_integrator(name, model, **options), fps, control, table,
+                                      start=substeps)
+        reason = (f"{accurate.reason} (stability caps its internal step near {limit * 1e3:.3g} ms: at least "
+                  f"{substeps} for its max_steps)")
+        return SubstepChoice(accurate.substeps, accurate.dt, reason, probe, accurate.error)
     if limit <= 0.0:
         raise ConfigError(f"substeps = \"auto\" finds no stable step: {probe.message}")
     substeps = max(1, math.ceil(1.0 / (fps * STABILITY_MARGIN * limit)))
@@ -217,10 +271,12 @@ def _integrator_substeps(model: Model, integrator: Integrator | str, fps: float,
     return SubstepChoice(substeps, dt, reason, advice)
 
 
-def auto_substeps(model: Model, integrator: Integrator, *, fps: float, control=None) -> int:
+def auto_substeps(model: Model, integrator: Integrator, *, fps: float, control=None,
+                  table: TradeTable | str | None = None) -> int:
     """A step chooser for :class:`~warpspring.core.simulator.Simulator`: ``Simulator(model,
-    substeps=auto_substeps)`` runs :func:`choose_substeps` once, before it captures."""
-    return choose_substeps(model, integrator, fps=fps, control=control).substeps
+    substeps=auto_substeps)`` runs :func:`choose_substeps` once, before it captures (``table``: the trade table,
+    default the package's; ``functools.partial(auto_substeps, table=path)`` for another)."""
+    return choose_substeps(model, integrator, fps=fps, control=control, table=table).substeps
 
 
 def _frames(model: Model, integrator: Integrator, fps: float, substeps: int, control, frames: int) -> np.ndarray:
@@ -234,22 +290,26 @@ def _frames(model: Model, integrator: Integrator, fps: float, substeps: int, con
 
 
 @_keeps_plasticity  # its runs step the model: plastic springs start the real run as built
-def _accurate_substeps(model: Model, integrator: Integrator, fps: float, control) -> SubstepChoice:
-    """Implicit Euler: the fewest substeps (1, 2, 4, …) whose error over a frame, 2 × the largest change of a
-    frame's end positions from n to 2n substeps (first order: e(n) ≈ 2 (x(n) - x(2n))), stays within
-    ``ACCURACY_FLOOR`` over the first ``ACCURACY_HORIZON`` seconds."""
+def _accurate_substeps(model: Model, integrator: Integrator, fps: float, control, table: TradeTable, *,
+                       start: int = 1) -> SubstepChoice:
+    """Implicit Euler and dopri5: the fewest substeps (``start``, 2 ``start``, 4 ``start``, …) whose error over a
+    frame, 2 × the largest change of a frame's end positions from n to 2n substeps (first order: e(n) ≈ 2 (x(n) -
+    x(2n)); higher orders less), stays within the table's accuracy floor over the first ``ACCURACY_HORIZON``
+    seconds."""
+    floor = table.floor
     frames = max(1, round(ACCURACY_HORIZON * fps))
-    substeps, coarse = 1, _frames(model, integrator, fps, 1, control, frames)
+    substeps, coarse = start, _frames(model, integrator, fps, start, control, frames)
     while True:
         fine = _frames(model, integrator, fps, 2 * substeps, control, frames)
         # The error over one frame: how much each frame adds to the gap, at most.
         gap = 2.0 * np.linalg.norm(coarse - fine, axis=-1).max(axis=-1)
         error = float(np.max(np.diff(np.concatenate([[0.0], gap]))))
-        if error <= ACCURACY_FLOOR or substeps >= MAX_ACCURACY_SUBSTEPS:
+        if error <= floor or substeps >= MAX_ACCURACY_SUBSTEPS:
             break
         substeps, coarse = 2 * substeps, fine
-    bound = "within" if error <= ACCURACY_FLOOR else "still above"
+    bound = "within" if error <= floor else "still above"
+    stable = "stable at any step" if isinstance(integrator, ImplicitEuler) else "meets its tolerance at any step"
     reason = (f"{substeps} substep{'s' if substeps > 1 else ''} per 1/{fps:g} s frame: {integrator.name} is "
-              f"stable at any step; its position error over a frame, {error:.2g} m by step doubling, is {bound} "
-              f"the accuracy floor of {ACCURACY_FLOOR:g} m")
+              f"{stable}; its position error over a frame, {error:.2g} m by step doubling, is {bound} "
+              f"{table.floor_reason()}")
     return SubstepChoice(substeps, 1.0 / (fps * substeps), reason, None, error)

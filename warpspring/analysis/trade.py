@@ -26,6 +26,7 @@ that meets an error target.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import math
 import os
@@ -157,6 +158,8 @@ class Measurement:
         quantity: contact scenes: the quantity of interest at the end (drape coefficient, sag [m], volume ratio).
         quantity_error: contact scenes: |quantity − the reference's| (the quantity's unit).
         crossings: self-colliding scenes: frame ends at which triangles of the surface intersect; else ``None``.
+        device_name: the device's name (GPU model, or CPU model and cores), as :attr:`Study.device_name`; ``None``
+            in studies written before it was recorded.
         (Contact scenes: ``error_max`` is max(error_horizon, hausdorff), ``error_rms`` the RMS of the distances
         over the horizon, ``error_end`` the max distance at the end: :mod:`warpspring.analysis.trade_contact`.)
     """
@@ -184,6 +187,7 @@ class Measurement:
     quantity: float | None = None
     quantity_error: float | None = None
     crossings: int | None = None
+    device_name: str | None = None
 
     @property
     def setting(self) -> str:
@@ -436,6 +440,7 @@ def run_study(device=None, *, plan: StudyPlan = FULL, integrators=None, progress
             raise ConfigError("a sweep engine runs the closed forms and the hanging cloth only: measure the contact "
                               "problems without --ray")
         _run_on(engine, study, device.alias, names, progress)
+        study.rows = [dataclasses.replace(r, device_name=study.device_name) for r in study.rows]
         study.elapsed = time.perf_counter() - start
         return study
     total = sum(
@@ -462,6 +467,7 @@ def run_study(device=None, *, plan: StudyPlan = FULL, integrators=None, progress
                                                              done=lambda: bar.update(1))
                     study.rows += rows
                     study.trajectories.update(trajectories)
+    study.rows = [dataclasses.replace(r, device_name=study.device_name) for r in study.rows]  # each row names it
     study.elapsed = time.perf_counter() - start
     return study
 

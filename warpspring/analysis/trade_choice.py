@@ -179,7 +179,7 @@ def choose(study_rows, target_error: float, *, time_budget: float | None = None,
         within = f" within {_rate(time_budget)}" if time_budget is not None else ""
         text = (
             f"{pick.label} is the fastest measured configuration with {target}{within}: error "
-            f"{pick.error_max:.3g} m at {_rate(pick.wall_per_second)} on {pick.device}. "
+            f"{pick.error_max:.3g} m at {_rate(pick.wall_per_second)} on {_device(pick)}. "
             + _compare(pick, runner_up, f"No other integrator meets the target{within}.")
             + _contact(pick)
         )
@@ -192,7 +192,7 @@ def choose(study_rows, target_error: float, *, time_budget: float | None = None,
         text = (
             f"No measured configuration has {target} within {_rate(time_budget)}. The cheapest that meets the "
             f"error is {pick.label}: error {pick.error_max:.3g} m at {_rate(pick.wall_per_second)} "
-            f"({pick.wall_per_second / time_budget:.3g}× the budget) on {pick.device}. "
+            f"({pick.wall_per_second / time_budget:.3g}× the budget) on {_device(pick)}. "
             + _compare(pick, runner_up, "No other integrator meets the error.")
             + " Raise the budget or the error target."
         )
@@ -280,6 +280,11 @@ def _contact(pick: Measurement) -> str:
         f"float64 fine-step reference; its quantity of interest ends {pick.quantity_error:.3g} from the "
         f"reference's{crossings}."
     )
+
+
+def _device(row: Measurement) -> str:
+    """The device a row was measured on: "cuda:0 (NVIDIA H100 80GB HBM3)", or its alias where the name is unknown."""
+    return row.device if not row.device_name else f"{row.device} ({row.device_name})"
 
 
 def _round_down(value: float) -> float:

@@ -24,8 +24,9 @@ from .trade_problems import BLOWUP_FACTOR, ENERGY_BLOWUP, ClothProblem, SpringPr
 _FIELDS = [f.name for f in dataclasses.fields(Measurement)]
 _INT_FIELDS = {"order", "crossings"}
 _TEXT_FIELDS = {"problem", "integrator", "precision", "device", "status"}
-#: Columns a study written before the contact scenes lacks: read as not measured.
-_CONTACT_FIELDS = ("option", "horizon", "error_horizon", "hausdorff", "quantity", "quantity_error", "crossings")
+#: Columns a study written before the contact scenes (and the device name in each row) lacks: read as not measured.
+_CONTACT_FIELDS = ("option", "horizon", "error_horizon", "hausdorff", "quantity", "quantity_error", "crossings",
+                   "device_name")
 
 
 def write_csv(rows: list[Measurement], path: str) -> str:
@@ -62,7 +63,7 @@ def read_csv(path: str) -> list[Measurement]:
 
 
 def _parse(name: str, text: str):
-    if name == "option":
+    if name in ("option", "device_name"):
         return text or None
     if name in _TEXT_FIELDS:
         if name == "status" and text not in STATUSES:

@@ -196,6 +196,9 @@ def build_parser() -> argparse.ArgumentParser:
     trade_cmd.add_argument("--problems", nargs="+", metavar="NAME",
                            help="measure these problems: spring, stiff-spring, cloth (the default three), and the contact "
                                 "scenes drape, stack, tablecloth, softball, softball-neohookean")
+    trade_cmd.add_argument("--reduced", action="store_true",
+                           help="contact problems at full size with fewer runs (every integrator at 20 and 40 substeps, "
+                                "the reference option, one reference refinement)")
     trade_cmd.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     trade_cmd.set_defaults(handler=_cmd_trade)
     _add_ray_option(trade_cmd)
@@ -448,7 +451,7 @@ def _cmd_trade(args) -> int:
     engine = _study_engine(args)
     study = trade.run_study(
         device,
-        plan=trade_contact.study_plan(args.problems, quick=args.quick),
+        plan=trade_contact.study_plan(args.problems, quick=args.quick, reduced=args.reduced),
         integrators=args.integrators,
         progress=not args.quiet and sys.stderr.isatty(),
         **({} if engine is None else {"engine": engine}),
@@ -470,7 +473,7 @@ def _cmd_trade(args) -> int:
     print(
         f"measured {len(study.rows)} configurations ({unstable} unstable or stopped by the guard, {skipped} skipped "
         "as too slow) on "
-        f"{study.device} in {study.elapsed:.0f} s; wrote {', '.join(paths)}"
+        f"{study.device} ({study.device_name}) in {study.elapsed:.0f} s; wrote {', '.join(paths)}"
     )
     return 0
 
