@@ -9,9 +9,9 @@ Writes a markdown table with the command, device, Warp version and date.
         --no-exact --trace 3 --out bench/results/advisor_battery_64_h100.md
     python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 1e-5 --factors 1.0 1.111 --substeps 20 \
         --no-exact --out bench/results/advisor_battery_64_damped_h100.md
-    # the 64² folded cloth under gravity alone on a CPU (~15 min; its 2.8 s dry run needs ~40 s there):
+    # the 64² folded cloth under gravity alone on a CPU (~10 min):
     python bench/advisor_battery.py --device cpu --sizes 64 --taus 0 --releases folded --gravity on \
-        --factors 1.0 1.111 --substeps 20 --no-exact --probe-budget 600 --trace 3
+        --factors 1.0 1.111 --substeps 20 --no-exact --trace 3
 
 The 64² cloth has 24k springs: the host's float64 energy sum (~20 ms a frame on a CPU core) outweighs the GPU's
 steps, so ``--substeps 20`` reads it every 20 steps (≥ 30 readings a second, enough for the 1 s mean).
@@ -55,9 +55,9 @@ def main():
                         help="also run each case at P for this long [s] and report the highest ω_max its states "
                              "reach (stability_battery.omega_trace, every 1/120 s) against the advisor's")
     parser.add_argument("--probe-budget", type=float, default=None,
-                        help="the advisor's dry-run wall budget [s] (under_load.PROBE_TIME_BUDGET, 10 s: a CPU "
-                             "needs ~40 s for the 64² cloth's 2.8 s dry run, and past the budget the advisor "
-                             "judges by the Gershgorin bound)")
+                        help="the advisor's dry-run CPU-time budget [s] (under_load.PROBE_TIME_BUDGET, 10 s; the 64² "
+                             "cloth's 2.8 s dry run takes ~6 s of it on a CPU; past the budget the advisor judges by "
+                             "the Gershgorin bound)")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
