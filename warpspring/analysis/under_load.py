@@ -133,7 +133,7 @@ def loaded_state(model: Model, *, control=None, overshoot: float = OVERSHOOT) ->
 #: restarted from the last top Ritz vector, captured once into a graph and replayed: every ``PROBE_CHECK`` seconds
 #: of simulated time while some world's estimate climbs past its running peak, every ``PROBE_SPARSE``-th such
 #: interval while none does (a peak is then sampled every ``PROBE_CHECK`` on its way up and at the first check past
-#: it); at the end each world's estimate at the state where it peaked gets ``PROBE_REFINE`` more restarts. Measured
+#: it; explicit Euler's lowest damping ratio, which need not come with a peak, every ``PROBE_CHECK``); at the end each world's estimate at the state where it peaked gets ``PROBE_REFINE`` more restarts. Measured
 #: on the cloths of :mod:`.stability_battery` (CPU, 2 cores, Warp 1.19.0, bench/results/advisor_battery_cpu.md): the
 #: 64² folded cloth's 2.76 s dry run peaks at 1287.09 rad/s in 5.5 s of CPU time, where 20 warm-started power
 #: iterations every 1/240 s found 1287.07 in 12.1 s; the 32² flat cloth's at 1120.64 rad/s where they found 1113.58
@@ -324,8 +324,9 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
         sim.step_frame()
         if started is None:
             started = time.process_time()  # after the first frame, which compiles the kernels
-        if not climbing and sim.frame % PROBE_SPARSE:
+        if not (climbing or lowest_ratio) and sim.frame % PROBE_SPARSE:
             continue  # below every world's running peak at the last re-estimate: every PROBE_SPARSE-th frame only
+            # (explicit Euler's lowest damping ratio need not come with a peak: it is sampled at every frame)
         wp.copy(snapshot, sim.state.particle_q)
         wp.capture_launch(capture.graph)
         omega = iteration.restart()
@@ -351,6 +352,7 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
         snapshot.assign(positions.reshape(-1, 3).astype(wp.dtype_to_numpy(model.scalar)))
         iteration.rows[0].assign(mode.reshape(-1, 3).astype(wp.dtype_to_numpy(model.scalar)))
         iteration.active.assign(moved.astype(np.int32))
+        refined = peak
         for _ in range(PROBE_REFINE):
             wp.capture_launch(capture.graph)
             refined = iteration.restart()
