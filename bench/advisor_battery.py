@@ -9,9 +9,9 @@ Writes a markdown table with the command, device, Warp version and date.
         --no-exact --trace 3 --out bench/results/advisor_battery_64_h100.md
     python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 1e-5 --factors 1.0 1.111 --substeps 20 \
         --no-exact --out bench/results/advisor_battery_64_damped_h100.md
-    # the 64² folded cloth under gravity alone on a CPU (~15 min; its 2.8 s dry run needs ~40 s there):
+    # the 64² folded cloth under gravity alone on a CPU (~10 min):
     python bench/advisor_battery.py --device cpu --sizes 64 --taus 0 --releases folded --gravity on \
-        --factors 1.0 1.111 --substeps 20 --no-exact --probe-budget 600 --trace 3
+        --factors 1.0 1.111 --substeps 20 --no-exact --trace 3
 
 The 64² cloth has 24k springs: the host's float64 energy sum (~20 ms a frame on a CPU core) outweighs the GPU's
 steps, so ``--substeps 20`` reads it every 20 steps (≥ 30 readings a second, enough for the 1 s mean).
@@ -55,9 +55,12 @@ def main():
                         help="also run each case at P for this long [s] and report the highest ω_max its states "
                              "reach (stability_battery.omega_trace, every 1/120 s) against the advisor's")
     parser.add_argument("--probe-budget", type=float, default=None,
-                        help="the advisor's dry-run wall budget [s] (under_load.PROBE_TIME_BUDGET, 10 s: a CPU "
-                             "needs ~40 s for the 64² cloth's 2.8 s dry run, and past the budget the advisor "
-                             "judges by the Gershgorin bound)")
+                        help="the advisor's dry-run CPU-time budget [s] (under_load.PROBE_TIME_BUDGET, 10 s; the 64² "
+                             "cloth's 2.8 s dry run takes ~6 s of it on a CPU; past the budget the advisor judges by "
+                             "the Gershgorin bound)")
+    parser.add_argument("--dry-runs", action="store_true",
+                        help="only time the advisor's dry run (under_load.transient_peak to its end, no budget) of each "
+                             "case: its CPU and wall seconds, peak ω_max and when")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
@@ -68,6 +71,9 @@ def main():
     results = []
     chosen = [c for c in sb.cases(args.sizes, args.taus)
               if c.release in args.releases and ("on" if c.gravity else "off") in args.gravity]
+    if args.dry_runs:
+        dry_runs(chosen, device, args)
+        return
     for case in chosen:
         for integrator in args.integrators:
             results.append(sb.measure(case, integrator, device, seconds=args.seconds, factors=args.factors,
@@ -120,6 +126,31 @@ def main():
         f"{'passed' if below.stable else 'refused'}.",
     ]
     emit_table(lines, args.out)
+
+
+def dry_runs(chosen, device, args):
+    """The advisor's dry run of each case timed (the run's CPU seconds, as its budget counts them, and wall seconds;
+    the first of two, which compiles, is dropped), with its peak ω_max, when, and its duration."""
+    budget, under_load.PROBE_TIME_BUDGET = under_load.PROBE_TIME_BUDGET, float("inf")
+    rows = []
+    for case in chosen:
+        model = sb.battery_cloth(case, device)
+        for attempt in range(2):
+            wp.synchronize_device(device)
+            cpu, wall = time.process_time(), time.perf_counter()
+            peak = under_load.transient_peak(model, horizon=args.seconds)
+            wp.synchronize_device(device)
+            cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+        rows.append(f"| {case.label} | {peak.duration:.3g} | {cpu:.1f} | {wall:.1f} | {peak.world_omega_max[0]:.2f} | "
+                    f"{peak.world_peak_time[0]:.3g} |")
+        print(rows[-1], flush=True)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    command = " ".join(os.path.relpath(a, root) if os.path.isabs(a) and a.startswith(root) else a for a in sys.argv[1:])
+    where = f"{device.name} ({device}), Warp {wp.config.version}, {datetime.date.today()}"
+    emit_table([f"Advisor dry runs on {where}: `python bench/advisor_battery.py {command}` (budget "
+                f"{budget:g} CPU seconds, lifted here; each the second of two):", "",
+                "| case | dry run [s] | CPU [s] | wall [s] | peak ω_max [rad/s] | at [s] |", "|---|---|---|---|---|---|",
+                *rows], args.out)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ from helpers import ZERO_GRAVITY, battery_cloth, hanging_cloth
 from warpspring.analysis import modal
 from warpspring.analysis import stability as st
 from warpspring.analysis.advisor import advise
-from warpspring.analysis.omega import (estimate_omega_max, free_particles, gershgorin_omega_max, transverse_omega_max,
+from warpspring.analysis.omega import (Lanczos, estimate_omega_max, free_particles, gershgorin_omega_max, transverse_omega_max,
                                        world_gershgorin_omega_max)
 from warpspring.analysis.under_load import PROBE_CHECK, PROBE_MIN_TIME, loaded_state, swing_time, transient_peak
 from warpspring.analysis import stability_map as sm
@@ -251,6 +251,43 @@ def test_power_iteration_per_world(device, stiffness_worlds):
     assert estimate.world == 3 and estimate.omega_max == estimate.world_omega_max[3]
     assert estimate.gershgorin == gershgorin_omega_max(model) == estimate.world_gershgorin[3]
     assert (estimate.world_omega_max <= estimate.world_gershgorin).all()
+
+
+def test_lanczos_per_world(device, stiffness_worlds):
+    """Restarted Lanczos (the dry run's tracker) on worlds of stiffness 1, 4, 9, 16 × ke, float64: each world's top
+    Ritz value rises with every restart (the start lies in the next Krylov space) and reaches the dense float64 top
+    eigenvalue, never above it (Ritz values of a symmetric matrix lie within its spectrum), whose worlds scale as
+    √factor; its Ritz vector is M-normalised. Stretched by 10 %, the float32 16² cloth's likewise (float32 round-off
+    of the products, ~1e-6 relative, bounds the agreement)."""
+    model = stiffness_worlds(device)
+    k = model.world_values("spring_stiffness")
+    start = np.random.default_rng(0).normal(size=(4, model.particle_count, 3)) * free_particles(model)[..., None]
+    lanczos = Lanczos(model, k, start, steps=8)
+    values = []
+    for _ in range(40):
+        lanczos.expand(model.particle_q)
+        values.append(lanczos.restart())
+    values = np.array(values)
+    assert (np.diff(values, axis=0) >= -1e-9 * values[1:]).all()
+    exact = dense_omega_max(damped_cloth("cpu")) * np.sqrt(WORLD_FACTORS)
+    assert (values[-1] <= exact * (1.0 + 1e-12)).all()
+    np.testing.assert_allclose(values[-1], exact, rtol=1e-8)
+    x = lanczos.x.numpy().reshape(4, -1, 3)
+    mass = model.world_values("particle_mass")
+    np.testing.assert_allclose(np.einsum("wi,wij,wij->w", np.broadcast_to(mass, (4, model.particle_count)), x, x), 1.0,
+                               rtol=1e-9)
+
+    cloth, _ = hanging_cloth(device, n=16, precision="float32")
+    q0 = cloth.particle_q.numpy().astype(np.float64)
+    stretched = cloth.state()
+    stretched.particle_q.assign(q0.mean(0) + 1.1 * (q0 - q0.mean(0)))
+    start = np.random.default_rng(1).normal(size=(1, cloth.particle_count, 3)) * free_particles(cloth)[..., None]
+    lanczos = Lanczos(cloth, cloth.world_values("spring_stiffness"), start, steps=8)
+    for _ in range(40):
+        lanczos.expand(stretched.particle_q)
+        omega = lanczos.restart()
+    exact = dense_omega_max(cloth, stretched.particle_q.numpy().astype(np.float64))
+    assert omega[0] == pytest.approx(exact, rel=1e-5)
 
 
 def test_power_iteration_stiffness_override_per_world(stiffness_worlds):

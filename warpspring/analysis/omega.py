@@ -11,8 +11,9 @@ below it, and is the cheap fallback. A model of several worlds gets one ω_max p
 stiffness and masses), all worlds iterating in the same launches, each to its own tolerance.
 
 The power iteration's buffers and launches are :class:`PowerIteration`, shared by :func:`estimate_omega_max`
-(to convergence), the advisor's dry run (:func:`~warpspring.analysis.under_load.transient_peak`) and the
-run-time watch (:class:`~warpspring.analysis.watch.StabilityWatch`), a few warm-started iterations at a time.
+(to convergence) and the run-time watch (:class:`~warpspring.analysis.watch.StabilityWatch`), a few warm-started
+iterations at a time; the advisor's dry run (:func:`~warpspring.analysis.under_load.transient_peak`) tracks the
+top mode along a run by restarted Lanczos (:class:`Lanczos`), which reaches a mode that rises elsewhere sooner.
 On the host, :func:`top_eigenpair` (sparse Lanczos) gives a stiffness matrix's top mode and
 :func:`transverse_omega_max` the highest frequency of the stretched springs' undamped transverse stiffness.
 """
@@ -30,8 +31,8 @@ from ..errors import ConfigError
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.flatten import flat_launch
 from ..kernels.linalg import reduce_lanes, reduce_launch_dim, sum_partials_kernel
-from ..kernels.stability import (PI_LAMBDA, PI_PARTIALS, PI_RESIDUAL, PI_SCALARS, PI_XKX,
-                                 power_iteration_kernels)
+from ..kernels.stability import (LZ_ALPHA, LZ_BETA, LZ_SLOTS, PI_LAMBDA, PI_PARTIALS, PI_RESIDUAL, PI_SCALARS,
+                                 PI_XKX, lanczos_kernels, power_iteration_kernels)
 from ..core.model import Model
 from ..core.state import State
 from ..core.springs import SPRING_LAWS, SpringFamily, spring_law_codes
@@ -290,6 +291,89 @@ class PowerIteration:
         wp.launch(condition, dim=model.world_count, device=device,
                   inputs=[wp.float64(self.tolerance), self.max_iterations],
                   outputs=[self.scalars, self.iteration, self.active, self.keep_going])
+
+
+class Lanczos:
+    """``steps`` steps of Lanczos on M⁻¹K for every world of a model at once, restarted from the top Ritz vector
+    (``kernels/stability.py``): what the advisor's dry run (:func:`~warpspring.analysis.under_load.transient_peak`)
+    tracks ω_max with along a run. Started from a vector near the top mode, a Krylov space of a few steps finds a
+    higher mode that rises elsewhere in the cloth far sooner than as many power iterations: along the 1.94 s dry run
+    of the 32² folded cloth of :mod:`.stability_battery` (CPU), re-estimated every 1/240 s, 20 power iterations a
+    re-estimate peak at 1146.36 rad/s, 10 at 1126.97 and 4 at 1107.54 (they stay on the mode they started on), where 4
+    Lanczos steps peak at 1146.39 and float64 Lanczos to convergence at 1146.64.
+    ``stiffness`` and ``start`` (shape [world_count, particle_count, 3]) as in :class:`PowerIteration`; the worlds
+    that run: ``active`` (int32, [world_count]), all at first."""
+
+    def __init__(self, model: Model, stiffness: np.ndarray, start: np.ndarray, *, steps: int):
+        worlds, n, device = model.world_count, model.particle_count, model.device
+        self.model, self.steps = model, checks.count("steps", steps, minimum=1)
+        tiled = device.is_cuda
+        self.lanes = reduce_lanes(n, model.block_dim, tiled)
+        self.grid = reduce_launch_dim(worlds, n, self.lanes)
+        self.product = power_iteration_kernels(model.scalar, model.family_specs(linear=True), tiled)[0]
+        self.kernels = lanczos_kernels(model.scalar, tiled)
+        self.sum_partials = sum_partials_kernel(tiled)
+        self.element_arrays = model.element_arrays(linear=True, stiffness={"springs": _stiffness_array(model, stiffness)})
+        self.basis = wp.zeros((steps + 1, worlds * n), dtype=model.vec3, device=device)
+        self.rows = [self.basis[j] for j in range(steps + 1)]  # views made once: the CPU replays launches on them
+        self.rows[0].assign(np.asarray(start).reshape(-1, 3))
+        self.y = wp.zeros(worlds * n, dtype=model.vec3, device=device)
+        self.partials = wp.zeros((worlds, self.grid[1], PI_PARTIALS), dtype=wp.float64, device=device)
+        self.scalars = wp.zeros((worlds, PI_SCALARS), dtype=wp.float64, device=device)
+        self.norm_partials = wp.zeros((worlds, self.grid[1], 1), dtype=wp.float64, device=device)
+        self.norms = wp.zeros((worlds, 1), dtype=wp.float64, device=device)
+        self.coefficients = wp.zeros((worlds, steps + 1, LZ_SLOTS), dtype=wp.float64, device=device)
+        self.combination = wp.zeros((worlds, steps), dtype=wp.float64, device=device)
+        self.active = wp.array(np.ones(worlds, dtype=np.int32), dtype=wp.int32, device=device)
+
+    def expand(self, particle_q: wp.array) -> None:
+        """The Krylov basis of the current v_0 about the positions ``particle_q`` (device launches only: capturable)."""
+        model, device = self.model, self.model.device
+        direction, advance, _ = self.kernels
+        for j in range(self.steps):
+            flat_launch(
+                self.product, dim=self.grid, block_dim=self.lanes, device=device,
+                inputs=[model.particle_count, model.particle_flags, model.particle_mass, self.element_arrays,
+                        model.inputs, particle_q, self.active, self.rows[j]],
+                outputs=[self.y, self.partials],
+            )
+            wp.launch(self.sum_partials, dim=(model.world_count, self.lanes), block_dim=self.lanes, device=device,
+                      inputs=[PI_XKX, PI_PARTIALS, self.partials], outputs=[self.scalars])
+            previous = self.rows[j - 1] if j else self.rows[self.steps]  # β_0 = 0: any finite row
+            wp.launch(direction, dim=self.grid, block_dim=self.lanes, device=device,
+                      inputs=[model.particle_count, model.particle_flags, model.particle_mass, model.particle_inv_mass,
+                              self.active, j, self.scalars, self.y, previous],
+                      outputs=[self.rows[j], self.coefficients, self.rows[j + 1], self.norm_partials])
+            if j + 1 < self.steps:
+                wp.launch(self.sum_partials, dim=(model.world_count, self.lanes), block_dim=self.lanes,
+                          device=device, inputs=[0, 1, self.norm_partials], outputs=[self.norms])
+                wp.launch(advance, dim=model.particle_dim, block_dim=model.block_dim, device=device,
+                          inputs=[model.particle_count, self.active, j, self.norms],
+                          outputs=[self.rows[j + 1], self.coefficients])
+
+    def restart(self) -> np.ndarray:
+        """Each world's top Ritz value's √ [rad/s] (0 where it does not run), shape [world_count], after
+        :meth:`expand`; v_0 becomes the top Ritz vector (one host read of the tridiagonals)."""
+        values = self.coefficients.numpy()
+        running = self.active.numpy().astype(bool)
+        theta = np.zeros(len(values))
+        combination = np.zeros((len(values), self.steps))
+        for w in np.flatnonzero(running):
+            alpha, beta = values[w, :self.steps, LZ_ALPHA], values[w, 1:self.steps, LZ_BETA]
+            if not (np.isfinite(alpha).all() and np.isfinite(beta).all()):
+                theta[w] = math.nan
+                continue
+            ritz, vectors = np.linalg.eigh(np.diag(alpha) + np.diag(beta, 1) + np.diag(beta, -1))
+            theta[w], combination[w] = ritz[-1], vectors[:, -1]
+        self.combination.assign(combination)
+        wp.launch(self.kernels[2], dim=self.model.particle_dim, block_dim=self.model.block_dim, device=self.model.device,
+                  inputs=[self.model.particle_count, self.active, self.combination], outputs=[self.basis])
+        return np.sqrt(np.maximum(theta, 0.0))
+
+    @property
+    def x(self) -> wp.array:
+        """v_0: after :meth:`restart`, each world's top Ritz vector, M-normalised (a state-like array)."""
+        return self.rows[0]
 
 
 def _power_iteration(model: Model, stiffness: np.ndarray, state: State | None, max_iterations: int,

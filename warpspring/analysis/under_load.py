@@ -16,7 +16,7 @@ Verlet and RK4 at small steps (bench/RESULTS.md §11). A swing along the ray x�
 model it (the cloth reaches equilibrium through large rotations, which the ray turns into stretch). So
 when the model moves by itself, the advisor also takes each world's peak ω_max over a dry run of the
 scene (:func:`transient_peak`): velocity Verlet at half the step the Gershgorin bound proves stable at
-any state, ω_max re-estimated along the way by warm-started power iterations, until the peaks stop rising
+any state, ω_max re-estimated along the way by restarted Lanczos, until the peaks stop rising
 (or the run's duration). Measured with it on the battery (three scenes, five integrators, two steps
 each): no run it passes blows up; it is within 10 % for symplectic Euler, velocity Verlet and RK4, and
 14–41 % conservative for explicit Euler and midpoint over 10 s runs. Against the exact one-step map of the
@@ -38,13 +38,12 @@ import numpy as np
 import warp as wp
 
 from .. import checks
-from ..kernels.stability import PI_LAMBDA
 from ..core.integrators import ImplicitEuler, VelocityVerlet
 from ..core.model import Model
 from ..core.simulator import Simulator
 from ..core.state import State
 from .damping import _damping_ranges, _ratio_arrays, _tangent_stiffness, _top_mode_ratios
-from .omega import OmegaMaxEstimate, PowerIteration, _gershgorin, _power_iteration, _stiffness_values, free_particles
+from .omega import Lanczos, OmegaMaxEstimate, _gershgorin, _power_iteration, _stiffness_values, free_particles
 from .stability import _world_limits
 
 # -- under load ---------------------------------------------------------------------------------------------
@@ -130,22 +129,31 @@ def loaded_state(model: Model, *, control=None, overshoot: float = OVERSHOOT) ->
 #: The dry run (:func:`transient_peak`): velocity Verlet at ``PROBE_FRACTION`` of the step the Gershgorin
 #: bound proves stable (no state exceeds that bound, so the dry run is stable wherever it goes; on a linear
 #: spring released from rest Verlet's turning points are exact at any stable step, where symplectic Euler's
-#: overshoot by 1/√(1 - (ωh/2)²)), ω_max
-#: re-estimated every ``PROBE_CHECK`` seconds of simulated time by ``PROBE_ITERATIONS`` power iterations
-#: warm-started from the last (a world stops at ``PROBE_TOLERANCE``; 20 iterations leave the 20 × 20 cloth's
-#: peak 4e-4 below 200 iterations'), captured once into a graph and replayed. It ends once twice the time of the last rise of some
+#: overshoot by 1/√(1 - (ωh/2)²)), ω_max re-estimated by ``PROBE_STEPS`` Lanczos steps (:class:`~.omega.Lanczos`)
+#: restarted from the last top Ritz vector, captured once into a graph and replayed: every ``PROBE_CHECK`` seconds
+#: of simulated time while some world's estimate climbs past its running peak, every ``PROBE_SPARSE``-th such
+#: interval while none does (a peak is then sampled every ``PROBE_CHECK`` on its way up and at the first check past
+#: it; explicit Euler's lowest damping ratio, which need not come with a peak, every ``PROBE_CHECK``); at the end each world's estimate at the state where it peaked gets ``PROBE_REFINE`` more restarts. Measured
+#: on the cloths of :mod:`.stability_battery` (CPU, 2 cores, Warp 1.19.0, bench/results/advisor_battery_cpu.md): the
+#: 64² folded cloth's 2.76 s dry run peaks at 1287.09 rad/s in 5.5 s of CPU time, where 20 warm-started power
+#: iterations every 1/240 s found 1287.07 in 12.1 s; the 32² flat cloth's at 1120.64 rad/s where they found 1113.58
+#: (-0.6 %: a mode that rose elsewhere in the cloth, which they reached late), the 32² folded cloth's at 1146.63
+#: (1146.36); a re-estimate every 1/120 s throughout misses 0.14 % of the 64² folded cloth's peak, between two.
+#: It ends once twice the time of the last rise of some
 #: world's peak (by more than ``PROBE_RISE``) has passed, not before ``PROBE_MIN_TIME`` and not after its
 #: horizon (``PROBE_HORIZON`` by default; ``warpspring run`` passes the run's duration). Under gravity it also
 #: lasts the cloth's first swing (:func:`swing_time`): a large cloth's stretch peaks when its fall first passes
 #: the bottom, after the peaks of its first quarter second have stopped rising (bench/results/advisor_battery_cpu.md).
 PROBE_FRACTION = 0.5
 PROBE_CHECK = 1.0 / 240.0
-PROBE_ITERATIONS, PROBE_TOLERANCE = 20, 1.0e-4
+PROBE_STEPS, PROBE_TOLERANCE, PROBE_REFINE, PROBE_SPARSE = 8, 1.0e-4, 4, 2
 PROBE_RISE = 1.0e-3
 PROBE_MIN_TIME, PROBE_HORIZON = 0.25, 2.0
 #: The dry run's budget: at most ``PROBE_MAX_STEPS`` velocity Verlet steps (a dry run that would need more
-#: to reach ``PROBE_MIN_TIME`` is not started) and ``PROBE_TIME_BUDGET`` wall seconds after its first frame
-#: (which compiles); past either it stops and says so (:attr:`TransientPeak.cut_short`), and the advisor
+#: to reach ``PROBE_MIN_TIME`` is not started) and ``PROBE_TIME_BUDGET`` seconds of this process's CPU time after
+#: its first frame (which compiles; CPU time, not wall time, so that the verdict does not depend on what else the
+#: machine runs: on a CPU shared with other work the 64² cloth's dry run took 1.5× its CPU time in wall time);
+#: past either it stops and says so (:attr:`TransientPeak.cut_short`), and the advisor
 #: judges by the Gershgorin bound, which holds at any state the run reaches (conservative). The examples'
 #: dry runs take 180–720 steps.
 PROBE_MAX_STEPS, PROBE_TIME_BUDGET = 50_000, 10.0
@@ -296,41 +304,39 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
     substeps = max(1, math.ceil(substeps))
     sim = Simulator(model, integrator=VelocityVerlet(model), fps=1.0 / PROBE_CHECK, substeps=substeps,
                     control=control, guard=None)
-    iteration = PowerIteration(model, k, mode)
-    iteration.tolerance, iteration.max_iterations = PROBE_TOLERANCE, PROBE_ITERATIONS
-    running = wp.array((bound > 0.0).astype(np.int32), dtype=wp.int32, device=model.device)
+    iteration = Lanczos(model, k, mode, steps=PROBE_STEPS)
+    running = (bound > 0.0).astype(np.int32)
+    iteration.active.assign(running)
     snapshot = wp.clone(sim.state.particle_q)
-
-    def recheck():
-        iteration.iteration.zero_()
-        wp.copy(iteration.active, running)
-        for _ in range(PROBE_ITERATIONS):
-            iteration.iterate(snapshot)
-
-    recheck()  # uncaptured: loads the modules (a capture must not)
+    iteration.expand(snapshot)  # uncaptured: loads the modules (a capture must not)
+    iteration.restart()
     with wp.ScopedCapture(device=model.device, force_module_load=False) as capture:
-        recheck()
-    rise, finite, level = 0.0, True, None  # level: the dry run's own running peak (not the start's)
+        iteration.expand(snapshot)
+    rise, finite, level, climbing = 0.0, True, None, True  # level: the dry run's own running peak (not the start's)
     cut_short, started = "", None
     while sim.time < horizon and (sim.time < least or sim.time < 2.0 * rise):
         if sim.frame * substeps >= PROBE_MAX_STEPS:
             cut_short = f"it reached its budget of {PROBE_MAX_STEPS} steps at t = {sim.time:.3g} s"
             break
-        if started is not None and time.perf_counter() - started > PROBE_TIME_BUDGET:
-            cut_short = f"it reached its budget of {PROBE_TIME_BUDGET:g} wall seconds at t = {sim.time:.3g} s"
+        if started is not None and time.process_time() - started > PROBE_TIME_BUDGET:
+            cut_short = f"it reached its budget of {PROBE_TIME_BUDGET:g} CPU seconds at t = {sim.time:.3g} s"
             break
         sim.step_frame()
         if started is None:
-            started = time.perf_counter()  # after the first frame, which compiles the kernels
+            started = time.process_time()  # after the first frame, which compiles the kernels
+        if not (climbing or lowest_ratio) and sim.frame % PROBE_SPARSE:
+            continue  # below every world's running peak at the last re-estimate: every PROBE_SPARSE-th frame only
+            # (explicit Euler's lowest damping ratio need not come with a peak: it is sampled at every frame)
         wp.copy(snapshot, sim.state.particle_q)
         wp.capture_launch(capture.graph)
-        omega = np.sqrt(np.maximum(iteration.scalars.numpy()[:, PI_LAMBDA], 0.0))
+        omega = iteration.restart()
         if not np.isfinite(omega).all():
             finite = False
             break
+        climbing = level is None or bool((omega > level).any())
         if level is None or (omega > level * (1.0 + PROBE_RISE)).any():  # still rising somewhere
             rise = sim.time
-            level = omega if level is None else np.maximum(level, omega)
+        level = omega if level is None else np.maximum(level, omega)
         higher = omega > peak
         if higher.any() or lowest_ratio:
             q = sim.state.particle_q.numpy().astype(np.float64).reshape(worlds, n, 3)
@@ -341,5 +347,18 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
             positions[higher], mode[higher], peak_time[higher], peak[higher] = q[higher], x[higher], sim.time, omega[higher]
             if lowest_ratio:
                 lowest = np.fmin(lowest, ratios(x, q))
+    moved = (peak_time > 0.0) & (running > 0)  # worlds that peaked in the dry run: refine their estimate there
+    if finite and not cut_short and moved.any():
+        snapshot.assign(positions.reshape(-1, 3).astype(wp.dtype_to_numpy(model.scalar)))
+        iteration.rows[0].assign(mode.reshape(-1, 3).astype(wp.dtype_to_numpy(model.scalar)))
+        iteration.active.assign(moved.astype(np.int32))
+        refined = peak
+        for _ in range(PROBE_REFINE):
+            wp.capture_launch(capture.graph)
+            refined = iteration.restart()
+        higher = moved & np.isfinite(refined) & (refined > peak)
+        if higher.any():
+            peak[higher] = refined[higher]
+            mode[higher] = iteration.x.numpy().astype(np.float64).reshape(worlds, n, 3)[higher]
     return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), sim.time, sim.dt, finite, lowest,
                          cut_short=cut_short)

@@ -1,4 +1,4 @@
-"""Kernels of the stability analysis: power iteration on M⁻¹K, and a per-step record of spring motion.
+"""Kernels of the stability analysis: power iteration and Lanczos on M⁻¹K, and a per-step record of spring motion.
 
 Power iteration estimates λ_max of M⁻¹K, the square of the network's highest angular frequency, with K
 the stiffness matrix -∂f/∂x of the element families (their ``product`` hook with α = 1, β = 0; springs'
@@ -177,6 +177,123 @@ def power_iteration_kernels(scalar: type, families: tuple, tiled: bool):
             wp.atomic_sub(keep_going_out, 0, 1)
 
     return product, normalize, condition
+
+
+# Slots of a Lanczos run's float64 coefficients, shape [world_count, steps + 1, LZ_SLOTS]: row j holds α_j and β_j.
+LZ_ALPHA = 0  # α_j = v_jᵀ K v_j, the diagonal of the tridiagonal T [1/s²]
+LZ_BETA = 1  # β_j = ‖w_(j-1)‖_M, its off-diagonal (row 0: 0) [1/s²]
+LZ_SLOTS = 2
+
+
+@functools.cache
+def lanczos_kernels(scalar: type, tiled: bool):
+    """(direction, advance, ritz) kernels of Lanczos on M⁻¹K in the mass inner product, one run per world, on top of
+    the power iteration's ``product`` (y = K v_j with the partial sums of v_jᵀKv_j, v_jᵀMv_j). Step j:
+
+        v̂ = v_j / ‖v_j‖_M,   α_j = v̂ᵀKv̂,   w = M⁻¹K v̂ - α_j v̂ - β_j v_(j-1),   β_(j+1) = ‖w‖_M,   v_(j+1) = w / β_(j+1)
+
+    (``direction`` over [world, block, lane]: v̂, α_j, w and the block partial sums of wᵀMw; ``sum_partials_kernel``;
+    ``advance`` over [world, particle]: β_(j+1), v_(j+1)). T, the tridiagonal of the α and β, has eigenvalues
+    (Ritz values) within λ_max(M⁻¹K) and above every start's Rayleigh quotient; ``ritz`` over [world, particle]
+    writes the host's combination Σ c_j v_j (the top Ritz vector) over v_0 for the next run. ``tiled`` as in
+    :func:`power_iteration_kernels`."""
+    vec3 = vec3_type(scalar)
+    block_sum, _ = reduction_funcs(tiled)
+    dot64 = dot64_func(scalar)
+    effective_inv_mass = particle_funcs(scalar)
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def direction(
+        # Model:
+        particle_count: int,
+        particle_flags: wp.array[wp.int32],
+        particle_mass: wp.array2d[scalar],
+        particle_inv_mass: wp.array2d[scalar],
+        # In:
+        active: wp.array[wp.int32],
+        step: int,
+        scalars: wp.array2d[wp.float64],
+        y: wp.array[vec3],
+        previous: wp.array[vec3],
+        # In/out:
+        v_in_out: wp.array[vec3],
+        coefficients_in_out: wp.array3d[wp.float64],
+        w_out: wp.array[vec3],
+        partials_out: wp.array3d[wp.float64],
+    ):
+        """v_j normalised in place, α_j, w = M⁻¹K v̂ - α_j v̂ - β_j v_(j-1) (0 on kinematic particles) and the block
+        partial sums of wᵀMw, in the worlds that run; y = K v_j and ``scalars`` its sums (PI_XKX, PI_XMX)."""
+        world, block, lane = wp.tid()
+        if active[world] == 0:
+            return
+        vmv = scalars[world, PI_XMX]
+        positive = vmv > wp.float64(0.0)
+        scale = wp.where(positive, wp.float64(1.0) / wp.sqrt(vmv), wp.float64(0.0))
+        alpha = wp.where(positive, scalars[world, PI_XKX] / vmv, wp.float64(0.0))
+        beta = wp.where(step > 0, coefficients_in_out[world, step, LZ_BETA], wp.float64(0.0))
+        i = block * wp.block_dim() + lane
+        wmw = wp.float64(0.0)
+        if i < particle_count:
+            p = world * particle_count + i
+            wi = vec3(scalar(0.0))
+            if not is_kinematic(particle_flags[p]):
+                row = wp.min(world, particle_mass.shape[0] - 1)
+                inv_mass = effective_inv_mass(particle_flags[p], particle_inv_mass[row, i])
+                vi = scalar(scale) * v_in_out[p]
+                wi = (inv_mass * scalar(scale)) * y[p] - scalar(alpha) * vi - scalar(beta) * previous[p]
+                v_in_out[p] = vi
+                wmw = wp.float64(particle_mass[row, i]) * dot64(wi, wi)
+            w_out[p] = wi
+        wmw = block_sum(wmw)
+        if lane == 0:
+            partials_out[world, block, 0] = wmw
+            if block == 0:
+                coefficients_in_out[world, step, LZ_ALPHA] = alpha
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def advance(
+        # Model:
+        particle_count: int,
+        # In:
+        active: wp.array[wp.int32],
+        step: int,
+        norms: wp.array2d[wp.float64],
+        # In/out:
+        v_in_out: wp.array[vec3],
+        coefficients_in_out: wp.array3d[wp.float64],
+    ):
+        """β_(j+1) = ‖w‖_M (``norms[world, 0]`` = wᵀMw) and v_(j+1) = w / β_(j+1) in place (0 where β = 0)."""
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
+        if active[world] == 0:
+            return
+        beta = wp.sqrt(wp.max(norms[world, 0], wp.float64(0.0)))
+        scale = wp.where(beta > wp.float64(0.0), wp.float64(1.0) / beta, wp.float64(0.0))
+        v_in_out[p] = scalar(scale) * v_in_out[p]
+        if i == 0:
+            coefficients_in_out[world, step + 1, LZ_BETA] = beta
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def ritz(
+        # Model:
+        particle_count: int,
+        # In:
+        active: wp.array[wp.int32],
+        combination: wp.array2d[wp.float64],
+        # In/out:
+        basis_in_out: wp.array2d[vec3],
+    ):
+        """v_0 = Σ_j c_j v_j (``combination[world, j]``: the top Ritz vector's coordinates in the basis)."""
+        p = wp.tid()
+        world, i = world_and_index(p, particle_count)
+        if active[world] == 0:
+            return
+        x = vec3(scalar(0.0))
+        for j in range(combination.shape[1]):
+            x += scalar(combination[world, j]) * basis_in_out[j, p]
+        basis_in_out[0, p] = x
+
+    return direction, advance, ritz
 
 
 @functools.cache
