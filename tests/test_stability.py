@@ -597,3 +597,23 @@ def test_explicit_euler_is_told_how_much_it_grows_undamped_transverse_modes(devi
     assert advice.stable and advice.transverse_growth == pytest.approx(expected, rel=1e-4) and expected > 2.0
     assert f"×{expected:.3g} over a 10 s run" in advice.message
     assert advise(model, "symplectic_euler", 1.0 / 480.0, state=state).transverse_growth == 1.0
+
+
+def test_a_body_without_pins_is_judged_at_its_shape_not_crushed(device):
+    """A world with no pinned particle has no static equilibrium under gravity (it falls as a whole; uniform
+    gravity strains it in no way), so the advisor's loaded state is its start. Relaxing it instead let a free
+    neo-Hookean ball fall step by step onto its slab and end crushed: the advisor then judged it at ω_max =
+    5.8e8 rad/s (float32; 6e47 in float64) and ``substeps = "auto"`` asked 6,473,433 substeps a frame where 20
+    run clean. Its ω_max now stays within the dry run's rise over the rest shape's (the ball lands at 3.3 m/s)."""
+    from warpspring.analysis.trade_scenes import build_softball
+    from warpspring.analysis.under_load import static_equilibrium
+
+    model = build_softball("neohookean", device, "float32", {})
+    start = model.particle_q.numpy().astype(np.float64)
+    equilibrium = static_equilibrium(model)
+    assert equilibrium.steps == 0 and equilibrium.converged
+    np.testing.assert_array_equal(equilibrium.positions, start)
+    rest = estimate_omega_max(model).omega_max
+    advice = advise(model, "symplectic_euler", 1.0 / 960.0, fps=60.0)
+    assert rest <= advice.omega_max * (1.0 + 1.0e-3)
+    assert advice.omega_max < 1.5 * rest, advice.message

@@ -89,16 +89,26 @@ def static_equilibrium(model: Model, *, control=None, step: float = RELAX_STEP, 
     pins held at their t = 0 place: implicit Euler steps of ``step`` from rest, the velocities zeroed and
     the clock and pins put back after each, until the largest move per step is below ``tolerance`` × the
     model's extent (or ``max_steps``). Each step solves (M + h²K) Δx = h² f, a Newton step on the
-    potential regularised by the mass (K the elements' stiffness, made positive semi-definite)."""
+    potential regularised by the mass (K the elements' stiffness, made positive semi-definite).
+
+    A world without a pinned particle has no such equilibrium: the loads accelerate it as a whole (uniform
+    gravity strains a free body in no way) and only contacts, which this analysis leaves out, could hold it. Its
+    equilibrium is taken as its start: relaxing it would only let it fall step by step into its colliders (a free
+    neo-Hookean ball relaxed onto a slab ended crushed, its ω_max 5.8e8 rad/s against 378 at rest)."""
     checks.positive("step", step)
     checks.count("max_steps", max_steps, minimum=1)
+    free = free_particles(model)
+    held = free.all(axis=1)  # the worlds without a pin: no static equilibrium under the loads
+    if held.all():
+        start = model.particle_q.numpy().astype(np.float64)
+        return Equilibrium(positions=start, steps=0, converged=True, residual=0.0)
     # A relaxation: each step need only move towards the equilibrium (the loop's residual decides when it is
     # reached), so its solve keeps the fixed cap it always had rather than the run's automatic one, which for a
     # large step asks for thousands of iterations.
     integrator = ImplicitEuler(model, cg_iterations=RELAX_CG_ITERATIONS, cg_unconverged="ignore")
     state, scratch = model.state(), model.state()
     start = state.particle_q.numpy().astype(np.float64)
-    pinned = ~free_particles(model).reshape(-1)
+    pinned = (~free | held[:, None]).reshape(-1)  # (a free world kept at its start, as its pins are)
     extent = max(float(np.ptp(start, axis=0).max()) if len(start) else 0.0, 1.0e-6)
     previous, residual, steps = start, math.inf, 0
     while steps < max_steps and residual > tolerance:
