@@ -50,6 +50,19 @@ def test_a_raised_start_keeps_the_flat_rest_lengths():
     np.testing.assert_allclose(rest, expected, rtol=1e-7)
 
 
+def test_a_seeded_start_has_n_lobes_beyond_the_pedestal():
+    """``folds=n`` lowers the skirt by fold_depth · ½(1 + cos nφ) · (r - fold_from)/(radius - fold_from): nothing over
+    the pedestal, the full depth at the hem's lobes (φ = 2πk/n), none midway between them."""
+    builder = ws.ModelBuilder(up_axis="Z")
+    cloth = drape.disc_grid(MATERIAL, builder, radius=0.15, spacing=0.01, contact_radius=1e-3, folds=6,
+                            fold_depth=0.005, fold_from=0.09)
+    z = builder.finalize("cpu", precision="float64").particle_q.numpy()[:, 2]
+    r, phi = np.hypot(*cloth.xy.T), np.arctan2(cloth.xy[:, 1], cloth.xy[:, 0])
+    expected = -0.005 * 0.5 * (1.0 + np.cos(6 * phi)) * np.clip((r - 0.09) / 0.06, 0.0, 1.0)
+    np.testing.assert_allclose(z, expected, atol=1e-15)
+    assert np.all(z[r <= 0.09] == 0.0) and z.min() < -0.0049
+
+
 def test_masked_grid_functions_match_the_full_grid():
     """With every cell present, the masked masses and hinges are the full grid's."""
     nx, ny = 6, 5

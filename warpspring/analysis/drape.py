@@ -105,10 +105,11 @@ class Drape(NamedTuple):
 
 def disc_grid(material: ClothMaterial, builder: ModelBuilder, *, radius: float, spacing: float,
               height: float = 0.0, contact_radius: float, perturbation: float = 0.0, seed: int = 0,
-              hinges: str = "straight") -> DiscCloth:
+              hinges: str = "straight", folds: int = 0, fold_depth: float = 0.0, fold_from: float = 0.0) -> DiscCloth:
     """Add the trimmed-disc grid cloth of ``material`` (radius [m], spacing [m]) to ``builder``, flat at
     ``height`` [m], each particle raised by a uniform random height in [0, ``perturbation``) [m] (``seed``),
-    centred on the z axis. ``hinges``: "crossed" or "straight" (``grid_hinges``' layouts) or "triangles" (the triangles' own hinges
+    centred on the z axis; with ``folds`` = n > 0, also lowered by ``fold_depth`` [m] × ½ (1 + cos nφ) × (r - ``fold_from``)
+    / (``radius`` - ``fold_from``) beyond the radius ``fold_from`` [m] (n lobes to seed n folds). ``hinges``: "crossed" or "straight" (``grid_hinges``' layouts) or "triangles" (the triangles' own hinges
     by ``hinge_parameters``, as the material grid had before: kept to measure the difference)."""
     if hinges not in ("crossed", "straight", "triangles"):
         raise ConfigError(f"hinges must be 'crossed', 'straight' or 'triangles', got {hinges!r}")
@@ -131,6 +132,10 @@ def disc_grid(material: ClothMaterial, builder: ModelBuilder, *, radius: float, 
     mass = grid_masses(material, n, n, spacing, cells=cells)[used.ravel()]
     xy = np.c_[x.ravel(), y.ravel()][used.ravel()]
     z = float(height) + np.random.default_rng(seed).uniform(0.0, perturbation, len(xy))
+    if folds:
+        r, phi = np.hypot(xy[:, 0], xy[:, 1]), np.arctan2(xy[:, 1], xy[:, 0])
+        ramp = np.clip((r - fold_from) / (radius - fold_from), 0.0, 1.0)
+        z -= fold_depth * 0.5 * (1.0 + np.cos(checks.count("folds", folds, minimum=1) * phi)) * ramp
     ids = builder.add_particles(np.c_[xy, z], mass=mass, radius=contact_radius)
 
     k = grid_springs(material)
@@ -276,13 +281,17 @@ def cusick(material: ClothMaterial, *, spacing: float, specimen_radius: float = 
            substeps: int | None = None, pixel: float = 2.5e-4, hinges: str = "straight", drag: float = 0.0,
            fixed_time: float | None = None, cg_tolerance: float = 1.0e-7, cg_iterations: int = 5000,
            integrator: str = "symplectic_euler", damping_rate: float = 20.0, step_fraction: float = 0.8,
-           rim_radius: float = 0.0, device=None) -> Drape:
+           rim_radius: float = 0.0, precision: str = "float32", folds: int = 0, fold_depth: float = 5.0e-3,
+           device=None) -> Drape:
     """Drape ``material`` on the pedestal and measure it (module docstring).
 
     ``drag`` [N·s/m] is the builder's per-particle drag (its damping rate drag / m grows as 1 / spacing²), and
     ``fixed_time`` [s] stops at that time whether settled or not: both only to reproduce runs made that way.
     ``cg_tolerance`` and ``cg_iterations``: the implicit solve's relative residual and iteration cap; the run
     raises :class:`SimulationError` where a frame's last solve stops at the cap above the tolerance.
+    ``precision``: the model's, "float32" or "float64". ``folds`` = n > 0 starts the skirt with n lobes ``fold_depth``
+    [m] deep at the hem (``disc_grid``), to measure the coefficient of an n-fold drape at several spacings; it may
+    still settle with another number of folds (``Drape.folds`` says).
     """
     import trimesh  # optional: trimesh (the pedestal's mesh)
 
@@ -297,7 +306,8 @@ def cusick(material: ClothMaterial, *, spacing: float, specimen_radius: float = 
         drag = damping_rate * material.density * spacing**2
     builder = ModelBuilder(up_axis="Z", gravity=(0.0, 0.0, -GRAVITY), drag=drag)
     cloth = disc_grid(material, builder, radius=specimen_radius, spacing=spacing, height=1.5 * contact_radius,
-                      contact_radius=contact_radius, perturbation=perturbation, seed=seed, hinges=hinges)
+                      contact_radius=contact_radius, perturbation=perturbation, seed=seed, hinges=hinges,
+                      folds=folds, fold_depth=fold_depth, fold_from=disc_radius)
     pedestal_height = 2.0 * specimen_radius
     rim_radius = checks.non_negative("rim_radius", rim_radius)
     if rim_radius == 0.0:
@@ -314,7 +324,7 @@ def cusick(material: ClothMaterial, *, spacing: float, specimen_radius: float = 
     else:
         raise ConfigError(f"rim_radius must be below disc_radius ({disc_radius} m), got {rim_radius}")
     builder.add_collider_mesh(pedestal, center=centre, friction=friction)
-    model = builder.finalize(device)
+    model = builder.finalize(device, precision=precision)
     if integrator == "implicit_euler":
         stepper = make_integrator("implicit_euler", model, cg_tolerance=cg_tolerance, cg_iterations=cg_iterations)
         substeps = 4 if substeps is None else substeps
