@@ -92,6 +92,10 @@ def test_count_folds_of_a_wavy_hem(folds):
     r = 0.12 + 0.01 * np.cos(folds * phi + 0.3)
     hem = np.c_[r * np.cos(phi), r * np.sin(phi), np.zeros_like(phi)]
     assert drape.count_folds(hem, np.arange(len(phi))) == folds
+    # a ripple of ±0.5 mm (a staircase hem that barely droops) rises less than the 2 mm prominence: no folds
+    ripple = 0.12 + 0.0005 * np.cos(3 * folds * phi)
+    flat = np.c_[ripple * np.cos(phi), ripple * np.sin(phi), np.zeros_like(phi)]
+    assert drape.count_folds(flat, np.arange(len(phi))) == 0
 
 
 def test_imbalance_of_single_particles_against_coulomb():
