@@ -14,8 +14,13 @@ and whether the two finest means are within ±0.02. ``--integrator implicit_eule
 (4 substeps, solves to 1e-7), whose settled states are not equilibria (imbalance ~200: analysis/drape.py);
 The hinges are ``grid_hinges``' straight layout (no checkerboard mode); ``--hinges crossed`` runs the material
 grid's crossed hinges and ``--hinges triangles`` the triangles' own hinges (the bending before those).
+``--folds n`` starts from n lobes instead (the coefficient of an n-fold drape at each spacing: the random starts
+settle with different numbers of folds, and the coefficient follows them); ``--precision float64`` runs the model
+in float64. Each invocation writes its own section (keyed by its options) and prints each row's wall time.
 
-    python bench/drape.py --device cuda:0                                  # study, silk, denim at c/2, c/4, c/8
+    python bench/drape.py --device cuda:0        # silk, study, cotton_polyester at c/2, c/4, c/8, seeds 0 1 2
+    python bench/drape.py --device cuda:0 --materials silk --fractions 8                     # one material, one spacing
+    python bench/drape.py --device cuda:0 --materials study silk cotton_polyester --seeds 0 --folds 8
     python bench/drape.py --device cuda:0 --hinges crossed --materials study
     python bench/drape.py --device cuda:0 --hinges triangles --materials study
     python bench/drape.py --device cuda:0 --materials study --contact-radius 0     # radius = spacing / 4
