@@ -135,9 +135,13 @@ def main() -> None:
                         f"{time.perf_counter() - start:.0f} |")
             print(rows[-1], flush=True)
             if spacing == spacings[-1] and not args.no_picture:
-                path = PICTURES / f"drape_{name}_{args.hinges}_{device.alias.replace(':', '')}.png"
-                picture(runs[0], path, f"{name}, spacing {spacing * 1e3:.2f} mm")
-                print("wrote", path)
+                path = PICTURES / (f"drape_{name}_{args.hinges}_c{round(c / spacing)}" + (f"_n{args.folds}" if args.folds else "")
+                                   + f"_{device.alias.replace(':', '')}.png")
+                try:
+                    picture(runs[0], path, f"{name}, spacing {spacing * 1e3:.2f} mm")
+                    print("wrote", path)
+                except ImportError:  # a machine without the plot extra still gets its table
+                    print("no picture: matplotlib is not installed (pip install -e .[plot])")
         if len(means) >= 2:
             change = means[-1] - means[-2]
             verdicts.append(f"- {name}: DC {means[-1]:.3f} at {spacings[-1] * 1e3:.2f} mm; change from "
