@@ -14,8 +14,13 @@ and whether the two finest means are within ±0.02. ``--integrator implicit_eule
 (4 substeps, solves to 1e-7), whose settled states are not equilibria (imbalance ~200: analysis/drape.py);
 The hinges are ``grid_hinges``' straight layout (no checkerboard mode); ``--hinges crossed`` runs the material
 grid's crossed hinges and ``--hinges triangles`` the triangles' own hinges (the bending before those).
+``--folds n`` starts from n lobes instead (the coefficient of an n-fold drape at each spacing: the random starts
+settle with different numbers of folds, and the coefficient follows them); ``--precision float64`` runs the model
+in float64. Each invocation writes its own section (keyed by its options) and prints each row's wall time.
 
-    python bench/drape.py --device cuda:0                                  # study, silk, denim at c/2, c/4, c/8
+    python bench/drape.py --device cuda:0        # silk, study, cotton_polyester at c/2, c/4, c/8, seeds 0 1 2
+    python bench/drape.py --device cuda:0 --materials silk --fractions 8                     # one material, one spacing
+    python bench/drape.py --device cuda:0 --materials study silk cotton_polyester --seeds 0 --folds 8
     python bench/drape.py --device cuda:0 --hinges crossed --materials study
     python bench/drape.py --device cuda:0 --hinges triangles --materials study
     python bench/drape.py --device cuda:0 --materials study --contact-radius 0     # radius = spacing / 4
@@ -63,7 +68,7 @@ def picture(result: drape.Drape, path: pathlib.Path, title: str) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--materials", nargs="+", default=["silk", "study", "denim"], choices=list(MATERIALS))
+    parser.add_argument("--materials", nargs="+", default=["silk", "study", "cotton_polyester"], choices=list(MATERIALS))
     parser.add_argument("--fractions", type=int, nargs="+", default=[2, 4, 8], help="spacing = c / fraction")
     parser.add_argument("--spacings", type=float, nargs="+", help="spacings [m] instead of --fractions")
     parser.add_argument("--drag", type=float, default=0.0, help="per-particle drag [N·s/m] (default none)")
@@ -86,6 +91,12 @@ def main() -> None:
     parser.add_argument("--cg-tolerance", type=float, default=1.0e-7,
                         help="implicit solve's relative residual (a run stops where a solve ends above it)")
     parser.add_argument("--cg-iterations", type=int, default=5000, help="implicit solve's iteration cap")
+    parser.add_argument("--precision", default="float32", choices=["float32", "float64"],
+                        help="the model's precision (float64: positions and forces without float32's round-off, which at "
+                             "c/8 exceeds a particle's weight in the stiff springs' forces)")
+    parser.add_argument("--folds", type=int, default=0,
+                        help="start the skirt with this many lobes, 5 mm deep at the hem (cusick's folds): the coefficient "
+                             "of an n-fold drape at each spacing (default 0: the random starts only)")
     parser.add_argument("--no-picture", action="store_true")
     args = parser.parse_args()
     wp.init()
@@ -106,7 +117,8 @@ def main() -> None:
                                              substeps=args.substeps, integrator=args.integrator,
                                              damping_rate=args.damping_rate, rim_radius=args.rim_radius,
                                              cg_tolerance=args.cg_tolerance,
-                                             cg_iterations=args.cg_iterations, device=device))
+                                             cg_iterations=args.cg_iterations, precision=args.precision,
+                                             folds=args.folds, device=device))
                 except ws.SimulationError as error:  # a run that stopped is reported, not averaged
                     stopped.append(f"- {name} at {spacing * 1e3:.2f} mm, seed {seed}: stopped: {error}")
                     print(stopped[-1], flush=True)
@@ -123,9 +135,13 @@ def main() -> None:
                         f"{time.perf_counter() - start:.0f} |")
             print(rows[-1], flush=True)
             if spacing == spacings[-1] and not args.no_picture:
-                path = PICTURES / f"drape_{name}_{args.hinges}_{device.alias.replace(':', '')}.png"
-                picture(runs[0], path, f"{name}, spacing {spacing * 1e3:.2f} mm")
-                print("wrote", path)
+                path = PICTURES / (f"drape_{name}_{args.hinges}_c{round(c / spacing)}" + (f"_n{args.folds}" if args.folds else "")
+                                   + f"_{device.alias.replace(':', '')}.png")
+                try:
+                    picture(runs[0], path, f"{name}, spacing {spacing * 1e3:.2f} mm")
+                    print("wrote", path)
+                except ImportError:  # a machine without the plot extra still gets its table
+                    print("no picture: matplotlib is not installed (pip install -e .[plot])")
         if len(means) >= 2:
             change = means[-1] - means[-2]
             verdicts.append(f"- {name}: DC {means[-1]:.3f} at {spacings[-1] * 1e3:.2f} mm; change from "
@@ -139,11 +155,13 @@ def main() -> None:
                + (f" --damping-rate {args.damping_rate:g}" if args.integrator == "symplectic_euler" else
                   f" --cg-tolerance {args.cg_tolerance:g} --cg-iterations {args.cg_iterations}")
                + f" --hinges {args.hinges} --contact-radius {args.contact_radius}"
-               + f" --max-time {args.max_time:g}" + (f" --rim-radius {args.rim_radius:g}" if args.rim_radius else "")
+               + f" --max-time {args.max_time:g}" + (f" --precision {args.precision}" if args.precision != "float32" else "")
+               + (f" --folds {args.folds}" if args.folds else "")
+               + (f" --rim-radius {args.rim_radius:g}" if args.rim_radius else "")
                + (f" --drag {args.drag}" if args.drag else "") + (f" --fixed-time {args.fixed_time}" if args.fixed_time else ""))
     text = "\n".join([
         f"## Cusick drape coefficient against resolution ({args.integrator}, {args.hinges} hinges, contact radius "
-        f"{args.contact_radius or 'spacing/4'})",
+        f"{args.contact_radius or 'spacing/4'}, {args.precision})",
         "",
         f"`{command}` — {device.name} ({device.alias}), Warp {wp.config.version}, {datetime.date.today()}",
         "",
@@ -157,7 +175,8 @@ def main() -> None:
     print(text)
     key = (f"drape-{args.hinges}-r{args.contact_radius:g}-d{args.drag:g}-t{args.fixed_time or 0:g}"
            + ("-se-" + "-".join(args.materials) + ("" if args.spacings else "-f" + "-".join(map(str, args.fractions)))
-              if args.integrator == "symplectic_euler" else "") + (f"-rim{args.rim_radius:g}" if args.rim_radius else ""))
+              if args.integrator == "symplectic_euler" else "") + (f"-rim{args.rim_radius:g}" if args.rim_radius else "")
+           + ("-f64" if args.precision == "float64" else "") + (f"-n{args.folds}" if args.folds else ""))
     write_section(f"{key}-{'s' if args.spacings else 'c'}-{device.alias.replace(':', '')}", text)
 
 

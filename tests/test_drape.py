@@ -50,6 +50,19 @@ def test_a_raised_start_keeps_the_flat_rest_lengths():
     np.testing.assert_allclose(rest, expected, rtol=1e-7)
 
 
+def test_a_seeded_start_has_n_lobes_beyond_the_pedestal():
+    """``folds=n`` lowers the skirt by fold_depth · ½(1 + cos nφ) · (r - fold_from)/(radius - fold_from): nothing over
+    the pedestal, the full depth at the hem's lobes (φ = 2πk/n), none midway between them."""
+    builder = ws.ModelBuilder(up_axis="Z")
+    cloth = drape.disc_grid(MATERIAL, builder, radius=0.15, spacing=0.01, contact_radius=1e-3, folds=6,
+                            fold_depth=0.005, fold_from=0.09)
+    z = builder.finalize("cpu", precision="float64").particle_q.numpy()[:, 2]
+    r, phi = np.hypot(*cloth.xy.T), np.arctan2(cloth.xy[:, 1], cloth.xy[:, 0])
+    expected = -0.005 * 0.5 * (1.0 + np.cos(6 * phi)) * np.clip((r - 0.09) / 0.06, 0.0, 1.0)
+    np.testing.assert_allclose(z, expected, atol=1e-15)
+    assert np.all(z[r <= 0.09] == 0.0) and z.min() < -0.0049
+
+
 def test_masked_grid_functions_match_the_full_grid():
     """With every cell present, the masked masses and hinges are the full grid's."""
     nx, ny = 6, 5
@@ -79,6 +92,10 @@ def test_count_folds_of_a_wavy_hem(folds):
     r = 0.12 + 0.01 * np.cos(folds * phi + 0.3)
     hem = np.c_[r * np.cos(phi), r * np.sin(phi), np.zeros_like(phi)]
     assert drape.count_folds(hem, np.arange(len(phi))) == folds
+    # a ripple of ±0.5 mm (a staircase hem that barely droops) rises less than the 2 mm prominence: no folds
+    ripple = 0.12 + 0.0005 * np.cos(3 * folds * phi)
+    flat = np.c_[ripple * np.cos(phi), ripple * np.sin(phi), np.zeros_like(phi)]
+    assert drape.count_folds(flat, np.arange(len(phi))) == 0
 
 
 def test_imbalance_of_single_particles_against_coulomb():

@@ -97,8 +97,56 @@ DENIM = kes_material(bending=0.172, shear=2.180, emt=5.515, density=0.41)
 #: Natural-rubber sheet 1 mm thick: E = 1.5 MPa, ν = 0.5, 930 kg/m³ (handbook values): E·t = 1.5e3 N/m,
 #: G·t = E·t / 2(1+ν), D = E t³ / 12(1-ν²). Isotropic: on a grid it keeps E and G but gets ν ≈ 0.30.
 RUBBER_SHEET = ClothMaterial(stretch=1.5e3, shear=5.0e2, bending=1.5e-3 / 9.0, density=0.93)
+
+
+def wang2011_material(*, density: float, stretching, bending) -> ClothMaterial:
+    """A :class:`ClothMaterial` from a fabric measured by Wang, O'Brien & Ramamoorthi 2011 ("Data-driven elastic
+    models for cloth: modeling and measurement", ACM TOG 30(4):71, doi:10.1145/2010324.1964966), as their data is
+    distributed with the ARCSim simulator (``materials/<fabric>.json``).
+
+    Args:
+        density: the file's ``density`` [kg/m²].
+        stretching: the first row of the file's ``stretching`` table, (k0, k1, k2, k3) [N/m]: its stiffness at
+            zero strain (the row ARCSim uses for every direction at small strain).
+        bending: the first column of the file's ``bending`` table, its stiffness at zero curvature along the warp,
+            the bias and the weft (ARCSim's three directions, 0°, 45°, 90°) [N·m, ARCSim's hinge form].
+
+    How ARCSim uses them (``dde.cpp``, ``physics.cpp``), and what they are in this module's terms:
+
+    - Membrane: ARCSim doubles each entry and stores ½ k0' ε_uu² + k1' ε_uu ε_vv + ½ k2' ε_vv² + k3' ε_uv² per unit
+      area (k' = 2k, ε Green's strain), so C11 = 2 k0, C12 = 2 k1, C22 = 2 k2 and, with γ = 2 ε_uv, G·t = k3.
+      ``stretch`` is the mean of the uniaxial-stress moduli along warp and weft, C11 - C12²/C22 and
+      C22 - C12²/C11: a :class:`ClothMaterial` has one (woven fabrics differ by up to 5× between the two).
+    - Bending: ARCSim's hinge force is ke · |e|² / (2 (A1 + A2)) · θ ∇θ / 2, the energy ke |e|² θ² / (8 (A1 + A2));
+      :func:`hinge_parameters`' discrete-shells hinge stores D |e|² θ² / (2 (A1 + A2)), so D = ke / 4.
+      ``bending`` is the mean of the three directions' D (the measured anisotropy, up to 1.5×, is not kept),
+      at zero curvature (the measured stiffness falls by up to 3× towards ARCSim's largest sample, 40 /m).
+    """
+    values = list(stretching)
+    if len(values) != 4:
+        raise ConfigError(f"stretching must be the 4 entries (k0, k1, k2, k3) of the file's first row, got {len(values)}")
+    k0, k2, k3 = (checks.positive(f"stretching entry k{i} [N/m]", values[i]) for i in (0, 2, 3))
+    k1 = checks.non_negative("stretching entry k1 [N/m]", values[1])
+    c11, c12, c22 = 2.0 * k0, 2.0 * k1, 2.0 * k2
+    stretch = 0.5 * ((c11 - c12**2 / c22) + (c22 - c12**2 / c11))
+    bends = [checks.positive("bending entry [N·m]", v) for v in bending]
+    if len(bends) != 3:
+        raise ConfigError(f"bending must give the 3 directions (warp, bias, weft), got {len(bends)} values")
+    return ClothMaterial(stretch=stretch, shear=k3, bending=sum(bends) / 12.0, density=density)
+
+
+#: Wang et al. 2011's "11oz-black-denim" (jeans, 99 % cotton 1 % spandex): ARCSim ``materials/11oz-black-denim.json``.
+DENIM_11OZ = wang2011_material(density=0.324, stretching=(205.352005, 10.234077, 1013.88629, 53.387184),
+                               bending=(64.196457e-6, 73.384567e-6, 96.951576e-6))
+#: Wang et al. 2011's "royal-target" (pants, 65 % cotton 35 % polyester): ARCSim ``materials/royal-target.json``.
+COTTON_POLYESTER = wang2011_material(density=0.220, stretching=(2016.55456, 9.170511, 2034.97644, 104.759674),
+                                     bending=(125.409805e-6, 107.997696e-6, 125.409805e-6))
+#: Wang et al. 2011's "white-dots-on-blk" (tablecloth, 100 % polyester): ARCSim ``materials/white-dots-on-blk.json``.
+POLYESTER = wang2011_material(density=0.128, stretching=(2002.08618, 0.345588, 2027.48559, 19.189022),
+                              bending=(51.713814e-6, 40.659470e-6, 31.282822e-6))
 #: The presets by name (for scene files and the command line).
-PRESETS = {"cotton": COTTON, "silk": SILK, "denim": DENIM, "rubber_sheet": RUBBER_SHEET}
+PRESETS = {"cotton": COTTON, "silk": SILK, "denim": DENIM, "rubber_sheet": RUBBER_SHEET, "denim_11oz": DENIM_11OZ,
+           "cotton_polyester": COTTON_POLYESTER, "polyester": POLYESTER}
 
 #: Retardation time τ [s] of the default cloth's Kelvin-Voigt damping: kd = τ ke on every spring and hinge, so a
 #: mode of angular frequency ω is damped by ζ = τω/2 (0.05 at 10⁴ rad/s, the top of a 64² cloth of a metre:
@@ -121,6 +169,7 @@ def with_mass(material: ClothMaterial, mass: float, area: float) -> ClothMateria
 def mesh_area(vertices, faces) -> float:
     """The total area [m²] of a triangle mesh (vertices [m], shape [v, 3]; faces, shape [t, 3])."""
     return float(_triangle_areas(_vertices(vertices), np.asarray(faces, dtype=np.int64)).sum())
+_ARCSIM = "https://github.com/wxhaooo/lyra/blob/5158f74c7c92588339e19e8f86ec7f15a2a4fdf9/materials/"
 #: Where each preset's values come from, field by field ("none found" where no retrievable measurement was).
 PRESET_SOURCES = {
     "cotton": {"all": "none found: representative values, not a measurement of one fabric"},
@@ -131,7 +180,15 @@ PRESET_SOURCES = {
                    "104 mg/cm² (1.04 kg/m²), which with its 1.07 mm thickness is 975 kg/m³, implausible for "
                    "denim, so it is not used",
     },
-    "rubber_sheet": {"all": "handbook values of natural rubber (E = 1.5 MPa, ν = 0.5, 930 kg/m³), 1 mm thick"},
+    "rubber_sheet": {"all": "none found: handbook values of natural rubber (E = 1.5 MPa, ν = 0.5, 930 kg/m³), "
+                            "1 mm thick, not a measurement of one sheet"},
+    **{name: {"all": f"Wang, O'Brien & Ramamoorthi 2011, Data-driven elastic models for cloth: modeling and measurement, "
+                     f"ACM TOG 30(4):71, doi:10.1145/2010324.1964966: fabric {fabric!r}, its data as distributed with "
+                     f"ARCSim (http://graphics.berkeley.edu/resources/ARCSim/), materials/{fabric}.json, e.g. {_ARCSIM}"
+                     f"{fabric}.json (density; stretching, first row; bending, first column: wang2011_material)",
+              "drape coefficient": "none found: the source measured no Cusick drape"}
+       for name, fabric in (("denim_11oz", "11oz-black-denim"), ("cotton_polyester", "royal-target"),
+                            ("polyester", "white-dots-on-blk"))},
 }
 
 
