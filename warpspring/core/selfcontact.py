@@ -36,7 +36,9 @@ from ..kernels.selfcontact import (
     Pairs,
     Surface,
     broad_kernel,
+    cap_check_kernel,
     cap_gather_kernel,
+    cap_release_kernel,
     fill_kernel,
     leaf_kernel,
     proximity_kernel,
@@ -138,6 +140,8 @@ class SelfContact:
         self.params = wp.zeros((worlds, PARAM_COUNT), dtype=model.scalar, device=device)
         self.set(thickness=thickness, friction=friction, relaxation=relaxation)
         self.corrected = wp.zeros(model.state_size, dtype=model.vec3, device=device)
+        self.jammed = wp.zeros(model.state_size, dtype=wp.int32, device=device)  # the cap's vertices asked to give way
+        #   further than their first pass let them (kernels/selfcontact.py, cap_release_kernel)
         self.counters = wp.zeros((worlds, COUNTER_COUNT), dtype=wp.int32, device=device)
         # The pair cache (kernels/selfcontact_cache.py: its anchors, its reach, 0 until built) and the cap's
         # swept list, for the steps that need it; the pass's flags (any rebuild, any fallback, then per world each
@@ -170,7 +174,8 @@ class SelfContact:
         flat = [broad_kernel(scalar, False), broad_kernel(scalar, True),
                 reset_kernel(), fill_kernel(), check_kernel(scalar), decide_kernel(scalar), anchor_kernel(scalar),
                 repel_pairs_kernel(scalar),
-                repel_gather_kernel(scalar), cap_bounds_kernel(scalar), cap_gather_kernel(scalar)]
+                repel_gather_kernel(scalar), cap_bounds_kernel(scalar), cap_gather_kernel(scalar),
+                cap_release_kernel(scalar), cap_check_kernel(scalar)]
         for kernel in flat:
             kernel.module.load(model.device, model.block_dim)
 
@@ -246,9 +251,10 @@ class SelfContact:
         return {"pairs": counters[:, COUNT_PAIRS], "capped": counters[:, COUNT_CAPPED]}
 
     def outrun(self) -> np.ndarray:
-        """Pairs whose kinematic vertices moved in a step at least the pair's distance (K ≥ D: beyond the cap, which
-        bounds free vertices only; such a pair may cross), per world, summed over steps since the start or
-        :meth:`reset` (int64 [world_count]; reads the device). Zero in a run the no-crossing guarantee covers."""
+        """Pairs the cap could not hold apart (beyond it: a pin closing in on a free side that cannot give way along
+        its repelled step, or two pinned sides closing in; such a pair may cross), per world, summed over steps since
+        the start or :meth:`reset` (int64 [world_count]; reads the device). Zero in a run the no-crossing guarantee
+        covers."""
         return self.counters.numpy()[:, COUNT_OUTRUN].astype(np.int64)
 
     def overflow(self) -> np.ndarray:
@@ -399,7 +405,16 @@ class SelfContact:
                     inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
                             self.surface, self.params, self.cache, self.cache_bound, self.cap_pairs,
                             self.pair_distance, self.flags, start, particle_q, model.scalar(dt)],
-                    outputs=[state_out.particle_q, state_out.particle_qd, self.counters], **per_particle)
+                    outputs=[state_out.particle_q, state_out.particle_qd, self.jammed, self.counters], **per_particle)
+        flat_launch(cap_release_kernel(model.scalar),
+                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface,
+                            self.params, self.cache, self.cache_bound, self.cap_pairs, self.flags, self.jammed, start,
+                            particle_q, model.scalar(dt)],
+                    outputs=[state_out.particle_q, state_out.particle_qd], **per_particle)
+        flat_launch(cap_check_kernel(model.scalar),
+                    inputs=[model.particle_count, model.world_enabled, self.surface, self.cache, self.cache_bound,
+                            self.cap_pairs, self.flags, start, state_out.particle_q],
+                    outputs=[self.counters], **per_particle)
 
     def repel(self, state_in, particle_q: wp.array) -> wp.array:
         """The repulsion stage alone (with the cache's check and, where needed, its rebuild): ``particle_q`` (the

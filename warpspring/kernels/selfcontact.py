@@ -35,31 +35,52 @@ stages keep the same pairs as a broad phase every step):
    μc of the pair's relative tangential displacement the same way (all of it when μc covers it: static
    friction). A vertex takes a weighted mean of its pairs' corrections (Jacobi): their sum over
    max(1, Σ|wₖ|), its weights in its pairs, so several pairs at one vertex do not add up to an overshoot.
-2. **The displacement cap** (Chen et al. 2024, "Offset Geometric Contact", as in Newton's VBD). Let x̂ be
-   the repelled positions, each free vertex's displacement first limited to γ · ``SEARCH_REACH`` · τ
-   (γ < 1/2 the relaxation); kinematic vertices keep their prescribed x¹. The cap's pairs are those whose
-   swept boxes overlap at (x⁰, x̂): the vertex's or edge's swept box (x⁰ and x̂ of its ends) against the
-   triangles' swept boxes (tested on the cached pairs by ``selfcontact_cache.cap_bounds_kernel``, or listed
-   by the swept broad phase where the cache may miss one); a pair is kept when its free vertices could move far enough to matter:
-   K < D and maxₖ free δₖ > γ (D − K), with δₖ = |x̂ₖ − x⁰ₖ| and K the largest prescribed displacement
-   among its kinematic vertices (0 when it has none). Each free vertex i then ends on the segment x⁰ᵢ → x̂ᵢ
-   at distance at most γ · min(γ⁻¹ δᵢ, min over its listed pairs of (D − K)) from x⁰ᵢ.
+2. **The displacement cap** (Chen et al. 2024, "Offset Geometric Contact", as in Newton's VBD, with separating
+   planes). Let x̂ be the repelled positions, each free vertex's step Δ̂ᵢ = x̂ᵢ − x⁰ᵢ first limited to
+   γ · ``SEARCH_REACH`` · τ (δᵢ = |Δ̂ᵢ|; γ < 1/2 the relaxation); kinematic vertices keep their prescribed x¹.
+   The cap's pairs are those whose swept boxes overlap at (x⁰, x̂): the vertex's or edge's swept box (x⁰ and x̂
+   of its ends) against the triangles' swept boxes (tested on the cached pairs by
+   ``selfcontact_cache.cap_bounds_kernel``, or listed by the swept broad phase where the cache may miss one); a
+   pair is kept unless neither side can reach the other: 2K < D and maxₖ free δₖ ≤ γ (D − K), with K the
+   largest prescribed displacement among its kinematic vertices (0 when it has none). Each free vertex i then
+   ends at x⁰ᵢ + sᵢ Δ̂ᵢ, sᵢ in [0, 1] the largest that keeps two bounds over its kept pairs (``cap_gather_kernel``):
 
-   Why no pair crosses within the step, when none of its kinematic vertices moves as far as D (K < D) and
-   not both of its sides hold kinematic vertices. Every point of a primitive is a fixed convex combination
-   of its vertices, each moving on a straight line, so it stays in the primitive's swept box and moves at
-   most the largest displacement among its vertices. (a) The pair's swept boxes are disjoint: the
-   primitives never meet. (b) The boxes overlap but the pair was not kept: every free vertex already moves
-   at most δₖ ≤ γ (D − K). (c) It was kept: the cap makes every free vertex move at most γ (D − K). In (b)
-   and (c) one side moves at most max(K, γ(D − K)), the other at most γ(D − K) (it holds no kinematic
-   vertex, or holds them with the first side free), so the separation along the path stays above
-   D − K − γ(D − K) = (1 − γ)(D − K) > 0 when K ≥ γ(D − K), and above D − 2γ(D − K) ≥ (1 − 2γ)(D − K) > 0
-   otherwise. With no kinematic vertex (K = 0) this is the bound γD per vertex and the margin D(1 − 2γ).
-   A pair with K ≥ D (a pin moving further in a step than its distance to the surface) is beyond the cap
-   (no bound on the free side could keep it apart; the repulsion alone acts on it), and is not listed; it is
-   counted (COUNT_OUTRUN), so that a run says where the guarantee did not hold.
+   * **planes**. A kept pair's n is the unit vector between its closest points at x⁰, from side B (the
+     triangle, the second edge) to side A (the vertex, the first edge), and D_n = min over A's vertices of n·x⁰
+     − max over B's of n·x⁰ the width of the slab between the primitives along n (D where n is exact; any n
+     gives a true slab); G = D_n − 2 pad (``plane_funcs``). K_A, K_B are each side's kinematic approach: the
+     largest displacement of its kinematic vertices toward the other side along n (at least 0). A free vertex
+     of A may approach B along n by at most its share s_A = min(γ (G − K_B), (1 − γ) G − K_B), one of B by
+     s_B = min(γ (G − K_A), (1 − γ) G − K_A): a pin's approach is taken off the other side's share, and where it
+     exceeds (1 − γ) G the share is negative: the free side must give way, moved along its repelled step (which
+     the repulsion pointed away from the pin) rather than held where the pin runs into it. A vertex that
+     retreats along n takes its whole step there. A pair with G ≤ 0 (closer than the precision resolves)
+     holds its free vertices (s = 0).
+   * **lengths**, for a vertex no share asks to give way: it also moves at most γ · min over its kept pairs of
+     (D − K − pad), as with no planes, so that its step stays short in every direction, not only along the
+     pairs' normals (neighbours that pass beside it, (a) below, stay as far apart as a length cap keeps them).
+
+   Why no pair crosses within the step. Every point of a primitive is a fixed convex combination of its
+   vertices, each moving on a straight line (sᵢ ≤ 1 keeps each on its segment x⁰ᵢ → x̂ᵢ), so it stays in the
+   primitive's swept box, moves at most the largest displacement among its vertices, and along any fixed n
+   moves at most as far as the furthest of its vertices. (a) The pair's swept boxes are disjoint: the
+   primitives never meet. (b) The boxes overlap but the pair was not kept: every vertex of it moves at most
+   max(K, γ (D − K)) < D/2 (2K < D, γ < 1/2), so the two sides never meet, whichever hold kinematic vertices.
+   (c) It was kept: side A's lowest point along n stays above min_A n·x⁰ − α_A and side B's highest below
+   max_B n·x⁰ + α_B, α a side's largest approach among its vertices: at most max(K_A, s_A) for A where each
+   free vertex keeps its share (for B likewise; a side without kinematic vertices: its share). The slab between
+   them stays open by at least G − max(K_A, s_A) − max(K_B, s_B), which is ≥ (1 − 2γ) G where no pin exceeds its
+   side's share, ≥ γ G where one does (K_A + s_B ≤ (1 − γ) G), and G − K_A − K_B where both sides' pins do:
+   positive whenever at most one side holds kinematic vertices, and when both do and close in by less than G.
+   With no kinematic vertex this is the bound γ G per vertex along n and the margin (1 − 2γ) G. G takes two pads
+   off D_n: one for the rounding of the dot products, one for the rounded end positions.
+   A share that cannot be kept puts the pair beyond the cap: a free vertex asked to give way whose repelled step
+   does not retreat along n as far (the cap only shortens a step; such a vertex keeps its approach bounds, its
+   push unmet), or two kinematic sides closing in by G or more. ``cap_check_kernel`` counts, after the cap,
+   each kept pair one of whose sides closes in along n while their approaches add up to D_n − pad or more
+   (COUNT_OUTRUN), so that a run says where the guarantee did not hold.
    If the world's cap buffer overflowed, a listed pair may be missing: every free vertex of that world then
-   stays at x⁰ for the step (δ = 0 satisfies every bound), and the overflow is counted.
+   stays at x⁰ for the step (s = 0 keeps every bound of every pair), and the overflow is counted.
    The BVH is single precision: query and leaf boxes are padded by ``BOX_PAD`` relative to the coordinates.
 
 Velocities of the vertices the pass moved become v = (x − x⁰)/h; the others keep the integrator's.
@@ -99,7 +120,7 @@ COUNT_CAPPED = 1  # vertices whose displacement the cap shortened
 COUNT_OVERFLOW = 2  # pairs dropped because the world's pair buffer was full
 COUNT_REBUILDS = 3  # steps that rebuilt the world's pair cache (module selfcontact_cache)
 COUNT_FALLBACKS = 4  # steps whose cap ran the swept broad phase instead of the cache
-COUNT_OUTRUN = 5  # pairs whose kinematic vertices moved at least the pair's distance (K >= D: beyond the cap)
+COUNT_OUTRUN = 5  # kept pairs the cap could not hold apart (a pin closing in on a free side that cannot give way)
 COUNTER_COUNT = 6
 
 #: The pair cache (module ``selfcontact_cache``): it lists the pairs closer than this many thicknesses at its
@@ -121,6 +142,8 @@ FLAG_KINDS = 12
 KINEMATIC_STEPS = 4096
 #: Relative slack of the cache's bounds (drift, the cap's budget) against rounding.
 SAFETY = 1.0 / 64.0
+#: A cached pair's bound (``selfcontact_cache.cap_bounds_kernel``) where the cap does not keep it.
+NO_BOUND = 1.0e30
 
 
 @wp.struct
@@ -234,7 +257,7 @@ def _vertex_extent(scalar: type, swept: bool):
     particle_q_end, limit) -> (lower, upper)``: the box [lower, upper] grown to hold vertex j's (state entry;
     ``local`` its index in the world) start and, with ``swept``, where it ends the stage at most."""
     vec3 = vec3_type(scalar)
-    _, stage_end, is_free, _, _ = _pair_funcs(scalar)
+    _, stage_end, is_free, _, _, _ = _pair_funcs(scalar)
 
     @wp.func
     def extend(lower: vec3, upper: vec3, j: int, local: int, mass_row: int, particle_flags: wp.array[wp.int32],
@@ -244,10 +267,15 @@ def _vertex_extent(scalar: type, swept: bool):
         low = wp.min(lower, start)
         high = wp.max(upper, start)
         if wp.static(swept):
-            end = stage_end(is_free(particle_flags[j], particle_inv_mass[mass_row, local]), start,
-                            particle_q_end[j], limit)
+            free = is_free(particle_flags[j], particle_inv_mass[mass_row, local])
+            end = stage_end(free, start, particle_q_end[j], limit)
             low = wp.min(low, end)
             high = wp.max(high, end)
+            if free:  # and the cube of half-width ρ = min(δ, γ τ) around its start (cap_release_kernel)
+                reach = wp.min(wp.length(end - start), limit / scalar(SEARCH_REACH))
+                grow = vec3(reach, reach, reach)
+                low = wp.min(low, start - grow)
+                high = wp.max(high, start + grow)
         return low, high
 
     return extend
@@ -299,6 +327,12 @@ def _pair_funcs(scalar: type):
         return kinematic, free_step
 
     @wp.func
+    def kept_by_cap(distance: scalar, kinematic: scalar, free_step: scalar, relaxation: scalar):
+        """Whether the cap keeps a pair whose swept boxes overlap (module docstring, 2.): unless 2K < D and every free
+        vertex moves at most γ (D - K), when neither side can reach the other."""
+        return scalar(2.0) * kinematic >= distance or free_step > relaxation * (distance - kinematic)
+
+    @wp.func
     def push_pair(
         world: int, base: int, key: wp.int64, vertex: wp.vec4i, distance: scalar, pairs: Pairs,
         pair_distance: wp.array[scalar], counters: wp.array2d[wp.int32],
@@ -316,7 +350,112 @@ def _pair_funcs(scalar: type):
             for k in range(4):
                 wp.atomic_add(pairs.vertex_count, base + vertex[k], 1)
 
-    return box_of, stage_end, is_free, sweep_bounds, push_pair
+    return box_of, stage_end, is_free, sweep_bounds, push_pair, kept_by_cap
+
+
+@functools.cache
+def plane_funcs(scalar: type):
+    """The separating planes of the cap's pairs (module docstring, 2.), in precision ``scalar``:
+
+    ``pair_plane(vt, vertex, base, particle_q_start) -> (n, gap)``: n the unit vector from side B's closest point
+    to side A's at the step's start (side A: a VT pair's vertex, an EE pair's first edge; side B: the triangle, the
+    second edge; a normal of the pair where the points coincide), and the gap D_n = min over A's vertices of n·x
+    - max over B's of n·x (the width of the slab between the two primitives along n: D where n is exact).
+
+    ``pair_shares(vt, vertex, base, mass_row, relaxation, particle_flags, particle_inv_mass, particle_q_start,
+    particle_q_end) -> (n, shares, gap)``: with G = D_n - 2 pad (pad the rounding pad of the coordinates), each
+    side's kinematic approach K_A, K_B (the largest of its kinematic vertices' displacements toward the other side
+    along n, at least 0) and the share of each side's free vertices, ``shares`` = (s_A, s_B): a free vertex of A
+    approaches B along n by at most s_A = min(γ (G⁺ - K_B), (1 - γ) G⁺ - K_B), likewise for B (negative: it must
+    give way)."""
+    vec3 = vec3_type(scalar)
+    vec2 = wp.types.vector(2, scalar)
+    triangle_closest, edge_closest = geometry_funcs(scalar)
+    is_free = _pair_funcs(scalar)[2]
+
+    @wp.func
+    def on_side_a(vt: bool, role: int):
+        """Whether a pair's vertex ``role`` (0-3, as ``Pairs.vertex``) is on side A."""
+        return role == 0 or (role == 1 and not vt)
+
+    @wp.func
+    def slab(vt: bool, n: vec3, x0: vec3, x1: vec3, x2: vec3, x3: vec3):
+        """The width of the slab between the pair's sides along n: min over A's vertices of n·x - max over B's."""
+        low_a = wp.dot(n, x0)
+        high_b = wp.dot(n, x3)
+        if vt:
+            high_b = wp.max(high_b, wp.max(wp.dot(n, x1), wp.dot(n, x2)))
+        else:
+            low_a = wp.min(low_a, wp.dot(n, x1))
+            high_b = wp.max(high_b, wp.dot(n, x2))
+        return low_a - high_b
+
+    @wp.func
+    def pair_plane(vt: bool, vertex: wp.vec4i, base: int, particle_q_start: wp.array[vec3]):
+        x0 = particle_q_start[base + vertex[0]]
+        x1 = particle_q_start[base + vertex[1]]
+        x2 = particle_q_start[base + vertex[2]]
+        x3 = particle_q_start[base + vertex[3]]
+        diff = vec3(scalar(0.0))
+        normal = vec3(scalar(0.0))
+        if vt:
+            bary = triangle_closest(x0, x1, x2, x3)
+            diff = x0 - (bary[0] * x1 + bary[1] * x2 + bary[2] * x3)
+            normal = wp.cross(x2 - x1, x3 - x1)
+            if wp.dot(normal, x0 - x1) < scalar(0.0):
+                normal = -normal
+        else:
+            st = edge_closest(x0, x1, x2, x3)
+            diff = (x0 + st[0] * (x1 - x0)) - (x2 + st[1] * (x3 - x2))
+            normal = wp.cross(x1 - x0, x3 - x2)
+            if wp.dot(normal, diff) < scalar(0.0):
+                normal = -normal
+        # Two candidates, the wider slab kept: the closest points' direction (exact in exact arithmetic, but its
+        # rounding, |δx| / D, tilts it where the pair is close and long), and the triangle's normal or the edges'
+        # cross product (from the elements' own sides: accurate, and the same direction where the closest points
+        # are inner points).
+        n = vec3(scalar(0.0))
+        width = scalar(-NO_BOUND)
+        d = wp.length(diff)
+        if d > scalar(0.0):
+            n = diff / d
+            width = slab(vt, n, x0, x1, x2, x3)
+        if wp.length(normal) > scalar(0.0):
+            m = wp.normalize(normal)
+            other = slab(vt, m, x0, x1, x2, x3)
+            if other > width:
+                n = m
+                width = other
+        return n, width
+
+    @wp.func
+    def pair_shares(
+        vt: bool, vertex: wp.vec4i, base: int, mass_row: int, relaxation: scalar,
+        particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
+        particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
+    ):
+        n, width = pair_plane(vt, vertex, base, particle_q_start)
+        zero = scalar(0.0)
+        kinematic_a = zero
+        kinematic_b = zero
+        pad = zero
+        for k in range(4):
+            j = base + vertex[k]
+            start = particle_q_start[j]
+            pad = wp.max(pad, wp.max(wp.abs(start)))
+            if not is_free(particle_flags[j], particle_inv_mass[mass_row, vertex[k]]):
+                toward = wp.dot(n, particle_q_end[j] - start)  # along n: away from B for side A, toward A for B
+                if on_side_a(vt, k):
+                    kinematic_a = wp.max(kinematic_a, -toward)
+                else:
+                    kinematic_b = wp.max(kinematic_b, toward)
+        gap = width - scalar(2.0 * BOX_PAD) * (pad + scalar(1.0))
+        room = wp.max(gap, zero)
+        shares = vec2(wp.min(relaxation * (room - kinematic_b), (scalar(1.0) - relaxation) * room - kinematic_b),
+                      wp.min(relaxation * (room - kinematic_a), (scalar(1.0) - relaxation) * room - kinematic_a))
+        return n, shares, gap
+
+    return on_side_a, pair_plane, pair_shares
 
 
 @functools.cache
@@ -370,7 +509,7 @@ def broad_kernel(scalar: type, swept: bool):
     closer than reach_factor · τ + reach_add at the start; with it the cap's pairs at (start, end)."""
     vec3 = vec3_type(scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
-    box_of, _, _, sweep_bounds, push_pair = _pair_funcs(scalar)
+    box_of, _, _, sweep_bounds, push_pair, kept_by_cap = _pair_funcs(scalar)
     extend = _vertex_extent(scalar, swept)
 
     @wp.func
@@ -389,28 +528,12 @@ def broad_kernel(scalar: type, swept: bool):
         limit: scalar, particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
         particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
     ):
-        """(kept, the value stored): the distance within the reach, or the cap's D - K when it matters."""
+        """(kept, the value stored): the distance within the reach, or the cap's pairs (``kept_by_cap``) and D - K."""
         if wp.static(not swept):
             return distance < reach, distance
         kinematic, free_step = sweep_bounds(vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
                                             particle_q_start, particle_q_end)
-        gap = distance - kinematic
-        return gap > scalar(0.0) and free_step > relaxation * gap, gap
-
-    @wp.func
-    def outruns(
-        value: scalar, vertex: wp.vec4i, base: int, mass_row: int, limit: scalar, particle_flags: wp.array[wp.int32],
-        particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
-    ):
-        """Whether a pair the swept broad phase did not keep has D - K ≤ 0 (``value``) with kinematic vertices that
-        moved (K > 0): beyond the cap, counted (COUNT_OUTRUN)."""
-        if wp.static(not swept):
-            return False
-        if value > scalar(0.0):
-            return False
-        kinematic, _ = sweep_bounds(vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
-                                    particle_q_start, particle_q_end)
-        return kinematic > scalar(0.0)
+        return kept_by_cap(distance, kinematic, free_step, relaxation), distance - kinematic
 
     @wp.func
     def query_box(ends: wp.vec2i, base: int, mass_row: int, limit: scalar, query_reach: scalar,
@@ -513,9 +636,6 @@ def broad_kernel(scalar: type, swept: bool):
                         if kept:
                             key = wp.int64(v) * wp.int64(triangle_count) + wp.int64(t)
                             push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
-                        elif outruns(value, vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
-                                     particle_q_start, particle_q_end):
-                            wp.atomic_add(counters_out, world, COUNT_OUTRUN, 1)
                 # EE: the edge's own query would have reported t where its box overlaps t's leaf box.
                 if owns_edge[m] == 1 and boxes_overlap_f(edge_lower[m], edge_upper[m], leaf_lower, leaf_upper):
                     e = sides[m]
@@ -554,9 +674,6 @@ def broad_kernel(scalar: type, swept: bool):
                                        + wp.int64(e) * wp.int64(edge_count) + wp.int64(f))
                                 push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out,
                                           counters_out)
-                            elif outruns(value, vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
-                                         particle_q_start, particle_q_end):
-                                wp.atomic_add(counters_out, world, COUNT_OUTRUN, 1)
 
     return broad
 
@@ -857,7 +974,9 @@ def repel_gather_kernel(scalar: type):
         budget = (relaxation * (scalar(REPULSION_REACH) * thickness - kinematic) * scalar(1.0 - SAFETY)
                   - scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0)))
         overflow = pairs_in_out.count[world] > pairs_in_out.key.shape[0] // world_count
-        if overflow or (delta > scalar(0.0) and not (delta <= budget)):
+        # A pin moving half the reach may reach a pair outside the cache (the cap keeps the pairs with 2K >= D).
+        far = scalar(2.0) * kinematic >= scalar(REPULSION_REACH) * thickness * scalar(1.0 - SAFETY)
+        if overflow or far or (delta > scalar(0.0) and not (delta <= budget)):
             raise_flag(flags_in_out, FLAG_FALLBACK, world, world_count)
 
     return repel_gather
@@ -865,13 +984,49 @@ def repel_gather_kernel(scalar: type):
 
 @functools.cache
 def cap_gather_kernel(scalar: type):
-    """Kernel of the displacement cap: each free surface vertex of ``particle_q_in`` (the repelled result)
-    moved back toward ``particle_q_start`` until its displacement is at most γ · min(SEARCH_REACH τ, the
-    smallest D - K of its kept pairs): the cached pairs' bounds (``cap_bounds_kernel``), or in a world flagged
-    FLAG_FALLBACK the swept broad phase's list (all of it when that list overflowed); writes the state's
-    positions and, where they changed, its velocities (Δx / h)."""
+    """Kernel of the displacement cap (module docstring, 2.): each free surface vertex of ``particle_q_in`` (the
+    repelled result), its step Δ̂ first limited to γ SEARCH_REACH τ, ends at x⁰ + s Δ̂ with s the largest in [0, 1]
+    whose approach along each kept pair's separating direction is at most its side's share (``plane_funcs``; a
+    vertex that retreats along it takes the whole step, as far as a share that asks it to give way wants), 0 where
+    a share asks more than that; the kept pairs are the cached pairs with a bound (``cap_bounds_kernel``), or in a world flagged
+    FLAG_FALLBACK the swept broad phase's list (where that list overflowed: s = 0). Writes the state's positions
+    and, where they changed, its velocities (Δx / h)."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
+    on_side_a, _, pair_shares = plane_funcs(scalar)
+
+    @wp.func
+    def bound(
+        plane: scalar, allowed: scalar, need: scalar, entry: int, pairs: Pairs, gap_less_kinematic: scalar,
+        pad: scalar, base: int, mass_row: int, relaxation: scalar, vertex_pairs: int, step: vec3,
+        particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3],
+        particle_q_end: wp.array[vec3],
+    ):
+        """The vertex's bounds narrowed by the pair of ``entry`` (slot · 4 + role; D - K its ``gap_less_kinematic``):
+        ``plane``, the largest s whose step s Δ̂ approaches the other side along n by at most the vertex's share;
+        ``allowed``, the length γ (D - K - pad) at most; ``need``, the smallest s that gives way as far as a negative
+        share asks (above 1 where no s does; 0 where no share is negative)."""
+        slot = entry // 4
+        role = entry - 4 * slot
+        allowed = wp.min(allowed, relaxation * wp.max(gap_less_kinematic - pad, scalar(0.0)))
+        vt = pairs.key[slot] < wp.int64(vertex_pairs)
+        n, shares, gap = pair_shares(vt, pairs.vertex[slot], base, mass_row, relaxation, particle_flags,
+                                     particle_inv_mass, particle_q_start, particle_q_end)
+        if not (gap > scalar(0.0)):  # no separation the precision resolves: the vertex holds
+            return scalar(0.0), scalar(0.0), need
+        share = shares[1]
+        approach = wp.dot(n, step)  # side B's approach toward A per unit of s
+        if on_side_a(vt, role):
+            share = shares[0]
+            approach = -approach
+        if approach > scalar(0.0):
+            plane = wp.min(plane, share / approach)
+        if share < scalar(0.0):
+            if approach < scalar(0.0):
+                need = wp.max(need, share / approach)
+            else:
+                need = scalar(2.0)
+        return plane, allowed, need
 
     @flat_kernel(module="unique", enable_backward=False)
     def cap(
@@ -895,9 +1050,11 @@ def cap_gather_kernel(scalar: type):
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
         # Out:
+        jammed_out: wp.array[wp.int32],
         counters_out: wp.array2d[wp.int32],
     ):
         p = wp.tid()
+        jammed_out[p] = 0
         world, i = world_and_index(p, particle_count)
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         if world_enabled[world] == 0 or surface.vertex_owner[i] < 0:
@@ -906,32 +1063,276 @@ def cap_gather_kernel(scalar: type):
             return
         row = wp.min(world, params.shape[0] - 1)
         relaxation = params[row, PARAM_RELAXATION]
+        base = world * particle_count
+        vertex_pairs = particle_count * surface.triangle.shape[0]
         start = particle_q_start[p]
         x = particle_q_in[p]
-        step = wp.length(x - start)
-        allowed = wp.min(step, relaxation * scalar(SEARCH_REACH) * params[row, PARAM_THICKNESS])
-        # A pair's D - K carries the rounding of D (computed from the rounded positions): the bound takes off a
+        length = wp.length(x - start)
+        limit = relaxation * scalar(SEARCH_REACH) * params[row, PARAM_THICKNESS]
+        step = x - start
+        if length > limit:
+            step = (limit / length) * step
+        # A pair's D - K carries the rounding of D (computed from the rounded positions): the length bound takes off a
         # pad above it, so a pair closer than the precision resolves holds its free vertices where they are.
         pad = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0))
+        plane = scalar(1.0)
+        allowed = wp.min(length, limit)
+        need = scalar(0.0)
         if flags[flag_slot(FLAG_FALLBACK, world, pairs.count.shape[0])] != 0:
             if pairs.count[world] > pairs.key.shape[0] // pairs.count.shape[0]:
-                allowed = scalar(0.0)  # overflow: a listed pair may be missing, so nothing free moves
-            for a in range(pairs.vertex_start[p], pairs.vertex_start[p] + pairs.vertex_count[p]):  # a minimum
-                allowed = wp.min(allowed, relaxation * wp.max(pair_distance[pairs.entry[a] // 4] - pad, scalar(0.0)))
+                plane = scalar(0.0)  # overflow: a listed pair may be missing, so nothing free moves
+                allowed = scalar(0.0)
+            else:
+                for a in range(pairs.vertex_start[p], pairs.vertex_start[p] + pairs.vertex_count[p]):
+                    e = pairs.entry[a]
+                    plane, allowed, need = bound(plane, allowed, need, e, pairs, pair_distance[e // 4], pad, base,
+                                                   mass_row, relaxation, vertex_pairs, step, particle_flags,
+                                                   particle_inv_mass, particle_q_start, particle_q_in)
         else:
             for a in range(cache.vertex_start[p], cache.vertex_start[p] + cache.vertex_count[p]):
-                allowed = wp.min(allowed, relaxation * wp.max(cache_bound[cache.entry[a] // 4] - pad, scalar(0.0)))
-        if step > allowed:
-            x = start + (allowed / step) * (x - start)
-            if not (wp.length(x - start) <= allowed):  # rounded past the bound (a bound below the precision)
-                x = start
-            wp.atomic_add(counters_out, world, COUNT_CAPPED, 1)
+                e = cache.entry[a]
+                if cache_bound[e // 4] < scalar(NO_BOUND):
+                    plane, allowed, need = bound(plane, allowed, need, e, cache, cache_bound[e // 4], pad, base,
+                                                   mass_row, relaxation, vertex_pairs, step, particle_flags,
+                                                   particle_inv_mass, particle_q_start, particle_q_in)
+        plane = wp.max(plane, scalar(0.0))
+        if need > plane:  # a push that does not fit: cap_release_kernel takes the room its neighbours leave
+            jammed_out[p] = 1
+        if need > scalar(0.0):  # asked to give way: the planes alone bound it
+            if plane < scalar(1.0) or length > limit:
+                x = start + plane * step
+                wp.atomic_add(counters_out, world, COUNT_CAPPED, 1)
+        else:  # the length bound too, as tight as the planes' along the step
+            allowed = wp.min(allowed, plane * wp.min(length, limit))
+            if length > allowed:
+                x = start + (allowed / length) * (x - start)
+                if not (wp.length(x - start) <= allowed):  # rounded past the bound (a bound below the precision)
+                    x = start
+                wp.atomic_add(counters_out, world, COUNT_CAPPED, 1)
         moved = x - particle_q_out[p]
         if wp.dot(moved, moved) > scalar(0.0):
             particle_qd_out[p] = (x - start) / dt
             particle_q_out[p] = x
 
     return cap
+
+
+#: Rounds of the cap's second pass (``cap_release_kernel``): alternating projections onto a jammed vertex's bounds.
+RELEASE_ROUNDS = 200
+
+
+@functools.cache
+def cap_release_kernel(scalar: type):
+    """Kernel of the cap's second pass (module docstring, 2.), after ``cap_gather_kernel``: each jammed vertex (a
+    share asked it to give way further than its other pairs' shares let it along its step) is placed anew. Of each
+    kept pair whose other side holds no jammed vertex it may take the room that side left: its approach along n at
+    most (1 - γ) G minus that side's approach as the first pass placed it (its free vertices stay where they
+    are); of a pair whose other side holds a jammed vertex, its share as before. Its displacement Δ may leave the
+    segment 0 → Δ̂ but stays in Δ̂'s box (between 0 and Δ̂ in each coordinate: its path stays in the swept box the
+    pairs were judged by) and no longer than |Δ̂| (the length the pairs not kept were judged by): alternating
+    projections onto these sets (``RELEASE_ROUNDS``), from the largest s Δ̂ that keeps the bounds, accepted only
+    where every bound then holds; else that s Δ̂. The other vertices keep where the first pass put them."""
+    vec3 = vec3_type(scalar)
+    on_side_a, _, pair_shares = plane_funcs(scalar)
+
+    @wp.func
+    def half_space(
+        entry: int, pairs: Pairs, base: int, mass_row: int, relaxation: scalar, vertex_pairs: int,
+        particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar], jammed: wp.array[wp.int32],
+        particle_q_start: wp.array[vec3], particle_q_in: wp.array[vec3], particle_q_placed: wp.array[vec3],
+    ):
+        """(g, a, resolved): the bound g·Δ ≤ a (g unit: the vertex's direction of approach along n) of the pair of
+        ``entry`` (slot · 4 + role) given where the first pass placed its other side; ``resolved`` False where the
+        pair is closer than the precision resolves (the vertex holds)."""
+        slot = entry // 4
+        role = entry - 4 * slot
+        vt = pairs.key[slot] < wp.int64(vertex_pairs)
+        vertex = pairs.vertex[slot]
+        n, shares, gap = pair_shares(vt, vertex, base, mass_row, relaxation, particle_flags, particle_inv_mass,
+                                     particle_q_start, particle_q_in)
+        mine = on_side_a(vt, role)
+        sign = scalar(1.0)  # the other side's approach toward mine per unit of n·Δ: +1 for B, -1 for A
+        share = shares[0]
+        if not mine:
+            sign = scalar(-1.0)
+            share = shares[1]
+        other_jammed = False
+        other = scalar(-NO_BOUND)
+        for k in range(4):
+            if on_side_a(vt, k) != mine:
+                j = base + vertex[k]
+                other_jammed = other_jammed or jammed[j] != 0
+                other = wp.max(other, sign * wp.dot(n, particle_q_placed[j] - particle_q_start[j]))
+        if not other_jammed:
+            share = (scalar(1.0) - relaxation) * gap - other
+        return -sign * n, share, gap > scalar(0.0)
+
+    @flat_kernel(module="unique", enable_backward=False)
+    def release(
+        # Model:
+        particle_count: int,
+        particle_flags: wp.array[wp.int32],
+        particle_inv_mass: wp.array2d[scalar],
+        surface: Surface,
+        params: wp.array2d[scalar],
+        cache: Pairs,
+        cache_bound: wp.array[scalar],
+        pairs: Pairs,
+        flags: wp.array[wp.int32],
+        jammed: wp.array[wp.int32],
+        # State in:
+        particle_q_start: wp.array[vec3],
+        particle_q_in: wp.array[vec3],
+        dt: scalar,
+        # State in and out:
+        particle_q_out: wp.array[vec3],
+        particle_qd_out: wp.array[vec3],
+    ):
+        p = wp.tid()
+        if jammed[p] == 0:
+            return
+        world, i = world_and_index(p, particle_count)
+        mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
+        row = wp.min(world, params.shape[0] - 1)
+        relaxation = params[row, PARAM_RELAXATION]
+        base = world * particle_count
+        vertex_pairs = particle_count * surface.triangle.shape[0]
+        start = particle_q_start[p]
+        step = particle_q_in[p] - start
+        length = wp.length(step)
+        limit = relaxation * scalar(SEARCH_REACH) * params[row, PARAM_THICKNESS]
+        if length > limit:
+            step = (limit / length) * step
+            length = limit
+        pad = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0))
+        list_pairs = cache
+        first = cache.vertex_start[p]
+        last = first + cache.vertex_count[p]
+        fallback = flags[flag_slot(FLAG_FALLBACK, world, pairs.count.shape[0])] != 0
+        if fallback:
+            list_pairs = pairs
+            first = pairs.vertex_start[p]
+            last = first + pairs.vertex_count[p]
+        # The largest s Δ̂ that keeps the bounds.
+        plane = scalar(1.0)
+        resolved = bool(True)
+        for a in range(first, last):
+            e = list_pairs.entry[a]
+            if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
+                g, share, ok = half_space(e, list_pairs, base, mass_row, relaxation, vertex_pairs, particle_flags,
+                                          particle_inv_mass, jammed, particle_q_start, particle_q_in, particle_q_out)
+                resolved = resolved and ok
+                approach = wp.dot(g, step)
+                if approach > scalar(0.0):
+                    plane = wp.min(plane, share / approach)
+        if not resolved:
+            plane = scalar(0.0)
+        delta = wp.max(plane, scalar(0.0)) * step
+        # Where that leaves a push unmet: alternating projections in Δ̂'s box and ball.
+        if resolved:
+            reach = wp.min(length, limit / scalar(SEARCH_REACH))  # ρ: its swept box holds the cube of half-width ρ
+            low = wp.min(wp.min(step, vec3(scalar(0.0))), vec3(-reach, -reach, -reach))
+            high = wp.max(wp.max(step, vec3(scalar(0.0))), vec3(reach, reach, reach))
+            trial = delta
+            for _round in range(RELEASE_ROUNDS):
+                for a in range(first, last):
+                    e = list_pairs.entry[a]
+                    if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
+                        g, share, ok = half_space(e, list_pairs, base, mass_row, relaxation, vertex_pairs,
+                                                  particle_flags, particle_inv_mass, jammed, particle_q_start,
+                                                  particle_q_in, particle_q_out)
+                        over = wp.dot(g, trial) - (share - pad)
+                        if over > scalar(0.0):
+                            trial = trial - over * g
+                trial = wp.min(wp.max(trial, low), high)
+                size = wp.length(trial)
+                if size > length:
+                    trial = (length / size) * trial
+            holds = bool(True)
+            for a in range(first, last):
+                e = list_pairs.entry[a]
+                if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
+                    g, share, ok = half_space(e, list_pairs, base, mass_row, relaxation, vertex_pairs, particle_flags,
+                                              particle_inv_mass, jammed, particle_q_start, particle_q_in,
+                                              particle_q_out)
+                    holds = holds and wp.dot(g, trial) <= share
+            if holds:
+                delta = trial
+        x = start + delta
+        particle_qd_out[p] = (x - start) / dt
+        particle_q_out[p] = x
+
+    return release
+
+
+@functools.cache
+def cap_check_kernel(scalar: type):
+    """Kernel counting the kept pairs the cap could not hold apart (COUNT_OUTRUN), after ``cap_gather_kernel``, one
+    thread per particle of every world taking its world's slots local, local + particle_count, ...: a pair some side
+    of which approaches the other along its separating direction, by as much as the gap between them or more in all
+    (module docstring, 2.: a pin outrunning a free vertex that cannot give way, or two pins closing in)."""
+    vec3 = vec3_type(scalar)
+    on_side_a, pair_plane, _ = plane_funcs(scalar)
+
+    @wp.func
+    def beyond(slot: int, pairs: Pairs, base: int, vertex_pairs: int, particle_q_start: wp.array[vec3],
+               particle_q_end: wp.array[vec3]):
+        vt = pairs.key[slot] < wp.int64(vertex_pairs)
+        vertex = pairs.vertex[slot]
+        n, width = pair_plane(vt, vertex, base, particle_q_start)
+        zero = scalar(0.0)
+        approach_a = scalar(-NO_BOUND)
+        approach_b = scalar(-NO_BOUND)
+        pad = zero
+        for k in range(4):
+            j = base + vertex[k]
+            start = particle_q_start[j]
+            pad = wp.max(pad, wp.max(wp.abs(start)))
+            toward = wp.dot(n, particle_q_end[j] - start)
+            if on_side_a(vt, k):
+                approach_a = wp.max(approach_a, -toward)
+            else:
+                approach_b = wp.max(approach_b, toward)
+        closing = approach_a > zero or approach_b > zero
+        return closing and not (approach_a + approach_b < width - scalar(BOX_PAD) * (pad + scalar(1.0)))
+
+    @flat_kernel(module="unique", enable_backward=False)
+    def cap_check(
+        # Model:
+        particle_count: int,
+        world_enabled: wp.array[wp.int32],
+        surface: Surface,
+        cache: Pairs,
+        cache_bound: wp.array[scalar],
+        pairs: Pairs,
+        flags: wp.array[wp.int32],
+        # State in:
+        particle_q_start: wp.array[vec3],
+        particle_q_end: wp.array[vec3],
+        # Out:
+        counters_out: wp.array2d[wp.int32],
+    ):
+        p = wp.tid()
+        world, local = world_and_index(p, particle_count)
+        world_count = cache.count.shape[0]
+        if world_enabled[world] == 0:
+            return
+        base = world * particle_count
+        vertex_pairs = particle_count * surface.triangle.shape[0]
+        if flags[flag_slot(FLAG_FALLBACK, world, world_count)] != 0:
+            capacity = pairs.key.shape[0] // world_count
+            for slot in range(local, wp.min(pairs.count[world], capacity), particle_count):
+                if beyond(world * capacity + slot, pairs, base, vertex_pairs, particle_q_start, particle_q_end):
+                    wp.atomic_add(counters_out, world, COUNT_OUTRUN, 1)
+        else:
+            capacity = cache.key.shape[0] // world_count
+            for slot in range(local, wp.min(cache.count[world], capacity), particle_count):
+                s = world * capacity + slot
+                if cache_bound[s] < scalar(NO_BOUND):
+                    if beyond(s, cache, base, vertex_pairs, particle_q_start, particle_q_end):
+                        wp.atomic_add(counters_out, world, COUNT_OUTRUN, 1)
+
+    return cap_check
 
 
 @functools.cache
