@@ -12,13 +12,15 @@ vertices 1.2e-8 m apart). The cap now takes a rounding pad off every bound and h
 position rounds past its bound where it started.
 
 The small twist's crossing under the CPU's symplectic Euler sweep (which sums each particle's springs in another
-order than the per-particle step, so that the run follows another path) is not a rounding case: it is the kinematic
-one. Its one crossing (substep 18 of the 60th frame, t = 0.998 s) is between the turned, pinned edge 104-125, which
-moves 0.356 mm in the substep, and the free edge 123-124 beside it, 0.115 mm away at the substep's start (K >= D);
-through the frame the cap of its other pairs had held vertex 123 to at most 0.18 mm a substep (0 in 9 of the 20),
-against the 1.4-1.8 mm the integrator gave it, while the pinned edge closed in (1.9 mm at the frame's start). The
-cap bounds free vertices only: such a pair is beyond it, and the pass now counts it (``SelfContact.outrun()``). Every
-small run that crossed counted such pairs, every clean one none.
+order than the per-particle step, so that the run follows another path) was not a rounding case: it was the
+kinematic one. Its one crossing (substep 18 of the 60th frame, t = 0.998 s) was between the turned, pinned edge
+104-125, which moves 0.356 mm in the substep, and the free edge 123-124 beside it, 0.115 mm away at the substep's
+start (K >= D); the cap, which bounded free vertices' displacements only, held 123 and 124 at their start (jammed
+between the pin and a vertex 0.33 mm behind them) and the pin ran through them. The cap now bounds each side's
+approach along the pair's separating direction, takes a pin's approach off the free side's share (a negative share:
+the free side must give way, along the step the repulsion gave it), and places a vertex that cannot give way so
+again where its neighbours leave room (``kernels/selfcontact.py``, the cap); the pairs it still cannot hold apart
+are counted (``SelfContact.outrun()``).
 """
 
 import numpy as np

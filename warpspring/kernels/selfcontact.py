@@ -39,11 +39,13 @@ stages keep the same pairs as a broad phase every step):
    planes). Let x̂ be the repelled positions, each free vertex's step Δ̂ᵢ = x̂ᵢ − x⁰ᵢ first limited to
    γ · ``SEARCH_REACH`` · τ (δᵢ = |Δ̂ᵢ|; γ < 1/2 the relaxation); kinematic vertices keep their prescribed x¹.
    The cap's pairs are those whose swept boxes overlap at (x⁰, x̂): the vertex's or edge's swept box (x⁰ and x̂
-   of its ends) against the triangles' swept boxes (tested on the cached pairs by
+   of its ends, and around each free end's x⁰ the cube of half-width ρᵢ = min(δᵢ, γ τ), where the second pass
+   may place it) against the triangles' swept boxes (likewise; tested on the cached pairs by
    ``selfcontact_cache.cap_bounds_kernel``, or listed by the swept broad phase where the cache may miss one); a
    pair is kept unless neither side can reach the other: 2K < D and maxₖ free δₖ ≤ γ (D − K), with K the
    largest prescribed displacement among its kinematic vertices (0 when it has none). Each free vertex i then
-   ends at x⁰ᵢ + sᵢ Δ̂ᵢ, sᵢ in [0, 1] the largest that keeps two bounds over its kept pairs (``cap_gather_kernel``):
+   ends at x⁰ᵢ + sᵢ Δ̂ᵢ, sᵢ in [0, 1] the largest that keeps two bounds over its kept pairs (``cap_gather_kernel``),
+   or where a vertex is jammed, at the point a second pass finds (below):
 
    * **planes**. A kept pair's n is the unit vector between its closest points at x⁰, from side B (the
      triangle, the second edge) to side A (the vertex, the first edge), and D_n = min over A's vertices of n·x⁰
@@ -59,24 +61,33 @@ stages keep the same pairs as a broad phase every step):
    * **lengths**, for a vertex no share asks to give way: it also moves at most γ · min over its kept pairs of
      (D − K − pad), as with no planes, so that its step stays short in every direction, not only along the
      pairs' normals (neighbours that pass beside it, (a) below, stay as far apart as a length cap keeps them).
+   * **the second pass** (``cap_release_kernel``), for a jammed vertex, one that a negative share asks to give way
+     further along its step than its other shares let it (a free vertex squeezed between a pin and more cloth):
+     of a kept pair whose other side holds no jammed vertex it may take the room that side left as the first
+     pass placed it ((1 − γ) G minus that side's approach along n; a side of jammed vertices keeps its share),
+     anywhere in its swept box's cube and no further than δᵢ: alternating projections onto these half-spaces,
+     the cube and the ball, accepted where every bound then holds (else sᵢ Δ̂ᵢ stays).
 
    Why no pair crosses within the step. Every point of a primitive is a fixed convex combination of its
-   vertices, each moving on a straight line (sᵢ ≤ 1 keeps each on its segment x⁰ᵢ → x̂ᵢ), so it stays in the
-   primitive's swept box, moves at most the largest displacement among its vertices, and along any fixed n
-   moves at most as far as the furthest of its vertices. (a) The pair's swept boxes are disjoint: the
-   primitives never meet. (b) The boxes overlap but the pair was not kept: every vertex of it moves at most
-   max(K, γ (D − K)) < D/2 (2K < D, γ < 1/2), so the two sides never meet, whichever hold kinematic vertices.
-   (c) It was kept: side A's lowest point along n stays above min_A n·x⁰ − α_A and side B's highest below
-   max_B n·x⁰ + α_B, α a side's largest approach among its vertices: at most max(K_A, s_A) for A where each
-   free vertex keeps its share (for B likewise; a side without kinematic vertices: its share). The slab between
-   them stays open by at least G − max(K_A, s_A) − max(K_B, s_B), which is ≥ (1 − 2γ) G where no pin exceeds its
-   side's share, ≥ γ G where one does (K_A + s_B ≤ (1 − γ) G), and G − K_A − K_B where both sides' pins do:
-   positive whenever at most one side holds kinematic vertices, and when both do and close in by less than G.
-   With no kinematic vertex this is the bound γ G per vertex along n and the margin (1 − 2γ) G. G takes two pads
-   off D_n: one for the rounding of the dot products, one for the rounded end positions.
-   A share that cannot be kept puts the pair beyond the cap: a free vertex asked to give way whose repelled step
-   does not retreat along n as far (the cap only shortens a step; such a vertex keeps its approach bounds, its
-   push unmet), or two kinematic sides closing in by G or more. ``cap_check_kernel`` counts, after the cap,
+   vertices, each moving on a straight line that stays in its swept box (the segment x⁰ᵢ → x̂ᵢ for sᵢ ≤ 1, or
+   the second pass's point in the cube) and is no longer than δᵢ, so the point stays in the primitive's swept
+   box, moves at most the largest displacement among its vertices, and along any fixed n moves at most as far
+   as the furthest of its vertices. (a) The pair's swept boxes are disjoint: the primitives never meet. (b) The
+   boxes overlap but the pair was not kept: every vertex of it moves at most max(K, γ (D − K)) < D/2 (2K < D,
+   γ < 1/2), so the two sides never meet, whichever hold kinematic vertices. (c) It was kept: side A's lowest
+   point along n stays above min_A n·x⁰ − α_A and side B's highest below max_B n·x⁰ + α_B, α a side's largest
+   approach among its vertices: at most max(K_A, s_A) for A where each free vertex keeps its share (for B
+   likewise; a side without kinematic vertices: its share). The slab between them stays open by at least
+   G − max(K_A, s_A) − max(K_B, s_B), which is ≥ (1 − 2γ) G where no pin exceeds its side's share, ≥ γ G where
+   one does (K_A + s_B ≤ (1 − γ) G), and G − K_A − K_B where both sides' pins do: positive whenever at most one
+   side holds kinematic vertices, and when both do and close in by less than G. A jammed vertex placed by the
+   second pass against a side that stays where the first pass put it approaches by at most (1 − γ) G minus that
+   side's approach: the slab stays open by γ G. With no kinematic vertex this is the bound γ G per vertex along
+   n and the margin (1 − 2γ) G. G takes two pads off D_n: one for the rounding of the dot products, one for the
+   rounded end positions.
+   A share that cannot be kept puts the pair beyond the cap: a free vertex asked to give way that neither pass
+   can place (the room its neighbours leave does not suffice: layers squeezed by a pin, which would have to
+   move together), or two kinematic sides closing in by G or more. ``cap_check_kernel`` counts, after the cap,
    each kept pair one of whose sides closes in along n while their approaches add up to D_n − pad or more
    (COUNT_OUTRUN), so that a run says where the guarantee did not hold.
    If the world's cap buffer overflowed, a listed pair may be missing: every free vertex of that world then
