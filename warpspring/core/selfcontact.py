@@ -31,6 +31,8 @@ from ..kernels.selfcontact import (
     PARAM_FRICTION,
     PARAM_RELAXATION,
     PARAM_THICKNESS,
+    ROLE_MOVER,
+    ROLE_PUSHER,
     SCAN_BLOCK,
     SCAN_THREADS,
     Pairs,
@@ -38,7 +40,8 @@ from ..kernels.selfcontact import (
     broad_kernel,
     cap_check_kernel,
     cap_gather_kernel,
-    cap_release_kernel,
+    cap_mark_kernel,
+    cap_place_kernel,
     fill_kernel,
     leaf_kernel,
     proximity_kernel,
@@ -52,6 +55,9 @@ from ..kernels.selfcontact_cache import anchor_kernel, cap_bounds_kernel, check_
 #: The default relaxation γ of the displacement cap: a vertex moves at most a quarter of its distance to the
 #: nearest primitive, so a pair beyond the repulsion's reach (2 τ) ends a step at least τ apart.
 DEFAULT_RELAXATION = 0.25
+#: Rounds of the cap's making room for its jammed vertices (``SelfContact._cap_stage``): a jammed vertex's
+#: neighbours across its kept pairs move away, then it is placed again, this many times.
+CAP_LEVELS = 2
 #: The thickness must stay below this share of the surface's smallest triangle altitude: at rest, a vertex and
 #: a triangle of its neighbourhood that do not share it are an altitude apart or more, and must not repel.
 MAX_THICKNESS_SHARE = 0.7
@@ -140,8 +146,10 @@ class SelfContact:
         self.params = wp.zeros((worlds, PARAM_COUNT), dtype=model.scalar, device=device)
         self.set(thickness=thickness, friction=friction, relaxation=relaxation)
         self.corrected = wp.zeros(model.state_size, dtype=model.vec3, device=device)
-        self.jammed = wp.zeros(model.state_size, dtype=wp.int32, device=device)  # the cap's vertices asked to give way
-        #   further than their first pass let them (kernels/selfcontact.py, cap_release_kernel)
+        # The cap's later passes (kernels/selfcontact.py, cap_place_kernel): each vertex's role in a pass and where a
+        # pusher wanted to go, twice (a pass reads one and writes the other).
+        self.cap_role = [wp.zeros(model.state_size, dtype=wp.int32, device=device) for _ in range(2)]
+        self.cap_desired = [wp.zeros(model.state_size, dtype=model.vec3, device=device) for _ in range(2)]
         self.counters = wp.zeros((worlds, COUNTER_COUNT), dtype=wp.int32, device=device)
         # The pair cache (kernels/selfcontact_cache.py: its anchors, its reach, 0 until built) and the cap's
         # swept list, for the steps that need it; the pass's flags (any rebuild, any fallback, then per world each
@@ -175,7 +183,7 @@ class SelfContact:
                 reset_kernel(), fill_kernel(), check_kernel(scalar), decide_kernel(scalar), anchor_kernel(scalar),
                 repel_pairs_kernel(scalar),
                 repel_gather_kernel(scalar), cap_bounds_kernel(scalar), cap_gather_kernel(scalar),
-                cap_release_kernel(scalar), cap_check_kernel(scalar)]
+                cap_place_kernel(scalar), cap_mark_kernel(scalar), cap_check_kernel(scalar)]
         for kernel in flat:
             kernel.module.load(model.device, model.block_dim)
 
@@ -292,8 +300,8 @@ class SelfContact:
         """Write the triangles' boxes (at ``start``, or swept from ``start`` to ``end``) and refit the BVHs."""
         model = self.model
         flat_launch(leaf_kernel(model.scalar, swept),
-                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.params, start,
-                            end, self.surface],
+                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.params, self.flags,
+                            start, end, self.surface],
                     dim=model.world_count * self.triangle_count, device=model.device)
         if refit:
             for bvh in self.bvhs:
@@ -315,6 +323,7 @@ class SelfContact:
             world_enabled=active,
             surface=self.surface,
             params=self.params,
+            flags=self.flags,
             reach_factor=model.scalar(reach_factor),
             reach_add=model.scalar(reach_add),
             particle_q_start=start,
@@ -405,12 +414,34 @@ class SelfContact:
                     inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
                             self.surface, self.params, self.cache, self.cache_bound, self.cap_pairs,
                             self.pair_distance, self.flags, start, particle_q, model.scalar(dt)],
-                    outputs=[state_out.particle_q, state_out.particle_qd, self.jammed, self.counters], **per_particle)
-        flat_launch(cap_release_kernel(model.scalar),
-                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface,
-                            self.params, self.cache, self.cache_bound, self.cap_pairs, self.flags, self.jammed, start,
-                            particle_q, model.scalar(dt)],
-                    outputs=[state_out.particle_q, state_out.particle_qd], **per_particle)
+                    outputs=[state_out.particle_q, state_out.particle_qd, self.cap_role[0], self.counters],
+                    **per_particle)
+        # The later passes: the jammed vertices placed anew; then, CAP_LEVELS times, the vertices across a kept pair
+        # from those still jammed make room, and the jammed are placed against where they went.
+        role, desired = self.cap_role, self.cap_desired
+        lists = [model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface, self.params,
+                 self.cache, self.cache_bound, self.cap_pairs, self.flags]
+        tail = [start, particle_q, model.scalar(dt)]
+
+        def place(mover_role, into):
+            flat_launch(cap_place_kernel(model.scalar),
+                        inputs=lists + [mover_role, role[1 - into], desired[1 - into]] + tail,
+                        outputs=[state_out.particle_q, state_out.particle_qd, role[into], desired[into]],
+                        **per_particle)
+
+        role[1].zero_()
+        flat_launch(cap_place_kernel(model.scalar), inputs=lists + [ROLE_MOVER, role[0], desired[0]] + tail,
+                    outputs=[state_out.particle_q, state_out.particle_qd, role[1], desired[1]], **per_particle)
+        into = 0
+        for _ in range(CAP_LEVELS):
+            flat_launch(cap_mark_kernel(model.scalar),
+                        inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface,
+                                self.cache, self.cache_bound, self.cap_pairs, self.flags],
+                        outputs=[role[1 - into]], **per_particle)
+            role[into].zero_()
+            place(ROLE_MOVER, into)
+            place(ROLE_PUSHER, into)
+            into = 1 - into
         flat_launch(cap_check_kernel(model.scalar),
                     inputs=[model.particle_count, model.world_enabled, self.surface, self.cache, self.cache_bound,
                             self.cap_pairs, self.flags, start, state_out.particle_q],

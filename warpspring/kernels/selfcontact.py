@@ -103,7 +103,7 @@ import functools
 
 import warp as wp
 
-from .kinematics import particle_funcs
+from .kinematics import is_kinematic, particle_funcs
 from .precision import vec3_type
 from .worlds import world_and_index
 from .flatten import flat_kernel
@@ -265,7 +265,7 @@ def geometry_funcs(scalar: type):
 @functools.cache
 def _vertex_extent(scalar: type, swept: bool):
     """``extend(lower, upper, j, local, mass_row, particle_flags, particle_inv_mass, particle_q_start,
-    particle_q_end, limit) -> (lower, upper)``: the box [lower, upper] grown to hold vertex j's (state entry;
+    particle_q_end, limit, cube) -> (lower, upper)``: the box [lower, upper] grown to hold vertex j's (state entry;
     ``local`` its index in the world) start and, with ``swept``, where it ends the stage at most."""
     vec3 = vec3_type(scalar)
     _, stage_end, is_free, _, _, _ = _pair_funcs(scalar)
@@ -273,7 +273,7 @@ def _vertex_extent(scalar: type, swept: bool):
     @wp.func
     def extend(lower: vec3, upper: vec3, j: int, local: int, mass_row: int, particle_flags: wp.array[wp.int32],
                particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3],
-               particle_q_end: wp.array[vec3], limit: scalar):
+               particle_q_end: wp.array[vec3], limit: scalar, cube: scalar):
         start = particle_q_start[j]
         low = wp.min(lower, start)
         high = wp.max(upper, start)
@@ -282,9 +282,8 @@ def _vertex_extent(scalar: type, swept: bool):
             end = stage_end(free, start, particle_q_end[j], limit)
             low = wp.min(low, end)
             high = wp.max(high, end)
-            if free:  # and the cube of half-width ρ = min(δ, γ τ) around its start (cap_release_kernel)
-                reach = wp.min(wp.length(end - start), limit / scalar(SEARCH_REACH))
-                grow = vec3(reach, reach, reach)
+            if free:  # and the cube of half-width ρ = ``cube`` around its start (cap_place_kernel)
+                grow = vec3(cube, cube, cube)
                 low = wp.min(low, start - grow)
                 high = wp.max(high, start + grow)
         return low, high
@@ -320,11 +319,12 @@ def _pair_funcs(scalar: type):
 
     @wp.func
     def sweep_bounds(
-        vertex: wp.vec4i, base: int, mass_row: int, limit: scalar, particle_flags: wp.array[wp.int32],
+        vertex: wp.vec4i, base: int, mass_row: int, limit: scalar, cube: scalar, particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
     ):
         """(K, δ): the largest displacement [m] among the pair's kinematic vertices and among its free ones
-        (0 where none), free ones limited to ``limit``."""
+        (0 where none), free ones limited to ``limit`` and taken as at least ρ = ``cube`` (``cube_reach``: the cap's
+        later passes may move a free vertex that far)."""
         kinematic = scalar(0.0)
         free_step = scalar(0.0)
         for k in range(4):
@@ -332,7 +332,7 @@ def _pair_funcs(scalar: type):
             free = is_free(particle_flags[j], particle_inv_mass[mass_row, vertex[k]])
             step = wp.length(particle_q_end[j] - particle_q_start[j])
             if free:
-                free_step = wp.max(free_step, wp.min(step, limit))
+                free_step = wp.max(free_step, wp.min(wp.max(step, cube), limit))
             else:
                 kinematic = wp.max(kinematic, step)
         return kinematic, free_step
@@ -476,6 +476,7 @@ def leaf_kernel(scalar: type, swept: bool):
     vec3 = vec3_type(scalar)
     box_of = _pair_funcs(scalar)[0]
     extend = _vertex_extent(scalar, swept)
+    cube_reach = cube_reach_func(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
     def leaves(
@@ -484,6 +485,7 @@ def leaf_kernel(scalar: type, swept: bool):
         particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array2d[scalar],
         params: wp.array2d[scalar],
+        flags: wp.array[wp.int32],
         # State in:
         particle_q_start: wp.array[vec3],
         particle_q_end: wp.array[vec3],
@@ -498,11 +500,12 @@ def leaf_kernel(scalar: type, swept: bool):
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         row = wp.min(world, params.shape[0] - 1)
         limit = params[row, PARAM_RELAXATION] * scalar(SEARCH_REACH) * params[row, PARAM_THICKNESS]
+        cube = cube_reach(flags, world, limit)
         lower = particle_q_start[base + tri[0]]
         upper = lower
         for k in range(3):
             lower, upper = extend(lower, upper, base + tri[k], tri[k], mass_row, particle_flags, particle_inv_mass,
-                                  particle_q_start, particle_q_end, limit)
+                                  particle_q_start, particle_q_end, limit, cube)
         box_lower, box_upper = box_of(lower, upper, scalar(0.0))
         surface_in_out.leaf_lower[tid] = box_lower
         surface_in_out.leaf_upper[tid] = box_upper
@@ -522,6 +525,7 @@ def broad_kernel(scalar: type, swept: bool):
     triangle_closest, edge_closest = geometry_funcs(scalar)
     box_of, _, _, sweep_bounds, push_pair, kept_by_cap = _pair_funcs(scalar)
     extend = _vertex_extent(scalar, swept)
+    cube_reach = cube_reach_func(scalar)
 
     @wp.func
     def boxes_overlap(lower_a: vec3, upper_a: vec3, lower_b: vec3, upper_b: vec3):
@@ -536,18 +540,18 @@ def broad_kernel(scalar: type, swept: bool):
     @wp.func
     def keep(
         distance: scalar, reach: scalar, relaxation: scalar, vertex: wp.vec4i, base: int, mass_row: int,
-        limit: scalar, particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
+        limit: scalar, cube: scalar, particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
         particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
     ):
         """(kept, the value stored): the distance within the reach, or the cap's pairs (``kept_by_cap``) and D - K."""
         if wp.static(not swept):
             return distance < reach, distance
-        kinematic, free_step = sweep_bounds(vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
+        kinematic, free_step = sweep_bounds(vertex, base, mass_row, limit, cube, particle_flags, particle_inv_mass,
                                             particle_q_start, particle_q_end)
         return kept_by_cap(distance, kinematic, free_step, relaxation), distance - kinematic
 
     @wp.func
-    def query_box(ends: wp.vec2i, base: int, mass_row: int, limit: scalar, query_reach: scalar,
+    def query_box(ends: wp.vec2i, base: int, mass_row: int, limit: scalar, cube: scalar, query_reach: scalar,
                   particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
                   particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3]):
         """A vertex's (ends = (v, v)) or an edge's single-precision query box."""
@@ -555,7 +559,7 @@ def broad_kernel(scalar: type, swept: bool):
         upper = lower
         for k in range(2):
             lower, upper = extend(lower, upper, base + ends[k], ends[k], mass_row, particle_flags, particle_inv_mass,
-                                  particle_q_start, particle_q_end, limit)
+                                  particle_q_start, particle_q_end, limit, cube)
         return box_of(lower, upper, query_reach)
 
     @flat_kernel(module="unique", enable_backward=False)
@@ -567,6 +571,7 @@ def broad_kernel(scalar: type, swept: bool):
         world_enabled: wp.array[wp.int32],
         surface: Surface,
         params: wp.array2d[scalar],
+        flags: wp.array[wp.int32],
         reach_factor: scalar,
         reach_add: scalar,
         # State in:
@@ -590,6 +595,7 @@ def broad_kernel(scalar: type, swept: bool):
         thickness = params[row, PARAM_THICKNESS]
         relaxation = params[row, PARAM_RELAXATION]
         limit = relaxation * scalar(SEARCH_REACH) * thickness
+        cube = cube_reach(flags, world, limit)
         reach = reach_factor * thickness + reach_add
         query_reach = reach
         if wp.static(swept):
@@ -608,7 +614,7 @@ def broad_kernel(scalar: type, swept: bool):
         for m in range(3):
             if surface.vertex_owner[corners[m]] == me:
                 owns_vertex[m] = 1
-                lower, upper = query_box(wp.vec2i(corners[m], corners[m]), base, mass_row, limit, query_reach,
+                lower, upper = query_box(wp.vec2i(corners[m], corners[m]), base, mass_row, limit, cube, query_reach,
                                          particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
                 vertex_lower[m] = lower
                 vertex_upper[m] = upper
@@ -616,7 +622,7 @@ def broad_kernel(scalar: type, swept: bool):
                 union_upper = wp.max(union_upper, upper)
             if surface.edge_owner[sides[m]] == me:
                 owns_edge[m] = 1
-                lower, upper = query_box(surface.edge[sides[m]], base, mass_row, limit, query_reach,
+                lower, upper = query_box(surface.edge[sides[m]], base, mass_row, limit, cube, query_reach,
                                          particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
                 edge_lower[m] = lower
                 edge_upper[m] = upper
@@ -642,7 +648,7 @@ def broad_kernel(scalar: type, swept: bool):
                         bary = triangle_closest(p, a, b, c)
                         vertex = wp.vec4i(v, tri[0], tri[1], tri[2])
                         kept, value = keep(wp.length(p - (bary[0] * a + bary[1] * b + bary[2] * c)), reach,
-                                           relaxation, vertex, base, mass_row, limit, particle_flags,
+                                           relaxation, vertex, base, mass_row, limit, cube, particle_flags,
                                            particle_inv_mass, particle_q_start, particle_q_end)
                         if kept:
                             key = wp.int64(v) * wp.int64(triangle_count) + wp.int64(t)
@@ -670,7 +676,7 @@ def broad_kernel(scalar: type, swept: bool):
                             for k in range(2):
                                 other_lower, other_upper = extend(other_lower, other_upper, base + other[k], other[k],
                                                                   mass_row, particle_flags, particle_inv_mass,
-                                                                  particle_q_start, particle_q_end, limit)
+                                                                  particle_q_start, particle_q_end, limit, cube)
                             if not boxes_overlap(other_lower, other_upper, box_lower, box_upper):
                                 continue
                             p1 = particle_q_start[base + ends[0]]
@@ -678,7 +684,7 @@ def broad_kernel(scalar: type, swept: bool):
                             st = edge_closest(p1, q1, p2, q2)
                             vertex = wp.vec4i(ends[0], ends[1], other[0], other[1])
                             distance = wp.length((p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)))
-                            kept, value = keep(distance, reach, relaxation, vertex, base, mass_row, limit,
+                            kept, value = keep(distance, reach, relaxation, vertex, base, mass_row, limit, cube,
                                                particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
                             if kept:
                                 key = (wp.int64(particle_count) * wp.int64(triangle_count)
@@ -915,6 +921,21 @@ def flag_slot(kind: int, world: int, world_count: int):
     return 2 + kind * world_count + world
 
 
+def cube_reach_func(scalar: type):
+    """``cube_reach(flags, world, limit) -> ρ`` [m]: how far the cap's later passes may move a free vertex of world
+    ``world`` in any direction (``cap_place_kernel``): γ τ (= ``limit`` / SEARCH_REACH) where the world's pins move
+    (FLAG_KINEMATIC above its lowest level: only a pin's approach asks a vertex to give way), else 0."""
+
+    @wp.func
+    def cube_reach(flags: wp.array[wp.int32], world: int, limit: scalar):
+        world_count = (flags.shape[0] - 2) // FLAG_KINDS
+        if flags[flag_slot(FLAG_KINEMATIC, world, world_count)] > 1:
+            return limit / scalar(SEARCH_REACH)
+        return scalar(0.0)
+
+    return cube_reach
+
+
 @wp.func
 def raise_flag(flags: wp.array[wp.int32], kind: int, world: int, world_count: int):
     """Set world ``world``'s flag ``kind`` and the matching any-world flag (FLAG_REBUILD or FLAG_FALLBACK)."""
@@ -1128,58 +1149,66 @@ def cap_gather_kernel(scalar: type):
     return cap
 
 
-#: Rounds of the cap's second pass (``cap_release_kernel``): alternating projections onto a jammed vertex's bounds.
+#: Rounds of the cap's later passes (``cap_place_kernel``): alternating projections onto a vertex's bounds.
 RELEASE_ROUNDS = 200
+#: Roles of the vertices in the cap's later passes (``SelfContact.cap_role``).
+ROLE_FROZEN = 0  # stays where it is
+ROLE_MOVER = 1  # placed anew by the pass
+ROLE_PUSHER = 2  # could not be placed: stays, and the movers make room for where it wanted to go
 
 
 @functools.cache
-def cap_release_kernel(scalar: type):
-    """Kernel of the cap's second pass (module docstring, 2.), after ``cap_gather_kernel``: each jammed vertex (a
-    share asked it to give way further than its other pairs' shares let it along its step) is placed anew. Of each
-    kept pair whose other side holds no jammed vertex it may take the room that side left: its approach along n at
-    most (1 - γ) G minus that side's approach as the first pass placed it (its free vertices stay where they
-    are); of a pair whose other side holds a jammed vertex, its share as before. Its displacement Δ may leave the
-    segment 0 → Δ̂ but stays in Δ̂'s box (between 0 and Δ̂ in each coordinate: its path stays in the swept box the
-    pairs were judged by) and no longer than |Δ̂| (the length the pairs not kept were judged by): alternating
-    projections onto these sets (``RELEASE_ROUNDS``), from the largest s Δ̂ that keeps the bounds, accepted only
-    where every bound then holds; else that s Δ̂. The other vertices keep where the first pass put them."""
+def cap_place_kernel(scalar: type):
+    """Kernel of the cap's later passes (module docstring, 2.), after ``cap_gather_kernel``: each vertex whose role is
+    ``mover_role`` is placed anew, the others stay. Of each kept pair its approach along n is at most the room the
+    other side leaves, (1 - γ) G minus that side's largest approach (a pusher's: the larger of where it is and
+    where it wanted to go), and where the other side holds a vertex placed in the same pass, also at most its share.
+    Its displacement Δ stays in its swept box's cube (half-width ρ = min(δ, γ τ), or along its step) and no longer
+    than δ: alternating projections onto these sets (``RELEASE_ROUNDS``) from where it is, accepted where every
+    bound then holds; else it stays, becomes a pusher (``role_out``) and ``desired_out`` keeps the point found."""
     vec3 = vec3_type(scalar)
     on_side_a, _, pair_shares = plane_funcs(scalar)
+    cube_reach = cube_reach_func(scalar)
 
     @wp.func
     def half_space(
-        entry: int, pairs: Pairs, base: int, mass_row: int, relaxation: scalar, vertex_pairs: int,
-        particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar], jammed: wp.array[wp.int32],
-        particle_q_start: wp.array[vec3], particle_q_in: wp.array[vec3], particle_q_placed: wp.array[vec3],
+        entry: int, pairs: Pairs, base: int, mass_row: int, relaxation: scalar, vertex_pairs: int, mover_role: int,
+        particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar], role: wp.array[wp.int32],
+        desired: wp.array[vec3], particle_q_start: wp.array[vec3], particle_q_in: wp.array[vec3],
+        particle_q_placed: wp.array[vec3],
     ):
         """(g, a, resolved): the bound g·Δ ≤ a (g unit: the vertex's direction of approach along n) of the pair of
-        ``entry`` (slot · 4 + role) given where the first pass placed its other side; ``resolved`` False where the
-        pair is closer than the precision resolves (the vertex holds)."""
+        ``entry`` (slot · 4 + role); ``resolved`` False where the pair is closer than the precision resolves."""
         slot = entry // 4
-        role = entry - 4 * slot
+        k_mine = entry - 4 * slot
         vt = pairs.key[slot] < wp.int64(vertex_pairs)
         vertex = pairs.vertex[slot]
         n, shares, gap = pair_shares(vt, vertex, base, mass_row, relaxation, particle_flags, particle_inv_mass,
                                      particle_q_start, particle_q_in)
-        mine = on_side_a(vt, role)
+        mine = on_side_a(vt, k_mine)
         sign = scalar(1.0)  # the other side's approach toward mine per unit of n·Δ: +1 for B, -1 for A
         share = shares[0]
         if not mine:
             sign = scalar(-1.0)
             share = shares[1]
-        other_jammed = False
+        moving = False
         other = scalar(-NO_BOUND)
         for k in range(4):
             if on_side_a(vt, k) != mine:
                 j = base + vertex[k]
-                other_jammed = other_jammed or jammed[j] != 0
-                other = wp.max(other, sign * wp.dot(n, particle_q_placed[j] - particle_q_start[j]))
-        if not other_jammed:
-            share = (scalar(1.0) - relaxation) * gap - other
-        return -sign * n, share, gap > scalar(0.0)
+                start = particle_q_start[j]
+                other = wp.max(other, sign * wp.dot(n, particle_q_placed[j] - start))
+                if role[j] == mover_role:
+                    moving = True
+                elif role[j] == ROLE_PUSHER:
+                    other = wp.max(other, sign * wp.dot(n, desired[j] - start))
+        room = (scalar(1.0) - relaxation) * gap - other
+        if moving:
+            room = wp.min(room, share)
+        return -sign * n, room, gap > scalar(0.0)
 
     @flat_kernel(module="unique", enable_backward=False)
-    def release(
+    def place(
         # Model:
         particle_count: int,
         particle_flags: wp.array[wp.int32],
@@ -1190,7 +1219,10 @@ def cap_release_kernel(scalar: type):
         cache_bound: wp.array[scalar],
         pairs: Pairs,
         flags: wp.array[wp.int32],
-        jammed: wp.array[wp.int32],
+        # Control (the pass):
+        mover_role: int,
+        role: wp.array[wp.int32],
+        desired: wp.array[vec3],
         # State in:
         particle_q_start: wp.array[vec3],
         particle_q_in: wp.array[vec3],
@@ -1198,9 +1230,12 @@ def cap_release_kernel(scalar: type):
         # State in and out:
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
+        # Out:
+        role_out: wp.array[wp.int32],
+        desired_out: wp.array[vec3],
     ):
         p = wp.tid()
-        if jammed[p] == 0:
+        if role[p] != mover_role:
             return
         world, i = world_and_index(p, particle_count)
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
@@ -1224,56 +1259,98 @@ def cap_release_kernel(scalar: type):
             list_pairs = pairs
             first = pairs.vertex_start[p]
             last = first + pairs.vertex_count[p]
-        # The largest s Δ̂ that keeps the bounds.
-        plane = scalar(1.0)
+        reach = cube_reach(flags, world, limit)  # ρ: its swept box holds the cube of half-width ρ
+        radius = wp.max(length, reach)  # the pairs not kept let it move that far
+        low = wp.min(wp.min(step, vec3(scalar(0.0))), vec3(-reach, -reach, -reach))
+        high = wp.max(wp.max(step, vec3(scalar(0.0))), vec3(reach, reach, reach))
+        current = particle_q_out[p] - start
+        trial = current
         resolved = bool(True)
-        for a in range(first, last):
-            e = list_pairs.entry[a]
-            if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
-                g, share, ok = half_space(e, list_pairs, base, mass_row, relaxation, vertex_pairs, particle_flags,
-                                          particle_inv_mass, jammed, particle_q_start, particle_q_in, particle_q_out)
-                resolved = resolved and ok
-                approach = wp.dot(g, step)
-                if approach > scalar(0.0):
-                    plane = wp.min(plane, share / approach)
-        if not resolved:
-            plane = scalar(0.0)
-        delta = wp.max(plane, scalar(0.0)) * step
-        # Where that leaves a push unmet: alternating projections in Δ̂'s box and ball.
-        if resolved:
-            reach = wp.min(length, limit / scalar(SEARCH_REACH))  # ρ: its swept box holds the cube of half-width ρ
-            low = wp.min(wp.min(step, vec3(scalar(0.0))), vec3(-reach, -reach, -reach))
-            high = wp.max(wp.max(step, vec3(scalar(0.0))), vec3(reach, reach, reach))
-            trial = delta
-            for _round in range(RELEASE_ROUNDS):
-                for a in range(first, last):
-                    e = list_pairs.entry[a]
-                    if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
-                        g, share, ok = half_space(e, list_pairs, base, mass_row, relaxation, vertex_pairs,
-                                                  particle_flags, particle_inv_mass, jammed, particle_q_start,
-                                                  particle_q_in, particle_q_out)
-                        over = wp.dot(g, trial) - (share - pad)
-                        if over > scalar(0.0):
-                            trial = trial - over * g
-                trial = wp.min(wp.max(trial, low), high)
-                size = wp.length(trial)
-                if size > length:
-                    trial = (length / size) * trial
-            holds = bool(True)
+        for _round in range(RELEASE_ROUNDS):
             for a in range(first, last):
                 e = list_pairs.entry[a]
                 if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
-                    g, share, ok = half_space(e, list_pairs, base, mass_row, relaxation, vertex_pairs, particle_flags,
-                                              particle_inv_mass, jammed, particle_q_start, particle_q_in,
-                                              particle_q_out)
-                    holds = holds and wp.dot(g, trial) <= share
-            if holds:
-                delta = trial
-        x = start + delta
-        particle_qd_out[p] = (x - start) / dt
-        particle_q_out[p] = x
+                    g, room, ok = half_space(e, list_pairs, base, mass_row, relaxation, vertex_pairs, mover_role,
+                                             particle_flags, particle_inv_mass, role, desired, particle_q_start,
+                                             particle_q_in, particle_q_out)
+                    resolved = resolved and ok
+                    over = wp.dot(g, trial) - (room - pad)
+                    if over > scalar(0.0):
+                        trial = trial - over * g
+            trial = wp.min(wp.max(trial, low), high)
+            size = wp.length(trial)
+            if size > radius:
+                trial = (radius / size) * trial
+        holds = bool(resolved)
+        for a in range(first, last):
+            e = list_pairs.entry[a]
+            if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
+                g, room, ok = half_space(e, list_pairs, base, mass_row, relaxation, vertex_pairs, mover_role,
+                                         particle_flags, particle_inv_mass, role, desired, particle_q_start,
+                                         particle_q_in, particle_q_out)
+                holds = holds and wp.dot(g, trial) <= room
+        if holds:
+            x = start + trial
+            particle_qd_out[p] = trial / dt
+            particle_q_out[p] = x
+            role_out[p] = ROLE_FROZEN
+        else:
+            role_out[p] = ROLE_PUSHER
+            desired_out[p] = start + trial
 
-    return release
+    return place
+
+
+@functools.cache
+def cap_mark_kernel(scalar: type):
+    """Kernel marking, after a pass of ``cap_place_kernel``, the free surface vertices across a kept pair from a pusher
+    as movers of the next pass (they make room for it; identical writes, no order)."""
+
+    @flat_kernel(module="unique", enable_backward=False)
+    def mark(
+        # Model:
+        particle_count: int,
+        particle_flags: wp.array[wp.int32],
+        particle_inv_mass: wp.array2d[scalar],
+        surface: Surface,
+        cache: Pairs,
+        cache_bound: wp.array[scalar],
+        pairs: Pairs,
+        flags: wp.array[wp.int32],
+        # In/out (the pass's roles):
+        role_in_out: wp.array[wp.int32],
+    ):
+        p = wp.tid()
+        if role_in_out[p] != ROLE_PUSHER:
+            return
+        world, i = world_and_index(p, particle_count)
+        mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
+        base = world * particle_count
+        vertex_pairs = particle_count * surface.triangle.shape[0]
+        list_pairs = cache
+        first = cache.vertex_start[p]
+        last = first + cache.vertex_count[p]
+        fallback = flags[flag_slot(FLAG_FALLBACK, world, pairs.count.shape[0])] != 0
+        if fallback:
+            list_pairs = pairs
+            first = pairs.vertex_start[p]
+            last = first + pairs.vertex_count[p]
+        for a in range(first, last):
+            e = list_pairs.entry[a]
+            if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
+                slot = e // 4
+                k_mine = e - 4 * slot
+                vt = list_pairs.key[slot] < wp.int64(vertex_pairs)
+                vertex = list_pairs.vertex[slot]
+                mine = (k_mine == 0) or (k_mine == 1 and not vt)
+                for k in range(4):
+                    side_a = (k == 0) or (k == 1 and not vt)
+                    j = base + vertex[k]
+                    if side_a != mine and particle_inv_mass[mass_row, vertex[k]] > scalar(0.0):
+                        if not is_kinematic(particle_flags[j]) and role_in_out[j] != ROLE_PUSHER:
+                            role_in_out[j] = ROLE_MOVER
+
+    return mark
 
 
 @functools.cache

@@ -76,6 +76,7 @@ from .selfcontact import (
     Surface,
     _pair_funcs,
     _vertex_extent,
+    cube_reach_func,
     flag_slot,
     geometry_funcs,
     raise_flag,
@@ -280,6 +281,7 @@ def cap_bounds_kernel(scalar: type):
     triangle_closest, edge_closest = geometry_funcs(scalar)
     box_of, _, _, sweep_bounds, _, kept_by_cap = _pair_funcs(scalar)
     extend = _vertex_extent(scalar, True)
+    cube_reach = cube_reach_func(scalar)
 
     @wp.func
     def boxes_overlap(lower_a: vec3, upper_a: vec3, lower_b: vec3, upper_b: vec3):
@@ -287,7 +289,7 @@ def cap_bounds_kernel(scalar: type):
                 and upper_a[0] >= lower_b[0] and upper_a[1] >= lower_b[1] and upper_a[2] >= lower_b[2])
 
     @wp.func
-    def swept_box(ends: wp.vec3i, corners: int, base: int, mass_row: int, limit: scalar,
+    def swept_box(ends: wp.vec3i, corners: int, base: int, mass_row: int, limit: scalar, cube: scalar,
                   particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
                   particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3]):
         """The swept box of a primitive's first ``corners`` vertices, unpadded, in the broad phase's order."""
@@ -295,12 +297,12 @@ def cap_bounds_kernel(scalar: type):
         upper = lower
         for k in range(corners):
             lower, upper = extend(lower, upper, base + ends[k], ends[k], mass_row, particle_flags, particle_inv_mass,
-                                  particle_q_start, particle_q_end, limit)
+                                  particle_q_start, particle_q_end, limit, cube)
         return lower, upper
 
     @wp.func
     def bound_of(
-        s: int, base: int, mass_row: int, relaxation: scalar, limit: scalar, particle_count: int,
+        s: int, base: int, mass_row: int, relaxation: scalar, limit: scalar, cube: scalar, particle_count: int,
         particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar], surface: Surface, cache: Pairs,
         particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
     ):
@@ -312,10 +314,10 @@ def cap_bounds_kernel(scalar: type):
         if key < wp.int64(particle_count) * wp.int64(triangle_count):  # VT: the vertex's query box, the leaf's box
             t = int(key % wp.int64(triangle_count))
             tri = surface.triangle[t]
-            lower, upper = swept_box(wp.vec3i(vertex[0], vertex[0], vertex[0]), 2, base, mass_row, limit,
+            lower, upper = swept_box(wp.vec3i(vertex[0], vertex[0], vertex[0]), 2, base, mass_row, limit, cube,
                                      particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
             query_lower, query_upper = box_of(lower, upper, zero)
-            lower, upper = swept_box(tri, 3, base, mass_row, limit, particle_flags, particle_inv_mass,
+            lower, upper = swept_box(tri, 3, base, mass_row, limit, cube, particle_flags, particle_inv_mass,
                                      particle_q_start, particle_q_end)
             leaf_lower, leaf_upper = box_of(lower, upper, zero)
             if not boxes_overlap(vec3(query_lower), vec3(query_upper), vec3(leaf_lower), vec3(leaf_upper)):
@@ -330,15 +332,15 @@ def cap_bounds_kernel(scalar: type):
             rest = key - wp.int64(particle_count) * wp.int64(triangle_count)
             f = int(rest % wp.int64(surface.edge.shape[0]))
             tri = surface.triangle[surface.edge_owner[f]]
-            lower, upper = swept_box(wp.vec3i(vertex[0], vertex[1], vertex[1]), 2, base, mass_row, limit,
+            lower, upper = swept_box(wp.vec3i(vertex[0], vertex[1], vertex[1]), 2, base, mass_row, limit, cube,
                                      particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
             query_lower, query_upper = box_of(lower, upper, zero)
-            lower, upper = swept_box(tri, 3, base, mass_row, limit, particle_flags, particle_inv_mass,
+            lower, upper = swept_box(tri, 3, base, mass_row, limit, cube, particle_flags, particle_inv_mass,
                                      particle_q_start, particle_q_end)
             leaf_lower, leaf_upper = box_of(lower, upper, zero)
             if not boxes_overlap(vec3(query_lower), vec3(query_upper), vec3(leaf_lower), vec3(leaf_upper)):
                 return scalar(NO_BOUND)
-            other_lower, other_upper = swept_box(wp.vec3i(vertex[2], vertex[3], vertex[3]), 2, base, mass_row, limit,
+            other_lower, other_upper = swept_box(wp.vec3i(vertex[2], vertex[3], vertex[3]), 2, base, mass_row, limit, cube,
                                                  particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
             if not boxes_overlap(other_lower, other_upper, vec3(query_lower), vec3(query_upper)):
                 return scalar(NO_BOUND)
@@ -348,7 +350,7 @@ def cap_bounds_kernel(scalar: type):
             q2 = particle_q_start[base + vertex[3]]
             st = edge_closest(p1, q1, p2, q2)
             distance = wp.length((p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)))
-        kinematic, free_step = sweep_bounds(vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
+        kinematic, free_step = sweep_bounds(vertex, base, mass_row, limit, cube, particle_flags, particle_inv_mass,
                                             particle_q_start, particle_q_end)
         if kept_by_cap(distance, kinematic, free_step, relaxation):
             return distance - kinematic
@@ -387,9 +389,10 @@ def cap_bounds_kernel(scalar: type):
         row = wp.min(world, params.shape[0] - 1)
         relaxation = params[row, PARAM_RELAXATION]
         limit = relaxation * scalar(SEARCH_REACH) * params[row, PARAM_THICKNESS]
+        cube = cube_reach(flags, world, limit)
         for slot in range(local, wp.min(cache.count[world], capacity), particle_count):
             s = world * capacity + slot
-            cache_bound_out[s] = bound_of(s, base, mass_row, relaxation, limit, particle_count, particle_flags,
+            cache_bound_out[s] = bound_of(s, base, mass_row, relaxation, limit, cube, particle_count, particle_flags,
                                           particle_inv_mass, surface, cache, particle_q_start, particle_q_end)
 
     return cap_bounds
