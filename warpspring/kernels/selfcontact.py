@@ -39,55 +39,62 @@ stages keep the same pairs as a broad phase every step):
    planes). Let x̂ be the repelled positions, each free vertex's step Δ̂ᵢ = x̂ᵢ − x⁰ᵢ first limited to
    γ · ``SEARCH_REACH`` · τ (δᵢ = |Δ̂ᵢ|; γ < 1/2 the relaxation); kinematic vertices keep their prescribed x¹.
    The cap's pairs are those whose swept boxes overlap at (x⁰, x̂): the vertex's or edge's swept box (x⁰ and x̂
-   of its ends, and around each free end's x⁰ the cube of half-width ρᵢ = min(δᵢ, γ τ), where the second pass
-   may place it) against the triangles' swept boxes (likewise; tested on the cached pairs by
-   ``selfcontact_cache.cap_bounds_kernel``, or listed by the swept broad phase where the cache may miss one); a
-   pair is kept unless neither side can reach the other: 2K < D and maxₖ free δₖ ≤ γ (D − K), with K the
-   largest prescribed displacement among its kinematic vertices (0 when it has none). Each free vertex i then
-   ends at x⁰ᵢ + sᵢ Δ̂ᵢ, sᵢ in [0, 1] the largest that keeps two bounds over its kept pairs (``cap_gather_kernel``),
-   or where a vertex is jammed, at the point a second pass finds (below):
+   of its ends, and around each free end's x⁰ the cube of half-width ρ, where the later passes may place it:
+   ρ = γ τ in a world whose pins move, 0 elsewhere, ``cube_reach``) against the triangles' swept boxes (likewise;
+   tested on the cached pairs by ``selfcontact_cache.cap_bounds_kernel``, or listed by the swept broad phase
+   where the cache may miss one); a pair is kept unless neither side can reach the other: 2K < D and
+   maxₖ free max(δₖ, ρ) ≤ γ (D − K), with K the largest prescribed displacement among its kinematic vertices (0
+   when it has none). Each free vertex i then ends at x⁰ᵢ + sᵢ Δ̂ᵢ, sᵢ in [0, 1] the largest that keeps two
+   bounds over its kept pairs (``cap_gather_kernel``), or where it is jammed, where the later passes put it:
 
-   * **planes**. A kept pair's n is the unit vector between its closest points at x⁰, from side B (the
-     triangle, the second edge) to side A (the vertex, the first edge), and D_n = min over A's vertices of n·x⁰
-     − max over B's of n·x⁰ the width of the slab between the primitives along n (D where n is exact; any n
-     gives a true slab); G = D_n − 2 pad (``plane_funcs``). K_A, K_B are each side's kinematic approach: the
-     largest displacement of its kinematic vertices toward the other side along n (at least 0). A free vertex
-     of A may approach B along n by at most its share s_A = min(γ (G − K_B), (1 − γ) G − K_B), one of B by
-     s_B = min(γ (G − K_A), (1 − γ) G − K_A): a pin's approach is taken off the other side's share, and where it
-     exceeds (1 − γ) G the share is negative: the free side must give way, moved along its repelled step (which
-     the repulsion pointed away from the pin) rather than held where the pin runs into it. A vertex that
-     retreats along n takes its whole step there. A pair with G ≤ 0 (closer than the precision resolves)
-     holds its free vertices (s = 0).
+   * **planes**. A kept pair's n is a unit vector from side B (the triangle, the second edge) to side A (the
+     vertex, the first edge): of the direction between the closest points at x⁰ and the triangle's normal or the
+     edges' cross product, the one with the wider slab, D_n = min over A's vertices of n·x⁰ − max over B's of
+     n·x⁰ (D where n is the closest points' exact direction; any n gives a true slab; the normal keeps its
+     accuracy where a close pair's rounded closest points would tilt n); G = D_n − 2 pad (``plane_funcs``).
+     K_A, K_B are each side's kinematic approach: the largest displacement of its kinematic vertices toward the
+     other side along n (at least 0). A free vertex of A may approach B along n by at most its share
+     s_A = min(γ (G − K_B), (1 − γ) G − K_B), one of B by s_B = min(γ (G − K_A), (1 − γ) G − K_A): a pin's approach
+     is taken off the other side's share, and where it exceeds (1 − γ) G the share is negative: the free side
+     must give way, along its repelled step (which the repulsion pointed away from the pin) rather than held
+     where the pin runs into it. A vertex that retreats along n takes its whole step there. A pair with G ≤ 0
+     (closer than the precision resolves) holds its free vertices.
    * **lengths**, for a vertex no share asks to give way: it also moves at most γ · min over its kept pairs of
      (D − K − pad), as with no planes, so that its step stays short in every direction, not only along the
      pairs' normals (neighbours that pass beside it, (a) below, stay as far apart as a length cap keeps them).
-   * **the second pass** (``cap_release_kernel``), for a jammed vertex, one that a negative share asks to give way
-     further along its step than its other shares let it (a free vertex squeezed between a pin and more cloth):
-     of a kept pair whose other side holds no jammed vertex it may take the room that side left as the first
-     pass placed it ((1 − γ) G minus that side's approach along n; a side of jammed vertices keeps its share),
-     anywhere in its swept box's cube and no further than δᵢ: alternating projections onto these half-spaces,
-     the cube and the ball, accepted where every bound then holds (else sᵢ Δ̂ᵢ stays).
+   * **the later passes** (``cap_place_kernel``), for a jammed vertex, one that a negative share asks to give
+     way further along its step than its other bounds let it (a free vertex squeezed between a pin and more
+     cloth). A pass places its movers anew and leaves the others where they are: of each kept pair a mover
+     approaches the other side along n by at most the room that side leaves, (1 − γ) G minus that side's largest
+     approach as placed (a pusher's, below: the larger of that and where it wanted to go), and where the other
+     side holds a mover of the same pass, also at most its share; anywhere in its swept box and no further than
+     max(δᵢ, ρ): alternating projections onto these half-spaces, the box and the ball (``RELEASE_ROUNDS``),
+     accepted where every bound then holds, else it stays and becomes a pusher, keeping the point found as where
+     it wanted to go. The jammed vertices are the first pass's movers; then ``CAP_LEVELS`` times
+     (``core/selfcontact.py``) the free vertices across a kept pair from a pusher are movers (they make room,
+     ``cap_mark_kernel``), and the pushers after them.
 
    Why no pair crosses within the step. Every point of a primitive is a fixed convex combination of its
    vertices, each moving on a straight line that stays in its swept box (the segment x⁰ᵢ → x̂ᵢ for sᵢ ≤ 1, or
-   the second pass's point in the cube) and is no longer than δᵢ, so the point stays in the primitive's swept
-   box, moves at most the largest displacement among its vertices, and along any fixed n moves at most as far
-   as the furthest of its vertices. (a) The pair's swept boxes are disjoint: the primitives never meet. (b) The
-   boxes overlap but the pair was not kept: every vertex of it moves at most max(K, γ (D − K)) < D/2 (2K < D,
+   the later passes' point) and is no longer than max(δᵢ, ρ), so the point stays in the primitive's swept box,
+   moves at most the largest displacement among its vertices, and along any fixed n moves at most as far as the
+   furthest of its vertices. (a) The pair's swept boxes are disjoint: the primitives never meet. (b) The boxes
+   overlap but the pair was not kept: every vertex of it moves at most max(K, γ (D − K)) < D/2 (2K < D,
    γ < 1/2), so the two sides never meet, whichever hold kinematic vertices. (c) It was kept: side A's lowest
    point along n stays above min_A n·x⁰ − α_A and side B's highest below max_B n·x⁰ + α_B, α a side's largest
    approach among its vertices: at most max(K_A, s_A) for A where each free vertex keeps its share (for B
    likewise; a side without kinematic vertices: its share). The slab between them stays open by at least
    G − max(K_A, s_A) − max(K_B, s_B), which is ≥ (1 − 2γ) G where no pin exceeds its side's share, ≥ γ G where
    one does (K_A + s_B ≤ (1 − γ) G), and G − K_A − K_B where both sides' pins do: positive whenever at most one
-   side holds kinematic vertices, and when both do and close in by less than G. A jammed vertex placed by the
-   second pass against a side that stays where the first pass put it approaches by at most (1 − γ) G minus that
-   side's approach: the slab stays open by γ G. With no kinematic vertex this is the bound γ G per vertex along
-   n and the margin (1 − 2γ) G. G takes two pads off D_n: one for the rounding of the dot products, one for the
-   rounded end positions.
-   A share that cannot be kept puts the pair beyond the cap: a free vertex asked to give way that neither pass
-   can place (the room its neighbours leave does not suffice: layers squeezed by a pin, which would have to
-   move together), or two kinematic sides closing in by G or more. ``cap_check_kernel`` counts, after the cap,
+   side holds kinematic vertices, and when both do and close in by less than G. A later pass keeps this: a
+   mover placed against a side that stays approaches by at most (1 − γ) G minus that side's approach (the slab
+   stays open by γ G), and against a side that moves in the same pass, by at most its share and that room,
+   whether the other side's movers are placed (shares) or stay (room). With no kinematic vertex this is the
+   bound γ G per vertex along n and the margin (1 − 2γ) G. G takes two pads off D_n: one for the rounding of the
+   dot products, one for the rounded end positions.
+   A share that cannot be kept puts the pair beyond the cap: a free vertex asked to give way that no pass can
+   place (the room its neighbours leave, after they made what room they could within ρ, does not suffice: layers
+   squeezed by a pin), or two kinematic sides closing in by G or more. ``cap_check_kernel`` counts, after the cap,
    each kept pair one of whose sides closes in along n while their approaches add up to D_n − pad or more
    (COUNT_OUTRUN), so that a run says where the guarantee did not hold.
    If the world's cap buffer overflowed, a listed pair may be missing: every free vertex of that world then
@@ -1019,10 +1026,12 @@ def cap_gather_kernel(scalar: type):
     """Kernel of the displacement cap (module docstring, 2.): each free surface vertex of ``particle_q_in`` (the
     repelled result), its step Δ̂ first limited to γ SEARCH_REACH τ, ends at x⁰ + s Δ̂ with s the largest in [0, 1]
     whose approach along each kept pair's separating direction is at most its side's share (``plane_funcs``; a
-    vertex that retreats along it takes the whole step, as far as a share that asks it to give way wants), 0 where
-    a share asks more than that; the kept pairs are the cached pairs with a bound (``cap_bounds_kernel``), or in a world flagged
-    FLAG_FALLBACK the swept broad phase's list (where that list overflowed: s = 0). Writes the state's positions
-    and, where they changed, its velocities (Δx / h)."""
+    vertex that retreats along it takes the whole step), and unless a share asks it to give way, whose length is
+    at most γ (D - K - pad) of each kept pair; the kept pairs are the cached pairs with a bound
+    (``cap_bounds_kernel``), or in a world flagged FLAG_FALLBACK the swept broad phase's list (where that list
+    overflowed: s = 0). A vertex that gives way less than a share asks is marked jammed (``jammed_out``: a mover of
+    the later passes, ``cap_place_kernel``). Writes the state's positions and, where they changed, its velocities
+    (Δx / h)."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
     on_side_a, _, pair_shares = plane_funcs(scalar)
@@ -1128,7 +1137,7 @@ def cap_gather_kernel(scalar: type):
                                                    mass_row, relaxation, vertex_pairs, step, particle_flags,
                                                    particle_inv_mass, particle_q_start, particle_q_in)
         plane = wp.max(plane, scalar(0.0))
-        if need > plane:  # a push that does not fit: cap_release_kernel takes the room its neighbours leave
+        if need > plane:  # a push that does not fit: the later passes (cap_place_kernel) place it
             jammed_out[p] = 1
         if need > scalar(0.0):  # asked to give way: the planes alone bound it
             if plane < scalar(1.0) or length > limit:
@@ -1163,8 +1172,8 @@ def cap_place_kernel(scalar: type):
     ``mover_role`` is placed anew, the others stay. Of each kept pair its approach along n is at most the room the
     other side leaves, (1 - γ) G minus that side's largest approach (a pusher's: the larger of where it is and
     where it wanted to go), and where the other side holds a vertex placed in the same pass, also at most its share.
-    Its displacement Δ stays in its swept box's cube (half-width ρ = min(δ, γ τ), or along its step) and no longer
-    than δ: alternating projections onto these sets (``RELEASE_ROUNDS``) from where it is, accepted where every
+    Its displacement Δ stays in its swept box (the cube of half-width ρ = ``cube_reach``, and its step's box) and no
+    longer than max(δ, ρ): alternating projections onto these sets (``RELEASE_ROUNDS``) from where it is, accepted where every
     bound then holds; else it stays, becomes a pusher (``role_out``) and ``desired_out`` keeps the point found."""
     vec3 = vec3_type(scalar)
     on_side_a, _, pair_shares = plane_funcs(scalar)
