@@ -31,17 +31,11 @@ from ..kernels.selfcontact import (
     PARAM_FRICTION,
     PARAM_RELAXATION,
     PARAM_THICKNESS,
-    ROLE_MOVER,
-    ROLE_PUSHER,
     SCAN_BLOCK,
     SCAN_THREADS,
     Pairs,
     Surface,
     broad_kernel,
-    cap_check_kernel,
-    cap_gather_kernel,
-    cap_mark_kernel,
-    cap_place_kernel,
     fill_kernel,
     leaf_kernel,
     proximity_kernel,
@@ -51,6 +45,14 @@ from ..kernels.selfcontact import (
     scan_kernels,
 )
 from ..kernels.selfcontact_cache import anchor_kernel, cap_bounds_kernel, check_kernel, decide_kernel
+from ..kernels.selfcontact_cap import (
+    ROLE_MOVER,
+    ROLE_PUSHER,
+    cap_check_kernel,
+    cap_gather_kernel,
+    cap_mark_kernel,
+    cap_place_kernel,
+)
 
 #: The default relaxation γ of the displacement cap: a vertex moves at most a quarter of its distance to the
 #: nearest primitive, so a pair beyond the repulsion's reach (2 τ) ends a step at least τ apart.
