@@ -425,24 +425,21 @@ class SelfContact:
                  self.cache, self.cache_bound, self.cap_pairs, self.flags]
         tail = [start, particle_q, model.scalar(dt)]
 
-        def place(mover_role, into):
+        def place(mover_role, clear, into):
             flat_launch(cap_place_kernel(model.scalar),
-                        inputs=lists + [mover_role, role[1 - into], desired[1 - into]] + tail,
+                        inputs=lists + [mover_role, clear, role[1 - into], desired[1 - into]] + tail,
                         outputs=[state_out.particle_q, state_out.particle_qd, role[into], desired[into]],
                         **per_particle)
 
-        role[1].zero_()
-        flat_launch(cap_place_kernel(model.scalar), inputs=lists + [ROLE_MOVER, role[0], desired[0]] + tail,
-                    outputs=[state_out.particle_q, state_out.particle_qd, role[1], desired[1]], **per_particle)
+        place(ROLE_MOVER, 1, 1)  # the jammed vertices (role[0], from the gather)
         into = 0
         for _ in range(CAP_LEVELS):
             flat_launch(cap_mark_kernel(model.scalar),
                         inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface,
                                 self.cache, self.cache_bound, self.cap_pairs, self.flags],
                         outputs=[role[1 - into]], **per_particle)
-            role[into].zero_()
-            place(ROLE_MOVER, into)
-            place(ROLE_PUSHER, into)
+            place(ROLE_MOVER, 1, into)  # the vertices across a kept pair from a pusher make room
+            place(ROLE_PUSHER, 0, into)  # the pushers, against where they went
             into = 1 - into
         flat_launch(cap_check_kernel(model.scalar),
                     inputs=[model.particle_count, model.world_enabled, self.surface, self.cache, self.cache_bound,

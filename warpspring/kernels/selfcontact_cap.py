@@ -291,7 +291,8 @@ def cap_place_kernel(scalar: type):
     where it wanted to go), and where the other side holds a vertex placed in the same pass, also at most its share.
     Its displacement Δ stays in its swept box (the cube of half-width ρ = ``cube_reach``, and its step's box) and no
     longer than max(δ, ρ): alternating projections onto these sets (``RELEASE_ROUNDS``) from where it is, accepted where every
-    bound then holds; else it stays, becomes a pusher (``role_out``) and ``desired_out`` keeps the point found."""
+    bound then holds; else it stays, becomes a pusher (``role_out``) and ``desired_out`` keeps the point found. With
+    ``clear``, the other vertices' ``role_out`` is set to ROLE_FROZEN (no memset inside the conditional node)."""
     vec3 = vec3_type(scalar)
     on_side_a, _, pair_shares = plane_funcs(scalar)
     cube_reach = cube_reach_func(scalar)
@@ -347,6 +348,7 @@ def cap_place_kernel(scalar: type):
         flags: wp.array[wp.int32],
         # Control (the pass):
         mover_role: int,
+        clear: int,
         role: wp.array[wp.int32],
         desired: wp.array[vec3],
         # State in:
@@ -362,6 +364,8 @@ def cap_place_kernel(scalar: type):
     ):
         p = wp.tid()
         if role[p] != mover_role:
+            if clear != 0:
+                role_out[p] = ROLE_FROZEN
             return
         world, i = world_and_index(p, particle_count)
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
