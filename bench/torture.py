@@ -58,8 +58,8 @@ def main(argv=None) -> int:
             "",
             "Every substep audited in float64: crossings (continuous, over the substep's straight path), intersections "
             "and pairs closer than τ/2 = 2.5 mm at its end, each summed over substeps; min d: the smallest distance "
-            "at a substep's end; pins outran: pair-steps whose pinned (kinematic) side moved at least the pair's "
-            "distance (K ≥ D, beyond the cap).",
+            "at a substep's end; pins outran: pair-steps beyond the cap (a pinned side closing in on a free one that "
+            "could not give way: `SelfContact.outrun()`).",
             "",
             "| " + " | ".join(header) + " |",
             "|" + "---|" * len(header),

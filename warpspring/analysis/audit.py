@@ -436,8 +436,8 @@ class SubstepAudit(FrameHook):
         min_distance: the smallest distance [m] at any substep's end (within τ; ``inf`` when none came that close).
         first: (time [s], world, what) of the first finding, or ``None``.
         overflow: the self-collision's pairs dropped for a full pair list (0 without self-collision).
-        outrun: the self-collision's pairs whose kinematic vertices moved in a step at least the pair's distance
-            (K ≥ D: beyond its cap; 0 without self-collision).
+        outrun: the self-collision's pair-steps beyond its cap (a pinned element closing in on a free one that could
+            not give way; ``SelfContact.outrun``; 0 without self-collision).
     """
 
     def __init__(self, *, thickness: float | None = None):
@@ -512,8 +512,8 @@ class SubstepAudit(FrameHook):
         if self.overflow:
             text += f"; {self.overflow} self-collision pairs dropped for a full pair list"
         if self.outrun:
-            text += (f"; {self.outrun} pair-steps where a pinned (kinematic) element moved further than its distance "
-                     f"to the surface (beyond the self-collision's cap)")
+            text += (f"; {self.outrun} pair-steps where a pinned (kinematic) element closed in on the surface faster "
+                     f"than it could give way (beyond the self-collision's cap)")
         return text
 
 

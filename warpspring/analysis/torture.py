@@ -154,7 +154,7 @@ class CaseResult:
         audit: the :class:`SubstepAudit` (crossings, intersections, close pairs, minimum distance, first finding).
         pairs, capped: the self-collision's pairs pushed apart and vertices capped over the run.
         overflow: pairs dropped for a full pair list.
-        outrun: pair-steps whose kinematic vertices moved at least the pair's distance (K ≥ D: beyond the cap, the
+        outrun: pair-steps beyond the cap (a pinned side closing in on a free one that could not give way; the
             guarantee does not cover them).
         error: the simulation's error message, if it stopped (a guard), else ``None``.
         wall: wall time [s] of the run (simulation and audit), audit: of the audit alone.

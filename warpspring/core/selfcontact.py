@@ -36,7 +36,6 @@ from ..kernels.selfcontact import (
     Pairs,
     Surface,
     broad_kernel,
-    cap_gather_kernel,
     fill_kernel,
     leaf_kernel,
     proximity_kernel,
@@ -46,10 +45,21 @@ from ..kernels.selfcontact import (
     scan_kernels,
 )
 from ..kernels.selfcontact_cache import anchor_kernel, cap_bounds_kernel, check_kernel, decide_kernel
+from ..kernels.selfcontact_cap import (
+    ROLE_MOVER,
+    ROLE_PUSHER,
+    cap_check_kernel,
+    cap_gather_kernel,
+    cap_mark_kernel,
+    cap_place_kernel,
+)
 
 #: The default relaxation γ of the displacement cap: a vertex moves at most a quarter of its distance to the
 #: nearest primitive, so a pair beyond the repulsion's reach (2 τ) ends a step at least τ apart.
 DEFAULT_RELAXATION = 0.25
+#: Rounds of the cap's making room for its jammed vertices (``SelfContact._cap_stage``): a jammed vertex's
+#: neighbours across its kept pairs move away, then it is placed again, this many times.
+CAP_LEVELS = 2
 #: The thickness must stay below this share of the surface's smallest triangle altitude: at rest, a vertex and
 #: a triangle of its neighbourhood that do not share it are an altitude apart or more, and must not repel.
 MAX_THICKNESS_SHARE = 0.7
@@ -138,6 +148,10 @@ class SelfContact:
         self.params = wp.zeros((worlds, PARAM_COUNT), dtype=model.scalar, device=device)
         self.set(thickness=thickness, friction=friction, relaxation=relaxation)
         self.corrected = wp.zeros(model.state_size, dtype=model.vec3, device=device)
+        # The cap's later passes (kernels/selfcontact.py, cap_place_kernel): each vertex's role in a pass and where a
+        # pusher wanted to go, twice (a pass reads one and writes the other).
+        self.cap_role = [wp.zeros(model.state_size, dtype=wp.int32, device=device) for _ in range(2)]
+        self.cap_desired = [wp.zeros(model.state_size, dtype=model.vec3, device=device) for _ in range(2)]
         self.counters = wp.zeros((worlds, COUNTER_COUNT), dtype=wp.int32, device=device)
         # The pair cache (kernels/selfcontact_cache.py: its anchors, its reach, 0 until built) and the cap's
         # swept list, for the steps that need it; the pass's flags (any rebuild, any fallback, then per world each
@@ -170,7 +184,8 @@ class SelfContact:
         flat = [broad_kernel(scalar, False), broad_kernel(scalar, True),
                 reset_kernel(), fill_kernel(), check_kernel(scalar), decide_kernel(scalar), anchor_kernel(scalar),
                 repel_pairs_kernel(scalar),
-                repel_gather_kernel(scalar), cap_bounds_kernel(scalar), cap_gather_kernel(scalar)]
+                repel_gather_kernel(scalar), cap_bounds_kernel(scalar), cap_gather_kernel(scalar),
+                cap_place_kernel(scalar), cap_mark_kernel(scalar), cap_check_kernel(scalar)]
         for kernel in flat:
             kernel.module.load(model.device, model.block_dim)
 
@@ -246,9 +261,10 @@ class SelfContact:
         return {"pairs": counters[:, COUNT_PAIRS], "capped": counters[:, COUNT_CAPPED]}
 
     def outrun(self) -> np.ndarray:
-        """Pairs whose kinematic vertices moved in a step at least the pair's distance (K ≥ D: beyond the cap, which
-        bounds free vertices only; such a pair may cross), per world, summed over steps since the start or
-        :meth:`reset` (int64 [world_count]; reads the device). Zero in a run the no-crossing guarantee covers."""
+        """Pairs the cap could not hold apart (beyond it: a pin closing in on a free side that cannot give way along
+        its repelled step, or two pinned sides closing in; such a pair may cross), per world, summed over steps since
+        the start or :meth:`reset` (int64 [world_count]; reads the device). Zero in a run the no-crossing guarantee
+        covers."""
         return self.counters.numpy()[:, COUNT_OUTRUN].astype(np.int64)
 
     def overflow(self) -> np.ndarray:
@@ -286,8 +302,8 @@ class SelfContact:
         """Write the triangles' boxes (at ``start``, or swept from ``start`` to ``end``) and refit the BVHs."""
         model = self.model
         flat_launch(leaf_kernel(model.scalar, swept),
-                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.params, start,
-                            end, self.surface],
+                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.params, self.flags,
+                            start, end, self.surface],
                     dim=model.world_count * self.triangle_count, device=model.device)
         if refit:
             for bvh in self.bvhs:
@@ -309,6 +325,7 @@ class SelfContact:
             world_enabled=active,
             surface=self.surface,
             params=self.params,
+            flags=self.flags,
             reach_factor=model.scalar(reach_factor),
             reach_add=model.scalar(reach_add),
             particle_q_start=start,
@@ -399,7 +416,35 @@ class SelfContact:
                     inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
                             self.surface, self.params, self.cache, self.cache_bound, self.cap_pairs,
                             self.pair_distance, self.flags, start, particle_q, model.scalar(dt)],
-                    outputs=[state_out.particle_q, state_out.particle_qd, self.counters], **per_particle)
+                    outputs=[state_out.particle_q, state_out.particle_qd, self.cap_role[0], self.counters],
+                    **per_particle)
+        # The later passes: the jammed vertices placed anew; then, CAP_LEVELS times, the vertices across a kept pair
+        # from those still jammed make room, and the jammed are placed against where they went.
+        role, desired = self.cap_role, self.cap_desired
+        lists = [model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface, self.params,
+                 self.cache, self.cache_bound, self.cap_pairs, self.flags]
+        tail = [start, particle_q, model.scalar(dt)]
+
+        def place(mover_role, clear, into):
+            flat_launch(cap_place_kernel(model.scalar),
+                        inputs=lists + [mover_role, clear, role[1 - into], desired[1 - into]] + tail,
+                        outputs=[state_out.particle_q, state_out.particle_qd, role[into], desired[into]],
+                        **per_particle)
+
+        place(ROLE_MOVER, 1, 1)  # the jammed vertices (role[0], from the gather)
+        into = 0
+        for _ in range(CAP_LEVELS):
+            flat_launch(cap_mark_kernel(model.scalar),
+                        inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface,
+                                self.cache, self.cache_bound, self.cap_pairs, self.flags],
+                        outputs=[role[1 - into]], **per_particle)
+            place(ROLE_MOVER, 1, into)  # the vertices across a kept pair from a pusher make room
+            place(ROLE_PUSHER, 0, into)  # the pushers, against where they went
+            into = 1 - into
+        flat_launch(cap_check_kernel(model.scalar),
+                    inputs=[model.particle_count, model.world_enabled, self.surface, self.cache, self.cache_bound,
+                            self.cap_pairs, self.flags, start, state_out.particle_q],
+                    outputs=[self.counters], **per_particle)
 
     def repel(self, state_in, particle_q: wp.array) -> wp.array:
         """The repulsion stage alone (with the cache's check and, where needed, its rebuild): ``particle_q`` (the

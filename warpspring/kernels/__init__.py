@@ -31,6 +31,7 @@ Modules:
     triangle_contacts: cloth triangles against small spheres and thin capsules.
     selfcontact: self-collision of triangle surfaces (broad phase, repulsion, displacement cap).
     selfcontact_cache: self-collision's pair cache (when to rebuild it, the cap over it).
+    selfcontact_cap: self-collision's displacement cap (separating planes, its passes, the pairs beyond it).
     integrators: the per-particle update kernels of the integrators; dopri5's step control.
     frames: a frame's substeps of symplectic Euler in one launch, one thread block per world.
     sweep: the CPU's symplectic Euler step, a thread per world sweeping its particles, each spring once.

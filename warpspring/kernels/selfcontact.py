@@ -20,7 +20,7 @@ stages keep the same pairs as a broad phase every step):
   per-particle integer cursor;
 * **narrow phase** (``repel_pairs_kernel``): one thread per particle walks its world's pairs and writes each
   pair's four vertices' corrections and weights to the pair's own slots;
-* **gather** (``repel_gather_kernel``, ``cap_gather_kernel``): one thread per vertex sorts its segment by
+* **gather** (``repel_gather_kernel``, ``selfcontact_cap.cap_gather_kernel``): one thread per vertex sorts its segment by
   the pairs' keys (a pair's identity: (vertex, triangle) or (edge, edge)), then folds it in that order. The
   atomics decide only where a pair is stored, never the order of a sum: results are the same bits run to
   run (unless a buffer overflows, when which pairs were kept depends on the atomics; see the cap).
@@ -35,31 +35,70 @@ stages keep the same pairs as a broad phase every step):
    μc of the pair's relative tangential displacement the same way (all of it when μc covers it: static
    friction). A vertex takes a weighted mean of its pairs' corrections (Jacobi): their sum over
    max(1, Σ|wₖ|), its weights in its pairs, so several pairs at one vertex do not add up to an overshoot.
-2. **The displacement cap** (Chen et al. 2024, "Offset Geometric Contact", as in Newton's VBD). Let x̂ be
-   the repelled positions, each free vertex's displacement first limited to γ · ``SEARCH_REACH`` · τ
-   (γ < 1/2 the relaxation); kinematic vertices keep their prescribed x¹. The cap's pairs are those whose
-   swept boxes overlap at (x⁰, x̂): the vertex's or edge's swept box (x⁰ and x̂ of its ends) against the
-   triangles' swept boxes (tested on the cached pairs by ``selfcontact_cache.cap_bounds_kernel``, or listed
-   by the swept broad phase where the cache may miss one); a pair is kept when its free vertices could move far enough to matter:
-   K < D and maxₖ free δₖ > γ (D − K), with δₖ = |x̂ₖ − x⁰ₖ| and K the largest prescribed displacement
-   among its kinematic vertices (0 when it has none). Each free vertex i then ends on the segment x⁰ᵢ → x̂ᵢ
-   at distance at most γ · min(γ⁻¹ δᵢ, min over its listed pairs of (D − K)) from x⁰ᵢ.
+2. **The displacement cap** (Chen et al. 2024, "Offset Geometric Contact", as in Newton's VBD, with separating
+   planes). Let x̂ be the repelled positions, each free vertex's step Δ̂ᵢ = x̂ᵢ − x⁰ᵢ first limited to
+   γ · ``SEARCH_REACH`` · τ (δᵢ = |Δ̂ᵢ|; γ < 1/2 the relaxation); kinematic vertices keep their prescribed x¹.
+   The cap's pairs are those whose swept boxes overlap at (x⁰, x̂): the vertex's or edge's swept box (x⁰ and x̂
+   of its ends, and around each free end's x⁰ the cube of half-width ρ, where the later passes may place it:
+   ρ = γ τ in a world whose pins move, 0 elsewhere, ``cube_reach``) against the triangles' swept boxes (likewise;
+   tested on the cached pairs by ``selfcontact_cache.cap_bounds_kernel``, or listed by the swept broad phase
+   where the cache may miss one); a pair is kept unless neither side can reach the other: 2K < D and
+   maxₖ free max(δₖ, ρ) ≤ γ (D − K), with K the largest prescribed displacement among its kinematic vertices (0
+   when it has none). Each free vertex i then ends at x⁰ᵢ + sᵢ Δ̂ᵢ, sᵢ in [0, 1] the largest that keeps two
+   bounds over its kept pairs (module ``selfcontact_cap``, ``cap_gather_kernel``), or where it is jammed, where the later passes put it:
 
-   Why no pair crosses within the step, when none of its kinematic vertices moves as far as D (K < D) and
-   not both of its sides hold kinematic vertices. Every point of a primitive is a fixed convex combination
-   of its vertices, each moving on a straight line, so it stays in the primitive's swept box and moves at
-   most the largest displacement among its vertices. (a) The pair's swept boxes are disjoint: the
-   primitives never meet. (b) The boxes overlap but the pair was not kept: every free vertex already moves
-   at most δₖ ≤ γ (D − K). (c) It was kept: the cap makes every free vertex move at most γ (D − K). In (b)
-   and (c) one side moves at most max(K, γ(D − K)), the other at most γ(D − K) (it holds no kinematic
-   vertex, or holds them with the first side free), so the separation along the path stays above
-   D − K − γ(D − K) = (1 − γ)(D − K) > 0 when K ≥ γ(D − K), and above D − 2γ(D − K) ≥ (1 − 2γ)(D − K) > 0
-   otherwise. With no kinematic vertex (K = 0) this is the bound γD per vertex and the margin D(1 − 2γ).
-   A pair with K ≥ D (a pin moving further in a step than its distance to the surface) is beyond the cap
-   (no bound on the free side could keep it apart; the repulsion alone acts on it), and is not listed; it is
-   counted (COUNT_OUTRUN), so that a run says where the guarantee did not hold.
+   * **planes**. A kept pair's n is a unit vector from side B (the triangle, the second edge) to side A (the
+     vertex, the first edge): of the direction between the closest points at x⁰ and the triangle's normal or the
+     edges' cross product, the one with the wider slab, D_n = min over A's vertices of n·x⁰ − max over B's of
+     n·x⁰ (D where n is the closest points' exact direction; any n gives a true slab; the normal keeps its
+     accuracy where a close pair's rounded closest points would tilt n); G = D_n − 2 pad (``plane_funcs``).
+     K_A, K_B are each side's kinematic approach: the largest displacement of its kinematic vertices toward the
+     other side along n (at least 0). A free vertex of A may approach B along n by at most its share
+     s_A = min(γ (G − K_B), (1 − γ) G − K_B), one of B by s_B = min(γ (G − K_A), (1 − γ) G − K_A): a pin's approach
+     is taken off the other side's share, and where it exceeds (1 − γ) G the share is negative: the free side
+     must give way, along its repelled step (which the repulsion pointed away from the pin) rather than held
+     where the pin runs into it. A vertex that retreats along n takes its whole step there. A pair with G ≤ 0
+     (closer than the precision resolves) holds its free vertices.
+   * **lengths**, for a vertex no share asks to give way: it also moves at most γ · min over its kept pairs of
+     (D − K − pad), as with no planes, so that its step stays short in every direction, not only along the
+     pairs' normals (neighbours that pass beside it, (a) below, stay as far apart as a length cap keeps them).
+   * **the later passes** (``cap_place_kernel``), for a jammed vertex, one that a negative share asks to give
+     way further along its step than its other bounds let it (a free vertex squeezed between a pin and more
+     cloth). A pass places its movers anew and leaves the others where they are: of each kept pair a mover
+     approaches the other side along n by at most the room that side leaves, (1 − γ) G minus that side's largest
+     approach as placed (a pusher's, below: the larger of that and where it wanted to go), and where the other
+     side holds a mover of the same pass, also at most its share; anywhere in its swept box and no further than
+     max(δᵢ, ρ): alternating projections onto these half-spaces, the box and the ball (``RELEASE_ROUNDS``),
+     accepted where every bound then holds, else it stays and becomes a pusher, keeping the point found as where
+     it wanted to go. The jammed vertices are the first pass's movers; then ``CAP_LEVELS`` times
+     (``core/selfcontact.py``) the free vertices across a kept pair from a pusher are movers (they make room,
+     ``cap_mark_kernel``), and the pushers after them.
+
+   Why no pair crosses within the step. Every point of a primitive is a fixed convex combination of its
+   vertices, each moving on a straight line that stays in its swept box (the segment x⁰ᵢ → x̂ᵢ for sᵢ ≤ 1, or
+   the later passes' point) and is no longer than max(δᵢ, ρ), so the point stays in the primitive's swept box,
+   moves at most the largest displacement among its vertices, and along any fixed n moves at most as far as the
+   furthest of its vertices. (a) The pair's swept boxes are disjoint: the primitives never meet. (b) The boxes
+   overlap but the pair was not kept: every vertex of it moves at most max(K, γ (D − K)) < D/2 (2K < D,
+   γ < 1/2), so the two sides never meet, whichever hold kinematic vertices. (c) It was kept: side A's lowest
+   point along n stays above min_A n·x⁰ − α_A and side B's highest below max_B n·x⁰ + α_B, α a side's largest
+   approach among its vertices: at most max(K_A, s_A) for A where each free vertex keeps its share (for B
+   likewise; a side without kinematic vertices: its share). The slab between them stays open by at least
+   G − max(K_A, s_A) − max(K_B, s_B), which is ≥ (1 − 2γ) G where no pin exceeds its side's share, ≥ γ G where
+   one does (K_A + s_B ≤ (1 − γ) G), and G − K_A − K_B where both sides' pins do: positive whenever at most one
+   side holds kinematic vertices, and when both do and close in by less than G. A later pass keeps this: a
+   mover placed against a side that stays approaches by at most (1 − γ) G minus that side's approach (the slab
+   stays open by γ G), and against a side that moves in the same pass, by at most its share and that room,
+   whether the other side's movers are placed (shares) or stay (room). With no kinematic vertex this is the
+   bound γ G per vertex along n and the margin (1 − 2γ) G. G takes two pads off D_n: one for the rounding of the
+   dot products, one for the rounded end positions.
+   A share that cannot be kept puts the pair beyond the cap: a free vertex asked to give way that no pass can
+   place (the room its neighbours leave, after they made what room they could within ρ, does not suffice: layers
+   squeezed by a pin), or two kinematic sides closing in by G or more. ``cap_check_kernel`` counts, after the cap,
+   each kept pair one of whose sides closes in along n while their approaches add up to D_n − pad or more
+   (COUNT_OUTRUN), so that a run says where the guarantee did not hold.
    If the world's cap buffer overflowed, a listed pair may be missing: every free vertex of that world then
-   stays at x⁰ for the step (δ = 0 satisfies every bound), and the overflow is counted.
+   stays at x⁰ for the step (s = 0 keeps every bound of every pair), and the overflow is counted.
    The BVH is single precision: query and leaf boxes are padded by ``BOX_PAD`` relative to the coordinates.
 
 Velocities of the vertices the pass moved become v = (x − x⁰)/h; the others keep the integrator's.
@@ -99,7 +138,7 @@ COUNT_CAPPED = 1  # vertices whose displacement the cap shortened
 COUNT_OVERFLOW = 2  # pairs dropped because the world's pair buffer was full
 COUNT_REBUILDS = 3  # steps that rebuilt the world's pair cache (module selfcontact_cache)
 COUNT_FALLBACKS = 4  # steps whose cap ran the swept broad phase instead of the cache
-COUNT_OUTRUN = 5  # pairs whose kinematic vertices moved at least the pair's distance (K >= D: beyond the cap)
+COUNT_OUTRUN = 5  # kept pairs the cap could not hold apart (a pin closing in on a free side that cannot give way)
 COUNTER_COUNT = 6
 
 #: The pair cache (module ``selfcontact_cache``): it lists the pairs closer than this many thicknesses at its
@@ -121,6 +160,8 @@ FLAG_KINDS = 12
 KINEMATIC_STEPS = 4096
 #: Relative slack of the cache's bounds (drift, the cap's budget) against rounding.
 SAFETY = 1.0 / 64.0
+#: A cached pair's bound (``selfcontact_cache.cap_bounds_kernel``) where the cap does not keep it.
+NO_BOUND = 1.0e30
 
 
 @wp.struct
@@ -231,23 +272,27 @@ def geometry_funcs(scalar: type):
 @functools.cache
 def _vertex_extent(scalar: type, swept: bool):
     """``extend(lower, upper, j, local, mass_row, particle_flags, particle_inv_mass, particle_q_start,
-    particle_q_end, limit) -> (lower, upper)``: the box [lower, upper] grown to hold vertex j's (state entry;
+    particle_q_end, limit, cube) -> (lower, upper)``: the box [lower, upper] grown to hold vertex j's (state entry;
     ``local`` its index in the world) start and, with ``swept``, where it ends the stage at most."""
     vec3 = vec3_type(scalar)
-    _, stage_end, is_free, _, _ = _pair_funcs(scalar)
+    _, stage_end, is_free, _, _, _ = _pair_funcs(scalar)
 
     @wp.func
     def extend(lower: vec3, upper: vec3, j: int, local: int, mass_row: int, particle_flags: wp.array[wp.int32],
                particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3],
-               particle_q_end: wp.array[vec3], limit: scalar):
+               particle_q_end: wp.array[vec3], limit: scalar, cube: scalar):
         start = particle_q_start[j]
         low = wp.min(lower, start)
         high = wp.max(upper, start)
         if wp.static(swept):
-            end = stage_end(is_free(particle_flags[j], particle_inv_mass[mass_row, local]), start,
-                            particle_q_end[j], limit)
+            free = is_free(particle_flags[j], particle_inv_mass[mass_row, local])
+            end = stage_end(free, start, particle_q_end[j], limit)
             low = wp.min(low, end)
             high = wp.max(high, end)
+            if free:  # and the cube of half-width ρ = ``cube`` around its start (cap_place_kernel)
+                grow = vec3(cube, cube, cube)
+                low = wp.min(low, start - grow)
+                high = wp.max(high, start + grow)
         return low, high
 
     return extend
@@ -281,11 +326,12 @@ def _pair_funcs(scalar: type):
 
     @wp.func
     def sweep_bounds(
-        vertex: wp.vec4i, base: int, mass_row: int, limit: scalar, particle_flags: wp.array[wp.int32],
+        vertex: wp.vec4i, base: int, mass_row: int, limit: scalar, cube: scalar, particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
     ):
         """(K, δ): the largest displacement [m] among the pair's kinematic vertices and among its free ones
-        (0 where none), free ones limited to ``limit``."""
+        (0 where none), free ones limited to ``limit`` and taken as at least ρ = ``cube`` (``cube_reach``: the cap's
+        later passes may move a free vertex that far)."""
         kinematic = scalar(0.0)
         free_step = scalar(0.0)
         for k in range(4):
@@ -293,10 +339,16 @@ def _pair_funcs(scalar: type):
             free = is_free(particle_flags[j], particle_inv_mass[mass_row, vertex[k]])
             step = wp.length(particle_q_end[j] - particle_q_start[j])
             if free:
-                free_step = wp.max(free_step, wp.min(step, limit))
+                free_step = wp.max(free_step, wp.min(wp.max(step, cube), limit))
             else:
                 kinematic = wp.max(kinematic, step)
         return kinematic, free_step
+
+    @wp.func
+    def kept_by_cap(distance: scalar, kinematic: scalar, free_step: scalar, relaxation: scalar):
+        """Whether the cap keeps a pair whose swept boxes overlap (module docstring, 2.): unless 2K < D and every free
+        vertex moves at most γ (D - K), when neither side can reach the other."""
+        return scalar(2.0) * kinematic >= distance or free_step > relaxation * (distance - kinematic)
 
     @wp.func
     def push_pair(
@@ -316,7 +368,7 @@ def _pair_funcs(scalar: type):
             for k in range(4):
                 wp.atomic_add(pairs.vertex_count, base + vertex[k], 1)
 
-    return box_of, stage_end, is_free, sweep_bounds, push_pair
+    return box_of, stage_end, is_free, sweep_bounds, push_pair, kept_by_cap
 
 
 @functools.cache
@@ -326,6 +378,7 @@ def leaf_kernel(scalar: type, swept: bool):
     vec3 = vec3_type(scalar)
     box_of = _pair_funcs(scalar)[0]
     extend = _vertex_extent(scalar, swept)
+    cube_reach = cube_reach_func(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
     def leaves(
@@ -334,6 +387,7 @@ def leaf_kernel(scalar: type, swept: bool):
         particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array2d[scalar],
         params: wp.array2d[scalar],
+        flags: wp.array[wp.int32],
         # State in:
         particle_q_start: wp.array[vec3],
         particle_q_end: wp.array[vec3],
@@ -348,11 +402,12 @@ def leaf_kernel(scalar: type, swept: bool):
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         row = wp.min(world, params.shape[0] - 1)
         limit = params[row, PARAM_RELAXATION] * scalar(SEARCH_REACH) * params[row, PARAM_THICKNESS]
+        cube = cube_reach(flags, world, limit)
         lower = particle_q_start[base + tri[0]]
         upper = lower
         for k in range(3):
             lower, upper = extend(lower, upper, base + tri[k], tri[k], mass_row, particle_flags, particle_inv_mass,
-                                  particle_q_start, particle_q_end, limit)
+                                  particle_q_start, particle_q_end, limit, cube)
         box_lower, box_upper = box_of(lower, upper, scalar(0.0))
         surface_in_out.leaf_lower[tid] = box_lower
         surface_in_out.leaf_upper[tid] = box_upper
@@ -370,8 +425,9 @@ def broad_kernel(scalar: type, swept: bool):
     closer than reach_factor · τ + reach_add at the start; with it the cap's pairs at (start, end)."""
     vec3 = vec3_type(scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
-    box_of, _, _, sweep_bounds, push_pair = _pair_funcs(scalar)
+    box_of, _, _, sweep_bounds, push_pair, kept_by_cap = _pair_funcs(scalar)
     extend = _vertex_extent(scalar, swept)
+    cube_reach = cube_reach_func(scalar)
 
     @wp.func
     def boxes_overlap(lower_a: vec3, upper_a: vec3, lower_b: vec3, upper_b: vec3):
@@ -386,34 +442,18 @@ def broad_kernel(scalar: type, swept: bool):
     @wp.func
     def keep(
         distance: scalar, reach: scalar, relaxation: scalar, vertex: wp.vec4i, base: int, mass_row: int,
-        limit: scalar, particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
+        limit: scalar, cube: scalar, particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
         particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
     ):
-        """(kept, the value stored): the distance within the reach, or the cap's D - K when it matters."""
+        """(kept, the value stored): the distance within the reach, or the cap's pairs (``kept_by_cap``) and D - K."""
         if wp.static(not swept):
             return distance < reach, distance
-        kinematic, free_step = sweep_bounds(vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
+        kinematic, free_step = sweep_bounds(vertex, base, mass_row, limit, cube, particle_flags, particle_inv_mass,
                                             particle_q_start, particle_q_end)
-        gap = distance - kinematic
-        return gap > scalar(0.0) and free_step > relaxation * gap, gap
+        return kept_by_cap(distance, kinematic, free_step, relaxation), distance - kinematic
 
     @wp.func
-    def outruns(
-        value: scalar, vertex: wp.vec4i, base: int, mass_row: int, limit: scalar, particle_flags: wp.array[wp.int32],
-        particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
-    ):
-        """Whether a pair the swept broad phase did not keep has D - K ≤ 0 (``value``) with kinematic vertices that
-        moved (K > 0): beyond the cap, counted (COUNT_OUTRUN)."""
-        if wp.static(not swept):
-            return False
-        if value > scalar(0.0):
-            return False
-        kinematic, _ = sweep_bounds(vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
-                                    particle_q_start, particle_q_end)
-        return kinematic > scalar(0.0)
-
-    @wp.func
-    def query_box(ends: wp.vec2i, base: int, mass_row: int, limit: scalar, query_reach: scalar,
+    def query_box(ends: wp.vec2i, base: int, mass_row: int, limit: scalar, cube: scalar, query_reach: scalar,
                   particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
                   particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3]):
         """A vertex's (ends = (v, v)) or an edge's single-precision query box."""
@@ -421,7 +461,7 @@ def broad_kernel(scalar: type, swept: bool):
         upper = lower
         for k in range(2):
             lower, upper = extend(lower, upper, base + ends[k], ends[k], mass_row, particle_flags, particle_inv_mass,
-                                  particle_q_start, particle_q_end, limit)
+                                  particle_q_start, particle_q_end, limit, cube)
         return box_of(lower, upper, query_reach)
 
     @flat_kernel(module="unique", enable_backward=False)
@@ -433,6 +473,7 @@ def broad_kernel(scalar: type, swept: bool):
         world_enabled: wp.array[wp.int32],
         surface: Surface,
         params: wp.array2d[scalar],
+        flags: wp.array[wp.int32],
         reach_factor: scalar,
         reach_add: scalar,
         # State in:
@@ -456,6 +497,7 @@ def broad_kernel(scalar: type, swept: bool):
         thickness = params[row, PARAM_THICKNESS]
         relaxation = params[row, PARAM_RELAXATION]
         limit = relaxation * scalar(SEARCH_REACH) * thickness
+        cube = cube_reach(flags, world, limit)
         reach = reach_factor * thickness + reach_add
         query_reach = reach
         if wp.static(swept):
@@ -474,7 +516,7 @@ def broad_kernel(scalar: type, swept: bool):
         for m in range(3):
             if surface.vertex_owner[corners[m]] == me:
                 owns_vertex[m] = 1
-                lower, upper = query_box(wp.vec2i(corners[m], corners[m]), base, mass_row, limit, query_reach,
+                lower, upper = query_box(wp.vec2i(corners[m], corners[m]), base, mass_row, limit, cube, query_reach,
                                          particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
                 vertex_lower[m] = lower
                 vertex_upper[m] = upper
@@ -482,7 +524,7 @@ def broad_kernel(scalar: type, swept: bool):
                 union_upper = wp.max(union_upper, upper)
             if surface.edge_owner[sides[m]] == me:
                 owns_edge[m] = 1
-                lower, upper = query_box(surface.edge[sides[m]], base, mass_row, limit, query_reach,
+                lower, upper = query_box(surface.edge[sides[m]], base, mass_row, limit, cube, query_reach,
                                          particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
                 edge_lower[m] = lower
                 edge_upper[m] = upper
@@ -508,14 +550,11 @@ def broad_kernel(scalar: type, swept: bool):
                         bary = triangle_closest(p, a, b, c)
                         vertex = wp.vec4i(v, tri[0], tri[1], tri[2])
                         kept, value = keep(wp.length(p - (bary[0] * a + bary[1] * b + bary[2] * c)), reach,
-                                           relaxation, vertex, base, mass_row, limit, particle_flags,
+                                           relaxation, vertex, base, mass_row, limit, cube, particle_flags,
                                            particle_inv_mass, particle_q_start, particle_q_end)
                         if kept:
                             key = wp.int64(v) * wp.int64(triangle_count) + wp.int64(t)
                             push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
-                        elif outruns(value, vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
-                                     particle_q_start, particle_q_end):
-                            wp.atomic_add(counters_out, world, COUNT_OUTRUN, 1)
                 # EE: the edge's own query would have reported t where its box overlaps t's leaf box.
                 if owns_edge[m] == 1 and boxes_overlap_f(edge_lower[m], edge_upper[m], leaf_lower, leaf_upper):
                     e = sides[m]
@@ -539,7 +578,7 @@ def broad_kernel(scalar: type, swept: bool):
                             for k in range(2):
                                 other_lower, other_upper = extend(other_lower, other_upper, base + other[k], other[k],
                                                                   mass_row, particle_flags, particle_inv_mass,
-                                                                  particle_q_start, particle_q_end, limit)
+                                                                  particle_q_start, particle_q_end, limit, cube)
                             if not boxes_overlap(other_lower, other_upper, box_lower, box_upper):
                                 continue
                             p1 = particle_q_start[base + ends[0]]
@@ -547,16 +586,13 @@ def broad_kernel(scalar: type, swept: bool):
                             st = edge_closest(p1, q1, p2, q2)
                             vertex = wp.vec4i(ends[0], ends[1], other[0], other[1])
                             distance = wp.length((p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)))
-                            kept, value = keep(distance, reach, relaxation, vertex, base, mass_row, limit,
+                            kept, value = keep(distance, reach, relaxation, vertex, base, mass_row, limit, cube,
                                                particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
                             if kept:
                                 key = (wp.int64(particle_count) * wp.int64(triangle_count)
                                        + wp.int64(e) * wp.int64(edge_count) + wp.int64(f))
                                 push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out,
                                           counters_out)
-                            elif outruns(value, vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
-                                         particle_q_start, particle_q_end):
-                                wp.atomic_add(counters_out, world, COUNT_OUTRUN, 1)
 
     return broad
 
@@ -787,6 +823,22 @@ def flag_slot(kind: int, world: int, world_count: int):
     return 2 + kind * world_count + world
 
 
+@functools.cache
+def cube_reach_func(scalar: type):
+    """``cube_reach(flags, world, limit) -> ρ`` [m]: how far the cap's later passes may move a free vertex of world
+    ``world`` in any direction (``cap_place_kernel``): γ τ (= ``limit`` / SEARCH_REACH) where the world's pins move
+    (FLAG_KINEMATIC above its lowest level: only a pin's approach asks a vertex to give way), else 0."""
+
+    @wp.func
+    def cube_reach(flags: wp.array[wp.int32], world: int, limit: scalar):
+        world_count = (flags.shape[0] - 2) // FLAG_KINDS
+        if flags[flag_slot(FLAG_KINEMATIC, world, world_count)] > 1:
+            return limit / scalar(SEARCH_REACH)
+        return scalar(0.0)
+
+    return cube_reach
+
+
 @wp.func
 def raise_flag(flags: wp.array[wp.int32], kind: int, world: int, world_count: int):
     """Set world ``world``'s flag ``kind`` and the matching any-world flag (FLAG_REBUILD or FLAG_FALLBACK)."""
@@ -857,81 +909,12 @@ def repel_gather_kernel(scalar: type):
         budget = (relaxation * (scalar(REPULSION_REACH) * thickness - kinematic) * scalar(1.0 - SAFETY)
                   - scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0)))
         overflow = pairs_in_out.count[world] > pairs_in_out.key.shape[0] // world_count
-        if overflow or (delta > scalar(0.0) and not (delta <= budget)):
+        # A pin moving half the reach may reach a pair outside the cache (the cap keeps the pairs with 2K >= D).
+        far = scalar(2.0) * kinematic >= scalar(REPULSION_REACH) * thickness * scalar(1.0 - SAFETY)
+        if overflow or far or (delta > scalar(0.0) and not (delta <= budget)):
             raise_flag(flags_in_out, FLAG_FALLBACK, world, world_count)
 
     return repel_gather
-
-
-@functools.cache
-def cap_gather_kernel(scalar: type):
-    """Kernel of the displacement cap: each free surface vertex of ``particle_q_in`` (the repelled result)
-    moved back toward ``particle_q_start`` until its displacement is at most γ · min(SEARCH_REACH τ, the
-    smallest D - K of its kept pairs): the cached pairs' bounds (``cap_bounds_kernel``), or in a world flagged
-    FLAG_FALLBACK the swept broad phase's list (all of it when that list overflowed); writes the state's
-    positions and, where they changed, its velocities (Δx / h)."""
-    vec3 = vec3_type(scalar)
-    effective_inv_mass = particle_funcs(scalar)
-
-    @flat_kernel(module="unique", enable_backward=False)
-    def cap(
-        # Model:
-        particle_count: int,
-        particle_flags: wp.array[wp.int32],
-        particle_inv_mass: wp.array2d[scalar],
-        world_enabled: wp.array[wp.int32],
-        surface: Surface,
-        params: wp.array2d[scalar],
-        cache: Pairs,
-        cache_bound: wp.array[scalar],
-        pairs: Pairs,
-        pair_distance: wp.array[scalar],
-        flags: wp.array[wp.int32],
-        # State in:
-        particle_q_start: wp.array[vec3],
-        particle_q_in: wp.array[vec3],
-        dt: scalar,
-        # State in and out:
-        particle_q_out: wp.array[vec3],
-        particle_qd_out: wp.array[vec3],
-        # Out:
-        counters_out: wp.array2d[wp.int32],
-    ):
-        p = wp.tid()
-        world, i = world_and_index(p, particle_count)
-        mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
-        if world_enabled[world] == 0 or surface.vertex_owner[i] < 0:
-            return
-        if effective_inv_mass(particle_flags[p], particle_inv_mass[mass_row, i]) == scalar(0.0):
-            return
-        row = wp.min(world, params.shape[0] - 1)
-        relaxation = params[row, PARAM_RELAXATION]
-        start = particle_q_start[p]
-        x = particle_q_in[p]
-        step = wp.length(x - start)
-        allowed = wp.min(step, relaxation * scalar(SEARCH_REACH) * params[row, PARAM_THICKNESS])
-        # A pair's D - K carries the rounding of D (computed from the rounded positions): the bound takes off a
-        # pad above it, so a pair closer than the precision resolves holds its free vertices where they are.
-        pad = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0))
-        if flags[flag_slot(FLAG_FALLBACK, world, pairs.count.shape[0])] != 0:
-            if pairs.count[world] > pairs.key.shape[0] // pairs.count.shape[0]:
-                allowed = scalar(0.0)  # overflow: a listed pair may be missing, so nothing free moves
-            for a in range(pairs.vertex_start[p], pairs.vertex_start[p] + pairs.vertex_count[p]):  # a minimum
-                allowed = wp.min(allowed, relaxation * wp.max(pair_distance[pairs.entry[a] // 4] - pad, scalar(0.0)))
-        else:
-            for a in range(cache.vertex_start[p], cache.vertex_start[p] + cache.vertex_count[p]):
-                allowed = wp.min(allowed, relaxation * wp.max(cache_bound[cache.entry[a] // 4] - pad, scalar(0.0)))
-        if step > allowed:
-            x = start + (allowed / step) * (x - start)
-            if not (wp.length(x - start) <= allowed):  # rounded past the bound (a bound below the precision)
-                x = start
-            wp.atomic_add(counters_out, world, COUNT_CAPPED, 1)
-        moved = x - particle_q_out[p]
-        if wp.dot(moved, moved) > scalar(0.0):
-            particle_qd_out[p] = (x - start) / dt
-            particle_q_out[p] = x
-
-    return cap
 
 
 @functools.cache

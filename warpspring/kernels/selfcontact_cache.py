@@ -27,15 +27,17 @@ whole keeps its cache. Each step:
    which the cache holds all of (1.), with the same distance arithmetic as the broad phase: the same pairs,
    summed in the same key order, as a list cut at that reach — the same bits.
 4. The cap: a pair outside the cache has D ≥ REPULSION_REACH τ at x⁰ and K ≤ K_w, so the cap would keep it
-   (max δ > γ (D - K)) only if some free vertex of the world moved further than γ (REPULSION_REACH τ - K_w).
-   The repulsion's gather flags the worlds where one does, or whose cache overflowed (FLAG_FALLBACK); they
-   run the cap's swept broad phase as before (a conditional node). The others test each cached pair as the
-   swept broad phase would (``cap_bounds_kernel``: the same single-precision swept boxes, the same overlap
-   and keep tests), so the cap keeps exactly the pairs it kept before, and ends at the same bits.
+   (2K ≥ D or max δ > γ (D - K)) only if K_w ≥ REPULSION_REACH τ / 2 or some free vertex of the world moved further
+   than γ (REPULSION_REACH τ - K_w). The repulsion's gather flags the worlds where either holds, or whose cache
+   overflowed (FLAG_FALLBACK); they run the cap's swept broad phase as before (a conditional node). The others
+   test each cached pair as the swept broad phase would (``cap_bounds_kernel``: the same single-precision swept
+   boxes, the same overlap and keep tests, the same D - K), so the cap keeps exactly the pairs it kept before,
+   bounds them alike (``cap_gather_kernel`` recomputes each kept pair's plane from the same positions), and ends
+   at the same bits.
 5. The pair stages (3. and 4., the swept broad phase's node nested) run in one conditional node on FLAG_WORK, which ``decide_kernel`` and
    ``anchor_kernel`` raise where a world has cached pairs, or where a free vertex's step (FLAG_STEP) may exceed
-   what the repulsion's gather allows without the swept broad phase. Where none does, the stages would push no
-   pair, run no swept broad phase and cap no vertex (each step is below γ SEARCH_REACH τ), so ``state_out`` is
+   what the repulsion's gather allows without the swept broad phase, or whose pins move REPULSION_REACH τ / 2 or more.
+   Where none does, the stages would push no pair, run no swept broad phase and cap no vertex (each step is below γ SEARCH_REACH τ), so ``state_out`` is
    left as the integrator wrote it: a substep without pairs nearby costs the check, one thread per world and
    the conditional nodes.
 
@@ -54,7 +56,6 @@ from .selfcontact import (
     BOX_PAD,
     CACHE_REACH,
     COUNT_FALLBACKS,
-    COUNT_OUTRUN,
     COUNT_REBUILDS,
     FLAG_DRIFT,
     FLAG_FALLBACK,
@@ -65,6 +66,7 @@ from .selfcontact import (
     FLAG_STEP,
     FLAG_WORK,
     KINEMATIC_STEPS,
+    NO_BOUND,
     PARAM_RELAXATION,
     PARAM_THICKNESS,
     REPULSION_REACH,
@@ -74,6 +76,7 @@ from .selfcontact import (
     Surface,
     _pair_funcs,
     _vertex_extent,
+    cube_reach_func,
     flag_slot,
     geometry_funcs,
     raise_flag,
@@ -87,10 +90,6 @@ wp.set_module_options({"enable_backward": False})
 def base_index(world: int, particle_count: int):
     """World ``world``'s first entry in a state's arrays."""
     return world * particle_count
-
-#: Bound stored for a cached pair the cap does not keep (no bound).
-NO_BOUND = 1.0e30
-
 
 @wp.func
 def raise_to(flags: wp.array[wp.int32], slot: int, value: int):
@@ -193,8 +192,9 @@ def decide_kernel(scalar: type):
     world rebuilds unless its drifts keep every pair outside the cache at least REPULSION_REACH τ apart, either
     bound holding: the padded drift at most half the slack, (R - REPULSION_REACH τ)(1 - SAFETY) / 2, or the padded
     box's diagonal at most the slack; and the pair stages run (FLAG_WORK's first entry) where a world has
-    cached pairs or a free vertex steps further than the repulsion's gather allows without the swept broad
-    phase (γ (REPULSION_REACH τ - K_w) (1 - SAFETY), less its pad)."""
+    cached pairs, a free vertex steps further than the repulsion's gather allows without the swept broad
+    phase (γ (REPULSION_REACH τ - K_w) (1 - SAFETY), less its pad), or its pins move REPULSION_REACH τ / 2 or more
+    (less the SAFETY share)."""
     vec3 = vec3_type(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
@@ -227,7 +227,8 @@ def decide_kernel(scalar: type):
         step = scalar(flags_in_out[flag_slot(FLAG_STEP, world, world_count)]) * unit
         budget = (params[row, PARAM_RELAXATION] * (scalar(REPULSION_REACH) * thickness - kinematic)
                   * scalar(1.0 - SAFETY) * scalar(1.0 - SAFETY))  # the second factor: this test's own rounding
-        if cache.count[world] > 0 or not (step <= budget):
+        far = scalar(2.0) * kinematic >= scalar(REPULSION_REACH) * thickness * scalar(1.0 - SAFETY)  # as repel_gather
+        if cache.count[world] > 0 or not (step <= budget) or far:
             flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
 
     return decide
@@ -273,14 +274,14 @@ def anchor_kernel(scalar: type):
 def cap_bounds_kernel(scalar: type):
     """Kernel of the cap's narrow phase over the cache (module docstring, 4.), one thread per particle of every
     world taking its world's slots local, local + particle_count, ...: each cached pair's D - K where the swept
-    broad phase would have kept it (its swept single-precision boxes overlap and max δ > γ (D - K) > 0),
-    ``NO_BOUND`` elsewhere; a pair whose boxes overlap and whose kinematic vertices move at least its distance
-    (K ≥ D: beyond the cap) is counted (COUNT_OUTRUN). Worlds flagged FLAG_FALLBACK are skipped (their cap reads the
-    swept list)."""
+    broad phase would have kept it (its swept single-precision boxes overlap and ``kept_by_cap``: 2K ≥ D or
+    max δ > γ (D - K)), ``NO_BOUND`` elsewhere. Worlds flagged FLAG_FALLBACK are skipped (their cap reads the swept
+    list)."""
     vec3 = vec3_type(scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
-    box_of, _, _, sweep_bounds, _ = _pair_funcs(scalar)
+    box_of, _, _, sweep_bounds, _, kept_by_cap = _pair_funcs(scalar)
     extend = _vertex_extent(scalar, True)
+    cube_reach = cube_reach_func(scalar)
 
     @wp.func
     def boxes_overlap(lower_a: vec3, upper_a: vec3, lower_b: vec3, upper_b: vec3):
@@ -288,7 +289,7 @@ def cap_bounds_kernel(scalar: type):
                 and upper_a[0] >= lower_b[0] and upper_a[1] >= lower_b[1] and upper_a[2] >= lower_b[2])
 
     @wp.func
-    def swept_box(ends: wp.vec3i, corners: int, base: int, mass_row: int, limit: scalar,
+    def swept_box(ends: wp.vec3i, corners: int, base: int, mass_row: int, limit: scalar, cube: scalar,
                   particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
                   particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3]):
         """The swept box of a primitive's first ``corners`` vertices, unpadded, in the broad phase's order."""
@@ -296,12 +297,12 @@ def cap_bounds_kernel(scalar: type):
         upper = lower
         for k in range(corners):
             lower, upper = extend(lower, upper, base + ends[k], ends[k], mass_row, particle_flags, particle_inv_mass,
-                                  particle_q_start, particle_q_end, limit)
+                                  particle_q_start, particle_q_end, limit, cube)
         return lower, upper
 
     @wp.func
     def bound_of(
-        s: int, base: int, mass_row: int, relaxation: scalar, limit: scalar, particle_count: int,
+        s: int, base: int, mass_row: int, relaxation: scalar, limit: scalar, cube: scalar, particle_count: int,
         particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar], surface: Surface, cache: Pairs,
         particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
     ):
@@ -313,10 +314,10 @@ def cap_bounds_kernel(scalar: type):
         if key < wp.int64(particle_count) * wp.int64(triangle_count):  # VT: the vertex's query box, the leaf's box
             t = int(key % wp.int64(triangle_count))
             tri = surface.triangle[t]
-            lower, upper = swept_box(wp.vec3i(vertex[0], vertex[0], vertex[0]), 2, base, mass_row, limit,
+            lower, upper = swept_box(wp.vec3i(vertex[0], vertex[0], vertex[0]), 2, base, mass_row, limit, cube,
                                      particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
             query_lower, query_upper = box_of(lower, upper, zero)
-            lower, upper = swept_box(tri, 3, base, mass_row, limit, particle_flags, particle_inv_mass,
+            lower, upper = swept_box(tri, 3, base, mass_row, limit, cube, particle_flags, particle_inv_mass,
                                      particle_q_start, particle_q_end)
             leaf_lower, leaf_upper = box_of(lower, upper, zero)
             if not boxes_overlap(vec3(query_lower), vec3(query_upper), vec3(leaf_lower), vec3(leaf_upper)):
@@ -331,15 +332,15 @@ def cap_bounds_kernel(scalar: type):
             rest = key - wp.int64(particle_count) * wp.int64(triangle_count)
             f = int(rest % wp.int64(surface.edge.shape[0]))
             tri = surface.triangle[surface.edge_owner[f]]
-            lower, upper = swept_box(wp.vec3i(vertex[0], vertex[1], vertex[1]), 2, base, mass_row, limit,
+            lower, upper = swept_box(wp.vec3i(vertex[0], vertex[1], vertex[1]), 2, base, mass_row, limit, cube,
                                      particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
             query_lower, query_upper = box_of(lower, upper, zero)
-            lower, upper = swept_box(tri, 3, base, mass_row, limit, particle_flags, particle_inv_mass,
+            lower, upper = swept_box(tri, 3, base, mass_row, limit, cube, particle_flags, particle_inv_mass,
                                      particle_q_start, particle_q_end)
             leaf_lower, leaf_upper = box_of(lower, upper, zero)
             if not boxes_overlap(vec3(query_lower), vec3(query_upper), vec3(leaf_lower), vec3(leaf_upper)):
                 return scalar(NO_BOUND)
-            other_lower, other_upper = swept_box(wp.vec3i(vertex[2], vertex[3], vertex[3]), 2, base, mass_row, limit,
+            other_lower, other_upper = swept_box(wp.vec3i(vertex[2], vertex[3], vertex[3]), 2, base, mass_row, limit, cube,
                                                  particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
             if not boxes_overlap(other_lower, other_upper, vec3(query_lower), vec3(query_upper)):
                 return scalar(NO_BOUND)
@@ -349,13 +350,10 @@ def cap_bounds_kernel(scalar: type):
             q2 = particle_q_start[base + vertex[3]]
             st = edge_closest(p1, q1, p2, q2)
             distance = wp.length((p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)))
-        kinematic, free_step = sweep_bounds(vertex, base, mass_row, limit, particle_flags, particle_inv_mass,
+        kinematic, free_step = sweep_bounds(vertex, base, mass_row, limit, cube, particle_flags, particle_inv_mass,
                                             particle_q_start, particle_q_end)
-        gap = distance - kinematic
-        if gap > zero and free_step > relaxation * gap:
-            return gap
-        if not (gap > zero) and kinematic > zero:
-            return scalar(-NO_BOUND)  # a pin outruns the pair's distance (K >= D): beyond the cap
+        if kept_by_cap(distance, kinematic, free_step, relaxation):
+            return distance - kinematic
         return scalar(NO_BOUND)
 
     @flat_kernel(module="unique", enable_backward=False)
@@ -391,13 +389,10 @@ def cap_bounds_kernel(scalar: type):
         row = wp.min(world, params.shape[0] - 1)
         relaxation = params[row, PARAM_RELAXATION]
         limit = relaxation * scalar(SEARCH_REACH) * params[row, PARAM_THICKNESS]
+        cube = cube_reach(flags, world, limit)
         for slot in range(local, wp.min(cache.count[world], capacity), particle_count):
             s = world * capacity + slot
-            bound = bound_of(s, base, mass_row, relaxation, limit, particle_count, particle_flags, particle_inv_mass,
-                             surface, cache, particle_q_start, particle_q_end)
-            if bound < scalar(0.0):
-                wp.atomic_add(counters_out, world, COUNT_OUTRUN, 1)
-                bound = scalar(NO_BOUND)
-            cache_bound_out[s] = bound
+            cache_bound_out[s] = bound_of(s, base, mass_row, relaxation, limit, cube, particle_count, particle_flags,
+                                          particle_inv_mass, surface, cache, particle_q_start, particle_q_end)
 
     return cap_bounds

@@ -1,0 +1,553 @@
+"""The self-collision pass's displacement cap (``kernels/selfcontact.py``'s module docstring, 2., gives the cap and
+its proof): each kept pair's separating plane and its sides' shares (``plane_funcs``), the first pass along each
+free vertex's repelled step (``cap_gather_kernel``), the later passes that place a jammed vertex again after its
+neighbours made room (``cap_place_kernel``, ``cap_mark_kernel``), and the count of the pairs left beyond the cap
+(``cap_check_kernel``). The kept pairs are the cache's (``selfcontact_cache.cap_bounds_kernel``) or the swept broad
+phase's list (``selfcontact.broad_kernel``)."""
+
+import functools
+
+import warp as wp
+
+from .flatten import flat_kernel
+from .kinematics import is_kinematic, particle_funcs
+from .precision import vec3_type
+from .selfcontact import (
+    BOX_PAD,
+    COUNT_CAPPED,
+    COUNT_OUTRUN,
+    FLAG_FALLBACK,
+    NO_BOUND,
+    PARAM_RELAXATION,
+    PARAM_THICKNESS,
+    SEARCH_REACH,
+    Pairs,
+    Surface,
+    _pair_funcs,
+    cube_reach_func,
+    flag_slot,
+    geometry_funcs,
+)
+from .worlds import world_and_index
+
+wp.set_module_options({"enable_backward": False})
+
+
+@functools.cache
+def plane_funcs(scalar: type):
+    """The separating planes of the cap's pairs (module docstring, 2.), in precision ``scalar``:
+
+    ``pair_plane(vt, vertex, base, particle_q_start) -> (n, gap)``: n the unit vector from side B's closest point
+    to side A's at the step's start (side A: a VT pair's vertex, an EE pair's first edge; side B: the triangle, the
+    second edge; a normal of the pair where the points coincide), and the gap D_n = min over A's vertices of n·x
+    - max over B's of n·x (the width of the slab between the two primitives along n: D where n is exact).
+
+    ``pair_shares(vt, vertex, base, mass_row, relaxation, particle_flags, particle_inv_mass, particle_q_start,
+    particle_q_end) -> (n, shares, gap)``: with G = D_n - 2 pad (pad the rounding pad of the coordinates), each
+    side's kinematic approach K_A, K_B (the largest of its kinematic vertices' displacements toward the other side
+    along n, at least 0) and the share of each side's free vertices, ``shares`` = (s_A, s_B): a free vertex of A
+    approaches B along n by at most s_A = min(γ (G⁺ - K_B), (1 - γ) G⁺ - K_B), likewise for B (negative: it must
+    give way)."""
+    vec3 = vec3_type(scalar)
+    vec2 = wp.types.vector(2, scalar)
+    triangle_closest, edge_closest = geometry_funcs(scalar)
+    is_free = _pair_funcs(scalar)[2]
+
+    @wp.func
+    def on_side_a(vt: bool, role: int):
+        """Whether a pair's vertex ``role`` (0-3, as ``Pairs.vertex``) is on side A."""
+        return role == 0 or (role == 1 and not vt)
+
+    @wp.func
+    def slab(vt: bool, n: vec3, x0: vec3, x1: vec3, x2: vec3, x3: vec3):
+        """The width of the slab between the pair's sides along n: min over A's vertices of n·x - max over B's."""
+        low_a = wp.dot(n, x0)
+        high_b = wp.dot(n, x3)
+        if vt:
+            high_b = wp.max(high_b, wp.max(wp.dot(n, x1), wp.dot(n, x2)))
+        else:
+            low_a = wp.min(low_a, wp.dot(n, x1))
+            high_b = wp.max(high_b, wp.dot(n, x2))
+        return low_a - high_b
+
+    @wp.func
+    def pair_plane(vt: bool, vertex: wp.vec4i, base: int, particle_q_start: wp.array[vec3]):
+        x0 = particle_q_start[base + vertex[0]]
+        x1 = particle_q_start[base + vertex[1]]
+        x2 = particle_q_start[base + vertex[2]]
+        x3 = particle_q_start[base + vertex[3]]
+        diff = vec3(scalar(0.0))
+        normal = vec3(scalar(0.0))
+        if vt:
+            bary = triangle_closest(x0, x1, x2, x3)
+            diff = x0 - (bary[0] * x1 + bary[1] * x2 + bary[2] * x3)
+            normal = wp.cross(x2 - x1, x3 - x1)
+            if wp.dot(normal, x0 - x1) < scalar(0.0):
+                normal = -normal
+        else:
+            st = edge_closest(x0, x1, x2, x3)
+            diff = (x0 + st[0] * (x1 - x0)) - (x2 + st[1] * (x3 - x2))
+            normal = wp.cross(x1 - x0, x3 - x2)
+            if wp.dot(normal, diff) < scalar(0.0):
+                normal = -normal
+        # Two candidates, the wider slab kept: the closest points' direction (exact in exact arithmetic, but its
+        # rounding, |δx| / D, tilts it where the pair is close and long), and the triangle's normal or the edges'
+        # cross product (from the elements' own sides: accurate, and the same direction where the closest points
+        # are inner points).
+        n = vec3(scalar(0.0))
+        width = scalar(-NO_BOUND)
+        d = wp.length(diff)
+        if d > scalar(0.0):
+            n = diff / d
+            width = slab(vt, n, x0, x1, x2, x3)
+        if wp.length(normal) > scalar(0.0):
+            m = wp.normalize(normal)
+            other = slab(vt, m, x0, x1, x2, x3)
+            if other > width:
+                n = m
+                width = other
+        return n, width
+
+    @wp.func
+    def pair_shares(
+        vt: bool, vertex: wp.vec4i, base: int, mass_row: int, relaxation: scalar,
+        particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
+        particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
+    ):
+        n, width = pair_plane(vt, vertex, base, particle_q_start)
+        zero = scalar(0.0)
+        kinematic_a = zero
+        kinematic_b = zero
+        pad = zero
+        for k in range(4):
+            j = base + vertex[k]
+            start = particle_q_start[j]
+            pad = wp.max(pad, wp.max(wp.abs(start)))
+            if not is_free(particle_flags[j], particle_inv_mass[mass_row, vertex[k]]):
+                toward = wp.dot(n, particle_q_end[j] - start)  # along n: away from B for side A, toward A for B
+                if on_side_a(vt, k):
+                    kinematic_a = wp.max(kinematic_a, -toward)
+                else:
+                    kinematic_b = wp.max(kinematic_b, toward)
+        gap = width - scalar(2.0 * BOX_PAD) * (pad + scalar(1.0))
+        room = wp.max(gap, zero)
+        shares = vec2(wp.min(relaxation * (room - kinematic_b), (scalar(1.0) - relaxation) * room - kinematic_b),
+                      wp.min(relaxation * (room - kinematic_a), (scalar(1.0) - relaxation) * room - kinematic_a))
+        return n, shares, gap
+
+    return on_side_a, pair_plane, pair_shares
+
+
+@functools.cache
+def cap_gather_kernel(scalar: type):
+    """Kernel of the displacement cap (module docstring, 2.): each free surface vertex of ``particle_q_in`` (the
+    repelled result), its step Δ̂ first limited to γ SEARCH_REACH τ, ends at x⁰ + s Δ̂ with s the largest in [0, 1]
+    whose approach along each kept pair's separating direction is at most its side's share (``plane_funcs``; a
+    vertex that retreats along it takes the whole step), and unless a share asks it to give way, whose length is
+    at most γ (D - K - pad) of each kept pair; the kept pairs are the cached pairs with a bound
+    (``cap_bounds_kernel``), or in a world flagged FLAG_FALLBACK the swept broad phase's list (where that list
+    overflowed: s = 0). A vertex that gives way less than a share asks is marked jammed (``jammed_out``: a mover of
+    the later passes, ``cap_place_kernel``). Writes the state's positions and, where they changed, its velocities
+    (Δx / h)."""
+    vec3 = vec3_type(scalar)
+    effective_inv_mass = particle_funcs(scalar)
+    on_side_a, _, pair_shares = plane_funcs(scalar)
+
+    @wp.func
+    def bound(
+        plane: scalar, allowed: scalar, need: scalar, entry: int, pairs: Pairs, gap_less_kinematic: scalar,
+        pad: scalar, base: int, mass_row: int, relaxation: scalar, vertex_pairs: int, step: vec3,
+        particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3],
+        particle_q_end: wp.array[vec3],
+    ):
+        """The vertex's bounds narrowed by the pair of ``entry`` (slot · 4 + role; D - K its ``gap_less_kinematic``):
+        ``plane``, the largest s whose step s Δ̂ approaches the other side along n by at most the vertex's share;
+        ``allowed``, the length γ (D - K - pad) at most; ``need``, the smallest s that gives way as far as a negative
+        share asks (above 1 where no s does; 0 where no share is negative)."""
+        slot = entry // 4
+        role = entry - 4 * slot
+        allowed = wp.min(allowed, relaxation * wp.max(gap_less_kinematic - pad, scalar(0.0)))
+        vt = pairs.key[slot] < wp.int64(vertex_pairs)
+        n, shares, gap = pair_shares(vt, pairs.vertex[slot], base, mass_row, relaxation, particle_flags,
+                                     particle_inv_mass, particle_q_start, particle_q_end)
+        if not (gap > scalar(0.0)):  # no separation the precision resolves: the vertex holds
+            return scalar(0.0), scalar(0.0), need
+        share = shares[1]
+        approach = wp.dot(n, step)  # side B's approach toward A per unit of s
+        if on_side_a(vt, role):
+            share = shares[0]
+            approach = -approach
+        if approach > scalar(0.0):
+            plane = wp.min(plane, share / approach)
+        if share < scalar(0.0):
+            if approach < scalar(0.0):
+                need = wp.max(need, share / approach)
+            else:
+                need = scalar(2.0)
+        return plane, allowed, need
+
+    @flat_kernel(module="unique", enable_backward=False)
+    def cap(
+        # Model:
+        particle_count: int,
+        particle_flags: wp.array[wp.int32],
+        particle_inv_mass: wp.array2d[scalar],
+        world_enabled: wp.array[wp.int32],
+        surface: Surface,
+        params: wp.array2d[scalar],
+        cache: Pairs,
+        cache_bound: wp.array[scalar],
+        pairs: Pairs,
+        pair_distance: wp.array[scalar],
+        flags: wp.array[wp.int32],
+        # State in:
+        particle_q_start: wp.array[vec3],
+        particle_q_in: wp.array[vec3],
+        dt: scalar,
+        # State in and out:
+        particle_q_out: wp.array[vec3],
+        particle_qd_out: wp.array[vec3],
+        # Out:
+        jammed_out: wp.array[wp.int32],
+        counters_out: wp.array2d[wp.int32],
+    ):
+        p = wp.tid()
+        jammed_out[p] = 0
+        world, i = world_and_index(p, particle_count)
+        mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
+        if world_enabled[world] == 0 or surface.vertex_owner[i] < 0:
+            return
+        if effective_inv_mass(particle_flags[p], particle_inv_mass[mass_row, i]) == scalar(0.0):
+            return
+        row = wp.min(world, params.shape[0] - 1)
+        relaxation = params[row, PARAM_RELAXATION]
+        base = world * particle_count
+        vertex_pairs = particle_count * surface.triangle.shape[0]
+        start = particle_q_start[p]
+        x = particle_q_in[p]
+        length = wp.length(x - start)
+        limit = relaxation * scalar(SEARCH_REACH) * params[row, PARAM_THICKNESS]
+        step = x - start
+        if length > limit:
+            step = (limit / length) * step
+        # A pair's D - K carries the rounding of D (computed from the rounded positions): the length bound takes off a
+        # pad above it, so a pair closer than the precision resolves holds its free vertices where they are.
+        pad = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0))
+        plane = scalar(1.0)
+        allowed = wp.min(length, limit)
+        need = scalar(0.0)
+        if flags[flag_slot(FLAG_FALLBACK, world, pairs.count.shape[0])] != 0:
+            if pairs.count[world] > pairs.key.shape[0] // pairs.count.shape[0]:
+                plane = scalar(0.0)  # overflow: a listed pair may be missing, so nothing free moves
+                allowed = scalar(0.0)
+            else:
+                for a in range(pairs.vertex_start[p], pairs.vertex_start[p] + pairs.vertex_count[p]):
+                    e = pairs.entry[a]
+                    plane, allowed, need = bound(plane, allowed, need, e, pairs, pair_distance[e // 4], pad, base,
+                                                   mass_row, relaxation, vertex_pairs, step, particle_flags,
+                                                   particle_inv_mass, particle_q_start, particle_q_in)
+        else:
+            for a in range(cache.vertex_start[p], cache.vertex_start[p] + cache.vertex_count[p]):
+                e = cache.entry[a]
+                if cache_bound[e // 4] < scalar(NO_BOUND):
+                    plane, allowed, need = bound(plane, allowed, need, e, cache, cache_bound[e // 4], pad, base,
+                                                   mass_row, relaxation, vertex_pairs, step, particle_flags,
+                                                   particle_inv_mass, particle_q_start, particle_q_in)
+        plane = wp.max(plane, scalar(0.0))
+        if need > plane:  # a push that does not fit: the later passes (cap_place_kernel) place it
+            jammed_out[p] = 1
+        if need > scalar(0.0):  # asked to give way: the planes alone bound it
+            if plane < scalar(1.0) or length > limit:
+                x = start + plane * step
+                wp.atomic_add(counters_out, world, COUNT_CAPPED, 1)
+        else:  # the length bound too, as tight as the planes' along the step
+            allowed = wp.min(allowed, plane * wp.min(length, limit))
+            if length > allowed:
+                x = start + (allowed / length) * (x - start)
+                if not (wp.length(x - start) <= allowed):  # rounded past the bound (a bound below the precision)
+                    x = start
+                wp.atomic_add(counters_out, world, COUNT_CAPPED, 1)
+        moved = x - particle_q_out[p]
+        if wp.dot(moved, moved) > scalar(0.0):
+            particle_qd_out[p] = (x - start) / dt
+            particle_q_out[p] = x
+
+    return cap
+
+
+#: Rounds of the cap's later passes (``cap_place_kernel``): alternating projections onto a vertex's bounds.
+RELEASE_ROUNDS = 200
+#: Roles of the vertices in the cap's later passes (``SelfContact.cap_role``).
+ROLE_FROZEN = 0  # stays where it is
+ROLE_MOVER = 1  # placed anew by the pass
+ROLE_PUSHER = 2  # could not be placed: stays, and the movers make room for where it wanted to go
+
+
+@functools.cache
+def cap_place_kernel(scalar: type):
+    """Kernel of the cap's later passes (module docstring, 2.), after ``cap_gather_kernel``: each vertex whose role is
+    ``mover_role`` is placed anew, the others stay. Of each kept pair its approach along n is at most the room the
+    other side leaves, (1 - γ) G minus that side's largest approach (a pusher's: the larger of where it is and
+    where it wanted to go), and where the other side holds a vertex placed in the same pass, also at most its share.
+    Its displacement Δ stays in its swept box (the cube of half-width ρ = ``cube_reach``, and its step's box) and no
+    longer than max(δ, ρ): alternating projections onto these sets (``RELEASE_ROUNDS``) from where it is, accepted where every
+    bound then holds; else it stays, becomes a pusher (``role_out``) and ``desired_out`` keeps the point found. With
+    ``clear``, the other vertices' ``role_out`` is set to ROLE_FROZEN (no memset inside the conditional node)."""
+    vec3 = vec3_type(scalar)
+    on_side_a, _, pair_shares = plane_funcs(scalar)
+    cube_reach = cube_reach_func(scalar)
+
+    @wp.func
+    def half_space(
+        entry: int, pairs: Pairs, base: int, mass_row: int, relaxation: scalar, vertex_pairs: int, mover_role: int,
+        particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar], role: wp.array[wp.int32],
+        desired: wp.array[vec3], particle_q_start: wp.array[vec3], particle_q_in: wp.array[vec3],
+        particle_q_placed: wp.array[vec3],
+    ):
+        """(g, a, resolved): the bound g·Δ ≤ a (g unit: the vertex's direction of approach along n) of the pair of
+        ``entry`` (slot · 4 + role); ``resolved`` False where the pair is closer than the precision resolves."""
+        slot = entry // 4
+        k_mine = entry - 4 * slot
+        vt = pairs.key[slot] < wp.int64(vertex_pairs)
+        vertex = pairs.vertex[slot]
+        n, shares, gap = pair_shares(vt, vertex, base, mass_row, relaxation, particle_flags, particle_inv_mass,
+                                     particle_q_start, particle_q_in)
+        mine = on_side_a(vt, k_mine)
+        sign = scalar(1.0)  # the other side's approach toward mine per unit of n·Δ: +1 for B, -1 for A
+        share = shares[0]
+        if not mine:
+            sign = scalar(-1.0)
+            share = shares[1]
+        moving = False
+        other = scalar(-NO_BOUND)
+        for k in range(4):
+            if on_side_a(vt, k) != mine:
+                j = base + vertex[k]
+                start = particle_q_start[j]
+                other = wp.max(other, sign * wp.dot(n, particle_q_placed[j] - start))
+                if role[j] == mover_role:
+                    moving = True
+                elif role[j] == ROLE_PUSHER:
+                    other = wp.max(other, sign * wp.dot(n, desired[j] - start))
+        room = (scalar(1.0) - relaxation) * gap - other
+        if moving:
+            room = wp.min(room, share)
+        return -sign * n, room, gap > scalar(0.0)
+
+    @flat_kernel(module="unique", enable_backward=False)
+    def place(
+        # Model:
+        particle_count: int,
+        particle_flags: wp.array[wp.int32],
+        particle_inv_mass: wp.array2d[scalar],
+        surface: Surface,
+        params: wp.array2d[scalar],
+        cache: Pairs,
+        cache_bound: wp.array[scalar],
+        pairs: Pairs,
+        flags: wp.array[wp.int32],
+        # Control (the pass):
+        mover_role: int,
+        clear: int,
+        role: wp.array[wp.int32],
+        desired: wp.array[vec3],
+        # State in:
+        particle_q_start: wp.array[vec3],
+        particle_q_in: wp.array[vec3],
+        dt: scalar,
+        # State in and out:
+        particle_q_out: wp.array[vec3],
+        particle_qd_out: wp.array[vec3],
+        # Out:
+        role_out: wp.array[wp.int32],
+        desired_out: wp.array[vec3],
+    ):
+        p = wp.tid()
+        if role[p] != mover_role:
+            if clear != 0:
+                role_out[p] = ROLE_FROZEN
+            return
+        world, i = world_and_index(p, particle_count)
+        mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
+        row = wp.min(world, params.shape[0] - 1)
+        relaxation = params[row, PARAM_RELAXATION]
+        base = world * particle_count
+        vertex_pairs = particle_count * surface.triangle.shape[0]
+        start = particle_q_start[p]
+        step = particle_q_in[p] - start
+        length = wp.length(step)
+        limit = relaxation * scalar(SEARCH_REACH) * params[row, PARAM_THICKNESS]
+        if length > limit:
+            step = (limit / length) * step
+            length = limit
+        pad = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0))
+        list_pairs = cache
+        first = cache.vertex_start[p]
+        last = first + cache.vertex_count[p]
+        fallback = flags[flag_slot(FLAG_FALLBACK, world, pairs.count.shape[0])] != 0
+        if fallback:
+            list_pairs = pairs
+            first = pairs.vertex_start[p]
+            last = first + pairs.vertex_count[p]
+        reach = cube_reach(flags, world, limit)  # ρ: its swept box holds the cube of half-width ρ
+        radius = wp.max(length, reach)  # the pairs not kept let it move that far
+        low = wp.min(wp.min(step, vec3(scalar(0.0))), vec3(-reach, -reach, -reach))
+        high = wp.max(wp.max(step, vec3(scalar(0.0))), vec3(reach, reach, reach))
+        current = particle_q_out[p] - start
+        trial = current
+        resolved = bool(True)
+        for _round in range(RELEASE_ROUNDS):
+            for a in range(first, last):
+                e = list_pairs.entry[a]
+                if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
+                    g, room, ok = half_space(e, list_pairs, base, mass_row, relaxation, vertex_pairs, mover_role,
+                                             particle_flags, particle_inv_mass, role, desired, particle_q_start,
+                                             particle_q_in, particle_q_out)
+                    resolved = resolved and ok
+                    over = wp.dot(g, trial) - (room - pad)
+                    if over > scalar(0.0):
+                        trial = trial - over * g
+            trial = wp.min(wp.max(trial, low), high)
+            size = wp.length(trial)
+            if size > radius:
+                trial = (radius / size) * trial
+        holds = bool(resolved)
+        for a in range(first, last):
+            e = list_pairs.entry[a]
+            if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
+                g, room, ok = half_space(e, list_pairs, base, mass_row, relaxation, vertex_pairs, mover_role,
+                                         particle_flags, particle_inv_mass, role, desired, particle_q_start,
+                                         particle_q_in, particle_q_out)
+                holds = holds and wp.dot(g, trial) <= room
+        if holds:
+            x = start + trial
+            particle_qd_out[p] = trial / dt
+            particle_q_out[p] = x
+            role_out[p] = ROLE_FROZEN
+        else:
+            role_out[p] = ROLE_PUSHER
+            desired_out[p] = start + trial
+
+    return place
+
+
+@functools.cache
+def cap_mark_kernel(scalar: type):
+    """Kernel marking, after a pass of ``cap_place_kernel``, the free surface vertices across a kept pair from a pusher
+    as movers of the next pass (they make room for it; identical writes, no order)."""
+
+    @flat_kernel(module="unique", enable_backward=False)
+    def mark(
+        # Model:
+        particle_count: int,
+        particle_flags: wp.array[wp.int32],
+        particle_inv_mass: wp.array2d[scalar],
+        surface: Surface,
+        cache: Pairs,
+        cache_bound: wp.array[scalar],
+        pairs: Pairs,
+        flags: wp.array[wp.int32],
+        # In/out (the pass's roles):
+        role_in_out: wp.array[wp.int32],
+    ):
+        p = wp.tid()
+        if role_in_out[p] != ROLE_PUSHER:
+            return
+        world, i = world_and_index(p, particle_count)
+        mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
+        base = world * particle_count
+        vertex_pairs = particle_count * surface.triangle.shape[0]
+        list_pairs = cache
+        first = cache.vertex_start[p]
+        last = first + cache.vertex_count[p]
+        fallback = flags[flag_slot(FLAG_FALLBACK, world, pairs.count.shape[0])] != 0
+        if fallback:
+            list_pairs = pairs
+            first = pairs.vertex_start[p]
+            last = first + pairs.vertex_count[p]
+        for a in range(first, last):
+            e = list_pairs.entry[a]
+            if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
+                slot = e // 4
+                k_mine = e - 4 * slot
+                vt = list_pairs.key[slot] < wp.int64(vertex_pairs)
+                vertex = list_pairs.vertex[slot]
+                mine = (k_mine == 0) or (k_mine == 1 and not vt)
+                for k in range(4):
+                    side_a = (k == 0) or (k == 1 and not vt)
+                    j = base + vertex[k]
+                    if side_a != mine and particle_inv_mass[mass_row, vertex[k]] > scalar(0.0):
+                        if not is_kinematic(particle_flags[j]) and role_in_out[j] != ROLE_PUSHER:
+                            role_in_out[j] = ROLE_MOVER
+
+    return mark
+
+
+@functools.cache
+def cap_check_kernel(scalar: type):
+    """Kernel counting the kept pairs the cap could not hold apart (COUNT_OUTRUN), after ``cap_gather_kernel``, one
+    thread per particle of every world taking its world's slots local, local + particle_count, ...: a pair some side
+    of which approaches the other along its separating direction, by as much as the gap between them or more in all
+    (module docstring, 2.: a pin outrunning a free vertex that cannot give way, or two pins closing in)."""
+    vec3 = vec3_type(scalar)
+    on_side_a, pair_plane, _ = plane_funcs(scalar)
+
+    @wp.func
+    def beyond(slot: int, pairs: Pairs, base: int, vertex_pairs: int, particle_q_start: wp.array[vec3],
+               particle_q_end: wp.array[vec3]):
+        vt = pairs.key[slot] < wp.int64(vertex_pairs)
+        vertex = pairs.vertex[slot]
+        n, width = pair_plane(vt, vertex, base, particle_q_start)
+        zero = scalar(0.0)
+        approach_a = scalar(-NO_BOUND)
+        approach_b = scalar(-NO_BOUND)
+        pad = zero
+        for k in range(4):
+            j = base + vertex[k]
+            start = particle_q_start[j]
+            pad = wp.max(pad, wp.max(wp.abs(start)))
+            toward = wp.dot(n, particle_q_end[j] - start)
+            if on_side_a(vt, k):
+                approach_a = wp.max(approach_a, -toward)
+            else:
+                approach_b = wp.max(approach_b, toward)
+        closing = approach_a > zero or approach_b > zero
+        return closing and not (approach_a + approach_b < width - scalar(BOX_PAD) * (pad + scalar(1.0)))
+
+    @flat_kernel(module="unique", enable_backward=False)
+    def cap_check(
+        # Model:
+        particle_count: int,
+        world_enabled: wp.array[wp.int32],
+        surface: Surface,
+        cache: Pairs,
+        cache_bound: wp.array[scalar],
+        pairs: Pairs,
+        flags: wp.array[wp.int32],
+        # State in:
+        particle_q_start: wp.array[vec3],
+        particle_q_end: wp.array[vec3],
+        # Out:
+        counters_out: wp.array2d[wp.int32],
+    ):
+        p = wp.tid()
+        world, local = world_and_index(p, particle_count)
+        world_count = cache.count.shape[0]
+        if world_enabled[world] == 0:
+            return
+        base = world * particle_count
+        vertex_pairs = particle_count * surface.triangle.shape[0]
+        if flags[flag_slot(FLAG_FALLBACK, world, world_count)] != 0:
+            capacity = pairs.key.shape[0] // world_count
+            for slot in range(local, wp.min(pairs.count[world], capacity), particle_count):
+                if beyond(world * capacity + slot, pairs, base, vertex_pairs, particle_q_start, particle_q_end):
+                    wp.atomic_add(counters_out, world, COUNT_OUTRUN, 1)
+        else:
+            capacity = cache.key.shape[0] // world_count
+            for slot in range(local, wp.min(cache.count[world], capacity), particle_count):
+                s = world * capacity + slot
+                if cache_bound[s] < scalar(NO_BOUND):
+                    if beyond(s, cache, base, vertex_pairs, particle_q_start, particle_q_end):
+                        wp.atomic_add(counters_out, world, COUNT_OUTRUN, 1)
+
+    return cap_check
