@@ -131,6 +131,46 @@ def test_the_dry_run_sees_the_first_swing(device):
     assert advice.dt_passed == pytest.approx(TRIAD_MARGIN * math.sqrt(3.0) / peak, rel=1e-3)
 
 
+def test_off_balance_of_a_stretched_spring(device):
+    # One spring of k = 100 N/m, rest length 1 m, from a pinned particle to a free one, no gravity: stretched by
+    # δ = 1 mm its free end's force is k δ over a Gershgorin row of k (the pinned neighbour's clamped block), so it
+    # is δ = 1e-3 m off its balance: 1e-3 / (RELAX_TOLERANCE × 1 m) = 100 thresholds, and the model moves by
+    # itself (float32: the stretch to ~1e-7 m, 1e-4 of it). At its rest length it is at round-off and still.
+    def spring(length):
+        builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+        builder.add_particles([[0.0, 0.0, 1.0], [length, 0.0, 1.0]], mass=0.1, pinned=[0])
+        builder.add_springs([[0, 1]], stiffness=100.0, rest_length=1.0)
+        return builder.finalize(device)
+
+    stretched, rest = spring(1.001), spring(1.0)
+    assert under_load.off_balance(stretched)[0] == pytest.approx(1.0e-3 / under_load.RELAX_TOLERANCE, rel=1e-3)
+    assert under_load.off_balance(rest)[0] < 0.1
+    assert under_load.in_motion(stretched) and not under_load.in_motion(rest)
+
+
+def test_a_cloth_released_folded_without_loads_gets_a_dry_run(device):
+    # The undamped 16² cloth folded without gravity: no loads, tracks or velocity, yet its compressed bend springs
+    # open the fold (off its balance by 59 thresholds on the CPU; the flat cloth at its rest lengths by 0.007). The
+    # advisor judged it at its start alone (ω_max 1102.49 rad/s on the CPU); it now runs the dry run, whose peak,
+    # 1102.75 rad/s at 0.054 s, is the float64 top eigenvalue of its peak state, and its step is that peak's.
+    folded = sb.battery_cloth(sb.Case(16, 0.0, "folded", False), device)
+    flat = sb.battery_cloth(sb.Case(16, 0.0, "flat", False), device)
+    assert under_load.off_balance(folded)[0] > 10.0 and under_load.off_balance(flat)[0] < 0.1
+    advice = advise(folded, "symplectic_euler", 1.0e-3, horizon=10.0)
+    start = advise(folded, "symplectic_euler", 1.0e-3, horizon=10.0, transient=False)
+    reference = under_load.transient_peak(folded, horizon=10.0)
+    peak = float(reference.world_omega_max[0])
+    assert advice.dry_run > 0.0 and advice.peak_time > 0.0
+    assert advice.omega_max == pytest.approx(peak, rel=1e-6) and peak > start.omega_max * (1.0 + 5e-5)
+    assert advice.dt_passed == pytest.approx(TRIAD_MARGIN * math.sqrt(3.0) / peak, rel=1e-3)
+    keep = np.repeat(free_particles(folded)[0], 3)
+    mass = np.repeat(folded.world_values("particle_mass")[0].astype(np.float64), 3)[keep]
+    stiffness, _ = modal.spring_tangent(folded, reference.positions)
+    top, _ = top_eigenpair(stiffness[keep][:, keep], mass)
+    assert peak == pytest.approx(math.sqrt(top), rel=5e-5)
+    assert advise(flat, "symplectic_euler", 1.0e-3, horizon=10.0).dry_run == 0.0
+
+
 def test_the_dry_run_tracks_a_mode_that_rises_elsewhere(device):
     # The undamped 32² cloth released flat under gravity: its top mode at 0.88 s, 1120.64 rad/s (float64 Lanczos to
     # convergence at every 1/240 s state of the dry run, on the CPU), rises away from the mode the dry run had been

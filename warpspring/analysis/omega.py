@@ -161,12 +161,9 @@ def _stiffness_array(model: Model, values: np.ndarray) -> wp.array:
     return wp.array(np.ascontiguousarray(values, dtype=dtype), dtype=model.scalar, device=model.device)
 
 
-def _gershgorin(model: Model, stiffness: np.ndarray, free: np.ndarray, positions=None) -> np.ndarray:
-    """Each world's Gershgorin bound [rad/s], shape [world_count], for spring stiffness rows ``stiffness`` and
-    free particles ``free`` [world_count, particle_count]: every family's row bounds, summed. The springs'
-    rows take each law's tangent at ``positions`` (default the model's initial ones; ``SpringFamily.
-    tangent_factor``): a square spring counts as 2 ke |Δ| at that stretch, a tension/compression spring with
-    the stiffness of the branch it is on."""
+def _gershgorin_rows(model: Model, stiffness: np.ndarray, free: np.ndarray, positions=None) -> np.ndarray:
+    """Each particle's Gershgorin row bound of the stiffness [N/m], float64, shape [world_count, particle_count]:
+    every family's row bounds, summed (see :func:`_gershgorin`)."""
     rows = np.zeros((model.world_count, model.particle_count))
     overrides = {"springs": stiffness}
     for family in model.families:
@@ -174,6 +171,16 @@ def _gershgorin(model: Model, stiffness: np.ndarray, free: np.ndarray, positions
             rows += family.gershgorin_rows(model, free, stiffness, positions=positions)
             continue
         rows += family.gershgorin_rows(model, free, overrides.get(family.name))
+    return rows
+
+
+def _gershgorin(model: Model, stiffness: np.ndarray, free: np.ndarray, positions=None) -> np.ndarray:
+    """Each world's Gershgorin bound [rad/s], shape [world_count], for spring stiffness rows ``stiffness`` and
+    free particles ``free`` [world_count, particle_count]: every family's row bounds, summed. The springs'
+    rows take each law's tangent at ``positions`` (default the model's initial ones; ``SpringFamily.
+    tangent_factor``): a square spring counts as 2 ke |Δ| at that stretch, a tension/compression spring with
+    the stiffness of the branch it is on."""
+    rows = _gershgorin_rows(model, stiffness, free, positions)
     ratio = np.where(free, rows / model.world_values("particle_mass"), 0.0)
     return np.sqrt(ratio.max(axis=1)) if model.particle_count else np.zeros(model.world_count)
 

@@ -38,12 +38,14 @@ import numpy as np
 import warp as wp
 
 from .. import checks
+from ..core.forces import eval_forces
 from ..core.integrators import ImplicitEuler, VelocityVerlet
 from ..core.model import Model
 from ..core.simulator import Simulator
 from ..core.state import State
 from .damping import _damping_ranges, _ratio_arrays, _tangent_stiffness, _top_mode_ratios
-from .omega import Lanczos, OmegaMaxEstimate, _gershgorin, _power_iteration, _stiffness_values, free_particles
+from .omega import (Lanczos, OmegaMaxEstimate, _gershgorin, _gershgorin_rows, _power_iteration, _stiffness_values,
+                    free_particles)
 from .stability import _world_limits
 
 # -- under load ---------------------------------------------------------------------------------------------
@@ -198,11 +200,54 @@ def swing_time(model: Model) -> float:
     return math.pi * math.sqrt(longest / g)
 
 
+#: :func:`off_balance`: a free particle is off its elastic balance when its elastic force over its stiffness row is
+#: more than ``RELAX_TOLERANCE`` × the model's shortest spring rest length (its extent without springs; the static
+#: equilibrium's convergence test, per spacing) and more than ``OFF_BALANCE_ROUNDOFF`` × the scalar's machine
+#: epsilon × the largest coordinate: the forces' round-off, a few ε max|x| at most (a float32 spring length
+#: differences coordinates of that size; measured 0.11-0.16 ε max|x| on the battery's flat cloths at rest).
+OFF_BALANCE_ROUNDOFF = 16.0
+
+
+def off_balance(model: Model) -> np.ndarray:
+    """How far each world starts from its elastic equilibrium, in units of its threshold [-], float64, shape
+    [world_count]: the largest |fᵢ| / rowᵢ over its free particles, fᵢ [N] the elements' force at the initial state
+    at rest (loads, if any, count too: :func:`in_motion` asks only without them) and rowᵢ [N/m] its Gershgorin
+    row (the sum of its elements' stiffness, ≥ the diagonal Kᵢᵢ: |fᵢ| / rowᵢ [m] is at most the move one Jacobi
+    step of the elastic problem gives the particle), over
+    max(``RELAX_TOLERANCE`` × the shortest spring rest length, ``OFF_BALANCE_ROUNDOFF`` ε max|x|). Above 1 the model
+    moves by itself when released (a cloth folded against its bend springs or stretched); a model at its rest
+    lengths stays at round-off. One force evaluation and one host read of the forces, positions and stiffness rows
+    (0.8 and 1.3 ms of CPU for the 32² and 64² cloths of :mod:`.stability_battery`); its values there are in
+    bench/results/advisor_battery_cpu.md."""
+    worlds, n = model.world_count, model.particle_count
+    if n == 0:
+        return np.zeros(worlds)
+    state = model.state()
+    state.particle_qd.zero_()
+    state.particle_f.zero_()
+    eval_forces(model, state, None)  # without loads (in_motion's case): the elements' forces alone
+    force = np.linalg.norm(state.particle_f.numpy().astype(np.float64), axis=-1).reshape(worlds, n)
+    q = state.particle_q.numpy().astype(np.float64)
+    free = free_particles(model)
+    rows = _gershgorin_rows(model, _stiffness_values(model, None), free, positions=q)
+    move = np.where(free & (rows > 0.0), force / np.where(rows > 0.0, rows, 1.0), 0.0)
+    rest = model.spring_rest_length.numpy() if model.spring_count else np.zeros(0)
+    rest = rest[rest > 0.0]
+    length = float(rest.min()) if rest.size else max(float(np.ptp(q, axis=0).max()), 1.0e-6)
+    eps = float(np.finfo(wp.dtype_to_numpy(model.scalar)).eps)
+    threshold = max(RELAX_TOLERANCE * length, OFF_BALANCE_ROUNDOFF * eps * float(np.abs(q).max()), 1.0e-300)
+    return move.max(axis=1) / threshold
+
+
 def in_motion(model: Model, control=None) -> bool:
     """Whether the model leaves its initial state by itself: loads act (:func:`has_loads`), a keyframe track
-    drives pins or inputs, or a particle starts moving."""
-    return (has_loads(model, control) or bool(model.track_table.tracks)
-            or bool(np.any(model.particle_qd.numpy())))
+    drives pins or inputs, a particle starts moving, or, with none of these, some world starts away from its
+    elastic equilibrium (:func:`off_balance` above 1: a folded or stretched cloth released from rest; one force
+    evaluation, only for a model that none of the others set moving)."""
+    if (has_loads(model, control) or bool(model.track_table.tracks)
+            or bool(np.any(model.particle_qd.numpy()))):
+        return True
+    return bool((off_balance(model) > 1.0).any())
 
 
 @dataclass(frozen=True)
