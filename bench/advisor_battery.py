@@ -9,6 +9,10 @@ Writes a markdown table with the command, device, Warp version and date.
         --no-exact --trace 3 --out bench/results/advisor_battery_64_h100.md
     python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 1e-5 --factors 1.0 1.111 --substeps 20 \
         --no-exact --out bench/results/advisor_battery_64_damped_h100.md
+    # the 64² folded cloth without gravity (it moves by itself: under_load.off_balance), where growth starts:
+    python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 0 1e-5 --releases folded --gravity off \
+        --integrators symplectic_euler velocity_verlet --factors 1.0 1.111 1.15 1.18 --substeps 20 --no-exact \
+        --trace 3 --out bench/results/advisor_battery_64_nogravity_h100.md
     # the 64² folded cloth under gravity alone on a CPU (~10 min):
     python bench/advisor_battery.py --device cpu --sizes 64 --taus 0 --releases folded --gravity on \
         --factors 1.0 1.111 --substeps 20 --no-exact --trace 3
