@@ -39,6 +39,39 @@ def test_fewest_the_advisor_passes(device):
     assert f"{n} substeps" in choice.reason and "the advisor passes" in choice.reason
 
 
+def test_the_steps_judged_share_one_dry_run(device, monkeypatch):
+    """choose_substeps judges several steps of one model: its static solve and its dry run, which do not depend on
+    the step, run once (shared_estimates), and the choice is the one that computing them for every step gives. Outside
+    it each advise() computes its own; a value written between two judgements (input_version) is not shared."""
+    import contextlib
+
+    from warpspring.analysis import advisor, step_choice
+
+    model, _ = hanging_cloth(device)
+    runs = []
+    dry_run = advisor.transient_peak
+
+    def counted(*args, **kwargs):
+        runs.append(1)
+        return dry_run(*args, **kwargs)
+
+    monkeypatch.setattr(advisor, "transient_peak", counted)
+    shared = choose_substeps(model, "symplectic_euler", fps=FPS)
+    assert len(runs) == 1
+    monkeypatch.setattr(step_choice, "shared_estimates", contextlib.nullcontext)
+    alone = choose_substeps(model, "symplectic_euler", fps=FPS)
+    assert len(runs) >= 3  # the probe's and the verdicts'
+    assert (shared.substeps, shared.reason) == (alone.substeps, alone.reason)
+    runs.clear()
+    with advisor.shared_estimates():
+        advise(model, "symplectic_euler", shared.dt, fps=FPS)
+        advise(model, "symplectic_euler", 0.5 * shared.dt, fps=FPS)
+        assert len(runs) == 1
+        model.set_world_values("drag", float(model.world_values("drag")[0, 0]) + 0.01)
+        advise(model, "symplectic_euler", shared.dt, fps=FPS)
+        assert len(runs) == 2
+
+
 def test_simulator_takes_the_chooser(device):
     model, _ = hanging_cloth(device)
     sim = ws.Simulator(model, substeps=auto_substeps, fps=FPS)

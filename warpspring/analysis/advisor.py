@@ -8,7 +8,10 @@ instability from physical over-stretch at the last good frame.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
+import hashlib
 import math
 from dataclasses import dataclass, field
 
@@ -157,12 +160,50 @@ class _Frequencies:
     probe: TransientPeak | None
 
 
+#: The frequencies found within :func:`shared_estimates`, by what they depend on (``_estimated_frequencies``).
+_SHARED: contextvars.ContextVar[dict | None] = contextvars.ContextVar("advisor_shared_estimates", default=None)
+
+
+@contextlib.contextmanager
+def shared_estimates():
+    """Within this block, :func:`advise` calls that judge different steps of the same model share its ω_max estimate:
+    the static solve, the power iterations and the dry run depend on the model (its structure, values and inputs:
+    :attr:`Model.revision`, :attr:`Model.input_version`), the control, the stiffness and the options, never on the step
+    judged. For a caller that judges several steps of one model it does not change in between
+    (:func:`~.step_choice.choose_substeps`: the 287-substep flag of ``examples/flag_in_wind.toml`` judged twice took
+    two static solves and two dry runs, 56 of its 59 s on a CPU)."""
+    token = _SHARED.set({})
+    try:
+        yield
+    finally:
+        _SHARED.reset(token)
+
+
 def _estimated_frequencies(model: Model, integrator: str, k: np.ndarray, *, stiffness, state: State | None, control,
                            loaded: bool, transient: bool, horizon: float, max_iterations: int,
                            tolerance: float) -> _Frequencies:
     """ω_max by power iteration (:func:`advise`, ``omega_estimate="power_iteration"``): about ``state``, or,
     judging the run (``loaded`` and no ``state``), about the loaded state and at each world's peak over a dry
-    run when the model moves by itself and the step limits the integrator."""
+    run when the model moves by itself and the step limits the integrator (shared within :func:`shared_estimates`)."""
+    shared = _SHARED.get()
+    if shared is None:
+        return _frequencies(model, integrator, k, stiffness=stiffness, state=state, control=control, loaded=loaded,
+                            transient=transient, horizon=horizon, max_iterations=max_iterations, tolerance=tolerance)
+    cls = _integrator_class(integrator)
+    step_limited = not (cls.adaptive or getattr(cls, "unconditionally_stable", False))
+    key = (id(model), model.revision, model.input_version, id(control), id(state), id(stiffness),
+           hashlib.sha1(np.ascontiguousarray(k).tobytes()).hexdigest(), step_limited, integrator == "explicit_euler",
+           loaded, transient, float(horizon), int(max_iterations), float(tolerance))
+    if key not in shared:
+        shared[key] = _frequencies(model, integrator, k, stiffness=stiffness, state=state, control=control,
+                                   loaded=loaded, transient=transient, horizon=horizon,
+                                   max_iterations=max_iterations, tolerance=tolerance)
+    return shared[key]
+
+
+def _frequencies(model: Model, integrator: str, k: np.ndarray, *, stiffness, state: State | None, control,
+                 loaded: bool, transient: bool, horizon: float, max_iterations: int, tolerance: float) -> _Frequencies:
+    """:func:`_estimated_frequencies`, computed."""
     cls = _integrator_class(integrator)
     worlds = model.world_count
     _check_iteration(max_iterations, tolerance)

@@ -49,7 +49,7 @@ from ..core.integrators import Integrator, ImplicitEuler, make_integrator
 from ..core.model import Model
 from ..core.simulator import Simulator
 from ..core.transforms import quat_to_matrix
-from .advisor import Advice, advise
+from .advisor import Advice, advise, shared_estimates
 from .stability import _integrator_class
 from .trade_table import TableRow, TradeTable, load_table
 from .under_load import PROBE_HORIZON, _keeps_plasticity
@@ -103,6 +103,13 @@ def choose_substeps(model: Model, integrator: Integrator | str, *, fps: float = 
     """
     fps = checks.positive("fps", fps)
     table = table if isinstance(table, TradeTable) else load_table(table)
+    with shared_estimates():  # the steps judged below share the model's ω_max (the static solve, the dry run)
+        return _choose(model, integrator, fps, control, horizon, table)
+
+
+def _choose(model: Model, integrator: Integrator | str, fps: float, control, horizon: float,
+            table: TradeTable) -> SubstepChoice:
+    """:func:`choose_substeps`' body."""
     choice = _over_drag_track(model, lambda: _integrator_substeps(model, integrator, fps, control, horizon, table))
     contact = contact_substeps(model, fps=fps)
     if contact is not None and contact[0] > choice.substeps:
