@@ -118,7 +118,7 @@ def resources(device) -> None:
     num_regs, local_bytes, static_shared = 4, 3, 1  # CUfunction_attribute
     print(f"{device.name}: kernel resources (256 threads a block)")
     print("| kernel | registers | local [B] | static shared [B] | blocks/SM | occupancy |\n|---|---|---|---|---|---|")
-    max_threads = device.max_threads_per_multiprocessor if hasattr(device, "max_threads_per_multiprocessor") else 2048
+    max_threads = 2048  # resident threads per multiprocessor on the H100 and H200 (Warp's Device does not say)
     with wp.ScopedDevice(device):
         for module in [m for m in gc.get_objects() if isinstance(m, ModuleExec) and m.device == device]:
             for name, hooks in module.kernel_hooks.items():
