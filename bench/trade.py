@@ -16,6 +16,8 @@ pareto_contact.png).
         --out bench/results/trade_contact_cuda_quick -q   # the quick contact study on a GPU
     python bench/trade.py --device cuda:0 --reduced --problems drape stack tablecloth softball softball-neohookean \\
         --out bench/results/trade_contact_cuda_reduced -q # full-size scenes, every integrator at 20 and 40 substeps
+    python bench/trade.py --device cuda:0 --problems drape --out bench/results/trade_contact_cuda/drape -q
+        # the full study on a GPU, a problem a process (bench/results/trade_contact_cuda/*: 81-188 s each on an H100)
 
 ``--reduced`` keeps the full scenes (their costs compare with the full study's rows) with fewer runs: the reference
 option, 20 and 40 substeps, dopri5 at 1e-3, one reference refinement (110 configurations; 179 s and 338 s in two
