@@ -36,6 +36,8 @@ def main(argv=None) -> int:
     parser.add_argument("--seconds", type=float, help="run each scene this long [s] (default: the whole scene)")
     parser.add_argument("--duration", type=float, default=None,
                         help="each scene's time scale as a share of the size's (0.4: the suite's twist, faster)")
+    parser.add_argument("--substeps", type=int, default=None,
+                        help="substeps per frame (default: each scene's, torture.scene_substeps)")
     parser.add_argument("--out", default=None, help="results file (default: bench/results/torture_<device>.md)")
     args = parser.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
@@ -72,7 +74,7 @@ def main(argv=None) -> int:
     for scene in args.scenes:
         for integrator in args.integrators:
             result = run_case(scene, integrator, size=args.size, device=device, frames=frames,
-                              duration=args.duration)
+                              duration=args.duration, substeps=args.substeps)
             rows.append(result.row() + [f"{result.audit_wall:.0f}"])
             clean &= result.clean
             print(" | ".join(map(str, rows[-1])), flush=True)
