@@ -158,7 +158,18 @@ def test_a_pin_outrunning_a_vertex_that_cannot_give_way_is_counted(device):
     x0, x1 = a.particle_q.numpy().astype(np.float64), b.particle_q.numpy().astype(np.float64)
     np.testing.assert_allclose(x1[25:, 2], 0.012 - 0.013, atol=1e-6)  # the pins went where they were told
     assert SurfaceAudit(model.tri_indices.numpy()).touches_any(x0, x1)  # (listing its ~230 touches costs ~20 s)
-    assert model.self_contact.outrun()[0] > 0
+    outrun = int(model.self_contact.outrun()[0])
+    assert outrun > 0
+    # The run's summary says so (the runner passes the same counters), and names the remedy.
+    from warpspring.app.runner import RunSummary
+
+    counts = model.self_contact.counts()
+    summary = RunSummary(output="out.usdc", frames=1, simulated_time=1e-3, wall_time=0.0, setup_time=0.0, substeps=1,
+                         dt=1e-3, device="cpu", model="model", integrator="symplectic_euler", advice="",
+                         self_contact=(int(counts["pairs"][0]), int(counts["capped"][0]), 0, outrun)).line()
+    assert f", {outrun} pair-steps beyond the cap where pins closed in faster" in summary
+    assert 'substeps = "auto" keeps pins within half the cap\'s reach' in summary
+    assert "pairs dropped" not in summary
 
 
 # The battery's scenes under the three integrators run in bench/torture.py (bench/results/torture_cpu*.md); the
