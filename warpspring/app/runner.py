@@ -125,8 +125,8 @@ class RunSummary:
                 worlds += f", {dropped} pairs dropped for a full pair list (their worlds held their free vertices)"
             if outrun:
                 worlds += (f", {outrun} pair-steps beyond the cap where pins closed in faster than the cloth could give "
-                           "way (the surface may cross there: substeps = \"auto\" keeps pins within half the cap's "
-                           "reach a step)")
+                           "way, or on other pins (the surface may cross there: substeps = \"auto\" keeps pins within "
+                           "half the cap's reach a step; pins driven into pins cross by their own motion)")
         resumed = f", frames {self.resumed_from + 1}..{self.frames} after resuming" if self.resumed_from else ""
         contacts = ""
         if self.peak_contacts is not None:
