@@ -249,7 +249,7 @@ def test_twist1440_at_its_substeps_never_crosses():
     assert result.pairs > 0  # the strip did press on itself
 
 
-def test_self_collision_is_captured_on_the_cpu(device):
+def test_self_collision_captured_lands_on_the_uncaptured_bits(device):
     """The 720° twist turned in 0.5 s, 12 frames of 20 substeps (its pair cache rebuilt and its cap's swept broad
     phase run hundreds of times: both conditional branches taken): captured in one graph (Warp's CPU graph records
     the BVH's refit and the conditional nodes), it lands on the same bits as the same frames run uncaptured."""
