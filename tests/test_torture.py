@@ -208,9 +208,9 @@ def test_pins_driven_through_pins_are_counted(device):
 def test_pin_substeps_bound_the_pins_travel():
     """A pinned bar turning at a constant 4 turns/s about its centre line (a linear rotation track), its ends 0.15 m
     from the axis, with self-collision τ = 5 mm and γ = 1/4: the pins' speed is ω r = 8π · 0.15 m/s, and the rule
-    asks the fewest substeps of a 1/60 s frame in which that moves at most PIN_TRAVEL γ τ a step; without
-    self-collision, or with the pins standing, it asks nothing."""
-    from warpspring.analysis.step_choice import PIN_TRAVEL, pin_substeps
+    asks the fewest substeps of a 1/60 s frame in which that moves at most PIN_TRAVEL γ τ a step, and
+    substeps = "auto" takes them; without self-collision, or with the pins standing, it asks nothing."""
+    from warpspring.analysis.step_choice import PIN_TRAVEL, choose_substeps, pin_substeps
 
     def model(self_collision: bool, turns: float):
         builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
@@ -228,6 +228,9 @@ def test_pin_substeps_bound_the_pins_travel():
     assert f"{speed:.3g} m/s" in why
     assert pin_substeps(model(False, 4.0), fps=60.0) is None
     assert pin_substeps(model(True, 0.0), fps=60.0) is None
+    # substeps = "auto" takes it where it asks more than the integrator's stability (10 here).
+    choice = choose_substeps(model(True, 4.0), "symplectic_euler", fps=60.0)
+    assert choice.substeps == substeps and why in choice.reason
 
 
 def test_twist1440_at_its_substeps_never_crosses():
