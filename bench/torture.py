@@ -8,23 +8,35 @@ closer than τ/2 at each substep's end). Prints a table and writes it (command, 
     python bench/torture.py --device cpu --size small --seconds 0.5  # a quick look
     python bench/torture.py --device cpu --size small --duration 0.4 --scenes twist720  # the suite's twist
 
+    python bench/torture.py --device cuda:0 --size small --duration 0.4 --scenes twist720 twist1440 --jobs 6
+
 The audit runs on the host after every frame (the substeps' positions are kept on the device, one copy per
-substep); its wall time is reported apart from the run's.
+substep); its wall time is reported apart from the run's. ``--jobs N`` runs N cases at once, each in a process of
+its own (the audit is most of a case's time and uses one core): their wall times then share the host.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import multiprocessing
 import pathlib
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # this checkout's warpspring
 
 import warp as wp  # noqa: E402
 
 from warpspring.analysis.torture import HEADER, INTEGRATORS, SCENES, SIZES, run_case  # noqa: E402
+
+
+def _case(scene: str, integrator: str, options: dict) -> tuple[list, bool]:
+    """One case's table row and whether it ran clean (a process of its own under ``--jobs``)."""
+    wp.config.log_level = wp.LOG_WARNING
+    result = run_case(scene, integrator, **options)
+    return result.row() + [f"{result.audit_wall:.0f}"], result.clean
 
 
 def main(argv=None) -> int:
@@ -36,6 +48,10 @@ def main(argv=None) -> int:
     parser.add_argument("--seconds", type=float, help="run each scene this long [s] (default: the whole scene)")
     parser.add_argument("--duration", type=float, default=None,
                         help="each scene's time scale as a share of the size's (0.4: the suite's twist, faster)")
+    parser.add_argument("--substeps", type=int, default=None,
+                        help="substeps per frame (default: each scene's, torture.scene_substeps)")
+    parser.add_argument("--jobs", type=int, default=1,
+                        help="cases run at once, each in its own process (the host's audit is most of a case's time)")
     parser.add_argument("--out", default=None, help="results file (default: bench/results/torture_<device>.md)")
     args = parser.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
@@ -69,14 +85,27 @@ def main(argv=None) -> int:
         out.write_text("\n".join(lines))
         return lines
 
-    for scene in args.scenes:
-        for integrator in args.integrators:
-            result = run_case(scene, integrator, size=args.size, device=device, frames=frames,
-                              duration=args.duration)
-            rows.append(result.row() + [f"{result.audit_wall:.0f}"])
-            clean &= result.clean
-            print(" | ".join(map(str, rows[-1])), flush=True)
-            write()
+    cases = [(scene, integrator) for scene in args.scenes for integrator in args.integrators]
+    options = dict(size=args.size, device=args.device, frames=frames, duration=args.duration, substeps=args.substeps)
+    if args.jobs > 1:
+        done = {}
+        with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = {pool.submit(_case, scene, integrator, options): (scene, integrator)
+                       for scene, integrator in cases}
+            for future in as_completed(futures):
+                done[futures[future]] = row, ok = future.result()
+                print(" | ".join(map(str, row)), flush=True)
+        for case in cases:  # the table in the order asked
+            row, ok = done[case]
+            rows.append(row)
+            clean &= ok
+        write()
+    for scene, integrator in cases if args.jobs <= 1 else []:
+        row, ok = _case(scene, integrator, options)
+        rows.append(row)
+        clean &= ok
+        print(" | ".join(map(str, rows[-1])), flush=True)
+        write()
     print(f"wrote {out}")
     return 0 if clean else 1
 

@@ -53,6 +53,18 @@ def test_vertex_triangle_pass_through_is_found_at_its_time():
     assert audit_motion(x0, x1, triangles).touches.tolist() == [[0, 3, 0]]  # the one-call form agrees
 
 
+def test_touches_any_agrees_with_the_listed_touches():
+    """The early-stopping form (``SurfaceAudit.touches_any``): the vertex's pass through the triangle touches, the
+    same vertex stopping 1e-4 above it does not, as :meth:`motion` lists them."""
+    triangles = np.array([[0, 1, 2], [3, 4, 5]])
+    x0 = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.2, 0.2, 0.1], [0.3, 0.2, 0.5], [0.2, 0.3, 0.5]], float)
+    through, short = x0.copy(), x0.copy()
+    through[3, 2], short[3, 2] = -0.2, 1e-4
+    audit = SurfaceAudit(triangles)
+    assert audit.touches_any(x0, through) and len(audit.motion(x0, through).touches) == 1
+    assert not audit.touches_any(x0, short) and len(audit.motion(x0, short).touches) == 0
+
+
 def test_static_intersection_is_found_without_motion():
     """Two triangles already through each other (triangle 1 lowered by 2h before the step) and a step that does
     not move: no crossing happens during it, but the end state's intersections are found."""

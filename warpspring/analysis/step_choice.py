@@ -22,6 +22,12 @@
   dt ≤ ``CONTACT_TRAVEL`` · r / v. The quarter is measured: seed 002's soft cloth dropped 0.26 m onto a 4 cm
   sphere keeps its surface outside the sphere from r/4 per step (16 substeps: 4.6 cm from its centre) and not at
   r/2 (8 substeps: 2.7 cm); ``tests/test_contact_rule.py``.
+* **Pins and self-collision**: where a model with self-collision has pins driven by tracks, each step moves a pin
+  at most ``PIN_TRAVEL`` × ρ, ρ = γ τ the most the self-collision cap's passes move a free vertex in a step to give
+  way to it (γ the relaxation, τ the thickness): dt ≤ ``PIN_TRAVEL`` · γ τ / v, v the pins' fastest speed on their
+  tracks (sampled at the keys and ``PIN_SAMPLES`` times between each two). The half is measured: the torture
+  battery's twist1440 (pins at 3.8 m/s, γ τ = 1.25 mm) crossed at 20 substeps (2.5 ρ a step) and at 60 (0.84 ρ),
+  and ran clean at 101 (0.5 ρ); ``tests/test_torture.py``.
 * **A measured contact scene**: where the model is one the trade table measured (:meth:`~.trade_table.TradeTable.match`:
   the same counts, colliders, contact options, masses, springs and start), the table's rows of its integrator,
   precision and contact option (and tolerance) that ran clean within the accuracy floor (their error: the larger of
@@ -38,6 +44,7 @@ The core's :class:`~warpspring.core.simulator.Simulator` cannot reach this layer
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -47,6 +54,7 @@ from .. import checks
 from ..errors import ConfigError
 from ..core.integrators import Integrator, ImplicitEuler, make_integrator
 from ..core.model import Model
+from ..core.selfcontact import PARAM_RELAXATION, PARAM_THICKNESS
 from ..core.simulator import Simulator
 from ..core.transforms import quat_to_matrix
 from .advisor import Advice, advise, shared_estimates
@@ -63,6 +71,10 @@ ACCURACY_HORIZON = 0.25
 MAX_ACCURACY_SUBSTEPS = 256
 #: With colliders, a particle moves at most this fraction of its contact radius per step.
 CONTACT_TRAVEL = 0.25
+#: With self-collision, a driven pin moves at most this fraction of the cap's reach γ τ per step.
+PIN_TRAVEL = 0.5
+#: Samples of a pin track between each two of its keys, where its speed is read.
+PIN_SAMPLES = 256
 
 
 @dataclass(frozen=True)
@@ -111,7 +123,7 @@ def _choose(model: Model, integrator: Integrator | str, fps: float, control, hor
             table: TradeTable) -> SubstepChoice:
     """:func:`choose_substeps`' body."""
     choice = _over_drag_track(model, lambda: _integrator_substeps(model, integrator, fps, control, horizon, table))
-    contact = contact_substeps(model, fps=fps)
+    contact = max(filter(None, [contact_substeps(model, fps=fps), pin_substeps(model, fps=fps)]), default=None)
     if contact is not None and contact[0] > choice.substeps:
         substeps, why = contact
         dt = 1.0 / (fps * substeps)
@@ -211,6 +223,33 @@ def contact_substeps(model: Model, *, fps: float) -> tuple[int, str] | None:
     substeps = max(1, math.ceil(1.0 / (fps * dt)))
     why = (f"a particle of radius {radius:g} m reaching {v:.3g} m/s (a {drop:.3g} m fall) moves at most "
            f"{CONTACT_TRAVEL:g} r per step")
+    return substeps, why
+
+
+def pin_substeps(model: Model, *, fps: float) -> tuple[int, str] | None:
+    """The substeps per 1/``fps`` frame that move no driven pin further than ``PIN_TRAVEL`` × γ τ per step (this
+    module's docstring), and why; ``None`` without self-collision or pins driven by tracks, or where they stand."""
+    pins, contact = model.pin_groups, model.self_contact
+    if contact is None or pins is None or not pins.groups:
+        return None
+    rows = pins.world_tracks or [[(g.translation, g.rotation) for g in pins.groups]]
+    speed = 0.0
+    for row in rows:
+        for group, part, (translation, rotation) in zip(pins.groups, pins.slices, row):
+            tracks = [t for t in (translation, rotation) if t is not None]
+            if not tracks:
+                continue
+            keys = np.unique(np.concatenate([np.asarray(t.times, dtype=np.float64) for t in tracks]))
+            t = np.unique(np.concatenate([keys, *(np.linspace(a, b, PIN_SAMPLES + 2) for a, b in zip(keys, keys[1:]))]))
+            moved = dataclasses.replace(group, translation=translation, rotation=rotation)
+            speed = max(speed, float(np.linalg.norm(moved.position(pins.rest[part], t)[1], axis=-1).max()))
+    params = contact.params.numpy().astype(np.float64)
+    reach = float((params[:, PARAM_THICKNESS] * params[:, PARAM_RELAXATION]).min())
+    if speed == 0.0:
+        return None
+    substeps = max(1, math.ceil(speed / (fps * PIN_TRAVEL * reach)))
+    why = (f"pins moving at up to {speed:.3g} m/s move at most {PIN_TRAVEL:g} γ τ = {PIN_TRAVEL * reach * 1e3:.3g} mm "
+           "per step (the self-collision cap's reach)")
     return substeps, why
 
 

@@ -294,9 +294,10 @@ class SelfContact:
 
     @property
     def capturable(self) -> bool:
-        """Whether a step with self-collision can be captured in a graph: on CUDA (the BVH refit is device work),
-        not on the CPU (Warp refits a CPU BVH on the host, outside what its CPU graphs record)."""
-        return self.model.device.is_cuda
+        """Whether a step with self-collision can be captured in a graph: on every device (a CPU graph records the
+        BVH's refit and replays it against the current boxes, Warp ≥ 1.16: ``wp.Bvh.refit``'s note; its conditional
+        nodes, ``capture_if``, too)."""
+        return True
 
     def _leaves(self, start: wp.array, end: wp.array, *, swept: bool, refit: bool = True) -> None:
         """Write the triangles' boxes (at ``start``, or swept from ``start`` to ``end``) and refit the BVHs."""
