@@ -25,6 +25,7 @@ from ..kernels.guards import (
     BALANCE_REFERENCE,
     BALANCE_SLOTS,
     BALANCE_WORK,
+    CARRY_SLOTS,
     GUARD_BALANCE,
     GUARD_BALANCE_FLOOR,
     GUARD_BALANCE_TOLERANCE,
@@ -176,6 +177,12 @@ class Guard(StepHook):
         self._energy_partials = wp.zeros((worlds, max(blocks, 1)), dtype=wp.float64, device=device)
         # ... and of their largest strain, where a family measures it per element (``guard_energy_kernel``; -1: none).
         self._strain_partials = wp.full((worlds, max(blocks, 1)), -1.0, dtype=wp.float64, device=device)
+        # ... and of the power their dampers take out at the check's state, where the integrator's force pass counts
+        # them (the closing term: ``guard_energy_kernel``'s ``power``; zero for the other families).
+        self._power_partials = wp.zeros((worlds, max(blocks, 1)), dtype=wp.float64, device=device)
+        # Minus each world's share of the closing term at the last check, which the next check's span counts
+        # (``guard_kernels``).
+        self._carry = wp.zeros((worlds, CARRY_SLOTS), dtype=wp.float64, device=device)
         # Running dissipation per reducing block (``kernels/guards.py``): drag's particle blocks first, then the
         # blocks of each family with dampers.
         # On the CPU one thread per world sums a family's (or drag's) power: one block, launched over worlds.
@@ -402,7 +409,7 @@ class Guard(StepHook):
         dampers = [] if self._dampers is None else [self._dampers.damper, self._dampers.dissipated, self._dampers.skip]
         power = [] if self._power is None else [self._power.sums]
         return [self._work_total, self._previous_q, self._previous_qd, self._previous_load, self._balance, self._running,
-                self._status, self._values, *dampers, *power]
+                self._status, self._values, *dampers, *power, self._carry]
 
     def restart(self, state: State | None = None) -> None:
         """Forget the work put in and measure from ``state`` (default the model's initial state) on: the loads
@@ -416,7 +423,11 @@ class Guard(StepHook):
         wp.copy(self._previous_qd, state.particle_qd)
         self._restart_balance()
         self.reset()
-        self._measure(state)  # Δx = 0: no work, the loads at the start recorded
+        self._dissipation_kernels()  # the power sums attached to the integrator or not (``_power``)
+        gather, _ = self._measure(state)  # Δx = 0: no work, the loads at the start recorded
+        if self._power is not None:  # minus the closing term at the start opens the first span
+            self._energy_passes(state)
+            self._gather(gather, 0, carry_only=True)
         self.reset()
         if self._dissipating and not self._midpoint:
             self._dissipate(state)  # the power at the start: the first substep's trapezoid
@@ -444,6 +455,8 @@ class Guard(StepHook):
             self._dampers.skip.fill_(1)  # the values kept are stale: the next step starts the count
         if getattr(self, "_power", None) is not None:
             self._power.sums.zero_()
+        if getattr(self, "_carry", None) is not None:
+            self._carry.zero_()
 
     def work(self) -> np.ndarray:
         """The work the loads put into each world since the start [J], float64, shape [world_count] (the
@@ -778,15 +791,19 @@ class Guard(StepHook):
             rule, modes = self._power_rule(), power.modes
             features = model.force_features(self.control)._replace(families=specs, clamp_particle_force=False,
                                                                    external=force is not None)
-        measure, gather, locate = guard_kernels(model.scalar, specs, self._tiled, force is not None,
+        measure, gather, locate, drive = guard_kernels(model.scalar, specs, self._tiled, force is not None,
                                                         working_specs, rule, features, modes,
                                                         self.counts_dissipation)
+        # The drives' work first: it reads the last check's positions, which ``measure`` moves on.
+        flat_launch(drive, dim=self._check_grid, block_dim=self._lanes,
+                    inputs=[model.particle_count, model.particle_flags, model.elements, model.inputs, state.particle_q,
+                            state.particle_qd, self._previous_q, reduce_stride(self._check_grid)],
+                    outputs=[self._previous_load, self._partials], device=model.device)
         flat_launch(measure, dim=self._check_grid, block_dim=self._lanes,
                     inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
                             model.elements, self._work_arrays(working, working_specs), model.inputs,
                             force if force is not None else state.particle_q,
-                            state.particle_q, state.particle_qd, self._lead(),
-                            0.0 if self.dt is None else float(self.dt), reduce_stride(self._check_grid)],
+                            state.particle_q, state.particle_qd, self._lead(), reduce_stride(self._check_grid)],
                     outputs=[None if power is None else power.sums, self._previous_q, self._previous_qd,
                              self._previous_load, self._status, self._partials],
                     device=model.device)
@@ -807,24 +824,39 @@ class Guard(StepHook):
         """Launch the checks of ``state`` after ``substep`` (device only; capturable). The check that ends a frame
         (``last``) leaves finding the most strained element of a world that failed to :meth:`reports`, which runs
         it on the same state after the frame, where a failure is seen (no launch in a frame that passes)."""
-        model = self.model
         gather, locate = self._measure(state)
         self._locate = (locate, state, substep) if last else None
-        worlds, device = model.world_count, model.device
         if self._dampers is not None and self._dissipating:
             self._close_dampers(state, float(self.dt))
-        for family, lanes, grid, offset in self._energy_layout:
-            flat_launch(guard_energy_kernel(model.scalar, family.spec(model), self._tiled), dim=grid, block_dim=lanes,
-                        inputs=[model.particle_count, family.element_count, offset, model.world_enabled,
-                                family.arrays(model), model.inputs, self._status, state.particle_q,
-                                reduce_stride(grid)],
-                        outputs=[self._energy_partials, self._strain_partials], device=device)
-        wp.launch(gather, dim=(worlds, self._lanes), block_dim=self._lanes,
-                  inputs=[self._partials, self._energy_partials, self._strain_partials, substep, self._limits],
-                  outputs=[model.world_enabled, self._status, self._running, self._values, self._work_total,
-                           self._balance], device=device)
+        self._energy_passes(state)
+        self._gather(gather, substep)
         if not last:
             self._launch_locate(locate, state, substep)
+
+    def _energy_passes(self, state: State) -> None:
+        """The families' per-block elastic energy, strain and (where the force pass counts their dampers) the power
+        their dampers take out at ``state``."""
+        model = self.model
+        power = self._power
+        counted = {} if power is None else {family.name: mode == POWER_DAMPERS
+                                            for family, mode in zip(model.families, power.modes)}
+        for family, lanes, grid, offset in self._energy_layout:
+            kernel = guard_energy_kernel(model.scalar, family.spec(model), self._tiled, counted.get(family.name, False))
+            flat_launch(kernel, dim=grid, block_dim=lanes,
+                        inputs=[model.particle_count, family.element_count, offset, model.world_enabled,
+                                family.arrays(model), model.inputs, self._status, state.particle_q, state.particle_qd,
+                                reduce_stride(grid)],
+                        outputs=[self._energy_partials, self._strain_partials, self._power_partials],
+                        device=model.device)
+
+    def _gather(self, gather, substep: int, carry_only: bool = False) -> None:
+        """Each world's sums and verdict (``carry_only``: a restart's closing term alone)."""
+        model = self.model
+        wp.launch(gather, dim=(model.world_count, self._lanes), block_dim=self._lanes,
+                  inputs=[self._partials, self._energy_partials, self._strain_partials, self._power_partials, substep,
+                          self._limits, 0.0 if self.dt is None else float(self.dt), int(carry_only)],
+                  outputs=[model.world_enabled, self._status, self._running, self._values, self._work_total,
+                           self._balance, self._carry], device=model.device)
 
     def _launch_locate(self, locate, state: State, substep: int) -> None:
         model = self.model

@@ -70,7 +70,7 @@ import functools
 import warp as wp
 
 from .families import elements
-from .forces import ForceFeatures, counts_work, particle_power_func, power_sums_funcs
+from .forces import POWER_WORK, ForceFeatures, counts_work, power_sums_funcs
 from .inputs import INPUT_DRAG, INPUT_GRAVITY, INPUT_WIND, input_funcs
 from .kinematics import is_kinematic
 from .linalg import reduction_funcs
@@ -102,7 +102,14 @@ GUARD_FLOATS = 6
 # GUARD_MAX_STRAIN and GUARD_WORK, then the power sums' (``measure``'s ``power``)
 PARTIAL_DISSIPATION = GUARD_FLOATS  # energy the dampers and drag took out since the last check [J]
 PARTIAL_FAMILY_WORK = GUARD_FLOATS + 1  # work the loads from outside (wind, handles) did since the last check [J]
-PARTIAL_SLOTS = GUARD_FLOATS + 2
+PARTIAL_CLOSE_DISSIPATION = GUARD_FLOATS + 2  # the power drag takes out at the check's state [W] (the closing term)
+PARTIAL_CLOSE_WORK = GUARD_FLOATS + 3  # the power of the loads from outside at the check's state [W] (the closing term)
+PARTIAL_DRIVE_WORK = GUARD_FLOATS + 4  # work the drives did through the kinematic particles since the last check [J]
+PARTIAL_SLOTS = GUARD_FLOATS + 5
+# float64 slots of a world's closing terms carried to the next span (``carry[world, slot]``): minus this check's share
+# of h times the power at its state, which the next span's first step counts again in full (``guard_kernels``)
+CARRY_DISSIPATION, CARRY_WORK = 0, 1
+CARRY_SLOTS = 2
 # How the integrator's force pass counts the power for the balance (``measure``'s ``power``; ``core/forces.PowerSums``):
 # not at all (passes of their own), the energy over each step (symplectic Euler: f·(v + v')/2 h, exact), or h times
 # the power at each step's start, which the check turns into the trapezoid of the power (RK4)
@@ -187,24 +194,33 @@ def particle_strain_func(scalar: type, specs: tuple):
 def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, working: tuple = (),
                   power: int = POWER_RULE_NONE, power_features: ForceFeatures | None = None,
                   power_modes: tuple = (), dissipation: bool = False):
-    """(measure, gather, locate, decide) kernels of one precision and tuple of family specs; ``external``:
+    """(measure, gather, locate, drive) kernels of one precision and tuple of family specs; ``external``:
     the control has an external force (part of the loads' work); ``working``: the specs of the families that
     do work from outside (wind, handles: ``ElementFamily.does_work``), whose forces on free particles count
     among the loads here (not where the integrator's force pass counts their work).
 
     ``power`` (a ``POWER_RULE_*``): what the integrator's force pass added to the power sums since the last check,
     which ``measure`` takes into the check's partials and clears. With ``POWER_RULE_START`` the sums hold h times
-    the power at each step's start; ``measure`` evaluates it at the check's state too (``power_features``, whose
-    families are ``families``, and ``power_modes``: ``forces.particle_power_func``), adds half of it to the check's
-    span and leaves minus half for the next span, whose first step adds all of it: the trapezoid of the power
-    over the substeps. With ``POWER_RULE_MEAN`` the sums hold each step's exact energy, -h f_d·(v + v')/2, whose sum
+    the power at each step's start; the check adds half of h times the power at its own state to its span and
+    leaves minus that half for the next span, whose first step adds all of it: the trapezoid of the power over the
+    substeps. With ``POWER_RULE_MEAN`` the sums hold each step's exact energy, -h f_d·(v + v')/2, whose sum
     over steps differs from the mean-rate rule's, Σ h c ((r + r')/2)² per damper (≥ 0 for each), by a quarter of
     h P at the span's ends (P = -f_d·v, the dampers' power: the algebra of (r + r')² = r² + 2 r r' + r'²): the
     check adds that quarter at its state and leaves minus it for the next span. The exact energy alone would
     count a damper that an unstable step drives (kd h/m past its limit) as putting energy in, and the balance
-    would never see the energy that step creates; the mean rate keeps every damper's loss ≥ 0. ``dissipation``:
-    ``gather`` adds the dampers' and drag's energy to D (else only the loads'
-    work counts: D left out, ``core/guards.dissipation_exact``)."""
+    would never see the energy that step creates; the mean rate keeps every damper's loss ≥ 0.
+
+    The power at the check's state (the closing term) is summed where its parts are cheap to read, with no force
+    evaluation per particle: drag's (c |v|²) and the wind's push through it (c u·v) on the free particles and the
+    forces of the families of mode ``POWER_WORK`` (``power_modes``; wind, handles) in ``measure``; the dampers of
+    the families of mode ``POWER_DAMPERS`` per element in the energy pass (their ``dissipation`` hook: the power
+    of a family's damper forces over its particles, Σᵢ -f_d,ᵢ·vᵢ = Σ_e P_e; ``guard_energy_kernel``'s ``power``).
+    ``gather`` adds the world's share of it, h times ``share`` times the power, and carries minus that share to the
+    next span (``carry[world]``): one float64 per world instead of a value per particle, and ``measure`` no longer
+    evaluates every particle's elements' forces (a 32² cloth's check on the CPU: 128 µs of ``measure`` before, of
+    which ~90 µs was that evaluation; on CUDA it held most of the kernel's 112 registers). ``dissipation``:
+    ``gather`` adds the dampers' and drag's energy to D (else only the loads' work counts: D left out,
+    ``core/guards.dissipation_exact``)."""
     vec3 = vec3_type(scalar)
     counted = power != POWER_RULE_NONE
     sums_funcs = power_sums_funcs(scalar, counted and counts_work(power_features, power_modes))
@@ -212,8 +228,10 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
     pack = sums_funcs.pack
     sums_dissipated = sums_funcs.dissipated
     sums_worked = sums_funcs.worked
-    boundary = counted
-    particle_power = particle_power_func(scalar, power_features, power_modes) if boundary else None
+    drag_closing = counted and power_features.drag
+    wind_closing = drag_closing and power_features.wind
+    pushing = counted and POWER_WORK in power_modes
+    push_force = pushing_force_func(scalar, families, power_modes) if pushing else None
     # The closing terms' shares of h times the power at the check's state (dampers, loads from outside): the
     # trapezoid's halves (RK4), or for symplectic Euler's D a quarter, which turns its exact step energy into the
     # mean-rate rule's (below); its loads' work stays exact.
@@ -246,9 +264,8 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
-        # Guards in (the lead λ [s]: the steady loads' work on free particles is F·(Δx + λ Δv); the step h [s]):
+        # Guards in (the lead λ [s]: the steady loads' work on free particles is F·(Δx + λ Δv)):
         lead: scalar,
-        power_h: scalar,
         # Launch (the items between a lane's successive particles: ``linalg.reduce_stride``):
         stride: int,
         # In/out:
@@ -269,6 +286,8 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         work = wp.float64(0.0)
         dissipated = wp.float64(0.0)
         family_work = wp.float64(0.0)
+        close_dissipated = wp.float64(0.0)
+        close_work = wp.float64(0.0)
         while i < particle_count:  # every stride-th particle from the lane's first
             base = world * particle_count
             p = base + i
@@ -277,11 +296,9 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
             if wp.isfinite(x) and wp.isfinite(v):
                 mass = particle_mass[wp.min(world, particle_mass.shape[0] - 1), i]
                 worst = wp.max(worst, particle_strain(world, i, base, x, element_arrays, particle_q))
-                held = vec3(scalar(0.0))  # a load constant within a frame: its value at the check
-                steady = vec3(scalar(0.0))  # the loads constant within a frame (weight, the control's force)
-                if is_kinematic(particle_flags[p]):  # prescribed motion: no runaway of its own, a drive's work
-                    load = -element_force(world, i, base, x, v, element_arrays, inputs, particle_q, particle_qd)
-                else:
+                free = not is_kinematic(particle_flags[p])
+                if free:  # (a kinematic particle moves as prescribed: no runaway of its own; its drive's work: ``drive``)
+                    held = vec3(scalar(0.0))  # a load constant within a frame: its value at the check
                     # (in float64: a runaway's |v|² overflows float32 long before its state does)
                     energy += wp.float64(0.5) * wp.float64(mass) * (wp.float64(v[0]) * wp.float64(v[0])
                                                                    + wp.float64(v[1]) * wp.float64(v[1])
@@ -292,27 +309,27 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                     if wp.static(external):
                         held = particle_force_ext[p]
                     steady = mass * input_vec3(inputs, world, INPUT_GRAVITY) + held
-                before = previous_load_in_out[p]
-                if not wp.isfinite(before):  # the first check: no earlier value
-                    before = load
-                work += wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - previous_q_in_out[p])
-                                  + lead * wp.dot(steady, v - previous_qd_in_out[p]))
-                previous_load_in_out[p] = load
+                    before = previous_load_in_out[p]
+                    if not wp.isfinite(before):  # the first check: no earlier value
+                        before = load
+                    work += wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - previous_q_in_out[p])
+                                      + lead * wp.dot(steady, v - previous_qd_in_out[p]))
+                    previous_load_in_out[p] = load
                 if wp.static(counted):  # (a kinematic particle's sums: its elements' dampers only)
                     sums = power_in_out[p]
-                    left = pack(scalar(0.0), scalar(0.0))
-                    if wp.static(boundary):  # the closing term at this state; minus it starts the next span
-                        free = not is_kinematic(particle_flags[p])
-                        total, dampers, pushes = particle_power(world, i, base, x, v, free, particle_mass,
-                                                                element_arrays, inputs, particle_force_ext, particle_q,
-                                                                particle_qd)
-                        left = pack(-power_h * scalar(share_dampers) * wp.dot(dampers, v),
-                                    power_h * scalar(share_work) * wp.dot(pushes, v))
-                        sums += left
-                        left = -left
                     dissipated += wp.float64(sums_dissipated(sums))
                     family_work += wp.float64(sums_worked(sums))
-                    power_in_out[p] = left
+                    power_in_out[p] = pack(scalar(0.0), scalar(0.0))
+                    # The closing term's parts on a free particle (its elements' dampers: the energy pass).
+                    if free:
+                        if wp.static(drag_closing):  # drag against still air, -c v: power c |v|² taken out
+                            close_dissipated += wp.float64(inputs[world, INPUT_DRAG] * wp.dot(v, v))
+                            if wp.static(wind_closing):  # the wind's push c u
+                                close_work += wp.float64(inputs[world, INPUT_DRAG]
+                                                         * wp.dot(input_vec3(inputs, world, INPUT_WIND), v))
+                        if wp.static(pushing):
+                            close_work += wp.float64(wp.dot(push_force(world, i, base, x, v, element_arrays, inputs,
+                                                                       particle_q, particle_qd), v))
             elif live:
                 wp.atomic_min(status_in_out, world, GUARD_NONFINITE_PARTICLE, i)
                 wp.atomic_add(status_in_out, world, GUARD_NONFINITE_COUNT, 1)
@@ -325,6 +342,10 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         if wp.static(counted):
             dissipated = block_sum(dissipated)
             family_work = block_sum(family_work)
+            if wp.static(drag_closing):
+                close_dissipated = block_sum(close_dissipated)
+            if wp.static(wind_closing or pushing):
+                close_work = block_sum(close_work)
         if lane == 0:
             partials_out[world, block, GUARD_KINETIC_ENERGY] = energy
             partials_out[world, block, GUARD_MAX_STRAIN] = worst
@@ -332,6 +353,52 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
             if wp.static(counted):
                 partials_out[world, block, PARTIAL_DISSIPATION] = dissipated
                 partials_out[world, block, PARTIAL_FAMILY_WORK] = family_work
+                partials_out[world, block, PARTIAL_CLOSE_DISSIPATION] = close_dissipated
+                partials_out[world, block, PARTIAL_CLOSE_WORK] = close_work
+
+    @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
+    def drive(
+        # Model:
+        particle_count: int,
+        particle_flags: wp.array[wp.int32],
+        element_arrays: Elements,
+        inputs: wp.array2d[scalar],
+        # State in:
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+        # Guards in (the positions at the last check):
+        previous_q: wp.array[vec3],
+        # Launch (the items between a lane's successive particles: ``linalg.reduce_stride``):
+        stride: int,
+        # In/out:
+        previous_load_in_out: wp.array[vec3],
+        partials_out: wp.array3d[wp.float64],
+    ):
+        """The work the drives did through the kinematic particles (pins, tracks) since the last check: the negative of
+        the elements' force on each, by the trapezoid of its values at the two checks, over its displacement; launched
+        before ``measure`` (which then moves ``previous_q`` on) over its grid. A pass of its own: the elements' force
+        evaluated in ``measure`` for its few kinematic particles held 113 registers a thread there (64 without it; on
+        sm_90, ``bench/guard_registers.py``), and so its occupancy, for every particle."""
+        world, block, lane = wp.tid()
+        i = block * wp.block_dim() + lane
+        work = wp.float64(0.0)
+        while i < particle_count:
+            base = world * particle_count
+            p = base + i
+            if is_kinematic(particle_flags[p]):
+                x = particle_q[p]
+                v = particle_qd[p]
+                if wp.isfinite(x) and wp.isfinite(v):
+                    load = -element_force(world, i, base, x, v, element_arrays, inputs, particle_q, particle_qd)
+                    before = previous_load_in_out[p]
+                    if not wp.isfinite(before):  # the first check: no earlier value
+                        before = load
+                    work += wp.float64(wp.dot(scalar(0.5) * (load + before), x - previous_q[p]))
+                    previous_load_in_out[p] = load
+            i += stride
+        work = block_sum(work)
+        if lane == 0:
+            partials_out[world, block, PARTIAL_DRIVE_WORK] = work
 
     @wp.func
     def decide(world: int, substep: int, limits: wp.array2d[wp.float64], work_total: wp.array[wp.float64],
@@ -391,12 +458,16 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
 
     @wp.kernel(module="unique", enable_backward=False)
     def gather(
-        # Guards in (the check's partials, its substep, the limits):
+        # Guards in (the check's partials, the energy pass's dampers' power at the check's state, its substep, the
+        # limits, the step h [s] of the closing term; ``carry_only`` 1: a restart, only the closing term carried):
         partials: wp.array3d[wp.float64],
         energy_partials: wp.array2d[wp.float64],
         strain_partials: wp.array2d[wp.float64],
+        power_partials: wp.array2d[wp.float64],
         substep: int,
         limits: wp.array2d[wp.float64],
+        power_h: wp.float64,
+        carry_only: int,
         # In/out:
         world_enabled_in_out: wp.array[wp.int32],
         status_in_out: wp.array2d[wp.int32],
@@ -404,10 +475,12 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         values_in_out: wp.array2d[wp.float64],
         work_total_in_out: wp.array[wp.float64],
         balance_in_out: wp.array2d[wp.float64],
+        carry_in_out: wp.array2d[wp.float64],
     ):
         """A world's kinetic and elastic energy, the work put in and the energy dissipated since the last
         check (its blocks' partials and running sums: the dissipation and the working families' work, the running
-        sums cleared; the work and the dissipation
+        sums cleared; with the power counted in the force pass, the closing term at this state: its share added, minus
+        it carried to the next span; the work and the dissipation
         added to the balance, the work's positive part to the world's running total W⁺), its largest strain,
         and the energy beyond the balance's budget. Launched over [world, lanes] with ``block_dim`` = lanes
         (one lane on the CPU): each lane sums every lanes-th block in order, then a fixed-order tree
@@ -424,18 +497,25 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                 running_in_out[world, b, RUNNING_DISSIPATION] = wp.float64(0.0)
                 running_in_out[world, b, RUNNING_WORK] = wp.float64(0.0)
                 b += lanes
+            if lane == 0:
+                carry_in_out[world, CARRY_DISSIPATION] = wp.float64(0.0)
+                carry_in_out[world, CARRY_WORK] = wp.float64(0.0)
             return
         energy = wp.float64(0.0)
         worst = wp.float64(-1.0)
         work = wp.float64(0.0)
         dissipated = wp.float64(0.0)
+        close_dissipated = wp.float64(0.0)
+        close_work = wp.float64(0.0)
         b = lane
         while b < partials.shape[1]:
             energy += partials[world, b, GUARD_KINETIC_ENERGY]
             worst = wp.max(worst, partials[world, b, GUARD_MAX_STRAIN])
-            work += partials[world, b, GUARD_WORK]
+            work += partials[world, b, GUARD_WORK] + partials[world, b, PARTIAL_DRIVE_WORK]
             if wp.static(counted):
                 work += partials[world, b, PARTIAL_FAMILY_WORK]
+                close_dissipated += partials[world, b, PARTIAL_CLOSE_DISSIPATION]
+                close_work += partials[world, b, PARTIAL_CLOSE_WORK]
                 if wp.static(dissipation):
                     dissipated += partials[world, b, PARTIAL_DISSIPATION]
             b += lanes
@@ -444,6 +524,8 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         while b < energy_partials.shape[1]:
             elastic += energy_partials[world, b]
             worst = wp.max(worst, strain_partials[world, b])
+            if wp.static(counted):
+                close_dissipated += power_partials[world, b]
             b += lanes
         b = lane
         while b < running_in_out.shape[1]:
@@ -457,7 +539,20 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         work = block_sum(work)
         elastic = block_sum(elastic)
         dissipated = block_sum(dissipated)
+        if wp.static(counted):
+            close_dissipated = block_sum(close_dissipated)
+            close_work = block_sum(close_work)
         if lane != 0:
+            return
+        if wp.static(counted):  # the closing term: this span's share at its state, minus it opens the next
+            left_dissipated = power_h * wp.float64(share_dampers) * close_dissipated
+            left_work = power_h * wp.float64(share_work) * close_work
+            if wp.static(dissipation):
+                dissipated += left_dissipated + carry_in_out[world, CARRY_DISSIPATION]
+            work += left_work + carry_in_out[world, CARRY_WORK]
+            carry_in_out[world, CARRY_DISSIPATION] = -left_dissipated
+            carry_in_out[world, CARRY_WORK] = -left_work
+        if carry_only != 0:
             return
         values_in_out[world, GUARD_KINETIC_ENERGY] = energy
         values_in_out[world, GUARD_ELASTIC_ENERGY] = elastic
@@ -496,16 +591,18 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
             wp.atomic_min(status_in_out, world, GUARD_STRAIN_ELEMENT, element)
             wp.atomic_min(status_in_out, world, GUARD_STRAIN_FAMILY, family)
 
-    return measure, gather, locate
+    return measure, gather, locate, drive
 
 
 @functools.cache
-def guard_energy_kernel(scalar: type, spec, tiled: bool):
+def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
     """Kernel writing per-block sums of the elastic energy [J] of one family's elements in every world into
     ``partials[world, offset + block]``, and where the family has an ``element_strain`` hook the block's largest
     strain [-] into ``strain_partials[world, offset + block]`` (each element once, with the length its energy
-    takes: ``measure`` then leaves the family out of its per-particle strain); launch over
-    ``reduce_launch_dim(worlds, element_count, lanes, REDUCE_PER_LANE)`` on CUDA (``stride``: that grid's
+    takes: ``measure`` then leaves the family out of its per-particle strain); with ``power`` (the family's dampers
+    counted in the integrator's force pass, mode ``POWER_DAMPERS``) the power its dampers take out at this state [W]
+    (its ``dissipation`` hook: the closing term of ``guard_kernels``) into ``power_partials[world, offset + block]``.
+    Launch over ``reduce_launch_dim(worlds, element_count, lanes, REDUCE_PER_LANE)`` on CUDA (``stride``: that grid's
     ``reduce_stride``), one lane per block on the CPU."""
     vec3 = vec3_type(scalar)
     block_sum, block_max = reduction_funcs(tiled)
@@ -514,6 +611,7 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool):
     energy_func = funcs.energy
     strain_func = getattr(funcs, "element_strain", None)
     strained = strain_func is not None
+    power_func = funcs.dissipation if power else None
 
     # An element's energy reads its own entries, never the incidence table.
     @flat_kernel(module="unique", enable_backward=False, last=("arrays__incidence",))
@@ -529,11 +627,13 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool):
         status: wp.array2d[wp.int32],
         # State in:
         particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
         # Launch (the items between a lane's successive elements: ``linalg.reduce_stride``):
         stride: int,
         # Out:
         partials_out: wp.array2d[wp.float64],
         strain_partials_out: wp.array2d[wp.float64],
+        power_partials_out: wp.array2d[wp.float64],
     ):
         world, block, lane = wp.tid()
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
@@ -541,20 +641,73 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool):
         element = block * wp.block_dim() + lane
         energy = wp.float64(0.0)
         worst = wp.float64(-1.0)
+        taken = wp.float64(0.0)
         while element < element_count:  # every stride-th element from the lane's first
             energy += wp.float64(energy_func(world, element, world * particle_count, arrays, inputs, particle_q))
             if wp.static(strained):
                 worst = wp.max(worst, strain_func(world, element, world * particle_count, arrays, particle_q))
+            if wp.static(power):
+                taken += wp.float64(power_func(world, element, world * particle_count, arrays, inputs, particle_q,
+                                               particle_qd))
             element += stride
         energy = block_sum(energy)
         if wp.static(strained):
             worst = block_max(worst)
+        if wp.static(power):
+            taken = block_sum(taken)
         if lane == 0:
             partials_out[world, offset + block] = energy
             if wp.static(strained):
                 strain_partials_out[world, offset + block] = worst
+            if wp.static(power):
+                power_partials_out[world, offset + block] = taken
 
     return element_energy_partials
+
+
+@functools.cache
+def pushing_force_func(scalar: type, specs: tuple, modes: tuple):
+    """``push(world, i, base, xi, vi, element_arrays, inputs, particle_q, particle_qd) -> force``: the force [N] on
+    particle i of the families whose mode in ``modes`` (one ``forces.POWER_*`` per spec) is ``POWER_WORK`` (wind,
+    handles: work from outside), the others not evaluated; ``element_arrays`` is ``elements(scalar, specs).arrays``."""
+    vec3 = vec3_type(scalar)
+    Elements = elements(scalar, specs).arrays
+    if not specs:
+
+        @wp.func
+        def push_none(world: int, i: int, base: int, xi: vec3, vi: vec3, arrays: Elements, inputs: wp.array2d[scalar],
+                      particle_q: wp.array[vec3], particle_qd: wp.array[vec3]):
+            return vec3(scalar(0.0))
+
+        return push_none
+    funcs = specs[0].funcs(scalar)
+    pushes = modes[0] == POWER_WORK
+    head_force = funcs.force
+
+    @wp.func
+    def push_head(world: int, i: int, base: int, xi: vec3, vi: vec3, arrays: funcs.arrays,
+                  inputs: wp.array2d[scalar], particle_q: wp.array[vec3], particle_qd: wp.array[vec3]):
+        if wp.static(pushes):
+            return head_force(world, i, base, xi, vi, arrays, inputs, particle_q, particle_qd)
+        return vec3(scalar(0.0))
+
+    if len(specs) == 1:
+
+        @wp.func
+        def push_1(world: int, i: int, base: int, xi: vec3, vi: vec3, arrays: Elements, inputs: wp.array2d[scalar],
+                   particle_q: wp.array[vec3], particle_qd: wp.array[vec3]):
+            return push_head(world, i, base, xi, vi, arrays.head, inputs, particle_q, particle_qd)
+
+        return push_1
+    rest = pushing_force_func(scalar, specs[1:], modes[1:])
+
+    @wp.func
+    def push_n(world: int, i: int, base: int, xi: vec3, vi: vec3, arrays: Elements, inputs: wp.array2d[scalar],
+               particle_q: wp.array[vec3], particle_qd: wp.array[vec3]):
+        return push_head(world, i, base, xi, vi, arrays.head, inputs, particle_q, particle_qd) + rest(
+            world, i, base, xi, vi, arrays.tail, inputs, particle_q, particle_qd)
+
+    return push_n
 
 
 @functools.cache
