@@ -12,6 +12,7 @@ import warp as wp
 import warpspring as ws
 from helpers import run_frames
 from warpspring.core.guards import WATCH_FRAMES
+from warpspring.kernels import flatten
 
 # A 2 kg mass on a 200 N/m spring with 5 % of critical damping, hanging from a pin, released 0.1 m below its static
 # equilibrium at rest: ω = 10 rad/s, kd = 2 ζ √(k m) = 2 N·s/m (``test_dissipation.py``'s oscillator).
@@ -142,17 +143,25 @@ def test_no_launch_per_substep_for_the_guard(device):
         for _ in range(WATCH_FRAMES + 1):  # past the frames a guard watches from the start (``Guard._watch``)
             sim.step_frame()
         count = [0]
-        launch = wp.launch
+        launch, flat = wp.launch, flatten._launch
 
         def counted(*args, **kwargs):
             count[0] += 1
             return launch(*args, **kwargs)
 
-        wp.launch = counted
+        def counted_flat(*args, **kwargs):  # a flat kernel's launch (replayed on the CPU: no ``wp.launch``)
+            count[0] += 1
+            wp.launch = launch  # (its own ``wp.launch`` is not a second launch)
+            try:
+                return flat(*args, **kwargs)
+            finally:
+                wp.launch = counted
+
+        wp.launch, flatten._launch = counted, counted_flat
         try:
             sim.step_frame()
         finally:
-            wp.launch = launch
+            wp.launch, flatten._launch = launch, flat
         return count[0]
 
     extra = [launches(ws.GuardLimits(), n) - launches(None, n) for n in (16, 32)]  # (at 4 its dampers are unstable)

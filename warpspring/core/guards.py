@@ -150,6 +150,16 @@ class Guard(StepHook):
         self._status_host = _pinned_status(status.shape) if device.is_cuda else self._status
         if self._status_host is not self._status:
             weakref.finalize(self, _PINNED_STATUS[status.shape].append, self._status_host)
+        # The reads a frame later (``post``, ``collect``): two such buffers in turn, each with the event after its copy
+        # (on the CPU a copy is done when it returns: host arrays, no event).
+        self._slots = [_pinned_status(status.shape) if device.is_cuda else wp.empty(status.shape, dtype=wp.int32,
+                                                                                    device="cpu") for _ in range(2)]
+        if device.is_cuda:
+            for slot in self._slots:
+                weakref.finalize(self, _PINNED_STATUS[status.shape].append, slot)
+        self._events = [wp.Event(device) for _ in self._slots] if device.is_cuda else [None, None]
+        self._pending = []  # the slots posted and not yet collected, oldest first
+        self._posted = 0
         # The check's passes stride (each lane several particles or elements: few partial sums to gather): on CUDA
         # up to REDUCE_PER_LANE a lane, on the CPU one thread per world walks them all (its sums in the same order).
         per_lane, fill = (REDUCE_PER_LANE, REDUCE_FILL_BLOCKS) if self._tiled else (CPU_PER_LANE, 0)
@@ -215,7 +225,6 @@ class Guard(StepHook):
         self._midpoint = False
         self._working = False
         self._step_position = self._step_velocity = self._step_time = self._step_start = None
-        self._locate = None  # (kernel, state, substep) of the frame's last check: ``reports`` runs it on a failure
         self.limits = limits
 
     @property
@@ -424,10 +433,10 @@ class Guard(StepHook):
         self._restart_balance()
         self.reset()
         self._dissipation_kernels()  # the power sums attached to the integrator or not (``_power``)
-        gather, _ = self._measure(state)  # Δx = 0: no work, the loads at the start recorded
+        gather = self._measure(state)  # Δx = 0: no work, the loads at the start recorded
         if self._power is not None:  # minus the closing term at the start opens the first span
             self._energy_passes(state)
-            self._gather(gather, 0, carry_only=True)
+            self._gather(gather, state, 0, carry_only=True)
         self.reset()
         if self._dissipating and not self._midpoint:
             self._dissipate(state)  # the power at the start: the first substep's trapezoid
@@ -791,7 +800,7 @@ class Guard(StepHook):
             rule, modes = self._power_rule(), power.modes
             features = model.force_features(self.control)._replace(families=specs, clamp_particle_force=False,
                                                                    external=force is not None)
-        measure, gather, locate, drive = guard_kernels(model.scalar, specs, self._tiled, force is not None,
+        measure, gather, drive = guard_kernels(model.scalar, specs, self._tiled, force is not None,
                                                         working_specs, rule, features, modes,
                                                         self.counts_dissipation)
         # The drives' work first: it reads the last check's positions, which ``measure`` moves on.
@@ -807,7 +816,7 @@ class Guard(StepHook):
                     outputs=[None if power is None else power.sums, self._previous_q, self._previous_qd,
                              self._previous_load, self._status, self._partials],
                     device=model.device)
-        return gather, locate
+        return gather
 
     def _lead(self) -> float:
         """λ [s] of the steady loads' work on free particles (weight, the control's force: constant within a frame),
@@ -821,17 +830,14 @@ class Guard(StepHook):
         return 0.5 * float(self.dt)
 
     def check(self, state: State, substep: int, *, last: bool = False) -> None:
-        """Launch the checks of ``state`` after ``substep`` (device only; capturable). The check that ends a frame
-        (``last``) leaves finding the most strained element of a world that failed to :meth:`reports`, which runs
-        it on the same state after the frame, where a failure is seen (no launch in a frame that passes)."""
-        gather, locate = self._measure(state)
-        self._locate = (locate, state, substep) if last else None
+        """Launch the checks of ``state`` after ``substep`` (device only; capturable): the per-particle and per-element
+        passes, then ``gather``, whose verdict also finds the most strained element of a world that fails here, so
+        that a check's record is complete when it ends (``last``: the frame's last check, no different)."""
+        gather = self._measure(state)
         if self._dampers is not None and self._dissipating:
             self._close_dampers(state, float(self.dt))
         self._energy_passes(state)
-        self._gather(gather, substep)
-        if not last:
-            self._launch_locate(locate, state, substep)
+        self._gather(gather, state, substep)
 
     def _energy_passes(self, state: State) -> None:
         """The families' per-block elastic energy, strain and (where the force pass counts their dampers) the power
@@ -849,20 +855,15 @@ class Guard(StepHook):
                         outputs=[self._energy_partials, self._strain_partials, self._power_partials],
                         device=model.device)
 
-    def _gather(self, gather, substep: int, carry_only: bool = False) -> None:
+    def _gather(self, gather, state: State, substep: int, carry_only: bool = False) -> None:
         """Each world's sums and verdict (``carry_only``: a restart's closing term alone)."""
         model = self.model
-        wp.launch(gather, dim=(model.world_count, self._lanes), block_dim=self._lanes,
-                  inputs=[self._partials, self._energy_partials, self._strain_partials, self._power_partials, substep,
-                          self._limits, 0.0 if self.dt is None else float(self.dt), int(carry_only)],
-                  outputs=[model.world_enabled, self._status, self._running, self._values, self._work_total,
-                           self._balance, self._carry], device=model.device)
-
-    def _launch_locate(self, locate, state: State, substep: int) -> None:
-        model = self.model
-        flat_launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
-                    inputs=[model.particle_count, model.elements, state.particle_q, substep, self._values],
-                    outputs=[self._status], device=model.device)
+        flat_launch(gather, dim=(model.world_count, self._lanes), block_dim=self._lanes,
+                    inputs=[model.particle_count, model.elements, state.particle_q, self._partials, self._energy_partials,
+                            self._strain_partials, self._power_partials, substep, self._limits,
+                            0.0 if self.dt is None else float(self.dt), int(carry_only)],
+                    outputs=[model.world_enabled, self._status, self._running, self._values, self._work_total,
+                             self._balance, self._carry], device=model.device)
 
     def reports(self) -> list[GuardReport]:
         """Each world's first failure since the last reset, in world order (reads the device: synchronises). The
@@ -871,7 +872,40 @@ class Guard(StepHook):
         if self._status_host is not self._status:
             wp.copy(self._status_host, self._status)
             wp.synchronize_stream(self.model.device)
-        status = self._status_host.numpy()
+        return self._parse(self._status_host.numpy())
+
+    def post(self) -> None:
+        """Start reading the record as the frame just launched leaves it, without waiting for the device: on CUDA a copy
+        into a pinned buffer of its own, queued behind the frame, and an event after it (:meth:`collect` waits for
+        it, typically once the next frame is queued behind it, so that the device never idles for the host)."""
+        k = self._posted % len(self._slots)
+        self._posted += 1
+        if len(self._pending) == len(self._slots):
+            raise RuntimeError("Guard.post: collect the older frames' records first")
+        wp.copy(self._slots[k], self._status)
+        if self._events[k] is not None:
+            wp.record_event(self._events[k])
+        self._pending.append(k)
+
+    def collect(self) -> list[GuardReport]:
+        """The failures in the record of the oldest frame :meth:`post` started reading (waits for that frame and its
+        copy alone; those already reported are in it again while their record stands: the caller skips them)."""
+        k = self._pending.pop(0)
+        if self._events[k] is not None:
+            wp.synchronize_event(self._events[k])
+        return self._parse(self._slots[k].numpy())
+
+    def discard(self) -> None:
+        """Forget the records posted and not collected (a restart)."""
+        self._pending.clear()
+
+    @property
+    def pending(self) -> int:
+        """Frames whose record :meth:`post` started reading and :meth:`collect` has not returned."""
+        return len(self._pending)
+
+    def _parse(self, status: np.ndarray) -> list[GuardReport]:
+        """The failures a host copy of the status record holds (reads the values on a failure: synchronises)."""
         reasons = {GUARD_NONFINITE: "non-finite state", GUARD_STRAIN: "strain", GUARD_ENERGY: "kinetic energy",
                    GUARD_BALANCE: "energy balance"}
         families = self.model.families
@@ -879,12 +913,6 @@ class Guard(StepHook):
         tripped = status[:, GUARD_TRIPPED]
         if not tripped.any():  # the common case, every frame: one read, nothing allocated that could linger
             return []
-        pending = getattr(self, "_locate", None)
-        if pending is not None and (status[tripped != 0, GUARD_SUBSTEP] == pending[2]).any():
-            # A world failed at the frame's last check, whose state the frame left as it was: find its element now.
-            self._launch_locate(*pending)
-            self._locate = None
-            status = self._status.numpy()
         values = self._values.numpy()
         for world in np.flatnonzero(tripped):
             row = status[world]

@@ -26,21 +26,12 @@ import warp as wp
 from .families import FORCE_KERNEL_OPTIONS, elements
 from .forces import ForceFeatures, counts_work, power_sums_funcs
 from .integrators import symplectic_euler_particle_func
+from .linalg import block_barrier
 from .precision import vec3_type
 from .shapes import ContactFeatures, shapes_type
 from .flatten import flat_kernel
 
 wp.set_module_options({"enable_backward": False})
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-__syncthreads();
-#endif
-""")
-def block_barrier():
-    """Every lane of the block waits here until all have arrived (``__syncthreads``; nothing on the CPU)."""
-    ...
 
 
 @wp.func_native("""

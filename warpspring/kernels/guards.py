@@ -1,17 +1,18 @@
 """Run-time guards: detect a state going bad on the device, per world, without a host synchronisation per
 substep.
 
-A check is two launches and one per family, captured with the substeps (``locate`` a third, in-frame only for a check
-before the frame's last; and, with the dissipation or the work of wind and handles counted where the integrator's
-own force pass does not count them, a few more after every substep: below): ``measure`` (per particle: non-finite position or
-velocity, the largest strain of its elements (the families' ``strain`` hook), kinetic energy (of the free
-particles: a kinematic one moves as prescribed), and the work the loads did on it since the previous
+A check is three launches and one per family, captured with the substeps (and, with the dissipation or the work of
+wind and handles counted where the integrator's own force pass does not count them, a few more after every substep:
+below): ``drive`` (per kinematic particle: the work its drive did since the previous check), ``measure`` (per particle:
+non-finite position or velocity, the largest strain of its elements (the families' ``strain`` hook), kinetic energy
+(of the free particles: a kinematic one moves as prescribed), and the work the loads did on it since the previous
 check; per-block partials, no float atomics), ``element_energy_partials`` (one per family: per-block sums of
 its elements' elastic energy, the families' ``energy`` hook), ``gather`` (per world: the world's kinetic
 and elastic energy and work, summed in a fixed order, its largest strain, and the energy balance below; then
 ``decide`` in its lane 0: compare with the world's limits, latch the world's first failure with its substep, reset
-the accumulators, and with ``stop_world`` set hold the failed world: ``world_enabled`` 0), ``locate`` (in a world
-that failed at this check only: the particle, element and family holding the largest strain).
+the accumulators, and with ``stop_world`` set hold the failed world: ``world_enabled`` 0; in a world that failed at
+this check only, its lanes then find the particle, element and family holding the largest strain, so that the record
+is complete when the check ends and the host may read it a frame later: ``Simulator(defer_verdict=...)``).
 
 **The work put in.** W sums, check by check, Σᵢ Fᵢ · (xᵢ - xᵢ') over the world's particles, xᵢ' the
 positions at the previous check: weight mᵢ g and the control's external force on free particles, and for
@@ -73,10 +74,9 @@ from .families import elements
 from .forces import POWER_WORK, ForceFeatures, counts_work, power_sums_funcs
 from .inputs import INPUT_DRAG, INPUT_GRAVITY, INPUT_WIND, input_funcs
 from .kinematics import is_kinematic
-from .linalg import reduction_funcs
+from .linalg import block_barrier, reduction_funcs
 from .precision import vec3_type
 from .springs import COINCIDENT_DISTANCE, damper_step_func, spring_arrays_type
-from .worlds import world_and_index
 from .flatten import flat_kernel
 
 wp.set_module_options({"enable_backward": False})
@@ -194,7 +194,7 @@ def particle_strain_func(scalar: type, specs: tuple):
 def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, working: tuple = (),
                   power: int = POWER_RULE_NONE, power_features: ForceFeatures | None = None,
                   power_modes: tuple = (), dissipation: bool = False):
-    """(measure, gather, locate, drive) kernels of one precision and tuple of family specs; ``external``:
+    """(measure, gather, drive) kernels of one precision and tuple of family specs; ``external``:
     the control has an external force (part of the loads' work); ``working``: the specs of the families that
     do work from outside (wind, handles: ``ElementFamily.does_work``), whose forces on free particles count
     among the loads here (not where the integrator's force pass counts their work).
@@ -456,8 +456,13 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         values_in_out[world, GUARD_EXCESS] = energy - (budget - balance_in_out[world, BALANCE_DISSIPATION])
         values_in_out[world, GUARD_BUDGET] = balance_in_out[world, BALANCE_PEAK]
 
-    @wp.kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
     def gather(
+        # Model:
+        particle_count: int,
+        element_arrays: Elements,
+        # State in:
+        particle_q: wp.array[vec3],
         # Guards in (the check's partials, the energy pass's dampers' power at the check's state, its substep, the
         # limits, the step h [s] of the closing term; ``carry_only`` 1: a restart, only the closing term carried):
         partials: wp.array3d[wp.float64],
@@ -542,56 +547,45 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         if wp.static(counted):
             close_dissipated = block_sum(close_dissipated)
             close_work = block_sum(close_work)
-        if lane != 0:
-            return
-        if wp.static(counted):  # the closing term: this span's share at its state, minus it opens the next
-            left_dissipated = power_h * wp.float64(share_dampers) * close_dissipated
-            left_work = power_h * wp.float64(share_work) * close_work
-            if wp.static(dissipation):
-                dissipated += left_dissipated + carry_in_out[world, CARRY_DISSIPATION]
-            work += left_work + carry_in_out[world, CARRY_WORK]
-            carry_in_out[world, CARRY_DISSIPATION] = -left_dissipated
-            carry_in_out[world, CARRY_WORK] = -left_work
+        if lane == 0:
+            if wp.static(counted):  # the closing term: this span's share at its state, minus it opens the next
+                left_dissipated = power_h * wp.float64(share_dampers) * close_dissipated
+                left_work = power_h * wp.float64(share_work) * close_work
+                if wp.static(dissipation):
+                    dissipated += left_dissipated + carry_in_out[world, CARRY_DISSIPATION]
+                work += left_work + carry_in_out[world, CARRY_WORK]
+                carry_in_out[world, CARRY_DISSIPATION] = -left_dissipated
+                carry_in_out[world, CARRY_WORK] = -left_work
+            if carry_only == 0:
+                values_in_out[world, GUARD_KINETIC_ENERGY] = energy
+                values_in_out[world, GUARD_ELASTIC_ENERGY] = elastic
+                values_in_out[world, GUARD_MAX_STRAIN] = worst
+                values_in_out[world, GUARD_WORK] = work
+                if wp.isfinite(work) and wp.isfinite(energy + elastic) and wp.isfinite(dissipated):
+                    # (a non-finite world's balance stays as it was: ``decide`` stops it)
+                    balance(world, energy + elastic, work, dissipated, values_in_out, work_total_in_out,
+                            balance_in_out)
+                decide(world, substep, limits, work_total_in_out, world_enabled_in_out, status_in_out, values_in_out)
         if carry_only != 0:
             return
-        values_in_out[world, GUARD_KINETIC_ENERGY] = energy
-        values_in_out[world, GUARD_ELASTIC_ENERGY] = elastic
-        values_in_out[world, GUARD_MAX_STRAIN] = worst
-        values_in_out[world, GUARD_WORK] = work
-        if wp.isfinite(work) and wp.isfinite(energy + elastic) and wp.isfinite(dissipated):
-            # (a non-finite world's balance stays as it was: ``decide`` stops it)
-            balance(world, energy + elastic, work, dissipated, values_in_out, work_total_in_out, balance_in_out)
-        decide(world, substep, limits, work_total_in_out, world_enabled_in_out, status_in_out, values_in_out)
-
-    @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
-    def locate(
-        # Model:
-        particle_count: int,
-        element_arrays: Elements,
-        # State in:
-        particle_q: wp.array[vec3],
-        # Guards in (the check's substep, the gathered values):
-        substep: int,
-        values: wp.array2d[wp.float64],
-        # In/out:
-        status_in_out: wp.array2d[wp.int32],
-    ):
-        """The most strained particle, element and family of a world that failed at this check (``decide`` ran
-        first: a world that passed, or failed at an earlier check, is left alone, so a passing check costs one
-        early return per particle, not a second strain pass)."""
-        p = wp.tid()
-        world, i = world_and_index(p, particle_count)
-        largest = values[world, GUARD_MAX_STRAIN]
-        if (status_in_out[world, GUARD_TRIPPED] == 0 or status_in_out[world, GUARD_SUBSTEP] != substep
-                or largest < wp.float64(0.0)):
+        block_barrier()  # lane 0's verdict is seen by the world's lanes
+        # A world that failed at this check (it was live when the check began: the early return above): the most
+        # strained particle, element and family, found on the state the check measured, so that the record is complete
+        # when the frame ends (the host may read it a frame later). A check that passes costs nothing here.
+        largest = values_in_out[world, GUARD_MAX_STRAIN]
+        if status_in_out[world, GUARD_TRIPPED] == 0 or largest < wp.float64(0.0):
             return
-        strain, element, family = element_strain(world, i, p - i, particle_q[p], element_arrays, particle_q)
-        if strain == largest:  # the same evaluation as in measure
-            wp.atomic_min(status_in_out, world, GUARD_STRAIN_PARTICLE, i)
-            wp.atomic_min(status_in_out, world, GUARD_STRAIN_ELEMENT, element)
-            wp.atomic_min(status_in_out, world, GUARD_STRAIN_FAMILY, family)
+        i = lane
+        while i < particle_count:
+            base = world * particle_count
+            strain, element, family = element_strain(world, i, base, particle_q[base + i], element_arrays, particle_q)
+            if strain == largest:  # the same evaluation as in the check's passes
+                wp.atomic_min(status_in_out, world, GUARD_STRAIN_PARTICLE, i)
+                wp.atomic_min(status_in_out, world, GUARD_STRAIN_ELEMENT, element)
+                wp.atomic_min(status_in_out, world, GUARD_STRAIN_FAMILY, family)
+            i += lanes
 
-    return measure, gather, locate, drive
+    return measure, gather, drive
 
 
 @functools.cache
