@@ -65,13 +65,18 @@ def main():
             kernels = factory(*a, **k)
             for kernel in kernels if isinstance(kernels, tuple) else (kernels,):
                 built[kernel.module.name] = kernel
-            return factory(*a[:tiled_at] + (False,) + a[tiled_at + 1:], **k) if tiled_at is not None else kernels
+            if tiled_at is None:
+                return kernels
+            return factory(*a[:tiled_at] + (False,) + a[tiled_at + 1:], **k)  # what runs here, on the CPU
         return make
 
     guards_module.guard_kernels = recording("guard", guards_module.guard_kernels, tiled_at=2)
     guards_module.guard_energy_kernel = recording("energy", guards_module.guard_energy_kernel, tiled_at=2)
     se_module.symplectic_euler_kernel = recording("step", se_module.symplectic_euler_kernel)
     se_module.symplectic_euler_frame_kernel = recording("frame", se_module.symplectic_euler_frame_kernel)
+    if hasattr(se_module, "symplectic_euler_blocks_kernel"):
+        se_module.symplectic_euler_blocks_kernel = recording("blocks", se_module.symplectic_euler_blocks_kernel, tiled_at=4)
+    guards_module.STEP_POWER_BLOCKS = {True: True, False: True}  # the CUDA default's step (its CPU variant runs here)
     model = hanging_cloth(args.size, "cpu", evaluation="gather")
     options = {"cpu_sweep": False} if args.integrator == "symplectic_euler" else {}
     for guard in (None, ws.GuardLimits()):
@@ -84,7 +89,9 @@ def main():
                 sim.step_frame()
     print(f"{args.size}², {args.integrator}: registers a thread on sm_{args.arch} (NVRTC, Warp {wp.config.version})")
     print("| kernel | registers |\n|---|---|")
+    import os
     with tempfile.TemporaryDirectory() as folder:
+        folder = os.environ.get("KEEP_AOT", folder)
         for key, kernel in sorted(built.items()):
             for path in wp.compile_aot_module(kernel.module, device=None, arch=args.arch, module_dir=folder,
                                               use_ptx=False):

@@ -53,6 +53,8 @@ from ..kernels.guards import (
     NO_PARTICLE,
     RUNNING_POWER,
     RUNNING_SLOTS,
+    RUNNING_STEP_DISSIPATION,
+    RUNNING_WORK,
     guard_damper_kernel,
     guard_dissipation_kernel,
     guard_drag_kernel,
@@ -93,6 +95,11 @@ from .model import Model
 from .state import State
 from .stepper import StepHook
 from .tracks import evaluate_input_tracks
+
+#: Whether symplectic Euler's fused step sums the guard's power per block (``integrators.symplectic_euler_blocks_kernel``)
+#: rather than per particle, by device (CUDA: True). On the CPU, where a block is one thread, a block per particle would
+#: only cost more; a test turns it on there to check the sums against the per-particle ones.
+STEP_POWER_BLOCKS = {True: True, False: False}
 
 #: Frames checked after every substep from a restart, or from a write that raised the springs' bound, at a step the bound
 #: does not certify stable (``Guard._watch``).
@@ -198,7 +205,12 @@ class Guard(StepHook):
         # On the CPU one thread per world sums a family's (or drag's) power: one block, launched over worlds.
         self._dissipation_layout = []
         self._drag_grid = reduce_launch_dim(worlds, model.particle_count, self._lanes) if self._tiled else (worlds, 1, 1)
-        blocks = self._drag_grid[1]
+        # ... which symplectic Euler's fused step shares where it sums the power per block (``_attach_power``): one
+        # particle a lane (on the CPU, where a block is one thread, only where ``STEP_POWER_BLOCKS`` says so: a block
+        # per particle).
+        self._step_grid = (reduce_launch_dim(worlds, model.particle_count, self._lanes)
+                           if STEP_POWER_BLOCKS[device.is_cuda] else None)
+        blocks = max(self._drag_grid[1], self._step_grid[1] if self._step_grid is not None else 0)
         for family, lanes, _, _ in self._energy_layout:
             if getattr(family.spec(model).funcs(model.scalar), "dissipation", None) is not None:
                 # (one element per lane: the dissipation passes do not stride)
@@ -698,6 +710,7 @@ class Guard(StepHook):
         if modes is None:
             if self._power is not None and getattr(integrator, "power", None) is self._power:
                 integrator.power = None
+                integrator.power_blocks = None
             self._power = None
             return
         model = self.model
@@ -717,6 +730,11 @@ class Guard(StepHook):
         elif not stored:
             power.forces = None
         integrator.power = power
+        # Symplectic Euler's fused step (gathered springs, or none): its power summed per block into the running sums.
+        fused = (getattr(integrator, "name", None) == "symplectic_euler" and (model.spring_gather or model.spring_count == 0)
+                 and self._step_grid is not None)
+        integrator.power_blocks = ((self._running, self._step_grid, RUNNING_STEP_DISSIPATION, RUNNING_WORK) if fused
+                                   else None)
 
     def _force_pass_dampers(self):
         """The springs' (family, lanes, grid, offset) where their scattered force pass counts their dampers'

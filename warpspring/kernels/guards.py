@@ -130,8 +130,10 @@ BALANCE_SLOTS = 6
 # substep to substep
 RUNNING_DISSIPATION = 0  # energy taken out since the last check [J]
 RUNNING_POWER = 1  # the power after the last substep [W]; non-finite: none yet (the first trapezoid's start)
-RUNNING_WORK = 2  # work the families that do work from outside did since the last check [J] (``guard_work_kernel``)
-RUNNING_SLOTS = 3
+RUNNING_WORK = 2  # work the families that do work from outside did since the last check [J] (``guard_work_kernel``,
+# and symplectic Euler's fused step: ``integrators.symplectic_euler_blocks_kernel``)
+RUNNING_STEP_DISSIPATION = 3  # energy the dampers and drag took out since the last check, summed by that step [J]
+RUNNING_SLOTS = 4
 # float64 slots of the limits: live settings, read by ``decide``
 GUARD_LIMIT_STRAIN = 0  # an element strain beyond this tears the run [-]
 GUARD_LIMIT_KINETIC_ENERGY = 1  # a total kinetic energy beyond this is a runaway [J]
@@ -501,6 +503,7 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
             while b < running_in_out.shape[1]:
                 running_in_out[world, b, RUNNING_DISSIPATION] = wp.float64(0.0)
                 running_in_out[world, b, RUNNING_WORK] = wp.float64(0.0)
+                running_in_out[world, b, RUNNING_STEP_DISSIPATION] = wp.float64(0.0)
                 b += lanes
             if lane == 0:
                 carry_in_out[world, CARRY_DISSIPATION] = wp.float64(0.0)
@@ -536,8 +539,11 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         while b < running_in_out.shape[1]:
             dissipated += running_in_out[world, b, RUNNING_DISSIPATION]
             work += running_in_out[world, b, RUNNING_WORK]
+            if wp.static(counted and dissipation):  # (the fused step's: counted where the power sums' are)
+                dissipated += running_in_out[world, b, RUNNING_STEP_DISSIPATION]
             running_in_out[world, b, RUNNING_DISSIPATION] = wp.float64(0.0)
             running_in_out[world, b, RUNNING_WORK] = wp.float64(0.0)
+            running_in_out[world, b, RUNNING_STEP_DISSIPATION] = wp.float64(0.0)
             b += lanes
         energy = block_sum(energy)
         worst = block_max(worst)
