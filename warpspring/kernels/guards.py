@@ -9,7 +9,7 @@ non-finite position or velocity, the largest strain of its elements (the familie
 check; per-block partials, no float atomics), ``element_energy_partials`` (one per family: per-block sums of
 its elements' elastic energy, the families' ``energy`` hook), ``gather`` (per world: the world's kinetic
 and elastic energy and work, summed in a fixed order, its largest strain, and the energy balance below; then
-``decide`` in its lane 0: compare with the world's limits, latch the world's first failure with its substep, reset
+in its lane 0 the verdict: compare with the world's limits, latch the world's first failure with its substep, reset
 the accumulators, and with ``stop_world`` set hold the failed world: ``world_enabled`` 0; in a world that failed at
 this check only, its lanes then find the particle, element and family holding the largest strain, so that the record
 is complete when the check ends and the host may read it a frame later: ``Simulator(defer_verdict=...)``).
@@ -134,7 +134,7 @@ RUNNING_WORK = 2  # work the families that do work from outside did since the la
 # and symplectic Euler's fused step: ``integrators.symplectic_euler_blocks_kernel``)
 RUNNING_STEP_DISSIPATION = 3  # energy the dampers and drag took out since the last check, summed by that step [J]
 RUNNING_SLOTS = 4
-# float64 slots of the limits: live settings, read by ``decide``
+# float64 slots of the limits: live settings, read by ``gather``
 GUARD_LIMIT_STRAIN = 0  # an element strain beyond this tears the run [-]
 GUARD_LIMIT_KINETIC_ENERGY = 1  # a total kinetic energy beyond this is a runaway [J]
 GUARD_STOP_WORLD = 2  # 1: a failed world is held and the others go on; 0: the run stops
@@ -402,62 +402,6 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         if lane == 0:
             partials_out[world, block, PARTIAL_DRIVE_WORK] = work
 
-    @wp.func
-    def decide(world: int, substep: int, limits: wp.array2d[wp.float64], work_total: wp.array[wp.float64],
-               world_enabled_in_out: wp.array[wp.int32], status_in_out: wp.array2d[wp.int32],
-               values_in_out: wp.array2d[wp.float64]):
-        """Compare a world's gathered values with its limits: latch its first failure with the check's substep (and
-        with ``stop_world`` hold the world: ``world_enabled`` 0), or clear the check's values for the next."""
-        reason = 0
-        if status_in_out[world, GUARD_NONFINITE_PARTICLE] != NO_PARTICLE or not wp.isfinite(
-            values_in_out[world, GUARD_KINETIC_ENERGY]
-        ):
-            reason = GUARD_NONFINITE
-        elif values_in_out[world, GUARD_MAX_STRAIN] > limits[world, GUARD_LIMIT_STRAIN]:
-            reason = GUARD_STRAIN
-        elif values_in_out[world, GUARD_KINETIC_ENERGY] > (
-            limits[world, GUARD_LIMIT_KINETIC_ENERGY] + limits[world, GUARD_WORK_FACTOR] * work_total[world]
-        ):
-            reason = GUARD_ENERGY
-        elif limits[world, GUARD_BALANCE_TOLERANCE] > wp.float64(0.0) and values_in_out[world, GUARD_EXCESS] > (
-            limits[world, GUARD_BALANCE_TOLERANCE] * wp.max(values_in_out[world, GUARD_BUDGET], wp.float64(0.0))
-            + limits[world, GUARD_BALANCE_FLOOR]
-        ):
-            reason = GUARD_BALANCE
-        if reason != 0:
-            status_in_out[world, GUARD_TRIPPED] = reason
-            status_in_out[world, GUARD_SUBSTEP] = substep
-            if limits[world, GUARD_STOP_WORLD] != wp.float64(0.0):
-                world_enabled_in_out[world] = 0
-            return
-        values_in_out[world, GUARD_MAX_STRAIN] = wp.float64(-1.0)
-        values_in_out[world, GUARD_KINETIC_ENERGY] = wp.float64(0.0)
-        values_in_out[world, GUARD_ELASTIC_ENERGY] = wp.float64(0.0)
-        values_in_out[world, GUARD_EXCESS] = wp.float64(0.0)
-        status_in_out[world, GUARD_STRAIN_PARTICLE] = NO_PARTICLE
-        status_in_out[world, GUARD_STRAIN_ELEMENT] = NO_PARTICLE
-        status_in_out[world, GUARD_STRAIN_FAMILY] = NO_PARTICLE
-
-    @wp.func
-    def balance(world: int, energy: wp.float64, work: wp.float64, dissipated: wp.float64,
-                values_in_out: wp.array2d[wp.float64], work_total_in_out: wp.array[wp.float64],
-                balance_in_out: wp.array2d[wp.float64]):
-        """Add a check's work and dissipation to the world's balance (re-based where asked) and write the energy
-        beyond its budget and the budget's peak."""
-        work_total_in_out[world] += wp.max(work, wp.float64(0.0))
-        balance_in_out[world, BALANCE_WORK] += work
-        balance_in_out[world, BALANCE_DISSIPATION] += dissipated
-        if balance_in_out[world, BALANCE_REBASE] != wp.float64(0.0):
-            balance_in_out[world, BALANCE_REFERENCE] = energy - balance_in_out[world, BALANCE_WORK]
-            balance_in_out[world, BALANCE_PEAK] = energy
-            balance_in_out[world, BALANCE_DISSIPATION] = wp.float64(0.0)
-            balance_in_out[world, BALANCE_REBASE] = wp.float64(0.0)
-        balance_in_out[world, BALANCE_ENERGY] = energy
-        budget = balance_in_out[world, BALANCE_REFERENCE] + balance_in_out[world, BALANCE_WORK]
-        balance_in_out[world, BALANCE_PEAK] = wp.max(balance_in_out[world, BALANCE_PEAK], budget)
-        values_in_out[world, GUARD_EXCESS] = energy - (budget - balance_in_out[world, BALANCE_DISSIPATION])
-        values_in_out[world, GUARD_BUDGET] = balance_in_out[world, BALANCE_PEAK]
-
     @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
     def gather(
         # Model:
@@ -492,7 +436,7 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         and the energy beyond the balance's budget. Launched over [world, lanes] with ``block_dim`` = lanes
         (one lane on the CPU): each lane sums every lanes-th block in order, then a fixed-order tree
         (``block_sum``) joins the lanes, so the sums are deterministic; one thread walking a world's ~10³ blocks
-        of a 512² cloth in turn took 0.9 ms on an H100, most of a check. Lane 0 then decides (``decide``): one launch
+        of a 512² cloth in turn took 0.9 ms on an H100, most of a check. Lane 0 then decides: one launch
         for the world's sums and its verdict."""
         world, lane = wp.tid()
         lanes = wp.block_dim()
@@ -554,24 +498,90 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
             close_dissipated = block_sum(close_dissipated)
             close_work = block_sum(close_work)
         if lane == 0:
+            # The world's rows read first, all at once, then the verdict in registers, then the writes: one memory
+            # latency instead of a chain of ~30 reads behind writes that might alias them (the gather of a 64² cloth
+            # took 21 µs a frame on an H200, most of it lane 0 waiting on that chain).
+            carry_dissipated = carry_in_out[world, CARRY_DISSIPATION]
+            carry_work = carry_in_out[world, CARRY_WORK]
+            total = work_total_in_out[world]
+            reference = balance_in_out[world, BALANCE_REFERENCE]
+            balance_work = balance_in_out[world, BALANCE_WORK]
+            peak = balance_in_out[world, BALANCE_PEAK]
+            rebase = balance_in_out[world, BALANCE_REBASE]
+            taken = balance_in_out[world, BALANCE_DISSIPATION]
+            last_energy = balance_in_out[world, BALANCE_ENERGY]
+            excess = values_in_out[world, GUARD_EXCESS]
+            budget_peak = values_in_out[world, GUARD_BUDGET]
+            tear = limits[world, GUARD_LIMIT_STRAIN]
+            runaway = limits[world, GUARD_LIMIT_KINETIC_ENERGY]
+            stop_world = limits[world, GUARD_STOP_WORLD]
+            factor = limits[world, GUARD_WORK_FACTOR]
+            tolerance = limits[world, GUARD_BALANCE_TOLERANCE]
+            floor = limits[world, GUARD_BALANCE_FLOOR]
+            nonfinite = status_in_out[world, GUARD_NONFINITE_PARTICLE]
             if wp.static(counted):  # the closing term: this span's share at its state, minus it opens the next
                 left_dissipated = power_h * wp.float64(share_dampers) * close_dissipated
                 left_work = power_h * wp.float64(share_work) * close_work
                 if wp.static(dissipation):
-                    dissipated += left_dissipated + carry_in_out[world, CARRY_DISSIPATION]
-                work += left_work + carry_in_out[world, CARRY_WORK]
+                    dissipated += left_dissipated + carry_dissipated
+                work += left_work + carry_work
                 carry_in_out[world, CARRY_DISSIPATION] = -left_dissipated
                 carry_in_out[world, CARRY_WORK] = -left_work
             if carry_only == 0:
-                values_in_out[world, GUARD_KINETIC_ENERGY] = energy
-                values_in_out[world, GUARD_ELASTIC_ENERGY] = elastic
-                values_in_out[world, GUARD_MAX_STRAIN] = worst
+                held = energy + elastic
+                if wp.isfinite(work) and wp.isfinite(held) and wp.isfinite(dissipated):
+                    # The balance: the check's work and dissipation added (re-based where asked), the energy beyond
+                    # its budget and the budget's peak (a non-finite world's balance stays as it was: it stops).
+                    total += wp.max(work, wp.float64(0.0))
+                    balance_work += work
+                    taken += dissipated
+                    if rebase != wp.float64(0.0):
+                        reference = held - balance_work
+                        peak = held
+                        taken = wp.float64(0.0)
+                        rebase = wp.float64(0.0)
+                    last_energy = held
+                    budget = reference + balance_work
+                    peak = wp.max(peak, budget)
+                    excess = held - (budget - taken)
+                    budget_peak = peak
+                    work_total_in_out[world] = total
+                    balance_in_out[world, BALANCE_REFERENCE] = reference
+                    balance_in_out[world, BALANCE_WORK] = balance_work
+                    balance_in_out[world, BALANCE_PEAK] = peak
+                    balance_in_out[world, BALANCE_REBASE] = rebase
+                    balance_in_out[world, BALANCE_DISSIPATION] = taken
+                    balance_in_out[world, BALANCE_ENERGY] = last_energy
+                # The verdict: the world's first failure latched with the check's substep (and with ``stop_world``
+                # the world held: ``world_enabled`` 0), or the check's values cleared for the next.
+                reason = 0
+                if nonfinite != NO_PARTICLE or not wp.isfinite(energy):
+                    reason = GUARD_NONFINITE
+                elif worst > tear:
+                    reason = GUARD_STRAIN
+                elif energy > runaway + factor * total:
+                    reason = GUARD_ENERGY
+                elif tolerance > wp.float64(0.0) and excess > tolerance * wp.max(budget_peak, wp.float64(0.0)) + floor:
+                    reason = GUARD_BALANCE
                 values_in_out[world, GUARD_WORK] = work
-                if wp.isfinite(work) and wp.isfinite(energy + elastic) and wp.isfinite(dissipated):
-                    # (a non-finite world's balance stays as it was: ``decide`` stops it)
-                    balance(world, energy + elastic, work, dissipated, values_in_out, work_total_in_out,
-                            balance_in_out)
-                decide(world, substep, limits, work_total_in_out, world_enabled_in_out, status_in_out, values_in_out)
+                values_in_out[world, GUARD_BUDGET] = budget_peak
+                if reason != 0:
+                    values_in_out[world, GUARD_KINETIC_ENERGY] = energy
+                    values_in_out[world, GUARD_ELASTIC_ENERGY] = elastic
+                    values_in_out[world, GUARD_MAX_STRAIN] = worst
+                    values_in_out[world, GUARD_EXCESS] = excess
+                    status_in_out[world, GUARD_TRIPPED] = reason
+                    status_in_out[world, GUARD_SUBSTEP] = substep
+                    if stop_world != wp.float64(0.0):
+                        world_enabled_in_out[world] = 0
+                else:
+                    values_in_out[world, GUARD_KINETIC_ENERGY] = wp.float64(0.0)
+                    values_in_out[world, GUARD_ELASTIC_ENERGY] = wp.float64(0.0)
+                    values_in_out[world, GUARD_MAX_STRAIN] = wp.float64(-1.0)
+                    values_in_out[world, GUARD_EXCESS] = wp.float64(0.0)
+                    status_in_out[world, GUARD_STRAIN_PARTICLE] = NO_PARTICLE
+                    status_in_out[world, GUARD_STRAIN_ELEMENT] = NO_PARTICLE
+                    status_in_out[world, GUARD_STRAIN_FAMILY] = NO_PARTICLE
         if carry_only != 0:
             return
         block_barrier()  # lane 0's verdict is seen by the world's lanes
