@@ -130,9 +130,11 @@ BALANCE_SLOTS = 6
 # substep to substep
 RUNNING_DISSIPATION = 0  # energy taken out since the last check [J]
 RUNNING_POWER = 1  # the power after the last substep [W]; non-finite: none yet (the first trapezoid's start)
-RUNNING_WORK = 2  # work the families that do work from outside did since the last check [J] (``guard_work_kernel``,
-# and symplectic Euler's fused step: ``integrators.symplectic_euler_blocks_kernel``)
-RUNNING_STEP_DISSIPATION = 3  # energy the dampers and drag took out since the last check, summed by that step [J]
+RUNNING_STEP_DISSIPATION = 2  # energy the dampers and drag took out since the last check, summed by symplectic
+# Euler's fused step on CUDA (``integrators.symplectic_euler_blocks_kernel``) [J]
+RUNNING_WORK = 3  # work the families that do work from outside did since the last check [J] (``guard_work_kernel``,
+# and that step); the last slot: a checkpoint's running sums of fewer slots load with it zero (all but the power are
+# zero at a frame's end)
 RUNNING_SLOTS = 4
 # float64 slots of the limits: live settings, read by ``gather``
 GUARD_LIMIT_STRAIN = 0  # an element strain beyond this tears the run [-]
