@@ -246,6 +246,10 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
     Elements = composed.arrays
     element_strain = composed.strain
     particle_strain = particle_strain_func(scalar, families)
+    # Whether measure sees any strain (a family without an ``element_strain`` hook; those with one are measured per
+    # element in the energy pass) and any work from outside in the sums: else their block reductions are left out.
+    strained = any(getattr(spec.funcs(scalar), "element_strain", None) is None for spec in families)
+    sums_work = counted and counts_work(power_features, power_modes)
     element_force = composed.force
     work_composed = elements(scalar, working)
     WorkElements = work_composed.arrays
@@ -341,11 +345,13 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
             previous_qd_in_out[p] = v
             i += stride
         energy = block_sum(energy)
-        worst = block_max(worst)
+        if wp.static(strained):
+            worst = block_max(worst)
         work = block_sum(work)
         if wp.static(counted):
             dissipated = block_sum(dissipated)
-            family_work = block_sum(family_work)
+            if wp.static(sums_work):
+                family_work = block_sum(family_work)
             if wp.static(drag_closing):
                 close_dissipated = block_sum(close_dissipated)
             if wp.static(wind_closing or pushing):
