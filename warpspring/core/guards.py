@@ -164,7 +164,10 @@ class Guard(StepHook):
         if device.is_cuda:
             for slot in self._slots:
                 weakref.finalize(self, _PINNED_STATUS[status.shape].append, slot)
-        self._events = [wp.Event(device) for _ in self._slots] if device.is_cuda else [None, None]
+        # (events from a pool that never destroys them either: none is destroyed while another simulator captures)
+        self._events = [_pooled_event(device) for _ in self._slots] if device.is_cuda else [None, None]
+        for event in self._events if device.is_cuda else ():
+            weakref.finalize(self, _EVENTS[device.alias].append, event)
         self._pending = []  # the slots posted and not yet collected, oldest first
         self._posted = 0
         # The check's passes stride (each lane several particles or elements: few partial sums to gather): on CUDA
@@ -902,7 +905,7 @@ class Guard(StepHook):
             raise RuntimeError("Guard.post: collect the older frames' records first")
         wp.copy(self._slots[k], self._status)
         if self._events[k] is not None:
-            wp.record_event(self._events[k])
+            wp.get_stream(self.model.device).record_event(self._events[k])
         self._pending.append(k)
 
     def collect(self) -> list[GuardReport]:
@@ -974,6 +977,17 @@ class Guard(StepHook):
 #: Pinned host buffers for the guards' status reads, by shape: taken by a guard, handed back when it is collected,
 #: never freed (see ``Guard.__init__``).
 _PINNED_STATUS: dict[tuple, list] = {}
+
+
+#: CUDA events for the deferred reads of the guards' status (``Guard.post``), by device: taken by a guard, handed back
+#: when it is collected, never destroyed (as ``_PINNED_STATUS``).
+_EVENTS: dict[str, list] = {}
+
+
+def _pooled_event(device) -> wp.Event:
+    """An event of ``device`` from the pool (a new one where none is free)."""
+    free = _EVENTS.setdefault(device.alias, [])
+    return free.pop() if free else wp.Event(device)
 
 
 def _pinned_status(shape: tuple) -> wp.array:
