@@ -58,8 +58,9 @@ class Simulator:
             launches from Python every frame (for debugging). Both give the same result bit for bit.
         guard: run-time checks (non-finite state, torn springs, runaway energy) made on the device, per
             world, every ``guard.every`` substeps; a failure raises :class:`SimulationError` at the end of
-            the frame, or with ``GuardLimits(stop="world")`` holds the failed world, records it in
-            :attr:`world_failures` and goes on with the others. ``None`` disables them (and the per-frame
+            the frame (with ``defer_verdict``, at the next frame or :meth:`settle`), or with
+            ``GuardLimits(stop="world")`` holds the failed world, records it in :attr:`world_failures` and goes on
+            with the others. ``None`` disables them (and the per-frame
             read of their record).
         defer_verdict: read each frame's guard record a frame later (``None``: on CUDA): :meth:`step_frame` queues the
             next frame before it waits for the previous one's record, so the device does not idle while the host
