@@ -27,6 +27,8 @@ import numpy as np
 import warp as wp
 
 import warpspring as ws
+from warpspring.core.guards import WATCH_FRAMES
+from warpspring.kernels import flatten
 from cloth import KD, KE, MASS, SPACING, NewtonRunner, emit_table, installed_newton, set_up
 
 FPS, SUBSTEPS = 60, 16
@@ -86,22 +88,33 @@ def batch_size(runner, device, seconds: float) -> int:
 
 
 def launches_per_substep(model: ws.Model, integrator: str, guard) -> float:
-    """Kernel launches per substep of one uncaptured frame (``wp.launch`` counted)."""
+    """Kernel launches per substep of one uncaptured frame past the frames a guard watches from its start
+    (``wp.launch`` and flat kernels' launches counted)."""
     sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=guard, integrator=ws.make_integrator(integrator, model),
                        use_graph=False)
-    sim.step_frame()
+    for _ in range(WATCH_FRAMES + 1):
+        sim.step_frame()
     count = [0]
-    launch = wp.launch
+    launch, flat = wp.launch, flatten._launch
 
     def counted(*args, **kwargs):
         count[0] += 1
         return launch(*args, **kwargs)
 
-    wp.launch = counted
+    def counted_flat(*args, **kwargs):  # (replayed on the CPU: no ``wp.launch``; its own is not a second launch)
+        count[0] += 1
+        wp.launch = launch
+        try:
+            return flat(*args, **kwargs)
+        finally:
+            wp.launch = counted
+
+    wp.launch, flatten._launch = counted, counted_flat
     try:
         sim.step_frame()
     finally:
-        wp.launch = launch
+        wp.launch, flatten._launch = launch, flat
+    sim.settle()
     return count[0] / SUBSTEPS
 
 
