@@ -12,8 +12,8 @@ runs W worlds of it in one model. Per size and integrator: substeps/s of each co
 ≥ 0.87 on the CPU is the target) and, for symplectic Euler, the default run against Newton.
 
     python bench/guard_cost.py --device cpu --sizes 32 --batches 7
-    python bench/guard_cost.py --device cuda:0 --sizes 64 256 1024 --worlds-sizes 4096 --batches 5 \
-        --out bench/results/guard_cost_gpu.md
+    python bench/guard_cost.py --device cuda:0 --sizes 64 256 1024 --worlds-sizes 4096 --batches 5 --seconds 0.5 \
+        --sync-verdict
 """
 
 from __future__ import annotations
@@ -21,12 +21,15 @@ from __future__ import annotations
 import argparse
 import datetime
 import statistics
+import time
 
 import numpy as np
 import warp as wp
 
 import warpspring as ws
-from cloth import KD, KE, MASS, SPACING, NewtonRunner, batch_size, emit_table, installed_newton, set_up, timed_batch
+from warpspring.core.guards import WATCH_FRAMES
+from warpspring.kernels import flatten
+from cloth import KD, KE, MASS, SPACING, NewtonRunner, emit_table, installed_newton, set_up
 
 FPS, SUBSTEPS = 60, 16
 INTEGRATORS = ("symplectic_euler", "rk4", "implicit_euler")
@@ -44,12 +47,13 @@ def hanging_cloth(n: int, device, worlds: int = 1, evaluation: str = "auto") -> 
 
 
 class Run:
-    """One ``Simulator`` of the cloth: ``guard`` ``None`` (off) or a ``GuardLimits``; with ``probe`` (guard off) a
-    small device array read after every frame, as the guard reads its status: what the host's wait for the frame
-    costs alone (on a GPU the next frame's launch then waits for the host)."""
+    """One ``Simulator`` of the cloth: ``guard`` ``None`` (off) or a ``GuardLimits``, its verdict read a frame later on
+    CUDA as shipped (``defer_verdict=False``: after every frame); with ``probe`` (guard off) a small device array read
+    after every frame, as the guard without deferral reads its status: what the host's wait for the frame costs alone
+    (on a GPU the next frame's launch then waits for the host)."""
 
-    def __init__(self, model: ws.Model, integrator: str, guard, probe: bool = False):
-        self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=guard,
+    def __init__(self, model: ws.Model, integrator: str, guard, probe: bool = False, defer_verdict: bool | None = None):
+        self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=guard, defer_verdict=defer_verdict,
                                 integrator=ws.make_integrator(integrator, model))
         self.probe = wp.zeros((model.world_count, 7), dtype=wp.int32, device=model.device) if probe else None
 
@@ -58,24 +62,59 @@ class Run:
         if self.probe is not None:
             self.probe.numpy()
 
+    def settle(self):
+        """The last frame's verdict (a batch's time includes it)."""
+        self.sim.settle()
+
+
+def timed_batch(runner, device, batch: int) -> float:
+    """Seconds per frame over ``batch`` frames, the last frame's verdict included (``Run.settle``), the device
+    synchronised before each timer read."""
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    for _ in range(batch):
+        runner.frame()
+    getattr(runner, "settle", lambda: None)()
+    wp.synchronize_device(device)
+    return (time.perf_counter() - t0) / batch
+
+
+def batch_size(runner, device, seconds: float) -> int:
+    """Frames per batch, doubled until a batch takes ``seconds``."""
+    batch = 1
+    while timed_batch(runner, device, batch) * batch <= seconds and batch <= 1 << 16:
+        batch *= 2
+    return batch
+
 
 def launches_per_substep(model: ws.Model, integrator: str, guard) -> float:
-    """Kernel launches per substep of one uncaptured frame (``wp.launch`` counted)."""
+    """Kernel launches per substep of one uncaptured frame past the frames a guard watches from its start
+    (``wp.launch`` and flat kernels' launches counted)."""
     sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=guard, integrator=ws.make_integrator(integrator, model),
                        use_graph=False)
-    sim.step_frame()
+    for _ in range(WATCH_FRAMES + 1):
+        sim.step_frame()
     count = [0]
-    launch = wp.launch
+    launch, flat = wp.launch, flatten._launch
 
     def counted(*args, **kwargs):
         count[0] += 1
         return launch(*args, **kwargs)
 
-    wp.launch = counted
+    def counted_flat(*args, **kwargs):  # (replayed on the CPU: no ``wp.launch``; its own is not a second launch)
+        count[0] += 1
+        wp.launch = launch
+        try:
+            return flat(*args, **kwargs)
+        finally:
+            wp.launch = counted
+
+    wp.launch, flatten._launch = counted, counted_flat
     try:
         sim.step_frame()
     finally:
-        wp.launch = launch
+        wp.launch, flatten._launch = launch, flat
+    sim.settle()
     return count[0] / SUBSTEPS
 
 
@@ -104,6 +143,9 @@ def main():
                              "runs the CUDA default's kernels)")
     parser.add_argument("--probe", action="store_true",
                         help="also guard off with a status-sized read after every frame (the host's wait alone)")
+    parser.add_argument("--sync-verdict", action="store_true",
+                        help="also the default guard with its verdict read after every frame (defer_verdict=False): "
+                             "what reading it a frame later gives")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
@@ -127,6 +169,8 @@ def main():
                       "default": lambda: Run(cloth(), integrator, ws.GuardLimits())}
             if args.probe:
                 makers["probe"] = lambda: Run(cloth(), integrator, None, probe=True)
+            if args.sync_verdict:
+                makers["sync"] = lambda: Run(cloth(), integrator, ws.GuardLimits(), defer_verdict=False)
             # Newton's builder takes the worlds as one flat set of particles: single cloths only (the issue's table).
             newton = newton_version and integrator == "symplectic_euler" and worlds == 1
             if newton:
@@ -140,6 +184,11 @@ def main():
                         f"{launches_per_substep(cloth(), integrator, ws.GuardLimits()):.2f}")
             vs_newton = (f"{statistics.median(nt / on for nt, on in zip(times['newton'], times['default'])):.2f}×"
                          if newton else "")
+            if args.sync_verdict:
+                sync = statistics.median(off / p for off, p in zip(times["off"], times["sync"]))
+                notes.append(f"- {label}, {integrator}: default with its verdict read after every frame ÷ guard off = "
+                             f"{sync:.3f}")
+                print(notes[-1], flush=True)
             if args.probe:
                 probe = statistics.median(off / p for off, p in zip(times["off"], times["probe"]))
                 notes.append(f"- {label}, {integrator}: guard off with a read after every frame ÷ guard off = "

@@ -12,6 +12,7 @@ import warp as wp
 import warpspring as ws
 from helpers import run_frames
 from warpspring.core.guards import WATCH_FRAMES
+from warpspring.kernels import flatten
 
 # A 2 kg mass on a 200 N/m spring with 5 % of critical damping, hanging from a pin, released 0.1 m below its static
 # equilibrium at rest: ω = 10 rad/s, kd = 2 ζ √(k m) = 2 N·s/m (``test_dissipation.py``'s oscillator).
@@ -142,17 +143,25 @@ def test_no_launch_per_substep_for_the_guard(device):
         for _ in range(WATCH_FRAMES + 1):  # past the frames a guard watches from the start (``Guard._watch``)
             sim.step_frame()
         count = [0]
-        launch = wp.launch
+        launch, flat = wp.launch, flatten._launch
 
         def counted(*args, **kwargs):
             count[0] += 1
             return launch(*args, **kwargs)
 
-        wp.launch = counted
+        def counted_flat(*args, **kwargs):  # a flat kernel's launch (replayed on the CPU: no ``wp.launch``)
+            count[0] += 1
+            wp.launch = launch  # (its own ``wp.launch`` is not a second launch)
+            try:
+                return flat(*args, **kwargs)
+            finally:
+                wp.launch = counted
+
+        wp.launch, flatten._launch = counted, counted_flat
         try:
             sim.step_frame()
         finally:
-            wp.launch = launch
+            wp.launch, flatten._launch = launch, flat
         return count[0]
 
     extra = [launches(ws.GuardLimits(), n) - launches(None, n) for n in (16, 32)]  # (at 4 its dampers are unstable)
@@ -270,3 +279,32 @@ def test_a_world_released_without_a_restart_counts_from_its_release(device, inte
     balance = sim.guard.energy_balance()
     assert np.all(np.abs(balance.created) <= 0.02 * balance.peak)
     assert balance.dissipated[1] > 0.0  # its drag and dampers counted again once released
+
+
+def test_power_summed_per_block_is_the_per_particle_sum(device, monkeypatch):
+    """Symplectic Euler's fused step sums the guard's power per block into the running sums on CUDA (per particle on
+    the CPU, where this test turns the blocks on): the wind-and-drag cloth above gives the same positions to the last
+    bit, and the same dissipation and work up to the per-particle sums' float32 rounding (~1e-7 of each step's
+    energy, summed over 480 steps: 1e-5 of D and W)."""
+    import warpspring.core.guards as guards
+
+    results = []
+    for blocks in (True, False):
+        monkeypatch.setattr(guards, "STEP_POWER_BLOCKS", {True: blocks, False: blocks})
+        builder = ws.ModelBuilder(drag=0.02)
+        spring = ws.SpringMaterial(ke=100.0, kd=0.5)
+        builder.add_cloth_grid(nx=6, ny=6, spacing=0.1, particle_mass=0.05, structural=spring, shear=spring,
+                               pin=["top"])
+        builder.add_aerodynamics(wind=(3.0, 0.0, 0.0))
+        model = builder.finalize(device, spring_evaluation="gather")
+        integrator = ws.make_integrator("symplectic_euler", model, cpu_sweep=False, one_launch=False)
+        sim = ws.Simulator(model, integrator=integrator, fps=60, substeps=8)
+        q = run_frames(sim, 60)
+        assert (integrator.power_blocks is not None) == blocks
+        results.append((q, sim.guard.energy_balance()))
+    (q_blocks, blocks), (q_particles, particles) = results
+    assert np.array_equal(q_blocks, q_particles)
+    assert blocks.dissipated[0] > 0.01 * blocks.peak[0] and blocks.work[0] > 0.01 * blocks.peak[0]
+    np.testing.assert_allclose(blocks.dissipated, particles.dissipated, rtol=1e-5)
+    np.testing.assert_allclose(blocks.work, particles.work, rtol=1e-5)
+    np.testing.assert_allclose(blocks.created, particles.created, atol=1e-5 * blocks.peak[0])

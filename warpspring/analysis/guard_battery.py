@@ -201,6 +201,7 @@ def run_case(path: pathlib.Path, variant: str, integrator: str, case: str, *, de
                     break
             sim.step_frame()
             outcome.frames = frame + 1
+        sim.settle()  # the last frame's verdict (on CUDA read a frame later)
     except SimulationError as stop:
         outcome.stopped = True
         outcome.frames = stop.frame or sim.frame + 1

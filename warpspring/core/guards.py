@@ -25,6 +25,7 @@ from ..kernels.guards import (
     BALANCE_REFERENCE,
     BALANCE_SLOTS,
     BALANCE_WORK,
+    CARRY_SLOTS,
     GUARD_BALANCE,
     GUARD_BALANCE_FLOOR,
     GUARD_BALANCE_TOLERANCE,
@@ -52,6 +53,8 @@ from ..kernels.guards import (
     NO_PARTICLE,
     RUNNING_POWER,
     RUNNING_SLOTS,
+    RUNNING_STEP_DISSIPATION,
+    RUNNING_WORK,
     guard_damper_kernel,
     guard_dissipation_kernel,
     guard_drag_kernel,
@@ -92,6 +95,11 @@ from .model import Model
 from .state import State
 from .stepper import StepHook
 from .tracks import evaluate_input_tracks
+
+#: Whether symplectic Euler's fused step sums the guard's power per block (``integrators.symplectic_euler_blocks_kernel``)
+#: rather than per particle, by device (CUDA: True). On the CPU, where a block is one thread, a block per particle would
+#: only cost more; a test turns it on there to check the sums against the per-particle ones.
+STEP_POWER_BLOCKS = {True: True, False: False}
 
 #: Frames checked after every substep from a restart, or from a write that raised the springs' bound, at a step the bound
 #: does not certify stable (``Guard._watch``).
@@ -149,6 +157,19 @@ class Guard(StepHook):
         self._status_host = _pinned_status(status.shape) if device.is_cuda else self._status
         if self._status_host is not self._status:
             weakref.finalize(self, _PINNED_STATUS[status.shape].append, self._status_host)
+        # The reads a frame later (``post``, ``collect``): two such buffers in turn, each with the event after its copy
+        # (on the CPU a copy is done when it returns: host arrays, no event).
+        self._slots = [_pinned_status(status.shape) if device.is_cuda else wp.empty(status.shape, dtype=wp.int32,
+                                                                                    device="cpu") for _ in range(2)]
+        if device.is_cuda:
+            for slot in self._slots:
+                weakref.finalize(self, _PINNED_STATUS[status.shape].append, slot)
+        # (events from a pool that never destroys them either: none is destroyed while another simulator captures)
+        self._events = [_pooled_event(device) for _ in self._slots] if device.is_cuda else [None, None]
+        for event in self._events if device.is_cuda else ():
+            weakref.finalize(self, _EVENTS[device.alias].append, event)
+        self._pending = []  # the slots posted and not yet collected, oldest first
+        self._posted = 0
         # The check's passes stride (each lane several particles or elements: few partial sums to gather): on CUDA
         # up to REDUCE_PER_LANE a lane, on the CPU one thread per world walks them all (its sums in the same order).
         per_lane, fill = (REDUCE_PER_LANE, REDUCE_FILL_BLOCKS) if self._tiled else (CPU_PER_LANE, 0)
@@ -176,12 +197,23 @@ class Guard(StepHook):
         self._energy_partials = wp.zeros((worlds, max(blocks, 1)), dtype=wp.float64, device=device)
         # ... and of their largest strain, where a family measures it per element (``guard_energy_kernel``; -1: none).
         self._strain_partials = wp.full((worlds, max(blocks, 1)), -1.0, dtype=wp.float64, device=device)
+        # ... and of the power their dampers take out at the check's state, where the integrator's force pass counts
+        # them (the closing term: ``guard_energy_kernel``'s ``power``; zero for the other families).
+        self._power_partials = wp.zeros((worlds, max(blocks, 1)), dtype=wp.float64, device=device)
+        # Minus each world's share of the closing term at the last check, which the next check's span counts
+        # (``guard_kernels``).
+        self._carry = wp.zeros((worlds, CARRY_SLOTS), dtype=wp.float64, device=device)
         # Running dissipation per reducing block (``kernels/guards.py``): drag's particle blocks first, then the
         # blocks of each family with dampers.
         # On the CPU one thread per world sums a family's (or drag's) power: one block, launched over worlds.
         self._dissipation_layout = []
         self._drag_grid = reduce_launch_dim(worlds, model.particle_count, self._lanes) if self._tiled else (worlds, 1, 1)
-        blocks = self._drag_grid[1]
+        # ... which symplectic Euler's fused step shares where it sums the power per block (``_attach_power``): one
+        # particle a lane (on the CPU, where a block is one thread, only where ``STEP_POWER_BLOCKS`` says so: a block
+        # per particle).
+        self._step_grid = (reduce_launch_dim(worlds, model.particle_count, self._lanes)
+                           if STEP_POWER_BLOCKS[device.is_cuda] else None)
+        blocks = max(self._drag_grid[1], self._step_grid[1] if self._step_grid is not None else 0)
         for family, lanes, _, _ in self._energy_layout:
             if getattr(family.spec(model).funcs(model.scalar), "dissipation", None) is not None:
                 # (one element per lane: the dissipation passes do not stride)
@@ -208,7 +240,6 @@ class Guard(StepHook):
         self._midpoint = False
         self._working = False
         self._step_position = self._step_velocity = self._step_time = self._step_start = None
-        self._locate = None  # (kernel, state, substep) of the frame's last check: ``reports`` runs it on a failure
         self.limits = limits
 
     @property
@@ -402,7 +433,7 @@ class Guard(StepHook):
         dampers = [] if self._dampers is None else [self._dampers.damper, self._dampers.dissipated, self._dampers.skip]
         power = [] if self._power is None else [self._power.sums]
         return [self._work_total, self._previous_q, self._previous_qd, self._previous_load, self._balance, self._running,
-                self._status, self._values, *dampers, *power]
+                self._status, self._values, *dampers, *power, self._carry]
 
     def restart(self, state: State | None = None) -> None:
         """Forget the work put in and measure from ``state`` (default the model's initial state) on: the loads
@@ -416,7 +447,11 @@ class Guard(StepHook):
         wp.copy(self._previous_qd, state.particle_qd)
         self._restart_balance()
         self.reset()
-        self._measure(state)  # Δx = 0: no work, the loads at the start recorded
+        self._dissipation_kernels()  # the power sums attached to the integrator or not (``_power``)
+        gather = self._measure(state)  # Δx = 0: no work, the loads at the start recorded
+        if self._power is not None:  # minus the closing term at the start opens the first span
+            self._energy_passes(state)
+            self._gather(gather, state, 0, carry_only=True)
         self.reset()
         if self._dissipating and not self._midpoint:
             self._dissipate(state)  # the power at the start: the first substep's trapezoid
@@ -444,6 +479,8 @@ class Guard(StepHook):
             self._dampers.skip.fill_(1)  # the values kept are stale: the next step starts the count
         if getattr(self, "_power", None) is not None:
             self._power.sums.zero_()
+        if getattr(self, "_carry", None) is not None:
+            self._carry.zero_()
 
     def work(self) -> np.ndarray:
         """The work the loads put into each world since the start [J], float64, shape [world_count] (the
@@ -676,6 +713,7 @@ class Guard(StepHook):
         if modes is None:
             if self._power is not None and getattr(integrator, "power", None) is self._power:
                 integrator.power = None
+                integrator.power_blocks = None
             self._power = None
             return
         model = self.model
@@ -695,6 +733,11 @@ class Guard(StepHook):
         elif not stored:
             power.forces = None
         integrator.power = power
+        # Symplectic Euler's fused step (gathered springs, or none): its power summed per block into the running sums.
+        fused = (getattr(integrator, "name", None) == "symplectic_euler" and (model.spring_gather or model.spring_count == 0)
+                 and self._step_grid is not None)
+        integrator.power_blocks = ((self._running, self._step_grid, RUNNING_STEP_DISSIPATION, RUNNING_WORK) if fused
+                                   else None)
 
     def _force_pass_dampers(self):
         """The springs' (family, lanes, grid, offset) where their scattered force pass counts their dampers'
@@ -778,19 +821,23 @@ class Guard(StepHook):
             rule, modes = self._power_rule(), power.modes
             features = model.force_features(self.control)._replace(families=specs, clamp_particle_force=False,
                                                                    external=force is not None)
-        measure, gather, locate = guard_kernels(model.scalar, specs, self._tiled, force is not None,
+        measure, gather, drive = guard_kernels(model.scalar, specs, self._tiled, force is not None,
                                                         working_specs, rule, features, modes,
                                                         self.counts_dissipation)
+        # The drives' work first: it reads the last check's positions, which ``measure`` moves on.
+        flat_launch(drive, dim=self._check_grid, block_dim=self._lanes,
+                    inputs=[model.particle_count, model.particle_flags, model.elements, model.inputs, state.particle_q,
+                            state.particle_qd, self._previous_q, reduce_stride(self._check_grid)],
+                    outputs=[self._previous_load, self._partials], device=model.device)
         flat_launch(measure, dim=self._check_grid, block_dim=self._lanes,
                     inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
                             model.elements, self._work_arrays(working, working_specs), model.inputs,
                             force if force is not None else state.particle_q,
-                            state.particle_q, state.particle_qd, self._lead(),
-                            0.0 if self.dt is None else float(self.dt), reduce_stride(self._check_grid)],
+                            state.particle_q, state.particle_qd, self._lead(), reduce_stride(self._check_grid)],
                     outputs=[None if power is None else power.sums, self._previous_q, self._previous_qd,
                              self._previous_load, self._status, self._partials],
                     device=model.device)
-        return gather, locate
+        return gather
 
     def _lead(self) -> float:
         """λ [s] of the steady loads' work on free particles (weight, the control's force: constant within a frame),
@@ -804,33 +851,40 @@ class Guard(StepHook):
         return 0.5 * float(self.dt)
 
     def check(self, state: State, substep: int, *, last: bool = False) -> None:
-        """Launch the checks of ``state`` after ``substep`` (device only; capturable). The check that ends a frame
-        (``last``) leaves finding the most strained element of a world that failed to :meth:`reports`, which runs
-        it on the same state after the frame, where a failure is seen (no launch in a frame that passes)."""
-        model = self.model
-        gather, locate = self._measure(state)
-        self._locate = (locate, state, substep) if last else None
-        worlds, device = model.world_count, model.device
+        """Launch the checks of ``state`` after ``substep`` (device only; capturable): the per-particle and per-element
+        passes, then ``gather``, whose verdict also finds the most strained element of a world that fails here, so
+        that a check's record is complete when it ends (``last``: the frame's last check, no different)."""
+        gather = self._measure(state)
         if self._dampers is not None and self._dissipating:
             self._close_dampers(state, float(self.dt))
-        for family, lanes, grid, offset in self._energy_layout:
-            flat_launch(guard_energy_kernel(model.scalar, family.spec(model), self._tiled), dim=grid, block_dim=lanes,
-                        inputs=[model.particle_count, family.element_count, offset, model.world_enabled,
-                                family.arrays(model), model.inputs, self._status, state.particle_q,
-                                reduce_stride(grid)],
-                        outputs=[self._energy_partials, self._strain_partials], device=device)
-        wp.launch(gather, dim=(worlds, self._lanes), block_dim=self._lanes,
-                  inputs=[self._partials, self._energy_partials, self._strain_partials, substep, self._limits],
-                  outputs=[model.world_enabled, self._status, self._running, self._values, self._work_total,
-                           self._balance], device=device)
-        if not last:
-            self._launch_locate(locate, state, substep)
+        self._energy_passes(state)
+        self._gather(gather, state, substep)
 
-    def _launch_locate(self, locate, state: State, substep: int) -> None:
+    def _energy_passes(self, state: State) -> None:
+        """The families' per-block elastic energy, strain and (where the force pass counts their dampers) the power
+        their dampers take out at ``state``."""
         model = self.model
-        flat_launch(locate, dim=model.particle_dim, block_dim=model.block_dim,
-                    inputs=[model.particle_count, model.elements, state.particle_q, substep, self._values],
-                    outputs=[self._status], device=model.device)
+        power = self._power
+        counted = {} if power is None else {family.name: mode == POWER_DAMPERS
+                                            for family, mode in zip(model.families, power.modes)}
+        for family, lanes, grid, offset in self._energy_layout:
+            kernel = guard_energy_kernel(model.scalar, family.spec(model), self._tiled, counted.get(family.name, False))
+            flat_launch(kernel, dim=grid, block_dim=lanes,
+                        inputs=[model.particle_count, family.element_count, offset, model.world_enabled,
+                                family.arrays(model), model.inputs, self._status, state.particle_q, state.particle_qd,
+                                reduce_stride(grid)],
+                        outputs=[self._energy_partials, self._strain_partials, self._power_partials],
+                        device=model.device)
+
+    def _gather(self, gather, state: State, substep: int, carry_only: bool = False) -> None:
+        """Each world's sums and verdict (``carry_only``: a restart's closing term alone)."""
+        model = self.model
+        flat_launch(gather, dim=(model.world_count, self._lanes), block_dim=self._lanes,
+                    inputs=[model.particle_count, model.elements, state.particle_q, self._partials, self._energy_partials,
+                            self._strain_partials, self._power_partials, substep, self._limits,
+                            0.0 if self.dt is None else float(self.dt), int(carry_only)],
+                    outputs=[model.world_enabled, self._status, self._running, self._values, self._work_total,
+                             self._balance, self._carry], device=model.device)
 
     def reports(self) -> list[GuardReport]:
         """Each world's first failure since the last reset, in world order (reads the device: synchronises). The
@@ -839,7 +893,40 @@ class Guard(StepHook):
         if self._status_host is not self._status:
             wp.copy(self._status_host, self._status)
             wp.synchronize_stream(self.model.device)
-        status = self._status_host.numpy()
+        return self._parse(self._status_host.numpy())
+
+    def post(self) -> None:
+        """Start reading the record as the frame just launched leaves it, without waiting for the device: on CUDA a copy
+        into a pinned buffer of its own, queued behind the frame, and an event after it (:meth:`collect` waits for
+        it, typically once the next frame is queued behind it, so that the device never idles for the host)."""
+        k = self._posted % len(self._slots)
+        self._posted += 1
+        if len(self._pending) == len(self._slots):
+            raise RuntimeError("Guard.post: collect the older frames' records first")
+        wp.copy(self._slots[k], self._status)
+        if self._events[k] is not None:
+            wp.get_stream(self.model.device).record_event(self._events[k])
+        self._pending.append(k)
+
+    def collect(self) -> list[GuardReport]:
+        """The failures in the record of the oldest frame :meth:`post` started reading (waits for that frame and its
+        copy alone; those already reported are in it again while their record stands: the caller skips them)."""
+        k = self._pending.pop(0)
+        if self._events[k] is not None:
+            wp.synchronize_event(self._events[k])
+        return self._parse(self._slots[k].numpy())
+
+    def discard(self) -> None:
+        """Forget the records posted and not collected (a restart)."""
+        self._pending.clear()
+
+    @property
+    def pending(self) -> int:
+        """Frames whose record :meth:`post` started reading and :meth:`collect` has not returned."""
+        return len(self._pending)
+
+    def _parse(self, status: np.ndarray) -> list[GuardReport]:
+        """The failures a host copy of the status record holds (reads the values on a failure: synchronises)."""
         reasons = {GUARD_NONFINITE: "non-finite state", GUARD_STRAIN: "strain", GUARD_ENERGY: "kinetic energy",
                    GUARD_BALANCE: "energy balance"}
         families = self.model.families
@@ -847,12 +934,6 @@ class Guard(StepHook):
         tripped = status[:, GUARD_TRIPPED]
         if not tripped.any():  # the common case, every frame: one read, nothing allocated that could linger
             return []
-        pending = getattr(self, "_locate", None)
-        if pending is not None and (status[tripped != 0, GUARD_SUBSTEP] == pending[2]).any():
-            # A world failed at the frame's last check, whose state the frame left as it was: find its element now.
-            self._launch_locate(*pending)
-            self._locate = None
-            status = self._status.numpy()
         values = self._values.numpy()
         for world in np.flatnonzero(tripped):
             row = status[world]
@@ -896,6 +977,17 @@ class Guard(StepHook):
 #: Pinned host buffers for the guards' status reads, by shape: taken by a guard, handed back when it is collected,
 #: never freed (see ``Guard.__init__``).
 _PINNED_STATUS: dict[tuple, list] = {}
+
+
+#: CUDA events for the deferred reads of the guards' status (``Guard.post``), by device: taken by a guard, handed back
+#: when it is collected, never destroyed (as ``_PINNED_STATUS``).
+_EVENTS: dict[str, list] = {}
+
+
+def _pooled_event(device) -> wp.Event:
+    """An event of ``device`` from the pool (a new one where none is free)."""
+    free = _EVENTS.setdefault(device.alias, [])
+    return free.pop() if free else wp.Event(device)
 
 
 def _pinned_status(shape: tuple) -> wp.array:

@@ -58,9 +58,14 @@ class Simulator:
             launches from Python every frame (for debugging). Both give the same result bit for bit.
         guard: run-time checks (non-finite state, torn springs, runaway energy) made on the device, per
             world, every ``guard.every`` substeps; a failure raises :class:`SimulationError` at the end of
-            the frame, or with ``GuardLimits(stop="world")`` holds the failed world, records it in
-            :attr:`world_failures` and goes on with the others. ``None`` disables them (and the per-frame
+            the frame (with ``defer_verdict``, at the next frame or :meth:`settle`), or with
+            ``GuardLimits(stop="world")`` holds the failed world, records it in :attr:`world_failures` and goes on
+            with the others. ``None`` disables them (and the per-frame
             read of their record).
+        defer_verdict: read each frame's guard record a frame later (``None``: on CUDA): :meth:`step_frame` queues the
+            next frame before it waits for the previous one's record, so the device does not idle while the host
+            reads (a 64² cloth lost a third of its rate to that wait on an H200). A failure then raises at the next
+            :meth:`step_frame` or at :meth:`settle`, naming its own frame; see :meth:`step_frame`.
 
     Attributes:
         world_failures: the worlds stopped by the guard (``stop="world"``) so far: world → (frame, report),
@@ -88,6 +93,7 @@ class Simulator:
         control: Control | None = None,
         use_graph: bool = True,
         guard: GuardLimits | None = GuardLimits(),
+        defer_verdict: bool | None = None,
     ):
         self.model = model
         self.fps = checks.positive("fps", fps)
@@ -117,9 +123,23 @@ class Simulator:
         if self.guard is not None:
             self.guard.restart(self.state)  # Δx of the first check from the start state (pins at t = 0)
         self.frame_hooks: list[FrameHook] = []
+        self.defer_verdict = (model.device.is_cuda if defer_verdict is None else bool(defer_verdict)) and \
+            self.guard is not None
+        self._unsettled = False  # the last frame's record is posted and not yet read (``defer_verdict``)
         self.frame = 0
-        self.world_failures: dict = {}
+        self._world_failures: dict = {}
         self._overflow_seen = np.zeros(model.world_count, dtype=np.int64)
+
+    @property
+    def world_failures(self) -> dict:
+        """The worlds the guard stopped (``stop="world"``) so far, world → (frame, report); reading it settles the
+        last frame (:meth:`settle`)."""
+        self.settle()
+        return self._world_failures
+
+    @world_failures.setter
+    def world_failures(self, failures: dict) -> None:
+        self._world_failures = failures
 
     @property
     def integrator(self) -> Integrator:
@@ -131,7 +151,9 @@ class Simulator:
 
     @property
     def state(self) -> State:
-        """The current state (at :attr:`time`)."""
+        """The current state (at :attr:`time`), once the guard passed it: reading it settles the last frame
+        (:meth:`settle`; raises :class:`SimulationError` where the guard stopped it)."""
+        self.settle()
         return self.stepper.state
 
     @property
@@ -163,9 +185,17 @@ class Simulator:
     def step_frame(self) -> None:
         """Advance :attr:`state` by one frame.
 
+        With :attr:`defer_verdict` (the default on CUDA) the guard's verdict on a frame is read when the next frame
+        is queued: ``step_frame`` raises for a failure of the frame before its own, and :meth:`settle` for the
+        last frame's. The promise: whatever was read from a frame whose verdict is known stayed valid; a frame hook
+        sees only a state whose verdict is known (the frame is settled before the hooks run), and ``warpspring run``
+        writes a frame only once it is settled. Without it (the CPU, where reading the record costs nothing) every
+        frame is settled before ``step_frame`` returns.
+
         Raises:
-            SimulationError: a guard check failed during the frame; :attr:`state` is then unusable and
-                :attr:`frame` still counts the frames completed before it.
+            SimulationError: a guard check failed during this frame, or with :attr:`defer_verdict` the one before;
+                the message names the frame and substep. :attr:`state` is then unusable and :attr:`frame` counts the
+                frames completed before the failed one.
         """
         if self.guard is not None:
             self.guard.refresh()
@@ -182,27 +212,54 @@ class Simulator:
                 raise SimulationError(f"frame {self.frame + 1}: {shortfall}", frame=self.frame + 1)
             warnings.warn(SolverWarning(f"frame {self.frame + 1}: {shortfall}"), stacklevel=2)
         if self.guard is not None:
-            reports = self.guard.reports()
-            if reports and self.guard.limits.stop == "world":
-                for report in reports:
-                    self.world_failures[report.world] = (self.frame + 1, report)
-                if len(self.world_failures) < self.model.world_count:
-                    reports = []
-            if reports:
-                report = min(reports, key=lambda r: (r.substep, r.world))
-                error = SimulationError(
-                    f"frame {self.frame + 1}, substep {report.substep + 1} of {self.substeps} "
-                    f"(t ≤ {self.time + (report.substep + 1) * self.dt:.4g} s): {self.guard.explain(report)}",
-                    frame=self.frame + 1,
-                    substep=report.substep + 1,
-                )
-                error.reason = report.reason  # what tripped: the runner's diagnosis tells its kind apart
-                raise error
+            if self.defer_verdict:
+                self.guard.post()  # this frame's record, read at the next frame (the device keeps busy)
+                if self._unsettled:
+                    self._judge(self.guard.collect(), self.frame)  # the frame before: raises for its failure
+                self._unsettled = True
+            else:
+                self._judge(self.guard.reports(), self.frame + 1)
             if self.contacts is not None:
                 self._report_overflow()
         self.frame += 1
+        if self.frame_hooks:
+            self.settle()
         for hook in self.frame_hooks:
             hook.after_frame(self, self.frame)
+
+    def settle(self) -> None:
+        """Wait for the guard's verdict on the last frame (:attr:`defer_verdict`; otherwise nothing to wait for): a
+        state read after ``settle`` returns has passed the guard.
+
+        Raises:
+            SimulationError: the guard stopped the last frame (see :meth:`step_frame`).
+        """
+        if getattr(self, "_unsettled", False):
+            self._unsettled = False
+            self._judge(self.guard.collect(), self.frame)
+
+    def _judge(self, reports: list, frame: int) -> None:
+        """Act on the guard's ``reports`` of ``frame`` (1-based): record the held worlds (``stop="world"``; a world
+        already held is in the record a frame later again: skipped), or raise for the earliest failure."""
+        if reports and self.guard.limits.stop == "world":
+            reports = [report for report in reports if report.world not in self._world_failures]
+            for report in reports:
+                self._world_failures[report.world] = (frame, report)
+            if len(self._world_failures) < self.model.world_count:
+                reports = []
+        if reports:
+            report = min(reports, key=lambda r: (r.substep, r.world))
+            self.frame = frame - 1
+            self._unsettled = False
+            self.guard.discard()
+            error = SimulationError(
+                f"frame {frame}, substep {report.substep + 1} of {self.substeps} "
+                f"(t ≤ {self.time + (report.substep + 1) * self.dt:.4g} s): {self.guard.explain(report)}",
+                frame=frame,
+                substep=report.substep + 1,
+            )
+            error.reason = report.reason  # what tripped: the runner's diagnosis tells its kind apart
+            raise error
 
     def _report_overflow(self) -> None:
         overflow = self.contact_overflow()
@@ -232,6 +289,9 @@ class Simulator:
         """Restart at frame 0 (time 0) from ``state`` (default: the model's initial state), forgetting the
         integrator's history (step-size control, warm starts) and the pin targets set so far, so the run
         repeats exactly."""
+        self._unsettled = False  # a failure of the run left behind is not this run's
+        if self.guard is not None:
+            self.guard.discard()
         self.stepper.reset(state)
         self.state.time.zero_()
         if self.guard is not None:
@@ -264,6 +324,7 @@ class Simulator:
         Raises:
             ConfigError: the directory does not exist or cannot be written.
         """
+        self.settle()  # the frame saved has passed the guard
         return Checkpoint.capture(self).save(path)
 
     def load_checkpoint(self, path: str | os.PathLike) -> None:
@@ -280,6 +341,9 @@ class Simulator:
             ConfigError: the file is missing, damaged or not a checkpoint, or it was saved from another scene,
                 integrator, fps or substeps (the one-line message names what differs and how to fix it).
         """
+        self._unsettled = False
+        if self.guard is not None:
+            self.guard.discard()
         Checkpoint.load(path).restore(self)
         # What this simulator derives from the restored values: the overflow already reported, and a default
         # kinetic-energy limit (it follows the live inputs).

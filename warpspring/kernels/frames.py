@@ -16,7 +16,9 @@ buffer k mod 2): the same operations in the same order.
 On the CPU a launch runs its threads one after another, so the kernel is launched with one thread per world:
 each substep then runs over the whole world before the next begins, and the barriers are empty.
 
-The guard's power sums are accumulated per particle as the per-substep path does.
+The guard's power sums are kept by each lane in registers over the frame (float64) and added to one entry of the
+power sums per lane at its end (the per-substep path adds to every particle's entry every substep); the check sums a
+world's entries, so the guard counts the same energy up to the order of its additions.
 """
 
 import functools
@@ -25,22 +27,13 @@ import warp as wp
 
 from .families import FORCE_KERNEL_OPTIONS, elements
 from .forces import ForceFeatures, counts_work, power_sums_funcs
-from .integrators import symplectic_euler_particle_func
+from .integrators import symplectic_euler_particle_energy_func, symplectic_euler_particle_func
+from .linalg import block_barrier
 from .precision import vec3_type
 from .shapes import ContactFeatures, shapes_type
 from .flatten import flat_kernel
 
 wp.set_module_options({"enable_backward": False})
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-__syncthreads();
-#endif
-""")
-def block_barrier():
-    """Every lane of the block waits here until all have arrived (``__syncthreads``; nothing on the CPU)."""
-    ...
 
 
 @wp.func_native("""
@@ -77,10 +70,14 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
     ``steps`` · (dt + dt_rest), added one step at a time as the per-substep path adds it."""
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
-    Sums = power_sums_funcs(scalar, power is not None and counts_work(features, power)).type
+    counted = power is not None
+    sums = power_sums_funcs(scalar, counted and counts_work(features, power))
+    Sums = sums.type
+    pack = sums.pack
     composed = elements(scalar, features.families)
     Elements = composed.arrays
-    step_particle = symplectic_euler_particle_func(scalar, features, contacts, power)
+    step_particle = symplectic_euler_particle_func(scalar, features, contacts, None)
+    step_energy = symplectic_euler_particle_energy_func(scalar, features, contacts, power) if counted else None
 
     @wp.func
     def substep(world: int, lane: int, lanes: int, particle_count: int,
@@ -89,16 +86,28 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
                 element_arrays: Elements, inputs: wp.array2d[scalar], particle_force_ext: wp.array[vec3],
                 q_in: wp.array[vec3], qd_in: wp.array[vec3], h: scalar,
                 q_out: wp.array[vec3], qd_out: wp.array[vec3], power_in_out: wp.array[Sums]):
+        """The lane's particles stepped; with ``power``, what their dampers and drag took out and the loads from
+        outside put in over the step [J] (float64), returned for the lane to keep in registers over the frame."""
         base = world * particle_count
+        taken = wp.float64(0.0)
+        worked = wp.float64(0.0)
         i = lane
         while i < particle_count:
             p = base + i
-            x, v = step_particle(world, i, p, base, particle_flags, particle_inv_mass, particle_radius, shapes,
-                                 particle_mass, element_arrays, inputs, particle_force_ext, q_in, qd_in, h,
-                                 power_in_out)
+            if wp.static(counted):
+                x, v, t, w = step_energy(world, i, p, base, particle_flags, particle_inv_mass, particle_radius,
+                                         shapes, particle_mass, element_arrays, inputs, particle_force_ext, q_in,
+                                         qd_in, h)
+                taken += wp.float64(t)
+                worked += wp.float64(w)
+            else:
+                x, v = step_particle(world, i, p, base, particle_flags, particle_inv_mass, particle_radius, shapes,
+                                     particle_mass, element_arrays, inputs, particle_force_ext, q_in, qd_in, h,
+                                     power_in_out)
             q_out[p] = x
             qd_out[p] = v
             i += lanes
+        return taken, worked
 
     @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
                  last=contacts.idle() + composed.last("element_arrays"))
@@ -135,16 +144,22 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         stride = lanes * blocks  # a world's threads
         world = t / stride
         lane = t - world * stride
+        taken = wp.float64(0.0)  # the lane's power sums over the frame (with ``power``)
+        worked = wp.float64(0.0)
         k = int(0)
         while k < steps:
             if k % 2 == 0:
-                substep(world, lane, stride, particle_count, particle_flags, particle_inv_mass, particle_radius,
-                        shapes, particle_mass, element_arrays, inputs, particle_force_ext, q_a_in_out, qd_a_in_out, dt,
-                        q_b_in_out, qd_b_in_out, power_in_out)
+                step_taken, step_worked = substep(
+                    world, lane, stride, particle_count, particle_flags, particle_inv_mass, particle_radius, shapes,
+                    particle_mass, element_arrays, inputs, particle_force_ext, q_a_in_out, qd_a_in_out, dt, q_b_in_out,
+                    qd_b_in_out, power_in_out)
             else:
-                substep(world, lane, stride, particle_count, particle_flags, particle_inv_mass, particle_radius,
-                        shapes, particle_mass, element_arrays, inputs, particle_force_ext, q_b_in_out, qd_b_in_out, dt,
-                        q_a_in_out, qd_a_in_out, power_in_out)
+                step_taken, step_worked = substep(
+                    world, lane, stride, particle_count, particle_flags, particle_inv_mass, particle_radius, shapes,
+                    particle_mass, element_arrays, inputs, particle_force_ext, q_b_in_out, qd_b_in_out, dt, q_a_in_out,
+                    qd_a_in_out, power_in_out)
+            taken += step_taken
+            worked += step_worked
             if lane == 0:
                 time_in_out[world] = time_in_out[world] + (wp.float64(dt) + wp.float64(dt_rest))
             block_barrier()  # the block's lanes have written their particles
@@ -155,5 +170,8 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
             if blocks > 1:
                 block_barrier()
             k += 1
+        if wp.static(counted):  # one entry per lane, once a frame (the check sums a world's entries)
+            if lane < particle_count:
+                power_in_out[world * particle_count + lane] += pack(scalar(taken), scalar(worked))
 
     return symplectic_euler_frame

@@ -1,17 +1,18 @@
 """Run-time guards: detect a state going bad on the device, per world, without a host synchronisation per
 substep.
 
-A check is two launches and one per family, captured with the substeps (``locate`` a third, in-frame only for a check
-before the frame's last; and, with the dissipation or the work of wind and handles counted where the integrator's
-own force pass does not count them, a few more after every substep: below): ``measure`` (per particle: non-finite position or
-velocity, the largest strain of its elements (the families' ``strain`` hook), kinetic energy (of the free
-particles: a kinematic one moves as prescribed), and the work the loads did on it since the previous
+A check is three launches and one per family, captured with the substeps (and, with the dissipation or the work of
+wind and handles counted where the integrator's own force pass does not count them, a few more after every substep:
+below): ``drive`` (per kinematic particle: the work its drive did since the previous check), ``measure`` (per particle:
+non-finite position or velocity, the largest strain of its elements (the families' ``strain`` hook), kinetic energy
+(of the free particles: a kinematic one moves as prescribed), and the work the loads did on it since the previous
 check; per-block partials, no float atomics), ``element_energy_partials`` (one per family: per-block sums of
 its elements' elastic energy, the families' ``energy`` hook), ``gather`` (per world: the world's kinetic
 and elastic energy and work, summed in a fixed order, its largest strain, and the energy balance below; then
-``decide`` in its lane 0: compare with the world's limits, latch the world's first failure with its substep, reset
-the accumulators, and with ``stop_world`` set hold the failed world: ``world_enabled`` 0), ``locate`` (in a world
-that failed at this check only: the particle, element and family holding the largest strain).
+in its lane 0 the verdict: compare with the world's limits, latch the world's first failure with its substep, reset
+the accumulators, and with ``stop_world`` set hold the failed world: ``world_enabled`` 0; in a world that failed at
+this check only, its lanes then find the particle, element and family holding the largest strain, so that the record
+is complete when the check ends and the host may read it a frame later: ``Simulator(defer_verdict=...)``).
 
 **The work put in.** W sums, check by check, Σᵢ Fᵢ · (xᵢ - xᵢ') over the world's particles, xᵢ' the
 positions at the previous check: weight mᵢ g and the control's external force on free particles, and for
@@ -70,13 +71,12 @@ import functools
 import warp as wp
 
 from .families import elements
-from .forces import ForceFeatures, counts_work, particle_power_func, power_sums_funcs
+from .forces import POWER_WORK, ForceFeatures, counts_work, power_sums_funcs
 from .inputs import INPUT_DRAG, INPUT_GRAVITY, INPUT_WIND, input_funcs
 from .kinematics import is_kinematic
-from .linalg import reduction_funcs
+from .linalg import block_barrier, reduction_funcs
 from .precision import vec3_type
 from .springs import COINCIDENT_DISTANCE, damper_step_func, spring_arrays_type
-from .worlds import world_and_index
 from .flatten import flat_kernel
 
 wp.set_module_options({"enable_backward": False})
@@ -102,7 +102,14 @@ GUARD_FLOATS = 6
 # GUARD_MAX_STRAIN and GUARD_WORK, then the power sums' (``measure``'s ``power``)
 PARTIAL_DISSIPATION = GUARD_FLOATS  # energy the dampers and drag took out since the last check [J]
 PARTIAL_FAMILY_WORK = GUARD_FLOATS + 1  # work the loads from outside (wind, handles) did since the last check [J]
-PARTIAL_SLOTS = GUARD_FLOATS + 2
+PARTIAL_CLOSE_DISSIPATION = GUARD_FLOATS + 2  # the power drag takes out at the check's state [W] (the closing term)
+PARTIAL_CLOSE_WORK = GUARD_FLOATS + 3  # the power of the loads from outside at the check's state [W] (the closing term)
+PARTIAL_DRIVE_WORK = GUARD_FLOATS + 4  # work the drives did through the kinematic particles since the last check [J]
+PARTIAL_SLOTS = GUARD_FLOATS + 5
+# float64 slots of a world's closing terms carried to the next span (``carry[world, slot]``): minus this check's share
+# of h times the power at its state, which the next span's first step counts again in full (``guard_kernels``)
+CARRY_DISSIPATION, CARRY_WORK = 0, 1
+CARRY_SLOTS = 2
 # How the integrator's force pass counts the power for the balance (``measure``'s ``power``; ``core/forces.PowerSums``):
 # not at all (passes of their own), the energy over each step (symplectic Euler: f·(v + v')/2 h, exact), or h times
 # the power at each step's start, which the check turns into the trapezoid of the power (RK4)
@@ -123,9 +130,13 @@ BALANCE_SLOTS = 6
 # substep to substep
 RUNNING_DISSIPATION = 0  # energy taken out since the last check [J]
 RUNNING_POWER = 1  # the power after the last substep [W]; non-finite: none yet (the first trapezoid's start)
-RUNNING_WORK = 2  # work the families that do work from outside did since the last check [J] (``guard_work_kernel``)
-RUNNING_SLOTS = 3
-# float64 slots of the limits: live settings, read by ``decide``
+RUNNING_STEP_DISSIPATION = 2  # energy the dampers and drag took out since the last check, summed by symplectic
+# Euler's fused step on CUDA (``integrators.symplectic_euler_blocks_kernel``) [J]
+RUNNING_WORK = 3  # work the families that do work from outside did since the last check [J] (``guard_work_kernel``,
+# and that step); the last slot: a checkpoint's running sums of fewer slots load with it zero (all but the power are
+# zero at a frame's end)
+RUNNING_SLOTS = 4
+# float64 slots of the limits: live settings, read by ``gather``
 GUARD_LIMIT_STRAIN = 0  # an element strain beyond this tears the run [-]
 GUARD_LIMIT_KINETIC_ENERGY = 1  # a total kinetic energy beyond this is a runaway [J]
 GUARD_STOP_WORLD = 2  # 1: a failed world is held and the others go on; 0: the run stops
@@ -187,24 +198,33 @@ def particle_strain_func(scalar: type, specs: tuple):
 def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, working: tuple = (),
                   power: int = POWER_RULE_NONE, power_features: ForceFeatures | None = None,
                   power_modes: tuple = (), dissipation: bool = False):
-    """(measure, gather, locate, decide) kernels of one precision and tuple of family specs; ``external``:
+    """(measure, gather, drive) kernels of one precision and tuple of family specs; ``external``:
     the control has an external force (part of the loads' work); ``working``: the specs of the families that
     do work from outside (wind, handles: ``ElementFamily.does_work``), whose forces on free particles count
     among the loads here (not where the integrator's force pass counts their work).
 
     ``power`` (a ``POWER_RULE_*``): what the integrator's force pass added to the power sums since the last check,
     which ``measure`` takes into the check's partials and clears. With ``POWER_RULE_START`` the sums hold h times
-    the power at each step's start; ``measure`` evaluates it at the check's state too (``power_features``, whose
-    families are ``families``, and ``power_modes``: ``forces.particle_power_func``), adds half of it to the check's
-    span and leaves minus half for the next span, whose first step adds all of it: the trapezoid of the power
-    over the substeps. With ``POWER_RULE_MEAN`` the sums hold each step's exact energy, -h f_d·(v + v')/2, whose sum
+    the power at each step's start; the check adds half of h times the power at its own state to its span and
+    leaves minus that half for the next span, whose first step adds all of it: the trapezoid of the power over the
+    substeps. With ``POWER_RULE_MEAN`` the sums hold each step's exact energy, -h f_d·(v + v')/2, whose sum
     over steps differs from the mean-rate rule's, Σ h c ((r + r')/2)² per damper (≥ 0 for each), by a quarter of
     h P at the span's ends (P = -f_d·v, the dampers' power: the algebra of (r + r')² = r² + 2 r r' + r'²): the
     check adds that quarter at its state and leaves minus it for the next span. The exact energy alone would
     count a damper that an unstable step drives (kd h/m past its limit) as putting energy in, and the balance
-    would never see the energy that step creates; the mean rate keeps every damper's loss ≥ 0. ``dissipation``:
-    ``gather`` adds the dampers' and drag's energy to D (else only the loads'
-    work counts: D left out, ``core/guards.dissipation_exact``)."""
+    would never see the energy that step creates; the mean rate keeps every damper's loss ≥ 0.
+
+    The power at the check's state (the closing term) is summed where its parts are cheap to read, with no force
+    evaluation per particle: drag's (c |v|²) and the wind's push through it (c u·v) on the free particles and the
+    forces of the families of mode ``POWER_WORK`` (``power_modes``; wind, handles) in ``measure``; the dampers of
+    the families of mode ``POWER_DAMPERS`` per element in the energy pass (their ``dissipation`` hook: the power
+    of a family's damper forces over its particles, Σᵢ -f_d,ᵢ·vᵢ = Σ_e P_e; ``guard_energy_kernel``'s ``power``).
+    ``gather`` adds the world's share of it, h times ``share`` times the power, and carries minus that share to the
+    next span (``carry[world]``): one float64 per world instead of a value per particle, and ``measure`` no longer
+    evaluates every particle's elements' forces (a 32² cloth's check on the CPU: 128 µs of ``measure`` before, of
+    which ~90 µs was that evaluation; on CUDA it held most of the kernel's 112 registers). ``dissipation``:
+    ``gather`` adds the dampers' and drag's energy to D (else only the loads' work counts: D left out,
+    ``core/guards.dissipation_exact``)."""
     vec3 = vec3_type(scalar)
     counted = power != POWER_RULE_NONE
     sums_funcs = power_sums_funcs(scalar, counted and counts_work(power_features, power_modes))
@@ -212,8 +232,10 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
     pack = sums_funcs.pack
     sums_dissipated = sums_funcs.dissipated
     sums_worked = sums_funcs.worked
-    boundary = counted
-    particle_power = particle_power_func(scalar, power_features, power_modes) if boundary else None
+    drag_closing = counted and power_features.drag
+    wind_closing = drag_closing and power_features.wind
+    pushing = counted and POWER_WORK in power_modes
+    push_force = pushing_force_func(scalar, families, power_modes) if pushing else None
     # The closing terms' shares of h times the power at the check's state (dampers, loads from outside): the
     # trapezoid's halves (RK4), or for symplectic Euler's D a quarter, which turns its exact step energy into the
     # mean-rate rule's (below); its loads' work stays exact.
@@ -224,6 +246,10 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
     Elements = composed.arrays
     element_strain = composed.strain
     particle_strain = particle_strain_func(scalar, families)
+    # Whether measure sees any strain (a family without an ``element_strain`` hook; those with one are measured per
+    # element in the energy pass) and any work from outside in the sums: else their block reductions are left out.
+    strained = any(getattr(spec.funcs(scalar), "element_strain", None) is None for spec in families)
+    sums_work = counted and counts_work(power_features, power_modes)
     element_force = composed.force
     work_composed = elements(scalar, working)
     WorkElements = work_composed.arrays
@@ -246,9 +272,8 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
-        # Guards in (the lead λ [s]: the steady loads' work on free particles is F·(Δx + λ Δv); the step h [s]):
+        # Guards in (the lead λ [s]: the steady loads' work on free particles is F·(Δx + λ Δv)):
         lead: scalar,
-        power_h: scalar,
         # Launch (the items between a lane's successive particles: ``linalg.reduce_stride``):
         stride: int,
         # In/out:
@@ -269,6 +294,8 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         work = wp.float64(0.0)
         dissipated = wp.float64(0.0)
         family_work = wp.float64(0.0)
+        close_dissipated = wp.float64(0.0)
+        close_work = wp.float64(0.0)
         while i < particle_count:  # every stride-th particle from the lane's first
             base = world * particle_count
             p = base + i
@@ -277,11 +304,9 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
             if wp.isfinite(x) and wp.isfinite(v):
                 mass = particle_mass[wp.min(world, particle_mass.shape[0] - 1), i]
                 worst = wp.max(worst, particle_strain(world, i, base, x, element_arrays, particle_q))
-                held = vec3(scalar(0.0))  # a load constant within a frame: its value at the check
-                steady = vec3(scalar(0.0))  # the loads constant within a frame (weight, the control's force)
-                if is_kinematic(particle_flags[p]):  # prescribed motion: no runaway of its own, a drive's work
-                    load = -element_force(world, i, base, x, v, element_arrays, inputs, particle_q, particle_qd)
-                else:
+                free = not is_kinematic(particle_flags[p])
+                if free:  # (a kinematic particle moves as prescribed: no runaway of its own; its drive's work: ``drive``)
+                    held = vec3(scalar(0.0))  # a load constant within a frame: its value at the check
                     # (in float64: a runaway's |v|² overflows float32 long before its state does)
                     energy += wp.float64(0.5) * wp.float64(mass) * (wp.float64(v[0]) * wp.float64(v[0])
                                                                    + wp.float64(v[1]) * wp.float64(v[1])
@@ -292,27 +317,27 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                     if wp.static(external):
                         held = particle_force_ext[p]
                     steady = mass * input_vec3(inputs, world, INPUT_GRAVITY) + held
-                before = previous_load_in_out[p]
-                if not wp.isfinite(before):  # the first check: no earlier value
-                    before = load
-                work += wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - previous_q_in_out[p])
-                                  + lead * wp.dot(steady, v - previous_qd_in_out[p]))
-                previous_load_in_out[p] = load
+                    before = previous_load_in_out[p]
+                    if not wp.isfinite(before):  # the first check: no earlier value
+                        before = load
+                    work += wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - previous_q_in_out[p])
+                                      + lead * wp.dot(steady, v - previous_qd_in_out[p]))
+                    previous_load_in_out[p] = load
                 if wp.static(counted):  # (a kinematic particle's sums: its elements' dampers only)
                     sums = power_in_out[p]
-                    left = pack(scalar(0.0), scalar(0.0))
-                    if wp.static(boundary):  # the closing term at this state; minus it starts the next span
-                        free = not is_kinematic(particle_flags[p])
-                        total, dampers, pushes = particle_power(world, i, base, x, v, free, particle_mass,
-                                                                element_arrays, inputs, particle_force_ext, particle_q,
-                                                                particle_qd)
-                        left = pack(-power_h * scalar(share_dampers) * wp.dot(dampers, v),
-                                    power_h * scalar(share_work) * wp.dot(pushes, v))
-                        sums += left
-                        left = -left
                     dissipated += wp.float64(sums_dissipated(sums))
                     family_work += wp.float64(sums_worked(sums))
-                    power_in_out[p] = left
+                    power_in_out[p] = pack(scalar(0.0), scalar(0.0))
+                    # The closing term's parts on a free particle (its elements' dampers: the energy pass).
+                    if free:
+                        if wp.static(drag_closing):  # drag against still air, -c v: power c |v|² taken out
+                            close_dissipated += wp.float64(inputs[world, INPUT_DRAG] * wp.dot(v, v))
+                            if wp.static(wind_closing):  # the wind's push c u
+                                close_work += wp.float64(inputs[world, INPUT_DRAG]
+                                                         * wp.dot(input_vec3(inputs, world, INPUT_WIND), v))
+                        if wp.static(pushing):
+                            close_work += wp.float64(wp.dot(push_force(world, i, base, x, v, element_arrays, inputs,
+                                                                       particle_q, particle_qd), v))
             elif live:
                 wp.atomic_min(status_in_out, world, GUARD_NONFINITE_PARTICLE, i)
                 wp.atomic_add(status_in_out, world, GUARD_NONFINITE_COUNT, 1)
@@ -320,11 +345,17 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
             previous_qd_in_out[p] = v
             i += stride
         energy = block_sum(energy)
-        worst = block_max(worst)
+        if wp.static(strained):
+            worst = block_max(worst)
         work = block_sum(work)
         if wp.static(counted):
             dissipated = block_sum(dissipated)
-            family_work = block_sum(family_work)
+            if wp.static(sums_work):
+                family_work = block_sum(family_work)
+            if wp.static(drag_closing):
+                close_dissipated = block_sum(close_dissipated)
+            if wp.static(wind_closing or pushing):
+                close_work = block_sum(close_work)
         if lane == 0:
             partials_out[world, block, GUARD_KINETIC_ENERGY] = energy
             partials_out[world, block, GUARD_MAX_STRAIN] = worst
@@ -332,71 +363,70 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
             if wp.static(counted):
                 partials_out[world, block, PARTIAL_DISSIPATION] = dissipated
                 partials_out[world, block, PARTIAL_FAMILY_WORK] = family_work
+                partials_out[world, block, PARTIAL_CLOSE_DISSIPATION] = close_dissipated
+                partials_out[world, block, PARTIAL_CLOSE_WORK] = close_work
 
-    @wp.func
-    def decide(world: int, substep: int, limits: wp.array2d[wp.float64], work_total: wp.array[wp.float64],
-               world_enabled_in_out: wp.array[wp.int32], status_in_out: wp.array2d[wp.int32],
-               values_in_out: wp.array2d[wp.float64]):
-        """Compare a world's gathered values with its limits: latch its first failure with the check's substep (and
-        with ``stop_world`` hold the world: ``world_enabled`` 0), or clear the check's values for the next."""
-        reason = 0
-        if status_in_out[world, GUARD_NONFINITE_PARTICLE] != NO_PARTICLE or not wp.isfinite(
-            values_in_out[world, GUARD_KINETIC_ENERGY]
-        ):
-            reason = GUARD_NONFINITE
-        elif values_in_out[world, GUARD_MAX_STRAIN] > limits[world, GUARD_LIMIT_STRAIN]:
-            reason = GUARD_STRAIN
-        elif values_in_out[world, GUARD_KINETIC_ENERGY] > (
-            limits[world, GUARD_LIMIT_KINETIC_ENERGY] + limits[world, GUARD_WORK_FACTOR] * work_total[world]
-        ):
-            reason = GUARD_ENERGY
-        elif limits[world, GUARD_BALANCE_TOLERANCE] > wp.float64(0.0) and values_in_out[world, GUARD_EXCESS] > (
-            limits[world, GUARD_BALANCE_TOLERANCE] * wp.max(values_in_out[world, GUARD_BUDGET], wp.float64(0.0))
-            + limits[world, GUARD_BALANCE_FLOOR]
-        ):
-            reason = GUARD_BALANCE
-        if reason != 0:
-            status_in_out[world, GUARD_TRIPPED] = reason
-            status_in_out[world, GUARD_SUBSTEP] = substep
-            if limits[world, GUARD_STOP_WORLD] != wp.float64(0.0):
-                world_enabled_in_out[world] = 0
-            return
-        values_in_out[world, GUARD_MAX_STRAIN] = wp.float64(-1.0)
-        values_in_out[world, GUARD_KINETIC_ENERGY] = wp.float64(0.0)
-        values_in_out[world, GUARD_ELASTIC_ENERGY] = wp.float64(0.0)
-        values_in_out[world, GUARD_EXCESS] = wp.float64(0.0)
-        status_in_out[world, GUARD_STRAIN_PARTICLE] = NO_PARTICLE
-        status_in_out[world, GUARD_STRAIN_ELEMENT] = NO_PARTICLE
-        status_in_out[world, GUARD_STRAIN_FAMILY] = NO_PARTICLE
+    @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
+    def drive(
+        # Model:
+        particle_count: int,
+        particle_flags: wp.array[wp.int32],
+        element_arrays: Elements,
+        inputs: wp.array2d[scalar],
+        # State in:
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+        # Guards in (the positions at the last check):
+        previous_q: wp.array[vec3],
+        # Launch (the items between a lane's successive particles: ``linalg.reduce_stride``):
+        stride: int,
+        # In/out:
+        previous_load_in_out: wp.array[vec3],
+        partials_out: wp.array3d[wp.float64],
+    ):
+        """The work the drives did through the kinematic particles (pins, tracks) since the last check: the negative of
+        the elements' force on each, by the trapezoid of its values at the two checks, over its displacement; launched
+        before ``measure`` (which then moves ``previous_q`` on) over its grid. A pass of its own: the elements' force
+        evaluated in ``measure`` for its few kinematic particles held 113 registers a thread there (64 without it; on
+        sm_90, ``bench/guard_registers.py``), and so its occupancy, for every particle."""
+        world, block, lane = wp.tid()
+        i = block * wp.block_dim() + lane
+        work = wp.float64(0.0)
+        while i < particle_count:
+            base = world * particle_count
+            p = base + i
+            if is_kinematic(particle_flags[p]):
+                x = particle_q[p]
+                v = particle_qd[p]
+                if wp.isfinite(x) and wp.isfinite(v):
+                    load = -element_force(world, i, base, x, v, element_arrays, inputs, particle_q, particle_qd)
+                    before = previous_load_in_out[p]
+                    if not wp.isfinite(before):  # the first check: no earlier value
+                        before = load
+                    work += wp.float64(wp.dot(scalar(0.5) * (load + before), x - previous_q[p]))
+                    previous_load_in_out[p] = load
+            i += stride
+        work = block_sum(work)
+        if lane == 0:
+            partials_out[world, block, PARTIAL_DRIVE_WORK] = work
 
-    @wp.func
-    def balance(world: int, energy: wp.float64, work: wp.float64, dissipated: wp.float64,
-                values_in_out: wp.array2d[wp.float64], work_total_in_out: wp.array[wp.float64],
-                balance_in_out: wp.array2d[wp.float64]):
-        """Add a check's work and dissipation to the world's balance (re-based where asked) and write the energy
-        beyond its budget and the budget's peak."""
-        work_total_in_out[world] += wp.max(work, wp.float64(0.0))
-        balance_in_out[world, BALANCE_WORK] += work
-        balance_in_out[world, BALANCE_DISSIPATION] += dissipated
-        if balance_in_out[world, BALANCE_REBASE] != wp.float64(0.0):
-            balance_in_out[world, BALANCE_REFERENCE] = energy - balance_in_out[world, BALANCE_WORK]
-            balance_in_out[world, BALANCE_PEAK] = energy
-            balance_in_out[world, BALANCE_DISSIPATION] = wp.float64(0.0)
-            balance_in_out[world, BALANCE_REBASE] = wp.float64(0.0)
-        balance_in_out[world, BALANCE_ENERGY] = energy
-        budget = balance_in_out[world, BALANCE_REFERENCE] + balance_in_out[world, BALANCE_WORK]
-        balance_in_out[world, BALANCE_PEAK] = wp.max(balance_in_out[world, BALANCE_PEAK], budget)
-        values_in_out[world, GUARD_EXCESS] = energy - (budget - balance_in_out[world, BALANCE_DISSIPATION])
-        values_in_out[world, GUARD_BUDGET] = balance_in_out[world, BALANCE_PEAK]
-
-    @wp.kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
     def gather(
-        # Guards in (the check's partials, its substep, the limits):
+        # Model:
+        particle_count: int,
+        element_arrays: Elements,
+        # State in:
+        particle_q: wp.array[vec3],
+        # Guards in (the check's partials, the energy pass's dampers' power at the check's state, its substep, the
+        # limits, the step h [s] of the closing term; ``carry_only`` 1: a restart, only the closing term carried):
         partials: wp.array3d[wp.float64],
         energy_partials: wp.array2d[wp.float64],
         strain_partials: wp.array2d[wp.float64],
+        power_partials: wp.array2d[wp.float64],
         substep: int,
         limits: wp.array2d[wp.float64],
+        power_h: wp.float64,
+        carry_only: int,
         # In/out:
         world_enabled_in_out: wp.array[wp.int32],
         status_in_out: wp.array2d[wp.int32],
@@ -404,15 +434,17 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         values_in_out: wp.array2d[wp.float64],
         work_total_in_out: wp.array[wp.float64],
         balance_in_out: wp.array2d[wp.float64],
+        carry_in_out: wp.array2d[wp.float64],
     ):
         """A world's kinetic and elastic energy, the work put in and the energy dissipated since the last
         check (its blocks' partials and running sums: the dissipation and the working families' work, the running
-        sums cleared; the work and the dissipation
+        sums cleared; with the power counted in the force pass, the closing term at this state: its share added, minus
+        it carried to the next span; the work and the dissipation
         added to the balance, the work's positive part to the world's running total W⁺), its largest strain,
         and the energy beyond the balance's budget. Launched over [world, lanes] with ``block_dim`` = lanes
         (one lane on the CPU): each lane sums every lanes-th block in order, then a fixed-order tree
         (``block_sum``) joins the lanes, so the sums are deterministic; one thread walking a world's ~10³ blocks
-        of a 512² cloth in turn took 0.9 ms on an H100, most of a check. Lane 0 then decides (``decide``): one launch
+        of a 512² cloth in turn took 0.9 ms on an H100, most of a check. Lane 0 then decides: one launch
         for the world's sums and its verdict."""
         world, lane = wp.tid()
         lanes = wp.block_dim()
@@ -423,19 +455,27 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
             while b < running_in_out.shape[1]:
                 running_in_out[world, b, RUNNING_DISSIPATION] = wp.float64(0.0)
                 running_in_out[world, b, RUNNING_WORK] = wp.float64(0.0)
+                running_in_out[world, b, RUNNING_STEP_DISSIPATION] = wp.float64(0.0)
                 b += lanes
+            if lane == 0:
+                carry_in_out[world, CARRY_DISSIPATION] = wp.float64(0.0)
+                carry_in_out[world, CARRY_WORK] = wp.float64(0.0)
             return
         energy = wp.float64(0.0)
         worst = wp.float64(-1.0)
         work = wp.float64(0.0)
         dissipated = wp.float64(0.0)
+        close_dissipated = wp.float64(0.0)
+        close_work = wp.float64(0.0)
         b = lane
         while b < partials.shape[1]:
             energy += partials[world, b, GUARD_KINETIC_ENERGY]
             worst = wp.max(worst, partials[world, b, GUARD_MAX_STRAIN])
-            work += partials[world, b, GUARD_WORK]
+            work += partials[world, b, GUARD_WORK] + partials[world, b, PARTIAL_DRIVE_WORK]
             if wp.static(counted):
                 work += partials[world, b, PARTIAL_FAMILY_WORK]
+                close_dissipated += partials[world, b, PARTIAL_CLOSE_DISSIPATION]
+                close_work += partials[world, b, PARTIAL_CLOSE_WORK]
                 if wp.static(dissipation):
                     dissipated += partials[world, b, PARTIAL_DISSIPATION]
             b += lanes
@@ -444,68 +484,143 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         while b < energy_partials.shape[1]:
             elastic += energy_partials[world, b]
             worst = wp.max(worst, strain_partials[world, b])
+            if wp.static(counted):
+                close_dissipated += power_partials[world, b]
             b += lanes
         b = lane
         while b < running_in_out.shape[1]:
             dissipated += running_in_out[world, b, RUNNING_DISSIPATION]
             work += running_in_out[world, b, RUNNING_WORK]
+            if wp.static(counted and dissipation):  # (the fused step's: counted where the power sums' are)
+                dissipated += running_in_out[world, b, RUNNING_STEP_DISSIPATION]
             running_in_out[world, b, RUNNING_DISSIPATION] = wp.float64(0.0)
             running_in_out[world, b, RUNNING_WORK] = wp.float64(0.0)
+            running_in_out[world, b, RUNNING_STEP_DISSIPATION] = wp.float64(0.0)
             b += lanes
         energy = block_sum(energy)
         worst = block_max(worst)
         work = block_sum(work)
         elastic = block_sum(elastic)
         dissipated = block_sum(dissipated)
-        if lane != 0:
+        if wp.static(counted):
+            close_dissipated = block_sum(close_dissipated)
+            close_work = block_sum(close_work)
+        if lane == 0:
+            # The world's rows read first, all at once, then the verdict in registers, then the writes: one memory
+            # latency instead of a chain of ~30 reads behind writes that might alias them (the gather of a 64² cloth
+            # took 21 µs a frame on an H200, most of it lane 0 waiting on that chain).
+            carry_dissipated = carry_in_out[world, CARRY_DISSIPATION]
+            carry_work = carry_in_out[world, CARRY_WORK]
+            total = work_total_in_out[world]
+            reference = balance_in_out[world, BALANCE_REFERENCE]
+            balance_work = balance_in_out[world, BALANCE_WORK]
+            peak = balance_in_out[world, BALANCE_PEAK]
+            rebase = balance_in_out[world, BALANCE_REBASE]
+            taken = balance_in_out[world, BALANCE_DISSIPATION]
+            last_energy = balance_in_out[world, BALANCE_ENERGY]
+            excess = values_in_out[world, GUARD_EXCESS]
+            budget_peak = values_in_out[world, GUARD_BUDGET]
+            tear = limits[world, GUARD_LIMIT_STRAIN]
+            runaway = limits[world, GUARD_LIMIT_KINETIC_ENERGY]
+            stop_world = limits[world, GUARD_STOP_WORLD]
+            factor = limits[world, GUARD_WORK_FACTOR]
+            tolerance = limits[world, GUARD_BALANCE_TOLERANCE]
+            floor = limits[world, GUARD_BALANCE_FLOOR]
+            nonfinite = status_in_out[world, GUARD_NONFINITE_PARTICLE]
+            if wp.static(counted):  # the closing term: this span's share at its state, minus it opens the next
+                left_dissipated = power_h * wp.float64(share_dampers) * close_dissipated
+                left_work = power_h * wp.float64(share_work) * close_work
+                if wp.static(dissipation):
+                    dissipated += left_dissipated + carry_dissipated
+                work += left_work + carry_work
+                carry_in_out[world, CARRY_DISSIPATION] = -left_dissipated
+                carry_in_out[world, CARRY_WORK] = -left_work
+            if carry_only == 0:
+                held = energy + elastic
+                if wp.isfinite(work) and wp.isfinite(held) and wp.isfinite(dissipated):
+                    # The balance: the check's work and dissipation added (re-based where asked), the energy beyond
+                    # its budget and the budget's peak (a non-finite world's balance stays as it was: it stops).
+                    total += wp.max(work, wp.float64(0.0))
+                    balance_work += work
+                    taken += dissipated
+                    if rebase != wp.float64(0.0):
+                        reference = held - balance_work
+                        peak = held
+                        taken = wp.float64(0.0)
+                        rebase = wp.float64(0.0)
+                    last_energy = held
+                    budget = reference + balance_work
+                    peak = wp.max(peak, budget)
+                    excess = held - (budget - taken)
+                    budget_peak = peak
+                    work_total_in_out[world] = total
+                    balance_in_out[world, BALANCE_REFERENCE] = reference
+                    balance_in_out[world, BALANCE_WORK] = balance_work
+                    balance_in_out[world, BALANCE_PEAK] = peak
+                    balance_in_out[world, BALANCE_REBASE] = rebase
+                    balance_in_out[world, BALANCE_DISSIPATION] = taken
+                    balance_in_out[world, BALANCE_ENERGY] = last_energy
+                # The verdict: the world's first failure latched with the check's substep (and with ``stop_world``
+                # the world held: ``world_enabled`` 0), or the check's values cleared for the next.
+                reason = 0
+                if nonfinite != NO_PARTICLE or not wp.isfinite(energy):
+                    reason = GUARD_NONFINITE
+                elif worst > tear:
+                    reason = GUARD_STRAIN
+                elif energy > runaway + factor * total:
+                    reason = GUARD_ENERGY
+                elif tolerance > wp.float64(0.0) and excess > tolerance * wp.max(budget_peak, wp.float64(0.0)) + floor:
+                    reason = GUARD_BALANCE
+                values_in_out[world, GUARD_WORK] = work
+                values_in_out[world, GUARD_BUDGET] = budget_peak
+                if reason != 0:
+                    values_in_out[world, GUARD_KINETIC_ENERGY] = energy
+                    values_in_out[world, GUARD_ELASTIC_ENERGY] = elastic
+                    values_in_out[world, GUARD_MAX_STRAIN] = worst
+                    values_in_out[world, GUARD_EXCESS] = excess
+                    status_in_out[world, GUARD_TRIPPED] = reason
+                    status_in_out[world, GUARD_SUBSTEP] = substep
+                    if stop_world != wp.float64(0.0):
+                        world_enabled_in_out[world] = 0
+                else:
+                    values_in_out[world, GUARD_KINETIC_ENERGY] = wp.float64(0.0)
+                    values_in_out[world, GUARD_ELASTIC_ENERGY] = wp.float64(0.0)
+                    values_in_out[world, GUARD_MAX_STRAIN] = wp.float64(-1.0)
+                    values_in_out[world, GUARD_EXCESS] = wp.float64(0.0)
+                    status_in_out[world, GUARD_STRAIN_PARTICLE] = NO_PARTICLE
+                    status_in_out[world, GUARD_STRAIN_ELEMENT] = NO_PARTICLE
+                    status_in_out[world, GUARD_STRAIN_FAMILY] = NO_PARTICLE
+        if carry_only != 0:
             return
-        values_in_out[world, GUARD_KINETIC_ENERGY] = energy
-        values_in_out[world, GUARD_ELASTIC_ENERGY] = elastic
-        values_in_out[world, GUARD_MAX_STRAIN] = worst
-        values_in_out[world, GUARD_WORK] = work
-        if wp.isfinite(work) and wp.isfinite(energy + elastic) and wp.isfinite(dissipated):
-            # (a non-finite world's balance stays as it was: ``decide`` stops it)
-            balance(world, energy + elastic, work, dissipated, values_in_out, work_total_in_out, balance_in_out)
-        decide(world, substep, limits, work_total_in_out, world_enabled_in_out, status_in_out, values_in_out)
-
-    @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
-    def locate(
-        # Model:
-        particle_count: int,
-        element_arrays: Elements,
-        # State in:
-        particle_q: wp.array[vec3],
-        # Guards in (the check's substep, the gathered values):
-        substep: int,
-        values: wp.array2d[wp.float64],
-        # In/out:
-        status_in_out: wp.array2d[wp.int32],
-    ):
-        """The most strained particle, element and family of a world that failed at this check (``decide`` ran
-        first: a world that passed, or failed at an earlier check, is left alone, so a passing check costs one
-        early return per particle, not a second strain pass)."""
-        p = wp.tid()
-        world, i = world_and_index(p, particle_count)
-        largest = values[world, GUARD_MAX_STRAIN]
-        if (status_in_out[world, GUARD_TRIPPED] == 0 or status_in_out[world, GUARD_SUBSTEP] != substep
-                or largest < wp.float64(0.0)):
+        block_barrier()  # lane 0's verdict is seen by the world's lanes
+        # A world that failed at this check (it was live when the check began: the early return above): the most
+        # strained particle, element and family, found on the state the check measured, so that the record is complete
+        # when the frame ends (the host may read it a frame later). A check that passes costs nothing here.
+        largest = values_in_out[world, GUARD_MAX_STRAIN]
+        if status_in_out[world, GUARD_TRIPPED] == 0 or largest < wp.float64(0.0):
             return
-        strain, element, family = element_strain(world, i, p - i, particle_q[p], element_arrays, particle_q)
-        if strain == largest:  # the same evaluation as in measure
-            wp.atomic_min(status_in_out, world, GUARD_STRAIN_PARTICLE, i)
-            wp.atomic_min(status_in_out, world, GUARD_STRAIN_ELEMENT, element)
-            wp.atomic_min(status_in_out, world, GUARD_STRAIN_FAMILY, family)
+        i = lane
+        while i < particle_count:
+            base = world * particle_count
+            strain, element, family = element_strain(world, i, base, particle_q[base + i], element_arrays, particle_q)
+            if strain == largest:  # the same evaluation as in the check's passes
+                wp.atomic_min(status_in_out, world, GUARD_STRAIN_PARTICLE, i)
+                wp.atomic_min(status_in_out, world, GUARD_STRAIN_ELEMENT, element)
+                wp.atomic_min(status_in_out, world, GUARD_STRAIN_FAMILY, family)
+            i += lanes
 
-    return measure, gather, locate
+    return measure, gather, drive
 
 
 @functools.cache
-def guard_energy_kernel(scalar: type, spec, tiled: bool):
+def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
     """Kernel writing per-block sums of the elastic energy [J] of one family's elements in every world into
     ``partials[world, offset + block]``, and where the family has an ``element_strain`` hook the block's largest
     strain [-] into ``strain_partials[world, offset + block]`` (each element once, with the length its energy
-    takes: ``measure`` then leaves the family out of its per-particle strain); launch over
-    ``reduce_launch_dim(worlds, element_count, lanes, REDUCE_PER_LANE)`` on CUDA (``stride``: that grid's
+    takes: ``measure`` then leaves the family out of its per-particle strain); with ``power`` (the family's dampers
+    counted in the integrator's force pass, mode ``POWER_DAMPERS``) the power its dampers take out at this state [W]
+    (its ``dissipation`` hook: the closing term of ``guard_kernels``) into ``power_partials[world, offset + block]``.
+    Launch over ``reduce_launch_dim(worlds, element_count, lanes, REDUCE_PER_LANE)`` on CUDA (``stride``: that grid's
     ``reduce_stride``), one lane per block on the CPU."""
     vec3 = vec3_type(scalar)
     block_sum, block_max = reduction_funcs(tiled)
@@ -514,6 +629,7 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool):
     energy_func = funcs.energy
     strain_func = getattr(funcs, "element_strain", None)
     strained = strain_func is not None
+    power_func = funcs.dissipation if power else None
 
     # An element's energy reads its own entries, never the incidence table.
     @flat_kernel(module="unique", enable_backward=False, last=("arrays__incidence",))
@@ -529,11 +645,13 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool):
         status: wp.array2d[wp.int32],
         # State in:
         particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
         # Launch (the items between a lane's successive elements: ``linalg.reduce_stride``):
         stride: int,
         # Out:
         partials_out: wp.array2d[wp.float64],
         strain_partials_out: wp.array2d[wp.float64],
+        power_partials_out: wp.array2d[wp.float64],
     ):
         world, block, lane = wp.tid()
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
@@ -541,20 +659,73 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool):
         element = block * wp.block_dim() + lane
         energy = wp.float64(0.0)
         worst = wp.float64(-1.0)
+        taken = wp.float64(0.0)
         while element < element_count:  # every stride-th element from the lane's first
             energy += wp.float64(energy_func(world, element, world * particle_count, arrays, inputs, particle_q))
             if wp.static(strained):
                 worst = wp.max(worst, strain_func(world, element, world * particle_count, arrays, particle_q))
+            if wp.static(power):
+                taken += wp.float64(power_func(world, element, world * particle_count, arrays, inputs, particle_q,
+                                               particle_qd))
             element += stride
         energy = block_sum(energy)
         if wp.static(strained):
             worst = block_max(worst)
+        if wp.static(power):
+            taken = block_sum(taken)
         if lane == 0:
             partials_out[world, offset + block] = energy
             if wp.static(strained):
                 strain_partials_out[world, offset + block] = worst
+            if wp.static(power):
+                power_partials_out[world, offset + block] = taken
 
     return element_energy_partials
+
+
+@functools.cache
+def pushing_force_func(scalar: type, specs: tuple, modes: tuple):
+    """``push(world, i, base, xi, vi, element_arrays, inputs, particle_q, particle_qd) -> force``: the force [N] on
+    particle i of the families whose mode in ``modes`` (one ``forces.POWER_*`` per spec) is ``POWER_WORK`` (wind,
+    handles: work from outside), the others not evaluated; ``element_arrays`` is ``elements(scalar, specs).arrays``."""
+    vec3 = vec3_type(scalar)
+    Elements = elements(scalar, specs).arrays
+    if not specs:
+
+        @wp.func
+        def push_none(world: int, i: int, base: int, xi: vec3, vi: vec3, arrays: Elements, inputs: wp.array2d[scalar],
+                      particle_q: wp.array[vec3], particle_qd: wp.array[vec3]):
+            return vec3(scalar(0.0))
+
+        return push_none
+    funcs = specs[0].funcs(scalar)
+    pushes = modes[0] == POWER_WORK
+    head_force = funcs.force
+
+    @wp.func
+    def push_head(world: int, i: int, base: int, xi: vec3, vi: vec3, arrays: funcs.arrays,
+                  inputs: wp.array2d[scalar], particle_q: wp.array[vec3], particle_qd: wp.array[vec3]):
+        if wp.static(pushes):
+            return head_force(world, i, base, xi, vi, arrays, inputs, particle_q, particle_qd)
+        return vec3(scalar(0.0))
+
+    if len(specs) == 1:
+
+        @wp.func
+        def push_1(world: int, i: int, base: int, xi: vec3, vi: vec3, arrays: Elements, inputs: wp.array2d[scalar],
+                   particle_q: wp.array[vec3], particle_qd: wp.array[vec3]):
+            return push_head(world, i, base, xi, vi, arrays.head, inputs, particle_q, particle_qd)
+
+        return push_1
+    rest = pushing_force_func(scalar, specs[1:], modes[1:])
+
+    @wp.func
+    def push_n(world: int, i: int, base: int, xi: vec3, vi: vec3, arrays: Elements, inputs: wp.array2d[scalar],
+               particle_q: wp.array[vec3], particle_qd: wp.array[vec3]):
+        return push_head(world, i, base, xi, vi, arrays.head, inputs, particle_q, particle_qd) + rest(
+            world, i, base, xi, vi, arrays.tail, inputs, particle_q, particle_qd)
+
+    return push_n
 
 
 @functools.cache

@@ -118,6 +118,53 @@ def symplectic_euler_update_kernel(scalar: type, contacts: ContactFeatures, powe
 
 
 @functools.cache
+def symplectic_euler_particle_energy_func(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
+                                          power: tuple):
+    """``step_particle(world, i, p, base, ..., q_in, qd_in, h) -> (x', v', taken, worked)``: one particle's fused
+    symplectic Euler step (``symplectic_euler_particle_func``) with the energy [J] its dampers and drag took out over
+    the step and the work [J] the loads from outside did on it (``symplectic_euler_kernel``'s rule; a kinematic
+    particle: its elements' dampers' share, h times their power at the step's start), returned for the caller to sum."""
+    vec3 = vec3_type(scalar)
+    Shapes = shapes_type(scalar)
+    particle_force = particle_power_func(scalar, features, power)
+    Elements = elements(scalar, features.families).arrays
+    update = symplectic_euler_funcs(scalar)
+    _, project_contacts = project_all_func(scalar, contacts)
+    has_contacts = bool(contacts)
+
+    @wp.func
+    def step_particle_energy(world: int, i: int, p: int, base: int, particle_flags: wp.array[wp.int32],
+                             particle_inv_mass: wp.array2d[scalar], particle_radius: wp.array[scalar], shapes: Shapes,
+                             particle_mass: wp.array2d[scalar], element_arrays: Elements, inputs: wp.array2d[scalar],
+                             particle_force_ext: wp.array[vec3], q_in: wp.array[vec3], qd_in: wp.array[vec3],
+                             h: scalar):
+        x = q_in[p]
+        v = qd_in[p]
+        x_new = x + h * v
+        v_new = v
+        taken = scalar(0.0)
+        worked = scalar(0.0)
+        if is_kinematic(particle_flags[p]):  # its elements' dampers: their share of the dampers' power (the drive's
+            # work has the rest)
+            _, dampers, _ = particle_force(world, i, base, x, v, False, particle_mass, element_arrays, inputs,
+                                           particle_force_ext, q_in, qd_in)
+            taken = -h * wp.dot(dampers, v)
+        else:
+            inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
+            f, dampers, work = particle_force(world, i, base, x, v, True, particle_mass, element_arrays, inputs,
+                                              particle_force_ext, q_in, qd_in)
+            x_new, v_new = update(x, v, f, inv_mass, h)
+            mean = (v + v_new) * (scalar(0.5) * h)
+            taken = -wp.dot(dampers, mean)
+            worked = wp.dot(work, mean)
+            if wp.static(has_contacts):
+                x_new, v_new = project_contacts(world, p, x_new, v_new, particle_radius[i], h, shapes, inputs)
+        return x_new, v_new, taken, worked
+
+    return step_particle_energy
+
+
+@functools.cache
 def symplectic_euler_particle_func(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
                                    power: tuple | None = None):
     """``step_particle(world, i, p, base, ..., q_in, qd_in, h, power_in_out) -> (x', v')``: one particle's fused
@@ -231,6 +278,81 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
         particle_qd_out[p] = v
 
     return symplectic_euler
+
+
+@functools.cache
+def symplectic_euler_blocks_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures, power: tuple,
+                                   tiled: bool = True):
+    """``symplectic_euler_kernel`` with the guard's power summed per block instead of per particle: launched over
+    ``linalg.reduce_launch_dim(world_count, particle_count, lanes)`` with ``block_dim`` = lanes, thread (w, b, l) steps
+    particle b·lanes + l of world w (if there is one), the block's lanes sum what their particles' dampers and drag
+    took out and what the loads from outside put in (``block_sum``: a fixed-order tree, float64) and lane 0 adds the
+    two to ``running[w, b]`` (``RUNNING_STEP_DISSIPATION``, ``RUNNING_WORK`` of ``kernels/guards.py``): no read and
+    write of a per-particle sum every substep (+14-16 % of the step on an H200 at 1024², bench/results/guard_cost.md),
+    no float atomics. On the CPU (``tiled`` off, a test's configuration) a block is one thread."""
+    vec3 = vec3_type(scalar)
+    Shapes = shapes_type(scalar)
+    composed = elements(scalar, features.families)
+    Elements = composed.arrays
+    step_energy = symplectic_euler_particle_energy_func(scalar, features, contacts, power)
+    block_sum, _ = reduction_funcs(tiled)
+    work = counts_work(features, power)
+
+    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
+                 last=contacts.idle() + composed.last("element_arrays"))
+    def symplectic_euler_blocks(
+        # Model:
+        particle_count: int,
+        particle_flags: wp.array[wp.int32],
+        particle_inv_mass: wp.array2d[scalar],
+        particle_radius: wp.array[scalar],
+        shapes: Shapes,
+        # Model, the forces:
+        particle_mass: wp.array2d[scalar],
+        element_arrays: Elements,
+        inputs: wp.array2d[scalar],
+        # Control:
+        particle_force_ext: wp.array[vec3],
+        # State in:
+        particle_q_in: wp.array[vec3],
+        particle_qd_in: wp.array[vec3],
+        time_in: wp.array[wp.float64],
+        dt: scalar,
+        dt_rest: scalar,
+        # Guard in (the slots of ``running`` the step adds to):
+        taken_slot: int,
+        worked_slot: int,
+        # State out:
+        particle_q_out: wp.array[vec3],
+        particle_qd_out: wp.array[vec3],
+        time_out: wp.array[wp.float64],
+        # In/out (the guard's running sums per block [J]):
+        running_in_out: wp.array3d[wp.float64],
+    ):
+        world, block, lane = wp.tid()
+        i = block * wp.block_dim() + lane
+        taken = wp.float64(0.0)
+        worked = wp.float64(0.0)
+        if i < particle_count:
+            p = world * particle_count + i
+            if i == 0:
+                time_out[world] = time_in[world] + (wp.float64(dt) + wp.float64(dt_rest))
+            x, v, t, w = step_energy(world, i, p, p - i, particle_flags, particle_inv_mass, particle_radius, shapes,
+                                     particle_mass, element_arrays, inputs, particle_force_ext, particle_q_in,
+                                     particle_qd_in, dt)
+            particle_q_out[p] = x
+            particle_qd_out[p] = v
+            taken = wp.float64(t)
+            worked = wp.float64(w)
+        taken = block_sum(taken)
+        if wp.static(work):
+            worked = block_sum(worked)
+        if lane == 0:
+            running_in_out[world, block, taken_slot] += taken
+            if wp.static(work):
+                running_in_out[world, block, worked_slot] += worked
+
+    return symplectic_euler_blocks
 
 
 @functools.cache

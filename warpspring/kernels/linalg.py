@@ -84,6 +84,16 @@ def reduce_stride(grid: tuple[int, int, int]) -> int:
     return int(grid[1] * grid[2])
 
 
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+__syncthreads();
+#endif
+""")
+def block_barrier():
+    """Every lane of the block waits here until all have arrived (``__syncthreads``; nothing on the CPU)."""
+    ...
+
+
 @functools.cache
 def reduction_funcs(tiled: bool):
     """``block_sum(value)``: the sum of a value over the lanes of a block (every lane gets it; the value

@@ -51,6 +51,10 @@ class Integrator(abc.ABC):
     #: (``PowerSums``); ``None``: not counted. Each simulator's integrator carries its own guard's.
     dampers = None
     power = None
+    #: Where symplectic Euler's fused step sums the guard's power per block instead of per particle (``PowerSums``'s
+    #: ``sums``): (the guard's running sums [world, block, slot], float64; the launch grid; the slots of the energy
+    #: taken out and of the work put in), set by the guard (``Guard._attach_power``); ``None``: per particle.
+    power_blocks = None
 
     def __init__(self, model: Model):
         self.model = model

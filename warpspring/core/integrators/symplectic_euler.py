@@ -9,7 +9,8 @@ from __future__ import annotations
 import warp as wp
 
 from ...kernels.frames import symplectic_euler_frame_kernel
-from ...kernels.integrators import symplectic_euler_kernel, symplectic_euler_update_kernel
+from ...kernels.integrators import (symplectic_euler_blocks_kernel, symplectic_euler_kernel,
+                                     symplectic_euler_update_kernel)
 from ...kernels.shapes import NO_CONTACTS
 from ...kernels.sweep import sweeps, symplectic_euler_sweep_kernel
 from ..contacts import update_shape_frames
@@ -138,30 +139,53 @@ class SymplecticEuler(Integrator):
             features = model.force_features(control)
             power = None if self.power is None else self.power.modes
             swept = self.cpu_sweep and model.device.is_cpu and sweeps(features)
-            if swept:  # one thread per world: the particles in order, each spring once
+            blocks = self.power_blocks if power is not None and not swept else None
+            if blocks is not None:  # the guard's power summed per block (``symplectic_euler_blocks_kernel``)
+                running, grid, taken_slot, worked_slot = blocks
+                flat_launch(
+                    symplectic_euler_blocks_kernel(model.scalar, features, contacts, power, model.device.is_cuda),
+                    inputs=[
+                        model.particle_count,
+                        model.particle_flags,
+                        model.particle_inv_mass,
+                        model.particle_radius,
+                        model.shape_arrays,
+                        *force_inputs(model, control, features),
+                        state_in.particle_q,
+                        state_in.particle_qd,
+                        state_in.time,
+                        *step_arguments(model.scalar, dt),
+                        taken_slot,
+                        worked_slot,
+                    ],
+                    outputs=[state_out.particle_q, state_out.particle_qd, state_out.time, running],
+                    dim=grid, block_dim=grid[2], device=model.device,
+                )
+            elif swept:  # one thread per world: the particles in order, each spring once
                 kernel = symplectic_euler_sweep_kernel(model.scalar, features, contacts, power)
                 # Its scratch: the two states' force arrays (the step's to use; left zero).
                 common["dim"], scratch = model.world_count, [state_in.particle_f, state_out.particle_f]
             else:
                 kernel, scratch = symplectic_euler_kernel(model.scalar, features, contacts, power), []
-            flat_launch(
-                kernel,
-                inputs=[
-                    model.particle_count,
-                    model.particle_flags,
-                    model.particle_inv_mass,
-                    model.particle_radius,
-                    model.shape_arrays,
-                    *force_inputs(model, control, features),
-                    state_in.particle_q,
-                    state_in.particle_qd,
-                    state_in.time,
-                    *step_arguments(model.scalar, dt),
-                ],
-                outputs=[state_out.particle_q, state_out.particle_qd, state_out.time,
-                         None if self.power is None else self.power.sums, *scratch],
-                **common,
-            )
+            if blocks is None:
+                flat_launch(
+                    kernel,
+                    inputs=[
+                        model.particle_count,
+                        model.particle_flags,
+                        model.particle_inv_mass,
+                        model.particle_radius,
+                        model.shape_arrays,
+                        *force_inputs(model, control, features),
+                        state_in.particle_q,
+                        state_in.particle_qd,
+                        state_in.time,
+                        *step_arguments(model.scalar, dt),
+                    ],
+                    outputs=[state_out.particle_q, state_out.particle_qd, state_out.time,
+                             None if self.power is None else self.power.sums, *scratch],
+                    **common,
+                )
         else:
             power = self.power
             eval_forces(model, state_in, control, dampers=self.dampers, power=power)

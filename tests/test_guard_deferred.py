@@ -1,0 +1,92 @@
+"""The guard's verdict a frame later (``Simulator(defer_verdict=True)``, the default on CUDA): a frame's record is read
+once the next frame is queued, a failure is raised at the next ``step_frame`` or at ``settle`` (or a read of the
+state) naming its own frame and substep, and a run that passes is the run without deferral, bit for bit."""
+
+import numpy as np
+import pytest
+
+import warpspring as ws
+from helpers import ZERO_GRAVITY, battery_cloth, hanging_cloth, run_frames
+
+
+def _nan_at_frame_3(device, **options):
+    """Ten free particles run two frames, with a NaN velocity then planted in particle 7."""
+    builder = ws.ModelBuilder()
+    builder.add_particles(np.arange(30.0).reshape(10, 3), mass=1.0)
+    model = builder.finalize(device)
+    sim = ws.Simulator(model, fps=60, substeps=16, defer_verdict=True, **options)
+    run_frames(sim, 2)
+    qd = sim.state.particle_qd.numpy()
+    qd[7] = np.nan
+    sim.state.particle_qd.assign(qd)
+    return sim
+
+
+def test_deferred_failure_raises_at_the_next_frame_naming_its_own(device):
+    """The frame that goes non-finite returns; the next ``step_frame`` raises for it (frame 3, substep 16: the frame's
+    check), and the frames counted are the two before it."""
+    sim = _nan_at_frame_3(device)
+    sim.step_frame()  # frame 3: its verdict is not read yet
+    assert sim.frame == 3
+    with pytest.raises(ws.SimulationError) as failure:
+        sim.step_frame()
+    assert failure.value.frame == 3 and failure.value.substep == 16
+    assert str(failure.value).startswith("frame 3, substep 16 of 16 (t ≤ ")
+    assert str(failure.value).endswith("particle 7 has a non-finite position or velocity")
+    assert sim.frame == 2  # the failed frame does not count
+
+
+@pytest.mark.parametrize("how", ["settle", "state"])
+def test_settle_and_reading_the_state_raise_for_the_last_frame(device, how):
+    """A loop that ends on the failed frame still stops: ``settle()``, or reading ``state``, raises for it."""
+    sim = _nan_at_frame_3(device)
+    sim.step_frame()
+    with pytest.raises(ws.SimulationError, match=r"^frame 3, substep 16 of 16 .*particle 7 has a non-finite"):
+        sim.settle() if how == "settle" else sim.state
+    assert sim.frame == 2
+    sim.settle()  # settled: nothing left to raise
+
+
+def test_deferred_torn_spring_is_named_on_the_state_it_tore_in(device):
+    """The most strained spring of a failed check is found by that check (``gather``), so the report names it though
+    the next frame ran before the record was read: spring 1, pulled to 30× its rest length."""
+    builder = ws.ModelBuilder(gravity=ZERO_GRAVITY)
+    builder.add_particles([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]], mass=1.0)
+    builder.add_springs([[0, 1], [1, 2], [2, 3]], stiffness=1.0, rest_length=[1.0, 1.0 / 30.0, 1.0])
+    model = builder.finalize(device)
+    sim = ws.Simulator(model, fps=60, substeps=4, defer_verdict=True)
+    sim.step_frame()
+    with pytest.raises(ws.SimulationError, match=r"^frame 1, .*spring 1 \(particles 1-2\) stretched to [0-9.]+× its"):
+        sim.step_frame()
+
+
+def test_deferred_world_stop_records_each_world_once_with_its_frame(device):
+    """``stop="world"``: RK4 at one 1/60 s step stops the battery cloth's unstable world 1 (the case of
+    ``test_guards.py``), recorded once, at the frame whose check failed (the same frame as without deferral), while
+    world 0 runs on; the two runs' states agree bit for bit."""
+    runs = {}
+    for defer in (False, True):
+        model = battery_cloth(device, [300.0, 480.0])
+        sim = ws.Simulator(model, integrator=ws.make_integrator("rk4", model), fps=60, substeps=1,
+                           guard=ws.GuardLimits(stop="world"), defer_verdict=defer)
+        for _ in range(40):
+            sim.step_frame()
+        sim.settle()
+        runs[defer] = (dict(sim.world_failures), sim.state.particle_q.numpy())
+    assert list(runs[True][0]) == [1]
+    assert runs[True][0][1][0] == runs[False][0][1][0]  # the frame
+    assert runs[True][0][1][1] == runs[False][0][1][1]  # the report
+    np.testing.assert_array_equal(runs[True][1], runs[False][1])
+
+
+def test_deferred_run_that_passes_is_the_same_run(device):
+    """A healthy run gives the same bits, the same balance and the same work with or without deferral."""
+    results = []
+    for defer in (False, True):
+        model, _ = hanging_cloth(device, n=8, drag=0.2)
+        sim = ws.Simulator(model, fps=60, substeps=8, defer_verdict=defer)
+        q = run_frames(sim, 12)
+        results.append((q, sim.guard.energy_balance().created, sim.guard.work()))
+    np.testing.assert_array_equal(results[0][0], results[1][0])
+    np.testing.assert_array_equal(results[0][1], results[1][1])
+    np.testing.assert_array_equal(results[0][2], results[1][2])
