@@ -43,6 +43,7 @@ from .kinematics import is_kinematic
 from .precision import vec3_type
 from .response import project_all_func
 from .shapes import ContactFeatures, shapes_type
+from .spring_laws import COINCIDENT_DISTANCE, HOOKE
 from .springs import SpringSpec, spring_sweep_funcs
 from .flatten import flat_kernel
 
@@ -52,6 +53,122 @@ wp.set_module_options({"enable_backward": False})
 def sweeps(features: ForceFeatures) -> bool:
     """Whether the sweep can take a step of ``features``: the springs first among the families, gathered."""
     return bool(features.families) and isinstance(features.families[0], SpringSpec) and features.families[0].gathered
+
+
+#: Columns a row of the grid's springs is evaluated in at a time (``grid_spring_pass``: their forces in arrays on the
+#: stack, so that the loops that add them to both ends have no dependence between iterations).
+GRID_CHUNK = 64
+
+
+def grid_vectorised(spec: SpringSpec) -> bool:
+    """Whether the springs' forces can be evaluated by ``grid_spring_pass``: a grid layout whose every slot is a
+    uniform group's, no tail, Hooke's law with an axial damper (no biphasic knee, clamp, per-spring law or plasticity).
+    Then the same springs are summed as by ``forward``, in another order."""
+    head_slots, tail = spec.incidence
+    return (spec.gathered and not tail and spec.law == HOOKE and bool(spec.grid_slots)
+            and len(spec.slot_groups) == head_slots and all(g >= 0 for g in spec.slot_groups))
+
+
+@functools.cache
+def grid_spring_pass(scalar: type, spec: SpringSpec, dampers: bool):
+    """``grid_springs(particle_q, particle_qd, base, nx, ny, rest, ke, kd, force_in_out, dampers_in_out)``: add the
+    force [N] of every spring of one world's grid (``grid_vectorised``) to both its particles' entries of
+    ``force_in_out`` (and, with ``dampers``, its damper's part to ``dampers_in_out``); ``rest``, ``ke``, ``kd``: each
+    group's rest length [m], stiffness [N/m] and damping [N·s/m] (``spring_sweep_funcs``' ``prepare``).
+
+    The springs are taken direction by direction (a slot ahead: dy > 0, or dy = 0 and dx > 0), a grid row at a time:
+    one loop evaluates a chunk of the row's springs into arrays, two more add them to the particles at either end.
+    Each loop reads and writes unit-strided, unaliased memory with no dependence between iterations, which clang
+    vectorises (``-march=native``: 8 or 16 springs an instruction) where a Warp loop over a Warp array is not
+    (performance_cpu.md §0: its range iterator and its arrays' run-time strides): 3-4x the sweep's ``forward`` per
+    spring on the reference cloth (bench/results/cpu_regression.md). CPU only (C++; the kernel is launched on the CPU).
+    """
+    real = {wp.float32: "float", wp.float64: "double"}[scalar]
+    vec3 = vec3_type(scalar)
+    group_count = max(spec.slot_groups) + 1
+    group_values = wp.types.vector(length=group_count, dtype=scalar)
+    # One block per slot ahead, with its direction and group as constants.
+    blocks = []
+    for (dx, dy), g in zip(spec.grid_slots, spec.slot_groups):
+        if not (dy > 0 or (dy == 0 and dx > 0)):
+            continue
+        blocks.append(DIRECTION.format(dx=dx, dy=dy, g=g))
+    damper_decl = DAMPER_DECL if dampers else ""
+    damper_eval = DAMPER_EVAL if dampers else ""
+    damper_add = DAMPER_ADD if dampers else ""
+    damper_sub = DAMPER_SUB if dampers else ""
+    body = "".join(block.replace("@DAMPER_EVAL@", damper_eval).replace("@DAMPER_ADD@", damper_add)
+                   .replace("@DAMPER_SUB@", damper_sub) for block in blocks)
+    snippet = (GRID_PASS.replace("@BODY@", body).replace("@DAMPER_DECL@", damper_decl)
+               .replace("@CHUNK@", str(GRID_CHUNK)).replace("@EPS@", repr(COINCIDENT_DISTANCE))
+               .replace("@REAL@", real))
+
+    @wp.func_native(snippet)
+    def grid_springs(particle_q: wp.array[vec3], particle_qd: wp.array[vec3], base: int, nx: int, ny: int,
+                     rest: group_values, ke: group_values, kd: group_values, force_in_out: wp.array[vec3],
+                     dampers_in_out: wp.array[vec3]):
+        ...
+
+    return grid_springs
+
+
+# The C++ of ``grid_spring_pass`` (``real``: float or double; @...@: filled in per spec). X, V, F, D: the world's
+# positions, velocities, forces and dampers' forces as flat arrays of x, y, z.
+GRID_PASS = """
+typedef @REAL@ real;
+const real* __restrict__ X = (const real*)(particle_q.data + base);
+const real* __restrict__ V = (const real*)(particle_qd.data + base);
+real* __restrict__ F = (real*)(force_in_out.data + base);
+real* __restrict__ D = (real*)(dampers_in_out.data + base);
+(void)D;
+real Tx[@CHUNK@], Ty[@CHUNK@], Tz[@CHUNK@];
+@DAMPER_DECL@
+const real eps = (real)@EPS@;
+@BODY@
+"""
+
+DAMPER_DECL = "real Ux[@CHUNK@], Uy[@CHUNK@], Uz[@CHUNK@];"
+
+DIRECTION = """
+{{
+  const int dx = {dx}, dy = {dy};
+  const real L = rest.c[{g}], k = ke.c[{g}], kdamp = kd.c[{g}];
+  const int c_first = dx < 0 ? -dx : 0, c_end = dx > 0 ? nx - dx : nx;
+  for (int r = 0; r + dy < ny; ++r) {{
+    for (int c0 = c_first; c0 < c_end; c0 += @CHUNK@) {{
+      const int m = (c_end - c0) < @CHUNK@ ? (c_end - c0) : @CHUNK@;
+      const int i0 = r * nx + c0, j0 = (r + dy) * nx + c0 + dx;
+      const real* __restrict__ xi = X + 3 * i0;
+      const real* __restrict__ xj = X + 3 * j0;
+      const real* __restrict__ vi = V + 3 * i0;
+      const real* __restrict__ vj = V + 3 * j0;
+      for (int c = 0; c < m; ++c) {{
+        const real ex = xj[3 * c] - xi[3 * c], ey = xj[3 * c + 1] - xi[3 * c + 1], ez = xj[3 * c + 2] - xi[3 * c + 2];
+        const real length = sqrt(ex * ex + ey * ey + ez * ez);
+        const real inverse = length > eps ? (real)1 / length : (real)0;
+        const real nx_ = ex * inverse, ny_ = ey * inverse, nz_ = ez * inverse;
+        const real rate = (vj[3 * c] - vi[3 * c]) * nx_ + (vj[3 * c + 1] - vi[3 * c + 1]) * ny_
+                        + (vj[3 * c + 2] - vi[3 * c + 2]) * nz_;
+        const real magnitude = k * (length - L) + kdamp * rate;
+        Tx[c] = nx_ * magnitude; Ty[c] = ny_ * magnitude; Tz[c] = nz_ * magnitude;
+        @DAMPER_EVAL@
+      }}
+      real* __restrict__ fi = F + 3 * i0;
+      for (int c = 0; c < m; ++c) {{ fi[3 * c] += Tx[c]; fi[3 * c + 1] += Ty[c]; fi[3 * c + 2] += Tz[c]; }}
+      real* __restrict__ fj = F + 3 * j0;
+      for (int c = 0; c < m; ++c) {{ fj[3 * c] -= Tx[c]; fj[3 * c + 1] -= Ty[c]; fj[3 * c + 2] -= Tz[c]; }}
+      @DAMPER_ADD@
+      @DAMPER_SUB@
+    }}
+  }}
+}}
+"""
+
+DAMPER_EVAL = "const real damping = kdamp * rate; Ux[c] = nx_ * damping; Uy[c] = ny_ * damping; Uz[c] = nz_ * damping;"
+DAMPER_ADD = ("real* __restrict__ di = D + 3 * i0;\n      for (int c = 0; c < m; ++c) "
+              "{ di[3 * c] += Ux[c]; di[3 * c + 1] += Uy[c]; di[3 * c + 2] += Uz[c]; }")
+DAMPER_SUB = ("real* __restrict__ dj = D + 3 * j0;\n      for (int c = 0; c < m; ++c) "
+              "{ dj[3 * c] -= Ux[c]; dj[3 * c + 1] -= Uy[c]; dj[3 * c + 2] -= Uz[c]; }")
 
 
 @functools.cache
@@ -83,6 +200,9 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
     _, project_contacts = project_all_func(scalar, contacts)
     has_contacts = bool(contacts)
     grid = bool(springs_spec.grid_slots) and bool(springs_spec.slot_groups)
+    # The grid's springs in a vectorised pass before the particles' loop (``grid_spring_pass``), else by ``forward``.
+    vectorised = grid_vectorised(springs_spec)
+    grid_springs = grid_spring_pass(scalar, springs_spec, spring_dampers) if vectorised else None
 
     @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
                  last=contacts.idle() + composed.last("element_arrays"))
@@ -126,6 +246,9 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
         h = dt
         springs = element_arrays.head
         prepared = prepare(world, springs, inputs)
+        if wp.static(vectorised):
+            grid_springs(particle_q_in, particle_qd_in, base, prepared.nx, prepared.ny, prepared.rest, prepared.ke,
+                         prepared.kd, force_in_out, dampers_in_out)
         inv_mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         row = int(0)
         column = int(0)
@@ -133,14 +256,17 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
             p = base + i
             x = particle_q_in[p]
             v = particle_qd_in[p]
-            springs_f, springs_d = forward(i, row, column, base, x, v, springs, prepared, particle_q_in,
-                                           particle_qd_in, force_in_out, dampers_in_out)
+            springs_f = vec3(scalar(0.0))
+            springs_d = vec3(scalar(0.0))
+            if wp.static(not vectorised):
+                springs_f, springs_d = forward(i, row, column, base, x, v, springs, prepared, particle_q_in,
+                                               particle_qd_in, force_in_out, dampers_in_out)
             springs_f += force_in_out[p]
             force_in_out[p] = vec3(scalar(0.0))
             if wp.static(spring_dampers):
                 springs_d += dampers_in_out[p]
                 dampers_in_out[p] = vec3(scalar(0.0))
-            if wp.static(grid):
+            if wp.static(grid and not vectorised):
                 column += 1
                 if column == prepared.nx:
                     column = 0
