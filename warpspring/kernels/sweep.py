@@ -19,6 +19,13 @@ those it used zero.
 
 Per-world values (the springs' groups, rows and law values, the world's row of the input table) are read once per
 world, not per particle. The results are the fused step's up to the order of the force's sums (float32 rounding).
+
+With a grid layout of uniform groups and Hooke's law (``grid_vectorised``), the springs are evaluated before the
+particles' loop by a vectorised C++ pass (``grid_spring_pass``) into the same scratch, and ``forward`` is not run.
+The step runs with subnormal floats flushed to zero (``flush_subnormals_begin``, restored at its end): a cloth at
+rest along an axis carries components of ~1e-16 m whose products (its dampers' forces, their power) are subnormal,
+which the x86 core computes in microcode, ~100 cycles each; flushed, values below 1.2e-38 (float32) read as zero.
+That halved the guarded sweep at 32² and 64² (bench/results/cpu_regression.md).
 The guard's power sums are counted as in the fused step (``integrators.symplectic_euler_kernel``'s ``power``), the
 springs' dampers' part swept alongside their force (``dampers_in_out``). The springs must be the first family
 (``Model.families``), gathered; a one-thread-per-world launch is for the CPU only.
@@ -57,7 +64,7 @@ def sweeps(features: ForceFeatures) -> bool:
 
 #: Columns a row of the grid's springs is evaluated in at a time (``grid_spring_pass``: their forces in arrays on the
 #: stack, so that the loops that add them to both ends have no dependence between iterations).
-GRID_CHUNK = 64
+GRID_CHUNK = 128
 
 
 def grid_vectorised(spec: SpringSpec) -> bool:
@@ -67,6 +74,31 @@ def grid_vectorised(spec: SpringSpec) -> bool:
     head_slots, tail = spec.incidence
     return (spec.gathered and not tail and spec.law == HOOKE and bool(spec.grid_slots)
             and len(spec.slot_groups) == head_slots and all(g >= 0 for g in spec.slot_groups))
+
+
+@wp.func_native("""
+#if defined(__x86_64__) && !defined(__CUDA_ARCH__)
+const unsigned int csr = __builtin_ia32_stmxcsr();
+__builtin_ia32_ldmxcsr(csr | 0x8040u);
+return (int)csr;
+#else
+return 0;
+#endif
+""")
+def flush_subnormals_begin() -> int:
+    """Flush subnormal floats to zero (x86's FTZ and DAZ bits) on this CPU thread until ``flush_subnormals_end``;
+    returns the control word to restore (0 and nothing done elsewhere)."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__x86_64__) && !defined(__CUDA_ARCH__)
+__builtin_ia32_ldmxcsr((unsigned int)saved);
+#endif
+""")
+def flush_subnormals_end(saved: int):
+    """Restore the control word ``flush_subnormals_begin`` returned."""
+    ...
 
 
 @functools.cache
@@ -97,8 +129,9 @@ def grid_spring_pass(scalar: type, spec: SpringSpec, dampers: bool):
     damper_eval = DAMPER_EVAL if dampers else ""
     damper_add = DAMPER_ADD if dampers else ""
     damper_sub = DAMPER_SUB if dampers else ""
+    damper_zero = DAMPER_ZERO if dampers else ""
     body = "".join(block.replace("@DAMPER_EVAL@", damper_eval).replace("@DAMPER_ADD@", damper_add)
-                   .replace("@DAMPER_SUB@", damper_sub) for block in blocks)
+                   .replace("@DAMPER_SUB@", damper_sub).replace("@DAMPER_ZERO@", damper_zero) for block in blocks)
     snippet = (GRID_PASS.replace("@BODY@", body).replace("@DAMPER_DECL@", damper_decl)
                .replace("@CHUNK@", str(GRID_CHUNK)).replace("@EPS@", repr(COINCIDENT_DISTANCE))
                .replace("@REAL@", real))
@@ -124,7 +157,9 @@ real* __restrict__ D = (real*)(dampers_in_out.data + base);
 real Tx[@CHUNK@], Ty[@CHUNK@], Tz[@CHUNK@];
 @DAMPER_DECL@
 const real eps = (real)@EPS@;
+for (int a0 = 0; a0 < nx * ny; a0 += @CHUNK@) {
 @BODY@
+}
 """
 
 DAMPER_DECL = "real Ux[@CHUNK@], Uy[@CHUNK@], Uz[@CHUNK@];"
@@ -133,15 +168,18 @@ DIRECTION = """
 {{
   const int dx = {dx}, dy = {dy};
   const real L = rest.c[{g}], k = ke.c[{g}], kdamp = kd.c[{g}];
-  const int c_first = dx < 0 ? -dx : 0, c_end = dx > 0 ? nx - dx : nx;
-  for (int r = 0; r + dy < ny; ++r) {{
-    for (int c0 = c_first; c0 < c_end; c0 += @CHUNK@) {{
-      const int m = (c_end - c0) < @CHUNK@ ? (c_end - c0) : @CHUNK@;
-      const int i0 = r * nx + c0, j0 = (r + dy) * nx + c0 + dx;
-      const real* __restrict__ xi = X + 3 * i0;
-      const real* __restrict__ xj = X + 3 * j0;
-      const real* __restrict__ vi = V + 3 * i0;
-      const real* __restrict__ vj = V + 3 * j0;
+  const int bad_first = dx > 0 ? nx - dx : 0, bad_end = dx > 0 ? nx : -dx;
+  const int offset = dy * nx + dx;
+  const int i_first = dx < 0 ? -dx : 0, i_end = (ny - dy) * nx - (dx > 0 ? dx : 0);
+  const int a = a0 > i_first ? a0 : i_first;
+  const int e = (a0 + @CHUNK@) < i_end ? (a0 + @CHUNK@) : i_end;
+  if (a < e) {{
+    const int m = e - a;
+    {{
+      const real* __restrict__ xi = X + 3 * a;
+      const real* __restrict__ xj = X + 3 * (a + offset);
+      const real* __restrict__ vi = V + 3 * a;
+      const real* __restrict__ vj = V + 3 * (a + offset);
       for (int c = 0; c < m; ++c) {{
         const real ex = xj[3 * c] - xi[3 * c], ey = xj[3 * c + 1] - xi[3 * c + 1], ez = xj[3 * c + 2] - xi[3 * c + 2];
         const real length = sqrt(ex * ex + ey * ey + ez * ez);
@@ -153,22 +191,35 @@ DIRECTION = """
         Tx[c] = nx_ * magnitude; Ty[c] = ny_ * magnitude; Tz[c] = nz_ * magnitude;
         @DAMPER_EVAL@
       }}
-      real* __restrict__ fi = F + 3 * i0;
-      for (int c = 0; c < m; ++c) {{ fi[3 * c] += Tx[c]; fi[3 * c + 1] += Ty[c]; fi[3 * c + 2] += Tz[c]; }}
-      real* __restrict__ fj = F + 3 * j0;
-      for (int c = 0; c < m; ++c) {{ fj[3 * c] -= Tx[c]; fj[3 * c + 1] -= Ty[c]; fj[3 * c + 2] -= Tz[c]; }}
-      @DAMPER_ADD@
-      @DAMPER_SUB@
     }}
+    // The pairs whose neighbour is off the grid (a row's last or first dx columns, wrapped onto the next row):
+    // no spring, so no force.
+    for (int r = a / nx; r * nx < a + m; ++r) {{
+      for (int col = bad_first; col < bad_end; ++col) {{
+        const int c = r * nx + col - a;
+        if (c >= 0 && c < m) {{ Tx[c] = 0; Ty[c] = 0; Tz[c] = 0; @DAMPER_ZERO@ }}
+      }}
+    }}
+    {{
+      real* __restrict__ fi = F + 3 * a;
+      for (int c = 0; c < m; ++c) {{ fi[3 * c] += Tx[c]; fi[3 * c + 1] += Ty[c]; fi[3 * c + 2] += Tz[c]; }}
+    }}
+    {{
+      real* __restrict__ fj = F + 3 * (a + offset);
+      for (int c = 0; c < m; ++c) {{ fj[3 * c] -= Tx[c]; fj[3 * c + 1] -= Ty[c]; fj[3 * c + 2] -= Tz[c]; }}
+    }}
+    @DAMPER_ADD@
+    @DAMPER_SUB@
   }}
 }}
 """
 
 DAMPER_EVAL = "const real damping = kdamp * rate; Ux[c] = nx_ * damping; Uy[c] = ny_ * damping; Uz[c] = nz_ * damping;"
-DAMPER_ADD = ("real* __restrict__ di = D + 3 * i0;\n      for (int c = 0; c < m; ++c) "
-              "{ di[3 * c] += Ux[c]; di[3 * c + 1] += Uy[c]; di[3 * c + 2] += Uz[c]; }")
-DAMPER_SUB = ("real* __restrict__ dj = D + 3 * j0;\n      for (int c = 0; c < m; ++c) "
-              "{ dj[3 * c] -= Ux[c]; dj[3 * c + 1] -= Uy[c]; dj[3 * c + 2] -= Uz[c]; }")
+DAMPER_ZERO = "Ux[c] = 0; Uy[c] = 0; Uz[c] = 0;"
+DAMPER_ADD = ("{ real* __restrict__ di = D + 3 * a;\n      for (int c = 0; c < m; ++c) "
+              "{ di[3 * c] += Ux[c]; di[3 * c + 1] += Uy[c]; di[3 * c + 2] += Uz[c]; } }")
+DAMPER_SUB = ("{ real* __restrict__ dj = D + 3 * (a + offset);\n      for (int c = 0; c < m; ++c) "
+              "{ dj[3 * c] -= Ux[c]; dj[3 * c + 1] -= Uy[c]; dj[3 * c + 2] -= Uz[c]; } }")
 
 
 @functools.cache
@@ -235,6 +286,7 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
         dampers_in_out: wp.array[vec3],  # scratch: their dampers' part [N] (with the springs' dampers counted)
     ):
         world = wp.tid()
+        saved = flush_subnormals_begin()
         base = world * particle_count
         k = base  # a while loop, which clang may vectorise (a range loop it never does: performance_cpu.md §0)
         while k < base + particle_count:
@@ -312,5 +364,6 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
                 x, v = project_contacts(world, p, x, v, particle_radius[i], h, shapes, inputs)
             particle_q_out[p] = x
             particle_qd_out[p] = v
+        flush_subnormals_end(saved)
 
     return symplectic_euler_sweep
