@@ -14,7 +14,7 @@ import pytest
 import warp as wp
 
 import warpspring as ws
-from warpspring.kernels.sweep import grid_vectorised, sweeps
+from warpspring.kernels.sweep import GRID_CHUNK, grid_vectorised, sweeps
 
 DT = 1.0e-3
 STEPS = 40
@@ -74,6 +74,24 @@ def test_the_sweep_steps_as_the_per_particle_step_in_every_layout(layout):
     # The grid layout's springs take the vectorised pass (``grid_spring_pass``), the tables ``forward``.
     assert grid_vectorised(model.force_features(None).families[0]) == (layout == {})
     assert_same(both(model))
+
+
+@pytest.mark.parametrize("shape", [(37, 9), (150, 5)])
+def test_the_vectorised_grid_pass_across_its_chunks(shape):
+    """Grids larger than the pass's chunk of particles (``GRID_CHUNK``): rows that end inside a chunk (37 columns) and
+    rows longer than a chunk (150), so that chunks start mid-row and the pairs wrapping onto the next row fall at
+    every place in a chunk; two worlds of their own stiffness. The same states as the per-particle step."""
+    nx, ny = shape
+    assert nx * ny > 2 * GRID_CHUNK
+    builder = ws.ModelBuilder()
+    builder.add_cloth_grid(nx=nx, ny=ny, spacing=0.125, origin=(0.0, 0.0, 1.0), particle_mass=0.05,
+                           structural=ws.SpringMaterial(800.0, 4.0), shear=ws.SpringMaterial(300.0, 2.0),
+                           bend=ws.SpringMaterial(100.0, 1.0), pin=["top-left", "top-right"])
+    model = builder.finalize("cpu", precision="float64", spring_evaluation="gather", worlds=2)
+    assert grid_vectorised(model.force_features(None).families[0])
+    ke = model.world_values("spring_stiffness")[0]
+    model.set_world_values("spring_stiffness", ke[None, :] * np.array([1.0, 1.5])[:, None])
+    assert_same(both(model, 10))
 
 
 def test_the_vectorised_grid_pass_in_float32():
