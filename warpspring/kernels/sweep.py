@@ -64,7 +64,7 @@ def sweeps(features: ForceFeatures) -> bool:
 
 #: Particles whose springs ahead ``grid_spring_pass`` evaluates at a time (their forces in arrays on the stack, so that
 #: the loops that add them to both ends have no dependence between iterations).
-GRID_CHUNK = 128
+GRID_CHUNK = 64
 
 
 def grid_vectorised(spec: SpringSpec) -> bool:
@@ -103,43 +103,32 @@ def flush_subnormals_end(saved: int):
 
 @functools.cache
 def grid_spring_pass(scalar: type, spec: SpringSpec, dampers: bool):
-    """``grid_springs(particle_q, particle_qd, base, nx, ny, rest, ke, kd, force_in_out, dampers_in_out)``: add the
-    force [N] of every spring of one world's grid (``grid_vectorised``) to both its particles' entries of
-    ``force_in_out`` (and, with ``dampers``, its damper's part to ``dampers_in_out``); ``rest``, ``ke``, ``kd``: each
-    group's rest length [m], stiffness [N/m] and damping [N·s/m] (``spring_sweep_funcs``' ``prepare``).
+    """``grid_springs(particle_q, particle_qd, base, nx, ny, rest, ke, kd, force_in_out, dampers_in_out)``: write each
+    particle's force [N] of one world's grid springs (``grid_vectorised``) into ``force_in_out`` (zero on entry) and,
+    with ``dampers``, their dampers' part into ``dampers_in_out``; ``rest``, ``ke``, ``kd``: each group's rest length
+    [m], stiffness [N/m] and damping [N·s/m] (``spring_sweep_funcs``' ``prepare``).
 
-    The world's particles are taken in chunks of ``GRID_CHUNK`` consecutive indices, and in each chunk the springs of
-    every slot ahead (direction (dx, dy) with dy > 0, or dy = 0 and dx > 0) from those particles i to j = i + dy·nx + dx:
-    one loop evaluates them into arrays on the stack (the pairs whose j wraps onto another row, a row's first or last
-    |dx| columns, are then zeroed: no spring), two more add them to i's entries and subtract them from j's. Each loop
-    reads and writes unit-strided, unaliased memory with no dependence between iterations, which clang vectorises
-    (``-march=native``: 16 floats an instruction with AVX-512) where a Warp loop over a Warp array is not
-    (performance_cpu.md §0: its range iterator and its arrays' run-time strides); a chunk's particles, and the rows
-    two ahead, stay in the L1 cache across its directions. On the reference cloth the sweep's spring part went from
-    ~45 to ~5 µs a substep at 32² (bench/results/cpu_regression.md). CPU only (C++; the kernel is launched on the CPU).
+    The world's particles are taken in chunks of ``GRID_CHUNK`` consecutive indices. In a chunk, the springs of every
+    slot ahead (direction (dx, dy) with dy > 0, or dy = 0 and dx > 0) from those particles i to j = i + dy·nx + dx are
+    evaluated by one loop per direction into arrays on the stack (the pairs whose j wraps onto another row, a row's
+    first or last |dx| columns, then zeroed: no spring) and summed into the chunk's own forces; then subtracted from
+    their other ends j, direction by direction in decreasing dy·nx + dx; then each particle of the chunk takes its
+    own springs' sum plus what the earlier particles' springs left it. Each loop reads and writes unit-strided,
+    unaliased memory with no dependence between iterations, which clang vectorises (``-march=native``: 16 floats an
+    instruction with AVX-512) where a Warp loop over a Warp array is not (performance_cpu.md §0).
+
+    A spring's force is computed by Warp's own vector functions in ``spring_force``'s order, and the sums are made in
+    ``forward``'s order (a particle's springs ahead in slot order, then those of the particles before it in their
+    order), so the result is ``forward``'s bit for bit: the grid layout steps as the table layout does
+    (tests/test_grid_layout.py). CPU only (C++; the kernel is launched on the CPU).
     """
     real = {wp.float32: "float", wp.float64: "double"}[scalar]
     vec3 = vec3_type(scalar)
     group_count = max(spec.slot_groups) + 1
     group_values = wp.types.vector(length=group_count, dtype=scalar)
-    # One block per slot ahead, with its direction and group as constants.
-    blocks = []
-    for (dx, dy), g in zip(spec.grid_slots, spec.slot_groups):
-        if not (dy > 0 or (dy == 0 and dx > 0)):
-            continue
-        blocks.append(DIRECTION.format(dx=dx, dy=dy, g=g))
-    damper_decl = DAMPER_DECL if dampers else ""
-    damper_eval = DAMPER_EVAL if dampers else ""
-    damper_add = DAMPER_ADD if dampers else ""
-    damper_sub = DAMPER_SUB if dampers else ""
-    damper_zero = DAMPER_ZERO if dampers else ""
-    body = "".join(block.replace("@DAMPER_EVAL@", damper_eval).replace("@DAMPER_ADD@", damper_add)
-                   .replace("@DAMPER_SUB@", damper_sub).replace("@DAMPER_ZERO@", damper_zero) for block in blocks)
-    snippet = (GRID_PASS.replace("@BODY@", body).replace("@DAMPER_DECL@", damper_decl)
-               .replace("@CHUNK@", str(GRID_CHUNK)).replace("@EPS@", repr(COINCIDENT_DISTANCE))
-               .replace("@REAL@", real))
+    ahead = [(dx, dy, g) for (dx, dy), g in zip(spec.grid_slots, spec.slot_groups) if dy > 0 or (dy == 0 and dx > 0)]
 
-    @wp.func_native(snippet)
+    @wp.func_native(grid_pass_source(real, tuple(ahead), dampers))
     def grid_springs(particle_q: wp.array[vec3], particle_qd: wp.array[vec3], base: int, nx: int, ny: int,
                      rest: group_values, ke: group_values, kd: group_values, force_in_out: wp.array[vec3],
                      dampers_in_out: wp.array[vec3]):
@@ -148,81 +137,104 @@ def grid_spring_pass(scalar: type, spec: SpringSpec, dampers: bool):
     return grid_springs
 
 
-# The C++ of ``grid_spring_pass`` (``real``: float or double; @...@: filled in per spec). X, V, F, D: the world's
-# positions, velocities, forces and dampers' forces as flat arrays of x, y, z.
-GRID_PASS = """
-typedef @REAL@ real;
+def grid_pass_source(real: str, ahead: tuple, dampers: bool) -> str:
+    """The C++ of ``grid_spring_pass``: ``real`` the scalar type, ``ahead`` the (dx, dy, group) of each slot ahead in
+    slot order, ``dampers`` whether the dampers' part is summed too."""
+    count, chunk = len(ahead), GRID_CHUNK
+    arrays = ("T", "U") if dampers else ("T",)  # per direction: the springs' forces (T) and dampers' parts (U)
+    sums = ("A", "B") if dampers else ("A",)  # the chunk's own springs' sums of T and U
+    targets = {"T": "F", "U": "D", "A": "F", "B": "D"}
+    out = [f"""
+typedef {real} real;
+typedef wp::vec_t<3, real> v3;
 const real* __restrict__ X = (const real*)(particle_q.data + base);
 const real* __restrict__ V = (const real*)(particle_qd.data + base);
 real* __restrict__ F = (real*)(force_in_out.data + base);
 real* __restrict__ D = (real*)(dampers_in_out.data + base);
 (void)D;
-real Tx[@CHUNK@], Ty[@CHUNK@], Tz[@CHUNK@];
-@DAMPER_DECL@
-const real eps = (real)@EPS@;
-for (int a0 = 0; a0 < nx * ny; a0 += @CHUNK@) {
-@BODY@
-}
-"""
-
-DAMPER_DECL = "real Ux[@CHUNK@], Uy[@CHUNK@], Uz[@CHUNK@];"
-
-DIRECTION = """
-{{
-  const int dx = {dx}, dy = {dy};
-  const real L = rest.c[{g}], k = ke.c[{g}], kdamp = kd.c[{g}];
-  const int bad_first = dx > 0 ? nx - dx : 0, bad_end = dx > 0 ? nx : -dx;
-  const int offset = dy * nx + dx;
-  const int i_first = dx < 0 ? -dx : 0, i_end = (ny - dy) * nx - (dx > 0 ? dx : 0);
-  const int a = a0 > i_first ? a0 : i_first;
-  const int e = (a0 + @CHUNK@) < i_end ? (a0 + @CHUNK@) : i_end;
-  if (a < e) {{
-    const int m = e - a;
-    {{
-      const real* __restrict__ xi = X + 3 * a;
-      const real* __restrict__ xj = X + 3 * (a + offset);
-      const real* __restrict__ vi = V + 3 * a;
-      const real* __restrict__ vj = V + 3 * (a + offset);
-      for (int c = 0; c < m; ++c) {{
-        const real ex = xj[3 * c] - xi[3 * c], ey = xj[3 * c + 1] - xi[3 * c + 1], ez = xj[3 * c + 2] - xi[3 * c + 2];
-        const real length = sqrt(ex * ex + ey * ey + ez * ez);
-        const real inverse = length > eps ? (real)1 / length : (real)0;
-        const real nx_ = ex * inverse, ny_ = ey * inverse, nz_ = ez * inverse;
-        const real rate = (vj[3 * c] - vi[3 * c]) * nx_ + (vj[3 * c + 1] - vi[3 * c + 1]) * ny_
-                        + (vj[3 * c + 2] - vi[3 * c + 2]) * nz_;
-        const real magnitude = k * (length - L) + kdamp * rate;
-        Tx[c] = nx_ * magnitude; Ty[c] = ny_ * magnitude; Tz[c] = nz_ * magnitude;
-        @DAMPER_EVAL@
-      }}
-    }}
-    // The pairs whose neighbour is off the grid (a row's last or first dx columns, wrapped onto the next row):
-    // no spring, so no force.
-    for (int r = a / nx; r * nx < a + m; ++r) {{
-      for (int col = bad_first; col < bad_end; ++col) {{
-        const int c = r * nx + col - a;
-        if (c >= 0 && c < m) {{ Tx[c] = 0; Ty[c] = 0; Tz[c] = 0; @DAMPER_ZERO@ }}
-      }}
-    }}
-    {{
-      real* __restrict__ fi = F + 3 * a;
-      for (int c = 0; c < m; ++c) {{ fi[3 * c] += Tx[c]; fi[3 * c + 1] += Ty[c]; fi[3 * c + 2] += Tz[c]; }}
-    }}
-    {{
-      real* __restrict__ fj = F + 3 * (a + offset);
-      for (int c = 0; c < m; ++c) {{ fj[3 * c] -= Tx[c]; fj[3 * c + 1] -= Ty[c]; fj[3 * c + 2] -= Tz[c]; }}
-    }}
-    @DAMPER_ADD@
-    @DAMPER_SUB@
+const real eps = (real){COINCIDENT_DISTANCE!r};
+const int n = nx * ny;
+const int DX[{count}] = {{{", ".join(str(dx) for dx, _, _ in ahead)}}};
+const int DY[{count}] = {{{", ".join(str(dy) for _, dy, _ in ahead)}}};
+int offset[{count}], first[{count}], last[{count}], order[{count}], start[{count}], size[{count}];
+for (int d = 0; d < {count}; ++d) {{
+  offset[d] = DY[d] * nx + DX[d];
+  first[d] = DX[d] < 0 ? -DX[d] : 0;
+  last[d] = (ny - DY[d]) * nx - (DX[d] > 0 ? DX[d] : 0);
+  order[d] = d;
+}}
+// The subtractions in decreasing offset: each particle gets those of the particles before it in their order.
+for (int p = 1; p < {count}; ++p) {{
+  for (int q = p; q > 0 && offset[order[q - 1]] < offset[order[q]]; --q) {{
+    const int t = order[q]; order[q] = order[q - 1]; order[q - 1] = t;
   }}
 }}
-"""
-
-DAMPER_EVAL = "const real damping = kdamp * rate; Ux[c] = nx_ * damping; Uy[c] = ny_ * damping; Uz[c] = nz_ * damping;"
-DAMPER_ZERO = "Ux[c] = 0; Uy[c] = 0; Uz[c] = 0;"
-DAMPER_ADD = ("{ real* __restrict__ di = D + 3 * a;\n      for (int c = 0; c < m; ++c) "
-              "{ di[3 * c] += Ux[c]; di[3 * c + 1] += Uy[c]; di[3 * c + 2] += Uz[c]; } }")
-DAMPER_SUB = ("{ real* __restrict__ dj = D + 3 * (a + offset);\n      for (int c = 0; c < m; ++c) "
-              "{ dj[3 * c] -= Ux[c]; dj[3 * c + 1] -= Uy[c]; dj[3 * c + 2] -= Uz[c]; } }")
+"""]
+    out += [f"real {a}[{count}][3][{chunk}];" for a in arrays] + [f"real {a}[3][{chunk}];" for a in sums]
+    out.append(f"""
+for (int a0 = 0; a0 < n; a0 += {chunk}) {{
+  const int m0 = n - a0 < {chunk} ? n - a0 : {chunk};
+  for (int k = 0; k < 3; ++k) for (int c = 0; c < {chunk}; ++c) {{ {" ".join(f"{a}[k][c] = 0;" for a in sums)} }}""")
+    for d, (dx, dy, g) in enumerate(ahead):
+        bad_first, bad_end = (f"nx - {dx}", "nx") if dx > 0 else ("0", str(-dx))
+        damper = ("const v3 u = wp::mul(normal, wp::mul(kdamp, wp::dot(wp::sub(qj, qi), normal)));\n"
+                  f"      U[{d}][0][s + c] = u.c[0]; U[{d}][1][s + c] = u.c[1]; U[{d}][2][s + c] = u.c[2];")
+        out.append(f"""
+  {{
+    const int a = a0 > first[{d}] ? a0 : first[{d}];
+    const int e = a0 + {chunk} < last[{d}] ? a0 + {chunk} : last[{d}];
+    const int s = a - a0, m = e > a ? e - a : 0;
+    start[{d}] = s; size[{d}] = m;
+    const real L = rest.c[{g}], k = ke.c[{g}], kdamp = kd.c[{g}];
+    const real* __restrict__ xi = X + 3 * a;
+    const real* __restrict__ xj = X + 3 * (a + offset[{d}]);
+    const real* __restrict__ vi = V + 3 * a;
+    const real* __restrict__ vj = V + 3 * (a + offset[{d}]);
+    for (int c = 0; c < m; ++c) {{
+      const v3 pi(xi[3 * c], xi[3 * c + 1], xi[3 * c + 2]), pj(xj[3 * c], xj[3 * c + 1], xj[3 * c + 2]);
+      const v3 qi(vi[3 * c], vi[3 * c + 1], vi[3 * c + 2]), qj(vj[3 * c], vj[3 * c + 1], vj[3 * c + 2]);
+      const v3 delta = wp::sub(pj, pi);
+      const real length = wp::length(delta);
+      const v3 normal = wp::mul(delta, wp::where(length > eps, wp::div((real)1, length), (real)0));
+      const real magnitude = wp::add(wp::mul(k, wp::sub(length, L)),
+                                     wp::mul(kdamp, wp::dot(wp::sub(qj, qi), normal)));
+      const v3 f = wp::mul(normal, magnitude);
+      T[{d}][0][s + c] = f.c[0]; T[{d}][1][s + c] = f.c[1]; T[{d}][2][s + c] = f.c[2];
+      {damper if dampers else ""}
+    }}
+    // The pairs whose neighbour is off the grid (wrapped onto the next row): no spring, no force.
+    for (int r = a / nx; r * nx < e; ++r) {{
+      for (int col = {bad_first}; col < {bad_end}; ++col) {{
+        const int c = r * nx + col - a;
+        if (c >= 0 && c < m) {{ {" ".join(f"{x}[{d}][{k}][s + c] = 0;" for x in arrays for k in range(3))} }}
+      }}
+    }}
+    for (int c = s; c < s + m; ++c) {{
+      {" ".join(f"{y}[{k}][c] += {x}[{d}][{k}][c];" for x, y in zip(arrays, sums) for k in range(3))}
+    }}
+  }}""")
+    subtract = "\n".join(f"""
+    {{
+      real* __restrict__ out = {targets[x]} + 3 * (a0 + s + offset[d]);
+      for (int c = 0; c < m; ++c) {{
+        out[3 * c] -= {x}[d][0][s + c]; out[3 * c + 1] -= {x}[d][1][s + c]; out[3 * c + 2] -= {x}[d][2][s + c];
+      }}
+    }}""" for x in arrays)
+    finish = "\n".join(f"""
+  {{
+    real* __restrict__ own = {targets[y]} + 3 * a0;
+    for (int c = 0; c < m0; ++c) {{
+      own[3 * c] = {y}[0][c] + own[3 * c]; own[3 * c + 1] = {y}[1][c] + own[3 * c + 1];
+      own[3 * c + 2] = {y}[2][c] + own[3 * c + 2];
+    }}
+  }}""" for y in sums)
+    out.append(f"""
+  for (int o = 0; o < {count}; ++o) {{
+    const int d = order[o], s = start[d], m = size[d];{subtract}
+  }}{finish}
+}}
+""")
+    return "\n".join(out)
 
 
 @functools.cache
@@ -311,15 +323,18 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
             p = base + i
             x = particle_q_in[p]
             v = particle_qd_in[p]
-            springs_f = vec3(scalar(0.0))
+            springs_f = force_in_out[p]  # the grid pass's sum: its own springs' and those before it
             springs_d = vec3(scalar(0.0))
+            if wp.static(spring_dampers):
+                springs_d = dampers_in_out[p]
             if wp.static(not vectorised):
                 springs_f, springs_d = forward(i, row, column, base, x, v, springs, prepared, particle_q_in,
                                                particle_qd_in, force_in_out, dampers_in_out)
-            springs_f += force_in_out[p]
+                springs_f += force_in_out[p]
+                if wp.static(spring_dampers):
+                    springs_d += dampers_in_out[p]
             force_in_out[p] = vec3(scalar(0.0))
             if wp.static(spring_dampers):
-                springs_d += dampers_in_out[p]
                 dampers_in_out[p] = vec3(scalar(0.0))
             if wp.static(grid and not vectorised):
                 column += 1
