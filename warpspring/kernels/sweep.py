@@ -20,15 +20,17 @@ those it used zero.
 Per-world values (the springs' groups, rows and law values, the world's row of the input table) are read once per
 world, not per particle. The results are the fused step's up to the order of the force's sums (float32 rounding).
 
-With a grid layout of uniform groups and Hooke's law (``grid_vectorised``), the springs are evaluated before the
-particles' loop by a vectorised C++ pass (``grid_spring_pass``) into the same scratch, and ``forward`` is not run.
-The step runs with subnormal floats flushed to zero (``flush_subnormals_begin``, restored at its end): a cloth at
-rest along an axis carries components of ~1e-16 m whose products (its dampers' forces, their power) are subnormal,
-which the x86 core computes in microcode, ~100 cycles each; flushed, values below 1.2e-38 (float32) read as zero.
-That halved the guarded sweep at 32² and 64² (bench/results/cpu_regression.md).
 The guard's power sums are counted as in the fused step (``integrators.symplectic_euler_kernel``'s ``power``), the
 springs' dampers' part swept alongside their force (``dampers_in_out``). The springs must be the first family
 (``Model.families``), gathered; a one-thread-per-world launch is for the CPU only.
+
+With a grid layout of uniform groups and Hooke's law (``grid_vectorised``), the springs are evaluated before the
+particles' loop by a vectorised C++ pass (``grid_spring_pass``: ``forward``'s forces and sums, bit for bit) into the
+same scratch, and ``forward`` is not run. The step runs with subnormal floats flushed to zero (``flush_subnormals_begin``, restored at its end): a cloth at
+rest along an axis carries components of ~1e-16 m whose products (its dampers' forces, their power) are subnormal,
+which the x86 core computes in microcode; flushed, values below 1.2e-38 (float32) read as zero.
+Replaying one state of the reference cloth that took the guarded sweep from 28 to 17 µs at 32²; in frame throughput
+the difference was within the noise (bench/results/cpu_regression.md).
 """
 
 import functools

@@ -58,7 +58,7 @@ class Finalization:
             precision: "float32" (default) or "float64" for every floating-point array and kernel.
             spring_evaluation: "gather" (per particle, no atomics, fusable, any number of springs per particle),
                 "scatter" (per spring, each evaluated once, atomic adds: deterministic only on the CPU) or
-                "auto": gather, the faster on each device as measured (on the CPU its step is the sweep, 5-10x the
+                "auto": gather, the faster on each device as measured (on the CPU its step is the sweep, 4.6-8x the
                 scatter at 32² and 64² with the guard on or off: bench/results/cpu_regression.md).
             contact_stage: resolve contacts through the contact stage (``collide`` fills a per-particle contact
                 buffer, the response reads it) instead of testing every collider in the update (the fused path).
@@ -331,7 +331,7 @@ class Finalization:
         model.spring_max_degree = int(degree.max())
         if spring_evaluation == "auto":
             # The faster on each device, measured: on CUDA (bench/results/cloth*.md) and on the CPU, where the sweep (one
-            # launch, a grid's springs vectorised) runs 5-10x the scatter (bench/results/cpu_regression.md).
+            # launch, a grid's springs vectorised) runs 4.6-8x the scatter (bench/results/cpu_regression.md).
             spring_evaluation = "gather"
         model.spring_gather = spring_evaluation == "gather"
         # The incidence also serves the stiffness products of implicit integration and stability analysis.
