@@ -203,7 +203,8 @@ def size_rows(n: int, device, evaluations: list[str], guards: list[str], newton_
               drift_frames: int = FPS):
     """The table rows of size ``n``: every evaluation of ``evaluations`` with every guard of ``guards`` ("default":
     the default Simulator, "off") and Newton where ``newton_version`` is given, timed (interleaved: batches in turn
-    and ratios per round), the drift against Newton after ``drift_frames`` frames; returns (Markdown rows, results by engine name, warpspring models by engine name)."""
+    and ratios per round), the drift against Newton after ``drift_frames`` frames; returns (Markdown rows, results
+    by engine name, warpspring models by engine name)."""
     drift, models, makers = {}, {}, {}
     for mode in evaluations:
         evaluation, options = EVALUATIONS.get(mode, (mode, {}))

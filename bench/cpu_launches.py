@@ -298,7 +298,8 @@ def main():
     parser.add_argument("--launches", action="store_true", help="also count and time each tree's launches")
     parser.add_argument("--repeat", type=int, default=3, help="copies of a launch in its timing graph")
     parser.add_argument("--pin", default="corners", choices=["corners", "top"],
-                        help="hang the cloth from its two top corners (default) or its whole top row (bench/cloth.py's)")
+                        help="hang the cloth from its two top corners (default) or its whole top row "
+                             "(bench/cloth.py's)")
     parser.add_argument("--out", help="also write the Markdown tables to this file")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()

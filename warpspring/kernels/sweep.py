@@ -26,11 +26,11 @@ springs' dampers' part swept alongside their force (``dampers_in_out``). The spr
 
 With a grid layout of uniform groups and Hooke's law (``grid_vectorised``), the springs are evaluated before the
 particles' loop by a vectorised C++ pass (``grid_spring_pass``: ``forward``'s forces and sums, bit for bit) into the
-same scratch, and ``forward`` is not run. The step runs with subnormal floats flushed to zero (``flush_subnormals_begin``, restored at its end): a cloth at
-rest along an axis carries components of ~1e-16 m whose products (its dampers' forces, their power) are subnormal,
-which the x86 core computes in microcode; flushed, values below 1.2e-38 (float32) read as zero.
-Replaying one state of the reference cloth that took the guarded sweep from 28 to 17 µs at 32²; in frame throughput
-the difference was within the noise (bench/results/cpu_regression.md).
+same scratch, and ``forward`` is not run. The step runs with subnormal floats flushed to zero
+(``flush_subnormals_begin``, restored at its end): a cloth at rest along an axis carries components of ~1e-16 m whose
+products (its dampers' forces, their power) are subnormal, which the x86 core computes in microcode; flushed, values
+below 1.2e-38 (float32) read as zero. Replaying one state of the reference cloth, that took the guarded sweep from 28
+to 17 µs at 32²; in frame throughput the difference was within the noise (bench/results/cpu_regression.md).
 """
 
 import functools
@@ -72,7 +72,7 @@ GRID_CHUNK = 64
 def grid_vectorised(spec: SpringSpec) -> bool:
     """Whether the springs' forces can be evaluated by ``grid_spring_pass``: a grid layout whose every slot is a
     uniform group's, no tail, Hooke's law with an axial damper (no biphasic knee, clamp, per-spring law or plasticity).
-    Then the same springs are summed as by ``forward``, in another order."""
+    Then the same springs are summed as by ``forward``, in the same order."""
     head_slots, tail = spec.incidence
     return (spec.gathered and not tail and spec.law == HOOKE and bool(spec.grid_slots)
             and len(spec.slot_groups) == head_slots and all(g >= 0 for g in spec.slot_groups))
