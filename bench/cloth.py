@@ -30,7 +30,9 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import shlex
 import statistics
+import sys
 import tempfile
 import time
 
@@ -196,6 +198,51 @@ def agreement(model: ws.Model, frames: int = FPS) -> float:
     return float(np.abs(finals[0] - finals[1]).max())
 
 
+def size_rows(n: int, device, evaluations: list[str], guards: list[str], newton_version: str | None, *, pin: str,
+              seconds: float, batches: int, interleave: bool, newton_max_particles: int | None = None,
+              drift_frames: int = FPS):
+    """The table rows of size ``n``: every evaluation of ``evaluations`` with every guard of ``guards`` ("default":
+    the default Simulator, "off") and Newton where ``newton_version`` is given, timed (interleaved: batches in turn
+    and ratios per round), the drift against Newton after ``drift_frames`` frames; returns (Markdown rows, results
+    by engine name, warpspring models by engine name)."""
+    drift, models, makers = {}, {}, {}
+    for mode in evaluations:
+        evaluation, options = EVALUATIONS.get(mode, (mode, {}))
+        for guard in guards:
+            model = warpspring_model(n, device, evaluation, pin=pin, **options)
+            name = WarpspringRunner(model, guard == "default").name
+            models[name] = model
+            makers[name] = lambda model=model, guard=guard: WarpspringRunner(model, guard == "default")
+    with_newton = newton_version and model.particle_count <= (newton_max_particles or model.particle_count)
+    if with_newton:
+        makers["newton"] = lambda: NewtonRunner(model)
+    if interleave:
+        results = measure_interleaved(makers, device, seconds, batches)
+    else:
+        results = {name: measure(make, device, seconds, batches) for name, make in makers.items()}
+    if with_newton:
+        drift = {name: agreement(model, drift_frames) for name, model in models.items()}
+    rows = []
+    for name, r in results.items():
+        rate = SUBSTEPS / r["frame_s"]
+        ratio = diff = against_off = ""
+        off = name.replace("default guard)", "guard off)")
+        if off != name and off in results:  # the default Simulator against the engine alone
+            against_off = round_ratio(r, results[off]) if interleave else results[off]["frame_s"] / r["frame_s"]
+            against_off = f"{against_off:.3f}"
+        if name in drift:
+            newton_r = results["newton"]
+            ratio = round_ratio(r, newton_r) if interleave else newton_r["frame_s"] / r["frame_s"]
+            ratio = f"{ratio:.2f}×"
+            diff = f"{drift[name]:.1e}"
+        rows.append(
+            f"| {n} | {model.particle_count:,} | {model.spring_count:,} | {name} | {r['first_frame_s']:.2f} | "
+            f"{rate:,.0f} | {rate * model.particle_count / 1e9:.3f} G | {r['spread']:.1%} | {against_off} | "
+            f"{ratio} | {diff} |"
+        )
+    return rows, results, models
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default=None, help="Warp device (default: Warp's default)")
@@ -236,7 +283,8 @@ def main():
         f"Hanging cloth, {SUBSTEPS} substeps per 1/{FPS} s frame, one graph per frame. "
         f"Device: {device.name} ({device.alias}); Warp {wp.__version__}"
         + (f"; Newton {newton_version}" if newton_version else "")
-        + f"; {datetime.date.today().isoformat()}.",
+        + f"; {datetime.datetime.now(datetime.timezone.utc).strftime('%Y-%m-%d %H:%M UTC')}. "
+        f"Command: `python {shlex.join(['bench/cloth.py', *sys.argv[1:]])}`",
         "",
         "| N | particles | springs | engine | setup [s] | substeps/s | particle-substeps/s | spread | vs guard off "
         "| vs Newton | max Δx vs Newton [m] |",
@@ -244,43 +292,11 @@ def main():
     ]
     gathered = []  # (N, model, substeps/s) of the gather rows, for --bytes
     for n in sizes:
-        results, drift, models = {}, {}, {}
-        makers = {}
-        for mode in args.evaluation:
-            evaluation, options = EVALUATIONS.get(mode, (mode, {}))
-            for guard in args.guard:
-                model = warpspring_model(n, device, evaluation, pin=args.pin, **options)
-                name = WarpspringRunner(model, guard == "default").name
-                models[name] = model
-                makers[name] = lambda model=model, guard=guard: WarpspringRunner(model, guard == "default")
-        with_newton = newton_version and model.particle_count <= (args.newton_max_particles or model.particle_count)
-        if with_newton:
-            makers["newton"] = lambda: NewtonRunner(model)
-        if args.interleave:
-            results = measure_interleaved(makers, device, args.seconds, args.batches)
-        else:
-            results = {name: measure(make, device, args.seconds, args.batches) for name, make in makers.items()}
-        if with_newton:
-            drift = {name: agreement(model) for name, model in models.items()}
-        for name, r in results.items():
-            rate = SUBSTEPS / r["frame_s"]
-            ratio = diff = against_off = ""
-            off = name.replace("default guard)", "guard off)")
-            if off != name and off in results:  # the default Simulator against the engine alone
-                against_off = (round_ratio(r, results[off]) if args.interleave
-                               else results[off]["frame_s"] / r["frame_s"])
-                against_off = f"{against_off:.3f}"
-            if name in drift:
-                newton_r = results["newton"]
-                ratio = round_ratio(r, newton_r) if args.interleave else newton_r["frame_s"] / r["frame_s"]
-                ratio = f"{ratio:.2f}×"
-                diff = f"{drift[name]:.1e}"
-            lines.append(
-                f"| {n} | {model.particle_count:,} | {model.spring_count:,} | {name} | {r['first_frame_s']:.2f} | "
-                f"{rate:,.0f} | {rate * model.particle_count / 1e9:.3f} G | {r['spread']:.1%} | {against_off} | "
-                f"{ratio} | {diff} |"
-            )
-        print("\n".join(lines[-len(results):]), flush=True)
+        rows, results, models = size_rows(n, device, args.evaluation, args.guard, newton_version, pin=args.pin,
+                                          seconds=args.seconds, batches=args.batches, interleave=args.interleave,
+                                          newton_max_particles=args.newton_max_particles)
+        lines += rows
+        print("\n".join(rows), flush=True)
         gathered += [(n, models[name], SUBSTEPS / r["frame_s"]) for name, r in results.items()
                      if name in models and models[name].spring_gather]
     if args.bytes:

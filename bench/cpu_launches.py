@@ -9,7 +9,8 @@ rounds, the spread ((max - min) / median) and the median over rounds of the per-
 first tree.
 
 The scene is ``cloth_scene.py``'s reference cloth (N × N particles, structural + shear + bend springs, two top
-corners pinned, symplectic Euler, 16 substeps per 1/60 s frame, one captured graph per frame: Warp's CPU graph).
+corners pinned or, with ``--pin top``, its whole top row, symplectic Euler, 16 substeps per 1/60 s frame, one
+captured graph per frame: Warp's CPU graph).
 With ``--launches`` every worker also counts the launches of one frame (a wrapper around ``wp.launch`` during an
 uncaptured frame, and the operations of the captured frame's graph) and times every distinct launch of a substep
 alone, replayed inside a CPU graph of ``--repeat`` copies of it (what it costs in the frame's graph; the minimum of
@@ -121,7 +122,8 @@ def _model(ws, n, device, evaluation):
     spring = ws.SpringMaterial(ke=KE, kd=KD)
     builder.add_cloth_grid(nx=n, ny=n, spacing=SPACING, origin=(0.0, 0.0, 0.5 * n * SPACING),
                            rotation=ws.quat_from_axis_angle((1.0, 0.0, 0.0), np.pi / 2), particle_mass=MASS,
-                           structural=spring, shear=spring, bend=spring, pin=["top-left", "top-right"])
+                           structural=spring, shear=spring, bend=spring,
+                           pin=["top"] if os.environ.get("CPU_LAUNCHES_PIN") == "top" else ["top-left", "top-right"])
     return builder.finalize(device, spring_evaluation=evaluation)
 
 
@@ -295,9 +297,13 @@ def main():
     parser.add_argument("--no-newton", action="store_true")
     parser.add_argument("--launches", action="store_true", help="also count and time each tree's launches")
     parser.add_argument("--repeat", type=int, default=3, help="copies of a launch in its timing graph")
+    parser.add_argument("--pin", default="corners", choices=["corners", "top"],
+                        help="hang the cloth from its two top corners (default) or its whole top row "
+                             "(bench/cloth.py's)")
     parser.add_argument("--out", help="also write the Markdown tables to this file")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    os.environ["CPU_LAUNCHES_PIN"] = args.pin  # read by the workers (``_model``), which inherit the environment
     if args.worker:
         _worker(args.worker, args.device, args.sizes[0], args.engines, args.launches, args.repeat)
         return

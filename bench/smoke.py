@@ -521,6 +521,23 @@ def the_cpu_bench_times_two_trees_and_counts_a_plain_cloths_launches():
         assert list(profile["by_kernel"]) == ["symplectic_euler_sweep_kernel__locals__symplectic_euler_sweep"], profile
 
 
+@check(device=False)
+def the_cloth_bench_times_the_default_guard_off_and_newton_on_the_cpu():
+    """``cloth.size_rows`` on the CPU, 6 × 6 cloth, interleaved, two rounds of one-frame batches: a row each for the
+    default Simulator (guard on), the guard off and Newton where installed, each with a positive rate; the default row
+    carries its ratio to guard off, and with Newton both warpspring rows their ratio to it (how fast is not checked)."""
+    newton = cloth.installed_newton(importlib.util.find_spec("newton") is not None)
+    rows, results, _ = cloth.size_rows(6, wp.get_device("cpu"), ["auto"], ["default", "off"], newton, pin="top",
+                                       seconds=0.0, batches=2, interleave=True, drift_frames=2)
+    names = ["warpspring (gather, default guard)", "warpspring (gather, guard off)"] + (["newton"] if newton else [])
+    assert list(results) == names and len(rows) == len(names), (list(results), rows)
+    assert all(r["frame_s"] > 0 and len(r["times"]) == 2 for r in results.values())
+    cells = [row.split("|") for row in rows]
+    assert cells[0][9].strip() and not cells[1][9].strip()  # the default row's "vs guard off"
+    if newton:
+        assert all(c[10].strip().endswith("×") for c in cells[:2])
+
+
 def run(name: str, param, device: str | None) -> dict:
     """Run one check: {"check", "param", "device", "status" ("passed", "failed" or "skipped"), "detail"}."""
     fn, _, _ = CHECKS[name]

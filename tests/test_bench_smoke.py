@@ -149,6 +149,10 @@ def test_the_cpu_bench_times_two_trees_and_counts_a_plain_cloths_launches(check)
     check()
 
 
+def test_the_cloth_bench_times_the_default_guard_off_and_newton_on_the_cpu(check):
+    check()
+
+
 def test_every_check_of_the_smoke_script_is_a_test_here(smoke):
     """No check of ``bench/smoke.py`` goes unreported: each is a test of this module."""
     tests = {name.removeprefix("test_") for name in globals() if name.startswith("test_")}

@@ -104,6 +104,32 @@ def test_auto_takes_one_launch_per_substep_on_the_cpu(monkeypatch):
     assert frame_launches(model, monkeypatch) == ["symplectic_euler_sweep_kernel.symplectic_euler_sweep"] * SUBSTEPS
 
 
+def collider_cloth(*, moving: bool = False) -> ws.Model:
+    """The plain cloth (``cloth``) on the CPU above a sphere collider it falls onto; ``moving``: the sphere slides on a
+    keyframe track."""
+    builder = ws.ModelBuilder()
+    spring = ws.SpringMaterial(1.0e3, 10.0)
+    builder.add_cloth_grid(nx=8, ny=8, spacing=0.1, origin=(0.0, 0.0, 1.0), particle_mass=0.1, structural=spring,
+                           shear=spring, bend=spring, pin=["top-left", "top-right"])
+    track = ws.Track([0.0, 1.0], [(0.0, 0.0, 0.0), (0.2, 0.0, 0.0)]) if moving else None
+    builder.add_collider_sphere(center=(0.35, 0.3, 0.9), radius=0.2, translation=track)
+    return builder.finalize("cpu")
+
+
+def test_a_cloth_with_a_collider_launches_one_pass_per_substep_on_the_cpu(monkeypatch):
+    """A static collider on the CPU: its contacts are projected inside the sweep, so a substep is still the one sweep
+    launch: no collider-motion, kinematics, contact-buffer or clamp pass. The same collider on a track adds what its
+    motion needs (its motion, the collision and the projection per substep: the positive control, the counter sees
+    the passes a scene has)."""
+    model = collider_cloth()
+    assert model.shape_count == 1
+    names = frame_launches(model, monkeypatch)
+    assert names == ["symplectic_euler_sweep_kernel.symplectic_euler_sweep"] * SUBSTEPS
+    moving = frame_launches(collider_cloth(moving=True), monkeypatch)
+    assert len(moving) > len(names), "a collider on a track launched nothing for its motion"
+    assert moving.count("symplectic_euler_sweep_kernel.symplectic_euler_sweep") == SUBSTEPS
+
+
 def test_a_held_world_adds_one_pass_per_substep(device, monkeypatch):
     """Positive control: the hold pass is counted when a world is held, and only then."""
     model = cloth(device, worlds=2)

@@ -19,9 +19,18 @@ those it used zero.
 
 Per-world values (the springs' groups, rows and law values, the world's row of the input table) are read once per
 world, not per particle. The results are the fused step's up to the order of the force's sums (float32 rounding).
+
 The guard's power sums are counted as in the fused step (``integrators.symplectic_euler_kernel``'s ``power``), the
 springs' dampers' part swept alongside their force (``dampers_in_out``). The springs must be the first family
 (``Model.families``), gathered; a one-thread-per-world launch is for the CPU only.
+
+With a grid layout of uniform groups and Hooke's law (``grid_vectorised``), the springs are evaluated before the
+particles' loop by a vectorised C++ pass (``grid_spring_pass``: ``forward``'s forces and sums, bit for bit) into the
+same scratch, and ``forward`` is not run. The step runs with subnormal floats flushed to zero
+(``flush_subnormals_begin``, restored at its end): a cloth at rest along an axis carries components of ~1e-16 m whose
+products (its dampers' forces, their power) are subnormal, which the x86 core computes in microcode; flushed, values
+below 1.2e-38 (float32) read as zero. Replaying one state of the reference cloth, that took the guarded sweep from 28
+to 17 µs at 32²; in frame throughput the difference was within the noise (bench/results/cpu_regression.md).
 """
 
 import functools
@@ -43,6 +52,7 @@ from .kinematics import is_kinematic
 from .precision import vec3_type
 from .response import project_all_func
 from .shapes import ContactFeatures, shapes_type
+from .spring_laws import COINCIDENT_DISTANCE, HOOKE
 from .springs import SpringSpec, spring_sweep_funcs
 from .flatten import flat_kernel
 
@@ -52,6 +62,181 @@ wp.set_module_options({"enable_backward": False})
 def sweeps(features: ForceFeatures) -> bool:
     """Whether the sweep can take a step of ``features``: the springs first among the families, gathered."""
     return bool(features.families) and isinstance(features.families[0], SpringSpec) and features.families[0].gathered
+
+
+#: Particles whose springs ahead ``grid_spring_pass`` evaluates at a time (their forces in arrays on the stack, so that
+#: the loops that add them to both ends have no dependence between iterations).
+GRID_CHUNK = 64
+
+
+def grid_vectorised(spec: SpringSpec) -> bool:
+    """Whether the springs' forces can be evaluated by ``grid_spring_pass``: a grid layout whose every slot is a
+    uniform group's, no tail, Hooke's law with an axial damper (no biphasic knee, clamp, per-spring law or plasticity).
+    Then the same springs are summed as by ``forward``, in the same order."""
+    head_slots, tail = spec.incidence
+    return (spec.gathered and not tail and spec.law == HOOKE and bool(spec.grid_slots)
+            and len(spec.slot_groups) == head_slots and all(g >= 0 for g in spec.slot_groups))
+
+
+@wp.func_native("""
+#if defined(__x86_64__) && !defined(__CUDA_ARCH__)
+const unsigned int csr = __builtin_ia32_stmxcsr();
+__builtin_ia32_ldmxcsr(csr | 0x8040u);
+return (int)csr;
+#else
+return 0;
+#endif
+""")
+def flush_subnormals_begin() -> int:
+    """Flush subnormal floats to zero (x86's FTZ and DAZ bits) on this CPU thread until ``flush_subnormals_end``;
+    returns the control word to restore (0 and nothing done elsewhere)."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__x86_64__) && !defined(__CUDA_ARCH__)
+__builtin_ia32_ldmxcsr((unsigned int)saved);
+#endif
+""")
+def flush_subnormals_end(saved: int):
+    """Restore the control word ``flush_subnormals_begin`` returned."""
+    ...
+
+
+@functools.cache
+def grid_spring_pass(scalar: type, spec: SpringSpec, dampers: bool):
+    """``grid_springs(particle_q, particle_qd, base, nx, ny, rest, ke, kd, force_in_out, dampers_in_out)``: write each
+    particle's force [N] of one world's grid springs (``grid_vectorised``) into ``force_in_out`` (zero on entry) and,
+    with ``dampers``, their dampers' part into ``dampers_in_out``; ``rest``, ``ke``, ``kd``: each group's rest length
+    [m], stiffness [N/m] and damping [N·s/m] (``spring_sweep_funcs``' ``prepare``).
+
+    The world's particles are taken in chunks of ``GRID_CHUNK`` consecutive indices. In a chunk, the springs of every
+    slot ahead (direction (dx, dy) with dy > 0, or dy = 0 and dx > 0) from those particles i to j = i + dy·nx + dx are
+    evaluated by one loop per direction into arrays on the stack (the pairs whose j wraps onto another row, a row's
+    first or last |dx| columns, then zeroed: no spring) and summed into the chunk's own forces; then subtracted from
+    their other ends j, direction by direction in decreasing dy·nx + dx; then each particle of the chunk takes its
+    own springs' sum plus what the earlier particles' springs left it. Each loop reads and writes unit-strided,
+    unaliased memory with no dependence between iterations, which clang vectorises (``-march=native``: 16 floats an
+    instruction with AVX-512) where a Warp loop over a Warp array is not (performance_cpu.md §0).
+
+    A spring's force is computed by Warp's own vector functions in ``spring_force``'s order, and the sums are made in
+    ``forward``'s order (a particle's springs ahead in slot order, then those of the particles before it in their
+    order), so the result is ``forward``'s bit for bit: the grid layout steps as the table layout does
+    (tests/test_grid_layout.py). CPU only (C++; the kernel is launched on the CPU).
+    """
+    real = {wp.float32: "float", wp.float64: "double"}[scalar]
+    vec3 = vec3_type(scalar)
+    group_count = max(spec.slot_groups) + 1
+    group_values = wp.types.vector(length=group_count, dtype=scalar)
+    ahead = [(dx, dy, g) for (dx, dy), g in zip(spec.grid_slots, spec.slot_groups) if dy > 0 or (dy == 0 and dx > 0)]
+
+    @wp.func_native(grid_pass_source(real, tuple(ahead), dampers))
+    def grid_springs(particle_q: wp.array[vec3], particle_qd: wp.array[vec3], base: int, nx: int, ny: int,
+                     rest: group_values, ke: group_values, kd: group_values, force_in_out: wp.array[vec3],
+                     dampers_in_out: wp.array[vec3]):
+        ...
+
+    return grid_springs
+
+
+def grid_pass_source(real: str, ahead: tuple, dampers: bool) -> str:
+    """The C++ of ``grid_spring_pass``: ``real`` the scalar type, ``ahead`` the (dx, dy, group) of each slot ahead in
+    slot order, ``dampers`` whether the dampers' part is summed too."""
+    count, chunk = len(ahead), GRID_CHUNK
+    arrays = ("T", "U") if dampers else ("T",)  # per direction: the springs' forces (T) and dampers' parts (U)
+    sums = ("A", "B") if dampers else ("A",)  # the chunk's own springs' sums of T and U
+    targets = {"T": "F", "U": "D", "A": "F", "B": "D"}
+    out = [f"""
+typedef {real} real;
+typedef wp::vec_t<3, real> v3;
+const real* __restrict__ X = (const real*)(particle_q.data + base);
+const real* __restrict__ V = (const real*)(particle_qd.data + base);
+real* __restrict__ F = (real*)(force_in_out.data + base);
+real* __restrict__ D = (real*)(dampers_in_out.data + base);
+(void)D;
+const real eps = (real){COINCIDENT_DISTANCE!r};
+const int n = nx * ny;
+const int DX[{count}] = {{{", ".join(str(dx) for dx, _, _ in ahead)}}};
+const int DY[{count}] = {{{", ".join(str(dy) for _, dy, _ in ahead)}}};
+int offset[{count}], first[{count}], last[{count}], order[{count}], start[{count}], size[{count}];
+for (int d = 0; d < {count}; ++d) {{
+  offset[d] = DY[d] * nx + DX[d];
+  first[d] = DX[d] < 0 ? -DX[d] : 0;
+  last[d] = (ny - DY[d]) * nx - (DX[d] > 0 ? DX[d] : 0);
+  order[d] = d;
+}}
+// The subtractions in decreasing offset: each particle gets those of the particles before it in their order.
+for (int p = 1; p < {count}; ++p) {{
+  for (int q = p; q > 0 && offset[order[q - 1]] < offset[order[q]]; --q) {{
+    const int t = order[q]; order[q] = order[q - 1]; order[q - 1] = t;
+  }}
+}}
+"""]
+    out += [f"real {a}[{count}][3][{chunk}];" for a in arrays] + [f"real {a}[3][{chunk}];" for a in sums]
+    out.append(f"""
+for (int a0 = 0; a0 < n; a0 += {chunk}) {{
+  const int m0 = n - a0 < {chunk} ? n - a0 : {chunk};
+  for (int k = 0; k < 3; ++k) for (int c = 0; c < {chunk}; ++c) {{ {" ".join(f"{a}[k][c] = 0;" for a in sums)} }}""")
+    for d, (dx, dy, g) in enumerate(ahead):
+        bad_first, bad_end = (f"nx - {dx}", "nx") if dx > 0 else ("0", str(-dx))
+        damper = ("const v3 u = wp::mul(normal, wp::mul(kdamp, wp::dot(wp::sub(qj, qi), normal)));\n"
+                  f"      U[{d}][0][s + c] = u.c[0]; U[{d}][1][s + c] = u.c[1]; U[{d}][2][s + c] = u.c[2];")
+        out.append(f"""
+  {{
+    const int a = a0 > first[{d}] ? a0 : first[{d}];
+    const int e = a0 + {chunk} < last[{d}] ? a0 + {chunk} : last[{d}];
+    const int s = a - a0, m = e > a ? e - a : 0;
+    start[{d}] = s; size[{d}] = m;
+    const real L = rest.c[{g}], k = ke.c[{g}], kdamp = kd.c[{g}];
+    const real* __restrict__ xi = X + 3 * a;
+    const real* __restrict__ xj = X + 3 * (a + offset[{d}]);
+    const real* __restrict__ vi = V + 3 * a;
+    const real* __restrict__ vj = V + 3 * (a + offset[{d}]);
+    for (int c = 0; c < m; ++c) {{
+      const v3 pi(xi[3 * c], xi[3 * c + 1], xi[3 * c + 2]), pj(xj[3 * c], xj[3 * c + 1], xj[3 * c + 2]);
+      const v3 qi(vi[3 * c], vi[3 * c + 1], vi[3 * c + 2]), qj(vj[3 * c], vj[3 * c + 1], vj[3 * c + 2]);
+      const v3 delta = wp::sub(pj, pi);
+      const real length = wp::length(delta);
+      const v3 normal = wp::mul(delta, wp::where(length > eps, wp::div((real)1, length), (real)0));
+      const real magnitude = wp::add(wp::mul(k, wp::sub(length, L)),
+                                     wp::mul(kdamp, wp::dot(wp::sub(qj, qi), normal)));
+      const v3 f = wp::mul(normal, magnitude);
+      T[{d}][0][s + c] = f.c[0]; T[{d}][1][s + c] = f.c[1]; T[{d}][2][s + c] = f.c[2];
+      {damper if dampers else ""}
+    }}
+    // The pairs whose neighbour is off the grid (wrapped onto the next row): no spring, no force.
+    for (int r = a / nx; r * nx < e; ++r) {{
+      for (int col = {bad_first}; col < {bad_end}; ++col) {{
+        const int c = r * nx + col - a;
+        if (c >= 0 && c < m) {{ {" ".join(f"{x}[{d}][{k}][s + c] = 0;" for x in arrays for k in range(3))} }}
+      }}
+    }}
+    for (int c = s; c < s + m; ++c) {{
+      {" ".join(f"{y}[{k}][c] += {x}[{d}][{k}][c];" for x, y in zip(arrays, sums) for k in range(3))}
+    }}
+  }}""")
+    subtract = "\n".join(f"""
+    {{
+      real* __restrict__ out = {targets[x]} + 3 * (a0 + s + offset[d]);
+      for (int c = 0; c < m; ++c) {{
+        out[3 * c] -= {x}[d][0][s + c]; out[3 * c + 1] -= {x}[d][1][s + c]; out[3 * c + 2] -= {x}[d][2][s + c];
+      }}
+    }}""" for x in arrays)
+    finish = "\n".join(f"""
+  {{
+    real* __restrict__ own = {targets[y]} + 3 * a0;
+    for (int c = 0; c < m0; ++c) {{
+      own[3 * c] = {y}[0][c] + own[3 * c]; own[3 * c + 1] = {y}[1][c] + own[3 * c + 1];
+      own[3 * c + 2] = {y}[2][c] + own[3 * c + 2];
+    }}
+  }}""" for y in sums)
+    out.append(f"""
+  for (int o = 0; o < {count}; ++o) {{
+    const int d = order[o], s = start[d], m = size[d];{subtract}
+  }}{finish}
+}}
+""")
+    return "\n".join(out)
 
 
 @functools.cache
@@ -83,6 +268,9 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
     _, project_contacts = project_all_func(scalar, contacts)
     has_contacts = bool(contacts)
     grid = bool(springs_spec.grid_slots) and bool(springs_spec.slot_groups)
+    # The grid's springs in a vectorised pass before the particles' loop (``grid_spring_pass``), else by ``forward``.
+    vectorised = grid_vectorised(springs_spec)
+    grid_springs = grid_spring_pass(scalar, springs_spec, spring_dampers) if vectorised else None
 
     @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
                  last=contacts.idle() + composed.last("element_arrays"))
@@ -115,6 +303,7 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
         dampers_in_out: wp.array[vec3],  # scratch: their dampers' part [N] (with the springs' dampers counted)
     ):
         world = wp.tid()
+        saved = flush_subnormals_begin()
         base = world * particle_count
         k = base  # a while loop, which clang may vectorise (a range loop it never does: performance_cpu.md §0)
         while k < base + particle_count:
@@ -126,6 +315,9 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
         h = dt
         springs = element_arrays.head
         prepared = prepare(world, springs, inputs)
+        if wp.static(vectorised):
+            grid_springs(particle_q_in, particle_qd_in, base, prepared.nx, prepared.ny, prepared.rest, prepared.ke,
+                         prepared.kd, force_in_out, dampers_in_out)
         inv_mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         row = int(0)
         column = int(0)
@@ -133,14 +325,20 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
             p = base + i
             x = particle_q_in[p]
             v = particle_qd_in[p]
-            springs_f, springs_d = forward(i, row, column, base, x, v, springs, prepared, particle_q_in,
-                                           particle_qd_in, force_in_out, dampers_in_out)
-            springs_f += force_in_out[p]
+            springs_f = force_in_out[p]  # the grid pass's sum: its own springs' and those before it
+            springs_d = vec3(scalar(0.0))
+            if wp.static(spring_dampers):
+                springs_d = dampers_in_out[p]
+            if wp.static(not vectorised):
+                springs_f, springs_d = forward(i, row, column, base, x, v, springs, prepared, particle_q_in,
+                                               particle_qd_in, force_in_out, dampers_in_out)
+                springs_f += force_in_out[p]
+                if wp.static(spring_dampers):
+                    springs_d += dampers_in_out[p]
             force_in_out[p] = vec3(scalar(0.0))
             if wp.static(spring_dampers):
-                springs_d += dampers_in_out[p]
                 dampers_in_out[p] = vec3(scalar(0.0))
-            if wp.static(grid):
+            if wp.static(grid and not vectorised):
                 column += 1
                 if column == prepared.nx:
                     column = 0
@@ -186,5 +384,6 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
                 x, v = project_contacts(world, p, x, v, particle_radius[i], h, shapes, inputs)
             particle_q_out[p] = x
             particle_qd_out[p] = v
+        flush_subnormals_end(saved)
 
     return symplectic_euler_sweep

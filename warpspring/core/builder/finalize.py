@@ -58,8 +58,8 @@ class Finalization:
             precision: "float32" (default) or "float64" for every floating-point array and kernel.
             spring_evaluation: "gather" (per particle, no atomics, fusable, any number of springs per particle),
                 "scatter" (per spring, each evaluated once, atomic adds: deterministic only on the CPU) or
-                "auto": gather, the faster on each device as measured (bench/results/performance_cpu.md for the
-                CPU: the fused step beats the scatter's three passes by 10-15 % at 32² and 64²).
+                "auto": gather, the faster on each device as measured (on the CPU its step is the sweep, 4.6-8x the
+                scatter at 32² and 64² with the guard on or off: bench/results/cpu_regression.md).
             contact_stage: resolve contacts through the contact stage (``collide`` fills a per-particle contact
                 buffer, the response reads it) instead of testing every collider in the update (the fused path).
                 Default: the stage when a collider moves, the fused path for static ones.
@@ -330,8 +330,8 @@ class Finalization:
         degree = np.bincount(springs.ravel(), minlength=n) if s else np.zeros(n, dtype=np.int64)
         model.spring_max_degree = int(degree.max())
         if spring_evaluation == "auto":
-            # The faster on each device, measured: on CUDA (bench/results/cloth*.md) and on the CPU, where the fused step
-            # (one launch) beats the scatter's three (bench/results/performance_cpu.md).
+            # The faster on each device, measured: on CUDA (bench/results/cloth*.md) and on the CPU, where the sweep (one
+            # launch, a grid's springs vectorised) runs 4.6-8x the scatter (bench/results/cpu_regression.md).
             spring_evaluation = "gather"
         model.spring_gather = spring_evaluation == "gather"
         # The incidence also serves the stiffness products of implicit integration and stability analysis.
