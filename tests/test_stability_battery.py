@@ -176,9 +176,12 @@ def test_the_dry_run_tracks_a_mode_that_rises_elsewhere(device):
     # The undamped 32² cloth released flat under gravity: its top mode at 0.88 s, 1120.64 rad/s (float64 Lanczos to
     # convergence at every 1/240 s state of the dry run, on the CPU), rises away from the mode the dry run had been
     # following. Warm-started power iterations (20 every 1/240 s) reached it late: their peak was 1113.58 rad/s at
-    # 0.92 s, 0.1 % below the top of their own state there. Restarted Lanczos follows it: its peak is the float64 top
-    # eigenvalue of its peak state (to float32 round-off, 5e-5) and that of the CPU's reference to 1e-3 (the whip's
-    # trajectory differs with the device's rounding by ~0.2 % over a second; power iteration's miss was 6e-3).
+    # 0.92 s, 0.1 % below the top of their own state there. Restarted Lanczos follows it: its first swing's peak is
+    # that of the CPU's reference to 1e-3 (the trajectory differs with the device's rounding by ~0.2 % over a second;
+    # power iteration's miss was 6e-3). The dry run lasts a whole period (under_load.PROBE_PERIODS), and the
+    # back-swing whips the top mode to 1168.35 rad/s at 2.62 s (CPU; 5e-3: rounding's drift over 2.6 s), the peak,
+    # which is the float64 top eigenvalue of its state (to float32 round-off, 5e-5): the lightly damped cloth's runs
+    # at the linear limit of the first swing's peak turned non-finite there (bench/results/advisor_battery_cpu.md).
     model = sb.battery_cloth(sb.Case(32, 0.0, "flat", True), device)
     peak = under_load.transient_peak(model, horizon=10.0)
     keep = np.repeat(free_particles(model)[0], 3)
@@ -186,7 +189,8 @@ def test_the_dry_run_tracks_a_mode_that_rises_elsewhere(device):
     stiffness, _ = modal.spring_tangent(model, peak.positions)
     top, _ = top_eigenpair(stiffness[keep][:, keep], mass)
     assert peak.world_omega_max[0] == pytest.approx(math.sqrt(top), rel=5e-5)
-    assert peak.world_omega_max[0] == pytest.approx(1120.64, rel=1e-3)
+    assert peak.world_swing_omega_max[0] == pytest.approx(1120.64, rel=1e-3)
+    assert peak.world_omega_max[0] == pytest.approx(1168.35, rel=5e-3) and peak.world_peak_time[0] > 2.0
 
 
 @pytest.mark.parametrize("integrator, order", [("symplectic_euler", 1), ("velocity_verlet", 2)])
