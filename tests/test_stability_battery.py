@@ -309,3 +309,20 @@ def test_the_energy_weighted_triad_bound_at_a_measured_onset(device):
         math.sqrt(3.0) / omega, rel=1e-12)
     grows = sb.run(case, "velocity_verlet", onset, device, factor=1.0 / 0.9)
     assert not grows.ok, sb.table([sb.CaseResult(case, "velocity_verlet", advice, [grows])])
+
+
+def test_a_dry_run_cut_short_past_its_first_swing_keeps_that_swing(device, monkeypatch):
+    # The undamped 8² cloth released flat under gravity: its first swing lasts 0.91 s, its dry run a whole period
+    # (1.82 s). Cut by its step budget at 1.4 s, past that swing, its peaks are not the run's (a back-swing whip may
+    # come later): the linear limit is the Gershgorin bound's, which holds at any state; but the first swing's peak
+    # stands, and the three-wave limit is that peak's, where a dry run cut before it fell back to the bound for both.
+    model = sb.battery_cloth(sb.Case(8, 0.0, "flat", True), device)
+    reference = under_load.transient_peak(model, horizon=10.0)
+    assert reference.duration > 1.4 > under_load.swing_time(model)
+    monkeypatch.setattr(under_load, "PROBE_MAX_STEPS", int(1.4 / reference.step))
+    cut = advise(model, "symplectic_euler", 1.0e-3, horizon=10.0)
+    assert cut.dry_run_cut_short.startswith("it reached its budget") and cut.omega_source == "Gershgorin bound"
+    assert cut.dt_stable == pytest.approx(2.0 / cut.omega_max, rel=1e-6)
+    three_wave = TRIAD_MARGIN * math.sqrt(3.0) / reference.world_swing_omega_max[0]
+    assert cut.dt_passed == pytest.approx(min(cut.dt_stable, three_wave), rel=1e-3)
+    assert cut.dt_passed > TRIAD_MARGIN * math.sqrt(3.0) / cut.omega_max

@@ -228,12 +228,14 @@ def _frequencies(model: Model, integrator: str, k: np.ndarray, *, stiffness, sta
                                lowest_ratio=integrator == "explicit_euler")
         peaks, positions = probe.world_omega_max, probe.positions
         estimate = dataclasses.replace(estimate, world_mode=probe.world_mode)
+    swung = converged.copy()  # worlds whose first swing's peak stands (the three-wave verdict's)
     if probe is not None and probe.cut_short:  # its peaks are not the run's: the bound holds at any state
+        swung &= probe.swing_complete  # ... but a first swing it got past is that swing's
         converged = np.zeros(worlds, dtype=bool)
     omegas = np.where(converged, peaks, estimate.world_gershgorin)  # the bound where not
     swing = None
     if probe is not None and probe.world_swing_omega_max is not None:
-        swing = np.where(converged, np.minimum(probe.world_swing_omega_max, peaks), omegas)
+        swing = np.where(swung, np.minimum(probe.world_swing_omega_max, peaks), omegas)
     modes = [estimate.world_mode[w] if converged[w] else None for w in range(worlds)]
     return _Frequencies(omegas, converged, modes, positions, probe, swing)
 

@@ -169,11 +169,12 @@ PROBE_RISE = 1.0e-3
 PROBE_MIN_TIME, PROBE_HORIZON = 0.25, 2.0
 PROBE_PERIODS = 2.0
 #: The dry run's budget: at most ``PROBE_MAX_STEPS`` velocity Verlet steps (a dry run that would need more
-#: to reach ``PROBE_MIN_TIME`` is not started) and ``PROBE_TIME_BUDGET`` seconds of this process's CPU time after
+#: to reach ``PROBE_MIN_TIME`` and its first swing is not started) and ``PROBE_TIME_BUDGET`` seconds of this process's CPU time after
 #: its first frame (which compiles; CPU time, not wall time, so that the verdict does not depend on what else the
 #: machine runs: on a CPU shared with other work the 64² cloth's dry run took 1.5× its CPU time in wall time);
 #: past either it stops and says so (:attr:`TransientPeak.cut_short`), and the advisor
-#: judges by the Gershgorin bound, which holds at any state the run reaches (conservative). The examples'
+#: judges by the Gershgorin bound, which holds at any state the run reaches (conservative): its linear limit, and
+#: its three-wave limit too unless the dry run got past its first swing (that swing's peak, ``PROBE_PERIODS``). The examples'
 #: dry runs take 180–720 steps.
 PROBE_MAX_STEPS, PROBE_TIME_BUDGET = 50_000, 10.0
 
@@ -279,6 +280,8 @@ class TransientPeak:
             trusted: judge by a bound.
         world_swing_omega_max: each world's peak ω_max [rad/s] over the first swing alone (the dry run as it ended
             before it lasted ``PROBE_PERIODS`` swings), shape [world_count]; ``None``: the same as ``world_omega_max``.
+        swing_complete: whether the dry run got past its first swing before it ended or was cut short (then
+            ``world_swing_omega_max`` is that swing's peak even where ``cut_short`` is set).
     """
 
     world_omega_max: np.ndarray
@@ -291,6 +294,7 @@ class TransientPeak:
     world_lowest_ratio: np.ndarray | None = None
     cut_short: str = ""
     world_swing_omega_max: np.ndarray | None = None
+    swing_complete: bool = True
 
 
 def _keeps_plasticity(function):
@@ -367,8 +371,8 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
     first = min(least, max(PROBE_MIN_TIME, swing))  # the first swing: its peak is kept apart
     swing_peak, swing_end = None, math.inf
     substeps = PROBE_CHECK / (PROBE_FRACTION * safe)  # a float: ~1e16 for an absurd stiffness
-    needed = math.ceil(least / PROBE_CHECK) * max(1.0, math.ceil(substeps))
-    if needed > PROBE_MAX_STEPS:  # a dry run that would take too long: none, and the caller bounds ω_max
+    needed = math.ceil(first / PROBE_CHECK) * max(1.0, math.ceil(substeps))
+    if needed > PROBE_MAX_STEPS:  # a dry run whose first swing would take too long: none, and the caller bounds ω_max
         return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), 0.0, PROBE_FRACTION * safe, True,
                              lowest, cut_short=f"it would take {needed:.3g} steps of {PROBE_FRACTION * safe:.3g} s, "
                              f"past its budget of {PROBE_MAX_STEPS}")
@@ -433,6 +437,7 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
         if higher.any():
             peak[higher] = refined[higher]
             mode[higher] = iteration.x.numpy().astype(np.float64).reshape(worlds, n, 3)[higher]
+    swing_complete = swing_peak is not None or not cut_short
     if swing_peak is None:
         swing_peak = peak.copy()
     else:  # a world whose peak came within the first swing: its refined peak
@@ -440,4 +445,4 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
         swing_peak[within] = peak[within]
         swing_peak = np.minimum(swing_peak, peak)
     return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), sim.time, sim.dt, finite, lowest,
-                         cut_short=cut_short, world_swing_omega_max=swing_peak)
+                         cut_short=cut_short, world_swing_omega_max=swing_peak, swing_complete=swing_complete)
