@@ -57,7 +57,7 @@ from .omega import free_particles
 
 #: Growth that shows: the battery's 1 % of the motion's energy (``stability_battery.GROWTH``).
 GROWTH = 0.01
-#: The dry run's samples of the motion [s].
+#: How often :func:`record_motion` samples the motion [s].
 RECORD_EVERY = 0.25
 #: The band's lower edges, ω_p / ω_max.
 CUTS = tuple(np.round(np.linspace(0.30, 1.0, 29), 4))
