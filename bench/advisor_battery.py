@@ -4,6 +4,12 @@ within 10 % of the largest that does neither? Cloth, cases and protocol: ``warps
 Writes a markdown table with the command, device, Warp version and date.
 
     python bench/advisor_battery.py --device cpu --sizes 8 16 --no-exact --out bench/results/advisor_battery_cpu.md
+    # 64² on a GPU, ~3 min (undamped) and ~1 min (the lightly damped flat cloth, whose back-swing whip the dry run
+    # must see: under_load.PROBE_PERIODS):
+    python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 0 --factors 1.0 1.111 --substeps 20 --no-exact \
+        --out bench/results/advisor_battery_64_h100.md
+    python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 1e-5 --releases flat --gravity on \
+        --factors 1.0 1.111 --substeps 20 --no-exact --out bench/results/advisor_battery_64_flat_damped_h100.md
     # 64², undamped, with the runs' own ω_max peaks (--trace 3), then lightly damped; one GPU command each:
     python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 0 --factors 1.0 1.05 1.111 --substeps 20 \
         --no-exact --trace 3 --out bench/results/advisor_battery_64_h100.md
@@ -13,6 +19,9 @@ Writes a markdown table with the command, device, Warp version and date.
     python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 0 1e-5 --releases folded --gravity off \
         --integrators symplectic_euler velocity_verlet --factors 1.0 1.111 1.15 1.18 --substeps 20 --no-exact \
         --trace 3 --out bench/results/advisor_battery_64_nogravity_h100.md
+    # the motion's upper band along each undamped case (what the three-wave triads past √3 draw on), and the step the
+    # energy-weighted bound would pass (analysis/stability_triads.py):
+    python bench/advisor_battery.py --device cpu --sizes 8 16 32 --taus 0 --bands
     # the 64² folded cloth under gravity alone on a CPU (~10 min):
     python bench/advisor_battery.py --device cpu --sizes 64 --taus 0 --releases folded --gravity on \
         --factors 1.0 1.111 --substeps 20 --no-exact --trace 3
@@ -23,16 +32,19 @@ steps, so ``--substeps 20`` reads it every 20 steps (≥ 30 readings a second, e
 
 import argparse
 import datetime
+import math
 import os
 import pathlib
 import sys
 import time
 
+import numpy as np
 import warp as wp
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # this checkout's warpspring
 
 from warpspring.analysis import stability_battery as sb  # noqa: E402
+from warpspring.analysis import stability_triads as st  # noqa: E402
 from warpspring.analysis import under_load  # noqa: E402
 from warpspring.analysis.advisor import advise  # noqa: E402
 from warpspring.analysis.stability import DAMPED_MARGIN  # noqa: E402
@@ -65,6 +77,11 @@ def main():
     parser.add_argument("--dry-runs", action="store_true",
                         help="only time the advisor's dry run (under_load.transient_peak to its end, no budget) of each "
                              "case: its CPU and wall seconds, peak ω_max and when")
+    parser.add_argument("--bands", action="store_true",
+                        help="only record each case's motion (velocity Verlet at --band-step for --seconds) and report its "
+                             "upper band above the pumps of the triads at 1.02, 1.055 and 1.083 √3/ω_max, and the step the "
+                             "energy-weighted bound passes (stability_triads.growth_step)")
+    parser.add_argument("--band-step", type=float, default=4.0e-4, help="the recording's step [s] (ωh ≈ 0.5)")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
@@ -77,6 +94,9 @@ def main():
               if c.release in args.releases and ("on" if c.gravity else "off") in args.gravity]
     if args.dry_runs:
         dry_runs(chosen, device, args)
+        return
+    if args.bands:
+        bands(chosen, device, args)
         return
     for case in chosen:
         for integrator in args.integrators:
@@ -155,6 +175,47 @@ def dry_runs(chosen, device, args):
                 f"{budget:g} CPU seconds, lifted here; each the second of two):", "",
                 "| case | dry run [s] | CPU [s] | wall [s] | peak ω_max [rad/s] | at [s] |", "|---|---|---|---|---|---|",
                 *rows], args.out)
+
+
+#: The triads' steps the band table reports, × √3/ω_max.
+BAND_STEPS = (1.02, 1.055, 1.083)
+
+
+def bands(chosen, device, args):
+    """Each case's motion recorded (:func:`~warpspring.analysis.stability_triads.record_motion`) and its upper band: the
+    highest kinetic energy above the pump edge of the triads at ``BAND_STEPS`` × √3/ω_max (% of the motion's highest
+    kinetic energy), when the band above 0.7 ω_max first holds 1 % of it, the coherent-pump bound's e-folds against
+    the e-folds a visible growth needs, and the step the bound passes (× √3/ω_max)."""
+    rows = []
+    head = ("| case | ω_max [rad/s] | KE_max [J] | " +
+            " | ".join(f"band at {r:g} √3 (ω > {math.sqrt(4.0 - 3.0 * r * r):.3g} ω_max) [% KE_max]" for r in BAND_STEPS)
+            + " | band > 0.7 ω_max passes 1 % at [s] | bound's e-folds at " + ", ".join(f"{r:g}" for r in BAND_STEPS)
+            + " √3 (needed) | bound passes [× √3/ω] | record [s] |")
+    for case in chosen:
+        model = sb.battery_cloth(case, device)
+        t0 = time.perf_counter()
+        record = st.record_motion(model, args.seconds, step=args.band_step)
+        omega, top = float(record.omega.max()), float(record.kinetic.max())
+        cells = []
+        for r in BAND_STEPS:
+            cut = math.sqrt(4.0 - 3.0 * r * r)
+            column = int(np.searchsorted(np.asarray(st.CUTS), cut, side="right")) - 1
+            cells.append(f"{100.0 * record.energy[:, column].max() / top:.3g}")
+        seventy = st.CUTS.index(0.7)
+        over = np.flatnonzero(record.energy[:, seventy] > st.GROWTH * top)
+        passes = f"{record.times[over[0]]:.3g}" if over.size else "never"
+        growth = [st.triad_growth(record, omega, r * math.sqrt(3.0) / omega, args.seconds) for r in BAND_STEPS]
+        efolds = ", ".join(f"{g:.3g} ({n:.2g})" for g, n in growth)
+        step = st.growth_step("symplectic_euler", omega, 2.0 / omega, record, args.seconds) * omega / math.sqrt(3.0)
+        rows.append(f"| {case.label} | {omega:.5g} | {top:.4g} | " + " | ".join(cells) +
+                    f" | {passes} | {efolds} | {step:.4g} | {time.perf_counter() - t0:.0f} |")
+        print(rows[-1], flush=True)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    command = " ".join(os.path.relpath(a, root) if os.path.isabs(a) and a.startswith(root) else a for a in sys.argv[1:])
+    where = f"{device.name} ({device}), Warp {wp.config.version}, {datetime.date.today()}"
+    emit_table([f"Upper bands on {where}: `python bench/advisor_battery.py {command}`; velocity Verlet at "
+                f"{args.band_step * 1e3:g} ms for {args.seconds:g} s, sampled every {st.RECORD_EVERY:g} s:", "",
+                head, "|" + "---|" * (8 + len(BAND_STEPS) - 1), *rows], args.out)
 
 
 if __name__ == "__main__":

@@ -17,7 +17,8 @@ from warpspring.analysis import stability as st
 from warpspring.analysis.advisor import advise
 from warpspring.analysis.omega import (Lanczos, estimate_omega_max, free_particles, gershgorin_omega_max, transverse_omega_max,
                                        world_gershgorin_omega_max)
-from warpspring.analysis.under_load import PROBE_CHECK, PROBE_MIN_TIME, loaded_state, swing_time, transient_peak
+from warpspring.analysis.under_load import (PROBE_CHECK, PROBE_HORIZON, PROBE_MIN_TIME, PROBE_PERIODS, loaded_state,
+                                           swing_time, transient_peak)
 from warpspring.analysis import stability_map as sm
 
 FIXED_STEP = [name for name in ws.INTEGRATORS if name != "dopri5"]
@@ -546,9 +547,12 @@ def test_the_dry_run_finds_the_peak_stiffness_of_a_release(device):
     assert peak.positions[2, 2] == pytest.approx(-1.0 - turn, abs=2e-5)
     assert peak.positions[2, :2] == pytest.approx([0.0, 0.0], abs=1e-6)
     # The same peak recurs every period: the dry run ends once it has lasted PROBE_MIN_TIME (more than twice its
-    # first rise) and its first swing (the half period of a pendulum as long as a spring, 1.044 m: 1.02 s).
+    # first rise) and PROBE_PERIODS swings (a swing: the half period of a pendulum as long as a spring, 1.044 m:
+    # 1.02 s), here cut at the default horizon, PROBE_HORIZON = 2 s; its first swing's peak is the same.
     assert swing_time(model) == pytest.approx(math.pi * math.sqrt(math.hypot(0.3, 1.0) / 9.81), rel=1e-6)
-    assert peak.duration == pytest.approx(max(PROBE_MIN_TIME, swing_time(model)), abs=PROBE_CHECK)
+    assert peak.duration == pytest.approx(min(PROBE_HORIZON, max(PROBE_MIN_TIME, PROBE_PERIODS * swing_time(model))),
+                                          abs=PROBE_CHECK)
+    assert peak.world_swing_omega_max[0] == pytest.approx(peak.world_omega_max[0], rel=1e-6)
 
 
 def test_the_advisor_judges_the_release_transient(device):

@@ -151,6 +151,8 @@ class _Frequencies:
         modes: each world's top mode shape, shape [particle_count, 3], or ``None`` where the bound stands in.
         positions: the positions the modes were found at [m] (a device array or, after a dry run, float64).
         probe: the dry run, or ``None``.
+        swing: each world's ω_max over the dry run's first swing alone [rad/s] (:attr:`~.under_load.TransientPeak.
+            world_swing_omega_max`; ``omegas`` where there is none), which the three-wave verdict takes; ``None``: ``omegas``.
     """
 
     omegas: np.ndarray
@@ -158,6 +160,11 @@ class _Frequencies:
     modes: list
     positions: object
     probe: TransientPeak | None
+    swing: np.ndarray | None = None
+
+    @property
+    def swing_omegas(self) -> np.ndarray:
+        return self.omegas if self.swing is None else self.swing
 
 
 #: The frequencies found within :func:`shared_estimates`, by what they depend on (``_estimated_frequencies``).
@@ -221,11 +228,16 @@ def _frequencies(model: Model, integrator: str, k: np.ndarray, *, stiffness, sta
                                lowest_ratio=integrator == "explicit_euler")
         peaks, positions = probe.world_omega_max, probe.positions
         estimate = dataclasses.replace(estimate, world_mode=probe.world_mode)
+    swung = converged.copy()  # worlds whose first swing's peak stands (the three-wave verdict's)
     if probe is not None and probe.cut_short:  # its peaks are not the run's: the bound holds at any state
+        swung &= probe.swing_complete  # ... but a first swing it got past is that swing's
         converged = np.zeros(worlds, dtype=bool)
     omegas = np.where(converged, peaks, estimate.world_gershgorin)  # the bound where not
+    swing = None
+    if probe is not None and probe.world_swing_omega_max is not None:
+        swing = np.where(swung, np.minimum(probe.world_swing_omega_max, peaks), omegas)
     modes = [estimate.world_mode[w] if converged[w] else None for w in range(worlds)]
-    return _Frequencies(omegas, converged, modes, positions, probe)
+    return _Frequencies(omegas, converged, modes, positions, probe, swing)
 
 
 def _bounded_frequencies(model: Model, k: np.ndarray, state: State | None) -> _Frequencies:
@@ -389,9 +401,11 @@ def advise(
     ranges = _damping_ranges(model, k, found.modes, found.positions,
                              lowest_top=None if probe is None else probe.world_lowest_ratio)
     limits = _world_limits(integrator, found.omegas, ranges)
+    # The linear limit at the dry run's peak; the three-wave limit at its first swing's (a sustained resonance, which
+    # a back-swing's instant does not feed: under_load.PROBE_PERIODS).
     passed = [(float(lim), "") if cls.adaptive else passed_step(integrator, float(o), float(lim), rayleigh=r[0],
                                                                   drag_rate=r[1])
-              for o, lim, r in zip(found.omegas, limits, ranges)]
+              for o, lim, r in zip(found.swing_omegas, limits, ranges)]
     passed_limits = np.array([p[0] for p in passed])
     w = int(np.lexsort((-found.omegas, passed_limits))[0])  # the smallest step; among equals, the stiffest world
     omega, limit = float(found.omegas[w]), float(limits[w])

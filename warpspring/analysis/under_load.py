@@ -155,18 +155,26 @@ def loaded_state(model: Model, *, control=None, overshoot: float = OVERSHOOT) ->
 #: world's peak (by more than ``PROBE_RISE``) has passed, not before ``PROBE_MIN_TIME`` and not after its
 #: horizon (``PROBE_HORIZON`` by default; ``warpspring run`` passes the run's duration). Under gravity it also
 #: lasts the cloth's first swing (:func:`swing_time`): a large cloth's stretch peaks when its fall first passes
-#: the bottom, after the peaks of its first quarter second have stopped rising (bench/results/advisor_battery_cpu.md).
+#: the bottom, after the peaks of its first quarter second have stopped rising (bench/results/advisor_battery_cpu.md),
+#: and ``PROBE_PERIODS`` swings (a whole small-swing period): a cloth released flat whips its top mode higher on its
+#: back-swing, for an instant, than anywhere in its first swing (32²: 1168.35 rad/s at 2.62 s against 1120.57 at
+#: 0.88 s; 64²: 1295 at 3.97 s against 1244 at 1.3 s), and a step at the linear limit of the first swing's peak
+#: turns non-finite there (the 32² cloth with kd = 1e-5 s · ke at 1.775 ms, symplectic Euler, and 1.785 ms, Verlet).
+#: The first swing's peak is kept apart (:attr:`TransientPeak.world_swing_omega_max`) for the three-wave verdict,
+#: whose resonance needs the top mode held past √3, not an instant (:func:`~.stability.passed_step`).
 PROBE_FRACTION = 0.5
 PROBE_CHECK = 1.0 / 240.0
 PROBE_STEPS, PROBE_TOLERANCE, PROBE_REFINE, PROBE_SPARSE = 8, 1.0e-4, 4, 2
 PROBE_RISE = 1.0e-3
 PROBE_MIN_TIME, PROBE_HORIZON = 0.25, 2.0
+PROBE_PERIODS = 2.0
 #: The dry run's budget: at most ``PROBE_MAX_STEPS`` velocity Verlet steps (a dry run that would need more
-#: to reach ``PROBE_MIN_TIME`` is not started) and ``PROBE_TIME_BUDGET`` seconds of this process's CPU time after
+#: to reach ``PROBE_MIN_TIME`` and its first swing is not started) and ``PROBE_TIME_BUDGET`` seconds of this process's CPU time after
 #: its first frame (which compiles; CPU time, not wall time, so that the verdict does not depend on what else the
 #: machine runs: on a CPU shared with other work the 64² cloth's dry run took 1.5× its CPU time in wall time);
 #: past either it stops and says so (:attr:`TransientPeak.cut_short`), and the advisor
-#: judges by the Gershgorin bound, which holds at any state the run reaches (conservative). The examples'
+#: judges by the Gershgorin bound, which holds at any state the run reaches (conservative): its linear limit, and
+#: its three-wave limit too unless the dry run got past its first swing (that swing's peak, ``PROBE_PERIODS``). The examples'
 #: dry runs take 180–720 steps.
 PROBE_MAX_STEPS, PROBE_TIME_BUDGET = 50_000, 10.0
 
@@ -270,6 +278,10 @@ class TransientPeak:
         cut_short: why the dry run stopped at its budget before it was done (``PROBE_MAX_STEPS``,
             ``PROBE_TIME_BUDGET``), one phrase; empty when it ran its course. The peaks are then not to be
             trusted: judge by a bound.
+        world_swing_omega_max: each world's peak ω_max [rad/s] over the first swing alone (the dry run as it ended
+            before it lasted ``PROBE_PERIODS`` swings), shape [world_count]; ``None``: the same as ``world_omega_max``.
+        swing_complete: whether the dry run got past its first swing before it ended or was cut short (then
+            ``world_swing_omega_max`` is that swing's peak even where ``cut_short`` is set).
     """
 
     world_omega_max: np.ndarray
@@ -281,6 +293,8 @@ class TransientPeak:
     finite: bool
     world_lowest_ratio: np.ndarray | None = None
     cut_short: str = ""
+    world_swing_omega_max: np.ndarray | None = None
+    swing_complete: bool = True
 
 
 def _keeps_plasticity(function):
@@ -325,8 +339,10 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
         lowest_ratio: also keep each world's lowest top-mode damping ratio along the way (explicit Euler's
             limit: the stretch that makes the top mode stiffer across its springs than along them, where their
             dampers act, need not come with the highest ω_max); one host read of the state per re-estimate.
-        least: the shortest dry run [s] (at most ``horizon``); default ``PROBE_MIN_TIME`` or the cloth's first
-            swing (:func:`swing_time`), whichever is longer.
+        least: the shortest dry run [s] (at most ``horizon``); default ``PROBE_MIN_TIME`` or ``PROBE_PERIODS`` of the
+            cloth's swings (:func:`swing_time`), whichever is longer. The first swing's peak
+            (:attr:`TransientPeak.world_swing_omega_max`) is the peak when the dry run would have ended had it
+            lasted ``PROBE_MIN_TIME`` or one swing (at most ``least``).
     """
     horizon = checks.positive("horizon", horizon)
     k = _stiffness_values(model, stiffness)
@@ -349,10 +365,14 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
     safe = float(safe[bound > 0.0].min()) if (bound > 0.0).any() else math.inf
     if not math.isfinite(safe) or safe <= 0.0:
         return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), 0.0, 0.0, True, lowest)
-    least = min(horizon, max(PROBE_MIN_TIME, swing_time(model)) if least is None else checks.positive("least", least))
+    swing = swing_time(model)
+    least = min(horizon, max(PROBE_MIN_TIME, PROBE_PERIODS * swing) if least is None else
+                checks.positive("least", least))
+    first = min(least, max(PROBE_MIN_TIME, swing))  # the first swing: its peak is kept apart
+    swing_peak, swing_end = None, math.inf
     substeps = PROBE_CHECK / (PROBE_FRACTION * safe)  # a float: ~1e16 for an absurd stiffness
-    needed = math.ceil(least / PROBE_CHECK) * max(1.0, math.ceil(substeps))
-    if needed > PROBE_MAX_STEPS:  # a dry run that would take too long: none, and the caller bounds ω_max
+    needed = math.ceil(first / PROBE_CHECK) * max(1.0, math.ceil(substeps))
+    if needed > PROBE_MAX_STEPS:  # a dry run whose first swing would take too long: none, and the caller bounds ω_max
         return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), 0.0, PROBE_FRACTION * safe, True,
                              lowest, cut_short=f"it would take {needed:.3g} steps of {PROBE_FRACTION * safe:.3g} s, "
                              f"past its budget of {PROBE_MAX_STEPS}")
@@ -370,6 +390,8 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
     rise, finite, level, climbing = 0.0, True, None, True  # level: the dry run's own running peak (not the start's)
     cut_short, started = "", None
     while sim.time < horizon and (sim.time < least or sim.time < 2.0 * rise):
+        if swing_peak is None and sim.time >= first and sim.time >= 2.0 * rise:  # where the first swing's run ended
+            swing_peak, swing_end = peak.copy(), sim.time
         if sim.frame * substeps >= PROBE_MAX_STEPS:
             cut_short = f"it reached its budget of {PROBE_MAX_STEPS} steps at t = {sim.time:.3g} s"
             break
@@ -415,5 +437,12 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
         if higher.any():
             peak[higher] = refined[higher]
             mode[higher] = iteration.x.numpy().astype(np.float64).reshape(worlds, n, 3)[higher]
+    swing_complete = swing_peak is not None or not cut_short
+    if swing_peak is None:
+        swing_peak = peak.copy()
+    else:  # a world whose peak came within the first swing: its refined peak
+        within = peak_time <= swing_end
+        swing_peak[within] = peak[within]
+        swing_peak = np.minimum(swing_peak, peak)
     return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), sim.time, sim.dt, finite, lowest,
-                         cut_short=cut_short)
+                         cut_short=cut_short, world_swing_omega_max=swing_peak, swing_complete=swing_complete)
