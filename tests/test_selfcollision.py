@@ -546,20 +546,30 @@ def test_cache_changes_the_work_not_the_answer(device, scene):
         assert cached["rebuilds"][0] != cached["rebuilds"][1]  # one world's cache rebuilt while the other's held
 
 
-def test_cache_holds_while_the_drifts_spread_less_than_its_slack(device):
+@pytest.mark.parametrize("layout", ["tilted", "flat"])
+def test_cache_holds_while_the_drifts_spread_less_than_its_slack(device, layout):
     """Two cloths 0.1 m apart (beyond the cache's reach), one still, one sliding past it at 1.5 m/s (1.5 mm per
-    1 ms step, no gravity, springs at rest): every relative drift lies along one axis. The cache holds while the
-    drifts' box diagonal, the slider's displacement since the last build, stays within R - 2τ = τ (less SAFETY,
-    1/64): 4.5 mm > 3.94 mm ≥ 3.0 mm, so it is rebuilt every third step (steps 0, 3, ..., 27: 10 in 30), where the
-    largest drift from a reference vertex alone (≤ τ/2) would rebuild every second step (15). Nothing is cached and
-    no step reaches the repulsion's budget γ · 2τ (2 mm), so the pair stages never run (their flag stays down) and
-    the slider moves exactly as integrated."""
+    1 ms step, along the sheets' common plane, no gravity, springs at rest): every relative drift lies along one
+    axis. Tilted 45° (their boxes overlap though the sheets are 0.1 m apart), the cache holds while the spread of
+    the drifts across patches whose boxes lie within 2τ, the slider's displacement since the last build, stays
+    within R - 2τ = τ (less SAFETY, 1/64): 4.5 mm > 3.94 mm ≥ 3.0 mm, so it is rebuilt every third step (steps 0, 3,
+    ..., 27: 10 in 30), where the largest drift from a reference vertex alone (≤ τ/2) would rebuild every second
+    step (15). Flat (one above the other, their boxes 0.1 m apart), no pair across them can come within 2τ
+    whatever their drifts: built once, never rebuilt. Nothing is cached and no step reaches the repulsion's budget
+    γ · 2τ (2 mm), so the pair stages never run (their flag stays down) and the slider moves exactly as
+    integrated."""
     from warpspring.kernels.selfcontact import FLAG_WORK
 
+    half = np.sin(np.pi / 8.0), np.cos(np.pi / 8.0)
+    tilted = layout == "tilted"
+    rotation = (0.0, half[0], 0.0, half[1]) if tilted else (0.0, 0.0, 0.0, 1.0)
+    normal = np.array([np.sqrt(0.5), 0.0, np.sqrt(0.5)]) if tilted else np.array([0.0, 0.0, 1.0])
+    nx = 13 if tilted else 5
     builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
-    builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, 0.0), mass=0.05, **CLOTH, name="still")
-    builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, 0.1), mass=0.05, velocity=(1.5, 0.0, 0.0),
-                           **CLOTH, name="slider")
+    builder.add_cloth_grid(nx=nx, ny=5, spacing=0.02, origin=(0.0, 0.0, 0.0), rotation=rotation, mass=0.05, **CLOTH,
+                           name="still")
+    builder.add_cloth_grid(nx=nx, ny=5, spacing=0.02, origin=tuple(0.1 * normal), rotation=rotation, mass=0.05,
+                           velocity=(0.0, 1.5, 0.0), **CLOTH, name="slider")
     builder.add_self_collision(thickness=TAU)
     model = builder.finalize(device)
     sc = model.self_contact
@@ -570,8 +580,9 @@ def test_cache_holds_while_the_drifts_spread_less_than_its_slack(device):
         integrator.step(a, b, None, 1e-3)
         a, b = b, a
         work.append(int(sc.flags.numpy()[2 + FLAG_WORK * model.world_count]))
-    assert sc.cache_counts()["rebuilds"][0] == 10
+    assert sc.cache_counts()["rebuilds"][0] == (10 if tilted else 1)
     assert sc.listed()["cache"][0] == 0 and not any(work)
     moved = a.particle_q.numpy().astype(np.float64) - start
-    np.testing.assert_allclose(moved[:25], 0.0, atol=1e-7)
-    np.testing.assert_allclose(moved[25:], np.tile([0.045, 0.0, 0.0], (25, 1)), atol=1e-5)  # 30 steps of 1.5 mm
+    half_count = len(moved) // 2
+    np.testing.assert_allclose(moved[:half_count], 0.0, atol=1e-7)
+    np.testing.assert_allclose(moved[half_count:], np.tile([0.0, 0.045, 0.0], (half_count, 1)), atol=1e-5)  # 30 × 1.5 mm

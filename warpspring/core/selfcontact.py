@@ -31,6 +31,7 @@ from ..kernels.selfcontact import (
     PARAM_FRICTION,
     PARAM_RELAXATION,
     PARAM_THICKNESS,
+    PATCH_COLUMNS,
     SCAN_BLOCK,
     SCAN_THREADS,
     Pairs,
@@ -38,6 +39,7 @@ from ..kernels.selfcontact import (
     broad_kernel,
     fill_kernel,
     leaf_kernel,
+    patch_count,
     proximity_kernel,
     repel_gather_kernel,
     repel_pairs_kernel,
@@ -60,6 +62,8 @@ DEFAULT_RELAXATION = 0.25
 #: Rounds of the cap's making room for its jammed vertices (``SelfContact._cap_stage``): a jammed vertex's
 #: neighbours across its kept pairs move away, then it is placed again, this many times.
 CAP_LEVELS = 2
+#: Threads per block of the cache's check (one block per patch of every world; kernels/selfcontact_cache.py).
+PATCH_THREADS = 64
 #: The thickness must stay below this share of the surface's smallest triangle altitude: at rest, a vertex and
 #: a triangle of its neighbourhood that do not share it are an altitude apart or more, and must not repel.
 MAX_THICKNESS_SHARE = 0.7
@@ -104,6 +108,30 @@ def surface_topology(triangles: np.ndarray, particle_count: int) -> dict:
                 edge_owner=as32(edge_owner), vertex_owner=as32(vertex_owner))
 
 
+def surface_patches(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The surface's patches for the cache's check (``kernels/selfcontact_cache.py``): its triangles halved along
+    the longest axis of their centres' box at ``positions`` [particle_count, 3] (a median split), level by level,
+    into ``kernels/selfcontact.py``'s ``patch_count`` patches. Returns (the triangles'
+    indices grouped by patch, each patch's first entry and the end) as int32 arrays [triangle_count], [patches +
+    1]. Any grouping is correct; triangles close at rest make the patches' boxes tight."""
+    triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    centres = np.asarray(positions, dtype=np.float64)[triangles].mean(axis=1)
+    count = len(triangles)
+    order = np.arange(count)
+    bounds = [0, count]
+    for _ in range(patch_count(count).bit_length() - 1):
+        split = [0]
+        for first, last in zip(bounds[:-1], bounds[1:]):
+            group = order[first:last]
+            points = centres[group]
+            axis = int(np.argmax(points.max(axis=0) - points.min(axis=0)))
+            half = (last - first) // 2
+            order[first:last] = group[np.argsort(points[:, axis], kind="stable")]
+            split += [first + half, last]
+        bounds = split
+    return np.ascontiguousarray(order, dtype=np.int32), np.asarray(bounds, dtype=np.int32)
+
+
 def smallest_altitude(positions: np.ndarray, triangles: np.ndarray) -> float:
     """The smallest altitude [m] of the triangles (twice the area over the longest side), float64."""
     x = np.asarray(positions, dtype=np.float64)[np.asarray(triangles)]
@@ -145,6 +173,12 @@ class SelfContact:
         surface.leaf_upper = wp.zeros(leaves, dtype=wp.vec3f, device=device)
         surface.bvh = wp.zeros(worlds, dtype=wp.uint64, device=device)
         self.surface = surface
+        # The cache's check reduces each patch's boxes (kernels/selfcontact_cache.py): triangles grouped at rest.
+        order, bounds = surface_patches(model.particle_q.numpy()[:n], topology["triangle"])
+        self.patch_count = len(bounds) - 1
+        self.patch_triangle = wp.array(order, dtype=wp.int32, device=device)
+        self.patch_start = wp.array(bounds, dtype=wp.int32, device=device)
+        self.patch_box = wp.zeros((worlds, self.patch_count, PATCH_COLUMNS), dtype=wp.int32, device=device)
         self.params = wp.zeros((worlds, PARAM_COUNT), dtype=model.scalar, device=device)
         self.set(thickness=thickness, friction=friction, relaxation=relaxation)
         self.corrected = wp.zeros(model.state_size, dtype=model.vec3, device=device)
@@ -181,8 +215,9 @@ class SelfContact:
             kernel.module.load(model.device)  # launched with Warp's default block size
         for kernel in scan_kernels():
             kernel.module.load(model.device, SCAN_THREADS)
+        check_kernel(scalar).module.load(model.device, PATCH_THREADS)
         flat = [broad_kernel(scalar, False), broad_kernel(scalar, True),
-                reset_kernel(), fill_kernel(), check_kernel(scalar), decide_kernel(scalar), anchor_kernel(scalar),
+                reset_kernel(), fill_kernel(), decide_kernel(scalar), anchor_kernel(scalar),
                 repel_pairs_kernel(scalar),
                 repel_gather_kernel(scalar), cap_bounds_kernel(scalar), cap_gather_kernel(scalar),
                 cap_place_kernel(scalar), cap_mark_kernel(scalar), cap_check_kernel(scalar)]
@@ -377,12 +412,16 @@ class SelfContact:
         """The step's flags: the cache's check and decisions, then its rebuild where a world needs one."""
         model = self.model
         self.flags.zero_()
-        flat_launch(check_kernel(model.scalar),
-                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
-                            self.surface, self.params, self.cache_anchor, start, particle_q],
-                    outputs=[self.flags], dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
-        flat_launch(decide_kernel(model.scalar), inputs=[model.world_enabled, self.params, self.cache_reach, self.cache],
-                    outputs=[self.flags], dim=model.world_count, block_dim=model.block_dim, device=model.device)
+        surface = self.surface
+        wp.launch_tiled(check_kernel(model.scalar), dim=(model.world_count, self.patch_count),
+                        inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
+                                surface.triangle, surface.vertex_owner, self.patch_triangle, self.patch_start,
+                                self.params, self.cache_anchor, start, particle_q],
+                        outputs=[self.patch_box, self.flags], block_dim=PATCH_THREADS, device=model.device)
+        flat_launch(decide_kernel(model.scalar),
+                    inputs=[model.world_enabled, self.params, self.cache_reach, self.cache, self.patch_box],
+                    outputs=[self.flags], dim=model.world_count * self.patch_count ** 2, block_dim=model.block_dim,
+                    device=model.device)
         self._branch(self.flags[0:1], self._rebuild, start=start)
 
     @property

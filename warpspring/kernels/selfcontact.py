@@ -153,11 +153,29 @@ FLAG_REBUILD = 0  # rebuild the world's cache
 FLAG_FALLBACK = 1  # run the world's cap through its swept broad phase
 FLAG_KINEMATIC = 2  # K_w, the largest displacement of the world's kinematic vertices
 FLAG_DRIFT = 3  # the largest drift from the anchors relative to the reference vertex, padded (module selfcontact_cache)
-FLAG_SPREAD = 4  # 6 kinds from here: the drifts' box, padded: max (r_k + pad) for k = x, y, z, then max (pad - r_k)
-FLAG_STEP = 10  # the largest step of a free surface vertex (limited to γ SEARCH_REACH τ), padded
-FLAG_WORK = 11  # its first entry only: some world's pair stages must run (module selfcontact_cache)
-FLAG_KINDS = 12
+FLAG_STEP = 4  # the largest step of a free surface vertex (limited to γ SEARCH_REACH τ), padded
+FLAG_WORK = 5  # its first entry only: some world's pair stages must run (module selfcontact_cache)
+FLAG_KINDS = 6
 KINEMATIC_STEPS = 4096
+#: The surface's patches (module ``selfcontact_cache``): groups of triangles close at rest, at least this many
+#: triangles each and at most PATCH_LIMIT of them (2^k by halving), whose boxes the cache's check reduces.
+PATCH_TRIANGLES = 32
+PATCH_LIMIT = 256
+#: Columns of a patch's extents [world_count, patch_count, PATCH_COLUMNS] (integers in units of τ / KINEMATIC_STEPS,
+#: rounded outward, padded for rounding): its drifts' box, max (r_k + pad) for k = x, y, z then max (pad - r_k), and
+#: likewise its positions' box at the step's start, over every corner of its triangles.
+PATCH_DRIFT = 0
+PATCH_POSITION = 6
+PATCH_COLUMNS = 12
+
+
+def patch_count(triangle_count: int) -> int:
+    """The patches of a surface of ``triangle_count`` triangles: the most halvings (2^k patches, at most PATCH_LIMIT)
+    that leave each at least PATCH_TRIANGLES triangles (1 for a smaller surface)."""
+    count = 1
+    while 2 * count <= PATCH_LIMIT and triangle_count // (2 * count) >= PATCH_TRIANGLES:
+        count *= 2
+    return count
 #: Relative slack of the cache's bounds (drift, the cap's budget) against rounding.
 SAFETY = 1.0 / 64.0
 #: A cached pair's bound (``selfcontact_cache.cap_bounds_kernel``) where the cap does not keep it.

@@ -10,16 +10,22 @@ from its distance at the anchors by at most that. Drifts are measured relative t
 (a fixed surface vertex), r = Δ - Δ_ref, which changes no difference Δᵢ - Δⱼ: a cloth that falls or slides as a
 whole keeps its cache. Each step:
 
-1. ``check_kernel`` reduces each world's drifts at the step's start x⁰ into integers (order-free maxima, in
-   units of τ / KINEMATIC_STEPS rounded up): the largest |r| and the box of the r, each padded for rounding;
-   ``decide_kernel`` keeps the cache when |rᵢ - rⱼ| ≤ R - REPULSION_REACH τ (less a slack ``SAFETY``) for every
-   i and j, by either bound: the largest |r| at most half of it, or the box's diagonal at most all of it (a
-   sheet falling past a still part of itself spreads its drifts along one axis: the second allows twice the
-   drift of the first there).
-   Pairs outside the cache are then at least REPULSION_REACH τ apart at x⁰. Otherwise the world is flagged for a
-   rebuild (FLAG_REBUILD). A world that was never built has R = 0 and is flagged; so is one whose τ grew or
-   whose state was replaced. The world's largest kinematic displacement K_w of the step is reduced into
-   FLAG_KINEMATIC, and its free surface vertices' largest step into FLAG_STEP.
+1. ``check_kernel`` reduces, per *patch* (a group of triangles close at rest, ``core/selfcontact.py``'s
+   ``surface_patches``; one block each, block-wide integer maxima, no atomics), the box of its corners' drifts r
+   at the step's start x⁰ and the box of their positions x⁰, in units of τ / KINEMATIC_STEPS rounded outward and
+   padded for rounding; and per world the largest |r| (an integer maximum, order-free). Every vertex and edge lies
+   in the boxes of its owner triangle's patch (``vertex_owner``, ``edge_owner``). ``decide_kernel`` keeps the cache
+   when every pair outside it stays at least REPULSION_REACH τ apart at x⁰, by either bound: the largest |r| at
+   most (R - REPULSION_REACH τ)/2 (less a slack ``SAFETY``), or, for every two patches P, Q (P = Q included):
+   their position boxes lie at least REPULSION_REACH τ (1 + SAFETY) apart (every pair across them is that far
+   apart now, whatever its drifts), or the largest |r_a - r_b| over a corner a of P and b of Q, read from their
+   drift boxes, is at most R - REPULSION_REACH τ (less SAFETY): a pair outside the cache was R apart at its
+   anchors and came closer by at most that. A sheet falling past a still part of itself keeps its cache while
+   the two stay apart; a patch pair in contact or close, while their relative drift stays small (the patches
+   refine the world's single box of drifts, which a sliding skirt spreads along one axis).
+   Otherwise the world is flagged for a rebuild (FLAG_REBUILD). A world that was never built has R = 0 and is
+   flagged; so is one whose τ grew or whose state was replaced. The world's largest kinematic displacement K_w
+   of the step is reduced into FLAG_KINEMATIC, and its free surface vertices' largest step into FLAG_STEP.
 2. The flagged worlds' broad phase (BVH refit and queries, as ``kernels/selfcontact.py``) at x⁰ with reach R,
    then ``anchor_kernel`` (xᵃ = x⁰, R = CACHE_REACH τ): a conditional graph node, launched only when a world
    is flagged.
@@ -62,11 +68,13 @@ from .selfcontact import (
     FLAG_KINDS,
     FLAG_KINEMATIC,
     FLAG_REBUILD,
-    FLAG_SPREAD,
     FLAG_STEP,
     FLAG_WORK,
     KINEMATIC_STEPS,
     NO_BOUND,
+    PATCH_COLUMNS,
+    PATCH_DRIFT,
+    PATCH_POSITION,
     PARAM_RELAXATION,
     PARAM_THICKNESS,
     REPULSION_REACH,
@@ -120,81 +128,130 @@ def length_funcs(scalar: type):
 
 @functools.cache
 def check_kernel(scalar: type):
-    """Kernel of the cache's check (module docstring, 1.), one thread per particle of every world: each surface
-    vertex's drift from its anchor relative to the reference vertex, r, reduced per world into its padded length
-    (FLAG_DRIFT) and its padded box (FLAG_SPREAD); the kinematic vertices' largest displacement (FLAG_KINEMATIC);
-    the free surface vertices' largest step (FLAG_STEP). ``decide_kernel`` reads them."""
+    """Tiled kernel of the cache's check (module docstring, 1.), one block per patch of every world
+    (``wp.launch_tiled``, dim (world_count, patch_count)); each thread walks a share of the patch's triangles
+    (``patch_triangle[patch_start[patch]:patch_start[patch + 1]]``) and their corners. Per patch, by block-wide
+    integer maxima (no atomics): the box of the corners' drifts r from their anchors relative to the reference
+    vertex and the box of their positions at the step's start, each padded and rounded outward
+    (``patch_box_out``, PATCH_*). Per world, from the corners each triangle reports (``vertex_owner``), one integer
+    atomic maximum per block (order-free): the padded largest |r| (FLAG_DRIFT), the kinematic vertices' largest
+    displacement (FLAG_KINEMATIC), the free surface vertices' largest step (FLAG_STEP). ``decide_kernel`` reads
+    them."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
     units = length_funcs(scalar)
+    extents = wp.types.vector(PATCH_COLUMNS, wp.int32)
 
-    @flat_kernel(module="unique", enable_backward=False)
+    @wp.func
+    def block_max(value: int):
+        """The largest ``value`` over the block's threads, in every thread."""
+        return wp.tile_reduce(wp.max, wp.tile(value))[0]
+
+    @wp.kernel(module="unique", enable_backward=False)
     def check(
         # Model:
         particle_count: int,
         particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array2d[scalar],
         world_enabled: wp.array[wp.int32],
-        surface: Surface,
+        triangle: wp.array[wp.vec3i],
+        vertex_owner: wp.array[wp.int32],
+        patch_triangle: wp.array[wp.int32],
+        patch_start: wp.array[wp.int32],
         params: wp.array2d[scalar],
         cache_anchor: wp.array[vec3],
         # State in:
         particle_q_start: wp.array[vec3],
         particle_q_end: wp.array[vec3],
         # Out:
+        patch_box_out: wp.array3d[wp.int32],
         flags_out: wp.array[wp.int32],
     ):
-        p = wp.tid()
-        world, i = world_and_index(p, particle_count)
-        if world_enabled[world] == 0 or surface.vertex_owner[i] < 0:
+        world, patch, lane = wp.tid()
+        if world_enabled[world] == 0:
             return
         world_count = (flags_out.shape[0] - 2) // FLAG_KINDS
+        base = base_index(world, particle_count)
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         row = wp.min(world, params.shape[0] - 1)
         thickness = params[row, PARAM_THICKNESS]
-        start = particle_q_start[p]
+        limit = params[row, PARAM_RELAXATION] * scalar(SEARCH_REACH) * thickness
         # Drift relative to the world's reference vertex (a middle triangle's first corner): a translation of the
         # whole surface changes no pair's distance.
-        ref = base_index(world, particle_count) + surface.triangle[surface.triangle.shape[0] // 2][0]
+        ref = base + triangle[triangle.shape[0] // 2][0]
         shift = particle_q_start[ref] - cache_anchor[ref]
-        anchor = cache_anchor[p] + shift
-        r = start - anchor
-        pad = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + wp.max(wp.abs(anchor)) + wp.max(wp.abs(shift)) + scalar(1.0))
-        drift = units(wp.length(r) + pad, thickness)
-        big = drift >= LENGTH_LIMIT
-        raise_to(flags_out, flag_slot(FLAG_DRIFT, world, world_count), drift)
-        for k in range(3):
-            high = units(r[k] + pad, thickness)
-            low = units(pad - r[k], thickness)
-            big = big or high >= LENGTH_LIMIT or low >= LENGTH_LIMIT
-            raise_to(flags_out, flag_slot(FLAG_SPREAD + k, world, world_count), high)
-            raise_to(flags_out, flag_slot(FLAG_SPREAD + 3 + k, world, world_count), low)
+        shift_pad = wp.max(wp.abs(shift))
+        extent = extents()
+        for k in range(PATCH_COLUMNS):
+            extent[k] = -LENGTH_LIMIT
+        drift = int(0)
+        kinematic = int(0)
+        step_units = int(0)
+        big = bool(False)
+        for a in range(patch_start[patch] + lane, patch_start[patch + 1], wp.block_dim()):
+            t = patch_triangle[a]
+            corners = triangle[t]
+            for m in range(3):
+                i = corners[m]
+                p = base + i
+                start = particle_q_start[p]
+                anchor = cache_anchor[p] + shift
+                r = start - anchor
+                pad = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + wp.max(wp.abs(anchor)) + shift_pad + scalar(1.0))
+                place = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0))
+                for k in range(3):
+                    high = units(r[k] + pad, thickness)
+                    low = units(pad - r[k], thickness)
+                    big = big or high >= LENGTH_LIMIT or low >= LENGTH_LIMIT
+                    extent[PATCH_DRIFT + k] = wp.max(extent[PATCH_DRIFT + k], high)
+                    extent[PATCH_DRIFT + 3 + k] = wp.max(extent[PATCH_DRIFT + 3 + k], low)
+                    # A position beyond the units' range stays at LENGTH_LIMIT: the box only grows (conservative).
+                    extent[PATCH_POSITION + k] = wp.max(extent[PATCH_POSITION + k], units(start[k] + place, thickness))
+                    extent[PATCH_POSITION + 3 + k] = wp.max(extent[PATCH_POSITION + 3 + k],
+                                                            units(place - start[k], thickness))
+                if vertex_owner[i] != t:  # each vertex's own values once, from the triangle that reports it
+                    continue
+                length = units(wp.length(r) + pad, thickness)
+                big = big or length >= LENGTH_LIMIT
+                drift = wp.max(drift, length)
+                step = wp.length(particle_q_end[p] - start)
+                if effective_inv_mass(particle_flags[p], particle_inv_mass[mass_row, i]) == scalar(0.0):
+                    level = int(1 << 30)
+                    steps = step / thickness * scalar(KINEMATIC_STEPS)
+                    if steps < scalar(1 << 29):  # else (or NaN) the largest level
+                        level = int(steps) + 1  # rounded up
+                    kinematic = wp.max(kinematic, level)
+                elif not (step == scalar(0.0)):  # as the repulsion's gather tests it: its step limited, plus its pad
+                    limited = wp.min(step, limit)
+                    step_units = wp.max(step_units, units(limited + place, thickness))
         if big:  # beyond what the units hold (or NaN): rebuild
             raise_flag(flags_out, FLAG_REBUILD, world, world_count)
-        step = wp.length(particle_q_end[p] - start)
-        if effective_inv_mass(particle_flags[p], particle_inv_mass[mass_row, i]) == scalar(0.0):
-            level = int(1 << 30)
-            steps = step / thickness * scalar(KINEMATIC_STEPS)
-            if steps < scalar(1 << 29):  # else (or NaN) the largest level
-                level = int(steps) + 1  # rounded up
-            wp.atomic_max(flags_out, flag_slot(FLAG_KINEMATIC, world, world_count), level)
-        elif not (step == scalar(0.0)):  # as the repulsion's gather tests it: its step limited, plus its pad
-            limited = wp.min(step, params[row, PARAM_RELAXATION] * scalar(SEARCH_REACH) * thickness)
-            raise_to(flags_out, flag_slot(FLAG_STEP, world, world_count),
-                     units(limited + scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0)), thickness))
+        for k in range(PATCH_COLUMNS):
+            largest = block_max(extent[k])
+            if lane == 0:
+                patch_box_out[world, patch, k] = largest
+        drift = block_max(drift)
+        kinematic = block_max(kinematic)
+        step_units = block_max(step_units)
+        if lane == 0:
+            raise_to(flags_out, flag_slot(FLAG_DRIFT, world, world_count), drift)
+            raise_to(flags_out, flag_slot(FLAG_KINEMATIC, world, world_count), kinematic)
+            raise_to(flags_out, flag_slot(FLAG_STEP, world, world_count), step_units)
 
     return check
 
 
 @functools.cache
 def decide_kernel(scalar: type):
-    """Kernel of the cache's decisions (module docstring, 1.), one thread per world, after ``check_kernel``: a
-    world rebuilds unless its drifts keep every pair outside the cache at least REPULSION_REACH τ apart, either
-    bound holding: the padded drift at most half the slack, (R - REPULSION_REACH τ)(1 - SAFETY) / 2, or the padded
-    box's diagonal at most the slack; and the pair stages run (FLAG_WORK's first entry) where a world has
-    cached pairs, a free vertex steps further than the repulsion's gather allows without the swept broad
-    phase (γ (REPULSION_REACH τ - K_w) (1 - SAFETY), less its pad), or its pins move REPULSION_REACH τ / 2 or more
-    (less the SAFETY share)."""
+    """Kernel of the cache's decisions (module docstring, 1.), one thread per ordered pair of patches (P ≤ Q) of
+    every world, after ``check_kernel``: the world rebuilds unless its drifts keep every pair outside the cache at
+    least REPULSION_REACH τ apart: its padded largest drift at most half the slack, (R - REPULSION_REACH τ)(1 -
+    SAFETY) / 2; or, for every two patches whose position boxes lie closer than REPULSION_REACH τ (1 + SAFETY), their
+    drifts' spread at most the slack (the length of the vector of max(high_P + low_Q, high_Q + low_P) per axis: the
+    largest |r_a - r_b| over a corner a of P and b of Q). The thread of (0, 0) also decides whether the pair stages
+    run (FLAG_WORK's first entry): where a world has cached pairs, a free vertex steps further than the repulsion's
+    gather allows without the swept broad phase (γ (REPULSION_REACH τ - K_w) (1 - SAFETY), less its pad), or its pins
+    move REPULSION_REACH τ / 2 or more (less the SAFETY share)."""
     vec3 = vec3_type(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
@@ -204,32 +261,50 @@ def decide_kernel(scalar: type):
         params: wp.array2d[scalar],
         cache_reach: wp.array[scalar],
         cache: Pairs,
+        patch_box: wp.array3d[wp.int32],
         # In/out (the pass's flags):
         flags_in_out: wp.array[wp.int32],
     ):
-        world = wp.tid()
-        if world_enabled[world] == 0:
+        tid = wp.tid()
+        patch_count = patch_box.shape[1]
+        world = tid // (patch_count * patch_count)
+        rest = tid - world * patch_count * patch_count
+        first = rest // patch_count
+        second = rest - first * patch_count
+        if world_enabled[world] == 0 or second < first:
             return
         world_count = cache_reach.shape[0]
         row = wp.min(world, params.shape[0] - 1)
         thickness = params[row, PARAM_THICKNESS]
         unit = thickness / scalar(KINEMATIC_STEPS)
         slack = (cache_reach[world] - scalar(REPULSION_REACH) * thickness) * scalar(1.0 - SAFETY)
+        if first == 0 and second == 0:
+            kinematic = scalar(flags_in_out[flag_slot(FLAG_KINEMATIC, world, world_count)]) * unit
+            step = scalar(flags_in_out[flag_slot(FLAG_STEP, world, world_count)]) * unit
+            budget = (params[row, PARAM_RELAXATION] * (scalar(REPULSION_REACH) * thickness - kinematic)
+                      * scalar(1.0 - SAFETY) * scalar(1.0 - SAFETY))  # the second factor: this test's own rounding
+            far = scalar(2.0) * kinematic >= scalar(REPULSION_REACH) * thickness * scalar(1.0 - SAFETY)  # as repel_gather
+            if cache.count[world] > 0 or not (step <= budget) or far:
+                flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
         drift = scalar(flags_in_out[flag_slot(FLAG_DRIFT, world, world_count)]) * unit
-        width = vec3(scalar(0.0))
+        if drift <= scalar(0.5) * slack:  # False for a negative slack (R = 0: never built)
+            return
+        gap = vec3(scalar(0.0))
+        spread = vec3(scalar(0.0))
         for k in range(3):
-            width[k] = scalar(flags_in_out[flag_slot(FLAG_SPREAD + k, world, world_count)]
-                              + flags_in_out[flag_slot(FLAG_SPREAD + 3 + k, world, world_count)]) * unit
-        holds = drift <= scalar(0.5) * slack or wp.length(width) <= slack  # False for a negative slack (R = 0)
-        if not holds:
+            # Integer differences first (exact), then scaled: [-low, high] is each box along axis k.
+            apart = wp.max(0, wp.max(-patch_box[world, second, PATCH_POSITION + 3 + k]
+                                     - patch_box[world, first, PATCH_POSITION + k],
+                                     -patch_box[world, first, PATCH_POSITION + 3 + k]
+                                     - patch_box[world, second, PATCH_POSITION + k]))
+            gap[k] = scalar(apart) * unit
+            widest = wp.max(patch_box[world, first, PATCH_DRIFT + k] + patch_box[world, second, PATCH_DRIFT + 3 + k],
+                            patch_box[world, second, PATCH_DRIFT + k] + patch_box[world, first, PATCH_DRIFT + 3 + k])
+            spread[k] = scalar(widest) * unit
+        if wp.length(gap) >= scalar(REPULSION_REACH) * thickness * scalar(1.0 + SAFETY):
+            return  # every pair across these patches is that far apart now
+        if not (wp.length(spread) <= slack):
             raise_flag(flags_in_out, FLAG_REBUILD, world, world_count)
-        kinematic = scalar(flags_in_out[flag_slot(FLAG_KINEMATIC, world, world_count)]) * unit
-        step = scalar(flags_in_out[flag_slot(FLAG_STEP, world, world_count)]) * unit
-        budget = (params[row, PARAM_RELAXATION] * (scalar(REPULSION_REACH) * thickness - kinematic)
-                  * scalar(1.0 - SAFETY) * scalar(1.0 - SAFETY))  # the second factor: this test's own rounding
-        far = scalar(2.0) * kinematic >= scalar(REPULSION_REACH) * thickness * scalar(1.0 - SAFETY)  # as repel_gather
-        if cache.count[world] > 0 or not (step <= budget) or far:
-            flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
 
     return decide
 
