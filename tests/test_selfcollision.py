@@ -586,3 +586,40 @@ def test_cache_holds_while_the_drifts_spread_less_than_its_slack(device, layout)
     half_count = len(moved) // 2
     np.testing.assert_allclose(moved[:half_count], 0.0, atol=1e-7)
     np.testing.assert_allclose(moved[half_count:], np.tile([0.0, 0.045, 0.0], (half_count, 1)), atol=1e-5)  # 30 × 1.5 mm
+
+
+@pytest.mark.parametrize("chunk", [512, 5])
+def test_patch_boxes_hold_their_corners(device, chunk, monkeypatch):
+    """The cache's check (``kernels/selfcontact_cache.py``) reduces each patch's boxes of its triangles' corners: the
+    positions at the step's start and the drifts from the anchors (relative to the reference vertex). Against NumPy
+    in float64 after a wrung strip's steps (two worlds, moving pins): each box holds every corner and is no wider than
+    the tight box by more than one unit τ/4096 and the rounding pad on either side; with blocks of 5 triangles (a
+    patch over several blocks, their maxima merged by integer atomics) the boxes are the same integers."""
+    import warpspring.core.selfcontact as host
+    from warpspring.kernels.selfcontact import KINEMATIC_STEPS, PATCH_DRIFT, PATCH_POSITION
+    from warpspring.kernels.selfcontact_cache import LENGTH_LIMIT
+
+    monkeypatch.setattr(host, "PATCH_CHUNK", chunk)
+    model = wrung_strip(device, worlds=2)
+    sc = model.self_contact
+    integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
+    for _ in range(40):
+        start = a.particle_q.numpy().astype(np.float64).reshape(2, model.particle_count, 3)
+        anchor = sc.cache_anchor.numpy().astype(np.float64).reshape(2, model.particle_count, 3)
+        integrator.step(a, b, None, 1e-3)
+        a, b = b, a
+    assert sc.patch_count > 1 and (chunk > 100 or sc.chunk_patch.shape[0] > sc.patch_count)
+    boxes = sc.patch_box.numpy().astype(np.int64) - LENGTH_LIMIT
+    unit = TAU / KINEMATIC_STEPS
+    triangles = sc.surface.triangle.numpy()
+    order, bounds = sc.patch_triangle.numpy(), sc.patch_start_host
+    ref = triangles[len(triangles) // 2][0]
+    for world in range(2):
+        drift = start[world] - anchor[world] - (start[world, ref] - anchor[world, ref])
+        for patch in range(sc.patch_count):
+            corners = np.unique(triangles[order[bounds[patch]:bounds[patch + 1]]])
+            for column, values in ((PATCH_POSITION, start[world, corners]), (PATCH_DRIFT, drift[corners])):
+                high, low = boxes[world, patch, column:column + 3] * unit, -boxes[world, patch, column + 3:column + 6] * unit
+                assert np.all(high >= values.max(axis=0)) and np.all(low <= values.min(axis=0))
+                slack = unit + 1e-5 * (np.abs(values).max() + 1.0)  # a unit of rounding up and the pads (BOX_PAD each)
+                assert np.all(high - values.max(axis=0) <= slack) and np.all(values.min(axis=0) - low <= slack)

@@ -31,7 +31,9 @@ from ..kernels.selfcontact import (
     PARAM_FRICTION,
     PARAM_RELAXATION,
     PARAM_THICKNESS,
+    PATCH_CHUNK,
     PATCH_COLUMNS,
+    PATCH_THREADS,
     SCAN_BLOCK,
     SCAN_THREADS,
     Pairs,
@@ -62,8 +64,6 @@ DEFAULT_RELAXATION = 0.25
 #: Rounds of the cap's making room for its jammed vertices (``SelfContact._cap_stage``): a jammed vertex's
 #: neighbours across its kept pairs move away, then it is placed again, this many times.
 CAP_LEVELS = 2
-#: Threads per block of the cache's check (one block per patch of every world; kernels/selfcontact_cache.py).
-PATCH_THREADS = 64
 #: The thickness must stay below this share of the surface's smallest triangle altitude: at rest, a vertex and
 #: a triangle of its neighbourhood that do not share it are an altitude apart or more, and must not repel.
 MAX_THICKNESS_SHARE = 0.7
@@ -174,11 +174,18 @@ class SelfContact:
         surface.bvh = wp.zeros(worlds, dtype=wp.uint64, device=device)
         self.surface = surface
         # The cache's check reduces each patch's boxes (kernels/selfcontact_cache.py): triangles grouped at rest.
+        # Its blocks take chunks of at most PATCH_CHUNK triangles of one patch each.
         order, bounds = surface_patches(model.particle_q.numpy()[:n], topology["triangle"])
         self.patch_count = len(bounds) - 1
+        sizes = np.diff(bounds)
+        chunks = -(-sizes // PATCH_CHUNK)
+        chunk_patch = np.repeat(np.arange(self.patch_count), chunks)
+        first_chunk = np.cumsum(chunks) - chunks
+        chunk_start = bounds[chunk_patch] + PATCH_CHUNK * (np.arange(len(chunk_patch)) - first_chunk[chunk_patch])
+        self.patch_start_host = bounds  # each patch's first entry of patch_triangle, and the end
         self.patch_triangle = wp.array(order, dtype=wp.int32, device=device)
-        self.patch_start = wp.array(bounds, dtype=wp.int32, device=device)
-        self.patch_box = wp.zeros((worlds, self.patch_count, PATCH_COLUMNS), dtype=wp.int32, device=device)
+        self.chunk_patch = wp.array(chunk_patch, dtype=wp.int32, device=device)
+        self.chunk_start = wp.array(np.append(chunk_start, bounds[-1]), dtype=wp.int32, device=device)
         self.params = wp.zeros((worlds, PARAM_COUNT), dtype=model.scalar, device=device)
         self.set(thickness=thickness, friction=friction, relaxation=relaxation)
         self.corrected = wp.zeros(model.state_size, dtype=model.vec3, device=device)
@@ -192,7 +199,13 @@ class SelfContact:
         # kind of kernels/selfcontact.py FLAG_*), zeroed at every step's start.
         self.cache_anchor = wp.zeros(model.state_size, dtype=model.vec3, device=device)
         self.cache_reach = wp.zeros(worlds, dtype=model.scalar, device=device)
-        self.flags = wp.zeros(2 + FLAG_KINDS * worlds, dtype=wp.int32, device=device)
+        # The patches' boxes (kernels/selfcontact_cache.py, check_kernel) share the flags' storage: one memset empties
+        # both.
+        flag_count = 2 + FLAG_KINDS * worlds
+        self._step_scratch = wp.zeros(flag_count + worlds * self.patch_count * PATCH_COLUMNS, dtype=wp.int32,
+                                      device=device)
+        self.flags = self._step_scratch[:flag_count]
+        self.patch_box = self._step_scratch[flag_count:].reshape((worlds, self.patch_count, PATCH_COLUMNS))
         self._scan_blocks = wp.zeros((worlds, (n + SCAN_BLOCK - 1) // SCAN_BLOCK), dtype=wp.int32, device=device)
         self._allocate(max(64, PAIRS_PER_VERTEX * int(np.count_nonzero(topology["vertex_owner"] >= 0))))
         # One BVH per world over the single-precision boxes of its triangles, built at the model's initial
@@ -411,11 +424,12 @@ class SelfContact:
     def _prepare(self, start: wp.array, particle_q: wp.array) -> None:
         """The step's flags: the cache's check and decisions, then its rebuild where a world needs one."""
         model = self.model
-        self.flags.zero_()
+        self._step_scratch.zero_()  # the flags and the patches' boxes
         surface = self.surface
-        wp.launch_tiled(check_kernel(model.scalar), dim=(model.world_count, self.patch_count),
+        wp.launch_tiled(check_kernel(model.scalar), dim=(model.world_count, self.chunk_patch.shape[0]),
                         inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
-                                surface.triangle, surface.vertex_owner, self.patch_triangle, self.patch_start,
+                                surface.triangle, surface.vertex_owner, self.patch_triangle, self.chunk_patch,
+                                self.chunk_start,
                                 self.params, self.cache_anchor, start, particle_q],
                         outputs=[self.patch_box, self.flags], block_dim=PATCH_THREADS, device=model.device)
         flat_launch(decide_kernel(model.scalar),

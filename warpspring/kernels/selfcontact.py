@@ -161,6 +161,10 @@ KINEMATIC_STEPS = 4096
 #: triangles each and at most PATCH_LIMIT of them (2^k by halving), whose boxes the cache's check reduces.
 PATCH_TRIANGLES = 32
 PATCH_LIMIT = 256
+#: Threads per block of the cache's check, and the most triangles a block takes (of one patch): a patch of a large
+#: surface spreads over several blocks.
+PATCH_THREADS = 128
+PATCH_CHUNK = 4 * PATCH_THREADS
 #: Columns of a patch's extents [world_count, patch_count, PATCH_COLUMNS] (integers in units of τ / KINEMATIC_STEPS,
 #: rounded outward, padded for rounding): its drifts' box, max (r_k + pad) for k = x, y, z then max (pad - r_k), and
 #: likewise its positions' box at the step's start, over every corner of its triangles.

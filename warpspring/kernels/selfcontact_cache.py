@@ -128,15 +128,15 @@ def length_funcs(scalar: type):
 
 @functools.cache
 def check_kernel(scalar: type):
-    """Tiled kernel of the cache's check (module docstring, 1.), one block per patch of every world
-    (``wp.launch_tiled``, dim (world_count, patch_count)); each thread walks a share of the patch's triangles
-    (``patch_triangle[patch_start[patch]:patch_start[patch + 1]]``) and their corners. Per patch, by block-wide
-    integer maxima (no atomics): the box of the corners' drifts r from their anchors relative to the reference
-    vertex and the box of their positions at the step's start, each padded and rounded outward
-    (``patch_box_out``, PATCH_*). Per world, from the corners each triangle reports (``vertex_owner``), one integer
-    atomic maximum per block (order-free): the padded largest |r| (FLAG_DRIFT), the kinematic vertices' largest
-    displacement (FLAG_KINEMATIC), the free surface vertices' largest step (FLAG_STEP). ``decide_kernel`` reads
-    them."""
+    """Tiled kernel of the cache's check (module docstring, 1.), one block per chunk of a patch's triangles in every
+    world (``wp.launch_tiled``, dim (world_count, chunk_count)); chunk c holds ``patch_triangle[chunk_start[c]:
+    chunk_start[c + 1]]``, triangles of patch ``chunk_patch[c]``, and each thread walks a share of them and their
+    corners. Per patch: the box of the corners' drifts r from their anchors relative to the reference vertex and the
+    box of their positions at the step's start, each padded and rounded outward (``patch_box_out``, PATCH_*, stored
+    plus LENGTH_LIMIT so that a zeroed box is empty). Per world, from the corners each triangle reports
+    (``vertex_owner``): the padded largest |r| (FLAG_DRIFT), the kinematic vertices' largest displacement
+    (FLAG_KINEMATIC), the free surface vertices' largest step (FLAG_STEP). Each a block-wide integer maximum, then
+    one integer atomic maximum per block (order-free). ``decide_kernel`` reads them."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
     units = length_funcs(scalar)
@@ -157,7 +157,8 @@ def check_kernel(scalar: type):
         triangle: wp.array[wp.vec3i],
         vertex_owner: wp.array[wp.int32],
         patch_triangle: wp.array[wp.int32],
-        patch_start: wp.array[wp.int32],
+        chunk_patch: wp.array[wp.int32],
+        chunk_start: wp.array[wp.int32],
         params: wp.array2d[scalar],
         cache_anchor: wp.array[vec3],
         # State in:
@@ -167,7 +168,7 @@ def check_kernel(scalar: type):
         patch_box_out: wp.array3d[wp.int32],
         flags_out: wp.array[wp.int32],
     ):
-        world, patch, lane = wp.tid()
+        world, chunk, lane = wp.tid()
         if world_enabled[world] == 0:
             return
         world_count = (flags_out.shape[0] - 2) // FLAG_KINDS
@@ -188,7 +189,7 @@ def check_kernel(scalar: type):
         kinematic = int(0)
         step_units = int(0)
         big = bool(False)
-        for a in range(patch_start[patch] + lane, patch_start[patch + 1], wp.block_dim()):
+        for a in range(chunk_start[chunk] + lane, chunk_start[chunk + 1], wp.block_dim()):
             t = patch_triangle[a]
             corners = triangle[t]
             for m in range(3):
@@ -226,10 +227,11 @@ def check_kernel(scalar: type):
                     step_units = wp.max(step_units, units(limited + place, thickness))
         if big:  # beyond what the units hold (or NaN): rebuild
             raise_flag(flags_out, FLAG_REBUILD, world, world_count)
+        patch = chunk_patch[chunk]
         for k in range(PATCH_COLUMNS):
             largest = block_max(extent[k])
             if lane == 0:
-                patch_box_out[world, patch, k] = largest
+                wp.atomic_max(patch_box_out, world, patch, k, largest + LENGTH_LIMIT)
         drift = block_max(drift)
         kinematic = block_max(kinematic)
         step_units = block_max(step_units)
@@ -292,14 +294,17 @@ def decide_kernel(scalar: type):
         gap = vec3(scalar(0.0))
         spread = vec3(scalar(0.0))
         for k in range(3):
-            # Integer differences first (exact), then scaled: [-low, high] is each box along axis k.
-            apart = wp.max(0, wp.max(-patch_box[world, second, PATCH_POSITION + 3 + k]
+            # Integer arithmetic first (exact), then scaled: [-low, high] is each box along axis k.
+            # Stored plus LENGTH_LIMIT (check_kernel), taken off each term (no int32 overflow).
+            apart = wp.max(0, wp.max(2 * LENGTH_LIMIT - patch_box[world, second, PATCH_POSITION + 3 + k]
                                      - patch_box[world, first, PATCH_POSITION + k],
-                                     -patch_box[world, first, PATCH_POSITION + 3 + k]
+                                     2 * LENGTH_LIMIT - patch_box[world, first, PATCH_POSITION + 3 + k]
                                      - patch_box[world, second, PATCH_POSITION + k]))
             gap[k] = scalar(apart) * unit
-            widest = wp.max(patch_box[world, first, PATCH_DRIFT + k] + patch_box[world, second, PATCH_DRIFT + 3 + k],
-                            patch_box[world, second, PATCH_DRIFT + k] + patch_box[world, first, PATCH_DRIFT + 3 + k])
+            widest = wp.max((patch_box[world, first, PATCH_DRIFT + k] - LENGTH_LIMIT)
+                            + (patch_box[world, second, PATCH_DRIFT + 3 + k] - LENGTH_LIMIT),
+                            (patch_box[world, second, PATCH_DRIFT + k] - LENGTH_LIMIT)
+                            + (patch_box[world, first, PATCH_DRIFT + 3 + k] - LENGTH_LIMIT))
             spread[k] = scalar(widest) * unit
         if wp.length(gap) >= scalar(REPULSION_REACH) * thickness * scalar(1.0 + SAFETY):
             return  # every pair across these patches is that far apart now
