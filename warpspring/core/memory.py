@@ -281,6 +281,7 @@ def self_contact_bytes(*, particles: int, worlds: int, triangles: int, edges: in
     live = (PARAM_COUNT * f + 4 * COUNTER_COUNT + f) * w + 4 * (2 + FLAG_KINDS * w) + 4 * w * -(-n // SCAN_BLOCK)
     live += 2 * (4 + 3 * f) * size  # the cap's roles and pushers' targets, twice
     patches = patch_count(t)
+    live += (4 + (8 + 16) * capacity) * w + (4 + 8 + 16) * w  # the cache's watch list, and the empty one
     chunks = t // PATCH_CHUNK + patches  # at most
     live += 4 * t + 4 * (2 * chunks + 1) + 4 * PATCH_COLUMNS * w * patches  # the cache check's patches, chunks, boxes
     positions = 2 * 3 * f * size  # the repelled positions and the cache's anchors

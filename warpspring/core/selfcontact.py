@@ -36,6 +36,7 @@ from ..kernels.selfcontact import (
     PATCH_THREADS,
     SCAN_BLOCK,
     SCAN_THREADS,
+    WATCH_REACH,
     Pairs,
     Surface,
     broad_kernel,
@@ -48,7 +49,13 @@ from ..kernels.selfcontact import (
     reset_kernel,
     scan_kernels,
 )
-from ..kernels.selfcontact_cache import anchor_kernel, cap_bounds_kernel, check_kernel, decide_kernel
+from ..kernels.selfcontact_cache import (
+    anchor_kernel,
+    cap_bounds_kernel,
+    check_kernel,
+    decide_kernel,
+    watch_kernel,
+)
 from ..kernels.selfcontact_cap import (
     ROLE_MOVER,
     ROLE_PUSHER,
@@ -198,6 +205,12 @@ class SelfContact:
         # swept list, for the steps that need it; the pass's flags (any rebuild, any fallback, then per world each
         # kind of kernels/selfcontact.py FLAG_*), zeroed at every step's start.
         self.cache_anchor = wp.zeros(model.state_size, dtype=model.vec3, device=device)
+        # The cache's watch list (kernels/selfcontact_cache.py): pairs between CACHE_REACH τ and WATCH_REACH τ apart at
+        # the anchors, whose distances every step checks; and an empty one for the broad phases that watch nothing.
+        self.watch_count = wp.zeros(worlds, dtype=wp.int32, device=device)
+        self._no_watch = (wp.zeros(worlds, dtype=wp.int32, device=device),
+                          wp.zeros(worlds, dtype=wp.int64, device=device),
+                          wp.zeros(worlds, dtype=wp.vec4i, device=device))
         self.cache_reach = wp.zeros(worlds, dtype=model.scalar, device=device)
         # The patches' boxes (kernels/selfcontact_cache.py, check_kernel) share the flags' storage: one memset empties
         # both.
@@ -230,7 +243,7 @@ class SelfContact:
             kernel.module.load(model.device, SCAN_THREADS)
         check_kernel(scalar).module.load(model.device, PATCH_THREADS)
         flat = [broad_kernel(scalar, False), broad_kernel(scalar, True),
-                reset_kernel(), fill_kernel(), decide_kernel(scalar), anchor_kernel(scalar),
+                reset_kernel(), fill_kernel(), decide_kernel(scalar), watch_kernel(scalar), anchor_kernel(scalar),
                 repel_pairs_kernel(scalar),
                 repel_gather_kernel(scalar), cap_bounds_kernel(scalar), cap_gather_kernel(scalar),
                 cap_place_kernel(scalar), cap_mark_kernel(scalar), cap_check_kernel(scalar)]
@@ -244,6 +257,8 @@ class SelfContact:
         self.capacity = capacity
         self.cache_capacity = CACHE_SLOTS * capacity
         self.cache, self.cache_bound = self._pair_buffers(self.cache_capacity, 1)
+        self.watch_key = wp.zeros(model.world_count * capacity, dtype=wp.int64, device=model.device)
+        self.watch_vertex = wp.zeros(model.world_count * capacity, dtype=wp.vec4i, device=model.device)
         self.cap_pairs, self.pair_distance = self._pair_buffers(capacity, 1)
         slots = model.world_count * self.cache_capacity
         self.pair_correction = wp.zeros(4 * slots, dtype=model.vec3, device=model.device)
@@ -358,12 +373,15 @@ class SelfContact:
                 bvh.refit()
 
     def _list_pairs(self, pairs, pair_distance: wp.array, start: wp.array, end: wp.array, *, swept: bool,
-                    reach_factor: float, reach_add: float, counters: wp.array, active: wp.array) -> None:
+                    reach_factor: float, reach_add: float, counters: wp.array, active: wp.array,
+                    watch: bool = False) -> None:
         """The broad phase of the worlds ``active`` names into ``pairs`` and ``pair_distance``, then the CSR of
         its entries (device work only, fixed sizes, no allocation: capturable, also in a conditional node);
         the other worlds' pairs stay as they were."""
         model = self.model
-        flat_launch(reset_kernel(), inputs=[model.particle_count, active], outputs=[pairs], dim=model.particle_dim,
+        watch_lists = (self.watch_count, self.watch_key, self.watch_vertex) if watch else self._no_watch
+        flat_launch(reset_kernel(), inputs=[model.particle_count, active], outputs=[pairs, watch_lists[0]],
+                    dim=model.particle_dim,
                     block_dim=model.block_dim, device=model.device)
         self._leaves(start, end, swept=swept)
         args = dict(
@@ -376,10 +394,12 @@ class SelfContact:
             flags=self.flags,
             reach_factor=model.scalar(reach_factor),
             reach_add=model.scalar(reach_add),
+            watch_factor=model.scalar(WATCH_REACH if watch else 0.0),
             particle_q_start=start,
             particle_q_end=end,
         )
-        outputs = dict(pairs_out=pairs, pair_distance_out=pair_distance, counters_out=counters)
+        outputs = dict(pairs_out=pairs, pair_distance_out=pair_distance, counters_out=counters,
+                       watch_count_out=watch_lists[0], watch_key_out=watch_lists[1], watch_vertex_out=watch_lists[2])
         flat_launch(broad_kernel(model.scalar, swept), inputs=list(args.values()), outputs=list(outputs.values()),
                     dim=model.world_count * self.triangle_count, block_dim=model.block_dim, device=model.device)
         tile_sums, tile_offsets, tile_prefixes = scan_kernels()
@@ -410,8 +430,9 @@ class SelfContact:
         model = self.model
         worlds = model.world_count
         self._list_pairs(self.cache, self.cache_bound, start, start, swept=False, reach_factor=CACHE_REACH,
-                         reach_add=0.0, counters=self.counters, active=self.flags[2:2 + worlds])
-        flat_launch(anchor_kernel(model.scalar), inputs=[model.particle_count, self.params, self.cache, start],
+                         reach_add=0.0, counters=self.counters, active=self.flags[2:2 + worlds], watch=True)
+        flat_launch(anchor_kernel(model.scalar),
+                    inputs=[model.particle_count, self.params, self.cache, self.watch_count, self.capacity, start],
                     outputs=[self.flags, self.cache_reach, self.cache_anchor, self.counters], dim=model.particle_dim,
                     block_dim=model.block_dim, device=model.device)
 
@@ -432,6 +453,10 @@ class SelfContact:
                                 self.chunk_start,
                                 self.params, self.cache_anchor, start, particle_q],
                         outputs=[self.patch_box, self.flags], block_dim=PATCH_THREADS, device=model.device)
+        flat_launch(watch_kernel(model.scalar),
+                    inputs=[model.particle_count, model.world_enabled, surface, self.params, self.watch_count,
+                            self.watch_key, self.watch_vertex, start],
+                    outputs=[self.flags], dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
         flat_launch(decide_kernel(model.scalar),
                     inputs=[model.world_enabled, self.params, self.cache_reach, self.cache, self.patch_box],
                     outputs=[self.flags], dim=model.world_count * self.patch_count ** 2, block_dim=model.block_dim,

@@ -144,6 +144,10 @@ COUNTER_COUNT = 6
 #: The pair cache (module ``selfcontact_cache``): it lists the pairs closer than this many thicknesses at its
 #: anchor positions, and is rebuilt when a vertex has drifted half the difference to REPULSION_REACH from them.
 CACHE_REACH = 3.0
+#: Pairs between CACHE_REACH and this many thicknesses apart at the cache's anchors are *watched* (module
+#: ``selfcontact_cache``): their distances are checked at every step, so that the drifts need only keep the other
+#: pairs, WATCH_REACH τ apart at the anchors, beyond REPULSION_REACH τ.
+WATCH_REACH = 4.5
 #: The cache's slots per slot of a pair buffer: it holds the pairs within CACHE_REACH τ, where the repulsion's list
 #: held those within REPULSION_REACH τ ((3/2)² more between layers, (3/2)³ more in a volume).
 CACHE_SLOTS = 3
@@ -498,6 +502,7 @@ def broad_kernel(scalar: type, swept: bool):
         flags: wp.array[wp.int32],
         reach_factor: scalar,
         reach_add: scalar,
+        watch_factor: scalar,
         # State in:
         particle_q_start: wp.array[vec3],
         particle_q_end: wp.array[vec3],
@@ -505,6 +510,9 @@ def broad_kernel(scalar: type, swept: bool):
         pairs_out: Pairs,
         pair_distance_out: wp.array[scalar],
         counters_out: wp.array2d[wp.int32],
+        watch_count_out: wp.array[wp.int32],
+        watch_key_out: wp.array[wp.int64],
+        watch_vertex_out: wp.array[wp.vec4i],
     ):
         tid = wp.tid()
         triangle_count = surface.triangle.shape[0]
@@ -521,7 +529,8 @@ def broad_kernel(scalar: type, swept: bool):
         limit = relaxation * scalar(SEARCH_REACH) * thickness
         cube = cube_reach(flags, world, limit)
         reach = reach_factor * thickness + reach_add
-        query_reach = reach
+        watch_reach = watch_factor * thickness  # pairs in [reach, watch_reach) are watched (without swept)
+        query_reach = wp.max(reach, watch_reach)
         if wp.static(swept):
             query_reach = scalar(0.0)
         corners = surface.triangle[me]
@@ -574,9 +583,11 @@ def broad_kernel(scalar: type, swept: bool):
                         kept, value = keep(wp.length(p - (bary[0] * a + bary[1] * b + bary[2] * c)), reach,
                                            relaxation, vertex, base, mass_row, limit, cube, particle_flags,
                                            particle_inv_mass, particle_q_start, particle_q_end)
+                        key = wp.int64(v) * wp.int64(triangle_count) + wp.int64(t)
                         if kept:
-                            key = wp.int64(v) * wp.int64(triangle_count) + wp.int64(t)
                             push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
+                        elif wp.static(not swept) and value < watch_reach:
+                            watch_pair(world, key, vertex, watch_count_out, watch_key_out, watch_vertex_out)
                 # EE: the edge's own query would have reported t where its box overlaps t's leaf box.
                 if owns_edge[m] == 1 and boxes_overlap_f(edge_lower[m], edge_upper[m], leaf_lower, leaf_upper):
                     e = sides[m]
@@ -610,13 +621,27 @@ def broad_kernel(scalar: type, swept: bool):
                             distance = wp.length((p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)))
                             kept, value = keep(distance, reach, relaxation, vertex, base, mass_row, limit, cube,
                                                particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
+                            key = (wp.int64(particle_count) * wp.int64(triangle_count)
+                                   + wp.int64(e) * wp.int64(edge_count) + wp.int64(f))
                             if kept:
-                                key = (wp.int64(particle_count) * wp.int64(triangle_count)
-                                       + wp.int64(e) * wp.int64(edge_count) + wp.int64(f))
                                 push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out,
                                           counters_out)
+                            elif wp.static(not swept) and value < watch_reach:
+                                watch_pair(world, key, vertex, watch_count_out, watch_key_out, watch_vertex_out)
 
     return broad
+
+
+@wp.func
+def watch_pair(world: int, key: wp.int64, vertex: wp.vec4i, watch_count: wp.array[wp.int32],
+               watch_key: wp.array[wp.int64], watch_vertex: wp.array[wp.vec4i]):
+    """Store a watched pair in its world's watch list (module ``selfcontact_cache``); beyond its capacity only
+    counted (the world's cache then takes the reach CACHE_REACH τ)."""
+    capacity = watch_key.shape[0] // watch_count.shape[0]
+    slot = wp.atomic_add(watch_count, world, 1)
+    if slot < capacity:
+        watch_key[world * capacity + slot] = key
+        watch_vertex[world * capacity + slot] = vertex
 
 
 @functools.cache
@@ -647,16 +672,17 @@ def fill_kernel():
 @functools.cache
 def reset_kernel():
     """Kernel emptying the pair buffer of the worlds ``active`` names (its count, and its particles' entry counts
-    and cursors), one thread per particle of every world; the others keep theirs."""
+    and cursors) and their watch lists' counts, one thread per particle of every world; the others keep theirs."""
 
     @flat_kernel(module="unique", enable_backward=False)
-    def reset(particle_count: int, active: wp.array[wp.int32], pairs_out: Pairs):
+    def reset(particle_count: int, active: wp.array[wp.int32], pairs_out: Pairs, watch_count_out: wp.array[wp.int32]):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
         if active[world] == 0:
             return
         if i == 0:
             pairs_out.count[world] = 0
+            watch_count_out[world] = 0
         pairs_out.vertex_count[p] = 0
         pairs_out.vertex_cursor[p] = 0
 

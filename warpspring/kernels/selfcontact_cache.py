@@ -79,6 +79,7 @@ from .selfcontact import (
     PARAM_THICKNESS,
     REPULSION_REACH,
     SAFETY,
+    WATCH_REACH,
     SEARCH_REACH,
     Pairs,
     Surface,
@@ -315,9 +316,66 @@ def decide_kernel(scalar: type):
 
 
 @functools.cache
+def watch_kernel(scalar: type):
+    """Kernel of the watched pairs' check (module docstring, 1.), one thread per particle of every world taking its
+    world's watch slots local, local + particle_count, ...: each watched pair's distance at the step's start, with
+    the narrow phase's arithmetic; a world with one closer than REPULSION_REACH τ (1 + SAFETY) is flagged for a
+    rebuild (FLAG_REBUILD)."""
+    vec3 = vec3_type(scalar)
+    triangle_closest, edge_closest = geometry_funcs(scalar)
+
+    @flat_kernel(module="unique", enable_backward=False)
+    def watch(
+        # Model:
+        particle_count: int,
+        world_enabled: wp.array[wp.int32],
+        surface: Surface,
+        params: wp.array2d[scalar],
+        watch_count: wp.array[wp.int32],
+        watch_key: wp.array[wp.int64],
+        watch_vertex: wp.array[wp.vec4i],
+        # State in:
+        particle_q_start: wp.array[vec3],
+        # In/out (the pass's flags):
+        flags_in_out: wp.array[wp.int32],
+    ):
+        p = wp.tid()
+        world, local = world_and_index(p, particle_count)
+        world_count = watch_count.shape[0]
+        capacity = watch_key.shape[0] // world_count
+        count = wp.min(watch_count[world], capacity)
+        if local >= count or world_enabled[world] == 0:
+            return
+        base = base_index(world, particle_count)
+        thickness = params[wp.min(world, params.shape[0] - 1), PARAM_THICKNESS]
+        near = scalar(REPULSION_REACH) * thickness * scalar(1.0 + SAFETY)
+        vt_keys = wp.int64(particle_count) * wp.int64(surface.triangle.shape[0])
+        for slot in range(local, count, particle_count):
+            s = world * capacity + slot
+            index = watch_vertex[s]
+            x0 = particle_q_start[base + index[0]]
+            x1 = particle_q_start[base + index[1]]
+            x2 = particle_q_start[base + index[2]]
+            x3 = particle_q_start[base + index[3]]
+            d = scalar(0.0)
+            if watch_key[s] < vt_keys:
+                bary = triangle_closest(x0, x1, x2, x3)
+                d = wp.length(x0 - (bary[0] * x1 + bary[1] * x2 + bary[2] * x3))
+            else:
+                st = edge_closest(x0, x1, x2, x3)
+                d = wp.length((x0 + st[0] * (x1 - x0)) - (x2 + st[1] * (x3 - x2)))
+            if not (d >= near):
+                raise_flag(flags_in_out, FLAG_REBUILD, world, world_count)
+                return
+
+    return watch
+
+
+@functools.cache
 def anchor_kernel(scalar: type):
     """Kernel ending a rebuild (module docstring, 2.): the flagged worlds' anchors become the step's start and
-    their reach CACHE_REACH τ; a rebuilt world that found pairs sets FLAG_WORK."""
+    their reach WATCH_REACH τ (CACHE_REACH τ where the watch list overflowed); a rebuilt world that found pairs sets
+    FLAG_WORK."""
     vec3 = vec3_type(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
@@ -326,6 +384,8 @@ def anchor_kernel(scalar: type):
         particle_count: int,
         params: wp.array2d[scalar],
         cache: Pairs,
+        watch_count: wp.array[wp.int32],
+        watch_capacity: int,
         # State in:
         particle_q_start: wp.array[vec3],
         # In/out (the pass's flags):
@@ -342,7 +402,11 @@ def anchor_kernel(scalar: type):
             return
         cache_anchor_out[p] = particle_q_start[p]
         if i == 0:
-            cache_reach_out[world] = scalar(CACHE_REACH) * params[wp.min(world, params.shape[0] - 1), PARAM_THICKNESS]
+            # The watched pairs' reach where the watch list held them all, else the cache's own.
+            reach = scalar(CACHE_REACH)
+            if watch_count[world] <= watch_capacity:
+                reach = scalar(WATCH_REACH)
+            cache_reach_out[world] = reach * params[wp.min(world, params.shape[0] - 1), PARAM_THICKNESS]
             counters_out[world, COUNT_REBUILDS] += 1  # one thread per world
             if cache.count[world] > 0:
                 flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
