@@ -675,7 +675,14 @@ def reset_kernel():
     and cursors) and their watch lists' counts, one thread per particle of every world; the others keep theirs."""
 
     @flat_kernel(module="unique", enable_backward=False)
-    def reset(particle_count: int, active: wp.array[wp.int32], pairs_out: Pairs, watch_count_out: wp.array[wp.int32]):
+    def reset(
+        # Model:
+        particle_count: int,
+        active: wp.array[wp.int32],
+        # Out:
+        pairs_out: Pairs,
+        watch_count_out: wp.array[wp.int32],
+    ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
         if active[world] == 0:
