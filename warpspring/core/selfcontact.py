@@ -453,14 +453,14 @@ class SelfContact:
                                 self.chunk_start,
                                 self.params, self.cache_anchor, start, particle_q],
                         outputs=[self.patch_box, self.flags], block_dim=PATCH_THREADS, device=model.device)
-        flat_launch(watch_kernel(model.scalar),
-                    inputs=[model.particle_count, model.world_enabled, surface, self.params, self.watch_count,
-                            self.watch_key, self.watch_vertex, start],
-                    outputs=[self.flags], dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
         flat_launch(decide_kernel(model.scalar),
                     inputs=[model.world_enabled, self.params, self.cache_reach, self.cache, self.patch_box],
                     outputs=[self.flags], dim=model.world_count * self.patch_count ** 2, block_dim=model.block_dim,
                     device=model.device)
+        flat_launch(watch_kernel(model.scalar),
+                    inputs=[model.particle_count, model.world_enabled, surface, self.params, self.watch_count,
+                            self.watch_key, self.watch_vertex, start],
+                    outputs=[self.flags], dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
         self._branch(self.flags[0:1], self._rebuild, start=start)
 
     @property

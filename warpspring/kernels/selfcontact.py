@@ -159,7 +159,8 @@ FLAG_KINEMATIC = 2  # K_w, the largest displacement of the world's kinematic ver
 FLAG_DRIFT = 3  # the largest drift from the anchors relative to the reference vertex, padded (module selfcontact_cache)
 FLAG_STEP = 4  # the largest step of a free surface vertex (limited to γ SEARCH_REACH τ), padded
 FLAG_WORK = 5  # its first entry only: some world's pair stages must run (module selfcontact_cache)
-FLAG_KINDS = 6
+FLAG_WATCH = 6  # the world's watched pairs need their check (module selfcontact_cache)
+FLAG_KINDS = 7
 KINEMATIC_STEPS = 4096
 #: The surface's patches (module ``selfcontact_cache``): groups of triangles close at rest, at least this many
 #: triangles each and at most PATCH_LIMIT of them (2^k by halving), whose boxes the cache's check reduces.

@@ -1,9 +1,13 @@
 """The self-collision pass's pair cache: the broad phase runs when the pairs it listed may no longer hold every
 pair the pass needs, not every step.
 
-The cache of a world is the list of vertex–triangle and edge–edge pairs closer than R = ``CACHE_REACH`` τ at
+The cache of a world is the list of vertex–triangle and edge–edge pairs closer than ``CACHE_REACH`` τ at
 its *anchor* positions xᵃ (the step's start when it was built), with a CSR of their vertices, in the layout
-of ``kernels/selfcontact.py``'s pair buffers. Every point of a primitive is a convex combination of its
+of ``kernels/selfcontact.py``'s pair buffers, and its *watch list*: the pairs between CACHE_REACH τ and
+``WATCH_REACH`` τ apart at the anchors (key and vertices only), whose distances each step checks. R, the cache's
+reach below, is WATCH_REACH τ (CACHE_REACH τ in a world whose watch list overflowed): every pair closer than R at
+the anchors is cached or watched. A cloth's own in-plane pairs (3.5τ apart in the benchmark's 0.1 m grid at
+τ = 2 cm) are watched, not cached: the pair stages never walk them, and they stop no drift. Every point of a primitive is a convex combination of its
 vertices, p = Σ wᵢ xᵢ, so two points p, q of a pair move apart or together by at most the largest |Δᵢ - Δⱼ| over
 a vertex i of one side and j of the other, Δ = x - xᵃ the drifts from the anchors: a pair's distance differs
 from its distance at the anchors by at most that. Drifts are measured relative to the world's reference vertex
@@ -23,11 +27,17 @@ whole keeps its cache. Each step:
    anchors and came closer by at most that. A sheet falling past a still part of itself keeps its cache while
    the two stay apart; a patch pair in contact or close, while their relative drift stays small (the patches
    refine the world's single box of drifts, which a sliding skirt spreads along one axis).
+   ``watch_kernel`` checks each watched pair's distance at x⁰ (the narrow phase's arithmetic): one closer than
+   REPULSION_REACH τ (1 + SAFETY) flags its world. It runs only in the worlds ``decide_kernel`` flags FLAG_WATCH:
+   where the same bounds with CACHE_REACH τ for R fail (elsewhere every pair outside the cache, watched or not,
+   was CACHE_REACH τ apart at the anchors and the drifts keep it REPULSION_REACH τ apart). The pairs outside the cache are then at least REPULSION_REACH τ
+   apart at x⁰: the watched ones by their own distance, the others by the drifts.
    Otherwise the world is flagged for a rebuild (FLAG_REBUILD). A world that was never built has R = 0 and is
    flagged; so is one whose τ grew or whose state was replaced. The world's largest kinematic displacement K_w
    of the step is reduced into FLAG_KINEMATIC, and its free surface vertices' largest step into FLAG_STEP.
-2. The flagged worlds' broad phase (BVH refit and queries, as ``kernels/selfcontact.py``) at x⁰ with reach R,
-   then ``anchor_kernel`` (xᵃ = x⁰, R = CACHE_REACH τ): a conditional graph node, launched only when a world
+2. The flagged worlds' broad phase (BVH refit and queries, as ``kernels/selfcontact.py``) at x⁰, caching the pairs
+   within CACHE_REACH τ and watching those within WATCH_REACH τ, then ``anchor_kernel`` (xᵃ = x⁰, R = WATCH_REACH τ,
+   or CACHE_REACH τ where the watch list overflowed): a conditional graph node, launched only when a world
    is flagged.
 3. The repulsion runs over the cache: its narrow phase keeps the pairs closer than REPULSION_REACH τ at x⁰,
    which the cache holds all of (1.), with the same distance arithmetic as the broad phase: the same pairs,
@@ -69,6 +79,7 @@ from .selfcontact import (
     FLAG_KINEMATIC,
     FLAG_REBUILD,
     FLAG_STEP,
+    FLAG_WATCH,
     FLAG_WORK,
     KINEMATIC_STEPS,
     NO_BOUND,
@@ -289,8 +300,11 @@ def decide_kernel(scalar: type):
             far = scalar(2.0) * kinematic >= scalar(REPULSION_REACH) * thickness * scalar(1.0 - SAFETY)  # as repel_gather
             if cache.count[world] > 0 or not (step <= budget) or far:
                 flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
+        # The slack the cache would have without its watch list: where it suffices, the watched pairs need no check.
+        unwatched = ((wp.min(cache_reach[world], scalar(CACHE_REACH) * thickness) - scalar(REPULSION_REACH) * thickness)
+                     * scalar(1.0 - SAFETY))
         drift = scalar(flags_in_out[flag_slot(FLAG_DRIFT, world, world_count)]) * unit
-        if drift <= scalar(0.5) * slack:  # False for a negative slack (R = 0: never built)
+        if drift <= scalar(0.5) * unwatched:  # False for a negative slack (R = 0: never built)
             return
         gap = vec3(scalar(0.0))
         spread = vec3(scalar(0.0))
@@ -309,6 +323,11 @@ def decide_kernel(scalar: type):
             spread[k] = scalar(widest) * unit
         if wp.length(gap) >= scalar(REPULSION_REACH) * thickness * scalar(1.0 + SAFETY):
             return  # every pair across these patches is that far apart now
+        if wp.length(spread) <= unwatched:
+            return
+        flags_in_out[flag_slot(FLAG_WATCH, world, world_count)] = 1  # the watched pairs need their check
+        if drift <= scalar(0.5) * slack:
+            return
         if not (wp.length(spread) <= slack):
             raise_flag(flags_in_out, FLAG_REBUILD, world, world_count)
 
@@ -317,9 +336,10 @@ def decide_kernel(scalar: type):
 
 @functools.cache
 def watch_kernel(scalar: type):
-    """Kernel of the watched pairs' check (module docstring, 1.), one thread per particle of every world taking its
-    world's watch slots local, local + particle_count, ...: each watched pair's distance at the step's start, with
-    the narrow phase's arithmetic; a world with one closer than REPULSION_REACH τ (1 + SAFETY) is flagged for a
+    """Kernel of the watched pairs' check (module docstring, 1.), after ``decide_kernel``, in the worlds it flagged
+    FLAG_WATCH (elsewhere the drifts keep the watched pairs apart too), one thread per particle of every world taking
+    its world's watch slots local, local + particle_count, ...: each watched pair's distance at the step's start,
+    with the narrow phase's arithmetic; a world with one closer than REPULSION_REACH τ (1 + SAFETY) is flagged for a
     rebuild (FLAG_REBUILD)."""
     vec3 = vec3_type(scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
@@ -344,7 +364,7 @@ def watch_kernel(scalar: type):
         world_count = watch_count.shape[0]
         capacity = watch_key.shape[0] // world_count
         count = wp.min(watch_count[world], capacity)
-        if local >= count or world_enabled[world] == 0:
+        if local >= count or world_enabled[world] == 0 or flags_in_out[flag_slot(FLAG_WATCH, world, world_count)] == 0:
             return
         base = base_index(world, particle_count)
         thickness = params[wp.min(world, params.shape[0] - 1), PARAM_THICKNESS]
