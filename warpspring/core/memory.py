@@ -282,8 +282,8 @@ def self_contact_bytes(*, particles: int, worlds: int, triangles: int, edges: in
     live += 2 * (4 + 3 * f) * size  # the cap's roles and pushers' targets, twice
     patches = patch_count(t)
     live += (4 + (8 + 16) * capacity) * w + (4 + 8 + 16) * w  # the cache's watch list, and the empty one
-    chunks = t // PATCH_CHUNK + patches  # at most
-    live += 4 * t + 4 * (2 * chunks + 1) + 4 * PATCH_COLUMNS * w * patches  # the cache check's patches, chunks, boxes
+    chunks = 3 * t // PATCH_CHUNK + patches + 1  # at most (the patches' corners: at most 3 per triangle)
+    live += 4 * 3 * t + 4 * (2 * chunks + 1) + 4 * PATCH_COLUMNS * w * patches  # the cache check's corners, chunks, boxes
     positions = 2 * 3 * f * size  # the repelled positions and the cache's anchors
     pairs = pair_buffer(CACHE_SLOTS * capacity) + pair_buffer(capacity) + 4 * w * CACHE_SLOTS * capacity * 4 * f
     bvhs = w * bvh_bytes(t, cuda=cuda) + (BVH_BUILD_TEMPORARY_CUDA * t if cuda else 0)

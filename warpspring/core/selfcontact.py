@@ -181,18 +181,31 @@ class SelfContact:
         surface.bvh = wp.zeros(worlds, dtype=wp.uint64, device=device)
         self.surface = surface
         # The cache's check reduces each patch's boxes (kernels/selfcontact_cache.py): triangles grouped at rest.
-        # Its blocks take chunks of at most PATCH_CHUNK triangles of one patch each.
+        # Its blocks take chunks of at most PATCH_CHUNK corners of one patch each: the corners of each patch's triangles,
+        # once per patch, v where the patch reports v (its owner triangle's patch), -1 - v elsewhere.
         order, bounds = surface_patches(model.particle_q.numpy()[:n], topology["triangle"])
         self.patch_count = len(bounds) - 1
-        sizes = np.diff(bounds)
+        triangle_patch = np.repeat(np.arange(self.patch_count), np.diff(bounds))[np.argsort(order)]
+        keys = np.unique(triangle_patch[:, None] * np.int64(n) + topology["triangle"].astype(np.int64))
+        corner_patch, corner = keys // n, keys % n
+        reports = triangle_patch[topology["vertex_owner"][corner]] == corner_patch
+        corner_bounds = np.searchsorted(corner_patch, np.arange(self.patch_count + 1))
+        sizes = np.diff(corner_bounds)
         chunks = -(-sizes // PATCH_CHUNK)
         chunk_patch = np.repeat(np.arange(self.patch_count), chunks)
         first_chunk = np.cumsum(chunks) - chunks
-        chunk_start = bounds[chunk_patch] + PATCH_CHUNK * (np.arange(len(chunk_patch)) - first_chunk[chunk_patch])
-        self.patch_start_host = bounds  # each patch's first entry of patch_triangle, and the end
-        self.patch_triangle = wp.array(order, dtype=wp.int32, device=device)
-        self.chunk_patch = wp.array(chunk_patch, dtype=wp.int32, device=device)
-        self.chunk_start = wp.array(np.append(chunk_start, bounds[-1]), dtype=wp.int32, device=device)
+        chunk_start = (corner_bounds[chunk_patch]
+                       + PATCH_CHUNK * (np.arange(len(chunk_patch)) - first_chunk[chunk_patch]))
+        self.patch_triangles = [order[bounds[k]:bounds[k + 1]] for k in range(self.patch_count)]  # for tests
+        # Sized for the most corners and chunks any grouping can have (3 per triangle; ``memory.self_contact_bytes``).
+        entries = np.zeros(3 * len(order), dtype=np.int32)
+        entries[:len(corner)] = np.where(reports, corner, -1 - corner)
+        self.patch_vertex = wp.array(entries, dtype=wp.int32, device=device)
+        self.chunk_count = len(chunk_patch)
+        most = 3 * len(order) // PATCH_CHUNK + self.patch_count + 1
+        self.chunk_patch = wp.array(np.pad(chunk_patch, (0, most - len(chunk_patch))), dtype=wp.int32, device=device)
+        chunk_start = np.append(chunk_start, corner_bounds[-1])
+        self.chunk_start = wp.array(np.pad(chunk_start, (0, most + 1 - len(chunk_start))), dtype=wp.int32, device=device)
         self.params = wp.zeros((worlds, PARAM_COUNT), dtype=model.scalar, device=device)
         self.set(thickness=thickness, friction=friction, relaxation=relaxation)
         self.corrected = wp.zeros(model.state_size, dtype=model.vec3, device=device)
@@ -447,10 +460,9 @@ class SelfContact:
         model = self.model
         self._step_scratch.zero_()  # the flags and the patches' boxes
         surface = self.surface
-        wp.launch_tiled(check_kernel(model.scalar), dim=(model.world_count, self.chunk_patch.shape[0]),
+        wp.launch_tiled(check_kernel(model.scalar), dim=(model.world_count, self.chunk_count),
                         inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
-                                surface.triangle, surface.vertex_owner, self.patch_triangle, self.chunk_patch,
-                                self.chunk_start,
+                                surface.triangle, self.patch_vertex, self.chunk_patch, self.chunk_start,
                                 self.params, self.cache_anchor, start, particle_q],
                         outputs=[self.patch_box, self.flags], block_dim=PATCH_THREADS, device=model.device)
         flat_launch(decide_kernel(model.scalar),

@@ -141,12 +141,12 @@ def length_funcs(scalar: type):
 @functools.cache
 def check_kernel(scalar: type):
     """Tiled kernel of the cache's check (module docstring, 1.), one block per chunk of a patch's triangles in every
-    world (``wp.launch_tiled``, dim (world_count, chunk_count)); chunk c holds ``patch_triangle[chunk_start[c]:
-    chunk_start[c + 1]]``, triangles of patch ``chunk_patch[c]``, and each thread walks a share of them and their
-    corners. Per patch: the box of the corners' drifts r from their anchors relative to the reference vertex and the
-    box of their positions at the step's start, each padded and rounded outward (``patch_box_out``, PATCH_*, stored
-    plus LENGTH_LIMIT so that a zeroed box is empty). Per world, from the corners each triangle reports
-    (``vertex_owner``): the padded largest |r| (FLAG_DRIFT), the kinematic vertices' largest displacement
+    world (``wp.launch_tiled``, dim (world_count, chunk_count)); chunk c holds ``patch_vertex[chunk_start[c]:
+    chunk_start[c + 1]]``, corners of patch ``chunk_patch[c]``'s triangles (each patch's once: v where the patch
+    reports v, its owner triangle's, -1 - v elsewhere), and each thread walks a share of them. Per patch: the box of
+    the corners' drifts r from their anchors relative to the reference vertex and the box of their positions at the
+    step's start, each padded and rounded outward (``patch_box_out``, PATCH_*, stored plus LENGTH_LIMIT so that a
+    zeroed box is empty). Per world, from the reported corners: the padded largest |r| (FLAG_DRIFT), the kinematic vertices' largest displacement
     (FLAG_KINEMATIC), the free surface vertices' largest step (FLAG_STEP). Each a block-wide integer maximum, then
     one integer atomic maximum per block (order-free). ``decide_kernel`` reads them."""
     vec3 = vec3_type(scalar)
@@ -167,8 +167,7 @@ def check_kernel(scalar: type):
         particle_inv_mass: wp.array2d[scalar],
         world_enabled: wp.array[wp.int32],
         triangle: wp.array[wp.vec3i],
-        vertex_owner: wp.array[wp.int32],
-        patch_triangle: wp.array[wp.int32],
+        patch_vertex: wp.array[wp.int32],
         chunk_patch: wp.array[wp.int32],
         chunk_start: wp.array[wp.int32],
         params: wp.array2d[scalar],
@@ -202,28 +201,27 @@ def check_kernel(scalar: type):
         step_units = int(0)
         big = bool(False)
         for a in range(chunk_start[chunk] + lane, chunk_start[chunk + 1], wp.block_dim()):
-            t = patch_triangle[a]
-            corners = triangle[t]
-            for m in range(3):
-                i = corners[m]
-                p = base + i
-                start = particle_q_start[p]
-                anchor = cache_anchor[p] + shift
-                r = start - anchor
-                pad = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + wp.max(wp.abs(anchor)) + shift_pad + scalar(1.0))
-                place = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0))
-                for k in range(3):
-                    high = units(r[k] + pad, thickness)
-                    low = units(pad - r[k], thickness)
-                    big = big or high >= LENGTH_LIMIT or low >= LENGTH_LIMIT
-                    extent[PATCH_DRIFT + k] = wp.max(extent[PATCH_DRIFT + k], high)
-                    extent[PATCH_DRIFT + 3 + k] = wp.max(extent[PATCH_DRIFT + 3 + k], low)
-                    # A position beyond the units' range stays at LENGTH_LIMIT: the box only grows (conservative).
-                    extent[PATCH_POSITION + k] = wp.max(extent[PATCH_POSITION + k], units(start[k] + place, thickness))
-                    extent[PATCH_POSITION + 3 + k] = wp.max(extent[PATCH_POSITION + 3 + k],
-                                                            units(place - start[k], thickness))
-                if vertex_owner[i] != t:  # each vertex's own values once, from the triangle that reports it
-                    continue
+            entry = patch_vertex[a]
+            i = entry
+            if entry < 0:
+                i = -1 - entry
+            p = base + i
+            start = particle_q_start[p]
+            anchor = cache_anchor[p] + shift
+            r = start - anchor
+            pad = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + wp.max(wp.abs(anchor)) + shift_pad + scalar(1.0))
+            place = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0))
+            for k in range(3):
+                high = units(r[k] + pad, thickness)
+                low = units(pad - r[k], thickness)
+                big = big or high >= LENGTH_LIMIT or low >= LENGTH_LIMIT
+                extent[PATCH_DRIFT + k] = wp.max(extent[PATCH_DRIFT + k], high)
+                extent[PATCH_DRIFT + 3 + k] = wp.max(extent[PATCH_DRIFT + 3 + k], low)
+                # A position beyond the units' range stays at LENGTH_LIMIT: the box only grows (conservative).
+                extent[PATCH_POSITION + k] = wp.max(extent[PATCH_POSITION + k], units(start[k] + place, thickness))
+                extent[PATCH_POSITION + 3 + k] = wp.max(extent[PATCH_POSITION + 3 + k],
+                                                        units(place - start[k], thickness))
+            if entry >= 0:  # each vertex's own values once, from the patch of the triangle that reports it
                 length = units(wp.length(r) + pad, thickness)
                 big = big or length >= LENGTH_LIMIT
                 drift = wp.max(drift, length)
