@@ -165,8 +165,9 @@ def profile(n: int, device, repeats: int) -> list[str]:
                  (kernels["repel_pairs_kernel"](model.scalar), "narrow phase: repulsion per pair"),
                  (kernels["repel_gather_kernel"](model.scalar), "gather: repulsion per vertex"),
                  (kernels["cap_gather_kernel"](model.scalar), "gather: cap per vertex")]
-    for name, text in (("check_kernel", "cache check per vertex"), ("cap_bounds_kernel", "cap bounds per cached pair"),
-                       ("anchor_kernel", "cache anchors (rebuild)"), ("decide_kernel", "cache decisions per world")):
+    for name, text in (("check_kernel", "cache check per patch corner"), ("cap_bounds_kernel", "cap bounds per cached pair"),
+                       ("anchor_kernel", "cache anchors (rebuild)"), ("decide_kernel", "cache decisions per patch pair"),
+                       ("watch_kernel", "watched pairs' check")):
         if name in kernels:
             labelled.append((kernels[name](model.scalar), text))
     if "reset_kernel" in kernels:
@@ -584,7 +585,8 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default=None)
-    parser.add_argument("--sizes", type=int, nargs="+", default=[64, 256, 1024])
+    parser.add_argument("--sizes", type=int, nargs="*", default=[64, 256, 1024],
+                        help="cloth sizes N (N × N particles); none (a bare --sizes) times the examples only")
     parser.add_argument("--seconds", type=float, default=1.0)
     parser.add_argument("--out", default=None, help="also write the table to this file")
     parser.add_argument("--json", default=None, help="write the cost table's numbers to this file")
