@@ -140,6 +140,7 @@ def profile(n: int, device, repeats: int) -> list[str]:
     """Markdown rows: each launch of the pass, its calls and time per pass [µs], on the settled ``self`` scene."""
     import warpspring.core.selfcontact as host
 
+    WATCH_REACH = getattr(host, "WATCH_REACH", 0.0)
     runner = Runner(scene(n, device, True))
     model, sc = runner.sim.model, runner.sim.model.self_contact
     start, out = model.state(), model.state()
@@ -242,6 +243,9 @@ def profile(n: int, device, repeats: int) -> list[str]:
     first = listed.get("cache", listed.get("repel"))
     rows.append(f"| {n} | pairs listed: {'cache' if 'cache' in listed else 'repulsion'} / cap | | {first} / "
                 f"{listed['cap']} (capacity {sc.capacity}) |")
+    if hasattr(sc, "watch_count"):
+        rows.append(f"| {n} | pairs watched (between 3τ and {WATCH_REACH:g}τ at the anchors) | | "
+                    f"{int(sc.watch_count.numpy().sum())} |")
     return rows
 
 

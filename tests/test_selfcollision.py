@@ -594,7 +594,8 @@ def test_patch_boxes_hold_their_corners(device, chunk, monkeypatch):
     positions at the step's start and the drifts from the anchors (relative to the reference vertex). Against NumPy
     in float64 after a wrung strip's steps (two worlds, moving pins): each box holds every corner and is no wider than
     the tight box by more than one unit τ/4096 and the rounding pad on either side; with blocks of 5 triangles (a
-    patch over several blocks, their maxima merged by integer atomics) the boxes are the same integers."""
+    patch over several blocks, their maxima merged by integer atomics) likewise; and the check's two forms (one block
+    per chunk with block-wide maxima, as on CUDA; one thread per chunk, as on the CPU) give the same integers."""
     import warpspring.core.selfcontact as host
     from warpspring.kernels.selfcontact import KINEMATIC_STEPS, PATCH_DRIFT, PATCH_POSITION
     from warpspring.kernels.selfcontact_cache import LENGTH_LIMIT
@@ -622,6 +623,14 @@ def test_patch_boxes_hold_their_corners(device, chunk, monkeypatch):
                 assert np.all(high >= values.max(axis=0)) and np.all(low <= values.min(axis=0))
                 slack = unit + 1e-5 * (np.abs(values).max() + 1.0)  # a unit of rounding up and the pads (BOX_PAD each)
                 assert np.all(high - values.max(axis=0) <= slack) and np.all(values.min(axis=0) - low <= slack)
+    last = a.particle_q  # the last step's end: its check again, in both forms
+    forms = []
+    for tiled in (True, False):
+        sc._step_scratch.zero_()
+        sc._check(b.particle_q, last, tiled=tiled)
+        forms.append(sc._step_scratch.numpy())
+    np.testing.assert_array_equal(forms[0], forms[1])
+    assert np.any(forms[0] != 0)
 
 
 def test_watched_pairs_rebuild_the_cache(device):

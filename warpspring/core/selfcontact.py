@@ -455,16 +455,25 @@ class SelfContact:
         self._list_pairs(self.cap_pairs, self.pair_distance, start, end, swept=True, reach_factor=0.0,
                          reach_add=0.0, counters=self.counters, active=self.flags[2 + worlds:2 + 2 * worlds])
 
+    def _check(self, start: wp.array, particle_q: wp.array, *, tiled: bool) -> None:
+        """The cache's check (``kernels/selfcontact_cache.py``) into the zeroed flags and patch boxes: one block per chunk
+        with block-wide maxima (``tiled``, on CUDA), or one thread per chunk (on the CPU, where a block is one thread)."""
+        model = self.model
+        check = dict(inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
+                             self.surface.triangle, self.patch_vertex, self.chunk_patch, self.chunk_start, self.params,
+                             self.cache_anchor, start, particle_q],
+                     outputs=[self.patch_box, self.flags], dim=(model.world_count, self.chunk_count), device=model.device)
+        if tiled:
+            wp.launch_tiled(check_kernel(model.scalar), block_dim=PATCH_THREADS, **check)
+        else:
+            wp.launch(check_kernel(model.scalar, False), **check)
+
     def _prepare(self, start: wp.array, particle_q: wp.array) -> None:
         """The step's flags: the cache's check and decisions, then its rebuild where a world needs one."""
         model = self.model
         self._step_scratch.zero_()  # the flags and the patches' boxes
         surface = self.surface
-        wp.launch_tiled(check_kernel(model.scalar), dim=(model.world_count, self.chunk_count),
-                        inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
-                                surface.triangle, self.patch_vertex, self.chunk_patch, self.chunk_start,
-                                self.params, self.cache_anchor, start, particle_q],
-                        outputs=[self.patch_box, self.flags], block_dim=PATCH_THREADS, device=model.device)
+        self._check(start, particle_q, tiled=model.device.is_cuda)
         flat_launch(decide_kernel(model.scalar),
                     inputs=[model.world_enabled, self.params, self.cache_reach, self.cache, self.patch_box],
                     outputs=[self.flags], dim=model.world_count * self.patch_count ** 2, block_dim=model.block_dim,

@@ -139,7 +139,7 @@ def length_funcs(scalar: type):
 
 
 @functools.cache
-def check_kernel(scalar: type):
+def check_kernel(scalar: type, tiled: bool = True):
     """Tiled kernel of the cache's check (module docstring, 1.), one block per chunk of a patch's triangles in every
     world (``wp.launch_tiled``, dim (world_count, chunk_count)); chunk c holds ``patch_vertex[chunk_start[c]:
     chunk_start[c + 1]]``, corners of patch ``chunk_patch[c]``'s triangles (each patch's once: v where the patch
@@ -148,7 +148,8 @@ def check_kernel(scalar: type):
     step's start, each padded and rounded outward (``patch_box_out``, PATCH_*, stored plus LENGTH_LIMIT so that a
     zeroed box is empty). Per world, from the reported corners: the padded largest |r| (FLAG_DRIFT), the kinematic vertices' largest displacement
     (FLAG_KINEMATIC), the free surface vertices' largest step (FLAG_STEP). Each a block-wide integer maximum, then
-    one integer atomic maximum per block (order-free). ``decide_kernel`` reads them."""
+    one integer atomic maximum per block (order-free). ``decide_kernel`` reads them. Without ``tiled`` (the CPU,
+    where a block is one thread) a plain kernel over (world, chunk), each thread a block of one."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
     units = length_funcs(scalar)
@@ -157,7 +158,9 @@ def check_kernel(scalar: type):
     @wp.func
     def block_max(value: int):
         """The largest ``value`` over the block's threads, in every thread."""
-        return wp.tile_reduce(wp.max, wp.tile(value))[0]
+        if wp.static(tiled):
+            return wp.tile_reduce(wp.max, wp.tile(value))[0]
+        return value
 
     @wp.kernel(module="unique", enable_backward=False)
     def check(
@@ -179,7 +182,12 @@ def check_kernel(scalar: type):
         patch_box_out: wp.array3d[wp.int32],
         flags_out: wp.array[wp.int32],
     ):
-        world, chunk, lane = wp.tid()
+        world, chunk, lane, threads = int(0), int(0), int(0), int(1)
+        if wp.static(tiled):
+            world, chunk, lane = wp.tid()
+            threads = wp.block_dim()
+        else:
+            world, chunk = wp.tid()
         if world_enabled[world] == 0:
             return
         world_count = (flags_out.shape[0] - 2) // FLAG_KINDS
@@ -200,7 +208,7 @@ def check_kernel(scalar: type):
         kinematic = int(0)
         step_units = int(0)
         big = bool(False)
-        for a in range(chunk_start[chunk] + lane, chunk_start[chunk + 1], wp.block_dim()):
+        for a in range(chunk_start[chunk] + lane, chunk_start[chunk + 1], threads):
             entry = patch_vertex[a]
             i = entry
             if entry < 0:
