@@ -280,7 +280,7 @@ def self_contact_bytes(*, particles: int, worlds: int, triangles: int, edges: in
     surface = 24 * t + 12 * e + 4 * n + 24 * w * t + 8 * w
     live = (PARAM_COUNT * f + 4 * COUNTER_COUNT + f) * w + 4 * (2 + FLAG_KINDS * w) + 4 * w * -(-n // SCAN_BLOCK)
     live += 2 * (4 + 3 * f) * size  # the cap's roles and pushers' targets, twice
-    patches = patch_count(t)
+    patches = patch_count(t, cuda)
     live += (4 + (8 + 16) * capacity) * w + (4 + 8 + 16) * w  # the cache's watch list, and the empty one
     chunks = 3 * t // PATCH_CHUNK + patches + 1  # at most (the patches' corners: at most 3 per triangle)
     live += 4 * 3 * t + 4 * (2 * chunks + 1) + 4 * PATCH_COLUMNS * w * patches  # the cache check's corners, chunks, boxes

@@ -115,10 +115,10 @@ def surface_topology(triangles: np.ndarray, particle_count: int) -> dict:
                 edge_owner=as32(edge_owner), vertex_owner=as32(vertex_owner))
 
 
-def surface_patches(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def surface_patches(positions: np.ndarray, triangles: np.ndarray, *, cuda: bool) -> tuple[np.ndarray, np.ndarray]:
     """The surface's patches for the cache's check (``kernels/selfcontact_cache.py``): its triangles halved along
     the longest axis of their centres' box at ``positions`` [particle_count, 3] (a median split), level by level,
-    into ``kernels/selfcontact.py``'s ``patch_count`` patches. Returns (the triangles'
+    into ``kernels/selfcontact.py``'s ``patch_count`` patches (fewer on the CPU than on CUDA). Returns (the triangles'
     indices grouped by patch, each patch's first entry and the end) as int32 arrays [triangle_count], [patches +
     1]. Any grouping is correct; triangles close at rest make the patches' boxes tight."""
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
@@ -126,7 +126,7 @@ def surface_patches(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.nd
     count = len(triangles)
     order = np.arange(count)
     bounds = [0, count]
-    for _ in range(patch_count(count).bit_length() - 1):
+    for _ in range(patch_count(count, cuda).bit_length() - 1):
         split = [0]
         for first, last in zip(bounds[:-1], bounds[1:]):
             group = order[first:last]
@@ -183,7 +183,7 @@ class SelfContact:
         # The cache's check reduces each patch's boxes (kernels/selfcontact_cache.py): triangles grouped at rest.
         # Its blocks take chunks of at most PATCH_CHUNK corners of one patch each: the corners of each patch's triangles,
         # once per patch, v where the patch reports v (its owner triangle's patch), -1 - v elsewhere.
-        order, bounds = surface_patches(model.particle_q.numpy()[:n], topology["triangle"])
+        order, bounds = surface_patches(model.particle_q.numpy()[:n], topology["triangle"], cuda=device.is_cuda)
         self.patch_count = len(bounds) - 1
         triangle_patch = np.repeat(np.arange(self.patch_count), np.diff(bounds))[np.argsort(order)]
         keys = np.unique(triangle_patch[:, None] * np.int64(n) + topology["triangle"].astype(np.int64))
@@ -475,7 +475,7 @@ class SelfContact:
         surface = self.surface
         self._check(start, particle_q, tiled=model.device.is_cuda)
         flat_launch(decide_kernel(model.scalar),
-                    inputs=[model.world_enabled, self.params, self.cache_reach, self.cache, self.patch_box],
+                    inputs=[model.world_enabled, self.params, self.cache_reach, self.cache.count, self.patch_box],
                     outputs=[self.flags], dim=model.world_count * self.patch_count ** 2, block_dim=model.block_dim,
                     device=model.device)
         flat_launch(watch_kernel(model.scalar),

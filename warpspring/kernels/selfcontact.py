@@ -166,6 +166,8 @@ KINEMATIC_STEPS = 4096
 #: triangles each and at most PATCH_LIMIT of them (2^k by halving), whose boxes the cache's check reduces.
 PATCH_TRIANGLES = 32
 PATCH_LIMIT = 256
+#: The most patches on the CPU, where the decision's thread per pair of patches runs in a loop (~60 ns each).
+PATCH_LIMIT_CPU = 32
 #: Threads per block of the cache's check, and the most triangles a block takes (of one patch): a patch of a large
 #: surface spreads over several blocks.
 PATCH_THREADS = 128
@@ -178,11 +180,13 @@ PATCH_POSITION = 6
 PATCH_COLUMNS = 12
 
 
-def patch_count(triangle_count: int) -> int:
-    """The patches of a surface of ``triangle_count`` triangles: the most halvings (2^k patches, at most PATCH_LIMIT)
-    that leave each at least PATCH_TRIANGLES triangles (1 for a smaller surface)."""
+def patch_count(triangle_count: int, cuda: bool) -> int:
+    """The patches of a surface of ``triangle_count`` triangles: the most halvings (2^k patches, at most PATCH_LIMIT
+    on CUDA, PATCH_LIMIT_CPU on the CPU) that leave each at least PATCH_TRIANGLES triangles (1 for a smaller
+    surface)."""
+    limit = PATCH_LIMIT if cuda else PATCH_LIMIT_CPU
     count = 1
-    while 2 * count <= PATCH_LIMIT and triangle_count // (2 * count) >= PATCH_TRIANGLES:
+    while 2 * count <= limit and triangle_count // (2 * count) >= PATCH_TRIANGLES:
         count *= 2
     return count
 #: Relative slack of the cache's bounds (drift, the cap's budget) against rounding.

@@ -280,7 +280,7 @@ def decide_kernel(scalar: type):
         world_enabled: wp.array[wp.int32],
         params: wp.array2d[scalar],
         cache_reach: wp.array[scalar],
-        cache: Pairs,
+        cache_count: wp.array[wp.int32],
         patch_box: wp.array3d[wp.int32],
         # In/out (the pass's flags):
         flags_in_out: wp.array[wp.int32],
@@ -304,7 +304,7 @@ def decide_kernel(scalar: type):
             budget = (params[row, PARAM_RELAXATION] * (scalar(REPULSION_REACH) * thickness - kinematic)
                       * scalar(1.0 - SAFETY) * scalar(1.0 - SAFETY))  # the second factor: this test's own rounding
             far = scalar(2.0) * kinematic >= scalar(REPULSION_REACH) * thickness * scalar(1.0 - SAFETY)  # as repel_gather
-            if cache.count[world] > 0 or not (step <= budget) or far:
+            if cache_count[world] > 0 or not (step <= budget) or far:
                 flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
         # The slack the cache would have without its watch list: where it suffices, the watched pairs need no check.
         unwatched = ((wp.min(cache_reach[world], scalar(CACHE_REACH) * thickness) - scalar(REPULSION_REACH) * thickness)
