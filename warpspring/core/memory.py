@@ -283,7 +283,8 @@ def self_contact_bytes(*, particles: int, worlds: int, triangles: int, edges: in
     patches = patch_count(t, cuda)
     live += (4 + (8 + 16) * capacity) * w + (4 + 8 + 16) * w  # the cache's watch list, and the empty one
     chunks = 3 * t // PATCH_CHUNK + patches + 1  # at most (the patches' corners: at most 3 per triangle)
-    live += 4 * 3 * t + 4 * (2 * chunks + 1) + 4 * PATCH_COLUMNS * w * patches  # the cache check's corners, chunks, boxes
+    live += 4 * 3 * t + 4 * (2 * chunks + 1) + 4 * (PATCH_COLUMNS + 1) * w * patches  # the check's corners, chunks,
+    live += 4 * t  # boxes and marks; each triangle's patch
     positions = 2 * 3 * f * size  # the repelled positions and the cache's anchors
     pairs = pair_buffer(CACHE_SLOTS * capacity) + pair_buffer(capacity) + 4 * w * CACHE_SLOTS * capacity * 4 * f
     bvhs = w * bvh_bytes(t, cuda=cuda) + (BVH_BUILD_TEMPORARY_CUDA * t if cuda else 0)

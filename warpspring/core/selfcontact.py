@@ -197,6 +197,7 @@ class SelfContact:
         chunk_start = (corner_bounds[chunk_patch]
                        + PATCH_CHUNK * (np.arange(len(chunk_patch)) - first_chunk[chunk_patch]))
         self.patch_triangles = [order[bounds[k]:bounds[k + 1]] for k in range(self.patch_count)]  # for tests
+        self.triangle_patch = wp.array(triangle_patch, dtype=wp.int32, device=device)
         # Sized for the most corners and chunks any grouping can have (3 per triangle; ``memory.self_contact_bytes``).
         entries = np.zeros(3 * len(order), dtype=np.int32)
         entries[:len(corner)] = np.where(reports, corner, -1 - corner)
@@ -225,13 +226,16 @@ class SelfContact:
                           wp.zeros(worlds, dtype=wp.int64, device=device),
                           wp.zeros(worlds, dtype=wp.vec4i, device=device))
         self.cache_reach = wp.zeros(worlds, dtype=model.scalar, device=device)
-        # The patches' boxes (kernels/selfcontact_cache.py, check_kernel) share the flags' storage: one memset empties
-        # both.
+        # The patches' boxes and marks (kernels/selfcontact_cache.py, check_kernel, decide_kernel) share the flags'
+        # storage: one memset empties them all.
         flag_count = 2 + FLAG_KINDS * worlds
-        self._step_scratch = wp.zeros(flag_count + worlds * self.patch_count * PATCH_COLUMNS, dtype=wp.int32,
-                                      device=device)
+        boxes = worlds * self.patch_count * PATCH_COLUMNS
+        self._step_scratch = wp.zeros(flag_count + boxes + worlds * self.patch_count, dtype=wp.int32, device=device)
         self.flags = self._step_scratch[:flag_count]
-        self.patch_box = self._step_scratch[flag_count:].reshape((worlds, self.patch_count, PATCH_COLUMNS))
+        self.patch_box = self._step_scratch[flag_count:flag_count + boxes].reshape((worlds, self.patch_count,
+                                                                                     PATCH_COLUMNS))
+        # The patches whose watched pairs need their check (decide_kernel marks, watch_kernel reads).
+        self.patch_watch = self._step_scratch[flag_count + boxes:].reshape((worlds, self.patch_count))
         self._scan_blocks = wp.zeros((worlds, (n + SCAN_BLOCK - 1) // SCAN_BLOCK), dtype=wp.int32, device=device)
         self._allocate(max(64, PAIRS_PER_VERTEX * int(np.count_nonzero(topology["vertex_owner"] >= 0))))
         # One BVH per world over the single-precision boxes of its triangles, built at the model's initial
@@ -476,11 +480,11 @@ class SelfContact:
         self._check(start, particle_q, tiled=model.device.is_cuda)
         flat_launch(decide_kernel(model.scalar),
                     inputs=[model.world_enabled, self.params, self.cache_reach, self.cache.count, self.patch_box],
-                    outputs=[self.flags], dim=model.world_count * self.patch_count ** 2, block_dim=model.block_dim,
+                    outputs=[self.flags, self.patch_watch], dim=model.world_count * self.patch_count ** 2, block_dim=model.block_dim,
                     device=model.device)
         flat_launch(watch_kernel(model.scalar),
                     inputs=[model.particle_count, model.world_enabled, surface, self.params, self.watch_count,
-                            self.watch_key, self.watch_vertex, start],
+                            self.watch_key, self.watch_vertex, self.triangle_patch, self.patch_watch, start],
                     outputs=[self.flags], dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
         self._branch(self.flags[0:1], self._rebuild, start=start)
 

@@ -284,6 +284,8 @@ def decide_kernel(scalar: type):
         patch_box: wp.array3d[wp.int32],
         # In/out (the pass's flags):
         flags_in_out: wp.array[wp.int32],
+        # Out:
+        patch_watch_out: wp.array2d[wp.int32],
     ):
         tid = wp.tid()
         patch_count = patch_box.shape[1]
@@ -332,6 +334,8 @@ def decide_kernel(scalar: type):
         if wp.length(spread) <= unwatched:
             return
         flags_in_out[flag_slot(FLAG_WATCH, world, world_count)] = 1  # the watched pairs need their check
+        patch_watch_out[world, first] = 1  # those between these two patches (watch_kernel)
+        patch_watch_out[world, second] = 1
         if drift <= scalar(0.5) * slack:
             return
         if not (wp.length(spread) <= slack):
@@ -344,7 +348,8 @@ def decide_kernel(scalar: type):
 def watch_kernel(scalar: type):
     """Kernel of the watched pairs' check (module docstring, 1.), after ``decide_kernel``, in the worlds it flagged
     FLAG_WATCH (elsewhere the drifts keep the watched pairs apart too), one thread per particle of every world taking
-    its world's watch slots local, local + particle_count, ...: each watched pair's distance at the step's start,
+    its world's watch slots local, local + particle_count, ...: each watched pair whose sides' patches (their owner
+    triangles', ``triangle_patch``) were both marked by ``decide_kernel`` (``patch_watch``), its distance at the step's start,
     with the narrow phase's arithmetic; a world with one closer than REPULSION_REACH τ (1 + SAFETY) is flagged for a
     rebuild (FLAG_REBUILD)."""
     vec3 = vec3_type(scalar)
@@ -360,6 +365,8 @@ def watch_kernel(scalar: type):
         watch_count: wp.array[wp.int32],
         watch_key: wp.array[wp.int64],
         watch_vertex: wp.array[wp.vec4i],
+        triangle_patch: wp.array[wp.int32],
+        patch_watch: wp.array2d[wp.int32],
         # State in:
         particle_q_start: wp.array[vec3],
         # In/out (the pass's flags):
@@ -378,13 +385,29 @@ def watch_kernel(scalar: type):
         vt_keys = wp.int64(particle_count) * wp.int64(surface.triangle.shape[0])
         for slot in range(local, count, particle_count):
             s = world * capacity + slot
+            # The patches of the pair's sides (their owner triangles'): unless decide_kernel marked both, the pair's
+            # patches lie 2τ apart now or drift by at most the slack of CACHE_REACH τ: it is that far apart.
+            key = watch_key[s]
+            side_a = int(0)
+            side_b = int(0)
+            if key < vt_keys:
+                triangle_count = wp.int64(surface.triangle.shape[0])
+                side_a = triangle_patch[surface.vertex_owner[int(key // triangle_count)]]
+                side_b = triangle_patch[int(key % triangle_count)]
+            else:
+                edge_count = wp.int64(surface.edge.shape[0])
+                rest = key - vt_keys
+                side_a = triangle_patch[surface.edge_owner[int(rest // edge_count)]]
+                side_b = triangle_patch[surface.edge_owner[int(rest % edge_count)]]
+            if patch_watch[world, side_a] == 0 or patch_watch[world, side_b] == 0:
+                continue
             index = watch_vertex[s]
             x0 = particle_q_start[base + index[0]]
             x1 = particle_q_start[base + index[1]]
             x2 = particle_q_start[base + index[2]]
             x3 = particle_q_start[base + index[3]]
             d = scalar(0.0)
-            if watch_key[s] < vt_keys:
+            if key < vt_keys:
                 bary = triangle_closest(x0, x1, x2, x3)
                 d = wp.length(x0 - (bary[0] * x1 + bary[1] * x2 + bary[2] * x3))
             else:
