@@ -140,6 +140,7 @@ def profile(n: int, device, repeats: int) -> list[str]:
     """Markdown rows: each launch of the pass, its calls and time per pass [µs], on the settled ``self`` scene."""
     import warpspring.core.selfcontact as host
 
+    WATCH_REACH = getattr(host, "WATCH_REACH", 0.0)
     runner = Runner(scene(n, device, True))
     model, sc = runner.sim.model, runner.sim.model.self_contact
     start, out = model.state(), model.state()
@@ -165,8 +166,9 @@ def profile(n: int, device, repeats: int) -> list[str]:
                  (kernels["repel_pairs_kernel"](model.scalar), "narrow phase: repulsion per pair"),
                  (kernels["repel_gather_kernel"](model.scalar), "gather: repulsion per vertex"),
                  (kernels["cap_gather_kernel"](model.scalar), "gather: cap per vertex")]
-    for name, text in (("check_kernel", "cache check per vertex"), ("cap_bounds_kernel", "cap bounds per cached pair"),
-                       ("anchor_kernel", "cache anchors (rebuild)"), ("decide_kernel", "cache decisions per world")):
+    for name, text in (("check_kernel", "cache check per patch corner"), ("cap_bounds_kernel", "cap bounds per cached pair"),
+                       ("anchor_kernel", "cache anchors (rebuild)"), ("decide_kernel", "cache decisions per patch pair"),
+                       ("watch_kernel", "watched pairs' check")):
         if name in kernels:
             labelled.append((kernels[name](model.scalar), text))
     if "reset_kernel" in kernels:
@@ -241,6 +243,9 @@ def profile(n: int, device, repeats: int) -> list[str]:
     first = listed.get("cache", listed.get("repel"))
     rows.append(f"| {n} | pairs listed: {'cache' if 'cache' in listed else 'repulsion'} / cap | | {first} / "
                 f"{listed['cap']} (capacity {sc.capacity}) |")
+    if hasattr(sc, "watch_count"):
+        rows.append(f"| {n} | pairs watched (between 3τ and {WATCH_REACH:g}τ at the anchors) | | "
+                    f"{int(sc.watch_count.numpy().sum())} |")
     return rows
 
 
@@ -279,7 +284,7 @@ def radius_study(n: int, device) -> list[str]:
         ("D < 32τ", counts["fixed"]))]
 
 
-def rebuild_study(n: int, device, frames: int) -> list[str]:
+def rebuild_study(n: int, device, frames: int, patch_widths=(0.2, 0.4, 0.8)) -> list[str]:
     """Markdown rows: how often the pair cache must be rebuilt over ``frames`` frames after the settling, by rule,
     replayed on the host in float64 over the ``self`` scene's substeps (the cache reach R = CACHE_REACH τ; a rule
     rebuilds at a substep where it can no longer prove every pair outside the cache REPULSION_REACH τ apart)."""
@@ -334,9 +339,39 @@ def rebuild_study(n: int, device, frames: int) -> list[str]:
     def exact(_, anchored, x):
         return np.any((anchored >= reach) & (distances(x) < near))
 
+    # Patches: each triangle belongs to the cell of its first corner's start position (a grid of width ``w``), a
+    # patch's boxes (its drifts', its current positions') cover every corner of its triangles.
+    def patch_rule(width):
+        cells = np.floor(path[0][triangles[:, 0]] / width).astype(np.int64)
+        _, patch = np.unique(cells, axis=0, return_inverse=True)
+        patch = patch.reshape(-1)
+        count = patch.max() + 1
+
+        def boxes(values):
+            corners = values[triangles]  # [T, 3, 3]
+            low = np.full((count, 3), np.inf)
+            high = np.full((count, 3), -np.inf)
+            np.minimum.at(low, patch, corners.min(1))
+            np.maximum.at(high, patch, corners.max(1))
+            return low, high
+
+        def rule(drift, _, x):
+            dlow, dhigh = boxes(drift)
+            xlow, xhigh = boxes(x)
+            gap = np.maximum(0.0, np.maximum(xlow[None] - xhigh[:, None], xlow[:, None] - xhigh[None]))
+            near_pairs = np.linalg.norm(gap, axis=-1) < near
+            spread = np.linalg.norm(np.maximum(dhigh[:, None] - dlow[None], dhigh[None] - dlow[:, None]), axis=-1)
+            return np.any(near_pairs & (spread > reach - near))
+        return rule, count
+
+    rules = [("largest drift from the reference vertex ≤ (R - 2τ)/2 (before)", reference),
+             ("that, or the drifts' box diagonal ≤ R - 2τ (now)", box)]
+    for width in patch_widths:
+        rule, count = patch_rule(width)
+        rules.append((f"per patch pair ({count} patches of {width:g} m): apart now, or their drifts' spread ≤ R - 2τ",
+                      rule))
     rows = []
-    for name, rule in (("largest drift from the reference vertex ≤ (R - 2τ)/2 (before)", reference),
-                       ("that, or the drifts' box diagonal ≤ R - 2τ (now)", box),
+    for name, rule in (*rules,
                        ("each pair's own largest drift difference (needs every pair: not implementable)", per_pair),
                        ("the pairs' distances themselves (the least any rule can do)", exact)):
         rebuilds, anchor, anchored = 0, None, None
@@ -554,7 +589,8 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default=None)
-    parser.add_argument("--sizes", type=int, nargs="+", default=[64, 256, 1024])
+    parser.add_argument("--sizes", type=int, nargs="*", default=[64, 256, 1024],
+                        help="cloth sizes N (N × N particles); none (a bare --sizes) times the examples only")
     parser.add_argument("--seconds", type=float, default=1.0)
     parser.add_argument("--out", default=None, help="also write the table to this file")
     parser.add_argument("--json", default=None, help="write the cost table's numbers to this file")

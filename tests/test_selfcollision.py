@@ -546,20 +546,30 @@ def test_cache_changes_the_work_not_the_answer(device, scene):
         assert cached["rebuilds"][0] != cached["rebuilds"][1]  # one world's cache rebuilt while the other's held
 
 
-def test_cache_holds_while_the_drifts_spread_less_than_its_slack(device):
+@pytest.mark.parametrize("layout", ["tilted", "flat"])
+def test_cache_holds_while_the_drifts_spread_less_than_its_slack(device, layout):
     """Two cloths 0.1 m apart (beyond the cache's reach), one still, one sliding past it at 1.5 m/s (1.5 mm per
-    1 ms step, no gravity, springs at rest): every relative drift lies along one axis. The cache holds while the
-    drifts' box diagonal, the slider's displacement since the last build, stays within R - 2τ = τ (less SAFETY,
-    1/64): 4.5 mm > 3.94 mm ≥ 3.0 mm, so it is rebuilt every third step (steps 0, 3, ..., 27: 10 in 30), where the
-    largest drift from a reference vertex alone (≤ τ/2) would rebuild every second step (15). Nothing is cached and
-    no step reaches the repulsion's budget γ · 2τ (2 mm), so the pair stages never run (their flag stays down) and
-    the slider moves exactly as integrated."""
+    1 ms step, along the sheets' common plane, no gravity, springs at rest): every relative drift lies along one
+    axis. Tilted 45° (their boxes overlap though the sheets are 0.1 m apart), the cache holds while the spread of
+    the drifts across patches whose boxes lie within 2τ, the slider's displacement since the last build, stays
+    within R - 2τ = 2.5τ (R = WATCH_REACH τ: the sheets' in-plane pairs between 3τ and 4.5τ are watched; less
+    SAFETY, 1/64): 10.5 mm > 9.84 mm ≥ 9.0 mm, so it is rebuilt every seventh step (steps 0, 7, ..., 28: 5 in 30),
+    where the largest drift from a reference vertex alone (≤ 1.25τ) would rebuild every fourth step (8). Flat (one above the other, their boxes 0.1 m apart), no pair across them can come within 2τ
+    whatever their drifts: built once, never rebuilt. Nothing is cached and no step reaches the repulsion's budget
+    γ · 2τ (2 mm), so the pair stages never run (their flag stays down) and the slider moves exactly as
+    integrated."""
     from warpspring.kernels.selfcontact import FLAG_WORK
 
+    half = np.sin(np.pi / 8.0), np.cos(np.pi / 8.0)
+    tilted = layout == "tilted"
+    rotation = (0.0, half[0], 0.0, half[1]) if tilted else (0.0, 0.0, 0.0, 1.0)
+    normal = np.array([np.sqrt(0.5), 0.0, np.sqrt(0.5)]) if tilted else np.array([0.0, 0.0, 1.0])
+    nx = 13 if tilted else 5
     builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
-    builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, 0.0), mass=0.05, **CLOTH, name="still")
-    builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, 0.1), mass=0.05, velocity=(1.5, 0.0, 0.0),
-                           **CLOTH, name="slider")
+    builder.add_cloth_grid(nx=nx, ny=5, spacing=0.02, origin=(0.0, 0.0, 0.0), rotation=rotation, mass=0.05, **CLOTH,
+                           name="still")
+    builder.add_cloth_grid(nx=nx, ny=5, spacing=0.02, origin=tuple(0.1 * normal), rotation=rotation, mass=0.05,
+                           velocity=(0.0, 1.5, 0.0), **CLOTH, name="slider")
     builder.add_self_collision(thickness=TAU)
     model = builder.finalize(device)
     sc = model.self_contact
@@ -570,8 +580,87 @@ def test_cache_holds_while_the_drifts_spread_less_than_its_slack(device):
         integrator.step(a, b, None, 1e-3)
         a, b = b, a
         work.append(int(sc.flags.numpy()[2 + FLAG_WORK * model.world_count]))
-    assert sc.cache_counts()["rebuilds"][0] == 10
+    assert sc.cache_counts()["rebuilds"][0] == (5 if tilted else 1)
     assert sc.listed()["cache"][0] == 0 and not any(work)
     moved = a.particle_q.numpy().astype(np.float64) - start
-    np.testing.assert_allclose(moved[:25], 0.0, atol=1e-7)
-    np.testing.assert_allclose(moved[25:], np.tile([0.045, 0.0, 0.0], (25, 1)), atol=1e-5)  # 30 steps of 1.5 mm
+    half_count = len(moved) // 2
+    np.testing.assert_allclose(moved[:half_count], 0.0, atol=1e-7)
+    np.testing.assert_allclose(moved[half_count:], np.tile([0.0, 0.045, 0.0], (half_count, 1)), atol=1e-5)  # 30 × 1.5 mm
+
+
+@pytest.mark.parametrize("chunk", [512, 5])
+def test_patch_boxes_hold_their_corners(device, chunk, monkeypatch):
+    """The cache's check (``kernels/selfcontact_cache.py``) reduces each patch's boxes of its triangles' corners: the
+    positions at the step's start and the drifts from the anchors (relative to the reference vertex). Against NumPy
+    in float64 after a wrung strip's steps (two worlds, moving pins): each box holds every corner and is no wider than
+    the tight box by more than one unit τ/4096 and the rounding pad on either side; with blocks of 5 triangles (a
+    patch over several blocks, their maxima merged by integer atomics) likewise; and the check's two forms (one block
+    per chunk with block-wide maxima, as on CUDA; one thread per chunk, as on the CPU) give the same integers."""
+    import warpspring.core.selfcontact as host
+    from warpspring.kernels.selfcontact import KINEMATIC_STEPS, PATCH_DRIFT, PATCH_POSITION
+    from warpspring.kernels.selfcontact_cache import LENGTH_LIMIT
+
+    monkeypatch.setattr(host, "PATCH_CHUNK", chunk)
+    model = wrung_strip(device, worlds=2)
+    sc = model.self_contact
+    integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
+    for _ in range(40):
+        start = a.particle_q.numpy().astype(np.float64).reshape(2, model.particle_count, 3)
+        anchor = sc.cache_anchor.numpy().astype(np.float64).reshape(2, model.particle_count, 3)
+        integrator.step(a, b, None, 1e-3)
+        a, b = b, a
+    assert sc.patch_count > 1 and (chunk > 100 or sc.chunk_count > sc.patch_count)
+    boxes = sc.patch_box.numpy().astype(np.int64) - LENGTH_LIMIT
+    unit = TAU / KINEMATIC_STEPS
+    triangles = sc.surface.triangle.numpy()
+    ref = triangles[len(triangles) // 2][0]
+    for world in range(2):
+        drift = start[world] - anchor[world] - (start[world, ref] - anchor[world, ref])
+        for patch in range(sc.patch_count):
+            corners = np.unique(triangles[sc.patch_triangles[patch]])
+            for column, values in ((PATCH_POSITION, start[world, corners]), (PATCH_DRIFT, drift[corners])):
+                high, low = boxes[world, patch, column:column + 3] * unit, -boxes[world, patch, column + 3:column + 6] * unit
+                assert np.all(high >= values.max(axis=0)) and np.all(low <= values.min(axis=0))
+                slack = unit + 1e-5 * (np.abs(values).max() + 1.0)  # a unit of rounding up and the pads (BOX_PAD each)
+                assert np.all(high - values.max(axis=0) <= slack) and np.all(values.min(axis=0) - low <= slack)
+    last = a.particle_q  # the last step's end: its check again, in both forms
+    forms = []
+    for tiled in (True, False):
+        sc._step_scratch.zero_()
+        sc._check(b.particle_q, last, tiled=tiled)
+        forms.append(sc._step_scratch.numpy())
+    np.testing.assert_array_equal(forms[0], forms[1])
+    assert np.any(forms[0] != 0)
+
+
+def test_watched_pairs_rebuild_the_cache(device):
+    """A cloth 13 mm (3.25τ) above a still one, coming down at 1.5 m/s (1.5 mm per 1 ms step, no gravity): its pairs
+    with the other lie between the cache's reach (3τ) and WATCH_REACH τ (4.5τ) at the first build, so they are
+    watched, not cached. Their drifts stay within the slack (2.5τ, 9.84 mm) until the eighth step, but at the fifth
+    step's start they are 7 mm apart, within the repulsion's reach (2τ = 8 mm): the watch must rebuild the cache
+    there, and the repulsion pushes from the sixth step on. The run equals the broad phase at every step, bit for
+    bit, with pairs pushed; a cache that trusted the drifts alone would miss them (checked: with the watch's test
+    disabled, this run differs)."""
+    def make():
+        builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+        builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, 0.0), mass=0.05, **CLOTH, name="still")
+        builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, 3.25 * TAU), mass=0.05,
+                               velocity=(0.0, 0.0, -1.5), **CLOTH, name="falling")
+        builder.add_self_collision(thickness=TAU)
+        return builder.finalize(device)
+
+    finals, counts = [], []
+    for every_step in (False, True):
+        model = make()
+        if every_step:
+            object.__setattr__(model, "self_contact", BroadPhaseEveryStep(model.self_contact))
+        integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
+        for _ in range(8):
+            integrator.step(a, b, None, 1e-3)
+            a, b = b, a
+        finals.append(a.particle_q.numpy())
+        sc = model.self_contact if not every_step else model.self_contact.full
+        counts.append({**sc.counts(), **sc.cache_counts()})
+    np.testing.assert_array_equal(finals[0], finals[1])
+    assert counts[0]["pairs"].sum() > 0 and counts[0]["pairs"].sum() == counts[1]["pairs"].sum()
+    assert 1 < counts[0]["rebuilds"][0] < 8

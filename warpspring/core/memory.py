@@ -40,7 +40,8 @@ from ..errors import ConfigError
 from ..kernels.guards import BALANCE_SLOTS, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS, PARTIAL_SLOTS, RUNNING_SLOTS
 from ..kernels.inputs import INPUT_COUNT
 from ..kernels.linalg import CG_SHORT_SLOTS, REDUCE_FILL_BLOCKS, REDUCE_PER_LANE, reduce_launch_dim
-from ..kernels.selfcontact import CACHE_SLOTS, COUNTER_COUNT, FLAG_KINDS, PAIRS_PER_VERTEX, PARAM_COUNT, SCAN_BLOCK
+from ..kernels.selfcontact import (CACHE_SLOTS, COUNTER_COUNT, FLAG_KINDS, PAIRS_PER_VERTEX, PARAM_COUNT, PATCH_CHUNK,
+                                   PATCH_COLUMNS, SCAN_BLOCK, patch_count)
 
 #: Bytes per floating-point number of each precision.
 SCALAR_BYTES = {"float32": 4, "float64": 8}
@@ -279,6 +280,11 @@ def self_contact_bytes(*, particles: int, worlds: int, triangles: int, edges: in
     surface = 24 * t + 12 * e + 4 * n + 24 * w * t + 8 * w
     live = (PARAM_COUNT * f + 4 * COUNTER_COUNT + f) * w + 4 * (2 + FLAG_KINDS * w) + 4 * w * -(-n // SCAN_BLOCK)
     live += 2 * (4 + 3 * f) * size  # the cap's roles and pushers' targets, twice
+    patches = patch_count(t, cuda)
+    live += (4 + (8 + 16) * capacity) * w + (4 + 8 + 16) * w  # the cache's watch list, and the empty one
+    chunks = 3 * t // PATCH_CHUNK + patches + 1  # at most (the patches' corners: at most 3 per triangle)
+    live += 4 * 3 * t + 4 * (2 * chunks + 1) + 4 * (PATCH_COLUMNS + 1) * w * patches  # the check's corners, chunks,
+    live += 4 * t  # boxes and marks; each triangle's patch
     positions = 2 * 3 * f * size  # the repelled positions and the cache's anchors
     pairs = pair_buffer(CACHE_SLOTS * capacity) + pair_buffer(capacity) + 4 * w * CACHE_SLOTS * capacity * 4 * f
     bvhs = w * bvh_bytes(t, cuda=cuda) + (BVH_BUILD_TEMPORARY_CUDA * t if cuda else 0)

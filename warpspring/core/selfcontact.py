@@ -31,20 +31,31 @@ from ..kernels.selfcontact import (
     PARAM_FRICTION,
     PARAM_RELAXATION,
     PARAM_THICKNESS,
+    PATCH_CHUNK,
+    PATCH_COLUMNS,
+    PATCH_THREADS,
     SCAN_BLOCK,
     SCAN_THREADS,
+    WATCH_REACH,
     Pairs,
     Surface,
     broad_kernel,
     fill_kernel,
     leaf_kernel,
+    patch_count,
     proximity_kernel,
     repel_gather_kernel,
     repel_pairs_kernel,
     reset_kernel,
     scan_kernels,
 )
-from ..kernels.selfcontact_cache import anchor_kernel, cap_bounds_kernel, check_kernel, decide_kernel
+from ..kernels.selfcontact_cache import (
+    anchor_kernel,
+    cap_bounds_kernel,
+    check_kernel,
+    decide_kernel,
+    watch_kernel,
+)
 from ..kernels.selfcontact_cap import (
     ROLE_MOVER,
     ROLE_PUSHER,
@@ -104,6 +115,30 @@ def surface_topology(triangles: np.ndarray, particle_count: int) -> dict:
                 edge_owner=as32(edge_owner), vertex_owner=as32(vertex_owner))
 
 
+def surface_patches(positions: np.ndarray, triangles: np.ndarray, *, cuda: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The surface's patches for the cache's check (``kernels/selfcontact_cache.py``): its triangles halved along
+    the longest axis of their centres' box at ``positions`` [particle_count, 3] (a median split), level by level,
+    into ``kernels/selfcontact.py``'s ``patch_count`` patches (fewer on the CPU than on CUDA). Returns (the triangles'
+    indices grouped by patch, each patch's first entry and the end) as int32 arrays [triangle_count], [patches +
+    1]. Any grouping is correct; triangles close at rest make the patches' boxes tight."""
+    triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    centres = np.asarray(positions, dtype=np.float64)[triangles].mean(axis=1)
+    count = len(triangles)
+    order = np.arange(count)
+    bounds = [0, count]
+    for _ in range(patch_count(count, cuda).bit_length() - 1):
+        split = [0]
+        for first, last in zip(bounds[:-1], bounds[1:]):
+            group = order[first:last]
+            points = centres[group]
+            axis = int(np.argmax(points.max(axis=0) - points.min(axis=0)))
+            half = (last - first) // 2
+            order[first:last] = group[np.argsort(points[:, axis], kind="stable")]
+            split += [first + half, last]
+        bounds = split
+    return np.ascontiguousarray(order, dtype=np.int32), np.asarray(bounds, dtype=np.int32)
+
+
 def smallest_altitude(positions: np.ndarray, triangles: np.ndarray) -> float:
     """The smallest altitude [m] of the triangles (twice the area over the longest side), float64."""
     x = np.asarray(positions, dtype=np.float64)[np.asarray(triangles)]
@@ -145,6 +180,33 @@ class SelfContact:
         surface.leaf_upper = wp.zeros(leaves, dtype=wp.vec3f, device=device)
         surface.bvh = wp.zeros(worlds, dtype=wp.uint64, device=device)
         self.surface = surface
+        # The cache's check reduces each patch's boxes (kernels/selfcontact_cache.py): triangles grouped at rest.
+        # Its blocks take chunks of at most PATCH_CHUNK corners of one patch each: the corners of each patch's triangles,
+        # once per patch, v where the patch reports v (its owner triangle's patch), -1 - v elsewhere.
+        order, bounds = surface_patches(model.particle_q.numpy()[:n], topology["triangle"], cuda=device.is_cuda)
+        self.patch_count = len(bounds) - 1
+        triangle_patch = np.repeat(np.arange(self.patch_count), np.diff(bounds))[np.argsort(order)]
+        keys = np.unique(triangle_patch[:, None] * np.int64(n) + topology["triangle"].astype(np.int64))
+        corner_patch, corner = keys // n, keys % n
+        reports = triangle_patch[topology["vertex_owner"][corner]] == corner_patch
+        corner_bounds = np.searchsorted(corner_patch, np.arange(self.patch_count + 1))
+        sizes = np.diff(corner_bounds)
+        chunks = -(-sizes // PATCH_CHUNK)
+        chunk_patch = np.repeat(np.arange(self.patch_count), chunks)
+        first_chunk = np.cumsum(chunks) - chunks
+        chunk_start = (corner_bounds[chunk_patch]
+                       + PATCH_CHUNK * (np.arange(len(chunk_patch)) - first_chunk[chunk_patch]))
+        self.patch_triangles = [order[bounds[k]:bounds[k + 1]] for k in range(self.patch_count)]  # for tests
+        self.triangle_patch = wp.array(triangle_patch, dtype=wp.int32, device=device)
+        # Sized for the most corners and chunks any grouping can have (3 per triangle; ``memory.self_contact_bytes``).
+        entries = np.zeros(3 * len(order), dtype=np.int32)
+        entries[:len(corner)] = np.where(reports, corner, -1 - corner)
+        self.patch_vertex = wp.array(entries, dtype=wp.int32, device=device)
+        self.chunk_count = len(chunk_patch)
+        most = 3 * len(order) // PATCH_CHUNK + self.patch_count + 1
+        self.chunk_patch = wp.array(np.pad(chunk_patch, (0, most - len(chunk_patch))), dtype=wp.int32, device=device)
+        chunk_start = np.append(chunk_start, corner_bounds[-1])
+        self.chunk_start = wp.array(np.pad(chunk_start, (0, most + 1 - len(chunk_start))), dtype=wp.int32, device=device)
         self.params = wp.zeros((worlds, PARAM_COUNT), dtype=model.scalar, device=device)
         self.set(thickness=thickness, friction=friction, relaxation=relaxation)
         self.corrected = wp.zeros(model.state_size, dtype=model.vec3, device=device)
@@ -157,8 +219,23 @@ class SelfContact:
         # swept list, for the steps that need it; the pass's flags (any rebuild, any fallback, then per world each
         # kind of kernels/selfcontact.py FLAG_*), zeroed at every step's start.
         self.cache_anchor = wp.zeros(model.state_size, dtype=model.vec3, device=device)
+        # The cache's watch list (kernels/selfcontact_cache.py): pairs between CACHE_REACH τ and WATCH_REACH τ apart at
+        # the anchors, whose distances every step checks; and an empty one for the broad phases that watch nothing.
+        self.watch_count = wp.zeros(worlds, dtype=wp.int32, device=device)
+        self._no_watch = (wp.zeros(worlds, dtype=wp.int32, device=device),
+                          wp.zeros(worlds, dtype=wp.int64, device=device),
+                          wp.zeros(worlds, dtype=wp.vec4i, device=device))
         self.cache_reach = wp.zeros(worlds, dtype=model.scalar, device=device)
-        self.flags = wp.zeros(2 + FLAG_KINDS * worlds, dtype=wp.int32, device=device)
+        # The patches' boxes and marks (kernels/selfcontact_cache.py, check_kernel, decide_kernel) share the flags'
+        # storage: one memset empties them all.
+        flag_count = 2 + FLAG_KINDS * worlds
+        boxes = worlds * self.patch_count * PATCH_COLUMNS
+        self._step_scratch = wp.zeros(flag_count + boxes + worlds * self.patch_count, dtype=wp.int32, device=device)
+        self.flags = self._step_scratch[:flag_count]
+        self.patch_box = self._step_scratch[flag_count:flag_count + boxes].reshape((worlds, self.patch_count,
+                                                                                     PATCH_COLUMNS))
+        # The patches whose watched pairs need their check (decide_kernel marks, watch_kernel reads).
+        self.patch_watch = self._step_scratch[flag_count + boxes:].reshape((worlds, self.patch_count))
         self._scan_blocks = wp.zeros((worlds, (n + SCAN_BLOCK - 1) // SCAN_BLOCK), dtype=wp.int32, device=device)
         self._allocate(max(64, PAIRS_PER_VERTEX * int(np.count_nonzero(topology["vertex_owner"] >= 0))))
         # One BVH per world over the single-precision boxes of its triangles, built at the model's initial
@@ -181,8 +258,9 @@ class SelfContact:
             kernel.module.load(model.device)  # launched with Warp's default block size
         for kernel in scan_kernels():
             kernel.module.load(model.device, SCAN_THREADS)
+        check_kernel(scalar).module.load(model.device, PATCH_THREADS)
         flat = [broad_kernel(scalar, False), broad_kernel(scalar, True),
-                reset_kernel(), fill_kernel(), check_kernel(scalar), decide_kernel(scalar), anchor_kernel(scalar),
+                reset_kernel(), fill_kernel(), decide_kernel(scalar), watch_kernel(scalar), anchor_kernel(scalar),
                 repel_pairs_kernel(scalar),
                 repel_gather_kernel(scalar), cap_bounds_kernel(scalar), cap_gather_kernel(scalar),
                 cap_place_kernel(scalar), cap_mark_kernel(scalar), cap_check_kernel(scalar)]
@@ -196,6 +274,8 @@ class SelfContact:
         self.capacity = capacity
         self.cache_capacity = CACHE_SLOTS * capacity
         self.cache, self.cache_bound = self._pair_buffers(self.cache_capacity, 1)
+        self.watch_key = wp.zeros(model.world_count * capacity, dtype=wp.int64, device=model.device)
+        self.watch_vertex = wp.zeros(model.world_count * capacity, dtype=wp.vec4i, device=model.device)
         self.cap_pairs, self.pair_distance = self._pair_buffers(capacity, 1)
         slots = model.world_count * self.cache_capacity
         self.pair_correction = wp.zeros(4 * slots, dtype=model.vec3, device=model.device)
@@ -311,12 +391,15 @@ class SelfContact:
                 bvh.refit()
 
     def _list_pairs(self, pairs, pair_distance: wp.array, start: wp.array, end: wp.array, *, swept: bool,
-                    reach_factor: float, reach_add: float, counters: wp.array, active: wp.array) -> None:
+                    reach_factor: float, reach_add: float, counters: wp.array, active: wp.array,
+                    watch: bool = False) -> None:
         """The broad phase of the worlds ``active`` names into ``pairs`` and ``pair_distance``, then the CSR of
         its entries (device work only, fixed sizes, no allocation: capturable, also in a conditional node);
         the other worlds' pairs stay as they were."""
         model = self.model
-        flat_launch(reset_kernel(), inputs=[model.particle_count, active], outputs=[pairs], dim=model.particle_dim,
+        watch_lists = (self.watch_count, self.watch_key, self.watch_vertex) if watch else self._no_watch
+        flat_launch(reset_kernel(), inputs=[model.particle_count, active], outputs=[pairs, watch_lists[0]],
+                    dim=model.particle_dim,
                     block_dim=model.block_dim, device=model.device)
         self._leaves(start, end, swept=swept)
         args = dict(
@@ -329,10 +412,12 @@ class SelfContact:
             flags=self.flags,
             reach_factor=model.scalar(reach_factor),
             reach_add=model.scalar(reach_add),
+            watch_factor=model.scalar(WATCH_REACH if watch else 0.0),
             particle_q_start=start,
             particle_q_end=end,
         )
-        outputs = dict(pairs_out=pairs, pair_distance_out=pair_distance, counters_out=counters)
+        outputs = dict(pairs_out=pairs, pair_distance_out=pair_distance, counters_out=counters,
+                       watch_count_out=watch_lists[0], watch_key_out=watch_lists[1], watch_vertex_out=watch_lists[2])
         flat_launch(broad_kernel(model.scalar, swept), inputs=list(args.values()), outputs=list(outputs.values()),
                     dim=model.world_count * self.triangle_count, block_dim=model.block_dim, device=model.device)
         tile_sums, tile_offsets, tile_prefixes = scan_kernels()
@@ -363,8 +448,9 @@ class SelfContact:
         model = self.model
         worlds = model.world_count
         self._list_pairs(self.cache, self.cache_bound, start, start, swept=False, reach_factor=CACHE_REACH,
-                         reach_add=0.0, counters=self.counters, active=self.flags[2:2 + worlds])
-        flat_launch(anchor_kernel(model.scalar), inputs=[model.particle_count, self.params, self.cache, start],
+                         reach_add=0.0, counters=self.counters, active=self.flags[2:2 + worlds], watch=True)
+        flat_launch(anchor_kernel(model.scalar),
+                    inputs=[model.particle_count, self.params, self.cache, self.watch_count, self.capacity, start],
                     outputs=[self.flags, self.cache_reach, self.cache_anchor, self.counters], dim=model.particle_dim,
                     block_dim=model.block_dim, device=model.device)
 
@@ -374,16 +460,33 @@ class SelfContact:
         self._list_pairs(self.cap_pairs, self.pair_distance, start, end, swept=True, reach_factor=0.0,
                          reach_add=0.0, counters=self.counters, active=self.flags[2 + worlds:2 + 2 * worlds])
 
+    def _check(self, start: wp.array, particle_q: wp.array, *, tiled: bool) -> None:
+        """The cache's check (``kernels/selfcontact_cache.py``) into the zeroed flags and patch boxes: one block per chunk
+        with block-wide maxima (``tiled``, on CUDA), or one thread per chunk (on the CPU, where a block is one thread)."""
+        model = self.model
+        check = dict(inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
+                             self.surface.triangle, self.patch_vertex, self.chunk_patch, self.chunk_start, self.params,
+                             self.cache_anchor, start, particle_q],
+                     outputs=[self.patch_box, self.flags], dim=(model.world_count, self.chunk_count), device=model.device)
+        if tiled:
+            wp.launch_tiled(check_kernel(model.scalar), block_dim=PATCH_THREADS, **check)
+        else:
+            wp.launch(check_kernel(model.scalar, False), **check)
+
     def _prepare(self, start: wp.array, particle_q: wp.array) -> None:
         """The step's flags: the cache's check and decisions, then its rebuild where a world needs one."""
         model = self.model
-        self.flags.zero_()
-        flat_launch(check_kernel(model.scalar),
-                    inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.world_enabled,
-                            self.surface, self.params, self.cache_anchor, start, particle_q],
+        self._step_scratch.zero_()  # the flags and the patches' boxes
+        surface = self.surface
+        self._check(start, particle_q, tiled=model.device.is_cuda)
+        flat_launch(decide_kernel(model.scalar),
+                    inputs=[model.world_enabled, self.params, self.cache_reach, self.cache.count, self.patch_box],
+                    outputs=[self.flags, self.patch_watch], dim=model.world_count * self.patch_count ** 2, block_dim=model.block_dim,
+                    device=model.device)
+        flat_launch(watch_kernel(model.scalar),
+                    inputs=[model.particle_count, model.world_enabled, surface, self.params, self.watch_count,
+                            self.watch_key, self.watch_vertex, self.triangle_patch, self.patch_watch, start],
                     outputs=[self.flags], dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
-        flat_launch(decide_kernel(model.scalar), inputs=[model.world_enabled, self.params, self.cache_reach, self.cache],
-                    outputs=[self.flags], dim=model.world_count, block_dim=model.block_dim, device=model.device)
         self._branch(self.flags[0:1], self._rebuild, start=start)
 
     @property

@@ -144,6 +144,10 @@ COUNTER_COUNT = 6
 #: The pair cache (module ``selfcontact_cache``): it lists the pairs closer than this many thicknesses at its
 #: anchor positions, and is rebuilt when a vertex has drifted half the difference to REPULSION_REACH from them.
 CACHE_REACH = 3.0
+#: Pairs between CACHE_REACH and this many thicknesses apart at the cache's anchors are *watched* (module
+#: ``selfcontact_cache``): their distances are checked at every step, so that the drifts need only keep the other
+#: pairs, WATCH_REACH τ apart at the anchors, beyond REPULSION_REACH τ.
+WATCH_REACH = 4.5
 #: The cache's slots per slot of a pair buffer: it holds the pairs within CACHE_REACH τ, where the repulsion's list
 #: held those within REPULSION_REACH τ ((3/2)² more between layers, (3/2)³ more in a volume).
 CACHE_SLOTS = 3
@@ -153,11 +157,38 @@ FLAG_REBUILD = 0  # rebuild the world's cache
 FLAG_FALLBACK = 1  # run the world's cap through its swept broad phase
 FLAG_KINEMATIC = 2  # K_w, the largest displacement of the world's kinematic vertices
 FLAG_DRIFT = 3  # the largest drift from the anchors relative to the reference vertex, padded (module selfcontact_cache)
-FLAG_SPREAD = 4  # 6 kinds from here: the drifts' box, padded: max (r_k + pad) for k = x, y, z, then max (pad - r_k)
-FLAG_STEP = 10  # the largest step of a free surface vertex (limited to γ SEARCH_REACH τ), padded
-FLAG_WORK = 11  # its first entry only: some world's pair stages must run (module selfcontact_cache)
-FLAG_KINDS = 12
+FLAG_STEP = 4  # the largest step of a free surface vertex (limited to γ SEARCH_REACH τ), padded
+FLAG_WORK = 5  # its first entry only: some world's pair stages must run (module selfcontact_cache)
+FLAG_WATCH = 6  # the world's watched pairs need their check (module selfcontact_cache)
+FLAG_KINDS = 7
 KINEMATIC_STEPS = 4096
+#: The surface's patches (module ``selfcontact_cache``): groups of triangles close at rest, at least this many
+#: triangles each and at most PATCH_LIMIT of them (2^k by halving), whose boxes the cache's check reduces.
+PATCH_TRIANGLES = 32
+PATCH_LIMIT = 256
+#: The most patches on the CPU, where the decision's thread per pair of patches runs in a loop (~60 ns each).
+PATCH_LIMIT_CPU = 32
+#: Threads per block of the cache's check, and the most triangles a block takes (of one patch): a patch of a large
+#: surface spreads over several blocks.
+PATCH_THREADS = 128
+PATCH_CHUNK = 4 * PATCH_THREADS
+#: Columns of a patch's extents [world_count, patch_count, PATCH_COLUMNS] (integers in units of τ / KINEMATIC_STEPS,
+#: rounded outward, padded for rounding): its drifts' box, max (r_k + pad) for k = x, y, z then max (pad - r_k), and
+#: likewise its positions' box at the step's start, over every corner of its triangles.
+PATCH_DRIFT = 0
+PATCH_POSITION = 6
+PATCH_COLUMNS = 12
+
+
+def patch_count(triangle_count: int, cuda: bool) -> int:
+    """The patches of a surface of ``triangle_count`` triangles: the most halvings (2^k patches, at most PATCH_LIMIT
+    on CUDA, PATCH_LIMIT_CPU on the CPU) that leave each at least PATCH_TRIANGLES triangles (1 for a smaller
+    surface)."""
+    limit = PATCH_LIMIT if cuda else PATCH_LIMIT_CPU
+    count = 1
+    while 2 * count <= limit and triangle_count // (2 * count) >= PATCH_TRIANGLES:
+        count *= 2
+    return count
 #: Relative slack of the cache's bounds (drift, the cap's budget) against rounding.
 SAFETY = 1.0 / 64.0
 #: A cached pair's bound (``selfcontact_cache.cap_bounds_kernel``) where the cap does not keep it.
@@ -476,6 +507,7 @@ def broad_kernel(scalar: type, swept: bool):
         flags: wp.array[wp.int32],
         reach_factor: scalar,
         reach_add: scalar,
+        watch_factor: scalar,
         # State in:
         particle_q_start: wp.array[vec3],
         particle_q_end: wp.array[vec3],
@@ -483,6 +515,9 @@ def broad_kernel(scalar: type, swept: bool):
         pairs_out: Pairs,
         pair_distance_out: wp.array[scalar],
         counters_out: wp.array2d[wp.int32],
+        watch_count_out: wp.array[wp.int32],
+        watch_key_out: wp.array[wp.int64],
+        watch_vertex_out: wp.array[wp.vec4i],
     ):
         tid = wp.tid()
         triangle_count = surface.triangle.shape[0]
@@ -499,7 +534,8 @@ def broad_kernel(scalar: type, swept: bool):
         limit = relaxation * scalar(SEARCH_REACH) * thickness
         cube = cube_reach(flags, world, limit)
         reach = reach_factor * thickness + reach_add
-        query_reach = reach
+        watch_reach = watch_factor * thickness  # pairs in [reach, watch_reach) are watched (without swept)
+        query_reach = wp.max(reach, watch_reach)
         if wp.static(swept):
             query_reach = scalar(0.0)
         corners = surface.triangle[me]
@@ -552,9 +588,11 @@ def broad_kernel(scalar: type, swept: bool):
                         kept, value = keep(wp.length(p - (bary[0] * a + bary[1] * b + bary[2] * c)), reach,
                                            relaxation, vertex, base, mass_row, limit, cube, particle_flags,
                                            particle_inv_mass, particle_q_start, particle_q_end)
+                        key = wp.int64(v) * wp.int64(triangle_count) + wp.int64(t)
                         if kept:
-                            key = wp.int64(v) * wp.int64(triangle_count) + wp.int64(t)
                             push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
+                        elif wp.static(not swept) and value < watch_reach:
+                            watch_pair(world, key, vertex, watch_count_out, watch_key_out, watch_vertex_out)
                 # EE: the edge's own query would have reported t where its box overlaps t's leaf box.
                 if owns_edge[m] == 1 and boxes_overlap_f(edge_lower[m], edge_upper[m], leaf_lower, leaf_upper):
                     e = sides[m]
@@ -588,13 +626,27 @@ def broad_kernel(scalar: type, swept: bool):
                             distance = wp.length((p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)))
                             kept, value = keep(distance, reach, relaxation, vertex, base, mass_row, limit, cube,
                                                particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
+                            key = (wp.int64(particle_count) * wp.int64(triangle_count)
+                                   + wp.int64(e) * wp.int64(edge_count) + wp.int64(f))
                             if kept:
-                                key = (wp.int64(particle_count) * wp.int64(triangle_count)
-                                       + wp.int64(e) * wp.int64(edge_count) + wp.int64(f))
                                 push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out,
                                           counters_out)
+                            elif wp.static(not swept) and value < watch_reach:
+                                watch_pair(world, key, vertex, watch_count_out, watch_key_out, watch_vertex_out)
 
     return broad
+
+
+@wp.func
+def watch_pair(world: int, key: wp.int64, vertex: wp.vec4i, watch_count: wp.array[wp.int32],
+               watch_key: wp.array[wp.int64], watch_vertex: wp.array[wp.vec4i]):
+    """Store a watched pair in its world's watch list (module ``selfcontact_cache``); beyond its capacity only
+    counted (the world's cache then takes the reach CACHE_REACH τ)."""
+    capacity = watch_key.shape[0] // watch_count.shape[0]
+    slot = wp.atomic_add(watch_count, world, 1)
+    if slot < capacity:
+        watch_key[world * capacity + slot] = key
+        watch_vertex[world * capacity + slot] = vertex
 
 
 @functools.cache
@@ -625,16 +677,24 @@ def fill_kernel():
 @functools.cache
 def reset_kernel():
     """Kernel emptying the pair buffer of the worlds ``active`` names (its count, and its particles' entry counts
-    and cursors), one thread per particle of every world; the others keep theirs."""
+    and cursors) and their watch lists' counts, one thread per particle of every world; the others keep theirs."""
 
     @flat_kernel(module="unique", enable_backward=False)
-    def reset(particle_count: int, active: wp.array[wp.int32], pairs_out: Pairs):
+    def reset(
+        # Model:
+        particle_count: int,
+        active: wp.array[wp.int32],
+        # Out:
+        pairs_out: Pairs,
+        watch_count_out: wp.array[wp.int32],
+    ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
         if active[world] == 0:
             return
         if i == 0:
             pairs_out.count[world] = 0
+            watch_count_out[world] = 0
         pairs_out.vertex_count[p] = 0
         pairs_out.vertex_cursor[p] = 0
 

@@ -1,27 +1,43 @@
 """The self-collision pass's pair cache: the broad phase runs when the pairs it listed may no longer hold every
 pair the pass needs, not every step.
 
-The cache of a world is the list of vertex–triangle and edge–edge pairs closer than R = ``CACHE_REACH`` τ at
+The cache of a world is the list of vertex–triangle and edge–edge pairs closer than ``CACHE_REACH`` τ at
 its *anchor* positions xᵃ (the step's start when it was built), with a CSR of their vertices, in the layout
-of ``kernels/selfcontact.py``'s pair buffers. Every point of a primitive is a convex combination of its
+of ``kernels/selfcontact.py``'s pair buffers, and its *watch list*: the pairs between CACHE_REACH τ and
+``WATCH_REACH`` τ apart at the anchors (key and vertices only), whose distances each step checks. R, the cache's
+reach below, is WATCH_REACH τ (CACHE_REACH τ in a world whose watch list overflowed): every pair closer than R at
+the anchors is cached or watched. A cloth's own in-plane pairs (3.5τ apart in the benchmark's 0.1 m grid at
+τ = 2 cm) are watched, not cached: the pair stages never walk them, and they stop no drift. Every point of a primitive is a convex combination of its
 vertices, p = Σ wᵢ xᵢ, so two points p, q of a pair move apart or together by at most the largest |Δᵢ - Δⱼ| over
 a vertex i of one side and j of the other, Δ = x - xᵃ the drifts from the anchors: a pair's distance differs
 from its distance at the anchors by at most that. Drifts are measured relative to the world's reference vertex
 (a fixed surface vertex), r = Δ - Δ_ref, which changes no difference Δᵢ - Δⱼ: a cloth that falls or slides as a
 whole keeps its cache. Each step:
 
-1. ``check_kernel`` reduces each world's drifts at the step's start x⁰ into integers (order-free maxima, in
-   units of τ / KINEMATIC_STEPS rounded up): the largest |r| and the box of the r, each padded for rounding;
-   ``decide_kernel`` keeps the cache when |rᵢ - rⱼ| ≤ R - REPULSION_REACH τ (less a slack ``SAFETY``) for every
-   i and j, by either bound: the largest |r| at most half of it, or the box's diagonal at most all of it (a
-   sheet falling past a still part of itself spreads its drifts along one axis: the second allows twice the
-   drift of the first there).
-   Pairs outside the cache are then at least REPULSION_REACH τ apart at x⁰. Otherwise the world is flagged for a
-   rebuild (FLAG_REBUILD). A world that was never built has R = 0 and is flagged; so is one whose τ grew or
-   whose state was replaced. The world's largest kinematic displacement K_w of the step is reduced into
-   FLAG_KINEMATIC, and its free surface vertices' largest step into FLAG_STEP.
-2. The flagged worlds' broad phase (BVH refit and queries, as ``kernels/selfcontact.py``) at x⁰ with reach R,
-   then ``anchor_kernel`` (xᵃ = x⁰, R = CACHE_REACH τ): a conditional graph node, launched only when a world
+1. ``check_kernel`` reduces, per *patch* (a group of triangles close at rest, ``core/selfcontact.py``'s
+   ``surface_patches``; one block each, block-wide integer maxima, no atomics), the box of its corners' drifts r
+   at the step's start x⁰ and the box of their positions x⁰, in units of τ / KINEMATIC_STEPS rounded outward and
+   padded for rounding; and per world the largest |r| (an integer maximum, order-free). Every vertex and edge lies
+   in the boxes of its owner triangle's patch (``vertex_owner``, ``edge_owner``). ``decide_kernel`` keeps the cache
+   when every pair outside it stays at least REPULSION_REACH τ apart at x⁰, by either bound: the largest |r| at
+   most (R - REPULSION_REACH τ)/2 (less a slack ``SAFETY``), or, for every two patches P, Q (P = Q included):
+   their position boxes lie at least REPULSION_REACH τ (1 + SAFETY) apart (every pair across them is that far
+   apart now, whatever its drifts), or the largest |r_a - r_b| over a corner a of P and b of Q, read from their
+   drift boxes, is at most R - REPULSION_REACH τ (less SAFETY): a pair outside the cache was R apart at its
+   anchors and came closer by at most that. A sheet falling past a still part of itself keeps its cache while
+   the two stay apart; a patch pair in contact or close, while their relative drift stays small (the patches
+   refine the world's single box of drifts, which a sliding skirt spreads along one axis).
+   ``watch_kernel`` checks each watched pair's distance at x⁰ (the narrow phase's arithmetic): one closer than
+   REPULSION_REACH τ (1 + SAFETY) flags its world. It runs only in the worlds ``decide_kernel`` flags FLAG_WATCH:
+   where the same bounds with CACHE_REACH τ for R fail (elsewhere every pair outside the cache, watched or not,
+   was CACHE_REACH τ apart at the anchors and the drifts keep it REPULSION_REACH τ apart). The pairs outside the cache are then at least REPULSION_REACH τ
+   apart at x⁰: the watched ones by their own distance, the others by the drifts.
+   Otherwise the world is flagged for a rebuild (FLAG_REBUILD). A world that was never built has R = 0 and is
+   flagged; so is one whose τ grew or whose state was replaced. The world's largest kinematic displacement K_w
+   of the step is reduced into FLAG_KINEMATIC, and its free surface vertices' largest step into FLAG_STEP.
+2. The flagged worlds' broad phase (BVH refit and queries, as ``kernels/selfcontact.py``) at x⁰, caching the pairs
+   within CACHE_REACH τ and watching those within WATCH_REACH τ, then ``anchor_kernel`` (xᵃ = x⁰, R = WATCH_REACH τ,
+   or CACHE_REACH τ where the watch list overflowed): a conditional graph node, launched only when a world
    is flagged.
 3. The repulsion runs over the cache: its narrow phase keeps the pairs closer than REPULSION_REACH τ at x⁰,
    which the cache holds all of (1.), with the same distance arithmetic as the broad phase: the same pairs,
@@ -62,15 +78,19 @@ from .selfcontact import (
     FLAG_KINDS,
     FLAG_KINEMATIC,
     FLAG_REBUILD,
-    FLAG_SPREAD,
     FLAG_STEP,
+    FLAG_WATCH,
     FLAG_WORK,
     KINEMATIC_STEPS,
     NO_BOUND,
+    PATCH_COLUMNS,
+    PATCH_DRIFT,
+    PATCH_POSITION,
     PARAM_RELAXATION,
     PARAM_THICKNESS,
     REPULSION_REACH,
     SAFETY,
+    WATCH_REACH,
     SEARCH_REACH,
     Pairs,
     Surface,
@@ -119,82 +139,139 @@ def length_funcs(scalar: type):
 
 
 @functools.cache
-def check_kernel(scalar: type):
-    """Kernel of the cache's check (module docstring, 1.), one thread per particle of every world: each surface
-    vertex's drift from its anchor relative to the reference vertex, r, reduced per world into its padded length
-    (FLAG_DRIFT) and its padded box (FLAG_SPREAD); the kinematic vertices' largest displacement (FLAG_KINEMATIC);
-    the free surface vertices' largest step (FLAG_STEP). ``decide_kernel`` reads them."""
+def check_kernel(scalar: type, tiled: bool = True):
+    """Tiled kernel of the cache's check (module docstring, 1.), one block per chunk of a patch's triangles in every
+    world (``wp.launch_tiled``, dim (world_count, chunk_count)); chunk c holds ``patch_vertex[chunk_start[c]:
+    chunk_start[c + 1]]``, corners of patch ``chunk_patch[c]``'s triangles (each patch's once: v where the patch
+    reports v, its owner triangle's, -1 - v elsewhere), and each thread walks a share of them. Per patch: the box of
+    the corners' drifts r from their anchors relative to the reference vertex and the box of their positions at the
+    step's start, each padded and rounded outward (``patch_box_out``, PATCH_*, stored plus LENGTH_LIMIT so that a
+    zeroed box is empty). Per world, from the reported corners: the padded largest |r| (FLAG_DRIFT), the kinematic vertices' largest displacement
+    (FLAG_KINEMATIC), the free surface vertices' largest step (FLAG_STEP). Each a block-wide integer maximum, then
+    one integer atomic maximum per block (order-free). ``decide_kernel`` reads them. Without ``tiled`` (the CPU,
+    where a block is one thread) a plain kernel over (world, chunk), each thread a block of one."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
     units = length_funcs(scalar)
+    extents = wp.types.vector(PATCH_COLUMNS, wp.int32)
 
-    @flat_kernel(module="unique", enable_backward=False)
+    @wp.func
+    def block_max(value: int):
+        """The largest ``value`` over the block's threads, in every thread."""
+        if wp.static(tiled):
+            return wp.tile_reduce(wp.max, wp.tile(value))[0]
+        return value
+
+    @wp.kernel(module="unique", enable_backward=False)
     def check(
         # Model:
         particle_count: int,
         particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array2d[scalar],
         world_enabled: wp.array[wp.int32],
-        surface: Surface,
+        triangle: wp.array[wp.vec3i],
+        patch_vertex: wp.array[wp.int32],
+        chunk_patch: wp.array[wp.int32],
+        chunk_start: wp.array[wp.int32],
         params: wp.array2d[scalar],
         cache_anchor: wp.array[vec3],
         # State in:
         particle_q_start: wp.array[vec3],
         particle_q_end: wp.array[vec3],
         # Out:
+        patch_box_out: wp.array3d[wp.int32],
         flags_out: wp.array[wp.int32],
     ):
-        p = wp.tid()
-        world, i = world_and_index(p, particle_count)
-        if world_enabled[world] == 0 or surface.vertex_owner[i] < 0:
+        world, chunk, lane, threads = int(0), int(0), int(0), int(1)
+        if wp.static(tiled):
+            world, chunk, lane = wp.tid()
+            threads = wp.block_dim()
+        else:
+            world, chunk = wp.tid()
+        if world_enabled[world] == 0:
             return
         world_count = (flags_out.shape[0] - 2) // FLAG_KINDS
+        base = base_index(world, particle_count)
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         row = wp.min(world, params.shape[0] - 1)
         thickness = params[row, PARAM_THICKNESS]
-        start = particle_q_start[p]
+        limit = params[row, PARAM_RELAXATION] * scalar(SEARCH_REACH) * thickness
         # Drift relative to the world's reference vertex (a middle triangle's first corner): a translation of the
         # whole surface changes no pair's distance.
-        ref = base_index(world, particle_count) + surface.triangle[surface.triangle.shape[0] // 2][0]
+        ref = base + triangle[triangle.shape[0] // 2][0]
         shift = particle_q_start[ref] - cache_anchor[ref]
-        anchor = cache_anchor[p] + shift
-        r = start - anchor
-        pad = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + wp.max(wp.abs(anchor)) + wp.max(wp.abs(shift)) + scalar(1.0))
-        drift = units(wp.length(r) + pad, thickness)
-        big = drift >= LENGTH_LIMIT
-        raise_to(flags_out, flag_slot(FLAG_DRIFT, world, world_count), drift)
-        for k in range(3):
-            high = units(r[k] + pad, thickness)
-            low = units(pad - r[k], thickness)
-            big = big or high >= LENGTH_LIMIT or low >= LENGTH_LIMIT
-            raise_to(flags_out, flag_slot(FLAG_SPREAD + k, world, world_count), high)
-            raise_to(flags_out, flag_slot(FLAG_SPREAD + 3 + k, world, world_count), low)
+        shift_pad = wp.max(wp.abs(shift))
+        extent = extents()
+        for k in range(PATCH_COLUMNS):
+            extent[k] = -LENGTH_LIMIT
+        drift = int(0)
+        kinematic = int(0)
+        step_units = int(0)
+        big = bool(False)
+        for a in range(chunk_start[chunk] + lane, chunk_start[chunk + 1], threads):
+            entry = patch_vertex[a]
+            i = entry
+            if entry < 0:
+                i = -1 - entry
+            p = base + i
+            start = particle_q_start[p]
+            anchor = cache_anchor[p] + shift
+            r = start - anchor
+            pad = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + wp.max(wp.abs(anchor)) + shift_pad + scalar(1.0))
+            place = scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0))
+            for k in range(3):
+                high = units(r[k] + pad, thickness)
+                low = units(pad - r[k], thickness)
+                big = big or high >= LENGTH_LIMIT or low >= LENGTH_LIMIT
+                extent[PATCH_DRIFT + k] = wp.max(extent[PATCH_DRIFT + k], high)
+                extent[PATCH_DRIFT + 3 + k] = wp.max(extent[PATCH_DRIFT + 3 + k], low)
+                # A position beyond the units' range stays at LENGTH_LIMIT: the box only grows (conservative).
+                extent[PATCH_POSITION + k] = wp.max(extent[PATCH_POSITION + k], units(start[k] + place, thickness))
+                extent[PATCH_POSITION + 3 + k] = wp.max(extent[PATCH_POSITION + 3 + k],
+                                                        units(place - start[k], thickness))
+            if entry >= 0:  # each vertex's own values once, from the patch of the triangle that reports it
+                length = units(wp.length(r) + pad, thickness)
+                big = big or length >= LENGTH_LIMIT
+                drift = wp.max(drift, length)
+                step = wp.length(particle_q_end[p] - start)
+                if effective_inv_mass(particle_flags[p], particle_inv_mass[mass_row, i]) == scalar(0.0):
+                    level = int(1 << 30)
+                    steps = step / thickness * scalar(KINEMATIC_STEPS)
+                    if steps < scalar(1 << 29):  # else (or NaN) the largest level
+                        level = int(steps) + 1  # rounded up
+                    kinematic = wp.max(kinematic, level)
+                elif not (step == scalar(0.0)):  # as the repulsion's gather tests it: its step limited, plus its pad
+                    limited = wp.min(step, limit)
+                    step_units = wp.max(step_units, units(limited + place, thickness))
         if big:  # beyond what the units hold (or NaN): rebuild
             raise_flag(flags_out, FLAG_REBUILD, world, world_count)
-        step = wp.length(particle_q_end[p] - start)
-        if effective_inv_mass(particle_flags[p], particle_inv_mass[mass_row, i]) == scalar(0.0):
-            level = int(1 << 30)
-            steps = step / thickness * scalar(KINEMATIC_STEPS)
-            if steps < scalar(1 << 29):  # else (or NaN) the largest level
-                level = int(steps) + 1  # rounded up
-            wp.atomic_max(flags_out, flag_slot(FLAG_KINEMATIC, world, world_count), level)
-        elif not (step == scalar(0.0)):  # as the repulsion's gather tests it: its step limited, plus its pad
-            limited = wp.min(step, params[row, PARAM_RELAXATION] * scalar(SEARCH_REACH) * thickness)
-            raise_to(flags_out, flag_slot(FLAG_STEP, world, world_count),
-                     units(limited + scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0)), thickness))
+        patch = chunk_patch[chunk]
+        for k in range(PATCH_COLUMNS):
+            largest = block_max(extent[k])
+            if lane == 0:
+                wp.atomic_max(patch_box_out, world, patch, k, largest + LENGTH_LIMIT)
+        drift = block_max(drift)
+        kinematic = block_max(kinematic)
+        step_units = block_max(step_units)
+        if lane == 0:
+            raise_to(flags_out, flag_slot(FLAG_DRIFT, world, world_count), drift)
+            raise_to(flags_out, flag_slot(FLAG_KINEMATIC, world, world_count), kinematic)
+            raise_to(flags_out, flag_slot(FLAG_STEP, world, world_count), step_units)
 
     return check
 
 
 @functools.cache
 def decide_kernel(scalar: type):
-    """Kernel of the cache's decisions (module docstring, 1.), one thread per world, after ``check_kernel``: a
-    world rebuilds unless its drifts keep every pair outside the cache at least REPULSION_REACH τ apart, either
-    bound holding: the padded drift at most half the slack, (R - REPULSION_REACH τ)(1 - SAFETY) / 2, or the padded
-    box's diagonal at most the slack; and the pair stages run (FLAG_WORK's first entry) where a world has
-    cached pairs, a free vertex steps further than the repulsion's gather allows without the swept broad
-    phase (γ (REPULSION_REACH τ - K_w) (1 - SAFETY), less its pad), or its pins move REPULSION_REACH τ / 2 or more
-    (less the SAFETY share)."""
+    """Kernel of the cache's decisions (module docstring, 1.), one thread per ordered pair of patches (P ≤ Q) of
+    every world, after ``check_kernel``: the world rebuilds unless its drifts keep every pair outside the cache at
+    least REPULSION_REACH τ apart: its padded largest drift at most half the slack, (R - REPULSION_REACH τ)(1 -
+    SAFETY) / 2; or, for every two patches whose position boxes lie closer than REPULSION_REACH τ (1 + SAFETY), their
+    drifts' spread at most the slack (the length of the vector of max(high_P + low_Q, high_Q + low_P) per axis: the
+    largest |r_a - r_b| over a corner a of P and b of Q). The thread of (0, 0) also decides whether the pair stages
+    run (FLAG_WORK's first entry): where a world has cached pairs, a free vertex steps further than the repulsion's
+    gather allows without the swept broad phase (γ (REPULSION_REACH τ - K_w) (1 - SAFETY), less its pad), or its pins
+    move REPULSION_REACH τ / 2 or more (less the SAFETY share)."""
     vec3 = vec3_type(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
@@ -203,41 +280,151 @@ def decide_kernel(scalar: type):
         world_enabled: wp.array[wp.int32],
         params: wp.array2d[scalar],
         cache_reach: wp.array[scalar],
-        cache: Pairs,
+        cache_count: wp.array[wp.int32],
+        patch_box: wp.array3d[wp.int32],
         # In/out (the pass's flags):
         flags_in_out: wp.array[wp.int32],
+        # Out:
+        patch_watch_out: wp.array2d[wp.int32],
     ):
-        world = wp.tid()
-        if world_enabled[world] == 0:
+        tid = wp.tid()
+        patch_count = patch_box.shape[1]
+        world = tid // (patch_count * patch_count)
+        rest = tid - world * patch_count * patch_count
+        first = rest // patch_count
+        second = rest - first * patch_count
+        if world_enabled[world] == 0 or second < first:
             return
         world_count = cache_reach.shape[0]
         row = wp.min(world, params.shape[0] - 1)
         thickness = params[row, PARAM_THICKNESS]
         unit = thickness / scalar(KINEMATIC_STEPS)
         slack = (cache_reach[world] - scalar(REPULSION_REACH) * thickness) * scalar(1.0 - SAFETY)
+        if first == 0 and second == 0:
+            kinematic = scalar(flags_in_out[flag_slot(FLAG_KINEMATIC, world, world_count)]) * unit
+            step = scalar(flags_in_out[flag_slot(FLAG_STEP, world, world_count)]) * unit
+            budget = (params[row, PARAM_RELAXATION] * (scalar(REPULSION_REACH) * thickness - kinematic)
+                      * scalar(1.0 - SAFETY) * scalar(1.0 - SAFETY))  # the second factor: this test's own rounding
+            far = scalar(2.0) * kinematic >= scalar(REPULSION_REACH) * thickness * scalar(1.0 - SAFETY)  # as repel_gather
+            if cache_count[world] > 0 or not (step <= budget) or far:
+                flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
+        # The slack the cache would have without its watch list: where it suffices, the watched pairs need no check.
+        unwatched = ((wp.min(cache_reach[world], scalar(CACHE_REACH) * thickness) - scalar(REPULSION_REACH) * thickness)
+                     * scalar(1.0 - SAFETY))
         drift = scalar(flags_in_out[flag_slot(FLAG_DRIFT, world, world_count)]) * unit
-        width = vec3(scalar(0.0))
+        if drift <= scalar(0.5) * unwatched:  # False for a negative slack (R = 0: never built)
+            return
+        gap = vec3(scalar(0.0))
+        spread = vec3(scalar(0.0))
         for k in range(3):
-            width[k] = scalar(flags_in_out[flag_slot(FLAG_SPREAD + k, world, world_count)]
-                              + flags_in_out[flag_slot(FLAG_SPREAD + 3 + k, world, world_count)]) * unit
-        holds = drift <= scalar(0.5) * slack or wp.length(width) <= slack  # False for a negative slack (R = 0)
-        if not holds:
+            # Integer arithmetic first (exact), then scaled: [-low, high] is each box along axis k.
+            # Stored plus LENGTH_LIMIT (check_kernel), taken off each term (no int32 overflow).
+            apart = wp.max(0, wp.max(2 * LENGTH_LIMIT - patch_box[world, second, PATCH_POSITION + 3 + k]
+                                     - patch_box[world, first, PATCH_POSITION + k],
+                                     2 * LENGTH_LIMIT - patch_box[world, first, PATCH_POSITION + 3 + k]
+                                     - patch_box[world, second, PATCH_POSITION + k]))
+            gap[k] = scalar(apart) * unit
+            widest = wp.max((patch_box[world, first, PATCH_DRIFT + k] - LENGTH_LIMIT)
+                            + (patch_box[world, second, PATCH_DRIFT + 3 + k] - LENGTH_LIMIT),
+                            (patch_box[world, second, PATCH_DRIFT + k] - LENGTH_LIMIT)
+                            + (patch_box[world, first, PATCH_DRIFT + 3 + k] - LENGTH_LIMIT))
+            spread[k] = scalar(widest) * unit
+        if wp.length(gap) >= scalar(REPULSION_REACH) * thickness * scalar(1.0 + SAFETY):
+            return  # every pair across these patches is that far apart now
+        if wp.length(spread) <= unwatched:
+            return
+        flags_in_out[flag_slot(FLAG_WATCH, world, world_count)] = 1  # the watched pairs need their check
+        patch_watch_out[world, first] = 1  # those between these two patches (watch_kernel)
+        patch_watch_out[world, second] = 1
+        if drift <= scalar(0.5) * slack:
+            return
+        if not (wp.length(spread) <= slack):
             raise_flag(flags_in_out, FLAG_REBUILD, world, world_count)
-        kinematic = scalar(flags_in_out[flag_slot(FLAG_KINEMATIC, world, world_count)]) * unit
-        step = scalar(flags_in_out[flag_slot(FLAG_STEP, world, world_count)]) * unit
-        budget = (params[row, PARAM_RELAXATION] * (scalar(REPULSION_REACH) * thickness - kinematic)
-                  * scalar(1.0 - SAFETY) * scalar(1.0 - SAFETY))  # the second factor: this test's own rounding
-        far = scalar(2.0) * kinematic >= scalar(REPULSION_REACH) * thickness * scalar(1.0 - SAFETY)  # as repel_gather
-        if cache.count[world] > 0 or not (step <= budget) or far:
-            flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
 
     return decide
 
 
 @functools.cache
+def watch_kernel(scalar: type):
+    """Kernel of the watched pairs' check (module docstring, 1.), after ``decide_kernel``, in the worlds it flagged
+    FLAG_WATCH (elsewhere the drifts keep the watched pairs apart too), one thread per particle of every world taking
+    its world's watch slots local, local + particle_count, ...: each watched pair whose sides' patches (their owner
+    triangles', ``triangle_patch``) were both marked by ``decide_kernel`` (``patch_watch``), its distance at the step's start,
+    with the narrow phase's arithmetic; a world with one closer than REPULSION_REACH τ (1 + SAFETY) is flagged for a
+    rebuild (FLAG_REBUILD)."""
+    vec3 = vec3_type(scalar)
+    triangle_closest, edge_closest = geometry_funcs(scalar)
+
+    @flat_kernel(module="unique", enable_backward=False)
+    def watch(
+        # Model:
+        particle_count: int,
+        world_enabled: wp.array[wp.int32],
+        surface: Surface,
+        params: wp.array2d[scalar],
+        watch_count: wp.array[wp.int32],
+        watch_key: wp.array[wp.int64],
+        watch_vertex: wp.array[wp.vec4i],
+        triangle_patch: wp.array[wp.int32],
+        patch_watch: wp.array2d[wp.int32],
+        # State in:
+        particle_q_start: wp.array[vec3],
+        # In/out (the pass's flags):
+        flags_in_out: wp.array[wp.int32],
+    ):
+        p = wp.tid()
+        world, local = world_and_index(p, particle_count)
+        world_count = watch_count.shape[0]
+        capacity = watch_key.shape[0] // world_count
+        count = wp.min(watch_count[world], capacity)
+        if local >= count or world_enabled[world] == 0 or flags_in_out[flag_slot(FLAG_WATCH, world, world_count)] == 0:
+            return
+        base = base_index(world, particle_count)
+        thickness = params[wp.min(world, params.shape[0] - 1), PARAM_THICKNESS]
+        near = scalar(REPULSION_REACH) * thickness * scalar(1.0 + SAFETY)
+        vt_keys = wp.int64(particle_count) * wp.int64(surface.triangle.shape[0])
+        for slot in range(local, count, particle_count):
+            s = world * capacity + slot
+            # The patches of the pair's sides (their owner triangles'): unless decide_kernel marked both, the pair's
+            # patches lie 2τ apart now or drift by at most the slack of CACHE_REACH τ: it is that far apart.
+            key = watch_key[s]
+            side_a = int(0)
+            side_b = int(0)
+            if key < vt_keys:
+                triangle_count = wp.int64(surface.triangle.shape[0])
+                side_a = triangle_patch[surface.vertex_owner[int(key // triangle_count)]]
+                side_b = triangle_patch[int(key % triangle_count)]
+            else:
+                edge_count = wp.int64(surface.edge.shape[0])
+                rest = key - vt_keys
+                side_a = triangle_patch[surface.edge_owner[int(rest // edge_count)]]
+                side_b = triangle_patch[surface.edge_owner[int(rest % edge_count)]]
+            if patch_watch[world, side_a] == 0 or patch_watch[world, side_b] == 0:
+                continue
+            index = watch_vertex[s]
+            x0 = particle_q_start[base + index[0]]
+            x1 = particle_q_start[base + index[1]]
+            x2 = particle_q_start[base + index[2]]
+            x3 = particle_q_start[base + index[3]]
+            d = scalar(0.0)
+            if key < vt_keys:
+                bary = triangle_closest(x0, x1, x2, x3)
+                d = wp.length(x0 - (bary[0] * x1 + bary[1] * x2 + bary[2] * x3))
+            else:
+                st = edge_closest(x0, x1, x2, x3)
+                d = wp.length((x0 + st[0] * (x1 - x0)) - (x2 + st[1] * (x3 - x2)))
+            if not (d >= near):
+                raise_flag(flags_in_out, FLAG_REBUILD, world, world_count)
+                return
+
+    return watch
+
+
+@functools.cache
 def anchor_kernel(scalar: type):
     """Kernel ending a rebuild (module docstring, 2.): the flagged worlds' anchors become the step's start and
-    their reach CACHE_REACH τ; a rebuilt world that found pairs sets FLAG_WORK."""
+    their reach WATCH_REACH τ (CACHE_REACH τ where the watch list overflowed); a rebuilt world that found pairs sets
+    FLAG_WORK."""
     vec3 = vec3_type(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
@@ -246,6 +433,8 @@ def anchor_kernel(scalar: type):
         particle_count: int,
         params: wp.array2d[scalar],
         cache: Pairs,
+        watch_count: wp.array[wp.int32],
+        watch_capacity: int,
         # State in:
         particle_q_start: wp.array[vec3],
         # In/out (the pass's flags):
@@ -262,7 +451,11 @@ def anchor_kernel(scalar: type):
             return
         cache_anchor_out[p] = particle_q_start[p]
         if i == 0:
-            cache_reach_out[world] = scalar(CACHE_REACH) * params[wp.min(world, params.shape[0] - 1), PARAM_THICKNESS]
+            # The watched pairs' reach where the watch list held them all, else the cache's own.
+            reach = scalar(CACHE_REACH)
+            if watch_count[world] <= watch_capacity:
+                reach = scalar(WATCH_REACH)
+            cache_reach_out[world] = reach * params[wp.min(world, params.shape[0] - 1), PARAM_THICKNESS]
             counters_out[world, COUNT_REBUILDS] += 1  # one thread per world
             if cache.count[world] > 0:
                 flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
