@@ -37,7 +37,8 @@ from dataclasses import dataclass
 
 from .. import checks
 from ..errors import ConfigError
-from ..kernels.guards import BALANCE_SLOTS, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS, PARTIAL_SLOTS, RUNNING_SLOTS
+from ..kernels.guards import (BALANCE_SLOTS, CARRY_SLOTS, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS, PARTIAL_SLOTS,
+                              RUNNING_SLOTS)
 from ..kernels.inputs import INPUT_COUNT
 from ..kernels.linalg import CG_SHORT_SLOTS, REDUCE_FILL_BLOCKS, REDUCE_PER_LANE, reduce_launch_dim
 from ..kernels.selfcontact import (CACHE_SLOTS, COUNTER_COUNT, FLAG_KINDS, PAIRS_PER_VERTEX, PARAM_COUNT, PATCH_CHUNK,
@@ -610,7 +611,9 @@ def estimate_memory(
     power = path.power * f * size  # the power sums the guard hands the integrator (energy out[, work in])
     carried = 8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + running + dampers + power  # what a check carries on
     guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * PARTIAL_SLOTS * check_blocks + 8 * GUARD_LIMITS * w
-             + 2 * 8 * max(energy_blocks, w)  # every family's energy and strain partial sums
+             + 3 * 8 * max(energy_blocks, w)  # every family's energy, strain and dampers' power partial sums
+             + 8 * CARRY_SLOTS * w  # each world's share of the closing term carried to the next check
+             + (0 if cuda else 2 * 4 * GUARD_INTS * w)  # the verdict's two status copies (pinned host memory on CUDA)
              + carried + (2 * vec3 * size + 8 * w if path.midpoint else 0)
              + (2 * vec3 * size if path.stored_forces else 0))
     # The stepper's warm-up before a capture copies what a step carries to the next (the guard's sums and record, the
