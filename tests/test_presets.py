@@ -12,7 +12,6 @@ from warpspring.analysis import d1388, elastica
 from warpspring.core import material as wm
 from warpspring.errors import ConfigError
 
-
 # The entries of Wang, O'Brien & Ramamoorthi 2011's data files (ARCSim materials/<fabric>.json), transcribed from the
 # files: density [kg/m²], the first stretching row (k0, k1, k2, k3) [N/m] and the first bending column (warp, bias,
 # weft) [N·m].
