@@ -10,7 +10,8 @@ no particle moved 0.1 mm in the last 0.1 s (at most ``--max-time`` s). Starts: t
 random heights below 0.1 mm, seeds 0, 1, 2. Reported per spacing: the mean drape coefficient, its spread
 (max - min) over the starts, the folds of each start, the largest final kinetic energy, creep and imbalance (the
 force no Coulomb contact can balance over the weight: 0 at an equilibrium), the substeps and the simulated time;
-and whether the two finest means are within ±0.02. ``--integrator implicit_euler`` runs the former settling
+and whether the two finest means are within ±0.02; for a preset with a measured drape coefficient
+(``material.MEASURED_DRAPE``), the error of each spacing's mean against it. ``--integrator implicit_euler`` runs the former settling
 (4 substeps, solves to 1e-7), whose settled states are not equilibria (imbalance ~200: analysis/drape.py);
 The hinges are ``grid_hinges``' straight layout (no checkerboard mode); ``--hinges crossed`` runs the material
 grid's crossed hinges and ``--hinges triangles`` the triangles' own hinges (the bending before those).
@@ -25,6 +26,8 @@ in float64. Each invocation writes its own section (keyed by its options) and pr
     python bench/drape.py --device cuda:0 --hinges triangles --materials study
     python bench/drape.py --device cuda:0 --materials study --contact-radius 0     # radius = spacing / 4
     python bench/drape.py --device cpu --materials study --fractions 1 2 --seeds 0   # a small check
+    python bench/drape.py --device cuda:0 --materials polyester_twill polyester_plain wool_blend_twill \
+        polyester_viscose_twill polyester_elastane_plain cotton_blend_twill --fractions 2 4 8   # against measured DCs
     python bench/drape.py --device cpu --materials study --spacings 0.015 0.0075 --seeds 0 --integrator implicit_euler --hinges crossed --drag 2e-3 --fixed-time 1.5
 """
 
@@ -41,6 +44,7 @@ from d1388 import MATERIALS, write_section
 
 import warpspring as ws
 from warpspring.analysis import drape, elastica
+from warpspring.core.material import MEASURED_DRAPE
 
 PICTURES = pathlib.Path(__file__).parent / "results"
 
@@ -134,6 +138,12 @@ def main() -> None:
                         f"{max(r.time for r in runs):.2f} | "
                         f"{time.perf_counter() - start:.0f} |")
             print(rows[-1], flush=True)
+            if name in MEASURED_DRAPE:
+                measured = MEASURED_DRAPE[name]
+                verdicts.append(f"- {name} at {spacing * 1e3:.2f} mm (c/{c / spacing:.2f}): DC {dc.mean():.3f} "
+                                f"({', '.join(str(r.folds) for r in runs)} folds) against the measured {measured:.3f}: "
+                                f"error {dc.mean() - measured:+.3f} ({dc.mean() / measured - 1.0:+.0%})")
+                print(verdicts[-1], flush=True)
             if spacing == spacings[-1] and not args.no_picture:
                 path = PICTURES / (f"drape_{name}_{args.hinges}_c{round(c / spacing)}" + (f"_n{args.folds}" if args.folds else "")
                                    + f"_{device.alias.replace(':', '')}.png")

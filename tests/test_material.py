@@ -275,8 +275,10 @@ def test_masses_sum_to_density_times_area():
 
 
 def test_presets_are_valid_and_the_rubber_sheet_is_a_plate():
-    assert set(wm.PRESETS.values()) == {wm.COTTON, wm.SILK, wm.DENIM, wm.RUBBER_SHEET, wm.DENIM_11OZ, wm.COTTON_POLYESTER,
-                                        wm.POLYESTER}
+    assert {wm.COTTON, wm.SILK, wm.DENIM, wm.RUBBER_SHEET, wm.DENIM_11OZ, wm.COTTON_POLYESTER,
+            wm.POLYESTER} <= set(wm.PRESETS.values())
+    assert set(wm.PRESETS) - {"cotton", "silk", "denim", "rubber_sheet", "denim_11oz", "cotton_polyester",
+                               "polyester"} == set(wm.PETRAK2025)
     e, nu, t = 1.5e6, 0.5, 1.0e-3
     r = wm.RUBBER_SHEET
     np.testing.assert_allclose([r.stretch, r.shear, r.bending], [e * t, e * t / (2 * (1 + nu)), e * t**3 / (12 * (1 - nu**2))])

@@ -10,7 +10,7 @@ import pytest
 
 from warpspring.analysis import d1388, elastica
 from warpspring.core import material as wm
-
+from warpspring.errors import ConfigError
 
 # The entries of Wang, O'Brien & Ramamoorthi 2011's data files (ARCSim materials/<fabric>.json), transcribed from the
 # files: density [kg/m²], the first stretching row (k0, k1, k2, k3) [N/m] and the first bending column (warp, bias,
@@ -25,6 +25,20 @@ WANG2011 = {
 }
 
 
+# Petrak et al., Sustainability 2025, 17(4), 1388 (doi:10.3390/su17041388), as transcribed in
+# github.com/KAFKA2306/image2outfit at 1e4a63f, config/materials/kes-woven-fabrics-2025.v1.json: sample, weight [g/m²],
+# stretch (warp, weft) [g/s²], shear [g/s²], bending (warp, weft) [g·mm²/s²] (CLO3D's units) and the measured drape
+# coefficient, copied from that file by hand.
+PETRAK2025 = {
+    "polyester_twill": ("M1", 135.17, 477226, 458614, 41000, 1950, 610, 0.223),
+    "polyester_plain": ("M2", 83.66, 471944, 373515, 46000, 850, 330, 0.228),
+    "wool_blend_twill": ("M3", 178.70, 449656, 439815, 50000, 2140, 2000, 0.349),
+    "polyester_viscose_twill": ("M4", 286.13, 403447, 401762, 61000, 2970, 2400, 0.286),
+    "polyester_elastane_plain": ("M5", 242.00, 407166, 415023, 57000, 3220, 3880, 0.443),
+    "cotton_blend_twill": ("M6", 253.36, 473860, 404746, 126000, 7430, 3700, 0.549),
+}
+
+
 def test_every_preset_states_its_sources():
     assert set(wm.PRESET_SOURCES) == set(wm.PRESETS)
     for name, sources in wm.PRESET_SOURCES.items():
@@ -34,6 +48,27 @@ def test_every_preset_states_its_sources():
     for name, (fabric, *_rest) in WANG2011.items():
         text = wm.PRESET_SOURCES[name]["all"]
         assert "10.1145/2010324.1964966" in text and f"materials/{fabric}.json" in text, name
+    for name, (sample, *_rest) in PETRAK2025.items():
+        sources = wm.PRESET_SOURCES[name]
+        assert all("10.3390/su17041388" in v for v in sources.values()), name
+        assert f"fabric {sample} " in sources["all"] and "kes-woven-fabrics-2025.v1.json" in sources["all"], name
+
+
+@pytest.mark.parametrize("name", sorted(PETRAK2025))
+def test_petrak2025_presets_are_the_papers_values(name):
+    """Independent of ``clo_material``: CLO3D's g/s² is 1e-3 N/m, its g·mm²/s² 1e-9 N·m, g/m² 1e-3 kg/m²; stretch and
+    bending are the means of warp and weft; the measured drape coefficient is the source's."""
+    _, weight, s_warp, s_weft, shear, b_warp, b_weft, dc = PETRAK2025[name]
+    m = wm.PRESETS[name]
+    np.testing.assert_allclose([m.stretch, m.shear, m.bending, m.density],
+                               [(s_warp + s_weft) / 2e3, shear / 1e3, (b_warp + b_weft) / 2e9, weight / 1e3], rtol=1e-12)
+    assert wm.MEASURED_DRAPE[name] == dc
+    assert set(wm.MEASURED_DRAPE) == set(PETRAK2025)
+
+
+def test_clo_material_rejects_a_missing_direction():
+    with pytest.raises(ConfigError, match=r"stretch must be the \(warp, weft\) pair, got 1 values"):
+        wm.clo_material(weight=100.0, stretch=(1.0,), shear=1.0, bending=(1.0, 1.0))
 
 
 @pytest.mark.parametrize("name", sorted(WANG2011))
@@ -72,12 +107,13 @@ def test_kes_units():
                                rtol=1e-5)
 
 
-@pytest.mark.parametrize("name", ["cotton", "silk", "denim", "denim_11oz", "cotton_polyester", "polyester"])
+@pytest.mark.parametrize("name", ["cotton", "silk", "denim", "denim_11oz", "cotton_polyester", "polyester",
+                                  "cotton_blend_twill"])
 def test_preset_d1388_matches_its_elastica(device, name):
     """8 cells over the overhang (4 for the measured fabrics, to keep the suite small): within 3 % of Λ* c (measured
     -0.66 % and -2.55 % for the drape study's cloth; the error depends on Λ* only, so on no preset's values)."""
     material = wm.PRESETS[name]
-    result = d1388.simulate(material, cells=4 if name in WANG2011 else 8, device=device)
+    result = d1388.simulate(material, cells=4 if name in WANG2011 or name in PETRAK2025 else 8, device=device)
     c = elastica.bending_length(material.bending, material.density)
     print(f"{name}: c = {c * 1e3:.2f} mm, overhang {result.overhang * 1e3:.3f} mm, error {result.error:+.2%}")
     assert abs(result.error) < 0.03

@@ -144,9 +144,63 @@ COTTON_POLYESTER = wang2011_material(density=0.220, stretching=(2016.55456, 9.17
 #: Wang et al. 2011's "white-dots-on-blk" (tablecloth, 100 % polyester): ARCSim ``materials/white-dots-on-blk.json``.
 POLYESTER = wang2011_material(density=0.128, stretching=(2002.08618, 0.345588, 2027.48559, 19.189022),
                               bending=(51.713814e-6, 40.659470e-6, 31.282822e-6))
+#: CLO3D's fabric units in SI: weight g/m² → kg/m², stretch and shear g/s² → N/m, bending g·mm²/s² → N·m.
+CLO_WEIGHT = 1.0e-3
+CLO_STIFFNESS = 1.0e-3
+CLO_BENDING = 1.0e-3 * 1.0e-6
+
+
+def clo_material(*, weight: float, stretch, shear: float, bending) -> ClothMaterial:
+    """A :class:`ClothMaterial` from fabric parameters in CLO3D's input units, as published for measured fabrics.
+
+    Args:
+        weight: areal mass [g/m²].
+        stretch: (warp, weft) stretch stiffness [g/s²], read as E·t (1 g/s² = 1e-3 N/m).
+        shear: shear stiffness [g/s²], read as G·t.
+        bending: (warp, weft) bending stiffness [g·mm²/s²], read as D (1 g·mm²/s² = 1e-9 N·m).
+
+    A :class:`ClothMaterial` is isotropic: ``stretch`` is the mean of warp and weft, ``bending`` the mean of warp
+    and weft (the fabrics below differ by up to 3.2× between them).
+    """
+    warp, weft = (checks.positive("stretch [g/s²]", v) for v in _pair("stretch", stretch))
+    b_warp, b_weft = (checks.positive("bending [g·mm²/s²]", v) for v in _pair("bending", bending))
+    return ClothMaterial(stretch=CLO_STIFFNESS * 0.5 * (warp + weft), shear=CLO_STIFFNESS * checks.positive("shear [g/s²]", shear),
+                         bending=CLO_BENDING * 0.5 * (b_warp + b_weft),
+                         density=CLO_WEIGHT * checks.positive("weight [g/m²]", weight))
+
+
+def _pair(name: str, value) -> tuple[float, float]:
+    values = list(value)
+    if len(values) != 2:
+        raise ConfigError(f"{name} must be the (warp, weft) pair, got {len(values)} values")
+    return values[0], values[1]
+
+
+#: The six woven fabrics of Petrak et al., Sustainability 2025, 17(4), 1388 (doi:10.3390/su17041388, CC BY 4.0):
+#: weight, KES-FB measurements converted to CLO3D's parameters ((warp, weft) stretch [g/s²], shear [g/s²], (warp,
+#: weft) bending [g·mm²/s²]) and the measured drape coefficient, as transcribed from the paper's tables 1, 2, 4 and 5
+#: in github.com/KAFKA2306/image2outfit, config/materials/kes-woven-fabrics-2025.v1.json (``PRESET_SOURCES``).
+#: name: (sample, composition and weave, weight, stretch, shear, bending, measured drape coefficient)
+PETRAK2025 = {
+    "polyester_twill": ("M1", "100 % polyester, twill 3/1", 135.17, (477226, 458614), 41000, (1950, 610), 0.223),
+    "polyester_plain": ("M2", "100 % polyester, plain", 83.66, (471944, 373515), 46000, (850, 330), 0.228),
+    "wool_blend_twill": ("M3", "75 % wool 15 % polyester 10 % elastane, twill 2/1", 178.70, (449656, 439815), 50000,
+                         (2140, 2000), 0.349),
+    "polyester_viscose_twill": ("M4", "63 % polyester 33 % viscose 4 % elastane, twill 2/1", 286.13, (403447, 401762),
+                                61000, (2970, 2400), 0.286),
+    "polyester_elastane_plain": ("M5", "97 % polyester 3 % elastane, plain", 242.00, (407166, 415023), 57000,
+                                 (3220, 3880), 0.443),
+    "cotton_blend_twill": ("M6", "65 % cotton 31 % polyester 4 % elastane, twill 2/1", 253.36, (473860, 404746), 126000,
+                           (7430, 3700), 0.549),
+}
+#: Measured Cusick drape coefficients [-] of the presets that have one (the Petrak 2025 fabrics).
+MEASURED_DRAPE = {name: row[6] for name, row in PETRAK2025.items()}
+
 #: The presets by name (for scene files and the command line).
 PRESETS = {"cotton": COTTON, "silk": SILK, "denim": DENIM, "rubber_sheet": RUBBER_SHEET, "denim_11oz": DENIM_11OZ,
-           "cotton_polyester": COTTON_POLYESTER, "polyester": POLYESTER}
+           "cotton_polyester": COTTON_POLYESTER, "polyester": POLYESTER,
+           **{name: clo_material(weight=row[2], stretch=row[3], shear=row[4], bending=row[5])
+              for name, row in PETRAK2025.items()}}
 
 #: Retardation time τ [s] of the default cloth's Kelvin-Voigt damping: kd = τ ke on every spring and hinge, so a
 #: mode of angular frequency ω is damped by ζ = τω/2 (0.05 at 10⁴ rad/s, the top of a 64² cloth of a metre:
@@ -170,6 +224,8 @@ def mesh_area(vertices, faces) -> float:
     """The total area [m²] of a triangle mesh (vertices [m], shape [v, 3]; faces, shape [t, 3])."""
     return float(_triangle_areas(_vertices(vertices), np.asarray(faces, dtype=np.int64)).sum())
 _ARCSIM = "https://github.com/wxhaooo/lyra/blob/5158f74c7c92588339e19e8f86ec7f15a2a4fdf9/materials/"
+_PETRAK = ("https://github.com/KAFKA2306/image2outfit/blob/1e4a63fc6ef27de3fdb6cd7b7e55e03b2fbca14f/config/materials/"
+           "kes-woven-fabrics-2025.v1.json")
 #: Where each preset's values come from, field by field ("none found" where no retrievable measurement was).
 PRESET_SOURCES = {
     "cotton": {"all": "none found: representative values, not a measurement of one fabric"},
@@ -189,6 +245,14 @@ PRESET_SOURCES = {
               "drape coefficient": "none found: the source measured no Cusick drape"}
        for name, fabric in (("denim_11oz", "11oz-black-denim"), ("cotton_polyester", "royal-target"),
                             ("polyester", "white-dots-on-blk"))},
+    **{name: {"all": f"Petrak et al., Sustainability 2025, 17(4), 1388, doi:10.3390/su17041388 (CC BY 4.0): fabric "
+                     f"{row[0]} ({row[1]}): weight (table 1), KES-FB measurements converted to CLO3D parameters "
+                     f"(tables 2, 4), read from the transcription at {_PETRAK}; the paper itself was not retrieved "
+                     f"here, so the transcription is unchecked against it",
+              "drape coefficient": f"the same paper (doi:10.3390/su17041388), table 5: measured {row[6]}, via the "
+                                   f"same transcription; the specimen and pedestal sizes of the measurement were not "
+                                   f"retrieved"}
+       for name, row in PETRAK2025.items()},
 }
 
 
