@@ -609,10 +609,10 @@ def estimate_memory(
                                    else w * (1 + bool(s) + bool(h)))
     dampers = (4 + (f + 8) * s) * w if path.dampers else 0
     power = path.power * f * size  # the power sums the guard hands the integrator (energy out[, work in])
-    carried = 8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + running + dampers + power  # what a check carries on
+    carried = (8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + running + dampers + power  # what a check carries on,
+               + 8 * CARRY_SLOTS * w)  # each world's share of the closing term among it
     guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * PARTIAL_SLOTS * check_blocks + 8 * GUARD_LIMITS * w
              + 3 * 8 * max(energy_blocks, w)  # every family's energy, strain and dampers' power partial sums
-             + 8 * CARRY_SLOTS * w  # each world's share of the closing term carried to the next check
              + (0 if cuda else 2 * 4 * GUARD_INTS * w)  # the verdict's two status copies (pinned host memory on CUDA)
              + carried + (2 * vec3 * size + 8 * w if path.midpoint else 0)
              + (2 * vec3 * size if path.stored_forces else 0))
