@@ -153,7 +153,7 @@ def build_case(scene: str, *, size: str = "full", device=None, spacing: float | 
 #: audited to its end, stayed clean. Likely (not measured apart): the balance counts self-collision as a loss only,
 #: while a driven pin that pushes free cloth through the self-collision pass (which moves positions: no force on
 #: the pin) does work on it.
-GUARD = GuardLimits(energy_balance=0.0)
+GUARD = GuardLimits()
 
 
 def scene_substeps(model) -> int:

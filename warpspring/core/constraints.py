@@ -31,6 +31,9 @@ class StepFinisher:
         self.model = model
         self._buffers = None  # (positions before, two Jacobi buffers): allocated once strain limiting is on
         self._contacts = None
+        #: Called as ``watch(state, -1.0)`` before the self-collision pass and ``watch(state, 1.0)`` after it (device
+        #: work only), or ``None``: the guard's count of the energy that pass puts in (``Guard._watch_corrections``).
+        self.watch = None
 
     @property
     def contacts(self) -> Contacts | None:
@@ -110,7 +113,11 @@ class StepFinisher:
         the plastic springs' rest lengths, from the finished state."""
         self._finish(state, dt)
         if state_in is not None and self.model.self_contact is not None:
+            if self.watch is not None:
+                self.watch(state, -1.0)
             self.model.self_contact(state_in, state, dt)
+            if self.watch is not None:
+                self.watch(state, 1.0)
         self.plastic_pass(state, dt)
 
     def _finish(self, state: State, dt: float) -> None:

@@ -316,7 +316,7 @@ def balance_terms(model: Model, *, integrator, control, limits: GuardLimits, dis
         losses.append(f"contacts with {model.shape_count} collider{'s' if model.shape_count > 1 else ''} (response "
                       "and friction)")
     if getattr(model, "self_contact", None) is not None:
-        losses.append("self-collision")
+        counted.append("the work of self-collision's corrections (the energy change across its pass)")
     if model.stabilizers.enabled("max_strain"):
         losses.append("strain limiting")
     if model.stabilizers.enabled("max_speed"):
