@@ -78,3 +78,24 @@ def test_twist1440_is_not_stopped_and_an_unstable_step_in_it_is(device):
         sim.settle()
     assert stop.value.reason == "energy balance", str(stop.value)
     assert sim.frame <= 49
+
+
+def test_with_self_collision_the_contacts_work_is_counted_too(device):
+    """In a scene with self-collision the bracket starts before the contacts' pass: the summary counts the colliders'
+    work with the self-collision's; with strain limiting first (which moves the pins) only the self-collision pass is
+    bracketed and the contacts stay a loss left out."""
+    for strain, where in ((None, "counted"), (0.1, "losses")):
+        builder = ws.ModelBuilder()
+        springs = ws.SpringMaterial(ke=500.0, kd=0.5)
+        builder.add_cloth_grid(nx=6, ny=6, spacing=0.1, particle_mass=0.1, structural=springs, shear=springs,
+                               bend=None, pin=["top-left"])
+        builder.add_collider_sphere(center=(0.25, 0.25, -0.2), radius=0.1)
+        builder.add_self_collision(thickness=0.01)
+        if strain is not None:
+            builder.stabilizers = ws.Stabilizers(max_strain=strain)
+        model = builder.finalize(device)
+        terms = ws.Simulator(model, fps=60, substeps=4).guard.balance_terms()
+        contacts = [term for term in getattr(terms, where) if term.startswith("contacts with 1 collider")
+                    or term.startswith("the work of contacts with 1 collider")]
+        assert contacts and terms.on, terms.describe()
+        assert "the work of self-collision's corrections (the energy change across its pass)" in terms.counted
