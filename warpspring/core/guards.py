@@ -621,15 +621,18 @@ class Guard(StepHook):
         without it stopped the clean run at frame 47 for 0.226 J "created" (14 % of 1.66 J). Pins lowering cloth onto a
         collider work through the contacts' pass likewise (the battery's stack: stopped at frame 36 for 0.053 J, 15 % of
         0.355 J, with that pass left out). The weight's work over the passes' displacement is in the checks' Σ m g·Δx
-        already. (Device only, capturable; one thread per world walks its particles and elements.)"""
+        already. (Device only, capturable; a block of lanes per world: deterministic sums, no atomics.)"""
         model = self.model
         sign = wp.float64(sign)
-        wp.launch(guard_correction_kinetic_kernel(model.scalar), dim=model.world_count,
-                  inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
-                          self._status, self._correction_block, sign, state.particle_qd],
+        lanes = self._lanes
+        wp.launch(guard_correction_kinetic_kernel(model.scalar, self._tiled), dim=(model.world_count, lanes),
+                  block_dim=lanes, inputs=[model.particle_count, model.world_enabled, model.particle_flags,
+                                           model.particle_mass, self._status, self._correction_block, sign,
+                                           state.particle_qd],
                   outputs=[self._running], device=model.device)
         for family, _, _, _ in self._energy_layout:
-            flat_launch(guard_correction_energy_kernel(model.scalar, family.spec(model)), dim=model.world_count,
+            flat_launch(guard_correction_energy_kernel(model.scalar, family.spec(model), self._tiled),
+                        dim=(model.world_count, lanes), block_dim=lanes,
                         inputs=[model.particle_count, family.element_count, model.world_enabled, family.arrays(model),
                                 model.inputs, self._status, self._correction_block, sign, state.particle_q],
                         outputs=[self._running], device=model.device)

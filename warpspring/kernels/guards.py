@@ -1045,12 +1045,15 @@ def guard_work_kernel(scalar: type, working: tuple, tiled: bool):
 
 
 @functools.cache
-def guard_correction_kinetic_kernel(scalar: type):
+def guard_correction_kinetic_kernel(scalar: type, tiled: bool):
     """Kernel adding ``sign`` times each world's kinetic energy of its free particles [J] (float64) to
-    ``running[world, block, RUNNING_WORK]``: launched with sign -1 before a pass that moves particles outside the
-    forces (self-collision's repulsion and cap) and +1 after it, with :func:`guard_correction_energy_kernel`, it
-    counts the energy that pass put in as work. One thread per world sums its particles in order (no atomics)."""
+    ``running[world, block, RUNNING_WORK]``: launched with sign -1 before the passes that move particles outside the
+    forces (the contacts' and self-collision's) and +1 after them, with :func:`guard_correction_energy_kernel`, it
+    counts the energy those passes put in as work. Launch over [world_count, lanes] with ``block_dim`` = lanes: each
+    lane sums every lanes-th particle in order and a fixed-order tree joins the lanes (``block_sum``; one lane on the
+    CPU): deterministic, no atomics."""
     vec3 = vec3_type(scalar)
+    block_sum, _ = reduction_funcs(tiled)
 
     @wp.kernel(module="unique", enable_backward=False)
     def correction_kinetic(
@@ -1068,29 +1071,33 @@ def guard_correction_kinetic_kernel(scalar: type):
         # Out:
         running_in_out: wp.array3d[wp.float64],
     ):
-        world = wp.tid()
-        if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
-            return
+        world, lane = wp.tid()
+        live = status[world, GUARD_TRIPPED] == 0 and world_enabled[world] != 0
         base = world * particle_count
         energy = wp.float64(0.0)
-        for i in range(particle_count):
+        i = lane
+        while live and i < particle_count:
             p = base + i
             v = particle_qd[p]
             if not is_kinematic(particle_flags[p]) and wp.isfinite(v):
                 mass = wp.float64(particle_mass[wp.min(world, particle_mass.shape[0] - 1), i])
                 energy += wp.float64(0.5) * mass * (wp.float64(v[0]) * wp.float64(v[0]) + wp.float64(v[1])
                                                      * wp.float64(v[1]) + wp.float64(v[2]) * wp.float64(v[2]))
-        running_in_out[world, block, RUNNING_WORK] = running_in_out[world, block, RUNNING_WORK] + sign * energy
+            i += wp.block_dim()
+        energy = block_sum(energy)  # (every lane reaches it: the tile needs them all)
+        if lane == 0 and live:
+            running_in_out[world, block, RUNNING_WORK] = running_in_out[world, block, RUNNING_WORK] + sign * energy
 
     return correction_kinetic
 
 
 @functools.cache
-def guard_correction_energy_kernel(scalar: type, spec):
+def guard_correction_energy_kernel(scalar: type, spec, tiled: bool):
     """Kernel adding ``sign`` times each world's elastic energy of one family's elements [J] (its ``energy`` hook,
-    float64) to ``running[world, block, RUNNING_WORK]`` (as :func:`guard_correction_kinetic_kernel`; the weight's work
-    over the pass's displacement is in the checks' Σ m g·Δx already). One thread per world (no atomics)."""
+    float64) to ``running[world, block, RUNNING_WORK]`` (as :func:`guard_correction_kinetic_kernel`, launched the same
+    way; the weight's work over the passes' displacement is in the checks' Σ m g·Δx already)."""
     vec3 = vec3_type(scalar)
+    block_sum, _ = reduction_funcs(tiled)
     funcs = spec.funcs(scalar)
     Arrays = funcs.arrays
     energy_func = funcs.energy
@@ -1112,12 +1119,15 @@ def guard_correction_energy_kernel(scalar: type, spec):
         # Out:
         running_in_out: wp.array3d[wp.float64],
     ):
-        world = wp.tid()
-        if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
-            return
+        world, lane = wp.tid()
+        live = status[world, GUARD_TRIPPED] == 0 and world_enabled[world] != 0
         energy = wp.float64(0.0)
-        for element in range(element_count):
+        element = lane
+        while live and element < element_count:
             energy += wp.float64(energy_func(world, element, world * particle_count, arrays, inputs, particle_q))
-        running_in_out[world, block, RUNNING_WORK] = running_in_out[world, block, RUNNING_WORK] + sign * energy
+            element += wp.block_dim()
+        energy = block_sum(energy)  # (every lane reaches it: the tile needs them all)
+        if lane == 0 and live:
+            running_in_out[world, block, RUNNING_WORK] = running_in_out[world, block, RUNNING_WORK] + sign * energy
 
     return correction_energy
