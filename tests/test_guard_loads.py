@@ -120,8 +120,6 @@ def unaccounted(device, term: str):
         builder.add_emitter(center=(0.25, 0.5, 0.2), rate=100.0, life=0.5, velocity=(0.0, 1.0, 0.0), capacity=64)
     elif term == "collider":
         builder.add_collider_sphere(center=(0.25, 0.3, 0.25), radius=0.1)
-    elif term == "self-collision":
-        builder.add_self_collision(thickness=0.01)
     elif term == "strain limiting":
         builder = cloth()
         builder.stabilizers = ws.Stabilizers(max_strain=0.05)
@@ -137,7 +135,6 @@ UNACCOUNTED = {
     "moving collider": ("off", "the work of moving colliders is not counted"),
     "emitter": ("off", "the energy entering with emitted particles is not counted"),
     "collider": ("losses", "contacts with 1 collider (response and friction)"),
-    "self-collision": ("losses", "self-collision"),
     "strain limiting": ("losses", "strain limiting"),
     "plasticity": ("losses", "plastic flow and breaking of springs"),
 }

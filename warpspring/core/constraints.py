@@ -31,6 +31,9 @@ class StepFinisher:
         self.model = model
         self._buffers = None  # (positions before, two Jacobi buffers): allocated once strain limiting is on
         self._contacts = None
+        #: Called as ``watch(state, -1.0)`` before the self-collision pass and ``watch(state, 1.0)`` after it (device
+        #: work only), or ``None``: the guard's count of the energy that pass puts in (``Guard._watch_corrections``).
+        self.watch = None
 
     @property
     def contacts(self) -> Contacts | None:
@@ -108,8 +111,16 @@ class StepFinisher:
         """Finish ``state``, the result of a step of ``dt`` [s] from ``state_in``: the stabilisers, the
         contacts, then self-collision (which needs ``state_in``: without it, self-collision is skipped), and last
         the plastic springs' rest lengths, from the finished state."""
+        watch = self.watch if state_in is not None and self.model.self_contact is not None else None
+        if watch is not None and not self.stabilised:
+            watch(state, -1.0)  # (the stabilisers' pass moves the pins to their targets: its bracket starts after it)
         self._finish(state, dt)
-        if state_in is not None and self.model.self_contact is not None:
+        if watch is not None:
+            if self.stabilised:
+                watch(state, -1.0)
+            self.model.self_contact(state_in, state, dt)
+            watch(state, 1.0)
+        elif state_in is not None and self.model.self_contact is not None:
             self.model.self_contact(state_in, state, dt)
         self.plastic_pass(state, dt)
 

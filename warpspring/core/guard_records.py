@@ -312,10 +312,19 @@ def balance_terms(model: Model, *, integrator, control, limits: GuardLimits, dis
             counted.append("the loss to drag")
         else:
             losses.append("drag")
+    finish = getattr(integrator, "finish_step", None)
+    # With self-collision the guard counts the energy change across the step's last passes (``Guard._count_corrections``):
+    # the contacts' too, where no stabiliser runs before them (which moves the pins: its bracket starts after it).
+    bracketed = getattr(model, "self_contact", None) is not None and finish is not None
     if model.shape_count:
-        losses.append(f"contacts with {model.shape_count} collider{'s' if model.shape_count > 1 else ''} (response "
-                      "and friction)")
-    if getattr(model, "self_contact", None) is not None:
+        contacts = f"contacts with {model.shape_count} collider{'s' if model.shape_count > 1 else ''}"
+        if bracketed and not finish.stabilised:
+            counted.append(f"the work of {contacts} (the energy change across their pass)")
+        else:
+            losses.append(f"{contacts} (response and friction)")
+    if bracketed:
+        counted.append("the work of self-collision's corrections (the energy change across its pass)")
+    elif getattr(model, "self_contact", None) is not None:
         losses.append("self-collision")
     if model.stabilizers.enabled("max_strain"):
         losses.append("strain limiting")
