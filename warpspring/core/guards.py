@@ -99,9 +99,10 @@ from .stepper import StepHook
 from .tracks import evaluate_input_tracks
 
 #: Whether symplectic Euler's fused step sums the guard's power per block (``integrators.symplectic_euler_blocks_kernel``)
-#: rather than per particle, by device (CUDA: True). On the CPU, where a block is one thread, a block per particle would
-#: only cost more; a test turns it on there to check the sums against the per-particle ones.
-STEP_POWER_BLOCKS = {True: True, False: False}
+#: rather than per particle, by device. Off on both: on an H200 (Warp 1.16.0, 1024², bench/results/guard_cost.md) the
+#: per-block step took 72.6 µs a substep against the per-particle step's 64.5 µs; on the CPU, where a block is one
+#: thread, a block per particle only costs more. A test turns it on to check the sums against the per-particle ones.
+STEP_POWER_BLOCKS = {True: False, False: False}
 
 #: Frames checked after every substep from a restart, or from a write that raised the springs' bound, at a step the bound
 #: does not certify stable (``Guard._watch``).

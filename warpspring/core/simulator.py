@@ -62,10 +62,12 @@ class Simulator:
             ``GuardLimits(stop="world")`` holds the failed world, records it in :attr:`world_failures` and goes on
             with the others. ``None`` disables them (and the per-frame
             read of their record).
-        defer_verdict: read each frame's guard record a frame later (``None``: on CUDA): :meth:`step_frame` queues the
-            next frame before it waits for the previous one's record, so the device does not idle while the host
-            reads (a 64² cloth lost a third of its rate to that wait on an H200). A failure then raises at the next
-            :meth:`step_frame` or at :meth:`settle`, naming its own frame; see :meth:`step_frame`.
+        defer_verdict: read each frame's guard record a frame later (default off): :meth:`step_frame` queues the
+            next frame before it waits for the previous one's record, so the device need not idle while the host
+            reads. A failure then raises at the next :meth:`step_frame` or at :meth:`settle`, naming its own frame;
+            see :meth:`step_frame`. Off by default: on an H200 (Warp 1.16.0, bench/results/guard_cost.md) it gave
+            0.598 against 0.526 of the guard-off rate at 256² but 0.413 against 0.487 at 64², and it moves the raise
+            of a failed frame to the next call.
 
     Attributes:
         world_failures: the worlds stopped by the guard (``stop="world"``) so far: world → (frame, report),
@@ -93,7 +95,7 @@ class Simulator:
         control: Control | None = None,
         use_graph: bool = True,
         guard: GuardLimits | None = GuardLimits(),
-        defer_verdict: bool | None = None,
+        defer_verdict: bool = False,
     ):
         self.model = model
         self.fps = checks.positive("fps", fps)
@@ -123,7 +125,7 @@ class Simulator:
         if self.guard is not None:
             self.guard.restart(self.state)  # Δx of the first check from the start state (pins at t = 0)
         self.frame_hooks: list[FrameHook] = []
-        self.defer_verdict = (model.device.is_cuda if defer_verdict is None else bool(defer_verdict)) and \
+        self.defer_verdict = bool(defer_verdict) and \
             self.guard is not None
         self._unsettled = False  # the last frame's record is posted and not yet read (``defer_verdict``)
         self.frame = 0
@@ -185,12 +187,11 @@ class Simulator:
     def step_frame(self) -> None:
         """Advance :attr:`state` by one frame.
 
-        With :attr:`defer_verdict` (the default on CUDA) the guard's verdict on a frame is read when the next frame
+        With :attr:`defer_verdict` (off by default) the guard's verdict on a frame is read when the next frame
         is queued: ``step_frame`` raises for a failure of the frame before its own, and :meth:`settle` for the
         last frame's. The promise: whatever was read from a frame whose verdict is known stayed valid; a frame hook
         sees only a state whose verdict is known (the frame is settled before the hooks run), and ``warpspring run``
-        writes a frame only once it is settled. Without it (the CPU, where reading the record costs nothing) every
-        frame is settled before ``step_frame`` returns.
+        writes a frame only once it is settled. Without it every frame is settled before ``step_frame`` returns.
 
         Raises:
             SimulationError: a guard check failed during this frame, or with :attr:`defer_verdict` the one before;
