@@ -98,6 +98,7 @@ class Simulator:
         defer_verdict: bool = False,
     ):
         self.model = model
+        self._unsettled = False  # the last frame's record is posted and not yet read (``defer_verdict``)
         self.fps = checks.positive("fps", fps)
         control = control if control is not None else model.control()
         integrator = integrator if integrator is not None else SymplecticEuler(model)
@@ -125,9 +126,7 @@ class Simulator:
         if self.guard is not None:
             self.guard.restart(self.state)  # Δx of the first check from the start state (pins at t = 0)
         self.frame_hooks: list[FrameHook] = []
-        self.defer_verdict = bool(defer_verdict) and \
-            self.guard is not None
-        self._unsettled = False  # the last frame's record is posted and not yet read (``defer_verdict``)
+        self.defer_verdict = bool(defer_verdict) and self.guard is not None
         self.frame = 0
         self._world_failures: dict = {}
         self._overflow_seen = np.zeros(model.world_count, dtype=np.int64)
@@ -235,7 +234,7 @@ class Simulator:
         Raises:
             SimulationError: the guard stopped the last frame (see :meth:`step_frame`).
         """
-        if getattr(self, "_unsettled", False):
+        if self._unsettled:
             self._unsettled = False
             self._judge(self.guard.collect(), self.frame)
 
@@ -261,6 +260,12 @@ class Simulator:
             )
             error.reason = report.reason  # what tripped: the runner's diagnosis tells its kind apart
             raise error
+
+    def _forget_verdict(self) -> None:
+        """Drop a posted verdict not yet read: the state it judged is about to be replaced."""
+        self._unsettled = False
+        if self.guard is not None:
+            self.guard.discard()
 
     def _report_overflow(self) -> None:
         overflow = self.contact_overflow()
@@ -290,9 +295,7 @@ class Simulator:
         """Restart at frame 0 (time 0) from ``state`` (default: the model's initial state), forgetting the
         integrator's history (step-size control, warm starts) and the pin targets set so far, so the run
         repeats exactly."""
-        self._unsettled = False  # a failure of the run left behind is not this run's
-        if self.guard is not None:
-            self.guard.discard()
+        self._forget_verdict()  # a failure of the run left behind is not this run's
         self.stepper.reset(state)
         self.state.time.zero_()
         if self.guard is not None:
@@ -342,9 +345,7 @@ class Simulator:
             ConfigError: the file is missing, damaged or not a checkpoint, or it was saved from another scene,
                 integrator, fps or substeps (the one-line message names what differs and how to fix it).
         """
-        self._unsettled = False
-        if self.guard is not None:
-            self.guard.discard()
+        self._forget_verdict()
         Checkpoint.load(path).restore(self)
         # What this simulator derives from the restored values: the overflow already reported, and a default
         # kinetic-energy limit (it follows the live inputs).
