@@ -111,17 +111,17 @@ class StepFinisher:
         """Finish ``state``, the result of a step of ``dt`` [s] from ``state_in``: the stabilisers, the
         contacts, then self-collision (which needs ``state_in``: without it, self-collision is skipped), and last
         the plastic springs' rest lengths, from the finished state."""
-        watch = self.watch if state_in is not None and self.model.self_contact is not None else None
+        self_contact = self.model.self_contact if state_in is not None else None
+        watch = self.watch if self_contact is not None else None
         if watch is not None and not self.stabilised:
             watch(state, -1.0)  # (the stabilisers' pass moves the pins to their targets: its bracket starts after it)
         self._finish(state, dt)
-        if watch is not None:
-            if self.stabilised:
+        if self_contact is not None:
+            if watch is not None and self.stabilised:
                 watch(state, -1.0)
-            self.model.self_contact(state_in, state, dt)
-            watch(state, 1.0)
-        elif state_in is not None and self.model.self_contact is not None:
-            self.model.self_contact(state_in, state, dt)
+            self_contact(state_in, state, dt)
+            if watch is not None:
+                watch(state, 1.0)
         self.plastic_pass(state, dt)
 
     def _finish(self, state: State, dt: float) -> None:
