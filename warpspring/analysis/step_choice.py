@@ -243,10 +243,10 @@ def pin_substeps(model: Model, *, fps: float) -> tuple[int, str] | None:
             t = np.unique(np.concatenate([keys, *(np.linspace(a, b, PIN_SAMPLES + 2) for a, b in zip(keys, keys[1:]))]))
             moved = dataclasses.replace(group, translation=translation, rotation=rotation)
             speed = max(speed, float(np.linalg.norm(moved.position(pins.rest[part], t)[1], axis=-1).max()))
-    params = contact.params.numpy().astype(np.float64)
-    reach = float((params[:, PARAM_THICKNESS] * params[:, PARAM_RELAXATION]).min())
     if speed == 0.0:
         return None
+    params = contact.params.numpy().astype(np.float64)  # read from the device only where a pin moves
+    reach = float((params[:, PARAM_THICKNESS] * params[:, PARAM_RELAXATION]).min())
     substeps = max(1, math.ceil(speed / (fps * PIN_TRAVEL * reach)))
     why = (f"pins moving at up to {speed:.3g} m/s move at most {PIN_TRAVEL:g} γ τ = {PIN_TRAVEL * reach * 1e3:.3g} mm "
            "per step (the self-collision cap's reach)")
