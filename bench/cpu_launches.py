@@ -224,7 +224,9 @@ class Worker:
         self.label = label
         cmd = [sys.executable, os.path.abspath(__file__), "--worker", tree, "--device", device, "--sizes", str(n),
                "--engines", *engines, "--repeat", str(repeat)] + (["--launches"] if launches else [])
-        env = dict(os.environ, PYTHONPATH=tree)
+        # The tree first, then whatever the caller's path held (a Warp installed outside site-packages).
+        inherited = os.environ.get("PYTHONPATH")
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([tree] + ([inherited] if inherited else [])))
         self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
                                      cwd=tree)
         self.info = json.loads(self._line())
