@@ -26,6 +26,9 @@ from ..kernels.guards import (
     BALANCE_SLOTS,
     BALANCE_WORK,
     CARRY_SLOTS,
+    FOLD_ABOVE,
+    FOLD_CHUNK,
+    FOLD_COLUMNS,
     GUARD_BALANCE,
     GUARD_BALANCE_FLOOR,
     GUARD_BALANCE_TOLERANCE,
@@ -61,6 +64,7 @@ from ..kernels.guards import (
     guard_correction_energy_kernel,
     guard_correction_kinetic_kernel,
     guard_energy_kernel,
+    guard_fold_kernel,
     guard_kernels,
     guard_skip_clear_kernel,
     guard_work_kernel,
@@ -103,6 +107,10 @@ from .tracks import evaluate_input_tracks
 #: per-block step took 72.6 µs a substep against the per-particle step's 64.5 µs; on the CPU, where a block is one
 #: thread, a block per particle only costs more. A test turns it on to check the sums against the per-particle ones.
 STEP_POWER_BLOCKS = {True: False, False: False}
+
+#: Partial sums per world above which a check folds them before its gather (``Guard._fold``; ``None``:
+#: ``kernels/guards.py``'s FOLD_ABOVE). A test sets it low to fold small models, on the CPU too.
+FOLD_MIN_BLOCKS: int | None = None
 
 #: Frames checked after every substep from a restart, or from a write that raised the springs' bound, at a step the bound
 #: does not certify stable (``Guard._watch``).
@@ -229,6 +237,20 @@ class Guard(StepHook):
             self._correction_block = blocks
             blocks += 1
         self._running = wp.zeros((worlds, blocks, RUNNING_SLOTS), dtype=wp.float64, device=device)
+        # Where a world's partial sums outnumber what ``gather``'s one block per world adds in a few reads a lane, a
+        # fold (``guard_fold_kernel``) first adds them in chunks, many blocks at once, into arrays of the same layout
+        # that ``gather`` reads instead (CUDA: the CPU's passes leave one partial per world).
+        self._fold = None
+        most = max(self._check_grid[1], self._energy_partials.shape[1], blocks)
+        above = FOLD_MIN_BLOCKS if FOLD_MIN_BLOCKS is not None else FOLD_ABOVE
+        if (self._tiled or FOLD_MIN_BLOCKS is not None) and most > above:  # (forced: on the CPU too)
+            chunks = -(-most // FOLD_CHUNK)
+            self._fold = ((worlds, chunks, FOLD_COLUMNS),
+                          wp.zeros((worlds, chunks, PARTIAL_SLOTS), dtype=wp.float64, device=device),
+                          wp.zeros((worlds, chunks), dtype=wp.float64, device=device),
+                          wp.full((worlds, chunks), -1.0, dtype=wp.float64, device=device),
+                          wp.zeros((worlds, chunks), dtype=wp.float64, device=device),
+                          wp.zeros((worlds, chunks, RUNNING_SLOTS), dtype=wp.float64, device=device))
         # The springs' dissipation counted by the scattered force pass (``DamperSums``; ``None``: by a pass of its
         # own after every substep), and the power of dampers, drag and loads from outside counted by the integrator's
         # per-particle force pass (``PowerSums``, ``_power_rule``; ``None``: by passes of their own). The integrator
@@ -916,11 +938,17 @@ class Guard(StepHook):
     def _gather(self, gather, state: State, substep: int, carry_only: bool = False) -> None:
         """Each world's sums and verdict (``carry_only``: a restart's closing term alone)."""
         model = self.model
+        partials = (self._partials, self._energy_partials, self._strain_partials, self._power_partials)
+        running = self._running
+        if self._fold is not None:
+            grid, *folded = self._fold
+            wp.launch(guard_fold_kernel(), dim=grid, inputs=list(partials), outputs=[self._running, *folded],
+                      device=model.device)
+            partials, running = tuple(folded[:4]), folded[4]
         flat_launch(gather, dim=(model.world_count, self._lanes), block_dim=self._lanes,
-                    inputs=[model.particle_count, model.elements, state.particle_q, self._partials, self._energy_partials,
-                            self._strain_partials, self._power_partials, substep, self._limits,
+                    inputs=[model.particle_count, model.elements, state.particle_q, *partials, substep, self._limits,
                             0.0 if self.dt is None else float(self.dt), int(carry_only)],
-                    outputs=[model.world_enabled, self._status, self._running, self._values, self._work_total,
+                    outputs=[model.world_enabled, self._status, running, self._values, self._work_total,
                              self._balance, self._carry], device=model.device)
 
     def reports(self) -> list[GuardReport]:

@@ -37,8 +37,8 @@ from dataclasses import dataclass
 
 from .. import checks
 from ..errors import ConfigError
-from ..kernels.guards import (BALANCE_SLOTS, CARRY_SLOTS, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS, PARTIAL_SLOTS,
-                              RUNNING_SLOTS)
+from ..kernels.guards import (BALANCE_SLOTS, CARRY_SLOTS, FOLD_ABOVE, FOLD_CHUNK, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS,
+                              PARTIAL_SLOTS, RUNNING_SLOTS)
 from ..kernels.inputs import INPUT_COUNT
 from ..kernels.linalg import CG_SHORT_SLOTS, REDUCE_FILL_BLOCKS, REDUCE_PER_LANE, reduce_launch_dim
 from ..kernels.selfcontact import (CACHE_SLOTS, COUNTER_COUNT, FLAG_KINDS, PAIRS_PER_VERTEX, PARAM_COUNT, PATCH_CHUNK,
@@ -611,7 +611,14 @@ def estimate_memory(
     power = path.power * f * size  # the power sums the guard hands the integrator (energy out[, work in])
     carried = (8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + running + dampers + power  # what a check carries on,
                + 8 * CARRY_SLOTS * w)  # each world's share of the closing term among it
+    # The check's fold on CUDA, where a world's partial sums are more than FOLD_ABOVE: the
+    # partials, energy, strain, power and running sums of each chunk of FOLD_CHUNK of them (``Guard._fold``).
+    running_blocks = (blocks + element_blocks(s) + element_blocks(h)) // max(w, 1)
+    most = max(check_blocks // max(w, 1), energy_blocks // max(w, 1), running_blocks)
+    folds = cuda and most > FOLD_ABOVE
+    fold = w * -(-most // FOLD_CHUNK) * 8 * (PARTIAL_SLOTS + 3 + RUNNING_SLOTS) if folds else 0
     guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * PARTIAL_SLOTS * check_blocks + 8 * GUARD_LIMITS * w
+             + fold
              + 3 * 8 * max(energy_blocks, w)  # every family's energy, strain and dampers' power partial sums
              + (0 if cuda else 2 * 4 * GUARD_INTS * w)  # the verdict's two status copies (pinned host memory on CUDA)
              + carried + (2 * vec3 * size + 8 * w if path.midpoint else 0)

@@ -612,6 +612,99 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
     return measure, gather, drive
 
 
+#: Partial sums a thread of the check's fold adds in turn (``guard_fold_kernel``; Warp unrolls a loop of up to 16: at
+#: 32 it runs as a loop, as measured).
+FOLD_CHUNK = 32
+#: A check folds where a world has more partial sums than this (``core/guards.py``): a 1024² cloth's ~7,000 folded
+#: and gathered in 3.8 µs a substep against 5.0 gathered alone; a 64² cloth's ~900 in 2.8 against 0.9 (H200).
+FOLD_ABOVE = 2048
+#: The columns a fold adds, one thread each per chunk: ``measure``'s partial slots, the families' energy, strain and
+#: dampers' power, and the running sums' energy and work slots.
+FOLD_COLUMNS = PARTIAL_SLOTS + 3 + 3
+
+
+@functools.cache
+def guard_fold_kernel():
+    """``fold``: the check's per-block partial sums (``measure``'s, the families' energy, strain and dampers' power,
+    and the running sums of the substeps' passes, which it clears) added in chunks of FOLD_CHUNK blocks into arrays of
+    the same layout, which ``gather`` then adds in place of the originals: a 1024² cloth's check leaves ~3,000 spring
+    blocks and ~4,000 running blocks, which ``gather``'s one block per world walked in 84 µs on an H200, its lanes'
+    reads in a serial chain. One thread per chunk and column adds its FOLD_CHUNK values in order (no barrier, no
+    block reduction: a fold by block reductions, 18 of them a block one after another, took 25 µs at 64² and 75 µs
+    at 1024²; this one 42 µs at 1024², with gather 19 µs against 84; H200), strains by their largest (none: -1).
+    Launch over [world, chunks, FOLD_COLUMNS]."""
+
+    @wp.kernel(module="unique", enable_backward=False)
+    def fold(
+        # Guards in (the per-block partials):
+        partials: wp.array3d[wp.float64],
+        energy_partials: wp.array2d[wp.float64],
+        strain_partials: wp.array2d[wp.float64],
+        power_partials: wp.array2d[wp.float64],
+        # In/out (the substeps' running sums, their energy and work slots folded and cleared, the power kept):
+        running_in_out: wp.array3d[wp.float64],
+        # Out:
+        folded_out: wp.array3d[wp.float64],
+        folded_energy_out: wp.array2d[wp.float64],
+        folded_strain_out: wp.array2d[wp.float64],
+        folded_power_out: wp.array2d[wp.float64],
+        folded_running_out: wp.array3d[wp.float64],
+    ):
+        world, chunk, column = wp.tid()
+        first = chunk * FOLD_CHUNK
+        if column < PARTIAL_SLOTS:
+            count = partials.shape[1]
+            strain = column == GUARD_MAX_STRAIN
+            total = wp.float64(0.0)
+            if strain:
+                total = wp.float64(-1.0)
+            for k in range(wp.static(FOLD_CHUNK)):
+                if first + k < count:
+                    value = partials[world, first + k, column]
+                    if strain:
+                        total = wp.max(total, value)
+                    else:
+                        total += value
+            folded_out[world, chunk, column] = total
+        elif column == PARTIAL_SLOTS + 1:  # the families' strain
+            count = strain_partials.shape[1]
+            total = wp.float64(-1.0)
+            for k in range(wp.static(FOLD_CHUNK)):
+                if first + k < count:
+                    total = wp.max(total, strain_partials[world, first + k])
+            folded_strain_out[world, chunk] = total
+        elif column < PARTIAL_SLOTS + 3:  # their energy and dampers' power
+            values = energy_partials
+            if column == PARTIAL_SLOTS + 2:
+                values = power_partials
+            count = values.shape[1]
+            total = wp.float64(0.0)
+            for k in range(wp.static(FOLD_CHUNK)):
+                if first + k < count:
+                    total += values[world, first + k]
+            if column == PARTIAL_SLOTS:
+                folded_energy_out[world, chunk] = total
+            else:
+                folded_power_out[world, chunk] = total
+        else:
+            slot = RUNNING_DISSIPATION
+            if column == PARTIAL_SLOTS + 4:
+                slot = RUNNING_WORK
+            elif column == PARTIAL_SLOTS + 5:
+                slot = RUNNING_STEP_DISSIPATION
+            count = running_in_out.shape[1]
+            total = wp.float64(0.0)
+            for k in range(wp.static(FOLD_CHUNK)):
+                if first + k < count:
+                    total += running_in_out[world, first + k, slot]
+            folded_running_out[world, chunk, slot] = total
+            for k in range(wp.static(FOLD_CHUNK)):
+                if first + k < count:
+                    running_in_out[world, first + k, slot] = wp.float64(0.0)
+
+    return fold
+
+
 @functools.cache
 def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
     """Kernel writing per-block sums of the elastic energy [J] of one family's elements in every world into

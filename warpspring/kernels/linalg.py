@@ -54,8 +54,9 @@ def reduce_lanes(count: int, block_dim: int, tiled: bool) -> int:
 
 
 #: Items each lane of a striding reducing kernel on CUDA takes at most (``reduce_launch_dim``'s ``per_lane``): the
-#: guard's check passes. One item per lane left a 1024² cloth's check 4,096 particle blocks and 16,384 spring blocks,
-#: whose partial sums one block per world then gathered in 111 µs (bench/guard_kernels.py --gpu-timing, H200).
+#: guard's check passes. One item a lane left a 1024² cloth's check 4,096 particle blocks and 24,537 spring blocks:
+#: no faster a pass (measure 8.2 against 7.7 µs a substep, the springs' energy 10.8 against 7.5; H200), and more
+#: partial sums to fold and gather; 8 measured best of 1, 4 and 8 (bench/results/guard_cost.md).
 REDUCE_PER_LANE = 8
 #: Blocks a striding reducing kernel keeps over all worlds where its items allow (``reduce_launch_dim``'s ``fill``):
 #: fewer leave the device idle and each lane's items in a serial chain (a 64² cloth's check pass in 2 blocks of 8
@@ -94,23 +95,73 @@ def block_barrier():
     ...
 
 
+def _block_reduce_source(combine: str) -> str:
+    """C++ of a block-wide reduction of a float64 (``reduction_funcs``), ``combine(a, b)`` an expression of ``a`` and
+    ``b``: each warp's lanes by shuffles, then warp 0 over the warps' results, then every lane reads the block's. Two
+    barriers a call (``tile_sum(tile(value))[0]`` took four and shared-memory tiles: a check pass's blocks reduced in
+    it spent most of its time there, 221 µs against 62 µs for the same pass writing one value a thread; ncu on an
+    H200). A call reuses its shared slots safely: the next call writes a warp's slot after the barrier that follows
+    warp 0's reads, and the total after the barrier that follows every lane's read of it. Every lane of the block must
+    call it (as a tile operation); ``blockDim.x`` a multiple of 32. On the CPU, where a block is one thread, the value
+    itself."""
+    return f"""
+#if defined(__CUDA_ARCH__)
+__shared__ double warp_results[32];
+__shared__ double block_result;
+const unsigned int lane = threadIdx.x & 31u;
+const unsigned int warp = threadIdx.x >> 5;
+double a = value;
+for (int offset = 16; offset > 0; offset >>= 1) {{
+    const double b = __shfl_down_sync(0xffffffffu, a, offset);
+    a = {combine};
+}}
+if (lane == 0u) warp_results[warp] = a;
+__syncthreads();
+if (warp == 0u) {{
+    const unsigned int warps = (blockDim.x + 31u) >> 5;
+    a = lane < warps ? warp_results[lane] : warp_results[0];
+    for (int offset = 16; offset > 0; offset >>= 1) {{
+        const double b = __shfl_down_sync(0xffffffffu, a, offset);
+        a = (lane + offset < warps) ? ({combine}) : a;
+    }}
+    if (lane == 0u) block_result = a;
+}}
+__syncthreads();
+return block_result;
+#else
+return value;
+#endif
+"""
+
+
+@wp.func_native(_block_reduce_source("a + b"))
+def _block_sum_native(value: wp.float64) -> wp.float64:
+    """The sum of ``value`` over the block's lanes (``_block_reduce_source``)."""
+    ...
+
+
+@wp.func_native(_block_reduce_source("(b > a ? b : a)"))
+def _block_max_native(value: wp.float64) -> wp.float64:
+    """The largest ``value`` over the block's lanes (``_block_reduce_source``)."""
+    ...
+
+
 @functools.cache
 def reduction_funcs(tiled: bool):
     """``block_sum(value)``: the sum of a value over the lanes of a block (every lane gets it; the value
-    itself on the CPU, where a block is one thread). Deterministic: a fixed-order tree."""
+    itself on the CPU, where a block is one thread), and ``block_max``. Deterministic: a fixed-order tree (warp
+    shuffles, then the warps' results)."""
 
     @wp.func
     def block_sum(value: wp.float64) -> wp.float64:
         if wp.static(tiled):
-            total = wp.tile_sum(wp.tile(value))
-            return total[0]
+            return _block_sum_native(value)
         return value
 
     @wp.func
     def block_max(value: wp.float64) -> wp.float64:
         if wp.static(tiled):
-            total = wp.tile_max(wp.tile(value))
-            return total[0]
+            return _block_max_native(value)
         return value
 
     return block_sum, block_max
