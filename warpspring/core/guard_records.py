@@ -430,6 +430,8 @@ def stop_advice(report: GuardReport, model: Model, *, integrator: str | None, su
         where = f"the springs at particle {particle}, ke up to {ke:.3g} N/m: ω_max h ≤ {omega * dt:.2f}"
         if limit is not None:
             where += f" against {integrator}'s limit {limit:.2f}"
+            if damping * dt > 1.0:  # the dampers past their own limit: named, whatever the stiffness says
+                where += f", their dampers' rate λ_D h ≤ {damping * dt:.2f} against 1"
             # (the bound covers Hooke springs only: not biphasic ones, hinges or tets)
             hooke = (not model.stabilizers.enabled("biphasic_strain")
                      and all(family.name == "springs" or family.does_work for family in model.families))
