@@ -223,7 +223,8 @@ class Worker:
                  device: str = "cpu"):
         self.label = label
         cmd = [sys.executable, os.path.abspath(__file__), "--worker", tree, "--device", device, "--sizes", str(n),
-               "--engines", *engines, "--repeat", str(repeat)] + (["--launches"] if launches else [])
+               "--engines", *engines, "--repeat", str(repeat),
+               "--pin", os.environ.get("CPU_LAUNCHES_PIN", "corners")] + (["--launches"] if launches else [])
         # The tree first, then whatever the caller's path held (a Warp installed outside site-packages).
         inherited = os.environ.get("PYTHONPATH")
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([tree] + ([inherited] if inherited else [])))
@@ -305,7 +306,10 @@ def main():
     parser.add_argument("--out", help="also write the Markdown tables to this file")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    os.environ["CPU_LAUNCHES_PIN"] = args.pin  # read by the workers (``_model``), which inherit the environment
+    # Read by ``_model`` in the workers, which are given ``--pin`` too (a worker's own default would otherwise overwrite
+    # the driver's choice: the GPU side-by-side of 2026-11-28 hung its 256² cloth from two corners, whose springs the
+    # guard then saw torn at 11×).
+    os.environ["CPU_LAUNCHES_PIN"] = args.pin
     if args.worker:
         _worker(args.worker, args.device, args.sizes[0], args.engines, args.launches, args.repeat)
         return
