@@ -22,6 +22,13 @@ Writes a markdown table with the command, device, Warp version and date.
     # the motion's upper band along each undamped case (what the three-wave triads past √3 draw on), and the step the
     # energy-weighted bound would pass (analysis/stability_triads.py):
     python bench/advisor_battery.py --device cpu --sizes 8 16 32 --taus 0 --bands
+    # the largest step that neither blows up nor grows, bracketed by bisection, against the advisor's (~6 min at 64² on a
+    # CPU, ~2 min at 8²-32²; on a GPU the 64² cases in two commands of ~3 and ~6 min):
+    python bench/advisor_battery.py --device cpu --sizes 8 16 32 --taus 0 --bisect 5
+    python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 0 --releases flat --bisect 5 --substeps 20 \
+        --out bench/results/advisor_battery_64_bisect_flat_h100.md
+    python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 0 --releases folded --bisect 5 --substeps 20 \
+        --out bench/results/advisor_battery_64_bisect_folded_h100.md
     # the 64² folded cloth under gravity alone on a CPU (~10 min):
     python bench/advisor_battery.py --device cpu --sizes 64 --taus 0 --releases folded --gravity on \
         --factors 1.0 1.111 --substeps 20 --no-exact --trace 3
@@ -160,7 +167,7 @@ def main():
 
 
 #: Windows [s] of the dry run's ω_max trace whose highest mean the dry-run table reports.
-MEAN_WINDOWS = (0.25, 1.0)
+MEAN_WINDOWS = (0.25, 0.5, 1.0)
 
 
 def _highest_mean(times: np.ndarray, values: np.ndarray, window: float) -> float:

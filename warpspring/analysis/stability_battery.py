@@ -340,7 +340,8 @@ def largest_step(case: Case, integrator: str, device, passed: float, *, high: fl
     the first that failed (none where the run at ``passed`` fails or the one at ``high`` × it holds). The advisor is
     within 10 % of S where ``passed`` ≥ 0.9 × :attr:`LargestStep.fails`. Growth past the three-wave step is not
     monotone in the step (a resonance met at one step and missed at the next: the 8² folded cloth under gravity,
-    symplectic Euler, grows at 1.0125 √3/ω_max and holds at 1.01 and 1.015, bench/results/advisor_battery_cpu.md), so
+    symplectic Euler, grows at 1.010 √3/ω_max and holds at 1.005, 1.0125 and 1.015; the motion is chaotic, and a step
+    4e-6 shorter turns which: bench/results/advisor_battery_bisect_cpu.md), so
     the bracket is where this bisection saw the change, not a guarantee for every step below it."""
     result = LargestStep(0.0, math.inf)
 
