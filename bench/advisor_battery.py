@@ -212,8 +212,8 @@ def dry_runs(chosen, device, args):
 
 def bisections(chosen, device, args):
     """The largest step that neither blows up nor grows, bracketed by bisection for each case and integrator
-    (:func:`~warpspring.analysis.stability_battery.largest_step`), against the advisor's P: P/S, whether P is within
-    10 % of S, and S over the linear limit and (where P is the three-wave step's ``TRIAD_MARGIN``) over the three-wave
+    (:func:`~warpspring.analysis.stability_battery.largest_step`), against the advisor's P: P/S, whether the run at P
+    holds (one-sided) and P is within 10 % of S, and S over the linear limit and (where P is the three-wave step's ``TRIAD_MARGIN``) over the three-wave
     step √3/ω_max. Each bracket as "a-b": S lies between the largest step that held and the smallest that failed."""
     rows = []
     t0 = time.perf_counter()
@@ -228,12 +228,14 @@ def bisections(chosen, device, args):
             found = sb.largest_step(case, integrator, device, p, halvings=args.bisect, seconds=args.seconds,
                                     substeps=args.substeps)
             holds, fails = found.holds, found.fails
-            within = "yes" if p >= 0.9 * fails else "no" if p < 0.9 * holds else "?"
+            one_sided = found.runs[0].ok  # the run at P itself
+            within = "-" if not one_sided else "yes" if p >= 0.9 * fails else "no" if p < 0.9 * holds else "?"
             three = TRIAD_MARGIN / p if "three-wave" in advice.passed_reason else math.nan
             runs = ", ".join(f"{r.factor:.4g} {'ok' if r.ok else 'blows up' if r.blown else 'grows'}"
                              for r in sorted(found.runs, key=lambda r: r.factor))
             rows.append(f"| {case.label} | {integrator} | {p * 1e3:.4g} | {advice.dt_stable * 1e3:.4g} | "
-                        f"{holds * 1e3:.4g}-{fails * 1e3:.4g} | {_span(p / fails, p / holds)} | {within} | "
+                        f"{holds * 1e3:.4g}-{fails * 1e3:.4g} | {_span(p / fails, p / holds)} | "
+                        f"{'yes' if one_sided else 'NO'} | {within} | "
                         f"{_span(holds / advice.dt_stable, fails / advice.dt_stable)} | "
                         f"{_span(holds * three, fails * three)} | {runs} |")
             print(rows[-1], f"({time.perf_counter() - t0:.0f} s)", flush=True)
@@ -244,8 +246,8 @@ def bisections(chosen, device, args):
                 f"`python bench/advisor_battery.py {command}`; {args.seconds:g} s runs; "
                 f"{time.perf_counter() - t0:.0f} s in all. Runs by their step over P; S / three-wave: over √3/ω_max "
                 "(ω_max of the first swing), where P is the three-wave verdict.", "",
-                "| case | integrator | P [ms] | linear [ms] | S [ms] | P / S | within 10 % | S / linear | "
-                "S / three-wave | runs |", "|---|---|---|---|---|---|---|---|---|---|", *rows], args.out)
+                "| case | integrator | P [ms] | linear [ms] | S [ms] | P / S | one-sided | within 10 % | S / linear | "
+                "S / three-wave | runs |", "|---|---|---|---|---|---|---|---|---|---|---|", *rows], args.out)
 
 
 def _span(low: float, high: float) -> str:

@@ -231,7 +231,6 @@ def test_shadow_energy_of_a_swinging_spring(device, integrator, order):
     assert shadow_half < 1.0e-3 * raw_half
 
 
-@pytest.mark.slow
 def test_the_largest_step_bracket_at_an_exact_linear_limit(device):
     # The 8² cloth released folded without gravity under RK4: nothing stretches, so its ω_max holds at its start's
     # and its linear limit 2√2/ω_max, the advisor's P, is exact (measured over 10 s: it holds at P and grows from
@@ -250,6 +249,7 @@ def test_the_largest_step_bracket_at_an_exact_linear_limit(device):
     assert (past.holds, past.fails) == (0.0, 1.2 * advice.dt_passed) and len(past.runs) == 1
 
 
+@pytest.mark.slow
 def test_the_exact_limit_in_worlds(device):
     # The exact-limit battery: the 16² cloth with kd = 1e-4 s · ke as 12 worlds at 0.6-1.6 × ke = 1e5 N/m
     # (shear and bend in the battery's proportions), explicit Euler at dt = 0.1 ms. Explicit Euler's limit is the
