@@ -22,6 +22,13 @@ Writes a markdown table with the command, device, Warp version and date.
     # the motion's upper band along each undamped case (what the three-wave triads past √3 draw on), and the step the
     # energy-weighted bound would pass (analysis/stability_triads.py):
     python bench/advisor_battery.py --device cpu --sizes 8 16 32 --taus 0 --bands
+    # the largest step that neither blows up nor grows, bracketed by bisection, against the advisor's (~6 min at 64² on a
+    # CPU, ~2 min at 8²-32²; on a GPU the 64² cases in two commands of ~3 and ~6 min):
+    python bench/advisor_battery.py --device cpu --sizes 8 16 32 --taus 0 --bisect 5
+    python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 0 --releases flat --bisect 5 --substeps 20 \
+        --out bench/results/advisor_battery_64_bisect_flat_h100.md
+    python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 0 --releases folded --bisect 5 --substeps 20 \
+        --out bench/results/advisor_battery_64_bisect_folded_h100.md
     # the 64² folded cloth under gravity alone on a CPU (~10 min):
     python bench/advisor_battery.py --device cpu --sizes 64 --taus 0 --releases folded --gravity on \
         --factors 1.0 1.111 --substeps 20 --no-exact --trace 3
@@ -46,8 +53,8 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # this che
 from warpspring.analysis import stability_battery as sb  # noqa: E402
 from warpspring.analysis import stability_triads as st  # noqa: E402
 from warpspring.analysis import under_load  # noqa: E402
-from warpspring.analysis.advisor import advise  # noqa: E402
-from warpspring.analysis.stability import DAMPED_MARGIN  # noqa: E402
+from warpspring.analysis.advisor import advise, shared_estimates  # noqa: E402
+from warpspring.analysis.stability import DAMPED_MARGIN, TRIAD_MARGIN  # noqa: E402
 
 from cloth import emit_table  # noqa: E402
 
@@ -82,6 +89,10 @@ def main():
                              "upper band above the pumps of the triads at 1.02, 1.055 and 1.083 √3/ω_max, and the step the "
                              "energy-weighted bound passes (stability_triads.growth_step)")
     parser.add_argument("--band-step", type=float, default=4.0e-4, help="the recording's step [s] (ωh ≈ 0.5)")
+    parser.add_argument("--bisect", type=int, default=0, metavar="HALVINGS",
+                        help="only bracket, per case and integrator, the largest step that neither blows up nor grows "
+                             "(stability_battery.largest_step: runs at P and at 1.3 P, then this many bisections) and "
+                             "report P against it")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
@@ -97,6 +108,9 @@ def main():
         return
     if args.bands:
         bands(chosen, device, args)
+        return
+    if args.bisect:
+        bisections(chosen, device, args)
         return
     for case in chosen:
         for integrator in args.integrators:
@@ -152,9 +166,24 @@ def main():
     emit_table(lines, args.out)
 
 
+#: Windows [s] of the dry run's ω_max trace whose highest mean the dry-run table reports.
+MEAN_WINDOWS = (0.25, 0.5, 1.0)
+
+
+def _highest_mean(times: np.ndarray, values: np.ndarray, window: float) -> float:
+    """The highest mean of the piecewise-linear trace ``values`` at ``times`` [s] over any ``window`` [s] within it
+    (the whole trace's mean where it is shorter), sampled every 1/960 s."""
+    grid = np.arange(0.0, float(times[-1]), 1.0 / 960.0)
+    trace = np.interp(grid, times, values)
+    count = min(len(trace), max(1, int(round(window * 960.0))))
+    sums = np.cumsum(np.concatenate([[0.0], trace]))
+    return float(((sums[count:] - sums[:-count]) / count).max())
+
+
 def dry_runs(chosen, device, args):
     """The advisor's dry run of each case timed (the run's CPU seconds, as its budget counts them, and wall seconds;
-    the first of two, which compiles, is dropped), with its peak ω_max, when, and its duration."""
+    the first of two, which compiles, is dropped), with its peak ω_max, when, its duration, its first swing's peak
+    and the highest means of its ω_max over ``MEAN_WINDOWS`` (how long the peak is held)."""
     budget, under_load.PROBE_TIME_BUDGET = under_load.PROBE_TIME_BUDGET, float("inf")
     rows = []
     for case in chosen:
@@ -165,16 +194,65 @@ def dry_runs(chosen, device, args):
             peak = under_load.transient_peak(model, horizon=args.seconds)
             wp.synchronize_device(device)
             cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
+        swing = peak.world_swing_omega_max[0] if peak.world_swing_omega_max is not None else peak.world_omega_max[0]
+        means = " | ".join(f"{_highest_mean(peak.trace_times, peak.world_trace[:, 0], w):.2f}" for w in MEAN_WINDOWS)
         rows.append(f"| {case.label} | {peak.duration:.3g} | {cpu:.1f} | {wall:.1f} | {peak.world_omega_max[0]:.2f} | "
-                    f"{peak.world_peak_time[0]:.3g} |")
+                    f"{peak.world_peak_time[0]:.3g} | {swing:.2f} | {means} |")
         print(rows[-1], flush=True)
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     command = " ".join(os.path.relpath(a, root) if os.path.isabs(a) and a.startswith(root) else a for a in sys.argv[1:])
     where = f"{device.name} ({device}), Warp {wp.config.version}, {datetime.date.today()}"
     emit_table([f"Advisor dry runs on {where}: `python bench/advisor_battery.py {command}` (budget "
                 f"{budget:g} CPU seconds, lifted here; each the second of two):", "",
-                "| case | dry run [s] | CPU [s] | wall [s] | peak ω_max [rad/s] | at [s] |", "|---|---|---|---|---|---|",
+                "| case | dry run [s] | CPU [s] | wall [s] | peak ω_max [rad/s] | at [s] | first swing's peak [rad/s] | "
+                + " | ".join(f"highest {w:g} s mean [rad/s]" for w in MEAN_WINDOWS) + " |",
+                "|---|---|---|---|---|---|---|" + "---|" * len(MEAN_WINDOWS),
                 *rows], args.out)
+
+
+def bisections(chosen, device, args):
+    """The largest step that neither blows up nor grows, bracketed by bisection for each case and integrator
+    (:func:`~warpspring.analysis.stability_battery.largest_step`), against the advisor's P: P/S, whether the run at P
+    holds (one-sided) and P is within 10 % of S, and S over the linear limit and (where P is the three-wave step's ``TRIAD_MARGIN``) over the three-wave
+    step √3/ω_max. Each bracket as "a-b": S lies between the largest step that held and the smallest that failed."""
+    rows = []
+    t0 = time.perf_counter()
+    for case in chosen:
+        model = sb.battery_cloth(case, device)
+        with shared_estimates():  # one dry run for the case's integrators
+            advices = [advise(model, name, 1.0e-4, horizon=args.seconds) for name in args.integrators]
+        for integrator, advice in zip(args.integrators, advices):
+            p = advice.dt_passed
+            if not p > 0.0:
+                continue
+            found = sb.largest_step(case, integrator, device, p, halvings=args.bisect, seconds=args.seconds,
+                                    substeps=args.substeps)
+            holds, fails = found.holds, found.fails
+            one_sided = found.runs[0].ok  # the run at P itself
+            within = "-" if not one_sided else "yes" if p >= 0.9 * fails else "no" if p < 0.9 * holds else "?"
+            three = TRIAD_MARGIN / p if "three-wave" in advice.passed_reason else math.nan
+            runs = ", ".join(f"{r.factor:.4g} {'ok' if r.ok else 'blows up' if r.blown else 'grows'}"
+                             for r in sorted(found.runs, key=lambda r: r.factor))
+            rows.append(f"| {case.label} | {integrator} | {p * 1e3:.4g} | {advice.dt_stable * 1e3:.4g} | "
+                        f"{holds * 1e3:.4g}-{fails * 1e3:.4g} | {_span(p / fails, p / holds)} | "
+                        f"{'yes' if one_sided else 'NO'} | {within} | "
+                        f"{_span(holds / advice.dt_stable, fails / advice.dt_stable)} | "
+                        f"{_span(holds * three, fails * three)} | {runs} |")
+            print(rows[-1], f"({time.perf_counter() - t0:.0f} s)", flush=True)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    command = " ".join(os.path.relpath(a, root) if os.path.isabs(a) and a.startswith(root) else a for a in sys.argv[1:])
+    where = f"{device.name} ({device}), Warp {wp.config.version}, {datetime.date.today()}"
+    emit_table([f"The largest step that neither blows up nor grows (S, bracketed by bisection) on {where}: "
+                f"`python bench/advisor_battery.py {command}`; {args.seconds:g} s runs; "
+                f"{time.perf_counter() - t0:.0f} s in all. Runs by their step over P; S / three-wave: over √3/ω_max "
+                "(ω_max of the first swing), where P is the three-wave verdict.", "",
+                "| case | integrator | P [ms] | linear [ms] | S [ms] | P / S | one-sided | within 10 % | S / linear | "
+                "S / three-wave | runs |", "|---|---|---|---|---|---|---|---|---|---|---|", *rows], args.out)
+
+
+def _span(low: float, high: float) -> str:
+    """A bracket "low-high" (3 decimals; "-" where neither end is finite, e.g. no three-wave verdict)."""
+    return f"{low:.3f}-{high:.3f}" if math.isfinite(low) or math.isfinite(high) else "-"
 
 
 #: The triads' steps the band table reports, × √3/ω_max.

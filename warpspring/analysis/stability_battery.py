@@ -314,6 +314,55 @@ def measure(case: Case, integrator: str, device, *, seconds: float = 10.0, facto
     return result
 
 
+#: The bracket :func:`largest_step` starts from, × the advisor's step P, and its halvings.
+BISECT_HIGH, BISECT_HALVINGS = 1.3, 5
+
+
+@dataclass
+class LargestStep:
+    """Where the largest step that neither blows up nor grows lies (:func:`largest_step`).
+
+    Attributes:
+        holds: the largest step [s] whose run held (0: none did).
+        fails: the smallest step [s] whose run blew up or grew (∞: none did).
+        runs: every run, in the order made (their ``factor``: the step over the advisor's P).
+    """
+
+    holds: float
+    fails: float
+    runs: list = field(default_factory=list)
+
+
+def largest_step(case: Case, integrator: str, device, passed: float, *, high: float = BISECT_HIGH,
+                 halvings: int = BISECT_HALVINGS, seconds: float = 10.0, substeps: int = SUBSTEPS) -> LargestStep:
+    """Bracket the largest step S [s] whose run of ``case`` (:func:`run`) neither blows up nor grows: runs at the
+    advisor's step ``passed`` [s] and at ``high`` × it, then ``halvings`` bisections between the last that held and
+    the first that failed (none where the run at ``passed`` fails or the one at ``high`` × it holds). The advisor is
+    within 10 % of S where ``passed`` ≥ 0.9 × :attr:`LargestStep.fails`. Growth past the three-wave step is not
+    monotone in the step (a resonance met at one step and missed at the next: the 8² folded cloth under gravity,
+    symplectic Euler, grows at 1.010 √3/ω_max and holds at 1.005, 1.0125 and 1.015; the motion is chaotic, and a step
+    4e-6 shorter turns which: bench/results/advisor_battery_bisect_cpu.md), so
+    the bracket is where this bisection saw the change, not a guarantee for every step below it."""
+    result = LargestStep(0.0, math.inf)
+
+    def holds(step: float) -> bool:
+        outcome = run(case, integrator, step, device, seconds=seconds, factor=step / passed, substeps=substeps)
+        result.runs.append(outcome)
+        if outcome.ok:
+            result.holds = max(result.holds, step)
+        else:
+            result.fails = min(result.fails, step)
+        return outcome.ok
+
+    if not holds(passed) or holds(high * passed):
+        return result
+    low, top = passed, high * passed
+    for _ in range(halvings):
+        middle = 0.5 * (low + top)
+        low, top = (middle, top) if holds(middle) else (low, middle)
+    return result
+
+
 def omega_trace(case: Case, integrator: str, dt: float, device, *, seconds: float = 3.0,
                 every: float = 1.0 / 120.0, iterations: int = 40) -> np.ndarray:
     """ω_max [rad/s] of the states a run of ``case`` with ``integrator`` at step ``dt`` [s] passes through: rows of

@@ -282,6 +282,10 @@ class TransientPeak:
             before it lasted ``PROBE_PERIODS`` swings), shape [world_count]; ``None``: the same as ``world_omega_max``.
         swing_complete: whether the dry run got past its first swing before it ended or was cut short (then
             ``world_swing_omega_max`` is that swing's peak even where ``cut_short`` is set).
+        trace_times: when ω_max was estimated [s]: 0 (the start's estimate), then every re-estimate, shape [samples];
+            ``None`` where no dry run was made.
+        world_trace: each world's ω_max at those times [rad/s] (before the refinement at the peak; a world the dry run
+            does not track keeps its start's), float64, shape [samples, world_count]; ``None`` with ``trace_times``.
     """
 
     world_omega_max: np.ndarray
@@ -295,6 +299,8 @@ class TransientPeak:
     cut_short: str = ""
     world_swing_omega_max: np.ndarray | None = None
     swing_complete: bool = True
+    trace_times: np.ndarray | None = None
+    world_trace: np.ndarray | None = None
 
 
 def _keeps_plasticity(function):
@@ -389,6 +395,7 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
         iteration.expand(snapshot)
     rise, finite, level, climbing = 0.0, True, None, True  # level: the dry run's own running peak (not the start's)
     cut_short, started = "", None
+    times, trace = [0.0], [start.world_omega_max.copy()]
     while sim.time < horizon and (sim.time < least or sim.time < 2.0 * rise):
         if swing_peak is None and sim.time >= first and sim.time >= 2.0 * rise:  # where the first swing's run ended
             swing_peak, swing_end = peak.copy(), sim.time
@@ -410,6 +417,8 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
         if not np.isfinite(omega).all():
             finite = False
             break
+        times.append(sim.time)
+        trace.append(np.where(running > 0, omega, trace[0]))
         climbing = level is None or bool((omega > level).any())
         if level is None or (omega > level * (1.0 + PROBE_RISE)).any():  # still rising somewhere
             rise = sim.time
@@ -445,4 +454,5 @@ def transient_peak(model: Model, *, control=None, stiffness=None, horizon: float
         swing_peak[within] = peak[within]
         swing_peak = np.minimum(swing_peak, peak)
     return TransientPeak(peak, peak_time, mode, positions.reshape(-1, 3), sim.time, sim.dt, finite, lowest,
-                         cut_short=cut_short, world_swing_omega_max=swing_peak, swing_complete=swing_complete)
+                         cut_short=cut_short, world_swing_omega_max=swing_peak, swing_complete=swing_complete,
+                         trace_times=np.asarray(times), world_trace=np.asarray(trace, dtype=np.float64))
