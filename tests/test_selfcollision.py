@@ -19,6 +19,7 @@ from warpspring.analysis.audit import (
     surface_edges,
     vertex_triangle_distance,
 )
+from warpspring.core.selfcontact import DEFAULT_RELAXATION
 from warpspring.io.scene import parse_scene
 
 TAU = 0.004  # [m]: every scene's thickness, below 0.7 × the 0.02 m grids' smallest altitude (0.0141 m)
@@ -342,6 +343,21 @@ def test_the_cap_is_load_bearing(device):
         assert model.self_contact.counts()["capped"][0] > 0
         finals.append(state.particle_q.numpy())
     np.testing.assert_array_equal(finals[0], finals[1])
+
+
+def test_a_capped_vertex_ends_at_its_bound_not_its_start(device):
+    """The thrown cloth's first step (12.5 mm toward a target 10 mm below): the cap shortens every thrown vertex's step
+    to γ (D - τ/2) = 2 mm along the layers' normal (D = 10 mm, the floor τ/2), and each ends there, to the rounding
+    pad (a micrometre). Before, a capped position start + (bound/|Δ|) Δ that rounded past its bound (half of them:
+    the rounding goes either way) was held at its start: 5 of the 25 did not move, and the repulsion's push of such
+    a vertex was lost with its step."""
+    model = thrown_cloth(device)
+    a, b = model.state(), model.state()
+    ws.SymplecticEuler(model).step(a, b, None, 1.0 / 1200.0)
+    moved = np.linalg.norm(b.particle_q.numpy()[25:] - a.particle_q.numpy()[25:], axis=1)
+    bound = DEFAULT_RELAXATION * (0.01 - 0.5 * TAU)
+    assert np.all(moved <= bound) and np.all(moved > bound - 2e-6), moved
+    assert model.self_contact.counts()["capped"][0] >= 25
 
 
 def test_overflow_is_counted_and_safe(device):
