@@ -28,6 +28,17 @@ passes may move a free vertex to give way (free layers jammed between the pin an
 the substeps that keep its driven pins within half that reach (``step_choice.pin_substeps``, which
 ``substeps = "auto"`` also applies); the battery's scenes under the three integrators run in ``bench/torture.py``
 (``bench/results/torture_cpu*.md``), and the suite keeps the twist1440 case.
+
+What then still came closer than τ/2, without crossing (the ring under every integrator, the stack under RK4, the
+twists), was the cap's own bound: a kept pair could close by γ G a side a step, to (1 - 2γ) of its gap, and where the
+repulsion could not part it (a vertex pressed from both sides, whose pairs' corrections cancel in the Jacobi mean;
+the stack's vertex held between the box and a triangle stretched over its edge) the steps compounded: the ring's
+folds came to 7 µm. The ring's first such pair (t = 0.94 s, symplectic Euler) was two diagonals of neighbouring
+quads 2.7 mm apart, which the integrator closed to 1.8 mm and the repulsion parted to 2.7 mm, after which the cap
+held one of its vertices at its start: a capped position start + (bound/|Δ|) Δ that rounded past its bound was held
+there, which happened to half the capped vertices (the rounding goes either way) and threw their repulsion away.
+The cap now bounds a pair's approach by its gap less τ/2 (``CAP_FLOOR``: a pair τ/2 apart comes no closer, a closer
+one may part but not close in), and pulls a position rounded past its bound back by the rounding pad.
 """
 
 import numpy as np
