@@ -9,10 +9,15 @@ closer than τ/2 at each substep's end). Prints a table and writes it (command, 
     python bench/torture.py --device cpu --size small --duration 0.4 --scenes twist720  # the suite's twist
 
     python bench/torture.py --device cuda:0 --size small --duration 0.4 --scenes twist720 twist1440 --jobs 6
+    python bench/torture.py --device cpu --size small --scenes ring --timing  # µs per substep, unaudited
 
 The audit runs on the host after every frame (the substeps' positions are kept on the device, one copy per
 substep); its wall time is reported apart from the run's. ``--jobs N`` runs N cases at once, each in a process of
 its own (the audit is most of a case's time and uses one core): their wall times then share the host.
+
+``--timing`` times the cases instead, unaudited (the simulation's own cost: each case's first frame, which compiles
+and captures, untimed; the device synchronised before each timer read), in µs per substep over the scene's other
+frames (or ``--seconds``), with the self-collision's counters: run it in two checkouts to compare their cost.
 """
 
 from __future__ import annotations
@@ -29,7 +34,22 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # this che
 
 import warp as wp  # noqa: E402
 
-from warpspring.analysis.torture import HEADER, INTEGRATORS, SCENES, SIZES, run_case  # noqa: E402
+from warpspring.analysis.torture import (  # noqa: E402
+    FPS,
+    GUARD,
+    HEADER,
+    INTEGRATORS,
+    SCENES,
+    SIZES,
+    build_case,
+    run_case,
+    scene_substeps,
+)
+from warpspring.core.integrators import make_integrator  # noqa: E402
+from warpspring.core.simulator import Simulator  # noqa: E402
+
+TIMING_HEADER = ["scene", "integrator", "particles", "substeps/frame", "substeps timed", "µs/substep", "pairs pushed",
+                 "capped", "cache rebuilds", "swept fallbacks"]
 
 
 def _case(scene: str, integrator: str, options: dict) -> tuple[list, bool]:
@@ -37,6 +57,28 @@ def _case(scene: str, integrator: str, options: dict) -> tuple[list, bool]:
     wp.config.log_level = wp.LOG_WARNING
     result = run_case(scene, integrator, **options)
     return result.row() + [f"{result.audit_wall:.0f}"], result.clean
+
+
+def _timed(scene: str, integrator: str, options: dict) -> tuple[list, bool]:
+    """One case's timing row (``--timing``): the run unaudited, its first frame untimed."""
+    wp.config.log_level = wp.LOG_WARNING
+    model, seconds = build_case(scene, size=options["size"], device=options["device"], duration=options["duration"])
+    frames = options["frames"] or int(round(seconds * FPS))
+    substeps = options["substeps"] or scene_substeps(model)
+    sim = Simulator(model, integrator=make_integrator(integrator, model), fps=FPS, substeps=substeps, guard=GUARD)
+    sim.step_frame()  # compiles and captures
+    wp.synchronize_device(model.device)
+    start = time.perf_counter()
+    for _ in range(frames - 1):
+        sim.step_frame()
+    sim.settle()
+    wp.synchronize_device(model.device)
+    wall = time.perf_counter() - start
+    counts, cache = model.self_contact.counts(), model.self_contact.cache_counts()
+    timed = (frames - 1) * substeps
+    return [scene, integrator, model.particle_count, substeps, timed, f"{1e6 * wall / max(timed, 1):.0f}",
+            int(counts["pairs"].sum()), int(counts["capped"].sum()), int(cache["rebuilds"].sum()),
+            int(cache["fallbacks"].sum())], True
 
 
 def main(argv=None) -> int:
@@ -52,30 +94,38 @@ def main(argv=None) -> int:
                         help="substeps per frame (default: each scene's, torture.scene_substeps)")
     parser.add_argument("--jobs", type=int, default=1,
                         help="cases run at once, each in its own process (the host's audit is most of a case's time)")
-    parser.add_argument("--out", default=None, help="results file (default: bench/results/torture_<device>.md)")
+    parser.add_argument("--timing", action="store_true",
+                        help="time each case unaudited (µs per substep) instead of the audited battery")
+    parser.add_argument("--out", default=None,
+                        help="results file (default: bench/results/torture_<device>.md, torture_timing_<device>.md)")
     args = parser.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
     device = wp.get_device(args.device)
     frames = None if args.seconds is None else max(1, int(round(args.seconds * 60.0)))
-    out = pathlib.Path(args.out or pathlib.Path(__file__).parent / "results" / f"torture_{device.alias.replace(':', '')}.md")
+    name = f"torture_{'timing_' if args.timing else ''}{device.alias.replace(':', '')}.md"
+    out = pathlib.Path(args.out or pathlib.Path(__file__).parent / "results" / name)
     out.parent.mkdir(parents=True, exist_ok=True)
-    header = HEADER + ["audit [s]"]
+    header = TIMING_HEADER if args.timing else HEADER + ["audit [s]"]
+    run_one = _timed if args.timing else _case
     rows, clean = [], True
     started = time.perf_counter()
 
     def write() -> list:  # after every row: a long battery keeps what it measured
+        what = ("Each case unaudited, its first frame (compile, capture) untimed: wall time per substep over the "
+                "others; the self-collision's counters over the whole run." if args.timing else
+                "Every substep audited in float64: crossings (continuous, over the substep's straight path), "
+                "intersections and pairs closer than τ/2 = 2.5 mm at its end, each summed over substeps; min d: the "
+                "smallest distance at a substep's end; pins outran: pair-steps beyond the cap (a pinned side closing in "
+                "on a free one that could not give way: `SelfContact.outrun()`).")
         lines = [
-            f"# Self-collision torture battery ({args.size} size, {device})",
+            f"# Self-collision torture battery ({args.size} size, {device}){' timing' if args.timing else ''}",
             "",
             f"Command: `python bench/torture.py {' '.join(sys.argv[1:] if argv is None else argv)}`  ",
             f"Device: {device} ({device.name}), Warp {wp.config.version}, {datetime.date.today().isoformat()}, "
             f"{time.perf_counter() - started:.0f} s in all.",
             "",
-            "Every substep audited in float64: crossings (continuous, over the substep's straight path), intersections "
-            "and pairs closer than τ/2 = 2.5 mm at its end, each summed over substeps; min d: the smallest distance "
-            "at a substep's end; pins outran: pair-steps beyond the cap (a pinned side closing in on a free one that "
-            "could not give way: `SelfContact.outrun()`).",
+            what,
             "",
             "| " + " | ".join(header) + " |",
             "|" + "---|" * len(header),
@@ -90,7 +140,7 @@ def main(argv=None) -> int:
     if args.jobs > 1:
         done = {}
         with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-            futures = {pool.submit(_case, scene, integrator, options): (scene, integrator)
+            futures = {pool.submit(run_one, scene, integrator, options): (scene, integrator)
                        for scene, integrator in cases}
             for future in as_completed(futures):
                 done[futures[future]] = row, ok = future.result()
@@ -101,7 +151,7 @@ def main(argv=None) -> int:
             clean &= ok
         write()
     for scene, integrator in cases if args.jobs <= 1 else []:
-        row, ok = _case(scene, integrator, options)
+        row, ok = run_one(scene, integrator, options)
         rows.append(row)
         clean &= ok
         print(" | ".join(map(str, rows[-1])), flush=True)

@@ -38,34 +38,37 @@ stages keep the same pairs as a broad phase every step):
 2. **The displacement cap** (Chen et al. 2024, "Offset Geometric Contact", as in Newton's VBD, with separating
    planes). Let x̂ be the repelled positions, each free vertex's step Δ̂ᵢ = x̂ᵢ − x⁰ᵢ first limited to
    γ · ``SEARCH_REACH`` · τ (δᵢ = |Δ̂ᵢ|; γ < 1/2 the relaxation); kinematic vertices keep their prescribed x¹.
-   The cap's pairs are those whose swept boxes overlap at (x⁰, x̂): the vertex's or edge's swept box (x⁰ and x̂
-   of its ends, and around each free end's x⁰ the cube of half-width ρ, where the later passes may place it:
-   ρ = γ τ in a world whose pins move, 0 elsewhere, ``cube_reach``) against the triangles' swept boxes (likewise;
-   tested on the cached pairs by ``selfcontact_cache.cap_bounds_kernel``, or listed by the swept broad phase
-   where the cache may miss one); a pair is kept unless neither side can reach the other: 2K < D and
-   maxₖ free max(δₖ, ρ) ≤ γ (D − K), with K the largest prescribed displacement among its kinematic vertices (0
-   when it has none). Each free vertex i then ends at x⁰ᵢ + sᵢ Δ̂ᵢ, sᵢ in [0, 1] the largest that keeps two
+   The cap keeps pairs a floor h = ``CAP_FLOOR`` τ apart, not only apart. Its pairs are those whose swept boxes
+   overlap at (x⁰, x̂): the vertex's or edge's swept box (x⁰ and x̂ of its ends, and around each free end's x⁰ the
+   cube of half-width ρ, where the later passes may place it: ρ = γ τ in a world whose pins move, 0 elsewhere,
+   ``cube_reach``), grown by h, against the triangles' swept boxes (likewise, not grown; tested on the cached pairs
+   by ``selfcontact_cache.cap_bounds_kernel``, or listed by the swept broad phase where the cache may miss one); a
+   pair is kept unless neither side can come within h of the other: 2 max(K, δ) < D − h and δ ≤ γ (D − K), with
+   δ = maxₖ free max(δₖ, ρ) and K the largest prescribed displacement among its kinematic vertices (0 when it has
+   none). Each free vertex i then ends at x⁰ᵢ + sᵢ Δ̂ᵢ, sᵢ in [0, 1] the largest that keeps two
    bounds over its kept pairs (module ``selfcontact_cap``, ``cap_gather_kernel``), or where it is jammed, where the later passes put it:
 
    * **planes**. A kept pair's n is a unit vector from side B (the triangle, the second edge) to side A (the
      vertex, the first edge): of the direction between the closest points at x⁰ and the triangle's normal or the
      edges' cross product, the one with the wider slab, D_n = min over A's vertices of n·x⁰ − max over B's of
      n·x⁰ (D where n is the closest points' exact direction; any n gives a true slab; the normal keeps its
-     accuracy where a close pair's rounded closest points would tilt n); G = D_n − 2 pad (``plane_funcs``).
-     K_A, K_B are each side's kinematic approach: the largest displacement of its kinematic vertices toward the
-     other side along n (at least 0). A free vertex of A may approach B along n by at most its share
-     s_A = min(γ (G − K_B), (1 − γ) G − K_B), one of B by s_B = min(γ (G − K_A), (1 − γ) G − K_A): a pin's approach
-     is taken off the other side's share, and where it exceeds (1 − γ) G the share is negative: the free side
-     must give way, along its repelled step (which the repulsion pointed away from the pin) rather than held
-     where the pin runs into it. A vertex that retreats along n takes its whole step there. A pair with G ≤ 0
-     (closer than the precision resolves) holds its free vertices.
+     accuracy where a close pair's rounded closest points would tilt n); G = D_n − 2 pad (``plane_funcs``), and
+     G' = max(G − h, 0) its room above the floor. K_A, K_B are each side's kinematic approach: the largest
+     displacement of its kinematic vertices toward the other side along n (at least 0). A free vertex of A may
+     approach B along n by at most its share s_A = min(γ (G' − K_B), (1 − γ) G' − K_B), one of B by
+     s_B = min(γ (G' − K_A), (1 − γ) G' − K_A): a pin's approach is taken off the other side's share, and where it
+     exceeds (1 − γ) G' the share is negative: the free side must give way, along its repelled step (which the
+     repulsion pointed away from the pin) rather than held where the pin runs into it. A pair at the floor or
+     below (G' = 0, no pin) has shares 0: it may part, not close in. A vertex that retreats along n takes its
+     whole step there. A pair with G ≤ 0 (closer than the precision resolves) holds its free vertices.
    * **lengths**, for a vertex no share asks to give way: it also moves at most γ · min over its kept pairs of
      (D − K − pad), as with no planes, so that its step stays short in every direction, not only along the
-     pairs' normals (neighbours that pass beside it, (a) below, stay as far apart as a length cap keeps them).
+     pairs' normals (neighbours that pass beside it, (a) below, stay as far apart as a length cap keeps them). A
+     position that rounds past that bound is pulled back by the pad (held at x⁰ only where the bound is below it).
    * **the later passes** (``cap_place_kernel``), for a jammed vertex, one that a negative share asks to give
      way further along its step than its other bounds let it (a free vertex squeezed between a pin and more
      cloth). A pass places its movers anew and leaves the others where they are: of each kept pair a mover
-     approaches the other side along n by at most the room that side leaves, (1 − γ) G minus that side's largest
+     approaches the other side along n by at most the room that side leaves, (1 − γ) G' minus that side's largest
      approach as placed (a pusher's, below: the larger of that and where it wanted to go), and where the other
      side holds a mover of the same pass, also at most its share; anywhere in its swept box and no further than
      max(δᵢ, ρ): alternating projections onto these half-spaces, the box and the ball (``RELEASE_ROUNDS``),
@@ -74,27 +77,31 @@ stages keep the same pairs as a broad phase every step):
      (``core/selfcontact.py``) the free vertices across a kept pair from a pusher are movers (they make room,
      ``cap_mark_kernel``), and the pushers after them.
 
-   Why no pair crosses within the step. Every point of a primitive is a fixed convex combination of its
-   vertices, each moving on a straight line that stays in its swept box (the segment x⁰ᵢ → x̂ᵢ for sᵢ ≤ 1, or
-   the later passes' point) and is no longer than max(δᵢ, ρ), so the point stays in the primitive's swept box,
-   moves at most the largest displacement among its vertices, and along any fixed n moves at most as far as the
-   furthest of its vertices. (a) The pair's swept boxes are disjoint: the primitives never meet. (b) The boxes
-   overlap but the pair was not kept: every vertex of it moves at most max(K, γ (D − K)) < D/2 (2K < D,
-   γ < 1/2), so the two sides never meet, whichever hold kinematic vertices. (c) It was kept: side A's lowest
-   point along n stays above min_A n·x⁰ − α_A and side B's highest below max_B n·x⁰ + α_B, α a side's largest
-   approach among its vertices: at most max(K_A, s_A) for A where each free vertex keeps its share (for B
-   likewise; a side without kinematic vertices: its share). The slab between them stays open by at least
-   G − max(K_A, s_A) − max(K_B, s_B), which is ≥ (1 − 2γ) G where no pin exceeds its side's share, ≥ γ G where
-   one does (K_A + s_B ≤ (1 − γ) G), and G − K_A − K_B where both sides' pins do: positive whenever at most one
-   side holds kinematic vertices, and when both do and close in by less than G. A later pass keeps this: a
-   mover placed against a side that stays approaches by at most (1 − γ) G minus that side's approach (the slab
-   stays open by γ G), and against a side that moves in the same pass, by at most its share and that room,
-   whether the other side's movers are placed (shares) or stay (room). With no kinematic vertex this is the
-   bound γ G per vertex along n and the margin (1 − 2γ) G. G takes two pads off D_n: one for the rounding of the
-   dot products, one for the rounded end positions.
+   Why no pair crosses within the step, and none that starts it at least h apart ends closer. Every point of a
+   primitive is a fixed convex combination of its vertices, each moving on a straight line that stays in its
+   swept box (the segment x⁰ᵢ → x̂ᵢ for sᵢ ≤ 1, or the later passes' point) and is no longer than max(δᵢ, ρ), so
+   the point stays in the primitive's swept box, moves at most the largest displacement among its vertices, and
+   along any fixed n moves at most as far as the furthest of its vertices. (a) The pair's swept boxes, one grown
+   by h, are disjoint: the primitives stay more than h apart. (b) The boxes overlap but the pair was not kept:
+   every vertex of it moves at most max(K, δ) < (D − h)/2, so the two sides stay more than h apart, whichever
+   hold kinematic vertices (and with no pin at least (1 − 2γ) D). (c) It was kept: side A's lowest point along n
+   stays above min_A n·x⁰ − α_A and side B's highest below max_B n·x⁰ + α_B, α a side's largest approach among
+   its vertices: at most max(K_A, s_A) for A where each free vertex keeps its share (for B likewise; a side
+   without kinematic vertices: its share). The slab between them, G + h ≥ h + G' wide at the start, stays open by
+   at least h + G' − max(K_A, s_A) − max(K_B, s_B), which is ≥ h + (1 − 2γ) G' where no pin exceeds its side's
+   share, ≥ h + γ G' where one does (K_A + s_B ≤ (1 − γ) G'), and h + G' − K_A − K_B where both sides' pins do:
+   above h whenever at most one side holds kinematic vertices, and when both do and close in by less than G'. A
+   later pass keeps this: a mover placed against a side that stays approaches by at most (1 − γ) G' minus that
+   side's approach (the slab stays open by h + γ G'), and against a side that moves in the same pass, by at most
+   its share and that room, whether the other side's movers are placed (shares) or stay (room). With no
+   kinematic vertex this is the bound γ G' per vertex along n and the margin h + (1 − 2γ) G'. G takes two pads
+   off D_n: one for the rounding of the dot products, one for the rounded end positions. A pair closer than h at
+   the start (G' = 0: one a pin pressed there) keeps its slab: it does not close in. Without the floor (h = 0)
+   a kept pair closed to (1 − 2γ) of its gap a step, which compounded wherever the repulsion could not part it
+   (a vertex pressed from both sides, whose corrections' mean cancels): pairs came within micrometres.
    A share that cannot be kept puts the pair beyond the cap: a free vertex asked to give way that no pass can
    place (the room its neighbours leave, after they made what room they could within ρ, does not suffice: layers
-   squeezed by a pin), or two kinematic sides closing in by G or more. ``cap_check_kernel`` counts, after the cap,
+   squeezed by a pin), or two kinematic sides closing in by G' or more. ``cap_check_kernel`` counts, after the cap,
    each kept pair one of whose sides closes in along n while their approaches add up to D_n − pad or more
    (COUNT_OUTRUN), so that a run says where the guarantee did not hold.
    If the world's cap buffer overflowed, a listed pair may be missing: every free vertex of that world then
@@ -119,6 +126,10 @@ wp.set_module_options({"enable_backward": False})
 
 #: Pairs closer than this many thicknesses at the step's start are checked for repulsion.
 REPULSION_REACH = 2.0
+#: The cap's floor, in thicknesses: it bounds each kept pair's approach by its distance less CAP_FLOOR τ (and keeps
+#: the pairs that could come that close), so a pair at least CAP_FLOOR τ apart at a step's start ends it, and stays
+#: all through it, at least that far apart; a closer pair may part but not close in (module docstring, 2.).
+CAP_FLOOR = 0.5
 #: A free vertex moves at most γ times this many thicknesses per step (it bounds the cap's swept boxes).
 SEARCH_REACH = 32.0
 #: Relative padding of the single-precision BVH's boxes (float32 rounding of the points is 6e-8).
@@ -376,10 +387,12 @@ def _pair_funcs(scalar: type):
         return kinematic, free_step
 
     @wp.func
-    def kept_by_cap(distance: scalar, kinematic: scalar, free_step: scalar, relaxation: scalar):
-        """Whether the cap keeps a pair whose swept boxes overlap (module docstring, 2.): unless 2K < D and every free
-        vertex moves at most γ (D - K), when neither side can reach the other."""
-        return scalar(2.0) * kinematic >= distance or free_step > relaxation * (distance - kinematic)
+    def kept_by_cap(distance: scalar, floor: scalar, kinematic: scalar, free_step: scalar, relaxation: scalar):
+        """Whether the cap keeps a pair whose swept boxes (grown by the floor) overlap (module docstring, 2.): unless
+        2 max(K, δ) < D - h, h = ``floor`` (CAP_FLOOR τ), and every free vertex moves at most γ (D - K), when neither
+        side can come within h of the other (with h = 0: 2K < D and δ ≤ γ (D - K))."""
+        return (scalar(2.0) * wp.max(kinematic, free_step) >= distance - floor
+                or free_step > relaxation * (distance - kinematic))
 
     @wp.func
     def push_pair(
@@ -476,12 +489,13 @@ def broad_kernel(scalar: type, swept: bool):
         limit: scalar, cube: scalar, particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
         particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
     ):
-        """(kept, the value stored): the distance within the reach, or the cap's pairs (``kept_by_cap``) and D - K."""
+        """(kept, the value stored): the distance within the reach, or the cap's pairs (``kept_by_cap``, the floor
+        ``reach``) and D - K."""
         if wp.static(not swept):
             return distance < reach, distance
         kinematic, free_step = sweep_bounds(vertex, base, mass_row, limit, cube, particle_flags, particle_inv_mass,
                                             particle_q_start, particle_q_end)
-        return kept_by_cap(distance, kinematic, free_step, relaxation), distance - kinematic
+        return kept_by_cap(distance, reach, kinematic, free_step, relaxation), distance - kinematic
 
     @wp.func
     def query_box(ends: wp.vec2i, base: int, mass_row: int, limit: scalar, cube: scalar, query_reach: scalar,
@@ -536,8 +550,9 @@ def broad_kernel(scalar: type, swept: bool):
         reach = reach_factor * thickness + reach_add
         watch_reach = watch_factor * thickness  # pairs in [reach, watch_reach) are watched (without swept)
         query_reach = wp.max(reach, watch_reach)
-        if wp.static(swept):
-            query_reach = scalar(0.0)
+        if wp.static(swept):  # the cap's floor: the query boxes grown by it, and the reach keep() reads as it
+            reach = scalar(CAP_FLOOR) * thickness
+            query_reach = reach
         corners = surface.triangle[me]
         sides = surface.triangle_edges[me]
         # The primitives this triangle reports, their query boxes (rows of the matrices) and their union.
@@ -911,8 +926,9 @@ def repel_gather_kernel(scalar: type):
     """Kernel of the repulsion's gather: ``particle_q_in`` (the integrator's result) plus each free surface
     vertex's mean correction over its pairs, summed in key order, into ``particle_q_out``; and whether the cached
     pairs suffice for the cap: a world is flagged for the swept broad phase (FLAG_FALLBACK) when its list
-    overflowed or one of its free vertices moves further than γ (REPULSION_REACH τ - K_w) (K_w: its
-    kinematic vertices' largest displacement; module ``selfcontact_cache``)."""
+    overflowed, one of its free vertices moves further than min(γ (REPULSION_REACH τ - K_w), (REPULSION_REACH -
+    CAP_FLOOR) τ / 2) or its pins that half (K_w: its kinematic vertices' largest displacement; module
+    ``selfcontact_cache``)."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
 
@@ -966,11 +982,12 @@ def repel_gather_kernel(scalar: type):
         delta = wp.min(wp.length(x - start), relaxation * scalar(SEARCH_REACH) * thickness)
         kinematic = (scalar(flags_in_out[flag_slot(FLAG_KINEMATIC, world, world_count)]) / scalar(KINEMATIC_STEPS)
                      * thickness)
-        budget = (relaxation * (scalar(REPULSION_REACH) * thickness - kinematic) * scalar(1.0 - SAFETY)
-                  - scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0)))
+        offset = scalar(REPULSION_REACH - CAP_FLOOR) * thickness  # D - h of a pair outside the cache, at least
+        budget = (wp.min(relaxation * (scalar(REPULSION_REACH) * thickness - kinematic), scalar(0.5) * offset)
+                  * scalar(1.0 - SAFETY) - scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0)))
         overflow = pairs_in_out.count[world] > pairs_in_out.key.shape[0] // world_count
-        # A pin moving half the reach may reach a pair outside the cache (the cap keeps the pairs with 2K >= D).
-        far = scalar(2.0) * kinematic >= scalar(REPULSION_REACH) * thickness * scalar(1.0 - SAFETY)
+        # A pin moving half the offset may reach a pair outside the cache (the cap keeps the pairs with 2K >= D - h).
+        far = scalar(2.0) * kinematic >= offset * scalar(1.0 - SAFETY)
         if overflow or far or (delta > scalar(0.0) and not (delta <= budget)):
             raise_flag(flags_in_out, FLAG_FALLBACK, world, world_count)
 

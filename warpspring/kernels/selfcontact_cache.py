@@ -43,8 +43,9 @@ whole keeps its cache. Each step:
    which the cache holds all of (1.), with the same distance arithmetic as the broad phase: the same pairs,
    summed in the same key order, as a list cut at that reach — the same bits.
 4. The cap: a pair outside the cache has D ≥ REPULSION_REACH τ at x⁰ and K ≤ K_w, so the cap would keep it
-   (2K ≥ D or max δ > γ (D - K)) only if K_w ≥ REPULSION_REACH τ / 2 or some free vertex of the world moved further
-   than γ (REPULSION_REACH τ - K_w). The repulsion's gather flags the worlds where either holds, or whose cache
+   (2 max(K, δ) ≥ D - h or δ > γ (D - K), h = CAP_FLOOR τ its floor) only if K_w ≥ (REPULSION_REACH - CAP_FLOOR) τ / 2
+   or some free vertex of the world moved further than min(γ (REPULSION_REACH τ - K_w), (REPULSION_REACH - CAP_FLOOR)
+   τ / 2). The repulsion's gather flags the worlds where either holds, or whose cache
    overflowed (FLAG_FALLBACK); they run the cap's swept broad phase as before (a conditional node). The others
    test each cached pair as the swept broad phase would (``cap_bounds_kernel``: the same single-precision swept
    boxes, the same overlap and keep tests, the same D - K), so the cap keeps exactly the pairs it kept before,
@@ -52,7 +53,8 @@ whole keeps its cache. Each step:
    at the same bits.
 5. The pair stages (3. and 4., the swept broad phase's node nested) run in one conditional node on FLAG_WORK, which ``decide_kernel`` and
    ``anchor_kernel`` raise where a world has cached pairs, or where a free vertex's step (FLAG_STEP) may exceed
-   what the repulsion's gather allows without the swept broad phase, or whose pins move REPULSION_REACH τ / 2 or more.
+   what the repulsion's gather allows without the swept broad phase, or whose pins move (REPULSION_REACH - CAP_FLOOR)
+   τ / 2 or more.
    Where none does, the stages would push no pair, run no swept broad phase and cap no vertex (each step is below γ SEARCH_REACH τ), so ``state_out`` is
    left as the integrator wrote it: a substep without pairs nearby costs the check, one thread per world and
    the conditional nodes.
@@ -71,6 +73,7 @@ from .precision import vec3_type
 from .selfcontact import (
     BOX_PAD,
     CACHE_REACH,
+    CAP_FLOOR,
     COUNT_FALLBACKS,
     COUNT_REBUILDS,
     FLAG_DRIFT,
@@ -270,8 +273,9 @@ def decide_kernel(scalar: type):
     drifts' spread at most the slack (the length of the vector of max(high_P + low_Q, high_Q + low_P) per axis: the
     largest |r_a - r_b| over a corner a of P and b of Q). The thread of (0, 0) also decides whether the pair stages
     run (FLAG_WORK's first entry): where a world has cached pairs, a free vertex steps further than the repulsion's
-    gather allows without the swept broad phase (γ (REPULSION_REACH τ - K_w) (1 - SAFETY), less its pad), or its pins
-    move REPULSION_REACH τ / 2 or more (less the SAFETY share)."""
+    gather allows without the swept broad phase (min(γ (REPULSION_REACH τ - K_w), (REPULSION_REACH - CAP_FLOOR) τ / 2)
+    (1 - SAFETY), less its pad), or its pins move (REPULSION_REACH - CAP_FLOOR) τ / 2 or more (less the SAFETY
+    share)."""
     vec3 = vec3_type(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
@@ -303,9 +307,11 @@ def decide_kernel(scalar: type):
         if first == 0 and second == 0:
             kinematic = scalar(flags_in_out[flag_slot(FLAG_KINEMATIC, world, world_count)]) * unit
             step = scalar(flags_in_out[flag_slot(FLAG_STEP, world, world_count)]) * unit
-            budget = (params[row, PARAM_RELAXATION] * (scalar(REPULSION_REACH) * thickness - kinematic)
+            offset = scalar(REPULSION_REACH - CAP_FLOOR) * thickness  # as repel_gather
+            budget = (wp.min(params[row, PARAM_RELAXATION] * (scalar(REPULSION_REACH) * thickness - kinematic),
+                             scalar(0.5) * offset)
                       * scalar(1.0 - SAFETY) * scalar(1.0 - SAFETY))  # the second factor: this test's own rounding
-            far = scalar(2.0) * kinematic >= scalar(REPULSION_REACH) * thickness * scalar(1.0 - SAFETY)  # as repel_gather
+            far = scalar(2.0) * kinematic >= offset * scalar(1.0 - SAFETY)  # as repel_gather
             if cache_count[world] > 0 or not (step <= budget) or far:
                 flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
         # The slack the cache would have without its watch list: where it suffices, the watched pairs need no check.
@@ -495,7 +501,8 @@ def cap_bounds_kernel(scalar: type):
 
     @wp.func
     def bound_of(
-        s: int, base: int, mass_row: int, relaxation: scalar, limit: scalar, cube: scalar, particle_count: int,
+        s: int, base: int, mass_row: int, relaxation: scalar, limit: scalar, cube: scalar, floor: scalar,
+        particle_count: int,
         particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar], surface: Surface, cache: Pairs,
         particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
     ):
@@ -509,7 +516,7 @@ def cap_bounds_kernel(scalar: type):
             tri = surface.triangle[t]
             lower, upper = swept_box(wp.vec3i(vertex[0], vertex[0], vertex[0]), 2, base, mass_row, limit, cube,
                                      particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
-            query_lower, query_upper = box_of(lower, upper, zero)
+            query_lower, query_upper = box_of(lower, upper, floor)
             lower, upper = swept_box(tri, 3, base, mass_row, limit, cube, particle_flags, particle_inv_mass,
                                      particle_q_start, particle_q_end)
             leaf_lower, leaf_upper = box_of(lower, upper, zero)
@@ -527,7 +534,7 @@ def cap_bounds_kernel(scalar: type):
             tri = surface.triangle[surface.edge_owner[f]]
             lower, upper = swept_box(wp.vec3i(vertex[0], vertex[1], vertex[1]), 2, base, mass_row, limit, cube,
                                      particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
-            query_lower, query_upper = box_of(lower, upper, zero)
+            query_lower, query_upper = box_of(lower, upper, floor)
             lower, upper = swept_box(tri, 3, base, mass_row, limit, cube, particle_flags, particle_inv_mass,
                                      particle_q_start, particle_q_end)
             leaf_lower, leaf_upper = box_of(lower, upper, zero)
@@ -545,7 +552,7 @@ def cap_bounds_kernel(scalar: type):
             distance = wp.length((p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)))
         kinematic, free_step = sweep_bounds(vertex, base, mass_row, limit, cube, particle_flags, particle_inv_mass,
                                             particle_q_start, particle_q_end)
-        if kept_by_cap(distance, kinematic, free_step, relaxation):
+        if kept_by_cap(distance, floor, kinematic, free_step, relaxation):
             return distance - kinematic
         return scalar(NO_BOUND)
 
@@ -583,9 +590,11 @@ def cap_bounds_kernel(scalar: type):
         relaxation = params[row, PARAM_RELAXATION]
         limit = relaxation * scalar(SEARCH_REACH) * params[row, PARAM_THICKNESS]
         cube = cube_reach(flags, world, limit)
+        floor = scalar(CAP_FLOOR) * params[row, PARAM_THICKNESS]
         for slot in range(local, wp.min(cache.count[world], capacity), particle_count):
             s = world * capacity + slot
-            cache_bound_out[s] = bound_of(s, base, mass_row, relaxation, limit, cube, particle_count, particle_flags,
-                                          particle_inv_mass, surface, cache, particle_q_start, particle_q_end)
+            cache_bound_out[s] = bound_of(s, base, mass_row, relaxation, limit, cube, floor, particle_count,
+                                          particle_flags, particle_inv_mass, surface, cache, particle_q_start,
+                                          particle_q_end)
 
     return cap_bounds

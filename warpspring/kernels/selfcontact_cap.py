@@ -14,6 +14,7 @@ from .kinematics import is_kinematic, particle_funcs
 from .precision import vec3_type
 from .selfcontact import (
     BOX_PAD,
+    CAP_FLOOR,
     COUNT_CAPPED,
     COUNT_OUTRUN,
     FLAG_FALLBACK,
@@ -42,12 +43,13 @@ def plane_funcs(scalar: type):
     second edge; a normal of the pair where the points coincide), and the gap D_n = min over A's vertices of n·x
     - max over B's of n·x (the width of the slab between the two primitives along n: D where n is exact).
 
-    ``pair_shares(vt, vertex, base, mass_row, relaxation, particle_flags, particle_inv_mass, particle_q_start,
-    particle_q_end) -> (n, shares, gap)``: with G = D_n - 2 pad (pad the rounding pad of the coordinates), each
-    side's kinematic approach K_A, K_B (the largest of its kinematic vertices' displacements toward the other side
-    along n, at least 0) and the share of each side's free vertices, ``shares`` = (s_A, s_B): a free vertex of A
-    approaches B along n by at most s_A = min(γ (G⁺ - K_B), (1 - γ) G⁺ - K_B), likewise for B (negative: it must
-    give way)."""
+    ``pair_shares(vt, vertex, base, mass_row, relaxation, floor, particle_flags, particle_inv_mass, particle_q_start,
+    particle_q_end) -> (n, shares, gap)``: with G = D_n - 2 pad (pad the rounding pad of the coordinates) and the room
+    G' = max(G - h, 0) above the floor h = ``floor`` (CAP_FLOOR τ), each side's kinematic approach K_A, K_B (the
+    largest of its kinematic vertices' displacements toward the other side along n, at least 0) and the share of
+    each side's free vertices, ``shares`` = (s_A, s_B): a free vertex of A approaches B along n by at most
+    s_A = min(γ (G' - K_B), (1 - γ) G' - K_B), likewise for B (negative: it must give way; 0 for a pair at the floor
+    or below without pins: it may part, not close in)."""
     vec3 = vec3_type(scalar)
     vec2 = wp.types.vector(2, scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
@@ -110,7 +112,7 @@ def plane_funcs(scalar: type):
 
     @wp.func
     def pair_shares(
-        vt: bool, vertex: wp.vec4i, base: int, mass_row: int, relaxation: scalar,
+        vt: bool, vertex: wp.vec4i, base: int, mass_row: int, relaxation: scalar, floor: scalar,
         particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
         particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
     ):
@@ -130,7 +132,7 @@ def plane_funcs(scalar: type):
                 else:
                     kinematic_b = wp.max(kinematic_b, toward)
         gap = width - scalar(2.0 * BOX_PAD) * (pad + scalar(1.0))
-        room = wp.max(gap, zero)
+        room = wp.max(gap - floor, zero)
         shares = vec2(wp.min(relaxation * (room - kinematic_b), (scalar(1.0) - relaxation) * room - kinematic_b),
                       wp.min(relaxation * (room - kinematic_a), (scalar(1.0) - relaxation) * room - kinematic_a))
         return n, shares, gap
@@ -156,7 +158,7 @@ def cap_gather_kernel(scalar: type):
     @wp.func
     def bound(
         plane: scalar, allowed: scalar, need: scalar, entry: int, pairs: Pairs, gap_less_kinematic: scalar,
-        pad: scalar, base: int, mass_row: int, relaxation: scalar, vertex_pairs: int, step: vec3,
+        pad: scalar, base: int, mass_row: int, relaxation: scalar, floor: scalar, vertex_pairs: int, step: vec3,
         particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3],
         particle_q_end: wp.array[vec3],
     ):
@@ -168,7 +170,7 @@ def cap_gather_kernel(scalar: type):
         role = entry - 4 * slot
         allowed = wp.min(allowed, relaxation * wp.max(gap_less_kinematic - pad, scalar(0.0)))
         vt = pairs.key[slot] < wp.int64(vertex_pairs)
-        n, shares, gap = pair_shares(vt, pairs.vertex[slot], base, mass_row, relaxation, particle_flags,
+        n, shares, gap = pair_shares(vt, pairs.vertex[slot], base, mass_row, relaxation, floor, particle_flags,
                                      particle_inv_mass, particle_q_start, particle_q_end)
         if not (gap > scalar(0.0)):  # no separation the precision resolves: the vertex holds
             return scalar(0.0), scalar(0.0), need
@@ -221,6 +223,7 @@ def cap_gather_kernel(scalar: type):
             return
         row = wp.min(world, params.shape[0] - 1)
         relaxation = params[row, PARAM_RELAXATION]
+        floor = scalar(CAP_FLOOR) * params[row, PARAM_THICKNESS]
         base = world * particle_count
         vertex_pairs = particle_count * surface.triangle.shape[0]
         start = particle_q_start[p]
@@ -244,14 +247,14 @@ def cap_gather_kernel(scalar: type):
                 for a in range(pairs.vertex_start[p], pairs.vertex_start[p] + pairs.vertex_count[p]):
                     e = pairs.entry[a]
                     plane, allowed, need = bound(plane, allowed, need, e, pairs, pair_distance[e // 4], pad, base,
-                                                   mass_row, relaxation, vertex_pairs, step, particle_flags,
+                                                   mass_row, relaxation, floor, vertex_pairs, step, particle_flags,
                                                    particle_inv_mass, particle_q_start, particle_q_in)
         else:
             for a in range(cache.vertex_start[p], cache.vertex_start[p] + cache.vertex_count[p]):
                 e = cache.entry[a]
                 if cache_bound[e // 4] < scalar(NO_BOUND):
                     plane, allowed, need = bound(plane, allowed, need, e, cache, cache_bound[e // 4], pad, base,
-                                                   mass_row, relaxation, vertex_pairs, step, particle_flags,
+                                                   mass_row, relaxation, floor, vertex_pairs, step, particle_flags,
                                                    particle_inv_mass, particle_q_start, particle_q_in)
         plane = wp.max(plane, scalar(0.0))
         if need > plane:  # a push that does not fit: the later passes (cap_place_kernel) place it
@@ -263,9 +266,17 @@ def cap_gather_kernel(scalar: type):
         else:  # the length bound too, as tight as the planes' along the step
             allowed = wp.min(allowed, plane * wp.min(length, limit))
             if length > allowed:
-                x = start + (allowed / length) * (x - start)
-                if not (wp.length(x - start) <= allowed):  # rounded past the bound (a bound below the precision)
+                repelled = x
+                x = start + (allowed / length) * (repelled - start)
+                # Rounded past the bound (about half the time: the rounding of x - start goes either way): pulled back
+                # by the pad, far above the coordinates' rounding; held where it started only where the bound is below
+                # that (a pair closer than the precision resolves).
+                if not (wp.length(x - start) <= allowed):
                     x = start
+                    if allowed > pad:
+                        pulled = start + ((allowed - pad) / length) * (repelled - start)
+                        if wp.length(pulled - start) <= allowed:
+                            x = pulled
                 wp.atomic_add(counters_out, world, COUNT_CAPPED, 1)
         moved = x - particle_q_out[p]
         if wp.dot(moved, moved) > scalar(0.0):
@@ -299,7 +310,8 @@ def cap_place_kernel(scalar: type):
 
     @wp.func
     def half_space(
-        entry: int, pairs: Pairs, base: int, mass_row: int, relaxation: scalar, vertex_pairs: int, mover_role: int,
+        entry: int, pairs: Pairs, base: int, mass_row: int, relaxation: scalar, floor: scalar, vertex_pairs: int,
+        mover_role: int,
         particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar], role: wp.array[wp.int32],
         desired: wp.array[vec3], particle_q_start: wp.array[vec3], particle_q_in: wp.array[vec3],
         particle_q_placed: wp.array[vec3],
@@ -310,7 +322,7 @@ def cap_place_kernel(scalar: type):
         k_mine = entry - 4 * slot
         vt = pairs.key[slot] < wp.int64(vertex_pairs)
         vertex = pairs.vertex[slot]
-        n, shares, gap = pair_shares(vt, vertex, base, mass_row, relaxation, particle_flags, particle_inv_mass,
+        n, shares, gap = pair_shares(vt, vertex, base, mass_row, relaxation, floor, particle_flags, particle_inv_mass,
                                      particle_q_start, particle_q_in)
         mine = on_side_a(vt, k_mine)
         sign = scalar(1.0)  # the other side's approach toward mine per unit of n·Δ: +1 for B, -1 for A
@@ -329,7 +341,7 @@ def cap_place_kernel(scalar: type):
                     moving = True
                 elif role[j] == ROLE_PUSHER:
                     other = wp.max(other, sign * wp.dot(n, desired[j] - start))
-        room = (scalar(1.0) - relaxation) * gap - other
+        room = (scalar(1.0) - relaxation) * wp.max(gap - floor, scalar(0.0)) - other
         if moving:
             room = wp.min(room, share)
         return -sign * n, room, gap > scalar(0.0)
@@ -371,6 +383,7 @@ def cap_place_kernel(scalar: type):
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         row = wp.min(world, params.shape[0] - 1)
         relaxation = params[row, PARAM_RELAXATION]
+        floor = scalar(CAP_FLOOR) * params[row, PARAM_THICKNESS]
         base = world * particle_count
         vertex_pairs = particle_count * surface.triangle.shape[0]
         start = particle_q_start[p]
@@ -400,7 +413,7 @@ def cap_place_kernel(scalar: type):
             for a in range(first, last):
                 e = list_pairs.entry[a]
                 if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
-                    g, room, ok = half_space(e, list_pairs, base, mass_row, relaxation, vertex_pairs, mover_role,
+                    g, room, ok = half_space(e, list_pairs, base, mass_row, relaxation, floor, vertex_pairs, mover_role,
                                              particle_flags, particle_inv_mass, role, desired, particle_q_start,
                                              particle_q_in, particle_q_out)
                     resolved = resolved and ok
@@ -415,7 +428,7 @@ def cap_place_kernel(scalar: type):
         for a in range(first, last):
             e = list_pairs.entry[a]
             if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
-                g, room, ok = half_space(e, list_pairs, base, mass_row, relaxation, vertex_pairs, mover_role,
+                g, room, ok = half_space(e, list_pairs, base, mass_row, relaxation, floor, vertex_pairs, mover_role,
                                          particle_flags, particle_inv_mass, role, desired, particle_q_start,
                                          particle_q_in, particle_q_out)
                 holds = holds and wp.dot(g, trial) <= room
