@@ -130,6 +130,9 @@ REPULSION_REACH = 2.0
 #: the pairs that could come that close), so a pair at least CAP_FLOOR τ apart at a step's start ends it, and stays
 #: all through it, at least that far apart; a closer pair may part but not close in (module docstring, 2.).
 CAP_FLOOR = 0.5
+#: D - h of a pair outside the cache at its reach, in thicknesses (REPULSION_REACH - CAP_FLOOR: one constant, so that a
+#: kernel reads it as one value of its precision).
+FLOOR_OFFSET = REPULSION_REACH - CAP_FLOOR
 #: A free vertex moves at most γ times this many thicknesses per step (it bounds the cap's swept boxes).
 SEARCH_REACH = 32.0
 #: Relative padding of the single-precision BVH's boxes (float32 rounding of the points is 6e-8).
@@ -982,7 +985,7 @@ def repel_gather_kernel(scalar: type):
         delta = wp.min(wp.length(x - start), relaxation * scalar(SEARCH_REACH) * thickness)
         kinematic = (scalar(flags_in_out[flag_slot(FLAG_KINEMATIC, world, world_count)]) / scalar(KINEMATIC_STEPS)
                      * thickness)
-        offset = scalar(REPULSION_REACH - CAP_FLOOR) * thickness  # D - h of a pair outside the cache, at least
+        offset = scalar(FLOOR_OFFSET) * thickness  # D - h of a pair outside the cache, at least
         budget = (wp.min(relaxation * (scalar(REPULSION_REACH) * thickness - kinematic), scalar(0.5) * offset)
                   * scalar(1.0 - SAFETY) - scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0)))
         overflow = pairs_in_out.count[world] > pairs_in_out.key.shape[0] // world_count

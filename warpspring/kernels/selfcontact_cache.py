@@ -83,6 +83,7 @@ from .selfcontact import (
     FLAG_REBUILD,
     FLAG_STEP,
     FLAG_WATCH,
+    FLOOR_OFFSET,
     FLAG_WORK,
     KINEMATIC_STEPS,
     NO_BOUND,
@@ -307,7 +308,7 @@ def decide_kernel(scalar: type):
         if first == 0 and second == 0:
             kinematic = scalar(flags_in_out[flag_slot(FLAG_KINEMATIC, world, world_count)]) * unit
             step = scalar(flags_in_out[flag_slot(FLAG_STEP, world, world_count)]) * unit
-            offset = scalar(REPULSION_REACH - CAP_FLOOR) * thickness  # as repel_gather
+            offset = scalar(FLOOR_OFFSET) * thickness  # as repel_gather
             budget = (wp.min(params[row, PARAM_RELAXATION] * (scalar(REPULSION_REACH) * thickness - kinematic),
                              scalar(0.5) * offset)
                       * scalar(1.0 - SAFETY) * scalar(1.0 - SAFETY))  # the second factor: this test's own rounding
