@@ -682,3 +682,33 @@ def test_watched_pairs_rebuild_the_cache(device):
     np.testing.assert_array_equal(finals[0], finals[1])
     assert counts[0]["pairs"].sum() > 0 and counts[0]["pairs"].sum() == counts[1]["pairs"].sum()
     assert 1 < counts[0]["rebuilds"][0] < 8
+
+
+def test_pair_buffers_grow_after_a_frame_that_dropped_pairs(device, monkeypatch):
+    """Two 8 × 8 sheets 3 mm apart (τ = 4 mm: every vertex near a dozen of the other sheet's triangles), their pair
+    buffers cut to one slot per surface vertex: the first frame drops pairs (counted), the buffers then grow by
+    PAIR_GROWTH a frame until none is dropped (5 frames here), and the sheets end no closer than τ/2 with nothing crossed."""
+    from warpspring.core import selfcontact
+
+    monkeypatch.setattr(selfcontact, "PAIRS_PER_VERTEX", 1)
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    spring = ws.SpringMaterial(ke=100.0, kd=0.01)
+    for z in (0.0, 0.003):
+        builder.add_cloth_grid(nx=8, ny=8, spacing=0.01, mass=1.0, origin=(0.0, 0.0, z), structural=spring,
+                               shear=spring, name=f"sheet{z}")
+    builder.add_self_collision(thickness=0.004)
+    model = builder.finalize(device)
+    contact = model.self_contact
+    initial = contact.capacity
+    assert initial == 128  # a slot per surface vertex
+    sim = ws.Simulator(model, fps=60, substeps=8)
+    dropped = []
+    for _ in range(10):
+        sim.step_frame()
+        dropped.append(int(contact.overflow().sum()))
+    assert dropped[0] > 0  # the first frame overflowed, and said so
+    assert contact.capacity > initial  # ... and the buffers grew
+    assert dropped[-1] == dropped[-3]  # none dropped in the last frames: the grown buffers hold every pair
+    x = sim.state.particle_q.numpy().astype(np.float64)
+    gap = np.abs(x[64:, 2].mean() - x[:64, 2].mean())
+    assert gap >= 0.5 * 0.004  # held apart by the floor at least

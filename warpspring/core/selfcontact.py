@@ -9,6 +9,8 @@ and launch none of it.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import warp as wp
 
@@ -147,6 +149,9 @@ def smallest_altitude(positions: np.ndarray, triangles: np.ndarray) -> float:
     return float(np.min(doubled_area / np.maximum(longest, 1e-300))) if len(x) else np.inf
 
 
+#: Factor by which the pair buffers grow after a frame that dropped pairs (``SelfContact.grow``).
+PAIR_GROWTH = 2.0
+
 class SelfContact:
     """Self-collision of a model's triangle surface: the BVHs, the pair buffers, the live values and the counters.
 
@@ -215,6 +220,7 @@ class SelfContact:
         self.cap_role = [wp.zeros(model.state_size, dtype=wp.int32, device=device) for _ in range(2)]
         self.cap_desired = [wp.zeros(model.state_size, dtype=model.vec3, device=device) for _ in range(2)]
         self.counters = wp.zeros((worlds, COUNTER_COUNT), dtype=wp.int32, device=device)
+        self._dropped_seen = 0  # pairs dropped when the buffers last grew (``grow``)
         # The pair cache (kernels/selfcontact_cache.py: its anchors, its reach, 0 until built) and the cap's
         # swept list, for the steps that need it; the pass's flags (any rebuild, any fallback, then per world each
         # kind of kernels/selfcontact.py FLAG_*), zeroed at every step's start.
@@ -367,6 +373,22 @@ class SelfContact:
     def reset(self) -> None:
         """Zero the counters."""
         self.counters.zero_()
+        self._dropped_seen = 0
+
+    def grow(self) -> bool:
+        """After a frame in which a world's pair buffer overflowed (pairs dropped since the last call: reads the
+        device), give every world PAIR_GROWTH times the slots (emptied: the next step rebuilds its cache) and bump
+        the model's revision, so that the stepper re-captures. The frame that dropped pairs kept the no-crossing
+        guarantee (a world whose list overflowed runs the cap's swept broad phase) but not all of their repulsion;
+        a tightly packed surface (a cloth coiled by a 1440° twist) otherwise drops them frame after frame. The
+        counters keep the pairs dropped (:meth:`overflow`). Returns whether the buffers grew."""
+        dropped = int(self.overflow().sum())
+        if dropped <= self._dropped_seen:
+            return False
+        self._dropped_seen = dropped
+        self._allocate(math.ceil(PAIR_GROWTH * self.capacity))
+        self.model.revision += 1
+        return True
 
     def history(self) -> list:
         """The device arrays one step leaves to the next: the counters."""

@@ -221,6 +221,8 @@ class Simulator:
                 self._judge(self.guard.reports(), self.frame + 1)
             if self.contacts is not None:
                 self._report_overflow()
+        if self.model.self_contact is not None:
+            self.model.self_contact.grow()  # pairs dropped in this frame: room for them in the next
         self.frame += 1
         if self.frame_hooks:
             self.settle()
