@@ -605,16 +605,15 @@ def estimate_memory(
                       particle_force_clamp=particle_force_clamp)
     others = [checks.count("family_elements", e, minimum=0) for e in family_elements]
     energy_blocks = sum(check_blocks_of(e) for e in (s, h, *others))
-    running = 8 * RUNNING_SLOTS * ((blocks + element_blocks(s) + element_blocks(h)) if cuda
-                                   else w * (1 + bool(s) + bool(h)))
+    running_rows = blocks + element_blocks(s) + element_blocks(h)  # (CUDA) the particles' and dampers' blocks
+    running = 8 * RUNNING_SLOTS * (running_rows if cuda else w * (1 + bool(s) + bool(h)))
     dampers = (4 + (f + 8) * s) * w if path.dampers else 0
     power = path.power * f * size  # the power sums the guard hands the integrator (energy out[, work in])
     carried = (8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + running + dampers + power  # what a check carries on,
                + 8 * CARRY_SLOTS * w)  # each world's share of the closing term among it
     # The check's fold on CUDA, where a world's partial sums are more than FOLD_ABOVE: the
     # partials, energy, strain, power and running sums of each chunk of FOLD_CHUNK of them (``Guard._fold``).
-    running_blocks = (blocks + element_blocks(s) + element_blocks(h)) // max(w, 1)
-    most = max(check_blocks // max(w, 1), energy_blocks // max(w, 1), running_blocks)
+    most = max(check_blocks, energy_blocks, running_rows) // max(w, 1)
     folds = cuda and most > FOLD_ABOVE
     fold = w * -(-most // FOLD_CHUNK) * 8 * (PARTIAL_SLOTS + 3 + RUNNING_SLOTS) if folds else 0
     guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * PARTIAL_SLOTS * check_blocks + 8 * GUARD_LIMITS * w

@@ -140,24 +140,24 @@ class SymplecticEuler(Integrator):
             power = None if self.power is None else self.power.modes
             swept = self.cpu_sweep and model.device.is_cpu and sweeps(features)
             blocks = self.power_blocks if power is not None and not swept else None
+            # The fused step's inputs, whichever kernel takes them.
+            inputs = [
+                model.particle_count,
+                model.particle_flags,
+                model.particle_inv_mass,
+                model.particle_radius,
+                model.shape_arrays,
+                *force_inputs(model, control, features),
+                state_in.particle_q,
+                state_in.particle_qd,
+                state_in.time,
+                *step_arguments(model.scalar, dt),
+            ]
             if blocks is not None:  # the guard's power summed per block (``symplectic_euler_blocks_kernel``)
                 running, grid, taken_slot, worked_slot = blocks
                 flat_launch(
                     symplectic_euler_blocks_kernel(model.scalar, features, contacts, power, model.device.is_cuda),
-                    inputs=[
-                        model.particle_count,
-                        model.particle_flags,
-                        model.particle_inv_mass,
-                        model.particle_radius,
-                        model.shape_arrays,
-                        *force_inputs(model, control, features),
-                        state_in.particle_q,
-                        state_in.particle_qd,
-                        state_in.time,
-                        *step_arguments(model.scalar, dt),
-                        taken_slot,
-                        worked_slot,
-                    ],
+                    inputs=inputs + [taken_slot, worked_slot],
                     outputs=[state_out.particle_q, state_out.particle_qd, state_out.time, running],
                     dim=grid, block_dim=grid[2], device=model.device,
                 )
@@ -170,18 +170,7 @@ class SymplecticEuler(Integrator):
             if blocks is None:
                 flat_launch(
                     kernel,
-                    inputs=[
-                        model.particle_count,
-                        model.particle_flags,
-                        model.particle_inv_mass,
-                        model.particle_radius,
-                        model.shape_arrays,
-                        *force_inputs(model, control, features),
-                        state_in.particle_q,
-                        state_in.particle_qd,
-                        state_in.time,
-                        *step_arguments(model.scalar, dt),
-                    ],
+                    inputs=inputs,
                     outputs=[state_out.particle_q, state_out.particle_qd, state_out.time,
                              None if self.power is None else self.power.sums, *scratch],
                     **common,
