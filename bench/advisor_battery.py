@@ -140,9 +140,7 @@ def main():
             refusals.append(f"| {n}² flat, undamped | {name} | {'refused' if advice.dt_passed == 0 else 'PASSED'} | "
                             f"{'yes' if named else 'no'} |")
     at, below = sb.exact_limit(device)
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    command = " ".join(os.path.relpath(a, root) if os.path.isabs(a) and a.startswith(root) else a for a in sys.argv[1:])
-    where = f"{device.name} ({device}), Warp {wp.config.version}, {datetime.date.today()}"
+    command, where = _provenance(device)
     one_sided = all(r.one_sided() for r in results)
     tight = sum(r.tight() for r in results)
     lines = [
@@ -168,6 +166,14 @@ def main():
 
 #: Windows [s] of the dry run's ω_max trace whose highest mean the dry-run table reports.
 MEAN_WINDOWS = (0.25, 0.5, 1.0)
+
+
+def _provenance(device) -> tuple[str, str]:
+    """This run's arguments (paths inside the repository made relative) and its device, Warp version and date, for a
+    results table's heading."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    command = " ".join(os.path.relpath(a, root) if os.path.isabs(a) and a.startswith(root) else a for a in sys.argv[1:])
+    return command, f"{device.name} ({device}), Warp {wp.config.version}, {datetime.date.today()}"
 
 
 def _highest_mean(times: np.ndarray, values: np.ndarray, window: float) -> float:
@@ -199,9 +205,7 @@ def dry_runs(chosen, device, args):
         rows.append(f"| {case.label} | {peak.duration:.3g} | {cpu:.1f} | {wall:.1f} | {peak.world_omega_max[0]:.2f} | "
                     f"{peak.world_peak_time[0]:.3g} | {swing:.2f} | {means} |")
         print(rows[-1], flush=True)
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    command = " ".join(os.path.relpath(a, root) if os.path.isabs(a) and a.startswith(root) else a for a in sys.argv[1:])
-    where = f"{device.name} ({device}), Warp {wp.config.version}, {datetime.date.today()}"
+    command, where = _provenance(device)
     emit_table([f"Advisor dry runs on {where}: `python bench/advisor_battery.py {command}` (budget "
                 f"{budget:g} CPU seconds, lifted here; each the second of two):", "",
                 "| case | dry run [s] | CPU [s] | wall [s] | peak ω_max [rad/s] | at [s] | first swing's peak [rad/s] | "
@@ -239,9 +243,7 @@ def bisections(chosen, device, args):
                         f"{_span(holds / advice.dt_stable, fails / advice.dt_stable)} | "
                         f"{_span(holds * three, fails * three)} | {runs} |")
             print(rows[-1], f"({time.perf_counter() - t0:.0f} s)", flush=True)
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    command = " ".join(os.path.relpath(a, root) if os.path.isabs(a) and a.startswith(root) else a for a in sys.argv[1:])
-    where = f"{device.name} ({device}), Warp {wp.config.version}, {datetime.date.today()}"
+    command, where = _provenance(device)
     emit_table([f"The largest step that neither blows up nor grows (S, bracketed by bisection) on {where}: "
                 f"`python bench/advisor_battery.py {command}`; {args.seconds:g} s runs; "
                 f"{time.perf_counter() - t0:.0f} s in all. Runs by their step over P; S / three-wave: over √3/ω_max "
@@ -288,9 +290,7 @@ def bands(chosen, device, args):
         rows.append(f"| {case.label} | {omega:.5g} | {top:.4g} | " + " | ".join(cells) +
                     f" | {passes} | {efolds} | {step:.4g} | {time.perf_counter() - t0:.0f} |")
         print(rows[-1], flush=True)
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    command = " ".join(os.path.relpath(a, root) if os.path.isabs(a) and a.startswith(root) else a for a in sys.argv[1:])
-    where = f"{device.name} ({device}), Warp {wp.config.version}, {datetime.date.today()}"
+    command, where = _provenance(device)
     emit_table([f"Upper bands on {where}: `python bench/advisor_battery.py {command}`; velocity Verlet at "
                 f"{args.band_step * 1e3:g} ms for {args.seconds:g} s, sampled every {st.RECORD_EVERY:g} s:", "",
                 head, "|" + "---|" * (8 + len(BAND_STEPS) - 1), *rows], args.out)
