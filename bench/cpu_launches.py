@@ -60,7 +60,7 @@ ENGINES = {
 # --------------------------------------------------------------------------------------------------- worker
 
 
-def _worker(tree: str, device: str, n: int, engines: list[str], launches: bool, repeat: int) -> None:
+def _worker(tree: str, device: str, n: int, engines: list[str], launches: bool, repeat: int, pin: str) -> None:
     """Build the engines of one tree and answer the driver's requests on stdin (one JSON line each)."""
     mapped = os.path.join(tree, "warpspring", "kernels")
     if not os.path.exists(mapped) and os.path.isdir(os.path.join(tree, "kernels")):
@@ -81,10 +81,10 @@ def _worker(tree: str, device: str, n: int, engines: list[str], launches: bool, 
         if name == "newton":
             from cloth import NewtonRunner
 
-            runners[name] = NewtonRunner(_model(ws, n, device, "auto"))
+            runners[name] = NewtonRunner(_model(ws, n, device, "auto", pin))
         else:
             evaluation, guard, graph, *sweep = ENGINES[name]
-            model = _model(ws, n, device, evaluation)
+            model = _model(ws, n, device, evaluation, pin)
             runners[name] = _Runner(ws, model, guard, FPS, SUBSTEPS, graph, sweep=sweep[0] if sweep else True)
         runners[name].frame()  # compile, capture
     info = {"warp": wp.__version__, "warpspring": tree, "substeps": SUBSTEPS, "particles": n * n,
@@ -112,7 +112,7 @@ def _worker(tree: str, device: str, n: int, engines: list[str], launches: bool, 
         print(json.dumps({"seconds": (time.perf_counter() - t0) / frames}), flush=True)
 
 
-def _model(ws, n, device, evaluation):
+def _model(ws, n, device, evaluation, pin: str):
     """cloth_scene's reference cloth, built with this tree's builder (older trees' finalize takes fewer options)."""
     import numpy as np
 
@@ -123,7 +123,7 @@ def _model(ws, n, device, evaluation):
     builder.add_cloth_grid(nx=n, ny=n, spacing=SPACING, origin=(0.0, 0.0, 0.5 * n * SPACING),
                            rotation=ws.quat_from_axis_angle((1.0, 0.0, 0.0), np.pi / 2), particle_mass=MASS,
                            structural=spring, shear=spring, bend=spring,
-                           pin=["top"] if os.environ.get("CPU_LAUNCHES_PIN") == "top" else ["top-left", "top-right"])
+                           pin=["top"] if pin == "top" else ["top-left", "top-right"])
     return builder.finalize(device, spring_evaluation=evaluation)
 
 
@@ -220,11 +220,11 @@ def _kernel_name(kernel) -> str:
 
 class Worker:
     def __init__(self, label: str, tree: str, n: int, engines: list[str], launches: bool, repeat: int,
-                 device: str = "cpu"):
+                 device: str = "cpu", pin: str = "corners"):
         self.label = label
         cmd = [sys.executable, os.path.abspath(__file__), "--worker", tree, "--device", device, "--sizes", str(n),
                "--engines", *engines, "--repeat", str(repeat),
-               "--pin", os.environ.get("CPU_LAUNCHES_PIN", "corners")] + (["--launches"] if launches else [])
+               "--pin", pin] + (["--launches"] if launches else [])
         # The tree first, then whatever the caller's path held (a Warp installed outside site-packages).
         inherited = os.environ.get("PYTHONPATH")
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([tree] + ([inherited] if inherited else [])))
@@ -250,12 +250,13 @@ class Worker:
 
 
 def run_size(n: int, trees: dict[str, str], engines: list[str], batches: int, seconds: float, launches: bool,
-             repeat: int, newton: bool, device: str = "cpu") -> tuple[list[dict], list[Worker]]:
+             repeat: int, newton: bool, device: str = "cpu",
+             pin: str = "corners") -> tuple[list[dict], list[Worker]]:
     workers = []
     own = [e for e in engines if e != "newton"]  # Newton runs once, in the first tree's worker
     for k, (label, tree) in enumerate(trees.items()):
         workers.append(Worker(label, tree, n, own + (["newton"] if newton and k == 0 else []), launches,
-                              repeat, device))
+                              repeat, device, pin))
     rows = [(w, e) for w in workers for e in w.engines]
     frames = {}
     for w, e in rows:  # frames per batch: doubled until a batch takes `seconds`
@@ -306,12 +307,9 @@ def main():
     parser.add_argument("--out", help="also write the Markdown tables to this file")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    # Read by ``_model`` in the workers, which are given ``--pin`` too (a worker's own default would otherwise overwrite
-    # the driver's choice: the GPU side-by-side of 2026-11-28 hung its 256² cloth from two corners, whose springs the
-    # guard then saw torn at 11×).
-    os.environ["CPU_LAUNCHES_PIN"] = args.pin
-    if args.worker:
-        _worker(args.worker, args.device, args.sizes[0], args.engines, args.launches, args.repeat)
+    if args.worker:  # (given the driver's ``--pin``: the GPU side-by-side of 2026-11-28, whose workers took their own
+        # default, hung its 256² cloth from two corners, whose springs the guard then saw torn at 11×)
+        _worker(args.worker, args.device, args.sizes[0], args.engines, args.launches, args.repeat, args.pin)
         return
     trees = {"new": ROOT}
     for spec in args.tree:
@@ -322,7 +320,7 @@ def main():
     info = None
     for n in args.sizes:
         results, workers = run_size(n, trees, args.engines, args.batches, args.seconds, args.launches, args.repeat,
-                                    newton, args.device)
+                                    newton, args.device, args.pin)
         info = info or workers[0].info
         for r in results:
             lines.append(
