@@ -99,6 +99,7 @@ class Simulator:
     ):
         self.model = model
         self._unsettled = False  # the last frame's record is posted and not yet read (``defer_verdict``)
+        self._outrun_seen = None  # the self-collision's outrun counters at the last frame (_stop_on_outrun)
         self.fps = checks.positive("fps", fps)
         control = control if control is not None else model.control()
         integrator = integrator if integrator is not None else SymplecticEuler(model)
@@ -223,6 +224,8 @@ class Simulator:
                 self._report_overflow()
         if self.model.self_contact is not None:
             self.model.self_contact.grow()  # pairs dropped in this frame: room for them in the next
+            if self.guard is not None:
+                self._stop_on_outrun()
         self.frame += 1
         if self.frame_hooks:
             self.settle()
@@ -268,6 +271,27 @@ class Simulator:
         self._unsettled = False
         if self.guard is not None:
             self.guard.discard()
+
+    def _stop_on_outrun(self) -> None:
+        """Stop the run after a frame in which a pin closed in on free cloth that had no room to give way
+        (``SelfContact.outrun``: pair-steps beyond the self-collision cap, where the surface may have crossed
+        itself). The frames before it passed the cap's guarantee; this one is not handed on."""
+        contact = self.model.self_contact
+        outran = contact.outrun()
+        if self._outrun_seen is None or outran.sum() < self._outrun_seen.sum():  # the first frame, or a reset
+            self._outrun_seen = np.zeros_like(outran)
+        new, self._outrun_seen = outran - self._outrun_seen, outran
+        if not new.any():
+            return
+        self._forget_verdict()
+        worlds = ", ".join(f"world {w}: {n}" for w, n in enumerate(new) if n) if len(new) > 1 else f"{new[0]}"
+        raise SimulationError(
+            f"frame {self.frame + 1}: a pinned part of the surface closed in on free cloth that had no room to give "
+            f"way ({worlds} pair-step(s) beyond the self-collision cap), so the surface may have crossed itself. "
+            f"The pins' tracks press the cloth tighter than its thickness τ = {contact.thickness * 1e3:.3g} mm "
+            "allows: slow the tracks, lower the self-collision thickness, or pin fewer particles where the cloth "
+            "folds onto the pins",
+            frame=self.frame + 1)
 
     def _report_overflow(self) -> None:
         overflow = self.contact_overflow()
