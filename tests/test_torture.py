@@ -39,12 +39,24 @@ held one of its vertices at its start: a capped position start + (bound/|Δ|) Δ
 there, which happened to half the capped vertices (the rounding goes either way) and threw their repulsion away.
 The cap now bounds a pair's approach by its gap less τ/2 (``CAP_FLOOR``: a pair τ/2 apart comes no closer, a closer
 one may part but not close in), and pulls a position rounded past its bound back by the rounding pad.
+
+What then still came closer than τ/2, without crossing (the full-size 1440° twist under implicit Euler: 2.490 mm
+from t = 3.109 s), was the rounding of a capped end against a pair on that floor. The coil's pairs sit there for
+thousands of substeps (implicit Euler's step drives the layers together by up to 0.6 mm a substep, the cap holds
+them): a pair within the rounding pads of τ/2 has no room (G' = 0, shares 0), so the cap lets its vertices part, not
+close in; but a vertex capped to a short step by another pair, start + s Δ̂ with s Δ̂ of some 35 nm, keeps that step
+only in its small coordinates (y = -0.006 m, ulp 4.7e-10 m) and drops it in its large ones (0.39 and 0.99 m, ulp 3e-8
+and 6e-8 m): the end as stored moved 19 nm along +y where Δ̂ retreated from the pair, 12 nm toward it along n. The pair
+(edges 771-813 and 812-854, two diagonals of the squeezed strip's last rows) lost 7.75 nm each time, 0.2 µm a frame.
+The cap now checks a capped end, as stored, against the pairs that leave its vertex no approach and holds it at its
+start where it closes one in (and the later passes check their bounds on the stored end).
 """
 
 import numpy as np
+import warp as wp
 
 import warpspring as ws
-from warpspring.analysis.audit import SurfaceAudit, edge_edge_distance
+from warpspring.analysis.audit import SurfaceAudit, edge_edge_distance, vertex_triangle_distance
 from warpspring.analysis.torture import run_case
 from warpspring.core.selfcontact import DEFAULT_RELAXATION
 
@@ -130,6 +142,56 @@ def test_the_cap_keeps_a_pressed_pair_half_the_thickness_apart(device):
         a, b = b, a
     assert 0.5 * tau <= nearest < 0.6 * tau  # pressed onto the floor
     assert model.self_contact.counts()["pairs"][0] > 0 and model.self_contact.outrun()[0] == 0
+
+
+
+def test_a_rounded_end_does_not_close_a_pair_on_the_floor(device):
+    """A vertex 1 µm above the floor from one triangle (T1, whose normal is the diagonal (1, 1, 0)/√2: the pair has
+    no room, G' = 0, within the rounding pads of τ/2) steps away from it along (2, -1, 0)/√5, toward another triangle
+    (T2, normal -x) whose room above the floor is 3e-8 m (τ chosen for that in the cap's float32 arithmetic): T2's
+    plane caps the step to 3e-8 m along x. Its capped end start + s Δ̂ rounds coordinate by coordinate: x (1.5, ulp
+    1.2e-7) keeps none of its 3e-8 m, y (0.003, ulp 2.3e-10) keeps its -1.5e-8 m, so the end as stored moves along
+    -y, toward T1 by 2.6e-9 m, where the step itself retreats from it. The pair on the floor must not close in: the
+    cap checks its rounded end against such pairs and holds the vertex at its start where it would. Before, the end
+    closed the pair by 2.6e-9 m; a pair pressed onto the floor lost that each step (the full-size 1440° twist under
+    implicit Euler, held by the cap for thousands of substeps: 2.490 mm, 10 µm inside τ/2, by t = 4 s)."""
+    f32 = np.float32
+    p = np.array([1.5, 0.003, 0.25])
+    diagonal = np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0)  # T1's normal
+    across, up = np.array([1.0, -1.0, 0.0]) / np.sqrt(2.0), np.array([0.0, 0.0, 1.0])  # in T1's plane
+    plane = f32(1.502) + f32(5e-6)  # T2's x
+    # The cap's gap of the pair (vertex, T2) in float32 (kernels/selfcontact_cap.py, pair_shares): its slab width less
+    # two rounding pads; τ/2 (the floor) 3e-8 m below it.
+    gap = (plane - f32(p[0])) - f32(2e-6) * (plane + f32(1.0))
+    tau = 2.0 * (float(gap) - 3e-8)
+    floor = 0.5 * tau
+    closest = p - (floor + 1e-6) * diagonal
+    t1 = [closest - 8e-3 * across, closest + 1.5e-3 * across + 7e-3 * up, closest + 1.5e-3 * across - 7e-3 * up]
+    t2 = [(0.0, 0.011, 0.25), (0.0, -0.001, 0.257), (0.0, -0.001, 0.243)]
+    x = np.array([p, p + (-3e-3, 9.5e-3, 0.0), p + (-3e-3, 4.5e-3, 8.5e-3), *t1, *t2], dtype=np.float32)
+    x[6:, 0] = plane
+    triangles = np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8]])
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    builder.add_particles(x, mass=0.001, radius=0.001)
+    builder.add_triangles(triangles)
+    builder.add_self_collision(thickness=tau)
+    model = builder.finalize(device)
+    stepped = x.copy()
+    stepped[0] += (50e-6 * np.array([2.0, -1.0, 0.0]) / np.sqrt(5.0)).astype(np.float32)
+    # The cap stage alone on this repelled result (its repulsion would turn the step).
+    start, state = model.state(), model.state()
+    state.particle_q.assign(stepped)
+    repelled = wp.array(stepped, dtype=wp.vec3, device=model.device)
+    self_contact = model.self_contact
+    self_contact.repel(start, repelled)
+    self_contact.cap(start, repelled, state, 1e-3)
+    before, after = x.astype(np.float64), state.particle_q.numpy().astype(np.float64)
+    to_t1 = [vertex_triangle_distance(y[[0]], y[[3]], y[[4]], y[[5]])[0] for y in (before, after)]
+    to_t2 = [vertex_triangle_distance(y[[0]], y[[6]], y[[7]], y[[8]])[0] for y in (before, after)]
+    assert floor < to_t1[0] < floor + 2e-6 and floor < to_t2[0] < floor + 6e-6  # both pairs at the floor's pads
+    assert self_contact.counts()["capped"][0] > 0  # the step was capped
+    assert to_t1[1] >= to_t1[0], f"closed in by {to_t1[0] - to_t1[1]:.2e} m"
+    assert to_t2[1] >= floor
 
 
 # Thirteen vertices of the small 720° twist under symplectic Euler (the CPU's sweep) at the substep of its crossing

@@ -96,9 +96,14 @@ stages keep the same pairs as a broad phase every step):
    its share and that room, whether the other side's movers are placed (shares) or stay (room). With no
    kinematic vertex this is the bound γ G' per vertex along n and the margin h + (1 − 2γ) G'. G takes two pads
    off D_n: one for the rounding of the dot products, one for the rounded end positions. A pair closer than h at
-   the start (G' = 0: one a pin pressed there) keeps its slab: it does not close in. Without the floor (h = 0)
-   a kept pair closed to (1 − 2γ) of its gap a step, which compounded wherever the repulsion could not part it
-   (a vertex pressed from both sides, whose corrections' mean cancels): pairs came within micrometres.
+   the start (G' = 0: one a pin pressed there) keeps its slab: it does not close in. Such a pair's share is 0, which
+   leaves no pad for the rounding of the end: a capped end x⁰ + s Δ̂ rounds coordinate by coordinate (a small
+   coordinate keeps its part of the step where a large one drops it), so it can approach along n where Δ̂ retreats,
+   a few ulps a step, compounded while the pair stays on the floor. Where no share asks a vertex to give way, the
+   cap checks its capped end, as stored, against each pair that leaves it no approach, and holds the vertex at x⁰
+   where it approaches one; the later passes check their bounds on the stored end too. Without the floor (h = 0) a
+   kept pair closed to (1 − 2γ) of its gap a step, which compounded wherever the repulsion could not part it (a
+   vertex pressed from both sides, whose corrections' mean cancels): pairs came within micrometres.
    A share that cannot be kept puts the pair beyond the cap: a free vertex asked to give way that no pass can
    place (the room its neighbours leave, after they made what room they could within ρ, does not suffice: layers
    squeezed by a pin), or two kinematic sides closing in by G' or more. ``cap_check_kernel`` counts, after the cap,

@@ -149,23 +149,25 @@ def cap_gather_kernel(scalar: type):
     at most γ (D - K - pad) of each kept pair; the kept pairs are the cached pairs with a bound
     (``cap_bounds_kernel``), or in a world flagged FLAG_FALLBACK the swept broad phase's list (where that list
     overflowed: s = 0). A vertex that gives way less than a share asks is marked jammed (``jammed_out``: a mover of
-    the later passes, ``cap_place_kernel``). Writes the state's positions and, where they changed, its velocities
-    (Δx / h)."""
+    the later passes, ``cap_place_kernel``). Where no share asks it to give way, a capped end whose rounding
+    approaches a pair that leaves the vertex no approach (a share of 0, ``rounds_in``) is held at x⁰. Writes the
+    state's positions and, where they changed, its velocities (Δx / h)."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
     on_side_a, _, pair_shares = plane_funcs(scalar)
 
     @wp.func
     def bound(
-        plane: scalar, allowed: scalar, need: scalar, entry: int, pairs: Pairs, gap_less_kinematic: scalar,
-        pad: scalar, base: int, mass_row: int, relaxation: scalar, floor: scalar, vertex_pairs: int, step: vec3,
-        particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3],
-        particle_q_end: wp.array[vec3],
+        plane: scalar, allowed: scalar, need: scalar, floored: bool, entry: int, pairs: Pairs,
+        gap_less_kinematic: scalar, pad: scalar, base: int, mass_row: int, relaxation: scalar, floor: scalar,
+        vertex_pairs: int, step: vec3, particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
+        particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
     ):
         """The vertex's bounds narrowed by the pair of ``entry`` (slot · 4 + role; D - K its ``gap_less_kinematic``):
         ``plane``, the largest s whose step s Δ̂ approaches the other side along n by at most the vertex's share;
         ``allowed``, the length γ (D - K - pad) at most; ``need``, the smallest s that gives way as far as a negative
-        share asks (above 1 where no s does; 0 where no share is negative)."""
+        share asks (above 1 where no s does; 0 where no share is negative); ``floored``, whether some pair so far
+        leaves the vertex no approach at all (a share of 0 or less: ``rounds_in`` checks its rounded end)."""
         slot = entry // 4
         role = entry - 4 * slot
         allowed = wp.min(allowed, relaxation * wp.max(gap_less_kinematic - pad, scalar(0.0)))
@@ -173,7 +175,7 @@ def cap_gather_kernel(scalar: type):
         n, shares, gap = pair_shares(vt, pairs.vertex[slot], base, mass_row, relaxation, floor, particle_flags,
                                      particle_inv_mass, particle_q_start, particle_q_end)
         if not (gap > scalar(0.0)):  # no separation the precision resolves: the vertex holds
-            return scalar(0.0), scalar(0.0), need
+            return scalar(0.0), scalar(0.0), need, floored
         share = shares[1]
         approach = wp.dot(n, step)  # side B's approach toward A per unit of s
         if on_side_a(vt, role):
@@ -186,7 +188,26 @@ def cap_gather_kernel(scalar: type):
                 need = wp.max(need, share / approach)
             else:
                 need = scalar(2.0)
-        return plane, allowed, need
+        return plane, allowed, need, floored or share <= scalar(0.0)
+
+    @wp.func
+    def rounds_in(
+        entry: int, pairs: Pairs, moved: vec3, base: int, mass_row: int, relaxation: scalar, floor: scalar,
+        vertex_pairs: int, particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
+        particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
+    ):
+        """Whether the vertex's rounded displacement ``moved`` (its capped end, as stored, less its start: exact)
+        approaches the other side of the pair of ``entry`` along n where its share is 0 or less."""
+        slot = entry // 4
+        vt = pairs.key[slot] < wp.int64(vertex_pairs)
+        n, shares, gap = pair_shares(vt, pairs.vertex[slot], base, mass_row, relaxation, floor, particle_flags,
+                                     particle_inv_mass, particle_q_start, particle_q_end)
+        share = shares[1]
+        approach = wp.dot(n, moved)
+        if on_side_a(vt, entry - 4 * slot):
+            share = shares[0]
+            approach = -approach
+        return share <= scalar(0.0) and approach > scalar(0.0)
 
     @flat_kernel(module="unique", enable_backward=False)
     def cap(
@@ -239,23 +260,31 @@ def cap_gather_kernel(scalar: type):
         plane = scalar(1.0)
         allowed = wp.min(length, limit)
         need = scalar(0.0)
-        if flags[flag_slot(FLAG_FALLBACK, world, pairs.count.shape[0])] != 0:
+        floored = bool(False)
+        fallback = flags[flag_slot(FLAG_FALLBACK, world, pairs.count.shape[0])] != 0
+        list_pairs = cache
+        first = cache.vertex_start[p]
+        last = first + cache.vertex_count[p]
+        if fallback:
+            list_pairs = pairs
+            first = pairs.vertex_start[p]
+            last = first + pairs.vertex_count[p]
             if pairs.count[world] > pairs.key.shape[0] // pairs.count.shape[0]:
                 plane = scalar(0.0)  # overflow: a listed pair may be missing, so nothing free moves
                 allowed = scalar(0.0)
-            else:
-                for a in range(pairs.vertex_start[p], pairs.vertex_start[p] + pairs.vertex_count[p]):
-                    e = pairs.entry[a]
-                    plane, allowed, need = bound(plane, allowed, need, e, pairs, pair_distance[e // 4], pad, base,
-                                                   mass_row, relaxation, floor, vertex_pairs, step, particle_flags,
-                                                   particle_inv_mass, particle_q_start, particle_q_in)
-        else:
-            for a in range(cache.vertex_start[p], cache.vertex_start[p] + cache.vertex_count[p]):
-                e = cache.entry[a]
-                if cache_bound[e // 4] < scalar(NO_BOUND):
-                    plane, allowed, need = bound(plane, allowed, need, e, cache, cache_bound[e // 4], pad, base,
-                                                   mass_row, relaxation, floor, vertex_pairs, step, particle_flags,
-                                                   particle_inv_mass, particle_q_start, particle_q_in)
+                last = first
+        for a in range(first, last):
+            e = list_pairs.entry[a]
+            if fallback:
+                plane, allowed, need, floored = bound(plane, allowed, need, floored, e, pairs, pair_distance[e // 4],
+                                                      pad, base, mass_row, relaxation, floor, vertex_pairs, step,
+                                                      particle_flags, particle_inv_mass, particle_q_start,
+                                                      particle_q_in)
+            elif cache_bound[e // 4] < scalar(NO_BOUND):
+                plane, allowed, need, floored = bound(plane, allowed, need, floored, e, cache, cache_bound[e // 4],
+                                                      pad, base, mass_row, relaxation, floor, vertex_pairs, step,
+                                                      particle_flags, particle_inv_mass, particle_q_start,
+                                                      particle_q_in)
         plane = wp.max(plane, scalar(0.0))
         if need > plane:  # a push that does not fit: the later passes (cap_place_kernel) place it
             jammed_out[p] = 1
@@ -277,6 +306,18 @@ def cap_gather_kernel(scalar: type):
                         pulled = start + ((allowed - pad) / length) * (repelled - start)
                         if wp.length(pulled - start) <= allowed:
                             x = pulled
+                # A pair with no room (share 0: G' = 0, within the pads of the floor or below it) has no pad for the
+                # rounding either: the capped end's coordinates round apart (a small one keeps its part of the step,
+                # a large one drops it), so it may approach the pair along n where the step retreats, a few ulps a
+                # step, which compounds while the pair stays there. Checked on the end as stored; held at x⁰ where
+                # it approaches one.
+                if floored:
+                    for a in range(first, last):
+                        e = list_pairs.entry[a]
+                        if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
+                            if rounds_in(e, list_pairs, x - start, base, mass_row, relaxation, floor, vertex_pairs,
+                                         particle_flags, particle_inv_mass, particle_q_start, particle_q_in):
+                                x = start
                 wp.atomic_add(counters_out, world, COUNT_CAPPED, 1)
         moved = x - particle_q_out[p]
         if wp.dot(moved, moved) > scalar(0.0):
@@ -424,6 +465,8 @@ def cap_place_kernel(scalar: type):
             size = wp.length(trial)
             if size > radius:
                 trial = (radius / size) * trial
+        x = start + trial
+        moved = x - start  # the end as stored (its coordinates rounded): what every bound must hold for
         holds = bool(resolved)
         for a in range(first, last):
             e = list_pairs.entry[a]
@@ -431,15 +474,14 @@ def cap_place_kernel(scalar: type):
                 g, room, ok = half_space(e, list_pairs, base, mass_row, relaxation, floor, vertex_pairs, mover_role,
                                          particle_flags, particle_inv_mass, role, desired, particle_q_start,
                                          particle_q_in, particle_q_out)
-                holds = holds and wp.dot(g, trial) <= room
+                holds = holds and wp.dot(g, moved) <= room
         if holds:
-            x = start + trial
-            particle_qd_out[p] = trial / dt
+            particle_qd_out[p] = moved / dt
             particle_q_out[p] = x
             role_out[p] = ROLE_FROZEN
         else:
             role_out[p] = ROLE_PUSHER
-            desired_out[p] = start + trial
+            desired_out[p] = x
 
     return place
 
