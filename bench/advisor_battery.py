@@ -270,8 +270,8 @@ def bisections(chosen, device, args):
 
 
 def scan_factors(low: float, high: float, step: float) -> list[float]:
-    """The factors low, low + step, ... up to high (included where the steps meet it to 1e-9)."""
-    count = int(math.floor((high - low) / step + 1e-9)) + 1
+    """The factors low, low + step, ... up to high (included where the steps meet it to 1e-6 of a step)."""
+    count = int(math.floor((high - low) / step + 1e-6)) + 1
     return [round(low + i * step, 9) for i in range(count)]
 
 

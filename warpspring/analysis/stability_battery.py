@@ -346,7 +346,8 @@ def largest_step(case: Case, integrator: str, device, passed: float, *, high: fl
     monotone in the step (a resonance met at one step and missed at the next: the 8² folded cloth under gravity,
     symplectic Euler, grows at 1.010 √3/ω_max and holds at 1.005, 1.0125 and 1.015; the motion is chaotic, and a step
     4e-6 shorter turns which: bench/results/advisor_battery_bisect_cpu.md), so
-    the bracket is where this bisection saw the change, not a guarantee for every step below it."""
+    the bracket is where this bisection saw the change, not a guarantee for every step below it (:func:`scan` runs
+    every step of a grid)."""
     result = LargestStep(0.0, math.inf)
 
     def holds(step: float) -> bool:
