@@ -272,13 +272,14 @@ def test_a_scan_reads_the_first_failure_not_a_lucky_step_above_it():
 
 
 def test_a_scan_at_an_exact_linear_limit(device):
-    # The 8² folded cloth without gravity under RK4 (the bisection's case above): over 3 s it holds at P, grows at
-    # 1.02 P (RK4 past its linear limit: its energy rises by twice the released energy) and blows up at 1.04 P.
+    # The 8² folded cloth without gravity under RK4 (the bisection's case above): over 3 s it holds at P, fails at
+    # 1.02 P (RK4 past its linear limit: on the CPU its energy's 1 s mean rises by twice the released energy, its
+    # highest value within 1 % of BLOWN, so grown or blown by the device's rounding) and blows up at 1.04 P (0.11 s).
     case = sb.Case(8, 0.0, "folded", False)
     advice = advise(sb.battery_cloth(case, device), "rk4", 1.0e-3, horizon=3.0)
     found = sb.scan(case, "rk4", device, advice.dt_passed, (1.04, 1.0, 1.02), seconds=3.0)
     assert [r.factor for r in found.runs] == [1.0, 1.02, 1.04]  # smallest first
-    assert found.runs[0].ok and found.runs[1].grows and not found.runs[1].blown and found.runs[2].blown
+    assert found.runs[0].ok and not found.runs[1].ok and found.runs[2].blown
     assert found.runs[2].cause in ("energy", "non-finite", "torn") and found.runs[2].until < 3.0
     assert (found.holds, found.fails) == pytest.approx((advice.dt_passed, 1.02 * advice.dt_passed))
     assert found.within() == "yes"
