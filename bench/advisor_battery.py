@@ -29,6 +29,16 @@ Writes a markdown table with the command, device, Warp version and date.
         --out bench/results/advisor_battery_64_bisect_flat_h100.md
     python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 0 --releases folded --bisect 5 --substeps 20 \
         --out bench/results/advisor_battery_64_bisect_folded_h100.md
+    # the runs on a grid of steps 1 % apart, where holding past √3/ω_max is not monotone in the step (the motion is
+    # chaotic): S, the largest sampled step at and below which every sampled step holds, against P (~7 min on a CPU at
+    # 8²-32²; at 64² ~3-4 min per command on a CPU or a GPU, the host's energy sum dominating):
+    python bench/advisor_battery.py --device cpu --sizes 8 16 32 --taus 0 --scan 0.9 1.2 0.01
+    python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 0 --releases flat --scan 1.0 1.2 0.01 \
+        --substeps 20 --out bench/results/advisor_battery_64_scan_flat_h100.md
+    python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 0 --releases folded --gravity on \
+        --scan 1.0 1.2 0.01 --substeps 20 --out bench/results/advisor_battery_64_scan_folded_h100.md
+    python bench/advisor_battery.py --device cuda:0 --sizes 64 --taus 0 --releases folded --gravity off \
+        --scan 1.0 1.2 0.01 --substeps 20 --out bench/results/advisor_battery_64_scan_nogravity_h100.md
     # the 64² folded cloth under gravity alone on a CPU (~10 min):
     python bench/advisor_battery.py --device cpu --sizes 64 --taus 0 --releases folded --gravity on \
         --factors 1.0 1.111 --substeps 20 --no-exact --trace 3
@@ -93,6 +103,10 @@ def main():
                         help="only bracket, per case and integrator, the largest step that neither blows up nor grows "
                              "(stability_battery.largest_step: runs at P and at 1.3 P, then this many bisections) and "
                              "report P against it")
+    parser.add_argument("--scan", type=float, nargs=3, default=None, metavar=("LO", "HI", "STEP"),
+                        help="only run, per case and integrator, the steps LO, LO + STEP, ... HI × the advisor's P "
+                             "(stability_battery.scan) and report each run and S, the largest sampled step at and "
+                             "below which every sampled step holds, against P")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
@@ -111,6 +125,9 @@ def main():
         return
     if args.bisect:
         bisections(chosen, device, args)
+        return
+    if args.scan:
+        scans(chosen, device, args)
         return
     for case in chosen:
         for integrator in args.integrators:
@@ -250,6 +267,76 @@ def bisections(chosen, device, args):
                 "(ω_max of the first swing), where P is the three-wave verdict.", "",
                 "| case | integrator | P [ms] | linear [ms] | S [ms] | P / S | one-sided | within 10 % | S / linear | "
                 "S / three-wave | runs |", "|---|---|---|---|---|---|---|---|---|---|---|", *rows], args.out)
+
+
+def scan_factors(low: float, high: float, step: float) -> list[float]:
+    """The factors low, low + step, ... up to high (included where the steps meet it to 1e-6 of a step)."""
+    count = int(math.floor((high - low) / step + 1e-6)) + 1
+    return [round(low + i * step, 9) for i in range(count)]
+
+
+def _verdict(r) -> str:
+    """A run's verdict and why: "holds", "grows" or "blows up (its cause at t s)"."""
+    return f"blows up ({r.cause} at {r.until:.3g} s)" if r.blown else "grows" if r.grows else "holds"
+
+
+def scans(chosen, device, args):
+    """Per case and integrator, the runs at ``--scan`` LO..HI × the advisor's P (:func:`~warpspring.analysis.
+    stability_battery.scan`): a summary (S, the largest sampled step at and below which every sampled step holds; the
+    first that fails; the largest that holds, past a failure or not; P against them) and a table of the runs."""
+    factors = scan_factors(*args.scan)
+    summary, details = [], []
+    t0 = time.perf_counter()
+    for case in chosen:
+        model = sb.battery_cloth(case, device)
+        with shared_estimates():  # one dry run for the case's integrators
+            advices = [advise(model, name, 1.0e-4, horizon=args.seconds) for name in args.integrators]
+        for integrator, advice in zip(args.integrators, advices):
+            p = advice.dt_passed
+            if not p > 0.0:
+                continue
+            rows = []
+
+            def report(r):
+                rows.append(f"| {r.factor:.4g} | {r.dt * 1e3:.4g} | {_verdict(r)} | "
+                            + (f"{100 * r.excess:.3g} | {100 * r.peak:.3g} | {100 * r.raw_excess:.3g} |"
+                               if not r.blown else "- | - | - |"))
+                print(f"{case.label}, {integrator}:", rows[-1], f"({time.perf_counter() - t0:.0f} s)", flush=True)
+
+            found = sb.scan(case, integrator, device, p, factors, seconds=args.seconds, substeps=args.substeps,
+                            report=report)
+            above = sum(r.ok for r in found.runs if r.dt > found.fails)
+            three = TRIAD_MARGIN / p if "three-wave" in advice.passed_reason else math.nan
+            summary.append(f"| {case.label} | {integrator} | {p * 1e3:.4g} | {found.holds / p:.4g} | "
+                           f"{found.fails / p:.4g} | {found.lucky / p:.4g} | {above} | "
+                           f"{_bracket(p / found.fails, p / found.holds)} | {'yes' if found.one_sided() else 'NO'} | "
+                           f"{found.within()} | {p / found.lucky:.3f} | "
+                           f"{_bracket(found.holds * three, found.fails * three)} |")
+            reason = f" ({advice.passed_reason})" if advice.passed_reason else ""
+            details += [f"{case.label}, {integrator}, P = {p * 1e3:.4g} ms{reason}:", "",
+                        "| step / P | step [ms] | verdict | highest 1 s mean [% F] | highest [% F] | H's highest [% F] |",
+                        "|---|---|---|---|---|---|", *rows, ""]
+    command, where = _provenance(device)
+    emit_table([f"The runs on a grid of steps on {where}: `python bench/advisor_battery.py {command}`; "
+                f"{args.seconds:g} s runs; {time.perf_counter() - t0:.0f} s in all. Steps × the advisor's P; S: the "
+                "largest sampled step at and below which every sampled step holds (neither blows up nor grows); first "
+                "failure: the smallest that does not; largest lucky: the largest that holds, past a failure or not; "
+                "P / S: P over the bracket [S, first failure) of the largest step that holds; within 10 %: P ≥ 0.9 × "
+                "the first failure (yes), P < 0.9 × S (no); P / lucky: against the largest lucky step; S / three-wave: "
+                "[S, first failure) over √3/ω_max (ω_max of the first swing), where P is the three-wave verdict.", "",
+                "| case | integrator | P [ms] | S / P | first failure / P | largest lucky / P | lucky steps past "
+                "the first failure | P / S | one-sided | within 10 % | P / lucky | S / three-wave |",
+                "|---|---|---|---|---|---|---|---|---|---|---|---|", *summary, "",
+                "Each run: its verdict and the shadow energy's highest 1 s mean and highest value over its start, and "
+                "H's highest over its start, in % of the energy the release sets free (F); grows above "
+                f"{100 * sb.GROWTH:g} % (1 s mean).", "", *details], args.out)
+
+
+def _bracket(low: float, high: float) -> str:
+    """:func:`_span`, written "≤ high" or "≥ low" where the other end is 0 or ∞ (no sampled step failed)."""
+    if math.isinf(high) and math.isfinite(low):
+        return f"≥ {low:.3f}"
+    return f"≤ {high:.3f}" if low == 0.0 and math.isfinite(high) else _span(low, high)
 
 
 def _span(low: float, high: float) -> str:

@@ -249,6 +249,42 @@ def test_the_largest_step_bracket_at_an_exact_linear_limit(device):
     assert (past.holds, past.fails) == (0.0, 1.2 * advice.dt_passed) and len(past.runs) == 1
 
 
+def test_a_scan_reads_the_first_failure_not_a_lucky_step_above_it():
+    # Holding is not monotone in the step past the three-wave step: a scan that holds at 1.0, 1.01 and 1.03 P,
+    # grows at 1.02 P and blows up at 1.04 P relies on 1.01 P (S), fails first at 1.02 P, and was lucky at 1.03 P.
+    p = 1.0e-3
+
+    def outcome(factor, blown=False, grows=False):
+        return sb.RunResult(factor, factor * p, blown, grows, 0.02 if grows else 0.0, 0.0, 0.0, 0.0)
+
+    found = sb.StepScan(p, [outcome(1.0), outcome(1.01), outcome(1.02, grows=True), outcome(1.03),
+                            outcome(1.04, blown=True)])
+    assert (found.holds, found.fails, found.lucky) == pytest.approx((1.01 * p, 1.02 * p, 1.03 * p))
+    assert found.one_sided() and found.within() == "yes"  # 1e-3 ≥ 0.9 × 1.02e-3
+    # Past 1/0.9 of P: within 10 % only if P ≥ 0.9 × the first failure, not because a lucky step lies near.
+    late = sb.StepScan(p, [outcome(1.0), outcome(1.1), outcome(1.12), outcome(1.14, grows=True), outcome(1.16)])
+    assert (late.holds, late.fails, late.lucky) == pytest.approx((1.12 * p, 1.14 * p, 1.16 * p))
+    assert late.within() == "no"  # 1e-3 < 0.9 × 1.12e-3
+    assert sb.StepScan(p, [outcome(1.0), outcome(1.2, grows=True)]).within() == "?"  # S in [P, 1.2 P): coarse
+    assert sb.StepScan(p, [outcome(1.0), outcome(1.05)]).within() == "?"  # nothing failed: S beyond the grid
+    first = sb.StepScan(p, [outcome(1.0, blown=True), outcome(1.05)])
+    assert first.holds == 0.0 and not first.one_sided() and first.lucky == pytest.approx(1.05 * p)
+
+
+def test_a_scan_at_an_exact_linear_limit(device):
+    # The 8² folded cloth without gravity under RK4 (the bisection's case above): over 3 s it holds at P, fails at
+    # 1.02 P (RK4 past its linear limit: on the CPU its energy's 1 s mean rises by twice the released energy, its
+    # highest value within 1 % of BLOWN, so grown or blown by the device's rounding) and blows up at 1.04 P (0.11 s).
+    case = sb.Case(8, 0.0, "folded", False)
+    advice = advise(sb.battery_cloth(case, device), "rk4", 1.0e-3, horizon=3.0)
+    found = sb.scan(case, "rk4", device, advice.dt_passed, (1.04, 1.0, 1.02), seconds=3.0)
+    assert [r.factor for r in found.runs] == [1.0, 1.02, 1.04]  # smallest first
+    assert found.runs[0].ok and not found.runs[1].ok and found.runs[2].blown
+    assert found.runs[2].cause in ("energy", "non-finite", "torn") and found.runs[2].until < 3.0
+    assert (found.holds, found.fails) == pytest.approx((advice.dt_passed, 1.02 * advice.dt_passed))
+    assert found.within() == "yes"
+
+
 @pytest.mark.slow
 def test_the_exact_limit_in_worlds(device):
     # The exact-limit battery: the 16² cloth with kd = 1e-4 s · ke as 12 worlds at 0.6-1.6 × ke = 1e5 N/m

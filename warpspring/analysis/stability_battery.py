@@ -224,6 +224,8 @@ class RunResult:
     peak: float  # the highest shadow energy over its start, over the free energy [-]
     raw_excess: float  # the highest energy H over its start, over the free energy [-]
     seconds: float  # wall time [s]
+    cause: str = ""  # why it blew up: "non-finite", "torn" (a spring past TORN × its rest length) or "energy"
+    until: float = math.nan  # the simulated time it reached [s] (its end, or the frame it blew up at)
 
     @property
     def ok(self) -> bool:
@@ -244,20 +246,21 @@ def run(case: Case, integrator: str, dt: float, device, *, seconds: float = 10.0
     frames = int(math.ceil(seconds / (substeps * dt)))
     raw_start, start, _, _ = meter(model.particle_q.numpy().astype(np.float64),
                                    model.particle_qd.numpy().astype(np.float64))
-    shadows, raw_peak, blown = [], -math.inf, False
+    shadows, raw_peak, cause = [], -math.inf, ""
     for _ in range(frames):
         sim.step_frame()
         x = sim.state.particle_q.numpy().astype(np.float64)
         v = sim.state.particle_qd.numpy().astype(np.float64)
         if not (np.isfinite(x).all() and np.isfinite(v).all()):
-            blown = True
+            cause = "non-finite"
             break
         total, shadow, _, stretch = meter(x, v)
         shadows.append(shadow)
         raw_peak = max(raw_peak, total)
-        if stretch > TORN or shadow - start > BLOWN * released:
-            blown = True
+        cause = "torn" if stretch > TORN else "energy" if shadow - start > BLOWN * released else ""
+        if cause:
             break
+    blown = bool(cause)
     window = max(1, int(round(MEAN_WINDOW / (substeps * dt))))
     if blown or len(shadows) < window:
         excess = peak = raw_excess = math.inf
@@ -265,7 +268,8 @@ def run(case: Case, integrator: str, dt: float, device, *, seconds: float = 10.0
         means = np.convolve(np.asarray(shadows) - start, np.full(window, 1.0 / window), mode="valid")
         excess, peak = float(means.max()) / released, (max(shadows) - start) / released
         raw_excess = (raw_peak - raw_start) / released
-    return RunResult(factor, dt, blown, excess > GROWTH, excess, peak, raw_excess, time.perf_counter() - t0)
+    return RunResult(factor, dt, blown, excess > GROWTH, excess, peak, raw_excess, time.perf_counter() - t0,
+                     cause=cause, until=sim.time)
 
 
 @dataclass
@@ -342,7 +346,8 @@ def largest_step(case: Case, integrator: str, device, passed: float, *, high: fl
     monotone in the step (a resonance met at one step and missed at the next: the 8² folded cloth under gravity,
     symplectic Euler, grows at 1.010 √3/ω_max and holds at 1.005, 1.0125 and 1.015; the motion is chaotic, and a step
     4e-6 shorter turns which: bench/results/advisor_battery_bisect_cpu.md), so
-    the bracket is where this bisection saw the change, not a guarantee for every step below it."""
+    the bracket is where this bisection saw the change, not a guarantee for every step below it (:func:`scan` runs
+    every step of a grid)."""
     result = LargestStep(0.0, math.inf)
 
     def holds(step: float) -> bool:
@@ -360,6 +365,61 @@ def largest_step(case: Case, integrator: str, device, passed: float, *, high: fl
     for _ in range(halvings):
         middle = 0.5 * (low + top)
         low, top = (middle, top) if holds(middle) else (low, middle)
+    return result
+
+
+@dataclass
+class StepScan:
+    """The runs of a case at a grid of steps (:func:`scan`), and what they say of the largest step that neither blows
+    up nor grows where holding is not monotone in the step: past the three-wave step the motion is chaotic, and a
+    step can hold above one that fails (:func:`largest_step`), which a bisection may land on.
+
+    Attributes:
+        passed: the advisor's step P [s].
+        runs: every run, by increasing step (their ``factor``: the step over P).
+    """
+
+    passed: float
+    runs: list = field(default_factory=list)
+
+    @property
+    def fails(self) -> float:
+        """The smallest sampled step [s] whose run blew up or grew (∞: none did)."""
+        return min((r.dt for r in self.runs if not r.ok), default=math.inf)
+
+    @property
+    def holds(self) -> float:
+        """S, the step a user can rely on as far as the grid tells: the largest sampled step [s] at and below which
+        every sampled step held (0: the smallest failed). The first failure lies between it and :attr:`fails`."""
+        return max((r.dt for r in self.runs if r.dt < self.fails), default=0.0)
+
+    @property
+    def lucky(self) -> float:
+        """The largest sampled step [s] that held, past a failure or not (0: none did)."""
+        return max((r.dt for r in self.runs if r.ok), default=0.0)
+
+    def one_sided(self) -> bool:
+        """Every sampled step at or below the advisor's held."""
+        return self.holds >= self.passed
+
+    def within(self, share: float = 0.9) -> str:
+        """Whether P ≥ ``share`` × S with S = :attr:`holds`'s bracket [holds, fails): "yes" where P ≥ ``share`` ×
+        :attr:`fails`, "no" where P < ``share`` × :attr:`holds`, "?" between (the grid too coarse to tell, or no
+        sampled step failed)."""
+        if self.passed >= share * self.fails:
+            return "yes"
+        return "no" if self.passed < share * self.holds else "?"
+
+
+def scan(case: Case, integrator: str, device, passed: float, factors, *, seconds: float = 10.0,
+         substeps: int = SUBSTEPS, report=None) -> StepScan:
+    """Run ``case`` with ``integrator`` (:func:`run`) at every step f · ``passed`` [s] for ``factors``, smallest first;
+    ``report``: called with each :class:`RunResult` as it ends (a long scan's progress)."""
+    result = StepScan(passed)
+    for f in sorted(factors):
+        result.runs.append(run(case, integrator, f * passed, device, seconds=seconds, factor=f, substeps=substeps))
+        if report is not None:
+            report(result.runs[-1])
     return result
 
 
