@@ -285,6 +285,7 @@ def scans(chosen, device, args):
     stability_battery.scan`): a summary (S, the largest sampled step at and below which every sampled step holds; the
     first that fails; the largest that holds, past a failure or not; P against them) and a table of the runs."""
     factors = scan_factors(*args.scan)
+    command, where = _provenance(device)
     summary, details = [], []
     t0 = time.perf_counter()
     for case in chosen:
@@ -313,10 +314,9 @@ def scans(chosen, device, args):
                            f"{found.within()} | {p / found.lucky:.3f} | "
                            f"{_bracket(found.holds * three, found.fails * three)} |")
             reason = f" ({advice.passed_reason})" if advice.passed_reason else ""
-            details += [f"{case.label}, {integrator}, P = {p * 1e3:.4g} ms{reason}:", "",
+            details += [f"{case.label}, {integrator}, P = {p * 1e3:.4g} ms{reason}; {where}:", "",
                         "| step / P | step [ms] | verdict | highest 1 s mean [% F] | highest [% F] | H's highest [% F] |",
                         "|---|---|---|---|---|---|", *rows, ""]
-    command, where = _provenance(device)
     emit_table([f"The runs on a grid of steps on {where}: `python bench/advisor_battery.py {command}`; "
                 f"{args.seconds:g} s runs; {time.perf_counter() - t0:.0f} s in all. Steps × the advisor's P; S: the "
                 "largest sampled step at and below which every sampled step holds (neither blows up nor grows); first "
