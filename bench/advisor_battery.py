@@ -231,6 +231,23 @@ def dry_runs(chosen, device, args):
                 *rows], args.out)
 
 
+def _over(a: float, b: float) -> float:
+    """a / b, infinite where b is 0 (no step held: a scan whose smallest step failed)."""
+    return a / b if b else math.inf
+
+
+def _advised(chosen, device, args):
+    """Each case's integrators with the advisor's verdict on them (one dry run a case) and the step P it passes:
+    (case, integrator, advice, P), where it passes one."""
+    for case in chosen:
+        model = sb.battery_cloth(case, device)
+        with shared_estimates():  # one dry run for the case's integrators
+            advices = [advise(model, name, 1.0e-4, horizon=args.seconds) for name in args.integrators]
+        for integrator, advice in zip(args.integrators, advices):
+            if advice.dt_passed > 0.0:
+                yield case, integrator, advice, advice.dt_passed
+
+
 def bisections(chosen, device, args):
     """The largest step that neither blows up nor grows, bracketed by bisection for each case and integrator
     (:func:`~warpspring.analysis.stability_battery.largest_step`), against the advisor's P: P/S, whether the run at P
@@ -238,28 +255,21 @@ def bisections(chosen, device, args):
     step √3/ω_max. Each bracket as "a-b": S lies between the largest step that held and the smallest that failed."""
     rows = []
     t0 = time.perf_counter()
-    for case in chosen:
-        model = sb.battery_cloth(case, device)
-        with shared_estimates():  # one dry run for the case's integrators
-            advices = [advise(model, name, 1.0e-4, horizon=args.seconds) for name in args.integrators]
-        for integrator, advice in zip(args.integrators, advices):
-            p = advice.dt_passed
-            if not p > 0.0:
-                continue
-            found = sb.largest_step(case, integrator, device, p, halvings=args.bisect, seconds=args.seconds,
-                                    substeps=args.substeps)
-            holds, fails = found.holds, found.fails
-            one_sided = found.runs[0].ok  # the run at P itself
-            within = "-" if not one_sided else "yes" if p >= 0.9 * fails else "no" if p < 0.9 * holds else "?"
-            three = TRIAD_MARGIN / p if "three-wave" in advice.passed_reason else math.nan
-            runs = ", ".join(f"{r.factor:.4g} {'ok' if r.ok else 'blows up' if r.blown else 'grows'}"
-                             for r in sorted(found.runs, key=lambda r: r.factor))
-            rows.append(f"| {case.label} | {integrator} | {p * 1e3:.4g} | {advice.dt_stable * 1e3:.4g} | "
-                        f"{holds * 1e3:.4g}-{fails * 1e3:.4g} | {_span(p / fails, p / holds)} | "
-                        f"{'yes' if one_sided else 'NO'} | {within} | "
-                        f"{_span(holds / advice.dt_stable, fails / advice.dt_stable)} | "
-                        f"{_span(holds * three, fails * three)} | {runs} |")
-            print(rows[-1], f"({time.perf_counter() - t0:.0f} s)", flush=True)
+    for case, integrator, advice, p in _advised(chosen, device, args):
+        found = sb.largest_step(case, integrator, device, p, halvings=args.bisect, seconds=args.seconds,
+                                substeps=args.substeps)
+        holds, fails = found.holds, found.fails
+        one_sided = found.runs[0].ok  # the run at P itself
+        within = "-" if not one_sided else "yes" if p >= 0.9 * fails else "no" if p < 0.9 * holds else "?"
+        three = TRIAD_MARGIN / p if "three-wave" in advice.passed_reason else math.nan
+        runs = ", ".join(f"{r.factor:.4g} {'ok' if r.ok else 'blows up' if r.blown else 'grows'}"
+                         for r in sorted(found.runs, key=lambda r: r.factor))
+        rows.append(f"| {case.label} | {integrator} | {p * 1e3:.4g} | {advice.dt_stable * 1e3:.4g} | "
+                    f"{holds * 1e3:.4g}-{fails * 1e3:.4g} | {_span(_over(p, fails), _over(p, holds))} | "
+                    f"{'yes' if one_sided else 'NO'} | {within} | "
+                    f"{_span(holds / advice.dt_stable, fails / advice.dt_stable)} | "
+                    f"{_span(holds * three, fails * three)} | {runs} |")
+        print(rows[-1], f"({time.perf_counter() - t0:.0f} s)", flush=True)
     command, where = _provenance(device)
     emit_table([f"The largest step that neither blows up nor grows (S, bracketed by bisection) on {where}: "
                 f"`python bench/advisor_battery.py {command}`; {args.seconds:g} s runs; "
@@ -288,35 +298,28 @@ def scans(chosen, device, args):
     command, where = _provenance(device)
     summary, details = [], []
     t0 = time.perf_counter()
-    for case in chosen:
-        model = sb.battery_cloth(case, device)
-        with shared_estimates():  # one dry run for the case's integrators
-            advices = [advise(model, name, 1.0e-4, horizon=args.seconds) for name in args.integrators]
-        for integrator, advice in zip(args.integrators, advices):
-            p = advice.dt_passed
-            if not p > 0.0:
-                continue
-            rows = []
+    for case, integrator, advice, p in _advised(chosen, device, args):
+        rows = []
 
-            def report(r):
-                rows.append(f"| {r.factor:.4g} | {r.dt * 1e3:.4g} | {_verdict(r)} | "
-                            + (f"{100 * r.excess:.3g} | {100 * r.peak:.3g} | {100 * r.raw_excess:.3g} |"
-                               if not r.blown else "- | - | - |"))
-                print(f"{case.label}, {integrator}:", rows[-1], f"({time.perf_counter() - t0:.0f} s)", flush=True)
+        def report(r):
+            rows.append(f"| {r.factor:.4g} | {r.dt * 1e3:.4g} | {_verdict(r)} | "
+                        + (f"{100 * r.excess:.3g} | {100 * r.peak:.3g} | {100 * r.raw_excess:.3g} |"
+                           if not r.blown else "- | - | - |"))
+            print(f"{case.label}, {integrator}:", rows[-1], f"({time.perf_counter() - t0:.0f} s)", flush=True)
 
-            found = sb.scan(case, integrator, device, p, factors, seconds=args.seconds, substeps=args.substeps,
-                            report=report)
-            above = sum(r.ok for r in found.runs if r.dt > found.fails)
-            three = TRIAD_MARGIN / p if "three-wave" in advice.passed_reason else math.nan
-            summary.append(f"| {case.label} | {integrator} | {p * 1e3:.4g} | {found.holds / p:.4g} | "
-                           f"{found.fails / p:.4g} | {found.lucky / p:.4g} | {above} | "
-                           f"{_bracket(p / found.fails, p / found.holds)} | {'yes' if found.one_sided() else 'NO'} | "
-                           f"{found.within()} | {p / found.lucky:.3f} | "
-                           f"{_bracket(found.holds * three, found.fails * three)} |")
-            reason = f" ({advice.passed_reason})" if advice.passed_reason else ""
-            details += [f"{case.label}, {integrator}, P = {p * 1e3:.4g} ms{reason}; {where}:", "",
-                        "| step / P | step [ms] | verdict | highest 1 s mean [% F] | highest [% F] | H's highest [% F] |",
-                        "|---|---|---|---|---|---|", *rows, ""]
+        found = sb.scan(case, integrator, device, p, factors, seconds=args.seconds, substeps=args.substeps,
+                        report=report)
+        above = sum(r.ok for r in found.runs if r.dt > found.fails)
+        three = TRIAD_MARGIN / p if "three-wave" in advice.passed_reason else math.nan
+        summary.append(f"| {case.label} | {integrator} | {p * 1e3:.4g} | {found.holds / p:.4g} | "
+                       f"{found.fails / p:.4g} | {found.lucky / p:.4g} | {above} | "
+                       f"{_bracket(_over(p, found.fails), _over(p, found.holds))} | {'yes' if found.one_sided() else 'NO'} | "
+                       f"{found.within()} | {_over(p, found.lucky):.3f} | "
+                       f"{_bracket(found.holds * three, found.fails * three)} |")
+        reason = f" ({advice.passed_reason})" if advice.passed_reason else ""
+        details += [f"{case.label}, {integrator}, P = {p * 1e3:.4g} ms{reason}; {where}:", "",
+                    "| step / P | step [ms] | verdict | highest 1 s mean [% F] | highest [% F] | H's highest [% F] |",
+                    "|---|---|---|---|---|---|", *rows, ""]
     emit_table([f"The runs on a grid of steps on {where}: `python bench/advisor_battery.py {command}`; "
                 f"{args.seconds:g} s runs; {time.perf_counter() - t0:.0f} s in all. Steps × the advisor's P; S: the "
                 "largest sampled step at and below which every sampled step holds (neither blows up nor grows); first "
