@@ -50,6 +50,14 @@ and 6e-8 m): the end as stored moved 19 nm along +y where Δ̂ retreated from th
 (edges 771-813 and 812-854, two diagonals of the squeezed strip's last rows) lost 7.75 nm each time, 0.2 µm a frame.
 The cap now checks a capped end, as stored, against the pairs that leave its vertex no approach and holds it at its
 start where it closes one in (and the later passes check their bounds on the stored end).
+
+What then still came closer than τ/2 (the small 720° twist at its full duration under symplectic Euler: 823 pairs,
+1.134 mm, from t = 2.417 s) was the cap's later passes: the pinned edge 125-146 closed on the free edge 144-165 by
+85 µm more a substep than its room while 144 and 165 lay on the floor over the layers behind them, which had room
+to move away but moved at most 2 µm in the later passes (144 and 165 stayed). A jammed vertex's point "where it wanted to go" was the alternating projections' compromise between
+the pin's bound and its bounds against those layers as they stood, which asked them for no room. That point now keeps
+only the bounds against what cannot make room (kinematic vertices, earlier pushers), so the layers behind move away
+and the jammed vertex follows.
 """
 
 import numpy as np
@@ -277,7 +285,7 @@ def test_a_pin_squeezing_a_layer_on_the_floor_makes_the_layer_behind_give_way(de
     compromise of the alternating projections onto all its bounds, L's as they stood included, so L was asked for no
     room, stayed, M stayed and P closed the pair to 1.95 mm (the small 720° twist under symplectic Euler at its full
     duration: 823 pairs closer than τ/2 from t = 2.417 s, the pinned edge 125-146 closing on the free edge 144-165 on
-    the layers at the floor, which moved 2-17 µm where ~90 µm of room was needed)."""
+    layers at the floor, which moved at most 2 µm where 85 µm of room was needed)."""
     tau, approach = 0.004, 1e-4
     floor = 0.5 * tau
 
