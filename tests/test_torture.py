@@ -50,6 +50,14 @@ and 6e-8 m): the end as stored moved 19 nm along +y where Δ̂ retreated from th
 (edges 771-813 and 812-854, two diagonals of the squeezed strip's last rows) lost 7.75 nm each time, 0.2 µm a frame.
 The cap now checks a capped end, as stored, against the pairs that leave its vertex no approach and holds it at its
 start where it closes one in (and the later passes check their bounds on the stored end).
+
+What then still came closer than τ/2 (the small 720° twist at its full duration under symplectic Euler: 823 pairs,
+1.134 mm, from t = 2.417 s) was the cap's later passes: the pinned edge 125-146 closed on the free edge 144-165 by
+85 µm more a substep than its room while 144 and 165 lay on the floor over the layers behind them, which had room
+to move away but moved at most 2 µm in the later passes (144 and 165 stayed). A jammed vertex's point "where it wanted to go" was the alternating projections' compromise between
+the pin's bound and its bounds against those layers as they stood, which asked them for no room. That point now keeps
+only the bounds against what cannot make room (kinematic vertices, earlier pushers), so the layers behind move away
+and the jammed vertex follows.
 """
 
 import numpy as np
@@ -265,6 +273,51 @@ def test_pinned_edge_outrunning_its_gap_does_not_cross(device):
     # It gave way: the pair parted while the pin moved on it (it gives way no further than its other pairs, below the
     # cap's floor at this fold, leave room: 0.26 mm for vertex 7, not the pin's whole 0.356 mm).
     assert edge_edge_distance(*x1[[5, 9, 7, 8]]) > gap
+
+
+def test_a_pin_squeezing_a_layer_on_the_floor_makes_the_layer_behind_give_way(device):
+    """Three parallel triangles, τ = 4 mm (floor 2 mm): a pinned one (P) 50 µm above the floor over a small free one
+    (M), which lies 5 µm above the floor over a large free one (L) with nothing behind it. The cap stage alone on a
+    step that drives P 0.1 mm down and leaves M and L where they are (M's step toward L as the repulsion gives it
+    would be capped anyway): M's pairs with P ask it to give way by 0.1 mm less P's room, (1 - γ) 50 µm, but its
+    pairs with L, on the floor, leave it no approach: it is jammed, and L must make room. L can: it moves down as far
+    as M needs, M follows, and no pair ends closer than τ/2. Before, M's point "where it wanted to go" was the
+    compromise of the alternating projections onto all its bounds, L's as they stood included, so L was asked for no
+    room, stayed, M stayed and P closed the pair to 1.95 mm (the small 720° twist under symplectic Euler at its full
+    duration: 823 pairs closer than τ/2 from t = 2.417 s, the pinned edge 125-146 closing on the free edge 144-165 on
+    layers at the floor, which moved at most 2 µm where 85 µm of room was needed)."""
+    tau, approach = 0.004, 1e-4
+    floor = 0.5 * tau
+
+    def triangle(size, z):
+        angles = np.deg2rad([90.0, 210.0, 330.0])
+        return np.column_stack([size * np.cos(angles), size * np.sin(angles), np.full(3, z)])
+
+    x = np.concatenate([triangle(0.04, floor + 5e-5), triangle(0.006, 0.0), triangle(0.04, -floor - 5e-6)])
+    triangles = np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8]])
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    builder.add_particles(x.astype(np.float32), mass=0.001, radius=0.001, pinned=[0, 1, 2])
+    builder.add_triangles(triangles)
+    builder.add_self_collision(thickness=tau)
+    model = builder.finalize(device)
+    stepped = x.astype(np.float32)
+    stepped[:3, 2] -= approach  # P's prescribed step
+    start, state = model.state(), model.state()
+    state.particle_q.assign(stepped)
+    repelled = wp.array(stepped, dtype=wp.vec3, device=model.device)
+    self_contact = model.self_contact
+    self_contact.repel(start, repelled)
+    self_contact.cap(start, repelled, state, 1e-3)
+    x0, x1 = start.particle_q.numpy().astype(np.float64), state.particle_q.numpy().astype(np.float64)
+    np.testing.assert_array_equal(x1[:3], stepped[:3])  # P went where it was told
+    step = SurfaceAudit(triangles).step(x0, x1, thickness=tau)
+    assert len(step.crossings) == 0 and len(step.intersections) == 0
+    assert step.close == 0, f"{step.close} pairs closer than τ/2, the closest {step.min_distance:.4e} m"
+    # M gave way by what P's room lacked, and L made room for it: both moved down, by at least 0.1 mm less the rooms.
+    room = (1.0 - DEFAULT_RELAXATION) * 5e-5
+    assert np.all(x0[3:, 2] - x1[3:, 2] >= approach - room - 1e-7)
+    assert np.all(x0[6:, 2] - x1[6:, 2] >= approach - room - 5e-6 - 1e-7)
+    assert self_contact.outrun()[0] == 0
 
 
 def test_a_pin_outrunning_a_vertex_that_cannot_give_way_is_counted(device):

@@ -343,10 +343,13 @@ def cap_place_kernel(scalar: type):
     where it wanted to go), and where the other side holds a vertex placed in the same pass, also at most its share.
     Its displacement Δ stays in its swept box (the cube of half-width ρ = ``cube_reach``, and its step's box) and no
     longer than max(δ, ρ): alternating projections onto these sets (``RELEASE_ROUNDS``) from where it is, accepted where every
-    bound then holds; else it stays, becomes a pusher (``role_out``) and ``desired_out`` keeps the point found. With
+    bound then holds; else it stays, becomes a pusher (``role_out``) and ``desired_out`` keeps where it wants to go:
+    the same projections onto its bounds against what cannot make room only (the other sides' kinematic vertices and
+    earlier pushers), its box and its ball, for which the next pass's movers make room. With
     ``clear``, the other vertices' ``role_out`` is set to ROLE_FROZEN (no memset inside the conditional node)."""
     vec3 = vec3_type(scalar)
     on_side_a, _, pair_shares = plane_funcs(scalar)
+    is_free = _pair_funcs(scalar)[2]
     cube_reach = cube_reach_func(scalar)
 
     @wp.func
@@ -357,8 +360,11 @@ def cap_place_kernel(scalar: type):
         desired: wp.array[vec3], particle_q_start: wp.array[vec3], particle_q_in: wp.array[vec3],
         particle_q_placed: wp.array[vec3],
     ):
-        """(g, a, resolved): the bound g·Δ ≤ a (g unit: the vertex's direction of approach along n) of the pair of
-        ``entry`` (slot · 4 + role); ``resolved`` False where the pair is closer than the precision resolves."""
+        """(g, a, resolved, a_held, held): the bound g·Δ ≤ a (g unit: the vertex's direction of approach along n) of
+        the pair of ``entry`` (slot · 4 + role); ``resolved`` False where the pair is closer than the precision
+        resolves. ``a_held`` is the same bound counting only the other side's vertices that cannot make room (its
+        kinematic vertices and the pushers of an earlier pass, as they want to go), ``held`` whether it holds any:
+        the bound that stays when the free vertices there are asked to move away (``cap_mark_kernel``)."""
         slot = entry // 4
         k_mine = entry - 4 * slot
         vt = pairs.key[slot] < wp.int64(vertex_pairs)
@@ -372,20 +378,30 @@ def cap_place_kernel(scalar: type):
             sign = scalar(-1.0)
             share = shares[1]
         moving = False
+        held = False
         other = scalar(-NO_BOUND)
+        other_held = scalar(-NO_BOUND)
         for k in range(4):
             if on_side_a(vt, k) != mine:
                 j = base + vertex[k]
                 start = particle_q_start[j]
-                other = wp.max(other, sign * wp.dot(n, particle_q_placed[j] - start))
+                approach = sign * wp.dot(n, particle_q_placed[j] - start)
+                other = wp.max(other, approach)
+                if not is_free(particle_flags[j], particle_inv_mass[mass_row, vertex[k]]):
+                    held = True
+                    other_held = wp.max(other_held, approach)
                 if role[j] == mover_role:
                     moving = True
                 elif role[j] == ROLE_PUSHER:
-                    other = wp.max(other, sign * wp.dot(n, desired[j] - start))
-        room = (scalar(1.0) - relaxation) * wp.max(gap - floor, scalar(0.0)) - other
+                    wanted = wp.max(approach, sign * wp.dot(n, desired[j] - start))
+                    other = wp.max(other, wanted)
+                    held = True
+                    other_held = wp.max(other_held, wanted)
+        free_room = (scalar(1.0) - relaxation) * wp.max(gap - floor, scalar(0.0))
+        room = free_room - other
         if moving:
             room = wp.min(room, share)
-        return -sign * n, room, gap > scalar(0.0)
+        return -sign * n, room, gap > scalar(0.0), free_room - other_held, held
 
     @flat_kernel(module="unique", enable_backward=False)
     def place(
@@ -454,9 +470,10 @@ def cap_place_kernel(scalar: type):
             for a in range(first, last):
                 e = list_pairs.entry[a]
                 if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
-                    g, room, ok = half_space(e, list_pairs, base, mass_row, relaxation, floor, vertex_pairs, mover_role,
-                                             particle_flags, particle_inv_mass, role, desired, particle_q_start,
-                                             particle_q_in, particle_q_out)
+                    g, room, ok, _held_room, _held = half_space(e, list_pairs, base, mass_row, relaxation, floor,
+                                                                vertex_pairs, mover_role, particle_flags,
+                                                                particle_inv_mass, role, desired, particle_q_start,
+                                                                particle_q_in, particle_q_out)
                     resolved = resolved and ok
                     over = wp.dot(g, trial) - (room - pad)
                     if over > scalar(0.0):
@@ -471,17 +488,38 @@ def cap_place_kernel(scalar: type):
         for a in range(first, last):
             e = list_pairs.entry[a]
             if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
-                g, room, ok = half_space(e, list_pairs, base, mass_row, relaxation, floor, vertex_pairs, mover_role,
-                                         particle_flags, particle_inv_mass, role, desired, particle_q_start,
-                                         particle_q_in, particle_q_out)
+                g, room, ok, _held_room, _held = half_space(e, list_pairs, base, mass_row, relaxation, floor,
+                                                            vertex_pairs, mover_role, particle_flags, particle_inv_mass,
+                                                            role, desired, particle_q_start, particle_q_in,
+                                                            particle_q_out)
                 holds = holds and wp.dot(g, moved) <= room
         if holds:
             particle_qd_out[p] = moved / dt
             particle_q_out[p] = x
             role_out[p] = ROLE_FROZEN
         else:
+            # Where it wants to go: its bounds against what cannot make room only (kinematic vertices, earlier
+            # pushers), its box and its ball. The free vertices across its other pairs are the next pass's movers
+            # (cap_mark_kernel) and make room for that point; a point that also kept their bounds, as they stand,
+            # would ask them for no room (the projections' compromise stops short of the pin's bound).
+            wanted = current
+            for _round in range(RELEASE_ROUNDS):
+                for a in range(first, last):
+                    e = list_pairs.entry[a]
+                    if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
+                        _g, _room, _ok, held_room, held = half_space(e, list_pairs, base, mass_row, relaxation, floor,
+                                                                     vertex_pairs, mover_role, particle_flags,
+                                                                     particle_inv_mass, role, desired,
+                                                                     particle_q_start, particle_q_in, particle_q_out)
+                        over = wp.dot(_g, wanted) - (held_room - pad)
+                        if held and over > scalar(0.0):
+                            wanted = wanted - over * _g
+                wanted = wp.min(wp.max(wanted, low), high)
+                size = wp.length(wanted)
+                if size > radius:
+                    wanted = (radius / size) * wanted
             role_out[p] = ROLE_PUSHER
-            desired_out[p] = x
+            desired_out[p] = start + wanted
 
     return place
 
