@@ -58,6 +58,13 @@ to move away but moved at most 2 µm in the later passes (144 and 165 stayed). A
 the pin's bound and its bounds against those layers as they stood, which asked them for no room. That point now keeps
 only the bounds against what cannot make room (kinematic vertices, earlier pushers), so the layers behind move away
 and the jammed vertex follows.
+
+What then still came closer than τ/2 (the same twist at duration 0.98, or with its particles moved by up to 1 µm: 2.42
+and 2.48 mm) was a squeeze passed through several free layers, a chain of pushers. A pusher placed in the same pass as
+the pusher it had to make room for was placed against where that one stood, which it already kept: it stayed, lost its
+role, and the two took turns at every level (a pin on four layers never moved the second). A pusher now counts as
+where it wants to go for the pushers of its own pass too, and the cap runs 5 levels (room is made from the back, about
+a layer every two levels; it ran 2).
 """
 
 import numpy as np
@@ -317,6 +324,51 @@ def test_a_pin_squeezing_a_layer_on_the_floor_makes_the_layer_behind_give_way(de
     room = (1.0 - DEFAULT_RELAXATION) * 5e-5
     assert np.all(x0[3:, 2] - x1[3:, 2] >= approach - room - 1e-7)
     assert np.all(x0[6:, 2] - x1[6:, 2] >= approach - room - 5e-6 - 1e-7)
+    assert self_contact.outrun()[0] == 0
+
+
+def test_a_pin_squeezing_four_layers_on_the_floor_makes_them_all_give_way(device):
+    """The same squeeze through four free triangles (alternately small and large), each 5 µm above the floor over the
+    next, the last with nothing behind it: the pinned one (P, 50 µm above the floor) driven 0.1 mm down must move all
+    four. The room is made from the back: the last layer moves, then the one before it can, and so on, one layer a
+    level of the cap's later passes. A pusher placed in the same pass as the pusher it must make room for keeps that
+    one's wanted point among its bounds (and in its own wanted point); before, it was placed against where that one
+    stood, which it already kept, so it was accepted without moving, lost its role, and the two pushers took turns
+    (the second layer never moved, at any number of levels: 6 pairs at 1.950 mm). The small 720° twist at duration
+    0.98 (t = 2.348 s) and with its particles moved by up to 1 µm (t = 2.223 s) showed it: free vertices pressed by
+    the pinned edge through three or four layers stayed while the pins closed pairs to 2.42 and 2.48 mm."""
+    tau, approach = 0.004, 1e-4
+    floor = 0.5 * tau
+
+    def triangle(size, z):
+        angles = np.deg2rad([90.0, 210.0, 330.0])
+        return np.column_stack([size * np.cos(angles), size * np.sin(angles), np.full(3, z)])
+
+    heights = [floor + 5e-5, 0.0] + [-k * (floor + 5e-6) for k in (1, 2, 3)]
+    x = np.concatenate([triangle(0.006 if k % 2 else 0.04, z) for k, z in enumerate(heights)])
+    triangles = np.arange(len(x)).reshape(-1, 3)
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    builder.add_particles(x.astype(np.float32), mass=0.001, radius=0.001, pinned=[0, 1, 2])
+    builder.add_triangles(triangles)
+    builder.add_self_collision(thickness=tau)
+    model = builder.finalize(device)
+    stepped = x.astype(np.float32)
+    stepped[:3, 2] -= approach
+    start, state = model.state(), model.state()
+    state.particle_q.assign(stepped)
+    repelled = wp.array(stepped, dtype=wp.vec3, device=model.device)
+    self_contact = model.self_contact
+    self_contact.repel(start, repelled)
+    self_contact.cap(start, repelled, state, 1e-3)
+    x0, x1 = start.particle_q.numpy().astype(np.float64), state.particle_q.numpy().astype(np.float64)
+    step = SurfaceAudit(triangles).step(x0, x1, thickness=tau)
+    assert len(step.crossings) == 0 and len(step.intersections) == 0
+    assert step.close == 0, f"{step.close} pairs closer than τ/2, the closest {step.min_distance:.4e} m"
+    # Each layer gave way by what P's room and the 5 µm rooms between the layers before it lacked.
+    room = (1.0 - DEFAULT_RELAXATION) * 5e-5
+    for k in range(4):
+        layer = slice(3 * (k + 1), 3 * (k + 2))
+        assert np.all(x0[layer, 2] - x1[layer, 2] >= approach - room - k * 5e-6 - 1e-7), k
     assert self_contact.outrun()[0] == 0
 
 

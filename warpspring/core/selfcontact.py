@@ -71,8 +71,10 @@ from ..kernels.selfcontact_cap import (
 #: nearest primitive, so a pair beyond the repulsion's reach (2 τ) ends a step at least τ apart.
 DEFAULT_RELAXATION = 0.25
 #: Rounds of the cap's making room for its jammed vertices (``SelfContact._cap_stage``): a jammed vertex's
-#: neighbours across its kept pairs move away, then it is placed again, this many times.
-CAP_LEVELS = 2
+#: neighbours across its kept pairs move away, then it is placed again, this many times. A pin squeezing n free
+#: layers, each on the floor of the next, needs about 2 n - 3 (four layers: 5; the small 720° twist's squeezes
+#: went through three and four).
+CAP_LEVELS = 5
 #: The thickness must stay below this share of the surface's smallest triangle altitude: at rest, a vertex and
 #: a triangle of its neighbourhood that do not share it are an altitude apart or more, and must not repel.
 MAX_THICKNESS_SHARE = 0.7

@@ -73,12 +73,16 @@ stages keep the same pairs as a broad phase every step):
      side holds a mover of the same pass, also at most its share; anywhere in its swept box and no further than
      max(δᵢ, ρ): alternating projections onto these half-spaces, the box and the ball (``RELEASE_ROUNDS``),
      accepted where every bound then holds, else it stays and becomes a pusher. Where a pusher wants to go is the
-     same projections onto its bounds against what cannot make room only (its pairs' kinematic vertices, earlier
-     pushers as they want to go), its box and its ball: the free vertices across its other pairs are the next
-     pass's movers and make room for that point (a point that also kept their bounds as they stand asked them for
-     none, and a pin's squeeze was never passed on to the layers behind). The jammed vertices are the first pass's
-     movers; then ``CAP_LEVELS`` times (``core/selfcontact.py``) the free vertices across a kept pair from a pusher
-     are movers (they make room, ``cap_mark_kernel``), and the pushers after them.
+     same projections onto its bounds against what cannot make room only (its pairs' kinematic vertices, pushers
+     as they want to go), its box and its ball: the free vertices across its other pairs are the next pass's
+     movers and make room for that point (a point that also kept their bounds as they stand asked them for none,
+     and a pin's squeeze was never passed on to the layers behind). A pusher counts as where it wants to go (the
+     larger of that and where it is) also for the pushers placed in its own pass: a layer squeezed through several
+     others is a chain of pushers, and one placed against where the next stands would stay, drop its role and
+     leave the next jammed, the two taking turns at every level. The jammed vertices are the first pass's movers;
+     then ``CAP_LEVELS`` times (``core/selfcontact.py``) the free vertices across a kept pair from a pusher are
+     movers (they make room, ``cap_mark_kernel``), and the pushers after them: room is made from the back, about
+     one layer every two levels.
 
    Why no pair crosses within the step, and none that starts it at least h apart ends closer. Every point of a
    primitive is a fixed convex combination of its vertices, each moving on a straight line that stays in its
@@ -97,8 +101,8 @@ stages keep the same pairs as a broad phase every step):
    later pass keeps this: a mover placed against a side that stays approaches by at most (1 − γ) G' minus that
    side's approach (the slab stays open by h + γ G'), and against a side that moves in the same pass, by at most
    its share and that room, whether the other side's movers are placed (shares) or stay (room); a pusher's wanted
-   point enters a mover's room only as the larger of it and where the pusher is, so the bound holds whatever that
-   point is (it decides only how much room the movers make). With no
+   point enters a mover's or another pusher's room only as the larger of it and where the pusher is, so the bound
+   holds whatever that point is (it decides only how much room the others make). With no
    kinematic vertex this is the bound γ G' per vertex along n and the margin h + (1 − 2γ) G'. G takes two pads
    off D_n: one for the rounding of the dot products, one for the rounded end positions. A pair closer than h at
    the start (G' = 0: one a pin pressed there) keeps its slab: it does not close in. Such a pair's share is 0, which

@@ -339,13 +339,15 @@ ROLE_PUSHER = 2  # could not be placed: stays, and the movers make room for wher
 def cap_place_kernel(scalar: type):
     """Kernel of the cap's later passes (module docstring, 2.), after ``cap_gather_kernel``: each vertex whose role is
     ``mover_role`` is placed anew, the others stay. Of each kept pair its approach along n is at most the room the
-    other side leaves, (1 - γ) G minus that side's largest approach (a pusher's: the larger of where it is and
-    where it wanted to go), and where the other side holds a vertex placed in the same pass, also at most its share.
+    other side leaves, (1 - γ) G minus that side's largest approach (a pusher's, in every pass: the larger of where
+    it is and where it wanted to go), and where the other side holds a vertex placed in the same pass, also at most
+    its share.
     Its displacement Δ stays in its swept box (the cube of half-width ρ = ``cube_reach``, and its step's box) and no
     longer than max(δ, ρ): alternating projections onto these sets (``RELEASE_ROUNDS``) from where it is, accepted where every
     bound then holds; else it stays, becomes a pusher (``role_out``) and ``desired_out`` keeps where it wants to go:
     the same projections onto its bounds against what cannot make room only (the other sides' kinematic vertices and
-    earlier pushers), its box and its ball, for which the next pass's movers make room. With
+    the pushers, as they want to go, those of this pass included), its box and its ball, for which the next pass's
+    movers make room. With
     ``clear``, the other vertices' ``role_out`` is set to ROLE_FROZEN (no memset inside the conditional node)."""
     vec3 = vec3_type(scalar)
     on_side_a, _, pair_shares = plane_funcs(scalar)
@@ -363,8 +365,11 @@ def cap_place_kernel(scalar: type):
         """(g, a, resolved, a_held, held): the bound g·Δ ≤ a (g unit: the vertex's direction of approach along n) of
         the pair of ``entry`` (slot · 4 + role); ``resolved`` False where the pair is closer than the precision
         resolves. ``a_held`` is the same bound counting only the other side's vertices that cannot make room (its
-        kinematic vertices and the pushers of an earlier pass, as they want to go), ``held`` whether it holds any:
-        the bound that stays when the free vertices there are asked to move away (``cap_mark_kernel``)."""
+        kinematic vertices and the pushers, as they want to go), ``held`` whether it holds any: the bound that stays
+        when the free vertices there are asked to move away (``cap_mark_kernel``). A pusher counts as the larger of
+        where it is and where it wants to go in both bounds, also in the pushers' own pass (where it is placed beside
+        this vertex and the share bounds the pair as well): a pusher that another must make room for is not placed
+        against where that one stands (which it already keeps, so it would stay and lose its role)."""
         slot = entry // 4
         k_mine = entry - 4 * slot
         vt = pairs.key[slot] < wp.int64(vertex_pairs)
@@ -392,7 +397,7 @@ def cap_place_kernel(scalar: type):
                     other_held = wp.max(other_held, approach)
                 if role[j] == mover_role:
                     moving = True
-                elif role[j] == ROLE_PUSHER:
+                if role[j] == ROLE_PUSHER:
                     wanted = wp.max(approach, sign * wp.dot(n, desired[j] - start))
                     other = wp.max(other, wanted)
                     held = True
