@@ -160,6 +160,17 @@ def test_the_cap_keeps_a_pressed_pair_half_the_thickness_apart(device):
 
 
 
+def _repel_and_cap(model, stepped: np.ndarray):
+    """The self-collision's repulsion and cap of one 1 ms step from the model's start to the integrator's result
+    ``stepped`` [m]: the positions before and after (float64)."""
+    start, state = model.state(), model.state()
+    state.particle_q.assign(stepped)
+    repelled = wp.array(stepped, dtype=wp.vec3, device=model.device)
+    model.self_contact.repel(start, repelled)
+    model.self_contact.cap(start, repelled, state, 1e-3)
+    return start.particle_q.numpy().astype(np.float64), state.particle_q.numpy().astype(np.float64)
+
+
 def test_a_rounded_end_does_not_close_a_pair_on_the_floor(device):
     """A vertex 1 µm above the floor from one triangle (T1, whose normal is the diagonal (1, 1, 0)/√2: the pair has
     no room, G' = 0, within the rounding pads of τ/2) steps away from it along (2, -1, 0)/√5, toward another triangle
@@ -193,18 +204,11 @@ def test_a_rounded_end_does_not_close_a_pair_on_the_floor(device):
     model = builder.finalize(device)
     stepped = x.copy()
     stepped[0] += (50e-6 * np.array([2.0, -1.0, 0.0]) / np.sqrt(5.0)).astype(np.float32)
-    # The cap stage alone on this repelled result (its repulsion would turn the step).
-    start, state = model.state(), model.state()
-    state.particle_q.assign(stepped)
-    repelled = wp.array(stepped, dtype=wp.vec3, device=model.device)
-    self_contact = model.self_contact
-    self_contact.repel(start, repelled)
-    self_contact.cap(start, repelled, state, 1e-3)
-    before, after = x.astype(np.float64), state.particle_q.numpy().astype(np.float64)
+    before, after = _repel_and_cap(model, stepped)
     to_t1 = [vertex_triangle_distance(y[[0]], y[[3]], y[[4]], y[[5]])[0] for y in (before, after)]
     to_t2 = [vertex_triangle_distance(y[[0]], y[[6]], y[[7]], y[[8]])[0] for y in (before, after)]
     assert floor < to_t1[0] < floor + 2e-6 and floor < to_t2[0] < floor + 6e-6  # both pairs at the floor's pads
-    assert self_contact.counts()["capped"][0] > 0  # the step was capped
+    assert model.self_contact.counts()["capped"][0] > 0  # the step was capped
     assert to_t1[1] >= to_t1[0], f"closed in by {to_t1[0] - to_t1[1]:.2e} m"
     assert to_t2[1] >= floor
 
@@ -282,6 +286,30 @@ def test_pinned_edge_outrunning_its_gap_does_not_cross(device):
     assert edge_edge_distance(*x1[[5, 9, 7, 8]]) > gap
 
 
+def _triangle(size: float, z: float) -> np.ndarray:
+    """An equilateral triangle's corners [m], circumradius ``size``, in the plane at height ``z``."""
+    angles = np.deg2rad([90.0, 210.0, 330.0])
+    return np.column_stack([size * np.cos(angles), size * np.sin(angles), np.full(3, z)])
+
+
+def _pinned_step_down(device, x: np.ndarray, tau: float, approach: float):
+    """Triangles of corners ``x`` (three rows each, the first triangle pinned), self-colliding at ``tau``: the pinned
+    one stepped ``approach`` [m] down, the free ones where they are, through the repulsion and the cap of one 1 ms
+    step. Returns the self-collision, the triangles and the positions before and after (float64); asserts that the
+    pinned triangle went where it was told."""
+    triangles = np.arange(len(x)).reshape(-1, 3)
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    builder.add_particles(x.astype(np.float32), mass=0.001, radius=0.001, pinned=[0, 1, 2])
+    builder.add_triangles(triangles)
+    builder.add_self_collision(thickness=tau)
+    model = builder.finalize(device)
+    stepped = x.astype(np.float32)
+    stepped[:3, 2] -= approach  # the pin's prescribed step
+    x0, x1 = _repel_and_cap(model, stepped)
+    np.testing.assert_array_equal(x1[:3], stepped[:3])
+    return model.self_contact, triangles, x0, x1
+
+
 def test_a_pin_squeezing_a_layer_on_the_floor_makes_the_layer_behind_give_way(device):
     """Three parallel triangles, τ = 4 mm (floor 2 mm): a pinned one (P) 50 µm above the floor over a small free one
     (M), which lies 5 µm above the floor over a large free one (L) with nothing behind it. The cap stage alone on a
@@ -296,27 +324,8 @@ def test_a_pin_squeezing_a_layer_on_the_floor_makes_the_layer_behind_give_way(de
     tau, approach = 0.004, 1e-4
     floor = 0.5 * tau
 
-    def triangle(size, z):
-        angles = np.deg2rad([90.0, 210.0, 330.0])
-        return np.column_stack([size * np.cos(angles), size * np.sin(angles), np.full(3, z)])
-
-    x = np.concatenate([triangle(0.04, floor + 5e-5), triangle(0.006, 0.0), triangle(0.04, -floor - 5e-6)])
-    triangles = np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8]])
-    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
-    builder.add_particles(x.astype(np.float32), mass=0.001, radius=0.001, pinned=[0, 1, 2])
-    builder.add_triangles(triangles)
-    builder.add_self_collision(thickness=tau)
-    model = builder.finalize(device)
-    stepped = x.astype(np.float32)
-    stepped[:3, 2] -= approach  # P's prescribed step
-    start, state = model.state(), model.state()
-    state.particle_q.assign(stepped)
-    repelled = wp.array(stepped, dtype=wp.vec3, device=model.device)
-    self_contact = model.self_contact
-    self_contact.repel(start, repelled)
-    self_contact.cap(start, repelled, state, 1e-3)
-    x0, x1 = start.particle_q.numpy().astype(np.float64), state.particle_q.numpy().astype(np.float64)
-    np.testing.assert_array_equal(x1[:3], stepped[:3])  # P went where it was told
+    x = np.concatenate([_triangle(0.04, floor + 5e-5), _triangle(0.006, 0.0), _triangle(0.04, -floor - 5e-6)])
+    self_contact, triangles, x0, x1 = _pinned_step_down(device, x, tau, approach)
     step = SurfaceAudit(triangles).step(x0, x1, thickness=tau)
     assert len(step.crossings) == 0 and len(step.intersections) == 0
     assert step.close == 0, f"{step.close} pairs closer than τ/2, the closest {step.min_distance:.4e} m"
@@ -340,27 +349,9 @@ def test_a_pin_squeezing_four_layers_on_the_floor_makes_them_all_give_way(device
     tau, approach = 0.004, 1e-4
     floor = 0.5 * tau
 
-    def triangle(size, z):
-        angles = np.deg2rad([90.0, 210.0, 330.0])
-        return np.column_stack([size * np.cos(angles), size * np.sin(angles), np.full(3, z)])
-
     heights = [floor + 5e-5, 0.0] + [-k * (floor + 5e-6) for k in (1, 2, 3)]
-    x = np.concatenate([triangle(0.006 if k % 2 else 0.04, z) for k, z in enumerate(heights)])
-    triangles = np.arange(len(x)).reshape(-1, 3)
-    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
-    builder.add_particles(x.astype(np.float32), mass=0.001, radius=0.001, pinned=[0, 1, 2])
-    builder.add_triangles(triangles)
-    builder.add_self_collision(thickness=tau)
-    model = builder.finalize(device)
-    stepped = x.astype(np.float32)
-    stepped[:3, 2] -= approach
-    start, state = model.state(), model.state()
-    state.particle_q.assign(stepped)
-    repelled = wp.array(stepped, dtype=wp.vec3, device=model.device)
-    self_contact = model.self_contact
-    self_contact.repel(start, repelled)
-    self_contact.cap(start, repelled, state, 1e-3)
-    x0, x1 = start.particle_q.numpy().astype(np.float64), state.particle_q.numpy().astype(np.float64)
+    x = np.concatenate([_triangle(0.006 if k % 2 else 0.04, z) for k, z in enumerate(heights)])
+    self_contact, triangles, x0, x1 = _pinned_step_down(device, x, tau, approach)
     step = SurfaceAudit(triangles).step(x0, x1, thickness=tau)
     assert len(step.crossings) == 0 and len(step.intersections) == 0
     assert step.close == 0, f"{step.close} pairs closer than τ/2, the closest {step.min_distance:.4e} m"
