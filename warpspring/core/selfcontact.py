@@ -223,6 +223,7 @@ class SelfContact:
         self.cap_desired = [wp.zeros(model.state_size, dtype=model.vec3, device=device) for _ in range(2)]
         self.counters = wp.zeros((worlds, COUNTER_COUNT), dtype=wp.int32, device=device)
         self._dropped_seen = 0  # pairs dropped when the buffers last grew (``grow``)
+        self._outrun_seen = np.zeros(worlds, dtype=np.int64)  # each world's outrun pair-steps at the last ``review``
         # The pair cache (kernels/selfcontact_cache.py: its anchors, its reach, 0 until built) and the cap's
         # swept list, for the steps that need it; the pass's flags (any rebuild, any fallback, then per world each
         # kind of kernels/selfcontact.py FLAG_*), zeroed at every step's start.
@@ -376,15 +377,26 @@ class SelfContact:
         """Zero the counters."""
         self.counters.zero_()
         self._dropped_seen = 0
+        self._outrun_seen[:] = 0
 
-    def grow(self) -> bool:
+    def review(self) -> np.ndarray:
+        """After a frame, from one read of the counters: :meth:`grow` where pairs were dropped, and each world's
+        pair-steps beyond the cap (:meth:`outrun`) since the last review or :meth:`reset` (int64 [world_count])."""
+        counters = self.counters.numpy().astype(np.int64)
+        self.grow(dropped=int(counters[:, COUNT_OVERFLOW].sum()))
+        outrun = counters[:, COUNT_OUTRUN]
+        new, self._outrun_seen = outrun - self._outrun_seen, outrun
+        return new
+
+    def grow(self, *, dropped: int | None = None) -> bool:
         """After a frame in which a world's pair buffer overflowed (pairs dropped since the last call: reads the
         device), give every world PAIR_GROWTH times the slots (emptied: the next step rebuilds its cache) and bump
         the model's revision, so that the stepper re-captures. The frame that dropped pairs kept the no-crossing
         guarantee (a world whose list overflowed runs the cap's swept broad phase) but not all of their repulsion;
         a tightly packed surface (a cloth coiled by a 1440° twist) otherwise drops them frame after frame. The
-        counters keep the pairs dropped (:meth:`overflow`). Returns whether the buffers grew."""
-        dropped = int(self.overflow().sum())
+        counters keep the pairs dropped (:meth:`overflow`); ``dropped``: their sum over the worlds, where the caller
+        has read it. Returns whether the buffers grew."""
+        dropped = int(self.overflow().sum()) if dropped is None else dropped
         if dropped <= self._dropped_seen:
             return False
         self._dropped_seen = dropped

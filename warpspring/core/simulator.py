@@ -99,7 +99,6 @@ class Simulator:
     ):
         self.model = model
         self._unsettled = False  # the last frame's record is posted and not yet read (``defer_verdict``)
-        self._outrun_seen = None  # the self-collision's outrun counters at the last frame (_stop_on_outrun)
         self.fps = checks.positive("fps", fps)
         control = control if control is not None else model.control()
         integrator = integrator if integrator is not None else SymplecticEuler(model)
@@ -223,9 +222,9 @@ class Simulator:
             if self.contacts is not None:
                 self._report_overflow()
         if self.model.self_contact is not None:
-            self.model.self_contact.grow()  # pairs dropped in this frame: room for them in the next
-            if self.guard is not None:
-                self._stop_on_outrun()
+            outran = self.model.self_contact.review()  # pairs dropped in this frame: room for them in the next
+            if self.guard is not None and outran.any():
+                self._stop_on_outrun(outran)
         self.frame += 1
         if self.frame_hooks:
             self.settle()
@@ -272,17 +271,11 @@ class Simulator:
         if self.guard is not None:
             self.guard.discard()
 
-    def _stop_on_outrun(self) -> None:
-        """Stop the run after a frame in which a pin closed in on free cloth that had no room to give way
-        (``SelfContact.outrun``: pair-steps beyond the self-collision cap, where the surface may have crossed
-        itself). The frames before it passed the cap's guarantee; this one is not handed on."""
+    def _stop_on_outrun(self, new: np.ndarray) -> None:
+        """Stop the run after a frame in which a pin closed in on free cloth that had no room to give way (``new``:
+        each world's pair-steps beyond the self-collision cap in it, ``SelfContact.review``), where the surface may
+        have crossed itself. The frames before it passed the cap's guarantee; this one is not handed on."""
         contact = self.model.self_contact
-        outran = contact.outrun()
-        if self._outrun_seen is None or outran.sum() < self._outrun_seen.sum():  # the first frame, or a reset
-            self._outrun_seen = np.zeros_like(outran)
-        new, self._outrun_seen = outran - self._outrun_seen, outran
-        if not new.any():
-            return
         self._forget_verdict()
         worlds = ", ".join(f"world {w}: {n}" for w, n in enumerate(new) if n) if len(new) > 1 else f"{new[0]}"
         raise SimulationError(
