@@ -333,6 +333,22 @@ RELEASE_ROUNDS = 200
 ROLE_FROZEN = 0  # stays where it is
 ROLE_MOVER = 1  # placed anew by the pass
 ROLE_PUSHER = 2  # could not be placed: stays, and the movers make room for where it wanted to go
+#: A pusher's role is ROLE_PUSHER + its depth: 0 for a vertex the first pass could not place, 1 + the deepest pusher
+#: across its kept pairs for a mover that could not be placed (its distance from the squeeze, in layers). The
+#: pushers' pass runs as this many sub-passes, the depths ≡ c (mod PUSHER_COLOURS) in the c-th, deepest colour first:
+#: two pushers across a kept pair of adjacent depths are never placed in one sub-pass, the one further back first.
+PUSHER_COLOURS = 2
+#: A mover's depth for its bounds (``cap_place_kernel``): beyond every pusher's.
+MOVER_DEPTH = 1 << 20
+
+
+@wp.func
+def in_pass(role: wp.int32, mover_role: int):
+    """Whether a vertex of ``role`` is placed by the (sub-)pass of ``mover_role``: ROLE_MOVER for the movers,
+    ROLE_PUSHER + c for the pushers whose depth is ≡ c (mod PUSHER_COLOURS)."""
+    if mover_role < ROLE_PUSHER:
+        return role == mover_role
+    return role >= ROLE_PUSHER and (role - ROLE_PUSHER) % PUSHER_COLOURS == mover_role - ROLE_PUSHER
 
 
 @functools.cache
@@ -346,8 +362,9 @@ def cap_place_kernel(scalar: type):
     longer than max(δ, ρ): alternating projections onto these sets (``RELEASE_ROUNDS``) from where it is, accepted where every
     bound then holds; else it stays, becomes a pusher (``role_out``) and ``desired_out`` keeps where it wants to go:
     the same projections onto its bounds against what cannot make room only (the other sides' kinematic vertices and
-    the pushers, as they want to go, those of this pass included), its box and its ball, for which the next pass's
-    movers make room. With
+    the pushers no deeper than it, as they want to go, those of this pass included), its box and its ball, for which
+    the next pass's movers and the deeper pushers make room. ``mover_role`` ROLE_PUSHER + c places the pushers of
+    colour c (``in_pass``); a mover that stays takes its depth (``PUSHER_COLOURS``). With
     ``clear``, the other vertices' ``role_out`` is set to ROLE_FROZEN (no memset inside the conditional node)."""
     vec3 = vec3_type(scalar)
     on_side_a, _, pair_shares = plane_funcs(scalar)
@@ -357,7 +374,7 @@ def cap_place_kernel(scalar: type):
     @wp.func
     def half_space(
         entry: int, pairs: Pairs, base: int, mass_row: int, relaxation: scalar, floor: scalar, vertex_pairs: int,
-        mover_role: int,
+        mover_role: int, depth: int,
         particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar], role: wp.array[wp.int32],
         desired: wp.array[vec3], particle_q_start: wp.array[vec3], particle_q_in: wp.array[vec3],
         particle_q_placed: wp.array[vec3],
@@ -395,13 +412,14 @@ def cap_place_kernel(scalar: type):
                 if not is_free(particle_flags[j], particle_inv_mass[mass_row, vertex[k]]):
                     held = True
                     other_held = wp.max(other_held, approach)
-                if role[j] == mover_role:
+                if in_pass(role[j], mover_role):
                     moving = True
-                if role[j] == ROLE_PUSHER:
+                if role[j] >= ROLE_PUSHER:
                     wanted = wp.max(approach, sign * wp.dot(n, desired[j] - start))
                     other = wp.max(other, wanted)
-                    held = True
-                    other_held = wp.max(other_held, wanted)
+                    if role[j] - ROLE_PUSHER <= depth:  # a deeper pusher, further back, makes room for this one
+                        held = True
+                        other_held = wp.max(other_held, wanted)
         free_room = (scalar(1.0) - relaxation) * wp.max(gap - floor, scalar(0.0))
         room = free_room - other
         if moving:
@@ -437,7 +455,7 @@ def cap_place_kernel(scalar: type):
         desired_out: wp.array[vec3],
     ):
         p = wp.tid()
-        if role[p] != mover_role:
+        if not in_pass(role[p], mover_role):
             if clear != 0:
                 role_out[p] = ROLE_FROZEN
             return
@@ -468,6 +486,11 @@ def cap_place_kernel(scalar: type):
         radius = wp.max(length, reach)  # the pairs not kept let it move that far
         low = wp.min(wp.min(step, vec3(scalar(0.0))), vec3(-reach, -reach, -reach))
         high = wp.max(wp.max(step, vec3(scalar(0.0))), vec3(reach, reach, reach))
+        # Its depth among the pushers (a mover's: beyond every pusher's, ``in_pass``'s note): the pushers no deeper
+        # bound where it wants to go, the deeper ones make room for it.
+        depth = int(MOVER_DEPTH)
+        if mover_role >= ROLE_PUSHER:
+            depth = int(role[p] - ROLE_PUSHER)
         current = particle_q_out[p] - start
         trial = current
         resolved = bool(True)
@@ -476,7 +499,7 @@ def cap_place_kernel(scalar: type):
                 e = list_pairs.entry[a]
                 if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
                     g, room, ok, _held_room, _held = half_space(e, list_pairs, base, mass_row, relaxation, floor,
-                                                                vertex_pairs, mover_role, particle_flags,
+                                                                vertex_pairs, mover_role, depth, particle_flags,
                                                                 particle_inv_mass, role, desired, particle_q_start,
                                                                 particle_q_in, particle_q_out)
                     resolved = resolved and ok
@@ -494,7 +517,7 @@ def cap_place_kernel(scalar: type):
             e = list_pairs.entry[a]
             if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
                 g, room, ok, _held_room, _held = half_space(e, list_pairs, base, mass_row, relaxation, floor,
-                                                            vertex_pairs, mover_role, particle_flags, particle_inv_mass,
+                                                            vertex_pairs, mover_role, depth, particle_flags, particle_inv_mass,
                                                             role, desired, particle_q_start, particle_q_in,
                                                             particle_q_out)
                 holds = holds and wp.dot(g, moved) <= room
@@ -513,7 +536,7 @@ def cap_place_kernel(scalar: type):
                     e = list_pairs.entry[a]
                     if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
                         _g, _room, _ok, held_room, held = half_space(e, list_pairs, base, mass_row, relaxation, floor,
-                                                                     vertex_pairs, mover_role, particle_flags,
+                                                                     vertex_pairs, mover_role, depth, particle_flags,
                                                                      particle_inv_mass, role, desired,
                                                                      particle_q_start, particle_q_in, particle_q_out)
                         over = wp.dot(_g, wanted) - (held_room - pad)
@@ -523,7 +546,22 @@ def cap_place_kernel(scalar: type):
                 size = wp.length(wanted)
                 if size > radius:
                     wanted = (radius / size) * wanted
-            role_out[p] = ROLE_PUSHER
+            # Its depth: a pusher keeps its own; a mover is one layer behind the deepest pusher across its pairs (0 where
+            # none: the first pass's jammed vertices).
+            if mover_role < ROLE_PUSHER:
+                depth = int(0)
+                for a in range(first, last):
+                    e = list_pairs.entry[a]
+                    if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
+                        slot = e // 4
+                        vt = list_pairs.key[slot] < wp.int64(vertex_pairs)
+                        vertex = list_pairs.vertex[slot]
+                        mine = on_side_a(vt, e - 4 * slot)
+                        for k in range(4):
+                            j = base + vertex[k]
+                            if on_side_a(vt, k) != mine and role[j] >= ROLE_PUSHER:
+                                depth = wp.max(depth, role[j] - ROLE_PUSHER + 1)
+            role_out[p] = ROLE_PUSHER + depth
             desired_out[p] = start + wanted
 
     return place
@@ -549,7 +587,7 @@ def cap_mark_kernel(scalar: type):
         role_in_out: wp.array[wp.int32],
     ):
         p = wp.tid()
-        if role_in_out[p] != ROLE_PUSHER:
+        if role_in_out[p] < ROLE_PUSHER:
             return
         world, i = world_and_index(p, particle_count)
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
@@ -575,7 +613,7 @@ def cap_mark_kernel(scalar: type):
                     side_a = (k == 0) or (k == 1 and not vt)
                     j = base + vertex[k]
                     if side_a != mine and particle_inv_mass[mass_row, vertex[k]] > scalar(0.0):
-                        if not is_kinematic(particle_flags[j]) and role_in_out[j] != ROLE_PUSHER:
+                        if not is_kinematic(particle_flags[j]) and role_in_out[j] < ROLE_PUSHER:
                             role_in_out[j] = ROLE_MOVER
 
     return mark
