@@ -370,8 +370,8 @@ def test_pushers_of_a_chain_are_placed_from_the_back(device):
     against where the one behind it went, not beside it in one pass (where each is held to its share of the other's
     room), and the wanted point of a pusher counts those in front of it only (the ones behind make room for it). The
     room is then made a layer a level, and ``CAP_LEVELS`` levels move the five. Before, a pusher's wanted point kept
-    the wanted points of the pushers behind it as they stood, and the chain made room a layer every two levels: the
-    front three layers stayed and the pin closed 3 pairs to 1.950 mm. The small 720° twist at duration 0.98 showed
+    the wanted points of the pushers behind it, and the chain made room a layer every two levels: the front three
+    layers stayed and the pin closed 3 pairs to 1.950 mm. The small 720° twist at duration 0.98 showed
     it: the pushers behind vertex 187 (100, 165, 78) were placed with it in every pass, 187 held to its share of
     23.8 µm against 78-100 where it needed 267 µm, and the pins closed pairs to 1.664 mm."""
     tau, approach = 0.004, 1e-4

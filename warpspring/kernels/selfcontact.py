@@ -81,8 +81,11 @@ stages keep the same pairs as a broad phase every step):
      others is a chain of pushers, and one placed against where the next stands would stay, drop its role and
      leave the next jammed, the two taking turns at every level. A pusher has a depth, its place in the chain: 0
      for one the first pass could not place, one more than the deepest pusher across its kept pairs for a mover
-     that could not be placed. Its wanted point counts the pushers no deeper than it (those in front, pressing on
-     it); the deeper ones, behind it, make room for it. The pushers' pass runs as ``PUSHER_COLOURS`` sub-passes
+     that could not be placed (the deepest, not the nearest: a coiled strip's layers also lie across pairs from the
+     front pusher). Its wanted point counts the pushers no deeper than it (those in front, pressing on it), as they
+     want to go, and the pushers no deeper that a sub-pass placed, where they went (they keep their depth); the
+     deeper ones, behind it, make room for it, and it asks no placed pusher in front of it to move
+     (``cap_mark_kernel``). The pushers' pass runs as ``PUSHER_COLOURS`` sub-passes
      (``selfcontact_cap``), the depths ≡ c (mod ``PUSHER_COLOURS``) in the c-th, the highest c first: two pushers
      across a kept pair of adjacent depths are never placed in one sub-pass (where each would be held to its share
      of the other's room, γ G', however far the one behind moved), and the one behind is placed first, the one in

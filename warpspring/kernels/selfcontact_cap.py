@@ -338,8 +338,20 @@ ROLE_PUSHER = 2  # could not be placed: stays, and the movers make room for wher
 #: pushers' pass runs as this many sub-passes, the depths ≡ c (mod PUSHER_COLOURS) in the c-th, deepest colour first:
 #: two pushers across a kept pair of adjacent depths are never placed in one sub-pass, the one further back first.
 PUSHER_COLOURS = 2
-#: A mover's depth for its bounds (``cap_place_kernel``): beyond every pusher's.
+#: A mover's depth for its bounds (``cap_place_kernel``): beyond every pusher's. A pusher placed in its sub-pass keeps
+#: its depth d as the role ROLE_FROZEN - 1 - d (it stays, as ROLE_FROZEN; ``depth_of``): the deeper pushers count it
+#: where it went for their wanted points and do not ask it to make room (``cap_mark_kernel``).
 MOVER_DEPTH = 1 << 20
+
+
+@wp.func
+def depth_of(role: wp.int32):
+    """The depth of a pusher or of a placed pusher of ``role``; MOVER_DEPTH for the others (movers and frozen)."""
+    if role >= ROLE_PUSHER:
+        return role - ROLE_PUSHER
+    if role < ROLE_FROZEN:
+        return ROLE_FROZEN - 1 - role
+    return MOVER_DEPTH
 
 
 @wp.func
@@ -420,6 +432,9 @@ def cap_place_kernel(scalar: type):
                     if role[j] - ROLE_PUSHER <= depth:  # a deeper pusher, further back, makes room for this one
                         held = True
                         other_held = wp.max(other_held, wanted)
+                elif role[j] < ROLE_FROZEN and depth_of(role[j]) <= depth:  # a placed pusher in front of this one
+                    held = True
+                    other_held = wp.max(other_held, approach)
         free_room = (scalar(1.0) - relaxation) * wp.max(gap - floor, scalar(0.0))
         room = free_room - other
         if moving:
@@ -457,7 +472,7 @@ def cap_place_kernel(scalar: type):
         p = wp.tid()
         if not in_pass(role[p], mover_role):
             if clear != 0:
-                role_out[p] = ROLE_FROZEN
+                role_out[p] = wp.min(role[p], ROLE_FROZEN)  # a placed pusher keeps its depth
             return
         world, i = world_and_index(p, particle_count)
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
@@ -525,6 +540,8 @@ def cap_place_kernel(scalar: type):
             particle_qd_out[p] = moved / dt
             particle_q_out[p] = x
             role_out[p] = ROLE_FROZEN
+            if mover_role >= ROLE_PUSHER:
+                role_out[p] = ROLE_FROZEN - 1 - depth
         else:
             # Where it wants to go: its bounds against what cannot make room only (kinematic vertices, earlier
             # pushers), its box and its ball. The free vertices across its other pairs are the next pass's movers
@@ -547,7 +564,8 @@ def cap_place_kernel(scalar: type):
                 if size > radius:
                     wanted = (radius / size) * wanted
             # Its depth: a pusher keeps its own; a mover is one layer behind the deepest pusher across its pairs (0 where
-            # none: the first pass's jammed vertices).
+            # none: the first pass's jammed vertices). The deepest, not the nearest: a coiled strip's layers lie across
+            # pairs from the front pusher too, and the nearest would give a chain's layers one depth and one sub-pass.
             if mover_role < ROLE_PUSHER:
                 depth = int(0)
                 for a in range(first, last):
@@ -570,7 +588,8 @@ def cap_place_kernel(scalar: type):
 @functools.cache
 def cap_mark_kernel(scalar: type):
     """Kernel marking, after a pass of ``cap_place_kernel``, the free surface vertices across a kept pair from a pusher
-    as movers of the next pass (they make room for it; identical writes, no order)."""
+    as movers of the next pass (they make room for it; identical writes, no order), but for the pushers and the
+    placed pushers no deeper than it (in front of it: it pressed on them, ``depth_of``)."""
 
     @flat_kernel(module="unique", enable_backward=False)
     def mark(
@@ -589,6 +608,7 @@ def cap_mark_kernel(scalar: type):
         p = wp.tid()
         if role_in_out[p] < ROLE_PUSHER:
             return
+        depth = role_in_out[p] - ROLE_PUSHER
         world, i = world_and_index(p, particle_count)
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         base = world * particle_count
@@ -613,8 +633,10 @@ def cap_mark_kernel(scalar: type):
                     side_a = (k == 0) or (k == 1 and not vt)
                     j = base + vertex[k]
                     if side_a != mine and particle_inv_mass[mass_row, vertex[k]] > scalar(0.0):
+                        # Not a pusher, nor a placed pusher in front of this one (which it pressed on).
                         if not is_kinematic(particle_flags[j]) and role_in_out[j] < ROLE_PUSHER:
-                            role_in_out[j] = ROLE_MOVER
+                            if role_in_out[j] >= ROLE_FROZEN or depth_of(role_in_out[j]) > depth:
+                                role_in_out[j] = ROLE_MOVER
 
     return mark
 
