@@ -532,7 +532,8 @@ def cap_place_kernel(scalar: type):
             e = list_pairs.entry[a]
             if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
                 g, room, ok, _held_room, _held = half_space(e, list_pairs, base, mass_row, relaxation, floor,
-                                                            vertex_pairs, mover_role, depth, particle_flags, particle_inv_mass,
+                                                            vertex_pairs, mover_role, depth, particle_flags,
+                                                            particle_inv_mass,
                                                             role, desired, particle_q_start, particle_q_in,
                                                             particle_q_out)
                 holds = holds and wp.dot(g, moved) <= room
@@ -563,9 +564,9 @@ def cap_place_kernel(scalar: type):
                 size = wp.length(wanted)
                 if size > radius:
                     wanted = (radius / size) * wanted
-            # Its depth: a pusher keeps its own; a mover is one layer behind the deepest pusher across its pairs (0 where
-            # none: the first pass's jammed vertices). The deepest, not the nearest: a coiled strip's layers lie across
-            # pairs from the front pusher too, and the nearest would give a chain's layers one depth and one sub-pass.
+            # Its depth: a pusher keeps its own; a mover is one layer behind the deepest pusher across its pairs (0
+            # where none: the first pass's jammed vertices). The deepest, not the nearest: a coiled strip's layers lie
+            # across pairs from the front pusher too, and the nearest gives a chain's layers one depth, one sub-pass.
             if mover_role < ROLE_PUSHER:
                 depth = int(0)
                 for a in range(first, last):
