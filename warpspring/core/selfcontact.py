@@ -549,7 +549,7 @@ class SelfContact:
                     **per_particle)
         # The later passes: the jammed vertices placed anew; then, CAP_LEVELS times, the vertices across a kept pair
         # from those still jammed make room, and the jammed are placed against where they went, in PUSHER_COLOURS
-        # sub-passes by depth, the deepest first: 2 + PUSHER_COLOURS launches a level.
+        # sub-passes by depth (colour: depth mod PUSHER_COLOURS, the highest first): 2 + PUSHER_COLOURS launches a level.
         role, desired = self.cap_role, self.cap_desired
         lists = [model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface, self.params,
                  self.cache, self.cache_bound, self.cap_pairs, self.flags]
@@ -569,7 +569,7 @@ class SelfContact:
                                 self.cache, self.cache_bound, self.cap_pairs, self.flags],
                         outputs=[role[1 - into]], **per_particle)
             place(ROLE_MOVER, 1, into)  # the vertices across a kept pair from a pusher make room
-            for colour in reversed(range(PUSHER_COLOURS)):  # the pushers, against where they went, deepest first
+            for colour in reversed(range(PUSHER_COLOURS)):  # the pushers, against where they went, by colour
                 place(ROLE_PUSHER + colour, 0, into)
             into = 1 - into
         flat_launch(cap_check_kernel(model.scalar),

@@ -335,8 +335,9 @@ ROLE_MOVER = 1  # placed anew by the pass
 ROLE_PUSHER = 2  # could not be placed: stays, and the movers make room for where it wanted to go
 #: A pusher's role is ROLE_PUSHER + its depth: 0 for a vertex the first pass could not place, 1 + the deepest pusher
 #: across its kept pairs for a mover that could not be placed (its distance from the squeeze, in layers). The
-#: pushers' pass runs as this many sub-passes, the depths ≡ c (mod PUSHER_COLOURS) in the c-th, deepest colour first:
-#: two pushers across a kept pair of adjacent depths are never placed in one sub-pass, the one further back first.
+#: pushers' pass runs as this many sub-passes, the depths ≡ c (mod PUSHER_COLOURS) in the c-th, the highest c first:
+#: two pushers across a kept pair of adjacent depths are never placed in one sub-pass (with two colours, the odd
+#: depths go first: depth 1 before the 0 in front of it, 3 before 2).
 PUSHER_COLOURS = 2
 #: A mover's depth for its bounds (``cap_place_kernel``): beyond every pusher's. A pusher placed in its sub-pass keeps
 #: its depth d as the role ROLE_FROZEN - 1 - d (it stays, as ROLE_FROZEN; ``depth_of``): the deeper pushers count it
