@@ -549,7 +549,8 @@ class SelfContact:
                     **per_particle)
         # The later passes: the jammed vertices placed anew; then, CAP_LEVELS times, the vertices across a kept pair
         # from those still jammed make room, and the jammed are placed against where they went, in PUSHER_COLOURS
-        # sub-passes by depth (colour: depth mod PUSHER_COLOURS, the highest first): 2 + PUSHER_COLOURS launches a level.
+        # sub-passes by depth (colour: depth mod PUSHER_COLOURS, the highest first): 2 + PUSHER_COLOURS launches a
+        # level.
         role, desired = self.cap_role, self.cap_desired
         lists = [model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface, self.params,
                  self.cache, self.cache_bound, self.cap_pairs, self.flags]

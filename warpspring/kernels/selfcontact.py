@@ -90,7 +90,8 @@ stages keep the same pairs as a broad phase every step):
      across a kept pair of adjacent depths are never placed in one sub-pass (where each would be held to its share
      of the other's room, γ G', however far the one behind moved). Where the one behind has the higher colour
      (depth 1 behind 0, with two colours) it is placed first and the one in front then against where it went;
-     else the one in front is placed first against where the one behind stands, and follows a level later. The jammed vertices are the first pass's movers; then ``CAP_LEVELS`` times
+     else the one in front is placed first against where the one behind stands, and follows a level later. The
+     jammed vertices are the first pass's movers; then ``CAP_LEVELS`` times
      (``core/selfcontact.py``) the free vertices across a kept pair from a pusher are movers (they make room,
      ``cap_mark_kernel``), then the pushers in their sub-passes: a level launches the mark, the movers' pass and
      ``PUSHER_COLOURS`` pushers' sub-passes. Room is made from the back, a layer a level.
