@@ -59,6 +59,7 @@ from ..kernels.selfcontact_cache import (
     watch_kernel,
 )
 from ..kernels.selfcontact_cap import (
+    PUSHER_COLOURS,
     ROLE_MOVER,
     ROLE_PUSHER,
     cap_check_kernel,
@@ -72,8 +73,8 @@ from ..kernels.selfcontact_cap import (
 DEFAULT_RELAXATION = 0.25
 #: Rounds of the cap's making room for its jammed vertices (``SelfContact._cap_stage``): a jammed vertex's
 #: neighbours across its kept pairs move away, then it is placed again, this many times. A pin squeezing n free
-#: layers, each on the floor of the next, needs about 2 n - 3 (four layers: 5; the small 720° twist's squeezes
-#: went through three and four).
+#: layers, each on the floor of the next, needs about n (a layer a level, the pushers placed from the back; five
+#: layers: 5; the small 720° twist's squeezes went through three and four).
 CAP_LEVELS = 5
 #: The thickness must stay below this share of the surface's smallest triangle altitude: at rest, a vertex and
 #: a triangle of its neighbourhood that do not share it are an altitude apart or more, and must not repel.
@@ -559,7 +560,9 @@ class SelfContact:
                     outputs=[state_out.particle_q, state_out.particle_qd, self.cap_role[0], self.counters],
                     **per_particle)
         # The later passes: the jammed vertices placed anew; then, CAP_LEVELS times, the vertices across a kept pair
-        # from those still jammed make room, and the jammed are placed against where they went.
+        # from those still jammed make room, and the jammed are placed against where they went, in PUSHER_COLOURS
+        # sub-passes by depth (colour: depth mod PUSHER_COLOURS, the highest first): 2 + PUSHER_COLOURS launches a
+        # level.
         role, desired = self.cap_role, self.cap_desired
         lists = [model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface, self.params,
                  self.cache, self.cache_bound, self.cap_pairs, self.flags]
@@ -579,7 +582,8 @@ class SelfContact:
                                 self.cache, self.cache_bound, self.cap_pairs, self.flags],
                         outputs=[role[1 - into]], **per_particle)
             place(ROLE_MOVER, 1, into)  # the vertices across a kept pair from a pusher make room
-            place(ROLE_PUSHER, 0, into)  # the pushers, against where they went
+            for colour in reversed(range(PUSHER_COLOURS)):  # the pushers, against where they went, by colour
+                place(ROLE_PUSHER + colour, 0, into)
             into = 1 - into
         flat_launch(cap_check_kernel(model.scalar),
                     inputs=[model.particle_count, model.world_enabled, self.surface, self.cache, self.cache_bound,

@@ -79,10 +79,22 @@ stages keep the same pairs as a broad phase every step):
      and a pin's squeeze was never passed on to the layers behind). A pusher counts as where it wants to go (the
      larger of that and where it is) also for the pushers placed in its own pass: a layer squeezed through several
      others is a chain of pushers, and one placed against where the next stands would stay, drop its role and
-     leave the next jammed, the two taking turns at every level. The jammed vertices are the first pass's movers;
-     then ``CAP_LEVELS`` times (``core/selfcontact.py``) the free vertices across a kept pair from a pusher are
-     movers (they make room, ``cap_mark_kernel``), and the pushers after them: room is made from the back, about
-     one layer every two levels.
+     leave the next jammed, the two taking turns at every level. A pusher has a depth, its place in the chain: 0
+     for one the first pass could not place, one more than the deepest pusher across its kept pairs for a mover
+     that could not be placed (the deepest, not the nearest: a coiled strip's layers also lie across pairs from the
+     front pusher). Its wanted point counts the pushers no deeper than it (those in front, pressing on it), as they
+     want to go, and the pushers no deeper that a sub-pass placed, where they went (they keep their depth); the
+     deeper ones, behind it, make room for it, and it asks no placed pusher in front of it to move
+     (``cap_mark_kernel``). The pushers' pass runs as ``PUSHER_COLOURS`` sub-passes
+     (``selfcontact_cap``), the depths ≡ c (mod ``PUSHER_COLOURS``) in the c-th, the highest c first: two pushers
+     across a kept pair of adjacent depths are never placed in one sub-pass (where each would be held to its share
+     of the other's room, γ G', however far the one behind moved). Where the one behind has the higher colour
+     (depth 1 behind 0, with two colours) it is placed first and the one in front then against where it went;
+     else the one in front is placed first against where the one behind stands, and follows a level later. The
+     jammed vertices are the first pass's movers; then ``CAP_LEVELS`` times
+     (``core/selfcontact.py``) the free vertices across a kept pair from a pusher are movers (they make room,
+     ``cap_mark_kernel``), then the pushers in their sub-passes: a level launches the mark, the movers' pass and
+     ``PUSHER_COLOURS`` pushers' sub-passes. Room is made from the back, a layer a level.
 
    Why no pair crosses within the step, and none that starts it at least h apart ends closer. Every point of a
    primitive is a fixed convex combination of its vertices, each moving on a straight line that stays in its
@@ -99,10 +111,12 @@ stages keep the same pairs as a broad phase every step):
    share, ≥ h + γ G' where one does (K_A + s_B ≤ (1 − γ) G'), and h + G' − K_A − K_B where both sides' pins do:
    above h whenever at most one side holds kinematic vertices, and when both do and close in by less than G'. A
    later pass keeps this: a mover placed against a side that stays approaches by at most (1 − γ) G' minus that
-   side's approach (the slab stays open by h + γ G'), and against a side that moves in the same pass, by at most
-   its share and that room, whether the other side's movers are placed (shares) or stay (room); a pusher's wanted
-   point enters a mover's or another pusher's room only as the larger of it and where the pusher is, so the bound
-   holds whatever that point is (it decides only how much room the others make). With no
+   side's approach (the slab stays open by h + γ G'), and against a side that moves in the same pass (for the
+   pushers: the same sub-pass), by at most its share and that room, whether the other side's movers are placed
+   (shares) or stay (room); a side placed in an earlier sub-pass stays during this one, and counts where it went.
+   A pusher's wanted point enters a mover's or another pusher's room only as the larger of it and where the pusher
+   is, so the bound holds whatever that point is (it, and which pushers it counts, decide only how much room the
+   others make). With no
    kinematic vertex this is the bound γ G' per vertex along n and the margin h + (1 − 2γ) G'. G takes two pads
    off D_n: one for the rounding of the dot products, one for the rounded end positions. A pair closer than h at
    the start (G' = 0: one a pin pressed there) keeps its slab: it does not close in. Such a pair's share is 0, which

@@ -333,6 +333,35 @@ RELEASE_ROUNDS = 200
 ROLE_FROZEN = 0  # stays where it is
 ROLE_MOVER = 1  # placed anew by the pass
 ROLE_PUSHER = 2  # could not be placed: stays, and the movers make room for where it wanted to go
+#: A pusher's role is ROLE_PUSHER + its depth: 0 for a vertex the first pass could not place, 1 + the deepest pusher
+#: across its kept pairs for a mover that could not be placed (its distance from the squeeze, in layers). The
+#: pushers' pass runs as this many sub-passes, the depths ≡ c (mod PUSHER_COLOURS) in the c-th, the highest c first:
+#: two pushers across a kept pair of adjacent depths are never placed in one sub-pass (with two colours, the odd
+#: depths go first: depth 1 before the 0 in front of it, 3 before 2).
+PUSHER_COLOURS = 2
+#: A mover's depth for its bounds (``cap_place_kernel``): beyond every pusher's. A pusher placed in its sub-pass keeps
+#: its depth d as the role ROLE_FROZEN - 1 - d (it stays, as ROLE_FROZEN; ``depth_of``): the deeper pushers count it
+#: where it went for their wanted points and do not ask it to make room (``cap_mark_kernel``).
+MOVER_DEPTH = 1 << 20
+
+
+@wp.func
+def depth_of(role: wp.int32):
+    """The depth of a pusher or of a placed pusher of ``role``; MOVER_DEPTH for the others (movers and frozen)."""
+    if role >= ROLE_PUSHER:
+        return role - ROLE_PUSHER
+    if role < ROLE_FROZEN:
+        return ROLE_FROZEN - 1 - role
+    return MOVER_DEPTH
+
+
+@wp.func
+def in_pass(role: wp.int32, mover_role: int):
+    """Whether a vertex of ``role`` is placed by the (sub-)pass of ``mover_role``: ROLE_MOVER for the movers,
+    ROLE_PUSHER + c for the pushers whose depth is ≡ c (mod PUSHER_COLOURS)."""
+    if mover_role < ROLE_PUSHER:
+        return role == mover_role
+    return role >= ROLE_PUSHER and (role - ROLE_PUSHER) % PUSHER_COLOURS == mover_role - ROLE_PUSHER
 
 
 @functools.cache
@@ -346,8 +375,9 @@ def cap_place_kernel(scalar: type):
     longer than max(δ, ρ): alternating projections onto these sets (``RELEASE_ROUNDS``) from where it is, accepted where every
     bound then holds; else it stays, becomes a pusher (``role_out``) and ``desired_out`` keeps where it wants to go:
     the same projections onto its bounds against what cannot make room only (the other sides' kinematic vertices and
-    the pushers, as they want to go, those of this pass included), its box and its ball, for which the next pass's
-    movers make room. With
+    the pushers no deeper than it, as they want to go, those of this pass included), its box and its ball, for which
+    the next pass's movers and the deeper pushers make room. ``mover_role`` ROLE_PUSHER + c places the pushers of
+    colour c (``in_pass``); a mover that stays takes its depth (``PUSHER_COLOURS``). With
     ``clear``, the other vertices' ``role_out`` is set to ROLE_FROZEN (no memset inside the conditional node)."""
     vec3 = vec3_type(scalar)
     on_side_a, _, pair_shares = plane_funcs(scalar)
@@ -357,7 +387,7 @@ def cap_place_kernel(scalar: type):
     @wp.func
     def half_space(
         entry: int, pairs: Pairs, base: int, mass_row: int, relaxation: scalar, floor: scalar, vertex_pairs: int,
-        mover_role: int,
+        mover_role: int, depth: int,
         particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar], role: wp.array[wp.int32],
         desired: wp.array[vec3], particle_q_start: wp.array[vec3], particle_q_in: wp.array[vec3],
         particle_q_placed: wp.array[vec3],
@@ -395,13 +425,17 @@ def cap_place_kernel(scalar: type):
                 if not is_free(particle_flags[j], particle_inv_mass[mass_row, vertex[k]]):
                     held = True
                     other_held = wp.max(other_held, approach)
-                if role[j] == mover_role:
+                if in_pass(role[j], mover_role):
                     moving = True
-                if role[j] == ROLE_PUSHER:
+                if role[j] >= ROLE_PUSHER:
                     wanted = wp.max(approach, sign * wp.dot(n, desired[j] - start))
                     other = wp.max(other, wanted)
+                    if role[j] - ROLE_PUSHER <= depth:  # a deeper pusher, further back, makes room for this one
+                        held = True
+                        other_held = wp.max(other_held, wanted)
+                elif role[j] < ROLE_FROZEN and depth_of(role[j]) <= depth:  # a placed pusher in front of this one
                     held = True
-                    other_held = wp.max(other_held, wanted)
+                    other_held = wp.max(other_held, approach)
         free_room = (scalar(1.0) - relaxation) * wp.max(gap - floor, scalar(0.0))
         room = free_room - other
         if moving:
@@ -437,9 +471,9 @@ def cap_place_kernel(scalar: type):
         desired_out: wp.array[vec3],
     ):
         p = wp.tid()
-        if role[p] != mover_role:
+        if not in_pass(role[p], mover_role):
             if clear != 0:
-                role_out[p] = ROLE_FROZEN
+                role_out[p] = wp.min(role[p], ROLE_FROZEN)  # a placed pusher keeps its depth
             return
         world, i = world_and_index(p, particle_count)
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
@@ -468,6 +502,11 @@ def cap_place_kernel(scalar: type):
         radius = wp.max(length, reach)  # the pairs not kept let it move that far
         low = wp.min(wp.min(step, vec3(scalar(0.0))), vec3(-reach, -reach, -reach))
         high = wp.max(wp.max(step, vec3(scalar(0.0))), vec3(reach, reach, reach))
+        # Its depth among the pushers (a mover's: beyond every pusher's, ``in_pass``'s note): the pushers no deeper
+        # bound where it wants to go, the deeper ones make room for it.
+        depth = int(MOVER_DEPTH)
+        if mover_role >= ROLE_PUSHER:
+            depth = int(role[p] - ROLE_PUSHER)
         current = particle_q_out[p] - start
         trial = current
         resolved = bool(True)
@@ -476,7 +515,7 @@ def cap_place_kernel(scalar: type):
                 e = list_pairs.entry[a]
                 if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
                     g, room, ok, _held_room, _held = half_space(e, list_pairs, base, mass_row, relaxation, floor,
-                                                                vertex_pairs, mover_role, particle_flags,
+                                                                vertex_pairs, mover_role, depth, particle_flags,
                                                                 particle_inv_mass, role, desired, particle_q_start,
                                                                 particle_q_in, particle_q_out)
                     resolved = resolved and ok
@@ -494,7 +533,8 @@ def cap_place_kernel(scalar: type):
             e = list_pairs.entry[a]
             if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
                 g, room, ok, _held_room, _held = half_space(e, list_pairs, base, mass_row, relaxation, floor,
-                                                            vertex_pairs, mover_role, particle_flags, particle_inv_mass,
+                                                            vertex_pairs, mover_role, depth, particle_flags,
+                                                            particle_inv_mass,
                                                             role, desired, particle_q_start, particle_q_in,
                                                             particle_q_out)
                 holds = holds and wp.dot(g, moved) <= room
@@ -502,6 +542,8 @@ def cap_place_kernel(scalar: type):
             particle_qd_out[p] = moved / dt
             particle_q_out[p] = x
             role_out[p] = ROLE_FROZEN
+            if mover_role >= ROLE_PUSHER:
+                role_out[p] = ROLE_FROZEN - 1 - depth
         else:
             # Where it wants to go: its bounds against what cannot make room only (kinematic vertices, earlier
             # pushers), its box and its ball. The free vertices across its other pairs are the next pass's movers
@@ -513,7 +555,7 @@ def cap_place_kernel(scalar: type):
                     e = list_pairs.entry[a]
                     if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
                         _g, _room, _ok, held_room, held = half_space(e, list_pairs, base, mass_row, relaxation, floor,
-                                                                     vertex_pairs, mover_role, particle_flags,
+                                                                     vertex_pairs, mover_role, depth, particle_flags,
                                                                      particle_inv_mass, role, desired,
                                                                      particle_q_start, particle_q_in, particle_q_out)
                         over = wp.dot(_g, wanted) - (held_room - pad)
@@ -523,7 +565,23 @@ def cap_place_kernel(scalar: type):
                 size = wp.length(wanted)
                 if size > radius:
                     wanted = (radius / size) * wanted
-            role_out[p] = ROLE_PUSHER
+            # Its depth: a pusher keeps its own; a mover is one layer behind the deepest pusher across its pairs (0
+            # where none: the first pass's jammed vertices). The deepest, not the nearest: a coiled strip's layers lie
+            # across pairs from the front pusher too, and the nearest gives a chain's layers one depth, one sub-pass.
+            if mover_role < ROLE_PUSHER:
+                depth = int(0)
+                for a in range(first, last):
+                    e = list_pairs.entry[a]
+                    if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
+                        slot = e // 4
+                        vt = list_pairs.key[slot] < wp.int64(vertex_pairs)
+                        vertex = list_pairs.vertex[slot]
+                        mine = on_side_a(vt, e - 4 * slot)
+                        for k in range(4):
+                            j = base + vertex[k]
+                            if on_side_a(vt, k) != mine and role[j] >= ROLE_PUSHER:
+                                depth = wp.max(depth, role[j] - ROLE_PUSHER + 1)
+            role_out[p] = ROLE_PUSHER + depth
             desired_out[p] = start + wanted
 
     return place
@@ -532,7 +590,8 @@ def cap_place_kernel(scalar: type):
 @functools.cache
 def cap_mark_kernel(scalar: type):
     """Kernel marking, after a pass of ``cap_place_kernel``, the free surface vertices across a kept pair from a pusher
-    as movers of the next pass (they make room for it; identical writes, no order)."""
+    as movers of the next pass (they make room for it; identical writes, no order), but for the pushers and the
+    placed pushers no deeper than it (in front of it: it pressed on them, ``depth_of``)."""
 
     @flat_kernel(module="unique", enable_backward=False)
     def mark(
@@ -549,8 +608,9 @@ def cap_mark_kernel(scalar: type):
         role_in_out: wp.array[wp.int32],
     ):
         p = wp.tid()
-        if role_in_out[p] != ROLE_PUSHER:
+        if role_in_out[p] < ROLE_PUSHER:
             return
+        depth = role_in_out[p] - ROLE_PUSHER
         world, i = world_and_index(p, particle_count)
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         base = world * particle_count
@@ -575,8 +635,10 @@ def cap_mark_kernel(scalar: type):
                     side_a = (k == 0) or (k == 1 and not vt)
                     j = base + vertex[k]
                     if side_a != mine and particle_inv_mass[mass_row, vertex[k]] > scalar(0.0):
-                        if not is_kinematic(particle_flags[j]) and role_in_out[j] != ROLE_PUSHER:
-                            role_in_out[j] = ROLE_MOVER
+                        # Not a pusher, nor a placed pusher in front of this one (which it pressed on).
+                        if not is_kinematic(particle_flags[j]) and role_in_out[j] < ROLE_PUSHER:
+                            if role_in_out[j] >= ROLE_FROZEN or depth_of(role_in_out[j]) > depth:
+                                role_in_out[j] = ROLE_MOVER
 
     return mark
 
