@@ -6,6 +6,8 @@ conservative-advancement crossing audit: no pair touches along the straight path
 scene also checks that contact happened, so that a pass does not come from layers that never met.
 """
 
+import math
+
 import numpy as np
 import pytest
 import warp as wp
@@ -682,6 +684,44 @@ def test_watched_pairs_rebuild_the_cache(device):
     np.testing.assert_array_equal(finals[0], finals[1])
     assert counts[0]["pairs"].sum() > 0 and counts[0]["pairs"].sum() == counts[1]["pairs"].sum()
     assert 1 < counts[0]["rebuilds"][0] < 8
+
+
+def _two_sheets(device, gap: float = 0.003):
+    """Two 8 × 8 sheets ``gap`` apart without gravity, τ = 4 mm."""
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    spring = ws.SpringMaterial(ke=100.0, kd=0.01)
+    for z in (0.0, gap):
+        builder.add_cloth_grid(nx=8, ny=8, spacing=0.01, mass=1.0, origin=(0.0, 0.0, z), structural=spring,
+                               shear=spring, name=f"sheet{z}")
+    builder.add_self_collision(thickness=0.004)
+    return builder.finalize(device)
+
+
+def test_pair_buffers_grow_before_they_fill(device):
+    """Two sheets at rest 6 mm apart (τ = 4 mm: every vertex within the cache's reach of a dozen of the other sheet's
+    triangles, none pushed), the buffers sized so that the cache holds ~85 % of its slots: the frame drops no pair,
+    and the buffers grow by PAIR_GROWTH after it (fuller than GROW_ABOVE), so that a tightening surface gets room
+    before it drops pairs and their repulsion; half full after that, they do not grow again."""
+    from warpspring.core.selfcontact import GROW_ABOVE, PAIR_GROWTH
+    from warpspring.kernels.selfcontact import CACHE_SLOTS
+
+    probe = _two_sheets(device, 0.006)
+    probe.self_contact._allocate(20_000)
+    ws.Simulator(probe, fps=60, substeps=4).step_frame()
+    cached = int(probe.self_contact.listed()["cache"][0])
+    assert 0 < cached < CACHE_SLOTS * 20_000
+    slots = math.ceil(cached / (0.85 * CACHE_SLOTS))
+    assert cached / (CACHE_SLOTS * slots) > GROW_ABOVE
+    model = _two_sheets(device, 0.006)
+    contact = model.self_contact
+    contact._allocate(slots)
+    sim = ws.Simulator(model, fps=60, substeps=4)
+    sim.step_frame()
+    assert contact.overflow().sum() == 0  # nothing dropped ...
+    assert contact.capacity == math.ceil(PAIR_GROWTH * slots)  # ... and room made before it would be
+    sim.step_frame()
+    assert int(contact.listed()["cache"][0]) == cached  # the same pairs, rebuilt into the grown cache
+    assert contact.capacity == math.ceil(PAIR_GROWTH * slots)  # under half full now: no further growth
 
 
 def test_pair_buffers_grow_after_a_frame_that_dropped_pairs(device, monkeypatch):

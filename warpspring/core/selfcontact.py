@@ -21,11 +21,13 @@ from ..kernels.selfcontact import (
     CACHE_SLOTS,
     COUNT_CAPPED,
     COUNT_FALLBACKS,
+    COUNT_FILL,
     COUNT_OUTRUN,
     COUNT_OVERFLOW,
     COUNT_PAIRS,
     COUNT_REBUILDS,
     COUNTER_COUNT,
+    FILL_UNITS,
     FLAG_KINDS,
     FLAG_WORK,
     PAIRS_PER_VERTEX,
@@ -152,8 +154,14 @@ def smallest_altitude(positions: np.ndarray, triangles: np.ndarray) -> float:
     return float(np.min(doubled_area / np.maximum(longest, 1e-300))) if len(x) else np.inf
 
 
-#: Factor by which the pair buffers grow after a frame that dropped pairs (``SelfContact.grow``).
+#: Factor by which the pair buffers grow after a frame that dropped pairs or filled one past GROW_ABOVE
+#: (``SelfContact.grow``).
 PAIR_GROWTH = 2.0
+#: A frame whose fullest pair list used more than this share of its slots grows the buffers before the next: a
+#: tightening coil doubles its pairs within a few frames, and pairs dropped in a frame lose their repulsion, which
+#: leaves the cap to hold them (a 1440° twist under RK4 on CUDA dropped 2,276 pairs and then closed pairs to 1.75 mm
+#: against pins, where the same run on the CPU dropped its pairs in other frames and stayed clean).
+GROW_ABOVE = 0.75
 
 class SelfContact:
     """Self-collision of a model's triangle surface: the BVHs, the pair buffers, the live values and the counters.
@@ -168,9 +176,10 @@ class SelfContact:
             overflowed drops the pairs beyond (counted) and runs the cap's swept broad phase.
         params: live values per world, shape [world_count, 3] in the model's precision: thickness τ [m],
             friction μ [-], relaxation γ [-] (``kernels/selfcontact.py`` PARAM_*); write through :meth:`set`.
-        counters: int32, shape [world_count, 5]: pairs pushed apart, vertices capped, pairs dropped on
-            overflow, steps that rebuilt the pair cache and steps whose cap ran the swept broad phase, summed
-            over the steps since the model was made or :meth:`reset`.
+        counters: int32, shape [world_count, COUNTER_COUNT] (``kernels/selfcontact.py`` COUNT_*): pairs pushed apart,
+            vertices capped, pairs dropped on overflow, steps that rebuilt the pair cache, steps whose cap ran the
+            swept broad phase and pair-steps beyond the cap, summed over the steps since the model was made or
+            :meth:`reset`; and the fullest list's fill past FILL_WATCHED (a maximum, in 1/FILL_UNITS of its slots).
     """
 
     def __init__(self, model, triangles: np.ndarray, *, thickness: float, friction: float, relaxation: float):
@@ -381,27 +390,36 @@ class SelfContact:
         self._outrun_seen[:] = 0
 
     def review(self) -> np.ndarray:
-        """After a frame, from one read of the counters: :meth:`grow` where pairs were dropped, and each world's
-        pair-steps beyond the cap (:meth:`outrun`) since the last review or :meth:`reset` (int64 [world_count])."""
+        """After a frame, from one read of the counters and the lists' counts: :meth:`grow` where pairs were dropped
+        or a list filled past GROW_ABOVE of its slots (during the frame, or as it stands), and each world's pair-steps beyond the cap (:meth:`outrun`) since the last review or
+        :meth:`reset` (int64 [world_count])."""
         counters = self.counters.numpy().astype(np.int64)
-        self.grow(dropped=int(counters[:, COUNT_OVERFLOW].sum()))
+        listed = self.listed()  # as the lists stand (a list built before a capture's replay has no count of its fill)
+        fill = max(float(counters[:, COUNT_FILL].max(initial=0)) / FILL_UNITS,
+                   float(listed["cache"].max(initial=0)) / self.cache_capacity,
+                   float(listed["cap"].max(initial=0)) / self.capacity)
+        self.grow(dropped=int(counters[:, COUNT_OVERFLOW].sum()), fill=fill)
         outrun = counters[:, COUNT_OUTRUN]
         new, self._outrun_seen = outrun - self._outrun_seen, outrun
         return new
 
-    def grow(self, *, dropped: int | None = None) -> bool:
+    def grow(self, *, dropped: int | None = None, fill: float = 0.0) -> bool:
         """After a frame in which a world's pair buffer overflowed (pairs dropped since the last call: reads the
-        device), give every world PAIR_GROWTH times the slots (emptied: the next step rebuilds its cache) and bump
-        the model's revision, so that the stepper re-captures. The frame that dropped pairs kept the no-crossing
+        device) or, ``fill``, the fullest list used more than GROW_ABOVE of its slots, give every world PAIR_GROWTH
+        times the slots (emptied: the next step rebuilds its cache; the fill's record cleared) and bump the model's
+        revision, so that the stepper re-captures. The frame that dropped pairs kept the no-crossing
         guarantee (a world whose list overflowed runs the cap's swept broad phase) but not all of their repulsion;
         a tightly packed surface (a cloth coiled by a 1440° twist) otherwise drops them frame after frame. The
         counters keep the pairs dropped (:meth:`overflow`); ``dropped``: their sum over the worlds, where the caller
         has read it. Returns whether the buffers grew."""
         dropped = int(self.overflow().sum()) if dropped is None else dropped
-        if dropped <= self._dropped_seen:
+        if dropped <= self._dropped_seen and fill <= GROW_ABOVE:
             return False
-        self._dropped_seen = dropped
+        self._dropped_seen = max(dropped, self._dropped_seen)
         self._allocate(math.ceil(PAIR_GROWTH * self.capacity))
+        counters = self.counters.numpy()
+        counters[:, COUNT_FILL] = 0  # the new lists' fill starts afresh
+        self.counters.assign(counters)
         self.model.revision += 1
         return True
 

@@ -181,7 +181,13 @@ COUNT_OVERFLOW = 2  # pairs dropped because the world's pair buffer was full
 COUNT_REBUILDS = 3  # steps that rebuilt the world's pair cache (module selfcontact_cache)
 COUNT_FALLBACKS = 4  # steps whose cap ran the swept broad phase instead of the cache
 COUNT_OUTRUN = 5  # kept pairs the cap could not hold apart (a pin closing in on a free side that cannot give way)
-COUNTER_COUNT = 6
+COUNT_FILL = 6  # the fullest list's share of its slots past FILL_WATCHED, in FILL_UNITS (a maximum, not a sum)
+COUNTER_COUNT = 7
+
+#: Fill of a pair list is recorded (``COUNT_FILL``) once it passes this share of its slots, in units of its
+#: 1/FILL_UNITS: only the upper part of a list pays the atomic maximum.
+FILL_WATCHED = 0.5
+FILL_UNITS = 1000
 
 #: The pair cache (module ``selfcontact_cache``): it lists the pairs closer than this many thicknesses at its
 #: anchor positions, and is rebuilt when a vertex has drifted half the difference to REPULSION_REACH from them.
@@ -433,6 +439,9 @@ def _pair_funcs(scalar: type):
         """Store a pair in its world's buffer (or count it as overflow) and count its vertices' entries."""
         capacity = pairs.key.shape[0] // pairs.count.shape[0]
         slot = wp.atomic_add(pairs.count, world, 1)
+        fill = float(slot + 1) / float(capacity)
+        if fill > wp.static(FILL_WATCHED):  # the list's fill, where it matters (float: no int32 overflow)
+            wp.atomic_max(counters, world, COUNT_FILL, int(wp.min(fill, 1.0) * float(FILL_UNITS)))
         if slot >= capacity:
             wp.atomic_add(counters, world, COUNT_OVERFLOW, 1)
         else:
