@@ -61,11 +61,15 @@ from ..kernels.selfcontact_cache import (
     watch_kernel,
 )
 from ..kernels.selfcontact_cap import (
+    LEVELS_PER_ROUND,
+    LOOP_CONDITION,
+    LOOP_SIZE,
     PUSHER_COLOURS,
     ROLE_MOVER,
     ROLE_PUSHER,
     cap_check_kernel,
     cap_gather_kernel,
+    cap_loop_gate_kernel,
     cap_mark_kernel,
     cap_place_kernel,
 )
@@ -73,11 +77,14 @@ from ..kernels.selfcontact_cap import (
 #: The default relaxation γ of the displacement cap: a vertex moves at most a quarter of its distance to the
 #: nearest primitive, so a pair beyond the repulsion's reach (2 τ) ends a step at least τ apart.
 DEFAULT_RELAXATION = 0.25
-#: Rounds of the cap's making room for its jammed vertices (``SelfContact._cap_stage``): a jammed vertex's
-#: neighbours across its kept pairs move away, then it is placed again, this many times. A pin squeezing n free
-#: layers, each on the floor of the next, needs about n (a layer a level, the pushers placed from the back; five
-#: layers: 5; the small 720° twist's squeezes went through three and four).
-CAP_LEVELS = 5
+#: The most levels of the cap's making room for its jammed vertices (``SelfContact._cap_stage``): a jammed vertex's
+#: neighbours across its kept pairs move away, then it is placed again, level after level while a vertex stays
+#: jammed (a loop on the device, ``wp.capture_while``: a step with none runs no level). A pin squeezing n free layers,
+#: each on the floor of the next, needs about n (a layer a level, the pushers placed from the back; five layers: 5;
+#: the small 720° twist's squeezes went through three to six). Where a CUDA driver lacks conditional graph nodes, a
+#: captured step runs CAP_LEVELS_UNCONDITIONAL levels.
+CAP_LEVELS = 16
+CAP_LEVELS_UNCONDITIONAL = 6
 #: The thickness must stay below this share of the surface's smallest triangle altitude: at rest, a vertex and
 #: a triangle of its neighbourhood that do not share it are an altitude apart or more, and must not repel.
 MAX_THICKNESS_SHARE = 0.7
@@ -231,6 +238,7 @@ class SelfContact:
         # pusher wanted to go, twice (a pass reads one and writes the other).
         self.cap_role = [wp.zeros(model.state_size, dtype=wp.int32, device=device) for _ in range(2)]
         self.cap_desired = [wp.zeros(model.state_size, dtype=model.vec3, device=device) for _ in range(2)]
+        self.cap_loop = wp.zeros(LOOP_SIZE, dtype=wp.int32, device=device)  # the levels' loop (``cap_loop_gate_kernel``)
         self.counters = wp.zeros((worlds, COUNTER_COUNT), dtype=wp.int32, device=device)
         self._dropped_seen = 0  # pairs dropped when the buffers last grew (``grow``)
         self._outrun_seen = np.zeros(worlds, dtype=np.int64)  # each world's outrun pair-steps at the last ``review``
@@ -488,6 +496,17 @@ class SelfContact:
         flat_launch(fill_kernel(), inputs=[model.particle_count, active, pairs], dim=model.particle_dim,
                     block_dim=model.block_dim, device=model.device)
 
+    def _loop(self, condition: wp.array, body, *, rounds: int) -> None:
+        """``body`` while ``condition`` holds (a conditional graph node where captured, ``wp.capture_while``); where a
+        CUDA capture lacks conditional nodes, ``rounds`` times unconditionally (the body must then be harmless when
+        the condition is false)."""
+        device = self.model.device
+        if device.is_cuda and device.is_capturing and not getattr(wp, "is_conditional_graph_supported", bool)():
+            for _ in range(rounds):
+                body()
+        else:
+            wp.capture_while(condition, body)
+
     def _branch(self, condition: wp.array, body, **kwargs) -> None:
         """``body(**kwargs)`` when ``condition[0]`` is set: a conditional node in a CUDA capture, a host test
         otherwise. Where the device has no conditional nodes it runs unconditionally inside a capture (its
@@ -577,10 +596,11 @@ class SelfContact:
                             self.pair_distance, self.flags, start, particle_q, model.scalar(dt)],
                     outputs=[state_out.particle_q, state_out.particle_qd, self.cap_role[0], self.counters],
                     **per_particle)
-        # The later passes: the jammed vertices placed anew; then, CAP_LEVELS times, the vertices across a kept pair
-        # from those still jammed make room, and the jammed are placed against where they went, in PUSHER_COLOURS
-        # sub-passes by depth (colour: depth mod PUSHER_COLOURS, the highest first): 2 + PUSHER_COLOURS launches a
-        # level.
+        # The later passes: the jammed vertices placed anew; then, level after level while one stays jammed (at most
+        # CAP_LEVELS), the vertices across a kept pair from those still jammed make room, and the jammed are placed
+        # against where they went, in PUSHER_COLOURS sub-passes by depth (colour: depth mod PUSHER_COLOURS, the
+        # highest first): 2 + PUSHER_COLOURS launches a level, LEVELS_PER_ROUND levels a round of the loop, and a
+        # one-thread gate after each round that reads whether the last level left a pusher.
         role, desired = self.cap_role, self.cap_desired
         lists = [model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface, self.params,
                  self.cache, self.cache_bound, self.cap_pairs, self.flags]
@@ -589,20 +609,29 @@ class SelfContact:
         def place(mover_role, clear, into):
             flat_launch(cap_place_kernel(model.scalar),
                         inputs=lists + [mover_role, clear, role[1 - into], desired[1 - into]] + tail,
-                        outputs=[state_out.particle_q, state_out.particle_qd, role[into], desired[into]],
+                        outputs=[state_out.particle_q, state_out.particle_qd, role[into], desired[into], self.cap_loop,
+                                 into],
                         **per_particle)
 
+        def gate(start_loop: int):
+            flat_launch(cap_loop_gate_kernel(), inputs=[CAP_LEVELS, start_loop], outputs=[self.cap_loop], dim=1,
+                        device=model.device)
+
+        def level_round():
+            for into in range(LEVELS_PER_ROUND):
+                flat_launch(cap_mark_kernel(model.scalar),
+                            inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface,
+                                    self.cache, self.cache_bound, self.cap_pairs, self.flags],
+                            outputs=[role[1 - into]], **per_particle)
+                place(ROLE_MOVER, 1, into)  # the vertices across a kept pair from a pusher make room
+                for colour in reversed(range(PUSHER_COLOURS)):  # the pushers, against where they went, by colour
+                    place(ROLE_PUSHER + colour, 0, into)
+            gate(0)
+
         place(ROLE_MOVER, 1, 1)  # the jammed vertices (role[0], from the gather)
-        into = 0
-        for _ in range(CAP_LEVELS):
-            flat_launch(cap_mark_kernel(model.scalar),
-                        inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, self.surface,
-                                self.cache, self.cache_bound, self.cap_pairs, self.flags],
-                        outputs=[role[1 - into]], **per_particle)
-            place(ROLE_MOVER, 1, into)  # the vertices across a kept pair from a pusher make room
-            for colour in reversed(range(PUSHER_COLOURS)):  # the pushers, against where they went, by colour
-                place(ROLE_PUSHER + colour, 0, into)
-            into = 1 - into
+        gate(1)
+        self._loop(self.cap_loop[LOOP_CONDITION:LOOP_CONDITION + 1], level_round,
+                   rounds=-(-CAP_LEVELS_UNCONDITIONAL // LEVELS_PER_ROUND))
         flat_launch(cap_check_kernel(model.scalar),
                     inputs=[model.particle_count, model.world_enabled, self.surface, self.cache, self.cache_bound,
                             self.cap_pairs, self.flags, start, state_out.particle_q],

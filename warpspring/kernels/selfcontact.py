@@ -91,10 +91,12 @@ stages keep the same pairs as a broad phase every step):
      of the other's room, γ G', however far the one behind moved). Where the one behind has the higher colour
      (depth 1 behind 0, with two colours) it is placed first and the one in front then against where it went;
      else the one in front is placed first against where the one behind stands, and follows a level later. The
-     jammed vertices are the first pass's movers; then ``CAP_LEVELS`` times
-     (``core/selfcontact.py``) the free vertices across a kept pair from a pusher are movers (they make room,
-     ``cap_mark_kernel``), then the pushers in their sub-passes: a level launches the mark, the movers' pass and
-     ``PUSHER_COLOURS`` pushers' sub-passes. Room is made from the back, a layer a level.
+     jammed vertices are the first pass's movers; then, level after level while a vertex stays a pusher (at most
+     ``CAP_LEVELS``, ``core/selfcontact.py``), the free vertices across a kept pair from a pusher are movers (they
+     make room, ``cap_mark_kernel``), then the pushers in their sub-passes: a level launches the mark, the movers'
+     pass and ``PUSHER_COLOURS`` pushers' sub-passes. Room is made from the back, a layer a level. The levels are
+     a loop on the device (``wp.capture_while``, ``LEVELS_PER_ROUND`` levels a round, ``cap_loop_gate_kernel``
+     deciding after each): a step with no jammed vertex runs none.
 
    Why no pair crosses within the step, and none that starts it at least h apart ends closer. Every point of a
    primitive is a fixed convex combination of its vertices, each moving on a straight line that stays in its
