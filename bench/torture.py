@@ -92,6 +92,9 @@ def main(argv=None) -> int:
                         help="each scene's time scale as a share of the size's (0.4: the suite's twist, faster)")
     parser.add_argument("--substeps", type=int, default=None,
                         help="substeps per frame (default: each scene's, torture.scene_substeps)")
+    parser.add_argument("--perturb", type=int, default=None, metavar="SEED",
+                        help="start from positions moved by up to 1 µm (torture.PERTURBATION), seeded: another valid run "
+                             "of a chaotic scene, as CUDA's unordered atomics give")
     parser.add_argument("--jobs", type=int, default=1,
                         help="cases run at once, each in its own process (the host's audit is most of a case's time)")
     parser.add_argument("--timing", action="store_true",
@@ -137,6 +140,8 @@ def main(argv=None) -> int:
 
     cases = [(scene, integrator) for scene in args.scenes for integrator in args.integrators]
     options = dict(size=args.size, device=args.device, frames=frames, duration=args.duration, substeps=args.substeps)
+    if args.perturb is not None:
+        options["perturb"] = args.perturb
     if args.jobs > 1:
         done = {}
         with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:

@@ -132,10 +132,16 @@ SCENES = {"twist720": twist(2.0), "twist1440": twist(4.0), "ring": ring, "stack"
           "turntable": turntable}
 
 
+#: Amplitude [m] of a perturbed start (``build_case(perturb=seed)``): each coordinate of each free particle moved by
+#: up to this much, uniformly. A coiling strip is chaotic: such a start is another equally valid run, as a run on
+#: CUDA (whose atomics sum in no fixed order) is.
+PERTURBATION = 1.0e-6
+
+
 def build_case(scene: str, *, size: str = "full", device=None, spacing: float | None = None,
-               duration: float | None = None, thickness: float = THICKNESS):
+               duration: float | None = None, thickness: float = THICKNESS, perturb: int | None = None):
     """The model of ``scene`` at ``size`` (``spacing`` [m] and ``duration`` [-] override the size's) and its
-    length [s]."""
+    length [s]; ``perturb``: the seed of a start whose free particles are moved by up to PERTURBATION."""
     if scene not in SCENES:
         raise ConfigError(f"unknown torture scene {scene!r}: choose from {', '.join(SCENES)}")
     if size not in SIZES:
@@ -145,7 +151,13 @@ def build_case(scene: str, *, size: str = "full", device=None, spacing: float | 
     builder = ModelBuilder()
     seconds = SCENES[scene](builder, spacing, duration)
     builder.add_self_collision(thickness=thickness, friction=FRICTION)
-    return builder.finalize(device), seconds
+    model = builder.finalize(device)
+    if perturb is not None:
+        q = model.particle_q.numpy()
+        free = ~model.kinematic_mask()[:, None]
+        jitter = np.random.default_rng(perturb).uniform(-PERTURBATION, PERTURBATION, q.shape)
+        model.particle_q.assign((q + np.where(free, jitter, 0.0)).astype(q.dtype))
+    return model, seconds
 
 
 #: The battery's guard: the default. Its energy balance counts the work the self-collision pass does (a driven pin
@@ -223,14 +235,15 @@ class _Timed(SubstepAudit):
 def run_case(scene: str, integrator: str, *, size: str = "full", device=None, frames: int | None = None,
              substeps: int | None = None, spacing: float | None = None, duration: float | None = None,
              thickness: float = THICKNESS, progress=None, guard: GuardLimits | None = None,
-             audit_from: int = 0) -> CaseResult:
+             audit_from: int = 0, perturb: int | None = None) -> CaseResult:
     """Run ``scene`` under ``integrator`` for its length (or ``frames``) at FPS and ``substeps`` (default: the
     scene's, :func:`scene_substeps`), auditing every substep; a guard stop ends the run and is reported, not raised.
+    ``perturb``: the seed of a perturbed start (:func:`build_case`; the row's scene names it).
     ``progress(frame, frames, audit)`` is called after every frame, if given. ``guard``: default :data:`GUARD`.
     ``audit_from``: the first frame audited (the frames before it run unaudited: a test's way to skip the part of a
     scene where the surface is far from itself)."""
     model, seconds = build_case(scene, size=size, device=device, spacing=spacing, duration=duration,
-                                thickness=thickness)
+                                thickness=thickness, perturb=perturb)
     frames = int(round(seconds * FPS)) if frames is None else frames
     substeps = scene_substeps(model) if substeps is None else substeps
     guard = GUARD if guard is None else guard
@@ -255,7 +268,8 @@ def run_case(scene: str, integrator: str, *, size: str = "full", device=None, fr
             error = str(failure)
     wall = time.perf_counter() - start
     counts = model.self_contact.counts()
-    return CaseResult(scene=scene, integrator=integrator, device=str(model.device), particles=model.particle_count,
+    label = scene if perturb is None else f"{scene} (seed {perturb})"
+    return CaseResult(scene=label, integrator=integrator, device=str(model.device), particles=model.particle_count,
                       frames=sim.frame, substeps=substeps, audit=audit, pairs=int(counts["pairs"].sum()),
                       capped=int(counts["capped"].sum()), overflow=int(model.self_contact.overflow().sum()),
                       outrun=int(model.self_contact.outrun().sum()), error=error, wall=wall, audit_wall=audit.wall)
