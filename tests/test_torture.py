@@ -25,7 +25,7 @@ are counted (``SelfContact.outrun()``).
 What still crossed (twist720 under implicit Euler, twist1440 under every integrator) was the pins' travel a step:
 the turned edge moved up to 3.1 mm a substep at 20 substeps against the γ τ = 1.25 mm a substep the cap's later
 passes may move a free vertex to give way (free layers jammed between the pin and more cloth). Each scene now takes
-the substeps that keep its driven pins within half that reach (``step_choice.pin_substeps``, which
+the substeps that keep its driven pins within a quarter of that reach (``step_choice.pin_substeps``, which
 ``substeps = "auto"`` also applies); the battery's scenes under the three integrators run in ``bench/torture.py``
 (``bench/results/torture_cpu*.md``), and the suite keeps the twist1440 case.
 
@@ -450,8 +450,8 @@ def test_pins_driven_through_pins_are_counted(device):
 # The battery's scenes under the three integrators run in bench/torture.py (bench/results/torture_cpu*.md); the
 # suite runs the one case of the issue that crossed at every integrator: the strip turned 1440° in 1 s (its pins at
 # up to 3.8 m/s, 3.1 mm a substep at 20 substeps against the 1.25 mm a substep the cap's passes may move a free
-# vertex to give way). The scene now takes the substeps of step_choice.pin_substeps (a pin moves at most half the
-# cap's reach γ τ a step: 101).
+# vertex to give way). The scene now takes the substeps of step_choice.pin_substeps (a pin moves at most a quarter
+# of the cap's reach γ τ a step).
 
 
 def test_pin_substeps_bound_the_pins_travel():
@@ -484,18 +484,18 @@ def test_pin_substeps_bound_the_pins_travel():
 
 def test_twist1440_at_its_substeps_never_crosses():
     """The 1440° twist (small size, turned in 1 s; CPU, symplectic Euler) over its first 0.5 s, every substep from
-    0.4 s on audited (the window in which the former 20 substeps crossed; at 101 substeps the strip stays 4.3 mm
-    from itself through 0.5 s, audited from 0.3 s): at the scene's 101 substeps no crossing, no intersection, no pair closer than τ/2 and no pair beyond
-    the cap. At the battery's former 20 substeps the same half second crossed (0.497 s: 1838 crossings over the run,
+    0.4 s on audited (the window in which the former 20 substeps crossed; at 101 substeps, half the cap's reach a
+    step, the strip stayed 4.3 mm from itself through 0.5 s, audited from 0.3 s): at the scene's 202 substeps (a
+    quarter of the reach) no crossing, no intersection, no pair closer than τ/2 and no pair beyond the cap. At the battery's former 20 substeps the same half second crossed (0.497 s: 1838 crossings over the run,
     bench/results/torture_cpu_twist.md), the pins outrunning the cap's passes."""
     from warpspring.analysis.torture import scene_substeps, build_case
 
     model, _ = build_case("twist1440", size="small", device="cpu", duration=0.4)
-    assert scene_substeps(model) == 101
+    assert scene_substeps(model) == 202
     result = run_case("twist1440", "symplectic_euler", size="small", device="cpu", duration=0.4, frames=30,
                       audit_from=24)
-    assert result.substeps == 101 and result.error is None
-    assert result.audit.substeps == 6 * 101
+    assert result.substeps == 202 and result.error is None
+    assert result.audit.substeps == 6 * 202
     assert result.audit.crossings == 0 and result.audit.intersections == 0, result.audit.line()
     assert result.audit.close == 0 and result.outrun == 0 and result.overflow == 0
     assert result.pairs > 0  # the strip did press on itself

@@ -167,8 +167,8 @@ GUARD = GuardLimits()
 
 
 def scene_substeps(model) -> int:
-    """A scene's substeps per 1/FPS frame: :data:`SUBSTEPS`, or more where its pins move further than half the
-    self-collision cap's reach a step (:func:`~warpspring.analysis.step_choice.pin_substeps`)."""
+    """A scene's substeps per 1/FPS frame: :data:`SUBSTEPS`, or more where its pins move further than a quarter of
+    the self-collision cap's reach a step (:func:`~warpspring.analysis.step_choice.pin_substeps`)."""
     pins = pin_substeps(model, fps=FPS)
     return SUBSTEPS if pins is None else max(SUBSTEPS, pins[0])
 
