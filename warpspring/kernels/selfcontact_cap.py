@@ -442,6 +442,43 @@ def cap_place_kernel(scalar: type):
             room = wp.min(room, share)
         return -sign * n, room, gap > scalar(0.0), free_room - other_held, held
 
+    @wp.func
+    def project(
+        start_point: vec3, held_only: bool, list_pairs: Pairs, first: int, last: int, fallback: bool,
+        cache_bound: wp.array[scalar], base: int, mass_row: int, relaxation: scalar, floor: scalar, vertex_pairs: int,
+        mover_role: int, depth: int, pad: scalar, low: vec3, high: vec3, radius: scalar,
+        particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar], role: wp.array[wp.int32],
+        desired: wp.array[vec3], particle_q_start: wp.array[vec3], particle_q_in: wp.array[vec3],
+        particle_q_placed: wp.array[vec3],
+    ):
+        """Alternating projections (RELEASE_ROUNDS) of a displacement onto the vertex's bounds (``held_only``: only
+        those against what cannot make room, ``half_space``'s ``a_held``), then onto its box [``low``, ``high``] and
+        its ball of ``radius``: (the displacement, whether every pair's plane was resolved)."""
+        point = start_point
+        resolved = bool(True)
+        for _round in range(RELEASE_ROUNDS):
+            for a in range(first, last):
+                e = list_pairs.entry[a]
+                if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
+                    g, room, ok, held_room, held = half_space(e, list_pairs, base, mass_row, relaxation, floor,
+                                                              vertex_pairs, mover_role, depth, particle_flags,
+                                                              particle_inv_mass, role, desired, particle_q_start,
+                                                              particle_q_in, particle_q_placed)
+                    resolved = resolved and ok
+                    bound = room
+                    counted = True
+                    if held_only:
+                        bound = held_room
+                        counted = held
+                    over = wp.dot(g, point) - (bound - pad)
+                    if counted and over > scalar(0.0):
+                        point = point - over * g
+            point = wp.min(wp.max(point, low), high)
+            size = wp.length(point)
+            if size > radius:
+                point = (radius / size) * point
+        return point, resolved
+
     @flat_kernel(module="unique", enable_backward=False)
     def place(
         # Model:
@@ -510,24 +547,10 @@ def cap_place_kernel(scalar: type):
         if mover_role >= ROLE_PUSHER:
             depth = int(role[p] - ROLE_PUSHER)
         current = particle_q_out[p] - start
-        trial = current
-        resolved = bool(True)
-        for _round in range(RELEASE_ROUNDS):
-            for a in range(first, last):
-                e = list_pairs.entry[a]
-                if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
-                    g, room, ok, _held_room, _held = half_space(e, list_pairs, base, mass_row, relaxation, floor,
-                                                                vertex_pairs, mover_role, depth, particle_flags,
-                                                                particle_inv_mass, role, desired, particle_q_start,
-                                                                particle_q_in, particle_q_out)
-                    resolved = resolved and ok
-                    over = wp.dot(g, trial) - (room - pad)
-                    if over > scalar(0.0):
-                        trial = trial - over * g
-            trial = wp.min(wp.max(trial, low), high)
-            size = wp.length(trial)
-            if size > radius:
-                trial = (radius / size) * trial
+        trial, resolved = project(current, False, list_pairs, first, last, fallback, cache_bound, base, mass_row,
+                                  relaxation, floor, vertex_pairs, mover_role, depth, pad, low, high, radius,
+                                  particle_flags, particle_inv_mass, role, desired, particle_q_start, particle_q_in,
+                                  particle_q_out)
         x = start + trial
         moved = x - start  # the end as stored (its coordinates rounded): what every bound must hold for
         holds = bool(resolved)
@@ -551,22 +574,10 @@ def cap_place_kernel(scalar: type):
             # pushers), its box and its ball. The free vertices across its other pairs are the next pass's movers
             # (cap_mark_kernel) and make room for that point; a point that also kept their bounds, as they stand,
             # would ask them for no room (the projections' compromise stops short of the pin's bound).
-            wanted = current
-            for _round in range(RELEASE_ROUNDS):
-                for a in range(first, last):
-                    e = list_pairs.entry[a]
-                    if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
-                        _g, _room, _ok, held_room, held = half_space(e, list_pairs, base, mass_row, relaxation, floor,
-                                                                     vertex_pairs, mover_role, depth, particle_flags,
-                                                                     particle_inv_mass, role, desired,
-                                                                     particle_q_start, particle_q_in, particle_q_out)
-                        over = wp.dot(_g, wanted) - (held_room - pad)
-                        if held and over > scalar(0.0):
-                            wanted = wanted - over * _g
-                wanted = wp.min(wp.max(wanted, low), high)
-                size = wp.length(wanted)
-                if size > radius:
-                    wanted = (radius / size) * wanted
+            wanted, _resolved = project(current, True, list_pairs, first, last, fallback, cache_bound, base,
+                                        mass_row, relaxation, floor, vertex_pairs, mover_role, depth, pad, low, high,
+                                        radius, particle_flags, particle_inv_mass, role, desired, particle_q_start,
+                                        particle_q_in, particle_q_out)
             # Its depth: a pusher keeps its own; a mover is one layer behind the deepest pusher across its pairs (0
             # where none: the first pass's jammed vertices). The deepest, not the nearest: a coiled strip's layers lie
             # across pairs from the front pusher too, and the nearest gives a chain's layers one depth, one sub-pass.
