@@ -37,7 +37,7 @@ INTEGRATORS = ("symplectic_euler", "rk4", "implicit_euler")
 THICKNESS = 0.005  # [m]: τ of every scene (the twist), below 0.7 × the finest grid's altitude (7.4 mm)
 FPS = 60.0
 #: The fewest substeps per frame; more where the pins move fast (``step_choice.pin_substeps``: a pin moves at most
-#: half the cap's reach γ τ a step).
+#: a quarter of the cap's reach γ τ a step).
 SUBSTEPS = 20
 FRICTION = 0.2
 

@@ -126,7 +126,7 @@ class RunSummary:
             if outrun:
                 worlds += (f", {outrun} pair-steps beyond the cap where pins closed in faster than the cloth could give "
                            "way, or on other pins (the surface may cross there: substeps = \"auto\" keeps pins within "
-                           "half the cap's reach a step; pins driven into pins cross by their own motion)")
+                           "a quarter of the cap's reach a step; pins driven into pins cross by their own motion)")
         resumed = f", frames {self.resumed_from + 1}..{self.frames} after resuming" if self.resumed_from else ""
         contacts = ""
         if self.peak_contacts is not None:
