@@ -451,12 +451,15 @@ def cap_place_kernel(scalar: type):
         desired: wp.array[vec3], particle_q_start: wp.array[vec3], particle_q_in: wp.array[vec3],
         particle_q_placed: wp.array[vec3],
     ):
-        """Alternating projections (RELEASE_ROUNDS) of a displacement onto the vertex's bounds (``held_only``: only
-        those against what cannot make room, ``half_space``'s ``a_held``), then onto its box [``low``, ``high``] and
-        its ball of ``radius``: (the displacement, whether every pair's plane was resolved)."""
+        """Alternating projections (at most RELEASE_ROUNDS) of a displacement onto the vertex's bounds (``held_only``:
+        only those against what cannot make room, ``half_space``'s ``a_held``), then onto its box [``low``, ``high``]
+        and its ball of ``radius``: (the displacement, whether every pair's plane was resolved). A round that leaves
+        the point as it was ends them: the later rounds would repeat it (on the CPU the same bits as all the rounds;
+        on CUDA the vertices placed beside it in the pass may still move, which the share bounds already allow)."""
         point = start_point
         resolved = bool(True)
         for _round in range(RELEASE_ROUNDS):
+            before = point
             for a in range(first, last):
                 e = list_pairs.entry[a]
                 if fallback or cache_bound[e // 4] < scalar(NO_BOUND):
@@ -477,6 +480,8 @@ def cap_place_kernel(scalar: type):
             size = wp.length(point)
             if size > radius:
                 point = (radius / size) * point
+            if point[0] == before[0] and point[1] == before[1] and point[2] == before[2]:
+                break
         return point, resolved
 
     @flat_kernel(module="unique", enable_backward=False)
