@@ -292,14 +292,15 @@ def _triangle(size: float, z: float) -> np.ndarray:
     return np.column_stack([size * np.cos(angles), size * np.sin(angles), np.full(3, z)])
 
 
-def _pinned_step_down(device, x: np.ndarray, tau: float, approach: float):
-    """Triangles of corners ``x`` (three rows each, the first triangle pinned), self-colliding at ``tau``: the pinned
-    one stepped ``approach`` [m] down, the free ones where they are, through the repulsion and the cap of one 1 ms
-    step. Returns the self-collision, the triangles and the positions before and after (float64); asserts that the
-    pinned triangle went where it was told."""
+def _pinned_step_down(device, x: np.ndarray, tau: float, approach: float, *, held: tuple = ()):
+    """Triangles of corners ``x`` (three rows each, the first triangle pinned, and those ``held`` names, standing),
+    self-colliding at ``tau``: the first stepped ``approach`` [m] down, the others where they are, through the
+    repulsion and the cap of one 1 ms step. Returns the self-collision, the triangles and the positions before and
+    after (float64); asserts that the pinned triangle went where it was told."""
     triangles = np.arange(len(x)).reshape(-1, 3)
     builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
-    builder.add_particles(x.astype(np.float32), mass=0.001, radius=0.001, pinned=[0, 1, 2])
+    pinned = [0, 1, 2] + [3 * t + k for t in held for k in range(3)]
+    builder.add_particles(x.astype(np.float32), mass=0.001, radius=0.001, pinned=pinned)
     builder.add_triangles(triangles)
     builder.add_self_collision(thickness=tau)
     model = builder.finalize(device)
@@ -336,6 +337,30 @@ def test_a_pin_squeezing_a_layer_on_the_floor_makes_the_layer_behind_give_way(de
     assert self_contact.outrun()[0] == 0
 
 
+def test_a_pin_pressing_a_layer_held_by_a_pin_is_counted_as_squeezed(device):
+    """The squeeze of the test above with the layer behind (L) pinned where it stands: the free one between (M) has no
+    room, so the driven pin (P) closes its pair with M from 50 µm above the floor τ/2 to about 50 µm below it, far
+    short of the gap (no outrun, no crossing). The cap counts that pair-step as pressed below the floor
+    (``SelfContact.squeezed``), and the audit sees the pairs closer than τ/2 it announces; the run's summary says so."""
+    from warpspring.app.runner import RunSummary
+
+    tau, approach = 0.004, 1e-4
+    floor = 0.5 * tau
+    x = np.concatenate([_triangle(0.04, floor + 5e-5), _triangle(0.006, 0.0), _triangle(0.04, -floor - 5e-6)])
+    self_contact, triangles, x0, x1 = _pinned_step_down(device, x, tau, approach, held=(2,))
+    step = SurfaceAudit(triangles).step(x0, x1, thickness=tau)
+    assert len(step.crossings) == 0 and len(step.intersections) == 0
+    assert step.close > 0 and floor - approach < step.min_distance < floor  # pressed below τ/2, not through
+    np.testing.assert_array_equal(x1[6:], x0[6:])  # L held
+    assert self_contact.outrun()[0] == 0
+    squeezed = int(self_contact.squeezed()[0])
+    assert squeezed > 0
+    summary = RunSummary(output="out.usdc", frames=1, simulated_time=1e-3, wall_time=0.0, setup_time=0.0, substeps=1,
+                         dt=1e-3, device="cpu", model="model", integrator="symplectic_euler", advice="",
+                         self_contact=(0, 0, 0, 0, squeezed)).line()
+    assert f", {squeezed} pair-steps pressed below τ/2" in summary
+
+
 def test_a_pin_squeezing_four_layers_on_the_floor_makes_them_all_give_way(device):
     """The same squeeze through four free triangles (alternately small and large), each 5 µm above the floor over the
     next, the last with nothing behind it: the pinned one (P, 50 µm above the floor) driven 0.1 mm down must move all
@@ -366,7 +391,7 @@ def _squeeze_free_layers(device, layers: int) -> None:
     for k in range(layers):
         layer = slice(3 * (k + 1), 3 * (k + 2))
         assert np.all(x0[layer, 2] - x1[layer, 2] >= approach - room - k * 5e-6 - 1e-7), k
-    assert self_contact.outrun()[0] == 0
+    assert self_contact.outrun()[0] == 0 and self_contact.squeezed()[0] == 0
 
 
 def test_pushers_of_a_chain_are_placed_from_the_back(device):
@@ -409,7 +434,7 @@ def test_a_pin_outrunning_a_vertex_that_cannot_give_way_is_counted(device):
     counts = model.self_contact.counts()
     summary = RunSummary(output="out.usdc", frames=1, simulated_time=1e-3, wall_time=0.0, setup_time=0.0, substeps=1,
                          dt=1e-3, device="cpu", model="model", integrator="symplectic_euler", advice="",
-                         self_contact=(int(counts["pairs"][0]), int(counts["capped"][0]), 0, outrun)).line()
+                         self_contact=(int(counts["pairs"][0]), int(counts["capped"][0]), 0, outrun, 0)).line()
     assert f", {outrun} pair-steps beyond the cap where pins closed in faster" in summary
     assert 'substeps = "auto" keeps pins within a quarter of the cap\'s reach' in summary
     assert "pairs dropped" not in summary

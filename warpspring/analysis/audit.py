@@ -449,11 +449,14 @@ class SubstepAudit(FrameHook):
         overflow: the self-collision's pairs dropped for a full pair list (0 without self-collision).
         outrun: the self-collision's pair-steps beyond its cap (a pinned element closing in on a free one that could
             not give way; ``SelfContact.outrun``; 0 without self-collision).
+        squeezed: the self-collision's pair-steps held apart but pressed below τ/2 (a pin pressing layers held by
+            pins; ``SelfContact.squeezed``; 0 without self-collision).
     """
 
     def __init__(self, *, thickness: float | None = None):
         self.thickness = thickness
         self.substeps = self.crossings = self.intersections = self.close = self.overflow = self.outrun = 0
+        self.squeezed = 0
         self.min_distance = np.inf
         self.first = None
         self._record = self._surface = None
@@ -506,6 +509,7 @@ class SubstepAudit(FrameHook):
         if sim.model.self_contact is not None:
             self.overflow = int(sim.model.self_contact.overflow().sum())
             self.outrun = int(sim.model.self_contact.outrun().sum())
+            self.squeezed = int(sim.model.self_contact.squeezed().sum())
 
     @property
     def clean(self) -> bool:
@@ -525,6 +529,9 @@ class SubstepAudit(FrameHook):
         if self.outrun:
             text += (f"; {self.outrun} pair-steps where a pinned (kinematic) element closed in on the surface faster "
                      f"than it could give way (beyond the self-collision's cap)")
+        if self.squeezed:
+            text += (f"; {self.squeezed} pair-steps pressed below half the thickness by pins onto layers held by pins "
+                     f"(no room to give way)")
         return text
 
 

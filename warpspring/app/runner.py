@@ -58,7 +58,8 @@ class RunSummary:
         recycled: per emitter whose pool was too small, the particles recycled before their life span ended
             (all worlds together) and the pool's size: {name: (count, capacity)}.
         self_contact: with self-collision, (pairs pushed apart, vertices capped, pairs dropped for a full pair list,
-            pair-steps beyond the cap) summed over the run's steps and worlds; ``None`` without it.
+            pair-steps beyond the cap, pair-steps pressed below τ/2) summed over the run's steps and worlds; ``None``
+            without it.
         mesh_cache_overflow: full mesh queries made because a particle's candidate cache overflowed (all worlds;
             the results are the same, the work is not: raise the mesh's ``cache_candidates``).
         choices: what the scene switched on or chose by itself and why, one line each (``substeps = "auto"``,
@@ -119,7 +120,7 @@ class RunSummary:
             worlds += (f"; {self.mesh_cache_overflow} full mesh queries for overflowing candidate caches (raise "
                        "the mesh's cache_candidates)")
         if self.self_contact is not None:
-            pushed, capped, dropped, outrun = self.self_contact
+            pushed, capped, dropped, outrun, squeezed = self.self_contact
             worlds += f"; self-collision: {pushed} pairs pushed apart, {capped} vertex steps capped"
             if dropped:
                 worlds += f", {dropped} pairs dropped for a full pair list (their worlds held their free vertices)"
@@ -127,6 +128,9 @@ class RunSummary:
                 worlds += (f", {outrun} pair-steps beyond the cap where pins closed in faster than the cloth could give "
                            "way, or on other pins (the surface may cross there: substeps = \"auto\" keeps pins within "
                            "a quarter of the cap's reach a step; pins driven into pins cross by their own motion)")
+            if squeezed:
+                worlds += (f", {squeezed} pair-steps pressed below τ/2 (pins pressing layers held by other pins: no "
+                           "room to give way; not crossed)")
         resumed = f", frames {self.resumed_from + 1}..{self.frames} after resuming" if self.resumed_from else ""
         contacts = ""
         if self.peak_contacts is not None:
@@ -395,7 +399,7 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
         peak_contacts=None if sim.contacts is None else (peak_contacts, sim.contacts.capacity),
         self_contact=None if model.self_contact is None else (
             *(int(v.sum()) for v in model.self_contact.counts().values()), int(model.self_contact.overflow().sum()),
-            int(model.self_contact.outrun().sum())),
+            int(model.self_contact.outrun().sum()), int(model.self_contact.squeezed().sum())),
         mesh_cache_overflow=int(mesh_cache_counts(model)["overflow"].sum()) if model.mesh_colliders else 0,
         choices=tuple(choices),
         balance=sim.guard.balance_terms().describe() if sim.guard is not None else "",

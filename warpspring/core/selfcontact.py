@@ -26,6 +26,7 @@ from ..kernels.selfcontact import (
     COUNT_OVERFLOW,
     COUNT_PAIRS,
     COUNT_REBUILDS,
+    COUNT_SQUEEZED,
     COUNTER_COUNT,
     FILL_UNITS,
     FLAG_KINDS,
@@ -374,6 +375,13 @@ class SelfContact:
         covers."""
         return self.counters.numpy()[:, COUNT_OUTRUN].astype(np.int64)
 
+    def squeezed(self) -> np.ndarray:
+        """Pair-steps the cap held apart but pressed below τ/2 along their separating direction (a pin pressing free
+        layers that have no room to give way, themselves held by pins: the pair may end closer than τ/2 without
+        crossing), per world, summed over steps since the start or :meth:`reset` (int64 [world_count]; reads the
+        device). A pair not counted here or in :meth:`outrun` that started a step at least τ/2 apart ends it so."""
+        return self.counters.numpy()[:, COUNT_SQUEEZED].astype(np.int64)
+
     def overflow(self) -> np.ndarray:
         """Pairs dropped because a world's pair buffer was full, per world, summed since the start or
         :meth:`reset` (int64 [world_count]; reads the device). Zero in a healthy run."""
@@ -633,8 +641,8 @@ class SelfContact:
         self._loop(self.cap_loop[LOOP_CONDITION:LOOP_CONDITION + 1], level_round,
                    rounds=-(-CAP_LEVELS_UNCONDITIONAL // LEVELS_PER_ROUND))
         flat_launch(cap_check_kernel(model.scalar),
-                    inputs=[model.particle_count, model.world_enabled, self.surface, self.cache, self.cache_bound,
-                            self.cap_pairs, self.flags, start, state_out.particle_q],
+                    inputs=[model.particle_count, model.world_enabled, self.surface, self.params, self.cache,
+                            self.cache_bound, self.cap_pairs, self.flags, start, state_out.particle_q],
                     outputs=[self.counters], **per_particle)
 
     def repel(self, state_in, particle_q: wp.array) -> wp.array:

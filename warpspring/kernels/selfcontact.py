@@ -184,7 +184,8 @@ COUNT_REBUILDS = 3  # steps that rebuilt the world's pair cache (module selfcont
 COUNT_FALLBACKS = 4  # steps whose cap ran the swept broad phase instead of the cache
 COUNT_OUTRUN = 5  # kept pairs the cap could not hold apart (a pin closing in on a free side that cannot give way)
 COUNT_FILL = 6  # the fullest list's share of its slots past FILL_WATCHED, in FILL_UNITS (a maximum, not a sum)
-COUNTER_COUNT = 7
+COUNT_SQUEEZED = 7  # kept pairs held apart but pressed below the floor τ/2 along their separating direction
+COUNTER_COUNT = 8
 
 #: Fill of a pair list is recorded (``COUNT_FILL``) once it passes this share of its slots, in units of its
 #: 1/FILL_UNITS: only the upper part of a list pays the atomic maximum.

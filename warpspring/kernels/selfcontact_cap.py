@@ -17,6 +17,7 @@ from .selfcontact import (
     CAP_FLOOR,
     COUNT_CAPPED,
     COUNT_OUTRUN,
+    COUNT_SQUEEZED,
     FLAG_FALLBACK,
     NO_BOUND,
     PARAM_RELAXATION,
@@ -699,13 +700,17 @@ def cap_check_kernel(scalar: type):
     """Kernel counting the kept pairs the cap could not hold apart (COUNT_OUTRUN), after ``cap_gather_kernel``, one
     thread per particle of every world taking its world's slots local, local + particle_count, ...: a pair some side
     of which approaches the other along its separating direction, by as much as the gap between them or more in all
-    (module docstring, 2.: a pin outrunning a free vertex that cannot give way, or two pins closing in)."""
+    (module docstring, 2.: a pin outrunning a free vertex that cannot give way, or two pins closing in); and those
+    held apart but pressed below the floor h = CAP_FLOOR τ along it from at or above it (COUNT_SQUEEZED: a pin
+    pressing layers that have no room, themselves held by pins; the pair's distance is at least its separation along
+    the direction, so a pair not counted here ends at least h apart)."""
     vec3 = vec3_type(scalar)
     on_side_a, pair_plane, _ = plane_funcs(scalar)
 
     @wp.func
-    def beyond(slot: int, pairs: Pairs, base: int, vertex_pairs: int, particle_q_start: wp.array[vec3],
+    def beyond(slot: int, pairs: Pairs, base: int, vertex_pairs: int, floor: scalar, particle_q_start: wp.array[vec3],
                particle_q_end: wp.array[vec3]):
+        """(outrun, squeezed) of the pair in ``slot``."""
         vt = pairs.key[slot] < wp.int64(vertex_pairs)
         vertex = pairs.vertex[slot]
         n, width = pair_plane(vt, vertex, base, particle_q_start)
@@ -723,7 +728,11 @@ def cap_check_kernel(scalar: type):
             else:
                 approach_b = wp.max(approach_b, toward)
         closing = approach_a > zero or approach_b > zero
-        return closing and not (approach_a + approach_b < width - scalar(BOX_PAD) * (pad + scalar(1.0)))
+        slack = scalar(BOX_PAD) * (pad + scalar(1.0))
+        outrun = closing and not (approach_a + approach_b < width - slack)
+        squeezed = (closing and not outrun and width >= floor
+                    and width - approach_a - approach_b < floor - slack)
+        return outrun, squeezed
 
     @flat_kernel(module="unique", enable_backward=False)
     def cap_check(
@@ -731,6 +740,7 @@ def cap_check_kernel(scalar: type):
         particle_count: int,
         world_enabled: wp.array[wp.int32],
         surface: Surface,
+        params: wp.array2d[scalar],
         cache: Pairs,
         cache_bound: wp.array[scalar],
         pairs: Pairs,
@@ -748,17 +758,19 @@ def cap_check_kernel(scalar: type):
             return
         base = world * particle_count
         vertex_pairs = particle_count * surface.triangle.shape[0]
-        if flags[flag_slot(FLAG_FALLBACK, world, world_count)] != 0:
-            capacity = pairs.key.shape[0] // world_count
-            for slot in range(local, wp.min(pairs.count[world], capacity), particle_count):
-                if beyond(world * capacity + slot, pairs, base, vertex_pairs, particle_q_start, particle_q_end):
+        floor = scalar(CAP_FLOOR) * params[wp.min(world, params.shape[0] - 1), PARAM_THICKNESS]
+        fallback = flags[flag_slot(FLAG_FALLBACK, world, world_count)] != 0
+        list_pairs = cache
+        if fallback:
+            list_pairs = pairs
+        capacity = list_pairs.key.shape[0] // world_count
+        for slot in range(local, wp.min(list_pairs.count[world], capacity), particle_count):
+            s = world * capacity + slot
+            if fallback or cache_bound[s] < scalar(NO_BOUND):
+                outrun, squeezed = beyond(s, list_pairs, base, vertex_pairs, floor, particle_q_start, particle_q_end)
+                if outrun:
                     wp.atomic_add(counters_out, world, COUNT_OUTRUN, 1)
-        else:
-            capacity = cache.key.shape[0] // world_count
-            for slot in range(local, wp.min(cache.count[world], capacity), particle_count):
-                s = world * capacity + slot
-                if cache_bound[s] < scalar(NO_BOUND):
-                    if beyond(s, cache, base, vertex_pairs, particle_q_start, particle_q_end):
-                        wp.atomic_add(counters_out, world, COUNT_OUTRUN, 1)
+                if squeezed:
+                    wp.atomic_add(counters_out, world, COUNT_SQUEEZED, 1)
 
     return cap_check
