@@ -616,9 +616,8 @@ class SelfContact:
 
         def place(mover_role, clear, into):
             flat_launch(cap_place_kernel(model.scalar),
-                        inputs=lists + [mover_role, clear, role[1 - into], desired[1 - into]] + tail,
-                        outputs=[state_out.particle_q, state_out.particle_qd, role[into], desired[into], self.cap_loop,
-                                 into],
+                        inputs=lists + [mover_role, clear, into, role[1 - into], desired[1 - into]] + tail,
+                        outputs=[state_out.particle_q, state_out.particle_qd, role[into], desired[into], self.cap_loop],
                         **per_particle)
 
         def gate(start_loop: int):

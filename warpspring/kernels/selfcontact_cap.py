@@ -497,9 +497,10 @@ def cap_place_kernel(scalar: type):
         cache_bound: wp.array[scalar],
         pairs: Pairs,
         flags: wp.array[wp.int32],
-        # Control (the pass):
+        # Control (the pass; ``into`` the role buffer it writes, whose entry of ``loop_out`` it marks):
         mover_role: int,
         clear: int,
+        into: int,
         role: wp.array[wp.int32],
         desired: wp.array[vec3],
         # State in:
@@ -513,7 +514,6 @@ def cap_place_kernel(scalar: type):
         role_out: wp.array[wp.int32],
         desired_out: wp.array[vec3],
         loop_out: wp.array[wp.int32],
-        into: int,
     ):
         p = wp.tid()
         if not in_pass(role[p], mover_role):
