@@ -167,8 +167,8 @@ def smallest_altitude(positions: np.ndarray, triangles: np.ndarray) -> float:
 PAIR_GROWTH = 2.0
 #: A frame whose fullest pair list used more than this share of its slots grows the buffers before the next: a
 #: tightening coil doubles its pairs within a few frames, and pairs dropped in a frame lose their repulsion, which
-#: leaves the cap to hold them (a 1440° twist under RK4 on CUDA dropped 2,276 pairs and then closed pairs to 1.75 mm
-#: against pins, where the same run on the CPU dropped its pairs in other frames and stayed clean).
+#: leaves the cap alone to hold them (the full-size 1440° twist under RK4 on CUDA dropped 2,276 pairs before its
+#: buffers grew after dropping; with this, none).
 GROW_ABOVE = 0.75
 
 class SelfContact:
@@ -186,8 +186,9 @@ class SelfContact:
             friction μ [-], relaxation γ [-] (``kernels/selfcontact.py`` PARAM_*); write through :meth:`set`.
         counters: int32, shape [world_count, COUNTER_COUNT] (``kernels/selfcontact.py`` COUNT_*): pairs pushed apart,
             vertices capped, pairs dropped on overflow, steps that rebuilt the pair cache, steps whose cap ran the
-            swept broad phase and pair-steps beyond the cap, summed over the steps since the model was made or
-            :meth:`reset`; and the fullest list's fill past FILL_WATCHED (a maximum, in 1/FILL_UNITS of its slots).
+            swept broad phase, pair-steps beyond the cap and pair-steps pressed below τ/2, summed over the steps since
+            the model was made or :meth:`reset`; and the fullest list's fill past FILL_WATCHED (a maximum, in
+            1/FILL_UNITS of its slots).
     """
 
     def __init__(self, model, triangles: np.ndarray, *, thickness: float, friction: float, relaxation: float):
@@ -407,8 +408,8 @@ class SelfContact:
 
     def review(self) -> np.ndarray:
         """After a frame, from one read of the counters and the lists' counts: :meth:`grow` where pairs were dropped
-        or a list filled past GROW_ABOVE of its slots (during the frame, or as it stands), and each world's pair-steps beyond the cap (:meth:`outrun`) since the last review or
-        :meth:`reset` (int64 [world_count])."""
+        or a list filled past GROW_ABOVE of its slots (during the frame, or as it stands), and each world's pair-steps
+        beyond the cap (:meth:`outrun`) since the last review or :meth:`reset` (int64 [world_count])."""
         counters = self.counters.numpy().astype(np.int64)
         listed = self.listed()  # as the lists stand (a list built before a capture's replay has no count of its fill)
         fill = max(float(counters[:, COUNT_FILL].max(initial=0)) / FILL_UNITS,
