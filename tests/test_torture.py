@@ -341,7 +341,8 @@ def test_a_pin_pressing_a_layer_held_by_a_pin_is_counted_as_squeezed(device):
     """The squeeze of the test above with the layer behind (L) pinned where it stands: the free one between (M) has no
     room, so the driven pin (P) closes its pair with M from 50 µm above the floor τ/2 to about 50 µm below it, far
     short of the gap (no outrun, no crossing). The cap counts that pair-step as pressed below the floor
-    (``SelfContact.squeezed``), and the audit sees the pairs closer than τ/2 it announces; the run's summary says so."""
+    (``SelfContact.squeezed``), and the audit sees the pairs closer than τ/2 it announces; the run's summary says
+    so."""
     from warpspring.app.runner import RunSummary
 
     tau, approach = 0.004, 1e-4
@@ -505,7 +506,8 @@ def test_twist1440_at_its_substeps_never_crosses():
     """The 1440° twist (small size, turned in 1 s; CPU, symplectic Euler) over its first 0.5 s, every substep from
     0.4 s on audited (the window in which the former 20 substeps crossed; at 101 substeps, half the cap's reach a
     step, the strip stayed 4.3 mm from itself through 0.5 s, audited from 0.3 s): at the scene's 202 substeps (a
-    quarter of the reach) no crossing, no intersection, no pair closer than τ/2 and no pair beyond the cap. At the battery's former 20 substeps the same half second crossed (0.497 s: 1838 crossings over the run,
+    quarter of the reach) no crossing, no intersection, no pair closer than τ/2 and no pair beyond the cap. At the
+    battery's former 20 substeps the same half second crossed (0.497 s: 1838 crossings over the run,
     bench/results/torture_cpu_twist.md), the pins outrunning the cap's passes."""
     from warpspring.analysis.torture import scene_substeps, build_case
 
@@ -551,7 +553,7 @@ def test_overflow_is_said_and_still_does_not_cross(monkeypatch):
 
     from warpspring.core import selfcontact
 
-    monkeypatch.setattr(selfcontact, "GROW_ABOVE", 1.0)  # grow only after dropping pairs, as the test wants them dropped
+    monkeypatch.setattr(selfcontact, "GROW_ABOVE", 1.0)  # grow only after dropping pairs: the test wants them dropped
     model, _ = build_case("stack", size="small", device="cpu")
     model.self_contact._allocate(8)
     sim = ws.Simulator(model, fps=60, substeps=20)

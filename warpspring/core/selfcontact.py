@@ -240,7 +240,7 @@ class SelfContact:
         # pusher wanted to go, twice (a pass reads one and writes the other).
         self.cap_role = [wp.zeros(model.state_size, dtype=wp.int32, device=device) for _ in range(2)]
         self.cap_desired = [wp.zeros(model.state_size, dtype=model.vec3, device=device) for _ in range(2)]
-        self.cap_loop = wp.zeros(LOOP_SIZE, dtype=wp.int32, device=device)  # the levels' loop (``cap_loop_gate_kernel``)
+        self.cap_loop = wp.zeros(LOOP_SIZE, dtype=wp.int32, device=device)  # the levels' loop state (its gate kernel)
         self.counters = wp.zeros((worlds, COUNTER_COUNT), dtype=wp.int32, device=device)
         self._dropped_seen = 0  # pairs dropped when the buffers last grew (``grow``)
         self._outrun_seen = np.zeros(worlds, dtype=np.int64)  # each world's outrun pair-steps at the last ``review``
