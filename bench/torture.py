@@ -93,8 +93,8 @@ def main(argv=None) -> int:
     parser.add_argument("--substeps", type=int, default=None,
                         help="substeps per frame (default: each scene's, torture.scene_substeps)")
     parser.add_argument("--perturb", type=int, default=None, metavar="SEED",
-                        help="start from positions moved by up to 1 µm (torture.PERTURBATION), seeded: another valid run "
-                             "of a chaotic scene, as CUDA's unordered atomics give")
+                        help="start from positions moved by up to 1 µm (torture.PERTURBATION), seeded: another "
+                             "valid run of a chaotic scene, as CUDA's unordered atomics give")
     parser.add_argument("--jobs", type=int, default=1,
                         help="cases run at once, each in its own process (the host's audit is most of a case's time)")
     parser.add_argument("--timing", action="store_true",
