@@ -507,9 +507,10 @@ class SubstepAudit(FrameHook):
                             f"{found.close} pair(s) closer than {0.5 * self.thickness:.4g} m")
                     self.first = (start + (k + 1) * sim.dt, world, what)
         if sim.model.self_contact is not None:
-            self.overflow = int(sim.model.self_contact.overflow().sum())
-            self.outrun = int(sim.model.self_contact.outrun().sum())
-            self.squeezed = int(sim.model.self_contact.squeezed().sum())
+            counts = sim.model.self_contact.counts()
+            self.overflow = int(counts["overflow"].sum())
+            self.outrun = int(counts["outrun"].sum())
+            self.squeezed = int(counts["squeezed"].sum())
 
     @property
     def clean(self) -> bool:

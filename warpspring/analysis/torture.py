@@ -271,5 +271,5 @@ def run_case(scene: str, integrator: str, *, size: str = "full", device=None, fr
     label = scene if perturb is None else f"{scene} (seed {perturb})"
     return CaseResult(scene=label, integrator=integrator, device=str(model.device), particles=model.particle_count,
                       frames=sim.frame, substeps=substeps, audit=audit, pairs=int(counts["pairs"].sum()),
-                      capped=int(counts["capped"].sum()), overflow=int(model.self_contact.overflow().sum()),
-                      outrun=int(model.self_contact.outrun().sum()), error=error, wall=wall, audit_wall=audit.wall)
+                      capped=int(counts["capped"].sum()), overflow=int(counts["overflow"].sum()),
+                      outrun=int(counts["outrun"].sum()), error=error, wall=wall, audit_wall=audit.wall)

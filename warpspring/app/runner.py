@@ -397,9 +397,8 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
         resumed_from=start,
         recycled={e.name: (int(e.recycled().sum()), e.capacity) for e in model.emitters if e.recycled().any()},
         peak_contacts=None if sim.contacts is None else (peak_contacts, sim.contacts.capacity),
-        self_contact=None if model.self_contact is None else (
-            *(int(v.sum()) for v in model.self_contact.counts().values()), int(model.self_contact.overflow().sum()),
-            int(model.self_contact.outrun().sum()), int(model.self_contact.squeezed().sum())),
+        self_contact=None if model.self_contact is None else tuple(
+            int(v.sum()) for v in model.self_contact.counts().values()),  # pairs, capped, overflow, outrun, squeezed
         mesh_cache_overflow=int(mesh_cache_counts(model)["overflow"].sum()) if model.mesh_colliders else 0,
         choices=tuple(choices),
         balance=sim.guard.balance_terms().describe() if sim.guard is not None else "",

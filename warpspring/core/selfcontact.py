@@ -364,29 +364,32 @@ class SelfContact:
         return float(self.params.numpy()[0, PARAM_THICKNESS])
 
     def counts(self) -> dict[str, np.ndarray]:
-        """Per world, summed since the start or :meth:`reset`: ``pairs`` pushed apart by the repulsion and
-        ``capped`` vertices (int64 arrays [world_count]; reads the device)."""
+        """Per world, summed since the start or :meth:`reset`, from one read of the device: ``pairs`` pushed apart by
+        the repulsion, ``capped`` vertices, and the pairs ``overflow`` dropped, ``outrun`` and ``squeezed`` counted
+        (:meth:`overflow`, :meth:`outrun`, :meth:`squeezed`), in this order (int64 arrays [world_count])."""
         counters = self.counters.numpy().astype(np.int64)
-        return {"pairs": counters[:, COUNT_PAIRS], "capped": counters[:, COUNT_CAPPED]}
+        return {"pairs": counters[:, COUNT_PAIRS], "capped": counters[:, COUNT_CAPPED],
+                "overflow": counters[:, COUNT_OVERFLOW], "outrun": counters[:, COUNT_OUTRUN],
+                "squeezed": counters[:, COUNT_SQUEEZED]}
 
     def outrun(self) -> np.ndarray:
         """Pairs the cap could not hold apart (beyond it: a pin closing in on a free side that cannot give way along
         its repelled step, or two pinned sides closing in; such a pair may cross), per world, summed over steps since
         the start or :meth:`reset` (int64 [world_count]; reads the device). Zero in a run the no-crossing guarantee
         covers."""
-        return self.counters.numpy()[:, COUNT_OUTRUN].astype(np.int64)
+        return self.counts()["outrun"]
 
     def squeezed(self) -> np.ndarray:
         """Pair-steps the cap held apart but pressed below τ/2 along their separating direction (a pin pressing free
         layers that have no room to give way, themselves held by pins: the pair may end closer than τ/2 without
         crossing), per world, summed over steps since the start or :meth:`reset` (int64 [world_count]; reads the
         device). A pair not counted here or in :meth:`outrun` that started a step at least τ/2 apart ends it so."""
-        return self.counters.numpy()[:, COUNT_SQUEEZED].astype(np.int64)
+        return self.counts()["squeezed"]
 
     def overflow(self) -> np.ndarray:
         """Pairs dropped because a world's pair buffer was full, per world, summed since the start or
         :meth:`reset` (int64 [world_count]; reads the device). Zero in a healthy run."""
-        return self.counters.numpy()[:, COUNT_OVERFLOW].astype(np.int64)
+        return self.counts()["overflow"]
 
     def listed(self) -> dict[str, np.ndarray]:
         """Pairs listed per world: ``cache`` (closer than CACHE_REACH τ at the cache's last rebuild) and ``cap`` (the

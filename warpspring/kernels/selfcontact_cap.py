@@ -510,7 +510,8 @@ def cap_place_kernel(scalar: type):
         # State in and out:
         particle_q_out: wp.array[vec3],
         particle_qd_out: wp.array[vec3],
-        # Out (``loop_out[LOOP_LEFT + into]`` set where a vertex stays a pusher: ``cap_loop_gate_kernel``):
+        # Out (``loop_out[LOOP_LEFT]`` set where a vertex of the round's last level stays a pusher:
+        # ``cap_loop_gate_kernel``):
         role_out: wp.array[wp.int32],
         desired_out: wp.array[vec3],
         loop_out: wp.array[wp.int32],
@@ -602,17 +603,18 @@ def cap_place_kernel(scalar: type):
                                 depth = wp.max(depth, role[j] - ROLE_PUSHER + 1)
             role_out[p] = ROLE_PUSHER + depth
             desired_out[p] = start + wanted
-            loop_out[LOOP_LEFT + into] = 1  # another level (the same value from every such thread: no order)
+            if into == wp.static(LEVELS_PER_ROUND - 1):  # the round's last level (and the first pass) write this buffer
+                loop_out[LOOP_LEFT] = 1  # another round (the same value from every such thread: no order)
 
     return place
 
 
 #: Entries of the cap's loop state (``SelfContact.cap_loop``, int32 [LOOP_SIZE]): the condition of its loop of levels
-#: (``wp.capture_while``), whether a pass into role buffer 0 / 1 left a pusher, and the levels run this step.
+#: (``wp.capture_while``), whether the last level left a pusher, and the levels run this step.
 LOOP_CONDITION = 0
 LOOP_LEFT = 1
-LOOP_LEVELS = 3
-LOOP_SIZE = 4
+LOOP_LEVELS = 2
+LOOP_SIZE = 3
 #: Levels a round of the cap's loop runs (one into each role buffer: the loop's body is the same every round).
 LEVELS_PER_ROUND = 2
 
@@ -621,7 +623,7 @@ LEVELS_PER_ROUND = 2
 def cap_loop_gate_kernel():
     """Kernel (one thread) deciding whether the cap runs another round of levels: where the last pass (into role
     buffer 1) left a pusher and fewer than ``levels`` have run; ``start`` 1 after the first pass (no level run yet).
-    It clears the passes' marks, so that they are clear outside the cap's stage."""
+    It clears the passes' mark, so that it is clear outside the cap's stage."""
 
     @flat_kernel(module="unique", enable_backward=False)
     def gate(levels: int, start: int, loop_in_out: wp.array[wp.int32]):
@@ -630,11 +632,10 @@ def cap_loop_gate_kernel():
             run = loop_in_out[LOOP_LEVELS] + LEVELS_PER_ROUND
         loop_in_out[LOOP_LEVELS] = run
         more = int(0)
-        if loop_in_out[LOOP_LEFT + 1] != 0 and run < levels:
+        if loop_in_out[LOOP_LEFT] != 0 and run < levels:
             more = 1
         loop_in_out[LOOP_CONDITION] = more
         loop_in_out[LOOP_LEFT] = 0
-        loop_in_out[LOOP_LEFT + 1] = 0
 
     return gate
 
