@@ -508,12 +508,17 @@ class SelfContact:
         flat_launch(fill_kernel(), inputs=[model.particle_count, active, pairs], dim=model.particle_dim,
                     block_dim=model.block_dim, device=model.device)
 
+    def _unconditional(self) -> bool:
+        """Whether a CUDA capture is under way on a device without conditional graph nodes (``_loop``, ``_branch``
+        then record their bodies unconditionally)."""
+        device = self.model.device
+        return device.is_cuda and device.is_capturing and not getattr(wp, "is_conditional_graph_supported", bool)()
+
     def _loop(self, condition: wp.array, body, *, rounds: int) -> None:
         """``body`` while ``condition`` holds (a conditional graph node where captured, ``wp.capture_while``); where a
         CUDA capture lacks conditional nodes, ``rounds`` times unconditionally (the body must then be harmless when
         the condition is false)."""
-        device = self.model.device
-        if device.is_cuda and device.is_capturing and not getattr(wp, "is_conditional_graph_supported", bool)():
+        if self._unconditional():
             for _ in range(rounds):
                 body()
         else:
@@ -523,8 +528,7 @@ class SelfContact:
         """``body(**kwargs)`` when ``condition[0]`` is set: a conditional node in a CUDA capture, a host test
         otherwise. Where the device has no conditional nodes it runs unconditionally inside a capture (its
         kernels skip the worlds not flagged: the same result, at more cost)."""
-        device = self.model.device
-        if device.is_cuda and device.is_capturing and not getattr(wp, "is_conditional_graph_supported", bool)():
+        if self._unconditional():
             body(**kwargs)
         else:
             wp.capture_if(condition, on_true=body, **kwargs)
