@@ -14,6 +14,8 @@ closer than τ/2 at each substep's end). Prints a table and writes it (command, 
 The audit runs on the host after every frame (the substeps' positions are kept on the device, one copy per
 substep); its wall time is reported apart from the run's. ``--jobs N`` runs N cases at once, each in a process of
 its own (the audit is most of a case's time and uses one core): their wall times then share the host.
+``--audit-workers N`` splits each frame's substeps between N processes (the same findings): a full-size case
+whose serial audit outlasts a time limit fits in it.
 
 ``--timing`` times the cases instead, unaudited (the simulation's own cost: each case's first frame, which compiles
 and captures, untimed; the device synchronised before each timer read), in µs per substep over the scene's other
@@ -97,6 +99,9 @@ def main(argv=None) -> int:
                              "valid run of a chaotic scene, as CUDA's unordered atomics give")
     parser.add_argument("--jobs", type=int, default=1,
                         help="cases run at once, each in its own process (the host's audit is most of a case's time)")
+    parser.add_argument("--audit-workers", type=int, default=1, metavar="N",
+                        help="processes auditing each case's frames (SubstepAudit's workers: the same findings, "
+                             "sooner; with --jobs, N per case)")
     parser.add_argument("--timing", action="store_true",
                         help="time each case unaudited (µs per substep) instead of the audited battery")
     parser.add_argument("--out", default=None,
@@ -142,6 +147,8 @@ def main(argv=None) -> int:
     options = dict(size=args.size, device=args.device, frames=frames, duration=args.duration, substeps=args.substeps)
     if args.perturb is not None:
         options["perturb"] = args.perturb
+    if args.audit_workers > 1 and not args.timing:
+        options["audit_workers"] = args.audit_workers
     if args.jobs > 1:
         done = {}
         with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:

@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 
 import warpspring as ws
-from warpspring.analysis.audit import SubstepAudit, SurfaceAudit, audit_frame, audit_motion, surface_edges
+from warpspring.analysis.audit import (
+    SubstepAudit,
+    SurfaceAudit,
+    audit_frame,
+    audit_motion,
+    surface_edges,
+)
+from warpspring.errors import ConfigError
 
 TAU = 0.01  # [m]: the thickness the constructed states are audited against
 
@@ -118,35 +125,53 @@ def test_rows_index_the_surface_not_the_particles():
     assert found.crossings[:, 0].tolist() == [1] and named == [(2, 3), (6, 7)]
 
 
-def test_substep_audit_of_a_run(device):
+def _thrown(device, *, self_collision: bool, frames: int = 1, workers: int = 1) -> SubstepAudit:
     """Two 3 × 3 cloths, the upper tilted by 0.1 rad with its lowest edge 8.5 mm above the lower one, thrown down
-    at 3 m/s through the pinned lower one with no self-collision: the run's substep audit finds the crossings, in
-    the substep where they begin (5 mm per substep at 60 fps × 10 substeps: the lowest edge reaches the lower
-    cloth in the second substep, t ≤ 2/600 s); with self-collision (τ = 4 mm) the same throw audits clean over
-    every substep."""
-    def thrown(self_collision):
-        builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
-        springs = dict(structural=ws.SpringMaterial(10.0, 0.0), shear=False, bend=False)
-        builder.add_cloth_grid(nx=3, ny=3, spacing=0.02, origin=(0.0, 0.0, 0.0), mass=0.1, pin=["left", "right"],
-                               name="lower", **springs)
-        tilt = (np.sin(0.05), 0.0, 0.0, np.cos(0.05))  # 0.1 rad about x: no edge parallel to the lower cloth's
-        builder.add_cloth_grid(nx=3, ny=3, spacing=0.02, origin=(0.005, 0.003, 0.0085), rotation=tilt, mass=0.1,
-                               velocity=(0.0, 0.0, -3.0), name="upper", **springs)
-        if self_collision:
-            builder.add_self_collision(thickness=0.004)
-        model = builder.finalize(device)
-        sim = ws.Simulator(model, fps=60, substeps=10)
-        audit = SubstepAudit(thickness=0.004).attach(sim)
-        sim.step_frame()
-        return audit
+    at 3 m/s through the pinned lower one, every substep audited (τ = 4 mm)."""
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    springs = dict(structural=ws.SpringMaterial(10.0, 0.0), shear=False, bend=False)
+    builder.add_cloth_grid(nx=3, ny=3, spacing=0.02, origin=(0.0, 0.0, 0.0), mass=0.1, pin=["left", "right"],
+                           name="lower", **springs)
+    tilt = (np.sin(0.05), 0.0, 0.0, np.cos(0.05))  # 0.1 rad about x: no edge parallel to the lower cloth's
+    builder.add_cloth_grid(nx=3, ny=3, spacing=0.02, origin=(0.005, 0.003, 0.0085), rotation=tilt, mass=0.1,
+                           velocity=(0.0, 0.0, -3.0), name="upper", **springs)
+    if self_collision:
+        builder.add_self_collision(thickness=0.004)
+    model = builder.finalize(device)
+    sim = ws.Simulator(model, fps=60, substeps=10)
+    audit = SubstepAudit(thickness=0.004, workers=workers).attach(sim)
+    try:
+        for _ in range(frames):
+            sim.step_frame()
+    finally:
+        audit.close_workers()
+    return audit
 
-    crossed = thrown(False)
+
+def test_substep_audit_of_a_run(device):
+    """The thrown cloth with no self-collision: the run's substep audit finds the crossings, in the substep where
+    they begin (5 mm per substep at 60 fps × 10 substeps: the lowest edge reaches the lower cloth in the second
+    substep, t ≤ 2/600 s); with self-collision (τ = 4 mm) the same throw audits clean over every substep."""
+    crossed = _thrown(device, self_collision=False)
     assert crossed.substeps == 10 and crossed.crossings > 0
     assert crossed.first[0] == pytest.approx(2 / 600, rel=1e-9)  # the end of the substep that crossed
     assert "crossing" in crossed.first[2]
-    kept = thrown(True)
+    kept = _thrown(device, self_collision=True)
     assert kept.substeps == 10 and kept.clean and kept.min_distance >= 0.002
     assert "0 crossings" in kept.line()
+
+
+def test_audit_workers_find_what_one_process_finds(device):
+    """Two frames of the thrown cloth without self-collision, each frame's 10 substeps split between 3 worker
+    processes: the same crossings, intersections, close pairs, smallest distance and first finding (its substep
+    and world) as the audit in one process. Bad worker counts are refused."""
+    one = _thrown(device, self_collision=False, frames=2)
+    three = _thrown(device, self_collision=False, frames=2, workers=3)
+    assert one.crossings > 0 and one.intersections > 0 and one.close > 0  # every tally has something to agree on
+    fields = ("substeps", "crossings", "intersections", "close", "min_distance", "first")
+    assert [getattr(three, f) for f in fields] == [getattr(one, f) for f in fields]
+    with pytest.raises(ConfigError, match="workers must be a whole number"):
+        SubstepAudit(workers=0)
 
 
 SCENE = """

@@ -235,37 +235,41 @@ class _Timed(SubstepAudit):
 def run_case(scene: str, integrator: str, *, size: str = "full", device=None, frames: int | None = None,
              substeps: int | None = None, spacing: float | None = None, duration: float | None = None,
              thickness: float = THICKNESS, progress=None, guard: GuardLimits | None = None,
-             audit_from: int = 0, perturb: int | None = None) -> CaseResult:
+             audit_from: int = 0, perturb: int | None = None, audit_workers: int = 1) -> CaseResult:
     """Run ``scene`` under ``integrator`` for its length (or ``frames``) at FPS and ``substeps`` (default: the
     scene's, :func:`scene_substeps`), auditing every substep; a guard stop ends the run and is reported, not raised.
     ``perturb``: the seed of a perturbed start (:func:`build_case`; the row's scene names it).
     ``progress(frame, frames, audit)`` is called after every frame, if given. ``guard``: default :data:`GUARD`.
     ``audit_from``: the first frame audited (the frames before it run unaudited: a test's way to skip the part of a
-    scene where the surface is far from itself)."""
+    scene where the surface is far from itself). ``audit_workers``: processes auditing each frame's substeps
+    (:class:`SubstepAudit`'s ``workers``; the same findings, sooner)."""
     model, seconds = build_case(scene, size=size, device=device, spacing=spacing, duration=duration,
                                 thickness=thickness, perturb=perturb)
     frames = int(round(seconds * FPS)) if frames is None else frames
     substeps = scene_substeps(model) if substeps is None else substeps
     guard = GUARD if guard is None else guard
     sim = Simulator(model, integrator=make_integrator(integrator, model), fps=FPS, substeps=substeps, guard=guard)
-    audit = _Timed(thickness=thickness)
+    audit = _Timed(thickness=thickness, workers=audit_workers)
     error = None
     start = time.perf_counter()
-    for frame in range(frames):
-        if frame == audit_from:
-            audit.attach(sim)
-        try:
-            sim.step_frame()
-        except SimulationError as failure:
-            error = str(failure)
-            break
-        if progress is not None:
-            progress(frame + 1, frames, audit)
-    if error is None:
-        try:
-            sim.settle()  # the last frame's verdict (on CUDA read a frame later)
-        except SimulationError as failure:
-            error = str(failure)
+    try:
+        for frame in range(frames):
+            if frame == audit_from:
+                audit.attach(sim)
+            try:
+                sim.step_frame()
+            except SimulationError as failure:
+                error = str(failure)
+                break
+            if progress is not None:
+                progress(frame + 1, frames, audit)
+        if error is None:
+            try:
+                sim.settle()  # the last frame's verdict (on CUDA read a frame later)
+            except SimulationError as failure:
+                error = str(failure)
+    finally:
+        audit.close_workers()
     wall = time.perf_counter() - start
     counts = model.self_contact.counts()
     label = scene if perturb is None else f"{scene} (seed {perturb})"
