@@ -54,10 +54,18 @@ TIMING_HEADER = ["scene", "integrator", "particles", "substeps/frame", "substeps
                  "capped", "cache rebuilds", "swept fallbacks"]
 
 
+PROGRESS_FRAMES = 20  # a line of the audit's findings every this many frames
+
+
 def _case(scene: str, integrator: str, options: dict) -> tuple[list, bool]:
     """One case's table row and whether it ran clean (a process of its own under ``--jobs``)."""
     wp.config.log_level = wp.LOG_WARNING
-    result = run_case(scene, integrator, **options)
+
+    def progress(frame: int, frames: int, audit) -> None:  # a case cut short by a time limit still says how far
+        if frame % PROGRESS_FRAMES == 0:
+            print(f"{scene} {integrator}: frame {frame}/{frames}, {audit.line()}", flush=True)
+
+    result = run_case(scene, integrator, progress=progress, **options)
     return result.row() + [f"{result.audit_wall:.0f}"], result.clean
 
 
