@@ -205,21 +205,42 @@ bend = false
 """
 
 
+def _run_audited(tmp_path, capsys, *, self_collision: bool, options=()) -> tuple[int, str]:
+    """``warpspring run --audit-substeps`` of the thrown cloth's scene file: (exit status, the audit's line)."""
+    from warpspring.app.cli import main
+
+    table = "[self_collision]\nthickness = 0.004\n" if self_collision else ""
+    scene = tmp_path / "thrown.toml"
+    scene.write_text(SCENE.format(name="lower", self_collision=table))
+    status = main(["run", str(scene), "-o", str(tmp_path / "out.usdc"), "--device", "cpu", "-q", "--audit-substeps",
+                   *options])
+    out = capsys.readouterr().out
+    return status, next(row for row in out.splitlines() if row.startswith("substep audit:"))
+
+
 @pytest.mark.parametrize("self_collision", [False, True])
 def test_run_option_audits_every_substep(tmp_path, capsys, self_collision):
     """``warpspring run --audit-substeps``: the thrown cloth of the run test from a scene file, 2 frames of 10
     substeps: without self-collision it prints the crossings and exits with EXIT_AUDIT; with it (τ = 4 mm) it
     prints a clean audit of the 20 substeps and exits 0."""
-    from warpspring.app.cli import EXIT_AUDIT, main
+    from warpspring.app.cli import EXIT_AUDIT
 
-    table = "[self_collision]\nthickness = 0.004\n" if self_collision else ""
-    scene = tmp_path / "thrown.toml"
-    scene.write_text(SCENE.format(name="lower", self_collision=table))
-    status = main(["run", str(scene), "-o", str(tmp_path / "out.usdc"), "--device", "cpu", "-q", "--audit-substeps"])
-    out = capsys.readouterr().out
-    line = next(row for row in out.splitlines() if row.startswith("substep audit:"))
+    status, line = _run_audited(tmp_path, capsys, self_collision=self_collision)
     assert "20 substeps" in line
     if self_collision:
         assert status == 0 and "0 crossings, 0 intersections, 0 pairs closer" in line
     else:
         assert status == EXIT_AUDIT and "0 crossings" not in line and "first at t = " in line
+
+
+def test_run_option_audit_workers_print_the_same_line(tmp_path, capsys):
+    """``--audit-workers 2`` beside ``--audit-substeps``: the crossing run's audit line and exit status as with one
+    process; without ``--audit-substeps`` the option is refused with what to add."""
+    from warpspring.app.cli import EXIT_CONFIG, main
+
+    one = _run_audited(tmp_path, capsys, self_collision=False)
+    two = _run_audited(tmp_path, capsys, self_collision=False, options=["--audit-workers", "2"])
+    assert two == one and "first at t = " in one[1]
+    status = main(["run", str(tmp_path / "thrown.toml"), "-o", str(tmp_path / "out.usdc"), "--device", "cpu", "-q",
+                   "--audit-workers", "2"])
+    assert status == EXIT_CONFIG and "add --audit-substeps" in capsys.readouterr().err

@@ -561,7 +561,7 @@ class SubstepAudit(FrameHook):
 
     def close_workers(self) -> None:
         """Stop the workers (``workers`` > 1); the audit's totals stay readable. Also on garbage collection."""
-        if self._pool is not None:
+        if getattr(self, "_pool", None) is not None:  # (none where the constructor refused its arguments)
             self._pool.shutdown()
             self._pool = None
 
