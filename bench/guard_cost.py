@@ -146,6 +146,10 @@ def main():
     parser.add_argument("--sync-verdict", action="store_true",
                         help="also the default guard with its verdict read after every frame (defer_verdict=False): "
                              "what reading it a frame later gives")
+    parser.add_argument("--parts", action="store_true",
+                        help="also the guard without counting dissipation (GuardLimits(dissipation=False)) and without "
+                             "the energy balance (energy_balance=0): what the dissipation's sums and the check's "
+                             "other parts cost, each as µs per substep above guard off")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
@@ -171,6 +175,9 @@ def main():
                 makers["probe"] = lambda: Run(cloth(), integrator, None, probe=True)
             if args.sync_verdict:
                 makers["sync"] = lambda: Run(cloth(), integrator, ws.GuardLimits(), defer_verdict=False)
+            if args.parts:
+                makers["no dissipation"] = lambda: Run(cloth(), integrator, ws.GuardLimits(dissipation=False))
+                makers["no balance"] = lambda: Run(cloth(), integrator, ws.GuardLimits(energy_balance=0.0))
             # Newton's builder takes the worlds as one flat set of particles: single cloths only (the table).
             newton = newton_version and integrator == "symplectic_euler" and worlds == 1
             if newton:
@@ -188,6 +195,16 @@ def main():
                 sync = statistics.median(off / p for off, p in zip(times["off"], times["sync"]))
                 notes.append(f"- {label}, {integrator}: default with its verdict read after every frame ÷ guard off = "
                              f"{sync:.3f}")
+                print(notes[-1], flush=True)
+            if args.parts:
+                per_substep = {name: 1e6 * statistics.median(times[name]) / SUBSTEPS for name in
+                               ("off", "no balance", "no dissipation", "default")}
+                above = {name: per_substep[name] - per_substep["off"] for name in per_substep}
+                notes.append(f"- {label}, {integrator}: µs per substep guard off {per_substep['off']:.2f}; above it, "
+                             f"the guard without the balance {above['no balance']:.2f}, with the balance but no "
+                             f"dissipation counted {above['no dissipation']:.2f}, the default "
+                             f"{above['default']:.2f} (the dissipation's sums "
+                             f"{above['default'] - above['no dissipation']:.2f})")
                 print(notes[-1], flush=True)
             if args.probe:
                 probe = statistics.median(off / p for off, p in zip(times["off"], times["probe"]))
