@@ -566,6 +566,46 @@ def test_cache_changes_the_work_not_the_answer(device, scene):
         assert cached["fallbacks"][0] != cached["fallbacks"][1]
 
 
+def gliding_layers(device, speed):
+    """Two 5 × 5 cloths 2.5 τ apart (their pairs cached, none repelled), gliding together along x at ``speed``
+    [m/s] without gravity: no relative drift, every free vertex moving the same step."""
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    for z in (0.0, 2.5 * TAU):
+        builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, z), mass=0.05, velocity=(speed, 0.0, 0.0),
+                               **CLOTH)
+    builder.add_self_collision(thickness=TAU)
+    return builder.finalize(device)
+
+
+@pytest.mark.parametrize("step", [0.6, 0.8])
+def test_the_cache_serves_the_cap_up_to_its_least_outside_distance(device, step):
+    """The cap needs its swept broad phase only where a vertex's step could reach a pair outside the cache: γ times
+    (the least distance A of such a pair, less the pins' step). A is what the cache knows of them (the reach at
+    its anchors less the drifts' spread, their boxes' gap, the watched pairs' own distances; CACHE_REACH τ right
+    after a rebuild), not the repulsion's reach 2 τ: two layers gliding together 0.6 τ a step (within γ 3 τ =
+    0.75 τ, past γ 2 τ = 0.5 τ) cap from their cache at every step, 0.8 τ a step needs the swept
+    broad phase at every step; either way the same bits as the broad phase at every step."""
+    dt, steps = 1.0 / 1200.0, 20
+    finals, counts = [], []
+    for every_step in (False, True):
+        model = gliding_layers(device, step * TAU / dt)
+        if every_step:
+            object.__setattr__(model, "self_contact", BroadPhaseEveryStep(model.self_contact))
+        integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
+        for _ in range(steps):
+            integrator.step(a, b, None, dt)
+            a, b = b, a
+        finals.append(a.particle_q.numpy())
+        sc = model.self_contact if not every_step else model.self_contact.full
+        counts.append(sc.cache_counts())
+    np.testing.assert_array_equal(finals[0], finals[1])
+    x = finals[0]
+    np.testing.assert_allclose(x[:, 0] - gliding_layers("cpu", 0.0).particle_q.numpy()[:, 0], step * TAU * steps,
+                               rtol=1e-4)  # they glided, untouched
+    fallbacks = int(counts[0]["fallbacks"].sum())
+    assert fallbacks == (0 if step == 0.6 else steps), fallbacks
+
+
 @pytest.mark.parametrize("layout", ["tilted", "flat"])
 def test_cache_holds_while_the_drifts_spread_less_than_its_slack(device, layout):
     """Two cloths 0.1 m apart (beyond the cache's reach), one still, one sliding past it at 1.5 m/s (1.5 mm per

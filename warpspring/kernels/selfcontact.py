@@ -211,8 +211,13 @@ FLAG_DRIFT = 3  # the largest drift from the anchors relative to the reference v
 FLAG_STEP = 4  # the largest step of a free surface vertex (limited to γ SEARCH_REACH τ), padded
 FLAG_WORK = 5  # its first entry only: some world's pair stages must run (module selfcontact_cache)
 FLAG_WATCH = 6  # the world's watched pairs need their check (module selfcontact_cache)
-FLAG_KINDS = 7
+FLAG_APART = 7  # the least distance at the step's start of a pair outside the cache, in units rounded down, stored as
+#   APART_NONE less it (an integer maximum: the least distance; 0: none recorded; module selfcontact_cache)
+FLAG_KINDS = 8
 KINEMATIC_STEPS = 4096
+#: FLAG_APART's stored value for a distance of 0 (and for a distance that is not finite): distances of this many
+#: units τ / KINEMATIC_STEPS or more are not recorded.
+APART_NONE = 1 << 29
 #: The surface's patches (module ``selfcontact_cache``): groups of triangles close at rest, at least this many
 #: triangles each and at most PATCH_LIMIT of them (2^k by halving), whose boxes the cache's check reduces.
 PATCH_TRIANGLES = 32
@@ -965,15 +970,45 @@ def raise_flag(flags: wp.array[wp.int32], kind: int, world: int, world_count: in
 
 
 @functools.cache
+def apart_funcs(scalar: type):
+    """``(record, least)``: ``record(flags, world, world_count, distance, thickness)`` lowers world ``world``'s
+    FLAG_APART to ``distance`` [m] (rounded down to units of τ / KINEMATIC_STEPS; a negative or non-finite distance
+    records 0), an integer maximum read first (order-free: the least distance any thread recorded);
+    ``least(flags, world, world_count, thickness)`` reads it back [m] (APART_NONE units, beyond any reach, where none
+    was recorded)."""
+
+    @wp.func
+    def record(flags: wp.array[wp.int32], world: int, world_count: int, distance: scalar, thickness: scalar):
+        units = distance / thickness * scalar(KINEMATIC_STEPS)
+        stored = int(APART_NONE)  # a distance of 0: a negative one, or NaN
+        if units >= scalar(APART_NONE):
+            stored = 0  # too far to record
+        elif units >= scalar(0.0):
+            stored = APART_NONE - int(wp.floor(units))
+        slot = flag_slot(FLAG_APART, world, world_count)
+        if stored > flags[slot]:
+            wp.atomic_max(flags, slot, stored)
+
+    @wp.func
+    def least(flags: wp.array[wp.int32], world: int, world_count: int, thickness: scalar) -> scalar:
+        stored = flags[flag_slot(FLAG_APART, world, world_count)]
+        return scalar(APART_NONE - stored) * thickness / scalar(KINEMATIC_STEPS)
+
+    return record, least
+
+
+@functools.cache
 def repel_gather_kernel(scalar: type):
     """Kernel of the repulsion's gather: ``particle_q_in`` (the integrator's result) plus each free surface
     vertex's mean correction over its pairs, summed in key order, into ``particle_q_out``; and whether the cached
     pairs suffice for the cap: a world is flagged for the swept broad phase (FLAG_FALLBACK) when its list
-    overflowed, one of its free vertices moves further than min(γ (REPULSION_REACH τ - K_w), (REPULSION_REACH -
-    CAP_FLOOR) τ / 2) or its pins that half (K_w: its kinematic vertices' largest displacement; module
-    ``selfcontact_cache``)."""
+    overflowed, one of its free vertices moves further than min(γ (A_w - K_w), (A_w - CAP_FLOOR τ) / 2) or its pins
+    that half (A_w: the least distance at the step's start of a pair outside the cache, FLAG_APART, CACHE_REACH τ
+    where the cache was rebuilt at that start, at least REPULSION_REACH τ; K_w: its kinematic vertices' largest
+    displacement; module ``selfcontact_cache``)."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
+    _, least = apart_funcs(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
     def repel_gather(
@@ -1016,7 +1051,7 @@ def repel_gather_kernel(scalar: type):
             x = x + correction / wp.max(count, scalar(1.0))
             particle_q_out[p] = x
         # Does the cache hold every pair the cap could keep? (module selfcontact_cache: pairs outside it are at
-        # least REPULSION_REACH τ apart at the step's start.)
+        # least A_w apart at the step's start, A_w ≥ REPULSION_REACH τ.)
         world_count = pairs_in_out.count.shape[0]
         row = wp.min(world, params.shape[0] - 1)
         thickness = params[row, PARAM_THICKNESS]
@@ -1025,8 +1060,12 @@ def repel_gather_kernel(scalar: type):
         delta = wp.min(wp.length(x - start), relaxation * scalar(SEARCH_REACH) * thickness)
         kinematic = (scalar(flags_in_out[flag_slot(FLAG_KINEMATIC, world, world_count)]) / scalar(KINEMATIC_STEPS)
                      * thickness)
-        offset = scalar(FLOOR_OFFSET) * thickness  # D - h of a pair outside the cache, at least
-        budget = (wp.min(relaxation * (scalar(REPULSION_REACH) * thickness - kinematic), scalar(0.5) * offset)
+        apart = least(flags_in_out, world, world_count, thickness)
+        if flags_in_out[flag_slot(FLAG_REBUILD, world, world_count)] != 0:
+            apart = scalar(CACHE_REACH) * thickness  # rebuilt at this step's start: it holds every pair closer
+        apart = wp.max(apart * scalar(1.0 - SAFETY), scalar(REPULSION_REACH) * thickness)
+        offset = apart - scalar(CAP_FLOOR) * thickness  # D - h of a pair outside the cache, at least
+        budget = (wp.min(relaxation * (apart - kinematic), scalar(0.5) * offset)
                   * scalar(1.0 - SAFETY) - scalar(BOX_PAD) * (wp.max(wp.abs(start)) + scalar(1.0)))
         overflow = pairs_in_out.count[world] > pairs_in_out.key.shape[0] // world_count
         # A pin moving half the offset may reach a pair outside the cache (the cap keeps the pairs with 2K >= D - h).

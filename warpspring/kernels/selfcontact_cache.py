@@ -42,10 +42,16 @@ whole keeps its cache. Each step:
 3. The repulsion runs over the cache: its narrow phase keeps the pairs closer than REPULSION_REACH τ at x⁰,
    which the cache holds all of (1.), with the same distance arithmetic as the broad phase: the same pairs,
    summed in the same key order, as a list cut at that reach — the same bits.
-4. The cap: a pair outside the cache has D ≥ REPULSION_REACH τ at x⁰ and K ≤ K_w, so the cap would keep it
-   (2 max(K, δ) ≥ D - h or δ > γ (D - K), h = CAP_FLOOR τ its floor) only if K_w ≥ (REPULSION_REACH - CAP_FLOOR) τ / 2
-   or some free vertex of the world moved further than min(γ (REPULSION_REACH τ - K_w), (REPULSION_REACH - CAP_FLOOR)
-   τ / 2). The repulsion's gather flags the worlds where either holds, or whose cache
+4. The cap: a pair outside the cache has D ≥ A_w at x⁰ and K ≤ K_w, so the cap would keep it
+   (2 max(K, δ) ≥ D - h or δ > γ (D - K), h = CAP_FLOOR τ its floor) only if K_w ≥ (A_w - h) / 2 or some free
+   vertex of the world moved further than min(γ (A_w - K_w), (A_w - h) / 2). A_w is the least distance at x⁰ the
+   step's check knows of those pairs (FLAG_APART, each thread of ``decide_kernel`` recording the bound that holds
+   for its two patches: their boxes' gap, or the reach at the anchors less their drifts' spread, min(R, CACHE_REACH
+   τ) for all pairs outside the cache, R for the unwatched ones where ``watch_kernel`` records the watched ones'
+   own distances; the world's drift bound where it decides alone), CACHE_REACH τ where the cache was rebuilt at
+   x⁰, and at least REPULSION_REACH τ (1. guarantees that much), less SAFETY: a cloth gliding 0.6 τ a step caps from
+   its cache (γ 3 τ = 0.75 τ), where REPULSION_REACH τ alone allowed γ 2 τ = 0.5 τ. The repulsion's gather flags
+   the worlds where either holds, or whose cache
    overflowed (FLAG_FALLBACK); they run the cap's swept broad phase as before (a conditional node). The others
    test each cached pair as the swept broad phase would (``cap_bounds_kernel``: the same single-precision swept
    boxes, the same overlap and keep tests, the same D - K), so the cap keeps exactly the pairs it kept before,
@@ -99,6 +105,7 @@ from .selfcontact import (
     Pairs,
     Surface,
     _pair_funcs,
+    apart_funcs,
     _vertex_extent,
     cube_reach_func,
     flag_slot,
@@ -274,10 +281,12 @@ def decide_kernel(scalar: type):
     drifts' spread at most the slack (the length of the vector of max(high_P + low_Q, high_Q + low_P) per axis: the
     largest |r_a - r_b| over a corner a of P and b of Q). The thread of (0, 0) also decides whether the pair stages
     run (FLAG_WORK's first entry): where a world has cached pairs, a free vertex steps further than the repulsion's
-    gather allows without the swept broad phase (min(γ (REPULSION_REACH τ - K_w), (REPULSION_REACH - CAP_FLOOR) τ / 2)
-    (1 - SAFETY), less its pad), or its pins move (REPULSION_REACH - CAP_FLOOR) τ / 2 or more (less the SAFETY
-    share)."""
+    gather allows without the swept broad phase at the least (min(γ (REPULSION_REACH τ - K_w), (REPULSION_REACH -
+    CAP_FLOOR) τ / 2) (1 - SAFETY), less its pad), or its pins move (REPULSION_REACH - CAP_FLOOR) τ / 2 or more (less
+    the SAFETY share). Each thread records in FLAG_APART the least distance at the step's start its bound gives the
+    pairs outside the cache across its two patches (module docstring, 4.)."""
     vec3 = vec3_type(scalar)
+    record, _ = apart_funcs(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
     def decide(
@@ -315,11 +324,13 @@ def decide_kernel(scalar: type):
             far = scalar(2.0) * kinematic >= offset * scalar(1.0 - SAFETY)  # as repel_gather
             if cache_count[world] > 0 or not (step <= budget) or far:
                 flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
+        # Every pair outside the cache, watched or not, was this far apart at the anchors.
+        reach_all = wp.min(cache_reach[world], scalar(CACHE_REACH) * thickness)
         # The slack the cache would have without its watch list: where it suffices, the watched pairs need no check.
-        unwatched = ((wp.min(cache_reach[world], scalar(CACHE_REACH) * thickness) - scalar(REPULSION_REACH) * thickness)
-                     * scalar(1.0 - SAFETY))
+        unwatched = (reach_all - scalar(REPULSION_REACH) * thickness) * scalar(1.0 - SAFETY)
         drift = scalar(flags_in_out[flag_slot(FLAG_DRIFT, world, world_count)]) * unit
         if drift <= scalar(0.5) * unwatched:  # False for a negative slack (R = 0: never built)
+            record(flags_in_out, world, world_count, reach_all - scalar(2.0) * drift, thickness)
             return
         gap = vec3(scalar(0.0))
         spread = vec3(scalar(0.0))
@@ -336,13 +347,21 @@ def decide_kernel(scalar: type):
                             (patch_box[world, second, PATCH_DRIFT + k] - LENGTH_LIMIT)
                             + (patch_box[world, first, PATCH_DRIFT + 3 + k] - LENGTH_LIMIT))
             spread[k] = scalar(widest) * unit
+        # The least distance of a pair across these patches (FLAG_APART) by the bound that holds: their boxes' gap,
+        # or the reach at the anchors less the drifts' spread (all pairs outside the cache; the unwatched ones
+        # from the cache's own reach, the watched ones by their own distances, watch_kernel).
+        across = reach_all - wp.length(spread)
         if wp.length(gap) >= scalar(REPULSION_REACH) * thickness * scalar(1.0 + SAFETY):
+            record(flags_in_out, world, world_count, wp.max(wp.length(gap), across), thickness)
             return  # every pair across these patches is that far apart now
         if wp.length(spread) <= unwatched:
+            record(flags_in_out, world, world_count, across, thickness)
             return
         flags_in_out[flag_slot(FLAG_WATCH, world, world_count)] = 1  # the watched pairs need their check
         patch_watch_out[world, first] = 1  # those between these two patches (watch_kernel)
         patch_watch_out[world, second] = 1
+        record(flags_in_out, world, world_count,
+               cache_reach[world] - wp.min(scalar(2.0) * drift, wp.length(spread)), thickness)
         if drift <= scalar(0.5) * slack:
             return
         if not (wp.length(spread) <= slack):
@@ -358,9 +377,10 @@ def watch_kernel(scalar: type):
     its world's watch slots local, local + particle_count, ...: each watched pair whose sides' patches (their owner
     triangles', ``triangle_patch``) were both marked by ``decide_kernel`` (``patch_watch``), its distance at the step's start,
     with the narrow phase's arithmetic; a world with one closer than REPULSION_REACH τ (1 + SAFETY) is flagged for a
-    rebuild (FLAG_REBUILD)."""
+    rebuild (FLAG_REBUILD), and every distance checked is recorded in FLAG_APART (module docstring, 4.)."""
     vec3 = vec3_type(scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
+    record, _ = apart_funcs(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
     def watch(
@@ -423,6 +443,7 @@ def watch_kernel(scalar: type):
             if not (d >= near):
                 raise_flag(flags_in_out, FLAG_REBUILD, world, world_count)
                 return
+            record(flags_in_out, world, world_count, d, thickness)  # (its own rounding: the reader's SAFETY)
 
     return watch
 
