@@ -106,6 +106,10 @@ class AeroFamily(ElementFamily):
     def spec(self, model, *, linear: bool = False) -> AeroSpec:
         return AeroSpec(incidence=self.shape, noise=self.noise_scale > 0.0, precomputed=self.precompute)
 
+    def time_dependent(self, model) -> bool:
+        """Only where precomputed (each corner's gather otherwise evaluates its triangles' forces itself)."""
+        return self.precompute
+
     def at_time(self, model, state) -> None:
         """Where precomputed: each triangle's force at ``state``, before the corners gather it."""
         if not self.precompute:

@@ -74,6 +74,11 @@ class ElementFamily:
         """Bring the family's time-dependent arrays to the time of ``state`` (device work, launched wherever
         animated inputs are evaluated, before forces); most families have none."""
 
+    def time_dependent(self, model) -> bool:
+        """Whether :meth:`at_time` has work to do in this model (a frame's substeps in one launch, which cannot
+        launch it between substeps, is refused where it has). Default: whether the family overrides it."""
+        return type(self).at_time is not ElementFamily.at_time
+
     @property
     def element_count(self) -> int:
         raise NotImplementedError

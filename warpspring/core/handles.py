@@ -147,6 +147,10 @@ class HandleFamily(ElementFamily):
             raise ConfigError(f"world {world} does not exist: the model has worlds 0..{worlds - 1}")
         return [world]
 
+    def time_dependent(self, model) -> bool:
+        """Only where a handle is animated (still handles' target frames stay zero: their particles' starts)."""
+        return bool(self._animated)
+
     def at_time(self, model, state) -> None:
         """Write every handle's target frame at the time of ``state`` (each world's at its own time)."""
         if not self._animated:

@@ -157,6 +157,10 @@ class TetFamily(ElementFamily):
         """Whether some tet's damper is on in some world."""
         return bool((self.values(self.damper) != 0.0).any())
 
+    def time_dependent(self, model) -> bool:
+        """Only where precomputed (each corner's gather otherwise evaluates its tets' factors itself)."""
+        return self.precompute
+
     def at_time(self, model, state) -> None:
         """Where precomputed: each tet's shared factors at ``state``, before the corners gather them."""
         if not self.precompute:

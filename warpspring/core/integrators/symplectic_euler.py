@@ -14,7 +14,6 @@ from ...kernels.integrators import (symplectic_euler_blocks_kernel, symplectic_e
 from ...kernels.shapes import NO_CONTACTS
 from ...kernels.sweep import sweeps, symplectic_euler_sweep_kernel
 from ..contacts import update_shape_frames
-from ..families import ElementFamily
 from ..forces import eval_forces, force_inputs
 from ..kinematics import apply_kinematics
 from ..state import State
@@ -36,8 +35,8 @@ class SymplecticEuler(Integrator):
             give at least :attr:`ONE_LAUNCH_THREADS_PER_SM` threads per multiprocessor (1.02-1.18×). ``True``:
             wherever the scene allows it (on the CPU too, one thread per world). ``False``: never. The scene allows it
             with gathered springs, colliders that do not move, no stabiliser, contact stage, triangle contacts or
-            self-collision, no animated input, no driven pin, no family with time-dependent arrays (wind's,
-            handles', precomputed tets'), no held worlds, and step hooks that work at the frame's end alone (the
+            self-collision, no animated input, no driven pin, no family with time-dependent arrays (a
+            precomputed wind's or tets', an animated handle's: ``ElementFamily.time_dependent``), no held worlds, and step hooks that work at the frame's end alone (the
             default guard does). On the CPU it runs the per-particle step (``cpu_sweep`` does not apply).
         cpu_sweep: on the CPU, with gathered springs, step each world in one thread sweeping its particles in
             order, each spring evaluated once (``kernels/sweep.py``; 1.7-1.8x the per-particle step at 32²-64²,
@@ -80,7 +79,7 @@ class SymplecticEuler(Integrator):
             return None
         if model.pin_groups is not None and model.pin_groups.driven:
             return None
-        if any(type(family).at_time is not ElementFamily.at_time for family in model.extra_families):
+        if any(family.time_dependent(model) for family in model.extra_families):
             return None
         if model.device.is_cpu:
             return 1, 1  # a CPU launch runs its threads in turn: one per world, each substep over the whole world
