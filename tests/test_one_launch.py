@@ -182,3 +182,34 @@ def test_the_wind_blows_inside_the_one_launch_frame(device):
     np.testing.assert_allclose(fused.dissipated, plain.dissipated, rtol=1e-5)
     noisy = flag(device, noise=0.3, precompute=True)
     assert ws.SymplecticEuler(noisy, one_launch=True).frame_shape(None, 8) is None
+
+
+def test_animated_inputs_are_evaluated_inside_the_one_launch_frame(device):
+    """Animated inputs (a gust of wind through the aerodynamic family in every world, gravity turning in world 1
+    alone) are written at each substep's time inside the one-launch frame, by the world's own lanes, as the
+    per-substep path writes them before each step: the same positions (to the last bit on the CPU), clocks and
+    inputs at the end, with the default guard on and the frame's substep count odd."""
+    gust = ws.Track([0.0, 0.1, 0.3], [(0.0, 0.0, 0.0), (6.0, 0.0, 2.0), (1.0, 0.0, 0.0)], interpolation="smooth")
+    turning = ws.Track([0.0, 0.3], [(0.0, 0.0, -9.81), (3.0, 0.0, -9.0)])
+    results = []
+    for one_launch in (True, False):
+        model = flag(device)
+        model.set_track("wind", gust)
+        model.set_track("gravity", turning, world=1)
+        integrator = ws.SymplecticEuler(model, one_launch=one_launch, cpu_sweep=False)
+        sim = ws.Simulator(model, integrator=integrator, substeps=7)
+        for _ in range(18):
+            sim.step_frame()
+        wp.synchronize_device(model.device)
+        assert (integrator.frame_shape(sim.control, 7) is not None) == one_launch
+        results.append([sim.state.particle_q.numpy(), sim.state.time.numpy(), model.inputs.numpy()])
+    fused, plain = results
+    np.testing.assert_array_equal(fused[1], plain[1])  # the clocks: the same float64 sums
+    np.testing.assert_array_equal(fused[2], plain[2])  # the inputs the last substep read, in both worlds
+    if device == "cpu":
+        np.testing.assert_array_equal(fused[0], plain[0])
+    else:
+        np.testing.assert_allclose(fused[0], plain[0], rtol=0,
+                                   atol=4 * 126 * np.finfo(np.float32).eps * np.abs(plain[0]).max())
+    q = fused[0].reshape(2, -1, 3)
+    assert np.abs(q[1] - q[0]).max() > 1e-3  # world 1's turning gravity moved it apart from world 0

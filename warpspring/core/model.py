@@ -17,6 +17,7 @@ from ..kernels.shapes import NO_CONTACTS, ContactFeatures, shapes_type
 from ..kernels.mesh_colliders import MESH_SIDES, MESH_WINDING
 from ..kernels.swept import SWEPT_KINDS
 from ..kernels.inputs import INPUT_COUNT, INPUTS
+from ..kernels.tracks import WorldInputs
 from ..kernels.kinematics import PARTICLE_KINEMATIC
 from ..kernels.precision import transform_type, vec3_type
 from .kinematics import PinGroupTable, apply_kinematics
@@ -563,13 +564,14 @@ class Model:
         entries = [(table.index(t), w, *INPUTS[name]) for name in names for w, t in enumerate(self._tracks[name])
                    if t is not None]
         track, world, slot, width = (np.array(column, dtype=np.int32) for column in zip(*entries))
-        self.__dict__["input_tracks"] = InputTracks(
-            names=names,
-            track=wp.array(track, dtype=wp.int32, device=self.device),
-            world=wp.array(world, dtype=wp.int32, device=self.device),
-            slot=wp.array(slot, dtype=wp.int32, device=self.device),
-            width=wp.array(width, dtype=wp.int32, device=self.device),
-        )
+        arrays = {name: wp.array(values, dtype=wp.int32, device=self.device)
+                  for name, values in (("track", track), ("world", world), ("slot", slot), ("width", width))}
+        by_world = WorldInputs()
+        by_world.track, by_world.slot, by_world.width = arrays["track"], arrays["slot"], arrays["width"]
+        by_world.order = wp.array(np.argsort(world, kind="stable").astype(np.int32), dtype=wp.int32, device=self.device)
+        by_world.start = wp.array(np.searchsorted(np.sort(world), np.arange(self.world_count + 1)).astype(np.int32),
+                                  dtype=wp.int32, device=self.device)
+        self.__dict__["input_tracks"] = InputTracks(names=names, **arrays, by_world=by_world)
 
     def _finalize_shapes(self, *, size: wp.array, stage: bool | None, slots: int | None) -> None:
         """The colliders' device arrays from ``self.shapes`` (called by ``ModelBuilder.finalize``)."""

@@ -209,6 +209,8 @@ class InputTracks:
         world: the world whose input row it writes (and whose time it samples at), int32, shape [count].
         slot: the first input-table column of each, int32, shape [count].
         width: components of each (1 or 3), int32, shape [count].
+        by_world: the same entries by world (``kernels/tracks.WorldInputs``: a world's own, for a kernel that steps
+            a world's substeps itself).
     """
 
     names: tuple
@@ -216,6 +218,7 @@ class InputTracks:
     world: wp.array
     slot: wp.array
     width: wp.array
+    by_world: object = None
 
     @property
     def count(self) -> int:

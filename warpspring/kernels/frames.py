@@ -31,6 +31,7 @@ from .integrators import symplectic_euler_particle_energy_func, symplectic_euler
 from .linalg import block_barrier
 from .precision import vec3_type
 from .shapes import ContactFeatures, shapes_type
+from .tracks import Tracks, WorldInputs, world_inputs_func
 from .flatten import flat_kernel
 
 wp.set_module_options({"enable_backward": False})
@@ -60,14 +61,23 @@ def wait_for_arrivals(barrier: wp.array[wp.int32], world: int, target: int):
     ...
 
 
+#: The leaves of the frame kernel's animated-input parameters (moved last where no input is animated).
+ANIMATED_LEAVES = (tuple(f"tracks__{name}" for name in Tracks.vars)
+                   + tuple(f"animated_inputs__{name}" for name in WorldInputs.vars))
+
+
 @functools.cache
 def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
-                                  power: tuple | None = None):
+                                  power: tuple | None = None, animated: bool = False):
     """``steps`` fused symplectic Euler steps of every world, ``blocks`` blocks of ``lanes`` threads per world
     (module docstring); ``barrier_in_out`` one counter per world, zero at the launch where ``blocks`` > 1.
     Substep k reads buffer A when k is even and writes B, and the other way round when k is odd; an odd
     ``steps`` leaves the result in B. Each world's clock (``time_in_out``) advances by
-    ``steps`` · (dt + dt_rest), added one step at a time as the per-substep path adds it."""
+    ``steps`` · (dt + dt_rest), added one step at a time as the per-substep path adds it: each lane keeps it in a
+    register from the launch's start and the world's first lane writes it at the end. With ``animated``, each
+    substep first writes the world's animated inputs at its time into ``inputs_out`` (the very table ``inputs``
+    is: every block of the world its own copy of the same values, ``tracks.world_inputs_func``), as the per-substep
+    path's ``evaluate_input_tracks`` does before each step, and its lanes meet before stepping."""
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
     counted = power is not None
@@ -78,6 +88,7 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
     Elements = composed.arrays
     step_particle = symplectic_euler_particle_func(scalar, features, contacts, None)
     step_energy = symplectic_euler_particle_energy_func(scalar, features, contacts, power) if counted else None
+    write_world_inputs = world_inputs_func(scalar)
 
     @wp.func
     def substep(world: int, lane: int, lanes: int, particle_count: int,
@@ -110,7 +121,7 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         return taken, worked
 
     @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
-                 last=contacts.idle() + composed.last("element_arrays"))
+                 last=contacts.idle() + composed.last("element_arrays") + (() if animated else ANIMATED_LEAVES))
     def symplectic_euler_frame(
         # Model:
         particle_count: int,
@@ -126,12 +137,17 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         inputs: wp.array2d[scalar],
         # Control:
         particle_force_ext: wp.array[vec3],
+        # Model, the animated inputs (read with ``animated`` only):
+        tracks: Tracks,
+        animated_inputs: WorldInputs,
         # Step:
         steps: int,
         dt: scalar,
         dt_rest: scalar,
         # In/out:
-        # (the two state buffers, the worlds' clocks [s], the guard's power sums [J], read with ``power`` only)
+        # (the input table, written with ``animated`` only; the two state buffers, the worlds' clocks [s], the
+        # guard's power sums [J], read with ``power`` only)
+        inputs_out: wp.array2d[scalar],
         q_a_in_out: wp.array[vec3],
         qd_a_in_out: wp.array[vec3],
         q_b_in_out: wp.array[vec3],
@@ -146,8 +162,12 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         lane = t - world * stride
         taken = wp.float64(0.0)  # the lane's power sums over the frame (with ``power``)
         worked = wp.float64(0.0)
+        clock = time_in_out[world]  # the world's time at each substep's start (written once, at the end)
         k = int(0)
         while k < steps:
+            if wp.static(animated):
+                write_world_inputs(world, lane % lanes, lanes, tracks, animated_inputs, clock, inputs_out)
+                block_barrier()  # the block's lanes read the inputs its lanes wrote
             if k % 2 == 0:
                 step_taken, step_worked = substep(
                     world, lane, stride, particle_count, particle_flags, particle_inv_mass, particle_radius, shapes,
@@ -160,8 +180,7 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
                     qd_a_in_out, power_in_out)
             taken += step_taken
             worked += step_worked
-            if lane == 0:
-                time_in_out[world] = time_in_out[world] + (wp.float64(dt) + wp.float64(dt_rest))
+            clock = clock + (wp.float64(dt) + wp.float64(dt_rest))
             block_barrier()  # the block's lanes have written their particles
             if blocks > 1 and lane % lanes == 0:  # the world's blocks meet: each block's first lane counts it in
                 memory_fence()
@@ -170,6 +189,8 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
             if blocks > 1:
                 block_barrier()
             k += 1
+        if lane == 0:
+            time_in_out[world] = clock
         if wp.static(counted):  # one entry per lane, once a frame (the check sums a world's entries)
             if lane < particle_count:
                 power_in_out[world * particle_count + lane] += pack(scalar(taken), scalar(worked))

@@ -113,6 +113,40 @@ def sample_tracks(
     rate_out[k] = r
 
 
+@wp.struct
+class WorldInputs:
+    """The animated inputs by world, for a kernel that writes a world's own (``frames.py``): entry
+    ``order[a]`` for a in ``start[w] .. start[w + 1] - 1`` is one of world w's, with the columns of
+    ``apply_input_tracks_kernel``."""
+
+    track: wp.array[wp.int32]  # each entry's track, shape [count]
+    slot: wp.array[wp.int32]  # its first input-table column, shape [count]
+    width: wp.array[wp.int32]  # its components (1 or 3), shape [count]
+    order: wp.array[wp.int32]  # the entries sorted by world, shape [count]
+    start: wp.array[wp.int32]  # each world's first position in ``order``, shape [world_count + 1]
+
+
+@functools.cache
+def world_inputs_func(scalar: type):
+    """``write_world_inputs(world, first, stride, tracks, animated, t, inputs_out)``: world ``world``'s animated
+    inputs at its time ``t`` [s] written into its row of the input table, entries ``first``, ``first + stride``,
+    ... of its own (the values ``apply_input_tracks_kernel`` writes)."""
+
+    @wp.func
+    def write_world_inputs(world: int, first: int, stride: int, tracks: Tracks, animated: WorldInputs,
+                           t: wp.float64, inputs_out: wp.array2d[scalar]):
+        a = animated.start[world] + first
+        while a < animated.start[world + 1]:
+            e = animated.order[a]
+            value, rate = track_sample(tracks, animated.track[e], t)
+            slot = animated.slot[e]
+            for c in range(animated.width[e]):
+                inputs_out[world, slot + c] = scalar(value[c])
+            a += stride
+
+    return write_world_inputs
+
+
 @functools.cache
 def apply_input_tracks_kernel(scalar: type):
     """Kernel writing every animated input at the time of a state: thread a evaluates track

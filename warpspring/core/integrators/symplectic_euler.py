@@ -5,6 +5,7 @@ evaluated once (``kernels/sweep.py``). With scattered springs it is force evalua
 
 from __future__ import annotations
 
+import functools
 
 import warp as wp
 
@@ -13,6 +14,7 @@ from ...kernels.integrators import (symplectic_euler_blocks_kernel, symplectic_e
                                      symplectic_euler_update_kernel)
 from ...kernels.shapes import NO_CONTACTS
 from ...kernels.sweep import sweeps, symplectic_euler_sweep_kernel
+from ...kernels.tracks import WorldInputs
 from ..contacts import update_shape_frames
 from ..forces import eval_forces, force_inputs
 from ..kinematics import apply_kinematics
@@ -35,7 +37,7 @@ class SymplecticEuler(Integrator):
             give at least :attr:`ONE_LAUNCH_THREADS_PER_SM` threads per multiprocessor (1.02-1.18×). ``True``:
             wherever the scene allows it (on the CPU too, one thread per world). ``False``: never. The scene allows it
             with gathered springs, colliders that do not move, no stabiliser, contact stage, triangle contacts or
-            self-collision, no animated input, no driven pin, no family with time-dependent arrays (a
+            self-collision, no driven pin, no family with time-dependent arrays (a
             precomputed wind's or tets', an animated handle's: ``ElementFamily.time_dependent``), no held worlds, and step hooks that work at the frame's end alone (the
             default guard does). On the CPU it runs the per-particle step (``cpu_sweep`` does not apply).
         cpu_sweep: on the CPU, with gathered springs, step each world in one thread sweeping its particles in
@@ -75,7 +77,7 @@ class SymplecticEuler(Integrator):
             return None
         if not (model.spring_gather or model.spring_count == 0) or not self.finish_step.only_contacts:
             return None
-        if model.shape_moving or model.input_tracks is not None or model.holds_worlds:
+        if model.shape_moving or model.holds_worlds:
             return None
         if model.pin_groups is not None and model.pin_groups.driven:
             return None
@@ -103,9 +105,10 @@ class SymplecticEuler(Integrator):
             self._barrier.zero_()
         features = model.force_features(control)
         contacts = model.contact_features()
+        animated = model.input_tracks
         flat_launch(
             symplectic_euler_frame_kernel(model.scalar, features, contacts,
-                                          None if self.power is None else self.power.modes),
+                                          None if self.power is None else self.power.modes, animated is not None),
             inputs=[
                 model.particle_count,
                 lanes,
@@ -115,11 +118,13 @@ class SymplecticEuler(Integrator):
                 model.particle_radius,
                 model.shape_arrays,
                 *force_inputs(model, control, features),
+                model.track_table.table,
+                _no_world_inputs(str(model.device)) if animated is None else animated.by_world,
                 steps,
                 *step_arguments(model.scalar, dt),
             ],
-            outputs=[state_a.particle_q, state_a.particle_qd, state_b.particle_q, state_b.particle_qd, state_a.time,
-                     None if self.power is None else self.power.sums, self._barrier],
+            outputs=[model.inputs, state_a.particle_q, state_a.particle_qd, state_b.particle_q, state_b.particle_qd,
+                     state_a.time, None if self.power is None else self.power.sums, self._barrier],
             dim=model.world_count * lanes * blocks, block_dim=lanes, device=model.device,
         )
         if steps % 2:
@@ -202,3 +207,12 @@ class SymplecticEuler(Integrator):
         if not fused:
             self.finish_step(state_out, dt, state_in)
         self.hold_worlds(state_in, state_out)
+
+
+@functools.cache
+def _no_world_inputs(device: str) -> WorldInputs:
+    """The frame kernel's animated inputs where none is animated (never read: empty arrays, one world's start)."""
+    empty = WorldInputs()
+    empty.track = empty.slot = empty.width = empty.order = wp.zeros(0, dtype=wp.int32, device=device)
+    empty.start = wp.zeros(2, dtype=wp.int32, device=device)
+    return empty
