@@ -213,3 +213,41 @@ def test_animated_inputs_are_evaluated_inside_the_one_launch_frame(device):
                                    atol=4 * 126 * np.finfo(np.float32).eps * np.abs(plain[0]).max())
     q = fused[0].reshape(2, -1, 3)
     assert np.abs(q[1] - q[0]).max() > 1e-3  # world 1's turning gravity moved it apart from world 0
+
+
+def test_driven_pins_move_inside_the_one_launch_frame(device):
+    """Pins driven by tracks (one edge turned and carried) and through Control (the other edge sent to a target each
+    frame) are put on their prescribed motion inside the one-launch frame by the lane that steps them, at each
+    substep's end, as the per-substep path's kinematics pass puts them: the same positions and velocities (to the
+    last bit on the CPU), the pins exactly where their motion says, with the default guard on."""
+    def wrung(one_launch):
+        builder = ws.ModelBuilder()
+        spring = ws.SpringMaterial(400.0, 0.05)
+        ids = builder.add_cloth_grid(nx=12, ny=4, spacing=0.03, particle_mass=0.02, structural=spring, shear=spring,
+                                     bend=ws.SpringMaterial(40.0, 0.005)).reshape(4, 12)
+        builder.add_pin_group(ids[:, 0], rotation=ws.Track.rotation([0.0, 0.3], axis=(1, 0, 0), degrees=[0, 90]),
+                              translation=ws.Track([0.0, 0.3], [(0, 0, 0), (0.05, 0, 0)], interpolation="smooth"),
+                              name="turned")
+        builder.add_pin_group(ids[:, -1], name="sent")
+        model = builder.finalize(device, worlds=2, spring_evaluation="gather")
+        integrator = ws.SymplecticEuler(model, one_launch=one_launch, cpu_sweep=False)
+        sim = ws.Simulator(model, integrator=integrator, substeps=8)
+        sent = model.particle_q.numpy()[ids[:, -1]]
+        for frame in range(15):
+            sim.set_pin_targets("sent", sent + (0.0, 0.0, 0.004 * (frame + 1)))
+            sim.step_frame()
+        wp.synchronize_device(model.device)
+        assert (integrator.frame_shape(sim.control, 8) is not None) == one_launch
+        return sim, ids, sent
+
+    (fused, ids, sent), (plain, _, _) = wrung(True), wrung(False)
+    for name in ("particle_q", "particle_qd"):
+        a, b = getattr(fused.state, name).numpy(), getattr(plain.state, name).numpy()
+        if device == "cpu":
+            np.testing.assert_array_equal(a, b, err_msg=name)
+        else:
+            np.testing.assert_allclose(a, b, rtol=0, atol=4 * 120 * np.finfo(np.float32).eps * np.abs(b).max(),
+                                       err_msg=name)
+    q = fused.state.particle_q.numpy().reshape(2, -1, 3)
+    np.testing.assert_allclose(q[:, ids[:, -1]], np.broadcast_to(sent + (0.0, 0.0, 0.06), (2, 4, 3)), atol=1e-6)
+    assert fused.guard.reports() == plain.guard.reports() == []

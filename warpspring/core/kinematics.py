@@ -110,6 +110,9 @@ class PinGroupTable:
         rows = world_tracks if world_tracks is not None else [[(g.translation, g.rotation) for g in self.groups]]
         _set_track_rows(table, rows, track_index, device)
         table.pivot = wp.array(np.array([g.pivot for g in self.groups]).reshape(-1, 3), dtype=wp.vec3d, device=device)
+        entry = np.full(len(rest), -1, dtype=np.int32)
+        entry[self.kinematic] = np.arange(len(self.kinematic), dtype=np.int32)
+        table.entry = wp.array(entry, dtype=wp.int32, device=device)
         self.table = table
         self.rest = rest[self.kinematic]
 
@@ -119,7 +122,7 @@ class PinGroupTable:
         table = copy.copy(self)
         table.world_tracks = world_tracks
         struct = PinGroups()
-        for name in ("particle", "group", "rest", "pivot"):
+        for name in ("particle", "group", "rest", "pivot", "entry"):
             setattr(struct, name, getattr(self.table, name))
         _set_track_rows(struct, world_tracks, track_index, device)
         table.table = struct

@@ -31,6 +31,7 @@ from .integrators import symplectic_euler_particle_energy_func, symplectic_euler
 from .linalg import block_barrier
 from .precision import vec3_type
 from .shapes import ContactFeatures, shapes_type
+from .kinematics import PinGroups, PinTargets, is_kinematic, prescribed_func
 from .tracks import Tracks, WorldInputs, world_inputs_func
 from .flatten import flat_kernel
 
@@ -61,14 +62,17 @@ def wait_for_arrivals(barrier: wp.array[wp.int32], world: int, target: int):
     ...
 
 
-#: The leaves of the frame kernel's animated-input parameters (moved last where no input is animated).
-ANIMATED_LEAVES = (tuple(f"tracks__{name}" for name in Tracks.vars)
-                   + tuple(f"animated_inputs__{name}" for name in WorldInputs.vars))
+#: The leaves of the frame kernel's animated-input and pin parameters (moved last where unread).
+ANIMATED_LEAVES = tuple(f"animated_inputs__{name}" for name in WorldInputs.vars)
+TRACK_LEAVES = tuple(f"tracks__{name}" for name in Tracks.vars)
+PIN_LEAVES = tuple(f"groups__{name}" for name in PinGroups.vars)
+TARGET_LEAVES = tuple(f"pin_targets__{name}" for name in PinTargets.vars)
 
 
 @functools.cache
 def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
-                                  power: tuple | None = None, animated: bool = False):
+                                  power: tuple | None = None, animated: bool = False, driven: bool = False,
+                                  targets: bool = False):
     """``steps`` fused symplectic Euler steps of every world, ``blocks`` blocks of ``lanes`` threads per world
     (module docstring); ``barrier_in_out`` one counter per world, zero at the launch where ``blocks`` > 1.
     Substep k reads buffer A when k is even and writes B, and the other way round when k is odd; an odd
@@ -77,7 +81,10 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
     register from the launch's start and the world's first lane writes it at the end. With ``animated``, each
     substep first writes the world's animated inputs at its time into ``inputs_out`` (the very table ``inputs``
     is: every block of the world its own copy of the same values, ``tracks.world_inputs_func``), as the per-substep
-    path's ``evaluate_input_tracks`` does before each step, and its lanes meet before stepping."""
+    path's ``evaluate_input_tracks`` does before each step, and its lanes meet before stepping. With ``driven``,
+    the lane that steps a kinematic particle of a pin group then puts it on its prescribed motion at the substep's
+    end (``kinematics.prescribed_func``: ``pin_step`` [s] the step in float64, as ``apply_kinematics`` takes it;
+    ``targets``: groups driven through Control read ``pin_targets``)."""
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
     counted = power is not None
@@ -89,13 +96,15 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
     step_particle = symplectic_euler_particle_func(scalar, features, contacts, None)
     step_energy = symplectic_euler_particle_energy_func(scalar, features, contacts, power) if counted else None
     write_world_inputs = world_inputs_func(scalar)
+    prescribed = prescribed_func(scalar, targets)
 
     @wp.func
     def substep(world: int, lane: int, lanes: int, particle_count: int,
                 particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
                 particle_radius: wp.array[scalar], shapes: Shapes, particle_mass: wp.array2d[scalar],
                 element_arrays: Elements, inputs: wp.array2d[scalar], particle_force_ext: wp.array[vec3],
-                q_in: wp.array[vec3], qd_in: wp.array[vec3], h: scalar,
+                q_in: wp.array[vec3], qd_in: wp.array[vec3], h: scalar, groups: PinGroups, tracks: Tracks,
+                pin_targets: PinTargets, clock: wp.float64, pin_step: wp.float64,
                 q_out: wp.array[vec3], qd_out: wp.array[vec3], power_in_out: wp.array[Sums]):
         """The lane's particles stepped; with ``power``, what their dampers and drag took out and the loads from
         outside put in over the step [J] (float64), returned for the lane to keep in registers over the frame."""
@@ -115,13 +124,19 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
                 x, v = step_particle(world, i, p, base, particle_flags, particle_inv_mass, particle_radius, shapes,
                                      particle_mass, element_arrays, inputs, particle_force_ext, q_in, qd_in, h,
                                      power_in_out)
+            if wp.static(driven):  # a pin on its prescribed motion, as ``apply_kinematics`` puts it after a step
+                k = groups.entry[i]
+                if k >= 0 and is_kinematic(particle_flags[p]):
+                    x, v = prescribed(world, k, q_in[p], qd_in[p], clock, pin_step, groups, tracks, pin_targets)
             q_out[p] = x
             qd_out[p] = v
             i += lanes
         return taken, worked
 
     @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
-                 last=contacts.idle() + composed.last("element_arrays") + (() if animated else ANIMATED_LEAVES))
+                 last=(contacts.idle() + composed.last("element_arrays") + (() if animated else ANIMATED_LEAVES)
+                       + (() if animated or driven else TRACK_LEAVES) + (() if driven else PIN_LEAVES)
+                       + (() if targets else TARGET_LEAVES)))
     def symplectic_euler_frame(
         # Model:
         particle_count: int,
@@ -137,13 +152,17 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         inputs: wp.array2d[scalar],
         # Control:
         particle_force_ext: wp.array[vec3],
-        # Model, the animated inputs (read with ``animated`` only):
+        # Model, the animated inputs and the pin groups (read with ``animated``, ``driven`` only):
         tracks: Tracks,
         animated_inputs: WorldInputs,
+        groups: PinGroups,
+        # Control (read with ``targets`` only):
+        pin_targets: PinTargets,
         # Step:
         steps: int,
         dt: scalar,
         dt_rest: scalar,
+        pin_step: wp.float64,
         # In/out:
         # (the input table, written with ``animated`` only; the two state buffers, the worlds' clocks [s], the
         # guard's power sums [J], read with ``power`` only)
@@ -171,13 +190,13 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
             if k % 2 == 0:
                 step_taken, step_worked = substep(
                     world, lane, stride, particle_count, particle_flags, particle_inv_mass, particle_radius, shapes,
-                    particle_mass, element_arrays, inputs, particle_force_ext, q_a_in_out, qd_a_in_out, dt, q_b_in_out,
-                    qd_b_in_out, power_in_out)
+                    particle_mass, element_arrays, inputs, particle_force_ext, q_a_in_out, qd_a_in_out, dt, groups,
+                    tracks, pin_targets, clock, pin_step, q_b_in_out, qd_b_in_out, power_in_out)
             else:
                 step_taken, step_worked = substep(
                     world, lane, stride, particle_count, particle_flags, particle_inv_mass, particle_radius, shapes,
-                    particle_mass, element_arrays, inputs, particle_force_ext, q_b_in_out, qd_b_in_out, dt, q_a_in_out,
-                    qd_a_in_out, power_in_out)
+                    particle_mass, element_arrays, inputs, particle_force_ext, q_b_in_out, qd_b_in_out, dt, groups,
+                    tracks, pin_targets, clock, pin_step, q_a_in_out, qd_a_in_out, power_in_out)
             taken += step_taken
             worked += step_worked
             clock = clock + (wp.float64(dt) + wp.float64(dt_rest))

@@ -72,6 +72,8 @@ class PinGroups:
     #   world % rows (one row for all worlds, or one per world)
     rotation_track: wp.array2d[wp.int32]  # shape [rows, group_count], track of φ(t) [rad], or -1; same rows
     pivot: wp.array[wp.vec3d]  # [m], shape [group_count], the pivot p of the group's rotation
+    entry: wp.array[wp.int32]  # shape [particle_count], each particle's index in ``particle``, or -1 (not kinematic
+    #   at finalize): for a kernel that steps a particle and then puts it on its prescribed motion itself
 
 
 @wp.struct
@@ -113,12 +115,56 @@ def angular_velocity(phi: wp.vec3d, phi_rate: wp.vec3d) -> wp.vec3d:
 
 
 @functools.cache
+def prescribed_func(scalar: type, targets: bool):
+    """``prescribed(world, k, q, qd, t_in, s, groups, tracks, pin_targets) -> (x, v)``: the position [m] and velocity
+    [m/s] at time t_in + s of kinematic entry k of world ``world`` (``groups.particle[k]``), at ``q``, ``qd`` at
+    t_in (``kinematics_kernel``'s rule, for the callers that step particles themselves)."""
+    vec3 = vec3_type(scalar)
+
+    @wp.func
+    def prescribed(world: int, k: int, q: vec3, qd: vec3, t_in: wp.float64, s: wp.float64, groups: PinGroups,
+                   tracks: Tracks, pin_targets: PinTargets):
+        g = groups.group[k]
+        if g == NO_GROUP:
+            # On with its velocity, rounded as the integrators' own updates x + h v round.
+            return q + scalar(s) * qd, qd
+        x = wp.vec3d(q)
+        v = wp.vec3d(wp.float64(0.0))
+        translation = groups.translation_track[wp.min(world, groups.translation_track.shape[0] - 1), g]
+        rotation = groups.rotation_track[wp.min(world, groups.rotation_track.shape[0] - 1), g]
+        if translation >= 0 or rotation >= 0:
+            pivot = groups.pivot[g]
+            r = groups.rest[k] - pivot
+            if rotation >= 0:
+                phi, phi_rate = track_sample(tracks, rotation, t_in + s)
+                r = rotate_by_vector(phi, r)
+                v = wp.cross(angular_velocity(phi, phi_rate), r)
+            x = pivot + r
+            if translation >= 0:
+                offset, offset_rate = track_sample(tracks, translation, t_in + s)
+                x = x + offset
+                v = v + offset_rate
+        elif wp.static(targets):
+            # Driven through Control: a straight line to the target, reached at the target's time; at
+            # rest where it is before the first target and after the last.
+            remaining = pin_targets.time[world, g] - t_in
+            if remaining > wp.float64(TARGET_TIME_TOLERANCE):
+                target = pin_targets.position[world, k]
+                v = (target - x) / remaining
+                x = wp.where(s >= remaining - wp.float64(TARGET_TIME_TOLERANCE), target, x + s * v)
+        return vec3(x), vec3(v)
+
+    return prescribed
+
+
+@functools.cache
 def kinematics_kernel(scalar: type, targets: bool):
     """Kernel writing the position and velocity of every kinematic particle of every world at time t + s,
     from a state at time t (``time_in[world]``), with s = ``fraction`` · the world's step (``step[world %
     len(step)]``). Launch over [world_count, kinematic_count]. ``targets``: whether groups driven through
     ``Control`` read its targets (otherwise they rest where they are)."""
     vec3 = vec3_type(scalar)
+    prescribed = prescribed_func(scalar, targets)
 
     @wp.kernel(module="unique", enable_backward=False)
     def kinematics(
@@ -143,41 +189,10 @@ def kinematics_kernel(scalar: type, targets: bool):
         i = world * particle_count + groups.particle[k]
         if not is_kinematic(particle_flags[i]):
             return  # released since finalize: the integrators move it now
-        g = groups.group[k]
-        t_in = time_in[world]
         s = fraction * step[wp.min(world, step.shape[0] - 1)]
-        q = particle_q_in[i]
-        qd = particle_qd_in[i]
-        if g == NO_GROUP:
-            # On with its velocity, rounded as the integrators' own updates x + h v round.
-            particle_q_out[i] = q + scalar(s) * qd
-            particle_qd_out[i] = qd
-        else:
-            x = wp.vec3d(q)
-            v = wp.vec3d(wp.float64(0.0))
-            translation = groups.translation_track[wp.min(world, groups.translation_track.shape[0] - 1), g]
-            rotation = groups.rotation_track[wp.min(world, groups.rotation_track.shape[0] - 1), g]
-            if translation >= 0 or rotation >= 0:
-                pivot = groups.pivot[g]
-                r = groups.rest[k] - pivot
-                if rotation >= 0:
-                    phi, phi_rate = track_sample(tracks, rotation, t_in + s)
-                    r = rotate_by_vector(phi, r)
-                    v = wp.cross(angular_velocity(phi, phi_rate), r)
-                x = pivot + r
-                if translation >= 0:
-                    offset, offset_rate = track_sample(tracks, translation, t_in + s)
-                    x = x + offset
-                    v = v + offset_rate
-            elif wp.static(targets):
-                # Driven through Control: a straight line to the target, reached at the target's time; at
-                # rest where it is before the first target and after the last.
-                remaining = pin_targets.time[world, g] - t_in
-                if remaining > wp.float64(TARGET_TIME_TOLERANCE):
-                    target = pin_targets.position[world, k]
-                    v = (target - x) / remaining
-                    x = wp.where(s >= remaining - wp.float64(TARGET_TIME_TOLERANCE), target, x + s * v)
-            particle_q_out[i] = vec3(x)
-            particle_qd_out[i] = vec3(v)
+        x, v = prescribed(world, k, particle_q_in[i], particle_qd_in[i], time_in[world], s, groups, tracks,
+                          pin_targets)
+        particle_q_out[i] = x
+        particle_qd_out[i] = v
 
     return kinematics

@@ -14,10 +14,11 @@ from ...kernels.integrators import (symplectic_euler_blocks_kernel, symplectic_e
                                      symplectic_euler_update_kernel)
 from ...kernels.shapes import NO_CONTACTS
 from ...kernels.sweep import sweeps, symplectic_euler_sweep_kernel
+from ...kernels.kinematics import PinGroups
 from ...kernels.tracks import WorldInputs
 from ..contacts import update_shape_frames
 from ..forces import eval_forces, force_inputs
-from ..kinematics import apply_kinematics
+from ..kinematics import _NO_TARGETS, apply_kinematics
 from ..state import State
 from ..control import Control
 from ..tracks import evaluate_input_tracks
@@ -37,7 +38,7 @@ class SymplecticEuler(Integrator):
             give at least :attr:`ONE_LAUNCH_THREADS_PER_SM` threads per multiprocessor (1.02-1.18×). ``True``:
             wherever the scene allows it (on the CPU too, one thread per world). ``False``: never. The scene allows it
             with gathered springs, colliders that do not move, no stabiliser, contact stage, triangle contacts or
-            self-collision, no driven pin, no family with time-dependent arrays (a
+            self-collision, no family with time-dependent arrays (a
             precomputed wind's or tets', an animated handle's: ``ElementFamily.time_dependent``), no held worlds, and step hooks that work at the frame's end alone (the
             default guard does). On the CPU it runs the per-particle step (``cpu_sweep`` does not apply).
         cpu_sweep: on the CPU, with gathered springs, step each world in one thread sweeping its particles in
@@ -79,8 +80,6 @@ class SymplecticEuler(Integrator):
             return None
         if model.shape_moving or model.holds_worlds:
             return None
-        if model.pin_groups is not None and model.pin_groups.driven:
-            return None
         if any(family.time_dependent(model) for family in model.extra_families):
             return None
         if model.device.is_cpu:
@@ -106,9 +105,12 @@ class SymplecticEuler(Integrator):
         features = model.force_features(control)
         contacts = model.contact_features()
         animated = model.input_tracks
+        pins = model.pin_groups if model.pin_groups is not None and model.pin_groups.driven else None
+        targets = pins is not None and control is not None and control.pin_targets is not None
         flat_launch(
             symplectic_euler_frame_kernel(model.scalar, features, contacts,
-                                          None if self.power is None else self.power.modes, animated is not None),
+                                          None if self.power is None else self.power.modes, animated is not None,
+                                          pins is not None, targets),
             inputs=[
                 model.particle_count,
                 lanes,
@@ -120,8 +122,11 @@ class SymplecticEuler(Integrator):
                 *force_inputs(model, control, features),
                 model.track_table.table,
                 _no_world_inputs(str(model.device)) if animated is None else animated.by_world,
+                _NO_PINS if pins is None else pins.table,
+                control.pin_targets if targets else _NO_TARGETS,
                 steps,
                 *step_arguments(model.scalar, dt),
+                wp.float64(dt),
             ],
             outputs=[model.inputs, state_a.particle_q, state_a.particle_qd, state_b.particle_q, state_b.particle_qd,
                      state_a.time, None if self.power is None else self.power.sums, self._barrier],
@@ -216,3 +221,7 @@ def _no_world_inputs(device: str) -> WorldInputs:
     empty.track = empty.slot = empty.width = empty.order = wp.zeros(0, dtype=wp.int32, device=device)
     empty.start = wp.zeros(2, dtype=wp.int32, device=device)
     return empty
+
+
+#: The frame kernel's pin groups where none is driven (never read).
+_NO_PINS = PinGroups()
