@@ -251,3 +251,29 @@ def test_driven_pins_move_inside_the_one_launch_frame(device):
     q = fused.state.particle_q.numpy().reshape(2, -1, 3)
     np.testing.assert_allclose(q[:, ids[:, -1]], np.broadcast_to(sent + (0.0, 0.0, 0.06), (2, 4, 3)), atol=1e-6)
     assert fused.guard.reports() == plain.guard.reports() == []
+
+
+def test_moving_colliders_move_inside_the_one_launch_frame(device):
+    """A collider on a track, its contacts fused into the update (``contact_stage=False``; by default a moving
+    collider takes the contact stage, a pass of its own, and the frame stays one launch per substep): each substep's
+    lanes write the world's colliders' frames at its start and end, as ``update_shape_frames`` does before each
+    step, and the frame is the per-substep frame (to the last bit on the CPU)."""
+    assert ws.SymplecticEuler(scene(device, moving=True), one_launch=True).frame_shape(None, 8) is None
+    results = []
+    for one_launch in (True, False):
+        model = scene(device, moving=True, contact_stage=False)
+        integrator = ws.SymplecticEuler(model, one_launch=one_launch, cpu_sweep=False)
+        sim = ws.Simulator(model, integrator=integrator, substeps=8)
+        for _ in range(12):
+            sim.step_frame()
+        wp.synchronize_device(model.device)
+        assert (integrator.frame_shape(sim.control, 8) is not None) == one_launch
+        results.append([sim.state.particle_q.numpy(), model.shape_arrays.transform_end.numpy()])
+    (q_fused, ends_fused), (q_plain, ends_plain) = results
+    np.testing.assert_array_equal(ends_fused, ends_plain)  # the frames the last substep read
+    assert np.abs(ends_fused[:, 2, 0] - 0.3 - 0.02).max() < 1e-6  # the small sphere carried 0.2 s × 0.1 m/s along x
+    if device == "cpu":
+        np.testing.assert_array_equal(q_fused, q_plain)
+    else:
+        np.testing.assert_allclose(q_fused, q_plain, rtol=0,
+                                   atol=4 * 96 * np.finfo(np.float32).eps * np.abs(q_plain).max())

@@ -32,6 +32,7 @@ from .linalg import block_barrier
 from .precision import vec3_type
 from .shapes import ContactFeatures, shapes_type
 from .kinematics import PinGroups, PinTargets, is_kinematic, prescribed_func
+from .swept import shape_motion_func
 from .tracks import Tracks, WorldInputs, world_inputs_func
 from .flatten import flat_kernel
 
@@ -72,7 +73,7 @@ TARGET_LEAVES = tuple(f"pin_targets__{name}" for name in PinTargets.vars)
 @functools.cache
 def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
                                   power: tuple | None = None, animated: bool = False, driven: bool = False,
-                                  targets: bool = False):
+                                  targets: bool = False, moving: bool = False):
     """``steps`` fused symplectic Euler steps of every world, ``blocks`` blocks of ``lanes`` threads per world
     (module docstring); ``barrier_in_out`` one counter per world, zero at the launch where ``blocks`` > 1.
     Substep k reads buffer A when k is even and writes B, and the other way round when k is odd; an odd
@@ -83,8 +84,11 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
     is: every block of the world its own copy of the same values, ``tracks.world_inputs_func``), as the per-substep
     path's ``evaluate_input_tracks`` does before each step, and its lanes meet before stepping. With ``driven``,
     the lane that steps a kinematic particle of a pin group then puts it on its prescribed motion at the substep's
-    end (``kinematics.prescribed_func``: ``pin_step`` [s] the step in float64, as ``apply_kinematics`` takes it;
-    ``targets``: groups driven through Control read ``pin_targets``)."""
+    end (``kinematics.prescribed_func``: ``step_f64`` [s] the step in float64, as ``apply_kinematics`` and
+    ``update_shape_frames`` take it;
+    ``targets``: groups driven through Control read ``pin_targets``). With ``moving``, each substep first writes
+    the world's colliders' frames at its start and end into ``shapes_out`` (the very struct ``shapes`` is, each
+    block its own copy, ``swept.shape_motion_func``), as the per-substep path's ``update_shape_frames`` does."""
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
     counted = power is not None
@@ -97,6 +101,7 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
     step_energy = symplectic_euler_particle_energy_func(scalar, features, contacts, power) if counted else None
     write_world_inputs = world_inputs_func(scalar)
     prescribed = prescribed_func(scalar, targets)
+    move_shape = shape_motion_func(scalar)
 
     @wp.func
     def substep(world: int, lane: int, lanes: int, particle_count: int,
@@ -104,7 +109,7 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
                 particle_radius: wp.array[scalar], shapes: Shapes, particle_mass: wp.array2d[scalar],
                 element_arrays: Elements, inputs: wp.array2d[scalar], particle_force_ext: wp.array[vec3],
                 q_in: wp.array[vec3], qd_in: wp.array[vec3], h: scalar, groups: PinGroups, tracks: Tracks,
-                pin_targets: PinTargets, clock: wp.float64, pin_step: wp.float64,
+                pin_targets: PinTargets, clock: wp.float64, step_f64: wp.float64,
                 q_out: wp.array[vec3], qd_out: wp.array[vec3], power_in_out: wp.array[Sums]):
         """The lane's particles stepped; with ``power``, what their dampers and drag took out and the loads from
         outside put in over the step [J] (float64), returned for the lane to keep in registers over the frame."""
@@ -127,7 +132,7 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
             if wp.static(driven):  # a pin on its prescribed motion, as ``apply_kinematics`` puts it after a step
                 k = groups.entry[i]
                 if k >= 0 and is_kinematic(particle_flags[p]):
-                    x, v = prescribed(world, k, q_in[p], qd_in[p], clock, pin_step, groups, tracks, pin_targets)
+                    x, v = prescribed(world, k, q_in[p], qd_in[p], clock, step_f64, groups, tracks, pin_targets)
             q_out[p] = x
             qd_out[p] = v
             i += lanes
@@ -135,8 +140,10 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
 
     @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
                  last=(contacts.idle() + composed.last("element_arrays") + (() if animated else ANIMATED_LEAVES)
-                       + (() if animated or driven else TRACK_LEAVES) + (() if driven else PIN_LEAVES)
-                       + (() if targets else TARGET_LEAVES)))
+                       + (() if animated or driven or moving else TRACK_LEAVES) + (() if driven else PIN_LEAVES)
+                       + (() if targets else TARGET_LEAVES)
+                       + (() if moving else ("shape_rest", "shape_translation_track", "shape_rotation_track")
+                          + tuple(f"shapes_out__{name}" for name in Shapes.vars))))
     def symplectic_euler_frame(
         # Model:
         particle_count: int,
@@ -156,17 +163,22 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         tracks: Tracks,
         animated_inputs: WorldInputs,
         groups: PinGroups,
+        # Model, the colliders' motion (read with ``moving`` only):
+        shape_rest: wp.array[wp.transformd],
+        shape_translation_track: wp.array[wp.int32],
+        shape_rotation_track: wp.array[wp.int32],
         # Control (read with ``targets`` only):
         pin_targets: PinTargets,
         # Step:
         steps: int,
         dt: scalar,
         dt_rest: scalar,
-        pin_step: wp.float64,
+        step_f64: wp.float64,
         # In/out:
-        # (the input table, written with ``animated`` only; the two state buffers, the worlds' clocks [s], the
-        # guard's power sums [J], read with ``power`` only)
+        # (the input table and the colliders' frames, written with ``animated``, ``moving`` only; the two state
+        # buffers, the worlds' clocks [s], the guard's power sums [J], read with ``power`` only)
         inputs_out: wp.array2d[scalar],
+        shapes_out: Shapes,
         q_a_in_out: wp.array[vec3],
         qd_a_in_out: wp.array[vec3],
         q_b_in_out: wp.array[vec3],
@@ -186,17 +198,24 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         while k < steps:
             if wp.static(animated):
                 write_world_inputs(world, lane % lanes, lanes, tracks, animated_inputs, clock, inputs_out)
-                block_barrier()  # the block's lanes read the inputs its lanes wrote
+            if wp.static(moving):
+                c = lane % lanes
+                while c < shape_rest.shape[0]:
+                    move_shape(world, c, shape_rest, shape_translation_track, shape_rotation_track, tracks,
+                               clock + step_f64, step_f64, shapes_out)
+                    c += lanes
+            if wp.static(animated or moving):
+                block_barrier()  # the block's lanes read the inputs and frames its lanes wrote
             if k % 2 == 0:
                 step_taken, step_worked = substep(
                     world, lane, stride, particle_count, particle_flags, particle_inv_mass, particle_radius, shapes,
                     particle_mass, element_arrays, inputs, particle_force_ext, q_a_in_out, qd_a_in_out, dt, groups,
-                    tracks, pin_targets, clock, pin_step, q_b_in_out, qd_b_in_out, power_in_out)
+                    tracks, pin_targets, clock, step_f64, q_b_in_out, qd_b_in_out, power_in_out)
             else:
                 step_taken, step_worked = substep(
                     world, lane, stride, particle_count, particle_flags, particle_inv_mass, particle_radius, shapes,
                     particle_mass, element_arrays, inputs, particle_force_ext, q_b_in_out, qd_b_in_out, dt, groups,
-                    tracks, pin_targets, clock, pin_step, q_a_in_out, qd_a_in_out, power_in_out)
+                    tracks, pin_targets, clock, step_f64, q_a_in_out, qd_a_in_out, power_in_out)
             taken += step_taken
             worked += step_worked
             clock = clock + (wp.float64(dt) + wp.float64(dt_rest))

@@ -257,10 +257,10 @@ def shape_frame(
 
 
 @functools.cache
-def shape_motion_kernel(scalar: type):
-    """Kernel writing every shape's frame at the start t₁ - dt and end t₁ = ``time[world]`` + ``ahead`` [s] of
-    a step (each world at its own time). Launch over [world_count, shape_count]; shapes without tracks keep
-    their rest frame."""
+def shape_motion_func(scalar: type):
+    """``move_shape(world, s, rest, translation_track, rotation_track, tracks, t1, dt, shapes_out)``: shape s's
+    frames in world ``world`` at the start t₁ - dt and the end t₁ [s] of a step (``shape_motion_kernel``'s, for a
+    kernel that steps a world's substeps itself)."""
     vec3 = vec3_type(scalar)
     transform = transform_type(scalar)
     quat = wp.types.quaternion(dtype=scalar)
@@ -269,6 +269,26 @@ def shape_motion_kernel(scalar: type):
     @wp.func
     def rounded(X: wp.transformd) -> transform:
         return transform(vec3(wp.transform_get_translation(X)), quat(wp.transform_get_rotation(X)))
+
+    @wp.func
+    def move_shape(world: int, s: int, rest: wp.array[wp.transformd], translation_track: wp.array[wp.int32],
+                   rotation_track: wp.array[wp.int32], tracks: Tracks, t1: wp.float64, dt: wp.float64,
+                   shapes_out: Shapes):
+        X0 = shape_frame(tracks, rest[s], translation_track[s], rotation_track[s], t1 - dt)
+        X1 = shape_frame(tracks, rest[s], translation_track[s], rotation_track[s], t1)
+        shapes_out.transform_start[world, s] = rounded(X0)
+        shapes_out.transform_end[world, s] = rounded(X1)
+
+    return move_shape
+
+
+@functools.cache
+def shape_motion_kernel(scalar: type):
+    """Kernel writing every shape's frame at the start t₁ - dt and end t₁ = ``time[world]`` + ``ahead`` [s] of
+    a step (each world at its own time). Launch over [world_count, shape_count]; shapes without tracks keep
+    their rest frame."""
+    Shapes = shapes_type(scalar)
+    move_shape = shape_motion_func(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
     def shape_motion(
@@ -285,10 +305,6 @@ def shape_motion_kernel(scalar: type):
         shapes_out: Shapes,
     ):
         world, s = wp.tid()
-        t1 = time[world] + ahead
-        X0 = shape_frame(tracks, rest[s], translation_track[s], rotation_track[s], t1 - dt)
-        X1 = shape_frame(tracks, rest[s], translation_track[s], rotation_track[s], t1)
-        shapes_out.transform_start[world, s] = rounded(X0)
-        shapes_out.transform_end[world, s] = rounded(X1)
+        move_shape(world, s, rest, translation_track, rotation_track, tracks, time[world] + ahead, dt, shapes_out)
 
     return shape_motion

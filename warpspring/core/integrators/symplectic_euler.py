@@ -37,7 +37,7 @@ class SymplecticEuler(Integrator):
             (one world up to 128² on an H200: 1.36-1.51× at 32²-128²), else one block per world where the worlds
             give at least :attr:`ONE_LAUNCH_THREADS_PER_SM` threads per multiprocessor (1.02-1.18×). ``True``:
             wherever the scene allows it (on the CPU too, one thread per world). ``False``: never. The scene allows it
-            with gathered springs, colliders that do not move, no stabiliser, contact stage, triangle contacts or
+            with gathered springs, analytic colliders (moving ones too), no stabiliser, contact stage, triangle contacts or
             self-collision, no family with time-dependent arrays (a
             precomputed wind's or tets', an animated handle's: ``ElementFamily.time_dependent``), no held worlds, and step hooks that work at the frame's end alone (the
             default guard does). On the CPU it runs the per-particle step (``cpu_sweep`` does not apply).
@@ -78,7 +78,7 @@ class SymplecticEuler(Integrator):
             return None
         if not (model.spring_gather or model.spring_count == 0) or not self.finish_step.only_contacts:
             return None
-        if model.shape_moving or model.holds_worlds:
+        if model.holds_worlds:
             return None
         if any(family.time_dependent(model) for family in model.extra_families):
             return None
@@ -110,7 +110,7 @@ class SymplecticEuler(Integrator):
         flat_launch(
             symplectic_euler_frame_kernel(model.scalar, features, contacts,
                                           None if self.power is None else self.power.modes, animated is not None,
-                                          pins is not None, targets),
+                                          pins is not None, targets, bool(model.shape_moving)),
             inputs=[
                 model.particle_count,
                 lanes,
@@ -123,12 +123,15 @@ class SymplecticEuler(Integrator):
                 model.track_table.table,
                 _no_world_inputs(str(model.device)) if animated is None else animated.by_world,
                 _NO_PINS if pins is None else pins.table,
+                model.shape_rest,
+                model.shape_translation_track,
+                model.shape_rotation_track,
                 control.pin_targets if targets else _NO_TARGETS,
                 steps,
                 *step_arguments(model.scalar, dt),
                 wp.float64(dt),
             ],
-            outputs=[model.inputs, state_a.particle_q, state_a.particle_qd, state_b.particle_q, state_b.particle_qd,
+            outputs=[model.inputs, model.shape_arrays, state_a.particle_q, state_a.particle_qd, state_b.particle_q, state_b.particle_qd,
                      state_a.time, None if self.power is None else self.power.sums, self._barrier],
             dim=model.world_count * lanes * blocks, block_dim=lanes, device=model.device,
         )
