@@ -11,6 +11,10 @@ default ``SymplecticEuler(model)`` takes there.
     python bench/frames.py --device cuda:0 --sizes 32 --worlds 1 66 132 264 1056 4096 --out bench/results/frames.md
     python bench/frames.py --device cuda:0 --sizes 16 64 --worlds 1 264 1056
     python bench/frames.py --device cpu --sizes 16 32 --worlds 1 8
+    python bench/frames.py --device cuda:0 --sizes 32 64 --worlds 1 1056 --scene flag  # pins, gusts, wind inside
+
+``--scene flag`` times the same cloth as a flag on a moving pole in a gusting wind (driven pins, an animated input
+and the aerodynamic family, which the one-launch frame evaluates inside).
 """
 
 import argparse
@@ -25,8 +29,28 @@ import warpspring as ws
 from cloth_scene import FPS, SUBSTEPS, warpspring_model
 
 
-def simulator(n: int, worlds: int, device, *, one_launch, guard: bool) -> ws.Simulator:
-    model = warpspring_model(n, device, worlds=worlds, pin="top")
+def flag_model(n: int, device, worlds: int) -> ws.Model:
+    """The hanging cloth as a flag on a moving pole: its top row a pin group carried along x and back by a smooth
+    track (0.2 m over 1 s), the aerodynamic family in a wind whose gust track rises from 2 to 6 m/s and falls: what
+    the one-launch frame now evaluates inside (driven pins, animated inputs, the wind)."""
+    builder = ws.ModelBuilder()
+    spring = ws.SpringMaterial(ke=1.0e3, kd=10.0)
+    ids = builder.add_cloth_grid(nx=n, ny=n, spacing=0.1, origin=(0.0, 0.0, 0.05 * n),
+                                 rotation=ws.quat_from_axis_angle((1.0, 0.0, 0.0), np.pi / 2), particle_mass=0.1,
+                                 structural=spring, shear=spring, bend=spring, name="flag")
+    top = np.asarray(ids).reshape(n, n)[-1]
+    builder.add_pin_group(top, translation=ws.Track([0.0, 0.5, 1.0], [(0, 0, 0), (0.2, 0, 0), (0, 0, 0)],
+                                                    interpolation="smooth", extrapolation="cycle"), name="pole")
+    builder.add_aerodynamics(wind=(2.0, 3.0, 0.0))
+    model = builder.finalize(device, worlds=worlds)
+    model.set_track("wind", ws.Track([0.0, 0.5, 1.0], [(2.0, 3.0, 0.0), (6.0, 3.0, 0.0), (2.0, 3.0, 0.0)],
+                                     interpolation="smooth", extrapolation="cycle"))
+    return model
+
+
+def simulator(n: int, worlds: int, device, *, one_launch, guard: bool, scene: str = "hanging") -> ws.Simulator:
+    model = (warpspring_model(n, device, worlds=worlds, pin="top") if scene == "hanging"
+             else flag_model(n, device, worlds))
     return ws.Simulator(model, integrator=ws.SymplecticEuler(model, one_launch=one_launch), fps=FPS,
                         substeps=SUBSTEPS, guard=ws.GuardLimits() if guard else None)
 
@@ -48,16 +72,20 @@ def main():
     parser.add_argument("--worlds", type=int, nargs="+", default=[1, 264, 1056])
     parser.add_argument("--batches", type=int, default=5)
     parser.add_argument("--seconds", type=float, default=0.3, help="timed seconds per batch and configuration")
+    parser.add_argument("--scene", choices=["hanging", "flag"], default="hanging",
+                        help="the hanging cloth, or the flag on a moving pole in a gusting wind (flag_model)")
     parser.add_argument("--out", help="also write the Markdown table to this file")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device)
     lines = [
-        f"Hanging cloth as worlds of one model, symplectic Euler, {SUBSTEPS} substeps per 1/{FPS} s frame. "
+        f"{'Hanging cloth' if args.scene == 'hanging' else 'Flag on a moving pole in a gusting wind'} as worlds of "
+        f"one model, symplectic Euler, {SUBSTEPS} substeps per 1/{FPS} s frame. "
         f"Device: {device.name} ({device.alias}"
         + (f", {device.sm_count} multiprocessors" if device.is_cuda else "") + f"); Warp {wp.__version__}; "
         f"{datetime.date.today().isoformat()}. `python bench/frames.py --device {args.device} --sizes "
-        f"{' '.join(map(str, args.sizes))} --worlds {' '.join(map(str, args.worlds))} --batches {args.batches}`",
+        f"{' '.join(map(str, args.sizes))} --worlds {' '.join(map(str, args.worlds))} --batches {args.batches} "
+        f"--scene {args.scene}`",
         "",
         "| n² × worlds | guard | per substep [G particle-substeps/s] | one launch [G] | one launch ÷ per substep "
         "(median of rounds, spread) | auto takes | max \\|Δx\\| after 10 frames [m] |",
@@ -67,7 +95,8 @@ def main():
     for n in args.sizes:
         for worlds in args.worlds:
             for guard in (True, False):
-                sims = {key: simulator(n, worlds, device, one_launch=key, guard=guard) for key in (False, True)}
+                sims = {key: simulator(n, worlds, device, one_launch=key, guard=guard, scene=args.scene)
+                        for key in (False, True)}
                 for sim in sims.values():
                     for _ in range(10):
                         sim.step_frame()
