@@ -144,6 +144,34 @@ def test_one_launch_frame_counts_the_dampers_as_the_per_substep_frame(device):
     np.testing.assert_allclose(fused.work, plain.work, rtol=1e-5)
 
 
+def both_paths(make, *, substeps: int, frames: int, each_frame=None) -> list:
+    """The Simulator (default guard) of a model from ``make()`` stepped ``frames`` frames in one launch a frame, then
+    of another one launch per substep (``each_frame(sim, frame)`` before each frame, if given), each asserted to take
+    its path: [fused, plain]."""
+    sims = []
+    for one_launch in (True, False):
+        model = make()
+        integrator = ws.SymplecticEuler(model, one_launch=one_launch, cpu_sweep=False)
+        sim = ws.Simulator(model, integrator=integrator, substeps=substeps)
+        for frame in range(frames):
+            if each_frame is not None:
+                each_frame(sim, frame)
+            sim.step_frame()
+        wp.synchronize_device(model.device)
+        fused = integrator.frame_shape(sim.control, substeps) is not None and sim.guard.quiet_between_steps(substeps)
+        assert fused == one_launch
+        sims.append(sim)
+    return sims
+
+
+def assert_same_frames(device, fused, plain, steps: int) -> None:
+    """To the last bit on the CPU; on a GPU within float32 rounding, 4 ulps of the largest value per step."""
+    if device == "cpu":
+        np.testing.assert_array_equal(fused, plain)
+    else:
+        np.testing.assert_allclose(fused, plain, rtol=0, atol=4 * steps * np.finfo(np.float32).eps * np.abs(plain).max())
+
+
 def flag(device, **wind) -> ws.Model:
     """A 10 × 10 flag pinned at two corners in a wind of (3, 0, 1) m/s through the aerodynamic family, two worlds."""
     builder = ws.ModelBuilder()
@@ -159,24 +187,9 @@ def test_the_wind_blows_inside_the_one_launch_frame(device):
     one-launch frame with the default guard on: the same positions (to the last bit on the CPU) and the same work
     the wind did and energy the dampers took as one launch per substep; a noisy wind whose forces are
     precomputed per triangle, a pass of its own before every substep's gather, keeps one launch per substep."""
-    results = []
-    for one_launch in (True, False):
-        model = flag(device)
-        integrator = ws.SymplecticEuler(model, one_launch=one_launch, cpu_sweep=False)
-        sim = ws.Simulator(model, integrator=integrator, substeps=8)
-        for _ in range(20):
-            sim.step_frame()
-        wp.synchronize_device(model.device)
-        fused = integrator.frame_shape(sim.control, 8) is not None and sim.guard.quiet_between_steps(8)
-        assert fused == one_launch
-        results.append((sim.state.particle_q.numpy(), sim.guard.energy_balance()))
-    (q_fused, fused), (q_plain, plain) = results
-    steps = 160
-    if device == "cpu":
-        np.testing.assert_array_equal(q_fused, q_plain)
-    else:
-        np.testing.assert_allclose(q_fused, q_plain, rtol=0,
-                                   atol=4 * steps * np.finfo(np.float32).eps * np.abs(q_plain).max())
+    one, per_substep = both_paths(lambda: flag(device), substeps=8, frames=20)
+    assert_same_frames(device, one.state.particle_q.numpy(), per_substep.state.particle_q.numpy(), 160)
+    fused, plain = one.guard.energy_balance(), per_substep.guard.energy_balance()
     assert (fused.work > 1.0).all()  # the wind did work on the flag (4.6 J in 1/3 s)
     np.testing.assert_allclose(fused.work, plain.work, rtol=1e-5)
     np.testing.assert_allclose(fused.dissipated, plain.dissipated, rtol=1e-5)
@@ -191,26 +204,17 @@ def test_animated_inputs_are_evaluated_inside_the_one_launch_frame(device):
     inputs at the end, with the default guard on and the frame's substep count odd."""
     gust = ws.Track([0.0, 0.1, 0.3], [(0.0, 0.0, 0.0), (6.0, 0.0, 2.0), (1.0, 0.0, 0.0)], interpolation="smooth")
     turning = ws.Track([0.0, 0.3], [(0.0, 0.0, -9.81), (3.0, 0.0, -9.0)])
-    results = []
-    for one_launch in (True, False):
+    def animated():
         model = flag(device)
         model.set_track("wind", gust)
         model.set_track("gravity", turning, world=1)
-        integrator = ws.SymplecticEuler(model, one_launch=one_launch, cpu_sweep=False)
-        sim = ws.Simulator(model, integrator=integrator, substeps=7)
-        for _ in range(18):
-            sim.step_frame()
-        wp.synchronize_device(model.device)
-        assert (integrator.frame_shape(sim.control, 7) is not None) == one_launch
-        results.append([sim.state.particle_q.numpy(), sim.state.time.numpy(), model.inputs.numpy()])
-    fused, plain = results
+        return model
+
+    fused, plain = ([sim.state.particle_q.numpy(), sim.state.time.numpy(), sim.model.inputs.numpy()]
+                    for sim in both_paths(animated, substeps=7, frames=18))
     np.testing.assert_array_equal(fused[1], plain[1])  # the clocks: the same float64 sums
     np.testing.assert_array_equal(fused[2], plain[2])  # the inputs the last substep read, in both worlds
-    if device == "cpu":
-        np.testing.assert_array_equal(fused[0], plain[0])
-    else:
-        np.testing.assert_allclose(fused[0], plain[0], rtol=0,
-                                   atol=4 * 126 * np.finfo(np.float32).eps * np.abs(plain[0]).max())
+    assert_same_frames(device, fused[0], plain[0], 126)
     q = fused[0].reshape(2, -1, 3)
     assert np.abs(q[1] - q[0]).max() > 1e-3  # world 1's turning gravity moved it apart from world 0
 
@@ -220,34 +224,27 @@ def test_driven_pins_move_inside_the_one_launch_frame(device):
     frame) are put on their prescribed motion inside the one-launch frame by the lane that steps them, at each
     substep's end, as the per-substep path's kinematics pass puts them: the same positions and velocities (to the
     last bit on the CPU), the pins exactly where their motion says, with the default guard on."""
-    def wrung(one_launch):
+    ids = np.arange(48).reshape(4, 12)  # the 12 × 4 grid's particles, row by row
+
+    def wrung():
         builder = ws.ModelBuilder()
         spring = ws.SpringMaterial(400.0, 0.05)
-        ids = builder.add_cloth_grid(nx=12, ny=4, spacing=0.03, particle_mass=0.02, structural=spring, shear=spring,
-                                     bend=ws.SpringMaterial(40.0, 0.005)).reshape(4, 12)
+        builder.add_cloth_grid(nx=12, ny=4, spacing=0.03, particle_mass=0.02, structural=spring, shear=spring,
+                               bend=ws.SpringMaterial(40.0, 0.005))
         builder.add_pin_group(ids[:, 0], rotation=ws.Track.rotation([0.0, 0.3], axis=(1, 0, 0), degrees=[0, 90]),
                               translation=ws.Track([0.0, 0.3], [(0, 0, 0), (0.05, 0, 0)], interpolation="smooth"),
                               name="turned")
         builder.add_pin_group(ids[:, -1], name="sent")
-        model = builder.finalize(device, worlds=2, spring_evaluation="gather")
-        integrator = ws.SymplecticEuler(model, one_launch=one_launch, cpu_sweep=False)
-        sim = ws.Simulator(model, integrator=integrator, substeps=8)
-        sent = model.particle_q.numpy()[ids[:, -1]]
-        for frame in range(15):
-            sim.set_pin_targets("sent", sent + (0.0, 0.0, 0.004 * (frame + 1)))
-            sim.step_frame()
-        wp.synchronize_device(model.device)
-        assert (integrator.frame_shape(sim.control, 8) is not None) == one_launch
-        return sim, ids, sent
+        return builder.finalize(device, worlds=2, spring_evaluation="gather")
 
-    (fused, ids, sent), (plain, _, _) = wrung(True), wrung(False)
+    sent = wrung().particle_q.numpy()[ids[:, -1]]
+
+    def send(sim, frame):
+        sim.set_pin_targets("sent", sent + (0.0, 0.0, 0.004 * (frame + 1)))
+
+    fused, plain = both_paths(wrung, substeps=8, frames=15, each_frame=send)
     for name in ("particle_q", "particle_qd"):
-        a, b = getattr(fused.state, name).numpy(), getattr(plain.state, name).numpy()
-        if device == "cpu":
-            np.testing.assert_array_equal(a, b, err_msg=name)
-        else:
-            np.testing.assert_allclose(a, b, rtol=0, atol=4 * 120 * np.finfo(np.float32).eps * np.abs(b).max(),
-                                       err_msg=name)
+        assert_same_frames(device, getattr(fused.state, name).numpy(), getattr(plain.state, name).numpy(), 120)
     q = fused.state.particle_q.numpy().reshape(2, -1, 3)
     np.testing.assert_allclose(q[:, ids[:, -1]], np.broadcast_to(sent + (0.0, 0.0, 0.06), (2, 4, 3)), atol=1e-6)
     assert fused.guard.reports() == plain.guard.reports() == []
@@ -259,21 +256,8 @@ def test_moving_colliders_move_inside_the_one_launch_frame(device):
     lanes write the world's colliders' frames at its start and end, as ``update_shape_frames`` does before each
     step, and the frame is the per-substep frame (to the last bit on the CPU)."""
     assert ws.SymplecticEuler(scene(device, moving=True), one_launch=True).frame_shape(None, 8) is None
-    results = []
-    for one_launch in (True, False):
-        model = scene(device, moving=True, contact_stage=False)
-        integrator = ws.SymplecticEuler(model, one_launch=one_launch, cpu_sweep=False)
-        sim = ws.Simulator(model, integrator=integrator, substeps=8)
-        for _ in range(12):
-            sim.step_frame()
-        wp.synchronize_device(model.device)
-        assert (integrator.frame_shape(sim.control, 8) is not None) == one_launch
-        results.append([sim.state.particle_q.numpy(), model.shape_arrays.transform_end.numpy()])
-    (q_fused, ends_fused), (q_plain, ends_plain) = results
-    np.testing.assert_array_equal(ends_fused, ends_plain)  # the frames the last substep read
-    assert np.abs(ends_fused[:, 2, 0] - 0.3 - 0.02).max() < 1e-6  # the small sphere carried 0.2 s × 0.1 m/s along x
-    if device == "cpu":
-        np.testing.assert_array_equal(q_fused, q_plain)
-    else:
-        np.testing.assert_allclose(q_fused, q_plain, rtol=0,
-                                   atol=4 * 96 * np.finfo(np.float32).eps * np.abs(q_plain).max())
+    fused, plain = both_paths(lambda: scene(device, moving=True, contact_stage=False), substeps=8, frames=12)
+    ends = fused.model.shape_arrays.transform_end.numpy()
+    np.testing.assert_array_equal(ends, plain.model.shape_arrays.transform_end.numpy())  # the last substep's frames
+    assert np.abs(ends[:, 2, 0] - 0.3 - 0.02).max() < 1e-6  # the small sphere carried 0.2 s × 0.1 m/s along x
+    assert_same_frames(device, fused.state.particle_q.numpy(), plain.state.particle_q.numpy(), 96)

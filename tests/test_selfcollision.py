@@ -516,6 +516,24 @@ class BroadPhaseEveryStep:
         sc.cap(state_in, repelled, state_out, dt)
 
 
+def cached_and_every_step(make, steps: int, dt: float) -> tuple[list, list]:
+    """``steps`` symplectic Euler steps of ``dt`` [s] of a model from ``make()`` with the pass as it runs (its cache),
+    then of another with ``BroadPhaseEveryStep``: ([final positions], [counters and cache counters]) of both."""
+    finals, counts = [], []
+    for every_step in (False, True):
+        model = make()
+        if every_step:
+            object.__setattr__(model, "self_contact", BroadPhaseEveryStep(model.self_contact))
+        integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
+        for _ in range(steps):
+            integrator.step(a, b, None, dt)
+            a, b = b, a
+        finals.append(a.particle_q.numpy())
+        sc = model.self_contact if not every_step else model.self_contact.full
+        counts.append({**sc.counts(), **sc.cache_counts()})
+    return finals, counts
+
+
 def wrung_strip(device, worlds=1):
     """twisted strip's scene (pins turning and approaching: kinematic displacements in the cap's bounds)."""
     builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
@@ -537,20 +555,13 @@ def test_cache_changes_the_work_not_the_answer(device, scene):
     steps) and the fallback did run where the thrown cloth is fast."""
     steps, dt = (650, 1e-3) if scene == "wrung" else (12, 1.0 / 1200.0)
     make = (lambda: wrung_strip(device)) if scene == "wrung" else (lambda: thrown_cloth(device, worlds=2))
-    finals, counts = [], []
-    for every_step in (False, True):
+    def configured():
         model = make()
         if scene == "thrown":  # world 1's τ = 2 mm: its cap needs the swept broad phase at other steps than world 0's
             model.self_contact.set(thickness=0.002, world=1)
-        if every_step:
-            object.__setattr__(model, "self_contact", BroadPhaseEveryStep(model.self_contact))
-        integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
-        for _ in range(steps):
-            integrator.step(a, b, None, dt)
-            a, b = b, a
-        finals.append(a.particle_q.numpy())
-        sc = model.self_contact if not every_step else model.self_contact.full
-        counts.append({**sc.counts(), **sc.cache_counts()})
+        return model
+
+    finals, counts = cached_and_every_step(configured, steps, dt)
     np.testing.assert_array_equal(finals[0], finals[1])
     cached, full = counts
     np.testing.assert_array_equal(cached["pairs"], full["pairs"])
@@ -586,18 +597,7 @@ def test_the_cache_serves_the_cap_up_to_its_least_outside_distance(device, step)
     0.75 τ, past γ 2 τ = 0.5 τ) cap from their cache at every step, 0.8 τ a step needs the swept
     broad phase at every step; either way the same bits as the broad phase at every step."""
     dt, steps = 1.0 / 1200.0, 20
-    finals, counts = [], []
-    for every_step in (False, True):
-        model = gliding_layers(device, step * TAU / dt)
-        if every_step:
-            object.__setattr__(model, "self_contact", BroadPhaseEveryStep(model.self_contact))
-        integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
-        for _ in range(steps):
-            integrator.step(a, b, None, dt)
-            a, b = b, a
-        finals.append(a.particle_q.numpy())
-        sc = model.self_contact if not every_step else model.self_contact.full
-        counts.append(sc.cache_counts())
+    finals, counts = cached_and_every_step(lambda: gliding_layers(device, step * TAU / dt), steps, dt)
     np.testing.assert_array_equal(finals[0], finals[1])
     x = finals[0]
     np.testing.assert_allclose(x[:, 0] - gliding_layers("cpu", 0.0).particle_q.numpy()[:, 0], step * TAU * steps,
