@@ -709,18 +709,7 @@ def test_watched_pairs_rebuild_the_cache(device):
         builder.add_self_collision(thickness=TAU)
         return builder.finalize(device)
 
-    finals, counts = [], []
-    for every_step in (False, True):
-        model = make()
-        if every_step:
-            object.__setattr__(model, "self_contact", BroadPhaseEveryStep(model.self_contact))
-        integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
-        for _ in range(8):
-            integrator.step(a, b, None, 1e-3)
-            a, b = b, a
-        finals.append(a.particle_q.numpy())
-        sc = model.self_contact if not every_step else model.self_contact.full
-        counts.append({**sc.counts(), **sc.cache_counts()})
+    finals, counts = cached_and_every_step(make, 8, 1e-3)
     np.testing.assert_array_equal(finals[0], finals[1])
     assert counts[0]["pairs"].sum() > 0 and counts[0]["pairs"].sum() == counts[1]["pairs"].sum()
     assert 1 < counts[0]["rebuilds"][0] < 8
