@@ -557,7 +557,8 @@ def estimate_memory(
         4 * w + INPUT_COUNT * f * w + 8 + 4  # world_enabled, the live-input table, unit_step, an empty track table
         + 2 * vec3 * size + 4 * size  # initial positions and velocities, flags: per world
         + 3 * f * n  # mass, inverse mass (one row for every world), radius
-        + (32 * pinned if pinned else 0)  # pin groups: index, group, rest position (float64) per pinned particle
+        + (32 * pinned + 4 * n if pinned else 0)  # pin groups: index, group, rest position (float64) per pinned
+        #   particle, and each particle's entry among them
         + (8 + 3 * f) * s  # pairs, rest length, ke and kd rows
         + (incidence(group_slots, 0) if grouped else incidence(spring_slots, spring_tail))
         + ((4 * groups + (8 if spring_grid else 0)) if grouped else 0)  # each group's spring, the grid's size

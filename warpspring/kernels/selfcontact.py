@@ -982,9 +982,9 @@ def apart_funcs(scalar: type):
         units = distance / thickness * scalar(KINEMATIC_STEPS)
         stored = int(APART_NONE)  # a distance of 0: a negative one, or NaN
         if units >= scalar(APART_NONE):
-            stored = 0  # too far to record
+            stored = int(0)  # too far to record
         elif units >= scalar(0.0):
-            stored = APART_NONE - int(wp.floor(units))
+            stored = int(APART_NONE) - int(wp.floor(units))
         slot = flag_slot(FLAG_APART, world, world_count)
         if stored > flags[slot]:
             wp.atomic_max(flags, slot, stored)
