@@ -21,12 +21,13 @@ STEPS = 40
 ATOL_Q, ATOL_QD = 1.0e-10, 1.0e-9
 
 
-def cloth(*, worlds=1, ground=False, hinges=False, device="cpu", **finalize) -> ws.Model:
+def cloth(*, worlds=1, ground=False, hinges=False, device="cpu", stabilizers=None, **finalize) -> ws.Model:
     """A 7 × 6 float64 cloth (structural, shear and bend springs of three stiffnesses), two corners pinned, with a
     pinch of drag; ``ground``: a ground plane it falls onto; ``hinges``: dihedral hinges too (a second family).
     Spaced 0.125 m, a binary fraction, so that every spring of a group has the very same rest length in float64 and
-    the groups are uniform (the grid layout; 0.1 m gives lengths an ulp apart, hence the per-spring layout)."""
-    builder = ws.ModelBuilder()
+    the groups are uniform (the grid layout; 0.1 m gives lengths an ulp apart, hence the per-spring layout).
+    ``stabilizers``: the builder's, if given."""
+    builder = ws.ModelBuilder() if stabilizers is None else ws.ModelBuilder(stabilizers=stabilizers)
     builder.add_cloth_grid(nx=7, ny=6, spacing=0.125, origin=(0.0, 0.0, 0.05 if ground else 1.0), particle_mass=0.05,
                            structural=ws.SpringMaterial(800.0, 4.0), shear=ws.SpringMaterial(300.0, 2.0),
                            bend=ws.SpringMaterial(100.0, 1.0), pin=["top-left", "top-right"],
@@ -223,3 +224,73 @@ def test_the_option_changes_nothing_on_cuda(device):
     for (q_sweep, qd_sweep), (q_fused, qd_fused) in zip(*runs):
         np.testing.assert_array_equal(q_sweep, q_fused)
         np.testing.assert_array_equal(qd_sweep, qd_fused)
+
+
+@pytest.mark.parametrize("layout", ["grid", "table"])
+def test_the_force_sweep_is_eval_forces_per_particle(layout):
+    """On the CPU the other integrators' force evaluation is the sweep's forces alone (``eval_forces``): at a moved,
+    moving state of the hinged cloth with an external force, the same total force on every particle, pinned ones
+    included, as the per-particle kernel (float64: the same terms summed in another order, 1e-12 of the largest
+    force), with the force clamp on (the power not counted: the guard counts none under it), and with the guard's
+    power sums counted the same h·power added to them (a step's start, RK4's rule). RK4, velocity Verlet and midpoint
+    then step as before within the same rounding."""
+    from warpspring.core.forces import PowerSums, eval_forces, force_inputs
+    from warpspring.kernels.flatten import flat_launch
+    from warpspring.kernels.forces import POWER_DAMPERS, POWER_WORK, eval_forces_kernel
+
+    def forces(clamped: bool, counted: bool):
+        model = cloth(hinges=True, spring_grid=layout == "grid",
+                      stabilizers=ws.Stabilizers(max_particle_force=0.4) if clamped else None)
+        control = model.control()
+        control.set_particle_force((0.0, 0.05, 0.0))
+        state = model.state()
+        rng = np.random.default_rng(3)
+        state.particle_q.assign(state.particle_q.numpy() + rng.uniform(-0.01, 0.01, (model.particle_count, 3)))
+        state.particle_qd.assign(rng.uniform(-0.5, 0.5, (model.particle_count, 3)))
+        features = model.force_features(control)
+        assert sweeps(features) and features.clamp_particle_force == clamped
+        modes = (POWER_DAMPERS, POWER_WORK) if counted else None  # the springs' dampers, the hinges' force
+        results = []
+        for swept in (True, False):
+            out = wp.zeros_like(state.particle_f)
+            power = (PowerSums(modes=modes, h=1e-3, sums=wp.zeros(model.particle_count, dtype=wp.vec2d, device="cpu"))
+                     if counted else None)
+            if swept:  # (the sweep's forces alone did run)
+                import warpspring.core.forces as forces_module
+
+                calls = []
+                real = forces_module.symplectic_euler_sweep_kernel
+                with pytest.MonkeyPatch.context() as patch:
+                    patch.setattr(forces_module, "symplectic_euler_sweep_kernel",
+                                  lambda *args: calls.append(args) or real(*args))
+                    eval_forces(model, state, control, particle_f=out, power=power)
+                assert len(calls) == 1 and calls[0][-1] is True
+            else:
+                flat_launch(eval_forces_kernel(model.scalar, features, modes), dim=model.particle_dim,
+                            inputs=[model.particle_count, model.particle_flags, *force_inputs(model, control, features),
+                                    state.particle_q, state.particle_qd, 1e-3],
+                            outputs=[out, None, None, power.sums if counted else None], device="cpu")
+            results.append((out.numpy(), power.sums.numpy() if counted else None))
+        return results
+
+    (f_swept, _), (f_plain, _) = forces(clamped=True, counted=False)
+    assert np.linalg.norm(f_plain, axis=1).max() <= 0.4 * (1 + 1e-12)  # the clamp acted
+    np.testing.assert_allclose(f_swept, f_plain, rtol=0, atol=1e-12 * np.abs(f_plain).max())
+    (f_swept, p_swept), (f_plain, p_plain) = forces(clamped=False, counted=True)
+    np.testing.assert_allclose(f_swept, f_plain, rtol=0, atol=1e-12 * np.abs(f_plain).max())
+    np.testing.assert_allclose(p_swept, p_plain, rtol=0, atol=1e-12 * np.abs(p_plain).max())
+    assert np.abs(p_plain[:, 0]).max() > 0  # the dampers took energy out
+    for name in ("rk4", "velocity_verlet", "midpoint"):
+        runs = []
+        for swept in (True, False):
+            m = cloth(hinges=True, spring_grid=layout == "grid")
+            integrator = ws.core.integrators.make_integrator(name, m)
+            a, b = m.state(), m.state()
+            with pytest.MonkeyPatch.context() as patch:
+                if not swept:  # the per-particle kernel alone
+                    patch.setattr("warpspring.core.forces.sweeps", lambda features: False)
+                for _ in range(20):
+                    integrator.step(a, b, None, DT)
+                    a, b = b, a
+            runs.append(a.particle_q.numpy())
+        np.testing.assert_allclose(runs[0], runs[1], rtol=0, atol=ATOL_Q, err_msg=name)

@@ -5,12 +5,15 @@ first."""
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import warp as wp
 
 from ..kernels.forces import clamp_forces_kernel, eval_forces_kernel
+from ..kernels.shapes import NO_CONTACTS
 from ..kernels.springs import DAMPER_NONE, spring_scatter_kernel
+from ..kernels.sweep import sweeps, symplectic_euler_sweep_kernel
 from .model import Model
 from .state import State
 from .control import Control
@@ -78,7 +81,9 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
     """Write the total force [N] on every particle (gravity, drag, external, element families) to ``particle_f``.
 
     Springs are gathered per particle or scattered per spring as ``model.spring_gather`` says; every other
-    family is gathered.
+    family is gathered. On the CPU, with gathered springs and no guard sums asked, each world is one thread sweeping
+    its particles, each spring evaluated once (``kernels/sweep.py``'s forces alone; the same forces summed in
+    another order: float rounding).
 
     Args:
         model: the model.
@@ -97,6 +102,19 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
     scatter = model.spring_count > 0 and not model.spring_gather
     out = state.particle_f if particle_f is None else particle_f
     stored = power is not None and power.forces is not None
+    if model.device.is_cpu and not scatter and not stored and sweeps(features):
+        modes = None if power is None else power.modes
+        flat_launch(
+            symplectic_euler_sweep_kernel(model.scalar, features, NO_CONTACTS, modes, True),
+            dim=model.world_count,
+            inputs=[model.particle_count, model.particle_flags, model.particle_inv_mass, model.particle_radius,
+                    model.shape_arrays, *force_inputs(model, control, features), state.particle_q, state.particle_qd,
+                    None, model.scalar(0.0 if power is None else power.h), model.scalar(0.0)],
+            outputs=[None, None, None, None if power is None else power.sums, out,
+                     None if power is None else _dampers_scratch(model)],
+            device=model.device,
+        )
+        return
     flat_launch(
         # With scattered springs the force clamp must wait for the springs: a pass of its own below.
         eval_forces_kernel(model.scalar, features._replace(clamp_particle_force=False) if scatter else features,
@@ -121,3 +139,15 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
         if features.clamp_particle_force:
             wp.launch(clamp_forces_kernel(model.scalar), dim=model.particle_dim, block_dim=model.block_dim,
                       inputs=[model.particle_count, model.inputs], outputs=[out], device=model.device)
+
+
+_DAMPERS_SCRATCH = weakref.WeakKeyDictionary()
+
+
+def _dampers_scratch(model: Model) -> wp.array:
+    """The CPU force sweep's scratch for the springs' dampers' part [N] (a state's size; it leaves it zero)."""
+    scratch = _DAMPERS_SCRATCH.get(model)
+    if scratch is None or scratch.shape[0] != model.state_size:
+        scratch = wp.zeros(model.state_size, dtype=model.vec3, device=model.device)
+        _DAMPERS_SCRATCH[model] = scratch
+    return scratch

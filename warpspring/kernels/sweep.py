@@ -241,12 +241,18 @@ for (int a0 = 0; a0 < n; a0 += {chunk}) {{
 
 @functools.cache
 def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
-                                  power: tuple | None = None):
+                                  power: tuple | None = None, forces_only: bool = False):
     """Symplectic Euler step of every world, one thread per world (module docstring): the arguments of
     ``integrators.symplectic_euler_kernel`` and the two scratch arrays (module docstring). Launch over
-    ``world_count``."""
+    ``world_count``. With ``forces_only`` (no contacts) the sweep evaluates the forces alone: each particle's total
+    force [N] (``forces.eval_forces_kernel``'s, summed in the sweep's order) into ``force_in_out`` (the output:
+    whatever it held is overwritten), and with ``power`` h times the power its dampers take out and the loads from
+    outside put in at this state added to its power sums (h = ``dt``: ``eval_forces_kernel``'s rule), nothing else
+    written: the CPU's force evaluation for the other integrators."""
     if not sweeps(features):
         raise ValueError(f"the sweep needs the springs first among the families, gathered; got {features.families}")
+    if forces_only and contacts:
+        raise ValueError("a sweep of the forces alone resolves no contact")
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
     counted = power is not None
@@ -311,7 +317,8 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
             if wp.static(spring_dampers):
                 dampers_in_out[k] = vec3(scalar(0.0))
             k += 1
-        time_out[world] = time_in[world] + (wp.float64(dt) + wp.float64(dt_rest))
+        if wp.static(not forces_only):
+            time_out[world] = time_in[world] + (wp.float64(dt) + wp.float64(dt_rest))
         h = dt
         springs = element_arrays.head
         prepared = prepare(world, springs, inputs)
@@ -335,7 +342,8 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
                 springs_f += force_in_out[p]
                 if wp.static(spring_dampers):
                     springs_d += dampers_in_out[p]
-            force_in_out[p] = vec3(scalar(0.0))
+            if wp.static(not forces_only):
+                force_in_out[p] = vec3(scalar(0.0))
             if wp.static(spring_dampers):
                 dampers_in_out[p] = vec3(scalar(0.0))
             if wp.static(grid and not vectorised):
@@ -363,6 +371,17 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
                     f = particle_force(world, i, base, x, v, particle_mass, NoElements(), inputs, particle_force_ext,
                                        particle_q_in, particle_qd_in)
             f += springs_f
+            if wp.static(forces_only):  # every particle's force, kinematic or not (the clamp as eval_forces has it:
+                # not where the power is counted, which the guard does not do under the clamp)
+                if wp.static(features.clamp_particle_force and not counted):
+                    max_force = inputs[world, INPUT_MAX_PARTICLE_FORCE]
+                    magnitude = wp.length(f)
+                    if magnitude > max_force:
+                        f = f * (max_force / magnitude)
+                force_in_out[p] = f
+                if wp.static(counted):
+                    power_in_out[p] += pack(-h * wp.dot(dampers, v), h * wp.dot(work, v))
+                continue
             if not free:  # moves on with its velocity; its elements' dampers: their share of the dampers' power
                 particle_q_out[p] = x + h * v
                 particle_qd_out[p] = v
