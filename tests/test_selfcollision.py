@@ -781,3 +781,39 @@ def test_pair_buffers_grow_after_a_frame_that_dropped_pairs(device, monkeypatch)
     x = sim.state.particle_q.numpy().astype(np.float64)
     gap = np.abs(x[64:, 2].mean() - x[:64, 2].mean())
     assert gap >= 0.5 * 0.004  # held apart by the floor at least
+
+
+def test_a_thickness_raised_mid_run_keeps_the_cache_honest(device):
+    """Two layers 3.2 τ apart (their pairs watched, not cached), the cache built at rest, then τ raised 1.4× and the
+    layers sent at each other 1.65 τ a step (γ = 0.49): the pairs outside the cache were CACHE_REACH τ of the τ it was
+    built with apart, not of the new τ. The cached pass gives the broad phase's bits at every step and the layers
+    stay apart (a bound from the new τ let them cross: the cap read its cache past what it holds)."""
+    tau = TAU
+
+    def layers():
+        builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+        for z in (0.0, 3.2 * tau):
+            builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, z), mass=0.05, **CLOTH)
+        builder.add_self_collision(thickness=tau, relaxation=0.49)
+        return builder.finalize(device)
+
+    dt, finals = 1e-3, []
+    for every_step in (False, True):
+        model = layers()
+        sc = model.self_contact
+        if every_step:
+            object.__setattr__(model, "self_contact", BroadPhaseEveryStep(sc))
+        integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
+        integrator.step(a, b, None, dt)  # at rest: the cache is built
+        a, b = b, a
+        sc.set(thickness=1.4 * tau)
+        qd = np.zeros((model.particle_count, 3))
+        qd[:25, 2], qd[25:, 2] = 1.65 * tau / dt, -1.65 * tau / dt
+        a.particle_qd.assign(qd)
+        for _ in range(3):
+            integrator.step(a, b, None, dt)
+            a, b = b, a
+        finals.append(a.particle_q.numpy())
+    np.testing.assert_array_equal(finals[0], finals[1])
+    z = finals[0][:, 2]
+    assert z[25:].min() > z[:25].max()  # the upper layer is still above the lower one

@@ -279,7 +279,7 @@ def self_contact_bytes(*, particles: int, worlds: int, triangles: int, edges: in
         return (8 + 16 + 16 + f) * slots + 4 * (size + 1) * 2 + 4 * size + 4 * w
 
     surface = 24 * t + 12 * e + 4 * n + 24 * w * t + 8 * w
-    live = (PARAM_COUNT * f + 4 * COUNTER_COUNT + f) * w + 4 * (2 + FLAG_KINDS * w) + 4 * w * -(-n // SCAN_BLOCK)
+    live = (PARAM_COUNT * f + 4 * COUNTER_COUNT + 2 * f) * w + 4 * (2 + FLAG_KINDS * w) + 4 * w * -(-n // SCAN_BLOCK)
     live += 2 * (4 + 3 * f) * size  # the cap's roles and pushers' targets, twice
     patches = patch_count(t, cuda)
     live += (4 + (8 + 16) * capacity) * w + (4 + 8 + 16) * w  # the cache's watch list, and the empty one

@@ -255,6 +255,8 @@ class SelfContact:
                           wp.zeros(worlds, dtype=wp.int64, device=device),
                           wp.zeros(worlds, dtype=wp.vec4i, device=device))
         self.cache_reach = wp.zeros(worlds, dtype=model.scalar, device=device)
+        # CACHE_REACH τ at each world's last build: every pair outside the cache was that far apart at the anchors.
+        self.cache_floor = wp.zeros(worlds, dtype=model.scalar, device=device)
         # The patches' boxes and marks (kernels/selfcontact_cache.py, check_kernel, decide_kernel) share the flags'
         # storage: one memset empties them all.
         flag_count = 2 + FLAG_KINDS * worlds
@@ -310,6 +312,7 @@ class SelfContact:
         self.pair_correction = wp.zeros(4 * slots, dtype=model.vec3, device=model.device)
         self.pair_weight = wp.zeros(4 * slots, dtype=model.scalar, device=model.device)
         self.cache_reach.zero_()
+        self.cache_floor.zero_()
 
     def _pair_buffers(self, capacity: int, lists: int):
         """``lists`` pair buffers of ``capacity`` slots per world sharing their storage but their counts, and
@@ -541,7 +544,8 @@ class SelfContact:
                          reach_add=0.0, counters=self.counters, active=self.flags[2:2 + worlds], watch=True)
         flat_launch(anchor_kernel(model.scalar),
                     inputs=[model.particle_count, self.params, self.cache, self.watch_count, self.capacity, start],
-                    outputs=[self.flags, self.cache_reach, self.cache_anchor, self.counters], dim=model.particle_dim,
+                    outputs=[self.flags, self.cache_reach, self.cache_floor, self.cache_anchor, self.counters],
+                    dim=model.particle_dim,
                     block_dim=model.block_dim, device=model.device)
 
     def _fallback(self, start: wp.array, end: wp.array) -> None:
@@ -570,7 +574,8 @@ class SelfContact:
         surface = self.surface
         self._check(start, particle_q, tiled=model.device.is_cuda)
         flat_launch(decide_kernel(model.scalar),
-                    inputs=[model.world_enabled, self.params, self.cache_reach, self.cache.count, self.patch_box],
+                    inputs=[model.world_enabled, self.params, self.cache_reach, self.cache_floor, self.cache.count,
+                            self.patch_box],
                     outputs=[self.flags, self.patch_watch], dim=model.world_count * self.patch_count ** 2, block_dim=model.block_dim,
                     device=model.device)
         flat_launch(watch_kernel(model.scalar),

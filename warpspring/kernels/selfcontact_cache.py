@@ -33,7 +33,9 @@ whole keeps its cache. Each step:
    was CACHE_REACH τ apart at the anchors and the drifts keep it REPULSION_REACH τ apart). The pairs outside the cache are then at least REPULSION_REACH τ
    apart at x⁰: the watched ones by their own distance, the others by the drifts.
    Otherwise the world is flagged for a rebuild (FLAG_REBUILD). A world that was never built has R = 0 and is
-   flagged; so is one whose τ grew or whose state was replaced. The world's largest kinematic displacement K_w
+   flagged; so is one whose state was replaced. R and the reach of every pair outside the cache (CACHE_REACH τ) are
+   the τ of the last build (``cache_reach``, ``cache_floor``), the repulsion's reach the τ of this step: a τ raised
+   since leaves less slack (down to a rebuild), never a bound the cache does not hold. The world's largest kinematic displacement K_w
    of the step is reduced into FLAG_KINEMATIC, and its free surface vertices' largest step into FLAG_STEP.
 2. The flagged worlds' broad phase (BVH refit and queries, as ``kernels/selfcontact.py``) at x⁰, caching the pairs
    within CACHE_REACH τ and watching those within WATCH_REACH τ, then ``anchor_kernel`` (xᵃ = x⁰, R = WATCH_REACH τ,
@@ -294,6 +296,7 @@ def decide_kernel(scalar: type):
         world_enabled: wp.array[wp.int32],
         params: wp.array2d[scalar],
         cache_reach: wp.array[scalar],
+        cache_floor: wp.array[scalar],
         cache_count: wp.array[wp.int32],
         patch_box: wp.array3d[wp.int32],
         # In/out (the pass's flags):
@@ -324,8 +327,9 @@ def decide_kernel(scalar: type):
             far = scalar(2.0) * kinematic >= offset * scalar(1.0 - SAFETY)  # as repel_gather
             if cache_count[world] > 0 or not (step <= budget) or far:
                 flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
-        # Every pair outside the cache, watched or not, was this far apart at the anchors.
-        reach_all = wp.min(cache_reach[world], scalar(CACHE_REACH) * thickness)
+        # Every pair outside the cache, watched or not, was this far apart at the anchors: CACHE_REACH τ of the τ
+        # it was built with (a τ written since changes the repulsion's reach below, not what the cache holds).
+        reach_all = wp.min(cache_reach[world], cache_floor[world])  # (0 where never built: R = 0)
         # The slack the cache would have without its watch list: where it suffices, the watched pairs need no check.
         unwatched = (reach_all - scalar(REPULSION_REACH) * thickness) * scalar(1.0 - SAFETY)
         drift = scalar(flags_in_out[flag_slot(FLAG_DRIFT, world, world_count)]) * unit
@@ -469,6 +473,7 @@ def anchor_kernel(scalar: type):
         flags_in_out: wp.array[wp.int32],
         # Out:
         cache_reach_out: wp.array[scalar],
+        cache_floor_out: wp.array[scalar],
         cache_anchor_out: wp.array[vec3],
         counters_out: wp.array2d[wp.int32],
     ):
@@ -483,7 +488,9 @@ def anchor_kernel(scalar: type):
             reach = scalar(CACHE_REACH)
             if watch_count[world] <= watch_capacity:
                 reach = scalar(WATCH_REACH)
-            cache_reach_out[world] = reach * params[wp.min(world, params.shape[0] - 1), PARAM_THICKNESS]
+            thickness = params[wp.min(world, params.shape[0] - 1), PARAM_THICKNESS]
+            cache_reach_out[world] = reach * thickness
+            cache_floor_out[world] = scalar(CACHE_REACH) * thickness
             counters_out[world, COUNT_REBUILDS] += 1  # one thread per world
             if cache.count[world] > 0:
                 flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
