@@ -213,7 +213,9 @@ def test_animated_inputs_are_evaluated_inside_the_one_launch_frame(device):
     fused, plain = ([sim.state.particle_q.numpy(), sim.state.time.numpy(), sim.model.inputs.numpy()]
                     for sim in both_paths(animated, substeps=7, frames=18))
     np.testing.assert_array_equal(fused[1], plain[1])  # the clocks: the same float64 sums
-    np.testing.assert_array_equal(fused[2], plain[2])  # the inputs the last substep read, in both worlds
+    # The inputs the last substep read, in both worlds (float64 sampling rounded to float32: equal, but a GPU's two
+    # kernels are compiled apart, the frame's with fast math: within an ulp there)
+    assert_same_frames(device, fused[2], plain[2], 1)
     assert_same_frames(device, fused[0], plain[0], 126)
     q = fused[0].reshape(2, -1, 3)
     assert np.abs(q[1] - q[0]).max() > 1e-3  # world 1's turning gravity moved it apart from world 0
@@ -258,6 +260,6 @@ def test_moving_colliders_move_inside_the_one_launch_frame(device):
     assert ws.SymplecticEuler(scene(device, moving=True), one_launch=True).frame_shape(None, 8) is None
     fused, plain = both_paths(lambda: scene(device, moving=True, contact_stage=False), substeps=8, frames=12)
     ends = fused.model.shape_arrays.transform_end.numpy()
-    np.testing.assert_array_equal(ends, plain.model.shape_arrays.transform_end.numpy())  # the last substep's frames
+    assert_same_frames(device, ends, plain.model.shape_arrays.transform_end.numpy(), 1)  # the last substep's frames
     assert np.abs(ends[:, 2, 0] - 0.3 - 0.02).max() < 1e-6  # the small sphere carried 0.2 s × 0.1 m/s along x
     assert_same_frames(device, fused.state.particle_q.numpy(), plain.state.particle_q.numpy(), 96)
