@@ -548,10 +548,9 @@ class SubstepAudit(FrameHook):
             return [_summary(self._surface.step(x[k], x[k + 1], thickness=self.thickness)) for k in range(steps)]
         if self._pool is None:
             import multiprocessing
-
-            self._surface._collision_mesh(x[0])  # the rest positions a serial audit would take
             from concurrent.futures import ProcessPoolExecutor
 
+            self._surface._collision_mesh(x[0])  # the rest positions a serial audit would take
             self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
                                              initializer=_start_worker,
                                              initargs=(self._surface.triangles, self._surface.rest))

@@ -112,7 +112,7 @@ class AeroFamily(ElementFamily):
 
     def at_time(self, model, state) -> None:
         """Where precomputed: each triangle's force at ``state``, before the corners gather it."""
-        if not self.precompute:
+        if not self.time_dependent(model):
             return
         spec = self.spec(model)
         wp.launch(spec.funcs(model.scalar).triangle_forces, dim=(model.world_count, len(self.triangles)),

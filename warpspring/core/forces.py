@@ -81,9 +81,9 @@ def eval_forces(model: Model, state: State, control: Control | None, *, particle
     """Write the total force [N] on every particle (gravity, drag, external, element families) to ``particle_f``.
 
     Springs are gathered per particle or scattered per spring as ``model.spring_gather`` says; every other
-    family is gathered. On the CPU, with gathered springs and no guard sums asked, each world is one thread sweeping
-    its particles, each spring evaluated once (``kernels/sweep.py``'s forces alone; the same forces summed in
-    another order: float rounding).
+    family is gathered. On the CPU, with gathered springs (and the guard's power summed, if asked, rather than its
+    force parts stored), each world is one thread sweeping its particles, each spring evaluated once
+    (``kernels/sweep.py``'s forces alone; the same forces summed in another order: float rounding).
 
     Args:
         model: the model.

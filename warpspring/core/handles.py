@@ -153,7 +153,7 @@ class HandleFamily(ElementFamily):
 
     def at_time(self, model, state) -> None:
         """Write every handle's target frame at the time of ``state`` (each world's at its own time)."""
-        if not self._animated:
+        if not self.time_dependent(model):
             return  # the frames stay zero: every target is where its particle started
         wp.launch(handle_frames_kernel, dim=(model.world_count, len(self.handles)),
                   inputs=[self._translation_track, self._rotation_track, model.track_table.table, state.time],

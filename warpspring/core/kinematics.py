@@ -169,7 +169,7 @@ def _set_track_rows(table: PinGroups, rows: list, track_index, device) -> None:
 
 
 #: Pin targets of no Control (an empty struct: kernels compiled without targets never read it).
-_NO_TARGETS = PinTargets()
+NO_PIN_TARGETS = PinTargets()
 
 
 def apply_kinematics(model, control, state_in, q_out: wp.array, qd_out: wp.array, fraction: float, step=None):
@@ -190,7 +190,7 @@ def apply_kinematics(model, control, state_in, q_out: wp.array, qd_out: wp.array
             model.particle_flags,
             pins.table,
             model.track_table.table,
-            control.pin_targets if targets else _NO_TARGETS,
+            control.pin_targets if targets else NO_PIN_TARGETS,
             state_in.particle_q,
             state_in.particle_qd,
             state_in.time,

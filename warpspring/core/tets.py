@@ -163,7 +163,7 @@ class TetFamily(ElementFamily):
 
     def at_time(self, model, state) -> None:
         """Where precomputed: each tet's shared factors at ``state``, before the corners gather them."""
-        if not self.precompute:
+        if not self.time_dependent(model):
             return
         wp.launch(getattr(self.spec(model).funcs(model.scalar), self.precompute_kernel),
                   dim=(model.world_count, self.element_count),

@@ -85,8 +85,7 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
     path's ``evaluate_input_tracks`` does before each step, and its lanes meet before stepping. With ``driven``,
     the lane that steps a kinematic particle of a pin group then puts it on its prescribed motion at the substep's
     end (``kinematics.prescribed_func``: ``step_f64`` [s] the step in float64, as ``apply_kinematics`` and
-    ``update_shape_frames`` take it;
-    ``targets``: groups driven through Control read ``pin_targets``). With ``moving``, each substep first writes
+    ``update_shape_frames`` take it; ``targets``: groups driven through Control read ``pin_targets``). With ``moving``, each substep first writes
     the world's colliders' frames at its start and end into ``shapes_out`` (the very struct ``shapes`` is, each
     block its own copy, ``swept.shape_motion_func``), as the per-substep path's ``update_shape_frames`` does."""
     vec3 = vec3_type(scalar)

@@ -35,8 +35,9 @@ whole keeps its cache. Each step:
    Otherwise the world is flagged for a rebuild (FLAG_REBUILD). A world that was never built has R = 0 and is
    flagged; so is one whose state was replaced. R and the reach of every pair outside the cache (CACHE_REACH τ) are
    the τ of the last build (``cache_reach``, ``cache_floor``), the repulsion's reach the τ of this step: a τ raised
-   since leaves less slack (down to a rebuild), never a bound the cache does not hold. The world's largest kinematic displacement K_w
-   of the step is reduced into FLAG_KINEMATIC, and its free surface vertices' largest step into FLAG_STEP.
+   since leaves less slack (down to a rebuild), never a bound the cache does not hold. The world's largest
+   kinematic displacement K_w of the step is reduced into FLAG_KINEMATIC, and its free surface vertices' largest
+   step into FLAG_STEP.
 2. The flagged worlds' broad phase (BVH refit and queries, as ``kernels/selfcontact.py``) at x⁰, caching the pairs
    within CACHE_REACH τ and watching those within WATCH_REACH τ, then ``anchor_kernel`` (xᵃ = x⁰, R = WATCH_REACH τ,
    or CACHE_REACH τ where the watch list overflowed): a conditional graph node, launched only when a world
@@ -48,9 +49,9 @@ whole keeps its cache. Each step:
    (2 max(K, δ) ≥ D - h or δ > γ (D - K), h = CAP_FLOOR τ its floor) only if K_w ≥ (A_w - h) / 2 or some free
    vertex of the world moved further than min(γ (A_w - K_w), (A_w - h) / 2). A_w is the least distance at x⁰ the
    step's check knows of those pairs (FLAG_APART, each thread of ``decide_kernel`` recording the bound that holds
-   for its two patches: their boxes' gap, or the reach at the anchors less their drifts' spread, min(R, CACHE_REACH
-   τ) for all pairs outside the cache, R for the unwatched ones where ``watch_kernel`` records the watched ones'
-   own distances; the world's drift bound where it decides alone), CACHE_REACH τ where the cache was rebuilt at
+   for its two patches: their boxes' gap, or the reach at the anchors less their drifts' spread, the build's
+   CACHE_REACH τ for all pairs outside the cache, R for the unwatched ones where ``watch_kernel`` records the watched
+   ones' own distances; the world's drift bound where it decides alone), CACHE_REACH τ where the cache was rebuilt at
    x⁰, and at least REPULSION_REACH τ (1. guarantees that much), less SAFETY: a cloth gliding 0.6 τ a step caps from
    its cache (γ 3 τ = 0.75 τ), where REPULSION_REACH τ alone allowed γ 2 τ = 0.5 τ. The repulsion's gather flags
    the worlds where either holds, or whose cache

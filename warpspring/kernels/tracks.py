@@ -127,10 +127,26 @@ class WorldInputs:
 
 
 @functools.cache
+def input_write_func(scalar: type):
+    """``write_input(tracks, track, t, world, slot, width, inputs_out)``: ``track``'s value at ``t`` [s], its first
+    ``width`` components, into world ``world``'s columns ``slot...`` of the input table (one animated input)."""
+
+    @wp.func
+    def write_input(tracks: Tracks, track: int, t: wp.float64, world: int, slot: int, width: int,
+                    inputs_out: wp.array2d[scalar]):
+        value, rate = track_sample(tracks, track, t)
+        for c in range(width):
+            inputs_out[world, slot + c] = scalar(value[c])
+
+    return write_input
+
+
+@functools.cache
 def world_inputs_func(scalar: type):
     """``write_world_inputs(world, first, stride, tracks, animated, t, inputs_out)``: world ``world``'s animated
     inputs at its time ``t`` [s] written into its row of the input table, entries ``first``, ``first + stride``,
-    ... of its own (the values ``apply_input_tracks_kernel`` writes)."""
+    ... of its own (``input_write_func``, as ``apply_input_tracks_kernel`` writes them)."""
+    write_input = input_write_func(scalar)
 
     @wp.func
     def write_world_inputs(world: int, first: int, stride: int, tracks: Tracks, animated: WorldInputs,
@@ -138,10 +154,7 @@ def world_inputs_func(scalar: type):
         a = animated.start[world] + first
         while a < animated.start[world + 1]:
             e = animated.order[a]
-            value, rate = track_sample(tracks, animated.track[e], t)
-            slot = animated.slot[e]
-            for c in range(animated.width[e]):
-                inputs_out[world, slot + c] = scalar(value[c])
+            write_input(tracks, animated.track[e], t, world, animated.slot[e], animated.width[e], inputs_out)
             a += stride
 
     return write_world_inputs
@@ -152,6 +165,7 @@ def apply_input_tracks_kernel(scalar: type):
     """Kernel writing every animated input at the time of a state: thread a evaluates track
     ``input_track[a]`` at the time of world ``input_world[a]`` and writes its first ``input_width[a]``
     components to that world's columns ``input_slot[a]...`` of the input table."""
+    write_input = input_write_func(scalar)
 
     @wp.kernel(module="unique", enable_backward=False)
     def apply_input_tracks(
@@ -168,9 +182,6 @@ def apply_input_tracks_kernel(scalar: type):
     ):
         a = wp.tid()
         world = input_world[a]
-        value, rate = track_sample(tracks, input_track[a], time[world])
-        slot = input_slot[a]
-        for c in range(input_width[a]):
-            inputs_out[world, slot + c] = scalar(value[c])
+        write_input(tracks, input_track[a], time[world], world, input_slot[a], input_width[a], inputs_out)
 
     return apply_input_tracks

@@ -18,7 +18,7 @@ from ...kernels.kinematics import PinGroups
 from ...kernels.tracks import WorldInputs
 from ..contacts import update_shape_frames
 from ..forces import eval_forces, force_inputs
-from ..kinematics import _NO_TARGETS, apply_kinematics
+from ..kinematics import NO_PIN_TARGETS, apply_kinematics
 from ..state import State
 from ..control import Control
 from ..tracks import evaluate_input_tracks
@@ -37,10 +37,11 @@ class SymplecticEuler(Integrator):
             (one world up to 128² on an H200: 1.36-1.51× at 32²-128²), else one block per world where the worlds
             give at least :attr:`ONE_LAUNCH_THREADS_PER_SM` threads per multiprocessor (1.02-1.18×). ``True``:
             wherever the scene allows it (on the CPU too, one thread per world). ``False``: never. The scene allows it
-            with gathered springs, analytic colliders (moving ones too), no stabiliser, contact stage, triangle contacts or
-            self-collision, no family with time-dependent arrays (a
-            precomputed wind's or tets', an animated handle's: ``ElementFamily.time_dependent``), no held worlds, and step hooks that work at the frame's end alone (the
-            default guard does). On the CPU it runs the per-particle step (``cpu_sweep`` does not apply).
+            with gathered springs, analytic colliders whose contacts are fused into the update (moving ones with
+            ``contact_stage=False``), no stabiliser, contact stage, triangle contacts or self-collision, no family
+            with time-dependent arrays (a precomputed wind's or tets', an animated handle's:
+            ``ElementFamily.time_dependent``), no held worlds, and step hooks that work at the frame's end alone (the
+            default guard does); animated inputs and driven pins are evaluated inside. On the CPU it runs the per-particle step (``cpu_sweep`` does not apply).
         cpu_sweep: on the CPU, with gathered springs, step each world in one thread sweeping its particles in
             order, each spring evaluated once (``kernels/sweep.py``; 1.7-1.8x the per-particle step at 32²-64²,
             bench/results/performance_cpu.md §0); False: one thread per particle, as on CUDA. Both give the same
@@ -126,13 +127,13 @@ class SymplecticEuler(Integrator):
                 model.shape_rest,
                 model.shape_translation_track,
                 model.shape_rotation_track,
-                control.pin_targets if targets else _NO_TARGETS,
+                control.pin_targets if targets else NO_PIN_TARGETS,
                 steps,
                 *step_arguments(model.scalar, dt),
                 wp.float64(dt),
             ],
-            outputs=[model.inputs, model.shape_arrays, state_a.particle_q, state_a.particle_qd, state_b.particle_q, state_b.particle_qd,
-                     state_a.time, None if self.power is None else self.power.sums, self._barrier],
+            outputs=[model.inputs, model.shape_arrays, state_a.particle_q, state_a.particle_qd, state_b.particle_q,
+                     state_b.particle_qd, state_a.time, None if self.power is None else self.power.sums, self._barrier],
             dim=model.world_count * lanes * blocks, block_dim=lanes, device=model.device,
         )
         if steps % 2:
