@@ -117,6 +117,25 @@ def test_a_world_spread_over_blocks_is_the_per_substep_frame(device):
                                    err_msg=name)
 
 
+def test_the_automatic_shape_takes_one_launch_only_where_it_was_measured_faster():
+    """The GPU's automatic choice (``SymplecticEuler.launch_shape``, on an H200's 132 multiprocessors): one world of
+    32²-128² spread over blocks, springs only or not; many worlds one block each for the hanging cloth (1.02-1.18x
+    measured), but not for a scene that evaluates more inside (a flag in a gusting wind on a moving pole: 0.40-0.89x
+    at 1,056 and 4,096 worlds), nor where the worlds are too few to fill the device; ``one_launch=True`` forces it."""
+    integrator = ws.SymplecticEuler(scene("cpu"))
+    for n in (32, 64, 128):
+        for heavy in (False, True):
+            assert integrator.launch_shape(n * n, 1, 132, heavy=heavy) == (128, n * n // 128)
+    assert integrator.launch_shape(128 * 128, 4, 132) is None  # 512 blocks do not fit at once
+    assert integrator.launch_shape(32 * 32, 1056, 132) == (128, 1)
+    assert integrator.launch_shape(64 * 64, 4096, 132) == (256, 1)
+    for n, worlds in ((32, 1056), (32, 4096), (64, 1056), (128, 4096)):
+        assert integrator.launch_shape(n * n, worlds, 132, heavy=True) is None
+        assert integrator.launch_shape(n * n, worlds, 132, heavy=True, forced=True) is not None
+    assert integrator.launch_shape(32 * 32, 132, 132) is None  # 128 threads a multiprocessor: too few
+    assert integrator.launch_shape(16 * 16, 1, 132) is None  # under SPREAD_MIN_PARTICLES, one block: too few
+
+
 def test_one_launch_frame_counts_the_dampers_as_the_per_substep_frame(device):
     """The one-launch frame keeps the guard's power sums in each lane's registers over the frame (float64), one entry
     per lane written at its end: a damped cloth without colliders (its D counted) gives the same positions (to the

@@ -35,7 +35,8 @@ class SymplecticEuler(Integrator):
             float32 rounding on a GPU). ``None`` (default): where it pays, on a GPU: a world spread over blocks of
             :attr:`SPREAD_LANES` threads (one particle each) where every world's blocks fit one per multiprocessor
             (one world up to 128² on an H200: 1.36-1.51× at 32²-128²), else one block per world where the worlds
-            give at least :attr:`ONE_LAUNCH_THREADS_PER_SM` threads per multiprocessor (1.02-1.18×). ``True``:
+            give at least :attr:`ONE_LAUNCH_THREADS_PER_SM` threads per multiprocessor (1.02-1.18×) and the step
+            evaluates no more than springs, gravity and fixed colliders (:meth:`launch_shape`). ``True``:
             wherever the scene allows it (on the CPU too, one thread per world). ``False``: never. The scene allows it
             with gathered springs, analytic colliders whose contacts are fused into the update (moving ones with
             ``contact_stage=False``), no stabiliser, contact stage, triangle contacts or self-collision, no family
@@ -85,14 +86,28 @@ class SymplecticEuler(Integrator):
             return None
         if model.device.is_cpu:
             return 1, 1  # a CPU launch runs its threads in turn: one per world, each substep over the whole world
-        sms = model.device.sm_count
-        spread = -(-model.particle_count // self.SPREAD_LANES)
-        if (spread > 1 and model.world_count * spread <= sms
-                and (self.one_launch or model.particle_count >= self.SPREAD_MIN_PARTICLES)):
+        pins = model.pin_groups
+        heavy = bool(model.extra_families or model.input_tracks is not None or model.shape_moving
+                     or (pins is not None and pins.driven))
+        return self.launch_shape(model.particle_count, model.world_count, model.device.sm_count,
+                                 heavy=heavy, forced=bool(self.one_launch))
+
+    def launch_shape(self, particles: int, worlds: int, sms: int, *, heavy: bool = False,
+                     forced: bool = False) -> tuple[int, int] | None:
+        """(threads per block, blocks per world) of a frame in one launch on a GPU of ``sms`` multiprocessors, for
+        ``worlds`` worlds of ``particles`` particles, or ``None`` where one launch per substep is faster (unless
+        ``forced``). ``heavy``: the scene evaluates more than springs, gravity and fixed colliders inside (element
+        families such as the wind's, animated inputs, driven pins, moving colliders). A world spread over blocks
+        where they all fit at once (from :attr:`SPREAD_MIN_PARTICLES`); else one block per world where the worlds give
+        :attr:`ONE_LAUNCH_THREADS_PER_SM` threads a multiprocessor, and the scene is not ``heavy``: a flag on a moving
+        pole in a gusting wind took 0.86-0.89x (32²), 0.57-0.59x (64²) and 0.40-0.41x (128²) the per-substep path's
+        rate at 1,056 and 4,096 worlds so (H200, bench/results/frames.md), where the hanging cloth gained 1.02-1.18x."""
+        spread = -(-particles // self.SPREAD_LANES)
+        if spread > 1 and worlds * spread <= sms and (forced or particles >= self.SPREAD_MIN_PARTICLES):
             return self.SPREAD_LANES, spread
-        lanes = int(min(256, max(32, 32 * -(-model.particle_count // (32 * self.ONE_LAUNCH_PARTICLES_PER_LANE)))))
-        if self.one_launch is None and model.world_count * lanes < self.ONE_LAUNCH_THREADS_PER_SM * sms:
-            return None  # too few blocks to fill the device, too many to spread: one launch per substep
+        lanes = int(min(256, max(32, 32 * -(-particles // (32 * self.ONE_LAUNCH_PARTICLES_PER_LANE)))))
+        if not forced and (heavy or worlds * lanes < self.ONE_LAUNCH_THREADS_PER_SM * sms):
+            return None  # too few blocks to fill the device, too many to spread, or a heavy step: one launch per substep
         return lanes, 1
 
     def advance_frame(self, state_a: State, state_b: State, control: Control | None, dt: float, steps: int,
