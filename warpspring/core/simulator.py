@@ -65,9 +65,10 @@ class Simulator:
         defer_verdict: read each frame's guard record a frame later (default off): :meth:`step_frame` queues the
             next frame before it waits for the previous one's record, so the device need not idle while the host
             reads. A failure then raises at the next :meth:`step_frame` or at :meth:`settle`, naming its own frame;
-            see :meth:`step_frame`. Off by default: on an H200 (Warp 1.16.0, bench/results/guard_cost.md) it gave
-            0.598 against 0.526 of the guard-off rate at 256² but 0.413 against 0.487 at 64², and it moves the raise
-            of a failed frame to the next call.
+            see :meth:`step_frame`. Off by default: it moves the raise of a failed frame to the next call. On an
+            H200 (Warp 1.16.0, bench/results/guard_cost.md) one run gave 0.598 against 0.526 of the guard-off rate at
+            256² but 0.413 against 0.487 at 64²; a later one, on the one-launch frame, 0.684 against 0.600 at 32²,
+            0.577 against 0.456 at 64² and 0.672 against 0.613 at 256².
 
     Attributes:
         world_failures: the worlds stopped by the guard (``stop="world"``) so far: world → (frame, report),
