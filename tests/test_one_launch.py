@@ -282,3 +282,93 @@ def test_moving_colliders_move_inside_the_one_launch_frame(device):
     assert_same_frames(device, ends, plain.model.shape_arrays.transform_end.numpy(), 1)  # the last substep's frames
     assert np.abs(ends[:, 2, 0] - 0.3 - 0.02).max() < 1e-6  # the small sphere carried 0.2 s × 0.1 m/s along x
     assert_same_frames(device, fused.state.particle_q.numpy(), plain.state.particle_q.numpy(), 96)
+
+
+def _checked(make, *, in_frame: bool, substeps: int, frames: int, limits=None, control=None):
+    """A Simulator of ``make()`` in one launch a frame, its guard's check at the frame's end inside the launch or in
+    its own launches (``guards.CHECK_IN_FRAME``), stepped ``frames`` frames (or until the guard stops it: the
+    error returned)."""
+    from warpspring.core import guards
+
+    device = make().device
+    saved = dict(guards.CHECK_IN_FRAME)
+    guards.CHECK_IN_FRAME[device.is_cuda] = in_frame
+    try:
+        model = make()
+        integrator = ws.SymplecticEuler(model, one_launch=True, cpu_sweep=False)
+        sim = ws.Simulator(model, integrator=integrator, substeps=substeps,
+                           guard=limits if limits is not None else ws.GuardLimits(),
+                           control=control(model) if control is not None else None)
+        offered = sim.guard.frame_check(substeps, integrator.frame_shape(sim.control, substeps))
+        assert (offered is not None) == in_frame
+        error = None
+        for _ in range(frames):
+            try:
+                sim.step_frame()
+            except ws.SimulationError as exc:
+                error = exc
+                break
+        wp.synchronize_device(device)
+        return sim, error
+    finally:
+        guards.CHECK_IN_FRAME.update(saved)
+
+
+def _damped_cloth(device):
+    builder = ws.ModelBuilder(drag=0.02)
+    spring = ws.SpringMaterial(ke=400.0, kd=0.5)
+    builder.add_cloth_grid(nx=8, ny=8, spacing=0.05, particle_mass=0.02, structural=spring, shear=spring,
+                           bend=ws.SpringMaterial(ke=40.0, kd=0.05), pin=["top-left", "top-right"])
+    return builder.finalize(device, worlds=2, spring_evaluation="gather")
+
+
+def _pushed(model):
+    control = model.control()
+    control.set_particle_force((0.01, 0.0, 0.0))
+    return control
+
+
+@pytest.mark.parametrize("case", ["damped", "contacts"])
+def test_the_check_inside_the_frame_is_the_check_in_its_own_launches(device, case):
+    """The guard's check at the end of a one-launch frame (its passes run by the frame's lanes, its verdict by each
+    world's first block: ``kernels/frames.py``) against the same check in its own four launches after the frame:
+    the same positions to the bit (the check writes no state), and the same energy balance, work and values up to
+    the order in which the families' energies are added (float64: 1e-12 of the energy on the CPU). On a GPU the frame
+    kernel is compiled with fast math and the check's own kernels without: each element's float32 energy may differ
+    in its last bits (6.6e-8 of the energy measured on an H200), so there 1e-6 (8 float32 units in the last place).
+    A damped cloth whose D is counted (the power sums and the dampers' closing term at the check), and the push,
+    drag, sphere and ground of ``scene`` (three worlds of different stiffness)."""
+    make = (lambda: _damped_cloth(device)) if case == "damped" else (lambda: scene(device))
+    runs = [_checked(make, in_frame=in_frame, substeps=8, frames=12, control=_pushed) for in_frame in (True, False)]
+    (inside, error_inside), (apart, error_apart) = runs
+    assert error_inside is None and error_apart is None
+    np.testing.assert_array_equal(inside.state.particle_q.numpy(), apart.state.particle_q.numpy())
+    a, b = inside.guard.energy_balance(), apart.guard.energy_balance()
+    scale = np.abs(b.peak).max() * (1e-12 if wp.get_device(device).is_cpu else 1e-6)
+    for name in ("energy", "reference", "work", "peak", "dissipated"):
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=0, atol=scale, err_msg=name)
+    if case == "damped":
+        assert inside.guard.counts_dissipation and (a.dissipated > 0.01 * a.peak).all()
+    np.testing.assert_allclose(inside.guard.work(), apart.guard.work(), rtol=0, atol=scale)
+    np.testing.assert_array_equal(inside.guard._status.numpy(), apart.guard._status.numpy())
+
+
+def test_a_spring_torn_inside_the_frame_is_reported_as_apart(device):
+    """A failure found by the check inside the frame is the same report as the check apart gives: a cloth whose pins
+    are pulled apart, checked with a low tear strain, stops at the same frame and substep, naming the same world,
+    particle, spring and family."""
+    def make():
+        builder = ws.ModelBuilder()
+        spring = ws.SpringMaterial(ke=50.0, kd=0.05)
+        builder.add_cloth_grid(nx=6, ny=6, spacing=0.05, particle_mass=0.05, structural=spring, shear=spring,
+                               pin=["top-left", "top-right"])
+        return builder.finalize(device, worlds=2, spring_evaluation="gather")
+
+    limits = ws.GuardLimits(tear_strain=0.3)
+    runs = [_checked(make, in_frame=in_frame, substeps=8, frames=60, limits=limits) for in_frame in (True, False)]
+    (inside, error_inside), (apart, error_apart) = runs
+    assert error_inside is not None and error_apart is not None
+    assert str(error_inside) == str(error_apart)
+    assert error_inside.frame == error_apart.frame and error_inside.substep == error_apart.substep
+    assert getattr(error_inside, "reason", None) == getattr(error_apart, "reason", None)
+    np.testing.assert_array_equal(inside.guard._status.numpy(), apart.guard._status.numpy())

@@ -73,6 +73,8 @@ from ..kernels.guards import (
     POWER_RULE_NONE,
     POWER_RULE_START,
     step_midpoint_kernel,
+    FrameCheck,
+    frame_check_arrays_type,
 )
 from ..kernels.families import elements, fill_elements
 from ..kernels.flatten import flat_launch
@@ -111,6 +113,10 @@ STEP_POWER_BLOCKS = {True: False, False: False}
 #: Partial sums per world above which a check folds them before its gather (``Guard._fold``; ``None``:
 #: ``kernels/guards.py``'s FOLD_ABOVE). A test sets it low to fold small models, on the CPU too.
 FOLD_MIN_BLOCKS: int | None = None
+
+#: Whether a frame in one launch ends with the guard's check inside it (``Guard.frame_check``), by device. A test
+#: turns it off to compare the check inside the frame with the check's own launches.
+CHECK_IN_FRAME = {True: True, False: True}
 
 #: Frames checked after every substep from a restart, or from a write that raised the springs' bound, at a step the bound
 #: does not certify stable (``Guard._watch``).
@@ -270,6 +276,17 @@ class Guard(StepHook):
         self._midpoint = False
         self._working = False
         self._step_position = self._step_velocity = self._step_time = self._step_start = None
+        # The one-launch frame's check (``frame_check``): its partial sums, one per block of the frame (at most one
+        # block per 32 particles on CUDA, one on the CPU; the frame takes a view of its blocks' columns), and the
+        # families' element counts. Allocated here: a frame's first check runs inside a capture.
+        most = -(-max(model.particle_count, 1) // 32) if self._tiled else 1
+        self._frame_partials = (wp.zeros((worlds, most, PARTIAL_SLOTS), dtype=wp.float64, device=device),
+                                wp.zeros((worlds, most), dtype=wp.float64, device=device),
+                                wp.full((worlds, most), -1.0, dtype=wp.float64, device=device),
+                                wp.zeros((worlds, most), dtype=wp.float64, device=device))
+        self._frame_counts = tuple(family.element_count for family in model.families)
+        self._frame_count_array = wp.array(self._frame_counts or (0,), dtype=wp.int32, device=device)
+        self._frame_checked = False  # the frame's last check ran inside the one-launch frame (``frame_check``)
         self.limits = limits
 
     @property
@@ -572,7 +589,62 @@ class Guard(StepHook):
         if self._working and self._power is None:
             self._family_work(state)
         if (step + 1) % self._every == 0 or step + 1 == steps:
-            self.check(state, step, last=step + 1 == steps)
+            if self._frame_checked:  # done at the end of the one-launch frame
+                self._frame_checked = False
+            else:
+                self.check(state, step, last=step + 1 == steps)
+
+    def frame_check(self, steps: int, shape: tuple[int, int]):
+        """The check at the end of a frame in one launch of ``shape`` (threads per block, blocks per world), as
+        ``(FrameCheck, arrays)`` for ``symplectic_euler_frame_kernel`` (``kernels/frames.py``), or ``None`` where it
+        must run apart: where the guard does anything between substeps (``quiet_between_steps``), folds its partial
+        sums first (large worlds), or counts the work of families from outside at its checks (wind, handles). Where
+        the frame runs it, the stepper says so (:meth:`frame_checked`)."""
+        model = self.model
+        if not CHECK_IN_FRAME[model.device.is_cuda] or not self.quiet_between_steps(steps) or self._fold is not None:
+            return None
+        if self._working_families():
+            return None
+        specs = model.family_specs()
+        if any(getattr(spec, "gathered", True) is False for spec in specs):
+            return None
+        force = self.control.particle_force if self.control is not None else None
+        power = self._power
+        rule, features, modes, powers = POWER_RULE_NONE, None, (), (False,) * len(specs)
+        if power is not None:
+            rule, modes = self._power_rule(), power.modes
+            features = model.force_features(self.control)._replace(families=specs, clamp_particle_force=False,
+                                                                   external=force is not None)
+            powers = tuple(mode == POWER_DAMPERS for mode in power.modes)
+        spec = FrameCheck(tiled=self._tiled, external=force is not None, power=rule, power_features=features,
+                          power_modes=modes, dissipation=self.counts_dissipation, powers=powers)
+        blocks = shape[1]
+        partials, energy, strain, taken = self._frame_partials
+        if blocks > partials.shape[1] or self._frame_counts != tuple(f.element_count for f in model.families):
+            return None
+        arrays = frame_check_arrays_type(model.scalar)()
+        arrays.world_enabled = model.world_enabled
+        arrays.status = self._status
+        arrays.previous_q, arrays.previous_qd, arrays.previous_load = (self._previous_q, self._previous_qd,
+                                                                       self._previous_load)
+        # (the gather reads every column it is given: the frame's blocks' alone)
+        arrays.partials = partials[:, :blocks]
+        arrays.energy_partials, arrays.strain_partials, arrays.power_partials = (energy[:, :blocks], strain[:, :blocks],
+                                                                                 taken[:, :blocks])
+        arrays.counts = self._frame_count_array
+        arrays.limits = self._limits
+        arrays.running = self._running
+        arrays.values = self._values
+        arrays.work_total = self._work_total
+        arrays.balance = self._balance
+        arrays.carry = self._carry
+        arrays.lead = model.scalar(self._lead())
+        arrays.power_h = wp.float64(0.0 if self.dt is None else float(self.dt))
+        return spec, arrays
+
+    def frame_checked(self) -> None:
+        """The frame just launched ran the check of :meth:`frame_check`: the last step's ``after_step`` leaves it out."""
+        self._frame_checked = True
 
     def _family_work(self, state: State) -> None:
         """Add the work wind and handles (the families that do work from outside) did over the last substep to the

@@ -622,7 +622,11 @@ def estimate_memory(
              + 3 * 8 * max(energy_blocks, w)  # every family's energy, strain and dampers' power partial sums
              + (0 if cuda else 2 * 4 * GUARD_INTS * w)  # the verdict's two status copies (pinned host memory on CUDA)
              + carried + (2 * vec3 * size + 8 * w if path.midpoint else 0)
-             + (2 * vec3 * size if path.stored_forces else 0))
+             + (2 * vec3 * size if path.stored_forces else 0)
+             # the one-launch frame's check: its partial sums, one per block of the frame (at most one per 32
+             # particles on CUDA, one on the CPU), and the families' element counts
+             + 8 * (PARTIAL_SLOTS + 3) * w * (-(-max(n, 1) // 32) if cuda else 1)
+             + 4 * max(bool(s) + bool(h) + len(others), 1))
     # The stepper's warm-up before a capture copies what a step carries to the next (the guard's sums and record, the
     # integrator's per-world state and implicit Euler's Δv, the emitters' flags and slots, the plastic springs' rest
     # lengths and strains, the contact, self-collision and mesh caches' counters), and frees the copies once the

@@ -50,6 +50,16 @@ class StepHook:
         like the integrator's history)."""
         return []
 
+    def frame_check(self, steps: int, shape: tuple[int, int]):
+        """What the hook's work after the last step would be, as a check the one-launch frame of ``shape`` can run at
+        its end (``Integrator.advance_frame``'s ``check``), or ``None`` (the default): the hook's ``after_step`` then
+        leaves that work out once told (:meth:`frame_checked`). Asked only where the hook is quiet between steps; at most
+        one hook's is run."""
+        return None
+
+    def frame_checked(self) -> None:
+        """The one-launch frame just launched ran :meth:`frame_check`'s check (the last step's ``after_step`` follows)."""
+
     def quiet_between_steps(self, steps: int) -> bool:
         """Whether, in an advance of ``steps`` steps, the hook launches nothing around any step but the last
         (its ``before_step`` and ``after_step`` of the last step may still work). Only then may the integrator run
@@ -157,7 +167,13 @@ class Stepper:
             last = self.steps - 1
             for hook in before:
                 hook.before_step(a if last % 2 == 0 else b, last, self.steps)
-            self.integrator.advance_frame(a, b, self.control, self.dt, self.steps, shape)
+            check = checker = None
+            for hook in self.hooks:
+                if check is None:
+                    check, checker = hook.frame_check(self.steps, shape), hook
+            self.integrator.advance_frame(a, b, self.control, self.dt, self.steps, shape, check=check)
+            if check is not None:
+                checker.frame_checked()
             result = a if self.steps % 2 == 0 else b
             for hook in self.hooks:
                 hook.after_step(result, last, self.steps)

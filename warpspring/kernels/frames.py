@@ -28,7 +28,9 @@ import warp as wp
 from .families import FORCE_KERNEL_OPTIONS, elements
 from .forces import ForceFeatures, counts_work, power_sums_funcs
 from .integrators import symplectic_euler_particle_energy_func, symplectic_euler_particle_func
-from .linalg import block_barrier
+from .guards import (GUARD_TRIPPED, POWER_RULE_NONE, FrameCheck, energy_lanes_func, frame_check_arrays_type,
+                     guard_lane_funcs)
+from .linalg import block_barrier, reduction_funcs
 from .precision import vec3_type
 from .shapes import ContactFeatures, shapes_type
 from .kinematics import PinGroups, PinTargets, is_kinematic, prescribed_func
@@ -63,17 +65,18 @@ def wait_for_arrivals(barrier: wp.array[wp.int32], world: int, target: int):
     ...
 
 
-#: The leaves of the frame kernel's animated-input and pin parameters (moved last where unread).
+#: The leaves of the frame kernel's animated-input, pin and check parameters (moved last where unread).
 ANIMATED_LEAVES = tuple(f"animated_inputs__{name}" for name in WorldInputs.vars)
 TRACK_LEAVES = tuple(f"tracks__{name}" for name in Tracks.vars)
 PIN_LEAVES = tuple(f"groups__{name}" for name in PinGroups.vars)
 TARGET_LEAVES = tuple(f"pin_targets__{name}" for name in PinTargets.vars)
+CHECK_LEAVES = tuple(f"check_arrays_in_out__{name}" for name in frame_check_arrays_type(wp.float32).vars)
 
 
 @functools.cache
 def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
                                   power: tuple | None = None, animated: bool = False, driven: bool = False,
-                                  targets: bool = False, moving: bool = False):
+                                  targets: bool = False, moving: bool = False, check: FrameCheck | None = None):
     """``steps`` fused symplectic Euler steps of every world, ``blocks`` blocks of ``lanes`` threads per world
     (module docstring); ``barrier_in_out`` one counter per world, zero at the launch where ``blocks`` > 1.
     Substep k reads buffer A when k is even and writes B, and the other way round when k is odd; an odd
@@ -87,7 +90,13 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
     end (``kinematics.prescribed_func``: ``step_f64`` [s] the step in float64, as ``apply_kinematics`` and
     ``update_shape_frames`` take it; ``targets``: groups driven through Control read ``pin_targets``). With ``moving``, each substep first writes
     the world's colliders' frames at its start and end into ``shapes_out`` (the very struct ``shapes`` is, each
-    block its own copy, ``swept.shape_motion_func``), as the per-substep path's ``update_shape_frames`` does."""
+    block its own copy, ``swept.shape_motion_func``), as the per-substep path's ``update_shape_frames`` does. With
+    ``check``, the frame ends with the guard's check of its last state (``check_arrays_in_out``, the guard's arrays:
+    ``guards.frame_check_arrays_type``): each lane adds its power sums to its entry and runs the check's drive and
+    measure passes over its particles and the energy pass over its elements (``guards.guard_lane_funcs``,
+    ``guards.energy_lanes_func``: the functions of the check's own kernels), each block writes its partial sums, the
+    world's blocks meet, and the world's first block gathers them and decides (``gather_lanes``): the check's four
+    launches, inside the frame."""
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
     counted = power is not None
@@ -101,6 +110,50 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
     write_world_inputs = world_inputs_func(scalar)
     prescribed = prescribed_func(scalar, targets)
     move_shape = shape_motion_func(scalar)
+    checked = check is not None
+    CheckArrays = frame_check_arrays_type(scalar)
+    # (the unchecked frame never calls ``end_check``: a check of nothing is made for it, never compiled)
+    spec = (check if checked
+            else FrameCheck(False, False, POWER_RULE_NONE, None, (), False, (False,) * len(features.families)))
+    measure_lanes, drive_lanes, gather_lanes = guard_lane_funcs(
+        scalar, features.families, spec.tiled, spec.external, (), spec.power, spec.power_features, spec.power_modes,
+        spec.dissipation)
+    energy_lanes = energy_lanes_func(scalar, features.families, spec.powers)
+    block_sum, block_max = reduction_funcs(spec.tiled)
+    NoWork = elements(scalar, ()).arrays
+
+    @wp.func
+    def end_check(world: int, block: int, lane: int, lanes: int, blocks: int, steps: int, particle_count: int,
+                  particle_flags: wp.array[wp.int32], particle_mass: wp.array2d[scalar], element_arrays: Elements,
+                  inputs: wp.array2d[scalar], particle_force_ext: wp.array[vec3], q: wp.array[vec3],
+                  qd: wp.array[vec3], power_in_out: wp.array[Sums], c: CheckArrays, barrier_in_out: wp.array[wp.int32]):
+        """The guard's check of the frame's last state (``q``, ``qd``) by the world's lanes, then its verdict by the
+        world's first block (``symplectic_euler_frame_kernel``'s ``check``)."""
+        stride = lanes * blocks
+        drive_lanes(world, block, lane, lanes, particle_count, particle_flags, element_arrays, inputs, q, qd,
+                    c.previous_q, stride, c.previous_load, c.partials)
+        measure_lanes(world, block, lane, lanes, particle_count, c.world_enabled, particle_flags, particle_mass,
+                      element_arrays, NoWork(), inputs, particle_force_ext, q, qd, c.lead, stride, power_in_out,
+                      c.previous_q, c.previous_qd, c.previous_load, c.status, c.partials)
+        if c.status[world, GUARD_TRIPPED] == 0 and c.world_enabled[world] != 0:  # (the energy pass's skip)
+            energy, worst, taken = energy_lanes(world, block * lanes + lane, stride, world * particle_count, c.counts,
+                                                0, element_arrays, inputs, q, qd)
+            energy = block_sum(energy)
+            worst = block_max(worst)
+            taken = block_sum(taken)
+            if lane == 0:
+                c.energy_partials[world, block] = energy
+                c.strain_partials[world, block] = worst
+                c.power_partials[world, block] = taken
+        if blocks > 1 and lane == 0:  # the world's blocks meet once more: every partial sum written
+            memory_fence()
+            wp.atomic_add(barrier_in_out, world, 1)
+            wait_for_arrivals(barrier_in_out, world, (steps + 1) * blocks)
+        block_barrier()
+        if block == 0:
+            gather_lanes(world, lane, lanes, particle_count, element_arrays, q, c.partials, c.energy_partials,
+                         c.strain_partials, c.power_partials, steps - 1, c.limits, c.power_h, 0, c.world_enabled,
+                         c.status, c.running, c.values, c.work_total, c.balance, c.carry)
 
     @wp.func
     def substep(world: int, lane: int, lanes: int, particle_count: int,
@@ -140,7 +193,7 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
     @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
                  last=(contacts.idle() + composed.last("element_arrays") + (() if animated else ANIMATED_LEAVES)
                        + (() if animated or driven or moving else TRACK_LEAVES) + (() if driven else PIN_LEAVES)
-                       + (() if targets else TARGET_LEAVES)
+                       + (() if targets else TARGET_LEAVES) + (() if checked else CHECK_LEAVES)
                        + (() if moving else ("shape_rest", "shape_translation_track", "shape_rotation_track")
                           + tuple(f"shapes_out__{name}" for name in Shapes.vars))))
     def symplectic_euler_frame(
@@ -175,7 +228,8 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         step_f64: wp.float64,
         # In/out:
         # (the input table and the colliders' frames, written with ``animated``, ``moving`` only; the two state
-        # buffers, the worlds' clocks [s], the guard's power sums [J], read with ``power`` only)
+        # buffers, the worlds' clocks [s], the guard's power sums [J], read with ``power`` only; the guard's arrays,
+        # with ``check`` only)
         inputs_out: wp.array2d[scalar],
         shapes_out: Shapes,
         q_a_in_out: wp.array[vec3],
@@ -184,6 +238,7 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         qd_b_in_out: wp.array[vec3],
         time_in_out: wp.array[wp.float64],
         power_in_out: wp.array[Sums],
+        check_arrays_in_out: CheckArrays,
         barrier_in_out: wp.array[wp.int32],
     ):
         t = wp.tid()
@@ -231,5 +286,15 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         if wp.static(counted):  # one entry per lane, once a frame (the check sums a world's entries)
             if lane < particle_count:
                 power_in_out[world * particle_count + lane] += pack(scalar(taken), scalar(worked))
+        if wp.static(checked):  # (the lane's check reads its own entries: particle ``lane``, then every stride-th)
+            block = lane / lanes
+            if steps % 2 == 0:
+                end_check(world, block, lane - block * lanes, lanes, blocks, steps, particle_count, particle_flags,
+                          particle_mass, element_arrays, inputs, particle_force_ext, q_a_in_out, qd_a_in_out,
+                          power_in_out, check_arrays_in_out, barrier_in_out)
+            else:
+                end_check(world, block, lane - block * lanes, lanes, blocks, steps, particle_count, particle_flags,
+                          particle_mass, element_arrays, inputs, particle_force_ext, q_b_in_out, qd_b_in_out,
+                          power_in_out, check_arrays_in_out, barrier_in_out)
 
     return symplectic_euler_frame

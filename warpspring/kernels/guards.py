@@ -67,6 +67,7 @@ by the slots below.
 """
 
 import functools
+from typing import NamedTuple
 
 import warp as wp
 
@@ -194,7 +195,6 @@ def particle_strain_func(scalar: type, specs: tuple):
     return strain_n
 
 
-@functools.cache
 def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, working: tuple = (),
                   power: int = POWER_RULE_NONE, power_features: ForceFeatures | None = None,
                   power_modes: tuple = (), dissipation: bool = False):
@@ -225,6 +225,14 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
     which ~90 µs was that evaluation; on CUDA it held most of the kernel's 112 registers). ``dissipation``:
     ``gather`` adds the dampers' and drag's energy to D (else only the loads' work counts: D left out,
     ``core/guards.dissipation_exact``)."""
+    return _guard_parts(scalar, families, tiled, external, working, power, power_features, power_modes,
+                        dissipation)[:3]
+
+
+@functools.cache
+def _guard_parts(scalar: type, families: tuple, tiled: bool, external: bool, working: tuple, power: int,
+                 power_features: ForceFeatures | None, power_modes: tuple, dissipation: bool):
+    """:func:`guard_kernels`' three kernels and :func:`guard_lane_funcs`' three functions."""
     vec3 = vec3_type(scalar)
     counted = power != POWER_RULE_NONE
     sums_funcs = power_sums_funcs(scalar, counted and counts_work(power_features, power_modes))
@@ -256,9 +264,13 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
     work_force = work_composed.force
     input_vec3 = input_funcs(scalar)
 
-    @flat_kernel(module="unique", enable_backward=False,
-                 last=composed.last("element_arrays") + work_composed.last("work_arrays"))
-    def measure(
+    @wp.func
+    def measure_lanes(
+        # Where: the world, the lane's block of the world and its lane there (``lanes`` a block):
+        world: int,
+        block: int,
+        lane: int,
+        lanes: int,
         # Model:
         particle_count: int,
         world_enabled: wp.array[wp.int32],
@@ -284,11 +296,11 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         status_in_out: wp.array2d[wp.int32],
         partials_out: wp.array3d[wp.float64],
     ):
-        world, block, lane = wp.tid()
+        """``measure``'s work for one lane (also run by the one-launch frame's lanes at its end)."""
         # A failed or held world is measured as any other (its sums cleared, its last check's state and loads kept:
         # released without a restart, its first check counts from here), but its record is left as it was.
         live = status_in_out[world, GUARD_TRIPPED] == 0 and world_enabled[world] != 0
-        i = block * wp.block_dim() + lane
+        i = block * lanes + lane
         energy = wp.float64(0.0)
         worst = wp.float64(-1.0)
         work = wp.float64(0.0)
@@ -366,8 +378,47 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                 partials_out[world, block, PARTIAL_CLOSE_DISSIPATION] = close_dissipated
                 partials_out[world, block, PARTIAL_CLOSE_WORK] = close_work
 
-    @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
-    def drive(
+    @flat_kernel(module="unique", enable_backward=False,
+                 last=composed.last("element_arrays") + work_composed.last("work_arrays"))
+    def measure(
+        # Model:
+        particle_count: int,
+        world_enabled: wp.array[wp.int32],
+        particle_flags: wp.array[wp.int32],
+        particle_mass: wp.array2d[scalar],
+        element_arrays: Elements,
+        work_arrays: WorkElements,
+        inputs: wp.array2d[scalar],
+        # Control:
+        particle_force_ext: wp.array[vec3],
+        # State in:
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+        # Guards in (the lead λ [s]: the steady loads' work on free particles is F·(Δx + λ Δv)):
+        lead: scalar,
+        # Launch (the items between a lane's successive particles: ``linalg.reduce_stride``):
+        stride: int,
+        # In/out:
+        power_in_out: wp.array[Sums],
+        previous_q_in_out: wp.array[vec3],
+        previous_qd_in_out: wp.array[vec3],
+        previous_load_in_out: wp.array[vec3],
+        status_in_out: wp.array2d[wp.int32],
+        partials_out: wp.array3d[wp.float64],
+    ):
+        world, block, lane = wp.tid()
+        measure_lanes(world, block, lane, wp.block_dim(), particle_count, world_enabled, particle_flags, particle_mass,
+                      element_arrays, work_arrays, inputs, particle_force_ext, particle_q, particle_qd, lead, stride,
+                      power_in_out, previous_q_in_out, previous_qd_in_out, previous_load_in_out, status_in_out,
+                      partials_out)
+
+    @wp.func
+    def drive_lanes(
+        # Where (``measure_lanes``):
+        world: int,
+        block: int,
+        lane: int,
+        lanes: int,
         # Model:
         particle_count: int,
         particle_flags: wp.array[wp.int32],
@@ -384,13 +435,13 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         previous_load_in_out: wp.array[vec3],
         partials_out: wp.array3d[wp.float64],
     ):
-        """The work the drives did through the kinematic particles (pins, tracks) since the last check: the negative of
+        """``drive``'s work for one lane: the work the drives did through the kinematic particles (pins, tracks)
+        since the last check: the negative of
         the elements' force on each, by the trapezoid of its values at the two checks, over its displacement; launched
         before ``measure`` (which then moves ``previous_q`` on) over its grid. A pass of its own: the elements' force
         evaluated in ``measure`` for its few kinematic particles held 113 registers a thread there (64 without it; on
         sm_90, ``bench/guard_registers.py``), and so its occupancy, for every particle."""
-        world, block, lane = wp.tid()
-        i = block * wp.block_dim() + lane
+        i = block * lanes + lane
         work = wp.float64(0.0)
         while i < particle_count:
             base = world * particle_count
@@ -411,7 +462,34 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
             partials_out[world, block, PARTIAL_DRIVE_WORK] = work
 
     @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
-    def gather(
+    def drive(
+        # Model:
+        particle_count: int,
+        particle_flags: wp.array[wp.int32],
+        element_arrays: Elements,
+        inputs: wp.array2d[scalar],
+        # State in:
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+        # Guards in (the positions at the last check):
+        previous_q: wp.array[vec3],
+        # Launch (the items between a lane's successive particles: ``linalg.reduce_stride``):
+        stride: int,
+        # In/out:
+        previous_load_in_out: wp.array[vec3],
+        partials_out: wp.array3d[wp.float64],
+    ):
+        """(``drive_lanes``, launched before ``measure`` over its grid.)"""
+        world, block, lane = wp.tid()
+        drive_lanes(world, block, lane, wp.block_dim(), particle_count, particle_flags, element_arrays, inputs,
+                    particle_q, particle_qd, previous_q, stride, previous_load_in_out, partials_out)
+
+    @wp.func
+    def gather_lanes(
+        # Where: the world and this lane of the block that gathers it (``lanes`` lanes):
+        world: int,
+        lane: int,
+        lanes: int,
         # Model:
         particle_count: int,
         element_arrays: Elements,
@@ -436,18 +514,16 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
         balance_in_out: wp.array2d[wp.float64],
         carry_in_out: wp.array2d[wp.float64],
     ):
-        """A world's kinetic and elastic energy, the work put in and the energy dissipated since the last
+        """``gather``'s work for one lane of the world's block: a world's kinetic and elastic energy, the work put
+        in and the energy dissipated since the last
         check (its blocks' partials and running sums: the dissipation and the working families' work, the running
         sums cleared; with the power counted in the force pass, the closing term at this state: its share added, minus
         it carried to the next span; the work and the dissipation
         added to the balance, the work's positive part to the world's running total W⁺), its largest strain,
-        and the energy beyond the balance's budget. Launched over [world, lanes] with ``block_dim`` = lanes
-        (one lane on the CPU): each lane sums every lanes-th block in order, then a fixed-order tree
-        (``block_sum``) joins the lanes, so the sums are deterministic; one thread walking a world's ~10³ blocks
-        of a 512² cloth in turn took 0.9 ms on an H100, most of a check. Lane 0 then decides: one launch
-        for the world's sums and its verdict."""
-        world, lane = wp.tid()
-        lanes = wp.block_dim()
+        and the energy beyond the balance's budget. Run by one block of ``lanes`` lanes per world (one lane on the
+        CPU): each lane sums every lanes-th block in order, then a fixed-order tree (``block_sum``) joins the lanes,
+        so the sums are deterministic; one thread walking a world's ~10³ blocks of a 512² cloth in turn took 0.9 ms
+        on an H100, most of a check. Lane 0 then decides: the world's sums and its verdict in one pass."""
         if status_in_out[world, GUARD_TRIPPED] != 0 or world_enabled_in_out[world] == 0:
             # A failed or held world: its record stays as it was, the running sums of its steps since the last check
             # are dropped (released without a restart, its first check counts from here).
@@ -609,7 +685,50 @@ def guard_kernels(scalar: type, families: tuple, tiled: bool, external: bool, wo
                 wp.atomic_min(status_in_out, world, GUARD_STRAIN_FAMILY, family)
             i += lanes
 
-    return measure, gather, drive
+    @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
+    def gather(
+        # Model:
+        particle_count: int,
+        element_arrays: Elements,
+        # State in:
+        particle_q: wp.array[vec3],
+        # Guards in (``gather_lanes``):
+        partials: wp.array3d[wp.float64],
+        energy_partials: wp.array2d[wp.float64],
+        strain_partials: wp.array2d[wp.float64],
+        power_partials: wp.array2d[wp.float64],
+        substep: int,
+        limits: wp.array2d[wp.float64],
+        power_h: wp.float64,
+        carry_only: int,
+        # In/out:
+        world_enabled_in_out: wp.array[wp.int32],
+        status_in_out: wp.array2d[wp.int32],
+        running_in_out: wp.array3d[wp.float64],
+        values_in_out: wp.array2d[wp.float64],
+        work_total_in_out: wp.array[wp.float64],
+        balance_in_out: wp.array2d[wp.float64],
+        carry_in_out: wp.array2d[wp.float64],
+    ):
+        """(``gather_lanes``.) Launched over [world, lanes] with ``block_dim`` = lanes (one lane on the CPU)."""
+        world, lane = wp.tid()
+        gather_lanes(world, lane, wp.block_dim(), particle_count, element_arrays, particle_q, partials,
+                     energy_partials, strain_partials, power_partials, substep, limits, power_h, carry_only,
+                     world_enabled_in_out, status_in_out, running_in_out, values_in_out, work_total_in_out,
+                     balance_in_out, carry_in_out)
+
+    return measure, gather, drive, measure_lanes, drive_lanes, gather_lanes
+
+
+def guard_lane_funcs(scalar: type, families: tuple, tiled: bool, external: bool, working: tuple = (),
+                     power: int = POWER_RULE_NONE, power_features: ForceFeatures | None = None,
+                     power_modes: tuple = (), dissipation: bool = False):
+    """(measure_lanes, drive_lanes, gather_lanes): the bodies of :func:`guard_kernels`' kernels as functions of the
+    lane, for a kernel that runs the check at its own end (the one-launch frame, ``kernels/frames.py``): the same
+    arithmetic in the same order, given where the lane is (world, its block of the world, its lane there, the
+    block's lanes)."""
+    parts = _guard_parts(scalar, families, tiled, external, working, power, power_features, power_modes, dissipation)
+    return parts[3], parts[4], parts[5]
 
 
 #: Partial sums a thread of the check's fold adds in turn (``guard_fold_kernel``; Warp unrolls a loop of up to 16: at
@@ -1224,3 +1343,107 @@ def guard_correction_energy_kernel(scalar: type, spec, tiled: bool):
             running_in_out[world, block, RUNNING_WORK] = running_in_out[world, block, RUNNING_WORK] + sign * energy
 
     return correction_energy
+
+
+@functools.cache
+def energy_lanes_func(scalar: type, specs: tuple, powers: tuple):
+    """``energy_lanes(world, first, stride, base, counts, family, arrays, inputs, particle_q, particle_qd)``: what
+    :func:`guard_energy_kernel`'s passes sum, over every family of ``specs`` at once (their arrays the one struct
+    ``families.elements`` composes, ``counts[family + k]`` the k-th family's elements per world): the elastic energy
+    [J] of the lane's elements ``first``, ``first + stride``, ... of each family, their largest strain where a family
+    measures it per element (-1: none), and where ``powers[k]`` the power the k-th family's dampers take out at this
+    state [W]; in float64. For the one-launch frame's check, whose lanes then add them per block
+    (``kernels/frames.py``)."""
+    vec3 = vec3_type(scalar)
+    composed = elements(scalar, specs)
+    Arrays = composed.arrays
+    if not specs:
+        @wp.func
+        def no_energy(world: int, first: int, stride: int, base: int, counts: wp.array[wp.int32], family: int,
+                      arrays: Arrays, inputs: wp.array2d[scalar], particle_q: wp.array[vec3],
+                      particle_qd: wp.array[vec3]):
+            return wp.float64(0.0), wp.float64(-1.0), wp.float64(0.0)
+
+        return no_energy
+    funcs = specs[0].funcs(scalar)
+    energy_func = funcs.energy
+    strain_func = getattr(funcs, "element_strain", None)
+    strained = strain_func is not None
+    power = bool(powers[0])
+    power_func = funcs.dissipation if power else None
+    rest = energy_lanes_func(scalar, specs[1:], powers[1:]) if len(specs) > 1 else None
+    more = rest is not None
+
+    @wp.func
+    def energy_lanes(world: int, first: int, stride: int, base: int, counts: wp.array[wp.int32], family: int,
+                     arrays: Arrays, inputs: wp.array2d[scalar], particle_q: wp.array[vec3],
+                     particle_qd: wp.array[vec3]):
+        energy = wp.float64(0.0)
+        worst = wp.float64(-1.0)
+        taken = wp.float64(0.0)
+        element = first
+        count = counts[family]
+        while element < count:
+            energy += wp.float64(energy_func(world, element, base, arrays.head, inputs, particle_q))
+            if wp.static(strained):
+                worst = wp.max(worst, strain_func(world, element, base, arrays.head, particle_q))
+            if wp.static(power):
+                taken += wp.float64(power_func(world, element, base, arrays.head, inputs, particle_q, particle_qd))
+            element += stride
+        if wp.static(more):
+            e, w, t = rest(world, first, stride, base, counts, family + 1, arrays.tail, inputs, particle_q,
+                           particle_qd)
+            energy += e
+            worst = wp.max(worst, w)
+            taken += t
+        return energy, worst, taken
+
+    return energy_lanes
+
+
+class FrameCheck(NamedTuple):
+    """What the one-launch frame's check at its end is compiled for (``kernels/frames.py``): the arguments
+    :func:`guard_lane_funcs` takes beyond the precision and the families (the step's), no family doing work
+    from outside counted at the checks (wind, handles: those scenes check apart); and per family
+    whether its dampers' power at the check's state is summed (``powers``, :func:`energy_lanes_func`)."""
+
+    tiled: bool
+    external: bool
+    power: int
+    power_features: ForceFeatures | None
+    power_modes: tuple
+    dissipation: bool
+    powers: tuple
+
+
+@functools.cache
+def frame_check_arrays_type(scalar: type) -> type:
+    """The struct of a guard's arrays that the one-launch frame's check reads and writes (the arguments of
+    ``measure``, ``drive``, the energy passes and ``gather`` that the frame does not already take), in ``scalar``'s
+    vectors: the worlds' enabled flags, the record, the last check's positions, velocities and loads, the check's
+    per-block partial sums (one block of the frame each), the families' element counts per world, the limits, the
+    running sums, the values, the work total, the balance and the carried closing term; the lead λ [s] and the
+    closing term's step h [s]."""
+    vec3 = vec3_type(scalar)
+    fields = {
+        "world_enabled": wp.array[wp.int32],
+        "status": wp.array2d[wp.int32],
+        "previous_q": wp.array[vec3],
+        "previous_qd": wp.array[vec3],
+        "previous_load": wp.array[vec3],
+        "partials": wp.array3d[wp.float64],
+        "energy_partials": wp.array2d[wp.float64],
+        "strain_partials": wp.array2d[wp.float64],
+        "power_partials": wp.array2d[wp.float64],
+        "counts": wp.array[wp.int32],
+        "limits": wp.array2d[wp.float64],
+        "running": wp.array3d[wp.float64],
+        "values": wp.array2d[wp.float64],
+        "work_total": wp.array[wp.float64],
+        "balance": wp.array2d[wp.float64],
+        "carry": wp.array2d[wp.float64],
+        "lead": scalar,
+        "power_h": wp.float64,
+    }
+    cls = type(f"FrameCheckArrays_{scalar.__name__}", (), {"__annotations__": fields, "__module__": __name__})
+    return wp.struct(cls)

@@ -10,6 +10,7 @@ import functools
 import warp as wp
 
 from ...kernels.frames import symplectic_euler_frame_kernel
+from ...kernels.guards import frame_check_arrays_type
 from ...kernels.integrators import (symplectic_euler_blocks_kernel, symplectic_euler_kernel,
                                      symplectic_euler_update_kernel)
 from ...kernels.shapes import NO_CONTACTS
@@ -111,7 +112,7 @@ class SymplecticEuler(Integrator):
         return lanes, 1
 
     def advance_frame(self, state_a: State, state_b: State, control: Control | None, dt: float, steps: int,
-                      shape: tuple[int, int]) -> None:
+                      shape: tuple[int, int], check=None) -> None:
         model = self.model
         lanes, blocks = shape
         if self._barrier is None or len(self._barrier) != model.world_count:
@@ -126,7 +127,8 @@ class SymplecticEuler(Integrator):
         flat_launch(
             symplectic_euler_frame_kernel(model.scalar, features, contacts,
                                           None if self.power is None else self.power.modes, animated is not None,
-                                          pins is not None, targets, bool(model.shape_moving)),
+                                          pins is not None, targets, bool(model.shape_moving),
+                                          None if check is None else check[0]),
             inputs=[
                 model.particle_count,
                 lanes,
@@ -148,7 +150,8 @@ class SymplecticEuler(Integrator):
                 wp.float64(dt),
             ],
             outputs=[model.inputs, model.shape_arrays, state_a.particle_q, state_a.particle_qd, state_b.particle_q,
-                     state_b.particle_qd, state_a.time, None if self.power is None else self.power.sums, self._barrier],
+                     state_b.particle_qd, state_a.time, None if self.power is None else self.power.sums,
+                     _no_check(model.scalar, str(model.device)) if check is None else check[1], self._barrier],
             dim=model.world_count * lanes * blocks, block_dim=lanes, device=model.device,
         )
         if steps % 2:
@@ -240,6 +243,12 @@ def _no_world_inputs(device: str) -> WorldInputs:
     empty.track = empty.slot = empty.width = empty.order = wp.zeros(0, dtype=wp.int32, device=device)
     empty.start = wp.zeros(2, dtype=wp.int32, device=device)
     return empty
+
+
+@functools.cache
+def _no_check(scalar, device: str):
+    """The frame kernel's check arrays where the frame ends without the check (never read: empty arrays)."""
+    return frame_check_arrays_type(scalar)()
 
 
 #: The frame kernel's pin groups where none is driven (never read).
