@@ -284,10 +284,10 @@ def test_moving_colliders_move_inside_the_one_launch_frame(device):
     assert_same_frames(device, fused.state.particle_q.numpy(), plain.state.particle_q.numpy(), 96)
 
 
-def _checked(make, *, in_frame: bool, substeps: int, frames: int, limits=None, control=None):
+def _checked(make, *, in_frame: bool, substeps: int, frames: int, limits=None, control=None, spread_lanes=None):
     """A Simulator of ``make()`` in one launch a frame, its guard's check at the frame's end inside the launch or in
     its own launches (``guards.CHECK_IN_FRAME``), stepped ``frames`` frames (or until the guard stops it: the
-    error returned)."""
+    error returned); ``spread_lanes``: each world spread over blocks of that many threads (on a GPU)."""
     from warpspring.core import guards
 
     device = make().device
@@ -296,10 +296,15 @@ def _checked(make, *, in_frame: bool, substeps: int, frames: int, limits=None, c
     try:
         model = make()
         integrator = ws.SymplecticEuler(model, one_launch=True, cpu_sweep=False)
+        if spread_lanes is not None:
+            integrator.SPREAD_LANES = spread_lanes
         sim = ws.Simulator(model, integrator=integrator, substeps=substeps,
                            guard=limits if limits is not None else ws.GuardLimits(),
                            control=control(model) if control is not None else None)
-        offered = sim.guard.frame_check(substeps, integrator.frame_shape(sim.control, substeps))
+        shape = integrator.frame_shape(sim.control, substeps)
+        if spread_lanes is not None and device.is_cuda:
+            assert shape[1] > 1  # the world's blocks meet at the counter before the first gathers
+        offered = sim.guard.frame_check(substeps, shape, integrator=integrator, control=sim.control)
         assert (offered is not None) == in_frame
         error = None
         for _ in range(frames):
@@ -314,10 +319,10 @@ def _checked(make, *, in_frame: bool, substeps: int, frames: int, limits=None, c
         guards.CHECK_IN_FRAME.update(saved)
 
 
-def _damped_cloth(device):
+def _damped_cloth(device, n: int = 8):
     builder = ws.ModelBuilder(drag=0.02)
     spring = ws.SpringMaterial(ke=400.0, kd=0.5)
-    builder.add_cloth_grid(nx=8, ny=8, spacing=0.05, particle_mass=0.02, structural=spring, shear=spring,
+    builder.add_cloth_grid(nx=n, ny=n, spacing=0.05, particle_mass=0.02, structural=spring, shear=spring,
                            bend=ws.SpringMaterial(ke=40.0, kd=0.05), pin=["top-left", "top-right"])
     return builder.finalize(device, worlds=2, spring_evaluation="gather")
 
@@ -328,7 +333,7 @@ def _pushed(model):
     return control
 
 
-@pytest.mark.parametrize("case", ["damped", "contacts"])
+@pytest.mark.parametrize("case", ["damped", "contacts", "spread"])
 def test_the_check_inside_the_frame_is_the_check_in_its_own_launches(device, case):
     """The guard's check at the end of a one-launch frame (its passes run by the frame's lanes, its verdict by each
     world's first block: ``kernels/frames.py``) against the same check in its own four launches after the frame:
@@ -337,9 +342,12 @@ def test_the_check_inside_the_frame_is_the_check_in_its_own_launches(device, cas
     kernel is compiled with fast math and the check's own kernels without: each element's float32 energy may differ
     in its last bits (6.6e-8 of the energy measured on an H200), so there 1e-6 (8 float32 units in the last place).
     A damped cloth whose D is counted (the power sums and the dampers' closing term at the check), and the push,
-    drag, sphere and ground of ``scene`` (three worlds of different stiffness)."""
-    make = (lambda: _damped_cloth(device)) if case == "damped" else (lambda: scene(device))
-    runs = [_checked(make, in_frame=in_frame, substeps=8, frames=12, control=_pushed) for in_frame in (True, False)]
+    drag, sphere and ground of ``scene`` (three worlds of different stiffness); and on a GPU a 12 × 12 damped cloth
+    spread over five blocks of 32 threads a world (the same on the CPU, one thread a world)."""
+    make = {"damped": lambda: _damped_cloth(device), "contacts": lambda: scene(device),
+            "spread": lambda: _damped_cloth(device, 12)}[case]
+    runs = [_checked(make, in_frame=in_frame, substeps=8, frames=12, control=_pushed,
+                     spread_lanes=32 if case == "spread" else None) for in_frame in (True, False)]
     (inside, error_inside), (apart, error_apart) = runs
     assert error_inside is None and error_apart is None
     np.testing.assert_array_equal(inside.state.particle_q.numpy(), apart.state.particle_q.numpy())
@@ -347,7 +355,7 @@ def test_the_check_inside_the_frame_is_the_check_in_its_own_launches(device, cas
     scale = np.abs(b.peak).max() * (1e-12 if wp.get_device(device).is_cpu else 1e-6)
     for name in ("energy", "reference", "work", "peak", "dissipated"):
         np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=0, atol=scale, err_msg=name)
-    if case == "damped":
+    if case != "contacts":
         assert inside.guard.counts_dissipation and (a.dissipated > 0.01 * a.peak).all()
     np.testing.assert_allclose(inside.guard.work(), apart.guard.work(), rtol=0, atol=scale)
     np.testing.assert_array_equal(inside.guard._status.numpy(), apart.guard._status.numpy())
@@ -372,3 +380,17 @@ def test_a_spring_torn_inside_the_frame_is_reported_as_apart(device):
     assert error_inside.frame == error_apart.frame and error_inside.substep == error_apart.substep
     assert getattr(error_inside, "reason", None) == getattr(error_apart, "reason", None)
     np.testing.assert_array_equal(inside.guard._status.numpy(), apart.guard._status.numpy())
+
+
+def test_a_frame_check_mark_left_by_an_error_is_forgotten():
+    """The mark that the frame ran the guard's check (``Guard.frame_checked``, consumed by the last step's
+    ``after_step``) does not outlive its advance: one left behind (an error between the frame and its hooks) is
+    dropped at the next advance's start, whose check then runs as it should (the balance moves on)."""
+    model = _damped_cloth("cpu")
+    sim = ws.Simulator(model, integrator=ws.SymplecticEuler(model, one_launch=False), substeps=8, use_graph=False)
+    for _ in range(3):
+        sim.step_frame()
+    before = sim.guard.energy_balance().energy.copy()
+    sim.guard.frame_checked()  # as if a frame's check ran and its after_step never came
+    sim.step_frame()
+    assert not np.array_equal(sim.guard.energy_balance().energy, before)  # the check ran: the balance moved on

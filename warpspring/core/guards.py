@@ -284,8 +284,8 @@ class Guard(StepHook):
                                 wp.zeros((worlds, most), dtype=wp.float64, device=device),
                                 wp.full((worlds, most), -1.0, dtype=wp.float64, device=device),
                                 wp.zeros((worlds, most), dtype=wp.float64, device=device))
-        self._frame_counts = tuple(family.element_count for family in model.families)
-        self._frame_count_array = wp.array(self._frame_counts or (0,), dtype=wp.int32, device=device)
+        counts = tuple(family.element_count for family in model.families)  # (fixed once the model is finalized)
+        self._frame_count_array = wp.array(counts or (0,), dtype=wp.int32, device=device)
         self._frame_checked = False  # the frame's last check ran inside the one-launch frame (``frame_check``)
         self.limits = limits
 
@@ -473,9 +473,10 @@ class Guard(StepHook):
         return self._every
 
     def begin(self) -> None:
-        """Nothing: a check that passes leaves the record clear for the next (``decide``), and the record of a frame
-        whose failures were reported is cleared before the next (:meth:`refresh`); no launch at the start of a
-        frame."""
+        """No launch: a check that passes leaves the record clear for the next (``decide``), and the record of a frame
+        whose failures were reported is cleared before the next (:meth:`refresh`). A mark of a check run inside the
+        last advance's frame that an error left unconsumed is dropped (:meth:`frame_checked`)."""
+        self._frame_checked = False
 
     def history(self) -> list:
         """The arrays a check carries to the next (the work put in, the last check's positions and loads,
@@ -594,14 +595,17 @@ class Guard(StepHook):
             else:
                 self.check(state, step, last=step + 1 == steps)
 
-    def frame_check(self, steps: int, shape: tuple[int, int]):
+    def frame_check(self, steps: int, shape: tuple[int, int], *, integrator, control):
         """The check at the end of a frame in one launch of ``shape`` (threads per block, blocks per world), as
         ``(FrameCheck, arrays)`` for ``symplectic_euler_frame_kernel`` (``kernels/frames.py``), or ``None`` where it
         must run apart: where the guard does anything between substeps (``quiet_between_steps``), folds its partial
         sums first (large worlds), or counts the work of families from outside at its checks (wind, handles). Where
-        the frame runs it, the stepper says so (:meth:`frame_checked`)."""
+        the frame runs it, the stepper says so (:meth:`frame_checked`). Only for the integrator and control the guard
+        checks (a frame stepped by others reads another force and other power sums)."""
         model = self.model
         if not CHECK_IN_FRAME[model.device.is_cuda] or not self.quiet_between_steps(steps) or self._fold is not None:
+            return None
+        if integrator is not self.integrator or control is not self.control:
             return None
         if self._working_families():
             return None
@@ -620,7 +624,7 @@ class Guard(StepHook):
                           power_modes=modes, dissipation=self.counts_dissipation, powers=powers)
         blocks = shape[1]
         partials, energy, strain, taken = self._frame_partials
-        if blocks > partials.shape[1] or self._frame_counts != tuple(f.element_count for f in model.families):
+        if blocks > partials.shape[1]:
             return None
         arrays = frame_check_arrays_type(model.scalar)()
         arrays.world_enabled = model.world_enabled

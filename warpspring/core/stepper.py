@@ -50,15 +50,17 @@ class StepHook:
         like the integrator's history)."""
         return []
 
-    def frame_check(self, steps: int, shape: tuple[int, int]):
-        """What the hook's work after the last step would be, as a check the one-launch frame of ``shape`` can run at
-        its end (``Integrator.advance_frame``'s ``check``), or ``None`` (the default): the hook's ``after_step`` then
-        leaves that work out once told (:meth:`frame_checked`). Asked only where the hook is quiet between steps; at most
-        one hook's is run."""
+    def frame_check(self, steps: int, shape: tuple[int, int], *, integrator, control):
+        """What the hook's work after the last step would be, as a check the one-launch frame of ``shape`` run by
+        ``integrator`` with ``control`` can run at its end (``Integrator.advance_frame``'s ``check``), or ``None`` (the
+        default): the hook's ``after_step`` then leaves that work out once told (:meth:`frame_checked`). Asked only
+        of the stepper's first hook (no other hook's last ``after_step`` may come before the check), where every hook
+        is quiet between steps."""
         return None
 
     def frame_checked(self) -> None:
-        """The one-launch frame just launched ran :meth:`frame_check`'s check (the last step's ``after_step`` follows)."""
+        """The one-launch frame just launched ran :meth:`frame_check`'s check (this advance's last ``after_step``
+        follows; the next :meth:`begin` forgets it)."""
 
     def quiet_between_steps(self, steps: int) -> bool:
         """Whether, in an advance of ``steps`` steps, the hook launches nothing around any step but the last
@@ -167,13 +169,14 @@ class Stepper:
             last = self.steps - 1
             for hook in before:
                 hook.before_step(a if last % 2 == 0 else b, last, self.steps)
-            check = checker = None
-            for hook in self.hooks:
-                if check is None:
-                    check, checker = hook.frame_check(self.steps, shape), hook
-            self.integrator.advance_frame(a, b, self.control, self.dt, self.steps, shape, check=check)
-            if check is not None:
-                checker.frame_checked()
+            # The first hook's check may run at the launch's end: no other hook's last step comes before it.
+            first = self.hooks[0] if self.hooks else None
+            check = (None if first is None else
+                     first.frame_check(self.steps, shape, integrator=self.integrator, control=self.control))
+            if check is None:
+                self.integrator.advance_frame(a, b, self.control, self.dt, self.steps, shape)
+            elif self.integrator.advance_frame(a, b, self.control, self.dt, self.steps, shape, check=check):
+                first.frame_checked()
             result = a if self.steps % 2 == 0 else b
             for hook in self.hooks:
                 hook.after_step(result, last, self.steps)

@@ -67,10 +67,11 @@ class Integrator(abc.ABC):
         return None
 
     def advance_frame(self, state_a: State, state_b: State, control: Control | None, dt: float, steps: int,
-                      shape: tuple[int, int], check=None) -> None:
+                      shape: tuple[int, int], check=None) -> bool:
         """``steps`` steps of ``dt`` [s] from ``state_a`` in one launch of ``shape`` (:meth:`frame_shape`),
         alternating between the two states as the stepper does (an odd count leaves the result in ``state_b``);
-        ``check``: a step hook's check of the last state, run at the launch's end (``StepHook.frame_check``)."""
+        ``check``: a step hook's check of the last state, to run at the launch's end (``StepHook.frame_check``).
+        Returns whether it ran ``check``."""
         raise NotImplementedError(f"{type(self).__name__} has no one-launch frame")
 
     def hold_worlds(self, state_in: State, state_out: State) -> None:

@@ -112,7 +112,7 @@ class SymplecticEuler(Integrator):
         return lanes, 1
 
     def advance_frame(self, state_a: State, state_b: State, control: Control | None, dt: float, steps: int,
-                      shape: tuple[int, int], check=None) -> None:
+                      shape: tuple[int, int], check=None) -> bool:
         model = self.model
         lanes, blocks = shape
         if self._barrier is None or len(self._barrier) != model.world_count:
@@ -156,6 +156,7 @@ class SymplecticEuler(Integrator):
         )
         if steps % 2:
             wp.copy(state_b.time, state_a.time)  # the clock advanced in A; the result is B
+        return check is not None
 
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         model = self.model
