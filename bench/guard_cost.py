@@ -14,6 +14,12 @@ runs W worlds of it in one model. Per size and integrator: substeps/s of each co
     python bench/guard_cost.py --device cpu --sizes 32 --batches 7
     python bench/guard_cost.py --device cuda:0 --sizes 64 256 1024 --worlds-sizes 4096 --batches 5 --seconds 0.5 \
         --sync-verdict
+    python bench/guard_cost.py --device cuda:0 --sizes 32 64 256 --integrators symplectic_euler --where --no-newton
+
+``--where`` also times the default run with its verdict read a frame later (``defer_verdict=True``), with no host
+read at all (the verdict's read replaced by nothing: what the device's work costs alone), and with the check in its
+own launches after a one-launch frame (``guards.CHECK_IN_FRAME`` off while it is captured): where a default frame's
+time goes, in µs per frame above guard off.
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ import numpy as np
 import warp as wp
 
 import warpspring as ws
+from warpspring.core import guards
 from warpspring.core.guards import WATCH_FRAMES
 from warpspring.kernels import flatten
 from cloth import KD, KE, MASS, SPACING, NewtonRunner, emit_table, installed_newton, set_up
@@ -65,6 +72,25 @@ class Run:
     def settle(self):
         """The last frame's verdict (a batch's time includes it)."""
         self.sim.settle()
+
+
+def unread(run: Run) -> Run:
+    """``run`` with its guard's verdict never read (what the device's work costs alone: the guard still checks)."""
+    run.sim.guard.reports = lambda: []
+    return run
+
+
+def check_apart(make) -> Run:
+    """The run ``make()`` gives, its frame captured with the guard's check in launches of its own after a one-launch
+    frame (``guards.CHECK_IN_FRAME`` off during the capture: its first frame)."""
+    saved = dict(guards.CHECK_IN_FRAME)
+    guards.CHECK_IN_FRAME.update({True: False, False: False})
+    try:
+        run = make()
+        run.frame()
+    finally:
+        guards.CHECK_IN_FRAME.update(saved)
+    return run
 
 
 def timed_batch(runner, device, batch: int) -> float:
@@ -150,6 +176,9 @@ def main():
                         help="also the guard without counting dissipation (GuardLimits(dissipation=False)) and without "
                              "the energy balance (energy_balance=0): what the dissipation's sums and the check's "
                              "other parts cost, each as µs per substep above guard off")
+    parser.add_argument("--where", action="store_true",
+                        help="also the default guard read a frame later, not read at all, and with its check apart "
+                             "from a one-launch frame: where a default frame's time goes")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
@@ -175,6 +204,10 @@ def main():
                 makers["probe"] = lambda: Run(cloth(), integrator, None, probe=True)
             if args.sync_verdict:
                 makers["sync"] = lambda: Run(cloth(), integrator, ws.GuardLimits(), defer_verdict=False)
+            if args.where:
+                makers["deferred"] = lambda: Run(cloth(), integrator, ws.GuardLimits(), defer_verdict=True)
+                makers["no host read"] = lambda: unread(Run(cloth(), integrator, ws.GuardLimits()))
+                makers["check apart"] = lambda: check_apart(lambda: Run(cloth(), integrator, ws.GuardLimits()))
             if args.parts:
                 makers["no dissipation"] = lambda: Run(cloth(), integrator, ws.GuardLimits(dissipation=False))
                 makers["no balance"] = lambda: Run(cloth(), integrator, ws.GuardLimits(energy_balance=0.0))
@@ -205,6 +238,15 @@ def main():
                              f"dissipation counted {above['no dissipation']:.2f}, the default "
                              f"{above['default']:.2f} (the dissipation's sums "
                              f"{above['default'] - above['no dissipation']:.2f})")
+                print(notes[-1], flush=True)
+            if args.where:
+                frame = {name: 1e6 * statistics.median(times[name]) for name in
+                         ("off", "default", "deferred", "no host read", "check apart")}
+                notes.append(f"- {label}, {integrator}: µs per frame guard off {frame['off']:.1f}, default "
+                             f"{frame['default']:.1f} ({frame['off'] / frame['default']:.3f} of off), read a frame later "
+                             f"{frame['deferred']:.1f} ({frame['off'] / frame['deferred']:.3f}), not read "
+                             f"{frame['no host read']:.1f} ({frame['off'] / frame['no host read']:.3f}), the check apart "
+                             f"{frame['check apart']:.1f} ({frame['off'] / frame['check apart']:.3f})")
                 print(notes[-1], flush=True)
             if args.probe:
                 probe = statistics.median(off / p for off, p in zip(times["off"], times["probe"]))
