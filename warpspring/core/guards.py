@@ -613,13 +613,9 @@ class Guard(StepHook):
         if any(getattr(spec, "gathered", True) is False for spec in specs):
             return None
         force = self.control.particle_force if self.control is not None else None
-        power = self._power
-        rule, features, modes, powers = POWER_RULE_NONE, None, (), (False,) * len(specs)
-        if power is not None:
-            rule, modes = self._power_rule(), power.modes
-            features = model.force_features(self.control)._replace(families=specs, clamp_particle_force=False,
-                                                                   external=force is not None)
-            powers = tuple(mode == POWER_DAMPERS for mode in power.modes)
+        rule, features, modes = self._power_arguments(specs, force)
+        counted = self._dampers_counted()
+        powers = tuple(counted.get(family.name, False) for family in model.families)
         spec = FrameCheck(tiled=self._tiled, external=force is not None, power=rule, power_features=features,
                           power_modes=modes, dissipation=self.counts_dissipation, powers=powers)
         blocks = shape[1]
@@ -951,11 +947,7 @@ class Guard(StepHook):
         working = [] if self._working else self._working_families()
         working_specs = tuple(family.spec(model) for family in working)
         power = self._power
-        rule, features, modes = POWER_RULE_NONE, None, ()
-        if power is not None:
-            rule, modes = self._power_rule(), power.modes
-            features = model.force_features(self.control)._replace(families=specs, clamp_particle_force=False,
-                                                                   external=force is not None)
+        rule, features, modes = self._power_arguments(specs, force)
         measure, gather, drive = guard_kernels(model.scalar, specs, self._tiled, force is not None,
                                                         working_specs, rule, features, modes,
                                                         self.counts_dissipation)
@@ -973,6 +965,23 @@ class Guard(StepHook):
                              self._previous_load, self._status, self._partials],
                     device=model.device)
         return gather
+
+    def _power_arguments(self, specs: tuple, force) -> tuple:
+        """What the check's kernels take of the power the integrator's force pass counts (``guard_kernels``'
+        ``power``, ``power_features``, ``power_modes``), for the family ``specs`` they evaluate and the control's
+        ``force`` (or ``None``)."""
+        if self._power is None:
+            return POWER_RULE_NONE, None, ()
+        features = self.model.force_features(self.control)._replace(families=specs, clamp_particle_force=False,
+                                                                    external=force is not None)
+        return self._power_rule(), features, self._power.modes
+
+    def _dampers_counted(self) -> dict:
+        """Each family's name → whether the integrator's force pass counts its dampers (mode ``POWER_DAMPERS``):
+        their power at the check's state is then summed in the energy pass (the closing term)."""
+        power = self._power
+        return {} if power is None else {family.name: mode == POWER_DAMPERS
+                                         for family, mode in zip(self.model.families, power.modes)}
 
     def _lead(self) -> float:
         """λ [s] of the steady loads' work on free particles (weight, the control's force: constant within a frame),
@@ -999,9 +1008,7 @@ class Guard(StepHook):
         """The families' per-block elastic energy, strain and (where the force pass counts their dampers) the power
         their dampers take out at ``state``."""
         model = self.model
-        power = self._power
-        counted = {} if power is None else {family.name: mode == POWER_DAMPERS
-                                            for family, mode in zip(model.families, power.modes)}
+        counted = self._dampers_counted()
         for family, lanes, grid, offset in self._energy_layout:
             kernel = guard_energy_kernel(model.scalar, family.spec(model), self._tiled, counted.get(family.name, False))
             flat_launch(kernel, dim=grid, block_dim=lanes,

@@ -234,7 +234,8 @@ def gathered_product(scalar: type, Arrays, shape: IncidenceShape, entry):
 # -- composition ---------------------------------------------------------------------------------------------
 
 
-def _struct(name: str, fields: dict) -> type:
+def struct_type(name: str, fields: dict) -> type:
+    """A Warp struct type named ``name`` with ``fields`` (name → type), made at run time (a factory's struct)."""
     cls = type(name, (), {"__annotations__": fields, "__module__": __name__})
     return wp.struct(cls)
 
@@ -262,7 +263,7 @@ def elements(scalar: type, specs: tuple) -> Elements:
     vec3 = vec3_type(scalar)
     mat33 = mat33_type(scalar)
     if not specs:
-        Arrays = _struct("NoElements", {"placeholder": wp.int32})
+        Arrays = struct_type("NoElements", {"placeholder": wp.int32})
 
         @wp.func
         def no_force(world: int, i: int, base: int, xi: vec3, vi: vec3, arrays: Arrays, inputs: wp.array2d[scalar],
@@ -283,7 +284,7 @@ def elements(scalar: type, specs: tuple) -> Elements:
 
     head = specs[0].funcs(scalar)
     if len(specs) == 1:
-        Arrays = _struct(f"Elements_{type(specs[0]).__name__}", {"head": head.arrays})
+        Arrays = struct_type(f"Elements_{type(specs[0]).__name__}", {"head": head.arrays})
 
         @wp.func
         def force_1(world: int, i: int, base: int, xi: vec3, vi: vec3, arrays: Arrays, inputs: wp.array2d[scalar],
@@ -305,7 +306,7 @@ def elements(scalar: type, specs: tuple) -> Elements:
         return Elements(Arrays, force_1, product_1, strain_1, tuple(f"head__{p}" for p in head.idle))
 
     rest = elements(scalar, specs[1:])
-    Arrays = _struct(f"Elements_{type(specs[0]).__name__}_{len(specs)}", {"head": head.arrays, "tail": rest.arrays})
+    Arrays = struct_type(f"Elements_{type(specs[0]).__name__}_{len(specs)}", {"head": head.arrays, "tail": rest.arrays})
 
     @wp.func
     def force_n(world: int, i: int, base: int, xi: vec3, vi: vec3, arrays: Arrays, inputs: wp.array2d[scalar],

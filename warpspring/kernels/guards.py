@@ -71,7 +71,7 @@ from typing import NamedTuple
 
 import warp as wp
 
-from .families import elements
+from .families import elements, struct_type
 from .forces import POWER_WORK, ForceFeatures, counts_work, power_sums_funcs
 from .inputs import INPUT_DRAG, INPUT_GRAVITY, INPUT_WIND, input_funcs
 from .kinematics import is_kinematic
@@ -825,6 +825,41 @@ def guard_fold_kernel():
 
 
 @functools.cache
+def family_energy_func(scalar: type, spec, power: bool = False):
+    """``family_energy(world, first, stride, count, base, arrays, inputs, particle_q, particle_qd)``: over one
+    family's elements ``first``, ``first + stride``, ... below ``count`` (``arrays`` its own struct, ``base`` the
+    world's first particle), their elastic energy [J], their largest strain where the family measures it per element
+    (its ``element_strain`` hook; -1: none) and with ``power`` the power its dampers take out at this state [W] (its
+    ``dissipation`` hook); in float64, added in the elements' order. The element loop of :func:`guard_energy_kernel`'s
+    pass and of the one-launch frame's check (:func:`energy_lanes_func`)."""
+    vec3 = vec3_type(scalar)
+    funcs = spec.funcs(scalar)
+    Arrays = funcs.arrays
+    energy_func = funcs.energy
+    strain_func = getattr(funcs, "element_strain", None)
+    strained = strain_func is not None
+    power_func = funcs.dissipation if power else None
+
+    @wp.func
+    def family_energy(world: int, first: int, stride: int, count: int, base: int, arrays: Arrays,
+                      inputs: wp.array2d[scalar], particle_q: wp.array[vec3], particle_qd: wp.array[vec3]):
+        energy = wp.float64(0.0)
+        worst = wp.float64(-1.0)
+        taken = wp.float64(0.0)
+        element = first
+        while element < count:  # every stride-th element from the lane's first
+            energy += wp.float64(energy_func(world, element, base, arrays, inputs, particle_q))
+            if wp.static(strained):
+                worst = wp.max(worst, strain_func(world, element, base, arrays, particle_q))
+            if wp.static(power):
+                taken += wp.float64(power_func(world, element, base, arrays, inputs, particle_q, particle_qd))
+            element += stride
+        return energy, worst, taken
+
+    return family_energy
+
+
+@functools.cache
 def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
     """Kernel writing per-block sums of the elastic energy [J] of one family's elements in every world into
     ``partials[world, offset + block]``, and where the family has an ``element_strain`` hook the block's largest
@@ -836,12 +871,9 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
     ``reduce_stride``), one lane per block on the CPU."""
     vec3 = vec3_type(scalar)
     block_sum, block_max = reduction_funcs(tiled)
-    funcs = spec.funcs(scalar)
-    Arrays = funcs.arrays
-    energy_func = funcs.energy
-    strain_func = getattr(funcs, "element_strain", None)
-    strained = strain_func is not None
-    power_func = funcs.dissipation if power else None
+    Arrays = spec.funcs(scalar).arrays
+    strained = getattr(spec.funcs(scalar), "element_strain", None) is not None
+    family_energy = family_energy_func(scalar, spec, power)
 
     # An element's energy reads its own entries, never the incidence table.
     @flat_kernel(module="unique", enable_backward=False, last=("arrays__incidence",))
@@ -868,18 +900,8 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
         world, block, lane = wp.tid()
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
             return
-        element = block * wp.block_dim() + lane
-        energy = wp.float64(0.0)
-        worst = wp.float64(-1.0)
-        taken = wp.float64(0.0)
-        while element < element_count:  # every stride-th element from the lane's first
-            energy += wp.float64(energy_func(world, element, world * particle_count, arrays, inputs, particle_q))
-            if wp.static(strained):
-                worst = wp.max(worst, strain_func(world, element, world * particle_count, arrays, particle_q))
-            if wp.static(power):
-                taken += wp.float64(power_func(world, element, world * particle_count, arrays, inputs, particle_q,
-                                               particle_qd))
-            element += stride
+        energy, worst, taken = family_energy(world, block * wp.block_dim() + lane, stride, element_count,
+                                             world * particle_count, arrays, inputs, particle_q, particle_qd)
         energy = block_sum(energy)
         if wp.static(strained):
             worst = block_max(worst)
@@ -1365,12 +1387,7 @@ def energy_lanes_func(scalar: type, specs: tuple, powers: tuple):
             return wp.float64(0.0), wp.float64(-1.0), wp.float64(0.0)
 
         return no_energy
-    funcs = specs[0].funcs(scalar)
-    energy_func = funcs.energy
-    strain_func = getattr(funcs, "element_strain", None)
-    strained = strain_func is not None
-    power = bool(powers[0])
-    power_func = funcs.dissipation if power else None
+    family_energy = family_energy_func(scalar, specs[0], bool(powers[0]))
     rest = energy_lanes_func(scalar, specs[1:], powers[1:]) if len(specs) > 1 else None
     more = rest is not None
 
@@ -1378,18 +1395,8 @@ def energy_lanes_func(scalar: type, specs: tuple, powers: tuple):
     def energy_lanes(world: int, first: int, stride: int, base: int, counts: wp.array[wp.int32], family: int,
                      arrays: Arrays, inputs: wp.array2d[scalar], particle_q: wp.array[vec3],
                      particle_qd: wp.array[vec3]):
-        energy = wp.float64(0.0)
-        worst = wp.float64(-1.0)
-        taken = wp.float64(0.0)
-        element = first
-        count = counts[family]
-        while element < count:
-            energy += wp.float64(energy_func(world, element, base, arrays.head, inputs, particle_q))
-            if wp.static(strained):
-                worst = wp.max(worst, strain_func(world, element, base, arrays.head, particle_q))
-            if wp.static(power):
-                taken += wp.float64(power_func(world, element, base, arrays.head, inputs, particle_q, particle_qd))
-            element += stride
+        energy, worst, taken = family_energy(world, first, stride, counts[family], base, arrays.head, inputs,
+                                             particle_q, particle_qd)
         if wp.static(more):
             e, w, t = rest(world, first, stride, base, counts, family + 1, arrays.tail, inputs, particle_q,
                            particle_qd)
@@ -1445,5 +1452,4 @@ def frame_check_arrays_type(scalar: type) -> type:
         "lead": scalar,
         "power_h": wp.float64,
     }
-    cls = type(f"FrameCheckArrays_{scalar.__name__}", (), {"__annotations__": fields, "__module__": __name__})
-    return wp.struct(cls)
+    return struct_type(f"FrameCheckArrays_{scalar.__name__}", fields)
