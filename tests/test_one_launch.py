@@ -14,6 +14,7 @@ import pytest
 import warp as wp
 
 import warpspring as ws
+from warpspring.core.builder.spring_materials import DEFAULT_BEND
 
 WORLDS = 3
 
@@ -143,11 +144,7 @@ def test_one_launch_frame_counts_the_dampers_as_the_per_substep_frame(device):
     the per-substep path adds to every step (~1e-7 of each step's energy, 160 steps: 1e-5 of D)."""
     results = []
     for one_launch in (True, False):
-        builder = ws.ModelBuilder(drag=0.02)
-        spring = ws.SpringMaterial(ke=400.0, kd=0.5)
-        builder.add_cloth_grid(nx=8, ny=8, spacing=0.05, particle_mass=0.02, structural=spring, shear=spring,
-                               pin=["top-left", "top-right"])
-        model = builder.finalize(device, worlds=2, spring_evaluation="gather")
+        model = _damped_cloth(device, bend=DEFAULT_BEND)
         integrator = ws.SymplecticEuler(model, one_launch=one_launch, cpu_sweep=False)
         sim = ws.Simulator(model, integrator=integrator, substeps=8)
         for _ in range(20):
@@ -319,11 +316,13 @@ def _checked(make, *, in_frame: bool, substeps: int, frames: int, limits=None, c
         guards.CHECK_IN_FRAME.update(saved)
 
 
-def _damped_cloth(device, n: int = 8):
+def _damped_cloth(device, n: int = 8, *, bend=ws.SpringMaterial(ke=40.0, kd=0.05)):
+    """An n × n cloth (0.02 kg particles, ke = 400 N/m, kd = 0.5 N·s/m; ``bend`` its bend springs' material) hung
+    from its two top corners, in drag: two worlds, springs gathered."""
     builder = ws.ModelBuilder(drag=0.02)
     spring = ws.SpringMaterial(ke=400.0, kd=0.5)
     builder.add_cloth_grid(nx=n, ny=n, spacing=0.05, particle_mass=0.02, structural=spring, shear=spring,
-                           bend=ws.SpringMaterial(ke=40.0, kd=0.05), pin=["top-left", "top-right"])
+                           bend=bend, pin=["top-left", "top-right"])
     return builder.finalize(device, worlds=2, spring_evaluation="gather")
 
 
