@@ -336,7 +336,9 @@ def _pushed(model):
 def test_the_check_inside_the_frame_is_the_check_in_its_own_launches(device, case):
     """The guard's check at the end of a one-launch frame (its passes run by the frame's lanes, its verdict by each
     world's first block: ``kernels/frames.py``) against the same check in its own four launches after the frame:
-    the same positions to the bit (the check writes no state), and the same energy balance, work and values up to
+    the same positions to the bit (the check writes no state; on a GPU, with contacts, to 1e-6 m: the frame kernel
+    compiled with the check may round the contact step's float32 arithmetic differently, by 1.3e-7 m after 12 frames
+    on an H200), and the same energy balance, work and values up to
     the order in which the families' energies are added (float64: 1e-12 of the energy on the CPU). On a GPU the frame
     kernel is compiled with fast math and the check's own kernels without: each element's float32 energy may differ
     in its last bits (6.6e-8 of the energy measured on an H200), so there 1e-6 (8 float32 units in the last place).
@@ -349,7 +351,11 @@ def test_the_check_inside_the_frame_is_the_check_in_its_own_launches(device, cas
                      spread_lanes=32 if case == "spread" else None) for in_frame in (True, False)]
     (inside, error_inside), (apart, error_apart) = runs
     assert error_inside is None and error_apart is None
-    np.testing.assert_array_equal(inside.state.particle_q.numpy(), apart.state.particle_q.numpy())
+    q_inside, q_apart = inside.state.particle_q.numpy(), apart.state.particle_q.numpy()
+    if wp.get_device(device).is_cpu or case != "contacts":
+        np.testing.assert_array_equal(q_inside, q_apart)
+    else:  # (the contact step compiled beside the check: its float32 roundings may differ, 1.3e-7 m on an H200)
+        np.testing.assert_allclose(q_inside, q_apart, rtol=0, atol=1e-6)
     a, b = inside.guard.energy_balance(), apart.guard.energy_balance()
     scale = np.abs(b.peak).max() * (1e-12 if wp.get_device(device).is_cpu else 1e-6)
     for name in ("energy", "reference", "work", "peak", "dissipated"):

@@ -62,13 +62,13 @@ class Simulator:
             ``GuardLimits(stop="world")`` holds the failed world, records it in :attr:`world_failures` and goes on
             with the others. ``None`` disables them (and the per-frame
             read of their record).
-        defer_verdict: read each frame's guard record a frame later (default off): :meth:`step_frame` queues the
-            next frame before it waits for the previous one's record, so the device need not idle while the host
-            reads. A failure then raises at the next :meth:`step_frame` or at :meth:`settle`, naming its own frame;
-            see :meth:`step_frame`. Off by default: it moves the raise of a failed frame to the next call. On an
-            H200 (Warp 1.16.0, bench/results/guard_cost.md) one run gave 0.598 against 0.526 of the guard-off rate at
-            256² but 0.413 against 0.487 at 64²; a later one, on the one-launch frame, 0.684 against 0.600 at 32²,
-            0.577 against 0.456 at 64² and 0.672 against 0.613 at 256².
+        defer_verdict: read each frame's guard record a frame later (``None``, the default: on CUDA, where the host
+            launches ahead of the device; on the CPU, whose launches return when done, after each frame):
+            :meth:`step_frame` queues the next frame before it waits for the previous one's record, so the device does
+            not idle while the host reads. A failure then raises at the next :meth:`step_frame` or at :meth:`settle`
+            (or on reading :attr:`state`), naming its own frame; see :meth:`step_frame`. On an H200 (Warp 1.16.0,
+            bench/results/guard_cost.md) the default run went from 0.65 to 0.79 of the guard-off rate at 32² and
+            from 0.59 to 0.74 at 64² with it.
 
     Attributes:
         world_failures: the worlds stopped by the guard (``stop="world"``) so far: world → (frame, report),
@@ -96,7 +96,7 @@ class Simulator:
         control: Control | None = None,
         use_graph: bool = True,
         guard: GuardLimits | None = GuardLimits(),
-        defer_verdict: bool = False,
+        defer_verdict: bool | None = None,
     ):
         self.model = model
         self._unsettled = False  # the last frame's record is posted and not yet read (``defer_verdict``)
@@ -127,7 +127,8 @@ class Simulator:
         if self.guard is not None:
             self.guard.restart(self.state)  # Δx of the first check from the start state (pins at t = 0)
         self.frame_hooks: list[FrameHook] = []
-        self.defer_verdict = bool(defer_verdict) and self.guard is not None
+        self.defer_verdict = (model.device.is_cuda if defer_verdict is None else bool(defer_verdict)) and \
+            self.guard is not None
         self.frame = 0
         self._world_failures: dict = {}
         self._overflow_seen = np.zeros(model.world_count, dtype=np.int64)
@@ -187,11 +188,12 @@ class Simulator:
     def step_frame(self) -> None:
         """Advance :attr:`state` by one frame.
 
-        With :attr:`defer_verdict` (off by default) the guard's verdict on a frame is read when the next frame
+        With :attr:`defer_verdict` (the default on CUDA) the guard's verdict on a frame is read when the next frame
         is queued: ``step_frame`` raises for a failure of the frame before its own, and :meth:`settle` for the
         last frame's. The promise: whatever was read from a frame whose verdict is known stayed valid; a frame hook
         sees only a state whose verdict is known (the frame is settled before the hooks run), and ``warpspring run``
-        writes a frame only once it is settled. Without it every frame is settled before ``step_frame`` returns.
+        writes a frame only once it is settled. Without it (the CPU's default) every frame is settled before
+        ``step_frame`` returns.
 
         Raises:
             SimulationError: a guard check failed during this frame, or with :attr:`defer_verdict` the one before;
