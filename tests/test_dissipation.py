@@ -116,6 +116,7 @@ def _unstable_mid_run(device, dissipation: bool, *, settle: int = 180, frames: i
     for frame in range(frames):
         try:
             sim.step_frame()
+            sim.settle()  # (on CUDA the verdict comes a frame later: Simulator.defer_verdict)
         except ws.SimulationError as error:
             assert error.reason == "energy balance" and "unstable" in str(error)
             return before, frame, sim.guard.report(), balances

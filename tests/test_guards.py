@@ -275,6 +275,7 @@ def _stop(sim, frames):
     for _ in range(frames):
         try:
             sim.step_frame()
+            sim.settle()  # (on CUDA the verdict comes a frame later: Simulator.defer_verdict)
         except ws.SimulationError as error:
             return last, error
         last.particle_q.assign(sim.state.particle_q)

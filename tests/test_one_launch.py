@@ -307,6 +307,7 @@ def _checked(make, *, in_frame: bool, substeps: int, frames: int, limits=None, c
         for _ in range(frames):
             try:
                 sim.step_frame()
+                sim.settle()  # (on CUDA the verdict comes a frame later: the same frame named either way)
             except ws.SimulationError as exc:
                 error = exc
                 break
