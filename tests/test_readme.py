@@ -89,7 +89,7 @@ def test_cited_numbers_come_from_results_files():
     """Each number the README's speed and accuracy tables cite appears, as written, in the results file the
     section names: no number is rounded differently from its measurement or made up."""
     text = README.read_text()
-    for section, results in (("## Speed", "cloth.md"), ("## Accuracy", "trade.md")):
+    for section, results in (("## Speed", "guard_cost.md"), ("## Accuracy", "trade.md")):
         body = text[text.index(section):]
         assert f"bench/results/{results}" in body.split("\n## ")[0]
         measured = (ROOT / "bench" / "results" / results).read_text()
