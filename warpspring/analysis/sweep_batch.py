@@ -267,6 +267,7 @@ def _run_worlds(variants, scene_path: str, settings: RunSettings) -> BatchOutput
             if frame > 0:
                 try:
                     sim.step_frame()
+                    sim.settle()  # this frame's verdict (on CUDA read a frame later): its failures are its own
                 except SimulationError as exc:  # every world failed, or an adaptive integrator gave up
                     for w in range(worlds):
                         if w not in stopped:
