@@ -185,6 +185,9 @@ class Guard(StepHook):
         self._events = [_pooled_event(device) for _ in self._slots] if device.is_cuda else [None, None]
         for event in self._events if device.is_cuda else ():
             weakref.finalize(self, _EVENTS[device.alias].append, event)
+        # (host arrays: a NumPy view of each, made once, reads them without Warp's per-call wrapping)
+        self._slot_views = [slot.numpy() for slot in self._slots]
+        self._status_view = self._status_host.numpy() if self._status_host is not self._status else None
         self._pending = []  # the slots posted and not yet collected, oldest first
         self._posted = 0
         # The check's passes stride (each lane several particles or elements: few partial sums to gather): on CUDA
@@ -1038,10 +1041,11 @@ class Guard(StepHook):
         """Each world's first failure since the last reset, in world order (reads the device: synchronises). The
         record is cleared before the next frame (:meth:`refresh`; a held world is not checked again, so it is
         reported once)."""
-        if self._status_host is not self._status:
+        if self._status_view is not None:
             wp.copy(self._status_host, self._status)
             wp.synchronize_stream(self.model.device)
-        return self._parse(self._status_host.numpy())
+            return self._parse(self._status_view)
+        return self._parse(self._status.numpy())
 
     def post(self) -> None:
         """Start reading the record as the frame just launched leaves it, without waiting for the device: on CUDA a copy
@@ -1062,7 +1066,7 @@ class Guard(StepHook):
         k = self._pending.pop(0)
         if self._events[k] is not None:
             wp.synchronize_event(self._events[k])
-        return self._parse(self._slots[k].numpy())
+        return self._parse(self._slot_views[k])
 
     def discard(self) -> None:
         """Forget the records posted and not collected (a restart)."""
