@@ -59,9 +59,15 @@ class Run:
     after every frame, as the guard without deferral reads its status: what the host's wait for the frame costs alone
     (on a GPU the next frame's launch then waits for the host)."""
 
-    def __init__(self, model: ws.Model, integrator: str, guard, probe: bool = False, defer_verdict: bool | None = None):
+    def __init__(self, model: ws.Model, integrator: str, guard, probe: bool = False, defer_verdict: bool | None = None,
+                 min_blocks: int | None = None, step_min_blocks: int | None = None):
+        stepper = ws.make_integrator(integrator, model)
+        if min_blocks is not None:  # the one-launch frame kernel's register bound (kernels.frames: min_blocks)
+            stepper.FRAME_MIN_BLOCKS = min_blocks
+        if step_min_blocks is not None:  # the per-substep fused step's (kernels.integrators: bounds)
+            stepper.STEP_MIN_BLOCKS = step_min_blocks
         self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=guard, defer_verdict=defer_verdict,
-                                integrator=ws.make_integrator(integrator, model))
+                                integrator=stepper)
         self.probe = wp.zeros((model.world_count, 7), dtype=wp.int32, device=model.device) if probe else None
 
     def frame(self):
@@ -179,6 +185,13 @@ def main():
     parser.add_argument("--where", action="store_true",
                         help="also the default guard read after each frame, not read at all, and with its check apart "
                              "from a one-launch frame: where a default frame's time goes")
+    parser.add_argument("--min-blocks", type=int, nargs="*", default=[],
+                        help="also the default and guard off with the one-launch frame kernel's registers bounded so "
+                             "that K blocks of 256 threads fit a multiprocessor (SymplecticEuler.FRAME_MIN_BLOCKS), "
+                             "each K: what its occupancy is worth")
+    parser.add_argument("--step-min-blocks", type=int, nargs="*", default=[],
+                        help="also the default and guard off with symplectic Euler's per-substep fused step's registers "
+                             "bounded so that K blocks fit a multiprocessor (SymplecticEuler.STEP_MIN_BLOCKS), each K")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
@@ -207,6 +220,12 @@ def main():
             if args.where:
                 makers["no host read"] = lambda: unread(Run(cloth(), integrator, ws.GuardLimits()))
                 makers["check apart"] = lambda: check_apart(lambda: Run(cloth(), integrator, ws.GuardLimits()))
+            for k in args.min_blocks:
+                makers[f"default ≤{k}"] = lambda k=k: Run(cloth(), integrator, ws.GuardLimits(), min_blocks=k)
+                makers[f"off ≤{k}"] = lambda k=k: Run(cloth(), integrator, None, min_blocks=k)
+            for k in args.step_min_blocks:
+                makers[f"default step ≤{k}"] = lambda k=k: Run(cloth(), integrator, ws.GuardLimits(), step_min_blocks=k)
+                makers[f"off step ≤{k}"] = lambda k=k: Run(cloth(), integrator, None, step_min_blocks=k)
             if args.parts:
                 makers["no dissipation"] = lambda: Run(cloth(), integrator, ws.GuardLimits(dissipation=False))
                 makers["no balance"] = lambda: Run(cloth(), integrator, ws.GuardLimits(energy_balance=0.0))
@@ -246,6 +265,20 @@ def main():
                              f"{frame['sync']:.1f} ({frame['off'] / frame['sync']:.3f}), not read "
                              f"{frame['no host read']:.1f} ({frame['off'] / frame['no host read']:.3f}), the check apart "
                              f"{frame['check apart']:.1f} ({frame['off'] / frame['check apart']:.3f})")
+                print(notes[-1], flush=True)
+            if args.step_min_blocks:
+                frame = {name: 1e6 * statistics.median(t) for name, t in times.items()}
+                bounded = ", ".join(f"{k} blocks: default {frame[f'default step ≤{k}']:.1f}, "
+                                    f"off {frame[f'off step ≤{k}']:.1f}" for k in args.step_min_blocks)
+                notes.append(f"- {label}, {integrator}: µs per frame, the step's registers as the compiler takes them: "
+                             f"default {frame['default']:.1f}, off {frame['off']:.1f}; bounded to {bounded}")
+                print(notes[-1], flush=True)
+            if args.min_blocks:
+                frame = {name: 1e6 * statistics.median(t) for name, t in times.items()}
+                bounded = ", ".join(f"{k} blocks: default {frame[f'default ≤{k}']:.1f}, off {frame[f'off ≤{k}']:.1f}"
+                                    for k in args.min_blocks)
+                notes.append(f"- {label}, {integrator}: µs per frame, the compiler's registers: default "
+                             f"{frame['default']:.1f}, off {frame['off']:.1f}; bounded to {bounded}")
                 print(notes[-1], flush=True)
             if args.probe:
                 probe = statistics.median(off / p for off, p in zip(times["off"], times["probe"]))

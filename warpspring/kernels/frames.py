@@ -73,10 +73,15 @@ TARGET_LEAVES = tuple(f"pin_targets__{name}" for name in PinTargets.vars)
 CHECK_LEAVES = tuple(f"check_arrays_in_out__{name}" for name in frame_check_arrays_type(wp.float32).vars)
 
 
+#: The most threads a block of the frame kernel may have (``SymplecticEuler.launch_shape``: 32-256).
+FRAME_MAX_LANES = 256
+
+
 @functools.cache
 def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
                                   power: tuple | None = None, animated: bool = False, driven: bool = False,
-                                  targets: bool = False, moving: bool = False, check: FrameCheck | None = None):
+                                  targets: bool = False, moving: bool = False, check: FrameCheck | None = None,
+                                  min_blocks: int | None = None):
     """``steps`` fused symplectic Euler steps of every world, ``blocks`` blocks of ``lanes`` threads per world
     (module docstring); ``barrier_in_out`` one counter per world, zero at the launch where ``blocks`` > 1.
     Substep k reads buffer A when k is even and writes B, and the other way round when k is odd; an odd
@@ -96,7 +101,9 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
     measure passes over its particles and the energy pass over its elements (``guards.guard_lane_funcs``,
     ``guards.energy_lanes_func``: the functions of the check's own kernels), each block writes its partial sums, the
     world's blocks meet, and the world's first block gathers them and decides (``gather_lanes``): the check's four
-    launches, inside the frame."""
+    launches, inside the frame. ``min_blocks``: on CUDA, blocks of up to ``FRAME_MAX_LANES`` threads that a
+    multiprocessor must hold at once (``__launch_bounds__``: the compiler keeps the registers a thread within 65,536 /
+    (FRAME_MAX_LANES · min_blocks)); ``None``: as many as the compiler takes."""
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
     counted = power is not None
@@ -190,7 +197,9 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
             i += lanes
         return taken, worked
 
-    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
+    bounds = {} if min_blocks is None else {"launch_bounds": (FRAME_MAX_LANES, int(min_blocks))}
+
+    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS, **bounds,
                  last=(contacts.idle() + composed.last("element_arrays") + (() if animated else ANIMATED_LEAVES)
                        + (() if animated or driven or moving else TRACK_LEAVES) + (() if driven else PIN_LEAVES)
                        + (() if targets else TARGET_LEAVES) + (() if checked else CHECK_LEAVES)

@@ -222,7 +222,7 @@ def symplectic_euler_particle_func(scalar: type, features: ForceFeatures, contac
 
 @functools.cache
 def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
-                            power: tuple | None = None):
+                            power: tuple | None = None, bounds: tuple[int, int] | None = None):
     """Fused force + symplectic Euler + contact kernel: v' = v + h M⁻¹ f(x, v); x' = x + h v'; ``contacts``
     fused (static colliders, every one tested).
 
@@ -231,15 +231,19 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
     the step, -h f_d·(v + v')/2, and the work the loads from outside did on it, h f_w·(v + v')/2 (f_d, f_w: their
     parts of f, ``forces.particle_power_func``; v' before the contacts). That is exactly what they changed its
     kinetic energy by, ½ m (|v'|² - |v|²) = h f·(v + v')/2, so the guard's balance closes up to the integrator's
-    error in the elastic energy; one thread writes each entry (no atomics), no pass of its own."""
+    error in the elastic energy; one thread writes each entry (no atomics), no pass of its own.
+
+    ``bounds`` (threads a block, blocks a multiprocessor): on CUDA, ``__launch_bounds__``, which keeps the registers a
+    thread within 65,536 / (threads · blocks); ``None``: as many as the compiler takes."""
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
     Sums = power_sums_funcs(scalar, power is not None and counts_work(features, power)).type
     composed = elements(scalar, features.families)
     Elements = composed.arrays
     step_particle = symplectic_euler_particle_func(scalar, features, contacts, power)
+    bounded = {} if bounds is None else {"launch_bounds": tuple(int(b) for b in bounds)}
 
-    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
+    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS, **bounded,
                  last=contacts.idle() + composed.last("element_arrays"))
     def symplectic_euler(
         # Model:

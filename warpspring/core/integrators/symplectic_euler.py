@@ -62,6 +62,15 @@ class SymplecticEuler(Integrator):
     SPREAD_LANES = 128
     #: Particles per world from which a world is spread over blocks by default (the smallest size measured faster).
     SPREAD_MIN_PARTICLES = 1024
+    #: Blocks of the frame kernel (up to 256 threads each) a multiprocessor must hold at once (``kernels.frames``'
+    #: ``min_blocks``: at most 128 registers a thread; ``None``: the compiler's choice, 202 with the guard's power
+    #: sums, 12.5 % occupancy). Measured on an H200 (bench/results/guard_cost.md), µs per frame, the compiler's
+    #: choice → 2 → 3: guard off 62.8 → 51.1 → 56.9 at 32², 63.4 → 55.0 → 62.3 at 64², 2607 → 2577 → 2599 for
+    #: 4,096 worlds of 32²; the default guard 110.1 → 98.6 → 118.1, 100.4 → 100.3 → 107.7, 4364 → 3717 → 3904.
+    FRAME_MIN_BLOCKS = 2
+    #: Blocks of ``model.block_dim`` threads of the per-substep fused step a multiprocessor must hold at once (a bound
+    #: on its registers, ``kernels.integrators.symplectic_euler_kernel``'s ``bounds``); ``None``: the compiler's choice.
+    STEP_MIN_BLOCKS = None
 
     def __init__(self, model, *, one_launch: bool | None = None, cpu_sweep: bool = True):
         super().__init__(model)
@@ -128,7 +137,7 @@ class SymplecticEuler(Integrator):
             symplectic_euler_frame_kernel(model.scalar, features, contacts,
                                           None if self.power is None else self.power.modes, animated is not None,
                                           pins is not None, targets, bool(model.shape_moving),
-                                          None if check is None else check[0]),
+                                          None if check is None else check[0], self.FRAME_MIN_BLOCKS),
             inputs=[
                 model.particle_count,
                 lanes,
@@ -198,7 +207,8 @@ class SymplecticEuler(Integrator):
                 # Its scratch: the two states' force arrays (the step's to use; left zero).
                 common["dim"], scratch = model.world_count, [state_in.particle_f, state_out.particle_f]
             else:
-                kernel, scratch = symplectic_euler_kernel(model.scalar, features, contacts, power), []
+                bounds = None if self.STEP_MIN_BLOCKS is None else (model.block_dim, self.STEP_MIN_BLOCKS)
+                kernel, scratch = symplectic_euler_kernel(model.scalar, features, contacts, power, bounds), []
             if blocks is None:
                 flat_launch(
                     kernel,
