@@ -21,7 +21,11 @@ Per-world values (the springs' groups, rows and law values, the world's row of t
 world, not per particle. The results are the fused step's up to the order of the force's sums (float32 rounding).
 
 The guard's power sums are counted as in the fused step (``integrators.symplectic_euler_kernel``'s ``power``), the
-springs' dampers' part swept alongside their force (``dampers_in_out``). The springs must be the first family
+springs' dampers' part swept alongside their force (``dampers_in_out``); the step adds them up over the world in
+float64 and adds the total to the world's first entry once (the guard's check sums a world's entries; a read, add and
+write of every particle's entry every substep cost about 1 µs of an 11 µs substep at 32²: the dissipation's sums
+5.3-5.9 against 4.2-5.1 µs in alternating runs, bench/results/guard_cost_cpu.md). The force sweep
+(``forces_only``) leaves them per particle, as ``forces.eval_forces_kernel`` does. The springs must be the first family
 (``Model.families``), gathered; a one-thread-per-world launch is for the CPU only.
 
 With a grid layout of uniform groups and Hooke's law (``grid_vectorised``), the springs are evaluated before the
@@ -328,6 +332,8 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
         inv_mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
         row = int(0)
         column = int(0)
+        taken = wp.float64(0.0)  # the world's power sums over the sweep (with ``power``): one entry, once a step
+        worked = wp.float64(0.0)
         for i in range(particle_count):
             p = base + i
             x = particle_q_in[p]
@@ -379,14 +385,14 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
                     if magnitude > max_force:
                         f = f * (max_force / magnitude)
                 force_in_out[p] = f
-                if wp.static(counted):
+                if wp.static(counted):  # (per particle: the force evaluation's sums, as ``eval_forces`` leaves them)
                     power_in_out[p] += pack(-h * wp.dot(dampers, v), h * wp.dot(work, v))
                 continue
             if not free:  # moves on with its velocity; its elements' dampers: their share of the dampers' power
                 particle_q_out[p] = x + h * v
                 particle_qd_out[p] = v
                 if wp.static(counted):
-                    power_in_out[p] += pack(-h * wp.dot(dampers, v), scalar(0.0))
+                    taken += wp.float64(-h * wp.dot(dampers, v))
                 continue
             if wp.static(features.clamp_particle_force):
                 max_force = inputs[world, INPUT_MAX_PARTICLE_FORCE]
@@ -398,11 +404,15 @@ def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contact
             x, v = update(x, v, f, inv_mass, h)
             if wp.static(counted):
                 mean = (v_start + v) * (scalar(0.5) * h)
-                power_in_out[p] += pack(-wp.dot(dampers, mean), wp.dot(work, mean))
+                taken += wp.float64(-wp.dot(dampers, mean))
+                worked += wp.float64(wp.dot(work, mean))
             if wp.static(has_contacts):
                 x, v = project_contacts(world, p, x, v, particle_radius[i], h, shapes, inputs)
             particle_q_out[p] = x
             particle_qd_out[p] = v
+        if wp.static(counted and not forces_only):  # (the check sums a world's entries: its first carries the step's)
+            if particle_count > 0:
+                power_in_out[base] += pack(scalar(taken), scalar(worked))
         flush_subnormals_end(saved)
 
     return symplectic_euler_sweep
