@@ -14,6 +14,7 @@ import pytest
 import warp as wp
 
 import warpspring as ws
+from warpspring.kernels.flatten import flat_launch
 from warpspring.kernels.sweep import GRID_CHUNK, grid_vectorised, sweeps
 
 DT = 1.0e-3
@@ -294,3 +295,64 @@ def test_the_force_sweep_is_eval_forces_per_particle(layout):
                     a, b = b, a
             runs.append(a.particle_q.numpy())
         np.testing.assert_allclose(runs[0], runs[1], rtol=0, atol=ATOL_Q, err_msg=name)
+
+
+@pytest.mark.parametrize("precision, shape", [("float64", (7, 6)), ("float64", (150, 5)), ("float32", (37, 9))])
+def test_the_grid_energy_pass_is_the_element_loop(precision, shape):
+    """The guard's energy pass over a grid cloth's springs on the CPU (``sweep.grid_energy_pass``, walked by direction
+    and row) against the element loop it replaces (``family_energy_func``: the same kernel compiled for CUDA's
+    lanes, launched on the CPU one lane a world), and both against NumPy float64 over the model's springs: energy
+    ½ ke (|d| - L)², strain |d|/L - 1 and the dampers' power kd ((vj - vi)·d̂)², in two worlds of their own
+    stiffness, from random positions and velocities (every spring stretched or compressed, every damper working).
+    Each spring's terms are the same operations in the model's precision, so the two passes' float64 sums differ
+    by their order only (1e-12 relative) and their largest strain is the same number; against float64 NumPy the
+    float32 model's terms round at 1e-6 relative."""
+    from warpspring.kernels.guards import guard_energy_kernel
+
+    nx, ny = shape
+    builder = ws.ModelBuilder()
+    builder.add_cloth_grid(nx=nx, ny=ny, spacing=0.125, origin=(0.0, 0.0, 1.0), particle_mass=0.05,
+                           structural=ws.SpringMaterial(800.0, 4.0), shear=ws.SpringMaterial(300.0, 2.0),
+                           bend=ws.SpringMaterial(100.0, 1.0), pin=["top-left"])
+    model = builder.finalize("cpu", precision=precision, spring_evaluation="gather", worlds=2)
+    family = model.families[0]
+    spec = family.spec(model)
+    assert grid_vectorised(spec)
+    ke = model.world_values("spring_stiffness")[0]
+    model.set_world_values("spring_stiffness", ke[None, :] * np.array([1.0, 1.5])[:, None])
+    rng = np.random.default_rng(11)
+    state = model.state()
+    q = state.particle_q.numpy().astype(np.float64)
+    state.particle_q.assign(q + rng.normal(scale=0.02, size=q.shape))
+    state.particle_qd.assign(rng.normal(scale=0.5, size=q.shape))
+    scalar = model.scalar
+    worlds = model.world_count
+    results = []
+    for tiled in (False, True):  # the grid pass, then the element loop
+        outs = [wp.zeros((worlds, 1), dtype=wp.float64), wp.full((worlds, 1), -1.0, dtype=wp.float64),
+                wp.zeros((worlds, 1), dtype=wp.float64)]
+        flat_launch(guard_energy_kernel(scalar, spec, tiled, True), dim=(worlds, 1, 1), block_dim=1,
+                    inputs=[model.particle_count, family.element_count, 0, model.world_enabled,
+                            family.arrays(model), model.inputs, wp.zeros((worlds, 7), dtype=wp.int32), state.particle_q,
+                            state.particle_qd, 1],
+                    outputs=outs, device="cpu")
+        results.append([o.numpy()[:, 0] for o in outs])
+    (energy, strain, power), (energy_loop, strain_loop, power_loop) = results
+    np.testing.assert_allclose(energy, energy_loop, rtol=1.0e-12)
+    np.testing.assert_array_equal(strain, strain_loop)
+    np.testing.assert_allclose(power, power_loop, rtol=1.0e-12)
+    # Against float64 NumPy over the model's spring list.
+    ends = model.spring_indices.numpy()
+    rest = model.spring_rest_length.numpy().astype(np.float64)
+    x = state.particle_q.numpy().astype(np.float64).reshape(worlds, -1, 3)
+    v = state.particle_qd.numpy().astype(np.float64).reshape(worlds, -1, 3)
+    stiffness = model.world_values("spring_stiffness").astype(np.float64)
+    damping = model.world_values("spring_damping").astype(np.float64)
+    rtol = 1.0e-12 if precision == "float64" else 1.0e-5
+    for w in range(worlds):
+        d = x[w, ends[:, 1]] - x[w, ends[:, 0]]
+        length = np.linalg.norm(d, axis=1)
+        rate = np.einsum("ij,ij->i", v[w, ends[:, 1]] - v[w, ends[:, 0]], d / length[:, None])
+        np.testing.assert_allclose(energy[w], np.sum(0.5 * stiffness[w] * (length - rest) ** 2), rtol=rtol)
+        np.testing.assert_allclose(strain[w], np.max(length / rest - 1.0), rtol=rtol)
+        np.testing.assert_allclose(power[w], np.sum(damping[w] * rate**2), rtol=rtol)

@@ -77,7 +77,8 @@ from .inputs import INPUT_DRAG, INPUT_GRAVITY, INPUT_WIND, input_funcs
 from .kinematics import is_kinematic
 from .linalg import block_barrier, reduction_funcs
 from .precision import vec3_type
-from .springs import COINCIDENT_DISTANCE, damper_step_func, spring_arrays_type
+from .springs import COINCIDENT_DISTANCE, SpringSpec, damper_step_func, spring_arrays_type, spring_sweep_funcs
+from .sweep import grid_energy_pass, grid_vectorised
 from .flatten import flat_kernel
 
 wp.set_module_options({"enable_backward": False})
@@ -874,6 +875,10 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
     Arrays = spec.funcs(scalar).arrays
     strained = getattr(spec.funcs(scalar), "element_strain", None) is not None
     family_energy = family_energy_func(scalar, spec, power)
+    # A grid cloth's springs on the CPU (one thread a world): the vectorised pass over the grid's directions.
+    grid = not tiled and isinstance(spec, SpringSpec) and grid_vectorised(spec)
+    grid_energy = grid_energy_pass(scalar, spec, power) if grid else None
+    prepare = spring_sweep_funcs(scalar, spec).prepare if grid else None
 
     # An element's energy reads its own entries, never the incidence table.
     @flat_kernel(module="unique", enable_backward=False, last=("arrays__incidence",))
@@ -900,8 +905,19 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
         world, block, lane = wp.tid()
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
             return
-        energy, worst, taken = family_energy(world, block * wp.block_dim() + lane, stride, element_count,
-                                             world * particle_count, arrays, inputs, particle_q, particle_qd)
+        energy = wp.float64(0.0)
+        worst = wp.float64(-1.0)
+        taken = wp.float64(0.0)
+        if wp.static(grid):  # (one lane a world: the whole family)
+            prepared = prepare(world, arrays, inputs)
+            terms = grid_energy(particle_q, particle_qd, world * particle_count, prepared.nx, prepared.ny,
+                                prepared.rest, prepared.ke, prepared.kd)
+            energy = terms[0]
+            worst = terms[1]
+            taken = terms[2]
+        else:
+            energy, worst, taken = family_energy(world, block * wp.block_dim() + lane, stride, element_count,
+                                                 world * particle_count, arrays, inputs, particle_q, particle_qd)
         energy = block_sum(energy)
         if wp.static(strained):
             worst = block_max(worst)

@@ -244,6 +244,96 @@ for (int a0 = 0; a0 < n; a0 += {chunk}) {{
 
 
 @functools.cache
+def grid_energy_pass(scalar: type, spec: SpringSpec, power: bool):
+    """``grid_energy(particle_q, particle_qd, base, nx, ny, rest, ke, kd) -> vec3d``: over one world's grid springs
+    (``grid_vectorised``), their elastic energy [J] ½ ke (|d| - L)², their largest strain |d|/L - 1 and with ``power``
+    the power [W] their dampers take out, kd ((vj - vi)·d̂)²; each spring once, in the model's precision as the
+    guard's energy pass evaluates it (``springs.spring_funcs``' energy, ``element_strain`` and ``dissipation``
+    hooks), added up in float64 direction by direction and row by row (the pass's own order). ``rest``, ``ke``,
+    ``kd``: each group's values (``spring_sweep_funcs``' ``prepare``).
+
+    The guard's energy pass walks a family's elements one at a time, reading its indices and values per spring; for a
+    grid cloth this pass walks each direction's springs row by row over unit-strided positions, in chunks whose
+    per-spring loop a C++ compiler vectorises (the layout ``grid_spring_pass`` uses for the forces). CPU only."""
+    real = {wp.float32: "float", wp.float64: "double"}[scalar]
+    vec3 = vec3_type(scalar)
+    group_count = max(spec.slot_groups) + 1
+    group_values = wp.types.vector(length=group_count, dtype=scalar)
+    ahead = [(dx, dy, g) for (dx, dy), g in zip(spec.grid_slots, spec.slot_groups) if dy > 0 or (dy == 0 and dx > 0)]
+
+    @wp.func_native(grid_energy_source(real, tuple(ahead), power))
+    def grid_energy(particle_q: wp.array[vec3], particle_qd: wp.array[vec3], base: int, nx: int, ny: int,
+                    rest: group_values, ke: group_values, kd: group_values) -> wp.vec3d:
+        ...
+
+    return grid_energy
+
+
+def grid_energy_source(real: str, ahead: tuple, power: bool) -> str:
+    """The C++ of ``grid_energy_pass``: ``real`` the scalar type, ``ahead`` the (dx, dy, group) of each slot ahead,
+    ``power`` whether the dampers' power is summed too."""
+    count, chunk = len(ahead), GRID_CHUNK
+    damper = """
+        const real inverse = length > eps ? (real)1 / length : (real)0;
+        const v3 normal = wp::mul(delta, inverse);
+        const v3 qi(vi[3 * c], vi[3 * c + 1], vi[3 * c + 2]), qj(vj[3 * c], vj[3 * c + 1], vj[3 * c + 2]);
+        const real rate = wp::dot(wp::sub(qj, qi), normal);
+        P[c - c0 - a] = kdamp * rate * rate;""" if power else ""
+    add_power = "\n        p4[c & 3] += (double)P[c];" if power else ""
+    add_power_total = "\n      taken += (p4[0] + p4[1]) + (p4[2] + p4[3]);" if power else ""
+    return f"""
+typedef {real} real;
+typedef wp::vec_t<3, real> v3;
+const real* __restrict__ X = (const real*)(particle_q.data + base);
+const real* __restrict__ V = (const real*)(particle_qd.data + base);
+(void)V;
+const real eps = (real){COINCIDENT_DISTANCE!r};
+const int DX[{count}] = {{{", ".join(str(dx) for dx, _, _ in ahead)}}};
+const int DY[{count}] = {{{", ".join(str(dy) for _, dy, _ in ahead)}}};
+const int G[{count}] = {{{", ".join(str(g) for _, _, g in ahead)}}};
+real E[{chunk}], S[{chunk}], P[{chunk}];
+(void)P;
+double energy = 0.0, strain = -1.0, taken = 0.0;
+for (int d = 0; d < {count}; ++d) {{
+  const int dx = DX[d], dy = DY[d], offset = dy * nx + dx;
+  const real L = rest.c[G[d]], k = ke.c[G[d]], kdamp = kd.c[G[d]];
+  (void)kdamp;
+  const int c0 = dx < 0 ? -dx : 0, c1 = dx > 0 ? nx - dx : nx;
+  for (int r = 0; r + dy < ny; ++r) {{
+    const real* __restrict__ xi = X + 3 * (r * nx);
+    const real* __restrict__ xj = X + 3 * (r * nx + offset);
+    const real* __restrict__ vi = V + 3 * (r * nx);
+    const real* __restrict__ vj = V + 3 * (r * nx + offset);
+    (void)vi; (void)vj;
+    for (int a = 0; c0 + a < c1; a += {chunk}) {{
+      const int m = c1 - c0 - a < {chunk} ? c1 - c0 - a : {chunk};
+      for (int c = c0 + a; c < c0 + a + m; ++c) {{
+        const v3 pi(xi[3 * c], xi[3 * c + 1], xi[3 * c + 2]), pj(xj[3 * c], xj[3 * c + 1], xj[3 * c + 2]);
+        const v3 delta = wp::sub(pj, pi);
+        const real length = wp::length(delta);
+        const real stretch = length - L;
+        E[c - c0 - a] = (real)0.5 * k * stretch * stretch;
+        S[c - c0 - a] = length / L;{damper}
+      }}
+      // Four running sums a chunk (no chain of dependent additions), then added in a fixed order.
+      double e4[4] = {{0.0, 0.0, 0.0, 0.0}}, p4[4] = {{0.0, 0.0, 0.0, 0.0}};
+      real s4[4] = {{S[0], S[0], S[0], S[0]}};
+      (void)p4;
+      for (int c = 0; c < m; ++c) {{
+        e4[c & 3] += (double)E[c];
+        s4[c & 3] = S[c] > s4[c & 3] ? S[c] : s4[c & 3];{add_power}
+      }}
+      energy += (e4[0] + e4[1]) + (e4[2] + e4[3]);
+      const double s = (double)(s4[0] > s4[1] ? s4[0] : s4[1]) > (double)(s4[2] > s4[3] ? s4[2] : s4[3])
+                       ? (double)(s4[0] > s4[1] ? s4[0] : s4[1]) : (double)(s4[2] > s4[3] ? s4[2] : s4[3]);
+      strain = s - 1.0 > strain ? s - 1.0 : strain;{add_power_total}
+    }}
+  }}
+}}
+return wp::vec_t<3, double>(energy, strain, taken);
+"""
+
+@functools.cache
 def symplectic_euler_sweep_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
                                   power: tuple | None = None, forces_only: bool = False):
     """Symplectic Euler step of every world, one thread per world (module docstring): the arguments of
