@@ -279,8 +279,10 @@ def grid_energy_source(real: str, ahead: tuple, power: bool) -> str:
         const v3 qi(vi[3 * c], vi[3 * c + 1], vi[3 * c + 2]), qj(vj[3 * c], vj[3 * c + 1], vj[3 * c + 2]);
         const real rate = wp::dot(wp::sub(qj, qi), normal);
         P[c - c0 - a] = kdamp * rate * rate;""" if power else ""
-    add_power = "\n        p4[c & 3] += (double)P[c];" if power else ""
-    add_power_total = "\n      taken += (p4[0] + p4[1]) + (p4[2] + p4[3]);" if power else ""
+    add_power = "\n        p0 += (double)P[c];" if power else ""
+    add_power4 = ("\n        p0 += (double)P[c]; p1 += (double)P[c + 1]; p2 += (double)P[c + 2]; "
+                  "p3 += (double)P[c + 3];") if power else ""
+    add_power_total = "\n      taken += (p0 + p1) + (p2 + p3);" if power else ""
     return f"""
 typedef {real} real;
 typedef wp::vec_t<3, real> v3;
@@ -315,18 +317,24 @@ for (int d = 0; d < {count}; ++d) {{
         E[c - c0 - a] = (real)0.5 * k * stretch * stretch;
         S[c - c0 - a] = length / L;{damper}
       }}
-      // Four running sums a chunk (no chain of dependent additions), then added in a fixed order.
-      double e4[4] = {{0.0, 0.0, 0.0, 0.0}}, p4[4] = {{0.0, 0.0, 0.0, 0.0}};
-      real s4[4] = {{S[0], S[0], S[0], S[0]}};
-      (void)p4;
-      for (int c = 0; c < m; ++c) {{
-        e4[c & 3] += (double)E[c];
-        s4[c & 3] = S[c] > s4[c & 3] ? S[c] : s4[c & 3];{add_power}
+      // Four running sums a chunk, each in a register of its own (no chain of dependent additions), then added in
+      // a fixed order; the largest strain likewise (a maximum is exact in any order).
+      double e0 = 0.0, e1 = 0.0, e2 = 0.0, e3 = 0.0, p0 = 0.0, p1 = 0.0, p2 = 0.0, p3 = 0.0;
+      real w0 = S[0], w1 = S[0], w2 = S[0], w3 = S[0];
+      int c = 0;
+      for (; c + 4 <= m; c += 4) {{
+        e0 += (double)E[c]; e1 += (double)E[c + 1]; e2 += (double)E[c + 2]; e3 += (double)E[c + 3];
+        w0 = S[c] > w0 ? S[c] : w0; w1 = S[c + 1] > w1 ? S[c + 1] : w1;
+        w2 = S[c + 2] > w2 ? S[c + 2] : w2; w3 = S[c + 3] > w3 ? S[c + 3] : w3;{add_power4}
       }}
-      energy += (e4[0] + e4[1]) + (e4[2] + e4[3]);
-      const double s = (double)(s4[0] > s4[1] ? s4[0] : s4[1]) > (double)(s4[2] > s4[3] ? s4[2] : s4[3])
-                       ? (double)(s4[0] > s4[1] ? s4[0] : s4[1]) : (double)(s4[2] > s4[3] ? s4[2] : s4[3]);
-      strain = s - 1.0 > strain ? s - 1.0 : strain;{add_power_total}
+      for (; c < m; ++c) {{
+        e0 += (double)E[c];
+        w0 = S[c] > w0 ? S[c] : w0;{add_power}
+      }}
+      (void)p0; (void)p1; (void)p2; (void)p3;
+      energy += (e0 + e1) + (e2 + e3);
+      w0 = w1 > w0 ? w1 : w0; w2 = w3 > w2 ? w3 : w2; w0 = w2 > w0 ? w2 : w0;
+      strain = (double)w0 - 1.0 > strain ? (double)w0 - 1.0 : strain;{add_power_total}
     }}
   }}
 }}
