@@ -176,9 +176,10 @@ def test_the_sweep_with_a_tail_and_per_spring_laws():
 
 
 def test_the_guards_power_sums_are_the_per_particle_steps():
-    """With the default guard the sweep counts the dampers' and drag's energy per particle as the per-particle
-    step does (the springs' dampers' part swept with their force): the balances the guard's checks took from the
-    power sums (the sums themselves are cleared at every check) and the states agree."""
+    """With the default guard the sweep counts the dampers' and drag's energy as the per-particle step does (the
+    springs' dampers' part swept with their force), adding a world's up in float64 into its first entry where the
+    per-particle step adds each particle's to its own: the balances the guard's checks took from the power sums (the
+    sums themselves are cleared at every check) and the states agree."""
     sums, states = [], []
     for sweep in (True, False):
         model = cloth()

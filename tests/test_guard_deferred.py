@@ -60,6 +60,23 @@ def test_deferred_torn_spring_is_named_on_the_state_it_tore_in(device):
         sim.step_frame()
 
 
+
+def test_a_deferred_failure_is_raised_before_the_next_frames_integrator_stop(device):
+    """Frame 1 tears spring 1 (its verdict read a frame later); frame 2's adaptive integrator then gives up. The
+    earlier failure is the one raised, naming frame 1 and the spring, not frame 2's integrator (which, raised
+    first, would have counted frame 1 as passed)."""
+    builder = ws.ModelBuilder(gravity=ZERO_GRAVITY)
+    builder.add_particles([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]], mass=1.0)
+    builder.add_springs([[0, 1], [1, 2], [2, 3]], stiffness=1.0, rest_length=[1.0, 1.0 / 30.0, 1.0])
+    model = builder.finalize(device)
+    integrator = ws.DormandPrince(model)
+    sim = ws.Simulator(model, integrator=integrator, fps=60, substeps=4, defer_verdict=True)
+    sim.step_frame()
+    integrator.failure = lambda: "dopri5 gave up (a stand-in for this frame's failure)"
+    with pytest.raises(ws.SimulationError, match=r"^frame 1, .*spring 1 \(particles 1-2\) stretched") as stop:
+        sim.step_frame()
+    assert stop.value.frame == 1 and sim.frame == 0
+
 def test_deferred_world_stop_records_each_world_once_with_its_frame(device):
     """``stop="world"``: RK4 at one 1/60 s step stops the battery cloth's unstable world 1 (the case of
     ``test_guards.py``), recorded once, at the frame whose check failed (the same frame as without deferral), while

@@ -137,6 +137,25 @@ def test_the_automatic_shape_takes_one_launch_only_where_it_was_measured_faster(
     assert integrator.launch_shape(16 * 16, 1, 132) is None  # under SPREAD_MIN_PARTICLES, one block: too few
 
 
+
+def test_no_frame_is_launched_wider_than_the_kernels_bound():
+    """The frame kernel is compiled for blocks of at most ``FRAME_MAX_LANES`` threads (``__launch_bounds__``, which a
+    wider launch fails on CUDA): the automatic shape keeps within it, a wider ``SPREAD_LANES`` is clamped to it, and
+    ``advance_frame`` refuses a wider shape with the bound named."""
+    from warpspring.kernels.frames import FRAME_MAX_LANES
+
+    model = scene("cpu")
+    integrator = ws.SymplecticEuler(model)
+    for particles in (16 * 16, 32 * 32, 64 * 64, 128 * 128, 1024 * 1024):
+        for worlds in (1, 4, 1056, 4096):
+            shape = integrator.launch_shape(particles, worlds, 132, forced=True)
+            assert shape is not None and shape[0] <= FRAME_MAX_LANES
+    integrator.SPREAD_LANES = 4 * FRAME_MAX_LANES
+    assert integrator.launch_shape(64 * 64, 1, 132) == (FRAME_MAX_LANES, 64 * 64 // FRAME_MAX_LANES)
+    state_a, state_b = model.state(), model.state()
+    with pytest.raises(ValueError, match=f"at most {FRAME_MAX_LANES} threads a block"):
+        integrator.advance_frame(state_a, state_b, None, 1.0e-3, 4, (2 * FRAME_MAX_LANES, 1))
+
 def test_one_launch_frame_counts_the_dampers_as_the_per_substep_frame(device):
     """The one-launch frame keeps the guard's power sums in each lane's registers over the frame (float64), one entry
     per lane written at its end: a damped cloth without colliders (its D counted) gives the same positions (to the

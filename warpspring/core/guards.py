@@ -178,17 +178,14 @@ class Guard(StepHook):
         # (on the CPU a copy is done when it returns: host arrays, no event).
         self._slots = [_pinned_status(status.shape) if device.is_cuda else wp.empty(status.shape, dtype=wp.int32,
                                                                                     device="cpu") for _ in range(2)]
-        if device.is_cuda:
-            for slot in self._slots:
-                weakref.finalize(self, _PINNED_STATUS[status.shape].append, slot)
         # (events from a pool that never destroys them either: none is destroyed while another simulator captures)
         self._events = [_pooled_event(device) for _ in self._slots] if device.is_cuda else [None, None]
-        for event in self._events if device.is_cuda else ():
-            weakref.finalize(self, _EVENTS[device.alias].append, event)
         # (host arrays: a NumPy view of each, made once, reads them without Warp's per-call wrapping)
         self._slot_views = [slot.numpy() for slot in self._slots]
         self._status_view = self._status_host.numpy() if self._status_host is not self._status else None
         self._pending = []  # the slots posted and not yet collected, oldest first
+        if device.is_cuda:  # a collected guard hands its slots and events back, but those of a read still pending
+            weakref.finalize(self, _hand_back, status.shape, device.alias, self._slots, self._events, self._pending)
         self._posted = 0
         # The check's passes stride (each lane several particles or elements: few partial sums to gather): on CUDA
         # up to REDUCE_PER_LANE a lane, on the CPU one thread per world walks them all (its sums in the same order).
@@ -1134,6 +1131,17 @@ _PINNED_STATUS: dict[tuple, list] = {}
 #: CUDA events for the deferred reads of the guards' status (``Guard.post``), by device: taken by a guard, handed back
 #: when it is collected, never destroyed (as ``_PINNED_STATUS``).
 _EVENTS: dict[str, list] = {}
+
+
+def _hand_back(shape: tuple, alias: str, slots: list, events: list, pending: list) -> None:
+    """Return a collected guard's read slots and their events to the pools (``Guard.post``), but those of a read it
+    posted and never collected: that copy may not have landed, and another guard that took the buffer (on another
+    stream) could see it land over its own; those few bytes are left to the process."""
+    for k, (slot, event) in enumerate(zip(slots, events)):
+        if k in pending:
+            continue
+        _PINNED_STATUS[shape].append(slot)
+        _EVENTS[alias].append(event)
 
 
 def _pooled_event(device) -> wp.Event:

@@ -205,22 +205,26 @@ class Simulator:
         if self.model.shape_deforming:
             advance_mesh_colliders(self.model, self.time, self.time + self.frame_dt)
         self.stepper.advance()
+        if self.guard is not None and self.defer_verdict:
+            # The frame before is judged first: its failure, if any, is the earlier one (before this frame's own
+            # integrator stops below).
+            self.guard.post()  # this frame's record, read at the next frame (the device keeps busy)
+            if self._unsettled:
+                self._judge(self.guard.collect(), self.frame)  # the frame before: raises for its failure
+            self._unsettled = True
         if self.integrator.adaptive:
             failure = self.integrator.failure()
             if failure is not None:
+                self._forget_verdict()
                 raise SimulationError(f"frame {self.frame + 1}: {failure}", frame=self.frame + 1)
         shortfall = self.integrator.solve_shortfall()  # an implicit step's CG stopped at its cap: once, or raise
         if shortfall is not None:
             if self.integrator.strict_solves:
+                self._forget_verdict()
                 raise SimulationError(f"frame {self.frame + 1}: {shortfall}", frame=self.frame + 1)
             warnings.warn(SolverWarning(f"frame {self.frame + 1}: {shortfall}"), stacklevel=2)
         if self.guard is not None:
-            if self.defer_verdict:
-                self.guard.post()  # this frame's record, read at the next frame (the device keeps busy)
-                if self._unsettled:
-                    self._judge(self.guard.collect(), self.frame)  # the frame before: raises for its failure
-                self._unsettled = True
-            else:
+            if not self.defer_verdict:
                 self._judge(self.guard.reports(), self.frame + 1)
             if self.contacts is not None:
                 self._report_overflow()

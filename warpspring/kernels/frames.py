@@ -17,8 +17,9 @@ On the CPU a launch runs its threads one after another, so the kernel is launche
 each substep then runs over the whole world before the next begins, and the barriers are empty.
 
 The guard's power sums are kept by each lane in registers over the frame (float64) and added to one entry of the
-power sums per lane at its end (the per-substep path adds to every particle's entry every substep); the check sums a
-world's entries, so the guard counts the same energy up to the order of its additions.
+power sums per lane at its end (the per-substep fused step adds to every particle's entry every substep, the CPU's
+sweep to the world's first entry every substep); the check sums a world's entries, so the guard counts the same
+energy up to the order of its additions.
 """
 
 import functools
@@ -73,7 +74,8 @@ TARGET_LEAVES = tuple(f"pin_targets__{name}" for name in PinTargets.vars)
 CHECK_LEAVES = tuple(f"check_arrays_in_out__{name}" for name in frame_check_arrays_type(wp.float32).vars)
 
 
-#: The most threads a block of the frame kernel may have (``SymplecticEuler.launch_shape``: 32-256).
+#: The most threads a block of the frame kernel may have (its launch bound; ``SymplecticEuler.launch_shape`` picks
+#: 32-256 and clamps its spread blocks to it, ``advance_frame`` refuses more).
 FRAME_MAX_LANES = 256
 
 

@@ -9,7 +9,7 @@ import functools
 
 import warp as wp
 
-from ...kernels.frames import symplectic_euler_frame_kernel
+from ...kernels.frames import FRAME_MAX_LANES, symplectic_euler_frame_kernel
 from ...kernels.guards import frame_check_arrays_type
 from ...kernels.integrators import (symplectic_euler_blocks_kernel, symplectic_euler_kernel,
                                      symplectic_euler_update_kernel)
@@ -112,10 +112,11 @@ class SymplecticEuler(Integrator):
         :attr:`ONE_LAUNCH_THREADS_PER_SM` threads a multiprocessor, and the scene is not ``heavy``: a flag on a moving
         pole in a gusting wind took 0.86-0.89x (32²), 0.57-0.59x (64²) and 0.40-0.41x (128²) the per-substep path's
         rate at 1,056 and 4,096 worlds so (H200, bench/results/frames.md), where the hanging cloth gained 1.02-1.18x."""
-        spread = -(-particles // self.SPREAD_LANES)
+        spread_lanes = min(int(self.SPREAD_LANES), FRAME_MAX_LANES)  # (the frame kernel's launch bound)
+        spread = -(-particles // spread_lanes)
         if spread > 1 and worlds * spread <= sms and (forced or particles >= self.SPREAD_MIN_PARTICLES):
-            return self.SPREAD_LANES, spread
-        lanes = int(min(256, max(32, 32 * -(-particles // (32 * self.ONE_LAUNCH_PARTICLES_PER_LANE)))))
+            return spread_lanes, spread
+        lanes = int(min(FRAME_MAX_LANES, max(32, 32 * -(-particles // (32 * self.ONE_LAUNCH_PARTICLES_PER_LANE)))))
         if not forced and (heavy or worlds * lanes < self.ONE_LAUNCH_THREADS_PER_SM * sms):
             return None  # too few blocks to fill the device, too many to spread, or a heavy step: one launch per substep
         return lanes, 1
@@ -124,6 +125,9 @@ class SymplecticEuler(Integrator):
                       shape: tuple[int, int], check=None) -> bool:
         model = self.model
         lanes, blocks = shape
+        if lanes > FRAME_MAX_LANES:
+            raise ValueError(f"a frame in one launch takes at most {FRAME_MAX_LANES} threads a block "
+                             f"(kernels.frames.FRAME_MAX_LANES, its launch bound), got {lanes}")
         if self._barrier is None or len(self._barrier) != model.world_count:
             self._barrier = wp.zeros(model.world_count, dtype=wp.int32, device=model.device)
         if blocks > 1:
