@@ -107,6 +107,14 @@ def flush_subnormals_end(saved: int):
     ...
 
 
+def _grid_native_types(scalar: type, spec: SpringSpec) -> tuple:
+    """What the grid's native passes are written for: the C++ scalar type, the vector type, the groups' values type
+    and the (dx, dy, group) of each slot ahead (a later row, or later on the same one)."""
+    real = {wp.float32: "float", wp.float64: "double"}[scalar]
+    group_values = wp.types.vector(length=max(spec.slot_groups) + 1, dtype=scalar)
+    ahead = [(dx, dy, g) for (dx, dy), g in zip(spec.grid_slots, spec.slot_groups) if dy > 0 or (dy == 0 and dx > 0)]
+    return real, vec3_type(scalar), group_values, tuple(ahead)
+
 @functools.cache
 def grid_spring_pass(scalar: type, spec: SpringSpec, dampers: bool):
     """``grid_springs(particle_q, particle_qd, base, nx, ny, rest, ke, kd, force_in_out, dampers_in_out)``: write each
@@ -128,13 +136,9 @@ def grid_spring_pass(scalar: type, spec: SpringSpec, dampers: bool):
     order), so the result is ``forward``'s bit for bit: the grid layout steps as the table layout does
     (tests/test_grid_layout.py). CPU only (C++; the kernel is launched on the CPU).
     """
-    real = {wp.float32: "float", wp.float64: "double"}[scalar]
-    vec3 = vec3_type(scalar)
-    group_count = max(spec.slot_groups) + 1
-    group_values = wp.types.vector(length=group_count, dtype=scalar)
-    ahead = [(dx, dy, g) for (dx, dy), g in zip(spec.grid_slots, spec.slot_groups) if dy > 0 or (dy == 0 and dx > 0)]
+    real, vec3, group_values, ahead = _grid_native_types(scalar, spec)
 
-    @wp.func_native(grid_pass_source(real, tuple(ahead), dampers))
+    @wp.func_native(grid_pass_source(real, ahead, dampers))
     def grid_springs(particle_q: wp.array[vec3], particle_qd: wp.array[vec3], base: int, nx: int, ny: int,
                      rest: group_values, ke: group_values, kd: group_values, force_in_out: wp.array[vec3],
                      dampers_in_out: wp.array[vec3]):
@@ -255,13 +259,9 @@ def grid_energy_pass(scalar: type, spec: SpringSpec, power: bool):
     The guard's energy pass walks a family's elements one at a time, reading its indices and values per spring; for a
     grid cloth this pass walks each direction's springs row by row over unit-strided positions, in chunks whose
     per-spring loop a C++ compiler vectorises (the layout ``grid_spring_pass`` uses for the forces). CPU only."""
-    real = {wp.float32: "float", wp.float64: "double"}[scalar]
-    vec3 = vec3_type(scalar)
-    group_count = max(spec.slot_groups) + 1
-    group_values = wp.types.vector(length=group_count, dtype=scalar)
-    ahead = [(dx, dy, g) for (dx, dy), g in zip(spec.grid_slots, spec.slot_groups) if dy > 0 or (dy == 0 and dx > 0)]
+    real, vec3, group_values, ahead = _grid_native_types(scalar, spec)
 
-    @wp.func_native(grid_energy_source(real, tuple(ahead), power))
+    @wp.func_native(grid_energy_source(real, ahead, power))
     def grid_energy(particle_q: wp.array[vec3], particle_qd: wp.array[vec3], base: int, nx: int, ny: int,
                     rest: group_values, ke: group_values, kd: group_values) -> wp.vec3d:
         ...
