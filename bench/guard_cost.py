@@ -60,12 +60,11 @@ class Run:
     (on a GPU the next frame's launch then waits for the host)."""
 
     def __init__(self, model: ws.Model, integrator: str, guard, probe: bool = False, defer_verdict: bool | None = None,
-                 min_blocks: int | None = None, step_min_blocks: int | None = None):
+                 bounds: dict | None = None):
         stepper = ws.make_integrator(integrator, model)
-        if min_blocks is not None:  # the one-launch frame kernel's register bound (kernels.frames: min_blocks)
-            stepper.FRAME_MIN_BLOCKS = min_blocks
-        if step_min_blocks is not None:  # the per-substep fused step's (kernels.integrators: bounds)
-            stepper.STEP_MIN_BLOCKS = step_min_blocks
+        # The kernels' register bounds other than shipped (``SymplecticEuler.FRAME_MIN_BLOCKS``, ``STEP_MIN_BLOCKS``).
+        for name, blocks in (bounds or {}).items():
+            setattr(stepper, name, blocks)
         self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=guard, defer_verdict=defer_verdict,
                                 integrator=stepper)
         self.probe = wp.zeros((model.world_count, 7), dtype=wp.int32, device=model.device) if probe else None
@@ -193,7 +192,8 @@ def main():
                              "each K (0: no bound, the compiler's choice): what its occupancy is worth")
     parser.add_argument("--step-min-blocks", type=int, nargs="*", default=[],
                         help="also the default and guard off with symplectic Euler's per-substep fused step's registers "
-                             "bounded so that K blocks fit a multiprocessor (SymplecticEuler.STEP_MIN_BLOCKS), each K")
+                             "bounded so that K blocks fit a multiprocessor (SymplecticEuler.STEP_MIN_BLOCKS), each K "
+                             "(0: no bound)")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
@@ -207,6 +207,8 @@ def main():
              "| spread off / default | default ÷ off | Newton [substeps/s] | default ÷ Newton |",
              "|---|---|---|---|---|---|---|---|---|"]
     notes = []
+    # The register bounds timed beside the shipped ones: the one-launch frame's and the per-substep step's.
+    bound_studies = (("FRAME_MIN_BLOCKS", "", args.min_blocks), ("STEP_MIN_BLOCKS", "step ", args.step_min_blocks))
     scenes = [(f"{n}²", n, 1) for n in args.sizes] + [(f"{w} × 32²", 32, w) for w in args.worlds_sizes]
     for label, n, worlds in scenes:
         for integrator in args.integrators:
@@ -222,12 +224,11 @@ def main():
             if args.where:
                 makers["no host read"] = lambda: unread(Run(cloth(), integrator, ws.GuardLimits()))
                 makers["check apart"] = lambda: check_apart(lambda: Run(cloth(), integrator, ws.GuardLimits()))
-            for k in args.min_blocks:  # (0: the compiler's choice, no bound)
-                makers[f"default ≤{k}"] = lambda k=k: Run(cloth(), integrator, ws.GuardLimits(), min_blocks=k or None)
-                makers[f"off ≤{k}"] = lambda k=k: Run(cloth(), integrator, None, min_blocks=k or None)
-            for k in args.step_min_blocks:
-                makers[f"default step ≤{k}"] = lambda k=k: Run(cloth(), integrator, ws.GuardLimits(), step_min_blocks=k)
-                makers[f"off step ≤{k}"] = lambda k=k: Run(cloth(), integrator, None, step_min_blocks=k)
+            for name, tag, blocks in bound_studies:
+                for k in blocks:  # (0: the compiler's choice, no bound)
+                    setting = {name: k or None}
+                    makers[f"default {tag}≤{k}"] = lambda s=setting: Run(cloth(), integrator, ws.GuardLimits(), bounds=s)
+                    makers[f"off {tag}≤{k}"] = lambda s=setting: Run(cloth(), integrator, None, bounds=s)
             if args.parts:
                 makers["no dissipation"] = lambda: Run(cloth(), integrator, ws.GuardLimits(dissipation=False))
                 makers["no balance"] = lambda: Run(cloth(), integrator, ws.GuardLimits(energy_balance=0.0))
@@ -268,21 +269,15 @@ def main():
                              f"{frame['no host read']:.1f} ({frame['off'] / frame['no host read']:.3f}), the check apart "
                              f"{frame['check apart']:.1f} ({frame['off'] / frame['check apart']:.3f})")
                 print(notes[-1], flush=True)
-            if args.step_min_blocks:
-                frame = {name: 1e6 * statistics.median(t) for name, t in times.items()}
-                bounded = ", ".join(f"{k} blocks: default {frame[f'default step ≤{k}']:.1f}, "
-                                    f"off {frame[f'off step ≤{k}']:.1f}" for k in args.step_min_blocks)
-                notes.append(f"- {label}, {integrator}: µs per frame, the step's registers as the compiler takes them: "
-                             f"default {frame['default']:.1f}, off {frame['off']:.1f}; bounded to {bounded}")
-                print(notes[-1], flush=True)
-            if args.min_blocks:
-                frame = {name: 1e6 * statistics.median(t) for name, t in times.items()}
-                bounded = ", ".join(f"{k} blocks: default {frame[f'default ≤{k}']:.1f}, off {frame[f'off ≤{k}']:.1f}"
-                                    for k in args.min_blocks)
-                shipped = ws.SymplecticEuler.FRAME_MIN_BLOCKS
-                notes.append(f"- {label}, {integrator}: µs per frame, as shipped (FRAME_MIN_BLOCKS = {shipped}): "
-                             f"default {frame['default']:.1f}, off {frame['off']:.1f}; with {bounded} (0 blocks: the "
-                             "compiler's choice)")
+            frame = {name: 1e6 * statistics.median(t) for name, t in times.items()}
+            for name, tag, blocks in bound_studies:
+                if not blocks:
+                    continue
+                bounded = ", ".join(f"{k} blocks: default {frame[f'default {tag}≤{k}']:.1f}, "
+                                    f"off {frame[f'off {tag}≤{k}']:.1f}" for k in blocks)
+                notes.append(f"- {label}, {integrator}: µs per frame, as shipped ({name} = "
+                             f"{getattr(ws.SymplecticEuler, name)}): default {frame['default']:.1f}, off "
+                             f"{frame['off']:.1f}; with {bounded} (0 blocks: the compiler's choice)")
                 print(notes[-1], flush=True)
             if args.probe:
                 probe = statistics.median(off / p for off, p in zip(times["off"], times["probe"]))

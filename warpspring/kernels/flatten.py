@@ -144,6 +144,12 @@ def _assemble(root: str, name: str, struct, path: tuple, namespace: dict) -> lis
     return statements
 
 
+def launch_bounds_option(bounds: tuple[int, int] | None) -> dict:
+    """:func:`flat_kernel`'s option for ``bounds`` (threads a block, blocks a multiprocessor): on CUDA,
+    ``__launch_bounds__``, which keeps the registers a thread within 65,536 / (threads · blocks) and refuses a wider
+    launch; none for ``None`` (as many registers as the compiler takes)."""
+    return {} if bounds is None else {"launch_bounds": (int(bounds[0]), int(bounds[1]))}
+
 def flat_launch(kernel, *, inputs=(), outputs=(), **launch_options) -> None:
     """``wp.launch`` of a :func:`flat_kernel` with struct instances among ``inputs`` and ``outputs``.
 

@@ -37,7 +37,7 @@ from .shapes import ContactFeatures, shapes_type
 from .kinematics import PinGroups, PinTargets, is_kinematic, prescribed_func
 from .swept import shape_motion_func
 from .tracks import Tracks, WorldInputs, world_inputs_func
-from .flatten import flat_kernel
+from .flatten import flat_kernel, launch_bounds_option
 
 wp.set_module_options({"enable_backward": False})
 
@@ -83,7 +83,7 @@ FRAME_MAX_LANES = 256
 def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
                                   power: tuple | None = None, animated: bool = False, driven: bool = False,
                                   targets: bool = False, moving: bool = False, check: FrameCheck | None = None,
-                                  min_blocks: int | None = None):
+                                  bounds: tuple[int, int] | None = None):
     """``steps`` fused symplectic Euler steps of every world, ``blocks`` blocks of ``lanes`` threads per world
     (module docstring); ``barrier_in_out`` one counter per world, zero at the launch where ``blocks`` > 1.
     Substep k reads buffer A when k is even and writes B, and the other way round when k is odd; an odd
@@ -103,9 +103,8 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
     measure passes over its particles and the energy pass over its elements (``guards.guard_lane_funcs``,
     ``guards.energy_lanes_func``: the functions of the check's own kernels), each block writes its partial sums, the
     world's blocks meet, and the world's first block gathers them and decides (``gather_lanes``): the check's four
-    launches, inside the frame. ``min_blocks``: on CUDA, blocks of up to ``FRAME_MAX_LANES`` threads that a
-    multiprocessor must hold at once (``__launch_bounds__``: the compiler keeps the registers a thread within 65,536 /
-    (FRAME_MAX_LANES · min_blocks)); ``None``: as many as the compiler takes."""
+    launches, inside the frame. ``bounds`` (threads a block, at most ``FRAME_MAX_LANES``, and blocks a
+    multiprocessor): ``flatten.launch_bounds_option``."""
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
     counted = power is not None
@@ -199,9 +198,8 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
             i += lanes
         return taken, worked
 
-    bounds = {} if min_blocks is None else {"launch_bounds": (FRAME_MAX_LANES, int(min_blocks))}
-
-    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS, **bounds,
+    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
+                 **launch_bounds_option(bounds),
                  last=(contacts.idle() + composed.last("element_arrays") + (() if animated else ANIMATED_LEAVES)
                        + (() if animated or driven or moving else TRACK_LEAVES) + (() if driven else PIN_LEAVES)
                        + (() if targets else TARGET_LEAVES) + (() if checked else CHECK_LEAVES)

@@ -31,7 +31,7 @@ from .precision import vec3_type
 from .response import project_all_func
 from .shapes import ContactFeatures, shapes_type
 from .worlds import world_and_index
-from .flatten import flat_kernel
+from .flatten import flat_kernel, launch_bounds_option
 
 wp.set_module_options({"enable_backward": False})
 
@@ -233,17 +233,16 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
     kinetic energy by, ½ m (|v'|² - |v|²) = h f·(v + v')/2, so the guard's balance closes up to the integrator's
     error in the elastic energy; one thread writes each entry (no atomics), no pass of its own.
 
-    ``bounds`` (threads a block, blocks a multiprocessor): on CUDA, ``__launch_bounds__``, which keeps the registers a
-    thread within 65,536 / (threads · blocks); ``None``: as many as the compiler takes."""
+    ``bounds`` (threads a block, blocks a multiprocessor): ``flatten.launch_bounds_option``."""
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
     Sums = power_sums_funcs(scalar, power is not None and counts_work(features, power)).type
     composed = elements(scalar, features.families)
     Elements = composed.arrays
     step_particle = symplectic_euler_particle_func(scalar, features, contacts, power)
-    bounded = {} if bounds is None else {"launch_bounds": tuple(int(b) for b in bounds)}
 
-    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS, **bounded,
+    @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
+                 **launch_bounds_option(bounds),
                  last=contacts.idle() + composed.last("element_arrays"))
     def symplectic_euler(
         # Model:

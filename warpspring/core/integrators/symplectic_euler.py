@@ -63,7 +63,7 @@ class SymplecticEuler(Integrator):
     #: Particles per world from which a world is spread over blocks by default (the smallest size measured faster).
     SPREAD_MIN_PARTICLES = 1024
     #: Blocks of the frame kernel (up to 256 threads each) a multiprocessor must hold at once (``kernels.frames``'
-    #: ``min_blocks``: at most 128 registers a thread; ``None``: the compiler's choice, 202 with the guard's power
+    #: ``bounds``: at most 128 registers a thread; ``None``: the compiler's choice, 202 with the guard's power
     #: sums, 12.5 % occupancy). Measured on an H200 (bench/results/guard_cost.md), µs per frame, the compiler's
     #: choice → 2 → 3: guard off 62.8 → 51.1 → 56.9 at 32², 63.4 → 55.0 → 62.3 at 64², 2607 → 2577 → 2599 for
     #: 4,096 worlds of 32²; the default guard 110.1 → 98.6 → 118.1, 100.4 → 100.3 → 107.7, 4364 → 3717 → 3904.
@@ -141,7 +141,8 @@ class SymplecticEuler(Integrator):
             symplectic_euler_frame_kernel(model.scalar, features, contacts,
                                           None if self.power is None else self.power.modes, animated is not None,
                                           pins is not None, targets, bool(model.shape_moving),
-                                          None if check is None else check[0], self.FRAME_MIN_BLOCKS),
+                                          None if check is None else check[0],
+                                          _bounds(FRAME_MAX_LANES, self.FRAME_MIN_BLOCKS)),
             inputs=[
                 model.particle_count,
                 lanes,
@@ -211,8 +212,9 @@ class SymplecticEuler(Integrator):
                 # Its scratch: the two states' force arrays (the step's to use; left zero).
                 common["dim"], scratch = model.world_count, [state_in.particle_f, state_out.particle_f]
             else:
-                bounds = None if self.STEP_MIN_BLOCKS is None else (model.block_dim, self.STEP_MIN_BLOCKS)
-                kernel, scratch = symplectic_euler_kernel(model.scalar, features, contacts, power, bounds), []
+                kernel = symplectic_euler_kernel(model.scalar, features, contacts, power,
+                                                 _bounds(model.block_dim, self.STEP_MIN_BLOCKS))
+                scratch = []
             if blocks is None:
                 flat_launch(
                     kernel,
@@ -258,6 +260,12 @@ def _no_world_inputs(device: str) -> WorldInputs:
     empty.track = empty.slot = empty.width = empty.order = wp.zeros(0, dtype=wp.int32, device=device)
     empty.start = wp.zeros(2, dtype=wp.int32, device=device)
     return empty
+
+
+def _bounds(threads: int, blocks: int | None) -> tuple[int, int] | None:
+    """A kernel factory's ``bounds`` (``flatten.launch_bounds_option``): blocks of ``threads`` of which a multiprocessor
+    must hold ``blocks``; ``None`` (one cache key for every unbounded kernel) where ``blocks`` is."""
+    return None if blocks is None else (threads, blocks)
 
 
 @functools.cache
