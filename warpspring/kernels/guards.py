@@ -905,9 +905,6 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
         world, block, lane = wp.tid()
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
             return
-        energy = wp.float64(0.0)
-        worst = wp.float64(-1.0)
-        taken = wp.float64(0.0)
         if wp.static(grid):  # (one lane a world: the whole family)
             prepared = prepare(world, arrays, inputs)
             terms = grid_energy(particle_q, particle_qd, world * particle_count, prepared.nx, prepared.ny,
