@@ -57,6 +57,7 @@ import datetime
 import json
 import os
 import pathlib
+import re
 import subprocess
 import sys
 import tempfile
@@ -136,6 +137,80 @@ class PassRunner(Runner):
             self._substeps()
 
 
+def launch_labels(model) -> tuple[dict, object]:
+    """The pass's kernels in words: (by id of the kernel object, a function naming a CUDA activity)."""
+    import warpspring.core.selfcontact as host
+
+    kernels = host.__dict__
+    labelled = []
+    for swept, stage in ((False, "repulsion"), (True, "cap")):
+        labelled.append((kernels["leaf_kernel"](model.scalar, swept), f"triangle boxes ({stage})"))
+        if "broad_kernel" in kernels:  # one query per triangle
+            labelled.append((kernels["broad_kernel"](model.scalar, swept), f"broad phase VT + EE ({stage})"))
+        else:  # one per vertex and one per edge
+            labelled += [(kernels["broad_vt_kernel"](model.scalar, swept), f"broad phase VT ({stage})"),
+                         (kernels["broad_ee_kernel"](model.scalar, swept), f"broad phase EE ({stage})")]
+    labelled += [(kernels["fill_kernel"](), "CSR fill"),
+                 (kernels["repel_pairs_kernel"](model.scalar), "narrow phase: repulsion per pair"),
+                 (kernels["repel_gather_kernel"](model.scalar), "gather: repulsion per vertex"),
+                 (kernels["cap_gather_kernel"](model.scalar), "gather: cap per vertex")]
+    for name, text in (("check_kernel", "cache check per patch corner"), ("cap_bounds_kernel", "cap bounds per cached pair"),
+                       ("anchor_kernel", "cache anchors (rebuild)"), ("decide_kernel", "cache decisions per patch pair"),
+                       ("watch_kernel", "watched pairs' check"), ("cap_place_kernel", "cap: placing jammed vertices"),
+                       ("cap_mark_kernel", "cap: marking movers"), ("cap_check_kernel", "cap: final check")):
+        if name in kernels:
+            labelled.append((kernels[name](model.scalar), text))
+    for name, text in (("reset_kernel", "pair buffer reset"), ("cap_loop_gate_kernel", "cap: loop gate")):
+        if name in kernels:
+            labelled.append((kernels[name](), text))
+    by_id = {id(kernel): text for kernel, text in labelled}
+    by_name = {}
+    for kernel, text in labelled:
+        try:
+            by_name[kernel.get_mangled_name()] = text
+        except RuntimeError:  # not loaded on this device
+            pass
+
+    def label(name: str) -> str:
+        """A CUDA activity's name in words (kernels of the pass; other activities as Warp names them, less the
+        module hash)."""
+        for mangled, text in by_name.items():
+            if name.startswith(mangled) or mangled in name:
+                return text
+        return re.sub(r"_[0-9a-f]{8}$", "", name)
+
+    return by_id, label
+
+
+def profile_frames(n: int, device, frames: int) -> list[str]:
+    """Markdown rows: the kernels of the moving draped cloth's substeps after the settling (uncaptured, so the
+    self-collision branches are host tests), CUDA activity time per substep [µs], with and without
+    self-collision, over ``frames`` frames."""
+    rows = []
+    for self_collision in (False, True):
+        runner = Runner(scene(n, device, self_collision))
+        model = runner.sim.model
+        sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=None, use_graph=False)
+        sim.reset(runner.sim.state)
+        sim.step_frame()  # loads every module the uncaptured path needs
+        _, label = launch_labels(model) if self_collision else (None, lambda name: re.sub(r"_[0-9a-f]{8}$", "", name))
+        times = collections.defaultdict(float)
+        calls = collections.Counter()
+        with wp.ScopedTimer("frames", cuda_filter=wp.TIMING_ALL, synchronize=True, print=False,
+                            report_func=lambda *args: None) as timer:
+            for _ in range(frames):
+                sim.step_frame()
+        for result in timer.timing_results:
+            times[label(result.name)] += result.elapsed * 1e3
+            calls[label(result.name)] += 1
+        substeps = frames * SUBSTEPS
+        variant = "with" if self_collision else "without"
+        for name, total in sorted(times.items(), key=lambda item: -item[1]):
+            rows.append(f"| {n} | {variant} | {name} | {calls[name] / substeps:.3g} | {total / substeps:.1f} |")
+        rows.append(f"| {n} | {variant} | **sum** | | **{sum(times.values()) / substeps:.1f}** |")
+    return rows
+
+
 def profile(n: int, device, repeats: int) -> list[str]:
     """Markdown rows: each launch of the pass, its calls and time per pass [µs], on the settled ``self`` scene."""
     import warpspring.core.selfcontact as host
@@ -153,38 +228,7 @@ def profile(n: int, device, repeats: int) -> list[str]:
         sc(start, out, dt)
 
     one_pass()  # loads every module
-    kernels = host.__dict__
-    labelled = []
-    for swept, stage in ((False, "repulsion"), (True, "cap")):
-        labelled.append((kernels["leaf_kernel"](model.scalar, swept), f"triangle boxes ({stage})"))
-        if "broad_kernel" in kernels:  # one query per triangle
-            labelled.append((kernels["broad_kernel"](model.scalar, swept), f"broad phase VT + EE ({stage})"))
-        else:  # one per vertex and one per edge
-            labelled += [(kernels["broad_vt_kernel"](model.scalar, swept), f"broad phase VT ({stage})"),
-                         (kernels["broad_ee_kernel"](model.scalar, swept), f"broad phase EE ({stage})")]
-    labelled += [(kernels["fill_kernel"](), "CSR fill"),
-                 (kernels["repel_pairs_kernel"](model.scalar), "narrow phase: repulsion per pair"),
-                 (kernels["repel_gather_kernel"](model.scalar), "gather: repulsion per vertex"),
-                 (kernels["cap_gather_kernel"](model.scalar), "gather: cap per vertex")]
-    for name, text in (("check_kernel", "cache check per patch corner"), ("cap_bounds_kernel", "cap bounds per cached pair"),
-                       ("anchor_kernel", "cache anchors (rebuild)"), ("decide_kernel", "cache decisions per patch pair"),
-                       ("watch_kernel", "watched pairs' check")):
-        if name in kernels:
-            labelled.append((kernels[name](model.scalar), text))
-    if "reset_kernel" in kernels:
-        labelled.append((kernels["reset_kernel"](), "pair buffer reset"))
-    by_id = {id(kernel): text for kernel, text in labelled}
-    by_name = {}
-    for kernel, text in labelled:
-        try:
-            by_name[kernel.get_mangled_name()] = text
-        except RuntimeError:  # not loaded on this device
-            pass
-
-    def label(name: str) -> str:
-        """A CUDA activity's name in words (kernels of the pass; other activities as Warp names them)."""
-        return next((text for mangled, text in by_name.items() if name.startswith(mangled)), name)
-
+    by_id, label = launch_labels(model)
     times = collections.defaultdict(float)
     calls = collections.Counter()
     wp.synchronize_device(device)
@@ -605,6 +649,8 @@ def main():
     parser.add_argument("--import-from", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--profile", action="store_true", help="time each launch of one pass instead")
     parser.add_argument("--repeats", type=int, default=20, help="passes averaged by --profile")
+    parser.add_argument("--profile-frames", type=int, default=0, metavar="FRAMES",
+                        help="time each kernel of FRAMES moving frames after the settling instead (CUDA only)")
     parser.add_argument("--radius-study", action="store_true", help="count the cap's pairs by candidate rule instead")
     parser.add_argument("--rebuild-study", type=int, default=0, metavar="FRAMES",
                         help="count the cache's rebuilds by rule over FRAMES frames after the settling instead")
@@ -635,6 +681,19 @@ def main():
         ]
         for n in args.sizes:
             lines += radius_study(n, device)
+        emit_table(lines, args.out)
+        return
+    if args.profile_frames:
+        lines = [
+            f"Self-collision per kernel on {device.name}, Warp {wp.config.version}, {datetime.date.today()}: the draped "
+            f"cloth's {args.profile_frames} frames after {SETTLE_FRAMES} frames of settling, uncaptured (CUDA activity "
+            f"timer; the branches are host tests), µs of device time per substep (τ = {THICKNESS} m, μ = {FRICTION})",
+            "",
+            "| N | self-collision | kernel | calls per substep | µs per substep |",
+            "|---|---|---|---|---|",
+        ]
+        for n in args.sizes:
+            lines += profile_frames(n, device, args.profile_frames)
         emit_table(lines, args.out)
         return
     if args.profile:
