@@ -9,7 +9,8 @@ cloth at N ≥ 128: its corner springs tear), 16 substeps per 1/60 s frame, one 
 runs W worlds of it in one model. Per size and integrator: substeps/s of each configuration (median of
 ``--batches`` batches, ``wp.synchronize_device`` before every timer read), the spread of its batches
 ((max - min) / median), the guard's ratio (median over rounds of guard-off time / default time: ≥ 0.91 on the GPU,
-≥ 0.87 on the CPU is the target) and, for symplectic Euler, the default run against Newton.
+≥ 0.87 on the CPU is the target) and the default run against Newton's semi-implicit Euler at the same step (timed
+again beside each integrator, in its rounds).
 
     python bench/guard_cost.py --device cpu --sizes 32 --batches 7
     python bench/guard_cost.py --device cuda:0 --sizes 64 256 1024 --worlds-sizes 4096 --batches 5 --seconds 0.5 \
@@ -151,6 +152,29 @@ def launches_per_substep(model: ws.Model, integrator: str, guard) -> float:
     return count[0] / SUBSTEPS
 
 
+def kernel_times(model: ws.Model, integrator: str, guard, frames: int = 4) -> dict:
+    """Device time per frame [µs] of each kernel (and memset, copy) of ``frames`` uncaptured frames past the frames a
+    guard watches from its start (CUDA activity timer), by name less the module hash."""
+    import re
+
+    sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=guard, integrator=ws.make_integrator(integrator, model),
+                       use_graph=False)
+    for _ in range(WATCH_FRAMES + 1):
+        sim.step_frame()
+    sim.settle()
+    with wp.ScopedTimer("frames", cuda_filter=wp.TIMING_ALL, synchronize=True, print=False,
+                        report_func=lambda *args: None) as timer:
+        for _ in range(frames):
+            sim.step_frame()
+        sim.settle()
+    times = {}
+    for result in timer.timing_results:
+        name = re.sub(r"_[0-9a-f]{8}$", "", result.name)
+        calls, total = times.get(name, (0, 0.0))
+        times[name] = (calls + 1, total + result.elapsed * 1e3)
+    return {name: (calls / frames, total / frames) for name, (calls, total) in times.items()}
+
+
 def measure(makers: dict, device, seconds: float, batches: int) -> dict:
     """Each configuration's batch times [s per frame], their batches taken in turn."""
     runners = {name: set_up(make, device)[0] for name, make in makers.items()}
@@ -194,6 +218,8 @@ def main():
                         help="also the default and guard off with symplectic Euler's per-substep fused step's registers "
                              "bounded so that K blocks fit a multiprocessor (SymplecticEuler.STEP_MIN_BLOCKS), each K "
                              "(0: no bound)")
+    parser.add_argument("--kernels", action="store_true",
+                        help="also list each kernel's device time per frame, guard off and default (CUDA, uncaptured)")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
@@ -233,7 +259,8 @@ def main():
                 makers["no dissipation"] = lambda: Run(cloth(), integrator, ws.GuardLimits(dissipation=False))
                 makers["no balance"] = lambda: Run(cloth(), integrator, ws.GuardLimits(energy_balance=0.0))
             # Newton's builder takes the worlds as one flat set of particles: single cloths only (the issue's table).
-            newton = newton_version and integrator == "symplectic_euler" and worlds == 1
+            # (the peer for every integrator: its semi-implicit Euler at the same step.)
+            newton = newton_version and worlds == 1
             if newton:
                 makers["newton"] = lambda: NewtonRunner(cloth())
             times = measure(makers, device, args.seconds, args.batches)
@@ -269,6 +296,14 @@ def main():
                              f"{frame['no host read']:.1f} ({frame['off'] / frame['no host read']:.3f}), the check apart "
                              f"{frame['check apart']:.1f} ({frame['off'] / frame['check apart']:.3f})")
                 print(notes[-1], flush=True)
+            if args.kernels and device.is_cuda:
+                for name, guard in (("off", None), ("default", ws.GuardLimits())):
+                    listed = kernel_times(cloth(), integrator, guard)
+                    total = sum(t for _, t in listed.values())
+                    notes.append(f"- {label}, {integrator}, guard {name}: device time per frame {total:.1f} µs (uncaptured): "
+                                 + "; ".join(f"{kernel} ×{calls:g} {t:.1f}" for kernel, (calls, t) in
+                                             sorted(listed.items(), key=lambda item: -item[1][1])))
+                    print(notes[-1], flush=True)
             frame = {name: 1e6 * statistics.median(t) for name, t in times.items()}
             for name, tag, blocks in bound_studies:
                 if not blocks:
