@@ -15,6 +15,14 @@ default ``SymplecticEuler(model)`` takes there.
 
 ``--scene flag`` times the same cloth as a flag on a moving pole in a gusting wind (driven pins, an animated input
 and the aerodynamic family, which the one-launch frame evaluates inside).
+
+``--fallbacks`` times instead what the features that keep a scene on one launch per substep cost: the contact
+benchmark's cloth (``bench/contacts.py``) draped over a sphere on the ground, after its settling frames, with the
+sphere analytic (the default path: one launch where the rule takes it), the same forced to one launch per substep
+(``one_launch=False``: the fallback's own cost), the sphere as a triangle mesh (``core/mesh_colliders.py``) and the
+analytic sphere with self-collision (τ = 0.02 m), each with the default guard and with it off, batches interleaved:
+
+    python bench/frames.py --device cuda:0 --sizes 32 64 128 --fallbacks
 """
 
 import argparse
@@ -55,6 +63,61 @@ def simulator(n: int, worlds: int, device, *, one_launch, guard: bool, scene: st
                         substeps=SUBSTEPS, guard=ws.GuardLimits() if guard else None)
 
 
+FALLBACK_VARIANTS = ("sphere (default path)", "sphere, one launch per substep", "mesh sphere", "sphere + self-collision")
+
+
+def fallback_simulator(n: int, device, variant: str, guard: bool) -> ws.Simulator:
+    """The draped cloth of ``bench/contacts.py`` with ``variant`` (one of FALLBACK_VARIANTS), settled."""
+    from contacts import SETTLE_FRAMES, contact_model
+    from selfcontact import scene
+
+    if variant == "sphere + self-collision":
+        model = scene(n, device, True)
+    else:
+        model = contact_model(n, device, "mesh" if variant == "mesh sphere" else "fused")
+    integrator = ws.SymplecticEuler(model, one_launch=False if variant.endswith("per substep") else None)
+    sim = ws.Simulator(model, integrator=integrator, fps=FPS, substeps=SUBSTEPS,
+                       guard=ws.GuardLimits() if guard else None)
+    for _ in range(SETTLE_FRAMES):
+        sim.step_frame()
+    sim.settle()
+    return sim
+
+
+def fallbacks(args, device) -> list[str]:
+    """Markdown rows: µs per frame of each fallback variant against the default path, guard on and off."""
+    lines = [
+        f"What keeps the draped cloth on one launch per substep costs: µs per frame after the settling, {SUBSTEPS} "
+        f"substeps per 1/{FPS} s frame, symplectic Euler. Device: {device.name} ({device.alias}); Warp {wp.__version__}; "
+        f"{datetime.date.today().isoformat()}. `python bench/frames.py --device {args.device} --sizes "
+        f"{' '.join(map(str, args.sizes))} --batches {args.batches} --fallbacks`",
+        "",
+        "| n² | guard | variant | path | µs per frame (median, spread) | ÷ the default path (median of rounds) |",
+        "|---|---|---|---|---|---|",
+    ]
+    print("\n".join(lines), flush=True)
+    for n in args.sizes:
+        for guard in (True, False):
+            sims = {variant: fallback_simulator(n, device, variant, guard) for variant in FALLBACK_VARIANTS}
+            first = sims[FALLBACK_VARIANTS[0]]
+            frames = max(3, int(args.seconds / max(timed(first, 3), 1e-6)))
+            times = {variant: [] for variant in sims}
+            for _ in range(args.batches):
+                for variant, sim in sims.items():
+                    times[variant].append(timed(sim, frames))
+            for variant, sim in sims.items():
+                shape = sim.stepper.integrator.frame_shape(sim.control, SUBSTEPS)
+                path = "per substep" if shape is None else f"one launch {shape[0]}×{shape[1]}"
+                t = times[variant]
+                median = statistics.median(t)
+                ratio = statistics.median(a / b for a, b in zip(t, times[FALLBACK_VARIANTS[0]]))
+                row = (f"| {n}² | {'default' if guard else 'off'} | {variant} | {path} | {1e6 * median:.1f} "
+                       f"({(max(t) - min(t)) / median:.0%}) | {ratio:.2f}× |")
+                lines.append(row)
+                print(row, flush=True)
+    return lines
+
+
 def timed(sim: ws.Simulator, frames: int) -> float:
     """Seconds per frame over ``frames`` frames (device synchronised before each timer read)."""
     wp.synchronize_device(sim.model.device)
@@ -74,10 +137,18 @@ def main():
     parser.add_argument("--seconds", type=float, default=0.3, help="timed seconds per batch and configuration")
     parser.add_argument("--scene", choices=["hanging", "flag"], default="hanging",
                         help="the hanging cloth, or the flag on a moving pole in a gusting wind (flag_model)")
+    parser.add_argument("--fallbacks", action="store_true",
+                        help="time what the features that force one launch per substep cost instead")
     parser.add_argument("--out", help="also write the Markdown table to this file")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
     device = wp.get_device(args.device)
+    if args.fallbacks:
+        lines = fallbacks(args, device)
+        if args.out:
+            with open(args.out, "w") as f:
+                f.write("\n".join(lines) + "\n")
+        return
     lines = [
         f"{'Hanging cloth' if args.scene == 'hanging' else 'Flag on a moving pole in a gusting wind'} as worlds of "
         f"one model, symplectic Euler, {SUBSTEPS} substeps per 1/{FPS} s frame. "
