@@ -651,12 +651,18 @@ def main():
     parser.add_argument("--repeats", type=int, default=20, help="passes averaged by --profile")
     parser.add_argument("--profile-frames", type=int, default=0, metavar="FRAMES",
                         help="time each kernel of FRAMES moving frames after the settling instead (CUDA only)")
+    parser.add_argument("--broad-split", type=int, default=None,
+                        help="threads per triangle of the broad phase (default: core/selfcontact.py's broad_split)")
     parser.add_argument("--radius-study", action="store_true", help="count the cap's pairs by candidate rule instead")
     parser.add_argument("--rebuild-study", type=int, default=0, metavar="FRAMES",
                         help="count the cache's rebuilds by rule over FRAMES frames after the settling instead")
     args = parser.parse_args()
     wp.init()
     device = wp.get_device(args.device)
+    if args.broad_split is not None:
+        import warpspring.core.selfcontact as host
+
+        host.BROAD_SPLIT = args.broad_split
     if args.rebuild_study:
         lines = [
             f"The pair cache's rebuilds by rule on {device.name}, Warp {wp.config.version}, {datetime.date.today()}: the "

@@ -21,6 +21,7 @@ from warpspring.analysis.audit import (
     surface_edges,
     vertex_triangle_distance,
 )
+import warpspring.core.selfcontact as selfcontact_host
 from warpspring.core.selfcontact import DEFAULT_RELAXATION
 from warpspring.io.scene import parse_scene
 
@@ -139,10 +140,13 @@ def test_broad_phase_equals_brute_force(device):
     np.testing.assert_allclose(nearest[checked], expected_nearest[checked], atol=1e-6)
 
 
-def test_pair_list_equals_brute_force(device):
+@pytest.mark.parametrize("split", [None, 3])
+def test_pair_list_equals_brute_force(device, split, monkeypatch):
     """The broad phase lists each vertex–triangle and edge–edge pair within the reach exactly once, the same set
     as the all-pairs float64 reference (pairs within float32 rounding of the reach may fall either side), and
-    a second run on a fresh model lists the same set."""
+    a second run on a fresh model lists the same set; with each triangle's query shared by the device's number of
+    threads (``broad_split``: 1 on the CPU, up to 8 on CUDA) and by 3."""
+    monkeypatch.setattr(selfcontact_host, "BROAD_SPLIT", split)
     reach = 0.012
     runs = []
     for _ in range(2):

@@ -91,6 +91,27 @@ CAP_LEVELS_UNCONDITIONAL = 6
 MAX_THICKNESS_SHARE = 0.7
 
 
+#: Threads per multiprocessor the broad phase aims for on CUDA (``broad_split``): a BVH query is a chain of dependent
+#: reads, hidden only by other threads' work.
+BROAD_THREADS_PER_SM = 512
+#: The most threads that share one triangle's query (``broad_split``); ``None`` there, or an int to force a split.
+BROAD_SPLIT_MAX = 8
+BROAD_SPLIT = None
+
+
+def broad_split(device, queries: int) -> int:
+    """Threads per triangle of the broad phase (``kernels/selfcontact.py``, ``broad_kernel``): on CUDA, enough that
+    ``queries`` (the worlds' triangles) fill BROAD_THREADS_PER_SM threads a multiprocessor, at most BROAD_SPLIT_MAX;
+    1 on the CPU (a thread there is a loop iteration: the split would only repeat the traversal). ``BROAD_SPLIT``
+    overrides it (benchmarks)."""
+    if BROAD_SPLIT is not None:
+        return int(BROAD_SPLIT)
+    if not device.is_cuda:
+        return 1
+    wanted = device.sm_count * BROAD_THREADS_PER_SM
+    return int(min(BROAD_SPLIT_MAX, max(1, -(-wanted // max(queries, 1)))))
+
+
 def check_settings(thickness: float, friction: float, relaxation: float) -> tuple[float, float, float]:
     """The three live values checked: τ > 0 [m], μ ≥ 0 [-], γ in (0, 1/2) [-]."""
     values = []
@@ -268,6 +289,7 @@ class SelfContact:
         # The patches whose watched pairs need their check (decide_kernel marks, watch_kernel reads).
         self.patch_watch = self._step_scratch[flag_count + boxes:].reshape((worlds, self.patch_count))
         self._scan_blocks = wp.zeros((worlds, (n + SCAN_BLOCK - 1) // SCAN_BLOCK), dtype=wp.int32, device=device)
+        self.broad_split = broad_split(device, worlds * self.triangle_count)
         self._allocate(max(64, PAIRS_PER_VERTEX * int(np.count_nonzero(topology["vertex_owner"] >= 0))))
         # One BVH per world over the single-precision boxes of its triangles, built at the model's initial
         # positions (its topology follows them: built on coincident points it would degenerate into a list)
@@ -491,13 +513,15 @@ class SelfContact:
             reach_factor=model.scalar(reach_factor),
             reach_add=model.scalar(reach_add),
             watch_factor=model.scalar(WATCH_REACH if watch else 0.0),
+            split=self.broad_split,
             particle_q_start=start,
             particle_q_end=end,
         )
         outputs = dict(pairs_out=pairs, pair_distance_out=pair_distance, counters_out=counters,
                        watch_count_out=watch_lists[0], watch_key_out=watch_lists[1], watch_vertex_out=watch_lists[2])
         flat_launch(broad_kernel(model.scalar, swept), inputs=list(args.values()), outputs=list(outputs.values()),
-                    dim=model.world_count * self.triangle_count, block_dim=model.block_dim, device=model.device)
+                    dim=model.world_count * self.triangle_count * self.broad_split, block_dim=model.block_dim,
+                    device=model.device)
         tile_sums, tile_offsets, tile_prefixes = scan_kernels()
         tiles = self._scan_blocks
         worlds, n = model.world_count, model.particle_count

@@ -509,11 +509,14 @@ def leaf_kernel(scalar: type, swept: bool):
 
 @functools.cache
 def broad_kernel(scalar: type, swept: bool):
-    """The broad phase's kernel (module docstring): one thread per triangle t of every world, querying the BVH once
-    for the primitives t reports, its corners whose ``vertex_owner`` it is (VT pairs) and its sides whose
-    ``edge_owner`` it is (EE pairs, kept from the lower edge). Each primitive's own query box (its start, and with
-    ``swept`` its end, grown by the reach) is tested against each reported leaf's box before its pairs: the same
-    pairs as one query per vertex and one per edge, in half the queries. Without ``swept`` it keeps the pairs
+    """The broad phase's kernel (module docstring): ``split`` threads per triangle t of every world (adjacent
+    threads), each querying the BVH once for the primitives t reports, its corners whose ``vertex_owner`` it is (VT
+    pairs) and its sides whose ``edge_owner`` it is (EE pairs, kept from the lower edge), and taking the reported
+    triangles of its residue modulo ``split``: a small surface's few queries, each a long chain of dependent reads,
+    spread over more threads (the traversal is repeated, the pair tests shared out; ``core/selfcontact.py``'s
+    ``broad_split``). Each primitive's own query box (its start, and with ``swept`` its end, grown by the reach) is
+    tested against each reported leaf's box before its pairs: the same pairs as one query per vertex and one per
+    edge, in half the queries. Without ``swept`` it keeps the pairs
     closer than reach_factor · τ + reach_add at the start; with it the cap's pairs at (start, end)."""
     vec3 = vec3_type(scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
@@ -570,6 +573,7 @@ def broad_kernel(scalar: type, swept: bool):
         reach_factor: scalar,
         reach_add: scalar,
         watch_factor: scalar,
+        split: int,
         # State in:
         particle_q_start: wp.array[vec3],
         particle_q_end: wp.array[vec3],
@@ -584,8 +588,10 @@ def broad_kernel(scalar: type, swept: bool):
         tid = wp.tid()
         triangle_count = surface.triangle.shape[0]
         edge_count = surface.edge.shape[0]
-        world = tid // triangle_count
-        me = tid - world * triangle_count
+        thread = tid // split
+        part = tid - thread * split  # this thread takes the reported triangles t ≡ part (mod split)
+        world = thread // triangle_count
+        me = thread - world * triangle_count
         base = world * particle_count
         if world_enabled[world] == 0:
             return
@@ -634,6 +640,8 @@ def broad_kernel(scalar: type, swept: bool):
         query = wp.bvh_query_aabb(surface.bvh[world], union_lower, union_upper)
         t = int(0)
         while wp.bvh_query_next(query, t):
+            if t % split != part:
+                continue
             tri = surface.triangle[t]
             leaf_lower = surface.leaf_lower[world * triangle_count + t]
             leaf_upper = surface.leaf_upper[world * triangle_count + t]
