@@ -237,11 +237,16 @@ class Guard(StepHook):
                 grid = reduce_launch_dim(worlds, family.element_count, lanes) if self._tiled else (worlds, 1, 1)
                 self._dissipation_layout.append((family, lanes, grid, blocks))
                 blocks += grid[1]
-        # ... and one block for the energy the self-collision pass puts in (``_count_corrections``).
-        self._correction_block = None
+        # ... and the blocks that count the energy the self-collision pass puts in (``_count_corrections``): the kinetic
+        # energy's over the check's grid, each family's over its grid of the check's energy pass (at 64², one block
+        # per world made the guard cost 12x the run with self-collision on an H200).
+        self._correction_layout = None
         if getattr(model, "self_contact", None) is not None:
-            self._correction_block = blocks
-            blocks += 1
+            self._correction_layout = [(None, self._lanes, self._check_grid, blocks)]
+            blocks += self._check_grid[1]
+            for family, lanes, grid, _ in self._energy_layout:
+                self._correction_layout.append((family, lanes, grid, blocks))
+                blocks += grid[1]
         self._running = wp.zeros((worlds, blocks, RUNNING_SLOTS), dtype=wp.float64, device=device)
         # Where a world's partial sums outnumber what ``gather``'s one block per world adds in a few reads a lane, a
         # fold (``guard_fold_kernel``) first adds them in chunks, many blocks at once, into arrays of the same layout
@@ -317,7 +322,7 @@ class Guard(StepHook):
             self._balanced = balanced
             self.revision += 1
         finish = getattr(integrator, "finish_step", None)
-        if finish is not None and self._correction_block is not None:
+        if finish is not None and self._correction_layout is not None:
             finish.watch = self._count_corrections if balanced else None
         if (self._midpoint or working) and self._step_velocity is None:
             size = self.model.world_count * self.model.particle_count
@@ -716,21 +721,23 @@ class Guard(StepHook):
         without it stopped the clean run at frame 47 for 0.226 J "created" (14 % of 1.66 J). Pins lowering cloth onto a
         collider work through the contacts' pass likewise (the battery's stack: stopped at frame 36 for 0.053 J, 15 % of
         0.355 J, with that pass left out). The weight's work over the passes' displacement is in the checks' Σ m g·Δx
-        already. (Device only, capturable; a block of lanes per world: deterministic sums, no atomics.)"""
+        already. (Device only, capturable; the check's striding grids, each block adding its sum to its own slot:
+        deterministic sums, no atomics.)"""
         model = self.model
         sign = wp.float64(sign)
-        lanes = self._lanes
-        wp.launch(guard_correction_kinetic_kernel(model.scalar, self._tiled), dim=(model.world_count, lanes),
-                  block_dim=lanes, inputs=[model.particle_count, model.world_enabled, model.particle_flags,
-                                           model.particle_mass, self._status, self._correction_block, sign,
-                                           state.particle_qd],
-                  outputs=[self._running], device=model.device)
-        for family, _, _, _ in self._energy_layout:
-            flat_launch(guard_correction_energy_kernel(model.scalar, family.spec(model), self._tiled),
-                        dim=(model.world_count, lanes), block_dim=lanes,
-                        inputs=[model.particle_count, family.element_count, model.world_enabled, family.arrays(model),
-                                model.inputs, self._status, self._correction_block, sign, state.particle_q],
-                        outputs=[self._running], device=model.device)
+        for family, lanes, grid, first in self._correction_layout:
+            if family is None:
+                wp.launch(guard_correction_kinetic_kernel(model.scalar, self._tiled), dim=grid, block_dim=lanes,
+                          inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
+                                  self._status, first, reduce_stride(grid), sign, state.particle_qd],
+                          outputs=[self._running], device=model.device)
+            else:
+                flat_launch(guard_correction_energy_kernel(model.scalar, family.spec(model), self._tiled),
+                            dim=grid, block_dim=lanes,
+                            inputs=[model.particle_count, family.element_count, model.world_enabled,
+                                    family.arrays(model), model.inputs, self._status, first, reduce_stride(grid), sign,
+                                    state.particle_q],
+                            outputs=[self._running], device=model.device)
 
     def _dissipate(self, state: State) -> None:
         """Add the energy the dampers and drag took out over the last step to the blocks' running sums

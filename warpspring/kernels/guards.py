@@ -1294,11 +1294,13 @@ def guard_work_kernel(scalar: type, working: tuple, tiled: bool):
 @functools.cache
 def guard_correction_kinetic_kernel(scalar: type, tiled: bool):
     """Kernel adding ``sign`` times each world's kinetic energy of its free particles [J] (float64) to
-    ``running[world, block, RUNNING_WORK]``: launched with sign -1 before the passes that move particles outside the
-    forces (the contacts' and self-collision's) and +1 after them, with :func:`guard_correction_energy_kernel`, it
-    counts the energy those passes put in as work. Launch over [world_count, lanes] with ``block_dim`` = lanes: each
-    lane sums every lanes-th particle in order and a fixed-order tree joins the lanes (``block_sum``; one lane on the
-    CPU): deterministic, no atomics."""
+    ``running[world, first_block + block, RUNNING_WORK]``: launched with sign -1 before the passes that move particles
+    outside the forces (the contacts' and self-collision's) and +1 after them, with
+    :func:`guard_correction_energy_kernel`, it counts the energy those passes put in as work. Launch over a striding
+    reducing grid [world_count, blocks, lanes] (``linalg.reduce_launch_dim``, ``stride`` its ``reduce_stride``) with
+    ``block_dim`` = lanes: each lane sums its particles block · lanes + lane, then every stride-th, in order, a
+    fixed-order tree joins the lanes (``block_sum``; one lane on the CPU) and the block adds its sum to its own slot:
+    deterministic, no atomics (``gather`` adds the blocks' slots in order)."""
     vec3 = vec3_type(scalar)
     block_sum, _ = reduction_funcs(tiled)
 
@@ -1311,18 +1313,19 @@ def guard_correction_kinetic_kernel(scalar: type, tiled: bool):
         particle_mass: wp.array2d[scalar],
         # Guards in:
         status: wp.array2d[wp.int32],
-        block: int,
+        first_block: int,
+        stride: int,
         sign: wp.float64,
         # State in:
         particle_qd: wp.array[vec3],
         # Out:
         running_in_out: wp.array3d[wp.float64],
     ):
-        world, lane = wp.tid()
+        world, block, lane = wp.tid()
         live = status[world, GUARD_TRIPPED] == 0 and world_enabled[world] != 0
         base = world * particle_count
         energy = wp.float64(0.0)
-        i = lane
+        i = block * wp.block_dim() + lane
         while live and i < particle_count:
             p = base + i
             v = particle_qd[p]
@@ -1330,10 +1333,11 @@ def guard_correction_kinetic_kernel(scalar: type, tiled: bool):
                 mass = wp.float64(particle_mass[wp.min(world, particle_mass.shape[0] - 1), i])
                 energy += wp.float64(0.5) * mass * (wp.float64(v[0]) * wp.float64(v[0]) + wp.float64(v[1])
                                                      * wp.float64(v[1]) + wp.float64(v[2]) * wp.float64(v[2]))
-            i += wp.block_dim()
+            i += stride
         energy = block_sum(energy)  # (every lane reaches it: the tile needs them all)
         if lane == 0 and live:
-            running_in_out[world, block, RUNNING_WORK] = running_in_out[world, block, RUNNING_WORK] + sign * energy
+            slot = first_block + block
+            running_in_out[world, slot, RUNNING_WORK] = running_in_out[world, slot, RUNNING_WORK] + sign * energy
 
     return correction_kinetic
 
@@ -1341,8 +1345,9 @@ def guard_correction_kinetic_kernel(scalar: type, tiled: bool):
 @functools.cache
 def guard_correction_energy_kernel(scalar: type, spec, tiled: bool):
     """Kernel adding ``sign`` times each world's elastic energy of one family's elements [J] (its ``energy`` hook,
-    float64) to ``running[world, block, RUNNING_WORK]`` (as :func:`guard_correction_kinetic_kernel`, launched the same
-    way; the weight's work over the passes' displacement is in the checks' Σ m g·Δx already)."""
+    float64) to ``running[world, first_block + block, RUNNING_WORK]`` (as :func:`guard_correction_kinetic_kernel`,
+    launched the same way over the family's elements; the weight's work over the passes' displacement is in the
+    checks' Σ m g·Δx already)."""
     vec3 = vec3_type(scalar)
     block_sum, _ = reduction_funcs(tiled)
     funcs = spec.funcs(scalar)
@@ -1359,23 +1364,25 @@ def guard_correction_energy_kernel(scalar: type, spec, tiled: bool):
         inputs: wp.array2d[scalar],
         # Guards in:
         status: wp.array2d[wp.int32],
-        block: int,
+        first_block: int,
+        stride: int,
         sign: wp.float64,
         # State in:
         particle_q: wp.array[vec3],
         # Out:
         running_in_out: wp.array3d[wp.float64],
     ):
-        world, lane = wp.tid()
+        world, block, lane = wp.tid()
         live = status[world, GUARD_TRIPPED] == 0 and world_enabled[world] != 0
         energy = wp.float64(0.0)
-        element = lane
+        element = block * wp.block_dim() + lane
         while live and element < element_count:
             energy += wp.float64(energy_func(world, element, world * particle_count, arrays, inputs, particle_q))
-            element += wp.block_dim()
+            element += stride
         energy = block_sum(energy)  # (every lane reaches it: the tile needs them all)
         if lane == 0 and live:
-            running_in_out[world, block, RUNNING_WORK] = running_in_out[world, block, RUNNING_WORK] + sign * energy
+            slot = first_block + block
+            running_in_out[world, slot, RUNNING_WORK] = running_in_out[world, slot, RUNNING_WORK] + sign * energy
 
     return correction_energy
 
