@@ -697,14 +697,18 @@ def test_patch_boxes_hold_their_corners(device, chunk, monkeypatch):
     assert np.any(forms[0] != 0)
 
 
-def test_watched_pairs_rebuild_the_cache(device):
+@pytest.mark.parametrize("split", [None, 3])
+def test_watched_pairs_rebuild_the_cache(device, split, monkeypatch):
     """A cloth 13 mm (3.25τ) above a still one, coming down at 1.5 m/s (1.5 mm per 1 ms step, no gravity): its pairs
     with the other lie between the cache's reach (3τ) and WATCH_REACH τ (4.5τ) at the first build, so they are
     watched, not cached. Their drifts stay within the slack (2.5τ, 9.84 mm) until the eighth step, but at the fifth
     step's start they are 7 mm apart, within the repulsion's reach (2τ = 8 mm): the watch must rebuild the cache
     there, and the repulsion pushes from the sixth step on. The run equals the broad phase at every step, bit for
     bit, with pairs pushed; a cache that trusted the drifts alone would miss them (checked: with the watch's test
-    disabled, this run differs)."""
+    disabled, this run differs). Also with the broad phase and the watch shared by 3 threads a triangle and a
+    particle (``broad_split``; on CUDA by default up to 8)."""
+    monkeypatch.setattr(selfcontact_host, "BROAD_SPLIT", split)
+
     def make():
         builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
         builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, 0.0), mass=0.05, **CLOTH, name="still")

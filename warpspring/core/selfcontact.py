@@ -290,6 +290,7 @@ class SelfContact:
         self.patch_watch = self._step_scratch[flag_count + boxes:].reshape((worlds, self.patch_count))
         self._scan_blocks = wp.zeros((worlds, (n + SCAN_BLOCK - 1) // SCAN_BLOCK), dtype=wp.int32, device=device)
         self.broad_split = broad_split(device, worlds * self.triangle_count)
+        self.watch_split = broad_split(device, worlds * n)  # the watched pairs' check likewise, per particle
         self._allocate(max(64, PAIRS_PER_VERTEX * int(np.count_nonzero(topology["vertex_owner"] >= 0))))
         # One BVH per world over the single-precision boxes of its triangles, built at the model's initial
         # positions (its topology follows them: built on coincident points it would degenerate into a list)
@@ -604,8 +605,10 @@ class SelfContact:
                     device=model.device)
         flat_launch(watch_kernel(model.scalar),
                     inputs=[model.particle_count, model.world_enabled, surface, self.params, self.watch_count,
-                            self.watch_key, self.watch_vertex, self.triangle_patch, self.patch_watch, start],
-                    outputs=[self.flags], dim=model.particle_dim, block_dim=model.block_dim, device=model.device)
+                            self.watch_key, self.watch_vertex, self.triangle_patch, self.patch_watch,
+                            self.watch_split, start],
+                    outputs=[self.flags], dim=model.particle_dim * self.watch_split, block_dim=model.block_dim,
+                    device=model.device)
         self._branch(self.flags[0:1], self._rebuild, start=start)
 
     @property

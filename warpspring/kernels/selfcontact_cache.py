@@ -378,8 +378,9 @@ def decide_kernel(scalar: type):
 @functools.cache
 def watch_kernel(scalar: type):
     """Kernel of the watched pairs' check (module docstring, 1.), after ``decide_kernel``, in the worlds it flagged
-    FLAG_WATCH (elsewhere the drifts keep the watched pairs apart too), one thread per particle of every world taking
-    its world's watch slots local, local + particle_count, ...: each watched pair whose sides' patches (their owner
+    FLAG_WATCH (elsewhere the drifts keep the watched pairs apart too), ``split`` threads per particle of every world
+    (adjacent), the k-th taking its world's watch slots local + k · particle_count, then every split · particle_count-th
+    (``core/selfcontact.py``'s ``broad_split``: a small cloth's long lists spread over more threads): each watched pair whose sides' patches (their owner
     triangles', ``triangle_patch``) were both marked by ``decide_kernel`` (``patch_watch``), its distance at the step's start,
     with the narrow phase's arithmetic; a world with one closer than REPULSION_REACH τ (1 + SAFETY) is flagged for a
     rebuild (FLAG_REBUILD), and every distance checked is recorded in FLAG_APART (module docstring, 4.)."""
@@ -399,12 +400,15 @@ def watch_kernel(scalar: type):
         watch_vertex: wp.array[wp.vec4i],
         triangle_patch: wp.array[wp.int32],
         patch_watch: wp.array2d[wp.int32],
+        split: int,
         # State in:
         particle_q_start: wp.array[vec3],
         # In/out (the pass's flags):
         flags_in_out: wp.array[wp.int32],
     ):
-        p = wp.tid()
+        tid = wp.tid()
+        p = tid // split
+        part = tid - p * split
         world, local = world_and_index(p, particle_count)
         world_count = watch_count.shape[0]
         capacity = watch_key.shape[0] // world_count
@@ -415,7 +419,7 @@ def watch_kernel(scalar: type):
         thickness = params[wp.min(world, params.shape[0] - 1), PARAM_THICKNESS]
         near = scalar(REPULSION_REACH) * thickness * scalar(1.0 + SAFETY)
         vt_keys = wp.int64(particle_count) * wp.int64(surface.triangle.shape[0])
-        for slot in range(local, count, particle_count):
+        for slot in range(local + part * particle_count, count, particle_count * split):
             s = world * capacity + slot
             # The patches of the pair's sides (their owner triangles'): unless decide_kernel marked both, the pair's
             # patches lie 2τ apart now or drift by at most the slack of CACHE_REACH τ: it is that far apart.
