@@ -652,6 +652,41 @@ def test_cache_holds_while_the_drifts_spread_less_than_its_slack(device, layout)
     np.testing.assert_allclose(moved[half_count:], np.tile([0.0, 0.045, 0.0], (half_count, 1)), atol=1e-5)  # 30 × 1.5 mm
 
 
+def test_the_stages_skip_cached_pairs_beyond_their_reach(device):
+    """Two 5 × 5 sheets 2.6τ apart, the upper one closing at 0.1τ a step (no gravity): at the first build their pairs
+    are cached (within CACHE_REACH τ) but beyond the repulsion's reach (2τ), so the pair stages do not run while the
+    pairs' least distance at the anchors less twice the largest drift keeps them beyond it (``cache_near``); they run
+    once it does not, and push once the sheets come within 2τ. The run equals the pass with its stages every step
+    (``BroadPhaseEveryStep``), bit for bit, with pairs pushed."""
+    from warpspring.kernels.selfcontact import FLAG_WORK
+
+    def make():
+        builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+        builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, 0.0), mass=0.05, **CLOTH, name="still")
+        builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, 2.6 * TAU), mass=0.05,
+                               velocity=(0.0, 0.0, -0.1 * TAU / 1e-3), **CLOTH, name="closing")
+        builder.add_self_collision(thickness=TAU)
+        return builder.finalize(device)
+
+    steps = 20
+    model = make()
+    sc = model.self_contact
+    integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
+    work, cached = [], []
+    for _ in range(steps):
+        integrator.step(a, b, None, 1e-3)
+        a, b = b, a
+        work.append(int(sc.flags.numpy()[2 + FLAG_WORK * model.world_count]))
+        cached.append(int(sc.listed()["cache"][0]))
+    assert cached[0] > 0 and work[0] == 0  # pairs cached at 2.6τ: no stages
+    assert 1 in work and work[-1] == 1
+    skipped_with_pairs = sum(1 for w, c in zip(work, cached) if w == 0 and c > 0)
+    assert skipped_with_pairs >= 2
+    finals, counts = cached_and_every_step(make, steps, 1e-3)
+    np.testing.assert_array_equal(finals[0], finals[1])
+    assert counts[0]["pairs"].sum() > 0 and counts[0]["pairs"].sum() == counts[1]["pairs"].sum()
+
+
 @pytest.mark.parametrize("chunk", [512, 5])
 def test_patch_boxes_hold_their_corners(device, chunk, monkeypatch):
     """The cache's check (``kernels/selfcontact_cache.py``) reduces each patch's boxes of its triangles' corners: the

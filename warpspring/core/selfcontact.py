@@ -276,6 +276,9 @@ class SelfContact:
                           wp.zeros(worlds, dtype=wp.int64, device=device),
                           wp.zeros(worlds, dtype=wp.vec4i, device=device))
         self.cache_reach = wp.zeros(worlds, dtype=model.scalar, device=device)
+        # The least distance of a cached pair at the anchors (kernels/selfcontact.py's apart_codec, in units of the τ
+        # of the build; 0: none): where the drifts keep them all beyond the repulsion's reach, the stages are skipped.
+        self.cache_near = wp.zeros(worlds, dtype=wp.int32, device=device)
         # CACHE_REACH τ at each world's last build: every pair outside the cache was that far apart at the anchors.
         self.cache_floor = wp.zeros(worlds, dtype=model.scalar, device=device)
         # The patches' boxes and marks (kernels/selfcontact_cache.py, check_kernel, decide_kernel) share the flags'
@@ -336,6 +339,7 @@ class SelfContact:
         self.pair_weight = wp.zeros(4 * slots, dtype=model.scalar, device=model.device)
         self.cache_reach.zero_()
         self.cache_floor.zero_()
+        self.cache_near.zero_()
 
     def _pair_buffers(self, capacity: int, lists: int):
         """``lists`` pair buffers of ``capacity`` slots per world sharing their storage but their counts, and
@@ -496,10 +500,12 @@ class SelfContact:
                     watch: bool = False) -> None:
         """The broad phase of the worlds ``active`` names into ``pairs`` and ``pair_distance``, then the CSR of
         its entries (device work only, fixed sizes, no allocation: capturable, also in a conditional node);
-        the other worlds' pairs stay as they were."""
+        the other worlds' pairs stay as they were. With ``watch`` (the cache's build) also its watch list and the
+        least distance of its pairs (``cache_near``)."""
         model = self.model
         watch_lists = (self.watch_count, self.watch_key, self.watch_vertex) if watch else self._no_watch
-        flat_launch(reset_kernel(), inputs=[model.particle_count, active], outputs=[pairs, watch_lists[0]],
+        near = self.cache_near if watch else self._no_watch[0]
+        flat_launch(reset_kernel(), inputs=[model.particle_count, active], outputs=[pairs, watch_lists[0], near],
                     dim=model.particle_dim,
                     block_dim=model.block_dim, device=model.device)
         self._leaves(start, end, swept=swept)
@@ -519,7 +525,8 @@ class SelfContact:
             particle_q_end=end,
         )
         outputs = dict(pairs_out=pairs, pair_distance_out=pair_distance, counters_out=counters,
-                       watch_count_out=watch_lists[0], watch_key_out=watch_lists[1], watch_vertex_out=watch_lists[2])
+                       watch_count_out=watch_lists[0], watch_key_out=watch_lists[1], watch_vertex_out=watch_lists[2],
+                       near_out=near)
         flat_launch(broad_kernel(model.scalar, swept), inputs=list(args.values()), outputs=list(outputs.values()),
                     dim=model.world_count * self.triangle_count * self.broad_split, block_dim=model.block_dim,
                     device=model.device)
@@ -568,7 +575,8 @@ class SelfContact:
         self._list_pairs(self.cache, self.cache_bound, start, start, swept=False, reach_factor=CACHE_REACH,
                          reach_add=0.0, counters=self.counters, active=self.flags[2:2 + worlds], watch=True)
         flat_launch(anchor_kernel(model.scalar),
-                    inputs=[model.particle_count, self.params, self.cache, self.watch_count, self.capacity, start],
+                    inputs=[model.particle_count, self.params, self.cache, self.cache_near, self.watch_count,
+                            self.capacity, start],
                     outputs=[self.flags, self.cache_reach, self.cache_floor, self.cache_anchor, self.counters],
                     dim=model.particle_dim,
                     block_dim=model.block_dim, device=model.device)
@@ -600,7 +608,7 @@ class SelfContact:
         self._check(start, particle_q, tiled=model.device.is_cuda)
         flat_launch(decide_kernel(model.scalar),
                     inputs=[model.world_enabled, self.params, self.cache_reach, self.cache_floor, self.cache.count,
-                            self.patch_box],
+                            self.cache_near, self.patch_box],
                     outputs=[self.flags, self.patch_watch], dim=model.world_count * self.patch_count ** 2, block_dim=model.block_dim,
                     device=model.device)
         flat_launch(watch_kernel(model.scalar),

@@ -517,12 +517,14 @@ def broad_kernel(scalar: type, swept: bool):
     ``broad_split``). Each primitive's own query box (its start, and with ``swept`` its end, grown by the reach) is
     tested against each reported leaf's box before its pairs: the same pairs as one query per vertex and one per
     edge, in half the queries. Without ``swept`` it keeps the pairs
-    closer than reach_factor · τ + reach_add at the start; with it the cap's pairs at (start, end)."""
+    closer than reach_factor · τ + reach_add at the start and lowers each world's ``near_out`` to the least distance
+    among them (``apart_codec``, in units of the τ it lists with); with it the cap's pairs at (start, end)."""
     vec3 = vec3_type(scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
     box_of, _, _, sweep_bounds, push_pair, kept_by_cap = _pair_funcs(scalar)
     extend = _vertex_extent(scalar, swept)
     cube_reach = cube_reach_func(scalar)
+    near_lower, _ = apart_codec(scalar)
 
     @wp.func
     def boxes_overlap(lower_a: vec3, upper_a: vec3, lower_b: vec3, upper_b: vec3):
@@ -584,6 +586,7 @@ def broad_kernel(scalar: type, swept: bool):
         watch_count_out: wp.array[wp.int32],
         watch_key_out: wp.array[wp.int64],
         watch_vertex_out: wp.array[wp.vec4i],
+        near_out: wp.array[wp.int32],
     ):
         tid = wp.tid()
         triangle_count = surface.triangle.shape[0]
@@ -662,6 +665,8 @@ def broad_kernel(scalar: type, swept: bool):
                         key = wp.int64(v) * wp.int64(triangle_count) + wp.int64(t)
                         if kept:
                             push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
+                            if wp.static(not swept):
+                                near_lower(near_out, world, value, thickness)
                         elif wp.static(not swept) and value < watch_reach:
                             watch_pair(world, key, vertex, watch_count_out, watch_key_out, watch_vertex_out)
                 # EE: the edge's own query would have reported t where its box overlaps t's leaf box.
@@ -702,6 +707,8 @@ def broad_kernel(scalar: type, swept: bool):
                             if kept:
                                 push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out,
                                           counters_out)
+                                if wp.static(not swept):
+                                    near_lower(near_out, world, value, thickness)
                             elif wp.static(not swept) and value < watch_reach:
                                 watch_pair(world, key, vertex, watch_count_out, watch_key_out, watch_vertex_out)
 
@@ -748,7 +755,8 @@ def fill_kernel():
 @functools.cache
 def reset_kernel():
     """Kernel emptying the pair buffer of the worlds ``active`` names (its count, and its particles' entry counts
-    and cursors) and their watch lists' counts, one thread per particle of every world; the others keep theirs."""
+    and cursors), their watch lists' counts and the least distance of their listed pairs (``near_out``), one thread
+    per particle of every world; the others keep theirs."""
 
     @flat_kernel(module="unique", enable_backward=False)
     def reset(
@@ -758,6 +766,7 @@ def reset_kernel():
         # Out:
         pairs_out: Pairs,
         watch_count_out: wp.array[wp.int32],
+        near_out: wp.array[wp.int32],
     ):
         p = wp.tid()
         world, i = world_and_index(p, particle_count)
@@ -766,6 +775,7 @@ def reset_kernel():
         if i == 0:
             pairs_out.count[world] = 0
             watch_count_out[world] = 0
+            near_out[world] = 0  # none recorded (``apart_codec``)
         pairs_out.vertex_count[p] = 0
         pairs_out.vertex_cursor[p] = 0
 
@@ -978,29 +988,45 @@ def raise_flag(flags: wp.array[wp.int32], kind: int, world: int, world_count: in
 
 
 @functools.cache
+def apart_codec(scalar: type):
+    """``(lower, read)``: ``lower(stored, slot, distance, thickness)`` lowers the least distance kept in
+    ``stored[slot]`` to ``distance`` [m], rounded down to units of τ / KINEMATIC_STEPS (a negative or non-finite
+    distance records 0) and stored as APART_NONE less the units, an integer maximum read first (order-free: the least
+    distance any thread recorded; 0, the storage's zero, is none); ``read(value, thickness)`` the distance [m] a
+    stored value holds (APART_NONE units, beyond any reach, for none)."""
+
+    @wp.func
+    def lower(stored: wp.array[wp.int32], slot: int, distance: scalar, thickness: scalar):
+        units = distance / thickness * scalar(KINEMATIC_STEPS)
+        value = int(APART_NONE)  # a distance of 0: a negative one, or NaN
+        if units >= scalar(APART_NONE):
+            value = int(0)  # too far to record
+        elif units >= scalar(0.0):
+            value = int(APART_NONE) - int(wp.floor(units))
+        if value > stored[slot]:
+            wp.atomic_max(stored, slot, value)
+
+    @wp.func
+    def read(value: int, thickness: scalar) -> scalar:
+        return scalar(APART_NONE - value) * thickness / scalar(KINEMATIC_STEPS)
+
+    return lower, read
+
+
+@functools.cache
 def apart_funcs(scalar: type):
     """``(record, least)``: ``record(flags, world, world_count, distance, thickness)`` lowers world ``world``'s
-    FLAG_APART to ``distance`` [m] (rounded down to units of τ / KINEMATIC_STEPS; a negative or non-finite distance
-    records 0), an integer maximum read first (order-free: the least distance any thread recorded);
-    ``least(flags, world, world_count, thickness)`` reads it back [m] (APART_NONE units, beyond any reach, where none
-    was recorded)."""
+    FLAG_APART to ``distance`` [m] (``apart_lower``); ``least(flags, world, world_count, thickness)`` reads it back [m]
+    (APART_NONE units, beyond any reach, where none was recorded)."""
+    lower, read = apart_codec(scalar)
 
     @wp.func
     def record(flags: wp.array[wp.int32], world: int, world_count: int, distance: scalar, thickness: scalar):
-        units = distance / thickness * scalar(KINEMATIC_STEPS)
-        stored = int(APART_NONE)  # a distance of 0: a negative one, or NaN
-        if units >= scalar(APART_NONE):
-            stored = int(0)  # too far to record
-        elif units >= scalar(0.0):
-            stored = int(APART_NONE) - int(wp.floor(units))
-        slot = flag_slot(FLAG_APART, world, world_count)
-        if stored > flags[slot]:
-            wp.atomic_max(flags, slot, stored)
+        lower(flags, flag_slot(FLAG_APART, world, world_count), distance, thickness)
 
     @wp.func
     def least(flags: wp.array[wp.int32], world: int, world_count: int, thickness: scalar) -> scalar:
-        stored = flags[flag_slot(FLAG_APART, world, world_count)]
-        return scalar(APART_NONE - stored) * thickness / scalar(KINEMATIC_STEPS)
+        return read(flags[flag_slot(FLAG_APART, world, world_count)], thickness)
 
     return record, least
 

@@ -61,7 +61,10 @@ whole keeps its cache. Each step:
    bounds them alike (``cap_gather_kernel`` recomputes each kept pair's plane from the same positions), and ends
    at the same bits.
 5. The pair stages (3. and 4., the swept broad phase's node nested) run in one conditional node on FLAG_WORK, which ``decide_kernel`` and
-   ``anchor_kernel`` raise where a world has cached pairs, or where a free vertex's step (FLAG_STEP) may exceed
+   ``anchor_kernel`` raise where a world has cached pairs that may lie within REPULSION_REACH τ (1 + SAFETY) at x⁰
+   (their least distance at the anchors, recorded by the broad phase in ``cache_near``, less twice the largest |r|:
+   a pair's distance changes by at most max |rᵢ - rⱼ|; beyond it a cached pair is as far as one outside the cache,
+   and the same test on the step holds for both), or where a free vertex's step (FLAG_STEP) may exceed
    what the repulsion's gather allows without the swept broad phase, or whose pins move (REPULSION_REACH - CAP_FLOOR)
    τ / 2 or more.
    Where none does, the stages would push no pair, run no swept broad phase and cap no vertex (each step is below γ SEARCH_REACH τ), so ``state_out`` is
@@ -108,6 +111,7 @@ from .selfcontact import (
     Pairs,
     Surface,
     _pair_funcs,
+    apart_codec,
     apart_funcs,
     _vertex_extent,
     cube_reach_func,
@@ -283,13 +287,16 @@ def decide_kernel(scalar: type):
     SAFETY) / 2; or, for every two patches whose position boxes lie closer than REPULSION_REACH τ (1 + SAFETY), their
     drifts' spread at most the slack (the length of the vector of max(high_P + low_Q, high_Q + low_P) per axis: the
     largest |r_a - r_b| over a corner a of P and b of Q). The thread of (0, 0) also decides whether the pair stages
-    run (FLAG_WORK's first entry): where a world has cached pairs, a free vertex steps further than the repulsion's
+    run (FLAG_WORK's first entry): where a world has cached pairs that may lie within REPULSION_REACH τ (1 + SAFETY)
+    at the step's start (their least distance at the anchors, ``cache_near``, less twice its largest drift, does not
+    keep them beyond), a free vertex steps further than the repulsion's
     gather allows without the swept broad phase at the least (min(γ (REPULSION_REACH τ - K_w), (REPULSION_REACH -
     CAP_FLOOR) τ / 2) (1 - SAFETY), less its pad), or its pins move (REPULSION_REACH - CAP_FLOOR) τ / 2 or more (less
     the SAFETY share). Each thread records in FLAG_APART the least distance at the step's start its bound gives the
     pairs outside the cache across its two patches (module docstring, 4.)."""
     vec3 = vec3_type(scalar)
     record, _ = apart_funcs(scalar)
+    _, read_apart = apart_codec(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
     def decide(
@@ -299,6 +306,7 @@ def decide_kernel(scalar: type):
         cache_reach: wp.array[scalar],
         cache_floor: wp.array[scalar],
         cache_count: wp.array[wp.int32],
+        cache_near: wp.array[wp.int32],
         patch_box: wp.array3d[wp.int32],
         # In/out (the pass's flags):
         flags_in_out: wp.array[wp.int32],
@@ -326,7 +334,15 @@ def decide_kernel(scalar: type):
                              scalar(0.5) * offset)
                       * scalar(1.0 - SAFETY) * scalar(1.0 - SAFETY))  # the second factor: this test's own rounding
             far = scalar(2.0) * kinematic >= offset * scalar(1.0 - SAFETY)  # as repel_gather
-            if cache_count[world] > 0 or not (step <= budget) or far:
+            # The cached pairs: their least distance at the anchors (in units of the build's τ) less the drifts' spread
+            # (two largest |r|) bounds them at the step's start; beyond the repulsion's reach they are as far as the
+            # pairs outside the cache, for which the test on the step above suffices.
+            drift = scalar(flags_in_out[flag_slot(FLAG_DRIFT, world, world_count)]) * unit
+            cached = (read_apart(cache_near[world], cache_floor[world] / scalar(CACHE_REACH))
+                      - scalar(2.0) * drift)
+            near = cache_count[world] > 0 and not (cached >= scalar(REPULSION_REACH) * thickness
+                                                   * scalar(1.0 + SAFETY))
+            if near or not (step <= budget) or far:
                 flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
         # Every pair outside the cache, watched or not, was this far apart at the anchors: CACHE_REACH τ of the τ
         # it was built with (a τ written since changes the repulsion's reach below, not what the cache holds).
@@ -460,9 +476,10 @@ def watch_kernel(scalar: type):
 @functools.cache
 def anchor_kernel(scalar: type):
     """Kernel ending a rebuild (module docstring, 2.): the flagged worlds' anchors become the step's start and
-    their reach WATCH_REACH τ (CACHE_REACH τ where the watch list overflowed); a rebuilt world that found pairs sets
-    FLAG_WORK."""
+    their reach WATCH_REACH τ (CACHE_REACH τ where the watch list overflowed); a rebuilt world that found pairs within
+    REPULSION_REACH τ (1 + SAFETY) (``cache_near``, their least distance) sets FLAG_WORK."""
     vec3 = vec3_type(scalar)
+    _, read_apart = apart_codec(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
     def anchor(
@@ -470,6 +487,7 @@ def anchor_kernel(scalar: type):
         particle_count: int,
         params: wp.array2d[scalar],
         cache: Pairs,
+        cache_near: wp.array[wp.int32],
         watch_count: wp.array[wp.int32],
         watch_capacity: int,
         # State in:
@@ -497,7 +515,9 @@ def anchor_kernel(scalar: type):
             cache_reach_out[world] = reach * thickness
             cache_floor_out[world] = scalar(CACHE_REACH) * thickness
             counters_out[world, COUNT_REBUILDS] += 1  # one thread per world
-            if cache.count[world] > 0:
+            # (its pairs at the step's start are at their anchors: the least of them as listed)
+            if cache.count[world] > 0 and not (read_apart(cache_near[world], thickness)
+                                               >= scalar(REPULSION_REACH) * thickness * scalar(1.0 + SAFETY)):
                 flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
 
     return anchor
