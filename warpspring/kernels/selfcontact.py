@@ -641,9 +641,6 @@ def broad_kernel(scalar: type, swept: bool):
         if owns_vertex[0] + owns_vertex[1] + owns_vertex[2] + owns_edge[0] + owns_edge[1] + owns_edge[2] == 0:
             return
         query = wp.bvh_query_aabb(surface.bvh[world], union_lower, union_upper)
-        held_keys = WatchKeys()  # the watched pairs found and not yet stored (``watch_hold``)
-        held_vertices = WatchVertices()
-        held = int(0)
         t = int(0)
         while wp.bvh_query_next(query, t):
             if t % split != part:
@@ -671,9 +668,7 @@ def broad_kernel(scalar: type, swept: bool):
                             if wp.static(not swept):
                                 near_lower(near_out, world, value, thickness)
                         elif wp.static(not swept) and value < watch_reach:
-                            held_keys, held_vertices, held = watch_hold(world, key, vertex, held_keys, held_vertices,
-                                                                        held, watch_count_out, watch_key_out,
-                                                                        watch_vertex_out)
+                            watch_pair(world, key, vertex, watch_count_out, watch_key_out, watch_vertex_out)
                 # EE: the edge's own query would have reported t where its box overlaps t's leaf box.
                 if owns_edge[m] == 1 and boxes_overlap_f(edge_lower[m], edge_upper[m], leaf_lower, leaf_upper):
                     e = sides[m]
@@ -715,52 +710,21 @@ def broad_kernel(scalar: type, swept: bool):
                                 if wp.static(not swept):
                                     near_lower(near_out, world, value, thickness)
                             elif wp.static(not swept) and value < watch_reach:
-                                held_keys, held_vertices, held = watch_hold(world, key, vertex, held_keys,
-                                                                            held_vertices, held, watch_count_out,
-                                                                            watch_key_out, watch_vertex_out)
-        if wp.static(not swept) and held > 0:
-            watch_store(world, held, held_keys, held_vertices, watch_count_out, watch_key_out, watch_vertex_out)
+                                watch_pair(world, key, vertex, watch_count_out, watch_key_out, watch_vertex_out)
 
     return broad
 
 
-#: Watched pairs a broad-phase thread holds before it stores them (``watch_hold``): one atomic on its world's watch
-#: count a batch, where one a pair made every thread of a rebuild wait on one address (a 1024² cloth watches ~7
-#: million in-plane pairs).
-WATCH_HOLD = 16
-WatchKeys = wp.types.vector(length=WATCH_HOLD, dtype=wp.int64)
-WatchVertices = wp.types.vector(length=4 * WATCH_HOLD, dtype=wp.int32)
-
-
 @wp.func
-def watch_store(world: int, held: int, keys: WatchKeys, vertices: WatchVertices, watch_count: wp.array[wp.int32],
-                watch_key: wp.array[wp.int64], watch_vertex: wp.array[wp.vec4i]):
-    """Store the ``held`` watched pairs of a thread's batch in its world's watch list (module ``selfcontact_cache``),
-    their slots taken by one integer atomic; beyond the list's capacity they are only counted (the world's cache then
-    takes the reach CACHE_REACH τ)."""
+def watch_pair(world: int, key: wp.int64, vertex: wp.vec4i, watch_count: wp.array[wp.int32],
+               watch_key: wp.array[wp.int64], watch_vertex: wp.array[wp.vec4i]):
+    """Store a watched pair in its world's watch list (module ``selfcontact_cache``); beyond its capacity only
+    counted (the world's cache then takes the reach CACHE_REACH τ)."""
     capacity = watch_key.shape[0] // watch_count.shape[0]
-    first = wp.atomic_add(watch_count, world, held)
-    for j in range(held):
-        slot = first + j
-        if slot < capacity:
-            watch_key[world * capacity + slot] = keys[j]
-            watch_vertex[world * capacity + slot] = wp.vec4i(vertices[4 * j], vertices[4 * j + 1],
-                                                             vertices[4 * j + 2], vertices[4 * j + 3])
-
-
-@wp.func
-def watch_hold(world: int, key: wp.int64, vertex: wp.vec4i, keys: WatchKeys, vertices: WatchVertices, held: int,
-               watch_count: wp.array[wp.int32], watch_key: wp.array[wp.int64], watch_vertex: wp.array[wp.vec4i]):
-    """A watched pair added to a thread's batch (returned: the batch and its size), the batch stored
-    (``watch_store``) when full."""
-    keys[held] = key
-    for m in range(4):
-        vertices[4 * held + m] = vertex[m]
-    held += 1
-    if held == WATCH_HOLD:
-        watch_store(world, held, keys, vertices, watch_count, watch_key, watch_vertex)
-        held = 0
-    return keys, vertices, held
+    slot = wp.atomic_add(watch_count, world, 1)
+    if slot < capacity:
+        watch_key[world * capacity + slot] = key
+        watch_vertex[world * capacity + slot] = vertex
 
 
 @functools.cache
