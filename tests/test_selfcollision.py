@@ -167,6 +167,34 @@ def test_pair_list_equals_brute_force(device, split, monkeypatch):
         assert set(map(tuple, a)) == set(map(tuple, b))
 
 
+def test_watch_list_equals_brute_force(device):
+    """The cache's first build watches exactly the pairs between CACHE_REACH τ and WATCH_REACH τ apart (all-pairs
+    float64 reference; pairs within float32 rounding of either reach may fall either side), each once."""
+    from warpspring.kernels.selfcontact import CACHE_REACH, WATCH_REACH
+
+    model = crumpled_pair(device)
+    sc, state = model.self_contact, model.state()
+    sc.repel(state, state.particle_q)  # the first step's build, at the start
+    count = int(sc.watch_count.numpy()[0])
+    keys = sc.watch_key.numpy()[:count]
+    x = state.particle_q.numpy().astype(np.float64)
+    triangles = model.tri_indices.numpy()
+    n, T, E = model.particle_count, len(triangles), len(surface_edges(triangles))
+    listed = {(int(k // T), int(k % T)) if k < n * T else (-1 - int((k - n * T) // E), int((k - n * T) % E))
+              for k in keys}
+    assert len(listed) == count > 100  # each once, many
+
+    def band(low, high):
+        """The pairs at least ``low`` and closer than ``high`` [m] (VT as (v, t), EE as (-1 - e, f))."""
+        vt, dvt, ee, dee = brute_pairs(x, triangles, high)
+        return ({(int(v), int(t)) for (v, t), d in zip(vt, dvt) if d >= low}
+                | {(-1 - int(e), int(f)) for (e, f), d in zip(ee, dee) if d >= low})
+
+    sure = band(CACHE_REACH * TAU + 1e-5, WATCH_REACH * TAU - 1e-5)
+    maybe = band(CACHE_REACH * TAU - 1e-5, WATCH_REACH * TAU + 1e-5)
+    assert sure <= listed <= maybe
+
+
 # -- scenes ---------------------------------------------------------------------------------------------------
 
 
