@@ -663,58 +663,40 @@ def main():
         import warpspring.core.selfcontact as host
 
         host.BROAD_SPLIT = args.broad_split
-    if args.rebuild_study:
-        lines = [
-            f"The pair cache's rebuilds by rule on {device.name}, Warp {wp.config.version}, {datetime.date.today()}: the "
-            f"draped cloth's {args.rebuild_study} frames after {SETTLE_FRAMES} frames of settling, every substep, "
-            f"replayed on the host in float64 (τ = {THICKNESS} m, cache reach R = 3τ)",
-            "",
-            "| N | the cache holds while | rebuilds / substeps |",
-            "|---|---|---|",
-        ]
-        for n in args.sizes:
-            lines += rebuild_study(n, device, args.rebuild_study)
-        emit_table(lines, args.out)
-        return
-    if args.radius_study:
-        lines = [
-            f"The cap's pairs per substep by candidate rule on {device.name}, Warp {wp.config.version}, "
-            f"{datetime.date.today()}: the draped cloth's fall ({SETTLE_FRAMES} frames, every 4th substep), "
-            f"τ = {THICKNESS} m, γ = 0.25",
-            "",
-            "| N | pairs examined by the cap | mean per substep | peak |",
-            "|---|---|---|---|",
-        ]
-        for n in args.sizes:
-            lines += radius_study(n, device)
-        emit_table(lines, args.out)
-        return
-    if args.profile_frames:
-        lines = [
-            f"Self-collision per kernel on {device.name}, Warp {wp.config.version}, {datetime.date.today()}: the draped "
-            f"cloth's {args.profile_frames} frames after {SETTLE_FRAMES} frames of settling, uncaptured (CUDA activity "
-            f"timer; the branches are host tests), µs of device time per substep (τ = {THICKNESS} m, μ = {FRICTION})",
-            "",
-            "| N | self-collision | kernel | calls per substep | µs per substep |",
-            "|---|---|---|---|---|",
-        ]
-        for n in args.sizes:
-            lines += profile_frames(n, device, args.profile_frames)
-        emit_table(lines, args.out)
-        return
-    if args.profile:
-        lines = [
-            f"Self-collision pass per launch on {device.name}, Warp {wp.config.version}, {datetime.date.today()}, "
-            f"the settled draped cloth (τ = {THICKNESS} m, μ = {FRICTION}), mean of {args.repeats} uncaptured passes "
-            + ("(CUDA activity timer)" if device.is_cuda else "(synchronised wall clock around each launch)"),
-            "",
-            "| N | launch | calls per pass | µs per pass |",
-            "|---|---|---|---|",
-        ]
-        for n in args.sizes:
-            lines += profile(n, device, args.repeats)
-        emit_table(lines, args.out)
-        return
+    today = datetime.date.today()
+    # The studies other than the cost table: (asked for, heading, columns, rows for one size); the first asked runs.
+    studies = (
+        (args.rebuild_study,
+         f"The pair cache's rebuilds by rule on {device.name}, Warp {wp.config.version}, {today}: the draped cloth's "
+         f"{args.rebuild_study} frames after {SETTLE_FRAMES} frames of settling, every substep, replayed on the host in "
+         f"float64 (τ = {THICKNESS} m, cache reach R = 3τ)",
+         ["N", "the cache holds while", "rebuilds / substeps"],
+         lambda n: rebuild_study(n, device, args.rebuild_study)),
+        (args.radius_study,
+         f"The cap's pairs per substep by candidate rule on {device.name}, Warp {wp.config.version}, {today}: the draped "
+         f"cloth's fall ({SETTLE_FRAMES} frames, every 4th substep), τ = {THICKNESS} m, γ = 0.25",
+         ["N", "pairs examined by the cap", "mean per substep", "peak"],
+         lambda n: radius_study(n, device)),
+        (args.profile_frames,
+         f"Self-collision per kernel on {device.name}, Warp {wp.config.version}, {today}: the draped cloth's "
+         f"{args.profile_frames} frames after {SETTLE_FRAMES} frames of settling, uncaptured (CUDA activity timer; the "
+         f"branches are host tests), µs of device time per substep (τ = {THICKNESS} m, μ = {FRICTION})",
+         ["N", "self-collision", "kernel", "calls per substep", "µs per substep"],
+         lambda n: profile_frames(n, device, args.profile_frames)),
+        (args.profile,
+         f"Self-collision pass per launch on {device.name}, Warp {wp.config.version}, {today}, the settled draped cloth "
+         f"(τ = {THICKNESS} m, μ = {FRICTION}), mean of {args.repeats} uncaptured passes "
+         + ("(CUDA activity timer)" if device.is_cuda else "(synchronised wall clock around each launch)"),
+         ["N", "launch", "calls per pass", "µs per pass"],
+         lambda n: profile(n, device, args.repeats)),
+    )
+    for asked, heading, columns, rows in studies:
+        if asked:
+            lines = [heading, "", "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+            for n in args.sizes:
+                lines += rows(n)
+            emit_table(lines, args.out)
+            return
     new = measure_all(args, device)
     if args.json:
         with open(args.json, "w") as f:
