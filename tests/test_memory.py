@@ -191,14 +191,19 @@ def _plastic(builder):
     return builder
 
 
+def _self_colliding(builder):
+    builder.add_self_collision(thickness=0.004)
+    return builder
+
+
 def _square(builder):
     builder.add_springs([[0, 30], [1, 31]], stiffness=10.0, family="square", law="square")
     return builder
 
 
 #: Scenes that take the guard down each of its paths (``memory.guard_path``): plain springs, drag, drag in wind,
-#: handles' work, a collider (no dissipation counted), plastic springs and the force clamps (no dampers in the
-#: scattered pass, no power sums in the force pass).
+#: handles' work, a collider (no dissipation counted), plastic springs, the force clamps (no dampers in the
+#: scattered pass, no power sums in the force pass) and self-collision (the count of its pass's energy).
 GUARD_SCENES = {
     "springs": lambda: grid_builder(8, 6),
     "drag": lambda: _dragged(grid_builder(8, 6)),
@@ -208,6 +213,7 @@ GUARD_SCENES = {
     "plastic springs": lambda: _plastic(_dragged(grid_builder(8, 6))),
     "force clamps": lambda: _dragged(grid_builder(8, 6, stabilizers=ws.Stabilizers(max_spring_force=100.0,
                                                                                    max_particle_force=100.0))),
+    "self-collision": lambda: _self_colliding(grid_builder(8, 6)),
 }
 
 

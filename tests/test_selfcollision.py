@@ -167,10 +167,14 @@ def test_pair_list_equals_brute_force(device, split, monkeypatch):
         assert set(map(tuple, a)) == set(map(tuple, b))
 
 
-def test_watch_list_equals_brute_force(device):
+@pytest.mark.parametrize("split", [None, 3])
+def test_watch_list_equals_brute_force(device, split, monkeypatch):
     """The cache's first build watches exactly the pairs between CACHE_REACH τ and WATCH_REACH τ apart (all-pairs
-    float64 reference; pairs within float32 rounding of either reach may fall either side), each once."""
+    float64 reference; pairs within float32 rounding of either reach may fall either side), each once; also with the
+    broad phase's triangles shared by 3 threads (``broad_split``)."""
     from warpspring.kernels.selfcontact import CACHE_REACH, WATCH_REACH
+
+    monkeypatch.setattr(selfcontact_host, "BROAD_SPLIT", split)
 
     model = crumpled_pair(device)
     sc, state = model.self_contact, model.state()

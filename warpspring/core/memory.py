@@ -253,7 +253,7 @@ def self_contact_bytes(*, particles: int, worlds: int, triangles: int, edges: in
                        precision: str = "float32", cuda: bool = False) -> int:
     """Device bytes of self-collision (``core/selfcontact.py``'s :class:`SelfContact`) [B], from its counts, before it
     is made: the surface's topology, each world's triangle boxes and BVH (with one CUDA build's temporaries), the live
-    values, counters, the cache's reach, floor and nearest pair, flags, scan blocks and the cap's roles and targets, the repelled positions and the cache's anchors, and the two pair buffers
+    values, counters, the cache's reach, floor and nearest pair (and a scratch one), flags, scan blocks and the cap's roles and targets, the repelled positions and the cache's anchors, and the two pair buffers
     (the cache of ``CACHE_SLOTS`` × the cap's ``PAIRS_PER_VERTEX`` slots per surface vertex, each slot a key, four
     vertices, four CSR entries and a distance, with per-particle CSR counts, starts and cursors), and the cache's
     per-slot corrections and weights.
@@ -279,7 +279,7 @@ def self_contact_bytes(*, particles: int, worlds: int, triangles: int, edges: in
         return (8 + 16 + 16 + f) * slots + 4 * (size + 1) * 2 + 4 * size + 4 * w
 
     surface = 24 * t + 12 * e + 4 * n + 24 * w * t + 8 * w
-    live = (PARAM_COUNT * f + 4 * COUNTER_COUNT + 2 * f + 4) * w + 4 * (2 + FLAG_KINDS * w) + 4 * w * -(-n // SCAN_BLOCK)
+    live = (PARAM_COUNT * f + 4 * COUNTER_COUNT + 2 * f + 2 * 4) * w + 4 * (2 + FLAG_KINDS * w) + 4 * w * -(-n // SCAN_BLOCK)
     live += 2 * (4 + 3 * f) * size  # the cap's roles and pushers' targets, twice
     patches = patch_count(t, cuda)
     live += (4 + (8 + 16) * capacity) * w + (4 + 8 + 16) * w  # the cache's watch list, and the empty one
@@ -606,8 +606,11 @@ def estimate_memory(
                       particle_force_clamp=particle_force_clamp)
     others = [checks.count("family_elements", e, minimum=0) for e in family_elements]
     energy_blocks = sum(check_blocks_of(e) for e in (s, h, *others))
-    running_rows = blocks + element_blocks(s) + element_blocks(h)  # (CUDA) the particles' and dampers' blocks
-    running = 8 * RUNNING_SLOTS * (running_rows if cuda else w * (1 + bool(s) + bool(h)))
+    # With self-collision, the blocks that count the energy its pass puts in: the check's grids of the particles and
+    # of each family's elements (``Guard._count_corrections``).
+    corrections = check_blocks + energy_blocks if self_contact_triangles else 0
+    running_rows = blocks + element_blocks(s) + element_blocks(h) + corrections  # (CUDA) particles', dampers' blocks
+    running = 8 * RUNNING_SLOTS * (running_rows if cuda else w * (1 + bool(s) + bool(h)) + corrections)
     dampers = (4 + (f + 8) * s) * w if path.dampers else 0
     power = path.power * f * size  # the power sums the guard hands the integrator (energy out[, work in])
     carried = (8 * w + 8 * BALANCE_SLOTS * w + 3 * vec3 * size + running + dampers + power  # what a check carries on,

@@ -279,6 +279,7 @@ class SelfContact:
         # The least distance of a cached pair at the anchors (kernels/selfcontact.py's apart_codec, in units of the τ
         # of the build; 0: none): where the drifts keep them all beyond the repulsion's reach, the stages are skipped.
         self.cache_near = wp.zeros(worlds, dtype=wp.int32, device=device)
+        self._no_near = wp.zeros(worlds, dtype=wp.int32, device=device)  # ... for the lists that are not the cache
         # CACHE_REACH τ at each world's last build: every pair outside the cache was that far apart at the anchors.
         self.cache_floor = wp.zeros(worlds, dtype=model.scalar, device=device)
         # The patches' boxes and marks (kernels/selfcontact_cache.py, check_kernel, decide_kernel) share the flags'
@@ -504,7 +505,7 @@ class SelfContact:
         least distance of its pairs (``cache_near``)."""
         model = self.model
         watch_lists = (self.watch_count, self.watch_key, self.watch_vertex) if watch else self._no_watch
-        near = self.cache_near if watch else self._no_watch[0]
+        near = self.cache_near if watch else self._no_near
         flat_launch(reset_kernel(), inputs=[model.particle_count, active], outputs=[pairs, watch_lists[0], near],
                     dim=model.particle_dim,
                     block_dim=model.block_dim, device=model.device)

@@ -1016,7 +1016,7 @@ def apart_codec(scalar: type):
 @functools.cache
 def apart_funcs(scalar: type):
     """``(record, least)``: ``record(flags, world, world_count, distance, thickness)`` lowers world ``world``'s
-    FLAG_APART to ``distance`` [m] (``apart_lower``); ``least(flags, world, world_count, thickness)`` reads it back [m]
+    FLAG_APART to ``distance`` [m] (``apart_codec``'s ``lower``); ``least(flags, world, world_count, thickness)`` reads it back [m]
     (APART_NONE units, beyond any reach, where none was recorded)."""
     lower, read = apart_codec(scalar)
 
