@@ -145,8 +145,10 @@ def launch_labels(model) -> tuple[dict, object]:
     labelled = []
     for swept, stage in ((False, "repulsion"), (True, "cap")):
         labelled.append((kernels["leaf_kernel"](model.scalar, swept), f"triangle boxes ({stage})"))
-        if "broad_kernel" in kernels:  # one query per triangle
-            labelled.append((kernels["broad_kernel"](model.scalar, swept), f"broad phase VT + EE ({stage})"))
+        if "broad_kernel" in kernels:  # one query per triangle, or per primitive (a later tree: its setting)
+            per_primitive = getattr(model.self_contact, "broad_per_primitive", None)
+            kernel = kernels["broad_kernel"](model.scalar, swept, *([per_primitive] if per_primitive is not None else []))
+            labelled.append((kernel, f"broad phase VT + EE ({stage})"))
         else:  # one per vertex and one per edge
             labelled += [(kernels["broad_vt_kernel"](model.scalar, swept), f"broad phase VT ({stage})"),
                          (kernels["broad_ee_kernel"](model.scalar, swept), f"broad phase EE ({stage})")]
@@ -653,6 +655,8 @@ def main():
                         help="time each kernel of FRAMES moving frames after the settling instead (CUDA only)")
     parser.add_argument("--broad-split", type=int, default=None,
                         help="threads per triangle of the broad phase (default: core/selfcontact.py's broad_split)")
+    parser.add_argument("--broad-per-triangle", action="store_true",
+                        help="the broad phase's queries one per triangle (default: core/selfcontact.py's setting)")
     parser.add_argument("--radius-study", action="store_true", help="count the cap's pairs by candidate rule instead")
     parser.add_argument("--rebuild-study", type=int, default=0, metavar="FRAMES",
                         help="count the cache's rebuilds by rule over FRAMES frames after the settling instead")
@@ -663,6 +667,10 @@ def main():
         import warpspring.core.selfcontact as host
 
         host.BROAD_SPLIT = args.broad_split
+    if args.broad_per_triangle:
+        import warpspring.core.selfcontact as host
+
+        host.BROAD_PER_PRIMITIVE = False
     today = datetime.date.today()
     # The studies other than the cost table: (asked for, heading, columns, rows for one size); the first asked runs.
     studies = (

@@ -97,6 +97,9 @@ BROAD_THREADS_PER_SM = 512
 #: The most threads that share one triangle's query (``broad_split``); ``None`` there, or an int to force a split.
 BROAD_SPLIT_MAX = 8
 BROAD_SPLIT = None
+#: The broad phase's queries: one per surface vertex and one per edge, each around its own box (True), or one per
+#: triangle around the union of its vertices' and edges' boxes (False); the same pairs (``broad_kernel``).
+BROAD_PER_PRIMITIVE = True
 
 
 def broad_split(device, queries: int) -> int:
@@ -293,7 +296,9 @@ class SelfContact:
         # The patches whose watched pairs need their check (decide_kernel marks, watch_kernel reads).
         self.patch_watch = self._step_scratch[flag_count + boxes:].reshape((worlds, self.patch_count))
         self._scan_blocks = wp.zeros((worlds, (n + SCAN_BLOCK - 1) // SCAN_BLOCK), dtype=wp.int32, device=device)
-        self.broad_split = broad_split(device, worlds * self.triangle_count)
+        self.broad_per_primitive = BROAD_PER_PRIMITIVE
+        self._broad_queries = n + self.edge_count if self.broad_per_primitive else self.triangle_count  # per world
+        self.broad_split = broad_split(device, worlds * self._broad_queries)
         self.watch_split = broad_split(device, worlds * n)  # the watched pairs' check likewise, per particle
         self._allocate(max(64, PAIRS_PER_VERTEX * int(np.count_nonzero(topology["vertex_owner"] >= 0))))
         # One BVH per world over the single-precision boxes of its triangles, built at the model's initial
@@ -317,7 +322,8 @@ class SelfContact:
         for kernel in scan_kernels():
             kernel.module.load(model.device, SCAN_THREADS)
         check_kernel(scalar).module.load(model.device, PATCH_THREADS)
-        flat = [broad_kernel(scalar, False), broad_kernel(scalar, True),
+        per_primitive = self.broad_per_primitive
+        flat = [broad_kernel(scalar, False, per_primitive), broad_kernel(scalar, True, per_primitive),
                 reset_kernel(), fill_kernel(), decide_kernel(scalar), watch_kernel(scalar), anchor_kernel(scalar),
                 repel_pairs_kernel(scalar),
                 repel_gather_kernel(scalar), cap_bounds_kernel(scalar), cap_gather_kernel(scalar),
@@ -528,9 +534,9 @@ class SelfContact:
         outputs = dict(pairs_out=pairs, pair_distance_out=pair_distance, counters_out=counters,
                        watch_count_out=watch_lists[0], watch_key_out=watch_lists[1], watch_vertex_out=watch_lists[2],
                        near_out=near)
-        flat_launch(broad_kernel(model.scalar, swept), inputs=list(args.values()), outputs=list(outputs.values()),
-                    dim=model.world_count * self.triangle_count * self.broad_split, block_dim=model.block_dim,
-                    device=model.device)
+        flat_launch(broad_kernel(model.scalar, swept, self.broad_per_primitive), inputs=list(args.values()),
+                    outputs=list(outputs.values()), dim=model.world_count * self._broad_queries * self.broad_split,
+                    block_dim=model.block_dim, device=model.device)
         tile_sums, tile_offsets, tile_prefixes = scan_kernels()
         tiles = self._scan_blocks
         worlds, n = model.world_count, model.particle_count

@@ -508,7 +508,7 @@ def leaf_kernel(scalar: type, swept: bool):
 
 
 @functools.cache
-def broad_kernel(scalar: type, swept: bool):
+def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False):
     """The broad phase's kernel (module docstring): ``split`` threads per triangle t of every world (adjacent
     threads), each querying the BVH once for the primitives t reports, its corners whose ``vertex_owner`` it is (VT
     pairs) and its sides whose ``edge_owner`` it is (EE pairs, kept from the lower edge), and taking the reported
@@ -562,6 +562,81 @@ def broad_kernel(scalar: type, swept: bool):
                                   particle_q_start, particle_q_end, limit, cube)
         return box_of(lower, upper, query_reach)
 
+    @wp.func
+    def vertex_leaf(
+        world: int, base: int, v: int, t: int, reach: scalar, relaxation: scalar, mass_row: int, limit: scalar,
+        cube: scalar, watch_reach: scalar, thickness: scalar, surface: Surface, particle_flags: wp.array[wp.int32],
+        particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
+        pairs_out: Pairs, pair_distance_out: wp.array[scalar], counters_out: wp.array2d[wp.int32],
+        watch_count_out: wp.array[wp.int32], watch_key_out: wp.array[wp.int64], watch_vertex_out: wp.array[wp.vec4i],
+        near_out: wp.array[wp.int32],
+    ):
+        """The VT pair of vertex v and reported triangle t: kept, watched or neither."""
+        tri = surface.triangle[t]
+        if tri[0] != v and tri[1] != v and tri[2] != v:  # a topological neighbour: no geometry
+            p = particle_q_start[base + v]
+            a = particle_q_start[base + tri[0]]
+            b = particle_q_start[base + tri[1]]
+            c = particle_q_start[base + tri[2]]
+            bary = triangle_closest(p, a, b, c)
+            vertex = wp.vec4i(v, tri[0], tri[1], tri[2])
+            kept, value = keep(wp.length(p - (bary[0] * a + bary[1] * b + bary[2] * c)), reach, relaxation, vertex,
+                               base, mass_row, limit, cube, particle_flags, particle_inv_mass, particle_q_start,
+                               particle_q_end)
+            key = wp.int64(v) * wp.int64(surface.triangle.shape[0]) + wp.int64(t)
+            if kept:
+                push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
+                if wp.static(not swept):
+                    near_lower(near_out, world, value, thickness)
+            elif wp.static(not swept) and value < watch_reach:
+                watch_pair(world, key, vertex, watch_count_out, watch_key_out, watch_vertex_out)
+
+    @wp.func
+    def edge_leaf(
+        world: int, base: int, particle_count: int, e: int, box_lower: vec3, box_upper: vec3, t: int, reach: scalar,
+        relaxation: scalar, mass_row: int, limit: scalar, cube: scalar, watch_reach: scalar, thickness: scalar,
+        surface: Surface, particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
+        particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3], pairs_out: Pairs,
+        pair_distance_out: wp.array[scalar], counters_out: wp.array2d[wp.int32], watch_count_out: wp.array[wp.int32],
+        watch_key_out: wp.array[wp.int64], watch_vertex_out: wp.array[wp.vec4i], near_out: wp.array[wp.int32],
+    ):
+        """The EE pairs of edge e (query box [box_lower, box_upper]) with the sides reported triangle t owns."""
+        ends = surface.edge[e]
+        others = surface.triangle_edges[t]
+        for n in range(3):
+            f = others[n]
+            other = surface.edge[f]
+            # Each pair once (from its lower edge, through the other edge's owner triangle), no shared vertex: index
+            # tests before any geometry.
+            if (f > e and surface.edge_owner[f] == t and other[0] != ends[0] and other[0] != ends[1]
+                    and other[1] != ends[0] and other[1] != ends[1]):
+                p2 = particle_q_start[base + other[0]]
+                q2 = particle_q_start[base + other[1]]
+                # The other edge's own (swept) box against the query box, before the geometry: a pair closer than
+                # the reach overlaps it, and a disjoint swept pair cannot meet (proof, (a)).
+                other_lower = p2
+                other_upper = p2
+                for k in range(2):
+                    other_lower, other_upper = extend(other_lower, other_upper, base + other[k], other[k], mass_row,
+                                                      particle_flags, particle_inv_mass, particle_q_start,
+                                                      particle_q_end, limit, cube)
+                if boxes_overlap(other_lower, other_upper, box_lower, box_upper):
+                    p1 = particle_q_start[base + ends[0]]
+                    q1 = particle_q_start[base + ends[1]]
+                    st = edge_closest(p1, q1, p2, q2)
+                    vertex = wp.vec4i(ends[0], ends[1], other[0], other[1])
+                    distance = wp.length((p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)))
+                    kept, value = keep(distance, reach, relaxation, vertex, base, mass_row, limit, cube,
+                                       particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
+                    key = (wp.int64(particle_count) * wp.int64(surface.triangle.shape[0])
+                           + wp.int64(e) * wp.int64(surface.edge.shape[0]) + wp.int64(f))
+                    if kept:
+                        push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
+                        if wp.static(not swept):
+                            near_lower(near_out, world, value, thickness)
+                    elif wp.static(not swept) and value < watch_reach:
+                        watch_pair(world, key, vertex, watch_count_out, watch_key_out, watch_vertex_out)
+
     @flat_kernel(module="unique", enable_backward=False)
     def broad(
         # Model:
@@ -593,8 +668,11 @@ def broad_kernel(scalar: type, swept: bool):
         edge_count = surface.edge.shape[0]
         thread = tid // split
         part = tid - thread * split  # this thread takes the reported triangles t ≡ part (mod split)
-        world = thread // triangle_count
-        me = thread - world * triangle_count
+        per_world = triangle_count
+        if wp.static(per_primitive):
+            per_world = particle_count + edge_count
+        world = thread // per_world
+        me = thread - world * per_world
         base = world * particle_count
         if world_enabled[world] == 0:
             return
@@ -610,6 +688,34 @@ def broad_kernel(scalar: type, swept: bool):
         if wp.static(swept):  # the cap's floor: the query boxes grown by it, and the reach keep() reads as it
             reach = scalar(CAP_FLOOR) * thickness
             query_reach = reach
+        if wp.static(per_primitive):
+            # One primitive, its own query: a vertex (me < particle_count, where it is on the surface) or an edge.
+            if me < particle_count:
+                if surface.vertex_owner[me] < 0:
+                    return
+                lower, upper = query_box(wp.vec2i(me, me), base, mass_row, limit, cube, query_reach, particle_flags,
+                                         particle_inv_mass, particle_q_start, particle_q_end)
+                query = wp.bvh_query_aabb(surface.bvh[world], lower, upper)
+                t = int(0)
+                while wp.bvh_query_next(query, t):
+                    if t % split == part:
+                        vertex_leaf(world, base, me, t, reach, relaxation, mass_row, limit, cube, watch_reach,
+                                    thickness, surface, particle_flags, particle_inv_mass, particle_q_start,
+                                    particle_q_end, pairs_out, pair_distance_out, counters_out, watch_count_out,
+                                    watch_key_out, watch_vertex_out, near_out)
+            else:
+                e = me - particle_count
+                lower, upper = query_box(surface.edge[e], base, mass_row, limit, cube, query_reach, particle_flags,
+                                         particle_inv_mass, particle_q_start, particle_q_end)
+                query = wp.bvh_query_aabb(surface.bvh[world], lower, upper)
+                t = int(0)
+                while wp.bvh_query_next(query, t):
+                    if t % split == part:
+                        edge_leaf(world, base, particle_count, e, vec3(lower), vec3(upper), t, reach, relaxation,
+                                  mass_row, limit, cube, watch_reach, thickness, surface, particle_flags,
+                                  particle_inv_mass, particle_q_start, particle_q_end, pairs_out, pair_distance_out,
+                                  counters_out, watch_count_out, watch_key_out, watch_vertex_out, near_out)
+            return
         corners = surface.triangle[me]
         sides = surface.triangle_edges[me]
         # The primitives this triangle reports, their query boxes (rows of the matrices) and their union.
@@ -645,72 +751,22 @@ def broad_kernel(scalar: type, swept: bool):
         while wp.bvh_query_next(query, t):
             if t % split != part:
                 continue
-            tri = surface.triangle[t]
             leaf_lower = surface.leaf_lower[world * triangle_count + t]
             leaf_upper = surface.leaf_upper[world * triangle_count + t]
             for m in range(3):
                 # VT: the vertex's own query would have reported t where its box overlaps t's leaf box.
                 if owns_vertex[m] == 1 and boxes_overlap_f(vertex_lower[m], vertex_upper[m], leaf_lower, leaf_upper):
-                    v = corners[m]
-                    if tri[0] != v and tri[1] != v and tri[2] != v:  # a topological neighbour: no geometry
-                        p = particle_q_start[base + v]
-                        a = particle_q_start[base + tri[0]]
-                        b = particle_q_start[base + tri[1]]
-                        c = particle_q_start[base + tri[2]]
-                        bary = triangle_closest(p, a, b, c)
-                        vertex = wp.vec4i(v, tri[0], tri[1], tri[2])
-                        kept, value = keep(wp.length(p - (bary[0] * a + bary[1] * b + bary[2] * c)), reach,
-                                           relaxation, vertex, base, mass_row, limit, cube, particle_flags,
-                                           particle_inv_mass, particle_q_start, particle_q_end)
-                        key = wp.int64(v) * wp.int64(triangle_count) + wp.int64(t)
-                        if kept:
-                            push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
-                            if wp.static(not swept):
-                                near_lower(near_out, world, value, thickness)
-                        elif wp.static(not swept) and value < watch_reach:
-                            watch_pair(world, key, vertex, watch_count_out, watch_key_out, watch_vertex_out)
+                    vertex_leaf(world, base, corners[m], t, reach, relaxation, mass_row, limit, cube, watch_reach,
+                                thickness, surface, particle_flags, particle_inv_mass, particle_q_start,
+                                particle_q_end, pairs_out, pair_distance_out, counters_out, watch_count_out,
+                                watch_key_out, watch_vertex_out, near_out)
                 # EE: the edge's own query would have reported t where its box overlaps t's leaf box.
                 if owns_edge[m] == 1 and boxes_overlap_f(edge_lower[m], edge_upper[m], leaf_lower, leaf_upper):
-                    e = sides[m]
-                    ends = surface.edge[e]
-                    box_lower = vec3(edge_lower[m])
-                    box_upper = vec3(edge_upper[m])
-                    others = surface.triangle_edges[t]
-                    for n in range(3):
-                        f = others[n]
-                        other = surface.edge[f]
-                        # Each pair once (from its lower edge, through the other edge's owner triangle), no
-                        # shared vertex: index tests before any geometry.
-                        if (f > e and surface.edge_owner[f] == t and other[0] != ends[0] and other[0] != ends[1]
-                                and other[1] != ends[0] and other[1] != ends[1]):
-                            p2 = particle_q_start[base + other[0]]
-                            q2 = particle_q_start[base + other[1]]
-                            # The other edge's own (swept) box against the query box, before the geometry: a pair
-                            # closer than the reach overlaps it, and a disjoint swept pair cannot meet (proof, (a)).
-                            other_lower = p2
-                            other_upper = p2
-                            for k in range(2):
-                                other_lower, other_upper = extend(other_lower, other_upper, base + other[k], other[k],
-                                                                  mass_row, particle_flags, particle_inv_mass,
-                                                                  particle_q_start, particle_q_end, limit, cube)
-                            if not boxes_overlap(other_lower, other_upper, box_lower, box_upper):
-                                continue
-                            p1 = particle_q_start[base + ends[0]]
-                            q1 = particle_q_start[base + ends[1]]
-                            st = edge_closest(p1, q1, p2, q2)
-                            vertex = wp.vec4i(ends[0], ends[1], other[0], other[1])
-                            distance = wp.length((p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)))
-                            kept, value = keep(distance, reach, relaxation, vertex, base, mass_row, limit, cube,
-                                               particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
-                            key = (wp.int64(particle_count) * wp.int64(triangle_count)
-                                   + wp.int64(e) * wp.int64(edge_count) + wp.int64(f))
-                            if kept:
-                                push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out,
-                                          counters_out)
-                                if wp.static(not swept):
-                                    near_lower(near_out, world, value, thickness)
-                            elif wp.static(not swept) and value < watch_reach:
-                                watch_pair(world, key, vertex, watch_count_out, watch_key_out, watch_vertex_out)
+                    edge_leaf(world, base, particle_count, sides[m], vec3(edge_lower[m]), vec3(edge_upper[m]), t,
+                              reach, relaxation, mass_row, limit, cube, watch_reach, thickness, surface,
+                              particle_flags, particle_inv_mass, particle_q_start, particle_q_end, pairs_out,
+                              pair_distance_out, counters_out, watch_count_out, watch_key_out, watch_vertex_out,
+                              near_out)
 
     return broad
 
