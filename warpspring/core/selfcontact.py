@@ -98,8 +98,11 @@ BROAD_THREADS_PER_SM = 512
 BROAD_SPLIT_MAX = 8
 BROAD_SPLIT = None
 #: The broad phase's queries: one per surface vertex and one per edge, each around its own box (True), or one per
-#: triangle around the union of its vertices' and edges' boxes (False); the same pairs (``broad_kernel``).
-BROAD_PER_PRIMITIVE = True
+#: triangle around the union of its vertices' and edges' boxes (False); the same pairs (``broad_kernel``). ``None``:
+#: per primitive on CUDA, where its lighter threads made the draped cloth's pass 1.2-1.3x cheaper at 64²-1024² on an
+#: H200, per triangle on the CPU, where its half as many queries made it 1.3-1.4x cheaper at 32²-64²
+#: (``bench/results/selfcontact.md``).
+BROAD_PER_PRIMITIVE = None
 
 
 def broad_split(device, queries: int) -> int:
@@ -296,7 +299,7 @@ class SelfContact:
         # The patches whose watched pairs need their check (decide_kernel marks, watch_kernel reads).
         self.patch_watch = self._step_scratch[flag_count + boxes:].reshape((worlds, self.patch_count))
         self._scan_blocks = wp.zeros((worlds, (n + SCAN_BLOCK - 1) // SCAN_BLOCK), dtype=wp.int32, device=device)
-        self.broad_per_primitive = BROAD_PER_PRIMITIVE
+        self.broad_per_primitive = device.is_cuda if BROAD_PER_PRIMITIVE is None else bool(BROAD_PER_PRIMITIVE)
         self._broad_queries = n + self.edge_count if self.broad_per_primitive else self.triangle_count  # per world
         self.broad_split = broad_split(device, worlds * self._broad_queries)
         self.watch_split = broad_split(device, worlds * n)  # the watched pairs' check likewise, per particle

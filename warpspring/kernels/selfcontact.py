@@ -7,10 +7,11 @@ pair once, which they evaluate pair by pair and gather one thread per vertex; th
 that the broad phase rebuilds only when it may miss a pair (``selfcontact_cache``, which proves that the
 stages keep the same pairs as a broad phase every step):
 
-* **broad phase** (``broad_kernel``: one thread per triangle, for the vertices and edges it reports, an edge
-  keeping its pairs with the higher edges): one query of the world's BVH of triangle boxes (``wp.Bvh``, refit
-  at each broad phase) around their query boxes, each reported triangle tested against each primitive's own
-  box, topological neighbours rejected by index before any geometry,
+* **broad phase** (``broad_kernel``: on CUDA one thread per surface vertex and one per edge, an edge keeping its
+  pairs with the higher edges, each querying the world's BVH of triangle boxes (``wp.Bvh``, refit at each broad
+  phase) around its own box; on the CPU one thread per triangle for the vertices and edges it reports, one query
+  around their boxes, each reported triangle tested against each primitive's own box): topological neighbours
+  rejected by index before any geometry,
   then the pair's distance D at x⁰ decides. A kept pair takes a slot of its world's buffer through an
   integer atomic counter; pairs beyond ``capacity`` are counted (``COUNT_OVERFLOW``) and dropped. It lists
   the worlds an ``active`` array names (``reset_kernel`` empties theirs), the others keep their lists;
@@ -509,14 +510,15 @@ def leaf_kernel(scalar: type, swept: bool):
 
 @functools.cache
 def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False):
-    """The broad phase's kernel (module docstring): ``split`` threads per triangle t of every world (adjacent
-    threads), each querying the BVH once for the primitives t reports, its corners whose ``vertex_owner`` it is (VT
-    pairs) and its sides whose ``edge_owner`` it is (EE pairs, kept from the lower edge), and taking the reported
-    triangles of its residue modulo ``split``: a small surface's few queries, each a long chain of dependent reads,
-    spread over more threads (the traversal is repeated, the pair tests shared out; ``core/selfcontact.py``'s
-    ``broad_split``). Each primitive's own query box (its start, and with ``swept`` its end, grown by the reach) is
-    tested against each reported leaf's box before its pairs: the same pairs as one query per vertex and one per
-    edge, in half the queries. Without ``swept`` it keeps the pairs
+    """The broad phase's kernel (module docstring). With ``per_primitive``, ``split`` threads (adjacent) per surface
+    vertex (VT pairs) and per edge (EE pairs, kept from the lower edge) of every world, each querying the BVH around
+    its primitive's own query box (its start, and with ``swept`` its end, grown by the reach). Without, ``split``
+    threads per triangle t, each querying once around the union of the query boxes of the primitives t reports, its
+    corners whose ``vertex_owner`` it is and its sides whose ``edge_owner`` it is, and testing each primitive's own box
+    against each reported leaf's box before its pairs: the same pairs in half the queries, each thread heavier
+    (``core/selfcontact.py``'s ``BROAD_PER_PRIMITIVE`` chooses by device). A thread takes the reported triangles of its
+    residue modulo ``split``: a small surface's few queries, each a long chain of dependent reads, spread over more
+    threads (the traversal is repeated, the pair tests shared out; ``broad_split``). Without ``swept`` it keeps the pairs
     closer than reach_factor · τ + reach_add at the start and lowers each world's ``near_out`` to the least distance
     among them (``apart_codec``, in units of the τ it lists with); with it the cap's pairs at (start, end)."""
     vec3 = vec3_type(scalar)
