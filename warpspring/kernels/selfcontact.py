@@ -565,6 +565,22 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False):
         return box_of(lower, upper, query_reach)
 
     @wp.func
+    def list_pair(
+        world: int, base: int, key: wp.int64, vertex: wp.vec4i, kept: bool, value: scalar, watch_reach: scalar,
+        thickness: scalar, pairs_out: Pairs, pair_distance_out: wp.array[scalar], counters_out: wp.array2d[wp.int32],
+        watch_count_out: wp.array[wp.int32], watch_key_out: wp.array[wp.int64], watch_vertex_out: wp.array[wp.vec4i],
+        near_out: wp.array[wp.int32],
+    ):
+        """A tested pair stored (``kept``: in the list, its distance lowering ``near_out`` without ``swept``), or
+        without ``swept`` watched where closer than ``watch_reach``."""
+        if kept:
+            push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
+            if wp.static(not swept):
+                near_lower(near_out, world, value, thickness)
+        elif wp.static(not swept) and value < watch_reach:
+            watch_pair(world, key, vertex, watch_count_out, watch_key_out, watch_vertex_out)
+
+    @wp.func
     def vertex_leaf(
         world: int, base: int, v: int, t: int, reach: scalar, relaxation: scalar, mass_row: int, limit: scalar,
         cube: scalar, watch_reach: scalar, thickness: scalar, surface: Surface, particle_flags: wp.array[wp.int32],
@@ -586,12 +602,8 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False):
                                base, mass_row, limit, cube, particle_flags, particle_inv_mass, particle_q_start,
                                particle_q_end)
             key = wp.int64(v) * wp.int64(surface.triangle.shape[0]) + wp.int64(t)
-            if kept:
-                push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
-                if wp.static(not swept):
-                    near_lower(near_out, world, value, thickness)
-            elif wp.static(not swept) and value < watch_reach:
-                watch_pair(world, key, vertex, watch_count_out, watch_key_out, watch_vertex_out)
+            list_pair(world, base, key, vertex, kept, value, watch_reach, thickness, pairs_out, pair_distance_out,
+                      counters_out, watch_count_out, watch_key_out, watch_vertex_out, near_out)
 
     @wp.func
     def edge_leaf(
@@ -632,12 +644,9 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False):
                                        particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
                     key = (wp.int64(particle_count) * wp.int64(surface.triangle.shape[0])
                            + wp.int64(e) * wp.int64(surface.edge.shape[0]) + wp.int64(f))
-                    if kept:
-                        push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
-                        if wp.static(not swept):
-                            near_lower(near_out, world, value, thickness)
-                    elif wp.static(not swept) and value < watch_reach:
-                        watch_pair(world, key, vertex, watch_count_out, watch_key_out, watch_vertex_out)
+                    list_pair(world, base, key, vertex, kept, value, watch_reach, thickness, pairs_out,
+                              pair_distance_out, counters_out, watch_count_out, watch_key_out, watch_vertex_out,
+                              near_out)
 
     @flat_kernel(module="unique", enable_backward=False)
     def broad(
