@@ -863,6 +863,43 @@ def test_pair_buffers_grow_after_a_frame_that_dropped_pairs(device, monkeypatch)
     assert gap >= 0.5 * 0.004  # held apart by the floor at least
 
 
+def test_a_thickness_raised_mid_run_keeps_the_cached_pairs_in_reach(device):
+    """Two layers 2.3 τ apart, their pairs cached at rest (within CACHE_REACH τ, beyond the repulsion's 2τ: the pair
+    stages skip them), then τ raised 1.3× (the repulsion's reach now 2.6 of the old τ) and the layers sent at each
+    other 0.55 of the old τ a step, within the step test's budget: the cached pairs' least distance is read in units of
+    the τ the cache was built with, so the stages run and push. The cached pass gives the broad phase's bits (read in
+    the new τ, 2.99 old τ, the stages were skipped and nothing pushed)."""
+    def layers():
+        builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+        for z in (0.0, 2.3 * TAU):
+            builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, z), mass=0.05, **CLOTH)
+        builder.add_self_collision(thickness=TAU)
+        return builder.finalize(device)
+
+    dt, finals, pushed = 1e-3, [], []
+    for every_step in (False, True):
+        model = layers()
+        sc = model.self_contact
+        if every_step:
+            object.__setattr__(model, "self_contact", BroadPhaseEveryStep(sc))
+        integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
+        integrator.step(a, b, None, dt)  # at rest: the cache is built
+        a, b = b, a
+        if not every_step:
+            assert sc.listed()["cache"][0] > 0 and sc.counts()["pairs"].sum() == 0
+        sc.set(thickness=1.3 * TAU)
+        qd = np.zeros((model.particle_count, 3))
+        qd[:25, 2], qd[25:, 2] = 0.55 * TAU / dt, -0.55 * TAU / dt
+        a.particle_qd.assign(qd)
+        for _ in range(2):
+            integrator.step(a, b, None, dt)
+            a, b = b, a
+        finals.append(a.particle_q.numpy())
+        pushed.append(int(sc.counts()["pairs"].sum()))
+    np.testing.assert_array_equal(finals[0], finals[1])
+    assert pushed[0] > 0 and pushed[0] == pushed[1]
+
+
 def test_a_thickness_raised_mid_run_keeps_the_cache_honest(device):
     """Two layers 3.2 τ apart (their pairs watched, not cached), the cache built at rest, then τ raised 1.4× and the
     layers sent at each other 1.65 τ a step (γ = 0.49): the pairs outside the cache were CACHE_REACH τ of the τ it was
