@@ -863,20 +863,19 @@ def test_pair_buffers_grow_after_a_frame_that_dropped_pairs(device, monkeypatch)
     assert gap >= 0.5 * 0.004  # held apart by the floor at least
 
 
-def test_a_thickness_raised_mid_run_keeps_the_cached_pairs_in_reach(device):
-    """Two layers 2.3 τ apart, their pairs cached at rest (within CACHE_REACH τ, beyond the repulsion's 2τ: the pair
-    stages skip them), then τ raised 1.3× (the repulsion's reach now 2.6 of the old τ) and the layers sent at each
-    other 0.55 of the old τ a step, within the step test's budget: the cached pairs' least distance is read in units of
-    the τ the cache was built with, so the stages run and push. The cached pass gives the broad phase's bits (read in
-    the new τ, 2.99 old τ, the stages were skipped and nothing pushed)."""
+def raised_thickness_runs(device, *, gap: float, factor: float, closing: float, steps: int, **collision):
+    """Two 5 × 5 layers ``gap`` τ apart at rest, one step of 1 ms (the cache built), then τ raised ``factor`` times and
+    the layers sent at each other ``closing`` τ (the old τ) a step each, ``steps`` steps more: for the pass with its
+    cache and with ``BroadPhaseEveryStep``, ([final positions], [pairs pushed], the cached pass's (cached pairs,
+    pairs pushed) after the build)."""
     def layers():
         builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
-        for z in (0.0, 2.3 * TAU):
+        for z in (0.0, gap * TAU):
             builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, z), mass=0.05, **CLOTH)
-        builder.add_self_collision(thickness=TAU)
+        builder.add_self_collision(thickness=TAU, **collision)
         return builder.finalize(device)
 
-    dt, finals, pushed = 1e-3, [], []
+    dt, finals, pushed, built = 1e-3, [], [], None
     for every_step in (False, True):
         model = layers()
         sc = model.self_contact
@@ -886,16 +885,27 @@ def test_a_thickness_raised_mid_run_keeps_the_cached_pairs_in_reach(device):
         integrator.step(a, b, None, dt)  # at rest: the cache is built
         a, b = b, a
         if not every_step:
-            assert sc.listed()["cache"][0] > 0 and sc.counts()["pairs"].sum() == 0
-        sc.set(thickness=1.3 * TAU)
+            built = (int(sc.listed()["cache"][0]), int(sc.counts()["pairs"].sum()))
+        sc.set(thickness=factor * TAU)
         qd = np.zeros((model.particle_count, 3))
-        qd[:25, 2], qd[25:, 2] = 0.55 * TAU / dt, -0.55 * TAU / dt
+        qd[:25, 2], qd[25:, 2] = closing * TAU / dt, -closing * TAU / dt
         a.particle_qd.assign(qd)
-        for _ in range(2):
+        for _ in range(steps):
             integrator.step(a, b, None, dt)
             a, b = b, a
         finals.append(a.particle_q.numpy())
         pushed.append(int(sc.counts()["pairs"].sum()))
+    return finals, pushed, built
+
+
+def test_a_thickness_raised_mid_run_keeps_the_cached_pairs_in_reach(device):
+    """Two layers 2.3 τ apart, their pairs cached at rest (within CACHE_REACH τ, beyond the repulsion's 2τ: the pair
+    stages skip them), then τ raised 1.3× (the repulsion's reach now 2.6 of the old τ) and the layers sent at each
+    other 0.55 of the old τ a step, within the step test's budget: the cached pairs' least distance is read in units of
+    the τ the cache was built with, so the stages run and push. The cached pass gives the broad phase's bits (read in
+    the new τ, 2.99 old τ, the stages were skipped and nothing pushed)."""
+    finals, pushed, built = raised_thickness_runs(device, gap=2.3, factor=1.3, closing=0.55, steps=2)
+    assert built[0] > 0 and built[1] == 0
     np.testing.assert_array_equal(finals[0], finals[1])
     assert pushed[0] > 0 and pushed[0] == pushed[1]
 
@@ -905,32 +915,7 @@ def test_a_thickness_raised_mid_run_keeps_the_cache_honest(device):
     layers sent at each other 1.65 τ a step (γ = 0.49): the pairs outside the cache were CACHE_REACH τ of the τ it was
     built with apart, not of the new τ. The cached pass gives the broad phase's bits at every step and the layers
     stay apart (a bound from the new τ let them cross: the cap read its cache past what it holds)."""
-    tau = TAU
-
-    def layers():
-        builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
-        for z in (0.0, 3.2 * tau):
-            builder.add_cloth_grid(nx=5, ny=5, spacing=0.02, origin=(0.0, 0.0, z), mass=0.05, **CLOTH)
-        builder.add_self_collision(thickness=tau, relaxation=0.49)
-        return builder.finalize(device)
-
-    dt, finals = 1e-3, []
-    for every_step in (False, True):
-        model = layers()
-        sc = model.self_contact
-        if every_step:
-            object.__setattr__(model, "self_contact", BroadPhaseEveryStep(sc))
-        integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
-        integrator.step(a, b, None, dt)  # at rest: the cache is built
-        a, b = b, a
-        sc.set(thickness=1.4 * tau)
-        qd = np.zeros((model.particle_count, 3))
-        qd[:25, 2], qd[25:, 2] = 1.65 * tau / dt, -1.65 * tau / dt
-        a.particle_qd.assign(qd)
-        for _ in range(3):
-            integrator.step(a, b, None, dt)
-            a, b = b, a
-        finals.append(a.particle_q.numpy())
+    finals, _, _ = raised_thickness_runs(device, gap=3.2, factor=1.4, closing=1.65, steps=3, relaxation=0.49)
     np.testing.assert_array_equal(finals[0], finals[1])
     z = finals[0][:, 2]
     assert z[25:].min() > z[:25].max()  # the upper layer is still above the lower one
