@@ -253,8 +253,8 @@ def self_contact_bytes(*, particles: int, worlds: int, triangles: int, edges: in
                        precision: str = "float32", cuda: bool = False) -> int:
     """Device bytes of self-collision (``core/selfcontact.py``'s :class:`SelfContact`) [B], from its counts, before it
     is made: the surface's topology, each world's triangle boxes and BVH (with one CUDA build's temporaries), the live
-    values, counters, the cache's reach, floor and nearest pair (and a scratch one), flags, scan blocks and the cap's roles and targets, the repelled positions and the cache's anchors, and the two pair buffers
-    (the cache of ``CACHE_SLOTS`` × the cap's ``PAIRS_PER_VERTEX`` slots per surface vertex, each slot a key, four
+    values, counters, the cache's reach, floor and nearest pair (and a scratch one), flags, scan blocks and the cap's
+    roles and targets, the repelled positions and the cache's anchors, and the two pair buffers (the cache of ``CACHE_SLOTS`` × the cap's ``PAIRS_PER_VERTEX`` slots per surface vertex, each slot a key, four
     vertices, four CSR entries and a distance, with per-particle CSR counts, starts and cursors), and the cache's
     per-slot corrections and weights.
 
@@ -279,7 +279,8 @@ def self_contact_bytes(*, particles: int, worlds: int, triangles: int, edges: in
         return (8 + 16 + 16 + f) * slots + 4 * (size + 1) * 2 + 4 * size + 4 * w
 
     surface = 24 * t + 12 * e + 4 * n + 24 * w * t + 8 * w
-    live = (PARAM_COUNT * f + 4 * COUNTER_COUNT + 2 * f + 2 * 4) * w + 4 * (2 + FLAG_KINDS * w) + 4 * w * -(-n // SCAN_BLOCK)
+    live = ((PARAM_COUNT * f + 4 * COUNTER_COUNT + 2 * f + 2 * 4) * w + 4 * (2 + FLAG_KINDS * w)
+            + 4 * w * -(-n // SCAN_BLOCK))
     live += 2 * (4 + 3 * f) * size  # the cap's roles and pushers' targets, twice
     patches = patch_count(t, cuda)
     live += (4 + (8 + 16) * capacity) * w + (4 + 8 + 16) * w  # the cache's watch list, and the empty one

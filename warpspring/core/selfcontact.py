@@ -94,7 +94,7 @@ MAX_THICKNESS_SHARE = 0.7
 #: Threads per multiprocessor the broad phase aims for on CUDA (``broad_split``): a BVH query is a chain of dependent
 #: reads, hidden only by other threads' work.
 BROAD_THREADS_PER_SM = 512
-#: The most threads that share one triangle's query (``broad_split``); ``None`` there, or an int to force a split.
+#: The most threads that share one query (``broad_split``); ``BROAD_SPLIT``: ``None``, or an int to force a split.
 BROAD_SPLIT_MAX = 8
 BROAD_SPLIT = None
 #: The broad phase's queries: one per surface vertex and one per edge, each around its own box (True), or one per
@@ -106,8 +106,9 @@ BROAD_PER_PRIMITIVE = None
 
 
 def broad_split(device, queries: int) -> int:
-    """Threads per triangle of the broad phase (``kernels/selfcontact.py``, ``broad_kernel``): on CUDA, enough that
-    ``queries`` (the worlds' triangles) fill BROAD_THREADS_PER_SM threads a multiprocessor, at most BROAD_SPLIT_MAX;
+    """Threads per query of the broad phase (``kernels/selfcontact.py``, ``broad_kernel``; per watched pairs' list of
+    ``watch_kernel`` likewise): on CUDA, enough that ``queries`` (over all worlds) fill BROAD_THREADS_PER_SM threads a
+    multiprocessor, at most BROAD_SPLIT_MAX;
     1 on the CPU (a thread there is a loop iteration: the split would only repeat the traversal). ``BROAD_SPLIT``
     overrides it (benchmarks)."""
     if BROAD_SPLIT is not None:

@@ -518,9 +518,9 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False):
     against each reported leaf's box before its pairs: the same pairs in half the queries, each thread heavier
     (``core/selfcontact.py``'s ``BROAD_PER_PRIMITIVE`` chooses by device). A thread takes the reported triangles of its
     residue modulo ``split``: a small surface's few queries, each a long chain of dependent reads, spread over more
-    threads (the traversal is repeated, the pair tests shared out; ``broad_split``). Without ``swept`` it keeps the pairs
-    closer than reach_factor · τ + reach_add at the start and lowers each world's ``near_out`` to the least distance
-    among them (``apart_codec``, in units of the τ it lists with); with it the cap's pairs at (start, end)."""
+    threads (the traversal is repeated, the pair tests shared out; ``broad_split``). Without ``swept`` it keeps the
+    pairs closer than reach_factor · τ + reach_add at the start and lowers each world's ``near_out`` to the least
+    distance among them (``apart_codec``, in units of the τ it lists with); with it the cap's pairs at (start, end)."""
     vec3 = vec3_type(scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
     box_of, _, _, sweep_bounds, push_pair, kept_by_cap = _pair_funcs(scalar)
@@ -701,31 +701,30 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False):
             query_reach = reach
         if wp.static(per_primitive):
             # One primitive, its own query: a vertex (me < particle_count, where it is on the surface) or an edge.
-            if me < particle_count:
+            is_vertex = me < particle_count
+            ends = wp.vec2i(me, me)
+            if is_vertex:
                 if surface.vertex_owner[me] < 0:
                     return
-                lower, upper = query_box(wp.vec2i(me, me), base, mass_row, limit, cube, query_reach, particle_flags,
-                                         particle_inv_mass, particle_q_start, particle_q_end)
-                query = wp.bvh_query_aabb(surface.bvh[world], lower, upper)
-                t = int(0)
-                while wp.bvh_query_next(query, t):
-                    if t % split == part:
-                        vertex_leaf(world, base, me, t, reach, relaxation, mass_row, limit, cube, watch_reach,
-                                    thickness, surface, particle_flags, particle_inv_mass, particle_q_start,
-                                    particle_q_end, pairs_out, pair_distance_out, counters_out, watch_count_out,
-                                    watch_key_out, watch_vertex_out, near_out)
             else:
-                e = me - particle_count
-                lower, upper = query_box(surface.edge[e], base, mass_row, limit, cube, query_reach, particle_flags,
-                                         particle_inv_mass, particle_q_start, particle_q_end)
-                query = wp.bvh_query_aabb(surface.bvh[world], lower, upper)
-                t = int(0)
-                while wp.bvh_query_next(query, t):
-                    if t % split == part:
-                        edge_leaf(world, base, particle_count, e, vec3(lower), vec3(upper), t, reach, relaxation,
-                                  mass_row, limit, cube, watch_reach, thickness, surface, particle_flags,
-                                  particle_inv_mass, particle_q_start, particle_q_end, pairs_out, pair_distance_out,
-                                  counters_out, watch_count_out, watch_key_out, watch_vertex_out, near_out)
+                ends = surface.edge[me - particle_count]
+            lower, upper = query_box(ends, base, mass_row, limit, cube, query_reach, particle_flags, particle_inv_mass,
+                                     particle_q_start, particle_q_end)
+            query = wp.bvh_query_aabb(surface.bvh[world], lower, upper)
+            t = int(0)
+            while wp.bvh_query_next(query, t):
+                if t % split != part:
+                    continue
+                if is_vertex:
+                    vertex_leaf(world, base, me, t, reach, relaxation, mass_row, limit, cube, watch_reach, thickness,
+                                surface, particle_flags, particle_inv_mass, particle_q_start, particle_q_end,
+                                pairs_out, pair_distance_out, counters_out, watch_count_out, watch_key_out,
+                                watch_vertex_out, near_out)
+                else:
+                    edge_leaf(world, base, particle_count, me - particle_count, vec3(lower), vec3(upper), t, reach,
+                              relaxation, mass_row, limit, cube, watch_reach, thickness, surface, particle_flags,
+                              particle_inv_mass, particle_q_start, particle_q_end, pairs_out, pair_distance_out,
+                              counters_out, watch_count_out, watch_key_out, watch_vertex_out, near_out)
             return
         corners = surface.triangle[me]
         sides = surface.triangle_edges[me]
@@ -1083,8 +1082,8 @@ def apart_codec(scalar: type):
 @functools.cache
 def apart_funcs(scalar: type):
     """``(record, least)``: ``record(flags, world, world_count, distance, thickness)`` lowers world ``world``'s
-    FLAG_APART to ``distance`` [m] (``apart_codec``'s ``lower``); ``least(flags, world, world_count, thickness)`` reads it back [m]
-    (APART_NONE units, beyond any reach, where none was recorded)."""
+    FLAG_APART to ``distance`` [m] (``apart_codec``'s ``lower``); ``least(flags, world, world_count, thickness)``
+    reads it back [m] (APART_NONE units, beyond any reach, where none was recorded)."""
     lower, read = apart_codec(scalar)
 
     @wp.func

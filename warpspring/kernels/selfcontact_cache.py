@@ -297,6 +297,7 @@ def decide_kernel(scalar: type):
     vec3 = vec3_type(scalar)
     record, _ = apart_funcs(scalar)
     _, read_apart = apart_codec(scalar)
+    cached_in_reach = cached_in_reach_func(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
     def decide(
@@ -326,6 +327,7 @@ def decide_kernel(scalar: type):
         thickness = params[row, PARAM_THICKNESS]
         unit = thickness / scalar(KINEMATIC_STEPS)
         slack = (cache_reach[world] - scalar(REPULSION_REACH) * thickness) * scalar(1.0 - SAFETY)
+        drift = scalar(flags_in_out[flag_slot(FLAG_DRIFT, world, world_count)]) * unit  # the world's largest |r|
         if first == 0 and second == 0:
             kinematic = scalar(flags_in_out[flag_slot(FLAG_KINEMATIC, world, world_count)]) * unit
             step = scalar(flags_in_out[flag_slot(FLAG_STEP, world, world_count)]) * unit
@@ -337,19 +339,15 @@ def decide_kernel(scalar: type):
             # The cached pairs: their least distance at the anchors (in units of the build's τ) less the drifts' spread
             # (two largest |r|) bounds them at the step's start; beyond the repulsion's reach they are as far as the
             # pairs outside the cache, for which the test on the step above suffices.
-            drift = scalar(flags_in_out[flag_slot(FLAG_DRIFT, world, world_count)]) * unit
             cached = (read_apart(cache_near[world], cache_floor[world] / scalar(CACHE_REACH))
                       - scalar(2.0) * drift)
-            near = cache_count[world] > 0 and not (cached >= scalar(REPULSION_REACH) * thickness
-                                                   * scalar(1.0 + SAFETY))
-            if near or not (step <= budget) or far:
+            if cached_in_reach(cache_count[world], cached, thickness) or not (step <= budget) or far:
                 flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
         # Every pair outside the cache, watched or not, was this far apart at the anchors: CACHE_REACH τ of the τ
         # it was built with (a τ written since changes the repulsion's reach below, not what the cache holds).
         reach_all = wp.min(cache_reach[world], cache_floor[world])  # (0 where never built: R = 0)
         # The slack the cache would have without its watch list: where it suffices, the watched pairs need no check.
         unwatched = (reach_all - scalar(REPULSION_REACH) * thickness) * scalar(1.0 - SAFETY)
-        drift = scalar(flags_in_out[flag_slot(FLAG_DRIFT, world, world_count)]) * unit
         if drift <= scalar(0.5) * unwatched:  # False for a negative slack (R = 0: never built)
             record(flags_in_out, world, world_count, reach_all - scalar(2.0) * drift, thickness)
             return
@@ -392,11 +390,25 @@ def decide_kernel(scalar: type):
 
 
 @functools.cache
+def cached_in_reach_func(scalar: type):
+    """``cached_in_reach(count, least, thickness)``: whether a world's ``count`` cached pairs, none closer than
+    ``least`` [m] at the step's start, may hold one within the repulsion's reach REPULSION_REACH τ (1 + SAFETY): then
+    the pair stages run for them (module docstring, 5.)."""
+
+    @wp.func
+    def cached_in_reach(count: int, least: scalar, thickness: scalar) -> bool:
+        return count > 0 and not (least >= scalar(REPULSION_REACH) * thickness * scalar(1.0 + SAFETY))
+
+    return cached_in_reach
+
+
+@functools.cache
 def watch_kernel(scalar: type):
     """Kernel of the watched pairs' check (module docstring, 1.), after ``decide_kernel``, in the worlds it flagged
     FLAG_WATCH (elsewhere the drifts keep the watched pairs apart too), ``split`` threads per particle of every world
-    (adjacent), the k-th taking its world's watch slots local + k · particle_count, then every split · particle_count-th
-    (``core/selfcontact.py``'s ``broad_split``: a small cloth's long lists spread over more threads): each watched pair whose sides' patches (their owner
+    (adjacent), the k-th taking its world's watch slots local + k · particle_count, then every
+    split · particle_count-th (``core/selfcontact.py``'s ``broad_split``: a small cloth's long lists spread over more
+    threads): each watched pair whose sides' patches (their owner
     triangles', ``triangle_patch``) were both marked by ``decide_kernel`` (``patch_watch``), its distance at the step's start,
     with the narrow phase's arithmetic; a world with one closer than REPULSION_REACH τ (1 + SAFETY) is flagged for a
     rebuild (FLAG_REBUILD), and every distance checked is recorded in FLAG_APART (module docstring, 4.)."""
@@ -480,6 +492,7 @@ def anchor_kernel(scalar: type):
     REPULSION_REACH τ (1 + SAFETY) (``cache_near``, their least distance) sets FLAG_WORK."""
     vec3 = vec3_type(scalar)
     _, read_apart = apart_codec(scalar)
+    cached_in_reach = cached_in_reach_func(scalar)
 
     @flat_kernel(module="unique", enable_backward=False)
     def anchor(
@@ -516,8 +529,7 @@ def anchor_kernel(scalar: type):
             cache_floor_out[world] = scalar(CACHE_REACH) * thickness
             counters_out[world, COUNT_REBUILDS] += 1  # one thread per world
             # (its pairs at the step's start are at their anchors: the least of them as listed)
-            if cache.count[world] > 0 and not (read_apart(cache_near[world], thickness)
-                                               >= scalar(REPULSION_REACH) * thickness * scalar(1.0 + SAFETY)):
+            if cached_in_reach(cache.count[world], read_apart(cache_near[world], thickness), thickness):
                 flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
 
     return anchor
