@@ -150,6 +150,7 @@ def launch_bounds_option(bounds: tuple[int, int] | None) -> dict:
     launch; none for ``None`` (as many registers as the compiler takes)."""
     return {} if bounds is None else {"launch_bounds": (int(bounds[0]), int(bounds[1]))}
 
+
 def flat_launch(kernel, *, inputs=(), outputs=(), **launch_options) -> None:
     """``wp.launch`` of a :func:`flat_kernel` with struct instances among ``inputs`` and ``outputs``.
 
