@@ -26,6 +26,7 @@ launch, scan and refit.
     python bench/selfcontact.py --device cuda:0 --sizes 64 256 1024 --timed-frames 16 --example-frames 60 \
         --baseline-tree build/baseline-303e64f   # the same 16 frames in both trees (the pass's bits are the same)
     python bench/selfcontact.py --device cuda:0 --profile  # where the pass's time goes, per launch
+    python bench/selfcontact.py --device cuda:0 --sizes 64 256 1024 --broad-forms  # the cache's build by launch form
     python bench/selfcontact.py --device cpu --sizes 16 32 --example-frames 3 --baseline 65f7792
     python bench/selfcontact.py --device cpu --sizes 16 --radius-study   # the cap's pair counts by radius
     python bench/selfcontact.py --device cpu --sizes 32 64 --rebuild-study 4   # the cache's rebuilds by rule
@@ -210,6 +211,52 @@ def profile_frames(n: int, device, frames: int) -> list[str]:
         for name, total in sorted(times.items(), key=lambda item: -item[1]):
             rows.append(f"| {n} | {variant} | {name} | {calls[name] / substeps:.3g} | {total / substeps:.1f} |")
         rows.append(f"| {n} | {variant} | **sum** | | **{sum(times.values()) / substeps:.1f}** |")
+    return rows
+
+
+def broad_forms(n: int, device, repeats: int) -> list[str]:
+    """Markdown rows: the cache's build (the broad phase without ``swept``, its CSR and its watch list) on the settled
+    ``self`` scene, forced for every world, in each form of its launch: the vertices' and the edges' queries in one
+    launch or in two (``BROAD_SEPARATE``), by threads per block (``BROAD_BLOCK``); device time per build [µs] (CUDA
+    activity timer, mean of ``repeats`` uncaptured builds), the broad kernels' share, and the pairs and watched pairs
+    listed (the same in every form)."""
+    from warpspring.core import selfcontact as host
+    from warpspring.kernels.selfcontact import CACHE_REACH
+
+    if not device.is_cuda:
+        raise SystemExit("--broad-forms times the CUDA form of the broad phase (one query per primitive): give "
+                         "--device cuda:0")
+    runner = Runner(scene(n, device, True))
+    model = runner.sim.model
+    contact = model.self_contact
+    start = runner.sim.state.particle_q
+    worlds = model.world_count
+    active = contact.flags[2:2 + worlds]
+
+    def build():
+        active.fill_(1)
+        contact._list_pairs(contact.cache, contact.cache_bound, start, start, swept=False, reach_factor=CACHE_REACH,
+                            reach_add=0.0, counters=contact.counters, active=active, watch=True)
+
+    queries = (("vertices", model.particle_count), ("edges", contact.edge_count))
+    rows = []
+    for separate in (False, True):
+        for block in (32, 64, 128, 256):
+            contact.broad_launches = ([(kind, count, host.broad_split(model.device, worlds * count))
+                                       for kind, count in queries] if separate
+                                      else [("both", sum(count for _, count in queries), contact.broad_split)])
+            contact.broad_block = block
+            build()
+            wp.synchronize_device(device)
+            with wp.ScopedTimer("build", cuda_filter=wp.TIMING_ALL, synchronize=True, print=False,
+                                report_func=lambda *args: None) as timer:
+                for _ in range(repeats):
+                    build()
+            broad = [r.elapsed * 1e3 / repeats for r in timer.timing_results if "broad" in r.name]
+            every = sum(r.elapsed for r in timer.timing_results) * 1e3 / repeats
+            parts = " + ".join(f"{t:.0f}" for t in broad[:len(contact.broad_launches)])
+            rows.append(f"| {n} | {'two' if separate else 'one'} | {block} | {sum(broad):.0f} ({parts}) | {every:.0f} | "
+                        f"{int(contact.cache.count.numpy().sum())} | {int(contact.watch_count.numpy().sum())} |")
     return rows
 
 
@@ -657,6 +704,8 @@ def main():
                         help="threads per triangle of the broad phase (default: core/selfcontact.py's broad_split)")
     parser.add_argument("--broad-per-triangle", action="store_true",
                         help="the broad phase's queries one per triangle (default: core/selfcontact.py's setting)")
+    parser.add_argument("--broad-forms", action="store_true",
+                        help="time the cache's build in each form of the broad phase's launch instead (CUDA only)")
     parser.add_argument("--radius-study", action="store_true", help="count the cap's pairs by candidate rule instead")
     parser.add_argument("--rebuild-study", type=int, default=0, metavar="FRAMES",
                         help="count the cache's rebuilds by rule over FRAMES frames after the settling instead")
@@ -691,6 +740,13 @@ def main():
          f"branches are host tests), µs of device time per substep (τ = {THICKNESS} m, μ = {FRICTION})",
          ["N", "self-collision", "kernel", "calls per substep", "µs per substep"],
          lambda n: profile_frames(n, device, args.profile_frames)),
+        (args.broad_forms,
+         f"The pair cache's build per form of the broad phase's launch on {device.name}, Warp {wp.config.version}, "
+         f"{today}: the settled draped cloth (τ = {THICKNESS} m), every world rebuilt, device time [µs] a build "
+         f"(CUDA activity timer, mean of {args.repeats} uncaptured builds)",
+         ["N", "launches (vertices, edges)", "threads a block", "broad kernels (each)", "the whole build",
+          "pairs listed", "pairs watched"],
+         lambda n: broad_forms(n, device, args.repeats)),
         (args.profile,
          f"Self-collision pass per launch on {device.name}, Warp {wp.config.version}, {today}, the settled draped cloth "
          f"(τ = {THICKNESS} m, μ = {FRICTION}), mean of {args.repeats} uncaptured passes "

@@ -140,16 +140,27 @@ def test_broad_phase_equals_brute_force(device):
     np.testing.assert_allclose(nearest[checked], expected_nearest[checked], atol=1e-6)
 
 
-@pytest.mark.parametrize("per_primitive", [True, False])
+#: The broad phase's forms (``core/selfcontact.py``): one query per primitive, the vertices' and the edges' in two
+#: launches or in one; one query per triangle.
+BROAD_FORMS = ["per primitive, two launches", "per primitive, one launch", "per triangle"]
+
+
+def broad_form(monkeypatch, form: str) -> None:
+    """Force the broad phase's ``form`` (one of ``BROAD_FORMS``) for the models built after the call."""
+    monkeypatch.setattr(selfcontact_host, "BROAD_PER_PRIMITIVE", form != "per triangle")
+    monkeypatch.setattr(selfcontact_host, "BROAD_SEPARATE", form == "per primitive, two launches")
+
+
+@pytest.mark.parametrize("form", BROAD_FORMS)
 @pytest.mark.parametrize("split", [None, 3])
-def test_pair_list_equals_brute_force(device, split, per_primitive, monkeypatch):
+def test_pair_list_equals_brute_force(device, split, form, monkeypatch):
     """The broad phase lists each vertex–triangle and edge–edge pair within the reach exactly once, the same set
     as the all-pairs float64 reference (pairs within float32 rounding of the reach may fall either side), and
     a second run on a fresh model lists the same set; with each triangle's query shared by the device's number of
-    threads (``broad_split``: 1 on the CPU, up to 8 on CUDA) and by 3; with one query per primitive and one per
-    triangle."""
+    threads (``broad_split``: 1 on the CPU, up to 8 on CUDA) and by 3; in each of the broad phase's forms
+    (``BROAD_FORMS``)."""
     monkeypatch.setattr(selfcontact_host, "BROAD_SPLIT", split)
-    monkeypatch.setattr(selfcontact_host, "BROAD_PER_PRIMITIVE", per_primitive)
+    broad_form(monkeypatch, form)
     reach = 0.012
     runs = []
     for _ in range(2):
@@ -170,16 +181,16 @@ def test_pair_list_equals_brute_force(device, split, per_primitive, monkeypatch)
         assert set(map(tuple, a)) == set(map(tuple, b))
 
 
-@pytest.mark.parametrize("per_primitive", [True, False])
+@pytest.mark.parametrize("form", BROAD_FORMS)
 @pytest.mark.parametrize("split", [None, 3])
-def test_watch_list_equals_brute_force(device, split, per_primitive, monkeypatch):
+def test_watch_list_equals_brute_force(device, split, form, monkeypatch):
     """The cache's first build watches exactly the pairs between CACHE_REACH τ and WATCH_REACH τ apart (all-pairs
     float64 reference; pairs within float32 rounding of either reach may fall either side), each once; also with the
-    broad phase's queries shared by 3 threads (``broad_split``), one per primitive and one per triangle."""
+    broad phase's queries shared by 3 threads (``broad_split``), in each of its forms (``BROAD_FORMS``)."""
     from warpspring.kernels.selfcontact import CACHE_REACH, WATCH_REACH
 
     monkeypatch.setattr(selfcontact_host, "BROAD_SPLIT", split)
-    monkeypatch.setattr(selfcontact_host, "BROAD_PER_PRIMITIVE", per_primitive)
+    broad_form(monkeypatch, form)
 
     model = crumpled_pair(device)
     sc, state = model.self_contact, model.state()

@@ -103,6 +103,15 @@ BROAD_SPLIT = None
 #: H200, per triangle on the CPU, where its half as many queries made it 1.3-1.4x cheaper at 32²-64²
 #: (``bench/results/selfcontact.md``).
 BROAD_PER_PRIMITIVE = None
+#: With one query per primitive, the vertices' and the edges' queries as two launches, each kernel holding one kind
+#: of leaf test (True), or one launch over both (False); ``None``: two on CUDA. The draped cloth's cache build on an
+#: H200 (blocks of 64): 8.5 -> 6.7 ms at 1024², 565 -> 526 µs at 256², 173 -> 196 µs at 64²
+#: (``bench/results/selfcontact.md``, "Two launches").
+BROAD_SEPARATE = None
+#: Threads per block of the broad phase on CUDA (``None``: the model's block size). Each thread keeps its BVH
+#: traversal's stack in shared memory (132 B): in blocks of 256 the shared memory holds one block a multiprocessor
+#: (12.5 % occupancy); in blocks of 64 the registers bound it (the same build: 11.6 -> 8.5 ms at 1024² in one launch).
+BROAD_BLOCK = 64
 
 
 def broad_split(device, queries: int) -> int:
@@ -303,6 +312,12 @@ class SelfContact:
         self.broad_per_primitive = device.is_cuda if BROAD_PER_PRIMITIVE is None else bool(BROAD_PER_PRIMITIVE)
         self._broad_queries = n + self.edge_count if self.broad_per_primitive else self.triangle_count  # per world
         self.broad_split = broad_split(device, worlds * self._broad_queries)
+        # The broad phase's launches: (primitives, queries per world, threads per query).
+        separate = (device.is_cuda if BROAD_SEPARATE is None else bool(BROAD_SEPARATE)) and self.broad_per_primitive
+        self.broad_launches = ([(kind, count, broad_split(device, worlds * count))
+                                for kind, count in (("vertices", n), ("edges", self.edge_count))] if separate
+                               else [("both", self._broad_queries, self.broad_split)])
+        self.broad_block = (BROAD_BLOCK or model.block_dim) if device.is_cuda else model.block_dim
         self.watch_split = broad_split(device, worlds * n)  # the watched pairs' check likewise, per particle
         self._allocate(max(64, PAIRS_PER_VERTEX * int(np.count_nonzero(topology["vertex_owner"] >= 0))))
         # One BVH per world over the single-precision boxes of its triangles, built at the model's initial
@@ -326,9 +341,11 @@ class SelfContact:
         for kernel in scan_kernels():
             kernel.module.load(model.device, SCAN_THREADS)
         check_kernel(scalar).module.load(model.device, PATCH_THREADS)
-        per_primitive = self.broad_per_primitive
-        flat = [broad_kernel(scalar, False, per_primitive), broad_kernel(scalar, True, per_primitive),
-                reset_kernel(), fill_kernel(), decide_kernel(scalar), watch_kernel(scalar), anchor_kernel(scalar),
+        for swept in (False, True):
+            for primitives, _, _ in self.broad_launches:
+                broad_kernel(scalar, swept, self.broad_per_primitive, primitives).module.load(model.device,
+                                                                                             self.broad_block)
+        flat = [reset_kernel(), fill_kernel(), decide_kernel(scalar), watch_kernel(scalar), anchor_kernel(scalar),
                 repel_pairs_kernel(scalar),
                 repel_gather_kernel(scalar), cap_bounds_kernel(scalar), cap_gather_kernel(scalar),
                 cap_place_kernel(scalar), cap_mark_kernel(scalar), cap_check_kernel(scalar)]
@@ -538,9 +555,11 @@ class SelfContact:
         outputs = dict(pairs_out=pairs, pair_distance_out=pair_distance, counters_out=counters,
                        watch_count_out=watch_lists[0], watch_key_out=watch_lists[1], watch_vertex_out=watch_lists[2],
                        near_out=near)
-        flat_launch(broad_kernel(model.scalar, swept, self.broad_per_primitive), inputs=list(args.values()),
-                    outputs=list(outputs.values()), dim=model.world_count * self._broad_queries * self.broad_split,
-                    block_dim=model.block_dim, device=model.device)
+        for primitives, queries, split in self.broad_launches:
+            args["split"] = split
+            flat_launch(broad_kernel(model.scalar, swept, self.broad_per_primitive, primitives),
+                        inputs=list(args.values()), outputs=list(outputs.values()),
+                        dim=model.world_count * queries * split, block_dim=self.broad_block, device=model.device)
         tile_sums, tile_offsets, tile_prefixes = scan_kernels()
         tiles = self._scan_blocks
         worlds, n = model.world_count, model.particle_count

@@ -95,6 +95,30 @@ def block_barrier():
     ...
 
 
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+int* address = &counts.data[index];
+const unsigned int active = __activemask();
+const unsigned int peers = __match_any_sync(active, (unsigned long long)address);
+const int leader = __ffs(peers) - 1;
+const unsigned int lane = threadIdx.x & 31u;
+int first = 0;
+if (lane == (unsigned int)leader) first = atomicAdd(address, __popc(peers));
+first = __shfl_sync(peers, first, leader);
+return first + __popc(peers & ((1u << lane) - 1u));
+#else
+return wp::atomic_add(&counts.data[index], 1);
+#endif
+""")
+def atomic_slot(counts: wp.array[wp.int32], index: int) -> int:
+    """``counts[index]`` before adding 1 to it, atomically: a slot of a list that ``counts[index]`` counts. On CUDA the
+    active lanes of a warp that claim from the same counter add their number in one atomic and take consecutive
+    slots (warp-aggregated): a broad phase listing millions of pairs into one world's list otherwise queues them
+    all on one address. Which lane gets which slot is as arbitrary as with one atomic each. ``counts``
+    contiguous. (Named ``atomic_*``: the kernel conventions' check reads ``counts`` as written.)"""
+    ...
+
+
 def _block_reduce_source(combine: str) -> str:
     """C++ of a block-wide reduction of a float64 (``reduction_funcs``), ``combine(a, b)`` an expression of ``a`` and
     ``b``: each warp's lanes by shuffles, then warp 0 over the warps' results, then every lane reads the block's. Two

@@ -152,6 +152,7 @@ from .kinematics import particle_funcs
 from .precision import vec3_type
 from .worlds import world_and_index
 from .flatten import flat_kernel
+from .linalg import atomic_slot
 
 wp.set_module_options({"enable_backward": False})
 
@@ -447,7 +448,7 @@ def _pair_funcs(scalar: type):
     ):
         """Store a pair in its world's buffer (or count it as overflow) and count its vertices' entries."""
         capacity = pairs.key.shape[0] // pairs.count.shape[0]
-        slot = wp.atomic_add(pairs.count, world, 1)
+        slot = atomic_slot(pairs.count, world)
         fill = float(slot + 1) / float(capacity)
         if fill > wp.static(FILL_WATCHED):  # the list's fill, where it matters (float: no int32 overflow)
             wp.atomic_max(counters, world, COUNT_FILL, int(wp.min(fill, 1.0) * float(FILL_UNITS)))
@@ -509,7 +510,7 @@ def leaf_kernel(scalar: type, swept: bool):
 
 
 @functools.cache
-def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False):
+def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primitives: str = "both"):
     """The broad phase's kernel (module docstring). With ``per_primitive``, ``split`` threads (adjacent) per surface
     vertex (VT pairs) and per edge (EE pairs, kept from the lower edge) of every world, each querying the BVH around
     its primitive's own query box (its start, and with ``swept`` its end, grown by the reach). Without, ``split``
@@ -680,10 +681,16 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False):
         thread = tid // split
         part = tid - thread * split  # this thread takes the reported triangles t ≡ part (mod split)
         per_world = triangle_count
-        if wp.static(per_primitive):
+        if wp.static(per_primitive and primitives == "both"):
             per_world = particle_count + edge_count
+        if wp.static(per_primitive and primitives == "vertices"):
+            per_world = particle_count
+        if wp.static(per_primitive and primitives == "edges"):
+            per_world = edge_count
         world = thread // per_world
         me = thread - world * per_world
+        if wp.static(per_primitive and primitives == "edges"):
+            me += particle_count
         base = world * particle_count
         if world_enabled[world] == 0:
             return
@@ -702,6 +709,10 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False):
         if wp.static(per_primitive):
             # One primitive, its own query: a vertex (me < particle_count, where it is on the surface) or an edge.
             is_vertex = me < particle_count
+            if wp.static(primitives == "vertices"):
+                is_vertex = True
+            if wp.static(primitives == "edges"):
+                is_vertex = False
             ends = wp.vec2i(me, me)
             if is_vertex:
                 if surface.vertex_owner[me] < 0:
@@ -787,7 +798,7 @@ def watch_pair(world: int, key: wp.int64, vertex: wp.vec4i, watch_count: wp.arra
     """Store a watched pair in its world's watch list (module ``selfcontact_cache``); beyond its capacity only
     counted (the world's cache then takes the reach CACHE_REACH τ)."""
     capacity = watch_key.shape[0] // watch_count.shape[0]
-    slot = wp.atomic_add(watch_count, world, 1)
+    slot = atomic_slot(watch_count, world)
     if slot < capacity:
         watch_key[world * capacity + slot] = key
         watch_vertex[world * capacity + slot] = vertex
