@@ -252,9 +252,13 @@ def broad_forms(n: int, device, repeats: int) -> list[str]:
                                 report_func=lambda *args: None) as timer:
                 for _ in range(repeats):
                     build()
-            broad = [r.elapsed * 1e3 / repeats for r in timer.timing_results if "broad" in r.name]
+            per_kernel = collections.defaultdict(float)  # (in launch order: dicts keep their first insertion's)
+            for result in timer.timing_results:
+                if "broad" in result.name:
+                    per_kernel[result.name] += result.elapsed * 1e3 / repeats
+            broad = list(per_kernel.values())
             every = sum(r.elapsed for r in timer.timing_results) * 1e3 / repeats
-            parts = " + ".join(f"{t:.0f}" for t in broad[:len(contact.broad_launches)])
+            parts = " + ".join(f"{t:.0f}" for t in broad)
             rows.append(f"| {n} | {'two' if separate else 'one'} | {block} | {sum(broad):.0f} ({parts}) | {every:.0f} | "
                         f"{int(contact.cache.count.numpy().sum())} | {int(contact.watch_count.numpy().sum())} |")
     return rows
@@ -576,7 +580,7 @@ def example_cost(name: str, device, frames: int | None) -> dict:
 
 
 def measure_all(args, device) -> dict:
-    return {"device": device.name, "warp": wp.config.version, "warpspring": os.path.dirname(ws.__file__),
+    return {"device": device.name, "warp": wp.config.version, "warpspring": os.path.relpath(os.path.dirname(ws.__file__)),
             "sizes": {str(n): cost(n, device, args.seconds, args.pass_alone, args.timed_frames) for n in args.sizes},
             "examples": {name: example_cost(name, device, args.example_frames) for name in args.examples}}
 
