@@ -214,12 +214,13 @@ def profile_frames(n: int, device, frames: int) -> list[str]:
     return rows
 
 
-def broad_forms(n: int, device, repeats: int) -> list[str]:
+def broad_forms(n: int, device, repeats: int, min_blocks=()) -> list[str]:
     """Markdown rows: the cache's build (the broad phase without ``swept``, its CSR and its watch list) on the settled
     ``self`` scene, forced for every world, in each form of its launch: the vertices' and the edges' queries in one
     launch or in two (``BROAD_SEPARATE``), by threads per block (``BROAD_BLOCK``); device time per build [µs] (CUDA
     activity timer, mean of ``repeats`` uncaptured builds), the broad kernels' share, and the pairs and watched pairs
-    listed (the same in every form)."""
+    listed (the same in every form). Each K of ``min_blocks`` adds two launches in blocks of 64 whose registers allow
+    K blocks a multiprocessor (``BROAD_MIN_BLOCKS``)."""
     from warpspring.core import selfcontact as host
     from warpspring.kernels.selfcontact import CACHE_REACH
 
@@ -240,27 +241,29 @@ def broad_forms(n: int, device, repeats: int) -> list[str]:
 
     queries = (("vertices", model.particle_count), ("edges", contact.edge_count))
     rows = []
-    for separate in (False, True):
-        for block in (32, 64, 128, 256):
-            contact.broad_launches = ([(kind, count, host.broad_split(model.device, worlds * count))
-                                       for kind, count in queries] if separate
-                                      else [("both", sum(count for _, count in queries), contact.broad_split)])
-            contact.broad_block = block
-            build()
-            wp.synchronize_device(device)
-            with wp.ScopedTimer("build", cuda_filter=wp.TIMING_ALL, synchronize=True, print=False,
-                                report_func=lambda *args: None) as timer:
-                for _ in range(repeats):
-                    build()
-            per_kernel = collections.defaultdict(float)  # (in launch order: dicts keep their first insertion's)
-            for result in timer.timing_results:
-                if "broad" in result.name:
-                    per_kernel[result.name] += result.elapsed * 1e3 / repeats
-            broad = list(per_kernel.values())
-            every = sum(r.elapsed for r in timer.timing_results) * 1e3 / repeats
-            parts = " + ".join(f"{t:.0f}" for t in broad)
-            rows.append(f"| {n} | {'two' if separate else 'one'} | {block} | {sum(broad):.0f} ({parts}) | {every:.0f} | "
-                        f"{int(contact.cache.count.numpy().sum())} | {int(contact.watch_count.numpy().sum())} |")
+    forms = [(separate, block, None) for separate in (False, True) for block in (32, 64, 128, 256)]
+    for separate, block, blocks in forms + [(True, 64, k) for k in min_blocks]:
+        contact.broad_launches = ([(kind, count, host.broad_split(model.device, worlds * count))
+                                   for kind, count in queries] if separate
+                                  else [("both", sum(count for _, count in queries), contact.broad_split)])
+        contact.broad_block = block
+        contact.broad_bounds = (block, blocks) if blocks else None
+        build()
+        wp.synchronize_device(device)
+        with wp.ScopedTimer("build", cuda_filter=wp.TIMING_ALL, synchronize=True, print=False,
+                            report_func=lambda *args: None) as timer:
+            for _ in range(repeats):
+                build()
+        per_kernel = collections.defaultdict(float)  # (in launch order: dicts keep their first insertion's)
+        for result in timer.timing_results:
+            if "broad" in result.name:
+                per_kernel[result.name] += result.elapsed * 1e3 / repeats
+        broad = list(per_kernel.values())
+        every = sum(r.elapsed for r in timer.timing_results) * 1e3 / repeats
+        parts = " + ".join(f"{t:.0f}" for t in broad)
+        bound = f" (≥ {blocks} blocks)" if blocks else ""
+        rows.append(f"| {n} | {'two' if separate else 'one'} | {block}{bound} | {sum(broad):.0f} ({parts}) | "
+                    f"{every:.0f} | {int(contact.cache.count.numpy().sum())} | {int(contact.watch_count.numpy().sum())} |")
     return rows
 
 
@@ -710,6 +713,9 @@ def main():
                         help="the broad phase's queries one per triangle (default: core/selfcontact.py's setting)")
     parser.add_argument("--broad-forms", action="store_true",
                         help="time the cache's build in each form of the broad phase's launch instead (CUDA only)")
+    parser.add_argument("--broad-min-blocks", type=int, nargs="*", default=[],
+                        help="with --broad-forms, also two launches in blocks of 64 with their registers bounded so "
+                             "that K blocks fit a multiprocessor, each K")
     parser.add_argument("--radius-study", action="store_true", help="count the cap's pairs by candidate rule instead")
     parser.add_argument("--rebuild-study", type=int, default=0, metavar="FRAMES",
                         help="count the cache's rebuilds by rule over FRAMES frames after the settling instead")
@@ -750,7 +756,7 @@ def main():
          f"(CUDA activity timer, mean of {args.repeats} uncaptured builds)",
          ["N", "launches (vertices, edges)", "threads a block", "broad kernels (each)", "the whole build",
           "pairs listed", "pairs watched"],
-         lambda n: broad_forms(n, device, args.repeats)),
+         lambda n: broad_forms(n, device, args.repeats, args.broad_min_blocks)),
         (args.profile,
          f"Self-collision pass per launch on {device.name}, Warp {wp.config.version}, {today}, the settled draped cloth "
          f"(τ = {THICKNESS} m, μ = {FRICTION}), mean of {args.repeats} uncaptured passes "

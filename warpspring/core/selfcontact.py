@@ -112,6 +112,9 @@ BROAD_SEPARATE = None
 #: traversal's stack in shared memory (132 B): in blocks of 256 the shared memory holds one block a multiprocessor
 #: (12.5 % occupancy); in blocks of 64 the registers bound it (the same build: 11.6 -> 8.5 ms at 1024² in one launch).
 BROAD_BLOCK = 64
+#: The broad phase's blocks a multiprocessor its registers must allow on CUDA (``__launch_bounds__``; ``None``: the
+#: compiler's choice).
+BROAD_MIN_BLOCKS = None
 
 
 def broad_split(device, queries: int) -> int:
@@ -318,6 +321,7 @@ class SelfContact:
                                 for kind, count in (("vertices", n), ("edges", self.edge_count))] if separate
                                else [("both", self._broad_queries, self.broad_split)])
         self.broad_block = (BROAD_BLOCK or model.block_dim) if device.is_cuda else model.block_dim
+        self.broad_bounds = (self.broad_block, BROAD_MIN_BLOCKS) if device.is_cuda and BROAD_MIN_BLOCKS else None
         self.watch_split = broad_split(device, worlds * n)  # the watched pairs' check likewise, per particle
         self._allocate(max(64, PAIRS_PER_VERTEX * int(np.count_nonzero(topology["vertex_owner"] >= 0))))
         # One BVH per world over the single-precision boxes of its triangles, built at the model's initial
@@ -343,8 +347,8 @@ class SelfContact:
         check_kernel(scalar).module.load(model.device, PATCH_THREADS)
         for swept in (False, True):
             for primitives, _, _ in self.broad_launches:
-                broad_kernel(scalar, swept, self.broad_per_primitive, primitives).module.load(model.device,
-                                                                                             self.broad_block)
+                broad_kernel(scalar, swept, self.broad_per_primitive, primitives,
+                             self.broad_bounds).module.load(model.device, self.broad_block)
         flat = [reset_kernel(), fill_kernel(), decide_kernel(scalar), watch_kernel(scalar), anchor_kernel(scalar),
                 repel_pairs_kernel(scalar),
                 repel_gather_kernel(scalar), cap_bounds_kernel(scalar), cap_gather_kernel(scalar),
@@ -557,7 +561,7 @@ class SelfContact:
                        near_out=near)
         for primitives, queries, split in self.broad_launches:
             args["split"] = split
-            flat_launch(broad_kernel(model.scalar, swept, self.broad_per_primitive, primitives),
+            flat_launch(broad_kernel(model.scalar, swept, self.broad_per_primitive, primitives, self.broad_bounds),
                         inputs=list(args.values()), outputs=list(outputs.values()),
                         dim=model.world_count * queries * split, block_dim=self.broad_block, device=model.device)
         tile_sums, tile_offsets, tile_prefixes = scan_kernels()

@@ -151,7 +151,7 @@ import warp as wp
 from .kinematics import particle_funcs
 from .precision import vec3_type
 from .worlds import world_and_index
-from .flatten import flat_kernel
+from .flatten import flat_kernel, launch_bounds_option
 from .linalg import atomic_slot
 
 wp.set_module_options({"enable_backward": False})
@@ -510,7 +510,8 @@ def leaf_kernel(scalar: type, swept: bool):
 
 
 @functools.cache
-def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primitives: str = "both"):
+def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primitives: str = "both",
+                 bounds: tuple[int, int] | None = None):
     """The broad phase's kernel (module docstring). With ``per_primitive``, ``split`` threads (adjacent) per surface
     vertex (VT pairs) and per edge (EE pairs, kept from the lower edge) of every world, each querying the BVH around
     its primitive's own query box (its start, and with ``swept`` its end, grown by the reach). Without, ``split``
@@ -521,7 +522,9 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
     residue modulo ``split``: a small surface's few queries, each a long chain of dependent reads, spread over more
     threads (the traversal is repeated, the pair tests shared out; ``broad_split``). Without ``swept`` it keeps the
     pairs closer than reach_factor · τ + reach_add at the start and lowers each world's ``near_out`` to the least
-    distance among them (``apart_codec``, in units of the τ it lists with); with it the cap's pairs at (start, end)."""
+    distance among them (``apart_codec``, in units of the τ it lists with); with it the cap's pairs at (start, end).
+    ``primitives`` (with ``per_primitive``): "both" in one launch, or only the "vertices"' or the "edges'" queries
+    (thread ``me`` of a world then the ``me``-th vertex or edge). ``bounds``: ``flatten.launch_bounds_option``."""
     vec3 = vec3_type(scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
     box_of, _, _, sweep_bounds, push_pair, kept_by_cap = _pair_funcs(scalar)
@@ -649,7 +652,7 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
                               pair_distance_out, counters_out, watch_count_out, watch_key_out, watch_vertex_out,
                               near_out)
 
-    @flat_kernel(module="unique", enable_backward=False)
+    @flat_kernel(module="unique", enable_backward=False, **launch_bounds_option(bounds))
     def broad(
         # Model:
         particle_count: int,
