@@ -312,12 +312,22 @@ def _guard_parts(scalar: type, families: tuple, tiled: bool, external: bool, wor
         while i < particle_count:  # every stride-th particle from the lane's first
             base = world * particle_count
             p = base + i
+            # Every read of the particle's entries first, in one round trip: the stores below may alias them, and a
+            # read behind a store waits for its own (this pass ran at a fifth of the bandwidth, each warp stalled
+            # on its reads in turn: ncu on an H200, bench/results/guard_cost.md).
             x = particle_q[p]
             v = particle_qd[p]
+            x_before = previous_q_in_out[p]
+            v_before = previous_qd_in_out[p]
+            load_before = previous_load_in_out[p]
+            flags = particle_flags[p]
+            mass = particle_mass[wp.min(world, particle_mass.shape[0] - 1), i]
+            sums = pack(scalar(0.0), scalar(0.0))
+            if wp.static(counted):
+                sums = power_in_out[p]
             if wp.isfinite(x) and wp.isfinite(v):
-                mass = particle_mass[wp.min(world, particle_mass.shape[0] - 1), i]
                 worst = wp.max(worst, particle_strain(world, i, base, x, element_arrays, particle_q))
-                free = not is_kinematic(particle_flags[p])
+                free = not is_kinematic(flags)
                 if free:  # (a kinematic particle moves as prescribed: no runaway of its own; its drive's work: ``drive``)
                     held = vec3(scalar(0.0))  # a load constant within a frame: its value at the check
                     # (in float64: a runaway's |v|² overflows float32 long before its state does)
@@ -330,14 +340,13 @@ def _guard_parts(scalar: type, families: tuple, tiled: bool, external: bool, wor
                     if wp.static(external):
                         held = particle_force_ext[p]
                     steady = mass * input_vec3(inputs, world, INPUT_GRAVITY) + held
-                    before = previous_load_in_out[p]
+                    before = load_before
                     if not wp.isfinite(before):  # the first check: no earlier value
                         before = load
-                    work += wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - previous_q_in_out[p])
-                                      + lead * wp.dot(steady, v - previous_qd_in_out[p]))
+                    work += wp.float64(wp.dot(scalar(0.5) * (load + before) + held, x - x_before)
+                                      + lead * wp.dot(steady, v - v_before))
                     previous_load_in_out[p] = load
                 if wp.static(counted):  # (a kinematic particle's sums: its elements' dampers only)
-                    sums = power_in_out[p]
                     dissipated += wp.float64(sums_dissipated(sums))
                     family_work += wp.float64(sums_worked(sums))
                     power_in_out[p] = pack(scalar(0.0), scalar(0.0))
