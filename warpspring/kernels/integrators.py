@@ -195,15 +195,12 @@ def symplectic_euler_particle_func(scalar: type, features: ForceFeatures, contac
         v = qd_in[p]
         x_new = x + h * v
         v_new = v
-        held = pack(scalar(0.0), scalar(0.0))
-        if wp.static(counted):  # read with the state, not after the forces: its latency hides behind theirs
-            held = power_in_out[p]
         if is_kinematic(particle_flags[p]):
             if wp.static(counted):  # its elements' dampers: their share of the dampers' power (the drive's work has
                 # the rest)
                 _, dampers, _ = particle_force(world, i, base, x, v, False, particle_mass, element_arrays, inputs,
                                                particle_force_ext, q_in, qd_in)
-                power_in_out[p] = held + pack(-h * wp.dot(dampers, v), scalar(0.0))
+                power_in_out[p] += pack(-h * wp.dot(dampers, v), scalar(0.0))
         else:
             inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
             if wp.static(counted):
@@ -211,7 +208,7 @@ def symplectic_euler_particle_func(scalar: type, features: ForceFeatures, contac
                                                   particle_force_ext, q_in, qd_in)
                 x_new, v_new = update(x, v, f, inv_mass, h)
                 mean = (v + v_new) * (scalar(0.5) * h)
-                power_in_out[p] = held + pack(-wp.dot(dampers, mean), wp.dot(work, mean))
+                power_in_out[p] += pack(-wp.dot(dampers, mean), wp.dot(work, mean))
             else:
                 f = particle_force(world, i, base, x, v, particle_mass, element_arrays, inputs, particle_force_ext,
                                    q_in, qd_in)
