@@ -669,8 +669,9 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
     if new["examples"]:
         lines += [
             "",
-            "Examples: the scene's simulation loop (its integrator, fps, substeps; no guard, no USD writing), µs per "
-            "substep over the frames after the first",
+            f"Examples, the same call ({new['device']}, Warp {new['warp']}, {datetime.date.today()}): the scene's "
+            "simulation loop (its integrator, fps, substeps; no guard, no USD writing), µs per substep over the frames "
+            "after the first",
             "",
             "| example | particles | frames | µs per substep | baseline | baseline / now | pairs pushed per substep "
             "| cache rebuilds / cap fallbacks per substep | baseline: rebuilds / fallbacks |",
