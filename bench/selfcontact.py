@@ -146,7 +146,15 @@ def launch_labels(model) -> tuple[dict, object]:
     labelled = []
     for swept, stage in ((False, "repulsion"), (True, "cap")):
         labelled.append((kernels["leaf_kernel"](model.scalar, swept), f"triangle boxes ({stage})"))
-        if "broad_kernel" in kernels:  # one query per triangle, or per primitive (a later tree: its setting)
+        launches = getattr(model.self_contact, "broad_launches", None)
+        if launches is not None:  # its launches as the tree sets them (one, or the vertices' and the edges')
+            contact = model.self_contact
+            names = {"both": "VT + EE", "vertices": "VT", "edges": "EE"}
+            for primitives, _, _ in launches:
+                kernel = kernels["broad_kernel"](model.scalar, swept, contact.broad_per_primitive, primitives,
+                                                 contact.broad_bounds)
+                labelled.append((kernel, f"broad phase {names[primitives]} ({stage})"))
+        elif "broad_kernel" in kernels:  # one query per triangle, or per primitive (an earlier tree: its setting)
             per_primitive = getattr(model.self_contact, "broad_per_primitive", None)
             kernel = kernels["broad_kernel"](model.scalar, swept, *([per_primitive] if per_primitive is not None else []))
             labelled.append((kernel, f"broad phase VT + EE ({stage})"))
