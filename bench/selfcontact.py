@@ -138,6 +138,11 @@ class PassRunner(Runner):
             self._substeps()
 
 
+def bare_name(name: str) -> str:
+    """A CUDA activity's name as Warp gives it, less the module hash."""
+    return re.sub(r"_[0-9a-f]{8}$", "", name)
+
+
 def launch_labels(model) -> tuple[dict, object]:
     """The pass's kernels in words: (by id of the kernel object, a function naming a CUDA activity)."""
     import warpspring.core.selfcontact as host
@@ -188,7 +193,7 @@ def launch_labels(model) -> tuple[dict, object]:
         for mangled, text in by_name.items():
             if name.startswith(mangled) or mangled in name:
                 return text
-        return re.sub(r"_[0-9a-f]{8}$", "", name)
+        return bare_name(name)
 
     return by_id, label
 
@@ -204,7 +209,7 @@ def profile_frames(n: int, device, frames: int) -> list[str]:
         sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=None, use_graph=False)
         sim.reset(runner.sim.state)
         sim.step_frame()  # loads every module the uncaptured path needs
-        _, label = launch_labels(model) if self_collision else (None, lambda name: re.sub(r"_[0-9a-f]{8}$", "", name))
+        label = launch_labels(model)[1] if self_collision else bare_name
         times = collections.defaultdict(float)
         calls = collections.Counter()
         with wp.ScopedTimer("frames", cuda_filter=wp.TIMING_ALL, synchronize=True, print=False,
@@ -229,7 +234,7 @@ def broad_forms(n: int, device, repeats: int, min_blocks=()) -> list[str]:
     activity timer, mean of ``repeats`` uncaptured builds), the broad kernels' share, and the pairs and watched pairs
     listed (the same in every form). Each K of ``min_blocks`` adds two launches in blocks of 64 whose registers allow
     K blocks a multiprocessor (``BROAD_MIN_BLOCKS``)."""
-    from warpspring.core import selfcontact as host
+    from warpspring.kernels.flatten import launch_bounds
     from warpspring.kernels.selfcontact import CACHE_REACH
 
     if not device.is_cuda:
@@ -247,15 +252,12 @@ def broad_forms(n: int, device, repeats: int, min_blocks=()) -> list[str]:
         contact._list_pairs(contact.cache, contact.cache_bound, start, start, swept=False, reach_factor=CACHE_REACH,
                             reach_add=0.0, counters=contact.counters, active=active, watch=True)
 
-    queries = (("vertices", model.particle_count), ("edges", contact.edge_count))
     rows = []
     forms = [(separate, block, None) for separate in (False, True) for block in (32, 64, 128, 256)]
     for separate, block, blocks in forms + [(True, 64, k) for k in min_blocks]:
-        contact.broad_launches = ([(kind, count, host.broad_split(model.device, worlds * count))
-                                   for kind, count in queries] if separate
-                                  else [("both", sum(count for _, count in queries), contact.broad_split)])
+        contact.broad_launches = contact.broad_launch_forms(separate)
         contact.broad_block = block
-        contact.broad_bounds = (block, blocks) if blocks else None
+        contact.broad_bounds = launch_bounds(block, blocks)
         build()
         wp.synchronize_device(device)
         with wp.ScopedTimer("build", cuda_filter=wp.TIMING_ALL, synchronize=True, print=False,

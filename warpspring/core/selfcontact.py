@@ -15,7 +15,7 @@ import numpy as np
 import warp as wp
 
 from ..errors import ConfigError
-from ..kernels.flatten import flat_launch
+from ..kernels.flatten import flat_launch, launch_bounds
 from ..kernels.selfcontact import (
     CACHE_REACH,
     CACHE_SLOTS,
@@ -315,13 +315,10 @@ class SelfContact:
         self.broad_per_primitive = device.is_cuda if BROAD_PER_PRIMITIVE is None else bool(BROAD_PER_PRIMITIVE)
         self._broad_queries = n + self.edge_count if self.broad_per_primitive else self.triangle_count  # per world
         self.broad_split = broad_split(device, worlds * self._broad_queries)
-        # The broad phase's launches: (primitives, queries per world, threads per query).
-        separate = (device.is_cuda if BROAD_SEPARATE is None else bool(BROAD_SEPARATE)) and self.broad_per_primitive
-        self.broad_launches = ([(kind, count, broad_split(device, worlds * count))
-                                for kind, count in (("vertices", n), ("edges", self.edge_count))] if separate
-                               else [("both", self._broad_queries, self.broad_split)])
+        self.broad_launches = self.broad_launch_forms(
+            (device.is_cuda if BROAD_SEPARATE is None else bool(BROAD_SEPARATE)) and self.broad_per_primitive)
         self.broad_block = (BROAD_BLOCK or model.block_dim) if device.is_cuda else model.block_dim
-        self.broad_bounds = (self.broad_block, BROAD_MIN_BLOCKS) if device.is_cuda and BROAD_MIN_BLOCKS else None
+        self.broad_bounds = launch_bounds(self.broad_block, BROAD_MIN_BLOCKS if device.is_cuda else None)
         self.watch_split = broad_split(device, worlds * n)  # the watched pairs' check likewise, per particle
         self._allocate(max(64, PAIRS_PER_VERTEX * int(np.count_nonzero(topology["vertex_owner"] >= 0))))
         # One BVH per world over the single-precision boxes of its triangles, built at the model's initial
@@ -355,6 +352,15 @@ class SelfContact:
                 cap_place_kernel(scalar), cap_mark_kernel(scalar), cap_check_kernel(scalar)]
         for kernel in flat:
             kernel.module.load(model.device, model.block_dim)
+
+    def broad_launch_forms(self, separate: bool) -> list[tuple[str, int, int]]:
+        """The broad phase's launches, each (primitives, queries per world, threads per query): with ``separate`` (one
+        query per primitive only) the vertices' and the edges' apart, else one launch over all its queries."""
+        model = self.model
+        if not separate:
+            return [("both", self._broad_queries, self.broad_split)]
+        return [(kind, count, broad_split(model.device, model.world_count * count))
+                for kind, count in (("vertices", model.particle_count), ("edges", self.edge_count))]
 
     def _allocate(self, capacity: int) -> None:
         """The cap's list with ``capacity`` slots per world and the cache with CACHE_SLOTS times as many (emptied:

@@ -144,6 +144,12 @@ def _assemble(root: str, name: str, struct, path: tuple, namespace: dict) -> lis
     return statements
 
 
+def launch_bounds(threads: int, blocks: int | None) -> tuple[int, int] | None:
+    """A kernel factory's ``bounds`` (:func:`launch_bounds_option`): blocks of ``threads`` of which a multiprocessor
+    must hold ``blocks``; ``None`` (one cache key for every unbounded kernel) where ``blocks`` is."""
+    return None if blocks is None else (threads, blocks)
+
+
 def launch_bounds_option(bounds: tuple[int, int] | None) -> dict:
     """:func:`flat_kernel`'s option for ``bounds`` (threads a block, blocks a multiprocessor): on CUDA,
     ``__launch_bounds__``, which keeps the registers a thread within 65,536 / (threads · blocks) and refuses a wider

@@ -24,7 +24,7 @@ from ..state import State
 from ..control import Control
 from ..tracks import evaluate_input_tracks
 from .base import Integrator, step_arguments
-from ...kernels.flatten import flat_launch
+from ...kernels.flatten import flat_launch, launch_bounds
 
 
 class SymplecticEuler(Integrator):
@@ -142,7 +142,7 @@ class SymplecticEuler(Integrator):
                                           None if self.power is None else self.power.modes, animated is not None,
                                           pins is not None, targets, bool(model.shape_moving),
                                           None if check is None else check[0],
-                                          _bounds(FRAME_MAX_LANES, self.FRAME_MIN_BLOCKS)),
+                                          launch_bounds(FRAME_MAX_LANES, self.FRAME_MIN_BLOCKS)),
             inputs=[
                 model.particle_count,
                 lanes,
@@ -213,7 +213,7 @@ class SymplecticEuler(Integrator):
                 common["dim"], scratch = model.world_count, [state_in.particle_f, state_out.particle_f]
             else:
                 kernel = symplectic_euler_kernel(model.scalar, features, contacts, power,
-                                                 _bounds(model.block_dim, self.STEP_MIN_BLOCKS))
+                                                 launch_bounds(model.block_dim, self.STEP_MIN_BLOCKS))
                 scratch = []
             if blocks is None:
                 flat_launch(
@@ -260,12 +260,6 @@ def _no_world_inputs(device: str) -> WorldInputs:
     empty.track = empty.slot = empty.width = empty.order = wp.zeros(0, dtype=wp.int32, device=device)
     empty.start = wp.zeros(2, dtype=wp.int32, device=device)
     return empty
-
-
-def _bounds(threads: int, blocks: int | None) -> tuple[int, int] | None:
-    """A kernel factory's ``bounds`` (``flatten.launch_bounds_option``): blocks of ``threads`` of which a multiprocessor
-    must hold ``blocks``; ``None`` (one cache key for every unbounded kernel) where ``blocks`` is."""
-    return None if blocks is None else (threads, blocks)
 
 
 @functools.cache
