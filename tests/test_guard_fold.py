@@ -74,7 +74,7 @@ def test_a_folded_check_is_the_unfolded_one(device, integrator, monkeypatch):
                                bend=spring, pin=["top-left", "top-right"])
         model = builder.finalize(device)
         sim = ws.Simulator(model, integrator=ws.make_integrator(integrator, model), fps=60, substeps=24)
-        assert (sim.guard._fold is not None) == fold
+        assert (sim.guard._folding() is not None) == fold
         balances = []
         for _ in range(6):
             sim.step_frame()

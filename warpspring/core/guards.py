@@ -63,7 +63,9 @@ from ..kernels.guards import (
     guard_drag_kernel,
     guard_correction_energy_kernel,
     guard_correction_kinetic_kernel,
+    ENERGY_BY_PARTICLES,
     guard_energy_kernel,
+    guard_particle_energy_kernel,
     guard_fold_kernel,
     guard_kernels,
     guard_skip_clear_kernel,
@@ -202,15 +204,21 @@ class Guard(StepHook):
         # The loads at the last check (the trapezoidal rule; non-finite: none yet) and the energy balance.
         self._previous_load = wp.empty_like(model.particle_q)
         self._balance = wp.zeros((worlds, BALANCE_SLOTS), dtype=wp.float64, device=device)
-        # Per-block sums of the elements' elastic energy, the blocks of each family in turn.
+        # Per-block sums of the elements' elastic energy, the blocks of each family in turn: on CUDA a family with a
+        # gathered ``particle_energy`` hook walked by particles over the check's grid (``_walks``), the others by
+        # elements.
         self._energy_layout = []
         blocks = 0
         for family in model.families:
-            lanes = reduce_lanes(family.element_count, model.block_dim, self._tiled)
-            grid = reduce_launch_dim(worlds, family.element_count, lanes, per_lane, fill)
-            if family.element_count:
-                self._energy_layout.append((family, lanes, grid, blocks))
-                blocks += grid[1]
+            if not family.element_count:
+                continue
+            if self._walks(family):
+                lanes, grid = self._lanes, self._check_grid
+            else:
+                lanes = reduce_lanes(family.element_count, model.block_dim, self._tiled)
+                grid = reduce_launch_dim(worlds, family.element_count, lanes, per_lane, fill)
+            self._energy_layout.append((family, lanes, grid, blocks))
+            blocks += grid[1]
         self._energy_partials = wp.zeros((worlds, max(blocks, 1)), dtype=wp.float64, device=device)
         # ... and of their largest strain, where a family measures it per element (``guard_energy_kernel``; -1: none).
         self._strain_partials = wp.full((worlds, max(blocks, 1)), -1.0, dtype=wp.float64, device=device)
@@ -244,24 +252,20 @@ class Guard(StepHook):
         if getattr(model, "self_contact", None) is not None:
             self._correction_layout = [(None, self._lanes, self._check_grid, blocks)]
             blocks += self._check_grid[1]
-            for family, lanes, grid, _ in self._energy_layout:
+            for family, _, _, _ in self._energy_layout:  # (each family by its elements)
+                lanes = reduce_lanes(family.element_count, model.block_dim, self._tiled)
+                grid = reduce_launch_dim(worlds, family.element_count, lanes, per_lane, fill)
                 self._correction_layout.append((family, lanes, grid, blocks))
                 blocks += grid[1]
         self._running = wp.zeros((worlds, blocks, RUNNING_SLOTS), dtype=wp.float64, device=device)
+        # The running sums' blocks below the highest any pass has written to (``_running_out``): what a check gathers
+        # and clears (a 1024² cloth's layout holds ~29,000 blocks of drag and damper passes that its fused step, which
+        # counts that power itself, never launches).
+        self._running_end = 0
         # Where a world's partial sums outnumber what ``gather``'s one block per world adds in a few reads a lane, a
         # fold (``guard_fold_kernel``) first adds them in chunks, many blocks at once, into arrays of the same layout
-        # that ``gather`` reads instead (CUDA: the CPU's passes leave one partial per world).
+        # that ``gather`` reads instead (CUDA: the CPU's passes leave one partial per world): ``_folding``.
         self._fold = None
-        most = max(self._check_grid[1], self._energy_partials.shape[1], blocks)
-        above = FOLD_MIN_BLOCKS if FOLD_MIN_BLOCKS is not None else FOLD_ABOVE
-        if (self._tiled or FOLD_MIN_BLOCKS is not None) and most > above:  # (forced: on the CPU too)
-            chunks = -(-most // FOLD_CHUNK)
-            self._fold = ((worlds, chunks, FOLD_COLUMNS),
-                          wp.zeros((worlds, chunks, PARTIAL_SLOTS), dtype=wp.float64, device=device),
-                          wp.zeros((worlds, chunks), dtype=wp.float64, device=device),
-                          wp.full((worlds, chunks), -1.0, dtype=wp.float64, device=device),
-                          wp.zeros((worlds, chunks), dtype=wp.float64, device=device),
-                          wp.zeros((worlds, chunks, RUNNING_SLOTS), dtype=wp.float64, device=device))
         # The springs' dissipation counted by the scattered force pass (``DamperSums``; ``None``: by a pass of its
         # own after every substep), and the power of dampers, drag and loads from outside counted by the integrator's
         # per-particle force pass (``PowerSums``, ``_power_rule``; ``None``: by passes of their own). The integrator
@@ -483,6 +487,36 @@ class Guard(StepHook):
         last advance's frame that an error left unconsumed is dropped (:meth:`frame_checked`)."""
         self._frame_checked = False
 
+    def _running_out(self, end: int) -> wp.array:
+        """The running sums for a pass that writes their blocks below ``end``: from then on each check gathers them
+        (``_running_written``)."""
+        self._running_end = max(self._running_end, end)
+        return self._running
+
+    def _running_written(self) -> wp.array:
+        """The running sums' blocks below the highest any pass has written to (at least one): what a check gathers and
+        clears. A pass launches before the checks that gather it (a frame's substeps, then its check), so a graph
+        captured after it gathers its blocks; a pass switched off leaves its blocks in the view, cleared."""
+        return self._running[:, : max(self._running_end, 1)]
+
+    def _folding(self):
+        """The fold's launch grid and arrays where a world's partial sums outnumber ``FOLD_ABOVE`` (``FOLD_MIN_BLOCKS``
+        where set, on the CPU too), else ``None``; allocated at the first check that needs them."""
+        worlds, device = self.model.world_count, self.model.device
+        most = max(self._check_grid[1], self._energy_partials.shape[1], self._running_written().shape[1])
+        above = FOLD_MIN_BLOCKS if FOLD_MIN_BLOCKS is not None else FOLD_ABOVE
+        if not ((self._tiled or FOLD_MIN_BLOCKS is not None) and most > above):  # (forced: on the CPU too)
+            return None
+        chunks = -(-most // FOLD_CHUNK)
+        if self._fold is None or self._fold[0][1] != chunks:
+            self._fold = ((worlds, chunks, FOLD_COLUMNS),
+                          wp.zeros((worlds, chunks, PARTIAL_SLOTS), dtype=wp.float64, device=device),
+                          wp.zeros((worlds, chunks), dtype=wp.float64, device=device),
+                          wp.full((worlds, chunks), -1.0, dtype=wp.float64, device=device),
+                          wp.zeros((worlds, chunks), dtype=wp.float64, device=device),
+                          wp.zeros((worlds, chunks, RUNNING_SLOTS), dtype=wp.float64, device=device))
+        return self._fold
+
     def history(self) -> list:
         """The arrays a check carries to the next (the work put in, the last check's positions and loads,
         the energy balance, the running dissipation)."""
@@ -608,7 +642,7 @@ class Guard(StepHook):
         the frame runs it, the stepper says so (:meth:`frame_checked`). Only for the integrator and control the guard
         checks (a frame stepped by others reads another force and other power sums)."""
         model = self.model
-        if not CHECK_IN_FRAME[model.device.is_cuda] or not self.quiet_between_steps(steps) or self._fold is not None:
+        if not CHECK_IN_FRAME[model.device.is_cuda] or not self.quiet_between_steps(steps) or self._folding() is not None:
             return None
         if integrator is not self.integrator or control is not self.control:
             return None
@@ -638,7 +672,7 @@ class Guard(StepHook):
                                                                                  taken[:, :blocks])
         arrays.counts = self._frame_count_array
         arrays.limits = self._limits
-        arrays.running = self._running
+        arrays.running = self._running_written()
         arrays.values = self._values
         arrays.work_total = self._work_total
         arrays.balance = self._balance
@@ -670,7 +704,7 @@ class Guard(StepHook):
                     inputs=[model.particle_count, model.world_enabled, model.particle_flags,
                             self._work_arrays(working, specs), model.inputs, self._status, self._step_position,
                             self._step_velocity, self._step_start.particle_q, state.particle_q],
-                    outputs=[self._running], device=model.device)
+                    outputs=[self._running_out(self._drag_grid[1])], device=model.device)
         evaluate_input_tracks(model, state, families=timed)
 
     def _working_families(self) -> list:
@@ -709,7 +743,7 @@ class Guard(StepHook):
         wp.launch(kernel, dim=self._drag_grid, block_dim=self._lanes,
                   inputs=[model.particle_count, float(self.dt), model.world_enabled, model.particle_flags, model.inputs,
                           self._status, velocity],
-                  outputs=[self._running], device=model.device)
+                  outputs=[self._running_out(self._drag_grid[1])], device=model.device)
 
     def _count_corrections(self, state: State, sign: float) -> None:
         """Add ``sign`` times each world's kinetic (free particles) and elastic energy at ``state`` to the running work:
@@ -730,14 +764,14 @@ class Guard(StepHook):
                 wp.launch(guard_correction_kinetic_kernel(model.scalar, self._tiled), dim=grid, block_dim=lanes,
                           inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
                                   self._status, first, reduce_stride(grid), sign, state.particle_qd],
-                          outputs=[self._running], device=model.device)
+                          outputs=[self._running_out(first + grid[1])], device=model.device)
             else:
                 flat_launch(guard_correction_energy_kernel(model.scalar, family.spec(model), self._tiled),
                             dim=grid, block_dim=lanes,
                             inputs=[model.particle_count, family.element_count, model.world_enabled,
                                     family.arrays(model), model.inputs, self._status, first, reduce_stride(grid), sign,
                                     state.particle_q],
-                            outputs=[self._running], device=model.device)
+                            outputs=[self._running_out(first + grid[1])], device=model.device)
 
     def _dissipate(self, state: State) -> None:
         """Add the energy the dampers and drag took out over the last step to the blocks' running sums
@@ -752,12 +786,12 @@ class Guard(StepHook):
             wp.launch(drag, dim=self._drag_grid, block_dim=self._lanes,
                       inputs=[model.particle_count, h, model.world_enabled, model.particle_flags, model.inputs,
                               self._status, velocity],
-                      outputs=[self._running], device=model.device)
+                      outputs=[self._running_out(self._drag_grid[1])], device=model.device)
         for kernel, family, lanes, grid, offset in families:
             flat_launch(kernel, dim=grid, block_dim=lanes,
                         inputs=[model.particle_count, family.element_count, offset, h, model.world_enabled,
                                 family.arrays(model), model.inputs, self._status, position, velocity],
-                        outputs=[self._running], device=model.device)
+                        outputs=[self._running_out(offset + grid[1])], device=model.device)
 
     def _dissipation_kernels(self) -> tuple:
         """(the drag kernel or ``None``, [(kernel, family, lanes, grid, offset)] of the damped families whose
@@ -874,8 +908,8 @@ class Guard(StepHook):
         # Symplectic Euler's fused step (gathered springs, or none): its power summed per block into the running sums.
         fused = (getattr(integrator, "name", None) == "symplectic_euler" and (model.spring_gather or model.spring_count == 0)
                  and self._step_grid is not None)
-        integrator.power_blocks = ((self._running, self._step_grid, RUNNING_STEP_DISSIPATION, RUNNING_WORK) if fused
-                                   else None)
+        integrator.power_blocks = ((self._running_out(self._step_grid[1]), self._step_grid, RUNNING_STEP_DISSIPATION,
+                                    RUNNING_WORK) if fused else None)
 
     def _force_pass_dampers(self):
         """The springs' (family, lanes, grid, offset) where their scattered force pass counts their dampers'
@@ -920,7 +954,7 @@ class Guard(StepHook):
                     block_dim=lanes,
                     inputs=[model.particle_count, offset, h, model.spring_arrays(), state.particle_q,
                             state.particle_qd],
-                    outputs=[dampers.damper, dampers.dissipated, dampers.skip, self._running], device=model.device)
+                    outputs=[dampers.damper, dampers.dissipated, dampers.skip, self._running_out(offset + grid[1])], device=model.device)
 
     def reset(self) -> None:
         """Clear the record (device copies: between frames after a reported failure, :meth:`refresh`, and at a
@@ -1017,22 +1051,35 @@ class Guard(StepHook):
         model = self.model
         counted = self._dampers_counted()
         for family, lanes, grid, offset in self._energy_layout:
-            kernel = guard_energy_kernel(model.scalar, family.spec(model), self._tiled, counted.get(family.name, False))
+            spec, power = family.spec(model), counted.get(family.name, False)
+            if self._walks(family):
+                kernel = guard_particle_energy_kernel(model.scalar, spec, self._tiled, power)
+                inputs = [model.particle_count, offset]
+            else:
+                kernel = guard_energy_kernel(model.scalar, spec, self._tiled, power)
+                inputs = [model.particle_count, family.element_count, offset]
             flat_launch(kernel, dim=grid, block_dim=lanes,
-                        inputs=[model.particle_count, family.element_count, offset, model.world_enabled,
-                                family.arrays(model), model.inputs, self._status, state.particle_q, state.particle_qd,
-                                reduce_stride(grid)],
+                        inputs=[*inputs, model.world_enabled, family.arrays(model), model.inputs, self._status,
+                                state.particle_q, state.particle_qd, reduce_stride(grid)],
                         outputs=[self._energy_partials, self._strain_partials, self._power_partials],
                         device=model.device)
+
+    def _walks(self, family) -> bool:
+        """Whether the check's energy pass walks ``family`` by particles (``guard_particle_energy_kernel``: its
+        gathered ``particle_energy`` hook, where ``ENERGY_BY_PARTICLES`` says so for the device) rather than by
+        elements."""
+        return (ENERGY_BY_PARTICLES[self.model.device.is_cuda]
+                and getattr(family.spec(self.model).funcs(self.model.scalar), "particle_energy", None) is not None)
 
     def _gather(self, gather, state: State, substep: int, carry_only: bool = False) -> None:
         """Each world's sums and verdict (``carry_only``: a restart's closing term alone)."""
         model = self.model
         partials = (self._partials, self._energy_partials, self._strain_partials, self._power_partials)
-        running = self._running
-        if self._fold is not None:
-            grid, *folded = self._fold
-            wp.launch(guard_fold_kernel(), dim=grid, inputs=list(partials), outputs=[self._running, *folded],
+        running = self._running_written()
+        fold = self._folding()
+        if fold is not None:
+            grid, *folded = fold
+            wp.launch(guard_fold_kernel(), dim=grid, inputs=list(partials), outputs=[running, *folded],
                       device=model.device)
             partials, running = tuple(folded[:4]), folded[4]
         flat_launch(gather, dim=(model.world_count, self._lanes), block_dim=self._lanes,

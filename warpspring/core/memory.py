@@ -37,8 +37,8 @@ from dataclasses import dataclass
 
 from .. import checks
 from ..errors import ConfigError
-from ..kernels.guards import (BALANCE_SLOTS, CARRY_SLOTS, FOLD_ABOVE, FOLD_CHUNK, GUARD_FLOATS, GUARD_INTS, GUARD_LIMITS,
-                              PARTIAL_SLOTS, RUNNING_SLOTS)
+from ..kernels.guards import (BALANCE_SLOTS, CARRY_SLOTS, ENERGY_BY_PARTICLES, FOLD_ABOVE, FOLD_CHUNK, GUARD_FLOATS,
+                              GUARD_INTS, GUARD_LIMITS, PARTIAL_SLOTS, RUNNING_SLOTS)
 from ..kernels.inputs import INPUT_COUNT
 from ..kernels.linalg import CG_SHORT_SLOTS, REDUCE_FILL_BLOCKS, REDUCE_PER_LANE, reduce_launch_dim
 from ..kernels.selfcontact import (CACHE_SLOTS, COUNTER_COUNT, FLAG_KINDS, PAIRS_PER_VERTEX, PARAM_COUNT, PATCH_CHUNK,
@@ -600,16 +600,19 @@ def estimate_memory(
 
     check_blocks = check_blocks_of(n)
 
+    exact = not (shapes or self_contact_triangles or strain_limiting)
     path = guard_path(integrator=integrator, springs=s, gathered=spring_evaluation != "scatter", drag=drag,
-                      wind=wind, working=working_families, exact=not (shapes or self_contact_triangles
-                                                                       or strain_limiting),
+                      wind=wind, working=working_families, exact=exact,
                       spring_force_clamp=spring_force_clamp, plastic=plastic > 0,
                       particle_force_clamp=particle_force_clamp)
     others = [checks.count("family_elements", e, minimum=0) for e in family_elements]
-    energy_blocks = sum(check_blocks_of(e) for e in (s, h, *others))
+    by_elements = sum(check_blocks_of(e) for e in (s, h, *others))
+    # On CUDA gathered springs' energy is walked by particles, over the check's grid (``Guard._walks``).
+    walked = cuda and s > 0 and spring_evaluation != "scatter" and ENERGY_BY_PARTICLES[True]
+    energy_blocks = by_elements - check_blocks_of(s) + check_blocks if walked else by_elements
     # With self-collision, the blocks that count the energy its pass puts in: the check's grids of the particles and
     # of each family's elements (``Guard._count_corrections``).
-    corrections = check_blocks + energy_blocks if self_contact_triangles else 0
+    corrections = check_blocks + by_elements if self_contact_triangles else 0
     running_rows = blocks + element_blocks(s) + element_blocks(h) + corrections  # (CUDA) particles', dampers' blocks
     running = 8 * RUNNING_SLOTS * (running_rows if cuda else w * (1 + bool(s) + bool(h)) + corrections)
     dampers = (4 + (f + 8) * s) * w if path.dampers else 0
@@ -618,7 +621,11 @@ def estimate_memory(
                + 8 * CARRY_SLOTS * w)  # each world's share of the closing term among it
     # The check's fold on CUDA, where a world's partial sums are more than FOLD_ABOVE: the
     # partials, energy, strain, power and running sums of each chunk of FOLD_CHUNK of them (``Guard._fold``).
-    most = max(check_blocks, energy_blocks, running_rows) // max(w, 1)
+    # The running sums a check gathers are those some pass writes (``Guard._running_written``): none where the force
+    # pass counts the dampers' and drag's power itself and nothing else runs per substep.
+    written = 0 if (path.power == 1 and not path.dampers and not working_families and not self_contact_triangles
+                    and exact) else running_rows
+    most = max(check_blocks, energy_blocks, written) // max(w, 1)
     folds = cuda and most > FOLD_ABOVE
     fold = w * -(-most // FOLD_CHUNK) * 8 * (PARTIAL_SLOTS + 3 + RUNNING_SLOTS) if folds else 0
     guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * PARTIAL_SLOTS * check_blocks + 8 * GUARD_LIMITS * w

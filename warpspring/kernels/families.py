@@ -98,6 +98,11 @@ class FamilyFuncs(NamedTuple):
     # Optional, per element like ``energy``: ``element_strain(world, element, base, arrays, particle_q) -> float64``,
     # the strain ``strain`` gives at its particles (the same bits); the guard measures it in its energy pass.
     element_strain: Any = None
+    # Optional, gathered like ``force``: ``particle_energy(world, i, base, xi, vi, arrays, inputs, particle_q,
+    # particle_qd) -> (energy share, strain, dampers' power share)`` in float64, particle i's share of its elements'
+    # ``energy``, their largest ``element_strain`` and its share of their ``dissipation``; the shares of all particles
+    # sum to the elements' totals. The guard's energy pass then walks particles, not elements (CUDA).
+    particle_energy: Any = None
 
 
 @functools.cache

@@ -939,6 +939,77 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
     return element_energy_partials
 
 
+#: Whether the check's energy pass walks a family with a gathered ``particle_energy`` hook (gathered springs) by its
+#: particles (``guard_particle_energy_kernel``) rather than by its elements, per device (``is_cuda``; ``Guard._walks``):
+#: the CPU's one thread a world keeps the element pass (a grid cloth's vectorised one).
+ENERGY_BY_PARTICLES = {True: True, False: False}
+
+
+@functools.cache
+def guard_particle_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
+    """``guard_energy_kernel``'s partials, walked by particles instead of elements, for a family with a gathered
+    ``particle_energy`` hook (springs gathered at both their ends): each lane adds the shares of every stride-th
+    particle from its first (the check's particle grid, as ``measure``), so a grid cloth's pass reads the state and
+    the groups' values, not a spring table (a 1024² cloth's element pass read ~60 B for each of its 6.3 M springs:
+    6.8 µs of a 77.7 µs substep on an H200, its largest part of the check). The sums are the element pass's in
+    another order; the largest strain the same. On the CPU (``tiled`` off) one lane per world walks them all."""
+    vec3 = vec3_type(scalar)
+    block_sum, block_max = reduction_funcs(tiled)
+    funcs = spec.funcs(scalar)
+    Arrays = funcs.arrays
+    share = funcs.particle_energy
+    strained = getattr(funcs, "element_strain", None) is not None
+
+    @flat_kernel(module="unique", enable_backward=False, last=tuple(f"arrays__{path}" for path in funcs.idle))
+    def particle_energy_partials(
+        # Model:
+        particle_count: int,
+        offset: int,
+        world_enabled: wp.array[wp.int32],
+        arrays: Arrays,
+        inputs: wp.array2d[scalar],
+        # Guards in:
+        status: wp.array2d[wp.int32],
+        # State in:
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+        # Launch (the items between a lane's successive particles: ``linalg.reduce_stride``):
+        stride: int,
+        # Out:
+        partials_out: wp.array2d[wp.float64],
+        strain_partials_out: wp.array2d[wp.float64],
+        power_partials_out: wp.array2d[wp.float64],
+    ):
+        world, block, lane = wp.tid()
+        if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
+            return
+        base = world * particle_count
+        energy = wp.float64(0.0)
+        worst = wp.float64(-1.0)
+        taken = wp.float64(0.0)
+        i = block * wp.block_dim() + lane
+        while i < particle_count:
+            e, strain, p = share(world, i, base, particle_q[base + i], particle_qd[base + i], arrays, inputs,
+                                 particle_q, particle_qd)
+            energy += e
+            worst = wp.max(worst, strain)
+            taken += p
+            i += stride
+        energy = block_sum(energy)
+        if wp.static(strained):
+            worst = block_max(worst)
+        if wp.static(power):
+            taken = block_sum(taken)
+        if lane == 0:
+            partials_out[world, offset + block] = energy
+            if wp.static(strained):
+                strain_partials_out[world, offset + block] = worst
+            if wp.static(power):
+                power_partials_out[world, offset + block] = taken
+
+    return particle_energy_partials
+
+
 @functools.cache
 def pushing_force_func(scalar: type, specs: tuple, modes: tuple):
     """``push(world, i, base, xi, vi, element_arrays, inputs, particle_q, particle_qd) -> force``: the force [N] on

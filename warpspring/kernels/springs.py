@@ -435,10 +435,121 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
         rate = wp.dot(particle_qd[base + ends[1]] - particle_qd[base + ends[0]], n)
         return springs.damping[wp.min(world, springs.damping.shape[0] - 1), s] * rate * rate
 
+    @wp.func
+    def pair_share(i: int, j: int, xi: vec3, xj: vec3, vi: vec3, vj: vec3, rest: scalar, ke: scalar, kd: scalar,
+                   values: SpringLawValues):
+        """Particle i's share of the spring (i, j), which the gather meets at both its ends: half its elastic energy
+        [J] (``energy``'s terms), its strain [-] (``spring_strain``'s bits) and half its damper's power [W]
+        (``dissipation``'s terms); a padding entry (j = i) gives (0, -1, 0)."""
+        real = j != i
+        half = wp.where(real, wp.float64(0.5) * wp.float64(spring_energy(xi, xj, rest, ke, values)), wp.float64(0.0))
+        power = wp.float64(0.0)
+        if wp.static(not spec.law.clamp_force):
+            d = xj - xi
+            length = wp.length(d)
+            n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
+            rate = wp.dot(vj - vi, n)
+            kept = real
+            if wp.static(spec.law.plastic):
+                kept = real and rest >= scalar(0.0)
+            power = wp.where(kept, wp.float64(0.5) * wp.float64(kd * rate * rate), wp.float64(0.0))
+        return half, spring_strain(i, j, xi, xj, rest), power
+
+    @wp.func
+    def particle_energy(
+        world: int, i: int, base: int, xi: vec3, vi: vec3, springs: SpringArrays, inputs: wp.array2d[scalar],
+        particle_q: wp.array[vec3], particle_qd: wp.array[vec3],
+    ):
+        """(particle i's share of the elastic energy [J] of its springs, their largest strain [-] (-1: none), its share
+        of the power their dampers take out [W]) in float64, from the gathered incidence like ``force_split``: each
+        spring is met at both its ends, so the shares of all particles sum to ``energy`` and ``dissipation`` over the
+        springs (in another order) and the largest strain is ``element_strain``'s."""
+        energy = wp.float64(0.0)
+        worst = wp.float64(-1.0)
+        taken = wp.float64(0.0)
+        if wp.static(grouped):
+            values = spring_law_values(inputs, world)
+            stiffness_row = wp.min(world, springs.stiffness.shape[0] - 1)
+            damping_row = wp.min(world, springs.damping.shape[0] - 1)
+            rest = group_values()
+            ke = group_values()
+            kd = group_values()
+            for g in range(wp.static(group_count)):
+                s = springs.group_spring[g]
+                rest[g] = springs.rest_length[s]
+                ke[g] = springs.stiffness[stiffness_row, s]
+                kd[g] = springs.damping[damping_row, s]
+            head_local = springs.incidence.head_local
+            head_element = springs.incidence.head_element
+            nx = int(0)
+            ny = int(0)
+            row = int(0)
+            column = int(0)
+            if wp.static(grid):
+                nx = springs.grid_size[0]
+                ny = springs.grid_size[1]
+                row = i // nx
+                column = i - row * nx
+            for k in range(wp.static(head_slots)):
+                g = slot_group[k]
+                if g >= 0:
+                    if wp.static(grid):
+                        local = grid_neighbour(i, row, column, nx, ny, slot_dx[k], slot_dy[k])
+                    else:
+                        local = head_local[k, i]
+                    e, strained, power = pair_share(i, local, xi, particle_q[base + local], vi,
+                                                    particle_qd[base + local], rest[g], ke[g], kd[g], values)
+                else:
+                    local = head_local[k, i]
+                    s = head_element[k, i]
+                    e, strained, power = pair_share(i, local, xi, particle_q[base + local], vi,
+                                                    particle_qd[base + local], springs.rest_length[s],
+                                                    springs.stiffness[stiffness_row, s],
+                                                    springs.damping[damping_row, s], values)
+                energy += e
+                worst = wp.max(worst, strained)
+                taken += power
+        elif wp.static(spec.gathered):
+            values = spring_law_values(inputs, world)
+            rest_length = springs.rest_length
+            stiffness = springs.stiffness
+            damping = springs.damping
+            head_local = springs.incidence.head_local
+            head_element = springs.incidence.head_element
+            stiffness_row = wp.min(world, stiffness.shape[0] - 1)
+            damping_row = wp.min(world, damping.shape[0] - 1)
+            rest_base = int(0)
+            if wp.static(spec.law.plastic):
+                rest_base = world * stiffness.shape[1]
+            for k in range(wp.static(head_slots)):
+                local = head_local[k, i]
+                s = head_element[k, i]
+                e, strained, power = pair_share(i, local, xi, particle_q[base + local], vi, particle_qd[base + local],
+                                                rest_length[rest_base + s], stiffness[stiffness_row, s],
+                                                damping[damping_row, s], law_at(values, springs, s))
+                energy += e
+                worst = wp.max(worst, strained)
+                taken += power
+            if wp.static(tail):
+                tail_start = springs.incidence.tail_start
+                tail_local = springs.incidence.tail_local
+                tail_element = springs.incidence.tail_element
+                for t in range(tail_start[i], tail_start[i + 1]):
+                    local = tail_local[t]
+                    s = tail_element[t]
+                    e, strained, power = pair_share(i, local, xi, particle_q[base + local], vi,
+                                                    particle_qd[base + local], rest_length[rest_base + s],
+                                                    stiffness[stiffness_row, s], damping[damping_row, s],
+                                                    law_at(values, springs, s))
+                    energy += e
+                    worst = wp.max(worst, strained)
+                    taken += power
+        return energy, worst, taken
+
     # The gathered hooks find a spring's other end in the incidence entry, never in ``indices``.
     return FamilyFuncs(SpringArrays, force, product, strain, energy, ("indices", *spec.incidence.idle()),
                        dissipation=dissipation, split=force_split if splittable else None,
-                       element_strain=element_strain)
+                       element_strain=element_strain, particle_energy=particle_energy if spec.gathered else None)
 
 
 class SweepFuncs(NamedTuple):
