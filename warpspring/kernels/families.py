@@ -99,9 +99,9 @@ class FamilyFuncs(NamedTuple):
     # the strain ``strain`` gives at its particles (the same bits); the guard measures it in its energy pass.
     element_strain: Any = None
     # Optional, gathered like ``force``: ``particle_energy(world, i, base, xi, vi, arrays, inputs, particle_q,
-    # particle_qd) -> (energy share, strain, dampers' power share)`` in float64, particle i's share of its elements'
-    # ``energy``, their largest ``element_strain`` and its share of their ``dissipation``; the shares of all particles
-    # sum to the elements' totals. The guard's energy pass then walks particles, not elements (CUDA).
+    # particle_qd) -> (energy, strain, dampers' power)`` in float64 of the elements particle i stands for (each element
+    # at one of its particles): their ``energy``, largest ``element_strain`` and ``dissipation``, so that the
+    # particles' values sum to the elements' totals. The guard's energy pass then walks particles, not elements.
     particle_energy: Any = None
 
 

@@ -948,7 +948,7 @@ ENERGY_BY_PARTICLES = {True: True, False: False}
 @functools.cache
 def guard_particle_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
     """``guard_energy_kernel``'s partials, walked by particles instead of elements, for a family with a gathered
-    ``particle_energy`` hook (springs gathered at both their ends): each lane adds the shares of every stride-th
+    ``particle_energy`` hook (each spring at the lower of its two ends): each lane adds the values of every stride-th
     particle from its first (the check's particle grid, as ``measure``), so a grid cloth's pass reads the state and
     the groups' values, not a spring table (a 1024² cloth's element pass read ~60 B for each of its 6.3 M springs:
     6.8 µs of a 77.7 µs substep on an H200, its largest part of the check). The sums are the element pass's in

@@ -211,6 +211,9 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
     directions = spec.grid_slots if grid else ((0, 0),) * max(head_slots, 1)
     slot_dx = wp.constant(wp.types.vector(length=max(head_slots, 1), dtype=wp.int32)(*(d[0] for d in directions)))
     slot_dy = wp.constant(wp.types.vector(length=max(head_slots, 1), dtype=wp.int32)(*(d[1] for d in directions)))
+    # Whether each slot's direction points to a later particle (i + dy·nx + dx > i): the slot ``particle_energy`` walks.
+    slot_forward = wp.constant(wp.types.vector(length=max(head_slots, 1), dtype=wp.int32)(
+        *(int(d[1] > 0 or (d[1] == 0 and d[0] > 0)) for d in directions)))
 
     @wp.func
     def spring_block(
@@ -436,34 +439,32 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
         return springs.damping[wp.min(world, springs.damping.shape[0] - 1), s] * rate * rate
 
     @wp.func
-    def pair_share(i: int, j: int, xi: vec3, xj: vec3, vi: vec3, vj: vec3, rest: scalar, ke: scalar, kd: scalar,
+    def pair_terms(i: int, j: int, xi: vec3, xj: vec3, vi: vec3, vj: vec3, rest: scalar, ke: scalar, kd: scalar,
                    values: SpringLawValues):
-        """Particle i's share of the spring (i, j), which the gather meets at both its ends: half its elastic energy
-        [J] (``energy``'s terms), its strain [-] (``spring_strain``'s bits) and half its damper's power [W]
-        (``dissipation``'s terms); a padding entry (j = i) gives (0, -1, 0)."""
-        real = j != i
-        half = wp.where(real, wp.float64(0.5) * wp.float64(spring_energy(xi, xj, rest, ke, values)), wp.float64(0.0))
+        """The spring (i, j)'s elastic energy [J] (``energy``'s terms), strain [-] (``spring_strain``'s bits) and its
+        damper's power [W] (``dissipation``'s terms), in float64."""
         power = wp.float64(0.0)
         if wp.static(not spec.law.clamp_force):
             d = xj - xi
             length = wp.length(d)
             n = d * wp.where(length > scalar(COINCIDENT_DISTANCE), scalar(1.0) / length, scalar(0.0))
             rate = wp.dot(vj - vi, n)
-            kept = real
+            power = wp.float64(kd * rate * rate)
             if wp.static(spec.law.plastic):
-                kept = real and rest >= scalar(0.0)
-            power = wp.where(kept, wp.float64(0.5) * wp.float64(kd * rate * rate), wp.float64(0.0))
-        return half, spring_strain(i, j, xi, xj, rest), power
+                power = wp.where(rest >= scalar(0.0), power, wp.float64(0.0))
+        return wp.float64(spring_energy(xi, xj, rest, ke, values)), spring_strain(i, j, xi, xj, rest), power
 
     @wp.func
     def particle_energy(
         world: int, i: int, base: int, xi: vec3, vi: vec3, springs: SpringArrays, inputs: wp.array2d[scalar],
         particle_q: wp.array[vec3], particle_qd: wp.array[vec3],
     ):
-        """(particle i's share of the elastic energy [J] of its springs, their largest strain [-] (-1: none), its share
-        of the power their dampers take out [W]) in float64, from the gathered incidence like ``force_split``: each
-        spring is met at both its ends, so the shares of all particles sum to ``energy`` and ``dissipation`` over the
-        springs (in another order) and the largest strain is ``element_strain``'s."""
+        """(the elastic energy [J] of the springs from particle i to particles after it, their largest strain [-] (-1:
+        none), the power their dampers take out [W]) in float64, from the gathered incidence like ``force_split``:
+        each spring at the lower of its two ends (on a grid the slots whose direction points forward, known when the
+        kernel compiles; a padding entry, the particle itself, is never after it), so the particles' values sum to
+        ``energy`` and ``dissipation`` over the springs (in another order) and their largest strain is
+        ``element_strain``'s."""
         energy = wp.float64(0.0)
         worst = wp.float64(-1.0)
         taken = wp.float64(0.0)
@@ -491,24 +492,25 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
                 row = i // nx
                 column = i - row * nx
             for k in range(wp.static(head_slots)):
-                g = slot_group[k]
-                if g >= 0:
-                    if wp.static(grid):
-                        local = grid_neighbour(i, row, column, nx, ny, slot_dx[k], slot_dy[k])
-                    else:
-                        local = head_local[k, i]
-                    e, strained, power = pair_share(i, local, xi, particle_q[base + local], vi,
-                                                    particle_qd[base + local], rest[g], ke[g], kd[g], values)
-                else:
+                g = slot_group[k]  # constants once the loop is unrolled: the branches compile away
+                local = int(-1)  # (a backward grid slot: none)
+                if g < 0 or not wp.static(grid):
                     local = head_local[k, i]
-                    s = head_element[k, i]
-                    e, strained, power = pair_share(i, local, xi, particle_q[base + local], vi,
-                                                    particle_qd[base + local], springs.rest_length[s],
-                                                    springs.stiffness[stiffness_row, s],
-                                                    springs.damping[damping_row, s], values)
-                energy += e
-                worst = wp.max(worst, strained)
-                taken += power
+                elif slot_forward[k] != 0:
+                    local = grid_neighbour(i, row, column, nx, ny, slot_dx[k], slot_dy[k])
+                if local > i:
+                    if g >= 0:
+                        e, strained, power = pair_terms(i, local, xi, particle_q[base + local], vi,
+                                                        particle_qd[base + local], rest[g], ke[g], kd[g], values)
+                    else:
+                        s = head_element[k, i]
+                        e, strained, power = pair_terms(i, local, xi, particle_q[base + local], vi,
+                                                        particle_qd[base + local], springs.rest_length[s],
+                                                        springs.stiffness[stiffness_row, s],
+                                                        springs.damping[damping_row, s], values)
+                    energy += e
+                    worst = wp.max(worst, strained)
+                    taken += power
         elif wp.static(spec.gathered):
             values = spring_law_values(inputs, world)
             rest_length = springs.rest_length
@@ -523,27 +525,30 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
                 rest_base = world * stiffness.shape[1]
             for k in range(wp.static(head_slots)):
                 local = head_local[k, i]
-                s = head_element[k, i]
-                e, strained, power = pair_share(i, local, xi, particle_q[base + local], vi, particle_qd[base + local],
-                                                rest_length[rest_base + s], stiffness[stiffness_row, s],
-                                                damping[damping_row, s], law_at(values, springs, s))
-                energy += e
-                worst = wp.max(worst, strained)
-                taken += power
-            if wp.static(tail):
-                tail_start = springs.incidence.tail_start
-                tail_local = springs.incidence.tail_local
-                tail_element = springs.incidence.tail_element
-                for t in range(tail_start[i], tail_start[i + 1]):
-                    local = tail_local[t]
-                    s = tail_element[t]
-                    e, strained, power = pair_share(i, local, xi, particle_q[base + local], vi,
+                if local > i:
+                    s = head_element[k, i]
+                    e, strained, power = pair_terms(i, local, xi, particle_q[base + local], vi,
                                                     particle_qd[base + local], rest_length[rest_base + s],
                                                     stiffness[stiffness_row, s], damping[damping_row, s],
                                                     law_at(values, springs, s))
                     energy += e
                     worst = wp.max(worst, strained)
                     taken += power
+            if wp.static(tail):
+                tail_start = springs.incidence.tail_start
+                tail_local = springs.incidence.tail_local
+                tail_element = springs.incidence.tail_element
+                for t in range(tail_start[i], tail_start[i + 1]):
+                    local = tail_local[t]
+                    if local > i:
+                        s = tail_element[t]
+                        e, strained, power = pair_terms(i, local, xi, particle_q[base + local], vi,
+                                                        particle_qd[base + local], rest_length[rest_base + s],
+                                                        stiffness[stiffness_row, s], damping[damping_row, s],
+                                                        law_at(values, springs, s))
+                        energy += e
+                        worst = wp.max(worst, strained)
+                        taken += power
         return energy, worst, taken
 
     # The gathered hooks find a spring's other end in the incidence entry, never in ``indices``.
