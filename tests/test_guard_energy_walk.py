@@ -1,6 +1,6 @@
 """The check's energy pass walked by particles (``kernels/guards.py``: ``guard_particle_energy_kernel``, the springs'
-gathered ``particle_energy`` hook, CUDA's default) against the pass walked by springs (the CPU's): each spring met at
-both its ends, half at each, so the energy, the dampers' power at the check and the energy balance agree to float64
+gathered ``particle_energy`` hook, CUDA's default) against the pass walked by springs (the CPU's): each spring at the
+lower of its two ends, so the energy, the dampers' power at the check and the energy balance agree to float64
 rounding of sums taken in another order, and the largest strain to the bit, frame after frame."""
 
 import numpy as np

@@ -64,6 +64,7 @@ from ..kernels.guards import (
     guard_correction_energy_kernel,
     guard_correction_kinetic_kernel,
     ENERGY_BY_PARTICLES,
+    ENERGY_WALK_MIN_BLOCKS,
     guard_energy_kernel,
     guard_particle_energy_kernel,
     guard_fold_kernel,
@@ -79,7 +80,7 @@ from ..kernels.guards import (
     frame_check_arrays_type,
 )
 from ..kernels.families import elements, fill_elements
-from ..kernels.flatten import flat_launch
+from ..kernels.flatten import flat_launch, launch_bounds
 from ..kernels.linalg import CPU_PER_LANE, REDUCE_FILL_BLOCKS, REDUCE_PER_LANE, reduce_lanes, reduce_launch_dim, reduce_stride
 from ..kernels.forces import POWER_DAMPERS, POWER_NONE, POWER_WORK, counts_work, power_sums_funcs
 from ..kernels.springs import DAMPER_MEAN_RATE, DAMPER_TRAPEZOID
@@ -1053,7 +1054,8 @@ class Guard(StepHook):
         for family, lanes, grid, offset in self._energy_layout:
             spec, power = family.spec(model), counted.get(family.name, False)
             if self._walks(family):
-                kernel = guard_particle_energy_kernel(model.scalar, spec, self._tiled, power)
+                bounds = launch_bounds(lanes, ENERGY_WALK_MIN_BLOCKS) if self._tiled else None
+                kernel = guard_particle_energy_kernel(model.scalar, spec, self._tiled, power, bounds)
                 inputs = [model.particle_count, offset]
             else:
                 kernel = guard_energy_kernel(model.scalar, spec, self._tiled, power)

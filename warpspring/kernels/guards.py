@@ -79,7 +79,7 @@ from .linalg import block_barrier, reduction_funcs
 from .precision import vec3_type
 from .springs import COINCIDENT_DISTANCE, SpringSpec, damper_step_func, spring_arrays_type, spring_sweep_funcs
 from .sweep import grid_energy_pass, grid_vectorised
-from .flatten import flat_kernel
+from .flatten import flat_kernel, launch_bounds_option
 
 wp.set_module_options({"enable_backward": False})
 
@@ -943,16 +943,21 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
 #: particles (``guard_particle_energy_kernel``) rather than by its elements, per device (``is_cuda``; ``Guard._walks``):
 #: the CPU's one thread a world keeps the element pass (a grid cloth's vectorised one).
 ENERGY_BY_PARTICLES = {True: True, False: False}
+#: Blocks of the check's lanes a multiprocessor must hold in that pass on CUDA (``__launch_bounds__``; ``None``: as
+#: many registers as the compiler takes).
+ENERGY_WALK_MIN_BLOCKS = 3
 
 
 @functools.cache
-def guard_particle_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
+def guard_particle_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False,
+                                 bounds: tuple[int, int] | None = None):
     """``guard_energy_kernel``'s partials, walked by particles instead of elements, for a family with a gathered
     ``particle_energy`` hook (each spring at the lower of its two ends): each lane adds the values of every stride-th
     particle from its first (the check's particle grid, as ``measure``), so a grid cloth's pass reads the state and
     the groups' values, not a spring table (a 1024² cloth's element pass read ~60 B for each of its 6.3 M springs:
     6.8 µs of a 77.7 µs substep on an H200, its largest part of the check). The sums are the element pass's in
-    another order; the largest strain the same. On the CPU (``tiled`` off) one lane per world walks them all."""
+    another order; the largest strain the same. On the CPU (``tiled`` off) one lane per world walks them all.
+    ``bounds`` (threads a block, blocks a multiprocessor): ``flatten.launch_bounds_option``."""
     vec3 = vec3_type(scalar)
     block_sum, block_max = reduction_funcs(tiled)
     funcs = spec.funcs(scalar)
@@ -960,7 +965,8 @@ def guard_particle_energy_kernel(scalar: type, spec, tiled: bool, power: bool = 
     share = funcs.particle_energy
     strained = getattr(funcs, "element_strain", None) is not None
 
-    @flat_kernel(module="unique", enable_backward=False, last=tuple(f"arrays__{path}" for path in funcs.idle))
+    @flat_kernel(module="unique", enable_backward=False, last=tuple(f"arrays__{path}" for path in funcs.idle),
+                 **launch_bounds_option(bounds))
     def particle_energy_partials(
         # Model:
         particle_count: int,

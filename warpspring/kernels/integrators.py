@@ -195,26 +195,25 @@ def symplectic_euler_particle_func(scalar: type, features: ForceFeatures, contac
         v = qd_in[p]
         x_new = x + h * v
         v_new = v
-        kinematic = is_kinematic(particle_flags[p])
-        if wp.static(counted):
-            # One evaluation serves both kinds (one inlined copy of the forces in the kernel): a kinematic particle
-            # counts its elements' dampers alone, their share of the dampers' power (the drive's work has the rest).
-            f, dampers, work = particle_force(world, i, base, x, v, not kinematic, particle_mass, element_arrays,
-                                              inputs, particle_force_ext, q_in, qd_in)
-            if kinematic:
+        if is_kinematic(particle_flags[p]):
+            if wp.static(counted):  # its elements' dampers: their share of the dampers' power (the drive's work has
+                # the rest)
+                _, dampers, _ = particle_force(world, i, base, x, v, False, particle_mass, element_arrays, inputs,
+                                               particle_force_ext, q_in, qd_in)
                 power_in_out[p] += pack(-h * wp.dot(dampers, v), scalar(0.0))
-            else:
-                inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
+        else:
+            inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
+            if wp.static(counted):
+                f, dampers, work = particle_force(world, i, base, x, v, True, particle_mass, element_arrays, inputs,
+                                                  particle_force_ext, q_in, qd_in)
                 x_new, v_new = update(x, v, f, inv_mass, h)
                 mean = (v + v_new) * (scalar(0.5) * h)
                 power_in_out[p] += pack(-wp.dot(dampers, mean), wp.dot(work, mean))
-        elif not kinematic:
-            inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
-            f = particle_force(world, i, base, x, v, particle_mass, element_arrays, inputs, particle_force_ext,
-                               q_in, qd_in)
-            x_new, v_new = update(x, v, f, inv_mass, h)
-        if wp.static(has_contacts):
-            if not kinematic:
+            else:
+                f = particle_force(world, i, base, x, v, particle_mass, element_arrays, inputs, particle_force_ext,
+                                   q_in, qd_in)
+                x_new, v_new = update(x, v, f, inv_mass, h)
+            if wp.static(has_contacts):
                 x_new, v_new = project_contacts(world, p, x_new, v_new, particle_radius[i], h, shapes, inputs)
         return x_new, v_new
 
