@@ -1,12 +1,14 @@
-"""The check's energy pass walked by particles (``kernels/guards.py``: ``guard_particle_energy_kernel``, the springs'
-gathered ``particle_energy`` hook, CUDA's default) against the pass walked by springs (the CPU's): each spring at the
-lower of its two ends, so the energy, the dampers' power at the check and the energy balance agree to float64
+"""A check's particle passes in one launch (``kernels/guards.py``: ``guard_check_kernel``, CUDA's default) and the
+springs' energy walked by particles (``guard_particle_energy_kernel``, the springs' gathered ``particle_energy`` hook)
+against the passes apart and the springs' energy walked by springs (the CPU's default): each spring at the lower of
+its two ends, so the energy, the drives' work, the dampers' power at the check and the energy balance agree to float64
 rounding of sums taken in another order, and the largest strain to the bit, frame after frame."""
 
 import numpy as np
 import pytest
 
 import warpspring as ws
+from helpers import driven_cloth
 
 
 def grid_cloth(device, worlds: int = 2):
@@ -46,32 +48,42 @@ def mesh_cloth(device, plastic: bool = False):
     return builder.finalize(device)
 
 
-SCENES = {"grid": lambda device: grid_cloth(device, worlds=1), "grid, two worlds": grid_cloth, "mesh with a tail": mesh_cloth,
-          "mesh, plastic": lambda device: mesh_cloth(device, plastic=True)}
+SCENES = {"grid": lambda device: grid_cloth(device, worlds=1), "grid, two worlds": grid_cloth,
+          "mesh with a tail": mesh_cloth, "mesh, plastic": lambda device: mesh_cloth(device, plastic=True),
+          "driven pins": lambda device: driven_cloth(device, n=10)}
+#: (the particle passes in one launch, the springs' energy walked by particles)
+MODES = [(True, True), (True, False), (False, True)]
 
 
 @pytest.mark.parametrize("integrator", ["symplectic_euler", "rk4"])
 @pytest.mark.parametrize("scene", list(SCENES))
-def test_the_energy_walked_by_particles_is_the_spring_pass(device, scene, integrator, monkeypatch):
+def test_the_fused_and_walked_check_is_the_check_apart(device, scene, integrator, monkeypatch):
     from warpspring.kernels import guards
 
-    def run(walk: bool):
-        monkeypatch.setitem(guards.ENERGY_BY_PARTICLES, device.startswith("cuda"), walk)
+    cuda = device.startswith("cuda")
+
+    def run(fused: bool, walk: bool):
+        monkeypatch.setitem(guards.CHECK_FUSED, cuda, fused)
+        monkeypatch.setitem(guards.ENERGY_BY_PARTICLES, cuda, walk)
         model = SCENES[scene](device)
         sim = ws.Simulator(model, integrator=ws.make_integrator(integrator, model), fps=60, substeps=20)
-        springs = model.families[0]
-        assert sim.guard._walks(springs) == walk
-        rows, strains = [], []
+        assert sim.guard._walks(model.families[0]) == walk
+        assert (sim.guard._fused_walk() is not False) == fused
+        rows, values = [], []
         for _ in range(8):
             sim.step_frame()
             sim.settle()
             b = sim.guard.energy_balance()
-            rows.append(np.stack([b.energy, b.reference, b.work, b.peak, b.dissipated]))
-            strains.append(sim.guard._values.numpy().copy())
-        return np.array(rows), np.array(strains), sim.state.particle_q.numpy()
+            rows.append(np.stack([b.energy, b.reference, b.work, b.peak, b.dissipated, sim.guard.work()]))
+            values.append(sim.guard._values.numpy().copy())
+        return np.array(rows), np.array(values), sim.state.particle_q.numpy()
 
-    (walked, walked_values, x_walked), (by_springs, values, x) = run(True), run(False)
-    assert np.array_equal(x_walked, x)  # the check changes no state
-    assert walked[-1, 0].min() > 0.0 and walked[-1, 4].min() > 0.0  # energy held, and the dampers took some out
-    np.testing.assert_allclose(walked, by_springs, rtol=1e-12, atol=1e-15)
-    np.testing.assert_array_equal(walked_values, values)  # the largest strain (and the rest of the record) to the bit
+    reference, reference_values, x = run(False, False)
+    assert reference[-1, 0].min() > 0.0 and reference[-1, 4].min() > 0.0  # energy held, the dampers took some out
+    if scene == "driven pins":
+        assert np.abs(reference[-1, 2]).min() > 0.0  # the drives did work
+    for fused, walk in MODES:
+        rows, values, x_mode = run(fused, walk)
+        assert np.array_equal(x_mode, x)  # the check changes no state
+        np.testing.assert_allclose(rows, reference, rtol=1e-12, atol=1e-15, err_msg=f"fused {fused}, walk {walk}")
+        np.testing.assert_array_equal(values, reference_values)  # the largest strain and the rest of the record

@@ -63,8 +63,10 @@ from ..kernels.guards import (
     guard_drag_kernel,
     guard_correction_energy_kernel,
     guard_correction_kinetic_kernel,
+    CHECK_FUSED,
     ENERGY_BY_PARTICLES,
     ENERGY_WALK_MIN_BLOCKS,
+    guard_check_kernel,
     guard_energy_kernel,
     guard_particle_energy_kernel,
     guard_fold_kernel,
@@ -1040,18 +1042,61 @@ class Guard(StepHook):
         """Launch the checks of ``state`` after ``substep`` (device only; capturable): the per-particle and per-element
         passes, then ``gather``, whose verdict also finds the most strained element of a world that fails here, so
         that a check's record is complete when it ends (``last``: the frame's last check, no different)."""
-        gather = self._measure(state)
+        walked = self._fused_walk()
+        gather = self._measure(state) if walked is False else self._check_particles(state, walked)
         if self._dampers is not None and self._dissipating:
             self._close_dampers(state, float(self.dt))
-        self._energy_passes(state)
+        self._energy_passes(state, skip=walked)
         self._gather(gather, state, substep)
 
-    def _energy_passes(self, state: State) -> None:
+    def _fused_walk(self):
+        """Whether a check's particle passes run as one launch (``guard_check_kernel``, where ``CHECK_FUSED`` says so
+        for the device): ``False`` where not, else the energy layout's entry of the family that launch walks (the
+        first walked by particles, ``_walks``) or ``None``."""
+        if not CHECK_FUSED[self.model.device.is_cuda]:
+            return False
+        return next((entry for entry in self._energy_layout if self._walks(entry[0])), None)
+
+    def _check_particles(self, state: State, walked) -> tuple:
+        """The check's passes over the particles in one launch (the drives' work, ``measure``, the ``walked`` family's
+        energy: ``guard_check_kernel``); returns the check's gather kernel."""
+        model = self.model
+        force = self.control.particle_force if self.control is not None else None
+        specs = tuple(dataclasses.replace(s, gathered=True) if getattr(s, "gathered", True) is False else s
+                      for s in model.family_specs())
+        working = [] if self._working else self._working_families()
+        working_specs = tuple(family.spec(model) for family in working)
+        power = self._power
+        rule, features, modes = self._power_arguments(specs, force)
+        _, gather, _ = guard_kernels(model.scalar, specs, self._tiled, force is not None, working_specs, rule,
+                                     features, modes, self.counts_dissipation)
+        family, offset = (None, 0) if walked is None else (walked[0], walked[3])
+        bounds = launch_bounds(self._lanes, ENERGY_WALK_MIN_BLOCKS) if self._tiled else None
+        kernel = guard_check_kernel(model.scalar, specs, self._tiled, force is not None, working_specs, rule, features,
+                                    modes, self.counts_dissipation, None if family is None else family.spec(model),
+                                    family is not None and self._dampers_counted().get(family.name, False), bounds)
+        walk_arrays = family.arrays(model) if family is not None else elements(model.scalar, ()).arrays()
+        flat_launch(kernel, dim=self._check_grid, block_dim=self._lanes,
+                    inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
+                            model.elements, self._work_arrays(working, working_specs), walk_arrays, offset,
+                            model.inputs, force if force is not None else state.particle_q, state.particle_q,
+                            state.particle_qd, self._lead(), reduce_stride(self._check_grid)],
+                    outputs=[None if power is None else power.sums, self._previous_q, self._previous_qd,
+                             self._previous_load, self._status, self._partials, self._energy_partials,
+                             self._strain_partials, self._power_partials],
+                    device=model.device)
+        return gather
+
+    def _energy_passes(self, state: State, skip=None) -> None:
         """The families' per-block elastic energy, strain and (where the force pass counts their dampers) the power
-        their dampers take out at ``state``."""
+        their dampers take out at ``state``; but the energy layout's entry ``skip`` (walked by the check's particle
+        launch)."""
         model = self.model
         counted = self._dampers_counted()
-        for family, lanes, grid, offset in self._energy_layout:
+        for entry in self._energy_layout:
+            if entry is skip:
+                continue
+            family, lanes, grid, offset = entry
             spec, power = family.spec(model), counted.get(family.name, False)
             if self._walks(family):
                 bounds = launch_bounds(lanes, ENERGY_WALK_MIN_BLOCKS) if self._tiled else None

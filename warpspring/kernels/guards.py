@@ -741,6 +741,106 @@ def guard_lane_funcs(scalar: type, families: tuple, tiled: bool, external: bool,
     return parts[3], parts[4], parts[5]
 
 
+@functools.cache
+def guard_check_kernel(scalar: type, families: tuple, tiled: bool, external: bool, working: tuple = (),
+                       power: int = POWER_RULE_NONE, power_features: ForceFeatures | None = None,
+                       power_modes: tuple = (), dissipation: bool = False, walked=None, walked_power: bool = False,
+                       bounds: tuple[int, int] | None = None):
+    """``check_particles``: a check's passes over the particles in one launch over the check's grid, each lane over
+    its particles in turn: the drives' work (``drive_lanes``), then ``measure_lanes`` (which moves the last check's
+    positions on: the lane has read them for its drives first, as the two launches ordered it), then, with
+    ``walked`` (the spec of a family with a gathered ``particle_energy`` hook), that family's energy, strain and
+    (``walked_power``) dampers' power at the check, as ``guard_particle_energy_kernel`` writes them (its partials at
+    ``walked_offset``): the arithmetic of the three kernels, three launches and three reads of the state fewer, as the
+    one-launch frame's check does at its end. The arguments of :func:`guard_kernels`; ``bounds``:
+    ``flatten.launch_bounds_option``."""
+    vec3 = vec3_type(scalar)
+    measure_lanes, drive_lanes, _ = guard_lane_funcs(scalar, families, tiled, external, working, power,
+                                                     power_features, power_modes, dissipation)
+    counted = power != POWER_RULE_NONE
+    Sums = power_sums_funcs(scalar, counted and counts_work(power_features, power_modes)).type
+    composed = elements(scalar, families)
+    Elements = composed.arrays
+    work_composed = elements(scalar, working)
+    WorkElements = work_composed.arrays
+    block_sum, block_max = reduction_funcs(tiled)
+    walks = walked is not None
+    walk_funcs = walked.funcs(scalar) if walks else None
+    WalkArrays = walk_funcs.arrays if walks else elements(scalar, ()).arrays
+    share = walk_funcs.particle_energy if walks else None
+    walk_strained = walks and getattr(walk_funcs, "element_strain", None) is not None
+    walk_idle = tuple(f"walk_arrays__{path}" for path in walk_funcs.idle) if walks else ("walk_arrays",)
+
+    @flat_kernel(module="unique", enable_backward=False, **launch_bounds_option(bounds),
+                 last=composed.last("element_arrays") + work_composed.last("work_arrays") + walk_idle)
+    def check_particles(
+        # Model:
+        particle_count: int,
+        world_enabled: wp.array[wp.int32],
+        particle_flags: wp.array[wp.int32],
+        particle_mass: wp.array2d[scalar],
+        element_arrays: Elements,
+        work_arrays: WorkElements,
+        walk_arrays: WalkArrays,
+        walk_offset: int,
+        inputs: wp.array2d[scalar],
+        # Control:
+        particle_force_ext: wp.array[vec3],
+        # State in:
+        particle_q: wp.array[vec3],
+        particle_qd: wp.array[vec3],
+        # Guards in (the lead λ [s]: ``measure``):
+        lead: scalar,
+        # Launch (the items between a lane's successive particles: ``linalg.reduce_stride``):
+        stride: int,
+        # In/out:
+        power_in_out: wp.array[Sums],
+        previous_q_in_out: wp.array[vec3],
+        previous_qd_in_out: wp.array[vec3],
+        previous_load_in_out: wp.array[vec3],
+        status_in_out: wp.array2d[wp.int32],
+        partials_out: wp.array3d[wp.float64],
+        energy_partials_out: wp.array2d[wp.float64],
+        strain_partials_out: wp.array2d[wp.float64],
+        power_partials_out: wp.array2d[wp.float64],
+    ):
+        world, block, lane = wp.tid()
+        lanes = wp.block_dim()
+        drive_lanes(world, block, lane, lanes, particle_count, particle_flags, element_arrays, inputs, particle_q,
+                    particle_qd, previous_q_in_out, stride, previous_load_in_out, partials_out)
+        measure_lanes(world, block, lane, lanes, particle_count, world_enabled, particle_flags, particle_mass,
+                      element_arrays, work_arrays, inputs, particle_force_ext, particle_q, particle_qd, lead, stride,
+                      power_in_out, previous_q_in_out, previous_qd_in_out, previous_load_in_out, status_in_out,
+                      partials_out)
+        if wp.static(walks):
+            if status_in_out[world, GUARD_TRIPPED] == 0 and world_enabled[world] != 0:  # (the energy pass's skip)
+                base = world * particle_count
+                energy = wp.float64(0.0)
+                worst = wp.float64(-1.0)
+                taken = wp.float64(0.0)
+                i = block * lanes + lane
+                while i < particle_count:
+                    e, strain, p = share(world, i, base, particle_q[base + i], particle_qd[base + i], walk_arrays,
+                                         inputs, particle_q, particle_qd)
+                    energy += e
+                    worst = wp.max(worst, strain)
+                    taken += p
+                    i += stride
+                energy = block_sum(energy)
+                if wp.static(walk_strained):
+                    worst = block_max(worst)
+                if wp.static(walked_power):
+                    taken = block_sum(taken)
+                if lane == 0:
+                    energy_partials_out[world, walk_offset + block] = energy
+                    if wp.static(walk_strained):
+                        strain_partials_out[world, walk_offset + block] = worst
+                    if wp.static(walked_power):
+                        power_partials_out[world, walk_offset + block] = taken
+
+    return check_particles
+
+
 #: Partial sums a thread of the check's fold adds in turn (``guard_fold_kernel``; Warp unrolls a loop of up to 16: at
 #: 32 it runs as a loop, as measured).
 FOLD_CHUNK = 32
@@ -943,9 +1043,12 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
 #: particles (``guard_particle_energy_kernel``) rather than by its elements, per device (``is_cuda``; ``Guard._walks``):
 #: the CPU's one thread a world keeps the element pass (a grid cloth's vectorised one).
 ENERGY_BY_PARTICLES = {True: True, False: False}
-#: Blocks of the check's lanes a multiprocessor must hold in that pass on CUDA (``__launch_bounds__``; ``None``: as
+#: Whether a check's passes over the particles (the drives' work, ``measure``, a walked family's energy) run as one
+#: launch (``guard_check_kernel``, ``Guard._fused_walk``), per device (``is_cuda``).
+CHECK_FUSED = {True: True, False: False}
+#: Blocks of the check's lanes a multiprocessor must hold in that pass and in the walk on CUDA (``__launch_bounds__``; ``None``: as
 #: many registers as the compiler takes).
-ENERGY_WALK_MIN_BLOCKS = 3
+ENERGY_WALK_MIN_BLOCKS = 2
 
 
 @functools.cache
