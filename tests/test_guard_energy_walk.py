@@ -1,5 +1,5 @@
 """A check's particle passes in one launch (``kernels/guards.py``: ``guard_check_kernel``, CUDA's default) and the
-springs' energy walked by particles (``guard_particle_energy_kernel``, the springs' gathered ``particle_energy`` hook)
+springs' energy walked by particles (``guard_energy_kernel``'s ``walk``, the springs' gathered ``particle_energy`` hook)
 against the passes apart and the springs' energy walked by springs (the CPU's default): each spring at the lower of
 its two ends, so the energy, the drives' work, the dampers' power at the check and the energy balance agree to float64
 rounding of sums taken in another order, and the largest strain to the bit, frame after frame."""

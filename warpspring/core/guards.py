@@ -68,7 +68,6 @@ from ..kernels.guards import (
     ENERGY_WALK_MIN_BLOCKS,
     guard_check_kernel,
     guard_energy_kernel,
-    guard_particle_energy_kernel,
     guard_fold_kernel,
     guard_kernels,
     guard_skip_clear_kernel,
@@ -982,19 +981,10 @@ class Guard(StepHook):
         """The per-particle pass of a check (kinetic energy, strain, the loads' work since the last check,
         which becomes this one); returns the check's other kernels."""
         model = self.model
-        force = self.control.particle_force if self.control is not None else None
-        # The force on kinematic particles (a drive's work) is gathered even where the integrator scatters it.
-        specs = tuple(dataclasses.replace(s, gathered=True) if getattr(s, "gathered", True) is False else s
-                      for s in model.family_specs())
-        # Wind's and handles' work: here by the trapezoid of the checks, or per substep (``_family_work``, or the
-        # integrator's force pass: ``PowerSums``).
-        working = [] if self._working else self._working_families()
-        working_specs = tuple(family.spec(model) for family in working)
+        force, working, arguments = self._check_arguments()
+        working_specs = arguments[4]
         power = self._power
-        rule, features, modes = self._power_arguments(specs, force)
-        measure, gather, drive = guard_kernels(model.scalar, specs, self._tiled, force is not None,
-                                                        working_specs, rule, features, modes,
-                                                        self.counts_dissipation)
+        measure, gather, drive = guard_kernels(*arguments)
         # The drives' work first: it reads the last check's positions, which ``measure`` moves on.
         flat_launch(drive, dim=self._check_grid, block_dim=self._lanes,
                     inputs=[model.particle_count, model.particle_flags, model.elements, model.inputs, state.particle_q,
@@ -1009,6 +999,22 @@ class Guard(StepHook):
                              self._previous_load, self._status, self._partials],
                     device=model.device)
         return gather
+
+    def _check_arguments(self) -> tuple:
+        """(the control's external force or ``None``, the families whose work the check counts by its trapezoid,
+        :func:`guard_kernels`' arguments) for the check's passes over the particles."""
+        model = self.model
+        force = self.control.particle_force if self.control is not None else None
+        # The force on kinematic particles (a drive's work) is gathered even where the integrator scatters it.
+        specs = tuple(dataclasses.replace(s, gathered=True) if getattr(s, "gathered", True) is False else s
+                      for s in model.family_specs())
+        # Wind's and handles' work: here by the trapezoid of the checks, or per substep (``_family_work``, or the
+        # integrator's force pass: ``PowerSums``).
+        working = [] if self._working else self._working_families()
+        working_specs = tuple(family.spec(model) for family in working)
+        rule, features, modes = self._power_arguments(specs, force)
+        return force, working, (model.scalar, specs, self._tiled, force is not None, working_specs, rule, features,
+                                modes, self.counts_dissipation)
 
     def _power_arguments(self, specs: tuple, force) -> tuple:
         """What the check's kernels take of the power the integrator's force pass counts (``guard_kernels``'
@@ -1061,20 +1067,14 @@ class Guard(StepHook):
         """The check's passes over the particles in one launch (the drives' work, ``measure``, the ``walked`` family's
         energy: ``guard_check_kernel``); returns the check's gather kernel."""
         model = self.model
-        force = self.control.particle_force if self.control is not None else None
-        specs = tuple(dataclasses.replace(s, gathered=True) if getattr(s, "gathered", True) is False else s
-                      for s in model.family_specs())
-        working = [] if self._working else self._working_families()
-        working_specs = tuple(family.spec(model) for family in working)
+        force, working, arguments = self._check_arguments()
         power = self._power
-        rule, features, modes = self._power_arguments(specs, force)
-        _, gather, _ = guard_kernels(model.scalar, specs, self._tiled, force is not None, working_specs, rule,
-                                     features, modes, self.counts_dissipation)
+        _, gather, _ = guard_kernels(*arguments)
         family, offset = (None, 0) if walked is None else (walked[0], walked[3])
         bounds = launch_bounds(self._lanes, ENERGY_WALK_MIN_BLOCKS) if self._tiled else None
-        kernel = guard_check_kernel(model.scalar, specs, self._tiled, force is not None, working_specs, rule, features,
-                                    modes, self.counts_dissipation, None if family is None else family.spec(model),
+        kernel = guard_check_kernel(*arguments, None if family is None else family.spec(model),
                                     family is not None and self._dampers_counted().get(family.name, False), bounds)
+        working_specs = arguments[4]
         walk_arrays = family.arrays(model) if family is not None else elements(model.scalar, ()).arrays()
         flat_launch(kernel, dim=self._check_grid, block_dim=self._lanes,
                     inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
@@ -1098,21 +1098,18 @@ class Guard(StepHook):
                 continue
             family, lanes, grid, offset = entry
             spec, power = family.spec(model), counted.get(family.name, False)
-            if self._walks(family):
-                bounds = launch_bounds(lanes, ENERGY_WALK_MIN_BLOCKS) if self._tiled else None
-                kernel = guard_particle_energy_kernel(model.scalar, spec, self._tiled, power, bounds)
-                inputs = [model.particle_count, offset]
-            else:
-                kernel = guard_energy_kernel(model.scalar, spec, self._tiled, power)
-                inputs = [model.particle_count, family.element_count, offset]
+            walk = self._walks(family)
+            bounds = launch_bounds(lanes, ENERGY_WALK_MIN_BLOCKS) if walk and self._tiled else None
+            kernel = guard_energy_kernel(model.scalar, spec, self._tiled, power, walk, bounds)
             flat_launch(kernel, dim=grid, block_dim=lanes,
-                        inputs=[*inputs, model.world_enabled, family.arrays(model), model.inputs, self._status,
-                                state.particle_q, state.particle_qd, reduce_stride(grid)],
+                        inputs=[model.particle_count, family.element_count, offset, model.world_enabled,
+                                family.arrays(model), model.inputs, self._status, state.particle_q, state.particle_qd,
+                                reduce_stride(grid)],
                         outputs=[self._energy_partials, self._strain_partials, self._power_partials],
                         device=model.device)
 
     def _walks(self, family) -> bool:
-        """Whether the check's energy pass walks ``family`` by particles (``guard_particle_energy_kernel``: its
+        """Whether the check's energy pass walks ``family`` by particles (``guard_energy_kernel``'s ``walk``: its
         gathered ``particle_energy`` hook, where ``ENERGY_BY_PARTICLES`` says so for the device) rather than by
         elements."""
         return (ENERGY_BY_PARTICLES[self.model.device.is_cuda]

@@ -750,7 +750,7 @@ def guard_check_kernel(scalar: type, families: tuple, tiled: bool, external: boo
     its particles in turn: the drives' work (``drive_lanes``), then ``measure_lanes`` (which moves the last check's
     positions on: the lane has read them for its drives first, as the two launches ordered it), then, with
     ``walked`` (the spec of a family with a gathered ``particle_energy`` hook), that family's energy, strain and
-    (``walked_power``) dampers' power at the check, as ``guard_particle_energy_kernel`` writes them (its partials at
+    (``walked_power``) dampers' power at the check, as ``guard_energy_kernel``'s walk writes them (its partials at
     ``walked_offset``): the arithmetic of the three kernels, three launches and three reads of the state fewer, as the
     one-launch frame's check does at its end. The arguments of :func:`guard_kernels`; ``bounds``:
     ``flatten.launch_bounds_option``."""
@@ -763,12 +763,12 @@ def guard_check_kernel(scalar: type, families: tuple, tiled: bool, external: boo
     Elements = composed.arrays
     work_composed = elements(scalar, working)
     WorkElements = work_composed.arrays
-    block_sum, block_max = reduction_funcs(tiled)
     walks = walked is not None
     walk_funcs = walked.funcs(scalar) if walks else None
     WalkArrays = walk_funcs.arrays if walks else elements(scalar, ()).arrays
-    share = walk_funcs.particle_energy if walks else None
-    walk_strained = walks and getattr(walk_funcs, "element_strain", None) is not None
+    walk_energy = walk_energy_func(scalar, walked) if walks else None
+    write = energy_partials_func(tiled, walks and getattr(walk_funcs, "element_strain", None) is not None,
+                                 walked_power)
     walk_idle = tuple(f"walk_arrays__{path}" for path in walk_funcs.idle) if walks else ("walk_arrays",)
 
     @flat_kernel(module="unique", enable_backward=False, **launch_bounds_option(bounds),
@@ -814,29 +814,11 @@ def guard_check_kernel(scalar: type, families: tuple, tiled: bool, external: boo
                       partials_out)
         if wp.static(walks):
             if status_in_out[world, GUARD_TRIPPED] == 0 and world_enabled[world] != 0:  # (the energy pass's skip)
-                base = world * particle_count
-                energy = wp.float64(0.0)
-                worst = wp.float64(-1.0)
-                taken = wp.float64(0.0)
-                i = block * lanes + lane
-                while i < particle_count:
-                    e, strain, p = share(world, i, base, particle_q[base + i], particle_qd[base + i], walk_arrays,
-                                         inputs, particle_q, particle_qd)
-                    energy += e
-                    worst = wp.max(worst, strain)
-                    taken += p
-                    i += stride
-                energy = block_sum(energy)
-                if wp.static(walk_strained):
-                    worst = block_max(worst)
-                if wp.static(walked_power):
-                    taken = block_sum(taken)
-                if lane == 0:
-                    energy_partials_out[world, walk_offset + block] = energy
-                    if wp.static(walk_strained):
-                        strain_partials_out[world, walk_offset + block] = worst
-                    if wp.static(walked_power):
-                        power_partials_out[world, walk_offset + block] = taken
+                energy, worst, taken = walk_energy(world, block * lanes + lane, stride, particle_count,
+                                                   world * particle_count, walk_arrays, inputs, particle_q,
+                                                   particle_qd)
+                write(world, block, lane, walk_offset, energy, worst, taken, energy_partials_out,
+                      strain_partials_out, power_partials_out)
 
     return check_particles
 
@@ -970,7 +952,64 @@ def family_energy_func(scalar: type, spec, power: bool = False):
 
 
 @functools.cache
-def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
+def walk_energy_func(scalar: type, spec):
+    """``walk(world, first, stride, particle_count, base, arrays, inputs, particle_q, particle_qd)``: a family's
+    elastic energy [J], largest strain [-] and dampers' power at this state [W] (float64) walked by particles with its
+    gathered ``particle_energy`` hook (each element once, at one of its particles), every stride-th particle from
+    ``first``: :func:`family_energy_func`'s sums in another order, its largest strain the same."""
+    vec3 = vec3_type(scalar)
+    funcs = spec.funcs(scalar)
+    Arrays = funcs.arrays
+    share = funcs.particle_energy
+
+    @wp.func
+    def walk(world: int, first: int, stride: int, particle_count: int, base: int, arrays: Arrays,
+             inputs: wp.array2d[scalar], particle_q: wp.array[vec3], particle_qd: wp.array[vec3]):
+        energy = wp.float64(0.0)
+        worst = wp.float64(-1.0)
+        taken = wp.float64(0.0)
+        i = first
+        while i < particle_count:
+            e, strain, p = share(world, i, base, particle_q[base + i], particle_qd[base + i], arrays, inputs,
+                                 particle_q, particle_qd)
+            energy += e
+            worst = wp.max(worst, strain)
+            taken += p
+            i += stride
+        return energy, worst, taken
+
+    return walk
+
+
+@functools.cache
+def energy_partials_func(tiled: bool, strained: bool, power: bool):
+    """``write(world, block, lane, offset, energy, worst, taken, partials_out, strain_partials_out,
+    power_partials_out)``: a block's sum of its lanes' energy, their largest strain (``strained``) and the sum of their
+    dampers' power (``power``), written by lane 0 at ``offset + block`` (every lane of the block calls it)."""
+    block_sum, block_max = reduction_funcs(tiled)
+
+    @wp.func
+    def write(world: int, block: int, lane: int, offset: int, energy: wp.float64, worst: wp.float64,
+              taken: wp.float64, partials_out: wp.array2d[wp.float64], strain_partials_out: wp.array2d[wp.float64],
+              power_partials_out: wp.array2d[wp.float64]):
+        energy = block_sum(energy)
+        if wp.static(strained):
+            worst = block_max(worst)
+        if wp.static(power):
+            taken = block_sum(taken)
+        if lane == 0:
+            partials_out[world, offset + block] = energy
+            if wp.static(strained):
+                strain_partials_out[world, offset + block] = worst
+            if wp.static(power):
+                power_partials_out[world, offset + block] = taken
+
+    return write
+
+
+@functools.cache
+def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False, walk: bool = False,
+                        bounds: tuple[int, int] | None = None):
     """Kernel writing per-block sums of the elastic energy [J] of one family's elements in every world into
     ``partials[world, offset + block]``, and where the family has an ``element_strain`` hook the block's largest
     strain [-] into ``strain_partials[world, offset + block]`` (each element once, with the length its energy
@@ -978,19 +1017,25 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
     counted in the integrator's force pass, mode ``POWER_DAMPERS``) the power its dampers take out at this state [W]
     (its ``dissipation`` hook: the closing term of ``guard_kernels``) into ``power_partials[world, offset + block]``.
     Launch over ``reduce_launch_dim(worlds, element_count, lanes, REDUCE_PER_LANE)`` on CUDA (``stride``: that grid's
-    ``reduce_stride``), one lane per block on the CPU."""
+    ``reduce_stride``), one lane per block on the CPU. With ``walk`` the lanes walk the particles instead, over the
+    check's particle grid (:func:`walk_energy_func`: a family with a gathered ``particle_energy`` hook; a grid cloth's
+    pass then reads the state and the groups' values, not a spring table, which at 1024² was ~60 B for each of 6.3 M
+    springs). ``bounds`` (threads a block, blocks a multiprocessor): ``flatten.launch_bounds_option``."""
     vec3 = vec3_type(scalar)
-    block_sum, block_max = reduction_funcs(tiled)
-    Arrays = spec.funcs(scalar).arrays
-    strained = getattr(spec.funcs(scalar), "element_strain", None) is not None
+    funcs = spec.funcs(scalar)
+    Arrays = funcs.arrays
+    strained = getattr(funcs, "element_strain", None) is not None
     family_energy = family_energy_func(scalar, spec, power)
+    walk_energy = walk_energy_func(scalar, spec) if walk else None
+    write = energy_partials_func(tiled, strained, power)
     # A grid cloth's springs on the CPU (one thread a world): the vectorised pass over the grid's directions.
-    grid = not tiled and isinstance(spec, SpringSpec) and grid_vectorised(spec)
+    grid = not walk and not tiled and isinstance(spec, SpringSpec) and grid_vectorised(spec)
     grid_energy = grid_energy_pass(scalar, spec, power) if grid else None
     prepare = spring_sweep_funcs(scalar, spec).prepare if grid else None
+    # An element's energy reads its own entries, never the incidence table; a walk the incidence, never ``indices``.
+    idle = tuple(f"arrays__{path}" for path in funcs.idle) if walk else ("arrays__incidence",)
 
-    # An element's energy reads its own entries, never the incidence table.
-    @flat_kernel(module="unique", enable_backward=False, last=("arrays__incidence",))
+    @flat_kernel(module="unique", enable_backward=False, last=idle, **launch_bounds_option(bounds))
     def element_energy_partials(
         # Model:
         particle_count: int,
@@ -1004,7 +1049,7 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
         # State in:
         particle_q: wp.array[vec3],
         particle_qd: wp.array[vec3],
-        # Launch (the items between a lane's successive elements: ``linalg.reduce_stride``):
+        # Launch (the items between a lane's successive elements, or particles with ``walk``: ``reduce_stride``):
         stride: int,
         # Out:
         partials_out: wp.array2d[wp.float64],
@@ -1014,7 +1059,11 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
         world, block, lane = wp.tid()
         if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
             return
-        if wp.static(grid):  # (one lane a world: the whole family)
+        first = block * wp.block_dim() + lane
+        if wp.static(walk):
+            energy, worst, taken = walk_energy(world, first, stride, particle_count, world * particle_count, arrays,
+                                               inputs, particle_q, particle_qd)
+        elif wp.static(grid):  # (one lane a world: the whole family)
             prepared = prepare(world, arrays, inputs)
             terms = grid_energy(particle_q, particle_qd, world * particle_count, prepared.nx, prepared.ny,
                                 prepared.rest, prepared.ke, prepared.kd)
@@ -1022,25 +1071,15 @@ def guard_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False):
             worst = terms[1]
             taken = terms[2]
         else:
-            energy, worst, taken = family_energy(world, block * wp.block_dim() + lane, stride, element_count,
-                                                 world * particle_count, arrays, inputs, particle_q, particle_qd)
-        energy = block_sum(energy)
-        if wp.static(strained):
-            worst = block_max(worst)
-        if wp.static(power):
-            taken = block_sum(taken)
-        if lane == 0:
-            partials_out[world, offset + block] = energy
-            if wp.static(strained):
-                strain_partials_out[world, offset + block] = worst
-            if wp.static(power):
-                power_partials_out[world, offset + block] = taken
+            energy, worst, taken = family_energy(world, first, stride, element_count, world * particle_count, arrays,
+                                                 inputs, particle_q, particle_qd)
+        write(world, block, lane, offset, energy, worst, taken, partials_out, strain_partials_out, power_partials_out)
 
     return element_energy_partials
 
 
 #: Whether the check's energy pass walks a family with a gathered ``particle_energy`` hook (gathered springs) by its
-#: particles (``guard_particle_energy_kernel``) rather than by its elements, per device (``is_cuda``; ``Guard._walks``):
+#: particles (``guard_energy_kernel``'s ``walk``) rather than by its elements, per device (``is_cuda``; ``Guard._walks``):
 #: the CPU's one thread a world keeps the element pass (a grid cloth's vectorised one).
 ENERGY_BY_PARTICLES = {True: True, False: False}
 #: Whether a check's passes over the particles (the drives' work, ``measure``, a walked family's energy) run as one
@@ -1049,74 +1088,6 @@ CHECK_FUSED = {True: True, False: False}
 #: Blocks of the check's lanes a multiprocessor must hold in that pass and in the walk on CUDA (``__launch_bounds__``; ``None``: as
 #: many registers as the compiler takes).
 ENERGY_WALK_MIN_BLOCKS = 2
-
-
-@functools.cache
-def guard_particle_energy_kernel(scalar: type, spec, tiled: bool, power: bool = False,
-                                 bounds: tuple[int, int] | None = None):
-    """``guard_energy_kernel``'s partials, walked by particles instead of elements, for a family with a gathered
-    ``particle_energy`` hook (each spring at the lower of its two ends): each lane adds the values of every stride-th
-    particle from its first (the check's particle grid, as ``measure``), so a grid cloth's pass reads the state and
-    the groups' values, not a spring table (a 1024² cloth's element pass read ~60 B for each of its 6.3 M springs:
-    6.8 µs of a 77.7 µs substep on an H200, its largest part of the check). The sums are the element pass's in
-    another order; the largest strain the same. On the CPU (``tiled`` off) one lane per world walks them all.
-    ``bounds`` (threads a block, blocks a multiprocessor): ``flatten.launch_bounds_option``."""
-    vec3 = vec3_type(scalar)
-    block_sum, block_max = reduction_funcs(tiled)
-    funcs = spec.funcs(scalar)
-    Arrays = funcs.arrays
-    share = funcs.particle_energy
-    strained = getattr(funcs, "element_strain", None) is not None
-
-    @flat_kernel(module="unique", enable_backward=False, last=tuple(f"arrays__{path}" for path in funcs.idle),
-                 **launch_bounds_option(bounds))
-    def particle_energy_partials(
-        # Model:
-        particle_count: int,
-        offset: int,
-        world_enabled: wp.array[wp.int32],
-        arrays: Arrays,
-        inputs: wp.array2d[scalar],
-        # Guards in:
-        status: wp.array2d[wp.int32],
-        # State in:
-        particle_q: wp.array[vec3],
-        particle_qd: wp.array[vec3],
-        # Launch (the items between a lane's successive particles: ``linalg.reduce_stride``):
-        stride: int,
-        # Out:
-        partials_out: wp.array2d[wp.float64],
-        strain_partials_out: wp.array2d[wp.float64],
-        power_partials_out: wp.array2d[wp.float64],
-    ):
-        world, block, lane = wp.tid()
-        if status[world, GUARD_TRIPPED] != 0 or world_enabled[world] == 0:
-            return
-        base = world * particle_count
-        energy = wp.float64(0.0)
-        worst = wp.float64(-1.0)
-        taken = wp.float64(0.0)
-        i = block * wp.block_dim() + lane
-        while i < particle_count:
-            e, strain, p = share(world, i, base, particle_q[base + i], particle_qd[base + i], arrays, inputs,
-                                 particle_q, particle_qd)
-            energy += e
-            worst = wp.max(worst, strain)
-            taken += p
-            i += stride
-        energy = block_sum(energy)
-        if wp.static(strained):
-            worst = block_max(worst)
-        if wp.static(power):
-            taken = block_sum(taken)
-        if lane == 0:
-            partials_out[world, offset + block] = energy
-            if wp.static(strained):
-                strain_partials_out[world, offset + block] = worst
-            if wp.static(power):
-                power_partials_out[world, offset + block] = taken
-
-    return particle_energy_partials
 
 
 @functools.cache
