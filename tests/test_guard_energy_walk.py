@@ -11,10 +11,12 @@ import warpspring as ws
 from helpers import driven_cloth
 
 
-def grid_cloth(device, worlds: int = 2):
+def grid_cloth(device, worlds: int = 2, clamp: float | None = None):
     """A damped 12 × 12 grid cloth in drag (the grouped grid layout: each group's values read once); with two worlds the
-    second world's springs stiffer (the groups then read per spring)."""
-    builder = ws.ModelBuilder(drag=0.05)
+    second world's springs stiffer (the groups then read per spring); with ``clamp`` its springs' force clamped there
+    [N] (the clamp law: no damper counted)."""
+    stabilizers = ws.Stabilizers(max_spring_force=clamp) if clamp is not None else None
+    builder = ws.ModelBuilder(drag=0.05, stabilizers=stabilizers)
     spring = ws.SpringMaterial(ke=1.0e3, kd=0.1)
     builder.add_cloth_grid(nx=12, ny=12, spacing=0.05, particle_mass=0.02, structural=spring, shear=spring,
                            bend=spring, pin=["top-left", "top-right"])
@@ -50,7 +52,8 @@ def mesh_cloth(device, plastic: bool = False):
 
 SCENES = {"grid": lambda device: grid_cloth(device, worlds=1), "grid, two worlds": grid_cloth,
           "mesh with a tail": mesh_cloth, "mesh, plastic": lambda device: mesh_cloth(device, plastic=True),
-          "driven pins": lambda device: driven_cloth(device, n=10)}
+          "driven pins": lambda device: driven_cloth(device, n=10),
+          "grid, force clamp": lambda device: grid_cloth(device, worlds=1, clamp=0.05)}
 #: (the particle passes in one launch, the springs' energy walked by particles)
 MODES = [(True, True), (True, False), (False, True)]
 

@@ -210,6 +210,9 @@ class Guard(StepHook):
         # gathered ``particle_energy`` hook walked by particles over the check's grid (``_walks``), the others by
         # elements.
         self._energy_layout = []
+        self._walked = frozenset(family.name for family in model.families if family.element_count
+                                 and ENERGY_BY_PARTICLES[device.is_cuda]
+                                 and getattr(family.spec(model).funcs(model.scalar), "particle_energy", None))
         blocks = 0
         for family in model.families:
             if not family.element_count:
@@ -241,9 +244,10 @@ class Guard(StepHook):
         self._step_grid = (reduce_launch_dim(worlds, model.particle_count, self._lanes)
                            if STEP_POWER_BLOCKS[device.is_cuda] else None)
         blocks = max(self._drag_grid[1], self._step_grid[1] if self._step_grid is not None else 0)
-        for family, lanes, _, _ in self._energy_layout:
+        for family, _, _, _ in self._energy_layout:
             if getattr(family.spec(model).funcs(model.scalar), "dissipation", None) is not None:
                 # (one element per lane: the dissipation passes do not stride)
+                lanes = reduce_lanes(family.element_count, model.block_dim, self._tiled)
                 grid = reduce_launch_dim(worlds, family.element_count, lanes) if self._tiled else (worlds, 1, 1)
                 self._dissipation_layout.append((family, lanes, grid, blocks))
                 blocks += grid[1]
@@ -264,10 +268,23 @@ class Guard(StepHook):
         # and clears (a 1024² cloth's layout holds ~29,000 blocks of drag and damper passes that its fused step, which
         # counts that power itself, never launches).
         self._running_end = 0
+        self._running_view = None  # (the blocks, their view): one array object while the mark stands
         # Where a world's partial sums outnumber what ``gather``'s one block per world adds in a few reads a lane, a
         # fold (``guard_fold_kernel``) first adds them in chunks, many blocks at once, into arrays of the same layout
-        # that ``gather`` reads instead (CUDA: the CPU's passes leave one partial per world): ``_folding``.
+        # that ``gather`` reads instead (CUDA: the CPU's passes leave one partial per world): allocated here for the
+        # whole layout (a captured graph keeps its arrays), launched where the blocks a check gathers need it
+        # (``_folding``).
         self._fold = None
+        self._fold_view = None
+        most = max(self._check_grid[1], self._energy_partials.shape[1], blocks)
+        above = FOLD_MIN_BLOCKS if FOLD_MIN_BLOCKS is not None else FOLD_ABOVE
+        if (self._tiled or FOLD_MIN_BLOCKS is not None) and most > above:  # (forced: on the CPU too)
+            chunks = -(-most // FOLD_CHUNK)
+            self._fold = (wp.zeros((worlds, chunks, PARTIAL_SLOTS), dtype=wp.float64, device=device),
+                          wp.zeros((worlds, chunks), dtype=wp.float64, device=device),
+                          wp.full((worlds, chunks), -1.0, dtype=wp.float64, device=device),
+                          wp.zeros((worlds, chunks), dtype=wp.float64, device=device),
+                          wp.zeros((worlds, chunks, RUNNING_SLOTS), dtype=wp.float64, device=device))
         # The springs' dissipation counted by the scattered force pass (``DamperSums``; ``None``: by a pass of its
         # own after every substep), and the power of dampers, drag and loads from outside counted by the integrator's
         # per-particle force pass (``PowerSums``, ``_power_rule``; ``None``: by passes of their own). The integrator
@@ -498,26 +515,27 @@ class Guard(StepHook):
     def _running_written(self) -> wp.array:
         """The running sums' blocks below the highest any pass has written to (at least one): what a check gathers and
         clears. A pass launches before the checks that gather it (a frame's substeps, then its check), so a graph
-        captured after it gathers its blocks; a pass switched off leaves its blocks in the view, cleared."""
-        return self._running[:, : max(self._running_end, 1)]
+        captured after it gathers its blocks; a pass switched off leaves its blocks in the view, cleared. One view
+        object while the mark stands (the CPU's launch replay keys arrays by identity)."""
+        end = max(self._running_end, 1)
+        if self._running_view is None or self._running_view[0] != end:
+            self._running_view = (end, self._running[:, :end])
+        return self._running_view[1]
 
     def _folding(self):
-        """The fold's launch grid and arrays where a world's partial sums outnumber ``FOLD_ABOVE`` (``FOLD_MIN_BLOCKS``
-        where set, on the CPU too), else ``None``; allocated at the first check that needs them."""
-        worlds, device = self.model.world_count, self.model.device
+        """The fold's launch grid and arrays (views of those made for the whole layout) where the partial sums a check
+        gathers per world outnumber ``FOLD_ABOVE`` (``FOLD_MIN_BLOCKS`` where set, on the CPU too), else ``None``."""
+        if self._fold is None:
+            return None
         most = max(self._check_grid[1], self._energy_partials.shape[1], self._running_written().shape[1])
         above = FOLD_MIN_BLOCKS if FOLD_MIN_BLOCKS is not None else FOLD_ABOVE
-        if not ((self._tiled or FOLD_MIN_BLOCKS is not None) and most > above):  # (forced: on the CPU too)
+        if most <= above:
             return None
         chunks = -(-most // FOLD_CHUNK)
-        if self._fold is None or self._fold[0][1] != chunks:
-            self._fold = ((worlds, chunks, FOLD_COLUMNS),
-                          wp.zeros((worlds, chunks, PARTIAL_SLOTS), dtype=wp.float64, device=device),
-                          wp.zeros((worlds, chunks), dtype=wp.float64, device=device),
-                          wp.full((worlds, chunks), -1.0, dtype=wp.float64, device=device),
-                          wp.zeros((worlds, chunks), dtype=wp.float64, device=device),
-                          wp.zeros((worlds, chunks, RUNNING_SLOTS), dtype=wp.float64, device=device))
-        return self._fold
+        if self._fold_view is None or self._fold_view[0] != chunks:
+            self._fold_view = (chunks, ((self.model.world_count, chunks, FOLD_COLUMNS),
+                                        *(array[:, :chunks] for array in self._fold)))
+        return self._fold_view[1]
 
     def history(self) -> list:
         """The arrays a check carries to the next (the work put in, the last check's positions and loads,
@@ -1110,10 +1128,9 @@ class Guard(StepHook):
 
     def _walks(self, family) -> bool:
         """Whether the check's energy pass walks ``family`` by particles (``guard_energy_kernel``'s ``walk``: its
-        gathered ``particle_energy`` hook, where ``ENERGY_BY_PARTICLES`` says so for the device) rather than by
-        elements."""
-        return (ENERGY_BY_PARTICLES[self.model.device.is_cuda]
-                and getattr(family.spec(self.model).funcs(self.model.scalar), "particle_energy", None) is not None)
+        gathered ``particle_energy`` hook, where ``ENERGY_BY_PARTICLES`` said so for the device when the guard was
+        made, which laid its partial sums out for it) rather than by elements."""
+        return family.name in self._walked
 
     def _gather(self, gather, state: State, substep: int, carry_only: bool = False) -> None:
         """Each world's sums and verdict (``carry_only``: a restart's closing term alone)."""

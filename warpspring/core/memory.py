@@ -600,9 +600,9 @@ def estimate_memory(
 
     check_blocks = check_blocks_of(n)
 
-    exact = not (shapes or self_contact_triangles or strain_limiting)
     path = guard_path(integrator=integrator, springs=s, gathered=spring_evaluation != "scatter", drag=drag,
-                      wind=wind, working=working_families, exact=exact,
+                      wind=wind, working=working_families, exact=not (shapes or self_contact_triangles
+                                                                       or strain_limiting),
                       spring_force_clamp=spring_force_clamp, plastic=plastic > 0,
                       particle_force_clamp=particle_force_clamp)
     others = [checks.count("family_elements", e, minimum=0) for e in family_elements]
@@ -621,11 +621,7 @@ def estimate_memory(
                + 8 * CARRY_SLOTS * w)  # each world's share of the closing term among it
     # The check's fold on CUDA, where a world's partial sums are more than FOLD_ABOVE: the
     # partials, energy, strain, power and running sums of each chunk of FOLD_CHUNK of them (``Guard._fold``).
-    # The running sums a check gathers are those some pass writes (``Guard._running_written``): none where the force
-    # pass counts the dampers' and drag's power itself and nothing else runs per substep.
-    written = 0 if (path.power == 1 and not path.dampers and not working_families and not self_contact_triangles
-                    and exact) else running_rows
-    most = max(check_blocks, energy_blocks, written) // max(w, 1)
+    most = max(check_blocks, energy_blocks, running_rows) // max(w, 1)
     folds = cuda and most > FOLD_ABOVE
     fold = w * -(-most // FOLD_CHUNK) * 8 * (PARTIAL_SLOTS + 3 + RUNNING_SLOTS) if folds else 0
     guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * PARTIAL_SLOTS * check_blocks + 8 * GUARD_LIMITS * w
