@@ -999,28 +999,20 @@ class Guard(StepHook):
         """The per-particle pass of a check (kinetic energy, strain, the loads' work since the last check,
         which becomes this one); returns the check's other kernels."""
         model = self.model
-        force, working, arguments = self._check_arguments()
-        working_specs = arguments[4]
-        power = self._power
+        arguments, inputs, outputs = self._particle_pass(state)
         measure, gather, drive = guard_kernels(*arguments)
         # The drives' work first: it reads the last check's positions, which ``measure`` moves on.
         flat_launch(drive, dim=self._check_grid, block_dim=self._lanes,
                     inputs=[model.particle_count, model.particle_flags, model.elements, model.inputs, state.particle_q,
                             state.particle_qd, self._previous_q, reduce_stride(self._check_grid)],
                     outputs=[self._previous_load, self._partials], device=model.device)
-        flat_launch(measure, dim=self._check_grid, block_dim=self._lanes,
-                    inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
-                            model.elements, self._work_arrays(working, working_specs), model.inputs,
-                            force if force is not None else state.particle_q,
-                            state.particle_q, state.particle_qd, self._lead(), reduce_stride(self._check_grid)],
-                    outputs=[None if power is None else power.sums, self._previous_q, self._previous_qd,
-                             self._previous_load, self._status, self._partials],
+        flat_launch(measure, dim=self._check_grid, block_dim=self._lanes, inputs=inputs, outputs=outputs,
                     device=model.device)
         return gather
 
-    def _check_arguments(self) -> tuple:
-        """(the control's external force or ``None``, the families whose work the check counts by its trapezoid,
-        :func:`guard_kernels`' arguments) for the check's passes over the particles."""
+    def _particle_pass(self, state: State) -> tuple:
+        """(:func:`guard_kernels`' arguments, ``measure``'s inputs, its outputs) for a check of ``state``:
+        ``guard_check_kernel`` takes the same first."""
         model = self.model
         force = self.control.particle_force if self.control is not None else None
         # The force on kinematic particles (a drive's work) is gathered even where the integrator scatters it.
@@ -1031,8 +1023,15 @@ class Guard(StepHook):
         working = [] if self._working else self._working_families()
         working_specs = tuple(family.spec(model) for family in working)
         rule, features, modes = self._power_arguments(specs, force)
-        return force, working, (model.scalar, specs, self._tiled, force is not None, working_specs, rule, features,
-                                modes, self.counts_dissipation)
+        arguments = (model.scalar, specs, self._tiled, force is not None, working_specs, rule, features, modes,
+                     self.counts_dissipation)
+        inputs = [model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass, model.elements,
+                  self._work_arrays(working, working_specs), model.inputs,
+                  force if force is not None else state.particle_q, state.particle_q, state.particle_qd, self._lead(),
+                  reduce_stride(self._check_grid)]
+        outputs = [None if self._power is None else self._power.sums, self._previous_q, self._previous_qd,
+                   self._previous_load, self._status, self._partials]
+        return arguments, inputs, outputs
 
     def _power_arguments(self, specs: tuple, force) -> tuple:
         """What the check's kernels take of the power the integrator's force pass counts (``guard_kernels``'
@@ -1085,23 +1084,15 @@ class Guard(StepHook):
         """The check's passes over the particles in one launch (the drives' work, ``measure``, the ``walked`` family's
         energy: ``guard_check_kernel``); returns the check's gather kernel."""
         model = self.model
-        force, working, arguments = self._check_arguments()
-        power = self._power
+        arguments, inputs, outputs = self._particle_pass(state)
         _, gather, _ = guard_kernels(*arguments)
         family, offset = (None, 0) if walked is None else (walked[0], walked[3])
         bounds = launch_bounds(self._lanes, ENERGY_WALK_MIN_BLOCKS) if self._tiled else None
         kernel = guard_check_kernel(*arguments, None if family is None else family.spec(model),
                                     family is not None and self._dampers_counted().get(family.name, False), bounds)
-        working_specs = arguments[4]
         walk_arrays = family.arrays(model) if family is not None else elements(model.scalar, ()).arrays()
-        flat_launch(kernel, dim=self._check_grid, block_dim=self._lanes,
-                    inputs=[model.particle_count, model.world_enabled, model.particle_flags, model.particle_mass,
-                            model.elements, self._work_arrays(working, working_specs), walk_arrays, offset,
-                            model.inputs, force if force is not None else state.particle_q, state.particle_q,
-                            state.particle_qd, self._lead(), reduce_stride(self._check_grid)],
-                    outputs=[None if power is None else power.sums, self._previous_q, self._previous_qd,
-                             self._previous_load, self._status, self._partials, self._energy_partials,
-                             self._strain_partials, self._power_partials],
+        flat_launch(kernel, dim=self._check_grid, block_dim=self._lanes, inputs=[*inputs, walk_arrays, offset],
+                    outputs=[*outputs, self._energy_partials, self._strain_partials, self._power_partials],
                     device=model.device)
         return gather
 

@@ -781,8 +781,6 @@ def guard_check_kernel(scalar: type, families: tuple, tiled: bool, external: boo
         particle_mass: wp.array2d[scalar],
         element_arrays: Elements,
         work_arrays: WorkElements,
-        walk_arrays: WalkArrays,
-        walk_offset: int,
         inputs: wp.array2d[scalar],
         # Control:
         particle_force_ext: wp.array[vec3],
@@ -793,6 +791,9 @@ def guard_check_kernel(scalar: type, families: tuple, tiled: bool, external: boo
         lead: scalar,
         # Launch (the items between a lane's successive particles: ``linalg.reduce_stride``):
         stride: int,
+        # The walked family (``measure``'s arguments come first, then these):
+        walk_arrays: WalkArrays,
+        walk_offset: int,
         # In/out:
         power_in_out: wp.array[Sums],
         previous_q_in_out: wp.array[vec3],
