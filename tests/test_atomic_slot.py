@@ -1,11 +1,16 @@
-"""``kernels/linalg.atomic_slot``: a slot of a list claimed through its counter, warp-aggregated on CUDA. Every claim
-gets its own slot, the slots of a counter are exactly 0 … claims − 1, and the counter ends at the claims, also where
-only some lanes of a warp claim and neighbouring lanes claim from different counters."""
+"""``kernels/linalg``'s warp-level helpers. ``atomic_slot``: a slot of a list claimed through its counter,
+warp-aggregated on CUDA. Every claim gets its own slot, the slots of a counter are exactly 0 … claims − 1, and the
+counter ends at the claims, also where only some lanes of a warp claim and neighbouring lanes claim from different
+counters. ``atomic_raise``: each entry ends at the largest value raised into it (or where it was), with the same
+mixes of lanes. ``warp_total``: a warp whose 32 lanes share a group gives its sum to its first lane and zero to
+the others, any other warp each lane its own value; so the values a group's lanes get add up to the group's sum.
+``block_max_ints``: every lane of a block gets each entry's largest over the block's lanes (on the
+CPU, where a block is one thread, its own values)."""
 
 import numpy as np
 import warp as wp
 
-from warpspring.kernels.linalg import atomic_slot
+from warpspring.kernels.linalg import atomic_raise, atomic_slot, block_max_ints_func, warp_total_func
 
 
 @wp.kernel(enable_backward=False)
@@ -34,3 +39,96 @@ def test_each_claim_gets_its_own_slot(device):
         mine = np.sort(got[pattern == c])
         np.testing.assert_array_equal(mine, np.arange(len(mine)))  # each slot once, none skipped
         assert ends[c] == len(mine)
+
+
+@wp.kernel(enable_backward=False)
+def _raise(pattern: wp.array[wp.int32], values: wp.array[wp.int32], stored_out: wp.array[wp.int32]):
+    i = wp.tid()
+    entry = pattern[i]
+    if entry >= 0:  # (lanes with -1 raise nothing: a divergent warp)
+        atomic_raise(stored_out, entry, values[i])
+
+
+def test_each_entry_ends_at_the_largest_raised(device):
+    rng = np.random.default_rng(5)
+    entries, raises = 7, 20_000
+    pattern = np.where(rng.random(raises) < 0.3, -1, rng.integers(0, entries, raises))
+    pattern[:4096] = np.repeat(np.arange(entries + 9) % entries, 256)[:4096]
+    values = rng.integers(-1000, 1_000_000, raises)
+    start = np.array([5, 2_000_000, -7, 0, 999_999, 3, 1], dtype=np.int32)  # some above every value raised
+    stored = wp.array(start, dtype=wp.int32, device=device)
+    wp.launch(_raise, dim=raises, inputs=[wp.array(pattern.astype(np.int32), device=device),
+                                          wp.array(values.astype(np.int32), device=device)],
+              outputs=[stored], device=device)
+    expected = start.copy()
+    for e in range(entries):
+        if np.any(pattern == e):
+            expected[e] = max(start[e], values[pattern == e].max())
+    np.testing.assert_array_equal(stored.numpy(), expected)
+
+
+_LENGTH = 5
+_block_max_ints = block_max_ints_func(_LENGTH)
+_ints = wp.types.vector(_LENGTH, wp.int32)
+
+
+@wp.kernel(enable_backward=False)
+def _block_maxima(values: wp.array2d[wp.int32], maxima_out: wp.array2d[wp.int32]):
+    i = wp.tid()
+    mine = _ints()
+    for k in range(_LENGTH):
+        mine[k] = values[i, k]
+    largest = _block_max_ints(mine)
+    for k in range(_LENGTH):
+        maxima_out[i, k] = largest[k]
+
+
+def test_every_lane_gets_the_block_maxima(device):
+    rng = np.random.default_rng(11)
+    blocks, lanes = 9, 96  # three warps a block
+    values = rng.integers(-2**31, 2**31 - 1, (blocks * lanes, _LENGTH), dtype=np.int64).astype(np.int32)
+    values[:lanes, 2] = -5  # one entry equal on every lane
+    maxima = wp.zeros((blocks * lanes, _LENGTH), dtype=wp.int32, device=device)
+    wp.launch(_block_maxima, dim=blocks * lanes, block_dim=lanes,
+                    inputs=[wp.array(values, dtype=wp.int32, device=device)], outputs=[maxima], device=device)
+    got = maxima.numpy()
+    if wp.get_device(device).is_cuda:
+        expected = np.repeat(values.reshape(blocks, lanes, _LENGTH).max(axis=1), lanes, axis=0)
+    else:  # a block is one thread: its own values
+        expected = values
+    np.testing.assert_array_equal(got, expected)
+
+
+_warp_total = warp_total_func(wp.float64)
+
+
+@wp.kernel(enable_backward=False)
+def _totals(values: wp.array[wp.float64], groups: wp.array[wp.int32], totals_out: wp.array[wp.float64]):
+    i = wp.tid()
+    totals_out[i] = _warp_total(values[i], groups[i])
+
+
+def test_a_warp_of_one_group_gives_its_sum_to_its_first_lane(device):
+    rng = np.random.default_rng(13)
+    n = 32 * 10 + 7  # a last warp of 7 lanes
+    groups = np.repeat(np.arange(4), 32 * 2)  # warps 0-7 in four groups of two warps each, warp 8 in group 4,
+    groups = np.concatenate([groups, [4] * 40, [5] * 23, [6] * 8])  # warp 9 spans groups 4, 5 and 6, warp 10 short
+    assert len(groups) == n
+    values = rng.integers(-1000, 1000, n).astype(np.float64)  # integers: every order of the sums is exact
+    totals = wp.zeros(n, dtype=wp.float64, device=device)
+    wp.launch(_totals, dim=n, inputs=[wp.array(values, dtype=wp.float64, device=device),
+                                      wp.array(groups.astype(np.int32), device=device)],
+              outputs=[totals], device=device, block_dim=64)
+    got = totals.numpy()
+    if not wp.get_device(device).is_cuda:
+        np.testing.assert_array_equal(got, values)
+        return
+    expected = values.copy()
+    for warp in range(n // 32):
+        lanes = slice(32 * warp, 32 * warp + 32)
+        if len(set(groups[lanes])) == 1:
+            expected[lanes] = 0.0
+            expected[32 * warp] = values[lanes].sum()
+    np.testing.assert_array_equal(got, expected)
+    for g in range(7):  # and so each group's values add up to its sum
+        assert got[groups == g].sum() == values[groups == g].sum()

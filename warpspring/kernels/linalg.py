@@ -119,6 +119,127 @@ def atomic_slot(counts: wp.array[wp.int32], index: int) -> int:
     ...
 
 
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+int* address = &values.data[index];
+const unsigned int active = __activemask();
+const unsigned int peers = __match_any_sync(active, (unsigned long long)address);
+const int leader = __ffs(peers) - 1;
+const unsigned int lane = threadIdx.x & 31u;
+int largest = value;
+#if __CUDA_ARCH__ >= 800
+largest = __reduce_max_sync(peers, value);
+#else
+for (unsigned int others = peers; others != 0u; others &= others - 1u) {
+    const int other = __shfl_sync(peers, value, __ffs(others) - 1);
+    largest = other > largest ? other : largest;
+}
+#endif
+if (lane == (unsigned int)leader && largest > *((volatile int*)address)) atomicMax(address, largest);
+#else
+if (value > values.data[index]) wp::atomic_max(&values.data[index], value);
+#endif
+""")
+def atomic_raise(values: wp.array[wp.int32], index: int, value: int):
+    """``values[index] = max(values[index], value)``, an integer maximum (order-free), read first so that a value below
+    the one stored costs no atomic. On CUDA the active lanes of a warp that raise the same entry take their largest
+    first and one of them raises it (warp-aggregated): a pass whose every thread records a bound into its world's
+    entry otherwise queues them all on one address. A stale read costs one more atomic, never a wrong result.
+    ``values`` contiguous. (Named ``atomic_*``: the kernel conventions' check reads ``values`` as written.)"""
+    ...
+
+
+def _warp_total_source(ctype: str) -> str:
+    """C++ of ``warp_total`` for values of ``ctype``."""
+    return f"""
+#if defined(__CUDA_ARCH__)
+if (__activemask() != 0xffffffffu) return value;
+if (!__all_sync(0xffffffffu, __shfl_sync(0xffffffffu, group, 0) == group)) return value;
+{ctype} a = value;
+for (int offset = 16; offset > 0; offset >>= 1) a += __shfl_down_sync(0xffffffffu, a, offset);
+return (threadIdx.x & 31u) == 0u ? a : ({ctype})0;
+#else
+return value;
+#endif
+"""
+
+
+@wp.func_native(_warp_total_source("float"))
+def _warp_total_f32(value: wp.float32, group: int) -> wp.float32:
+    """``warp_total`` in single precision."""
+    ...
+
+
+@wp.func_native(_warp_total_source("double"))
+def _warp_total_f64(value: wp.float64, group: int) -> wp.float64:
+    """``warp_total`` in double precision."""
+    ...
+
+
+@functools.cache
+def warp_total_func(scalar: type):
+    """``warp_total(value, group) -> scalar``: on CUDA, where the 32 lanes of the warp are all active and all in the
+    same ``group`` (a world), the sum of their values (a fixed tree of shuffles) in lane 0 and zero in the others;
+    else (a warp at the end of a launch, or one that spans two worlds) each lane's own value. A lane that gets zero
+    has nothing to add: a per-item sum kept this way (``integrators.symplectic_euler_particle_func``'s power) reads
+    and writes one entry a warp instead of one an item, and a reader summing a group's entries gets the same total up
+    to the order of its additions. On the CPU the value itself. Every active lane of a warp must call it together."""
+    if scalar == wp.float64:
+        return _warp_total_f64
+    return _warp_total_f32
+
+
+def block_max_ints_func(length: int):
+    """``block_max_ints(values) -> vector(length, int32)``: the largest of each entry of ``values`` over the lanes of
+    the block, in every lane (the values themselves on the CPU, where a block is one thread): each warp's lanes by
+    shuffles, then each lane over the warps' results in shared memory. Two barriers a call for every entry at once
+    (a ``tile_reduce`` per entry took two shared-memory rounds and their barriers each). Every lane of the block must
+    call it; ``blockDim.x`` a multiple of 32."""
+    return _block_max_ints(int(length))
+
+
+@functools.cache
+def _block_max_ints(length: int):
+    vector = wp.types.vector(length, wp.int32)
+    source = f"""
+#if defined(__CUDA_ARCH__)
+__shared__ int warp_results[{length}][32];
+const unsigned int lane = threadIdx.x & 31u;
+const unsigned int warp = threadIdx.x >> 5;
+const unsigned int warps = (blockDim.x + 31u) >> 5;
+for (int k = 0; k < {length}; ++k) {{
+    int a = values.c[k];
+#if __CUDA_ARCH__ >= 800
+    a = __reduce_max_sync(0xffffffffu, a);
+#else
+    for (int offset = 16; offset > 0; offset >>= 1) {{
+        const int b = __shfl_xor_sync(0xffffffffu, a, offset);
+        a = b > a ? b : a;
+    }}
+#endif
+    if (lane == 0u) warp_results[k][warp] = a;
+}}
+__syncthreads();
+wp::vec_t<{length}, wp::int32> result;
+for (int k = 0; k < {length}; ++k) {{
+    int a = warp_results[k][0];
+    for (unsigned int w = 1u; w < warps; ++w) a = warp_results[k][w] > a ? warp_results[k][w] : a;
+    result.c[k] = a;
+}}
+__syncthreads();
+return result;
+#else
+return values;
+#endif
+"""
+
+    @wp.func_native(source)
+    def block_max_ints(values: vector) -> vector:
+        ...
+
+    return block_max_ints
+
+
 def _block_reduce_source(combine: str) -> str:
     """C++ of a block-wide reduction of a float64 (``reduction_funcs``), ``combine(a, b)`` an expression of ``a`` and
     ``b``: each warp's lanes by shuffles, then warp 0 over the warps' results, then every lane reads the block's. Two
