@@ -152,7 +152,7 @@ from .kinematics import particle_funcs
 from .precision import vec3_type
 from .worlds import world_and_index
 from .flatten import flat_kernel, launch_bounds_option
-from .linalg import atomic_slot
+from .linalg import atomic_raise, atomic_slot
 
 wp.set_module_options({"enable_backward": False})
 
@@ -1071,8 +1071,8 @@ def raise_flag(flags: wp.array[wp.int32], kind: int, world: int, world_count: in
 def apart_codec(scalar: type):
     """``(lower, read)``: ``lower(stored, slot, distance, thickness)`` lowers the least distance kept in
     ``stored[slot]`` to ``distance`` [m], rounded down to units of τ / KINEMATIC_STEPS (a negative or non-finite
-    distance records 0) and stored as APART_NONE less the units, an integer maximum read first (order-free: the least
-    distance any thread recorded; 0, the storage's zero, is none); ``read(value, thickness)`` the distance [m] a
+    distance records 0) and stored as APART_NONE less the units, an integer maximum read first (``linalg.atomic_raise``,
+    warp-aggregated on CUDA; order-free: the least distance any thread recorded; 0, the storage's zero, is none); ``read(value, thickness)`` the distance [m] a
     stored value holds (APART_NONE units, beyond any reach, for none)."""
 
     @wp.func
@@ -1083,8 +1083,7 @@ def apart_codec(scalar: type):
             value = int(0)  # too far to record
         elif units >= scalar(0.0):
             value = int(APART_NONE) - int(wp.floor(units))
-        if value > stored[slot]:
-            wp.atomic_max(stored, slot, value)
+        atomic_raise(stored, slot, value)
 
     @wp.func
     def read(value: int, thickness: scalar) -> scalar:

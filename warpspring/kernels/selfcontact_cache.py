@@ -81,6 +81,7 @@ import warp as wp
 
 from .flatten import flat_kernel
 from .kinematics import particle_funcs
+from .linalg import atomic_raise, block_max_ints_func
 from .precision import vec3_type
 from .selfcontact import (
     BOX_PAD,
@@ -129,14 +130,6 @@ def base_index(world: int, particle_count: int):
     """World ``world``'s first entry in a state's arrays."""
     return world * particle_count
 
-@wp.func
-def raise_to(flags: wp.array[wp.int32], slot: int, value: int):
-    """flags[slot] = max(flags[slot], value), an integer maximum (order-free); read first, so that most threads
-    of a world, below its maximum, skip the atomic (a stale read costs one more atomic, never a wrong result)."""
-    if value > flags[slot]:
-        wp.atomic_max(flags, slot, value)
-
-
 #: Lengths at or beyond this many units (τ / KINEMATIC_STEPS) are not reduced: the world is flagged at once.
 LENGTH_LIMIT = 1 << 29
 
@@ -165,20 +158,17 @@ def check_kernel(scalar: type, tiled: bool = True):
     the corners' drifts r from their anchors relative to the reference vertex and the box of their positions at the
     step's start, each padded and rounded outward (``patch_box_out``, PATCH_*, stored plus LENGTH_LIMIT so that a
     zeroed box is empty). Per world, from the reported corners: the padded largest |r| (FLAG_DRIFT), the kinematic vertices' largest displacement
-    (FLAG_KINEMATIC), the free surface vertices' largest step (FLAG_STEP). Each a block-wide integer maximum, then
-    one integer atomic maximum per block (order-free). ``decide_kernel`` reads them. Without ``tiled`` (the CPU,
+    (FLAG_KINEMATIC), the free surface vertices' largest step (FLAG_STEP). Each a block-wide integer maximum (all
+    fifteen in one ``linalg.block_max_ints``: two barriers), then one integer atomic maximum per block (order-free). ``decide_kernel`` reads them. Without ``tiled`` (the CPU,
     where a block is one thread) a plain kernel over (world, chunk), each thread a block of one."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
     units = length_funcs(scalar)
     extents = wp.types.vector(PATCH_COLUMNS, wp.int32)
-
-    @wp.func
-    def block_max(value: int):
-        """The largest ``value`` over the block's threads, in every thread."""
-        if wp.static(tiled):
-            return wp.tile_reduce(wp.max, wp.tile(value))[0]
-        return value
+    # The block's maxima, all at once: the patch's PATCH_COLUMNS extents, then the world's drift, kinematic
+    # displacement and step.
+    reduced = wp.types.vector(PATCH_COLUMNS + 3, wp.int32)
+    block_max_ints = block_max_ints_func(PATCH_COLUMNS + 3)
 
     @wp.kernel(module="unique", enable_backward=False)
     def check(
@@ -264,17 +254,20 @@ def check_kernel(scalar: type, tiled: bool = True):
         if big:  # beyond what the units hold (or NaN): rebuild
             raise_flag(flags_out, FLAG_REBUILD, world, world_count)
         patch = chunk_patch[chunk]
+        values = reduced()
         for k in range(PATCH_COLUMNS):
-            largest = block_max(extent[k])
-            if lane == 0:
-                wp.atomic_max(patch_box_out, world, patch, k, largest + LENGTH_LIMIT)
-        drift = block_max(drift)
-        kinematic = block_max(kinematic)
-        step_units = block_max(step_units)
+            values[k] = extent[k]
+        values[PATCH_COLUMNS] = drift
+        values[PATCH_COLUMNS + 1] = kinematic
+        values[PATCH_COLUMNS + 2] = step_units
+        if wp.static(tiled):
+            values = block_max_ints(values)
         if lane == 0:
-            raise_to(flags_out, flag_slot(FLAG_DRIFT, world, world_count), drift)
-            raise_to(flags_out, flag_slot(FLAG_KINEMATIC, world, world_count), kinematic)
-            raise_to(flags_out, flag_slot(FLAG_STEP, world, world_count), step_units)
+            for k in range(PATCH_COLUMNS):
+                wp.atomic_max(patch_box_out, world, patch, k, values[k] + LENGTH_LIMIT)
+            atomic_raise(flags_out, flag_slot(FLAG_DRIFT, world, world_count), values[PATCH_COLUMNS])
+            atomic_raise(flags_out, flag_slot(FLAG_KINEMATIC, world, world_count), values[PATCH_COLUMNS + 1])
+            atomic_raise(flags_out, flag_slot(FLAG_STEP, world, world_count), values[PATCH_COLUMNS + 2])
 
     return check
 
