@@ -26,7 +26,7 @@ import warp as wp
 from .families import FORCE_KERNEL_OPTIONS, elements
 from .forces import ForceFeatures, counts_work, particle_force_func, particle_power_func, power_sums_funcs
 from .kinematics import is_kinematic, particle_funcs
-from .linalg import reduction_funcs
+from .linalg import reduction_funcs, warp_total_func
 from .precision import vec3_type
 from .response import project_all_func
 from .shapes import ContactFeatures, shapes_type
@@ -166,12 +166,13 @@ def symplectic_euler_particle_energy_func(scalar: type, features: ForceFeatures,
 
 @functools.cache
 def symplectic_euler_particle_func(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
-                                   power: tuple | None = None):
+                                   power: tuple | None = None, warp_totals: bool = False):
     """``step_particle(world, i, p, base, ..., q_in, qd_in, h, power_in_out) -> (x', v')``: one particle's fused
     symplectic Euler step (forces gathered, velocity then position, contacts), the one body of the per-substep kernel
     (``symplectic_euler_kernel``) and of the one-launch frame (``kernels/frames.py``). A kinematic particle moves on
-    with its velocity. With ``power`` the particle adds to its entry of the guard's power sums
-    (``symplectic_euler_kernel``'s rule)."""
+    with its velocity. With ``power`` the particle's share of the guard's power sums (``symplectic_euler_kernel``'s
+    rule) is added to its entry, or with ``warp_totals`` on CUDA, where its warp's lanes step particles of one world,
+    the warp's total to its first lane's entry (``linalg.warp_total``; ``p`` the launch's thread)."""
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
     counted = power is not None
@@ -184,6 +185,8 @@ def symplectic_euler_particle_func(scalar: type, features: ForceFeatures, contac
     update = symplectic_euler_funcs(scalar)
     _, project_contacts = project_all_func(scalar, contacts)
     has_contacts = bool(contacts)
+    warp_total = warp_total_func(scalar)
+    worked_too = counted and counts_work(features, power)
 
     @wp.func
     def step_particle(world: int, i: int, p: int, base: int, particle_flags: wp.array[wp.int32],
@@ -195,12 +198,16 @@ def symplectic_euler_particle_func(scalar: type, features: ForceFeatures, contac
         v = qd_in[p]
         x_new = x + h * v
         v_new = v
+        taken = scalar(0.0)  # (with warp_totals: the particle's share, added by its warp below)
+        worked = scalar(0.0)
         if is_kinematic(particle_flags[p]):
             if wp.static(counted):  # its elements' dampers: their share of the dampers' power (the drive's work has
                 # the rest)
                 _, dampers, _ = particle_force(world, i, base, x, v, False, particle_mass, element_arrays, inputs,
                                                particle_force_ext, q_in, qd_in)
-                power_in_out[p] += pack(-h * wp.dot(dampers, v), scalar(0.0))
+                taken = -h * wp.dot(dampers, v)
+                if wp.static(not warp_totals):
+                    power_in_out[p] += pack(taken, scalar(0.0))
         else:
             inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
             if wp.static(counted):
@@ -208,13 +215,22 @@ def symplectic_euler_particle_func(scalar: type, features: ForceFeatures, contac
                                                   particle_force_ext, q_in, qd_in)
                 x_new, v_new = update(x, v, f, inv_mass, h)
                 mean = (v + v_new) * (scalar(0.5) * h)
-                power_in_out[p] += pack(-wp.dot(dampers, mean), wp.dot(work, mean))
+                taken = -wp.dot(dampers, mean)
+                worked = wp.dot(work, mean)
+                if wp.static(not warp_totals):
+                    power_in_out[p] += pack(taken, worked)
             else:
                 f = particle_force(world, i, base, x, v, particle_mass, element_arrays, inputs, particle_force_ext,
                                    q_in, qd_in)
                 x_new, v_new = update(x, v, f, inv_mass, h)
             if wp.static(has_contacts):
                 x_new, v_new = project_contacts(world, p, x_new, v_new, particle_radius[i], h, shapes, inputs)
+        if wp.static(counted and warp_totals):  # (every lane, the branches rejoined)
+            taken = warp_total(taken, world)
+            if wp.static(worked_too):
+                worked = warp_total(worked, world)
+            if taken != scalar(0.0) or worked != scalar(0.0):  # (adding zero changes no entry: its read skipped)
+                power_in_out[p] += pack(taken, worked)
         return x_new, v_new
 
     return step_particle
@@ -222,7 +238,8 @@ def symplectic_euler_particle_func(scalar: type, features: ForceFeatures, contac
 
 @functools.cache
 def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: ContactFeatures,
-                            power: tuple | None = None, bounds: tuple[int, int] | None = None):
+                            power: tuple | None = None, bounds: tuple[int, int] | None = None,
+                            warp_totals: bool = False):
     """Fused force + symplectic Euler + contact kernel: v' = v + h M⁻¹ f(x, v); x' = x + h v'; ``contacts``
     fused (static colliders, every one tested).
 
@@ -231,7 +248,10 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
     the step, -h f_d·(v + v')/2, and the work the loads from outside did on it, h f_w·(v + v')/2 (f_d, f_w: their
     parts of f, ``forces.particle_power_func``; v' before the contacts). That is exactly what they changed its
     kinetic energy by, ½ m (|v'|² - |v|²) = h f·(v + v')/2, so the guard's balance closes up to the integrator's
-    error in the elastic energy; one thread writes each entry (no atomics), no pass of its own.
+    error in the elastic energy; one thread writes each entry (no atomics), no pass of its own. With ``warp_totals``
+    (CUDA) a warp whose lanes step particles of one world adds their total (a fixed tree of shuffles) to its first
+    lane's entry alone: one read and write of an entry a warp instead of one a particle (the check sums a world's
+    entries), for a few instructions more in every thread (``SymplecticEuler.POWER_WARP_TOTALS_FROM``).
 
     ``bounds`` (threads a block, blocks a multiprocessor): ``flatten.launch_bounds_option``."""
     vec3 = vec3_type(scalar)
@@ -239,7 +259,7 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
     Sums = power_sums_funcs(scalar, power is not None and counts_work(features, power)).type
     composed = elements(scalar, features.families)
     Elements = composed.arrays
-    step_particle = symplectic_euler_particle_func(scalar, features, contacts, power)
+    step_particle = symplectic_euler_particle_func(scalar, features, contacts, power, warp_totals)
 
     @flat_kernel(module="unique", enable_backward=False, module_options=FORCE_KERNEL_OPTIONS,
                  **launch_bounds_option(bounds),

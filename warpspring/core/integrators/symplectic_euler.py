@@ -71,6 +71,13 @@ class SymplecticEuler(Integrator):
     #: Blocks of ``model.block_dim`` threads of the per-substep fused step a multiprocessor must hold at once (a bound
     #: on its registers, ``kernels.integrators.symplectic_euler_kernel``'s ``bounds``); ``None``: the compiler's choice.
     STEP_MIN_BLOCKS = None
+    #: Particles (all worlds) from which the per-substep fused step adds the guard's power sums a warp at a time on CUDA
+    #: (``kernels.integrators.symplectic_euler_kernel``'s ``warp_totals``): one entry's read and write a warp instead
+    #: of one a particle, for a few instructions more in every thread. On an H200 (Warp 1.16.0, hanging cloth, default
+    #: guard ÷ guard off, bench/results/guard_cost.md) 1024² gained (0.754-0.761 → 0.797-0.798), where the step's
+    #: memory traffic bounds it, and 256² lost (0.725-0.734 → 0.693-0.696), where one wave of threads' latency does;
+    #: between the two it is unmeasured.
+    POWER_WARP_TOTALS_FROM = 1 << 19
 
     def __init__(self, model, *, one_launch: bool | None = None, cpu_sweep: bool = True):
         super().__init__(model)
@@ -212,8 +219,10 @@ class SymplecticEuler(Integrator):
                 # Its scratch: the two states' force arrays (the step's to use; left zero).
                 common["dim"], scratch = model.world_count, [state_in.particle_f, state_out.particle_f]
             else:
+                warp_totals = (power is not None and model.device.is_cuda
+                               and model.world_count * model.particle_count >= self.POWER_WARP_TOTALS_FROM)
                 kernel = symplectic_euler_kernel(model.scalar, features, contacts, power,
-                                                 launch_bounds(model.block_dim, self.STEP_MIN_BLOCKS))
+                                                 launch_bounds(model.block_dim, self.STEP_MIN_BLOCKS), warp_totals)
                 scratch = []
             if blocks is None:
                 flat_launch(
