@@ -95,14 +95,20 @@ def block_barrier():
     ...
 
 
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-int* address = &counts.data[index];
+def _warp_peers(array: str) -> str:
+    """C++ opening a warp-aggregated update of ``array[index]`` (``atomic_slot``, ``atomic_raise``): its ``address``,
+    the active lanes that update the same one (``peers``), the first of them (``leader``) and this lane's number."""
+    return f"""int* address = &{array}.data[index];
 const unsigned int active = __activemask();
 const unsigned int peers = __match_any_sync(active, (unsigned long long)address);
 const int leader = __ffs(peers) - 1;
 const unsigned int lane = threadIdx.x & 31u;
-int first = 0;
+"""
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+""" + _warp_peers("counts") + """int first = 0;
 if (lane == (unsigned int)leader) first = atomicAdd(address, __popc(peers));
 first = __shfl_sync(peers, first, leader);
 return first + __popc(peers & ((1u << lane) - 1u));
@@ -121,12 +127,7 @@ def atomic_slot(counts: wp.array[wp.int32], index: int) -> int:
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
-int* address = &values.data[index];
-const unsigned int active = __activemask();
-const unsigned int peers = __match_any_sync(active, (unsigned long long)address);
-const int leader = __ffs(peers) - 1;
-const unsigned int lane = threadIdx.x & 31u;
-int largest = value;
+""" + _warp_peers("values") + """int largest = value;
 #if __CUDA_ARCH__ >= 800
 largest = __reduce_max_sync(peers, value);
 #else
