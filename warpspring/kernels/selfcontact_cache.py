@@ -159,8 +159,9 @@ def check_kernel(scalar: type, tiled: bool = True):
     step's start, each padded and rounded outward (``patch_box_out``, PATCH_*, stored plus LENGTH_LIMIT so that a
     zeroed box is empty). Per world, from the reported corners: the padded largest |r| (FLAG_DRIFT), the kinematic vertices' largest displacement
     (FLAG_KINEMATIC), the free surface vertices' largest step (FLAG_STEP). Each a block-wide integer maximum (all
-    fifteen in one ``linalg.block_max_ints``: two barriers), then one integer atomic maximum per block (order-free). ``decide_kernel`` reads them. Without ``tiled`` (the CPU,
-    where a block is one thread) a plain kernel over (world, chunk), each thread a block of one."""
+    fifteen in one ``linalg.block_max_ints``: two barriers), then one integer atomic maximum per block (order-free).
+    ``decide_kernel`` reads them. Without ``tiled`` (the CPU, where a block is one thread) a plain kernel over (world,
+    chunk), each thread a block of one."""
     vec3 = vec3_type(scalar)
     effective_inv_mass = particle_funcs(scalar)
     units = length_funcs(scalar)
