@@ -4,8 +4,8 @@ counter ends at the claims, also where only some lanes of a warp claim and neigh
 counters. ``atomic_raise``: each entry ends at the largest value raised into it (or where it was), with the same
 mixes of lanes. ``warp_total``: a warp whose 32 lanes share a group gives its sum to its first lane and zero to
 the others, any other warp each lane its own value; so the values a group's lanes get add up to the group's sum.
-``block_max_ints``: every lane of a block gets each entry's largest over the block's lanes (on the
-CPU, where a block is one thread, its own values)."""
+``block_max_ints``: every lane of a block gets each entry's largest over the block's lanes, also from a second call
+in the same kernel (on the CPU, where a block is one thread, its own values)."""
 
 import numpy as np
 import warp as wp
@@ -73,7 +73,7 @@ _ints = wp.types.vector(_LENGTH, wp.int32)
 
 
 @wp.kernel(enable_backward=False)
-def _block_maxima(values: wp.array2d[wp.int32], maxima_out: wp.array2d[wp.int32]):
+def _block_maxima(values: wp.array2d[wp.int32], maxima_out: wp.array2d[wp.int32], minima_out: wp.array2d[wp.int32]):
     i = wp.tid()
     mine = _ints()
     for k in range(_LENGTH):
@@ -81,6 +81,10 @@ def _block_maxima(values: wp.array2d[wp.int32], maxima_out: wp.array2d[wp.int32]
     largest = _block_max_ints(mine)
     for k in range(_LENGTH):
         maxima_out[i, k] = largest[k]
+        mine[k] = -1 - values[i, k]  # (no overflow: -1 - v is ~v)
+    least = _block_max_ints(mine)  # a second call in the same kernel: its shared slots reused
+    for k in range(_LENGTH):
+        minima_out[i, k] = -1 - least[k]
 
 
 def test_every_lane_gets_the_block_maxima(device):
@@ -89,14 +93,16 @@ def test_every_lane_gets_the_block_maxima(device):
     values = rng.integers(-2**31, 2**31 - 1, (blocks * lanes, _LENGTH), dtype=np.int64).astype(np.int32)
     values[:lanes, 2] = -5  # one entry equal on every lane
     maxima = wp.zeros((blocks * lanes, _LENGTH), dtype=wp.int32, device=device)
+    minima = wp.zeros((blocks * lanes, _LENGTH), dtype=wp.int32, device=device)
     wp.launch(_block_maxima, dim=blocks * lanes, block_dim=lanes,
-                    inputs=[wp.array(values, dtype=wp.int32, device=device)], outputs=[maxima], device=device)
-    got = maxima.numpy()
+              inputs=[wp.array(values, dtype=wp.int32, device=device)], outputs=[maxima, minima], device=device)
     if wp.get_device(device).is_cuda:
-        expected = np.repeat(values.reshape(blocks, lanes, _LENGTH).max(axis=1), lanes, axis=0)
+        per_block = values.reshape(blocks, lanes, _LENGTH)
+        np.testing.assert_array_equal(maxima.numpy(), np.repeat(per_block.max(axis=1), lanes, axis=0))
+        np.testing.assert_array_equal(minima.numpy(), np.repeat(per_block.min(axis=1), lanes, axis=0))
     else:  # a block is one thread: its own values
-        expected = values
-    np.testing.assert_array_equal(got, expected)
+        np.testing.assert_array_equal(maxima.numpy(), values)
+        np.testing.assert_array_equal(minima.numpy(), values)
 
 
 _warp_total = warp_total_func(wp.float64)

@@ -314,9 +314,12 @@ def test_power_summed_per_warp_is_the_per_particle_sum(device):
     """With ``POWER_WARP_TOTALS_FROM`` reached, symplectic Euler's per-substep step adds a warp's power to its first
     lane's entry on CUDA where the warp's lanes share a world (each lane its own elsewhere, and on the CPU): three
     worlds of a 48-particle cloth in wind and drag, so that some warps lie in one world, one spans two and the last is
-    short. The same positions to the last bit, and each world's dissipation and work as with the sums per particle up
-    to their float32 rounding (~1e-7 of each step's energy, summed over 480 steps: 1e-5 of D and W)."""
+    short, each world thrown with its own velocities. One substep's sums: each world's total as with the sums per
+    particle, to float32 rounding, and on CUDA held in fewer entries (the warps' first lanes). Over 60 frames: the same
+    positions to the last bit, and each world's dissipation and work as with the sums per particle up to their float32
+    rounding (~1e-7 of each step's energy, summed over 480 steps: 1e-5 of D and W)."""
     results = []
+    velocities = np.random.default_rng(7).normal(scale=0.05, size=(3 * 48, 3))
     for warps in (True, False):
         builder = ws.ModelBuilder(drag=0.02)
         spring = ws.SpringMaterial(ke=100.0, kd=0.5)
@@ -328,9 +331,24 @@ def test_power_summed_per_warp_is_the_per_particle_sum(device):
         integrator = ws.make_integrator("symplectic_euler", model, cpu_sweep=False, one_launch=False)
         integrator.POWER_WARP_TOTALS_FROM = 0 if warps else 1 << 62
         sim = ws.Simulator(model, integrator=integrator, fps=60, substeps=8)
+        sim.state.particle_qd.assign(velocities)
+        sim.step_frame()  # (the guard hands the integrator its power sums)
+        sums = integrator.power.sums
+        sums.zero_()
+        out = model.state()
+        integrator.step(sim.state, out, sim.control, sim.dt)
+        step = sums.numpy().reshape(3, 48, -1).astype(np.float64)
+        sums.zero_()  # (the next check counts from here: the step's state was not kept)
         q = run_frames(sim, 60)
-        results.append((q, sim.guard.energy_balance()))
-    (q_warps, warps), (q_particles, particles) = results
+        results.append((step, q, sim.guard.energy_balance()))
+    (step_warps, q_warps, warps), (step_particles, q_particles, particles) = results
+    scale = np.abs(step_particles).sum(axis=1)
+    assert np.all(scale > 0.0)
+    np.testing.assert_allclose(step_warps.sum(axis=1), step_particles.sum(axis=1), atol=1e-6 * scale.max())
+    if wp.get_device(device).is_cuda:
+        assert np.count_nonzero(step_warps) < np.count_nonzero(step_particles)
+    else:
+        np.testing.assert_array_equal(step_warps, step_particles)
     assert np.array_equal(q_warps, q_particles)
     assert np.all(warps.dissipated > 0.01 * warps.peak) and np.all(warps.work > 0.01 * warps.peak)
     np.testing.assert_allclose(warps.dissipated, particles.dissipated, rtol=1e-5)

@@ -248,10 +248,13 @@ def symplectic_euler_kernel(scalar: type, features: ForceFeatures, contacts: Con
     the step, -h f_d·(v + v')/2, and the work the loads from outside did on it, h f_w·(v + v')/2 (f_d, f_w: their
     parts of f, ``forces.particle_power_func``; v' before the contacts). That is exactly what they changed its
     kinetic energy by, ½ m (|v'|² - |v|²) = h f·(v + v')/2, so the guard's balance closes up to the integrator's
-    error in the elastic energy; one thread writes each entry (no atomics), no pass of its own. With ``warp_totals``
-    (CUDA) a warp whose lanes step particles of one world adds their total (a fixed tree of shuffles) to its first
-    lane's entry alone: one read and write of an entry a warp instead of one a particle (the check sums a world's
-    entries), for a few instructions more in every thread (``SymplecticEuler.POWER_WARP_TOTALS_FROM``).
+    error in the elastic energy; one thread adds to each entry (Warp's ``+=`` on an array, an atomic add with a single
+    writer: the same sum in any order), no pass of its own. With ``warp_totals`` (CUDA) a warp whose lanes step
+    particles of one world adds their total (a fixed tree of shuffles) to its first lane's entry alone: one add to an
+    entry a warp instead of one a particle (the check sums a world's entries), for a few instructions more in every
+    thread (``SymplecticEuler.POWER_WARP_TOTALS_FROM``). A non-finite particle's share then reaches its warp's entry,
+    where the check's ``measure`` leaves a non-finite particle's own entry out: its world stops as non-finite at that
+    check either way.
 
     ``bounds`` (threads a block, blocks a multiprocessor): ``flatten.launch_bounds_option``."""
     vec3 = vec3_type(scalar)

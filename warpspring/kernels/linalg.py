@@ -179,12 +179,13 @@ def _warp_total_f64(value: wp.float64, group: int) -> wp.float64:
 
 @functools.cache
 def warp_total_func(scalar: type):
-    """``warp_total(value, group) -> scalar``: on CUDA, where the 32 lanes of the warp are all active and all in the
-    same ``group`` (a world), the sum of their values (a fixed tree of shuffles) in lane 0 and zero in the others;
-    else (a warp at the end of a launch, or one that spans two worlds) each lane's own value. A lane that gets zero
-    has nothing to add: a per-item sum kept this way (``integrators.symplectic_euler_particle_func``'s power) reads
-    and writes one entry a warp instead of one an item, and a reader summing a group's entries gets the same total up
-    to the order of its additions. On the CPU the value itself. Every active lane of a warp must call it together."""
+    """``warp_total(value, group) -> scalar``: on CUDA, where the 32 lanes of the warp call it together (converged:
+    ``__activemask`` full) and all are in the same ``group`` (a world), the sum of their values (a fixed tree of
+    shuffles) in lane 0 and zero in the others; else (a warp at the end of a launch, one that spans two worlds, or
+    lanes that reach the call apart) each lane's own value. A lane that gets zero has nothing to add: a per-item sum
+    kept this way (``integrators.symplectic_euler_particle_func``'s power) reads and writes one entry a warp instead
+    of one an item, and a reader summing a group's entries gets the same total up to the order of its additions (the
+    lanes' convergence decides how much is saved, never the total). On the CPU the value itself."""
     if scalar == wp.float64:
         return _warp_total_f64
     return _warp_total_f32

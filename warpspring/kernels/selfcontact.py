@@ -1071,9 +1071,10 @@ def raise_flag(flags: wp.array[wp.int32], kind: int, world: int, world_count: in
 def apart_codec(scalar: type):
     """``(lower, read)``: ``lower(stored, slot, distance, thickness)`` lowers the least distance kept in
     ``stored[slot]`` to ``distance`` [m], rounded down to units of τ / KINEMATIC_STEPS (a negative or non-finite
-    distance records 0) and stored as APART_NONE less the units, an integer maximum read first (``linalg.atomic_raise``,
-    warp-aggregated on CUDA; order-free: the least distance any thread recorded; 0, the storage's zero, is none); ``read(value, thickness)`` the distance [m] a
-    stored value holds (APART_NONE units, beyond any reach, for none)."""
+    distance records 0) and stored as APART_NONE less the units, an integer maximum read first
+    (``linalg.atomic_raise``, warp-aggregated on CUDA; order-free: the least distance any thread recorded; 0, the
+    storage's zero, is none); ``read(value, thickness)`` the distance [m] a stored value holds (APART_NONE units,
+    beyond any reach, for none)."""
 
     @wp.func
     def lower(stored: wp.array[wp.int32], slot: int, distance: scalar, thickness: scalar):
