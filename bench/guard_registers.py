@@ -1,7 +1,8 @@
 """The registers a thread of each of the guard's kernels (and of the step they ride on) gets on a CUDA architecture,
 without a GPU: the kernels a run of ``guard_cost.py``'s cloth launches are built as they are for CUDA (the check's
 passes tiled) and compiled for ``--arch`` with Warp's NVRTC (``wp.compile_aot_module``); the count is read from each
-cubin (its ``EIATTR_REGCOUNT``). Registers decide a kernel's occupancy: 2,048 resident threads and 65,536 registers a
+cubin (its ``EIATTR_REGCOUNT``), and the bytes of local memory a thread's frame takes (``EIATTR_FRAME_SIZE``: what
+the compiler spilled, with any local arrays). Registers decide a kernel's occupancy: 2,048 resident threads and 65,536 registers a
 multiprocessor on sm_90, so more than 128 registers a thread leaves at most 512 threads (25 %) resident, ≤ 64 all.
 
     python bench/guard_registers.py --size 64 --integrator symplectic_euler
@@ -22,11 +23,12 @@ import warpspring.core.integrators.symplectic_euler as se_module
 from guard_cost import SUBSTEPS, hanging_cloth
 from warpspring.core.guards import WATCH_FRAMES
 
-EIATTR_REGCOUNT, EIFMT_SVAL = 0x2F, 0x04
+EIATTR_REGCOUNT, EIATTR_FRAME_SIZE, EIFMT_SVAL = 0x2F, 0x11, 0x04
 
 
-def register_counts(cubin: Path) -> dict[int, int]:
-    """Registers per thread of each function of ``cubin`` by its symbol index (the ``.nv.info`` attributes)."""
+def register_counts(cubin: Path, attribute_wanted: int = EIATTR_REGCOUNT) -> dict[int, int]:
+    """Registers per thread (or with ``EIATTR_FRAME_SIZE`` the local frame's bytes) of each function of ``cubin`` by
+    its symbol index (the ``.nv.info`` attributes)."""
     data = cubin.read_bytes()
     shoff, = struct.unpack_from("<Q", data, 0x28)
     shentsize, shnum, shstrndx = struct.unpack_from("<HHH", data, 0x3A)
@@ -42,9 +44,9 @@ def register_counts(cubin: Path) -> dict[int, int]:
             fmt, attribute, length = struct.unpack_from("<BBH", data, offset + k)
             k += 4
             if fmt == EIFMT_SVAL:
-                if attribute == EIATTR_REGCOUNT:
-                    symbol, registers = struct.unpack_from("<II", data, offset + k)
-                    counts[symbol] = registers
+                if attribute == attribute_wanted:
+                    symbol, value = struct.unpack_from("<II", data, offset + k)
+                    counts[symbol] = value
                 k += length
     return counts
 
@@ -77,7 +79,6 @@ def main():
     se_module.symplectic_euler_frame_kernel = recording("frame", se_module.symplectic_euler_frame_kernel)
     if hasattr(se_module, "symplectic_euler_blocks_kernel"):
         se_module.symplectic_euler_blocks_kernel = recording("blocks", se_module.symplectic_euler_blocks_kernel, tiled_at=4)
-    guards_module.STEP_POWER_BLOCKS = {True: True, False: True}  # the CUDA default's step (its CPU variant runs here)
     model = hanging_cloth(args.size, "cpu", evaluation="gather")
     options = {"cpu_sweep": False} if args.integrator == "symplectic_euler" else {}
     for guard in (None, ws.GuardLimits()):
@@ -89,7 +90,7 @@ def main():
             for _ in range(WATCH_FRAMES + 2):  # past the frames a guard watches from the start: its steady frames
                 sim.step_frame()
     print(f"{args.size}², {args.integrator}: registers a thread on sm_{args.arch} (NVRTC, Warp {wp.config.version})")
-    print("| kernel | registers |\n|---|---|")
+    print("| kernel | registers | local frame [B] |\n|---|---|---|")
     import os
     with tempfile.TemporaryDirectory() as folder:
         folder = os.environ.get("KEEP_AOT", folder)
@@ -98,7 +99,9 @@ def main():
                                               use_ptx=False):
                 if str(path).endswith(".cubin"):
                     counts = register_counts(Path(path))
-                    print(f"| {kernel.key.split('__locals__')[-1][:40]} ({key[-8:]}) | {max(counts.values(), default=0)} |")
+                    frames = register_counts(Path(path), EIATTR_FRAME_SIZE)
+                    print(f"| {kernel.key.split('__locals__')[-1][:40]} ({key[-8:]}) | {max(counts.values(), default=0)} "
+                          f"| {max(frames.values(), default=0)} |")
 
 
 if __name__ == "__main__":
