@@ -30,6 +30,7 @@ launch, scan and refit.
     python bench/selfcontact.py --device cpu --sizes 16 32 --example-frames 3 --baseline 65f7792
     python bench/selfcontact.py --device cpu --sizes 16 --radius-study   # the cap's pair counts by radius
     python bench/selfcontact.py --device cpu --sizes 32 64 --rebuild-study 4   # the cache's rebuilds by rule
+    python bench/selfcontact.py --device cpu --sizes 64 128 --patch-study 8   # the cache's rebuilds by patch grouping
 
 The cost table (the default mode) times, at each size, the substep without and with self-collision
 (``none``, ``self``; ``--pass-alone`` adds ``pass``), and each self-collision example's simulation loop
@@ -394,6 +395,88 @@ def radius_study(n: int, device) -> list[str]:
         ("D < 32τ", counts["fixed"]))]
 
 
+#: The patch groupings ``patch_study`` compares: (at most this many patches, at least this many triangles each).
+PATCH_STUDY = ((32, 32), (256, 32), (1024, 8), (4096, 4))
+
+
+def rebuild_cause(sc) -> tuple[str, int, int]:
+    """Which rule asked for the rebuild ``sc`` is about to make (read before it, from the step's flags and patch boxes,
+    in float64 as ``kernels/selfcontact_cache.py``'s ``decide_kernel`` tests them, world 0): "decide" where two
+    patches closer than 2τ drift apart past the slack (and the world's drift past half of it), "watch" where not but
+    the watched pairs were checked, "first" for a cache never built, else "other"; and how many patch pairs were past
+    the slack, and how many of those are one patch with itself."""
+    from warpspring.kernels.selfcontact import (FLAG_DRIFT, FLAG_WATCH, KINEMATIC_STEPS, PATCH_DRIFT, PATCH_POSITION,
+                                                REPULSION_REACH, SAFETY, flag_slot)
+    from warpspring.kernels.selfcontact_cache import LENGTH_LIMIT
+
+    worlds = sc.model.world_count
+    flags = sc.flags.numpy()
+    box = sc.patch_box.numpy()[0].astype(np.int64) - LENGTH_LIMIT
+    thickness = float(sc.params.numpy()[0, 0])
+    unit = thickness / KINEMATIC_STEPS
+    reach = float(sc.cache_reach.numpy()[0])
+    if reach == 0.0:
+        return "first", 0, 0
+    slack = (reach - REPULSION_REACH * thickness) * (1.0 - SAFETY)
+    drift = flags[flag_slot(FLAG_DRIFT, 0, worlds)] * unit
+    high, low = box[:, PATCH_POSITION:PATCH_POSITION + 3], box[:, PATCH_POSITION + 3:PATCH_POSITION + 6]
+    gap = np.maximum(0, np.maximum(-low[None] - high[:, None], -low[:, None] - high[None])) * unit
+    spread = np.maximum(box[:, None, PATCH_DRIFT:PATCH_DRIFT + 3] + box[None, :, PATCH_DRIFT + 3:PATCH_DRIFT + 6],
+                        box[None, :, PATCH_DRIFT:PATCH_DRIFT + 3] + box[:, None, PATCH_DRIFT + 3:PATCH_DRIFT + 6]) * unit
+    past = ((np.linalg.norm(gap, axis=2) < REPULSION_REACH * thickness * (1.0 + SAFETY))
+            & (np.linalg.norm(spread, axis=2) > slack))
+    pairs, itself = int(np.triu(past).sum()), int(np.trace(past))
+    if pairs and drift > 0.5 * slack:
+        return "decide", pairs, itself
+    return ("watch" if flags[flag_slot(FLAG_WATCH, 0, worlds)] else "other"), pairs, itself
+
+
+def patch_study(n: int, device, frames: int) -> list[str]:
+    """Markdown rows: the cache's rebuilds per substep of the ``self`` scene over ``frames`` frames after the settling,
+    the pass as it runs (its own rule, uncaptured: each rebuild a host branch), for each patch grouping of
+    ``PATCH_STUDY`` (``kernels/selfcontact.py``'s PATCH_LIMIT, PATCH_LIMIT_CPU and PATCH_TRIANGLES, set before the model
+    is made and restored after), with the rule that asked for each (``rebuild_cause``)."""
+    import collections
+
+    import warpspring.core.selfcontact as host
+    import warpspring.kernels.selfcontact as kernels_module
+
+    saved = (kernels_module.PATCH_LIMIT, kernels_module.PATCH_LIMIT_CPU, kernels_module.PATCH_TRIANGLES)
+    rebuild = host.SelfContact._rebuild
+    rows = []
+    try:
+        for limit, least in PATCH_STUDY:
+            kernels_module.PATCH_LIMIT = kernels_module.PATCH_LIMIT_CPU = limit
+            kernels_module.PATCH_TRIANGLES = least
+            model = scene(n, device, True)
+            sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=None, use_graph=False)
+            for _ in range(SETTLE_FRAMES):
+                sim.step_frame()
+            causes = []
+
+            def asked(self, start, causes=causes):
+                causes.append(rebuild_cause(self))
+                return rebuild(self, start)
+
+            host.SelfContact._rebuild = asked
+            sc = model.self_contact
+            for _ in range(frames):
+                sim.step_frame()
+            host.SelfContact._rebuild = rebuild
+            substeps = frames * SUBSTEPS
+            kinds = collections.Counter(cause for cause, _, _ in causes)
+            pairs = [p for cause, p, _ in causes if cause == "decide"]
+            itself = [s for cause, _, s in causes if cause == "decide"]
+            rows.append(f"| {n} | {sc.patch_count} (≤ {limit}, ≥ {least} triangles) | {len(causes) / substeps:.3f} | "
+                        + ", ".join(f"{k} {v}" for k, v in sorted(kinds.items()))
+                        + f" | {np.mean(pairs) if pairs else 0:.1f} ({np.mean(itself) if itself else 0:.1f}) "
+                        f"| {int(sc.watch_count.numpy().sum())} |")
+    finally:
+        kernels_module.PATCH_LIMIT, kernels_module.PATCH_LIMIT_CPU, kernels_module.PATCH_TRIANGLES = saved
+        host.SelfContact._rebuild = rebuild
+    return rows
+
+
 def rebuild_study(n: int, device, frames: int, patch_widths=(0.2, 0.4, 0.8)) -> list[str]:
     """Markdown rows: how often the pair cache must be rebuilt over ``frames`` frames after the settling, by rule,
     replayed on the host in float64 over the ``self`` scene's substeps (the cache reach R = CACHE_REACH τ; a rule
@@ -728,6 +811,8 @@ def main():
                         help="with --broad-forms, also two launches in blocks of 64 with their registers bounded so "
                              "that K blocks fit a multiprocessor, each K")
     parser.add_argument("--radius-study", action="store_true", help="count the cap's pairs by candidate rule instead")
+    parser.add_argument("--patch-study", type=int, default=0, metavar="FRAMES",
+                        help="the cache's rebuilds per substep over FRAMES frames for each patch grouping (PATCH_STUDY)")
     parser.add_argument("--rebuild-study", type=int, default=0, metavar="FRAMES",
                         help="count the cache's rebuilds by rule over FRAMES frames after the settling instead")
     args = parser.parse_args()
@@ -750,6 +835,13 @@ def main():
          f"float64 (τ = {THICKNESS} m, cache reach R = 3τ)",
          ["N", "the cache holds while", "rebuilds / substeps"],
          lambda n: rebuild_study(n, device, args.rebuild_study)),
+        (args.patch_study,
+         f"The pair cache's rebuilds by patch grouping on {device.name}, Warp {wp.config.version}, {today}: the draped "
+         f"cloth's {args.patch_study} frames after {SETTLE_FRAMES} frames of settling, the pass as it runs, uncaptured "
+         f"(τ = {THICKNESS} m), and the rule that asked for each rebuild (world 0)",
+         ["N", "patches", "rebuilds per substep", "asked by", "patch pairs past the slack per decide rebuild "
+          "(of them a patch with itself)", "pairs watched at the end"],
+         lambda n: patch_study(n, device, args.patch_study)),
         (args.radius_study,
          f"The cap's pairs per substep by candidate rule on {device.name}, Warp {wp.config.version}, {today}: the draped "
          f"cloth's fall ({SETTLE_FRAMES} frames, every 4th substep), τ = {THICKNESS} m, γ = 0.25",
