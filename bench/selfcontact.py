@@ -399,6 +399,16 @@ def radius_study(n: int, device) -> list[str]:
 PATCH_STUDY = ((32, 32), (256, 32), (1024, 8), (4096, 4))
 
 
+def patches_past_slack(position_low, position_high, drift_low, drift_high, near: float, slack: float) -> np.ndarray:
+    """[P, P] booleans: the pairs of patches whose position boxes lie closer than ``near`` [m] and whose drift boxes
+    spread further than ``slack`` [m] (``decide_kernel``'s test where the bound gives up), each box given by its
+    (low, high) corners, [P, 3] arrays [m]."""
+    gap = np.maximum(0.0, np.maximum(position_low[None] - position_high[:, None],
+                                     position_low[:, None] - position_high[None]))
+    spread = np.maximum(drift_high[:, None] - drift_low[None], drift_high[None] - drift_low[:, None])
+    return (np.linalg.norm(gap, axis=-1) < near) & (np.linalg.norm(spread, axis=-1) > slack)
+
+
 def rebuild_cause(sc) -> tuple[str, int, int]:
     """Which rule asked for the rebuild ``sc`` is about to make (read before it, from the step's flags and patch boxes,
     in float64 as ``kernels/selfcontact_cache.py``'s ``decide_kernel`` tests them, world 0): "decide" where two
@@ -419,12 +429,10 @@ def rebuild_cause(sc) -> tuple[str, int, int]:
         return "first", 0, 0
     slack = (reach - REPULSION_REACH * thickness) * (1.0 - SAFETY)
     drift = flags[flag_slot(FLAG_DRIFT, 0, worlds)] * unit
-    high, low = box[:, PATCH_POSITION:PATCH_POSITION + 3], box[:, PATCH_POSITION + 3:PATCH_POSITION + 6]
-    gap = np.maximum(0, np.maximum(-low[None] - high[:, None], -low[:, None] - high[None])) * unit
-    spread = np.maximum(box[:, None, PATCH_DRIFT:PATCH_DRIFT + 3] + box[None, :, PATCH_DRIFT + 3:PATCH_DRIFT + 6],
-                        box[None, :, PATCH_DRIFT:PATCH_DRIFT + 3] + box[:, None, PATCH_DRIFT + 3:PATCH_DRIFT + 6]) * unit
-    past = ((np.linalg.norm(gap, axis=2) < REPULSION_REACH * thickness * (1.0 + SAFETY))
-            & (np.linalg.norm(spread, axis=2) > slack))
+    # The boxes [-low, high] in units, as (low, high) corners [m].
+    position = (-box[:, PATCH_POSITION + 3:PATCH_POSITION + 6] * unit, box[:, PATCH_POSITION:PATCH_POSITION + 3] * unit)
+    drifts = (-box[:, PATCH_DRIFT + 3:PATCH_DRIFT + 6] * unit, box[:, PATCH_DRIFT:PATCH_DRIFT + 3] * unit)
+    past = patches_past_slack(*position, *drifts, REPULSION_REACH * thickness * (1.0 + SAFETY), slack)
     pairs, itself = int(np.triu(past).sum()), int(np.trace(past))
     if pairs and drift > 0.5 * slack:
         return "decide", pairs, itself
@@ -550,12 +558,7 @@ def rebuild_study(n: int, device, frames: int, patch_widths=(0.2, 0.4, 0.8)) -> 
 
         def given_up(drift, x):
             """The patch pairs the bound cannot keep apart: [count, count] booleans."""
-            dlow, dhigh = boxes(drift)
-            xlow, xhigh = boxes(x)
-            gap = np.maximum(0.0, np.maximum(xlow[None] - xhigh[:, None], xlow[:, None] - xhigh[None]))
-            near_pairs = np.linalg.norm(gap, axis=-1) < near
-            spread = np.linalg.norm(np.maximum(dhigh[:, None] - dlow[None], dhigh[None] - dlow[:, None]), axis=-1)
-            return near_pairs & (spread > reach - near)
+            return patches_past_slack(*boxes(x), *boxes(drift), near, reach - near)
 
         def rule(drift, _, x):
             return np.any(given_up(drift, x))
