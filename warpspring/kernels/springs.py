@@ -201,9 +201,8 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
     SpringArrays = spring_arrays_type(scalar, spec.law.per_spring, grouped, grid)
     spring_law_values, spring_force, spring_energy, spring_stiffness_matrix = spring_funcs(scalar, spec.law)
     rest_at, law_at = spring_access_funcs(scalar, spec.law, grouped, grid)
+    _, prepare = spring_world_funcs(scalar, spec)  # (the per-world reads of force_split and particle_energy)
     SpringLawValues = spring_law_type(scalar)
-    group_count = max(spec.slot_groups, default=-1) + 1
-    group_values = wp.types.vector(length=max(group_count, 1), dtype=scalar)
     # The group of each slot, a constant of the kernel (the unrolled slot loop indexes it at fixed k).
     slot_group = wp.constant(wp.types.vector(length=max(head_slots, 1), dtype=wp.int32)(
         *(spec.slot_groups if grouped else (0,) * max(head_slots, 1))))
@@ -248,30 +247,24 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
         """(sum of the forces [N] of the springs at particle i of ``world``, their dampers' part [N])."""
         f = vec3(scalar(0.0))
         damping_part = vec3(scalar(0.0))
+        # The world's values (``prepare``): with uniform groups each group's rest length, ke and kd once, then per
+        # slot only its other particle (the slots of a group read per spring also load their spring and its values).
+        shared = prepare(world, springs, inputs)
+        values = shared.values
+        stiffness_row = shared.stiffness_row
+        damping_row = shared.damping_row
         if wp.static(grouped):
-            # Uniform groups: each group's rest length, ke and kd once, then per slot only its other particle
-            # (the slots of a group read per spring also load their spring and its values).
-            values = spring_law_values(inputs, world)
-            stiffness_row = wp.min(world, springs.stiffness.shape[0] - 1)
-            damping_row = wp.min(world, springs.damping.shape[0] - 1)
-            rest = group_values()
-            ke = group_values()
-            kd = group_values()
-            for g in range(wp.static(group_count)):
-                s = springs.group_spring[g]
-                rest[g] = springs.rest_length[s]
-                ke[g] = springs.stiffness[stiffness_row, s]
-                kd[g] = springs.damping[damping_row, s]
+            rest = shared.rest
+            ke = shared.ke
+            kd = shared.kd
             head_local = springs.incidence.head_local
             head_element = springs.incidence.head_element
             # The grid: i's row and column once; nx and ny are data, so every size shares the kernel.
-            nx = int(0)
-            ny = int(0)
+            nx = shared.nx
+            ny = shared.ny
             row = int(0)
             column = int(0)
             if wp.static(grid):
-                nx = springs.grid_size[0]
-                ny = springs.grid_size[1]
                 row = i // nx
                 column = i - row * nx
             for k in range(wp.static(head_slots)):
@@ -290,19 +283,13 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
                                       springs.stiffness[stiffness_row, s], springs.damping[damping_row, s], values)
                     damping_part += damper_force(xi, particle_q[j], vi, particle_qd[j], springs.damping[damping_row, s])
         elif wp.static(spec.gathered):
-            values = spring_law_values(inputs, world)
             # The arrays in locals once: the slot loop then indexes them without reloading the struct.
             rest_length = springs.rest_length
             stiffness = springs.stiffness
             damping = springs.damping
             head_local = springs.incidence.head_local
             head_element = springs.incidence.head_element
-            stiffness_row = wp.min(world, stiffness.shape[0] - 1)
-            damping_row = wp.min(world, damping.shape[0] - 1)
-            # Plastic rest lengths are world-major: world w's start at rest_base.
-            rest_base = int(0)
-            if wp.static(spec.law.plastic):
-                rest_base = world * stiffness.shape[1]
+            rest_base = shared.rest_base  # (plastic rest lengths are world-major: world w's start)
             for k in range(wp.static(head_slots)):
                 j = base + head_local[k, i]
                 s = head_element[k, i]
@@ -468,27 +455,21 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
         energy = wp.float64(0.0)
         worst = wp.float64(-1.0)
         taken = wp.float64(0.0)
+        shared = prepare(world, springs, inputs)  # (the world's values, read as the CPU's sweep reads them)
+        values = shared.values
+        stiffness_row = shared.stiffness_row
+        damping_row = shared.damping_row
         if wp.static(grouped):
-            values = spring_law_values(inputs, world)
-            stiffness_row = wp.min(world, springs.stiffness.shape[0] - 1)
-            damping_row = wp.min(world, springs.damping.shape[0] - 1)
-            rest = group_values()
-            ke = group_values()
-            kd = group_values()
-            for g in range(wp.static(group_count)):
-                s = springs.group_spring[g]
-                rest[g] = springs.rest_length[s]
-                ke[g] = springs.stiffness[stiffness_row, s]
-                kd[g] = springs.damping[damping_row, s]
+            rest = shared.rest
+            ke = shared.ke
+            kd = shared.kd
             head_local = springs.incidence.head_local
             head_element = springs.incidence.head_element
-            nx = int(0)
-            ny = int(0)
+            nx = shared.nx
+            ny = shared.ny
             row = int(0)
             column = int(0)
             if wp.static(grid):
-                nx = springs.grid_size[0]
-                ny = springs.grid_size[1]
                 row = i // nx
                 column = i - row * nx
             for k in range(wp.static(head_slots)):
@@ -512,17 +493,12 @@ def spring_family_funcs(scalar: type, spec: SpringSpec) -> FamilyFuncs:
                     worst = wp.max(worst, strained)
                     taken += power
         elif wp.static(spec.gathered):
-            values = spring_law_values(inputs, world)
             rest_length = springs.rest_length
             stiffness = springs.stiffness
             damping = springs.damping
             head_local = springs.incidence.head_local
             head_element = springs.incidence.head_element
-            stiffness_row = wp.min(world, stiffness.shape[0] - 1)
-            damping_row = wp.min(world, damping.shape[0] - 1)
-            rest_base = int(0)
-            if wp.static(spec.law.plastic):
-                rest_base = world * stiffness.shape[1]
+            rest_base = shared.rest_base
             for k in range(wp.static(head_slots)):
                 local = head_local[k, i]
                 if local > i:
@@ -568,41 +544,19 @@ class SweepFuncs(NamedTuple):
 
 
 @functools.cache
-def spring_sweep_funcs(scalar: type, spec: SpringSpec, dampers: bool = False) -> SweepFuncs:
-    """The gathered springs of ``spec`` (its incidence table and layout) evaluated once each, for a sweep over one
-    world's particles in order (``kernels/sweep.py``, the CPU's symplectic Euler step).
-
-    ``forward`` evaluates, of the springs at particle i, those whose other particle j comes after i (j > i): it
-    returns their force on i and adds the opposite force to j's entry of ``force_in_out`` (a scratch array that
-    holds, when the sweep reaches a particle, the forces of its springs to the particles before it). A spring (i, j)
-    is thus evaluated once, by its first particle, where the gather evaluates it at both (the gather's per-spring
-    forces, summed in another order). With ``dampers`` the dampers' part of those forces likewise (its
-    return's second value, ``dampers_in_out``; zero where the law's is not separable, as ``force_split``).
-
-    What ``force_split`` reads per particle and is the same for all of a world's particles (the law's values, the
-    stiffness and damping rows, the uniform groups' rest length, ke and kd, the grid's size) ``prepare`` reads once
-    per world."""
-    vec3 = vec3_type(scalar)
-    head_slots, tail = spec.incidence
+def spring_world_funcs(scalar: type, spec: SpringSpec) -> tuple[type, Any]:
+    """``(SpringWorld, prepare)``: the struct of what the gathered springs of ``spec`` read per world and is the same
+    for all of a world's particles (the law's values, the stiffness and damping rows, the first plastic rest length,
+    the uniform groups' rest length, ke and kd, the grid's size), and ``prepare(world, springs, inputs)``, which
+    reads it: once per world in the CPU's sweep (``spring_sweep_funcs``), once per particle in the gathered force
+    (``force_split``) and in the walk of the springs' energy (``particle_energy``)."""
     grouped = bool(spec.slot_groups) and spec.gathered
     grid = grouped and bool(spec.grid_slots)
     SpringArrays = spring_arrays_type(scalar, spec.law.per_spring, grouped, grid)
-    spring_law_values, spring_force, _, _ = spring_funcs(scalar, spec.law)
-    _, law_at = spring_access_funcs(scalar, spec.law, grouped, grid)
+    spring_law_values = spring_funcs(scalar, spec.law)[0]
     SpringLawValues = spring_law_type(scalar)
     group_count = max(spec.slot_groups, default=-1) + 1
     group_values = wp.types.vector(length=max(group_count, 1), dtype=scalar)
-    width = max(head_slots, 1)
-    slot_group = wp.constant(wp.types.vector(length=width, dtype=wp.int32)(
-        *(spec.slot_groups if grouped else (0,) * width)))
-    directions = spec.grid_slots if grid else ((0, 0),) * width
-    slot_dx = wp.constant(wp.types.vector(length=width, dtype=wp.int32)(*(d[0] for d in directions)))
-    slot_dy = wp.constant(wp.types.vector(length=width, dtype=wp.int32)(*(d[1] for d in directions)))
-    # A grid slot's neighbour comes after the particle where it is on a later row, or later on the same one.
-    slot_ahead = wp.constant(wp.types.vector(length=width, dtype=wp.int32)(
-        *(int(dy > 0 or (dy == 0 and dx > 0)) for dx, dy in directions)))
-    splittable = not (spec.law.clamp_force or spec.law.plastic)
-    counted = dampers and splittable
 
     @wp.struct
     class SpringWorld:
@@ -643,6 +597,46 @@ def spring_sweep_funcs(scalar: type, spec: SpringSpec, dampers: bool = False) ->
             prepared.nx = springs.grid_size[0]
             prepared.ny = springs.grid_size[1]
         return prepared
+
+    return SpringWorld, prepare
+
+
+@functools.cache
+def spring_sweep_funcs(scalar: type, spec: SpringSpec, dampers: bool = False) -> SweepFuncs:
+    """The gathered springs of ``spec`` (its incidence table and layout) evaluated once each, for a sweep over one
+    world's particles in order (``kernels/sweep.py``, the CPU's symplectic Euler step).
+
+    ``forward`` evaluates, of the springs at particle i, those whose other particle j comes after i (j > i): it
+    returns their force on i and adds the opposite force to j's entry of ``force_in_out`` (a scratch array that
+    holds, when the sweep reaches a particle, the forces of its springs to the particles before it). A spring (i, j)
+    is thus evaluated once, by its first particle, where the gather evaluates it at both (the gather's per-spring
+    forces, summed in another order). With ``dampers`` the dampers' part of those forces likewise (its
+    return's second value, ``dampers_in_out``; zero where the law's is not separable, as ``force_split``).
+
+    What ``force_split`` reads per particle and is the same for all of a world's particles (the law's values, the
+    stiffness and damping rows, the uniform groups' rest length, ke and kd, the grid's size) ``prepare`` reads once
+    per world."""
+    vec3 = vec3_type(scalar)
+    head_slots, tail = spec.incidence
+    grouped = bool(spec.slot_groups) and spec.gathered
+    grid = grouped and bool(spec.grid_slots)
+    SpringArrays = spring_arrays_type(scalar, spec.law.per_spring, grouped, grid)
+    spring_force = spring_funcs(scalar, spec.law)[1]
+    _, law_at = spring_access_funcs(scalar, spec.law, grouped, grid)
+    SpringLawValues = spring_law_type(scalar)
+    width = max(head_slots, 1)
+    slot_group = wp.constant(wp.types.vector(length=width, dtype=wp.int32)(
+        *(spec.slot_groups if grouped else (0,) * width)))
+    directions = spec.grid_slots if grid else ((0, 0),) * width
+    slot_dx = wp.constant(wp.types.vector(length=width, dtype=wp.int32)(*(d[0] for d in directions)))
+    slot_dy = wp.constant(wp.types.vector(length=width, dtype=wp.int32)(*(d[1] for d in directions)))
+    # A grid slot's neighbour comes after the particle where it is on a later row, or later on the same one.
+    slot_ahead = wp.constant(wp.types.vector(length=width, dtype=wp.int32)(
+        *(int(dy > 0 or (dy == 0 and dx > 0)) for dx, dy in directions)))
+    splittable = not (spec.law.clamp_force or spec.law.plastic)
+    counted = dampers and splittable
+
+    SpringWorld, prepare = spring_world_funcs(scalar, spec)
 
     @wp.func
     def spring_pair(xi: vec3, xj: vec3, vi: vec3, vj: vec3, rest: scalar, ke: scalar, kd: scalar,
