@@ -300,18 +300,29 @@ def test_moving_colliders_move_inside_the_one_launch_frame(device):
     assert_same_frames(device, fused.state.particle_q.numpy(), plain.state.particle_q.numpy(), 96)
 
 
-def _checked(make, *, in_frame: bool, substeps: int, frames: int, limits=None, control=None, spread_lanes=None):
-    """A Simulator of ``make()`` in one launch a frame, its guard's check at the frame's end inside the launch or in
-    its own launches (``guards.CHECK_IN_FRAME``), stepped ``frames`` frames (or until the guard stops it: the
-    error returned); ``spread_lanes``: each world spread over blocks of that many threads (on a GPU)."""
+#: Where a one-launch frame's guard check runs: at the frame kernel's end, in one launch of the checked kernel after
+#: the frame (``SymplecticEuler.CHECK_LAUNCH_APART``), or in the check's own kernels (``guards.CHECK_IN_FRAME`` off).
+CHECK_PLACES = ("end", "launch", "apart")
+
+
+def _checked(make, *, where: str, substeps: int, frames: int, limits=None, control=None, spread_lanes=None):
+    """A Simulator of ``make()`` in one launch a frame, its guard's check where ``where`` (``CHECK_PLACES``) says,
+    stepped ``frames`` frames (or until the guard stops it: the error returned); ``spread_lanes``: each world spread
+    over blocks of that many threads (on a GPU)."""
     from warpspring.core import guards
 
     device = make().device
+    in_frame = where != "apart"
     saved = dict(guards.CHECK_IN_FRAME)
     guards.CHECK_IN_FRAME[device.is_cuda] = in_frame
     try:
         model = make()
         integrator = ws.SymplecticEuler(model, one_launch=True, cpu_sweep=False)
+        integrator.CHECK_LAUNCH_APART = {device.is_cuda: where == "launch"}
+        launched = []  # the steps of each launch of a frame kernel (the stepper may capture them once)
+        launch_frame = integrator._launch_frame
+        integrator._launch_frame = lambda kernel, steps, *rest: (launched.append(steps),
+                                                                 launch_frame(kernel, steps, *rest))
         if spread_lanes is not None:
             integrator.SPREAD_LANES = spread_lanes
         sim = ws.Simulator(model, integrator=integrator, substeps=substeps,
@@ -331,6 +342,7 @@ def _checked(make, *, in_frame: bool, substeps: int, frames: int, limits=None, c
                 error = exc
                 break
         wp.synchronize_device(device)
+        assert launched[:2] == [substeps, 0] if where == "launch" else launched[0] == substeps and 0 not in launched
         return sim, error
     finally:
         guards.CHECK_IN_FRAME.update(saved)
@@ -352,10 +364,13 @@ def _pushed(model):
     return control
 
 
+@pytest.mark.parametrize("where", ["end", "launch"])
 @pytest.mark.parametrize("case", ["damped", "contacts", "spread"])
-def test_the_check_inside_the_frame_is_the_check_in_its_own_launches(device, case):
+def test_the_check_inside_the_frame_is_the_check_in_its_own_launches(device, case, where):
     """The guard's check at the end of a one-launch frame (its passes run by the frame's lanes, its verdict by each
-    world's first block: ``kernels/frames.py``) against the same check in its own four launches after the frame:
+    world's first block: ``kernels/frames.py``), or by those functions in one launch of the checked kernel with no
+    steps after the frame kernel (``where``: ``CHECK_PLACES``), against the same check in its own four launches after
+    the frame:
     the same positions to the bit (the check writes no state; on a GPU, with contacts, to 1e-6 m: the frame kernel
     compiled with the check may round the contact step's float32 arithmetic differently, by 1.3e-7 m after 12 frames
     on an H200), and the same energy balance, work and values up to
@@ -367,8 +382,8 @@ def test_the_check_inside_the_frame_is_the_check_in_its_own_launches(device, cas
     spread over five blocks of 32 threads a world (the same on the CPU, one thread a world)."""
     make = {"damped": lambda: _damped_cloth(device), "contacts": lambda: scene(device),
             "spread": lambda: _damped_cloth(device, 12)}[case]
-    runs = [_checked(make, in_frame=in_frame, substeps=8, frames=12, control=_pushed,
-                     spread_lanes=32 if case == "spread" else None) for in_frame in (True, False)]
+    runs = [_checked(make, where=place, substeps=8, frames=12, control=_pushed,
+                     spread_lanes=32 if case == "spread" else None) for place in (where, "apart")]
     (inside, error_inside), (apart, error_apart) = runs
     assert error_inside is None and error_apart is None
     q_inside, q_apart = inside.state.particle_q.numpy(), apart.state.particle_q.numpy()
@@ -386,8 +401,10 @@ def test_the_check_inside_the_frame_is_the_check_in_its_own_launches(device, cas
     np.testing.assert_array_equal(inside.guard._status.numpy(), apart.guard._status.numpy())
 
 
-def test_a_spring_torn_inside_the_frame_is_reported_as_apart(device):
-    """A failure found by the check inside the frame is the same report as the check apart gives: a cloth whose pins
+@pytest.mark.parametrize("where", ["end", "launch"])
+def test_a_spring_torn_inside_the_frame_is_reported_as_apart(device, where):
+    """A failure found by the check inside the frame (at its end or in the launch after it) is the same report as the
+    check apart gives: a cloth whose pins
     are pulled apart, checked with a low tear strain, stops at the same frame and substep, naming the same world,
     particle, spring and family."""
     def make():
@@ -398,7 +415,7 @@ def test_a_spring_torn_inside_the_frame_is_reported_as_apart(device):
         return builder.finalize(device, worlds=2, spring_evaluation="gather")
 
     limits = ws.GuardLimits(tear_strain=0.3)
-    runs = [_checked(make, in_frame=in_frame, substeps=8, frames=60, limits=limits) for in_frame in (True, False)]
+    runs = [_checked(make, where=place, substeps=8, frames=60, limits=limits) for place in (where, "apart")]
     (inside, error_inside), (apart, error_apart) = runs
     assert error_inside is not None and error_apart is not None
     assert str(error_inside) == str(error_apart)

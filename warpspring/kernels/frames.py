@@ -103,8 +103,11 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
     measure passes over its particles and the energy pass over its elements (``guards.guard_lane_funcs``,
     ``guards.energy_lanes_func``: the functions of the check's own kernels), each block writes its partial sums, the
     world's blocks meet, and the world's first block gathers them and decides (``gather_lanes``): the check's four
-    launches, inside the frame. ``bounds`` (threads a block, at most ``FRAME_MAX_LANES``, and blocks a
-    multiprocessor): ``flatten.launch_bounds_option``."""
+    launches, inside the frame. ``frame_steps`` is the frame's substeps the check reports and follows: ``steps``
+    where the frame ends with it; 0 ``steps`` and the frame's own in a launch of the check alone after a frame
+    compiled without it (the world's blocks then meet where the frame's barrier count left off), so that the loop is
+    compiled apart from the check's code (``SymplecticEuler.CHECK_LAUNCH_APART``). ``bounds`` (threads a block, at
+    most ``FRAME_MAX_LANES``, and blocks a multiprocessor): ``flatten.launch_bounds_option``."""
     vec3 = vec3_type(scalar)
     Shapes = shapes_type(scalar)
     counted = power is not None
@@ -156,7 +159,7 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         if blocks > 1 and lane == 0:  # the world's blocks meet once more: every partial sum written
             memory_fence()
             wp.atomic_add(barrier_in_out, world, 1)
-            wait_for_arrivals(barrier_in_out, world, (steps + 1) * blocks)
+            wait_for_arrivals(barrier_in_out, world, (steps + 1) * blocks)  # (after the frame's ``steps`` meetings)
         block_barrier()
         if block == 0:
             gather_lanes(world, lane, lanes, particle_count, element_arrays, q, c.partials, c.energy_partials,
@@ -232,6 +235,7 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         pin_targets: PinTargets,
         # Step:
         steps: int,
+        frame_steps: int,
         dt: scalar,
         dt_rest: scalar,
         step_f64: wp.float64,
@@ -293,16 +297,16 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         if lane == 0:
             time_in_out[world] = clock
         if wp.static(counted):  # one entry per lane, once a frame (the check sums a world's entries)
-            if lane < particle_count:
+            if steps > 0 and lane < particle_count:
                 power_in_out[world * particle_count + lane] += pack(scalar(taken), scalar(worked))
         if wp.static(checked):  # (the lane's check reads its own entries: particle ``lane``, then every stride-th)
             block = lane / lanes
-            if steps % 2 == 0:
-                end_check(world, block, lane - block * lanes, lanes, blocks, steps, particle_count, particle_flags,
-                          particle_mass, element_arrays, inputs, particle_force_ext, q_a_in_out, qd_a_in_out,
-                          power_in_out, check_arrays_in_out, barrier_in_out)
+            if frame_steps % 2 == 0:
+                end_check(world, block, lane - block * lanes, lanes, blocks, frame_steps, particle_count,
+                          particle_flags, particle_mass, element_arrays, inputs, particle_force_ext, q_a_in_out,
+                          qd_a_in_out, power_in_out, check_arrays_in_out, barrier_in_out)
             else:
-                end_check(world, block, lane - block * lanes, lanes, blocks, steps, particle_count, particle_flags,
+                end_check(world, block, lane - block * lanes, lanes, blocks, frame_steps, particle_count, particle_flags,
                           particle_mass, element_arrays, inputs, particle_force_ext, q_b_in_out, qd_b_in_out,
                           power_in_out, check_arrays_in_out, barrier_in_out)
 

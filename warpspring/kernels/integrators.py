@@ -142,17 +142,14 @@ def symplectic_euler_particle_energy_func(scalar: type, features: ForceFeatures,
         v = qd_in[p]
         x_new = x + h * v
         v_new = v
-        taken = scalar(0.0)
         worked = scalar(0.0)
-        if is_kinematic(particle_flags[p]):  # its elements' dampers: their share of the dampers' power (the drive's
-            # work has the rest)
-            _, dampers, _ = particle_force(world, i, base, x, v, False, particle_mass, element_arrays, inputs,
-                                           particle_force_ext, q_in, qd_in)
-            taken = -h * wp.dot(dampers, v)
-        else:
+        # (one gather of the forces for both kinds: a kinematic particle keeps only its elements' dampers' share)
+        kinematic = is_kinematic(particle_flags[p])
+        f, dampers, work = particle_force(world, i, base, x, v, not kinematic, particle_mass, element_arrays, inputs,
+                                          particle_force_ext, q_in, qd_in)
+        taken = -h * wp.dot(dampers, v)  # a kinematic particle: its elements' dampers (the drive's work has the rest)
+        if not kinematic:
             inv_mass = particle_inv_mass[wp.min(world, particle_inv_mass.shape[0] - 1), i]
-            f, dampers, work = particle_force(world, i, base, x, v, True, particle_mass, element_arrays, inputs,
-                                              particle_force_ext, q_in, qd_in)
             x_new, v_new = update(x, v, f, inv_mass, h)
             mean = (v + v_new) * (scalar(0.5) * h)
             taken = -wp.dot(dampers, mean)

@@ -78,6 +78,12 @@ class SymplecticEuler(Integrator):
     #: memory traffic bounds it, and 256² lost (0.725-0.734 → 0.693-0.696), where one wave of threads' latency does;
     #: between the two it is unmeasured.
     POWER_WARP_TOTALS_FROM = 1 << 19
+    #: Whether the guard's check that a frame in one launch takes over (``advance_frame``'s ``check``) runs in a launch
+    #: of its own right after the frame kernel, by device (CUDA, CPU), rather than at the frame kernel's end: the same
+    #: functions and sums either way (``kernels.frames``' ``frame_steps``), but inside one kernel the check's code
+    #: made the compiler's loop slower. On an H200 (Warp 1.16.0, 64², bench/results/guard_cost.md), µs a substep +
+    #: µs a frame, the verdict not read: check at the end 3.64 + 21.5, guarded frame without it 2.67 (guard off 2.86).
+    CHECK_LAUNCH_APART = {True: True, False: False}
 
     def __init__(self, model, *, one_launch: bool | None = None, cpu_sweep: bool = True):
         super().__init__(model)
@@ -144,12 +150,27 @@ class SymplecticEuler(Integrator):
         animated = model.input_tracks
         pins = model.pin_groups if model.pin_groups is not None and model.pin_groups.driven else None
         targets = pins is not None and control is not None and control.pin_targets is not None
+        apart = check is not None and self.CHECK_LAUNCH_APART[model.device.is_cuda]
+        kernel = functools.partial(symplectic_euler_frame_kernel, model.scalar, features, contacts,
+                                   None if self.power is None else self.power.modes, animated is not None,
+                                   pins is not None, targets, bool(model.shape_moving))
+        bounds = launch_bounds(FRAME_MAX_LANES, self.FRAME_MIN_BLOCKS)
+        # The frame's steps, then (``apart``) the check alone: a launch of the checked kernel with no steps of its own.
+        launches = ((None, steps), (check, 0)) if apart else ((check, steps),)
+        for launch_check, launch_steps in launches:
+            self._launch_frame(kernel(None if launch_check is None else launch_check[0], bounds), launch_steps, steps,
+                               state_a, state_b, control, dt, shape, launch_check, animated, pins, targets, features)
+        if steps % 2:
+            wp.copy(state_b.time, state_a.time)  # the clock advanced in A; the result is B
+        return check is not None
+
+    def _launch_frame(self, kernel, steps: int, frame_steps: int, state_a: State, state_b: State, control, dt: float,
+                      shape: tuple[int, int], check, animated, pins, targets: bool, features) -> None:
+        """One launch of a frame kernel (``advance_frame``): ``steps`` of its substeps, ``frame_steps`` the frame's."""
+        model = self.model
+        lanes, blocks = shape
         flat_launch(
-            symplectic_euler_frame_kernel(model.scalar, features, contacts,
-                                          None if self.power is None else self.power.modes, animated is not None,
-                                          pins is not None, targets, bool(model.shape_moving),
-                                          None if check is None else check[0],
-                                          launch_bounds(FRAME_MAX_LANES, self.FRAME_MIN_BLOCKS)),
+            kernel,
             inputs=[
                 model.particle_count,
                 lanes,
@@ -167,6 +188,7 @@ class SymplecticEuler(Integrator):
                 model.shape_rotation_track,
                 control.pin_targets if targets else NO_PIN_TARGETS,
                 steps,
+                frame_steps,
                 *step_arguments(model.scalar, dt),
                 wp.float64(dt),
             ],
@@ -175,9 +197,6 @@ class SymplecticEuler(Integrator):
                      _no_check(model.scalar, str(model.device)) if check is None else check[1], self._barrier],
             dim=model.world_count * lanes * blocks, block_dim=lanes, device=model.device,
         )
-        if steps % 2:
-            wp.copy(state_b.time, state_a.time)  # the clock advanced in A; the result is B
-        return check is not None
 
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         model = self.model
