@@ -42,8 +42,10 @@ subprocess that imports that tree's ``warpspring`` (this script and its bench he
 same call, and the table puts the two side by side. ``--json PATH`` writes the numbers.
 
 ``--rebuild-study FRAMES`` replays the ``self`` scene's substeps over FRAMES frames after the settling on the host
-in float64 and counts the cache's rebuilds under four rules: the pass's before and now, the per-pair bound no
-pass can evaluate (it needs every pair), and the pairs' true distances (the fewest rebuilds any rule can make).
+in float64 and counts the cache's rebuilds under its rules: the pass's before and now, per patch pair, a local check,
+anchors per vertex re-anchored where the bound gives up (a partial rebuild's share of the surface), the per-pair bound
+no pass can evaluate (it needs every pair), and the pairs' true distances (the fewest rebuilds any rule can make);
+``--study-reach TAUS`` sets its cache reach (CACHE_REACH τ by default).
 
 ``--radius-study`` steps the ``self`` scene through its fall (the settling frames, every substep uncaptured)
 and, every fourth substep, counts on the host in float64 the pairs a radius-based cap would have to examine
@@ -485,10 +487,11 @@ def patch_study(n: int, device, frames: int) -> list[str]:
     return rows
 
 
-def rebuild_study(n: int, device, frames: int, patch_widths=(0.2, 0.4, 0.8)) -> list[str]:
+def rebuild_study(n: int, device, frames: int, patch_widths=(0.2, 0.4, 0.8), reach_tau: float | None = None) -> list[str]:
     """Markdown rows: how often the pair cache must be rebuilt over ``frames`` frames after the settling, by rule,
-    replayed on the host in float64 over the ``self`` scene's substeps (the cache reach R = CACHE_REACH τ; a rule
-    rebuilds at a substep where it can no longer prove every pair outside the cache REPULSION_REACH τ apart)."""
+    replayed on the host in float64 over the ``self`` scene's substeps (the cache reach R = ``reach_tau`` τ,
+    CACHE_REACH τ by default; a rule rebuilds at a substep where it can no longer prove every pair outside the cache
+    REPULSION_REACH τ apart)."""
     from scipy.spatial import cKDTree
 
     from warpspring.analysis.audit import edge_edge_distance, surface_edges, vertex_triangle_distance
@@ -507,7 +510,7 @@ def rebuild_study(n: int, device, frames: int, patch_widths=(0.2, 0.4, 0.8)) -> 
     surface = np.unique(triangles)
     ref = triangles[len(triangles) // 2][0]
     tau = THICKNESS
-    reach, near = CACHE_REACH * tau, REPULSION_REACH * tau
+    reach, near = (CACHE_REACH if reach_tau is None else reach_tau) * tau, REPULSION_REACH * tau
     # Candidate pairs: every pair sharing no vertex whose elements' centres are within 0.5 m at the first substep
     # (0.5 m: further than any element moves relative to another over the frames studied here).
     x0 = path[0]
@@ -579,19 +582,46 @@ def rebuild_study(n: int, device, frames: int, patch_widths=(0.2, 0.4, 0.8)) -> 
             across = pairs[pair_a, pair_b]
             checked.append(float(np.any(pairs, axis=1).mean()))  # the share of patches a local broad phase queries
             return bool(np.any(across & (anchored >= reach) & (distances(x) < near)))
-        return rule, local, checked, count
+
+        def partial(offset: bool) -> tuple[float, float, float]:
+            """Anchors per vertex, re-anchored where the bound gives up: every corner of the patches in a pair it
+            gives up on takes a new anchor, again until it holds, either at its position now or (``offset``) where it
+            would be had it moved with the reference vertex since its anchor, xᵃ = x - Δ_ref (so that the parts not
+            re-anchored, which moved with the cloth, stay within the slack of it). A pair's distance differs from its
+            distance between its vertices' anchors by at most their drifts' difference, whatever the anchors, so the
+            bound holds as before; what a partial rebuild would re-query is every triangle with a re-anchored corner.
+            Returns the mean and largest share of the triangles re-queried a substep, and the share of substeps with
+            any (the first build not counted)."""
+            anchor = path[0].copy()
+            shares = []
+            for x in path[1:]:
+                moved = np.zeros(len(x), dtype=bool)
+                while True:
+                    pairs = given_up(x - anchor, x)
+                    if not pairs.any():
+                        break
+                    corners = np.unique(triangles[np.any(pairs, axis=1)[patch]])
+                    if moved[corners].all():  # (cannot happen: re-anchored patches have no spread left)
+                        break
+                    moved[corners] = True
+                    anchor[corners] = x[corners] - ((x[ref] - anchor[ref]) if offset else 0.0)
+                shares.append(float(moved[triangles].any(axis=1).mean()))
+            return float(np.mean(shares)), float(np.max(shares)), float(np.mean(np.array(shares) > 0))
+        return rule, local, checked, count, partial
 
     rules = [("largest drift from the reference vertex ≤ (R - 2τ)/2 (before)", reference),
              ("that, or the drifts' box diagonal ≤ R - 2τ (now)", box)]
     counted = {}
+    partials = []
     for width in patch_widths:
-        rule, local, checked, count = patch_rule(width)
+        rule, local, checked, count, partial = patch_rule(width)
         rules.append((f"per patch pair ({count} patches of {width:g} m): apart now, or their drifts' spread ≤ R - 2τ",
                       rule))
         name = (f"that ({width:g} m), and where it gives up the true distances of the pairs across those patch pairs "
                 f"(a local check)")
         rules.append((name, local))
         counted[name] = checked
+        partials.append((width, count, partial))
     rows = []
     for name, rule in (*rules,
                        ("each pair's own largest drift difference (needs every pair: not implementable)", per_pair),
@@ -604,6 +634,12 @@ def rebuild_study(n: int, device, frames: int, patch_widths=(0.2, 0.4, 0.8)) -> 
         cost = (f"patches in a pair it gives up on, a substep: mean {100 * np.mean(checked):.0f} %, largest "
                 f"{100 * max(checked):.0f} %" if checked else "")
         rows.append(f"| {n} | {name} | {rebuilds} / {len(path)} | {cost} |")
+    for width, count, partial in partials:
+        for offset, how in ((False, "at its position"), (True, "with the reference vertex's drift kept")):
+            mean, largest, busy = partial(offset)
+            rows.append(f"| {n} | per patch pair ({count} patches of {width:g} m), anchors per vertex: where the bound "
+                        f"gives up, its patches re-anchored ({how}) | partial in {100 * busy:.0f} % of the substeps | "
+                        f"triangles re-queried a substep: mean {100 * mean:.1f} %, largest {100 * largest:.0f} % |")
     step = np.linalg.norm(np.diff(np.array(path), axis=0), axis=2)
     rows.append(f"| {n} | (a particle's step per substep: median {np.median(step) * 1e3:.2f} mm, largest "
                 f"{step.max() * 1e3:.2f} mm) | | |")
@@ -847,6 +883,9 @@ def main():
                         help="the cache's rebuilds per substep over FRAMES frames for each patch grouping (PATCH_STUDY)")
     parser.add_argument("--rebuild-study", type=int, default=0, metavar="FRAMES",
                         help="count the cache's rebuilds by rule over FRAMES frames after the settling instead")
+    parser.add_argument("--study-reach", type=float, default=None, metavar="TAUS",
+                        help="the rebuild study's cache reach R in units of τ (default CACHE_REACH; the pass as it "
+                             "runs holds WATCH_REACH with its watch list)")
     args = parser.parse_args()
     wp.init()
     device = wp.get_device(args.device)
@@ -864,9 +903,9 @@ def main():
         (args.rebuild_study,
          f"The pair cache's rebuilds by rule on {device.name}, Warp {wp.config.version}, {today}: the draped cloth's "
          f"{args.rebuild_study} frames after {SETTLE_FRAMES} frames of settling, every substep, replayed on the host in "
-         f"float64 (τ = {THICKNESS} m, cache reach R = 3τ)",
+         f"float64 (τ = {THICKNESS} m, cache reach R = {args.study_reach or 3:g}τ)",
          ["N", "the cache holds while", "rebuilds / substeps", "its work"],
-         lambda n: rebuild_study(n, device, args.rebuild_study)),
+         lambda n: rebuild_study(n, device, args.rebuild_study, reach_tau=args.study_reach)),
         (args.patch_study,
          f"The pair cache's rebuilds by patch grouping on {device.name}, Warp {wp.config.version}, {today}: the draped "
          f"cloth's {args.patch_study} frames after {SETTLE_FRAMES} frames of settling, the pass as it runs, uncaptured "

@@ -107,3 +107,21 @@ def test_deferred_run_that_passes_is_the_same_run(device):
     np.testing.assert_array_equal(results[0][0], results[1][0])
     np.testing.assert_array_equal(results[0][1], results[1][1])
     np.testing.assert_array_equal(results[0][2], results[1][2])
+
+
+def test_a_failure_of_the_next_frame_is_not_read_as_the_frame_before(device):
+    """A frame's deferred read takes the failures latched up to its own end, not one the next frame (already run on
+    the CPU, running on a GPU) latched since: a particle flung from a pinned one at 12 m/s on a soft 1 m spring passes
+    a 30 % strain in the second frame (20 % at the first frame's end, 40 % at the second's), so the read of frame 1,
+    made after frame 2 ran, passes, and frame 2 is the one named."""
+    builder = ws.ModelBuilder(gravity=ZERO_GRAVITY)
+    builder.add_particles([[0, 0, 0], [1, 0, 0]], velocities=[[0, 0, 0], [12.0, 0, 0]], mass=1.0, pinned=[0])
+    builder.add_springs([[0, 1]], stiffness=1.0)
+    model = builder.finalize(device)
+    sim = ws.Simulator(model, fps=60, substeps=4, defer_verdict=True, guard=ws.GuardLimits(tear_strain=0.3))
+    sim.step_frame()
+    sim.step_frame()  # frame 2 tears the spring; frame 1's verdict is read after it ran
+    assert sim.frame == 2
+    with pytest.raises(ws.SimulationError, match=r"^frame 2, .*spring 0 \(particles 0-1\) stretched") as stop:
+        sim.settle()
+    assert stop.value.frame == 2 and sim.frame == 1

@@ -37,6 +37,8 @@ from ..kernels.guards import (
     GUARD_EXCESS,
     GUARD_FLOATS,
     GUARD_INTS,
+    MIRROR_CLOCK,
+    MIRROR_COLUMNS,
     GUARD_KINETIC_ENERGY,
     GUARD_LIMIT_KINETIC_ENERGY,
     GUARD_LIMIT_STRAIN,
@@ -167,6 +169,7 @@ class Guard(StepHook):
         status = np.tile([0, -1, NO_PARTICLE, NO_PARTICLE, NO_PARTICLE, 0, NO_PARTICLE], (worlds, 1))
         values = np.tile([-1.0, 0.0, 0.0, 0.0, 0.0, 0.0], (worlds, 1))
         assert status.shape[1] == GUARD_INTS and values.shape[1] == GUARD_FLOATS
+        self._clear_row = status[0].copy()  # (a host copy: the deferred read builds its record from the mirror)
         self._status_clear = wp.array(status, dtype=wp.int32, device=device)
         self._values_clear = wp.array(values, dtype=wp.float64, device=device)
         self._status = wp.clone(self._status_clear)
@@ -178,19 +181,32 @@ class Guard(StepHook):
         self._status_host = _pinned_status(status.shape) if device.is_cuda else self._status
         if self._status_host is not self._status:
             weakref.finalize(self, _PINNED_STATUS[status.shape].append, self._status_host)
-        # The reads a frame later (``post``, ``collect``): two such buffers in turn, each with the event after its copy
-        # (on the CPU a copy is done when it returns: host arrays, no event).
-        self._slots = [_pinned_status(status.shape) if device.is_cuda else wp.empty(status.shape, dtype=wp.int32,
-                                                                                    device="cpu") for _ in range(2)]
-        # (events from a pool that never destroys them either: none is destroyed while another simulator captures)
-        self._events = [_pooled_event(device) for _ in self._slots] if device.is_cuda else [None, None]
-        # (host arrays: a NumPy view of each, made once, reads them without Warp's per-call wrapping)
-        self._slot_views = [slot.numpy() for slot in self._slots]
+        # The reads a frame later (``post``, ``collect``): two in turn, each with an event after its frame (on the CPU
+        # a frame is done when its launches return: no event), from a pool that never destroys them either: none is
+        # destroyed while another simulator captures.
+        self._events = [_pooled_event(device) for _ in range(2)] if device.is_cuda else [None, None]
         self._status_view = self._status_host.numpy() if self._status_host is not self._status else None
-        self._pending = []  # the slots posted and not yet collected, oldest first
-        if device.is_cuda:  # a collected guard hands its slots and events back, but those of a read still pending
-            weakref.finalize(self, _hand_back, status.shape, device.alias, self._slots, self._events, self._pending)
+        self._pending = []  # the reads posted and not yet collected, oldest first: (event, the frame's end [s])
         self._posted = 0
+        # The record's mirror (``kernels/guards.py``): each failure's record and clock, written by the check that
+        # latches it, which a frame's deferred read (``collect``) takes with no copy queued behind the frame (that
+        # copy took 7.5 µs of a 78 µs frame at 64² on an H200, bench/results/guard_cost.md). On CUDA pinned host memory
+        # (from a pool that never frees, as the status reads') that the kernels write through its mapping, on the CPU
+        # a host array. Zero where no failure is latched; a reported world's row is cleared with the record.
+        mirror_shape = (worlds, MIRROR_COLUMNS)
+        self._mirror_host = (_pinned_mirror(mirror_shape) if device.is_cuda
+                             else wp.zeros(mirror_shape, dtype=wp.float64, device=device))
+        if device.is_cuda:
+            self._mirror_host.zero_()
+            # (a collected guard hands its mirror and events back, but not while a frame it posted may still write)
+            weakref.finalize(self, _hand_back, mirror_shape, device.alias, self._mirror_host, self._events,
+                             self._pending)
+            self._mirror = wp.array(ptr=self._mirror_host.ptr, dtype=wp.float64, shape=mirror_shape, device=device)
+        else:
+            self._mirror = self._mirror_host
+        self._mirror_view = self._mirror_host.numpy()
+        self._mirror_reported = []  # the worlds whose mirrored record the last read reported
+        self._clock_base = 0.0  # the state's clock at the restart [s]: a frame's end is this plus its time
         # The check's passes stride (each lane several particles or elements: few partial sums to gather): on CUDA
         # up to REDUCE_PER_LANE a lane, on the CPU one thread per world walks them all (its sums in the same order).
         per_lane, fill = (REDUCE_PER_LANE, REDUCE_FILL_BLOCKS) if self._tiled else (CPU_PER_LANE, 0)
@@ -556,7 +572,8 @@ class Guard(StepHook):
         wp.copy(self._previous_q, state.particle_q)
         wp.copy(self._previous_qd, state.particle_qd)
         self._restart_balance()
-        self.reset()
+        self.reset(every_world=True)
+        self._clock_base = float(state.time.numpy().max())  # (a sync, once a restart)
         self._dissipation_kernels()  # the power sums attached to the integrator or not (``_power``)
         gather = self._measure(state)  # Δx = 0: no work, the loads at the start recorded
         if self._power is not None:  # minus the closing term at the start opens the first span
@@ -697,6 +714,7 @@ class Guard(StepHook):
         arrays.work_total = self._work_total
         arrays.balance = self._balance
         arrays.carry = self._carry
+        arrays.mirror = self._mirror
         arrays.lead = model.scalar(self._lead())
         arrays.power_h = wp.float64(0.0 if self.dt is None else float(self.dt))
         return spec, arrays
@@ -976,9 +994,18 @@ class Guard(StepHook):
                             state.particle_qd],
                     outputs=[dampers.damper, dampers.dissipated, dampers.skip, self._running_out(offset + grid[1])], device=model.device)
 
-    def reset(self) -> None:
+    def reset(self, every_world: bool = False) -> None:
         """Clear the record (device copies: between frames after a reported failure, :meth:`refresh`, and at a
-        restart)."""
+        restart), and the mirror's rows of the worlds the last read reported (their records stand on the device
+        until the copies run: no check writes them before), or with ``every_world`` all of them (a restart, once the
+        device is done with the frames before)."""
+        if every_world:
+            if self.model.device.is_cuda:
+                wp.synchronize_stream(self.model.device)
+            self._mirror_view[:] = 0.0
+        else:
+            self._mirror_view[self._mirror_reported] = 0.0
+        self._mirror_reported = []
         wp.copy(self._status, self._status_clear)
         wp.copy(self._values, self._values_clear)
 
@@ -1135,10 +1162,10 @@ class Guard(StepHook):
                       device=model.device)
             partials, running = tuple(folded[:4]), folded[4]
         flat_launch(gather, dim=(model.world_count, self._lanes), block_dim=self._lanes,
-                    inputs=[model.particle_count, model.elements, state.particle_q, *partials, substep, self._limits,
-                            0.0 if self.dt is None else float(self.dt), int(carry_only)],
+                    inputs=[model.particle_count, model.elements, state.particle_q, state.time, *partials, substep,
+                            self._limits, 0.0 if self.dt is None else float(self.dt), int(carry_only)],
                     outputs=[model.world_enabled, self._status, running, self._values, self._work_total,
-                             self._balance, self._carry], device=model.device)
+                             self._balance, self._carry, self._mirror], device=model.device)
 
     def reports(self) -> list[GuardReport]:
         """Each world's first failure since the last reset, in world order (reads the device: synchronises). The
@@ -1147,29 +1174,46 @@ class Guard(StepHook):
         if self._status_view is not None:
             wp.copy(self._status_host, self._status)
             wp.synchronize_stream(self.model.device)
-            return self._parse(self._status_view)
-        return self._parse(self._status.numpy())
+            found = self._parse(self._status_view)
+        else:
+            found = self._parse(self._status.numpy())
+        self._mirror_reported = [report.world for report in found]  # (their mirrored rows cleared with the record)
+        return found
 
-    def post(self) -> None:
-        """Start reading the record as the frame just launched leaves it, without waiting for the device: on CUDA a copy
-        into a pinned buffer of its own, queued behind the frame, and an event after it (:meth:`collect` waits for
-        it, typically once the next frame is queued behind it, so that the device never idles for the host)."""
-        k = self._posted % len(self._slots)
+    def post(self, until: float | None = None) -> None:
+        """Start reading the record as the frame just launched leaves it, without waiting for the device: on CUDA an
+        event after the frame (:meth:`collect` waits for it, typically once the next frame is queued behind it, so
+        that the device never idles for the host). ``until``: the frame's end [s] from the restart (the failures
+        latched by later checks are left for a later read); ``None``: any."""
+        k = self._posted % len(self._events)
         self._posted += 1
-        if len(self._pending) == len(self._slots):
+        if len(self._pending) == len(self._events):
             raise RuntimeError("Guard.post: collect the older frames' records first")
-        wp.copy(self._slots[k], self._status)
         if self._events[k] is not None:
             wp.get_stream(self.model.device).record_event(self._events[k])
-        self._pending.append(k)
+        self._pending.append((k, until))
 
     def collect(self) -> list[GuardReport]:
-        """The failures in the record of the oldest frame :meth:`post` started reading (waits for that frame and its
-        copy alone; those already reported are in it again while their record stands: the caller skips them)."""
-        k = self._pending.pop(0)
+        """The failures latched up to the end of the oldest frame :meth:`post` started reading, from the mirror
+        (waits for that frame alone; those already reported are in it again while their record stands: the caller
+        skips them)."""
+        k, until = self._pending.pop(0)
         if self._events[k] is not None:
             wp.synchronize_event(self._events[k])
-        return self._parse(self._slot_views[k])
+        # The reasons first, then the rows: a failure latched since (the next frame runs on) may land between the two
+        # reads; its reason, written last, keeps it out of this one unless the first read saw it.
+        reasons = self._mirror_view[:, GUARD_TRIPPED].copy()
+        rows = self._mirror_view.copy()
+        latched = reasons != 0.0
+        if until is not None and self.dt is not None:  # (a check's clock is the frame's end or a substep's before it)
+            latched &= rows[:, MIRROR_CLOCK] - self._clock_base <= until + 0.5 * float(self.dt)
+        if not latched.any():  # the common case, every frame: host memory read, nothing queued on the device
+            return []
+        status = np.tile(self._clear_row, (len(rows), 1))
+        status[latched] = rows[latched, :GUARD_INTS].astype(np.int64)
+        found = self._parse(status)
+        self._mirror_reported = [report.world for report in found]
+        return found
 
     def discard(self) -> None:
         """Forget the records posted and not collected (a restart)."""
@@ -1239,21 +1283,30 @@ _PINNED_STATUS: dict[tuple, list] = {}
 _EVENTS: dict[str, list] = {}
 
 
-def _hand_back(shape: tuple, alias: str, slots: list, events: list, pending: list) -> None:
-    """Return a collected guard's read slots and their events to the pools (``Guard.post``), but those of a read it
-    posted and never collected: that copy may not have landed, and another guard that took the buffer (on another
-    stream) could see it land over its own; those few bytes are left to the process."""
-    for k, (slot, event) in enumerate(zip(slots, events)):
-        if k in pending:
-            continue
-        _PINNED_STATUS[shape].append(slot)
-        _EVENTS[alias].append(event)
+def _hand_back(shape: tuple, alias: str, mirror: wp.array, events: list, pending: list) -> None:
+    """Return a collected guard's mirror and its events to the pools (``Guard.post``), unless a frame it posted was
+    never collected: that frame may still write its mirror, and another guard that took the buffer could read a
+    failure of this one's; those few bytes are left to the process."""
+    if pending:
+        return
+    _PINNED_MIRRORS[shape].append(mirror)
+    _EVENTS[alias].extend(events)
 
 
 def _pooled_event(device) -> wp.Event:
     """An event of ``device`` from the pool (a new one where none is free)."""
     free = _EVENTS.setdefault(device.alias, [])
     return free.pop() if free else wp.Event(device)
+
+
+#: Pinned host buffers for the guards' mirrors, by shape: as ``_PINNED_STATUS``.
+_PINNED_MIRRORS: dict[tuple, list] = {}
+
+
+def _pinned_mirror(shape: tuple) -> wp.array:
+    """A pinned float64 host array of ``shape`` from the pool (a new one where none is free)."""
+    free = _PINNED_MIRRORS.setdefault(shape, [])
+    return free.pop() if free else wp.empty(shape, dtype=wp.float64, device="cpu", pinned=True)
 
 
 def _pinned_status(shape: tuple) -> wp.array:

@@ -137,9 +137,10 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
     def end_check(world: int, block: int, lane: int, lanes: int, blocks: int, steps: int, particle_count: int,
                   particle_flags: wp.array[wp.int32], particle_mass: wp.array2d[scalar], element_arrays: Elements,
                   inputs: wp.array2d[scalar], particle_force_ext: wp.array[vec3], q: wp.array[vec3],
-                  qd: wp.array[vec3], power_in_out: wp.array[Sums], c: CheckArrays, barrier_in_out: wp.array[wp.int32]):
-        """The guard's check of the frame's last state (``q``, ``qd``) by the world's lanes, then its verdict by the
-        world's first block (``symplectic_euler_frame_kernel``'s ``check``)."""
+                  qd: wp.array[vec3], power_in_out: wp.array[Sums], c: CheckArrays, barrier_in_out: wp.array[wp.int32],
+                  clock: wp.float64):
+        """The guard's check of the frame's last state (``q``, ``qd``, the world's clock ``clock`` [s]) by the world's
+        lanes, then its verdict by the world's first block (``symplectic_euler_frame_kernel``'s ``check``)."""
         stride = lanes * blocks
         drive_lanes(world, block, lane, lanes, particle_count, particle_flags, element_arrays, inputs, q, qd,
                     c.previous_q, stride, c.previous_load, c.partials)
@@ -164,7 +165,7 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
         if block == 0:
             gather_lanes(world, lane, lanes, particle_count, element_arrays, q, c.partials, c.energy_partials,
                          c.strain_partials, c.power_partials, steps - 1, c.limits, c.power_h, 0, c.world_enabled,
-                         c.status, c.running, c.values, c.work_total, c.balance, c.carry)
+                         c.status, c.running, c.values, c.work_total, c.balance, c.carry, clock, c.mirror)
 
     @wp.func
     def substep(world: int, lane: int, lanes: int, particle_count: int,
@@ -304,10 +305,10 @@ def symplectic_euler_frame_kernel(scalar: type, features: ForceFeatures, contact
             if frame_steps % 2 == 0:
                 end_check(world, block, lane - block * lanes, lanes, blocks, frame_steps, particle_count,
                           particle_flags, particle_mass, element_arrays, inputs, particle_force_ext, q_a_in_out,
-                          qd_a_in_out, power_in_out, check_arrays_in_out, barrier_in_out)
+                          qd_a_in_out, power_in_out, check_arrays_in_out, barrier_in_out, clock)
             else:
                 end_check(world, block, lane - block * lanes, lanes, blocks, frame_steps, particle_count, particle_flags,
                           particle_mass, element_arrays, inputs, particle_force_ext, q_b_in_out, qd_b_in_out,
-                          power_in_out, check_arrays_in_out, barrier_in_out)
+                          power_in_out, check_arrays_in_out, barrier_in_out, clock)
 
     return symplectic_euler_frame

@@ -63,7 +63,10 @@ plus the work its loads did since, less the energy the dampers took out: E(t) �
 
 Once a world's record is latched, later checks leave it untouched, so the host reads each world's first
 failure at the end of the frame. Held worlds are not checked. The records are one row per world, laid out
-by the slots below.
+by the slots below. The check that latches a world's record also writes it, with the world's clock at the check,
+into the *mirror* (a row of float64 per world, ``MIRROR_COLUMNS``; on CUDA pinned host memory the kernel writes
+through its mapping, so that the host reads a frame's verdict with no copy queued behind the frame): the record's
+ints first, the clock, then, after a system-wide fence, its reason, which the host reads first.
 """
 
 import functools
@@ -75,7 +78,7 @@ from .families import elements, struct_type
 from .forces import POWER_WORK, ForceFeatures, counts_work, power_sums_funcs
 from .inputs import INPUT_DRAG, INPUT_GRAVITY, INPUT_WIND, input_funcs
 from .kinematics import is_kinematic
-from .linalg import block_barrier, reduction_funcs
+from .linalg import block_barrier, reduction_funcs, system_fence
 from .precision import vec3_type
 from .springs import COINCIDENT_DISTANCE, SpringSpec, damper_step_func, spring_arrays_type, spring_sweep_funcs
 from .sweep import grid_energy_pass, grid_vectorised
@@ -92,6 +95,9 @@ GUARD_STRAIN_ELEMENT = 4  # smallest index of an element with the largest strain
 GUARD_NONFINITE_COUNT = 5  # particles with a non-finite position or velocity
 GUARD_STRAIN_FAMILY = 6  # smallest index (in the model's families) of a family with the largest strain
 GUARD_INTS = 7
+# the mirror's columns (``gather_lanes``): the record's ints (as float64), then the world's clock at the check [s]
+MIRROR_CLOCK = GUARD_INTS
+MIRROR_COLUMNS = GUARD_INTS + 1
 # float64 slots
 GUARD_MAX_STRAIN = 0  # largest element strain (springs: |d|/L - 1) of the check
 GUARD_KINETIC_ENERGY = 1  # Σ ½ m v² of the check [J]
@@ -523,6 +529,9 @@ def _guard_parts(scalar: type, families: tuple, tiled: bool, external: bool, wor
         work_total_in_out: wp.array[wp.float64],
         balance_in_out: wp.array2d[wp.float64],
         carry_in_out: wp.array2d[wp.float64],
+        # The world's clock at the check [s], and the record's mirror (written where the world fails here):
+        clock: wp.float64,
+        mirror_out: wp.array2d[wp.float64],
     ):
         """``gather``'s work for one lane of the world's block: a world's kinetic and elastic energy, the work put
         in and the energy dissipated since the last
@@ -682,18 +691,29 @@ def _guard_parts(scalar: type, families: tuple, tiled: bool, external: bool, wor
         # A world that failed at this check (it was live when the check began: the early return above): the most
         # strained particle, element and family, found on the state the check measured, so that the record is complete
         # when the frame ends (the host may read it a frame later). A check that passes costs nothing here.
-        largest = values_in_out[world, GUARD_MAX_STRAIN]
-        if status_in_out[world, GUARD_TRIPPED] == 0 or largest < wp.float64(0.0):
+        if status_in_out[world, GUARD_TRIPPED] == 0:
             return
-        i = lane
-        while i < particle_count:
-            base = world * particle_count
-            strain, element, family = element_strain(world, i, base, particle_q[base + i], element_arrays, particle_q)
-            if strain == largest:  # the same evaluation as in the check's passes
-                wp.atomic_min(status_in_out, world, GUARD_STRAIN_PARTICLE, i)
-                wp.atomic_min(status_in_out, world, GUARD_STRAIN_ELEMENT, element)
-                wp.atomic_min(status_in_out, world, GUARD_STRAIN_FAMILY, family)
-            i += lanes
+        largest = values_in_out[world, GUARD_MAX_STRAIN]
+        if largest >= wp.float64(0.0):  # (the same for every lane of the block)
+            i = lane
+            while i < particle_count:
+                base = world * particle_count
+                strain, element, family = element_strain(world, i, base, particle_q[base + i], element_arrays,
+                                                         particle_q)
+                if strain == largest:  # the same evaluation as in the check's passes
+                    wp.atomic_min(status_in_out, world, GUARD_STRAIN_PARTICLE, i)
+                    wp.atomic_min(status_in_out, world, GUARD_STRAIN_ELEMENT, element)
+                    wp.atomic_min(status_in_out, world, GUARD_STRAIN_FAMILY, family)
+                i += lanes
+            block_barrier()  # every lane's atomics done: the record is complete
+        if lane == 0:  # the mirror: the record and the clock, then (fenced) the reason the host reads first
+            k = int(1)
+            while k < GUARD_INTS:
+                mirror_out[world, k] = wp.float64(status_in_out[world, k])
+                k += 1
+            mirror_out[world, MIRROR_CLOCK] = clock
+            system_fence()
+            mirror_out[world, GUARD_TRIPPED] = wp.float64(status_in_out[world, GUARD_TRIPPED])
 
     @flat_kernel(module="unique", enable_backward=False, last=composed.last("element_arrays"))
     def gather(
@@ -702,6 +722,7 @@ def _guard_parts(scalar: type, families: tuple, tiled: bool, external: bool, wor
         element_arrays: Elements,
         # State in:
         particle_q: wp.array[vec3],
+        clock: wp.array[wp.float64],  # the worlds' clocks [s]
         # Guards in (``gather_lanes``):
         partials: wp.array3d[wp.float64],
         energy_partials: wp.array2d[wp.float64],
@@ -719,13 +740,15 @@ def _guard_parts(scalar: type, families: tuple, tiled: bool, external: bool, wor
         work_total_in_out: wp.array[wp.float64],
         balance_in_out: wp.array2d[wp.float64],
         carry_in_out: wp.array2d[wp.float64],
+        # Out (the record's mirror):
+        mirror_out: wp.array2d[wp.float64],
     ):
         """(``gather_lanes``.) Launched over [world, lanes] with ``block_dim`` = lanes (one lane on the CPU)."""
         world, lane = wp.tid()
         gather_lanes(world, lane, wp.block_dim(), particle_count, element_arrays, particle_q, partials,
                      energy_partials, strain_partials, power_partials, substep, limits, power_h, carry_only,
                      world_enabled_in_out, status_in_out, running_in_out, values_in_out, work_total_in_out,
-                     balance_in_out, carry_in_out)
+                     balance_in_out, carry_in_out, clock[world], mirror_out)
 
     return measure, gather, drive, measure_lanes, drive_lanes, gather_lanes
 
@@ -1630,6 +1653,7 @@ def frame_check_arrays_type(scalar: type) -> type:
         "work_total": wp.array[wp.float64],
         "balance": wp.array2d[wp.float64],
         "carry": wp.array2d[wp.float64],
+        "mirror": wp.array2d[wp.float64],
         "lead": scalar,
         "power_h": wp.float64,
     }

@@ -87,6 +87,17 @@ def reduce_stride(grid: tuple[int, int, int]) -> int:
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
+__threadfence_system();
+#endif
+""")
+def system_fence():
+    """This thread's writes before it are seen by the host (mapped pinned memory) before its writes after it
+    (``__threadfence_system``; nothing on the CPU, whose kernels return before the host reads)."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
 __syncthreads();
 #endif
 """)
