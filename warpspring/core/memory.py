@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from .. import checks
 from ..errors import ConfigError
 from ..kernels.guards import (BALANCE_SLOTS, CARRY_SLOTS, ENERGY_BY_PARTICLES, FOLD_ABOVE, FOLD_CHUNK, GUARD_FLOATS,
-                              GUARD_INTS, GUARD_LIMITS, PARTIAL_SLOTS, RUNNING_SLOTS)
+                              GUARD_INTS, GUARD_LIMITS, MIRROR_COLUMNS, PARTIAL_SLOTS, RUNNING_SLOTS)
 from ..kernels.inputs import INPUT_COUNT
 from ..kernels.linalg import CG_SHORT_SLOTS, REDUCE_FILL_BLOCKS, REDUCE_PER_LANE, reduce_launch_dim
 from ..kernels.selfcontact import (CACHE_SLOTS, COUNTER_COUNT, FLAG_KINDS, PAIRS_PER_VERTEX, PARAM_COUNT, PATCH_CHUNK,
@@ -627,7 +627,7 @@ def estimate_memory(
     guard = (2 * (4 * GUARD_INTS + 8 * GUARD_FLOATS) * w + 8 * PARTIAL_SLOTS * check_blocks + 8 * GUARD_LIMITS * w
              + fold
              + 3 * 8 * max(energy_blocks, w)  # every family's energy, strain and dampers' power partial sums
-             + (0 if cuda else 2 * 4 * GUARD_INTS * w)  # the verdict's two status copies (pinned host memory on CUDA)
+             + (0 if cuda else 8 * MIRROR_COLUMNS * w)  # the record's mirror (pinned host memory on CUDA)
              + carried + (2 * vec3 * size + 8 * w if path.midpoint else 0)
              + (2 * vec3 * size if path.stored_forces else 0)
              # the one-launch frame's check: its partial sums, one per block of the frame (at most one per 32
