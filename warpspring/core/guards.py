@@ -205,7 +205,7 @@ class Guard(StepHook):
         else:
             self._mirror = self._mirror_host
         self._mirror_view = self._mirror_host.numpy()
-        self._mirror_reported = []  # the worlds whose mirrored record the last read reported
+        self._mirror_reported = []  # the worlds reported since the last reset (``_parse``): their rows to clear
         self._clock_base = 0.0  # the state's clock at the restart [s]: a frame's end is this plus its time
         # The check's passes stride (each lane several particles or elements: few partial sums to gather): on CUDA
         # up to REDUCE_PER_LANE a lane, on the CPU one thread per world walks them all (its sums in the same order).
@@ -1174,11 +1174,8 @@ class Guard(StepHook):
         if self._status_view is not None:
             wp.copy(self._status_host, self._status)
             wp.synchronize_stream(self.model.device)
-            found = self._parse(self._status_view)
-        else:
-            found = self._parse(self._status.numpy())
-        self._mirror_reported = [report.world for report in found]  # (their mirrored rows cleared with the record)
-        return found
+            return self._parse(self._status_view)
+        return self._parse(self._status.numpy())
 
     def post(self, until: float | None = None) -> None:
         """Start reading the record as the frame just launched leaves it, without waiting for the device: on CUDA an
@@ -1202,18 +1199,15 @@ class Guard(StepHook):
             wp.synchronize_event(self._events[k])
         # The reasons first, then the rows: a failure latched since (the next frame runs on) may land between the two
         # reads; its reason, written last, keeps it out of this one unless the first read saw it.
-        reasons = self._mirror_view[:, GUARD_TRIPPED].copy()
-        rows = self._mirror_view.copy()
-        latched = reasons != 0.0
-        if until is not None and self.dt is not None:  # (a check's clock is the frame's end or a substep's before it)
-            latched &= rows[:, MIRROR_CLOCK] - self._clock_base <= until + 0.5 * float(self.dt)
+        latched = self._mirror_view[:, GUARD_TRIPPED] != 0.0
         if not latched.any():  # the common case, every frame: host memory read, nothing queued on the device
             return []
+        rows = self._mirror_view.copy()
+        if until is not None and self.dt is not None:  # (a check's clock is the frame's end or a substep's before it)
+            latched &= rows[:, MIRROR_CLOCK] - self._clock_base <= until + 0.5 * float(self.dt)
         status = np.tile(self._clear_row, (len(rows), 1))
         status[latched] = rows[latched, :GUARD_INTS].astype(np.int64)
-        found = self._parse(status)
-        self._mirror_reported = [report.world for report in found]
-        return found
+        return self._parse(status)
 
     def discard(self) -> None:
         """Forget the records posted and not collected (a restart)."""
@@ -1256,6 +1250,7 @@ class Guard(StepHook):
                 energy_budget=float(values[world, GUARD_BUDGET]),
             ))
         self._reported = True  # cleared before the next frame (``refresh``)
+        self._mirror_reported.extend(report.world for report in found)  # (their mirror rows cleared with the record)
         return found
 
     def explain(self, report: GuardReport) -> str:

@@ -208,8 +208,8 @@ class Simulator:
         if self.guard is not None and self.defer_verdict:
             # The frame before is judged first: its failure, if any, is the earlier one (before this frame's own
             # integrator stops below).
-            self.guard.post(until=self.time + self.frame_dt)  # this frame's record, read at the next frame (the device
-            # keeps busy)
+            # This frame's record, read at the next frame (the device keeps busy):
+            self.guard.post(until=self.time + self.frame_dt)
             if self._unsettled:
                 self._judge(self.guard.collect(), self.frame)  # the frame before: raises for its failure
             self._unsettled = True
