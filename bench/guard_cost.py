@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import gc
 import statistics
 import time
 
@@ -176,9 +177,18 @@ def kernel_times(model: ws.Model, integrator: str, guard, frames: int = 4) -> di
 
 
 def measure(makers: dict, device, seconds: float, batches: int) -> dict:
-    """Each configuration's batch times [s per frame], their batches taken in turn."""
+    """Each configuration's batch times [s per frame], their batches taken in turn, after a round of them all that is
+    not kept and with the objects made so far frozen out of Python's collector. The default's host waits each frame
+    for the verdict of the one before, so a pause of the host costs it device time that guard off, queued far ahead,
+    hides: on an H200 the first size a process timed kept 10-35 % less of guard off than the same size timed after
+    another (64² first 0.680, second 0.749-0.781; 32² first 0.503-0.658, second 0.789), and with this warm-up still
+    0.680 at 32² first (bench/results/guard_cost.md)."""
     runners = {name: set_up(make, device)[0] for name, make in makers.items()}
     sizes = {name: batch_size(runner, device, seconds / batches) for name, runner in runners.items()}
+    for name, runner in runners.items():  # the round not kept
+        timed_batch(runner, device, sizes[name])
+    gc.collect()
+    gc.freeze()
     times = {name: [] for name in runners}
     for _ in range(batches):
         for name, runner in runners.items():

@@ -78,7 +78,7 @@ from .families import elements, struct_type
 from .forces import POWER_WORK, ForceFeatures, counts_work, power_sums_funcs
 from .inputs import INPUT_DRAG, INPUT_GRAVITY, INPUT_WIND, input_funcs
 from .kinematics import is_kinematic
-from .linalg import block_barrier, reduction_funcs, system_fence
+from .linalg import block_barrier, block_reduce_funcs, reduction_funcs, system_fence
 from .precision import vec3_type
 from .springs import COINCIDENT_DISTANCE, SpringSpec, damper_step_func, spring_arrays_type, spring_sweep_funcs
 from .sweep import grid_energy_pass, grid_vectorised
@@ -256,15 +256,15 @@ def _guard_parts(scalar: type, families: tuple, tiled: bool, external: bool, wor
     # mean-rate rule's (below); its loads' work stays exact.
     share_dampers = 0.5 if power == POWER_RULE_START else 0.25
     share_work = 0.5 if power == POWER_RULE_START else 0.0
-    block_sum, block_max = reduction_funcs(tiled)
+    block_sum, _ = reduction_funcs(tiled)
+    Seven, reduce_seven = block_reduce_funcs(tiled, 6, 1)  # six sums and a largest, in one round
     composed = elements(scalar, families)
     Elements = composed.arrays
     element_strain = composed.strain
     particle_strain = particle_strain_func(scalar, families)
     # Whether measure sees any strain (a family without an ``element_strain`` hook; those with one are measured per
-    # element in the energy pass) and any work from outside in the sums: else their block reductions are left out.
+    # element in the energy pass): else lane 0's own value is written, never reduced.
     strained = any(getattr(spec.funcs(scalar), "element_strain", None) is None for spec in families)
-    sums_work = counted and counts_work(power_features, power_modes)
     element_force = composed.force
     work_composed = elements(scalar, working)
     WorkElements = work_composed.arrays
@@ -372,18 +372,16 @@ def _guard_parts(scalar: type, families: tuple, tiled: bool, external: bool, wor
             previous_q_in_out[p] = x
             previous_qd_in_out[p] = v
             i += stride
-        energy = block_sum(energy)
+        # (one round for all: the entries a scene does not count are zero in every lane, their sums zero)
+        reduced = reduce_seven(Seven(energy, work, dissipated, family_work, close_dissipated, close_work, worst))
+        energy = reduced[0]
+        work = reduced[1]
+        dissipated = reduced[2]
+        family_work = reduced[3]
+        close_dissipated = reduced[4]
+        close_work = reduced[5]
         if wp.static(strained):
-            worst = block_max(worst)
-        work = block_sum(work)
-        if wp.static(counted):
-            dissipated = block_sum(dissipated)
-            if wp.static(sums_work):
-                family_work = block_sum(family_work)
-            if wp.static(drag_closing):
-                close_dissipated = block_sum(close_dissipated)
-            if wp.static(wind_closing or pushing):
-                close_work = block_sum(close_work)
+            worst = reduced[6]
         if lane == 0:
             partials_out[world, block, GUARD_KINETIC_ENERGY] = energy
             partials_out[world, block, GUARD_MAX_STRAIN] = worst
@@ -592,14 +590,14 @@ def _guard_parts(scalar: type, families: tuple, tiled: bool, external: bool, wor
             running_in_out[world, b, RUNNING_WORK] = wp.float64(0.0)
             running_in_out[world, b, RUNNING_STEP_DISSIPATION] = wp.float64(0.0)
             b += lanes
-        energy = block_sum(energy)
-        worst = block_max(worst)
-        work = block_sum(work)
-        elastic = block_sum(elastic)
-        dissipated = block_sum(dissipated)
-        if wp.static(counted):
-            close_dissipated = block_sum(close_dissipated)
-            close_work = block_sum(close_work)
+        reduced = reduce_seven(Seven(energy, work, elastic, dissipated, close_dissipated, close_work, worst))
+        energy = reduced[0]
+        work = reduced[1]
+        elastic = reduced[2]
+        dissipated = reduced[3]
+        close_dissipated = reduced[4]
+        close_work = reduced[5]
+        worst = reduced[6]
         if lane == 0:
             # The world's rows read first, all at once, then the verdict in registers, then the writes: one memory
             # latency instead of a chain of ~30 reads behind writes that might alias them (the gather of a 64² cloth
@@ -1010,17 +1008,19 @@ def energy_partials_func(tiled: bool, strained: bool, power: bool):
     """``write(world, block, lane, offset, energy, worst, taken, partials_out, strain_partials_out,
     power_partials_out)``: a block's sum of its lanes' energy, their largest strain (``strained``) and the sum of their
     dampers' power (``power``), written by lane 0 at ``offset + block`` (every lane of the block calls it)."""
-    block_sum, block_max = reduction_funcs(tiled)
+    Three, reduce_three = block_reduce_funcs(tiled, 2, 1)
 
     @wp.func
     def write(world: int, block: int, lane: int, offset: int, energy: wp.float64, worst: wp.float64,
               taken: wp.float64, partials_out: wp.array2d[wp.float64], strain_partials_out: wp.array2d[wp.float64],
               power_partials_out: wp.array2d[wp.float64]):
-        energy = block_sum(energy)
+        # (one round for the three; an entry not counted keeps lane 0's own, as it did)
+        reduced = reduce_three(Three(energy, taken, worst))
+        energy = reduced[0]
         if wp.static(strained):
-            worst = block_max(worst)
+            worst = reduced[2]
         if wp.static(power):
-            taken = block_sum(taken)
+            taken = reduced[1]
         if lane == 0:
             partials_out[world, offset + block] = energy
             if wp.static(strained):

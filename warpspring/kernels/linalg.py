@@ -305,6 +305,73 @@ def _block_max_native(value: wp.float64) -> wp.float64:
 
 
 @functools.cache
+def block_reduce_funcs(tiled: bool, sums: int, maxes: int):
+    """``(vector, block_reduce)``: ``vector`` the type of ``sums + maxes`` float64s, and ``block_reduce(values) ->
+    vector``: over the lanes of a block, in every lane, the sum of each of the first ``sums`` entries of ``values`` and
+    the largest of each of the other ``maxes`` (the values themselves where not ``tiled``: the CPU, where a block is one
+    thread). Each entry by the very tree of :func:`reduction_funcs`' ``block_sum`` and ``block_max`` (the same bits),
+    all entries in one round: two barriers a call, where those take two an entry. Every lane of the block must call
+    it; ``blockDim.x`` a multiple of 32."""
+    vector = wp.types.vector(sums + maxes, wp.float64)
+    native = _block_reduce(int(sums), int(maxes))
+
+    @wp.func
+    def block_reduce(values: vector) -> vector:
+        if wp.static(tiled):
+            return native(values)
+        return values
+
+    return vector, block_reduce
+
+
+@functools.cache
+def _block_reduce(sums: int, maxes: int):
+    length = sums + maxes
+    vector = wp.types.vector(length, wp.float64)
+    combine = "(k < SUMS ? a + b : (b > a ? b : a))".replace("SUMS", str(sums))
+    source = f"""
+#if defined(__CUDA_ARCH__)
+__shared__ double warp_results[{length}][32];
+__shared__ double block_results[{length}];
+const unsigned int lane = threadIdx.x & 31u;
+const unsigned int warp = threadIdx.x >> 5;
+const unsigned int warps = (blockDim.x + 31u) >> 5;
+for (int k = 0; k < {length}; ++k) {{
+    double a = values.c[k];
+    for (int offset = 16; offset > 0; offset >>= 1) {{
+        const double b = __shfl_down_sync(0xffffffffu, a, offset);
+        a = {combine};
+    }}
+    if (lane == 0u) warp_results[k][warp] = a;
+}}
+__syncthreads();
+if (warp == 0u) {{
+    for (int k = 0; k < {length}; ++k) {{
+        double a = lane < warps ? warp_results[k][lane] : warp_results[k][0];
+        for (int offset = 16; offset > 0; offset >>= 1) {{
+            const double b = __shfl_down_sync(0xffffffffu, a, offset);
+            a = (lane + offset < warps) ? {combine} : a;
+        }}
+        if (lane == 0u) block_results[k] = a;
+    }}
+}}
+__syncthreads();
+wp::vec_t<{length}, wp::float64> result;
+for (int k = 0; k < {length}; ++k) result.c[k] = block_results[k];
+return result;
+#else
+return values;
+#endif
+"""
+
+    @wp.func_native(source)
+    def block_reduce(values: vector) -> vector:
+        ...
+
+    return block_reduce
+
+
+@functools.cache
 def reduction_funcs(tiled: bool):
     """``block_sum(value)``: the sum of a value over the lanes of a block (every lane gets it; the value
     itself on the CPU, where a block is one thread), and ``block_max``. Deterministic: a fixed-order tree (warp
