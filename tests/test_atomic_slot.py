@@ -5,12 +5,17 @@ counters. ``atomic_raise``: each entry ends at the largest value raised into it 
 mixes of lanes. ``warp_total``: a warp whose 32 lanes share a group gives its sum to its first lane and zero to
 the others, any other warp each lane its own value; so the values a group's lanes get add up to the group's sum.
 ``block_max_ints``: every lane of a block gets each entry's largest over the block's lanes, also from a second call
-in the same kernel (on the CPU, where a block is one thread, its own values)."""
+in the same kernel (on the CPU, where a block is one thread, its own values). ``block_reduce_funcs``: every lane gets
+each entry's sum or largest with the very bits of ``block_sum`` and ``block_max`` on that entry alone, also from a
+second call."""
+
+import functools
 
 import numpy as np
 import warp as wp
 
-from warpspring.kernels.linalg import atomic_raise, atomic_slot, block_max_ints_func, warp_total_func
+from warpspring.kernels.linalg import (atomic_raise, atomic_slot, block_max_ints_func, block_reduce_funcs,
+                                      reduction_funcs, warp_total_func)
 
 
 @wp.kernel(enable_backward=False)
@@ -138,3 +143,50 @@ def test_a_warp_of_one_group_gives_its_sum_to_its_first_lane(device):
     np.testing.assert_array_equal(got, expected)
     for g in range(7):  # and so each group's values add up to its sum
         assert got[groups == g].sum() == values[groups == g].sum()
+
+
+@functools.cache
+def _reduce_kernel(tiled: bool):
+    """Each lane's five values reduced at once (three sums, two largest), twice, and entry by entry."""
+    vector, reduce_five = block_reduce_funcs(tiled, 3, 2)
+    block_sum, block_max = reduction_funcs(tiled)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def reduce(values: wp.array2d[wp.float64], together_out: wp.array2d[wp.float64],
+               again_out: wp.array2d[wp.float64], apart_out: wp.array2d[wp.float64]):
+        i = wp.tid()
+        mine = vector(values[i, 0], values[i, 1], values[i, 2], values[i, 3], values[i, 4])
+        together = reduce_five(mine)
+        again = reduce_five(-mine)  # a second call: its shared slots reused
+        for k in range(5):
+            together_out[i, k] = together[k]
+            again_out[i, k] = again[k]
+        apart_out[i, 0] = block_sum(values[i, 0])
+        apart_out[i, 1] = block_sum(values[i, 1])
+        apart_out[i, 2] = block_sum(values[i, 2])
+        apart_out[i, 3] = block_max(values[i, 3])
+        apart_out[i, 4] = block_max(values[i, 4])
+
+    return reduce
+
+
+def test_a_vector_reduced_at_once_gets_each_entrys_own_bits(device):
+    rng = np.random.default_rng(17)
+    blocks, lanes = 7, 96  # three warps a block
+    values = rng.normal(0.0, 1.0, (blocks * lanes, 5)) * 10.0 ** rng.integers(-8, 8, (blocks * lanes, 5))
+    outs = [wp.zeros((blocks * lanes, 5), dtype=wp.float64, device=device) for _ in range(3)]
+    tiled = wp.get_device(device).is_cuda
+    wp.launch(_reduce_kernel(tiled), dim=blocks * lanes, block_dim=lanes,
+              inputs=[wp.array(values, dtype=wp.float64, device=device)], outputs=outs, device=device)
+    together, again, apart = (out.numpy() for out in outs)
+    np.testing.assert_array_equal(together, apart)  # the same trees: the same bits
+    if not tiled:  # a block is one thread: its own values
+        np.testing.assert_array_equal(together, values)
+        np.testing.assert_array_equal(again, -values)
+        return
+    per_block = values.reshape(blocks, lanes, 5)
+    sums = np.repeat(per_block[:, :, :3].sum(axis=1), lanes, axis=0)
+    np.testing.assert_allclose(together[:, :3], sums, rtol=1e-12, atol=1e-12 * np.abs(per_block).max())
+    np.testing.assert_array_equal(together[:, 3:], np.repeat(per_block[:, :, 3:].max(axis=1), lanes, axis=0))
+    np.testing.assert_array_equal(again[:, 3:], np.repeat((-per_block[:, :, 3:]).max(axis=1), lanes, axis=0))
+    np.testing.assert_array_equal(again[:, :3], -together[:, :3])  # negation commutes with every sum's rounding
