@@ -374,23 +374,17 @@ def _guard_parts(scalar: type, families: tuple, tiled: bool, external: bool, wor
             i += stride
         # (one round for all: the entries a scene does not count are zero in every lane, their sums zero)
         reduced = reduce_seven(Seven(energy, work, dissipated, family_work, close_dissipated, close_work, worst))
-        energy = reduced[0]
-        work = reduced[1]
-        dissipated = reduced[2]
-        family_work = reduced[3]
-        close_dissipated = reduced[4]
-        close_work = reduced[5]
         if wp.static(strained):
             worst = reduced[6]
         if lane == 0:
-            partials_out[world, block, GUARD_KINETIC_ENERGY] = energy
+            partials_out[world, block, GUARD_KINETIC_ENERGY] = reduced[0]
             partials_out[world, block, GUARD_MAX_STRAIN] = worst
-            partials_out[world, block, GUARD_WORK] = work
+            partials_out[world, block, GUARD_WORK] = reduced[1]
             if wp.static(counted):
-                partials_out[world, block, PARTIAL_DISSIPATION] = dissipated
-                partials_out[world, block, PARTIAL_FAMILY_WORK] = family_work
-                partials_out[world, block, PARTIAL_CLOSE_DISSIPATION] = close_dissipated
-                partials_out[world, block, PARTIAL_CLOSE_WORK] = close_work
+                partials_out[world, block, PARTIAL_DISSIPATION] = reduced[2]
+                partials_out[world, block, PARTIAL_FAMILY_WORK] = reduced[3]
+                partials_out[world, block, PARTIAL_CLOSE_DISSIPATION] = reduced[4]
+                partials_out[world, block, PARTIAL_CLOSE_WORK] = reduced[5]
 
     @flat_kernel(module="unique", enable_backward=False,
                  last=composed.last("element_arrays") + work_composed.last("work_arrays"))
