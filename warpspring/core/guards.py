@@ -178,9 +178,9 @@ class Guard(StepHook):
         # on an H200), from a pool that never frees (a guard's pinned buffer freed by the garbage collector while
         # another simulator captured its graph is a cudaFreeHost inside the capture, which invalidates it: CUDA error
         # 901 at the next launch, tests/test_extremes.py on an H200); a collected guard hands its buffer back.
-        self._status_host = _pinned_status(status.shape) if device.is_cuda else self._status
+        self._status_host = _pinned(status.shape, wp.int32) if device.is_cuda else self._status
         if self._status_host is not self._status:
-            weakref.finalize(self, _PINNED_STATUS[status.shape].append, self._status_host)
+            weakref.finalize(self, _pin_back, self._status_host)
         # The reads a frame later (``post``, ``collect``): two in turn, each with an event after its frame (on the CPU
         # a frame is done when its launches return: no event), from a pool that never destroys them either: none is
         # destroyed while another simulator captures.
@@ -194,13 +194,12 @@ class Guard(StepHook):
         # (from a pool that never frees, as the status reads') that the kernels write through its mapping, on the CPU
         # a host array. Zero where no failure is latched; a reported world's row is cleared with the record.
         mirror_shape = (worlds, MIRROR_COLUMNS)
-        self._mirror_host = (_pinned_mirror(mirror_shape) if device.is_cuda
+        self._mirror_host = (_pinned(mirror_shape, wp.float64) if device.is_cuda
                              else wp.zeros(mirror_shape, dtype=wp.float64, device=device))
         if device.is_cuda:
             self._mirror_host.zero_()
             # (a collected guard hands its mirror and events back, but not while a frame it posted may still write)
-            weakref.finalize(self, _hand_back, mirror_shape, device.alias, self._mirror_host, self._events,
-                             self._pending)
+            weakref.finalize(self, _hand_back, device.alias, self._mirror_host, self._events, self._pending)
             self._mirror = wp.array(ptr=self._mirror_host.ptr, dtype=wp.float64, shape=mirror_shape, device=device)
         else:
             self._mirror = self._mirror_host
@@ -1268,23 +1267,23 @@ class Guard(StepHook):
         return min(found, key=lambda r: (r.substep, r.world)) if found else None
 
 
-#: Pinned host buffers for the guards' status reads, by shape: taken by a guard, handed back when it is collected,
-#: never freed (see ``Guard.__init__``).
-_PINNED_STATUS: dict[tuple, list] = {}
+#: Pinned host buffers for the guards' status reads and mirrors, by shape and type: taken by a guard, handed back when
+#: it is collected, never freed (see ``Guard.__init__``).
+_PINNED: dict[tuple, list] = {}
 
 
 #: CUDA events for the deferred reads of the guards' status (``Guard.post``), by device: taken by a guard, handed back
-#: when it is collected, never destroyed (as ``_PINNED_STATUS``).
+#: when it is collected, never destroyed (as ``_PINNED``).
 _EVENTS: dict[str, list] = {}
 
 
-def _hand_back(shape: tuple, alias: str, mirror: wp.array, events: list, pending: list) -> None:
+def _hand_back(alias: str, mirror: wp.array, events: list, pending: list) -> None:
     """Return a collected guard's mirror and its events to the pools (``Guard.post``), unless a frame it posted was
     never collected: that frame may still write its mirror, and another guard that took the buffer could read a
     failure of this one's; those few bytes are left to the process."""
     if pending:
         return
-    _PINNED_MIRRORS[shape].append(mirror)
+    _pin_back(mirror)
     _EVENTS[alias].extend(events)
 
 
@@ -1294,20 +1293,15 @@ def _pooled_event(device) -> wp.Event:
     return free.pop() if free else wp.Event(device)
 
 
-#: Pinned host buffers for the guards' mirrors, by shape: as ``_PINNED_STATUS``.
-_PINNED_MIRRORS: dict[tuple, list] = {}
+def _pinned(shape: tuple, dtype) -> wp.array:
+    """A pinned host array of ``shape`` and ``dtype`` from the pool (a new one where none is free)."""
+    free = _PINNED.setdefault((tuple(shape), dtype), [])
+    return free.pop() if free else wp.empty(shape, dtype=dtype, device="cpu", pinned=True)
 
 
-def _pinned_mirror(shape: tuple) -> wp.array:
-    """A pinned float64 host array of ``shape`` from the pool (a new one where none is free)."""
-    free = _PINNED_MIRRORS.setdefault(shape, [])
-    return free.pop() if free else wp.empty(shape, dtype=wp.float64, device="cpu", pinned=True)
-
-
-def _pinned_status(shape: tuple) -> wp.array:
-    """A pinned int32 host array of ``shape`` from the pool (a new one where none is free)."""
-    free = _PINNED_STATUS.setdefault(shape, [])
-    return free.pop() if free else wp.empty(shape, dtype=wp.int32, device="cpu", pinned=True)
+def _pin_back(array: wp.array) -> None:
+    """Hand a buffer of :func:`_pinned` back to its pool."""
+    _PINNED[(tuple(array.shape), array.dtype)].append(array)
 
 
 @dataclass(frozen=True)

@@ -328,7 +328,7 @@ def block_reduce_funcs(tiled: bool, sums: int, maxes: int):
 def _block_reduce(sums: int, maxes: int):
     length = sums + maxes
     vector = wp.types.vector(length, wp.float64)
-    combine = "(k < SUMS ? a + b : (b > a ? b : a))".replace("SUMS", str(sums))
+    combine = f"(k < {sums} ? a + b : (b > a ? b : a))"
     source = f"""
 #if defined(__CUDA_ARCH__)
 __shared__ double warp_results[{length}][32];
