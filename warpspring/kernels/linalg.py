@@ -253,83 +253,26 @@ return values;
     return block_max_ints
 
 
-def _block_reduce_source(combine: str) -> str:
-    """C++ of a block-wide reduction of a float64 (``reduction_funcs``), ``combine(a, b)`` an expression of ``a`` and
-    ``b``: each warp's lanes by shuffles, then warp 0 over the warps' results, then every lane reads the block's. Two
-    barriers a call (``tile_sum(tile(value))[0]`` took four and shared-memory tiles: a check pass's blocks reduced in
-    it spent most of its time there, 221 µs against 62 µs for the same pass writing one value a thread; ncu on an
-    H200). A call reuses its shared slots safely: the next call writes a warp's slot after the barrier that follows
-    warp 0's reads, and the total after the barrier that follows every lane's read of it. Every lane of the block must
-    call it (as a tile operation); ``blockDim.x`` a multiple of 32. On the CPU, where a block is one thread, the value
-    itself."""
-    return f"""
-#if defined(__CUDA_ARCH__)
-__shared__ double warp_results[32];
-__shared__ double block_result;
-const unsigned int lane = threadIdx.x & 31u;
-const unsigned int warp = threadIdx.x >> 5;
-double a = value;
-for (int offset = 16; offset > 0; offset >>= 1) {{
-    const double b = __shfl_down_sync(0xffffffffu, a, offset);
-    a = {combine};
-}}
-if (lane == 0u) warp_results[warp] = a;
-__syncthreads();
-if (warp == 0u) {{
-    const unsigned int warps = (blockDim.x + 31u) >> 5;
-    a = lane < warps ? warp_results[lane] : warp_results[0];
-    for (int offset = 16; offset > 0; offset >>= 1) {{
-        const double b = __shfl_down_sync(0xffffffffu, a, offset);
-        a = (lane + offset < warps) ? ({combine}) : a;
-    }}
-    if (lane == 0u) block_result = a;
-}}
-__syncthreads();
-return block_result;
-#else
-return value;
-#endif
-"""
-
-
-@wp.func_native(_block_reduce_source("a + b"))
-def _block_sum_native(value: wp.float64) -> wp.float64:
-    """The sum of ``value`` over the block's lanes (``_block_reduce_source``)."""
-    ...
-
-
-@wp.func_native(_block_reduce_source("(b > a ? b : a)"))
-def _block_max_native(value: wp.float64) -> wp.float64:
-    """The largest ``value`` over the block's lanes (``_block_reduce_source``)."""
-    ...
-
-
-@functools.cache
-def block_reduce_funcs(tiled: bool, sums: int, maxes: int):
-    """``(vector, block_reduce)``: ``vector`` the type of ``sums + maxes`` float64s, and ``block_reduce(values) ->
-    vector``: over the lanes of a block, in every lane, the sum of each of the first ``sums`` entries of ``values`` and
-    the largest of each of the other ``maxes`` (the values themselves where not ``tiled``: the CPU, where a block is one
-    thread). Each entry by the very tree of :func:`reduction_funcs`' ``block_sum`` and ``block_max`` (the same bits),
-    all entries in one round: two barriers a call, where those take two an entry. Every lane of the block must call
-    it; ``blockDim.x`` a multiple of 32."""
-    vector = wp.types.vector(sums + maxes, wp.float64)
-    native = _block_reduce(int(sums), int(maxes))
-
-    @wp.func
-    def block_reduce(values: vector) -> vector:
-        if wp.static(tiled):
-            return native(values)
-        return values
-
-    return vector, block_reduce
-
-
-@functools.cache
-def _block_reduce(sums: int, maxes: int):
+def _block_reduce_source(sums: int, maxes: int, vector: bool) -> str:
+    """C++ of a block-wide reduction of ``sums + maxes`` float64s, the first ``sums`` entries added and the others'
+    largest taken: of the argument ``values``, a vector of them (``block_reduce_funcs``), or where not ``vector`` of the
+    one float64 ``value`` (``reduction_funcs``). Each entry by the same tree: each warp's lanes by shuffles, then warp 0
+    over the warps' results, then every lane reads the block's. Two barriers a call, however many entries
+    (``tile_sum(tile(value))[0]`` took four and shared-memory tiles: a check pass's blocks reduced in it spent most of
+    its time there, 221 µs against 62 µs for the same pass writing one value a thread; ncu on an H200). A call reuses
+    its shared slots safely: the next call writes a warp's slot after the barrier that follows warp 0's reads, and the
+    totals after the barrier that follows every lane's read of them. Every lane of the block must call it (as a tile
+    operation); ``blockDim.x`` a multiple of 32. On the CPU, where a block is one thread, the values themselves."""
     length = sums + maxes
-    vector = wp.types.vector(length, wp.float64)
-    combine = f"(k < {sums} ? a + b : (b > a ? b : a))"
-    source = f"""
+    argument = "values" if vector else "value"
+    if vector:
+        read, results = f"{argument}.c[k]", (f"wp::vec_t<{length}, wp::float64> result;\n"
+                                             f"for (int k = 0; k < {length}; ++k) result.c[k] = block_results[k];\n"
+                                             "return result;")
+    else:
+        read, results = argument, "return block_results[0];"
+    combine = "a + b" if not maxes else "(b > a ? b : a)" if not sums else f"(k < {sums} ? a + b : (b > a ? b : a))"
+    return f"""
 #if defined(__CUDA_ARCH__)
 __shared__ double warp_results[{length}][32];
 __shared__ double block_results[{length}];
@@ -337,7 +280,7 @@ const unsigned int lane = threadIdx.x & 31u;
 const unsigned int warp = threadIdx.x >> 5;
 const unsigned int warps = (blockDim.x + 31u) >> 5;
 for (int k = 0; k < {length}; ++k) {{
-    double a = values.c[k];
+    double a = {read};
     for (int offset = 16; offset > 0; offset >>= 1) {{
         const double b = __shfl_down_sync(0xffffffffu, a, offset);
         a = {combine};
@@ -356,15 +299,50 @@ if (warp == 0u) {{
     }}
 }}
 __syncthreads();
-wp::vec_t<{length}, wp::float64> result;
-for (int k = 0; k < {length}; ++k) result.c[k] = block_results[k];
-return result;
+{results}
 #else
-return values;
+return {argument};
 #endif
 """
 
-    @wp.func_native(source)
+
+@wp.func_native(_block_reduce_source(1, 0, vector=False))
+def _block_sum_native(value: wp.float64) -> wp.float64:
+    """The sum of ``value`` over the block's lanes (``_block_reduce_source``)."""
+    ...
+
+
+@wp.func_native(_block_reduce_source(0, 1, vector=False))
+def _block_max_native(value: wp.float64) -> wp.float64:
+    """The largest ``value`` over the block's lanes (``_block_reduce_source``)."""
+    ...
+
+
+@functools.cache
+def block_reduce_funcs(tiled: bool, sums: int, maxes: int):
+    """``(vector, block_reduce)``: ``vector`` the type of ``sums + maxes`` float64s, and ``block_reduce(values) ->
+    vector``: over the lanes of a block, in every lane, the sum of each of the first ``sums`` entries of ``values`` and
+    the largest of each of the other ``maxes`` (the values themselves where not ``tiled``: the CPU, where a block is one
+    thread). Each entry by the very tree of :func:`reduction_funcs`' ``block_sum`` and ``block_max`` (one source,
+    ``_block_reduce_source``: the same bits), all entries in one round: two barriers a call, where those take two an
+    entry. Every lane of the block must call it; ``blockDim.x`` a multiple of 32."""
+    vector = wp.types.vector(sums + maxes, wp.float64)
+    native = _block_reduce(int(sums), int(maxes))
+
+    @wp.func
+    def block_reduce(values: vector) -> vector:
+        if wp.static(tiled):
+            return native(values)
+        return values
+
+    return vector, block_reduce
+
+
+@functools.cache
+def _block_reduce(sums: int, maxes: int):
+    vector = wp.types.vector(sums + maxes, wp.float64)
+
+    @wp.func_native(_block_reduce_source(sums, maxes, vector=True))
     def block_reduce(values: vector) -> vector:
         ...
 
