@@ -20,7 +20,9 @@ again beside each integrator, in its rounds).
 ``--where`` also times the default run with its verdict read after each frame (``defer_verdict=False``), with no host
 read at all (the verdict's read replaced by nothing: what the device's work costs alone), and with the check in its
 own launches after a one-launch frame (``guards.CHECK_IN_FRAME`` off while it is captured): where a default frame's
-time goes, in µs per frame above guard off.
+time goes, in µs per frame above guard off. The default's check spans up to ``GuardLimits.check_frames`` frames in
+this scene (springs and gravity, read a frame later and not frame by frame); ``--every-frame`` also times it with a
+check every frame (``check_frames=1``).
 """
 
 from __future__ import annotations
@@ -208,6 +210,9 @@ def main():
     parser.add_argument("--evaluation", default="auto", choices=["auto", "gather", "scatter"],
                         help="the springs' evaluation (auto: gather on CUDA, scatter on the CPU; gather on the CPU "
                              "runs the CUDA default's kernels)")
+    parser.add_argument("--every-frame", action="store_true",
+                        help="also the default guard with a check every frame (GuardLimits(check_frames=1)): what the "
+                             "checks spanning frames save")
     parser.add_argument("--probe", action="store_true",
                         help="also guard off with a status-sized read after every frame (the host's wait alone)")
     parser.add_argument("--sync-verdict", action="store_true",
@@ -253,6 +258,8 @@ def main():
 
             makers = {"off": lambda: Run(cloth(), integrator, None),
                       "default": lambda: Run(cloth(), integrator, ws.GuardLimits())}
+            if args.every_frame:
+                makers["every frame"] = lambda: Run(cloth(), integrator, ws.GuardLimits(check_frames=1))
             if args.probe:
                 makers["probe"] = lambda: Run(cloth(), integrator, None, probe=True)
             if args.sync_verdict or args.where:
@@ -282,6 +289,13 @@ def main():
                         f"{launches_per_substep(cloth(), integrator, ws.GuardLimits()):.2f}")
             vs_newton = (f"{statistics.median(nt / on for nt, on in zip(times['newton'], times['default'])):.2f}×"
                          if newton else "")
+            if args.every_frame:
+                every = statistics.median(off / p for off, p in zip(times["off"], times["every frame"]))
+                every_newton = (f", {statistics.median(nt / p for nt, p in zip(times['newton'], times['every frame'])):.2f}× "
+                                "Newton" if newton else "")
+                notes.append(f"- {label}, {integrator}: the default with a check every frame (check_frames=1) ÷ guard "
+                             f"off = {every:.3f}{every_newton}")
+                print(notes[-1], flush=True)
             if args.sync_verdict:
                 sync = statistics.median(off / p for off, p in zip(times["off"], times["sync"]))
                 notes.append(f"- {label}, {integrator}: default with its verdict read after every frame ÷ guard off = "

@@ -98,11 +98,13 @@ def test_deferred_world_stop_records_each_world_once_with_its_frame(device):
 
 
 def test_deferred_run_that_passes_is_the_same_run(device):
-    """A healthy run gives the same bits, the same balance and the same work with or without deferral."""
+    """A healthy run gives the same bits, the same balance and the same work with or without deferral (a check every
+    frame: a check spanning frames, which deferral allows, sums the same power over its span in another order,
+    ``tests/test_guard_spans.py``)."""
     results = []
     for defer in (False, True):
         model, _ = hanging_cloth(device, n=8, drag=0.2)
-        sim = ws.Simulator(model, fps=60, substeps=8, defer_verdict=defer)
+        sim = ws.Simulator(model, fps=60, substeps=8, defer_verdict=defer, guard=ws.GuardLimits(check_frames=1))
         q = run_frames(sim, 12)
         results.append((q, sim.guard.energy_balance().created, sim.guard.work()))
     np.testing.assert_array_equal(results[0][0], results[1][0])

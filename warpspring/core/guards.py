@@ -127,6 +127,8 @@ CHECK_IN_FRAME = {True: True, False: True}
 #: Frames checked after every substep from a restart, or from a write that raised the springs' bound, at a step the bound
 #: does not certify stable (``Guard._watch``).
 WATCH_FRAMES = 4
+#: A count of unchecked frames past any ``GuardLimits.check_frames``: the next frame is checked.
+FORCE_CHECK = 1 << 30
 
 
 class Guard(StepHook):
@@ -307,7 +309,12 @@ class Guard(StepHook):
         self._dampers = None
         self._power = None
         self._restart_balance()
-        self.revision = 0
+        self._revision = 0
+        #: Whether the simulator reads each frame's verdict a frame later and checks a frame before it is read
+        #: (``Simulator.defer_verdict``): only then may a check span frames (``GuardLimits.check_frames``).
+        self.deferred = False
+        self._skip_end = False  # this frame's end is left to a later check (``refresh``: a check spans frames)
+        self._unchecked = FORCE_CHECK  # frames in a row whose end no check read (FORCE_CHECK: the next is checked)
         self._reported = False
         self._every = None
         self._watching = False  # this frame checks every substep (``refresh``)
@@ -358,7 +365,7 @@ class Guard(StepHook):
             # balance re-captures, as a switch of the working families does.
             self._working = working
             self._balanced = balanced
-            self.revision += 1
+            self._revision += 1
         finish = getattr(integrator, "finish_step", None)
         if finish is not None and self._correction_layout is not None:
             finish.watch = self._count_corrections if balanced else None
@@ -372,7 +379,7 @@ class Guard(StepHook):
                 self._clear_running()  # no trapezoid from a power sampled before the switch
             self._every = every
             self._dissipating = dissipating
-            self.revision += 1
+            self._revision += 1
         if limits.stop == "world":
             self.model.hold_worlds()  # a failed world is held by the integrators' last pass
         self._write_limits()
@@ -381,11 +388,15 @@ class Guard(StepHook):
         """After the model's values were written (gravity switched on mid-run raises the scene's energy scale;
         a new stiffness changes the elastic energy without work): re-derive the default limits and re-base
         the energy balance at the next check; and clear the record of failures :meth:`reports` read. Value writes, no
-        re-capture. Call between frames (the Simulator does)."""
+        re-capture. Then decide whether the coming frame's end is checked or left to a later check
+        (``GuardLimits.check_frames``; a write or a restart has the frame checked). Call between frames (the
+        Simulator does)."""
         if self._reported:
             self.reset()
             self._reported = False
+        changed = self._watch_start
         if self._input_version != self.model.input_version:
+            changed = True
             self._write_limits()
             self.rebase()
             before, self._bound = self._bound, self._step_bound()
@@ -397,6 +408,60 @@ class Guard(StepHook):
             self._watch_start = False
         self._watch(self._watch_left > 0)
         self._watch_left = max(self._watch_left - 1, 0)
+        if changed:
+            self._unchecked = FORCE_CHECK  # the balance re-bases at the frame's check: no span across a write
+        self._skip_end = self._spans_frames() and self._unchecked + 1 < self._limits_host.check_frames
+        self._unchecked = self._unchecked + 1 if self._skip_end else 0
+
+    @property
+    def revision(self) -> tuple:
+        """What the launches of an advance depend on (``StepHook.revision``): the guard's configuration and whether
+        this frame's end is checked (a stepper keeps a graph of each)."""
+        return self._revision, self._skip_end
+
+    @property
+    def frame_unchecked(self) -> bool:
+        """Whether the frame last advanced (or about to be) leaves its end to a later check: a check spans frames
+        (``GuardLimits.check_frames``); :meth:`catch_up` checks it before it is read."""
+        return self._skip_end
+
+    def _spans_frames(self) -> bool:
+        """Whether a check may span frames now (``GuardLimits.check_frames``): the verdict is read a frame later and
+        the frames are not read one by one (``deferred``); no frame is watched (a step the springs' bound does not
+        certify is checked after every substep for ``WATCH_FRAMES`` frames from a restart or a write, and a fast
+        linear instability shows there: a spring's tangent stiffness never exceeds its k, so the step's linear
+        stability cannot worsen later without a write); nothing is counted between substeps but by the step itself;
+        the model's elements are springs alone (a family with stiffness of its own is outside the bound); the run
+        stops as a whole (``stop="world"`` records each world's failure frame: a batch's data); and the
+        loads cannot change between frames without a write the guard sees (gravity alone: a control force, wind,
+        handles, tracks, driven pins, moving colliders, emitters and self-collision each keep a check every
+        frame). A mode that grows more slowly than the watched frames show is caught by the balance at the span's
+        check, as by a frame's."""
+        limits, model = self._limits_host, self.model
+        if limits.check_frames <= 1 or not self.deferred or self._watching or self._every_set < self.substeps:
+            return False
+        if limits.stop != "run":
+            return False  # (a world's failure frame is what a batch of worlds records: each frame checked)
+        if self.dt is None or not self.quiet_between_steps(self.substeps):
+            return False
+        if any(family.name != "springs" and family.element_count for family in model.families):
+            return False
+        external = self.control is not None and model.force_features(self.control).external
+        pins = getattr(model, "pin_groups", None)
+        return not (external or self._working_families() or model.emitters or model.input_tracks is not None
+                    or model.shape_moving or getattr(model, "shape_deforming", False)
+                    or (pins is not None and pins.driven) or getattr(model, "self_contact", None) is not None)
+
+    def catch_up(self, state: State) -> bool:
+        """Check ``state`` (the last advance's result) where the frames since the last check went unchecked (a check
+        spanning frames, :attr:`frame_unchecked`), before it is read: launches the check (device only) and returns
+        ``True``, or returns ``False`` where the last frame's end was checked."""
+        if not self._skip_end:
+            return False
+        self.check(state, self.substeps - 1, last=True)
+        self._skip_end = False
+        self._unchecked = 0
+        return True
 
     def _watch(self, watching: bool) -> None:
         """Check every substep of this frame (``watching``) or every ``every`` (a re-capture where it changes). The
@@ -567,6 +632,7 @@ class Guard(StepHook):
         takes its reference at the next check."""
         state = state if state is not None else self.model.state()
         self._watch_start = True
+        self._skip_end = False  # (the frames before are forgotten: the next frame is checked, ``refresh``)
         self._work_total.zero_()
         wp.copy(self._previous_q, state.particle_q)
         wp.copy(self._previous_qd, state.particle_qd)
@@ -667,7 +733,7 @@ class Guard(StepHook):
         if (step + 1) % self._every == 0 or step + 1 == steps:
             if self._frame_checked:  # done at the end of the one-launch frame
                 self._frame_checked = False
-            else:
+            elif not (self._skip_end and step + 1 == steps):  # (else a later frame's check spans this one)
                 self.check(state, step, last=step + 1 == steps)
 
     def frame_check(self, steps: int, shape: tuple[int, int], *, integrator, control):
@@ -678,6 +744,8 @@ class Guard(StepHook):
         the frame runs it, the stepper says so (:meth:`frame_checked`). Only for the integrator and control the guard
         checks (a frame stepped by others reads another force and other power sums)."""
         model = self.model
+        if self._skip_end:
+            return None  # (this frame's end is left to a later check)
         if not CHECK_IN_FRAME[model.device.is_cuda] or not self.quiet_between_steps(steps) or self._folding() is not None:
             return None
         if integrator is not self.integrator or control is not self.control:
@@ -838,7 +906,7 @@ class Guard(StepHook):
         integrator's per-particle force pass where it can (``_power_rule``)."""
         model = self.model
         cached = getattr(self, "_dissipation_cache", None)
-        key = (model.revision, self._midpoint, self._dissipating, self._working, self.revision)
+        key = (model.revision, self._midpoint, self._dissipating, self._working, self._revision)
         if cached is None or cached[0] != key:
             drag, families = None, []
             midpoint = self._midpoint

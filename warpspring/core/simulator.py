@@ -100,6 +100,7 @@ class Simulator:
     ):
         self.model = model
         self._unsettled = False  # the last frame's record is posted and not yet read (``defer_verdict``)
+        self._read = False  # the last frame was settled (read) before the next began
         self.fps = checks.positive("fps", fps)
         control = control if control is not None else model.control()
         integrator = integrator if integrator is not None else SymplecticEuler(model)
@@ -193,7 +194,9 @@ class Simulator:
         last frame's. The promise: whatever was read from a frame whose verdict is known stayed valid; a frame hook
         sees only a state whose verdict is known (the frame is settled before the hooks run), and ``warpspring run``
         writes a frame only once it is settled. Without it (the CPU's default) every frame is settled before
-        ``step_frame`` returns.
+        ``step_frame`` returns. With it, and frames not read one by one, a check may span frames where the scene allows
+        it (``GuardLimits.check_frames``): a frame that leaves its end to a later check is judged with that check, and
+        :meth:`settle` checks the last frame first where its end went unchecked.
 
         Raises:
             SimulationError: a guard check failed during this frame, or with :attr:`defer_verdict` the one before;
@@ -201,18 +204,24 @@ class Simulator:
                 frames completed before the failed one.
         """
         if self.guard is not None:
+            # A check may span frames only where they are not read one by one (a read checks its frame first).
+            self.guard.deferred = self.defer_verdict and not self._read
             self.guard.refresh()
+        self._read = False
         if self.model.shape_deforming:
             advance_mesh_colliders(self.model, self.time, self.time + self.frame_dt)
         self.stepper.advance()
         if self.guard is not None and self.defer_verdict:
             # The frame before is judged first: its failure, if any, is the earlier one (before this frame's own
             # integrator stops below).
-            # This frame's record, read at the next frame (the device keeps busy):
-            self.guard.post(until=self.time + self.frame_dt)
+            # This frame's record, read at the next frame (the device keeps busy); none where its end is left to a
+            # later check (``GuardLimits.check_frames``: :meth:`settle` checks it first):
+            checked = not self.guard.frame_unchecked
+            if checked:
+                self.guard.post(until=self.time + self.frame_dt)
             if self._unsettled:
                 self._judge(self.guard.collect(), self.frame)  # the frame before: raises for its failure
-            self._unsettled = True
+            self._unsettled = checked
         if self.integrator.adaptive:
             failure = self.integrator.failure()
             if failure is not None:
@@ -240,8 +249,10 @@ class Simulator:
             hook.after_frame(self, self.frame)
 
     def settle(self) -> None:
-        """Wait for the guard's verdict on the last frame (:attr:`defer_verdict`; otherwise nothing to wait for): a
-        state read after ``settle`` returns has passed the guard.
+        """Wait for the guard's verdict on the last frame (:attr:`defer_verdict`; otherwise nothing to wait for), checking
+        it first where a check spanning frames left its end unchecked (``GuardLimits.check_frames``): a state read
+        after ``settle`` returns has passed the guard, and the next frames are checked one by one until frames go
+        unread again.
 
         Raises:
             SimulationError: the guard stopped the last frame (see :meth:`step_frame`).
@@ -249,6 +260,10 @@ class Simulator:
         if self._unsettled:
             self._unsettled = False
             self._judge(self.guard.collect(), self.frame)
+        if self.guard is not None and self.guard.catch_up(self.stepper.state):  # its end left to a later check: now
+            self.guard.post(until=self.time)
+            self._judge(self.guard.collect(), self.frame)
+        self._read = True
 
     def _judge(self, reports: list, frame: int) -> None:
         """Act on the guard's ``reports`` of ``frame`` (1-based): record the held worlds (``stop="world"``; a world

@@ -25,6 +25,10 @@ from .model import Model
 from .state import State, check_compatible
 from .control import Control
 
+#: Captured graphs a stepper keeps by their structure (``Stepper._key``), the least recently used dropped first: a
+#: guard whose checks span frames alternates between a frame with its check and one without.
+KEPT_GRAPHS = 4
+
 
 class StepHook:
     """Device work a :class:`Stepper` runs around the integrator's steps (capturable: no host reads).
@@ -77,7 +81,7 @@ class Stepper:
     is always :attr:`state`. Before a capture, one uncaptured step on the scratch buffer compiles and loads
     every module the advance launches (a capture must not load modules), and the integrator's history
     (warm starts, step-size control) is restored afterwards, so a captured run equals an uncaptured one
-    bit for bit.
+    bit for bit. A graph is kept for each structure met lately (``KEPT_GRAPHS``) and replayed when it comes back.
 
     Args:
         model: the model.
@@ -119,6 +123,7 @@ class Stepper:
         self.state = state if state is not None else model.state()
         self._graph = None
         self._graph_key = None
+        self._graphs = {}  # key → graph: the structures captured lately (a guard's checked and unchecked frames)
         #: Captures made so far (a structural change makes one more at the next advance).
         self.captures = 0
 
@@ -146,7 +151,14 @@ class Stepper:
             return
         key = self._key()
         if self._graph is None or key != self._graph_key:
-            self._capture()
+            graph = self._graphs.pop(key, None)  # (a graph of this structure captured before: used again)
+            if graph is None:
+                self._capture()
+            else:
+                self._graph = graph
+            self._graphs[key] = self._graph
+            while len(self._graphs) > KEPT_GRAPHS:
+                self._graphs.pop(next(iter(self._graphs)))  # the least recently used
             self._graph_key = key
         wp.capture_launch(self._graph)
 

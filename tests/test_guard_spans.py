@@ -1,0 +1,114 @@
+"""A check that spans frames (``GuardLimits.check_frames``): where the verdict is read a frame later and the frames are
+not read one by one, a scene of springs and gravity at a step the watched frames passed leaves up to
+``check_frames - 1`` frames in a row to the next check; that check's balance, work and dissipation are sums over the
+span, so they equal the every-frame run's up to the rounding of the power sums kept longer; a failure inside a span
+stops the run at the span's check; a read checks its frame first; and a scene whose loads may change unseen keeps a
+check every frame."""
+
+import numpy as np
+import pytest
+
+import warpspring as ws
+from helpers import hanging_cloth
+
+FRAMES = 14
+
+
+def _checked_frames(device, check_frames, *, read=False, frames=FRAMES, control_force=False):
+    """The cloth's run of ``frames`` frames, deferred: (whether each frame's end was checked, the simulator)."""
+    model, _ = hanging_cloth(device, n=12)
+    control = model.control()
+    if control_force:
+        control.set_particle_force(np.zeros((model.particle_count, 3)))
+    sim = ws.Simulator(model, fps=60, substeps=16, guard=ws.GuardLimits(check_frames=check_frames),
+                       defer_verdict=True, control=control)
+    checked = []
+    for _ in range(frames):
+        sim.step_frame()
+        checked.append(not sim.guard.frame_unchecked)
+        if read:
+            sim.state
+    return checked, sim
+
+
+def test_a_check_spans_frames_and_sums_over_them(device):
+    """After the frames from the start that are checked (the first, or the watched ones), three frames in four go
+    unchecked (``check_frames=4``); at a frame both runs check, the balance's energy is the same and its work and
+    dissipation agree with the every-frame run's within the float32 rounding of the power sums each particle keeps
+    four times as long (~64 additions: ~64 × 2⁻²⁴ of the sum, 1e-5 with room)."""
+    spanned, sim = _checked_frames(device, 4)
+    every, reference = _checked_frames(device, 1)
+    assert all(every)
+    first = spanned.index(False)
+    assert all(spanned[:first]) and first >= 1
+    assert spanned[first:] == ([False, False, False, True] * FRAMES)[:FRAMES - first]
+    last = max(k for k, checked in enumerate(spanned) if checked)
+    assert last >= first + 3
+    # Both runs stopped at FRAMES; compare at the spanned run's last checked frame, replaying the reference to it.
+    _, reference = _checked_frames(device, 1, frames=last + 1)
+    _, sim = _checked_frames(device, 4, frames=last + 1)
+    sim.settle()
+    reference.settle()
+    a, b = sim.guard.energy_balance(), reference.guard.energy_balance()
+    assert a.energy[0] == pytest.approx(b.energy[0], rel=1e-12)
+    assert a.work[0] == pytest.approx(b.work[0], rel=1e-5)
+    assert a.dissipated[0] == pytest.approx(b.dissipated[0], rel=1e-5)
+    assert a.dissipated[0] > 0.0 and a.work[0] > 0.0
+
+
+def test_a_read_checks_its_frame_first(device):
+    """Reading the state every frame keeps every frame checked (the read would otherwise check it on its own);
+    settling after an unchecked frame checks it then: the balance moves to that frame's energy."""
+    checked, _ = _checked_frames(device, 4, read=True)
+    assert all(checked)
+    spanned, _ = _checked_frames(device, 4)
+    frames = spanned.index(False) + 2  # ending on the second unchecked frame in a row
+    spanned, sim = _checked_frames(device, 4, frames=frames)
+    assert spanned[-2:] == [False, False]
+    before = sim.guard.energy_balance().energy[0]
+    sim.settle()
+    assert not sim.guard.frame_unchecked
+    after = sim.guard.energy_balance().energy[0]
+    _, reference = _checked_frames(device, 1, frames=frames)
+    reference.settle()
+    assert after != before
+    assert after == pytest.approx(reference.guard.energy_balance().energy[0], rel=1e-12)
+
+
+@pytest.mark.parametrize("read", [False, True])
+def test_a_failure_inside_a_span_stops_at_its_check(device, read):
+    """A non-finite velocity planted after the first unchecked frame: the run stops at the span's check (the next
+    checked frame), naming that frame; read every frame, at the frame it was planted in."""
+    spanned, _ = _checked_frames(device, 4)
+    first = spanned.index(False)  # frames are 1-based: frame first + 1 is the first unchecked
+    planted = first + 2  # the second unchecked frame
+    span_check = first + 4  # the frame whose check ends the span
+    model, _ = hanging_cloth(device, n=12)
+    sim = ws.Simulator(model, fps=60, substeps=16, guard=ws.GuardLimits(check_frames=4), defer_verdict=True)
+    with pytest.raises(ws.SimulationError, match="non-finite") as stop:
+        for frame in range(1, FRAMES + 1):
+            sim.step_frame()
+            if frame == planted - 1:
+                qd = sim.stepper.state.particle_qd.numpy()
+                qd[70] = np.nan
+                sim.stepper.state.particle_qd.assign(qd)
+            if read:
+                sim.state
+        sim.settle()
+    assert stop.value.frame == (planted if read else span_check)
+
+
+@pytest.mark.parametrize("case", ["control force", "every frame", "not deferred"])
+def test_no_span_where_loads_may_change_unseen_or_asked(device, case):
+    """A control force (which may change between frames without a write the guard sees), ``check_frames=1``, and a
+    simulator that reads each verdict at once keep a check every frame."""
+    if case == "not deferred":
+        model, _ = hanging_cloth(device, n=12)
+        sim = ws.Simulator(model, fps=60, substeps=16, guard=ws.GuardLimits(check_frames=4), defer_verdict=False)
+        checked = []
+        for _ in range(FRAMES):
+            sim.step_frame()
+            checked.append(not sim.guard.frame_unchecked)
+    else:
+        checked, _ = _checked_frames(device, 1 if case == "every frame" else 4, control_force=case == "control force")
+    assert all(checked)
