@@ -76,10 +76,11 @@ def test_a_restored_run_continues_bit_for_bit(device, name, tmp_path):
     advance(fresh, FRAMES - SAVE_AT)
     assert_bitwise_equal(snapshot(fresh), expected)
 
+    captures = sim.stepper.captures  # (a graph per structure met: with a check spanning frames, two)
     sim.load_checkpoint(path)
     advance(sim, FRAMES - SAVE_AT)
     assert_bitwise_equal(snapshot(sim), expected)
-    assert sim.stepper.captures == 1
+    assert sim.stepper.captures == captures
     # The run moved (the comparison is not of a cloth at rest) and the worlds differ.
     q = expected["particle_q"].reshape(2, -1, 3)
     assert np.abs(q - cloth(device).particle_q.numpy().reshape(2, -1, 3)).max() > 1e-3

@@ -56,23 +56,25 @@ def test_a_check_spans_frames_and_sums_over_them(device):
     assert a.dissipated[0] > 0.0 and a.work[0] > 0.0
 
 
-def test_a_read_checks_its_frame_first(device):
-    """Reading the state every frame keeps every frame checked (the read would otherwise check it on its own);
-    settling after an unchecked frame checks it then: the balance moves to that frame's energy."""
+@pytest.mark.parametrize("how", ["settle", "balance"])
+def test_a_read_checks_its_frame_first(device, how):
+    """Reading the state every frame keeps every frame checked (the read would otherwise check it on its own); after
+    two unchecked frames, ``settle`` or a read of the guard's balance checks the last one first: the balance read is
+    that frame's, as the every-frame run's."""
     checked, _ = _checked_frames(device, 4, read=True)
     assert all(checked)
     spanned, _ = _checked_frames(device, 4)
     frames = spanned.index(False) + 2  # ending on the second unchecked frame in a row
     spanned, sim = _checked_frames(device, 4, frames=frames)
-    assert spanned[-2:] == [False, False]
-    before = sim.guard.energy_balance().energy[0]
-    sim.settle()
+    assert spanned[-2:] == [False, False] and sim.guard.frame_unchecked
+    if how == "settle":
+        sim.settle()
+    energy = sim.guard.energy_balance().energy[0]
     assert not sim.guard.frame_unchecked
-    after = sim.guard.energy_balance().energy[0]
     _, reference = _checked_frames(device, 1, frames=frames)
-    reference.settle()
-    assert after != before
-    assert after == pytest.approx(reference.guard.energy_balance().energy[0], rel=1e-12)
+    assert energy == pytest.approx(reference.guard.energy_balance().energy[0], rel=1e-12)
+    _, stale = _checked_frames(device, 4, frames=frames - 2)  # the last check before the span: another energy
+    assert stale.guard.energy_balance().energy[0] != pytest.approx(energy, rel=1e-6)
 
 
 @pytest.mark.parametrize("read", [False, True])
@@ -112,3 +114,29 @@ def test_no_span_where_loads_may_change_unseen_or_asked(device, case):
     else:
         checked, _ = _checked_frames(device, 1 if case == "every frame" else 4, control_force=case == "control force")
     assert all(checked)
+
+
+@pytest.mark.parametrize("integrator", ["symplectic_euler", "rk4"])
+def test_dampers_raised_through_the_model_are_caught_before_they_overflow(device, integrator):
+    """``test_guard_power.py``'s unstable dampers under the default guard, its checks spanning frames: an 8 × 8 cloth
+    swings 1 s unread, then its dampers are raised past the step's damping limit through the model
+    (``set_world_values``: a write the guard sees, so the next frames are watched, every substep checked): the run
+    stops for the energy the overshooting step creates within 60 frames, not for a non-finite state."""
+    builder = ws.ModelBuilder()
+    spring = ws.SpringMaterial(ke=1.0e3, kd=10.0)
+    builder.add_cloth_grid(nx=8, ny=8, spacing=0.1, origin=(-0.35, -0.35, 1.0), particle_mass=0.1,
+                           structural=spring, shear=spring, bend=spring, pin=["top-left", "top-right"])
+    model = builder.finalize(device, spring_evaluation="gather")
+    sim = ws.Simulator(model, integrator=ws.make_integrator(integrator, model), fps=60, substeps=16,
+                       defer_verdict=True)
+    spanned = []
+    for _ in range(60):
+        sim.step_frame()
+        spanned.append(sim.guard.frame_unchecked)
+    assert any(spanned)
+    model.set_world_values("spring_damping", 21.0 if integrator == "symplectic_euler" else 30.0)
+    with pytest.raises(ws.SimulationError, match="energy") as stop:
+        for _ in range(60):
+            sim.step_frame()
+        sim.settle()
+    assert stop.value.reason in ("energy balance", "kinetic energy")

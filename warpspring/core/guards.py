@@ -313,6 +313,9 @@ class Guard(StepHook):
         #: Whether the simulator reads each frame's verdict a frame later and checks a frame before it is read
         #: (``Simulator.defer_verdict``): only then may a check span frames (``GuardLimits.check_frames``).
         self.deferred = False
+        #: Called before a read of the guard's sums where the last frame's end went unchecked (``Simulator.settle``,
+        #: which checks it and reads its verdict), or ``None``.
+        self.before_read = None
         self._skip_end = False  # this frame's end is left to a later check (``refresh``: a check spans frames)
         self._unchecked = FORCE_CHECK  # frames in a row whose end no check read (FORCE_CHECK: the next is checked)
         self._reported = False
@@ -399,8 +402,9 @@ class Guard(StepHook):
             changed = True
             self._write_limits()
             self.rebase()
-            before, self._bound = self._bound, self._step_bound()
-            if self._bound > before and not self._certified():
+            before, rate = self._bound, self._rate
+            self._bound = self._step_bound()
+            if (self._bound > before or self._rate > rate) and not self._certified():  # (stiffer, or damped harder)
                 self._watch_left = WATCH_FRAMES
         if self._watch_start:
             self._bound = self._step_bound()
@@ -451,6 +455,12 @@ class Guard(StepHook):
         return not (external or self._working_families() or model.emitters or model.input_tracks is not None
                     or model.shape_moving or getattr(model, "shape_deforming", False)
                     or (pins is not None and pins.driven) or getattr(model, "self_contact", None) is not None)
+
+    def _read_checked(self) -> None:
+        """Before a read of the guard's sums: where the last frame's end was left to a later check, have it checked
+        (:attr:`before_read`, the simulator's ``settle``), so that what is read is that frame's."""
+        if self._skip_end and self.before_read is not None:
+            self.before_read()
 
     def catch_up(self, state: State) -> bool:
         """Check ``state`` (the last advance's result) where the frames since the last check went unchecked (a check
@@ -676,11 +686,15 @@ class Guard(StepHook):
 
     def work(self) -> np.ndarray:
         """The work the loads put into each world since the start [J], float64, shape [world_count] (the
-        positive parts, check by check; reads the device)."""
+        positive parts, check by check; reads the device; a frame whose end was left to a later check is checked
+        first: :attr:`before_read`)."""
+        self._read_checked()
         return self._work_total.numpy().copy()
 
     def energy_balance(self) -> EnergyBalance:
-        """Each world's energy balance at its last check (reads the device)."""
+        """Each world's energy balance at its last check (reads the device; a frame whose end was left to a later
+        check is checked first: :attr:`before_read`)."""
+        self._read_checked()
         b = self._balance.numpy().astype(np.float64)
         return EnergyBalance(energy=b[:, BALANCE_ENERGY].copy(), reference=b[:, BALANCE_REFERENCE].copy(),
                              work=b[:, BALANCE_WORK].copy(), peak=b[:, BALANCE_PEAK].copy(),

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import warnings
+import weakref
 from collections.abc import Callable
 from pathlib import Path
 
@@ -127,6 +128,13 @@ class Simulator:
         )
         if self.guard is not None:
             self.guard.restart(self.state)  # Δx of the first check from the start state (pins at t = 0)
+            # A read of its sums checks a frame left to a later check first (weakly: the guard keeps no simulator alive).
+            def before_read(settle=weakref.WeakMethod(self.settle)) -> None:
+                method = settle()
+                if method is not None:
+                    method()
+
+            self.guard.before_read = before_read
         self.frame_hooks: list[FrameHook] = []
         self.defer_verdict = (model.device.is_cuda if defer_verdict is None else bool(defer_verdict)) and \
             self.guard is not None

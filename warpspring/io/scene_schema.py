@@ -384,6 +384,7 @@ SCHEMA = {
         "energy_balance": NON_NEGATIVE,
         "dissipation": Since(2, bool),
         "stop": Since(2, str),
+        "check_frames": Number(1, integer=True),
     },
     "wind": {
         "velocity": Live(VECTOR),
