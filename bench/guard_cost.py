@@ -180,12 +180,17 @@ def kernel_times(model: ws.Model, integrator: str, guard, frames: int = 4) -> di
 
 def measure(makers: dict, device, seconds: float, batches: int) -> dict:
     """Each configuration's batch times [s per frame], their batches taken in turn, after a round of them all that is
-    not kept and with the objects made so far frozen out of Python's collector. The default's host waits each frame
+    not kept and with the objects made so far frozen out of Python's collector (each configuration first runs two
+    spans of frames and settles, untimed: the first check of a frame left to a later check loads its kernels, which,
+    inside the batches' sizing, once kept the default's batches at one frame each, settled each: 0.205 of guard off
+    at 32² on an H200 where a plain loop gives 1.0). The default's host waits each frame
     for the verdict of the one before, so a pause of the host costs it device time that guard off, queued far ahead,
     hides: on an H200 the first size a process timed kept 10-35 % less of guard off than the same size timed after
     another (64² first 0.680, second 0.749-0.781; 32² first 0.503-0.658, second 0.789), and with this warm-up still
     0.680 at 32² first (bench/results/guard_cost.md)."""
     runners = {name: set_up(make, device)[0] for name, make in makers.items()}
+    for runner in runners.values():  # past a span and its settle (the first check of a frame left unchecked loads
+        timed_batch(runner, device, 2 * ws.GuardLimits().check_frames)  # its kernels), before the batches are sized
     sizes = {name: batch_size(runner, device, seconds / batches) for name, runner in runners.items()}
     for name, runner in runners.items():  # the round not kept
         timed_batch(runner, device, sizes[name])

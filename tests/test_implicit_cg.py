@@ -153,3 +153,16 @@ def test_t10_at_a_frame_step_converges_by_default_and_rests_where_the_static_sol
     u = sim.state.particle_q.numpy().astype(np.float64) - x
     assert tolerance < 0.01 * scale  # not vacuous: under 1 % of the sag (measured error 0.06 %)
     np.testing.assert_allclose(u, u_static, rtol=0, atol=tolerance)
+
+
+def test_a_capture_mid_run_counts_no_unconverged_solve_of_its_warm_up(device):
+    """A stepper that captures a second graph mid-run (here the guard's frame left to a later check, a structure of
+    its own) first runs one uncaptured warm-up step and puts the integrator's history back: the count of solves
+    stopped at the cap is part of it, so two frames count one unconverged solve (the second's), not two."""
+    model, _ = hanging_cloth(device)
+    integrator = ws.make_integrator("implicit_euler", model, cg_iterations=2, cg_unconverged="ignore")
+    sim = ws.Simulator(model, integrator=integrator, fps=60.0, substeps=1, defer_verdict=True)
+    for _ in range(2):
+        sim.step_frame()
+    assert sim.stepper.captures == 2 and sim.guard.frame_unchecked
+    assert integrator.unconverged_solves()[0].tolist() == [1]

@@ -237,6 +237,11 @@ class ImplicitEuler(Integrator):
         solve's initial guess."""
         return {"delta_qd": self._delta_qd}
 
+    def history(self) -> list:
+        """The warm start and the count of unconverged solves (:meth:`unconverged_solves`): a stepper's warm-up step
+        before a capture mid-run (a new structure) solves once more, which the count must not keep."""
+        return [*super().history(), self._shortfall]
+
     def solve_report(self, *, world: int = 0) -> tuple[int, float, float]:
         """(iterations, ‖b - A Δv‖, ‖b‖) of the last solve of ``world``, read from the device (synchronises)."""
         iterations, residual, rhs = self.world_solve_report()
