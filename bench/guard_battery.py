@@ -34,6 +34,11 @@ def main(argv=None) -> int:
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--frames", type=int, default=120, help="frames of an advisor-step run (at most the scene's)")
     parser.add_argument("--out", default=None, help="results file (default: bench/results/guard_battery_<device>.md)")
+    parser.add_argument("--defer-verdict", action="store_true",
+                        help="read each verdict a frame later (CUDA's default; on the CPU too): the default guard's "
+                             "checks may then span frames (GuardLimits.check_frames)")
+    parser.add_argument("--spring-evaluation", default="auto", choices=["auto", "gather", "scatter"],
+                        help="the models' springs (gather on the CPU builds CUDA's default form)")
     args = parser.parse_args(argv)
     wp.config.log_level = wp.LOG_WARNING
     wp.config.quiet = True
@@ -49,7 +54,9 @@ def main(argv=None) -> int:
     for path, variant, integrator, case in cases(EXAMPLES, scenes=args.scenes, integrators=args.integrators,
                                                  kinds=args.cases, variant_names=args.variants):
         try:
-            outcome = run_case(path, variant, integrator, case, device=device, frames=args.frames)
+            outcome = run_case(path, variant, integrator, case, device=device, frames=args.frames,
+                               defer_verdict=True if args.defer_verdict else None,
+                               spring_evaluation=args.spring_evaluation)
             row, passed = outcome.row(), outcome.passed
         except Exception as exc:  # a case that cannot run is a failure of the battery, reported in its row
             row = f"| {path.stem} | {variant} | {integrator} | {case} | | error | FAIL | {type(exc).__name__}: " \

@@ -48,6 +48,17 @@ def hanging_cloth(device, *, n=12, precision="float32", sphere=False, ground=Fal
     return builder.finalize(device, precision=precision), ids
 
 
+def damped_gathered_cloth(device) -> ws.Model:
+    """An 8 × 8 cloth of 0.1 kg particles 0.1 m apart hanging from its top corners, structural, shear and bend springs
+    of ke = 1 kN/m, kd = 10 N·s/m, gathered (the guard's unstable-dampers cases: raised past the step's damping
+    limit)."""
+    builder = ws.ModelBuilder()
+    spring = ws.SpringMaterial(ke=1.0e3, kd=10.0)
+    builder.add_cloth_grid(nx=8, ny=8, spacing=0.1, origin=(-0.35, -0.35, 1.0), particle_mass=0.1,
+                           structural=spring, shear=spring, bend=spring, pin=["top-left", "top-right"])
+    return builder.finalize(device, spring_evaluation="gather")
+
+
 def trajectory(model, integrator, dt, steps, *, control=None, every=1):
     """Positions [steps // every + 1, particle_count, 3] (float64) of ``steps`` steps of ``dt``."""
     a, b = model.state(), model.state()

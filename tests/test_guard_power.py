@@ -10,7 +10,7 @@ import pytest
 import warp as wp
 
 import warpspring as ws
-from helpers import run_frames
+from helpers import damped_gathered_cloth, run_frames
 from warpspring.core.guards import WATCH_FRAMES
 from warpspring.kernels import flatten
 
@@ -193,11 +193,7 @@ def test_dampers_past_their_limit_are_caught_in_the_force_pass(device, integrato
     every damper's loss ≥ 0 (the mean-rate rule, the trapezoid), so the energy the overshooting step creates shows
     in the balance and the run is stopped for it within 60 frames; an exact count of the step's damper work would
     have read it as the dampers putting energy in."""
-    builder = ws.ModelBuilder()
-    spring = ws.SpringMaterial(ke=1.0e3, kd=10.0)
-    builder.add_cloth_grid(nx=8, ny=8, spacing=0.1, origin=(-0.35, -0.35, 1.0), particle_mass=0.1,
-                           structural=spring, shear=spring, bend=spring, pin=["top-left", "top-right"])
-    model = builder.finalize(device, spring_evaluation="gather")
+    model = damped_gathered_cloth(device)
     # A check every frame: the dampers are raised in place, a write no check spanning frames would see (see
     # ``tests/test_guard_spans.py`` for the same raise written through the model).
     sim = ws.Simulator(model, integrator=ws.make_integrator(integrator, model), fps=60, substeps=16,

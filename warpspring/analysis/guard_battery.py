@@ -64,11 +64,12 @@ def variants(path: pathlib.Path) -> tuple:
     return VARIANTS if load_scene(str(path)).cloths else VARIANTS[:1]
 
 
-def build(path: pathlib.Path, variant: str, device, integrator: str):
+def build(path: pathlib.Path, variant: str, device, integrator: str, spring_evaluation: str = "auto"):
     """(scene, model) of ``variant``: the scene's model, or with "loaded" its first cloth in a 3 m/s wind across it
     (added where the scene has none), its free particle nearest the cloth's centre grabbed by a PD handle (ω = 20
     rad/s, ζ = 0.2 on that particle's mass) whose target moves a fifth of the cloth's size sideways over 1 s and
-    back, and a sphere of a tenth of its size rising into it from below over 2 s."""
+    back, and a sphere of a tenth of its size rising into it from below over 2 s. ``spring_evaluation``: the
+    model's (``ModelBuilder.finalize``; "gather" on the CPU builds CUDA's default form)."""
     scene = load_scene(str(path))
     builder = scene_builder(scene)
     if variant == "loaded":
@@ -97,7 +98,8 @@ def build(path: pathlib.Path, variant: str, device, integrator: str):
                                                       interpolation="smooth"))
     model = builder.finalize(device, precision=scene.precision, worlds=scene.world_count,
                              contact_stage=scene.contact_stage, contact_slots=scene.contact_slots,
-                             integrator=integrator, contact_triangles=scene.contact_triangles)
+                             integrator=integrator, contact_triangles=scene.contact_triangles,
+                             spring_evaluation=spring_evaluation)
     if not scene.contact_swept:
         model.contact_swept = False
     return scene, model
@@ -145,10 +147,13 @@ def expected_names(model, control) -> list[str]:
     return names
 
 
-def run_case(path: pathlib.Path, variant: str, integrator: str, case: str, *, device, frames: int) -> Outcome:
-    """Run one case (module docstring); ``frames``: the ``advisor`` case's length (at most the scene's)."""
+def run_case(path: pathlib.Path, variant: str, integrator: str, case: str, *, device, frames: int,
+             defer_verdict: bool | None = None, spring_evaluation: str = "auto") -> Outcome:
+    """Run one case (module docstring); ``frames``: the ``advisor`` case's length (at most the scene's);
+    ``defer_verdict``: the simulator's (``None``: the device's default; ``True`` on the CPU reads each verdict a frame
+    later as on CUDA, where the default guard's checks may span frames); ``spring_evaluation``: the model's."""
     started = time.perf_counter()
-    scene, model = build(path, variant, device, integrator)
+    scene, model = build(path, variant, device, integrator, spring_evaluation)
     fps = scene.fps
     control = model.control()
     name = path.stem
@@ -163,7 +168,8 @@ def run_case(path: pathlib.Path, variant: str, integrator: str, case: str, *, de
             _CHOICES[key] = choose_substeps(model, integrator, fps=fps, control=control, horizon=horizon)
         except ConfigError as refusal:  # no stable step (explicit Euler on undamped springs): no run to judge
             _CHOICES[key] = refusal
-        scene, model = build(path, variant, device, integrator)  # the advisor's dry run stepped the model
+        # (the advisor's dry run stepped the model)
+        scene, model = build(path, variant, device, integrator, spring_evaluation)
         control = model.control()
     choice = _CHOICES[key]
     if isinstance(choice, ConfigError):
@@ -186,7 +192,7 @@ def run_case(path: pathlib.Path, variant: str, integrator: str, case: str, *, de
     elif case != "advisor":
         raise ValueError(case)
     sim = Simulator(model, integrator=make_integrator(integrator, model), fps=fps, substeps=substeps, control=control,
-                    guard=scene.guard)
+                    guard=scene.guard, defer_verdict=defer_verdict)
     outcome = Outcome(name, variant, integrator, case, substeps, fps, 0, False)
     try:
         for frame in range(limit):

@@ -99,7 +99,8 @@ class GuardLimits:
         check_frames: the most frames a check may span (default ``CHECK_FRAMES`` = 8; 1 checks every frame) where
             the scene allows it: a simulator that reads each verdict a frame later (``defer_verdict``, the CUDA
             default) and not read frame by frame, ``stop="run"``, no frame watched (a step the springs' bound does
-            not certify is checked after every substep for the first frames from a restart or a write), nothing
+            not certify is checked after every substep for the first frames from a restart or a write; explicit
+            Euler and midpoint, whose damping limit the bound cannot certify, never span), nothing
             the guard counts between substeps of its own (a step that sums the power itself), and loads that cannot
             change unseen between frames (gravity and the model's own springs; no control force, wind, handles,
             tracks, driven pins, moving colliders, emitters or self-collision). Where it

@@ -434,7 +434,9 @@ class Guard(StepHook):
         the frames are not read one by one (``deferred``); no frame is watched (a step the springs' bound does not
         certify is checked after every substep for ``WATCH_FRAMES`` frames from a restart or a write, and a fast
         linear instability shows there: a spring's tangent stiffness never exceeds its k, so the step's linear
-        stability cannot worsen later without a write); nothing is counted between substeps but by the step itself;
+        stability cannot worsen later without a write; explicit Euler and midpoint, whose limit is their damping's,
+        which the bound cannot certify, are never watched and so never span); nothing is counted between substeps but
+        by the step itself;
         the model's elements are springs alone (a family with stiffness of its own is outside the bound); the run
         stops as a whole (``stop="world"`` records each world's failure frame: a batch's data); and the
         loads cannot change between frames without a write the guard sees (gravity alone: a control force, wind,
@@ -450,6 +452,10 @@ class Guard(StepHook):
             return False
         if any(family.name != "springs" and family.element_count for family in model.families):
             return False
+        integrator = self.integrator
+        if not (getattr(integrator, "unconditionally_stable", False) or getattr(integrator, "adaptive", False)
+                or STABLE_OMEGA_H.get(getattr(integrator, "name", None)) is not None):
+            return False  # explicit Euler, midpoint: a limit the bound cannot certify, so no frame is ever watched
         external = self.control is not None and model.force_features(self.control).external
         pins = getattr(model, "pin_groups", None)
         return not (external or self._working_families() or model.emitters or model.input_tracks is not None
