@@ -38,6 +38,10 @@ def test_a_check_spans_frames_and_sums_over_them(device):
     dissipation agree with the every-frame run's within the float32 rounding of the power sums each particle keeps
     four times as long (~64 additions: ~64 × 2⁻²⁴ of the sum, 1e-5 with room)."""
     spanned, sim = _checked_frames(device, 4)
+    captures = sim.stepper.captures  # (the checked frame's graph and the unchecked one's, each captured once)
+    for _ in range(8):
+        sim.step_frame()
+    assert sim.stepper.captures == captures <= 3
     every, reference = _checked_frames(device, 1)
     assert all(every)
     first = spanned.index(False)

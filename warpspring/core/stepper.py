@@ -128,16 +128,12 @@ class Stepper:
         self.captures = 0
 
     def _key(self) -> tuple:
+        """(what the graph's launches depend on but the hooks, the hooks' revisions)."""
         control = self.control
         return (
-            self.model.revision,
-            id(control),
-            control.revision if control is not None else None,
-            id(self.integrator),
-            self.integrator.revision,
+            (self.model.revision, id(control), control.revision if control is not None else None,
+             id(self.integrator), self.integrator.revision, self.dt, self.steps),
             tuple((id(h), h.revision) for h in self.hooks),
-            self.dt,
-            self.steps,
         )
 
     def advance(self) -> None:
@@ -156,9 +152,12 @@ class Stepper:
                 self._capture()
             else:
                 self._graph = graph
+            # Kept: the graphs that differ from this one in their hooks' revisions alone (a model, control or
+            # integrator changed since makes the others stale), the least recently used dropped first.
+            self._graphs = {k: g for k, g in self._graphs.items() if k[0] == key[0]}
             self._graphs[key] = self._graph
             while len(self._graphs) > KEPT_GRAPHS:
-                self._graphs.pop(next(iter(self._graphs)))  # the least recently used
+                self._graphs.pop(next(iter(self._graphs)))
             self._graph_key = key
         wp.capture_launch(self._graph)
 
