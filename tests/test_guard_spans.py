@@ -82,14 +82,15 @@ def test_a_read_checks_its_frame_first(device, how):
     assert stale.guard.energy_balance().energy[0] != pytest.approx(energy, rel=1e-6)
 
 
-@pytest.mark.parametrize("read", [False, True])
-def test_a_failure_inside_a_span_stops_at_its_check(device, read):
+@pytest.mark.parametrize("how", ["unread", "read", "settled inside the span"])
+def test_a_failure_inside_a_span_stops_at_its_check(device, how):
     """A non-finite velocity planted after the first unchecked frame: the run stops at the span's check (the next
-    checked frame), naming that frame; read every frame, at the frame it was planted in."""
+    checked frame), naming that frame and the frames the check spanned; read every frame, at the frame it was planted
+    in; settled at the planted frame (a read inside the span), there, naming the frames left unchecked before it."""
     spanned, _ = _checked_frames(device, 4)
-    first = spanned.index(False)  # frames are 1-based: frame first + 1 is the first unchecked
-    planted = first + 2  # the second unchecked frame
-    span_check = first + 4  # the frame whose check ends the span
+    first = spanned.index(False) + 1  # the first unchecked frame (1-based)
+    planted = first + 1  # the second
+    span_check = first + 3  # the frame whose check ends the span
     model, _ = hanging_cloth(device, n=12)
     sim = ws.Simulator(model, fps=60, substeps=16, guard=ws.GuardLimits(check_frames=4), defer_verdict=True)
     with pytest.raises(ws.SimulationError, match="non-finite") as stop:
@@ -99,10 +100,18 @@ def test_a_failure_inside_a_span_stops_at_its_check(device, read):
                 qd = sim.stepper.state.particle_qd.numpy()
                 qd[70] = np.nan
                 sim.stepper.state.particle_qd.assign(qd)
-            if read:
-                sim.state
+            if how == "read" or (how == "settled inside the span" and frame == planted):
+                sim.settle()
         sim.settle()
-    assert stop.value.frame == (planted if read else span_check)
+    message = str(stop.value)
+    if how == "unread":
+        assert stop.value.frame == span_check
+        assert message.startswith(f"frame {span_check} (its check spanned frames {first}-{span_check}: the failure")
+    elif how == "read":
+        assert stop.value.frame == planted and message.startswith(f"frame {planted}, substep 16 of 16")
+    else:
+        assert stop.value.frame == planted
+        assert message.startswith(f"frame {planted} (its check spanned frames {first}-{planted}: the failure")
 
 
 @pytest.mark.parametrize("case", ["control force", "every frame", "not deferred", "explicit euler", "midpoint"])

@@ -102,6 +102,8 @@ class Simulator:
         self.model = model
         self._unsettled = False  # the last frame's record is posted and not yet read (``defer_verdict``)
         self._read = False  # the last frame was settled (read) before the next began
+        self._span_from = None  # the first frame the posted check covers (``GuardLimits.check_frames``)
+        self._unchecked_from = None  # the first of the frames in a row left to a later check, if the last was one
         self.fps = checks.positive("fps", fps)
         control = control if control is not None else model.control()
         integrator = integrator if integrator is not None else SymplecticEuler(model)
@@ -228,8 +230,14 @@ class Simulator:
             if checked:
                 self.guard.post(until=self.time + self.frame_dt)
             if self._unsettled:
-                self._judge(self.guard.collect(), self.frame)  # the frame before: raises for its failure
+                self._judge(self.guard.collect(), self.frame, self._span_from)  # the frame before: raises for it
             self._unsettled = checked
+            # The first frame this frame's check (or the later one it is left to) covers.
+            first = self._unchecked_from if self._unchecked_from is not None else self.frame + 1
+            if checked:
+                self._span_from, self._unchecked_from = first, None
+            else:
+                self._unchecked_from = first
         if self.integrator.adaptive:
             failure = self.integrator.failure()
             if failure is not None:
@@ -267,15 +275,18 @@ class Simulator:
         """
         if self._unsettled:
             self._unsettled = False
-            self._judge(self.guard.collect(), self.frame)
+            self._judge(self.guard.collect(), self.frame, self._span_from)
         if self.guard is not None and self.guard.catch_up(self.stepper.state):  # its end left to a later check: now
             self.guard.post(until=self.time)
-            self._judge(self.guard.collect(), self.frame)
+            first, self._unchecked_from = self._unchecked_from, None
+            self._judge(self.guard.collect(), self.frame, first)
         self._read = True
 
-    def _judge(self, reports: list, frame: int) -> None:
+    def _judge(self, reports: list, frame: int, first: int | None = None) -> None:
         """Act on the guard's ``reports`` of ``frame`` (1-based): record the held worlds (``stop="world"``; a world
-        already held is in the record a frame later again: skipped), or raise for the earliest failure."""
+        already held is in the record a frame later again: skipped), or raise for the earliest failure (``first``:
+        the first frame the check covered, where it spanned frames: ``GuardLimits.check_frames``; the message says
+        so)."""
         if reports and self.guard.limits.stop == "world":
             reports = [report for report in reports if report.world not in self._world_failures]
             for report in reports:
@@ -287,8 +298,10 @@ class Simulator:
             self.frame = frame - 1
             self._unsettled = False
             self.guard.discard()
+            spanned = (f" (its check spanned frames {first}-{frame}: the failure may have begun in any of them)"
+                       if first is not None and first < frame else "")
             error = SimulationError(
-                f"frame {frame}, substep {report.substep + 1} of {self.substeps} "
+                f"frame {frame}{spanned}, substep {report.substep + 1} of {self.substeps} "
                 f"(t ≤ {self.time + (report.substep + 1) * self.dt:.4g} s): {self.guard.explain(report)}",
                 frame=frame,
                 substep=report.substep + 1,
@@ -299,6 +312,7 @@ class Simulator:
     def _forget_verdict(self) -> None:
         """Drop a posted verdict not yet read: the state it judged is about to be replaced."""
         self._unsettled = False
+        self._span_from = self._unchecked_from = None
         if self.guard is not None:
             self.guard.discard()
 
