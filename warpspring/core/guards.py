@@ -430,19 +430,21 @@ class Guard(StepHook):
         return self._skip_end
 
     def _spans_frames(self) -> bool:
-        """Whether a check may span frames now (``GuardLimits.check_frames``): the verdict is read a frame later and
-        the frames are not read one by one (``deferred``); no frame is watched (a step the springs' bound does not
-        certify is checked after every substep for ``WATCH_FRAMES`` frames from a restart or a write, and a fast
-        linear instability shows there: a spring's tangent stiffness never exceeds its k, so the step's linear
-        stability cannot worsen later without a write; explicit Euler and midpoint, whose limit is their damping's,
-        which the bound cannot certify, are never watched and so never span); nothing is counted between substeps but
-        by the step itself;
-        the model's elements are springs alone (a family with stiffness of its own is outside the bound); the run
-        stops as a whole (``stop="world"`` records each world's failure frame: a batch's data); and the
-        loads cannot change between frames without a write the guard sees (gravity alone: a control force, wind,
-        handles, tracks, driven pins, moving colliders, emitters and self-collision each keep a check every
-        frame). A mode that grows more slowly than the watched frames show is caught by the balance at the span's
-        check, as by a frame's."""
+        """Whether a check may span frames now (``GuardLimits.check_frames``):
+        - the verdict is read a frame later and the frames are not read one by one (``deferred``);
+        - the run stops as a whole (``stop="world"`` records each world's failure frame: a batch's data);
+        - no frame is watched: a step the springs' bound does not certify is checked after every substep for
+          ``WATCH_FRAMES`` frames from a restart or a write, where a fast linear instability shows (a spring's
+          tangent stiffness never exceeds its k, so the step's linear stability cannot worsen later without a
+          write); explicit Euler and midpoint, whose limit is their damping's, which the bound cannot certify, are
+          never watched and so never span;
+        - nothing is counted between substeps but by the step itself;
+        - the model's elements are springs alone (a family with stiffness of its own is outside the bound);
+        - the loads cannot change between frames without a write the guard sees (gravity alone: a control force,
+          wind, handles, tracks, driven pins, moving colliders, emitters and self-collision each keep a check every
+          frame).
+        A mode that grows more slowly than the watched frames show is caught by the balance at the span's check, as
+        by a frame's."""
         limits, model = self._limits_host, self.model
         if limits.check_frames <= 1 or not self.deferred or self._watching or self._every_set < self.substeps:
             return False
