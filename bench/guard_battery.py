@@ -35,8 +35,11 @@ def main(argv=None) -> int:
     parser.add_argument("--frames", type=int, default=120, help="frames of an advisor-step run (at most the scene's)")
     parser.add_argument("--out", default=None, help="results file (default: bench/results/guard_battery_<device>.md)")
     parser.add_argument("--defer-verdict", action="store_true",
-                        help="read each verdict a frame later (CUDA's default; on the CPU too): the default guard's "
-                             "checks may then span frames (GuardLimits.check_frames)")
+                        help="read each verdict a frame later, where the default guard's checks may span frames "
+                             "(GuardLimits.check_frames): the simulator's default on both devices (the flag is kept for "
+                             "the commands of earlier results, when the CPU's default read each verdict at once)")
+    parser.add_argument("--sync-verdict", action="store_true",
+                        help="judge and check every frame before the next (Simulator(defer_verdict=False))")
     parser.add_argument("--spring-evaluation", default="auto", choices=["auto", "gather", "scatter"],
                         help="the models' springs (gather on the CPU builds CUDA's default form)")
     args = parser.parse_args(argv)
@@ -55,7 +58,7 @@ def main(argv=None) -> int:
                                                  kinds=args.cases, variant_names=args.variants):
         try:
             outcome = run_case(path, variant, integrator, case, device=device, frames=args.frames,
-                               defer_verdict=True if args.defer_verdict else None,
+                               defer_verdict=False if args.sync_verdict else None,
                                spring_evaluation=args.spring_evaluation)
             row, passed = outcome.row(), outcome.passed
         except Exception as exc:  # a case that cannot run is a failure of the battery, reported in its row

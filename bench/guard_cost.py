@@ -58,8 +58,8 @@ def hanging_cloth(n: int, device, worlds: int = 1, evaluation: str = "auto") -> 
 
 
 class Run:
-    """One ``Simulator`` of the cloth: ``guard`` ``None`` (off) or a ``GuardLimits``, its verdict read a frame later on
-    CUDA as shipped (``defer_verdict=None``: on CUDA, after the next frame is queued); with ``probe`` (guard off) a small device array read
+    """One ``Simulator`` of the cloth: ``guard`` ``None`` (off) or a ``GuardLimits``, its verdict read a frame later as
+    shipped (``defer_verdict=None``: after the next frame is queued, on both devices); with ``probe`` (guard off) a small device array read
     after every frame, as the guard without deferral reads its status: what the host's wait for the frame costs alone
     (on a GPU the next frame's launch then waits for the host)."""
 
@@ -218,6 +218,9 @@ def main():
     parser.add_argument("--every-frame", action="store_true",
                         help="also the default guard with a check every frame (GuardLimits(check_frames=1)): what the "
                              "checks spanning frames save")
+    parser.add_argument("--check-frames", type=int, nargs="*", default=[],
+                        help="also the default guard with checks spanning at most K frames (GuardLimits(check_frames=K)), "
+                             "each K: what the span's length is worth")
     parser.add_argument("--probe", action="store_true",
                         help="also guard off with a status-sized read after every frame (the host's wait alone)")
     parser.add_argument("--sync-verdict", action="store_true",
@@ -265,6 +268,8 @@ def main():
                       "default": lambda: Run(cloth(), integrator, ws.GuardLimits())}
             if args.every_frame:
                 makers["every frame"] = lambda: Run(cloth(), integrator, ws.GuardLimits(check_frames=1))
+            for k in args.check_frames:
+                makers[f"spans {k}"] = lambda k=k: Run(cloth(), integrator, ws.GuardLimits(check_frames=k))
             if args.probe:
                 makers["probe"] = lambda: Run(cloth(), integrator, None, probe=True)
             if args.sync_verdict or args.where:
@@ -300,6 +305,12 @@ def main():
                                 "Newton" if newton else "")
                 notes.append(f"- {label}, {integrator}: the default with a check every frame (check_frames=1) ÷ guard "
                              f"off = {every:.3f}{every_newton}")
+                print(notes[-1], flush=True)
+            if args.check_frames:
+                spans = ", ".join(f"{k}: {statistics.median(off / p for off, p in zip(times['off'], times[f'spans {k}'])):.3f}"
+                                  for k in args.check_frames)
+                notes.append(f"- {label}, {integrator}: the default with checks spanning at most K frames ÷ guard off, "
+                             f"K = {spans} (as shipped, {ws.GuardLimits().check_frames}: {ratio:.3f})")
                 print(notes[-1], flush=True)
             if args.sync_verdict:
                 sync = statistics.median(off / p for off, p in zip(times["off"], times["sync"]))

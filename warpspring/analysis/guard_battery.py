@@ -150,8 +150,8 @@ def expected_names(model, control) -> list[str]:
 def run_case(path: pathlib.Path, variant: str, integrator: str, case: str, *, device, frames: int,
              defer_verdict: bool | None = None, spring_evaluation: str = "auto") -> Outcome:
     """Run one case (module docstring); ``frames``: the ``advisor`` case's length (at most the scene's);
-    ``defer_verdict``: the simulator's (``None``: the device's default; ``True`` on the CPU reads each verdict a frame
-    later as on CUDA, where the default guard's checks may span frames); ``spring_evaluation``: the model's."""
+    ``defer_verdict``: the simulator's (``None``: its default, each verdict read a frame later, where the default
+    guard's checks may span frames; ``False``: each frame judged and checked); ``spring_evaluation``: the model's."""
     started = time.perf_counter()
     scene, model = build(path, variant, device, integrator, spring_evaluation)
     fps = scene.fps

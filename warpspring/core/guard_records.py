@@ -97,7 +97,7 @@ class GuardLimits:
             ``Simulator.world_failures``, and the other worlds go on; the run stops only when every world
             has failed).
         check_frames: the most frames a check may span (default ``CHECK_FRAMES`` = 8; 1 checks every frame) where
-            the scene allows it: a simulator that reads each verdict a frame later (``defer_verdict``, the CUDA
+            the scene allows it: a simulator that reads each verdict a frame later (``defer_verdict``, the
             default) and not read frame by frame, ``stop="run"``, no frame watched (a step the springs' bound does
             not certify is checked after every substep for the first frames from a restart or a write; explicit
             Euler and midpoint, whose damping limit the bound cannot certify, never span), nothing

@@ -311,7 +311,7 @@ class Guard(StepHook):
         self._restart_balance()
         self._revision = 0
         #: Whether the simulator reads each frame's verdict a frame later and checks a frame before it is read
-        #: (``Simulator.defer_verdict``): only then may a check span frames (``GuardLimits.check_frames``).
+        #: (``Simulator.defer_verdict``, its default) and the frames are not read one by one: only then may a check span frames (``GuardLimits.check_frames``).
         self.deferred = False
         #: Called before a read of the guard's sums where the last frame's end went unchecked (``Simulator.settle``,
         #: which checks it and reads its verdict), or ``None``.

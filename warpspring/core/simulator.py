@@ -63,13 +63,14 @@ class Simulator:
             ``GuardLimits(stop="world")`` holds the failed world, records it in :attr:`world_failures` and goes on
             with the others. ``None`` disables them (and the per-frame
             read of their record).
-        defer_verdict: read each frame's guard record a frame later (``None``, the default: on CUDA, where the host
-            launches ahead of the device; on the CPU, whose launches return when done, after each frame):
-            :meth:`step_frame` queues the next frame before it waits for the previous one's record, so the device does
-            not idle while the host reads. A failure then raises at the next :meth:`step_frame` or at :meth:`settle`
-            (or on reading :attr:`state`), naming its own frame; see :meth:`step_frame`. On an H200 (Warp 1.16.0,
-            bench/results/guard_cost.md) the default run went from 0.65 to 0.79 of the guard-off rate at 32² and
-            from 0.59 to 0.74 at 64² with it.
+        defer_verdict: read each frame's guard record a frame later (``None``, the default, is on; on both devices,
+            so that a CPU run stops where the same run on a GPU stops): :meth:`step_frame` queues the next frame
+            before it waits for the previous one's record, so the device does not idle while the host reads. A
+            failure then raises at the next :meth:`step_frame` or at :meth:`settle` (or on reading :attr:`state`),
+            naming its own frame; see :meth:`step_frame`. On an H200 (Warp 1.16.0, bench/results/guard_cost.md) the
+            default run went from 0.65 to 0.79 of the guard-off rate at 32² and from 0.59 to 0.74 at 64² with it; on
+            the CPU, whose launches return when done, it is what lets a check span frames (``GuardLimits.check_frames``).
+            ``False``: every frame is judged before :meth:`step_frame` returns, and checked.
 
     Attributes:
         world_failures: the worlds stopped by the guard (``stop="world"``) so far: world → (frame, report),
@@ -138,7 +139,7 @@ class Simulator:
 
             self.guard.before_read = before_read
         self.frame_hooks: list[FrameHook] = []
-        self.defer_verdict = (model.device.is_cuda if defer_verdict is None else bool(defer_verdict)) and \
+        self.defer_verdict = (True if defer_verdict is None else bool(defer_verdict)) and \
             self.guard is not None
         self.frame = 0
         self._world_failures: dict = {}
@@ -199,11 +200,11 @@ class Simulator:
     def step_frame(self) -> None:
         """Advance :attr:`state` by one frame.
 
-        With :attr:`defer_verdict` (the default on CUDA) the guard's verdict on a frame is read when the next frame
+        With :attr:`defer_verdict` (the default) the guard's verdict on a frame is read when the next frame
         is queued: ``step_frame`` raises for a failure of the frame before its own, and :meth:`settle` for the
         last frame's. The promise: whatever was read from a frame whose verdict is known stayed valid; a frame hook
         sees only a state whose verdict is known (the frame is settled before the hooks run), and ``warpspring run``
-        writes a frame only once it is settled. Without it (the CPU's default) every frame is settled before
+        writes a frame only once it is settled. Without it every frame is settled before
         ``step_frame`` returns. With it, and frames not read one by one, a check may span frames where the scene allows
         it (``GuardLimits.check_frames``): a frame that leaves its end to a later check is judged with that check, and
         :meth:`settle` checks the last frame first where its end went unchecked.
