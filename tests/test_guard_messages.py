@@ -164,3 +164,30 @@ def test_a_pin_driven_through_cloth_that_cannot_give_way_stops_the_run(device):
     gentle = ws.Simulator(pins_through_free_cloth(device, travel=0.002), fps=1000, substeps=1)
     run_frames(gentle, 5)
     assert gentle.frame == 5 and gentle.model.self_contact.outrun()[0] == 0
+
+
+def test_a_voxel_body_torn_at_twice_its_limit_names_the_spring(device):
+    """examples/soft_ball.toml at twice the advisor's limit (the guard's battery's case): stopped for strain, the
+    message naming the spring and its particles. On an H200 the record's search for the most strained element once
+    found none (the check's passes and the search round the strain differently there), and the stop's message raised
+    StopIteration instead."""
+    import pathlib
+
+    from warpspring.analysis.guard_battery import run_case
+
+    ball = pathlib.Path(__file__).resolve().parents[1] / "examples" / "soft_ball.toml"
+    outcome = run_case(ball, "as is", "symplectic_euler", "twice", device=device, frames=60)
+    assert outcome.passed and outcome.reason == "strain", outcome.row() + "\n" + outcome.message
+    assert re.search(r"spring \d+ \(particles \d+-\d+\) stretched to [0-9.e+]+× its rest length", outcome.message), \
+        outcome.message
+
+
+def test_a_strain_record_without_its_element_is_still_told(device):
+    """A strain report whose element the record does not hold reads as a sentence, not a traceback."""
+    model = stiff_cloth(device)
+    from warpspring.core.guard_records import GuardReport
+
+    report = GuardReport(world=0, reason="strain", substep=3, particle=None, spring=None, strain=11.5,
+                            kinetic_energy=1.0)
+    assert report.describe(model) == ("an element stretched to 12.5× its rest length (guard limit exceeded; the "
+                                      "element was not identified)")

@@ -210,7 +210,10 @@ class GuardReport:
             return (f"{where}{self.nonfinite_count} of {model.particle_count} particles have non-finite positions or "
                     f"velocities (lowest index {self.particle})")
         if self.reason == "strain":
-            family = next(f for f in model.families if f.name == self.family)
+            family = next((f for f in model.families if f.name == self.family), None)
+            if family is None or self.element is None:  # (a record whose search found no element: never expected)
+                return (f"{where}an element stretched to {self.strain + 1:.3g}× its rest length (guard limit "
+                        "exceeded; the element was not identified)")
             return (f"{where}{family.describe_element(model, self.element)} stretched to {self.strain + 1:.3g}× its "
                     "rest length (guard limit exceeded)")
         if self.reason == "energy balance":

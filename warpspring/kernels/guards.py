@@ -158,6 +158,10 @@ GUARD_STRAIN = 2
 GUARD_ENERGY = 3
 GUARD_BALANCE = 4
 NO_PARTICLE = 2**31 - 1
+#: How far below the check's largest strain, as a share of (1 + that strain), a strain the record's search finds still
+#: counts as the largest (``gather``): the check's passes and the search evaluate strains in different kernels, whose
+#: float32 roundings differ by a few units in the last place on CUDA (fused multiply-adds).
+STRAIN_MATCH = 1e-5
 
 
 @functools.cache
@@ -687,15 +691,36 @@ def _guard_parts(scalar: type, families: tuple, tiled: bool, external: bool, wor
             return
         largest = values_in_out[world, GUARD_MAX_STRAIN]
         if largest >= wp.float64(0.0):  # (the same for every lane of the block)
+            # A strain within the rounding of the check's own (``STRAIN_MATCH``: the check's passes evaluate it in
+            # other kernels, which on CUDA contract other multiply-adds), in three rounds so that the three entries
+            # name one element: the smallest family, then its smallest element, then that element's smallest
+            # particle.
+            near = largest - wp.float64(STRAIN_MATCH) * (wp.float64(1.0) + largest)
+            base = world * particle_count
             i = lane
             while i < particle_count:
-                base = world * particle_count
                 strain, element, family = element_strain(world, i, base, particle_q[base + i], element_arrays,
                                                          particle_q)
-                if strain == largest:  # the same evaluation as in the check's passes
-                    wp.atomic_min(status_in_out, world, GUARD_STRAIN_PARTICLE, i)
-                    wp.atomic_min(status_in_out, world, GUARD_STRAIN_ELEMENT, element)
+                if wp.float64(strain) >= near:
                     wp.atomic_min(status_in_out, world, GUARD_STRAIN_FAMILY, family)
+                i += lanes
+            block_barrier()
+            chosen_family = status_in_out[world, GUARD_STRAIN_FAMILY]
+            i = lane
+            while i < particle_count:
+                strain, element, family = element_strain(world, i, base, particle_q[base + i], element_arrays,
+                                                         particle_q)
+                if wp.float64(strain) >= near and family == chosen_family:
+                    wp.atomic_min(status_in_out, world, GUARD_STRAIN_ELEMENT, element)
+                i += lanes
+            block_barrier()
+            chosen_element = status_in_out[world, GUARD_STRAIN_ELEMENT]
+            i = lane
+            while i < particle_count:
+                strain, element, family = element_strain(world, i, base, particle_q[base + i], element_arrays,
+                                                         particle_q)
+                if wp.float64(strain) >= near and family == chosen_family and element == chosen_element:
+                    wp.atomic_min(status_in_out, world, GUARD_STRAIN_PARTICLE, i)
                 i += lanes
             block_barrier()  # every lane's atomics done: the record is complete
         if lane == 0:  # the mirror: the record and the clock, then (fenced) the reason the host reads first
