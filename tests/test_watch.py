@@ -53,3 +53,62 @@ def test_implicit_euler_is_not_watched(device):
     """An unconditionally stable step has no limit to approach: the watch stays idle."""
     _, watch, found = _run(device, 480.0, frames=5, integrator="implicit_euler")
     assert not found and not watch.active and np.isinf(watch.omega_limit).all()
+
+
+def _moving_collider_cloth(device, *, moving: bool):
+    """An 8 × 8 cloth of 10 g particles on 1 kN/m springs hung from its top row, and a sphere 5 m below it that
+    never reaches it; ``moving``: the sphere slides sideways (a moving collider: the guard's energy balance off)."""
+    builder = ws.ModelBuilder()
+    spring = ws.SpringMaterial(ke=1.0e3, kd=0.01)
+    builder.add_cloth_grid(nx=8, ny=8, spacing=0.1, particle_mass=0.01, structural=spring, shear=spring,
+                           pin=["top"])
+    track = ws.Track([0.0, 1.0], [[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]]) if moving else None
+    builder.add_collider_sphere(center=(0.35, 0.0, -5.0), radius=0.5, translation=track)
+    return builder.finalize(device)
+
+
+def _run_watched(device, *, moving: bool, factor: float, frames: int):
+    """The cloth above under symplectic Euler at ``factor`` times the advisor's stable step at its start, watched
+    after every frame with ``stop = WATCH_STOP``; returns the simulator, the watch and the stop (or ``None``)."""
+    from warpspring.analysis.watch import WATCH_STOP
+
+    model = _moving_collider_cloth(device, moving=moving)
+    advice = ws.advise(model, "symplectic_euler", 1.0e-3, fps=60)
+    h = factor * advice.dt_stable
+    substeps = max(1, int(1.0 / (60.0 * h)))
+    sim = ws.Simulator(model, integrator=ws.make_integrator("symplectic_euler", model), fps=1.0 / (substeps * h),
+                       substeps=substeps)
+    watch = StabilityWatch.attach(sim, every=1, advice=advice, stop=WATCH_STOP)
+    watch.notify = lambda message: None
+    try:
+        run_frames(sim, frames)
+    except ws.SimulationError as stop:
+        return sim, watch, stop
+    return sim, watch, None
+
+
+def test_a_state_past_its_limit_stops_the_run_where_the_balance_is_off(device):
+    """With a moving collider the guard's balance is off, so a step twice the stable limit is stopped by the watch
+    at its first re-check (frame 1 on the CPU, read at the next frame on CUDA), for the stability limit, the
+    message naming the ratio, why the balance is off, the springs and the collider, and a remedy."""
+    sim, watch, stop = _run_watched(device, moving=True, factor=2.0, frames=10)
+    assert not sim.guard.balance_applies()
+    assert stop is not None and stop.reason == "stability limit", stop
+    assert stop.frame == (1 if str(device) == "cpu" else 2)
+    ratio = watch.omega[0] / watch.omega_limit[0]
+    assert 1.9 < ratio < 2.1  # (the start's ω_max, the step twice its limit)
+    message = str(stop)
+    assert message.startswith("frame 1: ") and f"{ratio:.2f}× the" in message
+    assert "energy balance off in this scene (the work of moving colliders is not counted)" in message
+    assert "the springs at particle" in message and "contacts with 1 collider" in message
+    assert "Remedy: run with substeps = " in message
+
+
+def test_the_watch_leaves_a_stable_run_and_the_balance_alone(device):
+    """The same scene at 0.9 times the stable limit runs on; without the moving collider (the balance on) the
+    watch never stops a run, whatever its step: the guard's balance judges it."""
+    _, watch, stop = _run_watched(device, moving=True, factor=0.9, frames=10)
+    assert stop is None and watch.frame >= 9 and watch.omega[0] < watch.omega_limit[0]
+    sim, _, stop = _run_watched(device, moving=False, factor=2.0, frames=10)
+    assert sim.guard.balance_applies()
+    assert stop is None or stop.reason != "stability limit", stop

@@ -27,8 +27,9 @@ import numpy as np
 import warp as wp
 
 from .. import checks
-from ..errors import ConfigError, StabilityWarning
+from ..errors import ConfigError, SimulationError, StabilityWarning
 from ..kernels.stability import PI_LAMBDA
+from ..core.guard_records import GuardReport, stop_advice
 from ..core.model import Model
 from ..core.simulator import FrameHook, Simulator
 from ..core.state import State
@@ -45,6 +46,15 @@ WATCH_ITERATIONS = 20
 WATCH_MARGIN = 1.0
 #: Residual at which a world stops iterating within a re-check.
 WATCH_TOLERANCE = 1.0e-4
+#: The multiple of the highest frequency a step keeps stable that a world's ω_max may reach before a watch given
+#: ``stop`` stops the run, where the run's guard cannot see a growth (its energy balance off: moving colliders,
+#: emitters, the force clamp; ``Guard.balance_applies``) and a position correction (contacts, self-collision's cap,
+#: strain limiting, plasticity) may hold it below the tear and runaway limits: ``warpspring run``'s default. 5 % past
+#: the limit the top mode grows by 1.9× a step under symplectic Euler and Verlet (ωh = 2.1) and 1.4× under RK4
+#: (ωh = 2.97): an instability, not a matter of margin; the power iterations' estimate approaches ω_max from below.
+#: In the guard's battery the advisor's steps kept at most 0.79 of the limit, and the injected instabilities reached
+#: 1.06-1.15 (a spring 100× stiffer) and 2 (twice the limit) (bench/results/guard_battery_cpu.md).
+WATCH_STOP = 1.05
 
 
 class StabilityWatch(FrameHook):
@@ -65,6 +75,10 @@ class StabilityWatch(FrameHook):
         iterations: power iterations per re-check, ≥ 1.
         margin: fraction of the stable limit at which to warn, in (0, 1].
         every: frames between re-checks (≥ 1): it re-checks after the frames that are multiples of it.
+        stop: a multiple of the stable limit (≥ 1; ``None``, the default: warn only) at which a world's ω_max stops
+            the run with a :class:`~warpspring.errors.SimulationError` where the simulator's guard cannot see the
+            growth (its energy balance is off: ``WATCH_STOP``); read at the frame after the re-check (on the CPU,
+            at once).
 
     Attributes:
         omega_limit: each world's highest stable angular frequency at ``dt`` [rad/s], float64,
@@ -79,8 +93,11 @@ class StabilityWatch(FrameHook):
 
     def __init__(self, model: Model, integrator: str, dt: float, *, fps: float, substeps: int, state: State,
                  control=None, advice: Advice | None = None, iterations: int = WATCH_ITERATIONS,
-                 margin: float = WATCH_MARGIN, every: int = WATCH_EVERY):
+                 margin: float = WATCH_MARGIN, every: int = WATCH_EVERY, stop: float | None = None):
         self.every = checks.count("watch", every, minimum=1)
+        if stop is not None and not (math.isfinite(stop) and stop >= 1.0):
+            raise ConfigError(f"watch stop must be a multiple of the stable limit of at least 1, got {stop!r}")
+        self.stop = stop
         self.model = model
         self.integrator = integrator
         self.dt = checks.positive("dt", dt)
@@ -120,12 +137,17 @@ class StabilityWatch(FrameHook):
         """A watch of ``sim``'s run from its current state, re-checking every ``every`` frames from now on,
         added to its frame hooks (:meth:`~warpspring.core.simulator.Simulator.add_frame_hook`); returns it.
         ``advice``: the advisor's verdict on this run, if the caller already has one (else the watch runs the
-        advisor about the current state); ``options``: ``iterations``, ``margin``."""
+        advisor about the current state); ``options``: ``iterations``, ``margin``, ``stop``."""
         return sim.add_frame_hook(cls(sim.model, sim.integrator.name, sim.dt, fps=sim.fps, substeps=sim.substeps,
                                       state=sim.state, control=sim.control, advice=advice, every=every, **options))
 
     def after_frame(self, sim: Simulator, frame: int) -> None:
-        """Re-check after the frames that are multiples of :attr:`every` (:meth:`check`)."""
+        """Read a re-check still pending at the frame after it (on CUDA: its stream has long finished), then
+        re-check after the frames that are multiples of :attr:`every` (:meth:`check`); with :attr:`stop`, a world
+        past it stops the run where ``sim``'s guard cannot see the growth (:meth:`collect`)."""
+        self._sim = sim
+        if getattr(self, "_pending", None) is not None and frame > self._pending:
+            self.collect()
         if frame % self.every == 0:
             self.check(sim.state, frame)
 
@@ -198,3 +220,28 @@ class StabilityWatch(FrameHook):
                 self.notify(message)
             else:
                 warnings.warn(StabilityWarning(message), stacklevel=3)
+        sim = getattr(self, "_sim", None)
+        if self.stop is not None and sim is not None and sim.guard is not None and not sim.guard.balance_applies():
+            over = np.flatnonzero(ratio >= self.stop)
+            if over.size:
+                self._stop(sim, frame, int(over[np.argmax(ratio[over])]), float(ratio[over].max()))
+
+    def _stop(self, sim: Simulator, frame: int, world: int, ratio: float) -> None:
+        """Stop ``sim``'s run: ``world``'s state at ``frame`` is ``ratio`` times past its step's stable limit and the
+        guard's balance, off, would not see the growth (the message names the scene's suspects and a remedy)."""
+        needed = math.ceil(self.substeps * ratio - 1.0e-9)
+        where = f"world {world}'s" if self.model.world_count > 1 else "the"
+        report = GuardReport(world=world, reason="stability limit", substep=0, particle=None, spring=None,
+                             strain=math.nan, kinetic_energy=math.nan)
+        advice = stop_advice(report, self.model, integrator=self.integrator, substeps=self.substeps, dt=self.dt,
+                             control=sim.control)
+        off = "; ".join(sim.guard.balance_terms().off) or "see the run summary"
+        error = SimulationError(
+            f"frame {frame}: {where} state is past the stability limit of {self.integrator}: ω_max ≈ "
+            f"{self.omega[world]:.4g} rad/s is {ratio:.2f}× the {self.omega_limit[world]:.4g} rad/s that dt = "
+            f"{self.dt:.3g} s keeps stable (the stability watch), and with the guard's energy balance off in this "
+            f"scene ({off}) no growth would be seen before a tear; the advisor's estimate asks for at least {needed} "
+            f"substeps per 1/{self.fps:g} s frame; {advice}",
+            frame=sim.frame)
+        error.reason = "stability limit"
+        raise error

@@ -26,7 +26,7 @@ from ..core.builder.colliders import model_triangle_contacts
 from ..analysis.advisor import advise, diagnose
 from ..analysis.step_choice import choose_substeps
 from ..analysis.under_load import PROBE_HORIZON
-from ..analysis.watch import WATCH_EVERY, StabilityWatch
+from ..analysis.watch import WATCH_EVERY, WATCH_STOP, StabilityWatch
 from ..kernels.inputs import INPUTS
 from ..version import __version__
 
@@ -211,7 +211,9 @@ def run_scene(
     Before the run the stability advisor checks the step (:func:`preflight`): with ``strict`` an unstable
     step is refused, otherwise its message goes to ``warn`` (a callable taking one string), if given.
     During the run it re-checks the step at the state reached every ``watch`` frames (default
-    ``WATCH_EVERY``; 0 off: :class:`~warpspring.analysis.watch.StabilityWatch`), its warnings to ``warn``.
+    ``WATCH_EVERY``; 0 off: :class:`~warpspring.analysis.watch.StabilityWatch`), its warnings to ``warn``; where
+    the guard's energy balance is off (moving colliders, emitters: the run summary names why) a state past
+    ``WATCH_STOP`` times its step's stable limit stops the run, the guard seeing no growth there.
 
     Every ``checkpoint_every`` frames (0: never) the whole simulation is saved to
     :func:`checkpoint_path` of the output (atomically replaced); ``resume`` continues a stopped run from such
@@ -312,7 +314,7 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
     if model.self_contact is not None:
         model.self_contact.reset()  # the advisor's dry run stepped the model: count the run's steps only
     # Its limits from the verdict just made, not a second analysis.
-    stability_watch = StabilityWatch.attach(sim, every=watch, advice=advice) if watch else None
+    stability_watch = StabilityWatch.attach(sim, every=watch, advice=advice, stop=WATCH_STOP) if watch else None
     last_good = model.state()  # the last frame the guard passed: where a stop is diagnosed
     if not advice.stable and warn is not None:
         warn(advice.message)
