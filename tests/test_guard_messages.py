@@ -176,7 +176,9 @@ def test_a_voxel_body_torn_at_twice_its_limit_names_the_spring(device):
     from warpspring.analysis.guard_battery import run_case
 
     ball = pathlib.Path(__file__).resolve().parents[1] / "examples" / "soft_ball.toml"
-    outcome = run_case(ball, "as is", "symplectic_euler", "twice", device=device, frames=60)
+    # (the simulator alone, without the watch ``warpspring run`` attaches: its frames not read one by one, the
+    # default guard's check spans frames and the state reaches a tear before the check sees the balance)
+    outcome = run_case(ball, "as is", "symplectic_euler", "twice", device=device, frames=60, watch=False)
     assert outcome.passed and outcome.reason == "strain", outcome.row() + "\n" + outcome.message
     assert re.search(r"spring \d+ \(particles \d+-\d+\) stretched to [0-9.e+]+× its rest length", outcome.message), \
         outcome.message
