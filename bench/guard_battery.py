@@ -38,6 +38,10 @@ def main(argv=None) -> int:
                         help="read each verdict a frame later, where the default guard's checks may span frames "
                              "(GuardLimits.check_frames): the simulator's default on both devices (the flag is kept for "
                              "the commands of earlier results, when the CPU's default read each verdict at once)")
+    parser.add_argument("--no-watch", action="store_true",
+                        help="run the simulator alone, without the stability watch warpspring run attaches (its frames "
+                             "then not read one by one, so that the default guard's checks may span frames; as the "
+                             "results files with checks spanning frames ran)")
     parser.add_argument("--sync-verdict", action="store_true",
                         help="judge and check every frame before the next (Simulator(defer_verdict=False))")
     parser.add_argument("--spring-evaluation", default="auto", choices=["auto", "gather", "scatter"],
@@ -59,7 +63,7 @@ def main(argv=None) -> int:
         try:
             outcome = run_case(path, variant, integrator, case, device=device, frames=args.frames,
                                defer_verdict=False if args.sync_verdict else None,
-                               spring_evaluation=args.spring_evaluation)
+                               spring_evaluation=args.spring_evaluation, watch=not args.no_watch)
             row, passed = outcome.row(), outcome.passed
         except Exception as exc:  # a case that cannot run is a failure of the battery, reported in its row
             row = f"| {path.stem} | {variant} | {integrator} | {case} | | error | FAIL | {type(exc).__name__}: " \
