@@ -3,6 +3,7 @@ contacts and loads, and nothing it does not hold) and a remedy that, tried as pr
 balance closed."""
 
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -193,3 +194,42 @@ def test_a_strain_record_without_its_element_is_still_told(device):
                             kinetic_energy=1.0)
     assert report.describe(model) == ("an element stretched to 12.5× its rest length (guard limit exceeded; the "
                                       "element was not identified)")
+
+
+def test_the_runners_watch_stops_a_step_past_its_limit_where_the_balance_is_off(tmp_path):
+    """The CLI (``run_scene``) on the test scene with 400 N/m springs at one substep (3.2 times the step's limit) and
+    a sphere that slides far below the cloth (a moving collider: the guard's balance off): its stability watch,
+    re-checking after every frame, stops the run at frame 1, the file keeping frame 0, and the message names the
+    ratio, why the balance is off, the scene's suspects and remedies; each numbered remedy, tried as printed, runs
+    the scene's 20 frames to the end."""
+    from helpers import write_scene
+    from warpspring.app.runner import run_scene
+    from warpspring.io.scene import load_scene
+
+    sphere = """
+[[collider]]
+type = "sphere"
+center = [0.2, 0.0, -3.0]
+radius = 0.3
+translation = { times = [0.0, 2.0], values = [[0, 0, 0], [0.5, 0, 0]] }
+"""
+    path = write_scene(tmp_path, {"[simulation]": "version = 2\n[simulation]", "substeps = 4": "substeps = 1",
+                                  "structural = { ke = 40.0, kd = 0.01 }": "structural = { ke = 400.0, kd = 0.01 }",
+                                  "frames = 5": "frames = 20"}, extra=sphere)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ws.StabilityWarning)
+        with pytest.raises(ws.SimulationError) as stop:
+            run_scene(load_scene(str(path)), output=str(tmp_path / "stopped.usdc"), progress=False, watch=1)
+    message = str(stop.value)
+    assert stop.value.frame == 1 and message.endswith("stopped.usdc holds frames 0..0")
+    assert re.match(r"frame 1: the state is past the stability limit of symplectic_euler: ω_max ≈ [0-9.]+ rad/s is "
+                    r"3\.\d\d× the", message), message
+    assert "energy balance off in this scene (the work of moving colliders is not counted)" in message
+    assert "the springs at particle" in message and "contacts with 2 colliders" in message
+    remedies = {int(n) for n in re.findall(r"substeps = (\d+)", message) + re.findall(r"--substeps (\d+)", message)
+                + re.findall(r"at least (\d+) substeps", message)}
+    assert len(remedies) >= 2 and min(remedies) > 1
+    for substeps in sorted(remedies):
+        summary = run_scene(load_scene(str(path)), output=str(tmp_path / f"remedy_{substeps}.usdc"),
+                            progress=False, watch=1, substeps=substeps)
+        assert summary.frames == 20
