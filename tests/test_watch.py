@@ -112,3 +112,37 @@ def test_the_watch_leaves_a_stable_run_and_the_balance_alone(device):
     sim, _, stop = _run_watched(device, moving=False, factor=2.0, frames=10)
     assert sim.guard.balance_applies()
     assert stop is None or stop.reason != "stability limit", stop
+
+
+def test_with_stop_world_the_watch_holds_the_world_past_its_limit(device):
+    """Two worlds of the moving-collider cloth, the second's springs 9 times stiffer (3 times the first's ω_max) at
+    0.9 of the first's stable step, the guard stopping single worlds: the watch holds the second at its first
+    re-check and records it (reason "stability limit", its ratio, a line that names it); the first runs on, and its
+    positions move while the held world's stay as they were."""
+    from warpspring.analysis.watch import WATCH_STOP
+
+    builder = ws.ModelBuilder()
+    spring = ws.SpringMaterial(ke=1.0e3, kd=0.01)
+    builder.add_cloth_grid(nx=8, ny=8, spacing=0.1, particle_mass=0.01, structural=spring, shear=spring, pin=["top"])
+    builder.add_collider_sphere(center=(0.35, 0.0, -5.0), radius=0.5,
+                                translation=ws.Track([0.0, 1.0], [[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]]))
+    model = builder.finalize(device, worlds=2)
+    stiffness = model.world_values("spring_stiffness").copy()
+    stiffness[1] *= 9.0
+    model.set_world_values("spring_stiffness", stiffness)
+    advice = ws.advise(model, "symplectic_euler", 1.0e-3, fps=60)
+    h = 0.9 * advice.world_dt_stable[0]
+    sim = ws.Simulator(model, integrator=ws.make_integrator("symplectic_euler", model), fps=1.0 / (4 * h), substeps=4,
+                       guard=ws.GuardLimits(stop="world"))
+    watch = StabilityWatch.attach(sim, every=1, advice=advice, stop=WATCH_STOP)
+    watch.notify = lambda message: None
+    run_frames(sim, 2)
+    before = sim.state.particle_q.numpy().reshape(2, -1, 3).copy()
+    run_frames(sim, 3)
+    assert list(sim.world_failures) == [1]
+    frame, report = sim.world_failures[1]
+    assert frame == 1 and report.reason == "stability limit" and 2.5 < report.stability_ratio < 3.5
+    assert "passed its step's stability limit" in sim.describe_failure(1)
+    positions = sim.state.particle_q.numpy().reshape(2, -1, 3)
+    assert np.array_equal(positions[1], before[1])
+    assert np.isfinite(positions[0]).all() and not np.array_equal(positions[0], before[0]) and sim.frame == 5

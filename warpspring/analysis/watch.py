@@ -222,23 +222,33 @@ class StabilityWatch(FrameHook):
                 warnings.warn(StabilityWarning(message), stacklevel=3)
         sim = getattr(self, "_sim", None)
         if self.stop is not None and sim is not None and sim.guard is not None and not sim.guard.balance_applies():
-            over = np.flatnonzero(ratio >= self.stop)
-            if over.size:
-                self._stop(sim, frame, int(over[np.argmax(ratio[over])]), float(ratio[over].max()))
+            over = [int(w) for w in np.flatnonzero(ratio >= self.stop) if int(w) not in sim.world_failures]
+            if over:
+                self._stop(sim, frame, over, ratio)
 
-    def _stop(self, sim: Simulator, frame: int, world: int, ratio: float) -> None:
-        """Stop ``sim``'s run: ``world``'s state at ``frame`` is ``ratio`` times past its step's stable limit and the
-        guard's balance, off, would not see the growth (the message names the scene's suspects and a remedy)."""
-        needed = math.ceil(self.substeps * ratio - 1.0e-9)
+    def _stop(self, sim: Simulator, frame: int, worlds: list, ratio: np.ndarray) -> None:
+        """``worlds``' states at ``frame`` are past ``stop`` times their step's stable limit (``ratio``: each world's
+        ω_max over it) and the guard's balance, off, would not see the growth: with the guard's ``stop="world"`` hold
+        them (:meth:`~warpspring.core.simulator.Simulator.hold_world`) and go on while a world runs, else stop the
+        run (the message names the scene's suspects and a remedy)."""
+        reports = [GuardReport(world=w, reason="stability limit", substep=self.substeps - 1, particle=None,
+                               spring=None, strain=math.nan, kinetic_energy=math.nan, stability_ratio=float(ratio[w]))
+                   for w in worlds]
+        if sim.guard.limits.stop == "world":
+            for report in reports:
+                sim.hold_world(report, frame)
+            if len(sim.world_failures) < self.model.world_count:
+                return
+        world = max(worlds, key=lambda w: ratio[w])
+        report = next(r for r in reports if r.world == world)
+        needed = math.ceil(self.substeps * ratio[world] - 1.0e-9)
         where = f"world {world}'s" if self.model.world_count > 1 else "the"
-        report = GuardReport(world=world, reason="stability limit", substep=0, particle=None, spring=None,
-                             strain=math.nan, kinetic_energy=math.nan)
         advice = stop_advice(report, self.model, integrator=self.integrator, substeps=self.substeps, dt=self.dt,
                              control=sim.control)
         off = "; ".join(sim.guard.balance_terms().off) or "see the run summary"
         error = SimulationError(
             f"frame {frame}: {where} state is past the stability limit of {self.integrator}: ω_max ≈ "
-            f"{self.omega[world]:.4g} rad/s is {ratio:.2f}× the {self.omega_limit[world]:.4g} rad/s that dt = "
+            f"{self.omega[world]:.4g} rad/s is {ratio[world]:.2f}× the {self.omega_limit[world]:.4g} rad/s that dt = "
             f"{self.dt:.3g} s keeps stable (the stability watch), and with the guard's energy balance off in this "
             f"scene ({off}) no growth would be seen before a tear; the advisor's estimate asks for at least {needed} "
             f"substeps per 1/{self.fps:g} s frame; {advice}",

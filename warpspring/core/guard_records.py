@@ -185,6 +185,8 @@ class GuardReport:
         kinetic_energy: total kinetic energy at that check [J].
         energy_created: kinetic + elastic energy beyond the start's plus the work put in, at that check [J].
         energy_budget: the most energy the start and the loads could have supplied so far [J].
+        stability_ratio: with reason "stability limit" (found by the stability watch, not a check: ``StabilityWatch``
+            given ``stop``), the world's ω_max over the highest frequency its step keeps stable; else NaN.
     """
 
     world: int
@@ -199,6 +201,7 @@ class GuardReport:
     element: int | None = None
     energy_created: float = 0.0
     energy_budget: float = 0.0
+    stability_ratio: float = math.nan
 
     def describe(self, model: Model, *, name_world: bool = True) -> str:
         """One clause naming what went wrong and where (the world too, in a model of several, unless
@@ -216,6 +219,10 @@ class GuardReport:
                         "exceeded; the element was not identified)")
             return (f"{where}{family.describe_element(model, self.element)} stretched to {self.strain + 1:.3g}× its "
                     "rest length (guard limit exceeded)")
+        if self.reason == "stability limit":
+            return (f"{where}the state passed its step's stability limit (ω_max {self.stability_ratio:.3g}× the highest "
+                    "frequency the step keeps stable, by the stability watch; the energy balance, off, would not see "
+                    "the growth)")
         if self.reason == "energy balance":
             share = self.energy_created / self.energy_budget if self.energy_budget > 0.0 else math.inf
             return (f"{where}the integration created {self.energy_created:.3g} J of energy ({share:.0%} of the "

@@ -17,7 +17,7 @@ from .checkpoint import Checkpoint
 from .contacts import Contacts
 from .emitters import EmitterHook
 from .mesh_colliders import advance_mesh_colliders
-from .guard_records import GuardLimits
+from .guard_records import GuardLimits, GuardReport
 from .guards import Guard
 from .integrators import Integrator, SymplecticEuler
 from .model import Model
@@ -343,6 +343,13 @@ class Simulator:
                 f"contacts dropped ({worlds}), so those particles were not kept out of every collider: "
                 f"finalize with contact_slots={min(2 * slots, 64)}"), stacklevel=3)
         self._overflow_seen = overflow
+
+    def hold_world(self, report: GuardReport, frame: int | None = None) -> None:
+        """Hold ``report.world`` from now on and record its failure in :attr:`world_failures` at ``frame`` (default:
+        the last frame completed), as the guard's ``stop="world"`` does for its own checks: a frame hook's finding
+        (the stability watch's, ``StabilityWatch`` given ``stop``)."""
+        self._world_failures.setdefault(report.world, (self.frame if frame is None else frame, report))
+        self.model.set_world_enabled(report.world, False)
 
     def describe_failure(self, world: int) -> str:
         """One line on why the guard stopped ``world`` (a key of :attr:`world_failures`)."""
