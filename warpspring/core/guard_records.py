@@ -370,6 +370,14 @@ def balance_terms(model: Model, *, integrator, control, limits: GuardLimits, dis
 #: (explicit Euler, midpoint) or have no limit.
 STABLE_OMEGA_H = {"symplectic_euler": 2.0, "velocity_verlet": 2.0, "rk4": 2.0 * math.sqrt(2.0)}
 
+#: The amplification per step of an undamped mode of angular frequency ω [rad/s] at step h [s], |R(iωh)|, of the
+#: integrators that have no undamped limit (any undamped mode grows: their limit is their damping's): explicit Euler
+#: √(1 + (ωh)²), midpoint √(1 + (ωh)⁴/4). Past their damping limit a mode grows by little more than 1 per step, but a
+#: mode with ωh of a few grows by several (the spring made 100× stiffer in the guard's battery: non-finite within the
+#: frame after the write, checked once a frame).
+UNDAMPED_GROWTH = {"explicit_euler": lambda omega_h: math.sqrt(1.0 + omega_h ** 2),
+                   "midpoint": lambda omega_h: math.sqrt(1.0 + 0.25 * omega_h ** 4)}
+
 
 def spring_bounds(model: Model, world: int = 0) -> tuple[int, float, float, float] | None:
     """(the particle whose springs bound the network, its stiffest spring's ke [N/m], Gershgorin bounds of ω_max

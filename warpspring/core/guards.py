@@ -100,6 +100,7 @@ from .guard_records import (
     EnergyBalance,
     GuardLimits,
     STABLE_OMEGA_H,
+    UNDAMPED_GROWTH,
     GuardReport,
     balance_terms,
     spring_bounds,
@@ -127,6 +128,9 @@ CHECK_IN_FRAME = {True: True, False: True}
 #: Frames checked after every substep from a restart, or from a write that raised the springs' bound, at a step the bound
 #: does not certify stable (``Guard._watch``).
 WATCH_FRAMES = 4
+#: The most an undamped mode at the springs' bound may grow over a frame under explicit Euler or midpoint before
+#: the frames from a restart or a write are watched (``Guard._certified``, ``UNDAMPED_GROWTH``).
+WATCH_FRAME_GROWTH = 10.0
 #: A count of unchecked frames past any ``GuardLimits.check_frames``: the next frame is checked.
 FORCE_CHECK = 1 << 30
 
@@ -436,8 +440,8 @@ class Guard(StepHook):
         - no frame is watched: a step the springs' bound does not certify is checked after every substep for
           ``WATCH_FRAMES`` frames from a restart or a write, where a fast linear instability shows (a spring's
           tangent stiffness never exceeds its k, so the step's linear stability cannot worsen later without a
-          write); explicit Euler and midpoint, whose limit is their damping's, which the bound cannot certify, are
-          never watched and so never span;
+          write); explicit Euler and midpoint never span: their limit is their damping's, which the bound cannot
+          certify, so the frames after the watched ones could still grow past it unseen but by the balance;
         - nothing is counted between substeps but by the step itself;
         - the model's elements are springs alone (a family with stiffness of its own is outside the bound);
         - the loads cannot change between frames without a write the guard sees (gravity alone: a control force,
@@ -457,7 +461,7 @@ class Guard(StepHook):
         integrator = self.integrator
         if not (getattr(integrator, "unconditionally_stable", False) or getattr(integrator, "adaptive", False)
                 or STABLE_OMEGA_H.get(getattr(integrator, "name", None)) is not None):
-            return False  # explicit Euler, midpoint: a limit the bound cannot certify, so no frame is ever watched
+            return False  # explicit Euler, midpoint: a damping limit the bound cannot certify
         external = self.control is not None and model.force_features(self.control).external
         pins = getattr(model, "pin_groups", None)
         return not (external or self._working_families() or model.emitters or model.input_tracks is not None
@@ -511,20 +515,26 @@ class Guard(StepHook):
         (``STABLE_OMEGA_H``) and the dampers' rate λ_D h ≤ 1, in a model whose only elements are springs (wind
         triangles, handles, hinges and tets have stiffness and damping of their own, outside the bound: the flag in
         wind at twice the advisor's step, its springs' ω_max h ≤ 1.88, overflowed within its first frame). Implicit
-        and adaptive integrators and a guard without a step count as certified, and so do explicit Euler and
-        midpoint, whose limit is their damping's, which the bounds (upper bounds) cannot certify: they are not
-        watched (their modes past that limit grow by little more than 1 per step)."""
+        and adaptive integrators and a guard without a step count as certified. Explicit Euler and midpoint, whose
+        limit is their damping's, which the bounds (upper bounds) cannot certify, count as certified where an undamped
+        mode at the bound grows by at most ``WATCH_FRAME_GROWTH`` over a frame (``UNDAMPED_GROWTH``): a mode past
+        their damping limit grows by little more than 1 per step and the frames' checks see it, but a spring made
+        100× stiffer grows by several a step and overflowed within the frame after the write."""
         integrator = self.integrator
         name = getattr(integrator, "name", None)
         limit = STABLE_OMEGA_H.get(name)
+        growth = UNDAMPED_GROWTH.get(name)
         if (self.dt is None or getattr(integrator, "unconditionally_stable", False)
-                or getattr(integrator, "adaptive", False) or limit is None):
+                or getattr(integrator, "adaptive", False) or (limit is None and growth is None)):
             return True
         if self._bound == 0.0:
             return True  # no springs: nothing the bound could tell (a handle alone, tets alone: not watched)
         if any(family.name != "springs" and family.element_count for family in self.model.families):
             return False
         h = float(self.dt)
+        if limit is None:
+            return (self.substeps * math.log(growth(self._bound * h)) <= math.log(WATCH_FRAME_GROWTH)
+                    and self._rate * h <= 1.0)
         return self._bound * h <= limit and self._rate * h <= 1.0
 
     def balance_applies(self) -> bool:
