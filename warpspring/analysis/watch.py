@@ -74,7 +74,8 @@ class StabilityWatch(FrameHook):
             run here, linearised about ``state``.
         iterations: power iterations per re-check, ≥ 1.
         margin: fraction of the stable limit at which to warn, in (0, 1].
-        every: frames between re-checks (≥ 1): it re-checks after the frames that are multiples of it.
+        every: frames between re-checks (≥ 1): it re-checks after the first frame and after the frames that are
+            multiples of it.
         stop: a multiple of the stable limit (≥ 1; ``None``, the default: warn only) at which a world's ω_max stops
             the run with a :class:`~warpspring.errors.SimulationError` where the simulator's guard cannot see the
             growth (its energy balance is off: ``WATCH_STOP``); read at the frame after the re-check (on the CPU,
@@ -143,12 +144,13 @@ class StabilityWatch(FrameHook):
 
     def after_frame(self, sim: Simulator, frame: int) -> None:
         """Read a re-check still pending at the frame after it (on CUDA: its stream has long finished), then
-        re-check after the frames that are multiples of :attr:`every` (:meth:`check`); with :attr:`stop`, a world
-        past it stops the run where ``sim``'s guard cannot see the growth (:meth:`collect`)."""
+        re-check after the first frame and after the frames that are multiples of :attr:`every` (:meth:`check`): a
+        step past its limit from the start is seen at once; with :attr:`stop`, a world past it stops the run where
+        ``sim``'s guard cannot see the growth (:meth:`collect`)."""
         self._sim = sim
         if getattr(self, "_pending", None) is not None and frame > self._pending:
             self.collect()
-        if frame % self.every == 0:
+        if frame % self.every == 0 or self.frame < 0 and getattr(self, "_pending", None) is None:
             self.check(sim.state, frame)
 
     def _build(self) -> None:
