@@ -233,3 +233,29 @@ translation = { times = [0.0, 2.0], values = [[0, 0, 0], [0.5, 0, 0]] }
         summary = run_scene(load_scene(str(path)), output=str(tmp_path / f"remedy_{substeps}.usdc"),
                             progress=False, watch=1, substeps=substeps)
         assert summary.frames == 20
+
+
+@pytest.mark.parametrize("integrator, substeps", [("explicit_euler", 200), ("midpoint", 40)])
+def test_a_spring_made_stiffer_under_a_damping_limited_integrator_is_watched(device, integrator, substeps):
+    """Explicit Euler and midpoint, whose limit is their damping's: an 8 × 8 damped cloth (1 kN/m, kd = 1 N·s/m,
+    10 g particles) is certified by the springs' bound at 200 and 40 substeps (an undamped mode at it grows < 10× a
+    frame), so its frames are checked once each; one spring made 100 times stiffer through the model (ω h ×10: an
+    undamped mode there grows ~1.07× (explicit Euler) or ~2× (midpoint) a step) has the next frames checked after
+    every substep, and the run is stopped for an instability, not as a non-finite state. Checked once a frame, the
+    battery's cloths under both integrators overflowed within the frame after such a write."""
+    builder = ws.ModelBuilder()
+    spring = ws.SpringMaterial(ke=1.0e3, kd=1.0)
+    builder.add_cloth_grid(nx=8, ny=8, spacing=0.1, particle_mass=0.01, structural=spring, shear=spring, pin=["top"])
+    model = builder.finalize(device)
+    sim = ws.Simulator(model, integrator=ws.make_integrator(integrator, model), fps=60, substeps=substeps)
+    run_frames(sim, 2)
+    assert not sim.guard._watching
+    stiffness = model.world_values("spring_stiffness").copy()
+    stiffness[:, 0] *= 100.0
+    model.set_world_values("spring_stiffness", stiffness)
+    with pytest.raises(ws.SimulationError) as stop:
+        for _ in range(3):
+            sim.step_frame()
+            assert sim.guard._watching
+        sim.settle()
+    assert stop.value.reason != "non-finite state", str(stop.value)
