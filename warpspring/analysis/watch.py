@@ -113,6 +113,8 @@ class StabilityWatch(FrameHook):
         self.frame = -1
         self.warned = np.zeros(worlds, dtype=np.int64)
         self.notify = None
+        self._pending = None  # the frame of the re-check started and not read yet
+        self._sim = None  # the simulator whose frames it watches (``after_frame``): its guard decides a stop
         if advice is None:
             advice = advise(model, integrator, dt, fps=fps, state=state, control=control)
         limits = advice.world_dt_stable
@@ -135,8 +137,8 @@ class StabilityWatch(FrameHook):
     @classmethod
     def attach(cls, sim: Simulator, *, every: int = WATCH_EVERY, advice: Advice | None = None,
                **options) -> StabilityWatch:
-        """A watch of ``sim``'s run from its current state, re-checking every ``every`` frames from now on,
-        added to its frame hooks (:meth:`~warpspring.core.simulator.Simulator.add_frame_hook`); returns it.
+        """A watch of ``sim``'s run from its current state, re-checking after its next frame and every ``every``
+        frames from now on, added to its frame hooks (:meth:`~warpspring.core.simulator.Simulator.add_frame_hook`); returns it.
         ``advice``: the advisor's verdict on this run, if the caller already has one (else the watch runs the
         advisor about the current state); ``options``: ``iterations``, ``margin``, ``stop``."""
         return sim.add_frame_hook(cls(sim.model, sim.integrator.name, sim.dt, fps=sim.fps, substeps=sim.substeps,
@@ -148,9 +150,9 @@ class StabilityWatch(FrameHook):
         step past its limit from the start is seen at once; with :attr:`stop`, a world past it stops the run where
         ``sim``'s guard cannot see the growth (:meth:`collect`)."""
         self._sim = sim
-        if getattr(self, "_pending", None) is not None and frame > self._pending:
+        if self._pending is not None and frame > self._pending:
             self.collect()
-        if frame % self.every == 0 or self.frame < 0 and getattr(self, "_pending", None) is None:
+        if frame % self.every == 0 or (self.frame < 0 and self._pending is None):
             self.check(sim.state, frame)
 
     def _build(self) -> None:
@@ -199,7 +201,7 @@ class StabilityWatch(FrameHook):
 
     def collect(self) -> None:
         """Read the re-check started last (waiting for it where it still runs) and warn where due."""
-        frame = getattr(self, "_pending", None)
+        frame = self._pending
         if frame is None:
             return
         if self._done is not None:
@@ -222,7 +224,7 @@ class StabilityWatch(FrameHook):
                 self.notify(message)
             else:
                 warnings.warn(StabilityWarning(message), stacklevel=3)
-        sim = getattr(self, "_sim", None)
+        sim = self._sim
         if self.stop is not None and sim is not None and sim.guard is not None and not sim.guard.balance_applies():
             over = [int(w) for w in np.flatnonzero(ratio >= self.stop) if int(w) not in sim.world_failures]
             if over:
