@@ -47,14 +47,19 @@ WATCH_MARGIN = 1.0
 #: Residual at which a world stops iterating within a re-check.
 WATCH_TOLERANCE = 1.0e-4
 #: The multiple of the highest frequency a step keeps stable that a world's ω_max may reach before a watch given
-#: ``stop`` stops the run, where the run's guard cannot see a growth (its energy balance off: moving colliders,
-#: emitters, the force clamp; ``Guard.balance_applies``) and a position correction (contacts, self-collision's cap,
-#: strain limiting, plasticity) may hold it below the tear and runaway limits: ``warpspring run``'s default. 5 % past
+#: ``stop`` stops a guarded run: ``warpspring run``'s default. The guard's balance may not see the growth (off with
+#: moving colliders, emitters, the force clamp; one-sided where losses go uncounted) and a position correction
+#: (contacts, self-collision's cap, strain limiting, plasticity) may hold it below the tear and runaway limits. 5 % past
 #: the limit the top mode grows by 1.9× a step under symplectic Euler and Verlet (ωh = 2.1) and 1.4× under RK4
 #: (ωh = 2.97): an instability, not a matter of margin; the power iterations' estimate approaches ω_max from below.
 #: In the guard's battery the advisor's steps kept at most 0.79 of the limit, and the injected instabilities reached
 #: 1.06-1.15 (a spring 100× stiffer) and 2 (twice the limit) (bench/results/guard_battery_cpu.md).
 WATCH_STOP = 1.05
+#: The integrators whose stable step is their damping's (no undamped limit): a written model's limits are the advisor's
+#: again at the state re-checked, not the start's scaled by ω (a spring made stiffer at the same kd has a smaller
+#: damping ratio: thin_colliders' stiffest spring 100× stiffer under explicit Euler read 0.15 of the scaled limit while
+#: the advisor found the step 3.2 times past it).
+DAMPING_LIMITED = ("explicit_euler", "midpoint")
 
 
 class StabilityWatch(FrameHook):
@@ -77,9 +82,8 @@ class StabilityWatch(FrameHook):
         every: frames between re-checks (≥ 1): it re-checks after the first frame and after the frames that are
             multiples of it.
         stop: a multiple of the stable limit (≥ 1; ``None``, the default: warn only) at which a world's ω_max stops
-            the run with a :class:`~warpspring.errors.SimulationError` where the simulator's guard cannot see the
-            growth (its energy balance is off: ``WATCH_STOP``); read at the frame after the re-check (on the CPU,
-            at once).
+            a guarded run with a :class:`~warpspring.errors.SimulationError` (``WATCH_STOP``), or with the guard's
+            ``stop="world"`` holds the world; read at the frame after the re-check (on the CPU, at once).
 
     Attributes:
         omega_limit: each world's highest stable angular frequency at ``dt`` [rad/s], float64,
@@ -115,11 +119,10 @@ class StabilityWatch(FrameHook):
         self.notify = None
         self._pending = None  # the frame of the re-check started and not read yet
         self._sim = None  # the simulator whose frames it watches (``after_frame``): its guard decides a stop
+        self._control = control
         if advice is None:
             advice = advise(model, integrator, dt, fps=fps, state=state, control=control)
-        limits = advice.world_dt_stable
-        finite = np.isfinite(limits) & (limits > 0.0) & (not advice.adaptive)
-        self.omega_limit = np.where(finite, advice.world_omega_max * np.where(finite, limits, 0.0) / dt, math.inf)
+        self._limit(advice)
         # Worlds whose step some frequency can break, and that have free particles to move.
         free = free_particles(model)
         watched = np.isfinite(self.omega_limit) & free.any(axis=1)
@@ -147,13 +150,19 @@ class StabilityWatch(FrameHook):
     def after_frame(self, sim: Simulator, frame: int) -> None:
         """Read a re-check still pending at the frame after it (on CUDA: its stream has long finished), then
         re-check after the first frame and after the frames that are multiples of :attr:`every` (:meth:`check`): a
-        step past its limit from the start is seen at once; with :attr:`stop`, a world past it stops the run where
-        ``sim``'s guard cannot see the growth (:meth:`collect`)."""
+        step past its limit from the start is seen at once; with :attr:`stop`, a world past it stops ``sim``'s run
+        where it has a guard (:meth:`collect`)."""
         self._sim = sim
         if self._pending is not None and frame > self._pending:
             self.collect()
         if frame % self.every == 0 or (self.frame < 0 and self._pending is None):
             self.check(sim.state, frame)
+
+    def _limit(self, advice: Advice) -> None:
+        """Each world's highest stable frequency at the step from the advisor's verdict (:attr:`omega_limit`)."""
+        limits = advice.world_dt_stable
+        finite = np.isfinite(limits) & (limits > 0.0) & (not advice.adaptive)
+        self.omega_limit = np.where(finite, advice.world_omega_max * np.where(finite, limits, 0.0) / self.dt, math.inf)
 
     def _build(self) -> None:
         """The iteration's buffers for the model's current values (the last iterate carried over), and no
@@ -174,6 +183,9 @@ class StabilityWatch(FrameHook):
         device = self.model.device
         if self._version != self.model.input_version:
             self._build()
+            if self.integrator in DAMPING_LIMITED:  # (the limit scales with ω alone only at a kept damping ratio)
+                self._limit(advise(self.model, self.integrator, self.dt, fps=self.fps, state=state,
+                                   control=self._control))
         wp.copy(self._snapshot, state.particle_q)  # on the frames' stream, after the frame
         if self._stream is not None:
             self._stream.wait_event(wp.get_stream(device).record_event())
@@ -225,14 +237,14 @@ class StabilityWatch(FrameHook):
             else:
                 warnings.warn(StabilityWarning(message), stacklevel=3)
         sim = self._sim
-        if self.stop is not None and sim is not None and sim.guard is not None and not sim.guard.balance_applies():
+        if self.stop is not None and sim is not None and sim.guard is not None:
             over = [int(w) for w in np.flatnonzero(ratio >= self.stop) if int(w) not in sim.world_failures]
             if over:
                 self._stop(sim, frame, over, ratio)
 
     def _stop(self, sim: Simulator, frame: int, worlds: list, ratio: np.ndarray) -> None:
         """``worlds``' states at ``frame`` are past ``stop`` times their step's stable limit (``ratio``: each world's
-        ω_max over it) and the guard's balance, off, would not see the growth: with the guard's ``stop="world"`` hold
+        ω_max over it): with the guard's ``stop="world"`` hold
         them (:meth:`~warpspring.core.simulator.Simulator.hold_world`) and go on while a world runs, else stop the
         run (the message names the scene's suspects and a remedy)."""
         reports = [GuardReport(world=w, reason="stability limit", substep=self.substeps - 1, particle=None,
@@ -249,13 +261,19 @@ class StabilityWatch(FrameHook):
         where = f"world {world}'s" if self.model.world_count > 1 else "the"
         advice = stop_advice(report, self.model, integrator=self.integrator, substeps=self.substeps, dt=self.dt,
                              control=sim.control)
-        off = "; ".join(sim.guard.balance_terms().off) or "see the run summary"
+        terms = sim.guard.balance_terms()
+        if not terms.on:
+            balance = f"with the guard's energy balance off in this scene ({'; '.join(terms.off)}) no growth is seen"
+        elif terms.losses:
+            balance = (f"the guard's energy balance, which does not count {', '.join(terms.losses)} here, may see the "
+                       "growth late, or never where a position correction holds it")
+        else:
+            balance = "its growth has not yet shown in the guard's energy balance"
         error = SimulationError(
             f"frame {frame}: {where} state is past the stability limit of {self.integrator}: ω_max ≈ "
             f"{self.omega[world]:.4g} rad/s is {ratio[world]:.2f}× the {self.omega_limit[world]:.4g} rad/s that dt = "
-            f"{self.dt:.3g} s keeps stable (the stability watch), and with the guard's energy balance off in this "
-            f"scene ({off}) no growth would be seen before a tear; the advisor's estimate asks for at least {needed} "
-            f"substeps per 1/{self.fps:g} s frame; {advice}",
+            f"{self.dt:.3g} s keeps stable (the stability watch); {balance}; the advisor's estimate asks for at "
+            f"least {needed} substeps per 1/{self.fps:g} s frame; {advice}",
             frame=sim.frame)
         error.reason = "stability limit"
         raise error
