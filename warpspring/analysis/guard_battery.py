@@ -15,8 +15,8 @@ Three kinds of case (``run_case``):
   dense lattice: its own ω grows tenfold, the network's bound less).
 
 Each run is as ``warpspring run`` makes it: with its stability watch (``watch.StabilityWatch``, every
-``WATCH_EVERY`` frames), which stops a state past ``WATCH_STOP`` times its step's stable limit where the guard's energy
-balance is off (moving colliders, emitters), and so with every frame read (the checks never span frames);
+``WATCH_EVERY`` frames and after the first), which stops a state past ``WATCH_STOP`` times its step's stable limit, and
+so with every frame read (the checks never span frames);
 ``run_case(watch=False)`` runs the simulator alone, as the API gives it.
 
 The battery needs no GPU; ``bench/guard_battery.py`` runs it and writes its results, and ``tests/test_guard_battery.py``

@@ -211,9 +211,9 @@ def run_scene(
     Before the run the stability advisor checks the step (:func:`preflight`): with ``strict`` an unstable
     step is refused, otherwise its message goes to ``warn`` (a callable taking one string), if given.
     During the run it re-checks the step at the state reached every ``watch`` frames (default
-    ``WATCH_EVERY``; 0 off: :class:`~warpspring.analysis.watch.StabilityWatch`), its warnings to ``warn``; where
-    the guard's energy balance is off (moving colliders, emitters: the run summary names why) a state past
-    ``WATCH_STOP`` times its step's stable limit stops the run, the guard seeing no growth there.
+    ``WATCH_EVERY``; 0 off: :class:`~warpspring.analysis.watch.StabilityWatch`), its warnings to ``warn``; a
+    state past ``WATCH_STOP`` times its step's stable limit stops the run (the guard's balance may be off or
+    one-sided, and a position correction may hold the growth below the tear limit).
 
     Every ``checkpoint_every`` frames (0: never) the whole simulation is saved to
     :func:`checkpoint_path` of the output (atomically replaced); ``resume`` continues a stopped run from such
