@@ -211,13 +211,29 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch, edits, 
 # -- an unstable run: exit 3 -------------------------------------------------------------------------------
 
 
-def test_unstable_run_warns_exits_3_and_leaves_finite_frames(tmp_path, capsys):
-    """A run outside the stability limit is warned about up front; it diverges and exits 3 with one line
-    naming frame k, the substep, what the guard saw (the energy the unstable step created, before any
-    spring tears) and the advisor's remedy; the file holds the finite frames 0..k-1 and not the blown-up
-    one."""
+def test_unstable_run_is_stopped_by_the_watch_at_its_first_frame(tmp_path, capsys):
+    """A run outside the stability limit is warned about up front, and the stability watch's first re-check (after
+    frame 1) stops it: exit 3, one line naming frame 1, the ratio of its ω_max to the step's limit, what the
+    balance does not count and the substeps; the file holds frame 0."""
     out = tmp_path / "unstable.usdc"
     status, stdout, stderr = run_cli(capsys, write_scene(tmp_path, UNSTABLE), "-o", out)
+    assert status == EXIT_SIMULATION, stderr
+    assert stdout == "" and len(stderr) == 2, stderr
+    assert stderr[0].startswith("warpspring: warning: symplectic_euler is unstable at dt = ")
+    failure = stderr[1]
+    assert re.match(r"warpspring: simulation failed: frame 1: the state is past the stability limit of "
+                    r"symplectic_euler: ω_max ≈ [0-9.]+ rad/s is [0-9.]+× the", failure), failure
+    assert "--substeps" in failure and "frames 0..0" in failure
+    points, times, _ = points_samples(out)
+    assert times == [0.0] and np.isfinite(points[0]).all()
+
+
+def test_unstable_run_warns_exits_3_and_leaves_finite_frames(tmp_path, capsys):
+    """Without the watch (``--watch-every 0``) the guard stops the same run: it diverges and exits 3 with one line
+    naming frame k, the substep, what the guard saw (the energy the unstable step created, before any spring
+    tears) and the advisor's remedy; the file holds the finite frames 0..k-1 and not the blown-up one."""
+    out = tmp_path / "unstable.usdc"
+    status, stdout, stderr = run_cli(capsys, write_scene(tmp_path, UNSTABLE), "-o", out, "--watch-every", "0")
     assert status == EXIT_SIMULATION, stderr
     assert stdout == "" and len(stderr) == 2
     assert stderr[0].startswith("warpspring: warning: symplectic_euler is unstable at dt = ")

@@ -212,7 +212,8 @@ class StabilityWatch(FrameHook):
             iteration.iterate(self._snapshot)
 
     def collect(self) -> None:
-        """Read the re-check started last (waiting for it where it still runs) and warn where due."""
+        """Read the re-check started last (waiting for it where it still runs) and warn where due; with
+        :attr:`stop`, stop or hold the worlds past it (:meth:`_stop`) instead."""
         frame = self._pending
         if frame is None:
             return
@@ -222,7 +223,13 @@ class StabilityWatch(FrameHook):
         self.omega = np.sqrt(np.maximum(self._iteration.scalars.numpy()[:, PI_LAMBDA], 0.0))
         self.frame = frame
         ratio = self.omega / self.omega_limit
+        sim = self._sim
+        stopping = self.stop is not None and sim is not None and sim.guard is not None
+        over = ([int(w) for w in np.flatnonzero(ratio >= self.stop) if int(w) not in sim.world_failures]
+                if stopping else [])
         for w in np.flatnonzero(ratio >= self.margin):
+            if w in over:
+                continue  # (stopped or held below, with the substeps it needs)
             needed = math.ceil(self.substeps * ratio[w] / self.margin - 1.0e-9)
             if needed <= max(self.warned[w], self.substeps):
                 continue
@@ -236,11 +243,8 @@ class StabilityWatch(FrameHook):
                 self.notify(message)
             else:
                 warnings.warn(StabilityWarning(message), stacklevel=3)
-        sim = self._sim
-        if self.stop is not None and sim is not None and sim.guard is not None:
-            over = [int(w) for w in np.flatnonzero(ratio >= self.stop) if int(w) not in sim.world_failures]
-            if over:
-                self._stop(sim, frame, over, ratio)
+        if over:
+            self._stop(sim, frame, over, ratio)
 
     def _stop(self, sim: Simulator, frame: int, worlds: list, ratio: np.ndarray) -> None:
         """``worlds``' states at ``frame`` are past ``stop`` times their step's stable limit (``ratio``: each world's
