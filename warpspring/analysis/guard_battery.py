@@ -174,7 +174,8 @@ def run_case(path: pathlib.Path, variant: str, integrator: str, case: str, *, de
     if key not in _CHOICES:  # the advisor once per scene, variant and integrator (its dry run dominates on a CPU)
         horizon = max(frames, STIFF_AT + STOP_FRAMES) / fps
         try:
-            _CHOICES[key] = choose_substeps(model, integrator, fps=fps, control=control, horizon=horizon)
+            _CHOICES[key] = choose_substeps(model, make_integrator(integrator, model), fps=fps, control=control,
+                                            horizon=horizon)  # (an instance: implicit Euler's options)
         except ConfigError as refusal:  # no stable step (explicit Euler on undamped springs): no run to judge
             _CHOICES[key] = refusal
         # (the advisor's dry run stepped the model)
