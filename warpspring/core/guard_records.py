@@ -186,7 +186,7 @@ class GuardReport:
         energy_created: kinetic + elastic energy beyond the start's plus the work put in, at that check [J].
         energy_budget: the most energy the start and the loads could have supplied so far [J].
         stability_ratio: with reason "stability limit" (found by the stability watch, not a check: ``StabilityWatch``
-            given ``stop``), the world's ω_max over the highest frequency its step keeps stable; else NaN.
+            given ``stop``), the world's ω_max over the highest frequency its step keeps stable; else ``None``.
     """
 
     world: int
@@ -201,7 +201,7 @@ class GuardReport:
     element: int | None = None
     energy_created: float = 0.0
     energy_budget: float = 0.0
-    stability_ratio: float = math.nan
+    stability_ratio: float | None = None
 
     def describe(self, model: Model, *, name_world: bool = True) -> str:
         """One clause naming what went wrong and where (the world too, in a model of several, unless
