@@ -219,7 +219,8 @@ translation = { times = [0.0, 2.0], values = [[0, 0, 0], [0.5, 0, 0]] }
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ws.StabilityWarning)
         with pytest.raises(ws.SimulationError) as stop:
-            run_scene(load_scene(str(path)), output=str(tmp_path / "stopped.usdc"), progress=False, watch=1)
+            run_scene(load_scene(str(path)), output=str(tmp_path / "stopped.usdc"), device="cpu", progress=False,
+                      watch=1)
     message = str(stop.value)
     assert stop.value.frame == 1 and message.endswith("stopped.usdc holds frames 0..0")
     assert re.match(r"frame 1: the state is past the stability limit of symplectic_euler: ω_max ≈ [0-9.]+ rad/s is "
@@ -230,7 +231,7 @@ translation = { times = [0.0, 2.0], values = [[0, 0, 0], [0.5, 0, 0]] }
                 + re.findall(r"at least (\d+) substeps", message)}
     assert len(remedies) >= 2 and min(remedies) > 1
     for substeps in sorted(remedies):
-        summary = run_scene(load_scene(str(path)), output=str(tmp_path / f"remedy_{substeps}.usdc"),
+        summary = run_scene(load_scene(str(path)), output=str(tmp_path / f"remedy_{substeps}.usdc"), device="cpu",
                             progress=False, watch=1, substeps=substeps)
         assert summary.frames == 20
 

@@ -149,3 +149,23 @@ def test_with_stop_world_the_watch_holds_the_world_past_its_limit(device):
     positions = sim.state.particle_q.numpy().reshape(2, -1, 3)
     assert np.array_equal(positions[1], before[1])
     assert np.isfinite(positions[0]).all() and not np.array_equal(positions[0], before[0]) and sim.frame == 5
+
+
+def test_a_re_check_left_pending_across_a_reset_is_dropped(device):
+    """A re-check read a frame later (CUDA) judges the frame it was started after: one still pending when the
+    simulator was reset (or loaded a checkpoint) is dropped, not read at the new run's frames; a report of the watch
+    without its ratio reads as a sentence."""
+    from warpspring.core.guard_records import GuardReport
+
+    sim, watch, stop = _run_watched(device, moving=True, factor=0.9, frames=3)
+    assert stop is None
+    read = []
+    collect = watch.collect
+    watch.collect = lambda: (read.append(watch._pending), collect())
+    watch._pending = 7  # (as if frame 7's re-check were still running when the run was reset)
+    sim.reset()
+    sim.step_frame()
+    assert 7 not in read and watch.frame in (1, 3)  # (frame 1's re-check read at once on the CPU, next on CUDA)
+    report = GuardReport(world=0, reason="stability limit", substep=0, particle=None, spring=None, strain=-1.0,
+                         kinetic_energy=0.0)
+    assert report.describe(sim.model) == "the state passed its step's stability limit (by the stability watch)"

@@ -203,11 +203,13 @@ def run_case(path: pathlib.Path, variant: str, integrator: str, case: str, *, de
         raise ValueError(case)
     sim = Simulator(model, integrator=make_integrator(integrator, model), fps=fps, substeps=substeps, control=control,
                     guard=scene.guard, defer_verdict=defer_verdict)
+    watcher = None
     if watch:  # as ``warpspring run`` attaches it (its warnings are not the battery's verdict)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", StabilityWarning)
-            StabilityWatch.attach(sim, every=WATCH_EVERY, advice=advice if case == "twice" else choice.advice,
-                                  stop=WATCH_STOP).notify = lambda message: None
+            watcher = StabilityWatch.attach(sim, every=WATCH_EVERY, advice=advice if case == "twice" else choice.advice,
+                                            stop=WATCH_STOP)
+        watcher.notify = lambda message: None
     outcome = Outcome(name, variant, integrator, case, substeps, fps, 0, False)
     try:
         for frame in range(limit):
@@ -232,6 +234,8 @@ def run_case(path: pathlib.Path, variant: str, integrator: str, case: str, *, de
                     break
             sim.step_frame()
             outcome.frames = frame + 1
+        if watcher is not None:
+            watcher.collect()  # the last frame's re-check (on CUDA read a frame later), as ``warpspring run`` does
         sim.settle()  # the last frame's verdict (on CUDA read a frame later)
     except SimulationError as stop:
         outcome.stopped = True

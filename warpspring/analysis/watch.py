@@ -153,8 +153,11 @@ class StabilityWatch(FrameHook):
         step past its limit from the start is seen at once; with :attr:`stop`, a world past it stops ``sim``'s run
         where it has a guard (:meth:`collect`)."""
         self._sim = sim
-        if self._pending is not None and frame > self._pending:
-            self.collect()
+        if self._pending is not None:
+            if frame == self._pending + 1:
+                self.collect()
+            else:  # (a reset or a checkpoint's load since: that re-check judged a state of another run)
+                self._pending = None
         if frame % self.every == 0 or (self.frame < 0 and self._pending is None):
             self.check(sim.state, frame)
 
@@ -228,8 +231,8 @@ class StabilityWatch(FrameHook):
         over = ([int(w) for w in np.flatnonzero(ratio >= self.stop) if int(w) not in sim.world_failures]
                 if stopping else [])
         for w in np.flatnonzero(ratio >= self.margin):
-            if w in over:
-                continue  # (stopped or held below, with the substeps it needs)
+            if w in over or (stopping and int(w) in sim.world_failures):
+                continue  # (stopped or held, now or before, with the substeps it needs)
             needed = math.ceil(self.substeps * ratio[w] / self.margin - 1.0e-9)
             if needed <= max(self.warned[w], self.substeps):
                 continue

@@ -358,6 +358,8 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
                 bar.update(1)
                 if t1 is None:  # the first frame compiled the kernels and captured the graph: setup time
                     t1 = time.perf_counter()
+            if stability_watch is not None:
+                stability_watch.collect()  # the last frame's re-check, where it is read a frame later (CUDA)
         except SimulationError as exc:
             # A guard names its frame and substep; the writer's last-line check knows only the frame.
             frame = exc.frame if exc.frame is not None else sim.frame
