@@ -228,10 +228,10 @@ class StabilityWatch(FrameHook):
         ratio = self.omega / self.omega_limit
         sim = self._sim
         stopping = self.stop is not None and sim is not None and sim.guard is not None
-        over = ([int(w) for w in np.flatnonzero(ratio >= self.stop) if int(w) not in sim.world_failures]
-                if stopping else [])
+        held = set(sim.world_failures) if stopping else set()  # (read once: the property settles the frame)
+        over = [int(w) for w in np.flatnonzero(ratio >= self.stop) if int(w) not in held] if stopping else []
         for w in np.flatnonzero(ratio >= self.margin):
-            if w in over or (stopping and int(w) in sim.world_failures):
+            if w in over or int(w) in held:
                 continue  # (stopped or held, now or before, with the substeps it needs)
             needed = math.ceil(self.substeps * ratio[w] / self.margin - 1.0e-9)
             if needed <= max(self.warned[w], self.substeps):

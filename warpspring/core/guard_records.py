@@ -220,9 +220,10 @@ class GuardReport:
             return (f"{where}{family.describe_element(model, self.element)} stretched to {self.strain + 1:.3g}× its "
                     "rest length (guard limit exceeded)")
         if self.reason == "stability limit":
-            ratio = "" if self.stability_ratio is None else f" (ω_max {self.stability_ratio:.3g}× the highest frequency"
-            return (f"{where}the state passed its step's stability limit{ratio}"
-                    f"{' the step keeps stable, by the stability watch)' if ratio else ' (by the stability watch)'}")
+            if self.stability_ratio is None:
+                return f"{where}the state passed its step's stability limit (by the stability watch)"
+            return (f"{where}the state passed its step's stability limit (ω_max {self.stability_ratio:.3g}× the highest "
+                    "frequency the step keeps stable, by the stability watch)")
         if self.reason == "energy balance":
             share = self.energy_created / self.energy_budget if self.energy_budget > 0.0 else math.inf
             return (f"{where}the integration created {self.energy_created:.3g} J of energy ({share:.0%} of the "

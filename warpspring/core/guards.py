@@ -532,10 +532,11 @@ class Guard(StepHook):
         if any(family.name != "springs" and family.element_count for family in self.model.families):
             return False
         h = float(self.dt)
-        if limit is None:
-            return (self.substeps * math.log(growth(self._bound * h)) <= math.log(WATCH_FRAME_GROWTH)
-                    and self._rate * h <= 1.0)
-        return self._bound * h <= limit and self._rate * h <= 1.0
+        if limit is not None:
+            within = self._bound * h <= limit
+        else:  # (explicit Euler, midpoint: the undamped growth over a frame)
+            within = self.substeps * math.log(growth(self._bound * h)) <= math.log(WATCH_FRAME_GROWTH)
+        return within and self._rate * h <= 1.0
 
     def balance_applies(self) -> bool:
         """Whether the energy balance can be kept for the model as it is now and applies to the integrator
