@@ -118,10 +118,12 @@ def test_the_watch_leaves_a_stable_run_alone_and_stops_past_the_limit_with_the_b
 
 
 def test_with_stop_world_the_watch_holds_the_world_past_its_limit(device):
-    """Two worlds of the moving-collider cloth, the second's springs 9 times stiffer (3 times the first's ω_max) at
-    0.9 of the first's stable step, the guard stopping single worlds: the watch holds the second at its first
-    re-check and records it (reason "stability limit", its ratio, a line that names it); the first runs on, and its
-    positions move while the held world's stay as they were."""
+    """Two worlds of the moving-collider cloth, the second's springs 1.6 times stiffer (1.26 times the first's ω_max)
+    at 0.9 of the first's stable step (1.14 times the second's), the guard stopping single worlds: the watch holds the
+    second after its first re-check (on CUDA read a frame later; the top mode grows 64 times a frame at that step, so
+    the guard's own checks have not yet seen it) and records it at the frame it judged (reason "stability limit", its
+    ratio, a line that names it); the first runs on, and its positions move while the held world's stay as they
+    were."""
     from warpspring.analysis.watch import WATCH_STOP
 
     builder = ws.ModelBuilder()
@@ -131,7 +133,7 @@ def test_with_stop_world_the_watch_holds_the_world_past_its_limit(device):
                                 translation=ws.Track([0.0, 1.0], [[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]]))
     model = builder.finalize(device, worlds=2)
     stiffness = model.world_values("spring_stiffness").copy()
-    stiffness[1] *= 9.0
+    stiffness[1] *= 1.6
     model.set_world_values("spring_stiffness", stiffness)
     advice = ws.advise(model, "symplectic_euler", 1.0e-3, fps=60)
     h = 0.9 * advice.world_dt_stable[0]
@@ -144,7 +146,8 @@ def test_with_stop_world_the_watch_holds_the_world_past_its_limit(device):
     run_frames(sim, 3)
     assert list(sim.world_failures) == [1]
     frame, report = sim.world_failures[1]
-    assert frame == 1 and report.reason == "stability limit" and 2.5 < report.stability_ratio < 3.5
+    assert frame == 1 and report.reason == "stability limit", (frame, report)
+    assert 0.9 * 1.6 ** 0.5 * 0.95 < report.stability_ratio <= 0.9 * 1.6 ** 0.5 * 1.001  # (estimated from below)
     assert "passed its step's stability limit" in sim.describe_failure(1)
     positions = sim.state.particle_q.numpy().reshape(2, -1, 3)
     assert np.array_equal(positions[1], before[1])
@@ -165,7 +168,8 @@ def test_a_re_check_left_pending_across_a_reset_is_dropped(device):
     watch._pending = 7  # (as if frame 7's re-check were still running when the run was reset)
     sim.reset()
     sim.step_frame()
-    assert 7 not in read and watch.frame in (1, 3)  # (frame 1's re-check read at once on the CPU, next on CUDA)
+    watch.collect()  # (frame 1's re-check: read at once on the CPU, at the next frame on CUDA)
+    assert 7 not in read and watch.frame == 1
     report = GuardReport(world=0, reason="stability limit", substep=0, particle=None, spring=None, strain=-1.0,
                          kinetic_energy=0.0)
     assert report.describe(sim.model) == "the state passed its step's stability limit (by the stability watch)"
