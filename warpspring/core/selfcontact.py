@@ -648,12 +648,12 @@ class SelfContact:
         self._check(start, particle_q, tiled=model.device.is_cuda)
         flat_launch(decide_kernel(model.scalar),
                     inputs=[model.world_enabled, self.params, self.cache_reach, self.cache_floor, self.cache.count,
-                            self.cache_near, self.patch_box],
+                            self.cache_capacity, self.cache_near, self.patch_box],
                     outputs=[self.flags, self.patch_watch], dim=model.world_count * self.patch_count ** 2, block_dim=model.block_dim,
                     device=model.device)
         flat_launch(watch_kernel(model.scalar),
                     inputs=[model.particle_count, model.world_enabled, surface, self.params, self.watch_count,
-                            self.watch_key, self.watch_vertex, self.triangle_patch, self.patch_watch,
+                            self.watch_key, self.watch_vertex, self.cache, self.triangle_patch, self.patch_watch,
                             self.watch_split, start],
                     outputs=[self.flags], dim=model.particle_dim * self.watch_split, block_dim=model.block_dim,
                     device=model.device)

@@ -215,7 +215,8 @@ FLAG_WORK = 5  # its first entry only: some world's pair stages must run (module
 FLAG_WATCH = 6  # the world's watched pairs need their check (module selfcontact_cache)
 FLAG_APART = 7  # the least distance at the step's start of a pair outside the cache, in units rounded down, stored as
 #   APART_NONE less it (an integer maximum: the least distance; 0: none recorded; module selfcontact_cache)
-FLAG_KINDS = 8
+FLAG_CACHED = 8  # the world's cached pairs need their check (the drifts do not keep them apart; module selfcontact_cache)
+FLAG_KINDS = 9
 KINEMATIC_STEPS = 4096
 #: FLAG_APART's stored value for a distance of 0 (and for a distance that is not finite): distances of this many
 #: units τ / KINEMATIC_STEPS or more are not recorded.

@@ -64,7 +64,11 @@ whole keeps its cache. Each step:
    ``anchor_kernel`` raise where a world has cached pairs that may lie within REPULSION_REACH τ (1 + SAFETY) at x⁰
    (their least distance at the anchors, recorded by the broad phase in ``cache_near``, less twice the largest |r|:
    a pair's distance changes by at most max |rᵢ - rⱼ|; beyond it a cached pair is as far as one outside the cache,
-   and the same test on the step holds for both), or where a free vertex's step (FLAG_STEP) may exceed
+   and the same test on the step holds for both; where that bound gives up, ``watch_kernel`` checks the cached pairs'
+   own distances at x⁰ in the same launch as the watched pairs' (FLAG_CACHED) and raises FLAG_WORK only where one
+   lies within that reach: a skirt sliding 0.3 τ a step no longer runs the stages for pairs elsewhere resting at 3 τ;
+   a world whose cache overflowed keeps the bound alone, its dropped pairs being in ``cache_near`` only), or where a
+   free vertex's step (FLAG_STEP) may exceed
    what the repulsion's gather allows without the swept broad phase, or whose pins move (REPULSION_REACH - CAP_FLOOR)
    τ / 2 or more.
    Where none does, the stages would push no pair, run no swept broad phase and cap no vertex (each step is below γ SEARCH_REACH τ), so ``state_out`` is
@@ -89,6 +93,7 @@ from .selfcontact import (
     CAP_FLOOR,
     COUNT_FALLBACKS,
     COUNT_REBUILDS,
+    FLAG_CACHED,
     FLAG_DRIFT,
     FLAG_FALLBACK,
     FLAG_KINDS,
@@ -281,9 +286,10 @@ def decide_kernel(scalar: type):
     SAFETY) / 2; or, for every two patches whose position boxes lie closer than REPULSION_REACH τ (1 + SAFETY), their
     drifts' spread at most the slack (the length of the vector of max(high_P + low_Q, high_Q + low_P) per axis: the
     largest |r_a - r_b| over a corner a of P and b of Q). The thread of (0, 0) also decides whether the pair stages
-    run (FLAG_WORK's first entry): where a world has cached pairs that may lie within REPULSION_REACH τ (1 + SAFETY)
-    at the step's start (their least distance at the anchors, ``cache_near``, less twice its largest drift, does not
-    keep them beyond), a free vertex steps further than the repulsion's
+    run (FLAG_WORK's first entry): where a world's cache overflowed its ``cache_capacity`` and its cached pairs may lie
+    within REPULSION_REACH τ (1 + SAFETY) at the step's start (their least distance at the anchors, ``cache_near``,
+    less twice its largest drift, does not keep them beyond; a cache that did not overflow is then flagged FLAG_CACHED
+    for ``watch_kernel``'s check of its pairs' own distances), a free vertex steps further than the repulsion's
     gather allows without the swept broad phase at the least (min(γ (REPULSION_REACH τ - K_w), (REPULSION_REACH -
     CAP_FLOOR) τ / 2) (1 - SAFETY), less its pad), or its pins move (REPULSION_REACH - CAP_FLOOR) τ / 2 or more (less
     the SAFETY share). Each thread records in FLAG_APART the least distance at the step's start its bound gives the
@@ -301,6 +307,7 @@ def decide_kernel(scalar: type):
         cache_reach: wp.array[scalar],
         cache_floor: wp.array[scalar],
         cache_count: wp.array[wp.int32],
+        cache_capacity: int,
         cache_near: wp.array[wp.int32],
         patch_box: wp.array3d[wp.int32],
         # In/out (the pass's flags):
@@ -332,10 +339,17 @@ def decide_kernel(scalar: type):
             far = scalar(2.0) * kinematic >= offset * scalar(1.0 - SAFETY)  # as repel_gather
             # The cached pairs: their least distance at the anchors (in units of the build's τ) less the drifts' spread
             # (two largest |r|) bounds them at the step's start; beyond the repulsion's reach they are as far as the
-            # pairs outside the cache, for which the test on the step above suffices.
+            # pairs outside the cache, for which the test on the step above suffices. Where it does not keep them
+            # there, watch_kernel checks their own distances (FLAG_CACHED), unless the cache overflowed (its dropped
+            # pairs are in cache_near alone): then the stages run.
             cached = (read_apart(cache_near[world], cache_floor[world] / scalar(CACHE_REACH))
                       - scalar(2.0) * drift)
-            if cached_in_reach(cache_count[world], cached, thickness) or not (step <= budget) or far:
+            if cached_in_reach(cache_count[world], cached, thickness):
+                if cache_count[world] <= cache_capacity:
+                    flags_in_out[flag_slot(FLAG_CACHED, world, world_count)] = 1
+                else:
+                    flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
+            if not (step <= budget) or far:
                 flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
         # Every pair outside the cache, watched or not, was this far apart at the anchors: CACHE_REACH τ of the τ
         # it was built with (a τ written since changes the repulsion's reach below, not what the cache holds).
@@ -398,17 +412,35 @@ def cached_in_reach_func(scalar: type):
 
 @functools.cache
 def watch_kernel(scalar: type):
-    """Kernel of the watched pairs' check (module docstring, 1.), after ``decide_kernel``, in the worlds it flagged
-    FLAG_WATCH (elsewhere the drifts keep the watched pairs apart too), ``split`` threads per particle of every world
-    (adjacent), the k-th taking its world's watch slots local + k · particle_count, then every
-    split · particle_count-th (``core/selfcontact.py``'s ``broad_split``: a small cloth's long lists spread over more
-    threads): each watched pair whose sides' patches (their owner
-    triangles', ``triangle_patch``) were both marked by ``decide_kernel`` (``patch_watch``), its distance at the step's start,
-    with the narrow phase's arithmetic; a world with one closer than REPULSION_REACH τ (1 + SAFETY) is flagged for a
-    rebuild (FLAG_REBUILD), and every distance checked is recorded in FLAG_APART (module docstring, 4.)."""
+    """Kernel of the watched and the cached pairs' checks (module docstring, 1. and 5.), after ``decide_kernel``,
+    ``split`` threads per particle of every world (adjacent), the k-th taking its world's list slots local + k ·
+    particle_count, then every split · particle_count-th (``core/selfcontact.py``'s ``broad_split``: a small cloth's long
+    lists spread over more threads). In the worlds ``decide_kernel`` flagged FLAG_WATCH (elsewhere the drifts keep the
+    watched pairs apart too): each watched pair whose sides' patches (their owner triangles', ``triangle_patch``) were
+    both marked by ``decide_kernel`` (``patch_watch``), its distance at the step's start, with the narrow phase's
+    arithmetic; a world with one closer than REPULSION_REACH τ (1 + SAFETY) is flagged for a rebuild (FLAG_REBUILD),
+    and every distance checked is recorded in FLAG_APART (module docstring, 4.). In the worlds flagged FLAG_CACHED
+    (the drifts no longer keep the cached pairs beyond the repulsion's reach): each cached pair's distance at the
+    step's start likewise; one closer than REPULSION_REACH τ (1 + SAFETY) raises FLAG_WORK, and where none is, the
+    pair stages would push no pair (module docstring, 5.)."""
     vec3 = vec3_type(scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
     record, _ = apart_funcs(scalar)
+
+    @wp.func
+    def start_distance(key: wp.int64, vt_keys: wp.int64, index: wp.vec4i, base: int,
+                       particle_q_start: wp.array[vec3]) -> scalar:
+        """A listed pair's distance at the step's start [m] (VT where ``key`` < ``vt_keys``, else EE), with the
+        narrow phase's arithmetic."""
+        x0 = particle_q_start[base + index[0]]
+        x1 = particle_q_start[base + index[1]]
+        x2 = particle_q_start[base + index[2]]
+        x3 = particle_q_start[base + index[3]]
+        if key < vt_keys:
+            bary = triangle_closest(x0, x1, x2, x3)
+            return wp.length(x0 - (bary[0] * x1 + bary[1] * x2 + bary[2] * x3))
+        st = edge_closest(x0, x1, x2, x3)
+        return wp.length((x0 + st[0] * (x1 - x0)) - (x2 + st[1] * (x3 - x2)))
 
     @flat_kernel(module="unique", enable_backward=False)
     def watch(
@@ -420,6 +452,7 @@ def watch_kernel(scalar: type):
         watch_count: wp.array[wp.int32],
         watch_key: wp.array[wp.int64],
         watch_vertex: wp.array[wp.vec4i],
+        cache: Pairs,
         triangle_patch: wp.array[wp.int32],
         patch_watch: wp.array2d[wp.int32],
         split: int,
@@ -433,48 +466,46 @@ def watch_kernel(scalar: type):
         part = tid - p * split
         world, local = world_and_index(p, particle_count)
         world_count = watch_count.shape[0]
-        capacity = watch_key.shape[0] // world_count
-        count = wp.min(watch_count[world], capacity)
-        if local >= count or world_enabled[world] == 0 or flags_in_out[flag_slot(FLAG_WATCH, world, world_count)] == 0:
+        if world_enabled[world] == 0:
             return
         base = base_index(world, particle_count)
         thickness = params[wp.min(world, params.shape[0] - 1), PARAM_THICKNESS]
         near = scalar(REPULSION_REACH) * thickness * scalar(1.0 + SAFETY)
         vt_keys = wp.int64(particle_count) * wp.int64(surface.triangle.shape[0])
-        for slot in range(local + part * particle_count, count, particle_count * split):
-            s = world * capacity + slot
-            # The patches of the pair's sides (their owner triangles'): unless decide_kernel marked both, the pair's
-            # patches lie 2τ apart now or drift by at most the slack of CACHE_REACH τ: it is that far apart.
-            key = watch_key[s]
-            side_a = int(0)
-            side_b = int(0)
-            if key < vt_keys:
-                triangle_count = wp.int64(surface.triangle.shape[0])
-                side_a = triangle_patch[surface.vertex_owner[int(key // triangle_count)]]
-                side_b = triangle_patch[int(key % triangle_count)]
-            else:
-                edge_count = wp.int64(surface.edge.shape[0])
-                rest = key - vt_keys
-                side_a = triangle_patch[surface.edge_owner[int(rest // edge_count)]]
-                side_b = triangle_patch[surface.edge_owner[int(rest % edge_count)]]
-            if patch_watch[world, side_a] == 0 or patch_watch[world, side_b] == 0:
-                continue
-            index = watch_vertex[s]
-            x0 = particle_q_start[base + index[0]]
-            x1 = particle_q_start[base + index[1]]
-            x2 = particle_q_start[base + index[2]]
-            x3 = particle_q_start[base + index[3]]
-            d = scalar(0.0)
-            if key < vt_keys:
-                bary = triangle_closest(x0, x1, x2, x3)
-                d = wp.length(x0 - (bary[0] * x1 + bary[1] * x2 + bary[2] * x3))
-            else:
-                st = edge_closest(x0, x1, x2, x3)
-                d = wp.length((x0 + st[0] * (x1 - x0)) - (x2 + st[1] * (x3 - x2)))
-            if not (d >= near):
-                raise_flag(flags_in_out, FLAG_REBUILD, world, world_count)
-                return
-            record(flags_in_out, world, world_count, d, thickness)  # (its own rounding: the reader's SAFETY)
+        if flags_in_out[flag_slot(FLAG_WATCH, world, world_count)] != 0:
+            capacity = watch_key.shape[0] // world_count
+            count = wp.min(watch_count[world], capacity)
+            for slot in range(local + part * particle_count, count, particle_count * split):
+                s = world * capacity + slot
+                # The patches of the pair's sides (their owner triangles'): unless decide_kernel marked both, the
+                # pair's patches lie 2τ apart now or drift by at most the slack of CACHE_REACH τ: it is that far apart.
+                key = watch_key[s]
+                side_a = int(0)
+                side_b = int(0)
+                if key < vt_keys:
+                    triangle_count = wp.int64(surface.triangle.shape[0])
+                    side_a = triangle_patch[surface.vertex_owner[int(key // triangle_count)]]
+                    side_b = triangle_patch[int(key % triangle_count)]
+                else:
+                    edge_count = wp.int64(surface.edge.shape[0])
+                    rest = key - vt_keys
+                    side_a = triangle_patch[surface.edge_owner[int(rest // edge_count)]]
+                    side_b = triangle_patch[surface.edge_owner[int(rest % edge_count)]]
+                if patch_watch[world, side_a] == 0 or patch_watch[world, side_b] == 0:
+                    continue
+                d = start_distance(key, vt_keys, watch_vertex[s], base, particle_q_start)
+                if not (d >= near):
+                    raise_flag(flags_in_out, FLAG_REBUILD, world, world_count)
+                    return  # (the rebuild's anchors decide the stages for the new cache: anchor_kernel)
+                record(flags_in_out, world, world_count, d, thickness)  # (its own rounding: the reader's SAFETY)
+        if flags_in_out[flag_slot(FLAG_CACHED, world, world_count)] != 0:
+            capacity = cache.key.shape[0] // world_count
+            count = wp.min(cache.count[world], capacity)
+            for slot in range(local + part * particle_count, count, particle_count * split):
+                s = world * capacity + slot
+                if not (start_distance(cache.key[s], vt_keys, cache.vertex[s], base, particle_q_start) >= near):
+                    flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
+                    return
 
     return watch
 
