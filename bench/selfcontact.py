@@ -31,6 +31,7 @@ launch, scan and refit.
     python bench/selfcontact.py --device cpu --sizes 16 --radius-study   # the cap's pair counts by radius
     python bench/selfcontact.py --device cpu --sizes 32 64 --rebuild-study 4   # the cache's rebuilds by rule
     python bench/selfcontact.py --device cpu --sizes 64 128 --patch-study 8   # the cache's rebuilds by patch grouping
+    python bench/selfcontact.py --device cpu --sizes 32 64 --stage-study 4   # how often the pair stages run, and why
 
 The cost table (the default mode) times, at each size, the substep without and with self-collision
 (``none``, ``self``; ``--pass-alone`` adds ``pass``), and each self-collision example's simulation loop
@@ -487,6 +488,54 @@ def patch_study(n: int, device, frames: int) -> list[str]:
     return rows
 
 
+def stage_study(n: int, device, frames: int) -> list[str]:
+    """Markdown rows: how often the pass's pair stages run over ``frames`` frames of the ``self`` scene after the
+    settling (the pass as it runs, uncaptured: each stage run a host branch), and at each run the least distance of
+    any pair at the step's start (the device's broad phase within 3τ, ``SelfContact.proximity``) and what asked for
+    the run: a pair within the repulsion's reach 2τ (1 + SAFETY), a free vertex's step past the repulsion's budget
+    (FLAG_STEP), or neither (the stages ran for nothing)."""
+    import warpspring.core.selfcontact as host
+    from warpspring.kernels.selfcontact import (FLAG_KINEMATIC, FLAG_STEP, FLOOR_OFFSET, KINEMATIC_STEPS,
+                                                PARAM_RELAXATION, REPULSION_REACH, SAFETY, flag_slot)
+
+    model = scene(n, device, True)
+    sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=None, use_graph=False)
+    for _ in range(SETTLE_FRAMES):
+        sim.step_frame()
+    sc = model.self_contact
+    tau = sc.thickness
+    reach = REPULSION_REACH * tau * (1.0 + SAFETY)
+    runs = []
+    stages = host.SelfContact._stages
+
+    def counted(self, start, particle_q, state_out, dt):
+        flags = self.flags.numpy()
+        unit = tau / KINEMATIC_STEPS
+        kinematic = flags[flag_slot(FLAG_KINEMATIC, 0, 1)] * unit
+        step = flags[flag_slot(FLAG_STEP, 0, 1)] * unit
+        gamma = float(self.params.numpy()[0, PARAM_RELAXATION])
+        budget = min(gamma * (REPULSION_REACH * tau - kinematic), 0.5 * FLOOR_OFFSET * tau) * (1.0 - SAFETY) ** 2
+        at_start = type("Start", (), {"particle_q": start})()
+        nearest, count = self.proximity(at_start, 3.0 * tau)
+        least = float(nearest[count > 0].min()) if (count > 0).any() else np.inf
+        runs.append((least, least < reach, step > budget))
+        return stages(self, start=start, particle_q=particle_q, state_out=state_out, dt=dt)
+
+    host.SelfContact._stages = counted
+    try:
+        for _ in range(frames):
+            sim.step_frame()
+    finally:
+        host.SelfContact._stages = stages
+    substeps = frames * SUBSTEPS
+    least = [r[0] for r in runs if np.isfinite(r[0])]
+    within = sum(r[1] for r in runs)
+    stepped = sum(r[2] and not r[1] for r in runs)
+    return [f"| {n} | {sc.patch_count} | {len(runs)} / {substeps} | "
+            + (f"{min(least) / tau:.3f}-{max(least) / tau:.3f} τ" if least else "none within 3τ")
+            + f" | {within} | {stepped} | {len(runs) - within - stepped} |"]
+
+
 def rebuild_study(n: int, device, frames: int, patch_widths=(0.2, 0.4, 0.8), reach_tau: float | None = None) -> list[str]:
     """Markdown rows: how often the pair cache must be rebuilt over ``frames`` frames after the settling, by rule,
     replayed on the host in float64 over the ``self`` scene's substeps (the cache reach R = ``reach_tau`` τ,
@@ -881,6 +930,8 @@ def main():
     parser.add_argument("--radius-study", action="store_true", help="count the cap's pairs by candidate rule instead")
     parser.add_argument("--patch-study", type=int, default=0, metavar="FRAMES",
                         help="the cache's rebuilds per substep over FRAMES frames for each patch grouping (PATCH_STUDY)")
+    parser.add_argument("--stage-study", type=int, default=0, metavar="FRAMES",
+                        help="count the pair stages' runs over FRAMES frames after the settling, and what asked for each")
     parser.add_argument("--rebuild-study", type=int, default=0, metavar="FRAMES",
                         help="count the cache's rebuilds by rule over FRAMES frames after the settling instead")
     parser.add_argument("--study-reach", type=float, default=None, metavar="TAUS",
@@ -900,6 +951,13 @@ def main():
     today = datetime.date.today()
     # The studies other than the cost table: (asked for, heading, columns, rows for one size); the first asked runs.
     studies = (
+        (args.stage_study,
+         f"The pair stages' runs on {device.name}, Warp {wp.config.version}, {today}: the draped cloth's "
+         f"{args.stage_study} frames after {SETTLE_FRAMES} frames of settling, the pass as it runs, uncaptured "
+         f"(τ = {THICKNESS} m)",
+         ["N", "patches", "stage runs / substeps", "least pair distance at a run's start",
+          "runs with a pair within 2τ (1 + SAFETY)", "runs for a vertex's step past the budget", "runs for neither"],
+         lambda n: stage_study(n, device, args.stage_study)),
         (args.rebuild_study,
          f"The pair cache's rebuilds by rule on {device.name}, Warp {wp.config.version}, {today}: the draped cloth's "
          f"{args.rebuild_study} frames after {SETTLE_FRAMES} frames of settling, every substep, replayed on the host in "
