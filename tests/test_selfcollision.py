@@ -741,6 +741,34 @@ def test_the_stages_skip_cached_pairs_beyond_their_reach(device):
     assert counts[0]["pairs"].sum() > 0 and counts[0]["pairs"].sum() == counts[1]["pairs"].sum()
 
 
+def test_an_overflowed_cache_runs_the_stages_by_its_world_bound(device):
+    """Two pairs of sheets: 9 × 9 ones resting 2.9τ apart (their ~2,900 pairs cached, beyond the repulsion's reach),
+    listed first, and 3 × 3 ones closing at 0.2τ a step from 2.6τ; the cache given 2,100 slots, so that it keeps the
+    resting sheets' pairs and drops the closing ones'. The world's bound on its cached pairs (``cache_near``, which
+    counts the dropped pairs) then runs the stages, not the check of the stored pairs' own distances (which would see
+    only the resting ones and skip the stages): the cap's swept broad phase holds the closing sheets at least τ/2
+    apart (without this, 0.45τ)."""
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    builder.add_cloth_grid(nx=9, ny=9, spacing=0.02, origin=(0.0, 0.0, 0.0), mass=0.05, **CLOTH, name="low")
+    builder.add_cloth_grid(nx=9, ny=9, spacing=0.02, origin=(0.0, 0.0, 2.9 * TAU), mass=0.05, **CLOTH, name="high")
+    builder.add_cloth_grid(nx=3, ny=3, spacing=0.02, origin=(1.0, 0.0, 0.0), mass=0.05, **CLOTH, name="still")
+    builder.add_cloth_grid(nx=3, ny=3, spacing=0.02, origin=(1.0, 0.0, 2.6 * TAU), mass=0.05,
+                           velocity=(0.0, 0.0, -0.2 * TAU / 1e-3), **CLOTH, name="closing")
+    builder.add_self_collision(thickness=TAU)
+    model = builder.finalize(device)
+    sc = model.self_contact
+    sc._allocate(700)  # the cache's 3 × 700 slots: fewer than its pairs
+    integrator, a, b = ws.SymplecticEuler(model), model.state(), model.state()
+    gaps = []
+    for _ in range(20):
+        integrator.step(a, b, None, 1e-3)
+        a, b = b, a
+        z = a.particle_q.numpy().astype(np.float64)[:, 2]
+        gaps.append(z[171:].min() - z[162:171].max())
+    assert sc.cache.count.numpy()[0] > sc.cache_capacity and sc.overflow()[0] > 0
+    assert min(gaps) >= 0.5 * TAU * (1.0 - 1e-4), min(gaps) / TAU
+
+
 @pytest.mark.parametrize("chunk", [512, 5])
 def test_patch_boxes_hold_their_corners(device, chunk, monkeypatch):
     """The cache's check (``kernels/selfcontact_cache.py``) reduces each patch's boxes of its triangles' corners: the
