@@ -845,10 +845,11 @@ def ratio(a, b) -> str:
 
 
 def counts_text(counts: dict | None) -> str:
-    """A baseline's cache rebuilds / cap fallbacks per substep, or a dash."""
+    """Cache rebuilds / cap fallbacks / pair stages' runs per substep (a dash for what a tree does not count)."""
     if not counts or "rebuilds" not in counts:
         return "–"
-    return f"{counts['rebuilds']:.3f} / {counts['fallbacks']:.3f}"
+    stages = f"{counts['stages']:.3f}" if "stages" in counts else "–"
+    return f"{counts['rebuilds']:.3f} / {counts['fallbacks']:.3f} / {stages}"
 
 
 def cost_table(new: dict, old: dict | None, args) -> list[str]:
@@ -861,7 +862,7 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
         "",
         "| N | without | with | with / without | pass cost (with - without) | baseline: with | baseline: with / "
         "without | baseline: pass cost | pass cost, baseline / now | pairs pushed / capped vertices per substep | "
-        "cache rebuilds / cap fallbacks per substep | baseline: rebuilds / fallbacks |",
+        "cache rebuilds / cap fallbacks / pair stages' runs per substep | baseline: the same |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for n, now in new["sizes"].items():
@@ -874,8 +875,7 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
             f"{then.get('self', float('nan')):.1f} | {ratio(then.get('self'), then.get('none'))} | "
             f"{extra_then if then else float('nan'):.1f} | "
             f"{ratio(extra_then, extra_now) if then else '–'} | {c['pairs']:.1f} / {c['capped']:.1f} | "
-            f"{c.get('rebuilds', float('nan')):.3f} / {c.get('fallbacks', float('nan')):.3f} | "
-            f"{counts_text(then.get('counts'))} |")
+            f"{counts_text(c)} | {counts_text(then.get('counts'))} |")
     if new["examples"]:
         lines += [
             "",
@@ -884,7 +884,7 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
             "after the first",
             "",
             "| example | particles | frames | µs per substep | baseline | baseline / now | pairs pushed per substep "
-            "| cache rebuilds / cap fallbacks per substep | baseline: rebuilds / fallbacks |",
+            "| cache rebuilds / cap fallbacks / pair stages' runs per substep | baseline: the same |",
             "|---|---|---|---|---|---|---|---|---|",
         ]
         for name, now in new["examples"].items():
@@ -892,8 +892,8 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
             c = now["counts"]
             lines.append(
                 f"| {name} | {now['particles']} | {now['frames']} | {now['us']:.1f} | {then.get('us', float('nan')):.1f} "
-                f"| {ratio(then.get('us'), now['us'])} | {c['pairs']:.1f} | {c.get('rebuilds', float('nan')):.3f} / "
-                f"{c.get('fallbacks', float('nan')):.3f} | {counts_text(then.get('counts'))} |")
+                f"| {ratio(then.get('us'), now['us'])} | {c['pairs']:.1f} | {counts_text(c)} | "
+                f"{counts_text(then.get('counts'))} |")
     return lines
 
 

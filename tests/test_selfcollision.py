@@ -735,7 +735,7 @@ def test_the_stages_skip_cached_pairs_beyond_their_reach(device):
     assert cached[0] > 0 and first == 6, (gaps, first)
     assert work[:first] == [0] * first and work[first] == 1 and work[-1] == 1, (work, first)
     skipped_with_pairs = sum(1 for w, c in zip(work, cached) if w == 0 and c > 0)
-    assert skipped_with_pairs >= first
+    assert skipped_with_pairs >= first and sc.cache_counts()["stages"][0] == sum(work)
     finals, counts = cached_and_every_step(make, steps, 1e-3)
     np.testing.assert_array_equal(finals[0], finals[1])
     assert counts[0]["pairs"].sum() > 0 and counts[0]["pairs"].sum() == counts[1]["pairs"].sum()

@@ -27,6 +27,7 @@ from ..kernels.selfcontact import (
     COUNT_PAIRS,
     COUNT_REBUILDS,
     COUNT_SQUEEZED,
+    COUNT_STAGES,
     COUNTER_COUNT,
     FILL_UNITS,
     FLAG_KINDS,
@@ -226,9 +227,9 @@ class SelfContact:
             friction μ [-], relaxation γ [-] (``kernels/selfcontact.py`` PARAM_*); write through :meth:`set`.
         counters: int32, shape [world_count, COUNTER_COUNT] (``kernels/selfcontact.py`` COUNT_*): pairs pushed apart,
             vertices capped, pairs dropped on overflow, steps that rebuilt the pair cache, steps whose cap ran the
-            swept broad phase, pair-steps beyond the cap and pair-steps pressed below τ/2, summed over the steps since
-            the model was made or :meth:`reset`; and the fullest list's fill past FILL_WATCHED (a maximum, in
-            1/FILL_UNITS of its slots).
+            swept broad phase, pair-steps beyond the cap, pair-steps pressed below τ/2 and steps whose pair stages ran,
+            summed over the steps since the model was made or :meth:`reset`; and the fullest list's fill past
+            FILL_WATCHED (a maximum, in 1/FILL_UNITS of its slots).
     """
 
     def __init__(self, model, triangles: np.ndarray, *, thickness: float, friction: float, relaxation: float):
@@ -466,10 +467,13 @@ class SelfContact:
                 "cap": self.cap_pairs.count.numpy().astype(np.int64)}
 
     def cache_counts(self) -> dict[str, np.ndarray]:
-        """Per world, summed since the start or :meth:`reset`: steps that ``rebuilt`` the pair cache and steps whose
-        cap ran its swept broad phase (``fallbacks``); int64 arrays [world_count], reads the device."""
+        """Per world, summed since the start or :meth:`reset`: steps that ``rebuilt`` the pair cache, steps whose
+        cap ran its swept broad phase (``fallbacks``) and steps whose pair stages ran (``stages``: the repulsion and
+        the cap, which a step whose start has no cached pair within the repulsion's reach and no vertex stepping too
+        far skips); int64 arrays [world_count], reads the device."""
         counters = self.counters.numpy().astype(np.int64)
-        return {"rebuilds": counters[:, COUNT_REBUILDS], "fallbacks": counters[:, COUNT_FALLBACKS]}
+        return {"rebuilds": counters[:, COUNT_REBUILDS], "fallbacks": counters[:, COUNT_FALLBACKS],
+                "stages": counters[:, COUNT_STAGES]}
 
     def reset(self) -> None:
         """Zero the counters."""

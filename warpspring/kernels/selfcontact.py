@@ -187,7 +187,8 @@ COUNT_FALLBACKS = 4  # steps whose cap ran the swept broad phase instead of the 
 COUNT_OUTRUN = 5  # kept pairs the cap could not hold apart (a pin closing in on a free side that cannot give way)
 COUNT_FILL = 6  # the fullest list's share of its slots past FILL_WATCHED, in FILL_UNITS (a maximum, not a sum)
 COUNT_SQUEEZED = 7  # kept pairs held apart but pressed below the floor τ/2 along their separating direction
-COUNTER_COUNT = 8
+COUNT_STAGES = 8  # steps whose pair stages ran (module selfcontact_cache, 5.: some world's FLAG_WORK)
+COUNTER_COUNT = 9
 
 #: Fill of a pair list is recorded (``COUNT_FILL``) once it passes this share of its slots, in units of its
 #: 1/FILL_UNITS: only the upper part of a list pays the atomic maximum.
@@ -936,7 +937,7 @@ def repel_pairs_kernel(scalar: type):
     """Kernel of the repulsion's narrow phase over a world's listed pairs (one thread per particle of every world,
     each taking its world's slots local, local + particle_count, ...): for each pair closer than the repulsion's
     reach at the step's start, its four vertices' corrections [m] and weights |wₖ| into the pair's slots, zeros
-    for the other pairs (they are pushed by nothing)."""
+    for the other pairs (they are pushed by nothing); and each enabled world's count of steps whose stages ran."""
     vec3 = vec3_type(scalar)
     vec4 = wp.types.vector(4, scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
@@ -1024,6 +1025,8 @@ def repel_pairs_kernel(scalar: type):
         world, local = world_and_index(p, particle_count)
         if world_enabled[world] == 0:
             return
+        if local == 0:  # (one thread per world)
+            counters_out[world, COUNT_STAGES] += 1
         capacity = pairs.key.shape[0] // pairs.count.shape[0]
         base = world * particle_count
         mass_row = wp.min(world, particle_inv_mass.shape[0] - 1)
