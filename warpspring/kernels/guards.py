@@ -697,31 +697,26 @@ def _guard_parts(scalar: type, families: tuple, tiled: bool, external: bool, wor
             # particle.
             near = largest - wp.float64(STRAIN_MATCH) * (wp.float64(1.0) + largest)
             base = world * particle_count
-            i = lane
-            while i < particle_count:
-                strain, element, family = element_strain(world, i, base, particle_q[base + i], element_arrays,
-                                                         particle_q)
-                if wp.float64(strain) >= near:
-                    wp.atomic_min(status_in_out, world, GUARD_STRAIN_FAMILY, family)
-                i += lanes
-            block_barrier()
-            chosen_family = status_in_out[world, GUARD_STRAIN_FAMILY]
-            i = lane
-            while i < particle_count:
-                strain, element, family = element_strain(world, i, base, particle_q[base + i], element_arrays,
-                                                         particle_q)
-                if wp.float64(strain) >= near and family == chosen_family:
-                    wp.atomic_min(status_in_out, world, GUARD_STRAIN_ELEMENT, element)
-                i += lanes
-            block_barrier()
-            chosen_element = status_in_out[world, GUARD_STRAIN_ELEMENT]
-            i = lane
-            while i < particle_count:
-                strain, element, family = element_strain(world, i, base, particle_q[base + i], element_arrays,
-                                                         particle_q)
-                if wp.float64(strain) >= near and family == chosen_family and element == chosen_element:
-                    wp.atomic_min(status_in_out, world, GUARD_STRAIN_PARTICLE, i)
-                i += lanes
+            chosen_family = int(NO_PARTICLE)
+            chosen_element = int(NO_PARTICLE)
+            for level in range(3):  # the family, then its element, then that element's particle
+                if level > 0:
+                    block_barrier()  # the last round's atomics done
+                    chosen_family = status_in_out[world, GUARD_STRAIN_FAMILY]
+                    chosen_element = status_in_out[world, GUARD_STRAIN_ELEMENT]
+                i = lane
+                while i < particle_count:
+                    strain, element, family = element_strain(world, i, base, particle_q[base + i], element_arrays,
+                                                             particle_q)
+                    if (wp.float64(strain) >= near and (level == 0 or family == chosen_family)
+                            and (level < 2 or element == chosen_element)):
+                        if level == 0:
+                            wp.atomic_min(status_in_out, world, GUARD_STRAIN_FAMILY, family)
+                        elif level == 1:
+                            wp.atomic_min(status_in_out, world, GUARD_STRAIN_ELEMENT, element)
+                        else:
+                            wp.atomic_min(status_in_out, world, GUARD_STRAIN_PARTICLE, i)
+                    i += lanes
             block_barrier()  # every lane's atomics done: the record is complete
         if lane == 0:  # the mirror: the record and the clock, then (fenced) the reason the host reads first
             k = int(1)
