@@ -27,6 +27,7 @@ launch, scan and refit.
         --baseline-tree build/baseline-303e64f   # the same 16 frames in both trees (the pass's bits are the same)
     python bench/selfcontact.py --device cuda:0 --profile  # where the pass's time goes, per launch
     python bench/selfcontact.py --device cuda:0 --sizes 64 256 1024 --broad-forms  # the cache's build by launch form
+    python bench/selfcontact.py --device cuda:0 --sizes 64 --broad-forms --broad-trees 1 2 4 8  # ... and by BVH leaf size
     python bench/selfcontact.py --device cpu --sizes 16 32 --example-frames 3 --baseline 65f7792
     python bench/selfcontact.py --device cpu --sizes 16 --radius-study   # the cap's pair counts by radius
     python bench/selfcontact.py --device cpu --sizes 32 64 --rebuild-study 4   # the cache's rebuilds by rule
@@ -231,13 +232,15 @@ def profile_frames(n: int, device, frames: int) -> list[str]:
     return rows
 
 
-def broad_forms(n: int, device, repeats: int, min_blocks=()) -> list[str]:
+def broad_forms(n: int, device, repeats: int, min_blocks=(), leaf_sizes=()) -> list[str]:
     """Markdown rows: the cache's build (the broad phase without ``swept``, its CSR and its watch list) on the settled
     ``self`` scene, forced for every world, in each form of its launch: the vertices' and the edges' queries in one
     launch or in two (``BROAD_SEPARATE``), by threads per block (``BROAD_BLOCK``); device time per build [µs] (CUDA
     activity timer, mean of ``repeats`` uncaptured builds), the broad kernels' share, and the pairs and watched pairs
     listed (the same in every form). Each K of ``min_blocks`` adds two launches in blocks of 64 whose registers allow
-    K blocks a multiprocessor (``BROAD_MIN_BLOCKS``)."""
+    K blocks a multiprocessor (``BROAD_MIN_BLOCKS``). Each L of ``leaf_sizes`` adds the shipped form on trees of L
+    triangles a leaf, built at rest as the pass builds its own and refit to the settled state, by Warp's GPU
+    constructor ("lbvh") and its CPU one ("sah")."""
     from warpspring.kernels.flatten import launch_bounds
     from warpspring.kernels.selfcontact import CACHE_REACH
 
@@ -256,12 +259,31 @@ def broad_forms(n: int, device, repeats: int, min_blocks=()) -> list[str]:
         contact._list_pairs(contact.cache, contact.cache_bound, start, start, swept=False, reach_factor=CACHE_REACH,
                             reach_add=0.0, counters=contact.counters, active=active, watch=True)
 
+    def trees(leaf: int, constructor: str):
+        """The worlds' BVHs built at rest with ``leaf`` triangles a leaf by ``constructor``, refit to the settled
+        state (the pass's own: built at rest, refit at every build)."""
+        T = contact.triangle_count
+        surface = contact.surface
+        contact._leaves(model.particle_q, model.particle_q, swept=False, refit=False)
+        contact.bvhs = [wp.Bvh(surface.leaf_lower[w * T:(w + 1) * T], surface.leaf_upper[w * T:(w + 1) * T],
+                               constructor=constructor, leaf_size=leaf) for w in range(worlds)]
+        surface.bvh = wp.array(np.array([b.id for b in contact.bvhs], dtype=np.uint64), dtype=wp.uint64,
+                               device=device)
+        contact._leaves(start, start, swept=False)
+
     rows = []
-    forms = [(separate, block, None) for separate in (False, True) for block in (32, 64, 128, 256)]
-    for separate, block, blocks in forms + [(True, 64, k) for k in min_blocks]:
-        contact.broad_launches = contact.broad_launch_forms(separate)
-        contact.broad_block = block
-        contact.broad_bounds = launch_bounds(block, blocks)
+    shipped = (contact.broad_launches, contact.broad_block, contact.broad_bounds)
+    forms = [(separate, block, None, None) for separate in (False, True) for block in (32, 64, 128, 256)]
+    forms += [(True, 64, k, None) for k in min_blocks]
+    forms += [(None, None, None, (leaf, constructor)) for leaf in leaf_sizes for constructor in ("lbvh", "sah")]
+    for separate, block, blocks, tree in forms:
+        if tree is None:
+            contact.broad_launches = contact.broad_launch_forms(separate)
+            contact.broad_block = block
+            contact.broad_bounds = launch_bounds(block, blocks)
+        else:
+            contact.broad_launches, contact.broad_block, contact.broad_bounds = shipped
+            trees(*tree)
         build()
         wp.synchronize_device(device)
         with wp.ScopedTimer("build", cuda_filter=wp.TIMING_ALL, synchronize=True, print=False,
@@ -275,8 +297,12 @@ def broad_forms(n: int, device, repeats: int, min_blocks=()) -> list[str]:
         broad = list(per_kernel.values())
         every = sum(r.elapsed for r in timer.timing_results) * 1e3 / repeats
         parts = " + ".join(f"{t:.0f}" for t in broad)
-        bound = f" (≥ {blocks} blocks)" if blocks else ""
-        rows.append(f"| {n} | {'two' if separate else 'one'} | {block}{bound} | {sum(broad):.0f} ({parts}) | "
+        if tree is None:
+            bound = f" (≥ {blocks} blocks)" if blocks else ""
+            form = f"{'two' if separate else 'one'} | {block}{bound}"
+        else:
+            form = f"as shipped, trees of {tree[0]} a leaf ({tree[1]}) | {contact.broad_block}"
+        rows.append(f"| {n} | {form} | {sum(broad):.0f} ({parts}) | "
                     f"{every:.0f} | {int(contact.cache.count.numpy().sum())} | {int(contact.watch_count.numpy().sum())} |")
     return rows
 
@@ -927,6 +953,9 @@ def main():
     parser.add_argument("--broad-min-blocks", type=int, nargs="*", default=[],
                         help="with --broad-forms, also two launches in blocks of 64 with their registers bounded so "
                              "that K blocks fit a multiprocessor, each K")
+    parser.add_argument("--broad-trees", type=int, nargs="*", default=[], metavar="LEAF",
+                        help="with --broad-forms, also the shipped form on BVHs of LEAF triangles a leaf (built at "
+                             "rest by Warp's GPU and CPU constructors, refit), each LEAF")
     parser.add_argument("--radius-study", action="store_true", help="count the cap's pairs by candidate rule instead")
     parser.add_argument("--patch-study", type=int, default=0, metavar="FRAMES",
                         help="the cache's rebuilds per substep over FRAMES frames for each patch grouping (PATCH_STUDY)")
@@ -988,7 +1017,7 @@ def main():
          f"(CUDA activity timer, mean of {args.repeats} uncaptured builds)",
          ["N", "launches (vertices, edges)", "threads a block", "broad kernels (each)", "the whole build",
           "pairs listed", "pairs watched"],
-         lambda n: broad_forms(n, device, args.repeats, args.broad_min_blocks)),
+         lambda n: broad_forms(n, device, args.repeats, args.broad_min_blocks, args.broad_trees)),
         (args.profile,
          f"Self-collision pass per launch on {device.name}, Warp {wp.config.version}, {today}, the settled draped cloth "
          f"(τ = {THICKNESS} m, μ = {FRICTION}), mean of {args.repeats} uncaptured passes "
