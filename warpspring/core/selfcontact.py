@@ -48,6 +48,7 @@ from ..kernels.selfcontact import (
     broad_kernel,
     fill_kernel,
     leaf_kernel,
+    mat33i,
     patch_count,
     proximity_kernel,
     repel_gather_kernel,
@@ -166,8 +167,12 @@ def surface_topology(triangles: np.ndarray, particle_count: int) -> dict:
     vertex_owner = np.full(particle_count, -1, dtype=np.int64)
     vertex_owner[triangles.ravel()[::-1]] = np.repeat(np.arange(count), 3)[::-1]
 
+    # Each triangle's sides that it reports, with their vertices (``owned_sides``: -1 for a side it does not report).
+    owned = np.where(edge_owner[triangle_edges] == np.arange(count)[:, None], triangle_edges, -1)
+    owned_sides = np.concatenate([owned[:, :, None], edges[triangle_edges]], axis=2)  # [count, 3, 3]
+
     as32 = lambda a: np.ascontiguousarray(a, dtype=np.int32)  # noqa: E731
-    return dict(triangle=as32(triangles), triangle_edges=as32(triangle_edges), edge=as32(edges),
+    return dict(triangle=as32(triangles), owned_sides=as32(owned_sides), edge=as32(edges),
                 edge_owner=as32(edge_owner), vertex_owner=as32(vertex_owner))
 
 
@@ -240,7 +245,7 @@ class SelfContact:
         self.edge_count = len(topology["edge"])
         surface = Surface()
         for name, values in topology.items():
-            dtype = {"triangle": wp.vec3i, "triangle_edges": wp.vec3i, "edge": wp.vec2i}.get(name, wp.int32)
+            dtype = {"triangle": wp.vec3i, "owned_sides": mat33i, "edge": wp.vec2i}.get(name, wp.int32)
             setattr(surface, name, wp.array(values, dtype=dtype, device=device))
         leaves = worlds * self.triangle_count
         surface.leaf_lower = wp.zeros(leaves, dtype=wp.vec3f, device=device)

@@ -255,12 +255,18 @@ SAFETY = 1.0 / 64.0
 NO_BOUND = 1.0e30
 
 
+#: A triangle's sides that it reports (``Surface.owned_sides``): row k is side k's edge (its index in ``edge``, -1 where
+#: another triangle reports that edge) and the edge's two vertices, as ``edge`` lists them.
+mat33i = wp.types.matrix(shape=(3, 3), dtype=wp.int32)
+
+
 @wp.struct
 class Surface:
     """The topology of the colliding surface, shared by every world (per-world particle indices)."""
 
     triangle: wp.array[wp.vec3i]  # the triangles' corners, shape [triangle_count]
-    triangle_edges: wp.array[wp.vec3i]  # each triangle's three edges (indices into ``edge``), [triangle_count]
+    owned_sides: wp.array[mat33i]  # per triangle, the sides it reports with their vertices (``mat33i``): one read
+    #   where the edges' queries test a reported triangle's edges, shape [triangle_count]
     edge: wp.array[wp.vec2i]  # the surface's unique edges, shape [edge_count]
     edge_owner: wp.array[wp.int32]  # the triangle through which queries report edge e, [edge_count]
     vertex_owner: wp.array[wp.int32]  # the triangle through which queries report vertex i, or -1 (not on the
@@ -622,13 +628,13 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
     ):
         """The EE pairs of edge e (query box [box_lower, box_upper]) with the sides reported triangle t owns."""
         ends = surface.edge[e]
-        others = surface.triangle_edges[t]
+        owned = surface.owned_sides[t]
         for n in range(3):
-            f = others[n]
-            other = surface.edge[f]
-            # Each pair once (from its lower edge, through the other edge's owner triangle), no shared vertex: index
-            # tests before any geometry.
-            if (f > e and surface.edge_owner[f] == t and other[0] != ends[0] and other[0] != ends[1]
+            f = owned[n, 0]
+            other = wp.vec2i(owned[n, 1], owned[n, 2])
+            # Each pair once (from its lower edge, through the other edge's owner triangle: f = -1 where t is not
+            # its owner), no shared vertex: index tests before any geometry.
+            if (f > e and other[0] != ends[0] and other[0] != ends[1]
                     and other[1] != ends[0] and other[1] != ends[1]):
                 p2 = particle_q_start[base + other[0]]
                 q2 = particle_q_start[base + other[1]]
@@ -743,7 +749,7 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
                               counters_out, watch_count_out, watch_key_out, watch_vertex_out, near_out)
             return
         corners = surface.triangle[me]
-        sides = surface.triangle_edges[me]
+        owned = surface.owned_sides[me]
         # The primitives this triangle reports, their query boxes (rows of the matrices) and their union.
         vertex_lower = wp.mat33f()
         vertex_upper = wp.mat33f()
@@ -762,9 +768,9 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
                 vertex_upper[m] = upper
                 union_lower = wp.min(union_lower, lower)
                 union_upper = wp.max(union_upper, upper)
-            if surface.edge_owner[sides[m]] == me:
+            if owned[m, 0] >= 0:
                 owns_edge[m] = 1
-                lower, upper = query_box(surface.edge[sides[m]], base, mass_row, limit, cube, query_reach,
+                lower, upper = query_box(wp.vec2i(owned[m, 1], owned[m, 2]), base, mass_row, limit, cube, query_reach,
                                          particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
                 edge_lower[m] = lower
                 edge_upper[m] = upper
@@ -788,7 +794,7 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
                                 watch_key_out, watch_vertex_out, near_out)
                 # EE: the edge's own query would have reported t where its box overlaps t's leaf box.
                 if owns_edge[m] == 1 and boxes_overlap_f(edge_lower[m], edge_upper[m], leaf_lower, leaf_upper):
-                    edge_leaf(world, base, particle_count, sides[m], vec3(edge_lower[m]), vec3(edge_upper[m]), t,
+                    edge_leaf(world, base, particle_count, owned[m, 0], vec3(edge_lower[m]), vec3(edge_upper[m]), t,
                               reach, relaxation, mass_row, limit, cube, watch_reach, thickness, surface,
                               particle_flags, particle_inv_mass, particle_q_start, particle_q_end, pairs_out,
                               pair_distance_out, counters_out, watch_count_out, watch_key_out, watch_vertex_out,
