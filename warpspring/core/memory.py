@@ -278,12 +278,12 @@ def self_contact_bytes(*, particles: int, worlds: int, triangles: int, edges: in
         slots = w * slots_per_world
         return (8 + 16 + 16 + f) * slots + 4 * (size + 1) * 2 + 4 * size + 4 * w
 
-    surface = 24 * t + 12 * e + 4 * n + 24 * w * t + 8 * w
+    surface = 48 * t + 12 * e + 4 * n + 24 * w * t + 8 * w
     live = ((PARAM_COUNT * f + 4 * COUNTER_COUNT + 2 * f + 2 * 4) * w + 4 * (2 + FLAG_KINDS * w)
             + 4 * w * -(-n // SCAN_BLOCK))
     live += 2 * (4 + 3 * f) * size  # the cap's roles and pushers' targets, twice
     patches = patch_count(t, cuda)
-    live += (4 + (8 + 16) * capacity) * w + (4 + 8 + 16) * w  # the cache's watch list, and the empty one
+    live += (4 + (4 + 16) * capacity) * w + (4 + 4 + 16) * w  # the cache's watch list (tags, vertices), the empty one
     chunks = 3 * t // PATCH_CHUNK + patches + 1  # at most (the patches' corners: at most 3 per triangle)
     live += 4 * 3 * t + 4 * (2 * chunks + 1) + 4 * (PATCH_COLUMNS + 1) * w * patches  # the check's corners, chunks,
     live += 4 * t  # boxes and marks; each triangle's patch
