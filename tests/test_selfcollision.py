@@ -186,8 +186,9 @@ def test_pair_list_equals_brute_force(device, split, form, monkeypatch):
 def test_watch_list_equals_brute_force(device, split, form, monkeypatch):
     """The cache's first build watches exactly the pairs between CACHE_REACH τ and WATCH_REACH τ apart (all-pairs
     float64 reference; pairs within float32 rounding of either reach may fall either side), each once; also with the
-    broad phase's queries shared by 3 threads (``broad_split``), in each of its forms (``BROAD_FORMS``)."""
-    from warpspring.kernels.selfcontact import CACHE_REACH, WATCH_REACH
+    broad phase's queries shared by 3 threads (``broad_split``), in each of its forms (``BROAD_FORMS``). Each watched
+    pair's tag names its kind and the patches of its sides' owner triangles."""
+    from warpspring.kernels.selfcontact import CACHE_REACH, WATCH_EDGE_EDGE, WATCH_PATCHES, WATCH_REACH
 
     monkeypatch.setattr(selfcontact_host, "BROAD_SPLIT", split)
     broad_form(monkeypatch, form)
@@ -196,12 +197,29 @@ def test_watch_list_equals_brute_force(device, split, form, monkeypatch):
     sc, state = model.self_contact, model.state()
     sc.repel(state, state.particle_q)  # the first step's build, at the start
     count = int(sc.watch_count.numpy()[0])
-    keys = sc.watch_key.numpy()[:count]
+    tags = sc.watch_tag.numpy()[:count]
+    vertices = sc.watch_vertex.numpy()[:count]
     x = state.particle_q.numpy().astype(np.float64)
     triangles = model.tri_indices.numpy()
-    n, T, E = model.particle_count, len(triangles), len(surface_edges(triangles))
-    listed = {(int(k // T), int(k % T)) if k < n * T else (-1 - int((k - n * T) // E), int((k - n * T) % E))
-              for k in keys}
+    edges = surface_edges(triangles)
+    triangle_of = {tuple(int(i) for i in t): k for k, t in enumerate(triangles)}
+    edge_of = {tuple(int(i) for i in e): k for k, e in enumerate(edges)}
+    surface = sc.surface
+    vertex_owner, edge_owner = surface.vertex_owner.numpy(), surface.edge_owner.numpy()
+    patch = sc.triangle_patch.numpy()
+    listed = set()
+    for tag, (a, b, c, d) in zip(tags, vertices):
+        edge_edge = tag >= WATCH_EDGE_EDGE
+        if edge_edge:  # (p1, q1, p2, q2): edge e, then the other edge f
+            e, f = edge_of[(int(a), int(b))], edge_of[(int(c), int(d))]
+            listed.add((-1 - e, f))
+            owners = (edge_owner[e], edge_owner[f])
+        else:  # (v, the triangle's corners)
+            t = triangle_of[(int(b), int(c), int(d))]
+            listed.add((int(a), t))
+            owners = (vertex_owner[a], t)
+        sides = int(tag) - (WATCH_EDGE_EDGE if edge_edge else 0)
+        assert (sides // WATCH_PATCHES, sides % WATCH_PATCHES) == (patch[owners[0]], patch[owners[1]])
     assert len(listed) == count > 100  # each once, many
 
     def band(low, high):

@@ -42,6 +42,7 @@ from ..kernels.selfcontact import (
     PATCH_THREADS,
     SCAN_BLOCK,
     SCAN_THREADS,
+    WATCH_PATCHES,
     WATCH_REACH,
     Pairs,
     Surface,
@@ -107,8 +108,9 @@ BROAD_SPLIT = None
 BROAD_PER_PRIMITIVE = None
 #: With one query per primitive, the vertices' and the edges' queries as two launches, each kernel holding one kind
 #: of leaf test (True), or one launch over both (False); ``None``: two on CUDA. The draped cloth's cache build on an
-#: H200 (blocks of 64): 8.5 -> 6.7 ms at 1024², 565 -> 526 µs at 256², 173 -> 196 µs at 64²
-#: (``bench/results/selfcontact.md``, "Two launches").
+#: H200 (blocks of 64), one launch against two: 7.8 against 6.1 ms at 1024², 573 against 531 µs at 256², 220 against
+#: 284 µs at 64²; but one launch made ``stacked_cloths`` 1.3x slower (``bench/results/selfcontact.md``, "The edges'
+#: queries read their triangle's sides at once").
 BROAD_SEPARATE = None
 #: Threads per block of the broad phase on CUDA (``None``: the model's block size). Each thread keeps its BVH
 #: traversal's stack in shared memory (132 B): in blocks of 256 the shared memory holds one block a multiprocessor
@@ -269,7 +271,10 @@ class SelfContact:
         chunk_start = (corner_bounds[chunk_patch]
                        + PATCH_CHUNK * (np.arange(len(chunk_patch)) - first_chunk[chunk_patch]))
         self.patch_triangles = [order[bounds[k]:bounds[k + 1]] for k in range(self.patch_count)]  # for tests
+        if self.patch_count > WATCH_PATCHES:  # (PATCH_LIMIT keeps it far below: a watched pair's tag holds two)
+            raise ValueError(f"{self.patch_count} patches: a watched pair's tag holds at most {WATCH_PATCHES}")
         self.triangle_patch = wp.array(triangle_patch, dtype=wp.int32, device=device)
+        surface.triangle_patch = self.triangle_patch
         # Sized for the most corners and chunks any grouping can have (3 per triangle; ``memory.self_contact_bytes``).
         entries = np.zeros(3 * len(order), dtype=np.int32)
         entries[:len(corner)] = np.where(reports, corner, -1 - corner)
@@ -298,7 +303,7 @@ class SelfContact:
         # the anchors, whose distances every step checks; and an empty one for the broad phases that watch nothing.
         self.watch_count = wp.zeros(worlds, dtype=wp.int32, device=device)
         self._no_watch = (wp.zeros(worlds, dtype=wp.int32, device=device),
-                          wp.zeros(worlds, dtype=wp.int64, device=device),
+                          wp.zeros(worlds, dtype=wp.int32, device=device),
                           wp.zeros(worlds, dtype=wp.vec4i, device=device))
         self.cache_reach = wp.zeros(worlds, dtype=model.scalar, device=device)
         # The least distance of a cached pair at the anchors (kernels/selfcontact.py's apart_codec, in units of the τ
@@ -375,7 +380,7 @@ class SelfContact:
         self.capacity = capacity
         self.cache_capacity = CACHE_SLOTS * capacity
         self.cache, self.cache_bound = self._pair_buffers(self.cache_capacity, 1)
-        self.watch_key = wp.zeros(model.world_count * capacity, dtype=wp.int64, device=model.device)
+        self.watch_tag = wp.zeros(model.world_count * capacity, dtype=wp.int32, device=model.device)
         self.watch_vertex = wp.zeros(model.world_count * capacity, dtype=wp.vec4i, device=model.device)
         self.cap_pairs, self.pair_distance = self._pair_buffers(capacity, 1)
         slots = model.world_count * self.cache_capacity
@@ -550,7 +555,7 @@ class SelfContact:
         the other worlds' pairs stay as they were. With ``watch`` (the cache's build) also its watch list and the
         least distance of its pairs (``cache_near``)."""
         model = self.model
-        watch_lists = (self.watch_count, self.watch_key, self.watch_vertex) if watch else self._no_watch
+        watch_lists = (self.watch_count, self.watch_tag, self.watch_vertex) if watch else self._no_watch
         near = self.cache_near if watch else self._no_near
         flat_launch(reset_kernel(), inputs=[model.particle_count, active], outputs=[pairs, watch_lists[0], near],
                     dim=model.particle_dim,
@@ -572,7 +577,7 @@ class SelfContact:
             particle_q_end=end,
         )
         outputs = dict(pairs_out=pairs, pair_distance_out=pair_distance, counters_out=counters,
-                       watch_count_out=watch_lists[0], watch_key_out=watch_lists[1], watch_vertex_out=watch_lists[2],
+                       watch_count_out=watch_lists[0], watch_tag_out=watch_lists[1], watch_vertex_out=watch_lists[2],
                        near_out=near)
         for primitives, queries, split in self.broad_launches:
             args["split"] = split
@@ -662,7 +667,7 @@ class SelfContact:
                     device=model.device)
         flat_launch(watch_kernel(model.scalar),
                     inputs=[model.particle_count, model.world_enabled, surface, self.params, self.watch_count,
-                            self.watch_key, self.watch_vertex, self.cache, self.triangle_patch, self.patch_watch,
+                            self.watch_tag, self.watch_vertex, self.cache, self.patch_watch,
                             self.watch_split, start],
                     outputs=[self.flags], dim=model.particle_dim * self.watch_split, block_dim=model.block_dim,
                     device=model.device)

@@ -238,6 +238,10 @@ PATCH_CHUNK = 4 * PATCH_THREADS
 PATCH_DRIFT = 0
 PATCH_POSITION = 6
 PATCH_COLUMNS = 12
+#: A watched pair's tag (``watch_tag``): its sides' patches a · WATCH_PATCHES + b, plus WATCH_EDGE_EDGE for an EE
+#: pair; the patches of a surface stay below WATCH_PATCHES (``PATCH_LIMIT``, and ``SelfContact`` checks).
+WATCH_PATCHES = 1 << 15
+WATCH_EDGE_EDGE = 1 << 30
 
 
 def patch_count(triangle_count: int, cuda: bool) -> int:
@@ -271,6 +275,7 @@ class Surface:
     edge_owner: wp.array[wp.int32]  # the triangle through which queries report edge e, [edge_count]
     vertex_owner: wp.array[wp.int32]  # the triangle through which queries report vertex i, or -1 (not on the
     #   surface), shape [particle_count]
+    triangle_patch: wp.array[wp.int32]  # each triangle's patch (``kernels/selfcontact_cache.py``), [triangle_count]
     bvh: wp.array[wp.uint64]  # per world, the id of the wp.Bvh of its triangles' boxes (``leaf_lower/upper``)
     leaf_lower: wp.array[wp.vec3f]  # [m], the triangles' boxes, shape [world_count · triangle_count]
     leaf_upper: wp.array[wp.vec3f]  # [m], likewise
@@ -579,18 +584,21 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
     @wp.func
     def list_pair(
         world: int, base: int, key: wp.int64, vertex: wp.vec4i, kept: bool, value: scalar, watch_reach: scalar,
-        thickness: scalar, pairs_out: Pairs, pair_distance_out: wp.array[scalar], counters_out: wp.array2d[wp.int32],
-        watch_count_out: wp.array[wp.int32], watch_key_out: wp.array[wp.int64], watch_vertex_out: wp.array[wp.vec4i],
-        near_out: wp.array[wp.int32],
+        thickness: scalar, owner: int, t: int, edge_edge: int, surface: Surface, pairs_out: Pairs,
+        pair_distance_out: wp.array[scalar], counters_out: wp.array2d[wp.int32], watch_count_out: wp.array[wp.int32],
+        watch_tag_out: wp.array[wp.int32], watch_vertex_out: wp.array[wp.vec4i], near_out: wp.array[wp.int32],
     ):
         """A tested pair stored (``kept``: in the list, its distance lowering ``near_out`` without ``swept``), or
-        without ``swept`` watched where closer than ``watch_reach``."""
+        without ``swept`` watched where closer than ``watch_reach``, tagged with the patches of its first side's
+        owner triangle ``owner`` and of the reported triangle ``t`` (``watch_tag``)."""
         if kept:
             push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
             if wp.static(not swept):
                 near_lower(near_out, world, value, thickness)
         elif wp.static(not swept) and value < watch_reach:
-            watch_pair(world, key, vertex, watch_count_out, watch_key_out, watch_vertex_out)
+            tag = (surface.triangle_patch[owner] * WATCH_PATCHES + surface.triangle_patch[t]
+                   + edge_edge * WATCH_EDGE_EDGE)
+            watch_pair(world, tag, vertex, watch_count_out, watch_tag_out, watch_vertex_out)
 
     @wp.func
     def vertex_leaf(
@@ -598,7 +606,7 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
         cube: scalar, watch_reach: scalar, thickness: scalar, surface: Surface, particle_flags: wp.array[wp.int32],
         particle_inv_mass: wp.array2d[scalar], particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3],
         pairs_out: Pairs, pair_distance_out: wp.array[scalar], counters_out: wp.array2d[wp.int32],
-        watch_count_out: wp.array[wp.int32], watch_key_out: wp.array[wp.int64], watch_vertex_out: wp.array[wp.vec4i],
+        watch_count_out: wp.array[wp.int32], watch_tag_out: wp.array[wp.int32], watch_vertex_out: wp.array[wp.vec4i],
         near_out: wp.array[wp.int32],
     ):
         """The VT pair of vertex v and reported triangle t: kept, watched or neither."""
@@ -614,8 +622,9 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
                                base, mass_row, limit, cube, particle_flags, particle_inv_mass, particle_q_start,
                                particle_q_end)
             key = wp.int64(v) * wp.int64(surface.triangle.shape[0]) + wp.int64(t)
-            list_pair(world, base, key, vertex, kept, value, watch_reach, thickness, pairs_out, pair_distance_out,
-                      counters_out, watch_count_out, watch_key_out, watch_vertex_out, near_out)
+            list_pair(world, base, key, vertex, kept, value, watch_reach, thickness, surface.vertex_owner[v], t, 0,
+                      surface, pairs_out, pair_distance_out, counters_out, watch_count_out, watch_tag_out,
+                      watch_vertex_out, near_out)
 
     @wp.func
     def edge_leaf(
@@ -624,7 +633,7 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
         surface: Surface, particle_flags: wp.array[wp.int32], particle_inv_mass: wp.array2d[scalar],
         particle_q_start: wp.array[vec3], particle_q_end: wp.array[vec3], pairs_out: Pairs,
         pair_distance_out: wp.array[scalar], counters_out: wp.array2d[wp.int32], watch_count_out: wp.array[wp.int32],
-        watch_key_out: wp.array[wp.int64], watch_vertex_out: wp.array[wp.vec4i], near_out: wp.array[wp.int32],
+        watch_tag_out: wp.array[wp.int32], watch_vertex_out: wp.array[wp.vec4i], near_out: wp.array[wp.int32],
     ):
         """The EE pairs of edge e (query box [box_lower, box_upper]) with the sides reported triangle t owns."""
         ends = surface.edge[e]
@@ -656,9 +665,9 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
                                        particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
                     key = (wp.int64(particle_count) * wp.int64(surface.triangle.shape[0])
                            + wp.int64(e) * wp.int64(surface.edge.shape[0]) + wp.int64(f))
-                    list_pair(world, base, key, vertex, kept, value, watch_reach, thickness, pairs_out,
-                              pair_distance_out, counters_out, watch_count_out, watch_key_out, watch_vertex_out,
-                              near_out)
+                    list_pair(world, base, key, vertex, kept, value, watch_reach, thickness, surface.edge_owner[e], t,
+                              1, surface, pairs_out, pair_distance_out, counters_out, watch_count_out, watch_tag_out,
+                              watch_vertex_out, near_out)
 
     @flat_kernel(module="unique", enable_backward=False, **launch_bounds_option(bounds))
     def broad(
@@ -682,7 +691,7 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
         pair_distance_out: wp.array[scalar],
         counters_out: wp.array2d[wp.int32],
         watch_count_out: wp.array[wp.int32],
-        watch_key_out: wp.array[wp.int64],
+        watch_tag_out: wp.array[wp.int32],
         watch_vertex_out: wp.array[wp.vec4i],
         near_out: wp.array[wp.int32],
     ):
@@ -740,13 +749,13 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
                 if is_vertex:
                     vertex_leaf(world, base, me, t, reach, relaxation, mass_row, limit, cube, watch_reach, thickness,
                                 surface, particle_flags, particle_inv_mass, particle_q_start, particle_q_end,
-                                pairs_out, pair_distance_out, counters_out, watch_count_out, watch_key_out,
+                                pairs_out, pair_distance_out, counters_out, watch_count_out, watch_tag_out,
                                 watch_vertex_out, near_out)
                 else:
                     edge_leaf(world, base, particle_count, me - particle_count, vec3(lower), vec3(upper), t, reach,
                               relaxation, mass_row, limit, cube, watch_reach, thickness, surface, particle_flags,
                               particle_inv_mass, particle_q_start, particle_q_end, pairs_out, pair_distance_out,
-                              counters_out, watch_count_out, watch_key_out, watch_vertex_out, near_out)
+                              counters_out, watch_count_out, watch_tag_out, watch_vertex_out, near_out)
             return
         corners = surface.triangle[me]
         owned = surface.owned_sides[me]
@@ -791,27 +800,28 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
                     vertex_leaf(world, base, corners[m], t, reach, relaxation, mass_row, limit, cube, watch_reach,
                                 thickness, surface, particle_flags, particle_inv_mass, particle_q_start,
                                 particle_q_end, pairs_out, pair_distance_out, counters_out, watch_count_out,
-                                watch_key_out, watch_vertex_out, near_out)
+                                watch_tag_out, watch_vertex_out, near_out)
                 # EE: the edge's own query would have reported t where its box overlaps t's leaf box.
                 if owns_edge[m] == 1 and boxes_overlap_f(edge_lower[m], edge_upper[m], leaf_lower, leaf_upper):
                     edge_leaf(world, base, particle_count, owned[m, 0], vec3(edge_lower[m]), vec3(edge_upper[m]), t,
                               reach, relaxation, mass_row, limit, cube, watch_reach, thickness, surface,
                               particle_flags, particle_inv_mass, particle_q_start, particle_q_end, pairs_out,
-                              pair_distance_out, counters_out, watch_count_out, watch_key_out, watch_vertex_out,
+                              pair_distance_out, counters_out, watch_count_out, watch_tag_out, watch_vertex_out,
                               near_out)
 
     return broad
 
 
 @wp.func
-def watch_pair(world: int, key: wp.int64, vertex: wp.vec4i, watch_count: wp.array[wp.int32],
-               watch_key: wp.array[wp.int64], watch_vertex: wp.array[wp.vec4i]):
-    """Store a watched pair in its world's watch list (module ``selfcontact_cache``); beyond its capacity only
-    counted (the world's cache then takes the reach CACHE_REACH τ)."""
-    capacity = watch_key.shape[0] // watch_count.shape[0]
+def watch_pair(world: int, tag: int, vertex: wp.vec4i, watch_count: wp.array[wp.int32],
+               watch_tag: wp.array[wp.int32], watch_vertex: wp.array[wp.vec4i]):
+    """Store a watched pair (its tag: its sides' patches and its kind, ``WATCH_PATCHES``) in its world's watch list
+    (module ``selfcontact_cache``); beyond its capacity only counted (the world's cache then takes the reach
+    CACHE_REACH τ)."""
+    capacity = watch_tag.shape[0] // watch_count.shape[0]
     slot = atomic_slot(watch_count, world)
     if slot < capacity:
-        watch_key[world * capacity + slot] = key
+        watch_tag[world * capacity + slot] = tag
         watch_vertex[world * capacity + slot] = vertex
 
 

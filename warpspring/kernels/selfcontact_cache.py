@@ -112,6 +112,8 @@ from .selfcontact import (
     PARAM_THICKNESS,
     REPULSION_REACH,
     SAFETY,
+    WATCH_EDGE_EDGE,
+    WATCH_PATCHES,
     WATCH_REACH,
     SEARCH_REACH,
     Pairs,
@@ -416,7 +418,7 @@ def watch_kernel(scalar: type):
     ``split`` threads per particle of every world (adjacent), the k-th taking its world's list slots local + k ·
     particle_count, then every split · particle_count-th (``core/selfcontact.py``'s ``broad_split``: a small cloth's long
     lists spread over more threads). In the worlds ``decide_kernel`` flagged FLAG_WATCH (elsewhere the drifts keep the
-    watched pairs apart too): each watched pair whose sides' patches (their owner triangles', ``triangle_patch``) were
+    watched pairs apart too): each watched pair whose sides' patches (their owner triangles', in its tag) were
     both marked by ``decide_kernel`` (``patch_watch``), its distance at the step's start, with the narrow phase's
     arithmetic; a world with one closer than REPULSION_REACH τ (1 + SAFETY) is flagged for a rebuild (FLAG_REBUILD),
     and every distance checked is recorded in FLAG_APART (module docstring, 4.). In the worlds flagged FLAG_CACHED
@@ -428,15 +430,14 @@ def watch_kernel(scalar: type):
     record, _ = apart_funcs(scalar)
 
     @wp.func
-    def start_distance(key: wp.int64, vt_keys: wp.int64, index: wp.vec4i, base: int,
-                       particle_q_start: wp.array[vec3]) -> scalar:
-        """A listed pair's distance at the step's start [m] (VT where ``key`` < ``vt_keys``, else EE), with the
-        narrow phase's arithmetic."""
+    def start_distance(edge_edge: bool, index: wp.vec4i, base: int, particle_q_start: wp.array[vec3]) -> scalar:
+        """A listed pair's distance at the step's start [m] (VT, or EE with ``edge_edge``), with the narrow phase's
+        arithmetic."""
         x0 = particle_q_start[base + index[0]]
         x1 = particle_q_start[base + index[1]]
         x2 = particle_q_start[base + index[2]]
         x3 = particle_q_start[base + index[3]]
-        if key < vt_keys:
+        if not edge_edge:
             bary = triangle_closest(x0, x1, x2, x3)
             return wp.length(x0 - (bary[0] * x1 + bary[1] * x2 + bary[2] * x3))
         st = edge_closest(x0, x1, x2, x3)
@@ -450,10 +451,9 @@ def watch_kernel(scalar: type):
         surface: Surface,
         params: wp.array2d[scalar],
         watch_count: wp.array[wp.int32],
-        watch_key: wp.array[wp.int64],
+        watch_tag: wp.array[wp.int32],
         watch_vertex: wp.array[wp.vec4i],
         cache: Pairs,
-        triangle_patch: wp.array[wp.int32],
         patch_watch: wp.array2d[wp.int32],
         split: int,
         # State in:
@@ -473,27 +473,19 @@ def watch_kernel(scalar: type):
         near = scalar(REPULSION_REACH) * thickness * scalar(1.0 + SAFETY)
         vt_keys = wp.int64(particle_count) * wp.int64(surface.triangle.shape[0])
         if flags_in_out[flag_slot(FLAG_WATCH, world, world_count)] != 0:
-            capacity = watch_key.shape[0] // world_count
+            capacity = watch_tag.shape[0] // world_count
             count = wp.min(watch_count[world], capacity)
             for slot in range(local + part * particle_count, count, particle_count * split):
                 s = world * capacity + slot
-                # The patches of the pair's sides (their owner triangles'): unless decide_kernel marked both, the
-                # pair's patches lie 2τ apart now or drift by at most the slack of CACHE_REACH τ: it is that far apart.
-                key = watch_key[s]
-                side_a = int(0)
-                side_b = int(0)
-                if key < vt_keys:
-                    triangle_count = wp.int64(surface.triangle.shape[0])
-                    side_a = triangle_patch[surface.vertex_owner[int(key // triangle_count)]]
-                    side_b = triangle_patch[int(key % triangle_count)]
-                else:
-                    edge_count = wp.int64(surface.edge.shape[0])
-                    rest = key - vt_keys
-                    side_a = triangle_patch[surface.edge_owner[int(rest // edge_count)]]
-                    side_b = triangle_patch[surface.edge_owner[int(rest % edge_count)]]
-                if patch_watch[world, side_a] == 0 or patch_watch[world, side_b] == 0:
+                # The patches of the pair's sides (their owner triangles', in its tag): unless decide_kernel marked
+                # both, the pair's patches lie 2τ apart now or drift by at most the slack of CACHE_REACH τ: it is that
+                # far apart.
+                tag = watch_tag[s]
+                edge_edge = tag >= WATCH_EDGE_EDGE
+                sides = tag - wp.where(edge_edge, WATCH_EDGE_EDGE, 0)
+                if patch_watch[world, sides // WATCH_PATCHES] == 0 or patch_watch[world, sides % WATCH_PATCHES] == 0:
                     continue
-                d = start_distance(key, vt_keys, watch_vertex[s], base, particle_q_start)
+                d = start_distance(edge_edge, watch_vertex[s], base, particle_q_start)
                 if not (d >= near):
                     raise_flag(flags_in_out, FLAG_REBUILD, world, world_count)
                     return  # (the rebuild's anchors decide the stages for the new cache: anchor_kernel)
@@ -503,7 +495,7 @@ def watch_kernel(scalar: type):
             count = wp.min(cache.count[world], capacity)
             for slot in range(local + part * particle_count, count, particle_count * split):
                 s = world * capacity + slot
-                if not (start_distance(cache.key[s], vt_keys, cache.vertex[s], base, particle_q_start) >= near):
+                if not (start_distance(cache.key[s] >= vt_keys, cache.vertex[s], base, particle_q_start) >= near):
                     flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
                     return
 
