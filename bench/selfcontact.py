@@ -948,6 +948,9 @@ def main():
                         help="threads per triangle of the broad phase (default: core/selfcontact.py's broad_split)")
     parser.add_argument("--broad-per-triangle", action="store_true",
                         help="the broad phase's queries one per triangle (default: core/selfcontact.py's setting)")
+    parser.add_argument("--broad-launches", choices=["one", "two"], default=None,
+                        help="the broad phase's vertex and edge queries in one launch or two (default: "
+                             "core/selfcontact.py's BROAD_SEPARATE rule)")
     parser.add_argument("--broad-forms", action="store_true",
                         help="time the cache's build in each form of the broad phase's launch instead (CUDA only)")
     parser.add_argument("--broad-min-blocks", type=int, nargs="*", default=[],
@@ -977,6 +980,10 @@ def main():
         import warpspring.core.selfcontact as host
 
         host.BROAD_PER_PRIMITIVE = False
+    if args.broad_launches is not None:
+        import warpspring.core.selfcontact as host
+
+        host.BROAD_SEPARATE = args.broad_launches == "two"
     today = datetime.date.today()
     # The studies other than the cost table: (asked for, heading, columns, rows for one size); the first asked runs.
     studies = (
