@@ -160,10 +160,9 @@ def launch_labels(model) -> tuple[dict, object]:
         if launches is not None:  # its launches as the tree sets them (one, or the vertices' and the edges')
             contact = model.self_contact
             names = {"both": "VT + EE", "vertices": "VT", "edges": "EE"}
-            grouped = (getattr(contact, "broad_grouped", False),) if hasattr(contact, "broad_grouped") else ()
             for primitives, _, _ in launches:
                 kernel = kernels["broad_kernel"](model.scalar, swept, contact.broad_per_primitive, primitives,
-                                                 contact.broad_bounds, *grouped)
+                                                 contact.broad_bounds)
                 labelled.append((kernel, f"broad phase {names[primitives]} ({stage})"))
         elif "broad_kernel" in kernels:  # one query per triangle, or per primitive (an earlier tree: its setting)
             per_primitive = getattr(model.self_contact, "broad_per_primitive", None)
@@ -273,19 +272,17 @@ def broad_forms(n: int, device, repeats: int, min_blocks=(), leaf_sizes=()) -> l
         contact._leaves(start, start, swept=False)
 
     rows = []
-    shipped = (contact.broad_launches, contact.broad_block, contact.broad_bounds, contact.broad_grouped)
-    forms = [(separate, block, None, None, False) for separate in (False, True) for block in (32, 64, 128, 256)]
-    forms += [(True, block, None, None, True) for block in (64, 256)]
-    forms += [(True, 64, k, None, False) for k in min_blocks]
-    forms += [(None, None, None, (leaf, constructor), False) for leaf in leaf_sizes for constructor in ("lbvh", "sah")]
-    for separate, block, blocks, tree, grouped in forms:
+    shipped = (contact.broad_launches, contact.broad_block, contact.broad_bounds)
+    forms = [(separate, block, None, None) for separate in (False, True) for block in (32, 64, 128, 256)]
+    forms += [(True, 64, k, None) for k in min_blocks]
+    forms += [(None, None, None, (leaf, constructor)) for leaf in leaf_sizes for constructor in ("lbvh", "sah")]
+    for separate, block, blocks, tree in forms:
         if tree is None:
-            contact.broad_launches = contact.broad_launch_forms(separate, grouped=grouped)
+            contact.broad_launches = contact.broad_launch_forms(separate)
             contact.broad_block = block
             contact.broad_bounds = launch_bounds(block, blocks)
         else:
-            launches, contact.broad_block, contact.broad_bounds, grouped = shipped
-            contact.broad_launches = contact.broad_launch_forms(len(launches) == 2, grouped=grouped)
+            contact.broad_launches, contact.broad_block, contact.broad_bounds = shipped
             trees(*tree)
         build()
         wp.synchronize_device(device)
@@ -302,7 +299,7 @@ def broad_forms(n: int, device, repeats: int, min_blocks=(), leaf_sizes=()) -> l
         parts = " + ".join(f"{t:.0f}" for t in broad)
         if tree is None:
             bound = f" (≥ {blocks} blocks)" if blocks else ""
-            form = f"{'two, a query a warp' if grouped else 'two' if separate else 'one'} | {block}{bound}"
+            form = f"{'two' if separate else 'one'} | {block}{bound}"
         else:
             form = f"as shipped, trees of {tree[0]} a leaf ({tree[1]}) | {contact.broad_block}"
         rows.append(f"| {n} | {form} | {sum(broad):.0f} ({parts}) | "
@@ -954,9 +951,6 @@ def main():
     parser.add_argument("--broad-launches", choices=["one", "two"], default=None,
                         help="the broad phase's vertex and edge queries in one launch or two (default: "
                              "core/selfcontact.py's BROAD_SEPARATE rule)")
-    parser.add_argument("--broad-grouped", choices=["on", "off"], default=None,
-                        help="each warp's primitives query the BVH once around the union of their boxes (default: "
-                             "core/selfcontact.py's BROAD_GROUPED)")
     parser.add_argument("--broad-forms", action="store_true",
                         help="time the cache's build in each form of the broad phase's launch instead (CUDA only)")
     parser.add_argument("--broad-min-blocks", type=int, nargs="*", default=[],
@@ -990,10 +984,6 @@ def main():
         import warpspring.core.selfcontact as host
 
         host.BROAD_SEPARATE = args.broad_launches == "two"
-    if args.broad_grouped is not None:
-        import warpspring.core.selfcontact as host
-
-        host.BROAD_GROUPED = args.broad_grouped == "on"
     today = datetime.date.today()
     # The studies other than the cost table: (asked for, heading, columns, rows for one size); the first asked runs.
     studies = (

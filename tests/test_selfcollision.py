@@ -142,17 +142,13 @@ def test_broad_phase_equals_brute_force(device):
 
 #: The broad phase's forms (``core/selfcontact.py``): one query per primitive, the vertices' and the edges' in two
 #: launches or in one; one query per triangle.
-BROAD_FORMS = ["per primitive, two launches", "per primitive, one launch", "per triangle",
-               "per primitive, a query a warp"]
+BROAD_FORMS = ["per primitive, two launches", "per primitive, one launch", "per triangle"]
 
 
 def broad_form(monkeypatch, form: str) -> None:
-    """Force the broad phase's ``form`` (one of ``BROAD_FORMS``) for the models built after the call. A query a warp:
-    on the CPU each lane is its own group (the primitives in their order at rest, each world's padded)."""
+    """Force the broad phase's ``form`` (one of ``BROAD_FORMS``) for the models built after the call."""
     monkeypatch.setattr(selfcontact_host, "BROAD_PER_PRIMITIVE", form != "per triangle")
-    monkeypatch.setattr(selfcontact_host, "BROAD_SEPARATE", form in ("per primitive, two launches",
-                                                                     "per primitive, a query a warp"))
-    monkeypatch.setattr(selfcontact_host, "BROAD_GROUPED", form == "per primitive, a query a warp")
+    monkeypatch.setattr(selfcontact_host, "BROAD_SEPARATE", form == "per primitive, two launches")
 
 
 @pytest.mark.parametrize("form", BROAD_FORMS)

@@ -278,7 +278,7 @@ def self_contact_bytes(*, particles: int, worlds: int, triangles: int, edges: in
         slots = w * slots_per_world
         return (8 + 16 + 16 + f) * slots + 4 * (size + 1) * 2 + 4 * size + 4 * w
 
-    surface = 48 * t + 12 * e + 4 * n + 4 * (n + e) + 24 * w * t + 8 * w  # (4 (n + e): the grouped order)
+    surface = 48 * t + 12 * e + 4 * n + 24 * w * t + 8 * w
     live = ((PARAM_COUNT * f + 4 * COUNTER_COUNT + 2 * f + 2 * 4) * w + 4 * (2 + FLAG_KINDS * w)
             + 4 * w * -(-n // SCAN_BLOCK))
     live += 2 * (4 + 3 * f) * size  # the cap's roles and pushers' targets, twice

@@ -32,7 +32,6 @@ from ..kernels.selfcontact import (
     FILL_UNITS,
     FLAG_KINDS,
     FLAG_WORK,
-    GROUP_LANES,
     PAIRS_PER_VERTEX,
     PARAM_COUNT,
     PARAM_FRICTION,
@@ -113,9 +112,6 @@ BROAD_PER_PRIMITIVE = None
 #: 284 µs at 64²; but one launch made ``stacked_cloths`` 1.3x slower (``bench/results/selfcontact.md``, "The edges'
 #: queries read their triangle's sides at once").
 BROAD_SEPARATE = None
-#: With one query per primitive in two launches on CUDA, each warp's lanes (neighbours at rest) query once around the
-#: union of their boxes (True; ``broad_kernel``'s ``grouped``), or each its own (False). ``None``: False.
-BROAD_GROUPED = None
 #: Threads per block of the broad phase on CUDA (``None``: the model's block size). Each thread keeps its BVH
 #: traversal's stack in shared memory (132 B): in blocks of 256 the shared memory holds one block a multiprocessor
 #: (12.5 % occupancy); in blocks of 64 the registers bound it (the same build: 11.6 -> 8.5 ms at 1024² in one launch).
@@ -137,21 +133,6 @@ def broad_split(device, queries: int) -> int:
         return 1
     wanted = device.sm_count * BROAD_THREADS_PER_SM
     return int(min(BROAD_SPLIT_MAX, max(1, -(-wanted // max(queries, 1)))))
-
-
-def morton_order(points: np.ndarray) -> np.ndarray:
-    """The indices of ``points`` [count, 3] in the order of their Morton codes (10 bits an axis over their box), ties
-    by index: neighbours in space become neighbours in the order."""
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if len(points) == 0:
-        return np.zeros(0, dtype=np.int64)
-    low, high = points.min(axis=0), points.max(axis=0)
-    cells = np.clip(((points - low) / np.maximum(high - low, 1e-30) * 1023.0).astype(np.int64), 0, 1023)
-    code = np.zeros(len(points), dtype=np.int64)
-    for bit in range(10):
-        for axis in range(3):
-            code |= ((cells[:, axis] >> bit) & 1) << (3 * bit + axis)
-    return np.argsort(code, kind="stable")
 
 
 def check_settings(thickness: float, friction: float, relaxation: float) -> tuple[float, float, float]:
@@ -294,12 +275,6 @@ class SelfContact:
             raise ValueError(f"{self.patch_count} patches: a watched pair's tag holds at most {WATCH_PATCHES}")
         self.triangle_patch = wp.array(triangle_patch, dtype=wp.int32, device=device)
         surface.triangle_patch = self.triangle_patch
-        # The grouped broad phase's order: the particles by their rest positions, the edges by their midpoints.
-        rest = model.particle_q.numpy()[:n]
-        ends = topology["edge"]
-        surface.vertex_order = wp.array(morton_order(rest), dtype=wp.int32, device=device)
-        surface.edge_order = wp.array(morton_order(0.5 * (rest[ends[:, 0]] + rest[ends[:, 1]])), dtype=wp.int32,
-                                      device=device)
         # Sized for the most corners and chunks any grouping can have (3 per triangle; ``memory.self_contact_bytes``).
         entries = np.zeros(3 * len(order), dtype=np.int32)
         entries[:len(corner)] = np.where(reports, corner, -1 - corner)
@@ -351,10 +326,8 @@ class SelfContact:
         self.broad_per_primitive = device.is_cuda if BROAD_PER_PRIMITIVE is None else bool(BROAD_PER_PRIMITIVE)
         self._broad_queries = n + self.edge_count if self.broad_per_primitive else self.triangle_count  # per world
         self.broad_split = broad_split(device, worlds * self._broad_queries)
-        self.broad_grouped = False
         self.broad_launches = self.broad_launch_forms(
-            (device.is_cuda if BROAD_SEPARATE is None else bool(BROAD_SEPARATE)) and self.broad_per_primitive,
-            grouped=bool(BROAD_GROUPED))
+            (device.is_cuda if BROAD_SEPARATE is None else bool(BROAD_SEPARATE)) and self.broad_per_primitive)
         self.broad_block = (BROAD_BLOCK or model.block_dim) if device.is_cuda else model.block_dim
         self.broad_bounds = launch_bounds(self.broad_block, BROAD_MIN_BLOCKS if device.is_cuda else None)
         self.watch_split = broad_split(device, worlds * n)  # the watched pairs' check likewise, per particle
@@ -382,8 +355,8 @@ class SelfContact:
         check_kernel(scalar).module.load(model.device, PATCH_THREADS)
         for swept in (False, True):
             for primitives, _, _ in self.broad_launches:
-                broad_kernel(scalar, swept, self.broad_per_primitive, primitives, self.broad_bounds,
-                             self.broad_grouped).module.load(model.device, self.broad_block)
+                broad_kernel(scalar, swept, self.broad_per_primitive, primitives,
+                             self.broad_bounds).module.load(model.device, self.broad_block)
         flat = [reset_kernel(), fill_kernel(), decide_kernel(scalar), watch_kernel(scalar), anchor_kernel(scalar),
                 repel_pairs_kernel(scalar),
                 repel_gather_kernel(scalar), cap_bounds_kernel(scalar), cap_gather_kernel(scalar),
@@ -391,19 +364,14 @@ class SelfContact:
         for kernel in flat:
             kernel.module.load(model.device, model.block_dim)
 
-    def broad_launch_forms(self, separate: bool, *, grouped: bool = False) -> list[tuple[str, int, int]]:
+    def broad_launch_forms(self, separate: bool) -> list[tuple[str, int, int]]:
         """The broad phase's launches, each (primitives, queries per world, threads per query): with ``separate`` (one
-        query per primitive only) the vertices' and the edges' apart, else one launch over all its queries; with
-        ``grouped`` (and ``separate``) each warp's lanes query once (``broad_kernel``), each world's queries padded to
-        a multiple of GROUP_LANES. Sets ``broad_grouped``."""
+        query per primitive only) the vertices' and the edges' apart, else one launch over all its queries."""
         model = self.model
-        self.broad_grouped = bool(grouped and separate and self.broad_per_primitive)
         if not separate:
             return [("both", self._broad_queries, self.broad_split)]
-        kinds = (("vertices", model.particle_count), ("edges", self.edge_count))
-        if self.broad_grouped:
-            return [(kind, -(-count // GROUP_LANES) * GROUP_LANES, 1) for kind, count in kinds]
-        return [(kind, count, broad_split(model.device, model.world_count * count)) for kind, count in kinds]
+        return [(kind, count, broad_split(model.device, model.world_count * count))
+                for kind, count in (("vertices", model.particle_count), ("edges", self.edge_count))]
 
     def _allocate(self, capacity: int) -> None:
         """The cap's list with ``capacity`` slots per world and the cache with CACHE_SLOTS times as many (emptied:
@@ -613,8 +581,7 @@ class SelfContact:
                        near_out=near)
         for primitives, queries, split in self.broad_launches:
             args["split"] = split
-            flat_launch(broad_kernel(model.scalar, swept, self.broad_per_primitive, primitives, self.broad_bounds,
-                                     self.broad_grouped),
+            flat_launch(broad_kernel(model.scalar, swept, self.broad_per_primitive, primitives, self.broad_bounds),
                         inputs=list(args.values()), outputs=list(outputs.values()),
                         dim=model.world_count * queries * split, block_dim=self.broad_block, device=model.device)
         tile_sums, tile_offsets, tile_prefixes = scan_kernels()

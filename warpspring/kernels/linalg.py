@@ -161,39 +161,6 @@ def atomic_raise(values: wp.array[wp.int32], index: int, value: int):
     ...
 
 
-def _warp_bound_source(reduce: str) -> str:
-    """C++ of ``warp_lower`` (``reduce`` "min") or ``warp_upper`` ("max"): each component reduced over the active lanes
-    as an order-preserving integer (a float's bits, the magnitude's flipped where negative)."""
-    return f"""
-#if defined(__CUDA_ARCH__)
-const unsigned int active = __activemask();
-wp::vec3f out;
-for (int k = 0; k < 3; ++k) {{
-    const int bits = __float_as_int(value[k]);
-    int key = bits >= 0 ? bits : (bits ^ 0x7fffffff);
-    key = __reduce_{reduce}_sync(active, key);
-    out[k] = __int_as_float(key >= 0 ? key : (key ^ 0x7fffffff));
-}}
-return out;
-#else
-return value;
-#endif
-"""
-
-
-@wp.func_native(_warp_bound_source("min"))
-def warp_lower(value: wp.vec3f) -> wp.vec3f:
-    """The componentwise least ``value`` over the warp's active lanes (every one of them gets it); on the CPU, where a
-    thread is its own group, ``value``. Exact: a minimum of floats, taken on their order-preserving integer bits."""
-    ...
-
-
-@wp.func_native(_warp_bound_source("max"))
-def warp_upper(value: wp.vec3f) -> wp.vec3f:
-    """The componentwise largest ``value`` over the warp's active lanes, likewise (``warp_lower``)."""
-    ...
-
-
 def _warp_total_source(ctype: str) -> str:
     """C++ of ``warp_total`` for values of ``ctype``."""
     return f"""

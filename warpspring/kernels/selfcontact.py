@@ -152,7 +152,7 @@ from .kinematics import particle_funcs
 from .precision import vec3_type
 from .worlds import world_and_index
 from .flatten import flat_kernel, launch_bounds_option
-from .linalg import atomic_raise, atomic_slot, warp_lower, warp_upper
+from .linalg import atomic_raise, atomic_slot
 
 wp.set_module_options({"enable_backward": False})
 
@@ -242,9 +242,6 @@ PATCH_COLUMNS = 12
 #: pair; the patches of a surface stay below WATCH_PATCHES (``PATCH_LIMIT``, and ``SelfContact`` checks).
 WATCH_PATCHES = 1 << 15
 WATCH_EDGE_EDGE = 1 << 30
-#: The grouped broad phase's lanes a group (``broad_kernel``'s ``grouped``): a warp of CUDA; each world's primitives
-#: padded to a multiple of it, so that a warp never spans two worlds.
-GROUP_LANES = 32
 
 
 def patch_count(triangle_count: int, cuda: bool) -> int:
@@ -279,9 +276,6 @@ class Surface:
     vertex_owner: wp.array[wp.int32]  # the triangle through which queries report vertex i, or -1 (not on the
     #   surface), shape [particle_count]
     triangle_patch: wp.array[wp.int32]  # each triangle's patch (``kernels/selfcontact_cache.py``), [triangle_count]
-    vertex_order: wp.array[wp.int32]  # the particles in the order of their rest positions' Morton codes: the grouped
-    #   broad phase's warps take GROUP_LANES neighbours each, [particle_count]
-    edge_order: wp.array[wp.int32]  # the edges likewise, by their midpoints at rest, [edge_count]
     bvh: wp.array[wp.uint64]  # per world, the id of the wp.Bvh of its triangles' boxes (``leaf_lower/upper``)
     leaf_lower: wp.array[wp.vec3f]  # [m], the triangles' boxes, shape [world_count · triangle_count]
     leaf_upper: wp.array[wp.vec3f]  # [m], likewise
@@ -530,7 +524,7 @@ def leaf_kernel(scalar: type, swept: bool):
 
 @functools.cache
 def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primitives: str = "both",
-                 bounds: tuple[int, int] | None = None, grouped: bool = False):
+                 bounds: tuple[int, int] | None = None):
     """The broad phase's kernel (module docstring). With ``per_primitive``, ``split`` threads (adjacent) per surface
     vertex (VT pairs) and per edge (EE pairs, kept from the lower edge) of every world, each querying the BVH around
     its primitive's own query box (its start, and with ``swept`` its end, grown by the reach). Without, ``split``
@@ -543,13 +537,7 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
     pairs closer than reach_factor · τ + reach_add at the start and lowers each world's ``near_out`` to the least
     distance among them (``apart_codec``, in units of the τ it lists with); with it the cap's pairs at (start, end).
     ``primitives`` (with ``per_primitive``): "both" in one launch, or only the "vertices"' or the "edges'" queries
-    (thread ``me`` of a world then the ``me``-th vertex or edge). ``bounds``: ``flatten.launch_bounds_option``.
-    With ``grouped`` (one kind of ``primitives``; ``split`` 1): each world's vertices or edges in their order at rest
-    (``Surface.vertex_order``, ``edge_order``), padded to a multiple of GROUP_LANES, and the lanes of a warp, neighbours
-    at rest, query the BVH once around the union of their boxes (``linalg.warp_lower``, ``warp_upper``): every lane
-    walks the same nodes at once, and tests each reported triangle's box against its own primitive's box before its
-    pairs, so that it keeps the pairs its own query would have (one traversal a warp for 32; on the CPU a lane is its
-    own group: the per-primitive form)."""
+    (thread ``me`` of a world then the ``me``-th vertex or edge). ``bounds``: ``flatten.launch_bounds_option``."""
     vec3 = vec3_type(scalar)
     triangle_closest, edge_closest = geometry_funcs(scalar)
     box_of, _, _, sweep_bounds, push_pair, kept_by_cap = _pair_funcs(scalar)
@@ -719,19 +707,8 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
             per_world = particle_count
         if wp.static(per_primitive and primitives == "edges"):
             per_world = edge_count
-        count = per_world  # (grouped: the world's primitives, before the padding)
-        if wp.static(grouped):
-            per_world = (count + GROUP_LANES - 1) // GROUP_LANES * GROUP_LANES
         world = thread // per_world
         me = thread - world * per_world
-        if wp.static(grouped):  # the me-th primitive at rest (the padding's lanes: none, -1)
-            if me < count:
-                if wp.static(primitives == "vertices"):
-                    me = surface.vertex_order[me]
-                else:
-                    me = surface.edge_order[me]
-            else:
-                me = -1 - particle_count
         if wp.static(per_primitive and primitives == "edges"):
             me += particle_count
         base = world * particle_count
@@ -756,41 +733,6 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
                 is_vertex = True
             if wp.static(primitives == "edges"):
                 is_vertex = False
-            if wp.static(grouped):
-                # Every lane of the warp reaches the union (none returns before it): a padding lane, or a vertex off
-                # the surface, with an empty box.
-                valid = me >= 0
-                if valid and is_vertex:
-                    valid = surface.vertex_owner[me] >= 0
-                lower = wp.vec3f(3.0e38, 3.0e38, 3.0e38)
-                upper = wp.vec3f(-3.0e38, -3.0e38, -3.0e38)
-                if valid:
-                    ends = wp.vec2i(me, me)
-                    if not is_vertex:
-                        ends = surface.edge[me - particle_count]
-                    lower, upper = query_box(ends, base, mass_row, limit, cube, query_reach, particle_flags,
-                                             particle_inv_mass, particle_q_start, particle_q_end)
-                union_lower = warp_lower(lower)
-                union_upper = warp_upper(upper)
-                if union_lower[0] > union_upper[0]:  # (the whole warp: none valid)
-                    return
-                query = wp.bvh_query_aabb(surface.bvh[world], union_lower, union_upper)
-                t = int(0)
-                while wp.bvh_query_next(query, t):
-                    if valid and boxes_overlap_f(lower, upper, surface.leaf_lower[world * triangle_count + t],
-                                                 surface.leaf_upper[world * triangle_count + t]):
-                        if is_vertex:
-                            vertex_leaf(world, base, me, t, reach, relaxation, mass_row, limit, cube, watch_reach,
-                                        thickness, surface, particle_flags, particle_inv_mass, particle_q_start,
-                                        particle_q_end, pairs_out, pair_distance_out, counters_out, watch_count_out,
-                                        watch_tag_out, watch_vertex_out, near_out)
-                        else:
-                            edge_leaf(world, base, particle_count, me - particle_count, vec3(lower), vec3(upper), t,
-                                      reach, relaxation, mass_row, limit, cube, watch_reach, thickness, surface,
-                                      particle_flags, particle_inv_mass, particle_q_start, particle_q_end, pairs_out,
-                                      pair_distance_out, counters_out, watch_count_out, watch_tag_out,
-                                      watch_vertex_out, near_out)
-                return
             ends = wp.vec2i(me, me)
             if is_vertex:
                 if surface.vertex_owner[me] < 0:
