@@ -206,7 +206,7 @@ def test_watch_list_equals_brute_force(device, split, form, monkeypatch):
     edge_of = {tuple(int(i) for i in e): k for k, e in enumerate(edges)}
     surface = sc.surface
     vertex_owner, edge_owner = surface.vertex_owner.numpy(), surface.edge_owner.numpy()
-    patch = sc.triangle_patch.numpy()
+    patch = surface.triangle_patch.numpy()
     listed = set()
     for tag, (a, b, c, d) in zip(tags, vertices):
         edge_edge = tag >= WATCH_EDGE_EDGE

@@ -273,8 +273,7 @@ class SelfContact:
         self.patch_triangles = [order[bounds[k]:bounds[k + 1]] for k in range(self.patch_count)]  # for tests
         if self.patch_count > WATCH_PATCHES:  # (PATCH_LIMIT keeps it far below: a watched pair's tag holds two)
             raise ValueError(f"{self.patch_count} patches: a watched pair's tag holds at most {WATCH_PATCHES}")
-        self.triangle_patch = wp.array(triangle_patch, dtype=wp.int32, device=device)
-        surface.triangle_patch = self.triangle_patch
+        surface.triangle_patch = wp.array(triangle_patch, dtype=wp.int32, device=device)
         # Sized for the most corners and chunks any grouping can have (3 per triangle; ``memory.self_contact_bytes``).
         entries = np.zeros(3 * len(order), dtype=np.int32)
         entries[:len(corner)] = np.where(reports, corner, -1 - corner)

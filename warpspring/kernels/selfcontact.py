@@ -372,6 +372,25 @@ def geometry_funcs(scalar: type):
 
 
 @functools.cache
+def pair_distance_func(scalar: type):
+    """``pair_distance(edge_edge, x0, x1, x2, x3)``: a pair's distance [m] from its four vertices' positions, VT
+    (x0 and the triangle x1 x2 x3) or EE (the segments x0 x1 and x2 x3), by ``geometry_funcs``' closest points: the
+    one arithmetic every phase that lists or checks pairs by their distance uses, so that they agree to the bit."""
+    vec3 = vec3_type(scalar)
+    triangle_closest, edge_closest = geometry_funcs(scalar)
+
+    @wp.func
+    def pair_distance(edge_edge: bool, x0: vec3, x1: vec3, x2: vec3, x3: vec3) -> scalar:
+        if not edge_edge:
+            bary = triangle_closest(x0, x1, x2, x3)
+            return wp.length(x0 - (bary[0] * x1 + bary[1] * x2 + bary[2] * x3))
+        st = edge_closest(x0, x1, x2, x3)
+        return wp.length((x0 + st[0] * (x1 - x0)) - (x2 + st[1] * (x3 - x2)))
+
+    return pair_distance
+
+
+@functools.cache
 def _vertex_extent(scalar: type, swept: bool):
     """``extend(lower, upper, j, local, mass_row, particle_flags, particle_inv_mass, particle_q_start,
     particle_q_end, limit, cube) -> (lower, upper)``: the box [lower, upper] grown to hold vertex j's (state entry;
@@ -539,7 +558,7 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
     ``primitives`` (with ``per_primitive``): "both" in one launch, or only the "vertices"' or the "edges'" queries
     (thread ``me`` of a world then the ``me``-th vertex or edge). ``bounds``: ``flatten.launch_bounds_option``."""
     vec3 = vec3_type(scalar)
-    triangle_closest, edge_closest = geometry_funcs(scalar)
+    pair_distance = pair_distance_func(scalar)
     box_of, _, _, sweep_bounds, push_pair, kept_by_cap = _pair_funcs(scalar)
     extend = _vertex_extent(scalar, swept)
     cube_reach = cube_reach_func(scalar)
@@ -584,18 +603,24 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
     @wp.func
     def list_pair(
         world: int, base: int, key: wp.int64, vertex: wp.vec4i, kept: bool, value: scalar, watch_reach: scalar,
-        thickness: scalar, owner: int, t: int, edge_edge: int, surface: Surface, pairs_out: Pairs,
+        thickness: scalar, first: int, t: int, edge_edge: int, surface: Surface, pairs_out: Pairs,
         pair_distance_out: wp.array[scalar], counters_out: wp.array2d[wp.int32], watch_count_out: wp.array[wp.int32],
         watch_tag_out: wp.array[wp.int32], watch_vertex_out: wp.array[wp.vec4i], near_out: wp.array[wp.int32],
     ):
         """A tested pair stored (``kept``: in the list, its distance lowering ``near_out`` without ``swept``), or
-        without ``swept`` watched where closer than ``watch_reach``, tagged with the patches of its first side's
-        owner triangle ``owner`` and of the reported triangle ``t`` (``watch_tag``)."""
+        without ``swept`` watched where closer than ``watch_reach``, tagged with the patches of the owner triangle of
+        its first side ``first`` (a vertex, or with ``edge_edge`` an edge) and of the reported triangle ``t``
+        (``watch_tag``)."""
         if kept:
             push_pair(world, base, key, vertex, value, pairs_out, pair_distance_out, counters_out)
             if wp.static(not swept):
                 near_lower(near_out, world, value, thickness)
         elif wp.static(not swept) and value < watch_reach:
+            owner = int(0)
+            if edge_edge == 1:
+                owner = surface.edge_owner[first]
+            else:
+                owner = surface.vertex_owner[first]
             tag = (surface.triangle_patch[owner] * WATCH_PATCHES + surface.triangle_patch[t]
                    + edge_edge * WATCH_EDGE_EDGE)
             watch_pair(world, tag, vertex, watch_count_out, watch_tag_out, watch_vertex_out)
@@ -612,17 +637,13 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
         """The VT pair of vertex v and reported triangle t: kept, watched or neither."""
         tri = surface.triangle[t]
         if tri[0] != v and tri[1] != v and tri[2] != v:  # a topological neighbour: no geometry
-            p = particle_q_start[base + v]
-            a = particle_q_start[base + tri[0]]
-            b = particle_q_start[base + tri[1]]
-            c = particle_q_start[base + tri[2]]
-            bary = triangle_closest(p, a, b, c)
+            distance = pair_distance(False, particle_q_start[base + v], particle_q_start[base + tri[0]],
+                                     particle_q_start[base + tri[1]], particle_q_start[base + tri[2]])
             vertex = wp.vec4i(v, tri[0], tri[1], tri[2])
-            kept, value = keep(wp.length(p - (bary[0] * a + bary[1] * b + bary[2] * c)), reach, relaxation, vertex,
-                               base, mass_row, limit, cube, particle_flags, particle_inv_mass, particle_q_start,
-                               particle_q_end)
+            kept, value = keep(distance, reach, relaxation, vertex, base, mass_row, limit, cube, particle_flags,
+                               particle_inv_mass, particle_q_start, particle_q_end)
             key = wp.int64(v) * wp.int64(surface.triangle.shape[0]) + wp.int64(t)
-            list_pair(world, base, key, vertex, kept, value, watch_reach, thickness, surface.vertex_owner[v], t, 0,
+            list_pair(world, base, key, vertex, kept, value, watch_reach, thickness, v, t, 0,
                       surface, pairs_out, pair_distance_out, counters_out, watch_count_out, watch_tag_out,
                       watch_vertex_out, near_out)
 
@@ -656,16 +677,14 @@ def broad_kernel(scalar: type, swept: bool, per_primitive: bool = False, primiti
                                                       particle_flags, particle_inv_mass, particle_q_start,
                                                       particle_q_end, limit, cube)
                 if boxes_overlap(other_lower, other_upper, box_lower, box_upper):
-                    p1 = particle_q_start[base + ends[0]]
-                    q1 = particle_q_start[base + ends[1]]
-                    st = edge_closest(p1, q1, p2, q2)
+                    distance = pair_distance(True, particle_q_start[base + ends[0]],
+                                             particle_q_start[base + ends[1]], p2, q2)
                     vertex = wp.vec4i(ends[0], ends[1], other[0], other[1])
-                    distance = wp.length((p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)))
                     kept, value = keep(distance, reach, relaxation, vertex, base, mass_row, limit, cube,
                                        particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
                     key = (wp.int64(particle_count) * wp.int64(surface.triangle.shape[0])
                            + wp.int64(e) * wp.int64(surface.edge.shape[0]) + wp.int64(f))
-                    list_pair(world, base, key, vertex, kept, value, watch_reach, thickness, surface.edge_owner[e], t,
+                    list_pair(world, base, key, vertex, kept, value, watch_reach, thickness, e, t,
                               1, surface, pairs_out, pair_distance_out, counters_out, watch_count_out, watch_tag_out,
                               watch_vertex_out, near_out)
 

@@ -124,7 +124,7 @@ from .selfcontact import (
     _vertex_extent,
     cube_reach_func,
     flag_slot,
-    geometry_funcs,
+    pair_distance_func,
     raise_flag,
 )
 from .worlds import world_and_index
@@ -426,22 +426,15 @@ def watch_kernel(scalar: type):
     step's start likewise; one closer than REPULSION_REACH τ (1 + SAFETY) raises FLAG_WORK, and where none is, the
     pair stages would push no pair (module docstring, 5.)."""
     vec3 = vec3_type(scalar)
-    triangle_closest, edge_closest = geometry_funcs(scalar)
+    pair_distance = pair_distance_func(scalar)
     record, _ = apart_funcs(scalar)
 
     @wp.func
     def start_distance(edge_edge: bool, index: wp.vec4i, base: int, particle_q_start: wp.array[vec3]) -> scalar:
         """A listed pair's distance at the step's start [m] (VT, or EE with ``edge_edge``), with the narrow phase's
         arithmetic."""
-        x0 = particle_q_start[base + index[0]]
-        x1 = particle_q_start[base + index[1]]
-        x2 = particle_q_start[base + index[2]]
-        x3 = particle_q_start[base + index[3]]
-        if not edge_edge:
-            bary = triangle_closest(x0, x1, x2, x3)
-            return wp.length(x0 - (bary[0] * x1 + bary[1] * x2 + bary[2] * x3))
-        st = edge_closest(x0, x1, x2, x3)
-        return wp.length((x0 + st[0] * (x1 - x0)) - (x2 + st[1] * (x3 - x2)))
+        return pair_distance(edge_edge, particle_q_start[base + index[0]], particle_q_start[base + index[1]],
+                             particle_q_start[base + index[2]], particle_q_start[base + index[3]])
 
     @flat_kernel(module="unique", enable_backward=False)
     def watch(
@@ -560,7 +553,7 @@ def cap_bounds_kernel(scalar: type):
     max δ > γ (D - K)), ``NO_BOUND`` elsewhere. Worlds flagged FLAG_FALLBACK are skipped (their cap reads the swept
     list)."""
     vec3 = vec3_type(scalar)
-    triangle_closest, edge_closest = geometry_funcs(scalar)
+    pair_distance = pair_distance_func(scalar)
     box_of, _, _, sweep_bounds, _, kept_by_cap = _pair_funcs(scalar)
     extend = _vertex_extent(scalar, True)
     cube_reach = cube_reach_func(scalar)
@@ -605,12 +598,8 @@ def cap_bounds_kernel(scalar: type):
             leaf_lower, leaf_upper = box_of(lower, upper, zero)
             if not boxes_overlap(vec3(query_lower), vec3(query_upper), vec3(leaf_lower), vec3(leaf_upper)):
                 return scalar(NO_BOUND)
-            p = particle_q_start[base + vertex[0]]
-            a = particle_q_start[base + vertex[1]]
-            b = particle_q_start[base + vertex[2]]
-            c = particle_q_start[base + vertex[3]]
-            bary = triangle_closest(p, a, b, c)
-            distance = wp.length(p - (bary[0] * a + bary[1] * b + bary[2] * c))
+            distance = pair_distance(False, particle_q_start[base + vertex[0]], particle_q_start[base + vertex[1]],
+                                     particle_q_start[base + vertex[2]], particle_q_start[base + vertex[3]])
         else:  # EE: the lower edge's query box, the other edge's owner triangle's leaf box, the other edge's box
             rest = key - wp.int64(particle_count) * wp.int64(triangle_count)
             f = int(rest % wp.int64(surface.edge.shape[0]))
@@ -627,12 +616,8 @@ def cap_bounds_kernel(scalar: type):
                                                  particle_flags, particle_inv_mass, particle_q_start, particle_q_end)
             if not boxes_overlap(other_lower, other_upper, vec3(query_lower), vec3(query_upper)):
                 return scalar(NO_BOUND)
-            p1 = particle_q_start[base + vertex[0]]
-            q1 = particle_q_start[base + vertex[1]]
-            p2 = particle_q_start[base + vertex[2]]
-            q2 = particle_q_start[base + vertex[3]]
-            st = edge_closest(p1, q1, p2, q2)
-            distance = wp.length((p1 + st[0] * (q1 - p1)) - (p2 + st[1] * (q2 - p2)))
+            distance = pair_distance(True, particle_q_start[base + vertex[0]], particle_q_start[base + vertex[1]],
+                                     particle_q_start[base + vertex[2]], particle_q_start[base + vertex[3]])
         kinematic, free_step = sweep_bounds(vertex, base, mass_row, limit, cube, particle_flags, particle_inv_mass,
                                             particle_q_start, particle_q_end)
         if kept_by_cap(distance, floor, kinematic, free_step, relaxation):
