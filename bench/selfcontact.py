@@ -33,6 +33,7 @@ launch, scan and refit.
     python bench/selfcontact.py --device cpu --sizes 32 64 --rebuild-study 4   # the cache's rebuilds by rule
     python bench/selfcontact.py --device cpu --sizes 64 128 --patch-study 8   # the cache's rebuilds by patch grouping
     python bench/selfcontact.py --device cpu --sizes 32 64 --stage-study 4   # how often the pair stages run, and why
+    python bench/selfcontact.py --device cuda:0 --sizes 64 256 --captured-parts 4   # the captured pass, part by part
 
 The cost table (the default mode) times, at each size, the substep without and with self-collision
 (``none``, ``self``; ``--pass-alone`` adds ``pass``), and each self-collision example's simulation loop
@@ -724,6 +725,54 @@ def rebuild_study(n: int, device, frames: int, patch_widths=(0.2, 0.4, 0.8), rea
 EXAMPLES = ["twisted_cloth", "stacked_cloths", "cloth_fold_on_bar", "thin_colliders"]
 
 
+#: ``--captured-parts``: the pass with parts taken out (timing only: a part taken out changes what the pass does),
+#: each as the methods of ``SelfContact`` it empties.
+CAPTURED_PARTS = (
+    ("the pass as it runs", ()),
+    ("no rebuilds (the rebuild's conditional node empty)", ("_rebuild",)),
+    ("the check and the decisions alone (no watch, rebuild or stages)", ("_watch", "_rebuild", "_stages")),
+    ("the check alone", ("_decide", "_watch", "_rebuild", "_stages")),
+    ("the flags' memset and the busy branch alone", ("_check", "_decide", "_watch", "_rebuild", "_stages")),
+    ("no pass (the integrator's update and the colliders' projection)", ("_flag", "_branch")),
+)
+
+
+def captured_parts(n: int, device, frames: int) -> list[str]:
+    """Rows of ``--captured-parts``: µs per substep of the ``self`` scene's captured frames with parts of the pass
+    taken out (``CAPTURED_PARTS``), against the scene without self-collision. Each variant starts from the same
+    state and cache: the settled state, then one frame of the whole pass (its cache built there); its first frame
+    (the capture) untimed; the cache's rebuilds and the pair stages' runs per substep counted over its timed frames."""
+    none = fixed_frames(lambda: Runner(scene(n, device, False)), device, frames)[1]
+    runner = Runner(scene(n, device, True))
+    sim = runner.sim
+    sc = sim.model.self_contact
+    settled = sim.model.state()
+    settled.assign(sim.state)
+    rows = [f"| {n} | without self-collision (the one-launch frame) | {none:.1f} | 1.0× | | |"]
+    for label, emptied in CAPTURED_PARTS:
+        sim.stepper.state.assign(settled)
+        sim.stepper._graph, sim.stepper._graphs = None, {}
+        sim.step_frame()  # the whole pass: every variant's cache built at the same state
+        for name in emptied:
+            setattr(sc, name, lambda *args, **kwargs: None)
+        sim.stepper._graph, sim.stepper._graphs = None, {}
+        runner.frame()  # the capture, untimed
+        sc.reset()
+        wp.synchronize_device(device)
+        start = time.perf_counter()
+        for _ in range(frames):
+            runner.frame()
+        wp.synchronize_device(device)
+        us = (time.perf_counter() - start) / (frames * SUBSTEPS) * 1e6
+        for name in emptied:
+            delattr(sc, name)
+        counts = {k: int(v.sum()) / (frames * SUBSTEPS) for k, v in sc.cache_counts().items()}
+        print(f"N={n} {label}: {us:.1f} µs per substep, {counts}", flush=True)
+        rows.append(f"| {n} | {label} | {us:.1f} | {us / none:.1f}× | {counts['rebuilds']:.3f} | "
+                    f"{counts['stages']:.3f} |")
+    return rows
+
+
 def fixed_frames(make_runner, device, frames: int) -> tuple[object, float]:
     """(the runner, µs per substep over ``frames`` frames right after the settling, one warm-up frame first): every
     variant and every tree times the same stretch of the same motion (the pass's results are the same bits)."""
@@ -959,6 +1008,8 @@ def main():
     parser.add_argument("--broad-trees", type=int, nargs="*", default=[], metavar="LEAF",
                         help="with --broad-forms, also the shipped form on BVHs of LEAF triangles a leaf (built at "
                              "rest by Warp's GPU and CPU constructors, refit), each LEAF")
+    parser.add_argument("--captured-parts", type=int, default=0, metavar="FRAMES",
+                        help="time FRAMES captured frames of the pass with parts taken out instead (CAPTURED_PARTS)")
     parser.add_argument("--radius-study", action="store_true", help="count the cap's pairs by candidate rule instead")
     parser.add_argument("--patch-study", type=int, default=0, metavar="FRAMES",
                         help="the cache's rebuilds per substep over FRAMES frames for each patch grouping (PATCH_STUDY)")
@@ -1007,6 +1058,14 @@ def main():
          ["N", "patches", "rebuilds per substep", "asked by", "patch pairs past the slack per decide rebuild "
           "(of them a patch with itself)", "pairs watched at the end"],
          lambda n: patch_study(n, device, args.patch_study)),
+        (args.captured_parts,
+         f"Self-collision's parts, captured, on {device.name}, Warp {wp.config.version}, {today}: the draped cloth's "
+         f"{args.captured_parts} frames after {SETTLE_FRAMES} frames of settling and one untimed, each variant from the "
+         f"same state (τ = {THICKNESS} m); a part taken out changes the motion, so the rows time the launches, not the "
+         f"scene",
+         ["N", "variant", "µs per substep", "over the substep without self-collision", "rebuilds per substep",
+          "stage runs per substep"],
+         lambda n: captured_parts(n, device, args.captured_parts)),
         (args.radius_study,
          f"The cap's pairs per substep by candidate rule on {device.name}, Warp {wp.config.version}, {today}: the draped "
          f"cloth's fall ({SETTLE_FRAMES} frames, every 4th substep), τ = {THICKNESS} m, γ = 0.25",

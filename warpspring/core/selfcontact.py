@@ -30,6 +30,7 @@ from ..kernels.selfcontact import (
     COUNT_STAGES,
     COUNTER_COUNT,
     FILL_UNITS,
+    FLAG_BUSY,
     FLAG_KINDS,
     FLAG_WORK,
     PAIRS_PER_VERTEX,
@@ -653,30 +654,46 @@ class SelfContact:
         else:
             wp.launch(check_kernel(model.scalar, False), **check)
 
-    def _prepare(self, start: wp.array, particle_q: wp.array) -> None:
-        """The step's flags: the cache's check and decisions, then its rebuild where a world needs one."""
-        model = self.model
+    def _flag(self, start: wp.array, particle_q: wp.array) -> None:
+        """The step's flags: the cache's check, its decisions and the watched and cached pairs' checks."""
         self._step_scratch.zero_()  # the flags and the patches' boxes
-        surface = self.surface
-        self._check(start, particle_q, tiled=model.device.is_cuda)
+        self._check(start, particle_q, tiled=self.model.device.is_cuda)
+        self._decide()
+        self._watch(start)
+
+    def _prepare(self, start: wp.array, particle_q: wp.array) -> None:
+        """The step's flags, then the cache's rebuild where a world needs one."""
+        self._flag(start, particle_q)
+        self._branch(self.flags[0:1], self._rebuild, start=start)
+
+    def _decide(self) -> None:
+        """The cache's decisions per pair of patches, after its check."""
+        model = self.model
         flat_launch(decide_kernel(model.scalar),
                     inputs=[model.world_enabled, self.params, self.cache_reach, self.cache_floor, self.cache.count,
                             self.cache_capacity, self.cache_near, self.patch_box],
                     outputs=[self.flags, self.patch_watch], dim=model.world_count * self.patch_count ** 2, block_dim=model.block_dim,
                     device=model.device)
+
+    def _watch(self, start: wp.array) -> None:
+        """The watched and the cached pairs' checks where the decisions asked for them."""
+        model = self.model
         flat_launch(watch_kernel(model.scalar),
-                    inputs=[model.particle_count, model.world_enabled, surface, self.params, self.watch_count,
+                    inputs=[model.particle_count, model.world_enabled, self.surface, self.params, self.watch_count,
                             self.watch_tag, self.watch_vertex, self.cache, self.patch_watch,
                             self.watch_split, start],
                     outputs=[self.flags], dim=model.particle_dim * self.watch_split, block_dim=model.block_dim,
                     device=model.device)
-        self._branch(self.flags[0:1], self._rebuild, start=start)
+
+    def _first_entry(self, kind: int) -> wp.array:
+        """The first entry of the flag ``kind`` (FLAG_*), as a one-element array."""
+        slot = 2 + kind * self.model.world_count
+        return self.flags[slot:slot + 1]
 
     @property
     def _work(self) -> wp.array:
         """The flag of the pair stages (FLAG_WORK's first entry), as a one-element array."""
-        slot = 2 + FLAG_WORK * self.model.world_count
-        return self.flags[slot:slot + 1]
+        return self._first_entry(FLAG_WORK)
 
     def _repel_stage(self, start: wp.array, particle_q: wp.array) -> None:
         """The repulsion over the cached pairs and its gather into ``self.corrected``."""
@@ -812,9 +829,16 @@ class SelfContact:
         """Make ``state_out`` (the integrator's result from ``state_in``) free of self-intersections: repel, then
         cap (device work only, fixed launch sizes: capturable)."""
         start, particle_q = state_in.particle_q, state_out.particle_q
-        self._prepare(start, particle_q)
-        # The stages run where a world has cached pairs or a vertex steps too far for the cache; elsewhere they would
-        # leave state_out as it is (kernels/selfcontact_cache.py, decide_kernel).
+        self._flag(start, particle_q)
+        # One conditional node where no world rebuilds and none runs the stages (most steps), the two inside it.
+        self._branch(self._first_entry(FLAG_BUSY), self._busy, start=start, particle_q=particle_q,
+                     state_out=state_out, dt=dt)
+
+    def _busy(self, start: wp.array, particle_q: wp.array, state_out, dt: float) -> None:
+        """The rebuild where a world needs one, then the stages where a world has cached pairs or a vertex steps too
+        far for the cache; elsewhere they would leave state_out as it is (kernels/selfcontact_cache.py,
+        decide_kernel)."""
+        self._branch(self.flags[0:1], self._rebuild, start=start)
         self._branch(self._work, self._stages, start=start, particle_q=particle_q, state_out=state_out, dt=dt)
 
     def _stages(self, start: wp.array, particle_q: wp.array, state_out, dt: float) -> None:

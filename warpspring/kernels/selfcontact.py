@@ -217,7 +217,9 @@ FLAG_WATCH = 6  # the world's watched pairs need their check (module selfcontact
 FLAG_APART = 7  # the least distance at the step's start of a pair outside the cache, in units rounded down, stored as
 #   APART_NONE less it (an integer maximum: the least distance; 0: none recorded; module selfcontact_cache)
 FLAG_CACHED = 8  # the world's cached pairs need their check (the drifts do not keep them apart; module selfcontact_cache)
-FLAG_KINDS = 9
+FLAG_BUSY = 9  # its first entry only: some world's cache rebuilds or some world's pair stages run (the one conditional
+#   node a step without either evaluates; ``raise_flag``, ``raise_work``)
+FLAG_KINDS = 10
 KINEMATIC_STEPS = 4096
 #: FLAG_APART's stored value for a distance of 0 (and for a distance that is not finite): distances of this many
 #: units τ / KINEMATIC_STEPS or more are not recorded.
@@ -1101,9 +1103,19 @@ def cube_reach_func(scalar: type):
 
 @wp.func
 def raise_flag(flags: wp.array[wp.int32], kind: int, world: int, world_count: int):
-    """Set world ``world``'s flag ``kind`` and the matching any-world flag (FLAG_REBUILD or FLAG_FALLBACK)."""
+    """Set world ``world``'s flag ``kind`` and the matching any-world flag (FLAG_REBUILD or FLAG_FALLBACK; a rebuild
+    also FLAG_BUSY)."""
     flags[flag_slot(kind, world, world_count)] = 1
     flags[kind] = 1
+    if kind == FLAG_REBUILD:
+        flags[flag_slot(FLAG_BUSY, 0, world_count)] = 1
+
+
+@wp.func
+def raise_work(flags: wp.array[wp.int32], world_count: int):
+    """Ask for the pair stages (FLAG_WORK's first entry) and so for the step's busy branch (FLAG_BUSY's)."""
+    flags[flag_slot(FLAG_WORK, 0, world_count)] = 1
+    flags[flag_slot(FLAG_BUSY, 0, world_count)] = 1
 
 
 @functools.cache

@@ -73,7 +73,9 @@ whole keeps its cache. Each step:
    τ / 2 or more.
    Where none does, the stages would push no pair, run no swept broad phase and cap no vertex (each step is below γ SEARCH_REACH τ), so ``state_out`` is
    left as the integrator wrote it: a substep without pairs nearby costs the check, one thread per world and
-   the conditional nodes.
+   one conditional node: the rebuild's node (2.) and the stages' sit inside a node on FLAG_BUSY, which every
+   raise of FLAG_REBUILD or FLAG_WORK raises too (``raise_flag``, ``raise_work``), so a step that needs neither
+   evaluates one condition instead of two.
 
 The cache changes the work and never the answer: results equal those of a broad phase every step, whenever
 it was built.
@@ -102,7 +104,6 @@ from .selfcontact import (
     FLAG_STEP,
     FLAG_WATCH,
     FLOOR_OFFSET,
-    FLAG_WORK,
     KINEMATIC_STEPS,
     NO_BOUND,
     PATCH_COLUMNS,
@@ -126,6 +127,7 @@ from .selfcontact import (
     flag_slot,
     pair_distance_func,
     raise_flag,
+    raise_work,
 )
 from .worlds import world_and_index
 
@@ -350,9 +352,9 @@ def decide_kernel(scalar: type):
                 if cache_count[world] <= cache_capacity:
                     flags_in_out[flag_slot(FLAG_CACHED, world, world_count)] = 1
                 else:
-                    flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
+                    raise_work(flags_in_out, world_count)
             if not (step <= budget) or far:
-                flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
+                raise_work(flags_in_out, world_count)
         # Every pair outside the cache, watched or not, was this far apart at the anchors: CACHE_REACH τ of the τ
         # it was built with (a τ written since changes the repulsion's reach below, not what the cache holds).
         reach_all = wp.min(cache_reach[world], cache_floor[world])  # (0 where never built: R = 0)
@@ -489,7 +491,7 @@ def watch_kernel(scalar: type):
             for slot in range(local + part * particle_count, count, particle_count * split):
                 s = world * capacity + slot
                 if not (start_distance(cache.key[s] >= vt_keys, cache.vertex[s], base, particle_q_start) >= near):
-                    flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
+                    raise_work(flags_in_out, world_count)
                     return
 
     return watch
@@ -540,7 +542,7 @@ def anchor_kernel(scalar: type):
             counters_out[world, COUNT_REBUILDS] += 1  # one thread per world
             # (its pairs at the step's start are at their anchors: the least of them as listed)
             if cached_in_reach(cache.count[world], read_apart(cache_near[world], thickness), thickness):
-                flags_in_out[flag_slot(FLAG_WORK, 0, world_count)] = 1
+                raise_work(flags_in_out, world_count)
 
     return anchor
 
