@@ -1000,6 +1000,9 @@ def main():
     parser.add_argument("--broad-launches", choices=["one", "two"], default=None,
                         help="the broad phase's vertex and edge queries in one launch or two (default: "
                              "core/selfcontact.py's BROAD_SEPARATE rule)")
+    parser.add_argument("--broad-concurrent", choices=["on", "off"], default=None,
+                        help="the broad phase's two launches side by side on two streams or one after the other "
+                             "(default: core/selfcontact.py's BROAD_CONCURRENT, off)")
     parser.add_argument("--broad-forms", action="store_true",
                         help="time the cache's build in each form of the broad phase's launch instead (CUDA only)")
     parser.add_argument("--broad-min-blocks", type=int, nargs="*", default=[],
@@ -1035,6 +1038,10 @@ def main():
         import warpspring.core.selfcontact as host
 
         host.BROAD_SEPARATE = args.broad_launches == "two"
+    if args.broad_concurrent is not None:
+        import warpspring.core.selfcontact as host
+
+        host.BROAD_CONCURRENT = args.broad_concurrent == "on"
     today = datetime.date.today()
     # The studies other than the cost table: (asked for, heading, columns, rows for one size); the first asked runs.
     studies = (

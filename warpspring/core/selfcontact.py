@@ -113,6 +113,13 @@ BROAD_PER_PRIMITIVE = None
 #: 284 µs at 64²; but one launch made ``stacked_cloths`` 1.3x slower (``bench/results/selfcontact.md``, "The edges'
 #: queries read their triangle's sides at once").
 BROAD_SEPARATE = None
+#: With two launches on CUDA, the vertices' launch on a stream of its own beside the edges' (True: forked from the
+#: step's stream and joined back, so that a capture records them side by side), or one after the other (False, the
+#: default). Side by side on an H200 the draped cloth's pass was 1.14x cheaper at 64², 1.06x at 256², the same at
+#: 1024², and ``twisted_cloth`` 1.15x faster, but ``stacked_cloths`` 0.8x as fast (its builds ~4x dearer), as with
+#: one launch over both (``BROAD_SEPARATE``): not the default (``bench/results/selfcontact.md``, "Fewer conditional
+#: nodes").
+BROAD_CONCURRENT = False
 #: Threads per block of the broad phase on CUDA (``None``: the model's block size). Each thread keeps its BVH
 #: traversal's stack in shared memory (132 B): in blocks of 256 the shared memory holds one block a multiprocessor
 #: (12.5 % occupancy); in blocks of 64 the registers bound it (the same build: 11.6 -> 8.5 ms at 1024² in one launch).
@@ -328,6 +335,9 @@ class SelfContact:
         self.broad_split = broad_split(device, worlds * self._broad_queries)
         self.broad_launches = self.broad_launch_forms(
             (device.is_cuda if BROAD_SEPARATE is None else bool(BROAD_SEPARATE)) and self.broad_per_primitive)
+        # The stream the first of two broad launches runs on (``_list_pairs``); None: all on the step's stream.
+        self._side_stream = (wp.Stream(device) if BROAD_CONCURRENT and device.is_cuda and len(self.broad_launches) > 1
+                             else None)
         self.broad_block = (BROAD_BLOCK or model.block_dim) if device.is_cuda else model.block_dim
         self.broad_bounds = launch_bounds(self.broad_block, BROAD_MIN_BLOCKS if device.is_cuda else None)
         self.watch_split = broad_split(device, worlds * n)  # the watched pairs' check likewise, per particle
@@ -579,11 +589,18 @@ class SelfContact:
         outputs = dict(pairs_out=pairs, pair_distance_out=pair_distance, counters_out=counters,
                        watch_count_out=watch_lists[0], watch_tag_out=watch_lists[1], watch_vertex_out=watch_lists[2],
                        near_out=near)
-        for primitives, queries, split in self.broad_launches:
+        side = self._side_stream
+        for k, (primitives, queries, split) in enumerate(self.broad_launches):
             args["split"] = split
-            flat_launch(broad_kernel(model.scalar, swept, self.broad_per_primitive, primitives, self.broad_bounds),
-                        inputs=list(args.values()), outputs=list(outputs.values()),
-                        dim=model.world_count * queries * split, block_dim=self.broad_block, device=model.device)
+            # With a side stream, the first launch forks onto it after the step's work so far, and the step's stream
+            # waits for it after the last: the launches run side by side (atomic slots: the same pairs either way).
+            with wp.ScopedStream(side if k == 0 else None, sync_enter=True):
+                flat_launch(broad_kernel(model.scalar, swept, self.broad_per_primitive, primitives,
+                                         self.broad_bounds),
+                            inputs=list(args.values()), outputs=list(outputs.values()),
+                            dim=model.world_count * queries * split, block_dim=self.broad_block, device=model.device)
+        if side is not None:
+            model.device.stream.wait_stream(side)
         tile_sums, tile_offsets, tile_prefixes = scan_kernels()
         tiles = self._scan_blocks
         worlds, n = model.world_count, model.particle_count
