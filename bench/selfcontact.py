@@ -7,8 +7,8 @@ when the skirt lies folded on the ground. Variants, side by side in one run:
 
 * ``none``: the scene without self-collision (the colliders' response fused into the update);
 * ``self``: ``add_self_collision(thickness=0.02, friction=0.3)`` (τ below 0.7 × the grid's 0.071 m altitude):
-  the BVH refit, the repulsion pass and the cap pass after every substep (the update no longer fuses the
-  colliders: the finishing pass runs them);
+  the BVH refit, the repulsion pass and the cap pass after every substep (the colliders' response still fused into
+  the update; a frame no longer one launch: the pass runs between substeps);
 * ``pass``: the self-collision pass alone on the settled state (refit, repel, cap), 16 per frame.
 
 Reported: particle-substeps/s (median of timed batches, device synchronised before every timer read), and
@@ -733,7 +733,7 @@ CAPTURED_PARTS = (
     ("the check and the decisions alone (no watch, rebuild or stages)", ("_watch", "_rebuild", "_stages")),
     ("the check alone", ("_decide", "_watch", "_rebuild", "_stages")),
     ("the flags' memset and the busy branch alone", ("_check", "_decide", "_watch", "_rebuild", "_stages")),
-    ("no pass (the integrator's update and the colliders' projection)", ("_flag", "_branch")),
+    ("no pass (the integrator's update, the colliders' response fused)", ("_flag", "_branch")),
 )
 
 
