@@ -734,6 +734,8 @@ CAPTURED_PARTS = (
     ("the check alone", ("_decide", "_watch", "_rebuild", "_stages")),
     ("the flags' memset and the busy branch alone", ("_check", "_decide", "_watch", "_rebuild", "_stages")),
     ("no pass (the integrator's update, the colliders' response fused)", ("_flag", "_branch")),
+    ("the pass as it runs, no review after a frame (its reads of the counters)", ("review",)),
+    ("no pass and no review", ("_flag", "_branch", "review")),
 )
 
 

@@ -155,13 +155,18 @@ def test_a_pin_driven_through_cloth_that_cannot_give_way_stops_the_run(device):
     same scene with the pins driven 2 mm (the free cloth then has room: it is pushed back) runs on: the stop is
     the outrun's, not self-collision's or the pins'."""
     sim = ws.Simulator(pins_through_free_cloth(device, travel=0.013), fps=1000, substeps=1)
+    sim.step_frame()  # the frame's self-collision review is read at the next frame or a read of the state
     with pytest.raises(ws.SimulationError) as stop:
-        sim.step_frame()
+        sim.settle()
     message = str(stop.value)
     assert message.startswith("frame 1: a pinned part of the surface closed in on free cloth")
     assert "beyond the self-collision cap" in message and "τ = 4 mm" in message
     assert "slow the tracks, lower the self-collision thickness" in message
     assert sim.frame == 0 and stop.value.frame == 1
+    at_once = ws.Simulator(pins_through_free_cloth(device, travel=0.013), fps=1000, substeps=1, defer_verdict=False)
+    with pytest.raises(ws.SimulationError, match="^frame 1: a pinned part of the surface"):
+        at_once.step_frame()  # without deferred verdicts, the frame's own step stops
+    assert at_once.frame == 0
     gentle = ws.Simulator(pins_through_free_cloth(device, travel=0.002), fps=1000, substeps=1)
     run_frames(gentle, 5)
     assert gentle.frame == 5 and gentle.model.self_contact.outrun()[0] == 0

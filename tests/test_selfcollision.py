@@ -889,9 +889,12 @@ def test_pair_buffers_grow_before_they_fill(device):
     contact._allocate(slots)
     sim = ws.Simulator(model, fps=60, substeps=4)
     sim.step_frame()
+    assert contact.capacity == slots  # the frame's review is read at the next frame, or at a read of the state ...
+    sim.settle()
     assert contact.overflow().sum() == 0  # nothing dropped ...
     assert contact.capacity == math.ceil(PAIR_GROWTH * slots)  # ... and room made before it would be
     sim.step_frame()
+    sim.settle()
     assert int(contact.listed()["cache"][0]) == cached  # the same pairs, rebuilt into the grown cache
     assert contact.capacity == math.ceil(PAIR_GROWTH * slots)  # under half full now: no further growth
 
@@ -914,12 +917,18 @@ def test_pair_buffers_grow_after_a_frame_that_dropped_pairs(device, monkeypatch)
     initial = contact.capacity
     assert initial == 128  # a slot per surface vertex
     sim = ws.Simulator(model, fps=60, substeps=8)
-    dropped = []
+    dropped, capacity = [], []
     for _ in range(10):
         sim.step_frame()
         dropped.append(int(contact.overflow().sum()))
+        capacity.append(contact.capacity)
     assert dropped[0] > 0  # the first frame overflowed, and said so
     assert contact.capacity > initial  # ... and the buffers grew
+    # Each frame's review is read at the next frame, which already runs on the buffers it found: a growth takes
+    # effect a frame later, and the frame that ran on the old buffers meanwhile asks for none (no two in a row).
+    grew = [after > before for before, after in zip([initial] + capacity, capacity)]
+    assert not grew[0] and grew[1]
+    assert not any(a and b for a, b in zip(grew, grew[1:]))
     assert dropped[-1] == dropped[-3]  # none dropped in the last frames: the grown buffers hold every pair
     x = sim.state.particle_q.numpy().astype(np.float64)
     gap = np.abs(x[64:, 2].mean() - x[:64, 2].mean())

@@ -302,6 +302,11 @@ class SelfContact:
         self.counters = wp.zeros((worlds, COUNTER_COUNT), dtype=wp.int32, device=device)
         self._dropped_seen = 0  # pairs dropped when the buffers last grew (``grow``)
         self._outrun_seen = np.zeros(worlds, dtype=np.int64)  # each world's outrun pair-steps at the last ``review``
+        # What ``post_review`` copied at a frame's end for ``collect_review`` (host arrays, pinned on CUDA: the copies
+        # queue behind the frame), the model's revision then, and the event after the copies (CUDA); None: nothing
+        # posted.
+        self._review_mirror = None
+        self._review_posted = None
         # The pair cache (kernels/selfcontact_cache.py: its anchors, its reach, 0 until built) and the cap's
         # swept list, for the steps that need it; the pass's flags (any rebuild, any fallback, then per world each
         # kind of kernels/selfcontact.py FLAG_*), zeroed at every step's start.
@@ -504,13 +509,53 @@ class SelfContact:
     def review(self) -> np.ndarray:
         """After a frame, from one read of the counters and the lists' counts: :meth:`grow` where pairs were dropped
         or a list filled past GROW_ABOVE of its slots (during the frame, or as it stands), and each world's pair-steps
-        beyond the cap (:meth:`outrun`) since the last review or :meth:`reset` (int64 [world_count])."""
-        counters = self.counters.numpy().astype(np.int64)
-        listed = self.listed()  # as the lists stand (a list built before a capture's replay has no count of its fill)
+        beyond the cap (:meth:`outrun`) since the last review or :meth:`reset` (int64 [world_count]). Waits for the
+        device; :meth:`post_review` and :meth:`collect_review` do the same a frame later without waiting."""
+        self.collect_review()  # one posted before: its frame first
+        return self._judge_review(self.counters.numpy(), self.cache.count.numpy(), self.cap_pairs.count.numpy(),
+                                  grow=True)
+
+    def post_review(self, revision: int | None = None) -> None:
+        """Queue, after the frame's work, the copy of what :meth:`review` reads, for :meth:`collect_review` at the
+        next frame: the host then reads a frame the device finished while it runs the next one (a review at once
+        waits for the device and leaves it idle while the host launches the next frame: 9-16 µs a substep of the
+        draped cloth at 64²-256² on an H200, ``bench/results/selfcontact.md``). ``revision``: the model's revision
+        the frame ran with (default: the current one)."""
+        device = self.model.device
+        if self._review_mirror is None:
+            pinned = device.is_cuda
+            self._review_mirror = (
+                wp.empty(self.counters.shape, dtype=wp.int32, device="cpu", pinned=pinned),
+                wp.empty(self.cache.count.shape, dtype=wp.int32, device="cpu", pinned=pinned),
+                wp.empty(self.cap_pairs.count.shape, dtype=wp.int32, device="cpu", pinned=pinned))
+        for mirror, source in zip(self._review_mirror, (self.counters, self.cache.count, self.cap_pairs.count)):
+            wp.copy(mirror, source)
+        event = device.stream.record_event() if device.is_cuda else None
+        self._review_posted = (self.model.revision if revision is None else revision, event)
+
+    def collect_review(self) -> np.ndarray | None:
+        """:meth:`review` of the frame :meth:`post_review` followed (waiting for its copies, done by the time the next
+        frame runs), or ``None`` where nothing is posted. A growth it asks for applies from the frame after the one
+        under way; none where the buffers changed since the post (that frame ran on the old ones)."""
+        if self._review_posted is None:
+            return None
+        revision, event = self._review_posted
+        self._review_posted = None
+        if event is not None:
+            wp.synchronize_event(event)
+        counters, cache_count, cap_count = (mirror.numpy() for mirror in self._review_mirror)
+        return self._judge_review(counters, cache_count, cap_count, grow=revision == self.model.revision)
+
+    def _judge_review(self, counters: np.ndarray, cache_count: np.ndarray, cap_count: np.ndarray, *,
+                      grow: bool) -> np.ndarray:
+        """:meth:`review`'s decisions from the counters and the lists' counts read after a frame."""
+        counters = counters.astype(np.int64)
+        # The lists as they stood (a list built before a capture's replay has no count of its fill).
         fill = max(float(counters[:, COUNT_FILL].max(initial=0)) / FILL_UNITS,
-                   float(listed["cache"].max(initial=0)) / self.cache_capacity,
-                   float(listed["cap"].max(initial=0)) / self.capacity)
-        self.grow(dropped=int(counters[:, COUNT_OVERFLOW].sum()), fill=fill)
+                   float(cache_count.max(initial=0)) / self.cache_capacity,
+                   float(cap_count.max(initial=0)) / self.capacity)
+        if grow:
+            self.grow(dropped=int(counters[:, COUNT_OVERFLOW].sum()), fill=fill)
         outrun = counters[:, COUNT_OUTRUN]
         new, self._outrun_seen = outrun - self._outrun_seen, outrun
         return new

@@ -101,6 +101,7 @@ class Simulator:
         defer_verdict: bool | None = None,
     ):
         self.model = model
+        self.frame = 0
         self._unsettled = False  # the last frame's record is posted and not yet read (``defer_verdict``)
         self._read = False  # the last frame was settled (read) before the next began
         self._span_from = None  # the first frame the posted check covers (``GuardLimits.check_frames``)
@@ -207,7 +208,10 @@ class Simulator:
         writes a frame only once it is settled. Without it every frame is settled before
         ``step_frame`` returns. With it, and frames not read one by one, a check may span frames where the scene allows
         it (``GuardLimits.check_frames``): a frame that leaves its end to a later check is judged with that check, and
-        :meth:`settle` checks the last frame first where its end went unchecked.
+        :meth:`settle` checks the last frame first where its end went unchecked. With self-collision, a frame's
+        review (``SelfContact.collect_review``: its pair buffers grown where they filled; a stop where pins pressed
+        the cloth beyond the cap) is read likewise at the next frame or :meth:`settle` (at once without
+        :attr:`defer_verdict` and a guard), so the device does not idle while the host reads it.
 
         Raises:
             SimulationError: a guard check failed during this frame, or with :attr:`defer_verdict` the one before;
@@ -256,9 +260,13 @@ class Simulator:
             if self.contacts is not None:
                 self._report_overflow()
         if self.model.self_contact is not None:
-            outran = self.model.self_contact.review()  # pairs dropped in this frame: room for them in the next
-            if self.guard is not None and outran.any():
-                self._stop_on_outrun(outran)
+            # The frame before's review (pairs dropped or lists filling: room in the next frames; pins beyond the
+            # cap: a stop naming that frame), read while the device runs this one; this frame's queued behind it.
+            revision = self.model.revision  # the buffers this frame ran on (the review before may grow them)
+            self._collect_review(self.frame)
+            self.model.self_contact.post_review(revision)
+            if self.guard is not None and not self.defer_verdict:
+                self._collect_review(self.frame + 1)  # this frame's at once, as the guard's verdict
         self.frame += 1
         if self.frame_hooks:
             self.settle()
@@ -281,6 +289,8 @@ class Simulator:
             self.guard.post(until=self.time)
             first, self._unchecked_from = self._unchecked_from, None
             self._judge(self.guard.collect(), self.frame, first)
+        if self.model.self_contact is not None:
+            self._collect_review(self.frame)  # the last frame's self-collision review (pins beyond the cap stop it)
         self._read = True
 
     def _judge(self, reports: list, frame: int, first: int | None = None) -> None:
@@ -317,20 +327,29 @@ class Simulator:
         if self.guard is not None:
             self.guard.discard()
 
-    def _stop_on_outrun(self, new: np.ndarray) -> None:
-        """Stop the run after a frame in which a pin closed in on free cloth that had no room to give way (``new``:
-        each world's pair-steps beyond the self-collision cap in it, ``SelfContact.review``), where the surface may
-        have crossed itself. The frames before it passed the cap's guarantee; this one is not handed on."""
+    def _collect_review(self, frame: int) -> None:
+        """Read the self-collision review posted after ``frame`` (1-based; ``SelfContact.collect_review``: nothing
+        where none is posted) and, with a guard, stop on its pins beyond the cap (:meth:`_stop_on_outrun`)."""
+        outran = self.model.self_contact.collect_review()
+        if outran is not None and self.guard is not None and outran.any():
+            self._stop_on_outrun(outran, frame)
+
+    def _stop_on_outrun(self, new: np.ndarray, frame: int) -> None:
+        """Stop the run after ``frame`` (1-based), in which a pin closed in on free cloth that had no room to give way
+        (``new``: each world's pair-steps beyond the self-collision cap in it, ``SelfContact.review``), where the
+        surface may have crossed itself. The frames before it passed the cap's guarantee; this one is not handed on
+        (the run stands at the frame before it, as after a guard's stop)."""
         contact = self.model.self_contact
         self._forget_verdict()
+        self.frame = frame - 1
         worlds = ", ".join(f"world {w}: {n}" for w, n in enumerate(new) if n) if len(new) > 1 else f"{new[0]}"
         raise SimulationError(
-            f"frame {self.frame + 1}: a pinned part of the surface closed in on free cloth that had no room to give "
+            f"frame {frame}: a pinned part of the surface closed in on free cloth that had no room to give "
             f"way ({worlds} pair-step(s) beyond the self-collision cap), so the surface may have crossed itself. "
             f"The pins' tracks press the cloth tighter than its thickness τ = {contact.thickness * 1e3:.3g} mm "
             "allows: slow the tracks, lower the self-collision thickness, or pin fewer particles where the cloth "
             "folds onto the pins",
-            frame=self.frame + 1)
+            frame=frame)
 
     def _report_overflow(self) -> None:
         overflow = self.contact_overflow()
@@ -368,6 +387,8 @@ class Simulator:
         integrator's history (step-size control, warm starts) and the pin targets set so far, so the run
         repeats exactly."""
         self._forget_verdict()  # a failure of the run left behind is not this run's
+        if self.model.self_contact is not None:
+            self.model.self_contact.collect_review()  # the run left behind's last review: its growth, not its stop
         self.stepper.reset(state)
         self.state.time.zero_()
         if self.guard is not None:
