@@ -511,9 +511,10 @@ class SelfContact:
         or a list filled past GROW_ABOVE of its slots (during the frame, or as it stands), and each world's pair-steps
         beyond the cap (:meth:`outrun`) since the last review or :meth:`reset` (int64 [world_count]). Waits for the
         device; :meth:`post_review` and :meth:`collect_review` do the same a frame later without waiting."""
-        self.collect_review()  # one posted before: its frame first
-        return self._judge_review(self.counters.numpy(), self.cache.count.numpy(), self.cap_pairs.count.numpy(),
-                                  grow=True)
+        earlier = self.collect_review()  # one posted before: its frame first (its outrun counted in the total)
+        new = self._judge_review(self.counters.numpy(), self.cache.count.numpy(), self.cap_pairs.count.numpy(),
+                                 grow=True)
+        return new if earlier is None else earlier + new
 
     def post_review(self, revision: int | None = None) -> None:
         """Queue, after the frame's work, the copy of what :meth:`review` reads, for :meth:`collect_review` at the
