@@ -104,9 +104,14 @@ def scene(n: int, device, self_collision: bool) -> ws.Model:
         ws.ModelBuilder.finalize = original
 
 
+#: ``--guard default``: the cost table's runs (the draped cloth with and without self-collision, the examples) with the
+#: default guard (``GuardLimits()``, what a user gets) instead of none.
+GUARDED = False
+
+
 class Runner:
     def __init__(self, model: ws.Model):
-        self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=None)
+        self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=ws.GuardLimits() if GUARDED else None)
         for _ in range(SETTLE_FRAMES):
             self.sim.step_frame()
 
@@ -535,7 +540,7 @@ def stage_study(n: int, device, frames: int) -> list[str]:
     runs = []
     stages = host.SelfContact._stages
 
-    def counted(self, start, particle_q, state_out, dt):
+    def counted(self, start, particle_q, state_out, dt, **kwargs):
         flags = self.flags.numpy()
         unit = tau / KINEMATIC_STEPS
         kinematic = flags[flag_slot(FLAG_KINEMATIC, 0, 1)] * unit
@@ -546,7 +551,7 @@ def stage_study(n: int, device, frames: int) -> list[str]:
         nearest, count = self.proximity(at_start, 3.0 * tau)
         least = float(nearest[count > 0].min()) if (count > 0).any() else np.inf
         runs.append((least, least < reach, step > budget))
-        return stages(self, start=start, particle_q=particle_q, state_out=state_out, dt=dt)
+        return stages(self, start=start, particle_q=particle_q, state_out=state_out, dt=dt, **kwargs)
 
     host.SelfContact._stages = counted
     try:
@@ -840,8 +845,8 @@ def cost(n: int, device, seconds: float, pass_alone: bool, timed_frames: int = 0
 
 
 def example_cost(name: str, device, frames: int | None) -> dict:
-    """An example's simulation loop (its scene, integrator, fps and substeps; no guard, no USD): µs per substep
-    over its frames after the first (which compiles), and its self-collision counts over them."""
+    """An example's simulation loop (its scene, integrator, fps and substeps; no guard unless GUARDED, no USD): µs per
+    substep over its frames after the first (which compiles), and its self-collision counts over them."""
     from warpspring.core.integrators import make_integrator
     from warpspring.io.scene import load_scene
 
@@ -849,7 +854,8 @@ def example_cost(name: str, device, frames: int | None) -> dict:
     scene_ = load_scene(path)
     model = scene_.finalize(device)
     integrator = make_integrator(scene_.integrator, model, **scene_.integrator_options)
-    sim = ws.Simulator(model, integrator=integrator, fps=scene_.fps, substeps=scene_.substeps, guard=None)
+    sim = ws.Simulator(model, integrator=integrator, fps=scene_.fps, substeps=scene_.substeps,
+                       guard=ws.GuardLimits() if GUARDED else None)
     frames = scene_.frames if frames is None else min(frames, scene_.frames)
     sim.step_frame()
     model.self_contact.reset()
@@ -935,6 +941,7 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
         f"over a sphere on the ground (symplectic Euler, {SUBSTEPS} substeps per 1/{FPS} s frame, each frame one "
         f"captured graph on CUDA, timed after {SETTLE_FRAMES} frames of settling; self-collision τ = {THICKNESS} m, "
         f"μ = {FRICTION}), µs per substep"
+        + (", with the default guard (GuardLimits()) in every run" if GUARDED else ", no guard")
         + (f", against the baseline's warpspring ({old['warpspring']}) measured in the same call" if old else ""),
         "",
         "| N | without | with | with / without | pass cost (with - without) | baseline: with | baseline: with / "
@@ -957,8 +964,8 @@ def cost_table(new: dict, old: dict | None, args) -> list[str]:
         lines += [
             "",
             f"Examples, the same call ({new['device']}, Warp {new['warp']}, {datetime.date.today()}): the scene's "
-            "simulation loop (its integrator, fps, substeps; no guard, no USD writing), µs per substep over the frames "
-            "after the first",
+            f"simulation loop (its integrator, fps, substeps; {'the default guard' if GUARDED else 'no guard'}, no USD "
+            "writing), µs per substep over the frames after the first",
             "",
             "| example | particles | frames | µs per substep | baseline | baseline / now | pairs pushed per substep "
             "| cache rebuilds / cap fallbacks / pair stages' runs per substep | baseline: the same |",
@@ -1002,6 +1009,8 @@ def main():
     parser.add_argument("--broad-launches", choices=["one", "two"], default=None,
                         help="the broad phase's vertex and edge queries in one launch or two (default: "
                              "core/selfcontact.py's BROAD_SEPARATE rule)")
+    parser.add_argument("--guard", choices=["none", "default"], default="none",
+                        help="the cost table's runs with the default guard (GuardLimits()) or none (the default)")
     parser.add_argument("--broad-concurrent", choices=["on", "off"], default=None,
                         help="the broad phase's two launches side by side on two streams or one after the other "
                              "(default: core/selfcontact.py's BROAD_CONCURRENT, off)")
@@ -1040,6 +1049,8 @@ def main():
         import warpspring.core.selfcontact as host
 
         host.BROAD_SEPARATE = args.broad_launches == "two"
+    global GUARDED
+    GUARDED = args.guard == "default"
     if args.broad_concurrent is not None:
         import warpspring.core.selfcontact as host
 

@@ -381,7 +381,7 @@ class RepulsionOnly:
     def history(self):
         return []
 
-    def __call__(self, state_in, state_out, dt):
+    def __call__(self, state_in, state_out, dt, watch=None):  # (SelfContact's signature; no guard here)
         wp.copy(state_out.particle_q, self.full.repel(state_in, state_out.particle_q))
 
 
@@ -574,7 +574,7 @@ class BroadPhaseEveryStep:
     def history(self):
         return []
 
-    def __call__(self, state_in, state_out, dt):
+    def __call__(self, state_in, state_out, dt, watch=None):  # (SelfContact's signature; no guard here)
         sc = self.full
         sc.cache_reach.zero_()  # a reach of 0 fails the drift check: the cache is rebuilt at this step's start
         repelled = sc.repel(state_in, state_out.particle_q)

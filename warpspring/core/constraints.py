@@ -113,16 +113,14 @@ class StepFinisher:
 
     def after_contacts(self, state: State, dt: float, state_in: State) -> None:
         """What follows a contact response fused into the update (:attr:`contacts_first`): self-collision, from the
-        step's start ``state_in`` to ``state`` (nothing without it), bracketed by the guard's watch as in
-        :meth:`__call__`."""
+        step's start ``state_in`` to ``state`` (nothing without it), its stages bracketed by the guard's watch where
+        they run (a step whose stages do not run leaves ``state`` as it is: nothing to count)."""
         self_contact = self.model.self_contact
-        if self_contact is None:
-            return
-        if self.watch is not None:
-            self.watch(state, -1.0)
-        self_contact(state_in, state, dt)
-        if self.watch is not None:
-            self.watch(state, 1.0)
+        if self_contact is not None:
+            if self.watch is None:
+                self_contact(state_in, state, dt)
+            else:
+                self_contact(state_in, state, dt, watch=self.watch)
 
     def __call__(self, state: State, dt: float, state_in: State | None = None) -> None:
         """Finish ``state``, the result of a step of ``dt`` [s] from ``state_in``: the stabilisers, the

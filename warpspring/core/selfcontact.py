@@ -888,28 +888,35 @@ class SelfContact:
             ee.append(np.stack([np.full(len(rest), world), rest // E, rest % E], axis=1))
         return np.concatenate(vt).astype(np.int64), np.concatenate(ee).astype(np.int64)
 
-    def __call__(self, state_in, state_out, dt: float) -> None:
+    def __call__(self, state_in, state_out, dt: float, watch=None) -> None:
         """Make ``state_out`` (the integrator's result from ``state_in``) free of self-intersections: repel, then
-        cap (device work only, fixed launch sizes: capturable)."""
+        cap (device work only, fixed launch sizes: capturable). ``watch``: called as ``watch(state_out, -1.0)``
+        before the stages and ``watch(state_out, 1.0)`` after them, only where they run (elsewhere the pass leaves
+        ``state_out`` as it is): the guard's count of the energy the pass puts in (``StepFinisher.watch``)."""
         start, particle_q = state_in.particle_q, state_out.particle_q
         self._flag(start, particle_q)
         # One conditional node where no world rebuilds and none runs the stages (most steps), the two inside it.
         self._branch(self._first_entry(FLAG_BUSY), self._busy, start=start, particle_q=particle_q,
-                     state_out=state_out, dt=dt)
+                     state_out=state_out, dt=dt, watch=watch)
 
-    def _busy(self, start: wp.array, particle_q: wp.array, state_out, dt: float) -> None:
+    def _busy(self, start: wp.array, particle_q: wp.array, state_out, dt: float, watch=None) -> None:
         """The rebuild where a world needs one, then the stages where a world has cached pairs or a vertex steps too
         far for the cache; elsewhere they would leave state_out as it is (kernels/selfcontact_cache.py,
         decide_kernel)."""
         self._branch(self.flags[0:1], self._rebuild, start=start)
-        self._branch(self._work, self._stages, start=start, particle_q=particle_q, state_out=state_out, dt=dt)
+        self._branch(self._work, self._stages, start=start, particle_q=particle_q, state_out=state_out, dt=dt,
+                     watch=watch)
 
-    def _stages(self, start: wp.array, particle_q: wp.array, state_out, dt: float) -> None:
+    def _stages(self, start: wp.array, particle_q: wp.array, state_out, dt: float, watch=None) -> None:
         """Both stages after the flags: the repulsion, the cap's swept broad phase where flagged (a conditional node
-        within this one's), the cap."""
+        within this one's), the cap; bracketed by ``watch`` (:meth:`__call__`)."""
+        if watch is not None:
+            watch(state_out, -1.0)
         self._repel_stage(start, particle_q)
         self._branch(self.flags[1:2], self._fallback, start=start, end=self.corrected)
         self._cap_stage(start, self.corrected, state_out, dt)
+        if watch is not None:
+            watch(state_out, 1.0)
 
 
 def make_self_contact(model, triangles: np.ndarray, positions: np.ndarray, settings: dict) -> SelfContact:
