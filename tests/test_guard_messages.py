@@ -148,7 +148,7 @@ def pins_through_free_cloth(device, *, travel: float) -> ws.Model:
     return builder.finalize(device)
 
 
-def test_a_pin_driven_through_cloth_that_cannot_give_way_stops_the_run(device):
+def test_a_pin_driven_through_cloth_that_cannot_give_way_stops_the_run(device, tmp_path):
     """The pinned cloth driven 13 mm down in one 1 ms step onto the free cloth rising toward it: the cap cannot hold
     the pair apart (``SelfContact.outrun``, counted in ``test_torture``), the surface may cross, and the default
     guard stops the run at that frame with a message naming the cause and the remedies; no frame was completed. The
@@ -167,6 +167,11 @@ def test_a_pin_driven_through_cloth_that_cannot_give_way_stops_the_run(device):
     with pytest.raises(ws.SimulationError, match="^frame 1: a pinned part of the surface"):
         at_once.step_frame()  # without deferred verdicts, the frame's own step stops
     assert at_once.frame == 0
+    restored = ws.Simulator(pins_through_free_cloth(device, travel=0.013), fps=1000, substeps=1)
+    saved = restored.save_checkpoint(tmp_path / "start.npz")
+    restored.step_frame()  # the frame that outruns the cap, its review posted ...
+    restored.load_checkpoint(saved)  # ... and left behind with the run: no stop for it
+    assert restored.frame == 0
     unguarded = ws.Simulator(pins_through_free_cloth(device, travel=0.013), fps=1000, substeps=1, guard=None)
     unguarded.step_frame()  # no stop without a guard; the frame's review, posted, is read by the next review
     assert unguarded.model.self_contact.review()[0] > 0

@@ -99,28 +99,13 @@ class StepFinisher:
         return self.strain_limited or self.speed_clamped
 
     @property
-    def contacts_first(self) -> bool:
-        """True when the pass begins with just the contact response against every collider (no stabiliser, no
-        contact stage, no plastic springs, no triangle contacts), which integrators may fuse into their update; what
-        follows it is then self-collision alone, if any (:meth:`after_contacts`)."""
-        return not (self.stabilised or self.model.contact_stage or self.plastic or self.model.contact_triangles)
-
-    @property
     def only_contacts(self) -> bool:
-        """True when the pass is just the contact response (:attr:`contacts_first`) and no self-collision follows
-        it: a step then needs nothing after its update (one launch may run a frame's steps)."""
-        return self.contacts_first and self.model.self_contact is None
-
-    def after_contacts(self, state: State, dt: float, state_in: State) -> None:
-        """What follows a contact response fused into the update (:attr:`contacts_first`): self-collision, from the
-        step's start ``state_in`` to ``state`` (nothing without it), its stages bracketed by the guard's watch where
-        they run (a step whose stages do not run leaves ``state`` as it is: nothing to count)."""
-        self_contact = self.model.self_contact
-        if self_contact is not None:
-            if self.watch is None:
-                self_contact(state_in, state, dt)
-            else:
-                self_contact(state_in, state, dt, watch=self.watch)
+        """True when the pass is just the contact response against every collider (no stabiliser, no contact
+        stage, no plastic springs, no triangle contacts, no self-collision), which integrators may fuse into their
+        update."""
+        if self.model.self_contact is not None:  # self-collision reads the step's start: never fused
+            return False
+        return not (self.stabilised or self.model.contact_stage or self.plastic or self.model.contact_triangles)
 
     def __call__(self, state: State, dt: float, state_in: State | None = None) -> None:
         """Finish ``state``, the result of a step of ``dt`` [s] from ``state_in``: the stabilisers, the

@@ -511,9 +511,11 @@ class SelfContact:
         or a list filled past GROW_ABOVE of its slots (during the frame, or as it stands), and each world's pair-steps
         beyond the cap (:meth:`outrun`) since the last review or :meth:`reset` (int64 [world_count]). Waits for the
         device; :meth:`post_review` and :meth:`collect_review` do the same a frame later without waiting."""
+        revision = self.model.revision
         earlier = self.collect_review()  # one posted before: its frame first (its outrun counted in the total)
+        # (where that one grew the buffers, what the counters hold now ran on the old ones: no growth again for it)
         new = self._judge_review(self.counters.numpy(), self.cache.count.numpy(), self.cap_pairs.count.numpy(),
-                                 grow=True)
+                                 grow=revision == self.model.revision)
         return new if earlier is None else earlier + new
 
     def post_review(self, revision: int | None = None) -> None:
@@ -547,6 +549,12 @@ class SelfContact:
         counters, cache_count, cap_count = (mirror.numpy() for mirror in self._review_mirror)
         return self._judge_review(counters, cache_count, cap_count, grow=revision == self.model.revision)
 
+    def forget_review(self) -> None:
+        """Drop a posted review and count the pins' outrun so far as seen (reads the device): the run it belongs to is
+        left behind (a reset, a restored checkpoint, a stop), so that no later review reports it."""
+        self._review_posted = None
+        self._outrun_seen = self.counters.numpy()[:, COUNT_OUTRUN].astype(np.int64)
+
     def _judge_review(self, counters: np.ndarray, cache_count: np.ndarray, cap_count: np.ndarray, *,
                       grow: bool) -> np.ndarray:
         """:meth:`review`'s decisions from the counters and the lists' counts read after a frame."""
@@ -555,8 +563,11 @@ class SelfContact:
         fill = max(float(counters[:, COUNT_FILL].max(initial=0)) / FILL_UNITS,
                    float(cache_count.max(initial=0)) / self.cache_capacity,
                    float(cap_count.max(initial=0)) / self.capacity)
+        dropped = int(counters[:, COUNT_OVERFLOW].sum())
         if grow:
-            self.grow(dropped=int(counters[:, COUNT_OVERFLOW].sum()), fill=fill)
+            self.grow(dropped=dropped, fill=fill)
+        else:  # a frame on buffers already replaced: its drops are not the new buffers' (no growth for them later)
+            self._dropped_seen = max(self._dropped_seen, dropped)
         outrun = counters[:, COUNT_OUTRUN]
         new, self._outrun_seen = outrun - self._outrun_seen, outrun
         return new
@@ -888,35 +899,28 @@ class SelfContact:
             ee.append(np.stack([np.full(len(rest), world), rest // E, rest % E], axis=1))
         return np.concatenate(vt).astype(np.int64), np.concatenate(ee).astype(np.int64)
 
-    def __call__(self, state_in, state_out, dt: float, watch=None) -> None:
+    def __call__(self, state_in, state_out, dt: float) -> None:
         """Make ``state_out`` (the integrator's result from ``state_in``) free of self-intersections: repel, then
-        cap (device work only, fixed launch sizes: capturable). ``watch``: called as ``watch(state_out, -1.0)``
-        before the stages and ``watch(state_out, 1.0)`` after them, only where they run (elsewhere the pass leaves
-        ``state_out`` as it is): the guard's count of the energy the pass puts in (``StepFinisher.watch``)."""
+        cap (device work only, fixed launch sizes: capturable)."""
         start, particle_q = state_in.particle_q, state_out.particle_q
         self._flag(start, particle_q)
         # One conditional node where no world rebuilds and none runs the stages (most steps), the two inside it.
         self._branch(self._first_entry(FLAG_BUSY), self._busy, start=start, particle_q=particle_q,
-                     state_out=state_out, dt=dt, watch=watch)
+                     state_out=state_out, dt=dt)
 
-    def _busy(self, start: wp.array, particle_q: wp.array, state_out, dt: float, watch=None) -> None:
+    def _busy(self, start: wp.array, particle_q: wp.array, state_out, dt: float) -> None:
         """The rebuild where a world needs one, then the stages where a world has cached pairs or a vertex steps too
         far for the cache; elsewhere they would leave state_out as it is (kernels/selfcontact_cache.py,
         decide_kernel)."""
         self._branch(self.flags[0:1], self._rebuild, start=start)
-        self._branch(self._work, self._stages, start=start, particle_q=particle_q, state_out=state_out, dt=dt,
-                     watch=watch)
+        self._branch(self._work, self._stages, start=start, particle_q=particle_q, state_out=state_out, dt=dt)
 
-    def _stages(self, start: wp.array, particle_q: wp.array, state_out, dt: float, watch=None) -> None:
+    def _stages(self, start: wp.array, particle_q: wp.array, state_out, dt: float) -> None:
         """Both stages after the flags: the repulsion, the cap's swept broad phase where flagged (a conditional node
-        within this one's), the cap; bracketed by ``watch`` (:meth:`__call__`)."""
-        if watch is not None:
-            watch(state_out, -1.0)
+        within this one's), the cap."""
         self._repel_stage(start, particle_q)
         self._branch(self.flags[1:2], self._fallback, start=start, end=self.corrected)
         self._cap_stage(start, self.corrected, state_out, dt)
-        if watch is not None:
-            watch(state_out, 1.0)
 
 
 def make_self_contact(model, triangles: np.ndarray, positions: np.ndarray, settings: dict) -> SelfContact:

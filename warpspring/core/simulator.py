@@ -243,6 +243,11 @@ class Simulator:
                 self._span_from, self._unchecked_from = first, None
             else:
                 self._unchecked_from = first
+        revision = self.model.revision  # the buffers this frame ran on (the review before may grow them)
+        if self.model.self_contact is not None:
+            # The frame before's self-collision review (pairs dropped or lists filling: room in the next frames; pins
+            # beyond the cap: a stop naming that frame), read while the device runs this one.
+            self._collect_review(self.frame)
         if self.integrator.adaptive:
             failure = self.integrator.failure()
             if failure is not None:
@@ -260,11 +265,7 @@ class Simulator:
             if self.contacts is not None:
                 self._report_overflow()
         if self.model.self_contact is not None:
-            # The frame before's review (pairs dropped or lists filling: room in the next frames; pins beyond the
-            # cap: a stop naming that frame), read while the device runs this one; this frame's queued behind it.
-            revision = self.model.revision  # the buffers this frame ran on (the review before may grow them)
-            self._collect_review(self.frame)
-            self.model.self_contact.post_review(revision)
+            self.model.self_contact.post_review(revision)  # this frame's, queued behind it
             if self.guard is not None and not self.defer_verdict:
                 self._collect_review(self.frame + 1)  # this frame's at once, as the guard's verdict
         self.frame += 1
@@ -321,11 +322,14 @@ class Simulator:
             raise error
 
     def _forget_verdict(self) -> None:
-        """Drop a posted verdict not yet read: the state it judged is about to be replaced."""
+        """Drop a posted verdict not yet read, and a posted self-collision review: the state they judged is about to
+        be replaced."""
         self._unsettled = False
         self._span_from = self._unchecked_from = None
         if self.guard is not None:
             self.guard.discard()
+        if self.model.self_contact is not None:
+            self.model.self_contact.forget_review()
 
     def _collect_review(self, frame: int) -> None:
         """Read the self-collision review posted after ``frame`` (1-based; ``SelfContact.collect_review``: nothing
@@ -387,8 +391,6 @@ class Simulator:
         integrator's history (step-size control, warm starts) and the pin targets set so far, so the run
         repeats exactly."""
         self._forget_verdict()  # a failure of the run left behind is not this run's
-        if self.model.self_contact is not None:
-            self.model.self_contact.collect_review()  # the run left behind's last review: its growth, not its stop
         self.stepper.reset(state)
         self.state.time.zero_()
         if self.guard is not None:

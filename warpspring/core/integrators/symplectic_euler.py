@@ -200,9 +200,8 @@ class SymplecticEuler(Integrator):
 
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> None:
         model = self.model
-        # Contacts fuse into the update unless other post-step passes (or the contact stage) must run first; only
-        # self-collision may follow them (``StepFinisher.after_contacts``).
-        fused = self.finish_step.contacts_first
+        # Contacts fuse into the update unless other post-step passes (or the contact stage) must run first.
+        fused = self.finish_step.only_contacts
         contacts = model.contact_features() if fused else NO_CONTACTS
         if fused:
             update_shape_frames(model, state_in.time, dt, ahead=True)
@@ -277,9 +276,7 @@ class SymplecticEuler(Integrator):
                 **common,
             )
         apply_kinematics(model, control, state_in, state_out.particle_q, state_out.particle_qd, dt)
-        if fused:
-            self.finish_step.after_contacts(state_out, dt, state_in)
-        else:
+        if not fused:
             self.finish_step(state_out, dt, state_in)
         self.hold_worlds(state_in, state_out)
 
