@@ -7,8 +7,8 @@ when the skirt lies folded on the ground. Variants, side by side in one run:
 
 * ``none``: the scene without self-collision (the colliders' response fused into the update);
 * ``self``: ``add_self_collision(thickness=0.02, friction=0.3)`` (τ below 0.7 × the grid's 0.071 m altitude):
-  the BVH refit, the repulsion pass and the cap pass after every substep (the colliders' response still fused into
-  the update; a frame no longer one launch: the pass runs between substeps);
+  the BVH refit, the repulsion pass and the cap pass after every substep (the update no longer fuses the
+  colliders: the finishing pass runs them);
 * ``pass``: the self-collision pass alone on the settled state (refit, repel, cap), 16 per frame.
 
 Reported: particle-substeps/s (median of timed batches, device synchronised before every timer read), and
@@ -540,7 +540,7 @@ def stage_study(n: int, device, frames: int) -> list[str]:
     runs = []
     stages = host.SelfContact._stages
 
-    def counted(self, start, particle_q, state_out, dt, **kwargs):
+    def counted(self, start, particle_q, state_out, dt):
         flags = self.flags.numpy()
         unit = tau / KINEMATIC_STEPS
         kinematic = flags[flag_slot(FLAG_KINEMATIC, 0, 1)] * unit
@@ -551,7 +551,7 @@ def stage_study(n: int, device, frames: int) -> list[str]:
         nearest, count = self.proximity(at_start, 3.0 * tau)
         least = float(nearest[count > 0].min()) if (count > 0).any() else np.inf
         runs.append((least, least < reach, step > budget))
-        return stages(self, start=start, particle_q=particle_q, state_out=state_out, dt=dt, **kwargs)
+        return stages(self, start=start, particle_q=particle_q, state_out=state_out, dt=dt)
 
     host.SelfContact._stages = counted
     try:
@@ -738,9 +738,9 @@ CAPTURED_PARTS = (
     ("the check and the decisions alone (no watch, rebuild or stages)", ("_watch", "_rebuild", "_stages")),
     ("the check alone", ("_decide", "_watch", "_rebuild", "_stages")),
     ("the flags' memset and the busy branch alone", ("_check", "_decide", "_watch", "_rebuild", "_stages")),
-    ("no pass (the integrator's update, the colliders' response fused)", ("_flag", "_branch")),
-    ("the pass as it runs, no review after a frame (its reads of the counters)", ("review",)),
-    ("no pass and no review", ("_flag", "_branch", "review")),
+    ("no pass (the integrator's update and the colliders' projection)", ("_flag", "_branch")),
+    ("the pass as it runs, no review after a frame (its copies of the counters)", ("post_review", "collect_review")),
+    ("no pass and no review", ("_flag", "_branch", "post_review", "collect_review")),
 )
 
 
