@@ -28,6 +28,7 @@ from .damping import _damping_ranges
 from .omega import (_check_iteration, _gershgorin, _power_iteration, _stiffness_values, free_particles,
                     transverse_omega_max)
 from .stability import _integrator_class, _world_limits, passed_step, spectral_radius
+from .step_trial import TRIAL_CEILING, StepTrial, free_energy, trial_scope, try_step
 from .under_load import (PROBE_HORIZON, TransientPeak, _keeps_plasticity, has_loads, in_motion, loaded_state,
                          transient_peak)
 
@@ -82,6 +83,9 @@ class Advice:
             its substeps. NaN where not set.
         passed_reason: why ``dt_passed`` is below ``dt_stable`` ("" where it is not).
         world_dt_passed: each world's ``dt_passed`` [s], float64, shape [world_count] (NaN where not set).
+        trial: the trial runs that judged ``dt`` (:func:`~.step_trial.try_step`) where it lies between ``dt_passed`` and
+            ``TRIAL_CEILING`` × ``dt_stable`` and a trial was asked for (:func:`advise`'s ``trial``); ``stable`` is then
+            whether it passed. ``None`` where none was run.
     """
 
     integrator: str
@@ -105,6 +109,7 @@ class Advice:
     dt_passed: float = math.nan
     passed_reason: str = ""
     world_dt_passed: np.ndarray = field(default_factory=lambda: np.full(1, math.nan), compare=False)
+    trial: StepTrial | None = field(default=None, compare=False)
 
 
 #: The transverse growth (:attr:`Advice.transverse_growth`) from which the advisor's message mentions it.
@@ -178,7 +183,10 @@ def shared_estimates():
     :attr:`Model.revision`, :attr:`Model.input_version`), the control, the stiffness and the options, never on the step
     judged. For a caller that judges several steps of one model it does not change in between
     (:func:`~.step_choice.choose_substeps`: the 287-substep flag of ``examples/flag_in_wind.toml`` judged twice took
-    two static solves and two dry runs, 56 of its 59 s on a CPU)."""
+    two static solves and two dry runs, 56 of its 59 s on a CPU). A block within another shares the outer one's."""
+    if _SHARED.get() is not None:
+        yield
+        return
     token = _SHARED.set({})
     try:
         yield
@@ -348,6 +356,7 @@ def advise(
     omega_estimate: str = "power_iteration",
     max_iterations: int = 1000,
     tolerance: float = 1.0e-3,
+    trial: bool | None = None,
 ) -> Advice:
     """Check ``dt`` against the springs' stability limit for ``integrator`` and say what to do.
 
@@ -382,6 +391,14 @@ def advise(
             no state: it bounds every spring block by its full stiffness, stretched or not.
         omega_estimate: "power_iteration" or "gershgorin".
         max_iterations, tolerance: of the power iteration.
+        trial: where ``dt`` lies past the passed step (:attr:`Advice.dt_passed`: the three-wave step of a weakly damped
+            cloth, or the linear limit) but within ``TRIAL_CEILING`` × the linear limit, judging the run (no ``state``,
+            ``loaded``) with an integrator that keeps undamped modes (symplectic Euler, velocity Verlet, RK4), decide it
+            by trial runs of the scene itself for ``horizon`` (:func:`~.step_trial.try_step`: at ``dt`` and 2 % above
+            it; two runs of the scene, without its guard), where :func:`~.step_trial.trial_scope` can measure the
+            scene's energy. The theory cannot tell there whether the cloth's top modes feed a resonance: the largest
+            step that holds lies 0-16 % past the passed step (``bench/results/advisor_battery_bisect_cpu.md``).
+            Default: with ``strict``.
 
     Raises:
         ConfigError: bad arguments, or (with ``strict``) an unstable step.
@@ -417,6 +434,17 @@ def advise(
     stable, substeps, message = _verdict(integrator, dt, fps, passed_limit, springs, top, horizon, found, ranges)
     if passed_reason:
         message += f" (the springs' linear limit is {format_duration(limit)}; passed: {passed_reason})"
+    tried = None
+    if not stable and (strict if trial is None else trial) and judged_past(integrator, dt, passed_limit, limit):
+        scope = trial_scope(model, control) if state is None and loaded else "a given state, not the run's start"
+        if scope:
+            message += f"; a trial run would decide this step, but cannot measure this scene's energy ({scope})"
+        else:
+            tried = try_step(model, integrator, dt, seconds=horizon, released=_released(model), control=control)
+            stable = tried.passed
+            message = (f"{integrator} passes dt = {format_duration(dt)} on trial: past the step the theory passes, "
+                       f"{format_duration(passed_limit)} ({springs}), the runs decide; {tried.describe()}"
+                       if stable else f"{message}; {tried.describe()}")
     growth = _transverse_growth(model, integrator, dt, k, found.positions, ranges[w][1], horizon, w)
     message = _with_transverse_note(message, integrator, growth, horizon)
     if strict and not stable:
@@ -443,7 +471,30 @@ def advise(
         dt_passed=passed_limit,
         passed_reason=passed_reason,
         world_dt_passed=passed_limits,
+        trial=tried,
     )
+
+
+def judged_past(integrator: str, dt: float, passed: float, limit: float) -> bool:
+    """Whether a trial (:func:`~.step_trial.try_step`) judges ``dt`` [s] for ``integrator`` with the passed step
+    ``passed`` and the linear limit ``limit`` [s]: past the former, within ``TRIAL_CEILING`` × the latter, for an
+    integrator with a finite limit that keeps undamped modes (not one that relies on damping: explicit Euler,
+    midpoint)."""
+    cls = _integrator_class(integrator)
+    if cls.adaptive or not 0.0 < passed <= limit < math.inf:
+        return False
+    return passed < dt <= TRIAL_CEILING * limit and spectral_radius(integrator, 0.1, 0.0) <= 1.0 + 1.0e-9
+
+
+def _released(model: Model) -> float:
+    """:func:`~.step_trial.free_energy` of ``model``, shared within :func:`shared_estimates` (a static solve)."""
+    shared = _SHARED.get()
+    if shared is None:
+        return free_energy(model)
+    key = ("released", id(model), model.revision, model.input_version)
+    if key not in shared:
+        shared[key] = free_energy(model)
+    return shared[key]
 
 
 # -- after a stop -------------------------------------------------------------------------------------------

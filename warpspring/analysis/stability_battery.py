@@ -46,7 +46,6 @@ from __future__ import annotations
 
 import functools
 import math
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -55,11 +54,12 @@ from ..core.builder import ModelBuilder, SpringMaterial
 from ..core.integrators import make_integrator
 from ..core.model import Model
 from ..core.simulator import Simulator
-from .advisor import Advice, advise
+from .advisor import Advice, advise, judged_past, shared_estimates
 from .stability import DAMPED_MARGIN
 from ..kernels.stability import PI_LAMBDA
-from .omega import PowerIteration, _power_iteration, _stiffness_values, free_particles
-from .under_load import static_equilibrium
+from .omega import PowerIteration, _power_iteration, _stiffness_values
+from .step_trial import TRIAL_SUBSTEPS, TrialRun, free_energy, trial_run
+from .step_trial import BLOWN, GROWTH, MEAN_WINDOW, TORN, EnergyMeter  # noqa: F401  (the battery's criterion, re-exported)
 
 #: The integrators whose passes are measured for one-sidedness and tightness, and those that rely on damping.
 CONSERVATIVE = ("symplectic_euler", "velocity_verlet", "rk4")
@@ -70,11 +70,7 @@ LIGHT = 1.0e-5
 EXACT = 1.0e-4
 #: Step factors of the runs, around the advisor's step P (1.0: P itself; 1.111 = 1/0.9).
 FACTORS = (0.8, 0.9, 1.0, 1.05, 1.111, 1.25, 1.5)
-SUBSTEPS = 10  # steps per output frame (energy read once a frame)
-GROWTH = 0.01  # of the free energy: the issue's 1 % (the module docstring)
-MEAN_WINDOW = 1.0  # [s], the shadow energy's moving mean (the module docstring)
-BLOWN = 10.0  # of the free energy
-TORN = 10.0  # × rest length
+SUBSTEPS = TRIAL_SUBSTEPS  # steps per output frame (energy read once a frame)
 SPACING = 0.1  # [m]
 PARTICLE_MASS = 1.0 / 256.0  # [kg]
 STIFFNESS = {"structural": 1000.0, "shear": 200.0, "bend": 20.0}  # [N/m]
@@ -127,84 +123,6 @@ def battery_cloth(case: Case, device, *, precision: str = "float32") -> Model:
     return model
 
 
-class EnergyMeter:
-    """The energy of one world's state, summed in float64 on the host, and the energy the integrator conserves.
-
-    H = ½ Σ m v² + Σ ½ k (|d| - L)² - Σ m g·x [J] is what a run's energy is. A symplectic integrator does not
-    keep H: it keeps a modified (shadow) energy H̃ = H + h H₁ + h² H₂ + … exactly conserved by the flow that
-    interpolates its steps, so H oscillates about H̃ by the first correction (O(h) for symplectic Euler, O(h²) for
-    velocity Verlet) however stable the step. The meter returns H̃ through the step's leading corrections
-    (Hairer, Lubich & Wanner, *Geometric Numerical Integration*, IX.3 and IX.8), with f = -∇U the conservative
-    forces (springs and weight), |f|²_M⁻¹ = Σ |f_i|² / m_i over the free particles and U''(v, v) the springs'
-    Hessian on the velocities (k ((d̂·u)² + (1 - L/|d|)(|u|² - (d̂·u)²)) per spring, u the velocity difference):
-
-    * ``velocity_verlet``: H̃ = H + h² (U''(v, v) / 12 - |f|²_M⁻¹ / 24), error O(h⁴);
-    * ``symplectic_euler`` (v' = v + h M⁻¹ f(x), x' = x + h v'): its positions are leapfrog's and its velocity is
-      leapfrog's half-step one, v_n = v_(n-½), so it conserves Verlet's H̃ at the synchronised velocity
-      v + (h/2) M⁻¹ f(x) (error O(h⁴)); to first order that is H + (h/2) v·f, the first-order modified energy of
-      symplectic Euler, and to second order it adds (h²/12) (|f|²_M⁻¹ + U''(v, v)) (Hairer, Lubich & Wanner IX.3);
-    * any other integrator: H (RK4 is not symplectic; its energy error is O(h⁴), and dissipative at large steps).
-
-    On a linear system H̃ is an exact invariant of the map (Verlet: ½ v² + ½ ω² x² (1 - (ωh)²/4); symplectic
-    Euler: ½ v² + ½ ω² x² - (h/2) ω² x v), which is what makes it fit the cloth's stiff modes near the step's
-    limit; measured on one swinging spring (``tests/test_stability_battery.py``) H's range scales as h (h² for
-    Verlet) and H̃'s as h⁴ for both. Dampers and drag are not in H̃: they only take energy out.
-    """
-
-    def __init__(self, model: Model, integrator: str, dt: float):
-        self.integrator, self.h = integrator, float(dt)
-        self.pairs = model.spring_indices.numpy()
-        self.rest = model.spring_rest_length.numpy().astype(np.float64)
-        self.k = model.spring_stiffness.numpy()[0].astype(np.float64)
-        self.mass = model.particle_mass.numpy()[0].astype(np.float64)
-        self.inv_mass = np.where(free_particles(model)[0], 1.0 / self.mass, 0.0)
-        self.weight = self.mass[:, None] * np.asarray(model.gravity, dtype=np.float64)[None, :]  # m g [N]
-
-    def potential(self, x: np.ndarray) -> float:
-        """U(x) = Σ ½ k (|d| - L)² - Σ m g·x [J]."""
-        d = np.linalg.norm(x[self.pairs[:, 0]] - x[self.pairs[:, 1]], axis=1)
-        return 0.5 * float((self.k * (d - self.rest) ** 2).sum()) - float((self.weight * x).sum())
-
-    def __call__(self, x: np.ndarray, v: np.ndarray) -> tuple[float, float, float, float]:
-        """(H, H̃, kinetic energy [J], largest spring stretch |d|/L) of positions ``x`` [m] and velocities ``v``
-        [m/s], float64, shape [particle_count, 3]."""
-        i, j = self.pairs[:, 0], self.pairs[:, 1]
-        delta = x[i] - x[j]
-        length = np.linalg.norm(delta, axis=1)
-        safe = np.maximum(length, 1e-12)
-        kinetic = 0.5 * float((self.mass * (v * v).sum(axis=1)).sum())
-        total = kinetic + 0.5 * float((self.k * (length - self.rest) ** 2).sum()) - float((self.weight * x).sum())
-        stretch = float((length / self.rest).max())
-        if self.integrator not in ("symplectic_euler", "velocity_verlet"):
-            return total, total, kinetic, stretch
-        unit = delta / safe[:, None]
-        pull = (self.k * (length - self.rest))[:, None] * unit  # the spring's force on j [N]
-        count = len(x)
-        force = self.weight + np.stack([np.bincount(j, pull[:, c], count) - np.bincount(i, pull[:, c], count)
-                                        for c in range(3)], axis=1)
-        h = self.h
-        if self.integrator == "symplectic_euler":  # v_n is leapfrog's v_(n-1/2): synchronise it
-            v = v + (0.5 * h) * self.inv_mass[:, None] * force
-        u = v[i] - v[j]
-        along = (unit * u).sum(axis=1)
-        hessian = float((self.k * (along ** 2 + (1.0 - self.rest / safe) * ((u * u).sum(axis=1) - along ** 2))).sum())
-        inverse = float((self.inv_mass * (force * force).sum(axis=1)).sum())
-        synchronised = total - kinetic + 0.5 * float((self.mass * (v * v).sum(axis=1)).sum())
-        shadow = synchronised + h * h * (hessian / 12.0 - inverse / 24.0)
-        return total, shadow, kinetic, stretch
-
-
-def free_energy(model: Model) -> float:
-    """The energy the release sets free [J]: the start's energy (at rest) over the lowest the cloth can reach,
-    its static equilibrium under gravity with the pins held (:func:`~.under_load.static_equilibrium`), or
-    zero without gravity (every spring at its rest length: the flat cloth). Gravity's potential has an arbitrary
-    zero; this difference does not."""
-    meter = EnergyMeter(model, "rk4", 0.0)
-    x0 = model.particle_q.numpy().astype(np.float64)
-    lowest = meter.potential(static_equilibrium(model).positions) if np.any(model.gravity) else 0.0
-    return meter.potential(x0) - lowest
-
-
 @functools.cache
 def case_free_energy(case: Case, device: str) -> float:
     """:func:`free_energy` of ``case``'s cloth on ``device`` (once per case: the equilibrium of a 64² cloth takes
@@ -212,85 +130,77 @@ def case_free_energy(case: Case, device: str) -> float:
     return free_energy(battery_cloth(case, device))
 
 
-@dataclass(frozen=True)
-class RunResult:
-    """One run of a case at a step (:func:`run`)."""
-
-    factor: float  # the step over the advisor's P
-    dt: float  # [s]
-    blown: bool
-    grows: bool
-    excess: float  # the highest 1 s mean of the shadow energy over its start, over the free energy [-]
-    peak: float  # the highest shadow energy over its start, over the free energy [-]
-    raw_excess: float  # the highest energy H over its start, over the free energy [-]
-    seconds: float  # wall time [s]
-    cause: str = ""  # why it blew up: "non-finite", "torn" (a spring past TORN × its rest length) or "energy"
-    until: float = math.nan  # the simulated time it reached [s] (its end, or the frame it blew up at)
-
-    @property
-    def ok(self) -> bool:
-        return not (self.blown or self.grows)
+#: One run of a case at a step, judged.
+RunResult = TrialRun
 
 
 def run(case: Case, integrator: str, dt: float, device, *, seconds: float = 10.0, factor: float = math.nan,
         precision: str = "float32", released: float | None = None, substeps: int = SUBSTEPS) -> RunResult:
-    """Run ``case`` with ``integrator`` at step ``dt`` [s] for ``seconds`` and judge it (this module's docstring);
-    ``released``: the energy to measure against [J] (default the case's :func:`free_energy`); the energy is read
-    every ``substeps`` steps."""
-    t0 = time.perf_counter()
+    """Run ``case`` with ``integrator`` at step ``dt`` [s] for ``seconds`` and judge it (:func:`~.step_trial.trial_run`,
+    as the advisor's trials do); ``released``: the energy to measure against [J] (default the case's
+    :func:`~.step_trial.free_energy`); the energy is read every ``substeps`` steps."""
     model = battery_cloth(case, device, precision=precision)
-    meter = EnergyMeter(model, integrator, dt)
     released = case_free_energy(case, str(device)) if released is None else released
-    sim = Simulator(model, integrator=make_integrator(integrator, model), fps=1.0 / (substeps * dt),
-                    substeps=substeps, guard=None)
-    frames = int(math.ceil(seconds / (substeps * dt)))
-    raw_start, start, _, _ = meter(model.particle_q.numpy().astype(np.float64),
-                                   model.particle_qd.numpy().astype(np.float64))
-    shadows, raw_peak, cause = [], -math.inf, ""
-    for _ in range(frames):
-        sim.step_frame()
-        x = sim.state.particle_q.numpy().astype(np.float64)
-        v = sim.state.particle_qd.numpy().astype(np.float64)
-        if not (np.isfinite(x).all() and np.isfinite(v).all()):
-            cause = "non-finite"
-            break
-        total, shadow, _, stretch = meter(x, v)
-        shadows.append(shadow)
-        raw_peak = max(raw_peak, total)
-        cause = "torn" if stretch > TORN else "energy" if shadow - start > BLOWN * released else ""
-        if cause:
-            break
-    blown = bool(cause)
-    window = max(1, int(round(MEAN_WINDOW / (substeps * dt))))
-    if blown or len(shadows) < window:
-        excess = peak = raw_excess = math.inf
-    else:
-        means = np.convolve(np.asarray(shadows) - start, np.full(window, 1.0 / window), mode="valid")
-        excess, peak = float(means.max()) / released, (max(shadows) - start) / released
-        raw_excess = (raw_peak - raw_start) / released
-    return RunResult(factor, dt, blown, excess > GROWTH, excess, peak, raw_excess, time.perf_counter() - t0,
-                     cause=cause, until=sim.time)
+    return trial_run(model, integrator, dt, seconds=seconds, released=released, substeps=substeps, factor=factor)
+
+
+#: The ladder of steps the battery asks the strict verdict about past the advisor's step P: P · LADDER^k, k = 1, 2, …
+#: With the trial's second run at (1 + TRIAL_MARGIN) × a rung, the last rung passed Q is within 1 / (LADDER (1 +
+#: TRIAL_MARGIN)) = 0.934 of the first step that fails, where holding is monotone in the step.
+LADDER = 1.05
+
+
+def strict_step(model: Model, integrator: str, advice: Advice, *, seconds: float) -> tuple[float, list]:
+    """The largest step Q [s] ``--strict`` passes on ``model`` with ``integrator``, from the advisor's ``advice`` (its
+    step P, :attr:`~.advisor.Advice.dt_passed`) up a ladder of steps P · ``LADDER``^k, each judged with its trial runs
+    over ``seconds`` (:func:`~.advisor.advise` with ``trial``), to the first it refuses; and the verdicts on the
+    ladder's rungs, first to last. Q is P where the first rung is refused or no trial judges it (past
+    ``TRIAL_CEILING`` × the linear limit, or a scene whose energy the trial cannot measure)."""
+    passed, rungs = advice.dt_passed, []
+    if not passed > 0.0:
+        return passed, rungs
+    with shared_estimates():
+        step = passed * LADDER
+        while judged_past(integrator, step, advice.dt_passed, advice.dt_stable):
+            verdict = advise(model, integrator, step, horizon=seconds, trial=True)
+            rungs.append(verdict)
+            if not verdict.stable:
+                break
+            passed, step = step, step * LADDER
+    return passed, rungs
 
 
 @dataclass
 class CaseResult:
-    """A case under one integrator: the advisor's verdict and the runs around it (:func:`measure`)."""
+    """A case under one integrator: the advisor's verdict, the largest step ``--strict`` passes and the runs around it
+    (:func:`measure`).
+
+    Attributes:
+        case, integrator: what was measured.
+        advice: the advisor's verdict (its step P: :attr:`~.advisor.Advice.dt_passed`).
+        strict: Q, the largest step ``--strict`` passes [s] (:func:`strict_step`).
+        rungs: the strict verdicts on the ladder past P.
+        runs: the runs at factors × Q.
+    """
 
     case: Case
     integrator: str
     advice: Advice
+    strict: float = math.nan
+    rungs: list = field(default_factory=list)
     runs: list = field(default_factory=list)
 
     @property
     def passed_step(self) -> float:
-        return self.advice.dt_passed
+        """The largest step ``--strict`` passes, Q [s]."""
+        return self.strict
 
     def one_sided(self) -> bool:
-        """No run at a step the advisor passes blew up or grew."""
+        """No run at a step ``--strict`` passes blew up or grew."""
         return all(r.ok for r in self.runs if r.factor <= 1.0)
 
     def tight(self) -> bool:
-        """Some run at a step within 1/0.9 of the advisor's fails (or none is needed: no such run exists)."""
+        """Some run at a step within 1/0.9 of Q fails (or none is needed: no such run exists)."""
         above = [r for r in self.runs if 1.0 < r.factor <= 1.0 / 0.9 + 1e-9]
         return not above or any(not r.ok for r in above)
 
@@ -305,15 +215,18 @@ class CaseResult:
 
 
 def measure(case: Case, integrator: str, device, *, seconds: float = 10.0, factors=FACTORS,
-            substeps: int = SUBSTEPS) -> CaseResult:
-    """The advisor's verdict on ``case`` under ``integrator`` (its step P) and the runs at f · P for ``factors``
-    (:func:`run`); none where it refuses every step (P = 0)."""
+            substeps: int = SUBSTEPS, ladder: bool = True) -> CaseResult:
+    """The advisor's verdict on ``case`` under ``integrator`` (its step P), the largest step ``--strict`` passes, Q
+    (:func:`strict_step`; P without ``ladder``), and the runs at f · Q for ``factors`` (:func:`run`); none where it
+    refuses every step (Q = 0)."""
     model = battery_cloth(case, device)
-    advice = advise(model, integrator, 1.0e-4, horizon=seconds)
-    result = CaseResult(case, integrator, advice)
-    if advice.dt_passed > 0.0:
+    with shared_estimates():  # one static solve and dry run for the verdicts on P and on the ladder
+        advice = advise(model, integrator, 1.0e-4, horizon=seconds)
+        strict, rungs = strict_step(model, integrator, advice, seconds=seconds) if ladder else (advice.dt_passed, [])
+    result = CaseResult(case, integrator, advice, strict, rungs)
+    if strict > 0.0:
         for f in factors:
-            result.runs.append(run(case, integrator, f * advice.dt_passed, device, seconds=seconds, factor=f,
+            result.runs.append(run(case, integrator, f * strict, device, seconds=seconds, factor=f,
                                    substeps=substeps))
     return result
 
@@ -459,9 +372,9 @@ def exact_limit(device, *, n: int = 16) -> tuple[Advice, Advice]:
 def table(results: list[CaseResult]) -> list[str]:
     """A markdown table of the results: the advisor's step, the runs' verdicts by factor, one-sided, tight."""
     factors = sorted({r.factor for res in results for r in res.runs}) or list(FACTORS)
-    head = "| case | integrator | P [ms] | linear [ms] | " + " | ".join(f"{f:g}·P" for f in factors) + \
+    head = "| case | integrator | P [ms] | linear [ms] | Q [ms] | " + " | ".join(f"{f:g}·Q" for f in factors) + \
         " | one-sided | tight |"
-    lines = [head, "|" + "---|" * (6 + len(factors))]
+    lines = [head, "|" + "---|" * (7 + len(factors))]
     for res in results:
         by = {r.factor: r for r in res.runs}
         cells = []
@@ -471,6 +384,7 @@ def table(results: list[CaseResult]) -> list[str]:
                          f"{'ok' if r.ok else 'grows'} {100 * r.excess:.2g} % ({100 * r.peak:.2g} %)")
         p = res.advice.dt_passed
         lines.append(f"| {res.case.label} | {res.integrator} | {p * 1e3:.4g} | {res.advice.dt_stable * 1e3:.4g} | "
+                     f"{res.strict * 1e3:.4g} | "
                      + " | ".join(cells) + f" | {'yes' if res.one_sided() else 'NO'} | "
                      f"{'yes' if res.tight() else 'no'} |")
     return lines

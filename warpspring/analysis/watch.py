@@ -162,8 +162,12 @@ class StabilityWatch(FrameHook):
             self.check(sim.state, frame)
 
     def _limit(self, advice: Advice) -> None:
-        """Each world's highest stable frequency at the step from the advisor's verdict (:attr:`omega_limit`)."""
+        """Each world's highest stable frequency at the step from the advisor's verdict (:attr:`omega_limit`): its linear
+        limit, or the larger step its trial runs held at over the run's horizon where the verdict passed the step on
+        trial (:attr:`~.advisor.Advice.trial`: an RK4 step past the linear limit at a transient peak)."""
         limits = advice.world_dt_stable
+        if advice.trial is not None and advice.trial.passed:  # the run's own states held on trial to its larger step
+            limits = np.maximum(limits, max(r.dt for r in advice.trial.runs))
         finite = np.isfinite(limits) & (limits > 0.0) & (not advice.adaptive)
         self.omega_limit = np.where(finite, advice.world_omega_max * np.where(finite, limits, 0.0) / self.dt, math.inf)
 
