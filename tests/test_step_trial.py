@@ -109,6 +109,11 @@ def test_a_trial_leaves_the_model_as_it_was_and_counts_the_start_s_motion(device
     again = step_trial.trial_run(model, "symplectic_euler", 1.0e-3, seconds=1.0, released=released)
     np.testing.assert_array_equal(model.particle_q.numpy(), before)
     assert first.ok and first.excess == again.excess and math.isfinite(first.excess)
+    # A run shorter than the 1 s mean is judged on its whole mean, not called grown for want of a window.
+    short = step_trial.trial_run(model, "symplectic_euler", 1.0e-3, seconds=0.3, released=released)
+    assert short.ok and math.isfinite(short.excess) and short.until == pytest.approx(0.3)
+    with pytest.raises(ValueError, match="energy to judge against"):
+        step_trial.trial_run(model, "symplectic_euler", 1.0e-3, seconds=0.3, released=0.0)
     builder = ws.ModelBuilder(gravity=(0.0, 0.0, 0.0))
     builder.add_particles([[0.25 * i, 0.0, 1.0] for i in range(5)], mass=0.1)
     builder.add_springs([[i, i + 1] for i in range(4)], stiffness=100.0, rest_length=0.25)

@@ -437,10 +437,13 @@ def advise(
     tried = None
     if not stable and (strict if trial is None else trial) and judged_past(integrator, dt, passed_limit, limit):
         scope = trial_scope(model, control) if state is None and loaded else "a given state, not the run's start"
+        released = 0.0 if scope else _released(model)
+        if not scope and not released > 0.0:
+            scope = f"its start sets no energy free: {released:.3g} J over its static equilibrium"
         if scope:
             message += f"; a trial run would decide this step, but cannot measure this scene's energy ({scope})"
         else:
-            tried = try_step(model, integrator, dt, seconds=horizon, released=_released(model), control=control)
+            tried = try_step(model, integrator, dt, seconds=horizon, released=released, control=control)
             stable = tried.passed
             message = (f"{integrator} passes dt = {format_duration(dt)} on trial: past the step the theory passes, "
                        f"{format_duration(passed_limit)} ({springs}), the runs decide; {tried.describe()}"

@@ -211,7 +211,10 @@ class TrialRun:
 def trial_run(model: Model, integrator: str, dt: float, *, seconds: float, released: float, control=None,
               substeps: int = TRIAL_SUBSTEPS, factor: float = math.nan) -> TrialRun:
     """Run ``model`` from its initial state with ``integrator`` at step ``dt`` [s] for ``seconds`` and judge it against
-    the energy ``released`` [J] (the module docstring); the energy is read every ``substeps`` steps."""
+    the energy ``released`` [J] (> 0; the module docstring); the energy is read every ``substeps`` steps (a run
+    shorter than ``MEAN_WINDOW`` is judged on its whole mean)."""
+    if not released > 0.0:
+        raise ValueError(f"a trial needs energy to judge against, got released = {released} J")
     t0 = time.perf_counter()
     meter = EnergyMeter(model, integrator, dt)
     sim = Simulator(model, integrator=make_integrator(integrator, model), fps=1.0 / (substeps * dt),
@@ -234,8 +237,8 @@ def trial_run(model: Model, integrator: str, dt: float, *, seconds: float, relea
         if cause:
             break
     blown = bool(cause)
-    window = max(1, int(round(MEAN_WINDOW / (substeps * dt))))
-    if blown or len(shadows) < window:
+    window = min(max(1, int(round(MEAN_WINDOW / (substeps * dt)))), len(shadows))  # a shorter run: its whole mean
+    if blown or not shadows:
         excess = peak = raw_excess = math.inf
     else:
         means = np.convolve(np.asarray(shadows) - start, np.full(window, 1.0 / window), mode="valid")
