@@ -369,3 +369,39 @@ def test_strict_refuses_a_step_the_release_transient_breaks_and_the_watch_warns_
     assert status == 0 and stderr == [], stderr
     status, stdout, stderr = run_cli(capsys, scene, "-o", tmp_path / "c.usdc", "--watch-every", 0)
     assert status == EXIT_SIMULATION and len(stderr) == 2 and "simulation failed" in stderr[1]  # no watch warning
+
+
+FLAT_UNDAMPED = """
+[simulation]
+fps = 60
+frames = 600
+substeps = 10
+integrator = "symplectic_euler"
+
+[world]
+gravity = [0.0, 0.0, -9.81]
+drag = 0.0
+
+[cloth]
+grid = { nx = 16, ny = 16, spacing = 0.1 }
+origin = [0.0, 0.0, 1.0]
+mass = 1.0
+pin = ["top-left", "top-right"]
+structural = { ke = 1000.0, kd = 0.0 }
+shear = { ke = 200.0, kd = 0.0 }
+bend = { ke = 20.0, kd = 0.0 }
+"""
+
+
+def test_strict_tries_the_step_past_the_theory_and_refuses_the_flat_cloth(tmp_path, capsys):
+    """Issue 48's undamped 16² cloth released flat, symplectic Euler at 10 substeps per 1/60 s: within the linear
+    limit (1.81 ms) but past the three-wave step (1.53 ms), where the theory cannot decide. --strict runs the scene on
+    trial for the run's 10 s, sees it blow up, and refuses before writing, saying what the trial run did."""
+    out, scene = tmp_path / "never.usdc", tmp_path / "flat.toml"
+    scene.write_text(FLAT_UNDAMPED)
+    status, stdout, stderr = run_cli(capsys, scene, "-o", out, "--strict")
+    assert status == EXIT_CONFIG and len(stderr) == 1, stderr
+    assert re.search(r"1 trial run of this scene for 10 s \(at 1\.667 ms it (turned non-finite|tore a spring|gained|grew)",
+                     stderr[0]), stderr
+    assert "at least 11 substeps per 1/60 s frame" in stderr[0]
+    assert not out.exists()

@@ -13,7 +13,7 @@ import pytest
 import warpspring as ws
 
 from warpspring.analysis import stability_battery as sb
-from warpspring.analysis import step_trial
+from warpspring.analysis import step_trial, under_load
 from warpspring.analysis.advisor import advise, shared_estimates
 from warpspring.analysis.watch import StabilityWatch
 from warpspring.errors import ConfigError
@@ -91,11 +91,29 @@ def test_the_trial_measures_only_what_its_meter_covers(device):
     windy = _cloth(device)
     windy.set_world_values("wind", np.array([[3.0, 0.0, 0.0]]))
     assert step_trial.trial_scope(windy) == "wind"
+    moving = _cloth(device)
+    moving.particle_qd.assign(np.tile(np.array([[0.0, 0.0, 0.5]], dtype=np.float32), (moving.particle_count, 1)))
+    assert step_trial.trial_scope(moving) == "pins moving at the start"  # they do work on the cloth
     with shared_estimates():
         theory = advise(with_sphere, "symplectic_euler", 1.0e-4, horizon=1.0)
         past = 1.05 * theory.dt_passed
-        with pytest.raises(ConfigError, match=r"cannot measure this scene's energy \(contacts\)"):
+        with pytest.raises(ConfigError, match=r"cannot judge this scene \(contacts\)"):
             advise(with_sphere, "symplectic_euler", past, horizon=1.0, strict=True)
+    # Without strict no trial runs, and the message says --strict would decide; a trial is not run for another
+    # stiffness than the model's (the run's springs are the model's), nor for a start that frees round-off alone.
+    plain = _cloth(device)
+    with shared_estimates():
+        theory = advise(plain, "symplectic_euler", 1.0e-4, horizon=1.0)
+        past = 1.05 * theory.dt_passed
+        warned = advise(plain, "symplectic_euler", past, horizon=1.0)
+        assert warned.trial is None and "--strict decides such a step by trial runs" in warned.message
+    stiffer = advise(plain, "symplectic_euler", 1.05 * past, horizon=1.0, trial=True,
+                     stiffness=1.1 * plain.spring_stiffness.numpy()[0])
+    assert stiffer.trial is None and "cannot judge this scene (the state or stiffness" in stiffer.message
+    settled = _cloth(device)
+    settled.particle_q.assign(under_load.static_equilibrium(settled).positions.astype(np.float32))
+    at_rest = advise(settled, "symplectic_euler", 1.05 * past, horizon=1.0, trial=True)
+    assert at_rest.trial is None and "round-off against its energy scale" in at_rest.message
 
 
 def test_a_trial_leaves_the_model_as_it_was_and_counts_the_start_s_motion(device):
@@ -120,3 +138,16 @@ def test_a_trial_leaves_the_model_as_it_was_and_counts_the_start_s_motion(device
     chain = builder.finalize(device)
     chain.particle_qd.assign(np.tile(np.array([[0.0, 2.0, 0.0]], dtype=np.float32), (5, 1)))
     assert step_trial.free_energy(chain) == pytest.approx(0.5 * 0.5 * 4.0, rel=1e-6)
+    # Under gravity and with no pin, the chain falls as a whole: what the start frees into its springs is its stretch
+    # (one spring 0.05 m long: ½ k Δ² = 0.125 J), not gravity's unbounded fall. A spring of zero rest length (a tether)
+    # has no stretch to tear.
+    builder = ws.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    builder.add_particles([[0.25 * i + (0.05 if i == 4 else 0.0), 0.0, 1.0] for i in range(5)], mass=0.1)
+    builder.add_springs([[i, i + 1] for i in range(4)], stiffness=100.0, rest_length=0.25)
+    builder.add_springs([[0, 4]], stiffness=1.0, rest_length=0.0)
+    falling = builder.finalize(device)
+    x = falling.particle_q.numpy().astype(np.float64)
+    tether = 0.5 * 1.0 * float(np.sum((x[4] - x[0]) ** 2))
+    assert step_trial.free_energy(falling) == pytest.approx(0.125 + tether, rel=1e-5)
+    meter = step_trial.EnergyMeter(falling, "symplectic_euler", 1.0e-3)
+    assert meter(x, np.zeros_like(x))[3] == pytest.approx(0.30 / 0.25, rel=1e-6)

@@ -28,7 +28,8 @@ from .damping import _damping_ranges
 from .omega import (_check_iteration, _gershgorin, _power_iteration, _stiffness_values, free_particles,
                     transverse_omega_max)
 from .stability import _integrator_class, _world_limits, passed_step, spectral_radius
-from .step_trial import TRIAL_CEILING, StepTrial, free_energy, trial_scope, try_step
+from .step_trial import (FREE_ENERGY_FLOOR, TRIAL_CEILING, StepTrial, energy_scale, free_energy, trial_scope,
+                         try_step)
 from .under_load import (PROBE_HORIZON, TransientPeak, _keeps_plasticity, has_loads, in_motion, loaded_state,
                          transient_peak)
 
@@ -435,19 +436,22 @@ def advise(
     if passed_reason:
         message += f" (the springs' linear limit is {format_duration(limit)}; passed: {passed_reason})"
     tried = None
-    if not stable and (strict if trial is None else trial) and judged_past(integrator, dt, passed_limit, limit):
-        scope = trial_scope(model, control) if state is None and loaded else "a given state, not the run's start"
+    if not stable and judged_past(integrator, dt, passed_limit, limit) and not (strict if trial is None else trial):
+        message += "; --strict decides such a step by trial runs of the scene (advise(..., trial=True))"
+    elif not stable and judged_past(integrator, dt, passed_limit, limit):
+        scope = ("the state or stiffness it was asked about, not the run's" if state is not None or stiffness is not None
+                 else "the unloaded start, not the run" if not loaded else trial_scope(model, control))
         released = 0.0 if scope else _released(model)
-        if not scope and not released > 0.0:
-            scope = f"its start sets no energy free: {released:.3g} J over its static equilibrium"
+        if not scope and not released > FREE_ENERGY_FLOOR * energy_scale(model):
+            scope = f"its start sets {released:.3g} J free, round-off against its energy scale"
         if scope:
-            message += f"; a trial run would decide this step, but cannot measure this scene's energy ({scope})"
+            message += f"; a trial run would decide this step, but cannot judge this scene ({scope})"
         else:
             tried = try_step(model, integrator, dt, seconds=horizon, released=released, control=control)
             stable = tried.passed
             message = (f"{integrator} passes dt = {format_duration(dt)} on trial: past the step the theory passes, "
                        f"{format_duration(passed_limit)} ({springs}), the runs decide; {tried.describe()}"
-                       if stable else f"{message}; {tried.describe()}")
+                       if stable else f"{message}; it failed on trial: {tried.describe()}")
     growth = _transverse_growth(model, integrator, dt, k, found.positions, ranges[w][1], horizon, w)
     message = _with_transverse_note(message, integrator, growth, horizon)
     if strict and not stable:

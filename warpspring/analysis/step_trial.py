@@ -90,6 +90,7 @@ class EnergyMeter:
         self.mass = model.particle_mass.numpy()[0].astype(np.float64)
         self.inv_mass = np.where(free_particles(model)[0], 1.0 / self.mass, 0.0)
         self.weight = self.mass[:, None] * np.asarray(model.gravity, dtype=np.float64)[None, :]  # m g [N]
+        self.stretchable = self.rest > 0.0  # the springs a tear is measured on (a zero rest length has no stretch)
 
     def potential(self, x: np.ndarray) -> float:
         """U(x) = Σ ½ k (|d| - L)² - Σ m g·x [J]."""
@@ -105,7 +106,7 @@ class EnergyMeter:
         safe = np.maximum(length, 1e-12)
         kinetic = 0.5 * float((self.mass * (v * v).sum(axis=1)).sum())
         total = kinetic + 0.5 * float((self.k * (length - self.rest) ** 2).sum()) - float((self.weight * x).sum())
-        stretch = float((length / self.rest).max()) if len(length) else 1.0
+        stretch = float((length[self.stretchable] / self.rest[self.stretchable]).max(initial=1.0))
         if self.integrator not in ("symplectic_euler", "velocity_verlet"):
             return total, total, kinetic, stretch
         unit = delta / safe[:, None]
@@ -129,18 +130,41 @@ def free_energy(model: Model) -> float:
     """The energy the start sets free [J]: its energy (kinetic and potential) over the lowest the model can reach,
     its static equilibrium under gravity with the pins held (:func:`~.under_load.static_equilibrium`), or zero
     without gravity (every spring at its rest length). Gravity's potential has an arbitrary zero; this difference
-    does not."""
+    does not. Without pins a model under gravity falls as a whole, which frees no energy into its springs: its start's
+    kinetic and elastic energy."""
     meter = EnergyMeter(model, "rk4", 0.0)
     x0 = model.particle_q.numpy().astype(np.float64)
     v0 = model.particle_qd.numpy().astype(np.float64)
-    lowest = meter.potential(static_equilibrium(model).positions) if np.any(model.gravity) else 0.0
-    return meter(x0, v0)[0] - lowest
+    total = meter(x0, v0)[0]
+    if not np.any(model.gravity):
+        return total
+    if free_particles(model)[0].all():  # nothing holds it: gravity's part is the fall of the whole
+        return total + float((meter.weight * x0).sum())
+    return total - meter.potential(static_equilibrium(model).positions)
+
+
+#: A free energy below this share of the scene's energy scale (:func:`energy_scale`) is round-off: a start at rest at
+#: its equilibrium, which a trial cannot judge against (its every wobble would be growth).
+FREE_ENERGY_FLOOR = 1.0e-6
+
+
+def energy_scale(model: Model) -> float:
+    """The scene's energy scale [J]: its springs' ½ k L², its weight across its extent and its start's kinetic energy
+    (what :data:`FREE_ENERGY_FLOOR` is a share of)."""
+    meter = EnergyMeter(model, "rk4", 0.0)
+    x0 = model.particle_q.numpy().astype(np.float64)
+    v0 = model.particle_qd.numpy().astype(np.float64)
+    extent = float(np.linalg.norm(x0.max(axis=0) - x0.min(axis=0))) if len(x0) else 0.0
+    weight = float(np.linalg.norm(meter.weight, axis=1).sum())
+    return (0.5 * float((meter.k * meter.rest ** 2).sum()) + weight * extent
+            + 0.5 * float((meter.mass * (v0 * v0).sum(axis=1)).sum()))
 
 
 def trial_scope(model: Model, control=None) -> str:
     """Why a trial run cannot judge ``model`` ("" where it can): :class:`EnergyMeter` measures one world of Hooke
-    springs with their dampers under gravity, pins and drag, and nothing else may put energy in (contacts, loads from
-    outside, other element families, stabilisers, animated inputs, wind)."""
+    springs with their dampers under gravity and drag, with pins held still, and nothing else may put energy in
+    (contacts, loads from outside, other element families, stabilisers, animated inputs, pins moving at the start,
+    wind)."""
     if model.world_count != 1:
         return f"{model.world_count} worlds"
     if model.spring_count == 0:
@@ -161,6 +185,9 @@ def trial_scope(model: Model, control=None) -> str:
         return "the control's external force"
     if model.pin_groups is not None or model.track_table.tracks or model.emitters:
         return "driven pins, animated inputs or emitters"
+    pinned = ~free_particles(model)[0]
+    if pinned.any() and np.any(model.particle_qd.numpy()[pinned]):
+        return "pins moving at the start"
     if np.any(model.world_values("wind")):
         return "wind"
     return ""
