@@ -358,6 +358,7 @@ def advise(
     max_iterations: int = 1000,
     tolerance: float = 1.0e-3,
     trial: bool | None = None,
+    notify=None,
 ) -> Advice:
     """Check ``dt`` against the springs' stability limit for ``integrator`` and say what to do.
 
@@ -400,6 +401,8 @@ def advise(
             scene's energy. The theory cannot tell there whether the cloth's top modes feed a resonance: the largest
             step that holds lies 0-16 % past the passed step (``bench/results/advisor_battery_bisect_cpu.md``).
             Default: with ``strict``.
+        notify: called with one line before a trial starts (what it runs and for how long), if given: the CLI's
+            note, so a long trial is not a silent wait.
 
     Raises:
         ConfigError: bad arguments, or (with ``strict``) an unstable step.
@@ -447,6 +450,9 @@ def advise(
         if scope:
             message += f"; a trial run would decide this step, but cannot judge this scene ({scope})"
         else:
+            if notify is not None:
+                notify(f"{integrator} at dt = {format_duration(dt)} lies past the step the theory passes "
+                       f"({format_duration(passed_limit)}): trying it on two runs of the scene for {horizon:g} s each")
             tried = try_step(model, integrator, dt, seconds=horizon, released=released, control=control)
             stable = tried.passed
             message = (f"{integrator} passes dt = {format_duration(dt)} on trial: past the step the theory passes, "

@@ -310,7 +310,7 @@ def _run(scene: Scene, *, output: str, lock: OutputLock, device, frames: int, fp
         advice = chosen.advice  # the verdict at the chosen step, made just now
     else:
         advice = preflight(model, integrator.name, sim.dt, fps=fps, strict=strict, control=sim.control,
-                           horizon=frames / fps)
+                           horizon=frames / fps, note=note)
     if model.self_contact is not None:
         model.self_contact.reset()  # the advisor's dry run stepped the model: count the run's steps only
     # Its limits from the verdict just made, not a second analysis.
@@ -457,7 +457,7 @@ def _keep_scene_inputs(model, scene_inputs) -> None:
 
 
 def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = False, control=None,
-              horizon: float | None = None):
+              horizon: float | None = None, note=None):
     """The stability advisor's verdict on a run (:func:`warpspring.analysis.advisor.advise`): ω_max at the
     static equilibrium under the run's loads (gravity, ``control``'s external force) when any act, and at
     its peak over a dry run of the scene up to ``horizon`` [s] (the run's duration; default
@@ -467,13 +467,16 @@ def preflight(model, integrator: str, dt: float, *, fps: float, strict: bool = F
     on CPUs for models up to ``POWER_ITERATION_CPU_LIMIT`` particles, else from the (conservative, also
     under load) Gershgorin bound. The static equilibrium is up to ``RELAX_MAX_STEPS`` implicit steps: a
     stiff cloth settles in a few, a soft one hung from two corners does not (a denim cloth at 32², 200
-    steps and 20 s on a 2-core CPU; at 64² 79 s), which is most of the check's time on a CPU.
+    steps and 20 s on a 2-core CPU; at 64² 79 s), which is most of the check's time on a CPU. With ``strict``, a
+    step past the one the theory passes but within ``TRIAL_CEILING`` × the linear limit is decided by two trial runs of
+    the scene over ``horizon`` (``advise``'s ``trial``), announced to ``note`` (a callable taking one string), if given.
 
     Raises:
         ConfigError: with ``strict``, when ``dt`` is outside the integrator's stability limit.
     """
     return advise(model, integrator, dt, fps=fps, strict=strict, control=control,
-                  horizon=PROBE_HORIZON if horizon is None else horizon, omega_estimate=_omega_estimate(model))
+                  horizon=PROBE_HORIZON if horizon is None else horizon, omega_estimate=_omega_estimate(model),
+                  notify=note)
 
 
 def _omega_estimate(model) -> str:
