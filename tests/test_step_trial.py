@@ -63,7 +63,7 @@ def test_strict_refuses_on_trial_the_step_that_blows_up(device):
         tried = advise(model, "symplectic_euler", 1.0 / 600.0, horizon=10.0, trial=True)
     assert "1 trial run of this scene for 10 s" in str(error.value)
     assert not tried.stable and len(tried.trial.runs) == 1 and not tried.trial.runs[0].ok
-    assert tried.trial.released == pytest.approx(sb.case_free_energy(sb.Case(16, 0.0, "flat", True), device))
+    assert tried.trial.released[0] == pytest.approx(sb.case_free_energy(sb.Case(16, 0.0, "flat", True), device))
     # A step the theory passes needs no trial; one past TRIAL_CEILING × the linear limit gets none.
     with shared_estimates():
         assert advise(model, "symplectic_euler", 1.0 / 660.0, horizon=10.0, strict=True).trial is None
@@ -85,7 +85,7 @@ def test_the_trial_measures_only_what_its_meter_covers(device):
     # Hooke springs under gravity with pins: measured. Contacts, several worlds, wind: not, and --strict past the
     # theory's step then keeps the theory's verdict and says why.
     assert step_trial.trial_scope(_cloth(device)) == ""
-    assert step_trial.trial_scope(_cloth(device, worlds=2)) == "2 worlds"
+    assert step_trial.trial_scope(_cloth(device, worlds=2)) == ""  # each world measured on its own
     with_sphere = _cloth(device, sphere=True)
     assert step_trial.trial_scope(with_sphere) == "contacts"
     windy = _cloth(device)
@@ -151,3 +151,36 @@ def test_a_trial_leaves_the_model_as_it_was_and_counts_the_start_s_motion(device
     assert step_trial.free_energy(falling) == pytest.approx(0.125 + tether, rel=1e-5)
     meter = step_trial.EnergyMeter(falling, "symplectic_euler", 1.0e-3)
     assert meter(x, np.zeros_like(x))[3] == pytest.approx(0.30 / 0.25, rel=1e-6)
+
+
+@pytest.mark.slow
+def test_a_trial_judges_every_world(device):
+    # The 32² folded cloth without gravity as two worlds, the second 0.8× as stiff: the first binds (its P is the
+    # smaller), and at 1.1 P both worlds' runs hold (each judged against its own free energy), so --strict passes
+    # it. Two worlds of the issue's flat release under gravity, 16², the second the stiffer, at 1.667 ms: that world
+    # blows up, and the refusal names it.
+    def worlds(case, factors):
+        model = sb.battery_cloth(case, device)
+        builder = ws.ModelBuilder(gravity=(0.0, 0.0, -9.81) if case.gravity else (0.0, 0.0, 0.0))
+        builder.add_cloth_grid(nx=case.n, ny=case.n, spacing=sb.SPACING, origin=(0.0, 0.0, 1.0),
+                               particle_mass=sb.PARTICLE_MASS, pin=["top-left", "top-right"],
+                               **{name: ws.SpringMaterial(ke, 0.0) for name, ke in sb.STIFFNESS.items()})
+        two = builder.finalize(device, worlds=2)
+        two.particle_q.assign(np.tile(model.particle_q.numpy(), (2, 1)))
+        two.set_world_values("spring_stiffness", two.spring_stiffness.numpy()[0] * np.array(factors)[:, None])
+        return two
+
+    folded = worlds(sb.Case(32, 0.0, "folded", False), [1.0, 0.8])
+    meter = step_trial.EnergyMeter(folded, "symplectic_euler", 1.0e-3)
+    x = folded.particle_q.numpy().astype(np.float64)
+    energies = meter.worlds_energy(x, np.zeros_like(x))[0]  # the fold's elastic energy, 0.8× in the softer world
+    assert energies[1] == pytest.approx(0.8 * energies[0], rel=1e-9) and energies[0] > 0.0
+    with shared_estimates():
+        theory = advise(folded, "symplectic_euler", 1.0e-4, horizon=10.0)
+        passed = advise(folded, "symplectic_euler", 1.1 * theory.dt_passed, horizon=10.0, trial=True)
+    assert theory.world == 0 and passed.stable and passed.trial.passed, passed.message
+    np.testing.assert_allclose(passed.trial.released, step_trial.world_free_energies(folded))
+    assert passed.trial.released[1] == pytest.approx(0.8 * passed.trial.released[0], rel=1e-6)
+    flat = worlds(sb.Case(16, 0.0, "flat", True), [0.8, 1.0])  # the stiffer second
+    with pytest.raises(ConfigError, match=r"it failed on trial: .*in world 1 of 2"):
+        advise(flat, "symplectic_euler", 1.0 / 600.0, horizon=10.0, strict=True)

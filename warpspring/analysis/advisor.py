@@ -28,8 +28,8 @@ from .damping import _damping_ranges
 from .omega import (_check_iteration, _gershgorin, _power_iteration, _stiffness_values, free_particles,
                     transverse_omega_max)
 from .stability import _integrator_class, _world_limits, passed_step, spectral_radius
-from .step_trial import (FREE_ENERGY_FLOOR, TRIAL_CEILING, StepTrial, energy_scale, free_energy, trial_scope,
-                         try_step)
+from .step_trial import (FREE_ENERGY_FLOOR, TRIAL_CEILING, StepTrial, trial_scope, try_step, world_energy_scales,
+                         world_free_energies)
 from .under_load import (PROBE_HORIZON, TransientPeak, _keeps_plasticity, has_loads, in_motion, loaded_state,
                          transient_peak)
 
@@ -439,14 +439,18 @@ def advise(
     if passed_reason:
         message += f" (the springs' linear limit is {format_duration(limit)}; passed: {passed_reason})"
     tried = None
-    if not stable and judged_past(integrator, dt, passed_limit, limit) and not (strict if trial is None else trial):
+    # (the ceiling by the smallest linear limit of any world: every world runs in the trial)
+    past = not stable and judged_past(integrator, dt, passed_limit, min(limit, float(np.min(limits))))
+    if past and not (strict if trial is None else trial):
         message += "; --strict decides such a step by trial runs of the scene (advise(..., trial=True))"
-    elif not stable and judged_past(integrator, dt, passed_limit, limit):
+    elif past:
         scope = ("the state or stiffness it was asked about, not the run's" if state is not None or stiffness is not None
                  else "the unloaded start, not the run" if not loaded else trial_scope(model, control))
-        released = 0.0 if scope else _released(model)
-        if not scope and not released > FREE_ENERGY_FLOOR * energy_scale(model):
-            scope = f"its start sets {released:.3g} J free, round-off against its energy scale"
+        released = np.zeros(model.world_count) if scope else _released(model)
+        idle = np.flatnonzero(~(released > FREE_ENERGY_FLOOR * world_energy_scales(model))) if not scope else []
+        if len(idle):
+            where = f" in world {idle[0]}" if model.world_count > 1 else ""
+            scope = f"its start sets {released[idle[0]]:.3g} J free{where}, round-off against its energy scale"
         if scope:
             message += f"; a trial run would decide this step, but cannot judge this scene ({scope})"
         else:
@@ -499,14 +503,15 @@ def judged_past(integrator: str, dt: float, passed: float, limit: float) -> bool
     return passed < dt <= TRIAL_CEILING * limit and spectral_radius(integrator, 0.1, 0.0) <= 1.0 + 1.0e-9
 
 
-def _released(model: Model) -> float:
-    """:func:`~.step_trial.free_energy` of ``model``, shared within :func:`shared_estimates` (a static solve)."""
+def _released(model: Model) -> np.ndarray:
+    """:func:`~.step_trial.world_free_energies` of ``model``, shared within :func:`shared_estimates` (a static
+    solve)."""
     shared = _SHARED.get()
     if shared is None:
-        return free_energy(model)
+        return world_free_energies(model)
     key = ("released", id(model), model.revision, model.input_version)
     if key not in shared:
-        shared[key] = free_energy(model)
+        shared[key] = world_free_energies(model)
     return shared[key]
 
 

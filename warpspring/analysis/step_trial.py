@@ -58,7 +58,7 @@ TRIAL_CEILING = 1.25
 
 
 class EnergyMeter:
-    """The energy of one world's state, summed in float64 on the host, and the energy the integrator conserves.
+    """The energy of each world's state, summed in float64 on the host, and the energy the integrator conserves.
 
     H = ½ Σ m v² + Σ ½ k (|d| - L)² - Σ m g·x [J] is what a run's energy is. A symplectic integrator does not
     keep H: it keeps a modified (shadow) energy H̃ = H + h H₁ + h² H₂ + … exactly conserved by the flow that
@@ -79,68 +79,94 @@ class EnergyMeter:
     Euler: ½ v² + ½ ω² x² - (h/2) ω² x v), which is what makes it fit the cloth's stiff modes near the step's
     limit; measured on one swinging spring (``tests/test_stability_battery.py``) H's range scales as h (h² for
     Verlet) and H̃'s as h⁴ for both. Dampers and drag are not in H̃: they only take energy out. Hooke springs and
-    gravity only (:func:`trial_scope`).
+    gravity only (:func:`trial_scope`); each world with its own stiffness, masses and gravity (``Model.world_values``).
     """
 
     def __init__(self, model: Model, integrator: str, dt: float):
         self.integrator, self.h = integrator, float(dt)
+        self.worlds, self.count = model.world_count, model.particle_count
         self.pairs = model.spring_indices.numpy()
         self.rest = model.spring_rest_length.numpy().astype(np.float64)
-        self.k = model.spring_stiffness.numpy()[0].astype(np.float64)
-        self.mass = model.particle_mass.numpy()[0].astype(np.float64)
-        self.inv_mass = np.where(free_particles(model)[0], 1.0 / self.mass, 0.0)
-        self.weight = self.mass[:, None] * np.asarray(model.gravity, dtype=np.float64)[None, :]  # m g [N]
+        self.k = model.world_values("spring_stiffness")  # [N/m], shape [world_count, spring_count]
+        self.mass = model.world_values("particle_mass")  # [kg], shape [world_count, particle_count]
+        self.inv_mass = np.where(free_particles(model), 1.0 / self.mass, 0.0)
+        self.weight = self.mass[:, :, None] * model.world_values("gravity")[:, None, :]  # m g [N]
         self.stretchable = self.rest > 0.0  # the springs a tear is measured on (a zero rest length has no stretch)
 
-    def potential(self, x: np.ndarray) -> float:
-        """U(x) = Σ ½ k (|d| - L)² - Σ m g·x [J]."""
-        d = np.linalg.norm(x[self.pairs[:, 0]] - x[self.pairs[:, 1]], axis=1)
-        return 0.5 * float((self.k * (d - self.rest) ** 2).sum()) - float((self.weight * x).sum())
+    def _split(self, x: np.ndarray) -> np.ndarray:
+        return np.asarray(x, dtype=np.float64).reshape(self.worlds, self.count, 3)
 
-    def __call__(self, x: np.ndarray, v: np.ndarray) -> tuple[float, float, float, float]:
-        """(H, H̃, kinetic energy [J], largest spring stretch |d|/L) of positions ``x`` [m] and velocities ``v``
-        [m/s], float64, shape [particle_count, 3]."""
+    def world_potentials(self, x: np.ndarray) -> np.ndarray:
+        """Each world's U(x) = Σ ½ k (|d| - L)² - Σ m g·x [J], shape [world_count], of positions ``x`` [m], shape
+        [world_count · particle_count, 3]."""
+        x = self._split(x)
+        d = np.linalg.norm(x[:, self.pairs[:, 0]] - x[:, self.pairs[:, 1]], axis=2)
+        return 0.5 * (self.k * (d - self.rest) ** 2).sum(axis=1) - (self.weight * x).sum(axis=(1, 2))
+
+    def potential(self, x: np.ndarray) -> float:
+        """U(x) [J] of a one-world model's positions ``x`` [m], shape [particle_count, 3]."""
+        return float(self.world_potentials(x)[0])
+
+    def worlds_energy(self, x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Each world's (H, H̃, kinetic energy [J], largest spring stretch |d|/L), float64 arrays of shape
+        [world_count], of positions ``x`` [m] and velocities ``v`` [m/s], shape [world_count · particle_count, 3]."""
+        x, v = self._split(x), self._split(v)
         i, j = self.pairs[:, 0], self.pairs[:, 1]
-        delta = x[i] - x[j]
-        length = np.linalg.norm(delta, axis=1)
+        delta = x[:, i] - x[:, j]
+        length = np.linalg.norm(delta, axis=2)
         safe = np.maximum(length, 1e-12)
-        kinetic = 0.5 * float((self.mass * (v * v).sum(axis=1)).sum())
-        total = kinetic + 0.5 * float((self.k * (length - self.rest) ** 2).sum()) - float((self.weight * x).sum())
-        stretch = float((length[self.stretchable] / self.rest[self.stretchable]).max(initial=1.0))
+        kinetic = 0.5 * (self.mass * (v * v).sum(axis=2)).sum(axis=1)
+        total = kinetic + 0.5 * (self.k * (length - self.rest) ** 2).sum(axis=1) - (self.weight * x).sum(axis=(1, 2))
+        stretch = (length[:, self.stretchable] / self.rest[self.stretchable]).max(axis=1, initial=1.0)
         if self.integrator not in ("symplectic_euler", "velocity_verlet"):
             return total, total, kinetic, stretch
-        unit = delta / safe[:, None]
-        pull = (self.k * (length - self.rest))[:, None] * unit  # the spring's force on j [N]
-        count = len(x)
-        force = self.weight + np.stack([np.bincount(j, pull[:, c], count) - np.bincount(i, pull[:, c], count)
-                                        for c in range(3)], axis=1)
+        unit = delta / safe[:, :, None]
+        pull = (self.k * (length - self.rest))[:, :, None] * unit  # the spring's force on j [N]
+        force = self.weight.copy()
+        for w in range(self.worlds):
+            for c in range(3):
+                force[w, :, c] += (np.bincount(j, pull[w, :, c], self.count)
+                                   - np.bincount(i, pull[w, :, c], self.count))
         h = self.h
         if self.integrator == "symplectic_euler":  # v_n is leapfrog's v_(n-1/2): synchronise it
-            v = v + (0.5 * h) * self.inv_mass[:, None] * force
-        u = v[i] - v[j]
-        along = (unit * u).sum(axis=1)
-        hessian = float((self.k * (along ** 2 + (1.0 - self.rest / safe) * ((u * u).sum(axis=1) - along ** 2))).sum())
-        inverse = float((self.inv_mass * (force * force).sum(axis=1)).sum())
-        synchronised = total - kinetic + 0.5 * float((self.mass * (v * v).sum(axis=1)).sum())
+            v = v + (0.5 * h) * self.inv_mass[:, :, None] * force
+        u = v[:, i] - v[:, j]
+        along = (unit * u).sum(axis=2)
+        hessian = (self.k * (along ** 2 + (1.0 - self.rest / safe) * ((u * u).sum(axis=2) - along ** 2))).sum(axis=1)
+        inverse = (self.inv_mass * (force * force).sum(axis=2)).sum(axis=1)
+        synchronised = total - kinetic + 0.5 * (self.mass * (v * v).sum(axis=2)).sum(axis=1)
         shadow = synchronised + h * h * (hessian / 12.0 - inverse / 24.0)
         return total, shadow, kinetic, stretch
 
+    def __call__(self, x: np.ndarray, v: np.ndarray) -> tuple[float, float, float, float]:
+        """(H, H̃, kinetic energy [J], largest spring stretch |d|/L) of a one-world model's positions ``x`` [m] and
+        velocities ``v`` [m/s], float64, shape [particle_count, 3] (:meth:`worlds_energy` for several worlds)."""
+        if self.worlds != 1:
+            raise ValueError(f"the model has {self.worlds} worlds: use EnergyMeter.worlds_energy")
+        return tuple(float(e[0]) for e in self.worlds_energy(x, v))
 
-def free_energy(model: Model) -> float:
-    """The energy the start sets free [J]: its energy (kinetic and potential) over the lowest the model can reach,
-    its static equilibrium under gravity with the pins held (:func:`~.under_load.static_equilibrium`), or zero
-    without gravity (every spring at its rest length). Gravity's potential has an arbitrary zero; this difference
-    does not. Without pins a model under gravity falls as a whole, which frees no energy into its springs: its start's
-    kinetic and elastic energy."""
+
+def world_free_energies(model: Model) -> np.ndarray:
+    """The energy each world's start sets free [J], float64, shape [world_count]: its energy (kinetic and potential)
+    over the lowest it can reach, its static equilibrium under gravity with the pins held
+    (:func:`~.under_load.static_equilibrium`), or zero without gravity (every spring at its rest length). Gravity's
+    potential has an arbitrary zero; this difference does not. Without pins a world under gravity falls as a whole,
+    which frees no energy into its springs: its start's kinetic and elastic energy."""
     meter = EnergyMeter(model, "rk4", 0.0)
     x0 = model.particle_q.numpy().astype(np.float64)
-    v0 = model.particle_qd.numpy().astype(np.float64)
-    total = meter(x0, v0)[0]
-    if not np.any(model.gravity):
+    total = meter.worlds_energy(x0, model.particle_qd.numpy().astype(np.float64))[0]
+    weighted = np.any(meter.weight != 0.0, axis=(1, 2))
+    if not weighted.any():
         return total
-    if free_particles(model)[0].all():  # nothing holds it: gravity's part is the fall of the whole
-        return total + float((meter.weight * x0).sum())
-    return total - meter.potential(static_equilibrium(model).positions)
+    lowest = meter.world_potentials(static_equilibrium(model).positions)
+    unpinned = free_particles(model).all(axis=1)  # nothing holds it: gravity's part is the fall of the whole
+    gravity_part = (meter.weight * meter._split(x0)).sum(axis=(1, 2))
+    return np.where(~weighted, total, np.where(unpinned, total + gravity_part, total - lowest))
+
+
+def free_energy(model: Model) -> float:
+    """:func:`world_free_energies` of a one-world model [J]."""
+    return float(world_free_energies(model)[0])
 
 
 #: A free energy below this share of the scene's energy scale (:func:`energy_scale`) is round-off: a start at rest at
@@ -148,25 +174,23 @@ def free_energy(model: Model) -> float:
 FREE_ENERGY_FLOOR = 1.0e-6
 
 
-def energy_scale(model: Model) -> float:
-    """The scene's energy scale [J]: its springs' ½ k L², its weight across its extent and its start's kinetic energy
-    (what :data:`FREE_ENERGY_FLOOR` is a share of)."""
+def world_energy_scales(model: Model) -> np.ndarray:
+    """Each world's energy scale [J], float64, shape [world_count]: its springs' ½ k L², its weight across its extent
+    and its start's kinetic energy (what :data:`FREE_ENERGY_FLOOR` is a share of)."""
     meter = EnergyMeter(model, "rk4", 0.0)
-    x0 = model.particle_q.numpy().astype(np.float64)
-    v0 = model.particle_qd.numpy().astype(np.float64)
-    extent = float(np.linalg.norm(x0.max(axis=0) - x0.min(axis=0))) if len(x0) else 0.0
-    weight = float(np.linalg.norm(meter.weight, axis=1).sum())
-    return (0.5 * float((meter.k * meter.rest ** 2).sum()) + weight * extent
-            + 0.5 * float((meter.mass * (v0 * v0).sum(axis=1)).sum()))
+    x0 = meter._split(model.particle_q.numpy())
+    v0 = meter._split(model.particle_qd.numpy())
+    extent = np.linalg.norm(x0.max(axis=1) - x0.min(axis=1), axis=1) if model.particle_count else 0.0
+    weight = np.linalg.norm(meter.weight, axis=2).sum(axis=1)
+    return (0.5 * (meter.k * meter.rest ** 2).sum(axis=1) + weight * extent
+            + 0.5 * (meter.mass * (v0 * v0).sum(axis=2)).sum(axis=1))
 
 
 def trial_scope(model: Model, control=None) -> str:
-    """Why a trial run cannot judge ``model`` ("" where it can): :class:`EnergyMeter` measures one world of Hooke
-    springs with their dampers under gravity and drag, with pins held still, and nothing else may put energy in
+    """Why a trial run cannot judge ``model`` ("" where it can): :class:`EnergyMeter` measures Hooke springs with their
+    dampers under gravity and drag, with pins held still, in every world, and nothing else may put energy in
     (contacts, loads from outside, other element families, stabilisers, animated inputs, pins moving at the start,
     wind)."""
-    if model.world_count != 1:
-        return f"{model.world_count} worlds"
     if model.spring_count == 0:
         return "no springs"
     others = [f.name for f in model.families if f.name != "springs"]
@@ -185,7 +209,7 @@ def trial_scope(model: Model, control=None) -> str:
         return "the control's external force"
     if model.pin_groups is not None or model.track_table.tracks or model.emitters:
         return "driven pins, animated inputs or emitters"
-    pinned = ~free_particles(model)[0]
+    pinned = ~free_particles(model).reshape(-1)
     if pinned.any() and np.any(model.particle_qd.numpy()[pinned]):
         return "pins moving at the start"
     if np.any(model.world_values("wind")):
@@ -208,6 +232,8 @@ class TrialRun:
         seconds: wall time [s].
         cause: why it blew up: "non-finite", "torn" (a spring past ``TORN`` × its rest length) or "energy".
         until: the simulated time it reached [s] (its end, or the read it blew up at).
+        world: the world the verdict is of: the one that blew up, or the one whose energy rose most.
+        worlds: how many worlds the run had.
     """
 
     factor: float
@@ -220,59 +246,70 @@ class TrialRun:
     seconds: float
     cause: str = ""
     until: float = math.nan
+    world: int = 0
+    worlds: int = 1
 
     @property
     def ok(self) -> bool:
         return not (self.blown or self.grows)
 
     def describe(self) -> str:
-        """What the run did, as a clause."""
+        """What the run did, as a clause (naming the world where the model has several)."""
+        where = f" in world {self.world} of {self.worlds}" if self.worlds > 1 else ""
         if self.blown:
             what = {"non-finite": "turned non-finite", "torn": f"tore a spring past {TORN:g}× its rest length",
                     "energy": f"gained {BLOWN:g}× the free energy"}[self.cause]
-            return f"at {format_duration(self.dt)} it {what} at t = {self.until:.3g} s"
+            return f"at {format_duration(self.dt)} it {what}{where} at t = {self.until:.3g} s"
         verb = "grew" if self.grows else "held"
-        return f"at {format_duration(self.dt)} it {verb} ({100.0 * self.excess:+.2g} % of the free energy)"
+        most = " at most" if self.worlds > 1 and not self.grows else ""
+        return f"at {format_duration(self.dt)} it {verb}{most} ({100.0 * self.excess:+.2g} % of the free energy{where})"
 
 
-def trial_run(model: Model, integrator: str, dt: float, *, seconds: float, released: float, control=None,
+def trial_run(model: Model, integrator: str, dt: float, *, seconds: float, released, control=None,
               substeps: int = TRIAL_SUBSTEPS, factor: float = math.nan) -> TrialRun:
-    """Run ``model`` from its initial state with ``integrator`` at step ``dt`` [s] for ``seconds`` and judge it against
-    the energy ``released`` [J] (> 0; the module docstring); the energy is read every ``substeps`` steps (a run
-    shorter than ``MEAN_WINDOW`` is judged on its whole mean)."""
-    if not released > 0.0:
-        raise ValueError(f"a trial needs energy to judge against, got released = {released} J")
+    """Run ``model`` from its initial state with ``integrator`` at step ``dt`` [s] for ``seconds`` and judge each world
+    against the energy its start sets free, ``released`` [J] (> 0; one value, or one per world: the module docstring);
+    the energy is read every ``substeps`` steps (a run shorter than ``MEAN_WINDOW`` is judged on its whole mean). The
+    verdict is the worst world's: the first to blow up, else the one whose energy rose most."""
+    released = np.broadcast_to(np.asarray(released, dtype=np.float64), (model.world_count,))
+    if not (released > 0.0).all():
+        raise ValueError(f"a trial needs energy to judge against in every world, got released = {released} J")
     t0 = time.perf_counter()
     meter = EnergyMeter(model, integrator, dt)
     sim = Simulator(model, integrator=make_integrator(integrator, model), fps=1.0 / (substeps * dt),
                     substeps=substeps, control=control, guard=None)
     frames = int(math.ceil(seconds / (substeps * dt)))
-    raw_start, start, _, _ = meter(model.particle_q.numpy().astype(np.float64),
-                                   model.particle_qd.numpy().astype(np.float64))
-    shadows, raw_peak, cause = [], -math.inf, ""
+    raw_start, start, _, _ = meter.worlds_energy(model.particle_q.numpy(), model.particle_qd.numpy())
+    shadows, raw_peak, cause, world = [], np.full(model.world_count, -math.inf), "", 0
     for _ in range(frames):
         sim.step_frame()
         x = sim.state.particle_q.numpy().astype(np.float64)
         v = sim.state.particle_qd.numpy().astype(np.float64)
-        if not (np.isfinite(x).all() and np.isfinite(v).all()):
-            cause = "non-finite"
+        finite = np.isfinite(x).all(axis=1) & np.isfinite(v).all(axis=1)
+        if not finite.all():
+            cause, world = "non-finite", int(np.argmin(finite.reshape(model.world_count, -1).all(axis=1)))
             break
-        total, shadow, _, stretch = meter(x, v)
+        total, shadow, _, stretch = meter.worlds_energy(x, v)
         shadows.append(shadow)
-        raw_peak = max(raw_peak, total)
-        cause = "torn" if stretch > TORN else "energy" if shadow - start > BLOWN * released else ""
-        if cause:
+        raw_peak = np.maximum(raw_peak, total)
+        torn, gained = stretch > TORN, shadow - start > BLOWN * released
+        if torn.any() or gained.any():
+            cause, world = ("torn", int(np.argmax(torn))) if torn.any() else ("energy", int(np.argmax(gained)))
             break
     blown = bool(cause)
     window = min(max(1, int(round(MEAN_WINDOW / (substeps * dt)))), len(shadows))  # a shorter run: its whole mean
     if blown or not shadows:
         excess = peak = raw_excess = math.inf
     else:
-        means = np.convolve(np.asarray(shadows) - start, np.full(window, 1.0 / window), mode="valid")
-        excess, peak = float(means.max()) / released, (max(shadows) - start) / released
-        raw_excess = (raw_peak - raw_start) / released
+        rise = np.asarray(shadows) - start  # [reads, worlds]
+        means = np.stack([np.convolve(rise[:, w], np.full(window, 1.0 / window), mode="valid")
+                          for w in range(model.world_count)], axis=1)
+        shares = means.max(axis=0) / released
+        world = int(np.argmax(shares))
+        excess, peak = float(shares[world]), float(rise[:, world].max() / released[world])
+        raw_excess = float((raw_peak[world] - raw_start[world]) / released[world])
     return TrialRun(factor, dt, blown, excess > GROWTH, excess, peak, raw_excess, time.perf_counter() - t0,
-                    cause=cause, until=sim.time)
+                    cause=cause, until=sim.time, world=world, worlds=model.world_count)
 
 
 @dataclass(frozen=True)
@@ -282,14 +319,14 @@ class StepTrial:
     Attributes:
         dt: the step tried [s].
         seconds: each run's length [s].
-        released: the free energy [J] (:func:`free_energy`).
+        released: each world's free energy [J] (:func:`world_free_energies`), float64, shape [world_count].
         runs: the runs at ``dt`` and at (1 + ``TRIAL_MARGIN``) × it, in that order; the second is not run where the
             first fails.
     """
 
     dt: float
     seconds: float
-    released: float
+    released: np.ndarray
     runs: list = field(default_factory=list)
 
     @property
@@ -299,13 +336,17 @@ class StepTrial:
     def describe(self) -> str:
         """The trial's outcome, as a clause."""
         done = "; ".join(r.describe() for r in self.runs)
+        free = (f"the {self.released[0]:.3g} J its start sets free" if len(self.released) == 1 else
+                f"the {self.released.min():.3g}-{self.released.max():.3g} J each world's start sets free")
         return (f"{len(self.runs)} trial run{'s' if len(self.runs) > 1 else ''} of this scene for {self.seconds:g} s "
-                f"({done}; {100.0 * GROWTH:g} % of the {self.released:.3g} J its start sets free is growth)")
+                f"({done}; {100.0 * GROWTH:g} % of {free} is growth)")
 
 
-def try_step(model: Model, integrator: str, dt: float, *, seconds: float, released: float, control=None) -> StepTrial:
+def try_step(model: Model, integrator: str, dt: float, *, seconds: float, released, control=None) -> StepTrial:
     """Try ``dt`` [s] on ``model`` (the module docstring): a run at ``dt``, then, if it held, one at
-    (1 + ``TRIAL_MARGIN``) × ``dt``, each for ``seconds``, judged against the energy ``released`` [J]."""
+    (1 + ``TRIAL_MARGIN``) × ``dt``, each for ``seconds``, judged against each world's free energy ``released`` [J]
+    (one value or one per world)."""
+    released = np.array(np.broadcast_to(np.asarray(released, dtype=np.float64), (model.world_count,)))
     trial = StepTrial(dt, seconds, released)
     for step in (dt, (1.0 + TRIAL_MARGIN) * dt):
         trial.runs.append(trial_run(model, integrator, step, seconds=seconds, released=released, control=control,
