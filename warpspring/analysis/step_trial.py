@@ -122,11 +122,11 @@ class EnergyMeter:
             return total, total, kinetic, stretch
         unit = delta / safe[:, :, None]
         pull = (self.k * (length - self.rest))[:, :, None] * unit  # the spring's force on j [N]
-        force = self.weight.copy()
-        for w in range(self.worlds):
-            for c in range(3):
-                force[w, :, c] += (np.bincount(j, pull[w, :, c], self.count)
-                                   - np.bincount(i, pull[w, :, c], self.count))
+        offsets = (np.arange(self.worlds) * self.count)[:, None]  # every world's springs in one bincount
+        total_count, ends = self.worlds * self.count, ((offsets + i).ravel(), (offsets + j).ravel())
+        force = self.weight + np.stack([np.bincount(ends[1], pull[:, :, c].ravel(), total_count)
+                                        - np.bincount(ends[0], pull[:, :, c].ravel(), total_count)
+                                        for c in range(3)], axis=1).reshape(self.worlds, self.count, 3)
         h = self.h
         if self.integrator == "symplectic_euler":  # v_n is leapfrog's v_(n-1/2): synchronise it
             v = v + (0.5 * h) * self.inv_mass[:, :, None] * force
