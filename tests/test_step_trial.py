@@ -175,6 +175,13 @@ def test_a_trial_judges_every_world(device):
     x = folded.particle_q.numpy().astype(np.float64)
     energies = meter.worlds_energy(x, np.zeros_like(x))[0]  # the fold's elastic energy, 0.8× in the softer world
     assert energies[1] == pytest.approx(0.8 * energies[0], rel=1e-9) and energies[0] > 0.0
+    moving = np.random.default_rng(7).normal(0.0, 0.3, x.shape)  # a world at a time (CHUNK) gives the same numbers
+    whole = meter.worlds_energy(x, moving)
+    meter.CHUNK = 1
+    for a, b in zip(meter.worlds_energy(x, moving), whole):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match=r"one energy or one per world \(2\)"):
+        step_trial.trial_run(folded, "symplectic_euler", 1.0e-3, seconds=0.1, released=[1.0, 1.0, 1.0])
     with shared_estimates():
         theory = advise(folded, "symplectic_euler", 1.0e-4, horizon=10.0)
         passed = advise(folded, "symplectic_euler", 1.1 * theory.dt_passed, horizon=10.0, trial=True)

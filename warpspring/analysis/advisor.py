@@ -85,8 +85,8 @@ class Advice:
         passed_reason: why ``dt_passed`` is below ``dt_stable`` ("" where it is not).
         world_dt_passed: each world's ``dt_passed`` [s], float64, shape [world_count] (NaN where not set).
         trial: the trial runs that judged ``dt`` (:func:`~.step_trial.try_step`) where it lies between ``dt_passed`` and
-            ``TRIAL_CEILING`` × ``dt_stable`` and a trial was asked for (:func:`advise`'s ``trial``); ``stable`` is then
-            whether it passed. ``None`` where none was run.
+            ``TRIAL_CEILING`` × the smallest of ``world_dt_stable`` and a trial was asked for (:func:`advise`'s
+            ``trial``); ``stable`` is then whether it passed. ``None`` where none was run.
     """
 
     integrator: str
@@ -456,7 +456,7 @@ def advise(
         else:
             if notify is not None:
                 notify(f"{integrator} at dt = {format_duration(dt)} lies past the step the theory passes "
-                       f"({format_duration(passed_limit)}): trying it on two runs of the scene for {horizon:g} s each")
+                       f"({format_duration(passed_limit)}): trying it on up to two runs of the scene, {horizon:g} s each")
             tried = try_step(model, integrator, dt, seconds=horizon, released=released, control=control)
             stable = tried.passed
             message = (f"{integrator} passes dt = {format_duration(dt)} on trial: past the step the theory passes, "

@@ -161,7 +161,7 @@ def strict_step(model: Model, integrator: str, advice: Advice, *, seconds: float
         return passed, rungs
     with shared_estimates():
         step = passed * LADDER
-        while judged_past(integrator, step, advice.dt_passed, advice.dt_stable):
+        while judged_past(integrator, step, advice.dt_passed, float(advice.world_dt_stable.min())):
             verdict = advise(model, integrator, step, horizon=seconds, trial=True)
             rungs.append(verdict)
             if not verdict.stable:

@@ -107,34 +107,46 @@ class EnergyMeter:
         """U(x) [J] of a one-world model's positions ``x`` [m], shape [particle_count, 3]."""
         return float(self.world_potentials(x)[0])
 
+    #: The most (world, spring) pairs one pass of :meth:`worlds_energy` holds (its float64 temporaries: ~50 MB each).
+    CHUNK = 2_000_000
+
     def worlds_energy(self, x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, ...]:
         """Each world's (H, H̃, kinetic energy [J], largest spring stretch |d|/L), float64 arrays of shape
-        [world_count], of positions ``x`` [m] and velocities ``v`` [m/s], shape [world_count · particle_count, 3]."""
+        [world_count], of positions ``x`` [m] and velocities ``v`` [m/s], shape [world_count · particle_count, 3]
+        (in chunks of worlds, ``CHUNK`` world-springs each)."""
         x, v = self._split(x), self._split(v)
+        step = max(1, self.CHUNK // max(1, len(self.pairs)))
+        parts = [self._energy(x[a:a + step], v[a:a + step], slice(a, a + step)) for a in range(0, self.worlds, step)]
+        return tuple(np.concatenate(column) for column in zip(*parts))
+
+    def _energy(self, x: np.ndarray, v: np.ndarray, rows: slice) -> tuple[np.ndarray, ...]:
+        """:meth:`worlds_energy` of the worlds ``rows``, positions and velocities shape [worlds, particle_count, 3]."""
+        k, mass, inv_mass, weight = self.k[rows], self.mass[rows], self.inv_mass[rows], self.weight[rows]
+        worlds = len(x)
         i, j = self.pairs[:, 0], self.pairs[:, 1]
         delta = x[:, i] - x[:, j]
         length = np.linalg.norm(delta, axis=2)
         safe = np.maximum(length, 1e-12)
-        kinetic = 0.5 * (self.mass * (v * v).sum(axis=2)).sum(axis=1)
-        total = kinetic + 0.5 * (self.k * (length - self.rest) ** 2).sum(axis=1) - (self.weight * x).sum(axis=(1, 2))
+        kinetic = 0.5 * (mass * (v * v).sum(axis=2)).sum(axis=1)
+        total = kinetic + 0.5 * (k * (length - self.rest) ** 2).sum(axis=1) - (weight * x).sum(axis=(1, 2))
         stretch = (length[:, self.stretchable] / self.rest[self.stretchable]).max(axis=1, initial=1.0)
         if self.integrator not in ("symplectic_euler", "velocity_verlet"):
             return total, total, kinetic, stretch
         unit = delta / safe[:, :, None]
-        pull = (self.k * (length - self.rest))[:, :, None] * unit  # the spring's force on j [N]
-        offsets = (np.arange(self.worlds) * self.count)[:, None]  # every world's springs in one bincount
-        total_count, ends = self.worlds * self.count, ((offsets + i).ravel(), (offsets + j).ravel())
-        force = self.weight + np.stack([np.bincount(ends[1], pull[:, :, c].ravel(), total_count)
-                                        - np.bincount(ends[0], pull[:, :, c].ravel(), total_count)
-                                        for c in range(3)], axis=1).reshape(self.worlds, self.count, 3)
+        pull = (k * (length - self.rest))[:, :, None] * unit  # the spring's force on j [N]
+        offsets = (np.arange(worlds) * self.count)[:, None]  # every world's springs in one bincount
+        total_count, ends = worlds * self.count, ((offsets + i).ravel(), (offsets + j).ravel())
+        force = weight + np.stack([np.bincount(ends[1], pull[:, :, c].ravel(), total_count)
+                                   - np.bincount(ends[0], pull[:, :, c].ravel(), total_count)
+                                   for c in range(3)], axis=1).reshape(worlds, self.count, 3)
         h = self.h
         if self.integrator == "symplectic_euler":  # v_n is leapfrog's v_(n-1/2): synchronise it
-            v = v + (0.5 * h) * self.inv_mass[:, :, None] * force
+            v = v + (0.5 * h) * inv_mass[:, :, None] * force
         u = v[:, i] - v[:, j]
         along = (unit * u).sum(axis=2)
-        hessian = (self.k * (along ** 2 + (1.0 - self.rest / safe) * ((u * u).sum(axis=2) - along ** 2))).sum(axis=1)
-        inverse = (self.inv_mass * (force * force).sum(axis=2)).sum(axis=1)
-        synchronised = total - kinetic + 0.5 * (self.mass * (v * v).sum(axis=2)).sum(axis=1)
+        hessian = (k * (along ** 2 + (1.0 - self.rest / safe) * ((u * u).sum(axis=2) - along ** 2))).sum(axis=1)
+        inverse = (inv_mass * (force * force).sum(axis=2)).sum(axis=1)
+        synchronised = total - kinetic + 0.5 * (mass * (v * v).sum(axis=2)).sum(axis=1)
         shadow = synchronised + h * h * (hessian / 12.0 - inverse / 24.0)
         return total, shadow, kinetic, stretch
 
@@ -265,13 +277,21 @@ class TrialRun:
         return f"at {format_duration(self.dt)} it {verb}{most} ({100.0 * self.excess:+.2g} % of the free energy{where})"
 
 
+def _per_world(released, worlds: int) -> np.ndarray:
+    """``released`` [J] (one value, or one per world) as one value per world, shape [worlds]."""
+    values = np.asarray(released, dtype=np.float64)
+    if values.ndim > 1 or values.size not in (1, worlds):
+        raise ValueError(f"released must be one energy or one per world ({worlds}), got shape {values.shape}")
+    return np.broadcast_to(values.reshape(-1), (worlds,))
+
+
 def trial_run(model: Model, integrator: str, dt: float, *, seconds: float, released, control=None,
               substeps: int = TRIAL_SUBSTEPS, factor: float = math.nan) -> TrialRun:
     """Run ``model`` from its initial state with ``integrator`` at step ``dt`` [s] for ``seconds`` and judge each world
     against the energy its start sets free, ``released`` [J] (> 0; one value, or one per world: the module docstring);
     the energy is read every ``substeps`` steps (a run shorter than ``MEAN_WINDOW`` is judged on its whole mean). The
     verdict is the worst world's: the first to blow up, else the one whose energy rose most."""
-    released = np.broadcast_to(np.asarray(released, dtype=np.float64), (model.world_count,))
+    released = _per_world(released, model.world_count)
     if not (released > 0.0).all():
         raise ValueError(f"a trial needs energy to judge against in every world, got released = {released} J")
     t0 = time.perf_counter()
@@ -336,8 +356,10 @@ class StepTrial:
     def describe(self) -> str:
         """The trial's outcome, as a clause."""
         done = "; ".join(r.describe() for r in self.runs)
-        free = (f"the {self.released[0]:.3g} J its start sets free" if len(self.released) == 1 else
-                f"the {self.released.min():.3g}-{self.released.max():.3g} J each world's start sets free")
+        low, high = float(self.released.min()), float(self.released.max())
+        free = (f"the {low:.3g} J its start sets free" if len(self.released) == 1 else
+                f"the {low:.3g} J each world's start sets free" if f"{low:.3g}" == f"{high:.3g}" else
+                f"what each world's start sets free, from {low:.3g} to {high:.3g} J")
         return (f"{len(self.runs)} trial run{'s' if len(self.runs) > 1 else ''} of this scene for {self.seconds:g} s "
                 f"({done}; {100.0 * GROWTH:g} % of {free} is growth)")
 
@@ -346,8 +368,7 @@ def try_step(model: Model, integrator: str, dt: float, *, seconds: float, releas
     """Try ``dt`` [s] on ``model`` (the module docstring): a run at ``dt``, then, if it held, one at
     (1 + ``TRIAL_MARGIN``) × ``dt``, each for ``seconds``, judged against each world's free energy ``released`` [J]
     (one value or one per world)."""
-    released = np.array(np.broadcast_to(np.asarray(released, dtype=np.float64), (model.world_count,)))
-    trial = StepTrial(dt, seconds, released)
+    trial = StepTrial(dt, seconds, np.array(_per_world(released, model.world_count)))
     for step in (dt, (1.0 + TRIAL_MARGIN) * dt):
         trial.runs.append(trial_run(model, integrator, step, seconds=seconds, released=released, control=control,
                                     factor=step / dt))
