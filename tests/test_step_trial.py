@@ -87,7 +87,7 @@ def test_the_trial_measures_only_what_its_meter_covers(device):
     assert step_trial.trial_scope(_cloth(device)) == ""
     assert step_trial.trial_scope(_cloth(device, worlds=2)) == ""  # each world measured on its own
     with_sphere = _cloth(device, sphere=True)
-    assert step_trial.trial_scope(with_sphere) == "contacts"
+    assert step_trial.trial_scope(with_sphere) == "contacts with 1 collider"  # named as the guard names suspects
     windy = _cloth(device)
     windy.set_world_values("wind", np.array([[3.0, 0.0, 0.0]]))
     assert step_trial.trial_scope(windy) == "wind"
@@ -97,7 +97,7 @@ def test_the_trial_measures_only_what_its_meter_covers(device):
     with shared_estimates():
         theory = advise(with_sphere, "symplectic_euler", 1.0e-4, horizon=1.0)
         past = 1.05 * theory.dt_passed
-        with pytest.raises(ConfigError, match=r"cannot judge this scene \(contacts\)"):
+        with pytest.raises(ConfigError, match=r"cannot judge this scene \(contacts with 1 collider\)"):
             advise(with_sphere, "symplectic_euler", past, horizon=1.0, strict=True)
     # Without strict no trial runs, and the message says --strict would decide; a trial is not run for another
     # stiffness than the model's (the run's springs are the model's), nor for a start that frees round-off alone.

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..core.guard_records import scene_suspects
 from ..core.integrators import make_integrator
 from ..core.model import Model
 from ..core.simulator import Simulator
@@ -102,10 +103,6 @@ class EnergyMeter:
         x = self._split(x)
         d = np.linalg.norm(x[:, self.pairs[:, 0]] - x[:, self.pairs[:, 1]], axis=2)
         return 0.5 * (self.k * (d - self.rest) ** 2).sum(axis=1) - (self.weight * x).sum(axis=(1, 2))
-
-    def potential(self, x: np.ndarray) -> float:
-        """U(x) [J] of a one-world model's positions ``x`` [m], shape [particle_count, 3]."""
-        return float(self.world_potentials(x)[0])
 
     #: The most (world, spring) pairs one pass of :meth:`worlds_energy` holds (its float64 temporaries: ~50 MB each).
     CHUNK = 2_000_000
@@ -181,7 +178,7 @@ def free_energy(model: Model) -> float:
     return float(world_free_energies(model)[0])
 
 
-#: A free energy below this share of the scene's energy scale (:func:`energy_scale`) is round-off: a start at rest at
+#: A free energy below this share of the scene's energy scale (:func:`world_energy_scales`) is round-off: a start at rest at
 #: its equilibrium, which a trial cannot judge against (its every wobble would be growth).
 FREE_ENERGY_FLOOR = 1.0e-6
 
@@ -213,14 +210,11 @@ def trial_scope(model: Model, control=None) -> str:
     stabilizers = [name for name in STABILIZER_INPUTS if model.stabilizers.enabled(name)]
     if stabilizers:
         return "stabilisers (" + ", ".join(stabilizers) + ")"
-    if model.shape_count:
-        return "contacts"
-    if model.self_contact is not None:
-        return "self-collision"
-    if control is not None and control.particle_force is not None:
-        return "the control's external force"
-    if model.pin_groups is not None or model.track_table.tracks or model.emitters:
-        return "driven pins, animated inputs or emitters"
+    suspects = scene_suspects(model, control=control)  # contacts, loads from outside, driven pins, emitters
+    if suspects:
+        return "; ".join(suspects)
+    if model.track_table.tracks:  # (any other keyframe track: an element family's values, a collider's motion)
+        return "animated values"
     pinned = ~free_particles(model).reshape(-1)
     if pinned.any() and np.any(model.particle_qd.numpy()[pinned]):
         return "pins moving at the start"
