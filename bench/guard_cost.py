@@ -241,6 +241,15 @@ def main():
                         help="also the default and guard off with symplectic Euler's per-substep fused step's registers "
                              "bounded so that K blocks fit a multiprocessor (SymplecticEuler.STEP_MIN_BLOCKS), each K "
                              "(0: no bound)")
+    parser.add_argument("--check-at-end", action="store_true",
+                        help="also the default with the check of a one-launch frame at the frame kernel's end rather "
+                             "than in a launch of its own (SymplecticEuler.CHECK_LAUNCH_APART off)")
+    parser.add_argument("--check-min-blocks", type=int, nargs="*", default=[],
+                        help="also the default and guard off with the register bound of the check's own launch after "
+                             "a one-launch frame (SymplecticEuler.CHECK_MIN_BLOCKS), each K (0: the compiler's choice)")
+    parser.add_argument("--particles-per-lane", type=int, nargs="*", default=[],
+                        help="also the default and guard off with each lane of a one-block-per-world frame taking K "
+                             "particles a substep (SymplecticEuler.ONE_LAUNCH_PARTICLES_PER_LANE), each K")
     parser.add_argument("--kernels", action="store_true",
                         help="also list each kernel's device time per frame, guard off and default (CUDA, uncaptured)")
     parser.add_argument("--out", default=None, help="also write the table to this file")
@@ -257,7 +266,9 @@ def main():
              "|---|---|---|---|---|---|---|---|---|"]
     notes = []
     # The register bounds timed beside the shipped ones: the one-launch frame's and the per-substep step's.
-    bound_studies = (("FRAME_MIN_BLOCKS", "", args.min_blocks), ("STEP_MIN_BLOCKS", "step ", args.step_min_blocks))
+    bound_studies = (("FRAME_MIN_BLOCKS", "", args.min_blocks), ("STEP_MIN_BLOCKS", "step ", args.step_min_blocks),
+                     ("ONE_LAUNCH_PARTICLES_PER_LANE", "particles a lane ", args.particles_per_lane),
+                     ("CHECK_MIN_BLOCKS", "check ", args.check_min_blocks))
     scenes = [(f"{n}²", n, 1) for n in args.sizes] + [(f"{w} × 32²", 32, w) for w in args.worlds_sizes]
     for label, n, worlds in scenes:
         for integrator in args.integrators:
@@ -282,6 +293,9 @@ def main():
                     setting = {name: k or None}
                     makers[f"default {tag}≤{k}"] = lambda s=setting: Run(cloth(), integrator, ws.GuardLimits(), bounds=s)
                     makers[f"off {tag}≤{k}"] = lambda s=setting: Run(cloth(), integrator, None, bounds=s)
+            if args.check_at_end:
+                makers["check at end"] = lambda: Run(cloth(), integrator, ws.GuardLimits(),
+                                                     bounds={"CHECK_LAUNCH_APART": {True: False, False: False}})
             if args.parts:
                 makers["no dissipation"] = lambda: Run(cloth(), integrator, ws.GuardLimits(dissipation=False))
                 makers["no balance"] = lambda: Run(cloth(), integrator, ws.GuardLimits(energy_balance=0.0))
@@ -326,6 +340,13 @@ def main():
                              f"dissipation counted {above['no dissipation']:.2f}, the default "
                              f"{above['default']:.2f} (the dissipation's sums "
                              f"{above['default'] - above['no dissipation']:.2f})")
+                print(notes[-1], flush=True)
+            if args.check_at_end:
+                frame = {name: 1e6 * statistics.median(times[name]) for name in ("off", "default", "check at end")}
+                notes.append(f"- {label}, {integrator}: µs per frame guard off {frame['off']:.1f}, default (the check "
+                             f"apart) {frame['default']:.1f} ({frame['off'] / frame['default']:.3f} of off), the check "
+                             f"at the frame kernel's end {frame['check at end']:.1f} "
+                             f"({frame['off'] / frame['check at end']:.3f})")
                 print(notes[-1], flush=True)
             if args.where:
                 frame = {name: 1e6 * statistics.median(times[name]) for name in

@@ -84,6 +84,11 @@ class SymplecticEuler(Integrator):
     #: made the compiler's loop slower. On an H200 (Warp 1.16.0, 64², bench/results/guard_cost.md), µs a substep +
     #: µs a frame, the verdict not read: check at the end 3.64 + 21.5, guarded frame without it 2.67 (guard off 2.86).
     CHECK_LAUNCH_APART = {True: True, False: False}
+    #: Blocks of the check's own launch (``CHECK_LAUNCH_APART``) a multiprocessor must hold at once, as
+    #: ``FRAME_MIN_BLOCKS`` for the frame's (``None``: the compiler's choice). The check is bound by latency, not by
+    #: its spills: on an H200 (4,096 worlds of 32², bench/results/guard_cost.md) it took 570 µs at 2 (128 registers,
+    #: 91 MB of spills), 751 µs with no bound (200 registers, none), 715 µs at 1 (255); 3 timed the same as 2.
+    CHECK_MIN_BLOCKS = 2
 
     def __init__(self, model, *, one_launch: bool | None = None, cpu_sweep: bool = True):
         super().__init__(model)
@@ -156,10 +161,12 @@ class SymplecticEuler(Integrator):
                                    pins is not None, targets, bool(model.shape_moving))
         bounds = launch_bounds(FRAME_MAX_LANES, self.FRAME_MIN_BLOCKS)
         # The frame's steps, then (``apart``) the check alone: a launch of the checked kernel with no steps of its own.
-        launches = ((None, steps), (check, 0)) if apart else ((check, steps),)
-        for launch_check, launch_steps in launches:
-            self._launch_frame(kernel(None if launch_check is None else launch_check[0], bounds), launch_steps, steps,
-                               state_a, state_b, control, dt, shape, launch_check, animated, pins, targets, features)
+        launches = (((None, steps, bounds), (check, 0, launch_bounds(FRAME_MAX_LANES, self.CHECK_MIN_BLOCKS)))
+                    if apart else ((check, steps, bounds),))
+        for launch_check, launch_steps, launch_bound in launches:
+            self._launch_frame(kernel(None if launch_check is None else launch_check[0], launch_bound), launch_steps,
+                               steps, state_a, state_b, control, dt, shape, launch_check, animated, pins, targets,
+                               features)
         if steps % 2:
             wp.copy(state_b.time, state_a.time)  # the clock advanced in A; the result is B
         return check is not None
