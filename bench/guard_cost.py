@@ -44,6 +44,20 @@ from cloth import KD, KE, MASS, SPACING, NewtonRunner, emit_table, installed_new
 
 FPS, SUBSTEPS = 60, 16
 INTEGRATORS = ("symplectic_euler", "rk4", "implicit_euler")
+#: The stepper's settings timed beside the ones shipped, the default guard and guard off with each value K given:
+#: (option, ``SymplecticEuler`` attribute, its tag in the labels, help). For the register bounds 0 stands for none.
+STUDIES = (
+    ("--min-blocks", "FRAME_MIN_BLOCKS", "",
+     "the one-launch frame kernel's registers bounded so that K blocks of 256 threads fit a multiprocessor, each K "
+     "(0: no bound, the compiler's choice): what its occupancy is worth"),
+    ("--step-min-blocks", "STEP_MIN_BLOCKS", "step ",
+     "symplectic Euler's per-substep fused step's registers bounded so that K blocks fit a multiprocessor, each K "
+     "(0: no bound)"),
+    ("--check-min-blocks", "CHECK_MIN_BLOCKS", "check ",
+     "the register bound of the check's own launch after a one-launch frame, each K (0: the compiler's choice)"),
+    ("--particles-per-lane", "ONE_LAUNCH_PARTICLES_PER_LANE", "particles a lane ",
+     "each lane of a one-block-per-world frame taking K particles a substep, each K"),
+)
 
 
 def hanging_cloth(n: int, device, worlds: int = 1, evaluation: str = "auto") -> ws.Model:
@@ -233,23 +247,12 @@ def main():
     parser.add_argument("--where", action="store_true",
                         help="also the default guard read after each frame, not read at all, and with its check apart "
                              "from a one-launch frame: where a default frame's time goes")
-    parser.add_argument("--min-blocks", type=int, nargs="*", default=[],
-                        help="also the default and guard off with the one-launch frame kernel's registers bounded so "
-                             "that K blocks of 256 threads fit a multiprocessor (SymplecticEuler.FRAME_MIN_BLOCKS), "
-                             "each K (0: no bound, the compiler's choice): what its occupancy is worth")
-    parser.add_argument("--step-min-blocks", type=int, nargs="*", default=[],
-                        help="also the default and guard off with symplectic Euler's per-substep fused step's registers "
-                             "bounded so that K blocks fit a multiprocessor (SymplecticEuler.STEP_MIN_BLOCKS), each K "
-                             "(0: no bound)")
     parser.add_argument("--check-at-end", action="store_true",
                         help="also the default with the check of a one-launch frame at the frame kernel's end rather "
                              "than in a launch of its own (SymplecticEuler.CHECK_LAUNCH_APART off)")
-    parser.add_argument("--check-min-blocks", type=int, nargs="*", default=[],
-                        help="also the default and guard off with the register bound of the check's own launch after "
-                             "a one-launch frame (SymplecticEuler.CHECK_MIN_BLOCKS), each K (0: the compiler's choice)")
-    parser.add_argument("--particles-per-lane", type=int, nargs="*", default=[],
-                        help="also the default and guard off with each lane of a one-block-per-world frame taking K "
-                             "particles a substep (SymplecticEuler.ONE_LAUNCH_PARTICLES_PER_LANE), each K")
+    for flag, name, _, text in STUDIES:
+        parser.add_argument(flag, type=int, nargs="*", default=[],
+                            help=f"also the default and guard off with {text} (SymplecticEuler.{name})")
     parser.add_argument("--kernels", action="store_true",
                         help="also list each kernel's device time per frame, guard off and default (CUDA, uncaptured)")
     parser.add_argument("--out", default=None, help="also write the table to this file")
@@ -266,9 +269,7 @@ def main():
              "|---|---|---|---|---|---|---|---|---|"]
     notes = []
     # The register bounds timed beside the shipped ones: the one-launch frame's and the per-substep step's.
-    bound_studies = (("FRAME_MIN_BLOCKS", "", args.min_blocks), ("STEP_MIN_BLOCKS", "step ", args.step_min_blocks),
-                     ("ONE_LAUNCH_PARTICLES_PER_LANE", "particles a lane ", args.particles_per_lane),
-                     ("CHECK_MIN_BLOCKS", "check ", args.check_min_blocks))
+    bound_studies = tuple((name, tag, getattr(args, flag[2:].replace("-", "_"))) for flag, name, tag, _ in STUDIES)
     scenes = [(f"{n}²", n, 1) for n in args.sizes] + [(f"{w} × 32²", 32, w) for w in args.worlds_sizes]
     for label, n, worlds in scenes:
         for integrator in args.integrators:
@@ -369,11 +370,11 @@ def main():
             for name, tag, blocks in bound_studies:
                 if not blocks:
                     continue
-                bounded = ", ".join(f"{k} blocks: default {frame[f'default {tag}≤{k}']:.1f}, "
+                bounded = ", ".join(f"{name} = {k}: default {frame[f'default {tag}≤{k}']:.1f}, "
                                     f"off {frame[f'off {tag}≤{k}']:.1f}" for k in blocks)
                 notes.append(f"- {label}, {integrator}: µs per frame, as shipped ({name} = "
                              f"{getattr(ws.SymplecticEuler, name)}): default {frame['default']:.1f}, off "
-                             f"{frame['off']:.1f}; with {bounded} (0 blocks: the compiler's choice)")
+                             f"{frame['off']:.1f}; with {bounded}")
                 print(notes[-1], flush=True)
             if args.probe:
                 probe = statistics.median(off / p for off, p in zip(times["off"], times["probe"]))
