@@ -78,11 +78,11 @@ class Run:
     (on a GPU the next frame's launch then waits for the host)."""
 
     def __init__(self, model: ws.Model, integrator: str, guard, probe: bool = False, defer_verdict: bool | None = None,
-                 bounds: dict | None = None):
+                 settings: dict | None = None):
         stepper = ws.make_integrator(integrator, model)
-        # The kernels' register bounds other than shipped (``SymplecticEuler.FRAME_MIN_BLOCKS``, ``STEP_MIN_BLOCKS``).
-        for name, blocks in (bounds or {}).items():
-            setattr(stepper, name, blocks)
+        # The stepper's settings other than shipped (``STUDIES``, ``--check-at-end``).
+        for name, value in (settings or {}).items():
+            setattr(stepper, name, value)
         self.sim = ws.Simulator(model, fps=FPS, substeps=SUBSTEPS, guard=guard, defer_verdict=defer_verdict,
                                 integrator=stepper)
         self.probe = wp.zeros((model.world_count, 7), dtype=wp.int32, device=model.device) if probe else None
@@ -268,8 +268,8 @@ def main():
              "| spread off / default | default ÷ off | Newton [substeps/s] | default ÷ Newton |",
              "|---|---|---|---|---|---|---|---|---|"]
     notes = []
-    # The register bounds timed beside the shipped ones: the one-launch frame's and the per-substep step's.
-    bound_studies = tuple((name, tag, getattr(args, flag[2:].replace("-", "_"))) for flag, name, tag, _ in STUDIES)
+    # The stepper's settings timed beside the shipped ones (``STUDIES``).
+    studies = tuple((name, tag, getattr(args, flag[2:].replace("-", "_"))) for flag, name, tag, _ in STUDIES)
     scenes = [(f"{n}²", n, 1) for n in args.sizes] + [(f"{w} × 32²", 32, w) for w in args.worlds_sizes]
     for label, n, worlds in scenes:
         for integrator in args.integrators:
@@ -289,14 +289,15 @@ def main():
             if args.where:
                 makers["no host read"] = lambda: unread(Run(cloth(), integrator, ws.GuardLimits()))
                 makers["check apart"] = lambda: check_apart(lambda: Run(cloth(), integrator, ws.GuardLimits()))
-            for name, tag, blocks in bound_studies:
-                for k in blocks:  # (0: the compiler's choice, no bound)
+            for name, tag, values in studies:
+                for k in values:  # (a register bound's 0: the compiler's choice, no bound)
                     setting = {name: k or None}
-                    makers[f"default {tag}≤{k}"] = lambda s=setting: Run(cloth(), integrator, ws.GuardLimits(), bounds=s)
-                    makers[f"off {tag}≤{k}"] = lambda s=setting: Run(cloth(), integrator, None, bounds=s)
+                    makers[f"default {tag}{k}"] = lambda s=setting: Run(cloth(), integrator, ws.GuardLimits(),
+                                                                        settings=s)
+                    makers[f"off {tag}{k}"] = lambda s=setting: Run(cloth(), integrator, None, settings=s)
             if args.check_at_end:
                 makers["check at end"] = lambda: Run(cloth(), integrator, ws.GuardLimits(),
-                                                     bounds={"CHECK_LAUNCH_APART": {True: False, False: False}})
+                                                     settings={"CHECK_LAUNCH_APART": {True: False, False: False}})
             if args.parts:
                 makers["no dissipation"] = lambda: Run(cloth(), integrator, ws.GuardLimits(dissipation=False))
                 makers["no balance"] = lambda: Run(cloth(), integrator, ws.GuardLimits(energy_balance=0.0))
@@ -367,11 +368,11 @@ def main():
                                              sorted(listed.items(), key=lambda item: -item[1][1])))
                     print(notes[-1], flush=True)
             frame = {name: 1e6 * statistics.median(t) for name, t in times.items()}
-            for name, tag, blocks in bound_studies:
-                if not blocks:
+            for name, tag, values in studies:
+                if not values:
                     continue
-                bounded = ", ".join(f"{name} = {k}: default {frame[f'default {tag}≤{k}']:.1f}, "
-                                    f"off {frame[f'off {tag}≤{k}']:.1f}" for k in blocks)
+                bounded = ", ".join(f"{name} = {k}: default {frame[f'default {tag}{k}']:.1f}, "
+                                    f"off {frame[f'off {tag}{k}']:.1f}" for k in values)
                 notes.append(f"- {label}, {integrator}: µs per frame, as shipped ({name} = "
                              f"{getattr(ws.SymplecticEuler, name)}): default {frame['default']:.1f}, off "
                              f"{frame['off']:.1f}; with {bounded}")
